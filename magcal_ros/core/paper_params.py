@@ -1,0 +1,401 @@
+"""Conversions between the general per-sensor model and each source paper's parameters.
+
+The package's general per-sensor forward model is ``raw = A @ B + o``, with ``A`` (3, 3)
+dimensionless and ``o`` (3,) in nT, ``B`` the field in the array frame (sensor 1's ideal
+orthogonal frame). Each paper parametrises ``A`` differently:
+
+- paper 004 (eq. 2-3): ``A = S C_NO R``, ``S = diag(kx, ky, kz)``, ``C_NO`` upper triangular
+  (z axis reference), ``R = R1(gamma) R2(beta) R3(alpha)`` the misalignment to sensor 1;
+- paper 000 (eq. 1): ``A`` lower triangular (x axis reference) with angles alpha, beta, gamma
+  and scale factors kx, ky, kz; a general ``A`` is ``L Q`` with ``Q`` orthogonal;
+- paper 002 (eq. 4): ``Hm = K He + Hh``, i.e. ``A = K``, ``o = Hh`` directly.
+
+All angles are in radians, offsets in nT.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg
+
+
+def _check_general(a, o):
+    a = np.asarray(a, dtype=float)
+    o = np.asarray(o, dtype=float)
+    if a.shape != (3, 3):
+        raise ValueError('A must have shape (3, 3), got %s' % (a.shape,))
+    if o.shape != (3,):
+        raise ValueError('o must have shape (3,), got %s' % (o.shape,))
+    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(o))):
+        raise ValueError('A and o must be finite')
+    if np.linalg.matrix_rank(a) < 3:
+        raise ValueError('A is singular: it cannot be a sensor response matrix')
+    return a, o
+
+
+def _check_proper(q, what):
+    if np.linalg.det(q) < 0.0:
+        raise ValueError(
+            'det(A) < 0: the sensor axes form a left-handed set (an axis sign or wiring '
+            'swap?), which %s cannot represent with positive scale factors; flip the sign '
+            'of the reversed axis first' % what)
+
+
+def _vec3(value, name):
+    v = np.array(value, dtype=float).reshape(-1)
+    if v.shape != (3,):
+        raise ValueError('%s must have 3 elements, got shape %s'
+                         % (name, np.shape(value)))
+    return v
+
+
+# --------------------------------------------------------------------------------------
+# paper 004
+# --------------------------------------------------------------------------------------
+
+def rot_r1(gamma):
+    """Paper 004 eq. 3: R1(gamma), rotation about y. Returns (3, 3)."""
+    c, s = np.cos(gamma), np.sin(gamma)
+    return np.array([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]])
+
+
+def rot_r2(beta):
+    """Paper 004 eq. 3: R2(beta), rotation about x. Returns (3, 3)."""
+    c, s = np.cos(beta), np.sin(beta)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, s], [0.0, -s, c]])
+
+
+def rot_r3(alpha):
+    """Paper 004 eq. 3: R3(alpha), rotation about z. Returns (3, 3)."""
+    c, s = np.cos(alpha), np.sin(alpha)
+    return np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+@dataclass(frozen=True, eq=False)
+class Paper004Params:
+    """Paper 004 single-sensor error model plus misalignment (eq. 2-3).
+
+    ``raw = S C_NO R B + b``, with ``B`` in sensor 1's ideal frame.
+
+    Attributes
+    ----------
+    kx, ky, kz : float
+        Scale factors (dimensionless), > 0.
+    psi, varphi, theta : float
+        Non-orthogonality angles in rad (z axis reference; psi: y axis tilt in the yz
+        plane, theta: x axis elevation out of the x0y0 plane, varphi: azimuth of its
+        projection).
+    b : numpy.ndarray
+        (3,) offset (zero drift) in nT.
+    alpha, beta, gamma : float
+        Misalignment angles in rad: sensor i's ideal frame is sensor 1's rotated by alpha
+        about z, then beta about x', then gamma about y''. Zero for sensor 1.
+    """
+
+    kx: float
+    ky: float
+    kz: float
+    psi: float
+    varphi: float
+    theta: float
+    b: np.ndarray
+    alpha: float = 0.0
+    beta: float = 0.0
+    gamma: float = 0.0
+
+    def __post_init__(self):
+        object.__setattr__(self, 'b', _vec3(self.b, 'b'))
+
+    @property
+    def scale(self):
+        """(3, 3) S = diag(kx, ky, kz), paper 004 eq. 2."""
+        return np.diag([self.kx, self.ky, self.kz])
+
+    @property
+    def nonorthogonality(self):
+        """(3, 3) C_NO of paper 004 eq. 2 (upper triangular, unit rows)."""
+        ct, st = np.cos(self.theta), np.sin(self.theta)
+        return np.array([[ct * np.cos(self.varphi), ct * np.sin(self.varphi), st],
+                         [0.0, np.cos(self.psi), np.sin(self.psi)],
+                         [0.0, 0.0, 1.0]])
+
+    @property
+    def rotation(self):
+        """(3, 3) R = R1(gamma) R2(beta) R3(alpha), sensor 1's frame to sensor i's (eq. 3)."""
+        return rot_r1(self.gamma) @ rot_r2(self.beta) @ rot_r3(self.alpha)
+
+    def to_general(self):
+        """Return ``(A (3, 3), o (3,) nT)`` with ``A = S C_NO R``, ``o = b``."""
+        return self.scale @ self.nonorthogonality @ self.rotation, self.b.copy()
+
+    def correction(self):
+        """Return the paper's correction pair ``(C^-1 (3, 3), R_corr (3, 3))``.
+
+        ``C^-1 = (S C_NO)^-1`` is upper triangular (what the Cholesky factor of paper 004
+        eq. 11-13 estimates); ``R_corr = R^T`` takes the single-sensor-corrected field
+        ``C^-1 (raw - b)`` into sensor 1's frame (what eq. 14 estimates).
+        """
+        c_inv = scipy.linalg.solve_triangular(self.scale @ self.nonorthogonality, np.eye(3))
+        return c_inv, self.rotation.T
+
+    @classmethod
+    def from_general(cls, a, o):
+        """Decompose a general ``(A, o)`` into paper 004 parameters.
+
+        ``A = U Q`` by RQ decomposition (``scipy.linalg.rq``), signs fixed so that
+        ``diag(U) > 0``; ``S`` = row norms of ``U`` (the rows of ``C_NO`` are unit vectors),
+        ``C_NO = S^-1 U``, ``R = Q``.
+
+        Parameters
+        ----------
+        a : array_like
+            (3, 3) response matrix, dimensionless, det > 0.
+        o : array_like
+            (3,) offset in nT.
+
+        Returns
+        -------
+        Paper004Params
+            With theta, psi, beta in [-pi/2, pi/2], varphi in (-pi/2, pi/2), alpha and gamma
+            in (-pi, pi].
+
+        Raises
+        ------
+        ValueError
+            If A is not a finite non-singular (3, 3) matrix or det(A) < 0.
+        """
+        a, o = _check_general(a, o)
+        u, q = scipy.linalg.rq(a)
+        d = np.sign(np.diag(u))
+        u = u * d[None, :]
+        q = d[:, None] * q
+        _check_proper(q, 'paper 004 (S C_NO R with R a rotation)')
+        k = np.linalg.norm(u, axis=1)
+        c = u / k[:, None]
+        return cls(
+            kx=float(k[0]), ky=float(k[1]), kz=float(k[2]),
+            psi=float(np.arctan2(c[1, 2], c[1, 1])),
+            varphi=float(np.arctan2(c[0, 1], c[0, 0])),
+            theta=float(np.arcsin(np.clip(c[0, 2], -1.0, 1.0))),
+            b=o.copy(),
+            # R = R1 R2 R3: R[1] = (-cb sa, cb ca, sb), R[0, 2] = -sg cb, R[2, 2] = cg cb
+            alpha=float(np.arctan2(-q[1, 0], q[1, 1])),
+            beta=float(np.arcsin(np.clip(q[1, 2], -1.0, 1.0))),
+            gamma=float(np.arctan2(-q[0, 2], q[2, 2])),
+        )
+
+
+#: Paper 004 Table 1: error parameters of the four simulated magnetometers
+#: (angles in rad, offsets in nT). Rows: kx, ky, kz, psi, varphi, theta, bx, by, bz,
+#: alpha, beta, gamma; columns: sensors 1..4.
+_TABLE1_004 = {
+    'kx': (1.013, 1.012, 1.019, 1.015),
+    'ky': (0.991, 1.015, 1.011, 1.008),
+    'kz': (1.007, 0.986, 0.982, 1.021),
+    'psi': (0.017, 0.013, -0.018, -0.016),
+    'varphi': (0.024, 0.019, 0.025, 0.018),
+    'theta': (-0.021, 0.015, 0.012, -0.028),
+    'bx': (25.0, -54.0, -16.0, 45.0),
+    'by': (85.0, 31.0, -29.0, 21.0),
+    'bz': (-32.0, 19.0, 55.0, -37.0),
+    'alpha': (0.0, -0.023, 0.021, -0.038),
+    'beta': (0.0, 0.025, -0.026, -0.028),
+    'gamma': (0.0, 0.028, 0.031, 0.034),
+}
+
+
+def _sensor_index(j):
+    if j not in (1, 2, 3, 4):
+        raise ValueError('paper 004 Table 1 has sensors 1..4, got %r' % (j,))
+    return j - 1
+
+
+def table1_sensor(j) -> Paper004Params:
+    """Return paper 004 Table 1's error parameters of sensor ``j`` (1..4).
+
+    Parameters
+    ----------
+    j : int
+        Sensor number, 1..4 (1 at +x, 2 at +y, 3 at -x, 4 at -y).
+
+    Returns
+    -------
+    Paper004Params
+        Angles in rad, offsets in nT, as printed in the table.
+    """
+    i = _sensor_index(j)
+    t = _TABLE1_004
+    return Paper004Params(
+        kx=t['kx'][i], ky=t['ky'][i], kz=t['kz'][i],
+        psi=t['psi'][i], varphi=t['varphi'][i], theta=t['theta'][i],
+        b=np.array([t['bx'][i], t['by'][i], t['bz'][i]]),
+        alpha=t['alpha'][i], beta=t['beta'][i], gamma=t['gamma'][i])
+
+
+def table1_correction(j):
+    """Return the correction paper 004's method should recover for sensor ``j`` (1..4).
+
+    The ellipsoid fit cannot see the misalignment (``A^T A``-type data are invariant to a
+    rotation of the field), so the Cholesky factor it returns is ``C^-1 = (S C_NO)^-1``,
+    upper triangular; the Procrustes step (eq. 14) then recovers ``R_corr = (R1 R2 R3)^T``,
+    which maps the single-sensor-corrected field of sensor j into sensor 1's frame. These
+    are the quantities of paper 004 Table 2 (whose R matrices are printed one column to
+    the left: the one under sensor 1 belongs to sensor 2, see SEEDS.md errata).
+
+    Parameters
+    ----------
+    j : int
+        Sensor number, 1..4.
+
+    Returns
+    -------
+    c_inv : numpy.ndarray
+        (3, 3) upper triangular, dimensionless.
+    r_corr : numpy.ndarray
+        (3, 3) rotation, dimensionless (identity for sensor 1).
+    """
+    return table1_sensor(j).correction()
+
+
+# --------------------------------------------------------------------------------------
+# paper 000
+# --------------------------------------------------------------------------------------
+
+@dataclass(frozen=True, eq=False)
+class Paper000Params:
+    """Paper 000 error model (eq. 1): lower-triangular response with the x axis as reference.
+
+    ``raw = L B + B0`` with ``B`` in the reference frame O-XYZ of paper 000's Fig. 1 (X along
+    the Xm axis, Ym in the OXY plane) and
+
+    ``L = [[kx, 0, 0], [ky sin a, ky cos a, 0], [kz cos b sin g, kz sin b sin g, kz cos g]]``.
+
+    Attributes
+    ----------
+    alpha : float
+        Xm-Ym non-orthogonality in rad (angle between Ym and Y; Ym tilts towards Xm for
+        alpha > 0).
+    beta : float
+        Azimuth in rad of the Zm axis' projection on OXY, measured from X towards Y.
+    gamma : float
+        Angle in rad between Zm and Z (>= 0 by convention; cos(phi) = cos(b) sin(g), phi the
+        angle between Xm and Zm).
+    kx, ky, kz : float
+        Scale factors, dimensionless, > 0.
+    B0 : numpy.ndarray
+        (3,) offsets (Bx0, By0, Bz0) in nT.
+    """
+
+    alpha: float
+    beta: float
+    gamma: float
+    kx: float
+    ky: float
+    kz: float
+    B0: np.ndarray
+
+    def __post_init__(self):
+        object.__setattr__(self, 'B0', _vec3(self.B0, 'B0'))
+
+    @property
+    def matrix(self):
+        """(3, 3) the lower-triangular response matrix of paper 000 eq. 1."""
+        sa, ca = np.sin(self.alpha), np.cos(self.alpha)
+        sb, cb = np.sin(self.beta), np.cos(self.beta)
+        sg, cg = np.sin(self.gamma), np.cos(self.gamma)
+        return np.array([[self.kx, 0.0, 0.0],
+                         [self.ky * sa, self.ky * ca, 0.0],
+                         [self.kz * cb * sg, self.kz * sb * sg, self.kz * cg]])
+
+    @property
+    def phi(self):
+        """Angle in rad between the Xm and Zm axes: cos(phi) = cos(beta) sin(gamma)."""
+        return float(np.arccos(np.cos(self.beta) * np.sin(self.gamma)))
+
+    def to_general(self):
+        """Return ``(A (3, 3), o (3,) nT)`` with A the eq. 1 matrix (reference frame = O-XYZ)."""
+        return self.matrix, self.B0.copy()
+
+    @classmethod
+    def from_general(cls, a, o):
+        """Decompose a general ``(A, o)`` into paper 000 parameters and a rotation.
+
+        ``A = L Q`` (LQ decomposition from ``scipy.linalg.qr`` of ``A^T``, signs fixed so
+        that ``diag(L) > 0``), ``L`` parametrised by eq. 1.
+
+        Parameters
+        ----------
+        a : array_like
+            (3, 3) response matrix, dimensionless, det > 0.
+        o : array_like
+            (3,) offset in nT.
+
+        Returns
+        -------
+        params : Paper000Params
+            gamma in [0, pi], alpha in (-pi/2, pi/2), beta in (-pi, pi] (0 when gamma = 0).
+        q : numpy.ndarray
+            (3, 3) rotation taking a vector from the frame of A into paper 000's reference
+            frame O-XYZ; ``A = params.matrix @ q`` (identity when A is already of eq. 1 form).
+
+        Raises
+        ------
+        ValueError
+            If A is not a finite non-singular (3, 3) matrix or det(A) < 0.
+        """
+        a, o = _check_general(a, o)
+        qt, rt = scipy.linalg.qr(a.T)
+        low = rt.T
+        q = qt.T
+        d = np.sign(np.diag(low))
+        low = low * d[None, :]
+        q = d[:, None] * q
+        _check_proper(q, 'paper 000 (L Q with Q a rotation)')
+        sin_g = float(np.hypot(low[2, 0], low[2, 1]))
+        beta = float(np.arctan2(low[2, 1], low[2, 0])) if sin_g > 0.0 else 0.0
+        params = cls(
+            alpha=float(np.arctan2(low[1, 0], low[1, 1])),
+            beta=beta,
+            gamma=float(np.arctan2(sin_g, low[2, 2])),
+            kx=float(low[0, 0]),
+            ky=float(np.hypot(low[1, 0], low[1, 1])),
+            kz=float(np.linalg.norm(low[2])),
+            B0=o.copy())
+        return params, q
+
+
+# --------------------------------------------------------------------------------------
+# paper 002
+# --------------------------------------------------------------------------------------
+
+@dataclass(frozen=True, eq=False)
+class Paper002Params:
+    """Paper 002 interference model (eq. 4): ``Hm = K He + Hh``.
+
+    Attributes
+    ----------
+    K : numpy.ndarray
+        (3, 3) soft-iron matrix ``I + D``, dimensionless.
+    Hh : numpy.ndarray
+        (3,) hard-iron field in nT.
+    """
+
+    K: np.ndarray
+    Hh: np.ndarray
+
+    def __post_init__(self):
+        k = np.array(self.K, dtype=float)
+        if k.shape != (3, 3):
+            raise ValueError('K must have shape (3, 3), got %s' % (k.shape,))
+        object.__setattr__(self, 'K', k)
+        object.__setattr__(self, 'Hh', _vec3(self.Hh, 'Hh'))
+
+    def to_general(self):
+        """Return ``(A, o) = (K, Hh)``: (3, 3) dimensionless and (3,) nT."""
+        return self.K.copy(), self.Hh.copy()
+
+    @classmethod
+    def from_general(cls, a, o):
+        """Return ``Paper002Params(K=A, Hh=o)`` for a (3, 3) A and a (3,) o in nT."""
+        a, o = _check_general(a, o)
+        return cls(K=a.copy(), Hh=o.copy())
