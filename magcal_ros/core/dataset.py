@@ -1,0 +1,87 @@
+"""In-memory form of a recording of an S-sensor array (the wide CSV of DESIGN.md contract 1)."""
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from magcal_ros.core.effects import SensorContext
+
+
+@dataclass
+class Dataset:
+    """Samples of S sensors taken at common epochs.
+
+    Attributes
+    ----------
+    t : numpy.ndarray
+        (N,) time in s, non-decreasing.
+    raw : numpy.ndarray
+        (S, N, 3) raw readings in nT, sensor axes; index 0 is sensor 1.
+    temp : numpy.ndarray or None
+        (S, N) sensor temperatures in degC (nan where a sensor has none).
+    ref_total : numpy.ndarray or None
+        (N,) scalar reference field magnitude in nT.
+    ref_vec : numpy.ndarray or None
+        (N, 3) reference field vector in nT (paper 002).
+    angle_deg : numpy.ndarray or None
+        (N,) turntable angle in degrees (paper 000).
+    plane : numpy.ndarray or None
+        (N,) str, which sensor plane is horizontal ('xy' or 'xz').
+    aux : dict of str to numpy.ndarray
+        Auxiliary channels 'aux_<name>' -> (N,), in their own units.
+    meta : dict
+        Free-form provenance (source file, simulator truth, ...).
+    """
+
+    t: np.ndarray
+    raw: np.ndarray
+    temp: np.ndarray | None = None
+    ref_total: np.ndarray | None = None
+    ref_vec: np.ndarray | None = None
+    angle_deg: np.ndarray | None = None
+    plane: np.ndarray | None = None
+    aux: dict = field(default_factory=dict)
+    meta: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.t = np.asarray(self.t, float)
+        self.raw = np.asarray(self.raw, float)
+        if self.raw.ndim == 2:
+            self.raw = self.raw[None]
+        if self.raw.ndim != 3 or self.raw.shape[2] != 3:
+            raise ValueError(f'raw must have shape (S, N, 3), got {self.raw.shape}')
+        if self.raw.shape[1] != self.t.shape[0]:
+            raise ValueError(f'raw has {self.raw.shape[1]} samples but t has {self.t.shape[0]}')
+
+    @property
+    def n_sensors(self):
+        """Number of sensors S."""
+        return self.raw.shape[0]
+
+    @property
+    def n_samples(self):
+        """Number of epochs N."""
+        return self.raw.shape[1]
+
+    def context(self, j):
+        """:class:`SensorContext` of sensor ``j`` (1-based), with d(raw)/dt in nT/s."""
+        raw = self.raw[j - 1]
+        rate = None
+        if self.n_samples >= 3 and np.all(np.diff(self.t) > 0):
+            rate = np.gradient(raw, self.t, axis=0)
+        temp = None if self.temp is None else self.temp[j - 1]
+        if temp is not None and not np.isfinite(temp).any():
+            temp = None
+        return SensorContext(t=self.t, temp=temp, aux=dict(self.aux), raw_rate=rate)
+
+    def subset(self, idx):
+        """A new Dataset with the epochs ``idx`` (index array or boolean mask)."""
+        idx = np.asarray(idx)
+
+        def take(a, axis=0):
+            return None if a is None else np.take(a, np.flatnonzero(idx) if idx.dtype == bool
+                                                   else idx, axis=axis)
+        return replace(
+            self, t=take(self.t), raw=take(self.raw, 1), temp=take(self.temp, 1),
+            ref_total=take(self.ref_total), ref_vec=take(self.ref_vec),
+            angle_deg=take(self.angle_deg), plane=take(self.plane),
+            aux={k: take(v) for k, v in self.aux.items()}, meta=dict(self.meta))

@@ -1,0 +1,869 @@
+"""Composable calibration models of a magnetometer array and their maximum-likelihood fit.
+
+A :class:`Model` is a list of effects per sensor (see :mod:`magcal_ros.core.effects`).
+:func:`fit` estimates its parameters from rotation data in a uniform field:
+
+1. closed-form start (paper 004 section 3): ellipsoid fit + Cholesky per sensor (eq. 8-13),
+   orthogonal Procrustes into sensor 1's frame (eq. 14);
+2. maximum-likelihood refinement of all sensors jointly with ``scipy.optimize.least_squares``.
+   The noise is modelled on the raw readings: raw_jk = f_j(B_k) + e_jk, e ~ N(0, sigma_j^2 I),
+   with the unknown field B_k of epoch k constrained to the reference magnitude |B_k| = F_k.
+   B_k is a nuisance parameter, eliminated by variable projection: for given model
+   parameters it is estimated from all sensors (a Gauss-Newton step on the sphere |B| = F_k),
+   and the Jacobian of the model parameters is projected onto the complement of the
+   nuisance directions (Golub-Pereyra / Kaufman).  The same projected Jacobian gives the
+   parameter covariance (Cramer-Rao bound at the solution).
+
+With one sensor, or with sensors that are not tied together by a misalignment term, this is
+the usual scalar calibration (each sensor's own field estimate); with misalignment on the
+other sensors the sensors share one field per epoch, which uses both the scalar constraint and
+the inter-sensor vector consistency.
+"""
+from dataclasses import dataclass, field
+import hashlib
+
+import numpy as np
+from scipy.linalg import rq
+from scipy.optimize import least_squares
+
+from magcal_ros.core import effects as fx
+from magcal_ros.core.ellipsoid import fit_ellipsoid, procrustes_rotation
+
+LINEAR_ORDER = ('scale', 'nonorthogonality', 'soft_iron', 'misalignment')
+
+
+class DegenerateDataError(ValueError):
+    """The data cannot determine the model: the message names what is missing."""
+
+
+# -- model ----------------------------------------------------------------------------------
+
+class Model:
+    """Effects per sensor, with a flat parameter vector.
+
+    Parameters
+    ----------
+    effects : list of list of Effect
+        ``effects[j-1]`` are the effects of sensor j.
+    """
+
+    def __init__(self, effects):
+        self.effects = [list(e) for e in effects]
+        self._layout()
+
+    def _layout(self):
+        self.slices = []
+        self.sensor_slices = []
+        i = 0
+        for sensor_effects in self.effects:
+            start = i
+            row = []
+            for eff in sensor_effects:
+                row.append(slice(i, i + eff.n_params))
+                i += eff.n_params
+            self.slices.append(row)
+            self.sensor_slices.append(slice(start, i))
+        self.n_params = i
+
+    @property
+    def n_sensors(self):
+        """Number of sensors S."""
+        return len(self.effects)
+
+    @classmethod
+    def from_spec(cls, spec, n_sensors):
+        """Build a model from a comma-separated spec (DESIGN.md contract 2).
+
+        ``base`` expands to offset, scale, nonorthogonality, misalignment; ``name@j``
+        restricts an effect to sensor j; ``aux:<column>`` couples an auxiliary channel.
+        Misalignment on sensor 1 is dropped: sensor 1 defines the array frame.
+        """
+        tokens = spec if isinstance(spec, (list, tuple)) else str(spec).split(',')
+        tokens = [t.strip() for t in tokens if t.strip()]
+        if not tokens:
+            raise ValueError('empty model: give at least one effect, e.g. --model base')
+        per_sensor = [[] for _ in range(n_sensors)]
+        seen = [set() for _ in range(n_sensors)]
+        for tok in tokens:
+            name, _, where = tok.partition('@')
+            names = fx.BASE if name == 'base' else (name,)
+            if where:
+                try:
+                    sensors = [int(where)]
+                except ValueError:
+                    raise ValueError(f'bad sensor in {tok!r}: expected name@<1..{n_sensors}>')
+                if not 1 <= sensors[0] <= n_sensors:
+                    raise ValueError(f'{tok!r}: sensor {sensors[0]} does not exist '
+                                     f'(the data have sensors 1..{n_sensors})')
+            else:
+                sensors = range(1, n_sensors + 1)
+            for nm in names:
+                for j in sensors:
+                    if nm == 'misalignment' and j == 1:
+                        continue
+                    eff = fx.make_effect(nm, j)
+                    if eff.label in seen[j - 1]:
+                        continue
+                    clash = [o for o in seen[j - 1] if o in eff.excludes]
+                    if clash:
+                        raise ValueError(
+                            f'{eff.label} and {clash[0]} on sensor {j} describe the same '
+                            f'degrees of freedom: {fx.SoftIron.__doc__.splitlines()[0]}; '
+                            'use one or the other')
+                    seen[j - 1].add(eff.label)
+                    per_sensor[j - 1].append(eff)
+        for row in per_sensor:
+            row.sort(key=lambda e: (e.kind != 'linear',
+                                    LINEAR_ORDER.index(e.name) if e.name in LINEAR_ORDER
+                                    else 0))
+        return cls(per_sensor)
+
+    def spec(self):
+        """Canonical list of effect tokens (``name`` or ``name@j``)."""
+        out = []
+        labels = [[e.label for e in row] for row in self.effects]
+        all_labels = []
+        for row in labels:
+            for lab in row:
+                if lab not in all_labels:
+                    all_labels.append(lab)
+        for lab in all_labels:
+            have = [j + 1 for j, row in enumerate(labels) if lab in row]
+            expected = list(range(2 if lab == 'misalignment' else 1, self.n_sensors + 1))
+            if have == expected:
+                out.append(lab)
+            else:
+                out.extend(f'{lab}@{j}' for j in have)
+        return out
+
+    def with_effect(self, token):
+        """A new model with ``token`` (e.g. 'temperature@2') added."""
+        return Model.from_spec(self.spec() + [token], self.n_sensors)
+
+    def has(self, j, name):
+        """True if sensor j has an effect with this label or name."""
+        return any(e.label == name or e.name == name for e in self.effects[j - 1])
+
+    @property
+    def joint(self):
+        """True if sensors are tied to one field per epoch (misalignment/soft iron on j > 1)."""
+        return self.n_sensors > 1 and any(
+            self.has(j, 'misalignment') or self.has(j, 'soft_iron')
+            for j in range(2, self.n_sensors + 1))
+
+    def default_params(self):
+        """(n_params,) parameters of ideal sensors."""
+        p = np.zeros(self.n_params)
+        for j, row in enumerate(self.effects):
+            for eff, sl in zip(row, self.slices[j]):
+                p[sl] = eff.default_params()
+        return p
+
+    def param_info(self):
+        """List of (sensor, effect label, name, unit) for each parameter."""
+        out = []
+        for j, row in enumerate(self.effects):
+            for eff in row:
+                for nm, un in zip(eff.param_names, eff.units):
+                    out.append((j + 1, eff.label, nm, un))
+        return out
+
+    def prepare(self, contexts):
+        """Let effects compute their reference values (mean temperature, t0, ...)."""
+        for row, ctx in zip(self.effects, contexts):
+            for eff in row:
+                eff.prepare(ctx)
+
+    def check(self, contexts):
+        """Reasons why effects cannot be excited by the data (empty list if all fine)."""
+        out = []
+        for row, ctx in zip(self.effects, contexts):
+            for eff in row:
+                why = eff.check(ctx)
+                if why:
+                    out.append(f'{eff.label}@{eff.sensor}: {why}')
+        return out
+
+    # -- evaluation ------------------------------------------------------------------------
+
+    def matrix(self, j, p):
+        """(3, 3) linear map A_j of sensor j for the global parameter vector p."""
+        a = np.eye(3)
+        for eff, sl in zip(self.effects[j - 1], self.slices[j - 1]):
+            if eff.kind == 'linear':
+                a = a @ eff.matrix(p[sl])
+        return a
+
+    def additive(self, j, p, ctx, lin):
+        """(N, 3) nT sum of the additive effects of sensor j."""
+        out = np.zeros_like(lin)
+        for eff, sl in zip(self.effects[j - 1], self.slices[j - 1]):
+            if eff.kind != 'linear':
+                out = out + eff.contribution(p[sl], ctx, lin)
+        return out
+
+    def forward(self, j, p, b, ctx):
+        """Raw reading of sensor j (N, 3) nT for true field b (N, 3) nT in the array frame."""
+        lin = b @ self.matrix(j, p).T
+        return lin + self.additive(j, p, ctx, lin)
+
+    def correct(self, j, p, raw, ctx, n_iter=4):
+        """Invert :meth:`forward`: corrected field (N, 3) nT in the array frame.
+
+        Additive effects that depend on the field itself (temperature scale, nonlinearity)
+        are inverted by fixed-point iteration, which converges at rate |effect/field|.
+        """
+        raw = np.asarray(raw, float)
+        a_inv = np.linalg.inv(self.matrix(j, p))
+        lin = raw - self.additive(j, p, ctx, raw)
+        if any(e.depends_on_lin() for e in self.effects[j - 1]):
+            for _ in range(n_iter):
+                lin = raw - self.additive(j, p, ctx, lin)
+        return lin @ a_inv.T
+
+    def params_from_linear(self, j, a, o, p=None):
+        """Set sensor j's linear and offset parameters from A (3, 3) and o (3,) nT.
+
+        A is decomposed as A = U Q (RQ decomposition, U upper triangular with positive
+        diagonal): U gives scale and nonorthogonality, Q the misalignment (paper 004 eq. 2-3).
+        Effects the model lacks are dropped (their part of A is not representable).
+        """
+        p = self.default_params() if p is None else p.copy()
+        u, q = rq(a)
+        sign = np.sign(np.diag(u))
+        u = u * sign[None, :]
+        q = sign[:, None] * q
+        if np.linalg.det(q) < 0:
+            q = -q
+            u = -u
+        k, psi, varphi, theta = fx.upper_to_scale_nonorth(u)
+        for eff, sl in zip(self.effects[j - 1], self.slices[j - 1]):
+            if eff.name == 'scale':
+                p[sl] = k
+            elif eff.name == 'nonorthogonality':
+                p[sl] = (psi, varphi, theta)
+            elif eff.name == 'misalignment':
+                p[sl] = fx.misalignment_angles(q)
+            elif eff.name == 'soft_iron':
+                p[sl] = a[np.triu_indices(3)] if j == 1 else a.ravel()
+            elif eff.name == 'offset':
+                p[sl] = o
+        return p
+
+
+# -- fit ------------------------------------------------------------------------------------
+
+@dataclass
+class FitResult:
+    """Outcome of :func:`fit` (attributes that end in _nt are in nT).
+
+    Attributes
+    ----------
+    model : Model
+    params : numpy.ndarray
+        (P,) estimated parameters (units in ``model.param_info()``).
+    stderr : numpy.ndarray
+        (P,) standard uncertainties from the projected Jacobian.
+    covariance, correlation : numpy.ndarray
+        (P, P).
+    sigma_nt : numpy.ndarray
+        (S,) per-sensor noise standard deviation estimated from the residuals, nT.
+    field_nt : numpy.ndarray
+        (N, 3) estimated true field per epoch (array frame), nT.
+    field_magnitude_nt : numpy.ndarray
+        (N,) reference magnitude used, nT.
+    corrected_nt : numpy.ndarray
+        (S, N, 3) corrected readings in the array frame, nT.
+    residual_nt : numpy.ndarray
+        (S, N, 3) raw reading minus model prediction, nT.
+    scalar_residual_nt : numpy.ndarray
+        (S, N) |corrected| - reference magnitude, nT.
+    vector_residual_nt : numpy.ndarray
+        (S, N, 3) corrected_j - corrected_1, nT (zero for sensor 1).
+    downweighted : numpy.ndarray
+        (S,) number of sensor samples the robust loss down-weighted.
+    """
+
+    model: Model
+    params: np.ndarray
+    stderr: np.ndarray
+    covariance: np.ndarray
+    correlation: np.ndarray
+    sigma_nt: np.ndarray
+    field_nt: np.ndarray
+    field_magnitude_nt: np.ndarray
+    corrected_nt: np.ndarray
+    residual_nt: np.ndarray
+    scalar_residual_nt: np.ndarray
+    vector_residual_nt: np.ndarray
+    downweighted: np.ndarray
+    success: bool
+    status: int
+    message: str
+    nfev: int
+    n_fit_samples: int
+    chi2: float
+    n_obs: int
+    warnings: list = field(default_factory=list)
+    identifiability: dict = field(default_factory=dict)
+    initial_params: np.ndarray | None = None
+    contexts: list | None = None
+
+    @property
+    def n_params(self):
+        """Number of free parameters."""
+        return self.model.n_params
+
+    @property
+    def scalar_rms_nt(self):
+        """{sensor: RMS of the scalar residual} in nT."""
+        return {j + 1: float(np.sqrt(np.mean(r ** 2)))
+                for j, r in enumerate(self.scalar_residual_nt)}
+
+    @property
+    def vector_rms_nt(self):
+        """{sensor j > 1: per-component RMS of corrected_j - corrected_1} in nT."""
+        return {j + 1: float(np.sqrt(np.mean(self.vector_residual_nt[j] ** 2)))
+                for j in range(1, self.model.n_sensors)}
+
+    @property
+    def bic(self):
+        """Bayesian information criterion chi2 + P ln(n_obs) (noise levels held fixed)."""
+        return float(self.chi2 + self.n_params * np.log(self.n_obs))
+
+    @property
+    def aic(self):
+        """Akaike information criterion chi2 + 2 P."""
+        return float(self.chi2 + 2 * self.n_params)
+
+    @property
+    def calibration(self):
+        """The :class:`Calibration` (model + parameters) for live correction."""
+        return Calibration(self.model, self.params, self.stderr, self.sigma_nt)
+
+    def param_table(self):
+        """List of dicts: sensor, effect, name, unit, value, stderr."""
+        return [dict(sensor=s, effect=e, name=n, unit=u, value=float(v), stderr=float(se))
+                for (s, e, n, u), v, se in zip(self.model.param_info(), self.params,
+                                                self.stderr)]
+
+    def summary(self):
+        """Short text report."""
+        lines = [f'model: {",".join(self.model.spec())}  ({self.n_params} parameters, '
+                 f'{self.n_fit_samples} epochs fitted)',
+                 f'converged: {self.success} ({self.message})']
+        for j, r in self.scalar_rms_nt.items():
+            v = self.vector_rms_nt.get(j)
+            lines.append(f'  sensor {j}: scalar RMS {r:8.2f} nT, sigma {self.sigma_nt[j-1]:.2f} nT'
+                         + (f', vector RMS vs sensor 1 {v:8.2f} nT' if v is not None else ''))
+        for i, w in enumerate(self.warnings, 1):
+            lines.append(f'[{i}] {w}')
+        return '\n'.join(lines)
+
+
+class Calibration:
+    """A fitted model for live correction.
+
+    Parameters
+    ----------
+    model : Model
+    params : numpy.ndarray
+        (P,) parameter vector.
+    stderr : numpy.ndarray, optional
+        (P,) standard uncertainties.
+    sigma_nt : numpy.ndarray, optional
+        (S,) per-sensor noise in nT.
+    """
+
+    def __init__(self, model, params, stderr=None, sigma_nt=None):
+        self.model = model
+        self.params = np.asarray(params, float)
+        self.stderr = np.zeros_like(self.params) if stderr is None else np.asarray(stderr)
+        self.sigma_nt = (np.full(model.n_sensors, np.nan) if sigma_nt is None
+                         else np.asarray(sigma_nt, float))
+
+    @property
+    def n_sensors(self):
+        """Number of sensors."""
+        return self.model.n_sensors
+
+    def matrix(self, j):
+        """(3, 3) forward linear map A_j of sensor j."""
+        return self.model.matrix(j, self.params)
+
+    def correction_matrix(self, j):
+        """(3, 3) A_j^-1: corrected = A_j^-1 (raw - offset - driven)."""
+        return np.linalg.inv(self.matrix(j))
+
+    def offset(self, j):
+        """(3,) nT constant offset of sensor j (zero if the model has none)."""
+        for eff, sl in zip(self.model.effects[j - 1], self.model.slices[j - 1]):
+            if eff.name == 'offset':
+                return self.params[sl].copy()
+        return np.zeros(3)
+
+    def intrinsic_and_rotation(self, j):
+        """(C^-1 (3, 3) upper triangular, R (3, 3)) with A_j^-1 = R C^-1 (paper 004 eq. 5, 14).
+
+        R takes sensor j's corrected field into sensor 1's frame (identity for sensor 1).
+        """
+        u, q = rq(self.matrix(j))
+        sign = np.sign(np.diag(u))
+        u, q = u * sign[None, :], sign[:, None] * q
+        if np.linalg.det(q) < 0:
+            u, q = -u, -q
+        return np.linalg.inv(u), q.T
+
+    def driven_effects(self, j):
+        """Labels of the effects of sensor j that need live signals (temperature, aux, ...)."""
+        return [e.label for e in self.model.effects[j - 1]
+                if e.kind != 'linear' and e.name != 'offset']
+
+    def correct(self, j, raw, ctx=None):
+        """Corrected field of sensor j in the array frame.
+
+        Parameters
+        ----------
+        j : int
+            Sensor, 1-based.
+        raw : numpy.ndarray
+            (N, 3) or (3,) raw reading in nT.
+        ctx : SensorContext, optional
+            Driving signals; required when the model has driven effects.
+        """
+        raw = np.asarray(raw, float)
+        one = raw.ndim == 1
+        raw2 = raw[None] if one else raw
+        if ctx is None:
+            if self.driven_effects(j):
+                raise ValueError(f'sensor {j} has driven effects {self.driven_effects(j)}: '
+                                 'pass their signals in ctx')
+            ctx = fx.SensorContext(t=np.zeros(len(raw2)))
+        out = self.model.correct(j, self.params, raw2, ctx)
+        return out[0] if one else out
+
+    def correct_dataset(self, data):
+        """(S, N, 3) nT corrected readings of every sensor of a Dataset."""
+        return np.stack([self.correct(j, data.raw[j - 1], data.context(j))
+                         for j in range(1, self.n_sensors + 1)])
+
+
+def _tangent_basis(u):
+    """Two unit vectors (N, 3) each, orthogonal to the unit vectors u (N, 3) and to each other."""
+    helper = np.where(np.abs(u[:, :1]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
+    e1 = np.cross(u, helper)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(u, e1)
+    return e1, e2
+
+
+class _Problem:
+    """Residuals and projected Jacobian of the ML problem for one group of sensors."""
+
+    def __init__(self, model, data_raw, contexts, f_nt, sensors, sigma, priors):
+        self.model = model
+        self.raw = data_raw            # (S, N, 3)
+        self.ctx = contexts
+        self.f = f_nt                  # (N,)
+        self.sensors = sensors         # 1-based sensor numbers of this group
+        self.sigma = sigma             # (S,) nT
+        self.cols = np.concatenate([np.arange(model.n_params)[model.sensor_slices[j - 1]]
+                                    for j in sensors]).astype(int)
+        self.priors = priors           # list of (index, mean, sd) with index into full p
+        self._cache_key = None
+        self.p_full = model.default_params()
+
+    def full(self, x):
+        p = self.p_full.copy()
+        p[self.cols] = x
+        return p
+
+    def _field(self, p):
+        """Profile the field per epoch: mean of corrected readings, then GN steps on |B| = F."""
+        n = self.raw.shape[1]
+        acc = np.zeros((n, 3))
+        for j in self.sensors:
+            acc += self.model.correct(j, p, self.raw[j - 1], self.ctx[j - 1]) / self.sigma[j - 1] ** 2
+        u = acc / np.linalg.norm(acc, axis=1, keepdims=True)
+        b = u * self.f[:, None]
+        mats = {j: self.model.matrix(j, p) for j in self.sensors}
+        for _ in range(2):
+            u = b / self.f[:, None]
+            e1, e2 = _tangent_basis(u)
+            hess = np.zeros((n, 2, 2))
+            grad = np.zeros((n, 2))
+            for j in self.sensors:
+                r = (self.raw[j - 1] - self.model.forward(j, p, b, self.ctx[j - 1])) / self.sigma[j - 1]
+                g = np.stack([e1 @ mats[j].T, e2 @ mats[j].T], axis=2) * (
+                    self.f[:, None, None] / self.sigma[j - 1])            # (N, 3, 2) = -dr/d delta
+                hess += np.einsum('nci,ncj->nij', g, g)
+                grad += np.einsum('nci,nc->ni', g, r)
+            delta = np.linalg.solve(hess, grad[..., None])[..., 0]
+            b = b + self.f[:, None] * (delta[:, :1] * e1 + delta[:, 1:] * e2)
+            b = b / np.linalg.norm(b, axis=1, keepdims=True) * self.f[:, None]
+        return b, mats
+
+    def evaluate(self, x):
+        key = x.tobytes()
+        if key != self._cache_key:
+            p = self.full(x)
+            b, mats = self._field(p)
+            res = np.stack([(self.raw[j - 1] - self.model.forward(j, p, b, self.ctx[j - 1]))
+                            / self.sigma[j - 1] for j in self.sensors], axis=1)   # (N, G, 3)
+            self._cache = (p, b, mats, res)
+            self._cache_key = key
+        return self._cache
+
+    def residuals(self, x):
+        p, _, _, res = self.evaluate(x)
+        out = res.ravel()
+        if self.priors:
+            pr = np.array([(p[i] - m) / s for i, m, s in self.priors])
+            out = np.concatenate([out, pr])
+        return out
+
+    def jacobian(self, x):
+        p, b, mats, res = self.evaluate(x)
+        n, g = res.shape[0], len(self.sensors)
+        jac = np.zeros((n, g, 3, len(self.cols)))
+        col = 0
+        for gi, j in enumerate(self.sensors):
+            sl = self.model.sensor_slices[j - 1]
+            base = self.model.forward(j, p, b, self.ctx[j - 1])
+            for i in range(sl.start, sl.stop):
+                h = 1e-6 * max(1.0, abs(p[i]))
+                pp = p.copy()
+                pp[i] += h
+                jac[:, gi, :, col] = -(self.model.forward(j, pp, b, self.ctx[j - 1]) - base) / (
+                    h * self.sigma[j - 1])
+                col += 1
+        # project out the nuisance field directions (variable projection)
+        u = b / self.f[:, None]
+        e1, e2 = _tangent_basis(u)
+        gb = np.concatenate([np.stack([e1 @ mats[j].T, e2 @ mats[j].T], axis=2)
+                             * (self.f[:, None, None] / self.sigma[j - 1])
+                             for j in self.sensors], axis=1)           # (N, 3G, 2)
+        jac = jac.reshape(n, 3 * g, -1)
+        gtg = np.einsum('nci,ncj->nij', gb, gb)
+        gtj = np.einsum('nci,ncp->nip', gb, jac)
+        jac = jac - np.einsum('nci,nip->ncp', gb, np.linalg.solve(gtg, gtj))
+        jac = jac.reshape(n * 3 * g, -1)
+        if self.priors:
+            pr = np.zeros((len(self.priors), len(self.cols)))
+            where = {c: k for k, c in enumerate(self.cols)}
+            for r, (i, _, s) in enumerate(self.priors):
+                pr[r, where[i]] = 1.0 / s
+            jac = np.vstack([jac, pr])
+        return jac
+
+
+#: default priors of the constrained mode: (effect name, mean, standard deviation)
+DEFAULT_PRIORS = {'scale': (1.0, 0.02), 'nonorthogonality': (0.0, 0.02),
+                  'misalignment': (0.0, 0.05), 'soft_iron': (None, 0.02)}
+
+
+def _priors_for(model, spec):
+    """Prior list [(index, mean, sd)] from a {effect name: (mean, sd)} spec."""
+    out = []
+    default = model.default_params()
+    for j, row in enumerate(model.effects):
+        for eff, sl in zip(row, model.slices[j]):
+            if eff.name in spec:
+                mean, sd = spec[eff.name]
+                for i in range(sl.start, sl.stop):
+                    out.append((i, default[i] if mean is None else mean, sd))
+    return out
+
+
+def initial_params(raw, field_nt, model, constrained=False):
+    """Closed-form starting values (paper 004 section 3).
+
+    Per sensor: ellipsoid fit + Cholesky (eq. 8-13); Procrustes rotation of each corrected
+    sensor onto sensor 1 (eq. 14); A_j = C_j R_j^T.  In constrained mode (partial attitude
+    coverage, where the ellipsoid is ill-determined) A = I and only the offset is solved,
+    from the linear sphere fit |m - o|^2 = F^2.
+
+    Parameters
+    ----------
+    raw : numpy.ndarray
+        (S, N, 3) raw readings, nT.
+    field_nt : numpy.ndarray
+        (N,) reference magnitude, nT.
+    """
+    s = raw.shape[0]
+    f0 = float(np.mean(field_nt))
+    p = model.default_params()
+    corrected = []
+    mats = []
+    for j in range(1, s + 1):
+        m = raw[j - 1]
+        if constrained:
+            # |m|^2 = 2 m.o + (F^2 - |o|^2): linear in (o, c)
+            design = np.column_stack([2 * m, np.ones(len(m))])
+            sol, *_ = np.linalg.lstsq(design, (m ** 2).sum(1) - field_nt ** 2 + f0 ** 2,
+                                      rcond=None)
+            c_inv, o = np.eye(3), sol[:3]
+        else:
+            ell = fit_ellipsoid(m, f0)
+            c_inv, o = ell.c_inv, ell.b
+        corrected.append((m - o) @ c_inv.T)
+        mats.append((c_inv, o))
+    for j in range(1, s + 1):
+        c_inv, o = mats[j - 1]
+        rot = np.eye(3)
+        if j > 1 and (model.has(j, 'misalignment') or model.has(j, 'soft_iron')):
+            rot = procrustes_rotation(corrected[0], corrected[j - 1])       # eq. 14
+        a = np.linalg.inv(c_inv) @ rot.T
+        p = model.params_from_linear(j, a, o, p)
+    return p
+
+
+def field_magnitude(data, field_nt=None):
+    """(N,) reference magnitude in nT: ``field_nt`` (scalar or (N,)) or the data's ref_total."""
+    n = data.n_samples
+    if field_nt is not None:
+        f = np.broadcast_to(np.asarray(field_nt, float), (n,)).copy()
+    elif data.ref_total is not None:
+        f = np.asarray(data.ref_total, float)
+    else:
+        raise ValueError('no reference field magnitude: add a ref_total column, or give '
+                         '--field-nt or --igrf')
+    if not np.all(np.isfinite(f)) or np.any(f <= 0):
+        raise ValueError('the reference field magnitude must be finite and positive')
+    return f
+
+
+def _robust_sigma(x):
+    """Noise sd from the median absolute deviation (robust to outliers)."""
+    x = np.asarray(x, float).ravel()
+    return 1.4826 * np.median(np.abs(x - np.median(x)))
+
+
+def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=False,
+        priors=None, sigma_nt=None, on_degenerate='raise', max_fit_samples=20000,
+        init=None, max_nfev=200, check_identifiability=True):
+    """Maximum-likelihood fit of ``model`` to rotation data in a uniform field.
+
+    Parameters
+    ----------
+    data : Dataset
+        (S sensors, N epochs) raw readings in nT.
+    model : Model or str
+        Model or spec string ('base', 'base,temperature@2', ...).
+    field_nt : float or numpy.ndarray, optional
+        Reference magnitude in nT, scalar or (N,); default ``data.ref_total``.
+    robust : bool
+        Use the soft-L1 loss (outlier spikes); ``f_scale`` is in units of sigma.
+    constrained : bool
+        Constrained mode for partial attitude coverage: linear effects get the priors of
+        :data:`DEFAULT_PRIORS` (scale 1 +- 0.02, angles 0 +- 0.02 rad) and the start is A = I.
+    priors : dict, optional
+        {effect name: (mean or None for default, sd)} overriding the priors.
+    sigma_nt : float or numpy.ndarray, optional
+        Fixed per-sensor noise (nT); default: estimated from the residuals.
+    on_degenerate : {'raise', 'flag'}
+        Refuse (DegenerateDataError) or flag (warnings) data that cannot determine the model.
+    max_fit_samples : int or None
+        Fit on at most this many epochs, evenly spaced; residuals are reported for all.
+    init : numpy.ndarray, optional
+        (P,) starting parameters (default: closed-form start).
+
+    Returns
+    -------
+    FitResult
+    """
+    from magcal_ros.core import identifiability as idf
+
+    if isinstance(model, str):
+        model = Model.from_spec(model, data.n_sensors)
+    if model.n_sensors != data.n_sensors:
+        raise ValueError(f'model has {model.n_sensors} sensors, data have {data.n_sensors}')
+    if on_degenerate not in ('raise', 'flag'):
+        raise ValueError("on_degenerate must be 'raise' or 'flag'")
+    f_all = field_magnitude(data, field_nt)
+    raw_all = data.raw
+    if not np.all(np.isfinite(raw_all)):
+        bad = np.unique(np.nonzero(~np.isfinite(raw_all))[0]) + 1
+        raise ValueError(f'non-finite raw readings for sensor(s) {bad.tolist()}: drop those rows')
+    contexts_all = [data.context(j) for j in range(1, data.n_sensors + 1)]
+    model.prepare(contexts_all)
+    notes = []
+
+    def degenerate(msg):
+        if on_degenerate == 'raise':
+            raise DegenerateDataError(msg)
+        notes.append(msg)
+
+    for why in model.check(contexts_all):
+        degenerate(why)
+    n_min = max(12, int(np.ceil(2 * model.n_params / max(1, data.n_sensors))))
+    if data.n_samples < n_min:
+        raise DegenerateDataError(f'too few samples: {data.n_samples} epochs for '
+                                  f'{model.n_params} parameters; collect at least {n_min}')
+
+    ident = {}
+    if check_identifiability:
+        ident = idf.coverage_report(raw_all)
+        if ident['problems'] and not constrained:
+            degenerate(ident['problems'][0])
+
+    # subsample for the fit
+    idx = np.arange(data.n_samples)
+    if max_fit_samples and data.n_samples > max_fit_samples:
+        idx = np.unique(np.linspace(0, data.n_samples - 1, max_fit_samples).round().astype(int))
+    raw = raw_all[:, idx]
+    f = f_all[idx]
+    contexts = [c.subset(idx) for c in contexts_all]
+
+    if init is None:
+        try:
+            p0 = initial_params(raw, f, model, constrained=constrained)
+        except ValueError as exc:
+            if constrained:
+                raise
+            raise DegenerateDataError(f'{exc}. {ident.get("summary", "")}'.strip()) from exc
+    else:
+        p0 = np.asarray(init, float).copy()
+
+    prior_spec = dict(DEFAULT_PRIORS) if constrained else {}
+    prior_spec.update(priors or {})
+    prior_list = _priors_for(model, prior_spec)
+
+    groups = ([list(range(1, model.n_sensors + 1))] if model.joint
+              else [[j] for j in range(1, model.n_sensors + 1)])
+    sigma = (np.ones(model.n_sensors) * 3.0 if sigma_nt is None
+             else np.broadcast_to(np.asarray(sigma_nt, float), (model.n_sensors,)).copy())
+    fixed_sigma = sigma_nt is not None
+    p = p0.copy()
+    status, message, nfev, success = 0, '', 0, True
+    for it in range(3 if not fixed_sigma else 1):
+        if not fixed_sigma and it == 0:
+            # start from a robust noise estimate of the closed-form residuals
+            for j in range(1, model.n_sensors + 1):
+                corr = model.correct(j, p, raw[j - 1], contexts[j - 1])
+                sigma[j - 1] = max(_robust_sigma(np.linalg.norm(corr, axis=1) - f), 1e-3)
+        status, message, nfev, success = 0, '', 0, True
+        problems = []
+        for grp in groups:
+            pr = [t for t in prior_list if any(
+                model.sensor_slices[j - 1].start <= t[0] < model.sensor_slices[j - 1].stop
+                for j in grp)]
+            prob = _Problem(model, raw, contexts, f, grp, sigma, pr)
+            prob.p_full = p.copy()
+            x0 = p[prob.cols]
+            sol = least_squares(prob.residuals, x0, jac=prob.jacobian, x_scale='jac',
+                                loss='soft_l1' if robust else 'linear', f_scale=f_scale,
+                                max_nfev=max_nfev, method='trf')
+            p[prob.cols] = sol.x
+            problems.append(prob)
+            nfev += sol.nfev
+            success &= bool(sol.success)
+            status = sol.status
+            message = sol.message
+        if fixed_sigma:
+            break
+        # re-estimate the noise per sensor from the raw residuals
+        new_sigma = sigma.copy()
+        for prob in problems:
+            _, _, _, res = prob.evaluate(p[prob.cols])
+            g = len(prob.sensors)
+            dof_per = max(1.0, (3 * g - 2) / g * res.shape[0] - len(prob.cols) / g)
+            for gi, j in enumerate(prob.sensors):
+                r = res[:, gi] * sigma[j - 1]
+                if robust:
+                    new_sigma[j - 1] = _robust_sigma(r) * np.sqrt((3 * g - 2) / (3 * g))
+                else:
+                    new_sigma[j - 1] = np.sqrt(np.sum(r ** 2) / dof_per)
+        converged = np.all(np.abs(new_sigma / sigma - 1) < 0.05)
+        sigma = np.maximum(new_sigma, 1e-6)
+        if converged:
+            break
+
+    # covariance from the projected Jacobian at the solution
+    n_p = model.n_params
+    cov = np.zeros((n_p, n_p))
+    chi2 = 0.0
+    n_obs = 0
+    for grp in groups:
+        prob = _Problem(model, raw, contexts, f, grp, sigma, [t for t in prior_list if any(
+            model.sensor_slices[j - 1].start <= t[0] < model.sensor_slices[j - 1].stop
+            for j in grp)])
+        prob.p_full = p.copy()
+        x = p[prob.cols]
+        jac = prob.jacobian(x)
+        r = prob.residuals(x)
+        chi2 += float(np.sum(r ** 2))
+        n_obs += (3 * len(grp) - 2) * raw.shape[1]
+        jtj = jac.T @ jac
+        try:
+            cinv = np.linalg.pinv(jtj, rcond=1e-13)
+        except np.linalg.LinAlgError:
+            cinv = np.full_like(jtj, np.nan)
+        cov[np.ix_(prob.cols, prob.cols)] = cinv
+    stderr = np.sqrt(np.clip(np.diag(cov), 0, None))
+    with np.errstate(invalid='ignore', divide='ignore'):
+        corr = cov / np.outer(stderr, stderr)
+    corr[~np.isfinite(corr)] = 0.0
+
+    if check_identifiability:
+        jac_rep = idf.jacobian_report(model, cov, corr, constrained=constrained)
+        ident.update(jac_rep)
+        for prob_msg in jac_rep['problems']:
+            degenerate(prob_msg)
+
+    if not success:
+        notes.append(f'the optimiser did not converge: {message}')
+
+    # residuals on all samples
+    out = evaluate(model, p, data, f_all, sigma, contexts_all, robust=robust, f_scale=f_scale)
+    return FitResult(
+        model=model, params=p, stderr=stderr, covariance=cov, correlation=corr,
+        sigma_nt=sigma, field_nt=out['field'], field_magnitude_nt=f_all,
+        corrected_nt=out['corrected'], residual_nt=out['residual'],
+        scalar_residual_nt=out['scalar'], vector_residual_nt=out['vector'],
+        downweighted=out['downweighted'], success=success, status=status, message=message,
+        nfev=nfev, n_fit_samples=len(idx), chi2=chi2, n_obs=n_obs, warnings=notes,
+        identifiability=ident, initial_params=p0, contexts=contexts_all)
+
+
+def evaluate(model, p, data, f, sigma, contexts=None, robust=False, f_scale=3.0,
+             chunk=200000):
+    """Residuals of parameters ``p`` on all epochs of ``data`` (chunked for large N).
+
+    Returns a dict of arrays: field (N, 3), corrected (S, N, 3), residual (S, N, 3),
+    scalar (S, N), vector (S, N, 3), all in nT, and downweighted (S,) counts.
+    """
+    if contexts is None:
+        contexts = [data.context(j) for j in range(1, data.n_sensors + 1)]
+    s, n = data.n_sensors, data.n_samples
+    groups = ([list(range(1, s + 1))] if model.joint else [[j] for j in range(1, s + 1)])
+    field = np.zeros((n, 3))
+    residual = np.zeros((s, n, 3))
+    for start in range(0, n, chunk):
+        sl = slice(start, min(n, start + chunk))
+        idx = np.arange(sl.start, sl.stop)
+        ctx = [c.subset(idx) for c in contexts]
+        for grp in groups:
+            prob = _Problem(model, data.raw[:, sl], ctx, f[sl], grp, sigma, [])
+            prob.p_full = p.copy()
+            _, b, _, res = prob.evaluate(p[prob.cols])
+            field[sl] = b          # joint: shared; independent: last sensor's estimate
+            for gi, j in enumerate(grp):
+                residual[j - 1, sl] = res[:, gi] * sigma[j - 1]
+    corrected = np.stack([model.correct(j, p, data.raw[j - 1], contexts[j - 1])
+                          for j in range(1, s + 1)])
+    scalar = np.linalg.norm(corrected, axis=2) - f[None]
+    vector = corrected - corrected[:1]
+    down = np.zeros(s, int)
+    if robust:
+        down = (np.abs(residual / sigma[:, None, None]) > f_scale).any(axis=2).sum(axis=1)
+    return dict(field=field, corrected=corrected, residual=residual, scalar=scalar,
+                vector=vector, downweighted=down)
+
+
+def data_hash(data):
+    """SHA-256 of the raw readings and times (provenance)."""
+    h = hashlib.sha256()
+    h.update(np.ascontiguousarray(data.t).tobytes())
+    h.update(np.ascontiguousarray(data.raw).tobytes())
+    return h.hexdigest()
