@@ -1,0 +1,40 @@
+"""Atomic file replacement: temporary file in the same directory, fsync, rename."""
+import os
+import shutil
+import tempfile
+
+
+def atomic_write_text(path, text, backup=True, fsync=os.fsync):
+    """Write ``text`` to ``path`` so that readers see the old or the new file, never a mix.
+
+    The previous file, if any, is kept as ``<path>.bak`` when ``backup`` is true.  If anything
+    fails before the final rename the original file is untouched and the temporary is removed.
+    ``fsync`` is injectable so that tests can simulate a failing disk.
+    """
+    path = os.fspath(path)
+    directory = os.path.dirname(os.path.abspath(path))
+    os.makedirs(directory, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix='.' + os.path.basename(path) + '.', suffix='.tmp',
+                               dir=directory)
+    try:
+        with os.fdopen(fd, 'w', encoding='utf-8') as fh:
+            fh.write(text)
+            fh.flush()
+            fsync(fh.fileno())
+        if backup and os.path.exists(path):
+            shutil.copy2(path, path + '.bak')
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+    try:
+        dfd = os.open(directory, os.O_RDONLY)
+        try:
+            os.fsync(dfd)
+        finally:
+            os.close(dfd)
+    except OSError:
+        pass

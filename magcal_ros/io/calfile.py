@@ -1,0 +1,221 @@
+"""The calibration file (DESIGN.md contract 4): YAML with a schema version, written atomically.
+
+Layout (schema_version 1)::
+
+    schema_version: 1
+    kind: magcal_ros/calibration
+    model: [offset, scale, nonorthogonality, misalignment]
+    geometry: {type: cross, baseline_m: 0.5, positions_m: [[x, y, z], ...]}
+    field_reference: {kind: constant|ref_total|igrf, magnitude_nt: 50000.0, ...}
+    sensors:
+      - id: 1
+        sigma_nt: 3.0
+        effects:
+          - {name: scale, label: scale, refs: {}, params: {kx: {value, unit, stderr}, ...}}
+        correction_matrix: [[...]]      # A^-1: corrected = A^-1 (raw - offset - driven)
+        intrinsic_correction: [[...]]   # C^-1 of paper 004 eq. 5 (upper triangular)
+        offset_nt: [bx, by, bz]
+        rotation_to_sensor1: [[...]]    # R of paper 004 eq. 14
+    provenance: {created, samples, data_hash, temperature_range_c, attitude_coverage,
+                 residuals: {scalar_rms_nt, vector_rms_nt, tensor_rms_nt_per_m}, software}
+
+The parameters are the source of truth; the matrices are derived and checked on load, so a
+hand edit that makes them disagree is refused.
+"""
+import datetime
+import glob
+import os
+
+import numpy as np
+import yaml
+
+from magcal_ros.core import effects as fx
+from magcal_ros.core.model import Calibration, Model
+from magcal_ros.io.atomic import atomic_write_text
+
+SCHEMA_VERSION = 1
+KIND = 'magcal_ros/calibration'
+
+
+class CalibrationFileError(ValueError):
+    """A calibration file that cannot be used; the message names the problem."""
+
+
+def _mat(a):
+    return [[float(x) for x in row] for row in np.asarray(a)]
+
+
+def calibration_to_doc(cal, geometry=None, field_reference=None, provenance=None):
+    """Build the YAML document (a dict) of a :class:`Calibration`."""
+    sensors = []
+    for j in range(1, cal.n_sensors + 1):
+        effs = []
+        for eff, sl in zip(cal.model.effects[j - 1], cal.model.slices[j - 1]):
+            effs.append({
+                'name': eff.name, 'label': eff.label,
+                'refs': {k: float(v) for k, v in eff.refs.items()},
+                'params': {n: {'value': float(v), 'unit': u, 'stderr': float(s)}
+                           for n, u, v, s in zip(eff.param_names, eff.units,
+                                                 cal.params[sl], cal.stderr[sl])}})
+        c_inv, rot = cal.intrinsic_and_rotation(j)
+        sensors.append({
+            'id': j,
+            'sigma_nt': float(cal.sigma_nt[j - 1]),
+            'effects': effs,
+            'correction_matrix': _mat(cal.correction_matrix(j)),
+            'intrinsic_correction': _mat(c_inv),
+            'offset_nt': [float(x) for x in cal.offset(j)],
+            'rotation_to_sensor1': _mat(rot),
+        })
+    prov = {'created': datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds'),
+            'software': 'magcal_ros'}
+    prov.update(provenance or {})
+    return {'schema_version': SCHEMA_VERSION, 'kind': KIND, 'model': cal.model.spec(),
+            'geometry': geometry or {}, 'field_reference': field_reference or {},
+            'sensors': sensors, 'provenance': prov}
+
+
+def dump_calibration(doc):
+    """YAML text of a calibration document."""
+    return yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=100)
+
+
+def _need(d, key, where):
+    if not isinstance(d, dict) or key not in d:
+        raise CalibrationFileError(f'{where}: missing key {key!r}')
+    return d[key]
+
+
+def calibration_from_doc(doc, source='calibration'):
+    """Rebuild a :class:`Calibration` from a document; raises CalibrationFileError."""
+    if not isinstance(doc, dict):
+        raise CalibrationFileError(f'{source}: not a calibration document (top level is '
+                                   f'{type(doc).__name__}, expected a mapping)')
+    version = _need(doc, 'schema_version', source)
+    if not isinstance(version, int):
+        raise CalibrationFileError(f'{source}: schema_version must be an integer, got {version!r}')
+    if version > SCHEMA_VERSION:
+        raise CalibrationFileError(
+            f'{source}: schema_version {version} is newer than this magcal_ros understands '
+            f'({SCHEMA_VERSION}); upgrade magcal_ros or recalibrate')
+    if version < 1:
+        raise CalibrationFileError(f'{source}: unknown schema_version {version}')
+    if doc.get('kind', KIND) != KIND:
+        raise CalibrationFileError(f'{source}: kind is {doc.get("kind")!r}, expected {KIND!r}')
+    sensors = _need(doc, 'sensors', source)
+    if not isinstance(sensors, list) or not sensors:
+        raise CalibrationFileError(f'{source}: sensors must be a non-empty list')
+    effects, params, stderr, sigma = [], [], [], []
+    for k, sdoc in enumerate(sensors, start=1):
+        where = f'{source}: sensors[{k - 1}]'
+        if _need(sdoc, 'id', where) != k:
+            raise CalibrationFileError(f'{where}: id must be {k} (sensors in order 1..S)')
+        row = []
+        for e in _need(sdoc, 'effects', where):
+            name = _need(e, 'name', where)
+            label = e.get('label', name)
+            try:
+                eff = fx.make_effect(label if label.startswith('aux:') else name, k)
+            except ValueError as exc:
+                raise CalibrationFileError(f'{where}: {exc}') from None
+            eff.refs = {str(a): float(b) for a, b in (e.get('refs') or {}).items()}
+            pdoc = _need(e, 'params', f'{where} effect {label}')
+            if list(pdoc) != list(eff.param_names):
+                raise CalibrationFileError(
+                    f'{where} effect {label}: parameters {list(pdoc)} but expected '
+                    f'{list(eff.param_names)}')
+            for pn in eff.param_names:
+                entry = pdoc[pn]
+                try:
+                    v = float(_need(entry, 'value', f'{where} {label}.{pn}'))
+                    s = float(entry.get('stderr', 0.0))
+                except (TypeError, ValueError):
+                    raise CalibrationFileError(f'{where} {label}.{pn}: value is not a number')
+                if not np.isfinite(v):
+                    raise CalibrationFileError(f'{where} {label}.{pn}: value is not finite')
+                params.append(v)
+                stderr.append(s)
+            row.append(eff)
+        effects.append(row)
+        sigma.append(float(sdoc.get('sigma_nt', np.nan)))
+    model = Model(effects)
+    cal = Calibration(model, np.array(params), np.array(stderr), np.array(sigma))
+    for k, sdoc in enumerate(sensors, start=1):
+        a = cal.matrix(k)
+        if not np.all(np.isfinite(a)) or abs(np.linalg.det(a)) < 1e-6:
+            raise CalibrationFileError(f'{source}: sensor {k}: the linear map is singular')
+        stored = sdoc.get('correction_matrix')
+        if stored is not None:
+            try:
+                stored = np.asarray(stored, float)
+            except (TypeError, ValueError):
+                raise CalibrationFileError(f'{source}: sensor {k}: correction_matrix is not '
+                                           'a 3x3 matrix of numbers')
+            if stored.shape != (3, 3) or not np.allclose(stored, np.linalg.inv(a), atol=1e-6):
+                raise CalibrationFileError(
+                    f'{source}: sensor {k}: correction_matrix does not match the parameters '
+                    '(hand-edited?); edit the parameters, not the derived matrices')
+    return cal
+
+
+def parse_calibration(text, source='calibration'):
+    """Parse YAML text; returns (Calibration, doc)."""
+    try:
+        doc = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise CalibrationFileError(f'{source}: not valid YAML (truncated or corrupt?): '
+                                   f'{str(exc).splitlines()[0]}') from None
+    return calibration_from_doc(doc, source), doc
+
+
+def load_calibration(path):
+    """Read and validate a calibration file; returns (Calibration, doc)."""
+    path = os.fspath(path)
+    try:
+        with open(path, encoding='utf-8') as fh:
+            text = fh.read()
+    except OSError as exc:
+        raise CalibrationFileError(f'cannot read calibration file {path}: {exc.strerror}') from None
+    except UnicodeDecodeError:
+        raise CalibrationFileError(f'{path}: not a text file (corrupt?)') from None
+    if not text.strip():
+        raise CalibrationFileError(f'{path}: file is empty (truncated write?)')
+    return parse_calibration(text, path)
+
+
+def save_calibration(path, doc, history=20, fsync=os.fsync):
+    """Write a calibration document atomically, keep ``<path>.bak`` and a bounded history.
+
+    The history directory ``<path>.history/`` keeps the last ``history`` calibrations
+    (0 disables it) so that a user can roll back with :func:`rollback`.
+    """
+    text = dump_calibration(doc)
+    parse_calibration(text, 'calibration to be written')          # never write a bad file
+    atomic_write_text(path, text, backup=True, fsync=fsync)
+    if history:
+        hdir = os.fspath(path) + '.history'
+        stamp = datetime.datetime.now(datetime.timezone.utc).strftime('%Y%m%dT%H%M%S.%fZ')
+        atomic_write_text(os.path.join(hdir, f'calibration-{stamp}.yaml'), text, backup=False,
+                          fsync=fsync)
+        for old in list_history(path)[:-history]:
+            os.unlink(old)
+    return path
+
+
+def list_history(path):
+    """Calibration files in the history of ``path``, oldest first."""
+    return sorted(glob.glob(os.path.join(os.fspath(path) + '.history', 'calibration-*.yaml')))
+
+
+def rollback(path, steps=1):
+    """Make the calibration ``steps`` back in the history the active one; returns its path."""
+    hist = list_history(path)
+    if len(hist) <= steps:
+        raise CalibrationFileError(f'{path}: only {len(hist)} calibration(s) in the history, '
+                                   f'cannot go back {steps}')
+    chosen = hist[-1 - steps]
+    with open(chosen, encoding='utf-8') as fh:
+        text = fh.read()
+    parse_calibration(text, chosen)
+    atomic_write_text(path, text, backup=True)
+    return chosen

@@ -1,0 +1,142 @@
+"""Calibration run shared by the `magcal` command line and the calibration node (no rclpy).
+
+``calibrate(data, ...)`` = identifiability check + closed-form start + ML refinement
+(:func:`magcal_ros.core.model.fit`), then the before/after figures (scalar, vector and tensor
+residuals) and the calibration document (DESIGN.md contract 4).
+"""
+from dataclasses import dataclass
+
+import numpy as np
+
+from magcal_ros.core.model import Model, data_hash, fit
+from magcal_ros.core.noise import noise_floor
+from magcal_ros.core.tensor import cross_positions, tensor_lstsq, tensor_noise_floor
+from magcal_ros.io.calfile import calibration_to_doc
+
+
+def cross_geometry(baseline_m=0.5):
+    """Geometry dict of paper 004's cross (positions in m)."""
+    return {'type': 'cross', 'baseline_m': float(baseline_m),
+            'positions_m': cross_positions(baseline_m).tolist()}
+
+
+def geometry_positions(geometry, n_sensors):
+    """(S, 3) positions in m, or None when the geometry is unknown."""
+    if not geometry or 'positions_m' not in geometry:
+        return None
+    pos = np.asarray(geometry['positions_m'], float)
+    if pos.shape != (n_sensors, 3):
+        raise ValueError(f'geometry has {len(pos)} positions for {n_sensors} sensors')
+    return pos
+
+
+def tensor_stats(fields, positions):
+    """RMS (about the mean) and max deviation of each tensor component, nT/m.
+
+    fields (S, N, 3) nT in the array frame. Returns dict rms (3,3), max_abs_dev (3,3), mean.
+    """
+    g, _ = tensor_lstsq(fields, positions)
+    dev = g - g.mean(axis=0)
+    return {'rms': np.sqrt(np.mean(dev ** 2, axis=0)), 'max_abs_dev': np.abs(dev).max(axis=0),
+            'mean': g.mean(axis=0)}
+
+
+@dataclass
+class CalibrationRun:
+    """A fit with its summary figures and calibration document."""
+
+    result: object
+    summary: dict
+    doc: dict
+
+
+def summarize(result, data, positions=None):
+    """Before/after figures of a fit (all nT, nT/m); JSON-ready."""
+    f = result.field_magnitude_nt
+    raw_tot = np.linalg.norm(data.raw, axis=2) - f[None]
+    cor_tot = result.scalar_residual_nt
+    try:
+        floor = noise_floor(data.raw)
+    except ValueError:
+        floor = result.sigma_nt
+    s = {
+        'model': result.model.spec(),
+        'n_samples': int(data.n_samples),
+        'n_fit_samples': int(result.n_fit_samples),
+        'converged': bool(result.success),
+        'noise_floor_nt': float(np.median(floor)),
+        'noise_floor_per_sensor_nt': {str(j + 1): float(x) for j, x in enumerate(floor)},
+        'sigma_nt': {str(j + 1): float(x) for j, x in enumerate(result.sigma_nt)},
+        'scalar_rms_nt': {str(k): v for k, v in result.scalar_rms_nt.items()},
+        'vector_rms_nt': {str(k): v for k, v in result.vector_rms_nt.items()},
+        'total_field_rms_before_nt': {str(j + 1): float(np.sqrt(np.mean(r ** 2)))
+                                      for j, r in enumerate(raw_tot)},
+        'total_field_max_dev_before_nt': float(np.abs(raw_tot).max()),
+        'total_field_max_dev_after_nt': float(np.abs(cor_tot).max()),
+        'downweighted': {str(j + 1): int(x) for j, x in enumerate(result.downweighted)},
+        'warnings': list(result.warnings),
+    }
+    if positions is not None and data.n_sensors >= 3:
+        before = tensor_stats(data.raw, positions)
+        after = tensor_stats(result.corrected_nt, positions)
+        floor_t = tensor_noise_floor(result.sigma_nt, positions)
+        s['tensor_rms_nt_per_m'] = after['rms'].tolist()
+        s['tensor_rms_before_nt_per_m'] = before['rms'].tolist()
+        s['tensor_max_dev_before_nt_per_m'] = float(before['max_abs_dev'].max())
+        s['tensor_max_dev_after_nt_per_m'] = float(after['max_abs_dev'].max())
+        s['tensor_floor_nt_per_m'] = floor_t.tolist()
+    return s
+
+
+def calibrate(data, model='base', field_nt=None, geometry=None, field_reference=None,
+              **fit_kwargs):
+    """Fit ``model`` to ``data`` and build the summary and calibration document.
+
+    Parameters
+    ----------
+    data : Dataset
+    model : str or Model
+    field_nt : float or numpy.ndarray, optional
+        Reference magnitude (nT); default ``data.ref_total``.
+    geometry : dict, optional
+        Array geometry (``positions_m`` (S, 3) m); default: paper 004's cross with a 0.5 m
+        baseline when there are four sensors.
+    field_reference : dict, optional
+        How the reference was obtained (recorded in the provenance).
+    """
+    if geometry is None and data.n_sensors == 4:
+        geometry = cross_geometry(0.5)
+    if isinstance(model, str):
+        model = Model.from_spec(model, data.n_sensors)
+    result = fit(data, model, field_nt=field_nt, **fit_kwargs)
+    positions = geometry_positions(geometry, data.n_sensors)
+    summary = summarize(result, data, positions)
+    temp_range = {}
+    if data.temp is not None:
+        for j in range(data.n_sensors):
+            tj = data.temp[j]
+            if np.isfinite(tj).any():
+                temp_range[str(j + 1)] = [float(np.nanmin(tj)), float(np.nanmax(tj))]
+    ident = result.identifiability
+    prov = {
+        'samples': int(data.n_samples),
+        'fit_samples': int(result.n_fit_samples),
+        'data_hash': 'sha256:' + data_hash(data),
+        'source': str(data.meta.get('source', 'live')),
+        'temperature_range_c': temp_range,
+        'attitude_coverage': {str(j): {'status': v['status'],
+                                       'eigenvalues': [float(x) for x in v['eigenvalues']]}
+                              for j, v in ident.get('sensors', {}).items()},
+        'condition_number': float(ident.get('condition_number', float('nan'))),
+        'residuals': {k: summary[k] for k in ('scalar_rms_nt', 'vector_rms_nt',
+                                              'noise_floor_nt')
+                      if k in summary},
+        'warnings': list(result.warnings),
+    }
+    if 'tensor_rms_nt_per_m' in summary:
+        prov['residuals']['tensor_rms_nt_per_m'] = summary['tensor_rms_nt_per_m']
+    fref = dict(field_reference or {})
+    fref.setdefault('magnitude_nt', float(np.mean(result.field_magnitude_nt)))
+    doc = calibration_to_doc(result.calibration, geometry=geometry or {},
+                             field_reference=fref, provenance=prov)
+    return CalibrationRun(result=result, summary=summary, doc=doc)
