@@ -1,0 +1,243 @@
+"""The offline ``magcal`` command line (DESIGN.md contract 2).  Imports no rclpy.
+
+Exit status: 0 success, 2 bad input (one-line reason on stderr), 1 other failure.
+"""
+import argparse
+import json
+import os
+import sys
+
+import numpy as np
+
+from magcal_ros.core.model import DegenerateDataError
+
+EXIT_OK, EXIT_FAIL, EXIT_BAD_INPUT = 0, 1, 2
+
+
+class BadInput(ValueError):
+    """Bad user input: reported on stderr with exit status 2."""
+
+
+def load_data(path):
+    """Dataset from a wide CSV file or a rosbag2 directory."""
+    if os.path.isdir(path):
+        from magcal_ros.io.bag import read_bag
+        return read_bag(path)
+    if not os.path.exists(path):
+        raise BadInput(f'{path}: no such file or directory')
+    from magcal_ros.io.csvio import read_csv
+    return read_csv(path)
+
+
+def add_field_args(p):
+    """--field-nt / --igrf options."""
+    g = p.add_mutually_exclusive_group()
+    g.add_argument('--field-nt', metavar='NT',
+                   help="reference field magnitude in nT, or 'auto' (shape-only calibration); "
+                        'default: the ref_total column')
+    g.add_argument('--igrf', nargs=4, metavar=('LAT', 'LON', 'ALT_KM', 'DATE'),
+                   help='reference magnitude from the IGRF model (ppigrf) at a place and date')
+
+
+def resolve_field(args, data):
+    """(field_nt or None, field_reference dict) from the options and the data."""
+    if getattr(args, 'igrf', None):
+        from magcal_ros.core.reference_field import igrf_total
+        try:
+            lat, lon, alt = (float(x) for x in args.igrf[:3])
+        except ValueError:
+            raise BadInput('--igrf LAT LON ALT_KM DATE: LAT, LON, ALT_KM must be numbers')
+        f = igrf_total(lat, lon, alt, args.igrf[3])
+        return f, {'kind': 'igrf', 'lat_deg': lat, 'lon_deg': lon, 'alt_km': alt,
+                   'date': args.igrf[3], 'magnitude_nt': f}
+    if getattr(args, 'field_nt', None) is not None:
+        if args.field_nt == 'auto':
+            from magcal_ros.core.reference_field import auto_magnitude
+            f = auto_magnitude(data.raw[0])
+            return f, {'kind': 'auto (mean radius, shape-only)', 'magnitude_nt': f}
+        try:
+            f = float(args.field_nt)
+        except ValueError:
+            raise BadInput(f"--field-nt must be a number of nT or 'auto', got {args.field_nt!r}")
+        if not np.isfinite(f) or f <= 0:
+            raise BadInput('--field-nt must be positive')
+        return f, {'kind': 'constant', 'magnitude_nt': f}
+    if data.ref_total is not None:
+        return None, {'kind': 'ref_total', 'magnitude_nt': float(np.mean(data.ref_total))}
+    raise BadInput('no reference field: the data have no ref_total column; give --field-nt NT, '
+                   "--field-nt auto or --igrf LAT LON ALT_KM DATE")
+
+
+def load_plugins(args):
+    """Import the --plugin modules."""
+    from magcal_ros.core.effects import load_plugin
+    for ref in getattr(args, 'plugin', None) or []:
+        load_plugin(ref)
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _jsonable(x.tolist())
+    if isinstance(x, (np.floating, float)):
+        return float(x) if np.isfinite(x) else None
+    if isinstance(x, np.integer):
+        return int(x)
+    return x
+
+
+def print_json(obj):
+    """One JSON object on stdout."""
+    print(json.dumps(_jsonable(obj)))
+
+
+# -- simulate -------------------------------------------------------------------------------
+
+def _parse_truth(items):
+    truth = {}
+    for item in items or []:
+        token, sep, values = item.partition('=')
+        if not sep:
+            raise BadInput(f'--truth {item!r}: expected EFFECT=v1,v2,... '
+                           '(e.g. temperature@2=3,-2,1.5,0,0,0)')
+        try:
+            truth[token.strip()] = [float(v) for v in values.split(',')]
+        except ValueError:
+            raise BadInput(f'--truth {item!r}: values must be numbers')
+    return truth
+
+
+def cmd_simulate(args):
+    from magcal_ros.core.simulate import simulate
+    from magcal_ros.io.csvio import write_csv
+    load_plugins(args)
+    truth = _parse_truth(args.truth)
+    data, sim = simulate(n_samples=args.n, rate_hz=args.rate, trajectory=args.trajectory,
+                         noise_nt=args.noise_nt, seed=args.seed, truth=truth,
+                         model=args.model, aux=not args.no_aux,
+                         diurnal_swing_nt=args.diurnal_nt, outlier_fraction=args.outliers,
+                         field_nt=args.field_nt, errors=None if args.ideal else 'paper004')
+    if args.ref_total and data.ref_total is None:
+        data.ref_total = sim.field_magnitude(data.t)
+    comment = (f'magcal simulate: paper 004 cross, {args.n} samples at {args.rate} Hz, '
+               f'trajectory {args.trajectory}, noise {args.noise_nt} nT, seed {args.seed}\n'
+               f'truth model: {",".join(sim.model.spec())}\n'
+               'truth params: ' + ' '.join(f'{v:.6g}' for v in sim.params))
+    write_csv(args.out, data, comment=comment)
+    print(f'wrote {args.out}: {data.n_samples} samples of {data.n_sensors} sensors',
+          file=sys.stderr)
+    return EXIT_OK
+
+
+# -- fit ------------------------------------------------------------------------------------
+
+def cmd_fit(args):
+    from magcal_ros.io.calfile import save_calibration
+    from magcal_ros.pipeline import calibrate, cross_geometry
+    load_plugins(args)
+    data = load_data(args.data)
+    field_nt, fref = resolve_field(args, data)
+    geometry = cross_geometry(args.baseline_m) if data.n_sensors == 4 else None
+    run = calibrate(data, args.model, field_nt=field_nt, geometry=geometry,
+                    field_reference=fref, robust=args.robust, constrained=args.constrained,
+                    on_degenerate='flag' if args.flag_degenerate else 'raise')
+    out = args.output
+    if out:
+        save_calibration(out, run.doc)
+    s = dict(run.summary)
+    s['output'] = out
+    s['field_reference'] = fref
+    if args.json:
+        print_json(s)
+    else:
+        print(run.result.summary())
+        if 'tensor_rms_nt_per_m' in s:
+            t = np.array(s['tensor_rms_nt_per_m'])
+            tb = np.array(s['tensor_rms_before_nt_per_m'])
+            print(f'tensor RMS: before max {tb.max():.1f} nT/m, after max {t.max():.1f} nT/m '
+                  f'(noise floor {np.array(s["tensor_floor_nt_per_m"]).max():.1f} nT/m)')
+        print(f'noise floor (from the data): {s["noise_floor_nt"]:.2f} nT')
+        if out:
+            print(f'calibration written to {out}')
+    return EXIT_OK
+
+
+# -- main -----------------------------------------------------------------------------------
+
+def build_parser():
+    """The argparse parser of ``magcal``."""
+    p = argparse.ArgumentParser(prog='magcal', description='Calibrate and diagnose vector '
+                                'magnetometers and a four-fluxgate gradient tensor array.')
+    sub = p.add_subparsers(dest='command', required=True)
+
+    s = sub.add_parser('simulate', help='write a simulated cross-gradiometer recording (CSV)')
+    s.add_argument('--out', required=True, help='output CSV file')
+    s.add_argument('--n', type=int, default=3000, help='number of samples (default 3000)')
+    s.add_argument('--rate', type=float, default=100.0, help='sample rate, Hz')
+    s.add_argument('--trajectory', default='smooth',
+                   choices=['random', 'smooth', 'turntable', 'cone', 'vehicle'])
+    s.add_argument('--noise-nt', type=float, default=3.0, help='noise sd per axis, nT')
+    s.add_argument('--field-nt', type=float, default=50000.0, help='total field, nT')
+    s.add_argument('--seed', type=int, default=0)
+    s.add_argument('--model', default='base', help='truth model (default base)')
+    s.add_argument('--truth', action='append', metavar='EFFECT=V1,V2,...',
+                   help='switch on a hidden effect, e.g. temperature@2=3,-2,1.5,0,0,0')
+    s.add_argument('--no-aux', action='store_true', help='omit the auxiliary channels')
+    s.add_argument('--ideal', action='store_true', help='ideal sensors (no paper 004 errors)')
+    s.add_argument('--diurnal-nt', type=float, default=0.0,
+                   help='peak-to-peak variation of the field magnitude (adds ref_total)')
+    s.add_argument('--ref-total', action='store_true', help='write a ref_total column')
+    s.add_argument('--outliers', type=float, default=0.0, help='fraction of spike outliers')
+    s.add_argument('--plugin', action='append', help='import a module defining effects')
+    s.set_defaults(func=cmd_simulate)
+
+    f = sub.add_parser('fit', help='fit a model and write a calibration file')
+    f.add_argument('data', help='wide CSV file or rosbag2 directory')
+    f.add_argument('--model', default='base', help="effects, e.g. 'base,temperature@2'")
+    f.add_argument('-o', '--output', help='calibration YAML to write')
+    f.add_argument('--json', action='store_true', help='print one JSON object on stdout')
+    add_field_args(f)
+    f.add_argument('--baseline-m', type=float, default=0.5, help='cross baseline, m')
+    f.add_argument('--robust', action='store_true', help='robust (soft-L1) loss for outliers')
+    f.add_argument('--constrained', action='store_true',
+                   help='priors on scale and angles, for partial attitude coverage')
+    f.add_argument('--flag-degenerate', action='store_true',
+                   help='fit degenerate data anyway and flag the result instead of refusing')
+    f.add_argument('--plugin', action='append', help='import a module defining effects')
+    f.set_defaults(func=cmd_fit)
+
+    register_workbench_commands(sub)
+    return p
+
+
+def register_workbench_commands(sub):
+    """Hook for the diagnose/report commands (see magcal_ros.cli_workbench)."""
+    try:
+        from magcal_ros import cli_workbench
+    except ImportError:
+        return
+    cli_workbench.register(sub, sys.modules[__name__])
+
+
+def main(argv=None):
+    """Entry point of ``magcal``."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return args.func(args)
+    except (BadInput, DegenerateDataError, ValueError) as exc:
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        print(f'magcal: error: {msg}', file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        return EXIT_FAIL
+    except Exception as exc:                      # noqa: BLE001 - the CLI boundary
+        print(f'magcal: failed: {type(exc).__name__}: {exc}', file=sys.stderr)
+        return EXIT_FAIL
+
+
+if __name__ == '__main__':
+    sys.exit(main())
