@@ -103,8 +103,8 @@ def test_phi_erratum(clean):
 def test_noise_free_recovery(clean):
     p = calibrate_turntable(clean.theta, clean.raw1, clean.theta, clean.raw2, FIELD)
     # exact algebra on exact data: only floating-point error remains
-    assert np.degrees([p.alpha, p.beta, p.gamma]) == pytest.approx([1.35, 32.7, 1.07],
-                                                                    abs=1e-9)
+    deg = np.degrees([p.alpha, p.beta, p.gamma])
+    assert deg == pytest.approx([1.35, 32.7, 1.07], abs=1e-9)
     assert (p.kx, p.ky, p.kz) == pytest.approx((0.909, 1.146, 1.103), abs=1e-12)
     np.testing.assert_allclose(p.B0, [143.0, 97.4, 123.7], atol=1e-8)
 
@@ -133,8 +133,8 @@ def test_turning_sense_is_read_from_the_data(clean):
     # the same readings labelled with the opposite turntable sense: same parameters
     p = calibrate_turntable(-clean.theta, clean.raw1, -clean.theta, clean.raw2, FIELD)
     assert fit_turntable(-clean.theta, clean.raw1, -clean.theta, clean.raw2).sense == -1
-    assert np.degrees([p.alpha, p.beta, p.gamma]) == pytest.approx([1.35, 32.7, 1.07],
-                                                                    abs=1e-9)
+    deg = np.degrees([p.alpha, p.beta, p.gamma])
+    assert deg == pytest.approx([1.35, 32.7, 1.07], abs=1e-9)
 
 
 def test_negative_angles_and_other_parameters():
@@ -142,8 +142,8 @@ def test_negative_angles_and_other_parameters():
                           ky=0.97, kz=1.01, B0=[-300.0, 50.0, 10.0])
     sim = simulate_turntable(true, 48000.0, 60.0 * DEG, 24)
     p = calibrate_turntable(sim.theta, sim.raw1, sim.theta, sim.raw2, 48000.0)
-    assert np.degrees([p.alpha, p.beta, p.gamma]) == pytest.approx([-2.0, -120.0, 3.0],
-                                                                    abs=1e-9)
+    deg = np.degrees([p.alpha, p.beta, p.gamma])
+    assert deg == pytest.approx([-2.0, -120.0, 3.0], abs=1e-9)
     assert (p.kx, p.ky, p.kz) == pytest.approx((1.05, 0.97, 1.01), abs=1e-12)
     np.testing.assert_allclose(correct(p, sim.raw2), sim.field2, atol=1e-6)
 
@@ -151,7 +151,7 @@ def test_negative_angles_and_other_parameters():
 # ------------------------------------------------------------ paper 000 Table 1, with noise
 
 def _predicted_sigmas(sigma, n):
-    """Standard errors of the derived parameters for Gaussian noise sigma (nT), n steps.
+    """Return standard errors of the derived parameters for noise sigma (nT) and n steps.
 
     For n equally spaced angles over a full turn the columns [sin, cos, 1] are orthogonal
     with squared norms n/2, n/2, n, so a fit's amplitude has standard error
@@ -171,8 +171,8 @@ def _predicted_sigmas(sigma, n):
                        np.cos(phi) * np.sin(TRUE.beta) / (cb ** 2 * cg) * s_beta)
     r_yx, r_zx = k * np.hypot(1 / ax1, 1 / ay1), k * np.hypot(1 / ax2, 1 / az2)
     r_kx = r_yx + r_zx + sigma / (FIELD * np.sqrt(2 * n))
-    return dict(alpha=s_alpha, beta=s_beta, gamma=s_gamma, kx=r_kx, ky=r_kx + r_yx,
-                kz=r_kx + r_zx, offset=sigma / np.sqrt(n))
+    return {'alpha': s_alpha, 'beta': s_beta, 'gamma': s_gamma, 'kx': r_kx,
+            'ky': r_kx + r_yx, 'kz': r_kx + r_zx, 'offset': sigma / np.sqrt(n)}
 
 
 @pytest.mark.parametrize('mean', [5.0, 15.0, 25.0, 40.0])
@@ -205,8 +205,8 @@ def test_table1_noise_mean(mean):
 def test_constant_noise_only_shifts_offsets():
     sim = simulate_turntable(TRUE, FIELD, INCL, 36, noise_mean=40.0)
     p = calibrate_turntable(sim.theta, sim.raw1, sim.theta, sim.raw2, FIELD)
-    assert np.degrees([p.alpha, p.beta, p.gamma]) == pytest.approx([1.35, 32.7, 1.07],
-                                                                    abs=1e-9)
+    deg = np.degrees([p.alpha, p.beta, p.gamma])
+    assert deg == pytest.approx([1.35, 32.7, 1.07], abs=1e-9)
     assert (p.kx, p.ky, p.kz) == pytest.approx((0.909, 1.146, 1.103), abs=1e-12)
     np.testing.assert_allclose(p.B0, TRUE.B0 + 40.0, atol=1e-8)
 

@@ -1,4 +1,4 @@
-"""Direction coverage of a set of field vectors: can the data determine a linear map?
+"""Direction coverage of field vectors: whether they can determine a linear sensor map.
 
 A linear sensor model ``raw = A @ B + o`` is determined by rotating the sensor in a uniform
 field only if the field directions seen by the sensor spread in all three dimensions. The
