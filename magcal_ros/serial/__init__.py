@@ -1,0 +1,178 @@
+r"""Serial device protocols (pure parsers/encoders) and the pyserial transport.
+
+Nothing in this package imports rclpy.
+
+Protocols are kept in a table, :data:`PROTOCOLS`, mapping a name to its parser and
+encoder classes; :func:`make_parser` and :func:`make_encoder` build them from keyword
+options (the same options dictionary works for both: each side takes the options it
+uses). Built in:
+
+``ascii`` (default)
+    Configurable text lines, default ``<x_nT>,<y_nT>,<z_nT>,<temp_C>\r\n``
+    (:mod:`magcal_ros.serial.ascii`).
+``hmr2300_ascii``, ``hmr2300_binary``
+    Honeywell HMR2300 output (:mod:`magcal_ros.serial.hmr2300`).
+``lemi025``
+    LEMI-025 *style* 32-byte packets with sync tag and CRC (:mod:`magcal_ros.serial.lemi025`).
+
+Other protocols can be added with :func:`register_protocol`.
+"""
+
+from dataclasses import dataclass
+import inspect
+
+from magcal_ros.serial.ascii import AsciiEncoder, AsciiParser
+from magcal_ros.serial.base import Encoder, Parser, ParserStats, Sample
+from magcal_ros.serial.hmr2300 import (Hmr2300AsciiEncoder, Hmr2300AsciiParser,
+                                       Hmr2300BinaryEncoder, Hmr2300BinaryParser)
+from magcal_ros.serial.lemi025 import Lemi025Encoder, Lemi025Parser
+
+__all__ = ['Encoder', 'Parser', 'ParserStats', 'Protocol', 'PROTOCOLS', 'Sample',
+           'DEFAULT_PROTOCOL', 'make_encoder', 'make_parser', 'parser_options',
+           'register_protocol']
+
+DEFAULT_PROTOCOL = 'ascii'
+
+
+@dataclass(frozen=True)
+class Protocol:
+    """One registry entry.
+
+    Attributes
+    ----------
+    name : str
+    parser : type
+        :class:`Parser` subclass, constructed with keyword options.
+    encoder : type
+        :class:`Encoder` subclass, constructed with keyword options.
+    description : str
+        One line for help texts.
+    """
+
+    name: str
+    parser: type
+    encoder: type
+    description: str
+
+
+PROTOCOLS = {}
+
+
+def register_protocol(name, parser, encoder, description=''):
+    """Add (or replace) a protocol in :data:`PROTOCOLS`.
+
+    Parameters
+    ----------
+    name : str
+        Protocol name used in configuration files.
+    parser : type
+        Subclass of :class:`Parser`.
+    encoder : type
+        Subclass of :class:`Encoder`.
+    description : str
+        One line for help texts.
+    """
+    if not (isinstance(parser, type) and issubclass(parser, Parser)):
+        raise ValueError(f'parser for {name!r} must be a Parser subclass, got {parser!r}')
+    if not (isinstance(encoder, type) and issubclass(encoder, Encoder)):
+        raise ValueError(f'encoder for {name!r} must be an Encoder subclass, got {encoder!r}')
+    PROTOCOLS[name] = Protocol(name, parser, encoder, description)
+
+
+register_protocol('ascii', AsciiParser, AsciiEncoder,
+                  'configurable text lines, default "<x_nT>,<y_nT>,<z_nT>,<temp_C>\\r\\n"')
+register_protocol('hmr2300_ascii', Hmr2300AsciiParser, Hmr2300AsciiEncoder,
+                  'Honeywell HMR2300 ASCII output, 15000 counts/gauss')
+register_protocol('hmr2300_binary', Hmr2300BinaryParser, Hmr2300BinaryEncoder,
+                  'Honeywell HMR2300 7-byte binary frame (>hhh + CR)')
+register_protocol('lemi025', Lemi025Parser, Lemi025Encoder,
+                  'LEMI-025 style 32-byte packets with sync tag and CRC-16')
+
+
+def _accepted(cls):
+    """Keyword names accepted by ``cls`` and the ``__init__`` of its bases (via **kwargs)."""
+    names = set()
+    for klass in cls.__mro__:
+        init = klass.__dict__.get('__init__')
+        if init is None:
+            continue
+        params = inspect.signature(init).parameters.values()
+        names.update(p.name for p in params
+                     if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY) and p.name != 'self')
+        if not any(p.kind == p.VAR_KEYWORD for p in params):
+            break
+    return names
+
+
+def _lookup(protocol):
+    try:
+        return PROTOCOLS[protocol]
+    except (KeyError, TypeError):
+        raise ValueError(f'unknown serial protocol {protocol!r}; '
+                         f'choose one of {sorted(PROTOCOLS)}') from None
+
+
+def parser_options(protocol):
+    """Return the sorted option names understood by ``protocol`` (parser or encoder side)."""
+    entry = _lookup(protocol)
+    return sorted(_accepted(entry.parser) | _accepted(entry.encoder))
+
+
+def _build(protocol, side, options):
+    entry = _lookup(protocol)
+    known = _accepted(entry.parser) | _accepted(entry.encoder)
+    unknown = sorted(set(options) - known)
+    if unknown:
+        raise ValueError(f'unknown option(s) {unknown} for serial protocol {protocol!r}; '
+                         f'known: {sorted(known)}')
+    cls = getattr(entry, side)
+    mine = _accepted(cls)
+    try:
+        return cls(**{k: v for k, v in options.items() if k in mine})
+    except TypeError as exc:
+        raise ValueError(f'bad options for serial protocol {protocol!r}: {exc}') from None
+
+
+def make_parser(protocol=DEFAULT_PROTOCOL, **options):
+    """Build a parser.
+
+    Parameters
+    ----------
+    protocol : str
+        Name in :data:`PROTOCOLS` (``'ascii'``, ``'hmr2300_ascii'``, ``'hmr2300_binary'``,
+        ``'lemi025'``).
+    **options
+        Protocol options; options meant only for the encoder are ignored.
+
+    Returns
+    -------
+    Parser
+
+    Raises
+    ------
+    ValueError
+        Unknown protocol, unknown option or bad option value.
+    """
+    return _build(protocol, 'parser', options)
+
+
+def make_encoder(protocol=DEFAULT_PROTOCOL, **options):
+    """Build an encoder producing exactly what :func:`make_parser` with the same options reads.
+
+    Parameters
+    ----------
+    protocol : str
+        Name in :data:`PROTOCOLS`.
+    **options
+        Protocol options; options meant only for the parser are ignored.
+
+    Returns
+    -------
+    Encoder
+
+    Raises
+    ------
+    ValueError
+        Unknown protocol, unknown option or bad option value.
+    """
+    return _build(protocol, 'encoder', options)

@@ -1,0 +1,224 @@
+r"""Configurable ASCII line protocol (the project's default device protocol).
+
+Default (DESIGN.md contract 3): one line per sample, ``<x_nT>,<y_nT>,<z_nT>,<temp_C>\r\n``,
+e.g. ``12345.6,-2345.1,43210.9,24.31\r\n``.
+
+Everything is configurable: the delimiter (or ``None`` for runs of whitespace), the line
+terminator, the column order (names ``x``, ``y``, ``z``, ``temp``, ``time`` and ``skip``
+for columns to ignore), the field scale to nT (1 for nT, 1e5 for gauss, 1e3 for uT), the
+time scale to s, a start command sent on open, a comment prefix and a number of header
+lines to skip.
+"""
+
+import math
+import re
+
+from magcal_ros.serial.base import Encoder, to_bytes
+from magcal_ros.serial.lines import LineParser
+
+#: Column names understood by the ASCII protocol.
+COLUMN_NAMES = ('x', 'y', 'z', 'temp', 'time', 'skip')
+DEFAULT_COLUMNS = ('x', 'y', 'z', 'temp')
+
+#: A decimal number as devices write it (no underscores, no hex), or nan/inf spelled out.
+_NUMBER = re.compile(rb'[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?'
+                     rb'|[+-]?(?i:nan|inf|infinity)')
+
+
+def parse_number(text):
+    """Parse one ASCII number strictly.
+
+    Parameters
+    ----------
+    text : bytes
+        The field, surrounding whitespace allowed.
+
+    Returns
+    -------
+    float
+        The value (may be nan or inf: the caller rejects non-finite values).
+
+    Raises
+    ------
+    ValueError
+        If ``text`` is not a plain decimal number.
+    """
+    text = text.strip()
+    if not _NUMBER.fullmatch(text):
+        raise ValueError(f'not a number: {text[:20]!r}')
+    return float(text)
+
+
+def _check_columns(columns):
+    if isinstance(columns, str):
+        columns = [c.strip() for c in columns.split(',')]
+    columns = tuple(str(c).strip().lower() for c in columns)
+    unknown = [c for c in columns if c not in COLUMN_NAMES]
+    if unknown:
+        raise ValueError(f'unknown column name(s) {unknown}; use {list(COLUMN_NAMES)}')
+    for name in ('x', 'y', 'z'):
+        if columns.count(name) != 1:
+            raise ValueError(f'columns must contain {name!r} exactly once, got {list(columns)}')
+    for name in ('temp', 'time'):
+        if columns.count(name) > 1:
+            raise ValueError(f'columns may contain {name!r} at most once, got {list(columns)}')
+    return columns
+
+
+def _check_scale(name, value):
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f'{name} must be a number, got {value!r}') from None
+    if not math.isfinite(value) or value <= 0.0:
+        raise ValueError(f'{name} must be a finite positive number, got {value!r}')
+    return value
+
+
+def _check_delimiter(delimiter):
+    if delimiter is None or delimiter == '':
+        return None
+    delim = to_bytes(delimiter, 'delimiter')
+    if delim.strip(b'0123456789+-.eE') != delim or b'\r' in delim or b'\n' in delim:
+        raise ValueError(f'delimiter {delimiter!r} would clash with numbers or line ends')
+    return delim
+
+
+class AsciiParser(LineParser):
+    r"""Parser for the configurable ASCII line protocol.
+
+    Parameters
+    ----------
+    delimiter : str or None
+        Field separator; None (or '') splits on runs of whitespace. Default ``','``.
+    terminator : str
+        Line terminator, default ``'\r\n'`` (any of CR/LF/CRLF is accepted).
+    columns : sequence of str or str
+        Column order, names from ``x, y, z, temp, time, skip``; default ``x,y,z,temp``.
+    scale : float
+        nT per unit of the x, y, z columns (1 for nT, 1e5 for gauss).
+    time_scale : float
+        Seconds per unit of the ``time`` column (1e-3 for milliseconds).
+    start_command : str or bytes
+        Bytes written to the device after the port is opened (default none).
+    stop_command : str or bytes
+        Bytes written before the port is closed (default none).
+    comment_prefix : str or None
+        Lines starting with it (after leading whitespace) are ignored. Default ``'#'``.
+    header_lines : int
+        Number of lines at the start of the stream (and after each :meth:`reset`) to skip.
+    allow_extra_columns : bool
+        Accept and ignore trailing columns beyond ``columns``; default False (counted as
+        ``'malformed'``).
+    **kwargs
+        ``max_abs_nt``, ``temp_range_c``, ``time_reset_after``, ``max_line_bytes``.
+    """
+
+    def __init__(self, delimiter=',', terminator='\r\n', columns=DEFAULT_COLUMNS, scale=1.0,
+                 time_scale=1.0, start_command=b'', stop_command=b'', comment_prefix='#',
+                 header_lines=0, allow_extra_columns=False, **kwargs):
+        super().__init__(terminator=terminator, **kwargs)
+        self.delimiter = _check_delimiter(delimiter)
+        self.columns = _check_columns(columns)
+        self.scale = _check_scale('scale', scale)
+        self.time_scale = _check_scale('time_scale', time_scale)
+        self.start_command = to_bytes(start_command, 'start_command')
+        self.stop_command = to_bytes(stop_command, 'stop_command')
+        self.comment_prefix = to_bytes(comment_prefix, 'comment_prefix') or None
+        if int(header_lines) < 0:
+            raise ValueError(f'header_lines must be >= 0, got {header_lines!r}')
+        self.header_lines = int(header_lines)
+        self._headers_left = self.header_lines
+        self.allow_extra_columns = bool(allow_extra_columns)
+        self._index = {name: self.columns.index(name)
+                       for name in ('x', 'y', 'z', 'temp', 'time') if name in self.columns}
+
+    def _reset_buffer(self):
+        super()._reset_buffer()
+        self._headers_left = self.header_lines
+
+    def _parse_line(self, line, out):
+        stripped = line.strip()
+        if self.comment_prefix and stripped.startswith(self.comment_prefix):
+            self.stats.ignored['comment'] += 1
+            return
+        if self._headers_left > 0:
+            self._headers_left -= 1
+            self.stats.ignored['header'] += 1
+            return
+        fields = stripped.split(self.delimiter) if self.delimiter else stripped.split()
+        n = len(self.columns)
+        if len(fields) < n or (len(fields) > n and not self.allow_extra_columns):
+            self._error('malformed')
+            return
+        try:
+            values = {name: parse_number(fields[i]) for name, i in self._index.items()}
+        except ValueError:
+            self._error('malformed')
+            return
+        s = self.scale
+        self._accept(out, values['x'] * s, values['y'] * s, values['z'] * s,
+                     values.get('temp'),
+                     None if 'time' not in values else values['time'] * self.time_scale)
+
+
+class AsciiEncoder(Encoder):
+    """Encoder for the configurable ASCII line protocol (same options as the parser).
+
+    Parameters
+    ----------
+    delimiter, terminator, columns, scale, time_scale : see :class:`AsciiParser`
+        A ``None`` delimiter writes one space.
+    field_decimals : int or None
+        Decimals of x, y, z in the device unit. Default: enough for 0.1 nT
+        (1 for nT, 6 for gauss).
+    temp_decimals : int
+        Decimals of the temperature, default 2.
+    time_decimals : int
+        Decimals of the time column in its unit, default 6.
+    header : str or None
+        Optional header text sent once before streaming (:attr:`preamble`), e.g. a
+        ``'# x,y,z,temp'`` comment line; the terminator is appended.
+    """
+
+    def __init__(self, delimiter=',', terminator='\r\n', columns=DEFAULT_COLUMNS, scale=1.0,
+                 time_scale=1.0, field_decimals=None, temp_decimals=2, time_decimals=6,
+                 header=None):
+        self.delimiter = _check_delimiter(delimiter) or b' '
+        self.terminator = to_bytes(terminator, 'terminator')
+        if not self.terminator:
+            raise ValueError('terminator must not be empty; use e.g. "\\r\\n"')
+        self.columns = _check_columns(columns)
+        self.scale = _check_scale('scale', scale)
+        self.time_scale = _check_scale('time_scale', time_scale)
+        if field_decimals is None:
+            field_decimals = max(0, math.ceil(math.log10(self.scale)) + 1)
+        self.field_decimals = int(field_decimals)
+        self.temp_decimals = int(temp_decimals)
+        self.time_decimals = int(time_decimals)
+        self.preamble = (to_bytes(header, 'header') + self.terminator) if header else b''
+
+    def encode(self, sample):
+        """Return one line for ``sample``.
+
+        Raises
+        ------
+        ValueError
+            If the columns need a temperature or time that the sample lacks.
+        """
+        parts = []
+        for name in self.columns:
+            if name in ('x', 'y', 'z'):
+                value = sample.field_nt['xyz'.index(name)] / self.scale
+                parts.append(f'{value:.{self.field_decimals}f}')
+            elif name == 'temp':
+                if sample.temp_c is None:
+                    raise ValueError('columns include temp but the sample has no temp_c')
+                parts.append(f'{sample.temp_c:.{self.temp_decimals}f}')
+            elif name == 'time':
+                if sample.device_time is None:
+                    raise ValueError('columns include time but the sample has no device_time')
+                parts.append(f'{sample.device_time / self.time_scale:.{self.time_decimals}f}')
+            else:
+                parts.append('0')
+        return self.delimiter.join(p.encode('ascii') for p in parts) + self.terminator

@@ -1,0 +1,253 @@
+"""Common parts of every serial protocol: the sample record, statistics and validation.
+
+A protocol is a pair (:class:`Parser`, :class:`Encoder`). The parser turns an arbitrary byte
+stream into :class:`Sample` records and never raises on any input: malformed, non-finite,
+saturated or time-reversed data are counted per error kind in :class:`ParserStats` and
+skipped. The encoder produces exactly the bytes the parser reads; the simulator uses it.
+
+Nothing here imports rclpy.
+"""
+
+from collections import Counter
+import dataclasses
+from dataclasses import dataclass, field
+import math
+
+#: Default saturation limit for one field component, nT (about 2 gauss, the HMR2300 range).
+DEFAULT_MAX_ABS_NT = 200_000.0
+
+#: Default plausible temperature range of a sensor, degC (inclusive).
+DEFAULT_TEMP_RANGE_C = (-100.0, 200.0)
+
+#: Number of consecutive time-reversed samples after which the parser accepts the new
+#: device time base (the device was restarted) instead of dropping forever.
+DEFAULT_TIME_RESET_AFTER = 20
+
+
+@dataclass(frozen=True)
+class Sample:
+    """One decoded magnetometer reading.
+
+    Attributes
+    ----------
+    field_nt : tuple of float
+        (x, y, z) field in nT, in the device's own axes; always finite.
+    temp_c : float or None
+        Sensor temperature in degC when the protocol carries it, else None.
+    device_time : float or None
+        Device timestamp in s when the protocol carries it, else None. This is the
+        device's clock, not the arrival time (the transport stamps arrival separately).
+    """
+
+    field_nt: tuple
+    temp_c: float | None = None
+    device_time: float | None = None
+
+
+@dataclass
+class ParserStats:
+    """Counters of one parser.
+
+    Attributes
+    ----------
+    frames : int
+        Samples emitted (valid frames/lines).
+    errors : collections.Counter
+        Rejected frames/lines per error kind, e.g. ``'malformed'``, ``'non_finite'``,
+        ``'out_of_range'``, ``'temp_out_of_range'``, ``'time_backwards'``, ``'checksum'``,
+        ``'overlong'``, ``'sync_lost'``.
+    ignored : collections.Counter
+        Input that is not data and not an error (``'comment'``, ``'header'``, ``'blank'``,
+        ``'response'``).
+    bytes_in : int
+        Bytes fed to the parser.
+    bytes_dropped : int
+        Bytes discarded while searching for a frame boundary or sync tag.
+    """
+
+    frames: int = 0
+    errors: Counter = field(default_factory=Counter)
+    ignored: Counter = field(default_factory=Counter)
+    bytes_in: int = 0
+    bytes_dropped: int = 0
+
+    @property
+    def total_errors(self):
+        """Total number of rejected frames/lines, all kinds."""
+        return sum(self.errors.values())
+
+    def copy(self):
+        """Return an independent snapshot (safe to read while the parser keeps running)."""
+        return dataclasses.replace(self, errors=Counter(self.errors),
+                                   ignored=Counter(self.ignored))
+
+    def as_dict(self):
+        """Return the counters as plain JSON-friendly types."""
+        return {'frames': self.frames, 'errors': dict(self.errors),
+                'ignored': dict(self.ignored), 'bytes_in': self.bytes_in,
+                'bytes_dropped': self.bytes_dropped, 'total_errors': self.total_errors}
+
+
+def _check_positive(name, value):
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f'{name} must be a number, got {value!r}') from None
+    if not math.isfinite(value) or value <= 0.0:
+        raise ValueError(f'{name} must be a finite positive number, got {value!r}')
+    return value
+
+
+def to_bytes(value, name):
+    """Convert a str (latin-1, escapes already resolved) or bytes option to bytes.
+
+    Parameters
+    ----------
+    value : str or bytes or bytearray or None
+        The option value; None gives ``b''``.
+    name : str
+        Option name for the error message.
+
+    Returns
+    -------
+    bytes
+    """
+    if value is None:
+        return b''
+    if isinstance(value, (bytes, bytearray)):
+        return bytes(value)
+    if isinstance(value, str):
+        try:
+            return value.encode('latin-1')
+        except UnicodeEncodeError:
+            raise ValueError(f'{name} must contain only byte-sized characters, '
+                             f'got {value!r}') from None
+    raise ValueError(f'{name} must be str or bytes, got {type(value).__name__}')
+
+
+class Parser:
+    """Base class of protocol parsers: validation, statistics and timestamp ordering.
+
+    Subclasses implement :meth:`_parse` (bytes -> list of raw tuples via :meth:`_accept`).
+
+    Parameters
+    ----------
+    max_abs_nt : float
+        Saturation limit: a sample with any ``|component| > max_abs_nt`` (nT) is rejected
+        as ``'out_of_range'``. Default 200 000 nT.
+    temp_range_c : (float, float)
+        Inclusive plausible temperature range in degC; outside it the sample is rejected
+        as ``'temp_out_of_range'``.
+    time_reset_after : int
+        After this many consecutive samples with a device time earlier than the last
+        accepted one (each counted as ``'time_backwards'`` and dropped), the parser
+        assumes the device restarted its clock, counts ``'time_reset'`` and accepts the
+        new time base.
+    """
+
+    #: Bytes the transport writes after opening the port (e.g. a start command).
+    start_command = b''
+    #: Bytes the transport writes before closing the port (e.g. a stop command).
+    stop_command = b''
+
+    def __init__(self, max_abs_nt=DEFAULT_MAX_ABS_NT, temp_range_c=DEFAULT_TEMP_RANGE_C,
+                 time_reset_after=DEFAULT_TIME_RESET_AFTER):
+        self.max_abs_nt = _check_positive('max_abs_nt', max_abs_nt)
+        try:
+            lo, hi = (float(v) for v in temp_range_c)
+        except (TypeError, ValueError):
+            raise ValueError('temp_range_c must be two numbers (min, max) in degC, '
+                             f'got {temp_range_c!r}') from None
+        if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+            raise ValueError(f'temp_range_c must satisfy min < max, got {temp_range_c!r}')
+        self.temp_range_c = (lo, hi)
+        if int(time_reset_after) < 1:
+            raise ValueError(f'time_reset_after must be >= 1, got {time_reset_after!r}')
+        self.time_reset_after = int(time_reset_after)
+        self.stats = ParserStats()
+        self._last_time = None
+        self._backwards_run = 0
+
+    def feed(self, data):
+        """Consume bytes and return the samples completed by them.
+
+        Parameters
+        ----------
+        data : bytes or bytearray or memoryview
+            Any bytes, in any chunking; never raises on content.
+
+        Returns
+        -------
+        list of Sample
+            Valid samples in stream order (possibly empty).
+        """
+        data = bytes(data)
+        self.stats.bytes_in += len(data)
+        out = []
+        self._parse(data, out)
+        return out
+
+    def reset(self):
+        """Forget partial input and the device-time reference (e.g. after a reconnect)."""
+        self._last_time = None
+        self._backwards_run = 0
+        self._reset_buffer()
+
+    # -- for subclasses -------------------------------------------------------------
+    def _parse(self, data, out):  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _reset_buffer(self):  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _error(self, kind):
+        self.stats.errors[kind] += 1
+
+    def _accept(self, out, x, y, z, temp=None, device_time=None):
+        """Validate one decoded reading and append it to ``out``; return True if kept."""
+        values = (x, y, z) if temp is None else (x, y, z, temp)
+        if device_time is not None:
+            values = values + (device_time,)
+        if not all(math.isfinite(v) for v in values):
+            self._error('non_finite')
+            return False
+        limit = self.max_abs_nt
+        if abs(x) > limit or abs(y) > limit or abs(z) > limit:
+            self._error('out_of_range')
+            return False
+        if temp is not None and not (self.temp_range_c[0] <= temp <= self.temp_range_c[1]):
+            self._error('temp_out_of_range')
+            return False
+        if device_time is not None:
+            if self._last_time is not None and device_time < self._last_time:
+                self._backwards_run += 1
+                if self._backwards_run < self.time_reset_after:
+                    self._error('time_backwards')
+                    return False
+                self._error('time_reset')
+            self._backwards_run = 0
+            self._last_time = device_time
+        out.append(Sample((float(x), float(y), float(z)),
+                          None if temp is None else float(temp),
+                          None if device_time is None else float(device_time)))
+        self.stats.frames += 1
+        return True
+
+
+class Encoder:
+    """Base class of protocol encoders (used by the simulator).
+
+    :meth:`encode` turns one :class:`Sample` into the exact bytes the matching parser
+    reads; :meth:`encode_many` concatenates several.
+    """
+
+    #: Bytes a device would send once before streaming (e.g. a header line).
+    preamble = b''
+
+    def encode(self, sample):  # pragma: no cover - abstract
+        """Return the bytes of one sample."""
+        raise NotImplementedError
+
+    def encode_many(self, samples):
+        """Return the concatenated bytes of an iterable of samples."""
+        return b''.join(self.encode(s) for s in samples)

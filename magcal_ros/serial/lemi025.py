@@ -1,0 +1,139 @@
+"""LEMI-025 *style* fixed-length binary packets with a sync tag and CRC.
+
+This is a packet layout defined by this project in the spirit of the LEMI-025 fluxgate
+magnetometer's binary stream (sync tag, counter, device time, 3 components, temperature,
+checksum). It is **not** byte-compatible with a real LEMI-025 unless verified against the
+manufacturer's manual; a real device needs its own protocol entry in the registry.
+
+Packet, 32 bytes, little-endian:
+
+====== ==== ====== ===========================================================
+offset size type   field
+====== ==== ====== ===========================================================
+0      4    bytes  sync tag ``AA 55 25 02``
+4      4    uint32 packet counter (increments by one, wraps at 2**32)
+8      8    int64  device time, microseconds
+16     4    int32  x, units of 0.01 nT
+20     4    int32  y, units of 0.01 nT
+24     4    int32  z, units of 0.01 nT
+28     2    int16  temperature, units of 0.01 degC (``0x7FFF`` = not measured)
+30     2    uint16 CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF) of bytes 0..29
+====== ==== ====== ===========================================================
+
+Resynchronisation: the parser searches for the sync tag and accepts a packet only if its
+CRC matches; on a CRC error (``'checksum'``) it moves one byte past the tag and searches
+again, so a sync tag that happens to appear inside packet data, or a corrupted packet,
+costs at most that packet. A jump of the counter is counted as ``'counter_gap'``.
+"""
+
+import binascii
+import struct
+
+from magcal_ros.serial.base import Encoder, Parser
+
+SYNC = b'\xaa\x55\x25\x02'
+PACKET_BYTES = 32
+_BODY = struct.Struct('<4sIq3ih')
+_CRC = struct.Struct('<H')
+UNITS_PER_NT = 100  # field unit 0.01 nT (divide: 2431 / 100 is exactly 24.31)
+UNITS_PER_DEGC = 100  # temperature unit 0.01 degC
+US_PER_S = 1_000_000
+TEMP_MISSING = 0x7FFF
+
+
+def crc16(data):
+    """CRC-16/CCITT-FALSE of ``data`` (bytes): poly 0x1021, init 0xFFFF, no reflection."""
+    return binascii.crc_hqx(data, 0xFFFF)
+
+
+class Lemi025Parser(Parser):
+    """Parser of LEMI-025 style packets (see module docstring for the layout).
+
+    Parameters
+    ----------
+    **kwargs
+        ``max_abs_nt``, ``temp_range_c``, ``time_reset_after``.
+    """
+
+    def __init__(self, **kwargs):
+        super().__init__(**kwargs)
+        self._buf = b''
+        self._last_counter = None
+
+    def _reset_buffer(self):
+        self._buf = b''
+        self._last_counter = None
+
+    def _parse(self, data, out):
+        buf = self._buf + data
+        n = len(buf)
+        i = 0
+        while True:
+            p = buf.find(SYNC, i)
+            if p < 0:
+                keep = max(i, n - (len(SYNC) - 1))  # a sync tag may straddle two reads
+                self.stats.bytes_dropped += keep - i
+                i = keep
+                break
+            self.stats.bytes_dropped += p - i
+            i = p
+            if i + PACKET_BYTES > n:
+                break
+            body = buf[i:i + _BODY.size]
+            (crc,) = _CRC.unpack_from(buf, i + _BODY.size)
+            if crc16(body) != crc:
+                self._error('checksum')
+                i += 1
+                self.stats.bytes_dropped += 1
+                continue
+            _, counter, time_us, x, y, z, temp = _BODY.unpack(body)
+            if self._last_counter is not None and counter != (self._last_counter + 1) % 2**32:
+                self._error('counter_gap')
+            self._last_counter = counter
+            self._accept(out, x / UNITS_PER_NT, y / UNITS_PER_NT, z / UNITS_PER_NT,
+                         None if temp == TEMP_MISSING else temp / UNITS_PER_DEGC,
+                         time_us / US_PER_S)
+            i += PACKET_BYTES
+        self._buf = buf[i:]
+
+
+def _clip(value, lo, hi):
+    return max(lo, min(hi, value))
+
+
+class Lemi025Encoder(Encoder):
+    """Encoder of LEMI-025 style packets; keeps the packet counter.
+
+    Parameters
+    ----------
+    counter : int
+        First packet counter value (default 0).
+
+    Samples must carry ``device_time``; a missing temperature is written as
+    :data:`TEMP_MISSING`. Values are rounded to 0.01 nT / 0.01 degC / 1 us and saturated
+    to the field widths.
+    """
+
+    def __init__(self, counter=0):
+        self.counter = int(counter) % 2**32
+
+    def encode(self, sample):
+        """Return the 32-byte packet of ``sample``.
+
+        Raises
+        ------
+        ValueError
+            If the sample has no device_time.
+        """
+        if sample.device_time is None:
+            raise ValueError('lemi025 packets carry the device time: sample.device_time '
+                             'must be set (seconds)')
+        comps = [_clip(int(round(v * UNITS_PER_NT)), -2**31, 2**31 - 1) for v in sample.field_nt]
+        if sample.temp_c is None:
+            temp = TEMP_MISSING
+        else:
+            temp = _clip(int(round(sample.temp_c * UNITS_PER_DEGC)), -2**15, 2**15 - 2)
+        time_us = _clip(int(round(sample.device_time * US_PER_S)), -2**63, 2**63 - 1)
+        body = _BODY.pack(SYNC, self.counter, time_us, *comps, temp)
+        self.counter = (self.counter + 1) % 2**32
+        return body + _CRC.pack(crc16(body))

@@ -1,0 +1,489 @@
+"""Serial transport: a reconnecting pyserial reader thread and a pseudo-terminal device.
+
+:class:`PortReader` owns one serial port. It reads whatever bytes arrive, feeds them to a
+protocol parser and hands each sample to a callback together with its arrival time
+(``time.time()`` taken when the bytes were read; never synthesised from a sample rate).
+When the device goes away (unplugged USB adapter, closed pseudo-terminal, path removed)
+pyserial raises ``SerialException``/``OSError``; the reader closes the port and reopens it
+with exponential backoff, optionally trying alternative device paths (glob patterns), and
+counts every disconnect and reconnect.
+
+:class:`PtyDevice` plays the device side for simulation and tests: a raw-mode
+pseudo-terminal whose slave is symlinked to a chosen path (e.g.
+``/tmp/magcal_sim/fluxgate1``), with :meth:`~PtyDevice.unplug` and
+:meth:`~PtyDevice.replug` to emulate a cable being pulled and put back.
+
+Nothing here imports rclpy.
+"""
+
+import collections
+from dataclasses import dataclass
+import fcntl
+import glob
+import logging
+import os
+import termios
+import threading
+import time
+import tty
+
+import serial
+
+_LOG = logging.getLogger(__name__)
+
+# Paths currently open by a PortReader of this process (realpath -> reader name), so that a
+# glob of alternative paths never makes two readers share one device.
+_CLAIMED = {}
+_CLAIMED_LOCK = threading.Lock()
+
+STATE_CONNECTING = 'connecting'
+STATE_OPEN = 'open'
+STATE_BACKOFF = 'backoff'
+STATE_STOPPED = 'stopped'
+
+
+@dataclass(frozen=True)
+class PortStats:
+    """Snapshot of a :class:`PortReader`.
+
+    Attributes
+    ----------
+    name : str
+        Reader name (e.g. ``'sensor1'``).
+    port : str
+        Configured device path.
+    path : str or None
+        Path currently open (the configured one or an alternative), None when closed.
+    state : str
+        ``'connecting'``, ``'open'``, ``'backoff'`` (waiting to retry) or ``'stopped'``.
+    rate_hz : float
+        Samples per second over the last ``rate_window`` s.
+    samples : int
+        Samples delivered to the callback.
+    bytes_in : int
+        Bytes read from the port.
+    parse_errors : int
+        Frames/lines rejected by the parser (all kinds).
+    errors : dict
+        Parser rejections per kind.
+    bytes_dropped : int
+        Bytes the parser discarded while resynchronising.
+    reconnects : int
+        Successful reopenings after a loss of the device.
+    disconnects : int
+        Losses of an open device (read/write error).
+    open_failures : int
+        Failed attempts to open any candidate path.
+    callback_errors : int
+        Exceptions raised by the sample callback (logged, reader keeps running).
+    last_error : str
+        Text of the last transport error ('' if none).
+    seconds_since_data : float or None
+        Age of the last received bytes, None before any.
+    """
+
+    name: str
+    port: str
+    path: str | None
+    state: str
+    rate_hz: float
+    samples: int
+    bytes_in: int
+    parse_errors: int
+    errors: dict
+    bytes_dropped: int
+    reconnects: int
+    disconnects: int
+    open_failures: int
+    callback_errors: int
+    last_error: str
+    seconds_since_data: float | None
+
+
+def _check_seconds(name, value, allow_zero=False):
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f'{name} must be a number of seconds, got {value!r}') from None
+    if not (value >= 0.0 if allow_zero else value > 0.0) or value == float('inf'):
+        raise ValueError(f'{name} must be a finite {"non-negative" if allow_zero else "positive"}'
+                         f' number of seconds, got {value!r}')
+    return value
+
+
+class PortReader:
+    """Background thread reading one serial port into a parser, reconnecting on loss.
+
+    Parameters
+    ----------
+    port : str
+        Device path, e.g. ``/dev/ttyUSB0`` or ``/tmp/magcal_sim/fluxgate1``.
+    baudrate : int
+        Baud rate (bit/s).
+    parser : magcal_ros.serial.Parser
+        Protocol parser; its ``start_command`` is written after every (re)open and its
+        ``stop_command`` before a clean close.
+    callback : callable
+        ``callback(sample, arrival_time)`` for every sample, called from the reader thread;
+        ``arrival_time`` is ``clock()`` (default ``time.time()``, s) when its bytes arrived.
+    alternatives : sequence of str
+        Glob patterns of other paths to try when ``port`` cannot be opened (a device that
+        comes back under another name after a replug). Paths open by another reader of
+        this process are skipped.
+    timeout : float
+        pyserial read timeout, s; bounds how quickly :meth:`stop` takes effect.
+    backoff_min, backoff_max : float
+        First and largest wait between reopen attempts, s; the wait doubles after every
+        failure and returns to ``backoff_min`` once data flows again.
+    name : str
+        Label for logs and statistics.
+    rate_window : float
+        Window for ``rate_hz``, s.
+    serial_factory : callable
+        ``serial_factory(path, baudrate, timeout=...)`` returning a pyserial-like object;
+        default ``serial.Serial``.
+    clock : callable
+        Arrival-time source, default ``time.time``.
+    """
+
+    def __init__(self, port, baudrate, parser, callback, *, alternatives=(), timeout=0.05,
+                 backoff_min=0.1, backoff_max=5.0, name=None, rate_window=2.0,
+                 serial_factory=None, clock=time.time):
+        if not isinstance(port, str) or not port:
+            raise ValueError(f'port must be a non-empty device path, got {port!r}')
+        try:
+            baud = int(baudrate)
+        except (TypeError, ValueError):
+            baud = 0
+        if baud <= 0 or baud != baudrate:
+            raise ValueError(f'baudrate must be a positive integer (bit/s), got {baudrate!r}')
+        if not callable(callback):
+            raise ValueError('callback must be callable as callback(sample, arrival_time)')
+        if isinstance(alternatives, str):
+            alternatives = [alternatives]
+        self.port = port
+        self.baudrate = baud
+        self.parser = parser
+        self.callback = callback
+        self.alternatives = tuple(str(a) for a in alternatives)
+        self.timeout = _check_seconds('timeout', timeout)
+        self.backoff_min = _check_seconds('backoff_min', backoff_min)
+        self.backoff_max = _check_seconds('backoff_max', backoff_max)
+        if self.backoff_max < self.backoff_min:
+            raise ValueError(f'backoff_max ({backoff_max}) must be >= backoff_min '
+                             f'({backoff_min})')
+        self.rate_window = _check_seconds('rate_window', rate_window)
+        self.name = name or port
+        self._factory = serial_factory or serial.Serial
+        self._clock = clock
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = None
+        self._state = STATE_CONNECTING
+        self._path = None
+        self._samples = 0
+        self._bytes = 0
+        self._reconnects = 0
+        self._disconnects = 0
+        self._open_failures = 0
+        self._callback_errors = 0
+        self._last_error = ''
+        self._last_data = None
+        self._ever_opened = False
+        self._arrivals = collections.deque()   # (arrival time, samples) within rate_window
+        self._rate_origin = None
+
+    # -- public ----------------------------------------------------------------------
+    def start(self):
+        """Start the reader thread (returns immediately); returns self."""
+        if self._thread is not None:
+            raise RuntimeError(f'PortReader {self.name} already started')
+        self._thread = threading.Thread(target=self._run, name=f'PortReader-{self.name}',
+                                        daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self, timeout=2.0):
+        """Stop the thread, write the parser's stop command if open, close the port."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+        self._state = STATE_STOPPED
+
+    @property
+    def running(self):
+        """True while the reader thread is alive."""
+        return self._thread is not None and self._thread.is_alive()
+
+    def __enter__(self):
+        return self.start()
+
+    def __exit__(self, *exc):
+        self.stop()
+
+    def stats(self):
+        """Return a :class:`PortStats` snapshot (thread safe)."""
+        now = self._clock()
+        with self._lock:
+            pstats = self.parser.stats.copy()
+            self._prune(now)
+            in_window = sum(n for _, n in self._arrivals)
+            span = self.rate_window
+            if self._rate_origin is not None:
+                span = min(span, max(now - self._rate_origin, 1e-3))
+            rate = in_window / span if self._rate_origin is not None else 0.0
+            return PortStats(
+                name=self.name, port=self.port, path=self._path, state=self._state,
+                rate_hz=rate, samples=self._samples, bytes_in=self._bytes,
+                parse_errors=pstats.total_errors, errors=dict(pstats.errors),
+                bytes_dropped=pstats.bytes_dropped, reconnects=self._reconnects,
+                disconnects=self._disconnects, open_failures=self._open_failures,
+                callback_errors=self._callback_errors, last_error=self._last_error,
+                seconds_since_data=None if self._last_data is None else now - self._last_data)
+
+    # -- thread ----------------------------------------------------------------------
+    def _prune(self, now):
+        while self._arrivals and self._arrivals[0][0] < now - self.rate_window:
+            self._arrivals.popleft()
+
+    def _candidates(self):
+        paths = [self.port]
+        for pattern in self.alternatives:
+            paths.extend(sorted(glob.glob(pattern)))
+        seen = set()
+        out = []
+        for p in paths:
+            if p not in seen:
+                seen.add(p)
+                out.append(p)
+        return out
+
+    def _open(self):
+        """Try every candidate path; return (serial object, path, realpath) or None."""
+        for path in self._candidates():
+            real = os.path.realpath(path)
+            with _CLAIMED_LOCK:
+                owner = _CLAIMED.get(real)
+                if owner is not None and owner != id(self):
+                    continue
+                _CLAIMED[real] = id(self)
+            try:
+                ser = self._factory(path, self.baudrate, timeout=self.timeout)
+            except (serial.SerialException, OSError, ValueError) as exc:
+                self._release(real)
+                self._open_failures += 1
+                self._last_error = f'open {path}: {exc}'
+                continue
+            return ser, path, real
+        return None
+
+    def _release(self, real):
+        with _CLAIMED_LOCK:
+            if _CLAIMED.get(real) == id(self):
+                del _CLAIMED[real]
+
+    def _run(self):
+        delay = self.backoff_min
+        while not self._stop.is_set():
+            self._state = STATE_CONNECTING
+            opened = self._open()
+            if opened is None:
+                self._state = STATE_BACKOFF
+                self._stop.wait(delay)
+                delay = min(2.0 * delay, self.backoff_max)
+                continue
+            ser, path, real = opened
+            with self._lock:
+                self.parser.reset()  # partial frames and the device clock belong to the old link
+                self._path = path
+                if self._ever_opened:
+                    self._reconnects += 1
+                self._ever_opened = True
+                self._rate_origin = self._clock()
+                self._arrivals.clear()
+            _LOG.info('%s: opened %s', self.name, path)
+            if self._serve(ser):
+                delay = self.backoff_min
+            self._close(ser, real)
+            if not self._stop.is_set():
+                self._state = STATE_BACKOFF
+                self._stop.wait(delay)
+                delay = min(2.0 * delay, self.backoff_max)
+        self._state = STATE_STOPPED
+
+    def _serve(self, ser):
+        """Read until stop or error; return True if any data arrived."""
+        got_data = False
+        try:
+            if self.parser.start_command:
+                ser.write(self.parser.start_command)
+            self._state = STATE_OPEN
+            while not self._stop.is_set():
+                data = ser.read(max(1, ser.in_waiting))
+                if not data:
+                    continue
+                arrival = self._clock()
+                got_data = True
+                with self._lock:
+                    samples = self.parser.feed(data)
+                    self._bytes += len(data)
+                    self._samples += len(samples)
+                    self._last_data = arrival
+                    if samples:
+                        self._arrivals.append((arrival, len(samples)))
+                        self._prune(arrival)
+                for sample in samples:
+                    self._deliver(sample, arrival)
+            if self.parser.stop_command:
+                ser.write(self.parser.stop_command)
+        except (serial.SerialException, OSError, termios.error) as exc:
+            with self._lock:
+                self._disconnects += 1
+                self._last_error = f'{self._path}: {exc}'
+            _LOG.warning('%s: lost %s (%s); reopening with backoff', self.name, self._path, exc)
+        return got_data
+
+    def _deliver(self, sample, arrival):
+        try:
+            self.callback(sample, arrival)
+        except Exception:  # noqa: B902 - the reader thread must survive a faulty callback
+            self._callback_errors += 1
+            _LOG.exception('%s: sample callback failed', self.name)
+
+    def _close(self, ser, real):
+        try:
+            ser.close()
+        except (serial.SerialException, OSError, termios.error) as exc:
+            _LOG.debug('%s: close failed: %s', self.name, exc)
+        self._release(real)
+        with self._lock:
+            self._path = None
+
+
+def _atomic_symlink(target, link_path):
+    """Point ``link_path`` at ``target`` atomically, replacing a stale symlink."""
+    if os.path.lexists(link_path) and not os.path.islink(link_path):
+        raise ValueError(f'{link_path} exists and is not a symlink; refusing to replace it')
+    directory = os.path.dirname(os.path.abspath(link_path))
+    os.makedirs(directory, exist_ok=True)
+    tmp = os.path.join(directory, f'.{os.path.basename(link_path)}.{os.getpid()}.tmp')
+    if os.path.lexists(tmp):
+        os.unlink(tmp)
+    os.symlink(target, tmp)
+    os.replace(tmp, link_path)
+
+
+class PtyDevice:
+    """A simulated serial device on a pseudo-terminal.
+
+    The slave side is put in raw mode and (optionally) symlinked to ``link_path``;
+    a :class:`PortReader` (or any program) opens that path like a real serial port. The
+    device writes through the master side, which is non-blocking: when nobody reads and
+    the kernel buffer is full, stale unread input is flushed (counted in
+    :attr:`flushes`), as a streaming device's output is lost when no host listens;
+    :meth:`write` never blocks. Bytes written while unplugged count in :attr:`bytes_dropped`.
+
+    Parameters
+    ----------
+    link_path : str or None
+        Path of the symlink to create (parent directories are created; a stale symlink is
+        replaced atomically; an existing non-symlink file is refused).
+    """
+
+    def __init__(self, link_path=None):
+        self.link_path = link_path
+        self.master = None
+        self.slave = None
+        self.slave_name = None
+        self.bytes_written = 0
+        self.bytes_dropped = 0
+        self.flushes = 0
+        self.plug_count = 0
+        self.plug()
+
+    @property
+    def plugged(self):
+        """True while the pseudo-terminal exists."""
+        return self.master is not None
+
+    @property
+    def path(self):
+        """The path a reader should open (the link, or the slave name without a link)."""
+        return self.link_path or self.slave_name
+
+    def plug(self, link_path=None):
+        """Create a new pseudo-terminal (and link); ``link_path`` overrides the path."""
+        if self.plugged:
+            raise RuntimeError('PtyDevice is already plugged; call unplug() first')
+        if link_path is not None:
+            self.link_path = link_path
+        master, slave = os.openpty()
+        tty.setraw(slave)
+        flags = fcntl.fcntl(master, fcntl.F_GETFL)
+        fcntl.fcntl(master, fcntl.F_SETFL, flags | os.O_NONBLOCK)
+        self.master, self.slave = master, slave
+        self.slave_name = os.ttyname(slave)
+        if self.link_path:
+            _atomic_symlink(self.slave_name, self.link_path)
+        self.plug_count += 1
+
+    def unplug(self):
+        """Close the pseudo-terminal (readers see an I/O error) and remove the link."""
+        if self.link_path and os.path.islink(self.link_path):
+            if os.readlink(self.link_path) == self.slave_name:
+                os.unlink(self.link_path)
+        for fd in (self.master, self.slave):
+            if fd is not None:
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+        self.master = self.slave = None
+
+    def replug(self, link_path=None):
+        """Unplug (if plugged) and plug a fresh pseudo-terminal, optionally at a new path."""
+        if self.plugged:
+            self.unplug()
+        self.plug(link_path)
+
+    def write(self, data):
+        """Send bytes to the reader; return how many were accepted (0 while unplugged)."""
+        data = bytes(data)
+        if not self.plugged:
+            self.bytes_dropped += len(data)
+            return 0
+        sent = 0
+        for attempt in range(2):
+            try:
+                sent += os.write(self.master, data[sent:])
+            except BlockingIOError:
+                pass
+            if sent == len(data):
+                break
+            if attempt == 0:
+                # nobody is reading: discard what the reader never fetched
+                termios.tcflush(self.slave, termios.TCIFLUSH)
+                self.flushes += 1
+        self.bytes_written += sent
+        self.bytes_dropped += len(data) - sent
+        return sent
+
+    def read(self, size=4096):
+        """Return bytes the reader wrote to the device (commands), b'' if none."""
+        if not self.plugged:
+            return b''
+        try:
+            return os.read(self.master, size)
+        except (BlockingIOError, OSError):
+            return b''
+
+    def close(self):
+        """Unplug for good."""
+        if self.plugged:
+            self.unplug()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
