@@ -1,0 +1,305 @@
+"""ROS parameter declaration and validation for the calibration and corrector nodes.
+
+Every parameter is declared from a :class:`ParamSpec` (name, default, description with the
+unit, validator), so the description a user sees with ``ros2 param describe`` and the check
+made in ``add_on_set_parameters_callback`` come from one table. The node then turns its
+parameters into a frozen settings dataclass (:class:`CalibrationSettings`,
+:class:`CorrectorSettings`), so that the code doing the work never sees a ``Node``.
+"""
+from dataclasses import dataclass
+import math
+import os
+
+from magcal_ros.core.model import Model
+from rcl_interfaces.msg import ParameterDescriptor, ParameterType, SetParametersResult
+from rclpy.parameter import Parameter
+
+#: Where both nodes read/write the active calibration unless told otherwise.
+DEFAULT_CALIBRATION_FILE = '~/.ros/magcal/calibration.yaml'
+#: Where calibration/diagnose writes its HTML report unless told otherwise.
+DEFAULT_REPORT_DIR = '~/.ros/magcal/reports'
+
+_TYPES = {
+    bool: ParameterType.PARAMETER_BOOL,
+    int: ParameterType.PARAMETER_INTEGER,
+    float: ParameterType.PARAMETER_DOUBLE,
+    str: ParameterType.PARAMETER_STRING,
+}
+_ARRAY_TYPES = {
+    str: (ParameterType.PARAMETER_STRING_ARRAY, Parameter.Type.STRING_ARRAY),
+    float: (ParameterType.PARAMETER_DOUBLE_ARRAY, Parameter.Type.DOUBLE_ARRAY),
+    int: (ParameterType.PARAMETER_INTEGER_ARRAY, Parameter.Type.INTEGER_ARRAY),
+}
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """One node parameter.
+
+    Attributes
+    ----------
+    name : str
+        Parameter name.
+    default : bool or int or float or str or tuple
+        Default value; a tuple declares an array parameter (possibly empty).
+    description : str
+        What it is, with its unit (shown by ``ros2 param describe``).
+    check : callable or None
+        ``check(value) -> str or None``: the reason the value is refused, or None.
+    read_only : bool
+        Only settable at start-up (launch file, YAML, ``--ros-args -p``).
+    item_type : type
+        Element type of an array parameter (``str``, ``float``, ``int``).
+    """
+
+    name: str
+    default: object
+    description: str
+    check: object = None
+    read_only: bool = False
+    item_type: type = str
+
+    def descriptor(self):
+        """Return the ``rcl_interfaces/ParameterDescriptor`` of this parameter."""
+        if isinstance(self.default, tuple):
+            ptype = _ARRAY_TYPES[self.item_type][0]
+        else:
+            ptype = _TYPES[type(self.default)]
+        return ParameterDescriptor(name=self.name, type=ptype, description=self.description,
+                                   read_only=self.read_only)
+
+
+def positive(unit):
+    """Make a validator accepting a finite number > 0 (``unit`` is named in the refusal)."""
+    def check(value):
+        if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+            return f'must be a finite number > 0 {unit}, got {value!r}'
+        return None
+    return check
+
+
+def non_negative(unit):
+    """Make a validator accepting a finite number >= 0."""
+    def check(value):
+        if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+            return f'must be a finite number >= 0 {unit}, got {value!r}'
+        return None
+    return check
+
+
+def at_least(minimum, unit=''):
+    """Make a validator accepting an integer >= ``minimum``."""
+    def check(value):
+        if not (isinstance(value, int) and value >= minimum):
+            return f'must be an integer >= {minimum}{" " + unit if unit else ""}, got {value!r}'
+        return None
+    return check
+
+
+def non_empty_path(value):
+    """Refuse an empty path string (returns the reason or None)."""
+    if not isinstance(value, str) or not value.strip():
+        return 'must be a non-empty path'
+    return None
+
+
+def topic_names(value):
+    """Refuse names unusable as relative topic and column suffix (letters, digits, _)."""
+    for name in value:
+        if not name or not all(c.isalnum() or c == '_' for c in name) or name[0].isdigit():
+            return (f'aux topic {name!r} is not a plain relative topic name (letters, digits and '
+                    '_, not starting with a digit); it becomes the CSV column aux_<name>')
+    if len(set(value)) != len(value):
+        return f'aux topics must be unique, got {list(value)}'
+    return None
+
+
+def model_check(n_sensors):
+    """Make a validator of a model spec (list of effect tokens) using :meth:`Model.from_spec`."""
+    def check(value):
+        try:
+            Model.from_spec(list(value), n_sensors)
+        except ValueError as exc:
+            return f'invalid model {list(value)}: {exc}'
+        return None
+    return check
+
+
+def declare(node, specs):
+    """Declare every parameter of ``specs`` on ``node`` (overrides and YAML apply).
+
+    Returns
+    -------
+    dict of str to ParamSpec
+        The specs by name, for :func:`validate`.
+    """
+    for spec in specs:
+        if isinstance(spec.default, tuple):
+            if spec.default:
+                node.declare_parameter(spec.name, list(spec.default), spec.descriptor())
+            else:
+                # an empty list would be typed BYTE_ARRAY: declare the type explicitly
+                node.declare_parameter(spec.name, _ARRAY_TYPES[spec.item_type][1],
+                                       spec.descriptor())
+        else:
+            node.declare_parameter(spec.name, spec.default, spec.descriptor())
+    by_name = {s.name: s for s in specs}
+    # values given at start-up (YAML, overrides) are checked like later changes
+    result = validate(by_name, [node.get_parameter_or(s.name) for s in specs
+                                if node.get_parameter_or(s.name).type_ != Parameter.Type.NOT_SET])
+    if not result.successful:
+        raise ValueError(f'bad parameter: {result.reason}')
+    return by_name
+
+
+def validate(specs, params):
+    """Check parameter changes; the body of an ``add_on_set_parameters_callback``.
+
+    Parameters
+    ----------
+    specs : dict of str to ParamSpec
+    params : list of rclpy.parameter.Parameter
+
+    Returns
+    -------
+    rcl_interfaces.msg.SetParametersResult
+        ``successful=False`` with the reason of the first refused value.
+    """
+    for p in params:
+        spec = specs.get(p.name)
+        if spec is None or spec.check is None:
+            continue
+        reason = spec.check(p.value)
+        if reason:
+            return SetParametersResult(successful=False, reason=f'{p.name}: {reason}')
+    return SetParametersResult(successful=True)
+
+
+def value(node, name, default=None):
+    """Return the value of a parameter (``default`` for an unset array parameter)."""
+    p = node.get_parameter_or(name)
+    if p.type_ == Parameter.Type.NOT_SET:
+        return default
+    return p.value
+
+
+# -- calibration node -----------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class CalibrationSettings:
+    """Settings of the calibration node (units in the names)."""
+
+    n_sensors: int
+    model: tuple
+    field_nt: float
+    calibration_file: str
+    min_samples: int
+    max_samples: int
+    baseline_m: float
+    history: int
+    report_dir: str
+    stamp_tolerance_s: float
+    aux_topics: tuple
+    status_period_s: float
+    robust: bool
+
+
+#: declared first: the model check of the other parameters depends on it
+N_SENSORS = ParamSpec('n_sensors', 4, 'number of sensors of the array (topics sensor1/raw .. '
+                      'sensor<S>/raw); count, read-only', at_least(1), read_only=True)
+
+
+def calibration_specs(n_sensors=4):
+    """Parameters of ``calibration_node`` other than :data:`N_SENSORS`."""
+    return [
+        ParamSpec('model', ('base',),
+                  'model to fit: list of effect names (DESIGN.md contract 2), e.g. '
+                  "['base', 'temperature@2']; no unit",
+                  model_check(n_sensors), item_type=str),
+        ParamSpec('field_nt', 50000.0, 'reference magnitude of the (uniform) field at the '
+                  'calibration site, nT', positive('nT')),
+        ParamSpec('calibration_file', DEFAULT_CALIBRATION_FILE,
+                  'path of the calibration YAML written by calibration/calibrate (~ expanded; '
+                  'the previous file is kept as <path>.bak)', non_empty_path),
+        ParamSpec('min_samples', 1000, 'fewest complete sample sets calibration/calibrate '
+                  'accepts; count', at_least(12, 'sets')),
+        ParamSpec('max_samples', 20000, 'size of the ring buffer of sample sets (oldest '
+                  'dropped); count, read-only', at_least(12, 'sets'), read_only=True),
+        ParamSpec('baseline_m', 0.5, 'distance between the two sensors of an arm of the '
+                  'cross (paper 004), m', positive('m')),
+        ParamSpec('history', 20, 'number of previous calibrations kept in '
+                  '<calibration_file>.history/ (0: none); count', at_least(0)),
+        ParamSpec('report_dir', DEFAULT_REPORT_DIR, 'directory of the HTML report written by '
+                  'calibration/diagnose (~ expanded)', non_empty_path),
+        ParamSpec('stamp_tolerance_s', 0.005, 'largest spread of header stamps within one '
+                  'set of the S sensors (about half a sample period), s', positive('s')),
+        ParamSpec('aux_topics', (), 'auxiliary std_msgs/Float64 topics (relative names) '
+                  'recorded as columns aux_<name>; unit of each channel its own; read-only',
+                  topic_names, read_only=True, item_type=str),
+        ParamSpec('status_period_s', 1.0, 'period of calibration/status messages, s',
+                  positive('s'), read_only=True),
+        ParamSpec('robust', False, 'use the robust (soft L1) loss against spikes; no unit'),
+    ]
+
+
+def calibration_settings(node):
+    """:class:`CalibrationSettings` from the node's current parameters."""
+    return CalibrationSettings(
+        n_sensors=int(value(node, 'n_sensors')),
+        model=tuple(value(node, 'model')),
+        field_nt=float(value(node, 'field_nt')),
+        calibration_file=os.path.expanduser(value(node, 'calibration_file')),
+        min_samples=int(value(node, 'min_samples')),
+        max_samples=int(value(node, 'max_samples')),
+        baseline_m=float(value(node, 'baseline_m')),
+        history=int(value(node, 'history')),
+        report_dir=os.path.expanduser(value(node, 'report_dir')),
+        stamp_tolerance_s=float(value(node, 'stamp_tolerance_s')),
+        aux_topics=tuple(value(node, 'aux_topics', [])),
+        status_period_s=float(value(node, 'status_period_s')),
+        robust=bool(value(node, 'robust')),
+    )
+
+
+# -- corrector node -------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class CorrectorSettings:
+    """Settings of the corrector node (units in the names)."""
+
+    n_sensors: int
+    calibration_file: str
+    stamp_tolerance_s: float
+    aux_topics: tuple
+    publish_gradient: bool
+    diagnostics_period_s: float
+
+
+def corrector_specs():
+    """Parameters of ``corrector_node`` other than :data:`N_SENSORS`."""
+    return [
+        ParamSpec('calibration_file', DEFAULT_CALIBRATION_FILE,
+                  'calibration YAML loaded at start-up if present (~ expanded); updates '
+                  'arrive on calibration/result', non_empty_path, read_only=True),
+        ParamSpec('stamp_tolerance_s', 0.005, 'largest spread of header stamps of the S '
+                  'corrected samples combined into one gradient tensor, s', positive('s')),
+        ParamSpec('aux_topics', (), 'auxiliary std_msgs/Float64 topics (relative names) '
+                  'feeding the aux:aux_<name> effects of the calibration (latest value); '
+                  'read-only', topic_names, read_only=True, item_type=str),
+        ParamSpec('publish_gradient', True, 'publish the gradient tensor (T/m) on gradient; '
+                  'no unit'),
+        ParamSpec('diagnostics_period_s', 1.0, 'period of the /diagnostics status, s',
+                  positive('s'), read_only=True),
+    ]
+
+
+def corrector_settings(node):
+    """:class:`CorrectorSettings` from the node's current parameters."""
+    return CorrectorSettings(
+        n_sensors=int(value(node, 'n_sensors')),
+        calibration_file=os.path.expanduser(value(node, 'calibration_file')),
+        stamp_tolerance_s=float(value(node, 'stamp_tolerance_s')),
+        aux_topics=tuple(value(node, 'aux_topics', [])),
+        publish_gradient=bool(value(node, 'publish_gradient')),
+        diagnostics_period_s=float(value(node, 'diagnostics_period_s')),
+    )
