@@ -1,0 +1,481 @@
+"""calibration_node: collect rotation data from the live array, calibrate, diagnose.
+
+Topics (relative to the node namespace, default ``/magcal``; DESIGN.md contract 3):
+
+- subscribes ``sensor{j}/raw`` (sensor_msgs/MagneticField, T), ``sensor{j}/temperature``
+  (sensor_msgs/Temperature, degC) and one std_msgs/Float64 topic per name in ``aux_topics``
+  (recorded as column ``aux_<name>``), all with ``qos_profile_sensor_data``;
+- publishes ``calibration/status`` (std_msgs/String, JSON, every ``status_period_s``):
+  sets collected, attitude coverage per sensor, what is still missing;
+- publishes ``calibration/result`` (std_msgs/String holding the calibration YAML of
+  DESIGN.md contract 4; reliable, transient local, depth 1): the active calibration.
+
+Services (std_srvs/srv/Trigger; the response message is a short summary, a newline, then
+one JSON object):
+
+- ``calibration/start``: clear the buffer and start collecting;
+- ``calibration/calibrate``: fit the ``model`` parameter to the collected sets
+  (:func:`magcal_ros.pipeline.calibrate`), write ``calibration_file`` atomically (the
+  previous one kept) and publish it; refused data leave the previous calibration active;
+- ``calibration/diagnose``: rank the candidate effects missing from ``model``
+  (:func:`magcal_ros.core.diagnose.diagnose`) and write the HTML report to ``report_dir``.
+
+The solve runs in a service callback of a reentrant group on a MultiThreadedExecutor, so
+the sensor callbacks (their own mutually exclusive group) keep collecting meanwhile; a
+non-blocking lock turns a second calibrate/diagnose/start during a solve into a clean
+refusal instead of a queued call.
+"""
+import json
+import os
+import threading
+import time
+
+from magcal_ros.core.dataset import Dataset
+from magcal_ros.core.identifiability import coverage_report
+from magcal_ros.core.model import DegenerateDataError, Model
+from magcal_ros.io.calfile import (CalibrationFileError, dump_calibration, load_calibration,
+                                   save_calibration)
+from magcal_ros.pipeline import calibrate as run_calibration, cross_geometry
+from magcal_ros.ros import params as prm
+from magcal_ros.ros.conversions import msg_to_field_nt, stamp_to_seconds
+from magcal_ros.ros.sync import StampMatcher
+import numpy as np
+import rclpy
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import (DurabilityPolicy, HistoryPolicy, qos_profile_sensor_data, QoSProfile,
+                       ReliabilityPolicy)
+from sensor_msgs.msg import MagneticField, Temperature
+from std_msgs.msg import Float64, String
+from std_srvs.srv import Trigger
+
+#: QoS of calibration/result (REP 2003: latched state): a late subscriber gets the last one
+RESULT_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
+                        reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+#: at most this many sets enter the coverage figures of the status message
+_STATUS_SUBSAMPLE = 2000
+
+
+class SampleBuffer:
+    """Ring buffer of matched sample sets of S sensors (not thread-safe; lock outside).
+
+    Parameters
+    ----------
+    n_sensors : int
+    capacity : int
+        Sets kept; the oldest is overwritten.
+    aux_names : sequence of str
+        Auxiliary column names (``aux_<name>``).
+    """
+
+    def __init__(self, n_sensors, capacity, aux_names=()):
+        self.n_sensors = n_sensors
+        self.capacity = int(capacity)
+        self.t = np.zeros(self.capacity)
+        self.raw = np.zeros((n_sensors, self.capacity, 3))
+        self.temp = np.full((n_sensors, self.capacity), np.nan)
+        self.aux = {a: np.full(self.capacity, np.nan) for a in aux_names}
+        self.count = 0          # sets ever added since clear()
+
+    def clear(self):
+        """Forget all sets."""
+        self.count = 0
+
+    def __len__(self):
+        return min(self.count, self.capacity)
+
+    def append(self, t, raw, temp, aux):
+        """Add a set: t s, raw (S, 3) nT, temp (S,) degC (nan: none), aux {column: value}."""
+        k = self.count % self.capacity
+        self.t[k] = t
+        self.raw[:, k] = raw
+        self.temp[:, k] = temp
+        for name, arr in self.aux.items():
+            arr[k] = aux.get(name, np.nan)
+        self.count += 1
+
+    def _order(self, max_sets=None):
+        n = len(self)
+        start = self.count - n
+        idx = (np.arange(start, self.count) % self.capacity)
+        if max_sets is not None and n > max_sets:
+            idx = idx[np.linspace(0, n - 1, max_sets).round().astype(int)]
+        return idx
+
+    def raw_view(self, max_sets=None):
+        """(S, M, 3) nT raw readings, chronological, at most ``max_sets`` evenly spaced."""
+        return self.raw[:, self._order(max_sets)]
+
+    def dataset(self):
+        """Return a :class:`Dataset` of the buffered sets in chronological order (copies)."""
+        idx = self._order()
+        temp = self.temp[:, idx]
+        aux = {}
+        for name, arr in self.aux.items():
+            col = arr[idx]
+            if np.isfinite(col).any():
+                # sample-and-hold before the first value arrived: use the first value
+                first = col[np.flatnonzero(np.isfinite(col))[0]]
+                aux[name] = np.where(np.isfinite(col), col, first)
+        return Dataset(t=self.t[idx].copy(), raw=self.raw[:, idx].copy(),
+                       temp=temp.copy() if np.isfinite(temp).any() else None, aux=aux,
+                       meta={'source': 'live (calibration_node)'})
+
+
+def _reply(response, success, summary, payload):
+    """Fill a Trigger response: summary line(s), newline, one JSON object."""
+    response.success = bool(success)
+    response.message = summary.rstrip() + '\n' + json.dumps(payload, sort_keys=False)
+    return response
+
+
+def _fmt_per_sensor(d, fmt='{:.2f}'):
+    return ', '.join(f'{k}: {fmt.format(v)}' for k, v in d.items())
+
+
+def _tensor_rms(components):
+    """One RMS over the nine tensor components (list of lists, nT/m)."""
+    return float(np.sqrt(np.mean(np.square(np.asarray(components, float)))))
+
+
+class CalibrationNode(Node):
+    """Collect rotation data of the array and serve calibrate/diagnose requests."""
+
+    def __init__(self, **kwargs):
+        super().__init__('calibration_node', **kwargs)
+        prm.declare(self, [prm.N_SENSORS])
+        n = int(prm.value(self, 'n_sensors'))
+        self._specs = prm.calibration_specs(n)
+        self._specs_by_name = prm.declare(self, self._specs)
+        self._specs_by_name[prm.N_SENSORS.name] = prm.N_SENSORS
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        s = prm.calibration_settings(self)
+        self._n = s.n_sensors
+        self._aux_cols = ['aux_' + a for a in s.aux_topics]
+
+        self._lock = threading.Lock()           # buffer, matcher, latest signals, state
+        self._busy = threading.Lock()           # one solve (calibrate/diagnose) at a time
+        self._buffer = SampleBuffer(self._n, s.max_samples, self._aux_cols)
+        self._matcher = StampMatcher(self._n, s.stamp_tolerance_s)
+        self._temp = np.full(self._n, np.nan)
+        self._aux = {}
+        self._state = 'idle'
+        self._last_result = None                # summary dict of the last calibration
+        self._t_started = None
+
+        sensor_group = MutuallyExclusiveCallbackGroup()
+        service_group = ReentrantCallbackGroup()
+        self._subs = []
+        for j in range(1, self._n + 1):
+            self._subs.append(self.create_subscription(
+                MagneticField, f'sensor{j}/raw', self._raw_cb(j - 1), qos_profile_sensor_data,
+                callback_group=sensor_group))
+            self._subs.append(self.create_subscription(
+                Temperature, f'sensor{j}/temperature', self._temp_cb(j - 1),
+                qos_profile_sensor_data, callback_group=sensor_group))
+        for name in s.aux_topics:
+            self._subs.append(self.create_subscription(
+                Float64, name, self._aux_cb('aux_' + name), qos_profile_sensor_data,
+                callback_group=sensor_group))
+
+        self._status_pub = self.create_publisher(String, 'calibration/status', 10)
+        self._result_pub = self.create_publisher(String, 'calibration/result', RESULT_QOS)
+        self._srv = [
+            self.create_service(Trigger, 'calibration/start', self._on_start,
+                                callback_group=service_group),
+            self.create_service(Trigger, 'calibration/calibrate', self._on_calibrate,
+                                callback_group=service_group),
+            self.create_service(Trigger, 'calibration/diagnose', self._on_diagnose,
+                                callback_group=service_group),
+        ]
+        self._status_timer = self.create_timer(s.status_period_s, self._publish_status,
+                                               callback_group=MutuallyExclusiveCallbackGroup())
+        self._publish_existing(s.calibration_file)
+        self.get_logger().info(
+            f'ready: {self._n} sensors, model {list(s.model)}, field {s.field_nt:.1f} nT, '
+            f'calibration file {s.calibration_file}; call calibration/start to collect')
+
+    # -- parameters ------------------------------------------------------------------------
+
+    def _on_set_parameters(self, parameters):
+        result = prm.validate(self._specs_by_name, parameters)
+        if result.successful:
+            for p in parameters:
+                if p.name == 'stamp_tolerance_s':
+                    with self._lock:
+                        self._matcher.tolerance_s = float(p.value)
+        return result
+
+    # -- sensor callbacks (short) ----------------------------------------------------------
+
+    def _raw_cb(self, j):
+        def cb(msg):
+            if self._state not in ('collecting', 'calibrating'):
+                return
+            t = stamp_to_seconds(msg.header.stamp)
+            b = msg_to_field_nt(msg)
+            if not np.all(np.isfinite(b)):
+                return
+            with self._lock:
+                for t_set, items in self._matcher.add(j, t, b):
+                    self._buffer.append(t_set, np.array(items), self._temp, self._aux)
+        return cb
+
+    def _temp_cb(self, j):
+        def cb(msg):
+            with self._lock:
+                self._temp[j] = msg.temperature
+        return cb
+
+    def _aux_cb(self, column):
+        def cb(msg):
+            with self._lock:
+                self._aux[column] = float(msg.data)
+        return cb
+
+    # -- status ----------------------------------------------------------------------------
+
+    def status(self):
+        """Return progress and coverage (JSON-ready dict), as published on calibration/status."""
+        s = prm.calibration_settings(self)
+        with self._lock:
+            n_sets = len(self._buffer)
+            raw = self._buffer.raw_view(_STATUS_SUBSAMPLE) if n_sets else None
+            dropped = self._matcher.incomplete
+            state = self._state
+        out = {'state': state, 'sets': n_sets, 'min_samples': s.min_samples,
+               'max_samples': s.max_samples, 'incomplete_sets_dropped': dropped,
+               'model': list(s.model), 'field_nt': s.field_nt}
+        if self._t_started is not None and state in ('collecting', 'calibrating'):
+            dt = time.monotonic() - self._t_started
+            out['collecting_for_s'] = round(dt, 1)
+            out['set_rate_hz'] = round(n_sets / dt, 2) if dt > 0 else 0.0
+        missing = []
+        if state == 'idle':
+            missing.append('not collecting: call calibration/start')
+        if n_sets < s.min_samples:
+            missing.append(f'{s.min_samples - n_sets} more complete sample sets '
+                           f'(have {n_sets}, need {s.min_samples})')
+        coverage = {}
+        if raw is not None and raw.shape[1] >= 3:
+            rep = coverage_report(raw)
+            coverage = {str(j): {'status': v['status'],
+                                 'eigenvalues': [round(float(x), 4) for x in v['eigenvalues']]}
+                        for j, v in rep['sensors'].items()}
+            missing.extend(rep['problems'])
+        out['coverage'] = coverage
+        out['missing'] = missing
+        out['ready'] = state != 'idle' and not missing
+        if self._last_result is not None:
+            out['last_calibration'] = self._last_result
+        return out
+
+    def _publish_status(self):
+        try:
+            msg = String(data=json.dumps(self.status()))
+        except ValueError as exc:         # a degenerate buffer must not kill the timer
+            msg = String(data=json.dumps({'state': self._state, 'error': str(exc)}))
+        self._status_pub.publish(msg)
+
+    # -- services --------------------------------------------------------------------------
+
+    def _on_start(self, request, response):
+        if not self._busy.acquire(blocking=False):
+            return _reply(response, False, 'rejected: a calibration is running; call '
+                          'calibration/start again when it has finished',
+                          {'state': self._state})
+        try:
+            with self._lock:
+                self._buffer.clear()
+                self._matcher.reset()
+                self._state = 'collecting'
+                self._t_started = time.monotonic()
+            s = prm.calibration_settings(self)
+            return _reply(response, True,
+                          f'collecting: rotate the array through many attitudes; calibrate '
+                          f'after at least {s.min_samples} sets',
+                          {'state': 'collecting', 'min_samples': s.min_samples})
+        finally:
+            self._busy.release()
+
+    def _snapshot(self):
+        with self._lock:
+            n_sets = len(self._buffer)
+            data = self._buffer.dataset() if n_sets else None
+            return n_sets, data
+
+    def _on_calibrate(self, request, response):
+        if not self._busy.acquire(blocking=False):
+            return _reply(response, False, 'a calibration is already running',
+                          {'state': self._state})
+        prev_state = self._state
+        try:
+            with self._lock:
+                self._state = 'calibrating'
+            ok, summary, payload = self._calibrate(prev_state)
+            with self._lock:
+                self._state = 'done' if ok else prev_state
+            return _reply(response, ok, summary, payload)
+        except Exception as exc:         # noqa: B902 -- a service must answer, never die
+            self.get_logger().error(f'calibration failed: {exc!r}')
+            with self._lock:
+                self._state = prev_state
+            return _reply(response, False, f'calibration failed: {exc}',
+                          {'error': str(exc), 'type': type(exc).__name__})
+        finally:
+            self._busy.release()
+
+    def _calibrate(self, state):
+        """Run the fit; returns (success, summary text, JSON payload)."""
+        s = prm.calibration_settings(self)
+        n_sets, data = self._snapshot()
+        if n_sets < s.min_samples:
+            reason = (f'only {n_sets} complete sample sets collected, need at least '
+                      f'{s.min_samples}' + (': call calibration/start and rotate the array'
+                                            if state == 'idle' else
+                                            ': keep rotating the array'))
+            return False, f'not calibrated: {reason}; previous calibration stays active', {
+                'reason': reason, 'sets': n_sets}
+        model = Model.from_spec(list(s.model), self._n)
+        geometry = cross_geometry(s.baseline_m) if self._n == 4 else None
+        t0 = time.monotonic()
+        try:
+            run = run_calibration(
+                data, model=model, field_nt=s.field_nt, geometry=geometry,
+                field_reference={'kind': 'constant', 'magnitude_nt': s.field_nt},
+                robust=s.robust)
+        except DegenerateDataError as exc:
+            return False, (f'not calibrated: {exc}; previous calibration stays active'), {
+                'reason': str(exc), 'sets': n_sets, 'model': list(s.model)}
+        except ValueError as exc:
+            return False, f'not calibrated: {exc}; previous calibration stays active', {
+                'reason': str(exc), 'sets': n_sets, 'model': list(s.model)}
+        solve_s = time.monotonic() - t0
+        os.makedirs(os.path.dirname(os.path.abspath(s.calibration_file)), exist_ok=True)
+        try:
+            save_calibration(s.calibration_file, run.doc, history=s.history)
+        except (OSError, CalibrationFileError) as exc:
+            return False, (f'calibrated but could not write {s.calibration_file}: {exc}; '
+                           'previous calibration stays active'), {'reason': str(exc)}
+        self._result_pub.publish(String(data=dump_calibration(run.doc)))
+        summ = run.summary
+        payload = {
+            'calibration_file': s.calibration_file,
+            'model': summ['model'],
+            'sets': n_sets,
+            'solve_s': round(solve_s, 2),
+            'converged': summ['converged'],
+            'noise_floor_nt': summ['noise_floor_nt'],
+            'scalar_rms_before_nt': summ['total_field_rms_before_nt'],
+            'scalar_rms_after_nt': summ['scalar_rms_nt'],
+            'vector_rms_after_nt': summ['vector_rms_nt'],
+            'warnings': summ['warnings'],
+        }
+        lines = [f'calibrated {n_sets} sets with model {",".join(summ["model"])} in '
+                 f'{solve_s:.1f} s; written to {s.calibration_file}',
+                 f'total-field RMS per sensor before [nT]: '
+                 f'{_fmt_per_sensor(summ["total_field_rms_before_nt"], "{:.1f}")}',
+                 f'total-field RMS per sensor after  [nT]: '
+                 f'{_fmt_per_sensor(summ["scalar_rms_nt"])} '
+                 f'(noise floor {summ["noise_floor_nt"]:.2f} nT)']
+        if 'tensor_rms_nt_per_m' in summ:
+            before = _tensor_rms(summ['tensor_rms_before_nt_per_m'])
+            after = _tensor_rms(summ['tensor_rms_nt_per_m'])
+            floor = _tensor_rms(summ['tensor_floor_nt_per_m'])
+            payload.update(tensor_rms_before_nt_per_m=before, tensor_rms_after_nt_per_m=after,
+                           tensor_floor_nt_per_m=floor,
+                           tensor_rms_components_after_nt_per_m=summ['tensor_rms_nt_per_m'])
+            lines.append(f'tensor RMS before {before:.1f} nT/m, after {after:.2f} nT/m '
+                         f'(noise floor {floor:.2f} nT/m)')
+        for w in summ['warnings']:
+            lines.append(f'warning: {w}')
+        self._last_result = {k: payload[k] for k in ('calibration_file', 'model', 'sets')}
+        self.get_logger().info(lines[0])
+        return True, '\n'.join(lines), payload
+
+    def _on_diagnose(self, request, response):
+        if not self._busy.acquire(blocking=False):
+            return _reply(response, False, 'a calibration is already running',
+                          {'state': self._state})
+        try:
+            return self._diagnose(response)
+        except Exception as exc:         # noqa: B902 -- a service must answer, never die
+            self.get_logger().error(f'diagnosis failed: {exc!r}')
+            return _reply(response, False, f'diagnosis failed: {exc}',
+                          {'error': str(exc), 'type': type(exc).__name__})
+        finally:
+            self._busy.release()
+
+    def _diagnose(self, response):
+        try:
+            from magcal_ros.core.diagnose import diagnose
+            from magcal_ros.report import write_report
+        except ImportError as exc:
+            return _reply(response, False, f'diagnosis is not available: {exc}',
+                          {'error': str(exc)})
+        s = prm.calibration_settings(self)
+        n_sets, data = self._snapshot()
+        if n_sets < s.min_samples:
+            reason = f'only {n_sets} complete sample sets collected, need {s.min_samples}'
+            return _reply(response, False, f'not diagnosed: {reason}', {'reason': reason})
+        model = Model.from_spec(list(s.model), self._n)
+        try:
+            diag = diagnose(data, model, field_nt=s.field_nt)
+        except ValueError as exc:
+            return _reply(response, False, f'not diagnosed: {exc}', {'reason': str(exc)})
+        ranking = diag.to_json()
+        if isinstance(ranking, str):
+            ranking = json.loads(ranking)
+        os.makedirs(s.report_dir, exist_ok=True)
+        report = write_report(diag, data, s.report_dir)
+        ranking['report'] = os.fspath(report) if report is not None else s.report_dir
+        verdict = ranking.get('verdict') or {}
+        effect = verdict.get('effect', 'none')
+        if effect == 'none':
+            head = (f'model {",".join(model.spec())} explains the data down to the noise floor '
+                    '(nothing missing)')
+        else:
+            where = f' on sensor {verdict["sensor"]}' if verdict.get('sensor') else ''
+            head = f'most likely missing effect: {effect}{where}'
+        return _reply(response, True, f'{head}; report in {ranking["report"]}', ranking)
+
+    # -- start-up --------------------------------------------------------------------------
+
+    def _publish_existing(self, path):
+        """Publish the calibration already on disk, so the corrector starts with it."""
+        if not os.path.exists(path):
+            return
+        try:
+            load_calibration(path)
+            with open(path, encoding='utf-8') as fh:
+                text = fh.read()
+        except (CalibrationFileError, OSError) as exc:
+            self.get_logger().warning(f'existing calibration not published: {exc}')
+            return
+        self._result_pub.publish(String(data=text))
+        self.get_logger().info(f'published the existing calibration {path}')
+
+
+def main(args=None):
+    """Run calibration_node (``ros2 run magcal_ros calibration_node``)."""
+    rclpy.init(args=args)
+    node = None
+    executor = MultiThreadedExecutor(num_threads=4)
+    try:
+        node = CalibrationNode()
+        executor.add_node(node)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        executor.shutdown()
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,347 @@
+"""corrector_node: live correction of the array with the active calibration.
+
+Topics (relative to the node namespace, default ``/magcal``; DESIGN.md contract 3):
+
+- subscribes ``sensor{j}/raw`` (sensor_msgs/MagneticField, T) and ``sensor{j}/temperature``
+  (sensor_msgs/Temperature) with ``qos_profile_sensor_data``, one std_msgs/Float64 topic per
+  name in ``aux_topics`` (the signal of effect ``aux:aux_<name>``, latest value), and
+  ``calibration/result`` (std_msgs/String YAML, reliable + transient local) for new
+  calibrations without a restart;
+- publishes ``sensor{j}/corrected`` (sensor_msgs/MagneticField, T, in the array frame, same
+  stamp and frame_id as the raw sample, covariance sigma_j^2 A_j^-1 A_j^-T from the
+  calibration's noise estimate) and ``gradient`` (std_msgs/Float64MultiArray, 3x3 row-major,
+  T/m) from stamp-matched corrected samples of all sensors and the calibration's geometry;
+- publishes its health on ``/diagnostics``: WARN without a usable calibration (then nothing
+  is published), when a calibration was refused (the last good one stays active), or while a
+  driven effect lacks its live signal.
+
+Per message the work is a few 3x3 products: every matrix (A_j^-1, the covariance, the
+gradient operator) is computed once when a calibration is installed.
+"""
+import os
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from magcal_ros.core.effects import SensorContext
+from magcal_ros.core.tensor import tensor_operator
+from magcal_ros.io.calfile import CalibrationFileError, load_calibration, parse_calibration
+from magcal_ros.ros import params as prm
+from magcal_ros.ros.calibration_node import RESULT_QOS
+from magcal_ros.ros.conversions import (field_nt_to_msg, msg_to_field_nt, stamp_to_seconds,
+                                        tensor_to_msg)
+from magcal_ros.ros.sync import StampMatcher
+import numpy as np
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import qos_profile_sensor_data
+from sensor_msgs.msg import MagneticField, Temperature
+from std_msgs.msg import Float64, Float64MultiArray, String
+
+#: fixed-point iterations for effects that depend on the field itself (as Model.correct)
+_N_ITER = 4
+#: consecutive raw samples further apart than this give no field-rate estimate, s
+_MAX_RATE_GAP_S = 1.0
+
+
+class MissingSignal(Exception):
+    """A driven effect of the calibration has no live signal yet (the message says which)."""
+
+
+class _SensorCorrection:
+    """Precomputed correction of one sensor: B = A^-1 (raw - o - sum driven(raw))."""
+
+    def __init__(self, cal, j):
+        model = cal.model
+        self.j = j
+        self.a_inv = np.linalg.inv(cal.matrix(j))
+        self.offset = cal.offset(j)
+        self.driven = []
+        self.needs = set()
+        self.iterate = False
+        for eff, sl in zip(model.effects[j - 1], model.slices[j - 1]):
+            if eff.kind == 'linear' or eff.name == 'offset':
+                continue
+            self.driven.append((eff, cal.params[sl].copy()))
+            self.iterate |= eff.depends_on_lin()
+            if eff.name == 'temperature':
+                self.needs.add('temperature')
+            elif eff.name == 'aux':
+                self.needs.add(eff.channel)
+            elif eff.name == 'field_rate':
+                self.needs.add('field_rate')
+        sigma = float(cal.sigma_nt[j - 1])
+        # corrected = A^-1 raw: white raw noise sigma^2 I maps to sigma^2 A^-1 A^-T (nT^2)
+        self.cov_nt2 = (sigma ** 2 * self.a_inv @ self.a_inv.T
+                        if np.isfinite(sigma) and sigma > 0 else None)
+        if self.cov_nt2 is not None:
+            self.cov_nt2 = 0.5 * (self.cov_nt2 + self.cov_nt2.T)
+
+    def correct(self, raw, t, temp, aux, rate):
+        """Corrected field (3,) nT in the array frame; raises MissingSignal."""
+        lin = raw - self.offset
+        if not self.driven:
+            return self.a_inv @ lin
+        if 'temperature' in self.needs and not np.isfinite(temp):
+            raise MissingSignal(f'sensor {self.j}: waiting for sensor{self.j}/temperature '
+                                '(the calibration has a temperature effect)')
+        if 'field_rate' in self.needs and rate is None:
+            raise MissingSignal(f'sensor {self.j}: field rate needs two consecutive samples')
+        for name in self.needs - {'temperature', 'field_rate'}:
+            if name not in aux:
+                raise MissingSignal(
+                    f'sensor {self.j}: waiting for auxiliary channel {name} (topic '
+                    f'{name[4:]} named in aux_topics)')
+        ctx = SensorContext(
+            t=np.array([t]), temp=np.array([temp]) if np.isfinite(temp) else None,
+            aux={k: np.array([v]) for k, v in aux.items()},
+            raw_rate=None if rate is None else rate[None])
+        raw1 = raw[None]
+        corr = raw1 - self.offset
+        for eff, p in self.driven:
+            corr = corr - eff.contribution(p, ctx, raw1)
+        if self.iterate:
+            # fixed point lin = raw - o - d(lin), as Model.correct
+            for _ in range(_N_ITER):
+                lin_k = corr
+                corr = raw1 - self.offset
+                for eff, p in self.driven:
+                    corr = corr - eff.contribution(p, ctx, lin_k)
+        return self.a_inv @ corr[0]
+
+
+class LiveCorrection:
+    """A calibration made ready for per-message correction.
+
+    Parameters
+    ----------
+    cal : magcal_ros.core.model.Calibration
+    doc : dict
+        The calibration document (geometry, provenance).
+    n_sensors : int
+        Sensors the node subscribes; a calibration for another count is refused.
+    """
+
+    def __init__(self, cal, doc, n_sensors):
+        if cal.n_sensors != n_sensors:
+            raise CalibrationFileError(f'the calibration is for {cal.n_sensors} sensors but '
+                                       f'this corrector handles {n_sensors} (n_sensors)')
+        self.sensors = [_SensorCorrection(cal, j) for j in range(1, n_sensors + 1)]
+        self.model = list(doc.get('model') or cal.model.spec())
+        prov = doc.get('provenance') or {}
+        self.created = str(prov.get('created', 'unknown time'))
+        geometry = doc.get('geometry') or {}
+        self.gradient_op = None
+        self.no_gradient_reason = None
+        pos = geometry.get('positions_m')
+        if pos is None:
+            self.no_gradient_reason = 'the calibration has no array geometry (positions_m)'
+        else:
+            try:
+                pos = np.asarray(pos, float)
+                if pos.shape != (n_sensors, 3):
+                    raise ValueError(f'positions_m has shape {pos.shape}, expected '
+                                     f'({n_sensors}, 3)')
+                # rows 3.. of the operator: G row-major (9, 3 S), paper 004 eq. 1 for the cross
+                self.gradient_op = tensor_operator(pos)[3:]
+            except ValueError as exc:
+                self.no_gradient_reason = f'no gradient: {exc}'
+
+    def describe(self):
+        """One line: model and creation time."""
+        return f'model {",".join(self.model)} created {self.created}'
+
+
+class CorrectorNode(Node):
+    """Publish corrected fields and the gradient tensor of the array."""
+
+    def __init__(self, **kwargs):
+        super().__init__('corrector_node', **kwargs)
+        prm.declare(self, [prm.N_SENSORS])
+        specs = prm.corrector_specs()
+        self._specs = prm.declare(self, specs)
+        self._specs[prm.N_SENSORS.name] = prm.N_SENSORS
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        s = prm.corrector_settings(self)
+        self._n = s.n_sensors
+        self._publish_gradient = s.publish_gradient
+
+        self._live = None
+        self._source = None
+        self._refused = None
+        self._missing = {}
+        self._temp = np.full(self._n, np.nan)
+        self._aux = {}
+        self._prev = [None] * self._n          # (t s, raw (3,) nT) of the previous sample
+        self._matcher = StampMatcher(self._n, s.stamp_tolerance_s)
+        self._counts = np.zeros(self._n, int)
+        self._n_gradient = 0
+
+        self._pub_corr = [self.create_publisher(MagneticField, f'sensor{j}/corrected', 10)
+                          for j in range(1, self._n + 1)]
+        self._pub_grad = self.create_publisher(Float64MultiArray, 'gradient', 10)
+        self._pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self._subs = []
+        for j in range(1, self._n + 1):
+            self._subs.append(self.create_subscription(
+                MagneticField, f'sensor{j}/raw', self._raw_cb(j - 1), qos_profile_sensor_data))
+            self._subs.append(self.create_subscription(
+                Temperature, f'sensor{j}/temperature', self._temp_cb(j - 1),
+                qos_profile_sensor_data))
+        for name in s.aux_topics:
+            self._subs.append(self.create_subscription(
+                Float64, name, self._aux_cb('aux_' + name), qos_profile_sensor_data))
+        self._subs.append(self.create_subscription(String, 'calibration/result',
+                                                   self._result_cb, RESULT_QOS))
+        self._load_file(s.calibration_file)
+        self._timer = self.create_timer(s.diagnostics_period_s, self._publish_diagnostics)
+        self._publish_diagnostics()
+
+    # -- parameters ------------------------------------------------------------------------
+
+    def _on_set_parameters(self, parameters):
+        result = prm.validate(self._specs, parameters)
+        if result.successful:
+            for p in parameters:
+                if p.name == 'stamp_tolerance_s':
+                    self._matcher.tolerance_s = float(p.value)
+                elif p.name == 'publish_gradient':
+                    self._publish_gradient = bool(p.value)
+        return result
+
+    # -- calibrations ----------------------------------------------------------------------
+
+    def _install(self, cal, doc, source):
+        live = LiveCorrection(cal, doc, self._n)
+        self._live = live
+        self._source = source
+        self._refused = None
+        self._missing.clear()
+        self._matcher.reset()
+        self.get_logger().info(f'using the calibration from {source} ({live.describe()})')
+        if live.no_gradient_reason:
+            self.get_logger().warning(live.no_gradient_reason)
+
+    def _refuse(self, source, exc):
+        keep = (f'keeping the calibration from {self._source} ({self._live.describe()})'
+                if self._live else 'no calibration is active')
+        self._refused = f'refused the calibration from {source}: {exc}; {keep}'
+        self.get_logger().error(self._refused)
+
+    def _load_file(self, path):
+        if not os.path.exists(path):
+            self.get_logger().warning(
+                f'no calibration file {path}: nothing is published until a calibration '
+                'arrives on calibration/result')
+            return
+        try:
+            cal, doc = load_calibration(path)
+            self._install(cal, doc, path)
+        except CalibrationFileError as exc:
+            self._refuse(path, exc)
+
+    def _result_cb(self, msg):
+        source = 'calibration/result'
+        try:
+            cal, doc = parse_calibration(msg.data, source)
+            self._install(cal, doc, source)
+        except CalibrationFileError as exc:
+            self._refuse(source, exc)
+        self._publish_diagnostics()
+
+    # -- sensor callbacks ------------------------------------------------------------------
+
+    def _temp_cb(self, j):
+        def cb(msg):
+            self._temp[j] = msg.temperature
+        return cb
+
+    def _aux_cb(self, column):
+        def cb(msg):
+            self._aux[column] = float(msg.data)
+        return cb
+
+    def _raw_cb(self, j):
+        def cb(msg):
+            t = stamp_to_seconds(msg.header.stamp)
+            raw = msg_to_field_nt(msg)
+            prev = self._prev[j]
+            self._prev[j] = (t, raw)
+            live = self._live
+            if live is None or not np.all(np.isfinite(raw)):
+                return
+            rate = None
+            if prev is not None and 0.0 < t - prev[0] <= _MAX_RATE_GAP_S:
+                rate = (raw - prev[1]) / (t - prev[0])      # nT/s, backward difference
+            sc = live.sensors[j]
+            try:
+                b = sc.correct(raw, t, self._temp[j], self._aux, rate)
+            except MissingSignal as exc:
+                self._missing[j] = str(exc)
+                return
+            self._missing.pop(j, None)
+            self._pub_corr[j].publish(field_nt_to_msg(
+                b, stamp=msg.header.stamp, frame_id=msg.header.frame_id,
+                covariance_nt2=sc.cov_nt2))
+            self._counts[j] += 1
+            if self._publish_gradient and live.gradient_op is not None:
+                for _, fields in self._matcher.add(j, t, b):
+                    g = live.gradient_op @ np.concatenate(fields)      # (9,) nT/m
+                    self._pub_grad.publish(tensor_to_msg(g.reshape(3, 3)))
+                    self._n_gradient += 1
+        return cb
+
+    # -- diagnostics -----------------------------------------------------------------------
+
+    def diagnostic_status(self):
+        """Return the node's ``diagnostic_msgs/DiagnosticStatus``."""
+        st = DiagnosticStatus(name=f'{self.get_name()}: correction',
+                              hardware_id=self.get_namespace())
+        problems = []
+        if self._live is None:
+            problems.append('no calibration: publishing nothing (run calibration/calibrate or '
+                            'set calibration_file)')
+        if self._refused:
+            problems.append(self._refused)
+        problems.extend(self._missing[j] for j in sorted(self._missing))
+        if self._live is not None and self._live.no_gradient_reason:
+            problems.append(self._live.no_gradient_reason)
+        if problems:
+            st.level = DiagnosticStatus.WARN
+            st.message = '; '.join(problems)
+        else:
+            st.level = DiagnosticStatus.OK
+            st.message = f'correcting with the calibration from {self._source}'
+        values = [('calibration_source', self._source or ''),
+                  ('calibration', self._live.describe() if self._live else 'none'),
+                  ('last_refused', self._refused or ''),
+                  ('gradient_published', str(self._n_gradient)),
+                  ('incomplete_sets_dropped', str(self._matcher.incomplete))]
+        values += [(f'sensor{j + 1}_corrected_published', str(c))
+                   for j, c in enumerate(self._counts)]
+        st.values = [KeyValue(key=k, value=v) for k, v in values]
+        return st
+
+    def _publish_diagnostics(self):
+        arr = DiagnosticArray()
+        arr.header.stamp = self.get_clock().now().to_msg()
+        arr.status = [self.diagnostic_status()]
+        self._pub_diag.publish(arr)
+
+
+def main(args=None):
+    """Run corrector_node (``ros2 run magcal_ros corrector_node``)."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = CorrectorNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()
