@@ -96,7 +96,7 @@ def jacobian_report(model, cov, corr, constrained=False):
     info = model.param_info()
     names = [f'{e}.{n}@{s}' for s, e, n, _ in info]
     out = {'problems': []}
-    ok = np.diag(cov) > 0
+    ok = np.isfinite(np.diag(cov)) & (np.diag(cov) > 0)
     if ok.sum() == 0:
         out.update(condition_number=float('inf'), max_correlation=[])
         return out
@@ -109,12 +109,15 @@ def jacobian_report(model, cov, corr, constrained=False):
     order = np.dstack(np.unravel_index(np.argsort(-tri, axis=None)[:5], tri.shape))[0]
     top = [(names[idx[a]], names[idx[b]], float(c[a, b])) for a, b in order if tri[a, b] > 0]
     out['max_correlation'] = top
-    if top and abs(top[0][2]) > MAX_CORRELATION:
+    if constrained:
+        # priors bound every parameter; strong posterior correlations are expected then
+        out['notes'] = [f'{a} ~ {b}: correlation {rho:+.4f}' for a, b, rho in top[:3]]
+    elif top and abs(top[0][2]) > MAX_CORRELATION:
         a, b, rho = top[0]
         out['problems'].append(
             f'parameters {a} and {b} are correlated at {rho:+.4f}: the data cannot separate '
-            'them; add attitudes that excite them differently, drop one of the effects'
-            + ('' if constrained else ', or use the constrained mode'))
+            'them; add attitudes that excite them differently, drop one of the effects, '
+            'or use the constrained mode')
     elif cond > MAX_CONDITION:
         out['problems'].append(
             f'the problem is ill-conditioned (condition number {cond:.3g} of the parameter '

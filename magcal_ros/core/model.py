@@ -460,7 +460,10 @@ def _tangent_basis(u):
 class _Problem:
     """Residuals and projected Jacobian of the ML problem for one group of sensors."""
 
-    def __init__(self, model, data_raw, contexts, f_nt, sensors, sigma, priors):
+    def __init__(self, model, data_raw, contexts, f_nt, sensors, sigma, priors, robust=False,
+                 f_scale=3.0):
+        self.robust = robust
+        self.f_scale = f_scale
         self.model = model
         self.raw = data_raw            # (S, N, 3)
         self.ctx = contexts
@@ -481,9 +484,12 @@ class _Problem:
     def _field(self, p):
         """Profile the field per epoch: mean of corrected readings, then GN steps on |B| = F."""
         n = self.raw.shape[1]
-        acc = np.zeros((n, 3))
-        for j in self.sensors:
-            acc += self.model.correct(j, p, self.raw[j - 1], self.ctx[j - 1]) / self.sigma[j - 1] ** 2
+        cor = np.stack([self.model.correct(j, p, self.raw[j - 1], self.ctx[j - 1])
+                        for j in self.sensors])
+        if self.robust and len(self.sensors) > 2:
+            acc = np.median(cor, axis=0)          # one spiking sensor cannot pull the field
+        else:
+            acc = np.einsum('gnc,g->nc', cor, 1.0 / self.sigma[np.array(self.sensors) - 1] ** 2)
         u = acc / np.linalg.norm(acc, axis=1, keepdims=True)
         b = u * self.f[:, None]
         mats = {j: self.model.matrix(j, p) for j in self.sensors}
@@ -496,8 +502,12 @@ class _Problem:
                 r = (self.raw[j - 1] - self.model.forward(j, p, b, self.ctx[j - 1])) / self.sigma[j - 1]
                 g = np.stack([e1 @ mats[j].T, e2 @ mats[j].T], axis=2) * (
                     self.f[:, None, None] / self.sigma[j - 1])            # (N, 3, 2) = -dr/d delta
-                hess += np.einsum('nci,ncj->nij', g, g)
-                grad += np.einsum('nci,nc->ni', g, r)
+                w = np.ones(n)
+                if self.robust:
+                    # IRLS weight of the soft-L1 loss on this sensor's residual at each epoch
+                    w = 1.0 / np.sqrt(1.0 + np.sum(r ** 2, axis=1) / self.f_scale ** 2)
+                hess += np.einsum('n,nci,ncj->nij', w, g, g)
+                grad += np.einsum('n,nci,nc->ni', w, g, r)
             delta = np.linalg.solve(hess, grad[..., None])[..., 0]
             b = b + self.f[:, None] * (delta[:, :1] * e1 + delta[:, 1:] * e2)
             b = b / np.linalg.norm(b, axis=1, keepdims=True) * self.f[:, None]
@@ -633,6 +643,27 @@ def field_magnitude(data, field_nt=None):
     return f
 
 
+def _covariance(jac):
+    """(P, P) inverse of J^T J with column scaling; inf variance for undetermined directions.
+
+    A pseudo-inverse would silently give *zero* variance along directions the data do not
+    determine; here such parameters get an infinite standard uncertainty instead.
+    """
+    d = np.linalg.norm(jac, axis=0)
+    d[d == 0] = 1.0
+    m = (jac / d).T @ (jac / d)
+    w, v = np.linalg.eigh(m)
+    bad = w <= 1e-14 * max(w.max(), 1e-300)
+    w_inv = np.where(bad, 0.0, 1.0 / np.where(bad, 1.0, w))
+    cov = (v * w_inv) @ v.T / np.outer(d, d)
+    if bad.any():
+        involved = np.abs(v[:, bad]).max(axis=1) > 1e-6
+        cov[involved, :] = np.inf
+        cov[:, involved] = np.inf
+        cov[involved, involved] = np.inf
+    return cov
+
+
 def _robust_sigma(x):
     """Noise sd from the median absolute deviation (robust to outliers)."""
     x = np.asarray(x, float).ravel()
@@ -748,12 +779,14 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
             pr = [t for t in prior_list if any(
                 model.sensor_slices[j - 1].start <= t[0] < model.sensor_slices[j - 1].stop
                 for j in grp)]
-            prob = _Problem(model, raw, contexts, f, grp, sigma, pr)
+            prob = _Problem(model, raw, contexts, f, grp, sigma, pr, robust, f_scale)
             prob.p_full = p.copy()
             x0 = p[prob.cols]
+            # a dense SVD per step dominates for tall Jacobians: use LSMR there
+            tr_solver = 'exact'
             sol = least_squares(prob.residuals, x0, jac=prob.jacobian, x_scale='jac',
                                 loss='soft_l1' if robust else 'linear', f_scale=f_scale,
-                                max_nfev=max_nfev, method='trf')
+                                max_nfev=max_nfev, method='trf', tr_solver=tr_solver)
             p[prob.cols] = sol.x
             problems.append(prob)
             nfev += sol.nfev
@@ -787,23 +820,19 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
     for grp in groups:
         prob = _Problem(model, raw, contexts, f, grp, sigma, [t for t in prior_list if any(
             model.sensor_slices[j - 1].start <= t[0] < model.sensor_slices[j - 1].stop
-            for j in grp)])
+            for j in grp)], robust, f_scale)
         prob.p_full = p.copy()
         x = p[prob.cols]
         jac = prob.jacobian(x)
         r = prob.residuals(x)
         chi2 += float(np.sum(r ** 2))
         n_obs += (3 * len(grp) - 2) * raw.shape[1]
-        jtj = jac.T @ jac
-        try:
-            cinv = np.linalg.pinv(jtj, rcond=1e-13)
-        except np.linalg.LinAlgError:
-            cinv = np.full_like(jtj, np.nan)
-        cov[np.ix_(prob.cols, prob.cols)] = cinv
+        cov[np.ix_(prob.cols, prob.cols)] = _covariance(jac)
     stderr = np.sqrt(np.clip(np.diag(cov), 0, None))
     with np.errstate(invalid='ignore', divide='ignore'):
         corr = cov / np.outer(stderr, stderr)
     corr[~np.isfinite(corr)] = 0.0
+    np.fill_diagonal(corr, 1.0)
 
     if check_identifiability:
         jac_rep = idf.jacobian_report(model, cov, corr, constrained=constrained)
@@ -844,7 +873,7 @@ def evaluate(model, p, data, f, sigma, contexts=None, robust=False, f_scale=3.0,
         idx = np.arange(sl.start, sl.stop)
         ctx = [c.subset(idx) for c in contexts]
         for grp in groups:
-            prob = _Problem(model, data.raw[:, sl], ctx, f[sl], grp, sigma, [])
+            prob = _Problem(model, data.raw[:, sl], ctx, f[sl], grp, sigma, [], robust, f_scale)
             prob.p_full = p.copy()
             _, b, _, res = prob.evaluate(p[prob.cols])
             field[sl] = b          # joint: shared; independent: last sensor's estimate

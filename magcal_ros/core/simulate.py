@@ -164,7 +164,7 @@ class Simulator:
             return Rotation.from_euler('ZYX', np.column_stack([yaw, pitch, roll]))
         if cfg.trajectory == 'turntable':
             yaw = 2 * np.pi * t / cfg.smooth_period_s * 3
-            return Rotation.from_euler('Z', yaw)
+            return Rotation.from_euler('Z', yaw[:, None])
         if cfg.trajectory == 'vehicle':
             w = 2 * np.pi / cfg.smooth_period_s
             ph = self._phases
