@@ -1,0 +1,1 @@
+"""ROS-free numerical core (numpy/scipy only); never import rclpy or *_msgs here."""

@@ -1,0 +1,1 @@
+"""ROS-free readers and writers: wide CSV, rosbag2 (via rosbags), calibration YAML."""
