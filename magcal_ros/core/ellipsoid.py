@@ -71,8 +71,16 @@ def fit_ellipsoid(raw, field_nt, normalization='svd'):
     # paper 004 eq. 8: a x^2 + b y^2 + c z^2 + 2f yz + 2g xz + 2h xy + 2p x + 2q y + 2r z + d = 0
     design = np.column_stack([x * x, y * y, z * z, 2 * y * z, 2 * x * z, 2 * x * y,
                               2 * x, 2 * y, 2 * z, np.ones_like(x)])
+    _, sv, vt = np.linalg.svd(design, full_matrices=False)
+    # a unique ellipsoid needs a one-dimensional null space: the second smallest singular
+    # value must stand well above the smallest (noise) one.  Planar data (a rotation about
+    # one axis) leave several conics through the points.
+    if sv[-2] < 10 * sv[-1] or sv[-2] < 1e-3 * sv[0]:
+        raise ValueError(
+            'the ellipsoid is not determined by these data (singular values '
+            f'{sv[-2]:.3g} and {sv[-1]:.3g} of the design matrix are alike): the field '
+            'directions do not span three dimensions; rotate the sensor about more axes')
     if normalization == 'svd':
-        _, sv, vt = np.linalg.svd(design, full_matrices=False)
         v = vt[-1]
     elif normalization == 'p':
         # paper 004 eq. 9-10: divide by p, move 2x to the right-hand side

@@ -752,7 +752,9 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
         except ValueError as exc:
             if constrained:
                 raise
-            raise DegenerateDataError(f'{exc}. {ident.get("summary", "")}'.strip()) from exc
+            degenerate(f'{exc}. {ident.get("summary", "")}'.strip())
+            # flagged: start from ideal sensors and the sphere-fit offsets instead
+            p0 = initial_params(raw, f, model, constrained=True)
     else:
         p0 = np.asarray(init, float).copy()
 

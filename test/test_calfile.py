@@ -1,0 +1,102 @@
+"""Calibration file (DESIGN.md contract 4): content, atomic writes, history, refusals."""
+import os
+
+import numpy as np
+import pytest
+import yaml
+
+from magcal_ros.core.simulate import simulate
+from magcal_ros.io import calfile
+from magcal_ros.io.calfile import CalibrationFileError, load_calibration, save_calibration
+from magcal_ros.pipeline import calibrate
+
+
+@pytest.fixture(scope='module')
+def run():
+    data, sim = simulate(n_samples=400, rate_hz=2.0, trajectory='random', seed=3,
+                         truth={'temperature@2': [2.0, -1.0, 0.5, 0, 0, 0]})
+    return data, calibrate(data, 'base,temperature@2', field_nt=50000.0)
+
+
+def test_document_content_and_round_trip(tmp_path, run):
+    data, r = run
+    path = tmp_path / 'cal.yaml'
+    save_calibration(path, r.doc)
+    cal, doc = load_calibration(path)
+    assert doc['schema_version'] == 1
+    assert doc['model'] == r.result.model.spec()
+    s2 = doc['sensors'][1]
+    temp = next(e for e in s2['effects'] if e['name'] == 'temperature')
+    assert temp['params']['cx']['unit'] == 'nT/degC'
+    assert temp['params']['cx']['stderr'] > 0
+    assert 't0_c' in temp['refs']
+    for key in ('correction_matrix', 'intrinsic_correction', 'offset_nt', 'rotation_to_sensor1'):
+        assert np.asarray(s2[key]).size in (3, 9)
+    prov = doc['provenance']
+    for key in ('created', 'samples', 'data_hash', 'temperature_range_c', 'attitude_coverage',
+                'residuals'):
+        assert key in prov
+    assert prov['samples'] == 400
+    assert doc['geometry']['baseline_m'] == 0.5
+    # the loaded calibration corrects exactly like the fitted one
+    assert np.allclose(cal.correct_dataset(data), r.result.corrected_nt, atol=1e-6)
+
+
+def test_atomic_write_keeps_previous_on_failing_fsync(tmp_path, run):
+    _, r = run
+    path = tmp_path / 'cal.yaml'
+    save_calibration(path, r.doc)
+    before = path.read_text()
+    doc2 = dict(r.doc, provenance=dict(r.doc['provenance'], source='second'))
+
+    def broken_fsync(fd):
+        raise OSError(5, 'Input/output error')
+
+    with pytest.raises(OSError, match='Input/output'):
+        save_calibration(path, doc2, fsync=broken_fsync)
+    assert path.read_text() == before
+    load_calibration(path)
+    assert not [f for f in os.listdir(tmp_path) if f.endswith('.tmp')]
+
+
+def test_backup_history_and_rollback(tmp_path, run):
+    _, r = run
+    path = tmp_path / 'cal.yaml'
+    for k in range(5):
+        doc = dict(r.doc, provenance=dict(r.doc['provenance'], source=f'run{k}'))
+        save_calibration(path, doc, history=3)
+    assert len(calfile.list_history(path)) == 3
+    assert yaml.safe_load((tmp_path / 'cal.yaml.bak').read_text())['provenance']['source'] == 'run3'
+    calfile.rollback(path, steps=1)
+    assert load_calibration(path)[1]['provenance']['source'] == 'run3'
+    with pytest.raises(CalibrationFileError, match='cannot go back 7'):
+        calfile.rollback(path, steps=7)
+
+
+def _mutate(doc, fn):
+    doc = yaml.safe_load(calfile.dump_calibration(doc))
+    fn(doc)
+    return calfile.dump_calibration(doc)
+
+
+@pytest.mark.parametrize('make,match', [
+    (lambda d: calfile.dump_calibration(d)[:200], 'not valid YAML|missing key'),
+    (lambda d: '', 'file is empty'),
+    (lambda d: '\x00\x01garbage: [', 'not valid YAML'),
+    (lambda d: _mutate(d, lambda x: x.update(schema_version=99)), 'schema_version 99 is newer'),
+    (lambda d: _mutate(d, lambda x: x.update(schema_version='one')), 'must be an integer'),
+    (lambda d: _mutate(d, lambda x: x['sensors'][0]['correction_matrix'][0].__setitem__(0, 2.0)),
+     'correction_matrix does not match the parameters'),
+    (lambda d: _mutate(d, lambda x: x['sensors'][0]['effects'][0]['params']['kx'].update(
+        value='abc')), 'value is not a number'),
+    (lambda d: _mutate(d, lambda x: x['sensors'][0]['effects'][0].update(name='warp')),
+     'unknown effect'),
+    (lambda d: _mutate(d, lambda x: x.pop('sensors')), "missing key 'sensors'"),
+    (lambda d: '[1, 2, 3]', 'not a calibration document'),
+])
+def test_bad_files_refused(tmp_path, run, make, match):
+    _, r = run
+    path = tmp_path / 'bad.yaml'
+    path.write_text(make(r.doc))
+    with pytest.raises(CalibrationFileError, match=match):
+        load_calibration(path)

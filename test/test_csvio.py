@@ -1,0 +1,44 @@
+"""Wide CSV (DESIGN.md contract 1): round trip and clear errors."""
+import numpy as np
+import pytest
+
+from magcal_ros.core.simulate import simulate
+from magcal_ros.io.csvio import CsvFormatError, read_csv, write_csv
+
+
+def test_round_trip(tmp_path):
+    data, _ = simulate(n_samples=50, trajectory='smooth', seed=0, diurnal_swing_nt=10)
+    data.angle_deg = np.arange(50.0)
+    data.plane = np.array(['xy'] * 25 + ['xz'] * 25)
+    path = tmp_path / 'd.csv'
+    write_csv(path, data, comment='test\nsecond line')
+    back = read_csv(path)
+    assert back.n_sensors == 4 and back.n_samples == 50
+    assert np.allclose(back.raw, data.raw, atol=1e-4)           # written with 4 decimals
+    assert np.allclose(back.temp, data.temp, atol=1e-4)
+    assert np.allclose(back.ref_total, data.ref_total, atol=1e-4)
+    assert sorted(back.aux) == sorted(data.aux)
+    assert list(back.plane) == list(data.plane)
+    assert path.read_text().startswith('# test\n# second line\n')
+
+
+@pytest.mark.parametrize('text,match', [
+    ('t,s1_x,s1_y,s1_z,bogus\n0,1,2,3,4\n', "unknown column 'bogus'"),
+    ('t,s1_x,s1_y\n0,1,2\n', r'sensor 1 lacks column\(s\) s1_z'),
+    ('s1_x,s1_y,s1_z\n1,2,3\n', 'time column t is missing'),
+    ('t,s1_x,s1_y,s1_z\n0,1,2,abc\n', "row 2: 'abc' is not a number"),
+    ('t,s1_x,s1_y,s1_z\n0,1,2\n', 'row 2 has 3 fields, header has 4'),
+    ('t,s1_x,s1_y,s1_z\n1,1,2,3\n0,1,2,3\n', 'non-decreasing'),
+    ('# only a comment\n', 'no header row'),
+    ('t,aux_a\n0,1\n', 'no sensor columns'),
+])
+def test_bad_files(tmp_path, text, match):
+    path = tmp_path / 'bad.csv'
+    path.write_text(text)
+    with pytest.raises(CsvFormatError, match=match):
+        read_csv(path)
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(CsvFormatError, match='cannot read'):
+        read_csv(tmp_path / 'nope.csv')
