@@ -66,7 +66,8 @@ def test_backup_history_and_rollback(tmp_path, run):
         doc = dict(r.doc, provenance=dict(r.doc['provenance'], source=f'run{k}'))
         save_calibration(path, doc, history=3)
     assert len(calfile.list_history(path)) == 3
-    assert yaml.safe_load((tmp_path / 'cal.yaml.bak').read_text())['provenance']['source'] == 'run3'
+    backup = yaml.safe_load((tmp_path / 'cal.yaml.bak').read_text())
+    assert backup['provenance']['source'] == 'run3'
     calfile.rollback(path, steps=1)
     assert load_calibration(path)[1]['provenance']['source'] == 'run3'
     with pytest.raises(CalibrationFileError, match='cannot go back 7'):

@@ -34,7 +34,7 @@ def test_effect_is_recovered(token, values):
 
 
 def test_field_rate_shows_in_vector_residual_not_scalar():
-    """A lag is perpendicular to B under pure rotation: invisible in |B|, visible between sensors."""
+    """A lag is perpendicular to B under rotation: invisible in |B|, visible between sensors."""
     data, _ = simulate(n_samples=3000, trajectory='smooth', seed=12, truth={
         'field_rate@2': [2e-3, 2e-3, 2e-3]})
     # each sensor calibrated on its own (scalar residual only): sensor 2 looks perfect

@@ -1,4 +1,4 @@
-"""Maximum-likelihood refinement: efficiency, partial coverage, reference drift, outliers, refusals."""
+"""ML refinement: efficiency, partial coverage, reference drift, outliers, refusals."""
 import numpy as np
 import pytest
 
@@ -42,8 +42,9 @@ def test_ml_is_as_good_as_algebraic_on_full_sphere():
 
 def test_single_axis_rotation_is_refused_with_the_axis_named():
     data, _ = simulate(n_samples=3000, trajectory='turntable', seed=1, aux=False)
-    with pytest.raises(DegenerateDataError, match=r'one plane with normal \([+-]0\.0\d, [+-]0\.0\d, '
-                                                   r'[+-]1\.00\).*rotate about another axis'):
+    pattern = (r'one plane with normal \([+-]0\.0\d, [+-]0\.0\d, [+-]1\.00\)'
+               r'.*rotate about another axis')
+    with pytest.raises(DegenerateDataError, match=pattern):
         fit(data, 'base', field_nt=F)
 
 

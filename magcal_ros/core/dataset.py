@@ -78,8 +78,9 @@ class Dataset:
         idx = np.asarray(idx)
 
         def take(a, axis=0):
-            return None if a is None else np.take(a, np.flatnonzero(idx) if idx.dtype == bool
-                                                   else idx, axis=axis)
+            if a is None:
+                return None
+            return np.take(a, np.flatnonzero(idx) if idx.dtype == bool else idx, axis=axis)
         return replace(
             self, t=take(self.t), raw=take(self.raw, 1), temp=take(self.temp, 1),
             ref_total=take(self.ref_total), ref_vec=take(self.ref_vec),

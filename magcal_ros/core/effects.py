@@ -143,7 +143,7 @@ def misalignment_matrix(alpha, beta, gamma):
 
 
 def misalignment_angles(r):
-    """Inverse of :func:`misalignment_matrix` for a (3, 3) rotation; returns (alpha, beta, gamma)."""
+    """Inverse of :func:`misalignment_matrix`: (3, 3) rotation -> (alpha, beta, gamma) rad."""
     # R = R1(g) R2(b) R3(a); row 1 of R = [-cb sa ... ] -- solve from the closed form:
     # R[1] = [-cb*sa, cb*ca, sb]
     beta = np.arcsin(np.clip(r[1, 2], -1.0, 1.0))
@@ -224,7 +224,7 @@ class Misalignment(Effect):
 
 
 class SoftIron(Effect):
-    """Full 3x3 linear map (soft iron, paper 002's K = I + D); replaces scale, nonorth., misalignment.
+    """Full 3x3 linear map (soft iron, paper 002 K = I + D) instead of scale/nonorth./misalignment.
 
     On sensor 1, which defines the array frame, the matrix is upper triangular (6 parameters):
     its rotation is the frame definition, not something the data can determine.

@@ -345,7 +345,7 @@ class FitResult:
         """List of dicts: sensor, effect, name, unit, value, stderr."""
         return [dict(sensor=s, effect=e, name=n, unit=u, value=float(v), stderr=float(se))
                 for (s, e, n, u), v, se in zip(self.model.param_info(), self.params,
-                                                self.stderr)]
+                                               self.stderr)]
 
     def summary(self):
         """Short text report."""
@@ -499,7 +499,8 @@ class _Problem:
             hess = np.zeros((n, 2, 2))
             grad = np.zeros((n, 2))
             for j in self.sensors:
-                r = (self.raw[j - 1] - self.model.forward(j, p, b, self.ctx[j - 1])) / self.sigma[j - 1]
+                r = (self.raw[j - 1] - self.model.forward(j, p, b, self.ctx[j - 1])) / (
+                    self.sigma[j - 1])
                 g = np.stack([e1 @ mats[j].T, e2 @ mats[j].T], axis=2) * (
                     self.f[:, None, None] / self.sigma[j - 1])            # (N, 3, 2) = -dr/d delta
                 w = np.ones(n)

@@ -18,6 +18,9 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
+from magcal_ros.core.effects import (  # noqa: F401  (re-exported)
+    nonorthogonality_matrix, rot_r1, rot_r2, rot_r3)
+
 
 def _check_general(a, o):
     a = np.asarray(a, dtype=float)
@@ -53,22 +56,7 @@ def _vec3(value, name):
 # paper 004
 # --------------------------------------------------------------------------------------
 
-def rot_r1(gamma):
-    """Paper 004 eq. 3: R1(gamma), rotation about y. Returns (3, 3)."""
-    c, s = np.cos(gamma), np.sin(gamma)
-    return np.array([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]])
-
-
-def rot_r2(beta):
-    """Paper 004 eq. 3: R2(beta), rotation about x. Returns (3, 3)."""
-    c, s = np.cos(beta), np.sin(beta)
-    return np.array([[1.0, 0.0, 0.0], [0.0, c, s], [0.0, -s, c]])
-
-
-def rot_r3(alpha):
-    """Paper 004 eq. 3: R3(alpha), rotation about z. Returns (3, 3)."""
-    c, s = np.cos(alpha), np.sin(alpha)
-    return np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+# R1, R2, R3 of paper 004 eq. 3 and C_NO of eq. 2 live with the model's effects.
 
 
 @dataclass(frozen=True, eq=False)
@@ -114,10 +102,7 @@ class Paper004Params:
     @property
     def nonorthogonality(self):
         """(3, 3) C_NO of paper 004 eq. 2 (upper triangular, unit rows)."""
-        ct, st = np.cos(self.theta), np.sin(self.theta)
-        return np.array([[ct * np.cos(self.varphi), ct * np.sin(self.varphi), st],
-                         [0.0, np.cos(self.psi), np.sin(self.psi)],
-                         [0.0, 0.0, 1.0]])
+        return nonorthogonality_matrix(self.psi, self.varphi, self.theta)
 
     @property
     def rotation(self):

@@ -1,4 +1,4 @@
-"""Seeded simulator of a four-fluxgate cross gradiometer (paper 004 section 4.1) in a uniform field.
+"""Seeded simulator of a four-fluxgate cross gradiometer (paper 004 section 4.1), uniform field.
 
 The simulator uses the same forward model as the fit (:class:`magcal_ros.core.model.Model`),
 so any effect, including a user plug-in, can be switched on with known parameters and the

@@ -175,7 +175,8 @@ def load_calibration(path):
         with open(path, encoding='utf-8') as fh:
             text = fh.read()
     except OSError as exc:
-        raise CalibrationFileError(f'cannot read calibration file {path}: {exc.strerror}') from None
+        raise CalibrationFileError(
+            f'cannot read calibration file {path}: {exc.strerror}') from None
     except UnicodeDecodeError:
         raise CalibrationFileError(f'{path}: not a text file (corrupt?)') from None
     if not text.strip():
