@@ -4,10 +4,9 @@ import math
 import random
 
 from hypothesis import given, HealthCheck, settings, strategies as st
-import pytest
-
 from magcal_ros.serial import make_encoder, make_parser, Sample
 from magcal_ros.serial.ascii import AsciiParser, parse_number
+import pytest
 
 
 def test_default_protocol_is_design_contract_line():

@@ -5,10 +5,9 @@ import random
 import struct
 
 from hypothesis import given, HealthCheck, settings, strategies as st
-import pytest
-
 from magcal_ros.serial import hmr2300
 from magcal_ros.serial import make_encoder, make_parser, Sample
+import pytest
 
 NT_PER_COUNT = 1e5 / 15000.0   # 15 000 counts per gauss -> 6.667 nT per count
 

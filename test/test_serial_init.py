@@ -4,11 +4,10 @@ import dataclasses
 import subprocess
 import sys
 
-import pytest
-
 from magcal_ros import serial as mserial
 from magcal_ros.serial import (Encoder, make_encoder, make_parser, Parser, parser_options,
                                PROTOCOLS, register_protocol, Sample)
+import pytest
 
 # values on every protocol's grid: whole HMR2300 counts (6.667 nT), 0.01 nT, 0.1 nT
 GRID_NT = [(c * 1e5 / 15000.0) for c in (-7500, -15, 0, 1, 3000)]

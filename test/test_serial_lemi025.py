@@ -5,10 +5,9 @@ import random
 import struct
 
 from hypothesis import given, HealthCheck, settings, strategies as st
-import pytest
-
 from magcal_ros.serial import make_encoder, make_parser, Sample
 from magcal_ros.serial.lemi025 import crc16, PACKET_BYTES, SYNC, TEMP_MISSING
+import pytest
 
 
 def packet(counter, time_us, x, y, z, temp, crc=None):

@@ -4,11 +4,10 @@ import os
 import threading
 import time
 
-import pytest
-import serial
-
 from magcal_ros.serial import make_encoder, make_parser, Sample
 from magcal_ros.serial.transport import PortReader, PtyDevice
+import pytest
+import serial
 
 
 def wait_for(predicate, timeout=5.0, interval=0.01):
