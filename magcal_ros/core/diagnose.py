@@ -1,0 +1,960 @@
+"""Model diagnosis: compare a fitted model with the measurements and name what is missing.
+
+Given rotation data and a fitted model, :func:`diagnose`
+
+1. estimates the sensor noise floor from the data themselves (high-order differences of the
+   raw series and of the model's scalar residual, :func:`noise_floor_from_data`), so that
+   "the residual is at the noise floor" is a test against an independent number, not
+   against the model's own noise estimate;
+2. lists every effect that is not in the model (per sensor where it applies, plus each
+   auxiliary channel on all sensors at once), and sets aside, with the reason, those the
+   data cannot excite (``Effect.check``: no temperature column, a channel that never
+   changes, ...);
+3. screens every candidate by one Gauss-Newton step of the extended model from the fitted
+   parameters (exact for effects that enter linearly, as all driven effects do), and refits
+   the most promising ones from there with the full maximum-likelihood fit
+   (:func:`magcal_ros.core.model.fit`, warm start, the noise levels fixed at the base fit's
+   so that chi-square and BIC are comparable);
+4. ranks by evidence: delta BIC, the likelihood-ratio p-value (chi-square with k = added
+   parameters) with a Bonferroni correction over the candidates, and the effect size on
+   held-out data: k-fold cross-validation over *contiguous blocks of time* (neighbouring
+   samples are correlated, a random split would leak), fit on the other blocks, residual
+   RMS on the held-out block;
+5. gives a verdict: the best candidate, or ``none`` when the residual is within 10 % of the
+   noise floor or no candidate passes all three tests.
+
+:func:`ladder` repeats diagnose -> add the verdict -> refit until nothing is missing and
+tabulates the held-out RMS of each step (the "error ladder").
+
+Residual measures (all nT):
+
+- scalar residual of sensor j: |corrected_j| - F (at the floor: RMS = sigma_j);
+- vector residual of sensor j > 1: corrected_j - corrected_1, per-component RMS (at the floor
+  sqrt(sigma_j^2 + sigma_1^2)); some effects (a field-rate term under pure rotation) show
+  only here;
+- combined residual: the raw-space residual of the maximum-likelihood fit, scaled by
+  sqrt(3G / (3G - 2)) for the 2 field directions profiled per epoch from G jointly fitted
+  sensors, so that it equals the per-axis noise sd when the model is complete.  This is the
+  held-out (cross-validated) measure.
+"""
+from dataclasses import dataclass, field
+import json
+import math
+import time
+
+import numpy as np
+from scipy import stats
+
+from magcal_ros.core import effects as fx
+from magcal_ros.core.model import _Problem, evaluate, field_magnitude, fit, Model
+from magcal_ros.core.noise import estimate_noise
+
+#: family-wise significance level of the likelihood-ratio tests (Bonferroni over candidates)
+ALPHA = 0.01
+#: delta BIC a candidate must beat (Kass & Raftery: < -10 is very strong evidence)
+MIN_DELTA_BIC = -10.0
+#: "at the noise floor": every residual RMS within this ratio of its floor
+AT_FLOOR_RATIO = 1.10
+#: contiguous time blocks of the cross-validation
+DEFAULT_FOLDS = 3
+#: candidates refitted in full after the one-step screening
+DEFAULT_MAX_REFIT = 4
+#: effects that contain each other (adding one when the other is present duplicates terms)
+NESTED = {'drift': ('drift2',), 'drift2': ('drift',)}
+#: the raw-difference floor is replaced by the residual one when it exceeds it by this factor
+RAW_FLOOR_EXCESS = 1.2
+
+
+# -- noise floor ----------------------------------------------------------------------------
+
+@dataclass(frozen=True, eq=False)
+class NoiseFloor:
+    """Per-axis white-noise sd of each sensor, estimated from the data alone.
+
+    Attributes
+    ----------
+    per_sensor_nt : numpy.ndarray
+        (S,) the floor used, nT.
+    raw_nt : numpy.ndarray
+        (S,) from differences of the raw readings (no model), nT; used unless the trajectory
+        inflates it (no plateau over the difference orders, or more than
+        :data:`RAW_FLOOR_EXCESS` times the residual estimate).
+    residual_nt : numpy.ndarray or None
+        (S,) from differences of the model's scalar residual, nT: removes the trajectory
+        itself, so it works for slowly sampled or random attitudes; a missing effect that is
+        smooth in time (temperature, drift, currents) is removed by the differences too.
+    method : tuple of str
+        Per sensor, which estimate was used and with which difference order.
+    reliable : numpy.ndarray
+        (S,) bool: the chosen estimate sits on a plateau of the difference orders.  False
+        when neither series is smooth at the sample rate (e.g. random attitudes): the floor
+        is then an upper bound.
+    """
+
+    per_sensor_nt: np.ndarray
+    raw_nt: np.ndarray
+    residual_nt: np.ndarray | None
+    method: tuple
+    reliable: np.ndarray
+
+    @property
+    def value_nt(self):
+        """Pooled floor sqrt(mean sigma_j^2), nT."""
+        return float(np.sqrt(np.mean(self.per_sensor_nt ** 2)))
+
+    def vector_floor_nt(self, j):
+        """Floor of the vector residual corrected_j - corrected_1 per component, nT."""
+        f = self.per_sensor_nt
+        return float(np.hypot(f[j - 1], f[0]))
+
+
+def noise_floor_from_data(data, result=None):
+    """Noise floor of each sensor from the data (and the high-frequency part of a residual).
+
+    Parameters
+    ----------
+    data : Dataset
+        (S sensors, N epochs) in time order.
+    result : FitResult, optional
+        A fit on ``data``; its scalar residual (S, N) nT gives the second estimate.
+
+    Returns
+    -------
+    NoiseFloor
+    """
+    raw_est = estimate_noise(data.raw)
+    sigma = raw_est.sigma.copy()
+    order = raw_est.order.copy()
+    plateau = raw_est.plateau.copy()
+    source = ['raw'] * data.n_sensors
+    res_sigma = None
+    if result is not None:
+        res_est = estimate_noise(result.scalar_residual_nt)
+        res_sigma = res_est.sigma
+        for j in range(data.n_sensors):
+            # the raw estimate pools three axes and needs no model: keep it unless the
+            # trajectory itself inflates it (slow sampling, random attitudes)
+            if (not plateau[j] and res_est.sigma[j] < sigma[j]) or (
+                    res_est.sigma[j] * RAW_FLOOR_EXCESS < sigma[j]):
+                sigma[j] = res_est.sigma[j]
+                order[j] = res_est.order[j]
+                plateau[j] = res_est.plateau[j]
+                source[j] = 'scalar residual'
+    method = tuple(f'{s} differences (order {k})' for s, k in zip(source, order))
+    return NoiseFloor(per_sensor_nt=sigma, raw_nt=raw_est.sigma, residual_nt=res_sigma,
+                      method=method, reliable=plateau)
+
+
+def compact_spec(model):
+    """Model spec with paper 004's four effects shown as 'base' when all are present."""
+    spec = list(model.spec())
+    if all(b in spec for b in fx.BASE):
+        spec = ['base'] + [t for t in spec if t not in fx.BASE]
+    return spec
+
+
+# -- residual measures -----------------------------------------------------------------------
+
+def _groups(model):
+    s = model.n_sensors
+    return [list(range(1, s + 1))] if model.joint else [[j] for j in range(1, s + 1)]
+
+
+def _dof_factor(model):
+    """3G / (3G - 2): undo the 2 field directions profiled per epoch from G sensors."""
+    g = model.n_sensors if model.joint else 1
+    return 3.0 * g / (3.0 * g - 2.0)
+
+
+def _n_obs(model, n):
+    return int(n * sum(3 * len(g) - 2 for g in _groups(model)))
+
+
+def _rms(x):
+    x = np.asarray(x, float)
+    return float(np.sqrt(np.mean(x ** 2))) if x.size else float('nan')
+
+
+def _scalar_rms(scalar, sensors):
+    return _rms(scalar[[j - 1 for j in sensors]])
+
+
+def _vector_rms(vector, sensors, n_sensors):
+    """Pooled per-component RMS of the vector residuals that involve ``sensors``."""
+    if n_sensors < 2:
+        return None
+    js = sorted({j for j in sensors if j > 1} if 1 not in sensors
+                else set(range(2, n_sensors + 1)))
+    return _rms(vector[[j - 1 for j in js]])
+
+
+@dataclass
+class _Eval:
+    """Residuals of one parameter vector on the full data."""
+
+    chi2: float
+    scalar: np.ndarray       # (S, N) nT
+    vector: np.ndarray       # (S, N, 3) nT
+    residual: np.ndarray     # (S, N, 3) nT
+
+
+def _evaluate(model, p, data, f, sigma, contexts):
+    out = evaluate(model, p, data, f, sigma, contexts)
+    chi2 = float(np.sum((out['residual'] / sigma[:, None, None]) ** 2))
+    return _Eval(chi2=chi2, scalar=out['scalar'], vector=out['vector'],
+                 residual=out['residual'])
+
+
+# -- candidates -----------------------------------------------------------------------------
+
+@dataclass(frozen=True, eq=False)
+class Candidate:
+    """Evidence for adding one effect to the model (all RMS values in nT).
+
+    Attributes
+    ----------
+    token : str
+        Model-spec token, e.g. 'temperature@2' or 'aux:aux_motor_current' (all sensors).
+    effect : str
+        Effect label ('temperature', 'aux:aux_motor_current', ...).
+    sensor : int or None
+        Sensor (1-based), None when added to every sensor.
+    n_params : int
+        Parameters added (k of the likelihood-ratio test).
+    rms_before_nt, rms_after_nt : float
+        Scalar residual RMS of the affected sensors, base fit and with the effect.
+    vector_rms_before_nt, vector_rms_after_nt : float or None
+        Vector residual RMS (vs sensor 1) involving the affected sensors.
+    delta_chi2 : float
+        Decrease of chi-square (noise levels fixed at the base fit).
+    delta_bic : float
+        BIC(with) - BIC(without) = -delta_chi2 + k ln(n_obs); negative favours the effect.
+    p_value, log10_p_value : float
+        Likelihood-ratio test, chi-square with k degrees of freedom.
+    method : str
+        'refit' (full ML refit from the base solution) or 'one-step' (one Gauss-Newton
+        step from the base solution; a lower bound of delta_chi2).
+    cv_rms_before_nt, cv_rms_after_nt : float or None
+        Combined residual RMS on held-out time blocks (None when not computed).
+    significant : bool
+        p below the Bonferroni threshold, delta BIC < -10 and (when computed) a held-out
+        improvement.
+    params : tuple of dict
+        The added parameters {sensor, name, unit, value} after the fit.
+    """
+
+    token: str
+    effect: str
+    sensor: int | None
+    n_params: int
+    rms_before_nt: float
+    rms_after_nt: float
+    vector_rms_before_nt: float | None
+    vector_rms_after_nt: float | None
+    delta_chi2: float
+    delta_bic: float
+    p_value: float
+    log10_p_value: float
+    method: str
+    cv_rms_before_nt: float | None = None
+    cv_rms_after_nt: float | None = None
+    significant: bool = False
+    params: tuple = ()
+
+    def to_dict(self):
+        """JSON-ready dict (DESIGN.md contract 2 keys first)."""
+        return {'effect': self.effect, 'sensor': self.sensor,
+                'rms_before_nt': self.rms_before_nt, 'rms_after_nt': self.rms_after_nt,
+                'delta_bic': self.delta_bic, 'p_value': self.p_value,
+                'token': self.token, 'n_params': self.n_params,
+                'vector_rms_before_nt': self.vector_rms_before_nt,
+                'vector_rms_after_nt': self.vector_rms_after_nt,
+                'delta_chi2': self.delta_chi2, 'log10_p_value': self.log10_p_value,
+                'cv_rms_before_nt': self.cv_rms_before_nt,
+                'cv_rms_after_nt': self.cv_rms_after_nt,
+                'significant': self.significant, 'method': self.method,
+                'params': [dict(p) for p in self.params]}
+
+
+def _nested_clash(name, present):
+    return any(other in present for other in NESTED.get(name, ()))
+
+
+def candidate_tokens(model, data):
+    """Every effect not in ``model``, per sensor where it applies.
+
+    Returns a list of (token, effect label, sensor or None).  Effects that clash with the
+    model (soft_iron next to scale/nonorthogonality/misalignment, drift2 next to drift)
+    are left out; each auxiliary channel is offered per sensor and on all sensors at once.
+    """
+    s = model.n_sensors
+    names = [n for n in fx.registered_effects() if n != 'aux:<column>']
+    names += ['aux:' + c for c in sorted(data.aux)]
+    out = []
+    for name in names:
+        free = []
+        for j in range(1, s + 1):
+            if name == 'misalignment' and j == 1:
+                continue
+            eff = fx.make_effect(name, j)
+            present = {e.label for e in model.effects[j - 1]} | {
+                e.name for e in model.effects[j - 1]}
+            if eff.label in present or _nested_clash(eff.name, present):
+                continue
+            if any(x in present for x in eff.excludes) or any(
+                    eff.name in e.excludes for e in model.effects[j - 1]):
+                continue
+            free.append(j)
+            out.append((f'{eff.label}@{j}', eff.label, j))
+        if name.startswith('aux:') and s > 1 and len(free) == s:
+            out.append((name, name, None))
+    return out
+
+
+def _copy_refs(src, dst):
+    """Give ``dst``'s effects the reference values of the same effects in ``src``."""
+    for row_s, row_d in zip(src.effects, dst.effects):
+        refs = {e.label: e.refs for e in row_s}
+        for e in row_d:
+            if e.label in refs:
+                e.refs = dict(refs[e.label])
+
+
+def extend_model(model, params, token, contexts):
+    """``model`` with ``token`` added, its parameters carried over, the new ones at default.
+
+    Returns (new model, (P',) parameters, (P',) bool mask of the added parameters).
+    """
+    new = model.with_effect(token)
+    _copy_refs(model, new)
+    new.prepare(contexts)
+    p = new.default_params()
+    old = {info[:3]: v for info, v in zip(model.param_info(), params)}
+    added = np.zeros(new.n_params, bool)
+    for i, info in enumerate(new.param_info()):
+        if info[:3] in old:
+            p[i] = old[info[:3]]
+        else:
+            added[i] = True
+    return new, p, added
+
+
+def _one_step(model, p, added, raw, contexts, f, sigma):
+    """One Gauss-Newton step of all parameters of the groups the added effect touches."""
+    p_new = p.copy()
+    for grp in _groups(model):
+        prob = _Problem(model, raw, contexts, f, grp, sigma, [])
+        if not added[prob.cols].any():
+            continue
+        prob.p_full = p.copy()
+        x = p[prob.cols]
+        r = prob.residuals(x)
+        jac = prob.jacobian(x)
+        d = np.linalg.norm(jac, axis=0)
+        d[d == 0] = 1.0
+        dx, *_ = np.linalg.lstsq(jac / d, -r, rcond=None)
+        p_new[prob.cols] = x + dx / d
+    return p_new
+
+
+def _sensors_of(sensor, n_sensors):
+    return list(range(1, n_sensors + 1)) if sensor is None else [sensor]
+
+
+def _added_params(model, p, added):
+    info = model.param_info()
+    return tuple({'sensor': s, 'name': n, 'unit': u, 'value': float(p[i])}
+                 for i, (s, _, n, u) in enumerate(info) if added[i])
+
+
+def _lr(delta_chi2, k, n_obs):
+    d = max(float(delta_chi2), 0.0)
+    p = float(stats.chi2.sf(d, k))
+    logp = float(stats.chi2.logsf(d, k))
+    if not np.isfinite(logp):
+        # far tail of the regularised upper gamma function Q(a, x), a = k/2, x = d/2:
+        # ln Q = (a - 1) ln x - x - ln Gamma(a) + ln(1 + (a - 1)/x + ...)
+        a, x = 0.5 * k, 0.5 * d
+        logp = (a - 1) * math.log(x) - x - math.lgamma(a) + math.log1p((a - 1) / x)
+    logp /= math.log(10.0)
+    return p, logp, float(-delta_chi2 + k * math.log(n_obs))
+
+
+# -- cross-validation -----------------------------------------------------------------------
+
+def time_blocks(n, folds):
+    """Index arrays of ``folds`` contiguous blocks of ``n`` epochs."""
+    if folds < 2:
+        raise ValueError(f'cross-validation needs at least 2 folds, got {folds}')
+    return np.array_split(np.arange(n), folds)
+
+
+def cross_validate(data, model, params, f, sigma, folds=DEFAULT_FOLDS, fold_inits=None):
+    """Held-out residual of ``model``: fit on all blocks but one, evaluate on that block.
+
+    Parameters
+    ----------
+    data : Dataset
+    model : Model
+        Prepared on the full data (its reference values are kept).
+    params : numpy.ndarray
+        (P,) warm start (the fit on all data).
+    f : numpy.ndarray
+        (N,) reference magnitude, nT.
+    sigma : numpy.ndarray
+        (S,) fixed noise levels, nT.
+    fold_inits : list of numpy.ndarray, optional
+        Per-fold warm starts (default ``params``).
+
+    Returns
+    -------
+    dict
+        ``rms_nt`` combined held-out RMS (pooled), ``per_sensor_nt`` (S,),
+        ``scalar_rms_nt`` (S,), ``fold_params`` list of (P,) arrays.
+    """
+    n = data.n_samples
+    blocks = time_blocks(n, folds)
+    ss = np.zeros(data.n_sensors)
+    ss_scalar = np.zeros(data.n_sensors)
+    count = 0
+    fold_params = []
+    for b, test in enumerate(blocks):
+        train = np.setdiff1d(np.arange(n), test)
+        init = params if fold_inits is None else fold_inits[b]
+        r = fit(data.subset(train), model, field_nt=f[train], sigma_nt=sigma, init=init,
+                check_identifiability=False, on_degenerate='flag')
+        fold_params.append(r.params)
+        out = evaluate(model, r.params, data.subset(test), f[test], sigma)
+        ss += np.sum(out['residual'] ** 2, axis=(1, 2))
+        ss_scalar += np.sum(out['scalar'] ** 2, axis=1)
+        count += len(test)
+    fac = _dof_factor(model)
+    per = np.sqrt(fac * ss / (3 * count))
+    return {'rms_nt': float(np.sqrt(np.mean(per ** 2))), 'per_sensor_nt': per,
+            'scalar_rms_nt': np.sqrt(ss_scalar / count), 'fold_params': fold_params}
+
+
+# -- the diagnosis --------------------------------------------------------------------------
+
+@dataclass(frozen=True, eq=False)
+class Diagnosis:
+    """Outcome of :func:`diagnose` (RMS values in nT).
+
+    Attributes
+    ----------
+    model : tuple of str
+        Spec of the diagnosed model.
+    n_samples, n_sensors, n_params : int
+    noise_floor : NoiseFloor
+    scalar_rms_nt, vector_rms_nt : dict
+        {sensor: RMS} of the base fit (vector: j > 1, vs sensor 1).
+    residual_rms_nt : float
+        Combined in-sample residual RMS (pooled), comparable with the floor.
+    cv_rms_nt : float or None
+        Combined held-out RMS of the base model.
+    at_floor : bool
+        Every scalar and vector RMS within :data:`AT_FLOOR_RATIO` of its floor.
+    candidates : tuple of Candidate
+        Testable candidates, best first (significant ones first, then by delta BIC).
+    not_testable : tuple of (token, reason)
+    verdict_token : str or None
+        Token to add ('temperature@2'), None when nothing is missing.
+    verdict_reason : str
+    p_threshold : float
+        Bonferroni threshold alpha / (number of candidates).
+    folds : int
+    seconds : dict
+        Wall time per stage, s.
+    result : FitResult
+        The base fit.
+    """
+
+    model: tuple
+    n_samples: int
+    n_sensors: int
+    n_params: int
+    noise_floor: NoiseFloor
+    scalar_rms_nt: dict
+    vector_rms_nt: dict
+    residual_rms_nt: float
+    cv_rms_nt: float | None
+    at_floor: bool
+    candidates: tuple
+    not_testable: tuple
+    verdict_token: str | None
+    verdict_reason: str
+    p_threshold: float
+    folds: int
+    seconds: dict
+    result: object = field(repr=False, default=None)
+
+    @property
+    def verdict(self):
+        """The best candidate, or None when nothing is missing."""
+        if self.verdict_token is None:
+            return None
+        return next(c for c in self.candidates if c.token == self.verdict_token)
+
+    @property
+    def ratios(self):
+        """{'scalar': {j: RMS / floor}, 'vector': {j: RMS / vector floor}}."""
+        fl = self.noise_floor
+        return {'scalar': {j: v / fl.per_sensor_nt[j - 1]
+                           for j, v in self.scalar_rms_nt.items()},
+                'vector': {j: v / fl.vector_floor_nt(j) for j, v in self.vector_rms_nt.items()}}
+
+    def to_dict(self):
+        """JSON-ready dict per DESIGN.md contract 2 (plus details)."""
+        fl = self.noise_floor
+        v = self.verdict
+        ratios = self.ratios
+        return {
+            'model': list(self.model),
+            'noise_floor_nt': fl.value_nt,
+            'scalar_rms_nt': {str(j): x for j, x in self.scalar_rms_nt.items()},
+            'vector_rms_nt': {str(j): x for j, x in self.vector_rms_nt.items()},
+            'candidates': [c.to_dict() for c in self.candidates],
+            'verdict': {'effect': v.effect if v else 'none', 'sensor': v.sensor if v else None,
+                        'token': self.verdict_token, 'reason': self.verdict_reason},
+            'noise_floor_per_sensor_nt': {str(j + 1): float(x)
+                                          for j, x in enumerate(fl.per_sensor_nt)},
+            'noise_floor_method': {str(j + 1): m for j, m in enumerate(fl.method)},
+            'noise_floor_reliable': bool(np.all(fl.reliable)),
+            'residual_rms_nt': self.residual_rms_nt,
+            'cv_rms_nt': self.cv_rms_nt,
+            'at_noise_floor': self.at_floor,
+            'ratio_to_floor': {k: {str(j): x for j, x in d.items()} for k, d in ratios.items()},
+            'not_testable': [{'token': t, 'reason': r} for t, r in self.not_testable],
+            'n_samples': self.n_samples, 'n_sensors': self.n_sensors,
+            'n_params': self.n_params, 'p_threshold': self.p_threshold,
+            'min_delta_bic': MIN_DELTA_BIC, 'at_floor_ratio': AT_FLOOR_RATIO,
+            'cv_folds': self.folds, 'seconds': dict(self.seconds),
+        }
+
+    def to_json(self, **kwargs):
+        """Return :meth:`to_dict` as a JSON string (non-finite numbers as null)."""
+        return json.dumps(_jsonable(self.to_dict()), **kwargs)
+
+    def summary(self):
+        """Human-readable report."""
+        fl = self.noise_floor
+        lines = [f'diagnosis of model {",".join(self.model)} ({self.n_params} parameters) on '
+                 f'{self.n_samples} epochs of {self.n_sensors} sensor(s)',
+                 'noise floor from the data: ' + ', '.join(
+                     f's{j + 1} {x:.2f}' for j, x in enumerate(fl.per_sensor_nt)) + ' nT'
+                 + ('' if np.all(fl.reliable) else
+                    ' (upper bound: the series is not smooth at the sample rate)')]
+        r = self.ratios
+        for j, x in self.scalar_rms_nt.items():
+            line = f'  sensor {j}: scalar RMS {x:8.2f} nT ({r["scalar"][j]:5.2f} x floor)'
+            if j in self.vector_rms_nt:
+                line += (f', vector RMS vs sensor 1 {self.vector_rms_nt[j]:8.2f} nT '
+                         f'({r["vector"][j]:5.2f} x floor)')
+            lines.append(line)
+        cv = '' if self.cv_rms_nt is None else f', held-out {self.cv_rms_nt:.2f} nT'
+        lines.append(f'combined residual {self.residual_rms_nt:.2f} nT{cv} '
+                     f'(floor {fl.value_nt:.2f} nT)')
+        if self.candidates:
+            lines.append(f'candidates (best first; significant: p < {self.p_threshold:.1e}, '
+                         f'dBIC < {MIN_DELTA_BIC:g}, held-out RMS falls):')
+            lines.append(f'  {"effect":34s} {"k":>2s} {"dBIC":>10s} {"log10 p":>8s} '
+                         f'{"scalar RMS":>15s} {"vector RMS":>15s} {"held-out RMS":>15s}')
+            for c in self.candidates:
+                vec = ('' if c.vector_rms_before_nt is None else
+                       f'{c.vector_rms_before_nt:6.2f}>{c.vector_rms_after_nt:6.2f}')
+                cv = ('' if c.cv_rms_before_nt is None else
+                      f'{c.cv_rms_before_nt:6.2f}>{c.cv_rms_after_nt:6.2f}')
+                lines.append(f'{"*" if c.significant else " "} {c.token:34s} {c.n_params:2d} '
+                             f'{c.delta_bic:10.1f} {c.log10_p_value:8.1f} '
+                             f'{c.rms_before_nt:6.2f}>{c.rms_after_nt:6.2f}   '
+                             f'{vec:>15s} {cv:>15s}')
+        for tok, why in self.not_testable:
+            lines.append(f'  not testable: {tok}: {why}')
+        if self.verdict_token:
+            lines.append(f'verdict: add {self.verdict_token} ({self.verdict_reason})')
+        else:
+            lines.append(f'verdict: none ({self.verdict_reason})')
+        return '\n'.join(lines)
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _jsonable(x.tolist())
+    if isinstance(x, (bool, np.bool_)):
+        return bool(x)
+    if isinstance(x, (np.integer,)):
+        return int(x)
+    if isinstance(x, (float, np.floating)):
+        return float(x) if np.isfinite(x) else None
+    return x
+
+
+def _progress(cb, stage, i, n, label=''):
+    if cb is not None:
+        cb(stage, i, n, label)
+
+
+def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLDS,
+             alpha=ALPHA, max_refit=DEFAULT_MAX_REFIT, candidates=None, progress=None,
+             **fit_kwargs):
+    """Find what the model misses: noise floor, candidate effects ranked, verdict.
+
+    Parameters
+    ----------
+    data : Dataset
+        (S sensors, N epochs) rotation data in time order, nT.
+    model : str or Model
+        The model to diagnose (ignored when ``base`` is given).
+    field_nt : float or numpy.ndarray, optional
+        Reference magnitude, nT (scalar or (N,)); default ``data.ref_total``.
+    base : FitResult, optional
+        An existing fit of the model on ``data`` (default: fitted here).
+    folds : int
+        Contiguous time blocks of the cross-validation.
+    alpha : float
+        Family-wise significance level (Bonferroni over the candidates).
+    max_refit : int
+        Number of best-screened candidates refitted in full (the rest keep their one-step
+        evidence, a lower bound).
+    candidates : list of str, optional
+        Tokens to test instead of every missing effect.
+    progress : callable, optional
+        ``progress(stage, i, n, label)`` called as the work proceeds.
+    **fit_kwargs
+        Passed to :func:`magcal_ros.core.model.fit` for the base fit.
+
+    Returns
+    -------
+    Diagnosis
+    """
+    t_start = time.perf_counter()
+    seconds = {}
+    f = field_magnitude(data, field_nt)
+    if base is None:
+        if isinstance(model, str):
+            model = Model.from_spec(model, data.n_sensors)
+        _progress(progress, 'fit', 0, 1, ','.join(model.spec()))
+        base = fit(data, model, field_nt=f, **fit_kwargs)
+    model = base.model
+    if base.residual_nt.shape[1] != data.n_samples:
+        raise ValueError('the base fit was made on other data: pass the same Dataset')
+    seconds['base_fit'] = time.perf_counter() - t_start
+    s, n = data.n_sensors, data.n_samples
+    sigma = np.asarray(base.sigma_nt, float)
+    contexts = [data.context(j) for j in range(1, s + 1)]
+    model.prepare(contexts)
+    floor = noise_floor_from_data(data, base)
+
+    ev0 = _evaluate(model, base.params, data, f, sigma, contexts)
+    n_obs = _n_obs(model, n)
+    fac0 = _dof_factor(model)
+    scalar_rms = {j: _rms(ev0.scalar[j - 1]) for j in range(1, s + 1)}
+    vector_rms = {j: _rms(ev0.vector[j - 1]) for j in range(2, s + 1)}
+    residual_rms = float(np.sqrt(fac0 * np.mean(ev0.residual ** 2)))
+    at_floor = (all(v <= AT_FLOOR_RATIO * floor.per_sensor_nt[j - 1]
+                    for j, v in scalar_rms.items())
+                and all(v <= AT_FLOOR_RATIO * floor.vector_floor_nt(j)
+                        for j, v in vector_rms.items()))
+
+    # -- candidate list and testability
+    if candidates is None:
+        cand = candidate_tokens(model, data)
+    else:
+        cand = []
+        for tok in candidates:
+            name, _, where = tok.partition('@')
+            cand.append((tok, fx.make_effect(name, 1).label, int(where) if where else None))
+    testable, not_testable = [], []
+    for tok, label, sensor in cand:
+        why = None
+        for j in _sensors_of(sensor, s):
+            why = fx.make_effect(label, j).check(contexts[j - 1])
+            if why:
+                break
+        if why is None:
+            try:
+                trial = model.with_effect(tok)
+            except ValueError as exc:
+                why = str(exc)
+            else:
+                if trial.joint != model.joint:
+                    why = ('ties the sensors to one field (a different likelihood): fit '
+                           f'--model {",".join(trial.spec())} and compare the vector residual')
+        (not_testable.append((tok, why)) if why else testable.append((tok, label, sensor)))
+    p_thr = alpha / max(1, len(testable))
+
+    # -- one-step screening of every candidate
+    t0 = time.perf_counter()
+    screened = []
+    for i, (tok, label, sensor) in enumerate(testable):
+        _progress(progress, 'screen', i, len(testable), tok)
+        m_ext, p_ext, added = extend_model(model, base.params, tok, contexts)
+        p_step = _one_step(m_ext, p_ext, added, data.raw, contexts, f, sigma)
+        ev = _evaluate(m_ext, p_step, data, f, sigma, contexts)
+        if not np.isfinite(ev.chi2) or ev.chi2 > ev0.chi2:
+            p_step, ev = p_ext, _evaluate(m_ext, p_ext, data, f, sigma, contexts)
+        screened.append({'token': tok, 'label': label, 'sensor': sensor, 'model': m_ext,
+                         'p': p_step, 'added': added, 'ev': ev, 'method': 'one-step'})
+    _progress(progress, 'screen', len(testable), len(testable), '')
+    seconds['screen'] = time.perf_counter() - t0
+
+    def dbic(c):
+        return -(ev0.chi2 - c['ev'].chi2) + int(c['added'].sum()) * math.log(n_obs)
+
+    screened.sort(key=dbic)
+
+    # -- full refit of the most promising candidates
+    t0 = time.perf_counter()
+    n_refit = min(max_refit, len(screened))
+    for i, c in enumerate(screened[:n_refit]):
+        _progress(progress, 'refit', i, n_refit, c['token'])
+        if i > 0 and dbic(c) > 0:
+            break
+        r = fit(data, c['model'], field_nt=f, sigma_nt=sigma, init=c['p'],
+                check_identifiability=False, on_degenerate='flag')
+        ev = _evaluate(c['model'], r.params, data, f, sigma, contexts)
+        if ev.chi2 <= c['ev'].chi2:
+            c.update(p=r.params, ev=ev, method='refit')
+    _progress(progress, 'refit', n_refit, n_refit, '')
+    screened.sort(key=dbic)
+    seconds['refit'] = time.perf_counter() - t0
+
+    # -- held-out effect size of the candidates that pass the likelihood tests
+    t0 = time.perf_counter()
+    cv0 = None
+    to_cv = [c for c in screened[:n_refit]
+             if c['method'] == 'refit' and _lr(ev0.chi2 - c['ev'].chi2,
+                                               int(c['added'].sum()), n_obs)[0] < p_thr
+             and dbic(c) < MIN_DELTA_BIC]
+    if not to_cv and screened:
+        to_cv = [screened[0]]           # the best one, for its effect size
+    if folds and n >= 4 * folds * 12:
+        _progress(progress, 'cross-validate', 0, len(to_cv) + 1, ','.join(model.spec()))
+        cv0 = cross_validate(data, model, base.params, f, sigma, folds)
+        for i, c in enumerate(to_cv):
+            _progress(progress, 'cross-validate', i + 1, len(to_cv) + 1, c['token'])
+            inits = []
+            for pf in cv0['fold_params']:
+                p_i = c['p'].copy()
+                p_i[~c['added']] = pf
+                inits.append(p_i)
+            c['cv'] = cross_validate(data, c['model'], c['p'], f, sigma, folds, inits)
+        _progress(progress, 'cross-validate', len(to_cv) + 1, len(to_cv) + 1, '')
+    seconds['cross_validate'] = time.perf_counter() - t0
+
+    # -- candidates, best first
+    out = []
+    for c in screened:
+        k = int(c['added'].sum())
+        d_chi2 = ev0.chi2 - c['ev'].chi2
+        p_val, logp, d_bic = _lr(d_chi2, k, n_obs)
+        sens = _sensors_of(c['sensor'], s)
+        cv_b = cv_a = None
+        if 'cv' in c and cv0 is not None:
+            cv_b, cv_a = cv0['rms_nt'], c['cv']['rms_nt']
+        sig = bool(p_val < p_thr and d_bic < MIN_DELTA_BIC and cv_a is not None
+                   and cv_a < cv_b)
+        out.append(Candidate(
+            token=c['token'], effect=c['label'], sensor=c['sensor'], n_params=k,
+            rms_before_nt=_scalar_rms(ev0.scalar, sens),
+            rms_after_nt=_scalar_rms(c['ev'].scalar, sens),
+            vector_rms_before_nt=_vector_rms(ev0.vector, sens, s),
+            vector_rms_after_nt=_vector_rms(c['ev'].vector, sens, s),
+            delta_chi2=float(d_chi2), delta_bic=d_bic, p_value=p_val, log10_p_value=logp,
+            method=c['method'], cv_rms_before_nt=cv_b, cv_rms_after_nt=cv_a,
+            significant=sig, params=_added_params(c['model'], c['p'], c['added'])))
+    out.sort(key=lambda c: (not c.significant, c.delta_bic))
+
+    ratio = max([v / floor.per_sensor_nt[j - 1] for j, v in scalar_rms.items()]
+                + [v / floor.vector_floor_nt(j) for j, v in vector_rms.items()])
+    best = out[0] if out and out[0].significant else None
+    if at_floor:
+        verdict, reason = None, (f'the residual is at the noise floor (largest ratio '
+                                 f'{ratio:.2f} <= {AT_FLOOR_RATIO:.2f})')
+        if best is not None:
+            reason += (f'; {best.token} is statistically significant but changes the '
+                       f'held-out RMS by only {best.cv_rms_before_nt - best.cv_rms_after_nt:.2f}'
+                       ' nT')
+    elif best is None:
+        verdict = None
+        reason = (f'the residual is {ratio:.1f} x the noise floor but no candidate explains it '
+                  '(p-value, BIC and held-out tests): the missing effect is not in the list '
+                  '(write a plug-in effect), or the field is not uniform, or there are '
+                  'outliers (try --robust)')
+        if not out:
+            reason = f'the residual is {ratio:.1f} x the noise floor and no effect is testable'
+    else:
+        verdict = best.token
+        reason = (f'delta BIC {best.delta_bic:.0f}, p = 10^{best.log10_p_value:.0f}, held-out '
+                  f'RMS {best.cv_rms_before_nt:.2f} -> {best.cv_rms_after_nt:.2f} nT, '
+                  f'floor {floor.value_nt:.2f} nT')
+    seconds['total'] = time.perf_counter() - t_start
+    return Diagnosis(
+        model=tuple(compact_spec(model)), n_samples=n, n_sensors=s, n_params=model.n_params,
+        noise_floor=floor, scalar_rms_nt=scalar_rms, vector_rms_nt=vector_rms,
+        residual_rms_nt=residual_rms, cv_rms_nt=None if cv0 is None else cv0['rms_nt'],
+        at_floor=bool(at_floor), candidates=tuple(out), not_testable=tuple(not_testable),
+        verdict_token=verdict, verdict_reason=reason, p_threshold=p_thr, folds=folds,
+        seconds=seconds, result=base)
+
+
+# -- the error ladder -----------------------------------------------------------------------
+
+@dataclass(frozen=True, eq=False)
+class LadderStep:
+    """One rung: a model, its fit and its held-out residual (nT).
+
+    Attributes
+    ----------
+    model : tuple of str
+    added : str or None
+        Token added at this step (None for the start).
+    n_params : int
+    scalar_rms_nt, vector_rms_nt : dict
+    residual_rms_nt : float
+        Combined in-sample residual RMS.
+    cv_rms_nt : float or None
+        Combined held-out residual RMS.
+    cv_per_sensor_nt : tuple of float
+    diagnosis : Diagnosis or None
+    result : FitResult
+    """
+
+    model: tuple
+    added: str | None
+    n_params: int
+    scalar_rms_nt: dict
+    vector_rms_nt: dict
+    residual_rms_nt: float
+    cv_rms_nt: float | None
+    cv_per_sensor_nt: tuple
+    diagnosis: object = field(repr=False, default=None)
+    result: object = field(repr=False, default=None)
+
+
+@dataclass(frozen=True, eq=False)
+class Ladder:
+    """The error ladder: held-out RMS falling as effects are added."""
+
+    steps: tuple
+    noise_floor: NoiseFloor
+
+    @property
+    def final(self):
+        """The last step."""
+        return self.steps[-1]
+
+    def to_dict(self):
+        """JSON-ready dict."""
+        return {'noise_floor_nt': self.noise_floor.value_nt,
+                'steps': [{'model': list(st.model), 'added': st.added, 'n_params': st.n_params,
+                           'scalar_rms_nt': {str(j): v for j, v in st.scalar_rms_nt.items()},
+                           'vector_rms_nt': {str(j): v for j, v in st.vector_rms_nt.items()},
+                           'residual_rms_nt': st.residual_rms_nt, 'cv_rms_nt': st.cv_rms_nt,
+                           'verdict': (None if st.diagnosis is None
+                                       else st.diagnosis.verdict_token)}
+                          for st in self.steps]}
+
+    def table(self):
+        """Text table of the steps."""
+        fl = self.noise_floor.value_nt
+        lines = [f'{"step":>4s}  {"added":32s} {"P":>4s} {"max scalar":>10s} '
+                 f'{"max vector":>10s} {"combined":>9s} {"held-out":>9s} {"/floor":>7s}']
+        for i, st in enumerate(self.steps):
+            cv = st.cv_rms_nt
+            vmax = max(st.vector_rms_nt.values()) if st.vector_rms_nt else float('nan')
+            lines.append(f'{i:4d}  {(st.added or ",".join(st.model)):32s} {st.n_params:4d} '
+                         f'{max(st.scalar_rms_nt.values()):10.2f} {vmax:10.2f} '
+                         f'{st.residual_rms_nt:9.2f} '
+                         f'{(cv if cv is not None else float("nan")):9.2f} '
+                         f'{((cv or st.residual_rms_nt) / fl):7.2f}')
+        lines.append(f'noise floor (from the data): {fl:.2f} nT')
+        return '\n'.join(lines)
+
+
+def _step(result, data, f, added, diagnosis, folds):
+    model = result.model
+    contexts = [data.context(j) for j in range(1, data.n_sensors + 1)]
+    ev = _evaluate(model, result.params, data, f, result.sigma_nt, contexts)
+    fac = _dof_factor(model)
+    if diagnosis is not None and diagnosis.cv_rms_nt is not None:
+        cv = diagnosis.cv_rms_nt
+        cvp = ()
+    elif folds:
+        c = cross_validate(data, model, result.params, f, result.sigma_nt, folds)
+        cv, cvp = c['rms_nt'], tuple(float(x) for x in c['per_sensor_nt'])
+    else:
+        cv, cvp = None, ()
+    return LadderStep(
+        model=tuple(compact_spec(model)), added=added, n_params=model.n_params,
+        scalar_rms_nt=dict(result.scalar_rms_nt), vector_rms_nt=dict(result.vector_rms_nt),
+        residual_rms_nt=float(np.sqrt(fac * np.mean(ev.residual ** 2))), cv_rms_nt=cv,
+        cv_per_sensor_nt=cvp, diagnosis=diagnosis, result=result)
+
+
+def ladder(data, start_model='base', steps=None, auto=True, field_nt=None, *,
+           max_steps=6, folds=DEFAULT_FOLDS, progress=None, **diag_kwargs):
+    """Error ladder: diagnose, add the verdict, refit, repeat until nothing is missing.
+
+    Parameters
+    ----------
+    data : Dataset
+    start_model : str or Model or FitResult
+        Where to start (a FitResult on ``data`` is used as is).
+    steps : list of str, optional
+        Effects to add in this order (e.g. ['temperature@2', 'aux:aux_motor_current']);
+        each step's held-out RMS is computed.
+    auto : bool
+        After ``steps`` (or from the start), keep adding the diagnosis verdict until it is
+        'none' or ``max_steps`` effects were added.
+    field_nt : float or numpy.ndarray, optional
+        Reference magnitude, nT.
+    folds : int
+        Contiguous time blocks of the cross-validation.
+
+    Returns
+    -------
+    Ladder
+    """
+    f = field_magnitude(data, field_nt)
+    if hasattr(start_model, 'params') and hasattr(start_model, 'model'):
+        result = start_model
+    else:
+        result = fit(data, start_model, field_nt=f, on_degenerate='flag')
+    todo = list(steps or [])
+    rungs = []
+    added = None
+    floor = None
+    while True:
+        diag = None
+        if auto and not todo:
+            diag = diagnose(data, field_nt=f, base=result, folds=folds, progress=progress,
+                            **diag_kwargs)
+            floor = diag.noise_floor
+        rungs.append(_step(result, data, f, added, diag, folds))
+        if floor is None:
+            floor = noise_floor_from_data(data, result)
+        if len(rungs) > max_steps:
+            break
+        if todo:
+            token = todo.pop(0)
+            warm = None
+        elif auto and diag is not None and diag.verdict_token:
+            token = diag.verdict_token
+            warm = diag.verdict
+        else:
+            break
+        contexts = [data.context(j) for j in range(1, data.n_sensors + 1)]
+        m_ext, p_ext, added_mask = extend_model(result.model, result.params, token, contexts)
+        if warm is not None:
+            vals = [p['value'] for p in warm.params]
+            if len(vals) == added_mask.sum():
+                p_ext[added_mask] = vals
+        _progress(progress, 'fit', 0, 1, ','.join(m_ext.spec()))
+        result = fit(data, m_ext, field_nt=f, init=p_ext, on_degenerate='flag')
+        added = token
+    return Ladder(steps=tuple(rungs), noise_floor=floor)
