@@ -133,3 +133,12 @@ def test_model_spec_parsing():
         Model.from_spec('base,soft_iron', 4)
     with pytest.raises(ValueError, match='empty model'):
         Model.from_spec('', 4)
+
+
+def test_lm_solver_agrees_with_scipy_least_squares():
+    data, _ = simulate(n_samples=400, trajectory='random', seed=21, aux=False)
+    a = fit(data, 'base', field_nt=F, sigma_nt=3.0)
+    b = fit(data, 'base', field_nt=F, sigma_nt=3.0, solver='scipy')
+    # same cost minimum: parameters agree to a small fraction of their uncertainty
+    assert np.abs((a.params - b.params) / a.stderr).max() < 0.01
+    assert abs(a.chi2 - b.chi2) < 1e-6 * a.chi2
