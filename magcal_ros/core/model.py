@@ -759,8 +759,8 @@ def fit(data, model, field_nt=None, **kwargs):
 
 
 def _fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=False,
-        priors=None, sigma_nt=None, on_degenerate='raise', max_fit_samples=20000,
-        init=None, max_nfev=200, check_identifiability=True, solver='lm'):
+         priors=None, sigma_nt=None, on_degenerate='raise', max_fit_samples=20000,
+         init=None, max_nfev=200, check_identifiability=True, solver='lm'):
     """Maximum-likelihood fit of ``model`` to rotation data in a uniform field.
 
     Parameters
