@@ -1,0 +1,224 @@
+"""Shared helpers of the benchmarks: machine description, JSON results, text tables, ROS env.
+
+Every benchmark is one seeded command that writes ``bench/results/<name>.json`` (machine,
+settings, results) and prints a short table.  Nothing here imports rclpy.
+"""
+import datetime
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+BENCH_DIR = os.path.dirname(os.path.abspath(__file__))
+REPO_DIR = os.path.dirname(BENCH_DIR)
+RESULTS_DIR = os.path.join(BENCH_DIR, 'results')
+
+if REPO_DIR not in sys.path:
+    sys.path.insert(0, REPO_DIR)
+
+
+def _cpu_model():
+    try:
+        with open('/proc/cpuinfo') as fh:
+            for line in fh:
+                if line.startswith('model name'):
+                    return line.split(':', 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or 'unknown'
+
+
+def _mem_total_gib():
+    try:
+        with open('/proc/meminfo') as fh:
+            for line in fh:
+                if line.startswith('MemTotal'):
+                    return round(int(line.split()[1]) / 2 ** 20, 1)
+    except OSError:
+        pass
+    return None
+
+
+def _git_commit():
+    try:
+        out = subprocess.run(['git', 'rev-parse', '--short', 'HEAD'], cwd=REPO_DIR,
+                             capture_output=True, text=True, timeout=10)
+        return out.stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+def _blas_threads():
+    """OpenBLAS thread setting from the environment ('default' when unset)."""
+    for key in ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS', 'MKL_NUM_THREADS'):
+        if os.environ.get(key):
+            return f'{key}={os.environ[key]}'
+    return 'default'
+
+
+def machine_info():
+    """Dict describing the machine and software the benchmark ran on."""
+    import scipy
+    info = {
+        'cpu_model': _cpu_model(),
+        'cpu_count': os.cpu_count(),
+        'memory_gib': _mem_total_gib(),
+        'platform': platform.platform(),
+        'python': platform.python_version(),
+        'numpy': np.__version__,
+        'scipy': scipy.__version__,
+        'blas_threads': _blas_threads(),
+        'load_average_1min_at_start': os.getloadavg()[0],
+        'git_commit': _git_commit(),
+        'date_utc': datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds'),
+    }
+    try:
+        from importlib.metadata import version
+        info['rclpy'] = version('rclpy')
+    except Exception:          # noqa: B902 - informational only
+        info['rclpy'] = None
+    return info
+
+
+def jsonable(x):
+    """Convert numpy scalars/arrays and non-finite floats for json.dump."""
+    if isinstance(x, dict):
+        return {str(k): jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return jsonable(x.tolist())
+    if isinstance(x, (np.integer,)):
+        return int(x)
+    if isinstance(x, (float, np.floating)):
+        x = float(x)
+        return x if np.isfinite(x) else None
+    if isinstance(x, np.bool_):
+        return bool(x)
+    return x
+
+
+def write_result(name, settings, results, tables, out_dir=None, started=None):
+    """Write ``<out_dir>/<name>.json`` and return its path.
+
+    Parameters
+    ----------
+    name : str
+        Benchmark name (file stem).
+    settings : dict
+        Command-line settings (seeds, sizes, ...).
+    results : dict
+        The figures.
+    tables : list of str
+        The printed tables (kept in the JSON for BENCHMARKS.md).
+    """
+    out_dir = out_dir or RESULTS_DIR
+    os.makedirs(out_dir, exist_ok=True)
+    doc = {'benchmark': name, 'machine': machine_info(), 'settings': settings,
+           'results': results, 'tables': tables}
+    if started is not None:
+        doc['wall_time_s'] = time.perf_counter() - started
+    path = os.path.join(out_dir, f'{name}.json')
+    tmp = path + '.tmp'
+    with open(tmp, 'w') as fh:
+        json.dump(jsonable(doc), fh, indent=1, allow_nan=False)
+        fh.write('\n')
+    os.replace(tmp, path)
+    return path
+
+
+def table(headers, rows, title=None):
+    """Plain-text (Markdown) table; floats get 3 significant digits unless preformatted."""
+    def fmt(v):
+        if v is None:
+            return '-'
+        if isinstance(v, (float, np.floating)):
+            if not np.isfinite(v):
+                return 'inf' if v > 0 else '-'
+            if v == 0:
+                return '0'
+            a = abs(v)
+            if a >= 1e5 or a < 1e-3:
+                return f'{v:.3g}'
+            if a >= 100:
+                return f'{v:.0f}'
+            return f'{v:.3g}'
+        return str(v)
+    cells = [[fmt(v) for v in r] for r in rows]
+    widths = [max(len(str(h)), *(len(c[i]) for c in cells)) if cells else len(str(h))
+              for i, h in enumerate(headers)]
+    lines = []
+    if title:
+        lines.append(f'**{title}**')
+        lines.append('')
+    lines.append('| ' + ' | '.join(str(h).ljust(w) for h, w in zip(headers, widths)) + ' |')
+    lines.append('|' + '|'.join('-' * (w + 2) for w in widths) + '|')
+    for c in cells:
+        lines.append('| ' + ' | '.join(v.ljust(w) for v, w in zip(c, widths)) + ' |')
+    return '\n'.join(lines)
+
+
+def add_common_args(parser):
+    """--out-dir option shared by every benchmark."""
+    parser.add_argument('--out-dir', default=RESULTS_DIR,
+                        help='directory of the JSON result (default bench/results)')
+    return parser
+
+
+# -- ROS environment (loopback only) --------------------------------------------------------
+
+FASTDDS_PROFILE = os.path.join(REPO_DIR, 'config', 'fastdds_loopback.xml')
+
+
+def ros_env(domain_id=None):
+    """Environment for ROS processes of a benchmark: loopback Fast DDS profile, own domain.
+
+    DDS stays on this machine: shared memory plus UDPv4 on 127.0.0.1 only, unicast
+    discovery (config/fastdds_loopback.xml, DESIGN.md), and a private ROS_DOMAIN_ID.
+    """
+    if not os.path.exists(FASTDDS_PROFILE):
+        raise FileNotFoundError(f'missing {FASTDDS_PROFILE}: the loopback DDS profile is '
+                                'required so that no traffic leaves this machine')
+    env = dict(os.environ)
+    env['FASTRTPS_DEFAULT_PROFILES_FILE'] = FASTDDS_PROFILE
+    env['FASTDDS_DEFAULT_PROFILES_FILE'] = FASTDDS_PROFILE
+    env['RMW_IMPLEMENTATION'] = 'rmw_fastrtps_cpp'
+    env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'SYSTEM_DEFAULT'
+    env.pop('ROS_STATIC_PEERS', None)
+    env['ROS_LOCALHOST_ONLY'] = '0'
+    if domain_id is None:
+        domain_id = 100 + (os.getpid() % 100)
+    env['ROS_DOMAIN_ID'] = str(domain_id)
+    env['PYTHONPATH'] = REPO_DIR + os.pathsep + env.get('PYTHONPATH', '')
+    env['PYTHONUNBUFFERED'] = '1'
+    return env
+
+
+def cpu_seconds(pid):
+    """User + system CPU time of a process (and its threads), s, from /proc/<pid>/stat."""
+    with open(f'/proc/{pid}/stat') as fh:
+        parts = fh.read().rsplit(')', 1)[1].split()
+    ticks = os.sysconf('SC_CLK_TCK')
+    return (int(parts[11]) + int(parts[12])) / ticks
+
+
+def stop_process(proc, timeout=5.0):
+    """SIGINT, then SIGTERM, then SIGKILL a subprocess we started; returns its exit code."""
+    import signal
+    if proc.poll() is not None:
+        return proc.returncode
+    for sig, wait in ((signal.SIGINT, timeout), (signal.SIGTERM, timeout),
+                      (signal.SIGKILL, timeout)):
+        try:
+            proc.send_signal(sig)
+        except ProcessLookupError:
+            break
+        try:
+            return proc.wait(wait)
+        except subprocess.TimeoutExpired:
+            continue
+    return proc.poll()
