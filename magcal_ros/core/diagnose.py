@@ -46,7 +46,8 @@ import numpy as np
 from scipy import stats
 
 from magcal_ros.core import effects as fx
-from magcal_ros.core.model import _Problem, evaluate, field_magnitude, fit, Model
+from magcal_ros.core.model import (_Problem, _tangent_basis, evaluate, field_magnitude,
+                                   fit, Model)
 from magcal_ros.core.noise import estimate_noise
 
 #: family-wise significance level of the likelihood-ratio tests (Bonferroni over candidates)
@@ -339,22 +340,85 @@ def extend_model(model, params, token, contexts):
     return new, p, added
 
 
-def _one_step(model, p, added, raw, contexts, f, sigma):
-    """One Gauss-Newton step of all parameters of the groups the added effect touches."""
-    p_new = p.copy()
-    for grp in _groups(model):
-        prob = _Problem(model, raw, contexts, f, grp, sigma, [])
-        if not added[prob.cols].any():
-            continue
-        prob.p_full = p.copy()
-        x = p[prob.cols]
-        r = prob.residuals(x)
-        jac = prob.jacobian(x)
-        d = np.linalg.norm(jac, axis=0)
-        d[d == 0] = 1.0
-        dx, *_ = np.linalg.lstsq(jac / d, -r, rcond=None)
-        p_new[prob.cols] = x + dx / d
-    return p_new
+def _solve_psd(a, b):
+    """Solve a x = b for a symmetric positive semi-definite (n, n) a (pseudo-inverse)."""
+    w, v = np.linalg.eigh(a)
+    keep = w > 1e-12 * max(w.max(), 1e-300)
+    return v[:, keep] @ ((v[:, keep].T @ b) / w[keep])
+
+
+class _Screen:
+    """One Gauss-Newton step of an extended model from the base solution, for many candidates.
+
+    The variable-projection Jacobian of the base parameters (the same as in
+    :func:`magcal_ros.core.model.fit`), the residual and the nuisance-field projector are
+    computed once; each candidate adds only its own columns, projected the same way, and the
+    step solves the normal equations of [J_base, J_candidate].  For effects that enter
+    linearly this is the refit to first order in the (small) change of the profiled field.
+    """
+
+    def __init__(self, model, p, raw, contexts, f, sigma):
+        self.model, self.p, self.raw, self.ctx = model, p, raw, contexts
+        self.f, self.sigma = f, sigma
+        self.groups = []
+        for grp in _groups(model):
+            prob = _Problem(model, raw, contexts, f, grp, sigma, [])
+            prob.p_full = p.copy()
+            x = p[prob.cols]
+            r = prob.residuals(x)
+            jac = prob.jacobian(x)
+            _, b, mats, _ = prob.evaluate(x)
+            e1, e2 = _tangent_basis(b / f[:, None])
+            gb = np.concatenate([np.stack([e1 @ mats[j].T, e2 @ mats[j].T], axis=2)
+                                 * (f[:, None, None] / sigma[j - 1]) for j in grp], axis=1)
+            d = np.linalg.norm(jac, axis=0)
+            d[d == 0] = 1.0
+            js = jac / d
+            self.groups.append({'sensors': grp, 'cols': prob.cols, 'r': r, 'js': js, 'd': d,
+                                'jtj': js.T @ js, 'jtr': js.T @ r, 'b': b, 'gb': gb,
+                                'gtg': np.einsum('nci,ncj->nij', gb, gb)})
+
+    def step(self, m_ext, p_ext, added):
+        """(P',) parameters of ``m_ext`` after one Gauss-Newton step from ``p_ext``."""
+        info = m_ext.param_info()
+        old_pos = {k[:3]: i for i, k in enumerate(self.model.param_info())}
+        new_of_old = np.empty(self.model.n_params, int)
+        for i, k in enumerate(info):
+            if k[:3] in old_pos:
+                new_of_old[old_pos[k[:3]]] = i
+        p_new = p_ext.copy()
+        for g in self.groups:
+            grp = g['sensors']
+            idx = [i for i in np.flatnonzero(added) if info[i][0] in grp]
+            if not idx:
+                continue
+            n = len(self.f)
+            jc = np.zeros((n, len(grp), 3, len(idx)))
+            fwd = {}
+            for c, i in enumerate(idx):
+                j = info[i][0]
+                if j not in fwd:
+                    fwd[j] = m_ext.forward(j, p_ext, g['b'], self.ctx[j - 1])
+                h = 1e-6 * max(1.0, abs(p_ext[i]))
+                pp = p_ext.copy()
+                pp[i] += h
+                jc[:, grp.index(j), :, c] = -(m_ext.forward(j, pp, g['b'], self.ctx[j - 1])
+                                              - fwd[j]) / (h * self.sigma[j - 1])
+            jc = jc.reshape(n, 3 * len(grp), len(idx))
+            gtj = np.einsum('nci,ncp->nip', g['gb'], jc)
+            jc = jc - np.einsum('nci,nip->ncp', g['gb'], np.linalg.solve(g['gtg'], gtj))
+            jc = jc.reshape(-1, len(idx))
+            dc = np.linalg.norm(jc, axis=0)
+            dc[dc == 0] = 1.0
+            jcs = jc / dc
+            cross = g['js'].T @ jcs
+            a = np.block([[g['jtj'], cross], [cross.T, jcs.T @ jcs]])
+            rhs = -np.concatenate([g['jtr'], jcs.T @ g['r']])
+            sol = _solve_psd(a, rhs)
+            nb = len(g['cols'])
+            p_new[new_of_old[g['cols']]] += sol[:nb] / g['d']
+            p_new[idx] += sol[nb:] / dc
+        return p_new
 
 
 def _sensors_of(sensor, n_sensors):
@@ -681,7 +745,9 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
             except ValueError as exc:
                 why = str(exc)
             else:
-                if trial.joint != model.joint:
+                if trial.n_params == model.n_params:
+                    why = 'already in the model'
+                elif trial.joint != model.joint:
                     why = ('ties the sensors to one field (a different likelihood): fit '
                            f'--model {",".join(trial.spec())} and compare the vector residual')
         (not_testable.append((tok, why)) if why else testable.append((tok, label, sensor)))
@@ -690,10 +756,11 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
     # -- one-step screening of every candidate
     t0 = time.perf_counter()
     screened = []
+    screen = _Screen(model, base.params, data.raw, contexts, f, sigma) if testable else None
     for i, (tok, label, sensor) in enumerate(testable):
         _progress(progress, 'screen', i, len(testable), tok)
         m_ext, p_ext, added = extend_model(model, base.params, tok, contexts)
-        p_step = _one_step(m_ext, p_ext, added, data.raw, contexts, f, sigma)
+        p_step = screen.step(m_ext, p_ext, added)
         ev = _evaluate(m_ext, p_step, data, f, sigma, contexts)
         if not np.isfinite(ev.chi2) or ev.chi2 > ev0.chi2:
             p_step, ev = p_ext, _evaluate(m_ext, p_ext, data, f, sigma, contexts)
@@ -743,6 +810,8 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
                 p_i[~c['added']] = pf
                 inits.append(p_i)
             c['cv'] = cross_validate(data, c['model'], c['p'], f, sigma, folds, inits)
+            if c['cv']['rms_nt'] < cv0['rms_nt']:
+                break       # the best candidate that passes every test: the verdict
         _progress(progress, 'cross-validate', len(to_cv) + 1, len(to_cv) + 1, '')
     seconds['cross_validate'] = time.perf_counter() - t0
 
