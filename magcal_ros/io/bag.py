@@ -1,0 +1,271 @@
+"""rosbag2 recordings of the array -> :class:`~magcal_ros.core.dataset.Dataset` (no rclpy).
+
+Reads with the ``rosbags`` library (pure Python; sqlite3 and mcap storage, any ROS 2 distro
+the bag declares, Jazzy message definitions by default).  Topics, under a namespace
+(default ``/magcal``, DESIGN.md contract 3):
+
+- ``{ns}/sensor{j}/raw`` -- ``sensor_msgs/msg/MagneticField`` in tesla, sensor j's own
+  axes (required, j = 1..S consecutive);
+- ``{ns}/sensor{j}/temperature`` -- ``sensor_msgs/msg/Temperature`` in degC (optional);
+- auxiliary channels: ``std_msgs/msg/Float64`` or ``Float32`` (``data``) on
+  ``{ns}/aux/<name>`` (column ``aux_<name>``), or any topics named in ``aux_topics``;
+- ``{ns}/ref_total`` -- ``std_msgs/msg/Float64``, scalar reference magnitude in tesla
+  (optional).
+
+Epochs are sensor 1's header stamps; each other sensor is matched to the nearest stamp
+within half a sample period (epochs where a sensor has no match are dropped and counted in
+``meta['dropped_epochs']``).  Temperatures and the reference are interpolated linearly onto
+the epochs, auxiliary channels held from their last message (a switched current changes
+when its message says so).  A message whose header stamp is zero is stamped with the time
+the bag recorded it.  Tesla are converted to nT with :mod:`magcal_ros.units`.
+"""
+import os
+from pathlib import Path
+import re
+
+import numpy as np
+
+from magcal_ros.core.dataset import Dataset
+from magcal_ros.units import nt_to_t, t_to_nt
+
+MAG_TYPE = 'sensor_msgs/msg/MagneticField'
+TEMP_TYPE = 'sensor_msgs/msg/Temperature'
+SCALAR_TYPES = ('std_msgs/msg/Float64', 'std_msgs/msg/Float32')
+
+
+class BagFormatError(ValueError):
+    """The directory is not a usable rosbag2 recording of the array; the message says why."""
+
+
+def _typestore():
+    from rosbags.typesys import get_typestore, Stores
+    return get_typestore(Stores.ROS2_JAZZY)
+
+
+def _stamp(msg, recv_ns):
+    st = msg.header.stamp
+    ns = int(st.sec) * 1_000_000_000 + int(st.nanosec)
+    return (ns if ns > 0 else int(recv_ns)) * 1e-9
+
+
+def _hold(t_msg, v_msg, t):
+    """Value of the last message at or before each time t (the first one before it)."""
+    order = np.argsort(t_msg, kind='stable')
+    t_msg, v_msg = t_msg[order], v_msg[order]
+    i = np.searchsorted(t_msg, t, side='right') - 1
+    return v_msg[np.clip(i, 0, len(v_msg) - 1)]
+
+
+def _interp(t_msg, v_msg, t):
+    order = np.argsort(t_msg, kind='stable')
+    return np.interp(t, t_msg[order], v_msg[order])
+
+
+def read_bag(path, namespace='/magcal', aux_topics=None):
+    """Read a rosbag2 directory into a Dataset (readings in nT, times in s).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The bag directory (with ``metadata.yaml``).
+    namespace : str
+        Topic namespace of the array.
+    aux_topics : dict of str to str, optional
+        {column name ('aux_motor_current'): topic} for auxiliary channels published
+        elsewhere (std_msgs Float64/Float32).
+
+    Returns
+    -------
+    Dataset
+        ``t`` (N,) s (header stamps, absolute), ``raw`` (S, N, 3) nT, ``temp`` (S, N) degC or
+        None, ``ref_total`` (N,) nT or None, ``aux`` {name: (N,)}; ``meta`` holds the source,
+        the topics used and the number of dropped epochs.
+    """
+    from rosbags.highlevel import AnyReader
+
+    path = Path(os.fspath(path))
+    if not (path / 'metadata.yaml').is_file():
+        raise BagFormatError(f'{path} is not a rosbag2 directory (no metadata.yaml)')
+    ns = '/' + namespace.strip('/') if namespace.strip('/') else ''
+    raw_re = re.compile(re.escape(ns) + r'/sensor(\d+)/raw$')
+    temp_re = re.compile(re.escape(ns) + r'/sensor(\d+)/temperature$')
+    aux_re = re.compile(re.escape(ns) + r'/aux/(\w+)$')
+    wanted_aux = {topic: (col if col.startswith('aux_') else 'aux_' + col)
+                  for col, topic in (aux_topics or {}).items()}
+    try:
+        reader = AnyReader([path], default_typestore=_typestore())
+        reader.open()
+    except Exception as exc:          # rosbags raises its own error types per storage
+        raise BagFormatError(f'cannot open rosbag2 {path}: {exc}') from exc
+    try:
+        mags, temps, aux, ref = {}, {}, {}, None
+        conns = []
+        for c in reader.connections:
+            m = raw_re.match(c.topic)
+            if m and c.msgtype == MAG_TYPE:
+                mags[int(m.group(1))] = ([], [])
+                conns.append(c)
+                continue
+            m = temp_re.match(c.topic)
+            if m and c.msgtype == TEMP_TYPE:
+                temps[int(m.group(1))] = ([], [])
+                conns.append(c)
+                continue
+            if c.msgtype in SCALAR_TYPES:
+                m = aux_re.match(c.topic)
+                if c.topic in wanted_aux or m:
+                    aux[wanted_aux.get(c.topic) or 'aux_' + m.group(1)] = ([], [])
+                    conns.append(c)
+                elif c.topic == ns + '/ref_total':
+                    ref = ([], [])
+                    conns.append(c)
+        if not mags:
+            topics = sorted(f'{c.topic} ({c.msgtype})' for c in reader.connections)
+            raise BagFormatError(
+                f'{path}: no {MAG_TYPE} topics named {ns}/sensor<j>/raw; the bag has: '
+                f'{", ".join(topics) or "no topics"} (use namespace=...)')
+        missing_aux = set(wanted_aux) - {c.topic for c in conns}
+        if missing_aux:
+            raise BagFormatError(f'{path}: auxiliary topic(s) {sorted(missing_aux)} not in the '
+                                 'bag (or not std_msgs Float64/Float32)')
+        for c, recv, data in reader.messages(connections=conns):
+            msg = reader.deserialize(data, c.msgtype)
+            m = raw_re.match(c.topic)
+            if m and c.msgtype == MAG_TYPE:
+                v = msg.magnetic_field
+                mags[int(m.group(1))][0].append(_stamp(msg, recv))
+                mags[int(m.group(1))][1].append((v.x, v.y, v.z))
+                continue
+            m = temp_re.match(c.topic)
+            if m and c.msgtype == TEMP_TYPE:
+                temps[int(m.group(1))][0].append(_stamp(msg, recv))
+                temps[int(m.group(1))][1].append(msg.temperature)
+                continue
+            if c.topic == ns + '/ref_total' and c.topic not in wanted_aux:
+                ref[0].append(recv * 1e-9)
+                ref[1].append(msg.data)
+                continue
+            m = aux_re.match(c.topic)
+            aux[wanted_aux.get(c.topic) or 'aux_' + m.group(1)][0].append(recv * 1e-9)
+            aux[wanted_aux.get(c.topic) or 'aux_' + m.group(1)][1].append(msg.data)
+    finally:
+        reader.close()
+
+    s = max(mags)
+    absent = [j for j in range(1, s + 1) if j not in mags or not mags[j][0]]
+    if absent:
+        names = ', '.join(f'{ns}/sensor{j}/raw' for j in absent)
+        raise BagFormatError(f'{path}: no messages on {names} (sensors must be numbered '
+                             f'1..{s})')
+    t1 = np.asarray(mags[1][0], float)
+    order = np.argsort(t1, kind='stable')
+    t = t1[order]
+    if len(t) < 2:
+        raise BagFormatError(f'{path}: sensor 1 has only {len(t)} message(s)')
+    period = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+    raw = np.empty((s, len(t), 3))
+    raw[0] = np.asarray(mags[1][1], float)[order]
+    keep = np.ones(len(t), bool)
+    for j in range(2, s + 1):
+        tj = np.asarray(mags[j][0], float)
+        vj = np.asarray(mags[j][1], float)
+        oj = np.argsort(tj, kind='stable')
+        tj, vj = tj[oj], vj[oj]
+        i = np.clip(np.searchsorted(tj, t), 1, len(tj) - 1) if len(tj) > 1 else np.zeros(
+            len(t), int)
+        if len(tj) > 1:
+            i = np.where(np.abs(tj[i - 1] - t) <= np.abs(tj[i] - t), i - 1, i)
+        keep &= np.abs(tj[i] - t) <= 0.5 * period + 1e-9
+        raw[j - 1] = vj[i]
+    raw = t_to_nt(raw)
+    t, raw = t[keep], raw[:, keep]
+    if len(t) < 2:
+        raise BagFormatError(f'{path}: the stamps of the {s} sensors do not match (no common '
+                             'epochs within half a sample period)')
+    temp = None
+    if temps:
+        temp = np.full((s, len(t)), np.nan)
+        for j, (tt, vv) in temps.items():
+            if 1 <= j <= s and tt:
+                temp[j - 1] = _interp(np.asarray(tt), np.asarray(vv, float), t)
+    aux_out = {k: _hold(np.asarray(tt), np.asarray(vv, float), t)
+               for k, (tt, vv) in aux.items() if tt}
+    ref_total = None
+    if ref is not None and ref[0]:
+        ref_total = t_to_nt(_interp(np.asarray(ref[0]), np.asarray(ref[1], float), t))
+    return Dataset(t=t, raw=raw, temp=temp, ref_total=ref_total, aux=aux_out,
+                   meta={'source': str(path), 'namespace': ns or '/',
+                         'dropped_epochs': int((~keep).sum()),
+                         'topics': sorted(c.topic for c in conns)})
+
+
+def write_bag(path, data, namespace='/magcal', storage='sqlite3', frame_id='fluxgate'):
+    """Write a Dataset as a rosbag2 recording in the layout :func:`read_bag` reads.
+
+    For tests, demos and converting CSV recordings for ROS tools.  Readings are written in
+    tesla (``sensor_msgs/MagneticField``), temperatures in degC, auxiliary channels as
+    ``std_msgs/Float64`` on ``{ns}/aux/<name>``, ``ref_total`` in tesla.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Bag directory to create (must not exist).
+    data : Dataset
+        Times ``t`` (N,) s are used as header stamps and receive times.
+    storage : {'sqlite3', 'mcap'}
+    frame_id : str
+        Header frame prefix; sensor j gets ``{frame_id}{j}``.
+    """
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    plugins = {'sqlite3': StoragePlugin.SQLITE3, 'mcap': StoragePlugin.MCAP}
+    if storage not in plugins:
+        raise ValueError(f"storage must be 'sqlite3' or 'mcap', got {storage!r}")
+    path = Path(os.fspath(path))
+    if path.exists():
+        raise ValueError(f'{path} exists: rosbag2 writes a new directory')
+    ts = _typestore()
+    mag_cls = ts.types[MAG_TYPE]
+    temp_cls = ts.types[TEMP_TYPE]
+    f64 = ts.types['std_msgs/msg/Float64']
+    header = ts.types['std_msgs/msg/Header']
+    stamp_cls = ts.types['builtin_interfaces/msg/Time']
+    vec = ts.types['geometry_msgs/msg/Vector3']
+    ns = '/' + namespace.strip('/') if namespace.strip('/') else ''
+    t_ns = np.round(np.asarray(data.t, float) * 1e9).astype(np.int64)
+    raw_t = nt_to_t(data.raw)
+    cov = np.zeros(9)
+    with Writer(path, version=9, storage_plugin=plugins[storage]) as w:
+        conn = {}
+        for j in range(1, data.n_sensors + 1):
+            conn[('raw', j)] = w.add_connection(f'{ns}/sensor{j}/raw', MAG_TYPE, typestore=ts)
+            if data.temp is not None and np.isfinite(data.temp[j - 1]).any():
+                conn[('temp', j)] = w.add_connection(f'{ns}/sensor{j}/temperature', TEMP_TYPE,
+                                                     typestore=ts)
+        for name in sorted(data.aux):
+            conn[('aux', name)] = w.add_connection(f'{ns}/aux/{name[4:]}',
+                                                   'std_msgs/msg/Float64', typestore=ts)
+        if data.ref_total is not None:
+            conn[('ref',)] = w.add_connection(f'{ns}/ref_total', 'std_msgs/msg/Float64',
+                                              typestore=ts)
+        for k in range(data.n_samples):
+            st = stamp_cls(sec=int(t_ns[k] // 1_000_000_000),
+                           nanosec=int(t_ns[k] % 1_000_000_000))
+            for j in range(1, data.n_sensors + 1):
+                hdr = header(stamp=st, frame_id=f'{frame_id}{j}')
+                msg = mag_cls(header=hdr, magnetic_field=vec(*map(float, raw_t[j - 1, k])),
+                              magnetic_field_covariance=cov)
+                w.write(conn[('raw', j)], int(t_ns[k]), ts.serialize_cdr(msg, MAG_TYPE))
+                if ('temp', j) in conn:
+                    msg = temp_cls(header=hdr, temperature=float(data.temp[j - 1, k]),
+                                   variance=0.0)
+                    w.write(conn[('temp', j)], int(t_ns[k]), ts.serialize_cdr(msg, TEMP_TYPE))
+            for name in sorted(data.aux):
+                w.write(conn[('aux', name)], int(t_ns[k]),
+                        ts.serialize_cdr(f64(data=float(data.aux[name][k])),
+                                         'std_msgs/msg/Float64'))
+            if ('ref',) in conn:
+                w.write(conn[('ref',)], int(t_ns[k]),
+                        ts.serialize_cdr(f64(data=float(nt_to_t(data.ref_total[k]))),
+                                         'std_msgs/msg/Float64'))
+    return path
