@@ -1,0 +1,300 @@
+"""Conversions between library arrays (nT, nT/m, degC) and ROS messages (T, T/m, degC).
+
+This is the one place where nanotesla become tesla (REP 103 SI units in messages) and back.
+Every builder validates its input and raises ``ValueError`` naming what was wrong.
+
+Message layouts
+---------------
+- ``sensor_msgs/MagneticField``: ``magnetic_field`` in T, ``magnetic_field_covariance`` in T^2,
+  3x3 row-major (x, y, z); all zeros means "covariance unknown" (message definition).
+- Gradient tensor ``std_msgs/Float64MultiArray``: 3x3 row-major in T/m, ``layout.dim`` =
+  ``[('row', size 3, stride 9), ('col', size 3, stride 3)]``, ``data_offset`` 0
+  (DESIGN.md contract 3).
+- ``sensor_msgs/Temperature``: degrees Celsius, variance in degC^2.
+"""
+
+import math
+import numbers
+
+from builtin_interfaces.msg import Time as TimeMsg
+from magcal_ros.units import nt_to_t, t_to_nt
+import numpy as np
+import rclpy.time
+from sensor_msgs.msg import MagneticField, Temperature
+from std_msgs.msg import Float64MultiArray, MultiArrayDimension
+
+#: Labels of the gradient tensor's ``layout.dim`` entries (DESIGN.md contract 3).
+TENSOR_DIM_LABELS = ('row', 'col')
+
+_NS_PER_S = 1_000_000_000
+
+
+def to_stamp(stamp):
+    """Turn a time given in one of several forms into a ``builtin_interfaces/Time``.
+
+    Parameters
+    ----------
+    stamp : builtin_interfaces.msg.Time or rclpy.time.Time or float or int or None
+        The time. A number is seconds since the epoch (>= 0); ``None`` gives time zero.
+
+    Returns
+    -------
+    builtin_interfaces.msg.Time
+        A new message (a given message is copied, never shared).
+
+    Raises
+    ------
+    ValueError
+        If the time is negative, not finite, or of an unsupported type.
+    """
+    if stamp is None:
+        return TimeMsg()
+    if isinstance(stamp, TimeMsg):
+        return TimeMsg(sec=stamp.sec, nanosec=stamp.nanosec)
+    if isinstance(stamp, rclpy.time.Time):
+        return stamp.to_msg()
+    if isinstance(stamp, numbers.Real) and not isinstance(stamp, bool):
+        seconds = float(stamp)
+        if not math.isfinite(seconds) or seconds < 0.0:
+            raise ValueError(
+                f'stamp must be a finite, non-negative number of seconds, got {stamp!r}')
+        total_ns = int(round(seconds * _NS_PER_S))
+        return TimeMsg(sec=total_ns // _NS_PER_S, nanosec=total_ns % _NS_PER_S)
+    raise ValueError(
+        'stamp must be a builtin_interfaces/Time, an rclpy Time, seconds as a number or None, '
+        f'got {type(stamp).__name__}')
+
+
+def stamp_to_seconds(stamp):
+    """Return a ``builtin_interfaces/Time`` as float seconds.
+
+    Parameters
+    ----------
+    stamp : builtin_interfaces.msg.Time
+        The time stamp (for example ``msg.header.stamp``).
+
+    Returns
+    -------
+    float
+        Seconds since the epoch (nanosecond resolution is kept up to float64 precision).
+    """
+    return stamp.sec + stamp.nanosec * 1e-9
+
+
+def _check_frame_id(frame_id):
+    if not isinstance(frame_id, str):
+        raise ValueError(f'frame_id must be a str, got {type(frame_id).__name__}')
+    return frame_id
+
+
+def _vector3(value, name, unit):
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.shape != (3,):
+        raise ValueError(f'{name} must have shape (3,) in {unit}, got shape {arr.shape}')
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f'{name} must be finite, got {arr.tolist()}')
+    return arr
+
+
+def _covariance33(covariance_nt2):
+    """Return a (3, 3) covariance in nT^2 from None, a scalar variance or a 3x3 matrix."""
+    if covariance_nt2 is None:
+        return np.zeros((3, 3))
+    cov = np.asarray(covariance_nt2, dtype=np.float64)
+    if cov.ndim == 0:
+        variance = float(cov)
+        if not math.isfinite(variance) or variance < 0.0:
+            raise ValueError('covariance_nt2 as a scalar variance must be finite and >= 0 nT^2, '
+                             f'got {variance}')
+        return np.eye(3) * variance
+    if cov.shape != (3, 3):
+        raise ValueError(
+            'covariance_nt2 must be a scalar variance or a (3, 3) matrix in nT^2, '
+            f'got shape {cov.shape}')
+    if not np.all(np.isfinite(cov)):
+        raise ValueError('covariance_nt2 must be finite')
+    if np.any(np.diag(cov) < 0.0):
+        raise ValueError(f'covariance_nt2 diagonal must be >= 0 nT^2, got {np.diag(cov).tolist()}')
+    scale = max(float(np.max(np.abs(cov))), 1e-300)
+    if not np.allclose(cov, cov.T, rtol=0.0, atol=1e-9 * scale):
+        raise ValueError('covariance_nt2 must be symmetric; pass (C + C.T) / 2 if it is only '
+                         'asymmetric by rounding')
+    return cov
+
+
+def field_nt_to_msg(field_nt, stamp=None, frame_id='', covariance_nt2=None):
+    """Build a ``sensor_msgs/MagneticField`` (tesla) from a field in nanotesla.
+
+    Parameters
+    ----------
+    field_nt : array_like, shape (3,)
+        Magnetic field (x, y, z) in nT.
+    stamp : builtin_interfaces.msg.Time or rclpy.time.Time or float or None, optional
+        Header stamp (see :func:`to_stamp`); time zero when omitted.
+    frame_id : str, optional
+        Header frame id.
+    covariance_nt2 : array_like, shape (3, 3), or float, optional
+        Covariance of the field in nT^2, or one variance in nT^2 for all three axes
+        (diagonal, independent axes). ``None`` leaves zeros ("unknown").
+
+    Returns
+    -------
+    sensor_msgs.msg.MagneticField
+        Field in T, covariance in T^2 row-major.
+
+    Raises
+    ------
+    ValueError
+        If the field is not three finite numbers, or the covariance has the wrong shape,
+        is not finite, not symmetric, or has a negative variance.
+    """
+    field = _vector3(field_nt, 'field_nt', 'nT')
+    cov = _covariance33(covariance_nt2)
+    msg = MagneticField()
+    msg.header.stamp = to_stamp(stamp)
+    msg.header.frame_id = _check_frame_id(frame_id)
+    field_t = nt_to_t(field)
+    msg.magnetic_field.x = float(field_t[0])
+    msg.magnetic_field.y = float(field_t[1])
+    msg.magnetic_field.z = float(field_t[2])
+    # nT^2 -> T^2: two factors of 1e-9.
+    msg.magnetic_field_covariance = nt_to_t(nt_to_t(cov)).reshape(9)
+    return msg
+
+
+def msg_to_field_nt(msg):
+    """Return the field of a ``sensor_msgs/MagneticField`` in nanotesla.
+
+    Parameters
+    ----------
+    msg : sensor_msgs.msg.MagneticField
+        Message with the field in T.
+
+    Returns
+    -------
+    numpy.ndarray, shape (3,)
+        Field (x, y, z) in nT.
+    """
+    v = msg.magnetic_field
+    return t_to_nt([v.x, v.y, v.z])
+
+
+def msg_to_covariance_nt2(msg):
+    """Return the covariance of a ``sensor_msgs/MagneticField`` in nT^2.
+
+    Parameters
+    ----------
+    msg : sensor_msgs.msg.MagneticField
+        Message with the covariance in T^2, row-major.
+
+    Returns
+    -------
+    numpy.ndarray, shape (3, 3)
+        Covariance in nT^2 (all zeros means unknown).
+    """
+    cov_t2 = np.asarray(msg.magnetic_field_covariance, dtype=np.float64).reshape(3, 3)
+    return t_to_nt(t_to_nt(cov_t2))
+
+
+def tensor_to_msg(gradient_nt_per_m):
+    """Build the gradient-tensor ``std_msgs/Float64MultiArray`` (T/m) from nT/m.
+
+    Parameters
+    ----------
+    gradient_nt_per_m : array_like, shape (3, 3)
+        Gradient tensor G[i, k] = dB_i / dx_k in nT/m.
+
+    Returns
+    -------
+    std_msgs.msg.Float64MultiArray
+        Nine values, row-major, in T/m; ``layout.dim`` = ``row`` (size 3, stride 9) and
+        ``col`` (size 3, stride 3), ``data_offset`` 0.
+
+    Raises
+    ------
+    ValueError
+        If the tensor is not a finite (3, 3) array.
+    """
+    g = np.asarray(gradient_nt_per_m, dtype=np.float64)
+    if g.shape != (3, 3):
+        raise ValueError(f'gradient tensor must have shape (3, 3) in nT/m, got shape {g.shape}')
+    if not np.all(np.isfinite(g)):
+        raise ValueError('gradient tensor must be finite')
+    msg = Float64MultiArray()
+    msg.layout.dim = [
+        MultiArrayDimension(label=TENSOR_DIM_LABELS[0], size=3, stride=9),
+        MultiArrayDimension(label=TENSOR_DIM_LABELS[1], size=3, stride=3),
+    ]
+    msg.layout.data_offset = 0
+    msg.data = nt_to_t(g).reshape(9).tolist()
+    return msg
+
+
+def msg_to_tensor(msg):
+    """Return the gradient tensor of a ``std_msgs/Float64MultiArray`` in nT/m.
+
+    Parameters
+    ----------
+    msg : std_msgs.msg.Float64MultiArray
+        Message laid out as :func:`tensor_to_msg` writes it (T/m).
+
+    Returns
+    -------
+    numpy.ndarray, shape (3, 3)
+        Gradient tensor in nT/m.
+
+    Raises
+    ------
+    ValueError
+        If the layout is not 3x3 row-major with dims ``row`` and ``col``, or the data is
+        too short for it.
+    """
+    dims = [(d.label, d.size, d.stride) for d in msg.layout.dim]
+    expected = [(TENSOR_DIM_LABELS[0], 3, 9), (TENSOR_DIM_LABELS[1], 3, 3)]
+    if dims != expected:
+        raise ValueError(
+            f'gradient message layout must be {expected} (label, size, stride), got {dims}')
+    offset = msg.layout.data_offset
+    data = np.asarray(msg.data, dtype=np.float64)
+    if data.size < offset + 9:
+        raise ValueError(
+            f'gradient message needs {offset + 9} values (data_offset {offset} + 9), '
+            f'got {data.size}')
+    return t_to_nt(data[offset:offset + 9].reshape(3, 3))
+
+
+def temperature_msg(temp_c, stamp=None, frame_id='', variance_c2=0.0):
+    """Build a ``sensor_msgs/Temperature``.
+
+    Parameters
+    ----------
+    temp_c : float
+        Temperature in degC.
+    stamp : builtin_interfaces.msg.Time or rclpy.time.Time or float or None, optional
+        Header stamp (see :func:`to_stamp`).
+    frame_id : str, optional
+        Header frame id.
+    variance_c2 : float, optional
+        Variance in degC^2; 0 means unknown.
+
+    Returns
+    -------
+    sensor_msgs.msg.Temperature
+
+    Raises
+    ------
+    ValueError
+        If the temperature is not finite or the variance is negative or not finite.
+    """
+    temp = float(temp_c)
+    if not math.isfinite(temp):
+        raise ValueError(f'temp_c must be finite, got {temp_c!r}')
+    variance = float(variance_c2)
+    if not math.isfinite(variance) or variance < 0.0:
+        raise ValueError(f'variance_c2 must be finite and >= 0 degC^2, got {variance_c2!r}')
+    msg = Temperature()
+    msg.header.stamp = to_stamp(stamp)
+    msg.header.frame_id = _check_frame_id(frame_id)
+    msg.temperature = temp
+    msg.variance = variance
+    return msg
