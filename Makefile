@@ -1,0 +1,46 @@
+# magcal_ros project tasks. `make test` is what CI runs (.ci/run).
+#
+#   make setup   create/update .venv (Python 3.11, ROS 2 Jazzy wheels, deps, editable install)
+#   make test    setup, then pytest on test/ in the loopback-only ROS environment
+#   make demo    setup, then scripts/demo.sh in the loopback-only ROS environment
+#   make bench   setup, then bench/run_all.py
+#   make clean   remove build products and caches (keeps .venv); distclean also removes .venv
+#
+# Variables: PYTHON (interpreter for the venv, default python3.11), TEST_TIMEOUT (seconds per
+# test, default 180), PYTEST_ARGS (extra pytest arguments, e.g. PYTEST_ARGS='-k conversions').
+
+SHELL := /bin/bash
+.DEFAULT_GOAL := test
+
+PYTHON ?= python3.11
+VENV := .venv
+VPY := $(VENV)/bin/python
+STAMP := $(VENV)/.magcal_setup_stamp
+TEST_TIMEOUT ?= 180
+PYTEST_ARGS ?=
+# Loopback-only DDS, per-run ROS_DOMAIN_ID, .venv/bin on PATH (see scripts/ros_env.sh).
+ROS_ENV := source scripts/ros_env.sh &&
+
+.PHONY: setup test demo bench clean distclean
+
+setup: $(STAMP)
+
+# Re-run only when the dependency list or the packaging changed (the stamp is written last).
+$(STAMP): requirements.txt setup.py setup.cfg package.xml scripts/setup_env.sh
+	PYTHON=$(PYTHON) VENV=$(CURDIR)/$(VENV) scripts/setup_env.sh
+
+test: setup
+	$(ROS_ENV) $(VPY) -m pytest test -p no:cacheprovider -ra --timeout=$(TEST_TIMEOUT) $(PYTEST_ARGS)
+
+demo: setup
+	$(ROS_ENV) scripts/demo.sh
+
+bench: setup
+	$(ROS_ENV) $(VPY) bench/run_all.py
+
+clean:
+	rm -rf build install log .pytest_cache .hypothesis *.egg-info
+	find . -path ./$(VENV) -prune -o -name __pycache__ -type d -prune -exec rm -rf {} +
+
+distclean: clean
+	rm -rf $(VENV)
