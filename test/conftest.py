@@ -1,0 +1,100 @@
+"""Test-session setup: loopback-only DDS, a per-run ROS_DOMAIN_ID, and the ROS fixtures.
+
+pytest imports this file before any test module, so the environment below is in place
+before rclpy is imported or creates a DDS participant anywhere in the session, and it is
+inherited by every process the tests start:
+
+- ``FASTRTPS_DEFAULT_PROFILES_FILE`` and ``FASTDDS_DEFAULT_PROFILES_FILE``: the absolute path
+  of ``config/fastdds_loopback.xml`` (shared memory + UDPv4 on 127.0.0.1, no multicast).
+- ``ROS_AUTOMATIC_DISCOVERY_RANGE=SYSTEM_DEFAULT`` so the profile is used unchanged,
+  ``RMW_IMPLEMENTATION=rmw_fastrtps_cpp``; ``ROS_LOCALHOST_ONLY`` and ``ROS_STATIC_PEERS``
+  are removed.
+- ``ROS_DOMAIN_ID``: chosen per run in 1..101, starting from the PID and skipping domains
+  whose Fast DDS ports are already bound on this machine, so parallel runs do not meet.
+  Set ``MAGCAL_TEST_ROS_DOMAIN_ID`` to force one.
+
+rclpy is required: if it cannot be imported the session errors out (it is not skipped);
+``make setup`` installs it.
+"""
+
+import os
+import pathlib
+import socket
+import sys
+
+import pytest
+
+REPO_ROOT = pathlib.Path(__file__).resolve().parents[1]
+PROFILE = REPO_ROOT / 'config' / 'fastdds_loopback.xml'
+
+# Fast DDS well-known ports (RTPS 2.x defaults): PB + DG * domain + offset + PG * participant.
+_PB, _DG, _PG, _D0, _D1 = 7400, 250, 2, 0, 10
+
+
+def _domain_in_use(domain_id, participants=4):
+    """Return True if a Fast DDS participant of ``domain_id`` seems to run on this machine."""
+    ports = [_PB + _DG * domain_id + _D0]
+    ports += [_PB + _DG * domain_id + _D1 + _PG * p for p in range(participants)]
+    for port in ports:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+            try:
+                sock.bind(('127.0.0.1', port))
+            except OSError:
+                return True
+    return False
+
+
+def pick_domain_id(seed=None):
+    """Return a ROS domain id in 1..101 not in use on this machine, starting from ``seed``."""
+    start = (os.getpid() if seed is None else seed) % 101
+    for k in range(101):
+        domain_id = 1 + (start + k) % 101
+        if not _domain_in_use(domain_id):
+            return domain_id
+    raise RuntimeError('every ROS domain id 1..101 has DDS ports bound on this machine; '
+                       'stop stale ROS processes or set MAGCAL_TEST_ROS_DOMAIN_ID')
+
+
+def _configure_ros_environment():
+    if not PROFILE.is_file():
+        raise RuntimeError(f'loopback DDS profile missing: {PROFILE}')
+    os.environ['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(PROFILE)
+    os.environ['FASTDDS_DEFAULT_PROFILES_FILE'] = str(PROFILE)
+    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'SYSTEM_DEFAULT'
+    os.environ['RMW_IMPLEMENTATION'] = 'rmw_fastrtps_cpp'
+    os.environ.pop('ROS_LOCALHOST_ONLY', None)
+    os.environ.pop('ROS_STATIC_PEERS', None)
+    forced = os.environ.get('MAGCAL_TEST_ROS_DOMAIN_ID')
+    os.environ['ROS_DOMAIN_ID'] = str(int(forced) if forced else pick_domain_id())
+    os.environ.setdefault('RCUTILS_COLORIZED_OUTPUT', '0')
+    os.environ.setdefault('MPLBACKEND', 'Agg')
+
+
+_configure_ros_environment()
+
+try:
+    import rclpy  # noqa: E402,F401  (after the environment is set)
+except ImportError as exc:  # a missing rclpy is a failure, never a skip
+    raise ImportError(
+        f'rclpy (ROS 2 Jazzy) cannot be imported by {sys.executable}: {exc}. '
+        'Run `make setup` and the tests with `make test` (or .venv/bin/python -m pytest).'
+    ) from exc
+
+import ros_helpers  # noqa: E402
+from ros_helpers import (  # noqa: E402,F401  (fixtures registered for every test)
+    make_node, ros_context, ros_executor, ros_namespace, ros_node, start_process)
+
+
+def pytest_report_header(config):
+    return (f'ROS: domain {os.environ["ROS_DOMAIN_ID"]}, '
+            f'{os.environ["RMW_IMPLEMENTATION"]}, profile {PROFILE}')
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    outcome = yield
+    ros_helpers.attach_process_logs(item, outcome.get_result())
+
+
+def pytest_sessionfinish(session, exitstatus):
+    ros_helpers.stop_all_processes()

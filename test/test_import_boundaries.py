@@ -1,0 +1,101 @@
+"""Layer boundaries: everything outside magcal_ros.ros imports without rclpy or *_msgs.
+
+Each top-level part of the package other than ``ros`` (``core``, ``io``, ``serial``, ``cli``,
+``units``, ``report`` ... discovered with pkgutil, so new modules are covered) is imported
+with all its submodules in a fresh interpreter; afterwards ``sys.modules`` must hold no
+rclpy, no ROS message or service package and no rosidl runtime.
+"""
+
+import json
+import pathlib
+import pkgutil
+import subprocess
+import sys
+
+import pytest
+from ros_helpers import REPO_ROOT, subprocess_env
+
+# Run in a fresh interpreter: import ``target`` and, if it is a subpackage, all its submodules
+# one by one, recording which import first brought a ROS module in. The top package itself is
+# imported alone (its subpackages are separate targets, and ``ros`` is allowed rclpy).
+CHECK = r"""
+import importlib, json, pkgutil, sys, traceback
+
+def ros_modules():
+    out = set()
+    for name in sys.modules:
+        top = name.split('.')[0]
+        if (top in ('rclpy', 'rpyutils', 'builtin_interfaces') or top.endswith('_msgs')
+                or top.endswith('_srvs') or top.startswith('rosidl')):
+            out.add(top)
+    return out
+
+target = sys.argv[1]
+report = {'imported': [], 'offenders': {}, 'errors': {}}
+
+def visit(name):
+    before = ros_modules()
+    try:
+        module = importlib.import_module(name)
+    except BaseException:
+        report['errors'][name] = traceback.format_exc(limit=3)
+        return None
+    report['imported'].append(name)
+    new = sorted(ros_modules() - before)
+    if new:
+        report['offenders'][name] = new
+    return module
+
+module = visit(target)
+if module is not None and hasattr(module, '__path__') and target != 'magcal_ros':
+    for info in pkgutil.walk_packages(module.__path__, prefix=target + '.',
+                                      onerror=lambda n: report['errors'].setdefault(n, 'walk')):
+        visit(info.name)
+print(json.dumps(report))
+"""
+
+
+def _ros_free_targets():
+    """Top-level modules/packages of magcal_ros other than ``ros``, plus the package."""
+    pkg_dir = REPO_ROOT / 'magcal_ros'
+    names = sorted(info.name for info in pkgutil.iter_modules([str(pkg_dir)]))
+    return ['magcal_ros'] + [f'magcal_ros.{n}' for n in names if n != 'ros']
+
+
+def _check(target):
+    result = subprocess.run([sys.executable, '-c', CHECK, target], cwd=REPO_ROOT,
+                            env=subprocess_env(), capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    return json.loads(result.stdout.strip().splitlines()[-1])
+
+
+def test_the_layers_named_in_the_design_are_covered():
+    targets = _ros_free_targets()
+    for layer in ('core', 'io', 'serial', 'cli'):
+        assert f'magcal_ros.{layer}' in targets
+    assert 'magcal_ros.ros' not in targets
+
+
+@pytest.mark.parametrize('target', _ros_free_targets())
+def test_layer_imports_no_ros(target):
+    report = _check(target)
+    assert report['errors'] == {}, 'modules that failed to import:\n' + '\n'.join(
+        f'{k}: {v}' for k, v in report['errors'].items())
+    assert report['offenders'] == {}, (
+        f'these modules import ROS packages (allowed only under magcal_ros/ros/): '
+        f'{report["offenders"]}')
+    # every module file under a package was actually imported
+    path = REPO_ROOT / pathlib.Path(*target.split('.'))
+    if path.is_dir() and target != 'magcal_ros':
+        files = {p for p in path.rglob('*.py') if '__pycache__' not in p.parts}
+        expected = {'.'.join(p.relative_to(REPO_ROOT).with_suffix('').parts).removesuffix(
+            '.__init__') for p in files}
+        assert expected <= set(report['imported'])
+
+
+def test_the_check_detects_rclpy():
+    # the ROS layer does import rclpy: the detector is not blind
+    report = _check('magcal_ros.ros.conversions')
+    assert report['errors'] == {}
+    assert 'rclpy' in report['offenders']['magcal_ros.ros.conversions']
+    assert 'sensor_msgs' in report['offenders']['magcal_ros.ros.conversions']
