@@ -6,13 +6,13 @@
 #   make bench   setup, then bench/run_all.py
 #   make clean   remove build products and caches (keeps .venv); distclean also removes .venv
 #
-# Variables: PYTHON (interpreter for the venv, default python3.11), TEST_TIMEOUT (seconds per
+# Variables: PYTHON (a Python 3.11 for the venv, default: found on PATH), TEST_TIMEOUT (seconds per
 # test, default 180), PYTEST_ARGS (extra pytest arguments, e.g. PYTEST_ARGS='-k conversions').
 
 SHELL := /bin/bash
 .DEFAULT_GOAL := test
 
-PYTHON ?= python3.11
+PYTHON ?=
 VENV := .venv
 VPY := $(VENV)/bin/python
 STAMP := $(VENV)/.magcal_setup_stamp
@@ -27,7 +27,7 @@ setup: $(STAMP)
 
 # Re-run only when the dependency list or the packaging changed (the stamp is written last).
 $(STAMP): requirements.txt setup.py setup.cfg package.xml scripts/setup_env.sh
-	PYTHON=$(PYTHON) VENV=$(CURDIR)/$(VENV) scripts/setup_env.sh
+	PYTHON='$(PYTHON)' VENV='$(CURDIR)/$(VENV)' scripts/setup_env.sh
 
 test: setup
 	$(ROS_ENV) $(VPY) -m pytest test -p no:cacheprovider -ra --timeout=$(TEST_TIMEOUT) $(PYTEST_ARGS)

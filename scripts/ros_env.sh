@@ -36,7 +36,9 @@ if [ -z "${ROS_DOMAIN_ID:-}" ]; then
 fi
 case ":${PATH}:" in
     *":${_magcal_repo}/.venv/bin:"*) ;;
-    *) if [ -d "${_magcal_repo}/.venv/bin" ]; then export PATH="${_magcal_repo}/.venv/bin:${PATH}"; fi ;;
+    *) if [ -d "${_magcal_repo}/.venv/bin" ]; then
+           export PATH="${_magcal_repo}/.venv/bin:${PATH}"
+       fi ;;
 esac
 unset _magcal_env_src _magcal_repo
 

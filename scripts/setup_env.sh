@@ -5,18 +5,28 @@
 #
 #   scripts/setup_env.sh         # what `make setup` runs; safe to run again
 #
-# Environment: PYTHON (default python3.11), VENV (default .venv in the repository).
+# Environment: PYTHON (a Python 3.11 interpreter; default: the first of python3.11, python3,
+# python on PATH that is 3.11), VENV (default .venv in the repository).
 set -euo pipefail
 
 repo="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd -P)"
 cd "${repo}"
-PYTHON="${PYTHON:-python3.11}"
 VENV="${VENV:-${repo}/.venv}"
 STAMP="${VENV}/.magcal_setup_stamp"
 EXECUTABLES=(magcal fluxgate_driver fluxgate_sim calibration_node corrector_node)
 
-if ! command -v "${PYTHON}" >/dev/null 2>&1; then
-    echo "setup: ${PYTHON} not found; install Python 3.11 or set PYTHON=/path/to/python3.11" >&2
+is_py311() {
+    command -v "$1" >/dev/null 2>&1 \
+        && "$1" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))' 2>/dev/null
+}
+if [ -z "${PYTHON:-}" ]; then
+    for candidate in python3.11 python3 python; do
+        if is_py311 "${candidate}"; then PYTHON="${candidate}"; break; fi
+    done
+fi
+if [ -z "${PYTHON:-}" ] || ! is_py311 "${PYTHON}"; then
+    echo "setup: no Python 3.11 found (the ROS 2 Jazzy wheels need 3.11); install it or set" \
+         "PYTHON=/path/to/python3.11" >&2
     exit 1
 fi
 
