@@ -22,6 +22,18 @@ MAX_CORRELATION = 0.995
 MAX_CONDITION = 1e6
 
 
+def _sphere_centre(m):
+    """Centre (3,) nT of the least-squares sphere |m - o|^2 = r^2, or None if ill-determined."""
+    design = np.column_stack([2.0 * m, np.ones(len(m))])
+    scale = np.linalg.norm(design, axis=0)
+    scale[scale == 0] = 1.0
+    sv = np.linalg.svd(design / scale, compute_uv=False)
+    if sv[-1] < 1e-6 * sv[0]:
+        return None
+    sol, *_ = np.linalg.lstsq(design / scale, np.sum(m ** 2, axis=1), rcond=None)
+    return sol[:3] / scale[:3]
+
+
 def coverage_report(raw):
     """Coverage of each sensor's raw field directions.
 
@@ -71,6 +83,15 @@ def coverage_report(raw):
         else:
             status = 'good'
             msg = None
+        if status == 'partial':
+            # a hard-iron offset comparable with the field squeezes the *raw* directions into
+            # a cone although the attitudes cover the sphere: judge the directions about the
+            # centre of the best-fit sphere when that centre is well determined
+            centre = _sphere_centre(m)
+            if centre is not None:
+                cov_c = direction_coverage(m - centre)
+                if cov_c.eigenvalues[0] >= PARTIAL_EIG:
+                    cov, ev, status, msg = cov_c, cov_c.eigenvalues, 'good', None
         out['sensors'][j] = dict(eigenvalues=ev.tolist(), normal=cov.normal.tolist(),
                                  cone_half_angle_deg=cov.cone_half_angle_deg, status=status)
         if msg:
