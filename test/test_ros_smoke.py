@@ -7,6 +7,7 @@ bound nothing but 127.0.0.1.
 """
 
 import os
+import pathlib
 import signal
 import subprocess
 import sys
@@ -67,9 +68,11 @@ print('publisher stopped', flush=True)
 
 
 def test_rclpy_and_messages_come_from_the_environment():
-    assert rclpy.ok is not None
-    msg = MagneticField()
-    assert len(msg.magnetic_field_covariance) == 9
+    # rclpy and the messages are the Jazzy wheels installed in this interpreter's environment
+    for module in (rclpy, sys.modules[MagneticField.__module__]):
+        assert pathlib.Path(module.__file__).resolve().is_relative_to(
+            pathlib.Path(sys.prefix).resolve()), module.__file__
+    assert len(MagneticField().magnetic_field_covariance) == 9
     assert os.environ['FASTRTPS_DEFAULT_PROFILES_FILE'] == \
         str(REPO_ROOT / 'config' / 'fastdds_loopback.xml')
     assert os.environ['FASTDDS_DEFAULT_PROFILES_FILE'] == \
