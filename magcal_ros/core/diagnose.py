@@ -149,7 +149,8 @@ def noise_floor_from_data(data, result=None):
 def compact_spec(model):
     """Model spec with paper 004's four effects shown as 'base' when all are present."""
     spec = list(model.spec())
-    if all(b in spec for b in fx.BASE):
+    need = [b for b in fx.BASE if b != 'misalignment' or model.n_sensors > 1]
+    if all(b in spec for b in need):
         spec = ['base'] + [t for t in spec if t not in fx.BASE]
     return spec
 
@@ -599,8 +600,8 @@ class Diagnosis:
         """Return :meth:`to_dict` as a JSON string (non-finite numbers as null)."""
         return json.dumps(_jsonable(self.to_dict()), **kwargs)
 
-    def summary(self):
-        """Human-readable report."""
+    def summary(self, max_candidates=12):
+        """Human-readable report (the best ``max_candidates`` candidates)."""
         fl = self.noise_floor
         lines = [f'diagnosis of model {",".join(self.model)} ({self.n_params} parameters) on '
                  f'{self.n_samples} epochs of {self.n_sensors} sensor(s)',
@@ -623,7 +624,7 @@ class Diagnosis:
                          f'dBIC < {MIN_DELTA_BIC:g}, held-out RMS falls):')
             lines.append(f'  {"effect":34s} {"k":>2s} {"dBIC":>10s} {"log10 p":>8s} '
                          f'{"scalar RMS":>15s} {"vector RMS":>15s} {"held-out RMS":>15s}')
-            for c in self.candidates:
+            for c in self.candidates[:max_candidates]:
                 vec = ('' if c.vector_rms_before_nt is None else
                        f'{c.vector_rms_before_nt:6.2f}>{c.vector_rms_after_nt:6.2f}')
                 cv = ('' if c.cv_rms_before_nt is None else
@@ -632,6 +633,9 @@ class Diagnosis:
                              f'{c.delta_bic:10.1f} {c.log10_p_value:8.1f} '
                              f'{c.rms_before_nt:6.2f}>{c.rms_after_nt:6.2f}   '
                              f'{vec:>15s} {cv:>15s}')
+            if len(self.candidates) > max_candidates:
+                lines.append(f'  ... {len(self.candidates) - max_candidates} more with less '
+                             'evidence (all in the JSON output)')
         for tok, why in self.not_testable:
             lines.append(f'  not testable: {tok}: {why}')
         if self.verdict_token:
@@ -812,7 +816,8 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
             c['cv'] = cross_validate(data, c['model'], c['p'], f, sigma, folds, inits)
             if c['cv']['rms_nt'] < cv0['rms_nt']:
                 break       # the best candidate that passes every test: the verdict
-        _progress(progress, 'cross-validate', len(to_cv) + 1, len(to_cv) + 1, '')
+        done = 1 + sum('cv' in c for c in to_cv)
+        _progress(progress, 'cross-validate', done, done, '')
     seconds['cross_validate'] = time.perf_counter() - t0
 
     # -- candidates, best first
@@ -966,7 +971,7 @@ def _step(result, data, f, added, diagnosis, folds):
 
 
 def ladder(data, start_model='base', steps=None, auto=True, field_nt=None, *,
-           max_steps=6, folds=DEFAULT_FOLDS, progress=None, **diag_kwargs):
+           max_steps=6, folds=DEFAULT_FOLDS, progress=None, diagnosis=None, **diag_kwargs):
     """Error ladder: diagnose, add the verdict, refit, repeat until nothing is missing.
 
     Parameters
@@ -984,6 +989,9 @@ def ladder(data, start_model='base', steps=None, auto=True, field_nt=None, *,
         Reference magnitude, nT.
     folds : int
         Contiguous time blocks of the cross-validation.
+    diagnosis : Diagnosis, optional
+        An existing diagnosis of ``start_model`` (a FitResult) on ``data``, reused for the
+        first step.
 
     Returns
     -------
@@ -1001,8 +1009,11 @@ def ladder(data, start_model='base', steps=None, auto=True, field_nt=None, *,
     while True:
         diag = None
         if auto and not todo:
-            diag = diagnose(data, field_nt=f, base=result, folds=folds, progress=progress,
-                            **diag_kwargs)
+            if diagnosis is not None and diagnosis.result is result:
+                diag = diagnosis
+            else:
+                diag = diagnose(data, field_nt=f, base=result, folds=folds, progress=progress,
+                                **diag_kwargs)
             floor = diag.noise_floor
         rungs.append(_step(result, data, f, added, diag, folds))
         if floor is None:

@@ -1,0 +1,445 @@
+"""Diagnosis report: PNG figures and one self-contained HTML page (PNGs embedded as base64).
+
+The figures answer "where does the model fail?":
+
+- measured vs modelled field magnitude over time, and the residual over time;
+- the residual against every driving signal the data carry (each sensor's temperature,
+  each auxiliary channel, the field rate |dB/dt|): a missing effect shows as a trend;
+- the scalar residual as a map over field direction (azimuth/elevation in the sensor
+  frame): nonlinearity or a missing linear term shows as a pattern on the sphere;
+- gradient tensor components before and after correction (four-sensor cross);
+- the candidate ranking (delta BIC) and the error ladder (held-out RMS per step).
+
+Matplotlib is used through its object API with the Agg canvas (no pyplot, no global
+backend change, no display needed).  The noise floor is drawn on every residual plot.
+"""
+import base64
+import html
+import io
+import os
+from pathlib import Path
+
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+import numpy as np
+
+from magcal_ros.core.diagnose import compact_spec, noise_floor_from_data
+from magcal_ros.core.tensor import cross_positions, tensor_cross, tensor_noise_floor
+
+#: at most this many points per scatter plot (evenly thinned)
+MAX_POINTS = 6000
+COMPONENT_COLOURS = ('tab:red', 'tab:green', 'tab:blue')
+DPI = 100
+
+
+def _figure(width, height):
+    fig = Figure(figsize=(width, height), dpi=DPI, layout='constrained')
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _png(fig):
+    buf = io.BytesIO()
+    fig.savefig(buf, format='png', dpi=DPI)
+    return buf.getvalue()
+
+
+def _thin(n):
+    step = max(1, int(np.ceil(n / MAX_POINTS)))
+    return np.arange(0, n, step)
+
+
+def _binned(x, y, bins=20):
+    """Centres and means of y in equal-count bins of x (NaN-free)."""
+    ok = np.isfinite(x) & np.isfinite(y)
+    x, y = x[ok], y[ok]
+    if len(x) < 2 * bins:
+        return np.array([]), np.array([])
+    order = np.argsort(x)
+    parts = np.array_split(order, bins)
+    return (np.array([x[p].mean() for p in parts]), np.array([y[p].mean() for p in parts]))
+
+
+def _sensor_axes(fig, n):
+    cols = min(n, 4)
+    rows = int(np.ceil(n / cols))
+    return [fig.add_subplot(rows, cols, j + 1) for j in range(n)]
+
+
+def _floor_lines(ax, level, label='noise floor'):
+    ax.axhline(level, color='k', ls='--', lw=1.0, label=label)
+    ax.axhline(-level, color='k', ls='--', lw=1.0)
+
+
+# -- figures --------------------------------------------------------------------------------
+
+def plot_magnitude(data, result):
+    """Measured |raw| and modelled |forward(B)| per sensor over time (nT)."""
+    s = data.n_sensors
+    fig = _figure(4.0 * min(s, 4), 3.2 * int(np.ceil(s / 4)))
+    idx = _thin(data.n_samples)
+    t = data.t[idx] - data.t[0]
+    for j, ax in enumerate(_sensor_axes(fig, s), start=1):
+        meas = np.linalg.norm(data.raw[j - 1, idx], axis=1)
+        model = np.linalg.norm(data.raw[j - 1, idx] - result.residual_nt[j - 1, idx], axis=1)
+        ax.plot(t, meas, '.', ms=1.5, color='0.6', label='measured |raw|')
+        ax.plot(t, model, '-', lw=0.8, color='tab:blue', label='model |A B + o + ...|')
+        ax.plot(t, result.field_magnitude_nt[idx], '-', lw=1.0, color='k',
+                label='reference |B|')
+        ax.set_title(f'sensor {j}: field magnitude')
+        ax.set_xlabel('time since start (s)')
+        ax.set_ylabel('|B| (nT)')
+    fig.axes[0].legend(fontsize=7, loc='best')
+    fig.suptitle('Measured vs modelled magnitude (the residual is the small difference: '
+                 'see the next figure)', fontsize=10)
+    return fig
+
+
+def plot_residual_time(data, result, floor):
+    """Scalar and vector residual per sensor over time, with the noise floor (nT)."""
+    s = data.n_sensors
+    fig = _figure(12, 2.2 * s + 0.6)
+    idx = _thin(data.n_samples)
+    t = data.t[idx] - data.t[0]
+    axes = np.atleast_1d(fig.subplots(s, 1, sharex=True))
+    for j in range(1, s + 1):
+        ax = axes[j - 1]
+        ax.plot(t, result.scalar_residual_nt[j - 1, idx], '.', ms=1.5, color='0.3',
+                label='scalar |corrected| - |B|')
+        if j > 1:
+            for c in range(3):
+                ax.plot(t, result.vector_residual_nt[j - 1, idx, c], '-', lw=0.6,
+                        color=COMPONENT_COLOURS[c], alpha=0.7,
+                        label=f'vector {"xyz"[c]}: sensor {j} - sensor 1')
+        _floor_lines(ax, floor.per_sensor_nt[j - 1])
+        ax.set_ylabel(f'sensor {j}\nresidual (nT)')
+        if j == s:
+            ax.set_xlabel('time since start (s)')
+        ax.legend(fontsize=7, loc='upper left', bbox_to_anchor=(1.01, 1.0))
+    fig.suptitle(f'Residual over time (model {",".join(compact_spec(result.model))})',
+                 fontsize=11)
+    return fig
+
+
+def _driver_panels(data, result, floor, drivers, title, xlabel):
+    """One panel per (driver, sensor): scalar residual scatter + binned raw residual."""
+    s = data.n_sensors
+    fig = _figure(4.0 * s, 3.0 * len(drivers) + 0.5)
+    idx = _thin(data.n_samples)
+    for r, (name, values) in enumerate(drivers):
+        for j in range(1, s + 1):
+            x = values(j)
+            ax = fig.add_subplot(len(drivers), s, r * s + j)
+            if x is None or not np.isfinite(x).any():
+                ax.text(0.5, 0.5, 'no data', ha='center', va='center', transform=ax.transAxes)
+                ax.set_axis_off()
+                continue
+            ax.plot(x[idx], result.scalar_residual_nt[j - 1, idx], '.', ms=1.5, color='0.6',
+                    label='scalar residual')
+            for c in range(3):
+                bx, by = _binned(x, result.residual_nt[j - 1, :, c])
+                ax.plot(bx, by, '-o', ms=2.5, lw=1.2, color=COMPONENT_COLOURS[c],
+                        label=f'raw residual {"xyz"[c]} (bin mean)')
+            _floor_lines(ax, floor.per_sensor_nt[j - 1])
+            ax.set_title(f'sensor {j} vs {name}', fontsize=9)
+            ax.set_xlabel(xlabel(name))
+            ax.set_ylabel('residual (nT)')
+    fig.axes[0].legend(fontsize=6, loc='best', framealpha=0.6)
+    fig.suptitle(title, fontsize=11)
+    return fig
+
+
+def plot_residual_vs_temperature(data, result, floor):
+    """Residual of each sensor against its own temperature, or None without temperatures."""
+    if data.temp is None or not np.isfinite(data.temp).any():
+        return None
+    return _driver_panels(
+        data, result, floor, [('temperature', lambda j: data.temp[j - 1])],
+        'Residual vs sensor temperature (a trend = a temperature coefficient)',
+        lambda n: 'sensor temperature (degC)')
+
+
+def plot_residual_vs_aux(data, result, floor):
+    """Residual of each sensor against each auxiliary channel, or None without any."""
+    if not data.aux:
+        return None
+    drivers = [(k, (lambda j, k=k: data.aux[k])) for k in sorted(data.aux)]
+    return _driver_panels(
+        data, result, floor, drivers,
+        'Residual vs auxiliary channels (a trend = a coupling of that channel)',
+        lambda n: f'{n} (channel unit)')
+
+
+def plot_residual_vs_rate(data, result, floor):
+    """Residual magnitude against |dB/dt| of each sensor, or None without a time axis."""
+    s = data.n_sensors
+    rates = [data.context(j).raw_rate for j in range(1, s + 1)]
+    if rates[0] is None:
+        return None
+    fig = _figure(4.0 * min(s, 4), 3.2 * int(np.ceil(s / 4)) + 0.4)
+    idx = _thin(data.n_samples)
+    for j, ax in enumerate(_sensor_axes(fig, s), start=1):
+        x = np.linalg.norm(rates[j - 1], axis=1)
+        ax.plot(x[idx], np.abs(result.scalar_residual_nt[j - 1, idx]), '.', ms=1.5,
+                color='0.6', label='|scalar residual|')
+        bx, by = _binned(x, np.abs(result.scalar_residual_nt[j - 1]))
+        ax.plot(bx, by, '-o', ms=2.5, color='0.2', label='|scalar| bin mean')
+        if j > 1:
+            v = np.linalg.norm(result.vector_residual_nt[j - 1], axis=1)
+            ax.plot(x[idx], v[idx], '.', ms=1.5, color='tab:orange', alpha=0.5,
+                    label='|vector residual| vs sensor 1')
+            bx, by = _binned(x, v)
+            ax.plot(bx, by, '-o', ms=2.5, color='tab:red', label='|vector| bin mean')
+            ax.axhline(np.sqrt(3) * floor.vector_floor_nt(j), color='tab:red', ls=':', lw=1,
+                       label='|vector| noise floor (RMS)')
+        ax.axhline(floor.per_sensor_nt[j - 1], color='k', ls='--', lw=1, label='noise floor')
+        ax.set_title(f'sensor {j}', fontsize=9)
+        ax.set_xlabel('|d raw / dt| (nT/s)')
+        ax.set_ylabel('residual magnitude (nT)')
+    fig.axes[-1].legend(fontsize=6, loc='upper left')
+    fig.suptitle('Residual vs field rate (a rising |vector| = lag / eddy currents / '
+                 'sampling skew)', fontsize=11)
+    return fig
+
+
+def plot_direction_map(data, result, floor):
+    """Scalar residual over field direction in the sensor frame (azimuth, elevation)."""
+    s = data.n_sensors
+    fig = _figure(4.4 * min(s, 4), 3.4 * int(np.ceil(s / 4)) + 0.4)
+    idx = _thin(data.n_samples)
+    for j, ax in enumerate(_sensor_axes(fig, s), start=1):
+        b = result.corrected_nt[j - 1, idx]       # raw directions are skewed by the offset
+        az = np.degrees(np.arctan2(b[:, 1], b[:, 0]))
+        el = np.degrees(np.arcsin(np.clip(b[:, 2] / np.linalg.norm(b, axis=1), -1, 1)))
+        r = result.scalar_residual_nt[j - 1, idx]
+        lim = max(3.0 * floor.per_sensor_nt[j - 1], float(np.percentile(np.abs(r), 98)))
+        sc = ax.scatter(az, el, c=r, s=4, cmap='coolwarm', vmin=-lim, vmax=lim)
+        cb = fig.colorbar(sc, ax=ax, fraction=0.046, pad=0.03)
+        cb.set_label('scalar residual (nT)')
+        ax.set_xlim(-180, 180)
+        ax.set_ylim(-90, 90)
+        ax.set_xlabel('azimuth of corrected field (deg)')
+        ax.set_ylabel('elevation (deg)')
+        ax.set_title(f'sensor {j} (floor {floor.per_sensor_nt[j - 1]:.1f} nT)', fontsize=9)
+    fig.suptitle('Residual over field direction (corrected field, array frame = sensor frame '
+                 'up to the small misalignment); a pattern = missing linear/nonlinear term',
+                 fontsize=11)
+    return fig
+
+
+def plot_tensor(data, result, baseline_m=0.5):
+    """Gradient tensor components (paper 004 eq. 1) before/after correction, nT/m."""
+    if data.n_sensors != 4:
+        return None
+    before = tensor_cross(data.raw, baseline_m)
+    after = tensor_cross(result.corrected_nt, baseline_m)
+    floor = tensor_noise_floor(result.sigma_nt, cross_positions(baseline_m))
+    idx = _thin(data.n_samples)
+    t = data.t[idx] - data.t[0]
+    fig = _figure(12, 6.5)
+    comps = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
+    axes = fig.subplots(2, 1, sharex=True)
+    for k, (g, label) in enumerate(((before, 'before (raw readings)'),
+                                    (after, 'after correction'))):
+        ax = axes[k]
+        for n, (a, b) in enumerate(comps):
+            ax.plot(t, g[idx, a, b], '-', lw=0.7, color=f'C{n}', label=f'G{"xyz"[a]}{"xyz"[b]}')
+        if k == 1:
+            lev = float(np.max(floor))
+            ax.axhline(lev, color='k', ls='--', lw=1, label='noise floor (largest component)')
+            ax.axhline(-lev, color='k', ls='--', lw=1)
+        rms = np.sqrt(np.mean((g - g.mean(axis=0)) ** 2, axis=0))
+        ax.set_title(f'gradient tensor {label}: RMS up to {rms.max():.1f} nT/m', fontsize=10)
+        ax.set_ylabel('tensor component (nT/m)')
+        ax.legend(fontsize=7, loc='upper left', bbox_to_anchor=(1.01, 1.0))
+    fig.axes[-1].set_xlabel('time since start (s)')
+    fig.suptitle(f'Gradient tensor of the cross (baseline {baseline_m} m), uniform field: '
+                 'ideally zero', fontsize=11)
+    return fig
+
+
+def plot_candidates(diagnosis, top=15):
+    """Delta BIC of the best candidates (horizontal bars), significant ones highlighted."""
+    cands = list(diagnosis.candidates[:top])
+    if not cands:
+        return None
+    fig = _figure(10, 0.35 * len(cands) + 1.5)
+    ax = fig.add_subplot(1, 1, 1)
+    y = np.arange(len(cands))[::-1]
+    ev = np.array([max(-c.delta_bic, 0.1) for c in cands])
+    colours = ['tab:green' if c.significant else ('tab:orange' if c.delta_bic < 0 else '0.7')
+               for c in cands]
+    ax.barh(y, ev, color=colours)
+    ax.set_xscale('log')
+    ax.set_yticks(y)
+    ax.set_yticklabels([c.token for c in cands], fontsize=8)
+    ax.set_ylabel('candidate effect (model token)')
+    for yi, c, e in zip(y, cands, ev):
+        ax.text(e, yi, f'  scalar {c.rms_before_nt:.1f} -> {c.rms_after_nt:.1f} nT',
+                va='center', fontsize=7)
+    ax.axvline(10, color='k', ls='--', lw=1, label='-dBIC = 10 (strong evidence)')
+    ax.set_xlabel('evidence: -delta BIC (log scale; green = significant, orange = dBIC < 0, '
+                  'grey = against)')
+    ax.set_title(f'Candidate effects, best first (verdict: '
+                 f'{diagnosis.verdict_token or "none"})', fontsize=11)
+    ax.legend(fontsize=8, loc='lower right')
+    return fig
+
+
+def plot_ladder(ladder):
+    """Waterfall of the held-out RMS per step of the error ladder, with the noise floor."""
+    steps = ladder.steps
+    fig = _figure(max(6.0, 1.6 * len(steps) + 2), 4.2)
+    ax = fig.add_subplot(1, 1, 1)
+    cv = np.array([st.cv_rms_nt if st.cv_rms_nt is not None else st.residual_rms_nt
+                   for st in steps])
+    x = np.arange(len(steps))
+    prev = np.concatenate([[cv[0]], cv[:-1]])
+    bottoms = np.minimum(prev, cv)
+    heights = np.abs(prev - cv)
+    ax.bar(x[:1], cv[:1], color='tab:gray', width=0.6, label='start')
+    if len(steps) > 1:
+        ax.bar(x[1:], heights[1:], bottom=bottoms[1:], width=0.6,
+               color=['tab:green' if c < p else 'tab:red' for c, p in zip(cv[1:], prev[1:])],
+               label='change from adding the effect')
+    ax.plot(x, cv, 'ko-', ms=4, lw=1, label='held-out RMS')
+    ax.plot(x, [st.residual_rms_nt for st in steps], 'bx', label='in-sample RMS')
+    fl = ladder.noise_floor.value_nt
+    ax.axhline(fl, color='k', ls='--', lw=1, label=f'noise floor {fl:.2f} nT')
+    for xi, v in zip(x, cv):
+        ax.text(xi + 0.08, v, f'{v:.2f} nT', ha='left', va='bottom', fontsize=8)
+    ax.set_xticks(x)
+    ax.set_xticklabels(['start:\n' + ','.join(steps[0].model)]
+                       + [f'+ {st.added}' for st in steps[1:]], fontsize=8)
+    ax.set_xlabel('model (effect added at each step)')
+    ax.set_ylabel('combined residual RMS (nT)')
+    ax.set_ylim(0, 1.15 * max(cv.max(), fl))
+    ax.set_title('Error ladder: held-out residual as effects are added', fontsize=11)
+    ax.legend(fontsize=8, loc='upper right')
+    return fig
+
+
+# -- the page -------------------------------------------------------------------------------
+
+def _table(rows, header):
+    head = ''.join(f'<th>{html.escape(h)}</th>' for h in header)
+    body = ''.join('<tr>' + ''.join(f'<td>{html.escape(str(c))}</td>' for c in r) + '</tr>'
+                   for r in rows)
+    return f'<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>'
+
+
+def _fmt(x, spec='.2f'):
+    return '' if x is None else format(x, spec)
+
+
+def candidate_rows(diagnosis):
+    """Rows of the candidate table (strings)."""
+    rows = []
+    for c in diagnosis.candidates:
+        rows.append([c.token, c.n_params, f'{c.delta_bic:.1f}', f'{c.log10_p_value:.1f}',
+                     f'{c.rms_before_nt:.2f} -> {c.rms_after_nt:.2f}',
+                     '' if c.vector_rms_before_nt is None else
+                     f'{c.vector_rms_before_nt:.2f} -> {c.vector_rms_after_nt:.2f}',
+                     '' if c.cv_rms_before_nt is None else
+                     f'{c.cv_rms_before_nt:.2f} -> {c.cv_rms_after_nt:.2f}',
+                     'yes' if c.significant else '', c.method])
+    return rows
+
+
+CANDIDATE_HEADER = ['effect', 'k', 'delta BIC', 'log10 p', 'scalar RMS (nT)',
+                    'vector RMS (nT)', 'held-out RMS (nT)', 'significant', 'evidence']
+
+_CSS = """body{font-family:sans-serif;max-width:1300px;margin:1em auto;color:#222}
+table{border-collapse:collapse;font-size:13px;margin:0.5em 0}
+td,th{border:1px solid #bbb;padding:2px 6px;text-align:right}
+th{background:#eee} td:first-child{text-align:left}
+pre{background:#f6f6f6;padding:0.6em;font-size:12px;overflow-x:auto}
+img{max-width:100%;border:1px solid #ddd;margin:0.3em 0}
+.verdict{font-size:1.2em;padding:0.4em;background:#eef6ee;border-left:4px solid #3a3}"""
+
+
+def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseline_m=0.5,
+                 title='magcal diagnosis report'):
+    """Write the figures (PNG) and ``index.html`` (self-contained) into ``out_dir``.
+
+    Parameters
+    ----------
+    out_dir : str or os.PathLike
+        Directory (created if missing).
+    data : Dataset
+    result : FitResult, optional
+        The fit whose residuals are shown (default: the diagnosis' or the ladder's last).
+    diagnosis : Diagnosis, optional
+    ladder : Ladder, optional
+    baseline_m : float
+        Cross baseline for the tensor figure, m.
+
+    Returns
+    -------
+    pathlib.Path
+        Path of ``index.html``.
+    """
+    out = Path(os.fspath(out_dir))
+    out.mkdir(parents=True, exist_ok=True)
+    if result is None:
+        if diagnosis is not None:
+            result = diagnosis.result
+        elif ladder is not None:
+            result = ladder.steps[0].result
+        else:
+            raise ValueError('write_report needs a fit result, a diagnosis or a ladder')
+    floor = diagnosis.noise_floor if diagnosis is not None else noise_floor_from_data(
+        data, result)
+    figs = [
+        ('magnitude', 'Measured vs modelled magnitude', plot_magnitude(data, result)),
+        ('residual_time', 'Residual over time', plot_residual_time(data, result, floor)),
+        ('residual_temperature', 'Residual vs temperature',
+         plot_residual_vs_temperature(data, result, floor)),
+        ('residual_aux', 'Residual vs auxiliary channels',
+         plot_residual_vs_aux(data, result, floor)),
+        ('residual_rate', 'Residual vs field rate', plot_residual_vs_rate(data, result, floor)),
+        ('residual_direction', 'Residual over field direction',
+         plot_direction_map(data, result, floor)),
+        ('tensor', 'Gradient tensor before/after', plot_tensor(data, result, baseline_m)),
+        ('candidates', 'Candidate effects', None if diagnosis is None
+         else plot_candidates(diagnosis)),
+        ('ladder', 'Error ladder', None if ladder is None else plot_ladder(ladder)),
+    ]
+    parts = [f'<!DOCTYPE html><html><head><meta charset="utf-8"><title>{html.escape(title)}'
+             f'</title><style>{_CSS}</style></head><body><h1>{html.escape(title)}</h1>',
+             f'<p>data: {html.escape(str(data.meta.get("source", "in memory")))}, '
+             f'{data.n_samples} epochs, {data.n_sensors} sensor(s); model '
+             f'<b>{html.escape(",".join(compact_spec(result.model)))}</b>; noise floor from '
+             f'the data: {floor.value_nt:.2f} nT '
+             f'({"; ".join(f"s{j + 1}: " + html.escape(m) for j, m in enumerate(floor.method))}'
+             f').</p>']
+    if data.meta.get('synthetic_time'):
+        parts.append(f'<p>The data have no time column: the time axis is synthetic, at an '
+                     f'assumed {data.meta.get("assumed_rate_hz")} Hz.</p>')
+    if diagnosis is not None:
+        v = diagnosis.verdict_token
+        parts.append(f'<p class="verdict">verdict: <b>{html.escape(v or "none")}</b> — '
+                     f'{html.escape(diagnosis.verdict_reason)}</p>')
+        parts.append('<h2>Candidate effects</h2>'
+                     + _table(candidate_rows(diagnosis), CANDIDATE_HEADER))
+        if diagnosis.not_testable:
+            parts.append('<p>not testable:</p><ul>' + ''.join(
+                f'<li>{html.escape(t)}: {html.escape(r)}</li>'
+                for t, r in diagnosis.not_testable) + '</ul>')
+        parts.append('<h2>Summary</h2><pre>' + html.escape(diagnosis.summary()) + '</pre>')
+    if ladder is not None:
+        parts.append('<h2>Error ladder</h2><pre>' + html.escape(ladder.table()) + '</pre>')
+    parts.append('<h2>Fit</h2><pre>' + html.escape(result.summary()) + '</pre>')
+    written = []
+    for name, heading, fig in figs:
+        if fig is None:
+            continue
+        png = _png(fig)
+        (out / f'{name}.png').write_bytes(png)
+        written.append(name)
+        parts.append(f'<h2>{html.escape(heading)}</h2><img alt="{name}" '
+                     f'src="data:image/png;base64,{base64.b64encode(png).decode("ascii")}">')
+    parts.append('</body></html>')
+    index = out / 'index.html'
+    index.write_text('\n'.join(parts), encoding='utf-8')
+    return index

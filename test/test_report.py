@@ -1,0 +1,121 @@
+"""Diagnosis report (magcal_ros.report): figures, labels, floor lines, self-contained HTML."""
+import base64
+import io
+import re
+
+from matplotlib.image import imread
+import numpy as np
+import pytest
+
+from magcal_ros import report
+from magcal_ros.core.diagnose import diagnose, ladder
+from magcal_ros.core.model import fit
+from magcal_ros.core.simulate import simulate
+
+F = 50000.0
+PNG_MAGIC = b'\x89PNG\r\n\x1a\n'
+
+
+@pytest.fixture(scope='module')
+def case():
+    # a hidden motor-current coupling on sensor 3 (4 x the 3 nT floor), 2000 samples at 10 Hz
+    data, _ = simulate(n_samples=2000, rate_hz=10.0, trajectory='smooth', seed=12,
+                       truth={'aux:aux_motor_current@3': [12.0, -6.0, 8.0]})
+    lad = ladder(data, 'base', field_nt=F)
+    return data, lad
+
+
+def _labelled(fig, units=True):
+    """Every axes with data has a title or suptitle and x/y labels (units in brackets)."""
+    for ax in fig.axes:
+        if not ax.axison or ax.get_label() == '<colorbar>':
+            continue
+        # stacked panels sharing the time axis label it once, at the bottom
+        xlabel = ax.get_xlabel() or next((o.get_xlabel() for o in
+                                          ax.get_shared_x_axes().get_siblings(ax)
+                                          if o.get_xlabel()), '')
+        assert xlabel and ax.get_ylabel(), ax.get_title()
+        if units:
+            assert re.search(r'\(.+\)', xlabel) and re.search(r'\(.+\)', ax.get_ylabel())
+    assert fig.get_suptitle() or all(ax.get_title() for ax in fig.axes if ax.axison)
+
+
+def _has_floor_line(fig):
+    return any('noise floor' in (ln.get_label() or '') for ax in fig.axes
+               for ln in ax.get_lines())
+
+
+def test_figures_labelled_with_floor(case):
+    data, lad = case
+    res = lad.steps[0].result
+    floor = lad.steps[0].diagnosis.noise_floor
+    for fn in (report.plot_residual_time, report.plot_residual_vs_temperature,
+               report.plot_residual_vs_aux, report.plot_residual_vs_rate):
+        fig = fn(data, res, floor)
+        _labelled(fig)
+        assert _has_floor_line(fig), fn.__name__
+    for fig in (report.plot_magnitude(data, res), report.plot_direction_map(data, res, floor),
+                report.plot_tensor(data, res)):
+        _labelled(fig)
+    # bar charts: one axis is categorical (effect names, ladder steps)
+    _labelled(report.plot_ladder(lad), units=False)
+    _labelled(report.plot_candidates(lad.steps[0].diagnosis), units=False)
+    assert _has_floor_line(report.plot_ladder(lad))
+    # one panel per (aux channel, sensor)
+    assert len([a for a in report.plot_residual_vs_aux(data, res, floor).axes
+                if a.axison]) == 3 * 4
+
+
+def test_figures_absent_without_their_data(case):
+    data, lad = case
+    one = data.subset(np.arange(data.n_samples))
+    one.raw = one.raw[:1]
+    one.temp = None
+    one.aux = {}
+    res = fit(one, 'base', field_nt=F)
+    floor = lad.noise_floor
+    assert report.plot_residual_vs_temperature(one, res, floor) is None
+    assert report.plot_residual_vs_aux(one, res, floor) is None
+    assert report.plot_tensor(one, res) is None
+    assert report.plot_magnitude(one, res) is not None
+
+
+def test_write_report_self_contained(case, tmp_path):
+    data, lad = case
+    index = report.write_report(tmp_path / 'rep', data, diagnosis=lad.steps[0].diagnosis,
+                                ladder=lad)
+    text = index.read_text()
+    names = ('magnitude', 'residual_time', 'residual_temperature', 'residual_aux',
+             'residual_rate', 'residual_direction', 'tensor', 'candidates', 'ladder')
+    imgs = re.findall(r'<img alt="(\w+)" src="data:image/png;base64,([A-Za-z0-9+/=]+)"', text)
+    assert [n for n, _ in imgs] == list(names)
+    for name, b64 in imgs:
+        png = base64.b64decode(b64)
+        assert png.startswith(PNG_MAGIC)
+        assert png == (tmp_path / 'rep' / f'{name}.png').read_bytes()
+        h, w = imread(io.BytesIO(png)).shape[:2]
+        assert h > 200 and w > 400
+    # nothing fetched from elsewhere
+    assert not re.search(r'(src|href)="(?!data:)', text)
+    assert 'verdict: <b>aux:aux_motor_current@3</b>' in text
+    assert 'Error ladder' in text and '+ aux:aux_motor_current@3' not in text  # table text
+    assert 'aux:aux_motor_current@3' in lad.table()
+
+
+def test_write_report_needs_a_result(tmp_path, case):
+    data, _ = case
+    with pytest.raises(ValueError, match='needs a fit result'):
+        report.write_report(tmp_path, data)
+
+
+def test_report_from_result_only(tmp_path):
+    data, _ = simulate(n_samples=600, rate_hz=5.0, trajectory='smooth', seed=2, n_sensors=1,
+                       aux=False)
+    res = fit(data, 'base', field_nt=F)
+    index = report.write_report(tmp_path, data, result=res)
+    assert (tmp_path / 'residual_time.png').exists()
+    assert not (tmp_path / 'candidates.png').exists()
+    assert not (tmp_path / 'tensor.png').exists() and not (tmp_path / 'residual_aux.png').exists()
+    assert 'class="verdict"' not in index.read_text()
+    d = diagnose(data, base=res, field_nt=F, folds=0)
+    assert report.candidate_rows(d)[0][0] == d.candidates[0].token
