@@ -1,0 +1,178 @@
+"""`magcal diagnose` and `magcal report` (DESIGN.md contract 2), registered by magcal_ros.cli.
+
+- ``magcal diagnose DATA --model MODEL [--json] [--report DIR] [--ladder]``: noise floor,
+  residuals, every missing effect ranked by evidence, verdict; ``--ladder`` keeps adding the
+  verdict until nothing is missing.
+- ``magcal report DATA --model MODEL --out DIR``: the same plus the error ladder, as PNG
+  figures and one self-contained ``index.html``.
+
+DATA is a wide CSV, a rosbag2 directory, or (with ``--unit``) a single-magnetometer CSV of
+another tool (``mx,my,mz`` or ``x,y,z`` columns, optional ``ax,ay,az``).  The reference
+magnitude comes from ``ref_total``, ``--field-nt NT|auto`` or ``--igrf``.  Progress goes to
+stderr (a bar per stage when stderr is a terminal, one line per stage otherwise; never on
+stdout, so ``--json`` output stays one JSON object).  Exit status 0 on success, 2 on bad
+input, 1 on other failures (handled by :func:`magcal_ros.cli.main`).
+"""
+import sys
+import time
+
+from magcal_ros.core.effects import load_plugin
+
+EXIT_OK = 0
+
+
+class Progress:
+    """Progress of the diagnosis on a stream (stderr): a bar on a terminal, lines otherwise."""
+
+    def __init__(self, stream=None, enabled=True, width=30):
+        self.stream = stream or sys.stderr
+        self.enabled = enabled
+        self.tty = bool(getattr(self.stream, 'isatty', lambda: False)())
+        self.width = width
+        self.stage = None
+        self.t0 = time.perf_counter()
+
+    def __call__(self, stage, i, n, label=''):
+        """Report that ``i`` of ``n`` steps of ``stage`` are done (``label``: current item)."""
+        if not self.enabled:
+            return
+        if self.tty:
+            done = int(self.width * i / max(n, 1))
+            bar = '#' * done + '.' * (self.width - done)
+            end = '\n' if i >= n else ''
+            self.stream.write(f'\r{stage:15s} [{bar}] {i}/{n} {label[:40]:40s}{end}')
+            self.stream.flush()
+        elif i >= n or stage != self.stage:
+            if i >= n:
+                self.stream.write(f'{stage}: {n} done ({time.perf_counter() - self.t0:.1f} s)\n')
+            elif stage in ('fit',):
+                self.stream.write(f'fit: {label}\n')
+            self.stream.flush()
+        self.stage = stage
+
+
+def _plugins(args):
+    for ref in args.plugin or []:
+        load_plugin(ref)
+
+
+def _load(args, cli):
+    """Dataset from DATA (wide CSV, rosbag2 directory, or single-sensor CSV with --unit)."""
+    if args.unit:
+        from magcal_ros.io.single_csv import read_single_sensor_csv
+        return read_single_sensor_csv(args.data, unit=args.unit, rate_hz=args.rate_hz)
+    return cli.load_data(args.data)
+
+
+def _common(p, cli):
+    p.add_argument('data', help='wide CSV file, rosbag2 directory, or single-sensor CSV '
+                                '(with --unit)')
+    p.add_argument('--model', default='base',
+                   help="effects of the model to diagnose, e.g. 'base,temperature@2' "
+                        '(default base)')
+    cli.add_field_args(p)
+    p.add_argument('--plugin', action='append', metavar='MODULE[:CLASS]',
+                   help='import a module defining effects (repeatable); they become '
+                        'candidates and can be used in --model')
+    p.add_argument('--folds', type=int, default=3,
+                   help='contiguous time blocks of the cross-validation (default 3)')
+    p.add_argument('--alpha', type=float, default=0.01,
+                   help='family-wise significance level (Bonferroni; default 0.01)')
+    p.add_argument('--robust', action='store_true',
+                   help='robust loss for the base fit (spikes/outliers)')
+    p.add_argument('--flag-degenerate', action='store_true',
+                   help='diagnose degenerate data anyway and flag it instead of refusing')
+    p.add_argument('--baseline-m', type=float, default=0.5, help='cross baseline, m')
+    p.add_argument('--unit', choices=['nT', 'uT', 'mG', 'gauss', 'G', 'T'],
+                   help='DATA is a single-magnetometer CSV (mx,my,mz or x,y,z columns) in '
+                        'this unit')
+    p.add_argument('--rate-hz', type=float, default=100.0,
+                   help='assumed sample rate of a single-sensor CSV without a time column')
+    p.add_argument('-q', '--quiet', action='store_true', help='no progress on stderr')
+
+
+def _validate(args, cli):
+    if args.folds != 0 and args.folds < 2:
+        raise cli.BadInput(f'--folds must be 0 (no cross-validation) or >= 2, got {args.folds}')
+    if not 0 < args.alpha < 1:
+        raise cli.BadInput(f'--alpha must be between 0 and 1, got {args.alpha}')
+
+
+def _run(args, cli, with_ladder):
+    from magcal_ros.core.diagnose import diagnose, ladder
+    from magcal_ros.core.model import fit, Model
+    _validate(args, cli)
+    _plugins(args)
+    data = _load(args, cli)
+    try:
+        model = Model.from_spec(args.model, data.n_sensors)
+    except ValueError as exc:
+        raise cli.BadInput(f'--model {args.model!r}: {exc}') from exc
+    field_nt, fref = cli.resolve_field(args, data)
+    prog = Progress(enabled=not args.quiet)
+    prog('fit', 0, 1, ','.join(model.spec()))
+    base = fit(data, model, field_nt=field_nt, robust=args.robust,
+               on_degenerate='flag' if args.flag_degenerate else 'raise')
+    prog('fit', 1, 1)
+    diag = diagnose(data, field_nt=field_nt, base=base, folds=args.folds, alpha=args.alpha,
+                    progress=prog)
+    lad = None
+    if with_ladder:
+        lad = ladder(data, base, field_nt=field_nt, folds=args.folds, progress=prog,
+                     diagnosis=diag, alpha=args.alpha)
+    return data, diag, lad, fref
+
+
+def cmd_diagnose(args, cli):
+    """`magcal diagnose`: print the diagnosis (text or one JSON object)."""
+    data, diag, lad, fref = _run(args, cli, args.ladder)
+    index = None
+    if args.report:
+        from magcal_ros.report import write_report
+        index = write_report(args.report, data, diagnosis=diag, ladder=lad,
+                             baseline_m=args.baseline_m)
+    if args.json:
+        doc = diag.to_dict()
+        doc['field_reference'] = fref
+        doc['report'] = None if index is None else str(index)
+        if lad is not None:
+            doc['ladder'] = lad.to_dict()
+        cli.print_json(doc)
+    else:
+        print(diag.summary())
+        if lad is not None:
+            print('\nerror ladder (held-out RMS on contiguous time blocks):')
+            print(lad.table())
+        if index is not None:
+            print(f'report written to {index}')
+    return EXIT_OK
+
+
+def cmd_report(args, cli):
+    """`magcal report`: diagnosis + error ladder as PNGs and a self-contained HTML page."""
+    data, diag, lad, _ = _run(args, cli, not args.no_ladder)
+    from magcal_ros.report import write_report
+    index = write_report(args.out, data, diagnosis=diag, ladder=lad,
+                         baseline_m=args.baseline_m)
+    print(index)
+    if not args.quiet:
+        print(f'verdict: {diag.verdict_token or "none"} ({diag.verdict_reason})',
+              file=sys.stderr)
+    return EXIT_OK
+
+
+def register(sub, cli):
+    """Add the ``diagnose`` and ``report`` sub-commands to the ``magcal`` parser."""
+    d = sub.add_parser('diagnose', help='find which physical effect the model is missing')
+    _common(d, cli)
+    d.add_argument('--json', action='store_true', help='print one JSON object on stdout')
+    d.add_argument('--report', metavar='DIR', help='also write the HTML/PNG report to DIR')
+    d.add_argument('--ladder', action='store_true',
+                   help='keep adding the verdict and refitting until nothing is missing')
+    d.set_defaults(func=lambda a: cmd_diagnose(a, cli))
+
+    r = sub.add_parser('report', help='write an HTML page with the diagnosis plots')
+    _common(r, cli)
+    r.add_argument('--out', required=True, metavar='DIR', help='output directory')
+    r.add_argument('--no-ladder', action='store_true', help='skip the error ladder')
+    r.set_defaults(func=lambda a: cmd_report(a, cli))

@@ -1,0 +1,113 @@
+"""Single-magnetometer CSV logs in other tools' layouts -> one-sensor :class:`Dataset` in nT.
+
+Many public magnetometer logs (IMU calibration tools, phone loggers) are a CSV with one
+row per sample and columns such as ``mx,my,mz`` in gauss or microtesla, often with an
+accelerometer ``ax,ay,az`` and no time column.  :func:`read_single_sensor_csv` reads such a
+file, converts the field to nT, and, when there is no time column, makes a *synthetic*
+time axis at an assumed rate (``meta['synthetic_time']`` says so): the noise floor and
+every fit that does not involve time are unaffected by that choice; time-dependent
+effects (drift, field rate) are then in units of the assumed sample period.
+
+The accelerometer (if any) is kept in ``meta['accel']`` (N, 3) in its own unit, not as an
+auxiliary channel: gravity is a function of attitude, not a disturbance source, and is
+used to check a calibration (the angle between field and gravity is constant in a
+uniform field), see ``test/test_real_data.py``.
+"""
+import os
+
+import numpy as np
+
+from magcal_ros.core.dataset import Dataset
+from magcal_ros.units import t_to_nt
+
+#: nanotesla per unit
+UNITS_NT = {'nT': 1.0, 'uT': 1e3, 'mG': 100.0, 'gauss': 1e5, 'G': 1e5, 'T': None}
+
+_FIELD_NAMES = (('mx', 'my', 'mz'), ('mag_x', 'mag_y', 'mag_z'), ('magx', 'magy', 'magz'),
+                ('x', 'y', 'z'), ('bx', 'by', 'bz'))
+_ACC_NAMES = (('ax', 'ay', 'az'), ('acc_x', 'acc_y', 'acc_z'), ('accx', 'accy', 'accz'))
+_TIME_NAMES = ('t', 'time', 'timestamp', 'time_s')
+
+
+def to_nt(values, unit):
+    """Convert a field from ``unit`` (nT, uT, mG, gauss/G, T) to nT."""
+    if unit not in UNITS_NT:
+        raise ValueError(f'unknown field unit {unit!r}; use one of {", ".join(UNITS_NT)}')
+    if unit == 'T':
+        return t_to_nt(values)
+    return np.asarray(values, float) * UNITS_NT[unit]
+
+
+def _find(header, options, what):
+    low = [h.strip().lower() for h in header]
+    for names in options:
+        if all(n in low for n in names):
+            return [low.index(n) for n in names]
+    return None
+
+
+def read_single_sensor_csv(path, unit='gauss', rate_hz=100.0, field_columns=None,
+                           accel_columns=None):
+    """Read a one-magnetometer CSV (header row, comma separated) into a Dataset in nT.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    unit : str
+        Unit of the field columns: 'nT', 'uT', 'mG', 'gauss' (or 'G'), 'T'.
+    rate_hz : float
+        Assumed sample rate for the synthetic time axis when the file has no time column
+        (t, time, timestamp, time_s in s).
+    field_columns, accel_columns : sequence of 3 str, optional
+        Column names; default: the first of mx/my/mz, mag_x/..., magx/..., x/y/z, bx/by/bz
+        (and ax/ay/az, acc_x/..., accx/... for the accelerometer).
+
+    Returns
+    -------
+    Dataset
+        ``raw`` (1, N, 3) nT; ``t`` (N,) s; ``meta``: source, unit, synthetic_time,
+        accel (N, 3) or None.
+    """
+    path = os.fspath(path)
+    try:
+        with open(path, encoding='utf-8') as fh:
+            header = fh.readline().strip().split(',')
+    except OSError as exc:
+        raise ValueError(f'cannot read {path}: {exc.strerror}') from exc
+    if field_columns:
+        low = [h.strip().lower() for h in header]
+        missing = [c for c in field_columns if c.lower() not in low]
+        if missing:
+            raise ValueError(f'{path}: no column(s) {missing}; header: {header}')
+        fcols = [low.index(c.lower()) for c in field_columns]
+    else:
+        fcols = _find(header, _FIELD_NAMES, 'field')
+        if fcols is None:
+            raise ValueError(f'{path}: cannot find the magnetometer columns (mx,my,mz or '
+                             f'x,y,z ...) in the header {header}; name them with '
+                             'field_columns=')
+    acols = (_find(header, (tuple(c.lower() for c in accel_columns),), 'accel')
+             if accel_columns else _find(header, _ACC_NAMES, 'accel'))
+    try:
+        arr = np.loadtxt(path, delimiter=',', skiprows=1, ndmin=2, comments='#')
+    except ValueError as exc:
+        raise ValueError(f'{path}: not a numeric CSV after the header ({exc})') from exc
+    if arr.shape[0] < 3:
+        raise ValueError(f'{path}: only {arr.shape[0]} data rows')
+    raw = to_nt(arr[:, fcols], unit)
+    low = [h.strip().lower() for h in header]
+    tcol = next((low.index(n) for n in _TIME_NAMES if n in low), None)
+    if tcol is not None:
+        t = arr[:, tcol].astype(float)
+        synthetic = False
+    else:
+        if not rate_hz or rate_hz <= 0:
+            raise ValueError('the file has no time column: give a positive rate_hz')
+        t = np.arange(arr.shape[0]) / float(rate_hz)
+        synthetic = True
+    if not np.all(np.isfinite(raw)):
+        raise ValueError(f'{path}: non-finite magnetometer values')
+    return Dataset(t=t, raw=raw[None], meta={
+        'source': path, 'unit': unit, 'synthetic_time': synthetic,
+        'assumed_rate_hz': float(rate_hz) if synthetic else None,
+        'accel': None if acols is None else arr[:, acols]})

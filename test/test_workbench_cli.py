@@ -1,0 +1,139 @@
+"""`magcal diagnose` and `magcal report` (DESIGN.md contract 2), run as a user would."""
+import json
+import os
+import pathlib
+import subprocess
+import sys
+
+import pytest
+
+from magcal_ros.cli import main
+from magcal_ros.core.simulate import simulate
+from magcal_ros.io.bag import write_bag
+from magcal_ros.io.csvio import write_csv
+
+REPO = pathlib.Path(__file__).resolve().parents[1]
+#: hidden offset temperature coefficient of sensor 2, nT/degC: scalar RMS ~4 x the 3 nT floor
+TEMP2 = 'temperature@2=3,-2,1.5,0,0,0'
+
+
+def run_cli(*args, env=None):
+    """Run the real command in a subprocess; returns (rc, stdout, stderr)."""
+    p = subprocess.run([sys.executable, '-m', 'magcal_ros.cli', *map(str, args)],
+                       capture_output=True, text=True, timeout=300,
+                       env={**os.environ, **(env or {})})
+    return p.returncode, p.stdout, p.stderr
+
+
+@pytest.fixture(scope='module')
+def temp_csv(tmp_path_factory):
+    path = tmp_path_factory.mktemp('wb') / 'temp2.csv'
+    rc, _, err = run_cli('simulate', '--out', path, '--n', 3000, '--rate', 10, '--seed', 9,
+                         '--truth', TEMP2)
+    assert rc == 0, err
+    return path
+
+
+def test_diagnose_json_and_report(temp_csv, tmp_path):
+    rep = tmp_path / 'rep'
+    rc, out, err = run_cli('diagnose', temp_csv, '--model', 'base', '--field-nt', 50000,
+                           '--json', '--report', rep)
+    assert rc == 0, err
+    doc = json.loads(out)                       # exactly one JSON object on stdout
+    for key in ('model', 'noise_floor_nt', 'scalar_rms_nt', 'vector_rms_nt', 'candidates',
+                'verdict'):
+        assert key in doc
+    assert doc['verdict']['effect'] == 'temperature' and doc['verdict']['sensor'] == 2
+    assert doc['candidates'][0]['effect'] == 'temperature'
+    assert doc['field_reference'] == {'kind': 'constant', 'magnitude_nt': 50000.0}
+    assert doc['report'] == str(rep / 'index.html') and (rep / 'index.html').exists()
+    assert (rep / 'candidates.png').exists()
+    # progress went to stderr, one line per stage (not a terminal)
+    assert 'screen: ' in err and 'cross-validate: ' in err
+
+
+def test_diagnose_ladder_text(temp_csv, capsys):
+    assert main(['diagnose', str(temp_csv), '--field-nt', '50000', '--ladder', '-q']) == 0
+    out, err = capsys.readouterr()
+    assert 'verdict: add temperature@2' in out
+    assert 'verdict: none (the residual is at the noise floor' in out or 'error ladder' in out
+    lines = out.split('error ladder')[1].splitlines()
+    assert any(line.strip().startswith('1  temperature@2') for line in lines)
+    assert err == ''
+
+
+def test_report_from_rosbag(tmp_path, capsys):
+    data, _ = simulate(n_samples=1500, rate_hz=5.0, trajectory='smooth', seed=3,
+                       truth={'aux:aux_motor_current@4': [12.0, -6.0, 8.0]})
+    bag = write_bag(tmp_path / 'bag', data)
+    out_dir = tmp_path / 'report'
+    assert main(['report', str(bag), '--model', 'base', '--field-nt', '50000',
+                 '--out', str(out_dir), '-q']) == 0
+    out, _ = capsys.readouterr()
+    assert out.strip() == str(out_dir / 'index.html')
+    html = (out_dir / 'index.html').read_text()
+    assert 'verdict: <b>aux:aux_motor_current@4</b>' in html
+    assert (out_dir / 'ladder.png').exists()
+
+
+@pytest.mark.parametrize('args, msg', [
+    (['diagnose', 'no_such.csv', '--field-nt', '50000'], 'no such file'),
+    (['diagnose', '{csv}', '--model', 'base,warp_drive'], "unknown effect 'warp_drive'"),
+    (['diagnose', '{csv}', '--field-nt', '50000', '--folds', '1'], '--folds must be'),
+    (['diagnose', '{csv}'], 'no reference field'),
+    (['report', '{csv}', '--field-nt', '-3', '--out', '{tmp}'], '--field-nt must be positive'),
+])
+def test_bad_input_exit_2(temp_csv, tmp_path, capsys, args, msg):
+    args = [a.format(csv=temp_csv, tmp=tmp_path) for a in args]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err.startswith('magcal: error:') and msg in err and err.count('\n') == 1
+
+
+def test_plugin_from_cli(tmp_path):
+    env = {'PYTHONPATH': os.pathsep.join([str(REPO / 'examples'),
+                                          os.environ.get('PYTHONPATH', '')])}
+    csv = tmp_path / 'wheel.csv'
+    rc, _, err = run_cli('simulate', '--out', csv, '--n', 3000, '--rate', 10, '--seed', 6,
+                         '--plugin', 'my_effect', '--truth', 'wheel@3=12,-8,6,4,10,-6', env=env)
+    assert rc == 0, err
+    rc, out, err = run_cli('diagnose', csv, '--field-nt', 50000, '--plugin', 'my_effect',
+                           '--json', env=env)
+    assert rc == 0, err
+    doc = json.loads(out)
+    assert doc['verdict']['token'] == 'wheel@3'
+    before = doc['scalar_rms_nt']['3']
+    rc, out, err = run_cli('fit', csv, '--model', 'base,wheel@3', '--field-nt', 50000,
+                           '--plugin', 'my_effect:WheelInterference', '--json', env=env)
+    assert rc == 0, err
+    after = json.loads(out)['scalar_rms_nt']['3']
+    # the error falls from ~3 x to the 3 nT floor (10 % criterion of the diagnosis)
+    assert before > 2.5 * 3.0 and after < 1.1 * 3.0
+
+
+def test_single_sensor_csv_option(tmp_path, capsys):
+    csv = tmp_path / 'imu.csv'
+    data, _ = simulate(n_samples=1500, rate_hz=10.0, trajectory='smooth', seed=4,
+                       n_sensors=1, aux=False)
+    rows = ['mx,my,mz'] + [','.join(f'{v / 1e5:.8f}' for v in r) for r in data.raw[0]]
+    csv.write_text('\n'.join(rows) + '\n')
+    assert main(['diagnose', str(csv), '--unit', 'gauss', '--rate-hz', '10',
+                 '--field-nt', 'auto', '--json', '-q']) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc['verdict']['effect'] == 'none'
+    assert doc['model'] == ['base']
+    # without --unit the wide-CSV reader refuses the unknown columns
+    assert main(['diagnose', str(csv), '--field-nt', 'auto']) == 2
+    assert "unknown column 'mx'" in capsys.readouterr().err
+
+
+def test_wide_csv_round_trip_diagnoses(tmp_path, capsys):
+    data, _ = simulate(n_samples=1500, rate_hz=5.0, trajectory='smooth', seed=5,
+                       diurnal_swing_nt=30.0)
+    path = tmp_path / 'ref.csv'
+    write_csv(path, data)
+    # the ref_total column is the reference: no --field-nt needed
+    assert main(['diagnose', str(path), '--json', '-q', '--folds', '0']) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc['field_reference']['kind'] == 'ref_total'
+    assert doc['cv_rms_nt'] is None
