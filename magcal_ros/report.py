@@ -18,6 +18,7 @@ import html
 import io
 import os
 from pathlib import Path
+import textwrap
 
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
@@ -33,9 +34,15 @@ DPI = 100
 
 
 def _figure(width, height):
-    fig = Figure(figsize=(width, height), dpi=DPI, layout='constrained')
+    fig = Figure(figsize=(max(width, 7.0), height), dpi=DPI, layout='constrained')
     FigureCanvasAgg(fig)
     return fig
+
+
+def _suptitle(fig, text, fontsize=11):
+    """Figure title wrapped to the figure width."""
+    chars = int(fig.get_figwidth() * 110 / fontsize)
+    fig.suptitle(textwrap.fill(text, chars), fontsize=fontsize)
 
 
 def _png(fig):
@@ -90,8 +97,8 @@ def plot_magnitude(data, result):
         ax.set_xlabel('time since start (s)')
         ax.set_ylabel('|B| (nT)')
     fig.axes[0].legend(fontsize=7, loc='best')
-    fig.suptitle('Measured vs modelled magnitude (the residual is the small difference: '
-                 'see the next figure)', fontsize=10)
+    _suptitle(fig, 'Measured vs modelled magnitude (the residual is the small difference: '
+              'see the next figure)', fontsize=10)
     return fig
 
 
@@ -116,8 +123,8 @@ def plot_residual_time(data, result, floor):
         if j == s:
             ax.set_xlabel('time since start (s)')
         ax.legend(fontsize=7, loc='upper left', bbox_to_anchor=(1.01, 1.0))
-    fig.suptitle(f'Residual over time (model {",".join(compact_spec(result.model))})',
-                 fontsize=11)
+    _suptitle(fig, f'Residual over time (model {",".join(compact_spec(result.model))})',
+              fontsize=11)
     return fig
 
 
@@ -145,7 +152,7 @@ def _driver_panels(data, result, floor, drivers, title, xlabel):
             ax.set_xlabel(xlabel(name))
             ax.set_ylabel('residual (nT)')
     fig.axes[0].legend(fontsize=6, loc='best', framealpha=0.6)
-    fig.suptitle(title, fontsize=11)
+    _suptitle(fig, title, fontsize=11)
     return fig
 
 
@@ -197,8 +204,8 @@ def plot_residual_vs_rate(data, result, floor):
         ax.set_xlabel('|d raw / dt| (nT/s)')
         ax.set_ylabel('residual magnitude (nT)')
     fig.axes[-1].legend(fontsize=6, loc='upper left')
-    fig.suptitle('Residual vs field rate (a rising |vector| = lag / eddy currents / '
-                 'sampling skew)', fontsize=11)
+    _suptitle(fig, 'Residual vs field rate (a rising |vector| = lag / eddy currents / '
+              'sampling skew)', fontsize=11)
     return fig
 
 
@@ -221,9 +228,9 @@ def plot_direction_map(data, result, floor):
         ax.set_xlabel('azimuth of corrected field (deg)')
         ax.set_ylabel('elevation (deg)')
         ax.set_title(f'sensor {j} (floor {floor.per_sensor_nt[j - 1]:.1f} nT)', fontsize=9)
-    fig.suptitle('Residual over field direction (corrected field, array frame = sensor frame '
-                 'up to the small misalignment); a pattern = missing linear/nonlinear term',
-                 fontsize=11)
+    _suptitle(fig, 'Residual over field direction (corrected field, array frame = sensor frame '
+              'up to the small misalignment); a pattern = missing linear/nonlinear term',
+              fontsize=11)
     return fig
 
 
@@ -253,8 +260,8 @@ def plot_tensor(data, result, baseline_m=0.5):
         ax.set_ylabel('tensor component (nT/m)')
         ax.legend(fontsize=7, loc='upper left', bbox_to_anchor=(1.01, 1.0))
     fig.axes[-1].set_xlabel('time since start (s)')
-    fig.suptitle(f'Gradient tensor of the cross (baseline {baseline_m} m), uniform field: '
-                 'ideally zero', fontsize=11)
+    _suptitle(fig, f'Gradient tensor of the cross (baseline {baseline_m} m), uniform field: '
+              'ideally zero', fontsize=11)
     return fig
 
 
