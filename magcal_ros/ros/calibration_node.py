@@ -4,7 +4,8 @@ Topics (relative to the node namespace, default ``/magcal``; DESIGN.md contract 
 
 - subscribes ``sensor{j}/raw`` (sensor_msgs/MagneticField, T), ``sensor{j}/temperature``
   (sensor_msgs/Temperature, degC) and one std_msgs/Float64 topic per name in ``aux_topics``
-  (recorded as column ``aux_<name>``), all with ``qos_profile_sensor_data``;
+  (recorded as column ``aux_<name>``), all best effort like ``qos_profile_sensor_data``
+  (with a deeper queue, :data:`SENSOR_QOS`);
 - publishes ``calibration/status`` (std_msgs/String, JSON, every ``status_period_s``):
   sets collected, attitude coverage per sensor, what is still missing;
 - publishes ``calibration/result`` (std_msgs/String holding the calibration YAML of
@@ -20,10 +21,13 @@ one JSON object):
 - ``calibration/diagnose``: rank the candidate effects missing from ``model``
   (:func:`magcal_ros.core.diagnose.diagnose`) and write the HTML report to ``report_dir``.
 
-The solve runs in a service callback of a reentrant group on a MultiThreadedExecutor, so
-the sensor callbacks (their own mutually exclusive group) keep collecting meanwhile; a
-non-blocking lock turns a second calibrate/diagnose/start during a solve into a clean
-refusal instead of a queued call.
+The solve must not block the sensor callbacks. It runs in a worker thread; the service
+callbacks are coroutines (in a reentrant callback group) that await it, so the executor
+keeps taking sensor samples meanwhile, and a non-blocking lock turns a second
+calibrate/diagnose/start during a solve into a clean refusal instead of a queued call. The
+node spins on a SingleThreadedExecutor: rclpy's MultiThreadedExecutor was measured here to
+receive only about half of the 4 x 100 Hz samples (4 threads) or to run callbacks of one
+subscription out of order (2 threads), which breaks the matching of sample sets by stamp.
 """
 import json
 import os
@@ -38,14 +42,15 @@ from magcal_ros.io.calfile import (CalibrationFileError, dump_calibration, load_
 from magcal_ros.pipeline import calibrate as run_calibration, cross_geometry
 from magcal_ros.ros import params as prm
 from magcal_ros.ros.conversions import msg_to_field_nt, stamp_to_seconds
-from magcal_ros.ros.sync import StampMatcher
+from magcal_ros.ros.sync import epoch_times, StampMatcher
 import numpy as np
 import rclpy
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, qos_profile_sensor_data, QoSProfile,
                        ReliabilityPolicy)
+from rclpy.task import Future
 from sensor_msgs.msg import MagneticField, Temperature
 from std_msgs.msg import Float64, String
 from std_srvs.srv import Trigger
@@ -54,6 +59,12 @@ from std_srvs.srv import Trigger
 RESULT_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
                         reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+#: sensor streams: the sensor-data profile of REP 2003 (best effort, volatile) with a queue
+#: deep enough for a quarter second of 100 Hz, so that a busy executor does not drop samples
+SENSOR_QOS = QoSProfile(depth=25, history=HistoryPolicy.KEEP_LAST,
+                        reliability=qos_profile_sensor_data.reliability,
+                        durability=qos_profile_sensor_data.durability)
 
 #: at most this many sets enter the coverage figures of the status message
 _STATUS_SUBSAMPLE = 2000
@@ -75,6 +86,7 @@ class SampleBuffer:
         self.n_sensors = n_sensors
         self.capacity = int(capacity)
         self.t = np.zeros(self.capacity)
+        self.epoch = np.zeros(self.capacity, np.int64)
         self.raw = np.zeros((n_sensors, self.capacity, 3))
         self.temp = np.full((n_sensors, self.capacity), np.nan)
         self.aux = {a: np.full(self.capacity, np.nan) for a in aux_names}
@@ -87,9 +99,10 @@ class SampleBuffer:
     def __len__(self):
         return min(self.count, self.capacity)
 
-    def append(self, t, raw, temp, aux):
-        """Add a set: t s, raw (S, 3) nT, temp (S,) degC (nan: none), aux {column: value}."""
+    def append(self, epoch, t, raw, temp, aux):
+        """Add a set: epoch number, stamp t s, raw (S, 3) nT, temp (S,) degC (nan: none), aux."""
         k = self.count % self.capacity
+        self.epoch[k] = epoch
         self.t[k] = t
         self.raw[:, k] = raw
         self.temp[:, k] = temp
@@ -120,7 +133,9 @@ class SampleBuffer:
                 # sample-and-hold before the first value arrived: use the first value
                 first = col[np.flatnonzero(np.isfinite(col))[0]]
                 aux[name] = np.where(np.isfinite(col), col, first)
-        return Dataset(t=self.t[idx].copy(), raw=self.raw[:, idx].copy(),
+        # sample instants from the epoch numbers and the (late, jittery) arrival stamps
+        t = epoch_times(self.epoch[idx], self.t[idx])
+        return Dataset(t=t, raw=self.raw[:, idx].copy(),
                        temp=temp.copy() if np.isfinite(temp).any() else None, aux=aux,
                        meta={'source': 'live (calibration_node)'})
 
@@ -162,24 +177,22 @@ class CalibrationNode(Node):
         self._matcher = StampMatcher(self._n, s.stamp_tolerance_s)
         self._temp = np.full(self._n, np.nan)
         self._aux = {}
+        self._received = np.zeros(self._n, int)     # raw samples since start
         self._state = 'idle'
         self._last_result = None                # summary dict of the last calibration
         self._t_started = None
 
-        sensor_group = MutuallyExclusiveCallbackGroup()
         service_group = ReentrantCallbackGroup()
         self._subs = []
         for j in range(1, self._n + 1):
             self._subs.append(self.create_subscription(
-                MagneticField, f'sensor{j}/raw', self._raw_cb(j - 1), qos_profile_sensor_data,
-                callback_group=sensor_group))
+                MagneticField, f'sensor{j}/raw', self._raw_cb(j - 1), SENSOR_QOS))
             self._subs.append(self.create_subscription(
                 Temperature, f'sensor{j}/temperature', self._temp_cb(j - 1),
-                qos_profile_sensor_data, callback_group=sensor_group))
+                SENSOR_QOS))
         for name in s.aux_topics:
             self._subs.append(self.create_subscription(
-                Float64, name, self._aux_cb('aux_' + name), qos_profile_sensor_data,
-                callback_group=sensor_group))
+                Float64, name, self._aux_cb('aux_' + name), SENSOR_QOS))
 
         self._status_pub = self.create_publisher(String, 'calibration/status', 10)
         self._result_pub = self.create_publisher(String, 'calibration/result', RESULT_QOS)
@@ -191,8 +204,10 @@ class CalibrationNode(Node):
             self.create_service(Trigger, 'calibration/diagnose', self._on_diagnose,
                                 callback_group=service_group),
         ]
-        self._status_timer = self.create_timer(s.status_period_s, self._publish_status,
-                                               callback_group=MutuallyExclusiveCallbackGroup())
+        self._status_timer = self.create_timer(s.status_period_s, self._publish_status)
+        # triggered by the worker thread when a solve ends, so the executor wakes up and
+        # resumes the awaiting service coroutine even when no sensor data flows
+        self._wake = self.create_guard_condition(lambda: None)
         self._publish_existing(s.calibration_file)
         self.get_logger().info(
             f'ready: {self._n} sensors, model {list(s.model)}, field {s.field_nt:.1f} nT, '
@@ -220,8 +235,9 @@ class CalibrationNode(Node):
             if not np.all(np.isfinite(b)):
                 return
             with self._lock:
-                for t_set, items in self._matcher.add(j, t, b):
-                    self._buffer.append(t_set, np.array(items), self._temp, self._aux)
+                self._received[j] += 1
+                for epoch, t_set, items in self._matcher.add(j, t, b):
+                    self._buffer.append(epoch, t_set, np.array(items), self._temp, self._aux)
         return cb
 
     def _temp_cb(self, j):
@@ -245,9 +261,14 @@ class CalibrationNode(Node):
             n_sets = len(self._buffer)
             raw = self._buffer.raw_view(_STATUS_SUBSAMPLE) if n_sets else None
             dropped = self._matcher.incomplete
+            out_of_order = self._matcher.out_of_order
+            realigned = self._matcher.realigned
+            received = self._received.tolist()
             state = self._state
         out = {'state': state, 'sets': n_sets, 'min_samples': s.min_samples,
                'max_samples': s.max_samples, 'incomplete_sets_dropped': dropped,
+               'out_of_order_dropped': out_of_order, 'stream_realignments': realigned,
+               'samples_received': {str(j + 1): r for j, r in enumerate(received)},
                'model': list(s.model), 'field_nt': s.field_nt}
         if self._t_started is not None and state in ('collecting', 'calibrating'):
             dt = time.monotonic() - self._t_started
@@ -291,6 +312,7 @@ class CalibrationNode(Node):
             with self._lock:
                 self._buffer.clear()
                 self._matcher.reset()
+                self._received[:] = 0
                 self._state = 'collecting'
                 self._t_started = time.monotonic()
             s = prm.calibration_settings(self)
@@ -307,15 +329,29 @@ class CalibrationNode(Node):
             data = self._buffer.dataset() if n_sets else None
             return n_sets, data
 
-    def _on_calibrate(self, request, response):
+    def _in_worker(self, fn, *args):
+        """Run ``fn(*args)`` in a worker thread; return an awaitable rclpy Future."""
+        future = Future()
+
+        def work():
+            try:
+                future.set_result(fn(*args))
+            except Exception as exc:        # noqa: B902 -- handed to the awaiting service
+                future.set_exception(exc)
+            finally:
+                self._wake.trigger()
+        threading.Thread(target=work, name='magcal-solve', daemon=True).start()
+        return future
+
+    async def _on_calibrate(self, request, response):
         if not self._busy.acquire(blocking=False):
             return _reply(response, False, 'a calibration is already running',
                           {'state': self._state})
-        prev_state = self._state
+        with self._lock:
+            prev_state = self._state
+            self._state = 'calibrating'
         try:
-            with self._lock:
-                self._state = 'calibrating'
-            ok, summary, payload = self._calibrate(prev_state)
+            ok, summary, payload = await self._in_worker(self._calibrate, prev_state)
             with self._lock:
                 self._state = 'done' if ok else prev_state
             return _reply(response, ok, summary, payload)
@@ -396,12 +432,13 @@ class CalibrationNode(Node):
         self.get_logger().info(lines[0])
         return True, '\n'.join(lines), payload
 
-    def _on_diagnose(self, request, response):
+    async def _on_diagnose(self, request, response):
         if not self._busy.acquire(blocking=False):
             return _reply(response, False, 'a calibration is already running',
                           {'state': self._state})
         try:
-            return self._diagnose(response)
+            ok, summary, payload = await self._in_worker(self._diagnose)
+            return _reply(response, ok, summary, payload)
         except Exception as exc:         # noqa: B902 -- a service must answer, never die
             self.get_logger().error(f'diagnosis failed: {exc!r}')
             return _reply(response, False, f'diagnosis failed: {exc}',
@@ -409,23 +446,23 @@ class CalibrationNode(Node):
         finally:
             self._busy.release()
 
-    def _diagnose(self, response):
+    def _diagnose(self):
+        """Rank the missing effects; returns (success, summary text, JSON payload)."""
         try:
             from magcal_ros.core.diagnose import diagnose
             from magcal_ros.report import write_report
         except ImportError as exc:
-            return _reply(response, False, f'diagnosis is not available: {exc}',
-                          {'error': str(exc)})
+            return False, f'diagnosis is not available: {exc}', {'error': str(exc)}
         s = prm.calibration_settings(self)
         n_sets, data = self._snapshot()
         if n_sets < s.min_samples:
             reason = f'only {n_sets} complete sample sets collected, need {s.min_samples}'
-            return _reply(response, False, f'not diagnosed: {reason}', {'reason': reason})
+            return False, f'not diagnosed: {reason}', {'reason': reason, 'sets': n_sets}
         model = Model.from_spec(list(s.model), self._n)
         try:
             diag = diagnose(data, model, field_nt=s.field_nt)
         except ValueError as exc:
-            return _reply(response, False, f'not diagnosed: {exc}', {'reason': str(exc)})
+            return False, f'not diagnosed: {exc}', {'reason': str(exc), 'sets': n_sets}
         ranking = diag.to_json()
         if isinstance(ranking, str):
             ranking = json.loads(ranking)
@@ -440,7 +477,7 @@ class CalibrationNode(Node):
         else:
             where = f' on sensor {verdict["sensor"]}' if verdict.get('sensor') else ''
             head = f'most likely missing effect: {effect}{where}'
-        return _reply(response, True, f'{head}; report in {ranking["report"]}', ranking)
+        return True, f'{head}; report in {ranking["report"]}', ranking
 
     # -- start-up --------------------------------------------------------------------------
 
@@ -463,15 +500,12 @@ def main(args=None):
     """Run calibration_node (``ros2 run magcal_ros calibration_node``)."""
     rclpy.init(args=args)
     node = None
-    executor = MultiThreadedExecutor(num_threads=4)
     try:
         node = CalibrationNode()
-        executor.add_node(node)
-        executor.spin()
+        rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
-        executor.shutdown()
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()

@@ -2,9 +2,10 @@
 
 Topics (relative to the node namespace, default ``/magcal``; DESIGN.md contract 3):
 
-- subscribes ``sensor{j}/raw`` (sensor_msgs/MagneticField, T) and ``sensor{j}/temperature``
-  (sensor_msgs/Temperature) with ``qos_profile_sensor_data``, one std_msgs/Float64 topic per
-  name in ``aux_topics`` (the signal of effect ``aux:aux_<name>``, latest value), and
+- subscribes ``sensor{j}/raw`` (sensor_msgs/MagneticField, T), ``sensor{j}/temperature``
+  (sensor_msgs/Temperature; only while the calibration has a temperature effect) and one
+  std_msgs/Float64 topic per name in ``aux_topics`` (the signal of effect
+  ``aux:aux_<name>``, latest value), all best effort (:data:`SENSOR_QOS`), and
   ``calibration/result`` (std_msgs/String YAML, reliable + transient local) for new
   calibrations without a restart;
 - publishes ``sensor{j}/corrected`` (sensor_msgs/MagneticField, T, in the array frame, same
@@ -18,6 +19,7 @@ Topics (relative to the node namespace, default ``/magcal``; DESIGN.md contract 
 Per message the work is a few 3x3 products: every matrix (A_j^-1, the covariance, the
 gradient operator) is computed once when a calibration is installed.
 """
+from collections import deque
 import os
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -25,7 +27,7 @@ from magcal_ros.core.effects import SensorContext
 from magcal_ros.core.tensor import tensor_operator
 from magcal_ros.io.calfile import CalibrationFileError, load_calibration, parse_calibration
 from magcal_ros.ros import params as prm
-from magcal_ros.ros.calibration_node import RESULT_QOS
+from magcal_ros.ros.calibration_node import RESULT_QOS, SENSOR_QOS
 from magcal_ros.ros.conversions import (field_nt_to_msg, msg_to_field_nt, stamp_to_seconds,
                                         tensor_to_msg)
 from magcal_ros.ros.sync import StampMatcher
@@ -33,7 +35,6 @@ import numpy as np
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import MagneticField, Temperature
 from std_msgs.msg import Float64, Float64MultiArray, String
 
@@ -41,6 +42,8 @@ from std_msgs.msg import Float64, Float64MultiArray, String
 _N_ITER = 4
 #: consecutive raw samples further apart than this give no field-rate estimate, s
 _MAX_RATE_GAP_S = 1.0
+#: arrivals per stream used to estimate its sample period (field-rate effect)
+_PERIOD_WINDOW = 200
 
 
 class MissingSignal(Exception):
@@ -172,6 +175,7 @@ class CorrectorNode(Node):
         self._temp = np.full(self._n, np.nan)
         self._aux = {}
         self._prev = [None] * self._n          # (t s, raw (3,) nT) of the previous sample
+        self._arrivals = [deque(maxlen=_PERIOD_WINDOW) for _ in range(self._n)]
         self._matcher = StampMatcher(self._n, s.stamp_tolerance_s)
         self._counts = np.zeros(self._n, int)
         self._n_gradient = 0
@@ -183,13 +187,11 @@ class CorrectorNode(Node):
         self._subs = []
         for j in range(1, self._n + 1):
             self._subs.append(self.create_subscription(
-                MagneticField, f'sensor{j}/raw', self._raw_cb(j - 1), qos_profile_sensor_data))
-            self._subs.append(self.create_subscription(
-                Temperature, f'sensor{j}/temperature', self._temp_cb(j - 1),
-                qos_profile_sensor_data))
+                MagneticField, f'sensor{j}/raw', self._raw_cb(j - 1), SENSOR_QOS))
+        self._temp_subs = []     # created while the calibration has a temperature effect
         for name in s.aux_topics:
             self._subs.append(self.create_subscription(
-                Float64, name, self._aux_cb('aux_' + name), qos_profile_sensor_data))
+                Float64, name, self._aux_cb('aux_' + name), SENSOR_QOS))
         self._subs.append(self.create_subscription(String, 'calibration/result',
                                                    self._result_cb, RESULT_QOS))
         self._load_file(s.calibration_file)
@@ -217,9 +219,22 @@ class CorrectorNode(Node):
         self._refused = None
         self._missing.clear()
         self._matcher.reset()
+        self._follow_temperature(any('temperature' in sc.needs for sc in live.sensors))
         self.get_logger().info(f'using the calibration from {source} ({live.describe()})')
         if live.no_gradient_reason:
             self.get_logger().warning(live.no_gradient_reason)
+
+    def _follow_temperature(self, needed):
+        """Subscribe sensor{j}/temperature only when a temperature effect needs it."""
+        if needed and not self._temp_subs:
+            self._temp_subs = [self.create_subscription(
+                Temperature, f'sensor{j}/temperature', self._temp_cb(j - 1), SENSOR_QOS)
+                for j in range(1, self._n + 1)]
+        elif not needed and self._temp_subs:
+            for sub in self._temp_subs:
+                self.destroy_subscription(sub)
+            self._temp_subs = []
+            self._temp[:] = np.nan
 
     def _refuse(self, source, exc):
         keep = (f'keeping the calibration from {self._source} ({self._live.describe()})'
@@ -269,9 +284,15 @@ class CorrectorNode(Node):
             live = self._live
             if live is None or not np.all(np.isfinite(raw)):
                 return
+            arrivals = self._arrivals[j]
+            arrivals.append(t)
             rate = None
-            if prev is not None and 0.0 < t - prev[0] <= _MAX_RATE_GAP_S:
-                rate = (raw - prev[1]) / (t - prev[0])      # nT/s, backward difference
+            if prev is not None and t - prev[0] <= _MAX_RATE_GAP_S and len(arrivals) > 10:
+                # consecutive samples of one stream are one period apart; their stamps are
+                # not (several samples read at once share one), so use the mean period
+                period = (arrivals[-1] - arrivals[0]) / (len(arrivals) - 1)
+                if period > 0:
+                    rate = (raw - prev[1]) / period       # nT/s, backward difference
             sc = live.sensors[j]
             try:
                 b = sc.correct(raw, t, self._temp[j], self._aux, rate)
@@ -284,7 +305,7 @@ class CorrectorNode(Node):
                 covariance_nt2=sc.cov_nt2))
             self._counts[j] += 1
             if self._publish_gradient and live.gradient_op is not None:
-                for _, fields in self._matcher.add(j, t, b):
+                for _, _, fields in self._matcher.add(j, t, b):
                     g = live.gradient_op @ np.concatenate(fields)      # (9,) nT/m
                     self._pub_grad.publish(tensor_to_msg(g.reshape(3, 3)))
                     self._n_gradient += 1

@@ -231,8 +231,9 @@ def calibration_specs(n_sensors=4):
                   '<calibration_file>.history/ (0: none); count', at_least(0)),
         ParamSpec('report_dir', DEFAULT_REPORT_DIR, 'directory of the HTML report written by '
                   'calibration/diagnose (~ expanded)', non_empty_path),
-        ParamSpec('stamp_tolerance_s', 0.005, 'largest spread of header stamps within one '
-                  'set of the S sensors (about half a sample period), s', positive('s')),
+        ParamSpec('stamp_tolerance_s', 0.005, 'largest header-stamp difference of two '
+                  "sensors' samples that may vote for the same epoch when the streams are "
+                  'aligned (about half a sample period), s', positive('s')),
         ParamSpec('aux_topics', (), 'auxiliary std_msgs/Float64 topics (relative names) '
                   'recorded as columns aux_<name>; unit of each channel its own; read-only',
                   topic_names, read_only=True, item_type=str),
@@ -281,8 +282,10 @@ def corrector_specs():
         ParamSpec('calibration_file', DEFAULT_CALIBRATION_FILE,
                   'calibration YAML loaded at start-up if present (~ expanded); updates '
                   'arrive on calibration/result', non_empty_path, read_only=True),
-        ParamSpec('stamp_tolerance_s', 0.005, 'largest spread of header stamps of the S '
-                  'corrected samples combined into one gradient tensor, s', positive('s')),
+        ParamSpec('stamp_tolerance_s', 0.005, 'largest header-stamp difference of two '
+                  "sensors' samples that may vote for the same epoch when the streams are "
+                  'aligned for the gradient tensor (about half a sample period), s',
+                  positive('s')),
         ParamSpec('aux_topics', (), 'auxiliary std_msgs/Float64 topics (relative names) '
                   'feeding the aux:aux_<name> effects of the calibration (latest value); '
                   'read-only', topic_names, read_only=True, item_type=str),
