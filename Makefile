@@ -30,7 +30,7 @@ $(STAMP): requirements.txt setup.py setup.cfg package.xml scripts/setup_env.sh
 	PYTHON='$(PYTHON)' VENV='$(CURDIR)/$(VENV)' scripts/setup_env.sh
 
 test: setup
-	$(ROS_ENV) $(VPY) -m pytest test -p no:cacheprovider -ra --timeout=$(TEST_TIMEOUT) $(PYTEST_ARGS)
+	$(ROS_ENV) $(VPY) -m pytest test -p no:cacheprovider -ra --durations=15 --timeout=$(TEST_TIMEOUT) $(PYTEST_ARGS)
 
 demo: setup
 	$(ROS_ENV) scripts/demo.sh
