@@ -189,9 +189,10 @@ def ros_env(domain_id=None):
     env['RMW_IMPLEMENTATION'] = 'rmw_fastrtps_cpp'
     env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'SYSTEM_DEFAULT'
     env.pop('ROS_STATIC_PEERS', None)
-    env['ROS_LOCALHOST_ONLY'] = '0'
+    env.pop('ROS_LOCALHOST_ONLY', None)
     if domain_id is None:
-        domain_id = 100 + (os.getpid() % 100)
+        # the per-run domain of scripts/ros_env.sh / test/conftest.py when set, else our own
+        domain_id = os.environ.get('ROS_DOMAIN_ID') or 102 + (os.getpid() % 100)
     env['ROS_DOMAIN_ID'] = str(domain_id)
     env['PYTHONPATH'] = REPO_DIR + os.pathsep + env.get('PYTHONPATH', '')
     env['PYTHONUNBUFFERED'] = '1'

@@ -122,7 +122,7 @@ def paper000(seeds, sigma, n_steps, n_hold, first_seed):
     rows = {'paper000': [], 'refined': [], 'refined_from_paper000': []}
     crb = []
     floor = []
-    t_m = {k: 0.0 for k in rows}
+    t_m = dict.fromkeys(rows, 0.0)
     for k in range(seeds):
         rng = np.random.default_rng(first_seed + k)
         d = sine.simulate_turntable(P000, F000, I000, n_steps, noise_sigma=sigma, rng=rng)
@@ -159,8 +159,9 @@ def paper000(seeds, sigma, n_steps, n_hold, first_seed):
 
 
 def _summ(rows, t_m, seeds, crb, floor, sigma):
+    crb = [c for c in crb if c]
     out = {'sigma_nt': sigma, 'floor_over_sigma': float(np.mean(floor) / sigma),
-           'crb_scale_ppm': float(np.sqrt(np.mean(np.square([c for c in crb if c])))),
+           'crb_scale_ppm': float(np.sqrt(np.mean(np.square(crb)))) if crb else None,
            'methods': {}}
     for meth, rs in rows.items():
         ok = [r for r in rs if 'error' not in r]

@@ -194,7 +194,8 @@ def main(argv=None):
                 r2['diagnose_error'] = r['error']
                 r = r2
             cases.append(r)
-            print(f'  N={n:>8} {model_key:7s} calibrate {r.get("calibrate_s", float("nan")):8.3f} s'
+            cal_s = r.get('calibrate_s', float('nan'))
+            print(f'  N={n:>8} {model_key:7s} calibrate {cal_s:8.3f} s'
                   f'  diagnose {r.get("diagnose_s", float("nan")):8.3f} s'
                   f'  {r.get("error", "")}{r.get("diagnose_error", "")}', flush=True)
 

@@ -1,0 +1,271 @@
+"""Live throughput and latency: corrector_node against a relay node, real processes, real DDS.
+
+For each node (``corrector``: ``python -m magcal_ros.ros.corrector_node`` with a
+calibration file made by the pipeline; ``relay``: bench/relay_node.py, which republishes
+every raw message unchanged and is the ceiling rclpy allows for that message pattern) and
+each rate (Hz per sensor, 4 sensors), three processes run on this machine:
+
+- the node under test;
+- a publisher (bench/live_load.py --role pub) of synthetic raw samples, one per sensor
+  every 1/rate s, sequence number in ``header.frame_id``, publish time in the stamp;
+- a receiver (--role sub) of ``sensor{j}/corrected`` that measures loss (sequence numbers),
+  output rate and latency (receive time - publish time, p50/p99).
+
+DDS stays on loopback (config/fastdds_loopback.xml, SHM + UDPv4 127.0.0.1 only, unicast
+discovery) in a private ROS_DOMAIN_ID.  Each run is bounded (warm-up + window + drain) and
+every process is stopped at the end.  The node's CPU use is read from /proc over the window.
+
+The sustainable rate of a node is the highest rate of ``--search-rates`` whose loss stays
+below ``--max-loss`` (default 0.1 %); the figure of merit is corrector / relay.
+
+    python bench/live.py                                  # 100, 500, 1000 Hz + search
+    python bench/live.py --rates 100 --duration 2 --no-search       # tiny
+"""
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import common  # noqa: E402
+
+PY = sys.executable
+LOAD = os.path.join(common.BENCH_DIR, 'live_load.py')
+RELAY = os.path.join(common.BENCH_DIR, 'relay_node.py')
+NS = '/bench'
+
+
+def make_calibration(path):
+    """Write a calibration (paper 004 errors, base model) for the corrector to load."""
+    from magcal_ros.core.simulate import simulate
+    from magcal_ros.io.calfile import save_calibration
+    from magcal_ros.pipeline import calibrate
+    data, _ = simulate(n_samples=500, trajectory='random', seed=3, aux=False)
+    run = calibrate(data, 'base', field_nt=50000.0)
+    save_calibration(path, run.doc, history=0)
+    return path
+
+
+def node_cmd(kind, calfile):
+    if kind == 'relay':
+        return [PY, RELAY, '--ros-args', '-r', f'__ns:={NS}']
+    if kind == 'relay_reliable':
+        return [PY, RELAY, '--ros-args', '-r', f'__ns:={NS}', '-p', 'reliable_depth:=100']
+    if kind == 'corrector':
+        return [PY, '-m', 'magcal_ros.ros.corrector_node', '--ros-args', '-r', f'__ns:={NS}',
+                '-p', f'calibration_file:={calfile}']
+    raise ValueError(kind)
+
+
+def _wait_ready(proc, timeout):
+    """Read lines until READY (True) or an error/timeout (False, text)."""
+    import selectors
+    sel = selectors.DefaultSelector()
+    sel.register(proc.stdout, selectors.EVENT_READ)
+    deadline = time.monotonic() + timeout
+    lines = []
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            break
+        if sel.select(timeout=0.2):
+            line = proc.stdout.readline()
+            if not line:
+                break
+            if line.strip() == 'READY':
+                return True, ''
+            lines.append(line)
+    return False, ''.join(lines)[-400:]
+
+
+def run_one(kind, rate, args, env, calfile, log_dir):
+    """One bounded run; returns a dict of figures."""
+    tag = f'{kind}_{rate:g}'
+    procs = []
+    logs = []
+    result = {'node': kind, 'rate_hz': rate, 'n_sensors': 4}
+    try:
+        nlog = open(os.path.join(log_dir, f'{tag}_node.log'), 'w')
+        logs.append(nlog)
+        node = subprocess.Popen(node_cmd(kind, calfile), env=env, stdout=nlog,
+                                stderr=subprocess.STDOUT)
+        procs.append(node)
+        common_args = ['--ns', NS, '--rate', str(rate), '--duration', str(args.duration),
+                       '--warmup', str(args.warmup), '--t0', 'stdin',
+                       '--match-timeout', str(args.match_timeout)]
+        if args.tick:
+            common_args += ['--tick', str(args.tick)]
+        sub = subprocess.Popen([PY, LOAD, '--role', 'sub'] + common_args, env=env,
+                               stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                               stderr=subprocess.DEVNULL, text=True)
+        procs.append(sub)
+        pub = subprocess.Popen([PY, LOAD, '--role', 'pub'] + common_args, env=env,
+                               stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                               stderr=subprocess.DEVNULL, text=True)
+        procs.append(pub)
+        for p, name in ((sub, 'receiver'), (pub, 'publisher')):
+            ok, text = _wait_ready(p, args.match_timeout + 5)
+            if not ok:
+                result['error'] = f'{name} not ready: {text.strip()[-200:]}'
+                return result
+        time.sleep(0.3)          # matched: the corrector has loaded its calibration by now
+        t0 = time.time() + 0.5
+        for p in (sub, pub):
+            p.stdin.write(f'{t0}\n')
+            p.stdin.flush()
+        t_meas0 = t0 + args.warmup
+        t_stop = t_meas0 + args.duration
+        time.sleep(max(0.0, t_meas0 - time.time()))
+        cpu0 = {n: common.cpu_seconds(p.pid) for n, p in
+                (('node', node), ('publisher', pub), ('receiver', sub))}
+        w0 = time.time()
+        time.sleep(max(0.0, t_stop - time.time()))
+        cpu1 = {n: common.cpu_seconds(p.pid) for n, p in
+                (('node', node), ('publisher', pub), ('receiver', sub))}
+        wall = time.time() - w0
+        result['cpu_percent'] = {n: 100.0 * (cpu1[n] - cpu0[n]) / wall for n in cpu0}
+        outs = {}
+        for p, name in ((pub, 'pub'), (sub, 'sub')):
+            try:
+                so, _ = p.communicate(timeout=args.drain + 15)
+            except subprocess.TimeoutExpired:
+                result['error'] = f'{name} did not finish'
+                return result
+            js = [ln for ln in so.splitlines() if ln.startswith('{')]
+            outs[name] = json.loads(js[-1]) if js else {'error': 'no output'}
+        pb, sb = outs['pub'], outs['sub']
+        if 'error' in pb or 'error' in sb:
+            result['error'] = pb.get('error') or sb.get('error')
+            return result
+        result.update(published=pb['published'], publish_rate_hz=pb['publish_rate_hz'],
+                      offered_rate_hz=pb['offered_rate_hz'],
+                      publish_lag_max_ms=pb['publish_lag_max_ms'], received=sb['received'],
+                      output_rate_hz=sb['output_rate_hz'], latency_ms=sb['latency_ms'],
+                      loss=1.0 - sb['received'] / pb['published'] if pb['published'] else None)
+        return result
+    finally:
+        for p in reversed(procs):
+            common.stop_process(p)
+        for f in logs:
+            f.close()
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap.add_argument('--rates', type=float, nargs='+', default=[100, 500, 1000],
+                    help='Hz per sensor of the main table')
+    ap.add_argument('--search-rates', type=float, nargs='+',
+                    default=[100, 250, 500, 750, 1000, 1500, 2000],
+                    help='rates tried (ascending) for the sustainable rate')
+    ap.add_argument('--no-search', action='store_true')
+    ap.add_argument('--nodes', nargs='+', default=['relay', 'corrector'],
+                    choices=['relay', 'corrector', 'relay_reliable'])
+    ap.add_argument('--duration', type=float, default=10.0, help='measured window, s')
+    ap.add_argument('--warmup', type=float, default=2.0, help='s')
+    ap.add_argument('--drain', type=float, default=1.0, help='s')
+    ap.add_argument('--tick', type=float, default=0.0,
+                    help='publish bursts every tick s (0: evenly, one sample per 1/rate)')
+    ap.add_argument('--max-loss', type=float, default=0.001)
+    ap.add_argument('--match-timeout', type=float, default=30.0)
+    ap.add_argument('--domain-id', type=int, default=None)
+    common.add_common_args(ap)
+    args = ap.parse_args(argv)
+    started = time.perf_counter()
+    env = common.ros_env(args.domain_id)
+    with tempfile.TemporaryDirectory(prefix='magcal_bench_live_') as tmp:
+        calfile = make_calibration(os.path.join(tmp, 'calibration.yaml'))
+        runs = []
+        for kind in args.nodes:
+            for rate in args.rates:
+                r = run_one(kind, rate, args, env, calfile, tmp)
+                runs.append(r)
+                _print_run(r)
+        sustain = {}
+        if not args.no_search:
+            for kind in args.nodes:
+                best = None
+                tried = []
+                for rate in sorted(args.search_rates):
+                    prev = [r for r in runs + tried if r['node'] == kind
+                            and r['rate_hz'] == rate and 'error' not in r]
+                    r = prev[0] if prev else run_one(kind, rate, args, env, calfile, tmp)
+                    if not prev:
+                        tried.append(r)
+                        _print_run(r)
+                    if 'error' in r or r['loss'] is None or r['loss'] > args.max_loss:
+                        break
+                    best = rate
+                sustain[kind] = {'rate_hz_per_sensor': best,
+                                 'total_msgs_per_s': None if best is None else 4 * best,
+                                 'runs': tried}
+        logs = {}
+        for name in sorted(os.listdir(tmp)):
+            if name.endswith('.log'):
+                with open(os.path.join(tmp, name), errors='replace') as fh:
+                    text = fh.read()
+                errs = [ln for ln in text.splitlines() if 'ERROR' in ln or 'Traceback' in ln]
+                if errs:
+                    logs[name] = errs[:5]
+    rows = []
+    for r in runs:
+        lat = r.get('latency_ms') or {}
+        cpu = r.get('cpu_percent') or {}
+        rows.append([r['node'], r['rate_hz'], r.get('publish_rate_hz'), r.get('output_rate_hz'),
+                     None if r.get('loss') is None else f'{100 * r["loss"]:.2f} %',
+                     lat.get('p50'), lat.get('p99'), cpu.get('node'), cpu.get('publisher'),
+                     cpu.get('receiver'), r.get('error', '')])
+    t1 = common.table(['node', 'Hz/sensor', 'in msg/s', 'out msg/s', 'loss', 'p50 ms',
+                       'p99 ms', 'node CPU %', 'pub CPU %', 'recv CPU %', 'note'], rows,
+                      title='Corrector vs relay, 4 sensors (window '
+                      f'{args.duration:g} s, after {args.warmup:g} s warm-up)')
+    ratios = {}
+    for rate in args.rates:
+        c = [r for r in runs if r['node'] == 'corrector' and r['rate_hz'] == rate]
+        rl = [r for r in runs if r['node'] == 'relay' and r['rate_hz'] == rate]
+        if c and rl and c[0].get('output_rate_hz') and rl[0].get('output_rate_hz'):
+            ratios[str(rate)] = c[0]['output_rate_hz'] / rl[0]['output_rate_hz']
+    tables = [t1]
+    if ratios:
+        tables.append(common.table(['Hz/sensor', 'output rate corrector / relay'],
+                                   [[k, v] for k, v in ratios.items()]))
+    goal = None
+    if sustain:
+        rows = [[k, v['rate_hz_per_sensor'], v['total_msgs_per_s']] for k, v in sustain.items()]
+        tables.append(common.table(['node', 'sustainable Hz/sensor', 'msg/s total'], rows,
+                                   title=f'Highest rate tried with loss <= '
+                                   f'{100 * args.max_loss:g} %'))
+        c = sustain.get('corrector', {}).get('rate_hz_per_sensor')
+        rl = sustain.get('relay', {}).get('rate_hz_per_sensor')
+        if c and rl:
+            goal = {'ratio': c / rl, 'goal': 0.9, 'met': c / rl >= 0.9}
+            tables.append(f'Goal: corrector sustains >= 0.9 x the relay: {c:g} / {rl:g} = '
+                          f'{c / rl:.2f} -> {"met" if goal["met"] else "MISSED"} (rates '
+                          f'tried: {", ".join(f"{x:g}" for x in sorted(args.search_rates))} '
+                          'Hz)')
+    for t in tables:
+        print()
+        print(t)
+    settings = dict(vars(args))
+    settings['ros_domain_id'] = env['ROS_DOMAIN_ID']
+    settings['dds_profile'] = os.path.relpath(common.FASTDDS_PROFILE, common.REPO_DIR)
+    path = common.write_result('live', settings, {'runs': runs, 'sustainable': sustain,
+                                                  'ratio_output_rate': ratios, 'goal': goal,
+                                                  'node_log_errors': logs},
+                               tables, args.out_dir, started)
+    print(f'\nwrote {path}')
+    return 0
+
+
+def _print_run(r):
+    lat = r.get('latency_ms') or {}
+    loss = r.get('loss')
+    print(f'  {r["node"]:9s} {r["rate_hz"]:>6g} Hz: out {r.get("output_rate_hz", 0) or 0:8.1f} '
+          f'msg/s  loss {"-" if loss is None else f"{100 * loss:.2f} %"}  '
+          f'p50 {lat.get("p50", float("nan")):.2f} ms  p99 {lat.get("p99", float("nan")):.2f} ms'
+          f'  {r.get("error", "")}', flush=True)
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,90 @@
+"""Smoke test of the benchmarks: each command runs with tiny settings and writes valid JSON.
+
+Performance is measured by the benchmarks themselves (bench/, BENCHMARKS.md), never here:
+these tests only check that every benchmark still runs end to end and that its result file
+holds the machine description and the figures BENCHMARKS.md is built from.
+"""
+import json
+import math
+import pathlib
+import subprocess
+import sys
+
+import pytest
+
+BENCH = pathlib.Path(__file__).resolve().parents[1] / 'bench'
+
+CASES = {
+    'accuracy': ['--seeds', '2', '--holdout', '100', '--scenarios', 'paper004', 'cone60'],
+    'papers': ['--seeds', '2', '--holdout', '100'],
+    'solve_time': ['--sizes', '400', '800', '--models', 'base', '--diagnose-max-n', '400',
+                   '--no-blas-compare'],
+    'live': ['--rates', '50', '--duration', '1', '--warmup', '0.5', '--drain', '0.5',
+             '--no-search'],
+    'driver_rate': ['--samples', '300', '--pty-mbytes', '0.05', '--protocols', 'ascii',
+                    'lemi025', '--node-duration', '1', '--node-warmup', '0.5'],
+}
+
+
+def _run(name, tmp_path):
+    out = tmp_path / name
+    proc = subprocess.run([sys.executable, str(BENCH / f'{name}.py'), '--out-dir', str(out)]
+                          + CASES[name], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    doc = json.loads((out / f'{name}.json').read_text())
+    assert doc['benchmark'] == name
+    for key in ('cpu_model', 'cpu_count', 'python', 'numpy'):
+        assert doc['machine'][key]
+    assert doc['tables'] and all(t.strip() for t in doc['tables'])
+    assert doc['tables'][0] in proc.stdout        # the same table is printed
+    return doc
+
+
+def test_accuracy(tmp_path):
+    res = _run('accuracy', tmp_path)['results']['scenarios']
+    ml = res['paper004']['methods']['ml']
+    assert ml['n_ok'] == 2
+    # even 2 seeds land near the floor: 2000 nT-level errors would mean a broken pipeline
+    assert 0.8 < ml['scalar_hold_over_floor'] < 1.5
+    assert math.isfinite(ml['params']['scale']['over_crb'])
+    assert set(res['cone60']['methods']) >= {'algebraic', 'ml', 'ml_constrained'}
+
+
+def test_papers(tmp_path):
+    res = _run('papers', tmp_path)['results']
+    assert res['paper000_sigma3']['methods']['paper000']['n_ok'] == 2
+    assert res['paper002_3d']['methods']['paper002']['scalar_hold_over_floor'] < 1.5
+    # both methods must say that single-axis data do not determine the model
+    assert not res['paper002_table2']['paper002']['identifiable']
+    assert res['paper002_table2']['planar36']['refined']['refused']
+
+
+def test_solve_time(tmp_path):
+    res = _run('solve_time', tmp_path)['results']
+    cases = res['cases']
+    assert [c['n'] for c in cases] == [400, 800]
+    assert all(c['calibrate_s'] > 0 and c['calibrate_peak_mib'] is not None for c in cases)
+    assert 'diagnose_s' in cases[0] or 'diagnose_error' in cases[0]
+    assert res['exponents']['base']['calibrate_all'] is not None
+
+
+def test_live(tmp_path):
+    res = _run('live', tmp_path)['results']
+    runs = {r['node']: r for r in res['runs']}
+    assert set(runs) == {'relay', 'corrector'}
+    for r in runs.values():
+        assert 'error' not in r, r.get('error')
+        # 50 Hz x 4 sensors for 1 s is far below any limit: nearly everything arrives
+        assert r['published'] >= 150 and r['received'] >= 0.9 * r['published']
+        assert r['latency_ms']['p50'] > 0
+
+
+@pytest.mark.timeout(180)
+def test_driver_rate(tmp_path):
+    res = _run('driver_rate', tmp_path)['results']
+    for proto in ('ascii', 'lemi025'):
+        p = res['protocols'][proto]
+        assert p['parser_samples_per_s'] > 0 and p['reader_samples_per_s'] > 0
+    node = res['driver_node']
+    assert 'error' not in node, node.get('error')
+    assert node['received'] > 0 and node['cpu_percent']['driver'] > 0
