@@ -17,6 +17,7 @@ from magcal_ros.ros import sim_node
 from magcal_ros.serial import make_parser
 import numpy as np
 import pytest
+from ros_helpers import console_script, subprocess_env
 import serial
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -166,40 +167,43 @@ def test_unplug_schedule_in_process(tmp_path):
         sim.close()
 
 
-def test_process_prints_paths_streams_and_stops_cleanly_on_sigterm(tmp_path):
-    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get('PYTHONPATH', ''))
-    proc = subprocess.Popen(
-        [sys.executable, '-m', 'magcal_ros.ros.sim_node', '--dir', str(tmp_path),
-         '--rate', '200'], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
-    try:
-        lines = [proc.stdout.readline() for _ in range(5)]
-        assert [ln.split(' -> ')[1].split()[0] for ln in lines[:4]] == \
-            [str(tmp_path / f'fluxgate{j}') for j in range(1, 5)]
-        assert 'streaming ascii at 200 Hz' in lines[4]
-        with serial.Serial(str(tmp_path / 'fluxgate4'), 115200, timeout=0.05) as port:
-            got = read_samples(port, make_parser('ascii'), 100)
-        assert all(45000 < np.linalg.norm(s.field_nt) < 55000 for s in got)
-        proc.send_signal(signal.SIGTERM)
-        out, err = proc.communicate(timeout=10)
-        assert proc.returncode == 0, err
-        assert 'stopped after' in out
-        assert not any(os.path.lexists(tmp_path / f'fluxgate{j}') for j in range(1, 5))
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+def test_process_prints_paths_streams_and_stops_cleanly(start_process, tmp_path):
+    proc = start_process(console_script('fluxgate_sim') + ['--dir', tmp_path / 'dev',
+                                                           '--rate', '200'],
+                         name='fluxgate_sim', ready='streaming ascii at 200 Hz')
+    lines = proc.read_log().splitlines()
+    assert [ln.split(' -> ')[1].split()[0] for ln in lines[:4]] == \
+        [str(tmp_path / 'dev' / f'fluxgate{j}') for j in range(1, 5)]
+    with serial.Serial(str(tmp_path / 'dev' / 'fluxgate4'), 115200, timeout=0.05) as port:
+        got = read_samples(port, make_parser('ascii'), 100)
+    assert all(45000 < np.linalg.norm(s.field_nt) < 55000 for s in got)
+    assert proc.stop() == 0                     # SIGINT: clean exit, links removed
+    assert proc.signals_sent == ['SIGINT']
+    assert 'stopped after' in proc.read_log()
+    assert not any(os.path.lexists(tmp_path / 'dev' / f'fluxgate{j}') for j in range(1, 5))
 
 
-def test_process_duration_and_bad_link_path(tmp_path):
-    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get('PYTHONPATH', ''))
-    (tmp_path / 'fluxgate1').write_text('not a device')
-    res = subprocess.run([sys.executable, '-m', 'magcal_ros.ros.sim_node', '--dir',
-                          str(tmp_path), '--duration', '0.2'], capture_output=True,
-                         text=True, timeout=30, env=env)
-    assert res.returncode == 2
-    assert 'exists and is not a symlink' in res.stderr
-    res = subprocess.run([sys.executable, '-m', 'magcal_ros.ros.sim_node', '--dir',
-                          str(tmp_path / 'ok'), '--duration', '0.3'], capture_output=True,
-                         text=True, timeout=30, env=env)
-    assert res.returncode == 0, res.stderr
-    assert 'stopped after' in res.stdout
+def test_process_sigterm_duration_and_bad_link_path(start_process, tmp_path):
+    proc = start_process(console_script('fluxgate_sim') + ['--dir', tmp_path / 'a'],
+                         name='sim_a', ready='streaming')
+    proc.popen.send_signal(signal.SIGTERM)
+    assert proc.wait(10) == 0
+    proc = start_process(console_script('fluxgate_sim') + ['--dir', tmp_path / 'b',
+                                                           '--duration', '0.3'], name='sim_b')
+    assert proc.wait(30) == 0 and 'stopped after' in proc.read_log()
+    (tmp_path / 'c').mkdir()
+    (tmp_path / 'c' / 'fluxgate1').write_text('not a device')
+    proc = start_process(console_script('fluxgate_sim') + ['--dir', tmp_path / 'c'],
+                         name='sim_c')
+    assert proc.wait(30) == 2
+    assert 'exists and is not a symlink' in proc.read_log()
+    assert (tmp_path / 'c' / 'fluxgate1').read_text() == 'not a device'
+
+
+def test_sim_node_imports_no_rclpy():
+    code = ('import sys, magcal_ros.ros.sim_node; '
+            "bad = [m for m in sys.modules if m.split('.')[0] == 'rclpy' "
+            "or m.split('.')[0].endswith('_msgs')]; print(bad); sys.exit(bool(bad))")
+    res = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                         timeout=60, env=subprocess_env())
+    assert res.returncode == 0, res.stdout + res.stderr

@@ -31,6 +31,7 @@ import time
 
 from magcal_ros.core.simulate import SimConfig, Simulator, TRAJECTORIES
 from magcal_ros.serial import make_encoder, PROTOCOLS, Sample
+from magcal_ros.serial.options import load_yaml, parse_options, parse_value
 from magcal_ros.serial.transport import PtyDevice
 import numpy as np
 import yaml
@@ -79,20 +80,7 @@ def parse_option(text):
     key, sep, raw = str(text).partition('=')
     if not sep or not key.strip():
         raise argparse.ArgumentTypeError(f'--option expects KEY=VALUE, got {text!r}')
-    return key.strip(), _scalar(raw)
-
-
-def _scalar(raw):
-    """Read a command-line value: int, float (also '1e5', which YAML 1.1 leaves a string), YAML."""
-    for kind in (int, float):
-        try:
-            return kind(raw)
-        except ValueError:
-            pass
-    try:
-        return yaml.safe_load(raw) if raw.strip() else ''
-    except yaml.YAMLError:
-        return raw
+    return key.strip(), parse_value(raw)
 
 
 def _positive(kind):
@@ -164,11 +152,10 @@ def _section_settings(section, source):
     out = {}
     for key, value in section.items():
         if key == 'options':
-            if isinstance(value, str):
-                value = yaml.safe_load(value) if value.strip() else {}
-            if not isinstance(value or {}, dict):
-                raise ValueError(f'{source}: options must be a mapping, got {value!r}')
-            out['option'] = list((value or {}).items())
+            try:
+                out['option'] = list(parse_options(value).items())
+            except ValueError as exc:
+                raise ValueError(f'{source}: {exc}') from None
         elif key == 'unplug':
             out['unplug'] = [v if isinstance(v, Unplug) else parse_unplug(v)
                              for v in (value or [])]
@@ -196,7 +183,7 @@ def load_config(path):
         If the file has no such section or holds unknown keys.
     """
     with open(path, encoding='utf-8') as f:
-        doc = yaml.safe_load(f) or {}
+        doc = load_yaml(f.read()) or {}
     section = None
     for key, value in doc.items():
         if str(key).rstrip('/').split('/')[-1] in (NODE_NAME, '**'):
@@ -233,7 +220,7 @@ def split_ros_args(argv):
             i += 1
         elif in_ros and a in ('-p', '--param') and i + 1 < len(argv):
             key, _, raw = argv[i + 1].partition(':=')
-            overrides[key] = _scalar(raw)
+            overrides[key] = parse_value(raw)
             i += 1
         elif in_ros and a in takes_value:
             i += 1
@@ -417,9 +404,9 @@ def run(settings, out=sys.stdout):
     return 0
 
 
-def main(argv=None):
-    """Console script ``fluxgate_sim``."""
-    settings = resolve_settings(argv)
+def main(args=None):
+    """Console script ``fluxgate_sim``; ``args`` as ``sys.argv[1:]`` (may hold --ros-args)."""
+    settings = resolve_settings(args)
     try:
         return run(settings)
     except ValueError as exc:           # e.g. the link path is an existing regular file

@@ -382,6 +382,7 @@ class PtyDevice:
     the kernel buffer is full, stale unread input is flushed (counted in
     :attr:`flushes`), as a streaming device's output is lost when no host listens;
     :meth:`write` never blocks. Bytes written while unplugged count in :attr:`bytes_dropped`.
+    All methods are thread safe (a writer thread may run while another unplugs).
 
     Parameters
     ----------
@@ -391,6 +392,7 @@ class PtyDevice:
     """
 
     def __init__(self, link_path=None):
+        self._lock = threading.RLock()   # write/read vs unplug/replug from other threads
         self.link_path = link_path
         self.master = None
         self.slave = None
@@ -413,74 +415,85 @@ class PtyDevice:
 
     def plug(self, link_path=None):
         """Create a new pseudo-terminal (and link); ``link_path`` overrides the path."""
-        if self.plugged:
-            raise RuntimeError('PtyDevice is already plugged; call unplug() first')
-        if link_path is not None:
-            self.link_path = link_path
-        master, slave = os.openpty()
-        tty.setraw(slave)
-        flags = fcntl.fcntl(master, fcntl.F_GETFL)
-        fcntl.fcntl(master, fcntl.F_SETFL, flags | os.O_NONBLOCK)
-        self.master, self.slave = master, slave
-        self.slave_name = os.ttyname(slave)
-        if self.link_path:
-            _atomic_symlink(self.slave_name, self.link_path)
-        self.plug_count += 1
+        with self._lock:
+            if self.plugged:
+                raise RuntimeError('PtyDevice is already plugged; call unplug() first')
+            if link_path is not None:
+                self.link_path = link_path
+            master, slave = os.openpty()
+            try:
+                tty.setraw(slave)
+                flags = fcntl.fcntl(master, fcntl.F_GETFL)
+                fcntl.fcntl(master, fcntl.F_SETFL, flags | os.O_NONBLOCK)
+                name = os.ttyname(slave)
+                if self.link_path:
+                    _atomic_symlink(name, self.link_path)
+            except BaseException:
+                os.close(master)
+                os.close(slave)
+                raise
+            self.master, self.slave, self.slave_name = master, slave, name
+            self.plug_count += 1
 
     def unplug(self):
         """Close the pseudo-terminal (readers see an I/O error) and remove the link."""
-        if self.link_path and os.path.islink(self.link_path):
-            if os.readlink(self.link_path) == self.slave_name:
-                os.unlink(self.link_path)
-        for fd in (self.master, self.slave):
-            if fd is not None:
-                try:
-                    os.close(fd)
-                except OSError:
-                    pass
-        self.master = self.slave = None
+        with self._lock:
+            if self.link_path and os.path.islink(self.link_path):
+                if os.readlink(self.link_path) == self.slave_name:
+                    os.unlink(self.link_path)
+            for fd in (self.master, self.slave):
+                if fd is not None:
+                    try:
+                        os.close(fd)
+                    except OSError:
+                        pass
+            self.master = self.slave = None
 
     def replug(self, link_path=None):
         """Unplug (if plugged) and plug a fresh pseudo-terminal, optionally at a new path."""
-        if self.plugged:
-            self.unplug()
-        self.plug(link_path)
+        with self._lock:
+            if self.plugged:
+                self.unplug()
+            self.plug(link_path)
 
     def write(self, data):
         """Send bytes to the reader; return how many were accepted (0 while unplugged)."""
         data = bytes(data)
-        if not self.plugged:
-            self.bytes_dropped += len(data)
-            return 0
-        sent = 0
-        for attempt in range(2):
-            try:
-                sent += os.write(self.master, data[sent:])
-            except BlockingIOError:
-                pass
-            if sent == len(data):
-                break
-            if attempt == 0:
-                # nobody is reading: discard what the reader never fetched
-                termios.tcflush(self.slave, termios.TCIFLUSH)
-                self.flushes += 1
-        self.bytes_written += sent
-        self.bytes_dropped += len(data) - sent
-        return sent
+        with self._lock:
+            if not self.plugged:
+                self.bytes_dropped += len(data)
+                return 0
+            sent = 0
+            for attempt in range(2):
+                try:
+                    sent += os.write(self.master, data[sent:])
+                except BlockingIOError:
+                    pass
+                if sent == len(data):
+                    break
+                if attempt == 0:
+                    # nobody is reading: discard what the reader never fetched
+                    termios.tcflush(self.slave, termios.TCIFLUSH)
+                    self.flushes += 1
+            self.bytes_written += sent
+            self.bytes_dropped += len(data) - sent
+            return sent
 
     def read(self, size=4096):
         """Return bytes the reader wrote to the device (commands), b'' if none."""
-        if not self.plugged:
-            return b''
-        try:
-            return os.read(self.master, size)
-        except (BlockingIOError, OSError):
-            return b''
+        with self._lock:
+            if not self.plugged:
+                return b''
+            try:
+                return os.read(self.master, size)
+            except OSError:         # nothing to read (EAGAIN) or no reader attached (EIO)
+                return b''
 
     def close(self):
         """Unplug for good."""
-        if self.plugged:
-            self.unplug()
+        with self._lock:
+            if self.plugged:
+                self.unplug()
 
     def __enter__(self):
         return self

@@ -1,0 +1,401 @@
+"""``fluxgate_driver``: serial fluxgates -> ``sensor{j}/raw`` (tesla), temperature, diagnostics.
+
+One :class:`~magcal_ros.serial.transport.PortReader` thread per sensor reads its port,
+parses the configured protocol (:mod:`magcal_ros.serial`) and hands each sample to this
+node, which maps the device axes to the sensor frame and publishes
+
+- ``sensor{j}/raw`` (``sensor_msgs/MagneticField``, T, covariance diag(noise_nt^2) in T^2),
+  reliable; header stamp = arrival time of the bytes on the ROS clock, ``frame_id`` from
+  the parameters;
+- ``sensor{j}/temperature`` (``sensor_msgs/Temperature``, degC) when the device reports it;
+- ``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``) once per ``diagnostics_period_s``
+  with rate, parse errors per kind, reconnects and state of every port.
+
+A port that disappears is reopened with exponential backoff (optionally at alternative
+paths); the other sensors keep publishing. Defaults: namespace ``/magcal``, four sensors on
+``/tmp/magcal_sim/fluxgate1..4`` with the default ASCII protocol, i.e. exactly what
+``fluxgate_sim`` provides with no arguments (DESIGN.md contract 3).
+
+Parameters (``ros2 param describe`` shows each with its unit): global defaults
+``protocol``, ``baud``, ``options``, ``noise_nt``, ``backoff_min_s``, ``backoff_max_s``;
+per sensor, flat, ``sensor{j}.port``, ``.alternatives``, ``.baud``, ``.protocol``,
+``.options`` (a YAML mapping of protocol options, e.g. ``"{scale: 100000.0}"``),
+``.axes`` (e.g. ``['-y', 'x', 'z']``), ``.frame_id``, ``.noise_nt``, ``.expected_rate_hz``;
+each per-sensor value defaults to the global one.
+"""
+
+from dataclasses import dataclass, replace
+import logging
+import math
+import sys
+import threading
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from magcal_ros.ros.conversions import field_nt_to_msg, temperature_msg
+from magcal_ros.serial import make_parser, PROTOCOLS, transport
+from magcal_ros.serial.options import parse_options
+from magcal_ros.serial.transport import PortReader, STATE_OPEN
+from rcl_interfaces.msg import ParameterDescriptor, ParameterType, SetParametersResult
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import MagneticField, Temperature
+
+NODE_NAME = 'fluxgate_driver'
+DEFAULT_NAMESPACE = '/magcal'
+DEFAULT_PORT = '/tmp/magcal_sim/fluxgate{j}'
+AXES = ('x', 'y', 'z')
+
+#: Sensor streams: reliable (REP 2003), deep enough for 1 kHz bursts.
+SENSOR_QOS = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST,
+                        reliability=ReliabilityPolicy.RELIABLE)
+
+
+# -- pure settings (no Node) -----------------------------------------------------------------
+
+@dataclass(frozen=True)
+class SensorSettings:
+    """Settings of one sensor, converted once from the parameters (units in the names)."""
+
+    index: int
+    port: str
+    alternatives: tuple
+    baud: int
+    protocol: str
+    options: dict
+    axes: tuple
+    frame_id: str
+    noise_nt: float
+    expected_rate_hz: float
+
+
+def parse_axes(axes):
+    """Turn e.g. ``['-y', 'x', 'z']`` into ((device index, sign), ...) for x, y, z.
+
+    Raises
+    ------
+    ValueError
+        Unless it is three entries naming each device axis once, each optionally signed.
+    """
+    axes = list(axes)
+    if len(axes) != 3:
+        raise ValueError(f'axes must list 3 device axes, e.g. ["x", "-z", "y"], got {axes}')
+    out = []
+    for a in axes:
+        a = str(a).strip().lower()
+        sign = -1.0 if a.startswith('-') else 1.0
+        name = a.lstrip('+-')
+        if name not in AXES:
+            raise ValueError(f'axes entries must be x, y or z with an optional sign, got {a!r}')
+        out.append((AXES.index(name), sign))
+    if sorted(i for i, _ in out) != [0, 1, 2]:
+        raise ValueError(f'axes must use each device axis once, got {axes}')
+    return tuple(out)
+
+
+def map_axes(field_nt, mapping):
+    """Apply a :func:`parse_axes` mapping: sensor axis i = sign_i * device axis k_i (nT)."""
+    return tuple(sign * field_nt[k] for k, sign in mapping)
+
+
+def check_sensor(s):
+    """Validate a :class:`SensorSettings`; return the reason it is refused, or None."""
+    if not s.port.strip():
+        return f'sensor{s.index}.port: missing device path (e.g. /dev/ttyUSB0)'
+    if s.baud <= 0:
+        return f'sensor{s.index}.baud: must be a positive baud rate in bit/s, got {s.baud}'
+    if s.protocol not in PROTOCOLS:
+        return (f'sensor{s.index}.protocol: unknown protocol {s.protocol!r}; choose one of '
+                f'{sorted(PROTOCOLS)}')
+    if not (math.isfinite(s.noise_nt) and s.noise_nt >= 0):
+        return f'sensor{s.index}.noise_nt: must be a finite noise sd >= 0 nT, got {s.noise_nt}'
+    if not (math.isfinite(s.expected_rate_hz) and s.expected_rate_hz >= 0):
+        return (f'sensor{s.index}.expected_rate_hz: must be a rate >= 0 Hz (0: unknown), got '
+                f'{s.expected_rate_hz}')
+    try:
+        parse_axes(s.axes)
+        make_parser(s.protocol, **s.options)
+    except ValueError as exc:
+        return f'sensor{s.index}: {exc}'
+    return None
+
+
+def diagnostic_status(settings, stats, previous_errors=0):
+    """Build the ``DiagnosticStatus`` of one port from a ``PortStats`` snapshot.
+
+    Level: ERROR when the port is not open; WARN when new parse errors appeared since
+    ``previous_errors`` or the rate is below half ``expected_rate_hz``; OK otherwise.
+    """
+    status = DiagnosticStatus()
+    status.name = f'{NODE_NAME}: sensor{settings.index}'
+    status.hardware_id = settings.port
+    if stats.state != STATE_OPEN:
+        status.level = DiagnosticStatus.ERROR
+        status.message = f'port {stats.state}: {stats.last_error or "not open yet"}'
+    elif stats.parse_errors > previous_errors:
+        status.level = DiagnosticStatus.WARN
+        status.message = f'{stats.parse_errors - previous_errors} parse errors'
+    elif settings.expected_rate_hz > 0 and stats.rate_hz < 0.5 * settings.expected_rate_hz:
+        status.level = DiagnosticStatus.WARN
+        status.message = (f'rate {stats.rate_hz:.1f} Hz below half the expected '
+                          f'{settings.expected_rate_hz:g} Hz')
+    else:
+        status.level = DiagnosticStatus.OK
+        status.message = f'open, {stats.rate_hz:.1f} Hz'
+    values = [('state', stats.state), ('path', stats.path or ''),
+              ('protocol', settings.protocol), ('rate_hz', f'{stats.rate_hz:.2f}'),
+              ('samples', stats.samples), ('bytes_in', stats.bytes_in),
+              ('parse_errors', stats.parse_errors), ('bytes_dropped', stats.bytes_dropped),
+              ('reconnects', stats.reconnects), ('disconnects', stats.disconnects),
+              ('open_failures', stats.open_failures),
+              ('seconds_since_data', '' if stats.seconds_since_data is None
+               else f'{stats.seconds_since_data:.3f}'),
+              ('last_error', stats.last_error)]
+    values += [(f'errors.{kind}', n) for kind, n in sorted(stats.errors.items())]
+    status.values = [KeyValue(key=k, value=str(v)) for k, v in values]
+    return status
+
+
+# -- node ------------------------------------------------------------------------------------
+
+class _RosLogHandler(logging.Handler):
+    """Forward the transport's Python log records (reconnects, errors) to the node logger."""
+
+    def __init__(self, ros_logger):
+        super().__init__()
+        self.ros_logger = ros_logger
+
+    def emit(self, record):
+        text = self.format(record)
+        if record.levelno >= logging.ERROR:
+            self.ros_logger.error(text)
+        elif record.levelno >= logging.WARNING:
+            self.ros_logger.warning(text)
+        else:
+            self.ros_logger.info(text)
+
+
+def _desc(text, ptype, read_only=True):
+    return ParameterDescriptor(description=text, type=ptype, read_only=read_only)
+
+
+class FluxgateDriver(Node):
+    """The ``fluxgate_driver`` node (keyword arguments go to ``rclpy.node.Node``)."""
+
+    def __init__(self, **kwargs):
+        kwargs.setdefault('namespace', DEFAULT_NAMESPACE)
+        super().__init__(NODE_NAME, **kwargs)
+        self._lock = threading.Lock()
+        self.readers = []
+        self._declare_globals()
+        n = self.get_parameter('n_sensors').value
+        if n < 1:
+            raise ValueError(f'n_sensors must be >= 1, got {n}')
+        self.sensors = [self._declare_sensor(j) for j in range(1, n + 1)]
+        for s in self.sensors:
+            reason = check_sensor(s)
+            if reason:
+                raise ValueError(reason)
+        self._check_global_values()
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+
+        self._raw_pubs = [self.create_publisher(MagneticField, f'sensor{s.index}/raw',
+                                                SENSOR_QOS) for s in self.sensors]
+        self._temp_pubs = [self.create_publisher(Temperature, f'sensor{s.index}/temperature',
+                                                 SENSOR_QOS) for s in self.sensors]
+        self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self._mappings = [parse_axes(s.axes) for s in self.sensors]
+        self._last_errors = [0] * n
+        backoff_min = self.get_parameter('backoff_min_s').value
+        backoff_max = self.get_parameter('backoff_max_s').value
+        self._log_handler = _RosLogHandler(self.get_logger())
+        logging.getLogger(transport.__name__).addHandler(self._log_handler)
+        logging.getLogger(transport.__name__).setLevel(logging.INFO)
+        for k, s in enumerate(self.sensors):
+            reader = PortReader(
+                s.port, s.baud, make_parser(s.protocol, **s.options),
+                self._make_callback(k), alternatives=s.alternatives,
+                backoff_min=backoff_min, backoff_max=backoff_max, name=f'sensor{s.index}',
+                clock=self._now)
+            self.readers.append(reader)
+        self._diag_timer = self.create_timer(self.get_parameter('diagnostics_period_s').value,
+                                             self._publish_diagnostics)
+        for reader, s in zip(self.readers, self.sensors):
+            reader.start()
+            self.get_logger().info(f'sensor{s.index}: {s.protocol} on {s.port} at {s.baud} '
+                                   f'baud -> {self.get_namespace().rstrip("/")}/sensor'
+                                   f'{s.index}/raw')
+
+    # -- parameters --------------------------------------------------------------------------
+    def _declare_globals(self):
+        p = ParameterType
+        self.declare_parameter('n_sensors', 4, _desc(
+            'number of sensors (parameters sensor1.* .. sensor<n>.*); count', p.PARAMETER_INTEGER))
+        self.declare_parameter('protocol', 'ascii', _desc(
+            f'default serial protocol of every sensor, one of {sorted(PROTOCOLS)}; no unit',
+            p.PARAMETER_STRING))
+        self.declare_parameter('baud', 115200, _desc(
+            'default baud rate of every port, bit/s', p.PARAMETER_INTEGER))
+        self.declare_parameter('options', '', _desc(
+            'default protocol options of every sensor as a YAML mapping, e.g. '
+            '"{columns: \'x,y,z,temp,time\', scale: 1.0e5}" (units per option: scale nT per '
+            'device unit, time_scale s per unit, max_abs_nt nT)', p.PARAMETER_STRING))
+        self.declare_parameter('noise_nt', 3.0, _desc(
+            'default noise standard deviation per axis for the published covariance, nT',
+            p.PARAMETER_DOUBLE))
+        self.declare_parameter('backoff_min_s', 0.1, _desc(
+            'first wait before reopening a lost port (doubles after each failure), s',
+            p.PARAMETER_DOUBLE))
+        self.declare_parameter('backoff_max_s', 5.0, _desc(
+            'longest wait between reopen attempts, s', p.PARAMETER_DOUBLE))
+        self.declare_parameter('diagnostics_period_s', 1.0, _desc(
+            'period of the /diagnostics status, s', p.PARAMETER_DOUBLE))
+
+    def _check_global_values(self):
+        def num(name):
+            return self.get_parameter(name).value
+        for name in ('backoff_min_s', 'backoff_max_s', 'diagnostics_period_s'):
+            if not (math.isfinite(num(name)) and num(name) > 0):
+                raise ValueError(f'{name} must be a finite time > 0 s, got {num(name)}')
+        if num('backoff_max_s') < num('backoff_min_s'):
+            raise ValueError(f'backoff_max_s ({num("backoff_max_s")}) must be >= '
+                             f'backoff_min_s ({num("backoff_min_s")})')
+
+    def _declare_sensor(self, j):
+        p = ParameterType
+        g = self.get_parameter
+        pre = f'sensor{j}.'
+        values = {
+            'port': self.declare_parameter(pre + 'port', DEFAULT_PORT.format(j=j), _desc(
+                'serial device path (a missing device is retried with backoff); no unit',
+                p.PARAMETER_STRING)).value,
+            'alternatives': self.declare_parameter(
+                pre + 'alternatives', Parameter.Type.STRING_ARRAY, _desc(
+                    'glob patterns of other device paths to try when port is gone (e.g. '
+                    '/dev/serial/by-id/*FTDI*); no unit', p.PARAMETER_STRING_ARRAY)).value,
+            'baud': self.declare_parameter(pre + 'baud', g('baud').value, _desc(
+                'baud rate, bit/s (default: the global baud)', p.PARAMETER_INTEGER)).value,
+            'protocol': self.declare_parameter(pre + 'protocol', g('protocol').value, _desc(
+                'serial protocol (default: the global protocol); no unit',
+                p.PARAMETER_STRING)).value,
+            'options': self.declare_parameter(pre + 'options', g('options').value, _desc(
+                'protocol options as a YAML mapping (default: the global options)',
+                p.PARAMETER_STRING)).value,
+            'axes': self.declare_parameter(pre + 'axes', list(AXES), _desc(
+                'device axis (optionally signed) giving sensor x, y, z, e.g. [-y, x, z]; '
+                'no unit', p.PARAMETER_STRING_ARRAY)).value,
+            'frame_id': self.declare_parameter(pre + 'frame_id', f'fluxgate{j}', _desc(
+                'header frame_id of sensor{j}/raw and temperature; no unit',
+                p.PARAMETER_STRING)).value,
+            'noise_nt': self.declare_parameter(pre + 'noise_nt', g('noise_nt').value, _desc(
+                'noise standard deviation per axis for the covariance, nT (default: the '
+                'global noise_nt)', p.PARAMETER_DOUBLE, read_only=False)).value,
+            'expected_rate_hz': self.declare_parameter(pre + 'expected_rate_hz', 0.0, _desc(
+                'expected sample rate for the diagnostics warning, Hz (0: not checked)',
+                p.PARAMETER_DOUBLE, read_only=False)).value,
+        }
+        try:
+            options = parse_options(values['options'])
+        except ValueError as exc:
+            raise ValueError(f'sensor{j}.options: {exc}') from None
+        return SensorSettings(
+            index=j, port=values['port'], alternatives=tuple(values['alternatives'] or ()),
+            baud=int(values['baud']), protocol=values['protocol'], options=options,
+            axes=tuple(values['axes']), frame_id=values['frame_id'],
+            noise_nt=float(values['noise_nt']),
+            expected_rate_hz=float(values['expected_rate_hz']))
+
+    def _on_set_parameters(self, params):
+        updated = list(self.sensors)
+        for param in params:
+            name, value = param.name, param.value
+            head, _, key = name.partition('.')
+            if not head.startswith('sensor') or key not in ('noise_nt', 'expected_rate_hz'):
+                continue
+            try:
+                k = int(head[len('sensor'):]) - 1
+            except ValueError:
+                continue
+            if not 0 <= k < len(updated):
+                continue
+            if not isinstance(value, (int, float)):
+                return SetParametersResult(successful=False, reason=f'{name}: must be a number')
+            updated[k] = replace(updated[k], **{key: float(value)})
+            reason = check_sensor(updated[k])
+            if reason:
+                return SetParametersResult(successful=False, reason=reason)
+        with self._lock:
+            self.sensors = updated
+        return SetParametersResult(successful=True)
+
+    # -- data path (reader threads) ----------------------------------------------------------
+    def _now(self):
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    def _make_callback(self, k):
+        raw_pub, temp_pub, mapping = self._raw_pubs[k], self._temp_pubs[k], self._mappings[k]
+
+        def on_sample(sample, arrival):
+            if not self.context.ok():
+                return          # shutting down: the readers are being stopped
+            s = self.sensors[k]
+            msg = field_nt_to_msg(map_axes(sample.field_nt, mapping), stamp=arrival,
+                                  frame_id=s.frame_id, covariance_nt2=s.noise_nt ** 2)
+            try:
+                raw_pub.publish(msg)
+                if sample.temp_c is not None:
+                    temp_pub.publish(temperature_msg(sample.temp_c, stamp=msg.header.stamp,
+                                                     frame_id=s.frame_id))
+            except _rclpy.RCLError:
+                if self.context.ok():
+                    raise
+                # SIGINT shut the context down between the check above and publish()
+        return on_sample
+
+    # -- diagnostics -------------------------------------------------------------------------
+    def _publish_diagnostics(self):
+        msg = DiagnosticArray()
+        msg.header.stamp = self.get_clock().now().to_msg()
+        for k, (reader, s) in enumerate(zip(self.readers, self.sensors)):
+            stats = reader.stats()
+            msg.status.append(diagnostic_status(s, stats, self._last_errors[k]))
+            self._last_errors[k] = stats.parse_errors
+        self._diag_pub.publish(msg)
+
+    def port_stats(self):
+        """Return the ``PortStats`` of every sensor (index 0 is sensor 1)."""
+        return [r.stats() for r in self.readers]
+
+    def destroy_node(self):
+        """Stop the reader threads, then destroy the node."""
+        for reader in self.readers:
+            reader.stop()
+        if self.readers:
+            logging.getLogger(transport.__name__).removeHandler(self._log_handler)
+        return super().destroy_node()
+
+
+def main(args=None):
+    """Console script ``fluxgate_driver`` (Jazzy style)."""
+    rclpy.init(args=args)
+    try:
+        node = FluxgateDriver()
+    except ValueError as exc:
+        print(f'{NODE_NAME}: bad parameters: {exc}', file=sys.stderr)
+        rclpy.try_shutdown()
+        return 2
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
