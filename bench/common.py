@@ -76,11 +76,12 @@ def machine_info():
         'git_commit': _git_commit(),
         'date_utc': datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds'),
     }
-    try:
-        from importlib.metadata import version
-        info['rclpy'] = version('rclpy')
-    except Exception:          # noqa: B902 - informational only
-        info['rclpy'] = None
+    from importlib.metadata import PackageNotFoundError, version
+    for pkg in ('rclpy', 'threadpoolctl'):
+        try:
+            info[pkg] = version(pkg)
+        except PackageNotFoundError:
+            info[pkg] = None
     return info
 
 
