@@ -783,7 +783,7 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
     n_refit = min(max_refit, len(screened))
     for i, c in enumerate(screened[:n_refit]):
         _progress(progress, 'refit', i, n_refit, c['token'])
-        if i > 0 and dbic(c) > 0:
+        if i > 0 and dbic(c) > MIN_DELTA_BIC:      # cannot become significant
             break
         r = fit(data, c['model'], field_nt=f, sigma_nt=sigma, init=c['p'],
                 check_identifiability=False, on_degenerate='flag')
