@@ -19,7 +19,9 @@ Given rotation data and a fitted model, :func:`diagnose`
    parameters) with a Bonferroni correction over the candidates, and the effect size on
    held-out data: k-fold cross-validation over *contiguous blocks of time* (neighbouring
    samples are correlated, a random split would leak), fit on the other blocks, residual
-   RMS on the held-out block;
+   RMS on the held-out block.  Cross-validation is run for the candidates that pass the
+   p-value and BIC tests, best first, until one lowers the held-out RMS (that one is the
+   verdict; the rest show no held-out figures), or for the best candidate when none passes;
 5. gives a verdict: the best candidate, or ``none`` when the residual is within 10 % of the
    noise floor or no candidate passes all three tests.
 
