@@ -463,21 +463,18 @@ class CalibrationNode(Node):
             diag = diagnose(data, model, field_nt=s.field_nt)
         except ValueError as exc:
             return False, f'not diagnosed: {exc}', {'reason': str(exc), 'sets': n_sets}
-        ranking = diag.to_json()
-        if isinstance(ranking, str):
-            ranking = json.loads(ranking)
-        os.makedirs(s.report_dir, exist_ok=True)
-        report = write_report(diag, data, s.report_dir)
-        ranking['report'] = os.fspath(report) if report is not None else s.report_dir
+        ranking = json.loads(diag.to_json())       # non-finite numbers as null
+        report = write_report(s.report_dir, data, diagnosis=diag, baseline_m=s.baseline_m)
+        ranking['report'] = os.fspath(report)
         verdict = ranking.get('verdict') or {}
-        effect = verdict.get('effect', 'none')
-        if effect == 'none':
-            head = (f'model {",".join(model.spec())} explains the data down to the noise floor '
-                    '(nothing missing)')
+        if verdict.get('effect', 'none') == 'none':
+            head = (f'nothing missing: model {",".join(ranking["model"])} explains the data '
+                    f'down to the noise floor ({ranking["noise_floor_nt"]:.2f} nT)')
         else:
-            where = f' on sensor {verdict["sensor"]}' if verdict.get('sensor') else ''
-            head = f'most likely missing effect: {effect}{where}'
-        return True, f'{head}; report in {ranking["report"]}', ranking
+            head = f'most likely missing effect: {verdict.get("token") or verdict["effect"]}'
+        lines = [head] + ([verdict['reason']] if verdict.get('reason') else [])
+        lines.append(f'HTML report: {ranking["report"]}')
+        return True, '\n'.join(lines), ranking
 
     # -- start-up --------------------------------------------------------------------------
 

@@ -176,7 +176,9 @@ class StampMatcher:
             queue.popleft()
             self.incomplete += 1
         self._since_align += 1
-        if self._since_align >= self.align_every or not self.aligned:
+        # until every stream has an offset, vote more often (but not on every sample: a
+        # silent sensor would make each sample pay for a vote)
+        if self._since_align >= (self.align_every if self.aligned else 8):
             self._align()
         return self._emit() if self.aligned else []
 

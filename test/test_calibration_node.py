@@ -1,0 +1,245 @@
+"""calibration_node in-process: collection, services, result topic, refusals, parameters.
+
+The node runs in the test's Context and executor (rclpy's own pattern); samples of the core
+simulator are published to it over DDS (test/sim_feed.py). The simulated sensors carry the
+errors of paper 004 Table 1 and 3 nT of white noise per axis, so the tolerances below are
+derived from that noise.
+"""
+import json
+import os
+
+from magcal_ros.core.simulate import simulate
+from magcal_ros.io.calfile import load_calibration, parse_calibration, save_calibration
+from magcal_ros.pipeline import calibrate
+from magcal_ros.ros.calibration_node import CalibrationNode, RESULT_QOS, SampleBuffer
+import numpy as np
+import pytest
+from rclpy.parameter import Parameter
+from rclpy.parameter_client import AsyncParameterClient
+from ros_helpers import call_trigger, spin_for, spin_until
+from sim_feed import Feeder
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+
+NOISE_NT = 3.0          # simulator default, per axis
+
+
+@pytest.fixture(scope='module')
+def tumbling():
+    """10 s at 100 Hz of the smooth trajectory with a 10 s period: every attitude covered."""
+    data, _ = simulate(n_samples=1000, rate_hz=100.0, trajectory='smooth',
+                       smooth_period_s=10.0, seed=7)
+    return data
+
+
+def start_node(make_node, namespace, tmp_path, **params):
+    overrides = {'calibration_file': str(tmp_path / 'cal' / 'calibration.yaml'),
+                 'report_dir': str(tmp_path / 'report'), 'min_samples': 500}
+    overrides.update(params)
+    return make_node(CalibrationNode, namespace=namespace, parameter_overrides=[
+        Parameter(k, value=v) for k, v in overrides.items()])
+
+
+def split(response):
+    """(summary lines, JSON payload) of a Trigger response of the node."""
+    summary, _, payload = response.message.partition('\n{')
+    return summary.splitlines(), json.loads('{' + payload)
+
+
+def listen(node, topic, qos=10):
+    box = []
+    node.create_subscription(String, topic, box.append, qos)
+    return box
+
+
+def test_calibrate_flow(make_node, ros_node, ros_executor, ros_namespace, tmp_path, tumbling):
+    node = start_node(make_node, ros_namespace, tmp_path)
+    results = listen(ros_node, 'calibration/result', RESULT_QOS)
+    status = listen(ros_node, 'calibration/status')
+    feeder = Feeder(ros_node)
+    feeder.wait_for_subscribers(ros_executor)
+
+    # nothing collected yet
+    resp = call_trigger(ros_node, ros_executor, 'calibration/calibrate')
+    assert not resp.success
+    assert 'call calibration/start' in resp.message
+    spin_until(ros_executor, lambda: status, 5.0, 'a status message')
+    idle = json.loads(status[-1].data)
+    assert idle['state'] == 'idle' and not idle['ready']
+    assert any('call calibration/start' in m for m in idle['missing'])
+
+    assert call_trigger(ros_node, ros_executor, 'calibration/start').success
+    feeder.feed(ros_executor, tumbling, taken=lambda: int(node._received.sum()))
+    status.clear()
+    st = json.loads(spin_until(ros_executor, lambda: status and status[-1], 5.0).data)
+    assert st['state'] == 'collecting'
+    assert st['sets'] == tumbling.n_samples              # exact stamps: every epoch a set
+    assert st['incomplete_sets_dropped'] == 0
+    assert {v['status'] for v in st['coverage'].values()} == {'good'}
+    assert st['ready'] and st['missing'] == []
+
+    # a second calibrate and a start while the first solve runs are refused at once
+    calib = ros_node.create_client(Trigger, 'calibration/calibrate')
+    start = ros_node.create_client(Trigger, 'calibration/start')
+    spin_until(ros_executor, calib.service_is_ready)
+    first = calib.call_async(Trigger.Request())
+    spin_until(ros_executor, lambda: node._state == 'calibrating', 5.0, 'the solve to start')
+    second = calib.call_async(Trigger.Request())
+    restart = start.call_async(Trigger.Request())
+    spin_until(ros_executor, lambda: first.done() and second.done() and restart.done(), 60.0)
+    assert not second.result().success
+    assert second.result().message.startswith('a calibration is already running')
+    assert not restart.result().success
+    assert 'a calibration is running' in restart.result().message
+    assert first.result().success, first.result().message
+
+    lines, out = split(first.result())
+    assert lines[0].startswith(f'calibrated {tumbling.n_samples} sets with model')
+    # scalar residual = white noise on the magnitude, ~NOISE_NT; its RMS over 1000 epochs
+    # has a relative sd of ~2 %, the fit removes 36 of ~12000 degrees of freedom
+    for j in '1234':
+        assert 0.85 * NOISE_NT < out['scalar_rms_after_nt'][j] < 1.15 * NOISE_NT
+        assert out['scalar_rms_before_nt'][j] > 100 * NOISE_NT      # Table 1 errors
+    assert out['tensor_rms_after_nt_per_m'] < 1.15 * out['tensor_floor_nt_per_m']
+    assert out['tensor_rms_before_nt_per_m'] > 100 * out['tensor_rms_after_nt_per_m']
+
+    # written atomically, published latched, identical
+    path = tmp_path / 'cal' / 'calibration.yaml'
+    assert out['calibration_file'] == str(path)
+    cal, doc = load_calibration(path)
+    spin_until(ros_executor, lambda: results, 5.0, 'calibration/result')
+    assert results[-1].data == path.read_text()
+    assert doc['provenance']['samples'] == tumbling.n_samples
+    assert parse_calibration(results[-1].data)[1]['model'] == doc['model']
+    status.clear()
+    assert json.loads(spin_until(ros_executor, lambda: status and status[-1]).data)[
+        'state'] == 'done'
+
+    # a late subscriber still gets the calibration (transient local)
+    late = listen(make_node('late_listener', namespace=ros_namespace), 'calibration/result',
+                  RESULT_QOS)
+    spin_until(ros_executor, lambda: late, 5.0, 'the latched calibration/result')
+
+    # diagnose the same data with the current model: nothing is missing
+    resp = call_trigger(ros_node, ros_executor, 'calibration/diagnose', timeout_sec=120.0)
+    assert resp.success, resp.message
+    lines, ranking = split(resp)
+    assert lines[0].startswith('nothing missing')
+    assert ranking['verdict']['effect'] == 'none'
+    assert ranking['candidates']
+    assert os.path.isfile(ranking['report'])
+
+    # calibrating again keeps the previous file as a backup
+    assert call_trigger(ros_node, ros_executor, 'calibration/calibrate').success
+    assert (tmp_path / 'cal' / 'calibration.yaml.bak').is_file()
+
+
+def test_single_axis_rotation_is_refused_and_previous_stays(make_node, ros_node, ros_executor,
+                                                             ros_namespace, tmp_path,
+                                                             tumbling):
+    # an existing calibration, published by the node at start-up
+    path = tmp_path / 'cal' / 'calibration.yaml'
+    os.makedirs(path.parent)
+    save_calibration(path, calibrate(tumbling, 'base', field_nt=50000.0).doc)
+    before = path.read_bytes()
+    results = listen(ros_node, 'calibration/result', RESULT_QOS)
+    node = start_node(make_node, ros_namespace, tmp_path, min_samples=300)
+    spin_until(ros_executor, lambda: results, 5.0, 'the existing calibration on start-up')
+    assert results[0].data.encode() == before
+
+    turntable, _ = simulate(n_samples=600, rate_hz=100.0, trajectory='turntable', seed=3)
+    feeder = Feeder(ros_node)
+    feeder.wait_for_subscribers(ros_executor)
+    assert call_trigger(ros_node, ros_executor, 'calibration/start').success
+    feeder.feed(ros_executor, turntable, taken=lambda: int(node._received.sum()))
+    resp = call_trigger(ros_node, ros_executor, 'calibration/calibrate')
+    assert not resp.success
+    lines, out = split(resp)
+    assert 'rotate about another axis' in lines[0]
+    assert lines[0].endswith('previous calibration stays active')
+    assert 'single axis' in out['reason'] or 'one axis' in out['reason']
+    assert path.read_bytes() == before
+    spin_for(ros_executor, 0.3)
+    assert len(results) == 1                       # nothing new published
+
+
+def test_too_few_samples(make_node, ros_node, ros_executor, ros_namespace, tmp_path, tumbling):
+    node = start_node(make_node, ros_namespace, tmp_path, min_samples=800)
+    feeder = Feeder(ros_node)
+    feeder.wait_for_subscribers(ros_executor)
+    assert call_trigger(ros_node, ros_executor, 'calibration/start').success
+    feeder.feed(ros_executor, tumbling, stop=100, taken=lambda: int(node._received.sum()))
+    resp = call_trigger(ros_node, ros_executor, 'calibration/calibrate')
+    assert not resp.success
+    assert 'only 100 complete sample sets collected, need at least 800' in resp.message
+    assert not (tmp_path / 'cal' / 'calibration.yaml').exists()
+
+
+def _set(client, executor, **params):
+    future = client.set_parameters([Parameter(k, value=v) for k, v in params.items()])
+    spin_until(executor, future.done, 10.0, 'set_parameters')
+    return future.result().results[0]
+
+
+def test_model_parameter_is_validated_at_run_time(make_node, ros_node, ros_executor,
+                                                  ros_namespace, tmp_path):
+    node = start_node(make_node, ros_namespace, tmp_path)
+    client = AsyncParameterClient(ros_node, f'{ros_namespace}/calibration_node')
+    spin_until(ros_executor, client.services_are_ready, 10.0, 'parameter services')
+
+    bad = _set(client, ros_executor, model=['base', 'warp_drive'])
+    assert not bad.successful
+    assert "unknown effect 'warp_drive'" in bad.reason
+    bad = _set(client, ros_executor, model=['base', 'temperature@7'])
+    assert not bad.successful and 'sensor 7 does not exist' in bad.reason
+    assert node.get_parameter('model').value == ['base']
+
+    ok = _set(client, ros_executor, model=['base', 'temperature@2'])
+    assert ok.successful
+    assert node.get_parameter('model').value == ['base', 'temperature@2']
+
+    for name, value, match in [('field_nt', -5.0, 'finite number > 0 nT'),
+                               ('min_samples', -1, 'integer >= 12'),
+                               ('baseline_m', 0.0, '> 0 m'),
+                               ('history', -2, 'integer >= 0'),
+                               ('calibration_file', ' ', 'non-empty path')]:
+        res = _set(client, ros_executor, **{name: value})
+        assert not res.successful and match in res.reason, (name, res.reason)
+    res = _set(client, ros_executor, max_samples=100)
+    assert not res.successful and 'read-only' in res.reason
+
+
+def test_parameter_descriptors_state_units(make_node, ros_namespace, tmp_path):
+    node = start_node(make_node, ros_namespace, tmp_path)
+    units = {'field_nt': 'nT', 'baseline_m': ', m', 'stamp_tolerance_s': ', s',
+             'min_samples': 'count', 'max_samples': 'count', 'status_period_s': ', s'}
+    for name, unit in units.items():
+        assert unit in node.describe_parameter(name).description, name
+    assert node.describe_parameter('max_samples').read_only
+
+
+def test_bad_start_up_parameter_is_refused(ros_context, ros_namespace, tmp_path):
+    with pytest.raises(ValueError, match='field_nt: must be a finite number > 0 nT'):
+        CalibrationNode(context=ros_context, namespace=ros_namespace, parameter_overrides=[
+            Parameter('field_nt', value=-1.0),
+            Parameter('calibration_file', value=str(tmp_path / 'c.yaml'))])
+
+
+def test_sample_buffer_is_a_ring_in_time_order():
+    buf = SampleBuffer(2, capacity=5, aux_names=['aux_motor_current'])
+    for k in range(7):
+        temp = [np.nan, 20.0 + k] if k else [np.nan, np.nan]
+        aux = {'aux_motor_current': 1.5} if k >= 4 else {}
+        buf.append(k, 0.01 * k + 0.003 * (k % 2), np.full((2, 3), float(k)), temp, aux)
+    data = buf.dataset()
+    assert len(buf) == 5 and data.n_samples == 5
+    np.testing.assert_array_equal(data.raw[0, :, 0], [2, 3, 4, 5, 6])
+    # times from the epoch numbers: a straight line on the lower envelope of the stamps
+    stamps = 0.01 * np.arange(2, 7) + 0.003 * (np.arange(2, 7) % 2)
+    np.testing.assert_allclose(np.diff(data.t), np.diff(data.t)[0])
+    assert np.all(data.t <= stamps + 1e-12) and np.isclose(data.t, stamps).any()
+    # aux before its first value is held at the first value
+    np.testing.assert_array_equal(data.aux['aux_motor_current'], [1.5] * 5)
+    assert np.isnan(data.temp[0]).all() and data.temp[1, -1] == 26.0
+    buf.clear()
+    assert len(buf) == 0

@@ -1,0 +1,153 @@
+"""magcal_ros.ros.sync: grouping four sample streams into epochs despite late, bursty stamps.
+
+Streams are synthesised with known epochs: each sample carries its true epoch as the item, so
+a set whose items differ is a mismatch. The arrival model follows what was measured on the
+simulated array under load: exponential latency (mean 1 ms), chunks written together, and
+stalls of a reader (20-150 ms) after which the backlog arrives with one stamp.
+"""
+from magcal_ros.ros.sync import backdate, epoch_times, StampMatcher
+import numpy as np
+import pytest
+
+PERIOD = 0.01
+
+
+def streams(seed, n=3000, chunk=1, stalls_per_s=0.0, independent=False, loss=0.0,
+            lost=None):
+    """Arrival events (stamp, sensor, epoch) of 4 streams at 100 Hz, sorted by stamp."""
+    rng = np.random.default_rng(seed)
+    true = 100.0 + PERIOD * np.arange(n)
+    shared = []
+    t = true[0]
+    while stalls_per_s and t < true[-1]:
+        t += rng.exponential(1.0 / stalls_per_s)
+        shared.append((t, rng.uniform(0.02, 0.15)))
+    events = []
+    for j in range(4):
+        written = (np.ceil(true / (chunk * PERIOD) - 1e-9) * chunk * PERIOD
+                   if chunk > 1 else true)
+        arrival = written + 0.0003 + rng.exponential(0.001, n)
+        for start, length in shared:
+            if independent:
+                start, length = start + rng.uniform(-1, 1), rng.uniform(0.02, 0.15)
+            late = (arrival >= start) & (arrival < start + length)
+            arrival[late] = start + length + rng.uniform(0, 0.004)
+        arrival = np.maximum.accumulate(arrival)
+        keep = rng.random(n) >= loss
+        if lost is not None and lost[0] == j:
+            keep[lost[1]] = False
+        events += [(arrival[k], j, k) for k in np.flatnonzero(keep)]
+    events.sort(key=lambda e: (e[0], e[1]))
+    return events
+
+
+def run(events, **kwargs):
+    matcher = StampMatcher(4, 0.5 * PERIOD, **kwargs)
+    sets = []
+    for stamp, j, epoch in events:
+        sets.extend(matcher.add(j, stamp, epoch))
+    mismatched = sum(len(set(items)) > 1 for _, _, items in sets)
+    return matcher, sets, mismatched
+
+
+@pytest.mark.parametrize('case', [
+    dict(),
+    dict(chunk=2),                                   # fluxgate_sim's default 20 ms writes
+    dict(stalls_per_s=0.5),                          # the driver process stalls
+    dict(stalls_per_s=0.5, chunk=2),
+    dict(stalls_per_s=0.5, independent=True),        # one reader thread stalls
+])
+def test_no_mismatch_and_no_loss_under_jitter_chunks_and_stalls(case):
+    n = 3000
+    matcher, sets, mismatched = run(streams(1, n=n, **case))
+    assert mismatched == 0
+    # every epoch forms a set once the streams are aligned (first vote after 10 samples)
+    assert len(sets) >= n - 10
+    assert matcher.realigned == 0
+
+
+def test_raw_stamp_matching_would_mismatch_the_same_streams():
+    """The reason for epoch voting: matching stamps within half a period mismatches sets."""
+    events = streams(1, stalls_per_s=0.5)
+    queues = [[] for _ in range(4)]
+    mismatched = complete = 0
+    for stamp, j, epoch in events:
+        queues[j].append((stamp, epoch))
+        while all(queues):
+            heads = [q[0] for q in queues]
+            t_min = min(h[0] for h in heads)
+            if max(h[0] for h in heads) - t_min <= 0.5 * PERIOD:
+                epochs = {q.pop(0)[1] for q in queues}
+                complete += 1
+                mismatched += len(epochs) > 1
+            else:
+                for q in queues:
+                    if q[0][0] - t_min <= 0.5 * PERIOD:
+                        q.pop(0)
+    assert mismatched > 10
+    assert complete < 0.99 * 3000
+
+
+def test_lost_sample_is_realigned_and_only_nearby_sets_mismatch():
+    n = 3000
+    matcher, sets, mismatched = run(streams(2, n=n, lost=(2, 1000)))
+    assert matcher.realigned == 1
+    # after the loss the stream is one epoch off until the vote's majority (window 200
+    # samples) flips: at most about half a window of sets, then none
+    assert 0 < mismatched <= 120
+    late = [items for e, _, items in sets if e > 1300]
+    assert late and all(len(set(items)) == 1 for items in late)
+
+
+def test_lost_sample_of_the_reference_sensor():
+    matcher, sets, _ = run(streams(3, lost=(0, 1500)))
+    late = [items for e, _, items in sets if e > 1800]
+    assert matcher.realigned == 3          # every other stream moves by one epoch
+    assert late and all(len(set(items)) == 1 for items in late)
+
+
+def test_silent_sensor_drops_epochs_with_bounded_queues():
+    events = [e for e in streams(4, n=1500) if e[1] != 3]
+    matcher = StampMatcher(4, 0.005, max_queue=100)
+    out = []
+    for stamp, j, epoch in events:
+        out.extend(matcher.add(j, stamp, epoch))
+    assert out == []
+    assert matcher.incomplete >= 3 * (1500 - 100)
+    assert all(len(q) <= 100 for q in matcher._queues)
+
+
+def test_out_of_order_stamp_is_dropped():
+    matcher = StampMatcher(2, 0.005)
+    matcher.add(0, 1.0, 'a')
+    assert matcher.add(0, 0.5, 'b') == []
+    assert matcher.out_of_order == 1
+
+
+@pytest.mark.parametrize('kwargs, match', [
+    (dict(n_sensors=0, tolerance_s=0.005), 'n_sensors must be >= 1'),
+    (dict(n_sensors=4, tolerance_s=0.0), 'tolerance_s must be > 0'),
+])
+def test_bad_settings(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        StampMatcher(**kwargs)
+
+
+def test_backdate_spreads_a_chunk_back_on_the_grid():
+    stamps = np.array([0.0, 0.02, 0.02, 0.04, 0.04, 0.04, 0.05])
+    np.testing.assert_allclose(backdate(stamps, 0.01),
+                               [0.0, 0.01, 0.02, 0.02, 0.03, 0.04, 0.05])
+
+
+def test_epoch_times_recover_the_sample_clock():
+    rng = np.random.default_rng(5)
+    epochs = np.arange(5000)
+    true = 1000.0 + 0.0100002 * epochs              # device clock 20 ppm off nominal
+    stamps = true + 0.0003 + rng.exponential(0.002, epochs.size)
+    stamps[2000:2030] = stamps[2030]                 # a stall: backlog with one stamp
+    t = epoch_times(epochs, stamps)
+    assert np.all(np.diff(t) > 0)
+    # the lower envelope sits within the smallest latencies (0.3 ms + a few us) of the truth
+    assert np.max(np.abs(t - true)) < 1e-3
+    with pytest.raises(ValueError, match='do not increase'):
+        epoch_times(epochs, stamps[::-1])
