@@ -507,8 +507,10 @@ class _Problem:
                 if self.robust:
                     # IRLS weight of the soft-L1 loss on this sensor's residual at each epoch
                     w = 1.0 / np.sqrt(1.0 + np.sum(r ** 2, axis=1) / self.f_scale ** 2)
-                hess += np.einsum('n,nci,ncj->nij', w, g, g)
-                grad += np.einsum('n,nci,nc->ni', w, g, r)
+                # batched matmul: 3-5x faster than the equivalent einsum (bench/, profile)
+                gt = np.swapaxes(g, 1, 2)                                  # (N, 2, 3)
+                hess += (gt * w[:, None, None]) @ g
+                grad += (gt @ (r * w[:, None])[..., None])[..., 0]
             delta = np.linalg.solve(hess, grad[..., None])[..., 0]
             b = b + self.f[:, None] * (delta[:, :1] * e1 + delta[:, 1:] * e2)
             b = b / np.linalg.norm(b, axis=1, keepdims=True) * self.f[:, None]
@@ -555,9 +557,8 @@ class _Problem:
                              * (self.f[:, None, None] / self.sigma[j - 1])
                              for j in self.sensors], axis=1)           # (N, 3G, 2)
         jac = jac.reshape(n, 3 * g, -1)
-        gtg = np.einsum('nci,ncj->nij', gb, gb)
-        gtj = np.einsum('nci,ncp->nip', gb, jac)
-        jac = jac - np.einsum('nci,nip->ncp', gb, np.linalg.solve(gtg, gtj))
+        gbt = np.swapaxes(gb, 1, 2)                    # batched matmul, not einsum: 3-5x faster
+        jac = jac - gb @ np.linalg.solve(gbt @ gb, gbt @ jac)
         jac = jac.reshape(n * 3 * g, -1)
         if self.priors:
             pr = np.zeros((len(self.priors), len(self.cols)))
