@@ -134,9 +134,8 @@ def test_calibrate_flow(make_node, ros_node, ros_executor, ros_namespace, tmp_pa
     assert (tmp_path / 'cal' / 'calibration.yaml.bak').is_file()
 
 
-def test_single_axis_rotation_is_refused_and_previous_stays(make_node, ros_node, ros_executor,
-                                                             ros_namespace, tmp_path,
-                                                             tumbling):
+def test_single_axis_rotation_is_refused_and_previous_stays(
+        make_node, ros_node, ros_executor, ros_namespace, tmp_path, tumbling):
     # an existing calibration, published by the node at start-up
     path = tmp_path / 'cal' / 'calibration.yaml'
     os.makedirs(path.parent)

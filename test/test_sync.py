@@ -51,11 +51,11 @@ def run(events, **kwargs):
 
 
 @pytest.mark.parametrize('case', [
-    dict(),
-    dict(chunk=2),                                   # fluxgate_sim's default 20 ms writes
-    dict(stalls_per_s=0.5),                          # the driver process stalls
-    dict(stalls_per_s=0.5, chunk=2),
-    dict(stalls_per_s=0.5, independent=True),        # one reader thread stalls
+    {},
+    {'chunk': 2},                                    # fluxgate_sim's default 20 ms writes
+    {'stalls_per_s': 0.5},                           # the driver process stalls
+    {'stalls_per_s': 0.5, 'chunk': 2},
+    {'stalls_per_s': 0.5, 'independent': True},      # one reader thread stalls
 ])
 def test_no_mismatch_and_no_loss_under_jitter_chunks_and_stalls(case):
     n = 3000
@@ -125,8 +125,8 @@ def test_out_of_order_stamp_is_dropped():
 
 
 @pytest.mark.parametrize('kwargs, match', [
-    (dict(n_sensors=0, tolerance_s=0.005), 'n_sensors must be >= 1'),
-    (dict(n_sensors=4, tolerance_s=0.0), 'tolerance_s must be > 0'),
+    ({'n_sensors': 0, 'tolerance_s': 0.005}, 'n_sensors must be >= 1'),
+    ({'n_sensors': 4, 'tolerance_s': 0.0}, 'tolerance_s must be > 0'),
 ])
 def test_bad_settings(kwargs, match):
     with pytest.raises(ValueError, match=match):

@@ -177,7 +177,8 @@ class CorrectorNode(Node):
         self._prev = [None] * self._n          # (t s, raw (3,) nT) of the previous sample
         self._arrivals = [deque(maxlen=_PERIOD_WINDOW) for _ in range(self._n)]
         self._matcher = StampMatcher(self._n, s.stamp_tolerance_s)
-        self._counts = np.zeros(self._n, int)
+        self._counts = np.zeros(self._n, int)     # corrected samples published per sensor
+        self._received = 0                          # raw samples taken (all sensors)
         self._n_gradient = 0
 
         self._pub_corr = [self.create_publisher(MagneticField, f'sensor{j}/corrected', 10)
@@ -277,6 +278,7 @@ class CorrectorNode(Node):
 
     def _raw_cb(self, j):
         def cb(msg):
+            self._received += 1
             t = stamp_to_seconds(msg.header.stamp)
             raw = msg_to_field_nt(msg)
             prev = self._prev[j]

@@ -1,0 +1,286 @@
+"""corrector_node in-process: correction, gradient, calibration updates, refusals, diagnostics.
+
+The calibrations used here are the simulator's true ones (:attr:`Simulator.truth`), so the
+corrected field must equal the simulated true field up to the sensor noise (3 nT per axis,
+propagated through A^-1), and the gradient of the uniform simulated field is zero up to the
+noise-propagated floor of :func:`magcal_ros.core.tensor.tensor_noise_floor`.
+"""
+import copy
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from magcal_ros.core.effects import SensorContext
+from magcal_ros.core.model import Calibration, Model
+from magcal_ros.core.simulate import simulate
+from magcal_ros.core.tensor import cross_positions, tensor_noise_floor
+from magcal_ros.io.calfile import (calibration_to_doc, CalibrationFileError, dump_calibration,
+                                   save_calibration)
+from magcal_ros.pipeline import cross_geometry
+from magcal_ros.ros.calibration_node import RESULT_QOS
+from magcal_ros.ros.conversions import (msg_to_covariance_nt2, msg_to_field_nt, msg_to_tensor,
+                                        stamp_to_seconds)
+from magcal_ros.ros.corrector_node import CorrectorNode, LiveCorrection, MissingSignal
+import numpy as np
+import pytest
+from rclpy.parameter import Parameter
+from ros_helpers import spin_for, spin_until
+from sensor_msgs.msg import MagneticField
+from sim_feed import Feeder, T0
+from std_msgs.msg import Float64MultiArray, String
+
+NOISE_NT = 3.0
+
+
+@pytest.fixture(scope='module')
+def sim():
+    """300 epochs of the tumbling array and its true calibration document."""
+    data, simulator = simulate(n_samples=300, rate_hz=100.0, trajectory='smooth', seed=11)
+    doc = calibration_to_doc(simulator.truth, geometry=cross_geometry(0.5))
+    return data, simulator.truth, doc
+
+
+def write(path, doc):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    save_calibration(path, doc, history=0)
+    return path
+
+
+class Probe:
+    """Subscriptions of the corrector's outputs in the test namespace."""
+
+    def __init__(self, node, namespace, n_sensors=4):
+        self.corrected = [[] for _ in range(n_sensors)]
+        self.gradient = []
+        self.diagnostics = []
+        for j in range(n_sensors):
+            node.create_subscription(MagneticField, f'sensor{j + 1}/corrected',
+                                     self.corrected[j].append, 500)
+        node.create_subscription(Float64MultiArray, 'gradient', self.gradient.append, 500)
+        node.create_subscription(
+            DiagnosticArray, '/diagnostics',
+            lambda m: self.diagnostics.extend(s for s in m.status
+                                              if s.hardware_id == namespace), 50)
+
+    def last_status(self, executor, since=0, timeout_sec=5.0):
+        spin_until(executor, lambda: len(self.diagnostics) > since, timeout_sec,
+                   'a /diagnostics status of the corrector')
+        return self.diagnostics[-1]
+
+    def count(self):
+        return sum(len(c) for c in self.corrected)
+
+
+def start(make_node, namespace, path, **params):
+    overrides = {'calibration_file': str(path)}
+    overrides.update(params)
+    return make_node(CorrectorNode, namespace=namespace, parameter_overrides=[
+        Parameter(k, value=v) for k, v in overrides.items()])
+
+
+def test_without_calibration_nothing_is_published(make_node, ros_node, ros_executor,
+                                                 ros_namespace, tmp_path, sim):
+    data, _, _ = sim
+    node = start(make_node, ros_namespace, tmp_path / 'missing.yaml')
+    probe = Probe(ros_node, ros_namespace)
+    feeder = Feeder(ros_node)
+    feeder.wait_for_subscribers(ros_executor)
+    feeder.feed(ros_executor, data, stop=50, taken=lambda: node._received)
+    spin_for(ros_executor, 0.3)
+    assert probe.count() == 0 and probe.gradient == []
+    status = probe.last_status(ros_executor)
+    assert status.level == DiagnosticStatus.WARN
+    assert status.message.startswith('no calibration: publishing nothing')
+
+
+def test_corrects_to_the_true_field_and_publishes_the_gradient(make_node, ros_node,
+                                                              ros_executor, ros_namespace,
+                                                              tmp_path, sim):
+    data, truth, doc = sim
+    node = start(make_node, ros_namespace, write(tmp_path / 'cal.yaml', doc))
+    probe = Probe(ros_node, ros_namespace)
+    feeder = Feeder(ros_node)
+    feeder.wait_for_subscribers(ros_executor)
+    feeder.feed(ros_executor, data, taken=lambda: node._received, temperature=False)
+    n = data.n_samples
+    spin_until(ros_executor, lambda: probe.count() == 4 * n and len(probe.gradient) == n,
+               10.0, 'all corrected samples and tensors')
+
+    true_field = data.meta['truth_field']            # (S, N, 3) nT, array frame
+    for j in range(4):
+        msgs = probe.corrected[j]
+        stamps = np.array([stamp_to_seconds(m.header.stamp) for m in msgs])
+        np.testing.assert_allclose(stamps, T0 + data.t, atol=1e-6)   # the raw stamps
+        assert {m.header.frame_id for m in msgs} == {f'fluxgate{j + 1}'}
+        b = np.array([msg_to_field_nt(m) for m in msgs])
+        err = b - true_field[j]
+        # A^-1 (3 nT white noise); A = I +- a few %: RMS over 900 values within +-15 %
+        assert 0.85 * NOISE_NT < np.sqrt(np.mean(err ** 2)) < 1.15 * NOISE_NT
+        a_inv = truth.correction_matrix(j + 1)
+        np.testing.assert_allclose(msg_to_covariance_nt2(msgs[0]),
+                                   NOISE_NT ** 2 * a_inv @ a_inv.T, rtol=1e-9)
+    g = np.array([msg_to_tensor(m) for m in probe.gradient])
+    assert all([d.label for d in m.layout.dim] == ['row', 'col'] for m in probe.gradient)
+    floor = tensor_noise_floor(NOISE_NT, cross_positions(0.5))
+    ratio = np.sqrt(np.mean(g ** 2, axis=0)) / floor
+    # each component's RMS over 300 tensors: relative sd ~4 %; +-20 % bounds
+    assert np.all((ratio > 0.8) & (ratio < 1.2)), ratio
+    status = probe.last_status(ros_executor, since=len(probe.diagnostics))
+    assert status.level == DiagnosticStatus.OK, status.message
+
+
+def _shifted(doc, shift_nt):
+    """The calibration document with every sensor's offset moved by ``shift_nt`` (3,) nT."""
+    new = copy.deepcopy(doc)
+    for sensor in new['sensors']:
+        for eff in sensor['effects']:
+            if eff['name'] == 'offset':
+                for axis, name in enumerate(('bx', 'by', 'bz')):
+                    eff['params'][name]['value'] += float(shift_nt[axis])
+        sensor.pop('correction_matrix')          # derived; the loader recomputes it
+        sensor['offset_nt'] = [float(x + d) for x, d in zip(sensor['offset_nt'], shift_nt)]
+    return new
+
+
+def test_follows_updates_and_refuses_a_bad_calibration(make_node, ros_node, ros_executor,
+                                                       ros_namespace, tmp_path, sim):
+    data, truth, doc = sim
+    node = start(make_node, ros_namespace, write(tmp_path / 'cal.yaml', doc))
+    probe = Probe(ros_node, ros_namespace)
+    feeder = Feeder(ros_node)
+    result = ros_node.create_publisher(String, 'calibration/result', RESULT_QOS)
+    feeder.wait_for_subscribers(ros_executor)
+
+    def corrected_epoch(k):
+        before = [len(c) for c in probe.corrected]
+        feeder.publish(data, k, temperature=False)
+        spin_until(ros_executor, lambda: all(len(c) > b for c, b in
+                                             zip(probe.corrected, before)), 5.0)
+        return np.array([msg_to_field_nt(c[-1]) for c in probe.corrected])
+
+    a = corrected_epoch(0)
+    shift = np.array([100.0, -50.0, 25.0])
+    updated = _shifted(doc, shift)
+    result.publish(String(data=dump_calibration(updated)))
+    spin_until(ros_executor, lambda: node._source == 'calibration/result'
+               and np.isclose(node._live.sensors[0].offset[0], truth.offset(1)[0] + 100.0),
+               5.0, 'the new calibration to be installed')
+    b = corrected_epoch(1)
+    a_next = np.array([truth.correct(j + 1, data.raw[j, 1]) for j in range(4)])
+    for j in range(4):
+        np.testing.assert_allclose(a[j], truth.correct(j + 1, data.raw[j, 0]), atol=1e-6)
+        # corrected = A^-1 (raw - o): moving o by `shift` moves the output by -A^-1 shift
+        np.testing.assert_allclose(b[j] - a_next[j], -truth.correction_matrix(j + 1) @ shift,
+                                   atol=1e-6)
+
+    n_diag = len(probe.diagnostics)
+    result.publish(String(data='schema_version: 1\nkind: magcal_ros/calibration\nsensors: ['))
+    spin_until(ros_executor, lambda: any('refused' in s.message
+                                         for s in probe.diagnostics[n_diag:]), 5.0,
+               'the refusal on /diagnostics')
+    status = [s for s in probe.diagnostics[n_diag:] if 'refused' in s.message][-1]
+    assert status.level == DiagnosticStatus.WARN
+    assert 'refused the calibration from calibration/result: calibration/result: not valid ' \
+           'YAML' in status.message
+    assert 'keeping the calibration from calibration/result' in status.message
+    c = corrected_epoch(1)
+    np.testing.assert_allclose(c, b, atol=1e-9)        # the last good one is still used
+
+    # a calibration for another sensor count is refused too
+    two = calibration_to_doc(Calibration(Model.from_spec('base', 2),
+                                         Model.from_spec('base', 2).default_params()))
+    n_diag = len(probe.diagnostics)
+    result.publish(String(data=dump_calibration(two)))
+    spin_until(ros_executor, lambda: any('is for 2 sensors but this corrector handles 4'
+                                         in s.message for s in probe.diagnostics[n_diag:]),
+               5.0)
+
+
+def test_refuses_a_corrupt_file_at_start_up(make_node, ros_node, ros_executor,
+                                            ros_namespace, tmp_path, sim):
+    path = tmp_path / 'cal.yaml'
+    path.write_text('schema_version: 7\nkind: magcal_ros/calibration\nsensors: []\n')
+    start(make_node, ros_namespace, path)
+    probe = Probe(ros_node, ros_namespace)
+    status = probe.last_status(ros_executor)
+    assert status.level == DiagnosticStatus.WARN
+    assert 'schema_version 7 is newer than this magcal_ros understands' in status.message
+    assert 'no calibration is active' in status.message
+
+
+def _driven_calibration(seed=0):
+    """Every built-in driven effect on every sensor, with random parameters."""
+    model = Model.from_spec('base,temperature,aux:aux_motor_current,field_rate,nonlinearity,'
+                            'drift', 4)
+    rng = np.random.default_rng(seed)
+    p = model.default_params() + rng.normal(scale=1e-3, size=model.n_params)
+    for j, row in enumerate(model.effects):
+        for eff, sl in zip(row, model.slices[j]):
+            eff.refs = {'t0_c': 25.0, 'a0': 1.0, 't0_s': 100.0}
+            if eff.name in ('offset', 'nonlinearity'):
+                p[sl] = rng.normal(scale=50.0, size=eff.n_params)
+            elif eff.name == 'temperature':
+                p[sl] = np.r_[rng.normal(scale=2.0, size=3), rng.normal(scale=1e-4, size=3)]
+            elif eff.name == 'aux':
+                p[sl] = rng.normal(scale=20.0, size=3)
+    return Calibration(model, p, sigma_nt=np.full(4, NOISE_NT))
+
+
+def test_lean_correction_equals_the_core_model():
+    cal = _driven_calibration()
+    live = LiveCorrection(cal, calibration_to_doc(cal, geometry=cross_geometry(0.5)), 4)
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        raw = rng.normal(scale=30000.0, size=3)
+        t, temp, current = 130.0 + rng.random(), 20.0 + 10 * rng.random(), 3 * rng.random()
+        rate = rng.normal(scale=20000.0, size=3)
+        for j in range(1, 5):
+            ctx = SensorContext(t=np.array([t]), temp=np.array([temp]),
+                                aux={'aux_motor_current': np.array([current])},
+                                raw_rate=rate[None])
+            expected = cal.correct(j, raw[None], ctx)[0]
+            got = live.sensors[j - 1].correct(raw, t, temp, {'aux_motor_current': current},
+                                              rate)
+            np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-9)
+    sensor = live.sensors[1]
+    with pytest.raises(MissingSignal, match='waiting for sensor2/temperature'):
+        sensor.correct(raw, t, np.nan, {'aux_motor_current': 1.0}, rate)
+    with pytest.raises(MissingSignal, match='waiting for auxiliary channel aux_motor_current'):
+        sensor.correct(raw, t, 25.0, {}, rate)
+    with pytest.raises(MissingSignal, match='field rate needs two consecutive samples'):
+        sensor.correct(raw, t, 25.0, {'aux_motor_current': 1.0}, None)
+    with pytest.raises(CalibrationFileError, match='is for 4 sensors but this corrector '
+                                                   'handles 3'):
+        LiveCorrection(cal, {}, 3)
+
+
+def test_temperature_effect_waits_for_its_signal(make_node, ros_node, ros_executor,
+                                                 ros_namespace, tmp_path):
+    data, simulator = simulate(n_samples=40, rate_hz=100.0, trajectory='smooth', seed=5,
+                               truth={'temperature@2': [3.0, -2.0, 1.0, 1e-4, 0.0, -1e-4]})
+    truth = simulator.truth
+    doc = calibration_to_doc(truth, geometry=cross_geometry(0.5))
+    node = start(make_node, ros_namespace, write(tmp_path / 'cal.yaml', doc))
+    probe = Probe(ros_node, ros_namespace)
+    feeder = Feeder(ros_node)
+    feeder.wait_for_subscribers(ros_executor)
+    # without temperature messages sensor 2 is withheld, the others are corrected
+    feeder.feed(ros_executor, data, stop=10, taken=lambda: node._received, temperature=False)
+    spin_for(ros_executor, 0.2)
+    assert [len(c) for c in probe.corrected] == [10, 0, 10, 10]
+    assert probe.gradient == []
+    status = probe.last_status(ros_executor, since=len(probe.diagnostics), timeout_sec=3.0)
+    assert status.level == DiagnosticStatus.WARN
+    assert 'sensor 2: waiting for sensor2/temperature' in status.message
+    # with them, sensor 2 is corrected with the live temperature like the core model does
+    spin_until(ros_executor, lambda: all(p.get_subscription_count() for p in feeder.temp),
+               5.0, 'the temperature subscriptions of the corrector')
+    feeder.feed(ros_executor, data, start=10, taken=lambda: node._received)
+    spin_until(ros_executor, lambda: len(probe.corrected[1]) >= 25, 5.0)
+    msg = probe.corrected[1][-1]
+    k = int(round((stamp_to_seconds(msg.header.stamp) - T0) * 100.0))
+    ctx = SensorContext(t=data.t[k:k + 1], temp=data.temp[1, k:k + 1])
+    # the node uses the latest temperature it has, that of this epoch or of the one before:
+    # 0.002 degC apart, i.e. < 0.01 nT through the 3 nT/degC coefficient
+    np.testing.assert_allclose(msg_to_field_nt(msg), truth.correct(2, data.raw[1, k], ctx),
+                               atol=0.02)
+    assert np.sqrt(np.mean((msg_to_field_nt(msg) - data.meta['truth_field'][1, k]) ** 2)) \
+        < 5 * NOISE_NT
