@@ -139,3 +139,24 @@ def test_wide_csv_round_trip_diagnoses(tmp_path, capsys):
     doc = json.loads(capsys.readouterr().out)
     assert doc['field_reference']['kind'] == 'ref_total'
     assert doc['cv_rms_nt'] is None
+
+
+def test_progress_bar_on_a_terminal():
+    import io
+    from magcal_ros.cli_workbench import Progress
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    s = Tty()
+    p = Progress(stream=s, width=10)
+    for i in range(4):
+        p('screen', i, 4, f'cand{i}')
+    p('screen', 4, 4)
+    text = s.getvalue()
+    assert text.count('\r') == 5 and text.endswith('\n')
+    assert '[#####.....] 2/4 cand2' in text and '[##########] 4/4' in text
+    quiet = Tty()
+    Progress(stream=quiet, enabled=False)('screen', 1, 4)
+    assert quiet.getvalue() == ''
