@@ -457,6 +457,19 @@ def _tangent_basis(u):
     return e1, e2
 
 
+def _solve2x2(m, rhs):
+    """Solve the stacked 2x2 systems m (N, 2, 2) x = rhs (N, 2, K) in closed form.
+
+    Same result as ``np.linalg.solve`` (to rounding) for the well-conditioned tangent-plane
+    Gram matrices here, about 50x faster for K = 40 right-hand sides (bench/ profile: the
+    batched LAPACK call dominated the projection of the Jacobian).
+    """
+    a, b, c, d = m[:, 0, 0], m[:, 0, 1], m[:, 1, 0], m[:, 1, 1]
+    det = a * d - b * c
+    inv = np.stack([np.stack([d, -b], axis=1), np.stack([-c, a], axis=1)], axis=1)
+    return (inv / det[:, None, None]) @ rhs
+
+
 class _Problem:
     """Residuals and projected Jacobian of the ML problem for one group of sensors."""
 
@@ -511,7 +524,7 @@ class _Problem:
                 gt = np.swapaxes(g, 1, 2)                                  # (N, 2, 3)
                 hess += (gt * w[:, None, None]) @ g
                 grad += (gt @ (r * w[:, None])[..., None])[..., 0]
-            delta = np.linalg.solve(hess, grad[..., None])[..., 0]
+            delta = _solve2x2(hess, grad[..., None])[..., 0]
             b = b + self.f[:, None] * (delta[:, :1] * e1 + delta[:, 1:] * e2)
             b = b / np.linalg.norm(b, axis=1, keepdims=True) * self.f[:, None]
         return b, mats
@@ -558,7 +571,7 @@ class _Problem:
                              for j in self.sensors], axis=1)           # (N, 3G, 2)
         jac = jac.reshape(n, 3 * g, -1)
         gbt = np.swapaxes(gb, 1, 2)                    # batched matmul, not einsum: 3-5x faster
-        jac = jac - gb @ np.linalg.solve(gbt @ gb, gbt @ jac)
+        jac = jac - gb @ _solve2x2(gbt @ gb, gbt @ jac)
         jac = jac.reshape(n * 3 * g, -1)
         if self.priors:
             pr = np.zeros((len(self.priors), len(self.cols)))
