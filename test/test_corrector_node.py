@@ -76,8 +76,8 @@ def start(make_node, namespace, path, **params):
         Parameter(k, value=v) for k, v in overrides.items()])
 
 
-def test_without_calibration_nothing_is_published(make_node, ros_node, ros_executor,
-                                                 ros_namespace, tmp_path, sim):
+def test_without_calibration_nothing_is_published(
+        make_node, ros_node, ros_executor, ros_namespace, tmp_path, sim):
     data, _, _ = sim
     node = start(make_node, ros_namespace, tmp_path / 'missing.yaml')
     probe = Probe(ros_node, ros_namespace)
@@ -91,9 +91,8 @@ def test_without_calibration_nothing_is_published(make_node, ros_node, ros_execu
     assert status.message.startswith('no calibration: publishing nothing')
 
 
-def test_corrects_to_the_true_field_and_publishes_the_gradient(make_node, ros_node,
-                                                              ros_executor, ros_namespace,
-                                                              tmp_path, sim):
+def test_corrects_to_the_true_field_and_publishes_the_gradient(
+        make_node, ros_node, ros_executor, ros_namespace, tmp_path, sim):
     data, truth, doc = sim
     node = start(make_node, ros_namespace, write(tmp_path / 'cal.yaml', doc))
     probe = Probe(ros_node, ros_namespace)
@@ -128,7 +127,7 @@ def test_corrects_to_the_true_field_and_publishes_the_gradient(make_node, ros_no
 
 
 def _shifted(doc, shift_nt):
-    """The calibration document with every sensor's offset moved by ``shift_nt`` (3,) nT."""
+    """Return the calibration document with each offset moved by ``shift_nt`` (3,) nT."""
     new = copy.deepcopy(doc)
     for sensor in new['sensors']:
         for eff in sensor['effects']:
