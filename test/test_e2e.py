@@ -1,6 +1,8 @@
-"""End to end with real processes: fluxgate_sim -> fluxgate_driver -> calibration_node and
-corrector_node, the installed console scripts on real pseudo-terminals (the serial path a
-user's hardware takes), driven from this test over ROS.
+"""End to end with real processes: simulator, driver, calibration and corrector nodes.
+
+fluxgate_sim -> fluxgate_driver -> calibration_node and corrector_node run as the installed
+console scripts on real pseudo-terminals (the serial path a user's hardware takes), driven
+from this test over ROS.
 
 Accuracy targets, from the simulator's noise (3 nT white per axis, fluxgate_sim default):
 the corrected total field has an RMS error of about that noise, the gradient tensor of the
@@ -68,12 +70,12 @@ def split(response):
     return summary.splitlines(), json.loads('{' + payload)
 
 
-def test_calibrate_then_correct_at_the_noise_floor(start_process, ros_node, ros_executor,
-                                                    ros_namespace, tmp_path):
+def test_calibrate_then_correct_at_the_noise_floor(
+        start_process, ros_node, ros_executor, ros_namespace, tmp_path):
     start_pipeline(start_process, tmp_path, ros_namespace)
+    best_effort = QoSProfile(depth=1000, reliability=ReliabilityPolicy.BEST_EFFORT)
     wait_for_messages(ros_node, ros_executor, MagneticField, 'sensor4/raw', count=5,
-                      timeout_sec=30.0, qos=QoSProfile(depth=10,
-                                                       reliability=ReliabilityPolicy.BEST_EFFORT))
+                      timeout_sec=30.0, qos=best_effort)
     assert call_trigger(ros_node, ros_executor, 'calibration/start').success
     # about 20 s of the default smooth trajectory (period 60 s) cover the attitudes, but
     # depending on the part of the trajectory the fit may still find two parameters
@@ -94,7 +96,6 @@ def test_calibrate_then_correct_at_the_noise_floor(start_process, ros_node, ros_
         assert fit['scalar_rms_after_nt'][j] < 1.15 * NOISE_NT
 
     # record the streams once the corrector has the new calibration
-    best_effort = QoSProfile(depth=1000, reliability=ReliabilityPolicy.BEST_EFFORT)
     wait_for_messages(ros_node, ros_executor, MagneticField, 'sensor1/corrected',
                       timeout_sec=10.0, qos=best_effort)
     raw = [[] for _ in range(4)]
