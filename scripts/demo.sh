@@ -1,0 +1,22 @@
+#!/usr/bin/env bash
+# The magcal_ros main job on the simulated array (README "Demo"): starts fluxgate_sim,
+# fluxgate_driver, calibration_node and corrector_node, calibrates while the simulated array
+# tumbles (~65 s), then prints the total-field and gradient-tensor errors before and after
+# correction next to the noise floor and writes figures to ./demo_out (or --out DIR).
+#
+#   scripts/demo.sh [--out DIR] [--collect-s 65] [--record-s 15] [--model base] ...
+#   scripts/demo.sh --help
+#
+# Runs in the project's loopback-only ROS environment (scripts/ros_env.sh: loopback Fast DDS
+# profile, private ROS_DOMAIN_ID, .venv/bin first on PATH). Exit status 0 only if everything
+# worked and the corrected errors are at the noise floor.
+set -euo pipefail
+repo="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd -P)"
+# shellcheck source=ros_env.sh
+source "${repo}/scripts/ros_env.sh"
+python="${repo}/.venv/bin/python"
+if [ ! -x "${python}" ]; then
+    echo "scripts/demo.sh: ${python} not found; run 'make setup' first (or 'make demo')" >&2
+    exit 2
+fi
+exec "${python}" "${repo}/scripts/demo.py" "$@"
