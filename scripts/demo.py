@@ -376,6 +376,9 @@ def parse_args(argv=None):
                    help='write period of fluxgate_sim, s (default 0.01 = one sample per '
                         'write at 100 Hz, like a real device; the driver stamps samples on '
                         'arrival, so several samples per write would share a stamp)')
+    p.add_argument('--diagnose', action='store_true',
+                   help='also call calibration/diagnose after calibrating (ranks the effects '
+                        'missing from the model; writes an HTML report to <out>/report)')
     p.add_argument('--no-check', action='store_true',
                    help='do not fail when the corrected errors exceed 1.5x the floor')
     return p.parse_args(argv)
@@ -456,6 +459,14 @@ def main(argv=None):
         if not resp.success:
             raise RuntimeError('calibration/calibrate failed')
         cal_summary = json.loads('{' + payload)
+
+        if args.diagnose:
+            print('calling calibration/diagnose (is anything missing from the model?) ...')
+            resp = rec.call('diagnose', 600)
+            summary, _, _ = resp.message.partition('\n{')
+            print('\n'.join('  ' + line for line in summary.splitlines()))
+            if not resp.success:
+                raise RuntimeError('calibration/diagnose failed')
 
         time.sleep(1.0)          # corrector picks up calibration/result
         with rec.lock:
