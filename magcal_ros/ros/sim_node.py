@@ -7,7 +7,7 @@ the ASCII contract line ``<x_nT>,<y_nT>,<z_nT>,<temp_C>\r\n``). The defaults are
 section 4.1: |B| = 50 000 nT, D = -7 deg, I = 55 deg, noise 3 nT per axis, the Table 1
 sensor errors, and a smooth tumbling trajectory that covers the sphere in about a minute,
 at 100 samples/s per sensor. Samples are generated and written in chunks once per tick
-(default 20 ms), so 1 kHz and more per sensor cost a few writes per tick, not one per
+(default 10 ms), so 1 kHz and more per sensor cost a few writes per tick, not one per
 sample.
 
 Faults for tests: ``--unplug SENSOR:AT_S:FOR_S[:NEW_PATH]`` closes that sensor's
@@ -120,7 +120,8 @@ def build_parser():
                    help='number of sensors (default 4)')
     p.add_argument('--rate', type=_positive(float), help='samples per second per sensor, Hz '
                                                          '(default 100)')
-    p.add_argument('--tick', type=_positive(float), help='write period, s (default 0.02)')
+    p.add_argument('--tick', type=_positive(float),
+                   help='write period, s (default 0.01: one sample per write at 100 Hz)')
     p.add_argument('--protocol', choices=sorted(PROTOCOLS), help='serial protocol '
                                                                  '(default ascii)')
     p.add_argument('--option', type=parse_option, action='append', metavar='KEY=VALUE',
@@ -142,7 +143,7 @@ def build_parser():
 
 
 DEFAULTS = {'dir': DEFAULT_DIR, 'prefix': DEFAULT_PREFIX, 'sensors': 4, 'rate': 100.0,
-            'tick': 0.02, 'protocol': 'ascii', 'option': [], 'seed': 0,
+            'tick': 0.01, 'protocol': 'ascii', 'option': [], 'seed': 0,
             'trajectory': 'smooth', 'field_nt': 50000.0, 'noise_nt': 3.0,
             'errors': 'paper004', 'duration': None, 'unplug': []}
 
