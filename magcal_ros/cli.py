@@ -9,6 +9,7 @@ import sys
 
 import numpy as np
 
+from magcal_ros.core.diagnose import jsonable
 from magcal_ros.core.model import DegenerateDataError
 
 EXIT_OK, EXIT_FAIL, EXIT_BAD_INPUT = 0, 1, 2
@@ -75,23 +76,9 @@ def load_plugins(args):
         load_plugin(ref)
 
 
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
-    if isinstance(x, (np.floating, float)):
-        return float(x) if np.isfinite(x) else None
-    if isinstance(x, np.integer):
-        return int(x)
-    return x
-
-
 def print_json(obj):
     """One JSON object on stdout."""
-    print(json.dumps(_jsonable(obj)))
+    print(json.dumps(jsonable(obj)))
 
 
 # -- simulate -------------------------------------------------------------------------------

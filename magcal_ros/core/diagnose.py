@@ -68,6 +68,23 @@ NESTED = {'drift': ('drift2',), 'drift2': ('drift',)}
 RAW_FLOOR_EXCESS = 1.2
 
 
+def jsonable(x):
+    """Plain-JSON copy of nested dicts/lists/numpy values (non-finite floats -> None)."""
+    if isinstance(x, dict):
+        return {str(k): jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return jsonable(x.tolist())
+    if isinstance(x, (bool, np.bool_)):
+        return bool(x)
+    if isinstance(x, (np.integer,)):
+        return int(x)
+    if isinstance(x, (float, np.floating)):
+        return float(x) if np.isfinite(x) else None
+    return x
+
+
 # -- noise floor ----------------------------------------------------------------------------
 
 @dataclass(frozen=True, eq=False)
@@ -600,7 +617,7 @@ class Diagnosis:
 
     def to_json(self, **kwargs):
         """Return :meth:`to_dict` as a JSON string (non-finite numbers as null)."""
-        return json.dumps(_jsonable(self.to_dict()), **kwargs)
+        return json.dumps(jsonable(self.to_dict()), **kwargs)
 
     def summary(self, max_candidates=12):
         """Human-readable report (the best ``max_candidates`` candidates)."""
@@ -645,22 +662,6 @@ class Diagnosis:
         else:
             lines.append(f'verdict: none ({self.verdict_reason})')
         return '\n'.join(lines)
-
-
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
-    if isinstance(x, (bool, np.bool_)):
-        return bool(x)
-    if isinstance(x, (np.integer,)):
-        return int(x)
-    if isinstance(x, (float, np.floating)):
-        return float(x) if np.isfinite(x) else None
-    return x
 
 
 def _progress(cb, stage, i, n, label=''):
