@@ -207,14 +207,16 @@ class Model:
         lin = b @ self.matrix(j, p).T
         return lin + self.additive(j, p, ctx, lin)
 
-    def correct(self, j, p, raw, ctx, n_iter=4):
+    def correct(self, j, p, raw, ctx, n_iter=4, a_inv=None):
         """Invert :meth:`forward`: corrected field (N, 3) nT in the array frame.
 
         Additive effects that depend on the field itself (temperature scale, nonlinearity)
         are inverted by fixed-point iteration, which converges at rate |effect/field|.
+        ``a_inv`` (3, 3) is A_j^-1 when the caller has it precomputed.
         """
         raw = np.asarray(raw, float)
-        a_inv = np.linalg.inv(self.matrix(j, p))
+        if a_inv is None:
+            a_inv = np.linalg.inv(self.matrix(j, p))
         lin = raw - self.additive(j, p, ctx, raw)
         if any(e.depends_on_lin() for e in self.effects[j - 1]):
             for _ in range(n_iter):
@@ -381,6 +383,9 @@ class Calibration:
         self.stderr = np.zeros_like(self.params) if stderr is None else np.asarray(stderr)
         self.sigma_nt = (np.full(model.n_sensors, np.nan) if sigma_nt is None
                          else np.asarray(sigma_nt, float))
+        # A calibration is immutable: precompute what every correction needs
+        self._a_inv = [np.linalg.inv(model.matrix(j, self.params))
+                       for j in range(1, model.n_sensors + 1)]
 
     @property
     def n_sensors(self):
@@ -393,7 +398,7 @@ class Calibration:
 
     def correction_matrix(self, j):
         """(3, 3) A_j^-1: corrected = A_j^-1 (raw - offset - driven)."""
-        return np.linalg.inv(self.matrix(j))
+        return self._a_inv[j - 1].copy()
 
     def offset(self, j):
         """(3,) nT constant offset of sensor j (zero if the model has none)."""
@@ -439,7 +444,7 @@ class Calibration:
                 raise ValueError(f'sensor {j} has driven effects {self.driven_effects(j)}: '
                                  'pass their signals in ctx')
             ctx = fx.SensorContext(t=np.zeros(len(raw2)))
-        out = self.model.correct(j, self.params, raw2, ctx)
+        out = self.model.correct(j, self.params, raw2, ctx, a_inv=self._a_inv[j - 1])
         return out[0] if one else out
 
     def correct_dataset(self, data):

@@ -38,8 +38,6 @@ from rclpy.node import Node
 from sensor_msgs.msg import MagneticField, Temperature
 from std_msgs.msg import Float64, Float64MultiArray, String
 
-#: fixed-point iterations for effects that depend on the field itself (as Model.correct)
-_N_ITER = 4
 #: consecutive raw samples further apart than this give no field-rate estimate, s
 _MAX_RATE_GAP_S = 1.0
 #: arrivals per stream used to estimate its sample period (field-rate effect)
@@ -51,27 +49,22 @@ class MissingSignal(Exception):
 
 
 class _SensorCorrection:
-    """Precomputed correction of one sensor: B = A^-1 (raw - o - sum driven(raw))."""
+    """Live correction of one sensor: the calibration's own correction plus signal checks."""
 
     def __init__(self, cal, j):
-        model = cal.model
+        self.cal = cal
         self.j = j
-        self.a_inv = np.linalg.inv(cal.matrix(j))
-        self.offset = cal.offset(j)
-        self.driven = []
+        self.a_inv = cal.correction_matrix(j)
         self.needs = set()
-        self.iterate = False
-        for eff, sl in zip(model.effects[j - 1], model.slices[j - 1]):
-            if eff.kind == 'linear' or eff.name == 'offset':
-                continue
-            self.driven.append((eff, cal.params[sl].copy()))
-            self.iterate |= eff.depends_on_lin()
+        for eff in cal.model.effects[j - 1]:
             if eff.name == 'temperature':
                 self.needs.add('temperature')
             elif eff.name == 'aux':
                 self.needs.add(eff.channel)
             elif eff.name == 'field_rate':
                 self.needs.add('field_rate')
+        self.driven = bool(cal.driven_effects(j))
+        self.offset = cal.offset(j)
         sigma = float(cal.sigma_nt[j - 1])
         # corrected = A^-1 raw: white raw noise sigma^2 I maps to sigma^2 A^-1 A^-T (nT^2)
         self.cov_nt2 = (sigma ** 2 * self.a_inv @ self.a_inv.T
@@ -81,9 +74,8 @@ class _SensorCorrection:
 
     def correct(self, raw, t, temp, aux, rate):
         """Corrected field (3,) nT in the array frame; raises MissingSignal."""
-        lin = raw - self.offset
         if not self.driven:
-            return self.a_inv @ lin
+            return self.a_inv @ (raw - self.offset)          # the common case: one 3x3 product
         if 'temperature' in self.needs and not np.isfinite(temp):
             raise MissingSignal(f'sensor {self.j}: waiting for sensor{self.j}/temperature '
                                 '(the calibration has a temperature effect)')
@@ -98,18 +90,7 @@ class _SensorCorrection:
             t=np.array([t]), temp=np.array([temp]) if np.isfinite(temp) else None,
             aux={k: np.array([v]) for k, v in aux.items()},
             raw_rate=None if rate is None else rate[None])
-        raw1 = raw[None]
-        corr = raw1 - self.offset
-        for eff, p in self.driven:
-            corr = corr - eff.contribution(p, ctx, raw1)
-        if self.iterate:
-            # fixed point lin = raw - o - d(lin), as Model.correct
-            for _ in range(_N_ITER):
-                lin_k = corr
-                corr = raw1 - self.offset
-                for eff, p in self.driven:
-                    corr = corr - eff.contribution(p, ctx, lin_k)
-        return self.a_inv @ corr[0]
+        return self.cal.correct(self.j, raw, ctx)
 
 
 class LiveCorrection:
