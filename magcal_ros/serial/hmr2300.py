@@ -167,7 +167,13 @@ class Hmr2300AsciiParser(_Hmr2300Options, LineParser):
         counts = []
         for k in range(3):
             sign, digits = m.group(2 * k + 1), m.group(2 * k + 2)
-            value = int(digits.replace(b',', b''))
+            digits = digits.replace(b',', b'')
+            if len(digits) > 15:
+                # far beyond int16 (and beyond float range / int() digit limit when a large
+                # max_line_bytes lets such a line through): saturated, not a crash
+                self._error('out_of_range')
+                return
+            value = int(digits)
             counts.append(-value if sign == b'-' else value)
         self._accept(out, *(self.counts_to_nt(c) for c in counts))
 
