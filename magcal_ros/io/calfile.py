@@ -87,7 +87,53 @@ def _need(d, key, where):
 
 
 def calibration_from_doc(doc, source='calibration'):
-    """Rebuild a :class:`Calibration` from a document; raises CalibrationFileError."""
+    """Rebuild a :class:`Calibration` from a document; raises CalibrationFileError.
+
+    Every defect (wrong types from a hand edit, a file cut short by a crash or a full disk)
+    is reported as a :class:`CalibrationFileError` naming it, never as another exception, so
+    that a caller keeping its last good calibration needs to catch only that.
+    """
+    try:
+        return _calibration_from_doc(doc, source)
+    except CalibrationFileError:
+        raise
+    except (TypeError, AttributeError, KeyError, IndexError, ValueError) as exc:
+        raise CalibrationFileError(
+            f'{source}: malformed calibration document ({type(exc).__name__}: {exc}); '
+            'write it again with magcal fit or roll back (magcal rollback)') from None
+
+
+def _check_complete(doc, model, source):
+    """Refuse a document cut short (truncated write) or whose parts disagree."""
+    # provenance is written last: without it the file ended early, possibly in the middle
+    # of the sensors list (fewer sensors or effects than were calibrated)
+    prov = doc.get('provenance')
+    if prov is None:
+        raise CalibrationFileError(f'{source}: missing key \'provenance\' (the file ends early: '
+                                   'truncated write?)')
+    if not isinstance(prov, dict):
+        raise CalibrationFileError(f'{source}: provenance must be a mapping')
+    spec = doc.get('model')
+    if spec is not None:
+        if not isinstance(spec, list) or sorted(map(str, spec)) != sorted(model.spec()):
+            raise CalibrationFileError(
+                f'{source}: model {spec!r} does not match the effects of the sensors '
+                f'{model.spec()!r} (truncated or hand-edited?)')
+    geometry = doc.get('geometry') or {}
+    if not isinstance(geometry, dict):
+        raise CalibrationFileError(f'{source}: geometry must be a mapping')
+    if 'positions_m' in geometry:
+        try:
+            pos = np.asarray(geometry['positions_m'], float)
+        except (TypeError, ValueError):
+            pos = np.zeros(0)
+        if pos.shape != (model.n_sensors, 3) or not np.all(np.isfinite(pos)):
+            raise CalibrationFileError(
+                f'{source}: geometry.positions_m must be {model.n_sensors} rows of 3 finite '
+                'numbers (m), one per sensor')
+
+
+def _calibration_from_doc(doc, source):
     if not isinstance(doc, dict):
         raise CalibrationFileError(f'{source}: not a calibration document (top level is '
                                    f'{type(doc).__name__}, expected a mapping)')
@@ -155,6 +201,7 @@ def calibration_from_doc(doc, source='calibration'):
                 raise CalibrationFileError(
                     f'{source}: sensor {k}: correction_matrix does not match the parameters '
                     '(hand-edited?); edit the parameters, not the derived matrices')
+    _check_complete(doc, model, source)
     return cal
 
 
