@@ -152,6 +152,54 @@ def cmd_fit(args):
     return EXIT_OK
 
 
+# -- rollback -------------------------------------------------------------------------------
+
+def cmd_rollback(args):
+    from magcal_ros.io import calfile
+    path = args.calfile
+    hist = calfile.list_history(path)
+    if args.list:
+        active = calfile.active_history_index(path)
+        rows = []
+        for k, entry in enumerate(hist):
+            try:
+                _, doc = calfile.load_calibration(entry)
+                prov = doc.get('provenance') or {}
+                info = {'created': prov.get('created'), 'model': doc.get('model'),
+                        'samples': prov.get('samples')}
+            except calfile.CalibrationFileError as exc:
+                info = {'error': str(exc)}
+            rows.append({'path': entry, 'active': k == active, **info})
+        if args.json:
+            print_json({'calfile': path, 'history': rows})
+        else:
+            if not rows:
+                print(f'{path}: no history ({path}.history/ is empty or missing)')
+            for k, row in enumerate(rows):
+                mark = '*' if row['active'] else ' '
+                what = row.get('error') or (f'created {row["created"]}, model '
+                                            f'{",".join(row["model"] or [])}, '
+                                            f'{row["samples"]} samples')
+                print(f'{mark} {k - (active if active is not None else len(rows) - 1):+d} '
+                      f'{row["path"]}: {what}')
+        return EXIT_OK
+    if args.steps < 1:
+        raise BadInput(f'--steps must be >= 1, got {args.steps}')
+    if not hist:
+        raise BadInput(f'{path}: no calibration history ({path}.history/ is empty or missing)')
+    chosen = calfile.rollback(path, steps=args.steps)
+    _, doc = calfile.load_calibration(path)
+    out = {'calfile': path, 'restored': chosen,
+           'created': (doc.get('provenance') or {}).get('created'),
+           'backup': path + '.bak'}
+    if args.json:
+        print_json(out)
+    else:
+        print(f'{path} is now the calibration created {out["created"]} ({chosen}); the one it '
+              f'replaced is kept as {out["backup"]}')
+    return EXIT_OK
+
+
 # -- main -----------------------------------------------------------------------------------
 
 def build_parser():
@@ -195,6 +243,17 @@ def build_parser():
                    help='fit degenerate data anyway and flag the result instead of refusing')
     f.add_argument('--plugin', action='append', help='import a module defining effects')
     f.set_defaults(func=cmd_fit)
+
+    r = sub.add_parser('rollback', help='make an earlier calibration from the history of a '
+                       'calibration file the active one')
+    r.add_argument('calfile', help='the calibration YAML (its history is CALFILE.history/)')
+    r.add_argument('--steps', type=int, default=1,
+                   help='how many calibrations back from the active one (default 1); '
+                        'repeated rollbacks walk further back')
+    r.add_argument('--list', action='store_true',
+                   help='list the history (oldest first, * = active) instead of rolling back')
+    r.add_argument('--json', action='store_true', help='print one JSON object on stdout')
+    r.set_defaults(func=cmd_rollback)
 
     register_workbench_commands(sub)
     return p

@@ -255,13 +255,45 @@ def list_history(path):
     return sorted(glob.glob(os.path.join(os.fspath(path) + '.history', 'calibration-*.yaml')))
 
 
-def rollback(path, steps=1):
-    """Make the calibration ``steps`` back in the history the active one; returns its path."""
+def active_history_index(path):
+    """Index in :func:`list_history` of the entry the active file is a copy of, or None.
+
+    The newest matching entry counts (a rollback makes an older entry active again).
+    """
+    try:
+        with open(path, encoding='utf-8') as fh:
+            active = fh.read()
+    except (OSError, UnicodeDecodeError):
+        return None
     hist = list_history(path)
-    if len(hist) <= steps:
-        raise CalibrationFileError(f'{path}: only {len(hist)} calibration(s) in the history, '
-                                   f'cannot go back {steps}')
-    chosen = hist[-1 - steps]
+    for k in range(len(hist) - 1, -1, -1):
+        try:
+            with open(hist[k], encoding='utf-8') as fh:
+                if fh.read() == active:
+                    return k
+        except (OSError, UnicodeDecodeError):
+            continue
+    return None
+
+
+def rollback(path, steps=1):
+    """Make the calibration ``steps`` back in the history the active one; returns its path.
+
+    Steps count back from the history entry the active file is a copy of (the newest entry
+    after a calibration), so repeated rollbacks walk further back; when the active file is
+    in no entry (hand-edited, history disabled) they count from the newest entry.
+    """
+    if int(steps) != steps or steps < 1:
+        raise CalibrationFileError(f'steps must be an integer >= 1, got {steps!r}')
+    hist = list_history(path)
+    base = active_history_index(path)
+    if base is None:
+        base = len(hist) - 1
+    if base - steps < 0:
+        raise CalibrationFileError(
+            f'{path}: only {max(base, 0)} calibration(s) older than the active one in the '
+            f'history ({len(hist)} kept), cannot go back {steps}')
+    chosen = hist[base - steps]
     with open(chosen, encoding='utf-8') as fh:
         text = fh.read()
     parse_calibration(text, chosen)
