@@ -45,16 +45,28 @@ def coverage_report(raw):
     Returns
     -------
     dict
-        ``sensors``: {j: {eigenvalues, normal, cone_half_angle_deg, status}},
+        ``sensors``: {j: {eigenvalues, normal, cone_half_angle_deg, status}} with status
+        'good', 'partial', 'single axis', 'one attitude' or 'constant' (stuck output),
         ``problems``: list of messages naming the missing rotation (empty when fine),
         ``summary``: one line.
     """
     out = {'sensors': {}, 'problems': []}
+    messages = {}
     for j in range(1, raw.shape[0] + 1):
         m = raw[j - 1]
         m = m[np.linalg.norm(m, axis=1) > 0]
         if len(m) < 3:
-            out['problems'].append(f'sensor {j} reported no usable samples: check its cable/port')
+            messages[j] = f'sensor {j} reported no usable samples: check its cable/port'
+            continue
+        spread = np.ptp(m, axis=0)
+        if not np.any(spread > 0):
+            # a stuck sensor (frozen ADC, driver repeating its last value): not an attitude
+            # problem, rotating more would not help
+            out['sensors'][j] = dict(eigenvalues=[0.0, 0.0, 1.0], normal=[0.0, 0.0, 0.0],
+                                     cone_half_angle_deg=0.0, status='constant')
+            messages[j] = (f'sensor {j}: output is constant (all {len(m)} samples read '
+                           f'({", ".join(f"{x:.1f}" for x in m[0])}) nT): the sensor is stuck or '
+                           'not updating; check its power, cable and driver')
             continue
         cov = direction_coverage(m)
         ev = cov.eigenvalues
@@ -95,7 +107,18 @@ def coverage_report(raw):
         out['sensors'][j] = dict(eigenvalues=ev.tolist(), normal=cov.normal.tolist(),
                                  cone_half_angle_deg=cov.cone_half_angle_deg, status=status)
         if msg:
-            out['problems'].append(msg)
+            messages[j] = msg
+    moved = [j for j, v in out['sensors'].items()
+             if v['status'] not in ('one attitude', 'constant')]
+    for j, v in out['sensors'].items():
+        if v['status'] == 'one attitude' and moved:
+            # the array turned (sensor moved[0] saw it) but this sensor's direction did not
+            spread = float(np.max(np.ptp(raw[j - 1], axis=0)))
+            v['status'] = 'constant'
+            messages[j] = (f'sensor {j}: output (nearly) constant (spread {spread:.1f} nT) '
+                           f'while sensor {moved[0]} saw the array turn: the sensor is stuck, '
+                           'saturated or not following the array; check it')
+    out['problems'] = [messages[j] for j in sorted(messages)]
     out['summary'] = (out['problems'][0] if out['problems']
                       else 'attitude coverage is adequate for every sensor')
     return out
