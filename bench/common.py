@@ -200,6 +200,21 @@ def ros_env(domain_id=None):
     return env
 
 
+def _die_with_parent():
+    """preexec_fn: SIGTERM this child when the benchmark process dies (Linux prctl)."""
+    import ctypes
+    import signal
+    try:
+        ctypes.CDLL('libc.so.6', use_errno=True).prctl(1, int(signal.SIGTERM))  # PR_SET_PDEATHSIG
+    except OSError:
+        pass
+
+
+def popen(cmd, **kwargs):
+    """subprocess.Popen that cannot outlive the benchmark (parent-death signal)."""
+    return subprocess.Popen(cmd, preexec_fn=_die_with_parent, **kwargs)
+
+
 def cpu_seconds(pid):
     """User + system CPU time of a process (and its threads), s, from /proc/<pid>/stat."""
     with open(f'/proc/{pid}/stat') as fh:

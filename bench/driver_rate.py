@@ -93,7 +93,7 @@ class _Pty:
         tty.setraw(self.slave)
         tty.setraw(self.master)
         self.path = os.ttyname(self.slave)
-        self.proc = subprocess.Popen([PY, '-c', _WRITER, str(self.master), blob_path,
+        self.proc = common.popen([PY, '-c', _WRITER, str(self.master), blob_path,
                                       str(reps)], pass_fds=(self.master,),
                                      stderr=subprocess.DEVNULL)
 
@@ -171,7 +171,7 @@ def driver_node_cpu(args, env, tmp):
     out = {'rate_hz_per_sensor': args.node_rate}
     logs = [open(os.path.join(tmp, 'sim.log'), 'w'), open(os.path.join(tmp, 'driver.log'), 'w')]
     try:
-        sim = subprocess.Popen([PY, '-m', 'magcal_ros.ros.sim_node', '--dir', simdir,
+        sim = common.popen([PY, '-m', 'magcal_ros.ros.sim_node', '--dir', simdir,
                                 '--rate', str(args.node_rate)], env=env, stdout=logs[0],
                                stderr=subprocess.STDOUT)
         procs.append(sim)
@@ -182,11 +182,11 @@ def driver_node_cpu(args, env, tmp):
         ports = []
         for j in range(1, 5):
             ports += ['-p', f'sensor{j}.port:={os.path.join(simdir, f"fluxgate{j}")}']
-        drv = subprocess.Popen([PY, '-m', 'magcal_ros.ros.driver_node', '--ros-args', '-r',
+        drv = common.popen([PY, '-m', 'magcal_ros.ros.driver_node', '--ros-args', '-r',
                                 '__ns:=/bench'] + ports, env=env, stdout=logs[1],
                                stderr=subprocess.STDOUT)
         procs.append(drv)
-        rcv = subprocess.Popen([PY, LOAD, '--role', 'sub', '--ns', '/bench', '--topic-in', 'raw',
+        rcv = common.popen([PY, LOAD, '--role', 'sub', '--ns', '/bench', '--topic-in', 'raw',
                                 '--rate', str(args.node_rate), '--duration',
                                 str(args.node_duration), '--warmup', str(args.node_warmup),
                                 '--t0', 'stdin'],

@@ -89,7 +89,7 @@ def run_one(kind, rate, args, env, calfile, log_dir):
     try:
         nlog = open(os.path.join(log_dir, f'{tag}_node.log'), 'w')
         logs.append(nlog)
-        node = subprocess.Popen(node_cmd(kind, calfile), env=env, stdout=nlog,
+        node = common.popen(node_cmd(kind, calfile), env=env, stdout=nlog,
                                 stderr=subprocess.STDOUT)
         procs.append(node)
         common_args = ['--ns', NS, '--rate', str(rate), '--duration', str(args.duration),
@@ -97,11 +97,11 @@ def run_one(kind, rate, args, env, calfile, log_dir):
                        '--match-timeout', str(args.match_timeout)]
         if args.tick:
             common_args += ['--tick', str(args.tick)]
-        sub = subprocess.Popen([PY, LOAD, '--role', 'sub'] + common_args, env=env,
+        sub = common.popen([PY, LOAD, '--role', 'sub'] + common_args, env=env,
                                stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                stderr=subprocess.DEVNULL, text=True)
         procs.append(sub)
-        pub = subprocess.Popen([PY, LOAD, '--role', 'pub'] + common_args, env=env,
+        pub = common.popen([PY, LOAD, '--role', 'pub'] + common_args, env=env,
                                stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                stderr=subprocess.DEVNULL, text=True)
         procs.append(pub)

@@ -17,6 +17,7 @@ are matched, and one JSON line at the end.
 """
 import argparse
 import json
+import os
 import struct
 import sys
 import threading
@@ -74,6 +75,11 @@ def main(argv=None):
     ap.add_argument('--match-timeout', type=float, default=30.0)
     ap.add_argument('--topic-in', default='corrected', help='received topic suffix')
     args = ap.parse_args(argv)
+    # hard bound on this process's life, whatever happens to its parent or to DDS
+    life = args.match_timeout + 30.0 + args.warmup + args.duration + args.drain + 30.0
+    watchdog = threading.Timer(life, os._exit, args=(3,))
+    watchdog.daemon = True
+    watchdog.start()
 
     rclpy.init()
     node = Node(f'bench_load_{args.role}', namespace=args.ns)
