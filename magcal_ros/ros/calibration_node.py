@@ -151,6 +151,23 @@ def _fmt_per_sensor(d, fmt='{:.2f}'):
     return ', '.join(f'{k}: {fmt.format(v)}' for k, v in d.items())
 
 
+def _silent_sensors(received):
+    """Messages naming the sensors that sent nothing, or far less than the others.
+
+    ``received`` lists the raw samples taken per sensor since calibration/start.
+    """
+    most = max(received) if received else 0
+    out = []
+    for j, n in enumerate(received, start=1):
+        if n == 0:
+            out.append(f'sensor {j} sent no samples since calibration/start: check its driver, '
+                       f'cable and the topic sensor{j}/raw')
+        elif most >= 100 and n < 0.5 * most:
+            out.append(f'sensor {j} sent only {n} samples, the others up to {most}: its data '
+                       'are missing for part of the collection (unplugged?)')
+    return out
+
+
 def _tensor_rms(components):
     """One RMS over the nine tensor components (list of lists, nT/m)."""
     return float(np.sqrt(np.mean(np.square(np.asarray(components, float)))))
@@ -277,6 +294,8 @@ class CalibrationNode(Node):
         missing = []
         if state == 'idle':
             missing.append('not collecting: call calibration/start')
+        else:
+            missing.extend(_silent_sensors(received))
         if n_sets < s.min_samples:
             missing.append(f'{s.min_samples - n_sets} more complete sample sets '
                            f'(have {n_sets}, need {s.min_samples})')
@@ -369,9 +388,13 @@ class CalibrationNode(Node):
         s = prm.calibration_settings(self)
         n_sets, data = self._snapshot()
         if n_sets < s.min_samples:
+            with self._lock:
+                received = self._received.tolist()
+            silent = [] if state == 'idle' else _silent_sensors(received)
             reason = (f'only {n_sets} complete sample sets collected, need at least '
                       f'{s.min_samples}' + (': call calibration/start and rotate the array'
                                             if state == 'idle' else
+                                            '; ' + '; '.join(silent) if silent else
                                             ': keep rotating the array'))
             return False, f'not calibrated: {reason}; previous calibration stays active', {
                 'reason': reason, 'sets': n_sets}
@@ -408,6 +431,8 @@ class CalibrationNode(Node):
             'scalar_rms_before_nt': summ['total_field_rms_before_nt'],
             'scalar_rms_after_nt': summ['scalar_rms_nt'],
             'vector_rms_after_nt': summ['vector_rms_nt'],
+            'robust': s.robust,
+            'downweighted': summ['downweighted'],
             'warnings': summ['warnings'],
         }
         lines = [f'calibrated {n_sets} sets with model {",".join(summ["model"])} in '
@@ -426,6 +451,9 @@ class CalibrationNode(Node):
                            tensor_rms_components_after_nt_per_m=summ['tensor_rms_nt_per_m'])
             lines.append(f'tensor RMS before {before:.1f} nT/m, after {after:.2f} nT/m '
                          f'(noise floor {floor:.2f} nT/m)')
+        if s.robust:
+            lines.append(f'robust fit: samples down-weighted as outliers per sensor: '
+                         f'{_fmt_per_sensor(summ["downweighted"], "{:d}")} of {n_sets}')
         for w in summ['warnings']:
             lines.append(f'warning: {w}')
         self._last_result = {k: payload[k] for k in ('calibration_file', 'model', 'sets')}
