@@ -1,0 +1,383 @@
+"""Calibration under bad data, outliers, concurrent requests and invalid parameters.
+
+Already covered elsewhere and not repeated: the core refusals of a single-axis rotation, one
+attitude, too few samples and non-finite input, and the robust fit's parameter tolerance
+(test_model_ml.py); at the node, a single-axis refusal keeping the previous file, too few
+sets without a previous file, a second calibrate and a start during a solve, and the model
+parameter's validation (test_calibration_node.py, test_e2e.py). Added here:
+
+- a stuck sensor (all samples identical, or frozen within its noise while the array turns)
+  is refused with a message naming that sensor, from the core, the CLI and the node;
+- at the node, each refusal (too few sets, one attitude, a stuck sensor, a sensor that never
+  reports, a sensor whose data stop half way) answers success=false with the reason naming
+  the sensor where there is one, and leaves the previously written file and the latched
+  calibration/result untouched;
+- 5 % spikes of 1000 nT through the CLI and the node with the robust loss: parameters within
+  the no-outlier tolerance, and the reported down-weighted count matches the spikes;
+- start, calibrate and diagnose requested at the same moment, and invalid parameter values
+  (unknown effect, negative rate or tolerance, empty path) set during a solve: clean
+  refusals, a consistent state afterwards, and the solve's result unaffected.
+"""
+import copy
+import json
+import os
+import re
+import subprocess
+import sys
+
+from magcal_ros.core.identifiability import coverage_report
+from magcal_ros.core.model import DegenerateDataError, fit
+from magcal_ros.core.simulate import simulate
+from magcal_ros.io.calfile import (calibration_to_doc, list_history, load_calibration,
+                                   save_calibration)
+from magcal_ros.io.csvio import write_csv
+from magcal_ros.pipeline import calibrate, cross_geometry
+from magcal_ros.ros.calibration_node import CalibrationNode, RESULT_QOS
+from magcal_ros.ros.conversions import field_nt_to_msg, msg_to_field_nt
+from magcal_ros.ros.corrector_node import CorrectorNode
+import numpy as np
+import pytest
+from rclpy.parameter import Parameter
+from rclpy.parameter_client import AsyncParameterClient
+from ros_helpers import call_trigger, spin_for, spin_until, subprocess_env
+from sensor_msgs.msg import MagneticField
+from sim_feed import Feeder, T0
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+
+F = 50000.0                 # simulated field magnitude, nT
+NOISE_NT = 3.0              # simulator noise per axis, nT
+
+
+@pytest.fixture(scope='module')
+def tumbling():
+    """6 s at 100 Hz of the smooth trajectory with a 6 s period: all attitudes covered."""
+    data, sim = simulate(n_samples=600, rate_hz=100.0, trajectory='smooth',
+                         smooth_period_s=6.0, seed=7)
+    return data, sim
+
+
+def _copy(data):
+    return copy.deepcopy(data)
+
+
+def stuck(data, sensor, noise_nt=0.0, seed=0):
+    """Copy of ``data`` where ``sensor`` (1-based) repeats its first reading (plus noise)."""
+    out = _copy(data)
+    rng = np.random.default_rng(seed)
+    frozen = out.raw[sensor - 1, 0]
+    out.raw[sensor - 1] = frozen + rng.normal(scale=noise_nt, size=out.raw[sensor - 1].shape)
+    return out
+
+
+# -- core and CLI ----------------------------------------------------------------------------
+
+@pytest.mark.parametrize('noise_nt, match', [
+    (0.0, r'sensor 3: output is constant \(all 600 samples read'),
+    (NOISE_NT, r'sensor 3: output \(nearly\) constant .* while sensor 1 saw the array turn'),
+])
+def test_stuck_sensor_is_refused_naming_it(tumbling, noise_nt, match):
+    data = stuck(tumbling[0], 3, noise_nt)
+    with pytest.raises(DegenerateDataError, match=match):
+        fit(data, 'base', field_nt=F)
+    rep = coverage_report(data.raw)
+    assert {j: v['status'] for j, v in rep['sensors'].items()} == {
+        1: 'good', 2: 'good', 3: 'constant', 4: 'good'}
+    assert len(rep['problems']) == 1 and 'stuck' in rep['problems'][0]
+
+
+def _magcal(*args, cwd):
+    return subprocess.run([sys.executable, '-m', 'magcal_ros.cli', *map(str, args)],
+                          capture_output=True, text=True, timeout=120, cwd=cwd,
+                          env=subprocess_env())
+
+
+def test_cli_refuses_stuck_and_missing_sensors_naming_them(tmp_path, tumbling):
+    write_csv(tmp_path / 'stuck.csv', stuck(tumbling[0], 2))
+    missing = _copy(tumbling[0])
+    missing.raw[3, 200:] = np.nan                   # sensor 4 stopped reporting at 2 s
+    write_csv(tmp_path / 'missing.csv', missing)
+    for name, match in (('stuck.csv', 'sensor 2: output is constant'),
+                        ('missing.csv', r'non-finite raw readings for sensor\(s\) \[4\]')):
+        res = _magcal('fit', name, '--field-nt', F, '-o', 'cal.yaml', cwd=tmp_path)
+        assert res.returncode == 2, res.stderr
+        assert res.stderr.count('\n') == 1 and res.stderr.startswith('magcal: error: ')
+        assert re.search(match, res.stderr), res.stderr
+        assert not (tmp_path / 'cal.yaml').exists()
+
+
+@pytest.fixture(scope='module')
+def spiky():
+    """5 % spikes of 1000 nT (paper 004 errors, 3 nT noise), the same data without them, and
+    the robust pipeline fit of the spiky data."""
+    data, sim = simulate(n_samples=1000, trajectory='random', seed=6, aux=False,
+                         outlier_fraction=0.05, outlier_nt=1000.0)
+    clean, _ = simulate(n_samples=1000, trajectory='random', seed=6, aux=False)
+    hit = np.linalg.norm(data.raw - clean.raw, axis=2) > 100.0        # (S, N) spiked
+    run = calibrate(data, 'base', field_nt=F, robust=True)
+    return data, clean, sim, hit, run
+
+
+def flagged(result):
+    """(S, N) samples the soft-L1 loss down-weights: a raw residual component > 3 sigma."""
+    return (np.abs(result.residual_nt / result.sigma_nt[:, None, None]) > 3.0).any(axis=2)
+
+
+def test_robust_fit_down_weights_every_spike_and_counts_them(spiky):
+    data, clean, sim, hit, run = spiky
+    flag = flagged(run.result)
+    assert run.summary['downweighted'] == {str(j + 1): int(flag[j].sum()) for j in range(4)}
+    # every spike is down-weighted, on its own sensor
+    assert np.all(flag[hit])
+    # the other down-weighted samples sit at epochs where another sensor spiked (the field
+    # of an epoch is shared by the four sensors: a spike pulls its estimate for all) or are
+    # the Gaussian tail, as often as a robust fit of the clean data flags (+5 sd)
+    tail = flagged(calibrate(clean, 'base', field_nt=F, robust=True).result).sum(axis=1)
+    elsewhere = (flag & ~hit.any(axis=0)).sum(axis=1)
+    assert np.all(elsewhere <= tail + 5.0 * np.sqrt(tail) + 3), (elsewhere, tail)
+    assert np.all(flag.sum(axis=1) < 0.25 * data.n_samples)
+    # and the parameters stay within the no-outlier tolerance (as in test_model_ml.py: 4.5
+    # standard errors of the clean fit, x1.3 for the efficiency loss of the soft-L1 loss)
+    ref = fit(clean, 'base', field_nt=F)
+    assert np.all(np.abs(run.result.params - sim.params) < 4.5 * 1.3 * ref.stderr)
+
+
+def test_cli_robust_fit_reports_the_spikes_it_down_weighted(tmp_path, spiky):
+    data, clean, sim, hit, run = spiky
+    write_csv(tmp_path / 'spiky.csv', data)
+    res = _magcal('fit', 'spiky.csv', '--field-nt', F, '--robust', '--json', '-o', 'cal.yaml',
+                  cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    out = json.loads(res.stdout)
+    # the CSV keeps 0.1 nT: a sample exactly at the 3-sigma threshold may flip
+    for j in '1234':
+        assert abs(out['downweighted'][j] - run.summary['downweighted'][j]) <= 2, j
+        assert out['downweighted'][j] >= hit[int(j) - 1].sum()
+    ref = fit(clean, 'base', field_nt=F)
+    cal, _ = load_calibration(tmp_path / 'cal.yaml')
+    assert np.all(np.abs(cal.params - sim.params) < 4.5 * 1.3 * ref.stderr)
+
+
+# -- the calibration node --------------------------------------------------------------------
+
+def start_node(make_node, namespace, tmp_path, **params):
+    overrides = {'calibration_file': str(tmp_path / 'cal' / 'calibration.yaml'),
+                 'report_dir': str(tmp_path / 'report'), 'min_samples': 300}
+    overrides.update(params)
+    return make_node(CalibrationNode, namespace=namespace, parameter_overrides=[
+        Parameter(k, value=v) for k, v in overrides.items()])
+
+
+def split(response):
+    """(summary lines, JSON payload) of a Trigger response of the node."""
+    summary, _, payload = response.message.partition('\n{')
+    return summary.splitlines(), json.loads('{' + payload)
+
+
+def feed_sensors(feeder, executor, node, data, sensors, stop=None, batch=5):
+    """Publish epochs of ``data`` for the given sensors only (1-based); wait until taken."""
+    stop = data.n_samples if stop is None else stop
+    base = int(node._received.sum())
+    for k0 in range(0, stop, batch):
+        k1 = min(k0 + batch, stop)
+        for k in range(k0, k1):
+            for j in sensors:
+                feeder.raw[j - 1].publish(_msg(data, j, k))
+        want = base + len(sensors) * k1
+        spin_until(executor, lambda: int(node._received.sum()) >= want, 30.0,
+                   f'{want - base} samples taken')
+
+
+def _msg(data, j, k):
+    return field_nt_to_msg(data.raw[j - 1, k], stamp=T0 + float(data.t[k]),
+                           frame_id=f'fluxgate{j}')
+
+
+def test_every_refusal_names_the_reason_and_keeps_the_previous_calibration(
+        make_node, ros_node, ros_executor, ros_namespace, tmp_path, tumbling):
+    data, _ = tumbling
+    path = tmp_path / 'cal' / 'calibration.yaml'
+    path.parent.mkdir()
+    save_calibration(path, calibrate(data, 'base', field_nt=F).doc)
+    before = path.read_bytes()
+    history_before = sorted(os.listdir(str(path) + '.history'))
+    results = []
+    ros_node.create_subscription(String, 'calibration/result', results.append, RESULT_QOS)
+    node = start_node(make_node, ros_namespace, tmp_path)
+    spin_until(ros_executor, lambda: results, 5.0, 'the existing calibration on start-up')
+    feeder = Feeder(ros_node)
+    feeder.wait_for_subscribers(ros_executor)
+
+    static = _copy(data)
+    static.raw[:] = static.raw[:, :1] + np.random.default_rng(1).normal(
+        scale=NOISE_NT, size=static.raw.shape)           # the array never moved
+    cases = [
+        ('too few sets', data, (1, 2, 3, 4), 100,
+         r'only 100 complete sample sets collected, need at least 300'),
+        ('one attitude', static, (1, 2, 3, 4), None, 'same field direction'),
+        ('stuck sensor', stuck(data, 3), (1, 2, 3, 4), None,
+         r'sensor 3: output is constant'),
+        ('noisy stuck sensor', stuck(data, 2, NOISE_NT), (1, 2, 3, 4), None,
+         r'sensor 2: output \(nearly\) constant'),
+        ('silent sensor', data, (1, 2, 4), None,
+         r'only 0 complete sample sets .*sensor 3 sent no samples since calibration/start'),
+    ]
+    for name, d, sensors, stop, match in cases:
+        assert call_trigger(ros_node, ros_executor, 'calibration/start').success
+        feed_sensors(feeder, ros_executor, node, d, sensors, stop)
+        resp = call_trigger(ros_node, ros_executor, 'calibration/calibrate')
+        assert not resp.success, name
+        lines, out = split(resp)
+        assert re.search(match, lines[0]), (name, lines[0])
+        assert lines[0].endswith('previous calibration stays active'), name
+        assert re.search(match, out['reason']), name
+        assert path.read_bytes() == before, name
+        assert sorted(os.listdir(str(path) + '.history')) == history_before, name
+        assert node._state == 'collecting', name     # still collecting: the user may go on
+
+    # a sensor whose data stop half way: the complete sets before are too few, and the
+    # refusal says which sensor is short
+    assert call_trigger(ros_node, ros_executor, 'calibration/start').success
+    feed_sensors(feeder, ros_executor, node, data, (1, 2, 3, 4), 250)
+    spin_for(ros_executor, 0.05)
+    rest = _copy(data)
+    rest.t = rest.t[250:]
+    rest.raw = rest.raw[:, 250:]
+    feed_sensors(feeder, ros_executor, node, rest, (1, 3, 4))
+    resp = call_trigger(ros_node, ros_executor, 'calibration/calibrate')
+    assert not resp.success
+    lines, out = split(resp)
+    assert 'sensor 2 sent only 250 samples, the others up to 600' in out['reason'], lines[0]
+    status = []
+    ros_node.create_subscription(String, 'calibration/status', status.append, 10)
+    st = json.loads(spin_until(ros_executor, lambda: status and status[-1], 5.0).data)
+    assert any('sensor 2 sent only 250 samples' in m for m in st['missing']) and not st['ready']
+    assert path.read_bytes() == before
+    spin_for(ros_executor, 0.2)
+    assert len(results) == 1                      # nothing new was ever published
+
+
+def test_node_robust_fit_reports_down_weighted_spikes(make_node, ros_node, ros_executor,
+                                                      ros_namespace, tmp_path, spiky):
+    data, clean, sim, hit, run = spiky
+    node = start_node(make_node, ros_namespace, tmp_path, robust=True, min_samples=500)
+    feeder = Feeder(ros_node)
+    feeder.wait_for_subscribers(ros_executor)
+    assert call_trigger(ros_node, ros_executor, 'calibration/start').success
+    feeder.feed(ros_executor, data, taken=lambda: int(node._received.sum()), temperature=False)
+    resp = call_trigger(ros_node, ros_executor, 'calibration/calibrate', timeout_sec=60.0)
+    assert resp.success, resp.message
+    lines, out = split(resp)
+    assert out['robust'] is True and out['sets'] == data.n_samples
+    assert any(ln.startswith('robust fit: samples down-weighted as outliers per sensor')
+               for ln in lines)
+    for j in '1234':
+        # the same data as the pipeline fit up to the nT -> T -> nT round trip
+        assert abs(out['downweighted'][j] - run.summary['downweighted'][j]) <= 2, j
+        assert out['downweighted'][j] >= hit[int(j) - 1].sum()
+    ref = fit(clean, 'base', field_nt=F)
+    cal, _ = load_calibration(out['calibration_file'])
+    assert np.all(np.abs(cal.params - sim.params) < 4.5 * 1.3 * ref.stderr)
+    # applied to the same epochs without spikes, the calibration leaves only the noise in
+    # the total field (3 nT; the RMS of 1000 samples has a relative sd of ~2 %)
+    resid = np.linalg.norm(cal.correct_dataset(clean), axis=2) - F
+    assert np.all(np.sqrt(np.mean(resid ** 2, axis=1)) < 1.1 * NOISE_NT)
+
+
+def test_simultaneous_requests_and_invalid_parameters_leave_a_consistent_state(
+        make_node, ros_node, ros_executor, ros_namespace, tmp_path, tumbling):
+    data, _ = tumbling
+    node = start_node(make_node, ros_namespace, tmp_path)
+    path = tmp_path / 'cal' / 'calibration.yaml'
+    feeder = Feeder(ros_node)
+    feeder.wait_for_subscribers(ros_executor)
+    clients = {name: ros_node.create_client(Trigger, f'calibration/{name}')
+               for name in ('start', 'calibrate', 'diagnose')}
+    params = AsyncParameterClient(ros_node, f'{ros_namespace}/calibration_node')
+    spin_until(ros_executor, lambda: all(c.service_is_ready() for c in clients.values())
+               and params.services_are_ready(), 10.0, 'the services')
+
+    def at_once(*names):
+        futures = [clients[n].call_async(Trigger.Request()) for n in names]
+        spin_until(ros_executor, lambda: all(f.done() for f in futures), 90.0)
+        return [f.result() for f in futures]
+
+    # start and calibrate at the same moment, with a full buffer: whichever runs first, the
+    # other either works on a consistent buffer or is refused cleanly
+    assert call_trigger(ros_node, ros_executor, 'calibration/start').success
+    feeder.feed(ros_executor, data, taken=lambda: int(node._received.sum()), temperature=False)
+    start, calib = at_once('start', 'calibrate')
+    if start.success:
+        # start ran first (or the calibrate finished first, then start cleared the buffer)
+        assert calib.success or 'only 0 complete sample sets' in calib.message or \
+            calib.message.startswith('a calibration is already running'), calib.message
+    else:
+        assert 'a calibration is running' in start.message
+        assert calib.success, calib.message
+    assert node._state in ('collecting', 'done')
+    if path.exists():
+        load_calibration(path)                          # a complete, valid file
+
+    # during a solve: diagnose and start are refused, invalid parameters are refused, a
+    # valid one is taken, and the solve is not disturbed
+    assert call_trigger(ros_node, ros_executor, 'calibration/start').success
+    feeder.feed(ros_executor, data, taken=lambda: int(node._received.sum()), temperature=False)
+    n_hist = len(list_history(path))
+    calib = clients['calibrate'].call_async(Trigger.Request())
+    spin_until(ros_executor, lambda: node._state == 'calibrating', 10.0, 'the solve')
+    diag, start = at_once('diagnose', 'start')
+    bad = {'model': ['base', 'warp_drive'], 'min_samples': -5, 'stamp_tolerance_s': -0.01,
+           'field_nt': float('nan'), 'calibration_file': ''}
+    refused = {}
+    for name, value in bad.items():
+        fut = params.set_parameters([Parameter(name, value=value)])
+        spin_until(ros_executor, fut.done, 10.0, f'set {name}')
+        refused[name] = fut.result().results[0]
+    fut = params.set_parameters([Parameter('min_samples', value=200)])
+    spin_until(ros_executor, fut.done, 10.0)
+    assert fut.result().results[0].successful
+    assert not calib.done(), 'the solve ended before the requests were made'
+    spin_until(ros_executor, calib.done, 120.0)
+    assert calib.result().success, calib.result().message
+    assert not diag.success and diag.message.startswith('a calibration is already running')
+    assert not start.success and 'a calibration is running' in start.message
+    for name, res in refused.items():
+        assert not res.successful and res.reason.startswith(name + ':'), (name, res.reason)
+    assert node.get_parameter('model').value == ['base']
+    assert node.get_parameter('calibration_file').value == str(path)
+    assert node.get_parameter('min_samples').value == 200
+    _, out = split(calib.result())
+    assert out['sets'] == data.n_samples and out['calibration_file'] == str(path)
+    assert len(list_history(path)) == n_hist + 1
+    assert load_calibration(path)[1]['provenance']['samples'] == data.n_samples
+    assert node._state == 'done'
+
+
+def test_corrector_refuses_invalid_parameters_and_keeps_correcting(
+        make_node, ros_node, ros_executor, ros_namespace, tmp_path, tumbling):
+    data, sim = tumbling
+    path = tmp_path / 'cal.yaml'
+    save_calibration(path, calibration_to_doc(sim.truth, geometry=cross_geometry(0.5)),
+                     history=0)
+    node = make_node(CorrectorNode, namespace=ros_namespace, parameter_overrides=[
+        Parameter('calibration_file', value=str(path))])
+    corrected = []
+    ros_node.create_subscription(MagneticField, 'sensor1/corrected', corrected.append, 100)
+    params = AsyncParameterClient(ros_node, f'{ros_namespace}/corrector_node')
+    spin_until(ros_executor, params.services_are_ready, 10.0, 'parameter services')
+    feeder = Feeder(ros_node)
+    feeder.wait_for_subscribers(ros_executor)
+    for name, value, match in [('stamp_tolerance_s', -0.005, 'must be a finite number > 0 s'),
+                               ('stamp_tolerance_s', 0.0, 'must be a finite number > 0 s'),
+                               ('diagnostics_period_s', 5.0, 'read-only'),
+                               ('calibration_file', '/elsewhere.yaml', 'read-only'),
+                               ('n_sensors', 3, 'read-only')]:
+        fut = params.set_parameters([Parameter(name, value=value)])
+        spin_until(ros_executor, fut.done, 10.0)
+        res = fut.result().results[0]
+        assert not res.successful and match in res.reason, (name, res.reason)
+    assert node.get_parameter('stamp_tolerance_s').value == 0.005
+    feeder.feed(ros_executor, data, stop=50, taken=lambda: node._received, temperature=False)
+    spin_until(ros_executor, lambda: len(corrected) == 50, 5.0, '50 corrected samples')
+    got = np.array([msg_to_field_nt(m) for m in corrected])
+    np.testing.assert_allclose(got, sim.truth.correct(1, data.raw[0, :50]), atol=1e-6)
