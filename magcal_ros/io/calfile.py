@@ -280,15 +280,16 @@ def rollback(path, steps=1):
     """Make the calibration ``steps`` back in the history the active one; returns its path.
 
     Steps count back from the history entry the active file is a copy of (the newest entry
-    after a calibration), so repeated rollbacks walk further back; when the active file is
-    in no entry (hand-edited, history disabled) they count from the newest entry.
+    after a calibration), so repeated rollbacks walk further back. An active file found in
+    no entry (hand-edited, or written by a writer killed before its history copy) counts as
+    newer than every entry: one step back is the newest entry.
     """
     if int(steps) != steps or steps < 1:
         raise CalibrationFileError(f'steps must be an integer >= 1, got {steps!r}')
     hist = list_history(path)
     base = active_history_index(path)
     if base is None:
-        base = len(hist) - 1
+        base = len(hist)
     if base - steps < 0:
         raise CalibrationFileError(
             f'{path}: only {max(base, 0)} calibration(s) older than the active one in the '
