@@ -94,8 +94,8 @@ class _Pty:
         tty.setraw(self.master)
         self.path = os.ttyname(self.slave)
         self.proc = common.popen([PY, '-c', _WRITER, str(self.master), blob_path,
-                                      str(reps)], pass_fds=(self.master,),
-                                     stderr=subprocess.DEVNULL)
+                                  str(reps)], pass_fds=(self.master,),
+                                 stderr=subprocess.DEVNULL)
 
     def close(self):
         common.stop_process(self.proc, timeout=2.0)
@@ -173,7 +173,7 @@ def driver_node_cpu(args, env, tmp):
     try:
         sim = common.popen([PY, '-m', 'magcal_ros.ros.sim_node', '--dir', simdir,
                                 '--rate', str(args.node_rate)], env=env, stdout=logs[0],
-                               stderr=subprocess.STDOUT)
+                           stderr=subprocess.STDOUT)
         procs.append(sim)
         deadline = time.monotonic() + 20
         while time.monotonic() < deadline and not all(
@@ -184,14 +184,14 @@ def driver_node_cpu(args, env, tmp):
             ports += ['-p', f'sensor{j}.port:={os.path.join(simdir, f"fluxgate{j}")}']
         drv = common.popen([PY, '-m', 'magcal_ros.ros.driver_node', '--ros-args', '-r',
                                 '__ns:=/bench'] + ports, env=env, stdout=logs[1],
-                               stderr=subprocess.STDOUT)
+                           stderr=subprocess.STDOUT)
         procs.append(drv)
         rcv = common.popen([PY, LOAD, '--role', 'sub', '--ns', '/bench', '--topic-in', 'raw',
-                                '--rate', str(args.node_rate), '--duration',
-                                str(args.node_duration), '--warmup', str(args.node_warmup),
-                                '--t0', 'stdin'],
-                               env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                               stderr=subprocess.DEVNULL, text=True)
+                            '--rate', str(args.node_rate), '--duration',
+                            str(args.node_duration), '--warmup', str(args.node_warmup),
+                            '--t0', 'stdin'],
+                           env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                           stderr=subprocess.DEVNULL, text=True)
         procs.append(rcv)
         line = ''
         deadline = time.monotonic() + 40

@@ -90,7 +90,7 @@ def run_one(kind, rate, args, env, calfile, log_dir):
         nlog = open(os.path.join(log_dir, f'{tag}_node.log'), 'w')
         logs.append(nlog)
         node = common.popen(node_cmd(kind, calfile), env=env, stdout=nlog,
-                                stderr=subprocess.STDOUT)
+                            stderr=subprocess.STDOUT)
         procs.append(node)
         common_args = ['--ns', NS, '--rate', str(rate), '--duration', str(args.duration),
                        '--warmup', str(args.warmup), '--t0', 'stdin',
@@ -98,12 +98,12 @@ def run_one(kind, rate, args, env, calfile, log_dir):
         if args.tick:
             common_args += ['--tick', str(args.tick)]
         sub = common.popen([PY, LOAD, '--role', 'sub'] + common_args, env=env,
-                               stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                               stderr=subprocess.DEVNULL, text=True)
+                           stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                           stderr=subprocess.DEVNULL, text=True)
         procs.append(sub)
         pub = common.popen([PY, LOAD, '--role', 'pub'] + common_args, env=env,
-                               stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                               stderr=subprocess.DEVNULL, text=True)
+                           stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                           stderr=subprocess.DEVNULL, text=True)
         procs.append(pub)
         for p, name in ((sub, 'receiver'), (pub, 'publisher')):
             ok, text = _wait_ready(p, args.match_timeout + 5)
@@ -157,7 +157,7 @@ def main(argv=None):
     ap.add_argument('--rates', type=float, nargs='+', default=[100, 500, 1000],
                     help='Hz per sensor of the main table')
     ap.add_argument('--search-rates', type=float, nargs='+',
-                    default=[100, 250, 500, 750, 1000, 1500, 2000],
+                    default=[100, 200, 300, 400, 500, 600, 800, 1000, 1200, 1500, 2000],
                     help='rates tried (ascending) for the sustainable rate')
     ap.add_argument('--no-search', action='store_true')
     ap.add_argument('--nodes', nargs='+', default=['relay', 'corrector'],
@@ -187,6 +187,7 @@ def main(argv=None):
             for kind in args.nodes:
                 best = None
                 tried = []
+                fails = 0
                 for rate in sorted(args.search_rates):
                     prev = [r for r in runs + tried if r['node'] == kind
                             and r['rate_hz'] == rate and 'error' not in r]
@@ -195,7 +196,11 @@ def main(argv=None):
                         tried.append(r)
                         _print_run(r)
                     if 'error' in r or r['loss'] is None or r['loss'] > args.max_loss:
-                        break
+                        fails += 1
+                        if fails >= 2:          # two failing rates in a row: stop
+                            break
+                        continue
+                    fails = 0
                     best = rate
                 sustain[kind] = {'rate_hz_per_sensor': best,
                                  'total_msgs_per_s': None if best is None else 4 * best,
@@ -232,6 +237,16 @@ def main(argv=None):
                                    [[k, v] for k, v in ratios.items()]))
     goal = None
     if sustain:
+        curve = {}
+        for r in runs + [t for v in sustain.values() for t in v['runs']]:
+            if r.get('loss') is not None:
+                curve.setdefault(r['rate_hz'], {})[r['node']] = r['loss']
+        rates = sorted(curve)
+        tables.append(common.table(
+            ['Hz/sensor'] + [f'{k} loss' for k in sustain],
+            [[f'{rt:g}'] + [None if curve[rt].get(k) is None else f'{100 * curve[rt][k]:.2f} %'
+                            for k in sustain] for rt in rates],
+            title='Loss against input rate (all runs)'))
         rows = [[k, v['rate_hz_per_sensor'], v['total_msgs_per_s']] for k, v in sustain.items()]
         tables.append(common.table(['node', 'sustainable Hz/sensor', 'msg/s total'], rows,
                                    title=f'Highest rate tried with loss <= '
