@@ -1,0 +1,254 @@
+"""The corrector under a 10x burst of input: bounded latency and memory afterwards.
+
+Three processes, as a user runs them: ``corrector_node`` (the console script, with a
+calibration file), a load process (this file run as a script: ``--load``) that publishes
+``sensor{1..4}/raw`` like the driver (reliable, depth 100) and receives
+``sensor{j}/corrected``, and the test, which samples the corrector's resident memory
+(``VmRSS`` in ``/proc/<pid>/status``) four times a second.
+
+Schedule (rate per sensor; nominal is the driver's default 100 Hz): 100 Hz for 3 s, 1000 Hz
+for 10 s (10x, 4000 messages/s in), 100 Hz for 4 s, 1000 Hz for 10 s again, 100 Hz for 4 s.
+Each message carries its sequence number in ``frame_id`` and its publish time in the stamp,
+which the corrector copies to its output, so the load process measures loss, order and
+latency (receive time - publish time) per phase.
+
+The corrector consumes its inputs with the sensor-data QoS (best effort, keep last 25): when
+it cannot keep up, the oldest queued samples are dropped, so the queue, and with it the
+latency, stays bounded, and nothing accumulates in memory.
+"""
+import argparse
+import json
+import os
+import struct
+import sys
+import threading
+import time
+
+import numpy as np
+
+#: (rate per sensor Hz, duration s) of each phase
+SCHEDULE = [(100.0, 3.0), (1000.0, 10.0), (100.0, 4.0), (1000.0, 10.0), (100.0, 4.0)]
+N_SENSORS = 4
+
+# -- the load process (publisher + receiver) ------------------------------------------------
+
+#: little-endian CDR after the 4-byte encapsulation: stamp sec, nanosec, frame_id length
+_HEAD = struct.Struct('<iII')
+
+
+def _load_main(argv):
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import MagneticField
+
+    ap = argparse.ArgumentParser()
+    ap.add_argument('--load', action='store_true')
+    ap.add_argument('--ns', required=True)
+    ap.add_argument('--schedule', required=True, help='JSON list of [rate_hz, duration_s]')
+    args = ap.parse_args(argv)
+    schedule = json.loads(args.schedule)
+
+    rclpy.init()
+    node = Node('load', namespace=args.ns)
+    # as the driver publishes: reliable, keep last 100
+    pub_qos = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST,
+                         reliability=ReliabilityPolicy.RELIABLE)
+    pubs = [node.create_publisher(MagneticField, f'sensor{j}/raw', pub_qos)
+            for j in range(1, N_SENSORS + 1)]
+    cap = int(sum(r * d for r, d in schedule)) + 100
+    recv_t = np.full((N_SENSORS, cap), np.nan)
+    extra = [0]
+
+    def make_cb(j):
+        row = recv_t[j]
+
+        def cb(data):
+            now = time.time()
+            _, _, ln = _HEAD.unpack_from(data, 4)
+            k = int(data[16:16 + ln - 1])
+            if row[k] == row[k]:
+                extra[0] += 1               # a duplicate (nan != nan marks "not yet")
+            else:
+                row[k] = now
+        return cb
+
+    sub_qos = QoSProfile(depth=5000, history=HistoryPolicy.KEEP_LAST,
+                         reliability=ReliabilityPolicy.RELIABLE)
+    subs = [node.create_subscription(MagneticField, f'sensor{j}/corrected', make_cb(j - 1),
+                                     sub_qos, raw=True) for j in range(1, N_SENSORS + 1)]
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    deadline = time.monotonic() + 30.0
+    while not (all(s.get_publisher_count() > 0 for s in subs)
+               and all(p.get_subscription_count() > 0 for p in pubs)):
+        if time.monotonic() > deadline:
+            print(json.dumps({'error': 'the corrector was not discovered in 30 s'}), flush=True)
+            return 1
+        time.sleep(0.05)
+    # the corrector is the only subscriber of the raw topics here
+    qos = [info.qos_profile for info in node.get_subscriptions_info_by_topic(
+        node.resolve_topic_name('sensor1/raw'))]
+    print('READY', flush=True)
+
+    msgs = []
+    for j in range(N_SENSORS):
+        m = MagneticField()
+        m.magnetic_field.x, m.magnetic_field.y, m.magnetic_field.z = 2.0e-5, -1.0e-5, 4.4e-5
+        m.header.frame_id = 'fluxgate'
+        msgs.append(m)
+    pub_t = np.full(cap, np.nan)
+    phases = []
+    seq = 0
+    t_phase = time.time() + 0.5
+    for rate, duration in schedule:
+        t_end = t_phase + duration
+        first = seq
+        while True:
+            now = time.time()
+            if now >= t_end:
+                break
+            due = int((now - t_phase) * rate) + 1
+            while seq - first < due:
+                stamp = time.time()
+                sec = int(stamp)
+                for j, m in enumerate(msgs):
+                    m.header.stamp.sec = sec
+                    m.header.stamp.nanosec = int((stamp - sec) * 1e9)
+                    m.header.frame_id = str(seq)
+                    pubs[j].publish(m)
+                pub_t[seq] = stamp
+                seq += 1
+            time.sleep(max(0.0, min(0.002, t_phase + (seq - first) / rate - time.time())))
+        phases.append({'rate_hz': rate, 't0': t_phase, 't1': t_end, 'seq0': first,
+                       'seq1': seq})
+        t_phase = t_end
+    time.sleep(1.0)                            # stragglers
+
+    out = {'phases': [], 'duplicates': extra[0],
+           'subscription_qos': [{'reliability': q.reliability.name, 'history': q.history.name,
+                                 'depth': q.depth} for q in qos]}
+    for ph in phases:
+        s0, s1 = ph['seq0'], ph['seq1']
+        lat = recv_t[:, s0:s1] - pub_t[None, s0:s1]
+        got = np.isfinite(lat)
+        # latency in the phase after its first 0.5 s (queues left by the previous phase
+        # drain then), and in that first 0.5 s separately
+        settled = (pub_t[s0:s1] >= ph['t0'] + 0.5)[None] & got
+        early = (pub_t[s0:s1] < ph['t0'] + 0.5)[None] & got
+        last_s = (pub_t[s0:s1] >= ph['t1'] - 1.0)[None] & got
+        order = [bool(np.all(np.diff(np.flatnonzero(got[j])) > 0)) and
+                 bool(np.all(np.diff(recv_t[j, s0:s1][got[j]]) >= 0)) for j in range(N_SENSORS)]
+
+        def pct(x):
+            if not x.size:
+                return None
+            return {k: float(v) * 1e3 for k, v in zip(
+                ('p50', 'p90', 'p99', 'max'), np.percentile(x, [50, 90, 99, 100]))}
+
+        out['phases'].append(dict(
+            ph, published=int((s1 - s0) * N_SENSORS), received=int(got.sum()),
+            received_per_sensor=got.sum(axis=1).tolist(), in_order=all(order),
+            latency_ms=pct(lat[settled]), latency_first_500ms_ms=pct(lat[early]),
+            latency_last_s_ms=pct(lat[last_s]),
+            last_received=[int(np.flatnonzero(got[j])[-1]) + s0 if got[j].any() else None
+                           for j in range(N_SENSORS)]))
+    print(json.dumps(out), flush=True)
+    executor.shutdown(timeout_sec=2.0)
+    spinner.join(2.0)
+    node.destroy_node()
+    rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == '__main__' and '--load' in sys.argv:
+    sys.exit(_load_main(sys.argv[1:]))
+
+
+# -- the test ----------------------------------------------------------------------------------
+
+def rss_kib(pid):
+    """Resident set size of process ``pid`` in KiB (``VmRSS`` of /proc/<pid>/status)."""
+    with open(f'/proc/{pid}/status', encoding='ascii') as fh:
+        for line in fh:
+            if line.startswith('VmRSS:'):
+                return int(line.split()[1])
+    raise RuntimeError(f'no VmRSS for pid {pid}')
+
+
+def test_corrector_under_a_10x_burst(start_process, ros_namespace, tmp_path):
+    from magcal_ros.core.simulate import simulate
+    from magcal_ros.io.calfile import calibration_to_doc, save_calibration
+    from magcal_ros.pipeline import cross_geometry
+    from ros_helpers import console_script
+
+    _, sim = simulate(n_samples=2, seed=1)
+    path = tmp_path / 'cal.yaml'
+    save_calibration(path, calibration_to_doc(sim.truth, geometry=cross_geometry(0.5)),
+                     history=0)
+    corrector = start_process(console_script('corrector_node') + [
+        '--ros-args', '-r', f'__ns:={ros_namespace}', '-p', f'calibration_file:={path}'],
+        name='corrector_node', ready='using the calibration from')
+    load = start_process([sys.executable, os.path.abspath(__file__), '--load', '--ns',
+                          ros_namespace, '--schedule', json.dumps(SCHEDULE)],
+                         name='load', ready='READY', ready_timeout_sec=40.0)
+    samples = []                                 # (time.time(), VmRSS KiB)
+    t_stop = time.time() + sum(d for _, d in SCHEDULE) + 5.0
+    while time.time() < t_stop and load.running():
+        samples.append((time.time(), rss_kib(corrector.pid)))
+        time.sleep(0.25)
+    assert load.wait(30) == 0, load.read_log()
+    result = json.loads(load.read_log().strip().splitlines()[-1])
+    assert corrector.running(), corrector.read_log()
+    rss = np.array(samples)
+    ph = result['phases']
+
+    def rss_at_end(p):
+        """Median VmRSS over the last 2 s of phase ``p`` (KiB)."""
+        sel = (rss[:, 0] > ph[p]['t1'] - 2.0) & (rss[:, 0] <= ph[p]['t1'])
+        return float(np.median(rss[sel, 1]))
+
+    before, after1, after2 = rss_at_end(0), rss_at_end(2), rss_at_end(4)
+    report = {'rss_mib': [round(x / 1024, 2) for x in (before, after1, after2)],
+              'phases': [{k: p[k] for k in ('rate_hz', 'published', 'received', 'latency_ms',
+                                            'latency_first_500ms_ms', 'latency_last_s_ms')}
+                         for p in ph],
+              'subscription_qos': result['subscription_qos']}
+    print('\nload:', json.dumps(report))
+
+    # the corrector takes its inputs with the sensor-data QoS: best effort, keep last
+    assert result['subscription_qos'] and all(
+        q['reliability'] == 'BEST_EFFORT' for q in result['subscription_qos'])
+    assert result['duplicates'] == 0
+    for p in ph:
+        assert p['in_order'], p                  # never an old sample after a newer one
+    base, burst1, nominal1, burst2, nominal2 = ph
+    # at the nominal rate nothing is lost (2 %: a stall of > 0.25 s on a shared machine
+    # overflows the 25-deep queue of 100 Hz streams)
+    for p in (base, nominal1, nominal2):
+        assert p['received'] >= 0.98 * p['published'], p
+    # during a burst the corrector keeps working on the newest samples (the oldest queued
+    # are dropped): each sensor's output reaches the burst's last second, with a latency
+    # that stays bounded. Had the queue kept every sample, the backlog at the end of the
+    # burst (published - received, ~20 000 samples at the ~2 000/s the corrector manages on
+    # this machine) would be seconds old.
+    for p in (burst1, burst2):
+        assert all(last is not None and last >= p['seq1'] - p['rate_hz'] for last in
+                   p['last_received']), p
+        assert p['received'] > 0.1 * p['published'], p
+        assert p['latency_last_s_ms']['p50'] < 500.0, p
+    # after the burst: latency back near the baseline. Bounds: median 50 ms and p99 250 ms
+    # (or 3x the baseline's p99 when the shared machine is busier): far below the seconds of
+    # a kept backlog, above the few ms of an idle machine (DDS delivery, a 3x3 product and
+    # Python scheduling; the corrector's own queue adds at most 25 samples x ~0.3 ms)
+    for p in (nominal1, nominal2):
+        assert p['latency_ms']['p50'] < 50.0, p
+        assert p['latency_ms']['p99'] < max(250.0, 3.0 * base['latency_ms']['p99']), p
+    # memory: a second identical burst must not grow it: 2 MiB is what a leak of 50 bytes
+    # per received message would add (~40 000 per burst); the first burst may fill allocator
+    # pools once (DDS history caches, Python free lists): bounded by 16 MiB
+    assert after2 - after1 < 2 * 1024, report
+    assert after1 - before < 16 * 1024, report
