@@ -123,11 +123,14 @@ def check_sensor(s):
     return None
 
 
-def diagnostic_status(settings, stats, previous_errors=0):
+def diagnostic_status(settings, stats, previous_errors=0, previous=None):
     """Build the ``DiagnosticStatus`` of one port from a ``PortStats`` snapshot.
 
     Level: ERROR when the port is not open; WARN when new parse errors appeared since
-    ``previous_errors`` or the rate is below half ``expected_rate_hz``; OK otherwise.
+    ``previous_errors``, when bytes arrived since the ``previous`` snapshot but not one valid
+    frame (wrong protocol, options or baud rate: a binary parser only drops such bytes
+    while it searches for a frame), or the rate is below half ``expected_rate_hz``; OK
+    otherwise.
     """
     status = DiagnosticStatus()
     status.name = f'{NODE_NAME}: sensor{settings.index}'
@@ -138,6 +141,11 @@ def diagnostic_status(settings, stats, previous_errors=0):
     elif stats.parse_errors > previous_errors:
         status.level = DiagnosticStatus.WARN
         status.message = f'{stats.parse_errors - previous_errors} parse errors'
+    elif (previous is not None and stats.bytes_in > previous.bytes_in
+          and stats.samples == previous.samples):
+        status.level = DiagnosticStatus.WARN
+        status.message = (f'{stats.bytes_in - previous.bytes_in} bytes but no valid frame '
+                          f'since the last report (wrong protocol, options or baud rate?)')
     elif settings.expected_rate_hz > 0 and stats.rate_hz < 0.5 * settings.expected_rate_hz:
         status.level = DiagnosticStatus.WARN
         status.message = (f'rate {stats.rate_hz:.1f} Hz below half the expected '
@@ -209,6 +217,7 @@ class FluxgateDriver(Node):
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self._mappings = [parse_axes(s.axes) for s in self.sensors]
         self._last_errors = [0] * n
+        self._last_stats = [None] * n
         backoff_min = self.get_parameter('backoff_min_s').value
         backoff_max = self.get_parameter('backoff_max_s').value
         self._log_handler = _RosLogHandler(self.get_logger())
@@ -361,8 +370,10 @@ class FluxgateDriver(Node):
         msg.header.stamp = self.get_clock().now().to_msg()
         for k, (reader, s) in enumerate(zip(self.readers, self.sensors)):
             stats = reader.stats()
-            msg.status.append(diagnostic_status(s, stats, self._last_errors[k]))
+            msg.status.append(diagnostic_status(s, stats, self._last_errors[k],
+                                                self._last_stats[k]))
             self._last_errors[k] = stats.parse_errors
+            self._last_stats[k] = stats
         self._diag_pub.publish(msg)
 
     def port_stats(self):
