@@ -14,7 +14,8 @@ driver (test_driver_node.py). Added here:
   frames, bytes at a wrong baud rate, 0x0D and the sync tag inside binary data, NaN, inf,
   overflowing and saturated values, an implausible temperature, a device time going back,
   a lost byte, a bad checksum): exactly the valid frames are published, in order, and each
-  fault is counted under its kind on ``/diagnostics``;
+  fault is counted under its kind on ``/diagnostics``; binary ports fed only bytes at a wrong
+  baud rate (which never frame, so no parse error either) report a WARN;
 - twelve unplug/replug cycles of one sensor at 1 kHz, coming back alternately at its own path
   and at a new path, each unplug cutting a line in half: the driver reopens every time and
   counts each event, the cut line never merges with the next one, and the other three
@@ -294,6 +295,50 @@ def test_driver_publishes_only_valid_frames_and_counts_every_fault(
             values = {kv.key: kv.value for kv in s.values}
             for kind, n in stats[k].errors.items():
                 assert values[f'errors.{kind}'] == str(n)
+    finally:
+        for d in devs.values():
+            d.close()
+
+
+def test_binary_port_at_a_wrong_baud_rate_warns_and_publishes_nothing(
+        make_node, ros_node, ros_executor, ros_namespace, tmp_path):
+    # binary parsers only drop bytes while they search for a frame (no parse error): the
+    # diagnostics must still say that bytes arrive but nothing decodes
+    devs = {j: PtyDevice(str(tmp_path / f'dev{j}')) for j in (1, 2)}
+    rng = random.Random(11)
+    try:
+        node = make_node(FluxgateDriver, namespace=ros_namespace, parameter_overrides=overrides(
+            n_sensors=2, diagnostics_period_s=0.2,
+            sensor1__port=devs[1].path, sensor1__protocol='hmr2300_binary',
+            sensor2__port=devs[2].path, sensor2__protocol='lemi025'))
+        raw = {j: Recorder(ros_node, MagneticField, f'sensor{j}/raw') for j in devs}
+        diag = Recorder(ros_node, DiagnosticArray, '/diagnostics', 50)
+        spin_until(ros_executor, lambda: all(s.state == 'open' for s in node.port_stats()))
+        spin_until(ros_executor, lambda: diag.msgs, message='diagnostics')
+        # what a UART at the wrong baud rate makes of a stream: no CR, no sync tag
+        smear = bytes(rng.choice(b'\x80\x86\x98\xe0\xf8\xfe\x00\x1e\x66\x78')
+                      for _ in range(200))
+        n0 = len(diag.msgs)
+        for _ in range(8):
+            for d in devs.values():
+                d.write(smear)
+            spin_for(ros_executor, 0.1)
+        spin_until(ros_executor, lambda: any(
+            all(s.level == DiagnosticStatus.WARN and 'no valid frame' in s.message
+                for s in m.status) for m in diag.msgs[n0:]),
+            message='a WARN on both ports for bytes without a frame')
+        assert all(len(r) == 0 for r in raw.values())
+        st = node.port_stats()
+        assert all(s.samples == 0 and s.bytes_dropped > 0 and s.state == 'open' for s in st)
+        # the right bytes again: published, and the warning clears
+        devs[1].write(b''.join(hmr_frame(100 * k, 2, 3) for k in range(1, 6)))
+        devs[2].write(b''.join(lemi_packet(k, 1000 * k, 100, 200, 300, 2000)
+                               for k in range(5)))
+        spin_until(ros_executor, lambda: len(raw[1]) == 5 and len(raw[2]) == 5)
+        n1 = len(diag.msgs)
+        spin_until(ros_executor, lambda: len(diag.msgs) > n1 + 1)
+        assert all(s.level == DiagnosticStatus.OK for s in diag.msgs[-1].status), \
+            [s.message for s in diag.msgs[-1].status]
     finally:
         for d in devs.values():
             d.close()
