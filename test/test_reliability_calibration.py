@@ -11,7 +11,7 @@ parameter's validation (test_calibration_node.py, test_e2e.py). Added here:
 - at the node, each refusal (too few sets, one attitude, a stuck sensor, a sensor that never
   reports, a sensor whose data stop half way) answers success=false with the reason naming
   the sensor where there is one, and leaves the previously written file and the latched
-  calibration/result untouched;
+  calibration/result untouched; the corrector keeps correcting the sensors that report;
 - 5 % spikes of 1000 nT through the CLI and the node with the robust loss: parameters within
   the no-outlier tolerance, and the reported down-weighted count matches the spikes;
 - start, calibrate and diagnose requested at the same moment, and invalid parameter values
@@ -42,7 +42,7 @@ from rclpy.parameter_client import AsyncParameterClient
 from ros_helpers import call_trigger, spin_for, spin_until, subprocess_env
 from sensor_msgs.msg import MagneticField
 from sim_feed import Feeder, T0
-from std_msgs.msg import String
+from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import Trigger
 
 F = 50000.0                 # simulated field magnitude, nT
@@ -381,3 +381,39 @@ def test_corrector_refuses_invalid_parameters_and_keeps_correcting(
     spin_until(ros_executor, lambda: len(corrected) == 50, 5.0, '50 corrected samples')
     got = np.array([msg_to_field_nt(m) for m in corrected])
     np.testing.assert_allclose(got, sim.truth.correct(1, data.raw[0, :50]), atol=1e-6)
+
+
+def test_corrector_with_a_silent_sensor_keeps_correcting_the_others(
+        make_node, ros_node, ros_executor, ros_namespace, tmp_path, tumbling):
+    data, sim = tumbling
+    path = tmp_path / 'cal.yaml'
+    save_calibration(path, calibration_to_doc(sim.truth, geometry=cross_geometry(0.5)),
+                     history=0)
+    node = make_node(CorrectorNode, namespace=ros_namespace, parameter_overrides=[
+        Parameter('calibration_file', value=str(path))])
+    corrected = [[] for _ in range(4)]
+    for j in range(4):
+        ros_node.create_subscription(MagneticField, f'sensor{j + 1}/corrected',
+                                     corrected[j].append, 500)
+    gradient = []
+    ros_node.create_subscription(Float64MultiArray, 'gradient', gradient.append, 100)
+    feeder = Feeder(ros_node)
+    feeder.wait_for_subscribers(ros_executor)
+    # sensor 3 never reports: the others are corrected sample by sample, the gradient needs
+    # all four, so none is published, and the queues of the others stay bounded
+    n = 300
+    for k0 in range(0, n, 5):
+        for k in range(k0, k0 + 5):
+            for j in (1, 2, 4):
+                feeder.raw[j - 1].publish(_msg(data, j, k))
+        spin_until(ros_executor, lambda: node._received >= 3 * (k0 + 5), 10.0)
+    spin_until(ros_executor, lambda: all(len(corrected[j - 1]) == n for j in (1, 2, 4)), 5.0)
+    spin_for(ros_executor, 0.2)
+    assert corrected[2] == [] and gradient == []
+    for j in (1, 2, 4):
+        got = np.array([msg_to_field_nt(m) for m in corrected[j - 1]])
+        np.testing.assert_allclose(got, sim.truth.correct(j, data.raw[j - 1, :n]), atol=1e-6)
+    status = {kv.key: kv.value for kv in node.diagnostic_status().values}
+    assert status['sensor3_corrected_published'] == '0'
+    assert status['gradient_published'] == '0'
+    assert all(len(q) <= node._matcher.max_queue for q in node._matcher._queues)
