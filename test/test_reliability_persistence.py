@@ -424,3 +424,33 @@ def test_node_history_is_bounded_and_magcal_rollback_walks_back(
     assert other.exists() and list_history(other) == []
     res = magcal('rollback', other)
     assert res.returncode == 2 and 'no calibration history' in res.stderr
+
+
+def test_node_write_failure_keeps_the_previous_calibration(
+        make_node, ros_node, ros_executor, ros_namespace, tmp_path):
+    data, _ = simulate(n_samples=600, rate_hz=100.0, trajectory='smooth',
+                       smooth_period_s=6.0, seed=7)
+    target = tmp_path / 'taken'
+    target.mkdir()                  # the calibration path is a directory: the write fails
+    results = []
+    ros_node.create_subscription(String, 'calibration/result', results.append, RESULT_QOS)
+    node = make_node(CalibrationNode, namespace=ros_namespace, parameter_overrides=[
+        Parameter('calibration_file', value=str(target)), Parameter('min_samples', value=300),
+        Parameter('report_dir', value=str(tmp_path / 'r'))])
+    feeder = Feeder(ros_node)
+    feeder.wait_for_subscribers(ros_executor)
+    assert call_trigger(ros_node, ros_executor, 'calibration/start').success
+    feeder.feed(ros_executor, data, taken=lambda: int(node._received.sum()), temperature=False)
+    resp = call_trigger(ros_node, ros_executor, 'calibration/calibrate', timeout_sec=60)
+    assert not resp.success
+    assert resp.message.startswith(f'calibrated but could not write {target}')
+    assert 'previous calibration stays active' in resp.message.splitlines()[0]
+    assert target.is_dir() and not [f for f in os.listdir(tmp_path) if f.endswith('.tmp')]
+    spin_for(ros_executor, 0.2)
+    assert results == []                    # nothing published
+    # a writable path: the same data calibrate
+    good = tmp_path / 'cal.yaml'
+    assert node.set_parameters([Parameter('calibration_file', value=str(good))])[0].successful
+    assert call_trigger(ros_node, ros_executor, 'calibration/calibrate', timeout_sec=60).success
+    load_calibration(good)
+    spin_until(ros_executor, lambda: results, 5.0)
