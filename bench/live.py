@@ -29,6 +29,8 @@ import sys
 import tempfile
 import time
 
+import numpy as np
+
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import common  # noqa: E402
 
@@ -152,13 +154,45 @@ def run_one(kind, rate, args, env, calfile, log_dir):
             f.close()
 
 
+def _median(vals):
+    vals = [v for v in vals if v is not None]
+    return float(np.median(vals)) if vals else None
+
+
+def aggregate(runs):
+    """Median (and best) figures of the repeated runs of one node at one rate."""
+    ok = [r for r in runs if 'error' not in r and r.get('loss') is not None]
+    out = {'node': runs[0]['node'], 'rate_hz': runs[0]['rate_hz'], 'repeats': len(runs),
+           'failed': len(runs) - len(ok), 'errors': [r['error'] for r in runs if 'error' in r]}
+    if not ok:
+        return out
+    lat = [r.get('latency_ms') or {} for r in ok]
+    cpu = [r.get('cpu_percent') or {} for r in ok]
+    out.update(
+        loss_median=_median([r['loss'] for r in ok]), loss_min=min(r['loss'] for r in ok),
+        loss_max=max(r['loss'] for r in ok),
+        publish_rate_hz=_median([r['publish_rate_hz'] for r in ok]),
+        output_rate_hz=_median([r['output_rate_hz'] for r in ok]),
+        output_rate_best_hz=max(r['output_rate_hz'] for r in ok),
+        p50_ms=_median([x.get('p50') for x in lat]), p99_ms=_median([x.get('p99') for x in lat]),
+        cpu_node=_median([c.get('node') for c in cpu]),
+        cpu_publisher=_median([c.get('publisher') for c in cpu]),
+        cpu_receiver=_median([c.get('receiver') for c in cpu]),
+        load_average=_median([r.get('load_average') for r in ok]))
+    return out
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     ap.add_argument('--rates', type=float, nargs='+', default=[100, 500, 1000],
                     help='Hz per sensor of the main table')
+    ap.add_argument('--repeats', type=int, default=3,
+                    help='runs per node and rate of the main table (interleaved; medians)')
     ap.add_argument('--search-rates', type=float, nargs='+',
-                    default=[100, 200, 300, 400, 500, 600, 800, 1000, 1200, 1500, 2000],
+                    default=[100, 200, 400, 600, 800, 1000, 1500, 2000],
                     help='rates tried (ascending) for the sustainable rate')
+    ap.add_argument('--search-repeats', type=int, default=2,
+                    help='runs per node and rate in the search (a rate passes if one does)')
     ap.add_argument('--no-search', action='store_true')
     ap.add_argument('--nodes', nargs='+', default=['relay', 'corrector'],
                     choices=['relay', 'corrector', 'relay_reliable'])
@@ -174,37 +208,47 @@ def main(argv=None):
     args = ap.parse_args(argv)
     started = time.perf_counter()
     env = common.ros_env(args.domain_id)
+    all_runs = []
+
+    def one(kind, rate):
+        r = run_one(kind, rate, args, env, calfile, tmp)
+        r['load_average'] = os.getloadavg()[0]
+        all_runs.append(r)
+        _print_run(r)
+        return r
+
     with tempfile.TemporaryDirectory(prefix='magcal_bench_live_') as tmp:
         calfile = make_calibration(os.path.join(tmp, 'calibration.yaml'))
-        runs = []
-        for kind in args.nodes:
-            for rate in args.rates:
-                r = run_one(kind, rate, args, env, calfile, tmp)
-                runs.append(r)
-                _print_run(r)
+        # main table: nodes interleaved within each repeat, so both see the same machine
+        by = {}
+        for rate in args.rates:
+            for _ in range(args.repeats):
+                for kind in args.nodes:
+                    by.setdefault((kind, rate), []).append(one(kind, rate))
+        agg = [aggregate(by[(kind, rate)]) for kind in args.nodes for rate in args.rates]
         sustain = {}
         if not args.no_search:
-            for kind in args.nodes:
-                best = None
-                tried = []
-                fails = 0
-                for rate in sorted(args.search_rates):
-                    prev = [r for r in runs + tried if r['node'] == kind
-                            and r['rate_hz'] == rate and 'error' not in r]
-                    r = prev[0] if prev else run_one(kind, rate, args, env, calfile, tmp)
-                    if not prev:
-                        tried.append(r)
-                        _print_run(r)
-                    if 'error' in r or r['loss'] is None or r['loss'] > args.max_loss:
-                        fails += 1
-                        if fails >= 2:          # two failing rates in a row: stop
-                            break
-                        continue
-                    fails = 0
-                    best = rate
-                sustain[kind] = {'rate_hz_per_sensor': best,
-                                 'total_msgs_per_s': None if best is None else 4 * best,
-                                 'runs': tried}
+            best = dict.fromkeys(args.nodes)
+            fails = dict.fromkeys(args.nodes, 0)
+            for rate in sorted(args.search_rates):
+                active = [k for k in args.nodes if fails[k] < 2]
+                if not active:
+                    break
+                runs_r = {k: [r for r in by.get((k, rate), [])] for k in active}
+                for _ in range(args.search_repeats):
+                    for kind in active:
+                        if len(runs_r[kind]) < args.search_repeats:
+                            runs_r[kind].append(one(kind, rate))
+                for kind in active:
+                    losses = [r['loss'] for r in runs_r[kind] if r.get('loss') is not None]
+                    if losses and min(losses) <= args.max_loss:
+                        best[kind] = rate
+                        fails[kind] = 0
+                    else:
+                        fails[kind] += 1
+            sustain = {k: {'rate_hz_per_sensor': best[k],
+                           'total_msgs_per_s': None if best[k] is None else 4 * best[k]}
+                       for k in args.nodes}
         logs = {}
         for name in sorted(os.listdir(tmp)):
             if name.endswith('.log'):
@@ -213,44 +257,49 @@ def main(argv=None):
                 errs = [ln for ln in text.splitlines() if 'ERROR' in ln or 'Traceback' in ln]
                 if errs:
                     logs[name] = errs[:5]
-    rows = []
-    for r in runs:
-        lat = r.get('latency_ms') or {}
-        cpu = r.get('cpu_percent') or {}
-        rows.append([r['node'], r['rate_hz'], r.get('publish_rate_hz'), r.get('output_rate_hz'),
-                     None if r.get('loss') is None else f'{100 * r["loss"]:.2f} %',
-                     lat.get('p50'), lat.get('p99'), cpu.get('node'), cpu.get('publisher'),
-                     cpu.get('receiver'), r.get('error', '')])
-    t1 = common.table(['node', 'Hz/sensor', 'in msg/s', 'out msg/s', 'loss', 'p50 ms',
-                       'p99 ms', 'node CPU %', 'pub CPU %', 'recv CPU %', 'note'], rows,
-                      title='Corrector vs relay, 4 sensors (window '
-                      f'{args.duration:g} s, after {args.warmup:g} s warm-up)')
+
+    def pct(x):
+        return None if x is None else f'{100 * x:.2f} %'
+
+    rows = [[a['node'], a['rate_hz'], a.get('publish_rate_hz'), a.get('output_rate_hz'),
+             pct(a.get('loss_median')), f'{pct(a.get("loss_min"))} .. {pct(a.get("loss_max"))}',
+             a.get('p50_ms'), a.get('p99_ms'), a.get('cpu_node'), a.get('cpu_publisher'),
+             a.get('cpu_receiver'), a.get('load_average'),
+             '; '.join(a['errors'])[:60] if a['errors'] else ''] for a in agg]
+    t1 = common.table(['node', 'Hz/sensor', 'in msg/s', 'out msg/s', 'loss', 'loss range',
+                       'p50 ms', 'p99 ms', 'node CPU %', 'pub CPU %', 'recv CPU %', 'load avg',
+                       'note'], rows,
+                      title=f'Corrector vs relay, 4 sensors: medians of {args.repeats} '
+                      f'interleaved runs (window {args.duration:g} s after {args.warmup:g} s '
+                      'warm-up)')
     ratios = {}
     for rate in args.rates:
-        c = [r for r in runs if r['node'] == 'corrector' and r['rate_hz'] == rate]
-        rl = [r for r in runs if r['node'] == 'relay' and r['rate_hz'] == rate]
+        c = [a for a in agg if a['node'] == 'corrector' and a['rate_hz'] == rate]
+        rl = [a for a in agg if a['node'] == 'relay' and a['rate_hz'] == rate]
         if c and rl and c[0].get('output_rate_hz') and rl[0].get('output_rate_hz'):
-            ratios[str(rate)] = c[0]['output_rate_hz'] / rl[0]['output_rate_hz']
+            ratios[f'{rate:g}'] = {'median': c[0]['output_rate_hz'] / rl[0]['output_rate_hz'],
+                                   'best': c[0]['output_rate_best_hz']
+                                   / rl[0]['output_rate_best_hz']}
     tables = [t1]
     if ratios:
-        tables.append(common.table(['Hz/sensor', 'output rate corrector / relay'],
-                                   [[k, v] for k, v in ratios.items()]))
+        tables.append(common.table(
+            ['Hz/sensor', 'output rate corrector / relay (medians)', '(best runs)'],
+            [[k, v['median'], v['best']] for k, v in ratios.items()]))
+    curve = {}
+    for r in all_runs:
+        if r.get('loss') is not None:
+            curve.setdefault(r['rate_hz'], {}).setdefault(r['node'], []).append(r['loss'])
+    tables.append(common.table(
+        ['Hz/sensor'] + [f'{k} loss (each run)' for k in args.nodes],
+        [[f'{rt:g}'] + [', '.join(f'{100 * x:.2f}' for x in curve[rt].get(k, [])) or '-'
+                        for k in args.nodes] for rt in sorted(curve)],
+        title='Loss in % against input rate, every run'))
     goal = None
     if sustain:
-        curve = {}
-        for r in runs + [t for v in sustain.values() for t in v['runs']]:
-            if r.get('loss') is not None:
-                curve.setdefault(r['rate_hz'], {})[r['node']] = r['loss']
-        rates = sorted(curve)
-        tables.append(common.table(
-            ['Hz/sensor'] + [f'{k} loss' for k in sustain],
-            [[f'{rt:g}'] + [None if curve[rt].get(k) is None else f'{100 * curve[rt][k]:.2f} %'
-                            for k in sustain] for rt in rates],
-            title='Loss against input rate (all runs)'))
         rows = [[k, v['rate_hz_per_sensor'], v['total_msgs_per_s']] for k, v in sustain.items()]
         tables.append(common.table(['node', 'sustainable Hz/sensor', 'msg/s total'], rows,
-                                   title=f'Highest rate tried with loss <= '
-                                   f'{100 * args.max_loss:g} %'))
+                                   title=f'Highest rate with loss <= {100 * args.max_loss:g} % '
+                                   f'in at least one of {args.search_repeats} runs'))
         c = sustain.get('corrector', {}).get('rate_hz_per_sensor')
         rl = sustain.get('relay', {}).get('rate_hz_per_sensor')
         if c and rl:
@@ -265,7 +314,8 @@ def main(argv=None):
     settings = dict(vars(args))
     settings['ros_domain_id'] = env['ROS_DOMAIN_ID']
     settings['dds_profile'] = os.path.relpath(common.FASTDDS_PROFILE, common.REPO_DIR)
-    path = common.write_result('live', settings, {'runs': runs, 'sustainable': sustain,
+    path = common.write_result('live', settings, {'summary': agg, 'runs': all_runs,
+                                                  'sustainable': sustain,
                                                   'ratio_output_rate': ratios, 'goal': goal,
                                                   'node_log_errors': logs},
                                tables, args.out_dir, started)

@@ -19,8 +19,8 @@ CASES = {
     'papers': ['--seeds', '2', '--holdout', '100'],
     'solve_time': ['--sizes', '400', '800', '--models', 'base', '--diagnose-max-n', '400',
                    '--no-blas-compare'],
-    'live': ['--rates', '50', '--duration', '1', '--warmup', '0.5', '--drain', '0.5',
-             '--no-search'],
+    'live': ['--rates', '50', '--repeats', '1', '--duration', '1', '--warmup', '0.5',
+             '--drain', '0.5', '--no-search'],
     'driver_rate': ['--samples', '300', '--pty-mbytes', '0.05', '--protocols', 'ascii',
                     'lemi025', '--node-duration', '1', '--node-warmup', '0.5'],
 }
