@@ -230,7 +230,8 @@ def main(argv=None):
         if not args.no_search:
             best = dict.fromkeys(args.nodes)
             fails = dict.fromkeys(args.nodes, 0)
-            for rate in sorted(args.search_rates):
+            # the main table's rates count too (their runs are reused, not repeated)
+            for rate in sorted(set(args.search_rates) | set(args.rates)):
                 active = [k for k in args.nodes if fails[k] < 2]
                 if not active:
                     break
@@ -304,10 +305,10 @@ def main(argv=None):
         rl = sustain.get('relay', {}).get('rate_hz_per_sensor')
         if c and rl:
             goal = {'ratio': c / rl, 'goal': 0.9, 'met': c / rl >= 0.9}
+            tried = ', '.join(f'{x:g}' for x in sorted(set(args.search_rates) | set(args.rates)))
             tables.append(f'Goal: corrector sustains >= 0.9 x the relay: {c:g} / {rl:g} = '
                           f'{c / rl:.2f} -> {"met" if goal["met"] else "MISSED"} (rates '
-                          f'tried: {", ".join(f"{x:g}" for x in sorted(args.search_rates))} '
-                          'Hz)')
+                          f'tried: {tried} Hz)')
     for t in tables:
         print()
         print(t)
