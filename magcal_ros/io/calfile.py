@@ -109,7 +109,7 @@ def _check_complete(doc, model, source):
     # of the sensors list (fewer sensors or effects than were calibrated)
     prov = doc.get('provenance')
     if prov is None:
-        raise CalibrationFileError(f'{source}: missing key \'provenance\' (the file ends early: '
+        raise CalibrationFileError(f"{source}: missing key 'provenance' (the file ends early: "
                                    'truncated write?)')
     if not isinstance(prov, dict):
         raise CalibrationFileError(f'{source}: provenance must be a mapping')
