@@ -350,3 +350,18 @@ def test_driver_process_refuses_bad_parameters(start_process, ros_namespace):
         '-p', 'sensor1.expected_rate_hz:=-1.0'], name='bad_driver')
     assert proc.wait(30) == 2
     assert 'bad parameters: sensor1.port: missing device path' in proc.read_log()
+
+
+@pytest.mark.parametrize('exe,params,reason', [
+    ('calibration_node', ['-p', "model:=['base','warp_drive']"], "unknown effect 'warp_drive'"),
+    ('corrector_node', ['-p', 'stamp_tolerance_s:=-1.0'], 'stamp_tolerance_s'),
+])
+def test_other_nodes_refuse_bad_parameters_with_one_line(start_process, ros_namespace, exe,
+                                                         params, reason):
+    """Every node: bad start-up parameters -> one line on stderr and exit status 2."""
+    proc = start_process(console_script(exe) + ['--ros-args', '-r', f'__ns:={ros_namespace}',
+                                                *params], name=f'bad_{exe}')
+    assert proc.wait(30) == 2
+    log = proc.read_log()
+    assert f'{exe}: bad parameters:' in log and reason in log
+    assert 'Traceback' not in log

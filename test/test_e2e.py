@@ -89,7 +89,9 @@ def test_calibrate_then_correct_at_the_noise_floor(
             break
         assert 'previous calibration stays active' in resp.message
     assert resp.success, resp.message
-    assert status['incomplete_sets_dropped'] <= 10        # only before the streams align
+    # only before the streams align, or under heavy load (sensor-data QoS drops samples):
+    # a small fraction of the sets, never enough to bias the fit
+    assert status['incomplete_sets_dropped'] <= 0.02 * n_sets
     lines, fit = split(resp)
     assert lines[0].startswith('calibrated')
     for j in '1234':

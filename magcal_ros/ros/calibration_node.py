@@ -31,6 +31,7 @@ subscription out of order (2 threads), which breaks the matching of sample sets 
 """
 import json
 import os
+import sys
 import threading
 import time
 
@@ -42,11 +43,10 @@ from magcal_ros.io.calfile import (CalibrationFileError, dump_calibration, load_
 from magcal_ros.pipeline import calibrate as run_calibration, cross_geometry
 from magcal_ros.ros import params as prm
 from magcal_ros.ros.conversions import msg_to_field_nt, stamp_to_seconds
+from magcal_ros.ros.run import spin_node
 from magcal_ros.ros.sync import epoch_times, StampMatcher
 import numpy as np
-import rclpy
 from rclpy.callback_groups import ReentrantCallbackGroup
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, qos_profile_sensor_data, QoSProfile,
                        ReliabilityPolicy)
@@ -523,18 +523,8 @@ class CalibrationNode(Node):
 
 def main(args=None):
     """Run calibration_node (``ros2 run magcal_ros calibration_node``)."""
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = CalibrationNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    return spin_node(CalibrationNode, 'calibration_node', args)
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

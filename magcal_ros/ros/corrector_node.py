@@ -21,6 +21,7 @@ gradient operator) is computed once when a calibration is installed.
 """
 from collections import deque
 import os
+import sys
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from magcal_ros.core.effects import SensorContext
@@ -30,10 +31,9 @@ from magcal_ros.ros import params as prm
 from magcal_ros.ros.calibration_node import RESULT_QOS, SENSOR_QOS
 from magcal_ros.ros.conversions import (field_nt_to_msg, msg_to_field_nt, stamp_to_seconds,
                                         tensor_to_msg)
+from magcal_ros.ros.run import spin_node
 from magcal_ros.ros.sync import StampMatcher
 import numpy as np
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import MagneticField, Temperature
 from std_msgs.msg import Float64, Float64MultiArray, String
@@ -334,18 +334,8 @@ class CorrectorNode(Node):
 
 def main(args=None):
     """Run corrector_node (``ros2 run magcal_ros corrector_node``)."""
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = CorrectorNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    return spin_node(CorrectorNode, 'corrector_node', args)
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

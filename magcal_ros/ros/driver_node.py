@@ -32,12 +32,11 @@ import threading
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from magcal_ros.ros.conversions import field_nt_to_msg, temperature_msg
+from magcal_ros.ros.run import spin_node
 from magcal_ros.serial import make_parser, PROTOCOLS, transport
 from magcal_ros.serial.options import parse_options
 from magcal_ros.serial.transport import PortReader, STATE_OPEN
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType, SetParametersResult
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -391,21 +390,7 @@ class FluxgateDriver(Node):
 
 def main(args=None):
     """Console script ``fluxgate_driver`` (Jazzy style)."""
-    rclpy.init(args=args)
-    try:
-        node = FluxgateDriver()
-    except ValueError as exc:
-        print(f'{NODE_NAME}: bad parameters: {exc}', file=sys.stderr)
-        rclpy.try_shutdown()
-        return 2
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return spin_node(FluxgateDriver, NODE_NAME, args)
 
 
 if __name__ == '__main__':
