@@ -1,7 +1,7 @@
 """Run every benchmark (one subprocess each) and refresh the results section of BENCHMARKS.md.
 
-    python bench/run_all.py            # full run (about 20 min on 2 cores)
-    python bench/run_all.py --quick    # reduced settings (about 3 min)
+    python bench/run_all.py            # full run (about 16 min on this 2-core machine)
+    python bench/run_all.py --quick    # reduced settings (a few minutes)
     python bench/run_all.py --only accuracy papers
 
 Results: bench/results/<name>.json (machine, settings, figures, tables); with
