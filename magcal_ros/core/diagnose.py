@@ -48,8 +48,8 @@ import numpy as np
 from scipy import stats
 
 from magcal_ros.core import effects as fx
-from magcal_ros.core.model import (_Problem, _tangent_basis, evaluate, field_magnitude,
-                                   fit, Model)
+from magcal_ros.core.model import (_Problem, _single_threaded_blas, _tangent_basis, evaluate,
+                                   field_magnitude, fit, Model)
 from magcal_ros.core.noise import estimate_noise
 
 #: family-wise significance level of the likelihood-ratio tests (Bonferroni over candidates)
@@ -669,9 +669,15 @@ def _progress(cb, stage, i, n, label=''):
         cb(stage, i, n, label)
 
 
-def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLDS,
-             alpha=ALPHA, max_refit=DEFAULT_MAX_REFIT, candidates=None, progress=None,
-             **fit_kwargs):
+def diagnose(data, model='base', field_nt=None, **kwargs):
+    # one BLAS thread, as in fit(): threads only contend on small shared machines (bench/)
+    with _single_threaded_blas():
+        return _diagnose(data, model, field_nt, **kwargs)
+
+
+def _diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLDS,
+              alpha=ALPHA, max_refit=DEFAULT_MAX_REFIT, candidates=None, progress=None,
+              **fit_kwargs):
     """Find what the model misses: noise floor, candidate effects ranked, verdict.
 
     Parameters
@@ -971,6 +977,9 @@ def _step(result, data, f, added, diagnosis, folds):
         scalar_rms_nt=dict(result.scalar_rms_nt), vector_rms_nt=dict(result.vector_rms_nt),
         residual_rms_nt=float(np.sqrt(fac * np.mean(ev.residual ** 2))), cv_rms_nt=cv,
         cv_per_sensor_nt=cvp, diagnosis=diagnosis, result=result)
+
+
+diagnose.__doc__ = _diagnose.__doc__
 
 
 def ladder(data, start_model='base', steps=None, auto=True, field_nt=None, *,
