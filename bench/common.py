@@ -13,6 +13,8 @@ import time
 
 import numpy as np
 
+from magcal_ros.core.diagnose import jsonable  # noqa: F401 (re-exported for the benches)
+
 BENCH_DIR = os.path.dirname(os.path.abspath(__file__))
 REPO_DIR = os.path.dirname(BENCH_DIR)
 RESULTS_DIR = os.path.join(BENCH_DIR, 'results')
@@ -83,24 +85,6 @@ def machine_info():
         except PackageNotFoundError:
             info[pkg] = None
     return info
-
-
-def jsonable(x):
-    """Convert numpy scalars/arrays and non-finite floats for json.dump."""
-    if isinstance(x, dict):
-        return {str(k): jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return jsonable(x.tolist())
-    if isinstance(x, (np.integer,)):
-        return int(x)
-    if isinstance(x, (float, np.floating)):
-        x = float(x)
-        return x if np.isfinite(x) else None
-    if isinstance(x, np.bool_):
-        return bool(x)
-    return x
 
 
 def write_result(name, settings, results, tables, out_dir=None, started=None):

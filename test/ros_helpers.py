@@ -37,6 +37,7 @@ raises ``AssertionError`` naming what it waited for. Services are called with
 
 import ctypes
 import itertools
+import json
 import os
 import pathlib
 import re
@@ -184,6 +185,12 @@ def wait_for_messages(node, executor, msg_type, topic, count=1,
         if added:
             executor.remove_node(node)
     return received[:count]
+
+
+def split_response(response):
+    """(summary lines, JSON payload) of a node's Trigger response: a human summary, then JSON."""
+    summary, _, payload = response.message.partition('\n{')
+    return summary.splitlines(), json.loads('{' + payload)
 
 
 def call_trigger(node, executor, service_name, timeout_sec=30.0):

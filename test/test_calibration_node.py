@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
-from ros_helpers import call_trigger, spin_for, spin_until
+from ros_helpers import call_trigger, spin_for, spin_until, split_response as split
 from sim_feed import Feeder
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
@@ -38,12 +38,6 @@ def start_node(make_node, namespace, tmp_path, **params):
     overrides.update(params)
     return make_node(CalibrationNode, namespace=namespace, parameter_overrides=[
         Parameter(k, value=v) for k, v in overrides.items()])
-
-
-def split(response):
-    """(summary lines, JSON payload) of a Trigger response of the node."""
-    summary, _, payload = response.message.partition('\n{')
-    return summary.splitlines(), json.loads('{' + payload)
 
 
 def listen(node, topic, qos=10):

@@ -21,7 +21,8 @@ from magcal_ros.ros.conversions import msg_to_field_nt, msg_to_tensor, stamp_to_
 from magcal_ros.ros.sync import StampMatcher
 import numpy as np
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from ros_helpers import call_trigger, console_script, spin_for, spin_until, wait_for_messages
+from ros_helpers import (call_trigger, console_script, spin_for, spin_until,
+                         split_response as split, wait_for_messages)
 from sensor_msgs.msg import MagneticField
 from std_msgs.msg import Float64MultiArray, String
 
@@ -63,11 +64,6 @@ def wait_for_sets(node, executor, n_sets, timeout_sec, need_ready=True):
             f'{n_sets} sets' + (' and full coverage' if need_ready else ''))
     finally:
         node.destroy_subscription(sub)
-
-
-def split(response):
-    summary, _, payload = response.message.partition('\n{')
-    return summary.splitlines(), json.loads('{' + payload)
 
 
 def test_calibrate_then_correct_at_the_noise_floor(

@@ -39,7 +39,8 @@ import numpy as np
 import pytest
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
-from ros_helpers import call_trigger, spin_for, spin_until, subprocess_env
+from ros_helpers import (call_trigger, spin_for, spin_until, split_response as split,
+                         subprocess_env)
 from sensor_msgs.msg import MagneticField
 from sim_feed import Feeder, T0
 from std_msgs.msg import Float64MultiArray, String
@@ -166,12 +167,6 @@ def start_node(make_node, namespace, tmp_path, **params):
     overrides.update(params)
     return make_node(CalibrationNode, namespace=namespace, parameter_overrides=[
         Parameter(k, value=v) for k, v in overrides.items()])
-
-
-def split(response):
-    """(summary lines, JSON payload) of a Trigger response of the node."""
-    summary, _, payload = response.message.partition('\n{')
-    return summary.splitlines(), json.loads('{' + payload)
 
 
 def feed_sensors(feeder, executor, node, data, sensors, stop=None, batch=5):
