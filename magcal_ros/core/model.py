@@ -514,23 +514,32 @@ class _Problem:
         for _ in range(2):
             u = b / self.f[:, None]
             e1, e2 = _tangent_basis(u)
-            hess = np.zeros((n, 2, 2))
-            grad = np.zeros((n, 2))
+            # per-epoch 2 x 2 normal equations of the two tangent directions, written out
+            # component by component: several times faster than stacking (N, 3, 2) arrays
+            # and batched matmuls of tiny matrices (profile of diagnose, bench/)
+            h11, h12, h22 = np.zeros(n), np.zeros(n), np.zeros(n)
+            g1s, g2s = np.zeros(n), np.zeros(n)
             for j in self.sensors:
                 r = (self.raw[j - 1] - self.model.forward(j, p, b, self.ctx[j - 1])) / (
                     self.sigma[j - 1])
-                g = np.stack([e1 @ mats[j].T, e2 @ mats[j].T], axis=2) * (
-                    self.f[:, None, None] / self.sigma[j - 1])            # (N, 3, 2) = -dr/d delta
-                w = np.ones(n)
+                scale = self.f[:, None] / self.sigma[j - 1]
+                g1 = (e1 @ mats[j].T) * scale          # (N, 3) = -dr/d delta_1
+                g2 = (e2 @ mats[j].T) * scale          # (N, 3) = -dr/d delta_2
                 if self.robust:
                     # IRLS weight of the soft-L1 loss on this sensor's residual at each epoch
-                    w = 1.0 / np.sqrt(1.0 + np.sum(r ** 2, axis=1) / self.f_scale ** 2)
-                # batched matmul: 3-5x faster than the equivalent einsum (bench/, profile)
-                gt = np.swapaxes(g, 1, 2)                                  # (N, 2, 3)
-                hess += (gt * w[:, None, None]) @ g
-                grad += (gt @ (r * w[:, None])[..., None])[..., 0]
-            delta = _solve2x2(hess, grad[..., None])[..., 0]
-            b = b + self.f[:, None] * (delta[:, :1] * e1 + delta[:, 1:] * e2)
+                    w = 1.0 / np.sqrt(1.0 + np.sum(r * r, axis=1) / self.f_scale ** 2)
+                    wg1, wg2 = g1 * w[:, None], g2 * w[:, None]
+                else:
+                    wg1, wg2 = g1, g2
+                h11 += np.einsum('ij,ij->i', wg1, g1)
+                h12 += np.einsum('ij,ij->i', wg1, g2)
+                h22 += np.einsum('ij,ij->i', wg2, g2)
+                g1s += np.einsum('ij,ij->i', wg1, r)
+                g2s += np.einsum('ij,ij->i', wg2, r)
+            det = h11 * h22 - h12 * h12
+            d1 = (h22 * g1s - h12 * g2s) / det
+            d2 = (h11 * g2s - h12 * g1s) / det
+            b = b + self.f[:, None] * (d1[:, None] * e1 + d2[:, None] * e2)
             b = b / np.linalg.norm(b, axis=1, keepdims=True) * self.f[:, None]
         return b, mats
 
@@ -561,13 +570,17 @@ class _Problem:
         for gi, j in enumerate(self.sensors):
             sl = self.model.sensor_slices[j - 1]
             base = self.model.forward(j, p, b, self.ctx[j - 1])
-            for i in range(sl.start, sl.stop):
+            # this sensor's columns, filled contiguously (P_j, N, 3) and copied into the
+            # strided Jacobian once: about 2x faster than writing column by column
+            block = np.empty((sl.stop - sl.start, n, 3))
+            for c, i in enumerate(range(sl.start, sl.stop)):
                 h = 1e-6 * max(1.0, abs(p[i]))
                 pp = p.copy()
                 pp[i] += h
-                jac[:, gi, :, col] = -(self.model.forward(j, pp, b, self.ctx[j - 1]) - base) / (
-                    h * self.sigma[j - 1])
-                col += 1
+                np.subtract(base, self.model.forward(j, pp, b, self.ctx[j - 1]), out=block[c])
+                block[c] /= h * self.sigma[j - 1]
+            jac[:, gi, :, col:col + len(block)] = block.transpose(1, 2, 0)
+            col += len(block)
         # project out the nuisance field directions (variable projection)
         u = b / self.f[:, None]
         e1, e2 = _tangent_basis(u)
@@ -989,8 +1002,11 @@ def evaluate(model, p, data, f, sigma, contexts=None, robust=False, f_scale=3.0,
     residual = np.zeros((s, n, 3))
     for start in range(0, n, chunk):
         sl = slice(start, min(n, start + chunk))
-        idx = np.arange(sl.start, sl.stop)
-        ctx = [c.subset(idx) for c in contexts]
+        if sl.start == 0 and sl.stop == n:
+            ctx = contexts                      # one chunk: no copies of the signals
+        else:
+            idx = np.arange(sl.start, sl.stop)
+            ctx = [c.subset(idx) for c in contexts]
         for grp in groups:
             prob = _Problem(model, data.raw[:, sl], ctx, f[sl], grp, sigma, [], robust, f_scale)
             prob.p_full = p.copy()
