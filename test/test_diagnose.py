@@ -319,3 +319,24 @@ def test_cross_validate_contiguous_blocks():
     # held-out RMS of a complete model: the noise (3 nT) to within the 10 % criterion
     assert cv['rms_nt'] == pytest.approx(SIGMA, rel=0.1)
     np.testing.assert_allclose(cv['scalar_rms_nt'], SIGMA, rtol=0.1)
+
+
+@pytest.mark.parametrize('truth, spec', [({}, 'base'), (TEMP2, 'base'),
+                                         (TEMP2, 'base,temperature@2')])
+def test_newton_cross_validation_equals_refitting_each_fold(truth, spec):
+    # the default 'newton' folds (one Gauss-Newton step without the held-out block) against
+    # full refits: complete model, a model missing a 4x-floor effect, and the extended model
+    data = sim(truth, 21)
+    res = fit(data, spec, field_nt=F)
+    f = np.full(data.n_samples, F)
+    cv = {m: cross_validate(data, res.model, res.params, f, res.sigma_nt, folds=3, method=m)
+          for m in ('newton', 'refit')}
+    # held-out RMS: the same to far below its sampling scatter (1.3 %)
+    assert cv['newton']['rms_nt'] == pytest.approx(cv['refit']['rms_nt'], rel=1e-5)
+    np.testing.assert_allclose(cv['newton']['per_sensor_nt'], cv['refit']['per_sensor_nt'],
+                               rtol=1e-5)
+    # fold parameters: within 1 % of their standard errors
+    for pn, pr in zip(cv['newton']['fold_params'], cv['refit']['fold_params']):
+        assert np.all(np.abs(pn - pr) <= 0.01 * res.stderr + 1e-12)
+    with pytest.raises(ValueError, match="'newton' or 'refit'"):
+        cross_validate(data, res.model, res.params, f, res.sigma_nt, method='exact')

@@ -375,6 +375,14 @@ class _Screen:
     computed once; each candidate adds only its own columns, projected the same way, and the
     step solves the normal equations of [J_base, J_candidate].  For effects that enter
     linearly this is the refit to first order in the (small) change of the profiled field.
+
+    A candidate's raw columns C are non-zero only on the rows of the sensors it adds
+    parameters to, and the projector P = I - G (G^T G)^-1 G^T (G: the field-direction
+    columns of each epoch) is symmetric and idempotent with P J_base = J_base, so the
+    blocks of the normal equations are formed without projecting C row by row:
+    J_base^T P C = J_base^T C (3 of the 3S rows per epoch), C^T P C = C^T C - (G^T C)^T
+    (G^T G)^-1 (G^T C) and C^T P r = C^T r - (G^T C)^T (G^T G)^-1 G^T r, all per epoch with
+    2 x 2 inverses.  Same numbers as projecting C, about 10x less work per candidate.
     """
 
     def __init__(self, model, p, raw, contexts, f, sigma):
@@ -389,14 +397,28 @@ class _Screen:
             jac = prob.jacobian(x)
             _, b, mats, _ = prob.evaluate(x)
             e1, e2 = _tangent_basis(b / f[:, None])
-            gb = np.concatenate([np.stack([e1 @ mats[j].T, e2 @ mats[j].T], axis=2)
-                                 * (f[:, None, None] / sigma[j - 1]) for j in grp], axis=1)
+            n, g = len(f), len(grp)
+            # (N, 3, 2) field-direction columns of each sensor, scaled like the residual
+            gb = [np.stack([e1 @ mats[j].T, e2 @ mats[j].T], axis=2)
+                  * (f[:, None, None] / sigma[j - 1]) for j in grp]
+            gtg = sum(np.swapaxes(x_, 1, 2) @ x_ for x_ in gb)
+            a, bb, c, d_ = gtg[:, 0, 0], gtg[:, 0, 1], gtg[:, 1, 0], gtg[:, 1, 1]
+            ginv = np.stack([np.stack([d_, -bb], axis=1), np.stack([-c, a], axis=1)],
+                            axis=1) / (a * d_ - bb * c)[:, None, None]       # (N, 2, 2)
+            r3 = r.reshape(n, g, 3)
+            gtr = sum((np.swapaxes(gb[gi], 1, 2) @ r3[:, gi, :, None])[..., 0]
+                      for gi in range(g))                                     # (N, 2)
             d = np.linalg.norm(jac, axis=0)
             d[d == 0] = 1.0
             js = jac / d
-            self.groups.append({'sensors': grp, 'cols': prob.cols, 'r': r, 'js': js, 'd': d,
-                                'jtj': js.T @ js, 'jtr': js.T @ r, 'b': b, 'gb': gb,
-                                'gtg': np.einsum('nci,ncj->nij', gb, gb)})
+            j4 = js.reshape(n, g, 3, -1)
+            self.groups.append({
+                'sensors': grp, 'cols': prob.cols, 'd': d, 'b': b,
+                'jtj': js.T @ js, 'jtr': js.T @ r,
+                # per sensor: its rows of the scaled base Jacobian (3N, P), residual (3N,)
+                'js': [np.ascontiguousarray(j4[:, gi]).reshape(3 * n, -1) for gi in range(g)],
+                'r': [np.ascontiguousarray(r3[:, gi]).reshape(-1) for gi in range(g)],
+                'gb': gb, 'ginv': ginv, 'ginv_gtr': (ginv @ gtr[..., None])[..., 0]})
 
     def step(self, m_ext, p_ext, added):
         """(P',) parameters of ``m_ext`` after one Gauss-Newton step from ``p_ext``."""
@@ -407,35 +429,45 @@ class _Screen:
             if k[:3] in old_pos:
                 new_of_old[old_pos[k[:3]]] = i
         p_new = p_ext.copy()
+        n = len(self.f)
         for g in self.groups:
             grp = g['sensors']
             idx = [i for i in np.flatnonzero(added) if info[i][0] in grp]
             if not idx:
                 continue
-            n = len(self.f)
-            jc = np.zeros((n, len(grp), 3, len(idx)))
-            fwd = {}
-            for c, i in enumerate(idx):
-                j = info[i][0]
-                if j not in fwd:
-                    fwd[j] = m_ext.forward(j, p_ext, g['b'], self.ctx[j - 1])
-                h = 1e-6 * max(1.0, abs(p_ext[i]))
-                pp = p_ext.copy()
-                pp[i] += h
-                jc[:, grp.index(j), :, c] = -(m_ext.forward(j, pp, g['b'], self.ctx[j - 1])
-                                              - fwd[j]) / (h * self.sigma[j - 1])
-            jc = jc.reshape(n, 3 * len(grp), len(idx))
-            gtj = np.einsum('nci,ncp->nip', g['gb'], jc)
-            jc = jc - np.einsum('nci,nip->ncp', g['gb'], np.linalg.solve(g['gtg'], gtj))
-            jc = jc.reshape(-1, len(idx))
-            dc = np.linalg.norm(jc, axis=0)
-            dc[dc == 0] = 1.0
-            jcs = jc / dc
-            cross = g['js'].T @ jcs
-            a = np.block([[g['jtj'], cross], [cross.T, jcs.T @ jcs]])
-            rhs = -np.concatenate([g['jtr'], jcs.T @ g['r']])
-            sol = _solve_psd(a, rhs)
+            k = len(idx)
             nb = len(g['cols'])
+            cross = np.zeros((nb, k))            # J_base^T C
+            ctc = np.zeros((k, k))               # C^T C
+            ctr = np.zeros(k)                    # C^T r
+            gtc = np.zeros((n, 2, k))            # G^T C per epoch
+            for gi, j in enumerate(grp):
+                cols = [c for c, i in enumerate(idx) if info[i][0] == j]
+                if not cols:
+                    continue
+                fwd = m_ext.forward(j, p_ext, g['b'], self.ctx[j - 1])
+                cj = np.empty((n, 3, len(cols)))
+                for c_local, c in enumerate(cols):
+                    i = idx[c]
+                    h = 1e-6 * max(1.0, abs(p_ext[i]))
+                    pp = p_ext.copy()
+                    pp[i] += h
+                    cj[:, :, c_local] = -(m_ext.forward(j, pp, g['b'], self.ctx[j - 1])
+                                          - fwd) / (h * self.sigma[j - 1])
+                flat = cj.reshape(3 * n, -1)
+                cross[:, cols] += g['js'][gi].T @ flat
+                ctc[np.ix_(cols, cols)] += flat.T @ flat
+                ctr[cols] += flat.T @ g['r'][gi]
+                gtc[:, :, cols] += np.swapaxes(g['gb'][gi], 1, 2) @ cj
+            # project: subtract the part of C along the field directions of each epoch
+            ctc -= np.einsum('nip,niq->pq', gtc, g['ginv'] @ gtc)
+            ctr -= np.einsum('nip,ni->p', gtc, g['ginv_gtr'])
+            dc = np.sqrt(np.clip(np.diag(ctc), 0.0, None))
+            dc[dc == 0] = 1.0
+            cross_s = cross / dc
+            a = np.block([[g['jtj'], cross_s], [cross_s.T, ctc / np.outer(dc, dc)]])
+            rhs = -np.concatenate([g['jtr'], ctr / dc])
+            sol = _solve_psd(a, rhs)
             p_new[new_of_old[g['cols']]] += sol[:nb] / g['d']
             p_new[idx] += sol[nb:] / dc
         return p_new
@@ -473,7 +505,8 @@ def time_blocks(n, folds):
     return np.array_split(np.arange(n), folds)
 
 
-def cross_validate(data, model, params, f, sigma, folds=DEFAULT_FOLDS, fold_inits=None):
+def cross_validate(data, model, params, f, sigma, folds=DEFAULT_FOLDS, fold_inits=None,
+                   method='newton'):
     """Held-out residual of ``model``: fit on all blocks but one, evaluate on that block.
 
     Parameters
@@ -482,13 +515,25 @@ def cross_validate(data, model, params, f, sigma, folds=DEFAULT_FOLDS, fold_init
     model : Model
         Prepared on the full data (its reference values are kept).
     params : numpy.ndarray
-        (P,) warm start (the fit on all data).
+        (P,) the fit on all data (``'newton'``: must be its optimum; ``'refit'``: the warm
+        start).
     f : numpy.ndarray
         (N,) reference magnitude, nT.
     sigma : numpy.ndarray
         (S,) fixed noise levels, nT.
     fold_inits : list of numpy.ndarray, optional
-        Per-fold warm starts (default ``params``).
+        Per-fold warm starts of ``'refit'`` (default ``params``).
+    method : {'newton', 'refit'}
+        How the model is fitted without the held-out block.  ``'refit'``: the full
+        maximum-likelihood fit (:func:`magcal_ros.core.model.fit`) on the other blocks.
+        ``'newton'`` (default): one Gauss-Newton step from the all-data optimum with the
+        held-out block's rows removed from the normal equations,
+        p_b = p - (J^T J - J_b^T J_b)^-1 (J^T r - J_b^T r_b) (the "approximate
+        leave-out" of M-estimation; exact for a model linear in its parameters).  The
+        Jacobian is the variable-projection one of the fit, evaluated once per block,
+        so this costs about one iteration of one fit instead of ``folds`` fits; the
+        held-out residuals are then evaluated exactly.  test_diagnose.py checks both
+        methods agree.
 
     Returns
     -------
@@ -496,19 +541,26 @@ def cross_validate(data, model, params, f, sigma, folds=DEFAULT_FOLDS, fold_init
         ``rms_nt`` combined held-out RMS (pooled), ``per_sensor_nt`` (S,),
         ``scalar_rms_nt`` (S,), ``fold_params`` list of (P,) arrays.
     """
+    if method not in ('newton', 'refit'):
+        raise ValueError(f"method must be 'newton' or 'refit', got {method!r}")
     n = data.n_samples
     blocks = time_blocks(n, folds)
+    params = np.asarray(params, float)
+    if method == 'newton':
+        fold_params = _newton_leave_out(data, model, params, f, sigma, blocks)
+    else:
+        fold_params = []
+        for b, test in enumerate(blocks):
+            train = np.setdiff1d(np.arange(n), test)
+            init = params if fold_inits is None else fold_inits[b]
+            r = fit(data.subset(train), model, field_nt=f[train], sigma_nt=sigma, init=init,
+                    check_identifiability=False, on_degenerate='flag')
+            fold_params.append(r.params)
     ss = np.zeros(data.n_sensors)
     ss_scalar = np.zeros(data.n_sensors)
     count = 0
-    fold_params = []
-    for b, test in enumerate(blocks):
-        train = np.setdiff1d(np.arange(n), test)
-        init = params if fold_inits is None else fold_inits[b]
-        r = fit(data.subset(train), model, field_nt=f[train], sigma_nt=sigma, init=init,
-                check_identifiability=False, on_degenerate='flag')
-        fold_params.append(r.params)
-        out = evaluate(model, r.params, data.subset(test), f[test], sigma)
+    for p_b, test in zip(fold_params, blocks):
+        out = evaluate(model, p_b, data.subset(test), f[test], sigma)
         ss += np.sum(out['residual'] ** 2, axis=(1, 2))
         ss_scalar += np.sum(out['scalar'] ** 2, axis=1)
         count += len(test)
@@ -516,6 +568,32 @@ def cross_validate(data, model, params, f, sigma, folds=DEFAULT_FOLDS, fold_init
     per = np.sqrt(fac * ss / (3 * count))
     return {'rms_nt': float(np.sqrt(np.mean(per ** 2))), 'per_sensor_nt': per,
             'scalar_rms_nt': np.sqrt(ss_scalar / count), 'fold_params': fold_params}
+
+
+def _newton_leave_out(data, model, params, f, sigma, blocks):
+    """(P,) parameters per block: one Gauss-Newton step without that block's rows."""
+    sigma = np.asarray(sigma, float)
+    fold_params = [params.copy() for _ in blocks]
+    for grp in _groups(model):
+        hess, grad = [], []
+        for test in blocks:
+            sub = data.subset(test)
+            prob = _Problem(model, sub.raw, [sub.context(j) for j in range(1, sub.n_sensors + 1)],
+                            f[test], grp, sigma, [])
+            prob.p_full = params.copy()
+            x = params[prob.cols]
+            jac = prob.jacobian(x)
+            r = prob.residuals(x)
+            hess.append(jac.T @ jac)
+            grad.append(jac.T @ r)
+        h_all, g_all = sum(hess), sum(grad)
+        for b in range(len(blocks)):
+            h, g = h_all - hess[b], g_all - grad[b]
+            d = np.sqrt(np.clip(np.diag(h), 0.0, None))
+            d[d == 0] = 1.0
+            step = _solve_psd(h / np.outer(d, d), -g / d) / d
+            fold_params[b][prob.cols] += step
+    return fold_params
 
 
 # -- the diagnosis --------------------------------------------------------------------------
@@ -677,7 +755,7 @@ def diagnose(data, model='base', field_nt=None, **kwargs):
 
 def _diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLDS,
               alpha=ALPHA, max_refit=DEFAULT_MAX_REFIT, candidates=None, progress=None,
-              **fit_kwargs):
+              cv_method='newton', **fit_kwargs):
     """Find what the model misses: noise floor, candidate effects ranked, verdict.
 
     Parameters
@@ -701,6 +779,8 @@ def _diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOL
         Tokens to test instead of every missing effect.
     progress : callable, optional
         ``progress(stage, i, n, label)`` called as the work proceeds.
+    cv_method : {'newton', 'refit'}
+        How each fold is fitted (:func:`cross_validate`).
     **fit_kwargs
         Passed to :func:`magcal_ros.core.model.fit` for the base fit.
 
@@ -814,7 +894,7 @@ def _diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOL
         to_cv = [screened[0]]           # the best one, for its effect size
     if folds and n >= 4 * folds * 12:
         _progress(progress, 'cross-validate', 0, len(to_cv) + 1, ','.join(model.spec()))
-        cv0 = cross_validate(data, model, base.params, f, sigma, folds)
+        cv0 = cross_validate(data, model, base.params, f, sigma, folds, method=cv_method)
         for i, c in enumerate(to_cv):
             _progress(progress, 'cross-validate', i + 1, len(to_cv) + 1, c['token'])
             inits = []
@@ -822,7 +902,8 @@ def _diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOL
                 p_i = c['p'].copy()
                 p_i[~c['added']] = pf
                 inits.append(p_i)
-            c['cv'] = cross_validate(data, c['model'], c['p'], f, sigma, folds, inits)
+            c['cv'] = cross_validate(data, c['model'], c['p'], f, sigma, folds, inits,
+                                     method=cv_method)
             if c['cv']['rms_nt'] < cv0['rms_nt']:
                 break       # the best candidate that passes every test: the verdict
         done = 1 + sum('cv' in c for c in to_cv)
