@@ -524,9 +524,13 @@ def ros_executor(ros_context):
 
 @pytest.fixture
 def ros_namespace(request):
-    """Return a namespace unique to this test, e.g. ``/t_test_corrector_publishes_3``."""
+    """Return a namespace unique to this test and process, e.g. ``/t_test_corrector_3_p4711``.
+
+    The process id keeps two test runs apart even when their ROS_DOMAIN_IDs (PID-derived,
+    scripts/ros_env.sh) collide: the same test of two runs never shares topics.
+    """
     stem = re.sub(r'[^A-Za-z0-9]+', '_', request.node.name).strip('_')[:60].strip('_')
-    return f'/t_{stem}_{next(_name_counter)}'
+    return f'/t_{stem}_{next(_name_counter)}_p{os.getpid()}'
 
 
 @pytest.fixture

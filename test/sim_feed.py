@@ -32,17 +32,19 @@ class Feeder:
             assert time.monotonic() < deadline, 'no subscriber on sensor{j}/raw'
             executor.spin_once(timeout_sec=0.05)
 
-    def publish(self, data, k, temperature=True):
-        """Publish epoch ``k`` of a Dataset (all sensors, same stamp)."""
+    def publish(self, data, k, temperature=True, latency_s=None):
+        """Publish epoch ``k`` of a Dataset (all sensors, same stamp plus ``latency_s[j]``)."""
         stamp = T0 + float(data.t[k])
         for j, pub in enumerate(self.raw):
-            pub.publish(field_nt_to_msg(data.raw[j, k], stamp=stamp, frame_id=f'fluxgate{j + 1}'))
+            late = 0.0 if latency_s is None else float(latency_s[j])
+            pub.publish(field_nt_to_msg(data.raw[j, k], stamp=stamp + late,
+                                        frame_id=f'fluxgate{j + 1}'))
         if temperature and data.temp is not None:
             for j, pub in enumerate(self.temp):
                 pub.publish(temperature_msg(float(data.temp[j, k]), stamp=stamp))
 
     def feed(self, executor, data, taken, start=0, stop=None, batch=5, timeout_sec=60.0,
-             temperature=True):
+             temperature=True, latency_s=None):
         """Publish epochs ``start:stop`` in batches; ``taken()`` counts samples consumed.
 
         ``taken`` returns how many raw samples (all sensors) the node under test has taken
@@ -55,7 +57,7 @@ class Feeder:
         for k0 in range(start, stop, batch):
             k1 = min(k0 + batch, stop)
             for k in range(k0, k1):
-                self.publish(data, k, temperature=temperature)
+                self.publish(data, k, temperature=temperature, latency_s=latency_s)
             want = base + n_sensors * (k1 - start)
             while taken() < want:
                 assert time.monotonic() < deadline, (

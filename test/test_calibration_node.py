@@ -96,6 +96,11 @@ def test_calibrate_flow(make_node, ros_node, ros_executor, ros_namespace, tmp_pa
         assert out['scalar_rms_before_nt'][j] > 100 * NOISE_NT      # Table 1 errors
     assert out['tensor_rms_after_nt_per_m'] < 1.15 * out['tensor_floor_nt_per_m']
     assert out['tensor_rms_before_nt_per_m'] > 100 * out['tensor_rms_after_nt_per_m']
+    # exact stamps pair every set right: the data check agrees and changes nothing
+    assert out['resync']['sets_repaired'] == {'2': 0, '3': 0, '4': 0}
+    assert out['resync']['sets_dropped'] == 0
+    for j in '234':        # sqrt(2) x 3 nT per axis for two sensors' noise, +-10 %
+        assert out['resync']['misfit_nt'][j] < 1.1 * np.sqrt(2) * NOISE_NT
 
     # written atomically, published latched, identical
     path = tmp_path / 'cal' / 'calibration.yaml'
@@ -126,6 +131,36 @@ def test_calibrate_flow(make_node, ros_node, ros_executor, ros_namespace, tmp_pa
     # calibrating again keeps the previous file as a backup
     assert call_trigger(ros_node, ros_executor, 'calibration/calibrate').success
     assert (tmp_path / 'cal' / 'calibration.yaml.bak').is_file()
+
+
+@pytest.mark.parametrize('resync', [True, False])
+def test_late_stamps_of_one_sensor_are_re_paired_from_the_data(
+        make_node, ros_node, ros_executor, ros_namespace, tmp_path, tumbling, resync):
+    # sensor 3's bytes arrive 6 ms after the others' (more than half the 10 ms period, as
+    # behind a USB-serial adapter's latency timer): its nearest sensor-1 stamp is the next
+    # epoch's, so the stamp matcher pairs every set of sensor 3 one epoch late
+    node = start_node(make_node, ros_namespace, tmp_path, resync_sets=resync)
+    feeder = Feeder(ros_node)
+    feeder.wait_for_subscribers(ros_executor)
+    assert call_trigger(ros_node, ros_executor, 'calibration/start').success
+    feeder.feed(ros_executor, tumbling, taken=lambda: int(node._received.sum()),
+                latency_s=[0.0, 0.0, 0.006, 0.0])
+    resp = call_trigger(ros_node, ros_executor, 'calibration/calibrate', timeout_sec=120.0)
+    lines, out = split(resp)
+    if not resync:
+        # the fit is pulled off by ~600 nT of mis-pairing per set (the 10 s tumbling turns
+        # the field by that much in 10 ms): far above the noise, or refused outright
+        assert not resp.success or out['scalar_rms_after_nt']['3'] > 3 * NOISE_NT, lines
+        return
+    assert resp.success, resp.message
+    assert out['resync']['sets_repaired']['3'] >= tumbling.n_samples - 10
+    assert out['resync']['sets_repaired']['2'] == out['resync']['sets_repaired']['4'] == 0
+    assert out['resync']['misfit_as_paired_nt']['3'] > 30 * NOISE_NT
+    assert out['resync']['misfit_nt']['3'] < 1.1 * np.sqrt(2) * NOISE_NT
+    assert any(line.startswith('resync: sensor 3:') for line in lines)
+    for j in '1234':           # the same tolerance as for exact stamps (test_calibrate_flow)
+        assert 0.85 * NOISE_NT < out['scalar_rms_after_nt'][j] < 1.15 * NOISE_NT
+    assert out['tensor_rms_after_nt_per_m'] < 1.15 * out['tensor_floor_nt_per_m']
 
 
 def test_single_axis_rotation_is_refused_and_previous_stays(

@@ -91,7 +91,9 @@ def test_calibrate_then_correct_at_the_noise_floor(
     lines, fit = split(resp)
     assert lines[0].startswith('calibrated')
     for j in '1234':
-        assert fit['scalar_rms_after_nt'][j] < 1.15 * NOISE_NT
+        # on failure: the whole response (per-sensor residuals, resync of mis-paired sets,
+        # warnings) and the collection status, so that a rare failure can be diagnosed
+        assert fit['scalar_rms_after_nt'][j] < 1.15 * NOISE_NT, (j, resp.message, status)
 
     # record the streams once the corrector has the new calibration
     wait_for_messages(ros_node, ros_executor, MagneticField, 'sensor1/corrected',

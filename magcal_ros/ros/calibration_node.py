@@ -35,6 +35,7 @@ import sys
 import threading
 import time
 
+from magcal_ros.core.consistency import resync
 from magcal_ros.core.dataset import Dataset
 from magcal_ros.core.identifiability import coverage_report
 from magcal_ros.core.model import DegenerateDataError, Model
@@ -121,6 +122,10 @@ class SampleBuffer:
     def raw_view(self, max_sets=None):
         """(S, M, 3) nT raw readings, chronological, at most ``max_sets`` evenly spaced."""
         return self.raw[:, self._order(max_sets)]
+
+    def epochs(self):
+        """(N,) int epoch numbers of the buffered sets, chronological (a copy)."""
+        return self.epoch[self._order()].copy()
 
     def dataset(self):
         """Return a :class:`Dataset` of the buffered sets in chronological order (copies)."""
@@ -346,7 +351,30 @@ class CalibrationNode(Node):
         with self._lock:
             n_sets = len(self._buffer)
             data = self._buffer.dataset() if n_sets else None
-            return n_sets, data
+            epochs = self._buffer.epochs() if n_sets else None
+            return n_sets, data, epochs
+
+    def _resync(self, data, epochs, settings):
+        """Re-pair sets paired from different epochs; return (data, payload, warning lines)."""
+        if not settings.resync_sets or data.n_sensors < 2:
+            return data, None, []
+        fixed, slips, dropped = resync(data, epochs)
+        keys = [str(j) for j in range(2, data.n_sensors + 1)]
+        payload = {
+            'sets_repaired': dict(zip(keys, slips.n_slipped[1:].tolist())),
+            'sets_dropped': dropped,
+            'misfit_as_paired_nt': dict(zip(keys, np.round(slips.rms_as_paired_nt[1:], 2)
+                                            .tolist())),
+            'misfit_nt': dict(zip(keys, np.round(slips.rms_nt[1:], 2).tolist())),
+            'inconsistent_sets': dict(zip(keys, slips.inconsistent[1:].tolist())),
+        }
+        lines = slips.summary()
+        if dropped:
+            lines.append(f'{dropped} sets dropped where a re-paired sample had no unique '
+                         'partner')
+        for line in lines:
+            self.get_logger().warning(f'resync: {line}')
+        return fixed, payload, lines
 
     def _in_worker(self, fn, *args):
         """Run ``fn(*args)`` in a worker thread; return an awaitable rclpy Future."""
@@ -386,7 +414,7 @@ class CalibrationNode(Node):
     def _calibrate(self, state):
         """Run the fit; returns (success, summary text, JSON payload)."""
         s = prm.calibration_settings(self)
-        n_sets, data = self._snapshot()
+        n_sets, data, epochs = self._snapshot()
         if n_sets < s.min_samples:
             with self._lock:
                 received = self._received.tolist()
@@ -401,6 +429,7 @@ class CalibrationNode(Node):
         model = Model.from_spec(list(s.model), self._n)
         geometry = cross_geometry(s.baseline_m) if self._n == 4 else None
         t0 = time.monotonic()
+        data, resync_payload, resync_lines = self._resync(data, epochs, s)
         try:
             run = run_calibration(
                 data, model=model, field_nt=s.field_nt, geometry=geometry,
@@ -434,6 +463,7 @@ class CalibrationNode(Node):
             'robust': s.robust,
             'downweighted': summ['downweighted'],
             'warnings': summ['warnings'],
+            'resync': resync_payload,
         }
         lines = [f'calibrated {n_sets} sets with model {",".join(summ["model"])} in '
                  f'{solve_s:.1f} s; written to {s.calibration_file}',
@@ -456,6 +486,8 @@ class CalibrationNode(Node):
                          f'{_fmt_per_sensor(summ["downweighted"], "{:d}")} of {n_sets}')
         for w in summ['warnings']:
             lines.append(f'warning: {w}')
+        for w in resync_lines:
+            lines.append(f'resync: {w}')
         self._last_result = {k: payload[k] for k in ('calibration_file', 'model', 'sets')}
         self.get_logger().info(lines[0])
         return True, '\n'.join(lines), payload
@@ -482,11 +514,12 @@ class CalibrationNode(Node):
         except ImportError as exc:
             return False, f'diagnosis is not available: {exc}', {'error': str(exc)}
         s = prm.calibration_settings(self)
-        n_sets, data = self._snapshot()
+        n_sets, data, epochs = self._snapshot()
         if n_sets < s.min_samples:
             reason = f'only {n_sets} complete sample sets collected, need {s.min_samples}'
             return False, f'not diagnosed: {reason}', {'reason': reason, 'sets': n_sets}
         model = Model.from_spec(list(s.model), self._n)
+        data, resync_payload, _ = self._resync(data, epochs, s)
         try:
             diag = diagnose(data, model, field_nt=s.field_nt)
         except ValueError as exc:
@@ -494,6 +527,7 @@ class CalibrationNode(Node):
         ranking = json.loads(diag.to_json())       # non-finite numbers as null
         report = write_report(s.report_dir, data, diagnosis=diag, baseline_m=s.baseline_m)
         ranking['report'] = os.fspath(report)
+        ranking['resync'] = resync_payload
         verdict = ranking.get('verdict') or {}
         if verdict.get('effect', 'none') == 'none':
             head = (f'nothing missing: model {",".join(ranking["model"])} explains the data '

@@ -202,6 +202,7 @@ class CalibrationSettings:
     aux_topics: tuple
     status_period_s: float
     robust: bool
+    resync_sets: bool
 
 
 #: declared first: the model check of the other parameters depends on it
@@ -240,6 +241,9 @@ def calibration_specs(n_sensors=4):
         ParamSpec('status_period_s', 1.0, 'period of calibration/status messages, s',
                   positive('s'), read_only=True),
         ParamSpec('robust', False, 'use the robust (soft L1) loss against spikes; no unit'),
+        ParamSpec('resync_sets', True, 'before a calibration or diagnosis, find sets whose '
+                  'sensors the stamps paired from different epochs and re-pair them from the '
+                  'data (magcal_ros.core.consistency); no unit'),
     ]
 
 
@@ -259,6 +263,7 @@ def calibration_settings(node):
         aux_topics=tuple(value(node, 'aux_topics', [])),
         status_period_s=float(value(node, 'status_period_s')),
         robust=bool(value(node, 'robust')),
+        resync_sets=bool(value(node, 'resync_sets')),
     )
 
 
