@@ -284,7 +284,8 @@ def find_slips(raw, epochs=None, max_lag=DEFAULT_MAX_LAG, window=DEFAULT_WINDOW,
             # its end sets must fit its lag too (the boundary search may take in the set
             # whose sample the slip skipped): else 0 if that fits, else drop them
             fits = noise_factor * noise_cost
-            for e in list(range(lo, min(lo + 3, hi))) + list(range(hi - 1, max(hi - 4, lo - 1), -1)):
+            ends = list(range(lo, min(lo + 3, hi))) + list(range(max(hi - 3, lo), hi))
+            for e in ends:
                 if np.isfinite(cost[ell + k0, e]) and cost[ell + k0, e] > fits:
                     lag[e] = 0 if cost[k0, e] <= fits else DROP
             while lo > 0 and grow(lo - 1) is not None:
