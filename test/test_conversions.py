@@ -185,3 +185,22 @@ def test_precomputed_covariance_gives_the_same_message():
     assert np.isclose(b.magnetic_field_covariance[0], 9e-18)
     with pytest.raises(ValueError, match='symmetric'):
         conv.covariance_to_t2(np.triu(cov))
+
+
+@given(st.lists(st.floats(-1e6, 1e6), min_size=3, max_size=3))
+@settings(max_examples=50, deadline=None)
+def test_field_set_in_place_equals_a_new_message(field_nt):
+    # the corrector's hot path reuses the incoming message: the same bytes as a new one
+    cov = conv.covariance_to_t2(9.0)
+    incoming = conv.field_nt_to_msg([1.0, 2.0, 3.0], stamp=12.5, frame_id='fluxgate2',
+                                    covariance_nt2=1.0)
+    conv.set_field_nt(incoming, np.array(field_nt), cov)
+    fresh = conv.field_nt_to_msg(field_nt, stamp=12.5, frame_id='fluxgate2', covariance_t2=cov)
+    assert incoming == fresh
+
+
+def test_unchecked_tensor_message_is_the_same():
+    g = np.arange(9.0).reshape(3, 3) - 4.0
+    assert conv.tensor_to_msg(g, check=False) == conv.tensor_to_msg(g)
+    with pytest.raises(ValueError, match='finite'):
+        conv.tensor_to_msg(g * np.nan)

@@ -17,11 +17,11 @@ import math
 import numbers
 
 from builtin_interfaces.msg import Time as TimeMsg
-from magcal_ros.units import nt_to_t, t_to_nt
+from magcal_ros.units import NT_PER_T, nt_to_t, t_to_nt
 import numpy as np
 import rclpy.time
 from sensor_msgs.msg import MagneticField, Temperature
-from std_msgs.msg import Float64MultiArray, MultiArrayDimension
+from std_msgs.msg import Float64MultiArray, MultiArrayDimension, MultiArrayLayout
 
 #: Labels of the gradient tensor's ``layout.dim`` entries (DESIGN.md contract 3).
 TENSOR_DIM_LABELS = ('row', 'col')
@@ -175,6 +175,27 @@ def field_nt_to_msg(field_nt, stamp=None, frame_id='', covariance_nt2=None, cova
     return msg
 
 
+def set_field_nt(msg, field_nt, covariance_t2):
+    """Overwrite the field (nT -> T) and covariance (T^2) of a ``MagneticField`` in place.
+
+    The hot path of the corrector: no validation (the field comes out of the correction of a
+    finite reading, the covariance from :func:`covariance_to_t2`), header left as it is.
+
+    Parameters
+    ----------
+    msg : sensor_msgs.msg.MagneticField
+    field_nt : numpy.ndarray
+        (3,) field in nT.
+    covariance_t2 : numpy.ndarray
+        (9,) row-major covariance in T^2.
+    """
+    v = msg.magnetic_field
+    v.x = float(field_nt[0]) / NT_PER_T
+    v.y = float(field_nt[1]) / NT_PER_T
+    v.z = float(field_nt[2]) / NT_PER_T
+    msg.magnetic_field_covariance = covariance_t2
+
+
 def msg_to_field_nt(msg):
     """Return the field of a ``sensor_msgs/MagneticField`` in nanotesla.
 
@@ -209,7 +230,7 @@ def msg_to_covariance_nt2(msg):
     return t_to_nt(t_to_nt(cov_t2))
 
 
-def tensor_to_msg(gradient_nt_per_m):
+def tensor_to_msg(gradient_nt_per_m, check=True):
     """Build the gradient-tensor ``std_msgs/Float64MultiArray`` (T/m) from nT/m.
 
     Parameters
@@ -226,21 +247,28 @@ def tensor_to_msg(gradient_nt_per_m):
     Raises
     ------
     ValueError
-        If the tensor is not a finite (3, 3) array.
+        If the tensor is not a finite (3, 3) array (checked unless ``check`` is False, for
+        the corrector's hot path, where it is the product of finite corrected fields).
     """
     g = np.asarray(gradient_nt_per_m, dtype=np.float64)
-    if g.shape != (3, 3):
-        raise ValueError(f'gradient tensor must have shape (3, 3) in nT/m, got shape {g.shape}')
-    if not np.all(np.isfinite(g)):
-        raise ValueError('gradient tensor must be finite')
+    if check:
+        if g.shape != (3, 3):
+            raise ValueError('gradient tensor must have shape (3, 3) in nT/m, got shape '
+                             f'{g.shape}')
+        if not np.all(np.isfinite(g)):
+            raise ValueError('gradient tensor must be finite')
     msg = Float64MultiArray()
-    msg.layout.dim = [
-        MultiArrayDimension(label=TENSOR_DIM_LABELS[0], size=3, stride=9),
-        MultiArrayDimension(label=TENSOR_DIM_LABELS[1], size=3, stride=3),
-    ]
-    msg.layout.data_offset = 0
+    msg.layout = _tensor_layout()
     msg.data = nt_to_t(g).reshape(9).tolist()
     return msg
+
+
+def _tensor_layout():
+    layout = MultiArrayLayout()
+    layout.dim = [MultiArrayDimension(label=TENSOR_DIM_LABELS[0], size=3, stride=9),
+                  MultiArrayDimension(label=TENSOR_DIM_LABELS[1], size=3, stride=3)]
+    layout.data_offset = 0
+    return layout
 
 
 def msg_to_tensor(msg):

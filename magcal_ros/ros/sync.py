@@ -42,12 +42,16 @@ def backdate(stamps, period_s):
         (N,) stamps, s.
     """
     a = np.asarray(stamps, float)
-    out = a.copy()
+    n = len(a)
+    if n < 2:
+        return a.copy()
     together = np.diff(a) < 0.25 * period_s         # sample i arrived with sample i + 1
-    for i in range(len(a) - 2, -1, -1):
-        if together[i]:
-            out[i] = out[i + 1] - period_s
-    return out
+    # each sample keeps the stamp of the last sample of its run, moved back one period per
+    # sample: out[i] = a[j] - (j - i) T, j = the first index >= i that ends a run
+    idx = np.arange(n)
+    ends = np.where(np.append(~together, True), idx, n)
+    last = np.minimum.accumulate(ends[::-1])[::-1]
+    return a[last] - (last - idx) * period_s
 
 
 def epoch_times(epochs, stamps_s):
@@ -77,6 +81,42 @@ def epoch_times(epochs, stamps_s):
         raise ValueError('stamps do not increase with the epoch number')
     t0 = np.min(t - slope * (e - e[0]))
     return t0 + slope * (e - e[0])
+
+
+class _Ring:
+    """Last ``size`` (sequence number, stamp) pairs of one stream, as numpy arrays."""
+
+    def __init__(self, size):
+        self.q = np.zeros(size)
+        self.s = np.zeros(size)
+        self.size = size
+        self.count = 0
+
+    def clear(self):
+        self.count = 0
+
+    def __len__(self):
+        return min(self.count, self.size)
+
+    def append(self, q, s):
+        k = self.count % self.size
+        self.q[k] = q
+        self.s[k] = s
+        self.count += 1
+
+    def arrays(self):
+        """(sequence numbers, stamps), oldest first (copies)."""
+        if self.count <= self.size:
+            return self.q[:self.count].copy(), self.s[:self.count].copy()
+        k = self.count % self.size
+        return np.concatenate([self.q[k:], self.q[:k]]), np.concatenate([self.s[k:], self.s[:k]])
+
+
+def _median(values):
+    """Median of a short list of floats (np.median costs ~10 us per call on the hot path)."""
+    v = sorted(values)
+    m = len(v) // 2
+    return float(v[m]) if len(v) % 2 else 0.5 * (v[m - 1] + v[m])
 
 
 class StampMatcher:
@@ -131,7 +171,8 @@ class StampMatcher:
         self.window = int(window)
         self.align_every = int(align_every)
         self.max_queue = int(max_queue)
-        self._hist = [deque(maxlen=self.window) for _ in range(self.n_sensors)]
+        # vote history per stream: a ring of (sequence number, stamp) in numpy arrays
+        self._hist = [_Ring(self.window) for _ in range(self.n_sensors)]
         self._queues = [deque() for _ in range(self.n_sensors)]
         self.reset()
 
@@ -143,13 +184,14 @@ class StampMatcher:
         self._seq = [0] * self.n_sensors
         self._last_arrival = [None] * self.n_sensors
         self._offset = [0] + [None] * (self.n_sensors - 1)
+        self._aligned = self.n_sensors == 1
         self._since_align = 0
         self.complete = self.incomplete = self.out_of_order = self.realigned = 0
 
     @property
     def aligned(self):
         """True once every stream has an epoch offset."""
-        return all(o is not None for o in self._offset)
+        return self._aligned
 
     def add(self, j, stamp_s, item):
         """Add the sample ``item`` of sensor ``j`` (0-based) stamped ``stamp_s`` seconds.
@@ -169,7 +211,7 @@ class StampMatcher:
         s = stamp_s
         q = self._seq[j]
         self._seq[j] += 1
-        self._hist[j].append((q, s))
+        self._hist[j].append(q, s)
         queue = self._queues[j]
         queue.append((q, s, item))
         if len(queue) > self.max_queue:
@@ -188,8 +230,7 @@ class StampMatcher:
         ref = self._hist[0]
         if len(ref) < 10:
             return
-        q0 = np.fromiter((x[0] for x in ref), float, len(ref))
-        s0 = np.fromiter((x[1] for x in ref), float, len(ref))
+        q0, s0 = ref.arrays()
         period = self._period(s0)
         if period is None:
             return
@@ -200,8 +241,7 @@ class StampMatcher:
             hist = self._hist[j]
             if len(hist) < 10:
                 continue
-            qj = np.fromiter((x[0] for x in hist), float, len(hist))
-            sj = np.fromiter((x[1] for x in hist), float, len(hist))
+            qj, sj = hist.arrays()
             votes = []
             for ref_s, s in zip(refs, (sj, backdate(sj, period))):
                 k = np.clip(np.searchsorted(ref_s, s), 1, len(ref_s) - 1)
@@ -218,6 +258,7 @@ class StampMatcher:
             if self._offset[j] is not None and best != self._offset[j]:
                 self.realigned += 1
             self._offset[j] = best
+        self._aligned = all(o is not None for o in self._offset)
 
     @staticmethod
     def _period(stamps):
@@ -233,8 +274,7 @@ class StampMatcher:
             e = min(epochs)
             if all(x == e for x in epochs):
                 heads = [qq.popleft() for qq in queues]
-                out.append((e, float(np.median([h[1] for h in heads])),
-                            [h[2] for h in heads]))
+                out.append((e, _median([h[1] for h in heads]), [h[2] for h in heads]))
                 self.complete += 1
             else:
                 for qq, x in zip(queues, epochs):
