@@ -189,7 +189,7 @@ def main(argv=None):
     ap.add_argument('--repeats', type=int, default=3,
                     help='runs per node and rate of the main table (interleaved; medians)')
     ap.add_argument('--search-rates', type=float, nargs='+',
-                    default=[100, 200, 400, 600, 800, 1000, 1500, 2000],
+                    default=[100, 200, 400, 600, 800, 900, 1000, 1100, 1200, 1500, 2000],
                     help='rates tried (ascending) for the sustainable rate')
     ap.add_argument('--search-repeats', type=int, default=2,
                     help='runs per node and rate in the search (a rate passes if one does)')

@@ -18,8 +18,10 @@ Given rotation data and a fitted model, :func:`diagnose`
 4. ranks by evidence: delta BIC, the likelihood-ratio p-value (chi-square with k = added
    parameters) with a Bonferroni correction over the candidates, and the effect size on
    held-out data: k-fold cross-validation over *contiguous blocks of time* (neighbouring
-   samples are correlated, a random split would leak), fit on the other blocks, residual
-   RMS on the held-out block.  Cross-validation is run for the candidates that pass the
+   samples are correlated, a random split would leak), fit on the other blocks (by default
+   one Gauss-Newton step from the all-data fit with the block's rows removed, which agrees
+   with a full refit to 1e-7 in the held-out RMS: :func:`cross_validate`), residual RMS on
+   the held-out block.  Cross-validation is run for the candidates that pass the
    p-value and BIC tests, best first, until one lowers the held-out RMS (that one is the
    verdict; the rest show no held-out figures), or for the best candidate when none passes;
 5. gives a verdict: the best candidate, or ``none`` when the residual is within 10 % of the
