@@ -255,8 +255,8 @@ def main(argv=None):
                                'diagnose s'],
                               [[r.get('blas_threads', '?'), r.get('calibrate_s'),
                                 r.get('diagnose_s')] for r in blas],
-                              title='BLAS threads (fit() limits BLAS to 1 thread itself, '
-                              'diagnose() does not)')
+                              title='BLAS threads (fit() and diagnose() limit BLAS to 1 '
+                              'thread themselves: both rows should agree)')
     tables = [t_main, t_exp] + ([t_blas] if blas else [])
     if goal:
         tables.append(f'Goal 4 x 10 000 calibrated + diagnosed < 2 s: '

@@ -412,7 +412,8 @@ class _Screen:
                       for gi in range(g))                                     # (N, 2)
             d = np.linalg.norm(jac, axis=0)
             d[d == 0] = 1.0
-            js = jac / d
+            js = jac
+            js /= d                          # in place: the Jacobian is not needed unscaled
             j4 = js.reshape(n, g, 3, -1)
             self.groups.append({
                 'sensors': grp, 'cols': prob.cols, 'd': d, 'b': b,
