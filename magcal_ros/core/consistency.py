@@ -223,11 +223,8 @@ def find_slips(raw, epochs=None, max_lag=DEFAULT_MAX_LAG, window=DEFAULT_WINDOW,
             best = np.argmin(windowed, axis=0)
             w_best = windowed[best, cols]
             take = w_best * min_contrast < windowed[k0]
-            if final:
-                k = np.where(take & (w_best <= noise_factor * noise_cost), best, k0)
-                break
             new = np.where(take, best, k0)
-            if np.array_equal(new, k):
+            if final or np.array_equal(new, k):
                 k = np.where(take & (w_best <= noise_factor * noise_cost), best, k0)
                 break
             k = new
@@ -288,17 +285,18 @@ def find_slips(raw, epochs=None, max_lag=DEFAULT_MAX_LAG, window=DEFAULT_WINDOW,
             for e in ends:
                 if np.isfinite(cost[ell + k0, e]) and cost[ell + k0, e] > fits:
                     lag[e] = 0 if cost[k0, e] <= fits else DROP
-            while lo > 0 and grow(lo - 1) is not None:
+            while lo > 0 and (g := grow(lo - 1)) is not None:
                 lo -= 1
-                lag[lo] = grow(lo)
-            while hi < n and grow(hi) is not None:
-                lag[hi] = grow(hi)
+                lag[lo] = g
+            while hi < n and (g := grow(hi)) is not None:
+                lag[hi] = g
                 hi += 1
         rms0[j] = np.sqrt(np.mean(cost[k0]) / 3.0)
         kept = lag != DROP
         rms[j] = np.sqrt(np.nanmean(cost[lag[kept] + k0, cols[kept]]) / 3.0)
         if rms[j] >= rms0[j]:
             lag[:], rms[j] = 0, rms0[j]        # never a re-pairing that fits worse overall
+            kept[:] = True
         lags[j] = lag
         at = np.where(lag == DROP, 0, lag) + k0
         inconsistent[j] = int(np.count_nonzero(
