@@ -340,3 +340,22 @@ def test_newton_cross_validation_equals_refitting_each_fold(truth, spec):
         assert np.all(np.abs(pn - pr) <= 0.01 * res.stderr + 1e-12)
     with pytest.raises(ValueError, match="'newton' or 'refit'"):
         cross_validate(data, res.model, res.params, f, res.sigma_nt, method='exact')
+
+
+def test_candidates_tested_on_evenly_spaced_epochs_above_max_samples():
+    # 3000 epochs, candidates tested on 1500 of them (as fit() caps its epochs): the hidden
+    # temperature effect (4x the floor) is still the verdict, the floor comes from all 3000
+    data = sim(TEMP2, 1)
+    full = diagnose(data, 'base', field_nt=F)
+    half = diagnose(data, 'base', field_nt=F, base=full.result, max_samples=1500)
+    assert (half.n_samples, half.n_used, full.n_used) == (3000, 1500, 3000)
+    assert half.verdict_token == full.verdict_token == 'temperature@2'
+    np.testing.assert_array_equal(half.noise_floor.per_sensor_nt,
+                                  full.noise_floor.per_sensor_nt)
+    # the same residual measured on half the epochs: within its sampling scatter (1.3 % x 2)
+    assert half.scalar_rms_nt[2] == pytest.approx(full.scalar_rms_nt[2], rel=0.05)
+    assert 'tested on 1500 evenly spaced' in half.summary()
+    assert json.loads(half.to_json())['n_used'] == 1500
+    # control data: nothing missing on the subsample either
+    control = diagnose(sim({}, 2), 'base', field_nt=F, max_samples=1500)
+    assert control.verdict_token is None and control.n_used == 1500

@@ -64,6 +64,9 @@ AT_FLOOR_RATIO = 1.10
 DEFAULT_FOLDS = 3
 #: candidates refitted in full after the one-step screening
 DEFAULT_MAX_REFIT = 4
+#: epochs the candidates are screened, refitted and cross-validated on (evenly spaced), the
+#: same cap as the fit's (model.fit max_fit_samples): cost and memory stay flat above it
+DEFAULT_MAX_SAMPLES = 20000
 #: effects that contain each other (adding one when the other is present duplicates terms)
 NESTED = {'drift': ('drift2',), 'drift2': ('drift',)}
 #: the raw-difference floor is replaced by the residual one when it exceeds it by this factor
@@ -610,6 +613,9 @@ class Diagnosis:
     model : tuple of str
         Spec of the diagnosed model.
     n_samples, n_sensors, n_params : int
+    n_used : int
+        Epochs the candidates were tested on (``n_samples`` up to ``max_samples``, else that
+        many evenly spaced ones).
     noise_floor : NoiseFloor
     scalar_rms_nt, vector_rms_nt : dict
         {sensor: RMS} of the base fit (vector: j > 1, vs sensor 1).
@@ -652,6 +658,7 @@ class Diagnosis:
     folds: int
     seconds: dict
     result: object = field(repr=False, default=None)
+    n_used: int | None = None
 
     @property
     def verdict(self):
@@ -690,7 +697,8 @@ class Diagnosis:
             'at_noise_floor': self.at_floor,
             'ratio_to_floor': {k: {str(j): x for j, x in d.items()} for k, d in ratios.items()},
             'not_testable': [{'token': t, 'reason': r} for t, r in self.not_testable],
-            'n_samples': self.n_samples, 'n_sensors': self.n_sensors,
+            'n_samples': self.n_samples, 'n_used': self.n_used or self.n_samples,
+            'n_sensors': self.n_sensors,
             'n_params': self.n_params, 'p_threshold': self.p_threshold,
             'min_delta_bic': MIN_DELTA_BIC, 'at_floor_ratio': AT_FLOOR_RATIO,
             'cv_folds': self.folds, 'seconds': dict(self.seconds),
@@ -703,8 +711,10 @@ class Diagnosis:
     def summary(self, max_candidates=12):
         """Human-readable report (the best ``max_candidates`` candidates)."""
         fl = self.noise_floor
+        used = ('' if not self.n_used or self.n_used == self.n_samples else
+                f' (candidates tested on {self.n_used} evenly spaced)')
         lines = [f'diagnosis of model {",".join(self.model)} ({self.n_params} parameters) on '
-                 f'{self.n_samples} epochs of {self.n_sensors} sensor(s)',
+                 f'{self.n_samples} epochs{used} of {self.n_sensors} sensor(s)',
                  'noise floor from the data: ' + ', '.join(
                      f's{j + 1} {x:.2f}' for j, x in enumerate(fl.per_sensor_nt)) + ' nT'
                  + ('' if np.all(fl.reliable) else
@@ -758,7 +768,7 @@ def diagnose(data, model='base', field_nt=None, **kwargs):
 
 def _diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLDS,
               alpha=ALPHA, max_refit=DEFAULT_MAX_REFIT, candidates=None, progress=None,
-              cv_method='newton', **fit_kwargs):
+              cv_method='newton', max_samples=DEFAULT_MAX_SAMPLES, **fit_kwargs):
     """Find what the model misses: noise floor, candidate effects ranked, verdict.
 
     Parameters
@@ -784,6 +794,9 @@ def _diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOL
         ``progress(stage, i, n, label)`` called as the work proceeds.
     cv_method : {'newton', 'refit'}
         How each fold is fitted (:func:`cross_validate`).
+    max_samples : int or None
+        Test the candidates on at most this many evenly spaced epochs (the fit's own cap);
+        the noise floor is estimated from all of them.  None: all.
     **fit_kwargs
         Passed to :func:`magcal_ros.core.model.fit` for the base fit.
 
@@ -803,11 +816,17 @@ def _diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOL
     if base.residual_nt.shape[1] != data.n_samples:
         raise ValueError('the base fit was made on other data: pass the same Dataset')
     seconds['base_fit'] = time.perf_counter() - t_start
+    n_all = data.n_samples
+    floor = noise_floor_from_data(data, base)
+    if max_samples and n_all > max_samples:
+        # the same evenly spaced epochs as fit(max_fit_samples): the time order (and so the
+        # contiguous cross-validation blocks) is kept
+        keep = np.unique(np.linspace(0, n_all - 1, int(max_samples)).round().astype(int))
+        data, f = data.subset(keep), f[keep]
     s, n = data.n_sensors, data.n_samples
     sigma = np.asarray(base.sigma_nt, float)
     contexts = [data.context(j) for j in range(1, s + 1)]
     model.prepare(contexts)
-    floor = noise_floor_from_data(data, base)
 
     ev0 = _evaluate(model, base.params, data, f, sigma, contexts)
     n_obs = _n_obs(model, n)
@@ -961,7 +980,8 @@ def _diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOL
                   f'floor {floor.value_nt:.2f} nT')
     seconds['total'] = time.perf_counter() - t_start
     return Diagnosis(
-        model=tuple(compact_spec(model)), n_samples=n, n_sensors=s, n_params=model.n_params,
+        model=tuple(compact_spec(model)), n_samples=n_all, n_used=n, n_sensors=s,
+        n_params=model.n_params,
         noise_floor=floor, scalar_rms_nt=scalar_rms, vector_rms_nt=vector_rms,
         residual_rms_nt=residual_rms, cv_rms_nt=None if cv0 is None else cv0['rms_nt'],
         at_floor=bool(at_floor), candidates=tuple(out), not_testable=tuple(not_testable),
