@@ -222,13 +222,14 @@ class _Eval:
     scalar: np.ndarray       # (S, N) nT
     vector: np.ndarray       # (S, N, 3) nT
     residual: np.ndarray     # (S, N, 3) nT
+    field: np.ndarray        # (N, 3) nT, the profiled field
 
 
-def _evaluate(model, p, data, f, sigma, contexts):
-    out = evaluate(model, p, data, f, sigma, contexts)
+def _evaluate(model, p, data, f, sigma, contexts, field0=None):
+    out = evaluate(model, p, data, f, sigma, contexts, field0=field0)
     chi2 = float(np.sum((out['residual'] / sigma[:, None, None]) ** 2))
     return _Eval(chi2=chi2, scalar=out['scalar'], vector=out['vector'],
-                 residual=out['residual'])
+                 residual=out['residual'], field=out['field'])
 
 
 # -- candidates -----------------------------------------------------------------------------
@@ -876,7 +877,8 @@ def _diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOL
         _progress(progress, 'screen', i, len(testable), tok)
         m_ext, p_ext, added = extend_model(model, base.params, tok, contexts)
         p_step = screen.step(m_ext, p_ext, added)
-        ev = _evaluate(m_ext, p_step, data, f, sigma, contexts)
+        # from the base fit's field: one Gauss-Newton step of the profile (model.evaluate)
+        ev = _evaluate(m_ext, p_step, data, f, sigma, contexts, field0=ev0.field)
         if not np.isfinite(ev.chi2) or ev.chi2 > ev0.chi2:
             p_step, ev = p_ext, _evaluate(m_ext, p_ext, data, f, sigma, contexts)
         screened.append({'token': tok, 'label': label, 'sensor': sensor, 'model': m_ext,
