@@ -50,6 +50,27 @@ class CalibrationRun:
     doc: dict
 
 
+#: a sensor's fitted noise above this multiple of the data's own noise floor is reported
+RESIDUAL_WARN_RATIO = 1.5
+
+
+def _residual_warnings(result, floor):
+    """One line per sensor whose residual the model leaves well above the noise floor.
+
+    ``result.sigma_nt`` (S,) is the fit's per-axis noise estimate from its residual and
+    ``floor`` (S,) nT the noise from the raw series' high-order differences, which needs no
+    model: a fit that is complete meets it; one far above it misses an effect, or was given
+    inconsistent data (sets of the array paired from different epochs, a non-uniform field).
+    """
+    out = []
+    for j, (sig, fl) in enumerate(zip(result.sigma_nt, floor), start=1):
+        if np.isfinite(sig) and np.isfinite(fl) and fl > 0 and sig > RESIDUAL_WARN_RATIO * fl:
+            out.append(f'sensor {j}: the model leaves {sig:.1f} nT of residual per axis, '
+                       f'{sig / fl:.1f} x the noise floor of its data ({fl:.2f} nT): an '
+                       'effect is missing (run diagnose) or the data are inconsistent')
+    return out
+
+
 def summarize(result, data, positions=None):
     """Before/after figures of a fit (all nT, nT/m); JSON-ready."""
     f = result.field_magnitude_nt
@@ -74,7 +95,7 @@ def summarize(result, data, positions=None):
         'total_field_max_dev_before_nt': float(np.abs(raw_tot).max()),
         'total_field_max_dev_after_nt': float(np.abs(cor_tot).max()),
         'downweighted': {str(j + 1): int(x) for j, x in enumerate(result.downweighted)},
-        'warnings': list(result.warnings),
+        'warnings': list(result.warnings) + _residual_warnings(result, floor),
     }
     if positions is not None and data.n_sensors >= 3:
         before = tensor_stats(data.raw, positions)

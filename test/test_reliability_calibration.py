@@ -412,3 +412,23 @@ def test_corrector_with_a_silent_sensor_keeps_correcting_the_others(
     assert status['sensor3_corrected_published'] == '0'
     assert status['gradient_published'] == '0'
     assert all(len(q) <= node._matcher.max_queue for q in node._matcher._queues)
+
+
+def test_a_calibration_far_above_the_noise_floor_says_so():
+    # the fit's own noise estimate against the model-free floor of the raw series: a hidden
+    # 4x-floor temperature effect on sensor 2, and sensor 3 paired one epoch late, are both
+    # named; a complete model on consistent data gives no such line (1.5x is > 20 sd of the
+    # 3 nT estimates from 3000 epochs)
+    data, _ = simulate(n_samples=3000, rate_hz=10.0, trajectory='smooth', seed=1,
+                       truth={'temperature@2': [3.0, -2.0, 1.5, 0.0, 0.0, 0.0]})
+    warned = [w for w in calibrate(data, 'base', field_nt=50000.0).summary['warnings']
+              if 'noise floor' in w]
+    assert len(warned) == 1 and warned[0].startswith('sensor 2: the model leaves')
+    assert 'run diagnose' in warned[0]
+    clean = calibrate(data, 'base,temperature@2', field_nt=50000.0).summary['warnings']
+    assert not [w for w in clean if 'noise floor' in w]
+    late = data.subset(np.arange(data.n_samples))
+    late.raw[2, :-1] = data.raw[2, 1:]
+    warned = [w for w in calibrate(late, 'base,temperature@2', field_nt=50000.0)
+              .summary['warnings'] if 'noise floor' in w]
+    assert [w[:9] for w in warned] == ['sensor 3:']
