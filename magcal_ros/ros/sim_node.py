@@ -358,7 +358,13 @@ class FluxgateSim:
             chunk = enc.encode_many(
                 Sample((float(raw[k, 0]), float(raw[k, 1]), float(raw[k, 2])),
                        float(temp[k]), float(t[k])) for k in range(n))
+            flushes = dev.flushes
             dev.write(chunk)
+            if dev.flushes != flushes:
+                # as a device whose host stops reading: its unread output is lost (the reader
+                # will see a gap in this sensor's samples)
+                log(f'sensor{j + 1}: the reader fell behind at {now_s:.3f} s; its unread '
+                    f'output was discarded (flush {dev.flushes})')
             dev.read()              # drain commands a reader sent (start/stop); ignored
         self.sent = due
         return n
@@ -397,7 +403,10 @@ def run(settings, out=sys.stdout):
                 time.sleep(delay)
             else:
                 next_tick = time.monotonic()    # overloaded: do not try to catch up in bursts
-        log(f'stopped after {sim.sent} samples per sensor')
+        flushed = sum(dev.flushes for dev in sim.devices)
+        log(f'stopped after {sim.sent} samples per sensor'
+            + (f'; output discarded {flushed} times because a reader fell behind'
+               if flushed else ''))
     finally:
         sim.close()
         for s, handler in previous.items():

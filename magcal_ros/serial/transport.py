@@ -472,9 +472,13 @@ class PtyDevice:
                 if sent == len(data):
                     break
                 if attempt == 0:
-                    # nobody is reading: discard what the reader never fetched
+                    # nobody is reading: discard what the reader never fetched, the part of
+                    # this chunk just written with it, and write the chunk again whole, so
+                    # that the reader resumes at a frame boundary (as a device's output
+                    # while no host listens is lost in whole frames)
                     termios.tcflush(self.slave, termios.TCIFLUSH)
                     self.flushes += 1
+                    sent = 0
             self.bytes_written += sent
             self.bytes_dropped += len(data) - sent
             return sent
