@@ -98,7 +98,8 @@ def test_calibrate_flow(make_node, ros_node, ros_executor, ros_namespace, tmp_pa
     assert out['tensor_rms_before_nt_per_m'] > 100 * out['tensor_rms_after_nt_per_m']
     # exact stamps pair every set right: the data check agrees and changes nothing
     assert out['resync']['sets_repaired'] == {'2': 0, '3': 0, '4': 0}
-    assert out['resync']['sets_dropped'] == 0
+    assert out['resync']['sets_dropped'] == out['resync']['sets_dropped_garbled'] == 0
+    assert out['outlier_sets_excluded'] == 0
     for j in '234':        # sqrt(2) x 3 nT per axis for two sensors' noise, +-10 %
         assert out['resync']['misfit_nt'][j] < 1.1 * np.sqrt(2) * NOISE_NT
 

@@ -9,7 +9,7 @@ pairing is known exactly and the repaired sets can be compared sample by sample.
 import numpy as np
 import pytest
 
-from magcal_ros.core.consistency import DROP, find_slips, resync
+from magcal_ros.core.consistency import DROP, find_slips, gross_outliers, resync
 from magcal_ros.core.dataset import Dataset
 from magcal_ros.core.model import fit
 from magcal_ros.core.simulate import simulate
@@ -42,8 +42,8 @@ def test_right_pairings_are_left_alone(seed, effects):
     data = tumbling(seed, EFFECTS if effects else None)
     s = find_slips(data.raw)
     assert s.n_slipped.tolist() == [0, 0, 0, 0]
-    fixed, _, dropped = resync(data, slips=s)
-    assert fixed is data and dropped == 0
+    fixed, _, dropped, gross = resync(data, slips=s)
+    assert fixed is data and dropped == gross == 0
     # the misfit of a right pairing is the two sensors' noise (effect-free sensor 4)
     assert s.rms_nt[3] == pytest.approx(np.sqrt(2) * SIGMA, rel=0.1)
     np.testing.assert_allclose(s.noise_nt, SIGMA, rtol=0.1)
@@ -75,7 +75,7 @@ def test_slips_are_found_and_re_paired_sample_by_sample(seed):
     np.testing.assert_allclose(s.rms_nt[1:], np.sqrt(2) * SIGMA, rtol=0.1)
     assert len(s.summary()) == 3 and s.summary()[0].startswith('sensor 2:')
 
-    fixed, _, dropped = resync(bad, slips=s)
+    fixed, _, dropped, _ = resync(bad, slips=s)
     assert dropped <= 6             # the ends of the record and of each stretch
     epoch = np.rint(fixed.t * RATE).astype(int)
     np.testing.assert_array_equal(fixed.raw, data.raw[:, epoch])
@@ -96,7 +96,7 @@ def test_no_re_pairing_across_runs_of_epochs():
     s = find_slips(bad.raw, epochs)
     lags = s.lags[2]
     assert np.all(lags[1:1499] == -1) and np.all(lags[1501:] == -1)
-    fixed, _, dropped = resync(bad, epochs, slips=s)
+    fixed, _, dropped, _ = resync(bad, epochs, slips=s)
     epoch = np.rint(fixed.t * RATE).astype(int)
     np.testing.assert_array_equal(fixed.raw, data.raw[:, epoch])
     # the first set of each run has no partner in its run; the partner of the set at 1500
@@ -115,3 +115,23 @@ def test_nothing_to_tell_without_attitudes_or_samples():
         find_slips(short.raw[:, :, :2])
     with pytest.raises(ValueError, match='epochs must have shape'):
         find_slips(tumbling(4).raw, epochs=np.arange(5))
+
+
+def test_garbled_samples_are_dropped_and_nothing_else():
+    # a line that lost its first bytes still parses: '45.6,...' from '12345.6,...' (x off by
+    # ~12 000 nT), a lost leading digit of z (10x smaller); and large but real effects stay
+    data = tumbling(4, EFFECTS)
+    assert not gross_outliers(data.raw).any()
+    bad = Dataset(t=data.t, raw=data.raw.copy(), temp=data.temp, aux=data.aux)
+    bad.raw[2, 1234, 0] = 45.6
+    bad.raw[1, 77, 2] /= 10.0
+    assert np.argwhere(gross_outliers(bad.raw)).tolist() == [[1, 77], [2, 1234]]
+    fixed, s, dropped, gross = resync(bad)
+    assert gross == 2 and dropped == 0 and s.n_slipped.sum() == 0
+    epoch = np.rint(fixed.t * RATE).astype(int)
+    assert fixed.n_samples == data.n_samples - 2 and 77 not in epoch and 1234 not in epoch
+    np.testing.assert_array_equal(fixed.raw, data.raw[:, epoch])
+    np.testing.assert_array_equal(fixed.temp, data.temp[:, epoch])
+    # a single-axis rotation cannot tell: nothing is flagged
+    turntable, _ = simulate(n_samples=600, rate_hz=RATE, trajectory='turntable', seed=3)
+    assert not gross_outliers(turntable.raw).any()

@@ -90,10 +90,12 @@ def test_calibrate_then_correct_at_the_noise_floor(
     assert status['incomplete_sets_dropped'] <= 0.02 * n_sets
     lines, fit = split(resp)
     assert lines[0].startswith('calibrated')
+    if not all(fit['scalar_rms_after_nt'][j] < 1.15 * NOISE_NT for j in '1234'):
+        # the whole response (per-sensor residuals, resync of mis-paired sets, warnings) and
+        # the collection status, so that a rare failure can be diagnosed from the log
+        print('\ncalibrate response:\n' + resp.message + '\nstatus:\n' + json.dumps(status))
     for j in '1234':
-        # on failure: the whole response (per-sensor residuals, resync of mis-paired sets,
-        # warnings) and the collection status, so that a rare failure can be diagnosed
-        assert fit['scalar_rms_after_nt'][j] < 1.15 * NOISE_NT, (j, resp.message, status)
+        assert fit['scalar_rms_after_nt'][j] < 1.15 * NOISE_NT, j
 
     # record the streams once the corrector has the new calibration
     wait_for_messages(ros_node, ros_executor, MagneticField, 'sensor1/corrected',

@@ -432,3 +432,37 @@ def test_a_calibration_far_above_the_noise_floor_says_so():
     warned = [w for w in calibrate(late, 'base,temperature@2', field_nt=50000.0)
               .summary['warnings'] if 'noise floor' in w]
     assert [w[:9] for w in warned] == ['sensor 3:']
+
+
+def test_garbage_that_survived_the_transport_is_excluded_and_counted():
+    # what a live calibration can be handed: a cut line (x off by ~12 000 nT), a digit lost
+    # (z / 10), and 80 sets of one sensor paired 30 epochs off (beyond resync's 10): the
+    # least-squares fit is pulled to 100-500 nT; excluding the sets beyond 5 sigma of a
+    # robust fit (83 of 2600: 80 + 3 garbled) brings every sensor back to the 3 nT noise
+    data, _ = simulate(n_samples=2600, rate_hz=100.0, trajectory='smooth', seed=0)
+    raw = data.raw.copy()
+    raw[2, 1000:1080] = data.raw[2, 1030:1110]
+    raw[3, 1500, 0] = 45.6
+    raw[1, 300, 2] /= 10.0
+    bad = data.subset(np.arange(data.n_samples))
+    bad.raw = raw
+    plain = calibrate(bad, 'base', field_nt=50000.0)
+    assert plain.result.sigma_nt.min() > 30 * 3.0
+    clean = calibrate(bad, 'base', field_nt=50000.0, exclude_outliers=True)
+    assert 80 <= clean.summary['outlier_sets_excluded'] <= 90
+    np.testing.assert_allclose(clean.result.sigma_nt, 3.0, rtol=0.06)
+    assert clean.doc['provenance']['samples'] == data.n_samples - \
+        clean.summary['outlier_sets_excluded']
+    assert 'sets excluded' in clean.summary['warnings'][-1]
+    # a missing effect is not garbage: nothing excluded, the warning stays
+    temp, _ = simulate(n_samples=2600, rate_hz=10.0, trajectory='smooth', seed=1,
+                       truth={'temperature@2': [3.0, -2.0, 1.5, 0.0, 0.0, 0.0]})
+    kept = calibrate(temp, 'base', field_nt=50000.0, exclude_outliers=True)
+    assert kept.summary['outlier_sets_excluded'] == 0
+    assert kept.doc['provenance']['samples'] == temp.n_samples
+    assert any(w.startswith('sensor 2: the model leaves') for w in kept.summary['warnings'])
+    # clean data: the check costs nothing and changes nothing
+    ok = calibrate(data, 'base', field_nt=50000.0, exclude_outliers=True)
+    assert ok.summary['outlier_sets_excluded'] == 0
+    np.testing.assert_array_equal(ok.result.params,
+                                  calibrate(data, 'base', field_nt=50000.0).result.params)

@@ -108,6 +108,55 @@ class Slips:
         return out
 
 
+#: a sample whose ellipsoid residual exceeds this fraction of the field is not a reading
+GROSS_FRACTION = 0.02
+
+
+def gross_outliers(raw, fraction=GROSS_FRACTION):
+    """Sets holding a sample that cannot be a reading: a cut or garbled line.
+
+    A serial line opened in the middle of a stream, or overrun, can deliver a line that
+    lost its first bytes and still parses, e.g. ``45.6,-2345.1,43210.9`` from
+    ``12345.6,-2345.1,43210.9``: one sample thousands of nT off its neighbours.  The field
+    seen by a turning array changes smoothly, so a sample is tested against the mean of its
+    two neighbours in time: the second difference d(e) = m(e) - (m(e-1) + m(e+1)) / 2 is the
+    trajectory's curvature (tens of nT at 10-100 Hz of tumbling) plus noise, while a garbled
+    sample leaves d(e) its whole error.  A sample is a gross outlier where |d(e)| exceeds
+    ``fraction`` of the field (1000 nT at 50 000 nT) and is the largest of the three around
+    it (its neighbours carry half its error).  Only for a series that is smooth at its
+    sample rate (median |d| below 1 % of that threshold); a record of separate attitudes
+    (a turntable stepped, random attitudes) is left alone.
+
+    Parameters
+    ----------
+    raw : numpy.ndarray
+        (S, N, 3) raw readings in time order, nT.
+    fraction : float
+        Smallest jump counted, as a fraction of the median field magnitude.
+
+    Returns
+    -------
+    numpy.ndarray
+        (S, N) bool, True for a gross outlier.
+    """
+    raw = np.asarray(raw, float)
+    s, n = raw.shape[:2]
+    out = np.zeros((s, n), bool)
+    if n < 5:
+        return out
+    threshold = fraction * float(np.median(np.linalg.norm(raw[0], axis=1)))
+    d = np.linalg.norm(raw[:, 1:-1] - 0.5 * (raw[:, :-2] + raw[:, 2:]), axis=2)  # (S, N-2)
+    for j in range(s):
+        if not np.median(d[j]) < 0.01 * threshold:
+            continue                # not smooth at this rate: nothing can be told
+        big = np.flatnonzero(d[j] > threshold)
+        for i in big:
+            lo, hi = max(0, i - 1), min(len(d[j]), i + 2)
+            if d[j, i] >= d[j, lo:hi].max():
+                out[j, i + 1] = True
+    return out
+
+
 def _runs(n, epochs):
     """(N,) id of the run of consecutive epochs each set belongs to."""
     if epochs is None:
@@ -306,7 +355,7 @@ def find_slips(raw, epochs=None, max_lag=DEFAULT_MAX_LAG, window=DEFAULT_WINDOW,
 
 
 def resync(data, epochs=None, slips=None, **kwargs):
-    """Re-pair the sets of a Dataset whose sensors were paired from different epochs.
+    """Drop garbled samples and re-pair the sets whose sensors came from different epochs.
 
     Parameters
     ----------
@@ -316,20 +365,29 @@ def resync(data, epochs=None, slips=None, **kwargs):
     epochs : numpy.ndarray, optional
         (N,) epoch numbers (see :func:`find_slips`).
     slips : Slips, optional
-        A result of :func:`find_slips` on ``data`` (default: computed here with
-        ``**kwargs``).
+        A result of :func:`find_slips` on ``data`` as it is (then no set is dropped as a
+        gross outlier first).  Default: sets with a :func:`gross_outliers` sample are
+        dropped, then :func:`find_slips` (with ``**kwargs``) runs on the rest.
 
     Returns
     -------
-    (Dataset, Slips, int)
+    (Dataset, Slips, int, int)
         The re-paired data (the sets that kept a partner for every sensor), the slips found
-        and the number of sets dropped (at a change of lag a sensor's sample is claimed by
-        two sets or by none).
+        (indexed like the sets left after the gross outliers), the number of sets dropped
+        in re-pairing (at a change of lag a sensor's sample is claimed by two sets or by
+        none) and the number dropped as gross outliers.
     """
+    n_gross = 0
     if slips is None:
+        gross = gross_outliers(data.raw).any(axis=0)
+        n_gross = int(gross.sum())
+        if n_gross:
+            keep = np.flatnonzero(~gross)
+            data = data.subset(keep)
+            epochs = None if epochs is None else np.asarray(epochs)[keep]
         slips = find_slips(data.raw, epochs, **kwargs)
     if not (slips.n_slipped.any() or slips.n_drop.any()):
-        return data, slips, 0
+        return data, slips, 0, n_gross
     s, n = data.raw.shape[:2]
     raw = data.raw.copy()
     temp = None if data.temp is None else data.temp.copy()
@@ -351,4 +409,4 @@ def resync(data, epochs=None, slips=None, **kwargs):
         if temp is not None:
             temp[j, ok] = data.temp[j, src[ok]]
     out = replace(data, raw=raw, temp=temp)
-    return out.subset(np.flatnonzero(keep)), slips, int(n - keep.sum())
+    return out.subset(np.flatnonzero(keep)), slips, int(n - keep.sum()), n_gross

@@ -35,7 +35,7 @@ import sys
 import threading
 import time
 
-from magcal_ros.core.consistency import resync
+from magcal_ros.core.consistency import GROSS_FRACTION, resync
 from magcal_ros.core.dataset import Dataset
 from magcal_ros.core.identifiability import coverage_report
 from magcal_ros.core.model import DegenerateDataError, Model
@@ -358,17 +358,22 @@ class CalibrationNode(Node):
         """Re-pair sets paired from different epochs; return (data, payload, warning lines)."""
         if not settings.resync_sets or data.n_sensors < 2:
             return data, None, []
-        fixed, slips, dropped = resync(data, epochs)
+        fixed, slips, dropped, gross = resync(data, epochs)
         keys = [str(j) for j in range(2, data.n_sensors + 1)]
         payload = {
             'sets_repaired': dict(zip(keys, slips.n_slipped[1:].tolist())),
             'sets_dropped': dropped,
+            'sets_dropped_garbled': gross,
             'misfit_as_paired_nt': dict(zip(keys, np.round(slips.rms_as_paired_nt[1:], 2)
                                             .tolist())),
             'misfit_nt': dict(zip(keys, np.round(slips.rms_nt[1:], 2).tolist())),
             'inconsistent_sets': dict(zip(keys, slips.inconsistent[1:].tolist())),
         }
         lines = slips.summary()
+        if gross:
+            lines.append(f'{gross} sets dropped with a sample more than '
+                         f'{GROSS_FRACTION:.0%} of the field off its sensor\'s own ellipsoid '
+                         '(a cut or garbled serial line)')
         if dropped:
             lines.append(f'{dropped} sets dropped where a re-paired sample had no unique '
                          'partner')
@@ -434,7 +439,7 @@ class CalibrationNode(Node):
             run = run_calibration(
                 data, model=model, field_nt=s.field_nt, geometry=geometry,
                 field_reference={'kind': 'constant', 'magnitude_nt': s.field_nt},
-                robust=s.robust)
+                robust=s.robust, exclude_outliers=s.exclude_outliers)
         except DegenerateDataError as exc:
             return False, (f'not calibrated: {exc}; previous calibration stays active'), {
                 'reason': str(exc), 'sets': n_sets, 'model': list(s.model)}
@@ -464,6 +469,7 @@ class CalibrationNode(Node):
             'downweighted': summ['downweighted'],
             'warnings': summ['warnings'],
             'resync': resync_payload,
+            'outlier_sets_excluded': summ.get('outlier_sets_excluded', 0),
         }
         lines = [f'calibrated {n_sets} sets with model {",".join(summ["model"])} in '
                  f'{solve_s:.1f} s; written to {s.calibration_file}',

@@ -203,6 +203,7 @@ class CalibrationSettings:
     status_period_s: float
     robust: bool
     resync_sets: bool
+    exclude_outliers: bool
 
 
 #: declared first: the model check of the other parameters depends on it
@@ -244,6 +245,10 @@ def calibration_specs(n_sensors=4):
         ParamSpec('resync_sets', True, 'before a calibration or diagnosis, find sets whose '
                   'sensors the stamps paired from different epochs and re-pair them from the '
                   'data (magcal_ros.core.consistency); no unit'),
+        ParamSpec('exclude_outliers', True, 'when the fit leaves a sensor above 1.5 x its '
+                  'noise floor, exclude the sets beyond 5 sigma of a robust fit if they are '
+                  'at most 5 % of all, and fit the rest (magcal_ros.pipeline.calibrate); no '
+                  'unit'),
     ]
 
 
@@ -264,6 +269,7 @@ def calibration_settings(node):
         status_period_s=float(value(node, 'status_period_s')),
         robust=bool(value(node, 'robust')),
         resync_sets=bool(value(node, 'resync_sets')),
+        exclude_outliers=bool(value(node, 'exclude_outliers')),
     )
 
 
