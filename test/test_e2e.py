@@ -135,7 +135,9 @@ def test_calibrate_then_correct_at_the_noise_floor(
         total_field.append(np.sqrt(np.mean((np.linalg.norm(b, axis=1) - FIELD_NT) ** 2)))
         assert total_field[-1] < 1.5 * NOISE_NT, (j + 1, total_field[-1])
     print(f'\ne2e: calibrated from {fit["sets"]} sets (re-paired from the data: '
-          f'{fit["resync"]["sets_repaired"]}); tensor RMS {total_before:.1f} -> '
+          f'{fit["resync"]["sets_repaired"]}, garbled dropped '
+          f'{fit["resync"]["sets_dropped_garbled"]}, outliers excluded '
+          f'{fit["outlier_sets_excluded"]}); tensor RMS {total_before:.1f} -> '
           f'{total_after:.2f} nT/m (floor {np.sqrt(np.mean(floor ** 2)):.2f} nT/m, '
           f'{len(g_after)} tensors, max component ratio to floor '
           f'{np.max(rms_after / floor):.2f}); corrected total-field RMS '
