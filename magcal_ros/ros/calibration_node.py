@@ -5,7 +5,8 @@ Topics (relative to the node namespace, default ``/magcal``; DESIGN.md contract 
 - subscribes ``sensor{j}/raw`` (sensor_msgs/MagneticField, T), ``sensor{j}/temperature``
   (sensor_msgs/Temperature, degC) and one std_msgs/Float64 topic per name in ``aux_topics``
   (recorded as column ``aux_<name>``), all best effort like ``qos_profile_sensor_data``
-  (with a deeper queue, :data:`SENSOR_QOS`);
+  (with deeper queues: :data:`CALIBRATION_SENSOR_QOS` for the raw fields, 10 s of 100 Hz,
+  so that no sample is lost while a solve keeps the executor busy; :data:`SENSOR_QOS`);
 - publishes ``calibration/status`` (std_msgs/String, JSON, every ``status_period_s``):
   sets collected, attitude coverage per sensor, what is still missing;
 - publishes ``calibration/result`` (std_msgs/String holding the calibration YAML of
@@ -63,9 +64,20 @@ RESULT_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
 
 #: sensor streams: the sensor-data profile of REP 2003 (best effort, volatile) with a queue
 #: deep enough for a quarter second of 100 Hz, so that a busy executor does not drop samples
+#: (the corrector: it prefers the newest samples to a backlog)
 SENSOR_QOS = QoSProfile(depth=25, history=HistoryPolicy.KEEP_LAST,
                         reliability=qos_profile_sensor_data.reliability,
                         durability=qos_profile_sensor_data.durability)
+
+#: the calibration node's sensor streams: the same profile with 10 s of 100 Hz of queue.  A
+#: sample dropped from one stream shifts that stream's epoch numbering until the set matcher
+#: votes again, and the sets in between are paired tens of epochs off; the calibration node
+#: needs every sample, not the newest, and its executor is starved for up to a second while
+#: a calibrate or diagnose call holds the interpreter in the worker thread (seen in the
+#: end-to-end test: 20-125 sets paired far off in 2 of 4 runs with a 25-deep queue)
+CALIBRATION_SENSOR_QOS = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
+                                    reliability=qos_profile_sensor_data.reliability,
+                                    durability=qos_profile_sensor_data.durability)
 
 #: at most this many sets enter the coverage figures of the status message
 _STATUS_SUBSAMPLE = 2000
@@ -208,7 +220,8 @@ class CalibrationNode(Node):
         self._subs = []
         for j in range(1, self._n + 1):
             self._subs.append(self.create_subscription(
-                MagneticField, f'sensor{j}/raw', self._raw_cb(j - 1), SENSOR_QOS))
+                MagneticField, f'sensor{j}/raw', self._raw_cb(j - 1),
+                CALIBRATION_SENSOR_QOS))
             self._subs.append(self.create_subscription(
                 Temperature, f'sensor{j}/temperature', self._temp_cb(j - 1),
                 SENSOR_QOS))
