@@ -108,7 +108,7 @@ class Slips:
         return out
 
 
-#: a sample whose ellipsoid residual exceeds this fraction of the field is not a reading
+#: a sample this fraction of the field off the mean of its two neighbours is not a reading
 GROSS_FRACTION = 0.02
 
 

@@ -385,8 +385,8 @@ class CalibrationNode(Node):
         lines = slips.summary()
         if gross:
             lines.append(f'{gross} sets dropped with a sample more than '
-                         f'{GROSS_FRACTION:.0%} of the field off its sensor\'s own ellipsoid '
-                         '(a cut or garbled serial line)')
+                         f'{GROSS_FRACTION:.0%} of the field off the mean of its neighbours '
+                         'in time (a cut or garbled serial line)')
         if dropped:
             lines.append(f'{dropped} sets dropped where a re-paired sample had no unique '
                          'partner')
