@@ -315,7 +315,8 @@ def candidate_tokens(model, data):
     are left out; each auxiliary channel is offered per sensor and on all sensors at once.
     """
     s = model.n_sensors
-    names = [n for n in fx.registered_effects() if n != 'aux:<column>']
+    names = [n for n in fx.registered_effects()
+             if n != 'aux:<column>' and not fx.needs_args(n)]
     names += ['aux:' + c for c in sorted(data.aux)]
     out = []
     for name in names:

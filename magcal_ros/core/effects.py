@@ -18,6 +18,7 @@ add their own effects by subclassing :class:`Effect` and calling :func:`register
 """
 from dataclasses import dataclass, field
 import importlib
+import math
 
 import numpy as np
 
@@ -39,20 +40,37 @@ class SensorContext:
         Auxiliary channels, each (N,), in the channel's own unit (A, W, ...).
     raw_rate : numpy.ndarray or None
         (N, 3) time derivative of the raw reading, nT/s.
+    parent : SensorContext or None
+        The whole record this context was cut from (:meth:`subset`), so that an effect with
+        memory (a lag filter) runs over the whole record and keeps its state across the
+        cut, e.g. across the held-out blocks of a cross-validation.
+    index : numpy.ndarray or None
+        (N,) int, positions of these samples in ``parent``.
     """
 
     t: np.ndarray
     temp: np.ndarray | None = None
     aux: dict = field(default_factory=dict)
     raw_rate: np.ndarray | None = None
+    parent: 'SensorContext | None' = None
+    index: np.ndarray | None = None
 
     def subset(self, idx):
-        """Return the context restricted to samples ``idx``."""
+        """Return the context restricted to samples ``idx`` (remembering the whole record)."""
+        pos = np.arange(len(self.t))[idx]
+        root = self if self.parent is None else self.parent
         return SensorContext(
             t=self.t[idx],
             temp=None if self.temp is None else self.temp[idx],
             aux={k: v[idx] for k, v in self.aux.items()},
-            raw_rate=None if self.raw_rate is None else self.raw_rate[idx])
+            raw_rate=None if self.raw_rate is None else self.raw_rate[idx],
+            parent=root, index=pos if self.index is None else self.index[pos])
+
+    def whole(self):
+        """(context of the whole record, (N,) int positions of these samples in it)."""
+        if self.parent is None:
+            return self, None
+        return self.parent, self.index
 
 
 class Effect:
@@ -71,10 +89,26 @@ class Effect:
     units = ()
     #: effects that are the same physical degree of freedom, and cannot be combined
     excludes = ()
+    #: how a token of an effect that needs arguments is written (None: takes none)
+    usage = None
+    #: the arguments of a token ``name(a, b)`` (a step time, a frequency, a channel), as
+    #: canonical strings; () for an effect without arguments
+    args = ()
 
     def __init__(self, sensor=1, refs=None):
         self.sensor = int(sensor)
         self.refs = dict(refs or {})
+
+    @classmethod
+    def from_args(cls, args, sensor=1):
+        """The effect of token ``name(args)`` on ``sensor``; ``args`` are strings.
+
+        Effects with arguments override this (and set :attr:`args`); the default accepts none.
+        """
+        if args:
+            raise ValueError(f'effect {cls.name!r} takes no arguments, got '
+                             f'{cls.name}({",".join(args)})')
+        return cls(sensor=sensor)
 
     @property
     def n_params(self):
@@ -83,8 +117,8 @@ class Effect:
 
     @property
     def label(self):
-        """Model-spec label of this effect, e.g. ``temperature``."""
-        return self.name
+        """Model-spec label of this effect, e.g. ``temperature`` or ``step(300)``."""
+        return f'{self.name}({",".join(self.args)})' if self.args else self.name
 
     def default_params(self):
         """Parameter values of an ideal sensor (the effect switched off), shape (n_params,)."""
@@ -413,6 +447,277 @@ class FieldRate(Effect):
         return -ctx.raw_rate * p
 
 
+# -- effects with arguments (issue 11: what the workbench's findings point to) --------------
+
+def _number(text, what):
+    try:
+        v = float(text)
+    except ValueError:
+        raise ValueError(f'{what}: {text!r} is not a number') from None
+    if not np.isfinite(v):
+        raise ValueError(f'{what}: {text!r} is not finite')
+    return v
+
+
+def _fmt(v):
+    """Canonical text of a token argument: 4 significant digits are kept as given."""
+    return format(float(v), '.6g')
+
+
+def _channel(name):
+    """'temperature' or an auxiliary column, with its 'aux_' prefix."""
+    name = name.strip()
+    if name in ('temperature', 'temp'):
+        return 'temperature'
+    if name.startswith('aux:'):
+        name = name[4:]
+    return name if name.startswith('aux_') else 'aux_' + name
+
+
+def _signal(ctx, channel):
+    """(N,) values of 'temperature' or an auxiliary channel in ``ctx`` (None if absent)."""
+    if channel == 'temperature':
+        return ctx.temp
+    return ctx.aux.get(channel)
+
+
+def _check_channel(ctx, channel, sensor):
+    a = _signal(ctx, channel)
+    if a is None or not np.isfinite(a).any():
+        col = f's{sensor}_temp' if channel == 'temperature' else channel
+        return f'sensor {sensor}: no {channel} column ({col}) in the data'
+    if channel != 'temperature' and not np.isfinite(a).all():
+        return f'channel {channel!r} contains non-finite values'
+    if np.nanmax(a) - np.nanmin(a) <= 1e-9 * max(1.0, float(np.nanmax(np.abs(a)))):
+        return (f'channel {channel!r} never changes: its coupling cannot be separated from '
+                'the offset')
+    return None
+
+
+class Step(Effect):
+    """Offset change(s) at given times: dB = sum_k s_k [t >= t_k], nT (a jump, a relay).
+
+    Token ``step(t1, t2, ...)``, times in s on the data's time axis; 3 parameters per step.
+    """
+
+    name = 'step'
+    usage = 'step(<t_s>[,<t_s>...])'
+
+    @classmethod
+    def from_args(cls, args, sensor=1):
+        if not args:
+            raise ValueError('step needs the time(s) of the offset change, e.g. step(300)')
+        times = sorted(_number(a, 'step time [s]') for a in args)
+        eff = cls(sensor=sensor)
+        eff.times = np.array(times)
+        eff.args = tuple(_fmt(x) for x in times)
+        return eff
+
+    @property
+    def param_names(self):
+        if len(self.args) == 1:
+            return ('sx', 'sy', 'sz')
+        return tuple(f's{k}{ax}' for k in range(1, len(self.args) + 1) for ax in 'xyz')
+
+    @property
+    def units(self):
+        return ('nT',) * (3 * len(self.args))
+
+    def check(self, ctx):
+        for tk in self.times:
+            before = int(np.sum(ctx.t < tk))
+            if before < 3 or len(ctx.t) - before < 3:
+                return (f'step at t = {tk:g} s lies outside the data '
+                        f'({ctx.t[0]:g} .. {ctx.t[-1]:g} s)')
+        return None
+
+    def contribution(self, p, ctx, lin):
+        on = (ctx.t[:, None] >= self.times[None, :]).astype(float)        # (N, K)
+        return on @ np.asarray(p).reshape(-1, 3)
+
+
+class Periodic(Effect):
+    """Sinusoidal interference at a given frequency (pump, fan, wheel), per axis, nT.
+
+    Token ``periodic(f_hz)``: dB = a cos(2 pi f (t - t0)) + b sin(2 pi f (t - t0)).
+    """
+
+    name = 'periodic'
+    usage = 'periodic(<f_hz>)'
+    param_names = ('ax', 'ay', 'az', 'bx', 'by', 'bz')
+    units = ('nT',) * 6
+
+    @classmethod
+    def from_args(cls, args, sensor=1):
+        if len(args) != 1:
+            raise ValueError('periodic needs one frequency in Hz, e.g. periodic(0.23)')
+        f = _number(args[0], 'periodic frequency [Hz]')
+        if f <= 0:
+            raise ValueError(f'periodic frequency must be positive, got {args[0]!r}')
+        eff = cls(sensor=sensor)
+        eff.freq_hz = f
+        eff.args = (_fmt(f),)
+        return eff
+
+    def prepare(self, ctx):
+        self.refs.setdefault('t0_s', float(ctx.t[0]) if len(ctx.t) else 0.0)
+
+    def check(self, ctx):
+        span = float(ctx.t[-1] - ctx.t[0]) if len(ctx.t) > 1 else 0.0
+        if span * self.freq_hz < 2.0:
+            return (f'the data span {span:.1f} s, less than 2 periods of {self.freq_hz:g} Hz: '
+                    'the sinusoid cannot be separated from the offset')
+        dt = float(np.median(np.diff(ctx.t)))
+        if self.freq_hz >= 0.5 / dt:
+            return (f'{self.freq_hz:g} Hz is at or above the Nyquist frequency '
+                    f'{0.5 / dt:g} Hz of the data')
+        return None
+
+    def contribution(self, p, ctx, lin):
+        ph = (2.0 * np.pi * self.freq_hz) * (ctx.t - self.refs.get('t0_s', 0.0))
+        return np.cos(ph)[:, None] * p[:3] + np.sin(ph)[:, None] * p[3:]
+
+
+def first_order_lag(t, x, tau):
+    """(N,) response y of tau dy/dt = x - y to x (N,) sampled at t (N,) s, y(t0) = x(t0).
+
+    Exact for x linear between samples (first-order hold): y_k = a y_k-1 + b0 x_k + b1 x_k-1,
+    a = exp(-dt/tau), b0 = 1 - tau/dt (1 - a), b1 = tau/dt (1 - a) - a.  Irregular sampling
+    is interpolated onto a uniform grid at the median interval and back.
+    """
+    from scipy.signal import lfilter, lfilter_zi
+    t = np.asarray(t, float)
+    x = np.asarray(x, float)
+    if len(x) < 2:
+        return x.copy()
+    dts = np.diff(t)
+    dt = float(np.median(dts))
+    uniform = np.ptp(dts) <= 1e-6 * dt
+    if not uniform:
+        grid = np.arange(t[0], t[-1] + 0.5 * dt, dt)
+        xs = np.interp(grid, t, x)
+    else:
+        xs = x
+    tau = max(abs(float(tau)), 1e-3 * dt)
+    a = math.exp(-dt / tau)
+    g = (tau / dt) * (1.0 - a)
+    b = [1.0 - g, g - a]
+    y, _ = lfilter(b, [1.0, -a], xs, zi=lfilter_zi(b, [1.0, -a]) * xs[0])
+    return y if uniform else np.interp(t, grid, y)
+
+
+class Lag(Effect):
+    """A channel (temperature or aux) acting through a first-order lag: dB = c (y - x0), nT.
+
+    Token ``lag(temperature)`` or ``lag(aux_<name>)``; y solves tau dy/dt = x - y (a sensor
+    head that follows its thermometer with time constant tau, fitted, s).  The filter runs
+    over the whole record (``SensorContext.whole``), so held-out blocks keep its state.
+    """
+
+    name = 'lag'
+    usage = 'lag(temperature|aux_<name>)'
+    #: starting time constant, s, of a fit that starts from nothing (the diagnosis tries more)
+    tau0_s = 30.0
+
+    @classmethod
+    def from_args(cls, args, sensor=1):
+        if len(args) != 1:
+            raise ValueError('lag needs one channel, e.g. lag(temperature) or '
+                             'lag(aux_motor_current)')
+        eff = cls(sensor=sensor)
+        eff.channel = _channel(args[0])
+        eff.args = (eff.channel,)
+        return eff
+
+    @property
+    def param_names(self):
+        return ('cx', 'cy', 'cz', 'tau')
+
+    @property
+    def units(self):
+        u = 'nT/degC' if self.channel == 'temperature' else 'nT/unit'
+        return (u, u, u, 's')
+
+    def default_params(self):
+        return np.array([0.0, 0.0, 0.0, self.tau0_s])
+
+    def prepare(self, ctx):
+        a = _signal(ctx, self.channel)
+        if a is not None and np.isfinite(a).any():
+            self.refs.setdefault('x0', float(np.nanmean(a)))
+
+    def check(self, ctx):
+        return _check_channel(ctx, self.channel, self.sensor)
+
+    def lagged(self, ctx, tau):
+        """(N,) the channel through the lag of time constant ``tau`` s, at ``ctx``'s samples."""
+        whole, idx = ctx.whole()
+        x = _signal(whole, self.channel)
+        x = np.nan_to_num(x, nan=self.refs.get('x0', 0.0))
+        y = first_order_lag(whole.t, x, tau)
+        return y if idx is None else y[idx]
+
+    def contribution(self, p, ctx, lin):
+        y = self.lagged(ctx, p[3]) - self.refs.get('x0', 0.0)
+        return y[:, None] * p[:3]
+
+
+class AuxPoly(Effect):
+    """Polynomial coupling of an auxiliary channel: dB = sum_k v_k (a - a0)^k, k = 1..d, nT.
+
+    Token ``aux_poly(aux_<name>, d)``, 2 <= d <= 4 (e.g. a field that grows with the square
+    of a current, from heating or saturation).  Includes the linear term, so it replaces
+    ``aux:aux_<name>``.
+    """
+
+    name = 'aux_poly'
+    usage = 'aux_poly(aux_<name>,<degree>)'
+
+    @classmethod
+    def from_args(cls, args, sensor=1):
+        if len(args) != 2:
+            raise ValueError('aux_poly needs a channel and a degree, e.g. '
+                             'aux_poly(aux_motor_current,2)')
+        eff = cls(sensor=sensor)
+        eff.channel = _channel(args[0])
+        if eff.channel == 'temperature':
+            raise ValueError('aux_poly couples an auxiliary channel (aux_<name>), not the '
+                             'temperature')
+        d = _number(args[1], 'aux_poly degree')
+        if d != int(d) or not 2 <= d <= 4:
+            raise ValueError(f'aux_poly degree must be 2, 3 or 4, got {args[1]!r}')
+        eff.degree = int(d)
+        eff.args = (eff.channel, str(eff.degree))
+        eff.excludes = ('aux:' + eff.channel,)
+        return eff
+
+    @property
+    def param_names(self):
+        return tuple(f'v{k}{ax}' for k in range(1, self.degree + 1) for ax in 'xyz')
+
+    @property
+    def units(self):
+        return tuple('nT/unit' if k == 1 else f'nT/unit^{k}'
+                     for k in range(1, self.degree + 1) for _ in 'xyz')
+
+    def prepare(self, ctx):
+        if self.channel in ctx.aux:
+            self.refs.setdefault('a0', float(np.nanmean(ctx.aux[self.channel])))
+
+    def check(self, ctx):
+        return _check_channel(ctx, self.channel, self.sensor)
+
+    def contribution(self, p, ctx, lin):
+        u = (ctx.aux[self.channel] - self.refs.get('a0', 0.0))[:, None]
+        v = np.asarray(p).reshape(-1, 3)
+        out = u * v[0]
+        uk = u
+        for k in range(1, self.degree):
+            uk = uk * u
+            out = out + uk * v[k]
+        return out
+
+
 # -- registry -------------------------------------------------------------------------------
 
 _REGISTRY = {}
@@ -430,7 +735,7 @@ def register_effect(cls, name=None):
 
 
 for _cls in (Scale, NonOrthogonality, Misalignment, SoftIron, Offset, Temperature, Drift,
-             QuadraticDrift, Nonlinearity, FieldRate):
+             QuadraticDrift, Nonlinearity, FieldRate, Step, Periodic, Lag, AuxPoly):
     register_effect(_cls)
 
 #: the model of paper 004 (offset, scale, nonorthogonality, misalignment)
@@ -440,6 +745,12 @@ BASE = ('offset', 'scale', 'nonorthogonality', 'misalignment')
 def registered_effects():
     """Names of all registered effects (plus 'aux:<column>')."""
     return sorted(_REGISTRY) + ['aux:<column>']
+
+
+def needs_args(name):
+    """True if the registered effect ``name`` is only written with arguments (``step(300)``)."""
+    cls = _REGISTRY.get(name)
+    return cls is not None and cls.usage is not None
 
 
 def load_plugin(ref):
@@ -462,8 +773,64 @@ def load_plugin(ref):
     return names
 
 
+def split_spec(spec):
+    """Tokens of a comma-separated model spec; commas inside ``name(a, b)`` do not split.
+
+    'base,step(120,300)@2, periodic(0.23)' -> ['base', 'step(120,300)@2', 'periodic(0.23)'].
+    """
+    out, depth, cur = [], 0, []
+    for ch in str(spec):
+        if ch == '(':
+            depth += 1
+        elif ch == ')':
+            depth -= 1
+            if depth < 0:
+                raise ValueError(f'unbalanced ")" in model {spec!r}')
+        if ch == ',' and depth == 0:
+            out.append(''.join(cur).strip())
+            cur = []
+        else:
+            cur.append(ch)
+    if depth:
+        raise ValueError(f'unbalanced "(" in model {spec!r}')
+    out.append(''.join(cur).strip())
+    return [t for t in out if t]
+
+
+def parse_token(token):
+    """'step(120,300)@2' -> ('step', ('120', '300'), 2); 'drift' -> ('drift', (), None).
+
+    The sensor is None when the token has no ``@j`` (the effect on every sensor).
+    """
+    tok = token.strip()
+    name, at, where = tok.rpartition('@') if tok.rfind('@') > tok.rfind(')') else (tok, '', '')
+    sensor = None
+    if at:
+        try:
+            sensor = int(where)
+        except ValueError:
+            raise ValueError(f'bad sensor in {token!r}: expected name@<sensor number>') from None
+    name = name.strip()
+    args = ()
+    if '(' in name:
+        if not name.endswith(')'):
+            raise ValueError(f'bad effect {token!r}: expected name(arguments)@sensor')
+        name, _, inner = name[:-1].partition('(')
+        args = tuple(a.strip() for a in inner.split(','))
+        if any(not a for a in args):
+            raise ValueError(f'empty argument in {token!r}')
+        name = name.strip()
+    return name, args, sensor
+
+
 def make_effect(token, sensor):
-    """Create the effect named ``token`` ('offset', 'aux:aux_motor_current', ...) for a sensor."""
+    """Create the effect ``token`` ('offset', 'aux:aux_motor_current', 'step(300)', ...)."""
+    if '(' in token:
+        name, args, _ = parse_token(token)
+        if name not in _REGISTRY:
+            raise ValueError(f'unknown effect {name!r} in {token!r}; known effects: '
+                             f'{", ".join(registered_effects())}')
+        return _REGISTRY[name].from_args(args, sensor)
     if token.startswith('aux:'):
         return Aux(sensor=sensor, channel=token[4:])
     if token not in _REGISTRY and ':' in token:
@@ -473,4 +840,6 @@ def make_effect(token, sensor):
     if token not in _REGISTRY:
         raise ValueError(f'unknown effect {token!r}; known effects: '
                          f'{", ".join(registered_effects())}')
+    if needs_args(token):
+        raise ValueError(f'effect {token!r} needs arguments: {_REGISTRY[token].usage}')
     return _REGISTRY[token](sensor=sensor)

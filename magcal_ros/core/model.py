@@ -78,14 +78,16 @@ class Model:
         restricts an effect to sensor j; ``aux:<column>`` couples an auxiliary channel.
         Misalignment on sensor 1 is dropped: sensor 1 defines the array frame.
         """
-        tokens = spec if isinstance(spec, (list, tuple)) else str(spec).split(',')
+        tokens = spec if isinstance(spec, (list, tuple)) else fx.split_spec(spec)
         tokens = [t.strip() for t in tokens if t.strip()]
         if not tokens:
             raise ValueError('empty model: give at least one effect, e.g. --model base')
         per_sensor = [[] for _ in range(n_sensors)]
         seen = [set() for _ in range(n_sensors)]
         for tok in tokens:
-            name, _, where = tok.partition('@')
+            # name(arguments)@j: a step time, a frequency, a channel (effects.parse_token)
+            name, where = (tok.rsplit('@', 1) if tok.rfind('@') > tok.rfind(')')
+                           else (tok, ''))
             names = fx.BASE if name == 'base' else (name,)
             if where:
                 try:
@@ -104,12 +106,15 @@ class Model:
                     eff = fx.make_effect(nm, j)
                     if eff.label in seen[j - 1]:
                         continue
-                    clash = [o for o in seen[j - 1] if o in eff.excludes]
+                    clash = [o.label for o in per_sensor[j - 1]
+                             if o.label in eff.excludes or eff.label in o.excludes]
                     if clash:
+                        why = eff.describe() if eff.name != 'soft_iron' else ''
+                        why = fx.SoftIron.__doc__.splitlines()[0] if 'soft_iron' in (
+                            eff.name, clash[0]) else why
                         raise ValueError(
                             f'{eff.label} and {clash[0]} on sensor {j} describe the same '
-                            f'degrees of freedom: {fx.SoftIron.__doc__.splitlines()[0]}; '
-                            'use one or the other')
+                            f'degrees of freedom: {why}; use one or the other')
                     seen[j - 1].add(eff.label)
                     per_sensor[j - 1].append(eff)
         for row in per_sensor:

@@ -161,7 +161,8 @@ def _calibration_from_doc(doc, source):
             name = _need(e, 'name', where)
             label = e.get('label', name)
             try:
-                eff = fx.make_effect(label if label.startswith('aux:') else name, k)
+                eff = fx.make_effect(label if label.startswith('aux:') or '(' in label
+                                     else name, k)
             except ValueError as exc:
                 raise CalibrationFileError(f'{where}: {exc}') from None
             eff.refs = {str(a): float(b) for a, b in (e.get('refs') or {}).items()}
