@@ -10,6 +10,7 @@ import numpy as np
 
 from magcal_ros.core.model import Model, data_hash, fit
 from magcal_ros.core.noise import noise_floor
+from magcal_ros.core.site_gradient import centred_fields, gradient_from_fit
 from magcal_ros.core.tensor import cross_positions, tensor_lstsq, tensor_noise_floor
 from magcal_ros.io.calfile import calibration_to_doc
 
@@ -97,9 +98,15 @@ def summarize(result, data, positions=None):
         'downweighted': {str(j + 1): int(x) for j, x in enumerate(result.downweighted)},
         'warnings': list(result.warnings) + _residual_warnings(result, floor),
     }
+    site = gradient_from_fit(result.model, result.params, result.covariance)
+    if site is not None:
+        # world frame of the attitude (NED or ENU, the user's); standard uncertainties
+        s['site_gradient_nt_per_m'] = site[0].tolist()
+        s['site_gradient_stderr_nt_per_m'] = site[1].tolist()
     if positions is not None and data.n_sensors >= 3:
         before = tensor_stats(data.raw, positions)
-        after = tensor_stats(result.corrected_nt, positions)
+        # about the modelled site gradient: what is left is calibration error and noise
+        after = tensor_stats(centred_fields(result), positions)
         floor_t = tensor_noise_floor(result.sigma_nt, positions)
         s['tensor_rms_nt_per_m'] = after['rms'].tolist()
         s['tensor_rms_before_nt_per_m'] = before['rms'].tolist()
@@ -177,8 +184,10 @@ def _calibrate(data, model, field_nt, geometry, field_reference, **fit_kwargs):
         geometry = cross_geometry(0.5)
     if isinstance(model, str):
         model = Model.from_spec(model, data.n_sensors)
-    result = fit(data, model, field_nt=field_nt, **fit_kwargs)
     positions = geometry_positions(geometry, data.n_sensors)
+    if positions is not None:
+        model.set_positions(positions)          # where the site gradient acts
+    result = fit(data, model, field_nt=field_nt, **fit_kwargs)
     summary = summarize(result, data, positions)
     temp_range = {}
     if data.temp is not None:

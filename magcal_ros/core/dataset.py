@@ -28,6 +28,10 @@ class Dataset:
         (N,) str, which sensor plane is horizontal ('xy' or 'xz').
     aux : dict of str to numpy.ndarray
         Auxiliary channels 'aux_<name>' -> (N,), in their own units.
+    attitude : numpy.ndarray or None
+        (N, 4) body-to-world rotation of the array as unit quaternions (qw, qx, qy, qz),
+        Hamilton convention, scalar first (CSV columns att_qw..att_qz); the world frame (NED
+        or ENU) is the user's.
     meta : dict
         Free-form provenance (source file, simulator truth, ...).
     """
@@ -41,6 +45,7 @@ class Dataset:
     plane: np.ndarray | None = None
     aux: dict = field(default_factory=dict)
     meta: dict = field(default_factory=dict)
+    attitude: np.ndarray | None = None
 
     def __post_init__(self):
         self.t = np.asarray(self.t, float)
@@ -51,6 +56,10 @@ class Dataset:
             raise ValueError(f'raw must have shape (S, N, 3), got {self.raw.shape}')
         if self.raw.shape[1] != self.t.shape[0]:
             raise ValueError(f'raw has {self.raw.shape[1]} samples but t has {self.t.shape[0]}')
+        if self.attitude is not None:
+            from magcal_ros.core.attitude import check_quaternions
+            self.attitude = check_quaternions(self.attitude, self.t)
+        self._att_matrix = None
 
     @property
     def n_sensors(self):
@@ -71,7 +80,17 @@ class Dataset:
         temp = None if self.temp is None else self.temp[j - 1]
         if temp is not None and not np.isfinite(temp).any():
             temp = None
-        return SensorContext(t=self.t, temp=temp, aux=dict(self.aux), raw_rate=rate)
+        return SensorContext(t=self.t, temp=temp, aux=dict(self.aux), raw_rate=rate,
+                             attitude=self.attitude_matrix())
+
+    def attitude_matrix(self):
+        """(N, 3, 3) body-to-world rotation matrices, or None without attitude."""
+        if self.attitude is None:
+            return None
+        if self._att_matrix is None:
+            from magcal_ros.core.attitude import quaternion_matrices
+            self._att_matrix = quaternion_matrices(self.attitude)
+        return self._att_matrix
 
     def subset(self, idx):
         """A new Dataset with the epochs ``idx`` (index array or boolean mask)."""
@@ -85,4 +104,5 @@ class Dataset:
             self, t=take(self.t), raw=take(self.raw, 1), temp=take(self.temp, 1),
             ref_total=take(self.ref_total), ref_vec=take(self.ref_vec),
             angle_deg=take(self.angle_deg), plane=take(self.plane),
-            aux={k: take(v) for k, v in self.aux.items()}, meta=dict(self.meta))
+            aux={k: take(v) for k, v in self.aux.items()}, meta=dict(self.meta),
+            attitude=take(self.attitude))

@@ -46,6 +46,9 @@ class SensorContext:
         cut, e.g. across the held-out blocks of a cross-validation.
     index : numpy.ndarray or None
         (N,) int, positions of these samples in ``parent``.
+    attitude : numpy.ndarray or None
+        (N, 3, 3) body-to-world rotation matrices of the array (from the quaternion columns
+        att_qw..att_qz), or None when the attitude is unknown.
     """
 
     t: np.ndarray
@@ -54,6 +57,7 @@ class SensorContext:
     raw_rate: np.ndarray | None = None
     parent: 'SensorContext | None' = None
     index: np.ndarray | None = None
+    attitude: np.ndarray | None = None
 
     def subset(self, idx):
         """Return the context restricted to samples ``idx`` (remembering the whole record)."""
@@ -64,6 +68,7 @@ class SensorContext:
             temp=None if self.temp is None else self.temp[idx],
             aux={k: v[idx] for k, v in self.aux.items()},
             raw_rate=None if self.raw_rate is None else self.raw_rate[idx],
+            attitude=None if self.attitude is None else self.attitude[idx],
             parent=root, index=pos if self.index is None else self.index[pos])
 
     def whole(self):
@@ -718,6 +723,71 @@ class AuxPoly(Effect):
         return out
 
 
+# -- array-wide effects --------------------------------------------------------------------
+
+def symmetric_traceless(g):
+    """(3, 3) symmetric traceless tensor from g = (gxx, gxy, gxz, gyy, gyz), same unit.
+
+    Maxwell's equations in a source-free region: curl B = 0 (symmetric), div B = 0
+    (traceless), so gzz = -gxx - gyy (paper 004 eq. 1 uses the same five components).
+    """
+    gxx, gxy, gxz, gyy, gyz = g
+    return np.array([[gxx, gxy, gxz], [gxy, gyy, gyz], [gxz, gyz, -gxx - gyy]], float)
+
+
+class SiteGradient(Effect):
+    """Constant gradient of the site in the world frame, seen through the known attitude.
+
+    The field at sensor j (position r_j, m, body = array frame) is
+    B_j = B_c + R^T G_w R r_j, with B_c the field at the array centre (the origin of the
+    positions; its magnitude is the reference magnitude), R the body-to-world rotation
+    (``SensorContext.attitude``) and G_w (nT/m) symmetric and traceless: 5 parameters
+    (gxx, gxy, gxz, gyy, gyz) shared by the whole array.  The shift enters before the
+    sensor's linear map: raw_j = A_j B_j + offset_j + ...  The positions are stored in
+    ``refs`` (x1, y1, z1, x2, ...; m) so that the calibration file carries them.
+    """
+
+    name = 'site_gradient'
+    kind = 'array'
+    #: one set of parameters for the whole array, not one per sensor
+    scope = 'array'
+    param_names = ('gxx', 'gxy', 'gxz', 'gyy', 'gyz')
+    units = ('nT/m',) * 5
+
+    def set_positions(self, positions):
+        """Store the (S, 3) sensor positions, m, in the array frame."""
+        pos = np.asarray(positions, float)
+        for j, r in enumerate(pos, start=1):
+            for a, v in zip('xyz', r):
+                self.refs[f'{a}{j}'] = float(v)
+
+    def position(self, j):
+        """(3,) position of sensor j, m."""
+        try:
+            return np.array([self.refs[f'{a}{j}'] for a in 'xyz'])
+        except KeyError:
+            raise ValueError(f'site_gradient: no position of sensor {j}; give the array '
+                             'geometry') from None
+
+    def check(self, ctx):
+        if ctx.attitude is None:
+            return ('site_gradient needs the attitude of the array (CSV columns att_qw, att_qx, '
+                    'att_qy, att_qz; an Imu topic): without it the world-frame gradient cannot '
+                    'be told from the calibration (docs/site_gradient.md)')
+        return None
+
+    def tensor(self, p):
+        """(3, 3) world-frame gradient G_w, nT/m."""
+        return symmetric_traceless(p)
+
+    def shift(self, p, ctx, j):
+        """(N, 3) nT: R^T G_w R r_j, the field at sensor j minus the field at the centre."""
+        rot = ctx.attitude
+        v = rot @ self.position(j)                       # (N, 3) r_j in the world frame, m
+        w = v @ self.tensor(p)                           # G symmetric: (G v)^T = v^T G
+        return np.einsum('nji,nj->ni', rot, w)           # back to the body frame
+
+
 # -- registry -------------------------------------------------------------------------------
 
 _REGISTRY = {}
@@ -735,7 +805,8 @@ def register_effect(cls, name=None):
 
 
 for _cls in (Scale, NonOrthogonality, Misalignment, SoftIron, Offset, Temperature, Drift,
-             QuadraticDrift, Nonlinearity, FieldRate, Step, Periodic, Lag, AuxPoly):
+             QuadraticDrift, Nonlinearity, FieldRate, Step, Periodic, Lag, AuxPoly,
+             SiteGradient):
     register_effect(_cls)
 
 #: the model of paper 004 (offset, scale, nonorthogonality, misalignment)

@@ -45,10 +45,19 @@ class Model:
     ----------
     effects : list of list of Effect
         ``effects[j-1]`` are the effects of sensor j.
+    array_effects : list of Effect, optional
+        Effects with one set of parameters for the whole array (``scope = 'array'``, e.g.
+        ``site_gradient``); their parameters follow those of the sensors in the vector.
     """
 
-    def __init__(self, effects):
+    def __init__(self, effects, array_effects=()):
         self.effects = [list(e) for e in effects]
+        self.array_effects = list(array_effects)
+        if self.array_effects and self.n_sensors == 4:
+            from magcal_ros.core.tensor import cross_positions
+            for eff in self.array_effects:
+                if hasattr(eff, 'set_positions') and 'x1' not in eff.refs:
+                    eff.set_positions(cross_positions(0.5))     # paper 004's cross
         self._layout()
 
     def _layout(self):
@@ -63,7 +72,23 @@ class Model:
                 i += eff.n_params
             self.slices.append(row)
             self.sensor_slices.append(slice(start, i))
+        self.array_slices = []
+        for eff in self.array_effects:
+            self.array_slices.append(slice(i, i + eff.n_params))
+            i += eff.n_params
         self.n_params = i
+
+    @property
+    def array_cols(self):
+        """(K,) indices of the array-wide parameters in the parameter vector."""
+        return np.concatenate([np.arange(sl.start, sl.stop) for sl in self.array_slices]
+                              ).astype(int) if self.array_slices else np.zeros(0, int)
+
+    def set_positions(self, positions):
+        """Sensor positions (S, 3) m in the array frame, for the array-wide effects."""
+        for eff in self.array_effects:
+            if hasattr(eff, 'set_positions'):
+                eff.set_positions(positions)
 
     @property
     def n_sensors(self):
@@ -84,10 +109,19 @@ class Model:
             raise ValueError('empty model: give at least one effect, e.g. --model base')
         per_sensor = [[] for _ in range(n_sensors)]
         seen = [set() for _ in range(n_sensors)]
+        array_effects = []
         for tok in tokens:
             # name(arguments)@j: a step time, a frequency, a channel (effects.parse_token)
             name, where = (tok.rsplit('@', 1) if tok.rfind('@') > tok.rfind(')')
                            else (tok, ''))
+            if getattr(fx._REGISTRY.get(name), 'scope', 'sensor') == 'array':
+                if where:
+                    raise ValueError(f'{name} is one effect of the whole array: drop @{where}')
+                if n_sensors < 3:
+                    raise ValueError(f'{name} needs an array of at least three sensors')
+                if name not in [e.name for e in array_effects]:
+                    array_effects.append(fx.make_effect(name, 0))
+                continue
             names = fx.BASE if name == 'base' else (name,)
             if where:
                 try:
@@ -121,7 +155,7 @@ class Model:
             row.sort(key=lambda e: (e.kind != 'linear',
                                     LINEAR_ORDER.index(e.name) if e.name in LINEAR_ORDER
                                     else 0))
-        return cls(per_sensor)
+        return cls(per_sensor, array_effects)
 
     def spec(self):
         """Canonical list of effect tokens (``name`` or ``name@j``)."""
@@ -139,7 +173,7 @@ class Model:
                 out.append(lab)
             else:
                 out.extend(f'{lab}@{j}' for j in have)
-        return out
+        return out + [e.label for e in self.array_effects]
 
     def with_effect(self, token):
         """A new model with ``token`` (e.g. 'temperature@2') added."""
@@ -152,9 +186,9 @@ class Model:
     @property
     def joint(self):
         """True if sensors are tied to one field per epoch (misalignment/soft iron on j > 1)."""
-        return self.n_sensors > 1 and any(
+        return self.n_sensors > 1 and (bool(self.array_effects) or any(
             self.has(j, 'misalignment') or self.has(j, 'soft_iron')
-            for j in range(2, self.n_sensors + 1))
+            for j in range(2, self.n_sensors + 1)))
 
     def default_params(self):
         """(n_params,) parameters of ideal sensors."""
@@ -162,6 +196,8 @@ class Model:
         for j, row in enumerate(self.effects):
             for eff, sl in zip(row, self.slices[j]):
                 p[sl] = eff.default_params()
+        for eff, sl in zip(self.array_effects, self.array_slices):
+            p[sl] = eff.default_params()
         return p
 
     def param_info(self):
@@ -171,6 +207,8 @@ class Model:
             for eff in row:
                 for nm, un in zip(eff.param_names, eff.units):
                     out.append((j + 1, eff.label, nm, un))
+        for eff in self.array_effects:          # sensor 0: the whole array
+            out.extend((0, eff.label, nm, un) for nm, un in zip(eff.param_names, eff.units))
         return out
 
     def prepare(self, contexts):
@@ -187,6 +225,10 @@ class Model:
                 why = eff.check(ctx)
                 if why:
                     out.append(f'{eff.label}@{eff.sensor}: {why}')
+        for eff in self.array_effects:
+            why = eff.check(contexts[0]) if contexts else None
+            if why:
+                out.append(f'{eff.label}: {why}')
         return out
 
     # -- evaluation ------------------------------------------------------------------------
@@ -207,8 +249,21 @@ class Model:
                 out = out + eff.contribution(p[sl], ctx, lin)
         return out
 
+    def array_shift(self, j, p, ctx):
+        """(N, 3) nT field at sensor j minus the field at the array centre (array effects)."""
+        out = 0.0
+        for eff, sl in zip(self.array_effects, self.array_slices):
+            out = out + eff.shift(p[sl], ctx, j)
+        return out
+
     def forward(self, j, p, b, ctx):
-        """Raw reading of sensor j (N, 3) nT for true field b (N, 3) nT in the array frame."""
+        """Raw reading of sensor j (N, 3) nT for true field b (N, 3) nT in the array frame.
+
+        ``b`` is the field at the array centre; array-wide effects (site gradient) shift it
+        to the sensor's position before the sensor's linear map.
+        """
+        if self.array_effects:
+            b = b + self.array_shift(j, p, ctx)
         lin = b @ self.matrix(j, p).T
         return lin + self.additive(j, p, ctx, lin)
 
@@ -346,7 +401,11 @@ class FitResult:
     @property
     def calibration(self):
         """The :class:`Calibration` (model + parameters) for live correction."""
-        return Calibration(self.model, self.params, self.stderr, self.sigma_nt)
+        cal = Calibration(self.model, self.params, self.stderr, self.sigma_nt)
+        cols = self.model.array_cols
+        if len(cols):
+            cal.array_covariance = self.covariance[np.ix_(cols, cols)].copy()
+        return cal
 
     def param_table(self):
         """List of dicts: sensor, effect, name, unit, value, stderr."""
@@ -388,6 +447,8 @@ class Calibration:
         self.stderr = np.zeros_like(self.params) if stderr is None else np.asarray(stderr)
         self.sigma_nt = (np.full(model.n_sensors, np.nan) if sigma_nt is None
                          else np.asarray(sigma_nt, float))
+        #: (K, K) covariance of the array-wide parameters (site gradient), when known
+        self.array_covariance = None
         # A calibration is immutable: precompute what every correction needs
         self._a_inv = [np.linalg.inv(model.matrix(j, self.params))
                        for j in range(1, model.n_sensors + 1)]
@@ -423,6 +484,34 @@ class Calibration:
         if np.linalg.det(q) < 0:
             u, q = -u, -q
         return np.linalg.inv(u), q.T
+
+    def site_gradient(self):
+        """(G_w (3, 3), stderr (3, 3)) nT/m, world frame, or None without the effect.
+
+        The standard uncertainty of gzz = -gxx - gyy needs the covariance of the fit
+        (``array_covariance``); without it that entry is nan.
+        """
+        from magcal_ros.core.site_gradient import gradient_from_fit
+        cov = np.diag(self.stderr ** 2)
+        cols = self.model.array_cols
+        if self.array_covariance is not None:
+            cov[np.ix_(cols, cols)] = self.array_covariance
+        out = gradient_from_fit(self.model, self.params, cov)
+        if out is None:
+            return None
+        se = out[1]
+        if self.array_covariance is None:
+            se[2, 2] = np.nan
+        return out[0], se
+
+    def array_shift(self, j, ctx):
+        """(N, 3) nT modelled field at sensor j minus the centre field (site gradient).
+
+        ``ctx.attitude`` (N, 3, 3) is needed; zero without array-wide effects.
+        """
+        if not self.model.array_effects:
+            return np.zeros((len(ctx.t), 3))
+        return self.model.array_shift(j, self.params, ctx)
 
     def driven_effects(self, j):
         """Labels of the effects of sensor j that need live signals (temperature, aux, ...)."""
@@ -494,7 +583,7 @@ class _Problem:
         self.sensors = sensors         # 1-based sensor numbers of this group
         self.sigma = sigma             # (S,) nT
         self.cols = np.concatenate([np.arange(model.n_params)[model.sensor_slices[j - 1]]
-                                    for j in sensors]).astype(int)
+                                    for j in sensors] + [model.array_cols]).astype(int)
         self.priors = priors           # list of (index, mean, sd) with index into full p
         self._cache_key = None
         self.p_full = model.default_params()
@@ -596,6 +685,16 @@ class _Problem:
                 block[c] /= h * self.sigma[j - 1]
             jac[:, gi, :, col:col + len(block)] = block.transpose(1, 2, 0)
             col += len(block)
+        # array-wide parameters (site gradient): every sensor of the group depends on them
+        n_arr = len(self.model.array_cols)
+        for k, i in enumerate(self.model.array_cols):
+            h = 1e-6 * max(1.0, abs(p[i]))
+            pp = p.copy()
+            pp[i] += h
+            for gi, j in enumerate(self.sensors):
+                d = self.model.forward(j, p, b, self.ctx[j - 1]) - self.model.forward(
+                    j, pp, b, self.ctx[j - 1])
+                jac[:, gi, :, len(self.cols) - n_arr + k] = d / (h * self.sigma[j - 1])
         # project out the nuisance field directions (variable projection)
         u = b / self.f[:, None]
         e1, e2 = _tangent_basis(u)
@@ -897,6 +996,11 @@ def _fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=F
             p0 = initial_params(raw, f, model, constrained=True)
     else:
         p0 = np.asarray(init, float).copy()
+    if model.array_effects and contexts_all[0].attitude is not None:
+        # the attitude must agree with the field direction (closed-form corrected sensor 1)
+        from magcal_ros.core.attitude import check_against_field
+        check_against_field(contexts_all[0].attitude,
+                            model.correct(1, p0, raw_all[0], contexts_all[0]), data.t)
 
     prior_spec = dict(DEFAULT_PRIORS) if constrained else {}
     prior_spec.update(priors or {})
@@ -1036,8 +1140,13 @@ def evaluate(model, p, data, f, sigma, contexts=None, robust=False, f_scale=3.0,
                 residual[j - 1, sl] = res[:, gi] * sigma[j - 1]
     corrected = np.stack([model.correct(j, p, data.raw[j - 1], contexts[j - 1])
                           for j in range(1, s + 1)])
-    scalar = np.linalg.norm(corrected, axis=2) - f[None]
-    vector = corrected - corrected[:1]
+    centred = corrected
+    if model.array_effects:
+        # residuals against the centre field: remove each sensor's modelled site shift
+        centred = corrected - np.stack([model.array_shift(j, p, contexts[j - 1])
+                                        for j in range(1, s + 1)])
+    scalar = np.linalg.norm(centred, axis=2) - f[None]
+    vector = centred - centred[:1]
     down = np.zeros(s, int)
     if robust:
         down = (np.abs(residual / sigma[:, None, None]) > f_scale).any(axis=2).sum(axis=1)

@@ -65,7 +65,12 @@ class SimConfig:
     outlier_fraction, outlier_nt : float
         Fraction of sensor samples hit by a spike, and its size (nT, random direction).
     gradient_nt_per_m : numpy.ndarray or None
-        (3, 3) uniform gradient in the world frame, nT/m (default: none, uniform field).
+        (3, 3) uniform gradient in the world frame (here NED), nT/m (default: none, uniform
+        field); symmetric and traceless in a source-free region (the site gradient).  The
+        field magnitude ``field_nt`` is the one at the array centre.
+    attitude : bool
+        Put the true attitude (body-to-world quaternions, ``Dataset.attitude``, CSV columns
+        att_qw..att_qz) into the samples, as an IMU would give it.
     seed : int
     """
 
@@ -92,6 +97,7 @@ class SimConfig:
     outlier_fraction: float = 0.0
     outlier_nt: float = 1000.0
     gradient_nt_per_m: object = None
+    attitude: bool = False
     seed: int = 0
 
 
@@ -237,7 +243,8 @@ class Simulator:
         s = cfg.n_sensors
         temp = self.temperature(t)
         aux = self.aux_channels(t) if cfg.aux else {}
-        b = self.true_field(t)
+        rot = self.attitude(t)
+        b = self.true_field(t, rot)
         raw = np.empty((s, n, 3))
         for j in range(1, s + 1):
             lin = b[j - 1] @ self.model.matrix(j, self.params).T
@@ -253,7 +260,8 @@ class Simulator:
             raw[hit] += cfg.outlier_nt * d[hit]
         ref_total = self.field_magnitude(t) if cfg.diurnal_swing_nt else None
         return Dataset(t=t, raw=raw, temp=temp, ref_total=ref_total, aux=aux,
-                       meta={'truth_field': b, 'simulator': cfg})
+                       meta={'truth_field': b, 'simulator': cfg},
+                       attitude=rot.as_quat(scalar_first=True) if cfg.attitude else None)
 
     def prepare_truth(self, data):
         """Make the truth model's reference values (mean temperature, t0, ...) match ``data``.

@@ -47,16 +47,17 @@ def _mat(a):
 
 def calibration_to_doc(cal, geometry=None, field_reference=None, provenance=None):
     """Build the YAML document (a dict) of a :class:`Calibration`."""
-    sensors = []
-    for j in range(1, cal.n_sensors + 1):
-        effs = []
-        for eff, sl in zip(cal.model.effects[j - 1], cal.model.slices[j - 1]):
-            effs.append({
-                'name': eff.name, 'label': eff.label,
+    def effect_doc(eff, sl):
+        return {'name': eff.name, 'label': eff.label,
                 'refs': {k: float(v) for k, v in eff.refs.items()},
                 'params': {n: {'value': float(v), 'unit': u, 'stderr': float(s)}
                            for n, u, v, s in zip(eff.param_names, eff.units,
-                                                 cal.params[sl], cal.stderr[sl])}})
+                                                 cal.params[sl], cal.stderr[sl])}}
+
+    sensors = []
+    for j in range(1, cal.n_sensors + 1):
+        effs = [effect_doc(eff, sl)
+                for eff, sl in zip(cal.model.effects[j - 1], cal.model.slices[j - 1])]
         c_inv, rot = cal.intrinsic_and_rotation(j)
         sensors.append({
             'id': j,
@@ -70,9 +71,21 @@ def calibration_to_doc(cal, geometry=None, field_reference=None, provenance=None
     prov = {'created': datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds'),
             'software': 'magcal_ros'}
     prov.update(provenance or {})
-    return {'schema_version': SCHEMA_VERSION, 'kind': KIND, 'model': cal.model.spec(),
-            'geometry': geometry or {}, 'field_reference': field_reference or {},
-            'sensors': sensors, 'provenance': prov}
+    doc = {'schema_version': SCHEMA_VERSION, 'kind': KIND, 'model': cal.model.spec(),
+           'geometry': geometry or {}, 'field_reference': field_reference or {},
+           'sensors': sensors}
+    if cal.model.array_effects:
+        # effects of the whole array (site gradient: world frame of the attitude, nT/m)
+        doc['array_effects'] = [effect_doc(eff, sl) for eff, sl in
+                                zip(cal.model.array_effects, cal.model.array_slices)]
+        g = cal.site_gradient()
+        if g is not None:
+            doc['site_gradient_nt_per_m'] = {'frame': 'world', 'value': _mat(g[0]),
+                                             'stderr': _mat(g[1])}
+            if cal.array_covariance is not None:
+                doc['site_gradient_nt_per_m']['covariance_5'] = _mat(cal.array_covariance)
+    doc['provenance'] = prov             # last: its absence reveals a truncated file
+    return doc
 
 
 def dump_calibration(doc):
@@ -152,12 +165,10 @@ def _calibration_from_doc(doc, source):
     if not isinstance(sensors, list) or not sensors:
         raise CalibrationFileError(f'{source}: sensors must be a non-empty list')
     effects, params, stderr, sigma = [], [], [], []
-    for k, sdoc in enumerate(sensors, start=1):
-        where = f'{source}: sensors[{k - 1}]'
-        if _need(sdoc, 'id', where) != k:
-            raise CalibrationFileError(f'{where}: id must be {k} (sensors in order 1..S)')
+
+    def read_effects(edocs, k, where):
         row = []
-        for e in _need(sdoc, 'effects', where):
+        for e in edocs:
             name = _need(e, 'name', where)
             label = e.get('label', name)
             try:
@@ -183,10 +194,25 @@ def _calibration_from_doc(doc, source):
                 params.append(v)
                 stderr.append(s)
             row.append(eff)
-        effects.append(row)
+        return row
+
+    for k, sdoc in enumerate(sensors, start=1):
+        where = f'{source}: sensors[{k - 1}]'
+        if _need(sdoc, 'id', where) != k:
+            raise CalibrationFileError(f'{where}: id must be {k} (sensors in order 1..S)')
+        effects.append(read_effects(_need(sdoc, 'effects', where), k, where))
         sigma.append(float(sdoc.get('sigma_nt', np.nan)))
-    model = Model(effects)
+    array_effects = read_effects(doc.get('array_effects') or [], 0, f'{source}: array_effects')
+    model = Model(effects, array_effects)
     cal = Calibration(model, np.array(params), np.array(stderr), np.array(sigma))
+    site = doc.get('site_gradient_nt_per_m')
+    if array_effects and isinstance(site, dict) and 'covariance_5' in site:
+        cov = np.asarray(site['covariance_5'], float)
+        if cov.shape != (len(model.array_cols),) * 2 or not np.all(np.isfinite(cov)):
+            raise CalibrationFileError(f'{source}: site_gradient_nt_per_m.covariance_5 must be '
+                                       f'{len(model.array_cols)}x{len(model.array_cols)} finite '
+                                       'numbers')
+        cal.array_covariance = cov
     for k, sdoc in enumerate(sensors, start=1):
         a = cal.matrix(k)
         if not np.all(np.isfinite(a)) or abs(np.linalg.det(a)) < 1e-6:

@@ -5,11 +5,12 @@ import re
 
 import numpy as np
 
+from magcal_ros.core.attitude import COLUMNS as ATT_COLUMNS, check_quaternions
 from magcal_ros.core.dataset import Dataset
 from magcal_ros.io.atomic import atomic_write_text
 
 _SENSOR_COL = re.compile(r'^s(\d+)_(x|y|z|temp)$')
-_KNOWN = {'t', 'ref_total', 'ref_x', 'ref_y', 'ref_z', 'angle_deg', 'plane'}
+_KNOWN = {'t', 'ref_total', 'ref_x', 'ref_y', 'ref_z', 'angle_deg', 'plane', *ATT_COLUMNS}
 
 
 class CsvFormatError(ValueError):
@@ -20,7 +21,9 @@ def read_csv(path):
     """Read a wide CSV file into a :class:`Dataset`.
 
     Columns: ``t`` (s, non-decreasing), ``s{j}_x/y/z`` (nT), optional ``s{j}_temp`` (degC),
-    ``ref_total`` (nT), ``ref_x/y/z`` (nT), ``angle_deg``, ``plane`` (xy|xz), ``aux_<name>``.
+    ``ref_total`` (nT), ``ref_x/y/z`` (nT), ``angle_deg``, ``plane`` (xy|xz), ``aux_<name>``,
+    ``att_qw, att_qx, att_qy, att_qz`` (all four: body-to-world unit quaternion, Hamilton,
+    scalar first).
     ``#`` lines are comments.  Unknown columns are an error.
     """
     path = os.fspath(path)
@@ -42,7 +45,8 @@ def read_csv(path):
         elif h not in _KNOWN and not h.startswith('aux_'):
             raise CsvFormatError(
                 f'{path}: unknown column {h!r}; allowed: t, s<j>_x, s<j>_y, s<j>_z, s<j>_temp, '
-                'ref_total, ref_x, ref_y, ref_z, angle_deg, plane, aux_<name>')
+                'ref_total, ref_x, ref_y, ref_z, angle_deg, plane, aux_<name>, '
+                'att_qw, att_qx, att_qy, att_qz')
     if len(set(header)) != len(header):
         raise CsvFormatError(f'{path}: duplicate column names in the header')
     if 't' not in header:
@@ -84,11 +88,23 @@ def read_csv(path):
                          else np.full(len(t), np.nan) for j in range(1, n_s + 1)])
     ref_vec = (np.column_stack([col['ref_x'], col['ref_y'], col['ref_z']])
                if 'ref_x' in col else None)
+    attitude = None
+    have_att = [c for c in ATT_COLUMNS if c in col]
+    if have_att:
+        if len(have_att) != 4:
+            raise CsvFormatError(f'{path}: attitude needs all four columns '
+                                 f'{", ".join(ATT_COLUMNS)}; missing '
+                                 f'{", ".join(c for c in ATT_COLUMNS if c not in col)}')
+        try:
+            attitude = check_quaternions(np.column_stack([col[c] for c in ATT_COLUMNS]),
+                                         rows=np.arange(2, 2 + len(t)))
+        except ValueError as exc:
+            raise CsvFormatError(f'{path}: {exc}') from None
     return Dataset(t=t, raw=raw, temp=temp, ref_total=col.get('ref_total'), ref_vec=ref_vec,
                    angle_deg=col.get('angle_deg'),
                    plane=np.array(planes) if plane_col is not None else None,
                    aux={h: col[h] for h in header if h.startswith('aux_')},
-                   meta={'source': path})
+                   meta={'source': path}, attitude=attitude)
 
 
 def _isfloat(s):
@@ -116,6 +132,9 @@ def format_csv(data, comment=None):
         cols['angle_deg'] = data.angle_deg
     for k, v in sorted(data.aux.items()):
         cols[k] = v
+    if data.attitude is not None:
+        for i, c in enumerate(ATT_COLUMNS):
+            cols[c] = data.attitude[:, i]
     buf = _io.StringIO()
     if comment:
         for line in str(comment).splitlines():
@@ -123,7 +142,7 @@ def format_csv(data, comment=None):
     names = list(cols) + (['plane'] if data.plane is not None else [])
     buf.write(','.join(names) + '\n')
     mat = np.column_stack([np.asarray(v, float) for v in cols.values()])
-    fmt = ['%.6f'] + ['%.4f'] * (mat.shape[1] - 1)
+    fmt = ['%.6f'] + ['%.9f' if c in ATT_COLUMNS else '%.4f' for c in list(cols)[1:]]
     body = _io.StringIO()
     np.savetxt(body, mat, fmt=fmt, delimiter=',')
     text = body.getvalue()

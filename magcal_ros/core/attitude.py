@@ -1,0 +1,124 @@
+"""Attitude of the array: unit quaternions (body -> world), their checks and rotation matrices.
+
+Contract: Hamilton convention, scalar first (qw, qx, qy, qz), the rotation that takes a vector
+from the array (body) frame into the world frame (NED or ENU, as the user states): v_w = R v_b.
+"""
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+#: largest allowed deviation of |q| from 1 (an IMU's quaternion is normalised to ~1e-6;
+#: a larger error is a unit or column mix-up, not rounding)
+UNIT_TOLERANCE = 1e-3
+#: largest angle (deg) between the world-frame field direction of one epoch and the median
+#: of all epochs; beyond it the attitude and the magnetometer disagree (a jump, a lag,
+#: another convention).  IMU attitude errors are a few degrees; calibration errors after the
+#: closed-form start below one.
+MAX_FIELD_DISAGREEMENT_DEG = 10.0
+
+COLUMNS = ('att_qw', 'att_qx', 'att_qy', 'att_qz')
+
+
+class AttitudeError(ValueError):
+    """Attitude input that cannot be used; the message names the row and column."""
+
+
+def _where(k, t=None, rows=None):
+    if rows is not None:
+        return f'data row {rows[k]}'
+    if t is not None:
+        return f'epoch {k} (t = {float(t[k]):.3f} s)'
+    return f'epoch {k}'
+
+
+def check_quaternions(q, t=None, rows=None, tol=UNIT_TOLERANCE):
+    """Validate (N, 4) quaternions (qw, qx, qy, qz); return them normalised, sign-continuous.
+
+    Parameters
+    ----------
+    q : numpy.ndarray
+        (N, 4) quaternions, dimensionless.
+    t : numpy.ndarray, optional
+        (N,) times in s, to name an epoch in an error.
+    rows : sequence, optional
+        (N,) file row numbers, to name a row in an error (takes precedence over ``t``).
+    tol : float
+        Allowed | |q| - 1 |.
+
+    Raises
+    ------
+    AttitudeError
+        A non-finite component (names the row and column) or a quaternion that is not unit.
+    """
+    q = np.asarray(q, float)
+    if q.ndim != 2 or q.shape[1] != 4:
+        raise AttitudeError(f'attitude must have shape (N, 4) (qw, qx, qy, qz); got {q.shape}')
+    bad = ~np.isfinite(q)
+    if bad.any():
+        k, c = np.argwhere(bad)[0]
+        raise AttitudeError(
+            f'attitude: {_where(k, t, rows)}: {COLUMNS[c]} is not a number ({q[k, c]!r}); '
+            f'{int(bad.any(axis=1).sum())} rows are affected: give all four attitude columns '
+            'in every row or drop those rows')
+    norm = np.linalg.norm(q, axis=1)
+    off = np.abs(norm - 1.0) > tol
+    if off.any():
+        k = int(np.flatnonzero(off)[0])
+        raise AttitudeError(
+            f'attitude: {_where(k, t, rows)}: |q| = {norm[k]:.6g}, not a unit quaternion '
+            f'({int(off.sum())} rows beyond |q| = 1 +- {tol:g}); att_qw..att_qz must be the '
+            'unit quaternion (Hamilton, scalar first) of the body-to-world rotation')
+    q = q / norm[:, None]
+    # q and -q are the same rotation: make the sequence continuous (no effect on R)
+    flip = np.concatenate([[False], np.einsum('ij,ij->i', q[1:], q[:-1]) < 0])
+    sign = np.where(np.logical_xor.accumulate(flip), -1.0, 1.0)
+    return q * sign[:, None]
+
+
+def quaternion_matrices(q):
+    """(N, 3, 3) body-to-world rotation matrices of (N, 4) unit quaternions (qw, qx, qy, qz)."""
+    return Rotation.from_quat(np.asarray(q, float), scalar_first=True).as_matrix()
+
+
+def check_against_field(rot, field_body, t=None, max_deg=MAX_FIELD_DISAGREEMENT_DEG):
+    """Refuse an attitude that disagrees with the measured field direction.
+
+    In a constant world field the world-frame direction R_k b_k of the (roughly calibrated)
+    body-frame field b_k is the same at every epoch; a jump of the attitude, a lag between
+    attitude and magnetometer, the inverse rotation (world to body) or a scalar-last
+    quaternion all make it wander.  A rotation about the field direction itself is invisible
+    to this check (the magnetometer cannot see it).
+
+    Parameters
+    ----------
+    rot : numpy.ndarray
+        (N, 3, 3) body-to-world rotations.
+    field_body : numpy.ndarray
+        (N, 3) field in the body frame, nT (any magnitude; only the direction is used).
+    t : numpy.ndarray, optional
+        (N,) times in s, to name an epoch.
+
+    Raises
+    ------
+    AttitudeError
+        Naming the first epoch beyond ``max_deg`` and how many epochs are.
+    """
+    u = np.asarray(field_body, float)
+    u = u / np.linalg.norm(u, axis=1, keepdims=True)
+    w = np.einsum('nij,nj->ni', rot, u)
+    ref = np.median(w, axis=0)
+    ref /= np.linalg.norm(ref)
+    ang = np.degrees(np.arccos(np.clip(w @ ref, -1.0, 1.0)))
+    bad = ang > max_deg
+    if not bad.any():
+        return ang
+    k = int(np.flatnonzero(bad)[0])
+    frac = bad.mean()
+    hint = ('most epochs disagree: check the convention (body-to-world, not world-to-body; '
+            'Hamilton, scalar first: att_qw is the scalar) and that the IMU axes are the '
+            "array's (sensor 1's) axes" if frac > 0.3 else
+            'a jump or a time lag of the attitude against the magnetometer: check the IMU '
+            'stream and its time stamps, or drop those rows')
+    raise AttitudeError(
+        f'attitude: {_where(k, t)}: the field seen by the array points {ang[k]:.1f} deg away '
+        f'from its median world direction ({int(bad.sum())} of {len(ang)} epochs beyond '
+        f'{max_deg:g} deg); {hint}')

@@ -1,0 +1,211 @@
+"""Site gradient (issue 13): a constant world-frame gradient seen through a known attitude.
+
+The data are generated here, independently of Model.forward: a world field and a world
+gradient are rotated into the body frame with scipy's Rotation, and per-sensor linear maps and
+offsets written out below are applied.
+"""
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from magcal_ros.core.attitude import AttitudeError, check_quaternions
+from magcal_ros.core.dataset import Dataset
+from magcal_ros.core.effects import SensorContext, SiteGradient
+from magcal_ros.core.model import DegenerateDataError, Model, fit
+from magcal_ros.io.calfile import calibration_from_doc, load_calibration, save_calibration
+from magcal_ros.io.csvio import CsvFormatError, read_csv, write_csv
+
+NOISE_NT = 3.0
+FIELD_NT = 50000.0
+H = 0.25                                        # half baseline of the cross, m
+POS = np.array([[H, 0, 0], [0, H, 0], [-H, 0, 0], [0, -H, 0]])
+# world-frame gradient, nT/m: symmetric, traceless, components up to 400 nT/m
+G_W = np.array([[300.0, -250.0, 400.0], [-250.0, -150.0, 200.0], [400.0, 200.0, -150.0]])
+# per-sensor linear maps (sensor 1 upper triangular: it defines the array frame) and offsets
+A_TRUE = [np.array([[1.02, 0.01, -0.015], [0.0, 0.98, 0.02], [0.0, 0.0, 1.01]]),
+          np.array([[0.99, 0.03, 0.01], [-0.02, 1.01, 0.015], [0.005, -0.01, 1.005]]),
+          np.array([[1.015, -0.01, 0.02], [0.012, 0.985, -0.02], [-0.015, 0.02, 0.995]]),
+          np.array([[0.98, 0.02, -0.01], [-0.015, 1.02, 0.01], [0.02, -0.005, 1.01]])]
+O_TRUE = np.array([[120.0, -80.0, 45.0], [-60.0, 150.0, -30.0], [35.0, 40.0, -110.0],
+                   [-95.0, -20.0, 70.0]])
+
+
+def make_data(n=3000, seed=1, g_w=G_W, attitude=True):
+    """(Dataset, rotations): raw_j = A_j R^T (B_w + G_w R r_j) + o_j + noise."""
+    rng = np.random.default_rng(seed)
+    rot = Rotation.random(n, random_state=rng)
+    b_w = np.array([21000.0, -2500.0, 45000.0])
+    b_w *= FIELD_NT / np.linalg.norm(b_w)            # |B| = F at the centre of the array
+    raw = np.empty((4, n, 3))
+    for j in range(4):
+        b_world_j = b_w + rot.apply(POS[j]) @ g_w.T   # field at sensor j, world frame
+        b_body_j = rot.inv().apply(b_world_j)
+        raw[j] = b_body_j @ A_TRUE[j].T + O_TRUE[j] + rng.normal(0, NOISE_NT, (n, 3))
+    q = rot.as_quat(scalar_first=True) if attitude else None
+    return Dataset(t=np.arange(n) * 0.01, raw=raw, attitude=q), rot
+
+
+def test_shift_hand_computed():
+    """R = 90 deg about z, only gxy = 100 nT/m: r_1 = (0.25, 0, 0) m lies along world y, the
+    world shift is G (0, 0.25, 0) = (25, 0, 0) nT, which is body (0, -25, 0) nT."""
+    eff = SiteGradient(sensor=0)
+    eff.set_positions(POS)
+    rz = Rotation.from_euler('z', 90, degrees=True).as_matrix()[None]
+    ctx = SensorContext(t=np.zeros(1), attitude=rz)
+    np.testing.assert_allclose(eff.shift([0, 100.0, 0, 0, 0], ctx, 1), [[0, -25.0, 0]],
+                               atol=1e-12)
+    # sensor 2 at body +y -> world -x; gxx = 200 nT/m gives world (-50, 0, 0) -> body (0, 50, 0)
+    np.testing.assert_allclose(eff.shift([200.0, 0, 0, 0, 0], ctx, 2), [[0, 50.0, 0]],
+                               atol=1e-12)
+
+
+@pytest.fixture(scope='module')
+def fitted():
+    data, rot = make_data()
+    return data, rot, fit(data, 'base,site_gradient', field_nt=FIELD_NT)
+
+
+def test_fit_recovers_gradient_and_calibration(fitted):
+    data, _, res = fitted
+    g = res.calibration.site_gradient()
+    assert g is not None
+    g_hat, se = g
+    # each component within 4 standard uncertainties; the uncertainty itself is small:
+    # about sigma / (baseline * sqrt(N)) ~ 3 / (0.5 * 55) = 0.1 nT/m
+    assert np.all(np.abs(g_hat - G_W) < 4 * se), (g_hat - G_W, se)
+    assert np.all(se < 0.5)
+    # offsets of every sensor within 4 standard uncertainties of the truth
+    for j in range(1, 5):
+        o = res.calibration.offset(j)
+        sl = [i for i, (s, e, _, _) in enumerate(res.model.param_info())
+              if s == j and e == 'offset']
+        assert np.all(np.abs(o - O_TRUE[j - 1]) < 4 * res.stderr[sl]), (j, o, O_TRUE[j - 1])
+        np.testing.assert_allclose(res.calibration.matrix(j), A_TRUE[j - 1], atol=2e-4)
+    # residuals at the noise: scalar RMS within 5 % of 3 nT, vector RMS of a difference of
+    # two sensors sqrt(2) x 3 nT within 5 %
+    for v in res.scalar_rms_nt.values():
+        assert v < 1.05 * NOISE_NT
+    for v in res.vector_rms_nt.values():
+        assert v < 1.05 * np.sqrt(2) * NOISE_NT
+
+
+def test_without_the_effect_the_fit_is_far_from_the_noise(fitted):
+    data, _, _ = fitted
+    res = fit(data, 'base', field_nt=FIELD_NT)
+    # the gradient shifts a sensor by up to |G| r ~ 170 nT: the base model cannot absorb it
+    assert min(res.scalar_rms_nt.values()) > 10 * NOISE_NT
+
+
+def test_gradient_needs_attitude():
+    data, _ = make_data(n=400, attitude=False)
+    with pytest.raises(DegenerateDataError, match='att_qw'):
+        fit(data, 'base,site_gradient', field_nt=FIELD_NT)
+
+
+def test_spec_is_array_wide():
+    m = Model.from_spec('base,site_gradient', 4)
+    assert m.spec()[-1] == 'site_gradient'
+    assert m.n_params == 4 * 12 - 3 + 5
+    assert [i[0] for i in m.param_info()[-5:]] == [0] * 5
+    with pytest.raises(ValueError, match='whole array'):
+        Model.from_spec('base,site_gradient@2', 4)
+
+
+def test_attitude_jump_is_refused():
+    data, rot = make_data(n=600)
+    q = data.attitude.copy()
+    # 20 epochs with the attitude of a quarter turn about an axis normal to the field
+    jump = Rotation.from_rotvec([np.pi / 2, 0, 0]) * rot[300:320]
+    q[300:320] = jump.as_quat(scalar_first=True)
+    bad = Dataset(t=data.t, raw=data.raw, attitude=q)
+    with pytest.raises(AttitudeError, match=r'epoch 30\d .*jump'):
+        fit(bad, 'base,site_gradient', field_nt=FIELD_NT)
+
+
+def test_attitude_convention_is_refused():
+    data, rot = make_data(n=600)
+    inverse = Dataset(t=data.t, raw=data.raw, attitude=rot.inv().as_quat(scalar_first=True))
+    with pytest.raises(AttitudeError, match='convention'):
+        fit(inverse, 'base,site_gradient', field_nt=FIELD_NT)
+
+
+def test_quaternion_checks():
+    q = np.tile([1.0, 0, 0, 0], (5, 1))
+    q[3] = [0.5, 0.5, 0.5, 0.6]
+    with pytest.raises(AttitudeError, match=r'epoch 3 .*not a unit quaternion'):
+        check_quaternions(q, t=np.arange(5.0))
+    q[3] = [np.nan, 0, 0, 0]
+    with pytest.raises(AttitudeError, match='epoch 3.*att_qw is not a number'):
+        check_quaternions(q, t=np.arange(5.0))
+    # a sign flip is the same rotation: accepted and made continuous
+    q[3] = [-1.0, 0, 0, 0]
+    assert np.all(check_quaternions(q)[:, 0] == 1.0)
+
+
+def test_csv_attitude_roundtrip_and_errors(tmp_path):
+    data, _ = make_data(n=50)
+    path = tmp_path / 'att.csv'
+    write_csv(path, data)
+    back = read_csv(path)
+    np.testing.assert_allclose(back.attitude, data.attitude, atol=2e-9)
+    lines = path.read_text().splitlines()
+    header = lines[0].split(',')
+    # NaN in one attitude cell: the row and the column are named
+    row = lines[5].split(',')
+    row[header.index('att_qy')] = 'nan'
+    bad = tmp_path / 'nan.csv'
+    bad.write_text('\n'.join(lines[:5] + [','.join(row)] + lines[6:]) + '\n')
+    with pytest.raises(CsvFormatError, match='data row 6: att_qy is not a number'):
+        read_csv(bad)
+    # a quaternion that is not unit
+    row = lines[3].split(',')
+    row[header.index('att_qw')] = str(2 * float(row[header.index('att_qw')]) + 0.5)
+    bad.write_text('\n'.join(lines[:3] + [','.join(row)] + lines[4:]) + '\n')
+    with pytest.raises(CsvFormatError, match='data row 4: .*not a unit quaternion'):
+        read_csv(bad)
+    # three of the four columns
+    k = header.index('att_qz')
+    cut = [','.join(c for i, c in enumerate(ln.split(',')) if i != k) for ln in lines]
+    bad.write_text('\n'.join(cut) + '\n')
+    with pytest.raises(CsvFormatError, match='missing att_qz'):
+        read_csv(bad)
+
+
+def test_calibration_file_keeps_gradient(fitted, tmp_path):
+    from magcal_ros.io.calfile import calibration_to_doc
+    _, _, res = fitted
+    doc = calibration_to_doc(res.calibration)
+    assert 'site_gradient_nt_per_m' in doc and list(doc)[-1] == 'provenance'
+    path = tmp_path / 'cal.yaml'
+    save_calibration(path, doc)
+    cal, _ = load_calibration(path)
+    g0, se0 = res.calibration.site_gradient()
+    g1, se1 = cal.site_gradient()
+    np.testing.assert_allclose(g1, g0, rtol=1e-12)
+    np.testing.assert_allclose(se1, se0, rtol=1e-9)
+    # the correction itself ignores the gradient: the field at each sensor
+    raw = np.array([[20000.0, 3000.0, 40000.0]])
+    np.testing.assert_allclose(cal.correct(2, raw), res.calibration.correct(2, raw))
+    assert calibration_from_doc(doc).model.spec() == res.model.spec()
+
+
+def test_cli_fit_reports_gradient(tmp_path):
+    data, _ = make_data(n=2000, seed=4)
+    path = tmp_path / 'site.csv'
+    write_csv(path, data)
+    p = subprocess.run([sys.executable, '-m', 'magcal_ros.cli', 'fit', str(path), '--model',
+                        'base,site_gradient', '--field-nt', '50000', '--json'],
+                       capture_output=True, text=True, timeout=240)
+    assert p.returncode == 0, p.stderr
+    doc = json.loads(p.stdout)
+    g = np.array(doc['site_gradient_nt_per_m'])
+    se = np.array(doc['site_gradient_stderr_nt_per_m'])
+    assert g.shape == (3, 3) and np.all(se > 0)
+    assert np.all(np.abs(g - G_W) < 4 * se), (g - G_W, se)
+    # the tensor after correction, about the modelled site gradient, is at its noise floor
+    floor = np.array(doc['tensor_floor_nt_per_m'])
+    assert np.all(np.array(doc['tensor_rms_nt_per_m']) < 1.1 * floor)
