@@ -199,7 +199,7 @@ def run_seed(name, scn, seed, n_holdout):
            'sigma': sigma, 'tensor_floor': floor_t}
     cov = crb_covariance(data, model, truth_p, f, sigma)
     res['crb'] = np.diag(cov)
-    prior_list = mdl._priors_for(model, mdl.DEFAULT_PRIORS)
+    prior_list = mdl._priors_for(model, {}, constrained=True)
     if 'ml_constrained' in scn['methods']:
         res['crb_prior'] = np.diag(crb_covariance(data, model, truth_p, f, sigma, prior_list))
     for method in scn['methods']:

@@ -34,6 +34,9 @@ class WheelInterference(Effect):
     kind = 'additive'
     param_names = ('ax', 'ay', 'az', 'bx', 'by', 'bz')
     units = ('nT',) * 6
+    #: the driving signals contribution() reads: the sample time (the live corrector
+    #: subscribes to, and waits for, exactly the signals listed here)
+    signals = ('time',)
     #: rotation rate of the part, Hz (a subclass or the calibration file's refs may change it)
     frequency_hz = 0.25
 

@@ -173,7 +173,7 @@ def noise_floor_from_data(data, result=None):
 def compact_spec(model):
     """Model spec with paper 004's four effects shown as 'base' when all are present."""
     spec = list(model.spec())
-    need = [b for b in fx.BASE if b != 'misalignment' or model.n_sensors > 1]
+    need = [b for b in fx.BASE if model.n_sensors > 1 or fx.make_effect(b, 1).applies]
     if all(b in spec for b in need):
         spec = ['base'] + [t for t in spec if t not in fx.BASE]
     return spec
@@ -322,9 +322,9 @@ def candidate_tokens(model, data):
     for name in names:
         free = []
         for j in range(1, s + 1):
-            if name == 'misalignment' and j == 1:
-                continue
             eff = fx.make_effect(name, j)
+            if not eff.applies:
+                continue
             present = {e.label for e in model.effects[j - 1]} | {
                 e.name for e in model.effects[j - 1]}
             if eff.label in present or _nested_clash(eff.name, present):

@@ -12,7 +12,12 @@ which add in the raw sensor frame.  This is the composition rule of STYLE.md: li
 compose, offsets and driven effects add.
 
 An effect is a small object with named parameters (each with a unit) and either a
-``matrix(p)`` (linear effects) or a ``contribution(p, ctx, lin)`` (additive effects).  Users
+``matrix(p)`` (linear effects) or a ``contribution(p, ctx, lin)`` (additive effects).  It also
+declares everything the rest of the code asks about it (the live signals it reads, its prior
+in the constrained mode, its place in the product of linear effects, whether it carries the
+rotation into the array frame, how it takes its share of a closed-form linear map): the
+model, the fit, the diagnosis and the live corrector derive their behaviour from these
+declarations and never from effect names, so a new effect is one class in one file.  Users
 add their own effects by subclassing :class:`Effect` and calling :func:`register_effect`
 (see ``docs/plugins.md``).
 """
@@ -21,9 +26,66 @@ import importlib
 import math
 
 import numpy as np
+from scipy.linalg import rq
 
 #: Full-scale field used to normalise the nonlinearity polynomial (nT).
 NONLINEARITY_FULL_SCALE_NT = 50000.0
+
+#: Driving signals an effect may declare in :attr:`Effect.signals`, and the
+#: :class:`SensorContext` attribute that holds each; auxiliary channels are named by their
+#: column, ``aux_<name>`` (held in ``SensorContext.aux``).
+SIGNALS = {'time': 't', 'temperature': 'temp', 'field_rate': 'raw_rate',
+           'attitude': 'attitude'}
+
+
+@dataclass(frozen=True)
+class LinearParts:
+    """A closed-form linear map and offset of one sensor, decomposed (paper 004 eq. 2-3).
+
+    ``a = u @ q`` (RQ decomposition) with ``u`` upper triangular with a positive diagonal
+    (scale and non-orthogonality) and ``q`` a proper rotation (misalignment).
+
+    Attributes
+    ----------
+    a, u, q : numpy.ndarray
+        (3, 3) dimensionless.
+    scale : numpy.ndarray
+        (3,) row norms of ``u`` (kx, ky, kz), dimensionless.
+    nonorth : tuple of float
+        (psi, varphi, theta) of C_NO, rad.
+    offset : numpy.ndarray
+        (3,) nT.
+    """
+
+    a: np.ndarray
+    u: np.ndarray
+    q: np.ndarray
+    scale: np.ndarray
+    nonorth: tuple
+    offset: np.ndarray
+
+
+def decompose_linear(a, offset):
+    """:class:`LinearParts` of the (3, 3) map ``a`` and the (3,) nT ``offset``."""
+    a = np.asarray(a, float)
+    u, q = rq_positive(a)
+    k, psi, varphi, theta = upper_to_scale_nonorth(u)
+    return LinearParts(a=a, u=u, q=q, scale=k, nonorth=(psi, varphi, theta),
+                       offset=np.asarray(offset, float))
+
+
+def rq_positive(a):
+    """RQ decomposition a = u @ q of a (3, 3) matrix with det(a) > 0.
+
+    ``u`` (3, 3) upper triangular with a positive diagonal, ``q`` (3, 3) a proper rotation
+    (det +1): the split of paper 004 eq. 2-3 (intrinsic map times misalignment).
+    """
+    u, q = rq(np.asarray(a, float))
+    sign = np.sign(np.diag(u))
+    u, q = u * sign[None, :], sign[:, None] * q
+    if np.linalg.det(q) < 0:
+        u, q = -u, -q
+    return u, q
 
 
 @dataclass
@@ -59,6 +121,16 @@ class SensorContext:
     index: np.ndarray | None = None
     attitude: np.ndarray | None = None
 
+    def has(self, signal):
+        """True if the driving signal ``signal`` (see :data:`SIGNALS`) is present."""
+        if signal.startswith('aux_'):
+            return signal in self.aux
+        if signal not in SIGNALS:
+            raise ValueError(f'unknown signal {signal!r}: known signals are '
+                             f'{", ".join(SIGNALS)} and aux_<column>')
+        value = getattr(self, SIGNALS[signal])
+        return value is not None and bool(np.isfinite(value).any())
+
     def subset(self, idx):
         """Return the context restricted to samples ``idx`` (remembering the whole record)."""
         pos = np.arange(len(self.t))[idx]
@@ -86,6 +158,9 @@ class Effect:
     reference value of a driving signal (mean temperature, start time, mean current) compute it
     in :meth:`prepare` from the calibration data and store it in ``self.refs`` so that live
     correction uses the same reference.
+
+    The class attributes below are the effect's declarations; :class:`~magcal_ros.core.model.Model`,
+    the fit, the diagnosis and the live corrector read them instead of recognising names.
     """
 
     name = 'effect'
@@ -99,6 +174,30 @@ class Effect:
     #: the arguments of a token ``name(a, b)`` (a step time, a frequency, a channel), as
     #: canonical strings; () for an effect without arguments
     args = ()
+    #: driving signals ``contribution`` reads from the :class:`SensorContext`: keys of
+    #: :data:`SIGNALS` ('time', 'temperature', 'field_rate') or an auxiliary column
+    #: 'aux_<name>'.  The live corrector subscribes and waits for exactly these.
+    signals = ()
+    #: True for an additive effect whose contribution is a constant (N, 3) vector (the
+    #: offset): live correction folds it into ``A^-1 (raw - offset)``.  Any other additive
+    #: effect is *driven* and evaluated per sample.
+    constant = False
+    #: prior of the constrained mode (partial attitude coverage) on every parameter:
+    #: (mean, or None for :meth:`default_params`, standard deviation in the parameters' unit);
+    #: None: no prior
+    prior = None
+    #: place of a linear effect in the product A = A_1 A_2 ... (paper 004 eq. 2-3): effects
+    #: are multiplied in increasing order (the smallest is left-most, next to the output)
+    linear_order = 0
+    #: True if the effect holds the rotation of the sensor's axes into the array frame
+    #: (sensor 1's axes): on a sensor j > 1 it ties the sensors to one field per epoch
+    frame_rotation = False
+    #: False if the effect does not exist on sensor 1 because sensor 1 defines the array
+    #: frame (the misalignment); the model leaves it out there
+    on_sensor1 = True
+    #: 'sensor': one instance and parameter set per sensor; 'array': one for the whole array
+    #: (the site gradient)
+    scope = 'sensor'
 
     def __init__(self, sensor=1, refs=None):
         self.sensor = int(sensor)
@@ -125,9 +224,22 @@ class Effect:
         """Model-spec label of this effect, e.g. ``temperature`` or ``step(300)``."""
         return f'{self.name}({",".join(self.args)})' if self.args else self.name
 
+    @property
+    def applies(self):
+        """False if this effect does not exist on its sensor (see :attr:`on_sensor1`)."""
+        return self.on_sensor1 or self.sensor != 1
+
     def default_params(self):
         """Parameter values of an ideal sensor (the effect switched off), shape (n_params,)."""
         return np.zeros(self.n_params)
+
+    def params_from_linear(self, parts):
+        """This effect's share of a closed-form linear map and offset (closed-form start).
+
+        ``parts`` is a :class:`LinearParts`; return the (n_params,) parameters, or None when
+        the effect has no share (it then starts at :meth:`default_params`).
+        """
+        return None
 
     def prepare(self, ctx):
         """Compute reference values from calibration data (default: none)."""
@@ -225,12 +337,17 @@ class Scale(Effect):
     param_names = ('kx', 'ky', 'kz')
     units = ('1', '1', '1')
     excludes = ('soft_iron',)
+    prior = (1.0, 0.02)
+    linear_order = 0
 
     def default_params(self):
         return np.ones(3)
 
     def matrix(self, p):
         return np.diag(p)
+
+    def params_from_linear(self, parts):
+        return parts.scale
 
 
 class NonOrthogonality(Effect):
@@ -241,9 +358,14 @@ class NonOrthogonality(Effect):
     param_names = ('psi', 'varphi', 'theta')
     units = ('rad', 'rad', 'rad')
     excludes = ('soft_iron',)
+    prior = (0.0, 0.02)
+    linear_order = 1
 
     def matrix(self, p):
         return nonorthogonality_matrix(*p)
+
+    def params_from_linear(self, parts):
+        return np.array(parts.nonorth)
 
 
 class Misalignment(Effect):
@@ -257,9 +379,16 @@ class Misalignment(Effect):
     param_names = ('alpha', 'beta', 'gamma')
     units = ('rad', 'rad', 'rad')
     excludes = ('soft_iron',)
+    prior = (0.0, 0.05)
+    linear_order = 3
+    frame_rotation = True
+    on_sensor1 = False
 
     def matrix(self, p):
         return misalignment_matrix(*p)
+
+    def params_from_linear(self, parts):
+        return np.array(misalignment_angles(parts.q))
 
 
 class SoftIron(Effect):
@@ -272,6 +401,9 @@ class SoftIron(Effect):
     name = 'soft_iron'
     kind = 'linear'
     excludes = ('scale', 'nonorthogonality', 'misalignment')
+    prior = (None, 0.02)
+    linear_order = 2
+    frame_rotation = True
     _full = ('k11', 'k12', 'k13', 'k21', 'k22', 'k23', 'k31', 'k32', 'k33')
     _upper = ('k11', 'k12', 'k13', 'k22', 'k23', 'k33')
 
@@ -295,6 +427,9 @@ class SoftIron(Effect):
             return m
         return np.asarray(p).reshape(3, 3)
 
+    def params_from_linear(self, parts):
+        return parts.a[np.triu_indices(3)] if self.sensor == 1 else parts.a.ravel()
+
 
 # -- additive effects -----------------------------------------------------------------------
 
@@ -304,9 +439,13 @@ class Offset(Effect):
     name = 'offset'
     param_names = ('bx', 'by', 'bz')
     units = ('nT', 'nT', 'nT')
+    constant = True
 
     def contribution(self, p, ctx, lin):
         return np.broadcast_to(p, lin.shape)
+
+    def params_from_linear(self, parts):
+        return parts.offset
 
 
 class Temperature(Effect):
@@ -315,6 +454,7 @@ class Temperature(Effect):
     name = 'temperature'
     param_names = ('cx', 'cy', 'cz', 'sx', 'sy', 'sz')
     units = ('nT/degC',) * 3 + ('1/degC',) * 3
+    signals = ('temperature',)
     min_span_c = 1.0
 
     def prepare(self, ctx):
@@ -347,6 +487,7 @@ class Drift(Effect):
     name = 'drift'
     param_names = ('dx', 'dy', 'dz')
     units = ('nT/s',) * 3
+    signals = ('time',)
     min_span_s = 1.0
 
     def prepare(self, ctx):
@@ -412,6 +553,10 @@ class Aux(Effect):
     param_names = ('vx', 'vy', 'vz')
     units = ('nT/unit',) * 3
 
+    @property
+    def signals(self):
+        return (self.channel,)
+
     def prepare(self, ctx):
         if self.channel in ctx.aux:
             self.refs.setdefault('a0', float(np.nanmean(ctx.aux[self.channel])))
@@ -442,6 +587,7 @@ class FieldRate(Effect):
     name = 'field_rate'
     param_names = ('tau_x', 'tau_y', 'tau_z')
     units = ('s', 's', 's')
+    signals = ('field_rate',)
 
     def check(self, ctx):
         if ctx.raw_rate is None:
@@ -507,6 +653,7 @@ class Step(Effect):
 
     name = 'step'
     usage = 'step(<t_s>[,<t_s>...])'
+    signals = ('time',)
 
     @classmethod
     def from_args(cls, args, sensor=1):
@@ -549,6 +696,7 @@ class Periodic(Effect):
 
     name = 'periodic'
     usage = 'periodic(<f_hz>)'
+    signals = ('time',)
     param_names = ('ax', 'ay', 'az', 'bx', 'by', 'bz')
     units = ('nT',) * 6
 
@@ -635,6 +783,10 @@ class Lag(Effect):
         return eff
 
     @property
+    def signals(self):
+        return ('time', self.channel)
+
+    @property
     def param_names(self):
         return ('cx', 'cy', 'cz', 'tau')
 
@@ -697,6 +849,10 @@ class AuxPoly(Effect):
         return eff
 
     @property
+    def signals(self):
+        return (self.channel,)
+
+    @property
     def param_names(self):
         return tuple(f'v{k}{ax}' for k in range(1, self.degree + 1) for ax in 'xyz')
 
@@ -751,6 +907,7 @@ class SiteGradient(Effect):
     kind = 'array'
     #: one set of parameters for the whole array, not one per sensor
     scope = 'array'
+    signals = ('attitude',)
     param_names = ('gxx', 'gxy', 'gxz', 'gyy', 'gyz')
     units = ('nT/m',) * 5
 
@@ -804,10 +961,20 @@ def register_effect(cls, name=None):
     return cls
 
 
+def unregister_effect(name):
+    """Remove the effect registered under ``name`` (tests, interactive sessions)."""
+    if name in BUILTIN_EFFECTS:
+        raise ValueError(f'{name!r} is a built-in effect and cannot be unregistered')
+    _REGISTRY.pop(name, None)
+
+
 for _cls in (Scale, NonOrthogonality, Misalignment, SoftIron, Offset, Temperature, Drift,
              QuadraticDrift, Nonlinearity, FieldRate, Step, Periodic, Lag, AuxPoly,
              SiteGradient):
     register_effect(_cls)
+
+#: names of the effects that ship with the library
+BUILTIN_EFFECTS = tuple(_REGISTRY)
 
 #: the model of paper 004 (offset, scale, nonorthogonality, misalignment)
 BASE = ('offset', 'scale', 'nonorthogonality', 'misalignment')

@@ -23,14 +23,10 @@ from dataclasses import dataclass, field
 import hashlib
 
 import numpy as np
-from scipy.linalg import rq
 from scipy.optimize import least_squares
 
 from magcal_ros.core import effects as fx
 from magcal_ros.core.ellipsoid import fit_ellipsoid, procrustes_rotation
-
-LINEAR_ORDER = ('scale', 'nonorthogonality', 'soft_iron', 'misalignment')
-
 
 class DegenerateDataError(ValueError):
     """The data cannot determine the model: the message names what is missing."""
@@ -101,7 +97,9 @@ class Model:
 
         ``base`` expands to offset, scale, nonorthogonality, misalignment; ``name@j``
         restricts an effect to sensor j; ``aux:<column>`` couples an auxiliary channel.
-        Misalignment on sensor 1 is dropped: sensor 1 defines the array frame.
+        Effects that do not exist on sensor 1 (``Effect.on_sensor1`` False: the
+        misalignment, sensor 1 defines the array frame) are dropped there; linear effects
+        are multiplied in the order of their ``Effect.linear_order``.
         """
         tokens = spec if isinstance(spec, (list, tuple)) else fx.split_spec(spec)
         tokens = [t.strip() for t in tokens if t.strip()]
@@ -135,40 +133,34 @@ class Model:
                 sensors = range(1, n_sensors + 1)
             for nm in names:
                 for j in sensors:
-                    if nm == 'misalignment' and j == 1:
-                        continue
                     eff = fx.make_effect(nm, j)
-                    if eff.label in seen[j - 1]:
+                    if not eff.applies or eff.label in seen[j - 1]:
                         continue
-                    clash = [o.label for o in per_sensor[j - 1]
-                             if o.label in eff.excludes or eff.label in o.excludes]
+                    clash = [o for o in per_sensor[j - 1]
+                             if {o.name, o.label} & set(eff.excludes)
+                             or {eff.name, eff.label} & set(o.excludes)]
                     if clash:
-                        why = eff.describe() if eff.name != 'soft_iron' else ''
-                        why = fx.SoftIron.__doc__.splitlines()[0] if 'soft_iron' in (
-                            eff.name, clash[0]) else why
                         raise ValueError(
-                            f'{eff.label} and {clash[0]} on sensor {j} describe the same '
-                            f'degrees of freedom: {why}; use one or the other')
+                            f'{eff.label} and {clash[0].label} on sensor {j} describe the same '
+                            f'degrees of freedom ({eff.label}: {eff.describe()}; '
+                            f'{clash[0].label}: {clash[0].describe()}); use one or the other')
                     seen[j - 1].add(eff.label)
                     per_sensor[j - 1].append(eff)
         for row in per_sensor:
-            row.sort(key=lambda e: (e.kind != 'linear',
-                                    LINEAR_ORDER.index(e.name) if e.name in LINEAR_ORDER
-                                    else 0))
+            row.sort(key=lambda e: (e.kind != 'linear', e.linear_order))
         return cls(per_sensor, array_effects)
 
     def spec(self):
         """Canonical list of effect tokens (``name`` or ``name@j``)."""
         out = []
         labels = [[e.label for e in row] for row in self.effects]
-        all_labels = []
-        for row in labels:
-            for lab in row:
-                if lab not in all_labels:
-                    all_labels.append(lab)
-        for lab in all_labels:
+        first = {}                            # label -> one instance
+        for row in self.effects:
+            for eff in row:
+                first.setdefault(eff.label, eff)
+        for lab, eff in first.items():
             have = [j + 1 for j, row in enumerate(labels) if lab in row]
-            expected = list(range(2 if lab == 'misalignment' else 1, self.n_sensors + 1))
+            expected = list(range(1 if eff.on_sensor1 else 2, self.n_sensors + 1))
             if have == expected:
                 out.append(lab)
             else:
@@ -183,12 +175,16 @@ class Model:
         """True if sensor j has an effect with this label or name."""
         return any(e.label == name or e.name == name for e in self.effects[j - 1])
 
+    def frame_rotation(self, j):
+        """True if sensor j has an effect holding its rotation into the array frame."""
+        return any(e.frame_rotation for e in self.effects[j - 1])
+
     @property
     def joint(self):
-        """True if sensors are tied to one field per epoch (misalignment/soft iron on j > 1)."""
+        """True if sensors are tied to one field per epoch (an array-wide effect, or a frame
+        rotation on j > 1: misalignment, soft iron)."""
         return self.n_sensors > 1 and (bool(self.array_effects) or any(
-            self.has(j, 'misalignment') or self.has(j, 'soft_iron')
-            for j in range(2, self.n_sensors + 1)))
+            self.frame_rotation(j) for j in range(2, self.n_sensors + 1)))
 
     def default_params(self):
         """(n_params,) parameters of ideal sensors."""
@@ -287,29 +283,16 @@ class Model:
         """Set sensor j's linear and offset parameters from A (3, 3) and o (3,) nT.
 
         A is decomposed as A = U Q (RQ decomposition, U upper triangular with positive
-        diagonal): U gives scale and nonorthogonality, Q the misalignment (paper 004 eq. 2-3).
-        Effects the model lacks are dropped (their part of A is not representable).
+        diagonal): U gives scale and nonorthogonality, Q the misalignment (paper 004 eq. 2-3);
+        each effect takes its share (``Effect.params_from_linear``).  Effects the model lacks
+        are dropped (their part of A is not representable).
         """
         p = self.default_params() if p is None else p.copy()
-        u, q = rq(a)
-        sign = np.sign(np.diag(u))
-        u = u * sign[None, :]
-        q = sign[:, None] * q
-        if np.linalg.det(q) < 0:
-            q = -q
-            u = -u
-        k, psi, varphi, theta = fx.upper_to_scale_nonorth(u)
+        parts = fx.decompose_linear(a, o)
         for eff, sl in zip(self.effects[j - 1], self.slices[j - 1]):
-            if eff.name == 'scale':
-                p[sl] = k
-            elif eff.name == 'nonorthogonality':
-                p[sl] = (psi, varphi, theta)
-            elif eff.name == 'misalignment':
-                p[sl] = fx.misalignment_angles(q)
-            elif eff.name == 'soft_iron':
-                p[sl] = a[np.triu_indices(3)] if j == 1 else a.ravel()
-            elif eff.name == 'offset':
-                p[sl] = o
+            share = eff.params_from_linear(parts)
+            if share is not None:
+                p[sl] = share
         return p
 
 
@@ -467,22 +450,21 @@ class Calibration:
         return self._a_inv[j - 1].copy()
 
     def offset(self, j):
-        """(3,) nT constant offset of sensor j (zero if the model has none)."""
+        """(3,) nT constant offset of sensor j: the sum of its constant additive effects
+        (``Effect.constant``, the offset); zero if the model has none."""
+        out = np.zeros(3)
+        ctx = fx.SensorContext(t=np.zeros(1))
         for eff, sl in zip(self.model.effects[j - 1], self.model.slices[j - 1]):
-            if eff.name == 'offset':
-                return self.params[sl].copy()
-        return np.zeros(3)
+            if eff.kind != 'linear' and eff.constant:
+                out = out + eff.contribution(self.params[sl], ctx, np.zeros((1, 3)))[0]
+        return out
 
     def intrinsic_and_rotation(self, j):
         """(C^-1 (3, 3) upper triangular, R (3, 3)) with A_j^-1 = R C^-1 (paper 004 eq. 5, 14).
 
         R takes sensor j's corrected field into sensor 1's frame (identity for sensor 1).
         """
-        u, q = rq(self.matrix(j))
-        sign = np.sign(np.diag(u))
-        u, q = u * sign[None, :], sign[:, None] * q
-        if np.linalg.det(q) < 0:
-            u, q = -u, -q
+        u, q = fx.rq_positive(self.matrix(j))
         return np.linalg.inv(u), q.T
 
     def site_gradient(self):
@@ -514,9 +496,17 @@ class Calibration:
         return self.model.array_shift(j, self.params, ctx)
 
     def driven_effects(self, j):
-        """Labels of the effects of sensor j that need live signals (temperature, aux, ...)."""
+        """Labels of the additive effects of sensor j that are not constant (they are
+        evaluated per sample, from the signals they declare: temperature, aux, ...)."""
         return [e.label for e in self.model.effects[j - 1]
-                if e.kind != 'linear' and e.name != 'offset']
+                if e.kind != 'linear' and not e.constant]
+
+    def signals(self, j):
+        """Driving signals the effects of sensor j read (``Effect.signals``), in order."""
+        out = []
+        for eff in self.model.effects[j - 1]:
+            out.extend(s for s in eff.signals if s not in out)
+        return out
 
     def correct(self, j, raw, ctx=None):
         """Corrected field of sensor j in the array frame.
@@ -714,19 +704,20 @@ class _Problem:
         return jac
 
 
-#: default priors of the constrained mode: (effect name, mean, standard deviation)
-DEFAULT_PRIORS = {'scale': (1.0, 0.02), 'nonorthogonality': (0.0, 0.02),
-                  'misalignment': (0.0, 0.05), 'soft_iron': (None, 0.02)}
+def _priors_for(model, spec, constrained=False):
+    """Prior list [(index, mean, sd)] from a {effect name or label: (mean, sd)} spec.
 
-
-def _priors_for(model, spec):
-    """Prior list [(index, mean, sd)] from a {effect name: (mean, sd)} spec."""
+    With ``constrained`` every effect that declares an ``Effect.prior`` gets it, unless
+    ``spec`` overrides it; a mean of None is the effect's default parameter value.
+    """
     out = []
     default = model.default_params()
     for j, row in enumerate(model.effects):
         for eff, sl in zip(row, model.slices[j]):
-            if eff.name in spec:
-                mean, sd = spec[eff.name]
+            prior = spec.get(eff.label, spec.get(eff.name,
+                                                 eff.prior if constrained else None))
+            if prior is not None:
+                mean, sd = prior
                 for i in range(sl.start, sl.stop):
                     out.append((i, default[i] if mean is None else mean, sd))
     return out
@@ -768,7 +759,7 @@ def initial_params(raw, field_nt, model, constrained=False):
     for j in range(1, s + 1):
         c_inv, o = mats[j - 1]
         rot = np.eye(3)
-        if j > 1 and (model.has(j, 'misalignment') or model.has(j, 'soft_iron')):
+        if j > 1 and model.frame_rotation(j):
             rot = procrustes_rotation(corrected[0], corrected[j - 1])       # eq. 14
         a = np.linalg.inv(c_inv) @ rot.T
         p = model.params_from_linear(j, a, o, p)
@@ -920,10 +911,11 @@ def _fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=F
     robust : bool
         Use the soft-L1 loss (outlier spikes); ``f_scale`` is in units of sigma.
     constrained : bool
-        Constrained mode for partial attitude coverage: linear effects get the priors of
-        :data:`DEFAULT_PRIORS` (scale 1 +- 0.02, angles 0 +- 0.02 rad) and the start is A = I.
+        Constrained mode for partial attitude coverage: effects get the priors they declare
+        (``Effect.prior``: scale 1 +- 0.02, non-orthogonality 0 +- 0.02 rad, misalignment
+        0 +- 0.05 rad, soft iron identity +- 0.02) and the start is A = I.
     priors : dict, optional
-        {effect name: (mean or None for default, sd)} overriding the priors.
+        {effect name or label: (mean or None for default, sd)} overriding the priors.
     sigma_nt : float or numpy.ndarray, optional
         Fixed per-sensor noise (nT); default: estimated from the residuals.
     on_degenerate : {'raise', 'flag'}
@@ -1002,9 +994,7 @@ def _fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=F
         check_against_field(contexts_all[0].attitude,
                             model.correct(1, p0, raw_all[0], contexts_all[0]), data.t)
 
-    prior_spec = dict(DEFAULT_PRIORS) if constrained else {}
-    prior_spec.update(priors or {})
-    prior_list = _priors_for(model, prior_spec)
+    prior_list = _priors_for(model, priors or {}, constrained)
 
     groups = ([list(range(1, model.n_sensors + 1))] if model.joint
               else [[j] for j in range(1, model.n_sensors + 1)])

@@ -3,8 +3,8 @@
 Topics (relative to the node namespace, default ``/magcal``; DESIGN.md contract 3):
 
 - subscribes ``sensor{j}/raw`` (sensor_msgs/MagneticField, T), ``sensor{j}/temperature``
-  (sensor_msgs/Temperature; only while the calibration has a temperature effect) and one
-  std_msgs/Float64 topic per name in ``aux_topics`` (the signal of effect
+  (sensor_msgs/Temperature; only while an effect of the calibration reads the temperature)
+  and one std_msgs/Float64 topic per name in ``aux_topics`` (the signal of effect
   ``aux:aux_<name>``, latest value), all best effort (:data:`SENSOR_QOS`), and
   ``calibration/result`` (std_msgs/String YAML, reliable + transient local) for new
   calibrations without a restart;
@@ -25,7 +25,7 @@ import os
 import sys
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from magcal_ros.core.effects import SensorContext
+from magcal_ros.core.effects import SensorContext, SIGNALS
 from magcal_ros.core.tensor import tensor_operator
 from magcal_ros.io.calfile import CalibrationFileError, load_calibration, parse_calibration
 from magcal_ros.ros import params as prm
@@ -56,14 +56,9 @@ class _SensorCorrection:
         self.cal = cal
         self.j = j
         self.a_inv = cal.correction_matrix(j)
-        self.needs = set()
-        for eff in cal.model.effects[j - 1]:
-            if eff.name == 'temperature':
-                self.needs.add('temperature')
-            elif eff.name == 'aux':
-                self.needs.add(eff.channel)
-            elif eff.name == 'field_rate':
-                self.needs.add('field_rate')
+        # the signals the calibration's effects declare (Effect.signals); the stamp ('time')
+        # is always there
+        self.needs = set(cal.signals(j)) - {'time'}
         self.driven = bool(cal.driven_effects(j))
         self.offset = cal.offset(j)
         sigma = float(cal.sigma_nt[j - 1])
@@ -79,21 +74,27 @@ class _SensorCorrection:
         """Corrected field (3,) nT in the array frame; raises MissingSignal."""
         if not self.driven:
             return self.a_inv @ (raw - self.offset)          # the common case: one 3x3 product
-        if 'temperature' in self.needs and not np.isfinite(temp):
-            raise MissingSignal(f'sensor {self.j}: waiting for sensor{self.j}/temperature '
-                                '(the calibration has a temperature effect)')
-        if 'field_rate' in self.needs and rate is None:
-            raise MissingSignal(f'sensor {self.j}: field rate needs two consecutive samples')
-        for name in self.needs - {'temperature', 'field_rate'}:
-            if name not in aux:
-                raise MissingSignal(
-                    f'sensor {self.j}: waiting for auxiliary channel {name} (topic '
-                    f'{name[4:]} named in aux_topics)')
         ctx = SensorContext(
             t=np.array([t]), temp=np.array([temp]) if np.isfinite(temp) else None,
             aux={k: np.array([v]) for k, v in aux.items()},
             raw_rate=None if rate is None else rate[None])
+        for name in sorted(self.needs):
+            if not (name in SIGNALS or name.startswith('aux_')) or not ctx.has(name):
+                raise MissingSignal(self._waiting(name))
         return self.cal.correct(self.j, raw, ctx)
+
+    def _waiting(self, name):
+        """Why the correction waits for the signal ``name``."""
+        if name == 'temperature':
+            return (f'sensor {self.j}: waiting for sensor{self.j}/temperature (the '
+                    'calibration has an effect that reads the temperature)')
+        if name == 'field_rate':
+            return f'sensor {self.j}: field rate needs two consecutive samples'
+        if name.startswith('aux_'):
+            return (f'sensor {self.j}: waiting for auxiliary channel {name} (topic '
+                    f'{name[4:]} named in aux_topics)')
+        return (f'sensor {self.j}: the calibration needs the signal {name!r}, which this node '
+                'does not receive')
 
 
 class LiveCorrection:
