@@ -11,6 +11,7 @@ import numpy as np
 
 from magcal_ros.core.diagnose import jsonable
 from magcal_ros.core.model import DegenerateDataError
+from magcal_ros.core.notes import format_note
 
 EXIT_OK, EXIT_FAIL, EXIT_BAD_INPUT = 0, 1, 2
 
@@ -132,23 +133,32 @@ def cmd_fit(args):
                     field_reference=fref, robust=args.robust, constrained=args.constrained,
                     on_degenerate='flag' if args.flag_degenerate else 'raise')
     out = args.output
-    if out:
+    refused = not run.result.success and not args.force
+    if out and not refused:
         save_calibration(out, run.doc)
     s = dict(run.summary)
-    s['output'] = out
+    s['output'] = None if refused else out
     s['field_reference'] = fref
     if args.json:
         print_json(s)
     else:
         print(run.result.summary())
+        for w in s['warnings']:
+            if w['kind'] not in ('degenerate', 'not_converged'):   # already in the summary
+                print(format_note(w))
         if 'tensor_rms_nt_per_m' in s:
             t = np.array(s['tensor_rms_nt_per_m'])
             tb = np.array(s['tensor_rms_before_nt_per_m'])
             print(f'tensor RMS: before max {tb.max():.1f} nT/m, after max {t.max():.1f} nT/m '
                   f'(noise floor {np.array(s["tensor_floor_nt_per_m"]).max():.1f} nT/m)')
         print(f'noise floor (from the data): {s["noise_floor_nt"]:.2f} nT')
-        if out:
+        if out and not refused:
             print(f'calibration written to {out}')
+    if refused:
+        print(f'magcal: failed: the fit did not converge ({run.result.message}); '
+              + ('no calibration written; ' if out else '')
+              + 'rerun with --force to accept it anyway', file=sys.stderr)
+        return EXIT_FAIL
     return EXIT_OK
 
 
@@ -241,6 +251,8 @@ def build_parser():
                    help='priors on scale and angles, for partial attitude coverage')
     f.add_argument('--flag-degenerate', action='store_true',
                    help='fit degenerate data anyway and flag the result instead of refusing')
+    f.add_argument('--force', action='store_true',
+                   help='write the calibration even when the fit did not converge')
     f.add_argument('--plugin', action='append', help='import a module defining effects')
     f.set_defaults(func=cmd_fit)
 

@@ -9,7 +9,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from magcal_ros.core.model import Model, data_hash, fit
-from magcal_ros.core.noise import noise_floor
+from magcal_ros.core.noise import data_noise_floor
+from magcal_ros.core.notes import Note, note_dict
 from magcal_ros.core.site_gradient import centred_fields, gradient_from_fit
 from magcal_ros.core.tensor import cross_positions, tensor_lstsq, tensor_noise_floor
 from magcal_ros.io.calfile import calibration_to_doc
@@ -56,38 +57,47 @@ RESIDUAL_WARN_RATIO = 1.5
 
 
 def _residual_warnings(result, floor):
-    """One line per sensor whose residual the model leaves well above the noise floor.
+    """Structured warnings (:class:`Note`) on the fit's residual against the data's floor.
 
     ``result.sigma_nt`` (S,) is the fit's per-axis noise estimate from its residual and
-    ``floor`` (S,) nT the noise from the raw series' high-order differences, which needs no
-    model: a fit that is complete meets it; one far above it misses an effect, or was given
+    ``floor`` the :class:`~magcal_ros.core.noise.NoiseFloor` of the data (needs no model): a
+    fit that is complete meets it; one far above it misses an effect, or was given
     inconsistent data (sets of the array paired from different epochs, a non-uniform field).
+    A filtered series has no white floor to compare with: it gets a ``noise_floor`` warning
+    with the range instead (never "N x the floor" from a lower bound).
     """
     out = []
-    for j, (sig, fl) in enumerate(zip(result.sigma_nt, floor), start=1):
-        if np.isfinite(sig) and np.isfinite(fl) and fl > 0 and sig > RESIDUAL_WARN_RATIO * fl:
-            out.append(f'sensor {j}: the model leaves {sig:.1f} nT of residual per axis, '
-                       f'{sig / fl:.1f} x the noise floor of its data ({fl:.2f} nT): an '
-                       'effect is missing (run diagnose) or the data are inconsistent')
+    for j, (sig, fl) in enumerate(zip(result.sigma_nt, floor.per_sensor_nt), start=1):
+        if floor.status[j - 1] == 'filtered':
+            out.append(Note(floor.describe(j) + '; the residual cannot be compared with it',
+                            'noise_floor', j))
+        elif np.isfinite(sig) and np.isfinite(fl) and fl > 0 and sig > RESIDUAL_WARN_RATIO * fl:
+            out.append(Note(f'sensor {j}: the model leaves {sig:.1f} nT of residual per axis, '
+                            f'{sig / fl:.1f} x the noise floor of its data ({fl:.2f} nT): an '
+                            'effect is missing (run diagnose) or the data are inconsistent',
+                            'missing_effect', j))
     return out
 
 
 def summarize(result, data, positions=None):
-    """Before/after figures of a fit (all nT, nT/m); JSON-ready."""
+    """Before/after figures of a fit (all nT, nT/m); JSON-ready.
+
+    The noise floor is :func:`~magcal_ros.core.noise.data_noise_floor` of the data and this
+    fit (the figure ``diagnose`` reports for the same data and model); the tensor floor is
+    propagated from it, not from the fit's sigma (which grows when an effect is missing).
+    ``warnings`` is a list of ``{kind, sensor, text}``.
+    """
     f = result.field_magnitude_nt
     raw_tot = np.linalg.norm(data.raw, axis=2) - f[None]
     cor_tot = result.scalar_residual_nt
-    try:
-        floor = noise_floor(data.raw)
-    except ValueError:
-        floor = result.sigma_nt
+    floor = data_noise_floor(data, result)
     s = {
         'model': result.model.spec(),
         'n_samples': int(data.n_samples),
         'n_fit_samples': int(result.n_fit_samples),
         'converged': bool(result.success),
-        'noise_floor_nt': float(np.median(floor)),
-        'noise_floor_per_sensor_nt': {str(j + 1): float(x) for j, x in enumerate(floor)},
+        'solver_message': str(result.message),
+        **floor.to_dict(),
         'sigma_nt': {str(j + 1): float(x) for j, x in enumerate(result.sigma_nt)},
         'scalar_rms_nt': {str(k): v for k, v in result.scalar_rms_nt.items()},
         'vector_rms_nt': {str(k): v for k, v in result.vector_rms_nt.items()},
@@ -96,7 +106,8 @@ def summarize(result, data, positions=None):
         'total_field_max_dev_before_nt': float(np.abs(raw_tot).max()),
         'total_field_max_dev_after_nt': float(np.abs(cor_tot).max()),
         'downweighted': {str(j + 1): int(x) for j, x in enumerate(result.downweighted)},
-        'warnings': list(result.warnings) + _residual_warnings(result, floor),
+        'warnings': [note_dict(w) for w in
+                     list(result.warnings) + _residual_warnings(result, floor)],
     }
     site = gradient_from_fit(result.model, result.params, result.covariance)
     if site is not None:
@@ -107,7 +118,7 @@ def summarize(result, data, positions=None):
         before = tensor_stats(data.raw, positions)
         # about the modelled site gradient: what is left is calibration error and noise
         after = tensor_stats(centred_fields(result), positions)
-        floor_t = tensor_noise_floor(result.sigma_nt, positions)
+        floor_t = tensor_noise_floor(floor.per_sensor_nt, positions)
         s['tensor_rms_nt_per_m'] = after['rms'].tolist()
         s['tensor_rms_before_nt_per_m'] = before['rms'].tolist()
         s['tensor_max_dev_before_nt_per_m'] = float(before['max_abs_dev'].max())
@@ -150,7 +161,7 @@ def calibrate(data, model='base', field_nt=None, geometry=None, field_reference=
     run = _calibrate(data, model, field_nt, geometry, field_reference, **fit_kwargs)
     if not exclude_outliers or fit_kwargs.get('robust'):
         return run
-    if not [w for w in run.summary['warnings'] if 'noise floor' in w]:
+    if not [w for w in run.summary['warnings'] if w['kind'] == 'missing_effect']:
         run.summary['outlier_sets_excluded'] = 0
         return run
     rob = fit(data, run.result.model, field_nt=field_nt,
@@ -162,9 +173,10 @@ def calibrate(data, model='base', field_nt=None, geometry=None, field_reference=
     if n_bad == 0 or n_bad > MAX_OUTLIER_FRACTION * data.n_samples:
         run.summary['outlier_sets_excluded'] = 0
         if n_bad:
-            run.summary['warnings'].append(
+            run.summary['warnings'].append(note_dict(Note(
                 f'{n_bad} of {data.n_samples} sets are beyond {OUTLIER_SIGMAS:g} sigma of a '
-                'robust fit: too many for garbage, kept (a missing effect? run diagnose)')
+                'robust fit: too many for garbage, kept (a missing effect? run diagnose)',
+                'outliers')))
         return run
     keep = np.flatnonzero(~bad)
     f_keep = field_nt if field_nt is None or np.ndim(field_nt) == 0 else \
@@ -173,9 +185,11 @@ def calibrate(data, model='base', field_nt=None, geometry=None, field_reference=
     clean = _calibrate(data.subset(keep), spec, f_keep, geometry, field_reference,
                        **fit_kwargs)
     clean.summary['outlier_sets_excluded'] = n_bad
-    clean.summary['warnings'].append(
+    excluded = note_dict(Note(
         f'{n_bad} of {data.n_samples} sets excluded: beyond {OUTLIER_SIGMAS:g} sigma of a '
-        'robust fit (garbled samples or mis-paired sets); fitted on the rest')
+        'robust fit (garbled samples or mis-paired sets); fitted on the rest', 'outliers'))
+    clean.summary['warnings'].append(excluded)
+    clean.doc['provenance']['warnings'].append(excluded)
     return clean
 
 
@@ -207,9 +221,9 @@ def _calibrate(data, model, field_nt, geometry, field_reference, **fit_kwargs):
                               for j, v in ident.get('sensors', {}).items()},
         'condition_number': float(ident.get('condition_number', float('nan'))),
         'residuals': {k: summary[k] for k in ('scalar_rms_nt', 'vector_rms_nt',
-                                              'noise_floor_nt')
+                                              'noise_floor_nt', 'noise_floor_status')
                       if k in summary},
-        'warnings': list(result.warnings),
+        'warnings': list(summary['warnings']),
     }
     if 'tensor_rms_nt_per_m' in summary:
         prov['residuals']['tensor_rms_nt_per_m'] = summary['tensor_rms_nt_per_m']

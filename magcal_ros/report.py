@@ -234,13 +234,20 @@ def plot_direction_map(data, result, floor):
     return fig
 
 
-def plot_tensor(data, result, baseline_m=0.5):
-    """Gradient tensor components (paper 004 eq. 1) before/after correction, nT/m."""
+def plot_tensor(data, result, baseline_m=0.5, floor=None):
+    """Gradient tensor components (paper 004 eq. 1) before/after correction, nT/m.
+
+    The floor line is the sensors' data noise floor (``floor``, a NoiseFloor; default
+    estimated here) propagated to the tensor, not the fit's sigma, which grows when an effect
+    is missing.
+    """
     if data.n_sensors != 4:
         return None
     before = tensor_cross(data.raw, baseline_m)
     after = tensor_cross(result.corrected_nt, baseline_m)
-    floor = tensor_noise_floor(result.sigma_nt, cross_positions(baseline_m))
+    if floor is None:
+        floor = noise_floor_from_data(data, result)
+    floor = tensor_noise_floor(floor.per_sensor_nt, cross_positions(baseline_m))
     idx = _thin(data.n_samples)
     t = data.t[idx] - data.t[0]
     fig = _figure(12, 6.5)
@@ -407,7 +414,7 @@ def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseli
         ('residual_rate', 'Residual vs field rate', plot_residual_vs_rate(data, result, floor)),
         ('residual_direction', 'Residual over field direction',
          plot_direction_map(data, result, floor)),
-        ('tensor', 'Gradient tensor before/after', plot_tensor(data, result, baseline_m)),
+        ('tensor', 'Gradient tensor before/after', plot_tensor(data, result, baseline_m, floor)),
         ('candidates', 'Candidate effects', None if diagnosis is None
          else plot_candidates(diagnosis)),
         ('ladder', 'Error ladder', None if ladder is None else plot_ladder(ladder)),

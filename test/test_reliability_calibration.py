@@ -422,16 +422,17 @@ def test_a_calibration_far_above_the_noise_floor_says_so():
     data, _ = simulate(n_samples=3000, rate_hz=10.0, trajectory='smooth', seed=1,
                        truth={'temperature@2': [3.0, -2.0, 1.5, 0.0, 0.0, 0.0]})
     warned = [w for w in calibrate(data, 'base', field_nt=50000.0).summary['warnings']
-              if 'noise floor' in w]
-    assert len(warned) == 1 and warned[0].startswith('sensor 2: the model leaves')
-    assert 'run diagnose' in warned[0]
+              if w['kind'] == 'missing_effect']
+    assert len(warned) == 1 and warned[0]['sensor'] == 2
+    assert warned[0]['text'].startswith('sensor 2: the model leaves')
+    assert 'run diagnose' in warned[0]['text']
     clean = calibrate(data, 'base,temperature@2', field_nt=50000.0).summary['warnings']
-    assert not [w for w in clean if 'noise floor' in w]
+    assert not [w for w in clean if w['kind'] == 'missing_effect']
     late = data.subset(np.arange(data.n_samples))
     late.raw[2, :-1] = data.raw[2, 1:]
     warned = [w for w in calibrate(late, 'base,temperature@2', field_nt=50000.0)
-              .summary['warnings'] if 'noise floor' in w]
-    assert [w[:9] for w in warned] == ['sensor 3:']
+              .summary['warnings'] if w['kind'] == 'missing_effect']
+    assert [w['sensor'] for w in warned] == [3]
 
 
 def test_garbage_that_survived_the_transport_is_excluded_and_counted():
@@ -453,14 +454,17 @@ def test_garbage_that_survived_the_transport_is_excluded_and_counted():
     np.testing.assert_allclose(clean.result.sigma_nt, 3.0, rtol=0.06)
     assert clean.doc['provenance']['samples'] == data.n_samples - \
         clean.summary['outlier_sets_excluded']
-    assert 'sets excluded' in clean.summary['warnings'][-1]
+    assert clean.summary['warnings'][-1]['kind'] == 'outliers'
+    assert 'sets excluded' in clean.summary['warnings'][-1]['text']
+    assert clean.doc['provenance']['warnings'][-1] == clean.summary['warnings'][-1]
     # a missing effect is not garbage: nothing excluded, the warning stays
     temp, _ = simulate(n_samples=2600, rate_hz=10.0, trajectory='smooth', seed=1,
                        truth={'temperature@2': [3.0, -2.0, 1.5, 0.0, 0.0, 0.0]})
     kept = calibrate(temp, 'base', field_nt=50000.0, exclude_outliers=True)
     assert kept.summary['outlier_sets_excluded'] == 0
     assert kept.doc['provenance']['samples'] == temp.n_samples
-    assert any(w.startswith('sensor 2: the model leaves') for w in kept.summary['warnings'])
+    assert [w['sensor'] for w in kept.summary['warnings'] if w['kind'] == 'missing_effect'] \
+        == [2]
     # clean data: the check costs nothing and changes nothing
     ok = calibrate(data, 'base', field_nt=50000.0, exclude_outliers=True)
     assert ok.summary['outlier_sets_excluded'] == 0

@@ -52,7 +52,8 @@ from scipy import stats
 from magcal_ros.core import effects as fx
 from magcal_ros.core.model import (_Problem, _single_threaded_blas, _tangent_basis, evaluate,
                                    field_magnitude, fit, Model)
-from magcal_ros.core.noise import estimate_noise
+# the one noise-floor estimator (fit, diagnose, report, nodes); the old name is kept here
+from magcal_ros.core.noise import NoiseFloor, data_noise_floor as noise_floor_from_data  # noqa: F401
 
 #: family-wise significance level of the likelihood-ratio tests (Bonferroni over candidates)
 ALPHA = 0.01
@@ -69,8 +70,6 @@ DEFAULT_MAX_REFIT = 4
 DEFAULT_MAX_SAMPLES = 20000
 #: effects that contain each other (adding one when the other is present duplicates terms)
 NESTED = {'drift': ('drift2',), 'drift2': ('drift',)}
-#: the raw-difference floor is replaced by the residual one when it exceeds it by this factor
-RAW_FLOOR_EXCESS = 1.2
 
 
 def jsonable(x):
@@ -88,86 +87,6 @@ def jsonable(x):
     if isinstance(x, (float, np.floating)):
         return float(x) if np.isfinite(x) else None
     return x
-
-
-# -- noise floor ----------------------------------------------------------------------------
-
-@dataclass(frozen=True, eq=False)
-class NoiseFloor:
-    """Per-axis white-noise sd of each sensor, estimated from the data alone.
-
-    Attributes
-    ----------
-    per_sensor_nt : numpy.ndarray
-        (S,) the floor used, nT.
-    raw_nt : numpy.ndarray
-        (S,) from differences of the raw readings (no model), nT; used unless the trajectory
-        inflates it (no plateau over the difference orders, or more than
-        :data:`RAW_FLOOR_EXCESS` times the residual estimate).
-    residual_nt : numpy.ndarray or None
-        (S,) from differences of the model's scalar residual, nT: removes the trajectory
-        itself, so it works for slowly sampled or random attitudes; a missing effect that is
-        smooth in time (temperature, drift, currents) is removed by the differences too.
-    method : tuple of str
-        Per sensor, which estimate was used and with which difference order.
-    reliable : numpy.ndarray
-        (S,) bool: the chosen estimate sits on a plateau of the difference orders.  False
-        when neither series is smooth at the sample rate (e.g. random attitudes): the floor
-        is then an upper bound.
-    """
-
-    per_sensor_nt: np.ndarray
-    raw_nt: np.ndarray
-    residual_nt: np.ndarray | None
-    method: tuple
-    reliable: np.ndarray
-
-    @property
-    def value_nt(self):
-        """Pooled floor sqrt(mean sigma_j^2), nT."""
-        return float(np.sqrt(np.mean(self.per_sensor_nt ** 2)))
-
-    def vector_floor_nt(self, j):
-        """Floor of the vector residual corrected_j - corrected_1 per component, nT."""
-        f = self.per_sensor_nt
-        return float(np.hypot(f[j - 1], f[0]))
-
-
-def noise_floor_from_data(data, result=None):
-    """Noise floor of each sensor from the data (and the high-frequency part of a residual).
-
-    Parameters
-    ----------
-    data : Dataset
-        (S sensors, N epochs) in time order.
-    result : FitResult, optional
-        A fit on ``data``; its scalar residual (S, N) nT gives the second estimate.
-
-    Returns
-    -------
-    NoiseFloor
-    """
-    raw_est = estimate_noise(data.raw)
-    sigma = raw_est.sigma.copy()
-    order = raw_est.order.copy()
-    plateau = raw_est.plateau.copy()
-    source = ['raw'] * data.n_sensors
-    res_sigma = None
-    if result is not None:
-        res_est = estimate_noise(result.scalar_residual_nt)
-        res_sigma = res_est.sigma
-        for j in range(data.n_sensors):
-            # the raw estimate pools three axes and needs no model: keep it unless the
-            # trajectory itself inflates it (slow sampling, random attitudes)
-            if (not plateau[j] and res_est.sigma[j] < sigma[j]) or (
-                    res_est.sigma[j] * RAW_FLOOR_EXCESS < sigma[j]):
-                sigma[j] = res_est.sigma[j]
-                order[j] = res_est.order[j]
-                plateau[j] = res_est.plateau[j]
-                source[j] = 'scalar residual'
-    method = tuple(f'{s} differences (order {k})' for s, k in zip(source, order))
-    return NoiseFloor(per_sensor_nt=sigma, raw_nt=raw_est.sigma, residual_nt=res_sigma,
-                      method=method, reliable=plateau)
 
 
 def compact_spec(model):
@@ -694,6 +613,9 @@ class Diagnosis:
                                           for j, x in enumerate(fl.per_sensor_nt)},
             'noise_floor_method': {str(j + 1): m for j, m in enumerate(fl.method)},
             'noise_floor_reliable': bool(np.all(fl.reliable)),
+            'noise_floor_status': {str(j + 1): st for j, st in enumerate(fl.status)},
+            'noise_floor_range_nt': {str(j + 1): [float(lo), float(hi)] for j, (lo, hi)
+                                     in enumerate(zip(fl.lower_nt, fl.upper_nt))},
             'residual_rms_nt': self.residual_rms_nt,
             'cv_rms_nt': self.cv_rms_nt,
             'at_noise_floor': self.at_floor,
@@ -719,8 +641,7 @@ class Diagnosis:
                  f'{self.n_samples} epochs{used} of {self.n_sensors} sensor(s)',
                  'noise floor from the data: ' + ', '.join(
                      f's{j + 1} {x:.2f}' for j, x in enumerate(fl.per_sensor_nt)) + ' nT'
-                 + ('' if np.all(fl.reliable) else
-                    ' (upper bound: the series is not smooth at the sample rate)')]
+                 ] + [f'  {fl.describe(j + 1)}' for j, st in enumerate(fl.status) if st != 'white']
         r = self.ratios
         for j, x in self.scalar_rms_nt.items():
             line = f'  sensor {j}: scalar RMS {x:8.2f} nT ({r["scalar"][j]:5.2f} x floor)'
@@ -970,12 +891,17 @@ def _diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOL
                        ' nT')
     elif best is None:
         verdict = None
-        reason = (f'the residual is {ratio:.1f} x the noise floor but no candidate explains it '
-                  '(p-value, BIC and held-out tests): the missing effect is not in the list '
-                  '(write a plug-in effect), or the field is not uniform, or there are '
-                  'outliers (try --robust)')
+        # a filtered series has no white floor: its floor is a lower bound, the ratio an
+        # upper bound (core/noise.py)
+        floor_word = ('noise floor' if 'filtered' not in floor.status else
+                      'lower bound of the noise floor (low-pass-filtered series)')
+        reason = (f'the residual is {ratio:.1f} x the {floor_word} but no candidate explains '
+                  'it (p-value, BIC and held-out tests): the missing effect is not in the list '
+                  '(write a plug-in effect), or the field is not uniform'
+                  + (', or there are outliers (try --robust)' if not fit_kwargs.get('robust')
+                     else ''))
         if not out:
-            reason = f'the residual is {ratio:.1f} x the noise floor and no effect is testable'
+            reason = f'the residual is {ratio:.1f} x the {floor_word} and no effect is testable'
     else:
         verdict = best.token
         reason = (f'delta BIC {best.delta_bic:.0f}, p = 10^{best.log10_p_value:.0f}, held-out '

@@ -27,6 +27,7 @@ from scipy.optimize import least_squares
 
 from magcal_ros.core import effects as fx
 from magcal_ros.core.ellipsoid import fit_ellipsoid, procrustes_rotation
+from magcal_ros.core.notes import Note
 
 class DegenerateDataError(ValueError):
     """The data cannot determine the model: the message names what is missing."""
@@ -833,8 +834,12 @@ def _levenberg_marquardt(fun, jac, x0, robust=False, f_scale=3.0, max_nfev=200, 
             if c_new <= c:
                 break
             lam *= 10
-            if lam > 1e12 or nfev >= max_nfev:
+            if lam > 1e12:
                 return _Solution(x, True, 2, 'no further decrease of the cost', nfev)
+            if nfev >= max_nfev:
+                # out of evaluations while still looking for a downhill step: not converged
+                return _Solution(x, False, 0, f'maximum number of evaluations ({max_nfev}) '
+                                 'reached', nfev)
         dc = c - c_new
         x, r, c = x_new, r_new, c_new
         lam = max(lam / 10, 1e-12)
@@ -954,7 +959,7 @@ def _fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=F
     def degenerate(msg):
         if on_degenerate == 'raise':
             raise DegenerateDataError(msg)
-        notes.append(msg)
+        notes.append(Note(msg, 'degenerate'))
 
     for why in model.check(contexts_all):
         degenerate(why)
@@ -1079,7 +1084,7 @@ def _fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=F
             degenerate(prob_msg)
 
     if not success:
-        notes.append(f'the optimiser did not converge: {message}')
+        notes.append(Note(f'the optimiser did not converge: {message}', 'not_converged'))
 
     # residuals on all samples
     out = evaluate(model, p, data, f_all, sigma, contexts_all, robust=robust, f_scale=f_scale)

@@ -40,6 +40,7 @@ from magcal_ros.core.consistency import GROSS_FRACTION, resync
 from magcal_ros.core.dataset import Dataset
 from magcal_ros.core.identifiability import coverage_report
 from magcal_ros.core.model import DegenerateDataError, Model
+from magcal_ros.core.notes import format_note
 from magcal_ros.io.calfile import (CalibrationFileError, dump_calibration, load_calibration,
                                    save_calibration)
 from magcal_ros.pipeline import calibrate as run_calibration, cross_geometry
@@ -460,6 +461,11 @@ class CalibrationNode(Node):
             return False, f'not calibrated: {exc}; previous calibration stays active', {
                 'reason': str(exc), 'sets': n_sets, 'model': list(s.model)}
         solve_s = time.monotonic() - t0
+        if not run.result.success:
+            # a fit that ran out of iterations is not a calibration: never installed
+            reason = f'the fit did not converge ({run.result.message})'
+            return False, f'not calibrated: {reason}; previous calibration stays active', {
+                'reason': reason, 'sets': n_sets, 'model': list(s.model), 'converged': False}
         os.makedirs(os.path.dirname(os.path.abspath(s.calibration_file)), exist_ok=True)
         try:
             save_calibration(s.calibration_file, run.doc, history=s.history)
@@ -504,7 +510,7 @@ class CalibrationNode(Node):
             lines.append(f'robust fit: samples down-weighted as outliers per sensor: '
                          f'{_fmt_per_sensor(summ["downweighted"], "{:d}")} of {n_sets}')
         for w in summ['warnings']:
-            lines.append(f'warning: {w}')
+            lines.append(format_note(w))
         for w in resync_lines:
             lines.append(f'resync: {w}')
         self._last_result = {k: payload[k] for k in ('calibration_file', 'model', 'sets')}

@@ -1,0 +1,49 @@
+"""Structured warnings: what kind, which sensor, and the text a user reads.
+
+A :class:`Note` is a ``str`` (its text), so code that prints or searches warnings keeps
+working, and it carries ``kind`` and ``sensor`` so that decisions never depend on matching
+the text (e.g. ``exclude_outliers`` is gated on ``kind == 'missing_effect'``).  The
+``fit`` summary, ``--json`` output and the calibration file's provenance hold
+:func:`note_dict` of each: ``{kind, sensor, text}``.
+
+Kinds used by the library:
+
+``missing_effect``  a sensor's residual is well above the noise floor of its data;
+``noise_floor``     the floor is not a single white-noise figure (filtered series, ...);
+``not_converged``   the optimiser stopped before convergence;
+``degenerate``      the data do not determine the model (flagged instead of refused);
+``outliers``        sets excluded as garbage, or too many to be garbage;
+``input``           the input looks wrong (units, ...);
+``note``            anything else (a plain string).
+"""
+
+
+class Note(str):
+    """A warning text with its ``kind`` and ``sensor`` (1-based, or None for all)."""
+
+    kind: str
+    sensor: int | None
+
+    def __new__(cls, text, kind='note', sensor=None):
+        obj = super().__new__(cls, text)
+        obj.kind = str(kind)
+        obj.sensor = None if sensor is None else int(sensor)
+        return obj
+
+    def __reduce__(self):
+        return (Note, (str(self), self.kind, self.sensor))
+
+
+def note_dict(w):
+    """``{kind, sensor, text}`` of a :class:`Note`, a plain string or such a dict."""
+    if isinstance(w, dict):
+        return {'kind': str(w.get('kind', 'note')), 'sensor': w.get('sensor'),
+                'text': str(w.get('text', ''))}
+    return {'kind': getattr(w, 'kind', 'note'), 'sensor': getattr(w, 'sensor', None),
+            'text': str(w)}
+
+
+def format_note(w):
+    """One printable line: ``warning [kind]: text``."""
+    d = note_dict(w)
+    return f"warning [{d['kind']}]: {d['text']}"
