@@ -103,7 +103,18 @@ def cmd_simulate(args):
     from magcal_ros.io.csvio import write_csv
     load_plugins(args)
     truth = _parse_truth(args.truth)
-    data, sim = simulate(n_samples=args.n, rate_hz=args.rate, trajectory=args.trajectory,
+    grad = None
+    if args.site_gradient:
+        from magcal_ros.core.effects import symmetric_traceless
+        try:
+            g5 = [float(v) for v in args.site_gradient.split(',')]
+        except ValueError:
+            g5 = []
+        if len(g5) != 5 or not np.all(np.isfinite(g5)):
+            raise BadInput(f'--site-gradient {args.site_gradient!r}: expected five numbers '
+                           'GXX,GXY,GXZ,GYY,GYZ in nT/m (gzz = -gxx - gyy)')
+        grad = symmetric_traceless(g5)
+    data, sim = simulate(gradient_nt_per_m=grad, attitude=args.attitude, n_samples=args.n, rate_hz=args.rate, trajectory=args.trajectory,
                          noise_nt=args.noise_nt, seed=args.seed, truth=truth,
                          model=args.model, aux=not args.no_aux,
                          diurnal_swing_nt=args.diurnal_nt, outlier_fraction=args.outliers,
@@ -151,6 +162,12 @@ def cmd_fit(args):
             tb = np.array(s['tensor_rms_before_nt_per_m'])
             print(f'tensor RMS: before max {tb.max():.1f} nT/m, after max {t.max():.1f} nT/m '
                   f'(noise floor {np.array(s["tensor_floor_nt_per_m"]).max():.1f} nT/m)')
+        if 'site_gradient_nt_per_m' in s:
+            g = np.array(s['site_gradient_nt_per_m'])
+            se = np.array(s['site_gradient_stderr_nt_per_m'])
+            print('site gradient (world frame of the attitude, nT/m, +- standard uncertainty):')
+            for row, srow in zip(g, se):
+                print('  ' + '  '.join(f'{v:9.2f} +- {e:5.2f}' for v, e in zip(row, srow)))
         print(f'noise floor (from the data): {s["noise_floor_nt"]:.2f} nT')
         if out and not refused:
             print(f'calibration written to {out}')
@@ -237,6 +254,12 @@ def build_parser():
     s.add_argument('--ref-total', action='store_true', help='write a ref_total column')
     s.add_argument('--outliers', type=float, default=0.0, help='fraction of spike outliers')
     s.add_argument('--plugin', action='append', help='import a module defining effects')
+    s.add_argument('--site-gradient', metavar='GXX,GXY,GXZ,GYY,GYZ',
+                   help='constant site gradient in the world (NED) frame, nT/m: the field is '
+                        'not uniform over the cross (fit it with --model base,site_gradient)')
+    s.add_argument('--attitude', action='store_true',
+                   help='write the true attitude as att_qw..att_qz (body-to-world, NED), '
+                        'as an IMU would give it')
     s.set_defaults(func=cmd_simulate)
 
     f = sub.add_parser('fit', help='fit a model and write a calibration file')

@@ -15,7 +15,8 @@ import pytest
 BENCH = pathlib.Path(__file__).resolve().parents[1] / 'bench'
 
 CASES = {
-    'accuracy': ['--seeds', '2', '--holdout', '100', '--scenarios', 'paper004', 'cone60'],
+    'accuracy': ['--seeds', '2', '--holdout', '100', '--scenarios', 'paper004', 'cone60',
+                 'site_gradient'],
     'papers': ['--seeds', '2', '--holdout', '100'],
     'solve_time': ['--sizes', '400', '800', '--models', 'base', '--diagnose-max-n', '400',
                    '--no-blas-compare'],
@@ -48,6 +49,11 @@ def test_accuracy(tmp_path):
     assert 0.8 < ml['scalar_hold_over_floor'] < 1.5
     assert math.isfinite(ml['params']['scale']['over_crb'])
     assert set(res['cone60']['methods']) >= {'algebraic', 'ml', 'ml_constrained'}
+    site = res['site_gradient']
+    # with attitude the fit reaches the floor; without the effect it stays far above
+    assert site['methods']['ml_site']['scalar_over_floor'] < 1.1
+    assert site['methods']['ml_base']['scalar_over_floor'] > 5
+    assert site['crb_sd_by_group']['none_undetermined_directions'] == 20
 
 
 def test_papers(tmp_path):

@@ -209,3 +209,51 @@ def test_cli_fit_reports_gradient(tmp_path):
     # the tensor after correction, about the modelled site gradient, is at its noise floor
     floor = np.array(doc['tensor_floor_nt_per_m'])
     assert np.all(np.array(doc['tensor_rms_nt_per_m']) < 1.1 * floor)
+
+
+def test_bounds_of_the_three_cases():
+    """Information can only be lost: heading unknown >= attitude known, per parameter; and with
+    a per-epoch nuisance gradient exactly 20 of base's 45 directions are undetermined
+    (5 differential offsets + 15 differential linear terms: docs/site_gradient.md)."""
+    from magcal_ros.core.site_gradient import crb_covariance
+    data, _ = make_data(n=300, seed=7)
+    m = Model.from_spec('base,site_gradient', 4)
+    truth = m.default_params()
+    for j in range(1, 5):
+        truth = m.params_from_linear(j, A_TRUE[j - 1], O_TRUE[j - 1], truth)
+    truth[m.array_cols] = [G_W[0, 0], G_W[0, 1], G_W[0, 2], G_W[1, 1], G_W[1, 2]]
+    att = crb_covariance(data, m, truth, FIELD_NT, NOISE_NT, 'attitude')
+    head = crb_covariance(data, m, truth, FIELD_NT, NOISE_NT, 'heading')
+    k = m.array_cols[0]
+    v_att, v_head = np.diag(att['covariance'])[:k], np.diag(head['covariance'])[:k]
+    assert np.all(np.isfinite(v_head)) and np.all(v_head >= v_att * (1 - 1e-9))
+    # the gauge: rotating G_w about the field direction, d G = G N - N G (N = [n]x)
+    n_w = np.array([21000.0, -2500.0, 45000.0]) / np.linalg.norm([21000.0, -2500.0, 45000.0])
+    nx = np.array([[0, -n_w[2], n_w[1]], [n_w[2], 0, -n_w[0]], [-n_w[1], n_w[0], 0]])
+    d = G_W @ nx - nx @ G_W
+    gauge = np.array([d[0, 0], d[0, 1], d[0, 2], d[1, 1], d[1, 2]])
+    assert abs(abs(head['gauge_direction'] @ gauge) / np.linalg.norm(gauge) - 1) < 1e-3
+    base = Model.from_spec('base', 4)
+    none = crb_covariance(data, base, truth[:k], FIELD_NT, NOISE_NT, 'epoch_gradient')
+    assert none['undetermined_directions'] == 20
+
+
+def test_readme_commands(tmp_path):
+    """The two commands of the README's site-gradient paragraph, as written."""
+    def run(*args):
+        return subprocess.run([sys.executable, '-m', 'magcal_ros.cli', *args], cwd=tmp_path,
+                              capture_output=True, text=True, timeout=240)
+    p = run('simulate', '--out', 'site.csv', '--site-gradient', '300,-250,400,-150,200',
+            '--attitude')
+    assert p.returncode == 0, p.stderr
+    p = run('fit', 'site.csv', '--model', 'base,site_gradient', '--field-nt', '50000', '--json')
+    assert p.returncode == 0, p.stderr
+    doc = json.loads(p.stdout)
+    # the simulator's world frame is NED; gzz = -gxx - gyy = -150
+    truth = np.array([[300, -250, 400], [-250, -150, 200], [400, 200, -150.0]])
+    se = np.array(doc['site_gradient_stderr_nt_per_m'])
+    assert np.all(np.abs(np.array(doc['site_gradient_nt_per_m']) - truth) < 4 * se)
+    assert all(v < 1.05 * 3.0 for v in doc['scalar_rms_nt'].values())
+    # a malformed gradient is one line on stderr and exit status 2
+    p = run('simulate', '--out', 'x.csv', '--site-gradient', '1,2,3')
+    assert p.returncode == 2 and 'five numbers' in p.stderr

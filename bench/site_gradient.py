@@ -1,0 +1,191 @@
+"""Scenario ``site_gradient`` of bench/accuracy.py: the cross in a non-uniform field (issue 13).
+
+Paper 004's cross with its Table 1 errors, sigma = 3 nT, N = 200 random attitudes, in a constant
+world-frame gradient with components up to 400 nT/m (symmetric, traceless).  Methods:
+
+- ``ml_site``: ``base,site_gradient`` fitted with the attitude known (att_qw..att_qz);
+- ``ml_base``: today's ``base`` fit, which assumes a uniform field (what a user without the
+  effect gets);
+- the Cramer-Rao bounds of the three cases of docs/site_gradient.md: attitude known, heading
+  unknown (rotation about the field a per-epoch unknown), no attitude at all (a per-epoch
+  nuisance gradient, symmetric and traceless).
+
+Figures (means over seeds): scalar residual (|centre field| - F) and vector residual
+(sensor j - sensor 1, both with the modelled site shift removed) over their floors (the same
+residuals with the true parameters on the same data); the gradient's error over its reported
+standard uncertainty (RMS z, 1 = honest) and over its bound; the parameter groups' error RMS
+over the bound (1 = efficient).
+"""
+import numpy as np
+
+from magcal_ros.core import model as mdl
+from magcal_ros.core.effects import symmetric_traceless
+from magcal_ros.core.simulate import SimConfig, Simulator
+from magcal_ros.core.site_gradient import centred_fields, crb_covariance, gradient_from_fit
+
+#: world (NED) gradient of the scenario, nT/m (gxx, gxy, gxz, gyy, gyz): up to 400 nT/m
+G5 = np.array([300.0, -250.0, 400.0, -150.0, 200.0])
+GROUPS = {'scale': 'scale', 'nonorthogonality': 'angles', 'offset': 'offsets',
+          'misalignment': 'misalignment', 'site_gradient': 'gradient'}
+UNITS = {'scale': ('ppm', 1e6), 'angles': ('urad', 1e6), 'offsets': ('nT', 1.0),
+         'misalignment': ('urad', 1e6), 'gradient': ('nT/m', 1.0)}
+SIM = dict(gradient_nt_per_m=symmetric_traceless(G5).tolist(), attitude=True, n_samples=200)
+F_NT = 50000.0
+#: the goal of issue 13 with attitude
+GOAL = {'residual_over_floor': 1.05, 'param_over_crb': 1.1}
+
+
+def _residuals(model, p, data, f):
+    """(scalar RMS, vector RMS) nT of centre-referred corrected fields."""
+    res = mdl.evaluate(model, p, data, f, np.full(model.n_sensors, 3.0))
+    return (float(np.sqrt(np.mean(res['scalar'] ** 2))),
+            float(np.sqrt(np.mean(res['vector'][1:] ** 2))))
+
+
+def run_seed(seed, n_samples=200):
+    """One data set: fits with and without the effect, and the three bounds."""
+    cfg = SimConfig(**dict(SIM, n_samples=n_samples))
+    cfg.seed = seed
+    cfg.aux = False
+    sim = Simulator(cfg)
+    data = sim.sample(np.arange(cfg.n_samples) / cfg.rate_hz)
+    f = np.full(data.n_samples, F_NT)
+    m_site = mdl.Model.from_spec('base,site_gradient', 4)
+    m_base = mdl.Model.from_spec('base', 4)
+    truth = np.concatenate([sim.params, G5])
+    out = {'floor': _residuals(m_site, truth, data, f)}
+    b_att = crb_covariance(data, m_site, truth, f, 3.0, 'attitude')
+    b_head = crb_covariance(data, m_site, truth, f, 3.0, 'heading')
+    b_none = crb_covariance(data, m_base, sim.params, f, 3.0, 'epoch_gradient')
+    out['crb'] = {'attitude': np.diag(b_att['covariance']),
+                  'heading': np.diag(b_head['covariance']),
+                  'heading_gradient': np.diag(b_head['gradient_covariance']),
+                  'none': np.diag(b_none['covariance']),
+                  'none_undetermined': b_none['undetermined_directions']}
+    r = mdl.fit(data, m_site, field_nt=f, on_degenerate='flag')
+    g, se, _ = gradient_from_fit(r.model, r.params, r.covariance)
+    out['ml_site'] = {'residuals': _residuals(r.model, r.params, data, f),
+                      'param_error': r.params - truth, 'stderr': r.stderr,
+                      'tensor_after': float(np.abs(_tensor_dev(r)).max())}
+    rb = mdl.fit(data, m_base, field_nt=f, on_degenerate='flag')
+    out['ml_base'] = {'residuals': _residuals(rb.model, rb.params, data, f),
+                      'param_error': rb.params - sim.params}
+    return out, m_site, m_base
+
+
+def _tensor_dev(result):
+    """(N, 3, 3) nT/m tensor of the centre-referred corrected fields (zero if perfect)."""
+    from magcal_ros.core.tensor import tensor_cross
+    return tensor_cross(centred_fields(result), 0.5)
+
+
+def _groups(model):
+    return np.array([GROUPS.get(lab, 'other') for _, lab, _, _ in model.param_info()])
+
+
+def summarize(outs, m_site, m_base):
+    """Aggregate the seeds of :func:`run_seed` into the JSON-ready scenario summary."""
+    gs, gb = _groups(m_site), _groups(m_base)
+    floor = np.array([o['floor'] for o in outs])
+    s = {'n_seeds': len(outs), 'sigma_nt': 3.0, 'gradient_nt_per_m': G5.tolist(),
+         'n_samples': SIM['n_samples'], 'methods': {}, 'crb_sd_by_group': {}}
+    crb = {k: np.mean([o['crb'][k] for o in outs], axis=0)
+           for k in ('attitude', 'heading', 'none')}
+    for case, groups in (('attitude', gs), ('heading', gs), ('none', gb)):
+        row = {}
+        for g in set(GROUPS.values()):
+            sel = groups == g
+            if not sel.any():
+                continue
+            unit, k = UNITS[g]
+            v = crb[case][sel]
+            row[g] = {'unit': unit, 'rms_sd': float(np.sqrt(np.mean(v)) * k)
+                      if np.all(np.isfinite(v)) else None,
+                      'undetermined': int(np.sum(~np.isfinite(v)))}
+        s['crb_sd_by_group'][case] = row
+    s['crb_sd_by_group']['none_undetermined_directions'] = int(
+        max(o['crb']['none_undetermined'] for o in outs))
+    s['crb_sd_by_group']['none_parameters'] = int(m_base.n_params)
+    hg = np.mean([o['crb']['heading_gradient'] for o in outs], axis=0)
+    s['crb_sd_by_group']['heading']['gradient'] = {
+        'unit': 'nT/m', 'rms_sd': float(np.sqrt(np.mean(hg))),
+        'note': 'gauge-free part; the rotation of G_w about the field is undetermined'}
+    for meth, groups, bound in (('ml_site', gs, crb['attitude']), ('ml_base', gb, None)):
+        res = np.array([o[meth]['residuals'] for o in outs])
+        err = np.array([o[meth]['param_error'] for o in outs])
+        m = {'scalar_over_floor': float(np.mean(res[:, 0] / floor[:, 0])),
+             'vector_over_floor': float(np.mean(res[:, 1] / floor[:, 1])),
+             'scalar_rms_nt': float(np.mean(res[:, 0])),
+             'vector_rms_nt': float(np.mean(res[:, 1])), 'params': {}}
+        mse = np.mean(err ** 2, axis=0)
+        for g in set(GROUPS.values()):
+            sel = groups == g
+            if not sel.any():
+                continue
+            unit, k = UNITS[g]
+            e = {'rms_error': float(np.sqrt(np.mean(mse[sel])) * k), 'unit': unit}
+            if bound is not None:
+                e['over_crb'] = float(np.sqrt(np.sum(mse[sel]) / np.sum(bound[sel])))
+            m['params'][g] = e
+        if meth == 'ml_site':
+            sel = groups == 'gradient'
+            z = np.array([o[meth]['param_error'][sel] / o[meth]['stderr'][sel] for o in outs])
+            m['gradient_rms_z'] = float(np.sqrt(np.mean(z ** 2)))
+            m['gradient_max_abs_z'] = float(np.abs(z).max())
+            m['tensor_max_dev_nt_per_m'] = float(np.mean([o[meth]['tensor_after']
+                                                          for o in outs]))
+        s['methods'][meth] = m
+    ms = s['methods']['ml_site']
+    worst_res = max(ms['scalar_over_floor'], ms['vector_over_floor'])
+    worst_par = max(v['over_crb'] for k, v in ms['params'].items() if k != 'gradient')
+    s['goal'] = {'residual_over_floor': worst_res, 'param_over_crb': worst_par,
+                 'gradient_over_crb': ms['params']['gradient']['over_crb'],
+                 'gradient_rms_z': ms['gradient_rms_z'],
+                 'met': bool(worst_res <= GOAL['residual_over_floor']
+                             and worst_par <= GOAL['param_over_crb']
+                             and ms['gradient_rms_z'] <= 1.1)}
+    return s
+
+
+def tables(summary, table):
+    """Printable tables of the scenario (``table`` = bench.common.table)."""
+    rows = []
+    for meth, m in summary['methods'].items():
+        cells = [meth, f'{m["scalar_over_floor"]:.3f}', f'{m["vector_over_floor"]:.3f}']
+        for g in ('offsets', 'scale', 'angles', 'misalignment', 'gradient'):
+            e = m['params'].get(g)
+            cells.append('-' if e is None else f'{e["rms_error"]:.3g}' + (
+                f' ({e["over_crb"]:.2f})' if 'over_crb' in e else ''))
+        rows.append(cells)
+    for case, label in (('attitude', 'sqrt(CRB) attitude known'),
+                        ('heading', 'sqrt(CRB) heading unknown'),
+                        ('none', 'sqrt(CRB) no attitude')):
+        c = summary['crb_sd_by_group'][case]
+        cells = [label, '', '']
+        for g in ('offsets', 'scale', 'angles', 'misalignment', 'gradient'):
+            e = c.get(g)
+            if e is None:
+                cells.append('-')
+            elif e['rms_sd'] is None:
+                cells.append(f'{e["undetermined"]} undetermined')
+            else:
+                cells.append(f'{e["rms_sd"]:.3g} {e["unit"]}')
+        rows.append(cells)
+    t = table(['site_gradient', 'scalar/floor', 'vector/floor', 'offsets nT', 'scale ppm',
+               'angles urad', 'misalign. urad', 'gradient nT/m'], rows,
+              title=f'Site gradient up to 400 nT/m, N = {summary["n_samples"]}, sigma 3 nT '
+                    f'({summary["n_seeds"]} seeds): error RMS (ratio to the bound)')
+    g = summary['goal']
+    ms = summary['methods']['ml_site']
+    goal = (f'Goal (issue 13, attitude known): residuals {g["residual_over_floor"]:.3f} x floor '
+            f'(<= 1.05), parameters {g["param_over_crb"]:.3f} x CRB (<= 1.1), gradient error '
+            f'RMS {g["gradient_rms_z"]:.2f} x its reported uncertainty (max |z| '
+            f'{ms["gradient_max_abs_z"]:.1f}) -> {"met" if g["met"] else "MISSED"}')
+    c = summary['crb_sd_by_group']
+    goal += (f'\nWithout any attitude (per-epoch nuisance gradient): '
+             f'{c["none_undetermined_directions"]} of the {c["none_parameters"]} calibration '
+             'parameter directions are undetermined (the differential terms the tensor needs); '
+             'with the heading unknown the bound is within a few % of the attitude-known one. '
+             'Reached without attitude: only the ml_base fit (no estimator for the heading '
+             'case yet), far above both bounds.')
+    return [t, goal]
