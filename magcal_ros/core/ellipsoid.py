@@ -8,6 +8,135 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+#: the fitted quadric counts as an ellipsoid when its smallest eigenvalue exceeds this many
+#: standard deviations of its noise uncertainty (one-sided, false-acceptance rate ~ 1e-4)
+DEFINITE_Z = 3.7
+#: readings whose smallest scatter standard deviation is below this fraction of the middle
+#: one lie "near one plane" (0.25 for a ring at SNR 10) ...
+PLANE_SD_RATIO = 0.3
+#: ... and whose in-plane radius varies less than this (coefficient of variation about the
+#: fitted circle) form a ring; a filled cap gives about 0.35
+RING_CV = 0.2
+
+
+def _fmt(v):
+    return '(' + ', '.join(f'{0.0 if abs(x) < 0.005 else x:+.2f}' for x in v) + ')'
+
+
+def reading_plane(raw):
+    """Normal of the plane the readings lie near, or None when they spread in 3-D.
+
+    Parameters
+    ----------
+    raw : numpy.ndarray
+        (N, 3) readings in nT (sensor frame).
+
+    Returns
+    -------
+    numpy.ndarray or None
+        (3,) unit normal in the sensor frame (sign: largest component positive) when the
+        smallest standard deviation of the readings about their mean is below
+        :data:`PLANE_SD_RATIO` times the middle one and the readings form a ring in that
+        plane (:func:`ring_spread` below :data:`RING_CV`, not a filled cap): the sensor
+        turned about that axis only.
+    """
+    m = np.asarray(raw, float)
+    w, vec = np.linalg.eigh(np.cov((m - m.mean(axis=0)).T))
+    w = np.clip(w, 0.0, None)
+    if w[1] <= 0 or np.sqrt(w[0] / w[1]) >= PLANE_SD_RATIO:
+        return None
+    n = vec[:, 0]
+    if ring_spread(m, n) >= RING_CV:
+        return None
+    return n if n[np.argmax(np.abs(n))] > 0 else -n
+
+
+def _centre_of(v):
+    return -np.linalg.solve(_quadric_matrix(v), v[6:9])
+
+
+def _centre_cov(sv, vt, n_rows):
+    """(3, 3) first-order covariance of the centre (eq. 12) of the SVD solution, scaled
+    frame: Cov(v) = sigma^2 sum_k vt_k vt_k^T / sv_k^2 (see quadric_definiteness), mapped
+    through the centre's derivative along each singular direction (finite differences)."""
+    v = vt[-1]
+    sigma2 = sv[-1] ** 2 / max(1, n_rows - len(sv) + 1)
+    c0 = _centre_of(v)
+    h = 1e-7
+    cols = np.array([(_centre_of(v + h * vt[k]) - c0) / h for k in range(len(sv) - 1)])
+    return sigma2 * (cols / sv[:-1, None] ** 2).T @ cols
+
+
+def _quadric_matrix(v):
+    """(3, 3) matrix of the quadratic part of eq. 8's coefficients v (10,) (eq. 11)."""
+    return np.array([[v[0], v[5], v[4]], [v[5], v[1], v[3]], [v[4], v[3], v[2]]])
+
+
+def ring_spread(u, normal):
+    """Coefficient of variation of the radius of the points ``u`` (N, 3) (directions or
+    readings) about the circle fitted to them in the plane normal to ``normal``: about 0 for
+    a ring (a rotation about one axis, however unevenly sampled), about 0.35 for a filled
+    cap."""
+    e1 = np.cross(normal, [1.0, 0.0, 0.0])
+    if np.linalg.norm(e1) < 0.1:
+        e1 = np.cross(normal, [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(normal, e1)
+    p = np.column_stack([u @ e1, u @ e2])
+    # algebraic (Kasa) circle fit: |p|^2 = 2 p.c + k
+    sol, *_ = np.linalg.lstsq(np.column_stack([2 * p, np.ones(len(p))]),
+                              np.sum(p ** 2, axis=1), rcond=None)
+    r = np.linalg.norm(p - sol[:2], axis=1)
+    return float(np.std(r) / np.mean(r)) if np.mean(r) > 0 else 0.0
+
+
+def _undetermined_message(raw, why):
+    n = reading_plane(raw)
+    if n is None:
+        return (f'the ellipsoid is not determined by these data ({why}): the readings do not '
+                'cover enough attitudes; rotate the sensor about more axes')
+    return (f'the ellipsoid is not determined by these data ({why}): the readings lie near '
+            f'one plane with normal {_fmt(n)} in the sensor frame, i.e. the sensor was '
+            'rotated about that axis only; rotate it about another axis too (tilt that axis '
+            'by 45-90 deg and rotate again)')
+
+
+def quadric_definiteness(sv, vt, a_mat, n_rows):
+    """Smallest eigenvalue of the fitted quadric's matrix and its noise standard deviation.
+
+    The algebraic fit's coefficient vector ``v`` is the last right singular vector of the
+    design matrix; to first order in the noise its error is
+    ``sum_k vt[k] (vt[k] . e) sv[-1] / sv[k]`` over the other singular directions, with the
+    residual variance estimated from ``sv[-1]^2 / (N - 9)`` (the classical perturbation of
+    a total-least-squares null vector).  The eigenvalue lam = e^T A e (e its eigenvector)
+    is linear in ``v``, so its variance is ``g^T Cov(v) g`` with ``g = d lam / d v``.
+
+    Parameters
+    ----------
+    sv : numpy.ndarray
+        (10,) singular values of the (scaled) design matrix, descending.
+    vt : numpy.ndarray
+        (10, 10) right singular vectors (rows).
+    a_mat : numpy.ndarray
+        (3, 3) quadric matrix of eq. 11 for the unit coefficient vector, sign chosen so
+        that its mean eigenvalue is positive.
+    n_rows : int
+        Number of readings (rows of the design matrix).
+
+    Returns
+    -------
+    (float, float)
+        Smallest eigenvalue and its standard deviation (dimensionless, scaled frame).
+    """
+    lam, vec = np.linalg.eigh(a_mat)
+    e = vec[:, 0]
+    g = np.array([e[0] ** 2, e[1] ** 2, e[2] ** 2, 2 * e[1] * e[2], 2 * e[0] * e[2],
+                  2 * e[0] * e[1], 0.0, 0.0, 0.0, 0.0])
+    sigma2 = sv[-1] ** 2 / max(1, n_rows - len(sv) + 1)
+    proj = vt[:-1] @ g
+    var = float(sigma2 * np.sum((proj / sv[:-1]) ** 2))
+    return float(lam[0]), float(np.sqrt(var))
+
 
 @dataclass(frozen=True)
 class EllipsoidFit:
@@ -23,12 +152,16 @@ class EllipsoidFit:
         (10,) ellipsoid coefficients (a, b, c, f, g, h, p, q, r, d) of eq. 8, unit norm.
     residual_nt : numpy.ndarray
         (N,) |C^-1 (m - b)| - |B| in nT.
+    b_cov : numpy.ndarray or None
+        (3, 3) nT^2 first-order noise covariance of ``b`` (the algebraic fit's own
+        uncertainty, see :func:`quadric_definiteness`).
     """
 
     c_inv: np.ndarray
     b: np.ndarray
     coeffs: np.ndarray
     residual_nt: np.ndarray
+    b_cov: np.ndarray = None
 
     def correct(self, raw):
         """Paper 004 eq. 5: B = C^-1 (Bm - b); raw (N, 3) nT -> (N, 3) nT."""
@@ -72,14 +205,19 @@ def fit_ellipsoid(raw, field_nt, normalization='svd'):
     design = np.column_stack([x * x, y * y, z * z, 2 * y * z, 2 * x * z, 2 * x * y,
                               2 * x, 2 * y, 2 * z, np.ones_like(x)])
     _, sv, vt = np.linalg.svd(design, full_matrices=False)
-    # a unique ellipsoid needs a one-dimensional null space: the second smallest singular
-    # value must stand well above the smallest (noise) one.  Planar data (a rotation about
-    # one axis) leave several conics through the points.
-    if sv[-2] < 10 * sv[-1] or sv[-2] < 1e-3 * sv[0]:
-        raise ValueError(
-            'the ellipsoid is not determined by these data (singular values '
-            f'{sv[-2]:.3g} and {sv[-1]:.3g} of the design matrix are alike): the field '
-            'directions do not span three dimensions; rotate the sensor about more axes')
+    if sv[-2] <= 1e-12 * sv[0]:
+        # noise-free degenerate data: a whole family of quadrics passes through the points
+        raise ValueError(_undetermined_message(m, 'several quadrics fit these readings '
+                                                  'exactly'))
+    # determinacy against the noise (not a fixed singular-value ratio): the best quadric
+    # must be an ellipsoid, its smallest eigenvalue positive beyond its own uncertainty
+    a_svd = _quadric_matrix(vt[-1])
+    a_svd = a_svd if np.linalg.eigvalsh(a_svd).mean() >= 0 else -a_svd
+    lam, lam_sd = quadric_definiteness(sv, vt, a_svd, len(m))
+    if not lam > DEFINITE_Z * lam_sd:
+        raise ValueError(_undetermined_message(
+            m, f'the smallest eigenvalue of the fitted quadric, {lam:.3g}, is not positive '
+               f'beyond its noise uncertainty ({lam_sd:.2g}; need > {DEFINITE_Z:g} x)'))
     if normalization == 'svd':
         v = vt[-1]
     elif normalization == 'p':
@@ -89,16 +227,15 @@ def fit_ellipsoid(raw, field_nt, normalization='svd'):
         v = np.insert(sol, 6, 1.0)
     else:
         raise ValueError(f"normalization must be 'svd' or 'p', got {normalization!r}")
-    a_mat = np.array([[v[0], v[5], v[4]], [v[5], v[1], v[3]], [v[4], v[3], v[2]]])  # eq. 11
+    a_mat = _quadric_matrix(v)                                       # eq. 11
     if np.linalg.eigvalsh(a_mat).mean() < 0:
         v = -v
         a_mat = -a_mat
     eig = np.linalg.eigvalsh(a_mat)
     if eig.min() <= 1e-9 * eig.max():
-        raise ValueError(
-            'the fitted quadric is not an ellipsoid (eigenvalues '
-            f'{np.array2string(eig, precision=3)}): the data do not cover enough attitudes '
-            '(for example a rotation about one axis only); rotate the sensor about more axes')
+        raise ValueError(_undetermined_message(
+            m, f'the fitted quadric is not an ellipsoid: eigenvalues '
+               f'{np.array2string(eig, precision=3)}'))
     centre_s = -np.linalg.solve(a_mat, v[6:9])                     # eq. 12 (scaled frame)
     k = centre_s @ a_mat @ centre_s - v[9]                          # eq. 13: b^T A b - d
     if k <= 0:
@@ -110,7 +247,8 @@ def fit_ellipsoid(raw, field_nt, normalization='svd'):
     c_inv = np.linalg.cholesky(a_nt).T            # (C^-1)^T C^-1 = A, C^-1 upper triangular
     coeffs = v / np.linalg.norm(v)
     res = np.linalg.norm((m - b) @ c_inv.T, axis=1) - field_nt
-    return EllipsoidFit(c_inv=c_inv, b=b, coeffs=coeffs, residual_nt=res)
+    return EllipsoidFit(c_inv=c_inv, b=b, coeffs=coeffs, residual_nt=res,
+                        b_cov=_centre_cov(sv, vt, len(m)) * s0 ** 2)
 
 
 def procrustes_rotation(reference, other):

@@ -11,31 +11,145 @@ the projected Jacobian (the Fisher information at the solution).
 import numpy as np
 
 from magcal_ros.core.coverage import direction_coverage
+from magcal_ros.core.ellipsoid import RING_CV, fit_ellipsoid, reading_plane, ring_spread
 
 #: smallest direction-scatter eigenvalue of a single-axis rotation (noise and wobble only)
 SINGLE_AXIS_EIG = 3e-4
 #: below this the attitude coverage is partial (about a +-14 deg band or a cap < ~45 deg)
 PARTIAL_EIG = 0.02
+#: directions on a ring (coefficient of variation of their in-plane radius below
+#: :data:`magcal_ros.core.ellipsoid.RING_CV`)
+#: whose spread along the ring's axis is below this fraction of the in-plane spread are a
+#: rotation about that axis with hand wobble (the shared hand-held single-axis recordings:
+#: 0.002-0.011), not a partial coverage (a vehicle tilting +-15 deg: 0.09)
+RING_RATIO = 0.015
+#: the fitted centre is used only when its noise standard deviation is below this fraction
+#: of the radius (a full sphere at SNR 10 with 1 500 readings: about 0.005)
+CENTRE_SD_REL = 0.02
 #: parameter correlations above this make the pair inseparable
 MAX_CORRELATION = 0.995
 #: condition number of the correlation matrix above which the solution is unreliable
 MAX_CONDITION = 1e6
 
 
-def _sphere_centre(m):
-    """Centre (3,) nT of the least-squares sphere |m - o|^2 = r^2, or None if ill-determined."""
-    design = np.column_stack([2.0 * m, np.ones(len(m))])
-    scale = np.linalg.norm(design, axis=0)
-    scale[scale == 0] = 1.0
-    sv = np.linalg.svd(design / scale, compute_uv=False)
-    if sv[-1] < 1e-6 * sv[0]:
+def fitted_centre(m):
+    """The readings' ellipsoid when the data determine it, else None.
+
+    Returns
+    -------
+    (numpy.ndarray, float) or None
+        Centre (3,) nT (the hard-iron offset, paper 004 eq. 12) and the relative noise
+        variance of the readings about the ellipsoid, ``var(radial residual / radius)``.
+        None when :func:`magcal_ros.core.ellipsoid.fit_ellipsoid` finds the ellipsoid not
+        determined against the noise (the fitted quadric not definite beyond its own
+        uncertainty), or when the centre's own noise uncertainty (largest standard
+        deviation) exceeds :data:`CENTRE_SD_REL` of the radius.
+    """
+    try:
+        ell = fit_ellipsoid(m, 1.0)
+    except (ValueError, np.linalg.LinAlgError):
         return None
-    sol, *_ = np.linalg.lstsq(design / scale, np.sum(m ** 2, axis=1), rcond=None)
-    return sol[:3] / scale[:3]
+    radius = float(np.median(np.linalg.norm(m - ell.b, axis=1)))
+    sd = float(np.sqrt(max(np.linalg.eigvalsh(ell.b_cov).max(), 0.0)))
+    if not sd < CENTRE_SD_REL * radius:
+        return None
+    return ell.b, float(np.var(ell.residual_nt))
+
+
+def _fmt_axis(v):
+    return '(' + ', '.join(f'{0.0 if abs(x) < 0.005 else x:+.2f}' for x in v) + ')'
+
+
+def _single_axis_message(normal, how):
+    return (f'all field directions lie near one plane with normal '
+            f'{_fmt_axis(normal)} ({how}): the data come from a rotation about one axis only, '
+            f'about {_fmt_axis(normal)} in the sensor frame; rotate about another axis too '
+            '(tilt that axis by 45-90 deg and rotate again)')
+
+
+def classify_coverage(m):
+    """Attitude coverage of one sensor's readings, judged about the fitted centre.
+
+    Parameters
+    ----------
+    m : numpy.ndarray
+        (N, 3) raw readings, nT (not all equal).
+
+    Returns
+    -------
+    dict
+        ``status`` ('good', 'partial', 'single axis', 'one attitude'), ``eigenvalues`` (3,)
+        of the direction scatter about the centre, less the scatter that the noise alone
+        gives (the variance of the ellipsoid's relative radial residual), ``normal`` (3,)
+        the missing rotation's axis in the sensor frame, ``cone_half_angle_deg``,
+        ``centre_nt`` (3,) or None, ``message`` (None when good).
+    """
+    fitted = fitted_centre(m)
+    noise_eig = 0.0
+    if fitted is not None:
+        centre, noise_eig = fitted
+    else:
+        # no centre: the raw directions (about the origin) tell whether the sensor turned
+        # at all; readings on one plane are a rotation about its normal
+        plane = reading_plane(m)
+        cov = direction_coverage(m)
+        ev = cov.eigenvalues
+        if plane is not None:
+            return dict(status='single axis', eigenvalues=ev, normal=plane,
+                        cone_half_angle_deg=cov.cone_half_angle_deg, centre_nt=None,
+                        message=_single_axis_message(
+                            plane, 'the readings are too flat to fit an ellipsoid'))
+        if ev[1] < SINGLE_AXIS_EIG or ev[2] < PARTIAL_EIG:
+            return dict(status='one attitude', eigenvalues=ev, normal=cov.normal,
+                        cone_half_angle_deg=cov.cone_half_angle_deg, centre_nt=None,
+                        message=None)
+        centre = np.zeros(3)
+    out = _judge(m, centre, noise_eig)
+    if out['status'] == 'good' and fitted is not None:
+        # cross-check with the least-squares sphere's centre (4 parameters, stable on a
+        # cap where the 10-parameter ellipsoid can bend to a wrong centre): a partial
+        # coverage must not pass as good
+        other = _judge(m, _sphere_centre(m), noise_eig)
+        if other['status'] != 'good':
+            out = other
+    return out
+
+
+def _sphere_centre(m):
+    """Centre (3,) nT of the least-squares sphere |m - o|^2 = r^2 (linear in o, r^2 - |o|^2)."""
+    design = np.column_stack([2.0 * m, np.ones(len(m))])
+    sol, *_ = np.linalg.lstsq(design, np.sum(m ** 2, axis=1), rcond=None)
+    return sol[:3]
+
+
+def _judge(m, centre, noise_eig):
+    """Coverage status of the readings m (N, 3) nT judged about ``centre`` (3,) nT."""
+    cov = direction_coverage(m - centre)
+    ev = np.clip(cov.eigenvalues - noise_eig, 0.0, None)
+    out = dict(eigenvalues=ev, normal=cov.normal, cone_half_angle_deg=cov.cone_half_angle_deg,
+               centre_nt=centre, message=None)
+    if ev[2] < PARTIAL_EIG or ev[1] < SINGLE_AXIS_EIG:
+        out['status'] = 'one attitude'
+    elif (ev[0] < max(SINGLE_AXIS_EIG, RING_RATIO * ev[1]) and ring_spread(
+            (m - centre) / np.linalg.norm(m - centre, axis=1)[:, None], cov.normal) < RING_CV):
+        out['status'] = 'single axis'
+        out['message'] = _single_axis_message(
+            cov.normal, f'spread {np.sqrt(ev[0]):.3f} along it against '
+                        f'{np.sqrt(ev[1]):.3f} within the plane, about the fitted centre')
+    elif ev[0] < PARTIAL_EIG:
+        out['status'] = 'partial'
+    else:
+        out['status'] = 'good'
+    return out
 
 
 def coverage_report(raw):
-    """Coverage of each sensor's raw field directions.
+    """Coverage of each sensor's field directions, judged about each sensor's fitted centre.
+
+    A hard-iron offset several times the field squeezes the raw directions (about the
+    origin) into a narrow cone although the sensor turned over; the directions are
+    therefore judged about the centre of the sensor's fitted ellipsoid (the offset) when the
+    data determine it, with the spread that the noise alone gives removed.
 
     Parameters
     ----------
@@ -46,7 +160,8 @@ def coverage_report(raw):
     -------
     dict
         ``sensors``: {j: {eigenvalues, normal, cone_half_angle_deg, status}} with status
-        'good', 'partial', 'single axis', 'one attitude' or 'constant' (stuck output),
+        'good', 'partial', 'single axis', 'one attitude' or 'constant' (stuck output);
+        ``normal`` is the missing rotation's axis in the sensor frame,
         ``problems``: list of messages naming the missing rotation (empty when fine),
         ``summary``: one line.
     """
@@ -68,44 +183,34 @@ def coverage_report(raw):
                            f'({", ".join(f"{x:.1f}" for x in m[0])}) nT): the sensor is stuck or '
                            'not updating; check its power, cable and driver')
             continue
-        cov = direction_coverage(m)
-        ev = cov.eigenvalues
-        n = ', '.join(f'{x:+.2f}' for x in cov.normal)
-        if ev[1] < SINGLE_AXIS_EIG:
-            status = 'one attitude'
-            msg = (f'sensor {j}: all samples have (nearly) the same field direction: rotate the '
-                   'array through many attitudes (turn it over, about at least two axes)')
-        elif ev[0] < SINGLE_AXIS_EIG:
-            status = 'single axis'
-            msg = (f'sensor {j}: all field directions lie near one plane with normal ({n}): '
-                   'the data come from a rotation about one axis only; rotate about another '
-                   'axis too (tilt that axis by 45-90 deg and rotate again)')
-        elif ev[0] < PARTIAL_EIG:
-            status = 'partial'
-            if cov.mean_resultant_length > 0.5:
+        c = classify_coverage(m)
+        ev, status = c['eigenvalues'], c['status']
+        n = ', '.join(f'{x:+.2f}' for x in c['normal'])
+        if status == 'one attitude':
+            msg = (f'sensor {j}: all samples have (nearly) the same field direction (within a '
+                   f'{c["cone_half_angle_deg"]:.0f} deg cone): the sensor hardly turned; rotate '
+                   'the array through many attitudes (turn it over, about at least two axes)')
+        elif status == 'single axis':
+            msg = f'sensor {j}: {c["message"]}'
+        elif status == 'partial':
+            cov_dir = direction_coverage(m - c['centre_nt'])
+            if cov_dir.mean_resultant_length > 0.5:
                 msg = (f'sensor {j}: field directions span only a '
-                       f'{2 * cov.cone_half_angle_deg:.0f} deg cone around '
-                       f'({", ".join(f"{x:+.2f}" for x in cov.mean_direction)}): scale, '
-                       'non-orthogonality and offset are poorly separated; turn the array '
-                       'over, or use the constrained mode (priors on scale and angles)')
+                       f'{2 * c["cone_half_angle_deg"]:.0f} deg cone around '
+                       f'({", ".join(f"{x:+.2f}" for x in cov_dir.mean_direction)}) about the '
+                       'fitted centre: scale, non-orthogonality and offset are poorly '
+                       'separated; turn the array over, or use the constrained mode '
+                       '(--constrained: priors on scale and angles)')
             else:
                 msg = (f'sensor {j}: field directions stay within a band around the plane with '
-                       f'normal ({n}): tilt the array further out of that plane, or use the '
-                       'constrained mode')
+                       f'normal ({n}), i.e. mostly a rotation about ({n}) in the sensor frame: '
+                       'tilt that axis further, or use the constrained mode (--constrained)')
         else:
-            status = 'good'
             msg = None
-        if status == 'partial':
-            # a hard-iron offset comparable with the field squeezes the *raw* directions into
-            # a cone although the attitudes cover the sphere: judge the directions about the
-            # centre of the best-fit sphere when that centre is well determined
-            centre = _sphere_centre(m)
-            if centre is not None:
-                cov_c = direction_coverage(m - centre)
-                if cov_c.eigenvalues[0] >= PARTIAL_EIG:
-                    cov, ev, status, msg = cov_c, cov_c.eigenvalues, 'good', None
-        out['sensors'][j] = dict(eigenvalues=ev.tolist(), normal=cov.normal.tolist(),
-                                 cone_half_angle_deg=cov.cone_half_angle_deg, status=status)
+        out['sensors'][j] = dict(eigenvalues=[float(x) for x in ev],
+                                 normal=[float(x) for x in c['normal']],
+                                 cone_half_angle_deg=float(c['cone_half_angle_deg']),
+                                 status=status)
         if msg:
             messages[j] = msg
     moved = [j for j, v in out['sensors'].items()
