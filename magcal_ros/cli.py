@@ -138,6 +138,8 @@ def cmd_fit(args):
     from magcal_ros.pipeline import calibrate, cross_geometry
     load_plugins(args)
     data = load_data(args.data)
+    if args.method != 'ellipsoid':
+        return _fit_paper_method(args, data)
     field_nt, fref = resolve_field(args, data)
     geometry = cross_geometry(args.baseline_m) if data.n_sensors == 4 else None
     run = calibrate(data, args.model, field_nt=field_nt, geometry=geometry,
@@ -176,6 +178,48 @@ def cmd_fit(args):
               + ('no calibration written; ' if out else '')
               + 'rerun with --force to accept it anyway', file=sys.stderr)
         return EXIT_FAIL
+    return EXIT_OK
+
+
+def _fit_paper_method(args, data):
+    """``magcal fit --method sine|reference``: the closed forms of papers 000 and 002."""
+    from magcal_ros.core import paper_methods
+    from magcal_ros.io.calfile import calibration_to_doc, save_calibration
+    from magcal_ros.pipeline import cross_geometry
+    for opt, given in (('--model', args.model != 'base'), ('--robust', args.robust),
+                       ('--constrained', args.constrained)):
+        if given:
+            raise BadInput(f'{opt} applies to --method ellipsoid only (the maximum-likelihood '
+                           f'fit); --method {args.method} has a fixed model')
+    if args.method == 'sine':
+        field_nt, fref = resolve_field(args, data)
+        if field_nt is None:
+            field_nt = data.ref_total
+        res = paper_methods.sine_calibration(data, field_nt)
+        geometry = None                     # the rotations between sensors are unknown
+    else:
+        field_nt, fref = None, {'kind': 'reference vector (|ref_x, ref_y, ref_z|)'}
+        if getattr(args, 'field_nt', None) is not None or getattr(args, 'igrf', None) or \
+                data.ref_total is not None:
+            field_nt, fref = resolve_field(args, data)
+            field_nt = data.ref_total if field_nt is None else field_nt
+        res = paper_methods.reference_calibration(
+            data, field_nt, on_degenerate='flag' if args.flag_degenerate else 'raise')
+        geometry = cross_geometry(args.baseline_m) if data.n_sensors == 4 else None
+    out = args.output
+    if out:
+        doc = calibration_to_doc(res.calibration, geometry=geometry, field_reference=fref,
+                                 provenance={'method': args.method,
+                                             'samples': int(data.n_samples),
+                                             'warnings': list(res.warnings)})
+        save_calibration(out, doc)
+    if args.json:
+        print_json({**res.to_dict(), 'noise_floor_nt': None, 'output': out,
+                    'field_reference': fref})
+    else:
+        print(res.summary())
+        if out:
+            print(f'calibration written to {out}')
     return EXIT_OK
 
 
@@ -265,6 +309,11 @@ def build_parser():
     f = sub.add_parser('fit', help='fit a model and write a calibration file')
     f.add_argument('data', help='wide CSV file or rosbag2 directory')
     f.add_argument('--model', default='base', help="effects, e.g. 'base,temperature@2'")
+    f.add_argument('--method', default='ellipsoid', choices=['ellipsoid', 'sine', 'reference'],
+                   help='ellipsoid: maximum-likelihood fit of --model from rotations in a '
+                        'uniform field (paper 004, default); sine: turntable sine fits '
+                        '(paper 000; columns angle_deg, plane); reference: least squares '
+                        'against a reference vector (paper 002; columns ref_x, ref_y, ref_z)')
     f.add_argument('-o', '--output', help='calibration YAML to write')
     f.add_argument('--json', action='store_true', help='print one JSON object on stdout')
     add_field_args(f)
