@@ -163,7 +163,7 @@ def ros_env(domain_id=None):
     """Environment for ROS processes of a benchmark: loopback Fast DDS profile, own domain.
 
     DDS stays on this machine: shared memory plus UDPv4 on 127.0.0.1 only, unicast
-    discovery (config/fastdds_loopback.xml, DESIGN.md), and a private ROS_DOMAIN_ID.
+    discovery (config/fastdds_loopback.xml), and a private ROS_DOMAIN_ID.
     """
     if not os.path.exists(FASTDDS_PROFILE):
         raise FileNotFoundError(f'missing {FASTDDS_PROFILE}: the loopback DDS profile is '

@@ -1,6 +1,6 @@
 """magcal_ros: calibration and live correction of a four-fluxgate cross gradiometer.
 
-Layers (see ``docs``/DESIGN.md):
+Layers (see docs/design.md §6):
 
 - :mod:`magcal_ros.core` -- numpy/scipy only: models, fits, diagnostics, simulator.
 - :mod:`magcal_ros.io` -- CSV, rosbag2 and calibration-file readers/writers.

@@ -1,4 +1,4 @@
-"""The offline ``magcal`` command line (DESIGN.md contract 2).  Imports no rclpy.
+"""The offline ``magcal`` command line (docs/design.md §2).  Imports no rclpy.
 
 Exit status: 0 success, 2 bad input (one-line reason on stderr), 1 other failure.
 """

@@ -1,4 +1,4 @@
-"""`magcal diagnose` and `magcal report` (DESIGN.md contract 2), registered by magcal_ros.cli.
+"""`magcal diagnose` and `magcal report` (docs/design.md §2), registered by magcal_ros.cli.
 
 - ``magcal diagnose DATA --model MODEL [--json] [--report DIR] [--ladder]``: noise floor,
   residuals, every missing effect ranked by evidence, verdict; ``--ladder`` keeps adding the

@@ -2,7 +2,7 @@
 
 ``calibrate(data, ...)`` = identifiability check + closed-form start + ML refinement
 (:func:`magcal_ros.core.model.fit`), then the before/after figures (scalar, vector and tensor
-residuals) and the calibration document (DESIGN.md contract 4).
+residuals) and the calibration document (docs/design.md §4).
 """
 from dataclasses import dataclass
 

@@ -1,4 +1,4 @@
-"""Calibration file (DESIGN.md contract 4): content, atomic writes, history, refusals."""
+"""Calibration file (docs/design.md §4): content, atomic writes, history, refusals."""
 import os
 
 import numpy as np

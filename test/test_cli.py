@@ -1,4 +1,4 @@
-"""`magcal simulate` and `magcal fit` (DESIGN.md contract 2), run as a user would."""
+"""`magcal simulate` and `magcal fit` (docs/design.md §2), run as a user would."""
 import json
 import subprocess
 import sys

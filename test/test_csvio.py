@@ -1,4 +1,4 @@
-"""Wide CSV (DESIGN.md contract 1): round trip and clear errors."""
+"""Wide CSV (docs/design.md §1): round trip and clear errors."""
 import numpy as np
 import pytest
 

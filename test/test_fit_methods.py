@@ -139,3 +139,14 @@ def test_reference_method_recovers_a_soft_iron_array(tmp_path):
     cal, _ = load_calibration(out)
     diff = cal.correct(2, hm[1]) - cal.correct(1, hm[0])
     assert np.sqrt(np.mean(diff ** 2)) < 1.3 * np.sqrt(2) * noise
+
+
+def test_readme_command_as_written():
+    """The `--method reference` line of the README, run from the repository root."""
+    root = pathlib.Path(__file__).resolve().parents[1]
+    line = next(ln for ln in (root / 'README.md').read_text().splitlines()
+                if ln.startswith('magcal fit') and '--method reference' in ln)
+    p = subprocess.run([sys.executable, '-m', 'magcal_ros.cli', *line.split()[1:]],
+                       capture_output=True, text=True, timeout=240, cwd=root)
+    assert p.returncode == 0, p.stderr
+    assert 'method: reference' in p.stdout and 'lie in one plane' in p.stdout

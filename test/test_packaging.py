@@ -1,6 +1,6 @@
 """Packaging: magcal_ros builds with colcon as an ament_python package.
 
-The install holds what ``ros2 run`` / ``ros2 launch`` need (DESIGN.md contract 3).
+The install holds what ``ros2 run`` / ``ros2 launch`` need (docs/design.md §3).
 
 A copy of the package source is built with the colcon from this environment into a temporary
 workspace (no writes to the repository). This is the slow test of the suite (about 10 s).
@@ -18,7 +18,7 @@ import pytest
 from ros_helpers import REPO_ROOT, subprocess_env
 
 PACKAGE = 'magcal_ros'
-# Console scripts of DESIGN.md contract 3 plus the offline tool (API.md).
+# Console scripts of docs/design.md §3 plus the offline tool (docs/design.md §2).
 EXECUTABLES = ('fluxgate_driver', 'calibration_node', 'corrector_node', 'fluxgate_sim',
                'magcal')
 # What colcon must not see in the copy: environments, caches, other workspaces' output.

@@ -79,7 +79,8 @@ def test_table1_values():
 
 
 # Paper 004 Table 2 as printed (estimates from N = 200 noisy attitudes). The R matrices are
-# printed one column to the left (SEEDS.md errata): the one under "sensor 1" is sensor 2's.
+# printed one column to the left (docs/papers.md, paper 004 errata): the one under "sensor 1"
+# is sensor 2's.
 PRINTED_CINV = {
     1: [[0.9877, -0.0212, 0.0213], [0, 1.0092, -0.0169], [0, 0, 0.9931]],
     2: [[0.9884, -0.0187, -0.015], [0, 0.9853, -0.0131], [0, 0, 1.014]],
@@ -95,7 +96,7 @@ PRINTED_R = {
 
 def test_table1_correction_sensor1_is_the_seeds_value():
     c_inv, r = table1_correction(1)
-    # SEEDS.md: true C^-1 of sensor 1 from Table 1
+    # docs/papers.md, paper 004: true C^-1 of sensor 1 from Table 1
     np.testing.assert_allclose(c_inv, [[0.9877, -0.0242, 0.0213], [0, 1.0092, -0.0169],
                                        [0, 0, 0.9930]], atol=0.5e-4)
     np.testing.assert_allclose(r, np.eye(3), atol=EXACT)
@@ -106,7 +107,7 @@ def test_table1_correction_matches_printed_table2(j):
     c_inv, r = table1_correction(j)
     # Table 2 holds estimates from noisy data printed to 4 decimals; the true values agree
     # with them within 3e-4 everywhere except sensor 1's (1, 2) entry, printed -0.0212 for a
-    # true -0.0242 (a misprint or a noise excursion; SEEDS.md).
+    # true -0.0242 (a misprint or a noise excursion; docs/papers.md, paper 004).
     diff = np.abs(c_inv - np.array(PRINTED_CINV[j]))
     if j == 1:
         assert diff[0, 1] == pytest.approx(0.0030, abs=0.5e-4)
@@ -169,7 +170,7 @@ def test_000_phi_relation():
     m = p.matrix
     xm, zm = m[0] / np.linalg.norm(m[0]), m[2] / np.linalg.norm(m[2])
     assert np.degrees(np.arccos(xm @ zm)) == pytest.approx(np.degrees(p.phi), abs=1e-12)
-    # SEEDS.md erratum: phi = 89.0996 deg (printed 89.9996)
+    # docs/papers.md, paper 000 erratum: phi = 89.0996 deg (printed 89.9996)
     assert np.degrees(p.phi) == pytest.approx(89.0996, abs=0.5e-4)
 
 

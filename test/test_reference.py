@@ -43,7 +43,7 @@ def table2_fit(table2):
 def test_table2_file(table2):
     angle, he, hm = table2
     np.testing.assert_array_equal(angle, [0, 60, 120, 180, 240, 300])
-    # the sign erratum of SEEDS.md is applied
+    # the sign erratum of docs/papers.md, paper 002, is applied
     np.testing.assert_array_equal(hm[:, 1], [11943, 12413, -8607, -30055, -30566, -9507])
     # paper 002 Table 3 lists the disturbed total field at 180 and 300 deg, which are also
     # Table 2 attitudes: 30 331.0 and 18 598.0 nT. Rounding each component to 1 nT moves a
@@ -54,7 +54,8 @@ def test_table2_file(table2):
 
 
 def test_table2_reproduces_seeds_row2(table2_fit):
-    # SEEDS.md: K row 2 = (-4.653, 11.122, -0.0019), Hhy = 11 724 nT with the sign erratum
+    # docs/papers.md, paper 002: K row 2 = (-4.653, 11.122, -0.0019), Hhy = 11 724 nT with the
+    # sign erratum
     k = table2_fit.K
     assert (k[1, 0], k[1, 1]) == pytest.approx((-4.653, 11.122), abs=0.5e-3)
     assert k[1, 2] == pytest.approx(-0.0019, abs=0.5e-4)
@@ -116,7 +117,7 @@ def test_table2_total_field_after_compensation(table2, table2_fit):
 
 def test_table2_is_coplanar(table2, table2_fit):
     f = table2_fit
-    # SEEDS.md: plane normal about (-0.866, 0.500, 0.003), sign-agnostic
+    # docs/papers.md, paper 002: plane normal about (-0.866, 0.500, 0.003), sign-agnostic
     assert f.coverage.planar
     n = -f.unobservable_direction * np.sign(f.unobservable_direction[0])
     np.testing.assert_allclose(n, [-0.866, 0.500, 0.003], atol=0.5e-3)

@@ -10,7 +10,7 @@ import pytest
 
 
 def test_default_protocol_is_design_contract_line():
-    # DESIGN.md contract 3: '<x_nT>,<y_nT>,<z_nT>,<temp_C>\r\n'
+    # docs/design.md §3: '<x_nT>,<y_nT>,<z_nT>,<temp_C>\r\n'
     p = make_parser('ascii')
     out = p.feed(b'12345.6,-2345.1,43210.9,24.31\r\n')
     assert out == [Sample((12345.6, -2345.1, 43210.9), 24.31, None)]

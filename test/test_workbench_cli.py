@@ -1,4 +1,4 @@
-"""`magcal diagnose` and `magcal report` (DESIGN.md contract 2), run as a user would."""
+"""`magcal diagnose` and `magcal report` (docs/design.md §2), run as a user would."""
 import json
 import os
 import pathlib

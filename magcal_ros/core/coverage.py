@@ -6,12 +6,12 @@ offset ``o`` absorbs whatever is common to all samples, so what matters is the s
 directions *about their mean*: directions on one circle of the unit sphere (a cone around the
 rotation axis, which is what a rotation about a single axis gives) lie in one affine plane and
 leave the map undetermined along that plane's normal, even when the cone is wide. This is the
-defect of paper 002's Table 2 (six attitudes about one axis; see SEEDS.md).
+defect of paper 002's Table 2 (six attitudes about one axis; docs/papers.md, paper 002).
 
 The check therefore uses the scatter matrix of the unit directions about their mean,
 ``(1/N) sum (u - u_mean)(u - u_mean)^T``. For directions uniform on the sphere its eigenvalues
-are 1/3 each; their sum is ``1 - |u_mean|^2``. Note: API.md v0 describes the uncentred scatter
-``(1/N) sum u u^T``; that one only detects great circles (directions through the origin plane)
+are 1/3 each; their sum is ``1 - |u_mean|^2``. The uncentred scatter
+``(1/N) sum u u^T`` only detects great circles (directions through the origin plane)
 and misses the single-axis rotation, so the centred form is used here.
 """
 

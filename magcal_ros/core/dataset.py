@@ -1,4 +1,4 @@
-"""In-memory form of a recording of an S-sensor array (the wide CSV of DESIGN.md contract 1)."""
+"""In-memory form of a recording of an S-sensor array (the wide CSV of docs/design.md §1)."""
 from dataclasses import dataclass, field, replace
 
 import numpy as np

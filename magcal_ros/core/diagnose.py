@@ -208,7 +208,7 @@ class Candidate:
     params: tuple = ()
 
     def to_dict(self):
-        """JSON-ready dict (DESIGN.md contract 2 keys first)."""
+        """JSON-ready dict (docs/design.md §2 keys first)."""
         return {'effect': self.effect, 'sensor': self.sensor,
                 'rms_before_nt': self.rms_before_nt, 'rms_after_nt': self.rms_after_nt,
                 'delta_bic': self.delta_bic, 'p_value': self.p_value,
@@ -597,7 +597,7 @@ class Diagnosis:
                 'vector': {j: v / fl.vector_floor_nt(j) for j, v in self.vector_rms_nt.items()}}
 
     def to_dict(self):
-        """JSON-ready dict per DESIGN.md contract 2 (plus details)."""
+        """JSON-ready dict per docs/design.md §2 (plus details)."""
         fl = self.noise_floor
         v = self.verdict
         ratios = self.ratios

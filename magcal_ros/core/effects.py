@@ -8,7 +8,7 @@ where ``B`` (nT) is the true field in the array frame (sensor 1's orthogonalised
 ``A_j`` is the product of the *linear* effects (composed by matrix product, in the order
 scale . nonorthogonality . soft_iron . misalignment, paper 004 eq. 2-3) and ``d_k`` are the
 *additive* effects (offset, temperature, drift, nonlinearity, auxiliary currents, field rate),
-which add in the raw sensor frame.  This is the composition rule of STYLE.md: linear maps
+which add in the raw sensor frame.  This is the composition rule: linear maps
 compose, offsets and driven effects add.
 
 An effect is a small object with named parameters (each with a unit) and either a

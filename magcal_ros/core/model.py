@@ -94,7 +94,7 @@ class Model:
 
     @classmethod
     def from_spec(cls, spec, n_sensors):
-        """Build a model from a comma-separated spec (DESIGN.md contract 2).
+        """Build a model from a comma-separated spec (docs/design.md §2).
 
         ``base`` expands to offset, scale, nonorthogonality, misalignment; ``name@j``
         restricts an effect to sensor j; ``aux:<column>`` couples an auxiliary channel.

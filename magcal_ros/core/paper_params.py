@@ -225,7 +225,7 @@ def table1_correction(j):
     upper triangular; the Procrustes step (eq. 14) then recovers ``R_corr = (R1 R2 R3)^T``,
     which maps the single-sensor-corrected field of sensor j into sensor 1's frame. These
     are the quantities of paper 004 Table 2 (whose R matrices are printed one column to
-    the left: the one under sensor 1 belongs to sensor 2, see SEEDS.md errata).
+    the left: the one under sensor 1 belongs to sensor 2, docs/papers.md, paper 004 errata).
 
     Parameters
     ----------

@@ -13,7 +13,7 @@ about one axis produces), the design ``[He 1]`` has the null vector ``(n, -c)``:
 ``K + v n^T`` and ``Hh - c v`` fit equally well, so ``K n`` (how the interference responds to
 the field along ``n``) and ``Hh`` are not separately identifiable, and the compensation is only
 valid for attitudes whose field stays in that plane. Paper 002's own Table 2 is such a data set
-(normal about (-0.866, 0.500, 0.003); SEEDS.md).
+(normal about (-0.866, 0.500, 0.003); docs/papers.md, paper 002).
 """
 
 from dataclasses import dataclass

@@ -27,7 +27,7 @@ states none of them):
   1.2607 = 41 906.6 / 33 240.0 is the Ym amplitude over the Xm amplitude, which is what
   ky / kx means. Eq. 14 (k_zx = Zm amplitude / Xm amplitude) is consistent with that.
 - Erratum: §3.1 prints phi = 89.9996 deg; the fitted phases give 90 - 0.9004 = 89.0996 deg,
-  and only that value reproduces gamma = 1.07 deg through eq. 13 (SEEDS.md).
+  and only that value reproduces gamma = 1.07 deg through eq. 13 (docs/papers.md, paper 000).
 - Eq. 5, 9 and 12 take absolute values of phase differences, which loses the signs of alpha
   and beta. Here the turning sense ``s`` is read from the data (the Ym phase leads the Xm
   phase by about +90 deg for s = +1, lags by about 90 deg for s = -1, since |alpha| < 90 deg),

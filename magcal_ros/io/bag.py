@@ -2,7 +2,7 @@
 
 Reads with the ``rosbags`` library (pure Python; sqlite3 and mcap storage, any ROS 2 distro
 the bag declares, Jazzy message definitions by default).  Topics, under a namespace
-(default ``/magcal``, DESIGN.md contract 3):
+(default ``/magcal``, docs/design.md §3):
 
 - ``{ns}/sensor{j}/raw`` -- ``sensor_msgs/msg/MagneticField`` in tesla, sensor j's own
   axes (required, j = 1..S consecutive);

@@ -1,4 +1,4 @@
-"""The calibration file (DESIGN.md contract 4): YAML with a schema version, written atomically.
+"""The calibration file (docs/design.md §4): YAML with a schema version, written atomically.
 
 Layout (schema_version 1)::
 

@@ -1,4 +1,4 @@
-"""The wide CSV format of DESIGN.md contract 1 (read and write)."""
+"""The wide CSV format of docs/design.md §1 (read and write)."""
 import io as _io
 import os
 import re

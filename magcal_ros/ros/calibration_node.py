@@ -1,6 +1,6 @@
 """calibration_node: collect rotation data from the live array, calibrate, diagnose.
 
-Topics (relative to the node namespace, default ``/magcal``; DESIGN.md contract 3):
+Topics (relative to the node namespace, default ``/magcal``; docs/design.md §3):
 
 - subscribes ``sensor{j}/raw`` (sensor_msgs/MagneticField, T), ``sensor{j}/temperature``
   (sensor_msgs/Temperature, degC) and one std_msgs/Float64 topic per name in ``aux_topics``
@@ -10,7 +10,7 @@ Topics (relative to the node namespace, default ``/magcal``; DESIGN.md contract 
 - publishes ``calibration/status`` (std_msgs/String, JSON, every ``status_period_s``):
   sets collected, attitude coverage per sensor, what is still missing;
 - publishes ``calibration/result`` (std_msgs/String holding the calibration YAML of
-  DESIGN.md contract 4; reliable, transient local, depth 1): the active calibration.
+  docs/design.md §4; reliable, transient local, depth 1): the active calibration.
 
 Services (std_srvs/srv/Trigger; the response message is a short summary, a newline, then
 one JSON object):

@@ -9,7 +9,7 @@ Message layouts
   3x3 row-major (x, y, z); all zeros means "covariance unknown" (message definition).
 - Gradient tensor ``std_msgs/Float64MultiArray``: 3x3 row-major in T/m, ``layout.dim`` =
   ``[('row', size 3, stride 9), ('col', size 3, stride 3)]``, ``data_offset`` 0
-  (DESIGN.md contract 3).
+  (docs/design.md §3).
 - ``sensor_msgs/Temperature``: degrees Celsius, variance in degC^2.
 """
 
@@ -23,7 +23,7 @@ import rclpy.time
 from sensor_msgs.msg import MagneticField, Temperature
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, MultiArrayLayout
 
-#: Labels of the gradient tensor's ``layout.dim`` entries (DESIGN.md contract 3).
+#: Labels of the gradient tensor's ``layout.dim`` entries (docs/design.md §3).
 TENSOR_DIM_LABELS = ('row', 'col')
 
 _NS_PER_S = 1_000_000_000

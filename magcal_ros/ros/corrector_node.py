@@ -1,6 +1,6 @@
 """corrector_node: live correction of the array with the active calibration.
 
-Topics (relative to the node namespace, default ``/magcal``; DESIGN.md contract 3):
+Topics (relative to the node namespace, default ``/magcal``; docs/design.md §3):
 
 - subscribes ``sensor{j}/raw`` (sensor_msgs/MagneticField, T), ``sensor{j}/temperature``
   (sensor_msgs/Temperature; only while an effect of the calibration reads the temperature)

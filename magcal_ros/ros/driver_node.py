@@ -14,7 +14,7 @@ node, which maps the device axes to the sensor frame and publishes
 A port that disappears is reopened with exponential backoff (optionally at alternative
 paths); the other sensors keep publishing. Defaults: namespace ``/magcal``, four sensors on
 ``/tmp/magcal_sim/fluxgate1..4`` with the default ASCII protocol, i.e. exactly what
-``fluxgate_sim`` provides with no arguments (DESIGN.md contract 3).
+``fluxgate_sim`` provides with no arguments (docs/design.md §3).
 
 Parameters (``ros2 param describe`` shows each with its unit): global defaults
 ``protocol``, ``baud``, ``options``, ``noise_nt``, ``backoff_min_s``, ``backoff_max_s``;

@@ -215,7 +215,7 @@ def calibration_specs(n_sensors=4):
     """Parameters of ``calibration_node`` other than :data:`N_SENSORS`."""
     return [
         ParamSpec('model', ('base',),
-                  'model to fit: list of effect names (DESIGN.md contract 2), e.g. '
+                  'model to fit: list of effect names (docs/design.md §2), e.g. '
                   "['base', 'temperature@2']; no unit",
                   model_check(n_sensors), item_type=str),
         ParamSpec('field_nt', 50000.0, 'reference magnitude of the (uniform) field at the '

@@ -10,7 +10,7 @@ def spin_node(node_cls, name, args=None):
 
     A ValueError raised while the node declares and validates its parameters is a user
     error: it is printed as one line (``<name>: bad parameters: <reason>``) and the
-    process exits with status 2, as DESIGN.md asks of the command line.
+    process exits with status 2, as docs/design.md §3 asks of invalid start-up parameters.
     """
     rclpy.init(args=args)
     try:

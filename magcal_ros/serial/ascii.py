@@ -1,6 +1,6 @@
 r"""Configurable ASCII line protocol (the project's default device protocol).
 
-Default (DESIGN.md contract 3): one line per sample, ``<x_nT>,<y_nT>,<z_nT>,<temp_C>\r\n``,
+Default (docs/design.md §3): one line per sample, ``<x_nT>,<y_nT>,<z_nT>,<temp_C>\r\n``,
 e.g. ``12345.6,-2345.1,43210.9,24.31\r\n``.
 
 Everything is configurable: the delimiter (or ``None`` for runs of whitespace), the line
