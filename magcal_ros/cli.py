@@ -12,6 +12,7 @@ import numpy as np
 from magcal_ros.core.diagnose import jsonable
 from magcal_ros.core.model import DegenerateDataError
 from magcal_ros.core.notes import format_note
+from magcal_ros.units import check_field_units, UNITS_NT
 
 EXIT_OK, EXIT_FAIL, EXIT_BAD_INPUT = 0, 1, 2
 
@@ -20,15 +21,52 @@ class BadInput(ValueError):
     """Bad user input: reported on stderr with exit status 2."""
 
 
-def load_data(path):
-    """Dataset from a wide CSV file or a rosbag2 directory."""
+def load_data(path, unit=None, rate_hz=100.0):
+    """Dataset in nT from a wide CSV file, a rosbag2 directory or a single-sensor CSV.
+
+    ``unit`` (a key of :data:`magcal_ros.units.UNITS_NT`) is the unit of the field columns
+    (readings, ``ref_total``, ``ref_x/y/z``); they are converted to nT here, once.  A CSV
+    without wide-format sensor columns (``mx,my,mz``, ``x,y,z`` ...) is read as one
+    magnetometer's log (needs ``unit``; ``rate_hz`` when it has no time column).
+    """
     if os.path.isdir(path):
         from magcal_ros.io.bag import read_bag
-        return read_bag(path)
-    if not os.path.exists(path):
+        data = read_bag(path)
+    elif not os.path.exists(path):
         raise BadInput(f'{path}: no such file or directory')
-    from magcal_ros.io.csvio import read_csv
-    return read_csv(path)
+    elif unit and not _is_wide_csv(path):
+        from magcal_ros.io.single_csv import read_single_sensor_csv
+        return read_single_sensor_csv(path, unit=unit, rate_hz=rate_hz)
+    else:
+        from magcal_ros.io.csvio import read_csv
+        data = read_csv(path)
+    k = UNITS_NT[unit or 'nT']
+    if k != 1.0:
+        data.raw = data.raw * k
+        if data.ref_total is not None:
+            data.ref_total = data.ref_total * k
+        if data.ref_vec is not None:
+            data.ref_vec = data.ref_vec * k
+        data.meta['unit'] = unit
+    return data
+
+
+def _is_wide_csv(path):
+    """True when the first non-comment line of ``path`` names a wide-format column s<j>_x."""
+    import re
+    with open(path, encoding='utf-8-sig', errors='replace') as fh:
+        for line in fh:
+            if line.strip() and not line.lstrip().startswith('#'):
+                return re.search(r'(^|[,;\t ])s\d+_x($|[,;\t ])', line.strip()) is not None
+    return False
+
+
+def add_unit_arg(p):
+    """--unit option (the unit of the data's field columns)."""
+    p.add_argument('--unit', choices=list(UNITS_NT),
+                   help='unit of the field columns of DATA (readings, ref_total, ref_x/y/z), '
+                        'converted to nT at load (default nT); a single-magnetometer CSV '
+                        '(mx,my,mz or x,y,z columns) needs it')
 
 
 def add_field_args(p):
@@ -42,7 +80,27 @@ def add_field_args(p):
 
 
 def resolve_field(args, data):
-    """(field_nt or None, field_reference dict) from the options and the data."""
+    """(field_nt or None, field_reference dict) from the options and the data.
+
+    The readings and the reference must be a geomagnetic field in nT and agree with each
+    other (:func:`magcal_ros.units.check_field_units`): data in gauss, uT or T read as nT,
+    ``--field-nt 50`` meant as uT, or a ``ref_total`` column in uT are refused with the unit
+    the numbers look like.
+    """
+    f, fref = _resolve_field(args, data)
+    kind = fref['kind']
+    name = {'constant': '--field-nt', 'igrf': 'the IGRF magnitude',
+            'ref_total': 'the ref_total column (median)'}.get(kind)
+    ref = None if name is None else (float(np.median(data.ref_total)) if kind == 'ref_total'
+                                     else f)
+    try:
+        check_field_units(data.raw, ref, name or '')
+    except ValueError as exc:
+        raise BadInput(str(exc)) from None
+    return f, fref
+
+
+def _resolve_field(args, data):
     if getattr(args, 'igrf', None):
         from magcal_ros.core.reference_field import igrf_total
         try:
@@ -137,7 +195,7 @@ def cmd_fit(args):
     from magcal_ros.io.calfile import save_calibration
     from magcal_ros.pipeline import calibrate, cross_geometry
     load_plugins(args)
-    data = load_data(args.data)
+    data = load_data(args.data, args.unit)
     if args.method != 'ellipsoid':
         return _fit_paper_method(args, data)
     field_nt, fref = resolve_field(args, data)
@@ -317,6 +375,7 @@ def build_parser():
     f.add_argument('-o', '--output', help='calibration YAML to write')
     f.add_argument('--json', action='store_true', help='print one JSON object on stdout')
     add_field_args(f)
+    add_unit_arg(f)
     f.add_argument('--baseline-m', type=float, default=0.5, help='cross baseline, m')
     f.add_argument('--robust', action='store_true', help='robust (soft-L1) loss for outliers')
     f.add_argument('--constrained', action='store_true',

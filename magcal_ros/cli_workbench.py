@@ -58,10 +58,7 @@ def _plugins(args):
 
 def _load(args, cli):
     """Dataset from DATA (wide CSV, rosbag2 directory, or single-sensor CSV with --unit)."""
-    if args.unit:
-        from magcal_ros.io.single_csv import read_single_sensor_csv
-        return read_single_sensor_csv(args.data, unit=args.unit, rate_hz=args.rate_hz)
-    return cli.load_data(args.data)
+    return cli.load_data(args.data, args.unit, args.rate_hz)
 
 
 def _common(p, cli):
@@ -83,9 +80,7 @@ def _common(p, cli):
     p.add_argument('--flag-degenerate', action='store_true',
                    help='diagnose degenerate data anyway and flag it instead of refusing')
     p.add_argument('--baseline-m', type=float, default=0.5, help='cross baseline, m')
-    p.add_argument('--unit', choices=['nT', 'uT', 'mG', 'gauss', 'G', 'T'],
-                   help='DATA is a single-magnetometer CSV (mx,my,mz or x,y,z columns) in '
-                        'this unit')
+    cli.add_unit_arg(p)
     p.add_argument('--rate-hz', type=float, default=100.0,
                    help='assumed sample rate of a single-sensor CSV without a time column')
     p.add_argument('-q', '--quiet', action='store_true', help='no progress on stderr')

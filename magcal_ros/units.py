@@ -41,3 +41,107 @@ def t_to_nt(value_t):
         Same shape, float64, in nT (or nT/m). A scalar input gives a numpy float.
     """
     return np.asarray(value_t, dtype=np.float64) * NT_PER_T
+
+
+# -- field units of user data (issue 10: gauss, uT or T read as nT) ----------------------------
+
+#: nanotesla per unit of a field column (``--unit``)
+UNITS_NT = {'nT': 1.0, 'uT': 1e3, 'mG': 100.0, 'G': 1e5, 'gauss': 1e5, 'T': 1e9}
+#: magnitude of the geomagnetic field at the Earth's surface, nT (IGRF: ~22 000 to ~67 000)
+GEOMAGNETIC_RANGE_NT = (20000.0, 70000.0)
+#: a factor 2 beyond it is still accepted (scale errors of an uncalibrated sensor, indoor
+#: distortion); outside, the numbers are not a geomagnetic field in nT
+PLAUSIBLE_RANGE_NT = (10000.0, 140000.0)
+#: the readings and a given reference magnitude may differ by at most this factor
+REFERENCE_RATIO = 3.0
+
+
+def field_magnitude_estimate(raw):
+    """Typical field magnitude seen by one sensor, nT, without any calibration.
+
+    The radius of the least-squares sphere |x - c|^2 = r^2 through the readings (so a
+    hard-iron offset of several times the field does not count), or the median |x| when the
+    readings do not determine a sphere (one attitude, rotation about one axis).
+
+    Parameters
+    ----------
+    raw : numpy.ndarray
+        (N, 3) readings in nT.
+
+    Returns
+    -------
+    float
+        Magnitude, nT.
+    """
+    x = np.asarray(raw, float)
+    x = x[np.all(np.isfinite(x), axis=1)]
+    med = float(np.median(np.linalg.norm(x, axis=1))) if len(x) else float('nan')
+    if len(x) < 10:
+        return med
+    a = np.column_stack([2 * x, np.ones(len(x))])
+    scale = np.abs(a).max(axis=0)
+    scale[scale == 0] = 1.0
+    sv = np.linalg.svd(a / scale, compute_uv=False)
+    if sv[-1] < 1e-3 * sv[0]:
+        return med
+    sol = np.linalg.lstsq(a / scale, np.sum(x ** 2, axis=1), rcond=None)[0] / scale
+    r2 = sol[3] + sol[:3] @ sol[:3]
+    return float(np.sqrt(r2)) if r2 > 0 else med
+
+
+def units_that_fit(value_nt):
+    """Units in which the number ``value_nt`` (read as nT) would be a geomagnetic field."""
+    lo, hi = GEOMAGNETIC_RANGE_NT
+    return [u for u, k in UNITS_NT.items() if u != 'gauss' and lo <= value_nt * k <= hi]
+
+
+def _looks(value_nt):
+    units = units_that_fit(value_nt)
+    return (f'the numbers look like {units[0]} (give --unit {units[0]})' if units else
+            'they are no geomagnetic field in any unit (nT, uT, mG, G, T)')
+
+
+def check_field_units(raw, reference_nt=None, reference_name='the reference'):
+    """Refuse readings or a reference magnitude that are not a geomagnetic field in nT.
+
+    Parameters
+    ----------
+    raw : numpy.ndarray
+        (S, N, 3) readings, nT (after ``--unit`` conversion).
+    reference_nt : float, optional
+        The reference magnitude, nT (``--field-nt``, ``--igrf``, median ``ref_total``);
+        None: the readings are judged against the geomagnetic range.
+    reference_name : str
+        How the user gave the reference (named in the message).
+
+    Raises
+    ------
+    ValueError
+        One line: which numbers, how large, which unit they look like.
+    """
+    mags = [field_magnitude_estimate(r) for r in np.asarray(raw, float)]
+    m = float(np.nanmedian(mags))
+    if not np.isfinite(m):
+        return
+    lo, hi = PLAUSIBLE_RANGE_NT
+    in_range = lo <= m <= hi
+    if reference_nt is None:
+        if not in_range:
+            raise ValueError(
+                f'the readings have a field magnitude of about {m:.4g} nT, not a geomagnetic '
+                f'field ({GEOMAGNETIC_RANGE_NT[0]:.0f}-{GEOMAGNETIC_RANGE_NT[1]:.0f} nT): '
+                + _looks(m))
+        return
+    f = float(reference_nt)
+    ratio = m / f if f > 0 else np.inf
+    if 1.0 / REFERENCE_RATIO <= ratio <= REFERENCE_RATIO:
+        return
+    if in_range:
+        raise ValueError(
+            f'{reference_name} is {f:.4g} nT but the readings have a field magnitude of about '
+            f'{m:.0f} nT: {reference_name} must be in nT'
+            + (f' (it looks like {units_that_fit(f)[0]}: {f * UNITS_NT[units_that_fit(f)[0]]:.0f}'
+               ' nT)' if units_that_fit(f) else ''))
+    raise ValueError(
+        f'the readings have a field magnitude of about {m:.4g} nT and {reference_name} is '
+        f'{f:.4g} nT: ' + _looks(m))

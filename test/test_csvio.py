@@ -26,8 +26,17 @@ def test_round_trip(tmp_path):
     ('t,s1_x,s1_y,s1_z,bogus\n0,1,2,3,4\n', "unknown column 'bogus'"),
     ('t,s1_x,s1_y\n0,1,2\n', r'sensor 1 lacks column\(s\) s1_z'),
     ('s1_x,s1_y,s1_z\n1,2,3\n', 'time column t is missing'),
-    ('t,s1_x,s1_y,s1_z\n0,1,2,abc\n', "row 2: 'abc' is not a number"),
-    ('t,s1_x,s1_y,s1_z\n0,1,2\n', 'row 2 has 3 fields, header has 4'),
+    ('t,s1_x,s1_y,s1_z\n0,1,2,abc\n', "line 2: 'abc' is not a number"),
+    ('t,s1_x,s1_y,s1_z\n0,1,2\n', 'line 2 has 3 fields, header has 4'),
+    # issue 10: careless input, each with the line and column or the cause named
+    ('# c\nt,s1_x,s1_y,s1_z\n0,1,2,3\n1,1,,3\n2,1,2,3\n',
+     r'line 4, column s1_y: an empty cell \(1 row\(s\) affected\)'),
+    ('t,s1_x,s1_y,s1_z\n0,1,2,3\n1,nan,2,3\n', "line 3, column s1_x: 'nan' is not a finite"),
+    ('t,s1_x,s1_y,s1_z,ref_total\n0,1,2,3,inf\n', "line 2, column ref_total: 'inf' is not a "
+                                                  'finite number'),
+    ('t,s1_x,s1_y,s1_z\n', r'no data rows \(only the header\)'),
+    ('t;s1_x;s1_y;s1_z\n0;1;2;3\n', r"separated by semicolons \(';'\).*comma separated"),
+    ('t\ts1_x\ts1_y\ts1_z\n0\t1\t2\t3\n', r"separated by tabs \('\\t'\)"),
     ('t,s1_x,s1_y,s1_z\n1,1,2,3\n0,1,2,3\n', 'non-decreasing'),
     ('# only a comment\n', 'no header row'),
     ('t,aux_a\n0,1\n', 'no sensor columns'),
@@ -42,3 +51,14 @@ def test_bad_files(tmp_path, text, match):
 def test_missing_file(tmp_path):
     with pytest.raises(CsvFormatError, match='cannot read'):
         read_csv(tmp_path / 'nope.csv')
+
+
+def test_utf8_byte_order_mark_loads(tmp_path):
+    # a spreadsheet's UTF-8 export starts with a BOM; the first column is still t
+    path = tmp_path / 'bom.csv'
+    path.write_bytes('\ufefft,s1_x,s1_y,s1_z,s1_temp\n0,1,2,3,\n1,4,5,6,20.5\n'.encode('utf-8'))
+    data = read_csv(path)
+    np.testing.assert_array_equal(data.t, [0.0, 1.0])
+    np.testing.assert_array_equal(data.raw[0], [[1, 2, 3], [4, 5, 6]])
+    # an empty optional cell (temperature) is "no value", not an error
+    assert np.isnan(data.temp[0, 0]) and data.temp[0, 1] == 20.5

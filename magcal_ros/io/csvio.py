@@ -28,14 +28,25 @@ def read_csv(path):
     """
     path = os.fspath(path)
     try:
-        with open(path, encoding='utf-8') as fh:
-            lines = [ln for ln in fh if ln.strip() and not ln.lstrip().startswith('#')]
+        # utf-8-sig: a spreadsheet's byte-order mark is not part of the first column's name
+        with open(path, encoding='utf-8-sig') as fh:
+            numbered = [(no, ln) for no, ln in enumerate(fh, start=1)
+                        if ln.strip() and not ln.lstrip().startswith('#')]
     except OSError as exc:
         raise CsvFormatError(f'cannot read {path}: {exc.strerror}') from exc
     except UnicodeDecodeError as exc:
         raise CsvFormatError(f'{path} is not a text CSV file ({exc})') from exc
-    if not lines:
+    if not numbered:
         raise CsvFormatError(f'{path} has no header row')
+    line_nos = [no for no, _ in numbered]
+    lines = [ln for _, ln in numbered]
+    for sep, name in ((';', 'semicolon'), ('\t', 'tab')):
+        if lines[0].count(sep) > lines[0].count(','):
+            raise CsvFormatError(f"{path}: the fields are separated by {name}s ({sep!r}); the "
+                                 "wide CSV is comma separated: export it with ',' as the "
+                                 'separator')
+    if len(lines) == 1:
+        raise CsvFormatError(f'{path}: no data rows (only the header)')
     header = [h.strip() for h in lines[0].strip().split(',')]
     sensors = {}
     for i, h in enumerate(header):
@@ -62,10 +73,10 @@ def read_csv(path):
     plane_col = header.index('plane') if 'plane' in header else None
     rows = []
     planes = []
-    for ln_no, ln in enumerate(lines[1:], start=2):
+    for ln_no, ln in zip(line_nos[1:], lines[1:]):
         parts = [p.strip() for p in ln.strip().split(',')]
         if len(parts) != len(header):
-            raise CsvFormatError(f'{path}: data row {ln_no} has {len(parts)} fields, header has '
+            raise CsvFormatError(f'{path}: line {ln_no} has {len(parts)} fields, header has '
                                  f'{len(header)}')
         if plane_col is not None:
             planes.append(parts[plane_col])
@@ -74,8 +85,11 @@ def read_csv(path):
             rows.append([float(p) if p != '' else np.nan for p in parts])
         except ValueError:
             bad = next(p for p in parts if not _isfloat(p))
-            raise CsvFormatError(f'{path}: data row {ln_no}: {bad!r} is not a number') from None
+            raise CsvFormatError(f'{path}: line {ln_no}: {bad!r} is not a number') from None
     arr = np.array(rows, float).reshape(-1, len(header))
+    rows_no = np.array(line_nos[1:])
+    _check_finite(path, header, arr, rows_no,
+                  [lines[k] for k in range(1, len(lines))])
     col = {h: arr[:, i] for i, h in enumerate(header)}
     t = col['t']
     if len(t) and (not np.all(np.isfinite(t)) or np.any(np.diff(t) < 0)):
@@ -97,7 +111,7 @@ def read_csv(path):
                                  f'{", ".join(c for c in ATT_COLUMNS if c not in col)}')
         try:
             attitude = check_quaternions(np.column_stack([col[c] for c in ATT_COLUMNS]),
-                                         rows=np.arange(2, 2 + len(t)))
+                                         rows=rows_no)
         except ValueError as exc:
             raise CsvFormatError(f'{path}: {exc}') from None
     return Dataset(t=t, raw=raw, temp=temp, ref_total=col.get('ref_total'), ref_vec=ref_vec,
@@ -105,6 +119,25 @@ def read_csv(path):
                    plane=np.array(planes) if plane_col is not None else None,
                    aux={h: col[h] for h in header if h.startswith('aux_')},
                    meta={'source': path}, attitude=attitude)
+
+
+#: columns that must hold a finite number in every row (the others may be empty: no value)
+_REQUIRED_FINITE = re.compile(r'^(t|s\d+_[xyz]|ref_total|ref_[xyz])$')
+
+
+def _check_finite(path, header, arr, line_nos, lines):
+    """CsvFormatError naming the first line and column whose cell is empty, nan or inf."""
+    cols = [i for i, h in enumerate(header) if _REQUIRED_FINITE.match(h)]
+    bad = ~np.isfinite(arr[:, cols])
+    if not bad.any():
+        return
+    r, c = np.argwhere(bad)[0]
+    i = cols[c]
+    cell = lines[r].strip().split(',')[i].strip()
+    what = 'an empty cell' if cell == '' else f'{cell!r} is not a finite number'
+    n_bad = int(bad.any(axis=1).sum())
+    raise CsvFormatError(f'{path}: line {line_nos[r]}, column {header[i]}: {what} '
+                         f'({n_bad} row(s) affected); fill or drop those rows')
 
 
 def _isfloat(s):
