@@ -80,7 +80,7 @@ def test_sine_method_recovers_the_papers_parameters(turntable_csv, tmp_path):
 
 def test_sine_method_needs_its_columns(tmp_path):
     path = _write(tmp_path / 'x.csv', ['t', 's1_x', 's1_y', 's1_z'],
-                  [(k, 1.0 + k, 2.0, 3.0) for k in range(10)])
+                  [(k, 30000.0 + k, 20000.0, 30000.0) for k in range(10)])
     rc, _, err = run_cli('fit', path, '--method', 'sine', '--field-nt', 50000)
     assert rc == 2 and 'angle_deg and plane' in err and len(err.strip().splitlines()) == 1
     rc, _, err = run_cli('fit', path, '--method', 'sine', '--model', 'base,temperature',
