@@ -10,7 +10,11 @@ the bag declares, Jazzy message definitions by default).  Topics, under a namesp
 - auxiliary channels: ``std_msgs/msg/Float64`` or ``Float32`` (``data``) on
   ``{ns}/aux/<name>`` (column ``aux_<name>``), or any topics named in ``aux_topics``;
 - ``{ns}/ref_total`` -- ``std_msgs/msg/Float64``, scalar reference magnitude in tesla
-  (optional).
+  (optional);
+- ``{ns}/imu`` (or ``imu_topic``) -- ``sensor_msgs/msg/Imu`` (optional): its ``orientation``
+  is the body-to-world attitude of the array (REP 103/145; the IMU's axes are taken as the
+  array's), interpolated (slerp) onto the epochs; epochs outside the IMU's time span are
+  dropped and counted in ``meta['dropped_attitude_epochs']``.
 
 Epochs are sensor 1's header stamps; each other sensor is matched to the nearest stamp
 within half a sample period (epochs where a sensor has no match are dropped and counted in
@@ -31,6 +35,7 @@ from magcal_ros.units import nt_to_t, t_to_nt
 MAG_TYPE = 'sensor_msgs/msg/MagneticField'
 TEMP_TYPE = 'sensor_msgs/msg/Temperature'
 SCALAR_TYPES = ('std_msgs/msg/Float64', 'std_msgs/msg/Float32')
+IMU_TYPE = 'sensor_msgs/msg/Imu'
 
 
 class BagFormatError(ValueError):
@@ -61,7 +66,17 @@ def _interp(t_msg, v_msg, t):
     return np.interp(t, t_msg[order], v_msg[order])
 
 
-def read_bag(path, namespace='/magcal', aux_topics=None):
+def _slerp(t_msg, q_msg, t):
+    """(N, 4) quaternions (w, x, y, z) interpolated at t (inside the span of t_msg)."""
+    from scipy.spatial.transform import Rotation, Slerp
+    t_msg, first = np.unique(t_msg, return_index=True)
+    rot = Rotation.from_quat(q_msg[first], scalar_first=True)
+    if len(t_msg) == 1:
+        return np.repeat(rot.as_quat(scalar_first=True), len(t), axis=0)
+    return Slerp(t_msg, rot)(t).as_quat(scalar_first=True)
+
+
+def read_bag(path, namespace='/magcal', aux_topics=None, imu_topic=None):
     """Read a rosbag2 directory into a Dataset (readings in nT, times in s).
 
     Parameters
@@ -73,6 +88,8 @@ def read_bag(path, namespace='/magcal', aux_topics=None):
     aux_topics : dict of str to str, optional
         {column name ('aux_motor_current'): topic} for auxiliary channels published
         elsewhere (std_msgs Float64/Float32).
+    imu_topic : str, optional
+        ``sensor_msgs/Imu`` topic of the array's attitude (default ``{namespace}/imu``).
 
     Returns
     -------
@@ -92,6 +109,8 @@ def read_bag(path, namespace='/magcal', aux_topics=None):
     aux_re = re.compile(re.escape(ns) + r'/aux/(\w+)$')
     wanted_aux = {topic: (col if col.startswith('aux_') else 'aux_' + col)
                   for col, topic in (aux_topics or {}).items()}
+    imu_name = imu_topic or ns + '/imu'
+    imu = ([], [])
     try:
         reader = AnyReader([path], default_typestore=_typestore())
         reader.open()
@@ -104,6 +123,9 @@ def read_bag(path, namespace='/magcal', aux_topics=None):
             m = raw_re.match(c.topic)
             if m and c.msgtype == MAG_TYPE:
                 mags[int(m.group(1))] = ([], [])
+                conns.append(c)
+                continue
+            if c.topic == imu_name and c.msgtype == IMU_TYPE:
                 conns.append(c)
                 continue
             m = temp_re.match(c.topic)
@@ -128,8 +150,19 @@ def read_bag(path, namespace='/magcal', aux_topics=None):
         if missing_aux:
             raise BagFormatError(f'{path}: auxiliary topic(s) {sorted(missing_aux)} not in the '
                                  'bag (or not std_msgs Float64/Float32)')
+        if imu_topic and not any(c.topic == imu_name for c in conns):
+            raise BagFormatError(f'{path}: no {IMU_TYPE} messages on {imu_name}')
         for c, recv, data in reader.messages(connections=conns):
             msg = reader.deserialize(data, c.msgtype)
+            if c.msgtype == IMU_TYPE:
+                if msg.orientation_covariance[0] == -1:
+                    raise BagFormatError(
+                        f'{path}: {imu_name}: the Imu messages carry no orientation '
+                        '(orientation_covariance[0] = -1); record an orientation estimate')
+                o = msg.orientation
+                imu[0].append(_stamp(msg, recv))
+                imu[1].append((o.w, o.x, o.y, o.z))
+                continue
             m = raw_re.match(c.topic)
             if m and c.msgtype == MAG_TYPE:
                 v = msg.magnetic_field
@@ -193,10 +226,30 @@ def read_bag(path, namespace='/magcal', aux_topics=None):
     ref_total = None
     if ref is not None and ref[0]:
         ref_total = t_to_nt(_interp(np.asarray(ref[0]), np.asarray(ref[1], float), t))
-    return Dataset(t=t, raw=raw, temp=temp, ref_total=ref_total, aux=aux_out,
-                   meta={'source': str(path), 'namespace': ns or '/',
-                         'dropped_epochs': int((~keep).sum()),
-                         'topics': sorted(c.topic for c in conns)})
+    meta = {'source': str(path), 'namespace': ns or '/', 'dropped_epochs': int((~keep).sum()),
+            'topics': sorted(c.topic for c in conns)}
+    attitude = None
+    if imu[0]:
+        from magcal_ros.core.attitude import check_quaternions
+        ti = np.asarray(imu[0], float)
+        try:
+            qi = check_quaternions(np.asarray(imu[1], float)[np.argsort(ti, kind='stable')],
+                                   t=np.sort(ti))
+        except ValueError as exc:
+            raise BagFormatError(f'{path}: {imu_name}: {exc}') from None
+        ti = np.sort(ti)
+        inside = (t >= ti[0]) & (t <= ti[-1])
+        if not inside.any():
+            raise BagFormatError(f'{path}: {imu_name} does not overlap the magnetometer '
+                                 'stamps in time')
+        meta['dropped_attitude_epochs'] = int((~inside).sum())
+        t, raw = t[inside], raw[:, inside]
+        temp = None if temp is None else temp[:, inside]
+        aux_out = {k: v[inside] for k, v in aux_out.items()}
+        ref_total = None if ref_total is None else ref_total[inside]
+        attitude = _slerp(ti, qi, t)
+    return Dataset(t=t, raw=raw, temp=temp, ref_total=ref_total, aux=aux_out, meta=meta,
+                   attitude=attitude)
 
 
 def write_bag(path, data, namespace='/magcal', storage='sqlite3', frame_id='fluxgate'):
@@ -248,6 +301,11 @@ def write_bag(path, data, namespace='/magcal', storage='sqlite3', frame_id='flux
         if data.ref_total is not None:
             conn[('ref',)] = w.add_connection(f'{ns}/ref_total', 'std_msgs/msg/Float64',
                                               typestore=ts)
+        if data.attitude is not None:
+            conn[('imu',)] = w.add_connection(f'{ns}/imu', IMU_TYPE, typestore=ts)
+            imu_cls = ts.types[IMU_TYPE]
+            quat = ts.types['geometry_msgs/msg/Quaternion']
+            unknown = np.array([-1.0] + [0.0] * 8)       # REP 145: no rate / acceleration
         for k in range(data.n_samples):
             st = stamp_cls(sec=int(t_ns[k] // 1_000_000_000),
                            nanosec=int(t_ns[k] % 1_000_000_000))
@@ -268,4 +326,14 @@ def write_bag(path, data, namespace='/magcal', storage='sqlite3', frame_id='flux
                 w.write(conn[('ref',)], int(t_ns[k]),
                         ts.serialize_cdr(f64(data=float(nt_to_t(data.ref_total[k]))),
                                          'std_msgs/msg/Float64'))
+            if ('imu',) in conn:
+                qw, qx, qy, qz = map(float, data.attitude[k])
+                msg = imu_cls(header=header(stamp=st, frame_id=frame_id),
+                              orientation=quat(x=qx, y=qy, z=qz, w=qw),
+                              orientation_covariance=np.zeros(9),
+                              angular_velocity=vec(0.0, 0.0, 0.0),
+                              angular_velocity_covariance=unknown,
+                              linear_acceleration=vec(0.0, 0.0, 0.0),
+                              linear_acceleration_covariance=unknown)
+                w.write(conn[('imu',)], int(t_ns[k]), ts.serialize_cdr(msg, IMU_TYPE))
     return path
