@@ -34,10 +34,21 @@ O_TRUE = np.array([[120.0, -80.0, 45.0], [-60.0, 150.0, -30.0], [35.0, 40.0, -11
                    [-95.0, -20.0, 70.0]])
 
 
-def make_data(n=3000, seed=1, g_w=G_W, attitude=True):
-    """(Dataset, rotations): raw_j = A_j R^T (B_w + G_w R r_j) + o_j + noise."""
+def make_data(n=3000, seed=1, g_w=G_W, attitude=True, smooth_period_s=None, rate_hz=100.0):
+    """(Dataset, rotations): raw_j = A_j R^T (B_w + G_w R r_j) + o_j + noise.
+
+    Random attitudes, or with ``smooth_period_s`` a continuous tumbling (yaw, pitch, roll
+    sinusoids of incommensurate frequencies) that covers the sphere in about that time.
+    """
     rng = np.random.default_rng(seed)
-    rot = Rotation.random(n, random_state=rng)
+    t = np.arange(n) / rate_hz
+    if smooth_period_s:
+        w = 2 * np.pi / smooth_period_s
+        rot = Rotation.from_euler('ZYX', np.column_stack([
+            3.1 * w * t, np.radians(85) * np.sin(1.7 * w * t + 0.3),
+            np.pi * np.sin(1.13 * w * t + 1.1)]))
+    else:
+        rot = Rotation.random(n, random_state=rng)
     b_w = np.array([21000.0, -2500.0, 45000.0])
     b_w *= FIELD_NT / np.linalg.norm(b_w)            # |B| = F at the centre of the array
     raw = np.empty((4, n, 3))
@@ -46,7 +57,7 @@ def make_data(n=3000, seed=1, g_w=G_W, attitude=True):
         b_body_j = rot.inv().apply(b_world_j)
         raw[j] = b_body_j @ A_TRUE[j].T + O_TRUE[j] + rng.normal(0, NOISE_NT, (n, 3))
     q = rot.as_quat(scalar_first=True) if attitude else None
-    return Dataset(t=np.arange(n) * 0.01, raw=raw, attitude=q), rot
+    return Dataset(t=t, raw=raw, attitude=q), rot
 
 
 def test_shift_hand_computed():
@@ -275,9 +286,9 @@ def test_bag_imu_orientation_round_trip(tmp_path):
 
 def test_bag_imu_interpolation_hand_computed():
     """Orientation about z at 0, 40, 80 deg at t = 0, 1, 2 s: at 0.5 s slerp gives 20 deg."""
-    from magcal_ros.io.bag import _slerp
+    from magcal_ros.core.attitude import interpolate
     q = Rotation.from_euler('z', [[0], [40], [80]], degrees=True).as_quat(scalar_first=True)
-    got = _slerp(np.array([0.0, 1.0, 2.0]), q, np.array([0.5, 1.5]))
+    got = interpolate(np.array([0.0, 1.0, 2.0]), q, np.array([0.5, 1.5]))
     want = np.array([[np.cos(np.radians(10)), 0, 0, np.sin(np.radians(10))],
                      [np.cos(np.radians(30)), 0, 0, np.sin(np.radians(30))]])
     np.testing.assert_allclose(got, want, atol=1e-12)

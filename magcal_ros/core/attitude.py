@@ -74,6 +74,72 @@ def check_quaternions(q, t=None, rows=None, tol=UNIT_TOLERANCE):
     return q * sign[:, None]
 
 
+def interpolate(t_msg, q_msg, t):
+    """Attitude at times t by spherical linear interpolation (slerp) of timed quaternions.
+
+    Parameters
+    ----------
+    t_msg : numpy.ndarray
+        (M,) s, times of the attitude messages (any order; duplicates: the first is kept).
+    q_msg : numpy.ndarray
+        (M, 4) unit quaternions (qw, qx, qy, qz).
+    t : numpy.ndarray
+        (N,) s, inside [min(t_msg), max(t_msg)].
+
+    Returns
+    -------
+    numpy.ndarray
+        (N, 4) unit quaternions (qw, qx, qy, qz).
+    """
+    from scipy.spatial.transform import Slerp
+    t_msg = np.asarray(t_msg, float)
+    order = np.argsort(t_msg, kind='stable')
+    t_u, first = np.unique(t_msg[order], return_index=True)
+    rot = Rotation.from_quat(np.asarray(q_msg, float)[order][first], scalar_first=True)
+    if len(t_u) == 1:
+        return np.repeat(rot.as_quat(scalar_first=True), len(t), axis=0)
+    return Slerp(t_u, rot)(np.asarray(t, float)).as_quat(scalar_first=True)
+
+
+def with_attitude(data, t_msg, q_msg, source='attitude'):
+    """``data`` with the attitude of timed messages attached (slerp onto its epochs).
+
+    Epochs outside the span of the messages are dropped (an attitude is never extrapolated).
+
+    Parameters
+    ----------
+    data : Dataset
+    t_msg : numpy.ndarray
+        (M,) s, message times on the clock of ``data.t``.
+    q_msg : numpy.ndarray
+        (M, 4) quaternions (qw, qx, qy, qz), checked by :func:`check_quaternions`.
+    source : str
+        Name of the attitude source for the error messages (a topic).
+
+    Returns
+    -------
+    (Dataset, (N,) bool mask of the epochs of ``data`` kept)
+    """
+    t_msg = np.asarray(t_msg, float)
+    if len(t_msg) == 0:
+        raise AttitudeError(f'{source}: no attitude messages')
+    order = np.argsort(t_msg, kind='stable')
+    t_msg = t_msg[order]
+    try:
+        q_msg = check_quaternions(np.asarray(q_msg, float)[order], t=t_msg)
+    except AttitudeError as exc:
+        raise AttitudeError(f'{source}: {exc}') from None
+    inside = (data.t >= t_msg[0]) & (data.t <= t_msg[-1])
+    if not inside.any():
+        raise AttitudeError(f'{source}: the attitude messages ({t_msg[0]:.3f} .. '
+                            f'{t_msg[-1]:.3f} s) do not overlap the magnetometer epochs '
+                            f'({data.t[0]:.3f} .. {data.t[-1]:.3f} s)')
+    out = data.subset(np.flatnonzero(inside)) if not inside.all() else data
+    from dataclasses import replace
+    out = replace(out, attitude=interpolate(t_msg, q_msg, out.t))
+    return out, inside
+
+
 def quaternion_matrices(q):
     """(N, 3, 3) body-to-world rotation matrices of (N, 4) unit quaternions (qw, qx, qy, qz)."""
     return Rotation.from_quat(np.asarray(q, float), scalar_first=True).as_matrix()

@@ -66,16 +66,6 @@ def _interp(t_msg, v_msg, t):
     return np.interp(t, t_msg[order], v_msg[order])
 
 
-def _slerp(t_msg, q_msg, t):
-    """(N, 4) quaternions (w, x, y, z) interpolated at t (inside the span of t_msg)."""
-    from scipy.spatial.transform import Rotation, Slerp
-    t_msg, first = np.unique(t_msg, return_index=True)
-    rot = Rotation.from_quat(q_msg[first], scalar_first=True)
-    if len(t_msg) == 1:
-        return np.repeat(rot.as_quat(scalar_first=True), len(t), axis=0)
-    return Slerp(t_msg, rot)(t).as_quat(scalar_first=True)
-
-
 def read_bag(path, namespace='/magcal', aux_topics=None, imu_topic=None):
     """Read a rosbag2 directory into a Dataset (readings in nT, times in s).
 
@@ -226,30 +216,18 @@ def read_bag(path, namespace='/magcal', aux_topics=None, imu_topic=None):
     ref_total = None
     if ref is not None and ref[0]:
         ref_total = t_to_nt(_interp(np.asarray(ref[0]), np.asarray(ref[1], float), t))
-    meta = {'source': str(path), 'namespace': ns or '/', 'dropped_epochs': int((~keep).sum()),
-            'topics': sorted(c.topic for c in conns)}
-    attitude = None
+    data = Dataset(t=t, raw=raw, temp=temp, ref_total=ref_total, aux=aux_out,
+                   meta={'source': str(path), 'namespace': ns or '/',
+                         'dropped_epochs': int((~keep).sum()),
+                         'topics': sorted(c.topic for c in conns)})
     if imu[0]:
-        from magcal_ros.core.attitude import check_quaternions
-        ti = np.asarray(imu[0], float)
+        from magcal_ros.core.attitude import with_attitude
         try:
-            qi = check_quaternions(np.asarray(imu[1], float)[np.argsort(ti, kind='stable')],
-                                   t=np.sort(ti))
+            data, kept = with_attitude(data, imu[0], imu[1], source=f'{path}: {imu_name}')
         except ValueError as exc:
-            raise BagFormatError(f'{path}: {imu_name}: {exc}') from None
-        ti = np.sort(ti)
-        inside = (t >= ti[0]) & (t <= ti[-1])
-        if not inside.any():
-            raise BagFormatError(f'{path}: {imu_name} does not overlap the magnetometer '
-                                 'stamps in time')
-        meta['dropped_attitude_epochs'] = int((~inside).sum())
-        t, raw = t[inside], raw[:, inside]
-        temp = None if temp is None else temp[:, inside]
-        aux_out = {k: v[inside] for k, v in aux_out.items()}
-        ref_total = None if ref_total is None else ref_total[inside]
-        attitude = _slerp(ti, qi, t)
-    return Dataset(t=t, raw=raw, temp=temp, ref_total=ref_total, aux=aux_out, meta=meta,
-                   attitude=attitude)
+            raise BagFormatError(str(exc)) from None
+        data.meta['dropped_attitude_epochs'] = int((~kept).sum())
+    return data
 
 
 def write_bag(path, data, namespace='/magcal', storage='sqlite3', frame_id='fluxgate'):

@@ -7,6 +7,8 @@ Topics (relative to the node namespace, default ``/magcal``; docs/design.md §3)
   (recorded as column ``aux_<name>``), all best effort like ``qos_profile_sensor_data``
   (with deeper queues: :data:`CALIBRATION_SENSOR_QOS` for the raw fields, 10 s of 100 Hz,
   so that no sample is lost while a solve keeps the executor busy; :data:`SENSOR_QOS`);
+- subscribes ``imu_topic`` (sensor_msgs/Imu, optional): its orientation is the attitude of
+  the array (body-to-world), interpolated onto the sets, for the ``site_gradient`` effect;
 - publishes ``calibration/status`` (std_msgs/String, JSON, every ``status_period_s``):
   sets collected, attitude coverage per sensor, what is still missing;
 - publishes ``calibration/result`` (std_msgs/String holding the calibration YAML of
@@ -54,7 +56,7 @@ from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, qos_profile_sensor_data, QoSProfile,
                        ReliabilityPolicy)
 from rclpy.task import Future
-from sensor_msgs.msg import MagneticField, Temperature
+from sensor_msgs.msg import Imu, MagneticField, Temperature
 from std_msgs.msg import Float64, String
 from std_srvs.srv import Trigger
 
@@ -213,6 +215,9 @@ class CalibrationNode(Node):
         self._temp = np.full(self._n, np.nan)
         self._aux = {}
         self._received = np.zeros(self._n, int)     # raw samples since start
+        # attitude messages (stamp s, qw, qx, qy, qz) since start, interpolated onto the sets
+        self._imu = np.zeros((2 * s.max_samples, 5))
+        self._imu_count = 0
         self._state = 'idle'
         self._last_result = None                # summary dict of the last calibration
         self._t_started = None
@@ -229,6 +234,9 @@ class CalibrationNode(Node):
         for name in s.aux_topics:
             self._subs.append(self.create_subscription(
                 Float64, name, self._aux_cb('aux_' + name), SENSOR_QOS))
+        if s.imu_topic:
+            self._subs.append(self.create_subscription(Imu, s.imu_topic, self._imu_cb,
+                                                       CALIBRATION_SENSOR_QOS))
 
         self._status_pub = self.create_publisher(String, 'calibration/status', 10)
         self._result_pub = self.create_publisher(String, 'calibration/result', RESULT_QOS)
@@ -281,6 +289,32 @@ class CalibrationNode(Node):
             with self._lock:
                 self._temp[j] = msg.temperature
         return cb
+
+    def _imu_cb(self, msg):
+        if self._state not in ('collecting', 'calibrating'):
+            return
+        o = msg.orientation
+        row = (stamp_to_seconds(msg.header.stamp), o.w, o.x, o.y, o.z)
+        if msg.orientation_covariance[0] == -1 or not np.all(np.isfinite(row)):
+            return                       # REP 145: no orientation in this message
+        with self._lock:
+            self._imu[self._imu_count % len(self._imu)] = row
+            self._imu_count += 1
+
+    def _attitude(self, data, epochs):
+        """(data, epochs) with the collected attitude attached (under the lock).
+
+        Sets outside the time span of the Imu messages are dropped; unchanged without any.
+        """
+        n = min(self._imu_count, len(self._imu))
+        if not n:
+            return data, epochs
+        from magcal_ros.core.attitude import with_attitude
+        rows = self._imu[:n]
+        out, kept = with_attitude(data, rows[:, 0], rows[:, 1:],
+                                  source=prm.value(self, 'imu_topic'))
+        out.meta['dropped_attitude_epochs'] = int((~kept).sum())
+        return out, epochs[kept]
 
     def _aux_cb(self, column):
         def cb(msg):
@@ -351,6 +385,7 @@ class CalibrationNode(Node):
                 self._buffer.clear()
                 self._matcher.reset()
                 self._received[:] = 0
+                self._imu_count = 0
                 self._state = 'collecting'
                 self._t_started = time.monotonic()
             s = prm.calibration_settings(self)
@@ -366,6 +401,8 @@ class CalibrationNode(Node):
             n_sets = len(self._buffer)
             data = self._buffer.dataset() if n_sets else None
             epochs = self._buffer.epochs() if n_sets else None
+            if n_sets:
+                data, epochs = self._attitude(data, epochs)
             return n_sets, data, epochs
 
     def _resync(self, data, epochs, settings):
@@ -506,6 +543,14 @@ class CalibrationNode(Node):
                            tensor_rms_components_after_nt_per_m=summ['tensor_rms_nt_per_m'])
             lines.append(f'tensor RMS before {before:.1f} nT/m, after {after:.2f} nT/m '
                          f'(noise floor {floor:.2f} nT/m)')
+        if 'site_gradient_nt_per_m' in summ:
+            # world frame of the Imu orientation, nT/m, with standard uncertainties
+            payload.update(site_gradient_nt_per_m=summ['site_gradient_nt_per_m'],
+                           site_gradient_stderr_nt_per_m=summ['site_gradient_stderr_nt_per_m'],
+                           dropped_attitude_epochs=data.meta.get('dropped_attitude_epochs', 0))
+            g = np.array(summ['site_gradient_nt_per_m'])
+            lines.append('site gradient (world frame, nT/m): ' + ', '.join(
+                f'{v:.1f}' for v in g[np.triu_indices(3)]) + ' (xx, xy, xz, yy, yz, zz)')
         if s.robust:
             lines.append(f'robust fit: samples down-weighted as outliers per sensor: '
                          f'{_fmt_per_sensor(summ["downweighted"], "{:d}")} of {n_sets}')

@@ -114,6 +114,14 @@ def topic_names(value):
     return None
 
 
+def optional_topic(value):
+    """Refuse a topic name ROS would reject ('' means none)."""
+    if value and not all(c.isalnum() or c in '_/~' for c in value):
+        return (f'{value!r} is not a topic name (letters, digits, _ and /); give e.g. '
+                "'imu/data', or '' for none")
+    return None
+
+
 def model_check(n_sensors):
     """Make a validator of a model spec (list of effect tokens) using :meth:`Model.from_spec`."""
     def check(value):
@@ -204,6 +212,7 @@ class CalibrationSettings:
     robust: bool
     resync_sets: bool
     exclude_outliers: bool
+    imu_topic: str = ''
 
 
 #: declared first: the model check of the other parameters depends on it
@@ -249,6 +258,10 @@ def calibration_specs(n_sensors=4):
                   'noise floor, exclude the sets beyond 5 sigma of a robust fit if they are '
                   'at most 5 % of all, and fit the rest (magcal_ros.pipeline.calibrate); no '
                   'unit'),
+        ParamSpec('imu_topic', '', 'sensor_msgs/Imu topic whose orientation is the attitude '
+                  'of the array (body-to-world, the IMU axes being the array axes), for the '
+                  "site_gradient effect; '' for none; read-only", optional_topic,
+                  read_only=True),
     ]
 
 
@@ -270,6 +283,7 @@ def calibration_settings(node):
         robust=bool(value(node, 'robust')),
         resync_sets=bool(value(node, 'resync_sets')),
         exclude_outliers=bool(value(node, 'exclude_outliers')),
+        imu_topic=str(value(node, 'imu_topic', '')),
     )
 
 
