@@ -26,7 +26,8 @@ ROS_ENV := source scripts/ros_env.sh &&
 setup: $(STAMP)
 
 # Re-run only when the dependency list or the packaging changed (the stamp is written last).
-$(STAMP): requirements.txt setup.py setup.cfg package.xml scripts/setup_env.sh
+$(STAMP): requirements.txt setup.py setup.cfg package.xml scripts/setup_env.sh \
+		scripts/build_interfaces.sh $(wildcard interfaces/magcal_interfaces/*/* interfaces/magcal_interfaces/*.*)
 	PYTHON='$(PYTHON)' VENV='$(CURDIR)/$(VENV)' scripts/setup_env.sh
 
 test: setup

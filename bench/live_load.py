@@ -101,7 +101,8 @@ def main(argv=None):
             try:
                 k = int(data[16:16 + ln - 1])
             except ValueError:
-                # not from our publisher (e.g. the driver's frame_id): number by arrival
+                # no sequence number (the corrector writes the array frame into frame_id,
+                # the driver the sensor frame): number by arrival
                 k = arrival_no[j] % cap
                 arrival_no[j] += 1
                 rt[k] = rs[k] = np.nan

@@ -53,6 +53,8 @@ echo "setup: installing dependencies from requirements.txt"
 pip_install -r requirements.txt
 echo "setup: installing magcal_ros (editable)"
 pip_install --no-deps -e .
+echo "setup: building the message package magcal_interfaces (interfaces/)"
+VENV="${VENV}" scripts/build_interfaces.sh
 
 # Check the result: the ROS wheels import, and the console scripts exist in .venv/bin.
 "${VENV}/bin/python" - <<'PY'

@@ -6,19 +6,23 @@ propagated through A^-1), and the gradient of the uniform simulated field is zer
 noise-propagated floor of :func:`magcal_ros.core.tensor.tensor_noise_floor`.
 """
 import copy
+import sys
+import types
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from magcal_ros.core.effects import SensorContext
 from magcal_ros.core.model import Calibration, Model
 from magcal_ros.core.simulate import simulate
 from magcal_ros.core.tensor import cross_positions, tensor_noise_floor
-from magcal_ros.io.calfile import (calibration_to_doc, CalibrationFileError, dump_calibration,
+from magcal_ros.io.calfile import (calibration_to_doc, dump_calibration,
                                    save_calibration)
 from magcal_ros.pipeline import cross_geometry
 from magcal_ros.ros.calibration_node import RESULT_QOS
-from magcal_ros.ros.conversions import (msg_to_covariance_nt2, msg_to_field_nt, msg_to_tensor,
+from magcal_interfaces.msg import GradientTensorStamped
+from magcal_ros.ros.conversions import (msg_to_covariance_nt2, msg_to_field_nt,
+                                        msg_to_gradient_stamped, msg_to_tensor,
                                         stamp_to_seconds)
-from magcal_ros.ros.corrector_node import CorrectorNode, LiveCorrection, MissingSignal
+from magcal_ros.ros.corrector_node import CorrectorNode
 import numpy as np
 import pytest
 from rclpy.parameter import Parameter
@@ -26,6 +30,7 @@ from ros_helpers import spin_for, spin_until
 from sensor_msgs.msg import MagneticField
 from sim_feed import Feeder, T0
 from std_msgs.msg import Float64MultiArray, String
+import test_live
 
 NOISE_NT = 3.0
 
@@ -50,11 +55,14 @@ class Probe:
     def __init__(self, node, namespace, n_sensors=4):
         self.corrected = [[] for _ in range(n_sensors)]
         self.gradient = []
+        self.stamped = []
         self.diagnostics = []
         for j in range(n_sensors):
             node.create_subscription(MagneticField, f'sensor{j + 1}/corrected',
                                      self.corrected[j].append, 500)
         node.create_subscription(Float64MultiArray, 'gradient', self.gradient.append, 500)
+        node.create_subscription(GradientTensorStamped, 'gradient_stamped',
+                                 self.stamped.append, 500)
         node.create_subscription(
             DiagnosticArray, '/diagnostics',
             lambda m: self.diagnostics.extend(s for s in m.status
@@ -100,7 +108,8 @@ def test_corrects_to_the_true_field_and_publishes_the_gradient(
     feeder.wait_for_subscribers(ros_executor)
     feeder.feed(ros_executor, data, taken=lambda: node._received, temperature=False)
     n = data.n_samples
-    spin_until(ros_executor, lambda: probe.count() == 4 * n and len(probe.gradient) == n,
+    spin_until(ros_executor, lambda: (probe.count() == 4 * n and len(probe.gradient) == n
+                                      and len(probe.stamped) == n),
                10.0, 'all corrected samples and tensors')
 
     true_field = data.meta['truth_field']            # (S, N, 3) nT, array frame
@@ -108,7 +117,8 @@ def test_corrects_to_the_true_field_and_publishes_the_gradient(
         msgs = probe.corrected[j]
         stamps = np.array([stamp_to_seconds(m.header.stamp) for m in msgs])
         np.testing.assert_allclose(stamps, T0 + data.t, atol=1e-6)   # the raw stamps
-        assert {m.header.frame_id for m in msgs} == {f'fluxgate{j + 1}'}
+        # corrected fields are in the array frame, not the raw sensor's
+        assert {m.header.frame_id for m in msgs} == {'magcal_array'}
         b = np.array([msg_to_field_nt(m) for m in msgs])
         err = b - true_field[j]
         # A^-1 (3 nT white noise); A = I +- a few %: RMS over 900 values within +-15 %
@@ -122,8 +132,72 @@ def test_corrects_to_the_true_field_and_publishes_the_gradient(
     ratio = np.sqrt(np.mean(g ** 2, axis=0)) / floor
     # each component's RMS over 300 tensors: relative sd ~4 %; +-20 % bounds
     assert np.all((ratio > 0.8) & (ratio < 1.2)), ratio
+    # the stamped tensor: the same values, the set's stamp (the feeder stamps all four
+    # samples of an epoch alike), the array frame, and a covariance whose measured diagonal
+    # entries (the differences of two sensors over the 0.5 m baseline) are 2 sigma^2 / d^2
+    stamped = [msg_to_gradient_stamped(m) for m in probe.stamped]
+    np.testing.assert_allclose(np.array([g for _, g, _ in stamped]), g, rtol=1e-12)
+    np.testing.assert_allclose([t for t, _, _ in stamped], T0 + data.t, atol=1e-6)
+    assert {m.header.frame_id for m in probe.stamped} == {'magcal_array'}
+    cov = stamped[0][2]
+    np.testing.assert_allclose(cov, cov.T, rtol=1e-12)
+    # G_xx = (B1x - B3x) / d, G_yy = (B2y - B4y) / d; A^-1 = I +- a few %
+    for k in (0, 4):
+        assert cov[k, k] == pytest.approx(2 * NOISE_NT ** 2 / 0.5 ** 2, rel=0.15)
     status = probe.last_status(ros_executor, since=len(probe.diagnostics))
     assert status.level == DiagnosticStatus.OK, status.message
+    assert {v.key: v.value for v in status.values}['gradient_stamped'] == 'published'
+
+
+class _FakeBroadcaster:
+    """Stands in for tf2_ros.StaticTransformBroadcaster (no tf2_ros wheel here)."""
+
+    sent = []
+
+    def __init__(self, node):
+        self.node = node
+
+    def sendTransform(self, transforms):   # noqa: N802 (tf2_ros's name)
+        self.sent.append(list(transforms))
+
+
+def test_static_transforms_from_the_calibration(make_node, ros_node, ros_executor,
+                                                ros_namespace, tmp_path, monkeypatch):
+    """array -> fluxgate{j}: the rotations written by hand in test_live, at the positions."""
+    monkeypatch.setitem(sys.modules, 'tf2_ros',
+                        types.SimpleNamespace(StaticTransformBroadcaster=_FakeBroadcaster))
+    _FakeBroadcaster.sent = []
+    cal = test_live._calibration()
+    doc = calibration_to_doc(cal, geometry=cross_geometry(0.5))
+    start(make_node, ros_namespace, write(tmp_path / 'cal.yaml', doc),
+          array_frame_id='my_array')
+    assert len(_FakeBroadcaster.sent) == 1
+    transforms = _FakeBroadcaster.sent[0]
+    assert [(m.header.frame_id, m.child_frame_id) for m in transforms] == [
+        ('my_array', f'fluxgate{j}') for j in range(1, 5)]
+    for m, rot, pos in zip(transforms, test_live.R, cross_positions(0.5)):
+        q = m.transform.rotation
+        w, v = q.w, np.array([q.x, q.y, q.z])
+        # rotation matrix of the unit quaternion (w, v), written out
+        r = ((w * w - v @ v) * np.eye(3) + 2 * np.outer(v, v)
+             + 2 * w * np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]]))
+        np.testing.assert_allclose(r, rot, atol=1e-9)
+        t = m.transform.translation
+        np.testing.assert_allclose([t.x, t.y, t.z], pos, atol=1e-12)
+
+
+def test_without_the_message_package_the_rest_is_published(
+        make_node, ros_node, ros_executor, ros_namespace, tmp_path, sim, monkeypatch):
+    """magcal_interfaces missing: no gradient_stamped publisher, diagnostics say why."""
+    monkeypatch.setitem(sys.modules, 'magcal_interfaces.msg', None)   # import fails
+    _, _, doc = sim
+    node = start(make_node, ros_namespace, write(tmp_path / 'cal.yaml', doc))
+    assert node.get_publishers_info_by_topic(f'{ros_namespace}/gradient_stamped') == []
+    assert len(node.get_publishers_info_by_topic(f'{ros_namespace}/gradient')) == 1
+    probe = Probe(ros_node, ros_namespace)
+    status = probe.last_status(ros_executor)
+    values = {v.key: v.value for v in status.values}
+    assert values['gradient_stamped'] == 'not published: magcal_interfaces is not importable'
 
 
 def _shifted(doc, shift_nt):
@@ -160,7 +234,7 @@ def test_follows_updates_and_refuses_a_bad_calibration(make_node, ros_node, ros_
     updated = _shifted(doc, shift)
     result.publish(String(data=dump_calibration(updated)))
     spin_until(ros_executor, lambda: node._source == 'calibration/result'
-               and np.isclose(node._live.sensors[0].offset[0], truth.offset(1)[0] + 100.0),
+               and np.isclose(node._live.cal.offset(1)[0], truth.offset(1)[0] + 100.0),
                5.0, 'the new calibration to be installed')
     b = corrected_epoch(1)
     a_next = np.array([truth.correct(j + 1, data.raw[j, 1]) for j in range(4)])
@@ -203,52 +277,6 @@ def test_refuses_a_corrupt_file_at_start_up(make_node, ros_node, ros_executor,
     assert status.level == DiagnosticStatus.WARN
     assert 'schema_version 7 is newer than this magcal_ros understands' in status.message
     assert 'no calibration is active' in status.message
-
-
-def _driven_calibration(seed=0):
-    """Every built-in driven effect on every sensor, with random parameters."""
-    model = Model.from_spec('base,temperature,aux:aux_motor_current,field_rate,nonlinearity,'
-                            'drift', 4)
-    rng = np.random.default_rng(seed)
-    p = model.default_params() + rng.normal(scale=1e-3, size=model.n_params)
-    for j, row in enumerate(model.effects):
-        for eff, sl in zip(row, model.slices[j]):
-            eff.refs = {'t0_c': 25.0, 'a0': 1.0, 't0_s': 100.0}
-            if eff.name in ('offset', 'nonlinearity'):
-                p[sl] = rng.normal(scale=50.0, size=eff.n_params)
-            elif eff.name == 'temperature':
-                p[sl] = np.r_[rng.normal(scale=2.0, size=3), rng.normal(scale=1e-4, size=3)]
-            elif eff.name == 'aux':
-                p[sl] = rng.normal(scale=20.0, size=3)
-    return Calibration(model, p, sigma_nt=np.full(4, NOISE_NT))
-
-
-def test_lean_correction_equals_the_core_model():
-    cal = _driven_calibration()
-    live = LiveCorrection(cal, calibration_to_doc(cal, geometry=cross_geometry(0.5)), 4)
-    rng = np.random.default_rng(1)
-    for _ in range(20):
-        raw = rng.normal(scale=30000.0, size=3)
-        t, temp, current = 130.0 + rng.random(), 20.0 + 10 * rng.random(), 3 * rng.random()
-        rate = rng.normal(scale=20000.0, size=3)
-        for j in range(1, 5):
-            ctx = SensorContext(t=np.array([t]), temp=np.array([temp]),
-                                aux={'aux_motor_current': np.array([current])},
-                                raw_rate=rate[None])
-            expected = cal.correct(j, raw[None], ctx)[0]
-            got = live.sensors[j - 1].correct(raw, t, temp, {'aux_motor_current': current},
-                                              rate)
-            np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-9)
-    sensor = live.sensors[1]
-    with pytest.raises(MissingSignal, match='waiting for sensor2/temperature'):
-        sensor.correct(raw, t, np.nan, {'aux_motor_current': 1.0}, rate)
-    with pytest.raises(MissingSignal, match='waiting for auxiliary channel aux_motor_current'):
-        sensor.correct(raw, t, 25.0, {}, rate)
-    with pytest.raises(MissingSignal, match='field rate needs two consecutive samples'):
-        sensor.correct(raw, t, 25.0, {'aux_motor_current': 1.0}, None)
-    with pytest.raises(CalibrationFileError, match='is for 4 sensors but this corrector '
-                                                   'handles 3'):
-        LiveCorrection(cal, {}, 3)
 
 
 def test_temperature_effect_waits_for_its_signal(make_node, ros_node, ros_executor,

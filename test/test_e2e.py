@@ -18,7 +18,7 @@ from magcal_ros.core.tensor import cross_positions, tensor_lstsq, tensor_noise_f
 from magcal_ros.io.calfile import save_calibration
 from magcal_ros.pipeline import calibrate
 from magcal_ros.ros.conversions import msg_to_field_nt, msg_to_tensor, stamp_to_seconds
-from magcal_ros.ros.sync import StampMatcher
+from magcal_ros.core.sync import StampMatcher
 import numpy as np
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from ros_helpers import (call_trigger, console_script, spin_for, spin_until,

@@ -8,9 +8,9 @@ calibration file), a load process (this file run as a script: ``--load``) that p
 
 Schedule (rate per sensor; nominal is the driver's default 100 Hz): 100 Hz for 3 s, 1000 Hz
 for 10 s (10x, 4000 messages/s in), 100 Hz for 4 s, 1000 Hz for 10 s again, 100 Hz for 4 s.
-Each message carries its sequence number in ``frame_id`` and its publish time in the stamp,
-which the corrector copies to its output, so the load process measures loss, order and
-latency (receive time - publish time) per phase.
+Each message carries its publish time in the stamp (unique, increasing), which the
+corrector copies to its output; the load process keeps the sequence number of each stamp,
+so it measures loss, order and latency (receive time - publish time) per phase.
 
 The corrector consumes its inputs with the sensor-data QoS (best effort, keep last 25): when
 it cannot keep up, the oldest queued samples are dropped, so the queue, and with it the
@@ -32,8 +32,8 @@ N_SENSORS = 4
 
 # -- the load process (publisher + receiver) ------------------------------------------------
 
-#: little-endian CDR after the 4-byte encapsulation: stamp sec, nanosec, frame_id length
-_HEAD = struct.Struct('<iII')
+#: little-endian CDR after the 4-byte encapsulation: stamp sec, nanosec
+_HEAD = struct.Struct('<iI')
 
 
 def _load_main(argv):
@@ -60,14 +60,14 @@ def _load_main(argv):
     cap = int(sum(r * d for r, d in schedule)) + 100
     recv_t = np.full((N_SENSORS, cap), np.nan)
     extra = [0]
+    seq_of = {}                         # stamp (sec, nanosec) -> sequence number
 
     def make_cb(j):
         row = recv_t[j]
 
         def cb(data):
             now = time.time()
-            _, _, ln = _HEAD.unpack_from(data, 4)
-            k = int(data[16:16 + ln - 1])
+            k = seq_of[_HEAD.unpack_from(data, 4)]
             if row[k] == row[k]:
                 extra[0] += 1               # a duplicate (nan != nan marks "not yet")
             else:
@@ -113,12 +113,13 @@ def _load_main(argv):
                 break
             due = int((now - t_phase) * rate) + 1
             while seq - first < due:
-                stamp = time.time()
+                stamp = max(time.time(), pub_t[seq - 1] + 1e-6 if seq else 0.0)
                 sec = int(stamp)
+                nsec = int((stamp - sec) * 1e9)
+                seq_of[(sec, nsec)] = seq
                 for j, m in enumerate(msgs):
                     m.header.stamp.sec = sec
-                    m.header.stamp.nanosec = int((stamp - sec) * 1e9)
-                    m.header.frame_id = str(seq)
+                    m.header.stamp.nanosec = nsec
                     pubs[j].publish(m)
                 pub_t[seq] = stamp
                 seq += 1

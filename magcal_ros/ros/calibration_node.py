@@ -49,7 +49,7 @@ from magcal_ros.pipeline import calibrate as run_calibration, cross_geometry
 from magcal_ros.ros import params as prm
 from magcal_ros.ros.conversions import msg_to_field_nt, stamp_to_seconds
 from magcal_ros.ros.run import spin_node
-from magcal_ros.ros.sync import epoch_times, StampMatcher
+from magcal_ros.core.sync import epoch_times, StampMatcher
 import numpy as np
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node

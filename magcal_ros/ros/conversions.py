@@ -10,6 +10,11 @@ Message layouts
 - Gradient tensor ``std_msgs/Float64MultiArray``: 3x3 row-major in T/m, ``layout.dim`` =
   ``[('row', size 3, stride 9), ('col', size 3, stride 3)]``, ``data_offset`` 0
   (docs/design.md §3).
+- ``magcal_interfaces/GradientTensorStamped`` (``gradient_stamped``): header (stamp of the
+  matched set, the array frame), ``tensor`` 3x3 row-major in T/m, ``tensor_covariance``
+  9x9 row-major in (T/m)^2 (all zeros: unknown).
+- ``geometry_msgs/TransformStamped``: the static transform array -> fluxgate{j}, translation
+  in m, rotation as a unit quaternion (REP 103).
 - ``sensor_msgs/Temperature``: degrees Celsius, variance in degC^2.
 """
 
@@ -17,9 +22,11 @@ import math
 import numbers
 
 from builtin_interfaces.msg import Time as TimeMsg
+from geometry_msgs.msg import TransformStamped
 from magcal_ros.units import NT_PER_T, nt_to_t, t_to_nt
 import numpy as np
 import rclpy.time
+from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import MagneticField, Temperature
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, MultiArrayLayout
 
@@ -260,6 +267,83 @@ def tensor_to_msg(gradient_nt_per_m, check=True):
     msg = Float64MultiArray()
     msg.layout = _tensor_layout()
     msg.data = nt_to_t(g).reshape(9).tolist()
+    return msg
+
+
+def gradient_covariance_to_t2(covariance_nt2):
+    """(9, 9) covariance of the row-major tensor in (nT/m)^2 as an (81,) array in (T/m)^2.
+
+    None gives zeros (unknown), as in the message definition.
+    """
+    if covariance_nt2 is None:
+        return np.zeros(81)
+    cov = np.asarray(covariance_nt2, dtype=np.float64)
+    if cov.shape != (9, 9) or not np.all(np.isfinite(cov)):
+        raise ValueError(f'tensor covariance must be a finite (9, 9) array in (nT/m)^2, got '
+                         f'shape {cov.shape}')
+    return nt_to_t(nt_to_t(cov)).reshape(81)
+
+
+def fill_gradient_stamped(msg, stamp, frame_id, gradient_nt_per_m, covariance_t2):
+    """Fill a ``magcal_interfaces/GradientTensorStamped`` in place (the corrector's hot path).
+
+    Parameters
+    ----------
+    msg : magcal_interfaces.msg.GradientTensorStamped
+    stamp : float or builtin_interfaces.msg.Time
+        Stamp of the matched set (see :func:`to_stamp`).
+    frame_id : str
+        The array frame.
+    gradient_nt_per_m : numpy.ndarray
+        (3, 3) finite tensor G[i, k] = dB_i / dx_k, nT/m.
+    covariance_t2 : numpy.ndarray
+        (81,) row-major covariance in (T/m)^2 from :func:`gradient_covariance_to_t2`.
+
+    Returns
+    -------
+    The message.
+    """
+    msg.header.stamp = to_stamp(stamp)
+    msg.header.frame_id = frame_id
+    msg.tensor = nt_to_t(np.asarray(gradient_nt_per_m, np.float64)).reshape(9)
+    msg.tensor_covariance = covariance_t2
+    return msg
+
+
+def msg_to_gradient_stamped(msg):
+    """Return (stamp s, tensor (3, 3) nT/m, covariance (9, 9) (nT/m)^2) of a stamped gradient."""
+    g = t_to_nt(np.asarray(msg.tensor, np.float64)).reshape(3, 3)
+    cov = t_to_nt(t_to_nt(np.asarray(msg.tensor_covariance, np.float64))).reshape(9, 9)
+    return stamp_to_seconds(msg.header.stamp), g, cov
+
+
+def transform_msg(parent, child, rotation, translation_m, stamp=None):
+    """Build a ``geometry_msgs/TransformStamped`` parent -> child.
+
+    Parameters
+    ----------
+    parent, child : str
+        Frame ids; a vector v_child in the child frame is R v_child + p in the parent.
+    rotation : numpy.ndarray
+        (3, 3) proper rotation R (child axes expressed in the parent frame).
+    translation_m : numpy.ndarray
+        (3,) origin p of the child in the parent frame, m.
+    stamp : see :func:`to_stamp`
+
+    Returns
+    -------
+    geometry_msgs.msg.TransformStamped
+    """
+    t = _vector3(translation_m, 'translation_m', 'm')
+    q = Rotation.from_matrix(np.asarray(rotation, np.float64)).as_quat()   # x, y, z, w
+    msg = TransformStamped()
+    msg.header.stamp = to_stamp(stamp)
+    msg.header.frame_id = _check_frame_id(parent)
+    msg.child_frame_id = _check_frame_id(child)
+    msg.transform.translation.x, msg.transform.translation.y, msg.transform.translation.z = (
+        float(t[0]), float(t[1]), float(t[2]))
+    r = msg.transform.rotation
+    r.x, r.y, r.z, r.w = (float(v) for v in q)
     return msg
 
 

@@ -8,135 +8,53 @@ Topics (relative to the node namespace, default ``/magcal``; docs/design.md §3)
   ``aux:aux_<name>``, latest value), all best effort (:data:`SENSOR_QOS`), and
   ``calibration/result`` (std_msgs/String YAML, reliable + transient local) for new
   calibrations without a restart;
-- publishes ``sensor{j}/corrected`` (sensor_msgs/MagneticField, T, in the array frame, same
-  stamp and frame_id as the raw sample, covariance sigma_j^2 A_j^-1 A_j^-T from the
-  calibration's noise estimate) and ``gradient`` (std_msgs/Float64MultiArray, 3x3 row-major,
-  T/m) from stamp-matched corrected samples of all sensors and the calibration's geometry;
+- publishes ``sensor{j}/corrected`` (sensor_msgs/MagneticField, T, in the array frame:
+  frame_id ``array_frame_id``, same stamp as the raw sample, covariance
+  sigma_j^2 A_j^-1 A_j^-T from the calibration's noise estimate), ``gradient``
+  (std_msgs/Float64MultiArray, 3x3 row-major, T/m) and ``gradient_stamped``
+  (magcal_interfaces/GradientTensorStamped: stamp of the matched set, the array frame, the
+  tensor in T/m and its covariance in (T/m)^2; only when the package is importable, the log
+  says so once otherwise) from stamp-matched corrected samples of all sensors and the
+  calibration's geometry;
+- publishes the static transforms ``array_frame_id`` -> ``fluxgate{j}`` (each sensor's
+  orthogonalised axes, at its position) of every calibration it installs, when tf2_ros is
+  importable (REP 105 frames; README "Frames");
 - publishes its health on ``/diagnostics``: WARN without a usable calibration (then nothing
   is published), when a calibration was refused (the last good one stays active), or while a
   driven effect lacks its live signal.
 
-Per message the work is a few 3x3 products: every matrix (A_j^-1, the covariance, the
-gradient operator) is computed once when a calibration is installed.
+The correction itself is :class:`magcal_ros.core.live.LiveCorrector` (no ROS): per message
+a few 3x3 products, every matrix (A_j^-1, the covariances, the gradient operator) computed
+once when a calibration is installed.
 """
-from collections import deque
+import importlib
 import math
 import os
 import sys
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from magcal_ros.core.effects import SensorContext, SIGNALS
-from magcal_ros.core.tensor import tensor_operator
+from magcal_ros.core.live import LiveCorrector, MissingSignal
 from magcal_ros.io.calfile import CalibrationFileError, load_calibration, parse_calibration
 from magcal_ros.ros import params as prm
 from magcal_ros.ros.calibration_node import RESULT_QOS, SENSOR_QOS
-from magcal_ros.ros.conversions import (covariance_to_t2, msg_to_field_nt, set_field_nt,
-                                        stamp_to_seconds, tensor_to_msg)
+from magcal_ros.ros.conversions import (covariance_to_t2, fill_gradient_stamped,
+                                        gradient_covariance_to_t2, msg_to_field_nt,
+                                        set_field_nt, stamp_to_seconds, tensor_to_msg,
+                                        transform_msg)
 from magcal_ros.ros.run import spin_node
-from magcal_ros.ros.sync import StampMatcher
 import numpy as np
 from rclpy.node import Node
 from sensor_msgs.msg import MagneticField, Temperature
 from std_msgs.msg import Float64, Float64MultiArray, String
 
-#: consecutive raw samples further apart than this give no field-rate estimate, s
-_MAX_RATE_GAP_S = 1.0
-#: arrivals per stream used to estimate its sample period (field-rate effect)
-_PERIOD_WINDOW = 200
 
 
-class MissingSignal(Exception):
-    """A driven effect of the calibration has no live signal yet (the message says which)."""
-
-
-class _SensorCorrection:
-    """Live correction of one sensor: the calibration's own correction plus signal checks."""
-
-    def __init__(self, cal, j):
-        self.cal = cal
-        self.j = j
-        self.a_inv = cal.correction_matrix(j)
-        # the signals the calibration's effects declare (Effect.signals); the stamp ('time')
-        # is always there
-        self.needs = set(cal.signals(j)) - {'time'}
-        self.driven = bool(cal.driven_effects(j))
-        self.offset = cal.offset(j)
-        sigma = float(cal.sigma_nt[j - 1])
-        # corrected = A^-1 raw: white raw noise sigma^2 I maps to sigma^2 A^-1 A^-T (nT^2)
-        self.cov_nt2 = (sigma ** 2 * self.a_inv @ self.a_inv.T
-                        if np.isfinite(sigma) and sigma > 0 else None)
-        if self.cov_nt2 is not None:
-            self.cov_nt2 = 0.5 * (self.cov_nt2 + self.cov_nt2.T)
-        # validated and converted once, not per message (it was 70 % of the callback)
-        self.cov_t2 = covariance_to_t2(self.cov_nt2)
-
-    def correct(self, raw, t, temp, aux, rate):
-        """Corrected field (3,) nT in the array frame; raises MissingSignal."""
-        if not self.driven:
-            return self.a_inv @ (raw - self.offset)          # the common case: one 3x3 product
-        ctx = SensorContext(
-            t=np.array([t]), temp=np.array([temp]) if np.isfinite(temp) else None,
-            aux={k: np.array([v]) for k, v in aux.items()},
-            raw_rate=None if rate is None else rate[None])
-        for name in sorted(self.needs):
-            if not (name in SIGNALS or name.startswith('aux_')) or not ctx.has(name):
-                raise MissingSignal(self._waiting(name))
-        return self.cal.correct(self.j, raw, ctx)
-
-    def _waiting(self, name):
-        """Why the correction waits for the signal ``name``."""
-        if name == 'temperature':
-            return (f'sensor {self.j}: waiting for sensor{self.j}/temperature (the '
-                    'calibration has an effect that reads the temperature)')
-        if name == 'field_rate':
-            return f'sensor {self.j}: field rate needs two consecutive samples'
-        if name.startswith('aux_'):
-            return (f'sensor {self.j}: waiting for auxiliary channel {name} (topic '
-                    f'{name[4:]} named in aux_topics)')
-        return (f'sensor {self.j}: the calibration needs the signal {name!r}, which this node '
-                'does not receive')
-
-
-class LiveCorrection:
-    """A calibration made ready for per-message correction.
-
-    Parameters
-    ----------
-    cal : magcal_ros.core.model.Calibration
-    doc : dict
-        The calibration document (geometry, provenance).
-    n_sensors : int
-        Sensors the node subscribes; a calibration for another count is refused.
-    """
-
-    def __init__(self, cal, doc, n_sensors):
-        if cal.n_sensors != n_sensors:
-            raise CalibrationFileError(f'the calibration is for {cal.n_sensors} sensors but '
-                                       f'this corrector handles {n_sensors} (n_sensors)')
-        self.sensors = [_SensorCorrection(cal, j) for j in range(1, n_sensors + 1)]
-        self.model = list(doc.get('model') or cal.model.spec())
-        prov = doc.get('provenance') or {}
-        self.created = str(prov.get('created', 'unknown time'))
-        geometry = doc.get('geometry') or {}
-        self.gradient_op = None
-        self.no_gradient_reason = None
-        pos = geometry.get('positions_m')
-        if pos is None:
-            self.no_gradient_reason = 'the calibration has no array geometry (positions_m)'
-        else:
-            try:
-                pos = np.asarray(pos, float)
-                if pos.shape != (n_sensors, 3):
-                    raise ValueError(f'positions_m has shape {pos.shape}, expected '
-                                     f'({n_sensors}, 3)')
-                # rows 3.. of the operator: G row-major (9, 3 S), paper 004 eq. 1 for the cross
-                self.gradient_op = tensor_operator(pos)[3:]
-            except ValueError as exc:
-                self.no_gradient_reason = f'no gradient: {exc}'
-
-    def describe(self):
-        """One line: model and creation time."""
-        return f'model {",".join(self.model)} created {self.created}'
+def _optional(module, name):
+    """(object, None) if ``module`` imports and has ``name``, else (None, the reason)."""
+    try:
+        return getattr(importlib.import_module(module), name), None
+    except (ImportError, AttributeError) as exc:
+        return None, f'{module}.{name} is not importable ({exc})'
 
 
 class CorrectorNode(Node):
@@ -152,6 +70,8 @@ class CorrectorNode(Node):
         s = prm.corrector_settings(self)
         self._n = s.n_sensors
         self._publish_gradient = s.publish_gradient
+        self._frame = s.array_frame_id
+        self._tolerance_s = s.stamp_tolerance_s
 
         self._live = None
         self._source = None
@@ -159,9 +79,8 @@ class CorrectorNode(Node):
         self._missing = {}
         self._temp = np.full(self._n, np.nan)
         self._aux = {}
-        self._prev = [None] * self._n          # (t s, raw (3,) nT) of the previous sample
-        self._arrivals = [deque(maxlen=_PERIOD_WINDOW) for _ in range(self._n)]
-        self._matcher = StampMatcher(self._n, s.stamp_tolerance_s)
+        self._cov_t2 = [None] * self._n          # per sensor (9,) T^2 of the active calibration
+        self._grad_cov_t2 = None                # (81,) (T/m)^2
         self._counts = np.zeros(self._n, int)     # corrected samples published per sensor
         self._received = 0                          # raw samples taken (all sensors)
         self._n_gradient = 0
@@ -169,6 +88,22 @@ class CorrectorNode(Node):
         self._pub_corr = [self.create_publisher(MagneticField, f'sensor{j}/corrected', 10)
                           for j in range(1, self._n + 1)]
         self._pub_grad = self.create_publisher(Float64MultiArray, 'gradient', 10)
+        # the stamped gradient needs the message package magcal_interfaces (interfaces/,
+        # README); without it the node says so once and publishes the rest
+        self._stamped_cls, reason = _optional('magcal_interfaces.msg', 'GradientTensorStamped')
+        self._pub_stamped = None
+        if self._stamped_cls is None:
+            self.get_logger().warning(f'not publishing gradient_stamped: {reason}; build the '
+                                      'magcal_interfaces package (README: Live: ROS 2)')
+        else:
+            self._pub_stamped = self.create_publisher(self._stamped_cls, 'gradient_stamped', 10)
+        broadcaster, reason = _optional('tf2_ros', 'StaticTransformBroadcaster')
+        self._tf = None
+        if broadcaster is None:
+            self.get_logger().info(f'not publishing the static transforms {self._frame} -> '
+                                   f'fluxgate{{j}}: {reason}')
+        else:
+            self._tf = broadcaster(self)
         self._pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self._subs = []
         for j in range(1, self._n + 1):
@@ -191,7 +126,9 @@ class CorrectorNode(Node):
         if result.successful:
             for p in parameters:
                 if p.name == 'stamp_tolerance_s':
-                    self._matcher.tolerance_s = float(p.value)
+                    self._tolerance_s = float(p.value)
+                    if self._live is not None:
+                        self._live.matcher.tolerance_s = self._tolerance_s
                 elif p.name == 'publish_gradient':
                     self._publish_gradient = bool(p.value)
         return result
@@ -199,16 +136,43 @@ class CorrectorNode(Node):
     # -- calibrations ----------------------------------------------------------------------
 
     def _install(self, cal, doc, source):
-        live = LiveCorrection(cal, doc, self._n)
+        try:
+            live = LiveCorrector(cal, self._n, (doc.get('geometry') or {}).get('positions_m'),
+                                 self._tolerance_s)
+        except ValueError as exc:
+            raise CalibrationFileError(str(exc)) from exc
+        live.temp[:] = self._temp
+        live.aux.update(self._aux)
+        # validated and converted once, not per message (it was 70 % of the callback)
+        self._cov_t2 = [covariance_to_t2(live.covariance_nt2(j)) for j in range(1, self._n + 1)]
+        self._grad_cov_t2 = gradient_covariance_to_t2(live.gradient_cov_nt2)
         self._live = live
+        self._model = list(doc.get('model') or cal.model.spec())
+        self._created = str((doc.get('provenance') or {}).get('created', 'unknown time'))
         self._source = source
         self._refused = None
         self._missing.clear()
-        self._matcher.reset()
-        self._follow_temperature(any('temperature' in sc.needs for sc in live.sensors))
-        self.get_logger().info(f'using the calibration from {source} ({live.describe()})')
+        self._follow_temperature(live.needs_temperature)
+        self.get_logger().info(f'using the calibration from {source} ({self._describe()})')
         if live.no_gradient_reason:
             self.get_logger().warning(live.no_gradient_reason)
+        self._send_transforms(live)
+
+    def _describe(self):
+        """One line: model and creation time of the active calibration."""
+        return f'model {",".join(self._model)} created {self._created}'
+
+    def _send_transforms(self, live):
+        """Static transforms array -> fluxgate{j} of the calibration (tf2_ros available)."""
+        if self._tf is None:
+            return
+        frames = live.sensor_frames()
+        if not frames:
+            self.get_logger().warning(f'no static transforms: {live.no_gradient_reason}')
+            return
+        stamp = self.get_clock().now()
+        self._tf.sendTransform([transform_msg(self._frame, f'fluxgate{j}', rot, pos, stamp)
+                                for j, (rot, pos) in enumerate(frames, start=1)])
 
     def _follow_temperature(self, needed):
         """Subscribe sensor{j}/temperature only when a temperature effect needs it."""
@@ -223,7 +187,7 @@ class CorrectorNode(Node):
             self._temp[:] = np.nan
 
     def _refuse(self, source, exc):
-        keep = (f'keeping the calibration from {self._source} ({self._live.describe()})'
+        keep = (f'keeping the calibration from {self._source} ({self._describe()})'
                 if self._live else 'no calibration is active')
         self._refused = f'refused the calibration from {source}: {exc}; {keep}'
         self.get_logger().error(self._refused)
@@ -254,54 +218,49 @@ class CorrectorNode(Node):
     def _temp_cb(self, j):
         def cb(msg):
             self._temp[j] = msg.temperature
+            if self._live is not None:
+                self._live.set_temperature(j + 1, msg.temperature)
         return cb
 
     def _aux_cb(self, column):
         def cb(msg):
             self._aux[column] = float(msg.data)
+            if self._live is not None:
+                self._live.set_aux(column, msg.data)
         return cb
 
     def _raw_cb(self, j):
         pub = self._pub_corr[j]
+        sensor = j + 1
 
         def cb(msg):
             self._received += 1
-            t = stamp_to_seconds(msg.header.stamp)
-            v = msg.magnetic_field
-            finite = math.isfinite(v.x) and math.isfinite(v.y) and math.isfinite(v.z)
-            raw = msg_to_field_nt(msg)
-            prev = self._prev[j]
-            self._prev[j] = (t, raw)
             live = self._live
-            if live is None or not finite:
+            v = msg.magnetic_field
+            if live is None or not (math.isfinite(v.x) and math.isfinite(v.y)
+                                    and math.isfinite(v.z)):
                 return
-            arrivals = self._arrivals[j]
-            arrivals.append(t)
-            rate = None
-            if prev is not None and t - prev[0] <= _MAX_RATE_GAP_S and len(arrivals) > 10:
-                # consecutive samples of one stream are one period apart; their stamps are
-                # not (several samples read at once share one), so use the mean period
-                period = (arrivals[-1] - arrivals[0]) / (len(arrivals) - 1)
-                if period > 0:
-                    rate = (raw - prev[1]) / period       # nT/s, backward difference
-            sc = live.sensors[j]
+            t = stamp_to_seconds(msg.header.stamp)
             try:
-                b = sc.correct(raw, t, self._temp[j], self._aux, rate)
+                b = live.correct(sensor, t, msg_to_field_nt(msg))
             except MissingSignal as exc:
                 self._missing[j] = str(exc)
                 return
             if j in self._missing:
                 del self._missing[j]
-            # the incoming message becomes the outgoing one: same header (stamp, frame),
+            # the incoming message becomes the outgoing one: same stamp, the array frame,
             # corrected field and its covariance (a new message per sample cost ~10 us, a
             # quarter of the Python work of the callback; bench/live.py)
-            set_field_nt(msg, b, sc.cov_t2)
+            set_field_nt(msg, b, self._cov_t2[j])
+            msg.header.frame_id = self._frame
             pub.publish(msg)
             self._counts[j] += 1
-            if self._publish_gradient and live.gradient_op is not None:
-                for _, _, fields in self._matcher.add(j, t, b):
-                    g = live.gradient_op @ np.concatenate(fields)      # (9,) nT/m
-                    self._pub_grad.publish(tensor_to_msg(g.reshape(3, 3), check=False))
+            if self._publish_gradient:
+                for t_set, g in live.gradients(sensor, t, b):
+                    self._pub_grad.publish(tensor_to_msg(g, check=False))
+                    if self._pub_stamped is not None:
+                        self._pub_stamped.publish(fill_gradient_stamped(
+                            self._stamped_cls(), t_set, self._frame, g, self._grad_cov_t2))
                     self._n_gradient += 1
         return cb
 
@@ -327,10 +286,14 @@ class CorrectorNode(Node):
             st.level = DiagnosticStatus.OK
             st.message = f'correcting with the calibration from {self._source}'
         values = [('calibration_source', self._source or ''),
-                  ('calibration', self._live.describe() if self._live else 'none'),
+                  ('calibration', self._describe() if self._live else 'none'),
                   ('last_refused', self._refused or ''),
                   ('gradient_published', str(self._n_gradient)),
-                  ('incomplete_sets_dropped', str(self._matcher.incomplete))]
+                  ('incomplete_sets_dropped',
+                   str(self._live.matcher.incomplete if self._live else 0)),
+                  ('gradient_stamped', 'published' if self._pub_stamped else
+                   'not published: magcal_interfaces is not importable'),
+                  ('frame_id', self._frame)]
         values += [(f'sensor{j + 1}_corrected_published', str(c))
                    for j, c in enumerate(self._counts)]
         st.values = [KeyValue(key=k, value=v) for k, v in values]

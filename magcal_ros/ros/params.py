@@ -16,6 +16,8 @@ from rclpy.parameter import Parameter
 
 #: Where both nodes read/write the active calibration unless told otherwise.
 DEFAULT_CALIBRATION_FILE = '~/.ros/magcal/calibration.yaml'
+#: frame_id of corrected fields and of the gradient tensor (README: Frames)
+DEFAULT_ARRAY_FRAME_ID = 'magcal_array'
 #: Where calibration/diagnose writes its HTML report unless told otherwise.
 DEFAULT_REPORT_DIR = '~/.ros/magcal/reports'
 
@@ -119,6 +121,15 @@ def optional_topic(value):
     if value and not all(c.isalnum() or c in '_/~' for c in value):
         return (f'{value!r} is not a topic name (letters, digits, _ and /); give e.g. '
                 "'imu/data', or '' for none")
+    return None
+
+
+def frame_id(value):
+    """Refuse a frame id tf2 cannot use: empty, a leading '/', or whitespace in it."""
+    if not isinstance(value, str) or not value or value.startswith('/') or \
+            any(c.isspace() for c in value):
+        return (f'frame id {value!r} must be a non-empty name without a leading / or spaces '
+                '(tf2 frame ids, REP 105)')
     return None
 
 
@@ -299,6 +310,7 @@ class CorrectorSettings:
     aux_topics: tuple
     publish_gradient: bool
     diagnostics_period_s: float
+    array_frame_id: str
 
 
 def corrector_specs():
@@ -318,6 +330,11 @@ def corrector_specs():
                   'no unit'),
         ParamSpec('diagnostics_period_s', 1.0, 'period of the /diagnostics status, s',
                   positive('s'), read_only=True),
+        ParamSpec('array_frame_id', DEFAULT_ARRAY_FRAME_ID, 'frame_id of the corrected fields '
+                  'and of the gradient tensor: the array frame (sensor 1 orthogonalised); '
+                  'the static transforms array -> fluxgate{j} are published from the '
+                  'calibration when tf2_ros is importable; read-only', frame_id,
+                  read_only=True),
     ]
 
 
@@ -330,4 +347,5 @@ def corrector_settings(node):
         aux_topics=tuple(value(node, 'aux_topics', [])),
         publish_gradient=bool(value(node, 'publish_gradient')),
         diagnostics_period_s=float(value(node, 'diagnostics_period_s')),
+        array_frame_id=str(value(node, 'array_frame_id')),
     )

@@ -1,6 +1,7 @@
 """Group the samples of S sensors into sets taken at the same epoch.
 
-Pure Python/numpy (no rclpy), shared by the calibration and corrector nodes.
+Pure Python/numpy (no rclpy), shared by the calibration node and the live correction
+(:mod:`magcal_ros.core.live`).
 
 A serial driver stamps each sample with the arrival time of its bytes, which lags the
 sampling instant by a varying latency: samples read in one chunk share a stamp, and a reader

@@ -1,0 +1,230 @@
+"""Live correction of an array, one sample at a time (no ROS: used by the corrector node).
+
+:class:`LiveCorrector` holds everything a stream of raw samples needs besides the samples:
+the calibration's correction made ready per sensor (A_j^-1, offset, covariance), the latest
+driving signals (temperature, auxiliary channels), the field-rate estimate of each stream,
+the grouping of the sensors' samples into sets of one epoch (:class:`StampMatcher`) and the
+gradient operator of the array geometry with its covariance.  Every matrix is computed once
+when the corrector is built, so a sample costs a few 3x3 products.
+
+Units: nT, nT/s, nT/m, s, degC (the library's; a ROS node converts at its boundary).
+"""
+from collections import deque
+
+from magcal_ros.core.effects import SensorContext, SIGNALS
+from magcal_ros.core.sync import StampMatcher
+from magcal_ros.core.tensor import tensor_operator
+import numpy as np
+
+#: consecutive raw samples further apart than this give no field-rate estimate, s
+MAX_RATE_GAP_S = 1.0
+#: arrivals per stream used to estimate its sample period (field-rate effect)
+PERIOD_WINDOW = 200
+#: arrivals needed before the sample period (and so the field rate) is estimated
+_MIN_ARRIVALS = 11
+
+
+class MissingSignal(Exception):
+    """A driven effect of the calibration has no live signal yet (the message says which)."""
+
+
+def _waiting(j, name):
+    """Why the correction of sensor j waits for the signal ``name``."""
+    if name == 'temperature':
+        return (f'sensor {j}: waiting for sensor{j}/temperature (the calibration has an '
+                'effect that reads the temperature)')
+    if name == 'field_rate':
+        return f'sensor {j}: field rate needs two consecutive samples'
+    if name.startswith('aux_'):
+        return (f'sensor {j}: waiting for auxiliary channel {name} (topic {name[4:]} named in '
+                'aux_topics)')
+    return f'sensor {j}: the calibration needs the signal {name!r}, which is not received'
+
+
+class _Sensor:
+    """The calibration of one sensor made ready for per-sample correction."""
+
+    def __init__(self, cal, j):
+        self.j = j
+        self.a_inv = cal.correction_matrix(j)
+        self.offset = cal.offset(j)
+        # the signals the calibration's effects declare (Effect.signals); the stamp ('time')
+        # is always there
+        self.needs = set(cal.signals(j)) - {'time'}
+        self.driven = bool(cal.driven_effects(j))
+        sigma = float(cal.sigma_nt[j - 1])
+        # corrected = A^-1 raw: white raw noise sigma^2 I maps to sigma^2 A^-1 A^-T (nT^2)
+        self.cov_nt2 = None
+        if np.isfinite(sigma) and sigma > 0:
+            c = sigma ** 2 * self.a_inv @ self.a_inv.T
+            self.cov_nt2 = 0.5 * (c + c.T)
+        self.prev = None                 # (t s, raw (3,) nT) of the previous sample
+        self.arrivals = deque(maxlen=PERIOD_WINDOW)
+
+
+class LiveCorrector:
+    """A calibration made ready to correct live samples of every sensor of an array.
+
+    Parameters
+    ----------
+    cal : magcal_ros.core.model.Calibration
+    n_sensors : int
+        Sensors of the array; a calibration for another count is refused (ValueError).
+    positions_m : array_like, optional
+        (S, 3) sensor positions in the array frame, m (the calibration document's
+        ``geometry.positions_m``); without them no gradient is computed
+        (:attr:`no_gradient_reason` says why).
+    stamp_tolerance_s : float
+        Tolerance of the set matcher (:class:`magcal_ros.core.sync.StampMatcher`), s.
+
+    Attributes
+    ----------
+    gradient_op : numpy.ndarray or None
+        (9, 3 S) maps the stacked corrected fields (nT) to the row-major tensor (nT/m)
+        (paper 004 eq. 1 for the cross; :func:`magcal_ros.core.tensor.tensor_operator`).
+    gradient_cov_nt2 : numpy.ndarray or None
+        (9, 9) covariance of the row-major tensor, (nT/m)^2, from the sensors' corrected-field
+        covariances (independent sensors); None when a sensor has no noise estimate.
+    matcher : StampMatcher
+    """
+
+    def __init__(self, cal, n_sensors, positions_m=None, stamp_tolerance_s=0.005):
+        if cal.n_sensors != n_sensors:
+            raise ValueError(f'the calibration is for {cal.n_sensors} sensors but this '
+                             f'corrector handles {n_sensors} (n_sensors)')
+        self.cal = cal
+        self.n_sensors = n_sensors
+        self._sensors = [_Sensor(cal, j) for j in range(1, n_sensors + 1)]
+        self.temp = np.full(n_sensors, np.nan)
+        self.aux = {}
+        self.matcher = StampMatcher(n_sensors, stamp_tolerance_s)
+        self.gradient_op = None
+        self.gradient_cov_nt2 = None
+        self.no_gradient_reason = None
+        self.positions_m = None
+        if positions_m is None:
+            self.no_gradient_reason = 'the calibration has no array geometry (positions_m)'
+            return
+        try:
+            pos = np.asarray(positions_m, float)
+            if pos.shape != (n_sensors, 3):
+                raise ValueError(f'positions_m has shape {pos.shape}, expected ({n_sensors}, 3)')
+            # rows 3.. of the operator: G row-major (9, 3 S)
+            self.gradient_op = tensor_operator(pos)[3:]
+            self.positions_m = pos
+        except ValueError as exc:
+            self.no_gradient_reason = f'no gradient: {exc}'
+            return
+        covs = [s.cov_nt2 for s in self._sensors]
+        if all(c is not None for c in covs):
+            block = np.zeros((3 * n_sensors, 3 * n_sensors))
+            for k, c in enumerate(covs):
+                block[3 * k:3 * k + 3, 3 * k:3 * k + 3] = c
+            g = self.gradient_op @ block @ self.gradient_op.T
+            self.gradient_cov_nt2 = 0.5 * (g + g.T)
+
+    @property
+    def needs_temperature(self):
+        """True when an effect of the calibration is driven by the sensor temperature."""
+        return any('temperature' in s.needs for s in self._sensors)
+
+    def sensor_frames(self):
+        """Pose of each sensor's frame in the array frame, from the calibration and geometry.
+
+        The frame of sensor j is its own orthogonalised axes (C_j^-1 raw, paper 004 eq. 5);
+        R_j rotates it into the array frame (sensor 1's orthogonalised axes; eq. 14), so a
+        vector v_j of sensor j is R_j v_j in the array frame.  The scale and
+        non-orthogonality of the raw axes (C_j) are not a rigid transform and stay in the
+        calibration.
+
+        Returns
+        -------
+        list of (numpy.ndarray, numpy.ndarray)
+            Per sensor: R_j (3, 3) proper rotation and the position (3,) m; an empty list
+            without geometry (:attr:`no_gradient_reason`).
+        """
+        if self.positions_m is None:
+            return []
+        return [(self.cal.intrinsic_and_rotation(j)[1], self.positions_m[j - 1].copy())
+                for j in range(1, self.n_sensors + 1)]
+
+    def covariance_nt2(self, j):
+        """(3, 3) covariance of sensor j's corrected field, nT^2 (None: no noise estimate)."""
+        return self._sensors[j - 1].cov_nt2
+
+    def set_temperature(self, j, temp_c):
+        """Latest temperature of sensor j (1-based), degC."""
+        self.temp[j - 1] = temp_c
+
+    def set_aux(self, column, value):
+        """Latest value of the auxiliary channel ``column`` (``aux_<name>``)."""
+        self.aux[column] = float(value)
+
+    def correct(self, j, t, raw):
+        """Correct one finite raw sample of sensor j and remember it for the field rate.
+
+        Parameters
+        ----------
+        j : int
+            Sensor, 1-based.
+        t : float
+            Stamp of the sample, s.
+        raw : numpy.ndarray
+            (3,) raw reading, nT.
+
+        Returns
+        -------
+        numpy.ndarray
+            (3,) corrected field in the array frame, nT.
+
+        Raises
+        ------
+        MissingSignal
+            A driven effect has no live signal yet (temperature, auxiliary channel, or the
+            field rate before the stream's period is known).
+        """
+        s = self._sensors[j - 1]
+        prev = s.prev
+        s.prev = (t, raw)
+        s.arrivals.append(t)
+        if not s.driven:
+            return s.a_inv @ (raw - s.offset)          # the common case: one 3x3 product
+        rate = self._rate(s, prev, t, raw) if 'field_rate' in s.needs else None
+        temp = self.temp[j - 1]
+        ctx = SensorContext(
+            t=np.array([t]), temp=np.array([temp]) if np.isfinite(temp) else None,
+            aux={k: np.array([v]) for k, v in self.aux.items()},
+            raw_rate=None if rate is None else rate[None])
+        for name in sorted(s.needs):
+            if not (name in SIGNALS or name.startswith('aux_')) or not ctx.has(name):
+                raise MissingSignal(_waiting(j, name))
+        return self.cal.correct(j, raw, ctx)
+
+    @staticmethod
+    def _rate(s, prev, t, raw):
+        """d(raw)/dt, nT/s (3,): backward difference over the stream's mean sample period.
+
+        Consecutive samples of one stream are one period apart, but their stamps are not
+        (samples read at once share one), so the period is the mean over the last
+        :data:`PERIOD_WINDOW` arrivals.
+        """
+        if prev is None or t - prev[0] > MAX_RATE_GAP_S or len(s.arrivals) < _MIN_ARRIVALS:
+            return None
+        period = (s.arrivals[-1] - s.arrivals[0]) / (len(s.arrivals) - 1)
+        return (raw - prev[1]) / period if period > 0 else None
+
+    def gradients(self, j, t, field_nt):
+        """Add a corrected sample of sensor j; return the tensors of the sets it completes.
+
+        ``j`` and ``t`` as for :meth:`correct`; ``field_nt`` (3,) is its result, nT.
+
+        Returns
+        -------
+        list of (float, numpy.ndarray)
+            (stamp of the set s, tensor (3, 3) nT/m) per completed set, oldest first; empty
+            without geometry.
+        """
+        if self.gradient_op is None:
+            return []
+        return [(t_set, (self.gradient_op @ np.concatenate(fields)).reshape(3, 3))
+                for _, t_set, fields in self.matcher.add(j - 1, t, field_nt)]
