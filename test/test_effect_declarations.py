@@ -169,7 +169,7 @@ def test_temperature_plugin_in_simulate(plugins):
 
 
 def test_temperature_plugin_fit_diagnose_file_and_live_correction(plugins):
-    from magcal_ros.ros.corrector_node import LiveCorrection, MissingSignal
+    from magcal_ros.core.live import LiveCorrector, MissingSignal
 
     data, b = _recording()
     spec = f'offset,scale,{ThermalSquare.name}'
@@ -196,11 +196,11 @@ def test_temperature_plugin_fit_diagnose_file_and_live_correction(plugins):
     assert np.sqrt(np.mean(err ** 2)) < 2 * SIGMA
 
     # live: the corrector subscribes the temperature because the plug-in declares it
-    live = LiveCorrection(cal, calibration_to_doc(cal), 1)
-    sc = live.sensors[0]
-    assert sc.needs == {'temperature'} and sc.driven
-    for k in (0, 700, 1999):
-        got = sc.correct(data.raw[0, k], data.t[k], data.temp[0, k], {}, None)
-        np.testing.assert_allclose(got, corrected[k], rtol=1e-12, atol=1e-9)
+    live = LiveCorrector(cal, 1)
+    assert live.needs_temperature
     with pytest.raises(MissingSignal, match='waiting for sensor1/temperature'):
-        sc.correct(data.raw[0, 0], data.t[0], np.nan, {}, None)
+        live.correct(1, data.t[0], data.raw[0, 0])
+    for k in (0, 700, 1999):
+        live.set_temperature(1, data.temp[0, k])
+        got = live.correct(1, data.t[k], data.raw[0, k])
+        np.testing.assert_allclose(got, corrected[k], rtol=1e-12, atol=1e-9)

@@ -172,9 +172,9 @@ def test_driven_effects_use_the_latest_signals_and_name_the_missing_one():
     assert messages[0] == 'sensor 2: field rate needs two consecutive samples'
     assert 'waiting for sensor2/temperature' in messages[-1]
     live.set_temperature(2, 31.0)
-    raw = np.array([1013.0, 1013.0, 1013.0])
-    got = live.correct(2, 0.13, raw)
-    ctx = SensorContext(t=np.array([0.13]), temp=np.array([31.0]),
+    raw = np.array([1012.0, 1012.0, 1012.0])
+    got = live.correct(2, 0.12, raw)
+    ctx = SensorContext(t=np.array([0.12]), temp=np.array([31.0]),
                         aux={'aux_motor_current': np.array([2.5])},
                         raw_rate=np.array([[100.0, 100.0, 100.0]]))   # 1 nT per 10 ms
     np.testing.assert_allclose(got, cal.correct(2, raw[None], ctx)[0], rtol=1e-9, atol=1e-6)
