@@ -411,7 +411,8 @@ def test_corrector_with_a_silent_sensor_keeps_correcting_the_others(
     status = {kv.key: kv.value for kv in node.diagnostic_status().values}
     assert status['sensor3_corrected_published'] == '0'
     assert status['gradient_published'] == '0'
-    assert all(len(q) <= node._matcher.max_queue for q in node._matcher._queues)
+    matcher = node._live.matcher
+    assert all(len(q) <= matcher.max_queue for q in matcher._queues)
 
 
 def test_a_calibration_far_above_the_noise_floor_says_so():
