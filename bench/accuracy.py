@@ -50,6 +50,7 @@ import common  # noqa: E402
 import site_gradient as site_scn  # noqa: E402
 
 from magcal_ros.core import model as mdl  # noqa: E402
+from magcal_ros.core.magnitude import reference_magnitude  # noqa: E402
 from magcal_ros.core.simulate import SimConfig, Simulator  # noqa: E402
 from magcal_ros.core.tensor import cross_positions, tensor_cross, tensor_noise_floor  # noqa
 
@@ -85,7 +86,7 @@ def crb_covariance(data, model, params, field_nt, sigma_nt, priors=None):
     """
     contexts = [data.context(j) for j in range(1, data.n_sensors + 1)]
     model.prepare(contexts)
-    f = mdl.field_magnitude(data, field_nt)
+    f = reference_magnitude(data, field_nt)
     sigma = np.broadcast_to(np.asarray(sigma_nt, float), (model.n_sensors,)).copy()
     groups = ([list(range(1, model.n_sensors + 1))] if model.joint
               else [[j] for j in range(1, model.n_sensors + 1)])

@@ -102,7 +102,7 @@ def resolve_field(args, data):
 
 def _resolve_field(args, data):
     if getattr(args, 'igrf', None):
-        from magcal_ros.core.reference_field import igrf_total
+        from magcal_ros.core.magnitude import igrf_total
         try:
             lat, lon, alt = (float(x) for x in args.igrf[:3])
         except ValueError:
@@ -112,7 +112,7 @@ def _resolve_field(args, data):
                    'date': args.igrf[3], 'magnitude_nt': f}
     if getattr(args, 'field_nt', None) is not None:
         if args.field_nt == 'auto':
-            from magcal_ros.core.reference_field import auto_magnitude
+            from magcal_ros.core.magnitude import auto_magnitude
             f = auto_magnitude(data.raw[0])
             return f, {'kind': 'auto (mean radius, shape-only)', 'magnitude_nt': f}
         try:

@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from magcal_ros.core.dataset import Dataset
 from magcal_ros.core.ellipsoid import fit_ellipsoid
-from magcal_ros.core.identifiability import coverage_report
+from magcal_ros.core.identifiability import check_coverage
 from magcal_ros.core.model import DegenerateDataError, fit
 
 F = 50000.0
@@ -61,7 +61,7 @@ def test_offset_several_times_the_field_is_good(k):
     raw = _raw(_sphere(2000, rng), k, 300.0, rng)
     about_origin = np.linalg.norm(raw, axis=1)
     assert about_origin.min() > (k - 1.2) * F             # the origin lies far outside
-    rep = coverage_report(raw[None])
+    rep = check_coverage(raw[None])
     assert rep['sensors'][1]['status'] == 'good', rep['problems']
     assert rep['problems'] == []
     # uniform directions: each scatter eigenvalue about 1/3 (sd 0.007 at n = 2000)
@@ -82,7 +82,7 @@ def test_noisy_full_sphere_is_accepted(snr):
     # the algebraic centre's error: sigma * sqrt(3 / n) ~ 0.045 sigma per axis, plus the
     # algebraic fit's bias at this noise; 0.5 sigma is a loose bound for both
     assert np.linalg.norm(ell.b - o_true) < 0.5 * F / snr
-    rep = coverage_report(raw[None])
+    rep = check_coverage(raw[None])
     assert rep['sensors'][1]['status'] == 'good', rep['problems']
     res = fit(_data(raw), 'base', field_nt=F)
     assert res.success
@@ -100,7 +100,7 @@ def test_single_axis_with_noise_is_refused_naming_the_axis(axis, snr):
     named = np.array([float(x) for x in str(exc.value).split('normal (')[1].split(')')[0]
                       .split(',')])
     assert abs(named @ n) > 0.99
-    rep = coverage_report(raw[None])
+    rep = check_coverage(raw[None])
     s = rep['sensors'][1]
     assert s['status'] == 'single axis', rep['problems']
     assert abs(np.asarray(s['normal']) @ n) > 0.99
@@ -116,7 +116,7 @@ def test_single_axis_with_hand_wobble_is_refused_naming_the_axis(wobble):
     rng = np.random.default_rng(11)
     axis = np.array([0.0, 0.0, 1.0])
     raw = _raw(_ring(2000, axis, rng, wobble_deg=wobble), 6.0, 400.0, rng)
-    rep = coverage_report(raw[None])
+    rep = check_coverage(raw[None])
     s = rep['sensors'][1]
     assert s['status'] == 'single axis', rep['problems']
     assert abs(np.asarray(s['normal']) @ _plane_normal(axis)) > 0.98
@@ -133,7 +133,7 @@ def test_cap_is_partial_not_single_axis():
     u /= np.linalg.norm(u, axis=1, keepdims=True)
     u = u[u[:, 2] > np.cos(np.radians(30.0))][:1500]
     raw = _raw(u * F, 0.3, 500.0, rng)
-    rep = coverage_report(raw[None])
+    rep = check_coverage(raw[None])
     assert rep['sensors'][1]['status'] == 'partial', rep['problems']
     assert 'cone' in rep['problems'][0] and '--constrained' in rep['problems'][0]
 
@@ -143,6 +143,6 @@ def test_translation_only_is_one_attitude():
     rng = np.random.default_rng(9)
     rots = Rotation.from_rotvec(rng.normal(size=(1000, 3)) * np.radians(3.0))
     raw = _raw(rots.apply([0.2 * F, -0.1 * F, -0.97 * F]), 0.2, 400.0, rng)
-    rep = coverage_report(raw[None])
+    rep = check_coverage(raw[None])
     assert rep['sensors'][1]['status'] == 'one attitude', rep['problems']
     assert 'same field direction' in rep['problems'][0]

@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 from magcal_ros.core.model import fit
-from magcal_ros.core.reference_field import auto_magnitude
+from magcal_ros.core.magnitude import auto_magnitude
 from magcal_ros.io.single_csv import read_single_sensor_csv, to_nt
 
 REPO = pathlib.Path(__file__).resolve().parents[1]

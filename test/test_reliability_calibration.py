@@ -25,7 +25,7 @@ import re
 import subprocess
 import sys
 
-from magcal_ros.core.identifiability import coverage_report
+from magcal_ros.core.identifiability import check_coverage
 from magcal_ros.core.model import DegenerateDataError, fit
 from magcal_ros.core.simulate import simulate
 from magcal_ros.io.calfile import (calibration_to_doc, list_history, load_calibration,
@@ -81,7 +81,7 @@ def test_stuck_sensor_is_refused_naming_it(tumbling, noise_nt, match):
     data = stuck(tumbling[0], 3, noise_nt)
     with pytest.raises(DegenerateDataError, match=match):
         fit(data, 'base', field_nt=F)
-    rep = coverage_report(data.raw)
+    rep = check_coverage(data.raw)
     assert {j: v['status'] for j, v in rep['sensors'].items()} == {
         1: 'good', 2: 'good', 3: 'constant', 4: 'good'}
     assert len(rep['problems']) == 1 and 'stuck' in rep['problems'][0]

@@ -50,8 +50,9 @@ import numpy as np
 from scipy import stats
 
 from magcal_ros.core import effects as fx
+from magcal_ros.core.magnitude import reference_magnitude
 from magcal_ros.core.model import (_Problem, _single_threaded_blas, _tangent_basis, evaluate,
-                                   field_magnitude, fit, Model)
+                                   fit, Model)
 # the one noise-floor estimator (fit, diagnose, report, nodes); the old name is kept here
 from magcal_ros.core.noise import NoiseFloor, data_noise_floor as noise_floor_from_data  # noqa: F401
 
@@ -729,7 +730,7 @@ def _diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOL
     """
     t_start = time.perf_counter()
     seconds = {}
-    f = field_magnitude(data, field_nt)
+    f = reference_magnitude(data, field_nt)
     if base is None:
         if isinstance(model, str):
             model = Model.from_spec(model, data.n_sensors)
@@ -1042,7 +1043,7 @@ def ladder(data, start_model='base', steps=None, auto=True, field_nt=None, *,
     -------
     Ladder
     """
-    f = field_magnitude(data, field_nt)
+    f = reference_magnitude(data, field_nt)
     if hasattr(start_model, 'params') and hasattr(start_model, 'model'):
         result = start_model
     else:

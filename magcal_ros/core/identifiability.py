@@ -143,7 +143,7 @@ def _judge(m, centre, noise_eig):
     return out
 
 
-def coverage_report(raw):
+def check_coverage(raw):
     """Coverage of each sensor's field directions, judged about each sensor's fitted centre.
 
     A hard-iron offset several times the field squeezes the raw directions (about the

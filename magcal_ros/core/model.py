@@ -27,6 +27,7 @@ from scipy.optimize import least_squares
 
 from magcal_ros.core import effects as fx
 from magcal_ros.core.ellipsoid import fit_ellipsoid, procrustes_rotation
+from magcal_ros.core.magnitude import reference_magnitude
 from magcal_ros.core.notes import Note
 
 class DegenerateDataError(ValueError):
@@ -767,21 +768,6 @@ def initial_params(raw, field_nt, model, constrained=False):
     return p
 
 
-def field_magnitude(data, field_nt=None):
-    """(N,) reference magnitude in nT: ``field_nt`` (scalar or (N,)) or the data's ref_total."""
-    n = data.n_samples
-    if field_nt is not None:
-        f = np.broadcast_to(np.asarray(field_nt, float), (n,)).copy()
-    elif data.ref_total is not None:
-        f = np.asarray(data.ref_total, float)
-    else:
-        raise ValueError('no reference field magnitude: add a ref_total column, or give '
-                         '--field-nt or --igrf')
-    if not np.all(np.isfinite(f)) or np.any(f <= 0):
-        raise ValueError('the reference field magnitude must be finite and positive')
-    return f
-
-
 @dataclass
 class _Solution:
     x: np.ndarray
@@ -947,7 +933,7 @@ def _fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=F
         raise ValueError(f'model has {model.n_sensors} sensors, data have {data.n_sensors}')
     if on_degenerate not in ('raise', 'flag'):
         raise ValueError("on_degenerate must be 'raise' or 'flag'")
-    f_all = field_magnitude(data, field_nt)
+    f_all = reference_magnitude(data, field_nt)
     raw_all = data.raw
     if not np.all(np.isfinite(raw_all)):
         bad = np.unique(np.nonzero(~np.isfinite(raw_all))[0]) + 1
@@ -970,7 +956,7 @@ def _fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=F
 
     ident = {}
     if check_identifiability:
-        ident = idf.coverage_report(raw_all)
+        ident = idf.check_coverage(raw_all)
         if ident['problems'] and not constrained:
             degenerate(ident['problems'][0])
 

@@ -6,7 +6,7 @@
   :func:`magcal_ros.core.sine.calibrate_turntable` (eq. 4-16).
 - ``reference`` (paper 002, docs/papers.md#paper-002): a recording with the undisturbed
   reference field ``ref_x, ref_y, ref_z`` beside each reading; each sensor by
-  :func:`magcal_ros.core.reference.fit_reference` (eq. 4-7).
+  :func:`magcal_ros.core.reference_vector.fit_reference` (eq. 4-7).
 
 Both results are written as an ordinary :class:`~magcal_ros.core.model.Calibration`, so the
 calibration file and the live corrector treat them like a maximum-likelihood fit:
@@ -193,7 +193,7 @@ def reference_calibration(data, field_nt=None, on_degenerate='raise'):
     if data.ref_vec is None:
         raise ValueError('--method reference needs the reference field columns ref_x, ref_y, '
                          'ref_z (paper 002)')
-    from magcal_ros.core.reference import fit_reference
+    from magcal_ros.core.reference_vector import fit_reference
     he = np.asarray(data.ref_vec, float)
     f = np.linalg.norm(he, axis=1) if field_nt is None else _magnitude(field_nt,
                                                                        data.n_samples)

@@ -112,11 +112,12 @@ def crb_covariance(data, model, params, field_nt, sigma_nt, case='attitude', pos
         determine at all ('epoch_gradient').
     """
     from magcal_ros.core import model as mdl
+    from magcal_ros.core.magnitude import reference_magnitude
     if case not in CRB_CASES:
         raise ValueError(f'unknown case {case!r}; use one of {CRB_CASES}')
     contexts = [data.context(j) for j in range(1, data.n_sensors + 1)]
     model.prepare(contexts)
-    f = mdl.field_magnitude(data, field_nt)
+    f = reference_magnitude(data, field_nt)
     s = model.n_sensors
     sigma = np.broadcast_to(np.asarray(sigma_nt, float), (s,)).copy()
     grp = list(range(1, s + 1))

@@ -40,7 +40,7 @@ import time
 
 from magcal_ros.core.consistency import GROSS_FRACTION, resync
 from magcal_ros.core.dataset import Dataset
-from magcal_ros.core.identifiability import coverage_report
+from magcal_ros.core.identifiability import check_coverage
 from magcal_ros.core.model import DegenerateDataError, Model
 from magcal_ros.core.notes import format_note
 from magcal_ros.io.calfile import (CalibrationFileError, dump_calibration, load_calibration,
@@ -354,7 +354,7 @@ class CalibrationNode(Node):
                            f'(have {n_sets}, need {s.min_samples})')
         coverage = {}
         if raw is not None and raw.shape[1] >= 3:
-            rep = coverage_report(raw)
+            rep = check_coverage(raw)
             coverage = {str(j): {'status': v['status'],
                                  'eigenvalues': [round(float(x), 4) for x in v['eigenvalues']]}
                         for j, v in rep['sensors'].items()}

@@ -1,4 +1,5 @@
-"""Paper 002: hard- and soft-iron compensation from a reference field, by linear least squares.
+"""Paper 002: hard- and soft-iron compensation from a reference field vector, by linear least
+squares (not :mod:`magcal_ros.core.magnitude`, the reference *magnitude* of a fit).
 
 Model (paper 002, eq. 1-4): ``Hm = K He + Hh`` with ``He`` the undisturbed field (measured
 without the interference source: a reference) and ``Hm`` the disturbed reading, ``K = I + D``

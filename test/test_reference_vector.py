@@ -1,4 +1,4 @@
-"""Tests for magcal_ros.core.reference (paper 002, reference least squares)."""
+"""Tests for magcal_ros.core.reference_vector (paper 002, reference least squares)."""
 
 import io
 import pathlib
@@ -8,7 +8,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from magcal_ros.core.paper_params import Paper002Params
-from magcal_ros.core.reference import correct, fit_reference
+from magcal_ros.core.reference_vector import correct, fit_reference
 
 DATA = pathlib.Path(__file__).parent / 'data' / 'paper002_table2.csv'
 
