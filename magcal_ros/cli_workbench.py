@@ -110,11 +110,11 @@ def _run(args, cli, with_ladder):
                on_degenerate='flag' if args.flag_degenerate else 'raise')
     prog('fit', 1, 1)
     diag = diagnose(data, field_nt=field_nt, base=base, folds=args.folds, alpha=args.alpha,
-                    progress=prog)
+                    progress=prog, baseline_m=args.baseline_m)
     lad = None
     if with_ladder:
         lad = ladder(data, base, field_nt=field_nt, folds=args.folds, progress=prog,
-                     diagnosis=diag, alpha=args.alpha)
+                     diagnosis=diag, alpha=args.alpha, baseline_m=args.baseline_m)
     return data, diag, lad, fref
 
 

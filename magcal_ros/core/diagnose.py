@@ -50,6 +50,7 @@ import numpy as np
 from scipy import stats
 
 from magcal_ros.core import effects as fx
+from magcal_ros.core.findings import find as find_findings
 from magcal_ros.core.magnitude import reference_magnitude
 from magcal_ros.core.model import (_Problem, _single_threaded_blas, _tangent_basis, evaluate,
                                    fit, Model)
@@ -560,6 +561,9 @@ class Diagnosis:
         Wall time per stage, s.
     result : FitResult
         The base fit.
+    findings : Findings or None
+        What is left in the base fit's residuals, model-free
+        (:func:`magcal_ros.core.findings.find`).
     """
 
     model: tuple
@@ -581,6 +585,7 @@ class Diagnosis:
     seconds: dict
     result: object = field(repr=False, default=None)
     n_used: int | None = None
+    findings: object = field(repr=False, default=None)
 
     @property
     def verdict(self):
@@ -627,6 +632,7 @@ class Diagnosis:
             'n_params': self.n_params, 'p_threshold': self.p_threshold,
             'min_delta_bic': MIN_DELTA_BIC, 'at_floor_ratio': AT_FLOOR_RATIO,
             'cv_folds': self.folds, 'seconds': dict(self.seconds),
+            'findings': [] if self.findings is None else self.findings.to_list(),
         }
 
     def to_json(self, **kwargs):
@@ -672,6 +678,8 @@ class Diagnosis:
                              'evidence (all in the JSON output)')
         for tok, why in self.not_testable:
             lines.append(f'  not testable: {tok}: {why}')
+        if self.findings is not None:
+            lines.append(self.findings.summary())
         if self.verdict_token:
             lines.append(f'verdict: add {self.verdict_token} ({self.verdict_reason})')
         else:
@@ -692,7 +700,8 @@ def diagnose(data, model='base', field_nt=None, **kwargs):
 
 def _diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLDS,
               alpha=ALPHA, max_refit=DEFAULT_MAX_REFIT, candidates=None, progress=None,
-              cv_method='newton', max_samples=DEFAULT_MAX_SAMPLES, **fit_kwargs):
+              cv_method='newton', max_samples=DEFAULT_MAX_SAMPLES, baseline_m=0.5,
+              **fit_kwargs):
     """Find what the model misses: noise floor, candidate effects ranked, verdict.
 
     Parameters
@@ -721,6 +730,9 @@ def _diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOL
     max_samples : int or None
         Test the candidates on at most this many evenly spaced epochs (the fit's own cap);
         the noise floor is estimated from all of them.  None: all.
+    baseline_m : float
+        Arm length of a four-sensor cross, m, for the gradient of a ``nonuniform_field``
+        finding (:func:`magcal_ros.core.findings.find`).
     **fit_kwargs
         Passed to :func:`magcal_ros.core.model.fit` for the base fit.
 
@@ -742,6 +754,9 @@ def _diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOL
     seconds['base_fit'] = time.perf_counter() - t_start
     n_all = data.n_samples
     floor = noise_floor_from_data(data, base)
+    t0 = time.perf_counter()
+    found = find_findings(data, base, baseline_m=baseline_m)       # model-free, all epochs
+    seconds['findings'] = time.perf_counter() - t0
     if max_samples and n_all > max_samples:
         # the same evenly spaced epochs as fit(max_fit_samples): the time order (and so the
         # contiguous cross-validation blocks) is kept
@@ -916,7 +931,7 @@ def _diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOL
         residual_rms_nt=residual_rms, cv_rms_nt=None if cv0 is None else cv0['rms_nt'],
         at_floor=bool(at_floor), candidates=tuple(out), not_testable=tuple(not_testable),
         verdict_token=verdict, verdict_reason=reason, p_threshold=p_thr, folds=folds,
-        seconds=seconds, result=base)
+        seconds=seconds, result=base, findings=found)
 
 
 # -- the error ladder -----------------------------------------------------------------------

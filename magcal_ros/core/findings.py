@@ -1,0 +1,894 @@
+"""What is left in the residuals of a fit, model-free: lines, steps, lags, gradients, tails.
+
+:func:`find` looks at the residuals a fitted model leaves and names the structure in them
+without the effect catalog: a spectral line, an offset step, a driven channel acting through
+a lag or non-linearly, a trend, an attitude pattern, heavy tails, or a field gradient across
+the array.  Each :class:`Finding` says what it is, how much of the sensor's excess over the
+noise floor its own simple model (a sinusoid, a step, a lag filter, ...) removes, and which
+effect token to add (``periodic(0.23)@3``, ``step(300)@1``, ``lag(temperature)@2``, ...).
+
+Series analysed (all nT)
+------------------------
+- With 3 or more sensors, sensor j's **consensus residual** ``c_j - median_{k != j} c_k``
+  (``c``: corrected readings in the array frame, (N, 3) each): under a uniform field every
+  sensor sees the same vector, so this is noise plus sensor j's own faults.  The median of
+  the others is not moved by one faulty sensor, so a sensor-1 step shows on sensor 1 only,
+  not as "sensors 2-4 jumped" (the vector residual of :class:`FitResult` is taken against
+  sensor 1).
+- With 1 or 2 sensors, the scalar residual ``|c_j| - F`` (a consensus cannot attribute).
+
+Method
+------
+Per sensor, greedily: every test below is run on the series, the significant one with the
+largest BIC gain is kept, its fitted signal removed, and the tests are run again (at most
+:data:`MAX_PER_SENSOR` times).  A finding needs
+
+1. significance: p-value below ``alpha`` / (number of tests) (Bonferroni); each test's
+   p-value comes from its own null distribution (below);
+2. effect size: its model removes at least :data:`MIN_SIGNAL_RATIO` x the noise variance
+   (pooled per component), i.e. alone it would lift the residual RMS above 1.10 x the floor,
+   the rule by which :mod:`magcal_ros.core.diagnose` calls a residual "at the floor"; and at
+   least :data:`MIN_EXPLAINED` of the sensor's excess mean square over the floor.
+
+The tests:
+
+- ``periodic``: periodogram (FFT for uniform sampling; Lomb-Scargle,
+  :func:`scipy.signal.lombscargle`, for irregular sampling), the channels' powers summed.
+  Under white noise the power normalised by its local median is Gamma(C, 1) distributed;
+  the false-alarm probability is that tail times the number of independent frequencies
+  (Scargle 1982).  A line must stand out of its neighbourhood, so a red continuum (a random
+  walk) is not a line.  Periods longer than a third of the record are left to ``time``.
+- ``step``: the most likely single change of the mean (CUSUM statistic of a Gaussian
+  mean shift, maximised over the change time), applied repeatedly by the greedy loop: binary
+  segmentation (Vostrikova 1981).  p-value: chi-square tail with C degrees of freedom,
+  Bonferroni over the candidate change times (conservative).  Segments shorter than
+  :data:`MIN_SEGMENT_FRACTION` of the record are not considered.
+- ``time``: Legendre polynomial trend of degree 1-5 (degree by BIC), F-test against none.
+- ``direction``: polynomial of degree <= 3 in the field direction (array frame; the
+  residual of a missing soft-iron, non-linearity or a body field), F-test against none.
+- ``channel`` / ``lag`` / ``channel_nonlinear``: for each driving channel (the sensor's
+  temperature, every ``aux_*``), linear regression (``channel``); the channel through a
+  first-order lag ``tau dy/dt = x - y`` added to it, tau on a log grid (``lag``, F-test
+  against the linear fit, Bonferroni over the grid); x^2, x^3 and sign(dx/dt) added to it
+  (``channel_nonlinear``: curved, saturating or hysteretic; F-test against the linear fit).
+- ``heavy_tails``: on what is left after the greedy loop, D'Agostino's kurtosis test and an
+  excess kurtosis above :data:`MIN_EXCESS_KURTOSIS`.
+- ``nonuniform_field`` (the four-sensor cross of paper 004, :func:`tensor.cross_positions`):
+  the inter-sensor residuals ``m_j = c_j - mean_k c_k`` split into the antisymmetric part
+  of each arm, ``(m1 - m3) / 2`` and ``(m2 - m4) / 2`` (what a field gradient makes: paper
+  004 eq. 1), and the symmetric part ``(m1 + m3 - m2 - m4) / 4``.  One faulty sensor puts
+  exactly 2/3 of its excess into the antisymmetric part, a gradient all of it; the finding
+  needs at least :data:`MIN_GRADIENT_SHARE`.  The value is the RMS Frobenius norm of the
+  gradient tensor left in the residuals (noise removed), nT/m; the gradient is then taken
+  out of the per-sensor series (smoothed over time) before the per-sensor tests.
+
+Noise: each series' per-component noise variance is the mean square of its third
+differences / 20 (the white-noise variance for any distribution, heavy tails included;
+smooth signals cancel), not a robust (MAD) estimate, which reads low for heavy tails.
+"""
+from dataclasses import dataclass, field
+import math
+
+import numpy as np
+from scipy import ndimage, signal, stats
+
+from magcal_ros.core.effects import first_order_lag
+
+#: family-wise false-alarm probability of the findings
+ALPHA = 0.01
+#: a finding's model must remove at least this many noise variances (pooled per component):
+#: alone it lifts the RMS above 1.10 x the floor (diagnose.AT_FLOOR_RATIO ** 2 - 1)
+MIN_SIGNAL_RATIO = 1.10 ** 2 - 1.0
+#: and at least this share of the sensor's excess mean square over the floor
+MIN_EXPLAINED = 0.2
+#: findings per sensor (greedy rounds)
+MAX_PER_SENSOR = 4
+#: shortest segment of a step, as a share of the record
+MIN_SEGMENT_FRACTION = 0.02
+#: excess kurtosis from which tails count as heavy (a Student t with 10 degrees of freedom;
+#: the sample excess kurtosis of Gaussian noise has sd sqrt(24 / N) = 0.09 at N = 3000)
+MIN_EXCESS_KURTOSIS = 1.0
+#: share of the inter-sensor excess in the antisymmetric (gradient) part that names a
+#: non-uniform field: one sensor's fault gives 2/3, a gradient 1
+MIN_GRADIENT_SHARE = 0.85
+#: a finding on another sensor with the same kind and value is the consensus' echo of the
+#: faulty sensor's if it removes less than this share of the largest one's mean square
+ECHO_RATIO = 0.25
+#: lag time constants tried per channel
+N_TAU = 24
+#: frequencies of the Lomb-Scargle periodogram for irregular sampling (cost N x this)
+MAX_LS_FREQS = 4000
+#: half width, in independent frequencies, of the neighbourhood a line is compared with
+LINE_NEIGHBOURHOOD = 50
+
+
+@dataclass(frozen=True)
+class Finding:
+    """One structure found in the residuals.
+
+    Attributes
+    ----------
+    kind : str
+        'periodic', 'step', 'lag', 'channel', 'channel_nonlinear', 'nonuniform_field',
+        'heavy_tails', 'direction' or 'time'.
+    sensor : int or None
+        The sensor that has it (1-based); None for the array (a field gradient).
+    channel : str or None
+        The driving channel ('temperature', 'aux_<name>') for channel kinds.
+    value : float or None
+        Frequency (Hz) for 'periodic', change time (s, data time axis) for 'step', time
+        constant (s) for 'lag', gradient magnitude (nT/m) for 'nonuniform_field', excess
+        kurtosis for 'heavy_tails', peak-to-peak trend (nT) for 'time'.
+    unit : str
+        Unit of ``value`` ('' when dimensionless or None).
+    explained_fraction : float
+        Share (0..1) of the sensor's excess mean square over its noise floor that the
+        finding's own model removes.
+    text : str
+        What it is and what to add.
+    token : str or None
+        The effect token to add to the model, or None when the catalog has none.
+    p_value : float
+        False-alarm probability of the test (before the Bonferroni factor).
+    rms_nt : float
+        RMS (per component) of the finding's fitted signal, nT.
+    """
+
+    kind: str
+    sensor: int | None
+    channel: str | None
+    value: float | None
+    unit: str
+    explained_fraction: float
+    text: str
+    token: str | None = None
+    p_value: float = float('nan')
+    rms_nt: float = float('nan')
+
+    def to_dict(self):
+        """JSON-ready dict (DESIGN.md contract 2 keys first)."""
+        return {'kind': self.kind, 'sensor': self.sensor, 'channel': self.channel,
+                'value': self.value, 'unit': self.unit,
+                'explained_fraction': self.explained_fraction, 'text': self.text,
+                'token': self.token, 'p_value': self.p_value, 'rms_nt': self.rms_nt}
+
+
+@dataclass(frozen=True, eq=False)
+class Findings:
+    """Outcome of :func:`find`: the findings and the series they were found in.
+
+    Attributes
+    ----------
+    items : tuple of Finding
+        Largest effect first per sensor, array-level findings first.
+    t : numpy.ndarray
+        (N,) time, s.
+    series : dict
+        {sensor: (N, C) residual series analysed, nT} (consensus residual, C = 3, or the
+        scalar residual, C = 1), after the field gradient was taken out when one was found.
+    noise_nt : dict
+        {sensor: (C,) white-noise sd per component of that series, nT}.
+    kind_of_series : str
+        'consensus' or 'scalar'.
+    """
+
+    items: tuple
+    t: np.ndarray
+    series: dict = field(repr=False)
+    noise_nt: dict = field(repr=False)
+    kind_of_series: str = 'consensus'
+
+    def to_list(self):
+        """List of the findings as dicts."""
+        return [f.to_dict() for f in self.items]
+
+    def summary(self):
+        """One line per finding."""
+        if not self.items:
+            return 'findings (model-free): none'
+        lines = ['findings (model-free, largest share of the excess first):']
+        for f in self.items:
+            lines.append(f'  {f.text}')
+        return '\n'.join(lines)
+
+
+# -- helpers ---------------------------------------------------------------------------------
+
+def white_noise_sd(x):
+    """Per-component white-noise sd of a series from its third differences.
+
+    Parameters
+    ----------
+    x : numpy.ndarray
+        (N,) or (N, C) series in time order (any unit).
+
+    Returns
+    -------
+    numpy.ndarray
+        (C,) sd in the unit of ``x``: sqrt(mean((Delta^3 x)^2) / 20), 20 = C(6, 3) the
+        variance gain of the third difference.  Mean square, not MAD: unbiased for any noise
+        distribution; a signal smooth at the sample rate, or a few steps, barely contribute.
+    """
+    x = np.asarray(x, float)
+    if x.ndim == 1:
+        x = x[:, None]
+    d = np.diff(x, n=3, axis=0)
+    return np.sqrt(np.mean(d ** 2, axis=0) / 20.0)
+
+
+def _uniform(t):
+    dt = np.diff(t)
+    med = float(np.median(dt)) if dt.size else 0.0
+    return med > 0 and bool(np.all(np.abs(dt - med) <= 1e-3 * med)), med
+
+
+def periodogram(t, x):
+    """Power spectrum of a residual series, also for irregular sampling.
+
+    Parameters
+    ----------
+    t : numpy.ndarray
+        (N,) time, s.
+    x : numpy.ndarray
+        (N,) or (N, C) series, nT (the mean is removed).
+
+    Returns
+    -------
+    freqs : numpy.ndarray
+        (M,) frequencies, Hz (oversampled 2x, from 1/T).
+    power : numpy.ndarray
+        (M, C) power, nT^2: the squared amplitude of the best-fitting sinusoid times N / 4
+        (FFT for uniform sampling, Lomb-Scargle otherwise; white noise of variance s^2 has
+        mean power s^2).
+    n_independent : int
+        Number of independent frequencies in the band (N / 2 for uniform sampling).
+    """
+    x = np.asarray(x, float)
+    if x.ndim == 1:
+        x = x[:, None]
+    x = x - x.mean(axis=0)
+    n = len(t)
+    uniform, dt = _uniform(t)
+    span = float(t[-1] - t[0]) + dt
+    if uniform:
+        nfft = 2 * n
+        spec = np.fft.rfft(x, n=nfft, axis=0)
+        freqs = np.fft.rfftfreq(nfft, dt)
+        power = np.abs(spec) ** 2 / n
+        return freqs[1:], power[1:], n // 2
+    f_nyq = 0.5 / dt
+    m = int(min(MAX_LS_FREQS, 2 * f_nyq * span))
+    freqs = np.linspace(1.0 / span, f_nyq, m)
+    # classical normalisation (Scargle 1982): N A^2 / 4 for a sinusoid of amplitude A
+    power = np.stack([signal.lombscargle(t - t[0], x[:, c], 2 * np.pi * freqs)
+                      for c in range(x.shape[1])], axis=1)
+    return freqs, power, max(1, int(f_nyq * span))
+
+
+def _regress(x, design):
+    """Least-squares fit of every column of x (N, C) on design (N, K); (fitted, rank).
+
+    Normal equations, columns scaled to unit norm and solved by eigen-decomposition with
+    the directions below 1e-10 of the largest eigenvalue dropped (a rank-deficient design,
+    e.g. u_x^2 + u_y^2 + u_z^2 = 1, is allowed): about 20x faster than an SVD of the design
+    for N >> K, and accurate for the well-scaled designs used here.
+    """
+    g = design.T @ design
+    d = np.sqrt(np.diag(g))
+    d[d == 0] = 1.0
+    w, v = np.linalg.eigh(g / np.outer(d, d))
+    keep = w > 1e-10 * w.max()
+    coef = (v[:, keep] / w[keep]) @ (v[:, keep].T @ ((design.T @ x) / d[:, None]))
+    return design @ (coef / d[:, None]), int(keep.sum())
+
+
+def _f_test(ss0, ss1, k, dof):
+    """p-value of the F-test of k extra regressors lowering SS from ss0 to ss1."""
+    if k <= 0 or dof <= 0 or ss1 <= 0:
+        return 1.0
+    f = max(ss0 - ss1, 0.0) / k / (ss1 / dof)
+    return float(stats.f.sf(f, k, dof))
+
+
+def _nuisance(mod):
+    """(N, 10) what a refit of the linear model would absorb from the scalar residual.
+
+    An offset error c and a matrix error E of a sensor show in its scalar residual as
+    u.c + u.E u (u: field direction, (N, 3)): columns 1, u_a, u_a u_b.
+    """
+    u = mod
+    cols = [np.ones(len(u))] + [u[:, a] for a in range(3)]
+    cols += [u[:, a] * u[:, b] for a in range(3) for b in range(a, 3)]
+    return np.column_stack(cols)
+
+
+def _expand(design, mod):
+    """The design of a vector effect seen through the scalar residual.
+
+    A vector signal sum_k beta_k phi_k(t) (beta_k (3,) nT) shows in the scalar residual as
+    its component along the field direction u (N, 3): columns phi_k u_c, next to the
+    :func:`_nuisance` columns (the constant first column of ``design`` is replaced by them).
+    """
+    if mod is None:
+        return design
+    cols = [_nuisance(mod)] + [design[:, k:k + 1] * mod for k in range(1, design.shape[1])]
+    return np.concatenate(cols, axis=1)
+
+
+def _detect(x, sd, mod):
+    """Series (N, C') and sd (C',) to detect lines and steps in: demodulated with u."""
+    if mod is None:
+        return x, sd
+    xd = 3.0 * x * mod          # E[u u^T] = I / 3 over the attitudes: 3 (u.e) u ~ e
+    return xd, white_noise_sd(xd)
+
+
+@dataclass
+class _Candidate:
+    kind: str
+    fitted: np.ndarray           # (N, C) nT
+    k: int                       # parameters (per all components)
+    p: float                     # p-value
+    n_tests: int                 # Bonferroni factor
+    channel: str | None = None
+    value: float | None = None
+    unit: str = ''
+    detail: dict = field(default_factory=dict)
+
+
+# -- the tests -------------------------------------------------------------------------------
+
+def _test_periodic(t, x, sd, mod=None):
+    n, c0 = x.shape
+    x_det, sd = _detect(x, sd, mod)
+    c = x_det.shape[1]
+    freqs, power, n_ind = periodogram(t, x_det)
+    z = np.sum(power / sd ** 2, axis=1)            # Gamma(C, 1) under white noise
+    span = t[-1] - t[0]
+    ok = freqs >= 3.0 / span
+    if not ok.any():
+        return None
+    step = max(1, len(freqs) // max(n_ind, 1))
+    half = LINE_NEIGHBOURHOOD * step
+    # the local continuum: running median of the summed power
+    back = ndimage.median_filter(z, size=2 * half + 1, mode='nearest')
+    rel = z / np.maximum(back, 1e-300) * stats.gamma.median(c)
+    rel[~ok] = 0.0
+    i = int(np.argmax(rel))
+    p = float(stats.gamma.sf(rel[i], c))
+    # refine the frequency (parabola through the peak of the summed power)
+    f0 = freqs[i]
+    if 0 < i < len(freqs) - 1:
+        y0, y1, y2 = z[i - 1], z[i], z[i + 1]
+        den = y0 - 2 * y1 + y2
+        if den < 0:
+            f0 = freqs[i] + 0.5 * (y0 - y2) / den * (freqs[1] - freqs[0])
+    w = 2 * np.pi * f0 * (t - t[0])
+    design = _expand(np.column_stack([np.ones(n), np.cos(w), np.sin(w)]), mod)
+    fitted, rank = _regress(x, design)
+    fitted -= x.mean(axis=0)
+    return _Candidate('periodic', fitted, c0 * (rank - 1) + 1, p, n_ind, value=float(f0),
+                      unit='Hz',
+                      detail={'peak_over_continuum': float(rel[i] / stats.gamma.median(c))})
+
+
+def _test_step(t, x, sd, mod=None):
+    n, c0 = x.shape
+    m = max(10, int(MIN_SEGMENT_FRACTION * n))
+    if n < 2 * m + 1:
+        return None
+    x_det, sd = _detect(x, sd, mod)
+    c = x_det.shape[1]
+    xw = (x_det - x_det.mean(axis=0)) / sd
+    cs = np.cumsum(xw, axis=0)[:-1]                      # sum of the first k, k = 1..n-1
+    k = np.arange(1, n)
+    # chi-square of the mean shift between [0, k) and [k, n), per component summed
+    stat = np.sum(cs ** 2, axis=1) * n / (k * (n - k))
+    stat[:m - 1] = 0.0
+    stat[n - m:] = 0.0
+    i = int(np.argmax(stat))
+    kk = i + 1
+    p = float(stats.chi2.sf(stat[i], c))
+    after = (np.arange(n) >= kk).astype(float)
+    design = _expand(np.column_stack([np.ones(n), after]), mod)
+    fitted, rank = _regress(x, design)
+    coef = np.linalg.lstsq(design, fitted, rcond=None)[0]
+    fitted = fitted - x.mean(axis=0)
+    jump = coef[10:, 0] if mod is not None else coef[1]
+    return _Candidate('step', fitted, c0 * (rank - 1) + 1, p, n - 2 * m, value=float(t[kk]),
+                      unit='s', detail={'index': kk, 'jump_nt': np.ravel(jump).tolist()})
+
+
+def _legendre(t, degree):
+    u = 2.0 * (t - t[0]) / max(t[-1] - t[0], 1e-300) - 1.0
+    return np.polynomial.legendre.legvander(u, degree)
+
+
+def _test_time(t, x, sd, mod=None):
+    n, c = x.shape
+    ss0 = float(np.sum((x - x.mean(axis=0)) ** 2))
+    best = None
+    for d in range(1, 6):
+        fitted, rank = _regress(x, _expand(_legendre(t, d), mod))
+        ss1 = float(np.sum((x - fitted) ** 2))
+        bic = np.sum(np.sum((x - fitted) ** 2, axis=0) / sd ** 2) + c * (rank - 1) * math.log(n)
+        if best is None or bic < best[0]:
+            best = (bic, d, fitted, ss1, rank)
+    _, d, fitted, ss1, rank = best
+    p = _f_test(ss0, ss1, c * (rank - 1), n * c - c * rank)
+    fitted = fitted - x.mean(axis=0)
+    if mod is None:
+        ptp = float(np.max(np.ptp(fitted, axis=0)))
+    else:           # the trend vector's largest component, not its projection
+        coef = np.linalg.lstsq(_expand(_legendre(t, d), mod), x, rcond=None)[0][10:, 0]
+        trend = _legendre(t, d)[:, 1:] @ coef.reshape(d, 3)
+        ptp = float(np.max(np.ptp(trend, axis=0)))
+    return _Candidate('time', fitted, c * (rank - 1), p, 5, value=ptp, unit='nT',
+                      detail={'degree': d})
+
+
+def _direction_design(u):
+    cols = [np.ones(len(u))]
+    for a in range(3):
+        cols.append(u[:, a])
+    for a in range(3):
+        for b in range(a, 3):
+            cols.append(u[:, a] * u[:, b])
+    for a in range(3):
+        for b in range(a, 3):
+            for cc in range(b, 3):
+                cols.append(u[:, a] * u[:, b] * u[:, cc])
+    return np.column_stack(cols)
+
+
+def _test_direction(u, x):
+    n, c = x.shape
+    ss0 = float(np.sum((x - x.mean(axis=0)) ** 2))
+    fitted, rank = _regress(x, _direction_design(u))
+    ss1 = float(np.sum((x - fitted) ** 2))
+    p = _f_test(ss0, ss1, c * (rank - 1), n * c - c * rank)
+    return _Candidate('direction', fitted - x.mean(axis=0), c * (rank - 1), p, 1)
+
+
+def _tau_grid(t):
+    _, dt = _uniform(t)
+    span = float(t[-1] - t[0])
+    lo = max(3.0 * dt, span * 1e-4)
+    return np.geomspace(lo, span / 2.0, N_TAU) if span / 2.0 > lo else np.array([])
+
+
+class _Driver:
+    """A driving channel, standardised, with its lagged versions (computed once)."""
+
+    def __init__(self, t, name, values):
+        self.t, self.name = t, name
+        a = np.asarray(values, float)
+        self.ok = bool(np.all(np.isfinite(a)) and np.ptp(a) > 0)
+        if not self.ok:
+            return
+        n = len(a)
+        self.a = (a - a.mean()) / np.std(a)
+        self.taus = _tau_grid(t)
+        self.base = np.column_stack([np.ones(n), self.a])
+        q, _ = np.linalg.qr(self.base)
+        self.q = q
+        lags = (np.column_stack([first_order_lag(t, self.a, tau) for tau in self.taus])
+                if len(self.taus) else np.zeros((n, 0)))
+        self.lags = lags
+        self.lags_perp = lags - q @ (q.T @ lags)          # orthogonal to [1, a]
+        self.lag_norm2 = np.sum(self.lags_perp ** 2, axis=0)
+        rate = np.gradient(ndimage.uniform_filter1d(self.a, max(3, n // 200)), t)
+        hyst = np.tanh(rate / (np.std(rate) + 1e-300) * 3.0)
+        self.nonlin = np.column_stack([self.base, self.a ** 2, self.a ** 3, hyst])
+
+    def lag_response(self, tau):
+        """(N,) the standardised channel through a first-order lag of ``tau`` s."""
+        return first_order_lag(self.t, self.a, tau)
+
+
+def _best_tau(drv, x_perp):
+    """Time constant (refined between grid points) maximising the fit of x_perp (N, C)."""
+    good = drv.lag_norm2 > 1e-12 * len(drv.a)
+    if not good.any():
+        return None
+    gain = np.sum((drv.lags_perp.T @ x_perp) ** 2, axis=1) / np.where(good, drv.lag_norm2, 1)
+    gain[~good] = -1.0
+    i = int(np.argmax(gain))
+    lo = drv.taus[max(i - 1, 0)]
+    hi = drv.taus[min(i + 1, len(drv.taus) - 1)]
+
+    def neg(log_tau):
+        y = drv.lag_response(math.exp(log_tau))
+        y = y - drv.q @ (drv.q.T @ y)
+        return -float(np.sum((y @ x_perp) ** 2) / max(y @ y, 1e-300))
+    if hi > lo:
+        from scipy.optimize import minimize_scalar
+        r = minimize_scalar(neg, bounds=(math.log(lo), math.log(hi)), method='bounded',
+                            options={'xatol': 3e-3})
+        return float(math.exp(r.x))
+    return float(drv.taus[i])
+
+
+def _test_channel(t, x, drv, mod=None):
+    """Linear, lagged and non-linear coupling of the series to one driving channel."""
+    n, c = x.shape
+    if not drv.ok:
+        return []
+    name = drv.name
+    ss = lambda f: float(np.sum((x - f) ** 2))      # noqa: E731
+    xm = x.mean(axis=0)
+    ss0 = ss(xm)
+    if mod is None:
+        lin, r1 = drv.q @ (drv.q.T @ x), 2
+    else:
+        lin, r1 = _regress(x, _expand(drv.base, mod))
+    ss1 = ss(lin)
+    out = [_Candidate('channel', lin - xm, c * (r1 - 1), _f_test(ss0, ss1, c * (r1 - 1),
+                                                                  n * c - c * r1),
+                      1, channel=name)]
+    # first-order lag: the best time constant (grid, then refined)
+    if mod is None:
+        tau = _best_tau(drv, x - lin) if len(drv.taus) else None
+    else:
+        tau = _best_tau_modulated(drv, x, mod)
+    if tau is not None:
+        fit_l, rank = _regress(x, _expand(np.column_stack([drv.base, drv.lag_response(tau)]),
+                                          mod))
+        out.append(_Candidate('lag', fit_l - xm, c * (rank - 1) + 1,
+                              _f_test(ss1, ss(fit_l), c * (rank - r1), n * c - c * rank),
+                              N_TAU, channel=name, value=tau, unit='s'))
+    # curved, saturating or hysteretic: x^2, x^3 and the direction of change
+    design = drv.nonlin
+
+    def ss_of(cols):
+        return ss(_regress(x, _expand(design[:, :cols], mod))[0])
+    fit_n, rank = _regress(x, _expand(design, mod))
+    s = ss(fit_n)
+    # which term carries it: refit without the hysteresis column, then without x^3
+    form = 'hysteretic' if ss_of(4) - s > 0.5 * (ss1 - s) else 'curved'
+    degree = 3 if form == 'curved' and ss_of(3) - s > 0.5 * (ss1 - s) else 2
+    out.append(_Candidate('channel_nonlinear', fit_n - xm, c * (rank - r1),
+                          _f_test(ss1, s, c * (rank - r1), n * c - c * rank), 1, channel=name,
+                          detail={'form': form, 'degree': degree}))
+    return out
+
+
+def _best_tau_modulated(drv, x, mod):
+    """Lag time constant for a series seen through the field direction (grid, refined)."""
+    if not len(drv.taus):
+        return None
+    q, _ = np.linalg.qr(_expand(drv.base, mod))
+
+    def neg_gain(log_tau, y=None):
+        y = (drv.lag_response(math.exp(log_tau)) if y is None else y)[:, None] * mod
+        y = y - q @ (q.T @ y)                                     # (N, 3)
+        return -float(np.sum(_regress(x, y)[0] ** 2))
+    logs = np.log(drv.taus)
+    vals = [neg_gain(v, drv.lags[:, i]) for i, v in enumerate(logs)]
+    i = int(np.argmin(vals))
+    lo, hi = logs[max(i - 1, 0)], logs[min(i + 1, len(logs) - 1)]
+    if hi <= lo:
+        return float(drv.taus[i])
+    from scipy.optimize import minimize_scalar
+    return float(math.exp(minimize_scalar(neg_gain, bounds=(lo, hi), method='bounded',
+                                          options={'xatol': 3e-3}).x))
+
+
+# -- texts and tokens ------------------------------------------------------------------------
+
+def _describe(cand, sensor, share):
+    """(token or None, text) of a finding on ``sensor`` (None: every sensor alike)."""
+    j = '' if sensor is None else f'@{sensor}'
+    on = (f'sensor {sensor}' if sensor is not None else
+          'every sensor alike (in the mean scalar residual)')
+    pct = f'{100 * share:.0f} % of the excess over the floor'
+    k = cand.kind
+    if k == 'periodic':
+        tok = f'periodic({cand.value:.4g}){j}'
+        txt = (f'{on}: a spectral line at {cand.value:.4g} Hz (period {1 / cand.value:.3g} s, '
+               f'{cand.detail["peak_over_continuum"]:.0f} x the spectrum around it) removes '
+               f'{pct}: add {tok} (or log the source as an aux channel)')
+    elif k == 'step':
+        tok = f'step({cand.value:.6g}){j}'
+        jump = np.linalg.norm(cand.detail['jump_nt'])
+        txt = (f'{on}: an offset step of {jump:.1f} nT at t = {cand.value:.6g} s removes {pct}: '
+               f'add {tok}')
+    elif k == 'time':
+        d = cand.detail['degree']
+        tok = f'drift{j}' if d == 1 else (f'drift2{j}' if d == 2 else None)
+        what = f'add {tok}' if tok else (
+            f'a slow trend of degree {d}: drift2{j} takes its quadratic part; check the '
+            'reference field (a diurnal variation) or the temperature')
+        txt = (f'{on}: a slow trend over time ({cand.value:.1f} nT peak to peak) removes '
+               f'{pct}: {what}')
+    elif k == 'direction':
+        tok = f'nonlinearity{j}'
+        txt = (f'{on}: the residual depends on the field direction (attitude) and removes '
+               f'{pct}: add {tok} or soft_iron{j} (or a magnetic part that turns with the '
+               'sensor)')
+    elif k == 'channel':
+        tok = (f'temperature{j}' if cand.channel == 'temperature'
+               else f'aux:{cand.channel}{j}')
+        txt = f'{on}: the residual follows {cand.channel} linearly ({pct}): add {tok}'
+    elif k == 'lag':
+        tok = f'lag({cand.channel}){j}'
+        txt = (f'{on}: {cand.channel} acts through a first-order lag of about '
+               f'{cand.value:.3g} s ({pct}): add {tok}')
+    elif k == 'channel_nonlinear':
+        form = cand.detail['form']
+        if cand.channel != 'temperature' and form == 'curved':
+            tok = f'aux_poly({cand.channel},{cand.detail["degree"]}){j}'
+            what = f'add {tok}'
+        else:
+            tok = None
+            what = ('the catalog has no such coupling: write a plug-in effect '
+                    '(docs/plugins.md)')
+        txt = f'{on}: the residual against {cand.channel} is {form} ({pct}): {what}'
+    else:
+        raise ValueError(k)
+    return tok, txt
+
+
+# -- the array: a non-uniform field ----------------------------------------------------------
+
+def _gradient(t, corrected, baseline_m, alpha):
+    """(finding or None, (S, N, 3) gradient part per sensor to take out, nT)."""
+    from magcal_ros.core.tensor import tensor_cross
+    m = corrected - corrected.mean(axis=0)
+    ax = 0.5 * (m[0] - m[2])
+    ay = 0.5 * (m[1] - m[3])
+    sym = 0.25 * (m[0] + m[2] - m[1] - m[3])
+    n = m.shape[1]
+
+    def excess(x):
+        sd = white_noise_sd(x)
+        return float(np.mean(x ** 2) * 3 - np.sum(sd ** 2)) / 3.0, sd
+
+    ex_x, sd_x = excess(ax)
+    ex_y, sd_y = excess(ay)
+    ex_s, _ = excess(sym)
+    anti = 2 * max(ex_x, 0.0) + 2 * max(ex_y, 0.0)
+    total = anti + 4 * max(ex_s, 0.0)
+    if anti <= 0 or total <= 0:
+        return None, None
+    share = anti / total
+    # chi-square of the antisymmetric part over its noise, 6N values
+    chi2 = float(np.sum(ax ** 2 / sd_x ** 2) + np.sum(ay ** 2 / sd_y ** 2))
+    p = float(stats.chi2.sf(chi2, 6 * n))
+    noise = float(np.mean(np.concatenate([sd_x, sd_y]) ** 2))
+    if not (p < alpha and share >= MIN_GRADIENT_SHARE
+            and anti / 4.0 >= MIN_SIGNAL_RATIO * noise):
+        return None, None
+    g = tensor_cross(m, baseline_m)
+    dg = tensor_cross(np.diff(m, axis=1), baseline_m)
+    g2 = float(np.mean(np.sum(g ** 2, axis=(1, 2))) - 0.5 * np.mean(np.sum(dg ** 2,
+                                                                        axis=(1, 2))))
+    value = math.sqrt(max(g2, 0.0))
+    text = (f'array: the sensors disagree as a field gradient does (opposite sensors of the '
+            f'cross antisymmetric, {100 * share:.0f} % of the inter-sensor excess), about '
+            f'{value:.0f} nT/m left in the residuals (baseline {baseline_m:g} m): the field is '
+            'not uniform over the array (a magnetic object nearby); calibrate where the '
+            'field is uniform, or model the site gradient')
+    f = Finding(kind='nonuniform_field', sensor=None, channel=None, value=value, unit='nT/m',
+                explained_fraction=float(min(1.0, share)), text=text, token=None, p_value=p,
+                rms_nt=float(math.sqrt(anti / 4.0)))
+    # smoothed over time: the gradient changes with the attitude, the noise does not follow
+    w = max(5, n // 200)
+    gx = ndimage.uniform_filter1d(ax, w, axis=0, mode='nearest')
+    gy = ndimage.uniform_filter1d(ay, w, axis=0, mode='nearest')
+    return f, np.stack([gx, gy, -gx, -gy])
+
+
+# -- the analysis ----------------------------------------------------------------------------
+
+def _series(corrected, scalar):
+    """{sensor: (N, C) series} and the kind of series."""
+    s = corrected.shape[0]
+    if s >= 3:
+        out = {}
+        for j in range(s):
+            others = np.delete(corrected, j, axis=0)
+            out[j + 1] = corrected[j] - np.median(others, axis=0)
+        return out, 'consensus'
+    return {j + 1: scalar[j][:, None] for j in range(s)}, 'scalar'
+
+
+def _drivers(data, j, aux_drivers):
+    out = []
+    if data.temp is not None:
+        temp = data.temp[j - 1]
+        if np.all(np.isfinite(temp)):
+            out.append(_Driver(data.t, 'temperature', temp))
+    return out + aux_drivers
+
+
+def _sensor_findings(t, x, sd, u, drivers, sensor, alpha_test, mod=None):
+    """Greedy search on one series; (list of (Finding, ms removed), remainder).
+
+    ``mod`` (N, 3): the series is a scalar residual and the effects are vectors seen
+    through the field direction ``mod`` (:func:`_expand`).
+    """
+    n, c = x.shape
+    x = x - x.mean(axis=0)
+    noise = float(np.mean(sd ** 2))
+    excess0 = float(np.mean(x ** 2)) - noise
+    found = []
+    if excess0 <= MIN_SIGNAL_RATIO * noise:
+        return found, x
+    used = set()
+    for _ in range(MAX_PER_SENSOR):
+        cands = []
+        for fn in (_test_periodic, _test_step, _test_time):
+            cand = fn(t, x, sd, mod)
+            if cand is not None:
+                cands.append(cand)
+        if u is not None:
+            cands.append(_test_direction(u, x))
+        for drv in drivers:
+            cands.extend(_test_channel(t, x, drv, mod))
+        best = None
+        for cand in cands:
+            removed = float(np.mean(cand.fitted ** 2 + 2 * cand.fitted * (x - cand.fitted)))
+            share = removed / excess0
+            if (cand.p * cand.n_tests > alpha_test or removed < MIN_SIGNAL_RATIO * noise
+                    or share < MIN_EXPLAINED):
+                continue
+            gain = removed * n * c / noise - cand.k * math.log(n)
+            if best is None or gain > best[0]:
+                best = (gain, cand, removed, share)
+        if best is None:
+            break
+        _, cand, removed, share = best
+        key = (cand.kind, cand.channel)
+        tok, text = _describe(cand, sensor, share)
+        if key not in used or cand.kind in ('periodic', 'step'):
+            found.append((Finding(kind=cand.kind, sensor=sensor, channel=cand.channel,
+                                  value=cand.value, unit=cand.unit,
+                                  explained_fraction=float(min(1.0, share)), text=text,
+                                  token=tok, p_value=cand.p,
+                                  rms_nt=float(np.sqrt(np.mean(cand.fitted ** 2)))), removed))
+            used.add(key)
+        x = x - cand.fitted
+    return found, x
+
+
+def _tails(x, sd, sensor, alpha_test):
+    """heavy_tails finding of one sensor's remainder x (N, C), or None.
+
+    Tested on the first differences, which a slow leftover of the other findings does not
+    reach: for independent noise the excess kurtosis of a difference is half the noise's.
+    """
+    if x.shape[0] < 40:
+        return None
+    d = np.diff(x, axis=0) / (math.sqrt(2.0) * sd)
+    kurt = 2.0 * float(np.mean(stats.kurtosis(d, axis=0, fisher=True)))
+    p = float(stats.kurtosistest(d.ravel()).pvalue)
+    # the robust (MAD) noise level reads low for heavy tails: the share of the excess over
+    # it that the tails account for
+    mad = 1.4826 * np.median(np.abs(d - np.median(d, axis=0)), axis=0) * sd
+    low = 1.0 - float(np.sqrt(np.mean(mad ** 2) / np.mean(sd ** 2)))
+    if not (p < alpha_test and kurt >= MIN_EXCESS_KURTOSIS and low > 0):
+        return None
+    ex_robust = float(np.mean(x ** 2)) - float(np.mean(mad ** 2))
+    share = (float(np.mean(sd ** 2)) - float(np.mean(mad ** 2))) / ex_robust \
+        if ex_robust > 0 else 1.0
+    text = (f'sensor {sensor}: heavy-tailed noise (excess kurtosis {kurt:.1f}; a Gaussian has '
+            f'0): fit with --robust (soft-L1 loss); a robust (MAD) noise floor reads '
+            f'{100 * low:.0f} % low')
+    return Finding(kind='heavy_tails', sensor=sensor, channel=None, value=kurt, unit='',
+                   explained_fraction=float(np.clip(share, 0.0, 1.0)), text=text, token=None,
+                   p_value=p, rms_nt=float(np.sqrt(np.mean(sd ** 2))))
+
+
+def _same(a, b, t_res, f_res):
+    if a.kind != b.kind or a.channel != b.channel:
+        return False
+    if a.kind == 'step':
+        return abs(a.value - b.value) <= t_res
+    if a.kind == 'periodic':
+        return abs(a.value - b.value) <= f_res
+    return True
+
+
+def find(data, result, **kwargs):
+    # one BLAS thread: the designs are thin (N x 10-30), threads only contend
+    from magcal_ros.core.model import _single_threaded_blas
+    with _single_threaded_blas():
+        return _find(data, result, **kwargs)
+
+
+def _find(data, result, *, baseline_m=0.5, alpha=ALPHA, corrected=None, field=None):
+    """Model-free findings in the residuals of a fit.
+
+    Parameters
+    ----------
+    data : Dataset
+        (S sensors, N epochs) in time order; its temperatures and ``aux_*`` channels are the
+        driving channels tested.
+    result : FitResult
+        A fit on ``data``: its ``corrected_nt`` (S, N, 3) nT, ``scalar_residual_nt`` (S, N)
+        nT and ``field_nt`` (N, 3) nT are used.
+    baseline_m : float
+        Arm length of the four-sensor cross, m (paper 004), for the gradient magnitude.
+    alpha : float
+        Family-wise false-alarm probability (Bonferroni over sensors and tests).
+    corrected, field : numpy.ndarray, optional
+        (S, N, 3) and (N, 3) nT, instead of the result's.
+
+    Returns
+    -------
+    Findings
+    """
+    t = np.asarray(data.t, float)
+    corrected = np.asarray(result.corrected_nt if corrected is None else corrected, float)
+    field_ = np.asarray(result.field_nt if field is None else field, float)
+    s, n = corrected.shape[:2]
+    scalar = np.asarray(result.scalar_residual_nt, float)
+    array_items = []
+    if s == 4 and n >= 30:
+        grad, part = _gradient(t, corrected, baseline_m, alpha)
+        if grad is not None:
+            array_items.append(grad)
+            corrected = corrected - part
+    series, kind = _series(corrected, scalar)
+    norm = np.linalg.norm(field_, axis=1, keepdims=True)
+    u = field_ / np.where(norm > 0, norm, 1.0) if n >= 30 else None
+    noise = {j: white_noise_sd(x) for j, x in series.items()}
+    n_tests = 5 + 3 * (len(data.aux) + (data.temp is not None))
+    alpha_test = alpha / ((s + 1) * n_tests)      # the sensors and their common part
+    aux_drivers = [_Driver(t, name, data.aux[name]) for name in sorted(data.aux)] \
+        if n >= 30 else []
+    per = []
+    explained = {}          # {sensor: (N, C) what its findings' models took out}
+    for j, x in series.items():
+        if n < 30 or np.any(noise[j] <= 0):
+            continue
+        found, rest = _sensor_findings(t, x, noise[j], u, _drivers(data, j, aux_drivers), j,
+                                       alpha_test)
+        explained[j] = x - x.mean(axis=0) - rest
+        tails = _tails(rest, noise[j], j, alpha / s)
+        if tails is not None:
+            found.append((tails, 0.0))
+        per.extend(found)
+    # attribution: the same finding on several sensors is the faulty sensor's echo through
+    # the others' consensus unless it is comparable in size
+    _, dt = _uniform(t)
+    t_res = max(5 * dt, 0.01 * (t[-1] - t[0])) if n > 1 else 0.0
+    f_res = 2.0 / max(t[-1] - t[0], 1e-300) if n > 1 else 0.0
+    keep = []
+    for f, removed in per:
+        rivals = [r for g, r in per if g is not f and g.sensor != f.sensor
+                  and g.kind != 'heavy_tails' and _same(f, g, t_res, f_res)]
+        if rivals and removed < ECHO_RATIO * max(rivals):
+            continue
+        keep.append(f)
+    if array_items:
+        # a gradient makes every sensor's residual depend on the attitude: not their faults
+        keep = [f for f in keep if f.kind != 'direction']
+    common = []
+    if kind == 'consensus' and u is not None:
+        # what every sensor has alike cancels in the consensus: it is left in the mean of
+        # the scalar residuals, as its component along the field direction
+        x0 = np.mean(scalar, axis=0)
+        for j, e in explained.items():       # sensor j's own faults, seen in the mean
+            x0 = x0 - np.sum(e * u, axis=1) / s
+        x0 = x0[:, None] - _regress(x0[:, None], _nuisance(u))[0]
+        sd0 = white_noise_sd(x0)
+        if np.all(sd0 > 0):
+            drivers = aux_drivers
+            if data.temp is not None and np.all(np.isfinite(data.temp)):
+                drivers = [_Driver(t, 'temperature', np.mean(data.temp, axis=0))] + drivers
+            found, _ = _sensor_findings(t, x0, sd0, None, drivers, None, alpha_test, mod=u)
+            for f, _ in found:
+                alike = {g.sensor for g in keep if _same(f, g, t_res, f_res)}
+                if len(alike) == 1:
+                    continue        # one sensor's fault, seen in the mean: reported there
+                keep = [g for g in keep if g.sensor not in alike or not _same(f, g, t_res,
+                                                                              f_res)]
+                common.append(f)
+    items = tuple(array_items + common + sorted(keep, key=lambda f: (f.sensor,
+                                                                     -f.explained_fraction)))
+    return Findings(items=items, t=t, series=series, noise_nt=noise, kind_of_series=kind)
+
+
+find.__doc__ = _find.__doc__
