@@ -148,6 +148,21 @@ class LiveCorrector:
         return [(self.cal.intrinsic_and_rotation(j)[1], self.positions_m[j - 1].copy())
                 for j in range(1, self.n_sensors + 1)]
 
+    def site_shift(self, quaternion):
+        """(S, 3) nT shift of every sensor by the calibration's site gradient, or None.
+
+        The field at sensor j minus the centre field, R^T G_w R r_j (docs/site_gradient.md),
+        at the fixed attitude ``quaternion`` (4,) (qw, qx, qy, qz, body-to-world): what a
+        stationary test subtracts to leave the anomaly.  None without a site gradient.
+        """
+        if self.cal.site_gradient() is None:
+            return None
+        from magcal_ros.core.attitude import quaternion_matrices
+        ctx = SensorContext(t=np.zeros(1),
+                            attitude=quaternion_matrices(np.asarray(quaternion, float)[None]))
+        return np.stack([self.cal.array_shift(j, ctx)[0]
+                         for j in range(1, self.n_sensors + 1)])
+
     def covariance_nt2(self, j):
         """(3, 3) covariance of sensor j's corrected field, nT^2 (None: no noise estimate)."""
         return self._sensors[j - 1].cov_nt2

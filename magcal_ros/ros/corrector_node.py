@@ -23,6 +23,12 @@ Topics (relative to the node namespace, default ``/magcal``; docs/design.md §3)
   is published), when a calibration was refused (the last good one stays active), or while a
   driven effect lacks its live signal.
 
+A calibration with a ``site_gradient`` (docs/site_gradient.md) is corrected like any other:
+the site gradient is part of the field each sensor sees, and is ignored, unless the
+parameter ``subtract_site_gradient`` is set for a stationary test: then the site shift
+R^T G_w R r_j at the fixed attitude ``site_attitude`` is subtracted from each corrected field
+(and so from the tensor), leaving the anomaly of what is placed near the array.
+
 The correction itself is :class:`magcal_ros.core.live.LiveCorrector` (no ROS): per message
 a few 3x3 products, every matrix (A_j^-1, the covariances, the gradient operator) computed
 once when a calibration is installed.
@@ -70,6 +76,9 @@ class CorrectorNode(Node):
         s = prm.corrector_settings(self)
         self._n = s.n_sensors
         self._publish_gradient = s.publish_gradient
+        self._subtract_site = s.subtract_site_gradient
+        self._site_attitude = s.site_attitude
+        self._site_shift = None        # (S, 3) nT subtracted in a stationary test, or None
         self._frame = s.array_frame_id
         self._tolerance_s = s.stamp_tolerance_s
 
@@ -131,7 +140,17 @@ class CorrectorNode(Node):
                         self._live.matcher.tolerance_s = self._tolerance_s
                 elif p.name == 'publish_gradient':
                     self._publish_gradient = bool(p.value)
+                elif p.name == 'subtract_site_gradient':
+                    self._subtract_site = bool(p.value)
+                elif p.name == 'site_attitude':
+                    self._site_attitude = tuple(float(v) for v in p.value)
+            self._update_site_shift()
         return result
+
+    def _update_site_shift(self):
+        live = self._live
+        self._site_shift = (live.site_shift(self._site_attitude)
+                            if self._subtract_site and live is not None else None)
 
     # -- calibrations ----------------------------------------------------------------------
 
@@ -153,6 +172,7 @@ class CorrectorNode(Node):
         self._refused = None
         self._missing.clear()
         self._follow_temperature(live.needs_temperature)
+        self._update_site_shift()
         self.get_logger().info(f'using the calibration from {source} ({self._describe()})')
         if live.no_gradient_reason:
             self.get_logger().warning(live.no_gradient_reason)
@@ -248,6 +268,8 @@ class CorrectorNode(Node):
                 return
             if j in self._missing:
                 del self._missing[j]
+            if self._site_shift is not None:
+                b = b - self._site_shift[j]         # stationary test: the anomaly only
             # the incoming message becomes the outgoing one: same stamp, the array frame,
             # corrected field and its covariance (a new message per sample cost ~10 us, a
             # quarter of the Python work of the callback; bench/live.py)
@@ -279,6 +301,10 @@ class CorrectorNode(Node):
         problems.extend(self._missing[j] for j in sorted(self._missing))
         if self._live is not None and self._live.no_gradient_reason:
             problems.append(self._live.no_gradient_reason)
+        if self._subtract_site and self._live is not None and self._site_shift is None:
+            problems.append('subtract_site_gradient is set but the calibration has no '
+                            'site_gradient: nothing is subtracted (calibrate with model '
+                            "['base', 'site_gradient'] and an imu_topic)")
         if problems:
             st.level = DiagnosticStatus.WARN
             st.message = '; '.join(problems)

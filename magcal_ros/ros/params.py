@@ -10,6 +10,8 @@ from dataclasses import dataclass
 import math
 import os
 
+import numpy as np
+
 from magcal_ros.core.model import Model
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType, SetParametersResult
 from rclpy.parameter import Parameter
@@ -311,6 +313,19 @@ class CorrectorSettings:
     publish_gradient: bool
     diagnostics_period_s: float
     array_frame_id: str
+    subtract_site_gradient: bool = False
+    site_attitude: tuple = (1.0, 0.0, 0.0, 0.0)
+
+
+def unit_quaternion(value):
+    """Refuse anything but a unit quaternion (qw, qx, qy, qz)."""
+    from magcal_ros.core.attitude import check_quaternions
+    try:
+        check_quaternions(np.asarray(value, float).reshape(1, -1))
+    except ValueError as exc:
+        return (f'must be a unit quaternion [qw, qx, qy, qz] (body-to-world, Hamilton, '
+                f'scalar first), got {list(value)!r}: {exc}')
+    return None
 
 
 def corrector_specs():
@@ -335,6 +350,14 @@ def corrector_specs():
                   'the static transforms array -> fluxgate{j} are published from the '
                   'calibration when tf2_ros is importable; read-only', frame_id,
                   read_only=True),
+        ParamSpec('subtract_site_gradient', False, 'stationary test: subtract the site '
+                  "gradient of the calibration (effect site_gradient), seen at site_attitude, "
+                  'from the corrected fields and the tensor, leaving the anomaly; off: the '
+                  'site gradient is part of the field and is ignored; no unit'),
+        ParamSpec('site_attitude', (1.0, 0.0, 0.0, 0.0), 'attitude of the array during a '
+                  'stationary test, body-to-world unit quaternion [qw, qx, qy, qz] in the '
+                  "world frame of the calibration's site gradient; dimensionless",
+                  unit_quaternion, item_type=float),
     ]
 
 
@@ -348,4 +371,6 @@ def corrector_settings(node):
         publish_gradient=bool(value(node, 'publish_gradient')),
         diagnostics_period_s=float(value(node, 'diagnostics_period_s')),
         array_frame_id=str(value(node, 'array_frame_id')),
+        subtract_site_gradient=bool(value(node, 'subtract_site_gradient')),
+        site_attitude=tuple(float(v) for v in value(node, 'site_attitude')),
     )
