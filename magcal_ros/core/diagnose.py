@@ -146,9 +146,34 @@ class _Eval:
     field: np.ndarray        # (N, 3) nT, the profiled field
 
 
-def _evaluate(model, p, data, f, sigma, contexts, field0=None):
+def soft_l1_lr_loss(z0, f_scale):
+    """Chi-square-equivalent of the soft-L1 loss for the likelihood-ratio test and BIC.
+
+    For an M-estimator with loss L(z) (L = z^2 near 0; soft-L1: 2 f^2 (sqrt(1 + z^2/f^2)
+    - 1), the fit's robust loss) the drop of sum L between nested models, times
+    E[psi'] / E[psi^2] with psi = L'/2, is asymptotically chi-square with k degrees of
+    freedom (Ronchetti's robust likelihood-ratio test, Heritier & Ronchetti 1994); the same
+    scaled drop replaces delta chi-square in BIC.  The factor is estimated from the base
+    fit's normalised residuals ``z0`` (any shape); for Gaussian residuals and the plain
+    square loss it is 1.
+
+    Returns
+    -------
+    callable
+        z (S, N, 3) residual / sigma -> the scaled loss sum (a chi-square equivalent).
+    """
+    u = 1.0 + (np.asarray(z0, float) / f_scale) ** 2
+    c = float(np.mean(u ** -1.5) / np.mean(z0 ** 2 / u))
+
+    def loss(z):
+        return c * float(np.sum(2 * f_scale ** 2 * (np.sqrt(1.0 + (z / f_scale) ** 2) - 1)))
+    return loss
+
+
+def _evaluate(model, p, data, f, sigma, contexts, field0=None, loss=None):
     out = evaluate(model, p, data, f, sigma, contexts, field0=field0)
-    chi2 = float(np.sum((out['residual'] / sigma[:, None, None]) ** 2))
+    z = out['residual'] / sigma[:, None, None]
+    chi2 = float(np.sum(z ** 2)) if loss is None else loss(z)
     return _Eval(chi2=chi2, scalar=out['scalar'], vector=out['vector'],
                  residual=out['residual'], field=out['field'])
 
@@ -767,7 +792,14 @@ def _diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOL
     contexts = [data.context(j) for j in range(1, s + 1)]
     model.prepare(contexts)
 
-    ev0 = _evaluate(model, base.params, data, f, sigma, contexts)
+    # a robust base fit: likelihood-ratio and BIC for its loss, not as if Gaussian
+    robust = bool(getattr(base, 'robust', False))
+    loss = None
+    if robust:
+        f_scale = float(getattr(base, 'f_scale', 3.0))
+        z_all = np.asarray(base.residual_nt) / sigma[:, None, None]
+        loss = soft_l1_lr_loss(z_all, f_scale)
+    ev0 = _evaluate(model, base.params, data, f, sigma, contexts, loss=loss)
     n_obs = _n_obs(model, n)
     fac0 = _dof_factor(model)
     scalar_rms = {j: _rms(ev0.scalar[j - 1]) for j in range(1, s + 1)}
@@ -810,15 +842,22 @@ def _diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOL
     # -- one-step screening of every candidate
     t0 = time.perf_counter()
     screened = []
-    screen = _Screen(model, base.params, data.raw, contexts, f, sigma) if testable else None
+    screen = None
+    if testable:
+        # the Gauss-Newton screening step is least squares: under the robust loss it is taken
+        # on the epochs the robust fit does not treat as outliers (|z| < 2 f_scale)
+        keep = (np.arange(n) if loss is None else np.flatnonzero(
+            np.all(np.abs(ev0.residual / sigma[:, None, None]) < 2 * f_scale, axis=(0, 2))))
+        screen = _Screen(model, base.params, data.raw[:, keep],
+                         [c.subset(keep) for c in contexts], f[keep], sigma)
     for i, (tok, label, sensor) in enumerate(testable):
         _progress(progress, 'screen', i, len(testable), tok)
         m_ext, p_ext, added = extend_model(model, base.params, tok, contexts)
         p_step = screen.step(m_ext, p_ext, added)
         # from the base fit's field: one Gauss-Newton step of the profile (model.evaluate)
-        ev = _evaluate(m_ext, p_step, data, f, sigma, contexts, field0=ev0.field)
+        ev = _evaluate(m_ext, p_step, data, f, sigma, contexts, field0=ev0.field, loss=loss)
         if not np.isfinite(ev.chi2) or ev.chi2 > ev0.chi2:
-            p_step, ev = p_ext, _evaluate(m_ext, p_ext, data, f, sigma, contexts)
+            p_step, ev = p_ext, _evaluate(m_ext, p_ext, data, f, sigma, contexts, loss=loss)
         screened.append({'token': tok, 'label': label, 'sensor': sensor, 'model': m_ext,
                          'p': p_step, 'added': added, 'ev': ev, 'method': 'one-step'})
     _progress(progress, 'screen', len(testable), len(testable), '')
@@ -837,8 +876,9 @@ def _diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOL
         if i > 0 and dbic(c) > MIN_DELTA_BIC:      # cannot become significant
             break
         r = fit(data, c['model'], field_nt=f, sigma_nt=sigma, init=c['p'],
-                check_identifiability=False, on_degenerate='flag')
-        ev = _evaluate(c['model'], r.params, data, f, sigma, contexts)
+                check_identifiability=False, on_degenerate='flag', robust=robust,
+                **({'f_scale': f_scale} if robust else {}))
+        ev = _evaluate(c['model'], r.params, data, f, sigma, contexts, loss=loss)
         if ev.chi2 <= c['ev'].chi2:
             c.update(p=r.params, ev=ev, method='refit')
     _progress(progress, 'refit', n_refit, n_refit, '')
@@ -914,8 +954,7 @@ def _diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOL
         reason = (f'the residual is {ratio:.1f} x the {floor_word} but no candidate explains '
                   'it (p-value, BIC and held-out tests): the missing effect is not in the list '
                   '(write a plug-in effect), or the field is not uniform'
-                  + (', or there are outliers (try --robust)' if not fit_kwargs.get('robust')
-                     else ''))
+                  + (', or there are outliers (try --robust)' if not robust else ''))
         if not out:
             reason = f'the residual is {ratio:.1f} x the {floor_word} and no effect is testable'
     else:

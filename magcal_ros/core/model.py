@@ -355,6 +355,8 @@ class FitResult:
     identifiability: dict = field(default_factory=dict)
     initial_params: np.ndarray | None = None
     contexts: list | None = None
+    robust: bool = False
+    f_scale: float = 3.0
 
     @property
     def n_params(self):
@@ -1081,7 +1083,8 @@ def _fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=F
         scalar_residual_nt=out['scalar'], vector_residual_nt=out['vector'],
         downweighted=out['downweighted'], success=success, status=status, message=message,
         nfev=nfev, n_fit_samples=len(idx), chi2=chi2, n_obs=n_obs, warnings=notes,
-        identifiability=ident, initial_params=p0, contexts=contexts_all)
+        identifiability=ident, initial_params=p0, contexts=contexts_all,
+        robust=bool(robust), f_scale=float(f_scale))
 
 
 fit.__doc__ = _fit.__doc__
