@@ -1,8 +1,9 @@
 """`magcal diagnose` and `magcal report` (docs/design.md §2), registered by magcal_ros.cli.
 
-- ``magcal diagnose DATA --model MODEL [--json] [--report DIR] [--ladder]``: noise floor,
-  residuals, every missing effect ranked by evidence, verdict; ``--ladder`` keeps adding the
-  verdict until nothing is missing.
+- ``magcal diagnose DATA --model MODEL [--json] [--report DIR] [--ladder] [--constrained]``:
+  noise floor, residuals, every missing effect ranked by evidence, verdict; ``--ladder``
+  keeps adding the verdict until nothing is missing; ``--constrained`` (partial attitude
+  coverage) puts priors on scale and angles in every fit.
 - ``magcal report DATA --model MODEL --out DIR``: the same plus the error ladder, as PNG
   figures and one self-contained ``index.html``.
 
@@ -77,6 +78,9 @@ def _common(p, cli):
                    help='family-wise significance level (Bonferroni; default 0.01)')
     p.add_argument('--robust', action='store_true',
                    help='robust loss for the base fit (spikes/outliers)')
+    p.add_argument('--constrained', action='store_true',
+                   help='priors on scale and angles, for partial attitude coverage (a '
+                        'vehicle that cannot turn over); every fit of the diagnosis uses them')
     p.add_argument('--flag-degenerate', action='store_true',
                    help='diagnose degenerate data anyway and flag it instead of refusing')
     p.add_argument('--baseline-m', type=float, default=0.5, help='cross baseline, m')
@@ -107,14 +111,16 @@ def _run(args, cli, with_ladder):
     prog = Progress(enabled=not args.quiet)
     prog('fit', 0, 1, ','.join(model.spec()))
     base = fit(data, model, field_nt=field_nt, robust=args.robust,
+               constrained=args.constrained,
                on_degenerate='flag' if args.flag_degenerate else 'raise')
     prog('fit', 1, 1)
     diag = diagnose(data, field_nt=field_nt, base=base, folds=args.folds, alpha=args.alpha,
-                    progress=prog, baseline_m=args.baseline_m)
+                    progress=prog, baseline_m=args.baseline_m, constrained=args.constrained)
     lad = None
     if with_ladder:
         lad = ladder(data, base, field_nt=field_nt, folds=args.folds, progress=prog,
-                     diagnosis=diag, alpha=args.alpha, baseline_m=args.baseline_m)
+                     diagnosis=diag, alpha=args.alpha, baseline_m=args.baseline_m,
+                     constrained=args.constrained)
     return data, diag, lad, fref
 
 
@@ -129,6 +135,7 @@ def cmd_diagnose(args, cli):
     if args.json:
         doc = diag.to_dict()
         doc['field_reference'] = fref
+        doc['constrained'] = bool(args.constrained)
         doc['report'] = None if index is None else str(index)
         if lad is not None:
             doc['ladder'] = lad.to_dict()

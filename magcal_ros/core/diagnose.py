@@ -460,7 +460,7 @@ def time_blocks(n, folds):
 
 
 def cross_validate(data, model, params, f, sigma, folds=DEFAULT_FOLDS, fold_inits=None,
-                   method='newton'):
+                   method='newton', constrained=False):
     """Held-out residual of ``model``: fit on all blocks but one, evaluate on that block.
 
     Parameters
@@ -488,6 +488,9 @@ def cross_validate(data, model, params, f, sigma, folds=DEFAULT_FOLDS, fold_init
         so this costs about one iteration of one fit instead of ``folds`` fits; the
         held-out residuals are then evaluated exactly.  test_diagnose.py checks both
         methods agree.
+    constrained : bool
+        Fit with the constrained mode's priors (partial attitude coverage); implies
+        ``'refit'``.
 
     Returns
     -------
@@ -497,6 +500,8 @@ def cross_validate(data, model, params, f, sigma, folds=DEFAULT_FOLDS, fold_init
     """
     if method not in ('newton', 'refit'):
         raise ValueError(f"method must be 'newton' or 'refit', got {method!r}")
+    if constrained:
+        method = 'refit'        # the Newton leave-out step has no prior terms
     n = data.n_samples
     blocks = time_blocks(n, folds)
     params = np.asarray(params, float)
@@ -508,7 +513,8 @@ def cross_validate(data, model, params, f, sigma, folds=DEFAULT_FOLDS, fold_init
             train = np.setdiff1d(np.arange(n), test)
             init = params if fold_inits is None else fold_inits[b]
             r = fit(data.subset(train), model, field_nt=f[train], sigma_nt=sigma, init=init,
-                    check_identifiability=False, on_degenerate='flag')
+                    check_identifiability=False, on_degenerate='flag',
+                    constrained=constrained)
             fold_params.append(r.params)
     ss = np.zeros(data.n_sensors)
     ss_scalar = np.zeros(data.n_sensors)
@@ -726,6 +732,7 @@ def diagnose(data, model='base', field_nt=None, **kwargs):
 def _diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLDS,
               alpha=ALPHA, max_refit=DEFAULT_MAX_REFIT, candidates=None, progress=None,
               cv_method='newton', max_samples=DEFAULT_MAX_SAMPLES, baseline_m=0.5,
+              constrained=False,
               **fit_kwargs):
     """Find what the model misses: noise floor, candidate effects ranked, verdict.
 
@@ -758,6 +765,11 @@ def _diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOL
     baseline_m : float
         Arm length of a four-sensor cross, m, for the gradient of a ``nonuniform_field``
         finding (:func:`magcal_ros.core.findings.find`).
+    constrained : bool
+        Partial attitude coverage: the base fit, every candidate's refit and the held-out
+        fits use the priors of ``fit(constrained=True)``, and the held-out fits are refits
+        (the Newton leave-out step has no prior terms).  Candidates are judged only after
+        a constrained refit (the one-step screen only ranks them).
     **fit_kwargs
         Passed to :func:`magcal_ros.core.model.fit` for the base fit.
 
@@ -772,7 +784,7 @@ def _diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOL
         if isinstance(model, str):
             model = Model.from_spec(model, data.n_sensors)
         _progress(progress, 'fit', 0, 1, ','.join(model.spec()))
-        base = fit(data, model, field_nt=f, **fit_kwargs)
+        base = fit(data, model, field_nt=f, constrained=constrained, **fit_kwargs)
     model = base.model
     if base.residual_nt.shape[1] != data.n_samples:
         raise ValueError('the base fit was made on other data: pass the same Dataset')
@@ -877,7 +889,7 @@ def _diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOL
             break
         r = fit(data, c['model'], field_nt=f, sigma_nt=sigma, init=c['p'],
                 check_identifiability=False, on_degenerate='flag', robust=robust,
-                **({'f_scale': f_scale} if robust else {}))
+                constrained=constrained, **({'f_scale': f_scale} if robust else {}))
         ev = _evaluate(c['model'], r.params, data, f, sigma, contexts, loss=loss)
         if ev.chi2 <= c['ev'].chi2:
             c.update(p=r.params, ev=ev, method='refit')
@@ -896,7 +908,8 @@ def _diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOL
         to_cv = [screened[0]]           # the best one, for its effect size
     if folds and n >= 4 * folds * 12:
         _progress(progress, 'cross-validate', 0, len(to_cv) + 1, ','.join(model.spec()))
-        cv0 = cross_validate(data, model, base.params, f, sigma, folds, method=cv_method)
+        cv0 = cross_validate(data, model, base.params, f, sigma, folds, method=cv_method,
+                             constrained=constrained)
         for i, c in enumerate(to_cv):
             _progress(progress, 'cross-validate', i + 1, len(to_cv) + 1, c['token'])
             inits = []
@@ -905,7 +918,7 @@ def _diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOL
                 p_i[~c['added']] = pf
                 inits.append(p_i)
             c['cv'] = cross_validate(data, c['model'], c['p'], f, sigma, folds, inits,
-                                     method=cv_method)
+                                     method=cv_method, constrained=constrained)
             if c['cv']['rms_nt'] < cv0['rms_nt']:
                 break       # the best candidate that passes every test: the verdict
         done = 1 + sum('cv' in c for c in to_cv)
@@ -923,7 +936,7 @@ def _diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOL
         if 'cv' in c and cv0 is not None:
             cv_b, cv_a = cv0['rms_nt'], c['cv']['rms_nt']
         sig = bool(p_val < p_thr and d_bic < MIN_DELTA_BIC and cv_a is not None
-                   and cv_a < cv_b)
+                   and cv_a < cv_b and (c['method'] == 'refit' or not constrained))
         out.append(Candidate(
             token=c['token'], effect=c['label'], sensor=c['sensor'], n_params=k,
             rms_before_nt=_scalar_rms(ev0.scalar, sens),
@@ -1047,7 +1060,7 @@ class Ladder:
         return '\n'.join(lines)
 
 
-def _step(result, data, f, added, diagnosis, folds):
+def _step(result, data, f, added, diagnosis, folds, constrained=False):
     model = result.model
     contexts = [data.context(j) for j in range(1, data.n_sensors + 1)]
     ev = _evaluate(model, result.params, data, f, result.sigma_nt, contexts)
@@ -1056,7 +1069,8 @@ def _step(result, data, f, added, diagnosis, folds):
         cv = diagnosis.cv_rms_nt
         cvp = ()
     elif folds:
-        c = cross_validate(data, model, result.params, f, result.sigma_nt, folds)
+        c = cross_validate(data, model, result.params, f, result.sigma_nt, folds,
+                           constrained=constrained)
         cv, cvp = c['rms_nt'], tuple(float(x) for x in c['per_sensor_nt'])
     else:
         cv, cvp = None, ()
@@ -1092,16 +1106,21 @@ def ladder(data, start_model='base', steps=None, auto=True, field_nt=None, *,
     diagnosis : Diagnosis, optional
         An existing diagnosis of ``start_model`` (a FitResult) on ``data``, reused for the
         first step.
+    **diag_kwargs
+        Passed to :func:`diagnose`; ``constrained=True`` (partial attitude coverage) also
+        makes every fit of the ladder a constrained one.
 
     Returns
     -------
     Ladder
     """
     f = reference_magnitude(data, field_nt)
+    constrained = bool(diag_kwargs.get('constrained', False))
     if hasattr(start_model, 'params') and hasattr(start_model, 'model'):
         result = start_model
     else:
-        result = fit(data, start_model, field_nt=f, on_degenerate='flag')
+        result = fit(data, start_model, field_nt=f, on_degenerate='flag',
+                     constrained=constrained)
     todo = list(steps or [])
     rungs = []
     added = None
@@ -1115,7 +1134,7 @@ def ladder(data, start_model='base', steps=None, auto=True, field_nt=None, *,
                 diag = diagnose(data, field_nt=f, base=result, folds=folds, progress=progress,
                                 **diag_kwargs)
             floor = diag.noise_floor
-        rungs.append(_step(result, data, f, added, diag, folds))
+        rungs.append(_step(result, data, f, added, diag, folds, constrained))
         if floor is None:
             floor = noise_floor_from_data(data, result)
         if len(rungs) > max_steps:
@@ -1135,6 +1154,7 @@ def ladder(data, start_model='base', steps=None, auto=True, field_nt=None, *,
             if len(vals) == added_mask.sum():
                 p_ext[added_mask] = vals
         _progress(progress, 'fit', 0, 1, ','.join(m_ext.spec()))
-        result = fit(data, m_ext, field_nt=f, init=p_ext, on_degenerate='flag')
+        result = fit(data, m_ext, field_nt=f, init=p_ext, on_degenerate='flag',
+                     constrained=constrained)
         added = token
     return Ladder(steps=tuple(rungs), noise_floor=floor)
