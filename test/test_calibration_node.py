@@ -272,3 +272,32 @@ def test_sample_buffer_is_a_ring_in_time_order():
     assert np.isnan(data.temp[0]).all() and data.temp[1, -1] == 26.0
     buf.clear()
     assert len(buf) == 0
+
+
+def test_constrained_parameter(make_node, ros_node, ros_executor, ros_namespace, tmp_path):
+    """Partial coverage (directions within a 30 deg cap): refused naming the constrained
+    mode, then calibrated with the node's `constrained` parameter."""
+    cap, _ = simulate(n_samples=800, rate_hz=100.0, trajectory='cone', seed=5)
+    node = start_node(make_node, ros_namespace, tmp_path, min_samples=500)
+    status = listen(ros_node, 'calibration/status')
+    feeder = Feeder(ros_node)
+    feeder.wait_for_subscribers(ros_executor)
+    assert call_trigger(ros_node, ros_executor, 'calibration/start').success
+    feeder.feed(ros_executor, cap, taken=lambda: int(node._received.sum()))
+    resp = call_trigger(ros_node, ros_executor, 'calibration/calibrate')
+    assert not resp.success
+    assert 'cone' in resp.message and 'constrained' in resp.message
+    st = node.status()
+    assert {v['status'] for v in st['coverage'].values()} == {'partial'}
+    assert not st['ready'] and any('cone' in m for m in st['missing'])
+
+    node.set_parameters([Parameter('constrained', value=True)])
+    st = node.status()
+    assert st['ready'] and st['missing'] == []
+    resp = call_trigger(ros_node, ros_executor, 'calibration/calibrate')
+    assert resp.success, resp.message
+    _, out = split(resp)
+    assert out['constrained'] is True
+    # 3 nT white noise per axis: the scalar residual of a complete model is that noise
+    for j in '1234':
+        assert out['scalar_rms_after_nt'][j] < 1.3 * NOISE_NT

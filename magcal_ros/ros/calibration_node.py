@@ -358,7 +358,11 @@ class CalibrationNode(Node):
             coverage = {str(j): {'status': v['status'],
                                  'eigenvalues': [round(float(x), 4) for x in v['eigenvalues']]}
                         for j, v in rep['sensors'].items()}
-            missing.extend(rep['problems'])
+            # the constrained mode is made for a partial coverage: not a missing item then
+            partial = ({j for j, v in rep['sensors'].items() if v['status'] == 'partial'}
+                       if s.constrained else set())
+            missing.extend(p for p in rep['problems']
+                           if not any(p.startswith(f'sensor {j}:') for j in partial))
         out['coverage'] = coverage
         out['missing'] = missing
         out['ready'] = state != 'idle' and not missing
@@ -490,7 +494,8 @@ class CalibrationNode(Node):
             run = run_calibration(
                 data, model=model, field_nt=s.field_nt, geometry=geometry,
                 field_reference={'kind': 'constant', 'magnitude_nt': s.field_nt},
-                robust=s.robust, exclude_outliers=s.exclude_outliers)
+                robust=s.robust, exclude_outliers=s.exclude_outliers,
+                constrained=s.constrained)
         except DegenerateDataError as exc:
             return False, (f'not calibrated: {exc}; previous calibration stays active'), {
                 'reason': str(exc), 'sets': n_sets, 'model': list(s.model)}
@@ -522,6 +527,7 @@ class CalibrationNode(Node):
             'scalar_rms_after_nt': summ['scalar_rms_nt'],
             'vector_rms_after_nt': summ['vector_rms_nt'],
             'robust': s.robust,
+            'constrained': s.constrained,
             'downweighted': summ['downweighted'],
             'warnings': summ['warnings'],
             'resync': resync_payload,
@@ -591,7 +597,7 @@ class CalibrationNode(Node):
         model = Model.from_spec(list(s.model), self._n)
         data, resync_payload, _ = self._resync(data, epochs, s)
         try:
-            diag = diagnose(data, model, field_nt=s.field_nt)
+            diag = diagnose(data, model, field_nt=s.field_nt, constrained=s.constrained)
         except ValueError as exc:
             return False, f'not diagnosed: {exc}', {'reason': str(exc), 'sets': n_sets}
         ranking = json.loads(diag.to_json())       # non-finite numbers as null

@@ -223,6 +223,7 @@ class CalibrationSettings:
     aux_topics: tuple
     status_period_s: float
     robust: bool
+    constrained: bool
     resync_sets: bool
     exclude_outliers: bool
     imu_topic: str = ''
@@ -264,6 +265,9 @@ def calibration_specs(n_sensors=4):
         ParamSpec('status_period_s', 1.0, 'period of calibration/status messages, s',
                   positive('s'), read_only=True),
         ParamSpec('robust', False, 'use the robust (soft L1) loss against spikes; no unit'),
+        ParamSpec('constrained', False, 'partial attitude coverage (a vehicle that cannot '
+                  'turn over): priors on scale and angles in calibrate and diagnose, and a '
+                  'partial coverage is not a missing item of the status; no unit'),
         ParamSpec('resync_sets', True, 'before a calibration or diagnosis, find sets whose '
                   'sensors the stamps paired from different epochs and re-pair them from the '
                   'data (magcal_ros.core.consistency); no unit'),
@@ -294,6 +298,7 @@ def calibration_settings(node):
         aux_topics=tuple(value(node, 'aux_topics', [])),
         status_period_s=float(value(node, 'status_period_s')),
         robust=bool(value(node, 'robust')),
+        constrained=bool(value(node, 'constrained')),
         resync_sets=bool(value(node, 'resync_sets')),
         exclude_outliers=bool(value(node, 'exclude_outliers')),
         imu_topic=str(value(node, 'imu_topic', '')),
