@@ -40,6 +40,15 @@ def start_node(make_node, namespace, tmp_path, **params):
         Parameter(k, value=v) for k, v in overrides.items()])
 
 
+def feed_and_calibrate(node, ros_node, ros_executor, data):
+    """Start collecting, publish ``data`` to the node, call calibrate; the response."""
+    feeder = Feeder(ros_node)
+    feeder.wait_for_subscribers(ros_executor)
+    assert call_trigger(ros_node, ros_executor, 'calibration/start').success
+    feeder.feed(ros_executor, data, taken=lambda: int(node._received.sum()))
+    return call_trigger(ros_node, ros_executor, 'calibration/calibrate')
+
+
 def listen(node, topic, qos=10):
     box = []
     node.create_subscription(String, topic, box.append, qos)
@@ -177,11 +186,7 @@ def test_single_axis_rotation_is_refused_and_previous_stays(
     assert results[0].data.encode() == before
 
     turntable, _ = simulate(n_samples=600, rate_hz=100.0, trajectory='turntable', seed=3)
-    feeder = Feeder(ros_node)
-    feeder.wait_for_subscribers(ros_executor)
-    assert call_trigger(ros_node, ros_executor, 'calibration/start').success
-    feeder.feed(ros_executor, turntable, taken=lambda: int(node._received.sum()))
-    resp = call_trigger(ros_node, ros_executor, 'calibration/calibrate')
+    resp = feed_and_calibrate(node, ros_node, ros_executor, turntable)
     assert not resp.success
     lines, out = split(resp)
     assert 'rotate about another axis' in lines[0]
@@ -279,12 +284,7 @@ def test_constrained_parameter(make_node, ros_node, ros_executor, ros_namespace,
     mode, then calibrated with the node's `constrained` parameter."""
     cap, _ = simulate(n_samples=800, rate_hz=100.0, trajectory='cone', seed=5)
     node = start_node(make_node, ros_namespace, tmp_path, min_samples=500)
-    status = listen(ros_node, 'calibration/status')
-    feeder = Feeder(ros_node)
-    feeder.wait_for_subscribers(ros_executor)
-    assert call_trigger(ros_node, ros_executor, 'calibration/start').success
-    feeder.feed(ros_executor, cap, taken=lambda: int(node._received.sum()))
-    resp = call_trigger(ros_node, ros_executor, 'calibration/calibrate')
+    resp = feed_and_calibrate(node, ros_node, ros_executor, cap)
     assert not resp.success
     assert 'cone' in resp.message and 'constrained' in resp.message
     st = node.status()

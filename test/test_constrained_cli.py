@@ -6,20 +6,13 @@ field directions within 30 deg of one direction, a sensor with scale errors of a
 (what the constrained mode's priors assume), an offset of 0.3 x the field and white noise.
 """
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
+from test_cli import run_cli
 
 F = 50000.0
 NOISE = 50.0
-
-
-def run_cli(*args):
-    p = subprocess.run([sys.executable, '-m', 'magcal_ros.cli', *map(str, args)],
-                       capture_output=True, text=True, timeout=300)
-    return p.returncode, p.stdout, p.stderr
 
 
 @pytest.fixture(scope='module')
