@@ -80,25 +80,53 @@ def _floor_lines(ax, level, label='noise floor'):
 
 # -- figures --------------------------------------------------------------------------------
 
+def magnitude_offsets(data, result):
+    """Per sensor, the mean of |raw| - |B| and of |model| - |B| (nT): the data of the
+    magnitude figure, which plots both about the reference so that an offset of thousands of
+    nT and a variation of a few nT are both readable.
+
+    Returns
+    -------
+    dict
+        {sensor j (1-based): {'measured_nt': float, 'model_nt': float}}.
+    """
+    out = {}
+    for j in range(1, data.n_sensors + 1):
+        f = result.field_magnitude_nt
+        meas = np.linalg.norm(data.raw[j - 1], axis=1) - f
+        model = np.linalg.norm(data.raw[j - 1] - result.residual_nt[j - 1], axis=1) - f
+        out[j] = {'measured_nt': float(np.mean(meas)), 'model_nt': float(np.mean(model))}
+    return out
+
+
 def plot_magnitude(data, result):
-    """Measured |raw| and modelled |forward(B)| per sensor over time (nT)."""
+    """Measured |raw| and modelled |forward(B)| per sensor over time, about the reference |B|.
+
+    Both are drawn as differences from the reference magnitude (nT), the mean difference of
+    the raw readings named in the title: a reference 3 000 nT away shows as a stated offset
+    and the variation stays readable (on an absolute axis the offset squashes it flat).
+    """
     s = data.n_sensors
     fig = _figure(4.0 * min(s, 4), 3.2 * int(np.ceil(s / 4)))
     idx = _thin(data.n_samples)
     t = data.t[idx] - data.t[0]
+    offs = magnitude_offsets(data, result)
+    f = result.field_magnitude_nt[idx]
     for j, ax in enumerate(_sensor_axes(fig, s), start=1):
-        meas = np.linalg.norm(data.raw[j - 1, idx], axis=1)
-        model = np.linalg.norm(data.raw[j - 1, idx] - result.residual_nt[j - 1, idx], axis=1)
-        ax.plot(t, meas, '.', ms=1.5, color='0.6', label='measured |raw|')
-        ax.plot(t, model, '-', lw=0.8, color='tab:blue', label='model |A B + o + ...|')
-        ax.plot(t, result.field_magnitude_nt[idx], '-', lw=1.0, color='k',
-                label='reference |B|')
-        ax.set_title(f'sensor {j}: field magnitude')
+        meas = np.linalg.norm(data.raw[j - 1, idx], axis=1) - f
+        model = np.linalg.norm(data.raw[j - 1, idx] - result.residual_nt[j - 1, idx],
+                               axis=1) - f
+        ax.plot(t, meas, '.', ms=1.5, color='0.6', label='measured |raw| - |B|')
+        ax.plot(t, model, '-', lw=0.8, color='tab:blue', label='model |A B + o + ...| - |B|')
+        ax.axhline(0.0, color='k', lw=1.0, label='reference |B|')
+        ax.set_title(f'sensor {j}: |raw| - |B| mean {offs[j]["measured_nt"]:+,.0f} nT',
+                     fontsize=9)
         ax.set_xlabel('time since start (s)')
-        ax.set_ylabel('|B| (nT)')
+        ax.set_ylabel('|B| - reference (nT)')
     fig.axes[0].legend(fontsize=7, loc='best')
-    _suptitle(fig, 'Measured vs modelled magnitude (the residual is the small difference: '
-              'see the next figure)', fontsize=10)
+    _suptitle(fig, 'Measured and modelled magnitude minus the reference magnitude (mean |B| '
+              f'{float(np.mean(result.field_magnitude_nt)):,.0f} nT; the residual is the small '
+              'difference between the two: see the next figure)', fontsize=10)
     return fig
 
 
@@ -209,29 +237,77 @@ def plot_residual_vs_rate(data, result, floor):
     return fig
 
 
+def direction_projection(b, centre=None):
+    """Lambert azimuthal equal-area projection of field directions, without a seam.
+
+    Centred on the mean direction of ``b`` (or ``centre``): a cone of directions about any
+    axis is a closed ring, never cut at azimuth +-180 deg as on an azimuth/elevation map; the
+    whole sphere is a disc of radius 2 whose rim is the antipode of the centre.  Equal area:
+    the density of points shows the coverage.
+
+    Parameters
+    ----------
+    b : numpy.ndarray
+        (N, 3) field vectors (any unit).
+    centre : numpy.ndarray, optional
+        (3,) centre direction; default the mean unit direction (+z when it is ~0, as for a
+        full sphere).
+
+    Returns
+    -------
+    tuple
+        (x (N,), y (N,), centre (3,) unit vector); x, y dimensionless in [-2, 2].
+    """
+    u = np.asarray(b, float)
+    u = u / np.linalg.norm(u, axis=1, keepdims=True)
+    c = np.mean(u, axis=0) if centre is None else np.asarray(centre, float)
+    if np.linalg.norm(c) < 0.2:
+        c = np.array([0.0, 0.0, 1.0])
+    c = c / np.linalg.norm(c)
+    # tangent basis at the centre: e1 along the component of the sensor x (or y) axis
+    # perpendicular to it
+    ref = np.array([1.0, 0.0, 0.0]) if abs(c[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = ref - (ref @ c) * c
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(c, e1)
+    cos_d = np.clip(u @ c, -1.0, 1.0)
+    k = np.sqrt(2.0 / np.maximum(1.0 + cos_d, 1e-12))
+    return k * (u @ e1), k * (u @ e2), c
+
+
 def plot_direction_map(data, result, floor):
-    """Scalar residual over field direction in the sensor frame (azimuth, elevation)."""
+    """Scalar residual over field direction in the sensor frame (equal-area, no seam)."""
     s = data.n_sensors
-    fig = _figure(4.4 * min(s, 4), 3.4 * int(np.ceil(s / 4)) + 0.4)
+    fig = _figure(4.4 * min(s, 4), 3.6 * int(np.ceil(s / 4)) + 0.4)
     idx = _thin(data.n_samples)
     for j, ax in enumerate(_sensor_axes(fig, s), start=1):
         b = result.corrected_nt[j - 1, idx]       # raw directions are skewed by the offset
-        az = np.degrees(np.arctan2(b[:, 1], b[:, 0]))
-        el = np.degrees(np.arcsin(np.clip(b[:, 2] / np.linalg.norm(b, axis=1), -1, 1)))
+        x, y, c = direction_projection(b)
         r = result.scalar_residual_nt[j - 1, idx]
         lim = max(3.0 * floor.per_sensor_nt[j - 1], float(np.percentile(np.abs(r), 98)))
-        sc = ax.scatter(az, el, c=r, s=4, cmap='coolwarm', vmin=-lim, vmax=lim)
+        sc = ax.scatter(x, y, c=r, s=4, cmap='coolwarm', vmin=-lim, vmax=lim)
         cb = fig.colorbar(sc, ax=ax, fraction=0.046, pad=0.03)
         cb.set_label('scalar residual (nT)')
-        ax.set_xlim(-180, 180)
-        ax.set_ylim(-90, 90)
-        ax.set_xlabel('azimuth of corrected field (deg)')
-        ax.set_ylabel('elevation (deg)')
-        ax.set_title(f'sensor {j} (floor {floor.per_sensor_nt[j - 1]:.1f} nT)', fontsize=9)
-    _suptitle(fig, 'Residual over field direction (corrected field, array frame = sensor frame '
-              'up to the small misalignment); a pattern = missing linear/nonlinear term',
-              fontsize=11)
+        for deg in (45, 90, 135):                  # angle from the centre direction
+            rr = 2 * np.sin(np.radians(deg) / 2)
+            ax.add_patch(_circle(rr))
+        ax.add_patch(_circle(2.0, ls='-'))
+        ax.set_xlim(-2.05, 2.05)
+        ax.set_ylim(-2.05, 2.05)
+        ax.set_aspect('equal')
+        ax.set_xlabel('equal-area x (rings: 45, 90, 135 deg from centre)')
+        ax.set_ylabel('equal-area y (centre = mean direction)')
+        ax.set_title(f'sensor {j}: centre ({c[0]:+.2f}, {c[1]:+.2f}, {c[2]:+.2f}), floor '
+                     f'{floor.per_sensor_nt[j - 1]:.1f} nT', fontsize=8)
+    _suptitle(fig, 'Residual over field direction (corrected field in the sensor frame, '
+              'Lambert equal-area about the mean direction; a pattern = missing '
+              'linear/nonlinear term)', fontsize=11)
     return fig
+
+
+def _circle(radius, ls=':'):
+    from matplotlib.patches import Circle
+    return Circle((0.0, 0.0), radius, fill=False, color='0.5', lw=0.7, ls=ls)
 
 
 def plot_tensor(data, result, baseline_m=0.5, floor=None):
@@ -272,31 +348,71 @@ def plot_tensor(data, result, baseline_m=0.5, floor=None):
     return fig
 
 
+def candidate_chart_data(diagnosis, top=15):
+    """The data of the candidates chart, from the candidates' dicts (best first).
+
+    The verdict is decided by the held-out test (a candidate must lower the held-out RMS
+    after passing the p-value and BIC tests), so the chart's bars are the held-out RMS drop
+    in nT where a candidate was cross-validated; delta BIC is shown beside it.  Driven by
+    the keys of ``Candidate.to_dict()``, so a candidate without held-out figures simply has
+    ``held_out_drop_nt`` None.
+
+    Returns
+    -------
+    list of dict
+        token, significant, verdict (bool), held_out_before_nt, held_out_after_nt,
+        held_out_drop_nt (nT or None), evidence (-delta BIC).
+    """
+    rows = []
+    for c in list(diagnosis.candidates)[:top]:
+        d = c.to_dict()
+        before, after = d.get('cv_rms_before_nt'), d.get('cv_rms_after_nt')
+        drop = None if before is None or after is None else float(before - after)
+        dbic = d.get('delta_bic')
+        rows.append({'token': d['token'], 'significant': bool(d.get('significant')),
+                     'verdict': d['token'] == diagnosis.verdict_token,
+                     'held_out_before_nt': before, 'held_out_after_nt': after,
+                     'held_out_drop_nt': drop,
+                     'evidence': None if dbic is None or not np.isfinite(dbic) else -dbic})
+    return rows
+
+
 def plot_candidates(diagnosis, top=15):
-    """Delta BIC of the best candidates (horizontal bars), significant ones highlighted."""
-    cands = list(diagnosis.candidates[:top])
-    if not cands:
+    """What decided the verdict: the held-out RMS drop of the candidates (left), delta BIC
+    (right); the verdict's bar is outlined."""
+    rows = candidate_chart_data(diagnosis, top)
+    if not rows:
         return None
-    fig = _figure(10, 0.35 * len(cands) + 1.5)
-    ax = fig.add_subplot(1, 1, 1)
-    y = np.arange(len(cands))[::-1]
-    ev = np.array([max(-c.delta_bic, 0.1) for c in cands])
-    colours = ['tab:green' if c.significant else ('tab:orange' if c.delta_bic < 0 else '0.7')
-               for c in cands]
-    ax.barh(y, ev, color=colours)
-    ax.set_xscale('log')
+    fig = _figure(12, 0.35 * len(rows) + 1.8)
+    ax, ax2 = fig.subplots(1, 2, sharey=True, width_ratios=[3, 2])
+    y = np.arange(len(rows))[::-1]
+    colours = ['tab:green' if r['significant'] else '0.7' for r in rows]
+    drop = np.array([r['held_out_drop_nt'] if r['held_out_drop_nt'] is not None else 0.0
+                     for r in rows])
+    bars = ax.barh(y, drop, color=colours)
+    for bar, r in zip(bars, rows):
+        if r['verdict']:
+            bar.set_edgecolor('k')
+            bar.set_linewidth(2)
+    for yi, r in zip(y, rows):
+        txt = ('not cross-validated' if r['held_out_drop_nt'] is None else
+               f'{r["held_out_before_nt"]:.2f} -> {r["held_out_after_nt"]:.2f} nT')
+        ax.text(0, yi, f'  {txt}', va='center', fontsize=7)
+    ax.axvline(0, color='k', lw=1)
     ax.set_yticks(y)
-    ax.set_yticklabels([c.token for c in cands], fontsize=8)
+    ax.set_yticklabels([r['token'] for r in rows], fontsize=8)
     ax.set_ylabel('candidate effect (model token)')
-    for yi, c, e in zip(y, cands, ev):
-        ax.text(e, yi, f'  scalar {c.rms_before_nt:.1f} -> {c.rms_after_nt:.1f} nT',
-                va='center', fontsize=7)
-    ax.axvline(10, color='k', ls='--', lw=1, label='-dBIC = 10 (strong evidence)')
-    ax.set_xlabel('evidence: -delta BIC (log scale; green = significant, orange = dBIC < 0, '
-                  'grey = against)')
-    ax.set_title(f'Candidate effects, best first (verdict: '
-                 f'{diagnosis.verdict_token or "none"})', fontsize=11)
-    ax.legend(fontsize=8, loc='lower right')
+    ax.set_xlabel('held-out RMS drop (nT): decides the verdict (green = passes all tests)')
+    ev = np.array([max(r['evidence'], 0.1) if r['evidence'] is not None else 0.1
+                   for r in rows])
+    ax2.barh(y, ev, color=colours)
+    ax2.set_xscale('log')
+    ax2.axvline(10, color='k', ls='--', lw=1, label='-dBIC = 10 (strong evidence)')
+    ax2.set_xlabel('-delta BIC (log scale): must exceed 10')
+    ax2.set_ylabel('(same candidates)')
+    ax2.legend(fontsize=7, loc='lower right')
+    _suptitle(fig, f'Candidate effects, best first; verdict: {diagnosis.verdict_token or "none"}'
+              f' ({diagnosis.verdict_reason})', fontsize=10)
     return fig
 
 
@@ -329,7 +445,8 @@ def plot_ladder(ladder):
     ax.set_ylabel('combined residual RMS (nT)')
     ax.set_ylim(0, 1.15 * max(cv.max(), fl))
     ax.set_title('Error ladder: held-out residual as effects are added', fontsize=11)
-    ax.legend(fontsize=8, loc='upper right')
+    # outside the axes: inside, any corner can cover a step (the last one, at upper right)
+    ax.legend(fontsize=8, loc='upper left', bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
     return fig
 
 

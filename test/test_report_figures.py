@@ -1,0 +1,110 @@
+"""What the report's figures show (issue 10 item 6), tested on the data behind them.
+
+- the direction map has no +-180 deg seam: a cone of directions about -x (where azimuth
+  wraps) is one closed ring in the equal-area projection, and the projection is equal-area;
+- the magnitude figure with a reference 3 000 nT away states the offset and plots about it;
+- the error ladder's legend covers no step;
+- the candidates chart plots what decided the verdict (the held-out RMS drop).
+The inputs are built here (plain numpy vectors and minimal stand-ins for a fit, a ladder and
+a diagnosis), independent of the model code.
+"""
+from types import SimpleNamespace
+
+from matplotlib.transforms import Bbox
+import numpy as np
+
+from magcal_ros import report
+from magcal_ros.core.dataset import Dataset
+
+
+def cone(axis, half_angle_deg, n=720):
+    """(n, 3) unit vectors going once round a cone about ``axis``."""
+    a = np.asarray(axis, float) / np.linalg.norm(axis)
+    e1 = np.cross(a, [0.0, 0.0, 1.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(a, e1)
+    th = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    h = np.radians(half_angle_deg)
+    return (np.cos(h) * a[None] + np.sin(h) * (np.cos(th)[:, None] * e1
+                                               + np.sin(th)[:, None] * e2))
+
+
+def test_direction_projection_has_no_seam_and_is_equal_area():
+    u = cone([-1.0, 0.1, 0.2], 40.0)
+    az = np.degrees(np.arctan2(u[:, 1], u[:, 0]))
+    assert np.abs(np.diff(az)).max() > 300          # the old map cut this cone in two
+    x, y, c = report.direction_projection(u)
+    step = np.hypot(np.diff(x), np.diff(y))
+    # neighbours on the cone (0.5 deg apart, ~0.009 on the projection) stay neighbours
+    assert step.max() < 0.02
+    # a cone about the centre is a circle of radius 2 sin(h/2)
+    r = np.hypot(x, y)
+    np.testing.assert_allclose(r, 2 * np.sin(np.radians(40.0) / 2), rtol=1e-3)
+    # equal area: uniform directions fill the disc of radius 2 uniformly, so the fraction
+    # within radius R is R^2 / 4 (binomial sd for 20 000 points: 0.0035)
+    v = np.random.default_rng(0).normal(size=(20000, 3))
+    x, y, _ = report.direction_projection(v, centre=[0.0, 0.0, 1.0])
+    for rad in (1.0, np.sqrt(2), 1.8):
+        assert abs(np.mean(np.hypot(x, y) < rad) - rad ** 2 / 4) < 0.015
+
+
+def test_magnitude_figure_states_a_3000_nt_offset_and_plots_about_it():
+    rng = np.random.default_rng(1)
+    n = 500
+    u = rng.normal(size=(n, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    raw = (50000.0 + 20.0 * np.sin(np.arange(n) / 30.0))[:, None] * u
+    data = Dataset(t=np.arange(n) / 10.0, raw=raw[None])
+    fit = SimpleNamespace(field_magnitude_nt=np.full(n, 47000.0),
+                          residual_nt=np.zeros((1, n, 3)))
+    offs = report.magnitude_offsets(data, fit)
+    expected = float(np.mean(np.linalg.norm(raw, axis=1))) - 47000.0     # 3 000 + mean swing
+    assert abs(offs[1]['measured_nt'] - expected) < 1e-6 and abs(expected - 3000.0) < 20
+    fig = report.plot_magnitude(data, fit)
+    ax = fig.axes[0]
+    assert f'{expected:+,.0f} nT' in ax.get_title()
+    meas = ax.get_lines()[0].get_ydata()
+    # about the reference: the 40 nT swing on a 3 000 nT offset, not 47 000 .. 50 000
+    assert 2970 < meas.min() and meas.max() < 3030
+    lo, hi = ax.get_ylim()
+    assert hi - lo < 4000
+
+
+def _extent(artist, fig):
+    return artist.get_window_extent(fig.canvas.get_renderer())
+
+
+def test_ladder_legend_covers_no_step():
+    steps = [SimpleNamespace(cv_rms_nt=v, residual_rms_nt=v * 0.98, model=('base',),
+                             added=tok)
+             for v, tok in ((12.0, None), (11.6, 'temperature@2'), (11.2, 'aux:aux_m@3'))]
+    # steps that fall little: the last bar reaches the top right, where the legend sat
+    lad = SimpleNamespace(steps=steps, noise_floor=SimpleNamespace(value_nt=3.0))
+    fig = report.plot_ladder(lad)
+    fig.canvas.draw()
+    ax = fig.axes[0]
+    leg = _extent(ax.get_legend(), fig)
+    for artist in list(ax.patches) + list(ax.texts):
+        assert not Bbox.intersection(leg, _extent(artist, fig)), artist
+
+
+def test_candidates_chart_plots_the_held_out_drop_that_decided():
+    def cand(tok, dbic, before, after, sig):
+        d = {'token': tok, 'delta_bic': dbic, 'cv_rms_before_nt': before,
+             'cv_rms_after_nt': after, 'significant': sig}
+        return SimpleNamespace(to_dict=lambda d=d: dict(d), token=tok)
+    diag = SimpleNamespace(
+        candidates=(cand('aux:aux_m@3', -80.0, 12.0, 3.2, True),
+                    cand('temperature@1', -500.0, 12.0, 12.4, False),
+                    cand('drift@2', 4.0, None, None, False)),
+        verdict_token='aux:aux_m@3', verdict_reason='held-out RMS 12.00 -> 3.20 nT')
+    rows = report.candidate_chart_data(diag)
+    assert [r['held_out_drop_nt'] for r in rows] == [8.8, -0.4, None] or \
+        np.allclose([r['held_out_drop_nt'] or 0 for r in rows], [8.8, -0.4, 0])
+    assert [r['verdict'] for r in rows] == [True, False, False]
+    fig = report.plot_candidates(diag)
+    widths = [p.get_width() for p in fig.axes[0].patches]
+    np.testing.assert_allclose(widths, [8.8, -0.4, 0.0])
+    # the verdict's bar is the outlined one: a large delta BIC alone does not decide
+    assert [p.get_linewidth() for p in fig.axes[0].patches][0] == 2
+    assert 'verdict: aux:aux_m@3' in fig.get_suptitle()
