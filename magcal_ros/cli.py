@@ -130,9 +130,8 @@ def _resolve_field(args, data):
 
 def load_plugins(args):
     """Import the --plugin modules."""
-    from magcal_ros.core.effects import load_plugin
-    for ref in getattr(args, 'plugin', None) or []:
-        load_plugin(ref)
+    from magcal_ros.core.effects import load_plugins as load
+    load(getattr(args, 'plugin', None))
 
 
 def print_json(obj):
@@ -403,11 +402,9 @@ def build_parser():
 
 
 def register_workbench_commands(sub):
-    """Hook for the diagnose/report commands (see magcal_ros.cli_workbench)."""
-    try:
-        from magcal_ros import cli_workbench
-    except ImportError:
-        return
+    """The diagnose/report commands (see magcal_ros.cli_workbench); a failing import is an
+    error, never a silently shorter command list."""
+    from magcal_ros import cli_workbench
     cli_workbench.register(sub, sys.modules[__name__])
 
 

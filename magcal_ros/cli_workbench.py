@@ -17,7 +17,7 @@ input, 1 on other failures (handled by :func:`magcal_ros.cli.main`).
 import sys
 import time
 
-from magcal_ros.core.effects import load_plugin
+from magcal_ros.core.effects import load_plugins
 
 EXIT_OK = 0
 
@@ -50,11 +50,6 @@ class Progress:
                 self.stream.write(f'fit: {label}\n')
             self.stream.flush()
         self.stage = stage
-
-
-def _plugins(args):
-    for ref in args.plugin or []:
-        load_plugin(ref)
 
 
 def _load(args, cli):
@@ -101,7 +96,7 @@ def _run(args, cli, with_ladder):
     from magcal_ros.core.diagnose import diagnose, ladder
     from magcal_ros.core.model import fit, Model
     _validate(args, cli)
-    _plugins(args)
+    load_plugins(args.plugin)
     data = _load(args, cli)
     try:
         model = Model.from_spec(args.model, data.n_sensors)

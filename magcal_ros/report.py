@@ -459,10 +459,6 @@ def _table(rows, header):
     return f'<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>'
 
 
-def _fmt(x, spec='.2f'):
-    return '' if x is None else format(x, spec)
-
-
 def candidate_rows(diagnosis):
     """Rows of the candidate table (strings)."""
     rows = []

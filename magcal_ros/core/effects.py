@@ -1061,6 +1061,12 @@ def parse_token(token):
     return name, args, sensor
 
 
+def load_plugins(refs):
+    """:func:`load_plugin` for each of ``refs`` (``--plugin``, a node's ``plugins``); the
+    registered names, in order."""
+    return [name for ref in refs or () for name in load_plugin(ref)]
+
+
 def make_effect(token, sensor):
     """Create the effect ``token`` ('offset', 'aux:aux_motor_current', 'step(300)', ...)."""
     if '(' in token:

@@ -28,6 +28,7 @@ from scipy.optimize import least_squares
 from magcal_ros.core import effects as fx
 from magcal_ros.core.ellipsoid import fit_ellipsoid, procrustes_rotation
 from magcal_ros.core.magnitude import reference_magnitude
+from magcal_ros.core.noise import mad_sd
 from magcal_ros.core.notes import Note
 
 class DegenerateDataError(ValueError):
@@ -376,16 +377,6 @@ class FitResult:
                 for j in range(1, self.model.n_sensors)}
 
     @property
-    def bic(self):
-        """Bayesian information criterion chi2 + P ln(n_obs) (noise levels held fixed)."""
-        return float(self.chi2 + self.n_params * np.log(self.n_obs))
-
-    @property
-    def aic(self):
-        """Akaike information criterion chi2 + 2 P."""
-        return float(self.chi2 + 2 * self.n_params)
-
-    @property
     def calibration(self):
         """The :class:`Calibration` (model + parameters) for live correction."""
         cal = Calibration(self.model, self.params, self.stderr, self.sigma_nt)
@@ -557,10 +548,15 @@ def _solve2x2(m, rhs):
     Gram matrices here, about 50x faster for K = 40 right-hand sides (bench/ profile: the
     batched LAPACK call dominated the projection of the Jacobian).
     """
-    a, b, c, d = m[:, 0, 0], m[:, 0, 1], m[:, 1, 0], m[:, 1, 1]
+    i = _inv2x2(m[:, 0, 0], m[:, 0, 1], m[:, 1, 0], m[:, 1, 1])
+    inv = np.stack([np.stack(i[:2], axis=1), np.stack(i[2:], axis=1)], axis=1)
+    return inv @ rhs
+
+
+def _inv2x2(a, b, c, d):
+    """Entries (each (N,)) of the inverses of the stacked 2x2 matrices [[a, b], [c, d]]."""
     det = a * d - b * c
-    inv = np.stack([np.stack([d, -b], axis=1), np.stack([-c, a], axis=1)], axis=1)
-    return (inv / det[:, None, None]) @ rhs
+    return d / det, -b / det, -c / det, a / det
 
 
 class _Problem:
@@ -634,9 +630,9 @@ class _Problem:
                 h22 += np.einsum('ij,ij->i', wg2, g2)
                 g1s += np.einsum('ij,ij->i', wg1, r)
                 g2s += np.einsum('ij,ij->i', wg2, r)
-            det = h11 * h22 - h12 * h12
-            d1 = (h22 * g1s - h12 * g2s) / det
-            d2 = (h11 * g2s - h12 * g1s) / det
+            i11, i12, i21, i22 = _inv2x2(h11, h12, h12, h22)
+            d1 = i11 * g1s + i12 * g2s
+            d2 = i21 * g1s + i22 * g2s
             b = b + self.f[:, None] * (d1[:, None] * e1 + d2[:, None] * e2)
             b = b / np.linalg.norm(b, axis=1, keepdims=True) * self.f[:, None]
         return b, mats
@@ -862,12 +858,6 @@ def _covariance(jac):
     return cov
 
 
-def _robust_sigma(x):
-    """Noise sd from the median absolute deviation (robust to outliers)."""
-    x = np.asarray(x, float).ravel()
-    return 1.4826 * np.median(np.abs(x - np.median(x)))
-
-
 def _single_threaded_blas():
     """Limit BLAS to one thread inside a fit (optional threadpoolctl).
 
@@ -1001,7 +991,7 @@ def _fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=F
             # start from a robust noise estimate of the closed-form residuals
             for j in range(1, model.n_sensors + 1):
                 corr = model.correct(j, p, raw[j - 1], contexts[j - 1])
-                sigma[j - 1] = max(_robust_sigma(np.linalg.norm(corr, axis=1) - f), 1e-3)
+                sigma[j - 1] = max(mad_sd(np.linalg.norm(corr, axis=1) - f), 1e-3)
         status, message, nfev, success = 0, '', 0, True
         problems = []
         for grp in groups:
@@ -1035,7 +1025,7 @@ def _fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=F
             for gi, j in enumerate(prob.sensors):
                 r = res[:, gi] * sigma[j - 1]
                 if robust:
-                    new_sigma[j - 1] = _robust_sigma(r) * np.sqrt((3 * g - 2) / (3 * g))
+                    new_sigma[j - 1] = mad_sd(r) * np.sqrt((3 * g - 2) / (3 * g))
                 else:
                     new_sigma[j - 1] = np.sqrt(np.sum(r ** 2) / dof_per)
         converged = np.all(np.abs(new_sigma / sigma - 1) < 0.05)

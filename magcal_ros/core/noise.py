@@ -43,6 +43,12 @@ FILTERED_DROP = 10.0
 RAW_FLOOR_EXCESS = 1.2
 
 
+def mad_sd(x):
+    """Gaussian-consistent sd from the median absolute deviation: 1.4826 MAD (unit of x)."""
+    x = np.asarray(x, float).ravel()
+    return float(1.4826 * np.median(np.abs(x - np.median(x))))
+
+
 def robust_sd(d):
     """sd-consistent scale of a centred sample with heavy tails and a few gross outliers.
 
@@ -68,7 +74,7 @@ def robust_sd(d):
     """
     d = np.asarray(d, float).ravel()
     a = np.abs(d - np.median(d))
-    s_mad = 1.4826 * np.median(a)
+    s_mad = mad_sd(d)
     n = a.size
     if n == 0 or s_mad <= 0:
         return float(np.sqrt(np.mean(a ** 2))) if n else float('nan'), float(s_mad), \

@@ -18,8 +18,9 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
-from magcal_ros.core.effects import (  # noqa: F401  (re-exported)
-    nonorthogonality_matrix, rot_r1, rot_r2, rot_r3)
+from magcal_ros.core.effects import (  # noqa: F401  (rot_r*, C_NO re-exported)
+    misalignment_angles, nonorthogonality_matrix, rot_r1, rot_r2, rot_r3, rq_positive,
+    upper_to_scale_nonorth)
 
 
 def _check_general(a, o):
@@ -150,24 +151,13 @@ class Paper004Params:
             If A is not a finite non-singular (3, 3) matrix or det(A) < 0.
         """
         a, o = _check_general(a, o)
-        u, q = scipy.linalg.rq(a)
-        d = np.sign(np.diag(u))
-        u = u * d[None, :]
-        q = d[:, None] * q
-        _check_proper(q, 'paper 004 (S C_NO R with R a rotation)')
-        k = np.linalg.norm(u, axis=1)
-        c = u / k[:, None]
-        return cls(
-            kx=float(k[0]), ky=float(k[1]), kz=float(k[2]),
-            psi=float(np.arctan2(c[1, 2], c[1, 1])),
-            varphi=float(np.arctan2(c[0, 1], c[0, 0])),
-            theta=float(np.arcsin(np.clip(c[0, 2], -1.0, 1.0))),
-            b=o.copy(),
-            # R = R1 R2 R3: R[1] = (-cb sa, cb ca, sb), R[0, 2] = -sg cb, R[2, 2] = cg cb
-            alpha=float(np.arctan2(-q[1, 0], q[1, 1])),
-            beta=float(np.arcsin(np.clip(q[1, 2], -1.0, 1.0))),
-            gamma=float(np.arctan2(-q[0, 2], q[2, 2])),
-        )
+        # A = U Q with diag(U) > 0: det(Q) has the sign of det(A)
+        _check_proper(a, 'paper 004 (S C_NO R with R a rotation)')
+        u, q = rq_positive(a)
+        k, psi, varphi, theta = upper_to_scale_nonorth(u)
+        alpha, beta, gamma = misalignment_angles(q)
+        return cls(kx=float(k[0]), ky=float(k[1]), kz=float(k[2]), psi=psi, varphi=varphi,
+                   theta=theta, b=o.copy(), alpha=alpha, beta=beta, gamma=gamma)
 
 
 #: Paper 004 Table 1: error parameters of the four simulated magnetometers

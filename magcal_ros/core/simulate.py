@@ -263,14 +263,6 @@ class Simulator:
                        meta={'truth_field': b, 'simulator': cfg},
                        attitude=rot.as_quat(scalar_first=True) if cfg.attitude else None)
 
-    def prepare_truth(self, data):
-        """Make the truth model's reference values (mean temperature, t0, ...) match ``data``.
-
-        The simulator's driven effects act about those references; call this once on the
-        dataset so that truth and fit share them.
-        """
-        self.model.prepare([data.context(j) for j in range(1, data.n_sensors + 1)])
-
     @property
     def truth(self):
         """:class:`magcal_ros.core.model.Calibration` holding the true parameters."""

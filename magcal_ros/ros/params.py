@@ -82,15 +82,6 @@ def positive(unit):
     return check
 
 
-def non_negative(unit):
-    """Make a validator accepting a finite number >= 0."""
-    def check(value):
-        if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-            return f'must be a finite number >= 0 {unit}, got {value!r}'
-        return None
-    return check
-
-
 def at_least(minimum, unit=''):
     """Make a validator accepting an integer >= ``minimum``."""
     def check(value):
