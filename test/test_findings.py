@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 
 import injection as inj
 from magcal_ros.core.dataset import Dataset
-from magcal_ros.core.findings import find, periodogram, white_noise_sd
+from magcal_ros.core.findings import find, lomb_scargle, periodogram, white_noise_sd
 from magcal_ros.core.model import fit
 
 SIZES = (3000, 10000)
@@ -188,6 +188,17 @@ def test_white_noise_sd_reads_the_variance_also_for_heavy_tails():
     assert np.allclose(sd, np.sqrt(18.0), rtol=0.08)
 
 
+def test_lomb_scargle_agrees_with_scipy():
+    from scipy.signal import lombscargle
+    rng = np.random.default_rng(5)
+    t = np.sort(rng.uniform(0, 50, 300))
+    x = np.sin(2 * np.pi * 0.8 * t) + rng.normal(0, 1, 300)
+    x -= x.mean()
+    f = np.linspace(0.05, 3, 200)
+    ref = lombscargle(t, x, 2 * np.pi * f)
+    assert np.allclose(lomb_scargle(t, x[:, None], f)[:, 0], ref, rtol=1e-9, atol=1e-9)
+
+
 def test_periodogram_irregular_sampling_finds_the_line():
     rng = np.random.default_rng(4)
     t = np.sort(rng.uniform(0, 400, 3000))
@@ -207,3 +218,43 @@ def test_findings_are_in_the_diagnosis_json_and_text():
     assert set(doc['findings'][0]) >= {'kind', 'sensor', 'channel', 'value', 'unit',
                                       'explained_fraction', 'text'}
     assert 'step(300)@1' in diag.summary()
+
+
+def _single(n, inject, seed=0):
+    full = inj.make(n, seed=seed, inject=inject)
+    return Dataset(t=full.t, raw=full.raw[:1], temp=full.temp[:1], aux=full.aux)
+
+
+@pytest.mark.parametrize('n', SIZES)
+def test_single_sensor_quadratic_drift_is_a_time_trend(n):
+    # one sensor: its offset drifts along a fixed vector, seen only along the field in the
+    # scalar residual; 60 nT over the record against 3 nT noise
+    def inject(t, temp, aux, b):
+        s = (t - t[0]) / (t[-1] - t[0])
+        return {1: (60.0 * s ** 2)[:, None] * np.array([0.6, -0.48, 0.64])}
+    data = _single(n, inject)
+    result = fit(data, 'base', field_nt=inj.F_NT)
+    found = find(data, result)
+    assert found.kind_of_series == 'scalar'
+    assert _kinds(found) == [('time', 1)], found.summary()
+    assert found.items[0].token == 'drift2@1'
+
+
+@pytest.mark.parametrize('n', SIZES)
+def test_single_sensor_controls(n):
+    data = _single(n, None)
+    found = find(data, fit(data, 'base', field_nt=inj.F_NT))
+    assert found.items == (), found.summary()
+
+
+@pytest.mark.parametrize('n', SIZES)
+def test_attitude_pattern_is_a_direction_finding(n):
+    # sensor 4 reads a term quadratic in the field (a non-linear core): 2e-8 / nT x B_x B_y,
+    # 25 nT at most for a 50 000 nT field, not in the base model
+    def inject(t, temp, aux, b):
+        q = 2e-8 * b[:, 0] * b[:, 1]
+        return {4: q[:, None] * np.array([1.0, 0.5, -0.5])}
+    data = inj.make(n, inject=inject)
+    found = find(data, fit(data, 'base', field_nt=inj.F_NT))
+    assert _kinds(found) == [('direction', 4)], found.summary()
+    assert found.items[0].token == 'nonlinearity@4'

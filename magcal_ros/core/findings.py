@@ -33,7 +33,7 @@ largest BIC gain is kept, its fitted signal removed, and the tests are run again
 The tests:
 
 - ``periodic``: periodogram (FFT for uniform sampling; Lomb-Scargle,
-  :func:`scipy.signal.lombscargle`, for irregular sampling), the channels' powers summed.
+  :func:`lomb_scargle`, for irregular sampling), the channels' powers summed.
   Under white noise the power normalised by its local median is Gamma(C, 1) distributed;
   the false-alarm probability is that tail times the number of independent frequencies
   (Scargle 1982).  A line must stand out of its neighbourhood, so a red continuum (a random
@@ -70,7 +70,7 @@ from dataclasses import dataclass, field
 import math
 
 import numpy as np
-from scipy import ndimage, signal, stats
+from scipy import ndimage, stats
 
 from magcal_ros.core.effects import first_order_lag
 
@@ -259,10 +259,52 @@ def periodogram(t, x):
     f_nyq = 0.5 / dt
     m = int(min(MAX_LS_FREQS, 2 * f_nyq * span))
     freqs = np.linspace(1.0 / span, f_nyq, m)
-    # classical normalisation (Scargle 1982): N A^2 / 4 for a sinusoid of amplitude A
-    power = np.stack([signal.lombscargle(t - t[0], x[:, c], 2 * np.pi * freqs)
-                      for c in range(x.shape[1])], axis=1)
-    return freqs, power, max(1, int(f_nyq * span))
+    return freqs, lomb_scargle(t, x, freqs), max(1, int(f_nyq * span))
+
+
+def lomb_scargle(t, x, freqs, chunk=256):
+    """Classical Lomb-Scargle periodogram (Lomb 1976, Scargle 1982 eq. 10), vectorised.
+
+    Parameters
+    ----------
+    t : numpy.ndarray
+        (N,) sample times, s (any spacing).
+    x : numpy.ndarray
+        (N, C) series with its mean removed.
+    freqs : numpy.ndarray
+        (M,) frequencies, Hz.
+
+    Returns
+    -------
+    numpy.ndarray
+        (M, C) power P = [(sum x cos)^2 / sum cos^2 + (sum x sin)^2 / sum sin^2] / 2 with the
+        phases taken from tau (tan 2 w tau = sum sin 2wt / sum cos 2wt): N A^2 / 4 for a
+        sinusoid of amplitude A, the same numbers as :func:`scipy.signal.lombscargle`
+        (which loops in Python and takes seconds for 3000 x 4000).
+    """
+    t = np.asarray(t, float) - t[0]
+    freqs = np.asarray(freqs, float)
+    out = np.empty((len(freqs), x.shape[1]))
+    df = np.diff(freqs)
+    even = len(freqs) > 1 and np.allclose(df, df[0], rtol=1e-9, atol=0)
+    for a in range(0, len(freqs), chunk):
+        f = freqs[a:a + chunk]
+        if even:
+            # exp(i w t) for the chunk's frequencies by repeated multiplication with
+            # exp(i dw t): one complex product per sample instead of two trigonometric calls
+            rows = np.empty((len(f), len(t)), complex)
+            rows[0] = np.exp(2j * np.pi * f[0] * t)
+            rows[1:] = np.exp(2j * np.pi * df[0] * t)
+            z = np.cumprod(rows, axis=0)
+        else:
+            z = np.exp(2j * np.pi * f[:, None] * t)
+        z2 = z * z
+        tau2 = np.angle(z2.sum(axis=1))                                 # 2 w tau
+        zr = z * np.exp(-0.5j * tau2)[:, None]                          # exp(i w (t - tau))
+        c, s = zr.real, zr.imag
+        out[a:a + chunk] = 0.5 * ((c @ x) ** 2 / (c * c).sum(axis=1)[:, None]
+                                  + (s @ x) ** 2 / (s * s).sum(axis=1)[:, None])
+    return out
 
 
 def _regress(x, design):
@@ -417,12 +459,7 @@ def _test_time(t, x, sd, mod=None):
     _, d, fitted, ss1, rank = best
     p = _f_test(ss0, ss1, c * (rank - 1), n * c - c * rank)
     fitted = fitted - x.mean(axis=0)
-    if mod is None:
-        ptp = float(np.max(np.ptp(fitted, axis=0)))
-    else:           # the trend vector's largest component, not its projection
-        coef = np.linalg.lstsq(_expand(_legendre(t, d), mod), x, rcond=None)[0][10:, 0]
-        trend = _legendre(t, d)[:, 1:] @ coef.reshape(d, 3)
-        ptp = float(np.max(np.ptp(trend, axis=0)))
+    ptp = float(np.max(np.ptp(fitted, axis=0)))         # as seen in the series
     return _Candidate('time', fitted, c * (rank - 1), p, 5, value=ptp, unit='nT',
                       detail={'degree': d})
 
@@ -843,8 +880,13 @@ def _find(data, result, *, baseline_m=0.5, alpha=ALPHA, corrected=None, field=No
     for j, x in series.items():
         if n < 30 or np.any(noise[j] <= 0):
             continue
+        mod = None
+        if kind == 'scalar':
+            # one sensor: its vector faults show along the field direction only
+            mod = u
+            x = x - _regress(x, _nuisance(u))[0]
         found, rest = _sensor_findings(t, x, noise[j], u, _drivers(data, j, aux_drivers), j,
-                                       alpha_test)
+                                       alpha_test, mod=mod)
         explained[j] = x - x.mean(axis=0) - rest
         tails = _tails(rest, noise[j], j, alpha / s)
         if tails is not None:
