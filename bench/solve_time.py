@@ -98,19 +98,15 @@ def worker(n, model_key, seed, diagnose_too, max_fit_samples, repeat=1):
                scalar_rms_nt=float(np.sqrt(np.mean(res.scalar_residual_nt ** 2))),
                sigma_nt=float(np.mean(res.sigma_nt)))
     if diagnose_too:
-        try:
-            from magcal_ros.core.diagnose import diagnose
-        except ImportError as exc:
-            out['diagnose_error'] = f'diagnose not available: {exc}'
-        else:
-            with _Step() as st:
-                d = diagnose(data, base=res, field_nt=50000.0)
-            verdict = d.verdict
-            out.update(diagnose_s=st.seconds, diagnose_peak_mib=st.peak_mib,
-                       diagnose_stage_s=getattr(d, 'seconds', None),
-                       n_candidates=len(getattr(d, 'candidates', []) or []),
-                       verdict=verdict if isinstance(verdict, (str, dict)) or verdict is None
-                       else str(verdict))
+        from magcal_ros.core.diagnose import diagnose
+        with _Step() as st:
+            d = diagnose(data, base=res, field_nt=50000.0)
+        verdict = d.verdict
+        out.update(diagnose_s=st.seconds, diagnose_peak_mib=st.peak_mib,
+                   diagnose_stage_s=getattr(d, 'seconds', None),
+                   n_candidates=len(getattr(d, 'candidates', []) or []),
+                   verdict=verdict if isinstance(verdict, (str, dict)) or verdict is None
+                   else str(verdict))
     out['rss_end_mib'] = _status_kib('VmRSS') / 1024.0
     return out
 

@@ -158,9 +158,11 @@ def test_late_stamps_of_one_sensor_are_re_paired_from_the_data(
     resp = call_trigger(ros_node, ros_executor, 'calibration/calibrate', timeout_sec=120.0)
     lines, out = split(resp)
     if not resync:
-        # the fit is pulled off by ~600 nT of mis-pairing per set (the 10 s tumbling turns
-        # the field by that much in 10 ms): far above the noise, or refused outright
-        assert not resp.success or out['scalar_rms_after_nt']['3'] > 3 * NOISE_NT, lines
+        # without the re-pairing the fit still converges, but sensor 3 is pulled off by the
+        # ~600 nT of mis-pairing per set (the 10 s tumbling turns the field by that much in
+        # 10 ms): its scalar RMS stays tens of times the noise (measured: 110 nT)
+        assert resp.success, resp.message
+        assert out['scalar_rms_after_nt']['3'] > 10 * NOISE_NT, lines
         return
     assert resp.success, resp.message
     assert out['resync']['sets_repaired']['3'] >= tumbling.n_samples - 10

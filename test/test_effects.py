@@ -69,9 +69,16 @@ def test_plugin_registration_and_errors():
             return np.sin(2 * np.pi * 0.37 * ctx.t)[:, None] * p
 
     fx.register_effect(Hum)
-    assert 'hum_test' in fx.registered_effects()
-    m = Model.from_spec('base,hum_test@1', 4)
-    assert m.has(1, 'hum_test') and not m.has(2, 'hum_test')
+    try:
+        assert 'hum_test' in fx.registered_effects()
+        m = Model.from_spec('base,hum_test@1', 4)
+        assert m.has(1, 'hum_test') and not m.has(2, 'hum_test')
+        with pytest.raises(ValueError, match='already registered'):
+            fx.register_effect(type('Other', (fx.Effect,), {'name': 'hum_test'}))
+    finally:
+        # a registered effect is a candidate of every later diagnosis: never leave it behind
+        fx.unregister_effect('hum_test')
+    assert 'hum_test' not in fx.registered_effects()
     with pytest.raises(TypeError, match='not a subclass'):
         fx.register_effect(int)
     with pytest.raises(ValueError, match='cannot import effect plugin'):
