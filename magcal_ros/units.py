@@ -49,11 +49,14 @@ def t_to_nt(value_t):
 UNITS_NT = {'nT': 1.0, 'uT': 1e3, 'mG': 100.0, 'G': 1e5, 'gauss': 1e5, 'T': 1e9}
 #: magnitude of the geomagnetic field at the Earth's surface, nT (IGRF: ~22 000 to ~67 000)
 GEOMAGNETIC_RANGE_NT = (20000.0, 70000.0)
-#: a factor 2 beyond it is still accepted (scale errors of an uncalibrated sensor, indoor
-#: distortion); outside, the numbers are not a geomagnetic field in nT
-PLAUSIBLE_RANGE_NT = (10000.0, 140000.0)
-#: the readings and a given reference magnitude may differ by at most this factor
-REFERENCE_RATIO = 3.0
+#: readings outside this range are not a geomagnetic field in nT.  Wide on purpose: the
+#: units differ by 10x or more (mG -> 200-700 read as nT, uT -> 20-70, G, T: below 1), while
+#: an uncalibrated sensor without enough rotation to fit a sphere may add a hard-iron offset
+#: of several times the field (up to 6x measured on a QMC5883L: 300 000 nT)
+PLAUSIBLE_RANGE_NT = (5000.0, 500000.0)
+#: the readings and a given reference magnitude may differ by at most this factor (the same
+#: reasons; a reference in the wrong unit is 10x to 1e9x off)
+REFERENCE_RATIO = 8.0
 
 
 def field_magnitude_estimate(raw):
@@ -81,12 +84,18 @@ def field_magnitude_estimate(raw):
     a = np.column_stack([2 * x, np.ones(len(x))])
     scale = np.abs(a).max(axis=0)
     scale[scale == 0] = 1.0
-    sv = np.linalg.svd(a / scale, compute_uv=False)
-    if sv[-1] < 1e-3 * sv[0]:
-        return med
     sol = np.linalg.lstsq(a / scale, np.sum(x ** 2, axis=1), rcond=None)[0] / scale
     r2 = sol[3] + sol[:3] @ sol[:3]
-    return float(np.sqrt(r2)) if r2 > 0 else med
+    if not r2 > 0:
+        return med
+    r = float(np.sqrt(r2))
+    # the sphere is determined only when the readings extend in all three directions by a
+    # good fraction of its radius (not one attitude, not a circle of one-axis rotation)
+    # (the thresholds: a full sphere spreads ~0.58 r per direction, a QMC5883L full sphere
+    # with a 6x offset still 0.1 median |x|; one-axis rotations and pans of the shared
+    # HMC5883L recordings 0.01-0.06 median |x|, static ones 0.003)
+    spread = np.sqrt(max(np.linalg.eigvalsh(np.cov(x.T))[0], 0.0))
+    return r if spread > 0.15 * r and spread > 0.05 * med else med
 
 
 def units_that_fit(value_nt):

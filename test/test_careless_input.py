@@ -4,6 +4,7 @@ The recordings are written here: a sensor tumbling in a 48 000 nT field with a h
 offset, 3 nT noise, then scaled to the unit a careless user might leave them in.
 """
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -105,3 +106,22 @@ def test_utf8_bom_loads_through_the_cli(tmp_path, capsys, rec):
     rc, out, err = run(capsys, 'fit', path, '--field-nt', FIELD_NT, '--json')
     assert rc == 0, err
     assert json.loads(out)['n_samples'] == len(rec[0])
+
+
+REAL = Path(__file__).resolve().parents[1] / '..' / 'shared' / 'data' / 'real' / \
+    'sunsided-hmc5883l'
+
+
+def test_every_shared_real_recording_passes_the_unit_check_and_in_ut_is_refused():
+    # the 13 HMC5883L recordings (full sphere, one-axis rotations, pans, static): good data
+    # in nT must never be refused by the unit check, whatever the coverage; the same numbers
+    # in uT are refused naming uT
+    from magcal_ros.io.csvio import read_csv
+    from magcal_ros.units import check_field_units
+    files = sorted(REAL.glob('*/*.csv'))
+    assert len(files) == 13
+    for f in files:
+        raw = read_csv(f).raw
+        check_field_units(raw)
+        with pytest.raises(ValueError, match=r'look like uT \(give --unit uT\)'):
+            check_field_units(raw * 1e-3)
