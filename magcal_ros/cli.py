@@ -201,7 +201,8 @@ def cmd_fit(args):
     geometry = cross_geometry(args.baseline_m) if data.n_sensors == 4 else None
     run = calibrate(data, args.model, field_nt=field_nt, geometry=geometry,
                     field_reference=fref, robust=args.robust, constrained=args.constrained,
-                    on_degenerate='flag' if args.flag_degenerate else 'raise')
+                    on_degenerate='flag' if args.flag_degenerate else 'raise',
+                    **({'heading_unknown': True} if args.heading_unknown else {}))
     out = args.output
     refused = not run.result.success and not args.force
     if out and not refused:
@@ -224,7 +225,8 @@ def cmd_fit(args):
         if 'site_gradient_nt_per_m' in s:
             g = np.array(s['site_gradient_nt_per_m'])
             se = np.array(s['site_gradient_stderr_nt_per_m'])
-            print('site gradient (world frame of the attitude, nT/m, +- standard uncertainty):')
+            print(f'site gradient ({s["site_gradient_frame"]}; nT/m, +- standard '
+                  'uncertainty):')
             for row, srow in zip(g, se):
                 print('  ' + '  '.join(f'{v:9.2f} +- {e:5.2f}' for v, e in zip(row, srow)))
         print(f'noise floor (from the data): {s["noise_floor_nt"]:.2f} nT')
@@ -384,6 +386,10 @@ def build_parser():
     f.add_argument('--force', action='store_true',
                    help='write the calibration even when the fit did not converge')
     f.add_argument('--plugin', action='append', help='import a module defining effects')
+    f.add_argument('--heading-unknown', action='store_true',
+                   help='site_gradient without attitude columns: estimate the rotation about '
+                        'the field at every epoch; the gradient is then given in a '
+                        'field-aligned frame (docs/site_gradient.md)')
     f.set_defaults(func=cmd_fit)
 
     r = sub.add_parser('rollback', help='make an earlier calibration from the history of a '

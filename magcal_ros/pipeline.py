@@ -114,6 +114,8 @@ def summarize(result, data, positions=None):
         # world frame of the attitude (NED or ENU, the user's); standard uncertainties
         s['site_gradient_nt_per_m'] = site[0].tolist()
         s['site_gradient_stderr_nt_per_m'] = site[1].tolist()
+        s['site_gradient_frame'] = result.identifiability.get(
+            'site_gradient_frame', "world (the attitude's)")
     if positions is not None and data.n_sensors >= 3:
         before = tensor_stats(data.raw, positions)
         # about the modelled site gradient: what is left is calibration error and noise
@@ -159,7 +161,7 @@ def calibrate(data, model='base', field_nt=None, geometry=None, field_reference=
         ``outlier_sets_excluded``.
     """
     run = _calibrate(data, model, field_nt, geometry, field_reference, **fit_kwargs)
-    if not exclude_outliers or fit_kwargs.get('robust'):
+    if not exclude_outliers or fit_kwargs.get('robust') or fit_kwargs.get('heading_unknown'):
         return run
     if not [w for w in run.summary['warnings'] if w['kind'] == 'missing_effect']:
         run.summary['outlier_sets_excluded'] = 0
@@ -201,7 +203,12 @@ def _calibrate(data, model, field_nt, geometry, field_reference, **fit_kwargs):
     positions = geometry_positions(geometry, data.n_sensors)
     if positions is not None:
         model.set_positions(positions)          # where the site gradient acts
-    result = fit(data, model, field_nt=field_nt, **fit_kwargs)
+    if fit_kwargs.pop('heading_unknown', False):
+        # site gradient without attitude: the heading about the field per epoch
+        from magcal_ros.core.site_gradient import fit_heading_unknown
+        result = fit_heading_unknown(data, model, field_nt=field_nt, **fit_kwargs)
+    else:
+        result = fit(data, model, field_nt=field_nt, **fit_kwargs)
     summary = summarize(result, data, positions)
     temp_range = {}
     if data.temp is not None:

@@ -930,7 +930,8 @@ class SiteGradient(Effect):
         if ctx.attitude is None:
             return ('site_gradient needs the attitude of the array (CSV columns att_qw, att_qx, '
                     'att_qy, att_qz; an Imu topic): without it the world-frame gradient cannot '
-                    'be told from the calibration (docs/site_gradient.md)')
+                    'be told from the calibration; or estimate the heading per epoch '
+                    '(magcal fit --heading-unknown, docs/site_gradient.md)')
         return None
 
     def tensor(self, p):

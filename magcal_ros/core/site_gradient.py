@@ -49,6 +49,9 @@ def centred_fields(result):
     return result.corrected_nt - shift
 
 
+#: the frame of the site gradient found without attitude (:func:`fit_heading_unknown`)
+FIELD_ALIGNED = 'field-aligned: z along the field, x along the part of G z perpendicular to it'
+
 #: cases of :func:`crb_covariance`
 CRB_CASES = ('attitude', 'heading', 'epoch_gradient')
 
@@ -65,7 +68,8 @@ def _skew(v):
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
-def crb_covariance(data, model, params, field_nt, sigma_nt, case='attitude', positions=None):
+def crb_covariance(data, model, params, field_nt, sigma_nt, case='attitude', positions=None,
+                   fix_gyz=False):
     """Cramer-Rao bound of the calibration (and site gradient) with or without attitude.
 
     The Fisher information of the joint ML problem at ``params`` (the truth), with the per-epoch
@@ -100,6 +104,9 @@ def crb_covariance(data, model, params, field_nt, sigma_nt, case='attitude', pos
         Per-axis noise sd, nT, scalar or (S,).
     positions : numpy.ndarray, optional
         (S, 3) sensor positions, m, for 'epoch_gradient' (default: paper 004's cross, 0.5 m).
+    fix_gyz : bool
+        'heading': fix the gauge by gyz = 0 (the frame of :func:`fit_heading_unknown`)
+        instead of bounding the 4 directions orthogonal to the gauge.
 
     Returns
     -------
@@ -180,7 +187,8 @@ def crb_covariance(data, model, params, field_nt, sigma_nt, case='attitude', pos
         return out
     # heading: drop the gauge direction of the gradient, bound the rest
     where = [list(prob.cols).index(i) for i in range(sl.start, sl.stop)]
-    basis = np.linalg.svd(gauge[None])[2][1:].T                  # (5, 4) orthonormal, ⟂ gauge
+    basis = (np.eye(5)[:, :4] if fix_gyz                          # gxx, gxy, gxz, gyy free
+             else np.linalg.svd(gauge[None])[2][1:].T)           # (5, 4) orthonormal, ⟂ gauge
     jg = jac[:, where] @ basis
     keep = [c for c in range(jac.shape[1]) if c not in where]
     cov_r = mdl._covariance(np.hstack([jac[:, keep], jg]))
@@ -189,3 +197,175 @@ def crb_covariance(data, model, params, field_nt, sigma_nt, case='attitude', pos
     out['gradient_covariance'] = basis @ cov_r[len(keep):, len(keep):] @ basis.T
     out['gauge_direction'] = gauge / np.linalg.norm(gauge)
     return out
+
+
+def _align_to_z(u):
+    """(N, 3, 3) rotations R_a with R_a u_k = z (the smallest rotation), u (N, 3) unit."""
+    z = np.array([0.0, 0.0, 1.0])
+    axis = np.cross(u, z)
+    s = np.linalg.norm(axis, axis=1)
+    c = u @ z
+    ang = np.arctan2(s, c)
+    axis = np.where(s[:, None] > 1e-12, axis / np.maximum(s, 1e-300)[:, None],
+                    np.array([1.0, 0.0, 0.0]))
+    from scipy.spatial.transform import Rotation
+    return Rotation.from_rotvec(axis * ang[:, None]).as_matrix()
+
+
+def _rz(psi):
+    """(N, 3, 3) rotations by psi (N,) rad about z."""
+    c, s = np.cos(psi), np.sin(psi)
+    out = np.zeros((len(psi), 3, 3))
+    out[:, 0, 0], out[:, 0, 1], out[:, 1, 0], out[:, 1, 1] = c, -s, s, c
+    out[:, 2, 2] = 1.0
+    return out
+
+
+def _best_heading(shift, r_a, g_w, positions, psi0=None):
+    """Per-epoch heading psi_k (N,) rad minimising sum_j |shift_j - R^T G R r_j|^2.
+
+    R = Rz(psi) R_a; ``shift`` (S, N, 3) nT the corrected fields minus their mean over the
+    sensors (the centre field cancels for an array centred on its origin).  Grid of 5 deg,
+    then Newton steps on the 1-D cost.
+    """
+    def cost(psi):
+        rot = _rz(psi) @ r_a
+        pred = np.einsum('nji,jk,nkl,sl->sni', rot, g_w, rot, positions)
+        return np.sum((shift - pred) ** 2, axis=(0, 2))
+
+    n = r_a.shape[0]
+    if psi0 is None:
+        grid = np.radians(np.arange(0, 360, 5.0))
+        costs = np.stack([cost(np.full(n, g)) for g in grid])
+        psi = grid[np.argmin(costs, axis=0)]
+    else:
+        psi = psi0.copy()
+    h = 1e-4
+    for _ in range(6):
+        c0, cp, cm = cost(psi), cost(psi + h), cost(psi - h)
+        d1 = (cp - cm) / (2 * h)
+        d2 = (cp - 2 * c0 + cm) / h ** 2
+        step = np.where(d2 > 0, -d1 / np.where(d2 > 0, d2, 1.0), 0.0)
+        psi = psi + np.clip(step, -0.2, 0.2)
+    return psi
+
+
+def fit_heading_unknown(data, model='base,site_gradient', field_nt=None, n_iter=8,
+                        **fit_kwargs):
+    """Calibrate the cross in a site gradient without attitude (heading per epoch unknown).
+
+    The analysis of docs/site_gradient.md (case 'heading'): the field direction u_k in the
+    body frame gives two of the three attitude angles, R_k = Rz(psi_k) R_a(u_k) in a
+    field-aligned world frame (z along the field), and the cross measures the body-frame
+    tensor at every epoch, which fixes psi_k once the world gradient is not symmetric about
+    the field.  Block-coordinate maximum likelihood: start from the uniform-field fit; then
+    alternately (a) estimate every psi_k with the calibration fixed (1-D, from the sensors'
+    differences, which do not depend on the centre field), and (b) refit the calibration and
+    G_w with the attitudes R_k so built (:func:`magcal_ros.core.model.fit`).  The gauge (the
+    rotation of G_w about the field) is fixed by gyz = 0.  Standard uncertainties come from
+    the Cramer-Rao bound of the heading case at the solution (:func:`crb_covariance`,
+    psi_k profiled), not from the fit with the psi_k taken as known.
+
+    Parameters
+    ----------
+    data : Dataset
+        (4, N, 3) nT readings of the cross; an attitude, if present, is not used.
+    model : str or Model
+        Must contain ``site_gradient``.
+    field_nt : float or numpy.ndarray, optional
+        Reference magnitude at the array centre, nT.
+    n_iter : int
+        Most alternations (a)-(b); they stop earlier when no parameter moves by more than
+        1 % of its standard uncertainty.
+
+    Returns
+    -------
+    FitResult
+        ``params`` with the gradient in the field-aligned frame (z along the field, x along
+        the part of G_w z perpendicular to the field); ``covariance``/``stderr`` from the
+        heading-case bound; ``contexts`` carry the estimated attitudes; ``warnings`` say
+        what the frame is.
+    """
+    from dataclasses import replace
+    from magcal_ros.core import model as mdl
+    from scipy.spatial.transform import Rotation
+    if isinstance(model, str):
+        model = mdl.Model.from_spec(model, data.n_sensors)
+    site = [(e, sl) for e, sl in zip(model.array_effects, model.array_slices)
+            if e.name == 'site_gradient']
+    if not site:
+        raise ValueError('fit_heading_unknown needs a model with site_gradient')
+    eff, sl = site[0]
+    positions = np.stack([eff.position(j) for j in range(1, model.n_sensors + 1)])
+    if np.abs(positions.mean(axis=0)).max() > 1e-9:
+        raise ValueError('fit_heading_unknown needs sensor positions centred on the origin '
+                         "(paper 004's cross)")
+    bare = replace(data, attitude=None)
+    base = mdl.Model.from_spec([t for t in model.spec() if t != 'site_gradient'],
+                               data.n_sensors)
+    r0 = mdl.fit(bare, base, field_nt=field_nt, **fit_kwargs)
+    p = model.default_params()
+    p[:base.n_params] = r0.params
+    ctx0 = [bare.context(j) for j in range(1, data.n_sensors + 1)]
+    psi = None
+    res = None
+    for it in range(n_iter):
+        c = np.stack([model.correct(j, p, bare.raw[j - 1], ctx0[j - 1])
+                      for j in range(1, data.n_sensors + 1)])
+        centre = c.mean(axis=0)
+        r_a = _align_to_z(centre / np.linalg.norm(centre, axis=1, keepdims=True))
+        shift = c - centre[None]
+        if it == 0:
+            # start: psi_k from the body tensor of the uniform-field calibration, the phase
+            # of (Gxz + i Gyz) in the aligned frame (e^{-i psi} times that of G_w)
+            from magcal_ros.core.tensor import tensor_lstsq
+            g_b, _ = tensor_lstsq(c, positions)
+            m_k = np.einsum('nij,njk,nlk->nil', r_a, g_b, r_a)
+            psi = -np.angle(m_k[:, 0, 2] + 1j * m_k[:, 1, 2])
+            rot = _rz(psi) @ r_a
+            g_w = np.einsum('nij,njk,nlk->il', rot, g_b, rot) / len(psi)   # mean R G_b R^T
+            g_w = 0.5 * (g_w + g_w.T)
+            g_w -= np.trace(g_w) / 3 * np.eye(3)
+        else:
+            g_w = eff.tensor(p[sl])
+        psi = _best_heading(shift, r_a, g_w, positions, psi0=psi)
+        att = Rotation.from_matrix(_rz(psi) @ r_a).as_quat(scalar_first=True)
+        if it == 0:
+            p[sl] = [g_w[0, 0], g_w[0, 1], g_w[0, 2], g_w[1, 1], g_w[1, 2]]
+        res = mdl.fit(replace(bare, attitude=att), model, field_nt=field_nt, init=p,
+                      check_identifiability=False, **fit_kwargs)
+        moved = np.abs(res.params - p) / np.where(res.stderr > 0, res.stderr, np.inf)
+        p = res.params.copy()
+        if it >= 2 and np.all(moved[np.isfinite(moved)] < 0.01):
+            break
+    # gauge: rotate the world frame about the field so that gyz = 0 (gxz >= 0)
+    g_w = eff.tensor(p[sl])
+    phi = np.angle(g_w[0, 2] + 1j * g_w[1, 2])
+    rz = _rz(np.array([phi]))[0]
+    g_w = rz.T @ g_w @ rz
+    p[sl] = [g_w[0, 0], g_w[0, 1], g_w[0, 2], g_w[1, 1], 0.0]
+    att = Rotation.from_matrix(_rz(psi - phi) @ r_a).as_quat(scalar_first=True)
+    fixed = replace(bare, attitude=att)
+    from magcal_ros.core.magnitude import reference_magnitude
+    # the fit's noise estimate counted 3 S - 2 residual degrees of freedom per epoch; the
+    # heading psi_k takes one more
+    s = data.n_sensors
+    sigma = res.sigma_nt * np.sqrt((3 * s - 2) / (3 * s - 3))
+    out = crb_covariance(fixed, model, p, reference_magnitude(data, field_nt), sigma,
+                         case='heading', fix_gyz=True)
+    cov = out['covariance']
+    cov[np.ix_(np.arange(sl.start, sl.start + 4), np.arange(sl.start, sl.start + 4))] = \
+        out['gradient_covariance'][:4, :4]
+    cov[sl.start + 4, :] = 0.0
+    cov[:, sl.start + 4] = 0.0
+    stderr = np.sqrt(np.clip(np.diag(cov), 0, None))
+    warnings = list(res.warnings) + [
+        'no attitude: the heading about the field was estimated at every epoch; the site '
+        'gradient is given in a field-aligned frame (z along the field, x along the part of '
+        'G z perpendicular to it, so gyz = 0): its rotation about the field is not '
+        'determined without attitude; uncertainties from the Cramer-Rao bound with the '
+        'headings unknown']
+    ident = dict(res.identifiability, site_gradient_frame=FIELD_ALIGNED)
+    return replace(res, params=p, covariance=cov, stderr=stderr, warnings=warnings,
+                   sigma_nt=sigma, identifiability=ident,
+                   contexts=[fixed.context(j) for j in range(1, data.n_sensors + 1)])
