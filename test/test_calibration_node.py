@@ -14,6 +14,7 @@ from magcal_ros.pipeline import calibrate
 from magcal_ros.ros.calibration_node import CalibrationNode, RESULT_QOS, SampleBuffer
 import numpy as np
 import pytest
+from rclpy.exceptions import ParameterException
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
 from ros_helpers import call_trigger, spin_for, spin_until, split_response as split
@@ -78,7 +79,7 @@ def test_calibrate_flow(make_node, ros_node, ros_executor, ros_namespace, tmp_pa
     assert st['state'] == 'collecting'
     assert st['sets'] == tumbling.n_samples              # exact stamps: every epoch a set
     assert st['incomplete_sets_dropped'] == 0
-    assert {v['status'] for v in st['coverage'].values()} == {'good'}
+    assert set(st['coverage'].values()) == {'good'}
     assert st['ready'] and st['missing'] == []
 
     # a second calibrate and a start while the first solve runs are refused at once
@@ -121,8 +122,10 @@ def test_calibrate_flow(make_node, ros_node, ros_executor, ros_namespace, tmp_pa
     assert doc['provenance']['samples'] == tumbling.n_samples
     assert parse_calibration(results[-1].data)[1]['model'] == doc['model']
     status.clear()
-    assert json.loads(spin_until(ros_executor, lambda: status and status[-1]).data)[
-        'state'] == 'done'
+    # collection goes on after a calibrate (the buffer is kept)
+    after = json.loads(spin_until(ros_executor, lambda: status and status[-1]).data)
+    assert after['state'] == 'collecting' and after['sets'] == tumbling.n_samples
+    assert after['last_calibration']['model'] == ['base']
 
     # a late subscriber still gets the calibration (transient local)
     late = listen(make_node('late_listener', namespace=ros_namespace), 'calibration/result',
@@ -234,13 +237,24 @@ def test_model_parameter_is_validated_at_run_time(make_node, ros_node, ros_execu
     assert ok.successful
     assert node.get_parameter('model').value == ['base', 'temperature@2']
 
-    for name, value, match in [('field_nt', -5.0, 'finite number > 0 nT'),
-                               ('min_samples', -1, 'integer >= 12'),
-                               ('baseline_m', 0.0, '> 0 m'),
-                               ('history', -2, 'integer >= 0'),
-                               ('calibration_file', ' ', 'non-empty path')]:
+    # outside the range declared in the descriptor: refused by rclpy, naming the range
+    for name, value, match in [('field_nt', -5.0, 'Min: 1.0'),
+                               ('field_nt', float('nan'), 'out of range'),
+                               ('min_samples', -1, 'Min: 12'),
+                               ('baseline_m', 0.0, 'Min: 0.001'),
+                               ('history', -2, 'Min: 0'),
+                               ('calibration_file', ' ', 'read-only'),
+                               ('report_dir', '/etc', 'read-only')]:
         res = _set(client, ros_executor, **{name: value})
-        assert not res.successful and match in res.reason, (name, res.reason)
+        assert not res.successful and match in res.reason and name in res.reason, (
+            name, res.reason)
+    # a module path in the model is refused without importing it: plug-ins load only from
+    # the read-only start-up parameter plugins
+    res = _set(client, ros_executor, model=['base', 'os:getcwd@1'])
+    assert not res.successful and 'is not loaded' in res.reason
+    res = _set(client, ros_executor, plugins=['os'])
+    assert not res.successful and 'read-only' in res.reason
+    assert node.get_parameter('model').value == ['base', 'temperature@2']
     res = _set(client, ros_executor, max_samples=100)
     assert not res.successful and 'read-only' in res.reason
 
@@ -252,10 +266,14 @@ def test_parameter_descriptors_state_units(make_node, ros_namespace, tmp_path):
     for name, unit in units.items():
         assert unit in node.describe_parameter(name).description, name
     assert node.describe_parameter('max_samples').read_only
+    # the ranges are in the descriptors (`ros2 param describe` shows them)
+    rng = node.describe_parameter('field_nt').floating_point_range[0]
+    assert (rng.from_value, rng.to_value) == (1.0, 1.0e6)
+    assert node.describe_parameter('min_samples').integer_range[0].from_value == 12
 
 
 def test_bad_start_up_parameter_is_refused(ros_context, ros_namespace, tmp_path):
-    with pytest.raises(ValueError, match='field_nt: must be a finite number > 0 nT'):
+    with pytest.raises(ParameterException, match='field_nt'):
         CalibrationNode(context=ros_context, namespace=ros_namespace, parameter_overrides=[
             Parameter('field_nt', value=-1.0),
             Parameter('calibration_file', value=str(tmp_path / 'c.yaml'))])

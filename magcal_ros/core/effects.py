@@ -24,6 +24,7 @@ add their own effects by subclassing :class:`Effect` and calling :func:`register
 from dataclasses import dataclass, field
 import importlib
 import math
+import sys
 
 import numpy as np
 from scipy.linalg import rq
@@ -1068,6 +1069,24 @@ def load_plugins(refs):
     return [name for ref in refs or () for name in load_plugin(ref)]
 
 
+def _loaded_effect_name(ref):
+    """Registered name of the effect class ``module:Class`` of an already imported plug-in.
+
+    Never imports: a model token or a calibration document (which may come from a ROS
+    parameter write or message) must not run code; plug-ins are loaded beforehand by
+    :func:`load_plugin` (``magcal --plugin``, the nodes' start-up parameter ``plugins``).
+    """
+    mod_name, _, attr = ref.partition(':')
+    module = sys.modules.get(mod_name)
+    cls = getattr(module, attr, None) if module is not None and attr else None
+    name = getattr(cls, 'name', None)
+    if name is None or _REGISTRY.get(name) is not cls:
+        raise ValueError(f'effect {ref!r} is not loaded: plug-in effects are imported only at '
+                         'start-up (magcal --plugin MODULE, ROS start-up parameter plugins), '
+                         'never from a model or a calibration file')
+    return name
+
+
 def make_effect(token, sensor):
     """Create the effect ``token`` ('offset', 'aux:aux_motor_current', 'step(300)', ...)."""
     if '(' in token:
@@ -1079,9 +1098,7 @@ def make_effect(token, sensor):
     if token.startswith('aux:'):
         return Aux(sensor=sensor, channel=token[4:])
     if token not in _REGISTRY and ':' in token:
-        load_plugin(token)
-        token = token.partition(':')[2] and getattr(
-            importlib.import_module(token.partition(':')[0]), token.partition(':')[2]).name
+        token = _loaded_effect_name(token)
     if token not in _REGISTRY:
         raise ValueError(f'unknown effect {token!r}; known effects: '
                          f'{", ".join(registered_effects())}')

@@ -48,8 +48,8 @@ from magcal_ros.io.calfile import (CalibrationFileError, dump_calibration, load_
 from magcal_ros.pipeline import calibrate as run_calibration, cross_geometry
 from magcal_ros.ros import params as prm
 from magcal_ros.ros.conversions import msg_to_field_nt, stamp_to_seconds
-from magcal_ros.ros.run import spin_node
 from magcal_ros.core.sync import epoch_times, StampMatcher
+from magcal_ros.ros.run import DEFAULT_NAMESPACE, spin_node
 import numpy as np
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
@@ -197,12 +197,14 @@ class CalibrationNode(Node):
     """Collect rotation data of the array and serve calibrate/diagnose requests."""
 
     def __init__(self, **kwargs):
+        kwargs.setdefault('namespace', DEFAULT_NAMESPACE)    # a __ns remap overrides it
         super().__init__('calibration_node', **kwargs)
-        prm.declare(self, [prm.N_SENSORS])
+        first = prm.declare(self, [prm.N_SENSORS, prm.PLUGINS])
+        plugins = prm.load_plugins(self)        # before the model is checked
         n = int(prm.value(self, 'n_sensors'))
         self._specs = prm.calibration_specs(n)
         self._specs_by_name = prm.declare(self, self._specs)
-        self._specs_by_name[prm.N_SENSORS.name] = prm.N_SENSORS
+        self._specs_by_name.update(first)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         s = prm.calibration_settings(self)
         self._n = s.n_sensors
@@ -219,8 +221,10 @@ class CalibrationNode(Node):
         self._imu = np.zeros((2 * s.max_samples, 5))
         self._imu_count = 0
         self._state = 'idle'
+        self._collecting = False                # between calibration/start and reset/exit
         self._last_result = None                # summary dict of the last calibration
         self._t_started = None
+        self._model_changed = None              # (model, sets buffered then) of the last change
 
         service_group = ReentrantCallbackGroup()
         self._subs = []
@@ -247,6 +251,8 @@ class CalibrationNode(Node):
                                 callback_group=service_group),
             self.create_service(Trigger, 'calibration/diagnose', self._on_diagnose,
                                 callback_group=service_group),
+            self.create_service(Trigger, 'calibration/reset', self._on_reset,
+                                callback_group=service_group),
         ]
         self._status_timer = self.create_timer(s.status_period_s, self._publish_status)
         # triggered by the worker thread when a solve ends, so the executor wakes up and
@@ -255,7 +261,9 @@ class CalibrationNode(Node):
         self._publish_existing(s.calibration_file)
         self.get_logger().info(
             f'ready: {self._n} sensors, model {list(s.model)}, field {s.field_nt:.1f} nT, '
-            f'calibration file {s.calibration_file}; call calibration/start to collect')
+            f'calibration file {s.calibration_file}'
+            + (f', plug-in effects {plugins}' if plugins else '')
+            + '; call calibration/start to collect')
 
     # -- parameters ------------------------------------------------------------------------
 
@@ -266,13 +274,22 @@ class CalibrationNode(Node):
                 if p.name == 'stamp_tolerance_s':
                     with self._lock:
                         self._matcher.tolerance_s = float(p.value)
+                elif p.name == 'model':
+                    with self._lock:
+                        n_sets = len(self._buffer)
+                    self._model_changed = (list(p.value), n_sets)
+                    # the buffer holds raw data, valid for any model: it is kept, and said so
+                    self.get_logger().info(
+                        f'model set to {list(p.value)}: the {n_sets} sets already collected '
+                        'stay in the buffer and the next calibration/calibrate fits all of '
+                        'them with this model; call calibration/reset to collect afresh')
         return result
 
     # -- sensor callbacks (short) ----------------------------------------------------------
 
     def _raw_cb(self, j):
         def cb(msg):
-            if self._state not in ('collecting', 'calibrating'):
+            if not self._collecting:
                 return
             t = stamp_to_seconds(msg.header.stamp)
             b = msg_to_field_nt(msg)
@@ -335,44 +352,45 @@ class CalibrationNode(Node):
             realigned = self._matcher.realigned
             received = self._received.tolist()
             state = self._state
-        out = {'state': state, 'sets': n_sets, 'min_samples': s.min_samples,
-               'max_samples': s.max_samples, 'incomplete_sets_dropped': dropped,
-               'out_of_order_dropped': out_of_order, 'stream_realignments': realigned,
-               'samples_received': {str(j + 1): r for j, r in enumerate(received)},
-               'model': list(s.model), 'field_nt': s.field_nt}
-        if self._t_started is not None and state in ('collecting', 'calibrating'):
-            dt = time.monotonic() - self._t_started
-            out['collecting_for_s'] = round(dt, 1)
-            out['set_rate_hz'] = round(n_sets / dt, 2) if dt > 0 else 0.0
-        missing = []
-        if state == 'idle':
+        # the short fields first: `ros2 topic echo` shows the first 128 characters
+        out = {'state': state, 'sets': n_sets, 'min_samples': s.min_samples, 'ready': False,
+               'coverage': {}, 'missing': []}
+        missing = out['missing']
+        if not self._collecting:
             missing.append('not collecting: call calibration/start')
         else:
             missing.extend(_silent_sensors(received))
         if n_sets < s.min_samples:
             missing.append(f'{s.min_samples - n_sets} more complete sample sets '
                            f'(have {n_sets}, need {s.min_samples})')
-        coverage = {}
+        eigenvalues = {}
         if raw is not None and raw.shape[1] >= 3:
             rep = check_coverage(raw)
-            coverage = {str(j): {'status': v['status'],
-                                 'eigenvalues': [round(float(x), 4) for x in v['eigenvalues']]}
-                        for j, v in rep['sensors'].items()}
+            for j, v in rep['sensors'].items():
+                out['coverage'][str(j)] = v['status']
+                eigenvalues[str(j)] = [round(float(x), 4) for x in v['eigenvalues']]
             # the constrained mode is made for a partial coverage: not a missing item then
             partial = ({j for j, v in rep['sensors'].items() if v['status'] == 'partial'}
                        if s.constrained else set())
             missing.extend(p for p in rep['problems']
                            if not any(p.startswith(f'sensor {j}:') for j in partial))
-        out['coverage'] = coverage
-        out['missing'] = missing
-        out['ready'] = state != 'idle' and not missing
+        out['ready'] = self._collecting and not missing
+        out.update({'model': list(s.model), 'field_nt': s.field_nt,
+                    'max_samples': s.max_samples, 'coverage_eigenvalues': eigenvalues,
+                    'incomplete_sets_dropped': dropped, 'out_of_order_dropped': out_of_order,
+                    'stream_realignments': realigned,
+                    'samples_received': {str(j + 1): r for j, r in enumerate(received)}})
+        if self._t_started is not None and self._collecting:
+            dt = time.monotonic() - self._t_started
+            out['collecting_for_s'] = round(dt, 1)
+            out['set_rate_hz'] = round(n_sets / dt, 2) if dt > 0 else 0.0
         if self._last_result is not None:
             out['last_calibration'] = self._last_result
         return out
 
     def _publish_status(self):
         try:
-            msg = String(data=json.dumps(self.status()))
+            msg = String(data=json.dumps(self.status(), separators=(',', ':')))
         except ValueError as exc:         # a degenerate buffer must not kill the timer
             msg = String(data=json.dumps({'state': self._state, 'error': str(exc)}))
         self._status_pub.publish(msg)
@@ -385,20 +403,46 @@ class CalibrationNode(Node):
                           'calibration/start again when it has finished',
                           {'state': self._state})
         try:
-            with self._lock:
-                self._buffer.clear()
-                self._matcher.reset()
-                self._received[:] = 0
-                self._imu_count = 0
-                self._state = 'collecting'
-                self._t_started = time.monotonic()
+            dropped = self._clear('collecting')
             s = prm.calibration_settings(self)
             return _reply(response, True,
-                          f'collecting: rotate the array through many attitudes; calibrate '
-                          f'after at least {s.min_samples} sets',
-                          {'state': 'collecting', 'min_samples': s.min_samples})
+                          f'collecting ({dropped} old sets dropped): rotate the array through '
+                          f'many attitudes; calibrate after at least {s.min_samples} sets',
+                          {'state': 'collecting', 'min_samples': s.min_samples,
+                           'sets_dropped': dropped})
         finally:
             self._busy.release()
+
+    def _on_reset(self, request, response):
+        """Forget the collected sets; collection goes on if it was running."""
+        if not self._busy.acquire(blocking=False):
+            return _reply(response, False, 'rejected: a calibration is running; call '
+                          'calibration/reset again when it has finished',
+                          {'state': self._state})
+        try:
+            with self._lock:
+                state = self._state
+            dropped = self._clear(state)
+            what = ('collection goes on from now' if state == 'collecting' else
+                    'call calibration/start to collect')
+            return _reply(response, True, f'reset: {dropped} sets dropped; {what}',
+                          {'state': state, 'sets_dropped': dropped})
+        finally:
+            self._busy.release()
+
+    def _clear(self, state):
+        """Empty the buffer and the matcher, set ``state``; return the sets dropped."""
+        with self._lock:
+            dropped = len(self._buffer)
+            self._buffer.clear()
+            self._matcher.reset()
+            self._received[:] = 0
+            self._imu_count = 0
+            self._state = state
+            self._collecting = state == 'collecting'
+            self._t_started = time.monotonic() if self._collecting else None
+            self._model_changed = None
+        return dropped
 
     def _snapshot(self):
         with self._lock:
@@ -459,16 +503,15 @@ class CalibrationNode(Node):
             self._state = 'calibrating'
         try:
             ok, summary, payload = await self._in_worker(self._calibrate, prev_state)
-            with self._lock:
-                self._state = 'done' if ok else prev_state
             return _reply(response, ok, summary, payload)
         except Exception as exc:         # noqa: B902 -- a service must answer, never die
             self.get_logger().error(f'calibration failed: {exc!r}')
-            with self._lock:
-                self._state = prev_state
             return _reply(response, False, f'calibration failed: {exc}',
                           {'error': str(exc), 'type': type(exc).__name__})
         finally:
+            with self._lock:
+                # collection goes on (the buffer is kept) if it was running before
+                self._state = prev_state
             self._busy.release()
 
     def _calibrate(self, state):
@@ -518,7 +561,8 @@ class CalibrationNode(Node):
         summ = run.summary
         payload = {
             'calibration_file': s.calibration_file,
-            'model': summ['model'],
+            'model': list(s.model),
+            'effects': summ['model'],
             'sets': n_sets,
             'solve_s': round(solve_s, 2),
             'converged': summ['converged'],
@@ -533,8 +577,12 @@ class CalibrationNode(Node):
             'resync': resync_payload,
             'outlier_sets_excluded': summ.get('outlier_sets_excluded', 0),
         }
-        lines = [f'calibrated {n_sets} sets with model {",".join(summ["model"])} in '
-                 f'{solve_s:.1f} s; written to {s.calibration_file}',
+        after = summ['scalar_rms_nt']
+        lines = [f'calibrated {n_sets} sets with model {",".join(s.model)}: total-field RMS '
+                 f'{min(after.values()):.2f}-{max(after.values()):.2f} nT, noise floor '
+                 f'{summ["noise_floor_nt"]:.2f} nT',
+                 f'written to {s.calibration_file} (solve {solve_s:.1f} s; effects '
+                 f'{",".join(summ["model"])})',
                  f'total-field RMS per sensor before [nT]: '
                  f'{_fmt_per_sensor(summ["total_field_rms_before_nt"], "{:.1f}")}',
                  f'total-field RMS per sensor after  [nT]: '
@@ -564,6 +612,15 @@ class CalibrationNode(Node):
             lines.append(format_note(w))
         for w in resync_lines:
             lines.append(f'resync: {w}')
+        changed = self._model_changed
+        if changed is not None and changed[1] > 0:
+            payload['model_changed_after_sets'] = changed[1]
+            lines.append(f'note: the model was set to {",".join(changed[0])} after {changed[1]} '
+                         'sets had been collected; all buffered sets were fitted with it '
+                         '(calibration/reset collects afresh)')
+        if state == 'collecting':
+            lines.append('collection goes on: calibrate again later, or call '
+                         'calibration/reset to drop the sets collected so far')
         self._last_result = {k: payload[k] for k in ('calibration_file', 'model', 'sets')}
         self.get_logger().info(lines[0])
         return True, '\n'.join(lines), payload

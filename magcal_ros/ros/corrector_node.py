@@ -47,7 +47,7 @@ from magcal_ros.ros.conversions import (covariance_to_t2, fill_gradient_stamped,
                                         gradient_covariance_to_t2, msg_to_field_nt,
                                         set_field_nt, stamp_to_seconds, tensor_to_msg,
                                         transform_msg)
-from magcal_ros.ros.run import spin_node
+from magcal_ros.ros.run import DEFAULT_NAMESPACE, spin_node
 import numpy as np
 from rclpy.node import Node
 from sensor_msgs.msg import MagneticField, Temperature
@@ -67,11 +67,15 @@ class CorrectorNode(Node):
     """Publish corrected fields and the gradient tensor of the array."""
 
     def __init__(self, **kwargs):
+        kwargs.setdefault('namespace', DEFAULT_NAMESPACE)    # a __ns remap overrides it
         super().__init__('corrector_node', **kwargs)
-        prm.declare(self, [prm.N_SENSORS])
+        first = prm.declare(self, [prm.N_SENSORS, prm.PLUGINS])
+        # the effect classes a calibration may name: imported here at start-up only, never
+        # because a calibration/result message names a module
+        plugins = prm.load_plugins(self)
         specs = prm.corrector_specs()
         self._specs = prm.declare(self, specs)
-        self._specs[prm.N_SENSORS.name] = prm.N_SENSORS
+        self._specs.update(first)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         s = prm.corrector_settings(self)
         self._n = s.n_sensors
@@ -124,6 +128,8 @@ class CorrectorNode(Node):
                 Float64, name, self._aux_cb('aux_' + name), SENSOR_QOS))
         self._subs.append(self.create_subscription(String, 'calibration/result',
                                                    self._result_cb, RESULT_QOS))
+        if plugins:
+            self.get_logger().info(f'plug-in effects loaded: {plugins}')
         self._load_file(s.calibration_file)
         self._timer = self.create_timer(s.diagnostics_period_s, self._publish_diagnostics)
         self._publish_diagnostics()

@@ -27,12 +27,14 @@ each per-sensor value defaults to the global one.
 from dataclasses import dataclass, replace
 import logging
 import math
+import os
 import sys
+import tempfile
 import threading
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from magcal_ros.ros.conversions import field_nt_to_msg, temperature_msg
-from magcal_ros.ros.run import spin_node
+from magcal_ros.ros.run import DEFAULT_NAMESPACE, spin_node
 from magcal_ros.serial import make_parser, PROTOCOLS, transport
 from magcal_ros.serial.options import parse_options
 from magcal_ros.serial.transport import PortReader, STATE_OPEN
@@ -44,8 +46,8 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import MagneticField, Temperature
 
 NODE_NAME = 'fluxgate_driver'
-DEFAULT_NAMESPACE = '/magcal'
-DEFAULT_PORT = '/tmp/magcal_sim/fluxgate{j}'
+#: the links of ``fluxgate_sim`` (``/tmp/magcal_sim/fluxgate{j}`` unless TMPDIR is set)
+DEFAULT_PORT = os.path.join(tempfile.gettempdir(), 'magcal_sim', 'fluxgate{j}')
 AXES = ('x', 'y', 'z')
 
 #: Sensor streams: reliable (REP 2003), deep enough for 1 kHz bursts.

@@ -10,18 +10,31 @@ from dataclasses import dataclass
 import math
 import os
 
-import numpy as np
-
+from magcal_ros.core import effects as fx
 from magcal_ros.core.model import Model
-from rcl_interfaces.msg import ParameterDescriptor, ParameterType, SetParametersResult
+import numpy as np
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                ParameterType, SetParametersResult)
 from rclpy.parameter import Parameter
 
-#: Where both nodes read/write the active calibration unless told otherwise.
-DEFAULT_CALIBRATION_FILE = '~/.ros/magcal/calibration.yaml'
+
+def ros_home():
+    """``$ROS_HOME``, or ``~/.ros`` when it is unset (as ROS 2 resolves its log directory)."""
+    return os.path.expanduser(os.environ.get('ROS_HOME') or os.path.join('~', '.ros'))
+
+
+def default_calibration_file():
+    """Where both nodes read/write the active calibration unless told otherwise."""
+    return os.path.join(ros_home(), 'magcal', 'calibration.yaml')
+
+
+def default_report_dir():
+    """Where calibration/diagnose writes its HTML report unless told otherwise."""
+    return os.path.join(ros_home(), 'magcal', 'reports')
+
+
 #: frame_id of corrected fields and of the gradient tensor (README: Frames)
 DEFAULT_ARRAY_FRAME_ID = 'magcal_array'
-#: Where calibration/diagnose writes its HTML report unless told otherwise.
-DEFAULT_REPORT_DIR = '~/.ros/magcal/reports'
 
 _TYPES = {
     bool: ParameterType.PARAMETER_BOOL,
@@ -54,6 +67,10 @@ class ParamSpec:
         Only settable at start-up (launch file, YAML, ``--ros-args -p``).
     item_type : type
         Element type of an array parameter (``str``, ``float``, ``int``).
+    limits : tuple or None
+        ``(lowest, highest)`` allowed value, published as the descriptor's
+        ``FloatingPointRange`` / ``IntegerRange`` (``ros2 param describe`` shows it; rclpy
+        then refuses values outside it too).
     """
 
     name: str
@@ -62,6 +79,7 @@ class ParamSpec:
     check: object = None
     read_only: bool = False
     item_type: type = str
+    limits: tuple = None
 
     def descriptor(self):
         """Return the ``rcl_interfaces/ParameterDescriptor`` of this parameter."""
@@ -69,8 +87,15 @@ class ParamSpec:
             ptype = _ARRAY_TYPES[self.item_type][0]
         else:
             ptype = _TYPES[type(self.default)]
-        return ParameterDescriptor(name=self.name, type=ptype, description=self.description,
+        desc = ParameterDescriptor(name=self.name, type=ptype, description=self.description,
                                    read_only=self.read_only)
+        if self.limits is not None and isinstance(self.default, float):
+            desc.floating_point_range = [FloatingPointRange(
+                from_value=float(self.limits[0]), to_value=float(self.limits[1]), step=0.0)]
+        elif self.limits is not None and isinstance(self.default, int):
+            desc.integer_range = [IntegerRange(from_value=int(self.limits[0]),
+                                               to_value=int(self.limits[1]), step=0)]
+        return desc
 
 
 def positive(unit):
@@ -123,6 +148,17 @@ def frame_id(value):
             any(c.isspace() for c in value):
         return (f'frame id {value!r} must be a non-empty name without a leading / or spaces '
                 '(tf2 frame ids, REP 105)')
+    return None
+
+
+def module_paths(value):
+    """Refuse plug-in references that are not ``package.module`` or ``package.module:Class``."""
+    for ref in value:
+        mod, _, attr = ref.partition(':')
+        if not mod or not all(p.isidentifier() for p in mod.split('.')) or (
+                attr and not attr.isidentifier()):
+            return (f'plug-in {ref!r} is not a Python module path (package.module or '
+                    'package.module:Class)')
     return None
 
 
@@ -181,7 +217,10 @@ def validate(specs, params):
         spec = specs.get(p.name)
         if spec is None or spec.check is None:
             continue
-        reason = spec.check(p.value)
+        try:
+            reason = spec.check(p.value)
+        except Exception as exc:     # noqa: B902 -- a validator answers, it never ends spin
+            reason = f'refused ({type(exc).__name__}: {exc})'
         if reason:
             return SetParametersResult(successful=False, reason=f'{p.name}: {reason}')
     return SetParametersResult(successful=True)
@@ -222,7 +261,33 @@ class CalibrationSettings:
 
 #: declared first: the model check of the other parameters depends on it
 N_SENSORS = ParamSpec('n_sensors', 4, 'number of sensors of the array (topics sensor1/raw .. '
-                      'sensor<S>/raw); count, read-only', at_least(1), read_only=True)
+                      'sensor<S>/raw); count, read-only', at_least(1), read_only=True,
+                      limits=(1, 64))
+
+#: declared and loaded before the model is checked; the only way a node imports effect code
+PLUGINS = ParamSpec('plugins', (), 'effect plug-ins imported at start-up, each a module path '
+                    'package.module (its MAGCAL_EFFECTS) or package.module:Class, as magcal '
+                    '--plugin; read-only: no parameter write or message ever imports code',
+                    module_paths, read_only=True, item_type=str)
+
+
+def load_plugins(node):
+    """Import the node's start-up ``plugins`` (:func:`magcal_ros.core.effects.load_plugin`).
+
+    Returns
+    -------
+    list of str
+        Names of the effects registered.
+
+    Raises
+    ------
+    ValueError
+        Naming the plug-in that cannot be imported (the node then exits with status 2).
+    """
+    try:
+        return fx.load_plugins(value(node, 'plugins', []))
+    except (ValueError, TypeError, AttributeError) as exc:
+        raise ValueError(f'plugins: {exc}') from None
 
 
 def calibration_specs(n_sensors=4):
@@ -233,28 +298,34 @@ def calibration_specs(n_sensors=4):
                   "['base', 'temperature@2']; no unit",
                   model_check(n_sensors), item_type=str),
         ParamSpec('field_nt', 50000.0, 'reference magnitude of the (uniform) field at the '
-                  'calibration site, nT', positive('nT')),
-        ParamSpec('calibration_file', DEFAULT_CALIBRATION_FILE,
+                  'calibration site, nT', positive('nT'), limits=(1.0, 1.0e6)),
+        ParamSpec('calibration_file', default_calibration_file(),
                   'path of the calibration YAML written by calibration/calibrate (~ expanded; '
-                  'the previous file is kept as <path>.bak)', non_empty_path),
+                  'the previous file is kept as <path>.bak; default under $ROS_HOME or '
+                  '~/.ros); read-only: no parameter write may redirect a file write',
+                  non_empty_path, read_only=True),
         ParamSpec('min_samples', 1000, 'fewest complete sample sets calibration/calibrate '
-                  'accepts; count', at_least(12, 'sets')),
+                  'accepts; count', at_least(12, 'sets'), limits=(12, 10 ** 9)),
         ParamSpec('max_samples', 20000, 'size of the ring buffer of sample sets (oldest '
-                  'dropped); count, read-only', at_least(12, 'sets'), read_only=True),
+                  'dropped); count, read-only', at_least(12, 'sets'), read_only=True,
+                  limits=(12, 10 ** 9)),
         ParamSpec('baseline_m', 0.5, 'distance between the two sensors of an arm of the '
-                  'cross (paper 004), m', positive('m')),
+                  'cross (paper 004), m', positive('m'), limits=(1.0e-3, 100.0)),
         ParamSpec('history', 20, 'number of previous calibrations kept in '
-                  '<calibration_file>.history/ (0: none); count', at_least(0)),
-        ParamSpec('report_dir', DEFAULT_REPORT_DIR, 'directory of the HTML report written by '
-                  'calibration/diagnose (~ expanded)', non_empty_path),
+                  '<calibration_file>.history/ (0: none); count', at_least(0),
+                  limits=(0, 10000)),
+        ParamSpec('report_dir', default_report_dir(), 'directory of the HTML report written '
+                  'by calibration/diagnose (~ expanded; default under $ROS_HOME or ~/.ros); '
+                  'read-only', non_empty_path, read_only=True),
         ParamSpec('stamp_tolerance_s', 0.005, 'largest header-stamp difference of two '
                   "sensors' samples that may vote for the same epoch when the streams are "
-                  'aligned (about half a sample period), s', positive('s')),
+                  'aligned (about half a sample period), s', positive('s'),
+                  limits=(1.0e-6, 10.0)),
         ParamSpec('aux_topics', (), 'auxiliary std_msgs/Float64 topics (relative names) '
                   'recorded as columns aux_<name>; unit of each channel its own; read-only',
                   topic_names, read_only=True, item_type=str),
         ParamSpec('status_period_s', 1.0, 'period of calibration/status messages, s',
-                  positive('s'), read_only=True),
+                  positive('s'), read_only=True, limits=(0.01, 3600.0)),
         ParamSpec('robust', False, 'use the robust (soft L1) loss against spikes; no unit'),
         ParamSpec('constrained', False, 'partial attitude coverage (a vehicle that cannot '
                   'turn over): priors on scale and angles in calibrate and diagnose, and a '
@@ -327,20 +398,21 @@ def unit_quaternion(value):
 def corrector_specs():
     """Parameters of ``corrector_node`` other than :data:`N_SENSORS`."""
     return [
-        ParamSpec('calibration_file', DEFAULT_CALIBRATION_FILE,
-                  'calibration YAML loaded at start-up if present (~ expanded); updates '
-                  'arrive on calibration/result', non_empty_path, read_only=True),
+        ParamSpec('calibration_file', default_calibration_file(),
+                  'calibration YAML loaded at start-up if present (~ expanded; default under '
+                  '$ROS_HOME or ~/.ros); updates arrive on calibration/result; read-only',
+                  non_empty_path, read_only=True),
         ParamSpec('stamp_tolerance_s', 0.005, 'largest header-stamp difference of two '
                   "sensors' samples that may vote for the same epoch when the streams are "
                   'aligned for the gradient tensor (about half a sample period), s',
-                  positive('s')),
+                  positive('s'), limits=(1.0e-6, 10.0)),
         ParamSpec('aux_topics', (), 'auxiliary std_msgs/Float64 topics (relative names) '
                   'feeding the aux:aux_<name> effects of the calibration (latest value); '
                   'read-only', topic_names, read_only=True, item_type=str),
         ParamSpec('publish_gradient', True, 'publish the gradient tensor (T/m) on gradient; '
                   'no unit'),
         ParamSpec('diagnostics_period_s', 1.0, 'period of the /diagnostics status, s',
-                  positive('s'), read_only=True),
+                  positive('s'), read_only=True, limits=(0.01, 3600.0)),
         ParamSpec('array_frame_id', DEFAULT_ARRAY_FRAME_ID, 'frame_id of the corrected fields '
                   'and of the gradient tensor: the array frame (sensor 1 orthogonalised); '
                   'the static transforms array -> fluxgate{j} are published from the '

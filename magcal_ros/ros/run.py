@@ -1,29 +1,114 @@
-"""The one ``main`` of every node: Jazzy-style init/spin/shutdown, bad parameters -> exit 2."""
+"""The one ``main`` of every node: init, spin until SIGINT/SIGTERM, clean shutdown, exit codes.
+
+Shutdown: rclpy's own signal handler shuts the context down from inside the signal, while a
+callback may still be running; that callback's next ``publish`` then raises "publisher's
+context is invalid" and a waiting executor "take_message" errors, i.e. a traceback and exit 1
+on an ordinary Ctrl-C (issue 12). Here rclpy installs no signal handler: SIGINT and SIGTERM
+only set a flag, the executor finishes the callback it is running, stops within
+:data:`SPIN_PERIOD_S`, the node is destroyed (its threads stopped) while the context is
+still valid, and only then the context is shut down. Exit status 0.
+
+Bad start-up input is a user error, reported as one line on stderr with exit status 2 (as
+the README promises): a ``--ros-args`` rule rcl cannot parse, a parameter override of the
+wrong type (``-p field_nt:=48000``, an integer for a double; ``:=abc``), or a value the
+node's validators refuse.
+"""
+import os
+import signal
 import sys
+import tempfile
+import threading
 
 import rclpy
-from rclpy.executors import ExternalShutdownException
+from rclpy.exceptions import ParameterException
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.signals import SignalHandlerOptions
+
+#: namespace of every node started without a ``__ns`` remap (docs/design.md §3)
+DEFAULT_NAMESPACE = '/magcal'
+
+#: longest time between a SIGINT/SIGTERM and the end of the spin loop when idle, s
+SPIN_PERIOD_S = 0.1
+
+
+def _one_line(exc):
+    """The first meaningful line of an exception's message (rcl appends C file positions)."""
+    text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    return text.split(', at /')[0]
+
+
+class _stderr_held:
+    """Hold what C code writes to file descriptor 2 (rcl logs its own copy of a parse error).
+
+    ``text`` is what was written; the caller shows it only when it is not replacing it by
+    its one-line message.
+    """
+
+    def __enter__(self):
+        sys.stderr.flush()
+        self._file = tempfile.TemporaryFile(mode='w+b')
+        self._saved = os.dup(2)
+        os.dup2(self._file.fileno(), 2)
+        self.text = ''
+        return self
+
+    def __exit__(self, *exc):
+        sys.stderr.flush()
+        os.dup2(self._saved, 2)
+        os.close(self._saved)
+        self._file.seek(0)
+        self.text = self._file.read().decode('utf-8', 'replace')
+        self._file.close()
+        return False
 
 
 def spin_node(node_cls, name, args=None):
-    """Create ``node_cls()``, spin it until Ctrl-C or shutdown, and clean up.
+    """Create ``node_cls()``, spin it until SIGINT/SIGTERM or shutdown, and clean up.
 
-    A ValueError raised while the node declares and validates its parameters is a user
-    error: it is printed as one line (``<name>: bad parameters: <reason>``) and the
-    process exits with status 2, as docs/design.md §3 asks of invalid start-up parameters.
+    Parameters
+    ----------
+    node_cls : type
+        A ``rclpy.node.Node`` subclass taking keyword arguments only; it sets its default
+        namespace itself (:data:`DEFAULT_NAMESPACE`), which a ``__ns`` remap overrides.
+    name : str
+        Executable name used in error messages.
+    args : list of str, optional
+        Command line (``sys.argv`` when None).
+
+    Returns
+    -------
+    int
+        0 after a signal or an external shutdown, 2 for bad start-up input.
     """
-    rclpy.init(args=args)
+    stop = threading.Event()
+    try:
+        with _stderr_held() as held:
+            rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    except _rclpy.RCLError as exc:        # e.g. '-p field_nt' without ':=value'
+        print(f'{name}: bad command line: {_one_line(exc)}', file=sys.stderr)
+        return 2
+    sys.stderr.write(held.text)
+    previous = {sig: signal.signal(sig, lambda *_: stop.set())
+                for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         node = node_cls()
-    except ValueError as exc:
-        print(f'{name}: bad parameters: {exc}', file=sys.stderr)
+    except (ValueError, ParameterException) as exc:
+        print(f'{name}: bad parameters: {_one_line(exc)}', file=sys.stderr)
         rclpy.try_shutdown()
         return 2
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
     try:
-        rclpy.spin(node)
+        while not stop.is_set() and rclpy.ok():
+            executor.spin_once(timeout_sec=SPIN_PERIOD_S)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        executor.remove_node(node)
         node.destroy_node()
+        executor.shutdown(timeout_sec=1.0)
         rclpy.try_shutdown()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     return 0

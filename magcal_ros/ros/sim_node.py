@@ -27,6 +27,7 @@ import math
 import os
 import signal
 import sys
+import tempfile
 import time
 
 from magcal_ros.core.simulate import SimConfig, Simulator, TRAJECTORIES
@@ -36,7 +37,8 @@ from magcal_ros.serial.transport import PtyDevice
 import numpy as np
 import yaml
 
-DEFAULT_DIR = '/tmp/magcal_sim'
+#: ``/tmp/magcal_sim`` unless TMPDIR names another temporary directory
+DEFAULT_DIR = os.path.join(tempfile.gettempdir(), 'magcal_sim')
 DEFAULT_PREFIX = 'fluxgate'
 NODE_NAME = 'fluxgate_sim'
 
