@@ -11,7 +11,7 @@ import sys
 from diagnostic_msgs.msg import DiagnosticArray
 from magcal_ros.core import effects as fx
 from magcal_ros.core.simulate import simulate
-from magcal_ros.io.calfile import calibration_to_doc, dump_calibration
+from magcal_ros.io.calfile import calibration_to_doc, dump_calibration, load_calibration
 from magcal_ros.pipeline import cross_geometry
 from magcal_ros.ros.calibration_node import CalibrationNode, RESULT_QOS
 from magcal_ros.ros.conversions import field_nt_to_msg
@@ -118,8 +118,8 @@ def test_plugin_effect_calibration_works_in_the_corrector(
     ros_node.create_subscription(MagneticField, 'sensor3/corrected', corrected.append, 10)
     feeder = Feeder(ros_node)
     feeder.wait_for_subscribers(ros_executor)
-    a_inv = node._live.sensors[2].a_inv
-    offset = node._live.sensors[2].offset
+    cal, _ = load_calibration(path)          # the plug-in is loaded now (by the node)
+    a_inv, offset = cal.correction_matrix(3), cal.offset(3)
     for t in (1.0, 2.0):
         w = 2 * np.pi * 0.25 * t
         wheel = np.array([WHEEL[f'a{c}'] * np.cos(w) + WHEEL[f'b{c}'] * np.sin(w)
