@@ -310,13 +310,13 @@ def test_sim_and_driver_processes_end_to_end_with_unplug(start_process, ros_node
     t_sim0 = time.monotonic()
     spin_until(ros_executor, lambda: all(len(r) > 20 for r in raw), timeout_sec=20,
                message='messages from all four sensors')
-    assert time.monotonic() - t_sim0 < 2.5, 'too slow to see the scheduled unplug'
     spin_until(ros_executor, lambda: time.monotonic() - t_sim0 > 7.5, timeout_sec=15,
                message='past both scheduled unplugs')
     spin_until(ros_executor, lambda: diag.msgs and all(
         s.level == DiagnosticStatus.OK for s in diag.msgs[-1].status), timeout_sec=5,
         message='all four ports open again')
     assert sim.running() and driver.running()
+    gaps = {}
     for j, r in enumerate(raw, start=1):
         b = np.array([[m.magnetic_field.x, m.magnetic_field.y, m.magnetic_field.z]
                       for m in r.msgs])
@@ -325,15 +325,18 @@ def test_sim_and_driver_processes_end_to_end_with_unplug(start_process, ros_node
         assert all(10.0 < m.temperature < 45.0 for m in temp[j - 1].msgs)
         assert len(temp[j - 1]) > 100
         times = np.array([m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec for m in r.msgs])
-        gaps = np.diff(times)
-        assert np.all(gaps >= 0)
-        big = gaps[gaps > 0.6]
-        if j in (1, 4):
-            # never stop: the sim writes every 20 ms; allow for subscriber scheduling
-            assert gaps.max() < 0.6, (j, gaps.max())
-        else:
-            assert len(big) == 1, (j, big)          # exactly its own outage
-            assert times[-1] > times[np.argmax(gaps) + 1]   # and publishing again after it
+        gaps[j] = np.diff(times)
+        assert np.all(gaps[j] >= 0)
+    # sensors 2 and 3: exactly their own outage (1.5 s, 1 s), which also shows that samples
+    # arrived before it; sensors 1 and 4 never stop: their longest gap (scheduling of this
+    # busy process) is well below the shortest outage measured in the same run
+    outage = {j: np.sort(gaps[j])[-2:] for j in (2, 3)}
+    for j in (2, 3):
+        assert outage[j][1] > 0.8 and outage[j][0] < 0.5 * outage[j][1], (j, outage[j])
+        assert np.argmax(gaps[j]) + 1 < len(gaps[j])        # and publishing again after it
+    shortest = min(outage[2][1], outage[3][1])
+    for j in (1, 4):
+        assert gaps[j].max() < 0.5 * shortest, (j, gaps[j].max(), shortest)
     status = {s.name[-7:]: {kv.key: kv.value for kv in s.values} for s in diag.msgs[-1].status}
     assert status['sensor2']['reconnects'] == '1' and status['sensor3']['reconnects'] == '1'
     assert status['sensor1']['reconnects'] == '0' and status['sensor4']['reconnects'] == '0'

@@ -236,23 +236,29 @@ def test_corrector_under_a_10x_burst(start_process, ros_namespace, tmp_path):
     # during a burst the corrector keeps working on the newest samples (the oldest queued
     # are dropped): each sensor's output reaches the burst's last second, and the latency
     # there stays bounded
+    # Had the queue kept every sample, the samples would wait behind the backlog:
+    # (published - received) samples at the rate the corrector managed, seconds. The bounds
+    # are relative to that age and to this run's own baseline phase, never wall-clock
+    # constants (the shared machine's speed is not what is tested).
+    def backlog_ms(burst):
+        rate_done = burst['received'] / (burst['t1'] - burst['t0'])
+        return 1e3 * (burst['published'] - burst['received']) / rate_done
+
     for p in (burst1, burst2):
         assert all(last is not None and last >= p['seq1'] - p['rate_hz'] for last in
                    p['last_received']), p
         assert p['received'] > 0.1 * p['published'], p
-        assert p['latency_last_s_ms']['p50'] < 500.0, p
-    # after the burst: latency back near the baseline. Had the queue kept every sample, the
-    # samples after the burst would wait behind its backlog: (published - received) samples
-    # at the rate the corrector managed, seconds. Bounds: the median below 50 ms (baseline
-    # a few ms on an idle machine: DDS delivery, a 3x3 product, Python scheduling; the
-    # corrector's own queue adds at most 25 samples), the 99th percentile 5x below the
-    # backlog's age, at least 250 ms (a stall of the shared machine shows there; a backlog
-    # would not fit)
+        # the newest samples are served: latency at the burst's end far below the backlog
+        # (or near the baseline, if the corrector kept up with the burst)
+        assert p['latency_last_s_ms']['p50'] < max(5.0 * base['latency_ms']['p50'],
+                                                   backlog_ms(p) / 5.0), (backlog_ms(p), p)
+    # after the burst: latency back near this run's baseline (a few ms on an idle machine:
+    # DDS delivery, a 3x3 product, Python scheduling), far below the backlog's age
     for burst, p in ((burst1, nominal1), (burst2, nominal2)):
-        rate_done = burst['received'] / (burst['t1'] - burst['t0'])
-        backlog_s = (burst['published'] - burst['received']) / rate_done
-        assert p['latency_ms']['p50'] < 50.0, p
-        assert p['latency_ms']['p99'] < max(250.0, 1e3 * backlog_s / 5.0), (backlog_s, p)
+        assert p['latency_ms']['p50'] < max(5.0 * base['latency_ms']['p50'],
+                                            backlog_ms(burst) / 20.0), (backlog_ms(burst), p)
+        assert p['latency_ms']['p99'] < max(5.0 * base['latency_ms']['p99'],
+                                            backlog_ms(burst) / 5.0), (backlog_ms(burst), p)
     # memory: a second identical burst must not grow it: 2 MiB is what a leak of 50 bytes
     # per received message would add (~40 000 per burst); the first burst may fill allocator
     # pools once (DDS history caches, Python free lists): bounded by 16 MiB
