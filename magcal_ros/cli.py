@@ -330,6 +330,49 @@ def cmd_rollback(args):
     return EXIT_OK
 
 
+# -- check ----------------------------------------------------------------------------------
+
+def cmd_check(args):
+    """`magcal check CALFILE DATA...`: a calibration against static recordings."""
+    from magcal_ros.core.static_check import check_static
+    from magcal_ros.io import calfile
+    try:
+        cal, doc = calfile.load_calibration(args.calfile)
+    except calfile.CalibrationFileError as exc:
+        raise BadInput(str(exc)) from None
+    j = args.sensor
+    if not 1 <= j <= cal.n_sensors:
+        raise BadInput(f'--sensor {j}: the calibration has sensors 1..{cal.n_sensors}')
+    ref = (doc.get('field_reference') or {}).get('magnitude_nt')
+    rms = (((doc.get('provenance') or {}).get('residuals') or {}).get('scalar_rms_nt')
+           or {}).get(str(j))
+    if ref is None or rms is None:
+        raise BadInput(f'{args.calfile}: no field_reference.magnitude_nt or provenance '
+                       f'residual of sensor {j}: write it with magcal fit')
+    corrected = {}
+    for path in args.data:
+        data = load_data(path)
+        if data.n_sensors < j:
+            raise BadInput(f'{path}: has {data.n_sensors} sensor(s), no sensor {j}')
+        corrected[os.path.basename(path.rstrip('/'))] = cal.correct(
+            j, data.raw[j - 1], data.context(j))
+    res = check_static(corrected, float(ref), float(rms))
+    if args.json:
+        print_json({'calfile': args.calfile, 'sensor': j, 'reference_nt': float(ref),
+                    'tolerance_nt': res.tolerance_nt, 'consistent': res.consistent,
+                    'recordings': res.rows, 'findings': res.findings})
+    else:
+        print(f'sensor {j}: corrected |B| of each recording (reference {float(ref):.0f} nT, '
+              f'agreement within {res.tolerance_nt:.0f} nT)')
+        for r in res.rows:
+            d = ', '.join(f'{x:+.2f}' for x in r['direction'])
+            print(f'  {r["name"]}: {r["b_nt"]:.0f} nT (sd {r["sd_nt"]:.0f}, {r["n"]} samples, '
+                  f'{r["minus_reference_nt"]:+.0f} nT vs reference; field along ({d}))')
+        for text in res.findings:
+            print(f'- {text}')
+    return EXIT_OK
+
+
 # -- main -----------------------------------------------------------------------------------
 
 def build_parser():
@@ -402,6 +445,15 @@ def build_parser():
                    help='list the history (oldest first, * = active) instead of rolling back')
     r.add_argument('--json', action='store_true', help='print one JSON object on stdout')
     r.set_defaults(func=cmd_rollback)
+
+    c = sub.add_parser('check', help='check a calibration against static recordings: one '
+                       '|B| at every attitude, equal to the reference, or why not')
+    c.add_argument('calfile', help='calibration YAML written by magcal fit')
+    c.add_argument('data', nargs='+', help='static recordings (wide CSV or rosbag2), each '
+                   'at one attitude')
+    c.add_argument('--sensor', type=int, default=1, help='sensor to check (default 1)')
+    c.add_argument('--json', action='store_true', help='print one JSON object on stdout')
+    c.set_defaults(func=cmd_check)
 
     register_workbench_commands(sub)
     return p

@@ -1,0 +1,136 @@
+"""Check a calibration against static recordings: one |B| everywhere, or why not.
+
+A sensor lying still in a uniform field reads the same field for minutes, so its corrected
+magnitude |B| is a check of a calibration that needs no reference: recordings at different
+attitudes must give one |B| (the field of the site), equal to the calibration's reference
+magnitude when both were made at the same place and time.  When they do not agree, the
+pattern says why, as far as the data can tell:
+
+- two recordings at the same attitude (field directions a few degrees apart) with different
+  |B|: the calibration is the same for both, so the field at the sensor or the sensor's own
+  offset changed between them (moved elsewhere indoors, a magnetised object nearby, a power
+  cycle); no calibration can reconcile them;
+- recordings at different attitudes that agree with each other but not with the reference:
+  the calibration's shape holds (it maps very different attitudes onto one |B|) and the
+  field differs from the calibration's (another place or time);
+- recordings at different attitudes that disagree: the calibration does not hold at those
+  attitudes, or the field changed too; the recordings cannot tell which.
+
+Differences are judged against the calibration's own scalar residual (its RMS misfit, a
+direction-dependent error of that size is expected), not against the static noise, whose
+mean over thousands of samples is known to about 1 nT.
+"""
+from dataclasses import dataclass, field
+
+import numpy as np
+
+#: |B| differences below this multiple of the calibration's scalar residual RMS agree
+AGREE_FACTOR = 3.0
+#: field directions closer than this are "the same attitude", deg
+SAME_ATTITUDE_DEG = 5.0
+
+
+@dataclass
+class StaticCheck:
+    """Outcome of :func:`check_static`.
+
+    Attributes
+    ----------
+    rows : list of dict
+        Per recording: ``name``, ``n``, ``b_nt`` mean corrected |B|, ``sd_nt`` its sd
+        over the recording, ``direction`` (3,) mean field direction (unit, sensor's
+        corrected frame), ``minus_reference_nt`` |B| - reference magnitude.
+    tolerance_nt : float
+        Largest |B| difference that counts as agreement, nT.
+    same_attitude : list of (str, str, float, float)
+        Pairs at the same attitude: names, angle between their fields (deg), |B|
+        difference (nT).
+    findings : list of str
+        One sentence each: what the recordings show.
+    consistent : bool
+        All recordings give one |B| within ``tolerance_nt``, equal to the reference.
+    """
+
+    rows: list
+    tolerance_nt: float
+    same_attitude: list = field(default_factory=list)
+    findings: list = field(default_factory=list)
+    consistent: bool = True
+
+
+def check_static(corrected, reference_nt, residual_rms_nt):
+    """Compare static recordings' corrected |B| with each other and with the reference.
+
+    Parameters
+    ----------
+    corrected : dict
+        {name: (N, 3) corrected field of one static recording, nT}.
+    reference_nt : float
+        The calibration's reference magnitude |B|, nT.
+    residual_rms_nt : float
+        The calibration's scalar residual RMS, nT (sets the tolerance:
+        :data:`AGREE_FACTOR` times it).
+
+    Returns
+    -------
+    StaticCheck
+    """
+    if not corrected:
+        raise ValueError('no static recordings to check')
+    tol = AGREE_FACTOR * float(residual_rms_nt)
+    rows = []
+    for name, b in corrected.items():
+        b = np.asarray(b, float)
+        mag = np.linalg.norm(b, axis=1)
+        mean = b.mean(axis=0)
+        rows.append({'name': name, 'n': int(len(b)), 'b_nt': float(mag.mean()),
+                     'sd_nt': float(mag.std()), 'direction': mean / np.linalg.norm(mean),
+                     'minus_reference_nt': float(mag.mean() - reference_nt)})
+    out = StaticCheck(rows=rows, tolerance_nt=tol)
+    same, other = [], []
+    for a in range(len(rows)):
+        for c in range(a + 1, len(rows)):
+            ra, rc = rows[a], rows[c]
+            ang = float(np.degrees(np.arccos(np.clip(ra['direction'] @ rc['direction'],
+                                                     -1.0, 1.0))))
+            diff = rc['b_nt'] - ra['b_nt']
+            (same if ang < SAME_ATTITUDE_DEG else other).append(
+                (ra['name'], rc['name'], ang, diff))
+    out.same_attitude = same
+    for a, c, ang, diff in same:
+        if abs(diff) > tol:
+            out.findings.append(
+                f'{a} and {c} see the field from the same attitude ({ang:.1f} deg apart) '
+                f'but their |B| differs by {abs(diff):.0f} nT (> {tol:.0f} nT, {AGREE_FACTOR:g}'
+                ' x the calibration residual): the field at the sensor or the sensor\'s '
+                'offset changed between these recordings (another place, a magnetised '
+                'object nearby, a power cycle); no calibration can reconcile them')
+    agree = [(a, c, ang, diff) for a, c, ang, diff in other if abs(diff) <= tol]
+    for a, c, ang, diff in agree:
+        ra = next(r for r in rows if r['name'] == a)
+        if abs(ra['minus_reference_nt']) > tol:
+            out.findings.append(
+                f'{a} and {c} lie {ang:.0f} deg apart in attitude yet agree on |B| within '
+                f'{abs(diff):.0f} nT: the calibration holds there; their |B| is '
+                f'{ra["minus_reference_nt"]:+.0f} nT off the calibration\'s reference '
+                f'{reference_nt:.0f} nT, so the field differs from the calibration\'s '
+                '(another place or time)')
+    for a, c, ang, diff in other:
+        if abs(diff) > tol:
+            out.findings.append(
+                f'{a} and {c} ({ang:.0f} deg apart in attitude) differ by {abs(diff):.0f} nT: '
+                'the calibration does not hold at these attitudes, or the field changed '
+                'between the recordings; the recordings cannot tell which')
+    off = [r for r in rows if abs(r['minus_reference_nt']) > tol]
+    out.consistent = not out.findings and not off
+    if out.consistent:
+        out.findings.append(
+            f'all {len(rows)} recordings give |B| within {tol:.0f} nT of the reference '
+            f'{reference_nt:.0f} nT: the calibration is confirmed at their attitudes')
+    elif off and not out.findings:
+        out.findings.append(
+            f'the recordings agree with each other but their |B| is '
+            f'{min(r["minus_reference_nt"] for r in off):+.0f} to '
+            f'{max(r["minus_reference_nt"] for r in off):+.0f} nT off the reference: the '
+            'field differs from the calibration\'s')
+    return out
