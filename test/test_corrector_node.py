@@ -26,7 +26,7 @@ from magcal_ros.ros.corrector_node import CorrectorNode
 import numpy as np
 import pytest
 from rclpy.parameter import Parameter
-from ros_helpers import spin_for, spin_until
+from ros_helpers import spin_until
 from sensor_msgs.msg import MagneticField
 from sim_feed import Feeder, T0
 from std_msgs.msg import Float64MultiArray, String
@@ -86,17 +86,27 @@ def start(make_node, namespace, path, **params):
 
 def test_without_calibration_nothing_is_published(
         make_node, ros_node, ros_executor, ros_namespace, tmp_path, sim):
-    data, _, _ = sim
+    data, _, doc = sim
     node = start(make_node, ros_namespace, tmp_path / 'missing.yaml')
     probe = Probe(ros_node, ros_namespace)
     feeder = Feeder(ros_node)
+    result = ros_node.create_publisher(String, 'calibration/result', RESULT_QOS)
     feeder.wait_for_subscribers(ros_executor)
     feeder.feed(ros_executor, data, stop=50, taken=lambda: node._received)
-    spin_for(ros_executor, 0.3)
-    assert probe.count() == 0 and probe.gradient == []
-    status = probe.last_status(ros_executor)
+    status = probe.last_status(ros_executor, since=len(probe.diagnostics))
     assert status.level == DiagnosticStatus.WARN
     assert status.message.startswith('no calibration: publishing nothing')
+    # sentinel, not a fixed wait: give the node a calibration and one more epoch; its
+    # corrected samples are then the first the probe sees, so none of the 50 was published
+    result.publish(String(data=dump_calibration(doc)))
+    spin_until(ros_executor, lambda: node._live is not None, 5.0, 'the calibration')
+    feeder.feed(ros_executor, data, start=50, stop=51, taken=lambda: node._received)
+    spin_until(ros_executor, lambda: all(probe.corrected), 5.0, 'the sentinel epoch')
+    stamp = T0 + float(data.t[50])
+    for c in probe.corrected:
+        assert len(c) == 1
+        assert c[0].header.stamp.sec + 1e-9 * c[0].header.stamp.nanosec == \
+            pytest.approx(stamp, abs=1e-6)
 
 
 def test_corrects_to_the_true_field_and_publishes_the_gradient(
@@ -291,7 +301,9 @@ def test_temperature_effect_waits_for_its_signal(make_node, ros_node, ros_execut
     feeder.wait_for_subscribers(ros_executor)
     # without temperature messages sensor 2 is withheld, the others are corrected
     feeder.feed(ros_executor, data, stop=10, taken=lambda: node._received, temperature=False)
-    spin_for(ros_executor, 0.2)
+    # sensor 2's samples are handled between sensor 1's and 3's: once sensors 3 and 4 have
+    # all 10 out (the sentinel), anything of sensor 2 would have arrived
+    spin_until(ros_executor, lambda: len(probe.corrected[3]) >= 10, 5.0, 'sensor 4')
     assert [len(c) for c in probe.corrected] == [10, 0, 10, 10]
     assert probe.gradient == []
     status = probe.last_status(ros_executor, since=len(probe.diagnostics), timeout_sec=3.0)

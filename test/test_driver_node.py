@@ -187,11 +187,13 @@ def test_data_path_units_axes_stamp_temperature_and_diagnostics(
         assert [m2.magnetic_field.x, m2.magnetic_field.y, m2.magnetic_field.z] == \
             pytest.approx([1e-5, -1e-5, 2e-5], rel=1e-12)
         assert m2.header.frame_id == 'hmr'
-        spin_for(ros_executor, 0.3)
-        assert len(temp2) == 0                  # the HMR2300 reports no temperature
         spin_until(ros_executor, lambda: diag.msgs and {
             kv.key: kv.value for kv in diag.msgs[-1].status[1].values}.get('samples') == '5',
             message='diagnostics counting 5 samples on sensor2')
+        # the sentinel: all 5 samples of sensor 2 were published (and counted) before that
+        # status, each with its temperature if there were one: the HMR2300 reports none
+        spin_until(ros_executor, lambda: len(raw2) >= 5, 5.0, 'sensor 2 samples')
+        assert len(temp2) == 0
         st = diag.msgs[-1].status
         assert [s.name for s in st] == ['fluxgate_driver: sensor1', 'fluxgate_driver: sensor2']
         assert all(s.level == DiagnosticStatus.OK for s in st)
