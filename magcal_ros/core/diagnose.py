@@ -682,7 +682,9 @@ class Diagnosis:
                  ] + [f'  {fl.describe(j + 1)}' for j, st in enumerate(fl.status) if st != 'white']
         r = self.ratios
         for j, x in self.scalar_rms_nt.items():
-            line = f'  sensor {j}: scalar RMS {x:8.2f} nT ({r["scalar"][j]:5.2f} x floor)'
+            # a filtered series' floor is a lower bound: the ratio is an upper bound
+            of = 'floor' if fl.status[j - 1] != 'filtered' else 'lower bound of the floor'
+            line = f'  sensor {j}: scalar RMS {x:8.2f} nT ({r["scalar"][j]:5.2f} x {of})'
             if j in self.vector_rms_nt:
                 line += (f', vector RMS vs sensor 1 {self.vector_rms_nt[j]:8.2f} nT '
                          f'({r["vector"][j]:5.2f} x floor)')

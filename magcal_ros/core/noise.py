@@ -35,8 +35,12 @@ PLATEAU_RATIO = 1.05
 TAIL_CUT = 6.0
 #: at least this many values in the tail to estimate its power-law index (Hill estimator)
 MIN_TAIL = 10
-#: a tail index at or below this has no variance: the tail values are gross outliers (spikes)
-OUTLIER_TAIL_INDEX = 2.2
+#: a tail index at or below this is gross outliers (spikes: 1000 nT on 3 nT noise gives
+#: ~0.25, 45 nT ~1.1); Student-t 3 dof gives 3 +- 0.35 from ~70 tail values
+OUTLIER_TAIL_INDEX = 1.5
+#: tail indices between the two are taken as this (the heaviest tail with a variance that
+#: the estimate can tell from outliers; alpha/(alpha - 2) is unbounded as alpha -> 2)
+MIN_TAIL_INDEX = 2.5
 #: "filtered": the spectrum in the top 15 % of the band is this many times below the mid band
 FILTERED_DROP = 10.0
 #: the raw-difference floor is replaced by the residual one when it exceeds it by this factor
@@ -58,8 +62,10 @@ def robust_sd(d):
     3. the tail beyond ``a``: its power-law index alpha by Hill's estimator
        alpha = n_tail / sum ln(|d_i| / a).  For P(|d| > x) = p (x / a)^-alpha the tail
        contributes p a^2 alpha / (alpha - 2) to the variance (finite for alpha > 2), which is
-       added.  A tail with alpha <= :data:`OUTLIER_TAIL_INDEX` has no variance: those values
-       are gross outliers (spikes, garbled lines) and are left out, not spread into the floor.
+       added, with alpha at least :data:`MIN_TAIL_INDEX` (Hill's estimate scatters by
+       alpha / sqrt(n_tail)).  A tail with alpha <= :data:`OUTLIER_TAIL_INDEX` is far heavier
+       than any noise with a variance: those values are gross outliers (spikes, garbled
+       lines) and are left out, not spread into the floor.
        With fewer than :data:`MIN_TAIL` tail values (Gaussian noise) nothing is added.
 
     Parameters
@@ -86,7 +92,8 @@ def robust_sd(d):
     if tail.size >= MIN_TAIL:
         alpha = float(tail.size / np.sum(np.log(tail / cut)))
         if alpha > OUTLIER_TAIL_INDEX:
-            var += tail.size / n * cut ** 2 * alpha / (alpha - 2.0)
+            a_eff = max(alpha, MIN_TAIL_INDEX)
+            var += tail.size / n * cut ** 2 * a_eff / (a_eff - 2.0)
         else:
             n_out = int(tail.size)
             var *= n / (n - n_out)
@@ -363,9 +370,12 @@ def data_noise_floor(data, result=None):
     for j in range(s):
         if status[j] == 'filtered':
             # every difference estimate is below the sd of noise whose spectrum falls with
-            # frequency (the difference weights grow with frequency); the smallest order's
-            # is the tightest such bound, the model residual bounds it from above
-            sigma[j] = lower[j] = by[j].max() if source[j] != 'raw' else by[j].min()
+            # frequency (the difference weights grow with frequency); the first order's of
+            # the residual (no trajectory in it) is the tightest such bound, the model
+            # residual's sd bounds it from above.  Without a fit only the smallest raw one
+            # is sure not to contain the trajectory.
+            sigma[j] = lower[j] = (res_est.by_order[0, j] if result is not None
+                                   else by[j].min())
             upper[j] = (float(result.sigma_nt[j]) if result is not None else np.inf)
             upper[j] = max(upper[j], lower[j])
         elif status[j] == 'upper bound':
