@@ -25,6 +25,7 @@ BENCHES = {
     'live': (['live.py'], ['--rates', '100', '1000', '--duration', '4', '--no-search']),
     'driver_rate': (['driver_rate.py'], ['--samples', '5000', '--pty-mbytes', '2',
                                          '--node-duration', '4']),
+    'real_data': (['real_data.py'], ['--no-diagnose']),
 }
 
 

@@ -22,6 +22,7 @@ CASES = {
                    '--no-blas-compare'],
     'live': ['--rates', '50', '--repeats', '1', '--duration', '1', '--warmup', '0.5',
              '--drain', '0.5', '--no-search'],
+    'real_data': ['--no-diagnose'],
     'driver_rate': ['--samples', '300', '--pty-mbytes', '0.05', '--protocols', 'ascii',
                     'lemi025', '--node-duration', '1', '--node-warmup', '0.5'],
 }
@@ -95,3 +96,15 @@ def test_driver_rate(tmp_path):
     node = res['driver_node']
     assert 'error' not in node, node.get('error')
     assert node['received'] > 0 and node['cpu_percent']['driver'] > 0
+
+
+def test_real_data(tmp_path):
+    res = _run('real_data', tmp_path)['results']
+    rows = {r['recording']: r for r in res['recordings']}
+    assert len(rows) == 14                   # 13 HMC5883L recordings and ck-accmag
+    assert {r['coverage'] for k, r in rows.items() if 'rotate' in k} == {'single axis'}
+    # the independent geometric fit and this package's agree on the full spheres
+    for k in ('hmc5883l/full-sphere', 'ck-accmag'):
+        assert rows[k]['scalar_rms_nt'] == pytest.approx(rows[k]['independent_rms_nt'],
+                                                         rel=0.02)
+    assert not res['static']['consistent'] and len(res['static']['rows']) == 4
