@@ -345,3 +345,13 @@ def test_cli_without_attitude(tmp_path):
     g, se = np.array(doc['site_gradient_nt_per_m']), np.array(doc['site_gradient_stderr_nt_per_m'])
     want = _field_aligned(G_W, np.array([21000.0, -2500.0, 45000.0]))
     assert abs(g[2, 2] - want[2, 2]) < 4 * se[2, 2]
+
+
+def test_nonuniform_field_finding_points_to_the_effect():
+    """The workbench's model-free finding on the base fit names site_gradient (a smooth
+    tumbling: the finding separates signal from noise by its continuity in time)."""
+    from magcal_ros.core.findings import find
+    data, _ = make_data(n=3000, smooth_period_s=10.0)
+    found = find(data, fit(data, 'base', field_nt=FIELD_NT))
+    texts = [f.text for f in found.items if f.kind == 'nonuniform_field']
+    assert texts and 'site_gradient' in texts[0] and '--heading-unknown' in texts[0]

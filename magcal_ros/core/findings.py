@@ -705,7 +705,9 @@ def _gradient(t, corrected, baseline_m, alpha):
             f'cross antisymmetric, {100 * share:.0f} % of the inter-sensor excess), about '
             f'{value:.0f} nT/m left in the residuals (baseline {baseline_m:g} m): the field is '
             'not uniform over the array (a magnetic object nearby); calibrate where the '
-            'field is uniform, or model the site gradient')
+            'field is uniform, or model the site gradient: add site_gradient with the '
+            'attitude (att_qw..att_qz, an Imu topic) or with --heading-unknown '
+            '(docs/site_gradient.md)')
     f = Finding(kind='nonuniform_field', sensor=None, channel=None, value=value, unit='nT/m',
                 explained_fraction=float(min(1.0, share)), text=text, token=None, p_value=p,
                 rms_nt=float(math.sqrt(anti / 4.0)))
