@@ -26,6 +26,10 @@ RING_RATIO = 0.015
 #: the fitted centre is used only when its noise standard deviation is below this fraction
 #: of the radius (a full sphere at SNR 10 with 1 500 readings: about 0.005)
 CENTRE_SD_REL = 0.02
+#: the sphere cross-check of the coverage applies where the sphere's relative radial residual
+#: variance is below this multiple of the ellipsoid's (the sphere fits as well as the ellipsoid
+#: up to the 6 extra parameters' share of the noise)
+SPHERE_VAR_FACTOR = 4.0
 #: parameter correlations above this make the pair inseparable
 MAX_CORRELATION = 0.995
 #: condition number of the correlation matrix above which the solution is unreliable
@@ -109,9 +113,16 @@ def classify_coverage(m):
         # cross-check with the least-squares sphere's centre (4 parameters, stable on a
         # cap where the 10-parameter ellipsoid can bend to a wrong centre): a partial
         # coverage must not pass as good
-        other = _judge(m, _sphere_centre(m), noise_eig)
-        if other['status'] != 'good':
-            out = other
+        # Only where a sphere describes the readings (its relative radial residual within
+        # a few times the ellipsoid's, i.e. no scale or soft-iron difference beyond the
+        # noise): a sphere fitted to an ellipsoid with 2 % scale errors on a cap has its
+        # centre thousands of nT off, and judging about it would call a good coverage partial.
+        sphere = _sphere_centre(m)
+        rad = np.linalg.norm(m - sphere, axis=1)
+        if np.var(rad / np.median(rad)) < SPHERE_VAR_FACTOR * max(noise_eig, 1e-12):
+            other = _judge(m, sphere, noise_eig)
+            if other['status'] != 'good':
+                out = other
     return out
 
 
