@@ -355,3 +355,19 @@ def test_nonuniform_field_finding_points_to_the_effect():
     found = find(data, fit(data, 'base', field_nt=FIELD_NT))
     texts = [f.text for f in found.items if f.kind == 'nonuniform_field']
     assert texts and 'site_gradient' in texts[0] and '--heading-unknown' in texts[0]
+
+
+def test_fluxgate_sim_site_gradient_option(tmp_path, capsys):
+    """fluxgate_sim --site-gradient (and the -p form of a launch file) reaches the simulator;
+    a malformed value is one line on stderr and exit status 2."""
+    from magcal_ros.core.effects import symmetric_traceless
+    from magcal_ros.ros import sim_node
+    for argv in (['--site-gradient', '300,-250,400,-150,200'],
+                 ['--ros-args', '-p', 'site_gradient:=[300.0,-250.0,400.0,-150.0,200.0]']):
+        st = sim_node.resolve_settings(['--dir', str(tmp_path)] + argv)
+        sim = sim_node.FluxgateSim(st)
+        np.testing.assert_array_equal(sim.sim.config.gradient_nt_per_m,
+                                      symmetric_traceless([300, -250, 400, -150, 200]))
+    with pytest.raises(SystemExit) as exc:
+        sim_node.resolve_settings(['--site-gradient', '1,2'])
+    assert exc.value.code == 2 and 'five numbers' in capsys.readouterr().err

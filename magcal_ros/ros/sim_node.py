@@ -10,6 +10,10 @@ at 100 samples/s per sensor. Samples are generated and written in chunks once pe
 (default 10 ms), so 1 kHz and more per sensor cost a few writes per tick, not one per
 sample.
 
+A site gradient (``--site-gradient GXX,GXY,GXZ,GYY,GYZ``, nT/m, world NED frame, symmetric
+and traceless) makes the field differ over the cross as it does near buildings or a vehicle
+(docs/site_gradient.md); ``field_nt`` is then the magnitude at the array centre.
+
 Faults for tests: ``--unplug SENSOR:AT_S:FOR_S[:NEW_PATH]`` closes that sensor's
 pseudo-terminal at ``AT_S`` s (readers get an I/O error, the link disappears) and plugs a
 new one ``FOR_S`` s later, at ``NEW_PATH`` if given (a device that comes back under another
@@ -107,6 +111,18 @@ def _non_negative(text):
     return value
 
 
+def parse_gradient(text):
+    """``GXX,GXY,GXZ,GYY,GYZ`` (nT/m) -> list of five floats (gzz = -gxx - gyy)."""
+    try:
+        values = [float(v) for v in str(text).strip('[] ').split(',')]
+    except ValueError:
+        values = []
+    if len(values) != 5 or not all(math.isfinite(v) for v in values):
+        raise argparse.ArgumentTypeError(
+            f'expected five numbers GXX,GXY,GXZ,GYY,GYZ in nT/m, got {text!r}')
+    return values
+
+
 def build_parser():
     """Return the argparse parser of ``fluxgate_sim``."""
     p = argparse.ArgumentParser(
@@ -135,6 +151,9 @@ def build_parser():
     p.add_argument('--noise-nt', type=_non_negative, help='noise sd per axis, nT (default 3)')
     p.add_argument('--errors', choices=['paper004', 'none'],
                    help='sensor errors: paper 004 Table 1 or ideal (default paper004)')
+    p.add_argument('--site-gradient', type=parse_gradient, metavar='GXX,GXY,GXZ,GYY,GYZ',
+                   help='constant site gradient in the world (NED) frame, nT/m '
+                        '(default: none, a uniform field)')
     p.add_argument('--duration', type=_non_negative,
                    help='stop after this many seconds (default: run until SIGINT/SIGTERM)')
     p.add_argument('--unplug', type=parse_unplug, action='append',
@@ -147,7 +166,7 @@ def build_parser():
 DEFAULTS = {'dir': DEFAULT_DIR, 'prefix': DEFAULT_PREFIX, 'sensors': 4, 'rate': 100.0,
             'tick': 0.01, 'protocol': 'ascii', 'option': [], 'seed': 0,
             'trajectory': 'smooth', 'field_nt': 50000.0, 'noise_nt': 3.0,
-            'errors': 'paper004', 'duration': None, 'unplug': []}
+            'errors': 'paper004', 'duration': None, 'unplug': [], 'site_gradient': None}
 
 
 def _section_settings(section, source):
@@ -159,6 +178,9 @@ def _section_settings(section, source):
                 out['option'] = list(parse_options(value).items())
             except ValueError as exc:
                 raise ValueError(f'{source}: {exc}') from None
+        elif key == 'site_gradient':
+            out[key] = None if value is None else parse_gradient(
+                ','.join(map(str, value)) if isinstance(value, (list, tuple)) else value)
         elif key == 'unplug':
             out['unplug'] = [v if isinstance(v, Unplug) else parse_unplug(v)
                              for v in (value or [])]
@@ -306,11 +328,15 @@ class FluxgateSim:
         options = dict(settings.option)
         self.encoders = [make_encoder(settings.protocol, **options)
                          for _ in range(settings.sensors)]
+        grad = getattr(settings, 'site_gradient', None)
+        if grad is not None:
+            from magcal_ros.core.effects import symmetric_traceless
+            grad = symmetric_traceless(grad)
         self.sim = Simulator(SimConfig(
             n_sensors=settings.sensors, rate_hz=settings.rate, field_nt=settings.field_nt,
             noise_nt=settings.noise_nt, trajectory=settings.trajectory,
             errors=None if settings.errors == 'none' else settings.errors,
-            seed=settings.seed))
+            seed=settings.seed, gradient_nt_per_m=grad))
         self.paths = [os.path.join(settings.dir, f'{settings.prefix}{j}')
                       for j in range(1, settings.sensors + 1)]
         self.devices = []
