@@ -8,7 +8,9 @@ The figures answer "where does the model fail?":
 - the scalar residual as a map over field direction (azimuth/elevation in the sensor
   frame): nonlinearity or a missing linear term shows as a pattern on the sphere;
 - gradient tensor components before and after correction (four-sensor cross);
-- the candidate ranking (delta BIC) and the error ladder (held-out RMS per step).
+- the candidate ranking (delta BIC) and the error ladder (held-out RMS per step);
+- what is left, model-free (:mod:`magcal_ros.core.findings`): the residual spectrum per
+  sensor, a change-point view, and the residual against the lagged driving channels.
 
 Matplotlib is used through its object API with the Agg canvas (no pyplot, no global
 backend change, no display needed).  The noise floor is drawn on every residual plot.
@@ -22,6 +24,7 @@ import textwrap
 
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.ticker import NullLocator
 import numpy as np
 
 from magcal_ros.core.diagnose import compact_spec, noise_floor_from_data
@@ -452,6 +455,159 @@ def plot_ladder(ladder):
 
 # -- the page -------------------------------------------------------------------------------
 
+# -- model-free findings (magcal_ros.core.findings) -----------------------------------------
+
+def _finding_label(f):
+    return f.token or f.kind
+
+
+def plot_residual_spectrum(findings):
+    """Power spectrum of each sensor's residual series over its white-noise level, log-log.
+
+    The series are :class:`~magcal_ros.core.findings.Findings`' (consensus residuals, nT);
+    power divided by the summed white-noise variance, so white noise sits at 1 and a line
+    stands out of its neighbourhood; the lines found are marked with their token.
+    """
+    from magcal_ros.core.findings import periodogram
+    sensors = sorted(findings.series)
+    if not sensors or len(findings.t) < 30:
+        return None
+    fig = _figure(3.6 * min(len(sensors), 4), 3.2 * int(np.ceil(len(sensors) / 4)))
+    for ax, j in zip(_sensor_axes(fig, len(sensors)), sensors):
+        freqs, power, _ = periodogram(findings.t, findings.series[j])
+        z = power.sum(axis=1) / np.sum(findings.noise_nt[j] ** 2)
+        # about 400 log-spaced bins, each drawn at its maximum so that lines stay visible
+        edges = np.unique(np.searchsorted(freqs, np.geomspace(freqs[0], freqs[-1], 400)))
+        ax.loglog(freqs[edges], np.maximum.reduceat(z, edges), lw=0.8, color='tab:blue')
+        for axis in (ax.xaxis, ax.yaxis):       # log minor ticks cost seconds to lay out
+            axis.set_minor_locator(NullLocator())
+        ax.axhline(1.0, color='k', ls='--', lw=1.0, label='white noise')
+        for f in findings.items:
+            if f.kind == 'periodic' and f.sensor == j:
+                ax.axvline(f.value, color='tab:red', lw=1.0, alpha=0.7)
+                ax.annotate(_finding_label(f), (f.value, ax.get_ylim()[1]), fontsize=8,
+                            color='tab:red', ha='center', va='top')
+        ax.set_xlabel('frequency [Hz]')
+        ax.set_ylabel('power / noise')
+        ax.set_title(f'sensor {j}', fontsize=10)
+        ax.legend(fontsize=8, loc='lower left')
+    _suptitle(fig, f'residual spectrum per sensor ({findings.kind_of_series} residual; '
+                   'a line is a periodic disturbance)')
+    return fig
+
+
+def plot_change_points(findings):
+    """Each sensor's residual series over time (running mean) with the steps found.
+
+    Components of the consensus residual (nT) averaged over 1 % of the record, the
+    segment means between the change points found drawn over them, and the +-1 sd band of
+    the running mean of white noise at the series' floor.
+    """
+    sensors = sorted(findings.series)
+    n = len(findings.t)
+    if not sensors or n < 30:
+        return None
+    from scipy.ndimage import uniform_filter1d
+    t = findings.t
+    w = max(3, n // 100)
+    fig = _figure(3.6 * min(len(sensors), 4), 3.2 * int(np.ceil(len(sensors) / 4)))
+    idx = np.arange(0, n, max(1, n // 1500))
+    for ax, j in zip(_sensor_axes(fig, len(sensors)), sensors):
+        x = findings.series[j] - findings.series[j].mean(axis=0)
+        sm = uniform_filter1d(x, w, axis=0, mode='nearest')
+        steps = sorted(f.value for f in findings.items if f.kind == 'step' and f.sensor == j)
+        edges = [0] + [int(np.searchsorted(t, v)) for v in steps] + [n]
+        for c in range(x.shape[1]):
+            colour = COMPONENT_COLOURS[c] if x.shape[1] == 3 else 'tab:blue'
+            ax.plot(t[idx], sm[idx, c], lw=0.6, color=colour, alpha=0.6)
+            for a, b in zip(edges[:-1], edges[1:]):
+                if b > a:
+                    ax.plot([t[a], t[b - 1]], [x[a:b, c].mean()] * 2, lw=1.5, color=colour)
+        band = float(np.sqrt(np.mean(findings.noise_nt[j] ** 2)) / np.sqrt(w))
+        _floor_lines(ax, band, label='noise of the running mean')
+        for v in steps:
+            ax.axvline(v, color='k', lw=1.0, alpha=0.6)
+            ax.annotate(f'step({v:.6g})@{j}', (v, ax.get_ylim()[1]), fontsize=8,
+                        ha='left', va='top')
+        ax.set_xlabel('t [s]')
+        ax.set_ylabel('residual [nT]')
+        ax.set_title(f'sensor {j}: {len(steps)} change point(s)', fontsize=10)
+    _suptitle(fig, f'change points: residual over time, running mean over {w} samples, '
+                   'segment means between the steps found (x, y, z)')
+    return fig
+
+
+def plot_residual_vs_lagged_channels(data, findings):
+    """Residual against each driving channel found, as is and through the lag found.
+
+    For every lag/channel/channel_nonlinear finding: the sensor's residual series projected
+    on the direction it moves with the channel (nT), in equal-count bins, against the channel
+    (a lag shows as a loop) and against the channel through the fitted first-order lag (the
+    loop closes onto a line; curvature that remains is a non-linear coupling).  Without
+    such findings, each sensor's temperature at the lag that fits it best.
+    """
+    from magcal_ros.core.effects import first_order_lag
+    from magcal_ros.core.findings import best_lag
+    t = findings.t
+    if len(t) < 30:
+        return None
+    panels = []
+    for f in findings.items:
+        if f.kind in ('lag', 'channel', 'channel_nonlinear') and f.channel:
+            panels.append((f.sensor, f.channel, f.value if f.kind == 'lag' else None,
+                           _finding_label(f)))
+    if not panels and data.temp is not None:
+        for j in sorted(findings.series):
+            if np.all(np.isfinite(data.temp[j - 1])):
+                panels.append((j, 'temperature', None, 'no finding'))
+    panels = panels[:4]
+    if not panels:
+        return None
+    fig = _figure(3.6 * len(panels), 3.4)
+    for ax, (j, ch, tau, label) in zip(_sensor_axes(fig, len(panels)), panels):
+        if ch == 'temperature':
+            drive = (np.mean(data.temp, axis=0) if j is None else data.temp[j - 1])
+        else:
+            drive = np.asarray(data.aux[ch], float)
+        y = findings.common if j is None else findings.series[j]
+        if y is None:
+            continue
+        y = y - y.mean(axis=0)
+        if tau is None:
+            tau = best_lag(t, y, drive)
+        lagged = first_order_lag(t, drive, tau) if tau else drive
+        # the direction the residual moves with the (lagged) channel
+        a = np.column_stack([np.ones(len(t)), lagged - lagged.mean()])
+        coef = np.linalg.lstsq(a, y, rcond=None)[0][1]
+        d = coef / (np.linalg.norm(coef) or 1.0)
+        proj = y @ d
+        for xv, name, colour in ((drive, ch, 'tab:grey'),
+                                 (lagged, f'{ch} lagged {tau:.3g} s' if tau else ch,
+                                  'tab:red')):
+            xb, yb = _binned(xv, proj, bins=30)
+            ax.plot(xb, yb, 'o-', ms=3, lw=1.0, color=colour, label=name)
+        ax.set_xlabel(ch)
+        ax.set_ylabel('residual along its direction [nT]')
+        ax.set_title(f'{"all sensors" if j is None else f"sensor {j}"}: {label}', fontsize=10)
+        ax.legend(fontsize=8)
+    _suptitle(fig, 'residual against the driving channels, as is and through the fitted '
+                   'first-order lag')
+    return fig
+
+
+def finding_rows(findings):
+    """Rows of the findings table (strings)."""
+    rows = []
+    for f in findings.items:
+        rows.append([f.kind, 'all' if f.sensor is None else f.sensor, f.channel or '',
+                     '' if f.value is None else f'{f.value:.4g} {f.unit}'.strip(),
+                     f'{f.explained_fraction:.2f}', f.token or '', f.text])
+    return rows
+
+
+FINDING_HEADER = ('kind', 'sensor', 'channel', 'value', 'share of excess', 'add', 'what')
+
+
 def _table(rows, header):
     head = ''.join(f'<th>{html.escape(h)}</th>' for h in header)
     body = ''.join('<tr>' + ''.join(f'<td>{html.escape(str(c))}</td>' for c in r) + '</tr>'
@@ -532,6 +688,15 @@ def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseli
          else plot_candidates(diagnosis)),
         ('ladder', 'Error ladder', None if ladder is None else plot_ladder(ladder)),
     ]
+    found = diagnosis.findings if diagnosis is not None else None
+    if found is None:
+        from magcal_ros.core.findings import find
+        found = find(data, result, baseline_m=baseline_m)
+    figs += [('residual_spectrum', 'Residual spectrum per sensor',
+              plot_residual_spectrum(found)),
+             ('change_points', 'Change points', plot_change_points(found)),
+             ('residual_lagged', 'Residual vs lagged channels',
+              plot_residual_vs_lagged_channels(data, found))]
     parts = [f'<!DOCTYPE html><html><head><meta charset="utf-8"><title>{html.escape(title)}'
              f'</title><style>{_CSS}</style></head><body><h1>{html.escape(title)}</h1>',
              f'<p>data: {html.escape(str(data.meta.get("source", "in memory")))}, '
@@ -554,6 +719,10 @@ def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseli
                 f'<li>{html.escape(t)}: {html.escape(r)}</li>'
                 for t, r in diagnosis.not_testable) + '</ul>')
         parts.append('<h2>Summary</h2><pre>' + html.escape(diagnosis.summary()) + '</pre>')
+    parts.append('<h2>Findings (model-free: what is left)</h2>' + (
+        _table(finding_rows(found), FINDING_HEADER) if found.items
+        else '<p>none: no line, step, lag, trend, attitude pattern, gradient or heavy tail '
+             'above the false-alarm and effect-size thresholds</p>'))
     if ladder is not None:
         parts.append('<h2>Error ladder</h2><pre>' + html.escape(ladder.table()) + '</pre>')
     parts.append('<h2>Fit</h2><pre>' + html.escape(result.summary()) + '</pre>')

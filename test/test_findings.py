@@ -258,3 +258,30 @@ def test_attitude_pattern_is_a_direction_finding(n):
     found = find(data, fit(data, 'base', field_nt=inj.F_NT))
     assert _kinds(found) == [('direction', 4)], found.summary()
     assert found.items[0].token == 'nonlinearity@4'
+
+
+def test_report_shows_the_findings(tmp_path):
+    from magcal_ros.report import (plot_change_points, plot_residual_spectrum,
+                                   plot_residual_vs_lagged_channels, write_report)
+    data, result, found = _case('step', 3000)
+    index = write_report(tmp_path, data, result=result)
+    page = index.read_text()
+    assert 'Findings (model-free' in page and 'step(300)@1' in page
+    for name in ('residual_spectrum', 'change_points', 'residual_lagged'):
+        assert (tmp_path / f'{name}.png').stat().st_size > 1000
+    # the change-point view marks the step found on sensor 1, and only there
+    fig = plot_change_points(found)
+    marks = [[ln.get_xdata()[0] for ln in ax.lines if ln.get_linestyle() == '-'
+              and len(ln.get_xdata()) == 2 and ln.get_xdata()[0] == ln.get_xdata()[1]]
+             for ax in fig.axes]
+    assert marks[0] == [pytest.approx(300.0, abs=0.5)] and marks[1:] == [[], [], []]
+    # the spectrum is normalised to the white-noise level: its median is near 1 on a
+    # sensor without findings (the median of a Gamma(3, 1) / 3 is 0.89)
+    fig = plot_residual_spectrum(found)
+    y = fig.axes[3].lines[0].get_ydata()
+    assert 0.7 < np.median(y) < 6.0      # the drawn curve is each bin's maximum
+    # the lag figure of a lag finding shows the channel lagged by the time constant found
+    data, result, found = _case('lag', 3000, 'base,temperature@2')
+    fig = plot_residual_vs_lagged_channels(data, found)
+    labels = [ln.get_label() for ln in fig.axes[0].lines]
+    assert labels[0] == 'temperature' and labels[1].startswith('temperature lagged 9')

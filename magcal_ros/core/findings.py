@@ -170,6 +170,9 @@ class Findings:
         {sensor: (C,) white-noise sd per component of that series, nT}.
     kind_of_series : str
         'consensus' or 'scalar'.
+    common : numpy.ndarray or None
+        (N, 1) mean scalar residual of the sensors with their own findings taken out, nT
+        (where what every sensor has alike is sought), or None.
     """
 
     items: tuple
@@ -177,6 +180,7 @@ class Findings:
     series: dict = field(repr=False)
     noise_nt: dict = field(repr=False)
     kind_of_series: str = 'consensus'
+    common: np.ndarray | None = field(repr=False, default=None)
 
     def to_list(self):
         """List of the findings as dicts."""
@@ -590,6 +594,31 @@ def _test_channel(t, x, drv, mod=None):
     return out
 
 
+def best_lag(t, x, drive):
+    """Time constant (s) of the first-order lag through which ``drive`` best explains ``x``.
+
+    Parameters
+    ----------
+    t : numpy.ndarray
+        (N,) time, s.
+    x : numpy.ndarray
+        (N, C) residual series, nT.
+    drive : numpy.ndarray
+        (N,) the channel (temperature, degC, or an aux channel in its unit).
+
+    Returns
+    -------
+    float or None
+        None when the channel is constant or the record too short for a lag grid.
+    """
+    drv = _Driver(np.asarray(t, float), 'channel', drive)
+    if not drv.ok or not len(drv.taus):
+        return None
+    x = np.asarray(x, float)
+    x = (x[:, None] if x.ndim == 1 else x) - np.mean(x, axis=0)
+    return _best_tau(drv, x - drv.q @ (drv.q.T @ x))
+
+
 def _best_tau_modulated(drv, x, mod):
     """Lag time constant for a series seen through the field direction (grid, refined)."""
     if not len(drv.taus):
@@ -709,8 +738,8 @@ def _gradient(t, corrected, baseline_m, alpha):
             'attitude (att_qw..att_qz, an Imu topic) or with --heading-unknown '
             '(docs/site_gradient.md)')
     f = Finding(kind='nonuniform_field', sensor=None, channel=None, value=value, unit='nT/m',
-                explained_fraction=float(min(1.0, share)), text=text, token=None, p_value=p,
-                rms_nt=float(math.sqrt(anti / 4.0)))
+                explained_fraction=float(min(1.0, share)), text=text, token='site_gradient',
+                p_value=p, rms_nt=float(math.sqrt(anti / 4.0)))
     # smoothed over time: the gradient changes with the attitude, the noise does not follow
     w = max(5, n // 200)
     gx = ndimage.uniform_filter1d(ax, w, axis=0, mode='nearest')
@@ -910,6 +939,7 @@ def _find(data, result, *, baseline_m=0.5, alpha=ALPHA, corrected=None, field=No
         # a gradient makes every sensor's residual depend on the attitude: not their faults
         keep = [f for f in keep if f.kind != 'direction']
     common = []
+    x0 = None
     if kind == 'consensus' and u is not None:
         # what every sensor has alike cancels in the consensus: it is left in the mean of
         # the scalar residuals, as its component along the field direction
@@ -932,7 +962,8 @@ def _find(data, result, *, baseline_m=0.5, alpha=ALPHA, corrected=None, field=No
                 common.append(f)
     items = tuple(array_items + common + sorted(keep, key=lambda f: (f.sensor,
                                                                      -f.explained_fraction)))
-    return Findings(items=items, t=t, series=series, noise_nt=noise, kind_of_series=kind)
+    return Findings(items=items, t=t, series=series, noise_nt=noise, kind_of_series=kind,
+                    common=x0)
 
 
 find.__doc__ = _find.__doc__
