@@ -86,7 +86,8 @@ def test_write_report_self_contained(case, tmp_path):
                                 ladder=lad)
     text = index.read_text()
     names = ('magnitude', 'residual_time', 'residual_temperature', 'residual_aux',
-             'residual_rate', 'residual_direction', 'tensor', 'candidates', 'ladder')
+             'residual_rate', 'residual_direction', 'tensor', 'candidates', 'ladder',
+             'residual_spectrum', 'change_points', 'residual_lagged')
     imgs = re.findall(r'<img alt="(\w+)" src="data:image/png;base64,([A-Za-z0-9+/=]+)"', text)
     assert [n for n, _ in imgs] == list(names)
     for name, b64 in imgs:
