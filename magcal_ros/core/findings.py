@@ -132,6 +132,10 @@ class Finding:
         False-alarm probability of the test (before the Bonferroni factor).
     rms_nt : float
         RMS (per component) of the finding's fitted signal, nT.
+    replaces : tuple of str
+        Tokens of the fitted model that ``token`` takes the place of (e.g. the linear
+        ``aux:<col>`` that ``aux_poly(<col>,2)`` contains): the model to fit is the old one
+        without these, plus ``token``.
     """
 
     kind: str
@@ -144,13 +148,15 @@ class Finding:
     token: str | None = None
     p_value: float = float('nan')
     rms_nt: float = float('nan')
+    replaces: tuple = ()
 
     def to_dict(self):
         """JSON-ready dict (DESIGN.md contract 2 keys first)."""
         return {'kind': self.kind, 'sensor': self.sensor, 'channel': self.channel,
                 'value': self.value, 'unit': self.unit,
                 'explained_fraction': self.explained_fraction, 'text': self.text,
-                'token': self.token, 'p_value': self.p_value, 'rms_nt': self.rms_nt}
+                'token': self.token, 'p_value': self.p_value, 'rms_nt': self.rms_nt,
+                'replaces': list(self.replaces)}
 
 
 @dataclass(frozen=True, eq=False)
@@ -848,6 +854,33 @@ def _tails(x, sd, sensor, alpha_test):
                    p_value=p, rms_nt=float(np.sqrt(np.mean(sd ** 2))))
 
 
+def _in_model(f, model):
+    """``f`` with the tokens of ``model`` its token takes the place of (see Finding)."""
+    if model is None or not f.token:
+        return f
+    from dataclasses import replace
+    from magcal_ros.core.diagnose import compact_spec
+    try:
+        model.with_effect(f.token)
+        return f
+    except ValueError:
+        pass
+    spec = compact_spec(model)
+    out = []
+    for tok in spec:
+        if tok == 'base':
+            continue
+        rest = ','.join(x for x in spec if x != tok)
+        try:
+            type(model).from_spec(rest, model.n_sensors).with_effect(f.token)
+        except ValueError:
+            continue
+        out.append(tok)
+    if not out:
+        return f
+    return replace(f, replaces=tuple(out), text=f'{f.text} in place of {" ".join(out)}')
+
+
 def _same(a, b, t_res, f_res):
     if a.kind != b.kind or a.channel != b.channel:
         return False
@@ -960,7 +993,8 @@ def _find(data, result, *, baseline_m=0.5, alpha=ALPHA, corrected=None, field=No
                 keep = [g for g in keep if g.sensor not in alike or not _same(f, g, t_res,
                                                                               f_res)]
                 common.append(f)
-    items = tuple(array_items + common + sorted(keep, key=lambda f: (f.sensor,
+    items = tuple(_in_model(f, getattr(result, 'model', None)) for f in
+                  array_items + common + sorted(keep, key=lambda f: (f.sensor,
                                                                      -f.explained_fraction)))
     return Findings(items=items, t=t, series=series, noise_nt=noise, kind_of_series=kind,
                     common=x0)
