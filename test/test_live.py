@@ -5,7 +5,8 @@ from a chosen A_j, offset and field; the tensor of a linear field B(r) = B0 + G 
 here; the field rate is the slope of a line; the tensor covariance is checked by Monte Carlo.
 """
 from magcal_ros.core.effects import SensorContext
-from magcal_ros.core.live import LiveCorrector, MissingSignal
+from magcal_ros.core.live import (LiveCorrector, MissingSignal, RESIDUAL_WARN_RATIO,
+                                  ResidualMonitor)
 from magcal_ros.core.model import Calibration, Model
 from magcal_ros.core.tensor import cross_positions
 import numpy as np
@@ -180,3 +181,65 @@ def test_driven_effects_use_the_latest_signals_and_name_the_missing_one():
     np.testing.assert_allclose(got, cal.correct(2, raw[None], ctx)[0], rtol=1e-9, atol=1e-6)
     with pytest.raises(ValueError, match='is for 4 sensors but this corrector handles 3'):
         LiveCorrector(cal, 3)
+
+
+# -- ResidualMonitor ---------------------------------------------------------------------------
+
+def test_residuals_of_one_set_by_hand():
+    mon = ResidualMonitor(4, 50000.0)
+    b = np.array([[30000.0, 40000.0, 3.0],        # |b| = 50000.00009 -> scalar ~ 0
+                  [0.0, 0.0, 50010.0],             # scalar +10
+                  [0.0, -49990.0, 0.0],            # scalar -10
+                  [50000.0, 0.0, 0.0]])
+    scalar, vector = mon.add(b)
+    np.testing.assert_allclose(scalar, [np.hypot(np.hypot(30000, 40000), 3) - 50000, 10, -10, 0],
+                               atol=1e-6)
+    others1 = (b[1] + b[2] + b[3]) / 3
+    assert vector[0] == pytest.approx(np.linalg.norm(b[0] - others1), rel=1e-12)
+    others4 = (b[0] + b[1] + b[2]) / 3
+    assert vector[3] == pytest.approx(np.linalg.norm(b[3] - others4), rel=1e-12)
+    assert mon.ratios() is None                     # one set: no rolling figure yet
+
+
+def _tumble(n, rate_hz=100.0):
+    """(n, 3) field of a uniform 50 000 nT field seen by a tumbling array, nT."""
+    t = np.arange(n) / rate_hz
+    b_world = np.array([20000.0, 5000.0, -45553.3])     # |b| = 50 000 nT
+    out = np.empty((n, 3))
+    for k, tk in enumerate(t):
+        out[k] = (_rot_z(360 * tk / 7.0) @ _rot_x(360 * tk / 11.0)).T @ b_world
+    return t, out
+
+
+def test_rolling_ratio_is_one_on_noise_and_flags_a_hidden_effect():
+    sigma = 2.0
+    n = 1000
+    t, b = _tumble(n)
+    rng = np.random.default_rng(5)
+    noise = rng.normal(scale=sigma, size=(4, n, 3))
+    ok = ResidualMonitor(4, float(np.linalg.norm(b[0])), window=n)
+    for k in range(n):
+        ok.add(b[k][None] + noise[:, k])
+    r = ok.ratios()
+    assert r['sets'] == n
+    # the floor is the noise; RMS of n = 1000 values: relative sd 2 %; the floor's estimate
+    # a few % more: 15 % bounds
+    np.testing.assert_allclose(r['floor_nt'], sigma, rtol=0.1)
+    assert np.all(np.abs(r['scalar_ratio'] - 1) < 0.15), r['scalar_ratio']
+    assert np.all(np.abs(r['vector_ratio'] - 1) < 0.15), r['vector_ratio']
+    assert np.all(r['scalar_ratio'] <= RESIDUAL_WARN_RATIO)
+
+    # a temperature term the calibration lacks, written here: sensor 2 reads
+    # k (T - 25 degC) more, T swinging +-10 degC over 6 s
+    temp = 25.0 + 10.0 * np.sin(2 * np.pi * t / 6.0)
+    term = np.outer(temp - 25.0, [3.0, -2.0, 1.5])           # (n, 3) nT
+    bad = ResidualMonitor(4, float(np.linalg.norm(b[0])), window=n)
+    for k in range(n):
+        fields = b[k][None] + noise[:, k]
+        fields[1] += term[k]
+        bad.add(fields)
+    r = bad.ratios()
+    # the term is smooth: the floor stays the noise, the residual of sensor 2 grows
+    np.testing.assert_allclose(r['floor_nt'], sigma, rtol=0.1)
+    assert r['scalar_ratio'][1] > 3 and r['vector_ratio'][1] > 3
+    assert np.all(r['scalar_ratio'][[0, 2, 3]] < 1.15)

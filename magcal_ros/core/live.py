@@ -12,6 +12,7 @@ Units: nT, nT/s, nT/m, s, degC (the library's; a ROS node converts at its bounda
 from collections import deque
 
 from magcal_ros.core.effects import SensorContext, SIGNALS
+from magcal_ros.core.noise import noise_floor
 from magcal_ros.core.sync import StampMatcher
 from magcal_ros.core.tensor import tensor_operator
 import numpy as np
@@ -228,6 +229,19 @@ class LiveCorrector:
         period = (s.arrivals[-1] - s.arrivals[0]) / (len(s.arrivals) - 1)
         return (raw - prev[1]) / period if period > 0 else None
 
+    def sets(self, j, t, field_nt):
+        """Add a corrected sample of sensor j; return the sets of all sensors it completes.
+
+        ``j`` and ``t`` as for :meth:`correct`; ``field_nt`` (3,) is its result, nT.
+
+        Returns
+        -------
+        list of (float, list of numpy.ndarray)
+            (stamp of the set s, the S corrected fields (3,) nT) per completed set, oldest
+            first.
+        """
+        return [(t_set, fields) for _, t_set, fields in self.matcher.add(j - 1, t, field_nt)]
+
     def gradients(self, j, t, field_nt):
         """Add a corrected sample of sensor j; return the tensors of the sets it completes.
 
@@ -242,4 +256,96 @@ class LiveCorrector:
         if self.gradient_op is None:
             return []
         return [(t_set, (self.gradient_op @ np.concatenate(fields)).reshape(3, 3))
-                for _, t_set, fields in self.matcher.add(j - 1, t, field_nt)]
+                for t_set, fields in self.sets(j, t, field_nt)]
+
+
+#: a rolling residual above this multiple of its noise-floor expectation means the
+#: calibration no longer fits (the pipeline's threshold for a fit above the floor)
+RESIDUAL_WARN_RATIO = 1.5
+
+
+class ResidualMonitor:
+    """Residuals of the active calibration on live sets, and their ratio to the noise floor.
+
+    Per set of corrected fields b_j (array frame, nT) and sensor j:
+
+    - scalar residual ``|b_j| - F`` against the reference magnitude F (the fit's scalar
+      constraint);
+    - vector residual ``|b_j - mean_{k != j} b_k|``: the distance to the consensus of the
+      other sensors (the fit's inter-sensor consistency; in a uniform field only noise).
+
+    Over the last ``window`` sets the monitor compares their RMS with what noise alone
+    gives: the noise floor f_j of each corrected series from its high-order differences
+    (:func:`magcal_ros.core.noise.noise_floor`, no model) predicts an RMS of f_j for the
+    scalar residual and sqrt(3 (f_j^2 + sum_{k != j} f_k^2 / (S - 1)^2)) for the vector one.
+    A ratio above :data:`RESIDUAL_WARN_RATIO` means an effect the calibration lacks (or a
+    changed sensor): time to run the diagnosis.
+
+    Parameters
+    ----------
+    n_sensors : int
+    field_nt : float
+        Reference magnitude F, nT.
+    window : int
+        Sets in the rolling window.
+    """
+
+    def __init__(self, n_sensors, field_nt, window=1000):
+        if n_sensors < 2:
+            raise ValueError('the vector residual needs at least two sensors')
+        self.n_sensors = n_sensors
+        self.field_nt = float(field_nt)
+        self.window = int(window)
+        self._fields = np.zeros((n_sensors, self.window, 3))
+        self._scalar = np.zeros((n_sensors, self.window))
+        self._vector = np.zeros((n_sensors, self.window))
+        self.count = 0                                 # sets added
+
+    def add(self, fields_nt):
+        """Add one set; return its residuals.
+
+        Parameters
+        ----------
+        fields_nt : array_like
+            (S, 3) corrected fields of the set, nT, sets in time order.
+
+        Returns
+        -------
+        (numpy.ndarray, numpy.ndarray)
+            Scalar residual (S,) nT (signed) and vector residual (S,) nT (a length).
+        """
+        b = np.asarray(fields_nt, float)
+        s = self.n_sensors
+        scalar = np.sqrt(np.einsum('ij,ij->i', b, b)) - self.field_nt
+        others = (b.sum(axis=0)[None, :] - b) / (s - 1)
+        vector = np.sqrt(np.sum((b - others) ** 2, axis=1))
+        k = self.count % self.window
+        self._fields[:, k] = b
+        self._scalar[:, k] = scalar
+        self._vector[:, k] = vector
+        self.count += 1
+        return scalar, vector
+
+    def ratios(self, min_sets=50):
+        """Rolling RMS residuals and their ratio to the noise-only expectation.
+
+        Returns
+        -------
+        dict or None
+            ``scalar_rms_nt``, ``vector_rms_nt``, ``floor_nt`` (S,) nT, ``scalar_ratio``,
+            ``vector_ratio`` (S,), ``sets`` (int); None with fewer than ``min_sets`` sets.
+        """
+        n = min(self.count, self.window)
+        if n < max(min_sets, 14):                     # the floor needs a few differences
+            return None
+        order = (np.arange(self.count - n, self.count) % self.window)
+        floor = noise_floor(self._fields[:, order])
+        s = self.n_sensors
+        f2 = floor ** 2
+        vector_expected = np.sqrt(3.0 * (f2 + (f2.sum() - f2) / (s - 1) ** 2))
+        scalar_rms = np.sqrt(np.mean(self._scalar[:, order] ** 2, axis=1))
+        vector_rms = np.sqrt(np.mean(self._vector[:, order] ** 2, axis=1))
+        with np.errstate(divide='ignore', invalid='ignore'):
+            return {'sets': n, 'floor_nt': floor, 'scalar_rms_nt': scalar_rms,
+                    'vector_rms_nt': vector_rms, 'scalar_ratio': scalar_rms / floor,
+                    'vector_ratio': vector_rms / vector_expected}

@@ -12,7 +12,15 @@ Topics (relative to the node namespace, default ``/magcal``; docs/design.md §3)
 - publishes ``calibration/status`` (std_msgs/String, JSON, every ``status_period_s``):
   sets collected, attitude coverage per sensor, what is still missing;
 - publishes ``calibration/result`` (std_msgs/String holding the calibration YAML of
-  docs/design.md §4; reliable, transient local, depth 1): the active calibration.
+  docs/design.md §4; reliable, transient local, depth 1): the active calibration;
+- publishes ``calibration/residual`` (std_msgs/Float64MultiArray, T; one message per
+  matched set while a calibration is active, collecting or not): the active calibration
+  applied to the incoming data, per sensor the scalar residual |b_j| - F and the vector
+  residual |b_j - mean of the others| (:func:`magcal_ros.ros.conversions.residual_to_msg`;
+  ``data[j-1]`` and ``data[S+j-1]`` plot in rqt_plot / PlotJuggler), and on ``/diagnostics``
+  their rolling RMS over the noise floor of the data, WARN above
+  :data:`magcal_ros.core.live.RESIDUAL_WARN_RATIO`: the calibration no longer fits, time to
+  diagnose (:class:`magcal_ros.core.live.ResidualMonitor`).
 
 Services (std_srvs/srv/Trigger; the response message is a short summary, a newline, then
 one JSON object):
@@ -38,17 +46,20 @@ import sys
 import threading
 import time
 
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from magcal_ros.core.consistency import GROSS_FRACTION, resync
 from magcal_ros.core.dataset import Dataset
 from magcal_ros.core.identifiability import check_coverage
+from magcal_ros.core.live import (LiveCorrector, MissingSignal, RESIDUAL_WARN_RATIO,
+                                  ResidualMonitor)
 from magcal_ros.core.model import DegenerateDataError, Model
 from magcal_ros.core.notes import format_note
+from magcal_ros.core.sync import epoch_times, StampMatcher
 from magcal_ros.io.calfile import (CalibrationFileError, dump_calibration, load_calibration,
-                                   save_calibration)
+                                   parse_calibration, save_calibration)
 from magcal_ros.pipeline import calibrate as run_calibration, cross_geometry
 from magcal_ros.ros import params as prm
-from magcal_ros.ros.conversions import msg_to_field_nt, stamp_to_seconds
-from magcal_ros.core.sync import epoch_times, StampMatcher
+from magcal_ros.ros.conversions import msg_to_field_nt, residual_to_msg, stamp_to_seconds
 from magcal_ros.ros.run import DEFAULT_NAMESPACE, spin_node
 import numpy as np
 from rclpy.callback_groups import ReentrantCallbackGroup
@@ -57,7 +68,7 @@ from rclpy.qos import (DurabilityPolicy, HistoryPolicy, qos_profile_sensor_data,
                        ReliabilityPolicy)
 from rclpy.task import Future
 from sensor_msgs.msg import Imu, MagneticField, Temperature
-from std_msgs.msg import Float64, String
+from std_msgs.msg import Float64, Float64MultiArray, String
 from std_srvs.srv import Trigger
 
 #: QoS of calibration/result (REP 2003: latched state): a late subscriber gets the last one
@@ -225,6 +236,12 @@ class CalibrationNode(Node):
         self._last_result = None                # summary dict of the last calibration
         self._t_started = None
         self._model_changed = None              # (model, sets buffered then) of the last change
+        # the active calibration applied to the incoming data (calibration/residual)
+        self._live = None
+        self._monitor = None
+        self._residual_missing = None
+        self._residual_sets = 0                 # residual messages published
+        self._taken = 0                         # raw samples taken (all sensors, any state)
 
         service_group = ReentrantCallbackGroup()
         self._subs = []
@@ -244,6 +261,9 @@ class CalibrationNode(Node):
 
         self._status_pub = self.create_publisher(String, 'calibration/status', 10)
         self._result_pub = self.create_publisher(String, 'calibration/result', RESULT_QOS)
+        self._residual_pub = self.create_publisher(Float64MultiArray, 'calibration/residual',
+                                                   10)
+        self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self._srv = [
             self.create_service(Trigger, 'calibration/start', self._on_start,
                                 callback_group=service_group),
@@ -255,6 +275,7 @@ class CalibrationNode(Node):
                                 callback_group=service_group),
         ]
         self._status_timer = self.create_timer(s.status_period_s, self._publish_status)
+        self._diag_timer = self.create_timer(s.status_period_s, self._publish_diagnostics)
         # triggered by the worker thread when a solve ends, so the executor wakes up and
         # resumes the awaiting service coroutine even when no sensor data flows
         self._wake = self.create_guard_condition(lambda: None)
@@ -289,22 +310,58 @@ class CalibrationNode(Node):
 
     def _raw_cb(self, j):
         def cb(msg):
-            if not self._collecting:
+            self._taken += 1
+            collecting = self._collecting
+            live = self._live
+            if not collecting and live is None:
                 return
             t = stamp_to_seconds(msg.header.stamp)
             b = msg_to_field_nt(msg)
             if not np.all(np.isfinite(b)):
                 return
-            with self._lock:
-                self._received[j] += 1
-                for epoch, t_set, items in self._matcher.add(j, t, b):
-                    self._buffer.append(epoch, t_set, np.array(items), self._temp, self._aux)
+            if collecting:
+                with self._lock:
+                    self._received[j] += 1
+                    for epoch, t_set, items in self._matcher.add(j, t, b):
+                        self._buffer.append(epoch, t_set, np.array(items), self._temp,
+                                            self._aux)
+            if live is not None:
+                self._residual(live, j + 1, t, b)
         return cb
+
+    def _residual(self, live, j, t, raw):
+        """Correct a sample with the active calibration; publish the residual of each set."""
+        try:
+            corrected = live.correct(j, t, raw)
+        except MissingSignal as exc:
+            self._residual_missing = str(exc)
+            return
+        self._residual_missing = None
+        monitor = self._monitor
+        for _, fields in live.sets(j, t, corrected):
+            scalar, vector = monitor.add(fields)
+            self._residual_pub.publish(residual_to_msg(scalar, vector))
+            self._residual_sets += 1
+
+    def _activate(self, cal, doc):
+        """Apply ``cal`` to the incoming data from now on (residual and its diagnostics)."""
+        s = prm.calibration_settings(self)
+        positions = (doc.get('geometry') or {}).get('positions_m')
+        live = LiveCorrector(cal, self._n, positions, s.stamp_tolerance_s)
+        with self._lock:
+            live.temp[:] = self._temp
+            live.aux.update(self._aux)
+        self._monitor = ResidualMonitor(self._n, s.field_nt)
+        self._residual_missing = None
+        self._live = live
 
     def _temp_cb(self, j):
         def cb(msg):
             with self._lock:
                 self._temp[j] = msg.temperature
+            live = self._live
+            if live is not None:
+                live.set_temperature(j + 1, msg.temperature)
         return cb
 
     def _imu_cb(self, msg):
@@ -337,7 +394,57 @@ class CalibrationNode(Node):
         def cb(msg):
             with self._lock:
                 self._aux[column] = float(msg.data)
+            live = self._live
+            if live is not None:
+                live.set_aux(column, msg.data)
         return cb
+
+    def residual_status(self):
+        """``diagnostic_msgs/DiagnosticStatus`` of the active calibration on the live data.
+
+        WARN when a sensor's rolling residual exceeds :data:`RESIDUAL_WARN_RATIO` times what
+        its noise floor predicts (:class:`magcal_ros.core.live.ResidualMonitor`), or when a
+        driven effect lacks its live signal.
+        """
+        st = DiagnosticStatus(name=f'{self.get_name()}: residual',
+                              hardware_id=self.get_namespace(), level=DiagnosticStatus.OK)
+        monitor = self._monitor
+        r = monitor.ratios() if monitor is not None else None
+        values = [('residual_sets_published', str(self._residual_sets))]
+        if self._live is None:
+            st.message = 'no active calibration: no residual (run calibration/calibrate)'
+        elif self._residual_missing:
+            st.level = DiagnosticStatus.WARN
+            st.message = f'no residual: {self._residual_missing}'
+        elif r is None:
+            st.message = 'waiting for sets of all sensors to compare with the calibration'
+        else:
+            bad = []
+            for j in range(self._n):
+                for kind in ('scalar', 'vector'):
+                    ratio = float(r[f'{kind}_ratio'][j])
+                    values.append((f'sensor{j + 1}_{kind}_ratio', f'{ratio:.2f}'))
+                    values.append((f'sensor{j + 1}_{kind}_rms_nt',
+                                   f'{float(r[f"{kind}_rms_nt"][j]):.2f}'))
+                    if not ratio <= RESIDUAL_WARN_RATIO:
+                        bad.append(f'sensor {j + 1} {kind} {ratio:.1f}x')
+                values.append((f'sensor{j + 1}_floor_nt', f'{float(r["floor_nt"][j]):.2f}'))
+            if bad:
+                st.level = DiagnosticStatus.WARN
+                st.message = (f'the calibration no longer fits the data: residual / noise floor '
+                              f'{", ".join(bad)} (over the last {r["sets"]} sets); run '
+                              'calibration/diagnose')
+            else:
+                st.message = (f'the calibration fits: residuals within {RESIDUAL_WARN_RATIO}x '
+                              f'the noise floor over the last {r["sets"]} sets')
+        st.values = [KeyValue(key=k, value=v) for k, v in values]
+        return st
+
+    def _publish_diagnostics(self):
+        arr = DiagnosticArray()
+        arr.header.stamp = self.get_clock().now().to_msg()
+        arr.status = [self.residual_status()]
+        self._diag_pub.publish(arr)
 
     # -- status ----------------------------------------------------------------------------
 
@@ -558,6 +665,7 @@ class CalibrationNode(Node):
             return False, (f'calibrated but could not write {s.calibration_file}: {exc}; '
                            'previous calibration stays active'), {'reason': str(exc)}
         self._result_pub.publish(String(data=dump_calibration(run.doc)))
+        self._activate(run.result.calibration, run.doc)
         summ = run.summary
         payload = {
             'calibration_file': s.calibration_file,
@@ -681,7 +789,9 @@ class CalibrationNode(Node):
             load_calibration(path)
             with open(path, encoding='utf-8') as fh:
                 text = fh.read()
-        except (CalibrationFileError, OSError) as exc:
+            cal, doc = parse_calibration(text, path)
+            self._activate(cal, doc)
+        except (CalibrationFileError, OSError, ValueError) as exc:
             self.get_logger().warning(f'existing calibration not published: {exc}')
             return
         self._result_pub.publish(String(data=text))

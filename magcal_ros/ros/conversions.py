@@ -13,6 +13,9 @@ Message layouts
 - ``magcal_interfaces/GradientTensorStamped`` (``gradient_stamped``): header (stamp of the
   matched set, the array frame), ``tensor`` 3x3 row-major in T/m, ``tensor_covariance``
   9x9 row-major in (T/m)^2 (all zeros: unknown).
+- Live residual ``std_msgs/Float64MultiArray`` (``calibration/residual``): per set, row 0
+  the scalar residuals |b_j| - F, row 1 the vector residuals |b_j - mean of the others|,
+  one column per sensor, T (:func:`residual_to_msg`).
 - ``geometry_msgs/TransformStamped``: the static transform array -> fluxgate{j}, translation
   in m, rotation as a unit quaternion (REP 103).
 - ``sensor_msgs/Temperature``: degrees Celsius, variance in degC^2.
@@ -32,6 +35,8 @@ from std_msgs.msg import Float64MultiArray, MultiArrayDimension, MultiArrayLayou
 
 #: Labels of the gradient tensor's ``layout.dim`` entries (docs/design.md §3).
 TENSOR_DIM_LABELS = ('row', 'col')
+#: label of the first dimension of the residual message: what its two rows hold
+RESIDUAL_KIND_LABEL = 'scalar |b|-F, vector |b-others|'
 
 _NS_PER_S = 1_000_000_000
 
@@ -344,6 +349,29 @@ def transform_msg(parent, child, rotation, translation_m, stamp=None):
         float(t[0]), float(t[1]), float(t[2]))
     r = msg.transform.rotation
     r.x, r.y, r.z, r.w = (float(v) for v in q)
+    return msg
+
+
+def residual_to_msg(scalar_nt, vector_nt):
+    """The live residual of one set as ``std_msgs/Float64MultiArray`` (T).
+
+    Parameters
+    ----------
+    scalar_nt, vector_nt : numpy.ndarray
+        (S,) scalar residuals |b_j| - F and vector residuals |b_j - mean of the others|, nT.
+
+    Returns
+    -------
+    std_msgs.msg.Float64MultiArray
+        2 S values in T: ``data[j - 1]`` the scalar residual of sensor j, ``data[S + j - 1]``
+        its vector residual; ``layout.dim`` = ``kind`` (size 2, stride 2 S; labelled in
+        :data:`RESIDUAL_KIND_LABEL`) and ``sensor`` (size S, stride S).
+    """
+    s = len(scalar_nt)
+    msg = Float64MultiArray()
+    msg.layout.dim = [MultiArrayDimension(label=RESIDUAL_KIND_LABEL, size=2, stride=2 * s),
+                      MultiArrayDimension(label='sensor', size=s, stride=s)]
+    msg.data = nt_to_t(np.concatenate([scalar_nt, vector_nt])).tolist()
     return msg
 
 
