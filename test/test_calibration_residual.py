@@ -19,19 +19,12 @@ from rclpy.parameter import Parameter
 from ros_helpers import call_trigger, spin_until
 from sim_feed import Feeder
 from std_msgs.msg import Float64MultiArray
-from test_live import _rot_x, _rot_z
+from test_live import _rot_x, _rot_z, C, O, R   # sensors written by hand
 
 F_NT = 50000.0
 SIGMA_NT = 2.0
 RATE_HZ = 100.0
 K_TEMP = np.array([3.0, -2.0, 1.5])      # nT/degC, sensor 2
-C = [np.array([[1.02, 0.004, -0.003], [0.0, 0.97, 0.002], [0.0, 0.0, 1.01]]),
-     np.array([[0.99, -0.002, 0.001], [0.0, 1.03, 0.003], [0.0, 0.0, 0.98]]),
-     np.array([[1.01, 0.001, 0.002], [0.0, 0.995, -0.004], [0.0, 0.0, 1.02]]),
-     np.array([[0.98, 0.003, 0.0], [0.0, 1.01, 0.001], [0.0, 0.0, 1.005]])]
-R = [np.eye(3), _rot_z(3.0), _rot_x(-2.0), _rot_z(-1.5) @ _rot_x(2.0)]
-O = np.array([[120.0, -80.0, 30.0], [-50.0, 60.0, 200.0], [10.0, 0.0, -40.0],
-              [300.0, -250.0, 75.0]])
 
 
 def _recording(n, seed):
