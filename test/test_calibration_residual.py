@@ -62,7 +62,7 @@ def test_residual_falls_after_the_missing_effect_is_added(
     feeder.wait_for_subscribers(ros_executor)
     data = _recording(2400, seed=1)
 
-    def feed(start, stop, batch=20):
+    def feed(start, stop, batch=5):
         """Publish epochs start:stop in batches, each until the node took it (or 5 s)."""
         base = node._taken
         for k0 in range(start, stop, batch):
