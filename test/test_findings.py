@@ -307,3 +307,20 @@ def test_adding_the_named_effect_reaches_the_floor(name, model):
     for j, rms in result.scalar_rms_nt.items():
         assert rms < 1.15 * inj.SIGMA_NT, (j, rms, tokens[0])
     assert find(data, result).items == ()
+
+
+def test_cli_diagnose_prints_the_findings(tmp_path, capsys):
+    from magcal_ros.cli import main
+    from magcal_ros.io.csvio import write_csv
+    data, _, _ = _case('pump', 3000)
+    path = tmp_path / 'pump.csv'
+    write_csv(path, data)
+    args = ['diagnose', str(path), '--model', 'base', '--field-nt', '50000', '--folds', '0',
+            '-q']
+    assert main(args + ['--json']) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert [(f['kind'], f['sensor'], f['token'][:13]) for f in doc['findings']] == [
+        ('periodic', 3, 'periodic(0.23')]
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert 'findings (model-free' in out and 'sensor 3: a spectral line at 0.23 Hz' in out
