@@ -127,8 +127,12 @@ def cmd_diagnose(args, cli):
         from magcal_ros.report import write_report
         index = write_report(args.report, data, diagnosis=diag, ladder=lad,
                              baseline_m=args.baseline_m)
+    from magcal_ros.core.notes import format_note
+    from magcal_ros.pipeline import fit_warnings
+    warnings = fit_warnings(diag.result, diag.noise_floor)
     if args.json:
         doc = diag.to_dict()
+        doc['warnings'] = warnings
         doc['field_reference'] = fref
         doc['constrained'] = bool(args.constrained)
         doc['report'] = None if index is None else str(index)
@@ -137,6 +141,8 @@ def cmd_diagnose(args, cli):
         cli.print_json(doc)
     else:
         print(diag.summary())
+        for w in warnings:
+            print(format_note(w))
         if lad is not None:
             print('\nerror ladder (held-out RMS on contiguous time blocks):')
             print(lad.table())

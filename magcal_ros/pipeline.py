@@ -79,6 +79,12 @@ def _residual_warnings(result, floor):
     return out
 
 
+def fit_warnings(result, floor):
+    """Every warning on a fit as ``{kind, sensor, text}``: the fit's own (degenerate data
+    flagged, not converged) and those on its residual against the data's floor."""
+    return [note_dict(w) for w in list(result.warnings) + _residual_warnings(result, floor)]
+
+
 def summarize(result, data, positions=None):
     """Before/after figures of a fit (all nT, nT/m); JSON-ready.
 
@@ -106,8 +112,7 @@ def summarize(result, data, positions=None):
         'total_field_max_dev_before_nt': float(np.abs(raw_tot).max()),
         'total_field_max_dev_after_nt': float(np.abs(cor_tot).max()),
         'downweighted': {str(j + 1): int(x) for j, x in enumerate(result.downweighted)},
-        'warnings': [note_dict(w) for w in
-                     list(result.warnings) + _residual_warnings(result, floor)],
+        'warnings': fit_warnings(result, floor),
     }
     site = gradient_from_fit(result.model, result.params, result.covariance)
     if site is not None:

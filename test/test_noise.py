@@ -175,3 +175,24 @@ def test_heavy_tailed_noise_is_not_a_false_alarm_in_fit_or_diagnose():
     d = diagnose(data, 'base', field_nt=50000.0, base=run.result)
     assert d.at_floor and d.verdict_token is None, d.verdict_reason
     assert abs(d.noise_floor.per_sensor_nt[0] - SD) < 0.3
+
+
+def test_diagnose_prints_the_structured_warnings_in_text_and_json(tmp_path, capsys):
+    # the filtered series of the test above through `magcal diagnose`: the noise-floor
+    # warning is in the JSON as {kind, sensor, text} and printed in text mode as well
+    import json
+    from magcal_ros.cli import main
+    from magcal_ros.io.csvio import write_csv
+    rng = np.random.default_rng(5)
+    n = 3000
+    noise = sps.sosfiltfilt(sps.butter(6, 0.2, output='sos'), rng.normal(0.0, SD, (n + 400, 3)),
+                            axis=0)[200:-200]
+    path = tmp_path / 'filtered.csv'
+    write_csv(path, Dataset(t=np.arange(n) / 10.0, raw=(tumble(n) + noise)[None]))
+    assert main(['diagnose', str(path), '--field-nt', '50000', '--json', '-q']) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert [(w['kind'], w['sensor']) for w in doc['warnings']] == [('noise_floor', 1)]
+    assert doc['noise_floor_status'] == {'1': 'filtered'}
+    assert main(['diagnose', str(path), '--field-nt', '50000', '-q']) == 0
+    out = capsys.readouterr().out
+    assert 'warning [noise_floor]: sensor 1: the series is low-pass filtered' in out
