@@ -324,3 +324,30 @@ def test_cli_diagnose_prints_the_findings(tmp_path, capsys):
     assert main(args) == 0
     out = capsys.readouterr().out
     assert 'findings (model-free' in out and 'sensor 3: a spectral line at 0.23 Hz' in out
+
+
+def test_irregular_sampling_pump_is_found_by_lomb_scargle():
+    # a fifth of the epochs dropped at random: the sampling is irregular, the periodogram
+    # is Lomb-Scargle's
+    data, _, _ = _case('pump', 3000)
+    keep = np.sort(np.random.default_rng(8).choice(3000, 2400, replace=False))
+    sub = data.subset(keep)
+    found = find(sub, fit(sub, 'base', field_nt=inj.F_NT))
+    assert _kinds(found) == [('periodic', 3)], found.summary()
+    assert abs(found.items[0].value - 0.23) < 0.1 / (sub.t[-1] - sub.t[0])
+
+
+def test_real_hand_rotation_drift_is_named():
+    # issue 11: on the shared roll-and-tilt recording (HMC5883L, hand-rotated, 36 s) "a slow
+    # drift of about 1 200 nT is plain in the residual plot"; the findings name it
+    import pathlib
+    from magcal_ros.core.magnitude import auto_magnitude
+    from magcal_ros.io.csvio import read_csv
+    path = (pathlib.Path(__file__).resolve().parents[1] / '..' / 'shared' / 'data' / 'real'
+            / 'sunsided-hmc5883l' / 'roll-and-tilt-at-45-90' / 'roll-and-tilt-at-45-90.csv')
+    data = read_csv(path)
+    result = fit(data, 'base', field_nt=auto_magnitude(data.raw[0]), on_degenerate='flag')
+    found = find(data, result)
+    trend = [f for f in found.items if f.kind == 'time']
+    assert trend and trend[0].sensor == 1, found.summary()
+    assert trend[0].explained_fraction > 0.5 and trend[0].value > 500.0
