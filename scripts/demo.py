@@ -438,7 +438,8 @@ def main(argv=None):
                 raise RuntimeError(f'process(es) stopped during collection: {procs.dead()}')
             if elapsed >= next_print:
                 st = rec.status or {}
-                cov = ' '.join(f'{j}:{v["status"]}' for j, v in st.get('coverage', {}).items())
+                cov = ' '.join(f'{j}:{v if isinstance(v, str) else v["status"]}'
+                               for j, v in st.get('coverage', {}).items())
                 bar = '#' * int(30 * elapsed / args.collect_s)
                 print(f'  [{bar:<30}] {elapsed:5.1f}/{args.collect_s:.0f} s  sets '
                       f'{st.get("sets", 0):6d}  coverage {cov or "-"}', flush=True)
