@@ -124,7 +124,7 @@ def test_field_rate_from_a_ramp():
     live = LiveCorrector(Calibration(model, p, sigma_nt=np.full(4, 1.0)), 4)
     slope = np.array([300.0, -150.0, 80.0])        # nT/s of the true field
     period = 0.01
-    with pytest.raises(MissingSignal, match='field rate needs two consecutive samples'):
+    with pytest.raises(MissingSignal, match='field rate needs three consecutive samples'):
         live.correct(1, 0.0, np.zeros(3))
     for k in range(1, 30):
         t = period * k
@@ -170,7 +170,7 @@ def test_driven_effects_use_the_latest_signals_and_name_the_missing_one():
             live.correct(2, 0.01 * k, np.full(3, 1000.0 + k))
         messages.append(str(exc.value))
     # the period needs 11 arrivals, then the temperature is what is missing
-    assert messages[0] == 'sensor 2: field rate needs two consecutive samples'
+    assert messages[0] == 'sensor 2: field rate needs three consecutive samples'
     assert 'waiting for sensor2/temperature' in messages[-1]
     live.set_temperature(2, 31.0)
     raw = np.array([1012.0, 1012.0, 1012.0])

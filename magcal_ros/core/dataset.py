@@ -3,7 +3,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from magcal_ros.core.effects import SensorContext
+from magcal_ros.core.effects import raw_rate, SensorContext
 
 
 @dataclass
@@ -72,11 +72,9 @@ class Dataset:
         return self.raw.shape[1]
 
     def context(self, j):
-        """:class:`SensorContext` of sensor ``j`` (1-based), with d(raw)/dt in nT/s."""
-        raw = self.raw[j - 1]
-        rate = None
-        if self.n_samples >= 3 and np.all(np.diff(self.t) > 0):
-            rate = np.gradient(raw, self.t, axis=0)
+        """:class:`SensorContext` of sensor ``j`` (1-based), with d(raw)/dt in nT/s
+        (:func:`magcal_ros.core.effects.raw_rate`)."""
+        rate = raw_rate(self.raw[j - 1], self.t)
         temp = None if self.temp is None else self.temp[j - 1]
         if temp is not None and not np.isfinite(temp).any():
             temp = None

@@ -269,6 +269,47 @@ class Effect:
         return f'{type(self).__name__}(sensor={self.sensor})'
 
 
+def raw_rate(x, t=None, period=None):
+    """(N, 3) nT/s time derivative of readings ``x`` (N, 3) nT: the field-rate signal.
+
+    The one estimator of ``SensorContext.raw_rate`` for a recording (Dataset), the simulator
+    and the live corrector.  Second-order finite differences (``numpy.gradient``,
+    ``edge_order=2``): central at interior samples, and one-sided at the ends, at the last
+    sample (3 x_k - 4 x_k-1 + x_k-2) / 2h, which is all a live stream has (only the past).
+    The central difference leaves the sample's own noise out of its rate, so a tau fitted
+    with it is unbiased (a one-sided rate shares the sample's noise: biased by
+    1.5 sigma^2 / (h |dB/dt|^2)).  For a field turning at w rad/s sampled every h s the two
+    forms give (1 - (w h)^2 / 6) and (1 + (w h)^2 / 3) times the true rate, so live and
+    offline correction agree to (w h)^2 / 2 of tau |dB/dt|: 2 % at w h = 0.2 (1 rad/s at
+    5 Hz).  The backward difference x_k - x_k-1 the corrector used before lags half a
+    sample instead: (w h) / 2 of the rate, 10 % at w h = 0.2, along the field.
+
+    Parameters
+    ----------
+    x : numpy.ndarray
+        (N, 3) readings, nT.
+    t : numpy.ndarray, optional
+        (N,) strictly increasing sample times, s.
+    period : float, optional
+        Uniform sample period, s, instead of ``t`` (a live stream, whose stamps bunch when
+        samples are read together).
+
+    Returns
+    -------
+    numpy.ndarray or None
+        (N, 3) nT/s; None with fewer than 3 samples or times that do not increase.
+    """
+    x = np.asarray(x, float)
+    if len(x) < 3:
+        return None
+    if period is not None:
+        return np.gradient(x, float(period), axis=0, edge_order=2) if period > 0 else None
+    t = np.asarray(t, float)
+    if not np.all(np.diff(t) > 0):
+        return None
+    return np.gradient(x, t, axis=0, edge_order=2)
+
+
 # -- rotations of paper 004 eq. 3 ----------------------------------------------------------
 
 def rot_r1(g):

@@ -11,7 +11,7 @@ Units: nT, nT/s, nT/m, s, degC (the library's; a ROS node converts at its bounda
 """
 from collections import deque
 
-from magcal_ros.core.effects import SensorContext, SIGNALS
+from magcal_ros.core.effects import raw_rate, SensorContext, SIGNALS
 from magcal_ros.core.noise import noise_floor
 from magcal_ros.core.sync import StampMatcher
 from magcal_ros.core.tensor import tensor_operator
@@ -35,7 +35,7 @@ def _waiting(j, name):
         return (f'sensor {j}: waiting for sensor{j}/temperature (the calibration has an '
                 'effect that reads the temperature)')
     if name == 'field_rate':
-        return f'sensor {j}: field rate needs two consecutive samples'
+        return f'sensor {j}: field rate needs three consecutive samples'
     if name.startswith('aux_'):
         return (f'sensor {j}: waiting for auxiliary channel {name} (topic {name[4:]} named in '
                 'aux_topics)')
@@ -59,7 +59,7 @@ class _Sensor:
         if np.isfinite(sigma) and sigma > 0:
             c = sigma ** 2 * self.a_inv @ self.a_inv.T
             self.cov_nt2 = 0.5 * (c + c.T)
-        self.prev = None                 # (t s, raw (3,) nT) of the previous sample
+        self.recent = deque(maxlen=3)    # (t s, raw (3,) nT) of the latest samples
         self.arrivals = deque(maxlen=PERIOD_WINDOW)
 
 
@@ -200,12 +200,11 @@ class LiveCorrector:
             field rate before the stream's period is known).
         """
         s = self._sensors[j - 1]
-        prev = s.prev
-        s.prev = (t, raw)
+        s.recent.append((t, raw))
         s.arrivals.append(t)
         if not s.driven:
             return s.a_inv @ (raw - s.offset)          # the common case: one 3x3 product
-        rate = self._rate(s, prev, t, raw) if 'field_rate' in s.needs else None
+        rate = self._rate(s) if 'field_rate' in s.needs else None
         temp = self.temp[j - 1]
         ctx = SensorContext(
             t=np.array([t]), temp=np.array([temp]) if np.isfinite(temp) else None,
@@ -217,17 +216,21 @@ class LiveCorrector:
         return self.cal.correct(j, raw, ctx)
 
     @staticmethod
-    def _rate(s, prev, t, raw):
-        """d(raw)/dt, nT/s (3,): backward difference over the stream's mean sample period.
+    def _rate(s):
+        """d(raw)/dt, nT/s (3,), of the newest sample: :func:`~magcal_ros.core.effects.raw_rate`
+        on the last three samples (its second-order one-sided form; the fit's interior
+        samples use the central one: they agree to (w h)^2 / 2, see there).
 
         Consecutive samples of one stream are one period apart, but their stamps are not
         (samples read at once share one), so the period is the mean over the last
         :data:`PERIOD_WINDOW` arrivals.
         """
-        if prev is None or t - prev[0] > MAX_RATE_GAP_S or len(s.arrivals) < _MIN_ARRIVALS:
+        if (len(s.recent) < 3 or len(s.arrivals) < _MIN_ARRIVALS
+                or np.diff([t for t, _ in s.recent]).max() > MAX_RATE_GAP_S):
             return None
         period = (s.arrivals[-1] - s.arrivals[0]) / (len(s.arrivals) - 1)
-        return (raw - prev[1]) / period if period > 0 else None
+        rate = raw_rate(np.stack([r for _, r in s.recent]), period=period)
+        return None if rate is None else rate[-1]
 
     def sets(self, j, t, field_nt):
         """Add a corrected sample of sensor j; return the sets of all sensors it completes.

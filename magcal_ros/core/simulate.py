@@ -12,7 +12,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from magcal_ros.core.dataset import Dataset
-from magcal_ros.core.effects import SensorContext
+from magcal_ros.core.effects import raw_rate, SensorContext
 from magcal_ros.core.model import Model
 from magcal_ros.core.paper_params import table1_sensor
 from magcal_ros.core.tensor import cross_positions
@@ -248,8 +248,9 @@ class Simulator:
         raw = np.empty((s, n, 3))
         for j in range(1, s + 1):
             lin = b[j - 1] @ self.model.matrix(j, self.params).T
-            rate = np.gradient(lin, t, axis=0) if n >= 3 and np.all(np.diff(t) > 0) else \
-                np.zeros_like(lin)
+            # the estimator of the fit and the live corrector, on the noise-free reading
+            rate = raw_rate(lin, t)
+            rate = np.zeros_like(lin) if rate is None else rate
             ctx = SensorContext(t=t, temp=temp[j - 1], aux=aux, raw_rate=rate)
             raw[j - 1] = self.model.forward(j, self.params, b[j - 1], ctx)
         raw += self.rng.normal(size=raw.shape) * self.noise[:, None, None]
