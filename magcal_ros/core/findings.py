@@ -151,7 +151,7 @@ class Finding:
     replaces: tuple = ()
 
     def to_dict(self):
-        """JSON-ready dict (DESIGN.md contract 2 keys first)."""
+        """JSON-ready dict (docs/design.md §2 keys first)."""
         return {'kind': self.kind, 'sensor': self.sensor, 'channel': self.channel,
                 'value': self.value, 'unit': self.unit,
                 'explained_fraction': self.explained_fraction, 'text': self.text,
