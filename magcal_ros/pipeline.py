@@ -71,7 +71,10 @@ def _residual_warnings(result, floor):
         if floor.status[j - 1] == 'filtered':
             out.append(Note(floor.describe(j) + '; the residual cannot be compared with it',
                             'noise_floor', j))
-        elif np.isfinite(sig) and np.isfinite(fl) and fl > 0 and sig > RESIDUAL_WARN_RATIO * fl:
+            continue
+        if floor.status[j - 1] == 'upper bound':
+            out.append(Note(floor.describe(j), 'noise_floor', j))
+        if np.isfinite(sig) and np.isfinite(fl) and fl > 0 and sig > RESIDUAL_WARN_RATIO * fl:
             out.append(Note(f'sensor {j}: the model leaves {sig:.1f} nT of residual per axis, '
                             f'{sig / fl:.1f} x the noise floor of its data ({fl:.2f} nT): an '
                             'effect is missing (run diagnose) or the data are inconsistent',

@@ -113,6 +113,11 @@ def test_fit_and_diagnose_report_the_same_floor():
     for j in ('1', '3', '4'):
         assert abs(per[j] - SD) < 0.3, per
     assert 'scalar residual' in run.summary['noise_floor_method']['1']
+    # and it says the floor is an upper bound that holds an attitude-following effect
+    assert set(run.summary['noise_floor_status'].values()) == {'upper bound'}
+    notes = [w for w in run.summary['warnings'] if w['kind'] == 'noise_floor']
+    assert [w['sensor'] for w in notes] == [1, 2, 3, 4]
+    assert 'upper bound' in notes[0]['text']
 
 
 def test_tensor_floor_from_the_data_not_from_the_inflated_sigma():

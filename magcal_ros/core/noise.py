@@ -273,7 +273,9 @@ class NoiseFloor:
     reliable : numpy.ndarray
         (S,) bool: status ``'white'``.
     status : tuple of str
-        Per sensor ``'white'``, ``'filtered'`` or ``'upper bound'`` (:class:`NoiseEstimate`).
+        Per sensor ``'white'``, ``'filtered'`` or ``'upper bound'`` (:class:`NoiseEstimate`;
+        also when the floor had to come from the model's residual, which holds any missing
+        effect that follows the attitude when the attitudes are not smooth in time).
     lower_nt, upper_nt : numpy.ndarray
         (S,) the range the data support, nT (0 and inf when a side is unknown; both equal
         ``per_sensor_nt`` for white noise).
@@ -315,6 +317,11 @@ class NoiseFloor:
             return (f'sensor {j}: the series is low-pass filtered (its spectrum falls '
                     'towards Nyquist and the difference estimates keep falling with the '
                     f'order): no white noise floor; the noise sd is {rng}')
+        if self.method[k].startswith('scalar residual'):
+            return (f'sensor {j}: the attitudes are not smooth in time at the sample rate, so '
+                    f"the floor comes from the model's residual ({v:.3g} nT): an upper bound "
+                    'that includes any missing effect following the attitude (record a '
+                    'continuous rotation for a model-free floor)')
         return (f'sensor {j}: the signal is not smooth at the sample rate; the noise floor is '
                 f'at most {v:.3g} nT')
 
@@ -379,6 +386,12 @@ def data_noise_floor(data, result=None):
             upper[j] = (float(result.sigma_nt[j]) if result is not None else np.inf)
             upper[j] = max(upper[j], lower[j])
         elif status[j] == 'upper bound':
+            lower[j] = 0.0
+        elif source[j] != 'raw':
+            # the attitudes are not smooth in time, so the floor comes from the model's
+            # residual: a missing effect that follows the attitude is not removed by the
+            # differences and is in it (random attitudes with a temperature effect)
+            status[j] = 'upper bound'
             lower[j] = 0.0
     tails = np.empty(s)
     for j in range(s):
