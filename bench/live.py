@@ -8,8 +8,14 @@ each rate (Hz per sensor, 4 sensors), three processes run on this machine:
 - the node under test;
 - a publisher (bench/live_load.py --role pub) of synthetic raw samples, one per sensor
   every 1/rate s, sequence number in ``header.frame_id``, publish time in the stamp;
-- a receiver (--role sub) of ``sensor{j}/corrected`` that measures loss (sequence numbers),
-  output rate and latency (receive time - publish time, p50/p99).
+- a receiver (--role sub) of ``sensor{j}/corrected`` that measures loss (samples stamped in
+  the window that came back; the corrector writes the array frame into frame_id), output
+  rate and latency (receive time - publish time, p50/p99); for ``corrector_gradient`` it
+  also subscribes ``gradient`` and ``gradient_stamped`` (the corrector matches sets and
+  publishes tensors only while someone subscribes them).
+
+The issue-12 figure is the delivered share of the corrector over the relay's, same probe,
+same bench run: ``(1 - loss_corrector) / (1 - loss_relay)``.
 
 DDS stays on loopback (config/fastdds_loopback.xml, SHM + UDPv4 127.0.0.1 only, unicast
 discovery) in a private ROS_DOMAIN_ID.  Each run is bounded (warm-up + window + drain) and
@@ -56,7 +62,7 @@ def node_cmd(kind, calfile):
         return [PY, RELAY, '--ros-args', '-r', f'__ns:={NS}']
     if kind == 'relay_reliable':
         return [PY, RELAY, '--ros-args', '-r', f'__ns:={NS}', '-p', 'reliable_depth:=100']
-    if kind == 'corrector':
+    if kind in ('corrector', 'corrector_gradient'):
         return [PY, '-m', 'magcal_ros.ros.corrector_node', '--ros-args', '-r', f'__ns:={NS}',
                 '-p', f'calibration_file:={calfile}']
     raise ValueError(kind)
@@ -99,7 +105,8 @@ def run_one(kind, rate, args, env, calfile, log_dir):
                        '--match-timeout', str(args.match_timeout)]
         if args.tick:
             common_args += ['--tick', str(args.tick)]
-        sub = common.popen([PY, LOAD, '--role', 'sub'] + common_args, env=env,
+        gradient = ['--gradient'] if kind == 'corrector_gradient' else []
+        sub = common.popen([PY, LOAD, '--role', 'sub'] + common_args + gradient, env=env,
                            stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                            stderr=subprocess.DEVNULL, text=True)
         procs.append(sub)
@@ -141,6 +148,8 @@ def run_one(kind, rate, args, env, calfile, log_dir):
         if 'error' in pb or 'error' in sb:
             result['error'] = pb.get('error') or sb.get('error')
             return result
+        if 'gradient_messages' in sb:
+            result['gradient_messages'] = sb['gradient_messages']
         result.update(published=pb['published'], publish_rate_hz=pb['publish_rate_hz'],
                       offered_rate_hz=pb['offered_rate_hz'],
                       publish_lag_max_ms=pb['publish_lag_max_ms'], received=sb['received'],
@@ -195,7 +204,9 @@ def main(argv=None):
                     help='runs per node and rate in the search (a rate passes if one does)')
     ap.add_argument('--no-search', action='store_true')
     ap.add_argument('--nodes', nargs='+', default=['relay', 'corrector'],
-                    choices=['relay', 'corrector', 'relay_reliable'])
+                    choices=['relay', 'corrector', 'corrector_gradient', 'relay_reliable'],
+                    help='corrector_gradient: the receiver also subscribes both gradient '
+                    'topics (the corrector then matches sets and publishes tensors)')
     ap.add_argument('--duration', type=float, default=10.0, help='measured window, s')
     ap.add_argument('--warmup', type=float, default=2.0, help='s')
     ap.add_argument('--drain', type=float, default=1.0, help='s')
@@ -273,19 +284,24 @@ def main(argv=None):
                       title=f'Corrector vs relay, 4 sensors: medians of {args.repeats} '
                       f'interleaved runs (window {args.duration:g} s after {args.warmup:g} s '
                       'warm-up)')
+    # the issue's figure: the share of the probe's samples that came back corrected over the
+    # share the relay passes back (same probe, same run of the bench, separate processes)
     ratios = {}
-    for rate in args.rates:
-        c = [a for a in agg if a['node'] == 'corrector' and a['rate_hz'] == rate]
-        rl = [a for a in agg if a['node'] == 'relay' and a['rate_hz'] == rate]
-        if c and rl and c[0].get('output_rate_hz') and rl[0].get('output_rate_hz'):
-            ratios[f'{rate:g}'] = {'median': c[0]['output_rate_hz'] / rl[0]['output_rate_hz'],
-                                   'best': c[0]['output_rate_best_hz']
-                                   / rl[0]['output_rate_best_hz']}
+    for kind in [k for k in args.nodes if k.startswith('corrector')]:
+        for rate in args.rates:
+            c = [a for a in agg if a['node'] == kind and a['rate_hz'] == rate]
+            rl = [a for a in agg if a['node'] == 'relay' and a['rate_hz'] == rate]
+            if c and rl and c[0].get('output_rate_hz') and rl[0].get('output_rate_hz'):
+                ratios[f'{kind} {rate:g}'] = {
+                    'delivered': (1 - c[0]['loss_median']) / (1 - rl[0]['loss_median']),
+                    'median': c[0]['output_rate_hz'] / rl[0]['output_rate_hz'],
+                    'best': c[0]['output_rate_best_hz'] / rl[0]['output_rate_best_hz']}
     tables = [t1]
     if ratios:
         tables.append(common.table(
-            ['Hz/sensor', 'output rate corrector / relay (medians)', '(best runs)'],
-            [[k, v['median'], v['best']] for k, v in ratios.items()]))
+            ['node Hz/sensor', 'delivered share node / relay (medians)',
+             'output rate node / relay (medians)', '(best runs)'],
+            [[k, v['delivered'], v['median'], v['best']] for k, v in ratios.items()]))
     curve = {}
     for r in all_runs:
         if r.get('loss') is not None:

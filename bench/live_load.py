@@ -74,6 +74,9 @@ def main(argv=None):
     ap.add_argument('--drain', type=float, default=1.0, help='wait for stragglers, s')
     ap.add_argument('--match-timeout', type=float, default=30.0)
     ap.add_argument('--topic-in', default='corrected', help='received topic suffix')
+    ap.add_argument('--gradient', action='store_true',
+                    help='sub: also subscribe gradient and gradient_stamped (counted), as a '
+                    'user of the tensor does: the corrector matches sets only then')
     args = ap.parse_args(argv)
     # hard bound on this process's life, whatever happens to its parent or to DDS
     life = args.match_timeout + 30.0 + args.warmup + args.duration + args.drain + 30.0
@@ -116,6 +119,20 @@ def main(argv=None):
     subs = [node.create_subscription(MagneticField, f'sensor{j}/{args.topic_in}',
                                      make_cb(j - 1), SUB_QOS, raw=True)
             for j in range(1, s + 1)] if do_sub else []
+    n_gradient = [0]
+    if do_sub and args.gradient:
+        from std_msgs.msg import Float64MultiArray
+
+        def count(_):
+            n_gradient[0] += 1
+        subs.append(node.create_subscription(Float64MultiArray, 'gradient', count, SUB_QOS,
+                                             raw=True))
+        try:
+            from magcal_interfaces.msg import GradientTensorStamped
+            node.create_subscription(GradientTensorStamped, 'gradient_stamped', count,
+                                     SUB_QOS, raw=True)
+        except ImportError:
+            pass
     pubs = [node.create_publisher(MagneticField, f'sensor{j}/raw', PUB_QOS)
             for j in range(1, s + 1)] if do_pub else []
     executor = SingleThreadedExecutor()
@@ -197,6 +214,8 @@ def main(argv=None):
             rt = recv_t[j]
             in_win += int(((rt >= t_meas0) & (rt < t_stop)).sum())
         lat = np.concatenate(lats)
+        if args.gradient:
+            out['gradient_messages'] = n_gradient[0]
         out.update(received=got, output_rate_hz=in_win / args.duration,
                    duplicates_or_unknown=int(sum(extra)), latency_ms=_percentiles(lat))
         if do_pub:

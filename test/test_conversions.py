@@ -204,3 +204,18 @@ def test_unchecked_tensor_message_is_the_same():
     assert conv.tensor_to_msg(g, check=False) == conv.tensor_to_msg(g)
     with pytest.raises(ValueError, match='finite'):
         conv.tensor_to_msg(g * np.nan)
+
+
+def test_linear_correction_in_tesla_equals_the_one_in_nanotesla():
+    """correct_msg_linear: A^-1 (raw - o) applied to tesla values, checked by hand in nT."""
+    a_inv = np.array([[1.02, 0.01, -0.003], [0.0, 0.97, 0.02], [0.005, 0.0, 1.01]])
+    offset_nt = np.array([120.0, -80.0, 30.0])
+    raw_nt = np.array([21000.0, -4000.0, 43000.0])
+    msg = conv.field_nt_to_msg(raw_nt, stamp=12.5, frame_id='fluxgate2')
+    cov = conv.covariance_to_t2(np.eye(3) * 4.0)
+    conv.correct_msg_linear(msg, conv.linear_to_t(a_inv, offset_nt), cov)
+    d = raw_nt - offset_nt
+    expected = [sum(a_inv[i, k] * d[k] for k in range(3)) for i in range(3)]
+    np.testing.assert_allclose(conv.msg_to_field_nt(msg), expected, rtol=1e-12)
+    np.testing.assert_allclose(msg.magnetic_field_covariance, np.eye(3).ravel() * 4e-18)
+    assert msg.header.frame_id == 'fluxgate2' and msg.header.stamp.sec == 12

@@ -164,6 +164,16 @@ class LiveCorrector:
         return np.stack([self.cal.array_shift(j, ctx)[0]
                          for j in range(1, self.n_sensors + 1)])
 
+    def linear(self, j):
+        """(A_j^-1 (3, 3), offset (3,) nT) when sensor j's correction is that alone, else None.
+
+        For a sensor without driven effects the correction is A_j^-1 (raw - o_j), the same in
+        any unit of the field: a caller may apply it to readings in tesla (the corrector's
+        fast path) after converting the offset.  No field-rate state is kept on that path.
+        """
+        s = self._sensors[j - 1]
+        return None if s.driven else (s.a_inv.copy(), s.offset.copy())
+
     def covariance_nt2(self, j):
         """(3, 3) covariance of sensor j's corrected field, nT^2 (None: no noise estimate)."""
         return self._sensors[j - 1].cov_nt2

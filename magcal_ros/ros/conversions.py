@@ -208,6 +208,49 @@ def set_field_nt(msg, field_nt, covariance_t2):
     msg.magnetic_field_covariance = covariance_t2
 
 
+def linear_to_t(a_inv, offset_nt):
+    """A linear correction A^-1 (raw - o) prepared for readings in tesla.
+
+    Parameters
+    ----------
+    a_inv : numpy.ndarray
+        (3, 3) A^-1, no unit.
+    offset_nt : numpy.ndarray
+        (3,) offset o, nT.
+
+    Returns
+    -------
+    tuple
+        (rows of A^-1 as three 3-tuples of float, o in T as a 3-tuple): the argument of
+        :func:`correct_msg_linear`.
+    """
+    rows = tuple(tuple(float(v) for v in row) for row in np.asarray(a_inv, np.float64))
+    return rows, tuple(float(v) for v in nt_to_t(np.asarray(offset_nt, np.float64)))
+
+
+def correct_msg_linear(msg, linear_t, covariance_t2):
+    """Correct a ``MagneticField`` in place: field <- A^-1 (field - o) in T, new covariance.
+
+    The corrector's hot path for sensors without driven effects: plain float arithmetic
+    (numpy costs more than the nine products for one 3-vector), header left as it is.
+
+    Parameters
+    ----------
+    msg : sensor_msgs.msg.MagneticField
+    linear_t : tuple
+        From :func:`linear_to_t`.
+    covariance_t2 : numpy.ndarray
+        (9,) row-major covariance in T^2 (:func:`covariance_to_t2`).
+    """
+    (r0, r1, r2), (ox, oy, oz) = linear_t
+    v = msg.magnetic_field
+    x, y, z = v.x - ox, v.y - oy, v.z - oz
+    v.x = r0[0] * x + r0[1] * y + r0[2] * z
+    v.y = r1[0] * x + r1[1] * y + r1[2] * z
+    v.z = r2[0] * x + r2[1] * y + r2[2] * z
+    msg.magnetic_field_covariance = covariance_t2
+
+
 def msg_to_field_nt(msg):
     """Return the field of a ``sensor_msgs/MagneticField`` in nanotesla.
 

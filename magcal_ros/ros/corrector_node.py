@@ -43,10 +43,10 @@ from magcal_ros.core.live import LiveCorrector, MissingSignal
 from magcal_ros.io.calfile import CalibrationFileError, load_calibration, parse_calibration
 from magcal_ros.ros import params as prm
 from magcal_ros.ros.calibration_node import RESULT_QOS, SENSOR_QOS
-from magcal_ros.ros.conversions import (covariance_to_t2, fill_gradient_stamped,
-                                        gradient_covariance_to_t2, msg_to_field_nt,
-                                        set_field_nt, stamp_to_seconds, tensor_to_msg,
-                                        transform_msg)
+from magcal_ros.ros.conversions import (correct_msg_linear, covariance_to_t2,
+                                        fill_gradient_stamped, gradient_covariance_to_t2,
+                                        linear_to_t, msg_to_field_nt, set_field_nt,
+                                        stamp_to_seconds, tensor_to_msg, transform_msg)
 from magcal_ros.ros.run import DEFAULT_NAMESPACE, spin_node
 import numpy as np
 from rclpy.node import Node
@@ -93,6 +93,8 @@ class CorrectorNode(Node):
         self._temp = np.full(self._n, np.nan)
         self._aux = {}
         self._cov_t2 = [None] * self._n          # per sensor (9,) T^2 of the active calibration
+        self._fast = [None] * self._n            # per sensor linear_to_t() or None (see _raw_cb)
+        self._gradient_on = False                # the set matcher is being fed
         self._grad_cov_t2 = None                # (81,) (T/m)^2
         self._counts = np.zeros(self._n, int)     # corrected samples published per sensor
         self._received = 0                          # raw samples taken (all sensors)
@@ -153,10 +155,22 @@ class CorrectorNode(Node):
             self._update_site_shift()
         return result
 
+    def _update_fast_path(self):
+        """Sensors corrected in tesla by A^-1 (raw - o) alone (no driven effect, no shift)."""
+        live = self._live
+        self._fast = [None] * self._n
+        if live is None or self._site_shift is not None:
+            return
+        for j in range(1, self._n + 1):
+            lin = live.linear(j)
+            if lin is not None:
+                self._fast[j - 1] = linear_to_t(*lin)
+
     def _update_site_shift(self):
         live = self._live
         self._site_shift = (live.site_shift(self._site_attitude)
                             if self._subtract_site and live is not None else None)
+        self._update_fast_path()
 
     # -- calibrations ----------------------------------------------------------------------
 
@@ -255,6 +269,22 @@ class CorrectorNode(Node):
                 self._live.set_aux(column, msg.data)
         return cb
 
+    def _gradient_wanted(self):
+        """True while someone subscribes a gradient topic (checked per sample: ~1 us).
+
+        Without subscribers the sets are not matched at all (the matcher is half the
+        corrector's Python work); when the first subscriber appears the matcher starts
+        afresh (its queues would hold samples from before).
+        """
+        on = self._publish_gradient and (
+            self._pub_grad.get_subscription_count() > 0 or (
+                self._pub_stamped is not None
+                and self._pub_stamped.get_subscription_count() > 0))
+        if on and not self._gradient_on and self._live is not None:
+            self._live.matcher.reset()
+        self._gradient_on = on
+        return on
+
     def _raw_cb(self, j):
         pub = self._pub_corr[j]
         sensor = j + 1
@@ -266,24 +296,32 @@ class CorrectorNode(Node):
             if live is None or not (math.isfinite(v.x) and math.isfinite(v.y)
                                     and math.isfinite(v.z)):
                 return
-            t = stamp_to_seconds(msg.header.stamp)
-            try:
-                b = live.correct(sensor, t, msg_to_field_nt(msg))
-            except MissingSignal as exc:
-                self._missing[j] = str(exc)
-                return
-            if j in self._missing:
-                del self._missing[j]
-            if self._site_shift is not None:
-                b = b - self._site_shift[j]         # stationary test: the anomaly only
+            fast = self._fast[j]
+            gradient = self._gradient_wanted() and live.gradient_op is not None
             # the incoming message becomes the outgoing one: same stamp, the array frame,
             # corrected field and its covariance (a new message per sample cost ~10 us, a
             # quarter of the Python work of the callback; bench/live.py)
-            set_field_nt(msg, b, self._cov_t2[j])
+            if fast is not None:
+                # A^-1 (raw - o) on the tesla values: no numpy, no unit round trip
+                correct_msg_linear(msg, fast, self._cov_t2[j])
+                b = msg_to_field_nt(msg) if gradient else None
+                t = stamp_to_seconds(msg.header.stamp) if gradient else None
+            else:
+                t = stamp_to_seconds(msg.header.stamp)
+                try:
+                    b = live.correct(sensor, t, msg_to_field_nt(msg))
+                except MissingSignal as exc:
+                    self._missing[j] = str(exc)
+                    return
+                if j in self._missing:
+                    del self._missing[j]
+                if self._site_shift is not None:
+                    b = b - self._site_shift[j]         # stationary test: the anomaly only
+                set_field_nt(msg, b, self._cov_t2[j])
             msg.header.frame_id = self._frame
             pub.publish(msg)
             self._counts[j] += 1
-            if self._publish_gradient:
+            if gradient:
                 for t_set, g in live.gradients(sensor, t, b):
                     self._pub_grad.publish(tensor_to_msg(g, check=False))
                     if self._pub_stamped is not None:
