@@ -229,7 +229,9 @@ def cmd_fit(args):
                   'uncertainty):')
             for row, srow in zip(g, se):
                 print('  ' + '  '.join(f'{v:9.2f} +- {e:5.2f}' for v, e in zip(row, srow)))
-        print(f'noise floor (from the data): {s["noise_floor_nt"]:.2f} nT')
+        kinds = sorted(set(s['noise_floor_status'].values()) - {'white'})
+        print(f'noise floor (from the data): {s["noise_floor_nt"]:.2f} nT'
+              + (f' ({" / ".join(kinds)}: see the noise_floor warnings)' if kinds else ''))
         if out and not refused:
             print(f'calibration written to {out}')
     if refused:
