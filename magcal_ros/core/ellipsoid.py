@@ -51,22 +51,6 @@ def reading_plane(raw):
     return n if n[np.argmax(np.abs(n))] > 0 else -n
 
 
-def _centre_of(v):
-    return -np.linalg.solve(_quadric_matrix(v), v[6:9])
-
-
-def _centre_cov(sv, vt, n_rows):
-    """(3, 3) first-order covariance of the centre (eq. 12) of the SVD solution, scaled
-    frame: Cov(v) = sigma^2 sum_k vt_k vt_k^T / sv_k^2 (see quadric_definiteness), mapped
-    through the centre's derivative along each singular direction (finite differences)."""
-    v = vt[-1]
-    sigma2 = sv[-1] ** 2 / max(1, n_rows - len(sv) + 1)
-    c0 = _centre_of(v)
-    h = 1e-7
-    cols = np.array([(_centre_of(v + h * vt[k]) - c0) / h for k in range(len(sv) - 1)])
-    return sigma2 * (cols / sv[:-1, None] ** 2).T @ cols
-
-
 def _quadric_matrix(v):
     """(3, 3) matrix of the quadratic part of eq. 8's coefficients v (10,) (eq. 11)."""
     return np.array([[v[0], v[5], v[4]], [v[5], v[1], v[3]], [v[4], v[3], v[2]]])
@@ -152,16 +136,12 @@ class EllipsoidFit:
         (10,) ellipsoid coefficients (a, b, c, f, g, h, p, q, r, d) of eq. 8, unit norm.
     residual_nt : numpy.ndarray
         (N,) |C^-1 (m - b)| - |B| in nT.
-    b_cov : numpy.ndarray or None
-        (3, 3) nT^2 first-order noise covariance of ``b`` (the algebraic fit's own
-        uncertainty, see :func:`quadric_definiteness`).
     """
 
     c_inv: np.ndarray
     b: np.ndarray
     coeffs: np.ndarray
     residual_nt: np.ndarray
-    b_cov: np.ndarray = None
 
     def correct(self, raw):
         """Paper 004 eq. 5: B = C^-1 (Bm - b); raw (N, 3) nT -> (N, 3) nT."""
@@ -247,8 +227,7 @@ def fit_ellipsoid(raw, field_nt, normalization='svd'):
     c_inv = np.linalg.cholesky(a_nt).T            # (C^-1)^T C^-1 = A, C^-1 upper triangular
     coeffs = v / np.linalg.norm(v)
     res = np.linalg.norm((m - b) @ c_inv.T, axis=1) - field_nt
-    return EllipsoidFit(c_inv=c_inv, b=b, coeffs=coeffs, residual_nt=res,
-                        b_cov=_centre_cov(sv, vt, len(m)) * s0 ** 2)
+    return EllipsoidFit(c_inv=c_inv, b=b, coeffs=coeffs, residual_nt=res)
 
 
 def procrustes_rotation(reference, other):

@@ -23,13 +23,18 @@ PARTIAL_EIG = 0.02
 #: rotation about that axis with hand wobble (the shared hand-held single-axis recordings:
 #: 0.002-0.011), not a partial coverage (a vehicle tilting +-15 deg: 0.09)
 RING_RATIO = 0.015
-#: the fitted centre is used only when its noise standard deviation is below this fraction
-#: of the radius (a full sphere at SNR 10 with 1 500 readings: about 0.005)
-CENTRE_SD_REL = 0.02
 #: the sphere cross-check of the coverage applies where the sphere's relative radial residual
 #: variance is below this multiple of the ellipsoid's (the sphere fits as well as the ellipsoid
 #: up to the 6 extra parameters' share of the noise)
 SPHERE_VAR_FACTOR = 4.0
+#: an ellipsoid whose longest axis exceeds its shortest by more than this is not a
+#: sensor's (real ones: 1.1-1.3) but a fit bent to a partial set of directions (a cap of
+#: 30-55 deg gives 2.3-3.3): its centre is not used
+MAX_AXIS_RATIO = 1.6
+#: readings scattered radially by more than this fraction of the fitted radius (SNR < 4)
+#: fill a cloud rather than lie on a shell: a still sensor's noise, whose "ellipsoid" has
+#: the noise for radius (a Gaussian cloud: 0.42)
+MAX_RADIAL_SCATTER = 0.25
 #: parameter correlations above this make the pair inseparable
 MAX_CORRELATION = 0.995
 #: condition number of the correlation matrix above which the solution is unreliable
@@ -41,23 +46,24 @@ def fitted_centre(m):
 
     Returns
     -------
-    (numpy.ndarray, float) or None
-        Centre (3,) nT (the hard-iron offset, paper 004 eq. 12) and the relative noise
-        variance of the readings about the ellipsoid, ``var(radial residual / radius)``.
+    (numpy.ndarray, float, float) or None
+        Centre (3,) nT (the hard-iron offset, paper 004 eq. 12), the relative noise
+        variance of the readings about the ellipsoid, ``var(radial residual / radius)``,
+        and the ratio of its longest to its shortest axis (1.1-1.3 for real sensors).
         None when :func:`magcal_ros.core.ellipsoid.fit_ellipsoid` finds the ellipsoid not
         determined against the noise (the fitted quadric not definite beyond its own
-        uncertainty), or when the centre's own noise uncertainty (largest standard
-        deviation) exceeds :data:`CENTRE_SD_REL` of the radius.
+        uncertainty), or when the readings scatter about it by more than
+        :data:`MAX_RADIAL_SCATTER` of its radius (they fill a cloud, not a shell).  A centre that the ellipsoid bends to (a cap of directions) is
+        caught by the cross-check with the sphere's centre in :func:`classify_coverage`.
     """
     try:
         ell = fit_ellipsoid(m, 1.0)
     except (ValueError, np.linalg.LinAlgError):
         return None
-    radius = float(np.median(np.linalg.norm(m - ell.b, axis=1)))
-    sd = float(np.sqrt(max(np.linalg.eigvalsh(ell.b_cov).max(), 0.0)))
-    if not sd < CENTRE_SD_REL * radius:
-        return None
-    return ell.b, float(np.var(ell.residual_nt))
+    if np.std(ell.residual_nt) > MAX_RADIAL_SCATTER:
+        return None             # a cloud of noise (a sensor lying still), not a shell
+    axes = np.linalg.svd(ell.c_inv, compute_uv=False)
+    return ell.b, float(np.var(ell.residual_nt)), float(axes[0] / axes[-1])
 
 
 def _fmt_axis(v):
@@ -91,10 +97,14 @@ def classify_coverage(m):
     fitted = fitted_centre(m)
     noise_eig = 0.0
     if fitted is not None:
-        centre, noise_eig = fitted
+        centre, noise_eig, axis_ratio = fitted
+        if axis_ratio > MAX_AXIS_RATIO:
+            # no magnetometer is that anisotropic: the ellipsoid bent to a partial set of
+            # directions (a cap) and its centre is not the offset; use the sphere's
+            centre = _sphere_centre(m)
     else:
-        # no centre: the raw directions (about the origin) tell whether the sensor turned
-        # at all; readings on one plane are a rotation about its normal
+        # no ellipsoid: the raw directions (about the origin) tell whether the sensor
+        # turned at all; readings on one plane (a ring) are a rotation about its normal
         plane = reading_plane(m)
         cov = direction_coverage(m)
         ev = cov.eigenvalues
@@ -107,9 +117,12 @@ def classify_coverage(m):
             return dict(status='one attitude', eigenvalues=ev, normal=cov.normal,
                         cone_half_angle_deg=cov.cone_half_angle_deg, centre_nt=None,
                         message=None)
-        centre = np.zeros(3)
+        # the sensor turned, but the ellipsoid is not determined: judge about the centre
+        # of the least-squares sphere (the origin would be arbitrary: with an offset near
+        # the field it lies close to the readings and makes any cap look wide)
+        centre = _sphere_centre(m)
     out = _judge(m, centre, noise_eig)
-    if out['status'] == 'good' and fitted is not None:
+    if out['status'] == 'good' and fitted is not None and axis_ratio <= MAX_AXIS_RATIO:
         # cross-check with the least-squares sphere's centre (4 parameters, stable on a
         # cap where the 10-parameter ellipsoid can bend to a wrong centre): a partial
         # coverage must not pass as good
