@@ -371,3 +371,13 @@ def test_fluxgate_sim_site_gradient_option(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         sim_node.resolve_settings(['--site-gradient', '1,2'])
     assert exc.value.code == 2 and 'five numbers' in capsys.readouterr().err
+
+
+def test_diagnose_names_site_gradient():
+    """The workbench ranks the missing effect: with attitude, site_gradient (array-wide, one
+    token, no @j) is the verdict of a base model in a site gradient."""
+    from magcal_ros.core.diagnose import diagnose
+    data, _ = make_data(n=1500, seed=6, smooth_period_s=10.0)
+    doc = json.loads(diagnose(data, Model.from_spec('base', 4), field_nt=FIELD_NT).to_json())
+    assert doc['verdict']['token'] == 'site_gradient', doc['verdict']
+    assert not any(c['effect'].startswith('site_gradient@') for c in doc['candidates'])

@@ -266,6 +266,14 @@ def candidate_tokens(model, data):
     names += ['aux:' + c for c in sorted(data.aux)]
     out = []
     for name in names:
+        if getattr(fx._REGISTRY.get(name), 'scope', 'sensor') == 'array':
+            # one effect of the whole array (site_gradient): offered once, when the data
+            # have what it reads (the attitude)
+            eff = fx.make_effect(name, 0)
+            if (name not in {e.name for e in model.array_effects} and s >= 3
+                    and all(data.context(1).has(sig) for sig in eff.signals)):
+                out.append((name, name, None))
+            continue
         free = []
         for j in range(1, s + 1):
             eff = fx.make_effect(name, j)
@@ -386,7 +394,8 @@ class _Screen:
         n = len(self.f)
         for g in self.groups:
             grp = g['sensors']
-            idx = [i for i in np.flatnonzero(added) if info[i][0] in grp]
+            # sensor 0: a parameter of the whole array (site_gradient), in every sensor's rows
+            idx = [i for i in np.flatnonzero(added) if info[i][0] in grp or info[i][0] == 0]
             if not idx:
                 continue
             k = len(idx)
@@ -396,7 +405,7 @@ class _Screen:
             ctr = np.zeros(k)                    # C^T r
             gtc = np.zeros((n, 2, k))            # G^T C per epoch
             for gi, j in enumerate(grp):
-                cols = [c for c, i in enumerate(idx) if info[i][0] == j]
+                cols = [c for c, i in enumerate(idx) if info[i][0] in (j, 0)]
                 if not cols:
                     continue
                 fwd = m_ext.forward(j, p_ext, g['b'], self.ctx[j - 1])

@@ -921,7 +921,11 @@ def _find(data, result, *, baseline_m=0.5, alpha=ALPHA, corrected=None, field=No
     Findings
     """
     t = np.asarray(data.t, float)
-    corrected = np.asarray(result.corrected_nt if corrected is None else corrected, float)
+    if corrected is None:
+        # the field where each sensor is, minus a modelled site gradient (site_gradient)
+        from magcal_ros.core.site_gradient import centred_fields
+        corrected = centred_fields(result)
+    corrected = np.asarray(corrected, float)
     field_ = np.asarray(result.field_nt if field is None else field, float)
     s, n = corrected.shape[:2]
     scalar = np.asarray(result.scalar_residual_nt, float)
