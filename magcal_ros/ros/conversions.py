@@ -285,7 +285,7 @@ def msg_to_covariance_nt2(msg):
     return t_to_nt(t_to_nt(cov_t2))
 
 
-def tensor_to_msg(gradient_nt_per_m, check=True):
+def tensor_to_msg(gradient_nt_per_m, check=True, out=None):
     """Build the gradient-tensor ``std_msgs/Float64MultiArray`` (T/m) from nT/m.
 
     Parameters
@@ -304,6 +304,9 @@ def tensor_to_msg(gradient_nt_per_m, check=True):
     ValueError
         If the tensor is not a finite (3, 3) array (checked unless ``check`` is False, for
         the corrector's hot path, where it is the product of finite corrected fields).
+
+    ``out``: a message this function built before, reused (only its data are replaced: the
+    corrector publishes one message object per tensor, serialised at publish).
     """
     g = np.asarray(gradient_nt_per_m, dtype=np.float64)
     if check:
@@ -312,8 +315,10 @@ def tensor_to_msg(gradient_nt_per_m, check=True):
                              f'{g.shape}')
         if not np.all(np.isfinite(g)):
             raise ValueError('gradient tensor must be finite')
-    msg = Float64MultiArray()
-    msg.layout = _tensor_layout()
+    msg = out
+    if msg is None:
+        msg = Float64MultiArray()
+        msg.layout = _tensor_layout()
     msg.data = nt_to_t(g).reshape(9).tolist()
     return msg
 
@@ -344,8 +349,9 @@ def fill_gradient_stamped(msg, stamp, frame_id, gradient_nt_per_m, covariance_t2
         The array frame.
     gradient_nt_per_m : numpy.ndarray
         (3, 3) finite tensor G[i, k] = dB_i / dx_k, nT/m.
-    covariance_t2 : numpy.ndarray
-        (81,) row-major covariance in (T/m)^2 from :func:`gradient_covariance_to_t2`.
+    covariance_t2 : numpy.ndarray or None
+        (81,) row-major covariance in (T/m)^2 from :func:`gradient_covariance_to_t2`; None
+        leaves the message's covariance as it is (a reused message).
 
     Returns
     -------
@@ -354,7 +360,8 @@ def fill_gradient_stamped(msg, stamp, frame_id, gradient_nt_per_m, covariance_t2
     msg.header.stamp = to_stamp(stamp)
     msg.header.frame_id = frame_id
     msg.tensor = nt_to_t(np.asarray(gradient_nt_per_m, np.float64)).reshape(9)
-    msg.tensor_covariance = covariance_t2
+    if covariance_t2 is not None:
+        msg.tensor_covariance = covariance_t2
     return msg
 
 

@@ -103,6 +103,8 @@ class CorrectorNode(Node):
         self._pub_corr = [self.create_publisher(MagneticField, f'sensor{j}/corrected', 10)
                           for j in range(1, self._n + 1)]
         self._pub_grad = self.create_publisher(Float64MultiArray, 'gradient', 10)
+        self._grad_msg = tensor_to_msg(np.zeros((3, 3)))          # reused per tensor
+        self._stamped_msg = None
         # the stamped gradient needs the message package magcal_interfaces (interfaces/,
         # README); without it the node says so once and publishes the rest
         self._stamped_cls, reason = _optional('magcal_interfaces.msg', 'GradientTensorStamped')
@@ -185,6 +187,10 @@ class CorrectorNode(Node):
         # validated and converted once, not per message (it was 70 % of the callback)
         self._cov_t2 = [covariance_to_t2(live.covariance_nt2(j)) for j in range(1, self._n + 1)]
         self._grad_cov_t2 = gradient_covariance_to_t2(live.gradient_cov_nt2)
+        if self._stamped_cls is not None:
+            # one message object per tensor topic, reused: its covariance is set here once
+            self._stamped_msg = self._stamped_cls()
+            self._stamped_msg.tensor_covariance = self._grad_cov_t2
         self._live = live
         self._model = list(doc.get('model') or cal.model.spec())
         self._created = str((doc.get('provenance') or {}).get('created', 'unknown time'))
@@ -323,10 +329,10 @@ class CorrectorNode(Node):
             self._counts[j] += 1
             if gradient:
                 for t_set, g in live.gradients(sensor, t, b):
-                    self._pub_grad.publish(tensor_to_msg(g, check=False))
+                    self._pub_grad.publish(tensor_to_msg(g, check=False, out=self._grad_msg))
                     if self._pub_stamped is not None:
                         self._pub_stamped.publish(fill_gradient_stamped(
-                            self._stamped_cls(), t_set, self._frame, g, self._grad_cov_t2))
+                            self._stamped_msg, t_set, self._frame, g, None))
                     self._n_gradient += 1
         return cb
 
