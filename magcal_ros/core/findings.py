@@ -56,11 +56,12 @@ The tests:
 - ``nonuniform_field`` (the four-sensor cross of paper 004, :func:`tensor.cross_positions`):
   the inter-sensor residuals ``m_j = c_j - mean_k c_k`` split into the antisymmetric part
   of each arm, ``(m1 - m3) / 2`` and ``(m2 - m4) / 2`` (what a field gradient makes: paper
-  004 eq. 1), and the symmetric part ``(m1 + m3 - m2 - m4) / 4``.  One faulty sensor puts
-  exactly 2/3 of its excess into the antisymmetric part, a gradient all of it; the finding
-  needs at least :data:`MIN_GRADIENT_SHARE`.  The value is the RMS Frobenius norm of the
-  gradient tensor left in the residuals (noise removed), nT/m; the gradient is then taken
-  out of the per-sensor series (smoothed over time) before the per-sensor tests.
+  004 eq. 1), and the symmetric part ``(m1 + m3 - m2 - m4) / 4``.  Noise and the faults of
+  single sensors give mean(antisymmetric^2) = 4 mean(symmetric^2) whatever their time
+  structure; a gradient only the former (F-test, then the effect-size rule).  The value is
+  the RMS Frobenius norm of the gradient tensor left in the residuals (noise and single
+  sensors' faults removed), nT/m; the gradient is then taken out of the per-sensor series
+  (smoothed over time) before the per-sensor tests.
 
 Noise: each series' per-component noise variance is the mean square of its third
 differences / 20 (the white-noise variance for any distribution, heavy tails included;
@@ -88,9 +89,6 @@ MIN_SEGMENT_FRACTION = 0.02
 #: excess kurtosis from which tails count as heavy (a Student t with 10 degrees of freedom;
 #: the sample excess kurtosis of Gaussian noise has sd sqrt(24 / N) = 0.09 at N = 3000)
 MIN_EXCESS_KURTOSIS = 1.0
-#: share of the inter-sensor excess in the antisymmetric (gradient) part that names a
-#: non-uniform field: one sensor's fault gives 2/3, a gradient 1
-MIN_GRADIENT_SHARE = 0.85
 #: a finding on another sensor with the same kind and value is the consensus' echo of the
 #: faulty sensor's if it removes less than this share of the largest one's mean square
 ECHO_RATIO = 0.25
@@ -704,52 +702,57 @@ def _describe(cand, sensor, share):
 # -- the array: a non-uniform field ----------------------------------------------------------
 
 def _gradient(t, corrected, baseline_m, alpha):
-    """(finding or None, (S, N, 3) gradient part per sensor to take out, nT)."""
+    """(finding or None, (S, N, 3) gradient part per sensor to take out, nT).
+
+    With m_j = c_j - mean_k c_k, the arms' antisymmetric parts a_x = (m1 - m3) / 2,
+    a_y = (m2 - m4) / 2 and the symmetric part s = (m1 + m3 - m2 - m4) / 4 obey, for noise
+    and for any fault of one sensor (independent across sensors, of any time structure),
+    E[a_x^2 + a_y^2] = 4 E[s^2] (sensor j's error e_j puts e_j / 2 into one a and e_j / 4
+    into s); a gradient B(r) = B0 + G r puts G r_j into the a's and nothing into s (paper
+    004 eq. 1: r_1 = -r_3, r_2 = -r_4).  The test needs no smoothness in time, so it works
+    for random attitudes too: F-test of A = mean(a_x^2 + a_y^2) against 4 mean(s^2).
+    """
+    from scipy.signal import savgol_filter
     from magcal_ros.core.tensor import tensor_cross
     m = corrected - corrected.mean(axis=0)
     ax = 0.5 * (m[0] - m[2])
     ay = 0.5 * (m[1] - m[3])
     sym = 0.25 * (m[0] + m[2] - m[1] - m[3])
     n = m.shape[1]
-
-    def excess(x):
-        sd = white_noise_sd(x)
-        return float(np.mean(x ** 2) * 3 - np.sum(sd ** 2)) / 3.0, sd
-
-    ex_x, sd_x = excess(ax)
-    ex_y, sd_y = excess(ay)
-    ex_s, _ = excess(sym)
-    anti = 2 * max(ex_x, 0.0) + 2 * max(ex_y, 0.0)
-    total = anti + 4 * max(ex_s, 0.0)
-    if anti <= 0 or total <= 0:
+    a_ms = float(np.mean(ax ** 2) + np.mean(ay ** 2))       # per component
+    s_ms = float(np.mean(sym ** 2))
+    excess = a_ms - 4.0 * s_ms
+    if s_ms <= 0 or excess <= 0:
         return None, None
-    share = anti / total
-    # chi-square of the antisymmetric part over its noise, 6N values
-    chi2 = float(np.sum(ax ** 2 / sd_x ** 2) + np.sum(ay ** 2 / sd_y ** 2))
-    p = float(stats.chi2.sf(chi2, 6 * n))
-    noise = float(np.mean(np.concatenate([sd_x, sd_y]) ** 2))
-    if not (p < alpha and share >= MIN_GRADIENT_SHARE
-            and anti / 4.0 >= MIN_SIGNAL_RATIO * noise):
+    p = float(stats.f.sf(a_ms / (4.0 * s_ms), 6 * n, 3 * n))
+    # effect size: the gradient's mean square per sensor component (excess / 2) against the
+    # sensors' own disagreement per component (4 mean(s^2): the noise when there is no fault)
+    if not (p < alpha and excess / 2.0 >= MIN_SIGNAL_RATIO * 4.0 * s_ms):
         return None, None
+    # share of the arms' excess over their white noise (temporal differences) that only a
+    # gradient explains; for random attitudes the differences count the gradient as noise
+    white = float(np.mean(white_noise_sd(ax) ** 2) + np.mean(white_noise_sd(ay) ** 2))
+    share = excess / max(a_ms - white, excess)
+    # |G|_F^2 of tensor_cross has the noise bias 5 sum_j sigma_j^2 / L^2 = 80 mean(s^2) / L^2
     g = tensor_cross(m, baseline_m)
-    dg = tensor_cross(np.diff(m, axis=1), baseline_m)
-    g2 = float(np.mean(np.sum(g ** 2, axis=(1, 2))) - 0.5 * np.mean(np.sum(dg ** 2,
-                                                                        axis=(1, 2))))
+    g2 = float(np.mean(np.sum(g ** 2, axis=(1, 2)))) - 80.0 * s_ms / baseline_m ** 2
     value = math.sqrt(max(g2, 0.0))
     text = (f'array: the sensors disagree as a field gradient does (opposite sensors of the '
-            f'cross antisymmetric, {100 * share:.0f} % of the inter-sensor excess), about '
-            f'{value:.0f} nT/m left in the residuals (baseline {baseline_m:g} m): the field is '
-            'not uniform over the array (a magnetic object nearby); calibrate where the '
-            'field is uniform, or model the site gradient: add site_gradient with the '
-            'attitude (att_qw..att_qz, an Imu topic) or with --heading-unknown '
+            f'cross antisymmetric: {a_ms / (4 * s_ms):.1f} x what independent sensor errors '
+            f'give), about {value:.0f} nT/m left in the residuals (baseline {baseline_m:g} m): '
+            'the field is not uniform over the array (a magnetic object nearby); calibrate '
+            'where the field is uniform, or model the site gradient: add site_gradient with '
+            'the attitude (att_qw..att_qz, an Imu topic) or with --heading-unknown '
             '(docs/site_gradient.md)')
     f = Finding(kind='nonuniform_field', sensor=None, channel=None, value=value, unit='nT/m',
-                explained_fraction=float(min(1.0, share)), text=text, token='site_gradient',
-                p_value=p, rms_nt=float(math.sqrt(anti / 4.0)))
-    # smoothed over time: the gradient changes with the attitude, the noise does not follow
-    w = max(5, n // 200)
-    gx = ndimage.uniform_filter1d(ax, w, axis=0, mode='nearest')
-    gy = ndimage.uniform_filter1d(ay, w, axis=0, mode='nearest')
+                explained_fraction=float(np.clip(share, 0.0, 1.0)), text=text,
+                token='site_gradient', p_value=p, rms_nt=float(math.sqrt(excess / 2.0)))
+    # smoothed over time (cubic Savitzky-Golay, 11 samples): the gradient changes with the
+    # attitude, the noise of the other sensor of the arm does not follow
+    if n < 11:
+        return f, None
+    gx = savgol_filter(ax, 11, 3, axis=0)
+    gy = savgol_filter(ay, 11, 3, axis=0)
     return f, np.stack([gx, gy, -gx, -gy])
 
 
@@ -934,7 +937,8 @@ def _find(data, result, *, baseline_m=0.5, alpha=ALPHA, corrected=None, field=No
         grad, part = _gradient(t, corrected, baseline_m, alpha)
         if grad is not None:
             array_items.append(grad)
-            corrected = corrected - part
+            if part is not None:
+                corrected = corrected - part
     series, kind = _series(corrected, scalar)
     norm = np.linalg.norm(field_, axis=1, keepdims=True)
     u = field_ / np.where(norm > 0, norm, 1.0) if n >= 30 else None
@@ -973,8 +977,11 @@ def _find(data, result, *, baseline_m=0.5, alpha=ALPHA, corrected=None, field=No
             continue
         keep.append(f)
     if array_items:
-        # a gradient makes every sensor's residual depend on the attitude: not their faults
-        keep = [f for f in keep if f.kind != 'direction']
+        # a gradient makes every sensor's residual depend on the attitude, and what is left
+        # of it shows alike on the two sensors of an arm: not their faults
+        arm = {1: 3, 3: 1, 2: 4, 4: 2}
+        keep = [f for f in keep if f.kind != 'direction' and not any(
+            g.sensor == arm.get(f.sensor) and _same(f, g, t_res, f_res) for g in keep)]
     common = []
     x0 = None
     if kind == 'consensus' and u is not None:
