@@ -648,6 +648,7 @@ def _best_tau_modulated(drv, x, mod):
 
 def _describe(cand, sensor, share):
     """(token or None, text) of a finding on ``sensor`` (None: every sensor alike)."""
+    share = min(share, 1.0)
     j = '' if sensor is None else f'@{sensor}'
     on = (f'sensor {sensor}' if sensor is not None else
           'every sensor alike (in the mean scalar residual)')
@@ -701,7 +702,7 @@ def _describe(cand, sensor, share):
 
 # -- the array: a non-uniform field ----------------------------------------------------------
 
-def _gradient(t, corrected, baseline_m, alpha):
+def _gradient(t, corrected, baseline_m, alpha, drivers=None):
     """(finding or None, (S, N, 3) gradient part per sensor to take out, nT).
 
     With m_j = c_j - mean_k c_k, the arms' antisymmetric parts a_x = (m1 - m3) / 2,
@@ -715,6 +716,13 @@ def _gradient(t, corrected, baseline_m, alpha):
     from scipy.signal import savgol_filter
     from magcal_ros.core.tensor import tensor_cross
     m = corrected - corrected.mean(axis=0)
+    if drivers is not None and len(drivers):
+        # sensors that differ in how a channel (a motor current, a temperature) or time
+        # moves them are not a field gradient of the site: those parts are taken out first
+        n_ = m.shape[1]
+        flat = m.transpose(1, 0, 2).reshape(n_, -1)
+        flat = flat - _regress(flat, drivers)[0]
+        m = flat.reshape(n_, 4, 3).transpose(1, 0, 2)
     ax = 0.5 * (m[0] - m[2])
     ay = 0.5 * (m[1] - m[3])
     sym = 0.25 * (m[0] + m[2] - m[1] - m[3])
@@ -934,7 +942,13 @@ def _find(data, result, *, baseline_m=0.5, alpha=ALPHA, corrected=None, field=No
     scalar = np.asarray(result.scalar_residual_nt, float)
     array_items = []
     if s == 4 and n >= 30:
-        grad, part = _gradient(t, corrected, baseline_m, alpha)
+        cols = [_legendre(t, 3)]
+        for a in list(data.aux.values()) + ([] if data.temp is None else list(data.temp)):
+            a = np.asarray(a, float)
+            if np.all(np.isfinite(a)) and np.ptp(a) > 0:
+                a = (a - a.mean()) / np.std(a)
+                cols.append(np.column_stack([a, a ** 2]))
+        grad, part = _gradient(t, corrected, baseline_m, alpha, np.concatenate(cols, axis=1))
         if grad is not None:
             array_items.append(grad)
             if part is not None:
