@@ -156,6 +156,14 @@ def test_roll_and_tilt_calibrates_the_full_sphere(full_sphere, tmp_path):
     assert b.std() < 0.03 * f
 
 
+@pytest.mark.parametrize('name', [STATIC[0], 'pan-along-z-pointing-up'])
+def test_constrained_mode_does_not_accept_one_attitude(name):
+    """The priors of the constrained mode stand in for attitudes a partial coverage never
+    saw; a sensor that did not turn determines no offset, with or without them."""
+    with pytest.raises(DegenerateDataError, match='same field direction'):
+        fit(hmc(name), 'base', field_nt=54000.0, constrained=True)
+
+
 @pytest.fixture(scope='module')
 def static_floors():
     return {name: float(noise_floor(hmc(name).raw)[0]) for name in STATIC}

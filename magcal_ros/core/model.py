@@ -949,8 +949,16 @@ def _fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=F
     ident = {}
     if check_identifiability:
         ident = idf.check_coverage(raw_all)
-        if ident['problems'] and not constrained:
-            degenerate(ident['problems'][0])
+        problems = ident['problems']
+        if constrained:
+            # the priors stand in for the attitudes a partial or single-axis coverage never
+            # saw; they cannot make up for a sensor that did not turn or is stuck
+            excused = [j for j, v in ident['sensors'].items()
+                       if v['status'] in ('partial', 'single axis')]
+            problems = [p for p in problems
+                        if not any(p.startswith(f'sensor {j}:') for j in excused)]
+        if problems:
+            degenerate(problems[0])
 
     # subsample for the fit
     idx = np.arange(data.n_samples)

@@ -476,8 +476,10 @@ class CalibrationNode(Node):
             for j, v in rep['sensors'].items():
                 out['coverage'][str(j)] = v['status']
                 eigenvalues[str(j)] = [round(float(x), 4) for x in v['eigenvalues']]
-            # the constrained mode is made for a partial coverage: not a missing item then
-            partial = ({j for j, v in rep['sensors'].items() if v['status'] == 'partial'}
+            # the constrained mode is made for a partial or single-axis coverage (as in
+            # model.fit): not a missing item then
+            partial = ({j for j, v in rep['sensors'].items()
+                        if v['status'] in ('partial', 'single axis')}
                        if s.constrained else set())
             missing.extend(p for p in rep['problems']
                            if not any(p.startswith(f'sensor {j}:') for j in partial))
