@@ -677,13 +677,14 @@ class _Problem:
             col += len(block)
         # array-wide parameters (site gradient): every sensor of the group depends on them
         n_arr = len(self.model.array_cols)
+        bases = ([self.model.forward(j, p, b, self.ctx[j - 1]) for j in self.sensors]
+                 if n_arr else [])
         for k, i in enumerate(self.model.array_cols):
             h = 1e-6 * max(1.0, abs(p[i]))
             pp = p.copy()
             pp[i] += h
             for gi, j in enumerate(self.sensors):
-                d = self.model.forward(j, p, b, self.ctx[j - 1]) - self.model.forward(
-                    j, pp, b, self.ctx[j - 1])
+                d = bases[gi] - self.model.forward(j, pp, b, self.ctx[j - 1])
                 jac[:, gi, :, len(self.cols) - n_arr + k] = d / (h * self.sigma[j - 1])
         # project out the nuisance field directions (variable projection)
         u = b / self.f[:, None]
