@@ -8,6 +8,9 @@ to derive tolerances from: each threshold below says where it comes from (the is
 import json
 import pathlib
 import re
+import shutil
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -21,7 +24,8 @@ from magcal_ros.io.csvio import read_csv
 from magcal_ros.io.single_csv import read_single_sensor_csv
 from test_cli import run_cli
 
-SHARED = pathlib.Path(__file__).resolve().parents[1] / '..' / 'shared' / 'data' / 'real'
+REPO = pathlib.Path(__file__).resolve().parents[1]
+SHARED = REPO / '..' / 'shared' / 'data' / 'real'
 HMC = SHARED / 'sunsided-hmc5883l'
 CK = SHARED / 'ck-accmag' / 'acc_mag_log.csv'
 STATIC = ('unmoved-with-x-pointing-forward', 'unmoved-with-x-pointing-forward-10min',
@@ -207,3 +211,20 @@ def test_static_recordings_checked_against_the_full_sphere(full_sphere, tmp_path
     assert any(STATIC[0] in t and STATIC[1] in t and 'same attitude' in t
                for t in d['findings'])
     assert any(STATIC[2] in t and 'the calibration holds there' in t for t in d['findings'])
+
+
+def test_readme_check_commands(tmp_path):
+    """The README's `magcal check` lines, as written (in a directory beside ../shared)."""
+    lines = [ln for ln in (REPO / 'README.md').read_text().splitlines()
+             if ln.startswith('magcal ') and 'sunsided' in ln]
+    assert [ln.split()[1] for ln in lines] == ['fit', 'check']
+    work = tmp_path / 'repo'
+    work.mkdir()
+    (tmp_path / 'shared').symlink_to(SHARED.parent.parent.resolve())
+    magcal = shutil.which('magcal') or f'{sys.executable} -m magcal_ros.cli'
+    for ln in lines:
+        p = subprocess.run(ln.replace('magcal ', magcal + ' ', 1), shell=True, cwd=work,
+                           capture_output=True, text=True, timeout=300)
+        assert p.returncode == 0, p.stderr
+    assert 'the field at the sensor or the sensor\'s offset changed' in p.stdout
+    assert p.stdout.count('nT vs reference') == 4
