@@ -31,6 +31,19 @@ def test_calibration_node_fits_site_gradient_with_imu(make_node, ros_node, ros_e
     feeder = Feeder(ros_node)
     feeder.wait_for_subscribers(ros_executor)
     assert call_trigger(ros_node, ros_executor, 'calibration/start').success
+    # messages without a usable orientation are counted and never used
+    for bad in ((2.0, 0.0, 0.0, 0.0), (float('nan'), 0.0, 0.0, 1.0)):
+        msg = Imu()
+        msg.header.stamp = to_stamp(T0)
+        msg.orientation.w, msg.orientation.x, msg.orientation.y, msg.orientation.z = bad
+        imu_pub.publish(msg)
+    deadline = time.monotonic() + 10.0
+    while node._imu_refused < 2:
+        assert time.monotonic() < deadline, 'the bad Imu messages did not arrive'
+        ros_executor.spin_once(timeout_sec=0.01)
+    status = node.status()
+    assert status['attitude_messages'] == 0 and status['attitude_messages_refused'] == 2
+    assert any('unit orientation' in m for m in status['missing'])
     for k in range(data.n_samples):
         msg = Imu()
         msg.header.stamp = to_stamp(T0 + float(data.t[k]))

@@ -41,12 +41,14 @@ receive only about half of the 4 x 100 Hz samples (4 threads) or to run callback
 subscription out of order (2 threads), which breaks the matching of sample sets by stamp.
 """
 import json
+import math
 import os
 import sys
 import threading
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from magcal_ros.core.attitude import UNIT_TOLERANCE
 from magcal_ros.core.consistency import GROSS_FRACTION, resync
 from magcal_ros.core.dataset import Dataset
 from magcal_ros.core.identifiability import check_coverage
@@ -231,6 +233,7 @@ class CalibrationNode(Node):
         # attitude messages (stamp s, qw, qx, qy, qz) since start, interpolated onto the sets
         self._imu = np.zeros((2 * s.max_samples, 5))
         self._imu_count = 0
+        self._imu_refused = 0            # Imu messages without a usable orientation
         self._state = 'idle'
         self._collecting = False                # between calibration/start and reset/exit
         self._last_result = None                # summary dict of the last calibration
@@ -365,12 +368,17 @@ class CalibrationNode(Node):
         return cb
 
     def _imu_cb(self, msg):
-        if self._state not in ('collecting', 'calibrating'):
+        if not self._collecting:
             return
         o = msg.orientation
         row = (stamp_to_seconds(msg.header.stamp), o.w, o.x, o.y, o.z)
-        if msg.orientation_covariance[0] == -1 or not np.all(np.isfinite(row)):
-            return                       # REP 145: no orientation in this message
+        if (msg.orientation_covariance[0] == -1 or not np.all(np.isfinite(row))
+                or abs(math.sqrt(o.w ** 2 + o.x ** 2 + o.y ** 2 + o.z ** 2) - 1.0)
+                > UNIT_TOLERANCE):
+            # REP 145: no orientation in this message; or not a unit quaternion
+            with self._lock:
+                self._imu_refused += 1
+            return
         with self._lock:
             self._imu[self._imu_count % len(self._imu)] = row
             self._imu_count += 1
@@ -483,6 +491,13 @@ class CalibrationNode(Node):
                        if s.constrained else set())
             missing.extend(p for p in rep['problems']
                            if not any(p.startswith(f'sensor {j}:') for j in partial))
+        if s.imu_topic:
+            with self._lock:
+                out['attitude_messages'] = int(self._imu_count)
+                out['attitude_messages_refused'] = int(self._imu_refused)
+            if self._collecting and self._imu_refused and not self._imu_count:
+                missing.append(f'every message on {s.imu_topic} lacks a unit orientation '
+                               'quaternion (orientation_covariance[0] = -1, NaN or |q| != 1)')
         out['ready'] = self._collecting and not missing
         out.update({'model': list(s.model), 'field_nt': s.field_nt,
                     'max_samples': s.max_samples, 'coverage_eigenvalues': eigenvalues,
@@ -547,6 +562,7 @@ class CalibrationNode(Node):
             self._matcher.reset()
             self._received[:] = 0
             self._imu_count = 0
+            self._imu_refused = 0
             self._state = state
             self._collecting = state == 'collecting'
             self._t_started = time.monotonic() if self._collecting else None
