@@ -362,3 +362,15 @@ def test_real_hand_rotation_drift_is_named():
     trend = [f for f in found.items if f.kind == 'time']
     assert trend and trend[0].sensor == 1, found.summary()
     assert trend[0].explained_fraction > 0.5 and trend[0].value > 500.0
+
+
+def test_three_sensors_step_is_attributed_and_short_records_are_not_searched():
+    # three sensors: the consensus of sensor 2 and 3 is the mean of two, so sensor 1's step
+    # echoes there at half its size (a quarter of its mean square): still sensor 1's
+    data, _, _ = _case('step', 3000)
+    three = Dataset(t=data.t, raw=data.raw[:3], temp=data.temp[:3], aux=data.aux)
+    found = find(three, fit(three, 'base', field_nt=inj.F_NT))
+    assert _kinds(found) == [('step', 1)], found.summary()
+    short = data.subset(np.arange(150))
+    found = find(short, fit(short, 'base', field_nt=inj.F_NT, on_degenerate='flag'))
+    assert found.items == () and 'not searched: 150 epochs' in found.summary()

@@ -90,8 +90,12 @@ MIN_SEGMENT_FRACTION = 0.02
 #: the sample excess kurtosis of Gaussian noise has sd sqrt(24 / N) = 0.09 at N = 3000)
 MIN_EXCESS_KURTOSIS = 1.0
 #: a finding on another sensor with the same kind and value is the consensus' echo of the
-#: faulty sensor's if it removes less than this share of the largest one's mean square
-ECHO_RATIO = 0.25
+#: faulty sensor's if it removes less than this share of the largest one's mean square (the
+#: echo through the median of 3 others is a few per cent, through the mean of 2 a quarter)
+ECHO_RATIO = 0.5
+#: fewer epochs than this: no search (the fit leaves too few degrees of freedom per
+#: parameter for the residual to be white, and the tests' null distributions are asymptotic)
+MIN_EPOCHS = 200
 #: lag time constants tried per channel
 N_TAU = 24
 #: frequencies of the Lomb-Scargle periodogram for irregular sampling (cost N x this)
@@ -177,6 +181,8 @@ class Findings:
     common : numpy.ndarray or None
         (N, 1) mean scalar residual of the sensors with their own findings taken out, nT
         (where what every sensor has alike is sought), or None.
+    note : str
+        Why nothing was searched (too short a record), else ''.
     """
 
     items: tuple
@@ -185,6 +191,7 @@ class Findings:
     noise_nt: dict = field(repr=False)
     kind_of_series: str = 'consensus'
     common: np.ndarray | None = field(repr=False, default=None)
+    note: str = ''
 
     def to_list(self):
         """List of the findings as dicts."""
@@ -192,6 +199,8 @@ class Findings:
 
     def summary(self):
         """One line per finding."""
+        if self.note:
+            return f'findings (model-free): not searched: {self.note}'
         if not self.items:
             return 'findings (model-free): none'
         lines = ['findings (model-free, largest share of the excess first):']
@@ -940,6 +949,9 @@ def _find(data, result, *, baseline_m=0.5, alpha=ALPHA, corrected=None, field=No
     field_ = np.asarray(result.field_nt if field is None else field, float)
     s, n = corrected.shape[:2]
     scalar = np.asarray(result.scalar_residual_nt, float)
+    if n < MIN_EPOCHS:
+        return Findings(items=(), t=t, series={}, noise_nt={}, note=(
+            f'{n} epochs, fewer than the {MIN_EPOCHS} the tests need'))
     array_items = []
     if s == 4 and n >= 30:
         cols = [_legendre(t, 3)]
