@@ -19,7 +19,7 @@ Series analysed (all nT)
 
 Method
 ------
-Per sensor, greedily: every test below is run on the series, the significant one with the
+(References: docs/papers.md, "Methods of the findings".)  Per sensor, greedily: every test below is run on the series, the significant one with the
 largest BIC gain is kept, its fitted signal removed, and the tests are run again (at most
 :data:`MAX_PER_SENSOR` times).  A finding needs
 
