@@ -46,7 +46,7 @@ def feed_and_calibrate(node, ros_node, ros_executor, data):
     feeder = Feeder(ros_node)
     feeder.wait_for_subscribers(ros_executor)
     assert call_trigger(ros_node, ros_executor, 'calibration/start').success
-    feeder.feed(ros_executor, data, taken=lambda: int(node._received.sum()))
+    feeder.feed(ros_executor, data, taken=lambda: int(node.received.sum()))
     return call_trigger(ros_node, ros_executor, 'calibration/calibrate')
 
 
@@ -73,7 +73,7 @@ def test_calibrate_flow(make_node, ros_node, ros_executor, ros_namespace, tmp_pa
     assert any('call calibration/start' in m for m in idle['missing'])
 
     assert call_trigger(ros_node, ros_executor, 'calibration/start').success
-    feeder.feed(ros_executor, tumbling, taken=lambda: int(node._received.sum()))
+    feeder.feed(ros_executor, tumbling, taken=lambda: int(node.received.sum()))
     status.clear()
     st = json.loads(spin_until(ros_executor, lambda: status and status[-1], 5.0).data)
     assert st['state'] == 'collecting'
@@ -87,7 +87,7 @@ def test_calibrate_flow(make_node, ros_node, ros_executor, ros_namespace, tmp_pa
     start = ros_node.create_client(Trigger, 'calibration/start')
     spin_until(ros_executor, calib.service_is_ready)
     first = calib.call_async(Trigger.Request())
-    spin_until(ros_executor, lambda: node._state == 'calibrating', 5.0, 'the solve to start')
+    spin_until(ros_executor, lambda: node.state == 'calibrating', 5.0, 'the solve to start')
     second = calib.call_async(Trigger.Request())
     restart = start.call_async(Trigger.Request())
     spin_until(ros_executor, lambda: first.done() and second.done() and restart.done(), 60.0)
@@ -156,7 +156,7 @@ def test_late_stamps_of_one_sensor_are_re_paired_from_the_data(
     feeder = Feeder(ros_node)
     feeder.wait_for_subscribers(ros_executor)
     assert call_trigger(ros_node, ros_executor, 'calibration/start').success
-    feeder.feed(ros_executor, tumbling, taken=lambda: int(node._received.sum()),
+    feeder.feed(ros_executor, tumbling, taken=lambda: int(node.received.sum()),
                 latency_s=[0.0, 0.0, 0.006, 0.0])
     resp = call_trigger(ros_node, ros_executor, 'calibration/calibrate', timeout_sec=120.0)
     lines, out = split(resp)
@@ -207,7 +207,7 @@ def test_too_few_samples(make_node, ros_node, ros_executor, ros_namespace, tmp_p
     feeder = Feeder(ros_node)
     feeder.wait_for_subscribers(ros_executor)
     assert call_trigger(ros_node, ros_executor, 'calibration/start').success
-    feeder.feed(ros_executor, tumbling, stop=100, taken=lambda: int(node._received.sum()))
+    feeder.feed(ros_executor, tumbling, stop=100, taken=lambda: int(node.received.sum()))
     resp = call_trigger(ros_node, ros_executor, 'calibration/calibrate')
     assert not resp.success
     assert 'only 100 complete sample sets collected, need at least 800' in resp.message

@@ -92,15 +92,15 @@ def test_without_calibration_nothing_is_published(
     feeder = Feeder(ros_node)
     result = ros_node.create_publisher(String, 'calibration/result', RESULT_QOS)
     feeder.wait_for_subscribers(ros_executor)
-    feeder.feed(ros_executor, data, stop=50, taken=lambda: node._received)
+    feeder.feed(ros_executor, data, stop=50, taken=lambda: node.received)
     status = probe.last_status(ros_executor, since=len(probe.diagnostics))
     assert status.level == DiagnosticStatus.WARN
     assert status.message.startswith('no calibration: publishing nothing')
     # sentinel, not a fixed wait: give the node a calibration and one more epoch; its
     # corrected samples are then the first the probe sees, so none of the 50 was published
     result.publish(String(data=dump_calibration(doc)))
-    spin_until(ros_executor, lambda: node._live is not None, 5.0, 'the calibration')
-    feeder.feed(ros_executor, data, start=50, stop=51, taken=lambda: node._received)
+    spin_until(ros_executor, lambda: node.calibration is not None, 5.0, 'the calibration')
+    feeder.feed(ros_executor, data, start=50, stop=51, taken=lambda: node.received)
     spin_until(ros_executor, lambda: all(probe.corrected), 5.0, 'the sentinel epoch')
     stamp = T0 + float(data.t[50])
     for c in probe.corrected:
@@ -116,7 +116,7 @@ def test_corrects_to_the_true_field_and_publishes_the_gradient(
     probe = Probe(ros_node, ros_namespace)
     feeder = Feeder(ros_node)
     feeder.wait_for_subscribers(ros_executor)
-    feeder.feed(ros_executor, data, taken=lambda: node._received, temperature=False)
+    feeder.feed(ros_executor, data, taken=lambda: node.received, temperature=False)
     n = data.n_samples
     spin_until(ros_executor, lambda: (probe.count() == 4 * n and len(probe.gradient) == n
                                       and len(probe.stamped) == n),
@@ -243,8 +243,8 @@ def test_follows_updates_and_refuses_a_bad_calibration(make_node, ros_node, ros_
     shift = np.array([100.0, -50.0, 25.0])
     updated = _shifted(doc, shift)
     result.publish(String(data=dump_calibration(updated)))
-    spin_until(ros_executor, lambda: node._source == 'calibration/result'
-               and np.isclose(node._live.cal.offset(1)[0], truth.offset(1)[0] + 100.0),
+    spin_until(ros_executor, lambda: node.calibration_source == 'calibration/result'
+               and np.isclose(node.calibration.offset(1)[0], truth.offset(1)[0] + 100.0),
                5.0, 'the new calibration to be installed')
     b = corrected_epoch(1)
     a_next = np.array([truth.correct(j + 1, data.raw[j, 1]) for j in range(4)])
@@ -300,7 +300,7 @@ def test_temperature_effect_waits_for_its_signal(make_node, ros_node, ros_execut
     feeder = Feeder(ros_node)
     feeder.wait_for_subscribers(ros_executor)
     # without temperature messages sensor 2 is withheld, the others are corrected
-    feeder.feed(ros_executor, data, stop=10, taken=lambda: node._received, temperature=False)
+    feeder.feed(ros_executor, data, stop=10, taken=lambda: node.received, temperature=False)
     # sensor 2's samples are handled between sensor 1's and 3's: once sensors 3 and 4 have
     # all 10 out (the sentinel), anything of sensor 2 would have arrived
     spin_until(ros_executor, lambda: len(probe.corrected[3]) >= 10, 5.0, 'sensor 4')
@@ -312,7 +312,7 @@ def test_temperature_effect_waits_for_its_signal(make_node, ros_node, ros_execut
     # with them, sensor 2 is corrected with the live temperature like the core model does
     spin_until(ros_executor, lambda: all(p.get_subscription_count() for p in feeder.temp),
                5.0, 'the temperature subscriptions of the corrector')
-    feeder.feed(ros_executor, data, start=10, taken=lambda: node._received)
+    feeder.feed(ros_executor, data, start=10, taken=lambda: node.received)
     spin_until(ros_executor, lambda: len(probe.corrected[1]) >= 25, 5.0)
     msg = probe.corrected[1][-1]
     k = int(round((stamp_to_seconds(msg.header.stamp) - T0) * 100.0))

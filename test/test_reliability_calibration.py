@@ -174,14 +174,14 @@ def start_node(make_node, namespace, tmp_path, **params):
 def feed_sensors(feeder, executor, node, data, sensors, stop=None, batch=5):
     """Publish epochs of ``data`` for the given sensors only (1-based); wait until taken."""
     stop = data.n_samples if stop is None else stop
-    base = int(node._received.sum())
+    base = int(node.received.sum())
     for k0 in range(0, stop, batch):
         k1 = min(k0 + batch, stop)
         for k in range(k0, k1):
             for j in sensors:
                 feeder.raw[j - 1].publish(_msg(data, j, k))
         want = base + len(sensors) * k1
-        spin_until(executor, lambda: int(node._received.sum()) >= want, 30.0,
+        spin_until(executor, lambda: int(node.received.sum()) >= want, 30.0,
                    f'{want - base} samples taken')
 
 
@@ -230,7 +230,7 @@ def test_every_refusal_names_the_reason_and_keeps_the_previous_calibration(
         assert re.search(match, out['reason']), name
         assert path.read_bytes() == before, name
         assert sorted(os.listdir(str(path) + '.history')) == history_before, name
-        assert node._state == 'collecting', name     # still collecting: the user may go on
+        assert node.state == 'collecting', name     # still collecting: the user may go on
 
     # a sensor whose data stop half way: the complete sets before are too few, and the
     # refusal says which sensor is short
@@ -261,7 +261,7 @@ def test_node_robust_fit_reports_down_weighted_spikes(make_node, ros_node, ros_e
     feeder = Feeder(ros_node)
     feeder.wait_for_subscribers(ros_executor)
     assert call_trigger(ros_node, ros_executor, 'calibration/start').success
-    feeder.feed(ros_executor, data, taken=lambda: int(node._received.sum()), temperature=False)
+    feeder.feed(ros_executor, data, taken=lambda: int(node.received.sum()), temperature=False)
     resp = call_trigger(ros_node, ros_executor, 'calibration/calibrate', timeout_sec=60.0)
     assert resp.success, resp.message
     lines, out = split(resp)
@@ -302,7 +302,7 @@ def test_simultaneous_requests_and_invalid_parameters_leave_a_consistent_state(
     # start and calibrate at the same moment, with a full buffer: whichever runs first, the
     # other either works on a consistent buffer or is refused cleanly
     assert call_trigger(ros_node, ros_executor, 'calibration/start').success
-    feeder.feed(ros_executor, data, taken=lambda: int(node._received.sum()), temperature=False)
+    feeder.feed(ros_executor, data, taken=lambda: int(node.received.sum()), temperature=False)
     start, calib = at_once('start', 'calibrate')
     if start.success:
         # start ran first (or the calibrate finished first, then start cleared the buffer)
@@ -311,17 +311,17 @@ def test_simultaneous_requests_and_invalid_parameters_leave_a_consistent_state(
     else:
         assert 'a calibration is running' in start.message
         assert calib.success, calib.message
-    assert node._state == 'collecting'         # collection goes on after a calibrate
+    assert node.state == 'collecting'         # collection goes on after a calibrate
     if path.exists():
         load_calibration(path)                          # a complete, valid file
 
     # during a solve: diagnose and start are refused, invalid parameters are refused, a
     # valid one is taken, and the solve is not disturbed
     assert call_trigger(ros_node, ros_executor, 'calibration/start').success
-    feeder.feed(ros_executor, data, taken=lambda: int(node._received.sum()), temperature=False)
+    feeder.feed(ros_executor, data, taken=lambda: int(node.received.sum()), temperature=False)
     n_hist = len(list_history(path))
     calib = clients['calibrate'].call_async(Trigger.Request())
-    spin_until(ros_executor, lambda: node._state == 'calibrating', 10.0, 'the solve')
+    spin_until(ros_executor, lambda: node.state == 'calibrating', 10.0, 'the solve')
     diag, start = at_once('diagnose', 'start')
     bad = {'model': ['base', 'warp_drive'], 'min_samples': -5, 'stamp_tolerance_s': -0.01,
            'field_nt': float('nan'), 'calibration_file': ''}
@@ -351,7 +351,7 @@ def test_simultaneous_requests_and_invalid_parameters_leave_a_consistent_state(
     assert out['sets'] == data.n_samples and out['calibration_file'] == str(path)
     assert len(list_history(path)) == n_hist + 1
     assert load_calibration(path)[1]['provenance']['samples'] == data.n_samples
-    assert node._state == 'collecting'
+    assert node.state == 'collecting'
 
 
 def test_corrector_refuses_invalid_parameters_and_keeps_correcting(
@@ -378,7 +378,7 @@ def test_corrector_refuses_invalid_parameters_and_keeps_correcting(
         res = fut.result().results[0]
         assert not res.successful and match in res.reason, (name, res.reason)
     assert node.get_parameter('stamp_tolerance_s').value == 0.005
-    feeder.feed(ros_executor, data, stop=50, taken=lambda: node._received, temperature=False)
+    feeder.feed(ros_executor, data, stop=50, taken=lambda: node.received, temperature=False)
     spin_until(ros_executor, lambda: len(corrected) == 50, 5.0, '50 corrected samples')
     got = np.array([msg_to_field_nt(m) for m in corrected])
     np.testing.assert_allclose(got, sim.truth.correct(1, data.raw[0, :50]), atol=1e-6)
@@ -407,7 +407,7 @@ def test_corrector_with_a_silent_sensor_keeps_correcting_the_others(
         for k in range(k0, k0 + 5):
             for j in (1, 2, 4):
                 feeder.raw[j - 1].publish(_msg(data, j, k))
-        spin_until(ros_executor, lambda: node._received >= 3 * (k0 + 5), 10.0)
+        spin_until(ros_executor, lambda: node.received >= 3 * (k0 + 5), 10.0)
     spin_until(ros_executor, lambda: all(len(corrected[j - 1]) == n for j in (1, 2, 4)), 5.0)
     spin_for(ros_executor, 0.2)
     assert corrected[2] == [] and gradient == []

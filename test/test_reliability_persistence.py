@@ -321,10 +321,10 @@ def test_corrector_refuses_each_bad_document_and_keeps_correcting(
         spin_until(ros_executor, lambda: any(
             s.level == DiagnosticStatus.WARN and re.search(match, s.message)
             for s in probe.status[n_diag:]), 5.0, f'the refusal of "{label}"')
-        assert node.context.ok() and node._refused and re.search(match, node._refused)
-        assert 'keeping the calibration from ' + str(path) in node._refused, label
+        assert node.context.ok() and node.refusal and re.search(match, node.refusal)
+        assert 'keeping the calibration from ' + str(path) in node.refusal, label
         # still correcting with the good calibration
-        feeder.feed(ros_executor, data, start=k, stop=k + 4, taken=lambda: node._received,
+        feeder.feed(ros_executor, data, start=k, stop=k + 4, taken=lambda: node.received,
                     temperature=False)
         spin_until(ros_executor, lambda: len(corrected) == k + 4, 5.0)
         got = np.array([msg_to_field_nt(m) for m in corrected[k:k + 4]])
@@ -332,8 +332,8 @@ def test_corrector_refuses_each_bad_document_and_keeps_correcting(
         k += 4
     # a good document is taken again, and the warning clears
     result.publish(String(data=dump_calibration(good)))
-    spin_until(ros_executor, lambda: node._source == 'calibration/result'
-               and node._refused is None, 5.0)
+    spin_until(ros_executor, lambda: node.calibration_source == 'calibration/result'
+               and node.refusal is None, 5.0)
     n_diag = len(probe.status)
     spin_until(ros_executor, lambda: any(s.level == DiagnosticStatus.OK
                                          for s in probe.status[n_diag:]), 5.0)
@@ -359,7 +359,7 @@ def test_nodes_start_with_a_truncated_file(make_node, ros_node, ros_executor, ro
         Parameter('calibration_file', value=str(path))])
     spin_until(ros_executor, lambda: any('malformed calibration document' in s.message
                                          for s in probe.status), 5.0)
-    assert corrector._live is None and 'no calibration is active' in corrector._refused
+    assert corrector.calibration is None and 'no calibration is active' in corrector.refusal
     spin_for(ros_executor, 0.3)
     assert results == []                    # the calibration node published nothing
 
@@ -382,7 +382,7 @@ def test_node_history_is_bounded_and_magcal_rollback_walks_back(
     feeder = Feeder(ros_node)
     feeder.wait_for_subscribers(ros_executor)
     assert call_trigger(ros_node, ros_executor, 'calibration/start').success
-    feeder.feed(ros_executor, data, taken=lambda: int(node._received.sum()), temperature=False)
+    feeder.feed(ros_executor, data, taken=lambda: int(node.received.sum()), temperature=False)
     # five calibrations told apart by the reference magnitude they assume
     fields = [50000.0, 50010.0, 50020.0, 50030.0, 50040.0]
     for f in fields:
@@ -440,7 +440,7 @@ def test_node_write_failure_keeps_the_previous_calibration(
     feeder = Feeder(ros_node)
     feeder.wait_for_subscribers(ros_executor)
     assert call_trigger(ros_node, ros_executor, 'calibration/start').success
-    feeder.feed(ros_executor, data, taken=lambda: int(node._received.sum()), temperature=False)
+    feeder.feed(ros_executor, data, taken=lambda: int(node.received.sum()), temperature=False)
     resp = call_trigger(ros_node, ros_executor, 'calibration/calibrate', timeout_sec=60)
     assert not resp.success
     assert resp.message.startswith(f'calibrated but could not write {target}')

@@ -110,7 +110,7 @@ def test_plugin_effect_calibration_works_in_the_corrector(
     node = make_node(CorrectorNode, namespace=ros_namespace, parameter_overrides=[
         Parameter('calibration_file', value=str(path)),
         Parameter('plugins', value=['my_effect'])])
-    assert node._refused is None and node._live is not None
+    assert node.refusal is None and node.calibration is not None
     assert node.describe_parameter('plugins').read_only
     # the additive wheel term is removed from sensor 3 before A^-1: two raw samples equal to
     # the wheel's own field at t (computed here by hand) plus the offset correct to zero
@@ -138,7 +138,7 @@ def test_without_the_plugin_the_corrector_refuses_the_calibration(
     path.write_text(dump_calibration(_doc_with_effect("wheel", "wheel@3")))
     node = make_node(CorrectorNode, namespace=ros_namespace, parameter_overrides=[
         Parameter('calibration_file', value=str(path))])
-    assert node._live is None and "unknown effect 'wheel'" in node._refused
+    assert node.calibration is None and "unknown effect 'wheel'" in node.refusal
 
 
 @pytest.mark.parametrize('exe', ['calibration_node', 'corrector_node'])

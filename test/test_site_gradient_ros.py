@@ -54,10 +54,10 @@ def test_calibration_node_fits_site_gradient_with_imu(make_node, ros_node, ros_e
         if k % 5 == 4 or k == data.n_samples - 1:
             # best-effort queue: wait until the node has taken this batch
             deadline = time.monotonic() + 30.0
-            while node._imu_count < k + 1:
-                assert time.monotonic() < deadline, f'the node took {node._imu_count} of {k + 1}'
+            while node.imu_received < k + 1:
+                assert time.monotonic() < deadline, f'the node took {node.imu_received} of {k + 1}'
                 ros_executor.spin_once(timeout_sec=0.01)
-    feeder.feed(ros_executor, data, taken=lambda: int(node._received.sum()),
+    feeder.feed(ros_executor, data, taken=lambda: int(node.received.sum()),
                 temperature=False)
     resp = call_trigger(ros_node, ros_executor, 'calibration/calibrate', timeout_sec=120.0)
     assert resp.success, resp.message
@@ -113,7 +113,7 @@ def test_corrector_subtracts_the_site_gradient_only_when_asked(
     ros_node.create_subscription(Float64MultiArray, 'gradient', tensors.append, 100)
     feeder = Feeder(ros_node)
     feeder.wait_for_subscribers(ros_executor)
-    feeder.feed(ros_executor, data, taken=lambda: node._received, temperature=False)
+    feeder.feed(ros_executor, data, taken=lambda: node.received, temperature=False)
     spin_until(ros_executor, lambda: all(len(c) == n for c in corrected) and len(tensors) == n,
                10.0, 'the corrected samples')
     for j in range(4):       # default: the field where each sensor is
@@ -126,7 +126,7 @@ def test_corrector_subtracts_the_site_gradient_only_when_asked(
         c.clear()
     tensors.clear()
     later = Dataset(t=data.t + 1.0, raw=raw)          # stamps go on after the first feed
-    feeder.feed(ros_executor, later, taken=lambda: node._received, temperature=False)
+    feeder.feed(ros_executor, later, taken=lambda: node.received, temperature=False)
     spin_until(ros_executor, lambda: all(len(c) == n for c in corrected) and len(tensors) == n,
                10.0, 'the corrected samples')
     for j in range(4):       # stationary test: the centre field, the anomaly is zero

@@ -289,6 +289,23 @@ class CalibrationNode(Node):
             + (f', plug-in effects {plugins}' if plugins else '')
             + '; call calibration/start to collect')
 
+    # -- read-only state (for in-process users and tests; ROS users see calibration/status)
+
+    @property
+    def received(self):
+        """(S,) raw samples taken per sensor since calibration/start (a copy; counts)."""
+        return self._received.copy()
+
+    @property
+    def imu_received(self):
+        """Attitude (Imu) samples taken since calibration/start (count)."""
+        return self._imu_count
+
+    @property
+    def state(self):
+        """'idle', 'collecting' or 'calibrating'."""
+        return self._state
+
     # -- parameters ------------------------------------------------------------------------
 
     def _on_set_parameters(self, parameters):

@@ -138,6 +138,28 @@ class CorrectorNode(Node):
         self._timer = self.create_timer(s.diagnostics_period_s, self._publish_diagnostics)
         self._publish_diagnostics()
 
+    # -- read-only state (for in-process users and tests; ROS users see it on /diagnostics)
+
+    @property
+    def received(self):
+        """Raw samples taken so far, all sensors (count)."""
+        return self._received
+
+    @property
+    def calibration(self):
+        """The active :class:`~magcal_ros.core.model.Calibration`, or None."""
+        return None if self._live is None else self._live.cal
+
+    @property
+    def calibration_source(self):
+        """Where the active calibration came from (file path or 'calibration/result')."""
+        return self._source
+
+    @property
+    def refusal(self):
+        """Why the last calibration offered was refused (None after one was installed)."""
+        return self._refused
+
     # -- parameters ------------------------------------------------------------------------
 
     def _on_set_parameters(self, parameters):
