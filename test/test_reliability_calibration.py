@@ -409,7 +409,8 @@ def test_corrector_with_a_silent_sensor_keeps_correcting_the_others(
                 feeder.raw[j - 1].publish(_msg(data, j, k))
         spin_until(ros_executor, lambda: node.received >= 3 * (k0 + 5), 10.0)
     spin_until(ros_executor, lambda: all(len(corrected[j - 1]) == n for j in (1, 2, 4)), 5.0)
-    spin_for(ros_executor, 0.2)
+    # no fixed wait for "nothing arrived": the node's own counters (below) say what it sent,
+    # and every sample it took is already accounted for on the other topics
     assert corrected[2] == [] and gradient == []
     for j in (1, 2, 4):
         got = np.array([msg_to_field_nt(m) for m in corrected[j - 1]])
