@@ -251,13 +251,19 @@ def test_bounds_of_the_three_cases():
 
 def test_readme_commands(tmp_path):
     """The two commands of the README's site-gradient paragraph, as written."""
+    import pathlib
+    import shlex
+
     def run(*args):
         return subprocess.run([sys.executable, '-m', 'magcal_ros.cli', *args], cwd=tmp_path,
                               capture_output=True, text=True, timeout=240)
-    p = run('simulate', '--out', 'site.csv', '--site-gradient', '300,-250,400,-150,200',
-            '--attitude')
+    readme = (pathlib.Path(__file__).resolve().parents[1] / 'README.md').read_text()
+    lines = [ln.strip() for ln in readme.splitlines()
+             if ln.strip().startswith(('magcal simulate --out site.csv', 'magcal fit site.csv'))]
+    assert len(lines) == 2, lines
+    p = run(*shlex.split(lines[0])[1:])
     assert p.returncode == 0, p.stderr
-    p = run('fit', 'site.csv', '--model', 'base,site_gradient', '--field-nt', '50000', '--json')
+    p = run(*shlex.split(lines[1])[1:])
     assert p.returncode == 0, p.stderr
     doc = json.loads(p.stdout)
     # the simulator's world frame is NED; gzz = -gxx - gyy = -150
