@@ -180,8 +180,10 @@ def check_against_field(rot, field_body, t=None, max_deg=MAX_FIELD_DISAGREEMENT_
     k = int(np.flatnonzero(bad)[0])
     frac = bad.mean()
     hint = ('most epochs disagree: check the convention (body-to-world, not world-to-body; '
-            'Hamilton, scalar first: att_qw is the scalar) and that the IMU axes are the '
-            "array's (sensor 1's) axes" if frac > 0.3 else
+            'Hamilton, scalar first: att_qw is the scalar), that the IMU axes are the '
+            "array's (sensor 1's) axes, and that the attitude and magnetometer stamps share "
+            'one clock (a lag of a few tenths of a second while turning does this too)'
+            if frac > 0.3 else
             'a jump or a time lag of the attitude against the magnetometer: check the IMU '
             'stream and its time stamps, or drop those rows')
     raise AttitudeError(
