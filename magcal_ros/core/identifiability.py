@@ -1,9 +1,12 @@
 """Can the data determine the model?  Checks run before and after every solve.
 
-Before: attitude coverage of each sensor (:func:`magcal_ros.core.coverage.direction_coverage`):
-a rotation about a single axis leaves the field directions on one circle, so the linear map is
-not determined along the rotation axis; a partial coverage (a cone, as on a ground vehicle)
-makes scale, non-orthogonality and offset strongly correlated.
+Before: attitude coverage of each sensor (:func:`magcal_ros.core.coverage.direction_coverage`
+of the readings about the centre of the sensor's fitted ellipsoid, the hard-iron offset, so
+that an offset several times the field does not squeeze a full rotation into a cone): a
+rotation about a single axis leaves the field directions on one circle, so the linear map is
+not determined along the rotation axis (refusals name that axis in the sensor frame); a
+partial coverage (a cone, as on a ground vehicle) makes scale, non-orthogonality and offset
+strongly correlated.
 
 After: the parameter correlations and the condition number of the correlation matrix from
 the projected Jacobian (the Fisher information at the solution).
@@ -44,6 +47,11 @@ MAX_CONDITION = 1e6
 def fitted_centre(m):
     """The readings' ellipsoid when the data determine it, else None.
 
+    Parameters
+    ----------
+    m : numpy.ndarray
+        (N, 3) raw readings of one sensor, nT.
+
     Returns
     -------
     (numpy.ndarray, float, float) or None
@@ -53,8 +61,9 @@ def fitted_centre(m):
         None when :func:`magcal_ros.core.ellipsoid.fit_ellipsoid` finds the ellipsoid not
         determined against the noise (the fitted quadric not definite beyond its own
         uncertainty), or when the readings scatter about it by more than
-        :data:`MAX_RADIAL_SCATTER` of its radius (they fill a cloud, not a shell).  A centre that the ellipsoid bends to (a cap of directions) is
-        caught by the cross-check with the sphere's centre in :func:`classify_coverage`.
+        :data:`MAX_RADIAL_SCATTER` of its radius (they fill a cloud, not a shell).  A
+        centre that the ellipsoid bends to (a cap of directions) is caught in
+        :func:`classify_coverage` (axis ratio, cross-check with the sphere's centre).
     """
     try:
         ell = fit_ellipsoid(m, 1.0)
