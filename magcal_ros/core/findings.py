@@ -274,7 +274,8 @@ def periodogram(t, x):
         power = np.abs(spec) ** 2 / n
         return freqs[1:], power[1:], n // 2
     f_nyq = 0.5 / dt
-    m = int(min(MAX_LS_FREQS, 2 * f_nyq * span))
+    # cost N x M: at most MAX_LS_FREQS frequencies, fewer for long records
+    m = int(min(MAX_LS_FREQS, 2 * f_nyq * span, max(500, 1.2e7 / n)))
     freqs = np.linspace(1.0 / span, f_nyq, m)
     return freqs, lomb_scargle(t, x, freqs), max(1, int(f_nyq * span))
 
