@@ -17,7 +17,7 @@ import pytest
 from rclpy.exceptions import ParameterException
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
-from ros_helpers import call_trigger, spin_for, spin_until, split_response as split
+from ros_helpers import call_trigger, spin_until, split_response as split
 from sim_feed import Feeder
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
@@ -198,8 +198,13 @@ def test_single_axis_rotation_is_refused_and_previous_stays(
     assert lines[0].endswith('previous calibration stays active')
     assert 'single axis' in out['reason'] or 'one axis' in out['reason']
     assert path.read_bytes() == before
-    spin_for(ros_executor, 0.3)
-    assert len(results) == 1                       # nothing new published
+    # the sentinel, not a fixed wait: tumbling data calibrate, and the one new result is
+    # theirs (the refused turntable fit published none)
+    good, _ = simulate(n_samples=600, rate_hz=100.0, trajectory='smooth',
+                       smooth_period_s=6.0, seed=7)
+    assert feed_and_calibrate(node, ros_node, ros_executor, good).success
+    spin_until(ros_executor, lambda: len(results) > 1, 5.0, 'the new calibration/result')
+    assert len(results) == 2 and results[1].data.encode() == path.read_bytes()
 
 
 def test_too_few_samples(make_node, ros_node, ros_executor, ros_namespace, tmp_path, tumbling):
