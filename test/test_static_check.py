@@ -45,3 +45,11 @@ def test_other_attitudes_agreeing_off_the_reference_mean_another_field():
 def test_no_recordings():
     with pytest.raises(ValueError, match='no static recordings'):
         check_static({}, F, 1.0)
+
+
+def test_other_disagreements_are_put_down_to_a_known_change():
+    res = check_static({'a': static((1, 0, -1), F), 'b': static((1, 0.02, -1), F - 7000,
+                                                                  seed=1),
+                        'c': static((0, 1, 0), F, seed=2)}, F, residual_rms_nt=250.0)
+    assert sum('as expected after the change of field' in t for t in res.findings) == 1
+    assert not any('cannot tell which' in t for t in res.findings)

@@ -221,8 +221,9 @@ def check_coverage(raw):
         n = ', '.join(f'{x:+.2f}' for x in c['normal'])
         if status == 'one attitude':
             msg = (f'sensor {j}: all samples have (nearly) the same field direction (within a '
-                   f'{c["cone_half_angle_deg"]:.0f} deg cone): the sensor hardly turned; rotate '
-                   'the array through many attitudes (turn it over, about at least two axes)')
+                   f'{c["cone_half_angle_deg"]:.0f} deg cone): the sensor hardly turned, '
+                   'or turned only about the field; rotate the array through many '
+                   'attitudes (turn it over, about at least two axes)')
         elif status == 'single axis':
             msg = f'sensor {j}: {c["message"]}'
         elif status == 'partial':
