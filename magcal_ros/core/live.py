@@ -1,5 +1,8 @@
 """Live correction of an array, one sample at a time (no ROS: used by the corrector node).
 
+Also the other live pieces without ROS: :class:`ResidualMonitor` (the calibration node's
+``calibration/residual``) and :class:`SampleBuffer` (the sets it collects for a fit).
+
 :class:`LiveCorrector` holds everything a stream of raw samples needs besides the samples:
 the calibration's correction made ready per sensor (A_j^-1, offset, covariance), the latest
 driving signals (temperature, auxiliary channels), the field-rate estimate of each stream,
@@ -11,9 +14,10 @@ Units: nT, nT/s, nT/m, s, degC (the library's; a ROS node converts at its bounda
 """
 from collections import deque
 
+from magcal_ros.core.dataset import Dataset
 from magcal_ros.core.effects import raw_rate, SensorContext, SIGNALS
 from magcal_ros.core.noise import noise_floor
-from magcal_ros.core.sync import StampMatcher
+from magcal_ros.core.sync import epoch_times, StampMatcher
 from magcal_ros.core.tensor import tensor_operator
 import numpy as np
 
@@ -362,3 +366,80 @@ class ResidualMonitor:
             return {'sets': n, 'floor_nt': floor, 'scalar_rms_nt': scalar_rms,
                     'vector_rms_nt': vector_rms, 'scalar_ratio': scalar_rms / floor,
                     'vector_ratio': vector_rms / vector_expected}
+
+
+class SampleBuffer:
+    """Ring buffer of matched sample sets of S sensors (not thread-safe; lock outside).
+
+    Parameters
+    ----------
+    n_sensors : int
+    capacity : int
+        Sets kept; the oldest is overwritten.
+    aux_names : sequence of str
+        Auxiliary column names (``aux_<name>``).
+    source : str
+        ``meta['source']`` of the datasets it returns.
+    """
+
+    def __init__(self, n_sensors, capacity, aux_names=(), source='live (calibration_node)'):
+        self.n_sensors = n_sensors
+        self.source = source
+        self.capacity = int(capacity)
+        self.t = np.zeros(self.capacity)
+        self.epoch = np.zeros(self.capacity, np.int64)
+        self.raw = np.zeros((n_sensors, self.capacity, 3))
+        self.temp = np.full((n_sensors, self.capacity), np.nan)
+        self.aux = {a: np.full(self.capacity, np.nan) for a in aux_names}
+        self.count = 0          # sets ever added since clear()
+
+    def clear(self):
+        """Forget all sets."""
+        self.count = 0
+
+    def __len__(self):
+        return min(self.count, self.capacity)
+
+    def append(self, epoch, t, raw, temp, aux):
+        """Add a set: epoch number, stamp t s, raw (S, 3) nT, temp (S,) degC (nan: none), aux."""
+        k = self.count % self.capacity
+        self.epoch[k] = epoch
+        self.t[k] = t
+        self.raw[:, k] = raw
+        self.temp[:, k] = temp
+        for name, arr in self.aux.items():
+            arr[k] = aux.get(name, np.nan)
+        self.count += 1
+
+    def _order(self, max_sets=None):
+        n = len(self)
+        start = self.count - n
+        idx = (np.arange(start, self.count) % self.capacity)
+        if max_sets is not None and n > max_sets:
+            idx = idx[np.linspace(0, n - 1, max_sets).round().astype(int)]
+        return idx
+
+    def raw_view(self, max_sets=None):
+        """(S, M, 3) nT raw readings, chronological, at most ``max_sets`` evenly spaced."""
+        return self.raw[:, self._order(max_sets)]
+
+    def epochs(self):
+        """(N,) int epoch numbers of the buffered sets, chronological (a copy)."""
+        return self.epoch[self._order()].copy()
+
+    def dataset(self):
+        """Return a :class:`Dataset` of the buffered sets in chronological order (copies)."""
+        idx = self._order()
+        temp = self.temp[:, idx]
+        aux = {}
+        for name, arr in self.aux.items():
+            col = arr[idx]
+            if np.isfinite(col).any():
+                # sample-and-hold before the first value arrived: use the first value
+                first = col[np.flatnonzero(np.isfinite(col))[0]]
+                aux[name] = np.where(np.isfinite(col), col, first)
+        # sample instants from the epoch numbers and the (late, jittery) arrival stamps
+        t = epoch_times(self.epoch[idx], self.t[idx])
+        return Dataset(t=t, raw=self.raw[:, idx].copy(),
+                       temp=temp.copy() if np.isfinite(temp).any() else None, aux=aux,
+                       meta={'source': self.source})

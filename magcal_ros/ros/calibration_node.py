@@ -50,13 +50,12 @@ import time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from magcal_ros.core.attitude import UNIT_TOLERANCE
 from magcal_ros.core.consistency import GROSS_FRACTION, resync
-from magcal_ros.core.dataset import Dataset
 from magcal_ros.core.identifiability import check_coverage
 from magcal_ros.core.live import (LiveCorrector, MissingSignal, RESIDUAL_WARN_RATIO,
-                                  ResidualMonitor)
+                                  ResidualMonitor, SampleBuffer)
 from magcal_ros.core.model import DegenerateDataError, Model
 from magcal_ros.core.notes import format_note
-from magcal_ros.core.sync import epoch_times, StampMatcher
+from magcal_ros.core.sync import StampMatcher
 from magcal_ros.io.calfile import (CalibrationFileError, dump_calibration, load_calibration,
                                    parse_calibration, save_calibration)
 from magcal_ros.pipeline import calibrate as run_calibration, cross_geometry
@@ -97,80 +96,6 @@ CALIBRATION_SENSOR_QOS = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
 
 #: at most this many sets enter the coverage figures of the status message
 _STATUS_SUBSAMPLE = 2000
-
-
-class SampleBuffer:
-    """Ring buffer of matched sample sets of S sensors (not thread-safe; lock outside).
-
-    Parameters
-    ----------
-    n_sensors : int
-    capacity : int
-        Sets kept; the oldest is overwritten.
-    aux_names : sequence of str
-        Auxiliary column names (``aux_<name>``).
-    """
-
-    def __init__(self, n_sensors, capacity, aux_names=()):
-        self.n_sensors = n_sensors
-        self.capacity = int(capacity)
-        self.t = np.zeros(self.capacity)
-        self.epoch = np.zeros(self.capacity, np.int64)
-        self.raw = np.zeros((n_sensors, self.capacity, 3))
-        self.temp = np.full((n_sensors, self.capacity), np.nan)
-        self.aux = {a: np.full(self.capacity, np.nan) for a in aux_names}
-        self.count = 0          # sets ever added since clear()
-
-    def clear(self):
-        """Forget all sets."""
-        self.count = 0
-
-    def __len__(self):
-        return min(self.count, self.capacity)
-
-    def append(self, epoch, t, raw, temp, aux):
-        """Add a set: epoch number, stamp t s, raw (S, 3) nT, temp (S,) degC (nan: none), aux."""
-        k = self.count % self.capacity
-        self.epoch[k] = epoch
-        self.t[k] = t
-        self.raw[:, k] = raw
-        self.temp[:, k] = temp
-        for name, arr in self.aux.items():
-            arr[k] = aux.get(name, np.nan)
-        self.count += 1
-
-    def _order(self, max_sets=None):
-        n = len(self)
-        start = self.count - n
-        idx = (np.arange(start, self.count) % self.capacity)
-        if max_sets is not None and n > max_sets:
-            idx = idx[np.linspace(0, n - 1, max_sets).round().astype(int)]
-        return idx
-
-    def raw_view(self, max_sets=None):
-        """(S, M, 3) nT raw readings, chronological, at most ``max_sets`` evenly spaced."""
-        return self.raw[:, self._order(max_sets)]
-
-    def epochs(self):
-        """(N,) int epoch numbers of the buffered sets, chronological (a copy)."""
-        return self.epoch[self._order()].copy()
-
-    def dataset(self):
-        """Return a :class:`Dataset` of the buffered sets in chronological order (copies)."""
-        idx = self._order()
-        temp = self.temp[:, idx]
-        aux = {}
-        for name, arr in self.aux.items():
-            col = arr[idx]
-            if np.isfinite(col).any():
-                # sample-and-hold before the first value arrived: use the first value
-                first = col[np.flatnonzero(np.isfinite(col))[0]]
-                aux[name] = np.where(np.isfinite(col), col, first)
-        # sample instants from the epoch numbers and the (late, jittery) arrival stamps
-        t = epoch_times(self.epoch[idx], self.t[idx])
-        return Dataset(t=t, raw=self.raw[:, idx].copy(),
-                       temp=temp.copy() if np.isfinite(temp).any() else None, aux=aux,
-                       meta={'source': 'live (calibration_node)'})
 
 
 def _reply(response, success, summary, payload):
