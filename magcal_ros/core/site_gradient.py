@@ -1,7 +1,8 @@
-"""The site gradient: its report from a fit, and its Cramer-Rao bounds with and without attitude.
+"""The site gradient: its report from a fit, its Cramer-Rao bounds with and without attitude,
+and the fit without attitude (the heading about the field estimated per epoch).
 
 The effect itself is :class:`magcal_ros.core.effects.SiteGradient` (docs/site_gradient.md has
-the physics and the identifiability analysis summarised here).
+the physics and the identifiability analysis summarised here).  Units: nT, nT/m, m, rad.
 """
 import numpy as np
 
