@@ -27,7 +27,8 @@ setup: $(STAMP)
 
 # Re-run only when the dependency list or the packaging changed (the stamp is written last).
 $(STAMP): requirements.txt setup.py setup.cfg package.xml scripts/setup_env.sh \
-		scripts/build_interfaces.sh $(wildcard interfaces/magcal_interfaces/*/* interfaces/magcal_interfaces/*.*)
+		scripts/build_interfaces.sh interfaces/ros_wheels_fix.cmake \
+		$(wildcard interfaces/magcal_interfaces/*/* interfaces/magcal_interfaces/*.*)
 	PYTHON='$(PYTHON)' VENV='$(CURDIR)/$(VENV)' scripts/setup_env.sh
 
 test: setup
