@@ -374,3 +374,27 @@ def test_three_sensors_step_is_attributed_and_short_records_are_not_searched():
     short = data.subset(np.arange(150))
     found = find(short, fit(short, 'base', field_nt=inj.F_NT, on_degenerate='flag'))
     assert found.items == () and 'not searched: 150 epochs' in found.summary()
+
+
+def _combined(t, temp, aux, b):
+    out = {}
+    for fault in (inj.step_fault(300.0, (40.0, 0.0, 0.0), 1),
+                  inj.step_fault(450.0, (0.0, 25.0, 0.0), 3),
+                  inj.periodic_fault(0.23, 10.0, 3),
+                  inj.lag_fault(90.0, (4.0, -3.0, 2.5), 2)):
+        for j, v in fault(t, temp, aux, b).items():
+            out[j] = out.get(j, 0.0) + v
+    return out
+
+
+@pytest.mark.parametrize('n', SIZES)
+def test_several_faults_each_on_its_sensor(n):
+    # three of the four sensors have faults at once; each is named on its own sensor (the
+    # step of sensor 3 at 75 % of the record is a step, not a trend of degree 5)
+    data = inj.make(n, inject=_combined)
+    found = find(data, fit(data, 'base', field_nt=inj.F_NT))
+    named = {(f.kind, f.sensor, f.token) for f in found.items
+             if f.kind in ('step', 'periodic', 'lag')}
+    assert named == {('step', 1, 'step(300)@1'), ('step', 3, 'step(450)@3'),
+                     ('periodic', 3, 'periodic(0.23)@3'),
+                     ('lag', 2, 'lag(temperature)@2')}, found.summary()

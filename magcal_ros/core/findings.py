@@ -84,6 +84,8 @@ MIN_SIGNAL_RATIO = 1.10 ** 2 - 1.0
 MIN_EXPLAINED = 0.2
 #: findings per sensor (greedy rounds)
 MAX_PER_SENSOR = 4
+#: a step is preferred to the best trend when it removes this share of what the trend does
+STEP_OVER_TREND = 0.95
 #: shortest segment of a step, as a share of the record
 MIN_SEGMENT_FRACTION = 0.02
 #: excess kurtosis from which tails count as heavy (a Student t with 10 degrees of freedom;
@@ -822,6 +824,7 @@ def _sensor_findings(t, x, sd, u, drivers, sensor, alpha_test, mod=None):
         for drv in drivers:
             cands.extend(_test_channel(t, x, drv, mod))
         best = None
+        passed = []
         for cand in cands:
             removed = float(np.mean(cand.fitted ** 2 + 2 * cand.fitted * (x - cand.fitted)))
             share = removed / excess0
@@ -829,10 +832,19 @@ def _sensor_findings(t, x, sd, u, drivers, sensor, alpha_test, mod=None):
                     or share < MIN_EXPLAINED):
                 continue
             gain = removed * n * c / noise - cand.k * math.log(n)
+            passed.append((gain, cand, removed, share))
             if best is None or gain > best[0]:
                 best = (gain, cand, removed, share)
         if best is None:
             break
+        if best[1].kind == 'time':
+            # an abrupt change that explains nearly all a smooth trend does is the better
+            # description (a linear drift gives a step 75 % of it; small echoes of the other
+            # sensors' faults can tip a degree-5 trend past a step otherwise)
+            steps = [b for b in passed
+                     if b[1].kind == 'step' and b[2] >= STEP_OVER_TREND * best[2]]
+            if steps:
+                best = steps[0]
         _, cand, removed, share = best
         key = (cand.kind, cand.channel)
         tok, text = _describe(cand, sensor, share)
