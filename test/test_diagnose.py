@@ -146,6 +146,10 @@ def test_lr_far_tail_matches_scipy_where_representable():
 def test_time_blocks_and_bad_input():
     blocks = time_blocks(10, 3)
     assert [b.tolist() for b in blocks] == [[0, 1, 2, 3], [4, 5, 6], [7, 8, 9]]
+    # long records: each fold interleaves 4 blocks over the whole record
+    folds = time_blocks(144, 3)
+    assert [b.tolist() for b in folds] == [
+        [i for i in range(144) if (i // 12) % 3 == k] for k in range(3)]
     with pytest.raises(ValueError, match='at least 2 folds'):
         time_blocks(10, 1)
     data = sim({}, 1)
@@ -199,7 +203,9 @@ def test_json_contract(temp_ladder):
     assert set(doc['scalar_rms_nt']) == {'1', '2', '3', '4'}
     assert set(doc['vector_rms_nt']) == {'2', '3', '4'}
     assert doc['verdict'] == {'effect': 'temperature', 'sensor': 2, 'token': 'temperature@2',
-                              'reason': d.verdict_reason}
+                              'reason': d.verdict_reason, 'decided_by': 'held-out',
+                              'explained_fraction': d.verdict.explained_fraction}
+    assert doc['verdict']['explained_fraction'] > 0.9
     first = doc['candidates'][0]
     for key in ('effect', 'sensor', 'rms_before_nt', 'rms_after_nt', 'delta_bic', 'p_value'):
         assert key in first

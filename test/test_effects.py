@@ -137,6 +137,7 @@ def test_aux_poly_fits_current_squared_on_all_sensors():
     for j in range(1, 5):
         v2 = [v for (s, _, n, _), v in zip(res.model.param_info(), res.params)
               if s == j and n in ('v2x', 'v2y', 'v2z')]
+        assert len(v2) == 3
         # i^2 = (i - a0)^2 + 2 a0 (i - a0) + a0^2: the square's coefficient is the truth
         assert np.allclose(v2, np.array([0.6, -0.4, 0.5]) * (1 + 0.3 * j), atol=0.06), (j, v2)
 
@@ -155,11 +156,15 @@ def test_token_syntax_and_errors():
     for bad, msg in [('base,step', 'needs arguments'), ('base,periodic(x)', 'not a number'),
                      ('base,periodic(-1)', 'positive'), ('base,step(1,2', 'unbalanced'),
                      ('base,drift(3)', 'takes no arguments'),
-                     ('base,aux_poly(aux_motor_current,7)', 'degree'),
-                     ('base,aux:aux_motor_current@1,aux_poly(aux_motor_current,2)@1',
-                      'same degrees of freedom')]:
+                     ('base,aux_poly(aux_motor_current,7)', 'degree')]:
         with pytest.raises(ValueError, match=msg):
             Model.from_spec(bad, 4)
+    # the polynomial contains the linear coupling: it replaces it, in either order
+    for spec in ('base,aux:aux_motor_current@1,aux_poly(aux_motor_current,2)@1',
+                 'base,aux_poly(aux_motor_current,2)@1,aux:aux_motor_current@1'):
+        m = Model.from_spec(spec, 4)
+        assert 'aux_poly(aux_motor_current,2)@1' in m.spec()
+        assert not any(t.startswith('aux:') for t in m.spec())
 
 
 def test_lag_keeps_its_state_in_a_subset():

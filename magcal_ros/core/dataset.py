@@ -46,6 +46,9 @@ class Dataset:
     aux: dict = field(default_factory=dict)
     meta: dict = field(default_factory=dict)
     attitude: np.ndarray | None = None
+    #: (whole Dataset, (N,) int positions in it) of a :meth:`subset`: effects with memory (a
+    #: lag filter) run over the whole record, so a held-out block keeps their state
+    origin: tuple | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self):
         self.t = np.asarray(self.t, float)
@@ -78,8 +81,14 @@ class Dataset:
         temp = None if self.temp is None else self.temp[j - 1]
         if temp is not None and not np.isfinite(temp).any():
             temp = None
-        return SensorContext(t=self.t, temp=temp, aux=dict(self.aux), raw_rate=rate,
-                             attitude=self.attitude_matrix())
+        ctx = SensorContext(t=self.t, temp=temp, aux=dict(self.aux), raw_rate=rate,
+                            attitude=self.attitude_matrix())
+        if self.origin is not None:
+            whole, pos = self.origin
+            wt = None if whole.temp is None else whole.temp[j - 1]
+            ctx.parent = SensorContext(t=whole.t, temp=wt, aux=dict(whole.aux))
+            ctx.index = pos
+        return ctx
 
     def attitude_matrix(self):
         """(N, 3, 3) body-to-world rotation matrices, or None without attitude."""
@@ -98,8 +107,10 @@ class Dataset:
             if a is None:
                 return None
             return np.take(a, np.flatnonzero(idx) if idx.dtype == bool else idx, axis=axis)
+        pos = np.arange(self.n_samples)[idx]
+        origin = (self, pos) if self.origin is None else (self.origin[0], self.origin[1][pos])
         return replace(
-            self, t=take(self.t), raw=take(self.raw, 1), temp=take(self.temp, 1),
+            self, origin=origin, t=take(self.t), raw=take(self.raw, 1), temp=take(self.temp, 1),
             ref_total=take(self.ref_total), ref_vec=take(self.ref_vec),
             angle_deg=take(self.angle_deg), plane=take(self.plane),
             aux={k: take(v) for k, v in self.aux.items()}, meta=dict(self.meta),

@@ -170,6 +170,9 @@ class Effect:
     units = ()
     #: effects that are the same physical degree of freedom, and cannot be combined
     excludes = ()
+    #: labels of effects this one contains (its parameters of the same name are theirs):
+    #: adding it to a model replaces them, e.g. aux_poly(aux_x,2) replaces aux:aux_x
+    supersedes = ()
     #: how a token of an effect that needs arguments is written (None: takes none)
     usage = None
     #: the arguments of a token ``name(a, b)`` (a step time, a frequency, a channel), as
@@ -203,6 +206,15 @@ class Effect:
     def __init__(self, sensor=1, refs=None):
         self.sensor = int(sensor)
         self.refs = dict(refs or {})
+
+    @classmethod
+    def suggest_args(cls, ctx):
+        """Argument tuples worth testing on data ``ctx`` (the diagnosis' candidates); [] if none.
+
+        Effects whose arguments come from the residual (a step time, a frequency) are
+        proposed by the diagnosis itself and return [].
+        """
+        return []
 
     @classmethod
     def from_args(cls, args, sensor=1):
@@ -824,6 +836,11 @@ class Lag(Effect):
         eff.args = (eff.channel,)
         return eff
 
+    @classmethod
+    def suggest_args(cls, ctx):
+        out = [('temperature',)] if ctx.temp is not None else []
+        return out + [(c,) for c in sorted(ctx.aux)]
+
     @property
     def signals(self):
         return ('time', self.channel)
@@ -866,7 +883,7 @@ class AuxPoly(Effect):
 
     Token ``aux_poly(aux_<name>, d)``, 2 <= d <= 4 (e.g. a field that grows with the square
     of a current, from heating or saturation).  Includes the linear term, so it replaces
-    ``aux:aux_<name>``.
+    ``aux:aux_<name>`` (its linear parameters vx, vy, vz are that effect's).
     """
 
     name = 'aux_poly'
@@ -887,8 +904,12 @@ class AuxPoly(Effect):
             raise ValueError(f'aux_poly degree must be 2, 3 or 4, got {args[1]!r}')
         eff.degree = int(d)
         eff.args = (eff.channel, str(eff.degree))
-        eff.excludes = ('aux:' + eff.channel,)
+        eff.supersedes = ('aux:' + eff.channel,)
         return eff
+
+    @classmethod
+    def suggest_args(cls, ctx):
+        return [(c, '2') for c in sorted(ctx.aux)]
 
     @property
     def signals(self):
@@ -896,7 +917,8 @@ class AuxPoly(Effect):
 
     @property
     def param_names(self):
-        return tuple(f'v{k}{ax}' for k in range(1, self.degree + 1) for ax in 'xyz')
+        return ('vx', 'vy', 'vz') + tuple(f'v{k}{ax}' for k in range(2, self.degree + 1)
+                                          for ax in 'xyz')
 
     @property
     def units(self):

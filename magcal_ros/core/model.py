@@ -137,8 +137,14 @@ class Model:
             for nm in names:
                 for j in sensors:
                     eff = fx.make_effect(nm, j)
-                    if not eff.applies or eff.label in seen[j - 1]:
+                    if not eff.applies or eff.label in seen[j - 1] or any(
+                            eff.label in o.supersedes for o in per_sensor[j - 1]):
                         continue
+                    # a larger form of an effect already there replaces it (aux_poly > aux)
+                    gone = [o for o in per_sensor[j - 1] if o.label in eff.supersedes]
+                    for o in gone:
+                        per_sensor[j - 1].remove(o)
+                        seen[j - 1].discard(o.label)
                     clash = [o for o in per_sensor[j - 1]
                              if {o.name, o.label} & set(eff.excludes)
                              or {eff.name, eff.label} & set(o.excludes)]
