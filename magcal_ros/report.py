@@ -27,7 +27,8 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import NullLocator
 import numpy as np
 
-from magcal_ros.core.diagnose import compact_spec, noise_floor_from_data
+from magcal_ros.core.diagnose import (compact_spec, MIN_DELTA_BIC, MIN_EXPLAINED,
+                                      noise_floor_from_data)
 from magcal_ros.core.tensor import cross_positions, tensor_cross, tensor_noise_floor
 
 #: at most this many points per scatter plot (evenly thinned)
@@ -354,16 +355,18 @@ def plot_tensor(data, result, baseline_m=0.5, floor=None):
 def candidate_chart_data(diagnosis, top=15):
     """The data of the candidates chart, from the candidates' dicts (best first).
 
-    The verdict is decided by the held-out test (a candidate must lower the held-out RMS
-    after passing the p-value and BIC tests), so the chart's bars are the held-out RMS drop
-    in nT where a candidate was cross-validated; delta BIC is shown beside it.  Driven by
+    The verdict is decided by the share of the excess over the floor a candidate removes
+    (held out when cross-validated) after the p-value and BIC tests, so the chart's bars
+    are that share, with the held-out RMS drop in nT where a candidate was cross-validated;
+    delta BIC is shown beside it.  Driven by
     the keys of ``Candidate.to_dict()``, so a candidate without held-out figures simply has
     ``held_out_drop_nt`` None.
 
     Returns
     -------
     list of dict
-        token, significant, verdict (bool), held_out_before_nt, held_out_after_nt,
+        token, significant, likelihood_tests (p-value and BIC passed), explained_fraction
+        (0..1 or None), verdict (bool), held_out_before_nt, held_out_after_nt,
         held_out_drop_nt (nT or None), evidence (-delta BIC).
     """
     rows = []
@@ -372,7 +375,11 @@ def candidate_chart_data(diagnosis, top=15):
         before, after = d.get('cv_rms_before_nt'), d.get('cv_rms_after_nt')
         drop = None if before is None or after is None else float(before - after)
         dbic = d.get('delta_bic')
+        lr_ok = (d.get('p_value') is not None and d['p_value'] < diagnosis.p_threshold
+                 and dbic is not None and dbic < MIN_DELTA_BIC)
         rows.append({'token': d['token'], 'significant': bool(d.get('significant')),
+                     'likelihood_tests': bool(lr_ok),
+                     'explained_fraction': d.get('explained_fraction'),
                      'verdict': d['token'] == diagnosis.verdict_token,
                      'held_out_before_nt': before, 'held_out_after_nt': after,
                      'held_out_drop_nt': drop,
@@ -381,41 +388,82 @@ def candidate_chart_data(diagnosis, top=15):
 
 
 def plot_candidates(diagnosis, top=15):
-    """What decided the verdict: the held-out RMS drop of the candidates (left), delta BIC
-    (right); the verdict's bar is outlined."""
+    """What decided the verdict: the held-out share of the excess over the floor each
+    candidate removes (left; the verdict needs MIN_EXPLAINED), delta BIC (right); the
+    verdict's bar is outlined.  Green: passes every test; orange: significant by the
+    likelihood tests but removes too small a share; grey: not significant."""
     rows = candidate_chart_data(diagnosis, top)
     if not rows:
         return None
     fig = _figure(12, 0.35 * len(rows) + 1.8)
     ax, ax2 = fig.subplots(1, 2, sharey=True, width_ratios=[3, 2])
     y = np.arange(len(rows))[::-1]
-    colours = ['tab:green' if r['significant'] else '0.7' for r in rows]
-    drop = np.array([r['held_out_drop_nt'] if r['held_out_drop_nt'] is not None else 0.0
-                     for r in rows])
-    bars = ax.barh(y, drop, color=colours)
+    colours = ['tab:green' if r['significant'] else
+               ('tab:orange' if r['likelihood_tests'] else '0.7') for r in rows]
+    share = np.array([r['explained_fraction'] if r['explained_fraction'] is not None else 0.0
+                      for r in rows])
+    bars = ax.barh(y, share, color=colours)
     for bar, r in zip(bars, rows):
         if r['verdict']:
             bar.set_edgecolor('k')
             bar.set_linewidth(2)
     for yi, r in zip(y, rows):
-        txt = ('not cross-validated' if r['held_out_drop_nt'] is None else
-               f'{r["held_out_before_nt"]:.2f} -> {r["held_out_after_nt"]:.2f} nT')
+        if r['explained_fraction'] is None:
+            txt = 'not tested for its share'
+        else:
+            txt = f'{r["explained_fraction"]:.0%}'
+            if r['held_out_drop_nt'] is not None:
+                txt += (f' (held-out {r["held_out_before_nt"]:.2f} -> '
+                        f'{r["held_out_after_nt"]:.2f} nT)')
         ax.text(0, yi, f'  {txt}', va='center', fontsize=7)
-    ax.axvline(0, color='k', lw=1)
+    ax.axvline(MIN_EXPLAINED, color='k', ls='--', lw=1,
+               label=f'a verdict removes >= {MIN_EXPLAINED:.0%}')
+    ax.set_xlim(0, 1)
     ax.set_yticks(y)
     ax.set_yticklabels([r['token'] for r in rows], fontsize=8)
     ax.set_ylabel('candidate effect (model token)')
-    ax.set_xlabel('held-out RMS drop (nT): decides the verdict (green = passes all tests)')
+    ax.set_xlabel(f'share of the excess over the floor removed ({diagnosis.decided_by}): '
+                  'decides the verdict')
+    ax.legend(fontsize=7, loc='lower right')
     ev = np.array([max(r['evidence'], 0.1) if r['evidence'] is not None else 0.1
                    for r in rows])
     ax2.barh(y, ev, color=colours)
     ax2.set_xscale('log')
-    ax2.axvline(10, color='k', ls='--', lw=1, label='-dBIC = 10 (strong evidence)')
+    ax2.axvline(-MIN_DELTA_BIC, color='k', ls='--', lw=1, label='-dBIC = 10 (strong evidence)')
     ax2.set_xlabel('-delta BIC (log scale): must exceed 10')
     ax2.set_ylabel('(same candidates)')
     ax2.legend(fontsize=7, loc='lower right')
     _suptitle(fig, f'Candidate effects, best first; verdict: {diagnosis.verdict_token or "none"}'
               f' ({diagnosis.verdict_reason})', fontsize=10)
+    return fig
+
+
+def plot_ladder_rungs(data, ladder):
+    """Scalar residual over time of every rung's fit (one row per rung), with its model."""
+    steps = [st for st in ladder.steps if st.result is not None]
+    if not steps:
+        return None
+    fl = ladder.noise_floor
+    fig = _figure(11, 1.9 * len(steps) + 0.8)
+    axes = np.atleast_1d(fig.subplots(len(steps), 1, sharex=True))
+    idx = _thin(data.n_samples)
+    t = data.t[idx] - data.t[0]
+    for ax, (i, st) in zip(axes, enumerate(steps)):
+        res = st.result.scalar_residual_nt
+        for j in range(res.shape[0]):
+            ax.plot(t, res[j, idx], ',' if len(idx) > 3000 else '.', ms=1.5,
+                    label=f'sensor {j + 1}', alpha=0.6)
+        _floor_lines(ax, 3 * fl.value_nt, label='3 x floor')
+        worst = max(v / fl.per_sensor_nt[j - 1] for j, v in st.scalar_rms_nt.items())
+        what = 'start: ' + ','.join(st.model) if st.added is None else f'+ {st.added}'
+        ax.set_title(f'rung {i}: {what} (worst scalar RMS {worst:.2f} x floor)', fontsize=9,
+                     loc='left')
+        ax.set_ylabel('scalar residual (nT)', fontsize=8)
+    axes[0].legend(fontsize=7, loc='upper right', ncol=4, markerscale=6)
+    axes[-1].set_xlabel('time since start (s)')
+    _suptitle(fig, 'Error ladder: scalar residual of each rung. Stopped: '
+              + (ladder.reason[:110] + ('...' if len(ladder.reason) > 110 else '')),
+              fontsize=10)
     return fig
 
 
@@ -625,12 +673,14 @@ def candidate_rows(diagnosis):
                      f'{c.vector_rms_before_nt:.2f} -> {c.vector_rms_after_nt:.2f}',
                      '' if c.cv_rms_before_nt is None else
                      f'{c.cv_rms_before_nt:.2f} -> {c.cv_rms_after_nt:.2f}',
+                     '' if c.explained_fraction is None else f'{c.explained_fraction:.0%}',
                      'yes' if c.significant else '', c.method])
     return rows
 
 
 CANDIDATE_HEADER = ['effect', 'k', 'delta BIC', 'log10 p', 'scalar RMS (nT)',
-                    'vector RMS (nT)', 'held-out RMS (nT)', 'significant', 'evidence']
+                    'vector RMS (nT)', 'held-out RMS (nT)', 'share of excess removed',
+                    'significant', 'evidence']
 
 _CSS = """body{font-family:sans-serif;max-width:1300px;margin:1em auto;color:#222}
 table{border-collapse:collapse;font-size:13px;margin:0.5em 0}
@@ -687,6 +737,8 @@ def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseli
         ('candidates', 'Candidate effects', None if diagnosis is None
          else plot_candidates(diagnosis)),
         ('ladder', 'Error ladder', None if ladder is None else plot_ladder(ladder)),
+        ('ladder_rungs', 'Error ladder: residual of each rung', None if ladder is None
+         else plot_ladder_rungs(data, ladder)),
     ]
     found = diagnosis.findings if diagnosis is not None else None
     if found is None:
@@ -724,7 +776,8 @@ def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseli
         else '<p>none: no line, step, lag, trend, attitude pattern, gradient or heavy tail '
              'above the false-alarm and effect-size thresholds</p>'))
     if ladder is not None:
-        parts.append('<h2>Error ladder</h2><pre>' + html.escape(ladder.table()) + '</pre>')
+        parts.append('<h2>Error ladder</h2><pre>' + html.escape(ladder.table()) + '</pre>'
+                     + f'<p class="verdict">ladder stopped: {html.escape(ladder.reason)}</p>')
     parts.append('<h2>Fit</h2><pre>' + html.escape(result.summary()) + '</pre>')
     written = []
     for name, heading, fig in figs:

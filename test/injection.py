@@ -26,14 +26,14 @@ def _rotation(axis, angle):
 def tumbling_field(n, rate_hz=RATE_HZ, seed=0):
     """(N,) t in s and (N, 3) field in the body frame, nT: a smooth tumble covering the sphere.
 
-    The body turns with an angular velocity whose axis wanders slowly (0.2-0.6 rad/s), so
-    every direction is visited several times in 300 s.
+    The body turns at 0.2-0.6 rad/s about an axis that wanders (periods 57-126 s), so every
+    direction is visited several times in 600 s.
     """
     rng = np.random.default_rng(seed)
     t = np.arange(n) / rate_hz
     dt = 1.0 / rate_hz
-    w_axis = np.stack([np.sin(0.031 * t + 0.3), np.cos(0.017 * t + 1.1),
-                       np.sin(0.023 * t + 2.0) + 0.4], axis=1)
+    w_axis = np.stack([np.sin(0.11 * t + 0.3), np.cos(0.07 * t + 1.1),
+                       np.sin(0.05 * t + 2.0)], axis=1)
     w_axis /= np.linalg.norm(w_axis, axis=1, keepdims=True)
     speed = 0.4 + 0.2 * np.sin(0.05 * t + rng.uniform(0, 6))
     b_world = np.array([0.3, -0.5, 0.81])

@@ -1,5 +1,6 @@
 """Diagnosis report (magcal_ros.report): figures, labels, floor lines, self-contained HTML."""
 import base64
+import html
 import io
 import re
 
@@ -60,6 +61,7 @@ def test_figures_labelled_with_floor(case):
     # bar charts: one axis is categorical (effect names, ladder steps)
     _labelled(report.plot_ladder(lad), units=False)
     _labelled(report.plot_candidates(lad.steps[0].diagnosis), units=False)
+    _labelled(report.plot_ladder_rungs(data, lad))
     assert _has_floor_line(report.plot_ladder(lad))
     # one panel per (aux channel, sensor)
     assert len([a for a in report.plot_residual_vs_aux(data, res, floor).axes
@@ -87,7 +89,7 @@ def test_write_report_self_contained(case, tmp_path):
     text = index.read_text()
     names = ('magnitude', 'residual_time', 'residual_temperature', 'residual_aux',
              'residual_rate', 'residual_direction', 'tensor', 'candidates', 'ladder',
-             'residual_spectrum', 'change_points', 'residual_lagged')
+             'ladder_rungs', 'residual_spectrum', 'change_points', 'residual_lagged')
     imgs = re.findall(r'<img alt="(\w+)" src="data:image/png;base64,([A-Za-z0-9+/=]+)"', text)
     assert [n for n, _ in imgs] == list(names)
     for name, b64 in imgs:
@@ -101,6 +103,15 @@ def test_write_report_self_contained(case, tmp_path):
     assert 'verdict: <b>aux:aux_motor_current@3</b>' in text
     assert 'Error ladder' in text and '+ aux:aux_motor_current@3' not in text  # table text
     assert 'aux:aux_motor_current@3' in lad.table()
+    # the ladder's final reason is printed, and every rung's model has its residual panel
+    assert f'ladder stopped: {html.escape(lad.reason)}' in text
+    assert lad.reason.startswith('verdict none')
+    rungs = report.plot_ladder_rungs(data, lad)
+    titles = [a.get_title(loc='left') for a in rungs.axes]
+    assert len(titles) == len(lad.steps)
+    assert titles[0].startswith('rung 0: start: base')
+    for i, st in enumerate(lad.steps[1:], start=1):
+        assert titles[i].startswith(f'rung {i}: + {st.added}')
 
 
 def test_write_report_needs_a_result(tmp_path, case):

@@ -1295,10 +1295,19 @@ class LadderStep:
 
 @dataclass(frozen=True, eq=False)
 class Ladder:
-    """The error ladder: held-out RMS falling as effects are added."""
+    """The error ladder: held-out RMS falling as effects are added.
+
+    Attributes
+    ----------
+    steps : tuple of LadderStep
+    noise_floor : NoiseFloor
+    reason : str
+        Why the ladder stopped (the last diagnosis' reason for "none", or the step limit).
+    """
 
     steps: tuple
     noise_floor: NoiseFloor
+    reason: str = ''
 
     @property
     def final(self):
@@ -1313,8 +1322,12 @@ class Ladder:
                            'vector_rms_nt': {str(j): v for j, v in st.vector_rms_nt.items()},
                            'residual_rms_nt': st.residual_rms_nt, 'cv_rms_nt': st.cv_rms_nt,
                            'verdict': (None if st.diagnosis is None
-                                       else st.diagnosis.verdict_token)}
-                          for st in self.steps]}
+                                       else st.diagnosis.verdict_token),
+                           'explained_fraction': (
+                               None if st.diagnosis is None or st.diagnosis.verdict is None
+                               else st.diagnosis.verdict.explained_fraction)}
+                          for st in self.steps],
+                'final_reason': self.reason}
 
     def table(self):
         """Text table of the steps."""
@@ -1330,6 +1343,8 @@ class Ladder:
                          f'{(cv if cv is not None else float("nan")):9.2f} '
                          f'{((cv or st.residual_rms_nt) / fl):7.2f}')
         lines.append(f'noise floor (from the data): {fl:.2f} nT')
+        if self.reason:
+            lines.append(f'stopped: {self.reason}')
         return '\n'.join(lines)
 
 
@@ -1411,6 +1426,9 @@ def ladder(data, start_model='base', steps=None, auto=True, field_nt=None, *,
         if floor is None:
             floor = noise_floor_from_data(data, result)
         if len(rungs) > max_steps:
+            reason = (f'{max_steps} effects added (max_steps)'
+                      + ('' if diag is None or not diag.verdict_token else
+                         f'; the next verdict would be {diag.verdict_token}'))
             break
         if todo:
             token = todo.pop(0)
@@ -1419,6 +1437,8 @@ def ladder(data, start_model='base', steps=None, auto=True, field_nt=None, *,
             token = diag.verdict_token
             warm = diag.verdict
         else:
+            reason = ('the given steps were added (no diagnosis without auto)' if diag is None
+                      else f'verdict none: {diag.verdict_reason}')
             break
         contexts = [data.context(j) for j in range(1, data.n_sensors + 1)]
         m_ext, p_ext, added_mask = extend_model(result.model, result.params, token, contexts)
@@ -1430,4 +1450,4 @@ def ladder(data, start_model='base', steps=None, auto=True, field_nt=None, *,
         result = fit(data, m_ext, field_nt=f, init=p_ext, on_degenerate='flag',
                      constrained=constrained)
         added = token
-    return Ladder(steps=tuple(rungs), noise_floor=floor)
+    return Ladder(steps=tuple(rungs), noise_floor=floor, reason=reason)
