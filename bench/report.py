@@ -19,7 +19,8 @@ ORDER = [('accuracy', 'Accuracy against the noise floor and the Cramer-Rao bound
          ('real_data', 'Real recordings'),
          ('live', 'Live throughput and latency: corrector vs relay'),
          ('driver_rate', 'Driver parsing rate and CPU'),
-         ('solve_time', 'Solve time and scaling')]
+         ('solve_time', 'Solve time and scaling'),
+         ('workbench', 'Workbench speed: diagnose, report, ladder (before and after)')]
 
 
 def _machine_line(m):

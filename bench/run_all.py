@@ -26,6 +26,7 @@ BENCHES = {
     'driver_rate': (['driver_rate.py'], ['--samples', '5000', '--pty-mbytes', '2',
                                          '--node-duration', '4']),
     'real_data': (['real_data.py'], ['--no-diagnose']),
+    'workbench': (['workbench.py'], ['--sizes', '3000', '--no-ladder']),
 }
 
 

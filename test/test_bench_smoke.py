@@ -25,6 +25,7 @@ CASES = {
     'real_data': ['--no-diagnose'],
     'driver_rate': ['--samples', '300', '--pty-mbytes', '0.05', '--protocols', 'ascii',
                     'lemi025', '--node-duration', '1', '--node-warmup', '0.5'],
+    'workbench': ['--sizes', '300', '--before', 'none', '--no-ladder'],
 }
 
 
@@ -108,3 +109,10 @@ def test_real_data(tmp_path):
         assert rows[k]['scalar_rms_nt'] == pytest.approx(rows[k]['independent_rms_nt'],
                                                          rel=0.02)
     assert not res['static']['consistent'] and len(res['static']['rows']) == 4
+
+
+def test_workbench(tmp_path):
+    doc = _run('workbench', tmp_path)
+    case = doc['results']['cases'][0]
+    assert case['n'] == 300 and 'before' not in case
+    assert case['after']['diagnose_s'] > 0 and case['after']['report_s'] > 0

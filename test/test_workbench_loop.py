@@ -114,3 +114,27 @@ def test_without_held_out_test_the_verdict_rests_on_significance_and_share(n):
     name, _, sensor = fx.parse_token(doc['verdict']['token'])
     assert (name, sensor) == ('periodic', 3), diag.summary()
     assert doc['verdict']['explained_fraction'] >= MIN_EXPLAINED
+
+
+def test_a_lag_of_no_time_constant_is_the_plain_coupling():
+    """Plain temperature coupling: lag(temperature) fits too (tau -> 0, fewer parameters),
+    but the verdict is the established effect, and the lag candidate says why not."""
+    def plain(t, temp, aux, b):
+        return {2: (temp[1] - temp[1].mean())[:, None] * np.array([4.0, -3.0, 2.5])}
+    data = inj.make(3000, seed=9, inject=plain)
+    diag = diagnose(data, 'base', field_nt=F)
+    assert diag.verdict_token == 'temperature@2', diag.summary()
+    lag = next(c for c in diag.candidates if c.token == 'lag(temperature)@2')
+    assert not lag.significant and 'no lag' in lag.note
+
+
+def test_tokens_from_findings():
+    from magcal_ros.core.diagnose import tokens_from_findings
+    got = tokens_from_findings([
+        {'kind': 'periodic', 'sensor': 3, 'value': 0.23, 'token': 'periodic(0.23)@3'},
+        {'kind': 'step', 'sensor': 1, 'value': 300.0, 'token': None},
+        {'kind': 'lag', 'sensor': 2, 'channel': 'temperature', 'value': 88.0},
+        {'kind': 'channel_nonlinear', 'sensor': None, 'channel': 'aux_motor_current'},
+        {'kind': 'heavy_tails', 'sensor': 2}])
+    assert got == ['periodic(0.23)', 'step(300)', 'lag(temperature)',
+                   'aux_poly(aux_motor_current,2)']

@@ -242,6 +242,9 @@ class Candidate:
         computed (a candidate after the verdict).
     decided_by : str or None
         Which measure gave ``explained_fraction``: 'held-out' or 'in-sample (...)'.
+    note : str or None
+        Why the candidate is not adopted although its fit is good: its fitted parameters
+        make it a simpler catalog effect (``Effect.reduces``: a lag of zero time constant).
     """
 
     token: str
@@ -263,6 +266,7 @@ class Candidate:
     params: tuple = ()
     explained_fraction: float | None = None
     decided_by: str | None = None
+    note: str | None = None
 
     def to_dict(self):
         """JSON-ready dict (docs/design.md §2 keys first)."""
@@ -277,7 +281,7 @@ class Candidate:
                 'cv_rms_after_nt': self.cv_rms_after_nt,
                 'significant': self.significant, 'method': self.method,
                 'explained_fraction': self.explained_fraction,
-                'decided_by': self.decided_by,
+                'decided_by': self.decided_by, 'note': self.note,
                 'params': [dict(p) for p in self.params]}
 
 
@@ -904,6 +908,8 @@ class Diagnosis:
                              f'{c.delta_bic:10.1f} {c.log10_p_value:8.1f} '
                              f'{c.rms_before_nt:6.2f}>{c.rms_after_nt:6.2f}   '
                              f'{vec:>15s} {cv:>15s} {share:>6s}')
+                if c.note:
+                    lines.append(f'    not adopted: {c.note}')
             if len(self.candidates) > max_candidates:
                 lines.append(f'  ... {len(self.candidates) - max_candidates} more with less '
                              'evidence (all in the JSON output)')
@@ -1105,6 +1111,7 @@ def _diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOL
         ev = _evaluate(c['model'], r.params, data, f, sigma, contexts, loss=loss)
         if ev.chi2 <= c['ev'].chi2:
             c.update(p=r.params, ev=ev, method='refit')
+            c['reduces'] = _reduces(c['model'], r.params, r.stderr, c['label'], contexts)
     _progress(progress, 'refit', n_refit, n_refit, '')
     screened.sort(key=dbic)
     seconds['refit'] = time.perf_counter() - t0
@@ -1125,7 +1132,8 @@ def _diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOL
     t0 = time.perf_counter()
     cv0 = None
     held_out = bool(folds) and n >= folds * BLOCKS_PER_FOLD * MIN_BLOCK
-    to_cv = [c for c in screened[:n_refit] if c['method'] == 'refit' and passes_lr(c)]
+    to_cv = [c for c in screened[:n_refit]
+             if c['method'] == 'refit' and passes_lr(c) and not c.get('reduces')]
     if not to_cv and screened:
         to_cv = [screened[0]]           # the best one, for its effect size
     if held_out:
@@ -1166,7 +1174,8 @@ def _diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOL
         else:
             share, how = in_sample_share(c), decided
         sig = bool(p_val < p_thr and d_bic < MIN_DELTA_BIC and share is not None
-                   and share >= MIN_EXPLAINED and (c['method'] == 'refit' or not constrained))
+                   and share >= MIN_EXPLAINED and (c['method'] == 'refit' or not constrained)
+                   and not c.get('reduces'))
         out.append(Candidate(
             token=c['token'], effect=c['label'], sensor=c['sensor'], n_params=k,
             rms_before_nt=_scalar_rms(ev0.scalar, sens),
@@ -1176,7 +1185,7 @@ def _diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOL
             delta_chi2=float(d_chi2), delta_bic=d_bic, p_value=p_val, log10_p_value=logp,
             method=c['method'], cv_rms_before_nt=cv_b, cv_rms_after_nt=cv_a,
             significant=sig, params=_added_params(c['model'], c['p'], c['added']),
-            explained_fraction=share, decided_by=how))
+            explained_fraction=share, decided_by=how, note=c.get('reduces')))
     out.sort(key=lambda c: (not c.significant, c.delta_bic))
 
     ratio = max([v / floor.per_sensor_nt[j - 1] for j, v in scalar_rms.items()]
@@ -1226,6 +1235,17 @@ def _diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOL
         excess_ms_nt2=float(excess0))
 
 
+def _reduces(model, p, stderr, label, contexts):
+    """The first reason an added effect's fit reduces it to a simpler one (Effect.reduces)."""
+    for j, row in enumerate(model.effects):
+        for eff, sl in zip(row, model.slices[j]):
+            if eff.label == label:
+                why = eff.reduces(p[sl], None if stderr is None else stderr[sl], contexts[j])
+                if why:
+                    return f'sensor {j + 1}: {why}'
+    return None
+
+
 def _share(ms_before, ms_after, floor_nt):
     """Share (0..1) of the excess mean square over floor^2 removed: (before - after) / excess.
 
@@ -1248,6 +1268,14 @@ def tokens_from_findings(findings):
     out = []
     for fd in findings:
         kind, val, ch = fd.get('kind'), fd.get('value'), fd.get('channel')
+        if fd.get('token'):                 # the finding's own suggestion, on every sensor
+            try:
+                name, args, _ = fx.parse_token(fd['token'])
+            except ValueError:
+                name, args = None, ()
+            if args:
+                out.append(f'{name}({",".join(args)})')
+                continue
         if kind == 'step' and val is not None:
             out.append(f'step({float(val):.6g})')
         elif kind == 'periodic' and val is not None:

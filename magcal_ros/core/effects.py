@@ -273,6 +273,13 @@ class Effect:
         """True if ``contribution`` depends on ``lin`` (needs fixed-point inversion)."""
         return False
 
+    def reduces(self, p, stderr, ctx):
+        """Reason why the fitted parameters ``p`` (stderr: their uncertainties, or None) make
+        this effect a simpler one already in the catalog (a lag of zero time constant), else
+        None.  The diagnosis does not adopt such a candidate: the simpler effect is tested
+        on its own."""
+        return None
+
     def describe(self):
         """One-line physical description (first docstring line)."""
         return (self.__doc__ or '').strip().splitlines()[0]
@@ -792,7 +799,7 @@ def first_order_lag(t, x, tau):
     a = exp(-dt/tau), b0 = 1 - tau/dt (1 - a), b1 = tau/dt (1 - a) - a.  Irregular sampling
     is interpolated onto a uniform grid at the median interval and back.
     """
-    from scipy.signal import lfilter, lfilter_zi
+    from scipy.signal import lfilter
     t = np.asarray(t, float)
     x = np.asarray(x, float)
     if len(x) < 2:
@@ -809,7 +816,8 @@ def first_order_lag(t, x, tau):
     a = math.exp(-dt / tau)
     g = (tau / dt) * (1.0 - a)
     b = [1.0 - g, g - a]
-    y, _ = lfilter(b, [1.0, -a], xs, zi=lfilter_zi(b, [1.0, -a]) * xs[0])
+    # steady state at the first sample: y[0] = b0 x0 + z0 = x0
+    y, _ = lfilter(b, [1.0, -a], xs, zi=np.array([(1.0 - b[0]) * xs[0]]))
     return y if uniform else np.interp(t, grid, y)
 
 
@@ -869,9 +877,33 @@ class Lag(Effect):
         """(N,) the channel through the lag of time constant ``tau`` s, at ``ctx``'s samples."""
         whole, idx = ctx.whole()
         x = _signal(whole, self.channel)
-        x = np.nan_to_num(x, nan=self.refs.get('x0', 0.0))
-        y = first_order_lag(whole.t, x, tau)
+        # the fit's Jacobian perturbs every other parameter at the same tau (and tau itself):
+        # keep the last few filtered series, keyed by the record and tau
+        key = (id(x), len(x), float(tau), self.refs.get('x0', 0.0))
+        cache = self.__dict__.setdefault('_cache', {})
+        hit = cache.get(key)
+        if hit is None or hit[1] is not x:
+            xx = np.nan_to_num(x, nan=self.refs.get('x0', 0.0))
+            hit = (first_order_lag(whole.t, xx, tau), x)
+            if len(cache) >= 4:
+                cache.pop(next(iter(cache)))
+            cache[key] = hit
+        y = hit[0]
         return y if idx is None else y[idx]
+
+    def reduces(self, p, stderr, ctx):
+        """Why the fitted lag is no lag (tau indistinguishable from 0), or None.
+
+        A time constant below two sample intervals, or within 3 standard uncertainties of
+        zero, is the plain coupling of the channel (``temperature``, ``aux:<channel>``):
+        the diagnosis then prefers that simpler, established effect.
+        """
+        tau, se = abs(float(p[3])), float(stderr[3]) if stderr is not None else 0.0
+        dt = float(np.median(np.diff(ctx.t))) if len(ctx.t) > 1 else 0.0
+        if tau < 2.0 * dt or (np.isfinite(se) and tau < 3.0 * se):
+            return (f'fitted time constant {tau:.3g} +- {se:.2g} s is no lag (below '
+                    f'{max(2 * dt, 3 * se):.3g} s): the plain coupling of {self.channel}')
+        return None
 
     def contribution(self, p, ctx, lin):
         y = self.lagged(ctx, p[3]) - self.refs.get('x0', 0.0)
