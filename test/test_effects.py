@@ -182,3 +182,20 @@ def test_lag_keeps_its_state_in_a_subset():
     # and the filter is the lag: 1 - exp(-(t - 100)/50) of the 10 degC step (hand formula)
     ref = 10.0 * (1 - np.exp(-np.clip(t - 100, 0, None) / 50.0)) - eff.refs['x0']
     assert np.max(np.abs(whole[:, 0] - ref)[t > 101]) < 0.05
+
+
+def test_lag_one_sample_at_a_time_keeps_its_state():
+    """Live correction feeds one sample per call: the filter state is carried between calls
+    and follows the batch filter (0.02 of a 10 degC step: zero- vs first-order hold)."""
+    t = np.arange(2000) * 0.2
+    x = np.where(t > 100, 10.0, 0.0)
+    eff = fx.make_effect('lag(temperature)', 1)
+    eff.prepare(fx.SensorContext(t=t, temp=x))
+    p = np.array([1.0, 0.0, 0.0, 50.0])
+    batch = eff.contribution(p, fx.SensorContext(t=t, temp=x), np.zeros((2000, 3)))[:, 0]
+    live = [eff.contribution(p, fx.SensorContext(t=t[k:k + 1], temp=x[k:k + 1]),
+                             np.zeros((1, 3)))[0, 0] for k in range(2000)]
+    assert np.max(np.abs(batch - np.array(live))) < 0.05
+    # 300 s after the step: 10 (1 - exp(-300 / 50)) degC, minus the mean (hand formula)
+    assert live[-1] == pytest.approx(10.0 * (1 - np.exp(-300.0 / 50.0)) - eff.refs['x0'],
+                                     abs=0.02)

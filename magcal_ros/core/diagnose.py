@@ -419,11 +419,16 @@ def propose_from_residual(t, residual, max_steps=2, min_line_ratio=30.0):
         segs.remove((a, b))
         segs += [(a, best[1]), (best[1], b)]
     dt = float(np.median(np.diff(t)))
+    # the change lies between two samples: the time of the first sample after it, to the
+    # sampling interval's decimal (step(300), not step(300.0001))
+    q = 10.0 ** math.floor(math.log10(dt)) if dt > 0 else 1.0
+
+    def at(k):
+        return f'{float(np.round(t[k] / q) * q):.10g}'
     for k in sorted(found):
-        out.append(f'step({float(np.round(t[k] / dt) * dt):.6g})')
+        out.append(f'step({at(k)})')
     if len(found) > 1:
-        out.append('step(' + ','.join(f'{float(np.round(t[k] / dt) * dt):.6g}'
-                                      for k in sorted(found)) + ')')
+        out.append('step(' + ','.join(at(k) for k in sorted(found)) + ')')
     # -- lines
     span = float(t[-1] - t[0])
     if span <= 0:

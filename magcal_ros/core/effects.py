@@ -876,6 +876,8 @@ class Lag(Effect):
     def lagged(self, ctx, tau):
         """(N,) the channel through the lag of time constant ``tau`` s, at ``ctx``'s samples."""
         whole, idx = ctx.whole()
+        if idx is None and len(ctx.t) == 1:
+            return self._online(float(ctx.t[0]), _signal(ctx, self.channel), tau)
         x = _signal(whole, self.channel)
         # the fit's Jacobian perturbs every other parameter at the same tau (and tau itself):
         # keep the last few filtered series, keyed by the record and tau
@@ -890,6 +892,19 @@ class Lag(Effect):
             cache[key] = hit
         y = hit[0]
         return y if idx is None else y[idx]
+
+    def _online(self, t, x, tau):
+        """Live correction, one sample at a time: the filter's state is kept between calls
+        (y <- x + (y - x) exp(-dt / tau), the exact response to x held since the last
+        sample; the first sample starts in steady state)."""
+        x = float(self.refs.get('x0', 0.0) if x is None or not np.isfinite(x[0]) else x[0])
+        state = self.__dict__.get('_state')
+        if state is None or t <= state[0]:
+            y = x
+        else:
+            y = x + (state[1] - x) * math.exp(-(t - state[0]) / max(abs(float(tau)), 1e-9))
+        self._state = (t, y)
+        return np.array([y])
 
     def reduces(self, p, stderr, ctx):
         """Why the fitted lag is no lag (tau indistinguishable from 0), or None.

@@ -894,11 +894,17 @@ def _in_model(f, model):
     from dataclasses import replace
     from magcal_ros.core.diagnose import compact_spec
     try:
-        model.with_effect(f.token)
-        return f
+        new = model.with_effect(f.token)
     except ValueError:
-        pass
+        new = None
     spec = compact_spec(model)
+    if new is not None:
+        # a larger form replaces what it contains (aux_poly > aux: Effect.supersedes)
+        kept = compact_spec(new)
+        gone = tuple(t for t in spec if t != 'base' and t not in kept)
+        if not gone:
+            return f
+        return replace(f, replaces=gone, text=f'{f.text} in place of {" ".join(gone)}')
     out = []
     for tok in spec:
         if tok == 'base':
