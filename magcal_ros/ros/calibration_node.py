@@ -722,7 +722,8 @@ class CalibrationNode(Node):
         model = Model.from_spec(list(s.model), self._n)
         data, resync_payload, _ = self._resync(data, epochs, s)
         try:
-            diag = diagnose(data, model, field_nt=s.field_nt, constrained=s.constrained)
+            diag = diagnose(data, model, field_nt=s.field_nt, constrained=s.constrained,
+                            baseline_m=s.baseline_m)
         except ValueError as exc:
             return False, f'not diagnosed: {exc}', {'reason': str(exc), 'sets': n_sets}
         ranking = json.loads(diag.to_json())       # non-finite numbers as null
@@ -736,6 +737,11 @@ class CalibrationNode(Node):
         else:
             head = f'most likely missing effect: {verdict.get("token") or verdict["effect"]}'
         lines = [head] + ([verdict['reason']] if verdict.get('reason') else [])
+        if ranking.get('findings'):       # model-free: what is left (core.findings)
+            lines.append('left in the residuals: ' + '; '.join(
+                f'{f["kind"]}' + (f' (add {f["token"]})' if f.get('token') else '')
+                + ('' if f['sensor'] is None else f' on sensor {f["sensor"]}')
+                for f in ranking['findings'][:4]))
         lines.append(f'HTML report: {ranking["report"]}')
         return True, '\n'.join(lines), ranking
 
