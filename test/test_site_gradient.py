@@ -387,3 +387,15 @@ def test_diagnose_names_site_gradient():
     doc = json.loads(diagnose(data, Model.from_spec('base', 4), field_nt=FIELD_NT).to_json())
     assert doc['verdict']['token'] == 'site_gradient', doc['verdict']
     assert not any(c['effect'].startswith('site_gradient@') for c in doc['candidates'])
+
+
+def test_calibration_file_names_the_frame_without_attitude(tmp_path):
+    """A gradient fitted without attitude is stored with its field-aligned frame."""
+    from magcal_ros.core.site_gradient import FIELD_ALIGNED, fit_heading_unknown
+    from magcal_ros.io.calfile import calibration_to_doc
+    data, _ = make_data(n=600, seed=3, attitude=False)
+    res = fit_heading_unknown(data, field_nt=FIELD_NT)
+    doc = calibration_to_doc(res.calibration)
+    assert doc['site_gradient_nt_per_m']['frame'] == FIELD_ALIGNED
+    save_calibration(tmp_path / 'c.yaml', doc)
+    assert load_calibration(tmp_path / 'c.yaml')[0].site_frame == FIELD_ALIGNED

@@ -389,6 +389,7 @@ class FitResult:
         cols = self.model.array_cols
         if len(cols):
             cal.array_covariance = self.covariance[np.ix_(cols, cols)].copy()
+            cal.site_frame = self.identifiability.get('site_gradient_frame', cal.site_frame)
         return cal
 
     def param_table(self):
@@ -433,6 +434,9 @@ class Calibration:
                          else np.asarray(sigma_nt, float))
         #: (K, K) covariance of the array-wide parameters (site gradient), when known
         self.array_covariance = None
+        #: frame of the site gradient: the attitude's world frame, or the field-aligned
+        #: frame of a fit without attitude (core.site_gradient.FIELD_ALIGNED)
+        self.site_frame = 'world'
         # A calibration is immutable: precompute what every correction needs
         self._a_inv = [np.linalg.inv(model.matrix(j, self.params))
                        for j in range(1, model.n_sensors + 1)]

@@ -80,7 +80,7 @@ def calibration_to_doc(cal, geometry=None, field_reference=None, provenance=None
                                 zip(cal.model.array_effects, cal.model.array_slices)]
         g = cal.site_gradient()
         if g is not None:
-            doc['site_gradient_nt_per_m'] = {'frame': 'world', 'value': _mat(g[0]),
+            doc['site_gradient_nt_per_m'] = {'frame': cal.site_frame, 'value': _mat(g[0]),
                                              'stderr': _mat(g[1])}
             if cal.array_covariance is not None:
                 doc['site_gradient_nt_per_m']['covariance_5'] = _mat(cal.array_covariance)
@@ -213,6 +213,8 @@ def _calibration_from_doc(doc, source):
                                        f'{len(model.array_cols)}x{len(model.array_cols)} finite '
                                        'numbers')
         cal.array_covariance = cov
+    if array_effects and isinstance(site, dict):
+        cal.site_frame = str(site.get('frame', 'world'))
     for k, sdoc in enumerate(sensors, start=1):
         a = cal.matrix(k)
         if not np.all(np.isfinite(a)) or abs(np.linalg.det(a)) < 1e-6:
