@@ -353,7 +353,11 @@ def cmd_check(args):
                        f'residual of sensor {j}: write it with magcal fit')
     corrected = {}
     for path in args.data:
-        data = load_data(path)
+        data = load_data(path, args.unit)
+        try:
+            check_field_units(data.raw, None, '')
+        except ValueError as exc:
+            raise BadInput(f'{path}: {exc}') from None
         if data.n_sensors < j:
             raise BadInput(f'{path}: has {data.n_sensors} sensor(s), no sensor {j}')
         corrected[os.path.basename(path.rstrip('/'))] = cal.correct(
@@ -454,6 +458,7 @@ def build_parser():
     c.add_argument('data', nargs='+', help='static recordings (wide CSV or rosbag2), each '
                    'at one attitude')
     c.add_argument('--sensor', type=int, default=1, help='sensor to check (default 1)')
+    add_unit_arg(c)
     c.add_argument('--json', action='store_true', help='print one JSON object on stdout')
     c.set_defaults(func=cmd_check)
 

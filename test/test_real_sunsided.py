@@ -228,3 +228,28 @@ def test_readme_check_commands(tmp_path):
         assert p.returncode == 0, p.stderr
     assert 'the field at the sensor or the sensor\'s offset changed' in p.stdout
     assert p.stdout.count('nT vs reference') == 4
+
+
+def test_check_reads_other_units(full_sphere, tmp_path):
+    """A static recording in gauss (a single magnetometer's mx,my,mz log): `magcal check
+    --unit gauss` gives the |B| of the nT file; without --unit the unit is named."""
+    _, f, _ = full_sphere
+    cal = tmp_path / 'full.yaml'
+    rc, _, err = run_cli('fit', HMC / 'full-sphere' / 'full-sphere.csv', '--field-nt',
+                         f'{f:.1f}', '-o', cal)
+    assert rc == 0, err
+    name = STATIC[2]
+    gauss = tmp_path / 'static_gauss.csv'
+    np.savetxt(gauss, hmc(name).raw[0] / 1e5, delimiter=',', fmt='%.8f', header='mx,my,mz',
+               comments='')
+    rc, out, err = run_cli('check', cal, HMC / name / f'{name}.csv', gauss, '--unit', 'gauss',
+                           '--json')
+    assert rc == 2 and 'not a geomagnetic field' in err     # the nT file read as gauss
+    rc, out, err = run_cli('check', cal, gauss, '--unit', 'gauss', '--json')
+    assert rc == 0, err
+    rc2, out2, err2 = run_cli('check', cal, HMC / name / f'{name}.csv', '--json')
+    assert rc2 == 0, err2
+    b = json.loads(out)['recordings'][0]['b_nt']
+    assert b == pytest.approx(json.loads(out2)['recordings'][0]['b_nt'], abs=1.0)
+    rc, _, err = run_cli('check', cal, gauss)
+    assert rc == 2 and len(err.strip().splitlines()) == 1
