@@ -98,10 +98,24 @@ CALIBRATION_SENSOR_QOS = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
 _STATUS_SUBSAMPLE = 2000
 
 
+#: longest first line of a service reply (``ros2 service call`` prints the whole message
+#: on one line with ``\n`` escapes: the first line is what a user reads)
+_HEADLINE = 100
+
+
 def _reply(response, success, summary, payload):
-    """Fill a Trigger response: summary line(s), newline, one JSON object."""
+    """Fill a Trigger response: a short first line, more lines, newline, one JSON object.
+
+    A long first line is broken after its lead (``not calibrated: <reason>`` becomes
+    ``not calibrated:`` and the reason on the next line).
+    """
+    first, _, rest = summary.strip().partition('\n')
+    lead, sep, reason = first.partition(': ')
+    if len(first) > _HEADLINE and sep:
+        first = lead + ':\n' + reason
+    summary = first + ('\n' + rest if rest else '')
     response.success = bool(success)
-    response.message = summary.rstrip() + '\n' + json.dumps(payload, sort_keys=False)
+    response.message = summary + '\n' + json.dumps(payload, sort_keys=False)
     return response
 
 
