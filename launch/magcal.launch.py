@@ -3,10 +3,14 @@
 Usage (on a ROS 2 Jazzy install, after ``colcon build``)::
 
     ros2 launch magcal_ros magcal.launch.py                 # with the simulated array
-    ros2 launch magcal_ros magcal.launch.py use_sim:=false  # real fluxgates on serial ports
+    ros2 launch magcal_ros magcal.launch.py use_sim:=false driver_params:=/path/driver.yaml
 
 All nodes run in the namespace given by ``namespace`` (default ``magcal``), each with its
-parameters from ``share/magcal_ros/config/<node>.yaml``. Then, for example::
+parameters from ``share/magcal_ros/config/<node>.yaml``. ``driver_params`` replaces the
+driver's file (``config/driver.yaml`` reads the simulator's pseudo-terminals, so real
+fluxgates, ``use_sim:=false``, need a file of their own naming the serial ports);
+``calibration_file`` sets the calibration file of both the calibration node and the
+corrector (default ``$ROS_HOME/magcal/calibration.yaml``). Then, for example::
 
     ros2 service call /magcal/calibration/start std_srvs/srv/Trigger
     ros2 service call /magcal/calibration/calibrate std_srvs/srv/Trigger
@@ -15,9 +19,7 @@ import os
 
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument
-from launch.conditions import IfCondition
-from launch.substitutions import LaunchConfiguration
+from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch_ros.actions import Node
 
 PACKAGE = 'magcal_ros'
@@ -30,28 +32,56 @@ NODES = (
     ('corrector_node', 'corrector.yaml', False),
 )
 
+#: nodes that read or write the calibration file
+CALIBRATION_FILE_USERS = ('calibration_node', 'corrector_node')
+
+
+def _nodes(context):
+    """Return the nodes the launch arguments select (a launch.OpaqueFunction body)."""
+    args = context.launch_configurations
+    config_dir = os.path.join(get_package_share_directory(PACKAGE), 'config')
+    use_sim = args['use_sim'].strip().lower() in ('true', '1', 'yes', 'on')
+    driver_params = os.path.expanduser(args['driver_params'].strip())
+    calibration_file = args['calibration_file'].strip()
+    if not use_sim and not driver_params:
+        raise RuntimeError(
+            'use_sim:=false needs driver_params:=<driver YAML> naming your serial ports '
+            '(sensor{j}.port; start from share/magcal_ros/config/driver.yaml): the shipped '
+            "file reads the simulator's pseudo-terminals")
+    if driver_params and not os.path.isfile(driver_params):
+        raise RuntimeError(f'driver_params: no file {driver_params}')
+    nodes = []
+    for executable, config, sim_only in NODES:
+        if sim_only and not use_sim:
+            continue
+        params = [os.path.join(config_dir, config)]
+        if executable == 'fluxgate_driver' and driver_params:
+            params = [driver_params]
+        if executable in CALIBRATION_FILE_USERS and calibration_file:
+            params.append({'calibration_file': calibration_file})
+        nodes.append(Node(package=PACKAGE, executable=executable,
+                          namespace=args['namespace'], parameters=params, output='screen'))
+    return nodes
+
 
 def generate_launch_description():
-    """Return the launch description of the four nodes."""
-    config_dir = os.path.join(get_package_share_directory(PACKAGE), 'config')
-    use_sim = LaunchConfiguration('use_sim')
-    namespace = LaunchConfiguration('namespace')
-    actions = [
+    """Return the launch description: its arguments and the nodes they select."""
+    return LaunchDescription([
         DeclareLaunchArgument(
             'use_sim', default_value='true',
             description='start fluxgate_sim (simulated fluxgates on pseudo-terminals '
-                        '/tmp/magcal_sim/fluxgate1..4); false for real serial devices'),
+                        '/tmp/magcal_sim/fluxgate1..4); false for real serial devices '
+                        '(then driver_params is required)'),
         DeclareLaunchArgument(
             'namespace', default_value='magcal',
             description='ROS namespace of all nodes (topics sensor{j}/raw, calibration/*, ...)'),
-    ]
-    for executable, config, sim_only in NODES:
-        actions.append(Node(
-            package=PACKAGE,
-            executable=executable,
-            namespace=namespace,
-            parameters=[os.path.join(config_dir, config)],
-            output='screen',
-            condition=IfCondition(use_sim) if sim_only else None,
-        ))
-    return LaunchDescription(actions)
+        DeclareLaunchArgument(
+            'driver_params', default_value='',
+            description="parameter file of fluxgate_driver (ports, protocols, axes); '' = "
+                        'the shipped config/driver.yaml (the simulator ports)'),
+        DeclareLaunchArgument(
+            'calibration_file', default_value='',
+            description="calibration file of calibration_node and corrector_node; '' = "
+                        'their default $ROS_HOME/magcal/calibration.yaml'),
+        OpaqueFunction(function=_nodes),
+    ])

@@ -120,9 +120,9 @@ def _stub_modules(share_dir):
         def __init__(self, variable_name, *, default=None):
             self.variable_name = variable_name
 
-    class IfCondition:
-        def __init__(self, predicate_expression):
-            self.predicate = predicate_expression
+    class OpaqueFunction:
+        def __init__(self, *, function, args=None, kwargs=None):
+            self.function = function
 
     class LaunchDescription:
         def __init__(self, initial_entities=None):
@@ -131,7 +131,6 @@ def _stub_modules(share_dir):
     mods = {
         'launch': types.ModuleType('launch'),
         'launch.actions': types.ModuleType('launch.actions'),
-        'launch.conditions': types.ModuleType('launch.conditions'),
         'launch.substitutions': types.ModuleType('launch.substitutions'),
         'launch_ros': types.ModuleType('launch_ros'),
         'launch_ros.actions': types.ModuleType('launch_ros.actions'),
@@ -140,7 +139,7 @@ def _stub_modules(share_dir):
     }
     mods['launch'].LaunchDescription = LaunchDescription
     mods['launch.actions'].DeclareLaunchArgument = DeclareLaunchArgument
-    mods['launch.conditions'].IfCondition = IfCondition
+    mods['launch.actions'].OpaqueFunction = OpaqueFunction
     mods['launch.substitutions'].LaunchConfiguration = LaunchConfiguration
     mods['launch_ros.actions'].Node = Node
 
@@ -153,27 +152,57 @@ def _stub_modules(share_dir):
     return mods, recorded
 
 
-def test_generate_launch_description(monkeypatch, tmp_path):
+class _Context:
+    """What an OpaqueFunction reads of a launch context: the arguments as given."""
+
+    def __init__(self, **given):
+        self.launch_configurations = {'use_sim': 'true', 'namespace': 'magcal',
+                                      'driver_params': '', 'calibration_file': ''}
+        self.launch_configurations.update(given)
+
+
+def _launch(monkeypatch, **given):
+    """Run the launch file against the stand-ins; return (arguments, nodes by executable)."""
     mods, recorded = _stub_modules(ROOT)
     for name, mod in mods.items():
         monkeypatch.setitem(sys.modules, name, mod)
     ns = {'__file__': str(LAUNCH), '__name__': 'magcal_launch'}
     exec(compile(LAUNCH.read_text(), str(LAUNCH), 'exec'), ns)
     desc = ns['generate_launch_description']()
-    assert len(desc.entities) == 6
-    assert dict(recorded['arguments']) == {'use_sim': 'true', 'namespace': 'magcal'}
-    nodes = {n['executable']: n for n in recorded['nodes']}
+    (opaque,) = [e for e in desc.entities if hasattr(e, 'function')]
+    opaque.function(_Context(**given))
+    return dict(recorded['arguments']), {n['executable']: n for n in recorded['nodes']}
+
+
+def test_generate_launch_description(monkeypatch, tmp_path):
+    args, nodes = _launch(monkeypatch)
+    assert args == {'use_sim': 'true', 'namespace': 'magcal', 'driver_params': '',
+                    'calibration_file': ''}
     assert set(nodes) == {'fluxgate_sim', 'fluxgate_driver', 'calibration_node',
                           'corrector_node'}
     for exe, n in nodes.items():
         assert n['package'] == 'magcal_ros'
-        assert n['namespace'].variable_name == 'namespace'
+        assert n['namespace'] == 'magcal'
         (path,) = n['parameters']
         assert os.path.dirname(path) == os.path.join(str(ROOT), 'config')
         assert os.path.exists(path), f'{exe}: parameter file {path} missing'
-    # only the simulator depends on use_sim
-    assert nodes['fluxgate_sim']['condition'].predicate.variable_name == 'use_sim'
-    assert all(nodes[e]['condition'] is None
-               for e in ('fluxgate_driver', 'calibration_node', 'corrector_node'))
+
+
+def test_launch_arguments_select_files(monkeypatch, tmp_path):
+    # real fluxgates: no simulator, and the simulator's ports are not loaded
+    with pytest.raises(RuntimeError, match='use_sim:=false needs driver_params'):
+        _launch(monkeypatch, use_sim='false')
+    mine = tmp_path / 'driver.yaml'
+    mine.write_text('/**/fluxgate_driver:\n  ros__parameters:\n    sensor1.port: /dev/ttyUSB0\n')
+    cal = str(tmp_path / 'cal.yaml')
+    _, nodes = _launch(monkeypatch, use_sim='false', driver_params=str(mine),
+                       calibration_file=cal, namespace='array2')
+    assert set(nodes) == {'fluxgate_driver', 'calibration_node', 'corrector_node'}
+    assert nodes['fluxgate_driver']['parameters'] == [str(mine)]
+    for exe in ('calibration_node', 'corrector_node'):
+        assert nodes[exe]['parameters'][1] == {'calibration_file': cal}
+        assert nodes[exe]['namespace'] == 'array2'
+    with pytest.raises(RuntimeError, match='driver_params: no file'):
+        _launch(monkeypatch, driver_params=str(tmp_path / 'missing.yaml'))
     # package name agrees with package.xml
     assert '<name>magcal_ros</name>' in (ROOT / 'package.xml').read_text()

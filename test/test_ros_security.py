@@ -25,17 +25,17 @@ from sim_feed import Feeder
 from std_msgs.msg import String
 
 #: a plug-in module that leaves a trace when it is imported
-EVIL = '''
+EVIL = """
 import pathlib
 pathlib.Path({marker!r}).write_text('imported')
-'''
+"""
 
 WHEEL = {'ax': 10.0, 'ay': -8.0, 'az': 6.0, 'bx': 4.0, 'by': 12.0, 'bz': -6.0}     # nT
 
 
 @pytest.fixture
 def evil_module(tmp_path, monkeypatch):
-    """A module ``h5_evil_plugin`` on sys.path whose import writes ``<tmp>/imported``."""
+    """Put a module ``h5_evil_plugin`` on sys.path whose import writes ``<tmp>/imported``."""
     marker = tmp_path / 'imported'
     (tmp_path / 'h5_evil_plugin.py').write_text(EVIL.format(marker=str(marker)))
     monkeypatch.syspath_prepend(str(tmp_path))
@@ -52,7 +52,7 @@ def wheel_unloaded():
 
 
 def _doc_with_effect(name, model_token):
-    """The simulator's true calibration plus one additive effect ``name`` on sensor 3."""
+    """Return the simulator's true calibration plus one additive effect ``name`` on sensor 3."""
     _, simulator = simulate(n_samples=50, rate_hz=100.0, trajectory='smooth', seed=3)
     doc = copy.deepcopy(calibration_to_doc(simulator.truth, geometry=cross_geometry(0.5)))
     doc['model'] = list(doc['model']) + [model_token]
@@ -135,7 +135,7 @@ def test_plugin_effect_calibration_works_in_the_corrector(
 def test_without_the_plugin_the_corrector_refuses_the_calibration(
         make_node, ros_namespace, tmp_path):
     path = tmp_path / 'cal.yaml'
-    path.write_text(dump_calibration(_doc_with_effect("wheel", "wheel@3")))
+    path.write_text(dump_calibration(_doc_with_effect('wheel', 'wheel@3')))
     node = make_node(CorrectorNode, namespace=ros_namespace, parameter_overrides=[
         Parameter('calibration_file', value=str(path))])
     assert node.calibration is None and "unknown effect 'wheel'" in node.refusal
@@ -143,8 +143,8 @@ def test_without_the_plugin_the_corrector_refuses_the_calibration(
 
 @pytest.mark.parametrize('exe', ['calibration_node', 'corrector_node'])
 @pytest.mark.parametrize('override, match', [
-    ('field_nt:=48000', "field_nt"),               # an integer for a double
-    ('field_nt:=abc', "field_nt"),
+    ('field_nt:=48000', 'field_nt'),               # an integer for a double
+    ('field_nt:=abc', 'field_nt'),
     ('plugins:=[no_such_module_h5]', 'cannot import effect plugin'),
     ("plugins:=['os.path:no_such_class']", 'no_such_class'),
     ('stamp_tolerance_s:=-1.0', 'stamp_tolerance_s'),

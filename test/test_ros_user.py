@@ -45,7 +45,7 @@ ECHO_TYPES = {'/magcal/calibration/status': String, '/magcal/gradient': Float64M
 
 
 def readme_ros_lines():
-    """The ``ros2 ...`` lines of the README block that shows ``ros2 run`` (comments cut)."""
+    """Return the ``ros2 ...`` lines of the README block that shows ``ros2 run`` (comments cut)."""
     text = (REPO_ROOT / 'README.md').read_text()
     blocks = re.findall(r'```(?:bash|sh)?\n(.*?)```', text, flags=re.S)
     (block,) = [b for b in blocks if 'ros2 run magcal_ros calibration_node' in b]

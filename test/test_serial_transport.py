@@ -1,5 +1,6 @@
 """Transport tests on real pseudo-terminals: PtyDevice -> pyserial PortReader."""
 
+import logging
 import os
 import threading
 import time
@@ -250,6 +251,26 @@ def test_backoff_grows_exponentially_to_the_cap(cleanup):
         assert want * 0.9 <= gap <= want + 0.1, (gaps, expected)
     st = r.stats()
     assert st.open_failures >= 7 and st.state == 'stopped' and 'could not open' in st.last_error
+
+
+def test_a_port_that_cannot_be_opened_is_logged_once_per_error(cleanup, caplog):
+    """The driver's log says which port it cannot open (once, not at every retry)."""
+    calls = []
+
+    def factory(path, baud, timeout):
+        calls.append(path)
+        raise serial.SerialException(f'could not open port {path}')
+
+    caplog.set_level(logging.WARNING, logger='magcal_ros.serial.transport')
+    r = PortReader('/dev/does-not-exist', 9600, make_parser('ascii'), lambda s, a: None,
+                   backoff_min=0.01, backoff_max=0.02, serial_factory=factory, name='sensor3')
+    cleanup.append(r)
+    r.start()
+    wait_for(lambda: len(calls) >= 5, timeout=5)
+    r.stop()
+    msgs = [rec.getMessage() for rec in caplog.records]
+    assert msgs == ['sensor3: cannot open /dev/does-not-exist: could not open port '
+                    '/dev/does-not-exist; retrying every 0.02 s at most'], msgs
 
 
 def test_callback_errors_do_not_kill_the_reader(link, cleanup):

@@ -21,8 +21,8 @@ import threading
 
 import rclpy
 from rclpy.exceptions import ParameterException
-from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.signals import SignalHandlerOptions
 
 #: namespace of every node started without a ``__ns`` remap (docs/design.md §3)
@@ -33,7 +33,7 @@ SPIN_PERIOD_S = 0.1
 
 
 def _one_line(exc):
-    """The first meaningful line of an exception's message (rcl appends C file positions)."""
+    """Return the first line of an exception's message (rcl appends C file positions)."""
     text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
     return text.split(', at /')[0]
 

@@ -284,10 +284,16 @@ class PortReader:
 
     def _run(self):
         delay = self.backoff_min
+        logged = None           # the open error last logged (each new one is logged once)
         while not self._stop.is_set():
             self._state = STATE_CONNECTING
             opened = self._open()
             if opened is None:
+                if self._last_error != logged and not self._stop.is_set():
+                    logged = self._last_error
+                    _LOG.warning('%s: cannot %s; retrying every %g s at most',
+                                 self.name, logged or f'open {self.port}: no free candidate path',
+                                 self.backoff_max)
                 self._state = STATE_BACKOFF
                 self._stop.wait(delay)
                 delay = min(2.0 * delay, self.backoff_max)
@@ -302,6 +308,7 @@ class PortReader:
                 self._rate_origin = self._clock()
                 self._arrivals.clear()
             _LOG.info('%s: opened %s', self.name, path)
+            logged = None
             if self._serve(ser):
                 delay = self.backoff_min
             self._close(ser, real)
@@ -340,7 +347,9 @@ class PortReader:
             with self._lock:
                 self._disconnects += 1
                 self._last_error = f'{self._path}: {exc}'
-            _LOG.warning('%s: lost %s (%s); reopening with backoff', self.name, self._path, exc)
+            if not self._stop.is_set():         # not the close of a deliberate stop
+                _LOG.warning('%s: lost %s (%s); reopening with backoff', self.name,
+                             self._path, exc)
         return got_data
 
     def _deliver(self, sample, arrival):
