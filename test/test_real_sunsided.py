@@ -64,6 +64,17 @@ def full_sphere():
     return data, f, fit(data, 'base', field_nt=f)
 
 
+@pytest.fixture(scope='module')
+def full_sphere_file(full_sphere, tmp_path_factory):
+    """The full sphere's calibration file, written by `magcal fit` as a user would."""
+    _, f, _ = full_sphere
+    cal = tmp_path_factory.mktemp('cal') / 'full.yaml'
+    rc, _, err = run_cli('fit', HMC / 'full-sphere' / 'full-sphere.csv', '--field-nt',
+                         f'{f:.1f}', '-o', cal)
+    assert rc == 0, err
+    return cal
+
+
 @pytest.mark.parametrize('which', ['hmc5883l', 'ck-accmag'])
 def test_full_sphere_within_2_percent_of_an_independent_geometric_fit(which, full_sphere):
     if which == 'hmc5883l':
@@ -187,18 +198,15 @@ def test_static_recordings_give_the_sensor_noise(static_floors, full_sphere):
     assert float(noise_floor(fs.raw)[0]) == pytest.approx(np.median(floors), rel=0.15)
 
 
-def test_static_recordings_checked_against_the_full_sphere(full_sphere, tmp_path):
+def test_static_recordings_checked_against_the_full_sphere(full_sphere, full_sphere_file):
     """The corrected |B| of the static recordings is not one value: `magcal check` says
     why.  The two x-forward recordings share an attitude yet differ by about 7 000 nT, so
     the field or the sensor's offset changed between recordings (the 10-min one is the
     3 300 nT of PROVENANCE.md below the full sphere); the x-up and y-down recordings, 75 deg
     apart, agree within the calibration's residual, so the calibration holds and their
     field differs from the full sphere's."""
-    cal = tmp_path / 'full.yaml'
     _, f, _ = full_sphere
-    rc, _, err = run_cli('fit', HMC / 'full-sphere' / 'full-sphere.csv', '--field-nt',
-                         f'{f:.1f}', '-o', cal)
-    assert rc == 0, err
+    cal = full_sphere_file
     rc, out, err = run_cli('check', cal, *[HMC / n / f'{n}.csv' for n in STATIC], '--json')
     assert rc == 0, err
     d = json.loads(out)
@@ -230,14 +238,10 @@ def test_readme_check_commands(tmp_path):
     assert p.stdout.count('nT vs reference') == 4
 
 
-def test_check_reads_other_units(full_sphere, tmp_path):
+def test_check_reads_other_units(full_sphere_file, tmp_path):
     """A static recording in gauss (a single magnetometer's mx,my,mz log): `magcal check
     --unit gauss` gives the |B| of the nT file; without --unit the unit is named."""
-    _, f, _ = full_sphere
-    cal = tmp_path / 'full.yaml'
-    rc, _, err = run_cli('fit', HMC / 'full-sphere' / 'full-sphere.csv', '--field-nt',
-                         f'{f:.1f}', '-o', cal)
-    assert rc == 0, err
+    cal = full_sphere_file
     name = STATIC[2]
     gauss = tmp_path / 'static_gauss.csv'
     np.savetxt(gauss, hmc(name).raw[0] / 1e5, delimiter=',', fmt='%.8f', header='mx,my,mz',
