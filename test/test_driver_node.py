@@ -98,6 +98,18 @@ def test_driver_defaults_match_simulator_defaults():
     assert st.protocol == 'ascii' and st.option == []
 
 
+def test_simulator_and_driver_meet_per_namespace(make_node, ros_namespace):
+    # one array per namespace: the remap `ros2 launch ... namespace:=` passes to both
+    st = sim_node.resolve_settings(['--ros-args', '-r', f'__ns:={ros_namespace}'])
+    assert st.dir == sim_node.DEFAULT_DIR + '_' + ros_namespace.strip('/')
+    node = make_node(FluxgateDriver, namespace=ros_namespace)
+    assert [node.get_parameter(f'sensor{j}.port').value for j in range(1, 5)] == \
+        [f'{st.dir}/{st.prefix}{j}' for j in range(1, 5)]
+    # the default namespace keeps the documented folder
+    ns_default = sim_node.resolve_settings(['--ros-args', '-r', 'fluxgate_sim:__ns:=/magcal'])
+    assert ns_default.dir == sim_node.DEFAULT_DIR
+
+
 # -- in-process node -------------------------------------------------------------------------
 
 def test_parameters_are_described_with_units(make_node, ros_namespace, tmp_path):

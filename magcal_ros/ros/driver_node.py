@@ -29,12 +29,12 @@ import logging
 import math
 import os
 import sys
-import tempfile
 import threading
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from magcal_ros.ros.conversions import field_nt_to_msg, temperature_msg
 from magcal_ros.ros.run import DEFAULT_NAMESPACE, spin_node
+from magcal_ros.ros.sim_node import device_dir
 from magcal_ros.serial import make_parser, PROTOCOLS, transport
 from magcal_ros.serial.options import parse_options
 from magcal_ros.serial.transport import PortReader, STATE_OPEN
@@ -46,8 +46,9 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import MagneticField, Temperature
 
 NODE_NAME = 'fluxgate_driver'
-#: the links of ``fluxgate_sim`` (``/tmp/magcal_sim/fluxgate{j}`` unless TMPDIR is set)
-DEFAULT_PORT = os.path.join(tempfile.gettempdir(), 'magcal_sim', 'fluxgate{j}')
+#: the links of ``fluxgate_sim`` in the default namespace (``/tmp/magcal_sim/fluxgate{j}``
+#: unless TMPDIR is set); in another namespace those of the simulator in that namespace
+DEFAULT_PORT = os.path.join(device_dir(), 'fluxgate{j}')
 AXES = ('x', 'y', 'z')
 
 #: Sensor streams: reliable (REP 2003), deep enough for 1 kHz bursts.
@@ -279,7 +280,8 @@ class FluxgateDriver(Node):
         g = self.get_parameter
         pre = f'sensor{j}.'
         values = {
-            'port': self.declare_parameter(pre + 'port', DEFAULT_PORT.format(j=j), _desc(
+            'port': self.declare_parameter(pre + 'port', os.path.join(
+                device_dir(self.get_namespace()), f'fluxgate{j}'), _desc(
                 'serial device path (a missing device is retried with backoff); no unit',
                 p.PARAMETER_STRING)).value,
             'alternatives': self.declare_parameter(

@@ -43,6 +43,21 @@ import yaml
 
 #: ``/tmp/magcal_sim`` unless TMPDIR names another temporary directory
 DEFAULT_DIR = os.path.join(tempfile.gettempdir(), 'magcal_sim')
+#: the nodes' namespace without a ``__ns`` remap (also magcal_ros.ros.run.DEFAULT_NAMESPACE)
+DEFAULT_NAMESPACE = '/magcal'
+
+
+def device_dir(namespace=DEFAULT_NAMESPACE):
+    """Folder of the simulated devices of a namespace: one array per namespace.
+
+    ``/magcal`` (the default) -> :data:`DEFAULT_DIR`; ``/array2`` ->
+    ``<DEFAULT_DIR>_array2``, so a simulator and a driver started in the same namespace meet
+    on the same devices and two arrays never share them.
+    """
+    ns = '/' + namespace.strip('/') if namespace.strip('/') else '/'
+    if ns == DEFAULT_NAMESPACE:
+        return DEFAULT_DIR
+    return DEFAULT_DIR + '_' + (ns.strip('/').replace('/', '_') or 'root')
 DEFAULT_PREFIX = 'fluxgate'
 NODE_NAME = 'fluxgate_sim'
 
@@ -228,8 +243,10 @@ def split_ros_args(argv):
     params_files : list of str
         Values of ``--params-file``.
     overrides : dict
-        ``-p name:=value`` pairs (value read as YAML). Remappings, log levels and the like
-        are accepted and ignored (this process has no ROS node).
+        ``-p name:=value`` pairs (value read as YAML); a namespace remap
+        (``-r __ns:=/array2``, as ``ros2 launch`` passes it) is returned as ``__ns``. Other
+        remappings, log levels and the like are accepted and ignored (this process has no
+        ROS node).
     """
     plain, files, overrides = [], [], {}
     takes_value = ('-r', '--remap', '--log-level', '-e', '--enclave', '--log-config-file')
@@ -246,6 +263,11 @@ def split_ros_args(argv):
         elif in_ros and a in ('-p', '--param') and i + 1 < len(argv):
             key, _, raw = argv[i + 1].partition(':=')
             overrides[key] = parse_value(raw)
+            i += 1
+        elif in_ros and a in ('-r', '--remap') and i + 1 < len(argv):
+            key, _, ns = argv[i + 1].partition(':=')
+            if key.split(':')[-1] == '__ns':          # '__ns' or 'fluxgate_sim:__ns'
+                overrides['__ns'] = ns
             i += 1
         elif in_ros and a in takes_value:
             i += 1
@@ -297,6 +319,7 @@ def resolve_settings(argv=None):
     parser = build_parser()
     args = parser.parse_args(plain)
     settings = dict(DEFAULTS)
+    settings['dir'] = device_dir(overrides.pop('__ns', DEFAULT_NAMESPACE))
 
     def merge(new):
         for key, value in new.items():
