@@ -174,7 +174,10 @@ def test_every_truncation_is_refused_or_loads_the_complete_calibration(tmp_path,
         # accepted only when the whole calibration is there (the cut is in the provenance)
         assert n > prov_at and same_calibration(cal, full), (n, text[n - 40:n])
         accepted += 1
-    assert refused > 0.9 * len(cuts) and accepted > 0
+    # every cut before the provenance is refused (the accepted branch asserts n > prov_at);
+    # cuts inside the provenance may load, and some must
+    before = sum(1 for n in cuts if n <= prov_at and text[:n].strip())
+    assert refused >= before and accepted > 0
 
 
 def _paths(node, prefix=()):
