@@ -74,7 +74,7 @@ def assert_clean_exit(proc):
     assert not BAD_OUTPUT.search(log), (proc.name, log[-3000:])
 
 
-@pytest.mark.timeout(400)
+@pytest.mark.timeout(700)
 def test_readme_ros_commands_work_with_defaults(start_process, ros_node, ros_executor,
                                                 user_env):
     lines = readme_ros_lines()
@@ -100,7 +100,9 @@ def test_readme_ros_commands_work_with_defaults(start_process, ros_node, ros_exe
             if name.endswith('/calibrate'):
                 resp = calibrate_when_ready(ros_node, ros_executor)
             else:
-                resp = call_trigger(ros_node, ros_executor, name, timeout_sec=180.0)
+                # diagnose ranks every candidate on the whole live buffer (collection goes
+                # on after calibrate: 5000-10000 sets here), 2-3 min on a loaded 2-core machine
+                resp = call_trigger(ros_node, ros_executor, name, timeout_sec=360.0)
             print(f'{name}: {time.monotonic() - t0:.1f} s')
             first = resp.message.splitlines()[0]
             assert len(first) <= 120, first        # readable in `ros2 service call`
