@@ -427,6 +427,10 @@ class SampleBuffer:
         """(N,) int epoch numbers of the buffered sets, chronological (a copy)."""
         return self.epoch[self._order()].copy()
 
+    def stamps(self):
+        """(N,) s stamps of the buffered sets as they arrived, chronological (a copy)."""
+        return self.t[self._order()].copy()
+
     def dataset(self):
         """Return a :class:`Dataset` of the buffered sets in chronological order (copies)."""
         idx = self._order()

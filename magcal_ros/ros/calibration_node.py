@@ -339,18 +339,24 @@ class CalibrationNode(Node):
             self._imu[self._imu_count % len(self._imu)] = row
             self._imu_count += 1
 
-    def _attitude(self, data, epochs):
+    def _attitude(self, data, epochs, stamps):
         """(data, epochs) with the collected attitude attached (under the lock).
 
-        Sets outside the time span of the Imu messages are dropped; unchanged without any.
+        The attitude is interpolated at the sets' own stamps (``stamps`` (N,) s, as the
+        sensors' messages arrived), not at the sample instants reconstructed from them
+        (``data.t``): Imu messages are stamped the same way by their driver, so the two
+        share one clock and one latency even when samples are lost.  Sets outside the time
+        span of the Imu messages are dropped; unchanged without any.
         """
         n = min(self._imu_count, len(self._imu))
         if not n:
             return data, epochs
+        from dataclasses import replace
         from magcal_ros.core.attitude import with_attitude
         rows = self._imu[:n]
-        out, kept = with_attitude(data, rows[:, 0], rows[:, 1:],
+        out, kept = with_attitude(replace(data, t=stamps), rows[:, 0], rows[:, 1:],
                                   source=prm.value(self, 'imu_topic'))
+        out = replace(out, t=data.t[kept], meta=dict(data.meta))
         out.meta['dropped_attitude_epochs'] = int((~kept).sum())
         return out, epochs[kept]
 
@@ -531,7 +537,7 @@ class CalibrationNode(Node):
             data = self._buffer.dataset() if n_sets else None
             epochs = self._buffer.epochs() if n_sets else None
             if n_sets:
-                data, epochs = self._attitude(data, epochs)
+                data, epochs = self._attitude(data, epochs, self._buffer.stamps())
             return n_sets, data, epochs
 
     def _resync(self, data, epochs, settings):
