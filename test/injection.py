@@ -23,8 +23,10 @@ def _rotation(axis, angle):
     return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
 
 
-def tumbling_field(n, rate_hz=RATE_HZ, seed=0):
+def tumbling_field(n, rate_hz=RATE_HZ, seed=0, rotations=False):
     """(N,) t in s and (N, 3) field in the body frame, nT: a smooth tumble covering the sphere.
+
+    With ``rotations``, also the (N, 3, 3) body-to-world rotations (b_body = R^T b_world).
 
     The body turns at 0.2-0.6 rad/s about an axis that wanders (periods 57-126 s), so every
     direction is visited several times in 600 s.
@@ -40,10 +42,12 @@ def tumbling_field(n, rate_hz=RATE_HZ, seed=0):
     b_world *= F_NT / np.linalg.norm(b_world)
     r = _rotation(rng.normal(size=3), rng.uniform(0, 6))
     out = np.empty((n, 3))
+    rots = np.empty((n, 3, 3))
     for k in range(n):
         out[k] = r.T @ b_world
+        rots[k] = r
         r = r @ _rotation(w_axis[k], speed[k] * dt)
-    return t, out
+    return (t, out, rots) if rotations else (t, out)
 
 
 #: per sensor: scale (3,), non-orthogonality (rad, 3), rotation vector (rad, 3), offset nT (3,)
@@ -157,3 +161,21 @@ def random_walk_fault(step_nt=0.02):
 def student_noise(rng, shape, dof=3.0):
     """Heavy-tailed (Student t, 3 dof) noise scaled to 3 nT standard deviation."""
     return rng.standard_t(dof, shape) * SIGMA_NT / np.sqrt(dof / (dof - 2.0))
+
+
+#: sensor positions of a cross of 0.5 m baseline in the body frame, m
+CROSS_M = np.array([[0.25, 0, 0], [0, 0.25, 0], [-0.25, 0, 0], [0, -0.25, 0]])
+
+
+def site_gradient_fault(grad_nt_m, seed=0):
+    """A constant world-frame gradient G (3, 3) nT/m: sensor j sees R^T G R r_j more field."""
+    def inject(t, temp, aux, b):
+        _, _, rots = tumbling_field(len(t), seed=seed, rotations=True)
+        out = {}
+        for j in range(1, 5):
+            pos_w = rots @ CROSS_M[j - 1]                               # (N, 3) m
+            db_w = pos_w @ np.asarray(grad_nt_m).T                      # (N, 3) nT
+            out[j] = np.einsum('nij,ni->nj', rots, db_w)                # R^T db_w
+        return out
+    return inject
+

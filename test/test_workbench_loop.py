@@ -137,3 +137,22 @@ def test_tokens_from_findings():
         {'kind': 'heavy_tails', 'sensor': 2}])
     assert got == ['periodic(0.23)', 'step(300)', 'lag(temperature)',
                    'aux_poly(aux_motor_current,2)']
+
+
+@pytest.mark.parametrize('n', [3000, 10000])
+def test_site_gradient_adopts_no_fix_and_is_named_by_the_finding(n):
+    """Issue 11: a constant world-frame gradient (~320 nT/m, ~25 nT per sensor here) gave
+    nonlinearity@3 for 68.80 -> 68.54 nT and a ladder stacking nonlinearity.  The catalog
+    without attitude has nothing for it: no candidate removes a fifth of the excess, the
+    verdict is none, the ladder stops at once, and the finding names the gradient."""
+    grad = np.array([[200.0, 100.0, 0.0], [100.0, -150.0, 50.0], [0.0, 50.0, -50.0]])
+    data = inj.make(n, seed=2, inject=inj.site_gradient_fault(grad, seed=2))
+    diag = diagnose(data, 'base', field_nt=F)
+    assert diag.verdict_token is None, diag.summary()
+    shares = [c.explained_fraction for c in diag.candidates if c.explained_fraction is not None]
+    assert shares and max(shares) < MIN_EXPLAINED
+    kinds = [f['kind'] for f in json.loads(diag.to_json())['findings']]
+    assert 'nonuniform_field' in kinds
+    from magcal_ros.core.diagnose import ladder
+    lad = ladder(data, diag.result, field_nt=F, diagnosis=diag)
+    assert len(lad.steps) == 1 and lad.reason.startswith('verdict none')
