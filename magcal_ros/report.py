@@ -602,7 +602,7 @@ def plot_residual_vs_lagged_channels(data, findings):
     panels = []
     for f in findings.items:
         if f.kind in ('lag', 'channel', 'channel_nonlinear') and f.channel:
-            panels.append((f.sensor, f.channel, f.value if f.kind == 'lag' else None,
+            panels.append((f.sensor, f.channel, f.value if f.kind == 'lag' else 0.0,
                            _finding_label(f)))
     if not panels and data.temp is not None:
         for j in sorted(findings.series):
@@ -621,17 +621,23 @@ def plot_residual_vs_lagged_channels(data, findings):
         if y is None:
             continue
         y = y - y.mean(axis=0)
+        if y.shape[1] == 1 and findings.direction is not None:
+            # a scalar residual shows a vector effect along the field: 3 (u.e) u ~ e
+            y = 3.0 * y * findings.direction
         if tau is None:
             tau = best_lag(t, y, drive)
         lagged = first_order_lag(t, drive, tau) if tau else drive
-        # the direction the residual moves with the (lagged) channel
-        a = np.column_stack([np.ones(len(t)), lagged - lagged.mean()])
-        coef = np.linalg.lstsq(a, y, rcond=None)[0][1]
-        d = coef / (np.linalg.norm(coef) or 1.0)
+        # the direction the residual moves with the (lagged) channel (its square: a
+        # coupling that is even in the channel has no linear part)
+        z = (lagged - lagged.mean()) / (np.std(lagged) or 1.0)
+        a = np.column_stack([np.ones(len(t)), z, z ** 2])
+        coef = np.linalg.lstsq(a, y, rcond=None)[0][1:]
+        d = np.linalg.svd(coef, full_matrices=False)[2][0]
         proj = y @ d
-        for xv, name, colour in ((drive, ch, 'tab:grey'),
-                                 (lagged, f'{ch} lagged {tau:.3g} s' if tau else ch,
-                                  'tab:red')):
+        curves = [(drive, ch, 'tab:grey')]
+        if tau:
+            curves.append((lagged, f'{ch} lagged {tau:.3g} s', 'tab:red'))
+        for xv, name, colour in curves:
             xb, yb = _binned(xv, proj, bins=30)
             ax.plot(xb, yb, 'o-', ms=3, lw=1.0, color=colour, label=name)
         ax.set_xlabel(ch)

@@ -185,6 +185,9 @@ class Findings:
         (where what every sensor has alike is sought), or None.
     note : str
         Why nothing was searched (too short a record), else ''.
+    direction : numpy.ndarray or None
+        (N, 3) unit field direction in the array frame (through which a vector effect shows
+        in a scalar residual).
     """
 
     items: tuple
@@ -194,6 +197,7 @@ class Findings:
     kind_of_series: str = 'consensus'
     common: np.ndarray | None = field(repr=False, default=None)
     note: str = ''
+    direction: np.ndarray | None = field(repr=False, default=None)
 
     def to_list(self):
         """List of the findings as dicts."""
@@ -1053,7 +1057,7 @@ def _find(data, result, *, baseline_m=0.5, alpha=ALPHA, corrected=None, field=No
                   array_items + common + sorted(keep, key=lambda f: (f.sensor,
                                                                      -f.explained_fraction)))
     return Findings(items=items, t=t, series=series, noise_nt=noise, kind_of_series=kind,
-                    common=x0)
+                    common=x0, direction=u)
 
 
 find.__doc__ = _find.__doc__
