@@ -5,6 +5,7 @@
 # correction next to the noise floor and writes figures to ./demo_out (or --out DIR).
 #
 #   scripts/demo.sh [--out DIR] [--collect-s 65] [--record-s 15] [--model base] ...
+#   scripts/demo.sh --site-gradient [GXX,GXY,GXZ,GYY,GYZ]   (offline before/after, nT/m)
 #   scripts/demo.sh --help
 #
 # Runs in the project's loopback-only ROS environment (scripts/ros_env.sh: loopback Fast DDS
@@ -19,4 +20,11 @@ if [ ! -x "${python}" ]; then
     echo "scripts/demo.sh: ${python} not found; run 'make setup' first (or 'make demo')" >&2
     exit 2
 fi
+# --site-gradient[=G]: the offline before/after of a site gradient (scripts/demo_site_gradient.py)
+for arg in "$@"; do
+    case "${arg}" in
+        --site-gradient|--site-gradient=*)
+            exec "${python}" "${repo}/scripts/demo_site_gradient.py" "$@" ;;
+    esac
+done
 exec "${python}" "${repo}/scripts/demo.py" "$@"
