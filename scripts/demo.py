@@ -361,7 +361,11 @@ def write_figures(res, series, out_dir):
 def parse_args(argv=None):
     """Command line of the demo."""
     p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+                                formatter_class=argparse.RawDescriptionHelpFormatter,
+                                epilog='scripts/demo.sh --site-gradient [GXX,GXY,GXZ,GYY,GYZ]: '
+                                       'an offline before/after of a site gradient instead '
+                                       '(scripts/demo_site_gradient.py; add --help for its '
+                                       'options)')
     p.add_argument('--out', default='demo_out', help='output directory (default ./demo_out)')
     p.add_argument('--collect-s', type=float, default=65.0,
                    help='seconds of rotation data to collect (default 65, about one period of '

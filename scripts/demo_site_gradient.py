@@ -122,7 +122,7 @@ def make_figures(out, res_before, res_after, floor, g_true, g_fit, g_se):
 def main(argv=None):
     """Simulate, fit base and base,site_gradient, write figures and summary; exit status."""
     p = argparse.ArgumentParser(
-        prog='scripts/demo.sh --site-gradient',
+        prog='scripts/demo.sh',
         description='Offline before/after of a site gradient on the simulated cross with '
                     'attitude: magcal simulate -> magcal fit --model base -> magcal fit '
                     '--model base,site_gradient (the live demo does not take a gradient yet).')

@@ -59,3 +59,9 @@ def test_site_gradient_demo_bad_value(tmp_path):
     p = _run('scripts/demo.sh --site-gradient=300,-250', tmp_path)
     assert p.returncode == 2
     assert 'expected five numbers' in p.stderr and len(p.stderr.strip().splitlines()) == 1
+
+
+def test_demo_help_names_the_option(tmp_path):
+    """``scripts/demo.sh --help`` (the live demo's) points to the offline option."""
+    p = _run('scripts/demo.sh --help', tmp_path)
+    assert p.returncode == 0 and '--site-gradient' in p.stdout, p.stdout + p.stderr
