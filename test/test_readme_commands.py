@@ -1,0 +1,156 @@
+"""Every command the README (and the docs' shell blocks) shows is run by a test.
+
+``RUN_BY`` names, for every command line of a ``bash``/``sh`` block in README.md and
+docs/*.md, the test that runs it. A command nobody runs fails
+``test_every_shown_command_is_run_by_a_test``, so the README cannot grow an untested command.
+"as written": the test runs the line itself in a shell; "driven": the ROS install's ``ros2``
+CLI is not in this repository's wheels, so the test does what the line does through rclpy or
+the launch API (the test's docstring says how).
+
+The offline blocks are run here as written, in a temporary directory that has the layout
+they need (``scripts/``, ``config/``, ``.venv`` and ``examples/`` linked from the
+repository), so their output files do not land in the checkout.
+"""
+import json
+import os
+import pathlib
+import re
+import subprocess
+
+import pytest
+
+REPO = pathlib.Path(__file__).resolve().parents[1]
+
+#: (pattern of a shown command line, the test that runs it, how)
+RUN_BY = [
+    (r'make demo$', 'test_demo.py::test_make_demo_reaches_the_noise_floor', 'as written'),
+    (r'make test$', 'test_demo.py::test_readme_starts_with_make_demo_and_make_test',
+     'make -n (CI runs it; the suite cannot run itself)'),
+    (r'source scripts/ros_env\.sh$', 'test_readme_commands.py::test_offline_block_as_written',
+     'as written'),
+    (r'magcal (simulate|fit|diagnose|report) sim\.csv|magcal simulate --out sim\.csv',
+     'test_readme_commands.py::test_offline_block_as_written', 'as written'),
+    (r'magcal (fit|check) .*\.\./shared/data/real/sunsided',
+     'test_real_sunsided.py::test_readme_check_commands', 'as written'),
+    (r'magcal fit test/data/paper002_table2\.csv',
+     'test_fit_methods.py::test_readme_command_as_written', 'as written'),
+    (r'magcal (simulate --out site\.csv|fit site\.csv)',
+     'test_site_gradient.py::test_readme_commands', 'as written'),
+    (r'colcon build --packages-select magcal_ros && source install/setup\.bash$',
+     'test_packaging.py::test_colcon_build_installs_index_manifest_config_and_executables',
+     'driven (colcon build of a copy)'),
+    (r'ros2 launch magcal_ros magcal\.launch\.py',
+     'test_launch_file.py::test_generate_launch_description', 'driven (launch API)'),
+    (r'ros2 (run|service call|topic echo /magcal/calibration/status|param set)|'
+     r'ros2 topic echo /magcal/gradient$',
+     'test_ros_user.py::test_readme_ros_commands_work_with_defaults', 'driven (rclpy)'),
+    (r'ros2 topic echo /magcal/gradient_stamped',
+     'test_corrector_node.py::test_corrects_to_the_true_field_and_publishes_the_gradient',
+     'driven (rclpy subscriber)'),
+    (r'cd ~/ros2_ws/src && ln -s|cd ~/ros2_ws && colcon build|source install/setup\.bash$',
+     'test_interfaces.py::test_colcon_builds_the_linked_interface_package',
+     'driven (colcon build of the linked package)'),
+    (r'export PYTHONPATH=\$PWD/examples|magcal (simulate|diagnose|fit|report) .*my_effect',
+     'test_readme_commands.py::test_plugins_doc_block_as_written', 'as written'),
+]
+
+
+def shown_commands(path):
+    """Command lines of the ``bash``/``sh`` blocks of ``path``: continuations joined,
+    comments and a trailing ``&`` cut, blank lines skipped."""
+    text = path.read_text()
+    out = []
+    for block in re.findall(r'```(?:bash|sh)\n(.*?)```', text, flags=re.S):
+        for line in block.replace('\\\n', ' ').splitlines():
+            line = re.split(r'\s#\s|^#', line)[0].strip().rstrip('&').strip()
+            if line:
+                out.append(re.sub(r'\s+', ' ', line))
+    return out
+
+
+def _documents():
+    return [REPO / 'README.md'] + sorted((REPO / 'docs').glob('*.md'))
+
+
+def test_every_shown_command_is_run_by_a_test():
+    seen = 0
+    for doc in _documents():
+        for line in shown_commands(doc):
+            hits = [(test, how) for pat, test, how in RUN_BY if re.search(pat, line)]
+            assert hits, f'{doc.name}: no test runs the shown command {line!r} (add one)'
+            seen += 1
+            for test, _ in hits:
+                fname, func = test.split('::')
+                assert re.search(rf'^def {func}\(', (REPO / 'test' / fname).read_text(),
+                                 re.M), f'{test} (for {line!r}) does not exist'
+    assert seen > 30
+
+
+def _layout(tmp_path, *names):
+    """A working directory with the repository's ``names`` linked in it."""
+    for name in names:
+        (tmp_path / name).symlink_to(REPO / name)
+    return tmp_path
+
+
+def run_block(lines, cwd, timeout=600):
+    """Run ``lines`` in one bash (set -e) in ``cwd``; return each command's output."""
+    script = ['set -e']
+    for i, line in enumerate(lines):
+        script += [f'echo "@@cmd {i}"', f'echo "@@cmd {i}" >&2', line]
+    p = subprocess.run(['bash', '-c', '\n'.join(script)], cwd=cwd, capture_output=True,
+                       text=True, timeout=timeout, env=dict(os.environ))
+    assert p.returncode == 0, (p.stdout[-3000:], p.stderr[-3000:])
+    outs = re.split(r'^@@cmd \d+\n', p.stdout, flags=re.M)[1:]
+    errs = re.split(r'^@@cmd \d+\n', p.stderr, flags=re.M)[1:]
+    assert len(outs) == len(lines)
+    return list(zip(lines, outs, errs))
+
+
+def _block_with(path, first):
+    (block,) = [b for b in re.findall(r'```(?:bash|sh)\n(.*?)```', path.read_text(), re.S)
+                if first in b]
+    return [ln for ln in block.replace('\\\n', ' ').splitlines()
+            if ln.strip() and not ln.lstrip().startswith('#')]
+
+
+@pytest.mark.timeout(600)
+def test_offline_block_as_written(tmp_path):
+    """README "Offline": simulate a hidden temperature term on sensor 2, fit the base model
+    (a missing effect is warned about), diagnose it (verdict temperature@2), fit with it
+    (sensor 2 down to the noise floor), report."""
+    lines = _block_with(REPO / 'README.md', 'magcal simulate --out sim.csv')
+    assert lines[0].startswith('source scripts/ros_env.sh')
+    cwd = _layout(tmp_path, 'scripts', 'config', '.venv')
+    results = run_block(lines, cwd)
+    by_cmd = {line.split('#')[0].strip(): (out, err) for line, out, err in results}
+
+    fit_base = next(v for k, v in by_cmd.items() if k.startswith('magcal fit sim.csv --model '
+                                                                 'base --field-nt'))
+    assert 'warning [missing_effect]: sensor 2' in fit_base[0] + fit_base[1]
+    assert (cwd / 'calibration.yaml').exists()
+    diag = next(v for k, v in by_cmd.items() if k.startswith('magcal diagnose'))
+    assert re.search(r'^verdict: .*temperature@2', diag[0], re.M), diag[0][-2000:]
+    fit_json = next(v for k, v in by_cmd.items() if '--json' in k)
+    doc = json.loads(fit_json[0])
+    floor = doc['noise_floor_nt']
+    # simulate's default noise is 3 nT per axis; 3000 epochs: an RMS scatters by ~1.3 %
+    assert abs(floor / 3.0 - 1.0) < 0.05
+    assert doc['scalar_rms_nt']['2'] < 1.1 * floor
+    assert (cwd / 'report' / 'index.html').exists()
+
+
+@pytest.mark.timeout(600)
+def test_plugins_doc_block_as_written(tmp_path):
+    """docs/plugins.md: a wheel plug-in (examples/my_effect.py) simulated on sensor 3,
+    diagnosed (verdict wheel@3), fitted (sensor 3 down to the 3 nT floor), reported."""
+    lines = _block_with(REPO / 'docs' / 'plugins.md', 'export PYTHONPATH=$PWD/examples')
+    cwd = _layout(tmp_path, 'examples', '.venv')
+    lines = [f'PATH={REPO / ".venv" / "bin"}:$PATH'] + lines
+    results = run_block(lines, cwd)
+    diag = next(out for line, out, _ in results if line.startswith('magcal diagnose'))
+    assert re.search(r'^verdict: .*wheel@3', diag, re.M), diag[-2000:]
+    fit = next(out for line, out, _ in results if line.startswith('magcal fit'))
+    rms3 = float(re.search(r'sensor 3: scalar RMS\s+([\d.]+) nT', fit).group(1))
+    assert rms3 < 1.1 * 3.0, fit
+    assert (cwd / 'cal.yaml').exists() and (cwd / 'report' / 'index.html').exists()
