@@ -310,7 +310,8 @@ def write_figures(res, series, out_dir):
     axes[1].set_title('after correction (corrector_node)')
     for ax in axes:
         ax.set_ylabel('|B| - F (nT)')
-        ax.legend(loc='upper right', fontsize=8, ncol=5)
+        # outside the axes: inside, it hid the largest raw errors
+        ax.legend(loc='upper left', bbox_to_anchor=(1.01, 1.0), fontsize=8)
         ax.grid(alpha=0.3)
     axes[1].set_xlabel('time (s)')
     fig.tight_layout()
@@ -332,7 +333,7 @@ def write_figures(res, series, out_dir):
     ax.set_xticks(x, labels)
     ax.set_ylabel('RMS error (nT/m)')
     ax.set_title('gradient tensor components: RMS error (true tensor 0)')
-    ax.legend()
+    ax.legend(loc='upper left', bbox_to_anchor=(1.01, 1.0))
     ax.grid(axis='y', alpha=0.3, which='both')
     fig.tight_layout()
     paths.append(os.path.join(out_dir, 'tensor_rms.png'))

@@ -32,6 +32,8 @@ RUN_BY = [
      'as written'),
     (r'magcal (simulate|fit|diagnose|report) sim\.csv|magcal simulate --out sim\.csv',
      'test_readme_commands.py::test_offline_block_as_written', 'as written'),
+    (r'magcal (simulate --out turn\.csv|fit turn\.csv)',
+     'test_readme_commands.py::test_degenerate_example_as_written', 'as written'),
     (r'magcal (fit|check) .*\.\./shared/data/real/sunsided',
      'test_real_sunsided.py::test_readme_check_commands', 'as written'),
     (r'magcal fit test/data/paper002_table2\.csv',
@@ -156,3 +158,23 @@ def test_plugins_doc_block_as_written(tmp_path):
     rms3 = float(re.search(r'sensor 3: scalar RMS\s+([\d.]+) nT', fit).group(1))
     assert rms3 < 1.1 * 3.0, fit
     assert (cwd / 'cal.yaml').exists() and (cwd / 'report' / 'index.html').exists()
+
+
+def test_degenerate_example_as_written(tmp_path):
+    """README: the turntable example is refused (exit 2) with the message the README shows."""
+    text = (REPO / 'README.md').read_text()
+    m = re.search(r'```bash\n(magcal simulate --out turn\.csv.*?)```\n```\n(.*?)```', text,
+                  flags=re.S)
+    lines = [ln for ln in m.group(1).splitlines() if ln.strip()]
+    shown = ' '.join(m.group(2).split())
+    cwd = _layout(tmp_path, 'scripts', 'config', '.venv')
+    p = subprocess.run(['bash', '-c', 'source scripts/ros_env.sh && ' + lines[0]], cwd=cwd,
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    p = subprocess.run(['bash', '-c', 'source scripts/ros_env.sh && ' + lines[1]], cwd=cwd,
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2
+    err = p.stderr.strip().splitlines()
+    assert len(err) == 1, err                   # one line, as the README says
+    # the README wraps the line: the words are the same
+    assert ' '.join(err[0].split()) == shown, (err[0], shown)
