@@ -16,6 +16,7 @@ import os
 import pathlib
 import re
 import subprocess
+import sys
 
 import pytest
 
@@ -54,6 +55,17 @@ RUN_BY = [
     (r'cd ~/ros2_ws/src && ln -s|cd ~/ros2_ws && colcon build|source install/setup\.bash$',
      'test_interfaces.py::test_colcon_builds_the_linked_interface_package',
      'driven (colcon build of the linked package)'),
+    # BENCHMARKS.md: the full runs take minutes to an hour; every benchmark runs in the suite
+    # with smaller settings (test_bench_smoke), the rendering of the results as written
+    (r'make bench$', 'test_readme_commands.py::test_benchmarks_doc_make_bench_and_report',
+     'make -n (the full run takes ~16 min)'),
+    (r'python bench/run_all\.py', 'test_bench_smoke.py::test_accuracy',
+     'each benchmark it runs, with smaller settings (test_bench_smoke)'),
+    (r'python bench/(accuracy|papers|live|driver_rate|real_data|solve_time)\.py',
+     'test_bench_smoke.py::test_{0}', 'smaller settings'),
+    (r'python bench/report\.py',
+     'test_readme_commands.py::test_benchmarks_doc_make_bench_and_report',
+     'with --print (in place it rewrites BENCHMARKS.md): the file holds what it renders'),
     (r'export PYTHONPATH=\$PWD/examples|magcal (simulate|diagnose|fit|report) .*my_effect',
      'test_readme_commands.py::test_plugins_doc_block_as_written', 'as written'),
 ]
@@ -73,14 +85,15 @@ def shown_commands(path):
 
 
 def _documents():
-    return [REPO / 'README.md'] + sorted((REPO / 'docs').glob('*.md'))
+    return [REPO / 'README.md', REPO / 'BENCHMARKS.md'] + sorted((REPO / 'docs').glob('*.md'))
 
 
 def test_every_shown_command_is_run_by_a_test():
     seen = 0
     for doc in _documents():
         for line in shown_commands(doc):
-            hits = [(test, how) for pat, test, how in RUN_BY if re.search(pat, line)]
+            hits = [(test.format(*m.groups()), how) for pat, test, how in RUN_BY
+                    for m in [re.search(pat, line)] if m]
             assert hits, f'{doc.name}: no test runs the shown command {line!r} (add one)'
             seen += 1
             for test, _ in hits:
@@ -178,3 +191,23 @@ def test_degenerate_example_as_written(tmp_path):
     assert len(err) == 1, err                   # one line, as the README says
     # the README wraps the line: the words are the same
     assert ' '.join(err[0].split()) == shown, (err[0], shown)
+
+
+def test_benchmarks_doc_make_bench_and_report():
+    """BENCHMARKS.md: `make bench` runs bench/run_all.py in the project environment, and
+    `python bench/report.py` would leave the file as it is: its results section is what the
+    result files in bench/results render to (nobody edited it by hand or forgot to render)."""
+    dry = subprocess.run(['make', '-n', '-o', '.venv/.magcal_setup_stamp', 'bench'], cwd=REPO,
+                         capture_output=True, text=True, timeout=60)
+    assert dry.returncode == 0 and 'bench/run_all.py' in dry.stdout, dry.stdout + dry.stderr
+    p = subprocess.run([sys.executable, 'bench/report.py', '--print'], cwd=REPO,
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    sys.path.insert(0, str(REPO / 'bench'))
+    try:
+        import report
+    finally:
+        sys.path.pop(0)
+    text = (REPO / 'BENCHMARKS.md').read_text()
+    block = text.split(report.BEGIN, 1)[1].split(report.END, 1)[0]
+    assert block.strip() == p.stdout.strip(), 'BENCHMARKS.md differs from bench/report.py'
