@@ -211,3 +211,27 @@ def test_benchmarks_doc_make_bench_and_report():
     text = (REPO / 'BENCHMARKS.md').read_text()
     block = text.split(report.BEGIN, 1)[1].split(report.END, 1)[0]
     assert block.strip() == p.stdout.strip(), 'BENCHMARKS.md differs from bench/report.py'
+
+
+def test_design_synopsis_matches_the_command_line():
+    """docs/design.md §2's synopsis names every subcommand, and every option it shows exists
+    (`magcal <command> --help`, the parser users meet)."""
+    text = (REPO / 'docs' / 'design.md').read_text()
+    synopsis = re.search(r'## §2 .*?```\n(.*?)```', text, flags=re.S).group(1)
+    shown = {}
+    cmd = None
+    for line in synopsis.splitlines():
+        m = re.match(r'magcal (\w+)', line)
+        cmd = m.group(1) if m else cmd
+        shown.setdefault(cmd, set()).update(re.findall(r'(?<![\w-])--[a-z][a-z-]*', line))
+    top = subprocess.run([sys.executable, '-m', 'magcal_ros.cli', '--help'],
+                         capture_output=True, text=True, timeout=60).stdout
+    commands = re.search(r'\{([a-z,]+)\}', top).group(1).split(',')
+    assert sorted(shown) == sorted(commands)
+    for command, options in shown.items():
+        help_text = subprocess.run([sys.executable, '-m', 'magcal_ros.cli', command, '--help'],
+                                   capture_output=True, text=True, timeout=60).stdout
+        for option in options:
+            assert re.search(rf'{option}\b', help_text), f'magcal {command} has no {option}'
+        if command not in ('simulate', 'rollback'):
+            assert '--unit' in help_text, command      # as the paragraph below it says
