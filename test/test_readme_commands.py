@@ -18,6 +18,7 @@ import re
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
@@ -235,3 +236,51 @@ def test_design_synopsis_matches_the_command_line():
             assert re.search(rf'{option}\b', help_text), f'magcal {command} has no {option}'
         if command not in ('simulate', 'rollback'):
             assert '--unit' in help_text, command      # as the paragraph below it says
+
+
+@pytest.fixture
+def doc_plugin():
+    """The effect class of docs/plugins.md, as written, registered for one test."""
+    import types
+    from magcal_ros.core import effects as fx
+    code = re.findall(r'```python\n(.*?)```', (REPO / 'docs' / 'plugins.md').read_text(),
+                      flags=re.S)[0]
+    module = types.ModuleType('doc_plugin')
+    exec(compile(code, 'docs/plugins.md', 'exec'), module.__dict__)
+    names = []
+    for cls in module.MAGCAL_EFFECTS:
+        fx.register_effect(cls)
+        names.append(cls.name)
+    yield names
+    for n in names:                     # keep the registry as other tests expect it
+        fx.unregister_effect(n)
+
+
+def test_plugins_doc_example_effect_as_written(doc_plugin):
+    """docs/plugins.md's example class (a heater's field going as sqrt(power)) fits the
+    coupling it describes. The data: a simulated array whose heater power is switched by
+    hand here, and sensor 2's raw readings given v (sqrt(P) - mean sqrt(P)), written here
+    (not through the model), with v = (6, -4, 5) nT/sqrt(W)."""
+    from magcal_ros.core.model import fit
+    from magcal_ros.core.simulate import simulate
+    assert doc_plugin == ['heater_current']
+    data, _ = simulate(n_samples=3000, rate_hz=10, trajectory='smooth', seed=11)
+    rng = np.random.default_rng(5)
+    t = data.t - data.t[0]
+    third = t[-1] / 3
+    power = np.where(t < third, 0.0, np.where(t < 2 * third, 16.0, 4.0))      # W
+    power = power + rng.uniform(0.0, 1.0, t.size)
+    data.aux['aux_heater_power'] = power
+    v = np.array([6.0, -4.0, 5.0])                                             # nT/sqrt(W)
+    i = np.sqrt(power)
+    data.raw[1] += (i - i.mean())[:, None] * v
+    without = fit(data, 'base', field_nt=50000.0)
+    res = fit(data, 'base,heater_current@2', field_nt=50000.0)
+    # 3 nT noise: without the effect sensor 2 is far above it, with it at it (10 %)
+    assert without.scalar_rms_nt[2] > 2 * 3.0
+    assert res.scalar_rms_nt[2] < 1.1 * 3.0
+    rows = [r for r in res.param_table() if r['effect'].startswith('heater_current')]
+    got = np.array([r['value'] for r in rows])
+    se = np.array([r['stderr'] for r in rows])
+    assert [r['unit'] for r in rows] == ['nT/sqrt(W)'] * 3
+    assert np.all(np.abs(got - v) < 4 * se), (got, se)
