@@ -6,7 +6,8 @@ Starts ``fluxgate_sim`` (simulated fluxgates on pseudo-terminals), ``fluxgate_dr
 ``calibration/start``, shows the collection progress while the simulated array tumbles,
 calls ``calibration/calibrate``, then records the raw and corrected streams and prints the
 total-field and gradient-tensor errors before and after correction (RMS and max, per
-sensor and per component) next to the noise-propagated floor. Figures (PNG) and a JSON
+sensor and per component) next to the noise-propagated floor, and the calibration node's
+live residual (``calibration/residual``) next to its floor. Figures (PNG) and a JSON
 summary go to ``--out`` (default ``./demo_out``). Every process is stopped at the end; the
 exit status is 0 only if everything worked and the corrected errors are at the floor.
 
@@ -121,10 +122,11 @@ class Recorder:
         from std_msgs.msg import Float64MultiArray, String
         from std_srvs.srv import Trigger
 
-        from magcal_ros.ros.conversions import msg_to_field_nt, msg_to_tensor, \
-            stamp_to_seconds
+        from magcal_ros.ros.conversions import msg_to_field_nt, msg_to_residual_nt, \
+            msg_to_tensor, stamp_to_seconds
         self._to_nt, self._to_tensor, self._sec = msg_to_field_nt, msg_to_tensor, \
             stamp_to_seconds
+        self._to_residual = msg_to_residual_nt
         self.Trigger = Trigger
         self.node = Node('magcal_demo', namespace=NAMESPACE, context=context)
         self.lock = threading.Lock()
@@ -134,6 +136,8 @@ class Recorder:
         self.raw = [[] for _ in range(N_SENSORS)]
         self.corrected = [[] for _ in range(N_SENSORS)]
         self.gradient = []
+        self.residual = []              # calibration/residual: (scalar (S,), vector (S,)) nT
+        self.frames = set()             # frame_id of the corrected fields and the gradient
         reliable = QoSProfile(depth=500, reliability=ReliabilityPolicy.RELIABLE)
         n = self.node
         for j in range(N_SENSORS):
@@ -142,6 +146,8 @@ class Recorder:
             n.create_subscription(MagneticField, f'sensor{j + 1}/corrected',
                                   self._stream(j, 'corrected'), reliable)
         n.create_subscription(Float64MultiArray, 'gradient', self._on_gradient, reliable)
+        n.create_subscription(Float64MultiArray, 'calibration/residual', self._on_residual,
+                              reliable)
         n.create_subscription(String, 'calibration/status', self._on_status, 10)
         self.clients = {k: n.create_client(Trigger, f'calibration/{k}')
                         for k in ('start', 'calibrate', 'diagnose')}
@@ -158,7 +164,14 @@ class Recorder:
                 if self.recording:
                     getattr(self, kind)[j].append(
                         (self._sec(msg.header.stamp), *self._to_nt(msg)))
+                    if kind == 'corrected':
+                        self.frames.add(msg.header.frame_id)
         return cb
+
+    def _on_residual(self, msg):
+        with self.lock:
+            if self.recording:
+                self.residual.append(self._to_residual(msg))
 
     def _on_gradient(self, msg):
         with self.lock:
@@ -258,6 +271,24 @@ def analyse(rec, field_nt, baseline_m, tolerance_s):
         'tensors_after': int(len(grad)),
         'tensors_before': int(len(g_before)),
     }
+    # the calibration node's own live check (calibration/residual, one message per set)
+    with rec.lock:
+        residual = list(rec.residual)
+        out['corrected_frame_ids'] = sorted(rec.frames)
+    if len(residual) < 50:
+        raise RuntimeError(f'only {len(residual)} calibration/residual messages recorded')
+    scalar = np.array([r[0] for r in residual])                  # (M, S) nT
+    vector = np.array([r[1] for r in residual])
+    var = sigma ** 2
+    # |b_j - mean of the others|: 3 axes of noise variance sigma_j^2 + sum_k sigma_k^2/(S-1)^2
+    vector_floor = np.sqrt(3 * (var + (var.sum() - var) / (N_SENSORS - 1) ** 2))
+    out['live_residual'] = {
+        'sets': int(len(residual)),
+        'scalar_rms_nt': {str(j + 1): float(v) for j, v in enumerate(_rms(scalar, 0))},
+        'scalar_floor_nt': {str(j + 1): float(v) for j, v in enumerate(sigma)},
+        'vector_rms_nt': {str(j + 1): float(v) for j, v in enumerate(_rms(vector, 0))},
+        'vector_floor_nt': {str(j + 1): float(v) for j, v in enumerate(vector_floor)},
+    }
     series = {'raw': raw, 'cor': cor, 'grad': grad, 'g_before': g_before}
     return out, series
 
@@ -286,6 +317,14 @@ def print_report(res):
     print(f'  all components: RMS {t["rms_before_all_nt_per_m"]:.1f} -> '
           f'{t["rms_after_all_nt_per_m"]:.2f} nT/m, floor {t["floor_all_nt_per_m"]:.2f} nT/m '
           f'(improvement x{t["rms_before_all_nt_per_m"] / t["rms_after_all_nt_per_m"]:.0f})')
+    r = res['live_residual']
+    print(f'\nLive residual of the calibration node (calibration/residual, {r["sets"]} sets), '
+          'RMS (floor), nT:')
+    for kind in ('scalar', 'vector'):
+        print(f'  {kind:>6}: ' + ', '.join(
+            f'{j}: {v:.2f} ({r[kind + "_floor_nt"][j]:.2f})'
+            for j, v in r[kind + '_rms_nt'].items()))
+    print(f'corrected fields in frame {", ".join(res["corrected_frame_ids"])}')
 
 
 def write_figures(res, series, out_dir):
@@ -494,6 +533,12 @@ def main(argv=None):
             failures.append(f'tensor RMS after correction {t["rms_after_all_nt_per_m"]:.2f} '
                             f'nT/m exceeds {ACCEPT_FACTOR} x floor '
                             f'{t["floor_all_nt_per_m"]:.2f} nT/m')
+        live = res['live_residual']
+        for j, v in live['scalar_rms_nt'].items():
+            if v > ACCEPT_FACTOR * live['scalar_floor_nt'][j]:
+                failures.append(f'sensor {j}: live residual (calibration/residual) {v:.2f} nT '
+                                f'exceeds {ACCEPT_FACTOR} x noise '
+                                f'{live["scalar_floor_nt"][j]:.2f} nT')
         for j, s in res['sensors'].items():
             if s['total_field_rms_after_nt'] > ACCEPT_FACTOR * s['total_field_floor_nt']:
                 failures.append(f'sensor {j}: total-field RMS after correction '

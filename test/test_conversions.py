@@ -219,3 +219,19 @@ def test_linear_correction_in_tesla_equals_the_one_in_nanotesla():
     np.testing.assert_allclose(conv.msg_to_field_nt(msg), expected, rtol=1e-12)
     np.testing.assert_allclose(msg.magnetic_field_covariance, np.eye(3).ravel() * 4e-18)
     assert msg.header.frame_id == 'fluxgate2' and msg.header.stamp.sec == 12
+
+
+def test_residual_message_round_trip_hand_values():
+    """calibration/residual: 2 nT scalar, 5 nT vector -> 2e-9 T, 5e-9 T in the documented
+    places (data[j - 1], data[S + j - 1]) and back."""
+    msg = conv.residual_to_msg(np.array([2.0, -1.0, 0.5]), np.array([5.0, 4.0, 3.0]))
+    assert msg.data == pytest.approx([2e-9, -1e-9, 0.5e-9, 5e-9, 4e-9, 3e-9], abs=1e-15)
+    scalar, vector = conv.msg_to_residual_nt(msg)
+    np.testing.assert_allclose(scalar, [2.0, -1.0, 0.5])
+    np.testing.assert_allclose(vector, [5.0, 4.0, 3.0])
+    bad = Float64MultiArray(data=[0.0] * 6)            # no layout: refused, not guessed
+    with pytest.raises(ValueError, match='layout'):
+        conv.msg_to_residual_nt(bad)
+    msg.data = msg.data[:5]
+    with pytest.raises(ValueError, match='needs 6 values'):
+        conv.msg_to_residual_nt(msg)

@@ -107,6 +107,17 @@ def test_make_demo_reaches_the_noise_floor():
     assert abs(t['rms_after_all_nt_per_m'] / t['floor_all_nt_per_m'] - 1.0) < tol
     assert t['rms_before_all_nt_per_m'] > 30 * t['floor_all_nt_per_m']
 
+    # the calibration node's live residual: scalar |b_j| - F at the noise; vector
+    # |b_j - mean of the other three| at sqrt(3 (1 + 3/9)) sigma = 2 sigma (equal noise)
+    live = res['live_residual']
+    tol = 4.0 / np.sqrt(live['sets'])
+    assert live['sets'] > 1000
+    for j in '1234':
+        assert abs(live['scalar_rms_nt'][j] / SIM_NOISE_NT - 1.0) < tol, (j, live)
+        assert abs(live['vector_rms_nt'][j] / (2 * SIM_NOISE_NT) - 1.0) < tol, (j, live)
+    # corrected fields are stamped with the array frame (README "Frames")
+    assert res['corrected_frame_ids'] == ['magcal_array']
+
     cal = res['calibration']
     assert cal['converged'] and cal['model'] == ['base']
     assert pathlib.Path(cal['calibration_file']) == out_dir.resolve() / 'calibration.yaml'

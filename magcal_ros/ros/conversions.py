@@ -425,6 +425,35 @@ def residual_to_msg(scalar_nt, vector_nt):
     return msg
 
 
+def msg_to_residual_nt(msg):
+    """Inverse of :func:`residual_to_msg`: the scalar and vector residuals of one set in nT.
+
+    Parameters
+    ----------
+    msg : std_msgs.msg.Float64MultiArray
+        A ``calibration/residual`` message (T), laid out as :func:`residual_to_msg` writes it.
+
+    Returns
+    -------
+    scalar_nt, vector_nt : numpy.ndarray
+        (S,) each, nT.
+
+    Raises
+    ------
+    ValueError
+        If the layout is not ``kind`` (2) x ``sensor`` (S) or the data do not fill it.
+    """
+    dims = [(d.label, d.size) for d in msg.layout.dim]
+    if len(dims) != 2 or dims[0] != (RESIDUAL_KIND_LABEL, 2) or dims[1][0] != 'sensor':
+        raise ValueError(f'residual message layout must be [({RESIDUAL_KIND_LABEL!r}, 2), '
+                         f"('sensor', S)] (label, size), got {dims}")
+    s = dims[1][1]
+    data = np.asarray(msg.data, dtype=np.float64)
+    if data.size != 2 * s:
+        raise ValueError(f'residual message needs {2 * s} values, got {data.size}')
+    return t_to_nt(data[:s]), t_to_nt(data[s:])
+
+
 def _tensor_layout():
     layout = MultiArrayLayout()
     layout.dim = [MultiArrayDimension(label=TENSOR_DIM_LABELS[0], size=3, stride=9),
