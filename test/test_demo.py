@@ -9,7 +9,7 @@ the uniform simulated field, whose true gradient tensor is zero.
 Tolerances from the noise: an RMS over N white samples scatters by 1/sqrt(2N) relative; the
 corrected error and the floor it is compared with are two such estimates, so their ratio
 scatters by about 1/sqrt(N) (N ~ 1500 in the 15 s record: 2.6 %); 4 of those (~10 %) is the
-bound. The calibration's own parameter error adds ~ p/(2 N_cal) ~ 0.2 % (13 parameters per
+bound. The calibration's own parameter error adds ~ p/(2 N_cal) ~ 0.2 % (12 parameters per
 sensor, ~4000 sets): negligible. A wrong calibration or a mis-paired tensor shows as tens
 to hundreds of nT.
 
