@@ -56,7 +56,7 @@ import numpy as np
 from scipy import stats
 
 from magcal_ros.core import effects as fx
-from magcal_ros.core.findings import find as find_findings
+from magcal_ros.core.findings import find as find_findings, lomb_scargle as find_lomb_scargle
 from magcal_ros.core.magnitude import reference_magnitude
 from magcal_ros.core.model import (_Problem, _single_threaded_blas, _tangent_basis, evaluate,
                                    fit, Model)
@@ -384,10 +384,10 @@ def propose_from_residual(t, residual, max_steps=2, min_line_ratio=30.0):
     Change points: the least-squares single change in the mean of the 3-vector residual
     (the CUSUM statistic of the two-segment fit, maximised over the split; Hawkins 1977),
     applied recursively to the segments (binary segmentation).  Lines: the periodogram
-    (Lomb-Scargle for uneven sampling, scipy.signal.lombscargle) of each sensor's residual,
+    (Lomb-Scargle for uneven sampling, magcal_ros.core.findings.lomb_scargle) of each
+    sensor's residual,
     summed over the axes, its peak refined on a grid 10x finer than 1/span.
     """
-    from scipy.signal import lombscargle
     t = np.asarray(t, float)
     n = len(t)
     out = []
@@ -447,7 +447,9 @@ def propose_from_residual(t, residual, max_steps=2, min_line_ratio=30.0):
             spec = spec.sum(axis=1)
         else:
             freqs = np.linspace(f_lo, f_hi, min(4 * n, 20000))
-            spec = sum(lombscargle(t, r[j][:, a], 2 * np.pi * freqs) for a in range(3))
+            # the vectorised periodogram (same numbers as scipy.signal.lombscargle, which
+            # loops in Python: 85 s vs 9 s per sensor for 3000 live sets with jittery stamps)
+            spec = find_lomb_scargle(t, r[j], freqs).sum(axis=1)
         keep = (freqs >= f_lo) & (freqs < 0.98 * f_hi)
         if keep.sum() < 20:
             continue
