@@ -88,23 +88,29 @@ def test_ladder_legend_covers_no_step():
         assert not Bbox.intersection(leg, _extent(artist, fig)), artist
 
 
-def test_candidates_chart_plots_the_held_out_drop_that_decided():
-    def cand(tok, dbic, before, after, sig):
-        d = {'token': tok, 'delta_bic': dbic, 'cv_rms_before_nt': before,
-             'cv_rms_after_nt': after, 'significant': sig}
+def test_candidates_chart_plots_the_share_that_decided():
+    # the verdict rests on the held-out share of the excess over the floor (and the likelihood
+    # tests), so the bars are that share; delta BIC alone decides nothing
+    def cand(tok, dbic, p, share, before, after, sig):
+        d = {'token': tok, 'delta_bic': dbic, 'p_value': p, 'explained_fraction': share,
+             'cv_rms_before_nt': before, 'cv_rms_after_nt': after, 'significant': sig}
         return SimpleNamespace(to_dict=lambda d=d: dict(d), token=tok)
     diag = SimpleNamespace(
-        candidates=(cand('aux:aux_m@3', -80.0, 12.0, 3.2, True),
-                    cand('temperature@1', -500.0, 12.0, 12.4, False),
-                    cand('drift@2', 4.0, None, None, False)),
-        verdict_token='aux:aux_m@3', verdict_reason='held-out RMS 12.00 -> 3.20 nT')
+        candidates=(cand('aux:aux_m@3', -80.0, 1e-12, 0.91, 12.0, 3.2, True),
+                    cand('temperature@1', -500.0, 1e-40, 0.05, 12.0, 12.4, False),
+                    cand('drift@2', 4.0, 0.3, None, None, None, False)),
+        verdict_token='aux:aux_m@3', verdict_reason='held-out RMS 12.00 -> 3.20 nT',
+        decided_by='held-out share', p_threshold=1e-3)
     rows = report.candidate_chart_data(diag)
-    assert [r['held_out_drop_nt'] for r in rows] == [8.8, -0.4, None] or \
-        np.allclose([r['held_out_drop_nt'] or 0 for r in rows], [8.8, -0.4, 0])
+    np.testing.assert_allclose([r['held_out_drop_nt'] for r in rows[:2]], [8.8, -0.4])
+    assert rows[2]['held_out_drop_nt'] is None
     assert [r['verdict'] for r in rows] == [True, False, False]
+    # temperature@1: the strongest delta BIC passes the likelihood tests but removes 5 %
+    assert [r['likelihood_tests'] for r in rows] == [True, True, False]
     fig = report.plot_candidates(diag)
     widths = [p.get_width() for p in fig.axes[0].patches]
-    np.testing.assert_allclose(widths, [8.8, -0.4, 0.0])
+    np.testing.assert_allclose(widths, [0.91, 0.05, 0.0])
     # the verdict's bar is the outlined one: a large delta BIC alone does not decide
     assert [p.get_linewidth() for p in fig.axes[0].patches][0] == 2
+    assert 'held-out share' in fig.axes[0].get_xlabel()
     assert 'verdict: aux:aux_m@3' in fig.get_suptitle()
