@@ -193,6 +193,10 @@ def split_response(response):
     return summary.splitlines(), json.loads('{' + payload)
 
 
+#: spin time after a new client sees its server, before the first request (see call_trigger)
+DISCOVERY_GRACE_S = 0.3
+
+
 def call_trigger(node, executor, service_name, timeout_sec=30.0):
     """Call a ``std_srvs/srv/Trigger`` service with ``call_async`` and bounded spinning.
 
@@ -224,6 +228,12 @@ def call_trigger(node, executor, service_name, timeout_sec=30.0):
     try:
         spin_until(executor, client.service_is_ready, timeout_sec,
                    message=f'service {full_name} to become available')
+        # The client sees the server before the server has discovered the client's response
+        # reader; Fast DDS's server waits only 100 ms for it and then drops the response
+        # ("failed to send response (timeout)"). A short spin lets discovery finish both ways.
+        grace = time.monotonic() + DISCOVERY_GRACE_S
+        while time.monotonic() < grace:
+            executor.spin_once(timeout_sec=0.05)
         future = client.call_async(Trigger.Request())
         spin_until(executor, future.done, max(deadline - time.monotonic(), 0.1),
                    message=f'the response of {full_name}')
