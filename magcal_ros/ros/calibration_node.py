@@ -483,11 +483,15 @@ class CalibrationNode(Node):
 
     # -- services --------------------------------------------------------------------------
 
+    def _reject_busy(self, response, service):
+        """Answer a call that arrived during a calibration (the state is not touched)."""
+        return _reply(response, False, f'rejected: a calibration is running; call '
+                      f'calibration/{service} again when it has finished',
+                      {'state': self._state})
+
     def _on_start(self, request, response):
         if not self._busy.acquire(blocking=False):
-            return _reply(response, False, 'rejected: a calibration is running; call '
-                          'calibration/start again when it has finished',
-                          {'state': self._state})
+            return self._reject_busy(response, 'start')
         try:
             dropped = self._clear('collecting')
             s = prm.calibration_settings(self)
@@ -502,9 +506,7 @@ class CalibrationNode(Node):
     def _on_reset(self, request, response):
         """Forget the collected sets; collection goes on if it was running."""
         if not self._busy.acquire(blocking=False):
-            return _reply(response, False, 'rejected: a calibration is running; call '
-                          'calibration/reset again when it has finished',
-                          {'state': self._state})
+            return self._reject_busy(response, 'reset')
         try:
             with self._lock:
                 state = self._state
