@@ -522,6 +522,9 @@ def main(argv=None):
             rec.recording = False
         res, series = analyse(rec, args.field_nt, 0.5, 0.005)
         res['calibration'] = cal_summary
+        # calibration/status at the end of the collection (sets, drops per sensor)
+        res['collection'] = {k: st.get(k) for k in ('sets', 'incomplete_sets_dropped',
+                                                    'samples_received')}
         print_report(res)
         figures = write_figures(res, series, out_dir)
         with open(os.path.join(out_dir, 'summary.json'), 'w') as fh:

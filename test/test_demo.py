@@ -13,6 +13,10 @@ bound. The calibration's own parameter error adds ~ p/(2 N_cal) ~ 0.2 % (12 para
 sensor, ~4000 sets): negligible. A wrong calibration or a mis-paired tensor shows as tens
 to hundreds of nT.
 
+This is also the suite's end-to-end test of the live pipeline at the noise floor (the
+checks test_e2e made on the same four processes are here: the calibrate reply's residual,
+the sets dropped while collecting, the tensor before and after).
+
 `make demo` runs `setup` first. In CI the `.venv` was made by `make setup` in this checkout
 and the stamp is newer than its inputs, so setup is a no-op and `make demo` is run exactly
 as the README shows it. Where the environment was set up otherwise (an engineer's worktree
@@ -105,7 +109,9 @@ def test_make_demo_reaches_the_noise_floor():
     assert after.shape == floor.shape == (3, 3)
     assert np.all(np.abs(after / floor - 1.0) < tol), (after, floor)
     assert abs(t['rms_after_all_nt_per_m'] / t['floor_all_nt_per_m'] - 1.0) < tol
-    assert t['rms_before_all_nt_per_m'] > 30 * t['floor_all_nt_per_m']
+    # uncorrected, the tensor is off by thousands of nT/m (offsets and misalignments of
+    # hundreds of nT over 0.5 m); a mis-paired or half-corrected set shows as tens to hundreds
+    assert t['rms_before_all_nt_per_m'] > 100 * t['rms_after_all_nt_per_m'], t
 
     # the calibration node's live residual: scalar |b_j| - F at the noise; vector
     # |b_j - mean of the other three| at sqrt(3 (1 + 3/9)) sigma = 2 sigma (equal noise)
@@ -120,6 +126,15 @@ def test_make_demo_reaches_the_noise_floor():
 
     cal = res['calibration']
     assert cal['converged'] and cal['model'] == ['base']
+    # the fit's own residual on the collected sets (calibrate's reply) is at the noise: it
+    # scatters by 1/sqrt(2 N) < 1 % over N ~ 6000 sets; the bound leaves 15 % for sets the
+    # stamps paired wrongly under load and the node did not re-pair
+    for j in '1234':
+        assert cal['scalar_rms_after_nt'][j] < 1.15 * SIM_NOISE_NT, (j, cal)
+    # sets a sensor missed (sensor-data QoS drops under load) are dropped and counted on
+    # calibration/status: a small fraction, never enough to bias the fit
+    coll = res['collection']
+    assert coll['sets'] > 2000 and coll['incomplete_sets_dropped'] <= 0.02 * coll['sets'], coll
     assert pathlib.Path(cal['calibration_file']) == out_dir.resolve() / 'calibration.yaml'
     assert (out_dir / 'calibration.yaml').stat().st_mtime >= t_start - 1
     for name in FIGURES:
