@@ -19,9 +19,9 @@ import numpy as np
 import pytest
 
 from magcal_ros.core import effects as fx
-from magcal_ros.core.diagnose import (_lr, AT_FLOOR_RATIO, candidate_tokens, compact_spec,
+from magcal_ros.core.diagnose import (AT_FLOOR_RATIO, candidate_tokens, compact_spec,
                                       cross_validate, diagnose, ladder, noise_floor_from_data,
-                                      time_blocks)
+                                      likelihood_ratio, time_blocks)
 from magcal_ros.core.model import fit, Model
 from magcal_ros.core.noise import estimate_noise, noise_floor
 from magcal_ros.core.simulate import simulate
@@ -132,10 +132,10 @@ def test_untestable_effects_are_listed_with_reason():
 
 
 def test_lr_far_tail_matches_scipy_where_representable():
-    p, logp, dbic = _lr(600.0, 6, 30000)
+    p, logp, dbic = likelihood_ratio(600.0, 6, 30000)
     assert logp == pytest.approx(-125.632, abs=1e-3)          # scipy chi2.logsf / ln 10
     assert dbic == pytest.approx(-600.0 + 6 * math.log(30000))
-    p, logp, _ = _lr(7000.0, 6, 30000)
+    p, logp, _ = likelihood_ratio(7000.0, 6, 30000)
     # beyond double precision p underflows; log10 p from the closed form of an even number
     # of degrees of freedom: sf(x; 6) = exp(-x/2) (1 + x/2 + (x/2)^2 / 2)
     h = 7000.0 / 2

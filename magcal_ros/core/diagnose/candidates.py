@@ -1,0 +1,426 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Candidate effects of the diagnosis: the tokens to test, where they come from, their evidence.
+
+Besides the effect catalog (:func:`candidate_tokens`: every effect not in the model, per
+sensor where it applies and on all sensors at once), the candidates include the offset steps
+and spectral lines found in the residual (:func:`propose_from_residual`: ``step(t)``,
+``periodic(f)``) and the catalog effects the model-free findings point to
+(:func:`tokens_from_findings`).  :func:`split_testable` sets aside, with the reason, those the
+data cannot excite (``Effect.check``).
+"""
+from dataclasses import dataclass
+import math
+
+import numpy as np
+
+from magcal_ros.core import effects as fx
+from magcal_ros.core.diagnose.constants import NESTED
+from magcal_ros.core.findings import lomb_scargle as find_lomb_scargle
+
+
+@dataclass(frozen=True, eq=False)
+class Candidate:
+    """Evidence for adding one effect to the model (all RMS values in nT).
+
+    Attributes
+    ----------
+    token : str
+        Model-spec token, e.g. 'temperature@2' or 'aux:aux_motor_current' (all sensors).
+    effect : str
+        Effect label ('temperature', 'aux:aux_motor_current', ...).
+    sensor : int or None
+        Sensor (1-based), None when added to every sensor.
+    n_params : int
+        Parameters added (k of the likelihood-ratio test).
+    rms_before_nt, rms_after_nt : float
+        Scalar residual RMS of the affected sensors, base fit and with the effect.
+    vector_rms_before_nt, vector_rms_after_nt : float or None
+        Vector residual RMS (vs sensor 1) involving the affected sensors.
+    delta_chi2 : float
+        Decrease of chi-square (noise levels fixed at the base fit).
+    delta_bic : float
+        BIC(with) - BIC(without) = -delta_chi2 + k ln(n_obs); negative favours the effect.
+    p_value, log10_p_value : float
+        Likelihood-ratio test, chi-square with k degrees of freedom.
+    method : str
+        'refit' (full ML refit from the base solution) or 'one-step' (one Gauss-Newton
+        step from the base solution; a lower bound of delta_chi2).
+    cv_rms_before_nt, cv_rms_after_nt : float or None
+        Combined residual RMS on held-out time blocks (None when not computed).
+    significant : bool
+        p below the Bonferroni threshold, delta BIC < -10 and an explained fraction of at
+        least :data:`MIN_EXPLAINED`.
+    params : tuple of dict
+        The added parameters {sensor, name, unit, value} after the fit.
+    explained_fraction : float or None
+        Share (0..1) of the excess mean square over the noise floor that the effect removes:
+        (MS_before - MS_after) / (MS_before - floor^2) of the combined residual, held out
+        when cross-validated, in-sample when there is no held-out test; None when not
+        computed (a candidate after the verdict).
+    decided_by : str or None
+        Which measure gave ``explained_fraction``: 'held-out' or 'in-sample (...)'.
+    note : str or None
+        Why the candidate is not adopted although its fit is good: its fitted parameters
+        make it a simpler catalog effect (``Effect.reduces``: a lag of zero time constant).
+    """
+
+    token: str
+    effect: str
+    sensor: int | None
+    n_params: int
+    rms_before_nt: float
+    rms_after_nt: float
+    vector_rms_before_nt: float | None
+    vector_rms_after_nt: float | None
+    delta_chi2: float
+    delta_bic: float
+    p_value: float
+    log10_p_value: float
+    method: str
+    cv_rms_before_nt: float | None = None
+    cv_rms_after_nt: float | None = None
+    significant: bool = False
+    params: tuple = ()
+    explained_fraction: float | None = None
+    decided_by: str | None = None
+    note: str | None = None
+
+    def to_dict(self):
+        """JSON-ready dict (docs/design.md §2 keys first)."""
+        return {'effect': self.effect, 'sensor': self.sensor,
+                'rms_before_nt': self.rms_before_nt, 'rms_after_nt': self.rms_after_nt,
+                'delta_bic': self.delta_bic, 'p_value': self.p_value,
+                'token': self.token, 'n_params': self.n_params,
+                'vector_rms_before_nt': self.vector_rms_before_nt,
+                'vector_rms_after_nt': self.vector_rms_after_nt,
+                'delta_chi2': self.delta_chi2, 'log10_p_value': self.log10_p_value,
+                'cv_rms_before_nt': self.cv_rms_before_nt,
+                'cv_rms_after_nt': self.cv_rms_after_nt,
+                'significant': self.significant, 'method': self.method,
+                'explained_fraction': self.explained_fraction,
+                'decided_by': self.decided_by, 'note': self.note,
+                'params': [dict(p) for p in self.params]}
+
+
+def _nested_clash(name, present):
+    return any(other in present for other in NESTED.get(name, ()))
+
+
+def candidate_tokens(model, data, extra=()):
+    """Every effect not in ``model``, per sensor where it applies and on all sensors at once.
+
+    Returns a list of (token, effect label, sensor or None).  Effects that clash with the
+    model (soft_iron next to scale/nonorthogonality/misalignment, drift2 next to drift)
+    are left out.  Effects with arguments are offered with the arguments they suggest
+    (``Effect.suggest_args``: ``lag(temperature)``, ``aux_poly(aux_<name>,2)``) and with
+    ``extra`` names with arguments (``step(300)``, ``periodic(0.23)``: found in the residual
+    by :func:`propose_from_residual`).  Every effect free on all sensors (plug-ins too) is
+    offered on all of them as well (token without ``@``).
+    """
+    s = model.n_sensors
+    ctx = data.context(1)
+    names = []
+    for n in fx.registered_effects():
+        if n == 'aux:<column>':
+            continue
+        if fx.needs_args(n):
+            cls = fx._REGISTRY[n]
+            names += [f'{n}({",".join(a)})' for a in cls.suggest_args(ctx)]
+        else:
+            names.append(n)
+    names += ['aux:' + c for c in sorted(data.aux)]
+    names += [e for e in extra if e not in names]
+    out = []
+    for name in names:
+        if getattr(fx._REGISTRY.get(name), 'scope', 'sensor') == 'array':
+            # one effect of the whole array (site_gradient): offered once, when the data
+            # have what it reads (the attitude)
+            eff = fx.make_effect(name, 0)
+            if (name not in {e.name for e in model.array_effects} and s >= 3
+                    and all(data.context(1).has(sig) for sig in eff.signals)):
+                out.append((name, name, None))
+            continue
+        free = []
+        additive = False
+        for j in range(1, s + 1):
+            try:
+                eff = fx.make_effect(name, j)
+            except ValueError:
+                continue
+            if not eff.applies:
+                continue
+            additive = eff.kind != 'linear'
+            present = {e.label for e in model.effects[j - 1]} | {
+                e.name for e in model.effects[j - 1]}
+            if eff.label in present or _nested_clash(eff.name, present):
+                continue
+            if any(x in present for x in eff.excludes) or any(
+                    eff.name in e.excludes or eff.label in e.excludes
+                    for e in model.effects[j - 1]):
+                continue
+            free.append(j)
+            out.append((f'{eff.label}@{j}', eff.label, j))
+        if s > 1 and len(free) == s and additive:
+            out.append((eff.label, eff.label, None))
+    return out
+
+
+def token_label(tok):
+    """(effect label, sensor or None) of a model-spec token."""
+    name, args, sensor = fx.parse_token(tok)
+    full = f'{name}({",".join(args)})' if args else name
+    return fx.make_effect(full, sensor or 1).label, sensor
+
+
+def propose_from_residual(t, residual, max_steps=2, min_line_ratio=30.0):
+    """Effects with arguments suggested by the residual: offset steps and periodic lines.
+
+    Parameters
+    ----------
+    t : numpy.ndarray
+        (N,) time, s.
+    residual : numpy.ndarray
+        (S, N, 3) raw-space residual of the fit, nT.
+    max_steps : int
+        Change points per record (binary segmentation).
+    min_line_ratio : float
+        A spectral line is proposed when its power exceeds this many times the median
+        power of the spectrum (a white residual exceeds 30 x the median in one of ~1e4
+        bins with probability ~1e4 exp(-30 ln 2) ~ 1e-5).
+
+    Returns
+    -------
+    list of str
+        Names with arguments, e.g. ['step(300)', 'periodic(0.23)'] (the diagnosis tests each
+        per sensor and on all sensors).
+
+    Change points: the least-squares single change in the mean of the 3-vector residual
+    (the CUSUM statistic of the two-segment fit, maximised over the split; Hawkins 1977),
+    applied recursively to the segments (binary segmentation).  Lines: the periodogram
+    (Lomb-Scargle for uneven sampling, magcal_ros.core.findings.lomb_scargle) of each
+    sensor's residual,
+    summed over the axes, its peak refined on a grid 10x finer than 1/span.
+    """
+    t = np.asarray(t, float)
+    n = len(t)
+    out = []
+    if n < 50:
+        return out
+    r = residual - residual.mean(axis=1, keepdims=True)
+    # -- steps: one change in the mean, on the sensors' residuals together
+    flat = r.transpose(1, 0, 2).reshape(n, -1)              # (N, 3S)
+    found = []
+    segs = [(0, n)]
+    for _ in range(max_steps):
+        best = None
+        for a, b in segs:
+            m = b - a
+            if m < 20:
+                continue
+            c = np.cumsum(flat[a:b], axis=0)
+            k = np.arange(1, m)
+            dev = c[:-1] - k[:, None] / m * c[-1]
+            stat = np.sum(dev ** 2, axis=1) / (k * (m - k) / m)
+            stat[:5] = stat[-5:] = 0.0
+            i = int(np.argmax(stat))
+            if best is None or stat[i] > best[0]:
+                best = (stat[i], a + i + 1, (a, b))
+        if best is None:
+            break
+        # keep a change only if it is far above what noise gives: stat ~ chi2(3S) sigma^2
+        sig2 = np.median(np.diff(flat, axis=0) ** 2) / 2.0 / 0.455
+        if best[0] < 10.0 * sig2 * flat.shape[1] + 5.0 * sig2 * math.log(n) * flat.shape[1]:
+            break
+        found.append(best[1])
+        a, b = best[2]
+        segs.remove((a, b))
+        segs += [(a, best[1]), (best[1], b)]
+    dt = float(np.median(np.diff(t)))
+    # the change lies between two samples: the time of the first sample after it, to the
+    # sampling interval's decimal (step(300), not step(300.0001))
+    q = 10.0 ** math.floor(math.log10(dt)) if dt > 0 else 1.0
+
+    def at(k):
+        return f'{float(np.round(t[k] / q) * q):.10g}'
+    for k in sorted(found):
+        out.append(f'step({at(k)})')
+    if len(found) > 1:
+        out.append('step(' + ','.join(at(k) for k in sorted(found)) + ')')
+    # -- lines
+    span = float(t[-1] - t[0])
+    if span <= 0:
+        return out
+    uniform = np.ptp(np.diff(t)) <= 1e-6 * dt
+    f_lo, f_hi = 5.0 / span, 0.5 / dt
+    lines = {}
+    for j in range(r.shape[0]):
+        if uniform:
+            spec = np.abs(np.fft.rfft(r[j], axis=0)) ** 2
+            freqs = np.fft.rfftfreq(n, dt)
+            spec = spec.sum(axis=1)
+        else:
+            freqs = np.linspace(f_lo, f_hi, min(4 * n, 20000))
+            # the vectorised periodogram (same numbers as scipy.signal.lombscargle, which
+            # loops in Python: 85 s vs 9 s per sensor for 3000 live sets with jittery stamps)
+            spec = find_lomb_scargle(t, r[j], freqs).sum(axis=1)
+        keep = (freqs >= f_lo) & (freqs < 0.98 * f_hi)
+        if keep.sum() < 20:
+            continue
+        fs, ps = freqs[keep], spec[keep]
+        i = int(np.argmax(ps))
+        if ps[i] < min_line_ratio * np.median(ps):
+            continue
+        grid = fs[i] + np.linspace(-1.0, 1.0, 41) / span
+        tt = t - t[0]
+        pw = [np.sum(np.abs(np.exp(-2j * np.pi * g * tt) @ r[j]) ** 2) for g in grid]
+        fbest = float(grid[int(np.argmax(pw))])
+        lines[j] = (ps[i] / np.median(ps), fbest)
+    if lines:
+        _, fbest = max(lines.values())
+        out.append(f'periodic({fbest:.5g})')
+    return out
+
+
+def _copy_refs(src, dst):
+    """Give ``dst``'s effects the reference values of the same effects in ``src``."""
+    for row_s, row_d in zip(src.effects, dst.effects):
+        refs = {e.label: e.refs for e in row_s}
+        for e in row_d:
+            if e.label in refs:
+                e.refs = dict(refs[e.label])
+
+
+def extend_model(model, params, token, contexts):
+    """``model`` with ``token`` added, its parameters carried over, the new ones at default.
+
+    Returns (new model, (P',) parameters, (P',) bool mask of the added parameters).
+    """
+    new = model.with_effect(token)
+    _copy_refs(model, new)
+    new.prepare(contexts)
+    p = new.default_params()
+    old = {info[:3]: v for info, v in zip(model.param_info(), params)}
+    for j, row in enumerate(new.effects, start=1):
+        for e in row:            # an effect that replaces another takes over its values
+            for lab in e.supersedes:
+                old.update({(s_, e.label, n): v for (s_, l_, n), v in list(old.items())
+                            if s_ == j and l_ == lab})
+    added = np.zeros(new.n_params, bool)
+    for i, info in enumerate(new.param_info()):
+        if info[:3] in old:
+            p[i] = old[info[:3]]
+        else:
+            added[i] = True
+    return new, p, added
+
+
+def sensors_of(sensor, n_sensors):
+    """Return the 1-based sensors a candidate acts on (``sensor`` None: all of them)."""
+    return list(range(1, n_sensors + 1)) if sensor is None else [sensor]
+
+
+def added_params(model, p, added):
+    """Return the parameters flagged in ``added`` as dicts {sensor, name, unit, value}."""
+    info = model.param_info()
+    return tuple({'sensor': s, 'name': n, 'unit': u, 'value': float(p[i])}
+                 for i, (s, _, n, u) in enumerate(info) if added[i])
+
+
+def split_testable(model, tokens, contexts):
+    """
+    Split candidate tokens into those the data can test and those they cannot, with why.
+
+    Parameters
+    ----------
+    model : Model
+        The diagnosed model.
+    tokens : list of tuple
+        (token, effect label, sensor or None) as from :func:`candidate_tokens`.
+    contexts : list of Context
+        One per sensor, what the data offer (temperature, auxiliary channels, ...).
+
+    Returns
+    -------
+    testable : list of tuple
+        (token, label, sensor) the data can excite and the model can take.
+    not_testable : list of tuple
+        (token, reason): ``Effect.check`` failed, the model refuses the effect, it is
+        already there, or it would tie the sensors to one field.
+
+    """
+    s = model.n_sensors
+    testable, not_testable = [], []
+    for tok, label, sensor in tokens:
+        why = None
+        for j in sensors_of(sensor, s):
+            why = fx.make_effect(label, j).check(contexts[j - 1])
+            if why:
+                break
+        if why is None:
+            try:
+                trial = model.with_effect(tok)
+            except ValueError as exc:
+                why = str(exc)
+            else:
+                if trial.n_params == model.n_params:
+                    why = 'already in the model'
+                elif trial.joint != model.joint:
+                    why = ('ties the sensors to one field (a different likelihood): fit '
+                           f'--model {",".join(trial.spec())} and compare the vector residual')
+        (not_testable.append((tok, why)) if why else testable.append((tok, label, sensor)))
+    return testable, not_testable
+
+
+def reduces_to_simpler(model, p, stderr, label, contexts):
+    """Return the first reason the added effect's fit reduces it to a simpler one, or None."""
+    for j, row in enumerate(model.effects):
+        for eff, sl in zip(row, model.slices[j]):
+            if eff.label == label:
+                why = eff.reduces(p[sl], None if stderr is None else stderr[sl], contexts[j])
+                if why:
+                    return f'sensor {j + 1}: {why}'
+    return None
+
+
+def tokens_from_findings(findings):
+    """Names with arguments that model-free findings point to (tested like any candidate).
+
+    ``findings``: dicts {"kind", "sensor", "channel", "value", ...} (issue 11 item 3):
+    ``step`` (value = time, s) -> ``step(t)``; ``periodic`` (value = Hz) -> ``periodic(f)``;
+    ``lag`` (channel) -> ``lag(channel)``; ``channel_nonlinear`` (an aux channel) ->
+    ``aux_poly(channel,2)``.  Other kinds point to nothing in the catalog.
+    """
+    out = []
+    for fd in findings:
+        kind, val, ch = fd.get('kind'), fd.get('value'), fd.get('channel')
+        if fd.get('token'):                 # the finding's own suggestion, on every sensor
+            try:
+                name, args, _ = fx.parse_token(fd['token'])
+            except ValueError:
+                name, args = None, ()
+            if args:
+                out.append(f'{name}({",".join(args)})')
+                continue
+        if kind == 'step' and val is not None:
+            out.append(f'step({float(val):.6g})')
+        elif kind == 'periodic' and val is not None:
+            out.append(f'periodic({float(val):.5g})')
+        elif kind == 'lag' and ch:
+            out.append(f'lag({ch})')
+        elif kind == 'channel_nonlinear' and ch and ch != 'temperature':
+            out.append(f'aux_poly({ch},2)')
+    return list(dict.fromkeys(out))

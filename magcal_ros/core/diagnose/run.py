@@ -1,0 +1,466 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The diagnosis itself: :func:`diagnose` and its stages.
+
+base fit -> noise floor and findings -> candidate tokens -> one-step screen -> full refit
+of the best -> held-out effect size -> ranking -> verdict.  Each stage is one function
+below; :func:`diagnose` calls them in order and times them.
+"""
+from dataclasses import dataclass
+import math
+import time
+
+import numpy as np
+
+from magcal_ros.core.diagnose.candidates import (added_params, Candidate, candidate_tokens,
+                                                 extend_model, propose_from_residual,
+                                                 reduces_to_simpler, sensors_of,
+                                                 split_testable, token_label,
+                                                 tokens_from_findings)
+from magcal_ros.core.diagnose.constants import (ALPHA, AT_FLOOR_RATIO, BLOCKS_PER_FOLD,
+                                                DEFAULT_FOLDS, DEFAULT_MAX_REFIT,
+                                                DEFAULT_MAX_SAMPLES, MIN_BLOCK, MIN_DELTA_BIC,
+                                                MIN_EXPLAINED, REFIT_MAX_NFEV)
+from magcal_ros.core.diagnose.measures import (dof_factor, evaluate_residuals, Evaluation,
+                                               explained_share, likelihood_ratio,
+                                               n_observations, rms, scalar_rms_of,
+                                               soft_l1_lr_loss, vector_rms_of)
+from magcal_ros.core.diagnose.results import compact_spec, Diagnosis
+from magcal_ros.core.diagnose.screen import Screen
+from magcal_ros.core.diagnose.validation import cross_validate
+from magcal_ros.core.findings import find as find_findings
+from magcal_ros.core.magnitude import reference_magnitude
+from magcal_ros.core.model import _single_threaded_blas, fit, Model
+from magcal_ros.core.noise import data_noise_floor, NoiseFloor
+
+
+def report_progress(cb, stage, i, n, label=''):
+    """Call ``cb(stage, i, n, label)`` when a progress callback is given."""
+    if cb is not None:
+        cb(stage, i, n, label)
+
+
+@dataclass
+class Trial:
+    """
+    A candidate under test: its extended model, parameters and evidence so far.
+
+    Attributes
+    ----------
+    token, label : str
+        Model-spec token and effect label.
+    sensor : int or None
+        1-based sensor, None on all sensors.
+    model : Model
+        The base model with the effect added.
+    p : numpy.ndarray
+        (P',) its parameters (one-step, then refitted).
+    added : numpy.ndarray
+        (P',) bool, the parameters the effect adds.
+    ev : Evaluation
+        Its residuals on the tested epochs.
+    method : str
+        'one-step' or 'refit'.
+    reduces : str or None
+        Why the fitted effect reduces to a simpler one (``Effect.reduces``).
+    cv : dict or None
+        Its :func:`cross_validate` result.
+    share : float or None
+        Held-out share of the excess mean square it removes.
+
+    """
+
+    token: str
+    label: str
+    sensor: int | None
+    model: Model
+    p: np.ndarray
+    added: np.ndarray
+    ev: Evaluation
+    method: str = 'one-step'
+    reduces: str | None = None
+    cv: dict | None = None
+    share: float | None = None
+
+    @property
+    def k(self):
+        """Parameters added (degrees of freedom of the likelihood-ratio test)."""
+        return int(self.added.sum())
+
+
+@dataclass
+class _Base:
+    """The base fit on the tested epochs: what every stage compares a candidate with."""
+
+    data: object            # Dataset, the tested epochs
+    f: np.ndarray           # (N,) reference magnitude, nT
+    sigma: np.ndarray       # (S,) fixed noise levels, nT
+    contexts: list
+    model: Model
+    params: np.ndarray      # (P,)
+    ev0: Evaluation
+    floor: NoiseFloor
+    loss: object            # chi-square equivalent of the robust loss, or None
+    f_scale: float | None   # the robust fit's f_scale, None when not robust
+    constrained: bool
+
+    @property
+    def robust(self):
+        return self.loss is not None
+
+    @property
+    def n_obs(self):
+        return n_observations(self.model, self.data.n_samples)
+
+    @property
+    def ms0(self):
+        """Combined in-sample mean square of the base fit, nT^2."""
+        return dof_factor(self.model) * np.mean(self.ev0.residual ** 2)
+
+    def delta_bic(self, trial):
+        return -(self.ev0.chi2 - trial.ev.chi2) + trial.k * math.log(self.n_obs)
+
+    def test(self, trial):
+        """Return (p-value, log10 p, delta BIC) of ``trial`` against the base fit."""
+        return likelihood_ratio(self.ev0.chi2 - trial.ev.chi2, trial.k, self.n_obs)
+
+
+def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLDS,
+             alpha=ALPHA, max_refit=DEFAULT_MAX_REFIT, candidates=None, progress=None,
+             cv_method='newton', max_samples=DEFAULT_MAX_SAMPLES, baseline_m=0.5,
+             constrained=False, propose=True, **fit_kwargs):
+    """Find what the model misses: noise floor, candidate effects ranked, verdict.
+
+    Parameters
+    ----------
+    data : Dataset
+        (S sensors, N epochs) rotation data in time order, nT.
+    model : str or Model
+        The model to diagnose (ignored when ``base`` is given).
+    field_nt : float or numpy.ndarray, optional
+        Reference magnitude, nT (scalar or (N,)); default ``data.ref_total``.
+    base : FitResult, optional
+        An existing fit of the model on ``data`` (default: fitted here).
+    folds : int
+        Folds of the cross-validation (interleaved blocks, :func:`time_blocks`); 0 (or a
+        record shorter than ``folds x 48`` epochs): no held-out test, the verdict rests on
+        the likelihood tests and the in-sample share (``decided_by`` says so).
+    alpha : float
+        Family-wise significance level (Bonferroni over the candidates).
+    max_refit : int
+        Number of best-screened candidates refitted in full (the rest keep their one-step
+        evidence, a lower bound).
+    candidates : list of str, optional
+        Tokens to test instead of every missing effect.
+    progress : callable, optional
+        ``progress(stage, i, n, label)`` called as the work proceeds.
+    cv_method : {'newton', 'refit'}
+        How each fold is fitted (:func:`cross_validate`).
+    max_samples : int or None
+        Test the candidates on at most this many evenly spaced epochs (the fit's own cap);
+        the noise floor is estimated from all of them.  None: all.
+    baseline_m : float
+        Arm length of a four-sensor cross, m, for the gradient of a ``nonuniform_field``
+        finding (:func:`magcal_ros.core.findings.find`).
+    constrained : bool
+        Partial attitude coverage: the base fit, every candidate's refit and the held-out
+        fits use the priors of ``fit(constrained=True)``, and the held-out fits are refits
+        (the Newton leave-out step has no prior terms).  Candidates are judged only after
+        a constrained refit (the one-step screen only ranks them).
+    propose : bool
+        Also test the steps and spectral lines found in the base residual
+        (:func:`propose_from_residual`) and the catalog effects the findings point to
+        (:func:`tokens_from_findings`).
+    **fit_kwargs
+        Passed to :func:`magcal_ros.core.model.fit` for the base fit.
+
+    Returns
+    -------
+    Diagnosis
+
+    """
+    # one BLAS thread, as in fit(): threads only contend on small shared machines (bench/)
+    with _single_threaded_blas():
+        t_start = time.perf_counter()
+        seconds = {}
+        f = reference_magnitude(data, field_nt)
+        base = _base_fit(data, model, f, base, constrained, progress, fit_kwargs)
+        seconds['base_fit'] = time.perf_counter() - t_start
+        floor = data_noise_floor(data, base)
+        t0 = time.perf_counter()
+        found = find_findings(data, base, baseline_m=baseline_m)   # model-free, all epochs
+        seconds['findings'] = time.perf_counter() - t0
+        b = _prepare(data, f, base, floor, max_samples, constrained)
+        scalar_rms, vector_rms, at_floor = _base_measures(b)
+
+        tokens = _candidate_tokens(b, candidates, propose, found)
+        testable, not_testable = split_testable(b.model, tokens, b.contexts)
+        p_thr = alpha / max(1, len(testable))
+
+        t0 = time.perf_counter()
+        trials = _screen(b, testable, progress)
+        seconds['screen'] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        n_refit = _refit(b, trials, max_refit, progress)
+        seconds['refit'] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        held_out = bool(folds) and b.data.n_samples >= folds * BLOCKS_PER_FOLD * MIN_BLOCK
+        cv0 = _held_out(b, trials, n_refit, folds, cv_method, p_thr, progress, held_out)
+        seconds['cross_validate'] = time.perf_counter() - t0
+
+        n = b.data.n_samples
+        decided = ('held-out' if held_out else
+                   'in-sample' + (' (folds=0)' if not folds else
+                                  f' (record of {n} epochs too short for {folds} folds)'))
+        ranked = _rank(b, trials, cv0, held_out, decided, p_thr)
+        ratio = max([v / floor.per_sensor_nt[j - 1] for j, v in scalar_rms.items()]
+                    + [v / floor.vector_floor_nt(j) for j, v in vector_rms.items()])
+        verdict, reason = _verdict(b, ranked, ratio, at_floor, held_out, p_thr)
+        seconds['total'] = time.perf_counter() - t_start
+        return Diagnosis(
+            model=tuple(compact_spec(b.model)), n_samples=data.n_samples, n_used=n,
+            n_sensors=b.data.n_sensors, n_params=b.model.n_params,
+            noise_floor=floor, scalar_rms_nt=scalar_rms, vector_rms_nt=vector_rms,
+            residual_rms_nt=float(np.sqrt(b.ms0)),
+            cv_rms_nt=None if cv0 is None else cv0['rms_nt'],
+            at_floor=bool(at_floor), candidates=tuple(ranked), not_testable=tuple(not_testable),
+            verdict_token=verdict, verdict_reason=reason, p_threshold=p_thr, folds=folds,
+            seconds=seconds, result=base, findings=found, decided_by=decided,
+            excess_ms_nt2=float(b.ms0 - floor.value_nt ** 2))
+
+
+def _base_fit(data, model, f, base, constrained, progress, fit_kwargs):
+    """Return the fit to diagnose: ``base`` as given (checked against ``data``) or fitted here."""
+    if base is None:
+        if isinstance(model, str):
+            model = Model.from_spec(model, data.n_sensors)
+        report_progress(progress, 'fit', 0, 1, ','.join(model.spec()))
+        base = fit(data, model, field_nt=f, constrained=constrained, **fit_kwargs)
+    if base.residual_nt.shape[1] != data.n_samples:
+        raise ValueError('the base fit was made on other data: pass the same Dataset')
+    return base
+
+
+def _prepare(data, f, base, floor, max_samples, constrained):
+    """Return the tested epochs (at most ``max_samples``) and the base fit's residuals on them."""
+    n_all = data.n_samples
+    if max_samples and n_all > max_samples:
+        # the same evenly spaced epochs as fit(max_fit_samples): the time order (and so the
+        # contiguous cross-validation blocks) is kept
+        keep = np.unique(np.linspace(0, n_all - 1, int(max_samples)).round().astype(int))
+        data, f = data.subset(keep), f[keep]
+    model = base.model
+    sigma = np.asarray(base.sigma_nt, float)
+    contexts = [data.context(j) for j in range(1, data.n_sensors + 1)]
+    model.prepare(contexts)
+    # a robust base fit: likelihood-ratio and BIC for its loss, not as if Gaussian
+    loss = f_scale = None
+    if bool(getattr(base, 'robust', False)):
+        f_scale = float(getattr(base, 'f_scale', 3.0))
+        z_all = np.asarray(base.residual_nt) / sigma[:, None, None]
+        loss = soft_l1_lr_loss(z_all, f_scale)
+    ev0 = evaluate_residuals(model, base.params, data, f, sigma, contexts, loss=loss)
+    return _Base(data=data, f=f, sigma=sigma, contexts=contexts, model=model,
+                 params=base.params, ev0=ev0, floor=floor, loss=loss, f_scale=f_scale,
+                 constrained=constrained)
+
+
+def _base_measures(b):
+    """Return ({j: scalar RMS}, {j: vector RMS}, at the floor) of the base fit, nT."""
+    s, floor = b.data.n_sensors, b.floor
+    scalar_rms = {j: rms(b.ev0.scalar[j - 1]) for j in range(1, s + 1)}
+    vector_rms = {j: rms(b.ev0.vector[j - 1]) for j in range(2, s + 1)}
+    at_floor = (all(v <= AT_FLOOR_RATIO * floor.per_sensor_nt[j - 1]
+                    for j, v in scalar_rms.items())
+                and all(v <= AT_FLOOR_RATIO * floor.vector_floor_nt(j)
+                        for j, v in vector_rms.items()))
+    return scalar_rms, vector_rms, at_floor
+
+
+def _candidate_tokens(b, candidates, propose, found):
+    """Return (token, label, sensor) to test: ``candidates``, or the catalog and proposals."""
+    if candidates is not None:
+        return [(tok, *token_label(tok)) for tok in candidates]
+    extra = propose_from_residual(b.data.t, b.ev0.residual) if propose else []
+    if propose and found is not None:
+        extra += tokens_from_findings(found.to_list())
+    return candidate_tokens(b.model, b.data, extra=extra)
+
+
+def _screen(b, testable, progress):
+    """One Gauss-Newton step of every candidate from the base fit; trials best first."""
+    trials = []
+    screen = None
+    if testable:
+        # the Gauss-Newton screening step is least squares: under the robust loss it is taken
+        # on the epochs the robust fit does not treat as outliers (|z| < 2 f_scale)
+        n = b.data.n_samples
+        keep = (np.arange(n) if b.loss is None else np.flatnonzero(
+            np.all(np.abs(b.ev0.residual / b.sigma[:, None, None]) < 2 * b.f_scale,
+                   axis=(0, 2))))
+        screen = Screen(b.model, b.params, b.data.raw[:, keep],
+                        [c.subset(keep) for c in b.contexts], b.f[keep], b.sigma)
+    for i, (tok, label, sensor) in enumerate(testable):
+        report_progress(progress, 'screen', i, len(testable), tok)
+        m_ext, p_ext, added = extend_model(b.model, b.params, tok, b.contexts)
+        p_step = screen.step(m_ext, p_ext, added)
+        # from the base fit's field: one Gauss-Newton step of the profile (model.evaluate)
+        ev = evaluate_residuals(m_ext, p_step, b.data, b.f, b.sigma, b.contexts,
+                                field0=b.ev0.field, loss=b.loss)
+        if not np.isfinite(ev.chi2) or ev.chi2 > b.ev0.chi2:
+            p_step = p_ext
+            ev = evaluate_residuals(m_ext, p_ext, b.data, b.f, b.sigma, b.contexts,
+                                    loss=b.loss)
+        trials.append(Trial(token=tok, label=label, sensor=sensor, model=m_ext, p=p_step,
+                            added=added, ev=ev))
+    report_progress(progress, 'screen', len(testable), len(testable), '')
+    trials.sort(key=b.delta_bic)
+    return trials
+
+
+def _refit(b, trials, max_refit, progress):
+    """Refit the best ``max_refit`` screened trials in full (in place); return how many."""
+    n_refit = min(max_refit, len(trials))
+    for i, c in enumerate(trials[:n_refit]):
+        report_progress(progress, 'refit', i, n_refit, c.token)
+        if i > 0 and b.delta_bic(c) > MIN_DELTA_BIC:      # cannot become significant
+            break
+        # warm start: a well-posed candidate converges in a few iterations; the cap keeps a
+        # parameter the data do not fix (a lag's time constant on a sensor without the lag)
+        # from wandering for hundreds of them
+        r = fit(b.data, c.model, field_nt=b.f, sigma_nt=b.sigma, init=c.p,
+                check_identifiability=False, on_degenerate='flag', robust=b.robust,
+                constrained=b.constrained, max_nfev=REFIT_MAX_NFEV,
+                **({'f_scale': b.f_scale} if b.robust else {}))
+        ev = evaluate_residuals(c.model, r.params, b.data, b.f, b.sigma, b.contexts,
+                                loss=b.loss)
+        if ev.chi2 <= c.ev.chi2:
+            c.p, c.ev, c.method = r.params, ev, 'refit'
+            c.reduces = reduces_to_simpler(c.model, r.params, r.stderr, c.label, b.contexts)
+    report_progress(progress, 'refit', n_refit, n_refit, '')
+    trials.sort(key=b.delta_bic)
+    return n_refit
+
+
+def _passes_lr(b, c, p_thr):
+    """Return whether p < ``p_thr`` and delta BIC < MIN_DELTA_BIC (the likelihood tests)."""
+    return b.test(c)[0] < p_thr and b.delta_bic(c) < MIN_DELTA_BIC
+
+
+def _held_out(b, trials, n_refit, folds, cv_method, p_thr, progress, held_out):
+    """
+    Cross-validate the base model and the refitted candidates that pass the likelihood tests.
+
+    Best first (interleaved blocks: time_blocks), until one removes MIN_EXPLAINED of the
+    excess mean square over the floor; each trial tested gets ``cv`` and ``share``.  Returns
+    the base model's :func:`cross_validate` result, None without a held-out test.
+    """
+    if not held_out:
+        return None
+    to_cv = [c for c in trials[:n_refit]
+             if c.method == 'refit' and _passes_lr(b, c, p_thr) and not c.reduces]
+    if not to_cv and trials:
+        to_cv = [trials[0]]           # the best one, for its effect size
+    model, f, sigma = b.model, b.f, b.sigma
+    report_progress(progress, 'cross-validate', 0, len(to_cv) + 1, ','.join(model.spec()))
+    cv0 = cross_validate(b.data, model, b.params, f, sigma, folds, method=cv_method,
+                         constrained=b.constrained)
+    for i, c in enumerate(to_cv):
+        report_progress(progress, 'cross-validate', i + 1, len(to_cv) + 1, c.token)
+        inits = []
+        for pf in cv0['fold_params']:
+            p_i = c.p.copy()
+            p_i[~c.added] = pf
+            inits.append(p_i)
+        c.cv = cross_validate(b.data, c.model, c.p, f, sigma, folds, inits,
+                              method=cv_method, constrained=b.constrained)
+        c.share = explained_share(cv0['rms_nt'] ** 2, c.cv['rms_nt'] ** 2, b.floor.value_nt)
+        if c.share >= MIN_EXPLAINED and _passes_lr(b, c, p_thr):
+            break       # the best candidate that passes every test: the verdict
+    done = 1 + sum(c.cv is not None for c in to_cv)
+    report_progress(progress, 'cross-validate', done, done, '')
+    return cv0
+
+
+def _rank(b, trials, cv0, held_out, decided, p_thr):
+    """Return every trial as a :class:`Candidate`, significant ones first, then by delta BIC."""
+    s = b.data.n_sensors
+    ev0 = b.ev0
+    out = []
+    for c in trials:
+        d_chi2 = ev0.chi2 - c.ev.chi2
+        p_val, logp, d_bic = likelihood_ratio(d_chi2, c.k, b.n_obs)
+        sens = sensors_of(c.sensor, s)
+        cv_b = cv_a = None
+        if c.cv is not None and cv0 is not None:
+            cv_b, cv_a = cv0['rms_nt'], c.cv['rms_nt']
+        if held_out:
+            share, how = c.share, ('held-out' if c.share is not None else None)
+        else:
+            ms1 = dof_factor(c.model) * np.mean(c.ev.residual ** 2)
+            share, how = explained_share(b.ms0, ms1, b.floor.value_nt), decided
+        sig = bool(p_val < p_thr and d_bic < MIN_DELTA_BIC and share is not None
+                   and share >= MIN_EXPLAINED
+                   and (c.method == 'refit' or not b.constrained) and not c.reduces)
+        out.append(Candidate(
+            token=c.token, effect=c.label, sensor=c.sensor, n_params=c.k,
+            rms_before_nt=scalar_rms_of(ev0.scalar, sens),
+            rms_after_nt=scalar_rms_of(c.ev.scalar, sens),
+            vector_rms_before_nt=vector_rms_of(ev0.vector, sens, s),
+            vector_rms_after_nt=vector_rms_of(c.ev.vector, sens, s),
+            delta_chi2=float(d_chi2), delta_bic=d_bic, p_value=p_val, log10_p_value=logp,
+            method=c.method, cv_rms_before_nt=cv_b, cv_rms_after_nt=cv_a,
+            significant=sig, params=added_params(c.model, c.p, c.added),
+            explained_fraction=share, decided_by=how, note=c.reduces))
+    out.sort(key=lambda c: (not c.significant, c.delta_bic))
+    return out
+
+
+def _verdict(b, ranked, ratio, at_floor, held_out, p_thr):
+    """Return (token or None, reason): the best significant candidate, unless at the floor."""
+    floor = b.floor
+    best = ranked[0] if ranked and ranked[0].significant else None
+    if at_floor:
+        reason = (f'the residual is at the noise floor (largest ratio '
+                  f'{ratio:.2f} <= {AT_FLOOR_RATIO:.2f})')
+        if best is not None:
+            reason += (f'; {best.token} is significant and removes '
+                       f'{best.explained_fraction:.0%} of the small excess ({best.decided_by})')
+        return None, reason
+    if best is not None:
+        held = ('' if best.cv_rms_before_nt is None else
+                f', held-out RMS {best.cv_rms_before_nt:.2f} -> {best.cv_rms_after_nt:.2f} nT')
+        return best.token, (
+            f'delta BIC {best.delta_bic:.0f}, p = 10^{best.log10_p_value:.0f}{held}, '
+            f'removes {best.explained_fraction:.0%} of the excess over the floor '
+            f'({best.decided_by}), floor {floor.value_nt:.2f} nT')
+    # a filtered series has no white floor: its floor is a lower bound, the ratio an upper
+    # bound (core/noise.py)
+    floor_word = ('noise floor' if 'filtered' not in floor.status else
+                  'lower bound of the noise floor (low-pass-filtered series)')
+    if not ranked:
+        return None, f'the residual is {ratio:.1f} x the {floor_word} and no effect is testable'
+    small = [c for c in ranked if c.p_value < p_thr and c.delta_bic < MIN_DELTA_BIC
+             and c.explained_fraction is not None]
+    reason = (f'the residual is {ratio:.1f} x the {floor_word} but no candidate explains '
+              f'it (p-value, BIC and a share of at least {MIN_EXPLAINED:.0%} of the excess '
+              f'{"held-out" if held_out else "in-sample"})')
+    if small:
+        reason += (f'; the best, {small[0].token}, removes only '
+                   f'{small[0].explained_fraction:.0%}')
+    return None, reason + (': the missing effect is not in the list (write a plug-in effect), '
+                           'or the field is not uniform'
+                           + (', or there are outliers (try --robust)' if not b.robust else ''))

@@ -1,0 +1,151 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Screening of candidate effects: one Gauss-Newton step of each extended model from the base fit.
+
+Exact for effects that enter linearly, as all driven effects do; the most promising
+candidates are then refitted in full (:mod:`magcal_ros.core.diagnose.run`).
+"""
+import numpy as np
+
+from magcal_ros.core.diagnose.measures import sensor_groups, solve_psd
+from magcal_ros.core.model import _Problem, _tangent_basis
+
+
+class Screen:
+    """One Gauss-Newton step of an extended model from the base solution, for many candidates.
+
+    The variable-projection Jacobian of the base parameters (the same as in
+    :func:`magcal_ros.core.model.fit`), the residual and the nuisance-field projector are
+    computed once; each candidate adds only its own columns, projected the same way, and the
+    step solves the normal equations of [J_base, J_candidate].  For effects that enter
+    linearly this is the refit to first order in the (small) change of the profiled field.
+
+    A candidate's raw columns C are non-zero only on the rows of the sensors it adds
+    parameters to, and the projector P = I - G (G^T G)^-1 G^T (G: the field-direction
+    columns of each epoch) is symmetric and idempotent with P J_base = J_base, so the
+    blocks of the normal equations are formed without projecting C row by row:
+    J_base^T P C = J_base^T C (3 of the 3S rows per epoch), C^T P C = C^T C - (G^T C)^T
+    (G^T G)^-1 (G^T C) and C^T P r = C^T r - (G^T C)^T (G^T G)^-1 G^T r, all per epoch with
+    2 x 2 inverses.  Same numbers as projecting C, about 10x less work per candidate.
+    """
+
+    def __init__(self, model, p, raw, contexts, f, sigma):
+        """
+        Form the base fit's scaled normal equations and field projector once.
+
+        Parameters
+        ----------
+        model : Model
+            The base model, prepared.
+        p : numpy.ndarray
+            (P,) its fitted parameters.
+        raw : numpy.ndarray
+            (S, N, 3) raw readings of the screened epochs, nT.
+        contexts : list of Context
+            Per sensor, on the same epochs.
+        f : numpy.ndarray
+            (N,) reference magnitude, nT.
+        sigma : numpy.ndarray
+            (S,) noise levels, nT.
+
+        """
+        self.model, self.p, self.raw, self.ctx = model, p, raw, contexts
+        self.f, self.sigma = f, sigma
+        self.groups = []
+        for grp in sensor_groups(model):
+            prob = _Problem(model, raw, contexts, f, grp, sigma, [])
+            prob.p_full = p.copy()
+            x = p[prob.cols]
+            r = prob.residuals(x)
+            jac = prob.jacobian(x)
+            _, b, mats, _ = prob.evaluate(x)
+            e1, e2 = _tangent_basis(b / f[:, None])
+            n, g = len(f), len(grp)
+            # (N, 3, 2) field-direction columns of each sensor, scaled like the residual
+            gb = [np.stack([e1 @ mats[j].T, e2 @ mats[j].T], axis=2)
+                  * (f[:, None, None] / sigma[j - 1]) for j in grp]
+            gtg = sum(np.swapaxes(x_, 1, 2) @ x_ for x_ in gb)
+            a, bb, c, d_ = gtg[:, 0, 0], gtg[:, 0, 1], gtg[:, 1, 0], gtg[:, 1, 1]
+            ginv = np.stack([np.stack([d_, -bb], axis=1), np.stack([-c, a], axis=1)],
+                            axis=1) / (a * d_ - bb * c)[:, None, None]       # (N, 2, 2)
+            r3 = r.reshape(n, g, 3)
+            gtr = sum((np.swapaxes(gb[gi], 1, 2) @ r3[:, gi, :, None])[..., 0]
+                      for gi in range(g))                                     # (N, 2)
+            d = np.linalg.norm(jac, axis=0)
+            d[d == 0] = 1.0
+            js = jac
+            js /= d                          # in place: the Jacobian is not needed unscaled
+            j4 = js.reshape(n, g, 3, -1)
+            self.groups.append({
+                'sensors': grp, 'cols': prob.cols, 'd': d, 'b': b,
+                'jtj': js.T @ js, 'jtr': js.T @ r,
+                # per sensor: its rows of the scaled base Jacobian (3N, P), residual (3N,)
+                'js': [np.ascontiguousarray(j4[:, gi]).reshape(3 * n, -1) for gi in range(g)],
+                'r': [np.ascontiguousarray(r3[:, gi]).reshape(-1) for gi in range(g)],
+                'gb': gb, 'ginv': ginv, 'ginv_gtr': (ginv @ gtr[..., None])[..., 0]})
+
+    def step(self, m_ext, p_ext, added):
+        """(P',) parameters of ``m_ext`` after one Gauss-Newton step from ``p_ext``."""
+        info = m_ext.param_info()
+        old_pos = {k[:3]: i for i, k in enumerate(self.model.param_info())}
+        new_of_old = np.empty(self.model.n_params, int)
+        for i, k in enumerate(info):
+            if k[:3] in old_pos:
+                new_of_old[old_pos[k[:3]]] = i
+        p_new = p_ext.copy()
+        n = len(self.f)
+        for g in self.groups:
+            grp = g['sensors']
+            # sensor 0: a parameter of the whole array (site_gradient), in every sensor's rows
+            idx = [i for i in np.flatnonzero(added) if info[i][0] in grp or info[i][0] == 0]
+            if not idx:
+                continue
+            k = len(idx)
+            nb = len(g['cols'])
+            cross = np.zeros((nb, k))            # J_base^T C
+            ctc = np.zeros((k, k))               # C^T C
+            ctr = np.zeros(k)                    # C^T r
+            gtc = np.zeros((n, 2, k))            # G^T C per epoch
+            for gi, j in enumerate(grp):
+                cols = [c for c, i in enumerate(idx) if info[i][0] in (j, 0)]
+                if not cols:
+                    continue
+                fwd = m_ext.forward(j, p_ext, g['b'], self.ctx[j - 1])
+                cj = np.empty((n, 3, len(cols)))
+                for c_local, c in enumerate(cols):
+                    i = idx[c]
+                    h = 1e-6 * max(1.0, abs(p_ext[i]))
+                    pp = p_ext.copy()
+                    pp[i] += h
+                    cj[:, :, c_local] = -(m_ext.forward(j, pp, g['b'], self.ctx[j - 1])
+                                          - fwd) / (h * self.sigma[j - 1])
+                flat = cj.reshape(3 * n, -1)
+                cross[:, cols] += g['js'][gi].T @ flat
+                ctc[np.ix_(cols, cols)] += flat.T @ flat
+                ctr[cols] += flat.T @ g['r'][gi]
+                gtc[:, :, cols] += np.swapaxes(g['gb'][gi], 1, 2) @ cj
+            # project: subtract the part of C along the field directions of each epoch
+            ctc -= np.einsum('nip,niq->pq', gtc, g['ginv'] @ gtc)
+            ctr -= np.einsum('nip,ni->p', gtc, g['ginv_gtr'])
+            dc = np.sqrt(np.clip(np.diag(ctc), 0.0, None))
+            dc[dc == 0] = 1.0
+            cross_s = cross / dc
+            a = np.block([[g['jtj'], cross_s], [cross_s.T, ctc / np.outer(dc, dc)]])
+            rhs = -np.concatenate([g['jtr'], ctr / dc])
+            sol = solve_psd(a, rhs)
+            p_new[new_of_old[g['cols']]] += sol[:nb] / g['d']
+            p_new[idx] += sol[nb:] / dc
+        return p_new
