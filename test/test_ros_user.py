@@ -233,7 +233,7 @@ def test_repeated_sigint(start_process, user_env, tmp_path):
         procs[0].wait_for_log('opened', 60.0)
         procs[1].wait_for_log('ready:', 60.0)
         procs[2].wait_for_log('using the calibration', 60.0)
-        time.sleep(0.5 + 0.1 * cycle)        # signals land at different points of the flow
+        time.sleep(0.1 * cycle)              # signals land at different points of the flow
         for proc in procs:                   # all at once, as Ctrl-C of `ros2 launch`
             os.killpg(proc.pid, signal.SIGINT)
         for proc in procs:
