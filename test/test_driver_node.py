@@ -18,7 +18,7 @@ from magcal_ros.serial.transport import PortStats, PtyDevice
 import numpy as np
 import pytest
 from rclpy.parameter import Parameter
-from ros_helpers import console_script, spin_for, spin_until
+from ros_helpers import console_script, spin_until
 from sensor_msgs.msg import MagneticField, Temperature
 
 
@@ -115,7 +115,8 @@ def test_simulator_and_driver_meet_per_namespace(make_node, ros_namespace):
 def test_parameters_are_described_with_units(make_node, ros_namespace, tmp_path):
     node = make_node(FluxgateDriver, namespace=ros_namespace, parameter_overrides=overrides(
         n_sensors=1, sensor1__port=str(tmp_path / 'absent')))
-    names = [n for n in node._parameters if n != 'use_sim_time']
+    # what `ros2 param list` shows (the node's list_parameters service)
+    names = [n for n in node.list_parameters([], 0).names if n != 'use_sim_time']
     assert {'n_sensors', 'protocol', 'baud', 'options', 'noise_nt', 'backoff_min_s',
             'backoff_max_s', 'diagnostics_period_s', 'sensor1.port', 'sensor1.alternatives',
             'sensor1.baud', 'sensor1.protocol', 'sensor1.options', 'sensor1.axes',
@@ -254,7 +255,8 @@ def test_repeated_unplug_at_1khz_others_never_stop(make_node, ros_executor, ros_
         def samples():
             return [s.samples for s in node.port_stats()]
 
-        spin_for(ros_executor, 0.3)
+        spin_until(ros_executor, lambda: min(samples()) >= 100,
+                   message='all four sensors delivering before the first unplug')
         for cycle in range(3):
             devs[1].unplug()
             if cycle == 1:

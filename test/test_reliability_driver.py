@@ -266,9 +266,17 @@ def test_driver_publishes_only_valid_frames_and_counts_every_fault(
                 if k < len(writes):
                     assert devs[j].write(writes[k]) == len(writes[k])
             spin_for(ros_executor, 0.01)
-        spin_until(ros_executor, lambda: all(len(raw[j]) >= len(e) for j, (_, e, _)
-                                             in scripts.items()), message='the valid frames')
-        spin_for(ros_executor, 0.3)       # nothing else may follow
+        # the sentinel: each script ends with a valid frame, and one port's frames are
+        # parsed and published in byte order on reliable topics, so once that last frame
+        # (and its temperature) is here, every message the faults could have produced is too
+        def ended(j):
+            field, temp_c = scripts[j][1][-1]
+            return (raw[j].msgs and tuple(msg_to_field_nt(raw[j].msgs[-1])) ==
+                    pytest.approx(field, abs=1e-6) and (temp_c is None or (
+                        temp[j].msgs and temp[j].msgs[-1].temperature == pytest.approx(temp_c))))
+
+        spin_until(ros_executor, lambda: all(ended(j) for j in scripts),
+                   message='the last valid frame of every script')
         stats = node.port_stats()
         for j, (_, expected, errors) in scripts.items():
             got = [tuple(msg_to_field_nt(m)) for m in raw[j].msgs]
@@ -327,14 +335,25 @@ def test_binary_port_at_a_wrong_baud_rate_warns_and_publishes_nothing(
             all(s.level == DiagnosticStatus.WARN and 'no valid frame' in s.message
                 for s in m.status) for m in diag.msgs[n0:]),
             message='a WARN on both ports for bytes without a frame')
-        assert all(len(r) == 0 for r in raw.values())
         st = node.port_stats()
         assert all(s.samples == 0 and s.bytes_dropped > 0 and s.state == 'open' for s in st)
-        # the right bytes again: published, and the warning clears
+        # the right bytes again: published, and the warning clears. They are also the
+        # sentinel for "the smear published nothing": a port's frames are published in byte
+        # order on a reliable topic, so anything decoded from the smear would come first
+        want = {1: [(100.0 * k * NT_PER_COUNT, 2 * NT_PER_COUNT, 3 * NT_PER_COUNT)
+                    for k in range(1, 6)],
+                2: [(k + 1.0, 2.0, 3.0) for k in range(5)]}
         devs[1].write(b''.join(hmr_frame(100 * k, 2, 3) for k in range(1, 6)))
-        devs[2].write(b''.join(lemi_packet(k, 1000 * k, 100, 200, 300, 2000)
+        devs[2].write(b''.join(lemi_packet(k, 1000 * k, 100 * (k + 1), 200, 300, 2000)
                                for k in range(5)))
-        spin_until(ros_executor, lambda: len(raw[1]) == 5 and len(raw[2]) == 5)
+        spin_until(ros_executor, lambda: all(
+            raw[j].msgs and tuple(msg_to_field_nt(raw[j].msgs[-1])) ==
+            pytest.approx(want[j][-1], abs=1e-6) for j in devs), message='the valid frames')
+        for j in devs:
+            got = [tuple(msg_to_field_nt(m)) for m in raw[j].msgs]
+            assert len(got) == 5, (j, got)
+            for g, w in zip(got, want[j]):
+                assert g == pytest.approx(w, abs=1e-6), j
         n1 = len(diag.msgs)
         spin_until(ros_executor, lambda: len(diag.msgs) > n1 + 1)
         assert all(s.level == DiagnosticStatus.OK for s in diag.msgs[-1].status), \

@@ -38,7 +38,7 @@ def test_calibration_node_fits_site_gradient_with_imu(make_node, ros_node, ros_e
         msg.orientation.w, msg.orientation.x, msg.orientation.y, msg.orientation.z = bad
         imu_pub.publish(msg)
     deadline = time.monotonic() + 10.0
-    while node._imu_refused < 2:
+    while node.status()['attitude_messages_refused'] < 2:
         assert time.monotonic() < deadline, 'the bad Imu messages did not arrive'
         ros_executor.spin_once(timeout_sec=0.01)
     status = node.status()

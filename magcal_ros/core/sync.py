@@ -194,6 +194,14 @@ class StampMatcher:
         """True once every stream has an epoch offset."""
         return self._aligned
 
+    @property
+    def queued(self):
+        """Samples waiting for the other sensors of their set, per stream (tuple of S counts).
+
+        Each stays below ``max_queue``: older samples are dropped as incomplete sets.
+        """
+        return tuple(len(q) for q in self._queues)
+
     def add(self, j, stamp_s, item):
         """Add the sample ``item`` of sensor ``j`` (0-based) stamped ``stamp_s`` seconds.
 
