@@ -47,7 +47,7 @@ import sys
 import threading
 import time
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from magcal_ros.core.attitude import UNIT_TOLERANCE
 from magcal_ros.core.consistency import GROSS_FRACTION, resync
 from magcal_ros.core.identifiability import check_coverage
@@ -61,6 +61,7 @@ from magcal_ros.io.calfile import (CalibrationFileError, dump_calibration, load_
 from magcal_ros.pipeline import calibrate as run_calibration, cross_geometry
 from magcal_ros.ros import params as prm
 from magcal_ros.ros.conversions import msg_to_field_nt, residual_to_msg, stamp_to_seconds
+from magcal_ros.ros.diagnostics import fill, Updater
 from magcal_ros.ros.run import DEFAULT_NAMESPACE, spin_node
 import numpy as np
 from rclpy.callback_groups import ReentrantCallbackGroup
@@ -205,7 +206,6 @@ class CalibrationNode(Node):
         self._result_pub = self.create_publisher(String, 'calibration/result', RESULT_QOS)
         self._residual_pub = self.create_publisher(Float64MultiArray, 'calibration/residual',
                                                    10)
-        self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self._srv = [
             self.create_service(Trigger, 'calibration/start', self._on_start,
                                 callback_group=service_group),
@@ -217,7 +217,9 @@ class CalibrationNode(Node):
                                 callback_group=service_group),
         ]
         self._status_timer = self.create_timer(s.status_period_s, self._publish_status)
-        self._diag_timer = self.create_timer(s.status_period_s, self._publish_diagnostics)
+        self._updater = Updater(self, s.status_period_s)
+        self._updater.setHardwareID(self.get_namespace())
+        self._updater.add('residual', lambda stat: fill(stat, self.residual_status()))
         # triggered by the worker thread when a solve ends, so the executor wakes up and
         # resumes the awaiting service coroutine even when no sensor data flows
         self._wake = self.create_guard_condition(lambda: None)
@@ -409,12 +411,6 @@ class CalibrationNode(Node):
                               f'the noise floor over the last {r["sets"]} sets')
         st.values = [KeyValue(key=k, value=v) for k, v in values]
         return st
-
-    def _publish_diagnostics(self):
-        arr = DiagnosticArray()
-        arr.header.stamp = self.get_clock().now().to_msg()
-        arr.status = [self.residual_status()]
-        self._diag_pub.publish(arr)
 
     # -- status ----------------------------------------------------------------------------
 

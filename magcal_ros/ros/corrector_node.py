@@ -38,7 +38,7 @@ import math
 import os
 import sys
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from magcal_ros.core.live import LiveCorrector, MissingSignal
 from magcal_ros.io.calfile import CalibrationFileError, load_calibration, parse_calibration
 from magcal_ros.ros import params as prm
@@ -47,6 +47,7 @@ from magcal_ros.ros.conversions import (correct_msg_linear, covariance_to_t2,
                                         fill_gradient_stamped, gradient_covariance_to_t2,
                                         linear_to_t, msg_to_field_nt, set_field_nt,
                                         stamp_to_seconds, tensor_to_msg, transform_msg)
+from magcal_ros.ros.diagnostics import fill, Updater
 from magcal_ros.ros.run import DEFAULT_NAMESPACE, spin_node
 import numpy as np
 from rclpy.node import Node
@@ -121,7 +122,6 @@ class CorrectorNode(Node):
                                    f'fluxgate{{j}}: {reason}')
         else:
             self._tf = broadcaster(self)
-        self._pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self._subs = []
         for j in range(1, self._n + 1):
             self._subs.append(self.create_subscription(
@@ -135,7 +135,9 @@ class CorrectorNode(Node):
         if plugins:
             self.get_logger().info(f'plug-in effects loaded: {plugins}')
         self._load_file(s.calibration_file)
-        self._timer = self.create_timer(s.diagnostics_period_s, self._publish_diagnostics)
+        self._updater = Updater(self, s.diagnostics_period_s)
+        self._updater.setHardwareID(self.get_namespace())
+        self._updater.add('correction', lambda stat: fill(stat, self.diagnostic_status()))
         self._publish_diagnostics()
 
     # -- read-only state (for in-process users and tests; ROS users see it on /diagnostics)
@@ -144,6 +146,12 @@ class CorrectorNode(Node):
     def received(self):
         """Raw samples taken so far, all sensors (count)."""
         return self._received
+
+    @property
+    def queued(self):
+        """Samples per sensor waiting for a complete set (tuple of S counts; zeros when idle)."""
+        live = self._live
+        return live.matcher.queued if live is not None else (0,) * self._n
 
     @property
     def calibration(self):
@@ -398,10 +406,7 @@ class CorrectorNode(Node):
         return st
 
     def _publish_diagnostics(self):
-        arr = DiagnosticArray()
-        arr.header.stamp = self.get_clock().now().to_msg()
-        arr.status = [self.diagnostic_status()]
-        self._pub_diag.publish(arr)
+        self._updater.force_update()
 
 
 def main(args=None):

@@ -8,8 +8,10 @@ node, which maps the device axes to the sensor frame and publishes
   reliable; header stamp = arrival time of the bytes on the ROS clock, ``frame_id`` from
   the parameters;
 - ``sensor{j}/temperature`` (``sensor_msgs/Temperature``, degC) when the device reports it;
-- ``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``) once per ``diagnostics_period_s``
-  with rate, parse errors per kind, reconnects and state of every port.
+- ``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``, through
+  :mod:`magcal_ros.ros.diagnostics`: ``diagnostic_updater`` or its shim) once per
+  ``diagnostics_period_s``: one status ``fluxgate_driver: sensor{j}`` per port with rate,
+  parse errors per kind, reconnects and state.
 
 A port that disappears is reopened with exponential backoff (optionally at alternative
 paths); the other sensors keep publishing. Defaults: namespace ``/magcal``, four sensors on
@@ -31,8 +33,9 @@ import os
 import sys
 import threading
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from magcal_ros.ros.conversions import field_nt_to_msg, temperature_msg
+from magcal_ros.ros.diagnostics import fill, Updater
 from magcal_ros.ros.run import DEFAULT_NAMESPACE, spin_node
 from magcal_ros.ros.sim_node import device_dir
 from magcal_ros.serial import make_parser, PROTOCOLS, transport
@@ -216,7 +219,6 @@ class FluxgateDriver(Node):
                                                 SENSOR_QOS) for s in self.sensors]
         self._temp_pubs = [self.create_publisher(Temperature, f'sensor{s.index}/temperature',
                                                  SENSOR_QOS) for s in self.sensors]
-        self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self._mappings = [parse_axes(s.axes) for s in self.sensors]
         self._last_errors = [0] * n
         self._last_stats = [None] * n
@@ -232,13 +234,16 @@ class FluxgateDriver(Node):
                 backoff_min=backoff_min, backoff_max=backoff_max, name=f'sensor{s.index}',
                 clock=self._now)
             self.readers.append(reader)
-        self._diag_timer = self.create_timer(self.get_parameter('diagnostics_period_s').value,
-                                             self._publish_diagnostics)
         for reader, s in zip(self.readers, self.sensors):
             reader.start()
             self.get_logger().info(f'sensor{s.index}: {s.protocol} on {s.port} at {s.baud} '
                                    f'baud -> {self.get_namespace().rstrip("/")}/sensor'
                                    f'{s.index}/raw')
+        # one status per port (hardware_id: its device path); the array's is the namespace
+        self._updater = Updater(self, self.get_parameter('diagnostics_period_s').value)
+        self._updater.setHardwareID(self.get_namespace())
+        for k, s in enumerate(self.sensors):
+            self._updater.add(f'sensor{s.index}', self._port_task(k))
 
     # -- parameters --------------------------------------------------------------------------
     def _declare_globals(self):
@@ -368,16 +373,16 @@ class FluxgateDriver(Node):
         return on_sample
 
     # -- diagnostics -------------------------------------------------------------------------
-    def _publish_diagnostics(self):
-        msg = DiagnosticArray()
-        msg.header.stamp = self.get_clock().now().to_msg()
-        for k, (reader, s) in enumerate(zip(self.readers, self.sensors)):
-            stats = reader.stats()
-            msg.status.append(diagnostic_status(s, stats, self._last_errors[k],
-                                                self._last_stats[k]))
+    def _port_task(self, k):
+        """Updater task of sensor k + 1: its port's status since the previous report."""
+        def task(stat):
+            stats = self.readers[k].stats()
+            status = diagnostic_status(self.sensors[k], stats, self._last_errors[k],
+                                       self._last_stats[k])
             self._last_errors[k] = stats.parse_errors
             self._last_stats[k] = stats
-        self._diag_pub.publish(msg)
+            return fill(stat, status)
+        return task
 
     def port_stats(self):
         """Return the ``PortStats`` of every sensor (index 0 is sensor 1)."""
