@@ -1,4 +1,19 @@
-"""Accuracy against the noise floor and the Cramer-Rao bound (Monte Carlo over seeds).
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Accuracy against the noise floor and the Cramer-Rao bound (Monte Carlo over seeds).
 
 Scenarios (4 sensors, paper 004 Table 1 errors, |B| = 50 000 nT, D = -7 deg, I = 55 deg):
 
@@ -47,12 +62,11 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import common  # noqa: E402
-import site_gradient as site_scn  # noqa: E402
-
 from magcal_ros.core import model as mdl  # noqa: E402
 from magcal_ros.core.magnitude import reference_magnitude  # noqa: E402
 from magcal_ros.core.simulate import SimConfig, Simulator  # noqa: E402
 from magcal_ros.core.tensor import cross_positions, tensor_cross, tensor_noise_floor  # noqa
+import site_gradient as site_scn  # noqa: E402
 
 F_NT = 50000.0
 BASELINE_M = 0.5
@@ -62,23 +76,24 @@ GROUP_UNITS = {'scale': ('ppm', 1e6), 'angles': ('urad', 1e6), 'offsets': ('nT',
                'misalignment': ('urad', 1e6)}
 
 SCENARIOS = {
-    'paper004': dict(sim=dict(), methods=('algebraic', 'ml')),
-    'sigma1pct': dict(sim=dict(noise_nt=0.01 * F_NT), methods=('algebraic', 'ml')),
-    'hemisphere': dict(sim=dict(trajectory='cone', cone_half_angle_deg=90.0),
-                       methods=('algebraic', 'ml', 'ml_constrained')),
-    'cone60': dict(sim=dict(trajectory='cone', cone_half_angle_deg=30.0),
-                   methods=('algebraic', 'ml', 'ml_constrained')),
-    'diurnal': dict(sim=dict(diurnal_swing_nt=200.0, diurnal_period_s=600.0,
-                             rate_hz=200 / 600.0), methods=('algebraic', 'ml')),
-    'outliers5': dict(sim=dict(outlier_fraction=0.05, outlier_nt=1000.0),
-                      methods=('algebraic', 'ml', 'ml_plain')),
+    'paper004': {'sim': {}, 'methods': ('algebraic', 'ml')},
+    'sigma1pct': {'sim': {'noise_nt': 0.01 * F_NT}, 'methods': ('algebraic', 'ml')},
+    'hemisphere': {'sim': {'trajectory': 'cone', 'cone_half_angle_deg': 90.0},
+                   'methods': ('algebraic', 'ml', 'ml_constrained')},
+    'cone60': {'sim': {'trajectory': 'cone', 'cone_half_angle_deg': 30.0},
+               'methods': ('algebraic', 'ml', 'ml_constrained')},
+    'diurnal': {'sim': {'diurnal_swing_nt': 200.0, 'diurnal_period_s': 600.0,
+                         'rate_hz': 200 / 600.0}, 'methods': ('algebraic', 'ml')},
+    'outliers5': {'sim': {'outlier_fraction': 0.05, 'outlier_nt': 1000.0},
+                  'methods': ('algebraic', 'ml', 'ml_plain')},
     # its own figures and tables (bench/site_gradient.py)
-    'site_gradient': dict(sim=site_scn.SIM, methods=('ml_site', 'ml_base')),
+    'site_gradient': {'sim': site_scn.SIM, 'methods': ('ml_site', 'ml_base')},
 }
 
 
 def crb_covariance(data, model, params, field_nt, sigma_nt, priors=None):
-    """(P, P) inverse Fisher information of the ML problem at ``params`` (the Cramer-Rao bound).
+    """
+    (P, P) inverse Fisher information of the ML problem at ``params`` (the Cramer-Rao bound).
 
     The variable-projection Jacobian of :class:`magcal_ros.core.model._Problem` evaluated at
     the given (true) parameters with the true noise sd; ``priors`` [(index, mean, sd)] add
@@ -372,7 +387,7 @@ def tables_for(summary):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().split('\n')[0])
     ap.add_argument('--seeds', type=int, default=100, help='Monte Carlo runs per scenario')
     ap.add_argument('--scenarios', nargs='+', default=list(SCENARIOS), choices=list(SCENARIOS))
     ap.add_argument('--holdout', type=int, default=2000, help='held-out epochs per seed')

@@ -1,4 +1,19 @@
-"""Shared helpers of the benchmarks: machine description, JSON results, text tables, ROS env.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Shared helpers of the benchmarks: machine description, JSON results, text tables, ROS env.
 
 Every benchmark is one seeded command that writes ``bench/results/<name>.json`` (machine,
 settings, results) and prints a short table.  Nothing here imports rclpy.
@@ -11,9 +26,8 @@ import subprocess
 import sys
 import time
 
-import numpy as np
-
 from magcal_ros.core.diagnose import jsonable  # noqa: F401 (re-exported for the benches)
+import numpy as np
 
 BENCH_DIR = os.path.dirname(os.path.abspath(__file__))
 REPO_DIR = os.path.dirname(BENCH_DIR)
@@ -55,7 +69,7 @@ def _git_commit():
 
 
 def _blas_threads():
-    """OpenBLAS thread setting from the environment ('default' when unset)."""
+    """Openblas thread setting from the environment ('default' when unset)."""
     for key in ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS', 'MKL_NUM_THREADS'):
         if os.environ.get(key):
             return f'{key}={os.environ[key]}'
@@ -88,7 +102,8 @@ def machine_info():
 
 
 def write_result(name, settings, results, tables, out_dir=None, started=None):
-    """Write ``<out_dir>/<name>.json`` and return its path.
+    """
+    Write ``<out_dir>/<name>.json`` and return its path.
 
     Parameters
     ----------
@@ -100,6 +115,7 @@ def write_result(name, settings, results, tables, out_dir=None, started=None):
         The figures.
     tables : list of str
         The printed tables (kept in the JSON for BENCHMARKS.md).
+
     """
     out_dir = out_dir or RESULTS_DIR
     os.makedirs(out_dir, exist_ok=True)
@@ -160,7 +176,8 @@ FASTDDS_PROFILE = os.path.join(REPO_DIR, 'config', 'fastdds_loopback.xml')
 
 
 def ros_env(domain_id=None):
-    """Environment for ROS processes of a benchmark: loopback Fast DDS profile, own domain.
+    """
+    Environment for ROS processes of a benchmark: loopback Fast DDS profile, own domain.
 
     DDS stays on this machine: shared memory plus UDPv4 on 127.0.0.1 only, unicast
     discovery (config/fastdds_loopback.xml), and a private ROS_DOMAIN_ID.

@@ -1,4 +1,19 @@
-"""Driver parsing rate per protocol, against a bare pyserial read loop on the same pty.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Driver parsing rate per protocol, against a bare pyserial read loop on the same pty.
 
 For every registered protocol (:data:`magcal_ros.serial.PROTOCOLS`):
 
@@ -35,7 +50,6 @@ import serial  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import common  # noqa: E402
-
 from magcal_ros.serial import make_encoder, make_parser, PROTOCOLS, Sample  # noqa: E402
 from magcal_ros.serial.transport import PortReader  # noqa: E402
 
@@ -127,7 +141,8 @@ def bare_rate(blob_path, total_bytes, reps, timeout_s=60.0):
 
 
 def reader_rate(protocol, blob_path, reps, timeout_s=120.0):
-    """Samples/s of PortReader + parser on a pty being filled by another process.
+    """
+    Samples/s of PortReader + parser on a pty being filled by another process.
 
     Measured from the first to the last delivered sample; the run ends when the writer has
     finished and no sample arrived for 0.5 s.  (The byte stream repeats, so a protocol that
@@ -230,7 +245,7 @@ def driver_node_cpu(args, env, tmp):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().split('\n')[0])
     ap.add_argument('--samples', type=int, default=20000, help='encoded samples per protocol')
     ap.add_argument('--pty-mbytes', type=float, default=8.0,
                     help='bytes written through the pty per protocol and loop, MB')
@@ -257,12 +272,12 @@ def main(argv=None):
             p64, _ = parser_rate(proto, blob, n, chunk=65536)
             b_rate, _ = bare_rate(path, len(blob) * reps, reps)
             r_rate, r_n, r_err = reader_rate(proto, path, reps)
-            res['protocols'][proto] = dict(
-                bytes_per_frame=frame, parser_samples_per_s=p_rate, parser_samples=p_n,
-                parser_64k_samples_per_s=p64,
-                bare_bytes_per_s=b_rate, bare_frames_per_s=b_rate / frame,
-                reader_samples_per_s=r_rate, reader_samples=r_n, reader_parse_errors=r_err,
-                reader_over_bare=r_rate / (b_rate / frame))
+            res['protocols'][proto] = {
+                'bytes_per_frame': frame, 'parser_samples_per_s': p_rate, 'parser_samples': p_n,
+                'parser_64k_samples_per_s': p64,
+                'bare_bytes_per_s': b_rate, 'bare_frames_per_s': b_rate / frame,
+                'reader_samples_per_s': r_rate, 'reader_samples': r_n, 'reader_parse_errors': r_err,
+                'reader_over_bare': r_rate / (b_rate / frame)}
             rows.append([proto, f'{frame:.1f}', p_rate, p64, b_rate / frame, r_rate,
                          f'{r_rate / (b_rate / frame):.2f}', r_err])
             print(f'  {proto}: parser {p_rate:.0f}/s, bare {b_rate / frame:.0f} frames/s, '

@@ -1,4 +1,19 @@
-"""Live throughput and latency: corrector_node against a relay node, real processes, real DDS.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Live throughput and latency: corrector_node against a relay node, real processes, real DDS.
 
 For each node (``corrector``: ``python -m magcal_ros.ros.corrector_node`` with a
 calibration file made by the pipeline; ``relay``: bench/relay_node.py, which republishes
@@ -192,7 +207,7 @@ def aggregate(runs):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().split('\n')[0])
     ap.add_argument('--rates', type=float, nargs='+', default=[100, 500, 1000],
                     help='Hz per sensor of the main table')
     ap.add_argument('--repeats', type=int, default=3,

@@ -1,4 +1,19 @@
-"""Load generator / receiver of the live benchmark (rclpy; one role per process).
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Load generator / receiver of the live benchmark (rclpy; one role per process).
 
 ``--role pub``: publishes synthetic raw samples on ``sensor{j}/raw``
 (sensor_msgs/MagneticField, reliable, depth 100: the driver's QoS) for every sensor at
@@ -59,7 +74,7 @@ def _sleep_until(t_abs):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().split('\n')[0])
     ap.add_argument('--role', choices=('pub', 'sub', 'both'), default='both')
     ap.add_argument('--ns', default='/bench')
     ap.add_argument('--n-sensors', type=int, default=4)

@@ -1,4 +1,19 @@
-"""Papers 000 and 002 on their own scenarios, against this package's refined fit on the same data.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Papers 000 and 002 on their own scenarios, against this package's refined fit on the same data.
 
 Paper 000 (sine fits on a two-position turntable, :mod:`magcal_ros.core.sine`): the sensor of
 the paper's section 3.1 (alpha 1.35 deg, beta 32.7 deg, gamma 1.07 deg, k = 0.909, 1.146,
@@ -41,7 +56,6 @@ from scipy.spatial.transform import Rotation  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import common  # noqa: E402
-
 from magcal_ros.core import model as mdl  # noqa: E402
 from magcal_ros.core import reference_vector as ref  # noqa: E402
 from magcal_ros.core import sine  # noqa: E402
@@ -82,7 +96,8 @@ def _aligned_vector_rms(est, true):
 
 
 def _refined(raw, f, spec, init=None):
-    """Single-sensor refined fit; returns (A, o, FitResult) or raises ValueError.
+    """
+    Single-sensor refined fit; returns (A, o, FitResult) or raises ValueError.
 
     ``init`` = (A, o) of another method to start from (default: the closed-form start).
     """
@@ -98,7 +113,7 @@ def _refined(raw, f, spec, init=None):
 
 
 def _crb_scale_ppm(raw, f, spec, a, o, sigma):
-    """sqrt of the mean CRB of the scale factors at the truth (ppm)."""
+    """Sqrt of the mean CRB of the scale factors at the truth (ppm)."""
     n = len(raw)
     data = Dataset(t=np.arange(n, dtype=float), raw=raw[None])
     model = mdl.Model.from_spec(spec, 1)
@@ -135,9 +150,9 @@ def paper000(seeds, sigma, n_steps, n_hold, first_seed):
         p = sine.calibrate_turntable(d.theta, d.raw1, d.theta, d.raw2, F000)
         t_m['paper000'] += time.perf_counter() - t0
         a0, o0 = p.to_general()
-        rows['paper000'].append(dict(
-            scalar=_scalar_rms(sine.correct(p, raw_hold), F000) / fl,
-            aat=_aat_err(a0, a_true), off=float(np.sqrt(np.mean((o0 - o_true) ** 2)))))
+        rows['paper000'].append({
+            'scalar': _scalar_rms(sine.correct(p, raw_hold), F000) / fl,
+            'aat': _aat_err(a0, a_true), 'off': float(np.sqrt(np.mean((o0 - o_true) ** 2)))})
         # refined fit on both positions together, magnitude known
         raw = np.vstack([d.raw1, d.raw2])
         for meth, init in (('refined', None), ('refined_from_paper000', (a0, o0))):
@@ -145,13 +160,13 @@ def paper000(seeds, sigma, n_steps, n_hold, first_seed):
             try:
                 a1, o1, res = _refined(raw, F000, 'offset,scale,nonorthogonality', init)
             except ValueError as exc:
-                rows[meth].append(dict(error=str(exc).splitlines()[0][:160]))
+                rows[meth].append({'error': str(exc).splitlines()[0][:160]})
             else:
                 corr = (raw_hold - o1) @ np.linalg.inv(a1).T
-                rows[meth].append(dict(
-                    scalar=_scalar_rms(corr, F000) / fl, aat=_aat_err(a1, a_true),
-                    off=float(np.sqrt(np.mean((o1 - o_true) ** 2))),
-                    warnings=len(res.warnings), first_warning=(res.warnings or [''])[-1]))
+                rows[meth].append({
+                    'scalar': _scalar_rms(corr, F000) / fl, 'aat': _aat_err(a1, a_true),
+                    'off': float(np.sqrt(np.mean((o1 - o_true) ** 2))),
+                    'warnings': len(res.warnings), 'first_warning': (res.warnings or [''])[-1]})
             t_m[meth] += time.perf_counter() - t0
         crb.append(_crb_scale_ppm(raw, F000, 'offset,scale,nonorthogonality', a_true, o_true,
                                   sigma))
@@ -205,23 +220,23 @@ def paper002(seeds, sigma_hm, sigma_he, n_att, n_hold, first_seed):
             fr = ref.fit_reference(he_meas, hm)
         t_m['paper002'] += time.perf_counter() - t0
         c2 = ref.correct(fr, raw_hold)
-        rows['paper002'].append(dict(
-            scalar=_scalar_rms(c2, F002) / fl, aat=_aat_err(fr.K, K002),
-            off=float(np.sqrt(np.mean((fr.Hh - HH002) ** 2))),
-            vec=float(np.sqrt(np.mean((c2 - b_hold) ** 2))),
-            vec_aligned=_aligned_vector_rms(c2, b_hold),
-            warnings=0 if fr.identifiable else 1))
+        rows['paper002'].append({
+            'scalar': _scalar_rms(c2, F002) / fl, 'aat': _aat_err(fr.K, K002),
+            'off': float(np.sqrt(np.mean((fr.Hh - HH002) ** 2))),
+            'vec': float(np.sqrt(np.mean((c2 - b_hold) ** 2))),
+            'vec_aligned': _aligned_vector_rms(c2, b_hold),
+            'warnings': 0 if fr.identifiable else 1})
         t0 = time.perf_counter()
         try:
             a1, o1, res = _refined(hm, F002, 'offset,soft_iron')
         except ValueError as exc:
-            rows['refined'].append(dict(error=str(exc).splitlines()[0][:160]))
+            rows['refined'].append({'error': str(exc).splitlines()[0][:160]})
         else:
             c1 = (raw_hold - o1) @ np.linalg.inv(a1).T
-            rows['refined'].append(dict(
-                scalar=_scalar_rms(c1, F002) / fl, aat=_aat_err(a1, K002),
-                off=float(np.sqrt(np.mean((o1 - HH002) ** 2))),
-                vec_aligned=_aligned_vector_rms(c1, b_hold), warnings=len(res.warnings)))
+            rows['refined'].append({
+                'scalar': _scalar_rms(c1, F002) / fl, 'aat': _aat_err(a1, K002),
+                'off': float(np.sqrt(np.mean((o1 - HH002) ** 2))),
+                'vec_aligned': _aligned_vector_rms(c1, b_hold), 'warnings': len(res.warnings)})
         t_m['refined'] += time.perf_counter() - t0
         crb.append(None)
     out = _summ(rows, t_m, seeds, crb, floor, sigma_hm)
@@ -264,7 +279,7 @@ def _refine_or_refuse(hm, f):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().split('\n')[0])
     ap.add_argument('--seeds', type=int, default=100)
     ap.add_argument('--holdout', type=int, default=2000)
     ap.add_argument('--first-seed', type=int, default=5000)

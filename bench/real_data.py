@@ -1,4 +1,19 @@
-"""Real recordings: what the package makes of each public hand-held recording.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Real recordings: what the package makes of each public hand-held recording.
 
     python bench/real_data.py                 # every recording, with the diagnosis
     python bench/real_data.py --no-diagnose   # coverage, fit and floor only (faster)
@@ -23,8 +38,6 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import common  # noqa: E402
 
 sys.path.insert(0, os.path.join(common.REPO_DIR, 'test'))
-from test_real_sunsided import geometric_ellipsoid_fit  # noqa: E402
-
 from magcal_ros.core.identifiability import check_coverage  # noqa: E402
 from magcal_ros.core.magnitude import auto_magnitude  # noqa: E402
 from magcal_ros.core.model import DegenerateDataError, fit  # noqa: E402
@@ -32,6 +45,7 @@ from magcal_ros.core.noise import noise_floor  # noqa: E402
 from magcal_ros.core.static_check import check_static  # noqa: E402
 from magcal_ros.io.csvio import read_csv  # noqa: E402
 from magcal_ros.io.single_csv import read_single_sensor_csv  # noqa: E402
+from test_real_sunsided import geometric_ellipsoid_fit  # noqa: E402
 
 SHARED = os.path.normpath(os.path.join(common.REPO_DIR, '..', 'shared', 'data', 'real'))
 HMC = os.path.join(SHARED, 'sunsided-hmc5883l')
@@ -90,7 +104,7 @@ def one(label, data, f_full, diagnose_too):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().split('\n')[0])
     ap.add_argument('--no-diagnose', action='store_true', help='skip the diagnosis')
     common.add_common_args(ap)
     args = ap.parse_args(argv)

@@ -1,4 +1,19 @@
-"""Render the latest results (bench/results/*.json) into BENCHMARKS.md between its markers.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Render the latest results (bench/results/*.json) into BENCHMARKS.md between its markers.
 
     python bench/report.py              # rewrite the block in BENCHMARKS.md
     python bench/report.py --print      # print it instead
@@ -69,7 +84,7 @@ def update(results_dir=None, doc_path=DOC):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().split('\n')[0])
     ap.add_argument('--print', action='store_true')
     common.add_common_args(ap)
     args = ap.parse_args(argv)

@@ -1,4 +1,19 @@
-"""Run every benchmark (one subprocess each) and refresh the results section of BENCHMARKS.md.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Run every benchmark (one subprocess each) and refresh the results section of BENCHMARKS.md.
 
     python bench/run_all.py            # full run (about 16 min on this 2-core machine)
     python bench/run_all.py --quick    # reduced settings (a few minutes)
@@ -31,7 +46,7 @@ BENCHES = {
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().split('\n')[0])
     ap.add_argument('--quick', action='store_true', help='reduced settings')
     ap.add_argument('--only', nargs='+', choices=list(BENCHES), default=list(BENCHES))
     ap.add_argument('--update-doc', dest='update_doc', action='store_true', default=None,

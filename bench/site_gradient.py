@@ -1,4 +1,19 @@
-"""Scenario ``site_gradient`` of bench/accuracy.py: the cross in a non-uniform field (issue 13).
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Scenario ``site_gradient`` of bench/accuracy.py: the cross in a non-uniform field (issue 13).
 
 Paper 004's cross with its Table 1 errors, sigma = 3 nT, N = 200 random attitudes, in a constant
 world-frame gradient with components up to 400 nT/m (symmetric, traceless).  Methods:
@@ -22,13 +37,12 @@ over the bound (1 = efficient).
 """
 from dataclasses import replace
 
-import numpy as np
-
 from magcal_ros.core import model as mdl
 from magcal_ros.core.effects import symmetric_traceless
 from magcal_ros.core.simulate import SimConfig, Simulator
 from magcal_ros.core.site_gradient import (centred_fields, crb_covariance,
                                            fit_heading_unknown, gradient_from_fit)
+import numpy as np
 
 #: world (NED) gradient of the scenario, nT/m (gxx, gxy, gxz, gyy, gyz): up to 400 nT/m
 G5 = np.array([300.0, -250.0, 400.0, -150.0, 200.0])
@@ -36,7 +50,7 @@ GROUPS = {'scale': 'scale', 'nonorthogonality': 'angles', 'offset': 'offsets',
           'misalignment': 'misalignment', 'site_gradient': 'gradient'}
 UNITS = {'scale': ('ppm', 1e6), 'angles': ('urad', 1e6), 'offsets': ('nT', 1.0),
          'misalignment': ('urad', 1e6), 'gradient': ('nT/m', 1.0)}
-SIM = dict(gradient_nt_per_m=symmetric_traceless(G5).tolist(), attitude=True, n_samples=200)
+SIM = {'gradient_nt_per_m': symmetric_traceless(G5).tolist(), 'attitude': True, 'n_samples': 200}
 F_NT = 50000.0
 #: the goal of issue 13 with attitude
 GOAL = {'residual_over_floor': 1.05, 'param_over_crb': 1.1}
@@ -89,8 +103,10 @@ def run_seed(seed, n_samples=200):
 
 
 def _field_aligned5(g_w, b_w):
-    """(gxx, gxy, gxz, gyy, gyz) of G_w in the frame of fit_heading_unknown: z along the
-    field, x along the part of G z perpendicular to it (gyz = 0)."""
+    """
+    (gxx, gxy, gxz, gyy, gyz) of G_w in the frame of fit_heading_unknown: z along the
+    field, x along the part of G z perpendicular to it (gyz = 0).
+    """
     z = b_w / np.linalg.norm(b_w)
     gz = g_w @ z
     x = gz - (gz @ z) * z

@@ -1,4 +1,19 @@
-"""Solve time and scaling: calibrate and diagnose 4 sensors for N = 1e3 .. 1e6 samples.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Solve time and scaling: calibrate and diagnose 4 sensors for N = 1e3 .. 1e6 samples.
 
 Each case runs in a fresh subprocess (so that the peak memory of one case is not hidden by
 another, and the BLAS thread setting can differ between cases) and reports
@@ -156,7 +171,7 @@ def scaling_exponent(ns, ts):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().split('\n')[0])
     ap.add_argument('--sizes', type=float, nargs='+', default=[1e3, 1e4, 1e5, 1e6],
                     help='numbers of epochs N (4 sensors each)')
     ap.add_argument('--models', nargs='+', default=list(MODELS), choices=list(MODELS))

@@ -1,4 +1,19 @@
-"""Example effect plug-in for magcal_ros: interference from a spinning part at a known rate.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Example effect plug-in for magcal_ros: interference from a spinning part at a known rate.
 
 A reaction wheel, a fan or a pump running at a steady speed carries a little magnetised
 material round and round; each sensor sees a field rotating at that frequency, a sinusoid on
@@ -20,9 +35,8 @@ or from Python::
 
 See docs/plugins.md.
 """
-import numpy as np
-
 from magcal_ros.core.effects import Effect
+import numpy as np
 
 
 class WheelInterference(Effect):

@@ -1,4 +1,19 @@
-"""The offline ``magcal`` command line (docs/design.md §2).  Imports no rclpy.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The offline ``magcal`` command line (docs/design.md §2).  Imports no rclpy.
 
 Exit status: 0 success, 2 bad input (one-line reason on stderr), 1 other failure.
 """
@@ -7,12 +22,11 @@ import json
 import os
 import sys
 
-import numpy as np
-
 from magcal_ros.core.diagnose import jsonable
 from magcal_ros.core.model import DegenerateDataError
 from magcal_ros.core.notes import format_note
 from magcal_ros.units import check_field_units, UNITS_NT
+import numpy as np
 
 EXIT_OK, EXIT_FAIL, EXIT_BAD_INPUT = 0, 1, 2
 
@@ -22,7 +36,8 @@ class BadInput(ValueError):
 
 
 def load_data(path, unit=None, rate_hz=100.0):
-    """Dataset in nT from a wide CSV file, a rosbag2 directory or a single-sensor CSV.
+    """
+    Dataset in nT from a wide CSV file, a rosbag2 directory or a single-sensor CSV.
 
     ``unit`` (a key of :data:`magcal_ros.units.UNITS_NT`) is the unit of the field columns
     (readings, ``ref_total``, ``ref_x/y/z``); they are converted to nT here, once.  A CSV
@@ -80,7 +95,8 @@ def add_field_args(p):
 
 
 def resolve_field(args, data):
-    """(field_nt or None, field_reference dict) from the options and the data.
+    """
+    (field_nt or None, field_reference dict) from the options and the data.
 
     The readings and the reference must be a geomagnetic field in nT and agree with each
     other (:func:`magcal_ros.units.check_field_units`): data in gauss, uT or T read as nT,
@@ -467,8 +483,10 @@ def build_parser():
 
 
 def register_workbench_commands(sub):
-    """The diagnose/report commands (see magcal_ros.cli_workbench); a failing import is an
-    error, never a silently shorter command list."""
+    """
+    The diagnose/report commands (see magcal_ros.cli_workbench); a failing import is an
+    error, never a silently shorter command list.
+    """
     from magcal_ros import cli_workbench
     cli_workbench.register(sub, sys.modules[__name__])
 

@@ -1,4 +1,19 @@
-"""Calibration run shared by the `magcal` command line and the calibration node (no rclpy).
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Calibration run shared by the `magcal` command line and the calibration node (no rclpy).
 
 ``calibrate(data, ...)`` = identifiability check + closed-form start + ML refinement
 (:func:`magcal_ros.core.model.fit`), then the before/after figures (scalar, vector and tensor
@@ -6,14 +21,13 @@ residuals) and the calibration document (docs/design.md §4).
 """
 from dataclasses import dataclass
 
-import numpy as np
-
-from magcal_ros.core.model import Model, data_hash, fit
+from magcal_ros.core.model import data_hash, fit, Model
 from magcal_ros.core.noise import data_noise_floor
 from magcal_ros.core.notes import Note, note_dict
 from magcal_ros.core.site_gradient import centred_fields, gradient_from_fit
 from magcal_ros.core.tensor import cross_positions, tensor_lstsq, tensor_noise_floor
 from magcal_ros.io.calfile import calibration_to_doc
+import numpy as np
 
 
 def cross_geometry(baseline_m=0.5):
@@ -33,7 +47,8 @@ def geometry_positions(geometry, n_sensors):
 
 
 def tensor_stats(fields, positions):
-    """RMS (about the mean) and max deviation of each tensor component, nT/m.
+    """
+    RMS (about the mean) and max deviation of each tensor component, nT/m.
 
     fields (S, N, 3) nT in the array frame. Returns dict rms (3,3), max_abs_dev (3,3), mean.
     """
@@ -57,7 +72,8 @@ RESIDUAL_WARN_RATIO = 1.5
 
 
 def _residual_warnings(result, floor):
-    """Structured warnings (:class:`Note`) on the fit's residual against the data's floor.
+    """
+    Structured warnings (:class:`Note`) on the fit's residual against the data's floor.
 
     ``result.sigma_nt`` (S,) is the fit's per-axis noise estimate from its residual and
     ``floor`` the :class:`~magcal_ros.core.noise.NoiseFloor` of the data (needs no model): a
@@ -83,13 +99,16 @@ def _residual_warnings(result, floor):
 
 
 def fit_warnings(result, floor):
-    """Every warning on a fit as ``{kind, sensor, text}``: the fit's own (degenerate data
-    flagged, not converged) and those on its residual against the data's floor."""
+    """
+    Every warning on a fit as ``{kind, sensor, text}``: the fit's own (degenerate data
+    flagged, not converged) and those on its residual against the data's floor.
+    """
     return [note_dict(w) for w in list(result.warnings) + _residual_warnings(result, floor)]
 
 
 def summarize(result, data, positions=None):
-    """Before/after figures of a fit (all nT, nT/m); JSON-ready.
+    """
+    Before/after figures of a fit (all nT, nT/m); JSON-ready.
 
     The noise floor is :func:`~magcal_ros.core.noise.data_noise_floor` of the data and this
     fit (the figure ``diagnose`` reports for the same data and model); the tensor floor is
@@ -145,7 +164,8 @@ MAX_OUTLIER_FRACTION = 0.05
 
 def calibrate(data, model='base', field_nt=None, geometry=None, field_reference=None,
               exclude_outliers=False, **fit_kwargs):
-    """Fit ``model`` to ``data`` and build the summary and calibration document.
+    """
+    Fit ``model`` to ``data`` and build the summary and calibration document.
 
     Parameters
     ----------
@@ -167,6 +187,7 @@ def calibrate(data, model='base', field_nt=None, geometry=None, field_reference=
         mis-paired stretch) then costs those sets only; a missing effect, which spreads over
         many sets, is left to the warning and to diagnose.  The summary gives
         ``outlier_sets_excluded``.
+
     """
     run = _calibrate(data, model, field_nt, geometry, field_reference, **fit_kwargs)
     if not exclude_outliers or fit_kwargs.get('robust') or fit_kwargs.get('heading_unknown'):

@@ -1,4 +1,19 @@
-"""Unit constants and conversions shared by every layer (pure numpy, no rclpy).
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Unit constants and conversions shared by every layer (pure numpy, no rclpy).
 
 The library works in nanotesla (nT), seconds and degrees Celsius; ROS messages carry SI
 units (tesla, tesla per metre) per REP 103. The conversion to message units happens in
@@ -12,7 +27,8 @@ NT_PER_T = 1e9
 
 
 def nt_to_t(value_nt):
-    """Convert nanotesla to tesla (also nT/m to T/m).
+    """
+    Convert nanotesla to tesla (also nT/m to T/m).
 
     Parameters
     ----------
@@ -23,12 +39,14 @@ def nt_to_t(value_nt):
     -------
     numpy.ndarray or float
         Same shape, float64, in T (or T/m). A scalar input gives a numpy float.
+
     """
     return np.asarray(value_nt, dtype=np.float64) / NT_PER_T
 
 
 def t_to_nt(value_t):
-    """Convert tesla to nanotesla (also T/m to nT/m).
+    """
+    Convert tesla to nanotesla (also T/m to nT/m).
 
     Parameters
     ----------
@@ -39,6 +57,7 @@ def t_to_nt(value_t):
     -------
     numpy.ndarray or float
         Same shape, float64, in nT (or nT/m). A scalar input gives a numpy float.
+
     """
     return np.asarray(value_t, dtype=np.float64) * NT_PER_T
 
@@ -60,7 +79,8 @@ REFERENCE_RATIO = 8.0
 
 
 def field_magnitude_estimate(raw):
-    """Typical field magnitude seen by one sensor, nT, without any calibration.
+    """
+    Typical field magnitude seen by one sensor, nT, without any calibration.
 
     The radius of the least-squares sphere |x - c|^2 = r^2 through the readings (so a
     hard-iron offset of several times the field does not count), or the median |x| when the
@@ -75,6 +95,7 @@ def field_magnitude_estimate(raw):
     -------
     float
         Magnitude, nT.
+
     """
     x = np.asarray(raw, float)
     x = x[np.all(np.isfinite(x), axis=1)]
@@ -111,7 +132,8 @@ def _looks(value_nt):
 
 
 def check_field_units(raw, reference_nt=None, reference_name='the reference'):
-    """Refuse readings or a reference magnitude that are not a geomagnetic field in nT.
+    """
+    Refuse readings or a reference magnitude that are not a geomagnetic field in nT.
 
     Parameters
     ----------
@@ -127,6 +149,7 @@ def check_field_units(raw, reference_nt=None, reference_name='the reference'):
     ------
     ValueError
         One line: which numbers, how large, which unit they look like.
+
     """
     mags = [field_magnitude_estimate(r) for r in np.asarray(raw, float)]
     m = float(np.nanmedian(mags))

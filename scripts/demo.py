@@ -1,5 +1,21 @@
 #!/usr/bin/env python3
-"""The magcal_ros main job, end to end on the simulated array (README "Demo").
+
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The magcal_ros main job, end to end on the simulated array (README "Demo").
 
 Starts ``fluxgate_sim`` (simulated fluxgates on pseudo-terminals), ``fluxgate_driver``,
 ``calibration_node`` and ``corrector_node`` as separate processes, calls
@@ -400,7 +416,7 @@ def write_figures(res, series, out_dir):
 
 def parse_args(argv=None):
     """Command line of the demo."""
-    p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0],
+    p = argparse.ArgumentParser(description=__doc__.strip().split('\n\n')[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter,
                                 epilog='scripts/demo.sh --site-gradient [GXX,GXY,GXZ,GYY,GYZ]: '
                                        'an offline before/after of a site gradient instead '

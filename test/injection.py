@@ -1,4 +1,19 @@
-"""Test data of a four-sensor cross written independently of ``Model.forward``.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Test data of a four-sensor cross written independently of ``Model.forward``.
 
 The simulator (``magcal_ros.core.simulate``) uses the forward model that the fit inverts, so a
 wrong physical definition of an effect would pass every test built on it.  Here each sensor
@@ -8,9 +23,8 @@ the injected faults (a step, a sinusoid, a lagged temperature, a current-squared
 heavy-tailed noise, a random walk) computed by the small functions below, not by
 ``magcal_ros.core.effects``.
 """
-import numpy as np
-
 from magcal_ros.core.dataset import Dataset
+import numpy as np
 
 F_NT = 50000.0
 SIGMA_NT = 3.0
@@ -24,7 +38,8 @@ def _rotation(axis, angle):
 
 
 def tumbling_field(n, rate_hz=RATE_HZ, seed=0, rotations=False):
-    """(N,) t in s and (N, 3) field in the body frame, nT: a smooth tumble covering the sphere.
+    """
+    (N,) t in s and (N, 3) field in the body frame, nT: a smooth tumble covering the sphere.
 
     With ``rotations``, also the (N, 3, 3) body-to-world rotations (b_body = R^T b_world).
 
@@ -96,7 +111,8 @@ def lowpass(t, x, tau):
 
 
 def make(n=3000, seed=0, inject=None, noise=None):
-    """Dataset of the cross with faults added.
+    """
+    Dataset of the cross with faults added.
 
     Parameters
     ----------
@@ -104,6 +120,7 @@ def make(n=3000, seed=0, inject=None, noise=None):
         inject(t, temp, aux, field_body) -> {sensor: (N, 3) nT added to its raw reading}.
     noise : callable, optional
         noise(rng, shape) -> nT noise (default Gaussian, 3 nT per axis).
+
     """
     rng = np.random.default_rng(seed + 2)
     t, b = tumbling_field(n, seed=seed)

@@ -1,4 +1,19 @@
-"""Feed simulated array samples to in-process nodes (tests of the calibration/corrector nodes).
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Feed simulated array samples to in-process nodes (tests of the calibration/corrector nodes).
 
 The core simulator (:mod:`magcal_ros.core.simulate`) provides raw readings with known truth;
 they are published as ``sensor{j}/raw`` (tesla, exact stamps) and ``sensor{j}/temperature``
@@ -45,7 +60,8 @@ class Feeder:
 
     def feed(self, executor, data, taken, start=0, stop=None, batch=5, timeout_sec=60.0,
              temperature=True, latency_s=None):
-        """Publish epochs ``start:stop`` in batches; ``taken()`` counts samples consumed.
+        """
+        Publish epochs ``start:stop`` in batches; ``taken()`` counts samples consumed.
 
         ``taken`` returns how many raw samples (all sensors) the node under test has taken
         so far; each batch waits until it has caught up.

@@ -1,11 +1,24 @@
-"""rosbag2 reader (magcal_ros.io.bag): write simulated data with rosbags' writer, read back."""
-import numpy as np
-import pytest
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
 
+"""rosbag2 reader (magcal_ros.io.bag): write simulated data with rosbags' writer, read back."""
 from magcal_ros.core.model import fit
 from magcal_ros.core.simulate import simulate
 from magcal_ros.io.bag import BagFormatError, read_bag, write_bag
 from magcal_ros.units import nt_to_t
+import numpy as np
+import pytest
 
 #: tesla round trip through float64 messages: relative 1e-16 of 5e-5 T, i.e. < 1e-9 nT;
 #: header stamps are integer nanoseconds

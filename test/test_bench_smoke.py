@@ -1,4 +1,19 @@
-"""Smoke test of the benchmarks: each command runs with tiny settings and writes valid JSON.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Smoke test of the benchmarks: each command runs with tiny settings and writes valid JSON.
 
 Performance is measured by the benchmarks themselves (bench/, BENCHMARKS.md), never here:
 these tests only check that every benchmark still runs end to end and that its result file

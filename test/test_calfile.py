@@ -1,14 +1,27 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
 """Calibration file (docs/design.md §4): content, atomic writes, history, refusals."""
 import os
-
-import numpy as np
-import pytest
-import yaml
 
 from magcal_ros.core.simulate import simulate
 from magcal_ros.io import calfile
 from magcal_ros.io.calfile import CalibrationFileError, load_calibration, save_calibration
 from magcal_ros.pipeline import calibrate
+import numpy as np
+import pytest
+import yaml
 
 
 @pytest.fixture(scope='module')

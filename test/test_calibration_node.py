@@ -1,4 +1,19 @@
-"""calibration_node in-process: collection, services, result topic, refusals, parameters.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+calibration_node in-process: collection, services, result topic, refusals, parameters.
 
 The node runs in the test's Context and executor (rclpy's own pattern); samples of the core
 simulator are published to it over DDS (test/sim_feed.py). The simulated sensors carry the
@@ -309,8 +324,10 @@ def test_sample_buffer_is_a_ring_in_time_order():
 
 
 def test_constrained_parameter(make_node, ros_node, ros_executor, ros_namespace, tmp_path):
-    """Partial coverage (directions within a 30 deg cap): refused naming the constrained
-    mode, then calibrated with the node's `constrained` parameter."""
+    """
+    Partial coverage (directions within a 30 deg cap): refused naming the constrained
+    mode, then calibrated with the node's `constrained` parameter.
+    """
     cap, _ = simulate(n_samples=800, rate_hz=100.0, trajectory='cone', seed=5)
     node = start_node(make_node, ros_namespace, tmp_path, min_samples=500)
     resp = feed_and_calibrate(node, ros_node, ros_executor, cap)

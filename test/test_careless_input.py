@@ -1,4 +1,19 @@
-"""Careless input through the `magcal` commands (issue 10 item 5): one line, exit 2, per case.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Careless input through the `magcal` commands (issue 10 item 5): one line, exit 2, per case.
 
 The recordings are written here: a sensor tumbling in a 48 000 nT field with a hard-iron
 offset, 3 nT noise, then scaled to the unit a careless user might leave them in.
@@ -6,11 +21,10 @@ offset, 3 nT noise, then scaled to the unit a careless user might leave them in.
 import json
 from pathlib import Path
 
+from magcal_ros.cli import main
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-
-from magcal_ros.cli import main
 
 FIELD_NT = 48000.0
 

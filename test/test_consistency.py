@@ -1,4 +1,19 @@
-"""Sets paired from different epochs: found and re-paired from the data (core.consistency).
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Sets paired from different epochs: found and re-paired from the data (core.consistency).
 
 Data: the core simulator's cross (paper 004 Table 1 errors, 3 nT white noise per axis), 30 s
 of smooth tumbling at 100 Hz, where the field turns by ~100 nT per epoch (median), so a set
@@ -6,13 +21,12 @@ paired one epoch off is off by ~100 nT against a per-axis misfit of sqrt(2) x 3 
 for a right pairing.  Slips are made by re-indexing one sensor's samples, so the right
 pairing is known exactly and the repaired sets can be compared sample by sample.
 """
-import numpy as np
-import pytest
-
 from magcal_ros.core.consistency import DROP, find_slips, gross_outliers, resync
 from magcal_ros.core.dataset import Dataset
 from magcal_ros.core.model import fit
 from magcal_ros.core.simulate import simulate
+import numpy as np
+import pytest
 
 RATE = 100.0
 SIGMA = 3.0

@@ -1,3 +1,17 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
 """Tests of magcal_ros.units and magcal_ros.ros.conversions (nT <-> T message conversions)."""
 
 from builtin_interfaces.msg import Time as TimeMsg
@@ -222,8 +236,10 @@ def test_linear_correction_in_tesla_equals_the_one_in_nanotesla():
 
 
 def test_residual_message_round_trip_hand_values():
-    """calibration/residual: 2 nT scalar, 5 nT vector -> 2e-9 T, 5e-9 T in the documented
-    places (data[j - 1], data[S + j - 1]) and back."""
+    """
+    calibration/residual: 2 nT scalar, 5 nT vector -> 2e-9 T, 5e-9 T in the documented
+    places (data[j - 1], data[S + j - 1]) and back.
+    """
     msg = conv.residual_to_msg(np.array([2.0, -1.0, 0.5]), np.array([5.0, 4.0, 3.0]))
     assert msg.data == pytest.approx([2e-9, -1e-9, 0.5e-9, 5e-9, 4e-9, 3e-9], abs=1e-15)
     scalar, vector = conv.msg_to_residual_nt(msg)

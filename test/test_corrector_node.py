@@ -1,4 +1,19 @@
-"""corrector_node in-process: correction, gradient, calibration updates, refusals, diagnostics.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+corrector_node in-process: correction, gradient, calibration updates, refusals, diagnostics.
 
 The calibrations used here are the simulator's true ones (:attr:`Simulator.truth`), so the
 corrected field must equal the simulated true field up to the sensor noise (3 nT per axis,
@@ -10,6 +25,7 @@ import sys
 import types
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from magcal_interfaces.msg import GradientTensorStamped
 from magcal_ros.core.effects import SensorContext
 from magcal_ros.core.model import Calibration, Model
 from magcal_ros.core.simulate import simulate
@@ -18,7 +34,6 @@ from magcal_ros.io.calfile import (calibration_to_doc, dump_calibration,
                                    save_calibration)
 from magcal_ros.pipeline import cross_geometry
 from magcal_ros.ros.calibration_node import RESULT_QOS
-from magcal_interfaces.msg import GradientTensorStamped
 from magcal_ros.ros.conversions import (msg_to_covariance_nt2, msg_to_field_nt,
                                         msg_to_gradient_stamped, msg_to_tensor,
                                         stamp_to_seconds)
@@ -173,7 +188,7 @@ class _FakeBroadcaster:
 
 def test_static_transforms_from_the_calibration(make_node, ros_node, ros_executor,
                                                 ros_namespace, tmp_path, monkeypatch):
-    """array -> fluxgate{j}: the rotations written by hand in test_live, at the positions."""
+    """Array -> fluxgate{j}: the rotations written by hand in test_live, at the positions."""
     monkeypatch.setitem(sys.modules, 'tf2_ros',
                         types.SimpleNamespace(StaticTransformBroadcaster=_FakeBroadcaster))
     _FakeBroadcaster.sent = []

@@ -1,4 +1,19 @@
-"""`make demo`, the README's first command, run as written in the repository.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+`make demo`, the README's first command, run as written in the repository.
 
 The demo (scripts/demo.py) starts the simulator, driver, calibration and corrector nodes,
 calibrates on the tumbling simulated array and records the corrected stream into

@@ -1,4 +1,19 @@
-"""Model diagnosis on data with a hidden effect (magcal_ros.core.diagnose).
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Model diagnosis on data with a hidden effect (magcal_ros.core.diagnose).
 
 Every dataset: paper 004's cross with Table 1 errors, 3 nT Gaussian noise per axis,
 3000 samples at 10 Hz of smooth tumbling (300 s: the sphere is covered several times, the
@@ -15,9 +30,6 @@ import json
 import math
 import sys
 
-import numpy as np
-import pytest
-
 from magcal_ros.core import effects as fx
 from magcal_ros.core.diagnose import (AT_FLOOR_RATIO, candidate_tokens, compact_spec,
                                       cross_validate, diagnose, ladder, noise_floor_from_data,
@@ -25,6 +37,8 @@ from magcal_ros.core.diagnose import (AT_FLOOR_RATIO, candidate_tokens, compact_
 from magcal_ros.core.model import fit, Model
 from magcal_ros.core.noise import estimate_noise, noise_floor
 from magcal_ros.core.simulate import simulate
+import numpy as np
+import pytest
 
 F = 50000.0
 SIGMA = 3.0

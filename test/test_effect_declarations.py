@@ -1,4 +1,19 @@
-"""Effects describe themselves: a plug-in is one class, and every part of the code obeys it.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Effects describe themselves: a plug-in is one class, and every part of the code obeys it.
 
 The plug-in here reads the sensor temperature (a thermal offset quadratic in T - T0, which the
 built-in linear ``temperature`` effect cannot describe) and is used in models WITHOUT the
@@ -7,16 +22,15 @@ correction must all hand it the temperature because it declares ``signals``, not
 of its name.  The recordings for the fit are made in this file from the formula, not with
 ``Model.forward``.
 """
-import numpy as np
-import pytest
-from scipy.spatial.transform import Rotation
-
 from magcal_ros.core import effects as fx
 from magcal_ros.core.dataset import Dataset
 from magcal_ros.core.diagnose import diagnose
-from magcal_ros.core.model import Model, _priors_for, fit
+from magcal_ros.core.model import _priors_for, fit, Model
 from magcal_ros.core.simulate import simulate
 from magcal_ros.io.calfile import calibration_from_doc, calibration_to_doc
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
 
 F = 50000.0                       # nT
 SIGMA = 3.0                       # nT, white noise per axis
@@ -73,7 +87,8 @@ def plugins():
 
 
 def _recording(n=2000, seed=3):
-    """One sensor tumbled smoothly (as by hand) while its temperature swings 25 +- 8 degC.
+    """
+    One sensor tumbled smoothly (as by hand) while its temperature swings 25 +- 8 degC.
 
     raw = diag(k) B + o + c (T - mean T)^2 + noise, written out here (not Model.forward).
     The attitude changes little between samples, so the noise floor from sample differences
@@ -159,7 +174,7 @@ def test_clash_names_both_effects_and_is_symmetric(plugins):
 
 
 def test_temperature_plugin_in_simulate(plugins):
-    kw = dict(n_samples=300, rate_hz=1.0, n_sensors=1, trajectory='random', seed=4)
+    kw = {'n_samples': 300, 'rate_hz': 1.0, 'n_sensors': 1, 'trajectory': 'random', 'seed': 4}
     plain, _ = simulate(**kw)
     data, sim = simulate(truth={f'{ThermalSquare.name}@1': list(C_TRUE)}, **kw)
     assert not sim.model.has(1, 'temperature')

@@ -1,15 +1,29 @@
-"""Every built-in effect against its formula, written out here by hand.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Every built-in effect against its formula, written out here by hand.
 
 The simulator produces raw data with the same ``Model.forward`` the fit inverts, so a wrong
 sign or factor in an effect would be recovered faithfully by the fit and go unnoticed. Here
 each effect's raw reading is computed independently, from the formula of its docstring (and
 paper 004 eq. 2-3 for the linear ones), for three hand-picked samples.
 """
-import numpy as np
-import pytest
-
 from magcal_ros.core.effects import SensorContext
 from magcal_ros.core.model import Model
+import numpy as np
+import pytest
 
 B = np.array([[20000.0, -5000.0, 45000.0],
               [-30000.0, 38000.0, 10000.0],

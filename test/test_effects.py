@@ -1,10 +1,23 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
 """Every built-in effect: simulate it with known parameters, fit it, recover them."""
+from magcal_ros.core import effects as fx
+from magcal_ros.core.model import fit, Model
+from magcal_ros.core.simulate import simulate
 import numpy as np
 import pytest
-
-from magcal_ros.core import effects as fx
-from magcal_ros.core.model import Model, fit
-from magcal_ros.core.simulate import simulate
 
 F = 50000.0
 
@@ -185,8 +198,10 @@ def test_lag_keeps_its_state_in_a_subset():
 
 
 def test_lag_one_sample_at_a_time_keeps_its_state():
-    """Live correction feeds one sample per call: the filter state is carried between calls
-    and follows the batch filter (0.02 of a 10 degC step: zero- vs first-order hold)."""
+    """
+    Live correction feeds one sample per call: the filter state is carried between calls
+    and follows the batch filter (0.02 of a 10 degC step: zero- vs first-order hold).
+    """
     t = np.arange(2000) * 0.2
     x = np.where(t > 100, 10.0, 0.0)
     eff = fx.make_effect('lag(temperature)', 1)

@@ -1,4 +1,19 @@
-"""The field-rate signal is estimated by one function (effects.raw_rate) offline, in the
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The field-rate signal is estimated by one function (effects.raw_rate) offline, in the
 simulator and live, so a lag tau fitted from a recording corrects the live stream as it
 corrected the recording, to second order in the sample period, also when the stream is
 decimated 20x (a 100 Hz array read at 5 Hz), where the corrector's former backward
@@ -7,13 +22,12 @@ difference was off by several times the noise.
 The recording is written here from the physics (a true delay of sensor 2, evaluated from the
 attitude at t - tau), not with Model.forward.
 """
-import numpy as np
-import pytest
-from scipy.spatial.transform import Rotation
-
 from magcal_ros.core.dataset import Dataset
 from magcal_ros.core.live import LiveCorrector, MissingSignal
 from magcal_ros.core.model import fit
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
 
 F = 50000.0                                   # nT
 TAU = 0.01                                    # s, sensor 2 lags by 10 ms

@@ -1,4 +1,19 @@
-"""Model-free findings (magcal_ros.core.findings) on faults written by hand.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Model-free findings (magcal_ros.core.findings) on faults written by hand.
 
 The data are test/injection.py's cross (each sensor's matrix, offset and fault written out,
 not Model.forward); the real base fit is run and its residuals are passed to the findings.
@@ -9,14 +24,13 @@ finding but heavy_tails where the tails are heavy.
 import functools
 import json
 
-import numpy as np
-import pytest
-from scipy.spatial.transform import Rotation
-
 import injection as inj
 from magcal_ros.core.dataset import Dataset
 from magcal_ros.core.findings import find, lomb_scargle, periodogram, white_noise_sd
 from magcal_ros.core.model import fit
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
 
 SIZES = (3000, 10000)
 
@@ -24,13 +38,13 @@ SIZES = (3000, 10000)
 @functools.lru_cache(maxsize=None)
 def _case(name, n, model='base'):
     faults = {
-        'none': {}, 'step': dict(inject=inj.step_fault(300.0, (40.0, 0.0, 0.0), 1)),
-        'pump': dict(inject=inj.periodic_fault(0.23, 15.0, 3)),
-        'lag': dict(inject=inj.lag_fault(90.0, (4.0, -3.0, 2.5), 2)),
-        'current2': dict(inject=_current_squared_on(4)),
-        'current2_all': dict(inject=inj.current_squared_fault()),
-        'heavy': dict(noise=inj.student_noise),
-        'walk': dict(inject=inj.random_walk_fault(0.02)),
+        'none': {}, 'step': {'inject': inj.step_fault(300.0, (40.0, 0.0, 0.0), 1)},
+        'pump': {'inject': inj.periodic_fault(0.23, 15.0, 3)},
+        'lag': {'inject': inj.lag_fault(90.0, (4.0, -3.0, 2.5), 2)},
+        'current2': {'inject': _current_squared_on(4)},
+        'current2_all': {'inject': inj.current_squared_fault()},
+        'heavy': {'noise': inj.student_noise},
+        'walk': {'inject': inj.random_walk_fault(0.02)},
     }
     data = inj.make(n, **faults[name])
     result = fit(data, model, field_nt=inj.F_NT)

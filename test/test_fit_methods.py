@@ -1,17 +1,32 @@
-"""`magcal fit --method sine|reference` (papers 000 and 002 from the command line), run as a
-user would, against the numbers the papers print (docs/papers.md)."""
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+`magcal fit --method sine|reference` (papers 000 and 002 from the command line), run as a
+user would, against the numbers the papers print (docs/papers.md).
+"""
 import json
 import pathlib
 import subprocess
 import sys
 
-import numpy as np
-import pytest
-from scipy.spatial.transform import Rotation
-
 from magcal_ros.core.paper_params import Paper000Params
 from magcal_ros.core.sine import simulate_turntable
 from magcal_ros.io.calfile import load_calibration
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
 
 DEG = np.pi / 180.0
 TABLE2 = pathlib.Path(__file__).parent / 'data' / 'paper002_table2.csv'

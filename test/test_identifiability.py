@@ -1,17 +1,31 @@
-"""Identifiability judged about the fitted centre and against the noise (issue 10, item 1).
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Identifiability judged about the fitted centre and against the noise (issue 10, item 1).
 
 Every data set here is generated in the test from its own few lines of geometry (uniform
 directions, a hand-written sensor matrix, a hard-iron offset, Gaussian noise), not by the
 project's simulator, so the checks do not compare the code with itself.
 """
-import numpy as np
-import pytest
-from scipy.spatial.transform import Rotation
-
 from magcal_ros.core.dataset import Dataset
 from magcal_ros.core.ellipsoid import fit_ellipsoid
 from magcal_ros.core.identifiability import check_coverage
 from magcal_ros.core.model import DegenerateDataError, fit
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
 
 F = 50000.0
 #: a consumer sensor's map: scales 0.92-1.09, cross terms of a few percent (nT/nT)
@@ -48,15 +62,17 @@ def _data(raw):
 
 
 def _plane_normal(axis):
-    """Normal of the readings' plane for a rotation about ``axis``: A^-T axis (unit)."""
+    """Normalize of the readings' plane for a rotation about ``axis``: A^-T axis (unit)."""
     n = np.linalg.solve(A.T, axis)
     return n / np.linalg.norm(n)
 
 
 @pytest.mark.parametrize('k', [2.0, 6.0, 10.0])
 def test_offset_several_times_the_field_is_good(k):
-    """A full sphere whose offset is k x the field: the raw directions (about the origin)
-    fill only a cone of about 1/k rad, the directions about the fitted centre the sphere."""
+    """
+    A full sphere whose offset is k x the field: the raw directions (about the origin)
+    fill only a cone of about 1/k rad, the directions about the fitted centre the sphere.
+    """
     rng = np.random.default_rng(int(k))
     raw = _raw(_sphere(2000, rng), k, 300.0, rng)
     about_origin = np.linalg.norm(raw, axis=1)
@@ -74,8 +90,10 @@ def test_offset_several_times_the_field_is_good(k):
 @pytest.mark.parametrize('n', [100, 1500])
 @pytest.mark.parametrize('snr', [10.0, 30.0])
 def test_noisy_full_sphere_is_accepted(snr, n):
-    """SNR 10 and 30 (5 000 and 1 667 nT per axis) with a 6x offset, also from only 100
-    readings: the ellipsoid is determined (a fixed singular-value ratio refused these)."""
+    """
+    SNR 10 and 30 (5 000 and 1 667 nT per axis) with a 6x offset, also from only 100
+    readings: the ellipsoid is determined (a fixed singular-value ratio refused these).
+    """
     rng = np.random.default_rng(int(snr) + n)
     raw = _raw(_sphere(n, rng), 6.0, snr, rng)
     ell = fit_ellipsoid(raw, F)
@@ -112,8 +130,10 @@ def test_single_axis_with_noise_is_refused_naming_the_axis(axis, snr):
 
 @pytest.mark.parametrize('wobble', [1.0, 3.0])
 def test_single_axis_with_hand_wobble_is_refused_naming_the_axis(wobble):
-    """A hand-held turn about z wobbles by a few degrees: the ellipsoid may then be
-    statistically determined, but the directions about its centre are still a ring."""
+    """
+    A hand-held turn about z wobbles by a few degrees: the ellipsoid may then be
+    statistically determined, but the directions about its centre are still a ring.
+    """
     rng = np.random.default_rng(11)
     axis = np.array([0.0, 0.0, 1.0])
     raw = _raw(_ring(2000, axis, rng, wobble_deg=wobble), 6.0, 400.0, rng)
@@ -127,8 +147,10 @@ def test_single_axis_with_hand_wobble_is_refused_naming_the_axis(wobble):
 
 
 def test_cap_is_partial_not_single_axis():
-    """Directions filling a 30 deg cap (a vehicle that cannot turn over) are partial
-    coverage, with the constrained mode offered; they are not a rotation about one axis."""
+    """
+    Directions filling a 30 deg cap (a vehicle that cannot turn over) are partial
+    coverage, with the constrained mode offered; they are not a rotation about one axis.
+    """
     rng = np.random.default_rng(5)
     u = rng.normal(size=(20000, 3))
     u /= np.linalg.norm(u, axis=1, keepdims=True)
@@ -150,8 +172,10 @@ def test_translation_only_is_one_attitude():
 
 
 def test_still_sensor_noise_cloud_is_one_attitude():
-    """A sensor lying still: its readings are a cloud of noise around one field, to which an
-    ellipsoid of the noise's size fits; that is not a calibration set."""
+    """
+    A sensor lying still: its readings are a cloud of noise around one field, to which an
+    ellipsoid of the noise's size fits; that is not a calibration set.
+    """
     for seed in range(10):          # without the radial-scatter test, 3 in 10 pass as good
         rng = np.random.default_rng(seed)
         raw = np.array([12000.0, -30000.0, 38000.0]) + rng.normal(size=(3000, 3)) * 3.0
@@ -160,10 +184,12 @@ def test_still_sensor_noise_cloud_is_one_attitude():
 
 @pytest.mark.parametrize('half_deg', [35.0, 45.0])
 def test_cap_with_soft_iron_is_partial(half_deg):
-    """A cap read by a sensor with 6 % soft iron and an offset of the field's size: the
+    """
+    A cap read by a sensor with 6 % soft iron and an offset of the field's size: the
     ellipsoid bends to the cap (its axes then differ by a factor 2-3, which no sensor
     has) and its centre is not the offset, about which the cap looks wide; the cap must
-    still be called partial (the sphere's centre is used)."""
+    still be called partial (the sphere's centre is used).
+    """
     rng = np.random.default_rng(int(half_deg))
     u = rng.normal(size=(40000, 3))
     u /= np.linalg.norm(u, axis=1, keepdims=True)

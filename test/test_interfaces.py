@@ -1,4 +1,19 @@
-"""The message package interfaces/magcal_interfaces builds with colcon as the README says.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The message package interfaces/magcal_interfaces builds with colcon as the README says.
 
 A workspace is laid out as a ROS user does it: the repository as ``src/magcal_ros`` and a
 link ``src/magcal_interfaces -> magcal_ros/interfaces/magcal_interfaces`` (colcon does not

@@ -1,16 +1,29 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
 """ML refinement: efficiency, partial coverage, reference drift, outliers, refusals."""
+from magcal_ros.core.ellipsoid import fit_ellipsoid
+from magcal_ros.core.model import DegenerateDataError, fit, Model
+from magcal_ros.core.simulate import simulate
 import numpy as np
 import pytest
-
-from magcal_ros.core.ellipsoid import fit_ellipsoid
-from magcal_ros.core.model import DegenerateDataError, Model, fit
-from magcal_ros.core.simulate import simulate
 
 F = 50000.0
 
 
 def test_uncertainties_match_monte_carlo_spread():
-    """z = (estimate - truth) / stderr over seeds must have unit spread (stderr = CRB)."""
+    """Z = (estimate - truth) / stderr over seeds must have unit spread (stderr = CRB)."""
     zs = []
     for seed in range(12):
         data, sim = simulate(n_samples=150, n_sensors=1, trajectory='random', seed=100 + seed,

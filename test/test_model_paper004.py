@@ -1,16 +1,30 @@
-"""Paper 004 section 4.1: N = 200 random attitudes, sigma 3 nT, baseline 0.5 m, Table 1 errors.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Paper 004 section 4.1: N = 200 random attitudes, sigma 3 nT, baseline 0.5 m, Table 1 errors.
 
 Tolerances come from the noise: the fit's own standard uncertainties (checked against
 Monte Carlo in test_model_ml.py) and Gaussian order statistics for the maxima.
 """
-import numpy as np
-import pytest
-
 from magcal_ros.core.ellipsoid import fit_ellipsoid, procrustes_rotation
 from magcal_ros.core.model import fit
 from magcal_ros.core.paper_params import table1_correction
 from magcal_ros.core.simulate import simulate
 from magcal_ros.core.tensor import cross_positions, tensor_cross, tensor_noise_floor
+import numpy as np
+import pytest
 
 SIGMA = 3.0
 F = 50000.0

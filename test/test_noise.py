@@ -1,4 +1,19 @@
-"""The one noise-floor estimator (core/noise.py): heavy tails, filtered series, spikes, and
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The one noise-floor estimator (core/noise.py): heavy tails, filtered series, spikes, and
 the same floor from ``fit`` and ``diagnose``.
 
 The series are generated here, independently of the model's forward code: a smooth tumble of
@@ -7,11 +22,6 @@ drawn from numpy (Gaussian, Student-t) or shaped by scipy.signal (a Butterworth 
 """
 from functools import partial
 
-import numpy as np
-import pytest
-from scipy import signal as sps
-from scipy.spatial.transform import Rotation
-
 from magcal_ros.core import model as model_mod
 from magcal_ros.core.dataset import Dataset
 from magcal_ros.core.diagnose import diagnose
@@ -19,6 +29,10 @@ from magcal_ros.core.noise import data_noise_floor, estimate_noise, robust_sd
 from magcal_ros.core.simulate import simulate
 from magcal_ros.core.tensor import cross_positions, tensor_noise_floor
 from magcal_ros.pipeline import calibrate
+import numpy as np
+import pytest
+from scipy import signal as sps
+from scipy.spatial.transform import Rotation
 
 SD = 3.0
 

@@ -1,12 +1,25 @@
-"""Tests for magcal_ros.core.paper_params."""
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
 
-import numpy as np
-import pytest
-from scipy.spatial.transform import Rotation
+"""Tests for magcal_ros.core.paper_params."""
 
 from magcal_ros.core.paper_params import (
     Paper000Params, Paper002Params, Paper004Params, rot_r1, rot_r2, rot_r3, table1_correction,
     table1_sensor)
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
 
 # Round trips are algebraic identities; 1e-12 leaves room for a few ulps of a 3x3 RQ/QR.
 EXACT = 1e-12

@@ -1,4 +1,19 @@
-"""Every command the README (and the docs' shell blocks) shows is run by a test.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Every command the README (and the docs' shell blocks) shows is run by a test.
 
 ``RUN_BY`` names, for every command line of a ``bash``/``sh`` block in README.md and
 docs/*.md, the test that runs it. A command nobody runs fails
@@ -74,8 +89,10 @@ RUN_BY = [
 
 
 def shown_commands(path):
-    """Command lines of the ``bash``/``sh`` blocks of ``path``: continuations joined,
-    comments and a trailing ``&`` cut, blank lines skipped."""
+    """
+    Command lines of the ``bash``/``sh`` blocks of ``path``: continuations joined,
+    comments and a trailing ``&`` cut, blank lines skipped.
+    """
     text = path.read_text()
     out = []
     for block in re.findall(r'```(?:bash|sh)\n(.*?)```', text, flags=re.S):
@@ -135,9 +152,11 @@ def _block_with(path, first):
 
 @pytest.mark.timeout(600)
 def test_offline_block_as_written(tmp_path):
-    """README "Offline": simulate a hidden temperature term on sensor 2, fit the base model
+    """
+    README "Offline": simulate a hidden temperature term on sensor 2, fit the base model
     (a missing effect is warned about), diagnose it (verdict temperature@2), fit with it
-    (sensor 2 down to the noise floor), report."""
+    (sensor 2 down to the noise floor), report.
+    """
     lines = _block_with(REPO / 'README.md', 'magcal simulate --out sim.csv')
     assert lines[0].startswith('source scripts/ros_env.sh')
     cwd = _layout(tmp_path, 'scripts', 'config', '.venv')
@@ -161,8 +180,10 @@ def test_offline_block_as_written(tmp_path):
 
 @pytest.mark.timeout(600)
 def test_plugins_doc_block_as_written(tmp_path):
-    """docs/plugins.md: a wheel plug-in (examples/my_effect.py) simulated on sensor 3,
-    diagnosed (verdict wheel@3), fitted (sensor 3 down to the 3 nT floor), reported."""
+    """
+    docs/plugins.md: a wheel plug-in (examples/my_effect.py) simulated on sensor 3,
+    diagnosed (verdict wheel@3), fitted (sensor 3 down to the 3 nT floor), reported.
+    """
     lines = _block_with(REPO / 'docs' / 'plugins.md', 'export PYTHONPATH=$PWD/examples')
     cwd = _layout(tmp_path, 'examples', '.venv')
     lines = [f'PATH={REPO / ".venv" / "bin"}:$PATH'] + lines
@@ -196,9 +217,11 @@ def test_degenerate_example_as_written(tmp_path):
 
 
 def test_benchmarks_doc_make_bench_and_report():
-    """BENCHMARKS.md: `make bench` runs bench/run_all.py in the project environment, and
+    """
+    BENCHMARKS.md: `make bench` runs bench/run_all.py in the project environment, and
     `python bench/report.py` would leave the file as it is: its results section is what the
-    result files in bench/results render to (nobody edited it by hand or forgot to render)."""
+    result files in bench/results render to (nobody edited it by hand or forgot to render).
+    """
     dry = subprocess.run(['make', '-n', '-o', '.venv/.magcal_setup_stamp', 'bench'], cwd=REPO,
                          capture_output=True, text=True, timeout=60)
     assert dry.returncode == 0 and 'bench/run_all.py' in dry.stdout, dry.stdout + dry.stderr
@@ -216,8 +239,10 @@ def test_benchmarks_doc_make_bench_and_report():
 
 
 def test_design_synopsis_matches_the_command_line():
-    """docs/design.md §2's synopsis names every subcommand, and every option it shows exists
-    (`magcal <command> --help`, the parser users meet)."""
+    """
+    docs/design.md §2's synopsis names every subcommand, and every option it shows exists
+    (`magcal <command> --help`, the parser users meet).
+    """
     text = (REPO / 'docs' / 'design.md').read_text()
     synopsis = re.search(r'## §2 .*?```\n(.*?)```', text, flags=re.S).group(1)
     shown = {}
@@ -263,10 +288,12 @@ def doc_plugin():
 
 
 def test_plugins_doc_example_effect_as_written(doc_plugin):
-    """docs/plugins.md's example class (a heater's field going as sqrt(power)) fits the
+    """
+    docs/plugins.md's example class (a heater's field going as sqrt(power)) fits the
     coupling it describes. The data: a simulated array whose heater power is switched by
     hand here, and sensor 2's raw readings given v (sqrt(P) - mean sqrt(P)), written here
-    (not through the model), with v = (6, -4, 5) nT/sqrt(W)."""
+    (not through the model), with v = (6, -4, 5) nT/sqrt(W).
+    """
     from magcal_ros.core.model import fit
     from magcal_ros.core.simulate import simulate
     assert doc_plugin == ['heater_current']

@@ -1,4 +1,19 @@
-"""Real data: a hand-held consumer IMU log (test/data/ck_accmag, see its PROVENANCE.md).
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Real data: a hand-held consumer IMU log (test/data/ck_accmag, see its PROVENANCE.md).
 
 12 000 rows of ``ax,ay,az`` (g, calibrated) and ``mx,my,mz`` (gauss), no time column, no
 temperature, no reference magnitude.  The loader converts the field to nT and makes a
@@ -18,12 +33,11 @@ import pathlib
 import subprocess
 import sys
 
+from magcal_ros.core.magnitude import auto_magnitude
+from magcal_ros.core.model import fit
+from magcal_ros.io.single_csv import read_single_sensor_csv, to_nt
 import numpy as np
 import pytest
-
-from magcal_ros.core.model import fit
-from magcal_ros.core.magnitude import auto_magnitude
-from magcal_ros.io.single_csv import read_single_sensor_csv, to_nt
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 #: copied unchanged from ../shared/data/real/ck-accmag (Apache-2.0, see PROVENANCE.md there)

@@ -1,4 +1,19 @@
-"""Real recordings (issue 10, item 7): what each of the shared hand-held recordings must show.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Real recordings (issue 10, item 7): what each of the shared hand-held recordings must show.
 
 ../shared/data/real/sunsided-hmc5883l (HMC5883L, 13 recordings, PROVENANCE.md there) and
 ../shared/data/real/ck-accmag (a consumer IMU's full sphere).  Real data have no noise model
@@ -12,16 +27,15 @@ import shutil
 import subprocess
 import sys
 
-import numpy as np
-import pytest
-from scipy.optimize import least_squares
-
 from magcal_ros.core.identifiability import check_coverage
 from magcal_ros.core.magnitude import auto_magnitude
 from magcal_ros.core.model import DegenerateDataError, fit
 from magcal_ros.core.noise import noise_floor
 from magcal_ros.io.csvio import read_csv
 from magcal_ros.io.single_csv import read_single_sensor_csv
+import numpy as np
+import pytest
+from scipy.optimize import least_squares
 from test_cli import run_cli
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
@@ -37,9 +51,11 @@ def hmc(name):
 
 
 def geometric_ellipsoid_fit(m, f):
-    """Independent geometric fit: centre c (3,) nT and upper-triangular L (3, 3) minimising
+    """
+    Independent geometric fit: centre c (3,) nT and upper-triangular L (3, 3) minimising
     the distance, along the ray from c, of each reading m (N, 3) nT to the ellipsoid
-    |L (x - c)| = f: d = |m - c| (1 - f / |L (m - c)|).  Started from a sphere at the mean."""
+    |L (x - c)| = f: d = |m - c| (1 - f / |L (m - c)|).  Started from a sphere at the mean.
+    """
     c0 = m.mean(axis=0)
     s = np.median(np.linalg.norm(m - c0, axis=1)) / f
 
@@ -137,9 +153,11 @@ def test_single_axis_refusal_on_the_command_line():
 @pytest.mark.parametrize('name', ['pan-along-x-pointing-forward', 'pan-along-y-pointing-left',
                                   'pan-along-z-pointing-up'])
 def test_pan_is_refused_as_one_attitude(name):
-    """The pans are translations (README of each: 'translation along the x axis'): the
+    """
+    The pans are translations (README of each: 'translation along the x axis'): the
     attitude only wobbles by a few degrees, so no calibration; the refusal says the sensor
-    hardly turned (not 'rotate about another axis', which would name a meaningless axis)."""
+    hardly turned (not 'rotate about another axis', which would name a meaningless axis).
+    """
     data = hmc(name)
     rep = check_coverage(data.raw)
     assert rep['sensors'][1]['status'] == 'one attitude'
@@ -149,11 +167,13 @@ def test_pan_is_refused_as_one_attitude(name):
 
 
 def test_roll_and_tilt_calibrates_the_full_sphere(full_sphere, tmp_path):
-    """Rolls and tilts of +-90 deg at three headings: the directions about the fitted centre
+    """
+    Rolls and tilts of +-90 deg at three headings: the directions about the fitted centre
     spread in 3-D (smallest scatter eigenvalue 0.12 of the ideal 1/3), so the coverage is
     accepted; the constrained mode runs on it from the command line; and its calibration,
     applied to the independent full-sphere recording, removes most of that recording's
-    raw |B| spread (the two recordings also differ in field and drift: PROVENANCE.md)."""
+    raw |B| spread (the two recordings also differ in field and drift: PROVENANCE.md).
+    """
     data = hmc('roll-and-tilt-at-45-90')
     cov = check_coverage(data.raw)['sensors'][1]
     assert cov['status'] == 'good' and min(cov['eigenvalues']) > 0.1
@@ -173,8 +193,10 @@ def test_roll_and_tilt_calibrates_the_full_sphere(full_sphere, tmp_path):
 
 @pytest.mark.parametrize('name', [STATIC[0], 'pan-along-z-pointing-up'])
 def test_constrained_mode_does_not_accept_one_attitude(name):
-    """The priors of the constrained mode stand in for attitudes a partial coverage never
-    saw; a sensor that did not turn determines no offset, with or without them."""
+    """
+    The priors of the constrained mode stand in for attitudes a partial coverage never
+    saw; a sensor that did not turn determines no offset, with or without them.
+    """
     with pytest.raises(DegenerateDataError, match='same field direction'):
         fit(hmc(name), 'base', field_nt=54000.0, constrained=True)
 
@@ -185,9 +207,11 @@ def static_floors():
 
 
 def test_static_recordings_give_the_sensor_noise(static_floors, full_sphere):
-    """The four static recordings are the sensor's own noise: their floors agree with each
+    """
+    The four static recordings are the sensor's own noise: their floors agree with each
     other and with the per-axis sd of the raw readings (nothing else moves), and with the
-    floor that the full sphere's differences give (HMC5883L: about 140 nT)."""
+    floor that the full sphere's differences give (HMC5883L: about 140 nT).
+    """
     floors = np.array(list(static_floors.values()))
     assert floors.max() < 1.15 * floors.min()
     for name in STATIC:
@@ -199,12 +223,14 @@ def test_static_recordings_give_the_sensor_noise(static_floors, full_sphere):
 
 
 def test_static_recordings_checked_against_the_full_sphere(full_sphere, full_sphere_file):
-    """The corrected |B| of the static recordings is not one value: `magcal check` says
+    """
+    The corrected |B| of the static recordings is not one value: `magcal check` says
     why.  The two x-forward recordings share an attitude yet differ by about 7 000 nT, so
     the field or the sensor's offset changed between recordings (the 10-min one is the
     3 300 nT of PROVENANCE.md below the full sphere); the x-up and y-down recordings, 75 deg
     apart, agree within the calibration's residual, so the calibration holds and their
-    field differs from the full sphere's."""
+    field differs from the full sphere's.
+    """
     _, f, _ = full_sphere
     cal = full_sphere_file
     rc, out, err = run_cli('check', cal, *[HMC / n / f'{n}.csv' for n in STATIC], '--json')
@@ -239,8 +265,10 @@ def test_readme_check_commands(tmp_path):
 
 
 def test_check_reads_other_units(full_sphere_file, tmp_path):
-    """A static recording in gauss (a single magnetometer's mx,my,mz log): `magcal check
-    --unit gauss` gives the |B| of the nT file; without --unit the unit is named."""
+    """
+    A static recording in gauss (a single magnetometer's mx,my,mz log): `magcal check
+    --unit gauss` gives the |B| of the nT file; without --unit the unit is named.
+    """
     cal = full_sphere_file
     name = STATIC[2]
     gauss = tmp_path / 'static_gauss.csv'

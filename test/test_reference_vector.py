@@ -1,14 +1,27 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
 """Tests for magcal_ros.core.reference_vector (paper 002, reference least squares)."""
 
 import io
 import pathlib
 
+from magcal_ros.core.paper_params import Paper002Params
+from magcal_ros.core.reference_vector import correct, fit_reference
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-
-from magcal_ros.core.paper_params import Paper002Params
-from magcal_ros.core.reference_vector import correct, fit_reference
 
 DATA = pathlib.Path(__file__).parent / 'data' / 'paper002_table2.csv'
 
@@ -71,7 +84,8 @@ def test_table2_printed_signs_do_not_fit(table2):
 
 
 def test_table2_matches_paper_within_table_rounding(table2, table2_fit):
-    """K and Hh agree with the paper's within the spread that the table's rounding causes.
+    """
+    K and Hh agree with the paper's within the spread that the table's rounding causes.
 
     Perturb every table entry by uniform +-0.5 nT (its rounding) and refit: the spread of
     K and Hh is large because the problem is nearly singular (Hh_y moves by ~580 nT). The

@@ -1,4 +1,19 @@
-"""Calibration under bad data, outliers, concurrent requests and invalid parameters.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Calibration under bad data, outliers, concurrent requests and invalid parameters.
 
 Already covered elsewhere and not repeated: the core refusals of a single-axis rotation, one
 attitude, too few samples and non-finite input, and the robust fit's parameter tolerance
@@ -112,8 +127,10 @@ def test_cli_refuses_stuck_and_missing_sensors_naming_them(tmp_path, tumbling):
 
 @pytest.fixture(scope='module')
 def spiky():
-    """5 % spikes of 1000 nT (paper 004 errors, 3 nT noise), the same data without them, and
-    the robust pipeline fit of the spiky data."""
+    """
+    5 % spikes of 1000 nT (paper 004 errors, 3 nT noise), the same data without them, and
+    the robust pipeline fit of the spiky data.
+    """
     data, sim = simulate(n_samples=1000, trajectory='random', seed=6, aux=False,
                          outlier_fraction=0.05, outlier_nt=1000.0)
     clean, _ = simulate(n_samples=1000, trajectory='random', seed=6, aux=False)

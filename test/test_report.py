@@ -1,17 +1,30 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
 """Diagnosis report (magcal_ros.report): figures, labels, floor lines, self-contained HTML."""
 import base64
 import html
 import io
 import re
 
-from matplotlib.image import imread
-import numpy as np
-import pytest
-
 from magcal_ros import report
 from magcal_ros.core.diagnose import diagnose, ladder
 from magcal_ros.core.model import fit
 from magcal_ros.core.simulate import simulate
+from matplotlib.image import imread
+import numpy as np
+import pytest
 
 F = 50000.0
 PNG_MAGIC = b'\x89PNG\r\n\x1a\n'

@@ -1,4 +1,19 @@
-"""What the report's figures show (issue 10 item 6), tested on the data behind them.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+What the report's figures show (issue 10 item 6), tested on the data behind them.
 
 - the direction map has no +-180 deg seam: a cone of directions about -x (where azimuth
   wraps) is one closed ring in the equal-area projection, and the projection is equal-area;
@@ -10,11 +25,10 @@ a diagnosis), independent of the model code.
 """
 from types import SimpleNamespace
 
-from matplotlib.transforms import Bbox
-import numpy as np
-
 from magcal_ros import report
 from magcal_ros.core.dataset import Dataset
+from matplotlib.transforms import Bbox
+import numpy as np
 
 
 def cone(axis, half_angle_deg, n=720):

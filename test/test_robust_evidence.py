@@ -1,4 +1,19 @@
-"""Under --robust the diagnosis' likelihood-ratio test and BIC are those of the robust loss.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Under --robust the diagnosis' likelihood-ratio test and BIC are those of the robust loss.
 
 Issue 10: with outliers and a robust base fit, delta BIC and p-values were computed as if the
 residuals were Gaussian (delta BIC -56 465 for an RMS change of 251 -> 216 nT), so every
@@ -7,11 +22,10 @@ soft-L1 loss) is chi-square under the null: on data with 2 % spikes of 1000 nT a
 missing, no candidate may reach the evidence threshold, while a real missing effect still
 wins.
 """
-import numpy as np
-
-from magcal_ros.core.diagnose import MIN_DELTA_BIC, diagnose, soft_l1_lr_loss
+from magcal_ros.core.diagnose import diagnose, MIN_DELTA_BIC, soft_l1_lr_loss
 from magcal_ros.core.model import fit
 from magcal_ros.core.simulate import simulate
+import numpy as np
 
 
 def test_factor_is_one_for_gaussian_residuals_and_a_wide_loss():

@@ -1,11 +1,24 @@
-"""Tests for magcal_ros.core.sine (paper 000, sine-fit turntable calibration)."""
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
 
-import numpy as np
-import pytest
+"""Tests for magcal_ros.core.sine (paper 000, sine-fit turntable calibration)."""
 
 from magcal_ros.core.paper_params import Paper000Params
 from magcal_ros.core.sine import (
     calibrate_turntable, correct, fit_sine, fit_turntable, simulate_turntable)
+import numpy as np
+import pytest
 
 DEG = np.pi / 180.0
 
@@ -151,7 +164,8 @@ def test_negative_angles_and_other_parameters():
 # ------------------------------------------------------------ paper 000 Table 1, with noise
 
 def _predicted_sigmas(sigma, n):
-    """Return standard errors of the derived parameters for noise sigma (nT) and n steps.
+    """
+    Return standard errors of the derived parameters for noise sigma (nT) and n steps.
 
     For n equally spaced angles over a full turn the columns [sin, cos, 1] are orthogonal
     with squared norms n/2, n/2, n, so a fit's amplitude has standard error
@@ -177,7 +191,8 @@ def _predicted_sigmas(sigma, n):
 
 @pytest.mark.parametrize('mean', [5.0, 15.0, 25.0, 40.0])
 def test_table1_noise_mean(mean):
-    """Paper 000 Table 1: noise of mean 5/15/25/40 nT moves the offsets, not the rest.
+    """
+    Paper 000 Table 1: noise of mean 5/15/25/40 nT moves the offsets, not the rest.
 
     The paper gives only the noise mean; its standard deviation is taken equal to the mean
     here. A constant part of the noise is indistinguishable from an offset, so B0 comes out

@@ -1,4 +1,19 @@
-"""Site gradient (issue 13): a constant world-frame gradient seen through a known attitude.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Site gradient (issue 13): a constant world-frame gradient seen through a known attitude.
 
 The data are generated here, independently of Model.forward: a world field and a world
 gradient are rotated into the body frame with scipy's Rotation, and per-sensor linear maps and
@@ -8,16 +23,15 @@ import json
 import subprocess
 import sys
 
-import numpy as np
-import pytest
-from scipy.spatial.transform import Rotation
-
 from magcal_ros.core.attitude import AttitudeError, check_quaternions
 from magcal_ros.core.dataset import Dataset
 from magcal_ros.core.effects import SensorContext, SiteGradient
-from magcal_ros.core.model import DegenerateDataError, Model, fit
+from magcal_ros.core.model import DegenerateDataError, fit, Model
 from magcal_ros.io.calfile import calibration_from_doc, load_calibration, save_calibration
 from magcal_ros.io.csvio import CsvFormatError, read_csv, write_csv
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
 
 NOISE_NT = 3.0
 FIELD_NT = 50000.0
@@ -35,7 +49,8 @@ O_TRUE = np.array([[120.0, -80.0, 45.0], [-60.0, 150.0, -30.0], [35.0, 40.0, -11
 
 
 def make_data(n=3000, seed=1, g_w=G_W, attitude=True, smooth_period_s=None, rate_hz=100.0):
-    """(Dataset, rotations): raw_j = A_j R^T (B_w + G_w R r_j) + o_j + noise.
+    """
+    (Dataset, rotations): raw_j = A_j R^T (B_w + G_w R r_j) + o_j + noise.
 
     Random attitudes, or with ``smooth_period_s`` a continuous tumbling (yaw, pitch, roll
     sinusoids of incommensurate frequencies) that covers the sphere in about that time.
@@ -61,8 +76,10 @@ def make_data(n=3000, seed=1, g_w=G_W, attitude=True, smooth_period_s=None, rate
 
 
 def test_shift_hand_computed():
-    """R = 90 deg about z, only gxy = 100 nT/m: r_1 = (0.25, 0, 0) m lies along world y, the
-    world shift is G (0, 0.25, 0) = (25, 0, 0) nT, which is body (0, -25, 0) nT."""
+    """
+    R = 90 deg about z, only gxy = 100 nT/m: r_1 = (0.25, 0, 0) m lies along world y, the
+    world shift is G (0, 0.25, 0) = (25, 0, 0) nT, which is body (0, -25, 0) nT.
+    """
     eff = SiteGradient(sensor=0)
     eff.set_positions(POS)
     rz = Rotation.from_euler('z', 90, degrees=True).as_matrix()[None]
@@ -223,9 +240,11 @@ def test_cli_fit_reports_gradient(tmp_path):
 
 
 def test_bounds_of_the_three_cases():
-    """Information can only be lost: heading unknown >= attitude known, per parameter; and with
+    """
+    Information can only be lost: heading unknown >= attitude known, per parameter; and with
     a per-epoch nuisance gradient exactly 20 of base's 45 directions are undetermined
-    (5 differential offsets + 15 differential linear terms: docs/site_gradient.md)."""
+    (5 differential offsets + 15 differential linear terms: docs/site_gradient.md).
+    """
     from magcal_ros.core.site_gradient import crb_covariance
     data, _ = make_data(n=300, seed=7)
     m = Model.from_spec('base,site_gradient', 4)
@@ -301,8 +320,10 @@ def test_bag_imu_interpolation_hand_computed():
 
 
 def _field_aligned(g_w, b_w):
-    """G_w in the frame of fit_heading_unknown: z along b_w, x along the part of G z
-    perpendicular to the field (so gyz = 0, gxz >= 0); computed here with scipy."""
+    """
+    G_w in the frame of fit_heading_unknown: z along b_w, x along the part of G z
+    perpendicular to the field (so gyz = 0, gxz >= 0); computed here with scipy.
+    """
     z = b_w / np.linalg.norm(b_w)
     gz = g_w @ z
     x = gz - (gz @ z) * z
@@ -312,9 +333,13 @@ def _field_aligned(g_w, b_w):
 
 
 def test_heading_unknown_reaches_its_bound():
-    """No attitude: the heading about the field estimated per epoch.  The calibration comes
+    """
+    No attitude: the heading about the field estimated per epoch.
+
+    The calibration comes
     out as with attitude (offsets within 4 sigma of the truth), the gradient in the
-    field-aligned frame (its rotation about the field is not determined) within 4 sigma."""
+    field-aligned frame (its rotation about the field is not determined) within 4 sigma.
+    """
     from magcal_ros.core.site_gradient import fit_heading_unknown
     data, _ = make_data(n=800, seed=2, attitude=False)
     res = fit_heading_unknown(data, field_nt=FIELD_NT)
@@ -334,8 +359,10 @@ def test_heading_unknown_reaches_its_bound():
 
 
 def test_cli_without_attitude(tmp_path):
-    """Without attitude columns, site_gradient is refused with the way out named; with
-    --heading-unknown the fit runs and names the frame of the gradient."""
+    """
+    Without attitude columns, site_gradient is refused with the way out named; with
+    --heading-unknown the fit runs and names the frame of the gradient.
+    """
     def run(*args):
         return subprocess.run([sys.executable, '-m', 'magcal_ros.cli', *args], cwd=tmp_path,
                               capture_output=True, text=True, timeout=240)
@@ -354,8 +381,10 @@ def test_cli_without_attitude(tmp_path):
 
 
 def test_nonuniform_field_finding_points_to_the_effect():
-    """The workbench's model-free finding on the base fit names site_gradient (a smooth
-    tumbling: the finding separates signal from noise by its continuity in time)."""
+    """
+    The workbench's model-free finding on the base fit names site_gradient (a smooth
+    tumbling: the finding separates signal from noise by its continuity in time).
+    """
     from magcal_ros.core.findings import find
     data, _ = make_data(n=3000, smooth_period_s=10.0)
     found = find(data, fit(data, 'base', field_nt=FIELD_NT))
@@ -364,8 +393,10 @@ def test_nonuniform_field_finding_points_to_the_effect():
 
 
 def test_fluxgate_sim_site_gradient_option(tmp_path, capsys):
-    """fluxgate_sim --site-gradient (and the -p form of a launch file) reaches the simulator;
-    a malformed value is one line on stderr and exit status 2."""
+    """
+    fluxgate_sim --site-gradient (and the -p form of a launch file) reaches the simulator;
+    a malformed value is one line on stderr and exit status 2.
+    """
     from magcal_ros.core.effects import symmetric_traceless
     from magcal_ros.ros import sim_node
     for argv in (['--site-gradient', '300,-250,400,-150,200'],
@@ -380,8 +411,10 @@ def test_fluxgate_sim_site_gradient_option(tmp_path, capsys):
 
 
 def test_diagnose_names_site_gradient():
-    """The workbench ranks the missing effect: with attitude, site_gradient (array-wide, one
-    token, no @j) is the verdict of a base model in a site gradient."""
+    """
+    The workbench ranks the missing effect: with attitude, site_gradient (array-wide, one
+    token, no @j) is the verdict of a base model in a site gradient.
+    """
     from magcal_ros.core.diagnose import diagnose
     data, _ = make_data(n=1500, seed=6, smooth_period_s=10.0)
     doc = json.loads(diagnose(data, Model.from_spec('base', 4), field_nt=FIELD_NT).to_json())

@@ -1,4 +1,19 @@
-"""calibration_node with an Imu topic: the site gradient fitted live (issue 13).
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+calibration_node with an Imu topic: the site gradient fitted live (issue 13).
 
 The array data are generated in test_site_gradient.make_data (a world field and gradient
 rotated through a smooth tumbling with scipy, sensor maps written there); the attitude is
@@ -72,9 +87,11 @@ def test_calibration_node_fits_site_gradient_with_imu(make_node, ros_node, ros_e
 
 def test_corrector_subtracts_the_site_gradient_only_when_asked(
         make_node, ros_node, ros_executor, ros_namespace, tmp_path):
-    """Stationary array at a fixed attitude, noise-free readings written here: by default the
+    """
+    Stationary array at a fixed attitude, noise-free readings written here: by default the
     corrected field is the field at each sensor (the site gradient is part of the field);
-    with subtract_site_gradient it is the centre field and the tensor is zero."""
+    with subtract_site_gradient it is the centre field and the tensor is zero.
+    """
     from magcal_ros.core.dataset import Dataset
     from magcal_ros.core.model import Calibration, Model
     from magcal_ros.io.calfile import calibration_to_doc, save_calibration

@@ -1,4 +1,19 @@
-"""magcal_ros.core.sync: grouping four sample streams into epochs despite late, bursty stamps.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+magcal_ros.core.sync: grouping four sample streams into epochs despite late, bursty stamps.
 
 Streams are synthesised with known epochs: each sample carries its true epoch as the item, so
 a set whose items differ is a mismatch. The arrival model follows what was measured on the
@@ -67,8 +82,10 @@ def test_no_mismatch_and_no_loss_under_jitter_chunks_and_stalls(case):
 
 
 def test_streams_that_defeat_raw_stamp_matching_are_matched_by_the_voting_matcher():
-    """The reason for epoch voting: matching stamps within half a period (the control, written
-    out below) mismatches sets of these streams; StampMatcher pairs them all correctly."""
+    """
+    The reason for epoch voting: matching stamps within half a period (the control, written
+    out below) mismatches sets of these streams; StampMatcher pairs them all correctly.
+    """
     events = streams(1, stalls_per_s=0.5)
     _, sets, bad = run(events)
     assert bad == 0 and len(sets) >= 3000 - 10

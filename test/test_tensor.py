@@ -1,10 +1,23 @@
-"""Gradient tensor: paper 004 eq. 1, the least-squares form, and its noise floor."""
-import numpy as np
-import pytest
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
 
+"""Gradient tensor: paper 004 eq. 1, the least-squares form, and its noise floor."""
 from magcal_ros.core.simulate import simulate
 from magcal_ros.core.tensor import (cross_positions, tensor_cross, tensor_lstsq,
                                     tensor_noise_floor, tensor_operator)
+import numpy as np
+import pytest
 
 
 def _sym_traceless(rng):

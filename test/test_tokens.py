@@ -1,17 +1,31 @@
-"""Effect tokens with arguments (``step(300)@1``) accepted everywhere a model is given.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Effect tokens with arguments (``step(300)@1``) accepted everywhere a model is given.
 
 The fault is written by hand (test/injection.py), the command line is run as a user would,
 the calibration file is read back, and the calibration node's validator is asked.
 """
 import json
 
-import numpy as np
-
 import injection as inj
 from magcal_ros.cli import main
 from magcal_ros.io.calfile import load_calibration
 from magcal_ros.io.csvio import write_csv
 from magcal_ros.ros.params import model_check
+import numpy as np
 
 TOKENS = 'step(300)@1,periodic(0.23)@3,lag(temperature)@2'
 

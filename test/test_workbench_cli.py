@@ -1,3 +1,17 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
 """`magcal diagnose` and `magcal report` (docs/design.md §2), run as a user would."""
 import json
 import os
@@ -5,12 +19,11 @@ import pathlib
 import subprocess
 import sys
 
-import pytest
-
 from magcal_ros.cli import main
 from magcal_ros.core.simulate import simulate
 from magcal_ros.io.bag import write_bag
 from magcal_ros.io.csvio import write_csv
+import pytest
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 #: hidden offset temperature coefficient of sensor 2, nT/degC: scalar RMS ~4 x the 3 nT floor

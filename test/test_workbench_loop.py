@@ -1,4 +1,19 @@
-"""Issue 11: the loop closed on faults the catalog did not hold, written by hand.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Issue 11: the loop closed on faults the catalog did not hold, written by hand.
 
 Each fault is injected by test/injection.py (not Model.forward, not the simulator) into the
 cross of paper 004 (3 nT Gaussian noise per axis, 5 Hz, decoy temperature and aux channels):
@@ -16,13 +31,12 @@ so 1.15 is more than 4 sd away from a false failure.  A step time is exact to on
 """
 import json
 
-import numpy as np
-import pytest
-
 import injection as inj
 from magcal_ros.core import effects as fx
-from magcal_ros.core.diagnose import MIN_EXPLAINED, diagnose
+from magcal_ros.core.diagnose import diagnose, MIN_EXPLAINED
 from magcal_ros.core.model import fit
+import numpy as np
+import pytest
 
 F = inj.F_NT
 
@@ -116,8 +130,10 @@ def test_without_held_out_test_the_verdict_rests_on_significance_and_share(n):
 
 
 def test_a_lag_of_no_time_constant_is_the_plain_coupling():
-    """Plain temperature coupling: lag(temperature) fits too (tau -> 0, fewer parameters),
-    but the verdict is the established effect, and the lag candidate says why not."""
+    """
+    Plain temperature coupling: lag(temperature) fits too (tau -> 0, fewer parameters),
+    but the verdict is the established effect, and the lag candidate says why not.
+    """
     def plain(t, temp, aux, b):
         return {2: (temp[1] - temp[1].mean())[:, None] * np.array([4.0, -3.0, 2.5])}
     data = inj.make(3000, seed=9, inject=plain)
@@ -141,10 +157,12 @@ def test_tokens_from_findings():
 
 @pytest.mark.parametrize('n', [3000, 10000])
 def test_site_gradient_adopts_no_fix_and_is_named_by_the_finding(n):
-    """Issue 11: a constant world-frame gradient (~320 nT/m, ~25 nT per sensor here) gave
+    """
+    Issue 11: a constant world-frame gradient (~320 nT/m, ~25 nT per sensor here) gave
     nonlinearity@3 for 68.80 -> 68.54 nT and a ladder stacking nonlinearity.  The catalog
     without attitude has nothing for it: no candidate removes a fifth of the excess, the
-    verdict is none, the ladder stops at once, and the finding names the gradient."""
+    verdict is none, the ladder stops at once, and the finding names the gradient.
+    """
     grad = np.array([[200.0, 100.0, 0.0], [100.0, -150.0, 50.0], [0.0, 50.0, -50.0]])
     data = inj.make(n, seed=2, inject=inj.site_gradient_fault(grad, seed=2))
     diag = diagnose(data, 'base', field_nt=F)

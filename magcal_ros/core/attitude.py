@@ -1,4 +1,19 @@
-"""Attitude of the array: unit quaternions (body -> world), their checks and rotation matrices.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Attitude of the array: unit quaternions (body -> world), their checks and rotation matrices.
 
 Contract: Hamilton convention, scalar first (qw, qx, qy, qz), the rotation that takes a vector
 from the array (body) frame into the world frame (NED or ENU, as the user states): v_w = R v_b.
@@ -31,7 +46,8 @@ def _where(k, t=None, rows=None):
 
 
 def check_quaternions(q, t=None, rows=None, tol=UNIT_TOLERANCE):
-    """Validate (N, 4) quaternions (qw, qx, qy, qz); return them normalised, sign-continuous.
+    """
+    Validate (N, 4) quaternions (qw, qx, qy, qz); return them normalised, sign-continuous.
 
     Parameters
     ----------
@@ -48,6 +64,7 @@ def check_quaternions(q, t=None, rows=None, tol=UNIT_TOLERANCE):
     ------
     AttitudeError
         A non-finite component (names the row and column) or a quaternion that is not unit.
+
     """
     q = np.asarray(q, float)
     if q.ndim != 2 or q.shape[1] != 4:
@@ -75,7 +92,8 @@ def check_quaternions(q, t=None, rows=None, tol=UNIT_TOLERANCE):
 
 
 def interpolate(t_msg, q_msg, t):
-    """Attitude at times t by spherical linear interpolation (slerp) of timed quaternions.
+    """
+    Attitude at times t by spherical linear interpolation (slerp) of timed quaternions.
 
     Parameters
     ----------
@@ -90,6 +108,7 @@ def interpolate(t_msg, q_msg, t):
     -------
     numpy.ndarray
         (N, 4) unit quaternions (qw, qx, qy, qz).
+
     """
     from scipy.spatial.transform import Slerp
     t_msg = np.asarray(t_msg, float)
@@ -102,7 +121,8 @@ def interpolate(t_msg, q_msg, t):
 
 
 def with_attitude(data, t_msg, q_msg, source='attitude'):
-    """``data`` with the attitude of timed messages attached (slerp onto its epochs).
+    """
+    ``data`` with the attitude of timed messages attached (slerp onto its epochs).
 
     Epochs outside the span of the messages are dropped (an attitude is never extrapolated).
 
@@ -119,6 +139,7 @@ def with_attitude(data, t_msg, q_msg, source='attitude'):
     Returns
     -------
     (Dataset, (N,) bool mask of the epochs of ``data`` kept)
+
     """
     t_msg = np.asarray(t_msg, float)
     if len(t_msg) == 0:
@@ -146,7 +167,8 @@ def quaternion_matrices(q):
 
 
 def check_against_field(rot, field_body, t=None, max_deg=MAX_FIELD_DISAGREEMENT_DEG):
-    """Refuse an attitude that disagrees with the measured field direction.
+    """
+    Refuse an attitude that disagrees with the measured field direction.
 
     In a constant world field the world-frame direction R_k b_k of the (roughly calibrated)
     body-frame field b_k is the same at every epoch; a jump of the attitude, a lag between
@@ -167,6 +189,7 @@ def check_against_field(rot, field_body, t=None, max_deg=MAX_FIELD_DISAGREEMENT_
     ------
     AttitudeError
         Naming the first epoch beyond ``max_deg`` and how many epochs are.
+
     """
     u = np.asarray(field_body, float)
     u = u / np.linalg.norm(u, axis=1, keepdims=True)

@@ -1,4 +1,19 @@
-"""Find and repair sample sets whose sensors were paired from different epochs.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Find and repair sample sets whose sensors were paired from different epochs.
 
 Live, the four streams of the array arrive separately and are grouped into sets by their
 stamps (:class:`magcal_ros.core.sync.StampMatcher`).  Stamps are arrival times, so a sensor
@@ -28,11 +43,10 @@ no partner inside the same run of consecutive epochs, are dropped and counted.
 """
 from dataclasses import dataclass, replace
 
-import numpy as np
-from scipy.ndimage import median_filter
-
 from magcal_ros.core.ellipsoid import fit_ellipsoid, procrustes_rotation
 from magcal_ros.core.noise import estimate_noise
+import numpy as np
+from scipy.ndimage import median_filter
 
 #: largest slip searched, epochs
 DEFAULT_MAX_LAG = 10
@@ -55,7 +69,8 @@ INCONSISTENT_FACTOR = 100.0
 
 @dataclass(frozen=True)
 class Slips:
-    """Outcome of :func:`find_slips`.
+    """
+    Outcome of :func:`find_slips`.
 
     Attributes
     ----------
@@ -74,6 +89,7 @@ class Slips:
     inconsistent : numpy.ndarray
         (S,) sets that no lag within ``max_lag`` brings within 10x the noise (a longer slip,
         a spike, or a large effect of the sensor itself); kept, only counted.
+
     """
 
     lags: np.ndarray
@@ -113,7 +129,8 @@ GROSS_FRACTION = 0.02
 
 
 def gross_outliers(raw, fraction=GROSS_FRACTION):
-    """Sets holding a sample that cannot be a reading: a cut or garbled line.
+    """
+    Set holding a sample that cannot be a reading: a cut or garbled line.
 
     A serial line opened in the middle of a stream, or overrun, can deliver a line that
     lost its first bytes and still parses, e.g. ``45.6,-2345.1,43210.9`` from
@@ -138,6 +155,7 @@ def gross_outliers(raw, fraction=GROSS_FRACTION):
     -------
     numpy.ndarray
         (S, N) bool, True for a gross outlier.
+
     """
     raw = np.asarray(raw, float)
     s, n = raw.shape[:2]
@@ -180,7 +198,8 @@ def _shifted(y, lag, run):
 
 def find_slips(raw, epochs=None, max_lag=DEFAULT_MAX_LAG, window=DEFAULT_WINDOW,
                min_contrast=DEFAULT_MIN_CONTRAST, noise_factor=DEFAULT_NOISE_FACTOR):
-    """Find the sets of a rigid array whose sensors were paired from different epochs.
+    """
+    Find the sets of a rigid array whose sensors were paired from different epochs.
 
     Each sensor is first calibrated on its own by the ellipsoid fit and Cholesky factor of
     paper 004 (eq. 8-13), which needs no pairing and leaves its reading as an unknown
@@ -214,6 +233,7 @@ def find_slips(raw, epochs=None, max_lag=DEFAULT_MAX_LAG, window=DEFAULT_WINDOW,
     Slips
         All lags 0 when the record is too short or covers too few attitudes for the
         ellipsoid fits (then nothing can be told).
+
     """
     raw = np.asarray(raw, float)
     if raw.ndim != 3 or raw.shape[2] != 3:
@@ -355,7 +375,8 @@ def find_slips(raw, epochs=None, max_lag=DEFAULT_MAX_LAG, window=DEFAULT_WINDOW,
 
 
 def resync(data, epochs=None, slips=None, **kwargs):
-    """Drop garbled samples and re-pair the sets whose sensors came from different epochs.
+    """
+    Drop garbled samples and re-pair the sets whose sensors came from different epochs.
 
     Parameters
     ----------
@@ -376,6 +397,7 @@ def resync(data, epochs=None, slips=None, **kwargs):
         (indexed like the sets left after the gross outliers), the number of sets dropped
         in re-pairing (at a change of lag a sensor's sample is claimed by two sets or by
         none) and the number dropped as gross outliers.
+
     """
     n_gross = 0
     if slips is None:

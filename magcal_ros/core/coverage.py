@@ -1,4 +1,19 @@
-"""Direction coverage of field vectors: whether they can determine a linear sensor map.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Direction coverage of field vectors: whether they can determine a linear sensor map.
 
 A linear sensor model ``raw = A @ B + o`` is determined by rotating the sensor in a uniform
 field only if the field directions seen by the sensor spread in all three dimensions. The
@@ -29,7 +44,8 @@ def _fmt_vec(v):
 
 @dataclass(frozen=True)
 class Coverage:
-    """How well a set of field directions covers the unit sphere.
+    """
+    How well a set of field directions covers the unit sphere.
 
     Attributes
     ----------
@@ -62,6 +78,7 @@ class Coverage:
         ``|u_mean|``, 1 for identical directions, about 0 for full coverage.
     planar_threshold : float
         Threshold used for ``planar`` and ``narrow``.
+
     """
 
     eigenvalues: np.ndarray
@@ -81,7 +98,8 @@ class Coverage:
         return not (self.planar or self.narrow)
 
     def describe(self) -> str:
-        """Return a one-line message naming what is missing from the attitude set.
+        """
+        Return a one-line message naming what is missing from the attitude set.
 
         Returns
         -------
@@ -89,6 +107,7 @@ class Coverage:
             For clustered directions: the cone they span and what to do; for coplanar
             directions: the plane normal (the rotation axis used) and what to do; otherwise a
             statement that the directions cover the sphere.
+
         """
         ev = self.eigenvalues
         if self.narrow:
@@ -110,7 +129,8 @@ class Coverage:
 
 
 def direction_coverage(vectors, planar_threshold=0.02) -> Coverage:
-    """Measure how the directions of field vectors cover the unit sphere.
+    """
+    Measure how the directions of field vectors cover the unit sphere.
 
     Parameters
     ----------
@@ -132,6 +152,7 @@ def direction_coverage(vectors, planar_threshold=0.02) -> Coverage:
     ValueError
         If ``vectors`` is not (N, 3) with N >= 1, contains non-finite values or zero vectors,
         or ``planar_threshold`` is not in (0, 1/3].
+
     """
     v = np.asarray(vectors, dtype=float)
     if v.ndim != 2 or v.shape[1] != 3 or v.shape[0] < 1:

@@ -1,14 +1,28 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
 """In-memory form of a recording of an S-sensor array (the wide CSV of docs/design.md §1)."""
 from dataclasses import dataclass, field, replace
 
-import numpy as np
-
 from magcal_ros.core.effects import raw_rate, SensorContext
+import numpy as np
 
 
 @dataclass
 class Dataset:
-    """Samples of S sensors taken at common epochs.
+    """
+    Samples of S sensors taken at common epochs.
 
     Attributes
     ----------
@@ -34,6 +48,7 @@ class Dataset:
         or ENU) is the user's.
     meta : dict
         Free-form provenance (source file, simulator truth, ...).
+
     """
 
     t: np.ndarray
@@ -75,8 +90,10 @@ class Dataset:
         return self.raw.shape[1]
 
     def context(self, j):
-        """:class:`SensorContext` of sensor ``j`` (1-based), with d(raw)/dt in nT/s
-        (:func:`magcal_ros.core.effects.raw_rate`)."""
+        """
+        :class:`SensorContext` of sensor ``j`` (1-based), with d(raw)/dt in nT/s
+        (:func:`magcal_ros.core.effects.raw_rate`).
+        """
         rate = raw_rate(self.raw[j - 1], self.t)
         temp = None if self.temp is None else self.temp[j - 1]
         if temp is not None and not np.isfinite(temp).any():

@@ -1,4 +1,19 @@
-"""Physical error terms ("effects") of a vector magnetometer, composable into a model.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Physical error terms ("effects") of a vector magnetometer, composable into a model.
 
 Every sensor j of an array is described by the forward model
 
@@ -41,7 +56,8 @@ SIGNALS = {'time': 't', 'temperature': 'temp', 'field_rate': 'raw_rate',
 
 @dataclass(frozen=True)
 class LinearParts:
-    """A closed-form linear map and offset of one sensor, decomposed (paper 004 eq. 2-3).
+    """
+    A closed-form linear map and offset of one sensor, decomposed (paper 004 eq. 2-3).
 
     ``a = u @ q`` (RQ decomposition) with ``u`` upper triangular with a positive diagonal
     (scale and non-orthogonality) and ``q`` a proper rotation (misalignment).
@@ -56,6 +72,7 @@ class LinearParts:
         (psi, varphi, theta) of C_NO, rad.
     offset : numpy.ndarray
         (3,) nT.
+
     """
 
     a: np.ndarray
@@ -76,7 +93,8 @@ def decompose_linear(a, offset):
 
 
 def rq_positive(a):
-    """RQ decomposition a = u @ q of a (3, 3) matrix with det(a) > 0.
+    """
+    RQ decomposition a = u @ q of a (3, 3) matrix with det(a) > 0.
 
     ``u`` (3, 3) upper triangular with a positive diagonal, ``q`` (3, 3) a proper rotation
     (det +1): the split of paper 004 eq. 2-3 (intrinsic map times misalignment).
@@ -91,7 +109,8 @@ def rq_positive(a):
 
 @dataclass
 class SensorContext:
-    """Driving signals seen by one sensor.
+    """
+    Driving signals seen by one sensor.
 
     Attributes
     ----------
@@ -112,6 +131,7 @@ class SensorContext:
     attitude : numpy.ndarray or None
         (N, 3, 3) body-to-world rotation matrices of the array (from the quaternion columns
         att_qw..att_qz), or None when the attitude is unknown.
+
     """
 
     t: np.ndarray
@@ -152,7 +172,8 @@ class SensorContext:
 
 
 class Effect:
-    """Base class of an error term.
+    """
+    Base class of an error term.
 
     Subclasses set ``name``, ``kind`` ('linear' or 'additive'), ``param_names`` and ``units``
     and implement ``matrix`` (linear) or ``contribution`` (additive).  Effects that depend on a
@@ -209,7 +230,8 @@ class Effect:
 
     @classmethod
     def suggest_args(cls, ctx):
-        """Argument tuples worth testing on data ``ctx`` (the diagnosis' candidates); [] if none.
+        """
+        Argument tuples worth testing on data ``ctx`` (the diagnosis' candidates); [] if none.
 
         Effects whose arguments come from the residual (a step time, a frequency) are
         proposed by the diagnosis itself and return [].
@@ -218,7 +240,8 @@ class Effect:
 
     @classmethod
     def from_args(cls, args, sensor=1):
-        """The effect of token ``name(args)`` on ``sensor``; ``args`` are strings.
+        """
+        The effect of token ``name(args)`` on ``sensor``; ``args`` are strings.
 
         Effects with arguments override this (and set :attr:`args`); the default accepts none.
         """
@@ -247,7 +270,8 @@ class Effect:
         return np.zeros(self.n_params)
 
     def params_from_linear(self, parts):
-        """This effect's share of a closed-form linear map and offset (closed-form start).
+        """
+        This effect's share of a closed-form linear map and offset (closed-form start).
 
         ``parts`` is a :class:`LinearParts`; return the (n_params,) parameters, or None when
         the effect has no share (it then starts at :meth:`default_params`).
@@ -274,10 +298,12 @@ class Effect:
         return False
 
     def reduces(self, p, stderr, ctx):
-        """Reason why the fitted parameters ``p`` (stderr: their uncertainties, or None) make
+        """
+        Reason why the fitted parameters ``p`` (stderr: their uncertainties, or None) make
         this effect a simpler one already in the catalog (a lag of zero time constant), else
         None.  The diagnosis does not adopt such a candidate: the simpler effect is tested
-        on its own."""
+        on its own.
+        """
         return None
 
     def describe(self):
@@ -289,7 +315,8 @@ class Effect:
 
 
 def raw_rate(x, t=None, period=None):
-    """(N, 3) nT/s time derivative of readings ``x`` (N, 3) nT: the field-rate signal.
+    """
+    (N, 3) nT/s time derivative of readings ``x`` (N, 3) nT: the field-rate signal.
 
     The one estimator of ``SensorContext.raw_rate`` for a recording (Dataset), the simulator
     and the live corrector.  Second-order finite differences (``numpy.gradient``,
@@ -317,6 +344,7 @@ def raw_rate(x, t=None, period=None):
     -------
     numpy.ndarray or None
         (N, 3) nT/s; None with fewer than 3 samples or times that do not increase.
+
     """
     x = np.asarray(x, float)
     if len(x) < 3:
@@ -375,7 +403,8 @@ def nonorthogonality_matrix(psi, varphi, theta):
 
 
 def upper_to_scale_nonorth(u):
-    """Split an upper-triangular (3, 3) matrix into S = diag(kx, ky, kz) and C_NO angles.
+    """
+    Split an upper-triangular (3, 3) matrix into S = diag(kx, ky, kz) and C_NO angles.
 
     The rows of C_NO are unit vectors (paper 004 eq. 2), so k = row norms of ``u``.
     Returns (k (3,), psi, varphi, theta) in rad.
@@ -430,7 +459,8 @@ class NonOrthogonality(Effect):
 
 
 class Misalignment(Effect):
-    """Rotation of the sensor's axes relative to sensor 1 (paper 004 eq. 3).
+    """
+    Rotation of the sensor's axes relative to sensor 1 (paper 004 eq. 3).
 
     Sensor 1 defines the array frame, so this effect has no parameters there.
     """
@@ -453,7 +483,8 @@ class Misalignment(Effect):
 
 
 class SoftIron(Effect):
-    """Full 3x3 linear map (soft iron, paper 002 K = I + D) instead of scale/nonorth./misalignment.
+    """
+    Full 3x3 linear map (soft iron, paper 002 K = I + D) instead of scale/nonorth./misalignment.
 
     On sensor 1, which defines the array frame, the matrix is upper triangular (6 parameters):
     its rotation is the frame definition, not something the data can determine.
@@ -580,7 +611,8 @@ class QuadraticDrift(Drift):
 
 
 class Nonlinearity(Effect):
-    """Per-axis quadratic and cubic response: dB = q (lin/F0)^2 + c (lin/F0)^3, F0 = 50 000 nT.
+    """
+    Per-axis quadratic and cubic response: dB = q (lin/F0)^2 + c (lin/F0)^3, F0 = 50 000 nT.
 
     ``q`` and ``c`` are the deviations (nT) at a full-scale field F0 along that axis.
     """
@@ -639,7 +671,8 @@ class Aux(Effect):
 
 
 class FieldRate(Effect):
-    """Response to dB/dt (eddy currents, sensor lag, sampling skew): dB = -tau * d(raw)/dt, s.
+    """
+    Response to dB/dt (eddy currents, sensor lag, sampling skew): dB = -tau * d(raw)/dt, s.
 
     Under pure rotation in a uniform field dB/dt is perpendicular to B, so this term hardly
     shows in the scalar residual; it shows in the inter-sensor vector residual.
@@ -707,7 +740,8 @@ def _check_channel(ctx, channel, sensor):
 
 
 class Step(Effect):
-    """Offset change(s) at given times: dB = sum_k s_k [t >= t_k], nT (a jump, a relay).
+    """
+    Offset change(s) at given times: dB = sum_k s_k [t >= t_k], nT (a jump, a relay).
 
     Token ``step(t1, t2, ...)``, times in s on the data's time axis; 3 parameters per step.
     """
@@ -750,7 +784,8 @@ class Step(Effect):
 
 
 class Periodic(Effect):
-    """Sinusoidal interference at a given frequency (pump, fan, wheel), per axis, nT.
+    """
+    Sinusoidal interference at a given frequency (pump, fan, wheel), per axis, nT.
 
     Token ``periodic(f_hz)``: dB = a cos(2 pi f (t - t0)) + b sin(2 pi f (t - t0)).
     """
@@ -793,7 +828,8 @@ class Periodic(Effect):
 
 
 def first_order_lag(t, x, tau):
-    """(N,) response y of tau dy/dt = x - y to x (N,) sampled at t (N,) s, y(t0) = x(t0).
+    """
+    (N,) response y of tau dy/dt = x - y to x (N,) sampled at t (N,) s, y(t0) = x(t0).
 
     Exact for x linear between samples (first-order hold): y_k = a y_k-1 + b0 x_k + b1 x_k-1,
     a = exp(-dt/tau), b0 = 1 - tau/dt (1 - a), b1 = tau/dt (1 - a) - a.  Irregular sampling
@@ -822,7 +858,8 @@ def first_order_lag(t, x, tau):
 
 
 class Lag(Effect):
-    """A channel (temperature or aux) acting through a first-order lag: dB = c (y - x0), nT.
+    """
+    A channel (temperature or aux) acting through a first-order lag: dB = c (y - x0), nT.
 
     Token ``lag(temperature)`` or ``lag(aux_<name>)``; y solves tau dy/dt = x - y (a sensor
     head that follows its thermometer with time constant tau, fitted, s).  The filter runs
@@ -894,9 +931,11 @@ class Lag(Effect):
         return y if idx is None else y[idx]
 
     def _online(self, t, x, tau):
-        """Live correction, one sample at a time: the filter's state is kept between calls
+        """
+        Live correction, one sample at a time: the filter's state is kept between calls
         (y <- x + (y - x) exp(-dt / tau), the exact response to x held since the last
-        sample; the first sample starts in steady state)."""
+        sample; the first sample starts in steady state).
+        """
         x = float(self.refs.get('x0', 0.0) if x is None or not np.isfinite(x[0]) else x[0])
         state = self.__dict__.get('_state')
         if state is None or t <= state[0]:
@@ -907,7 +946,8 @@ class Lag(Effect):
         return np.array([y])
 
     def reduces(self, p, stderr, ctx):
-        """Why the fitted lag is no lag (tau indistinguishable from 0), or None.
+        """
+        Why the fitted lag is no lag (tau indistinguishable from 0), or None.
 
         A time constant below two sample intervals, or within 3 standard uncertainties of
         zero, is the plain coupling of the channel (``temperature``, ``aux:<channel>``):
@@ -926,7 +966,8 @@ class Lag(Effect):
 
 
 class AuxPoly(Effect):
-    """Polynomial coupling of an auxiliary channel: dB = sum_k v_k (a - a0)^k, k = 1..d, nT.
+    """
+    Polynomial coupling of an auxiliary channel: dB = sum_k v_k (a - a0)^k, k = 1..d, nT.
 
     Token ``aux_poly(aux_<name>, d)``, 2 <= d <= 4 (e.g. a field that grows with the square
     of a current, from heating or saturation).  Includes the linear term, so it replaces
@@ -993,7 +1034,8 @@ class AuxPoly(Effect):
 # -- array-wide effects --------------------------------------------------------------------
 
 def symmetric_traceless(g):
-    """(3, 3) symmetric traceless tensor from g = (gxx, gxy, gxz, gyy, gyz), same unit.
+    """
+    (3, 3) symmetric traceless tensor from g = (gxx, gxy, gxz, gyy, gyz), same unit.
 
     Maxwell's equations in a source-free region: curl B = 0 (symmetric), div B = 0
     (traceless), so gzz = -gxx - gyy (paper 004 eq. 1 uses the same five components).
@@ -1003,7 +1045,8 @@ def symmetric_traceless(g):
 
 
 class SiteGradient(Effect):
-    """Constant gradient of the site in the world frame, seen through the known attitude.
+    """
+    Constant gradient of the site in the world frame, seen through the known attitude.
 
     The field at sensor j (position r_j, m, body = array frame) is
     B_j = B_c + R^T G_w R r_j, with B_c the field at the array centre (the origin of the
@@ -1104,7 +1147,8 @@ def needs_args(name):
 
 
 def load_plugin(ref):
-    """Import ``module`` or ``module:Class`` and register the effect classes it names.
+    """
+    Import ``module`` or ``module:Class`` and register the effect classes it names.
 
     A module may define ``MAGCAL_EFFECTS = [Cls, ...]`` or call :func:`register_effect`
     itself.  Returns the list of registered names.
@@ -1124,7 +1168,8 @@ def load_plugin(ref):
 
 
 def split_spec(spec):
-    """Tokens of a comma-separated model spec; commas inside ``name(a, b)`` do not split.
+    """
+    Tokens of a comma-separated model spec; commas inside ``name(a, b)`` do not split.
 
     'base,step(120,300)@2, periodic(0.23)' -> ['base', 'step(120,300)@2', 'periodic(0.23)'].
     """
@@ -1148,7 +1193,8 @@ def split_spec(spec):
 
 
 def parse_token(token):
-    """'step(120,300)@2' -> ('step', ('120', '300'), 2); 'drift' -> ('drift', (), None).
+    """
+    'step(120,300)@2' -> ('step', ('120', '300'), 2); 'drift' -> ('drift', (), None).
 
     The sensor is None when the token has no ``@j`` (the effect on every sensor).
     """
@@ -1174,13 +1220,16 @@ def parse_token(token):
 
 
 def load_plugins(refs):
-    """:func:`load_plugin` for each of ``refs`` (``--plugin``, a node's ``plugins``); the
-    registered names, in order."""
+    """
+    :func:`load_plugin` for each of ``refs`` (``--plugin``, a node's ``plugins``); the
+    registered names, in order.
+    """
     return [name for ref in refs or () for name in load_plugin(ref)]
 
 
 def _loaded_effect_name(ref):
-    """Registered name of the effect class ``module:Class`` of an already imported plug-in.
+    """
+    Register name of the effect class ``module:Class`` of an already imported plug-in.
 
     Never imports: a model token or a calibration document (which may come from a ROS
     parameter write or message) must not run code; plug-ins are loaded beforehand by

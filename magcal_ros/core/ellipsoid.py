@@ -1,4 +1,19 @@
-"""Paper 004 section 3: algebraic ellipsoid fit + Cholesky per sensor, and Procrustes alignment.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Paper 004 section 3: algebraic ellipsoid fit + Cholesky per sensor, and Procrustes alignment.
 
 These closed-form solutions are the starting values of the maximum-likelihood refinement in
 :mod:`magcal_ros.core.model`.
@@ -24,7 +39,8 @@ def _fmt(v):
 
 
 def reading_plane(raw):
-    """Normal of the plane the readings lie near, or None when they spread in 3-D.
+    """
+    Normalize of the plane the readings lie near, or None when they spread in 3-D.
 
     Parameters
     ----------
@@ -39,6 +55,7 @@ def reading_plane(raw):
         :data:`PLANE_SD_RATIO` times the middle one and the readings form a ring in that
         plane (:func:`ring_spread` below :data:`RING_CV`, not a filled cap): the sensor
         turned about that axis only.
+
     """
     m = np.asarray(raw, float)
     w, vec = np.linalg.eigh(np.cov((m - m.mean(axis=0)).T))
@@ -57,10 +74,12 @@ def _quadric_matrix(v):
 
 
 def ring_spread(u, normal):
-    """Coefficient of variation of the radius of the points ``u`` (N, 3) (directions or
+    """
+    Coefficient of variation of the radius of the points ``u`` (N, 3) (directions or
     readings) about the circle fitted to them in the plane normal to ``normal``: about 0 for
     a ring (a rotation about one axis, however unevenly sampled), about 0.35 for a filled
-    cap."""
+    cap.
+    """
     e1 = np.cross(normal, [1.0, 0.0, 0.0])
     if np.linalg.norm(e1) < 0.1:
         e1 = np.cross(normal, [0.0, 1.0, 0.0])
@@ -86,7 +105,8 @@ def _undetermined_message(raw, why):
 
 
 def quadric_definiteness(sv, vt, a_mat, n_rows):
-    """Smallest eigenvalue of the fitted quadric's matrix and its noise standard deviation.
+    """
+    Smallest eigenvalue of the fitted quadric's matrix and its noise standard deviation.
 
     The algebraic fit's coefficient vector ``v`` is the last right singular vector of the
     design matrix; to first order in the noise its error is
@@ -111,6 +131,7 @@ def quadric_definiteness(sv, vt, a_mat, n_rows):
     -------
     (float, float)
         Smallest eigenvalue and its standard deviation (dimensionless, scaled frame).
+
     """
     lam, vec = np.linalg.eigh(a_mat)
     e = vec[:, 0]
@@ -124,7 +145,8 @@ def quadric_definiteness(sv, vt, a_mat, n_rows):
 
 @dataclass(frozen=True)
 class EllipsoidFit:
-    """Result of :func:`fit_ellipsoid`.
+    """
+    Result of :func:`fit_ellipsoid`.
 
     Attributes
     ----------
@@ -136,6 +158,7 @@ class EllipsoidFit:
         (10,) ellipsoid coefficients (a, b, c, f, g, h, p, q, r, d) of eq. 8, unit norm.
     residual_nt : numpy.ndarray
         (N,) |C^-1 (m - b)| - |B| in nT.
+
     """
 
     c_inv: np.ndarray
@@ -149,7 +172,8 @@ class EllipsoidFit:
 
 
 def fit_ellipsoid(raw, field_nt, normalization='svd'):
-    """Fit the ellipsoid of paper 004 eq. 8 to raw readings and factor it (eq. 11-13, Cholesky).
+    """
+    Fit the ellipsoid of paper 004 eq. 8 to raw readings and factor it (eq. 11-13, Cholesky).
 
     Parameters
     ----------
@@ -171,6 +195,7 @@ def fit_ellipsoid(raw, field_nt, normalization='svd'):
     ValueError
         Too few samples, or the quadric is not an ellipsoid (data too degenerate: e.g. a
         single-axis rotation), with the reason.
+
     """
     m = np.asarray(raw, float)
     if m.ndim != 2 or m.shape[1] != 3:
@@ -231,7 +256,8 @@ def fit_ellipsoid(raw, field_nt, normalization='svd'):
 
 
 def procrustes_rotation(reference, other):
-    """Paper 004 eq. 14: rotation R minimising sum |reference_k - R other_k|^2.
+    """
+    Paper 004 eq. 14: rotation R minimising sum |reference_k - R other_k|^2.
 
     Solved by SVD of M_1 M_i^T (orthogonal Procrustes, Kabsch), constrained to det R = +1.
 
@@ -246,6 +272,7 @@ def procrustes_rotation(reference, other):
     -------
     numpy.ndarray
         (3, 3) rotation taking sensor i's corrected field into the reference frame.
+
     """
     rot, _ = Rotation.align_vectors(np.asarray(reference, float), np.asarray(other, float))
     return rot.as_matrix()

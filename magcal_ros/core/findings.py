@@ -1,4 +1,19 @@
-"""What is left in the residuals of a fit, model-free: lines, steps, lags, gradients, tails.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+What is left in the residuals of a fit, model-free: lines, steps, lags, gradients, tails.
 
 :func:`find` looks at the residuals a fitted model leaves and names the structure in them
 without the effect catalog: a spectral line, an offset step, a driven channel acting through
@@ -70,10 +85,9 @@ smooth signals cancel), not a robust (MAD) estimate, which reads low for heavy t
 from dataclasses import dataclass, field
 import math
 
+from magcal_ros.core.effects import first_order_lag
 import numpy as np
 from scipy import ndimage, stats
-
-from magcal_ros.core.effects import first_order_lag
 
 #: family-wise false-alarm probability of the findings
 ALPHA = 0.01
@@ -108,7 +122,8 @@ LINE_NEIGHBOURHOOD = 50
 
 @dataclass(frozen=True)
 class Finding:
-    """One structure found in the residuals.
+    """
+    One structure found in the residuals.
 
     Attributes
     ----------
@@ -140,6 +155,7 @@ class Finding:
         Tokens of the fitted model that ``token`` takes the place of (e.g. the linear
         ``aux:<col>`` that ``aux_poly(<col>,2)`` contains): the model to fit is the old one
         without these, plus ``token``.
+
     """
 
     kind: str
@@ -165,7 +181,8 @@ class Finding:
 
 @dataclass(frozen=True, eq=False)
 class Findings:
-    """Outcome of :func:`find`: the findings and the series they were found in.
+    """
+    Outcome of :func:`find`: the findings and the series they were found in.
 
     Attributes
     ----------
@@ -188,6 +205,7 @@ class Findings:
     direction : numpy.ndarray or None
         (N, 3) unit field direction in the array frame (through which a vector effect shows
         in a scalar residual).
+
     """
 
     items: tuple
@@ -218,7 +236,8 @@ class Findings:
 # -- helpers ---------------------------------------------------------------------------------
 
 def white_noise_sd(x):
-    """Per-component white-noise sd of a series from its third differences.
+    """
+    Per-component white-noise sd of a series from its third differences.
 
     Parameters
     ----------
@@ -231,6 +250,7 @@ def white_noise_sd(x):
         (C,) sd in the unit of ``x``: sqrt(mean((Delta^3 x)^2) / 20), 20 = C(6, 3) the
         variance gain of the third difference.  Mean square, not MAD: unbiased for any noise
         distribution; a signal smooth at the sample rate, or a few steps, barely contribute.
+
     """
     x = np.asarray(x, float)
     if x.ndim == 1:
@@ -246,7 +266,8 @@ def _uniform(t):
 
 
 def periodogram(t, x):
-    """Power spectrum of a residual series, also for irregular sampling.
+    """
+    Power spectrum of a residual series, also for irregular sampling.
 
     Parameters
     ----------
@@ -265,6 +286,7 @@ def periodogram(t, x):
         mean power s^2).
     n_independent : int
         Number of independent frequencies in the band (N / 2 for uniform sampling).
+
     """
     x = np.asarray(x, float)
     if x.ndim == 1:
@@ -287,7 +309,8 @@ def periodogram(t, x):
 
 
 def lomb_scargle(t, x, freqs, chunk=256):
-    """Classical Lomb-Scargle periodogram (Lomb 1976, Scargle 1982 eq. 10), vectorised.
+    """
+    Classical Lomb-Scargle periodogram (Lomb 1976, Scargle 1982 eq. 10), vectorised.
 
     Parameters
     ----------
@@ -305,6 +328,7 @@ def lomb_scargle(t, x, freqs, chunk=256):
         phases taken from tau (tan 2 w tau = sum sin 2wt / sum cos 2wt): N A^2 / 4 for a
         sinusoid of amplitude A, the same numbers as :func:`scipy.signal.lombscargle`
         (which loops in Python and takes seconds for 3000 x 4000).
+
     """
     t = np.asarray(t, float) - t[0]
     freqs = np.asarray(freqs, float)
@@ -332,7 +356,8 @@ def lomb_scargle(t, x, freqs, chunk=256):
 
 
 def _regress(x, design):
-    """Least-squares fit of every column of x (N, C) on design (N, K); (fitted, rank).
+    """
+    Least-squares fit of every column of x (N, C) on design (N, K); (fitted, rank).
 
     Normal equations, columns scaled to unit norm and solved by eigen-decomposition with
     the directions below 1e-10 of the largest eigenvalue dropped (a rank-deficient design,
@@ -357,7 +382,8 @@ def _f_test(ss0, ss1, k, dof):
 
 
 def _nuisance(mod):
-    """(N, 10) what a refit of the linear model would absorb from the scalar residual.
+    """
+    (N, 10) what a refit of the linear model would absorb from the scalar residual.
 
     An offset error c and a matrix error E of a sensor show in its scalar residual as
     u.c + u.E u (u: field direction, (N, 3)): columns 1, u_a, u_a u_b.
@@ -369,7 +395,8 @@ def _nuisance(mod):
 
 
 def _expand(design, mod):
-    """The design of a vector effect seen through the scalar residual.
+    """
+    The design of a vector effect seen through the scalar residual.
 
     A vector signal sum_k beta_k phi_k(t) (beta_k (3,) nT) shows in the scalar residual as
     its component along the field direction u (N, 3): columns phi_k u_c, next to the
@@ -615,7 +642,8 @@ def _test_channel(t, x, drv, mod=None):
 
 
 def best_lag(t, x, drive):
-    """Time constant (s) of the first-order lag through which ``drive`` best explains ``x``.
+    """
+    Time constant (s) of the first-order lag through which ``drive`` best explains ``x``.
 
     Parameters
     ----------
@@ -630,6 +658,7 @@ def best_lag(t, x, drive):
     -------
     float or None
         None when the channel is constant or the record too short for a lag grid.
+
     """
     drv = _Driver(np.asarray(t, float), 'channel', drive)
     if not drv.ok or not len(drv.taus):
@@ -719,7 +748,8 @@ def _describe(cand, sensor, share):
 # -- the array: a non-uniform field ----------------------------------------------------------
 
 def _gradient(t, corrected, baseline_m, alpha, drivers=None):
-    """(finding or None, (S, N, 3) gradient part per sensor to take out, nT).
+    """
+    (finding or None, (S, N, 3) gradient part per sensor to take out, nT).
 
     With m_j = c_j - mean_k c_k, the arms' antisymmetric parts a_x = (m1 - m3) / 2,
     a_y = (m2 - m4) / 2 and the symmetric part s = (m1 + m3 - m2 - m4) / 4 obey, for noise
@@ -804,7 +834,8 @@ def _drivers(data, j, aux_drivers):
 
 
 def _sensor_findings(t, x, sd, u, drivers, sensor, alpha_test, mod=None):
-    """Greedy search on one series; (list of (Finding, ms removed), remainder).
+    """
+    Greedy search on one series; (list of (Finding, ms removed), remainder).
 
     ``mod`` (N, 3): the series is a scalar residual and the effects are vectors seen
     through the field direction ``mod`` (:func:`_expand`).
@@ -864,7 +895,8 @@ def _sensor_findings(t, x, sd, u, drivers, sensor, alpha_test, mod=None):
 
 
 def _tails(x, sd, sensor, alpha_test):
-    """heavy_tails finding of one sensor's remainder x (N, C), or None.
+    """
+    heavy_tails finding of one sensor's remainder x (N, C), or None.
 
     Tested on the first differences, which a slow leftover of the other findings does not
     reach: for independent noise the excess kurtosis of a difference is half the noise's.
@@ -942,7 +974,8 @@ def find(data, result, **kwargs):
 
 
 def _find(data, result, *, baseline_m=0.5, alpha=ALPHA, corrected=None, field=None):
-    """Model-free findings in the residuals of a fit.
+    """
+    Model-free findings in the residuals of a fit.
 
     Parameters
     ----------
@@ -962,6 +995,7 @@ def _find(data, result, *, baseline_m=0.5, alpha=ALPHA, corrected=None, field=No
     Returns
     -------
     Findings
+
     """
     t = np.asarray(data.t, float)
     if corrected is None:

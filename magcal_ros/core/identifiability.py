@@ -1,4 +1,19 @@
-"""Can the data determine the model?  Checks run before and after every solve.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Can the data determine the model?  Checks run before and after every solve.
 
 Before: attitude coverage of each sensor (:func:`magcal_ros.core.coverage.direction_coverage`
 of the readings about the centre of the sensor's fitted ellipsoid, the hard-iron offset, so
@@ -11,10 +26,9 @@ strongly correlated.
 After: the parameter correlations and the condition number of the correlation matrix from
 the projected Jacobian (the Fisher information at the solution).
 """
-import numpy as np
-
 from magcal_ros.core.coverage import direction_coverage
-from magcal_ros.core.ellipsoid import RING_CV, fit_ellipsoid, reading_plane, ring_spread
+from magcal_ros.core.ellipsoid import fit_ellipsoid, reading_plane, RING_CV, ring_spread
+import numpy as np
 
 #: smallest direction-scatter eigenvalue of a single-axis rotation (noise and wobble only)
 SINGLE_AXIS_EIG = 3e-4
@@ -45,7 +59,8 @@ MAX_CONDITION = 1e6
 
 
 def fitted_centre(m):
-    """The readings' ellipsoid when the data determine it, else None.
+    """
+    The readings' ellipsoid when the data determine it, else None.
 
     Parameters
     ----------
@@ -64,6 +79,7 @@ def fitted_centre(m):
         :data:`MAX_RADIAL_SCATTER` of its radius (they fill a cloud, not a shell).  A
         centre that the ellipsoid bends to (a cap of directions) is caught in
         :func:`classify_coverage` (axis ratio, cross-check with the sphere's centre).
+
     """
     try:
         ell = fit_ellipsoid(m, 1.0)
@@ -87,7 +103,8 @@ def _single_axis_message(normal, how):
 
 
 def classify_coverage(m):
-    """Attitude coverage of one sensor's readings, judged about the fitted centre.
+    """
+    Attitude coverage of one sensor's readings, judged about the fitted centre.
 
     Parameters
     ----------
@@ -102,6 +119,7 @@ def classify_coverage(m):
         gives (the variance of the ellipsoid's relative radial residual), ``normal`` (3,)
         the missing rotation's axis in the sensor frame, ``cone_half_angle_deg``,
         ``centre_nt`` (3,) or None, ``message`` (None when good).
+
     """
     fitted = fitted_centre(m)
     noise_eig = 0.0
@@ -118,14 +136,14 @@ def classify_coverage(m):
         cov = direction_coverage(m)
         ev = cov.eigenvalues
         if plane is not None:
-            return dict(status='single axis', eigenvalues=ev, normal=plane,
-                        cone_half_angle_deg=cov.cone_half_angle_deg, centre_nt=None,
-                        message=_single_axis_message(
-                            plane, 'the readings are too flat to fit an ellipsoid'))
+            return {'status': 'single axis', 'eigenvalues': ev, 'normal': plane,
+                    'cone_half_angle_deg': cov.cone_half_angle_deg, 'centre_nt': None,
+                    'message': _single_axis_message(
+                        plane, 'the readings are too flat to fit an ellipsoid')}
         if ev[1] < SINGLE_AXIS_EIG or ev[2] < PARTIAL_EIG:
-            return dict(status='one attitude', eigenvalues=ev, normal=cov.normal,
-                        cone_half_angle_deg=cov.cone_half_angle_deg, centre_nt=None,
-                        message=None)
+            return {'status': 'one attitude', 'eigenvalues': ev, 'normal': cov.normal,
+                    'cone_half_angle_deg': cov.cone_half_angle_deg, 'centre_nt': None,
+                    'message': None}
         # the sensor turned, but the ellipsoid is not determined: judge about the centre
         # of the least-squares sphere (the origin would be arbitrary: with an offset near
         # the field it lies close to the readings and makes any cap look wide)
@@ -159,8 +177,8 @@ def _judge(m, centre, noise_eig):
     """Coverage status of the readings m (N, 3) nT judged about ``centre`` (3,) nT."""
     cov = direction_coverage(m - centre)
     ev = np.clip(cov.eigenvalues - noise_eig, 0.0, None)
-    out = dict(eigenvalues=ev, normal=cov.normal, cone_half_angle_deg=cov.cone_half_angle_deg,
-               centre_nt=centre, message=None)
+    out = {'eigenvalues': ev, 'normal': cov.normal, 'cone_half_angle_deg': cov.cone_half_angle_deg,
+           'centre_nt': centre, 'message': None}
     if ev[2] < PARTIAL_EIG or ev[1] < SINGLE_AXIS_EIG:
         out['status'] = 'one attitude'
     elif (ev[0] < max(SINGLE_AXIS_EIG, RING_RATIO * ev[1]) and ring_spread(
@@ -177,7 +195,8 @@ def _judge(m, centre, noise_eig):
 
 
 def check_coverage(raw):
-    """Coverage of each sensor's field directions, judged about each sensor's fitted centre.
+    """
+    Coverage of each sensor's field directions, judged about each sensor's fitted centre.
 
     A hard-iron offset several times the field squeezes the raw directions (about the
     origin) into a narrow cone although the sensor turned over; the directions are
@@ -197,6 +216,7 @@ def check_coverage(raw):
         ``normal`` is the missing rotation's axis in the sensor frame,
         ``problems``: list of messages naming the missing rotation (empty when fine),
         ``summary``: one line.
+
     """
     out = {'sensors': {}, 'problems': []}
     messages = {}
@@ -210,8 +230,8 @@ def check_coverage(raw):
         if not np.any(spread > 0):
             # a stuck sensor (frozen ADC, driver repeating its last value): not an attitude
             # problem, rotating more would not help
-            out['sensors'][j] = dict(eigenvalues=[0.0, 0.0, 1.0], normal=[0.0, 0.0, 0.0],
-                                     cone_half_angle_deg=0.0, status='constant')
+            out['sensors'][j] = {'eigenvalues': [0.0, 0.0, 1.0], 'normal': [0.0, 0.0, 0.0],
+                                 'cone_half_angle_deg': 0.0, 'status': 'constant'}
             messages[j] = (f'sensor {j}: output is constant (all {len(m)} samples read '
                            f'({", ".join(f"{x:.1f}" for x in m[0])}) nT): the sensor is stuck or '
                            'not updating; check its power, cable and driver')
@@ -241,10 +261,10 @@ def check_coverage(raw):
                        'tilt that axis further, or use the constrained mode (--constrained)')
         else:
             msg = None
-        out['sensors'][j] = dict(eigenvalues=[float(x) for x in ev],
-                                 normal=[float(x) for x in c['normal']],
-                                 cone_half_angle_deg=float(c['cone_half_angle_deg']),
-                                 status=status)
+        out['sensors'][j] = {'eigenvalues': [float(x) for x in ev],
+                             'normal': [float(x) for x in c['normal']],
+                             'cone_half_angle_deg': float(c['cone_half_angle_deg']),
+                             'status': status}
         if msg:
             messages[j] = msg
     moved = [j for j, v in out['sensors'].items()
@@ -264,7 +284,8 @@ def check_coverage(raw):
 
 
 def jacobian_report(model, cov, corr, constrained=False):
-    """Parameter correlations and conditioning at the solution.
+    """
+    Parameter correlations and conditioning at the solution.
 
     Parameters
     ----------
@@ -275,6 +296,7 @@ def jacobian_report(model, cov, corr, constrained=False):
     Returns
     -------
     dict with ``condition_number``, ``max_correlation`` [(name_a, name_b, rho)], ``problems``.
+
     """
     info = model.param_info()
     names = [f'{e}.{n}@{s}' for s, e, n, _ in info]

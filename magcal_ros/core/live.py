@@ -1,4 +1,19 @@
-"""Live correction of an array, one sample at a time (no ROS: used by the corrector node).
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Live correction of an array, one sample at a time (no ROS: used by the corrector node).
 
 Also the other live pieces without ROS: :class:`ResidualMonitor` (the calibration node's
 ``calibration/residual``) and :class:`SampleBuffer` (the sets it collects for a fit).
@@ -68,7 +83,8 @@ class _Sensor:
 
 
 class LiveCorrector:
-    """A calibration made ready to correct live samples of every sensor of an array.
+    """
+    A calibration made ready to correct live samples of every sensor of an array.
 
     Parameters
     ----------
@@ -91,6 +107,7 @@ class LiveCorrector:
         (9, 9) covariance of the row-major tensor, (nT/m)^2, from the sensors' corrected-field
         covariances (independent sensors); None when a sensor has no noise estimate.
     matcher : StampMatcher
+
     """
 
     def __init__(self, cal, n_sensors, positions_m=None, stamp_tolerance_s=0.005):
@@ -134,7 +151,8 @@ class LiveCorrector:
         return any('temperature' in s.needs for s in self._sensors)
 
     def sensor_frames(self):
-        """Pose of each sensor's frame in the array frame, from the calibration and geometry.
+        """
+        Pose of each sensor's frame in the array frame, from the calibration and geometry.
 
         The frame of sensor j is its own orthogonalised axes (C_j^-1 raw, paper 004 eq. 5);
         R_j rotates it into the array frame (sensor 1's orthogonalised axes; eq. 14), so a
@@ -147,6 +165,7 @@ class LiveCorrector:
         list of (numpy.ndarray, numpy.ndarray)
             Per sensor: R_j (3, 3) proper rotation and the position (3,) m; an empty list
             without geometry (:attr:`no_gradient_reason`).
+
         """
         if self.positions_m is None:
             return []
@@ -154,7 +173,8 @@ class LiveCorrector:
                 for j in range(1, self.n_sensors + 1)]
 
     def site_shift(self, quaternion):
-        """(S, 3) nT shift of every sensor by the calibration's site gradient, or None.
+        """
+        (S, 3) nT shift of every sensor by the calibration's site gradient, or None.
 
         The field at sensor j minus the centre field, R^T G_w R r_j (docs/site_gradient.md),
         at the fixed attitude ``quaternion`` (4,) (qw, qx, qy, qz, body-to-world): what a
@@ -169,7 +189,8 @@ class LiveCorrector:
                          for j in range(1, self.n_sensors + 1)])
 
     def linear(self, j):
-        """(A_j^-1 (3, 3), offset (3,) nT) when sensor j's correction is that alone, else None.
+        """
+        (A_j^-1 (3, 3), offset (3,) nT) when sensor j's correction is that alone, else None.
 
         For a sensor without driven effects the correction is A_j^-1 (raw - o_j), the same in
         any unit of the field: a caller may apply it to readings in tesla (the corrector's
@@ -191,7 +212,8 @@ class LiveCorrector:
         self.aux[column] = float(value)
 
     def correct(self, j, t, raw):
-        """Correct one finite raw sample of sensor j and remember it for the field rate.
+        """
+        Correct one finite raw sample of sensor j and remember it for the field rate.
 
         Parameters
         ----------
@@ -212,6 +234,7 @@ class LiveCorrector:
         MissingSignal
             A driven effect has no live signal yet (temperature, auxiliary channel, or the
             field rate before the stream's period is known).
+
         """
         s = self._sensors[j - 1]
         s.recent.append((t, raw))
@@ -231,7 +254,8 @@ class LiveCorrector:
 
     @staticmethod
     def _rate(s):
-        """d(raw)/dt, nT/s (3,), of the newest sample: :func:`~magcal_ros.core.effects.raw_rate`
+        """
+        d(raw)/dt, nT/s (3,), of the newest sample: :func:`~magcal_ros.core.effects.raw_rate`
         on the last three samples (its second-order one-sided form; the fit's interior
         samples use the central one: they agree to (w h)^2 / 2, see there).
 
@@ -247,7 +271,8 @@ class LiveCorrector:
         return None if rate is None else rate[-1]
 
     def sets(self, j, t, field_nt):
-        """Add a corrected sample of sensor j; return the sets of all sensors it completes.
+        """
+        Add a corrected sample of sensor j; return the sets of all sensors it completes.
 
         ``j`` and ``t`` as for :meth:`correct`; ``field_nt`` (3,) is its result, nT.
 
@@ -256,11 +281,13 @@ class LiveCorrector:
         list of (float, list of numpy.ndarray)
             (stamp of the set s, the S corrected fields (3,) nT) per completed set, oldest
             first.
+
         """
         return [(t_set, fields) for _, t_set, fields in self.matcher.add(j - 1, t, field_nt)]
 
     def gradients(self, j, t, field_nt):
-        """Add a corrected sample of sensor j; return the tensors of the sets it completes.
+        """
+        Add a corrected sample of sensor j; return the tensors of the sets it completes.
 
         ``j`` and ``t`` as for :meth:`correct`; ``field_nt`` (3,) is its result, nT.
 
@@ -269,6 +296,7 @@ class LiveCorrector:
         list of (float, numpy.ndarray)
             (stamp of the set s, tensor (3, 3) nT/m) per completed set, oldest first; empty
             without geometry.
+
         """
         if self.gradient_op is None:
             return []
@@ -282,7 +310,8 @@ RESIDUAL_WARN_RATIO = 1.5
 
 
 class ResidualMonitor:
-    """Residuals of the active calibration on live sets, and their ratio to the noise floor.
+    """
+    Residuals of the active calibration on live sets, and their ratio to the noise floor.
 
     Per set of corrected fields b_j (array frame, nT) and sensor j:
 
@@ -305,6 +334,7 @@ class ResidualMonitor:
         Reference magnitude F, nT.
     window : int
         Sets in the rolling window.
+
     """
 
     def __init__(self, n_sensors, field_nt, window=1000):
@@ -319,7 +349,8 @@ class ResidualMonitor:
         self.count = 0                                 # sets added
 
     def add(self, fields_nt):
-        """Add one set; return its residuals.
+        """
+        Add one set; return its residuals.
 
         Parameters
         ----------
@@ -330,6 +361,7 @@ class ResidualMonitor:
         -------
         (numpy.ndarray, numpy.ndarray)
             Scalar residual (S,) nT (signed) and vector residual (S,) nT (a length).
+
         """
         b = np.asarray(fields_nt, float)
         s = self.n_sensors
@@ -344,13 +376,15 @@ class ResidualMonitor:
         return scalar, vector
 
     def ratios(self, min_sets=50):
-        """Rolling RMS residuals and their ratio to the noise-only expectation.
+        """
+        Roll RMS residuals and their ratio to the noise-only expectation.
 
         Returns
         -------
         dict or None
             ``scalar_rms_nt``, ``vector_rms_nt``, ``floor_nt`` (S,) nT, ``scalar_ratio``,
             ``vector_ratio`` (S,), ``sets`` (int); None with fewer than ``min_sets`` sets.
+
         """
         n = min(self.count, self.window)
         if n < max(min_sets, 14):                     # the floor needs a few differences
@@ -369,7 +403,8 @@ class ResidualMonitor:
 
 
 class SampleBuffer:
-    """Ring buffer of matched sample sets of S sensors (not thread-safe; lock outside).
+    """
+    Ring buffer of matched sample sets of S sensors (not thread-safe; lock outside).
 
     Parameters
     ----------
@@ -380,6 +415,7 @@ class SampleBuffer:
         Auxiliary column names (``aux_<name>``).
     source : str
         ``meta['source']`` of the datasets it returns.
+
     """
 
     def __init__(self, n_sensors, capacity, aux_names=(), source='live (calibration_node)'):

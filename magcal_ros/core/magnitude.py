@@ -1,4 +1,19 @@
-"""Where the reference field magnitude F (nT) of a fit comes from: a number, the data's
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Where the reference field magnitude F (nT) of a fit comes from: a number, the data's
 ``ref_total`` column, the IGRF model (ppigrf), or the data themselves (shape only).
 
 Not to be confused with :mod:`magcal_ros.core.reference_vector` (paper 002: calibration
@@ -6,13 +21,13 @@ against a reference field *vector*).
 """
 import datetime
 
-import numpy as np
-
 from magcal_ros.core.ellipsoid import fit_ellipsoid
+import numpy as np
 
 
 def igrf_total(lat_deg, lon_deg, alt_km, date):
-    """IGRF total intensity in nT at a place and date.
+    """
+    IGRF total intensity in nT at a place and date.
 
     Parameters
     ----------
@@ -22,6 +37,7 @@ def igrf_total(lat_deg, lon_deg, alt_km, date):
         Height above the ellipsoid, km.
     date : str or datetime.date
         'YYYY-MM-DD' or a date.
+
     """
     import ppigrf
     if isinstance(date, str):
@@ -38,7 +54,8 @@ def igrf_total(lat_deg, lon_deg, alt_km, date):
 
 
 def auto_magnitude(raw):
-    """Magnitude for data without any reference: mean radius of sensor 1's ellipsoid, nT.
+    """
+    Magnitude for data without any reference: mean radius of sensor 1's ellipsoid, nT.
 
     With no reference the absolute scale of the sensors is not observable; this keeps the
     corrected magnitude equal to the average raw magnitude, so only the shape is corrected.

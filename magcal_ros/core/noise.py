@@ -1,4 +1,19 @@
-"""Noise floor of a sensor estimated from the data alone: the one estimator of the project.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Noise floor of a sensor estimated from the data alone: the one estimator of the project.
 
 Every figure called "noise floor" (``magcal fit``, ``diagnose``, ``report``, the calibration
 node, the tensor floor) comes from :func:`data_noise_floor`.  It answers three questions the
@@ -54,7 +69,8 @@ def mad_sd(x):
 
 
 def robust_sd(d):
-    """sd-consistent scale of a centred sample with heavy tails and a few gross outliers.
+    """
+    sd-consistent scale of a centred sample with heavy tails and a few gross outliers.
 
     1. s_MAD = 1.4826 MAD (Gaussian-consistent, too low for heavy tails: 0.73 sd for
        Student-t 3 dof);
@@ -77,6 +93,7 @@ def robust_sd(d):
     -------
     tuple
         (sd, s_mad, alpha or nan, n_outliers) in the unit of ``d``.
+
     """
     d = np.asarray(d, float).ravel()
     a = np.abs(d - np.median(d))
@@ -104,7 +121,8 @@ def robust_sd(d):
 
 
 def difference_sigmas(x, orders=ORDERS):
-    """White-noise sd from k-th differences, for each order k (:func:`robust_sd` scale).
+    """
+    White-noise sd from k-th differences, for each order k (:func:`robust_sd` scale).
 
     Parameters
     ----------
@@ -117,6 +135,7 @@ def difference_sigmas(x, orders=ORDERS):
     -------
     numpy.ndarray
         (K, S) sd estimates in the unit of ``x``, one row per order.
+
     """
     x = np.asarray(x, float)
     if x.ndim == 2:
@@ -131,7 +150,8 @@ def difference_sigmas(x, orders=ORDERS):
 
 
 def nyquist_drop(x):
-    """How far the spectrum falls from mid band to Nyquist, per series.
+    """
+    How far the spectrum falls from mid band to Nyquist, per series.
 
     Welch spectrum of the first difference (which whitens a smooth trajectory so window
     leakage cannot fill the top of the band), divided by the difference's gain
@@ -147,6 +167,7 @@ def nyquist_drop(x):
     -------
     numpy.ndarray
         (S,) ratio (>= 0; inf when the top of the band is empty, nan for short series).
+
     """
     x = np.asarray(x, float)
     if x.ndim == 2:
@@ -171,7 +192,8 @@ def nyquist_drop(x):
 
 @dataclass(frozen=True)
 class NoiseEstimate:
-    """Adaptive difference-based noise estimate of one kind of series.
+    """
+    Adaptive difference-based noise estimate of one kind of series.
 
     Attributes
     ----------
@@ -193,6 +215,7 @@ class NoiseEstimate:
         order, e.g. random attitudes).
     drop : numpy.ndarray
         (S,) :func:`nyquist_drop` of the series.
+
     """
 
     sigma: np.ndarray
@@ -204,7 +227,8 @@ class NoiseEstimate:
 
 
 def estimate_noise(x, orders=ORDERS):
-    """Adaptive noise estimate from the plateau of the difference estimates of several orders.
+    """
+    Adaptive noise estimate from the plateau of the difference estimates of several orders.
 
     A smooth trajectory sampled slowly leaves its curvature in low-order differences (at
     10 Hz a tumbling array adds ~15 nT to the 2nd difference, at 3 Hz ~20 nT to the 3rd);
@@ -222,6 +246,7 @@ def estimate_noise(x, orders=ORDERS):
     Returns
     -------
     NoiseEstimate
+
     """
     x = np.asarray(x, float)
     n = x.shape[1]
@@ -253,7 +278,8 @@ def estimate_noise(x, orders=ORDERS):
 
 @dataclass(frozen=True, eq=False)
 class NoiseFloor:
-    """Per-axis white-noise sd of each sensor, estimated from the data alone.
+    """
+    Per-axis white-noise sd of each sensor, estimated from the data alone.
 
     Attributes
     ----------
@@ -282,6 +308,7 @@ class NoiseFloor:
     tail_index : numpy.ndarray
         (S,) Hill index of the noise tail of the lowest-order differences (nan: Gaussian-like
         tails; 3 for Student-t 3 dof).
+
     """
 
     per_sensor_nt: np.ndarray
@@ -337,7 +364,8 @@ class NoiseFloor:
 
 
 def data_noise_floor(data, result=None):
-    """The noise floor of each sensor (the one estimator used by fit, diagnose and report).
+    """
+    The noise floor of each sensor (the one estimator used by fit, diagnose and report).
 
     Parameters
     ----------
@@ -350,6 +378,7 @@ def data_noise_floor(data, result=None):
     Returns
     -------
     NoiseFloor
+
     """
     raw_est = estimate_noise(data.raw)
     s = data.n_sensors
@@ -407,7 +436,8 @@ def data_noise_floor(data, result=None):
 
 
 def noise_floor(raw, t=None, order=None):
-    """Per-axis noise sd of each sensor's raw series (no model; see :func:`data_noise_floor`).
+    """
+    Per-axis noise sd of each sensor's raw series (no model; see :func:`data_noise_floor`).
 
     Parameters
     ----------
@@ -420,6 +450,7 @@ def noise_floor(raw, t=None, order=None):
     -------
     numpy.ndarray
         (S,) or scalar: noise sd in nT (pooled over the three axes).
+
     """
     raw = np.asarray(raw, float)
     one = raw.ndim == 2

@@ -1,4 +1,19 @@
-"""The closed-form calibrations of papers 000 and 002 on a recording (``magcal fit --method``).
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The closed-form calibrations of papers 000 and 002 on a recording (``magcal fit --method``).
 
 - ``sine`` (paper 000, docs/papers.md#paper-000): a turntable recording, every row with the
   turntable angle ``angle_deg`` and the horizontal sensor plane ``plane`` (``xy`` for
@@ -24,10 +39,9 @@ calibration file and the live corrector treat them like a maximum-likelihood fit
 """
 from dataclasses import dataclass, field
 
-import numpy as np
-
 from magcal_ros.core.effects import rq_positive
 from magcal_ros.core.model import Calibration, DegenerateDataError, Model
+import numpy as np
 
 #: the choices of ``magcal fit --method``
 METHODS = ('ellipsoid', 'sine', 'reference')
@@ -35,7 +49,8 @@ METHODS = ('ellipsoid', 'sine', 'reference')
 
 @dataclass
 class PaperFit:
-    """Result of :func:`sine_calibration` or :func:`reference_calibration`.
+    """
+    Result of :func:`sine_calibration` or :func:`reference_calibration`.
 
     Attributes
     ----------
@@ -54,6 +69,7 @@ class PaperFit:
         What the data cannot determine.
     corrected_nt : numpy.ndarray
         (S, N, 3) corrected readings in the array frame, nT.
+
     """
 
     method: str
@@ -120,7 +136,8 @@ def _magnitude(f, n):
 
 
 def sine_calibration(data, field_nt):
-    """Paper 000 on a turntable recording (columns ``angle_deg`` and ``plane``).
+    """
+    Paper 000 on a turntable recording (columns ``angle_deg`` and ``plane``).
 
     Parameters
     ----------
@@ -133,6 +150,7 @@ def sine_calibration(data, field_nt):
     Returns
     -------
     PaperFit
+
     """
     if data.angle_deg is None or data.plane is None:
         raise ValueError('--method sine needs the turntable columns angle_deg and plane '
@@ -174,7 +192,8 @@ def sine_calibration(data, field_nt):
 
 
 def reference_calibration(data, field_nt=None, on_degenerate='raise'):
-    """Paper 002 on a recording with a reference field vector (columns ``ref_x/y/z``).
+    """
+    Paper 002 on a recording with a reference field vector (columns ``ref_x/y/z``).
 
     Parameters
     ----------
@@ -189,6 +208,7 @@ def reference_calibration(data, field_nt=None, on_degenerate='raise'):
     Returns
     -------
     PaperFit
+
     """
     if data.ref_vec is None:
         raise ValueError('--method reference needs the reference field columns ref_x, ref_y, '

@@ -1,4 +1,19 @@
-"""Conversions between the general per-sensor model and each source paper's parameters.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Conversions between the general per-sensor model and each source paper's parameters.
 
 The package's general per-sensor forward model is ``raw = A @ B + o``, with ``A`` (3, 3)
 dimensionless and ``o`` (3,) in nT, ``B`` the field in the array frame (sensor 1's ideal
@@ -15,12 +30,11 @@ All angles are in radians, offsets in nT.
 
 from dataclasses import dataclass
 
-import numpy as np
-import scipy.linalg
-
 from magcal_ros.core.effects import (  # noqa: F401  (rot_r*, C_NO re-exported)
     misalignment_angles, nonorthogonality_matrix, rot_r1, rot_r2, rot_r3, rq_positive,
     upper_to_scale_nonorth)
+import numpy as np
+import scipy.linalg
 
 
 def _check_general(a, o):
@@ -62,7 +76,8 @@ def _vec3(value, name):
 
 @dataclass(frozen=True, eq=False)
 class Paper004Params:
-    """Paper 004 single-sensor error model plus misalignment (eq. 2-3).
+    """
+    Paper 004 single-sensor error model plus misalignment (eq. 2-3).
 
     ``raw = S C_NO R B + b``, with ``B`` in sensor 1's ideal frame.
 
@@ -79,6 +94,7 @@ class Paper004Params:
     alpha, beta, gamma : float
         Misalignment angles in rad: sensor i's ideal frame is sensor 1's rotated by alpha
         about z, then beta about x', then gamma about y''. Zero for sensor 1.
+
     """
 
     kx: float
@@ -115,7 +131,8 @@ class Paper004Params:
         return self.scale @ self.nonorthogonality @ self.rotation, self.b.copy()
 
     def correction(self):
-        """Return the paper's correction pair ``(C^-1 (3, 3), R_corr (3, 3))``.
+        """
+        Return the paper's correction pair ``(C^-1 (3, 3), R_corr (3, 3))``.
 
         ``C^-1 = (S C_NO)^-1`` is upper triangular (what the Cholesky factor of paper 004
         eq. 11-13 estimates); ``R_corr = R^T`` takes the single-sensor-corrected field
@@ -126,7 +143,8 @@ class Paper004Params:
 
     @classmethod
     def from_general(cls, a, o):
-        """Decompose a general ``(A, o)`` into paper 004 parameters.
+        """
+        Decompose a general ``(A, o)`` into paper 004 parameters.
 
         ``A = U Q`` by RQ decomposition (``scipy.linalg.rq``), signs fixed so that
         ``diag(U) > 0``; ``S`` = row norms of ``U`` (the rows of ``C_NO`` are unit vectors),
@@ -149,6 +167,7 @@ class Paper004Params:
         ------
         ValueError
             If A is not a finite non-singular (3, 3) matrix or det(A) < 0.
+
         """
         a, o = _check_general(a, o)
         # A = U Q with diag(U) > 0: det(Q) has the sign of det(A)
@@ -186,7 +205,8 @@ def _sensor_index(j):
 
 
 def table1_sensor(j) -> Paper004Params:
-    """Return paper 004 Table 1's error parameters of sensor ``j`` (1..4).
+    """
+    Return paper 004 Table 1's error parameters of sensor ``j`` (1..4).
 
     Parameters
     ----------
@@ -197,6 +217,7 @@ def table1_sensor(j) -> Paper004Params:
     -------
     Paper004Params
         Angles in rad, offsets in nT, as printed in the table.
+
     """
     i = _sensor_index(j)
     t = _TABLE1_004
@@ -208,7 +229,8 @@ def table1_sensor(j) -> Paper004Params:
 
 
 def table1_correction(j):
-    """Return the correction paper 004's method should recover for sensor ``j`` (1..4).
+    """
+    Return the correction paper 004's method should recover for sensor ``j`` (1..4).
 
     The ellipsoid fit cannot see the misalignment (``A^T A``-type data are invariant to a
     rotation of the field), so the Cholesky factor it returns is ``C^-1 = (S C_NO)^-1``,
@@ -228,6 +250,7 @@ def table1_correction(j):
         (3, 3) upper triangular, dimensionless.
     r_corr : numpy.ndarray
         (3, 3) rotation, dimensionless (identity for sensor 1).
+
     """
     return table1_sensor(j).correction()
 
@@ -238,7 +261,8 @@ def table1_correction(j):
 
 @dataclass(frozen=True, eq=False)
 class Paper000Params:
-    """Paper 000 error model (eq. 1): lower-triangular response with the x axis as reference.
+    """
+    Paper 000 error model (eq. 1): lower-triangular response with the x axis as reference.
 
     ``raw = L B + B0`` with ``B`` in the reference frame O-XYZ of paper 000's Fig. 1 (X along
     the Xm axis, Ym in the OXY plane) and
@@ -259,6 +283,7 @@ class Paper000Params:
         Scale factors, dimensionless, > 0.
     B0 : numpy.ndarray
         (3,) offsets (Bx0, By0, Bz0) in nT.
+
     """
 
     alpha: float
@@ -293,7 +318,8 @@ class Paper000Params:
 
     @classmethod
     def from_general(cls, a, o):
-        """Decompose a general ``(A, o)`` into paper 000 parameters and a rotation.
+        """
+        Decompose a general ``(A, o)`` into paper 000 parameters and a rotation.
 
         ``A = L Q`` (LQ decomposition from ``scipy.linalg.qr`` of ``A^T``, signs fixed so
         that ``diag(L) > 0``), ``L`` parametrised by eq. 1.
@@ -317,6 +343,7 @@ class Paper000Params:
         ------
         ValueError
             If A is not a finite non-singular (3, 3) matrix or det(A) < 0.
+
         """
         a, o = _check_general(a, o)
         qt, rt = scipy.linalg.qr(a.T)
@@ -345,7 +372,8 @@ class Paper000Params:
 
 @dataclass(frozen=True, eq=False)
 class Paper002Params:
-    """Paper 002 interference model (eq. 4): ``Hm = K He + Hh``.
+    """
+    Paper 002 interference model (eq. 4): ``Hm = K He + Hh``.
 
     Attributes
     ----------
@@ -353,6 +381,7 @@ class Paper002Params:
         (3, 3) soft-iron matrix ``I + D``, dimensionless.
     Hh : numpy.ndarray
         (3,) hard-iron field in nT.
+
     """
 
     K: np.ndarray

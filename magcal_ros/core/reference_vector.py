@@ -1,4 +1,19 @@
-"""Paper 002: hard- and soft-iron compensation from a reference field vector, by linear least
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Paper 002: hard- and soft-iron compensation from a reference field vector, by linear least
 squares (not :mod:`magcal_ros.core.magnitude`, the reference *magnitude* of a fit).
 
 Model (paper 002, eq. 1-4): ``Hm = K He + Hh`` with ``He`` the undisturbed field (measured
@@ -19,10 +34,9 @@ valid for attitudes whose field stays in that plane. Paper 002's own Table 2 is 
 
 from dataclasses import dataclass
 
-import numpy as np
-
 from magcal_ros.core.coverage import Coverage, direction_coverage
 from magcal_ros.core.paper_params import Paper002Params
+import numpy as np
 
 #: Minimum number of attitudes: 12 unknowns, 3 equations per attitude (paper 002, §1).
 MIN_ATTITUDES = 4
@@ -34,7 +48,8 @@ def _fmt_vec(v):
 
 @dataclass(frozen=True, eq=False)
 class ReferenceFit:
-    """Result of :func:`fit_reference`.
+    """
+    Result of :func:`fit_reference`.
 
     Attributes
     ----------
@@ -67,6 +82,7 @@ class ReferenceFit:
     xtx_inv : numpy.ndarray
         (4, 4) ``(X^T X)^+`` of the unscaled design ``X = [He 1]`` (nT^-2 in the He block),
         for :meth:`stderr`.
+
     """
 
     K: np.ndarray
@@ -95,7 +111,8 @@ class ReferenceFit:
         return Paper002Params(K=self.K, Hh=self.Hh)
 
     def stderr(self, sigma_hm_nt, sigma_he_nt=0.0):
-        """First-order standard errors of K and Hh for given measurement noise.
+        """
+        First-order standard errors of K and Hh for given measurement noise.
 
         Row ``j`` of ``[K | Hh]`` is an ordinary least-squares solution for output ``j``;
         noise ``sigma_hm`` on Hm and ``sigma_he`` on each He component (errors in
@@ -117,6 +134,7 @@ class ReferenceFit:
             (3, 3) dimensionless.
         hh_se : numpy.ndarray
             (3,) nT.
+
         """
         var_eff = sigma_hm_nt ** 2 + sigma_he_nt ** 2 * np.sum(self.K ** 2, axis=1)
         diag = np.clip(np.diag(self.xtx_inv), 0.0, None)
@@ -126,7 +144,8 @@ class ReferenceFit:
 
 def fit_reference(He, Hm, strict=False, max_condition=100.0,
                   planar_threshold=0.02) -> ReferenceFit:
-    """Fit ``Hm = K He + Hh`` by linear least squares (paper 002, eq. 4-7).
+    """
+    Fit ``Hm = K He + Hh`` by linear least squares (paper 002, eq. 4-7).
 
     Parameters
     ----------
@@ -150,6 +169,7 @@ def fit_reference(He, Hm, strict=False, max_condition=100.0,
     ValueError
         On malformed input, fewer than 4 attitudes, or (``strict=True``) when the data
         cannot determine all 12 parameters.
+
     """
     he = np.asarray(He, dtype=float)
     hm = np.asarray(Hm, dtype=float)
@@ -206,7 +226,8 @@ def fit_reference(He, Hm, strict=False, max_condition=100.0,
 
 
 def correct(fit, Hm):
-    """Compensate disturbed readings: ``He_hat = K^-1 (Hm - Hh)`` (inverse of paper 002 eq. 4).
+    """
+    Compensate disturbed readings: ``He_hat = K^-1 (Hm - Hh)`` (inverse of paper 002 eq. 4).
 
     Parameters
     ----------
@@ -219,6 +240,7 @@ def correct(fit, Hm):
     -------
     numpy.ndarray
         Same shape as ``Hm``: the estimated undisturbed field in nT.
+
     """
     hm = np.asarray(Hm, dtype=float)
     if hm.shape[-1:] != (3,) or hm.ndim > 2:

@@ -1,4 +1,19 @@
-"""Seeded simulator of a four-fluxgate cross gradiometer (paper 004 section 4.1), uniform field.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Seeded simulator of a four-fluxgate cross gradiometer (paper 004 section 4.1), uniform field.
 
 The simulator uses the same forward model as the fit (:class:`magcal_ros.core.model.Model`),
 so any effect, including a user plug-in, can be switched on with known parameters and the
@@ -8,14 +23,13 @@ the trajectory, temperatures and auxiliary channels continue smoothly across chu
 """
 from dataclasses import dataclass, field
 
-import numpy as np
-from scipy.spatial.transform import Rotation
-
 from magcal_ros.core.dataset import Dataset
 from magcal_ros.core.effects import raw_rate, SensorContext
 from magcal_ros.core.model import Model
 from magcal_ros.core.paper_params import table1_sensor
 from magcal_ros.core.tensor import cross_positions
+import numpy as np
+from scipy.spatial.transform import Rotation
 
 TRAJECTORIES = ('random', 'smooth', 'turntable', 'cone', 'vehicle')
 AUX_CHANNELS = ('aux_motor_current', 'aux_pump_current', 'aux_heater_power')
@@ -29,7 +43,8 @@ def earth_field(total_nt, declination_deg, inclination_deg):
 
 @dataclass
 class SimConfig:
-    """Settings of the simulator; defaults are paper 004 section 4.1.
+    """
+    Settings of the simulator; defaults are paper 004 section 4.1.
 
     Attributes
     ----------
@@ -72,6 +87,7 @@ class SimConfig:
         Put the true attitude (body-to-world quaternions, ``Dataset.attitude``, CSV columns
         att_qw..att_qz) into the samples, as an IMU would give it.
     seed : int
+
     """
 
     n_samples: int = 200
@@ -236,7 +252,7 @@ class Simulator:
         return out
 
     def sample(self, t):
-        """Simulated Dataset at times t (N,) s; ``meta['truth_field']`` holds the true field."""
+        """Simulate Dataset at times t (N,) s; ``meta['truth_field']`` holds the true field."""
         cfg = self.config
         t = np.asarray(t, float)
         n = len(t)
@@ -272,13 +288,15 @@ class Simulator:
 
 
 def simulate(config=None, **overrides):
-    """Simulate ``config.n_samples`` epochs at ``config.rate_hz``; returns (Dataset, Simulator).
+    """
+    Simulate ``config.n_samples`` epochs at ``config.rate_hz``; returns (Dataset, Simulator).
 
     Examples
     --------
     >>> data, sim = simulate(n_samples=200, seed=1)
     >>> data.raw.shape
     (4, 200, 3)
+
     """
     sim = Simulator(config, **overrides)
     # driven effects act about references fixed by the simulator, set before sampling

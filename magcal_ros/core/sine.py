@@ -1,4 +1,19 @@
-"""Paper 000: sine-fit calibration of a three-axis magnetometer on a turntable.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Paper 000: sine-fit calibration of a three-axis magnetometer on a turntable.
 
 Model (paper 000, eq. 1): ``raw = L B + B0`` with ``L`` lower triangular (see
 :class:`~magcal_ros.core.paper_params.Paper000Params`). The sensor is turned on a level,
@@ -46,9 +61,8 @@ a bias equal to the noise mean.
 
 from dataclasses import dataclass
 
-import numpy as np
-
 from magcal_ros.core.paper_params import Paper000Params
+import numpy as np
 
 
 def _wrap(angle):
@@ -58,7 +72,8 @@ def _wrap(angle):
 
 @dataclass(frozen=True)
 class SineFit:
-    """Least-squares fit ``y = A sin(theta + C) + D`` (paper 000 eq. 4).
+    """
+    Least-squares fit ``y = A sin(theta + C) + D`` (paper 000 eq. 4).
 
     Attributes
     ----------
@@ -72,6 +87,7 @@ class SineFit:
         Root-mean-square residual in nT.
     n : int
         Number of samples.
+
     """
 
     A: float
@@ -86,7 +102,8 @@ class SineFit:
 
 
 def fit_sine(theta_rad, y) -> SineFit:
-    """Fit ``y = A sin(theta + C) + D`` by linear least squares (paper 000, eq. 4).
+    """
+    Fit ``y = A sin(theta + C) + D`` by linear least squares (paper 000, eq. 4).
 
     ``A sin(theta + C) = a sin(theta) + b cos(theta)`` with ``a = A cos C``, ``b = A sin C``,
     so the fit is linear in ``(a, b, D)`` on the columns ``[sin, cos, 1]``.
@@ -108,6 +125,7 @@ def fit_sine(theta_rad, y) -> SineFit:
     ValueError
         If the shapes differ, values are not finite, or the angles do not determine a sine
         (fewer than 3 distinct angles modulo 2 pi).
+
     """
     theta = np.asarray(theta_rad, dtype=float)
     y = np.asarray(y, dtype=float)
@@ -129,7 +147,8 @@ def fit_sine(theta_rad, y) -> SineFit:
 
 @dataclass(frozen=True)
 class TurntableFits:
-    """The five sine fits of the two-position procedure and the derived intermediate values.
+    """
+    The five sine fits of the two-position procedure and the derived intermediate values.
 
     Attributes
     ----------
@@ -143,6 +162,7 @@ class TurntableFits:
         Angle between Xm and Zm in rad (eq. 12).
     k_yx, k_zx : float
         Scale-factor ratios ky/kx (eq. 7) and kz/kx (eq. 14).
+
     """
 
     x1: SineFit
@@ -166,7 +186,8 @@ def _check_position(theta, m, name):
 
 
 def fit_turntable(theta1, m1, theta2, m2) -> TurntableFits:
-    """Fit the five curves of the two turntable positions and form eq. 5-14's quantities.
+    """
+    Fit the five curves of the two turntable positions and form eq. 5-14's quantities.
 
     Parameters
     ----------
@@ -182,6 +203,7 @@ def fit_turntable(theta1, m1, theta2, m2) -> TurntableFits:
     Returns
     -------
     TurntableFits
+
     """
     theta1, m1 = _check_position(theta1, m1, '1')
     theta2, m2 = _check_position(theta2, m2, '2')
@@ -199,7 +221,8 @@ def fit_turntable(theta1, m1, theta2, m2) -> TurntableFits:
 
 
 def calibrate_turntable(theta1, m1, theta2, m2, field_nt) -> Paper000Params:
-    """Solve paper 000's nine calibration parameters from two turntable rotations.
+    """
+    Solve paper 000's nine calibration parameters from two turntable rotations.
 
     Parameters
     ----------
@@ -225,6 +248,7 @@ def calibrate_turntable(theta1, m1, theta2, m2, field_nt) -> Paper000Params:
     ------
     ValueError
         On malformed input, a non-positive field, or geometry eq. 13 cannot resolve.
+
     """
     if not np.isfinite(field_nt) or field_nt <= 0.0:
         raise ValueError('field_nt must be a positive field magnitude in nT, got %r'
@@ -255,7 +279,8 @@ def calibrate_turntable(theta1, m1, theta2, m2, field_nt) -> Paper000Params:
 
 
 def correct(params: Paper000Params, raw):
-    """Correct raw readings with paper 000's parameters (eq. 17).
+    """
+    Correct raw readings with paper 000's parameters (eq. 17).
 
     Parameters
     ----------
@@ -268,6 +293,7 @@ def correct(params: Paper000Params, raw):
     -------
     numpy.ndarray
         (N, 3) corrected field in nT, in paper 000's reference frame O-XYZ.
+
     """
     raw = np.asarray(raw, dtype=float)
     if raw.ndim != 2 or raw.shape[1] != 3:
@@ -284,7 +310,8 @@ def correct(params: Paper000Params, raw):
 
 @dataclass(frozen=True)
 class TurntableData:
-    """Simulated two-position turntable experiment.
+    """
+    Simulated two-position turntable experiment.
 
     Attributes
     ----------
@@ -294,6 +321,7 @@ class TurntableData:
         (N, 3) raw outputs in nT in position 1 (OXmYm horizontal) and 2 (OXmZm horizontal).
     field1, field2 : numpy.ndarray
         (N, 3) true field in nT in paper 000's reference frame O-XYZ for each sample.
+
     """
 
     theta: np.ndarray
@@ -304,7 +332,8 @@ class TurntableData:
 
 
 def _turntable_attitudes(axis_a, axis_b, down, theta):
-    """Rotations (N, 3, 3) taking O-XYZ vectors to the level frame (north, east, down).
+    """
+    Rotations (N, 3, 3) taking O-XYZ vectors to the level frame (north, east, down).
 
     The physical axes ``axis_a`` (3,) and ``axis_b`` (3,) (unit, in O-XYZ) span the
     horizontal plane; ``axis_a`` points at azimuth theta (from north towards east);
@@ -326,7 +355,8 @@ def _turntable_attitudes(axis_a, axis_b, down, theta):
 
 def simulate_turntable(params: Paper000Params, field_nt, inclination_rad, n_steps,
                        noise_sigma=0.0, noise_mean=0.0, rng=None) -> TurntableData:
-    """Simulate paper 000's two-position turntable experiment (§2, Fig. 2-3, §3.1).
+    """
+    Simulate paper 000's two-position turntable experiment (§2, Fig. 2-3, §3.1).
 
     Level frame: north, east, down; field ``B (cos I, 0, sin I)``. Position 1: the Xm and Ym
     axes horizontal, Zm down, Xm at azimuth theta. Position 2: the physical Xm and Zm axes
@@ -353,6 +383,7 @@ def simulate_turntable(params: Paper000Params, field_nt, inclination_rad, n_step
     Returns
     -------
     TurntableData
+
     """
     if int(n_steps) < 3:
         raise ValueError('n_steps must be >= 3 for a sine fit, got %r' % (n_steps,))

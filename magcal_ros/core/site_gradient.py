@@ -1,19 +1,34 @@
-"""The site gradient: its report from a fit, its Cramer-Rao bounds with and without attitude,
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The site gradient: its report from a fit, its Cramer-Rao bounds with and without attitude,
 and the fit without attitude (the heading about the field estimated per epoch).
 
 The effect itself is :class:`magcal_ros.core.effects.SiteGradient` (docs/site_gradient.md has
 the physics and the identifiability analysis summarised here).  Units: nT, nT/m, m, rad.
 """
-import numpy as np
-
 from magcal_ros.core.effects import symmetric_traceless
+import numpy as np
 
 #: d vec(G) / d (gxx, gxy, gxz, gyy, gyz): the 9 x 5 map of the symmetric traceless tensor
 TENSOR_MAP = np.stack([symmetric_traceless(e).ravel() for e in np.eye(5)], axis=1)
 
 
 def gradient_from_fit(model, params, covariance):
-    """World-frame site gradient and its standard uncertainty from a fit.
+    """
+    World-frame site gradient and its standard uncertainty from a fit.
 
     Parameters
     ----------
@@ -26,6 +41,7 @@ def gradient_from_fit(model, params, covariance):
     Returns
     -------
     (G (3, 3) nT/m, stderr (3, 3) nT/m, cov5 (5, 5) (nT/m)^2) or None without the effect.
+
     """
     for eff, sl in zip(model.array_effects, model.array_slices):
         if eff.name == 'site_gradient':
@@ -38,7 +54,8 @@ def gradient_from_fit(model, params, covariance):
 
 
 def centred_fields(result):
-    """(S, N, 3) nT corrected fields minus each sensor's modelled site shift (centre field).
+    """
+    (S, N, 3) nT corrected fields minus each sensor's modelled site shift (centre field).
 
     Without array-wide effects this is ``result.corrected_nt`` itself.
     """
@@ -71,7 +88,8 @@ def _skew(v):
 
 def crb_covariance(data, model, params, field_nt, sigma_nt, case='attitude', positions=None,
                    fix_gyz=False):
-    """Cramer-Rao bound of the calibration (and site gradient) with or without attitude.
+    """
+    Cramer-Rao bound of the calibration (and site gradient) with or without attitude.
 
     The Fisher information of the joint ML problem at ``params`` (the truth), with the per-epoch
     nuisances of each case eliminated (variable projection, as in the fit):
@@ -118,6 +136,7 @@ def crb_covariance(data, model, params, field_nt, sigma_nt, case='attitude', pos
         gauge-free directions ('heading') or None; ``gauge_direction`` (5,) or None;
         ``undetermined_directions``: how many parameter combinations the data cannot
         determine at all ('epoch_gradient').
+
     """
     from magcal_ros.core import model as mdl
     from magcal_ros.core.magnitude import reference_magnitude
@@ -223,7 +242,8 @@ def _rz(psi):
 
 
 def _best_heading(shift, r_a, g_w, positions, psi0=None):
-    """Per-epoch heading psi_k (N,) rad minimising sum_j |shift_j - R^T G R r_j|^2.
+    """
+    Per-epoch heading psi_k (N,) rad minimising sum_j |shift_j - R^T G R r_j|^2.
 
     R = Rz(psi) R_a; ``shift`` (S, N, 3) nT the corrected fields minus their mean over the
     sensors (the centre field cancels for an array centred on its origin).  Grid of 5 deg,
@@ -253,7 +273,8 @@ def _best_heading(shift, r_a, g_w, positions, psi0=None):
 
 def fit_heading_unknown(data, model='base,site_gradient', field_nt=None, n_iter=8,
                         **fit_kwargs):
-    """Calibrate the cross in a site gradient without attitude (heading per epoch unknown).
+    """
+    Calibrate the cross in a site gradient without attitude (heading per epoch unknown).
 
     The analysis of docs/site_gradient.md (case 'heading'): the field direction u_k in the
     body frame gives two of the three attitude angles, R_k = Rz(psi_k) R_a(u_k) in a
@@ -286,6 +307,7 @@ def fit_heading_unknown(data, model='base,site_gradient', field_nt=None, n_iter=
         the part of G_w z perpendicular to the field); ``covariance``/``stderr`` from the
         heading-case bound; ``contexts`` carry the estimated attitudes; ``warnings`` say
         what the frame is.
+
     """
     from dataclasses import replace
     from magcal_ros.core import model as mdl

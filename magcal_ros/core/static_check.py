@@ -1,4 +1,19 @@
-"""Check a calibration against static recordings: one |B| everywhere, or why not.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Check a calibration against static recordings: one |B| everywhere, or why not.
 
 A sensor lying still in a uniform field reads the same field for minutes, so its corrected
 magnitude |B| is a check of a calibration that needs no reference: recordings at different
@@ -32,7 +47,8 @@ SAME_ATTITUDE_DEG = 5.0
 
 @dataclass
 class StaticCheck:
-    """Outcome of :func:`check_static`.
+    """
+    Outcome of :func:`check_static`.
 
     Attributes
     ----------
@@ -49,6 +65,7 @@ class StaticCheck:
         One sentence each: what the recordings show.
     consistent : bool
         All recordings give one |B| within ``tolerance_nt``, equal to the reference.
+
     """
 
     rows: list
@@ -59,7 +76,8 @@ class StaticCheck:
 
 
 def check_static(corrected, reference_nt, residual_rms_nt):
-    """Compare static recordings' corrected |B| with each other and with the reference.
+    """
+    Compare static recordings' corrected |B| with each other and with the reference.
 
     Parameters
     ----------
@@ -74,6 +92,7 @@ def check_static(corrected, reference_nt, residual_rms_nt):
     Returns
     -------
     StaticCheck
+
     """
     if not corrected:
         raise ValueError('no static recordings to check')

@@ -1,4 +1,19 @@
-"""Group the samples of S sensors into sets taken at the same epoch.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Group the samples of S sensors into sets taken at the same epoch.
 
 Pure Python/numpy (no rclpy), shared by the calibration node and the live correction
 (:mod:`magcal_ros.core.live`).
@@ -24,7 +39,8 @@ import numpy as np
 
 
 def backdate(stamps, period_s):
-    """Spread samples that arrived together back along the sample grid.
+    """
+    Spread samples that arrived together back along the sample grid.
 
     A run of samples whose stamps differ by less than a quarter period arrived in one read;
     the last of the run is kept and each earlier one is moved one period earlier than its
@@ -41,6 +57,7 @@ def backdate(stamps, period_s):
     -------
     numpy.ndarray
         (N,) stamps, s.
+
     """
     a = np.asarray(stamps, float)
     n = len(a)
@@ -56,7 +73,8 @@ def backdate(stamps, period_s):
 
 
 def epoch_times(epochs, stamps_s):
-    """Sample instants of consecutive epochs from noisy, late stamps: a linear clock.
+    """
+    Sample instants of consecutive epochs from noisy, late stamps: a linear clock.
 
     Fits t = t0 + T e by least squares for the slope T, then sets t0 on the lower envelope
     (latency is never negative, so the earliest stamps carry the sampling instants).
@@ -72,6 +90,7 @@ def epoch_times(epochs, stamps_s):
     -------
     numpy.ndarray
         (N,) times in s, strictly increasing.
+
     """
     e = np.asarray(epochs, float)
     t = np.asarray(stamps_s, float)
@@ -121,7 +140,8 @@ def _median(values):
 
 
 class StampMatcher:
-    """Group the samples of ``n_sensors`` streams into epochs.
+    """
+    Group the samples of ``n_sensors`` streams into epochs.
 
     Within a stream the samples come in order and (normally) none is lost, so the k-th
     sample of sensor j belongs to epoch k + o_j with one integer offset o_j per sensor
@@ -160,6 +180,7 @@ class StampMatcher:
         Samples dropped because their stamp was older than the previous one of that sensor.
     realigned : int
         Times a stream's epoch offset changed after the first alignment (lost samples).
+
     """
 
     def __init__(self, n_sensors, tolerance_s, window=200, align_every=40, max_queue=1000):
@@ -203,7 +224,8 @@ class StampMatcher:
         return tuple(len(q) for q in self._queues)
 
     def add(self, j, stamp_s, item):
-        """Add the sample ``item`` of sensor ``j`` (0-based) stamped ``stamp_s`` seconds.
+        """
+        Add the sample ``item`` of sensor ``j`` (0-based) stamped ``stamp_s`` seconds.
 
         Returns
         -------
@@ -211,6 +233,7 @@ class StampMatcher:
             Completed sets, oldest first: (epoch number, median stamp of the set in s,
             [item of sensor 0, ..., item of sensor S-1]). The stamps are late by the
             arrival latency; :func:`epoch_times` turns epochs into sample instants.
+
         """
         last = self._last_arrival[j]
         if last is not None and stamp_s < last:

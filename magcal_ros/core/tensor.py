@@ -1,3 +1,17 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
 """Magnetic gradient tensor of a sensor array (paper 004 eq. 1 and a least-squares form)."""
 import numpy as np
 
@@ -9,7 +23,8 @@ def cross_positions(baseline_m=0.5):
 
 
 def tensor_cross(b, baseline_m=0.5):
-    """Paper 004 eq. 1: gradient tensor at the centre of the cross.
+    """
+    Paper 004 eq. 1: gradient tensor at the centre of the cross.
 
     Parameters
     ----------
@@ -22,6 +37,7 @@ def tensor_cross(b, baseline_m=0.5):
     -------
     numpy.ndarray
         (N, 3, 3) or (3, 3) tensor G_ij = dB_i/dx_j in nT/m.
+
     """
     b = np.asarray(b, float)
     one = b.ndim == 2
@@ -45,7 +61,8 @@ def tensor_cross(b, baseline_m=0.5):
 
 
 def tensor_operator(positions):
-    """Linear map from stacked sensor fields to (B0, G) for any array geometry.
+    """
+    Linear map from stacked sensor fields to (B0, G) for any array geometry.
 
     The field is modelled as B(r) = B0 + G r.  For an array spanning 3-D, G is taken symmetric
     and traceless (curl- and divergence-free field: 5 unknowns) and solved with B0 by least
@@ -62,6 +79,7 @@ def tensor_operator(positions):
     -------
     numpy.ndarray
         (12, 3 S) matrix L with [B0 (3), G row-major (9)] = L @ b.ravel(), b of shape (S, 3).
+
     """
     r = np.asarray(positions, float)
     s = len(r)
@@ -112,7 +130,8 @@ def tensor_operator(positions):
 
 
 def tensor_lstsq(b, positions):
-    """Gradient tensor for any geometry (see :func:`tensor_operator`).
+    """
+    Gradient tensor for any geometry (see :func:`tensor_operator`).
 
     Parameters
     ----------
@@ -124,6 +143,7 @@ def tensor_lstsq(b, positions):
     Returns
     -------
     (G (N, 3, 3) nT/m, B0 (N, 3) nT)
+
     """
     b = np.asarray(b, float)
     op = tensor_operator(positions)
@@ -133,7 +153,8 @@ def tensor_lstsq(b, positions):
 
 
 def tensor_noise_floor(sigma_nt, positions):
-    """(3, 3) standard deviation of each tensor component, nT/m, for white sensor noise.
+    """
+    (3, 3) standard deviation of each tensor component, nT/m, for white sensor noise.
 
     sigma_nt is the per-axis noise (scalar or (S,)) of the corrected fields.
     """

@@ -1,3 +1,17 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
 """Atomic file replacement: temporary file in the same directory, fsync, rename."""
 import os
 import shutil
@@ -5,7 +19,8 @@ import tempfile
 
 
 def atomic_write_text(path, text, backup=True, fsync=os.fsync):
-    """Write ``text`` to ``path`` so that readers see the old or the new file, never a mix.
+    """
+    Write ``text`` to ``path`` so that readers see the old or the new file, never a mix.
 
     The previous file, if any, is kept as ``<path>.bak`` when ``backup`` is true.  If anything
     fails before the final rename the original file is untouched and the temporary is removed.

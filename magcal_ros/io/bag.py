@@ -1,4 +1,19 @@
-"""rosbag2 recordings of the array -> :class:`~magcal_ros.core.dataset.Dataset` (no rclpy).
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+rosbag2 recordings of the array -> :class:`~magcal_ros.core.dataset.Dataset` (no rclpy).
 
 Reads with the ``rosbags`` library (pure Python; sqlite3 and mcap storage, any ROS 2 distro
 the bag declares, Jazzy message definitions by default).  Topics, under a namespace
@@ -27,10 +42,9 @@ import os
 from pathlib import Path
 import re
 
-import numpy as np
-
 from magcal_ros.core.dataset import Dataset
 from magcal_ros.units import nt_to_t, t_to_nt
+import numpy as np
 
 MAG_TYPE = 'sensor_msgs/msg/MagneticField'
 TEMP_TYPE = 'sensor_msgs/msg/Temperature'
@@ -67,7 +81,8 @@ def _interp(t_msg, v_msg, t):
 
 
 def read_bag(path, namespace='/magcal', aux_topics=None, imu_topic=None):
-    """Read a rosbag2 directory into a Dataset (readings in nT, times in s).
+    """
+    Read a rosbag2 directory into a Dataset (readings in nT, times in s).
 
     Parameters
     ----------
@@ -87,6 +102,7 @@ def read_bag(path, namespace='/magcal', aux_topics=None, imu_topic=None):
         ``t`` (N,) s (header stamps, absolute), ``raw`` (S, N, 3) nT, ``temp`` (S, N) degC or
         None, ``ref_total`` (N,) nT or None, ``aux`` {name: (N,)}; ``meta`` holds the source,
         the topics used and the number of dropped epochs.
+
     """
     from rosbags.highlevel import AnyReader
 
@@ -231,7 +247,8 @@ def read_bag(path, namespace='/magcal', aux_topics=None, imu_topic=None):
 
 
 def write_bag(path, data, namespace='/magcal', storage='sqlite3', frame_id='fluxgate'):
-    """Write a Dataset as a rosbag2 recording in the layout :func:`read_bag` reads.
+    """
+    Write a Dataset as a rosbag2 recording in the layout :func:`read_bag` reads.
 
     For tests, demos and converting CSV recordings for ROS tools.  Readings are written in
     tesla (``sensor_msgs/MagneticField``), temperatures in degC, auxiliary channels as
@@ -246,6 +263,7 @@ def write_bag(path, data, namespace='/magcal', storage='sqlite3', frame_id='flux
     storage : {'sqlite3', 'mcap'}
     frame_id : str
         Header frame prefix; sensor j gets ``{frame_id}{j}``.
+
     """
     from rosbags.rosbag2 import StoragePlugin, Writer
 

@@ -1,4 +1,19 @@
-"""The calibration file (docs/design.md §4): YAML with a schema version, written atomically.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The calibration file (docs/design.md §4): YAML with a schema version, written atomically.
 
 Layout (schema_version 1)::
 
@@ -26,12 +41,11 @@ import datetime
 import glob
 import os
 
-import numpy as np
-import yaml
-
 from magcal_ros.core import effects as fx
 from magcal_ros.core.model import Calibration, Model
 from magcal_ros.io.atomic import atomic_write_text
+import numpy as np
+import yaml
 
 SCHEMA_VERSION = 1
 KIND = 'magcal_ros/calibration'
@@ -100,7 +114,8 @@ def _need(d, key, where):
 
 
 def calibration_from_doc(doc, source='calibration'):
-    """Rebuild a :class:`Calibration` from a document; raises CalibrationFileError.
+    """
+    Rebuild a :class:`Calibration` from a document; raises CalibrationFileError.
 
     Every defect (wrong types from a hand edit, a file cut short by a crash or a full disk)
     is reported as a :class:`CalibrationFileError` naming it, never as another exception, so
@@ -261,7 +276,8 @@ def load_calibration(path):
 
 
 def save_calibration(path, doc, history=20, fsync=os.fsync):
-    """Write a calibration document atomically, keep ``<path>.bak`` and a bounded history.
+    """
+    Write a calibration document atomically, keep ``<path>.bak`` and a bounded history.
 
     The history directory ``<path>.history/`` keeps the last ``history`` calibrations
     (0 disables it) so that a user can roll back with :func:`rollback`.
@@ -285,7 +301,8 @@ def list_history(path):
 
 
 def active_history_index(path):
-    """Index in :func:`list_history` of the entry the active file is a copy of, or None.
+    """
+    Index in :func:`list_history` of the entry the active file is a copy of, or None.
 
     The newest matching entry counts (a rollback makes an older entry active again).
     """
@@ -306,7 +323,8 @@ def active_history_index(path):
 
 
 def rollback(path, steps=1):
-    """Make the calibration ``steps`` back in the history the active one; returns its path.
+    """
+    Make the calibration ``steps`` back in the history the active one; returns its path.
 
     Steps count back from the history entry the active file is a copy of (the newest entry
     after a calibration), so repeated rollbacks walk further back. An active file found in

@@ -1,13 +1,26 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
 """The wide CSV format of docs/design.md §1 (read and write)."""
 import io as _io
 import os
 import re
 
-import numpy as np
-
-from magcal_ros.core.attitude import COLUMNS as ATT_COLUMNS, check_quaternions
+from magcal_ros.core.attitude import check_quaternions, COLUMNS as ATT_COLUMNS
 from magcal_ros.core.dataset import Dataset
 from magcal_ros.io.atomic import atomic_write_text
+import numpy as np
 
 _SENSOR_COL = re.compile(r'^s(\d+)_(x|y|z|temp)$')
 _KNOWN = {'t', 'ref_total', 'ref_x', 'ref_y', 'ref_z', 'angle_deg', 'plane', *ATT_COLUMNS}
@@ -18,7 +31,8 @@ class CsvFormatError(ValueError):
 
 
 def read_csv(path):
-    """Read a wide CSV file into a :class:`Dataset`.
+    """
+    Read a wide CSV file into a :class:`Dataset`.
 
     Columns: ``t`` (s, non-decreasing), ``s{j}_x/y/z`` (nT), optional ``s{j}_temp`` (degC),
     ``ref_total`` (nT), ``ref_x/y/z`` (nT), ``angle_deg``, ``plane`` (xy|xz), ``aux_<name>``,
@@ -126,7 +140,7 @@ _REQUIRED_FINITE = re.compile(r'^(t|s\d+_[xyz]|ref_total|ref_[xyz])$')
 
 
 def _check_finite(path, header, arr, line_nos, lines):
-    """CsvFormatError naming the first line and column whose cell is empty, nan or inf."""
+    """Csvformaterror naming the first line and column whose cell is empty, nan or inf."""
     cols = [i for i, h in enumerate(header) if _REQUIRED_FINITE.match(h)]
     bad = ~np.isfinite(arr[:, cols])
     if not bad.any():

@@ -1,4 +1,19 @@
-"""Single-magnetometer CSV logs in other tools' layouts -> one-sensor :class:`Dataset` in nT.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Single-magnetometer CSV logs in other tools' layouts -> one-sensor :class:`Dataset` in nT.
 
 Many public magnetometer logs (IMU calibration tools, phone loggers) are a CSV with one
 row per sample and columns such as ``mx,my,mz`` in gauss or microtesla, often with an
@@ -15,10 +30,9 @@ uniform field), see ``test/test_real_data.py``.
 """
 import os
 
-import numpy as np
-
 from magcal_ros.core.dataset import Dataset
 from magcal_ros.units import t_to_nt
+import numpy as np
 
 #: nanotesla per unit
 UNITS_NT = {'nT': 1.0, 'uT': 1e3, 'mG': 100.0, 'gauss': 1e5, 'G': 1e5, 'T': None}
@@ -48,7 +62,8 @@ def _find(header, options, what):
 
 def read_single_sensor_csv(path, unit='gauss', rate_hz=100.0, field_columns=None,
                            accel_columns=None):
-    """Read a one-magnetometer CSV (header row, comma separated) into a Dataset in nT.
+    """
+    Read a one-magnetometer CSV (header row, comma separated) into a Dataset in nT.
 
     Parameters
     ----------
@@ -67,6 +82,7 @@ def read_single_sensor_csv(path, unit='gauss', rate_hz=100.0, field_columns=None
     Dataset
         ``raw`` (1, N, 3) nT; ``t`` (N,) s; ``meta``: source, unit, synthetic_time,
         accel (N, 3) or None.
+
     """
     path = os.fspath(path)
     try:

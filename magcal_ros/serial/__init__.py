@@ -1,4 +1,19 @@
-r"""Serial device protocols (pure parsers/encoders) and the pyserial transport.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+r"""
+Serial device protocols (pure parsers/encoders) and the pyserial transport.
 
 Nothing in this package imports rclpy.
 
@@ -36,7 +51,8 @@ DEFAULT_PROTOCOL = 'ascii'
 
 @dataclass(frozen=True)
 class Protocol:
-    """One registry entry.
+    """
+    One registry entry.
 
     Attributes
     ----------
@@ -47,6 +63,7 @@ class Protocol:
         :class:`Encoder` subclass, constructed with keyword options.
     description : str
         One line for help texts.
+
     """
 
     name: str
@@ -59,7 +76,8 @@ PROTOCOLS = {}
 
 
 def register_protocol(name, parser, encoder, description=''):
-    """Add (or replace) a protocol in :data:`PROTOCOLS`.
+    """
+    Add (or replace) a protocol in :data:`PROTOCOLS`.
 
     Parameters
     ----------
@@ -71,6 +89,7 @@ def register_protocol(name, parser, encoder, description=''):
         Subclass of :class:`Encoder`.
     description : str
         One line for help texts.
+
     """
     if not (isinstance(parser, type) and issubclass(parser, Parser)):
         raise ValueError(f'parser for {name!r} must be a Parser subclass, got {parser!r}')
@@ -134,7 +153,8 @@ def _build(protocol, side, options):
 
 
 def make_parser(protocol=DEFAULT_PROTOCOL, **options):
-    """Build a parser.
+    """
+    Build a parser.
 
     Parameters
     ----------
@@ -152,12 +172,14 @@ def make_parser(protocol=DEFAULT_PROTOCOL, **options):
     ------
     ValueError
         Unknown protocol, unknown option or bad option value.
+
     """
     return _build(protocol, 'parser', options)
 
 
 def make_encoder(protocol=DEFAULT_PROTOCOL, **options):
-    """Build an encoder producing exactly what :func:`make_parser` with the same options reads.
+    """
+    Build an encoder producing exactly what :func:`make_parser` with the same options reads.
 
     Parameters
     ----------
@@ -174,5 +196,6 @@ def make_encoder(protocol=DEFAULT_PROTOCOL, **options):
     ------
     ValueError
         Unknown protocol, unknown option or bad option value.
+
     """
     return _build(protocol, 'encoder', options)

@@ -1,4 +1,19 @@
-r"""Configurable ASCII line protocol (the project's default device protocol).
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+r"""
+Configurable ASCII line protocol (the project's default device protocol).
 
 Default (docs/design.md §3): one line per sample, ``<x_nT>,<y_nT>,<z_nT>,<temp_C>\r\n``,
 e.g. ``12345.6,-2345.1,43210.9,24.31\r\n``.
@@ -26,7 +41,8 @@ _NUMBER = re.compile(rb'[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?'
 
 
 def parse_number(text):
-    """Parse one ASCII number strictly.
+    """
+    Parse one ASCII number strictly.
 
     Parameters
     ----------
@@ -42,6 +58,7 @@ def parse_number(text):
     ------
     ValueError
         If ``text`` is not a plain decimal number.
+
     """
     text = text.strip()
     if not _NUMBER.fullmatch(text):
@@ -75,7 +92,8 @@ def _check_delimiter(delimiter):
 
 
 class AsciiParser(LineParser):
-    r"""Parser for the configurable ASCII line protocol.
+    r"""
+    Parser for the configurable ASCII line protocol.
 
     Parameters
     ----------
@@ -102,6 +120,7 @@ class AsciiParser(LineParser):
         ``'malformed'``).
     **kwargs
         ``max_abs_nt``, ``temp_range_c``, ``time_reset_after``, ``max_line_bytes``.
+
     """
 
     def __init__(self, delimiter=',', terminator='\r\n', columns=DEFAULT_COLUMNS, scale=1.0,
@@ -153,7 +172,8 @@ class AsciiParser(LineParser):
 
 
 class AsciiEncoder(Encoder):
-    """Encoder for the configurable ASCII line protocol (same options as the parser).
+    """
+    Encoder for the configurable ASCII line protocol (same options as the parser).
 
     Parameters
     ----------
@@ -169,6 +189,7 @@ class AsciiEncoder(Encoder):
     header : str or None
         Optional header text sent once before streaming (:attr:`preamble`), e.g. a
         ``'# x,y,z,temp'`` comment line; the terminator is appended.
+
     """
 
     def __init__(self, delimiter=',', terminator='\r\n', columns=DEFAULT_COLUMNS, scale=1.0,
@@ -189,12 +210,14 @@ class AsciiEncoder(Encoder):
         self.preamble = (to_bytes(header, 'header') + self.terminator) if header else b''
 
     def encode(self, sample):
-        """Return one line for ``sample``.
+        """
+        Return one line for ``sample``.
 
         Raises
         ------
         ValueError
             If the columns need a temperature or time that the sample lacks.
+
         """
         parts = []
         for name in self.columns:

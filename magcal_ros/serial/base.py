@@ -1,4 +1,19 @@
-"""Common parts of every serial protocol: the sample record, statistics and validation.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Common parts of every serial protocol: the sample record, statistics and validation.
 
 A protocol is a pair (:class:`Parser`, :class:`Encoder`). The parser turns an arbitrary byte
 stream into :class:`Sample` records and never raises on any input: malformed, non-finite,
@@ -26,7 +41,8 @@ DEFAULT_TIME_RESET_AFTER = 20
 
 @dataclass(frozen=True)
 class Sample:
-    """One decoded magnetometer reading.
+    """
+    One decoded magnetometer reading.
 
     Attributes
     ----------
@@ -37,6 +53,7 @@ class Sample:
     device_time : float or None
         Device timestamp in s when the protocol carries it, else None. This is the
         device's clock, not the arrival time (the transport stamps arrival separately).
+
     """
 
     field_nt: tuple
@@ -46,7 +63,8 @@ class Sample:
 
 @dataclass
 class ParserStats:
-    """Counters of one parser.
+    """
+    Counters of one parser.
 
     Attributes
     ----------
@@ -63,6 +81,7 @@ class ParserStats:
         Bytes fed to the parser.
     bytes_dropped : int
         Bytes discarded while searching for a frame boundary or sync tag.
+
     """
 
     frames: int = 0
@@ -99,7 +118,8 @@ def _check_positive(name, value):
 
 
 def to_bytes(value, name):
-    """Convert a str (latin-1, escapes already resolved) or bytes option to bytes.
+    """
+    Convert a str (latin-1, escapes already resolved) or bytes option to bytes.
 
     Parameters
     ----------
@@ -111,6 +131,7 @@ def to_bytes(value, name):
     Returns
     -------
     bytes
+
     """
     if value is None:
         return b''
@@ -126,7 +147,8 @@ def to_bytes(value, name):
 
 
 class Parser:
-    """Base class of protocol parsers: validation, statistics and timestamp ordering.
+    """
+    Base class of protocol parsers: validation, statistics and timestamp ordering.
 
     Subclasses implement :meth:`_parse` (bytes -> list of raw tuples via :meth:`_accept`).
 
@@ -143,6 +165,7 @@ class Parser:
         accepted one (each counted as ``'time_backwards'`` and dropped), the parser
         assumes the device restarted its clock, counts ``'time_reset'`` and accepts the
         new time base.
+
     """
 
     #: Bytes the transport writes after opening the port (e.g. a start command).
@@ -169,7 +192,8 @@ class Parser:
         self._backwards_run = 0
 
     def feed(self, data):
-        """Consume bytes and return the samples completed by them.
+        """
+        Consume bytes and return the samples completed by them.
 
         Parameters
         ----------
@@ -180,6 +204,7 @@ class Parser:
         -------
         list of Sample
             Valid samples in stream order (possibly empty).
+
         """
         data = bytes(data)
         self.stats.bytes_in += len(data)
@@ -235,7 +260,8 @@ class Parser:
 
 
 class Encoder:
-    """Base class of protocol encoders (used by the simulator).
+    """
+    Base class of protocol encoders (used by the simulator).
 
     :meth:`encode` turns one :class:`Sample` into the exact bytes the matching parser
     reads; :meth:`encode_many` concatenates several.

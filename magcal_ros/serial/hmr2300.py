@@ -1,4 +1,19 @@
-r"""Honeywell HMR2300 smart digital magnetometer: ASCII and binary output, commands.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+r"""
+Honeywell HMR2300 smart digital magnetometer: ASCII and binary output, commands.
 
 Output formats (HMR2300 data sheet, "Data formats"):
 
@@ -130,7 +145,8 @@ class _Hmr2300Options:
 
 
 class Hmr2300AsciiParser(_Hmr2300Options, LineParser):
-    """Parser of HMR2300 ASCII output (signed counts with comma thousands separators).
+    """
+    Parser of HMR2300 ASCII output (signed counts with comma thousands separators).
 
     Parameters
     ----------
@@ -148,6 +164,7 @@ class Hmr2300AsciiParser(_Hmr2300Options, LineParser):
         ``temp_range_c``, ``time_reset_after``, ``max_line_bytes``.
 
     Lines that are exactly ``OK`` (command replies) are ignored as ``'response'``.
+
     """
 
     def __init__(self, counts_per_gauss=COUNTS_PER_GAUSS, device_id='99', send_start=False,
@@ -179,7 +196,8 @@ class Hmr2300AsciiParser(_Hmr2300Options, LineParser):
 
 
 class Hmr2300AsciiEncoder(_Hmr2300Options, Encoder):
-    """Encoder of HMR2300 ASCII output: 28 bytes per reading.
+    """
+    Encoder of HMR2300 ASCII output: 28 bytes per reading.
 
     Field values are rounded to whole counts and saturated at the int16 range.
     """
@@ -201,7 +219,8 @@ class Hmr2300AsciiEncoder(_Hmr2300Options, Encoder):
 
 
 class Hmr2300BinaryParser(_Hmr2300Options, Parser):
-    """Parser of the HMR2300 7-byte binary frame, robust to 0x0D inside data bytes.
+    """
+    Parser of the HMR2300 7-byte binary frame, robust to 0x0D inside data bytes.
 
     Synchronisation: the stream is never split on CR. To acquire, the parser looks for the
     earliest position where ``sync_frames`` consecutive 7-byte frames all end in 0x0D (a
@@ -225,6 +244,7 @@ class Hmr2300BinaryParser(_Hmr2300Options, Parser):
         The start sequence selects binary output (``*ddB``).
     **kwargs
         ``max_abs_nt``, ``temp_range_c``, ``time_reset_after``.
+
     """
 
     def __init__(self, counts_per_gauss=COUNTS_PER_GAUSS, device_id='99', send_start=False,

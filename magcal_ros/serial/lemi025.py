@@ -1,4 +1,19 @@
-"""LEMI-025 *style* fixed-length binary packets with a sync tag and CRC.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+LEMI-025 *style* fixed-length binary packets with a sync tag and CRC.
 
 This is a packet layout defined by this project in the spirit of the LEMI-025 fluxgate
 magnetometer's binary stream (sync tag, counter, device time, 3 components, temperature,
@@ -47,12 +62,14 @@ def crc16(data):
 
 
 class Lemi025Parser(Parser):
-    """Parser of LEMI-025 style packets (see module docstring for the layout).
+    """
+    Parser of LEMI-025 style packets (see module docstring for the layout).
 
     Parameters
     ----------
     **kwargs
         ``max_abs_nt``, ``temp_range_c``, ``time_reset_after``.
+
     """
 
     def __init__(self, **kwargs):
@@ -102,7 +119,8 @@ def _clip(value, lo, hi):
 
 
 class Lemi025Encoder(Encoder):
-    """Encoder of LEMI-025 style packets; keeps the packet counter.
+    """
+    Encoder of LEMI-025 style packets; keeps the packet counter.
 
     Parameters
     ----------
@@ -112,18 +130,21 @@ class Lemi025Encoder(Encoder):
     Samples must carry ``device_time``; a missing temperature is written as
     :data:`TEMP_MISSING`. Values are rounded to 0.01 nT / 0.01 degC / 1 us and saturated
     to the field widths.
+
     """
 
     def __init__(self, counter=0):
         self.counter = int(counter) % 2**32
 
     def encode(self, sample):
-        """Return the 32-byte packet of ``sample``.
+        """
+        Return the 32-byte packet of ``sample``.
 
         Raises
         ------
         ValueError
             If the sample has no device_time.
+
         """
         if sample.device_time is None:
             raise ValueError('lemi025 packets carry the device time: sample.device_time '

@@ -1,3 +1,17 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
 """Line framing shared by the text protocols (configurable ASCII, HMR2300 ASCII)."""
 
 import re
@@ -10,7 +24,8 @@ _NEWLINE_SPLIT = re.compile(rb'[\r\n]')
 
 
 class LineParser(Parser):
-    r"""Split a byte stream into lines and hand each complete line to :meth:`_parse_line`.
+    r"""
+    Split a byte stream into lines and hand each complete line to :meth:`_parse_line`.
 
     Parameters
     ----------
@@ -24,6 +39,7 @@ class LineParser(Parser):
         terminator and counted as ``'overlong'`` (wrong baud rate produces such input).
     **kwargs
         Validation options of :class:`~magcal_ros.serial.base.Parser`.
+
     """
 
     def __init__(self, terminator=b'\r\n', max_line_bytes=256, **kwargs):

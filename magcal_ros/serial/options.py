@@ -1,4 +1,19 @@
-"""Protocol options from configuration text (ROS parameter strings, command lines, YAML).
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Protocol options from configuration text (ROS parameter strings, command lines, YAML).
 
 PyYAML implements YAML 1.1, where ``1e5`` or ``1.0e5`` (no exponent sign) is a *string*;
 users write them as numbers. The loader here also resolves those as floats (YAML 1.2 rule),
@@ -30,7 +45,8 @@ def load_yaml(text):
 
 
 def parse_options(text):
-    """Parse protocol options given as a YAML mapping string.
+    """
+    Parse protocol options given as a YAML mapping string.
 
     Parameters
     ----------
@@ -46,6 +62,7 @@ def parse_options(text):
     ------
     ValueError
         If the text is not a YAML mapping.
+
     """
     if text is None or isinstance(text, dict):
         return dict(text or {})
