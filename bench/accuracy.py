@@ -51,21 +51,21 @@ Figures per method (means over seeds):
     python bench/accuracy.py --seeds 50
     python bench/accuracy.py --seeds 2 --scenarios paper004 --holdout 200     # tiny
 """
+import argparse
 import os
+import sys
+import time
+import warnings
+
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')    # before numpy: small problems, 2 cores
-import argparse  # noqa: E402
-import sys  # noqa: E402
-import time  # noqa: E402
-import warnings  # noqa: E402
-
-import numpy as np  # noqa: E402
-
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
 import common  # noqa: E402
 from magcal_ros.core import model as mdl  # noqa: E402
 from magcal_ros.core.magnitude import reference_magnitude  # noqa: E402
 from magcal_ros.core.simulate import SimConfig, Simulator  # noqa: E402
 from magcal_ros.core.tensor import cross_positions, tensor_cross, tensor_noise_floor  # noqa
+import numpy as np  # noqa: E402
 import site_gradient as site_scn  # noqa: E402
 
 F_NT = 50000.0
@@ -83,7 +83,7 @@ SCENARIOS = {
     'cone60': {'sim': {'trajectory': 'cone', 'cone_half_angle_deg': 30.0},
                'methods': ('algebraic', 'ml', 'ml_constrained')},
     'diurnal': {'sim': {'diurnal_swing_nt': 200.0, 'diurnal_period_s': 600.0,
-                         'rate_hz': 200 / 600.0}, 'methods': ('algebraic', 'ml')},
+                        'rate_hz': 200 / 600.0}, 'methods': ('algebraic', 'ml')},
     'outliers5': {'sim': {'outlier_fraction': 0.05, 'outlier_nt': 1000.0},
                   'methods': ('algebraic', 'ml', 'ml_plain')},
     # its own figures and tables (bench/site_gradient.py)

@@ -77,7 +77,7 @@ def _blas_threads():
 
 
 def machine_info():
-    """Dict describing the machine and software the benchmark ran on."""
+    """Describe the machine and software the benchmark ran on (a dict)."""
     import scipy
     info = {
         'cpu_model': _cpu_model(),
@@ -115,6 +115,10 @@ def write_result(name, settings, results, tables, out_dir=None, started=None):
         The figures.
     tables : list of str
         The printed tables (kept in the JSON for BENCHMARKS.md).
+    out_dir : str, optional
+        Folder of the result (default bench/results).
+    started : float, optional
+        ``time.perf_counter()`` at the start: the JSON then has the wall time.
 
     """
     out_dir = out_dir or RESULTS_DIR

@@ -35,23 +35,23 @@ latency.  DDS on loopback only (config/fastdds_loopback.xml), private domain.
     python bench/driver_rate.py
     python bench/driver_rate.py --samples 2000 --node-duration 2      # tiny
 """
+import argparse
+import json
 import os
+import subprocess
+import sys
+import tempfile
+import time
+import tty
+
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
-import argparse  # noqa: E402
-import json  # noqa: E402
-import subprocess  # noqa: E402
-import sys  # noqa: E402
-import tempfile  # noqa: E402
-import time  # noqa: E402
-import tty  # noqa: E402
-
-import numpy as np  # noqa: E402
-import serial  # noqa: E402
-
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
 import common  # noqa: E402
 from magcal_ros.serial import make_encoder, make_parser, PROTOCOLS, Sample  # noqa: E402
 from magcal_ros.serial.transport import PortReader  # noqa: E402
+import numpy as np  # noqa: E402
+import serial  # noqa: E402
 
 PY = sys.executable
 LOAD = os.path.join(common.BENCH_DIR, 'live_load.py')
@@ -276,8 +276,8 @@ def main(argv=None):
                 'bytes_per_frame': frame, 'parser_samples_per_s': p_rate, 'parser_samples': p_n,
                 'parser_64k_samples_per_s': p64,
                 'bare_bytes_per_s': b_rate, 'bare_frames_per_s': b_rate / frame,
-                'reader_samples_per_s': r_rate, 'reader_samples': r_n, 'reader_parse_errors': r_err,
-                'reader_over_bare': r_rate / (b_rate / frame)}
+                'reader_samples_per_s': r_rate, 'reader_samples': r_n,
+                'reader_parse_errors': r_err, 'reader_over_bare': r_rate / (b_rate / frame)}
             rows.append([proto, f'{frame:.1f}', p_rate, p64, b_rate / frame, r_rate,
                          f'{r_rate / (b_rate / frame):.2f}', r_err])
             print(f'  {proto}: parser {p_rate:.0f}/s, bare {b_rate / frame:.0f} frames/s, '

@@ -50,10 +50,10 @@ import sys
 import tempfile
 import time
 
-import numpy as np
-
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
 import common  # noqa: E402
+import numpy as np  # noqa: E402
 
 PY = sys.executable
 LOAD = os.path.join(common.BENCH_DIR, 'live_load.py')
@@ -261,7 +261,7 @@ def main(argv=None):
                 active = [k for k in args.nodes if fails[k] < 2]
                 if not active:
                     break
-                runs_r = {k: [r for r in by.get((k, rate), [])] for k in active}
+                runs_r = {k: list(by.get((k, rate), [])) for k in active}
                 for _ in range(args.search_repeats):
                     for kind in active:
                         if len(runs_r[kind]) < args.search_repeats:

@@ -43,24 +43,24 @@ the methods are compared on what both determine:
 
     python bench/papers.py --seeds 100
 """
+import argparse
+import io
 import os
+import sys
+import time
+import warnings
+
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
-import argparse  # noqa: E402
-import io  # noqa: E402
-import sys  # noqa: E402
-import time  # noqa: E402
-import warnings  # noqa: E402
-
-import numpy as np  # noqa: E402
-from scipy.spatial.transform import Rotation  # noqa: E402
-
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
 import common  # noqa: E402
 from magcal_ros.core import model as mdl  # noqa: E402
 from magcal_ros.core import reference_vector as ref  # noqa: E402
 from magcal_ros.core import sine  # noqa: E402
 from magcal_ros.core.dataset import Dataset  # noqa: E402
 from magcal_ros.core.paper_params import Paper000Params  # noqa: E402
+import numpy as np  # noqa: E402
+from scipy.spatial.transform import Rotation  # noqa: E402
 
 P000 = Paper000Params(alpha=np.radians(1.35), beta=np.radians(32.7), gamma=np.radians(1.07),
                       kx=0.909, ky=1.146, kz=1.103, B0=np.array([143.0, 97.4, 123.7]))

@@ -32,11 +32,9 @@ import os
 import sys
 import time
 
-import numpy as np
-
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import common  # noqa: E402
 
+import common  # noqa: E402
 sys.path.insert(0, os.path.join(common.REPO_DIR, 'test'))
 from magcal_ros.core.identifiability import check_coverage  # noqa: E402
 from magcal_ros.core.magnitude import auto_magnitude  # noqa: E402
@@ -45,6 +43,7 @@ from magcal_ros.core.noise import noise_floor  # noqa: E402
 from magcal_ros.core.static_check import check_static  # noqa: E402
 from magcal_ros.io.csvio import read_csv  # noqa: E402
 from magcal_ros.io.single_csv import read_single_sensor_csv  # noqa: E402
+import numpy as np  # noqa: E402
 from test_real_sunsided import geometric_ellipsoid_fit  # noqa: E402
 
 SHARED = os.path.normpath(os.path.join(common.REPO_DIR, '..', 'shared', 'data', 'real'))

@@ -104,6 +104,8 @@ def run_seed(seed, n_samples=200):
 
 def _field_aligned5(g_w, b_w):
     """
+    Return the five components of G_w in the frame of fit_heading_unknown.
+
     (gxx, gxy, gxz, gyy, gyz) of G_w in the frame of fit_heading_unknown: z along the
     field, x along the part of G z perpendicular to it (gyz = 0).
     """

@@ -42,10 +42,10 @@ import subprocess
 import sys
 import time
 
-import numpy as np
-
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
 import common  # noqa: E402
+import numpy as np  # noqa: E402
 
 DURATION_S = 600.0
 MODELS = {

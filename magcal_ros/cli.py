@@ -67,7 +67,7 @@ def load_data(path, unit=None, rate_hz=100.0):
 
 
 def _is_wide_csv(path):
-    """True when the first non-comment line of ``path`` names a wide-format column s<j>_x."""
+    """Tell whether the first non-comment line of ``path`` names a wide-format column."""
     import re
     with open(path, encoding='utf-8-sig', errors='replace') as fh:
         for line in fh:
@@ -77,7 +77,7 @@ def _is_wide_csv(path):
 
 
 def add_unit_arg(p):
-    """--unit option (the unit of the data's field columns)."""
+    """Add the --unit option (the unit of the data's field columns)."""
     p.add_argument('--unit', choices=list(UNITS_NT),
                    help='unit of the field columns of DATA (readings, ref_total, ref_x/y/z), '
                         'converted to nT at load (default nT); a single-magnetometer CSV '
@@ -141,7 +141,7 @@ def _resolve_field(args, data):
     if data.ref_total is not None:
         return None, {'kind': 'ref_total', 'magnitude_nt': float(np.mean(data.ref_total))}
     raise BadInput('no reference field: the data have no ref_total column; give --field-nt NT, '
-                   "--field-nt auto or --igrf LAT LON ALT_KM DATE")
+                   '--field-nt auto or --igrf LAT LON ALT_KM DATE')
 
 
 def load_plugins(args):
@@ -187,7 +187,8 @@ def cmd_simulate(args):
             raise BadInput(f'--site-gradient {args.site_gradient!r}: expected five numbers '
                            'GXX,GXY,GXZ,GYY,GYZ in nT/m (gzz = -gxx - gyy)')
         grad = symmetric_traceless(g5)
-    data, sim = simulate(gradient_nt_per_m=grad, attitude=args.attitude, n_samples=args.n, rate_hz=args.rate, trajectory=args.trajectory,
+    data, sim = simulate(gradient_nt_per_m=grad, attitude=args.attitude, n_samples=args.n,
+                         rate_hz=args.rate, trajectory=args.trajectory,
                          noise_nt=args.noise_nt, seed=args.seed, truth=truth,
                          model=args.model, aux=not args.no_aux,
                          diurnal_swing_nt=args.diurnal_nt, outlier_fraction=args.outliers,
@@ -398,7 +399,7 @@ def cmd_check(args):
 # -- main -----------------------------------------------------------------------------------
 
 def build_parser():
-    """The argparse parser of ``magcal``."""
+    """Build the argparse parser of ``magcal``."""
     p = argparse.ArgumentParser(prog='magcal', description='Calibrate and diagnose vector '
                                 'magnetometers and a four-fluxgate gradient tensor array.')
     sub = p.add_subparsers(dest='command', required=True)
@@ -484,6 +485,8 @@ def build_parser():
 
 def register_workbench_commands(sub):
     """
+    Register the diagnose and report subcommands of the workbench.
+
     The diagnose/report commands (see magcal_ros.cli_workbench); a failing import is an
     error, never a silently shorter command list.
     """

@@ -100,6 +100,8 @@ def _residual_warnings(result, floor):
 
 def fit_warnings(result, floor):
     """
+    List every warning on a fit.
+
     Every warning on a fit as ``{kind, sensor, text}``: the fit's own (degenerate data
     flagged, not converged) and those on its residual against the data's floor.
     """
@@ -170,7 +172,9 @@ def calibrate(data, model='base', field_nt=None, geometry=None, field_reference=
     Parameters
     ----------
     data : Dataset
+        Raw readings (S, N, 3) nT with times and channels.
     model : str or Model
+        The model: effect tokens (``'base,temperature@2'``) or a built Model.
     field_nt : float or numpy.ndarray, optional
         Reference magnitude (nT); default ``data.ref_total``.
     geometry : dict, optional

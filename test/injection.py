@@ -67,10 +67,14 @@ def tumbling_field(n, rate_hz=RATE_HZ, seed=0, rotations=False):
 
 #: per sensor: scale (3,), non-orthogonality (rad, 3), rotation vector (rad, 3), offset nT (3,)
 SENSORS = [
-    ((1.012, 0.991, 1.004), (0.004, -0.003, 0.002), (0.0, 0.0, 0.0), (120.0, -85.0, 60.0)),
-    ((0.987, 1.009, 1.015), (-0.002, 0.005, 0.001), (0.012, -0.008, 0.015), (-70.0, 140.0, 35.0)),
-    ((1.006, 1.013, 0.985), (0.003, 0.002, -0.004), (-0.010, 0.014, 0.006), (45.0, 95.0, -150.0)),
-    ((0.993, 0.996, 1.011), (-0.005, -0.001, 0.003), (0.007, 0.011, -0.012), (-130.0, -40.0, 75.0)),
+    ((1.012, 0.991, 1.004), (0.004, -0.003, 0.002), (0.0, 0.0, 0.0),
+     (120.0, -85.0, 60.0)),
+    ((0.987, 1.009, 1.015), (-0.002, 0.005, 0.001), (0.012, -0.008, 0.015),
+     (-70.0, 140.0, 35.0)),
+    ((1.006, 1.013, 0.985), (0.003, 0.002, -0.004), (-0.010, 0.014, 0.006),
+     (45.0, 95.0, -150.0)),
+    ((0.993, 0.996, 1.011), (-0.005, -0.001, 0.003), (0.007, 0.011, -0.012),
+     (-130.0, -40.0, 75.0)),
 ]
 
 
@@ -116,6 +120,10 @@ def make(n=3000, seed=0, inject=None, noise=None):
 
     Parameters
     ----------
+    n : int
+        Number of epochs (at 10 Hz).
+    seed : int
+        Seed of the tumble, the channels and the noise.
     inject : callable, optional
         inject(t, temp, aux, field_body) -> {sensor: (N, 3) nT added to its raw reading}.
     noise : callable, optional
@@ -137,14 +145,14 @@ def make(n=3000, seed=0, inject=None, noise=None):
 # -- the faults of issue 11, written out ------------------------------------------------------
 
 def step_fault(t0=300.0, size=(40.0, 0.0, 0.0), sensor=1):
-    """An offset step of ``size`` nT at ``t0`` s on one sensor."""
+    """Inject an offset step of ``size`` nT at ``t0`` s on one sensor."""
     def inject(t, temp, aux, b):
         return {sensor: (t >= t0)[:, None] * np.array(size)}
     return inject
 
 
 def periodic_fault(freq=0.23, amp=15.0, sensor=3):
-    """A pump at ``freq`` Hz, ``amp`` nT on each axis with different phases."""
+    """Inject a pump at ``freq`` Hz, ``amp`` nT on each axis with different phases."""
     def inject(t, temp, aux, b):
         ph = 2 * np.pi * freq * t
         return {sensor: amp * np.stack([np.cos(ph), np.sin(ph + 0.4), np.cos(ph + 2.0)], 1)}
@@ -152,7 +160,7 @@ def periodic_fault(freq=0.23, amp=15.0, sensor=3):
 
 
 def lag_fault(tau=90.0, coef=(4.0, -3.0, 2.5), sensor=2):
-    """The sensor head follows its thermometer with a ``tau`` s lag: coef nT/degC."""
+    """Inject a sensor head that follows its thermometer with a ``tau`` s lag (nT/degC)."""
     def inject(t, temp, aux, b):
         y = lowpass(t, temp[sensor - 1], tau)
         return {sensor: (y - y.mean())[:, None] * np.array(coef)}
@@ -160,7 +168,7 @@ def lag_fault(tau=90.0, coef=(4.0, -3.0, 2.5), sensor=2):
 
 
 def current_squared_fault(coef=(0.6, -0.4, 0.5)):
-    """A field proportional to the motor current squared, nT/A^2, on every sensor."""
+    """Inject a field proportional to the motor current squared (nT/A^2) on every sensor."""
     def inject(t, temp, aux, b):
         i2 = aux['aux_motor_current'] ** 2
         return {j: i2[:, None] * np.array(coef) * (1.0 + 0.3 * j) for j in range(1, 5)}
@@ -168,7 +176,7 @@ def current_squared_fault(coef=(0.6, -0.4, 0.5)):
 
 
 def random_walk_fault(step_nt=0.02):
-    """A sub-noise random walk of every offset (per-sample steps ``step_nt`` nT)."""
+    """Inject a sub-noise random walk of every offset (per-sample steps ``step_nt`` nT)."""
     def inject(t, temp, aux, b):
         rng = np.random.default_rng(99)
         return {j: np.cumsum(rng.normal(0, step_nt, (len(t), 3)), axis=0) for j in range(1, 5)}
@@ -185,7 +193,7 @@ CROSS_M = np.array([[0.25, 0, 0], [0, 0.25, 0], [-0.25, 0, 0], [0, -0.25, 0]])
 
 
 def site_gradient_fault(grad_nt_m, seed=0):
-    """A constant world-frame gradient G (3, 3) nT/m: sensor j sees R^T G R r_j more field."""
+    """Inject a constant world-frame gradient G (3, 3) nT/m: sensor j sees R^T G R r_j."""
     def inject(t, temp, aux, b):
         _, _, rots = tumbling_field(len(t), seed=seed, rotations=True)
         out = {}
@@ -195,4 +203,3 @@ def site_gradient_fault(grad_nt_m, seed=0):
             out[j] = np.einsum('nij,ni->nj', rots, db_w)                # R^T db_w
         return out
     return inject
-

@@ -325,6 +325,8 @@ def test_sample_buffer_is_a_ring_in_time_order():
 
 def test_constrained_parameter(make_node, ros_node, ros_executor, ros_namespace, tmp_path):
     """
+    Refuse partial coverage naming the constrained mode, then calibrate with it.
+
     Partial coverage (directions within a 30 deg cap): refused naming the constrained
     mode, then calibrated with the node's `constrained` parameter.
     """

@@ -13,6 +13,8 @@
 # limitations under the License.
 
 """
+Partial attitude coverage end to end: the --constrained option.
+
 Partial attitude coverage end to end (issue 10, item 3): `magcal diagnose`, `magcal report`
 and `magcal fit` take --constrained, which the refusal tells the user to use.
 

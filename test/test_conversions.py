@@ -237,6 +237,8 @@ def test_linear_correction_in_tesla_equals_the_one_in_nanotesla():
 
 def test_residual_message_round_trip_hand_values():
     """
+    Round-trip the calibration/residual message with hand values.
+
     calibration/residual: 2 nT scalar, 5 nT vector -> 2e-9 T, 5e-9 T in the documented
     places (data[j - 1], data[S + j - 1]) and back.
     """

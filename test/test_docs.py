@@ -13,6 +13,8 @@
 # limitations under the License.
 
 """
+Citations of docs/design.md and docs/papers.md point at existing sections.
+
 Every citation of docs/design.md and docs/papers.md in the repository points at a section
 that exists, and the background files of the development (never shipped) are not cited.
 """

@@ -13,6 +13,7 @@
 # limitations under the License.
 
 """Every built-in effect: simulate it with known parameters, fit it, recover them."""
+import injection as inj  # test/injection.py: the cross written out by hand
 from magcal_ros.core import effects as fx
 from magcal_ros.core.model import fit, Model
 from magcal_ros.core.simulate import simulate
@@ -109,8 +110,6 @@ def test_misalignment_angle_round_trip():
 
 # -- effects with arguments (issue 11), on data written without Model.forward ---------------
 
-import injection as inj    # noqa: E402  (test/injection.py: the cross written out by hand)
-
 #: (token, fault, {parameter: (true value, tolerance)}).  Tolerances: 4 standard uncertainties
 #: of the fit at 3 nT noise and 3000 samples (stderr printed by the fit: 0.13 nT for a step,
 #: 0.09 nT for a sinusoid's amplitude, 0.7 s for the 90 s lag, 0.013 nT/A^2 for the square).
@@ -134,7 +133,7 @@ def test_effect_with_arguments_fits_a_fault_written_by_hand(token, fault, truth)
     res = fit(data, 'base,' + token, field_nt=inj.F_NT)
     label = token.split('@')[0]
     got = {n: (v, e) for (_, lab, n, _), v, e in zip(res.model.param_info(), res.params,
-                                                      res.stderr) if lab == label}
+                                                     res.stderr) if lab == label}
     for name, (true, tol) in truth.items():
         assert abs(got[name][0] - true) < tol, (name, got[name], true)
     # the effect was really there (3.5x the noise on its sensor) and is now fully explained:
@@ -199,6 +198,8 @@ def test_lag_keeps_its_state_in_a_subset():
 
 def test_lag_one_sample_at_a_time_keeps_its_state():
     """
+    Keep the state of the lag filter between one-sample calls.
+
     Live correction feeds one sample per call: the filter state is carried between calls
     and follows the batch filter (0.02 of a 10 degC step: zero- vs first-order hold).
     """

@@ -44,7 +44,8 @@ def test_planar_data_refused():
     rng = np.random.default_rng(0)
     ang = rng.uniform(0, 2 * np.pi, 200)
     raw = np.column_stack([np.cos(ang), np.sin(ang), 0.3 + 0 * ang]) * 40000
-    with pytest.raises(ValueError, match=r'not determined.*one plane with normal \(\+0.00, \+0.00, \+1.00\).*rotated about that axis only'):
+    with pytest.raises(ValueError, match=r'not determined.*one plane with normal '
+                       r'\(\+0.00, \+0.00, \+1.00\).*rotated about that axis only'):
         fit_ellipsoid(raw + rng.normal(size=raw.shape), 50000.0)
 
 

@@ -13,6 +13,8 @@
 # limitations under the License.
 
 """
+The field-rate signal: one estimate offline, in the simulator and live.
+
 The field-rate signal is estimated by one function (effects.raw_rate) offline, in the
 simulator and live, so a lag tau fitted from a recording corrects the live stream as it
 corrected the recording, to second order in the sample period, also when the stream is

@@ -241,7 +241,7 @@ def test_findings_are_in_the_diagnosis_json_and_text():
     doc = json.loads(diag.to_json())
     assert [(f['kind'], f['sensor']) for f in doc['findings']] == [('step', 1)]
     assert set(doc['findings'][0]) >= {'kind', 'sensor', 'channel', 'value', 'unit',
-                                      'explained_fraction', 'text'}
+                                       'explained_fraction', 'text'}
     assert 'step(300)@1' in diag.summary()
 
 

@@ -13,6 +13,8 @@
 # limitations under the License.
 
 """
+`magcal fit --method sine|reference` against the numbers of the papers.
+
 `magcal fit --method sine|reference` (papers 000 and 002 from the command line), run as a
 user would, against the numbers the papers print (docs/papers.md).
 """

@@ -70,6 +70,8 @@ def _plane_normal(axis):
 @pytest.mark.parametrize('k', [2.0, 6.0, 10.0])
 def test_offset_several_times_the_field_is_good(k):
     """
+    Accept a full sphere whose offset is several times the field.
+
     A full sphere whose offset is k x the field: the raw directions (about the origin)
     fill only a cone of about 1/k rad, the directions about the fitted centre the sphere.
     """
@@ -91,6 +93,8 @@ def test_offset_several_times_the_field_is_good(k):
 @pytest.mark.parametrize('snr', [10.0, 30.0])
 def test_noisy_full_sphere_is_accepted(snr, n):
     """
+    Accept a noisy full sphere.
+
     SNR 10 and 30 (5 000 and 1 667 nT per axis) with a 6x offset, also from only 100
     readings: the ellipsoid is determined (a fixed singular-value ratio refused these).
     """
@@ -131,6 +135,8 @@ def test_single_axis_with_noise_is_refused_naming_the_axis(axis, snr):
 @pytest.mark.parametrize('wobble', [1.0, 3.0])
 def test_single_axis_with_hand_wobble_is_refused_naming_the_axis(wobble):
     """
+    Refuse a hand-held turn about one axis, naming the axis.
+
     A hand-held turn about z wobbles by a few degrees: the ellipsoid may then be
     statistically determined, but the directions about its centre are still a ring.
     """
@@ -148,6 +154,8 @@ def test_single_axis_with_hand_wobble_is_refused_naming_the_axis(wobble):
 
 def test_cap_is_partial_not_single_axis():
     """
+    Call a cap of directions partial coverage, not a single axis.
+
     Directions filling a 30 deg cap (a vehicle that cannot turn over) are partial
     coverage, with the constrained mode offered; they are not a rotation about one axis.
     """
@@ -173,6 +181,8 @@ def test_translation_only_is_one_attitude():
 
 def test_still_sensor_noise_cloud_is_one_attitude():
     """
+    Call a still sensor one attitude.
+
     A sensor lying still: its readings are a cloud of noise around one field, to which an
     ellipsoid of the noise's size fits; that is not a calibration set.
     """
@@ -185,6 +195,8 @@ def test_still_sensor_noise_cloud_is_one_attitude():
 @pytest.mark.parametrize('half_deg', [35.0, 45.0])
 def test_cap_with_soft_iron_is_partial(half_deg):
     """
+    Call a cap partial coverage also with soft iron.
+
     A cap read by a sensor with 6 % soft iron and an offset of the field's size: the
     ellipsoid bends to the cap (its axes then differ by a factor 2-3, which no sensor
     has) and its centre is not the offset, about which the cap looks wide; the cap must

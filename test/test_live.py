@@ -45,8 +45,9 @@ C = [np.array([[1.02, 0.004, -0.003], [0.0, 0.97, 0.002], [0.0, 0.0, 1.01]]),
      np.array([[1.01, 0.001, 0.002], [0.0, 0.995, -0.004], [0.0, 0.0, 1.02]]),
      np.array([[0.98, 0.003, 0.0], [0.0, 1.01, 0.001], [0.0, 0.0, 1.005]])]
 R = [np.eye(3), _rot_z(8.0), _rot_x(-5.0), _rot_z(-3.0) @ _rot_x(4.0)]
-O = np.array([[120.0, -80.0, 30.0], [-50.0, 60.0, 200.0], [10.0, 0.0, -40.0],
-              [300.0, -250.0, 75.0]])
+#: offsets o_j, nT
+OFFSETS = np.array([[120.0, -80.0, 30.0], [-50.0, 60.0, 200.0], [10.0, 0.0, -40.0],
+                    [300.0, -250.0, 75.0]])
 SIGMA_NT = 2.0
 
 
@@ -54,12 +55,12 @@ def _calibration(spec='base'):
     model = Model.from_spec(spec, 4)
     p = model.default_params()
     for j in range(1, 5):
-        p = model.params_from_linear(j, C[j - 1] @ R[j - 1].T, O[j - 1], p)
+        p = model.params_from_linear(j, C[j - 1] @ R[j - 1].T, OFFSETS[j - 1], p)
     return Calibration(model, p, sigma_nt=np.full(4, SIGMA_NT))
 
 
 def _raw(j, b):
-    return C[j - 1] @ R[j - 1].T @ b + O[j - 1]
+    return C[j - 1] @ R[j - 1].T @ b + OFFSETS[j - 1]
 
 
 def test_correction_recovers_the_field_written_by_hand():

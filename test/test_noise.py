@@ -13,6 +13,8 @@
 # limitations under the License.
 
 """
+The one noise-floor estimator (core/noise.py).
+
 The one noise-floor estimator (core/noise.py): heavy tails, filtered series, spikes, and
 the same floor from ``fit`` and ``diagnose``.
 

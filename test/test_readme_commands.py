@@ -90,6 +90,8 @@ RUN_BY = [
 
 def shown_commands(path):
     """
+    Return the command lines of the ``bash``/``sh`` blocks of ``path``.
+
     Command lines of the ``bash``/``sh`` blocks of ``path``: continuations joined,
     comments and a trailing ``&`` cut, blank lines skipped.
     """
@@ -123,7 +125,7 @@ def test_every_shown_command_is_run_by_a_test():
 
 
 def _layout(tmp_path, *names):
-    """A working directory with the repository's ``names`` linked in it."""
+    """Make a working directory with the repository's ``names`` linked in it."""
     for name in names:
         (tmp_path / name).symlink_to(REPO / name)
     return tmp_path
@@ -153,6 +155,8 @@ def _block_with(path, first):
 @pytest.mark.timeout(600)
 def test_offline_block_as_written(tmp_path):
     """
+    Run the README "Offline" block as written.
+
     README "Offline": simulate a hidden temperature term on sensor 2, fit the base model
     (a missing effect is warned about), diagnose it (verdict temperature@2), fit with it
     (sensor 2 down to the noise floor), report.
@@ -181,6 +185,8 @@ def test_offline_block_as_written(tmp_path):
 @pytest.mark.timeout(600)
 def test_plugins_doc_block_as_written(tmp_path):
     """
+    Run the block of docs/plugins.md as written.
+
     docs/plugins.md: a wheel plug-in (examples/my_effect.py) simulated on sensor 3,
     diagnosed (verdict wheel@3), fitted (sensor 3 down to the 3 nT floor), reported.
     """
@@ -218,6 +224,8 @@ def test_degenerate_example_as_written(tmp_path):
 
 def test_benchmarks_doc_make_bench_and_report():
     """
+    Check BENCHMARKS.md against `make bench` and bench/report.py.
+
     BENCHMARKS.md: `make bench` runs bench/run_all.py in the project environment, and
     `python bench/report.py` would leave the file as it is: its results section is what the
     result files in bench/results render to (nobody edited it by hand or forgot to render).
@@ -240,6 +248,8 @@ def test_benchmarks_doc_make_bench_and_report():
 
 def test_design_synopsis_matches_the_command_line():
     """
+    Match the synopsis of docs/design.md §2 against the command line.
+
     docs/design.md §2's synopsis names every subcommand, and every option it shows exists
     (`magcal <command> --help`, the parser users meet).
     """
@@ -271,7 +281,7 @@ def test_design_synopsis_matches_the_command_line():
 
 @pytest.fixture
 def doc_plugin():
-    """The effect class of docs/plugins.md, as written, registered for one test."""
+    """Register the effect class of docs/plugins.md, as written, for one test."""
     import types
     from magcal_ros.core import effects as fx
     code = re.findall(r'```python\n(.*?)```', (REPO / 'docs' / 'plugins.md').read_text(),
@@ -289,6 +299,8 @@ def doc_plugin():
 
 def test_plugins_doc_example_effect_as_written(doc_plugin):
     """
+    Fit the example effect of docs/plugins.md as written.
+
     docs/plugins.md's example class (a heater's field going as sqrt(power)) fits the
     coupling it describes. The data: a simulated array whose heater power is switched by
     hand here, and sensor 2's raw readings given v (sqrt(P) - mean sqrt(P)), written here

@@ -52,6 +52,8 @@ def hmc(name):
 
 def geometric_ellipsoid_fit(m, f):
     """
+    Fit an ellipsoid geometrically, independently of the package.
+
     Independent geometric fit: centre c (3,) nT and upper-triangular L (3, 3) minimising
     the distance, along the ray from c, of each reading m (N, 3) nT to the ellipsoid
     |L (x - c)| = f: d = |m - c| (1 - f / |L (m - c)|).  Started from a sphere at the mean.
@@ -82,7 +84,7 @@ def full_sphere():
 
 @pytest.fixture(scope='module')
 def full_sphere_file(full_sphere, tmp_path_factory):
-    """The full sphere's calibration file, written by `magcal fit` as a user would."""
+    """Write the full sphere's calibration file with `magcal fit` as a user would."""
     _, f, _ = full_sphere
     cal = tmp_path_factory.mktemp('cal') / 'full.yaml'
     rc, _, err = run_cli('fit', HMC / 'full-sphere' / 'full-sphere.csv', '--field-nt',
@@ -122,7 +124,7 @@ SINGLE_AXIS = {'rotate-ccw-around-x-pointing-forward': (1, 0, 0),
 
 
 def named_axis(message):
-    """The (3,) axis a refusal names: the first '(+a, +b, +c)' in the message."""
+    """Return the (3,) axis a refusal names: the first '(+a, +b, +c)' in the message."""
     found = re.search(r'\(([-+]\d\.\d\d), ([-+]\d\.\d\d), ([-+]\d\.\d\d)\)', message)
     assert found, message
     v = np.array([float(x) for x in found.groups()])
@@ -154,6 +156,8 @@ def test_single_axis_refusal_on_the_command_line():
                                   'pan-along-z-pointing-up'])
 def test_pan_is_refused_as_one_attitude(name):
     """
+    Refuse the pans (translations) as one attitude.
+
     The pans are translations (README of each: 'translation along the x axis'): the
     attitude only wobbles by a few degrees, so no calibration; the refusal says the sensor
     hardly turned (not 'rotate about another axis', which would name a meaningless axis).
@@ -168,6 +172,8 @@ def test_pan_is_refused_as_one_attitude(name):
 
 def test_roll_and_tilt_calibrates_the_full_sphere(full_sphere, tmp_path):
     """
+    Calibrate on the rolls and tilts and check on the full sphere.
+
     Rolls and tilts of +-90 deg at three headings: the directions about the fitted centre
     spread in 3-D (smallest scatter eigenvalue 0.12 of the ideal 1/3), so the coverage is
     accepted; the constrained mode runs on it from the command line; and its calibration,
@@ -194,6 +200,8 @@ def test_roll_and_tilt_calibrates_the_full_sphere(full_sphere, tmp_path):
 @pytest.mark.parametrize('name', [STATIC[0], 'pan-along-z-pointing-up'])
 def test_constrained_mode_does_not_accept_one_attitude(name):
     """
+    Refuse one attitude also in the constrained mode.
+
     The priors of the constrained mode stand in for attitudes a partial coverage never
     saw; a sensor that did not turn determines no offset, with or without them.
     """
@@ -208,6 +216,8 @@ def static_floors():
 
 def test_static_recordings_give_the_sensor_noise(static_floors, full_sphere):
     """
+    Read the sensor's noise from the four static recordings.
+
     The four static recordings are the sensor's own noise: their floors agree with each
     other and with the per-axis sd of the raw readings (nothing else moves), and with the
     floor that the full sphere's differences give (HMC5883L: about 140 nT).
@@ -224,6 +234,8 @@ def test_static_recordings_give_the_sensor_noise(static_floors, full_sphere):
 
 def test_static_recordings_checked_against_the_full_sphere(full_sphere, full_sphere_file):
     """
+    Check the static recordings against the full sphere with `magcal check`.
+
     The corrected |B| of the static recordings is not one value: `magcal check` says
     why.  The two x-forward recordings share an attitude yet differ by about 7 000 nT, so
     the field or the sensor's offset changed between recordings (the 10-min one is the
@@ -260,12 +272,14 @@ def test_readme_check_commands(tmp_path):
         p = subprocess.run(ln.replace('magcal ', magcal + ' ', 1), shell=True, cwd=work,
                            capture_output=True, text=True, timeout=300)
         assert p.returncode == 0, p.stderr
-    assert 'the field at the sensor or the sensor\'s offset changed' in p.stdout
+    assert "the field at the sensor or the sensor's offset changed" in p.stdout
     assert p.stdout.count('nT vs reference') == 4
 
 
 def test_check_reads_other_units(full_sphere_file, tmp_path):
     """
+    Read a recording in gauss with `magcal check --unit gauss`.
+
     A static recording in gauss (a single magnetometer's mx,my,mz log): `magcal check
     --unit gauss` gives the |B| of the nT file; without --unit the unit is named.
     """

@@ -128,6 +128,8 @@ def test_cli_refuses_stuck_and_missing_sensors_naming_them(tmp_path, tumbling):
 @pytest.fixture(scope='module')
 def spiky():
     """
+    Return spiky data, the same without spikes, and the robust fit.
+
     5 % spikes of 1000 nT (paper 004 errors, 3 nT noise), the same data without them, and
     the robust pipeline fit of the spiky data.
     """

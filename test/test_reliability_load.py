@@ -255,6 +255,7 @@ def test_corrector_under_a_10x_burst(start_process, ros_namespace, tmp_path):
     # (published - received) samples at the rate the corrector managed, seconds. The bounds
     # are relative to that age and to this run's own baseline phase, never wall-clock
     # constants (the shared machine's speed is not what is tested).
+
     def backlog_ms(burst):
         rate_done = burst['received'] / (burst['t1'] - burst['t0'])
         return 1e3 * (burst['published'] - burst['received']) / rate_done

@@ -69,7 +69,7 @@ F = 50000.0
 
 @pytest.fixture(scope='module')
 def fitted():
-    """A real calibration document (base + a temperature effect on sensor 2) and its data."""
+    """Return a real calibration document (base + temperature on sensor 2) and its data."""
     data, _ = simulate(n_samples=400, rate_hz=2.0, trajectory='random', seed=3,
                        truth={'temperature@2': [2.0, -1.0, 0.5, 0, 0, 0]})
     run = calibrate(data, 'base,temperature@2', field_nt=F)
@@ -77,7 +77,7 @@ def fitted():
 
 
 def variant(doc, tag):
-    """A copy of ``doc`` told apart by its provenance (``source``)."""
+    """Copy ``doc``, told apart by its provenance (``source``)."""
     new = copy.deepcopy(doc)
     new['provenance']['source'] = tag
     return new

@@ -98,6 +98,7 @@ def test_pty_device_refuses_to_replace_a_regular_file(tmp_path):
 def test_pty_device_drops_output_when_nobody_reads(link, cleanup):
     dev = PtyDevice(link)
     cleanup.append(dev)
+
     def flood():
         for _ in range(200):                  # 200 kB into a ~18 kB kernel buffer
             dev.write(b'x' * 1000)

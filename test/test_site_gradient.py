@@ -77,6 +77,8 @@ def make_data(n=3000, seed=1, g_w=G_W, attitude=True, smooth_period_s=None, rate
 
 def test_shift_hand_computed():
     """
+    Check the shift of the site gradient against a hand computation.
+
     R = 90 deg about z, only gxy = 100 nT/m: r_1 = (0.25, 0, 0) m lies along world y, the
     world shift is G (0, 0.25, 0) = (25, 0, 0) nT, which is body (0, -25, 0) nT.
     """
@@ -241,6 +243,8 @@ def test_cli_fit_reports_gradient(tmp_path):
 
 def test_bounds_of_the_three_cases():
     """
+    Compare the Cramer-Rao bounds of the three cases.
+
     Information can only be lost: heading unknown >= attitude known, per parameter; and with
     a per-epoch nuisance gradient exactly 20 of base's 45 directions are undetermined
     (5 differential offsets + 15 differential linear terms: docs/site_gradient.md).
@@ -321,6 +325,8 @@ def test_bag_imu_interpolation_hand_computed():
 
 def _field_aligned(g_w, b_w):
     """
+    Return G_w in the frame of fit_heading_unknown.
+
     G_w in the frame of fit_heading_unknown: z along b_w, x along the part of G z
     perpendicular to the field (so gyz = 0, gxz >= 0); computed here with scipy.
     """
@@ -360,6 +366,8 @@ def test_heading_unknown_reaches_its_bound():
 
 def test_cli_without_attitude(tmp_path):
     """
+    Refuse site_gradient without attitude, naming --heading-unknown.
+
     Without attitude columns, site_gradient is refused with the way out named; with
     --heading-unknown the fit runs and names the frame of the gradient.
     """
@@ -382,6 +390,8 @@ def test_cli_without_attitude(tmp_path):
 
 def test_nonuniform_field_finding_points_to_the_effect():
     """
+    Name site_gradient by the finding on the base fit.
+
     The workbench's model-free finding on the base fit names site_gradient (a smooth
     tumbling: the finding separates signal from noise by its continuity in time).
     """
@@ -394,6 +404,8 @@ def test_nonuniform_field_finding_points_to_the_effect():
 
 def test_fluxgate_sim_site_gradient_option(tmp_path, capsys):
     """
+    Pass the --site-gradient option of fluxgate_sim to the simulator.
+
     fluxgate_sim --site-gradient (and the -p form of a launch file) reaches the simulator;
     a malformed value is one line on stderr and exit status 2.
     """
@@ -412,6 +424,8 @@ def test_fluxgate_sim_site_gradient_option(tmp_path, capsys):
 
 def test_diagnose_names_site_gradient():
     """
+    Rank site_gradient first in the diagnosis (with attitude).
+
     The workbench ranks the missing effect: with attitude, site_gradient (array-wide, one
     token, no @j) is the verdict of a base model in a site gradient.
     """

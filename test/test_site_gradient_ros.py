@@ -88,6 +88,8 @@ def test_calibration_node_fits_site_gradient_with_imu(make_node, ros_node, ros_e
 def test_corrector_subtracts_the_site_gradient_only_when_asked(
         make_node, ros_node, ros_executor, ros_namespace, tmp_path):
     """
+    Subtract the site gradient from the corrected fields only when asked.
+
     Stationary array at a fixed attitude, noise-free readings written here: by default the
     corrected field is the field at each sensor (the site gradient is part of the field);
     with subtract_site_gradient it is the centre field and the tensor is zero.

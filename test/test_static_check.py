@@ -37,7 +37,7 @@ def test_one_field_everywhere_is_consistent():
 
 def test_same_attitude_different_field_is_named():
     res = check_static({'a': static((1, 0, -1), F), 'b': static((1, 0.02, -1), F - 7000,
-                                                                  seed=1)},
+                                                                seed=1)},
                        F, residual_rms_nt=250.0)
     assert not res.consistent
     (a, b, ang, diff), = res.same_attitude
@@ -48,7 +48,7 @@ def test_same_attitude_different_field_is_named():
 
 def test_other_attitudes_agreeing_off_the_reference_mean_another_field():
     res = check_static({'a': static((1, 0, 0), F - 2000), 'b': static((0, 0, 1), F - 2040,
-                                                                       seed=1)},
+                                                                      seed=1)},
                        F, residual_rms_nt=250.0)
     assert not res.consistent and len(res.findings) == 1
     assert 'the calibration holds there' in res.findings[0]
@@ -62,7 +62,7 @@ def test_no_recordings():
 
 def test_other_disagreements_are_put_down_to_a_known_change():
     res = check_static({'a': static((1, 0, -1), F), 'b': static((1, 0.02, -1), F - 7000,
-                                                                  seed=1),
+                                                                seed=1),
                         'c': static((0, 1, 0), F, seed=2)}, F, residual_rms_nt=250.0)
     assert sum('as expected after the change of field' in t for t in res.findings) == 1
     assert not any('cannot tell which' in t for t in res.findings)

@@ -83,6 +83,8 @@ def test_no_mismatch_and_no_loss_under_jitter_chunks_and_stalls(case):
 
 def test_streams_that_defeat_raw_stamp_matching_are_matched_by_the_voting_matcher():
     """
+    Match by epoch voting the streams that raw stamp matching mismatches.
+
     The reason for epoch voting: matching stamps within half a period (the control, written
     out below) mismatches sets of these streams; StampMatcher pairs them all correctly.
     """

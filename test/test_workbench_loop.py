@@ -131,6 +131,8 @@ def test_without_held_out_test_the_verdict_rests_on_significance_and_share(n):
 
 def test_a_lag_of_no_time_constant_is_the_plain_coupling():
     """
+    Prefer the plain coupling to a lag of no time constant.
+
     Plain temperature coupling: lag(temperature) fits too (tau -> 0, fewer parameters),
     but the verdict is the established effect, and the lag candidate says why not.
     """
@@ -158,6 +160,8 @@ def test_tokens_from_findings():
 @pytest.mark.parametrize('n', [3000, 10000])
 def test_site_gradient_adopts_no_fix_and_is_named_by_the_finding(n):
     """
+    Adopt no fix for a site gradient without attitude; the finding names it.
+
     Issue 11: a constant world-frame gradient (~320 nT/m, ~25 nT per sensor here) gave
     nonlinearity@3 for 68.80 -> 68.54 nT and a ladder stacking nonlinearity.  The catalog
     without attitude has nothing for it: no candidate removes a fifth of the excess, the

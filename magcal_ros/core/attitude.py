@@ -122,13 +122,14 @@ def interpolate(t_msg, q_msg, t):
 
 def with_attitude(data, t_msg, q_msg, source='attitude'):
     """
-    ``data`` with the attitude of timed messages attached (slerp onto its epochs).
+    Attach the attitude of timed messages to ``data`` (slerp onto its epochs).
 
     Epochs outside the span of the messages are dropped (an attitude is never extrapolated).
 
     Parameters
     ----------
     data : Dataset
+        Readings with times ``t`` (N,) s.
     t_msg : numpy.ndarray
         (M,) s, message times on the clock of ``data.t``.
     q_msg : numpy.ndarray
@@ -184,6 +185,8 @@ def check_against_field(rot, field_body, t=None, max_deg=MAX_FIELD_DISAGREEMENT_
         (N, 3) field in the body frame, nT (any magnitude; only the direction is used).
     t : numpy.ndarray, optional
         (N,) times in s, to name an epoch.
+    max_deg : float
+        Largest accepted wander of the world-frame field direction, deg.
 
     Raises
     ------

@@ -261,7 +261,7 @@ def find_slips(raw, epochs=None, max_lag=DEFAULT_MAX_LAG, window=DEFAULT_WINDOW,
         shifted = np.stack([_shifted(u[j], lag, run) for lag in candidates])  # (L, N, 3)
 
         def rotation(y, use):
-            """Procrustes rotation (paper 004 eq. 14) of y onto u_1 over the rows ``use``."""
+            """Return the Procrustes rotation of y onto u_1, rows ``use`` (paper 004 eq. 14)."""
             use = use & np.all(np.isfinite(y), axis=1)
             return procrustes_rotation(u[0][use], y[use])
 
@@ -338,7 +338,7 @@ def find_slips(raw, epochs=None, max_lag=DEFAULT_MAX_LAG, window=DEFAULT_WINDOW,
                 continue
 
             def grow(e):
-                """The lag of neighbour e, or None to stop growing."""
+                """Return the lag of neighbour e, or None to stop growing."""
                 if lag[e] != 0:
                     return None
                 c = cost[ell + k0, e]

@@ -94,7 +94,7 @@ class Coverage:
 
     @property
     def good(self):
-        """True when the directions spread in all three dimensions."""
+        """Tell whether the directions spread in all three dimensions."""
         return not (self.planar or self.narrow)
 
     def describe(self) -> str:

@@ -81,16 +81,18 @@ class Dataset:
 
     @property
     def n_sensors(self):
-        """Number of sensors S."""
+        """Return the number of sensors S."""
         return self.raw.shape[0]
 
     @property
     def n_samples(self):
-        """Number of epochs N."""
+        """Return the number of epochs N."""
         return self.raw.shape[1]
 
     def context(self, j):
         """
+        Return the :class:`SensorContext` of sensor ``j`` (1-based).
+
         :class:`SensorContext` of sensor ``j`` (1-based), with d(raw)/dt in nT/s
         (:func:`magcal_ros.core.effects.raw_rate`).
         """
@@ -117,7 +119,7 @@ class Dataset:
         return self._att_matrix
 
     def subset(self, idx):
-        """A new Dataset with the epochs ``idx`` (index array or boolean mask)."""
+        """Return a new Dataset with the epochs ``idx`` (index array or boolean mask)."""
         idx = np.asarray(idx)
 
         def take(a, axis=0):

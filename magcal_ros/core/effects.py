@@ -143,7 +143,7 @@ class SensorContext:
     attitude: np.ndarray | None = None
 
     def has(self, signal):
-        """True if the driving signal ``signal`` (see :data:`SIGNALS`) is present."""
+        """Tell whether the driving signal ``signal`` (see :data:`SIGNALS`) is present."""
         if signal.startswith('aux_'):
             return signal in self.aux
         if signal not in SIGNALS:
@@ -181,8 +181,9 @@ class Effect:
     in :meth:`prepare` from the calibration data and store it in ``self.refs`` so that live
     correction uses the same reference.
 
-    The class attributes below are the effect's declarations; :class:`~magcal_ros.core.model.Model`,
-    the fit, the diagnosis and the live corrector read them instead of recognising names.
+    The class attributes below are the effect's declarations;
+    :class:`~magcal_ros.core.model.Model`, the fit, the diagnosis and the live corrector read
+    them instead of recognising names.
     """
 
     name = 'effect'
@@ -241,7 +242,7 @@ class Effect:
     @classmethod
     def from_args(cls, args, sensor=1):
         """
-        The effect of token ``name(args)`` on ``sensor``; ``args`` are strings.
+        Make the effect of token ``name(args)`` on ``sensor``; ``args`` are strings.
 
         Effects with arguments override this (and set :attr:`args`); the default accepts none.
         """
@@ -252,7 +253,7 @@ class Effect:
 
     @property
     def n_params(self):
-        """Number of parameters."""
+        """Return the number of parameters."""
         return len(self.param_names)
 
     @property
@@ -262,7 +263,7 @@ class Effect:
 
     @property
     def applies(self):
-        """False if this effect does not exist on its sensor (see :attr:`on_sensor1`)."""
+        """Tell whether this effect exists on its sensor (see :attr:`on_sensor1`)."""
         return self.on_sensor1 or self.sensor != 1
 
     def default_params(self):
@@ -271,7 +272,7 @@ class Effect:
 
     def params_from_linear(self, parts):
         """
-        This effect's share of a closed-form linear map and offset (closed-form start).
+        Return this effect's share of a closed-form linear map and offset (closed-form start).
 
         ``parts`` is a :class:`LinearParts`; return the (n_params,) parameters, or None when
         the effect has no share (it then starts at :meth:`default_params`).
@@ -294,11 +295,13 @@ class Effect:
         raise NotImplementedError
 
     def depends_on_lin(self):
-        """True if ``contribution`` depends on ``lin`` (needs fixed-point inversion)."""
+        """Tell whether ``contribution`` depends on ``lin`` (needs fixed-point inversion)."""
         return False
 
     def reduces(self, p, stderr, ctx):
         """
+        Say why the fitted effect reduces to a simpler one of the catalog, or return None.
+
         Reason why the fitted parameters ``p`` (stderr: their uncertainties, or None) make
         this effect a simpler one already in the catalog (a lag of zero time constant), else
         None.  The diagnosis does not adopt such a candidate: the simpler effect is tested
@@ -932,6 +935,8 @@ class Lag(Effect):
 
     def _online(self, t, x, tau):
         """
+        Filter one sample at a time for the live correction.
+
         Live correction, one sample at a time: the filter's state is kept between calls
         (y <- x + (y - x) exp(-dt / tau), the exact response to x held since the last
         sample; the first sample starts in steady state).
@@ -1141,7 +1146,7 @@ def registered_effects():
 
 
 def needs_args(name):
-    """True if the registered effect ``name`` is only written with arguments (``step(300)``)."""
+    """Tell whether the registered effect ``name`` is only written with arguments."""
     cls = _REGISTRY.get(name)
     return cls is not None and cls.usage is not None
 
@@ -1221,6 +1226,8 @@ def parse_token(token):
 
 def load_plugins(refs):
     """
+    Load every plug-in of ``refs`` and return the registered names.
+
     :func:`load_plugin` for each of ``refs`` (``--plugin``, a node's ``plugins``); the
     registered names, in order.
     """

@@ -75,6 +75,8 @@ def _quadric_matrix(v):
 
 def ring_spread(u, normal):
     """
+    Measure how far the points ``u`` are from a ring about ``normal``.
+
     Coefficient of variation of the radius of the points ``u`` (N, 3) (directions or
     readings) about the circle fitted to them in the plane normal to ``normal``: about 0 for
     a ring (a rotation about one axis, however unevenly sampled), about 0.35 for a filled

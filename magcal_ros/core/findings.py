@@ -34,9 +34,10 @@ Series analysed (all nT)
 
 Method
 ------
-(References: docs/papers.md, "Methods of the findings".)  Per sensor, greedily: every test below is run on the series, the significant one with the
-largest BIC gain is kept, its fitted signal removed, and the tests are run again (at most
-:data:`MAX_PER_SENSOR` times).  A finding needs
+(References: docs/papers.md, "Methods of the findings".)  Per sensor, greedily: every test
+below is run on the series, the significant one with the largest BIC gain is kept, its
+fitted signal removed, and the tests are run again (at most :data:`MAX_PER_SENSOR` times).
+A finding needs
 
 1. significance: p-value below ``alpha`` / (number of tests) (Bonferroni); each test's
    p-value comes from its own null distribution (below);
@@ -320,6 +321,8 @@ def lomb_scargle(t, x, freqs, chunk=256):
         (N, C) series with its mean removed.
     freqs : numpy.ndarray
         (M,) frequencies, Hz.
+    chunk : int
+        Frequencies computed at a time (bounds the (chunk, N) work arrays).
 
     Returns
     -------
@@ -396,7 +399,7 @@ def _nuisance(mod):
 
 def _expand(design, mod):
     """
-    The design of a vector effect seen through the scalar residual.
+    Expand the design of a vector effect as seen through the scalar residual.
 
     A vector signal sum_k beta_k phi_k(t) (beta_k (3,) nT) shows in the scalar residual as
     its component along the field direction u (N, 3): columns phi_k u_c, next to the
@@ -612,7 +615,7 @@ def _test_channel(t, x, drv, mod=None):
         lin, r1 = _regress(x, _expand(drv.base, mod))
     ss1 = ss(lin)
     out = [_Candidate('channel', lin - xm, c * (r1 - 1), _f_test(ss0, ss1, c * (r1 - 1),
-                                                                  n * c - c * r1),
+                                                                 n * c - c * r1),
                       1, channel=name)]
     # first-order lag: the best time constant (grid, then refined)
     if mod is None:
@@ -749,7 +752,7 @@ def _describe(cand, sensor, share):
 
 def _gradient(t, corrected, baseline_m, alpha, drivers=None):
     """
-    (finding or None, (S, N, 3) gradient part per sensor to take out, nT).
+    Test for a gradient across the cross: (finding or None, (S, N, 3) part to take out, nT).
 
     With m_j = c_j - mean_k c_k, the arms' antisymmetric parts a_x = (m1 - m3) / 2,
     a_y = (m2 - m4) / 2 and the symmetric part s = (m1 + m3 - m2 - m4) / 4 obey, for noise

@@ -60,7 +60,7 @@ MAX_CONDITION = 1e6
 
 def fitted_centre(m):
     """
-    The readings' ellipsoid when the data determine it, else None.
+    Fit the readings' ellipsoid; None when the data do not determine it.
 
     Parameters
     ----------
@@ -290,8 +290,11 @@ def jacobian_report(model, cov, corr, constrained=False):
     Parameters
     ----------
     model : Model
+        The fitted model (parameter names).
     cov, corr : numpy.ndarray
         (P, P) parameter covariance and correlation.
+    constrained : bool
+        The fit had priors (constrained mode): correlations are notes, not problems.
 
     Returns
     -------

@@ -147,7 +147,7 @@ class LiveCorrector:
 
     @property
     def needs_temperature(self):
-        """True when an effect of the calibration is driven by the sensor temperature."""
+        """Tell whether an effect of the calibration is driven by the sensor temperature."""
         return any('temperature' in s.needs for s in self._sensors)
 
     def sensor_frames(self):
@@ -255,6 +255,8 @@ class LiveCorrector:
     @staticmethod
     def _rate(s):
         """
+        Return d(raw)/dt of the newest sample, nT/s (3,).
+
         d(raw)/dt, nT/s (3,), of the newest sample: :func:`~magcal_ros.core.effects.raw_rate`
         on the last three samples (its second-order one-sided form; the fit's interior
         samples use the central one: they agree to (w h)^2 / 2, see there).

@@ -13,6 +13,8 @@
 # limitations under the License.
 
 """
+The reference field magnitude F (nT) of a fit.
+
 Where the reference field magnitude F (nT) of a fit comes from: a number, the data's
 ``ref_total`` column, the IGRF model (ppigrf), or the data themselves (shape only).
 

@@ -242,6 +242,8 @@ def estimate_noise(x, orders=ORDERS):
     ----------
     x : numpy.ndarray
         (S, N, C) or (S, N) series in time order.
+    orders : sequence of int
+        Difference orders tried (those with at least k + 8 samples are used).
 
     Returns
     -------
@@ -365,7 +367,7 @@ class NoiseFloor:
 
 def data_noise_floor(data, result=None):
     """
-    The noise floor of each sensor (the one estimator used by fit, diagnose and report).
+    Estimate the noise floor of each sensor (the one estimator of fit, diagnose, report).
 
     Parameters
     ----------
@@ -443,6 +445,8 @@ def noise_floor(raw, t=None, order=None):
     ----------
     raw : numpy.ndarray
         (S, N, 3) or (N, 3) readings in nT, in time order.
+    t : numpy.ndarray, optional
+        (N,) times, s; not used (the differences are taken in sample order).
     order : int, optional
         Difference order k; default: adaptive (:func:`estimate_noise`, orders 1..6).
 

@@ -13,6 +13,8 @@
 # limitations under the License.
 
 """
+Paper 002: hard- and soft-iron compensation from a reference field vector.
+
 Paper 002: hard- and soft-iron compensation from a reference field vector, by linear least
 squares (not :mod:`magcal_ros.core.magnitude`, the reference *magnitude* of a fit).
 
@@ -98,7 +100,7 @@ class ReferenceFit:
 
     @property
     def n(self):
-        """Number of attitudes."""
+        """Return the number of attitudes."""
         return int(self.residual.shape[0])
 
     @property

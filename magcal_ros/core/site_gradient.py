@@ -13,6 +13,8 @@
 # limitations under the License.
 
 """
+The site gradient: its report, its Cramer-Rao bounds, the fit without attitude.
+
 The site gradient: its report from a fit, its Cramer-Rao bounds with and without attitude,
 and the fit without attitude (the heading about the field estimated per epoch).
 
@@ -33,6 +35,7 @@ def gradient_from_fit(model, params, covariance):
     Parameters
     ----------
     model : Model
+        The fitted model (with or without ``site_gradient``).
     params : numpy.ndarray
         (P,) parameters.
     covariance : numpy.ndarray
@@ -75,7 +78,7 @@ CRB_CASES = ('attitude', 'heading', 'epoch_gradient')
 
 
 def _null_dimension(jac, rtol=1e-12):
-    """Number of parameter directions the (column-scaled) Jacobian does not determine."""
+    """Count the parameter directions the (column-scaled) Jacobian does not determine."""
     d = np.linalg.norm(jac, axis=0)
     d[d == 0] = 1.0
     w = np.linalg.svd(jac / d, compute_uv=False) ** 2
@@ -121,6 +124,8 @@ def crb_covariance(data, model, params, field_nt, sigma_nt, case='attitude', pos
         Reference magnitude at the array centre, nT, scalar or (N,).
     sigma_nt : float or numpy.ndarray
         Per-axis noise sd, nT, scalar or (S,).
+    case : {'attitude', 'heading', 'epoch_gradient'}
+        What is known of the attitude (the cases above).
     positions : numpy.ndarray, optional
         (S, 3) sensor positions, m, for 'epoch_gradient' (default: paper 004's cross, 0.5 m).
     fix_gyz : bool

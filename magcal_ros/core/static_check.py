@@ -123,7 +123,7 @@ def check_static(corrected, reference_nt, residual_rms_nt):
             out.findings.append(
                 f'{a} and {c} see the field from the same attitude ({ang:.1f} deg apart) '
                 f'but their |B| differs by {abs(diff):.0f} nT (> {tol:.0f} nT, {AGREE_FACTOR:g}'
-                ' x the calibration residual): the field at the sensor or the sensor\'s '
+                " x the calibration residual): the field at the sensor or the sensor's "
                 'offset changed between these recordings (another place, a magnetised '
                 'object nearby, a power cycle); no calibration can reconcile them')
     agree = [(a, c, ang, diff) for a, c, ang, diff in other if abs(diff) <= tol]
@@ -133,8 +133,8 @@ def check_static(corrected, reference_nt, residual_rms_nt):
             out.findings.append(
                 f'{a} and {c} lie {ang:.0f} deg apart in attitude yet agree on |B| within '
                 f'{abs(diff):.0f} nT: the calibration holds there; their |B| is '
-                f'{ra["minus_reference_nt"]:+.0f} nT off the calibration\'s reference '
-                f'{reference_nt:.0f} nT, so the field differs from the calibration\'s '
+                f"{ra['minus_reference_nt']:+.0f} nT off the calibration's reference "
+                f"{reference_nt:.0f} nT, so the field differs from the calibration's "
                 '(another place or time)')
     for a, c, ang, diff in other:
         if abs(diff) > tol and (a in changed or c in changed):
@@ -157,5 +157,5 @@ def check_static(corrected, reference_nt, residual_rms_nt):
             f'the recordings agree with each other but their |B| is '
             f'{min(r["minus_reference_nt"] for r in off):+.0f} to '
             f'{max(r["minus_reference_nt"] for r in off):+.0f} nT off the reference: the '
-            'field differs from the calibration\'s')
+            "field differs from the calibration's")
     return out

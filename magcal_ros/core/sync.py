@@ -212,7 +212,7 @@ class StampMatcher:
 
     @property
     def aligned(self):
-        """True once every stream has an epoch offset."""
+        """Tell whether every stream has an epoch offset."""
         return self._aligned
 
     @property

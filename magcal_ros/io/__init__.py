@@ -1,4 +1,4 @@
-# Copyright 2026 The magcal_ros authors
+# Copyright 2026 The magcal_ros authors  # noqa: A005 (a subpackage: never shadows io)
 #
 # Licensed under the Apache License, Version 2.0 (the "License");
 # you may not use this file except in compliance with the License.

@@ -260,7 +260,10 @@ def write_bag(path, data, namespace='/magcal', storage='sqlite3', frame_id='flux
         Bag directory to create (must not exist).
     data : Dataset
         Times ``t`` (N,) s are used as header stamps and receive times.
+    namespace : str
+        Topic namespace (topics ``{namespace}/sensor{j}/raw``, ...).
     storage : {'sqlite3', 'mcap'}
+        rosbag2 storage plug-in.
     frame_id : str
         Header frame prefix; sensor j gets ``{frame_id}{j}``.
 

@@ -56,7 +56,7 @@ def read_csv(path):
     lines = [ln for _, ln in numbered]
     for sep, name in ((';', 'semicolon'), ('\t', 'tab')):
         if lines[0].count(sep) > lines[0].count(','):
-            raise CsvFormatError(f"{path}: the fields are separated by {name}s ({sep!r}); the "
+            raise CsvFormatError(f'{path}: the fields are separated by {name}s ({sep!r}); the '
                                  "wide CSV is comma separated: export it with ',' as the "
                                  'separator')
     if len(lines) == 1:
@@ -163,7 +163,7 @@ def _isfloat(s):
 
 
 def format_csv(data, comment=None):
-    """The wide CSV text of a :class:`Dataset`."""
+    """Format a :class:`Dataset` as wide CSV text."""
     cols = {'t': data.t}
     for j in range(1, data.n_sensors + 1):
         for i, a in enumerate('xyz'):

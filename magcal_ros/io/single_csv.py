@@ -68,6 +68,7 @@ def read_single_sensor_csv(path, unit='gauss', rate_hz=100.0, field_columns=None
     Parameters
     ----------
     path : str or os.PathLike
+        CSV file to read.
     unit : str
         Unit of the field columns: 'nT', 'uT', 'mG', 'gauss' (or 'G'), 'T'.
     rate_hz : float

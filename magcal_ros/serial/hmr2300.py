@@ -67,7 +67,7 @@ def _device_id(dd):
 
 
 def command(dd, body):
-    r"""Build ``*<dd><body><cr>``, e.g. ``command('99', 'C') == b'*99C\r'``."""
+    r"""Build the frame ``*<dd><body><cr>`` of a command; ``b'*99C\r'`` for dd 99, body C."""
     return f'*{_device_id(dd)}{body}\r'.encode('ascii')
 
 
