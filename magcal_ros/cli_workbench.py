@@ -141,7 +141,7 @@ def cmd_diagnose(args, cli):
     if args.report:
         from magcal_ros.report import write_report
         index = write_report(args.report, data, diagnosis=diag, ladder=lad,
-                             baseline_m=args.baseline_m)
+                             baseline_m=args.baseline_m, figures=args.figures)
     from magcal_ros.core.notes import format_note
     from magcal_ros.pipeline import fit_warnings
     warnings = fit_warnings(diag.result, diag.noise_floor)
@@ -171,12 +171,20 @@ def cmd_report(args, cli):
     data, diag, lad, _ = _run(args, cli, not args.no_ladder)
     from magcal_ros.report import write_report
     index = write_report(args.out, data, diagnosis=diag, ladder=lad,
-                         baseline_m=args.baseline_m)
+                         baseline_m=args.baseline_m, figures=args.figures)
     print(index)
     if not args.quiet:
         print(f'verdict: {diag.verdict_token or "none"} ({diag.verdict_reason})',
               file=sys.stderr)
     return EXIT_OK
+
+
+def _figures_arg(p):
+    p.add_argument('--figures', choices=('relevant', 'all'), default='relevant',
+                   help="report views: 'relevant' (default) draws the residual against "
+                        'temperature, aux channels and field rate, the direction map, the '
+                        'change-point and lag views only when the diagnosis points at them '
+                        "(the page lists the others and why); 'all' draws every view")
 
 
 def register(sub, cli):
@@ -187,10 +195,12 @@ def register(sub, cli):
     d.add_argument('--report', metavar='DIR', help='also write the HTML/PNG report to DIR')
     d.add_argument('--ladder', action='store_true',
                    help='keep adding the verdict and refitting until nothing is missing')
+    _figures_arg(d)
     d.set_defaults(func=lambda a: cmd_diagnose(a, cli))
 
     r = sub.add_parser('report', help='write an HTML page with the diagnosis plots')
     _common(r, cli)
     r.add_argument('--out', required=True, metavar='DIR', help='output directory')
     r.add_argument('--no-ladder', action='store_true', help='skip the error ladder')
+    _figures_arg(r)
     r.set_defaults(func=lambda a: cmd_report(a, cli))

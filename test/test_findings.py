@@ -292,8 +292,12 @@ def test_report_shows_the_findings(tmp_path):
     index = write_report(tmp_path, data, result=result)
     page = index.read_text()
     assert 'Findings (model-free' in page and 'step(300)@1' in page
-    for name in ('residual_spectrum', 'change_points', 'residual_lagged'):
+    for name in ('residual_spectrum', 'change_points'):
         assert (tmp_path / f'{name}.png').stat().st_size > 1000
+    # a step, no channel: the lag view is left out, and the page says why
+    assert not (tmp_path / 'residual_lagged.png').exists()
+    assert ('<li>Residual vs lagged channels: nothing points at it (drawn for a lag, channel '
+            'or channel_nonlinear finding)</li>') in page
     # the change-point view marks the step found on sensor 1, and only there
     fig = plot_change_points(found)
     marks = [[ln.get_xdata()[0] for ln in ax.lines if ln.get_linestyle() == '-'

@@ -120,3 +120,6 @@ def test_magcal_diagnose_cli_and_report(real, tmp_path):
         assert (rep / f'{name}.png').stat().st_size > 10000
     assert not (rep / 'tensor.png').exists()           # one sensor: no tensor
     assert 'synthetic, at an assumed 100.0 Hz' in (rep / 'index.html').read_text()
+    # 1.8 x the floor and no verdict or finding names a cause: no view is left out
+    assert ('Every view is drawn: the residual is above the noise floor and neither a '
+            'verdict nor a finding names the cause') in (rep / 'index.html').read_text()

@@ -98,7 +98,7 @@ def test_figures_absent_without_their_data(case):
 def test_write_report_self_contained(case, tmp_path):
     data, lad = case
     index = report.write_report(tmp_path / 'rep', data, diagnosis=lad.steps[0].diagnosis,
-                                ladder=lad)
+                                ladder=lad, figures='all')
     text = index.read_text()
     names = ('magnitude', 'residual_time', 'residual_temperature', 'residual_aux',
              'residual_rate', 'residual_direction', 'tensor', 'candidates', 'ladder',
@@ -127,6 +127,48 @@ def test_write_report_self_contained(case, tmp_path):
         assert titles[i].startswith(f'rung {i}: + {st.added}')
 
 
+def _omitted(text):
+    """The "Views not drawn" items of a report page: {heading: reason}."""
+    block = re.search(r'<h2>Views not drawn</h2><ul class="omitted">(.*?)</ul>', text)
+    items = re.findall(r'<li>(.*?)</li>', block.group(1)) if block else []
+    return dict(html.unescape(i).split(': ', 1) for i in items)
+
+
+def test_report_draws_the_views_the_diagnosis_points_at(case, tmp_path):
+    # the hidden effect is the motor current on sensor 3 (injected by the case): the default
+    # report draws the residual against that channel for that sensor only, and says which
+    # views and panels it left out and why
+    data, lad = case
+    index = report.write_report(tmp_path, data, diagnosis=lad.steps[0].diagnosis, ladder=lad)
+    text = index.read_text()
+    drawn = re.findall(r'<img alt="(\w+)"', text)
+    always = ['magnitude', 'residual_time', 'tensor', 'candidates', 'ladder', 'ladder_rungs',
+              'residual_spectrum']
+    assert [n for n in drawn if n in always] == always
+    assert 'residual_aux' in drawn
+    for name in ('residual_temperature', 'residual_rate', 'residual_direction',
+                 'change_points'):
+        assert name not in drawn and not (tmp_path / f'{name}.png').exists()
+    aux = report.plot_residual_vs_aux(data, lad.steps[0].result, lad.noise_floor,
+                                      {'aux_motor_current': {3}})
+    assert [a.get_title() for a in aux.axes] == ['sensor 3 vs aux_motor_current']
+    why = _omitted(text)
+    for heading in ('Residual vs temperature', 'Residual vs field rate',
+                    'Residual over field direction', 'Change points'):
+        assert why[heading].startswith('nothing points at it (drawn for '), heading
+    assert why['Residual vs aux_motor_current, sensor(s) 1, 2, 4'] == (
+        'nothing points at them (drawn for sensor(s) 3)')
+    assert why['Residual vs aux_heater_power, aux_pump_current'].startswith(
+        'nothing points at them')
+    assert '--figures all' in text
+    # every view: nothing left out for want of relevance, only what the data lack
+    full = report.write_report(tmp_path / 'all', data, diagnosis=lad.steps[0].diagnosis,
+                               ladder=lad, figures='all').read_text()
+    assert _omitted(full) == {}
+    with pytest.raises(ValueError, match="'relevant' or 'all'"):
+        report.write_report(tmp_path, data, diagnosis=lad.steps[0].diagnosis, figures='some')
+
+
 def test_write_report_needs_a_result(tmp_path, case):
     data, _ = case
     with pytest.raises(ValueError, match='needs a fit result'):
@@ -141,6 +183,11 @@ def test_report_from_result_only(tmp_path):
     assert (tmp_path / 'residual_time.png').exists()
     assert not (tmp_path / 'candidates.png').exists()
     assert not (tmp_path / 'tensor.png').exists() and not (tmp_path / 'residual_aux.png').exists()
+    # what the data lack is said, not silently skipped
+    why = _omitted(index.read_text())
+    assert why['Gradient tensor before/after'] == ('the gradient tensor needs the four-sensor '
+                                                   'cross (1 sensor(s) here)')
+    assert why['Residual vs auxiliary channels'] == 'the data have no auxiliary channel'
     assert 'class="verdict"' not in index.read_text()
     d = diagnose(data, base=res, field_nt=F, folds=0)
     assert report.candidate_rows(d)[0][0] == d.candidates[0].token

@@ -78,12 +78,16 @@ def test_report_from_rosbag(tmp_path, capsys):
     bag = write_bag(tmp_path / 'bag', data)
     out_dir = tmp_path / 'report'
     assert main(['report', str(bag), '--model', 'base', '--field-nt', '50000',
-                 '--out', str(out_dir), '-q']) == 0
+                 '--out', str(out_dir), '-q', '--figures', 'all']) == 0
     out, _ = capsys.readouterr()
     assert out.strip() == str(out_dir / 'index.html')
     html = (out_dir / 'index.html').read_text()
     assert 'verdict: <b>aux:aux_motor_current@1</b>' in html
     assert (out_dir / 'ladder.png').exists()
+    # --figures all: also the views nothing points at (by default left out, and listed)
+    for name in ('residual_rate', 'residual_direction', 'residual_temperature'):
+        assert (out_dir / f'{name}.png').exists(), name
+    assert 'nothing points at' not in html
 
 
 @pytest.mark.parametrize('args, msg', [
