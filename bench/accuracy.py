@@ -62,8 +62,10 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import common  # noqa: E402
 from magcal_ros.core import model as mdl  # noqa: E402
+from magcal_ros.core.engine import ProfiledProblem  # noqa: E402
 from magcal_ros.core.magnitude import reference_magnitude  # noqa: E402
 from magcal_ros.core.simulate import SimConfig, Simulator  # noqa: E402
+from magcal_ros.core.solvers import covariance_from_jacobian  # noqa: E402
 from magcal_ros.core.tensor import cross_positions, tensor_cross, tensor_noise_floor  # noqa
 import numpy as np  # noqa: E402
 import site_gradient as site_scn  # noqa: E402
@@ -95,7 +97,7 @@ def crb_covariance(data, model, params, field_nt, sigma_nt, priors=None):
     """
     (P, P) inverse Fisher information of the ML problem at ``params`` (the Cramer-Rao bound).
 
-    The variable-projection Jacobian of :class:`magcal_ros.core.model._Problem` evaluated at
+    The variable-projection Jacobian of :class:`magcal_ros.core.engine.ProfiledProblem` at
     the given (true) parameters with the true noise sd; ``priors`` [(index, mean, sd)] add
     their information (the Bayesian bound of the constrained mode).
     """
@@ -103,16 +105,13 @@ def crb_covariance(data, model, params, field_nt, sigma_nt, priors=None):
     model.prepare(contexts)
     f = reference_magnitude(data, field_nt)
     sigma = np.broadcast_to(np.asarray(sigma_nt, float), (model.n_sensors,)).copy()
-    groups = ([list(range(1, model.n_sensors + 1))] if model.joint
-              else [[j] for j in range(1, model.n_sensors + 1)])
     cov = np.zeros((model.n_params, model.n_params))
-    for grp in groups:
+    for grp in model.sensor_groups:
         sl = [model.sensor_slices[j - 1] for j in grp]
         pr = [t for t in (priors or []) if any(s.start <= t[0] < s.stop for s in sl)]
-        prob = mdl._Problem(model, data.raw, contexts, f, grp, sigma, pr)
-        prob.p_full = np.asarray(params, float).copy()
+        prob = ProfiledProblem(model, data.raw, contexts, f, grp, sigma, pr, p_full=params)
         jac = prob.jacobian(prob.p_full[prob.cols])
-        cov[np.ix_(prob.cols, prob.cols)] = mdl._covariance(jac)
+        cov[np.ix_(prob.cols, prob.cols)] = covariance_from_jacobian(jac)
     return cov
 
 
@@ -219,7 +218,7 @@ def run_seed(name, scn, seed, n_holdout):
            'sigma': sigma, 'tensor_floor': floor_t}
     cov = crb_covariance(data, model, truth_p, f, sigma)
     res['crb'] = np.diag(cov)
-    prior_list = mdl._priors_for(model, {}, constrained=True)
+    prior_list = mdl.priors_for(model, {}, constrained=True)
     if 'ml_constrained' in scn['methods']:
         res['crb_prior'] = np.diag(crb_covariance(data, model, truth_p, f, sigma, prior_list))
     for method in scn['methods']:

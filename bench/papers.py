@@ -58,7 +58,9 @@ from magcal_ros.core import model as mdl  # noqa: E402
 from magcal_ros.core import reference_vector as ref  # noqa: E402
 from magcal_ros.core import sine  # noqa: E402
 from magcal_ros.core.dataset import Dataset  # noqa: E402
+from magcal_ros.core.engine import ProfiledProblem  # noqa: E402
 from magcal_ros.core.paper_params import Paper000Params  # noqa: E402
+from magcal_ros.core.solvers import covariance_from_jacobian  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
@@ -119,9 +121,9 @@ def _crb_scale_ppm(raw, f, spec, a, o, sigma):
     model = mdl.Model.from_spec(spec, 1)
     p = model.params_from_linear(1, a, o)
     contexts = [data.context(1)]
-    prob = mdl._Problem(model, data.raw, contexts, np.full(n, f), [1], np.array([sigma]), [])
-    prob.p_full = p.copy()
-    cov = mdl._covariance(prob.jacobian(p))
+    prob = ProfiledProblem(model, data.raw, contexts, np.full(n, f), [1], np.array([sigma]),
+                           p_full=p)
+    cov = covariance_from_jacobian(prob.jacobian(p))
     names = [nm for _, lab, nm, _ in model.param_info()]
     info = model.param_info()
     sel = [i for i, (_, lab, _, _) in enumerate(info) if lab == 'scale']

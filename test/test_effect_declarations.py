@@ -25,7 +25,7 @@ of its name.  The recordings for the fit are made in this file from the formula,
 from magcal_ros.core import effects as fx
 from magcal_ros.core.dataset import Dataset
 from magcal_ros.core.diagnose import diagnose
-from magcal_ros.core.model import _priors_for, fit, Model
+from magcal_ros.core.model import fit, Model, priors_for
 from magcal_ros.core.simulate import simulate
 from magcal_ros.io.calfile import calibration_from_doc, calibration_to_doc
 import numpy as np
@@ -146,9 +146,9 @@ def test_linear_plugin_order_frame_and_prior(plugins):
     np.testing.assert_allclose(m.matrix(2, p), expected, atol=1e-15)
     # the constrained mode takes the declared prior; a user prior by name overrides it
     idx = m.slices[1][2].start
-    assert (idx, 0.0, 0.01) in _priors_for(m, {}, constrained=True)
-    assert (idx, 0.1, 0.5) in _priors_for(m, {'tilt_test': (0.1, 0.5)}, constrained=True)
-    assert not [pr for pr in _priors_for(m, {}) if pr[0] == idx]
+    assert (idx, 0.0, 0.01) in priors_for(m, {}, constrained=True)
+    assert (idx, 0.1, 0.5) in priors_for(m, {'tilt_test': (0.1, 0.5)}, constrained=True)
+    assert not [pr for pr in priors_for(m, {}) if pr[0] == idx]
 
 
 def test_clash_names_both_effects_and_is_symmetric(plugins):

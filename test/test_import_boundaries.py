@@ -21,6 +21,7 @@ with all its submodules in a fresh interpreter; afterwards ``sys.modules`` must 
 rclpy, no ROS message or service package and no rosidl runtime.
 """
 
+import ast
 import json
 import pathlib
 import pkgutil
@@ -114,3 +115,62 @@ def test_the_check_detects_rclpy():
     assert report['errors'] == {}
     assert 'rclpy' in report['offenders']['magcal_ros.ros.conversions']
     assert 'sensor_msgs' in report['offenders']['magcal_ros.ros.conversions']
+
+
+# -- private names stay in their module ------------------------------------------------------
+
+def _is_private(name):
+    return name.startswith('_') and not (name.startswith('__') and name.endswith('__'))
+
+
+def private_reaches(source, package_root=REPO_ROOT):
+    """
+    Return where ``source`` uses another magcal_ros module's private names.
+
+    Two forms: ``from magcal_ros.x import _name`` and ``alias._name`` where ``alias`` is a
+    magcal_ros module (``import magcal_ros.x as alias``, ``from magcal_ros import x as
+    alias``).  Returns a list of (line, text).
+    """
+    tree = ast.parse(source)
+    modules = {}
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and (node.module or '').split('.')[0] == 'magcal_ros':
+            for a in node.names:
+                if _is_private(a.name):
+                    out.append((node.lineno, f'from {node.module} import {a.name}'))
+                    continue
+                sub = package_root / pathlib.Path(*f'{node.module}.{a.name}'.split('.'))
+                if sub.with_suffix('.py').is_file() or sub.is_dir():
+                    modules[a.asname or a.name] = f'{node.module}.{a.name}'
+        elif isinstance(node, ast.Import):
+            for a in node.names:
+                if a.name.split('.')[0] == 'magcal_ros':
+                    modules[a.asname or 'magcal_ros'] = a.name
+    for node in ast.walk(tree):
+        if (isinstance(node, ast.Attribute) and _is_private(node.attr)
+                and isinstance(node.value, ast.Name) and node.value.id in modules):
+            out.append((node.lineno, f'{node.value.id}.{node.attr} '
+                                     f'({modules[node.value.id]})'))
+    return sorted(out)
+
+
+def test_no_module_reaches_into_another_modules_private_names():
+    found = []
+    for top in ('magcal_ros', 'bench'):
+        for path in sorted((REPO_ROOT / top).rglob('*.py')):
+            for line, text in private_reaches(path.read_text()):
+                found.append(f'{path.relative_to(REPO_ROOT)}:{line}: {text}')
+    assert not found, ('private names used across modules (make them public, with a '
+                       'docstring, or keep the use inside the module):\n' + '\n'.join(found))
+
+
+def test_the_private_name_check_sees_both_forms():
+    source = ('from magcal_ros.core.model import fit, _hidden\n'
+              'from magcal_ros.core import effects as fx\n'
+              'import magcal_ros.core.engine as eng\n'
+              'x = fx._REGISTRY, eng._cache, fx.make_effect, fx.__name__\n')
+    assert [t for _, t in private_reaches(source)] == [
+        'from magcal_ros.core.model import _hidden',
+        'eng._cache (magcal_ros.core.engine)',
+        'fx._REGISTRY (magcal_ros.core.effects)']

@@ -161,9 +161,10 @@ def test_lm_out_of_evaluations_is_not_success(monkeypatch, tmp_path, capsys):
     from magcal_ros.io.csvio import write_csv
     rosen = lambda x: np.array([10 * (x[1] - x[0] ** 2), 1 - x[0]])        # noqa: E731
     jac = lambda x: np.array([[-20 * x[0], 10.0], [-1.0, 0.0]])            # noqa: E731
-    short = model_mod._levenberg_marquardt(rosen, jac, np.array([-1.2, 1.0]), max_nfev=5)
+    from magcal_ros.core.solvers import levenberg_marquardt
+    short = levenberg_marquardt(rosen, jac, np.array([-1.2, 1.0]), max_nfev=5)
     assert not short.success and 'maximum number of evaluations' in short.message
-    full = model_mod._levenberg_marquardt(rosen, jac, np.array([-1.2, 1.0]), max_nfev=500)
+    full = levenberg_marquardt(rosen, jac, np.array([-1.2, 1.0]), max_nfev=500)
     assert full.success
     np.testing.assert_allclose(full.x, [1.0, 1.0], atol=1e-6)
 

@@ -1145,6 +1145,11 @@ def registered_effects():
     return sorted(_REGISTRY) + ['aux:<column>']
 
 
+def effect_class(name):
+    """Return the Effect class registered as ``name`` (without arguments), or None."""
+    return _REGISTRY.get(name)
+
+
 def needs_args(name):
     """Tell whether the registered effect ``name`` is only written with arguments."""
     cls = _REGISTRY.get(name)

@@ -971,8 +971,8 @@ def _same(a, b, t_res, f_res):
 
 def find(data, result, **kwargs):
     # one BLAS thread: the designs are thin (N x 10-30), threads only contend
-    from magcal_ros.core.model import _single_threaded_blas
-    with _single_threaded_blas():
+    from magcal_ros.core.solvers import single_threaded_blas
+    with single_threaded_blas():
         return _find(data, result, **kwargs)
 
 

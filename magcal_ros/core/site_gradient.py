@@ -22,6 +22,8 @@ The effect itself is :class:`magcal_ros.core.effects.SiteGradient` (docs/site_gr
 the physics and the identifiability analysis summarised here).  Units: nT, nT/m, m, rad.
 """
 from magcal_ros.core.effects import symmetric_traceless
+from magcal_ros.core.engine import ProfiledProblem
+from magcal_ros.core.solvers import covariance_from_jacobian
 import numpy as np
 
 #: d vec(G) / d (gxx, gxy, gxz, gyy, gyz): the 9 x 5 map of the symmetric traceless tensor
@@ -143,7 +145,6 @@ def crb_covariance(data, model, params, field_nt, sigma_nt, case='attitude', pos
         determine at all ('epoch_gradient').
 
     """
-    from magcal_ros.core import model as mdl
     from magcal_ros.core.magnitude import reference_magnitude
     if case not in CRB_CASES:
         raise ValueError(f'unknown case {case!r}; use one of {CRB_CASES}')
@@ -153,15 +154,14 @@ def crb_covariance(data, model, params, field_nt, sigma_nt, case='attitude', pos
     s = model.n_sensors
     sigma = np.broadcast_to(np.asarray(sigma_nt, float), (s,)).copy()
     grp = list(range(1, s + 1))
-    prob = mdl._Problem(model, data.raw, contexts, f, grp, sigma, [])
-    prob.p_full = np.asarray(params, float).copy()
+    prob = ProfiledProblem(model, data.raw, contexts, f, grp, sigma, p_full=params)
     x = prob.p_full[prob.cols]
     jac = prob.jacobian(x)                         # (N 3S, P), B_k projected out
     cov = np.full((model.n_params, model.n_params), np.inf)
     out = {'covariance': cov, 'gradient_covariance': None, 'gauge_direction': None,
            'undetermined_directions': 0}
     if case == 'attitude':
-        cov[np.ix_(prob.cols, prob.cols)] = mdl._covariance(jac)
+        cov[np.ix_(prob.cols, prob.cols)] = covariance_from_jacobian(jac)
         return out
     p, b, mats, _ = prob.evaluate(x)
     n = data.n_samples
@@ -196,18 +196,13 @@ def crb_covariance(data, model, params, field_nt, sigma_nt, case='attitude', pos
         gn = np.concatenate(cols, axis=1)                                 # (N, 3S, 5)
         gauge = None
     # project the extra nuisance onto the complement of the sphere directions, then out
-    u = b / f[:, None]
-    e1, e2 = mdl._tangent_basis(u)
-    gb = np.concatenate([np.stack([e1 @ mats[j].T, e2 @ mats[j].T], axis=2)
-                         * (f[:, None, None] / sigma[j - 1]) for j in grp], axis=1)
-    gbt = np.swapaxes(gb, 1, 2)
-    gn = gn - gb @ mdl._solve2x2(gbt @ gb, gbt @ gn)
+    gn = prob.project_out_field(b, mats, gn)
     gnt = np.swapaxes(gn, 1, 2)
     j3 = jac.reshape(n, 3 * s, -1)
     j3 = j3 - gn @ np.linalg.solve(gnt @ gn, gnt @ j3)
     jac = j3.reshape(n * 3 * s, -1)
     if gauge is None:
-        cov[np.ix_(prob.cols, prob.cols)] = mdl._covariance(jac)
+        cov[np.ix_(prob.cols, prob.cols)] = covariance_from_jacobian(jac)
         out['undetermined_directions'] = _null_dimension(jac)
         return out
     # heading: drop the gauge direction of the gradient, bound the rest
@@ -216,7 +211,7 @@ def crb_covariance(data, model, params, field_nt, sigma_nt, case='attitude', pos
              else np.linalg.svd(gauge[None])[2][1:].T)           # (5, 4) orthonormal, ⟂ gauge
     jg = jac[:, where] @ basis
     keep = [c for c in range(jac.shape[1]) if c not in where]
-    cov_r = mdl._covariance(np.hstack([jac[:, keep], jg]))
+    cov_r = covariance_from_jacobian(np.hstack([jac[:, keep], jg]))
     cal_cols = prob.cols[keep]
     cov[np.ix_(cal_cols, cal_cols)] = cov_r[:len(keep), :len(keep)]
     out['gradient_covariance'] = basis @ cov_r[len(keep):, len(keep):] @ basis.T

@@ -28,7 +28,7 @@ lines to skip.
 import math
 import re
 
-from magcal_ros.serial.base import _check_positive, Encoder, to_bytes
+from magcal_ros.serial.base import check_positive, Encoder, to_bytes
 from magcal_ros.serial.lines import LineParser
 
 #: Column names understood by the ASCII protocol.
@@ -129,8 +129,8 @@ class AsciiParser(LineParser):
         super().__init__(terminator=terminator, **kwargs)
         self.delimiter = _check_delimiter(delimiter)
         self.columns = _check_columns(columns)
-        self.scale = _check_positive('scale', scale)
-        self.time_scale = _check_positive('time_scale', time_scale)
+        self.scale = check_positive('scale', scale)
+        self.time_scale = check_positive('time_scale', time_scale)
         self.start_command = to_bytes(start_command, 'start_command')
         self.stop_command = to_bytes(stop_command, 'stop_command')
         self.comment_prefix = to_bytes(comment_prefix, 'comment_prefix') or None
@@ -200,8 +200,8 @@ class AsciiEncoder(Encoder):
         if not self.terminator:
             raise ValueError('terminator must not be empty; use e.g. "\\r\\n"')
         self.columns = _check_columns(columns)
-        self.scale = _check_positive('scale', scale)
-        self.time_scale = _check_positive('time_scale', time_scale)
+        self.scale = check_positive('scale', scale)
+        self.time_scale = check_positive('time_scale', time_scale)
         if field_decimals is None:
             field_decimals = max(0, math.ceil(math.log10(self.scale)) + 1)
         self.field_decimals = int(field_decimals)

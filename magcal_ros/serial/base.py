@@ -107,7 +107,7 @@ class ParserStats:
                 'bytes_dropped': self.bytes_dropped, 'total_errors': self.total_errors}
 
 
-def _check_positive(name, value):
+def check_positive(name, value):
     try:
         value = float(value)
     except (TypeError, ValueError):
@@ -175,7 +175,7 @@ class Parser:
 
     def __init__(self, max_abs_nt=DEFAULT_MAX_ABS_NT, temp_range_c=DEFAULT_TEMP_RANGE_C,
                  time_reset_after=DEFAULT_TIME_RESET_AFTER):
-        self.max_abs_nt = _check_positive('max_abs_nt', max_abs_nt)
+        self.max_abs_nt = check_positive('max_abs_nt', max_abs_nt)
         try:
             lo, hi = (float(v) for v in temp_range_c)
         except (TypeError, ValueError):

@@ -74,8 +74,7 @@ from magcal_ros.core.diagnose.constants import (ALPHA, AT_FLOOR_RATIO, BLOCKS_PE
 from magcal_ros.core.diagnose.error_ladder import Ladder, ladder, LadderStep
 from magcal_ros.core.diagnose.measures import (dof_factor, evaluate_residuals, Evaluation,
                                                explained_share, likelihood_ratio,
-                                               n_observations, sensor_groups,
-                                               soft_l1_lr_loss)
+                                               n_observations, soft_l1_lr_loss)
 from magcal_ros.core.diagnose.results import compact_spec, Diagnosis, jsonable
 from magcal_ros.core.diagnose.run import diagnose
 from magcal_ros.core.diagnose.screen import Screen
@@ -90,6 +89,6 @@ __all__ = [
     'REFIT_MAX_NFEV', 'Screen', 'candidate_tokens', 'compact_spec', 'cross_validate',
     'diagnose', 'dof_factor', 'evaluate_residuals', 'explained_share', 'extend_model',
     'jsonable', 'ladder', 'likelihood_ratio', 'n_observations', 'noise_floor_from_data',
-    'propose_from_residual', 'sensor_groups', 'soft_l1_lr_loss', 'split_testable',
+    'propose_from_residual', 'soft_l1_lr_loss', 'split_testable',
     'time_blocks', 'token_label', 'tokens_from_findings',
 ]

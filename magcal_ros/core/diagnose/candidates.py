@@ -34,7 +34,8 @@ from magcal_ros.core.findings import lomb_scargle as find_lomb_scargle
 
 @dataclass(frozen=True, eq=False)
 class Candidate:
-    """Evidence for adding one effect to the model (all RMS values in nT).
+    """
+    Evidence for adding one effect to the model (all RMS values in nT).
 
     Attributes
     ----------
@@ -76,6 +77,7 @@ class Candidate:
     note : str or None
         Why the candidate is not adopted although its fit is good: its fitted parameters
         make it a simpler catalog effect (``Effect.reduces``: a lag of zero time constant).
+
     """
 
     token: str
@@ -121,7 +123,8 @@ def _nested_clash(name, present):
 
 
 def candidate_tokens(model, data, extra=()):
-    """Every effect not in ``model``, per sensor where it applies and on all sensors at once.
+    """
+    Every effect not in ``model``, per sensor where it applies and on all sensors at once.
 
     Returns a list of (token, effect label, sensor or None).  Effects that clash with the
     model (soft_iron next to scale/nonorthogonality/misalignment, drift2 next to drift)
@@ -138,7 +141,7 @@ def candidate_tokens(model, data, extra=()):
         if n == 'aux:<column>':
             continue
         if fx.needs_args(n):
-            cls = fx._REGISTRY[n]
+            cls = fx.effect_class(n)
             names += [f'{n}({",".join(a)})' for a in cls.suggest_args(ctx)]
         else:
             names.append(n)
@@ -146,7 +149,7 @@ def candidate_tokens(model, data, extra=()):
     names += [e for e in extra if e not in names]
     out = []
     for name in names:
-        if getattr(fx._REGISTRY.get(name), 'scope', 'sensor') == 'array':
+        if getattr(fx.effect_class(name), 'scope', 'sensor') == 'array':
             # one effect of the whole array (site_gradient): offered once, when the data
             # have what it reads (the attitude)
             eff = fx.make_effect(name, 0)
@@ -187,7 +190,8 @@ def token_label(tok):
 
 
 def propose_from_residual(t, residual, max_steps=2, min_line_ratio=30.0):
-    """Effects with arguments suggested by the residual: offset steps and periodic lines.
+    """
+    Effects with arguments suggested by the residual: offset steps and periodic lines.
 
     Parameters
     ----------
@@ -214,6 +218,7 @@ def propose_from_residual(t, residual, max_steps=2, min_line_ratio=30.0):
     (Lomb-Scargle for uneven sampling, magcal_ros.core.findings.lomb_scargle) of each
     sensor's residual,
     summed over the axes, its peak refined on a grid 10x finer than 1/span.
+
     """
     t = np.asarray(t, float)
     n = len(t)
@@ -305,7 +310,8 @@ def _copy_refs(src, dst):
 
 
 def extend_model(model, params, token, contexts):
-    """``model`` with ``token`` added, its parameters carried over, the new ones at default.
+    """
+    ``model`` with ``token`` added, its parameters carried over, the new ones at default.
 
     Returns (new model, (P',) parameters, (P',) bool mask of the added parameters).
     """
@@ -397,7 +403,8 @@ def reduces_to_simpler(model, p, stderr, label, contexts):
 
 
 def tokens_from_findings(findings):
-    """Names with arguments that model-free findings point to (tested like any candidate).
+    """
+    Names with arguments that model-free findings point to (tested like any candidate).
 
     ``findings``: dicts {"kind", "sensor", "channel", "value", ...} (issue 11 item 3):
     ``step`` (value = time, s) -> ``step(t)``; ``periodic`` (value = Hz) -> ``periodic(f)``;

@@ -34,7 +34,8 @@ from magcal_ros.core.noise import data_noise_floor, NoiseFloor
 
 @dataclass(frozen=True, eq=False)
 class LadderStep:
-    """One rung: a model, its fit and its held-out residual (nT).
+    """
+    One rung: a model, its fit and its held-out residual (nT).
 
     Attributes
     ----------
@@ -50,6 +51,7 @@ class LadderStep:
     cv_per_sensor_nt : tuple of float
     diagnosis : Diagnosis or None
     result : FitResult
+
     """
 
     model: tuple
@@ -66,7 +68,8 @@ class LadderStep:
 
 @dataclass(frozen=True, eq=False)
 class Ladder:
-    """The error ladder: held-out RMS falling as effects are added.
+    """
+    The error ladder: held-out RMS falling as effects are added.
 
     Attributes
     ----------
@@ -74,6 +77,7 @@ class Ladder:
     noise_floor : NoiseFloor
     reason : str
         Why the ladder stopped (the last diagnosis' reason for "none", or the step limit).
+
     """
 
     steps: tuple
@@ -142,7 +146,8 @@ def _rung(result, data, f, added, diagnosis, folds, constrained=False):
 
 def ladder(data, start_model='base', steps=None, auto=True, field_nt=None, *,
            max_steps=6, folds=DEFAULT_FOLDS, progress=None, diagnosis=None, **diag_kwargs):
-    """Error ladder: diagnose, add the verdict, refit, repeat until nothing is missing.
+    """
+    Error ladder: diagnose, add the verdict, refit, repeat until nothing is missing.
 
     Parameters
     ----------
@@ -169,6 +174,7 @@ def ladder(data, start_model='base', steps=None, auto=True, field_nt=None, *,
     Returns
     -------
     Ladder
+
     """
     f = reference_magnitude(data, field_nt)
     constrained = bool(diag_kwargs.get('constrained', False))

@@ -32,21 +32,7 @@ import math
 import numpy as np
 from scipy import stats
 
-from magcal_ros.core.model import evaluate
-
-
-def sensor_groups(model):
-    """
-    Return the sensor groups fitted together: all sensors when ``model.joint``, else one each.
-
-    Returns
-    -------
-    list of list of int
-        1-based sensor indices of each group.
-
-    """
-    s = model.n_sensors
-    return [list(range(1, s + 1))] if model.joint else [[j] for j in range(1, s + 1)]
+from magcal_ros.core.fitting import evaluate
 
 
 def dof_factor(model):
@@ -57,7 +43,7 @@ def dof_factor(model):
 
 def n_observations(model, n):
     """Return the observations of ``n`` epochs net of the profiled field: N sum(3G - 2)."""
-    return int(n * sum(3 * len(g) - 2 for g in sensor_groups(model)))
+    return int(n * sum(3 * len(g) - 2 for g in model.sensor_groups))
 
 
 def rms(x):
@@ -135,7 +121,8 @@ def evaluate_residuals(model, p, data, f, sigma, contexts, field0=None, loss=Non
 
 
 def soft_l1_lr_loss(z0, f_scale):
-    """Chi-square-equivalent of the soft-L1 loss for the likelihood-ratio test and BIC.
+    """
+    Chi-square-equivalent of the soft-L1 loss for the likelihood-ratio test and BIC.
 
     For an M-estimator with loss L(z) (L = z^2 near 0; soft-L1: 2 f^2 (sqrt(1 + z^2/f^2)
     - 1), the fit's robust loss) the drop of sum L between nested models, times
@@ -149,6 +136,7 @@ def soft_l1_lr_loss(z0, f_scale):
     -------
     callable
         z (S, N, 3) residual / sigma -> the scaled loss sum (a chi-square equivalent).
+
     """
     u = 1.0 + (np.asarray(z0, float) / f_scale) ** 2
     c = float(np.mean(u ** -1.5) / np.mean(z0 ** 2 / u))
@@ -182,7 +170,8 @@ def likelihood_ratio(delta_chi2, k, n_obs):
 
 
 def explained_share(ms_before, ms_after, floor_nt):
-    """Share (0..1) of the excess mean square over floor^2 removed: (before - after) / excess.
+    """
+    Share (0..1) of the excess mean square over floor^2 removed: (before - after) / excess.
 
     0 when there is no excess (the residual is at or below the floor).
     """

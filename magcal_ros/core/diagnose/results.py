@@ -51,7 +51,8 @@ def compact_spec(model):
 
 @dataclass(frozen=True, eq=False)
 class Diagnosis:
-    """Outcome of :func:`diagnose` (RMS values in nT).
+    """
+    Outcome of :func:`diagnose` (RMS values in nT).
 
     Attributes
     ----------
@@ -86,6 +87,7 @@ class Diagnosis:
     findings : Findings or None
         What is left in the base fit's residuals, model-free
         (:func:`magcal_ros.core.findings.find`).
+
     """
 
     model: tuple

@@ -43,8 +43,10 @@ from magcal_ros.core.diagnose.screen import Screen
 from magcal_ros.core.diagnose.validation import cross_validate
 from magcal_ros.core.findings import find as find_findings
 from magcal_ros.core.magnitude import reference_magnitude
-from magcal_ros.core.model import _single_threaded_blas, fit, Model
+from magcal_ros.core.fitting import fit
+from magcal_ros.core.model import Model
 from magcal_ros.core.noise import data_noise_floor, NoiseFloor
+from magcal_ros.core.solvers import single_threaded_blas
 
 
 def report_progress(cb, stage, i, n, label=''):
@@ -142,7 +144,8 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
              alpha=ALPHA, max_refit=DEFAULT_MAX_REFIT, candidates=None, progress=None,
              cv_method='newton', max_samples=DEFAULT_MAX_SAMPLES, baseline_m=0.5,
              constrained=False, propose=True, **fit_kwargs):
-    """Find what the model misses: noise floor, candidate effects ranked, verdict.
+    """
+    Find what the model misses: noise floor, candidate effects ranked, verdict.
 
     Parameters
     ----------
@@ -193,7 +196,7 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
 
     """
     # one BLAS thread, as in fit(): threads only contend on small shared machines (bench/)
-    with _single_threaded_blas():
+    with single_threaded_blas():
         t_start = time.perf_counter()
         seconds = {}
         f = reference_magnitude(data, field_nt)
@@ -249,7 +252,7 @@ def _base_fit(data, model, f, base, constrained, progress, fit_kwargs):
             model = Model.from_spec(model, data.n_sensors)
         report_progress(progress, 'fit', 0, 1, ','.join(model.spec()))
         base = fit(data, model, field_nt=f, constrained=constrained, **fit_kwargs)
-    if base.residual_nt.shape[1] != data.n_samples:
+    if base.n_samples != data.n_samples:
         raise ValueError('the base fit was made on other data: pass the same Dataset')
     return base
 

@@ -20,12 +20,13 @@ candidates are then refitted in full (:mod:`magcal_ros.core.diagnose.run`).
 """
 import numpy as np
 
-from magcal_ros.core.diagnose.measures import sensor_groups, solve_psd
-from magcal_ros.core.model import _Problem, _tangent_basis
+from magcal_ros.core.diagnose.measures import solve_psd
+from magcal_ros.core.engine import ProfiledProblem
 
 
 class Screen:
-    """One Gauss-Newton step of an extended model from the base solution, for many candidates.
+    """
+    One Gauss-Newton step of an extended model from the base solution, for many candidates.
 
     The variable-projection Jacobian of the base parameters (the same as in
     :func:`magcal_ros.core.model.fit`), the residual and the nuisance-field projector are
@@ -65,18 +66,16 @@ class Screen:
         self.model, self.p, self.raw, self.ctx = model, p, raw, contexts
         self.f, self.sigma = f, sigma
         self.groups = []
-        for grp in sensor_groups(model):
-            prob = _Problem(model, raw, contexts, f, grp, sigma, [])
-            prob.p_full = p.copy()
+        for grp in model.sensor_groups:
+            prob = ProfiledProblem(model, raw, contexts, f, grp, sigma, p_full=p)
             x = p[prob.cols]
             r = prob.residuals(x)
             jac = prob.jacobian(x)
             _, b, mats, _ = prob.evaluate(x)
-            e1, e2 = _tangent_basis(b / f[:, None])
             n, g = len(f), len(grp)
             # (N, 3, 2) field-direction columns of each sensor, scaled like the residual
-            gb = [np.stack([e1 @ mats[j].T, e2 @ mats[j].T], axis=2)
-                  * (f[:, None, None] / sigma[j - 1]) for j in grp]
+            g_all = prob.field_columns(b, mats)
+            gb = [g_all[:, 3 * gi:3 * gi + 3] for gi in range(g)]
             gtg = sum(np.swapaxes(x_, 1, 2) @ x_ for x_ in gb)
             a, bb, c, d_ = gtg[:, 0, 0], gtg[:, 0, 1], gtg[:, 1, 0], gtg[:, 1, 1]
             ginv = np.stack([np.stack([d_, -bb], axis=1), np.stack([-c, a], axis=1)],

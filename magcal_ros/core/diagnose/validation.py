@@ -23,12 +23,14 @@ others (by default one Gauss-Newton step from the all-data fit with the fold's r
 import numpy as np
 
 from magcal_ros.core.diagnose.constants import BLOCKS_PER_FOLD, DEFAULT_FOLDS, MIN_BLOCK
-from magcal_ros.core.diagnose.measures import dof_factor, sensor_groups, solve_psd
-from magcal_ros.core.model import _Problem, evaluate, fit
+from magcal_ros.core.diagnose.measures import dof_factor, solve_psd
+from magcal_ros.core.engine import ProfiledProblem
+from magcal_ros.core.fitting import evaluate, fit
 
 
 def time_blocks(n, folds, blocks_per_fold=None):
-    """Index arrays of ``folds`` held-out sets of ``n`` epochs, each interleaved in time.
+    """
+    Index arrays of ``folds`` held-out sets of ``n`` epochs, each interleaved in time.
 
     The record is cut into ``folds * blocks_per_fold`` contiguous blocks (neighbouring
     samples are correlated: a random split would leak) and fold k holds out blocks k,
@@ -48,7 +50,8 @@ def time_blocks(n, folds, blocks_per_fold=None):
 
 def cross_validate(data, model, params, f, sigma, folds=DEFAULT_FOLDS, fold_inits=None,
                    method='newton', constrained=False):
-    """Held-out residual of ``model``: fit on all blocks but one, evaluate on that block.
+    """
+    Held-out residual of ``model``: fit on all blocks but one, evaluate on that block.
 
     Parameters
     ----------
@@ -84,6 +87,7 @@ def cross_validate(data, model, params, f, sigma, folds=DEFAULT_FOLDS, fold_init
     dict
         ``rms_nt`` combined held-out RMS (pooled), ``per_sensor_nt`` (S,),
         ``scalar_rms_nt`` (S,), ``fold_params`` list of (P,) arrays.
+
     """
     if method not in ('newton', 'refit'):
         raise ValueError(f"method must be 'newton' or 'refit', got {method!r}")
@@ -121,13 +125,13 @@ def _newton_leave_out(data, model, params, f, sigma, blocks):
     """(P,) parameters per block: one Gauss-Newton step without that block's rows."""
     sigma = np.asarray(sigma, float)
     fold_params = [params.copy() for _ in blocks]
-    for grp in sensor_groups(model):
+    for grp in model.sensor_groups:
         hess, grad = [], []
         for test in blocks:
             sub = data.subset(test)
-            prob = _Problem(model, sub.raw, [sub.context(j) for j in range(1, sub.n_sensors + 1)],
-                            f[test], grp, sigma, [])
-            prob.p_full = params.copy()
+            prob = ProfiledProblem(model, sub.raw,
+                                   [sub.context(j) for j in range(1, sub.n_sensors + 1)],
+                                   f[test], grp, sigma, p_full=params)
             x = params[prob.cols]
             jac = prob.jacobian(x)
             r = prob.residuals(x)

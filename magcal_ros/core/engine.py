@@ -1,0 +1,416 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The profiled (variable-projection) maximum-likelihood problem of a magnetometer array.
+
+Per sensor j of a group of G sensors fitted together and epoch k the model predicts the raw
+reading ``f_j(p, B_k)`` (:meth:`magcal_ros.core.model.Model.forward`) from the parameters p
+and the unknown true field B_k, which is constrained to the reference magnitude
+``|B_k| = F_k``.  The noise is Gaussian on the raw readings, sd sigma_j per axis, so the
+negative log-likelihood is half the sum of the squared *normalised* residuals
+
+    r_jk = (raw_jk - f_j(p, B_k)) / sigma_j        (dimensionless).
+
+The fields B_k are nuisance parameters, two per epoch (a direction on the sphere of radius
+F_k).  They are eliminated in closed form for given p ("variable projection", Golub & Pereyra
+1973; Kaufman 1975; docs/papers.md, "The maximum-likelihood engine"): B_k is profiled by
+Gauss-Newton steps on the sphere (2 x 2 normal equations per epoch in the tangent plane,
+:func:`tangent_basis`), and the Jacobian of the residuals with respect to p is projected onto
+the orthogonal complement of the two field directions of each epoch,
+
+    J = (I - G (G^T G)^-1 G^T) dr/dp,    G_k = -dr_k/d(delta_1, delta_2)  (3G x 2 per epoch),
+
+so that Gauss-Newton on p alone converges like the joint problem and J^T J is the Fisher
+information of p with the fields unknown (its inverse,
+:func:`magcal_ros.core.solvers.covariance_from_jacobian`, is the Cramer-Rao bound).
+
+:class:`ProfiledProblem` holds one group of sensors; the fit
+(:func:`magcal_ros.core.fitting.fit`) solves it with
+:func:`magcal_ros.core.solvers.levenberg_marquardt`, the diagnosis
+(:mod:`magcal_ros.core.diagnose`) reuses its Jacobian to screen and cross-validate candidate
+effects, and :mod:`magcal_ros.core.site_gradient` its covariance.
+"""
+import numpy as np
+
+
+def tangent_basis(u):
+    """
+    Return two unit vectors orthogonal to each unit vector of ``u`` and to each other.
+
+    Parameters
+    ----------
+    u : numpy.ndarray
+        (N, 3) unit vectors (field directions), dimensionless.
+
+    Returns
+    -------
+    e1, e2 : numpy.ndarray
+        (N, 3) each: a right-handed basis (e1, e2, u) of the tangent plane at each u.
+
+    """
+    helper = np.where(np.abs(u[:, :1]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
+    e1 = np.cross(u, helper)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(u, e1)
+    return e1, e2
+
+
+def inverse_2x2(a, b, c, d):
+    """
+    Return the entries of the inverses of the stacked 2 x 2 matrices [[a, b], [c, d]].
+
+    Parameters
+    ----------
+    a, b, c, d : numpy.ndarray
+        (N,) entries, any unit.
+
+    Returns
+    -------
+    tuple of numpy.ndarray
+        (N,) each: the entries (0, 0), (0, 1), (1, 0), (1, 1) of the inverses.
+
+    """
+    det = a * d - b * c
+    return d / det, -b / det, -c / det, a / det
+
+
+def solve_2x2(m, rhs):
+    """
+    Solve the stacked 2 x 2 systems m x = rhs in closed form.
+
+    Same result as ``np.linalg.solve`` (to rounding) for the well-conditioned tangent-plane
+    Gram matrices here, about 50x faster for K = 40 right-hand sides (bench/ profile: the
+    batched LAPACK call dominated the projection of the Jacobian).
+
+    Parameters
+    ----------
+    m : numpy.ndarray
+        (N, 2, 2) matrices.
+    rhs : numpy.ndarray
+        (N, 2, K) right-hand sides.
+
+    Returns
+    -------
+    numpy.ndarray
+        (N, 2, K) solutions.
+
+    """
+    i = inverse_2x2(m[:, 0, 0], m[:, 0, 1], m[:, 1, 0], m[:, 1, 1])
+    inv = np.stack([np.stack(i[:2], axis=1), np.stack(i[2:], axis=1)], axis=1)
+    return inv @ rhs
+
+
+class ProfiledProblem:
+    """
+    Normalised residuals and projected Jacobian of the ML problem of one group of sensors.
+
+    The unknown vector x holds the parameters of the group's sensors and the array-wide
+    parameters (``cols``, indices into the model's full vector p); the other entries of p
+    are held at :attr:`p_full`.  Evaluations are cached on x.
+
+    Parameters
+    ----------
+    model : Model
+        The model, prepared on ``contexts`` (:meth:`Model.prepare`).
+    data_raw : numpy.ndarray
+        (S, N, 3) raw readings of all sensors, nT.
+    contexts : list of SensorContext
+        (S,) the driving signals of each sensor on the same N epochs.
+    f_nt : numpy.ndarray
+        (N,) reference magnitude |B_k|, nT.
+    sensors : list of int
+        1-based sensors of this group (all sensors of a joint model, else one).
+    sigma : numpy.ndarray
+        (S,) noise sd per axis of each sensor, nT: the residuals are divided by it.
+    priors : list of tuple, optional
+        (index into p, mean, sd) Gaussian priors (the constrained mode), appended to the
+        residuals as (p_i - mean) / sd, dimensionless.
+    robust : bool
+        Profile the field with the IRLS weights of the soft-L1 loss (and the median of the
+        corrected readings as start when G > 2).
+    f_scale : float
+        Soft-L1 scale, in units of sigma.
+    p_full : numpy.ndarray, optional
+        (P,) the full parameter vector the entries outside ``cols`` are taken from
+        (default ``model.default_params()``).
+    field0 : numpy.ndarray, optional
+        (N, 3) nT, the profiled field of nearby parameters: the profile starts from it and
+        takes one Gauss-Newton step instead of two from the mean corrected reading.
+
+    Attributes
+    ----------
+    cols : numpy.ndarray
+        (P_g,) int, the indices of x in the full vector: the group's sensors' parameters,
+        then the array-wide ones.
+
+    """
+
+    def __init__(self, model, data_raw, contexts, f_nt, sensors, sigma, priors=(),
+                 robust=False, f_scale=3.0, p_full=None, field0=None):
+        self.robust = robust
+        self.f_scale = f_scale
+        self.model = model
+        self.raw = data_raw
+        self.ctx = contexts
+        self.f = f_nt
+        self.sensors = list(sensors)
+        self.sigma = sigma
+        self.cols = np.concatenate([np.arange(model.n_params)[model.sensor_slices[j - 1]]
+                                    for j in self.sensors] + [model.array_cols]).astype(int)
+        self.priors = list(priors)
+        self._cache_key = None
+        self.p_full = model.default_params() if p_full is None else np.array(p_full, float)
+        self.field0 = field0
+
+    @property
+    def n_residuals(self):
+        """Length of :meth:`residuals`: 3 G N, plus one per prior."""
+        return 3 * len(self.sensors) * self.raw.shape[1] + len(self.priors)
+
+    def full(self, x):
+        """
+        Return the full parameter vector with x in the group's entries.
+
+        Parameters
+        ----------
+        x : numpy.ndarray
+            (P_g,) the group's parameters (units in ``model.param_info()``).
+
+        Returns
+        -------
+        numpy.ndarray
+            (P,) :attr:`p_full` with ``cols`` replaced by x.
+
+        """
+        p = self.p_full.copy()
+        p[self.cols] = x
+        return p
+
+    def _field(self, p):
+        """
+        Profile the field per epoch: mean of corrected readings, then GN steps on |B| = F.
+
+        With :attr:`field0` (N, 3) nT set (the profiled field of nearby parameters), start
+        from it and take one step: Gauss-Newton converges quadratically, so one step from a
+        field 1e-4 rad off lands within 1e-8 rad of two steps from the mean.
+        """
+        n = self.raw.shape[1]
+        mats = {j: self.model.matrix(j, p) for j in self.sensors}
+        if self.field0 is not None:
+            b, steps = self.field0, 1
+        else:
+            cor = np.stack([self.model.correct(j, p, self.raw[j - 1], self.ctx[j - 1])
+                            for j in self.sensors])
+            if self.robust and len(self.sensors) > 2:
+                acc = np.median(cor, axis=0)      # one spiking sensor cannot pull the field
+            else:
+                acc = np.einsum('gnc,g->nc', cor,
+                                1.0 / self.sigma[np.array(self.sensors) - 1] ** 2)
+            u = acc / np.linalg.norm(acc, axis=1, keepdims=True)
+            b, steps = u * self.f[:, None], 2
+        for _ in range(steps):
+            u = b / self.f[:, None]
+            e1, e2 = tangent_basis(u)
+            # per-epoch 2 x 2 normal equations of the two tangent directions, written out
+            # component by component: several times faster than stacking (N, 3, 2) arrays
+            # and batched matmuls of tiny matrices (profile of diagnose, bench/)
+            h11, h12, h22 = np.zeros(n), np.zeros(n), np.zeros(n)
+            g1s, g2s = np.zeros(n), np.zeros(n)
+            for j in self.sensors:
+                r = (self.raw[j - 1] - self.model.forward(j, p, b, self.ctx[j - 1])) / (
+                    self.sigma[j - 1])
+                scale = self.f[:, None] / self.sigma[j - 1]
+                g1 = (e1 @ mats[j].T) * scale          # (N, 3) = -dr/d delta_1
+                g2 = (e2 @ mats[j].T) * scale          # (N, 3) = -dr/d delta_2
+                if self.robust:
+                    # IRLS weight of the soft-L1 loss on this sensor's residual at each epoch
+                    w = 1.0 / np.sqrt(1.0 + np.sum(r * r, axis=1) / self.f_scale ** 2)
+                    wg1, wg2 = g1 * w[:, None], g2 * w[:, None]
+                else:
+                    wg1, wg2 = g1, g2
+                h11 += np.einsum('ij,ij->i', wg1, g1)
+                h12 += np.einsum('ij,ij->i', wg1, g2)
+                h22 += np.einsum('ij,ij->i', wg2, g2)
+                g1s += np.einsum('ij,ij->i', wg1, r)
+                g2s += np.einsum('ij,ij->i', wg2, r)
+            i11, i12, i21, i22 = inverse_2x2(h11, h12, h12, h22)
+            d1 = i11 * g1s + i12 * g2s
+            d2 = i21 * g1s + i22 * g2s
+            b = b + self.f[:, None] * (d1[:, None] * e1 + d2[:, None] * e2)
+            b = b / np.linalg.norm(b, axis=1, keepdims=True) * self.f[:, None]
+        return b, mats
+
+    def field_columns(self, b, mats):
+        """
+        Return G: the residuals' derivatives along the two field directions of each epoch.
+
+        Parameters
+        ----------
+        b : numpy.ndarray
+            (N, 3) the profiled field, nT.
+        mats : dict
+            {sensor: (3, 3) A_j}, as returned by :meth:`evaluate`.
+
+        Returns
+        -------
+        numpy.ndarray
+            (N, 3G, 2) dimensionless: -dr_k/d(delta_1, delta_2) for a rotation of B_k by
+            delta (rad) in the tangent plane (:func:`tangent_basis`), rows in the order
+            sensor of the group, axis.
+
+        """
+        e1, e2 = tangent_basis(b / self.f[:, None])
+        return np.concatenate([np.stack([e1 @ mats[j].T, e2 @ mats[j].T], axis=2)
+                               * (self.f[:, None, None] / self.sigma[j - 1])
+                               for j in self.sensors], axis=1)
+
+    def project_out_field(self, b, mats, m):
+        """
+        Project columns onto the complement of the field directions of each epoch.
+
+        Parameters
+        ----------
+        b, mats
+            As for :meth:`field_columns`.
+        m : numpy.ndarray
+            (N, 3G, K) columns with rows like the residuals of each epoch.
+
+        Returns
+        -------
+        numpy.ndarray
+            (N, 3G, K) (I - G (G^T G)^-1 G^T) m per epoch, G from :meth:`field_columns`.
+
+        """
+        gb = self.field_columns(b, mats)
+        gbt = np.swapaxes(gb, 1, 2)                    # batched matmul, not einsum: 3-5x faster
+        return m - gb @ solve_2x2(gbt @ gb, gbt @ m)
+
+    def evaluate(self, x):
+        """
+        Evaluate the model at x with the field profiled (cached on x).
+
+        Parameters
+        ----------
+        x : numpy.ndarray
+            (P_g,) the group's parameters.
+
+        Returns
+        -------
+        p : numpy.ndarray
+            (P,) the full parameter vector.
+        field : numpy.ndarray
+            (N, 3) the profiled field B_k, nT, |B_k| = F_k.
+        mats : dict
+            {sensor: (3, 3) linear map A_j of the model at p}.
+        res : numpy.ndarray
+            (N, G, 3) normalised residuals (raw - prediction) / sigma_j, dimensionless.
+
+        """
+        key = x.tobytes()
+        if key != self._cache_key:
+            p = self.full(x)
+            b, mats = self._field(p)
+            res = np.stack([(self.raw[j - 1] - self.model.forward(j, p, b, self.ctx[j - 1]))
+                            / self.sigma[j - 1] for j in self.sensors], axis=1)   # (N, G, 3)
+            self._cache = (p, b, mats, res)
+            self._cache_key = key
+        return self._cache
+
+    def residuals(self, x):
+        """
+        Return the normalised residual vector at x (what the fit minimises the squares of).
+
+        Parameters
+        ----------
+        x : numpy.ndarray
+            (P_g,) the group's parameters.
+
+        Returns
+        -------
+        numpy.ndarray
+            (3 G N + n_priors,) dimensionless: (raw - prediction) / sigma_j in the order
+            epoch, sensor of the group, axis (``res.ravel()`` of :meth:`evaluate`), then
+            (p_i - mean) / sd of each prior.
+
+        """
+        p, _, _, res = self.evaluate(x)
+        out = res.ravel()
+        if self.priors:
+            pr = np.array([(p[i] - m) / s for i, m, s in self.priors])
+            out = np.concatenate([out, pr])
+        return out
+
+    def jacobian(self, x):
+        """
+        Return the variable-projection Jacobian of :meth:`residuals` at x.
+
+        The columns are dr/dx by forward differences (step 1e-6 max(1, |x_i|)) with the
+        field held at its profile, then projected onto the complement of the two field
+        directions of each epoch (module docstring), so that J^T J is the Fisher
+        information of x with the fields unknown.
+
+        Parameters
+        ----------
+        x : numpy.ndarray
+            (P_g,) the group's parameters.
+
+        Returns
+        -------
+        numpy.ndarray
+            (3 G N + n_priors, P_g), in 1 / (unit of each parameter): the residuals are
+            divided by sigma_j, so a column times a change of its parameter is a change of
+            the residual in units of the noise sd.  Prior rows are 1 / sd on their
+            parameter's column.
+
+        """
+        p, b, mats, res = self.evaluate(x)
+        n, g = res.shape[0], len(self.sensors)
+        jac = np.zeros((n, g, 3, len(self.cols)))
+        col = 0
+        for gi, j in enumerate(self.sensors):
+            sl = self.model.sensor_slices[j - 1]
+            base = self.model.forward(j, p, b, self.ctx[j - 1])
+            # this sensor's columns, filled contiguously (P_j, N, 3) and copied into the
+            # strided Jacobian once: about 2x faster than writing column by column
+            block = np.empty((sl.stop - sl.start, n, 3))
+            for c, i in enumerate(range(sl.start, sl.stop)):
+                h = 1e-6 * max(1.0, abs(p[i]))
+                pp = p.copy()
+                pp[i] += h
+                np.subtract(base, self.model.forward(j, pp, b, self.ctx[j - 1]), out=block[c])
+                block[c] /= h * self.sigma[j - 1]
+            jac[:, gi, :, col:col + len(block)] = block.transpose(1, 2, 0)
+            col += len(block)
+        # array-wide parameters (site gradient): every sensor of the group depends on them
+        n_arr = len(self.model.array_cols)
+        bases = ([self.model.forward(j, p, b, self.ctx[j - 1]) for j in self.sensors]
+                 if n_arr else [])
+        for k, i in enumerate(self.model.array_cols):
+            h = 1e-6 * max(1.0, abs(p[i]))
+            pp = p.copy()
+            pp[i] += h
+            for gi, j in enumerate(self.sensors):
+                d = bases[gi] - self.model.forward(j, pp, b, self.ctx[j - 1])
+                jac[:, gi, :, len(self.cols) - n_arr + k] = d / (h * self.sigma[j - 1])
+        # project out the nuisance field directions (variable projection)
+        jac = self.project_out_field(b, mats, jac.reshape(n, 3 * g, -1))
+        jac = jac.reshape(n * 3 * g, -1)
+        if self.priors:
+            pr = np.zeros((len(self.priors), len(self.cols)))
+            where = {c: k for k, c in enumerate(self.cols)}
+            for r, (i, _, s) in enumerate(self.priors):
+                pr[r, where[i]] = 1.0 / s
+            jac = np.vstack([jac, pr])
+        return jac
