@@ -24,13 +24,12 @@ Lagrange multiplier lambda found per epoch by root finding (scipy.optimize.brent
 import dataclasses
 import inspect
 
-import numpy as np
-import pytest
-from scipy.optimize import brentq
-
 from magcal_ros.core.dataset import Dataset
 from magcal_ros.core.diagnose import diagnose, ladder
 from magcal_ros.core.model import fit, FitResult
+import numpy as np
+import pytest
+from scipy.optimize import brentq
 
 F = 50000.0
 SIGMA = 3.0

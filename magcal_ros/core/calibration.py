@@ -20,9 +20,8 @@ used by the corrector node and :class:`magcal_ros.core.live.LiveCorrector`.  Pap
 decomposition of the correction into the intrinsic matrix and the rotation into sensor 1's
 frame (docs/papers.md#paper-004, eq. 5 and 14) is :meth:`Calibration.intrinsic_and_rotation`.
 """
-import numpy as np
-
 from magcal_ros.core import effects as fx
+import numpy as np
 
 
 class Calibration:
@@ -58,7 +57,7 @@ class Calibration:
 
     @property
     def n_sensors(self):
-        """Number of sensors."""
+        """Return the number of sensors."""
         return self.model.n_sensors
 
     def matrix(self, j):

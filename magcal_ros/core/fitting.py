@@ -34,9 +34,6 @@ profiled field) are computed from the parameters on first access and then kept.
 from dataclasses import dataclass, field
 from functools import cached_property
 
-import numpy as np
-from scipy.optimize import least_squares
-
 from magcal_ros.core.calibration import Calibration
 from magcal_ros.core.ellipsoid import fit_ellipsoid, procrustes_rotation
 from magcal_ros.core.engine import ProfiledProblem
@@ -45,6 +42,8 @@ from magcal_ros.core.noise import mad_sd
 from magcal_ros.core.notes import Note
 from magcal_ros.core.solvers import (covariance_from_jacobian, levenberg_marquardt,
                                      single_threaded_blas)
+import numpy as np
+from scipy.optimize import least_squares
 
 
 class DegenerateDataError(ValueError):
@@ -128,7 +127,7 @@ class FitResult:
 
     @property
     def n_samples(self):
-        """Number of epochs N of the fitted data."""
+        """Return the number of epochs N of the fitted data."""
         return int(self.raw_nt.shape[1])
 
     def _profile(self):
@@ -184,7 +183,7 @@ class FitResult:
 
     @property
     def n_params(self):
-        """Number of free parameters."""
+        """Return the number of free parameters."""
         return self.model.n_params
 
     @property
@@ -205,7 +204,7 @@ class FitResult:
 
     @property
     def calibration(self):
-        """The :class:`Calibration` (model + parameters) for live correction."""
+        """Return the :class:`Calibration` (model + parameters) for live correction."""
         cal = Calibration(self.model, self.params, self.stderr, self.sigma_nt)
         cols = self.model.array_cols
         if len(cols):
@@ -241,7 +240,7 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
         priors=None, sigma_nt=None, on_degenerate='raise', max_fit_samples=20000,
         init=None, max_nfev=200, check_identifiability=True, solver='lm'):
     """
-    Maximum-likelihood fit of ``model`` to rotation data in a uniform field.
+    Fit ``model`` to rotation data in a uniform field by maximum likelihood.
 
     Parameters
     ----------
@@ -252,7 +251,9 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
     field_nt : float or numpy.ndarray, optional
         Reference magnitude in nT, scalar or (N,); default ``data.ref_total``.
     robust : bool
-        Use the soft-L1 loss (outlier spikes); ``f_scale`` is in units of sigma.
+        Use the soft-L1 loss (outlier spikes).
+    f_scale : float
+        Scale of the soft-L1 loss, in units of sigma.
     constrained : bool
         Constrained mode for partial attitude coverage: effects get the priors they declare
         (``Effect.prior``: scale 1 +- 0.02, non-orthogonality 0 +- 0.02 rad, misalignment
@@ -267,6 +268,11 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
         Fit on at most this many epochs, evenly spaced; residuals are reported for all.
     init : numpy.ndarray, optional
         (P,) starting parameters (default: closed-form start).
+    max_nfev : int
+        Most residual evaluations of the optimiser per sensor group and noise pass.
+    check_identifiability : bool
+        Check the attitude coverage and the Jacobian's conditioning
+        (:mod:`magcal_ros.core.identifiability`); off for warm-started refits.
     solver : {'lm', 'scipy'}
         'lm': Levenberg-Marquardt on the normal equations (J^T J is P x P; about 20x faster
         than an SVD of the tall Jacobian, see bench/); 'scipy': scipy.optimize.least_squares
@@ -557,6 +563,15 @@ def initial_params(raw, field_nt, model, constrained=False):
         (S, N, 3) raw readings, nT.
     field_nt : numpy.ndarray
         (N,) reference magnitude, nT.
+    model : Model
+        The model whose parameters are started.
+    constrained : bool
+        A = I and the offset from the linear sphere fit only.
+
+    Returns
+    -------
+    numpy.ndarray
+        (P,) starting parameters.
 
     """
     s = raw.shape[0]
@@ -597,6 +612,7 @@ def profile_residuals(model, p, raw, f, sigma, contexts, robust=False, f_scale=3
     Parameters
     ----------
     model : Model
+        The model, prepared.
     p : numpy.ndarray
         (P,) parameters.
     raw : numpy.ndarray
@@ -609,6 +625,8 @@ def profile_residuals(model, p, raw, f, sigma, contexts, robust=False, f_scale=3
         (S,) driving signals on the same epochs.
     robust, f_scale : bool, float
         Profile with the soft-L1 weights.
+    chunk : int
+        Epochs evaluated at a time (memory of the Jacobian-free evaluation).
     field0 : numpy.ndarray, optional
         (N, 3) nT field to start the profile from (joint models).
 

@@ -35,13 +35,12 @@ The rest of the calibration lives in its own modules, re-exported here so that
 """
 import hashlib
 
-import numpy as np
-
 from magcal_ros.core import effects as fx
 # re-exported (see the module docstring); fitting imports Model only inside fit()
 from magcal_ros.core.calibration import Calibration
 from magcal_ros.core.fitting import (DegenerateDataError, evaluate, fit, fit_epochs,
                                      FitResult, initial_params, priors_for)
+import numpy as np
 
 __all__ = ['Calibration', 'data_hash', 'DegenerateDataError', 'evaluate', 'fit', 'fit_epochs',
            'FitResult', 'initial_params', 'Model', 'priors_for']
@@ -105,7 +104,7 @@ class Model:
 
     @property
     def n_sensors(self):
-        """Number of sensors S."""
+        """Return the number of sensors S."""
         return len(self.effects)
 
     @classmethod

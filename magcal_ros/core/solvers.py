@@ -71,7 +71,9 @@ def levenberg_marquardt(fun, jac, x0, robust=False, f_scale=3.0, max_nfev=200, x
     x0 : numpy.ndarray
         (P,) start.
     robust : bool
-        Soft-L1 loss instead of squares; ``f_scale`` in the residuals' unit.
+        Soft-L1 loss instead of squares.
+    f_scale : float
+        Scale of the soft-L1 loss, in the residuals' unit.
     max_nfev : int
         Most residual evaluations.
     xtol, ftol : float

@@ -25,11 +25,10 @@ data cannot excite (``Effect.check``).
 from dataclasses import dataclass
 import math
 
-import numpy as np
-
 from magcal_ros.core import effects as fx
 from magcal_ros.core.diagnose.constants import NESTED
 from magcal_ros.core.findings import lomb_scargle as find_lomb_scargle
+import numpy as np
 
 
 @dataclass(frozen=True, eq=False)

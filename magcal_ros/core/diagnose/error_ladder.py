@@ -19,17 +19,16 @@ The error ladder: diagnose, add the verdict, refit, until nothing is missing.
 """
 from dataclasses import dataclass, field
 
-import numpy as np
-
 from magcal_ros.core.diagnose.candidates import extend_model
 from magcal_ros.core.diagnose.constants import DEFAULT_FOLDS
 from magcal_ros.core.diagnose.measures import dof_factor, evaluate_residuals
 from magcal_ros.core.diagnose.results import compact_spec
 from magcal_ros.core.diagnose.run import diagnose, report_progress
 from magcal_ros.core.diagnose.validation import cross_validate
+from magcal_ros.core.fitting import fit
 from magcal_ros.core.magnitude import reference_magnitude
-from magcal_ros.core.model import fit
 from magcal_ros.core.noise import data_noise_floor, NoiseFloor
+import numpy as np
 
 
 @dataclass(frozen=True, eq=False)
@@ -86,7 +85,7 @@ class Ladder:
 
     @property
     def final(self):
-        """The last step."""
+        """Return the last step."""
         return self.steps[-1]
 
     def to_dict(self):
@@ -152,6 +151,7 @@ def ladder(data, start_model='base', steps=None, auto=True, field_nt=None, *,
     Parameters
     ----------
     data : Dataset
+        (S sensors, N epochs) rotation data in time order, nT.
     start_model : str or Model or FitResult
         Where to start (a FitResult on ``data`` is used as is).
     steps : list of str, optional
@@ -162,8 +162,12 @@ def ladder(data, start_model='base', steps=None, auto=True, field_nt=None, *,
         'none' or ``max_steps`` effects were added.
     field_nt : float or numpy.ndarray, optional
         Reference magnitude, nT.
+    max_steps : int
+        Most effects added.
     folds : int
-        Contiguous time blocks of the cross-validation.
+        Folds of the cross-validation (interleaved time blocks).
+    progress : callable, optional
+        ``progress(stage, i, n, label)`` called as the work proceeds.
     diagnosis : Diagnosis, optional
         An existing diagnosis of ``start_model`` (a FitResult) on ``data``, reused for the
         first step.

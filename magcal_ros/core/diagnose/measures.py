@@ -29,10 +29,9 @@ Residual measures (all nT):
 from dataclasses import dataclass
 import math
 
+from magcal_ros.core.fitting import evaluate
 import numpy as np
 from scipy import stats
-
-from magcal_ros.core.fitting import evaluate
 
 
 def dof_factor(model):
@@ -99,10 +98,18 @@ def evaluate_residuals(model, p, data, f, sigma, contexts, field0=None, loss=Non
 
     Parameters
     ----------
+    model : Model
+        The model, prepared.
+    p : numpy.ndarray
+        (P,) its parameters.
+    data : Dataset
+        (S sensors, N epochs), nT.
     f : numpy.ndarray
         (N,) reference magnitude, nT.
     sigma : numpy.ndarray
         (S,) noise levels, nT.
+    contexts : list of SensorContext
+        (S,) driving signals on the same epochs.
     field0 : numpy.ndarray, optional
         (N, 3) field to start the profile from (one Gauss-Newton step of it), nT.
     loss : callable, optional

@@ -16,11 +16,10 @@
 from dataclasses import dataclass, field
 import json
 
-import numpy as np
-
 from magcal_ros.core import effects as fx
 from magcal_ros.core.diagnose.constants import AT_FLOOR_RATIO, MIN_DELTA_BIC, MIN_EXPLAINED
 from magcal_ros.core.noise import NoiseFloor
+import numpy as np
 
 
 def jsonable(x):
@@ -117,7 +116,7 @@ class Diagnosis:
 
     @property
     def verdict(self):
-        """The best candidate, or None when nothing is missing."""
+        """Return the best candidate, or None when nothing is missing."""
         if self.verdict_token is None:
             return None
         return next(c for c in self.candidates if c.token == self.verdict_token)

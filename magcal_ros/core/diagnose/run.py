@@ -23,8 +23,6 @@ from dataclasses import dataclass
 import math
 import time
 
-import numpy as np
-
 from magcal_ros.core.diagnose.candidates import (added_params, Candidate, candidate_tokens,
                                                  extend_model, propose_from_residual,
                                                  reduces_to_simpler, sensors_of,
@@ -42,11 +40,12 @@ from magcal_ros.core.diagnose.results import compact_spec, Diagnosis
 from magcal_ros.core.diagnose.screen import Screen
 from magcal_ros.core.diagnose.validation import cross_validate
 from magcal_ros.core.findings import find as find_findings
-from magcal_ros.core.magnitude import reference_magnitude
 from magcal_ros.core.fitting import fit
+from magcal_ros.core.magnitude import reference_magnitude
 from magcal_ros.core.model import Model
 from magcal_ros.core.noise import data_noise_floor, NoiseFloor
 from magcal_ros.core.solvers import single_threaded_blas
+import numpy as np
 
 
 def report_progress(cb, stage, i, n, label=''):
@@ -129,7 +128,7 @@ class _Base:
 
     @property
     def ms0(self):
-        """Combined in-sample mean square of the base fit, nT^2."""
+        """Return the combined in-sample mean square of the base fit, nT^2."""
         return dof_factor(self.model) * np.mean(self.ev0.residual ** 2)
 
     def delta_bic(self, trial):

@@ -18,10 +18,9 @@ Screening of candidate effects: one Gauss-Newton step of each extended model fro
 Exact for effects that enter linearly, as all driven effects do; the most promising
 candidates are then refitted in full (:mod:`magcal_ros.core.diagnose.run`).
 """
-import numpy as np
-
 from magcal_ros.core.diagnose.measures import solve_psd
 from magcal_ros.core.engine import ProfiledProblem
+import numpy as np
 
 
 class Screen:

@@ -20,12 +20,11 @@ interleaved contiguous blocks of time (:func:`time_blocks`), and each fold is fi
 others (by default one Gauss-Newton step from the all-data fit with the fold's rows removed:
 :func:`cross_validate`).
 """
-import numpy as np
-
 from magcal_ros.core.diagnose.constants import BLOCKS_PER_FOLD, DEFAULT_FOLDS, MIN_BLOCK
 from magcal_ros.core.diagnose.measures import dof_factor, solve_psd
 from magcal_ros.core.engine import ProfiledProblem
 from magcal_ros.core.fitting import evaluate, fit
+import numpy as np
 
 
 def time_blocks(n, folds, blocks_per_fold=None):
@@ -56,6 +55,7 @@ def cross_validate(data, model, params, f, sigma, folds=DEFAULT_FOLDS, fold_init
     Parameters
     ----------
     data : Dataset
+        (S sensors, N epochs) in time order, nT.
     model : Model
         Prepared on the full data (its reference values are kept).
     params : numpy.ndarray
@@ -65,6 +65,8 @@ def cross_validate(data, model, params, f, sigma, folds=DEFAULT_FOLDS, fold_init
         (N,) reference magnitude, nT.
     sigma : numpy.ndarray
         (S,) fixed noise levels, nT.
+    folds : int
+        Held-out sets, each of interleaved blocks (:func:`time_blocks`).
     fold_inits : list of numpy.ndarray, optional
         Per-fold warm starts of ``'refit'`` (default ``params``).
     method : {'newton', 'refit'}
