@@ -1,4 +1,19 @@
-"""The README's ROS commands, run as a new user runs them (issue 12 items 1 and 3).
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The README's ROS commands, run as a new user runs them (issue 12 items 1 and 3).
 
 Every executable is started exactly as the README's ``ros2 run`` lines say: the console
 script, no remaps, no parameters (``ros2 run magcal_ros X`` runs ``lib/magcal_ros/X``, the
@@ -204,7 +219,8 @@ def test_readme_ros_commands_work_with_defaults(start_process, ros_node, ros_exe
 
 
 def calibrate_when_ready(ros_node, ros_executor, status, tries=6):
-    """Wait for calibration/status 'ready', call calibrate; as a user, retry while refused.
+    """
+    Wait for calibration/status 'ready', call calibrate; as a user, retry while refused.
 
     ``status`` is the list a calibration/status subscription appends to. Collection goes on
     after a refused calibrate, so a later call sees more attitudes (the simulator covers the
