@@ -186,7 +186,7 @@ def driver_node_cpu(args, env, tmp):
     out = {'rate_hz_per_sensor': args.node_rate}
     logs = [open(os.path.join(tmp, 'sim.log'), 'w'), open(os.path.join(tmp, 'driver.log'), 'w')]
     try:
-        sim = common.popen([PY, '-m', 'magcal_ros.ros.sim_node', '--dir', simdir,
+        sim = common.popen([PY, '-m', 'magcal_ros.sim', '--dir', simdir,
                                 '--rate', str(args.node_rate)], env=env, stdout=logs[0],
                            stderr=subprocess.STDOUT)
         procs.append(sim)

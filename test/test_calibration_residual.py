@@ -1,4 +1,19 @@
-"""calibration_node compares the active calibration with the live data (calibration/residual).
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+calibration_node compares the active calibration with the live data (calibration/residual).
 
 The array data are written here, not by the simulator: a uniform 50 000 nT field seen by a
 tumbling array, four sensors with scale, non-orthogonality, misalignment and offset chosen

@@ -57,7 +57,7 @@ def _own_hardware(stat):
 
 
 def _expected(node_name):
-    """The statuses of the three tasks below, by hand."""
+    """Return the statuses of the three tasks below, written by hand."""
     return [
         DiagnosticStatus(level=DiagnosticStatus.ERROR, name=f'{node_name}: port',
                          message='two faults; port lost', hardware_id='array-7',

@@ -1,4 +1,19 @@
-"""Tests of ``fluxgate_driver`` (magcal_ros.ros.driver_node).
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Tests of ``fluxgate_driver`` (magcal_ros.ros.driver_node).
 
 In-process: parameters (units in descriptions, refusals with reasons), the data path from
 a pseudo-terminal to ``sensor{j}/raw`` / ``temperature`` / ``/diagnostics``, and recovery
@@ -11,10 +26,12 @@ import threading
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from magcal_ros.ros import driver_node, sim_node
+from magcal_ros.ros import driver_node
 from magcal_ros.ros.driver_node import FluxgateDriver
+from magcal_ros.ros.sim_node import FluxgateSimNode
 from magcal_ros.serial import make_encoder, Sample
 from magcal_ros.serial.transport import PortStats, PtyDevice
+from magcal_ros.sim import devices
 import numpy as np
 import pytest
 from rclpy.parameter import Parameter
@@ -92,22 +109,20 @@ def test_diagnostic_levels():
 
 def test_driver_defaults_match_simulator_defaults():
     # `fluxgate_driver` and `fluxgate_sim` without arguments meet on the same devices
-    st = sim_node.resolve_settings([])
+    st = devices.resolve_settings([])
+    assert st.dir == devices.device_dir('/magcal') == devices.DEFAULT_DIR
     assert [driver_node.DEFAULT_PORT.format(j=j) for j in range(1, 5)] == \
         [f'{st.dir}/{st.prefix}{j}' for j in range(1, 5)]
     assert st.protocol == 'ascii' and st.option == []
 
 
 def test_simulator_and_driver_meet_per_namespace(make_node, ros_namespace):
-    # one array per namespace: the remap `ros2 launch ... namespace:=` passes to both
-    st = sim_node.resolve_settings(['--ros-args', '-r', f'__ns:={ros_namespace}'])
-    assert st.dir == sim_node.DEFAULT_DIR + '_' + ros_namespace.strip('/')
+    # one array per namespace: the remap `ros2 launch ... namespace:=` passes to both; the
+    # simulator node creates its devices where the driver of its namespace looks
+    sim = make_node(FluxgateSimNode, namespace=ros_namespace)
+    assert sim.paths[0].startswith(devices.DEFAULT_DIR + '_' + ros_namespace.strip('/') + '/')
     node = make_node(FluxgateDriver, namespace=ros_namespace)
-    assert [node.get_parameter(f'sensor{j}.port').value for j in range(1, 5)] == \
-        [f'{st.dir}/{st.prefix}{j}' for j in range(1, 5)]
-    # the default namespace keeps the documented folder
-    ns_default = sim_node.resolve_settings(['--ros-args', '-r', 'fluxgate_sim:__ns:=/magcal'])
-    assert ns_default.dir == sim_node.DEFAULT_DIR
+    assert [node.get_parameter(f'sensor{j}.port').value for j in range(1, 5)] == sim.paths
 
 
 # -- in-process node -------------------------------------------------------------------------

@@ -1,4 +1,19 @@
-"""Reliability of the serial path: faults injected into every parser and into the driver node.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Reliability of the serial path: faults injected into every parser and into the driver node.
 
 Already covered elsewhere and not repeated here: each protocol's own byte-level and property
 tests (test_serial_ascii/hmr2300/lemi025.py), the transport's unplug/replug and backoff
@@ -68,7 +83,7 @@ _sample = st.builds(lambda x, y, z, t, d: Sample((x, y, z), t, d),
 
 
 def _encoded(protocol, options, sample):
-    """The frame of ``sample`` in ``protocol`` (the encoder saturates what it cannot hold)."""
+    """Return the frame of ``sample`` in ``protocol`` (saturated where the encoder must)."""
     try:
         return make_encoder(protocol, **options).encode(sample)
     except ValueError:      # e.g. columns without temp; not what is tested here
@@ -161,7 +176,7 @@ def lemi_packet(counter, time_us, x, y, z, temp, crc=None):
 
 
 def ascii_fault_script():
-    """(writes, expected samples (x, y, z nT, temp degC), expected error counts)."""
+    """Return (writes, expected samples (x, y, z nT, temp degC), expected error counts)."""
     enc = make_encoder('ascii', columns='x,y,z,temp,time')
     good = [Sample((1000.0 + k, -2000.0 - k, 43000.5), 20.0 + 0.01 * k, 10.0 + 0.01 * k)
             for k in range(12)]
@@ -266,6 +281,7 @@ def test_driver_publishes_only_valid_frames_and_counts_every_fault(
                 if k < len(writes):
                     assert devs[j].write(writes[k]) == len(writes[k])
             spin_for(ros_executor, 0.01)
+
         # the sentinel: each script ends with a valid frame, and one port's frames are
         # parsed and published in byte order on reliable topics, so once that last frame
         # (and its temperature) is here, every message the faults could have produced is too

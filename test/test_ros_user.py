@@ -258,3 +258,4 @@ def test_repeated_sigint(start_process, user_env, tmp_path):
         for proc in procs:
             assert_clean_exit(proc, signalled=True)
     assert sim.running()
+    assert_clean_exit(sim)            # and the simulator (test_sim_node: repeated SIGINTs)

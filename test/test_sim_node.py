@@ -1,7 +1,25 @@
-"""Tests of ``fluxgate_sim`` (magcal_ros.ros.sim_node): settings, streaming, faults.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
 
-The simulator is a plain process without rclpy; its output is read back here through real
-pseudo-terminals with pyserial and the protocol parsers, the path a driver takes.
+"""
+Tests of ``fluxgate_sim``: the ROS-free devices (magcal_ros.sim) and the node over them.
+
+The devices' output is read back here through real pseudo-terminals with pyserial and the
+protocol parsers, the path a driver takes. The node (magcal_ros.ros.sim_node) is checked as a
+ROS user meets it: in the graph under its namespace, logging to rosout, its settings as
+parameters from ``--params-file``, ``-p`` and the command-line options, a clean exit on
+SIGINT and SIGTERM.
 """
 
 import argparse
@@ -9,22 +27,27 @@ import os
 import pathlib
 import re
 import signal
-import subprocess
 import sys
 import time
 
-from magcal_ros.ros import sim_node
+from magcal_ros.ros.sim_node import FluxgateSimNode, sim_specs
 from magcal_ros.serial import make_parser
+from magcal_ros.sim import devices
 import numpy as np
 import pytest
-from ros_helpers import console_script, subprocess_env
+from rcl_interfaces.msg import Log
+from rclpy.parameter import Parameter
+from rclpy.parameter_client import AsyncParameterClient
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from ros_helpers import console_script, spin_until
 import serial
+import yaml
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 
 def settings(tmp_path, *argv):
-    return sim_node.resolve_settings(['--dir', str(tmp_path)] + list(argv))
+    return devices.resolve_settings(['--dir', str(tmp_path)] + list(argv))
 
 
 def read_samples(port, parser, n, timeout=10.0):
@@ -38,60 +61,100 @@ def read_samples(port, parser, n, timeout=10.0):
 
 
 def test_defaults_are_paper004_section_4_1():
-    st = sim_node.resolve_settings([])
+    st = devices.resolve_settings([])
     assert (st.dir, st.prefix, st.sensors, st.rate, st.protocol) == \
         ('/tmp/magcal_sim', 'fluxgate', 4, 100.0, 'ascii')
     assert (st.field_nt, st.noise_nt, st.errors, st.trajectory) == \
         (50000.0, 3.0, 'paper004', 'smooth')
-    sim = sim_node.FluxgateSim(st)
+    sim = devices.FluxgateSim(st)
     cfg = sim.sim.config
     assert (cfg.declination_deg, cfg.inclination_deg) == (-7.0, 55.0)
 
 
 def test_shipped_config_equals_the_defaults():
-    loaded = sim_node.load_config(ROOT / 'config' / 'sim.yaml')
-    merged = dict(sim_node.DEFAULTS)
+    loaded = devices.load_config(ROOT / 'config' / 'sim.yaml')
+    merged = dict(devices.DEFAULTS)
     merged.update(loaded)
-    assert merged == sim_node.DEFAULTS
+    assert merged == devices.DEFAULTS
+    # and it sets every parameter the node declares, to the declared default (the commented
+    # arrays excepted: ROS parameter files cannot hold an empty list)
+    values = yaml.safe_load((ROOT / 'config' / 'sim.yaml').read_text())[
+        '/**/fluxgate_sim']['ros__parameters']
+    specs = {s.name: s for s in sim_specs()}
+    assert set(values) == set(specs) - {'unplug', 'site_gradient'}
+    for name, value in values.items():
+        assert value == specs[name].default and type(value) is type(specs[name].default), name
 
 
 def test_parse_unplug_and_options():
-    assert sim_node.parse_unplug('2:5:1.5') == sim_node.Unplug(2, 5.0, 1.5, None)
-    assert sim_node.parse_unplug('1:0.5:0:/tmp/x/ttyB') == \
-        sim_node.Unplug(1, 0.5, 0.0, '/tmp/x/ttyB')
+    assert devices.parse_unplug('2:5:1.5') == devices.Unplug(2, 5.0, 1.5, None)
+    assert devices.parse_unplug('1:0.5:0:/tmp/x/ttyB') == \
+        devices.Unplug(1, 0.5, 0.0, '/tmp/x/ttyB')
     for bad in ('2:5', 'a:1:1', '0:1:1', '1:-1:1', '1:1:nan'):
         with pytest.raises(argparse.ArgumentTypeError, match='--unplug'):
-            sim_node.parse_unplug(bad)
-    assert sim_node.parse_option('scale=1e5') == ('scale', 1e5)
-    assert sim_node.parse_option('columns=x,y,z,temp') == ('columns', 'x,y,z,temp')
+            devices.parse_unplug(bad)
+    assert devices.parse_option('scale=1e5') == ('scale', 1e5)
+    assert devices.parse_option('columns=x,y,z,temp') == ('columns', 'x,y,z,temp')
     with pytest.raises(argparse.ArgumentTypeError, match='KEY=VALUE'):
-        sim_node.parse_option('scale')
-
-
-def test_ros_args_from_launch_are_understood(tmp_path):
-    # launch_ros runs: fluxgate_sim --ros-args -r __ns:=/magcal --params-file sim.yaml
-    yaml_file = tmp_path / 'p.yaml'
-    yaml_file.write_text('/**/fluxgate_sim:\n  ros__parameters:\n    rate: 250.0\n'
-                         "    options: {columns: 'x,y,z,temp,time'}\n")
-    st = sim_node.resolve_settings(['--ros-args', '-r', '__ns:=/magcal', '--params-file',
-                                    str(yaml_file), '-p', 'seed:=7', '--', '--sensors', '2'])
-    assert (st.rate, st.seed, st.sensors) == (250.0, 7, 2)
-    assert dict(st.option) == {'columns': 'x,y,z,temp,time'}
+        devices.parse_option('scale')
 
 
 @pytest.mark.parametrize('argv, match', [
-    (['--ros-args', '-p', 'rate:=-5.0'], 'rate must be a number > 0'),
-    (['--ros-args', '-p', 'sensors:=9'], 'sensors must be 1..4'),
-    (['--ros-args', '-p', 'bogus:=1'], "unknown fluxgate_sim setting 'bogus'"),
     (['--option', 'colums=x'], r"unknown option\(s\) \['colums'\]"),
     (['--sensors', '2', '--unplug', '3:1:1'], 'unplug sensor 3 but only 2 sensors'),
     (['--rate', '0'], 'must be > 0'),
+    (['--site-gradient', '1,2'], 'five numbers'),
 ])
-def test_bad_settings_exit_with_reason(argv, match, capsys):
+def test_bad_options_exit_with_reason(argv, match, capsys):
     with pytest.raises(SystemExit) as exc:
-        sim_node.resolve_settings(argv)
+        devices.resolve_settings(argv)
     assert exc.value.code == 2
     assert re.search(match, capsys.readouterr().err)
+
+
+@pytest.mark.parametrize('params, match', [
+    ({'rate': -5.0}, 'rate: must be a finite number > 0 Hz'),
+    ({'protocol': 'nmea'}, "unknown protocol 'nmea'"),
+    ({'options': '{colums: x}'}, r"unknown option\(s\) \['colums'\]"),
+    ({'sensors': 2, 'unplug': ['3:1:1']}, 'unplug sensor 3 but only 2 sensors'),
+    ({'unplug': ['2:5']}, '--unplug expects SENSOR:AT_S:FOR_S'),
+    ({'site_gradient': [1.0, 2.0]}, 'five numbers'),
+])
+def test_node_refuses_bad_parameters(ros_context, ros_namespace, tmp_path, params, match):
+    overrides = [Parameter('dir', value=str(tmp_path))] + [
+        Parameter(k, value=v) for k, v in params.items()]
+    with pytest.raises(ValueError, match=match):
+        FluxgateSimNode(context=ros_context, namespace=ros_namespace,
+                        parameter_overrides=overrides)
+    assert not os.listdir(tmp_path)               # no device was created
+
+
+def test_node_settings_are_parameters_and_its_folder_is_per_namespace(
+        make_node, ros_node, ros_executor, ros_namespace):
+    node = make_node(FluxgateSimNode, namespace=ros_namespace, parameter_overrides=[
+        Parameter('rate', value=250.0), Parameter('sensors', value=2),
+        Parameter('options', value="{columns: 'x,y,z,temp,time'}"),
+        Parameter('site_gradient', value=[300.0, -250.0, 400.0, -150.0, 200.0])])
+    # no dir given: the namespace's own folder, where the driver of that namespace looks
+    folder = devices.DEFAULT_DIR + '_' + ros_namespace.strip('/')
+    assert node.paths == [f'{folder}/fluxgate{j}' for j in (1, 2)]
+    assert all(os.path.islink(p) for p in node.paths)
+    assert (node.settings.rate, node.settings.sensors) == (250.0, 2)
+    assert dict(node.settings.option) == {'columns': 'x,y,z,temp,time'}
+    # what ros2 param get / describe show: read-only parameters with their unit
+    client = AsyncParameterClient(ros_node, f'{ros_namespace}/fluxgate_sim')
+    spin_until(ros_executor, client.services_are_ready, message='parameter services')
+    fut = client.get_parameters(['rate', 'sensors'])
+    spin_until(ros_executor, fut.done, message='get_parameters')
+    values = fut.result().values
+    assert (values[0].double_value, values[1].integer_value) == (250.0, 2)
+    fut = client.describe_parameters([s.name for s in sim_specs()])
+    spin_until(ros_executor, fut.done, message='describe_parameters')
+    for desc in fut.result().descriptors:
+        assert desc.read_only and desc.description, desc.name
+    paths = node.paths
+    node.destroy_node()
+    assert not any(os.path.lexists(p) for p in paths)   # the links are removed
 
 
 @pytest.mark.parametrize('protocol, options', [
@@ -106,7 +169,7 @@ def test_stream_in_every_protocol_is_continuous_and_plausible(tmp_path, protocol
     for k, v in options.items():
         argv += ['--option', f'{k}={v}']
     st = settings(tmp_path, *argv)
-    sim = sim_node.FluxgateSim(st)
+    sim = devices.FluxgateSim(st)
     ports = []
     try:
         paths = sim.plug_all()
@@ -147,7 +210,7 @@ def test_stream_in_every_protocol_is_continuous_and_plausible(tmp_path, protocol
 def test_unplug_schedule_in_process(tmp_path):
     st = settings(tmp_path, '--unplug', '2:0.1:0.2', '--unplug', '3:0.1:0.1:' +
                   str(tmp_path / 'other3'))
-    sim = sim_node.FluxgateSim(st)
+    sim = devices.FluxgateSim(st)
     log = []
     try:
         sim.plug_all()
@@ -167,25 +230,64 @@ def test_unplug_schedule_in_process(tmp_path):
         sim.close()
 
 
-def test_process_prints_paths_streams_and_stops_cleanly(start_process, tmp_path):
-    proc = start_process(console_script('fluxgate_sim') + ['--dir', tmp_path / 'dev',
-                                                           '--rate', '200'],
-                         name='fluxgate_sim', ready='streaming ascii at 200 Hz')
-    lines = proc.read_log().splitlines()
-    assert [ln.split(' -> ')[1].split()[0] for ln in lines[:4]] == \
-        [str(tmp_path / 'dev' / f'fluxgate{j}') for j in range(1, 5)]
-    with serial.Serial(str(tmp_path / 'dev' / 'fluxgate4'), 115200, timeout=0.05) as port:
+def _rosout(node, box):
+    qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    return node.create_subscription(Log, '/rosout', box.append, qos)
+
+
+BAD_OUTPUT = re.compile(r'Traceback|\[ERROR\]|Failed to publish|context is invalid')
+
+
+def test_process_is_a_ros_node_that_streams_and_stops_cleanly(
+        start_process, ros_node, ros_executor, ros_namespace, tmp_path):
+    # as launch runs it: a namespace remap, a parameter file, -p, then plain options
+    params = tmp_path / 'p.yaml'
+    params.write_text('/**/fluxgate_sim:\n  ros__parameters:\n    rate: 150.0\n'
+                      '    seed: 3\n    sensors: 3\n')
+    logs = []
+    _rosout(ros_node, logs)
+    proc = start_process(console_script('fluxgate_sim') + [
+        '--ros-args', '-r', f'__ns:={ros_namespace}', '--params-file', params, '-p',
+        'seed:=7', '--', '--rate', '200', '--dir', tmp_path / 'dev'],
+        name='fluxgate_sim', ready='streaming ascii at 200 Hz')
+    name = ros_namespace.strip('/') + '.fluxgate_sim'
+    spin_until(ros_executor, lambda: ('fluxgate_sim', ros_namespace) in
+               ros_node.get_node_names_and_namespaces(), message='the node in the graph')
+    spin_until(ros_executor, lambda: any(m.name == name and 'streaming' in m.msg for m in logs),
+               message='its log on /rosout')
+    lines = [m.msg for m in logs if m.name == name]
+    # three sensors (parameter file), seed 7 (-p over the file), 200 Hz (option over both)
+    assert [ln.split(' -> ')[1].split()[0] for ln in lines if ' -> ' in ln] == \
+        [str(tmp_path / 'dev' / f'fluxgate{j}') for j in range(1, 4)]
+    assert 'streaming ascii at 200 Hz per sensor (trajectory smooth, seed 7)' in lines
+    with serial.Serial(str(tmp_path / 'dev' / 'fluxgate3'), 115200, timeout=0.05) as port:
         got = read_samples(port, make_parser('ascii'), 100)
     assert all(45000 < np.linalg.norm(s.field_nt) < 55000 for s in got)
     assert proc.stop() == 0                     # SIGINT: clean exit, links removed
     assert proc.signals_sent == ['SIGINT']
-    assert 'stopped after' in proc.read_log()
-    assert not any(os.path.lexists(tmp_path / 'dev' / f'fluxgate{j}') for j in range(1, 5))
+    log = proc.read_log()
+    assert 'stopped after' in log and not BAD_OUTPUT.search(log), log
+    assert not any(os.path.lexists(tmp_path / 'dev' / f'fluxgate{j}') for j in range(1, 4))
 
 
-def test_process_sigterm_duration_and_bad_link_path(start_process, tmp_path):
-    proc = start_process(console_script('fluxgate_sim') + ['--dir', tmp_path / 'a'],
-                         name='sim_a', ready='streaming')
+def test_repeated_sigint_exits_cleanly(start_process, tmp_path):
+    for cycle in range(4):
+        proc = start_process(console_script('fluxgate_sim') + [
+            '--dir', tmp_path / 'dev', '--rate', '1000'], name=f'sim_{cycle}',
+            ready='streaming')
+        time.sleep(0.15 * cycle)            # the signal lands at different points
+        proc.popen.send_signal(signal.SIGINT)
+        assert proc.wait(10) == 0, proc.read_log()
+        assert not BAD_OUTPUT.search(proc.read_log()), proc.read_log()
+        assert not os.path.lexists(tmp_path / 'dev' / 'fluxgate1')
+
+
+def test_process_sigterm_duration_and_bad_input(start_process, tmp_path):
+    # with the shipped parameter file, as the launch file passes it (rcl parses it)
+    proc = start_process(console_script('fluxgate_sim') + [
+        '--dir', tmp_path / 'a', '--ros-args', '--params-file', ROOT / 'config' / 'sim.yaml'],
+        name='sim_a', ready='streaming ascii at 100 Hz')
     proc.popen.send_signal(signal.SIGTERM)
     assert proc.wait(10) == 0
     proc = start_process(console_script('fluxgate_sim') + ['--dir', tmp_path / 'b',
@@ -198,12 +300,17 @@ def test_process_sigterm_duration_and_bad_link_path(start_process, tmp_path):
     assert proc.wait(30) == 2
     assert 'exists and is not a symlink' in proc.read_log()
     assert (tmp_path / 'c' / 'fluxgate1').read_text() == 'not a device'
+    # a parameter of the wrong type: one line, exit status 2
+    proc = start_process(console_script('fluxgate_sim') + [
+        '--dir', tmp_path / 'd', '--ros-args', '-p', 'rate:=abc'], name='sim_d')
+    assert proc.wait(30) == 2
+    assert 'fluxgate_sim: bad parameters' in proc.read_log(), proc.read_log()
+    assert 'Traceback' not in proc.read_log()
 
 
-def test_sim_node_imports_no_rclpy():
-    code = ('import sys, magcal_ros.ros.sim_node; '
-            "bad = [m for m in sys.modules if m.split('.')[0] == 'rclpy' "
-            "or m.split('.')[0].endswith('_msgs')]; print(bad); sys.exit(bool(bad))")
-    res = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
-                         timeout=60, env=subprocess_env())
-    assert res.returncode == 0, res.stdout + res.stderr
+def test_plain_process_without_ros(start_process, tmp_path):
+    # python -m magcal_ros.sim: the same devices for scripts on a machine without ROS
+    proc = start_process([sys.executable, '-m', 'magcal_ros.sim', '--dir', tmp_path / 'dev',
+                          '--sensors', '1'], name='sim_plain', ready='streaming')
+    assert os.path.islink(tmp_path / 'dev' / 'fluxgate1')
+    assert proc.stop() == 0 and 'stopped after' in proc.read_log()

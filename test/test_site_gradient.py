@@ -402,23 +402,26 @@ def test_nonuniform_field_finding_points_to_the_effect():
     assert texts and 'site_gradient' in texts[0] and '--heading-unknown' in texts[0]
 
 
-def test_fluxgate_sim_site_gradient_option(tmp_path, capsys):
+def test_fluxgate_sim_site_gradient_option(make_node, ros_namespace, tmp_path, capsys):
     """
-    Pass the --site-gradient option of fluxgate_sim to the simulator.
+    Pass fluxgate_sim's site gradient, as an option or a parameter, to the simulator.
 
-    fluxgate_sim --site-gradient (and the -p form of a launch file) reaches the simulator;
-    a malformed value is one line on stderr and exit status 2.
+    A malformed value is one line on stderr and exit status 2.
     """
     from magcal_ros.core.effects import symmetric_traceless
-    from magcal_ros.ros import sim_node
-    for argv in (['--site-gradient', '300,-250,400,-150,200'],
-                 ['--ros-args', '-p', 'site_gradient:=[300.0,-250.0,400.0,-150.0,200.0]']):
-        st = sim_node.resolve_settings(['--dir', str(tmp_path)] + argv)
-        sim = sim_node.FluxgateSim(st)
-        np.testing.assert_array_equal(sim.sim.config.gradient_nt_per_m,
-                                      symmetric_traceless([300, -250, 400, -150, 200]))
+    from magcal_ros.ros.sim_node import FluxgateSimNode
+    from magcal_ros.sim import devices
+    from rclpy.parameter import Parameter
+    want = symmetric_traceless([300, -250, 400, -150, 200])
+    sim = devices.FluxgateSim(devices.resolve_settings(
+        ['--dir', str(tmp_path), '--site-gradient', '300,-250,400,-150,200']))
+    np.testing.assert_array_equal(sim.sim.config.gradient_nt_per_m, want)
+    node = make_node(FluxgateSimNode, namespace=ros_namespace, parameter_overrides=[
+        Parameter('dir', value=str(tmp_path / 'node')),
+        Parameter('site_gradient', value=[300.0, -250.0, 400.0, -150.0, 200.0])])
+    np.testing.assert_array_equal(node.sim.sim.config.gradient_nt_per_m, want)
     with pytest.raises(SystemExit) as exc:
-        sim_node.resolve_settings(['--site-gradient', '1,2'])
+        devices.resolve_settings(['--site-gradient', '1,2'])
     assert exc.value.code == 2 and 'five numbers' in capsys.readouterr().err
 
 

@@ -58,7 +58,7 @@ class FallbackStatusWrapper(DiagnosticStatus):
 
     def summary(self, *args):
         """
-        Set level and message: ``summary(level, message)`` or ``summary(status)``.
+        Set the level and message, from a level and a message or from a status.
 
         Parameters
         ----------
@@ -135,7 +135,7 @@ class FallbackUpdater:
 
     @property
     def period(self):
-        """Publishing period, s."""
+        """Return the publishing period, s."""
         return self._period
 
     def setHardwareID(self, hwid):  # noqa: N802 (diagnostic_updater's name)
@@ -144,7 +144,7 @@ class FallbackUpdater:
 
     def add(self, *args):
         """
-        Add a task: ``add(name, callback)`` or ``add(task)``.
+        Add a task, given as a name and a callback or as a task object.
 
         ``callback(stat)`` fills the :class:`FallbackStatusWrapper` ``stat`` and returns it;
         a task object has ``getName()`` and ``run(stat)``. Publishes ``Node starting up``

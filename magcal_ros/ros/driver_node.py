@@ -1,4 +1,19 @@
-"""``fluxgate_driver``: serial fluxgates -> ``sensor{j}/raw`` (tesla), temperature, diagnostics.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+``fluxgate_driver``: serial fluxgates -> ``sensor{j}/raw`` (tesla), temperature, diagnostics.
 
 One :class:`~magcal_ros.serial.transport.PortReader` thread per sensor reads its port,
 parses the configured protocol (:mod:`magcal_ros.serial`) and hands each sample to this
@@ -37,10 +52,10 @@ from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from magcal_ros.ros.conversions import field_nt_to_msg, temperature_msg
 from magcal_ros.ros.diagnostics import fill, Updater
 from magcal_ros.ros.run import DEFAULT_NAMESPACE, spin_node
-from magcal_ros.ros.sim_node import device_dir
 from magcal_ros.serial import make_parser, PROTOCOLS, transport
 from magcal_ros.serial.options import parse_options
 from magcal_ros.serial.transport import PortReader, STATE_OPEN
+from magcal_ros.sim.devices import device_dir
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType, SetParametersResult
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
@@ -78,12 +93,14 @@ class SensorSettings:
 
 
 def parse_axes(axes):
-    """Turn e.g. ``['-y', 'x', 'z']`` into ((device index, sign), ...) for x, y, z.
+    """
+    Turn e.g. ``['-y', 'x', 'z']`` into ((device index, sign), ...) for x, y, z.
 
     Raises
     ------
     ValueError
         Unless it is three entries naming each device axis once, each optionally signed.
+
     """
     axes = list(axes)
     if len(axes) != 3:
@@ -129,7 +146,8 @@ def check_sensor(s):
 
 
 def diagnostic_status(settings, stats, previous_errors=0, previous=None):
-    """Build the ``DiagnosticStatus`` of one port from a ``PortStats`` snapshot.
+    """
+    Build the ``DiagnosticStatus`` of one port from a ``PortStats`` snapshot.
 
     Level: ERROR when the port is not open; WARN when new parse errors appeared since
     ``previous_errors``, when bytes arrived since the ``previous`` snapshot but not one valid
@@ -374,7 +392,7 @@ class FluxgateDriver(Node):
 
     # -- diagnostics -------------------------------------------------------------------------
     def _port_task(self, k):
-        """Updater task of sensor k + 1: its port's status since the previous report."""
+        """Return the updater task of sensor k + 1: its port's status since the last report."""
         def task(stat):
             stats = self.readers[k].stats()
             status = diagnostic_status(self.sensors[k], stats, self._last_errors[k],

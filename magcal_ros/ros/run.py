@@ -68,9 +68,11 @@ def spin_node(node_cls, name, args=None):
 
     Parameters
     ----------
-    node_cls : type
-        A ``rclpy.node.Node`` subclass taking keyword arguments only; it sets its default
-        namespace itself (:data:`DEFAULT_NAMESPACE`), which a ``__ns`` remap overrides.
+    node_cls : callable
+        A ``rclpy.node.Node`` subclass (or a partial of one) called with no argument; it
+        sets its default namespace itself (:data:`DEFAULT_NAMESPACE`), which a ``__ns``
+        remap overrides. A node with a ``finished`` event (``threading.Event``) ends the
+        spin when it is set, as after a signal.
     name : str
         Executable name used in error messages.
     args : list of str, optional
@@ -100,7 +102,9 @@ def spin_node(node_cls, name, args=None):
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     try:
-        while not stop.is_set() and rclpy.ok():
+        # a node may end its own run (fluxgate_sim after its duration): ``finished`` set
+        finished = getattr(node, 'finished', None) or threading.Event()
+        while not stop.is_set() and not finished.is_set() and rclpy.ok():
             executor.spin_once(timeout_sec=SPIN_PERIOD_S)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

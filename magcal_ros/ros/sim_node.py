@@ -1,478 +1,206 @@
-r"""``fluxgate_sim``: simulated fluxgates on pseudo-terminals (a plain process, no rclpy).
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
 
-Creates one :class:`~magcal_ros.serial.transport.PtyDevice` per sensor, linked as
-``<dir>/fluxgate1`` ... ``fluxgate4`` (default ``/tmp/magcal_sim``), and streams the output
-of :class:`magcal_ros.core.simulate.Simulator` in any registered serial protocol (default:
-the ASCII contract line ``<x_nT>,<y_nT>,<z_nT>,<temp_C>\r\n``). The defaults are paper 004
-section 4.1: |B| = 50 000 nT, D = -7 deg, I = 55 deg, noise 3 nT per axis, the Table 1
-sensor errors, and a smooth tumbling trajectory that covers the sphere in about a minute,
-at 100 samples/s per sensor. Samples are generated and written in chunks once per tick
-(default 10 ms), so 1 kHz and more per sensor cost a few writes per tick, not one per
-sample.
+"""
+``fluxgate_sim``: the simulated fluxgates of :mod:`magcal_ros.sim` as a ROS 2 node.
 
-A site gradient (``--site-gradient GXX,GXY,GXZ,GYY,GYZ``, nT/m, world NED frame, symmetric
-and traceless) makes the field differ over the cross as it does near buildings or a vehicle
-(docs/site_gradient.md); ``field_nt`` is then the magnitude at the array centre.
+A thin node over :class:`magcal_ros.sim.devices.FluxgateSim`: its settings are read-only ROS
+parameters (``ros2 param describe`` shows each with its unit; ``config/sim.yaml`` holds the
+defaults and is what the launch file passes), it logs through the node's logger (rosout),
+and it honours ``--ros-args`` (remaps, namespace, ``-p``, ``--params-file``). The devices
+of the namespace ``/magcal`` (the default) are ``/tmp/magcal_sim/fluxgate1..4``, those of
+another namespace ``/tmp/magcal_sim_<ns>/...`` (TMPDIR honoured), exactly where the driver
+of the same namespace looks by default, so two arrays on one machine never share devices.
 
-Faults for tests: ``--unplug SENSOR:AT_S:FOR_S[:NEW_PATH]`` closes that sensor's
-pseudo-terminal at ``AT_S`` s (readers get an I/O error, the link disappears) and plugs a
-new one ``FOR_S`` s later, at ``NEW_PATH`` if given (a device that comes back under another
-name).
-
-Although it lives in ``magcal_ros.ros`` (next to the driver it feeds), this module does not
-import rclpy, so it runs anywhere Python and pyserial do. Settings can also come from a
-YAML file in the ROS parameter layout (``--config config/sim.yaml``); command-line options
-override it.
+The command-line options of :func:`magcal_ros.sim.devices.build_parser` (``--dir``,
+``--rate``, ``--unplug``, ...) still work and override the parameters; ``--config FILE``
+is read as a parameter file before those of ``--ros-args``. Samples are written by a
+thread at the tick period; the node stops it and removes the links on SIGINT/SIGTERM (exit
+status 0) or when ``duration`` elapses.
 """
 
 import argparse
-from dataclasses import dataclass
-import math
-import os
-import signal
+import functools
+import json
 import sys
-import tempfile
-import time
+import threading
 
-from magcal_ros.core.simulate import SimConfig, Simulator, TRAJECTORIES
-from magcal_ros.serial import make_encoder, PROTOCOLS, Sample
-from magcal_ros.serial.options import load_yaml, parse_options, parse_value
-from magcal_ros.serial.transport import PtyDevice
-import numpy as np
-import yaml
+from magcal_ros.ros import params as prm
+from magcal_ros.ros.run import DEFAULT_NAMESPACE, spin_node
+from magcal_ros.serial import PROTOCOLS
+from magcal_ros.sim import devices
+from rclpy.node import Node
+from rclpy.parameter import Parameter
 
-#: ``/tmp/magcal_sim`` unless TMPDIR names another temporary directory
-DEFAULT_DIR = os.path.join(tempfile.gettempdir(), 'magcal_sim')
-#: the nodes' namespace without a ``__ns`` remap (also magcal_ros.ros.run.DEFAULT_NAMESPACE)
-DEFAULT_NAMESPACE = '/magcal'
+NODE_NAME = devices.NODE_NAME
 
 
-def device_dir(namespace=DEFAULT_NAMESPACE):
-    """Folder of the simulated devices of a namespace: one array per namespace.
+def sim_specs():
+    """Return the parameters of ``fluxgate_sim`` (all read-only: set at start-up)."""
+    d = devices.DEFAULTS
+    return [
+        prm.ParamSpec('dir', '', "folder of the device links <dir>/<prefix>{j}; '' = the "
+                      f"namespace's: {devices.DEFAULT_DIR} in {devices.DEFAULT_NAMESPACE}, "
+                      f'{devices.DEFAULT_DIR}_<ns> in another; no unit', read_only=True),
+        prm.ParamSpec('prefix', d['prefix'], 'link name prefix, sensor j is <dir>/<prefix>j; '
+                      'no unit', read_only=True),
+        prm.ParamSpec('sensors', d['sensors'], 'number of simulated sensors; count',
+                      read_only=True, limits=(1, 4)),
+        prm.ParamSpec('rate', d['rate'], 'samples per second per sensor, Hz',
+                      prm.positive('Hz'), read_only=True),
+        prm.ParamSpec('tick', d['tick'], 'write period (samples are written in chunks), s',
+                      prm.positive('s'), read_only=True),
+        prm.ParamSpec('protocol', d['protocol'], f'serial protocol, one of {sorted(PROTOCOLS)};'
+                      ' no unit', read_only=True),
+        prm.ParamSpec('options', '', 'protocol options as a YAML mapping, e.g. '
+                      '"{columns: \'x,y,z,temp,time\'}" (scale nT per device unit)',
+                      read_only=True),
+        prm.ParamSpec('seed', d['seed'], 'random seed; no unit', read_only=True),
+        prm.ParamSpec('trajectory', d['trajectory'], 'attitude trajectory (random, smooth, '
+                      'turntable, cone, vehicle); no unit', read_only=True),
+        prm.ParamSpec('field_nt', d['field_nt'], 'total field (at the array centre), nT',
+                      prm.positive('nT'), read_only=True),
+        prm.ParamSpec('noise_nt', d['noise_nt'], 'white noise sd per axis, nT',
+                      read_only=True, limits=(0.0, 1.0e6)),
+        prm.ParamSpec('errors', d['errors'], 'sensor errors: paper004 (Table 1) or none; '
+                      'no unit', read_only=True),
+        prm.ParamSpec('duration', 0.0, 'stop after this time, s (0: run until SIGINT)',
+                      read_only=True, limits=(0.0, 1.0e9)),
+        prm.ParamSpec('unplug', (), "faults 'SENSOR:AT_S:FOR_S[:NEW_PATH]' (times in s), "
+                      "e.g. ['2:10:1.5']", read_only=True),
+        prm.ParamSpec('site_gradient', (), 'constant site gradient [GXX, GXY, GXZ, GYY, GYZ] '
+                      'in the world (NED) frame, nT/m; empty: a uniform field',
+                      read_only=True, item_type=float),
+    ]
 
-    ``/magcal`` (the default) -> :data:`DEFAULT_DIR`; ``/array2`` ->
-    ``<DEFAULT_DIR>_array2``, so a simulator and a driver started in the same namespace meet
-    on the same devices and two arrays never share them.
+
+class FluxgateSimNode(Node):
     """
-    ns = '/' + namespace.strip('/') if namespace.strip('/') else '/'
-    if ns == DEFAULT_NAMESPACE:
-        return DEFAULT_DIR
-    return DEFAULT_DIR + '_' + (ns.strip('/').replace('/', '_') or 'root')
-DEFAULT_PREFIX = 'fluxgate'
-NODE_NAME = 'fluxgate_sim'
-
-
-@dataclass(frozen=True)
-class Unplug:
-    """One scheduled unplug of a sensor (sensor numbered from 1, times in s)."""
-
-    sensor: int
-    at_s: float
-    for_s: float
-    new_path: str | None = None
-
-
-def parse_unplug(text):
-    """Parse ``SENSOR:AT_S:FOR_S[:NEW_PATH]`` into an :class:`Unplug`.
-
-    Raises
-    ------
-    argparse.ArgumentTypeError
-        With the expected form when the text does not parse.
-    """
-    parts = str(text).split(':', 3)
-    try:
-        if len(parts) < 3:
-            raise ValueError
-        sensor, at_s, for_s = int(parts[0]), float(parts[1]), float(parts[2])
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f'--unplug expects SENSOR:AT_S:FOR_S[:NEW_PATH] (e.g. 2:5:1.5), got {text!r}'
-        ) from None
-    if sensor < 1 or not (math.isfinite(at_s) and at_s >= 0) or \
-            not (math.isfinite(for_s) and for_s >= 0):
-        raise argparse.ArgumentTypeError(
-            f'--unplug needs SENSOR >= 1 and times >= 0 s, got {text!r}')
-    return Unplug(sensor, at_s, for_s, parts[3] if len(parts) == 4 and parts[3] else None)
-
-
-def parse_option(text):
-    """Parse a protocol option ``KEY=VALUE`` (VALUE read as YAML: numbers, lists, ...)."""
-    key, sep, raw = str(text).partition('=')
-    if not sep or not key.strip():
-        raise argparse.ArgumentTypeError(f'--option expects KEY=VALUE, got {text!r}')
-    return key.strip(), parse_value(raw)
-
-
-def _positive(kind):
-    def check(text):
-        try:
-            value = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f'expected a number, got {text!r}') from None
-        if not (math.isfinite(value) and value > 0):
-            raise argparse.ArgumentTypeError(f'must be > 0, got {text!r}')
-        return value
-    return check
-
-
-def _non_negative(text):
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f'expected a number, got {text!r}') from None
-    if not (math.isfinite(value) and value >= 0):
-        raise argparse.ArgumentTypeError(f'must be >= 0, got {text!r}')
-    return value
-
-
-def parse_gradient(text):
-    """``GXX,GXY,GXZ,GYY,GYZ`` (nT/m) -> list of five floats (gzz = -gxx - gyy)."""
-    try:
-        values = [float(v) for v in str(text).strip('[] ').split(',')]
-    except ValueError:
-        values = []
-    if len(values) != 5 or not all(math.isfinite(v) for v in values):
-        raise argparse.ArgumentTypeError(
-            f'expected five numbers GXX,GXY,GXZ,GYY,GYZ in nT/m, got {text!r}')
-    return values
-
-
-def build_parser():
-    """Return the argparse parser of ``fluxgate_sim``."""
-    p = argparse.ArgumentParser(
-        prog='fluxgate_sim',
-        description='Simulated four-fluxgate cross gradiometer on pseudo-terminals '
-                    '(default: paper 004 section 4.1, ASCII protocol, 100 Hz).')
-    p.add_argument('--config', help='YAML file with a fluxgate_sim: ros__parameters: section '
-                                    '(keys as the long options, underscores for dashes)')
-    p.add_argument('--dir', help=f'directory of the device links (default {DEFAULT_DIR})')
-    p.add_argument('--prefix', help=f'link name prefix, sensor j is <dir>/<prefix>j '
-                                    f'(default {DEFAULT_PREFIX})')
-    p.add_argument('--sensors', type=int, choices=range(1, 5), metavar='{1..4}',
-                   help='number of sensors (default 4)')
-    p.add_argument('--rate', type=_positive(float), help='samples per second per sensor, Hz '
-                                                         '(default 100)')
-    p.add_argument('--tick', type=_positive(float),
-                   help='write period, s (default 0.01: one sample per write at 100 Hz)')
-    p.add_argument('--protocol', choices=sorted(PROTOCOLS), help='serial protocol '
-                                                                 '(default ascii)')
-    p.add_argument('--option', type=parse_option, action='append', metavar='KEY=VALUE',
-                   help='protocol option (repeatable), e.g. --option columns=x,y,z,temp,time')
-    p.add_argument('--seed', type=int, help='random seed (default 0)')
-    p.add_argument('--trajectory', choices=TRAJECTORIES, help='attitude trajectory '
-                                                              '(default smooth)')
-    p.add_argument('--field-nt', type=_positive(float), help='total field, nT (default 50000)')
-    p.add_argument('--noise-nt', type=_non_negative, help='noise sd per axis, nT (default 3)')
-    p.add_argument('--errors', choices=['paper004', 'none'],
-                   help='sensor errors: paper 004 Table 1 or ideal (default paper004)')
-    p.add_argument('--site-gradient', type=parse_gradient, metavar='GXX,GXY,GXZ,GYY,GYZ',
-                   help='constant site gradient in the world (NED) frame, nT/m '
-                        '(default: none, a uniform field)')
-    p.add_argument('--duration', type=_non_negative,
-                   help='stop after this many seconds (default: run until SIGINT/SIGTERM)')
-    p.add_argument('--unplug', type=parse_unplug, action='append',
-                   metavar='SENSOR:AT_S:FOR_S[:NEW_PATH]',
-                   help='unplug a sensor at AT_S s for FOR_S s (repeatable), optionally '
-                        'coming back at NEW_PATH')
-    return p
-
-
-DEFAULTS = {'dir': DEFAULT_DIR, 'prefix': DEFAULT_PREFIX, 'sensors': 4, 'rate': 100.0,
-            'tick': 0.01, 'protocol': 'ascii', 'option': [], 'seed': 0,
-            'trajectory': 'smooth', 'field_nt': 50000.0, 'noise_nt': 3.0,
-            'errors': 'paper004', 'duration': None, 'unplug': [], 'site_gradient': None}
-
-
-def _section_settings(section, source):
-    """Turn a ``fluxgate_sim`` parameter mapping into settings keyed like :data:`DEFAULTS`."""
-    out = {}
-    for key, value in section.items():
-        if key == 'options':
-            try:
-                out['option'] = list(parse_options(value).items())
-            except ValueError as exc:
-                raise ValueError(f'{source}: {exc}') from None
-        elif key == 'site_gradient':
-            out[key] = None if value is None else parse_gradient(
-                ','.join(map(str, value)) if isinstance(value, (list, tuple)) else value)
-        elif key == 'unplug':
-            out['unplug'] = [v if isinstance(v, Unplug) else parse_unplug(v)
-                             for v in (value or [])]
-        elif key in DEFAULTS and key != 'option':
-            out[key] = value
-        else:
-            raise ValueError(f'{source}: unknown {NODE_NAME} setting {key!r}; '
-                             f'known: {sorted(k for k in DEFAULTS if k != "option")} '
-                             'and options')
-    return out
-
-
-def load_config(path):
-    """Read the ``fluxgate_sim`` section of a ROS-style parameter YAML file.
-
-    Returns
-    -------
-    dict
-        Settings keyed like :data:`DEFAULTS`; ``options`` (a mapping) becomes ``option``
-        pairs and ``unplug`` strings are parsed.
+    The ``fluxgate_sim`` node (keyword arguments go to ``rclpy.node.Node``).
 
     Raises
     ------
     ValueError
-        If the file has no such section or holds unknown keys.
+        For bad settings or a link path that exists and is not a link (exit status 2 from
+        :func:`main`).
+
     """
-    with open(path, encoding='utf-8') as f:
-        doc = load_yaml(f.read()) or {}
-    section = None
-    for key, value in doc.items():
-        if str(key).rstrip('/').split('/')[-1] in (NODE_NAME, '**'):
-            section = (value or {}).get('ros__parameters', {})
-    if section is None:
-        raise ValueError(f'{path}: no "{NODE_NAME}: ros__parameters:" section')
-    return _section_settings(section, path)
+
+    def __init__(self, **kwargs):
+        kwargs.setdefault('namespace', DEFAULT_NAMESPACE)
+        super().__init__(NODE_NAME, **kwargs)
+        specs = sim_specs()
+        prm.declare(self, specs)
+        given = {s.name: prm.value(self, s.name) for s in specs}
+        settings = dict(devices.DEFAULTS, dir=devices.device_dir(self.get_namespace()))
+        settings.update(devices.settings_from_parameters(given, 'parameters'))
+        devices.check_settings(settings)
+        self.settings = argparse.Namespace(**settings)
+        self.sim = devices.FluxgateSim(self.settings)
+        self._stop = threading.Event()
+        #: set when the stream ended by itself (``duration``): the spin loop then ends
+        self.finished = threading.Event()
+        log = self.get_logger()
+        try:
+            self.sim.plug_all()
+        except Exception:
+            self.sim.close()
+            raise
+        for line in devices.describe_start(self.sim, self.settings):
+            log.info(line)
+        self._thread = threading.Thread(target=self._stream, name='fluxgate_sim',
+                                        daemon=True)
+        self._thread.start()
+
+    @property
+    def paths(self):
+        """Link paths of the simulated devices, sensor 1 first."""
+        return list(self.sim.paths)
+
+    def _stream(self):
+        try:
+            devices.stream(self.sim, self.settings, self.get_logger().info, self._stop)
+        finally:
+            self.finished.set()
+
+    def destroy_node(self):
+        """Stop the stream, remove the links, then destroy the node."""
+        self._stop.set()
+        self._thread.join(timeout=5.0)
+        self.sim.close()
+        self.get_logger().info(devices.describe_stop(self.sim))
+        return super().destroy_node()
 
 
-def split_ros_args(argv):
-    """Separate ``--ros-args ... [--]`` (as ``ros2 run``/launch add them) from plain options.
+def split_command_line(argv):
+    """
+    Separate this program's own options from ``--ros-args ... [--]`` sections.
 
     Returns
     -------
-    plain : list of str
-        The remaining command-line options.
-    params_files : list of str
-        Values of ``--params-file``.
-    overrides : dict
-        ``-p name:=value`` pairs (value read as YAML); a namespace remap
-        (``-r __ns:=/array2``, as ``ros2 launch`` passes it) is returned as ``__ns``. Other
-        remappings, log levels and the like are accepted and ignored (this process has no
-        ROS node).
+    own : list of str
+        Options for :func:`magcal_ros.sim.devices.build_parser`.
+    ros : list of str
+        Everything else, in order (given to rclpy).
+
     """
-    plain, files, overrides = [], [], {}
-    takes_value = ('-r', '--remap', '--log-level', '-e', '--enclave', '--log-config-file')
-    i, in_ros = 0, False
-    while i < len(argv):
-        a = argv[i]
+    own, ros, in_ros = [], [], False
+    for a in argv:
         if a == '--ros-args':
             in_ros = True
+            ros.append(a)
         elif in_ros and a == '--':
             in_ros = False
-        elif in_ros and a == '--params-file' and i + 1 < len(argv):
-            files.append(argv[i + 1])
-            i += 1
-        elif in_ros and a in ('-p', '--param') and i + 1 < len(argv):
-            key, _, raw = argv[i + 1].partition(':=')
-            overrides[key] = parse_value(raw)
-            i += 1
-        elif in_ros and a in ('-r', '--remap') and i + 1 < len(argv):
-            key, _, ns = argv[i + 1].partition(':=')
-            if key.split(':')[-1] == '__ns':          # '__ns' or 'fluxgate_sim:__ns'
-                overrides['__ns'] = ns
-            i += 1
-        elif in_ros and a in takes_value:
-            i += 1
-        elif not in_ros:
-            plain.append(a)
-        i += 1
-    return plain, files, overrides
+            ros.append(a)
+        elif in_ros:
+            ros.append(a)
+        else:
+            own.append(a)
+    return own, ros
 
 
-def check_settings(st):
-    """Validate merged settings; raise ValueError naming the bad one."""
-    def number(name, minimum, strict):
-        v = st[name]
-        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) \
-            and (v > minimum if strict else v >= minimum)
-        if not ok:
-            raise ValueError(f'{name} must be a number {">" if strict else ">="} {minimum}, '
-                             f'got {v!r}')
-    number('rate', 0, True)
-    number('tick', 0, True)
-    number('field_nt', 0, True)
-    number('noise_nt', 0, False)
-    if st['duration'] is not None:
-        number('duration', 0, False)
-    if not (isinstance(st['sensors'], int) and 1 <= st['sensors'] <= 4):
-        raise ValueError(f'sensors must be 1..4, got {st["sensors"]!r}')
-    if st['protocol'] not in PROTOCOLS:
-        raise ValueError(f'unknown protocol {st["protocol"]!r}; choose one of '
-                         f'{sorted(PROTOCOLS)}')
-    if st['trajectory'] not in TRAJECTORIES:
-        raise ValueError(f'unknown trajectory {st["trajectory"]!r}; choose one of '
-                         f'{list(TRAJECTORIES)}')
-    if st['errors'] not in ('paper004', 'none', None):
-        raise ValueError(f"errors must be 'paper004' or 'none', got {st['errors']!r}")
-    for u in st['unplug']:
-        if u.sensor > st['sensors']:
-            raise ValueError(f'unplug sensor {u.sensor} but only {st["sensors"]} sensors')
-    make_encoder(st['protocol'], **dict(st['option']))     # raises on bad options
-
-
-def resolve_settings(argv=None):
-    """Merge defaults, parameter files, ``-p`` overrides and command-line options.
-
-    Precedence, lowest first: :data:`DEFAULTS`, ``--ros-args --params-file``, ``--config``,
-    ``--ros-args -p name:=value``, command-line options.
-    """
-    argv = list(sys.argv[1:] if argv is None else argv)
-    plain, files, overrides = split_ros_args(argv)
-    parser = build_parser()
-    args = parser.parse_args(plain)
-    settings = dict(DEFAULTS)
-    settings['dir'] = device_dir(overrides.pop('__ns', DEFAULT_NAMESPACE))
-
-    def merge(new):
-        for key, value in new.items():
-            # protocol options accumulate (later sources override single keys)
-            settings[key] = settings[key] + list(value) if key == 'option' else value
-
-    try:
-        for path in files + ([args.config] if args.config else []):
-            merge(load_config(path))
-        merge(_section_settings(overrides, '--ros-args -p'))
-        merge({k: v for k, v in vars(args).items() if k != 'config' and v is not None})
-        check_settings(settings)
-    except (OSError, ValueError, yaml.YAMLError, argparse.ArgumentTypeError) as exc:
-        parser.error(str(exc))
-    return argparse.Namespace(**settings)
-
-
-class FluxgateSim:
-    """The simulated array: devices, simulator, encoders and the fault schedule.
-
-    Parameters
-    ----------
-    settings : argparse.Namespace
-        As returned by :func:`resolve_settings`.
-    """
-
-    def __init__(self, settings):
-        self.settings = settings
-        options = dict(settings.option)
-        self.encoders = [make_encoder(settings.protocol, **options)
-                         for _ in range(settings.sensors)]
-        grad = getattr(settings, 'site_gradient', None)
-        if grad is not None:
-            from magcal_ros.core.effects import symmetric_traceless
-            grad = symmetric_traceless(grad)
-        self.sim = Simulator(SimConfig(
-            n_sensors=settings.sensors, rate_hz=settings.rate, field_nt=settings.field_nt,
-            noise_nt=settings.noise_nt, trajectory=settings.trajectory,
-            errors=None if settings.errors == 'none' else settings.errors,
-            seed=settings.seed, gradient_nt_per_m=grad))
-        self.paths = [os.path.join(settings.dir, f'{settings.prefix}{j}')
-                      for j in range(1, settings.sensors + 1)]
-        self.devices = []
-        self.sent = 0                   # samples generated per sensor
-        self.events = sorted([(u.at_s, 'unplug', u) for u in settings.unplug]
-                             + [(u.at_s + u.for_s, 'replug', u) for u in settings.unplug],
-                             key=lambda e: (e[0], e[1] != 'unplug'))
-
-    def plug_all(self):
-        """Create the pseudo-terminals and links; return the list of link paths."""
-        for path, enc in zip(self.paths, self.encoders):
-            dev = PtyDevice(path)
-            self.devices.append(dev)
-            if enc.preamble:
-                dev.write(enc.preamble)
-        return list(self.paths)
-
-    def close(self):
-        """Unplug every device and remove the links."""
-        for dev in self.devices:
-            dev.close()
-
-    def _fault_events(self, now_s, log):
-        while self.events and self.events[0][0] <= now_s:
-            _, kind, u = self.events.pop(0)
-            dev = self.devices[u.sensor - 1]
-            if kind == 'unplug':
-                dev.unplug()
-                log(f'sensor{u.sensor} unplugged at {now_s:.3f} s')
-            else:
-                dev.replug(u.new_path)
-                log(f'sensor{u.sensor} replugged at {now_s:.3f} s -> {dev.path} '
-                    f'({dev.slave_name})')
-
-    def step(self, now_s, log=lambda msg: None):
-        """Generate and write every sample due by ``now_s`` (s since start); return count."""
-        self._fault_events(now_s, log)
-        rate = self.settings.rate
-        due = int(math.floor(now_s * rate)) + 1
-        n = due - self.sent
-        if n <= 0:
-            return 0
-        t = (self.sent + np.arange(n)) / rate
-        data = self.sim.sample(t)
-        for j, (dev, enc) in enumerate(zip(self.devices, self.encoders)):
-            raw, temp = data.raw[j], data.temp[j]
-            chunk = enc.encode_many(
-                Sample((float(raw[k, 0]), float(raw[k, 1]), float(raw[k, 2])),
-                       float(temp[k]), float(t[k])) for k in range(n))
-            flushes = dev.flushes
-            dev.write(chunk)
-            if dev.flushes != flushes:
-                # as a device whose host stops reading: its unread output is lost (the reader
-                # will see a gap in this sensor's samples)
-                log(f'sensor{j + 1}: the reader fell behind at {now_s:.3f} s; its unread '
-                    f'output was discarded (flush {dev.flushes})')
-            dev.read()              # drain commands a reader sent (start/stop); ignored
-        self.sent = due
-        return n
-
-
-def run(settings, out=sys.stdout):
-    """Run the simulator until the duration elapses or SIGINT/SIGTERM; return exit code."""
-    stop = {'flag': False}
-
-    def on_signal(signum, frame):
-        stop['flag'] = True
-
-    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-
-    def log(msg):
-        print(f'{NODE_NAME}: {msg}', file=out, flush=True)
-
-    sim = FluxgateSim(settings)
-    try:
-        paths = sim.plug_all()
-        for j, (path, dev) in enumerate(zip(paths, sim.devices), start=1):
-            log(f'sensor{j} -> {path} ({dev.slave_name})')
-        log(f'streaming {settings.protocol} at {settings.rate:g} Hz per sensor '
-            f'(trajectory {settings.trajectory}, seed {settings.seed})')
-        t0 = time.monotonic()
-        tick = settings.tick
-        next_tick = t0
-        while not stop['flag']:
-            now = time.monotonic() - t0
-            if settings.duration is not None and now >= settings.duration:
-                break
-            sim.step(now, log)
-            next_tick += tick
-            delay = next_tick - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
-            else:
-                next_tick = time.monotonic()    # overloaded: do not try to catch up in bursts
-        flushed = sum(dev.flushes for dev in sim.devices)
-        log(f'stopped after {sim.sent} samples per sensor'
-            + (f'; output discarded {flushed} times because a reader fell behind'
-               if flushed else ''))
-    finally:
-        sim.close()
-        for s, handler in previous.items():
-            signal.signal(s, handler)
-    return 0
+def overrides_from_options(args):
+    """ROS parameter overrides for the options given on the command line (parsed ``args``)."""
+    out = []
+    for key, value in devices.options_given(args).items():
+        if key == 'option':
+            out.append(Parameter('options', value=json.dumps(dict(value)) if value else ''))
+        elif key == 'unplug':
+            out.append(Parameter('unplug', value=[
+                f'{u.sensor}:{u.at_s}:{u.for_s}' + (f':{u.new_path}' if u.new_path else '')
+                for u in value]))
+        elif key == 'site_gradient':
+            out.append(Parameter('site_gradient', value=[float(v) for v in value]))
+        elif key == 'dir':
+            out.append(Parameter('dir', value=str(value)))
+        else:
+            out.append(Parameter(key, value=value))
+    return out
 
 
 def main(args=None):
     """Console script ``fluxgate_sim``; ``args`` as ``sys.argv[1:]`` (may hold --ros-args)."""
-    settings = resolve_settings(args)
-    try:
-        return run(settings)
-    except ValueError as exc:           # e.g. the link path is an existing regular file
-        print(f'{NODE_NAME}: {exc}', file=sys.stderr)
-        return 2
+    argv = list(sys.argv[1:] if args is None else args)
+    own, ros = split_command_line(argv)
+    parser = devices.build_parser()
+    options = parser.parse_args(own)               # exit 2 with one line when malformed
+    if options.config:
+        # read before the --ros-args files and -p, which therefore override it
+        ros = ['--ros-args', '--params-file', options.config, '--'] + ros
+    node_cls = functools.partial(FluxgateSimNode,
+                                 parameter_overrides=overrides_from_options(options))
+    return spin_node(node_cls, NODE_NAME, [sys.argv[0]] + ros)
 
 
 if __name__ == '__main__':

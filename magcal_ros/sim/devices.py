@@ -1,0 +1,526 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+r"""
+Simulated fluxgates on pseudo-terminals, without ROS: the devices ``fluxgate_sim`` serves.
+
+Creates one :class:`~magcal_ros.serial.transport.PtyDevice` per sensor, linked as
+``<dir>/fluxgate1`` ... ``fluxgate4`` (default: :func:`device_dir` of the namespace, i.e.
+``/tmp/magcal_sim`` for ``/magcal``), and streams the output of
+:class:`magcal_ros.core.simulate.Simulator` in any registered serial protocol (default: the
+ASCII contract line ``<x_nT>,<y_nT>,<z_nT>,<temp_C>\r\n``). The defaults are paper 004
+section 4.1: |B| = 50 000 nT, D = -7 deg, I = 55 deg, noise 3 nT per axis, the Table 1
+sensor errors, and a smooth tumbling trajectory that covers the sphere in about a minute,
+at 100 samples/s per sensor. Samples are generated and written in chunks once per tick
+(default 10 ms), so 1 kHz and more per sensor cost a few writes per tick, not one per
+sample.
+
+A site gradient (``site_gradient``: GXX, GXY, GXZ, GYY, GYZ in nT/m, world NED frame,
+symmetric and traceless) makes the field differ over the cross as it does near buildings or
+a vehicle (docs/site_gradient.md); ``field_nt`` is then the magnitude at the array centre.
+
+Faults for tests: ``unplug`` entries ``SENSOR:AT_S:FOR_S[:NEW_PATH]`` close that sensor's
+pseudo-terminal at ``AT_S`` s (readers get an I/O error, the link disappears) and plug a
+new one ``FOR_S`` s later, at ``NEW_PATH`` if given (a device that comes back under another
+name).
+
+This module imports no rclpy: scripts and tests use :class:`FluxgateSim` directly, and
+``python -m magcal_ros.sim`` runs it as a plain process (the options of
+:func:`build_parser`). The ROS node ``fluxgate_sim`` (:mod:`magcal_ros.ros.sim_node`) runs
+the same code with the settings as ROS parameters.
+"""
+
+import argparse
+from dataclasses import dataclass
+import math
+import os
+import signal
+import sys
+import tempfile
+import threading
+import time
+
+from magcal_ros.core.simulate import SimConfig, Simulator, TRAJECTORIES
+from magcal_ros.serial import make_encoder, PROTOCOLS, Sample
+from magcal_ros.serial.options import load_yaml, parse_options, parse_value
+from magcal_ros.serial.transport import PtyDevice
+import numpy as np
+import yaml
+
+#: ``/tmp/magcal_sim`` unless TMPDIR names another temporary directory
+DEFAULT_DIR = os.path.join(tempfile.gettempdir(), 'magcal_sim')
+#: the nodes' namespace without a ``__ns`` remap (also magcal_ros.ros.run.DEFAULT_NAMESPACE)
+DEFAULT_NAMESPACE = '/magcal'
+
+
+def device_dir(namespace=DEFAULT_NAMESPACE):
+    """
+    Folder of the simulated devices of a namespace: one array per namespace.
+
+    ``/magcal`` (the default) -> :data:`DEFAULT_DIR`; ``/array2`` ->
+    ``<DEFAULT_DIR>_array2``, so a simulator and a driver started in the same namespace meet
+    on the same devices and two arrays never share them.
+    """
+    ns = '/' + namespace.strip('/') if namespace.strip('/') else '/'
+    if ns == DEFAULT_NAMESPACE:
+        return DEFAULT_DIR
+    return DEFAULT_DIR + '_' + (ns.strip('/').replace('/', '_') or 'root')
+
+
+#: link name prefix: sensor j is <dir>/<prefix>j
+DEFAULT_PREFIX = 'fluxgate'
+#: name of the ROS node, and of this program in its messages
+NODE_NAME = 'fluxgate_sim'
+
+
+@dataclass(frozen=True)
+class Unplug:
+    """One scheduled unplug of a sensor (sensor numbered from 1, times in s)."""
+
+    sensor: int
+    at_s: float
+    for_s: float
+    new_path: str | None = None
+
+
+def parse_unplug(text):
+    """
+    Parse ``SENSOR:AT_S:FOR_S[:NEW_PATH]`` into an :class:`Unplug`.
+
+    Raises
+    ------
+    argparse.ArgumentTypeError
+        With the expected form when the text does not parse.
+
+    """
+    parts = str(text).split(':', 3)
+    try:
+        if len(parts) < 3:
+            raise ValueError
+        sensor, at_s, for_s = int(parts[0]), float(parts[1]), float(parts[2])
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f'--unplug expects SENSOR:AT_S:FOR_S[:NEW_PATH] (e.g. 2:5:1.5), got {text!r}'
+        ) from None
+    if sensor < 1 or not (math.isfinite(at_s) and at_s >= 0) or \
+            not (math.isfinite(for_s) and for_s >= 0):
+        raise argparse.ArgumentTypeError(
+            f'--unplug needs SENSOR >= 1 and times >= 0 s, got {text!r}')
+    return Unplug(sensor, at_s, for_s, parts[3] if len(parts) == 4 and parts[3] else None)
+
+
+def parse_option(text):
+    """Parse a protocol option ``KEY=VALUE`` (VALUE read as YAML: numbers, lists, ...)."""
+    key, sep, raw = str(text).partition('=')
+    if not sep or not key.strip():
+        raise argparse.ArgumentTypeError(f'--option expects KEY=VALUE, got {text!r}')
+    return key.strip(), parse_value(raw)
+
+
+def _positive(kind):
+    def check(text):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f'expected a number, got {text!r}') from None
+        if not (math.isfinite(value) and value > 0):
+            raise argparse.ArgumentTypeError(f'must be > 0, got {text!r}')
+        return value
+    return check
+
+
+def _non_negative(text):
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'expected a number, got {text!r}') from None
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f'must be >= 0, got {text!r}')
+    return value
+
+
+def parse_gradient(text):
+    """``GXX,GXY,GXZ,GYY,GYZ`` (nT/m) -> list of five floats (gzz = -gxx - gyy)."""
+    try:
+        values = [float(v) for v in str(text).strip('[] ').split(',')]
+    except ValueError:
+        values = []
+    if len(values) != 5 or not all(math.isfinite(v) for v in values):
+        raise argparse.ArgumentTypeError(
+            f'expected five numbers GXX,GXY,GXZ,GYY,GYZ in nT/m, got {text!r}')
+    return values
+
+
+def build_parser():
+    """Return the argparse parser of ``fluxgate_sim``."""
+    p = argparse.ArgumentParser(
+        prog='fluxgate_sim',
+        description='Simulated four-fluxgate cross gradiometer on pseudo-terminals '
+                    '(default: paper 004 section 4.1, ASCII protocol, 100 Hz).')
+    p.add_argument('--config', help='YAML file with a fluxgate_sim: ros__parameters: section '
+                                    '(keys as the long options, underscores for dashes)')
+    p.add_argument('--dir', help=f'directory of the device links (default {DEFAULT_DIR} in '
+                                 f'the namespace {DEFAULT_NAMESPACE}, <that>_<ns> in another)')
+    p.add_argument('--prefix', help=f'link name prefix, sensor j is <dir>/<prefix>j '
+                                    f'(default {DEFAULT_PREFIX})')
+    p.add_argument('--sensors', type=int, choices=range(1, 5), metavar='{1..4}',
+                   help='number of sensors (default 4)')
+    p.add_argument('--rate', type=_positive(float), help='samples per second per sensor, Hz '
+                                                         '(default 100)')
+    p.add_argument('--tick', type=_positive(float),
+                   help='write period, s (default 0.01: one sample per write at 100 Hz)')
+    p.add_argument('--protocol', choices=sorted(PROTOCOLS), help='serial protocol '
+                                                                 '(default ascii)')
+    p.add_argument('--option', type=parse_option, action='append', metavar='KEY=VALUE',
+                   help='protocol option (repeatable), e.g. --option columns=x,y,z,temp,time')
+    p.add_argument('--seed', type=int, help='random seed (default 0)')
+    p.add_argument('--trajectory', choices=TRAJECTORIES, help='attitude trajectory '
+                                                              '(default smooth)')
+    p.add_argument('--field-nt', type=_positive(float), help='total field, nT (default 50000)')
+    p.add_argument('--noise-nt', type=_non_negative, help='noise sd per axis, nT (default 3)')
+    p.add_argument('--errors', choices=['paper004', 'none'],
+                   help='sensor errors: paper 004 Table 1 or ideal (default paper004)')
+    p.add_argument('--site-gradient', type=parse_gradient, metavar='GXX,GXY,GXZ,GYY,GYZ',
+                   help='constant site gradient in the world (NED) frame, nT/m '
+                        '(default: none, a uniform field)')
+    p.add_argument('--duration', type=_positive(float),
+                   help='stop after this many seconds (default: run until SIGINT/SIGTERM)')
+    p.add_argument('--unplug', type=parse_unplug, action='append',
+                   metavar='SENSOR:AT_S:FOR_S[:NEW_PATH]',
+                   help='unplug a sensor at AT_S s for FOR_S s (repeatable), optionally '
+                        'coming back at NEW_PATH')
+    return p
+
+
+DEFAULTS = {'dir': DEFAULT_DIR, 'prefix': DEFAULT_PREFIX, 'sensors': 4, 'rate': 100.0,
+            'tick': 0.01, 'protocol': 'ascii', 'option': [], 'seed': 0,
+            'trajectory': 'smooth', 'field_nt': 50000.0, 'noise_nt': 3.0,
+            'errors': 'paper004', 'duration': None, 'unplug': [], 'site_gradient': None}
+
+
+def settings_from_parameters(section, source):
+    """
+    Turn ``fluxgate_sim`` parameters (ROS names and types) into settings like :data:`DEFAULTS`.
+
+    ROS parameters cannot be null, so ``dir: ''`` means the namespace's folder,
+    ``duration: 0.0`` until stopped, an empty ``site_gradient`` a uniform field and an empty
+    ``unplug`` no fault; ``options`` is a YAML mapping (string or mapping).
+
+    Raises
+    ------
+    ValueError
+        Naming ``source`` and the setting, for an unknown key or a malformed value.
+
+    """
+    out = {}
+    for key, value in section.items():
+        try:
+            out.update(_setting(key, value, source))
+        except argparse.ArgumentTypeError as exc:
+            raise ValueError(f'{source}: {key}: {exc}') from None
+    return out
+
+
+def _setting(key, value, source):
+    """One setting of :func:`settings_from_parameters` as a dict (empty: keep the default)."""
+    if key == 'options':
+        try:
+            return {'option': list(parse_options(value).items())}
+        except ValueError as exc:
+            raise ValueError(f'{source}: {exc}') from None
+    if key == 'site_gradient':
+        return {key: None if value is None or len(value) == 0 else parse_gradient(
+            ','.join(map(str, value)) if isinstance(value, (list, tuple)) else value)}
+    if key == 'unplug':
+        return {key: [v if isinstance(v, Unplug) else parse_unplug(v)
+                      for v in (value or []) if v]}
+    if key == 'dir':
+        return {key: value} if value else {}
+    if key == 'duration':
+        return {key: value if value else None}
+    if key in DEFAULTS and key != 'option':
+        return {key: value}
+    raise ValueError(f'{source}: unknown {NODE_NAME} setting {key!r}; '
+                     f'known: {sorted(k for k in DEFAULTS if k != "option")} and options')
+
+
+def load_config(path):
+    """
+    Read the ``fluxgate_sim`` section of a ROS-style parameter YAML file.
+
+    Returns
+    -------
+    dict
+        Settings keyed like :data:`DEFAULTS`; ``options`` (a mapping) becomes ``option``
+        pairs and ``unplug`` strings are parsed.
+
+    Raises
+    ------
+    ValueError
+        If the file has no such section or holds unknown keys.
+
+    """
+    with open(path, encoding='utf-8') as f:
+        doc = load_yaml(f.read()) or {}
+    section = None
+    for key, value in doc.items():
+        if str(key).rstrip('/').split('/')[-1] in (NODE_NAME, '**'):
+            section = (value or {}).get('ros__parameters', {})
+    if section is None:
+        raise ValueError(f'{path}: no "{NODE_NAME}: ros__parameters:" section')
+    return settings_from_parameters(section, path)
+
+
+def check_settings(st):
+    """Validate merged settings; raise ValueError naming the bad one."""
+    def number(name, minimum, strict):
+        v = st[name]
+        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) \
+            and (v > minimum if strict else v >= minimum)
+        if not ok:
+            raise ValueError(f'{name} must be a number {">" if strict else ">="} {minimum}, '
+                             f'got {v!r}')
+    number('rate', 0, True)
+    number('tick', 0, True)
+    number('field_nt', 0, True)
+    number('noise_nt', 0, False)
+    if st['duration'] is not None:
+        number('duration', 0, False)
+    if not (isinstance(st['sensors'], int) and 1 <= st['sensors'] <= 4):
+        raise ValueError(f'sensors must be 1..4, got {st["sensors"]!r}')
+    if st['protocol'] not in PROTOCOLS:
+        raise ValueError(f'unknown protocol {st["protocol"]!r}; choose one of '
+                         f'{sorted(PROTOCOLS)}')
+    if st['trajectory'] not in TRAJECTORIES:
+        raise ValueError(f'unknown trajectory {st["trajectory"]!r}; choose one of '
+                         f'{list(TRAJECTORIES)}')
+    if st['errors'] not in ('paper004', 'none', None):
+        raise ValueError(f"errors must be 'paper004' or 'none', got {st['errors']!r}")
+    for u in st['unplug']:
+        if u.sensor > st['sensors']:
+            raise ValueError(f'unplug sensor {u.sensor} but only {st["sensors"]} sensors')
+    make_encoder(st['protocol'], **dict(st['option']))     # raises on bad options
+
+
+def resolve_settings(argv=None, namespace=DEFAULT_NAMESPACE):
+    """
+    Merge defaults, ``--config`` and command-line options (the ROS-free command line).
+
+    Precedence, lowest first: :data:`DEFAULTS` (``dir``: :func:`device_dir` of
+    ``namespace``), ``--config``, command-line options. Bad settings exit with status 2 and
+    one line naming the problem (argparse's ``error``).
+
+    Returns
+    -------
+    argparse.Namespace
+        Settings keyed like :data:`DEFAULTS`.
+
+    """
+    parser = build_parser()
+    args = parser.parse_args(list(sys.argv[1:] if argv is None else argv))
+    settings = dict(DEFAULTS, dir=device_dir(namespace))
+    try:
+        if args.config:
+            settings = merge_settings(settings, load_config(args.config))
+        settings = merge_settings(settings, options_given(args))
+        check_settings(settings)
+    except (OSError, ValueError, yaml.YAMLError, argparse.ArgumentTypeError) as exc:
+        parser.error(str(exc))
+    return argparse.Namespace(**settings)
+
+
+def options_given(args):
+    """Return the settings the command line gave (``args`` of :func:`build_parser`)."""
+    return {k: v for k, v in vars(args).items() if k != 'config' and v is not None}
+
+
+def merge_settings(settings, new):
+    """Return ``settings`` updated by ``new`` (protocol options accumulate key by key)."""
+    out = dict(settings)
+    for key, value in new.items():
+        out[key] = out[key] + list(value) if key == 'option' else value
+    return out
+
+
+class FluxgateSim:
+    """
+    The simulated array: devices, simulator, encoders and the fault schedule.
+
+    Parameters
+    ----------
+    settings : argparse.Namespace
+        As returned by :func:`resolve_settings`.
+
+    """
+
+    def __init__(self, settings):
+        self.settings = settings
+        options = dict(settings.option)
+        self.encoders = [make_encoder(settings.protocol, **options)
+                         for _ in range(settings.sensors)]
+        grad = getattr(settings, 'site_gradient', None)
+        if grad is not None:
+            from magcal_ros.core.effects import symmetric_traceless
+            grad = symmetric_traceless(grad)
+        self.sim = Simulator(SimConfig(
+            n_sensors=settings.sensors, rate_hz=settings.rate, field_nt=settings.field_nt,
+            noise_nt=settings.noise_nt, trajectory=settings.trajectory,
+            errors=None if settings.errors == 'none' else settings.errors,
+            seed=settings.seed, gradient_nt_per_m=grad))
+        self.paths = [os.path.join(settings.dir, f'{settings.prefix}{j}')
+                      for j in range(1, settings.sensors + 1)]
+        self.devices = []
+        self.sent = 0                   # samples generated per sensor
+        self.events = sorted([(u.at_s, 'unplug', u) for u in settings.unplug]
+                             + [(u.at_s + u.for_s, 'replug', u) for u in settings.unplug],
+                             key=lambda e: (e[0], e[1] != 'unplug'))
+
+    def plug_all(self):
+        """Create the pseudo-terminals and links; return the list of link paths."""
+        for path, enc in zip(self.paths, self.encoders):
+            dev = PtyDevice(path)
+            self.devices.append(dev)
+            if enc.preamble:
+                dev.write(enc.preamble)
+        return list(self.paths)
+
+    def close(self):
+        """Unplug every device and remove the links."""
+        for dev in self.devices:
+            dev.close()
+
+    def _fault_events(self, now_s, log):
+        while self.events and self.events[0][0] <= now_s:
+            _, kind, u = self.events.pop(0)
+            dev = self.devices[u.sensor - 1]
+            if kind == 'unplug':
+                dev.unplug()
+                log(f'sensor{u.sensor} unplugged at {now_s:.3f} s')
+            else:
+                dev.replug(u.new_path)
+                log(f'sensor{u.sensor} replugged at {now_s:.3f} s -> {dev.path} '
+                    f'({dev.slave_name})')
+
+    def step(self, now_s, log=lambda msg: None):
+        """Generate and write every sample due by ``now_s`` (s since start); return count."""
+        self._fault_events(now_s, log)
+        rate = self.settings.rate
+        due = int(math.floor(now_s * rate)) + 1
+        n = due - self.sent
+        if n <= 0:
+            return 0
+        t = (self.sent + np.arange(n)) / rate
+        data = self.sim.sample(t)
+        for j, (dev, enc) in enumerate(zip(self.devices, self.encoders)):
+            raw, temp = data.raw[j], data.temp[j]
+            chunk = enc.encode_many(
+                Sample((float(raw[k, 0]), float(raw[k, 1]), float(raw[k, 2])),
+                       float(temp[k]), float(t[k])) for k in range(n))
+            flushes = dev.flushes
+            dev.write(chunk)
+            if dev.flushes != flushes:
+                # as a device whose host stops reading: its unread output is lost (the reader
+                # will see a gap in this sensor's samples)
+                log(f'sensor{j + 1}: the reader fell behind at {now_s:.3f} s; its unread '
+                    f'output was discarded (flush {dev.flushes})')
+            dev.read()              # drain commands a reader sent (start/stop); ignored
+        self.sent = due
+        return n
+
+
+def stream(sim, settings, log, stop):
+    """
+    Write the samples as they fall due until ``stop`` is set or the duration elapses.
+
+    Parameters
+    ----------
+    sim : FluxgateSim
+        Plugged-in simulator (:meth:`FluxgateSim.plug_all` called).
+    settings : argparse.Namespace
+        Its settings (``tick`` s, ``duration`` s or None).
+    log : callable
+        Called with one line of text per event (unplug, replug, a reader that fell behind).
+    stop : threading.Event
+        Set to end the stream early.
+
+    Returns
+    -------
+    int
+        Samples generated per sensor.
+
+    """
+    t0 = time.monotonic()
+    tick = settings.tick
+    next_tick = t0
+    while not stop.is_set():
+        now = time.monotonic() - t0
+        if settings.duration is not None and now >= settings.duration:
+            break
+        sim.step(now, log)
+        next_tick += tick
+        delay = next_tick - time.monotonic()
+        if delay > 0:
+            stop.wait(delay)
+        else:
+            next_tick = time.monotonic()    # overloaded: do not try to catch up in bursts
+    return sim.sent
+
+
+def describe_start(sim, settings):
+    """Return the lines saying where each sensor is and what streams (logged at start)."""
+    lines = [f'sensor{j} -> {path} ({dev.slave_name})'
+             for j, (path, dev) in enumerate(zip(sim.paths, sim.devices), start=1)]
+    return lines + [f'streaming {settings.protocol} at {settings.rate:g} Hz per sensor '
+                    f'(trajectory {settings.trajectory}, seed {settings.seed})']
+
+
+def describe_stop(sim):
+    """Return the line logged when the stream ends."""
+    flushed = sum(dev.flushes for dev in sim.devices)
+    return (f'stopped after {sim.sent} samples per sensor'
+            + (f'; output discarded {flushed} times because a reader fell behind'
+               if flushed else ''))
+
+
+def run(settings, out=sys.stdout):
+    """Run the simulator until the duration elapses or SIGINT/SIGTERM; return exit code."""
+    stop = threading.Event()
+    previous = {s: signal.signal(s, lambda *_: stop.set())
+                for s in (signal.SIGINT, signal.SIGTERM)}
+
+    def log(msg):
+        print(f'{NODE_NAME}: {msg}', file=out, flush=True)
+
+    sim = FluxgateSim(settings)
+    try:
+        sim.plug_all()
+        for line in describe_start(sim, settings):
+            log(line)
+        stream(sim, settings, log, stop)
+        log(describe_stop(sim))
+    finally:
+        sim.close()
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+    return 0
+
+
+def main(args=None):
+    """``python -m magcal_ros.sim``: the devices without ROS (``args`` as ``sys.argv[1:]``)."""
+    settings = resolve_settings(args)
+    try:
+        return run(settings)
+    except ValueError as exc:           # e.g. the link path is an existing regular file
+        print(f'{NODE_NAME}: {exc}', file=sys.stderr)
+        return 2
