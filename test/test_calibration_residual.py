@@ -33,7 +33,7 @@ from rclpy.parameter import Parameter
 from ros_helpers import call_trigger, spin_until
 from sim_feed import Feeder
 from std_msgs.msg import Float64MultiArray
-from test_live import _rot_x, _rot_z, C, O, R   # sensors written by hand
+from test_live import _rot_x, _rot_z, C, OFFSETS, R   # sensors written by hand
 
 F_NT = 50000.0
 SIGMA_NT = 2.0
@@ -51,7 +51,7 @@ def _recording(n, seed):
     rng = np.random.default_rng(seed)
     raw = np.empty((4, n, 3))
     for j in range(4):
-        raw[j] = b @ (C[j] @ R[j].T).T + O[j] + rng.normal(scale=SIGMA_NT, size=(n, 3))
+        raw[j] = b @ (C[j] @ R[j].T).T + OFFSETS[j] + rng.normal(scale=SIGMA_NT, size=(n, 3))
     raw[1] += np.outer(temp - 25.0, K_TEMP)
     return Dataset(t=t, raw=raw, temp=np.tile(temp, (4, 1)))
 
