@@ -69,7 +69,7 @@ def _git_commit():
 
 
 def _blas_threads():
-    """Openblas thread setting from the environment ('default' when unset)."""
+    """Return the OpenBLAS thread setting from the environment ('default' when unset)."""
     for key in ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS', 'MKL_NUM_THREADS'):
         if os.environ.get(key):
             return f'{key}={os.environ[key]}'

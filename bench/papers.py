@@ -115,7 +115,7 @@ def _refined(raw, f, spec, init=None):
 
 
 def _crb_scale_ppm(raw, f, spec, a, o, sigma):
-    """Sqrt of the mean CRB of the scale factors at the truth (ppm)."""
+    """Return the square root of the mean CRB of the scale factors at the truth (ppm)."""
     n = len(raw)
     data = Dataset(t=np.arange(n, dtype=float), raw=raw[None])
     model = mdl.Model.from_spec(spec, 1)

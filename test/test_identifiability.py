@@ -62,7 +62,7 @@ def _data(raw):
 
 
 def _plane_normal(axis):
-    """Normalize of the readings' plane for a rotation about ``axis``: A^-T axis (unit)."""
+    """Return the unit normal of the readings' plane for a rotation about ``axis``: A^-T axis."""
     n = np.linalg.solve(A.T, axis)
     return n / np.linalg.norm(n)
 

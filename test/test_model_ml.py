@@ -23,7 +23,7 @@ F = 50000.0
 
 
 def test_uncertainties_match_monte_carlo_spread():
-    """Z = (estimate - truth) / stderr over seeds must have unit spread (stderr = CRB)."""
+    """Check that z = (estimate - truth) / stderr over seeds has unit spread (stderr = CRB)."""
     zs = []
     for seed in range(12):
         data, sim = simulate(n_samples=150, n_sensors=1, trajectory='random', seed=100 + seed,

@@ -130,7 +130,7 @@ GROSS_FRACTION = 0.02
 
 def gross_outliers(raw, fraction=GROSS_FRACTION):
     """
-    Set holding a sample that cannot be a reading: a cut or garbled line.
+    Find the sets holding a sample that cannot be a reading: a cut or garbled line.
 
     A serial line opened in the middle of a stream, or overrun, can deliver a line that
     lost its first bytes and still parses, e.g. ``45.6,-2345.1,43210.9`` from

@@ -1241,7 +1241,7 @@ def load_plugins(refs):
 
 def _loaded_effect_name(ref):
     """
-    Register name of the effect class ``module:Class`` of an already imported plug-in.
+    Return the registered name of the effect class ``module:Class`` of a loaded plug-in.
 
     Never imports: a model token or a calibration document (which may come from a ROS
     parameter write or message) must not run code; plug-ins are loaded beforehand by

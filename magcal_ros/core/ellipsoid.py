@@ -40,7 +40,7 @@ def _fmt(v):
 
 def reading_plane(raw):
     """
-    Normalize of the plane the readings lie near, or None when they spread in 3-D.
+    Return the normal of the plane the readings lie near, or None when they spread in 3-D.
 
     Parameters
     ----------

@@ -379,7 +379,7 @@ class ResidualMonitor:
 
     def ratios(self, min_sets=50):
         """
-        Roll RMS residuals and their ratio to the noise-only expectation.
+        Return the rolling RMS residuals and their ratio to the noise-only expectation.
 
         Returns
         -------

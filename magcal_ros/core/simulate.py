@@ -252,7 +252,7 @@ class Simulator:
         return out
 
     def sample(self, t):
-        """Simulate Dataset at times t (N,) s; ``meta['truth_field']`` holds the true field."""
+        """Simulate a Dataset at times t (N,) s; ``meta['truth_field']`` holds the true field."""
         cfg = self.config
         t = np.asarray(t, float)
         n = len(t)

@@ -140,7 +140,7 @@ _REQUIRED_FINITE = re.compile(r'^(t|s\d+_[xyz]|ref_total|ref_[xyz])$')
 
 
 def _check_finite(path, header, arr, line_nos, lines):
-    """Csvformaterror naming the first line and column whose cell is empty, nan or inf."""
+    """Raise a CsvFormatError naming the first line and column with an empty, nan or inf cell."""
     cols = [i for i, h in enumerate(header) if _REQUIRED_FINITE.match(h)]
     bad = ~np.isfinite(arr[:, cols])
     if not bad.any():
