@@ -217,7 +217,8 @@ class StampMatcher:
 
     @property
     def queued(self):
-        """Samples waiting for the other sensors of their set, per stream (tuple of S counts).
+        """
+        Count the samples waiting for the other sensors of their set (tuple of S counts).
 
         Each stays below ``max_queue``: older samples are dropped as incomplete sets.
         """
