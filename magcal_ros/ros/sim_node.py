@@ -130,7 +130,8 @@ class FluxgateSimNode(Node):
 
     def _stream(self):
         try:
-            devices.stream(self.sim, self.settings, self.get_logger().info, self._stop)
+            log = self.get_logger()
+            devices.stream(self.sim, self.settings, log.info, self._stop, log.warning)
         finally:
             self.finished.set()
 

@@ -412,8 +412,15 @@ class FluxgateSim:
                 log(f'sensor{u.sensor} replugged at {now_s:.3f} s -> {dev.path} '
                     f'({dev.slave_name})')
 
-    def step(self, now_s, log=lambda msg: None):
-        """Generate and write every sample due by ``now_s`` (s since start); return count."""
+    def step(self, now_s, log=lambda msg: None, warn=None):
+        """
+        Generate and write every sample due by ``now_s`` (s since start); return the count.
+
+        ``log(text)`` is called for the scheduled faults, ``warn(text)`` (default ``log``)
+        when a reader fell behind and its unread output was discarded.
+
+        """
+        warn = warn or log
         self._fault_events(now_s, log)
         rate = self.settings.rate
         due = int(math.floor(now_s * rate)) + 1
@@ -432,14 +439,14 @@ class FluxgateSim:
             if dev.flushes != flushes:
                 # as a device whose host stops reading: its unread output is lost (the reader
                 # will see a gap in this sensor's samples)
-                log(f'sensor{j + 1}: the reader fell behind at {now_s:.3f} s; its unread '
-                    f'output was discarded (flush {dev.flushes})')
+                warn(f'sensor{j + 1}: the reader fell behind at {now_s:.3f} s; its unread '
+                     f'output was discarded (flush {dev.flushes})')
             dev.read()              # drain commands a reader sent (start/stop); ignored
         self.sent = due
         return n
 
 
-def stream(sim, settings, log, stop):
+def stream(sim, settings, log, stop, warn=None):
     """
     Write the samples as they fall due until ``stop`` is set or the duration elapses.
 
@@ -450,9 +457,12 @@ def stream(sim, settings, log, stop):
     settings : argparse.Namespace
         Its settings (``tick`` s, ``duration`` s or None).
     log : callable
-        Called with one line of text per event (unplug, replug, a reader that fell behind).
+        Called with one line of text per scheduled fault (unplug, replug).
     stop : threading.Event
         Set to end the stream early.
+    warn : callable, optional
+        Called when a reader fell behind and its unread output was discarded (default
+        ``log``).
 
     Returns
     -------
@@ -467,7 +477,7 @@ def stream(sim, settings, log, stop):
         now = time.monotonic() - t0
         if settings.duration is not None and now >= settings.duration:
             break
-        sim.step(now, log)
+        sim.step(now, log, warn)
         next_tick += tick
         delay = next_tick - time.monotonic()
         if delay > 0:
