@@ -362,6 +362,12 @@ def test_heading_unknown_reaches_its_bound():
         assert abs(g[a, b] - want[a, b]) < 4 * se[a, b], (a, b, g[a, b], want[a, b], se[a, b])
     assert all(v < 1.05 * NOISE_NT for v in res.scalar_rms_nt.values())
     assert 'field-aligned' in res.identifiability['site_gradient_frame']
+    # the correlation is that of the reported covariance where both are defined (gyz,
+    # fixed by the gauge, has none; the bound leaves some cross terms unknown: inf)
+    se = res.stderr
+    ok = np.isfinite(res.covariance) & (np.outer(se, se) > 0)
+    np.testing.assert_allclose(res.correlation[ok], (res.covariance / np.outer(se, se))[ok],
+                               rtol=1e-12, atol=1e-12)
 
 
 def test_cli_without_attitude(tmp_path):

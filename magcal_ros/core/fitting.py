@@ -318,7 +318,7 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
         solve = _Solve(model, raw, f, contexts, prior_list, robust, f_scale, solver, max_nfev)
         p, sigma, sol = solve.run(p0, sigma_nt)
         cov, chi2, n_obs = solve.covariance(p, sigma)
-        stderr, corr = _stderr_and_correlation(cov)
+        stderr, corr = stderr_and_correlation(cov)
         if check_identifiability:
             from magcal_ros.core import identifiability as idf
             jac_rep = idf.jacobian_report(model, cov, corr, constrained=constrained)
@@ -400,8 +400,23 @@ def _closed_form_start(raw, f, model, constrained, ident, degenerate):
         return initial_params(raw, f, model, constrained=True)
 
 
-def _stderr_and_correlation(cov):
-    """Return the (P,) standard uncertainties and (P, P) correlation of a covariance."""
+def stderr_and_correlation(cov):
+    """
+    Return the standard uncertainties and the correlation matrix of a covariance.
+
+    Parameters
+    ----------
+    cov : numpy.ndarray
+        (P, P) covariance, in the parameters' units squared (inf: undetermined).
+
+    Returns
+    -------
+    stderr : numpy.ndarray
+        (P,) square roots of the diagonal.
+    corr : numpy.ndarray
+        (P, P) correlation, 0 where undefined, 1 on the diagonal.
+
+    """
     stderr = np.sqrt(np.clip(np.diag(cov), 0, None))
     with np.errstate(invalid='ignore', divide='ignore'):
         corr = cov / np.outer(stderr, stderr)

@@ -23,6 +23,7 @@ the physics and the identifiability analysis summarised here).  Units: nT, nT/m,
 """
 from magcal_ros.core.effects import symmetric_traceless
 from magcal_ros.core.engine import ProfiledProblem
+from magcal_ros.core.fitting import stderr_and_correlation
 from magcal_ros.core.solvers import covariance_from_jacobian
 import numpy as np
 
@@ -381,14 +382,16 @@ def fit_heading_unknown(data, model='base,site_gradient', field_nt=None, n_iter=
         out['gradient_covariance'][:4, :4]
     cov[sl.start + 4, :] = 0.0
     cov[:, sl.start + 4] = 0.0
-    stderr = np.sqrt(np.clip(np.diag(cov), 0, None))
-    warnings = list(res.warnings) + [
+    stderr, corr = stderr_and_correlation(cov)
+    warnings = tuple(res.warnings) + (
         'no attitude: the heading about the field was estimated at every epoch; the site '
         'gradient is given in a field-aligned frame (z along the field, x along the part of '
         'G z perpendicular to it, so gyz = 0): its rotation about the field is not '
         'determined without attitude; uncertainties from the Cramer-Rao bound with the '
-        'headings unknown']
+        'headings unknown',)
     ident = dict(res.identifiability, site_gradient_frame=FIELD_ALIGNED)
-    return replace(res, params=p, covariance=cov, stderr=stderr, warnings=warnings,
+    # the residuals of the result are computed from these parameters and attitudes when read
+    return replace(res, params=p, covariance=cov, correlation=corr, stderr=stderr,
+                   warnings=warnings,
                    sigma_nt=sigma, identifiability=ident,
                    contexts=[fixed.context(j) for j in range(1, data.n_sensors + 1)])
