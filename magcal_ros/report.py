@@ -1,3 +1,17 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
 """Diagnosis report: PNG figures and one self-contained HTML page (PNGs embedded as base64).
 
 The figures answer "where does the model fail?":
@@ -41,7 +55,7 @@ DPI = 100
 
 
 def _figure(width, height):
-    """A figure on its own Agg canvas, without a layout engine (see :func:`_arrange`)."""
+    """Return a figure on its own Agg canvas, without a layout engine (:func:`_arrange`)."""
     fig = Figure(figsize=(max(width, 7.0), height), dpi=DPI)
     FigureCanvasAgg(fig)
     return fig
@@ -56,7 +70,8 @@ def _suptitle(fig, text, fontsize=11):
 
 def _arrange(fig, rows=1, cols=1, left=0.8, right=0.25, bottom=0.55, top=0.3, wspace=1.0,
              hspace=0.75):
-    """Place the grid of axes with fixed margins and gaps (inches) and thin the ticks.
+    """
+    Place the grid of axes with fixed margins and gaps (inches) and thin the ticks.
 
     Matplotlib's constrained layout measured every tick label and title of every axes
     (1.5-3 s of the 5 s a report took at 4 x 10 000 samples); these figures have known
@@ -84,7 +99,8 @@ def _arrange(fig, rows=1, cols=1, left=0.8, right=0.25, bottom=0.55, top=0.3, ws
 
 
 def _bottom_legend(fig, fontsize=7):
-    """The first axes' legend in one row along the bottom of the figure, off the data.
+    """
+    Put the first axes' legend in a row along the bottom of the figure, off the data.
 
     (A legend 'best' placed inside the axes tests every data point: slow with thousands.)
     """
@@ -96,7 +112,8 @@ def _bottom_legend(fig, fontsize=7):
 
 
 def _plain_log_ticks(*axes):
-    """Log axes with plain decade labels ('0.01', '1e+04') and no minor ticks.
+    """
+    Give log axes plain decade labels ('0.01', '1e+04') and no minor ticks.
 
     Matplotlib's default '$10^{3}$' labels go through its mathtext parser (about 20 ms per
     label) and the log minor ticks are many more artists to lay out.
@@ -107,12 +124,12 @@ def _plain_log_ticks(*axes):
 
 
 def _title(ax, text, **kwargs):
-    """Axes title at a fixed height (an automatic one measures every tick label first)."""
+    """Set an axes title at a fixed height (an automatic one measures every tick label)."""
     ax.set_title(text, y=1.0, **kwargs)
 
 
 def _png(fig):
-    """The figure as PNG bytes (zlib level 1: a third of the encoding time, ~5 % larger)."""
+    """Return the figure as PNG bytes (zlib level 1: a third of the encoding time)."""
     buf = io.BytesIO()
     fig.savefig(buf, format='png', dpi=DPI, pil_kwargs={'compress_level': 1})
     return buf.getvalue()
@@ -124,7 +141,8 @@ def _thin(n):
 
 
 def _envelope(y, columns=PIXEL_COLUMNS):
-    """Indices of the smallest and largest sample of ``y`` in each of ``columns`` chunks.
+    """
+    Return the indices of the smallest and largest sample of ``y`` in each chunk.
 
     A time series drawn through these (in time order) covers, in every pixel column, the
     same range as all its samples: spikes stay visible, and a line of 10 000 noisy samples
@@ -156,8 +174,12 @@ def _envelope(y, columns=PIXEL_COLUMNS):
 
 
 def _scatter_idx(n, *series):
-    """Evenly thinned samples (the density of the cloud) plus every series' envelope (its
-    extremes per pixel column, :func:`_envelope`), sorted."""
+    """
+    Return evenly thinned samples plus the extremes of every series, sorted.
+
+    The thinned samples show the density of the cloud, the envelopes (:func:`_envelope`)
+    its extremes per pixel column.
+    """
     idx = _thin(n)
     if len(idx) == n:
         return idx
@@ -828,13 +850,14 @@ img{max-width:100%;border:1px solid #ddd;margin:0.3em 0}
 
 
 def _token_sensors(token, n_sensors):
-    """The sensors (1-based) an effect token applies to: its ``@j``, else every sensor."""
+    """Return the sensors (1-based) of an effect token: its ``@j``, else every sensor."""
     m = re.search(r'@(\d+)$', token)
     return {int(m.group(1))} if m else set(range(1, n_sensors + 1))
 
 
 def _implicated(data, diagnosis, ladder, findings):
-    """What the diagnosis points at: the tokens, finding kinds and channels of the views.
+    """
+    Return what the diagnosis points at: tokens, finding kinds and channels.
 
     The verdict, every significant candidate, every effect the ladder added, and every
     finding (its token, kind, channel and sensor).  Candidates that pass the likelihood
@@ -886,7 +909,8 @@ SELECTED_VIEWS = {
 
 
 def _unexplained(result, floor, diagnosis, found):
-    """True when the residual is above the floor and nothing names a cause.
+    """
+    Return True when the residual is above the floor and nothing names a cause.
 
     No verdict and no finding with an effect to add, while a sensor's scalar residual is
     more than :data:`AT_FLOOR_RATIO` x its floor (the diagnosis' ``at_floor`` when there is
@@ -906,7 +930,8 @@ def _sensor_list(sensors):
 
 
 def _plan(data, result, floor, diagnosis, ladder, found, baseline_m, every):
-    """The report's views in page order: (name, heading, make or None, why not drawn).
+    """
+    Return the report's views in page order: (name, heading, make, why not drawn).
 
     ``make`` draws the figure (it may still return None when the data lack what it needs).
     Unless ``every`` (draw every view), a view of :data:`SELECTED_VIEWS` that nothing
