@@ -29,7 +29,6 @@ from geometry_msgs.msg import TransformStamped
 from magcal_ros.units import NT_PER_T, nt_to_t, t_to_nt
 import numpy as np
 import rclpy.time
-from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import MagneticField, Temperature
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, MultiArrayLayout
 
@@ -390,6 +389,9 @@ def transform_msg(parent, child, rotation, translation_m, stamp=None):
     geometry_msgs.msg.TransformStamped
     """
     t = _vector3(translation_m, 'translation_m', 'm')
+    # imported here: scipy.spatial costs ~0.25 s at start-up of every node, and only the
+    # corrector's static transforms need it
+    from scipy.spatial.transform import Rotation
     q = Rotation.from_matrix(np.asarray(rotation, np.float64)).as_quat()   # x, y, z, w
     msg = TransformStamped()
     msg.header.stamp = to_stamp(stamp)

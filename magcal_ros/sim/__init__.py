@@ -19,10 +19,22 @@ The ROS node ``fluxgate_sim`` (:mod:`magcal_ros.ros.sim_node`) serves these devi
 and tests may use :class:`FluxgateSim` directly, or run ``python -m magcal_ros.sim``.
 """
 
-from magcal_ros.sim.devices import (DEFAULT_DIR, DEFAULT_NAMESPACE, DEFAULT_PREFIX, DEFAULTS,
-                                    device_dir, FluxgateSim, load_config, parse_gradient,
-                                    parse_option, parse_unplug, resolve_settings, Unplug)
+import importlib
+
+from magcal_ros.sim.paths import DEFAULT_DIR, DEFAULT_NAMESPACE, DEFAULT_PREFIX, device_dir
+
+#: names served by :mod:`magcal_ros.sim.devices`, imported on first use (it loads the
+#: simulator, numpy and scipy; the driver only needs :func:`device_dir`)
+_FROM_DEVICES = ('DEFAULTS', 'FluxgateSim', 'load_config', 'parse_gradient', 'parse_option',
+                 'parse_unplug', 'resolve_settings', 'Unplug')
 
 __all__ = ['DEFAULT_DIR', 'DEFAULT_NAMESPACE', 'DEFAULT_PREFIX', 'DEFAULTS', 'device_dir',
            'FluxgateSim', 'load_config', 'parse_gradient', 'parse_option', 'parse_unplug',
            'resolve_settings', 'Unplug']
+
+
+def __getattr__(name):
+    """Return a name of :mod:`magcal_ros.sim.devices`, importing it on first use (PEP 562)."""
+    if name in _FROM_DEVICES:
+        return getattr(importlib.import_module('magcal_ros.sim.devices'), name)
+    raise AttributeError(f'module {__name__!r} has no attribute {name!r}')

@@ -47,7 +47,6 @@ import math
 import os
 import signal
 import sys
-import tempfile
 import threading
 import time
 
@@ -55,31 +54,10 @@ from magcal_ros.core.simulate import SimConfig, Simulator, TRAJECTORIES
 from magcal_ros.serial import make_encoder, PROTOCOLS, Sample
 from magcal_ros.serial.options import load_yaml, parse_options, parse_value
 from magcal_ros.serial.transport import PtyDevice
+from magcal_ros.sim.paths import DEFAULT_DIR, DEFAULT_NAMESPACE, DEFAULT_PREFIX, device_dir
 import numpy as np
 import yaml
 
-#: ``/tmp/magcal_sim`` unless TMPDIR names another temporary directory
-DEFAULT_DIR = os.path.join(tempfile.gettempdir(), 'magcal_sim')
-#: the nodes' namespace without a ``__ns`` remap (also magcal_ros.ros.run.DEFAULT_NAMESPACE)
-DEFAULT_NAMESPACE = '/magcal'
-
-
-def device_dir(namespace=DEFAULT_NAMESPACE):
-    """
-    Folder of the simulated devices of a namespace: one array per namespace.
-
-    ``/magcal`` (the default) -> :data:`DEFAULT_DIR`; ``/array2`` ->
-    ``<DEFAULT_DIR>_array2``, so a simulator and a driver started in the same namespace meet
-    on the same devices and two arrays never share them.
-    """
-    ns = '/' + namespace.strip('/') if namespace.strip('/') else '/'
-    if ns == DEFAULT_NAMESPACE:
-        return DEFAULT_DIR
-    return DEFAULT_DIR + '_' + (ns.strip('/').replace('/', '_') or 'root')
-
-
-#: link name prefix: sensor j is <dir>/<prefix>j
-DEFAULT_PREFIX = 'fluxgate'
 #: name of the ROS node, and of this program in its messages
 NODE_NAME = 'fluxgate_sim'
 
