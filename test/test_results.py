@@ -138,7 +138,8 @@ def _keywords(fn):
 def test_fit_and_diagnose_show_every_keyword():
     kw, var = _keywords(fit)
     assert kw == {'robust', 'f_scale', 'constrained', 'priors', 'sigma_nt', 'on_degenerate',
-                  'max_fit_samples', 'init', 'max_nfev', 'check_identifiability', 'solver'}
+                  'max_fit_samples', 'init', 'max_nfev', 'check_identifiability', 'solver',
+                  'covariance'}
     assert var == []
     kw, var = _keywords(diagnose)
     assert kw == {'base', 'folds', 'alpha', 'max_refit', 'candidates', 'progress',

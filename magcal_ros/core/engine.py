@@ -381,16 +381,12 @@ class ProfiledProblem:
         col = 0
         for gi, j in enumerate(self.sensors):
             sl = self.model.sensor_slices[j - 1]
-            base = self.model.forward(j, p, b, self.ctx[j - 1])
             # this sensor's columns, filled contiguously (P_j, N, 3) and copied into the
-            # strided Jacobian once: about 2x faster than writing column by column
-            block = np.empty((sl.stop - sl.start, n, 3))
-            for c, i in enumerate(range(sl.start, sl.stop)):
-                h = 1e-6 * max(1.0, abs(p[i]))
-                pp = p.copy()
-                pp[i] += h
-                np.subtract(base, self.model.forward(j, pp, b, self.ctx[j - 1]), out=block[c])
-                block[c] /= h * self.sigma[j - 1]
+            # strided Jacobian once: about 2x faster than writing column by column; an
+            # additive effect's column differences that effect alone (Model.forward_differences)
+            block, h = self.model.forward_differences(j, p, b, self.ctx[j - 1],
+                                                      range(sl.start, sl.stop))
+            block /= -(h * self.sigma[j - 1])[:, None, None]
             jac[:, gi, :, col:col + len(block)] = block.transpose(1, 2, 0)
             col += len(block)
         # array-wide parameters (site gradient): every sensor of the group depends on them

@@ -68,9 +68,10 @@ class FitResult:
     params : numpy.ndarray
         (P,) estimated parameters (units in ``model.param_info()``).
     stderr : numpy.ndarray
-        (P,) standard uncertainties from the projected Jacobian.
+        (P,) standard uncertainties from the projected Jacobian (NaN: not computed, a fit
+        with ``covariance=False``).
     covariance, correlation : numpy.ndarray
-        (P, P).
+        (P, P) (NaN and the identity when not computed).
     sigma_nt : numpy.ndarray
         (S,) per-sensor noise standard deviation estimated from the residuals, nT.
     field_magnitude_nt : numpy.ndarray
@@ -238,7 +239,7 @@ class FitResult:
 
 def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=False,
         priors=None, sigma_nt=None, on_degenerate='raise', max_fit_samples=20000,
-        init=None, max_nfev=200, check_identifiability=True, solver='lm'):
+        init=None, max_nfev=200, check_identifiability=True, solver='lm', covariance=True):
     """
     Fit ``model`` to rotation data in a uniform field by maximum likelihood.
 
@@ -278,6 +279,10 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
         than an SVD of the tall Jacobian, see bench/); 'scipy': scipy.optimize.least_squares
         (trust-region reflective), the reference implementation.  Both minimise the same
         cost (test_model_ml.py checks they agree).
+    covariance : bool
+        Compute the covariance (one more Jacobian at the solution); False (a caller that
+        reads only the parameters and the residuals, e.g. the diagnosis' refits): stderr and
+        covariance NaN; needs ``check_identifiability=False`` (the check reads it).
 
     Returns
     -------
@@ -288,6 +293,9 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
         raise ValueError("on_degenerate must be 'raise' or 'flag'")
     if solver not in ('lm', 'scipy'):
         raise ValueError(f"solver must be 'lm' or 'scipy', got {solver!r}")
+    if check_identifiability and not covariance:
+        raise ValueError('check_identifiability reads the covariance: pass '
+                         'check_identifiability=False with covariance=False')
     # one BLAS thread: threads only contend on small shared machines (bench/)
     with single_threaded_blas():
         model = _model_for(data, model)
@@ -317,7 +325,7 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
         prior_list = priors_for(model, priors or {}, constrained)
         solve = _Solve(model, raw, f, contexts, prior_list, robust, f_scale, solver, max_nfev)
         p, sigma, sol = solve.run(p0, sigma_nt)
-        cov, chi2, n_obs = solve.covariance(p, sigma)
+        cov, chi2, n_obs = solve.covariance(p, sigma, with_jacobian=covariance)
         stderr, corr = stderr_and_correlation(cov)
         if check_identifiability:
             from magcal_ros.core import identifiability as idf
@@ -516,20 +524,24 @@ class _Solve:
                     new_sigma[j - 1] = np.sqrt(np.sum(r ** 2) / dof_per)
         return new_sigma
 
-    def covariance(self, p, sigma):
-        """Return ((P, P) covariance, chi-square, n_obs) from the projected Jacobian at p."""
+    def covariance(self, p, sigma, with_jacobian=True):
+        """
+        Return ((P, P) covariance, chi-square, n_obs) from the projected Jacobian at p.
+
+        ``with_jacobian`` False: the covariance is not computed (NaN).
+        """
         n_p = self.model.n_params
-        cov = np.zeros((n_p, n_p))
+        cov = np.zeros((n_p, n_p)) if with_jacobian else np.full((n_p, n_p), np.nan)
         chi2 = 0.0
         n_obs = 0
         for grp in self.model.sensor_groups:
             prob = self.problem(grp, sigma, p)
             x = p[prob.cols]
-            jac = prob.jacobian(x)
             r = prob.residuals(x)
             chi2 += float(np.sum(r ** 2))
             n_obs += (3 * len(grp) - 2) * self.raw.shape[1]
-            cov[np.ix_(prob.cols, prob.cols)] = covariance_from_jacobian(jac)
+            if with_jacobian:
+                cov[np.ix_(prob.cols, prob.cols)] = covariance_from_jacobian(prob.jacobian(x))
         return cov, chi2, n_obs
 
 

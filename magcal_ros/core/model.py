@@ -297,6 +297,62 @@ class Model:
         lin = b @ self.matrix(j, p).T
         return lin + self.additive(j, p, ctx, lin)
 
+    def forward_differences(self, j, p, b, ctx, cols, base=None):
+        """
+        Forward differences of sensor j's reading in parameters ``cols``, for Jacobians.
+
+        Parameters
+        ----------
+        j : int
+            1-based sensor.
+        p : numpy.ndarray
+            (P,) parameters.
+        b : numpy.ndarray
+            (N, 3) true field at the array centre, nT.
+        ctx : SensorContext
+            Sensor j's driving signals.
+        cols : sequence of int
+            Global parameter indices.
+        base : numpy.ndarray, optional
+            (N, 3) ``forward(j, p, b, ctx)`` when the caller has it, nT.
+
+        Returns
+        -------
+        diff : numpy.ndarray
+            (len(cols), N, 3) forward(p + h_i e_i) - forward(p), nT.
+        h : numpy.ndarray
+            (len(cols),) the steps, 1e-6 max(1, |p_i|).
+
+        A parameter of one of sensor j's additive effects changes only that effect's
+        contribution (the linear part and the other effects do not read it), so its
+        difference is that contribution's alone, without re-evaluating the whole reading;
+        other parameters (linear effects, the array's) re-evaluate :meth:`forward`.
+        """
+        h = np.array([1e-6 * max(1.0, abs(p[i])) for i in cols])
+        owner = {}
+        for eff, sl in zip(self.effects[j - 1], self.slices[j - 1]):
+            if eff.kind != 'linear':
+                owner.update({i: (eff, sl) for i in range(sl.start, sl.stop)})
+        lin = None
+        contrib = {}
+        diff = np.empty((len(cols), len(b), 3))
+        for c, i in enumerate(cols):
+            pp = p.copy()
+            pp[i] += h[c]
+            if i in owner:
+                eff, sl = owner[i]
+                if lin is None:
+                    bb = b + self.array_shift(j, p, ctx) if self.array_effects else b
+                    lin = bb @ self.matrix(j, p).T
+                if sl.start not in contrib:
+                    contrib[sl.start] = eff.contribution(p[sl], ctx, lin)
+                np.subtract(eff.contribution(pp[sl], ctx, lin), contrib[sl.start], out=diff[c])
+            else:
+                if base is None:
+                    base = self.forward(j, p, b, ctx)
+                np.subtract(self.forward(j, pp, b, ctx), base, out=diff[c])
+        return diff, h
+
     def correct(self, j, p, raw, ctx, n_iter=4, a_inv=None):
         """
         Invert :meth:`forward`: corrected field (N, 3) nT in the array frame.

@@ -159,7 +159,8 @@ def covariance_from_jacobian(jac):
     """
     d = np.linalg.norm(jac, axis=0)
     d[d == 0] = 1.0
-    m = (jac / d).T @ (jac / d)
+    js = jac / d
+    m = js.T @ js
     w, v = np.linalg.eigh(m)
     bad = w <= 1e-14 * max(w.max(), 1e-300)
     w_inv = np.where(bad, 0.0, 1.0 / np.where(bad, 1.0, w))

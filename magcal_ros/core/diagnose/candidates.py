@@ -390,6 +390,17 @@ def split_testable(model, tokens, contexts):
     return testable, not_testable
 
 
+def reads_stderr(model, label):
+    """
+    Tell whether :func:`reduces_to_simpler` of ``label`` can read the fit's uncertainties.
+
+    Only effects that override ``Effect.reduces`` (a lag; plug-ins) do: a refit of any other
+    candidate needs no covariance.
+    """
+    return any(type(eff).reduces is not fx.Effect.reduces
+               for row in model.effects for eff in row if eff.label == label)
+
+
 def reduces_to_simpler(model, p, stderr, label, contexts):
     """Return the first reason the added effect's fit reduces it to a simpler one, or None."""
     for j, row in enumerate(model.effects):

@@ -36,12 +36,16 @@ MIN_BLOCK = 12
 MIN_EXPLAINED = 0.2
 #: candidates refitted in full after the one-step screening
 DEFAULT_MAX_REFIT = 4
-#: iterations of a candidate's refit, from the one-step solution: a well-posed candidate
-#: converges in 2-5 (temperature@2: 2), a 90 s lag from its 30 s start within 12 (the
-#: verdict, its time constant and its share were the same with 12 and 30); the cap stops a
-#: parameter the data do not fix (the time constant of the all-sensors lag on the sensors
-#: without one) from wandering, which cost 30 iterations per such refit
-REFIT_MAX_NFEV = 12
+#: iterations of a candidate's refit, from the one-step solution (a lag's time constant
+#: from the best point of LAG_GRID_POINTS): a well-posed candidate converges in 2-5
+#: (temperature@2: 2, lag(temperature)@2 from its grid start: 4; from the old 30 s start a
+#: 90 s lag took up to 12); the cap stops a parameter the data do not fix (the time
+#: constant of the all-sensors lag on the sensors without one) from wandering, which cost
+#: 30 iterations per such refit, then 12 with the former cap
+REFIT_MAX_NFEV = 6
+#: time constants (log-spaced, sample interval to a quarter of the record) a lag's refit
+#: start is chosen from, each by one linear step (Screen.lag_start)
+LAG_GRID_POINTS = 10
 #: epochs the candidates are screened, refitted and cross-validated on (evenly spaced), the
 #: same cap as the fit's (model.fit max_fit_samples): cost and memory stay flat above it
 DEFAULT_MAX_SAMPLES = 20000

@@ -25,7 +25,7 @@ import time
 
 from magcal_ros.core.diagnose.candidates import (added_params, Candidate, candidate_tokens,
                                                  extend_model, propose_from_residual,
-                                                 reduces_to_simpler, sensors_of,
+                                                 reads_stderr, reduces_to_simpler, sensors_of,
                                                  split_testable, token_label,
                                                  tokens_from_findings)
 from magcal_ros.core.diagnose.constants import (ALPHA, AT_FLOOR_RATIO, BLOCKS_PER_FOLD,
@@ -37,7 +37,7 @@ from magcal_ros.core.diagnose.measures import (dof_factor, evaluate_residuals, E
                                                n_observations, rms, scalar_rms_of,
                                                soft_l1_lr_loss, vector_rms_of)
 from magcal_ros.core.diagnose.results import compact_spec, Diagnosis
-from magcal_ros.core.diagnose.screen import Screen
+from magcal_ros.core.diagnose.screen import lag_grid, Screen
 from magcal_ros.core.diagnose.validation import cross_validate
 from magcal_ros.core.findings import find as find_findings
 from magcal_ros.core.fitting import fit
@@ -81,6 +81,8 @@ class Trial:
         Its :func:`cross_validate` result.
     share : float or None
         Held-out share of the excess mean square it removes.
+    start : numpy.ndarray or None
+        (P',) the base fit's parameters with the effect's at their defaults.
 
     """
 
@@ -95,6 +97,7 @@ class Trial:
     reduces: str | None = None
     cv: dict | None = None
     share: float | None = None
+    start: np.ndarray | None = None
 
     @property
     def k(self):
@@ -213,10 +216,10 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
         p_thr = alpha / max(1, len(testable))
 
         t0 = time.perf_counter()
-        trials = _screen(b, testable, progress)
+        trials, screen = _screen(b, testable, progress)
         seconds['screen'] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        n_refit = _refit(b, trials, max_refit, progress)
+        n_refit = _refit(b, trials, screen, max_refit, progress)
         seconds['refit'] = time.perf_counter() - t0
         t0 = time.perf_counter()
         held_out = bool(folds) and b.data.n_samples >= folds * BLOCKS_PER_FOLD * MIN_BLOCK
@@ -303,7 +306,7 @@ def _candidate_tokens(b, candidates, propose, found):
 
 
 def _screen(b, testable, progress):
-    """One Gauss-Newton step of every candidate from the base fit; trials best first."""
+    """One Gauss-Newton step of every candidate from the base fit; (trials best first, Screen)."""
     trials = []
     screen = None
     if testable:
@@ -327,25 +330,34 @@ def _screen(b, testable, progress):
             ev = evaluate_residuals(m_ext, p_ext, b.data, b.f, b.sigma, b.contexts,
                                     loss=b.loss)
         trials.append(Trial(token=tok, label=label, sensor=sensor, model=m_ext, p=p_step,
-                            added=added, ev=ev))
+                            added=added, ev=ev, start=p_ext))
     report_progress(progress, 'screen', len(testable), len(testable), '')
     trials.sort(key=b.delta_bic)
-    return trials
+    return trials, screen
 
 
-def _refit(b, trials, max_refit, progress):
+def _refit(b, trials, screen, max_refit, progress):
     """Refit the best ``max_refit`` screened trials in full (in place); return how many."""
     n_refit = min(max_refit, len(trials))
     for i, c in enumerate(trials[:n_refit]):
         report_progress(progress, 'refit', i, n_refit, c.token)
         if i > 0 and b.delta_bic(c) > MIN_DELTA_BIC:      # cannot become significant
             break
+        init = c.p
+        # a lag's time constant: from the best of a grid (each point a linear step) rather
+        # than from the one step off Lag.tau0_s, which took the refit up to REFIT_MAX_NFEV
+        # iterations (issue 11 item 7: 13 of the 15 Jacobians of this stage)
+        start = None if screen is None else screen.lag_start(c.model, c.start, c.added,
+                                                              lag_grid(b.data.t))
+        if start is not None:
+            init = start
         # warm start: a well-posed candidate converges in a few iterations; the cap keeps a
         # parameter the data do not fix (a lag's time constant on a sensor without the lag)
         # from wandering for hundreds of them
-        r = fit(b.data, c.model, field_nt=b.f, sigma_nt=b.sigma, init=c.p,
+        r = fit(b.data, c.model, field_nt=b.f, sigma_nt=b.sigma, init=init,
                 check_identifiability=False, on_degenerate='flag', robust=b.robust,
                 constrained=b.constrained, max_nfev=REFIT_MAX_NFEV,
+                covariance=reads_stderr(c.model, c.label),
                 **({'f_scale': b.f_scale} if b.robust else {}))
         ev = evaluate_residuals(c.model, r.params, b.data, b.f, b.sigma, b.contexts,
                                 loss=b.loss)

@@ -18,9 +18,21 @@ Screening of candidate effects: one Gauss-Newton step of each extended model fro
 Exact for effects that enter linearly, as all driven effects do; the most promising
 candidates are then refitted in full (:mod:`magcal_ros.core.diagnose.run`).
 """
+from magcal_ros.core.diagnose.constants import LAG_GRID_POINTS
 from magcal_ros.core.diagnose.measures import solve_psd
 from magcal_ros.core.engine import ProfiledProblem
 import numpy as np
+
+
+def lag_grid(t):
+    """
+    Return the time constants, s, a lag's refit start is chosen from (:meth:`Screen.lag_start`).
+
+    :data:`LAG_GRID_POINTS` log-spaced values from the median sample interval of ``t`` (N,) s
+    to a quarter of the record.
+    """
+    dt = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
+    return np.geomspace(dt, max(dt, 0.25 * float(t[-1] - t[0])), LAG_GRID_POINTS)
 
 
 class Screen:
@@ -95,8 +107,14 @@ class Screen:
                 'r': [np.ascontiguousarray(r3[:, gi]).reshape(-1) for gi in range(g)],
                 'gb': gb, 'ginv': ginv, 'ginv_gtr': (ginv @ gtr[..., None])[..., 0]})
 
-    def step(self, m_ext, p_ext, added):
-        """(P',) parameters of ``m_ext`` after one Gauss-Newton step from ``p_ext``."""
+    def step(self, m_ext, p_ext, added, with_decrease=False):
+        """
+        Return (P',) parameters of ``m_ext`` after one Gauss-Newton step from ``p_ext``.
+
+        With ``with_decrease`` return (parameters, predicted decrease of chi-square): the
+        drop g^T (J^T J)^+ g of the linearised problem, g = J^T r (exact for parameters
+        that enter linearly, to first order in the change of the profiled field).
+        """
         info = m_ext.param_info()
         old_pos = {k[:3]: i for i, k in enumerate(self.model.param_info())}
         new_of_old = np.empty(self.model.n_params, int)
@@ -104,6 +122,7 @@ class Screen:
             if k[:3] in old_pos:
                 new_of_old[old_pos[k[:3]]] = i
         p_new = p_ext.copy()
+        decrease = 0.0
         n = len(self.f)
         for g in self.groups:
             grp = g['sensors']
@@ -121,15 +140,9 @@ class Screen:
                 cols = [c for c, i in enumerate(idx) if info[i][0] in (j, 0)]
                 if not cols:
                     continue
-                fwd = m_ext.forward(j, p_ext, g['b'], self.ctx[j - 1])
-                cj = np.empty((n, 3, len(cols)))
-                for c_local, c in enumerate(cols):
-                    i = idx[c]
-                    h = 1e-6 * max(1.0, abs(p_ext[i]))
-                    pp = p_ext.copy()
-                    pp[i] += h
-                    cj[:, :, c_local] = -(m_ext.forward(j, pp, g['b'], self.ctx[j - 1])
-                                          - fwd) / (h * self.sigma[j - 1])
+                diff, h = m_ext.forward_differences(j, p_ext, g['b'], self.ctx[j - 1],
+                                                    [idx[c] for c in cols])
+                cj = np.ascontiguousarray(np.moveaxis(diff, 0, -1)) / -(h * self.sigma[j - 1])
                 flat = cj.reshape(3 * n, -1)
                 cross[:, cols] += g['js'][gi].T @ flat
                 ctc[np.ix_(cols, cols)] += flat.T @ flat
@@ -153,6 +166,32 @@ class Screen:
             a = np.block([[g['jtj'], cross_s], [cross_s.T, ctc / np.outer(dc, dc)]])
             rhs = -np.concatenate([g['jtr'], ctr / dc])
             sol = solve_psd(a, rhs)
+            decrease += float(rhs @ sol)
             p_new[new_of_old[g['cols']]] += sol[:nb] / g['d']
             p_new[idx] += sol[nb:] / dc
-        return p_new
+        return (p_new, decrease) if with_decrease else p_new
+
+    def lag_start(self, m_ext, p_ext, added, taus):
+        """
+        Return (P',) a start for the refit of a candidate with lags: time constants profiled.
+
+        For a fixed time constant tau a lagged channel enters linearly, so each tau of the
+        grid ``taus`` (s) costs one linear step (:meth:`step` with the time constants held,
+        every lag of the candidate at the same tau); the step with the largest predicted
+        chi-square decrease is returned, None when the candidate has no lag.  A refit from
+        it converges in a few iterations instead of walking from Lag.tau0_s.
+        """
+        tau_idx = [i for i, (_, lab, nm, _) in enumerate(m_ext.param_info())
+                   if added[i] and nm == 'tau' and lab.startswith('lag(')]
+        if not tau_idx:
+            return None
+        linear = added.copy()
+        linear[tau_idx] = False
+        best, best_dec = None, -np.inf
+        for tau in taus:
+            p0 = p_ext.copy()
+            p0[tau_idx] = tau
+            p1, dec = self.step(m_ext, p0, linear, with_decrease=True)
+            if dec > best_dec:
+                best, best_dec = p1, dec
+        return best
