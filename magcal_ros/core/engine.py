@@ -204,10 +204,14 @@ class ProfiledProblem:
 
         With :attr:`field0` (N, 3) nT set (the profiled field of nearby parameters), start
         from it and take one step: Gauss-Newton converges quadratically, so one step from a
-        field 1e-4 rad off lands within 1e-8 rad of two steps from the mean.
+        field 1e-4 rad off lands within 1e-8 rad of two steps from the mean.  Returns
+        (field (N, 3) nT, {sensor: (3, 3) A_j}, {sensor: (N, 3) nT additive effects at p, or
+        None when they read the field}).
         """
         n = self.raw.shape[1]
         mats = {j: self.model.matrix(j, p) for j in self.sensors}
+        # the additive effects at p, once per sensor when they do not read the field
+        adds = {j: self.model.fixed_additive(j, p, self.ctx[j - 1], n) for j in self.sensors}
         if self.field0 is not None:
             b, steps = self.field0, 1
         else:
@@ -229,8 +233,8 @@ class ProfiledProblem:
             h11, h12, h22 = np.zeros(n), np.zeros(n), np.zeros(n)
             g1s, g2s = np.zeros(n), np.zeros(n)
             for j in self.sensors:
-                r = (self.raw[j - 1] - self.model.forward(j, p, b, self.ctx[j - 1])) / (
-                    self.sigma[j - 1])
+                r = (self.raw[j - 1] - self.model.forward(j, p, b, self.ctx[j - 1], mats[j],
+                                                          adds[j])) / self.sigma[j - 1]
                 scale = self.f[:, None] / self.sigma[j - 1]
                 g1 = (e1 @ mats[j].T) * scale          # (N, 3) = -dr/d delta_1
                 g2 = (e2 @ mats[j].T) * scale          # (N, 3) = -dr/d delta_2
@@ -250,7 +254,7 @@ class ProfiledProblem:
             d2 = i21 * g1s + i22 * g2s
             b = b + self.f[:, None] * (d1[:, None] * e1 + d2[:, None] * e2)
             b = b / np.linalg.norm(b, axis=1, keepdims=True) * self.f[:, None]
-        return b, mats
+        return b, mats, adds
 
     def field_columns(self, b, mats):
         """
@@ -321,8 +325,9 @@ class ProfiledProblem:
         key = x.tobytes()
         if key != self._cache_key:
             p = self.full(x)
-            b, mats = self._field(p)
-            res = np.stack([(self.raw[j - 1] - self.model.forward(j, p, b, self.ctx[j - 1]))
+            b, mats, adds = self._field(p)
+            res = np.stack([(self.raw[j - 1] - self.model.forward(j, p, b, self.ctx[j - 1],
+                                                                  mats[j], adds[j]))
                             / self.sigma[j - 1] for j in self.sensors], axis=1)   # (N, G, 3)
             self._cache = (p, b, mats, res)
             self._cache_key = key

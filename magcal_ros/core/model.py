@@ -285,17 +285,31 @@ class Model:
             out = out + eff.shift(p[sl], ctx, j)
         return out
 
-    def forward(self, j, p, b, ctx):
+    def forward(self, j, p, b, ctx, a=None, add=None):
         """
         Raw reading of sensor j (N, 3) nT for true field b (N, 3) nT in the array frame.
 
         ``b`` is the field at the array centre; array-wide effects (site gradient) shift it
-        to the sensor's position before the sensor's linear map.
+        to the sensor's position before the sensor's linear map.  ``a`` (3, 3): A_j at p
+        when the caller has it; ``add`` (N, 3) nT: :meth:`additive` at p when the caller
+        has it and it does not depend on the field (:meth:`fixed_additive`).
         """
         if self.array_effects:
             b = b + self.array_shift(j, p, ctx)
-        lin = b @ self.matrix(j, p).T
-        return lin + self.additive(j, p, ctx, lin)
+        lin = b @ (self.matrix(j, p) if a is None else a).T
+        return lin + (self.additive(j, p, ctx, lin) if add is None else add)
+
+    def fixed_additive(self, j, p, ctx, n):
+        """
+        Return (n, 3) nT :meth:`additive` of sensor j at p when it does not depend on the field.
+
+        None when one of sensor j's additive effects reads the field (``depends_on_lin``):
+        callers that evaluate :meth:`forward` at several fields and the same p pass it as
+        ``add`` instead of recomputing every effect each time.
+        """
+        if any(e.depends_on_lin() for e in self.effects[j - 1] if e.kind != 'linear'):
+            return None
+        return self.additive(j, p, ctx, np.zeros((n, 3)))
 
     def forward_differences(self, j, p, b, ctx, cols, base=None):
         """
