@@ -12,7 +12,8 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""Speed of the model workbench: diagnose, the report, the whole ladder, before and after.
+"""
+Speed of the model workbench: diagnose, the report, the whole ladder, before and after.
 
 For each size N (4 sensors, the seeded simulator's 'smooth' tumbling over 600 s with a
 temperature coefficient on sensor 2, written once to a CSV file that both codes read) the
@@ -110,7 +111,7 @@ def _run_child(code_dir, csv, args):
 
 def main(argv=None):
     """Time both codes on every size and write bench/results/workbench.json."""
-    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().split('\n')[0])
     ap.add_argument('--sizes', type=int, nargs='+', default=[3000, 10000])
     ap.add_argument('--before', default=BEFORE_REV,
                     help=f'git revision of the code compared with (default {BEFORE_REV}; '

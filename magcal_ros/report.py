@@ -12,7 +12,8 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""Diagnosis report: PNG figures and one self-contained HTML page (PNGs embedded as base64).
+"""
+Diagnosis report: PNG figures and one self-contained HTML page (PNGs embedded as base64).
 
 The figures answer "where does the model fail?":
 
@@ -37,14 +38,13 @@ from pathlib import Path
 import re
 import textwrap
 
+from magcal_ros.core.diagnose import (AT_FLOOR_RATIO, compact_spec, MIN_DELTA_BIC,
+                                      MIN_EXPLAINED, noise_floor_from_data)
+from magcal_ros.core.tensor import cross_positions, tensor_cross, tensor_noise_floor
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.ticker import AutoLocator, FuncFormatter, MaxNLocator, NullLocator
 import numpy as np
-
-from magcal_ros.core.diagnose import (AT_FLOOR_RATIO, compact_spec, MIN_DELTA_BIC,
-                                      MIN_EXPLAINED, noise_floor_from_data)
-from magcal_ros.core.tensor import cross_positions, tensor_cross, tensor_noise_floor
 
 #: at most this many points per scatter plot (evenly thinned; the extremes are added)
 MAX_POINTS = 6000
@@ -153,6 +153,7 @@ def _envelope(y, columns=PIXEL_COLUMNS):
     -------
     numpy.ndarray
         Sorted sample indices, (M,) int, M <= 2 * k * (columns + 1).
+
     """
     y = np.asarray(y, float)
     n = len(y)
@@ -211,7 +212,10 @@ def _floor_lines(ax, level, label='noise floor'):
 # -- figures --------------------------------------------------------------------------------
 
 def magnitude_offsets(data, result):
-    """Per sensor, the mean of |raw| - |B| and of |model| - |B| (nT): the data of the
+    """
+    Return the data of the magnitude figure, per sensor.
+
+    Per sensor, the mean of |raw| - |B| and of |model| - |B| (nT): the data of the
     magnitude figure, which plots both about the reference so that an offset of thousands of
     nT and a variation of a few nT are both readable.
 
@@ -219,6 +223,7 @@ def magnitude_offsets(data, result):
     -------
     dict
         {sensor j (1-based): {'measured_nt': float, 'model_nt': float}}.
+
     """
     out = {}
     for j in range(1, data.n_sensors + 1):
@@ -230,7 +235,8 @@ def magnitude_offsets(data, result):
 
 
 def plot_magnitude(data, result):
-    """Measured |raw| and modelled |forward(B)| per sensor over time, about the reference |B|.
+    """
+    Measured |raw| and modelled |forward(B)| per sensor over time, about the reference |B|.
 
     Both are drawn as differences from the reference magnitude (nT), the mean difference of
     the raw readings named in the title: a reference 3 000 nT away shows as a stated offset
@@ -290,7 +296,8 @@ def plot_residual_time(data, result, floor):
 
 
 def _driver_panels(data, result, floor, drivers, title, xlabel):
-    """One panel per (driver, sensor): scalar residual scatter + binned raw residual.
+    """
+    One panel per (driver, sensor): scalar residual scatter + binned raw residual.
 
     ``drivers``: [(name, values(j) -> (N,) array or None, sensors (1-based))], one row each.
     """
@@ -325,7 +332,8 @@ def _all_sensors(data, sensors):
 
 
 def plot_residual_vs_temperature(data, result, floor, sensors=None):
-    """Residual of each sensor against its own temperature, or None without temperatures.
+    """
+    Residual of each sensor against its own temperature, or None without temperatures.
 
     ``sensors`` (1-based) restricts the panels to those sensors; default every sensor.
     """
@@ -339,7 +347,8 @@ def plot_residual_vs_temperature(data, result, floor, sensors=None):
 
 
 def plot_residual_vs_aux(data, result, floor, channels=None):
-    """Residual of each sensor against each auxiliary channel, or None without any.
+    """
+    Residual of each sensor against each auxiliary channel, or None without any.
 
     ``channels`` restricts the rows: names of ``data.aux`` (every sensor), or a dict
     {name: sensors (1-based) or None for every sensor}; default every channel and sensor.
@@ -391,7 +400,8 @@ def plot_residual_vs_rate(data, result, floor):
 
 
 def direction_projection(b, centre=None):
-    """Lambert azimuthal equal-area projection of field directions, without a seam.
+    """
+    Lambert azimuthal equal-area projection of field directions, without a seam.
 
     Centred on the mean direction of ``b`` (or ``centre``): a cone of directions about any
     axis is a closed ring, never cut at azimuth +-180 deg as on an azimuth/elevation map; the
@@ -410,6 +420,7 @@ def direction_projection(b, centre=None):
     -------
     tuple
         (x (N,), y (N,), centre (3,) unit vector); x, y dimensionless in [-2, 2].
+
     """
     u = np.asarray(b, float)
     u = u / np.linalg.norm(u, axis=1, keepdims=True)
@@ -464,7 +475,8 @@ def _circle(radius, ls=':'):
 
 
 def plot_tensor(data, result, baseline_m=0.5, floor=None):
-    """Gradient tensor components (paper 004 eq. 1) before/after correction, nT/m.
+    """
+    Gradient tensor components (paper 004 eq. 1) before/after correction, nT/m.
 
     The floor line is the sensors' data noise floor (``floor``, a NoiseFloor; default
     estimated here) propagated to the tensor, not the fit's sigma, which grows when an effect
@@ -503,7 +515,8 @@ def plot_tensor(data, result, baseline_m=0.5, floor=None):
 
 
 def candidate_chart_data(diagnosis, top=15):
-    """The data of the candidates chart, from the candidates' dicts (best first).
+    """
+    Return the data of the candidates chart, from the candidates' dicts (best first).
 
     The verdict is decided by the share of the excess over the floor a candidate removes
     (held out when cross-validated) after the p-value and BIC tests, so the chart's bars
@@ -518,6 +531,7 @@ def candidate_chart_data(diagnosis, top=15):
         token, significant, likelihood_tests (p-value and BIC passed), explained_fraction
         (0..1 or None), verdict (bool), held_out_before_nt, held_out_after_nt,
         held_out_drop_nt (nT or None), evidence (-delta BIC).
+
     """
     rows = []
     for c in list(diagnosis.candidates)[:top]:
@@ -538,10 +552,14 @@ def candidate_chart_data(diagnosis, top=15):
 
 
 def plot_candidates(diagnosis, top=15):
-    """What decided the verdict: the held-out share of the excess over the floor each
+    """
+    Plot what decided the verdict.
+
+    What decided the verdict: the held-out share of the excess over the floor each
     candidate removes (left; the verdict needs MIN_EXPLAINED), delta BIC (right); the
     verdict's bar is outlined.  Green: passes every test; orange: significant by the
-    likelihood tests but removes too small a share; grey: not significant."""
+    likelihood tests but removes too small a share; grey: not significant.
+    """
     rows = candidate_chart_data(diagnosis, top)
     if not rows:
         return None
@@ -663,7 +681,8 @@ def _finding_label(f):
 
 
 def plot_residual_spectrum(findings):
-    """Power spectrum of each sensor's residual series over its white-noise level, log-log.
+    """
+    Power spectrum of each sensor's residual series over its white-noise level, log-log.
 
     The series are :class:`~magcal_ros.core.findings.Findings`' (consensus residuals, nT);
     power divided by the summed white-noise variance, so white noise sits at 1 and a line
@@ -697,7 +716,8 @@ def plot_residual_spectrum(findings):
 
 
 def plot_change_points(findings):
-    """Each sensor's residual series over time (running mean) with the steps found.
+    """
+    Each sensor's residual series over time (running mean) with the steps found.
 
     Components of the consensus residual (nT) averaged over 1 % of the record, the
     segment means between the change points found drawn over them, and the +-1 sd band of
@@ -738,7 +758,8 @@ def plot_change_points(findings):
 
 
 def plot_residual_vs_lagged_channels(data, findings):
-    """Residual against each driving channel found, as is and through the lag found.
+    """
+    Residual against each driving channel found, as is and through the lag found.
 
     For every lag/channel/channel_nonlinear finding: the sensor's residual series projected
     on the direction it moves with the channel (nT), in equal-count bins, against the channel
@@ -869,6 +890,7 @@ def _implicated(data, diagnosis, ladder, findings):
     tuple
         (tokens: set of str, kinds: set of str (finding kinds), channels: dict
         {'temperature' or a ``data.aux`` name: set of sensors (1-based)}).
+
     """
     tokens, kinds, channels = set(), set(), {}
     if diagnosis is not None:
@@ -897,7 +919,7 @@ def _implicated(data, diagnosis, ladder, findings):
 #: the views drawn only when the diagnosis points at them: name -> what must point at them
 SELECTED_VIEWS = {
     'residual_temperature': 'a significant candidate, an adopted effect or a finding '
-                            'involving that sensor\'s temperature',
+                            "involving that sensor's temperature",
     'residual_aux': 'a significant candidate, an adopted effect or a finding involving that '
                     'auxiliary channel on that sensor',
     'residual_rate': 'a significant or adopted field_rate candidate',
@@ -910,7 +932,7 @@ SELECTED_VIEWS = {
 
 def _unexplained(result, floor, diagnosis, found):
     """
-    Return True when the residual is above the floor and nothing names a cause.
+    Return Tell whether the residual is above the floor while nothing names a cause.
 
     No verdict and no finding with an effect to add, while a sensor's scalar residual is
     more than :data:`AT_FLOOR_RATIO` x its floor (the diagnosis' ``at_floor`` when there is
@@ -1013,17 +1035,21 @@ def _plan(data, result, floor, diagnosis, ladder, found, baseline_m, every):
 
 def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseline_m=0.5,
                  title='magcal diagnosis report', figures='relevant'):
-    """Write the figures (PNG) and ``index.html`` (self-contained) into ``out_dir``.
+    """
+    Write the figures (PNG) and ``index.html`` (self-contained) into ``out_dir``.
 
     Parameters
     ----------
     out_dir : str or os.PathLike
         Directory (created if missing).
     data : Dataset
+        The data of the report (S sensors, N epochs), nT.
     result : FitResult, optional
         The fit whose residuals are shown (default: the diagnosis' or the ladder's last).
     diagnosis : Diagnosis, optional
+        The diagnosis to show (candidates, verdict, findings).
     ladder : Ladder, optional
+        The error ladder to show.
     baseline_m : float
         Cross baseline for the tensor figure, m.
     title : str
@@ -1039,6 +1065,7 @@ def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseli
     -------
     pathlib.Path
         Path of ``index.html``.
+
     """
     if figures not in ('relevant', 'all'):
         raise ValueError(f"figures must be 'relevant' or 'all', not {figures!r}")

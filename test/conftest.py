@@ -1,4 +1,19 @@
-"""Test-session setup: loopback-only DDS, a per-run ROS_DOMAIN_ID, and the ROS fixtures.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Test-session setup: loopback-only DDS, a per-run ROS_DOMAIN_ID, and the ROS fixtures.
 
 pytest imports this file before any test module, so the environment below is in place
 before rclpy is imported or creates a DDS participant anywhere in the session, and it is

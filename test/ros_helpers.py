@@ -1,4 +1,19 @@
-"""Helpers and fixtures for magcal_ros's ROS tests (rclpy's own pattern, no launch_testing).
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Helpers and fixtures for magcal_ros's ROS tests (rclpy's own pattern, no launch_testing).
 
 Import what you need in a test module::
 
@@ -83,7 +98,8 @@ def _describe(predicate):
 
 def spin_until(executor, predicate, timeout_sec=DEFAULT_TIMEOUT_SEC, message=None,
                period_sec=0.05):
-    """Spin ``executor`` until ``predicate()`` is truthy; fail after ``timeout_sec``.
+    """
+    Spin ``executor`` until ``predicate()`` is truthy; fail after ``timeout_sec``.
 
     Parameters
     ----------
@@ -107,6 +123,7 @@ def spin_until(executor, predicate, timeout_sec=DEFAULT_TIMEOUT_SEC, message=Non
     ------
     AssertionError
         If the predicate is still falsy at the deadline.
+
     """
     deadline = time.monotonic() + timeout_sec
     while True:
@@ -138,7 +155,8 @@ def _ensure_in_executor(node, executor):
 
 def wait_for_messages(node, executor, msg_type, topic, count=1,
                       timeout_sec=DEFAULT_TIMEOUT_SEC, qos=10, predicate=None):
-    """Subscribe to ``topic`` and return the first ``count`` messages received.
+    """
+    Subscribe to ``topic`` and return the first ``count`` messages received.
 
     Parameters
     ----------
@@ -168,6 +186,7 @@ def wait_for_messages(node, executor, msg_type, topic, count=1,
     ------
     AssertionError
         If fewer than ``count`` messages arrive in time.
+
     """
     received = []
 
@@ -198,7 +217,8 @@ DISCOVERY_GRACE_S = 0.3
 
 
 def call_trigger(node, executor, service_name, timeout_sec=30.0):
-    """Call a ``std_srvs/srv/Trigger`` service with ``call_async`` and bounded spinning.
+    """
+    Call a ``std_srvs/srv/Trigger`` service with ``call_async`` and bounded spinning.
 
     Parameters
     ----------
@@ -220,6 +240,7 @@ def call_trigger(node, executor, service_name, timeout_sec=30.0):
     ------
     AssertionError
         If the service does not appear or does not answer in time.
+
     """
     deadline = time.monotonic() + timeout_sec
     full_name = node.resolve_service_name(service_name)
@@ -250,7 +271,8 @@ def call_trigger(node, executor, service_name, timeout_sec=30.0):
 # -- processes --------------------------------------------------------------------------------
 
 def subprocess_env(extra=None):
-    """Return the environment for a child process of the tests.
+    """
+    Return the environment for a child process of the tests.
 
     It is this process's environment (so the loopback DDS profile, RMW and ROS_DOMAIN_ID set
     by conftest are inherited), with unbuffered Python output, no colour codes in ROS logs,
@@ -273,12 +295,13 @@ def subprocess_env(extra=None):
 
 def _entry_points_from_setup_py():
     text = (REPO_ROOT / 'setup.py').read_text(encoding='utf-8')
-    return dict((m.group(1), (m.group(2), m.group(3))) for m in re.finditer(
-        r"'\s*([A-Za-z0-9_]+)\s*=\s*([A-Za-z0-9_.]+):([A-Za-z0-9_]+)\s*'", text))
+    return {m.group(1): (m.group(2), m.group(3)) for m in re.finditer(
+        r"'\s*([A-Za-z0-9_]+)\s*=\s*([A-Za-z0-9_.]+):([A-Za-z0-9_]+)\s*'", text)}
 
 
 def console_script(name):
-    """Return the command (list) that runs the console script ``name``.
+    """
+    Return the command (list) that runs the console script ``name``.
 
     The installed script next to this interpreter (``.venv/bin/<name>`` after ``make setup``)
     is preferred, so tests run what a user runs. Without an install, the entry point from
@@ -288,6 +311,7 @@ def console_script(name):
     ------
     ValueError
         If ``name`` is not a console script of setup.py.
+
     """
     installed = pathlib.Path(sys.executable).parent / name
     if installed.is_file() and os.access(installed, os.X_OK):
@@ -314,7 +338,8 @@ def _die_with_parent():
 
 
 class ManagedProcess:
-    """A child process in its own session, output in a log file, stopped by escalation.
+    """
+    A child process in its own session, output in a log file, stopped by escalation.
 
     Parameters
     ----------
@@ -336,6 +361,7 @@ class ManagedProcess:
     log_path : pathlib.Path
     signals_sent : list of str
         Signals :meth:`stop` had to send ('SIGINT', 'SIGTERM', 'SIGKILL').
+
     """
 
     def __init__(self, cmd, log_path, name=None, env=None, cwd=None):
@@ -378,13 +404,15 @@ class ManagedProcess:
         return text if len(text) <= max_chars else '...\n' + text[-max_chars:]
 
     def wait_for_log(self, pattern, timeout_sec=30.0):
-        """Wait until the log matches regex ``pattern``; return the match.
+        """
+        Wait until the log matches regex ``pattern``; return the match.
 
         Raises
         ------
         AssertionError
             If the process exits first or the pattern does not appear in time; the message
             includes the log tail.
+
         """
         regex = re.compile(pattern, re.MULTILINE)
         deadline = time.monotonic() + timeout_sec
@@ -416,7 +444,8 @@ class ManagedProcess:
             pass
 
     def stop(self, sigint_timeout_sec=5.0, sigterm_timeout_sec=3.0):
-        """Stop the process: SIGINT, then SIGTERM, then SIGKILL, each to its process group.
+        """
+        Stop the process: SIGINT, then SIGTERM, then SIGKILL, each to its process group.
 
         Safe to call more than once. Leftover members of the group (children the process
         started) are killed once the process itself has exited.
@@ -425,6 +454,7 @@ class ManagedProcess:
         -------
         int
             Exit status (0 after a clean shutdown on SIGINT; negative if killed by a signal).
+
         """
         for sig, wait_sec in ((signal.SIGINT, sigint_timeout_sec),
                               (signal.SIGTERM, sigterm_timeout_sec),
@@ -474,7 +504,8 @@ def _hex_ip(hex_addr):
 
 
 def bound_inet_sockets(pid):
-    """List the IPv4/IPv6 sockets of process ``pid`` with their local address (Linux /proc).
+    """
+    List the IPv4/IPv6 sockets of process ``pid`` with their local address (Linux /proc).
 
     Parameters
     ----------
@@ -486,6 +517,7 @@ def bound_inet_sockets(pid):
     list of tuple
         ``(protocol, local_ip, local_port)`` with protocol in ``udp, udp6, tcp, tcp6``;
         IPv6 addresses as eight uncompressed hex groups.
+
     """
     inodes = set()
     fd_dir = pathlib.Path(f'/proc/{pid}/fd')
@@ -534,7 +566,8 @@ def ros_executor(ros_context):
 
 @pytest.fixture
 def ros_namespace(request):
-    """Return a namespace unique to this test and process, e.g. ``/t_test_corrector_3_p4711``.
+    """
+    Return a namespace unique to this test and process, e.g. ``/t_test_corrector_3_p4711``.
 
     The process id keeps two test runs apart even when their ROS_DOMAIN_IDs (PID-derived,
     scripts/ros_env.sh) collide: the same test of two runs never shares topics.

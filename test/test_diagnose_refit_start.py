@@ -72,7 +72,8 @@ def test_lag_start_is_the_grid_point_next_to_the_true_time_constant(lagged):
 
 def test_fit_without_covariance_has_the_same_parameters_and_no_uncertainty(lagged):
     data, base = lagged
-    kw = dict(field_nt=F, sigma_nt=base.sigma_nt, init=base.params, check_identifiability=False)
+    kw = {'field_nt': F, 'sigma_nt': base.sigma_nt, 'init': base.params,
+          'check_identifiability': False}
     with_cov = fit(data, 'base', **kw)
     without = fit(data, 'base', covariance=False, **kw)
     np.testing.assert_array_equal(without.params, with_cov.params)

@@ -128,7 +128,7 @@ def test_write_report_self_contained(case, tmp_path):
 
 
 def _omitted(text):
-    """The "Views not drawn" items of a report page: {heading: reason}."""
+    """Return the "Views not drawn" items of a report page: {heading: reason}."""
     block = re.search(r'<h2>Views not drawn</h2><ul class="omitted">(.*?)</ul>', text)
     items = re.findall(r'<li>(.*?)</li>', block.group(1)) if block else []
     return dict(html.unescape(i).split(': ', 1) for i in items)

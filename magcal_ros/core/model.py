@@ -341,6 +341,7 @@ class Model:
         contribution (the linear part and the other effects do not read it), so its
         difference is that contribution's alone, without re-evaluating the whole reading;
         other parameters (linear effects, the array's) re-evaluate :meth:`forward`.
+
         """
         h = np.array([1e-6 * max(1.0, abs(p[i])) for i in cols])
         owner = {}

@@ -1,4 +1,19 @@
-"""calibration_node: collect rotation data from the live array, calibrate, diagnose.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+calibration_node: collect rotation data from the live array, calibrate, diagnose.
 
 Topics (relative to the node namespace, default ``/magcal``; docs/design.md §3):
 
@@ -105,7 +120,8 @@ _HEADLINE = 100
 
 
 def _reply(response, success, summary, payload):
-    """Fill a Trigger response: a short first line, more lines, newline, one JSON object.
+    """
+    Fill a Trigger response: a short first line, more lines, newline, one JSON object.
 
     A long first line is broken after its lead (``not calibrated: <reason>`` becomes
     ``not calibrated:`` and the reason on the next line).
@@ -125,7 +141,8 @@ def _fmt_per_sensor(d, fmt='{:.2f}'):
 
 
 def _silent_sensors(received):
-    """Messages naming the sensors that sent nothing, or far less than the others.
+    """
+    Messages naming the sensors that sent nothing, or far less than the others.
 
     ``received`` lists the raw samples taken per sensor since calibration/start.
     """
@@ -342,7 +359,8 @@ class CalibrationNode(Node):
             self._imu_count += 1
 
     def _attitude(self, data, epochs, stamps):
-        """(data, epochs) with the collected attitude attached (under the lock).
+        """
+        Attach the collected attitude to (data, epochs) (under the lock).
 
         The attitude is interpolated at the sets' own stamps (``stamps`` (N,) s, as the
         sensors' messages arrived), not at the sample instants reconstructed from them
@@ -372,7 +390,8 @@ class CalibrationNode(Node):
         return cb
 
     def residual_status(self):
-        """``diagnostic_msgs/DiagnosticStatus`` of the active calibration on the live data.
+        """
+        ``diagnostic_msgs/DiagnosticStatus`` of the active calibration on the live data.
 
         WARN when a sensor's rolling residual exceeds :data:`RESIDUAL_WARN_RATIO` times what
         its noise floor predicts (:class:`magcal_ros.core.live.ResidualMonitor`), or when a

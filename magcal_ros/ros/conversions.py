@@ -1,4 +1,19 @@
-"""Conversions between library arrays (nT, nT/m, degC) and ROS messages (T, T/m, degC).
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Conversions between library arrays (nT, nT/m, degC) and ROS messages (T, T/m, degC).
 
 This is the one place where nanotesla become tesla (REP 103 SI units in messages) and back.
 Every builder validates its input and raises ``ValueError`` naming what was wrong.
@@ -41,7 +56,8 @@ _NS_PER_S = 1_000_000_000
 
 
 def to_stamp(stamp):
-    """Turn a time given in one of several forms into a ``builtin_interfaces/Time``.
+    """
+    Turn a time given in one of several forms into a ``builtin_interfaces/Time``.
 
     Parameters
     ----------
@@ -57,6 +73,7 @@ def to_stamp(stamp):
     ------
     ValueError
         If the time is negative, not finite, or of an unsupported type.
+
     """
     if stamp is None:
         return TimeMsg()
@@ -77,7 +94,8 @@ def to_stamp(stamp):
 
 
 def stamp_to_seconds(stamp):
-    """Return a ``builtin_interfaces/Time`` as float seconds.
+    """
+    Return a ``builtin_interfaces/Time`` as float seconds.
 
     Parameters
     ----------
@@ -88,6 +106,7 @@ def stamp_to_seconds(stamp):
     -------
     float
         Seconds since the epoch (nanosecond resolution is kept up to float64 precision).
+
     """
     return stamp.sec + stamp.nanosec * 1e-9
 
@@ -134,7 +153,8 @@ def _covariance33(covariance_nt2):
 
 
 def covariance_to_t2(covariance_nt2):
-    """Validated covariance as a message's 9-element row-major array in T^2.
+    """
+    Validate a covariance and return it as a message's 9-element row-major array in T^2.
 
     For publishers that send many messages with the same covariance: validate and convert
     once, then pass the result as ``covariance_t2`` to :func:`field_nt_to_msg`.
@@ -144,7 +164,8 @@ def covariance_to_t2(covariance_nt2):
 
 
 def field_nt_to_msg(field_nt, stamp=None, frame_id='', covariance_nt2=None, covariance_t2=None):
-    """Build a ``sensor_msgs/MagneticField`` (tesla) from a field in nanotesla.
+    """
+    Build a ``sensor_msgs/MagneticField`` (tesla) from a field in nanotesla.
 
     Parameters
     ----------
@@ -171,6 +192,7 @@ def field_nt_to_msg(field_nt, stamp=None, frame_id='', covariance_nt2=None, cova
     ValueError
         If the field is not three finite numbers, or the covariance has the wrong shape,
         is not finite, not symmetric, or has a negative variance.
+
     """
     field = _vector3(field_nt, 'field_nt', 'nT')
     if covariance_t2 is None:
@@ -187,7 +209,8 @@ def field_nt_to_msg(field_nt, stamp=None, frame_id='', covariance_nt2=None, cova
 
 
 def set_field_nt(msg, field_nt, covariance_t2):
-    """Overwrite the field (nT -> T) and covariance (T^2) of a ``MagneticField`` in place.
+    """
+    Overwrite the field (nT -> T) and covariance (T^2) of a ``MagneticField`` in place.
 
     The hot path of the corrector: no validation (the field comes out of the correction of a
     finite reading, the covariance from :func:`covariance_to_t2`), header left as it is.
@@ -195,10 +218,12 @@ def set_field_nt(msg, field_nt, covariance_t2):
     Parameters
     ----------
     msg : sensor_msgs.msg.MagneticField
+        The message to overwrite.
     field_nt : numpy.ndarray
         (3,) field in nT.
     covariance_t2 : numpy.ndarray
         (9,) row-major covariance in T^2.
+
     """
     v = msg.magnetic_field
     v.x = float(field_nt[0]) / NT_PER_T
@@ -208,7 +233,8 @@ def set_field_nt(msg, field_nt, covariance_t2):
 
 
 def linear_to_t(a_inv, offset_nt):
-    """A linear correction A^-1 (raw - o) prepared for readings in tesla.
+    """
+    Prepare a linear correction A^-1 (raw - o) for readings in tesla.
 
     Parameters
     ----------
@@ -222,13 +248,15 @@ def linear_to_t(a_inv, offset_nt):
     tuple
         (rows of A^-1 as three 3-tuples of float, o in T as a 3-tuple): the argument of
         :func:`correct_msg_linear`.
+
     """
     rows = tuple(tuple(float(v) for v in row) for row in np.asarray(a_inv, np.float64))
     return rows, tuple(float(v) for v in nt_to_t(np.asarray(offset_nt, np.float64)))
 
 
 def correct_msg_linear(msg, linear_t, covariance_t2):
-    """Correct a ``MagneticField`` in place: field <- A^-1 (field - o) in T, new covariance.
+    """
+    Correct a ``MagneticField`` in place: field <- A^-1 (field - o) in T, new covariance.
 
     The corrector's hot path for sensors without driven effects: plain float arithmetic
     (numpy costs more than the nine products for one 3-vector), header left as it is.
@@ -236,10 +264,12 @@ def correct_msg_linear(msg, linear_t, covariance_t2):
     Parameters
     ----------
     msg : sensor_msgs.msg.MagneticField
+        The message to correct.
     linear_t : tuple
         From :func:`linear_to_t`.
     covariance_t2 : numpy.ndarray
         (9,) row-major covariance in T^2 (:func:`covariance_to_t2`).
+
     """
     (r0, r1, r2), (ox, oy, oz) = linear_t
     v = msg.magnetic_field
@@ -251,7 +281,8 @@ def correct_msg_linear(msg, linear_t, covariance_t2):
 
 
 def msg_to_field_nt(msg):
-    """Return the field of a ``sensor_msgs/MagneticField`` in nanotesla.
+    """
+    Return the field of a ``sensor_msgs/MagneticField`` in nanotesla.
 
     Parameters
     ----------
@@ -262,13 +293,15 @@ def msg_to_field_nt(msg):
     -------
     numpy.ndarray, shape (3,)
         Field (x, y, z) in nT.
+
     """
     v = msg.magnetic_field
     return t_to_nt([v.x, v.y, v.z])
 
 
 def msg_to_covariance_nt2(msg):
-    """Return the covariance of a ``sensor_msgs/MagneticField`` in nT^2.
+    """
+    Return the covariance of a ``sensor_msgs/MagneticField`` in nT^2.
 
     Parameters
     ----------
@@ -279,18 +312,24 @@ def msg_to_covariance_nt2(msg):
     -------
     numpy.ndarray, shape (3, 3)
         Covariance in nT^2 (all zeros means unknown).
+
     """
     cov_t2 = np.asarray(msg.magnetic_field_covariance, dtype=np.float64).reshape(3, 3)
     return t_to_nt(t_to_nt(cov_t2))
 
 
 def tensor_to_msg(gradient_nt_per_m, check=True, out=None):
-    """Build the gradient-tensor ``std_msgs/Float64MultiArray`` (T/m) from nT/m.
+    """
+    Build the gradient-tensor ``std_msgs/Float64MultiArray`` (T/m) from nT/m.
 
     Parameters
     ----------
     gradient_nt_per_m : array_like, shape (3, 3)
         Gradient tensor G[i, k] = dB_i / dx_k in nT/m.
+    check : bool
+        Check that the tensor is a finite (3, 3) array (False on the corrector's hot path).
+    out : std_msgs.msg.Float64MultiArray, optional
+        A message this function built before, reused (only its data are replaced).
 
     Returns
     -------
@@ -306,6 +345,7 @@ def tensor_to_msg(gradient_nt_per_m, check=True, out=None):
 
     ``out``: a message this function built before, reused (only its data are replaced: the
     corrector publishes one message object per tensor, serialised at publish).
+
     """
     g = np.asarray(gradient_nt_per_m, dtype=np.float64)
     if check:
@@ -323,7 +363,8 @@ def tensor_to_msg(gradient_nt_per_m, check=True, out=None):
 
 
 def gradient_covariance_to_t2(covariance_nt2):
-    """(9, 9) covariance of the row-major tensor in (nT/m)^2 as an (81,) array in (T/m)^2.
+    """
+    (9, 9) covariance of the row-major tensor in (nT/m)^2 as an (81,) array in (T/m)^2.
 
     None gives zeros (unknown), as in the message definition.
     """
@@ -337,11 +378,13 @@ def gradient_covariance_to_t2(covariance_nt2):
 
 
 def fill_gradient_stamped(msg, stamp, frame_id, gradient_nt_per_m, covariance_t2):
-    """Fill a ``magcal_interfaces/GradientTensorStamped`` in place (the corrector's hot path).
+    """
+    Fill a ``magcal_interfaces/GradientTensorStamped`` in place (the corrector's hot path).
 
     Parameters
     ----------
     msg : magcal_interfaces.msg.GradientTensorStamped
+        The message to fill.
     stamp : float or builtin_interfaces.msg.Time
         Stamp of the matched set (see :func:`to_stamp`).
     frame_id : str
@@ -355,6 +398,7 @@ def fill_gradient_stamped(msg, stamp, frame_id, gradient_nt_per_m, covariance_t2
     Returns
     -------
     The message.
+
     """
     msg.header.stamp = to_stamp(stamp)
     msg.header.frame_id = frame_id
@@ -372,7 +416,8 @@ def msg_to_gradient_stamped(msg):
 
 
 def transform_msg(parent, child, rotation, translation_m, stamp=None):
-    """Build a ``geometry_msgs/TransformStamped`` parent -> child.
+    """
+    Build a ``geometry_msgs/TransformStamped`` parent -> child.
 
     Parameters
     ----------
@@ -382,11 +427,13 @@ def transform_msg(parent, child, rotation, translation_m, stamp=None):
         (3, 3) proper rotation R (child axes expressed in the parent frame).
     translation_m : numpy.ndarray
         (3,) origin p of the child in the parent frame, m.
-    stamp : see :func:`to_stamp`
+    stamp : float or builtin_interfaces.msg.Time, optional
+        Stamp of the transform (see :func:`to_stamp`).
 
     Returns
     -------
     geometry_msgs.msg.TransformStamped
+
     """
     t = _vector3(translation_m, 'translation_m', 'm')
     # imported here: scipy.spatial costs ~0.25 s at start-up of every node, and only the
@@ -405,7 +452,8 @@ def transform_msg(parent, child, rotation, translation_m, stamp=None):
 
 
 def residual_to_msg(scalar_nt, vector_nt):
-    """The live residual of one set as ``std_msgs/Float64MultiArray`` (T).
+    """
+    Build the live residual of one set as ``std_msgs/Float64MultiArray`` (T).
 
     Parameters
     ----------
@@ -418,6 +466,7 @@ def residual_to_msg(scalar_nt, vector_nt):
         2 S values in T: ``data[j - 1]`` the scalar residual of sensor j, ``data[S + j - 1]``
         its vector residual; ``layout.dim`` = ``kind`` (size 2, stride 2 S; labelled in
         :data:`RESIDUAL_KIND_LABEL`) and ``sensor`` (size S, stride S).
+
     """
     s = len(scalar_nt)
     msg = Float64MultiArray()
@@ -428,7 +477,8 @@ def residual_to_msg(scalar_nt, vector_nt):
 
 
 def msg_to_residual_nt(msg):
-    """Inverse of :func:`residual_to_msg`: the scalar and vector residuals of one set in nT.
+    """
+    Inverse of :func:`residual_to_msg`: the scalar and vector residuals of one set in nT.
 
     Parameters
     ----------
@@ -444,6 +494,7 @@ def msg_to_residual_nt(msg):
     ------
     ValueError
         If the layout is not ``kind`` (2) x ``sensor`` (S) or the data do not fill it.
+
     """
     dims = [(d.label, d.size) for d in msg.layout.dim]
     if len(dims) != 2 or dims[0] != (RESIDUAL_KIND_LABEL, 2) or dims[1][0] != 'sensor':
@@ -465,7 +516,8 @@ def _tensor_layout():
 
 
 def msg_to_tensor(msg):
-    """Return the gradient tensor of a ``std_msgs/Float64MultiArray`` in nT/m.
+    """
+    Return the gradient tensor of a ``std_msgs/Float64MultiArray`` in nT/m.
 
     Parameters
     ----------
@@ -482,6 +534,7 @@ def msg_to_tensor(msg):
     ValueError
         If the layout is not 3x3 row-major with dims ``row`` and ``col``, or the data is
         too short for it.
+
     """
     dims = [(d.label, d.size, d.stride) for d in msg.layout.dim]
     expected = [(TENSOR_DIM_LABELS[0], 3, 9), (TENSOR_DIM_LABELS[1], 3, 3)]
@@ -498,7 +551,8 @@ def msg_to_tensor(msg):
 
 
 def temperature_msg(temp_c, stamp=None, frame_id='', variance_c2=0.0):
-    """Build a ``sensor_msgs/Temperature``.
+    """
+    Build a ``sensor_msgs/Temperature``.
 
     Parameters
     ----------
@@ -519,6 +573,7 @@ def temperature_msg(temp_c, stamp=None, frame_id='', variance_c2=0.0):
     ------
     ValueError
         If the temperature is not finite or the variance is negative or not finite.
+
     """
     temp = float(temp_c)
     if not math.isfinite(temp):

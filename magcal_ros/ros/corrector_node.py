@@ -1,4 +1,19 @@
-"""corrector_node: live correction of the array with the active calibration.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+corrector_node: live correction of the array with the active calibration.
 
 Topics (relative to the node namespace, default ``/magcal``; docs/design.md §3):
 
@@ -53,7 +68,6 @@ import numpy as np
 from rclpy.node import Node
 from sensor_msgs.msg import MagneticField, Temperature
 from std_msgs.msg import Float64, Float64MultiArray, String
-
 
 
 def _optional(module, name):
@@ -149,13 +163,13 @@ class CorrectorNode(Node):
 
     @property
     def queued(self):
-        """Samples per sensor waiting for a complete set (tuple of S counts; zeros when idle)."""
+        """Count the samples per sensor waiting for a complete set (S counts; zeros when idle)."""
         live = self._live
         return live.matcher.queued if live is not None else (0,) * self._n
 
     @property
     def calibration(self):
-        """The active :class:`~magcal_ros.core.model.Calibration`, or None."""
+        """Return the active :class:`~magcal_ros.core.model.Calibration`, or None."""
         return None if self._live is None else self._live.cal
 
     @property
@@ -239,7 +253,7 @@ class CorrectorNode(Node):
         return f'model {",".join(self._model)} created {self._created}'
 
     def _send_transforms(self, live):
-        """Static transforms array -> fluxgate{j} of the calibration (tf2_ros available)."""
+        """Send the static transforms array -> fluxgate{j} of the calibration (with tf2_ros)."""
         if self._tf is None:
             return
         frames = live.sensor_frames()
@@ -306,7 +320,8 @@ class CorrectorNode(Node):
         return cb
 
     def _gradient_wanted(self):
-        """True while someone subscribes a gradient topic (checked per sample: ~1 us).
+        """
+        Tell whether someone subscribes a gradient topic (checked per sample: ~1 us).
 
         Without subscribers the sets are not matched at all (the matcher is half the
         corrector's Python work); when the first subscriber appears the matcher starts

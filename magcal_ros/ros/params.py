@@ -1,4 +1,19 @@
-"""ROS parameter declaration and validation for the calibration and corrector nodes.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+ROS parameter declaration and validation for the calibration and corrector nodes.
 
 Every parameter is declared from a :class:`ParamSpec` (name, default, description with the
 unit, validator), so the description a user sees with ``ros2 param describe`` and the check
@@ -51,7 +66,8 @@ _ARRAY_TYPES = {
 
 @dataclass(frozen=True)
 class ParamSpec:
-    """One node parameter.
+    """
+    One node parameter.
 
     Attributes
     ----------
@@ -71,6 +87,7 @@ class ParamSpec:
         ``(lowest, highest)`` allowed value, published as the descriptor's
         ``FloatingPointRange`` / ``IntegerRange`` (``ros2 param describe`` shows it; rclpy
         then refuses values outside it too).
+
     """
 
     name: str
@@ -174,12 +191,14 @@ def model_check(n_sensors):
 
 
 def declare(node, specs):
-    """Declare every parameter of ``specs`` on ``node`` (overrides and YAML apply).
+    """
+    Declare every parameter of ``specs`` on ``node`` (overrides and YAML apply).
 
     Returns
     -------
     dict of str to ParamSpec
         The specs by name, for :func:`validate`.
+
     """
     for spec in specs:
         if isinstance(spec.default, tuple):
@@ -201,17 +220,21 @@ def declare(node, specs):
 
 
 def validate(specs, params):
-    """Check parameter changes; the body of an ``add_on_set_parameters_callback``.
+    """
+    Check parameter changes; the body of an ``add_on_set_parameters_callback``.
 
     Parameters
     ----------
     specs : dict of str to ParamSpec
+        The node's parameters, by name.
     params : list of rclpy.parameter.Parameter
+        The changes asked for.
 
     Returns
     -------
     rcl_interfaces.msg.SetParametersResult
         ``successful=False`` with the reason of the first refused value.
+
     """
     for p in params:
         spec = specs.get(p.name)
@@ -272,7 +295,8 @@ PLUGINS = ParamSpec('plugins', (), 'effect plug-ins imported at start-up, each a
 
 
 def load_plugins(node):
-    """Import the node's start-up ``plugins`` (:func:`magcal_ros.core.effects.load_plugin`).
+    """
+    Import the node's start-up ``plugins`` (:func:`magcal_ros.core.effects.load_plugin`).
 
     Returns
     -------
@@ -283,6 +307,7 @@ def load_plugins(node):
     ------
     ValueError
         Naming the plug-in that cannot be imported (the node then exits with status 2).
+
     """
     try:
         return fx.load_plugins(value(node, 'plugins', []))
@@ -419,7 +444,7 @@ def corrector_specs():
                   'calibration when tf2_ros is importable; read-only', frame_id,
                   read_only=True),
         ParamSpec('subtract_site_gradient', False, 'stationary test: subtract the site '
-                  "gradient of the calibration (effect site_gradient), seen at site_attitude, "
+                  'gradient of the calibration (effect site_gradient), seen at site_attitude, '
                   'from the corrected fields and the tensor, leaving the anomaly; off: the '
                   'site gradient is part of the field and is ignored; no unit'),
         ParamSpec('site_attitude', (1.0, 0.0, 0.0, 0.0), 'attitude of the array during a '

@@ -1,4 +1,19 @@
-"""The one ``main`` of every node: init, spin until SIGINT/SIGTERM, clean shutdown, exit codes.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The one ``main`` of every node: init, spin until SIGINT/SIGTERM, clean shutdown, exit codes.
 
 Shutdown: rclpy's own signal handler shuts the context down from inside the signal, while a
 callback may still be running; that callback's next ``publish`` then raises "publisher's
@@ -39,7 +54,8 @@ def _one_line(exc):
 
 
 class _stderr_held:
-    """Hold what C code writes to file descriptor 2 (rcl logs its own copy of a parse error).
+    """
+    Hold what C code writes to file descriptor 2 (rcl logs its own copy of a parse error).
 
     ``text`` is what was written; the caller shows it only when it is not replacing it by
     its one-line message.
@@ -64,7 +80,8 @@ class _stderr_held:
 
 
 def spin_node(node_cls, name, args=None):
-    """Create ``node_cls()``, spin it until SIGINT/SIGTERM or shutdown, and clean up.
+    """
+    Create ``node_cls()``, spin it until SIGINT/SIGTERM or shutdown, and clean up.
 
     Parameters
     ----------
@@ -82,6 +99,7 @@ def spin_node(node_cls, name, args=None):
     -------
     int
         0 after a signal or an external shutdown, 2 for bad start-up input.
+
     """
     stop = threading.Event()
     try:

@@ -1,4 +1,19 @@
-"""Serial transport: a reconnecting pyserial reader thread and a pseudo-terminal device.
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Serial transport: a reconnecting pyserial reader thread and a pseudo-terminal device.
 
 :class:`PortReader` owns one serial port. It reads whatever bytes arrive, feeds them to a
 protocol parser and hands each sample to a callback together with its arrival time
@@ -44,7 +59,8 @@ STATE_STOPPED = 'stopped'
 
 @dataclass(frozen=True)
 class PortStats:
-    """Snapshot of a :class:`PortReader`.
+    """
+    Snapshot of a :class:`PortReader`.
 
     Attributes
     ----------
@@ -80,6 +96,7 @@ class PortStats:
         Text of the last transport error ('' if none).
     seconds_since_data : float or None
         Age of the last received bytes, None before any.
+
     """
 
     name: str
@@ -112,7 +129,8 @@ def _check_seconds(name, value, allow_zero=False):
 
 
 class PortReader:
-    """Background thread reading one serial port into a parser, reconnecting on loss.
+    """
+    Background thread reading one serial port into a parser, reconnecting on loss.
 
     Parameters
     ----------
@@ -144,6 +162,7 @@ class PortReader:
         default ``serial.Serial``.
     clock : callable
         Arrival-time source, default ``time.time``.
+
     """
 
     def __init__(self, port, baudrate, parser, callback, *, alternatives=(), timeout=0.05,
@@ -212,7 +231,7 @@ class PortReader:
 
     @property
     def running(self):
-        """True while the reader thread is alive."""
+        """Tell whether the reader thread is alive."""
         return self._thread is not None and self._thread.is_alive()
 
     def __enter__(self):
@@ -383,7 +402,8 @@ def _atomic_symlink(target, link_path):
 
 
 class PtyDevice:
-    """A simulated serial device on a pseudo-terminal.
+    """
+    A simulated serial device on a pseudo-terminal.
 
     The slave side is put in raw mode and (optionally) symlinked to ``link_path``;
     a :class:`PortReader` (or any program) opens that path like a real serial port. The
@@ -398,6 +418,7 @@ class PtyDevice:
     link_path : str or None
         Path of the symlink to create (parent directories are created; a stale symlink is
         replaced atomically; an existing non-symlink file is refused).
+
     """
 
     def __init__(self, link_path=None):
@@ -414,12 +435,12 @@ class PtyDevice:
 
     @property
     def plugged(self):
-        """True while the pseudo-terminal exists."""
+        """Tell whether the pseudo-terminal exists."""
         return self.master is not None
 
     @property
     def path(self):
-        """The path a reader should open (the link, or the slave name without a link)."""
+        """Return the path a reader should open (the link, or the slave name without one)."""
         return self.link_path or self.slave_name
 
     def plug(self, link_path=None):

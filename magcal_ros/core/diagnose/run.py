@@ -348,7 +348,7 @@ def _refit(b, trials, screen, max_refit, progress):
         # than from the one step off Lag.tau0_s, which took the refit up to REFIT_MAX_NFEV
         # iterations (issue 11 item 7: 13 of the 15 Jacobians of this stage)
         start = None if screen is None else screen.lag_start(c.model, c.start, c.added,
-                                                              lag_grid(b.data.t))
+                                                             lag_grid(b.data.t))
         if start is not None:
             init = start
         # warm start: a well-posed candidate converges in a few iterations; the cap keeps a
