@@ -59,7 +59,7 @@ from magcal_ros.ros.corrector_node import CorrectorNode
 import numpy as np
 import pytest
 from rclpy.parameter import Parameter
-from ros_helpers import call_trigger, spin_for, spin_until, subprocess_env
+from ros_helpers import call_trigger, spin_until, subprocess_env
 from sensor_msgs.msg import MagneticField
 from sim_feed import Feeder
 from std_msgs.msg import String
@@ -368,19 +368,34 @@ def test_nodes_start_with_a_truncated_file(make_node, ros_node, ros_executor, ro
     path.write_text(text[:text.index('effects:') + len('effects:')])
     with pytest.raises(CalibrationFileError, match='malformed calibration document'):
         load_calibration(path)
+    # (document, publication sequence number of the calibration node's result writer)
     results = []
-    ros_node.create_subscription(String, 'calibration/result', results.append, RESULT_QOS)
+    ros_node.create_subscription(String, 'calibration/result', lambda msg, info: results.append(
+        (msg.data, info['publication_sequence_number'])), RESULT_QOS)
     probe = DiagProbe(ros_node, ros_namespace)
-    make_node(CalibrationNode, namespace=ros_namespace, parameter_overrides=[
-        Parameter('calibration_file', value=str(path)),
+    node = make_node(CalibrationNode, namespace=ros_namespace, parameter_overrides=[
+        Parameter('calibration_file', value=str(path)), Parameter('min_samples', value=300),
         Parameter('report_dir', value=str(tmp_path / 'report'))])
     corrector = make_node(CorrectorNode, namespace=ros_namespace, parameter_overrides=[
         Parameter('calibration_file', value=str(path))])
     spin_until(ros_executor, lambda: any('malformed calibration document' in s.message
                                          for s in probe.status), 5.0)
     assert corrector.calibration is None and 'no calibration is active' in corrector.refusal
-    spin_for(ros_executor, 0.3)
-    assert results == []                    # the calibration node published nothing
+    # 'the calibration node published nothing' without a fixed wait: a calibration on fresh
+    # data is the sentinel.  It must be the result writer's first message (sequence number 1)
+    # and the file it replaced the truncated one with; the corrector then installs it.
+    data, _ = simulate(n_samples=600, rate_hz=100.0, trajectory='smooth',
+                       smooth_period_s=6.0, seed=7)
+    feeder = Feeder(ros_node)
+    feeder.wait_for_subscribers(ros_executor)
+    assert call_trigger(ros_node, ros_executor, 'calibration/start').success
+    feeder.feed(ros_executor, data, taken=lambda: int(node.received.sum()), temperature=False)
+    assert call_trigger(ros_node, ros_executor, 'calibration/calibrate', timeout_sec=60).success
+    spin_until(ros_executor, lambda: results, 5.0)
+    assert [seq for _, seq in results] == [1]
+    assert results[0][0] == path.read_text()
+    load_calibration(path)
+    spin_until(ros_executor, lambda: corrector.calibration is not None, 5.0)
 
 
 # -- history and rollback --------------------------------------------------------------------
