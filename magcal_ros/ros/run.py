@@ -34,14 +34,12 @@ import sys
 import tempfile
 import threading
 
+from magcal_ros.sim.paths import DEFAULT_NAMESPACE  # noqa: F401 (the nodes' default namespace)
 import rclpy
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.signals import SignalHandlerOptions
-
-#: namespace of every node started without a ``__ns`` remap (docs/design.md §3)
-DEFAULT_NAMESPACE = '/magcal'
 
 #: longest time between a SIGINT/SIGTERM and the end of the spin loop when idle, s
 SPIN_PERIOD_S = 0.1

@@ -26,7 +26,8 @@ import tempfile
 
 #: ``/tmp/magcal_sim`` unless TMPDIR names another temporary directory
 DEFAULT_DIR = os.path.join(tempfile.gettempdir(), 'magcal_sim')
-#: the nodes' namespace without a ``__ns`` remap (also magcal_ros.ros.run.DEFAULT_NAMESPACE)
+#: namespace of every node started without a ``__ns`` remap (docs/design.md §3); the ROS
+#: nodes take it from here (magcal_ros.ros.run), so the simulator and the driver agree
 DEFAULT_NAMESPACE = '/magcal'
 
 
