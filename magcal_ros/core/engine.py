@@ -396,15 +396,12 @@ class ProfiledProblem:
             col += len(block)
         # array-wide parameters (site gradient): every sensor of the group depends on them
         n_arr = len(self.model.array_cols)
-        bases = ([self.model.forward(j, p, b, self.ctx[j - 1]) for j in self.sensors]
-                 if n_arr else [])
-        for k, i in enumerate(self.model.array_cols):
-            h = 1e-6 * max(1.0, abs(p[i]))
-            pp = p.copy()
-            pp[i] += h
+        if n_arr:
             for gi, j in enumerate(self.sensors):
-                d = bases[gi] - self.model.forward(j, pp, b, self.ctx[j - 1])
-                jac[:, gi, :, len(self.cols) - n_arr + k] = d / (h * self.sigma[j - 1])
+                block, h = self.model.forward_differences(j, p, b, self.ctx[j - 1],
+                                                          self.model.array_cols)
+                block /= -(h * self.sigma[j - 1])[:, None, None]
+                jac[:, gi, :, len(self.cols) - n_arr:] = block.transpose(1, 2, 0)
         # project out the nuisance field directions (variable projection)
         jac = self.project_out_field(b, mats, jac.reshape(n, 3 * g, -1))
         jac = jac.reshape(n * 3 * g, -1)
