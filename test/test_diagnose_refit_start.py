@@ -22,7 +22,7 @@ reduction test reads no uncertainties skips the covariance (fit(covariance=False
 """
 import injection as inj
 from magcal_ros.core.diagnose.candidates import extend_model, reads_stderr
-from magcal_ros.core.diagnose.constants import REFIT_MAX_NFEV
+from magcal_ros.core.diagnose.constants import REFIT_CHI2_TOL, REFIT_MAX_NFEV
 from magcal_ros.core.diagnose.screen import lag_grid, Screen
 from magcal_ros.core.model import fit
 import numpy as np
@@ -90,3 +90,22 @@ def test_only_effects_with_their_own_reduction_test_need_the_covariance(lagged):
                                 ('temperature@2', 'temperature', False)):
         m_ext, _, _ = extend_model(base.model, base.params, token, ctx)
         assert reads_stderr(m_ext, label) is needs
+
+
+def test_a_refit_to_a_tenth_of_chi_square_stops_early_at_the_converged_value(lagged):
+    # the diagnosis' refits iterate until chi-square changes by less than REFIT_CHI2_TOL
+    # (fit(ftol=tol / chi2)); the converged value is fit's default (iterations to the
+    # numerical limit) from the same start: the early stop is within the tolerance of it
+    # and needs fewer residual evaluations
+    data, base = lagged
+    ctx = [data.context(j) for j in range(1, data.n_sensors + 1)]
+    m_ext, p_ext, added = extend_model(base.model, base.params, 'lag(temperature)@2', ctx)
+    screen, _, f = _screen(data, base)
+    start = screen.lag_start(m_ext, p_ext, added, lag_grid(data.t))
+    kw = {'field_nt': f, 'sigma_nt': base.sigma_nt, 'init': start,
+          'check_identifiability': False, 'covariance': False, 'max_nfev': 50}
+    full = fit(data, m_ext, **kw)
+    early = fit(data, m_ext, ftol=REFIT_CHI2_TOL / base.chi2, **kw)
+    assert full.success and early.success
+    assert 0.0 <= early.chi2 - full.chi2 <= REFIT_CHI2_TOL, (early.chi2, full.chi2)
+    assert early.nfev < full.nfev, (early.nfev, full.nfev)

@@ -239,7 +239,8 @@ class FitResult:
 
 def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=False,
         priors=None, sigma_nt=None, on_degenerate='raise', max_fit_samples=20000,
-        init=None, max_nfev=200, check_identifiability=True, solver='lm', covariance=True):
+        init=None, max_nfev=200, check_identifiability=True, solver='lm', covariance=True,
+        ftol=None):
     """
     Fit ``model`` to rotation data in a uniform field by maximum likelihood.
 
@@ -271,6 +272,12 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
         (P,) starting parameters (default: closed-form start).
     max_nfev : int
         Most residual evaluations of the optimiser per sensor group and noise pass.
+    ftol : float, optional
+        Stop when an iteration lowers the cost by less than ``ftol`` times the cost (the
+        chi-square by less than ``ftol`` chi-square).  Default: the solver's own (1e-12 for
+        'lm', to the numerical limit; 1e-8 for 'scipy').  A caller that needs chi-square
+        only to a given precision (the diagnosis' refits: a tenth of a unit) passes that
+        precision divided by chi-square.
     check_identifiability : bool
         Check the attitude coverage and the Jacobian's conditioning
         (:mod:`magcal_ros.core.identifiability`); off for warm-started refits.
@@ -323,7 +330,8 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
             check_against_field(contexts_all[0].attitude,
                                 model.correct(1, p0, data.raw[0], contexts_all[0]), data.t)
         prior_list = priors_for(model, priors or {}, constrained)
-        solve = _Solve(model, raw, f, contexts, prior_list, robust, f_scale, solver, max_nfev)
+        solve = _Solve(model, raw, f, contexts, prior_list, robust, f_scale, solver, max_nfev,
+                       ftol)
         p, sigma, sol = solve.run(p0, sigma_nt)
         cov, chi2, n_obs = solve.covariance(p, sigma, with_jacobian=covariance)
         stderr, corr = stderr_and_correlation(cov)
@@ -437,8 +445,9 @@ class _Solve:
     """The ML problem of each sensor group on the fitted epochs, and its noise levels."""
 
     def __init__(self, model, raw, f, contexts, prior_list, robust, f_scale, solver,
-                 max_nfev):
+                 max_nfev, ftol=None):
         self.model, self.raw, self.f, self.contexts = model, raw, f, contexts
+        self.ftol = ftol
         self.prior_list = prior_list
         self.robust, self.f_scale = robust, f_scale
         self.solver, self.max_nfev = solver, max_nfev
@@ -497,11 +506,13 @@ class _Solve:
             if self.solver == 'scipy':
                 sol = least_squares(prob.residuals, x0, jac=prob.jacobian, x_scale='jac',
                                     loss='soft_l1' if self.robust else 'linear',
-                                    f_scale=self.f_scale, max_nfev=self.max_nfev, method='trf')
+                                    f_scale=self.f_scale, max_nfev=self.max_nfev, method='trf',
+                                    **({} if self.ftol is None else {'ftol': self.ftol}))
             else:
                 sol = levenberg_marquardt(prob.residuals, prob.jacobian, x0,
                                           robust=self.robust, f_scale=self.f_scale,
-                                          max_nfev=self.max_nfev)
+                                          max_nfev=self.max_nfev,
+                                          **({} if self.ftol is None else {'ftol': self.ftol}))
             p[prob.cols] = sol.x
             problems.append(prob)
             nfev += sol.nfev

@@ -43,6 +43,13 @@ DEFAULT_MAX_REFIT = 4
 #: constant of the all-sensors lag on the sensors without one) from wandering, which cost
 #: 30 iterations per such refit, then 12 with the former cap
 REFIT_MAX_NFEV = 6
+#: precision of a candidate's refit in chi-square: its iterations stop when one lowers
+#: chi-square by less than this.  The tests read chi-square differences against thresholds
+#: of order 10 (delta BIC < -10, k ln N per parameter, p-values of chi-square with k degrees
+#: of freedom); a tenth of a unit moves log10 p by about 0.02 and delta BIC by 0.1.  Iterating
+#: to the numerical limit (fit's default) took 6 Jacobians where 1-2 reached this precision
+#: (issue 11 item 7)
+REFIT_CHI2_TOL = 0.1
 #: time constants (log-spaced, sample interval to a quarter of the record) a lag's refit
 #: start is chosen from, each by one linear step (Screen.lag_start)
 LAG_GRID_POINTS = 10

@@ -31,7 +31,8 @@ from magcal_ros.core.diagnose.candidates import (added_params, Candidate, candid
 from magcal_ros.core.diagnose.constants import (ALPHA, AT_FLOOR_RATIO, BLOCKS_PER_FOLD,
                                                 DEFAULT_FOLDS, DEFAULT_MAX_REFIT,
                                                 DEFAULT_MAX_SAMPLES, MIN_BLOCK, MIN_DELTA_BIC,
-                                                MIN_EXPLAINED, REFIT_MAX_NFEV)
+                                                MIN_EXPLAINED, REFIT_CHI2_TOL,
+                                                REFIT_MAX_NFEV)
 from magcal_ros.core.diagnose.measures import (dof_factor, evaluate_residuals, Evaluation,
                                                explained_share, likelihood_ratio,
                                                n_observations, rms, scalar_rms_of,
@@ -357,6 +358,7 @@ def _refit(b, trials, screen, max_refit, progress):
         r = fit(b.data, c.model, field_nt=b.f, sigma_nt=b.sigma, init=init,
                 check_identifiability=False, on_degenerate='flag', robust=b.robust,
                 constrained=b.constrained, max_nfev=REFIT_MAX_NFEV,
+                ftol=REFIT_CHI2_TOL / max(b.ev0.chi2, 1.0),
                 covariance=reads_stderr(c.model, c.label),
                 **({'f_scale': b.f_scale} if b.robust else {}))
         ev = evaluate_residuals(c.model, r.params, b.data, b.f, b.sigma, b.contexts,
