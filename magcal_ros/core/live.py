@@ -35,6 +35,7 @@ from magcal_ros.core.noise import noise_floor
 from magcal_ros.core.sync import epoch_times, StampMatcher
 from magcal_ros.core.tensor import tensor_operator
 import numpy as np
+from scipy.stats import chi2
 
 #: consecutive raw samples further apart than this give no field-rate estimate, s
 MAX_RATE_GAP_S = 1.0
@@ -42,6 +43,9 @@ MAX_RATE_GAP_S = 1.0
 PERIOD_WINDOW = 200
 #: arrivals needed before the sample period (and so the field rate) is estimated
 _MIN_ARRIVALS = 11
+#: chance that a correctly paired set of Gaussian noise fails the pairing check
+#: (:meth:`LiveCorrector.pairing_chi2`): about once in 4 min of sets at 4 x 1 kHz
+PAIRING_FALSE_ALARM = 1e-6
 
 
 class MissingSignal(Exception):
@@ -97,6 +101,9 @@ class LiveCorrector:
         (:attr:`no_gradient_reason` says why).
     stamp_tolerance_s : float
         Tolerance of the set matcher (:class:`magcal_ros.core.sync.StampMatcher`), s.
+    check_pairing : bool
+        Check every set from the data before it gives a tensor (:meth:`pairing_chi2`) and
+        re-pair a shifted stream at once; off, sets are paired by stamps alone.
 
     Attributes
     ----------
@@ -107,10 +114,17 @@ class LiveCorrector:
         (9, 9) covariance of the row-major tensor, (nT/m)^2, from the sensors' corrected-field
         covariances (independent sensors); None when a sensor has no noise estimate.
     matcher : StampMatcher
+    pairing_dof : int
+        Redundant combinations of a set's 3 S field components the check tests (3 S - 8:
+        4 for the cross); 0 when there is no check (:attr:`no_check_reason` says why).
+    pairing_threshold : float
+        Largest chi-square of a set that passes the check (chi-square with
+        ``pairing_dof`` degrees of freedom at :data:`PAIRING_FALSE_ALARM`).
 
     """
 
-    def __init__(self, cal, n_sensors, positions_m=None, stamp_tolerance_s=0.005):
+    def __init__(self, cal, n_sensors, positions_m=None, stamp_tolerance_s=0.005,
+                 check_pairing=True):
         if cal.n_sensors != n_sensors:
             raise ValueError(f'the calibration is for {cal.n_sensors} sensors but this '
                              f'corrector handles {n_sensors} (n_sensors)')
@@ -124,6 +138,10 @@ class LiveCorrector:
         self.gradient_cov_nt2 = None
         self.no_gradient_reason = None
         self.positions_m = None
+        self.pairing_dof, self.pairing_threshold = 0, np.inf
+        self._pairing_op = None
+        self.no_check_reason = ('sets are paired by stamps alone (check_pairing off)'
+                                if not check_pairing else None)
         if positions_m is None:
             self.no_gradient_reason = 'the calibration has no array geometry (positions_m)'
             return
@@ -144,6 +162,20 @@ class LiveCorrector:
                 block[3 * k:3 * k + 3, 3 * k:3 * k + 3] = c
             g = self.gradient_op @ block @ self.gradient_op.T
             self.gradient_cov_nt2 = 0.5 * (g + g.T)
+            if check_pairing:
+                self._pairing_op = pairing_operator(pos, block)
+                self.pairing_dof = len(self._pairing_op)
+                if self.pairing_dof:
+                    self.pairing_threshold = float(chi2.isf(PAIRING_FALSE_ALARM,
+                                                            self.pairing_dof))
+                    self.matcher.misfit = self.pairing_chi2
+                    self.matcher.threshold = self.pairing_threshold
+        if check_pairing and not self.pairing_dof:
+            self.no_check_reason = (
+                'sets are paired by stamps alone: ' + (
+                    'a sensor of the calibration has no noise estimate'
+                    if self.gradient_cov_nt2 is None else
+                    f'{n_sensors} sensors leave no redundancy to check a set'))
 
     @property
     def needs_temperature(self):
@@ -287,6 +319,37 @@ class LiveCorrector:
         """
         return [(t_set, fields) for _, t_set, fields in self.matcher.add(j - 1, t, field_nt)]
 
+    def pairing_chi2(self, fields_nt):
+        """
+        Chi-square of the S corrected fields of a set as the samples of one epoch.
+
+        A set of one epoch fits B(r) = B0 + G r with G symmetric and traceless (a curl- and
+        divergence-free field; the model of :func:`magcal_ros.core.tensor.tensor_operator`,
+        paper 004 eq. 1 for the cross) to the noise: its weighted least-squares residual
+        chi^2 = |K b|^2 (:func:`pairing_operator`) is chi-square with :attr:`pairing_dof`
+        degrees of freedom, whatever the gradient.  A sample of another epoch of a turning
+        array adds the field change between the epochs (~50-200 nT per epoch at 100 Hz of
+        tumbling), which no symmetric traceless G absorbs: for the cross it makes the
+        centre fields of the two opposite pairs disagree.  (Not every mis-pairing shows:
+        two opposite sensors of the planar cross shifted the opposite ways look like a
+        gradient but in one component; a single lost sample never does that.)
+
+        Parameters
+        ----------
+        fields_nt : sequence of numpy.ndarray
+            S corrected fields (3,) nT, array frame.
+
+        Returns
+        -------
+        float
+            chi^2 (0 without a check: :attr:`no_check_reason`).
+
+        """
+        if self._pairing_op is None:
+            return 0.0
+        z = self._pairing_op @ np.concatenate(fields_nt)
+        return float(z @ z)
+
     def gradients(self, j, t, field_nt):
         """
         Add a corrected sample of sensor j; return the tensors of the sets it completes.
@@ -304,6 +367,43 @@ class LiveCorrector:
             return []
         return [(t_set, (self.gradient_op @ np.concatenate(fields)).reshape(3, 3))
                 for t_set, fields in self.sets(j, t, field_nt)]
+
+
+def pairing_operator(positions_m, cov_nt2):
+    """
+    Whitened residual map of the set check: chi^2 of a set = |K b|^2.
+
+    The least-squares residual of b = H theta + noise, theta = (B0, G symmetric traceless:
+    g_xx, g_xy, g_xz, g_yy, g_yz), H the linear field at the sensor positions, in the
+    metric of the noise covariance: with Sigma = L L^T and the QR decomposition of
+    L^-1 H, the last 3 S - rank(H) columns Q_r of Q span the residual, and K = Q_r^T L^-1.
+
+    Parameters
+    ----------
+    positions_m : numpy.ndarray
+        (S, 3) sensor positions, m.
+    cov_nt2 : numpy.ndarray
+        (3 S, 3 S) covariance of the stacked corrected fields, nT^2.
+
+    Returns
+    -------
+    numpy.ndarray
+        (3 S - rank(H), 3 S) K, 1/nT; (0, 3 S) when nothing is redundant.
+
+    """
+    pos = np.asarray(positions_m, float)
+    pos = pos - pos.mean(axis=0)
+    h = np.zeros((3 * len(pos), 8))
+    for k, (x, y, z) in enumerate(pos):
+        h[3 * k:3 * k + 3, :3] = np.eye(3)
+        h[3 * k:3 * k + 3, 3:] = [[x, y, z, 0.0, 0.0],
+                                  [0.0, x, 0.0, y, z],
+                                  [-z, 0.0, x, -z, y]]
+    chol = np.linalg.cholesky(cov_nt2)
+    hw = np.linalg.solve(chol, h)
+    rank = np.linalg.matrix_rank(hw)
+    q, _ = np.linalg.qr(hw, mode='complete')
+    return np.linalg.solve(chol.T, q[:, rank:]).T         # Q_r^T L^-1
 
 
 #: a rolling residual above this multiple of its noise-floor expectation means the

@@ -169,6 +169,29 @@ class StampMatcher:
     max_queue : int
         Samples kept per stream while another stream is silent; older ones are dropped
         (counted as incomplete sets).
+    misfit : callable, optional
+        ``misfit(items) -> float``: a chi-square of how far the S items of a set are from
+        being the samples of one epoch (e.g. :meth:`magcal_ros.core.live.LiveCorrector.
+        pairing_chi2`); a set passes when it is at most ``threshold``.  With it, a set
+        that fails is never emitted: on the ``confirm`` sets queued after it the matcher
+        sums the misfit of the pairing as it is and of each shift of one stream by 1 ..
+        ``max_shift`` epochs (the maximum-likelihood pairing), and adopts at once a shift
+        whose every set passes and whose sum beats every other candidate's by ``margin``
+        (a lost sample: :attr:`repaired`).  Otherwise the set is dropped (:attr:`rejected`):
+        when the pairing as it is fits best (this set alone was bad), or when no candidate
+        or more than one fits (a longer slip: the stamp vote restarts on the samples from
+        then on; the array too still to tell: the sets differ little anyway).  Stamps
+        alone cannot see a shifted stream until the vote's majority flips (about half a
+        ``window``).
+    threshold : float
+        Largest misfit of a set that passes.
+    max_shift : int
+        Largest shift of one stream tried after a failed set, epochs.
+    confirm : int
+        Sets queued after a failed one on which the candidates are compared.
+    margin : float
+        Least difference of summed misfit between the adopted shift and any other
+        candidate (2 ln of their likelihood ratio for a chi-square misfit).
 
     Attributes
     ----------
@@ -179,11 +202,16 @@ class StampMatcher:
     out_of_order : int
         Samples dropped because their stamp was older than the previous one of that sensor.
     realigned : int
-        Times a stream's epoch offset changed after the first alignment (lost samples).
+        Times the stamp vote changed a stream's epoch offset after the first alignment.
+    rejected : int
+        Sets dropped because their misfit exceeded ``threshold`` (never emitted).
+    repaired : int
+        Times a stream's epoch offset was changed from the misfit.
 
     """
 
-    def __init__(self, n_sensors, tolerance_s, window=200, align_every=40, max_queue=1000):
+    def __init__(self, n_sensors, tolerance_s, window=200, align_every=40, max_queue=1000,
+                 misfit=None, threshold=np.inf, max_shift=2, confirm=5, margin=25.0):
         if n_sensors < 1:
             raise ValueError(f'n_sensors must be >= 1, got {n_sensors}')
         if not tolerance_s > 0:
@@ -193,6 +221,11 @@ class StampMatcher:
         self.window = int(window)
         self.align_every = int(align_every)
         self.max_queue = int(max_queue)
+        self.misfit = misfit
+        self.threshold = float(threshold)
+        self.max_shift = int(max_shift)
+        self.confirm = int(confirm)
+        self.margin = float(margin)
         # vote history per stream: a ring of (sequence number, stamp) in numpy arrays
         self._hist = [_Ring(self.window) for _ in range(self.n_sensors)]
         self._queues = [deque() for _ in range(self.n_sensors)]
@@ -208,7 +241,9 @@ class StampMatcher:
         self._offset = [0] + [None] * (self.n_sensors - 1)
         self._aligned = self.n_sensors == 1
         self._since_align = 0
+        self._backoff = self._skip = 0
         self.complete = self.incomplete = self.out_of_order = self.realigned = 0
+        self.rejected = self.repaired = 0
 
     @property
     def aligned(self):
@@ -301,11 +336,22 @@ class StampMatcher:
 
     def _emit(self):
         out = []
-        queues, offset = self._queues, self._offset
+        queues, misfit, threshold = self._queues, self.misfit, self.threshold
         while all(queues):
+            offset = self._offset
             epochs = [qq[0][0] + o for qq, o in zip(queues, offset)]
             e = min(epochs)
             if all(x == e for x in epochs):
+                if misfit is not None and not misfit([qq[0][2] for qq in queues]) <= threshold:
+                    repaired = self._repair()
+                    if repaired is None:
+                        break               # wait for the samples that decide it
+                    if not repaired:
+                        for qq in queues:
+                            qq.popleft()
+                        self.rejected += 1
+                    continue                # repaired: the heads pair anew
+                self._backoff = self._skip = 0
                 heads = [qq.popleft() for qq in queues]
                 out.append((e, _median([h[1] for h in heads]), [h[2] for h in heads]))
                 self.complete += 1
@@ -315,3 +361,73 @@ class StampMatcher:
                         qq.popleft()
                 self.incomplete += 1
         return out
+
+    def _candidates(self):
+        """Offsets to try after a failed check: as they are, then one stream shifted."""
+        yield 0, 0, list(self._offset)
+        for j in range(self.n_sensors):
+            for d in range(1, self.max_shift + 1):
+                for delta in (d, -d):
+                    o = list(self._offset)
+                    if j == 0:          # sensor 1 keeps offset 0: shift the others instead
+                        o[1:] = [x - delta for x in o[1:]]
+                    else:
+                        o[j] += delta
+                    yield j, delta, o
+
+    def _summed_misfit(self, offset, first):
+        """Misfit summed over the ``confirm`` sets from epoch ``first`` on (inf: one fails)."""
+        queues, total = self._queues, 0.0
+        for e in range(first, first + self.confirm):
+            items = []
+            for qq, o in zip(queues, offset):
+                k = e - o - qq[0][0]            # index of the sample of epoch e
+                if not 0 <= k < len(qq):
+                    return np.inf
+                items.append(qq[k][2])
+            m = self.misfit(items)
+            if not m <= self.threshold:
+                return np.inf
+            total += m
+        return total
+
+    def _repair(self):
+        """
+        Decide a failed set: True (offsets changed), False (drop it) or None (wait).
+
+        Waits until every stream has queued the samples the candidate pairings need.  After
+        a failure no candidate explains, the next 1, 3, 7 .. 64 failing sets are dropped
+        without a search (a shift beyond ``max_shift`` waits for the stamp vote).
+        """
+        if self._skip:
+            self._skip -= 1
+            return False
+        queues = self._queues
+        if min(len(qq) for qq in queues) < self.max_shift + self.confirm + 1:
+            return None
+        heads = [qq[0][0] for qq in queues]
+        fits = []
+        for j, delta, o in self._candidates():
+            first = (heads[0] + o[0] + 1 if delta == 0 else
+                     max(h + x for h, x in zip(heads, o)))
+            fits.append((self._summed_misfit(o, first), delta, j, o))
+        fits.sort(key=lambda f: f[0])
+        (best, delta, j, o), second = fits[0], fits[1][0]
+        if delta == 0 and best < np.inf:
+            return False                # the pairing holds: this set alone is bad
+        if not (best < np.inf and second - best >= self.margin):
+            if not self._backoff:
+                # a longer slip: vote afresh on the samples from now on (stamps are late,
+                # not shifted: after ~10 samples per stream the majority is the new offset)
+                for h in self._hist:
+                    h.clear()
+                self._since_align = 0
+            self._skip = self._backoff
+            self._backoff = min(64, 2 * self._backoff + 1)
+            return False
+        self._offset = o
+        self.repaired += 1
+        # the stamp vote starts afresh on the shifted streams (all: sensor 1 was shifted)
+        for k in (range(self.n_sensors) if j == 0 else [j]):
+            self._hist[k].clear()
+        return True
