@@ -41,6 +41,7 @@ CASES = {
     'driver_rate': ['--samples', '300', '--pty-mbytes', '0.05', '--protocols', 'ascii',
                     'lemi025', '--node-duration', '1', '--node-warmup', '0.5'],
     'workbench': ['--sizes', '300', '--before', 'none', '--no-ladder'],
+    'pairing': ['--epochs', '1500', '--repeats', '1'],
 }
 
 
@@ -131,3 +132,13 @@ def test_workbench(tmp_path):
     case = doc['results']['cases'][0]
     assert case['n'] == 300 and 'before' not in case
     assert case['after']['diagnose_s'] > 0 and case['after']['report_s'] > 0
+
+
+def test_pairing(tmp_path):
+    doc = _run('pairing', tmp_path)
+    res = doc['results']
+    # clean streams: the check changes no set; under load it drops the sets it cannot pair
+    assert res['clean']['checked'] == res['clean']['stamps_only']
+    assert res['clean']['checked']['rejected'] == 0
+    assert res['loaded']['checked']['repaired'] >= 1
+    assert all(r['us_per_sample_checked'] > 0 for r in res.values())

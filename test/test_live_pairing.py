@@ -149,19 +149,18 @@ def test_the_live_tensor_under_load_is_at_the_noise_floor(loaded):
     """Reproduce the failing demo without ROS: the live tensor under bursts and losses."""
     g_true, live, sets, epochs = loaded
     share, rms, floor = measure(live, sets, epochs, g_true)
-    m = live.matcher
     print(f'mis-paired {100 * share:.1f} % of {len(sets)} sets, tensor RMS error '
-          f'{rms:.1f} nT/m, floor {floor:.2f} nT/m; incomplete {m.incomplete}, rejected '
-          f'{m.rejected}, repaired {m.repaired}')
+          f'{rms:.1f} nT/m, floor {floor:.2f} nT/m')
+    # stamps alone (the old corrector): 19.0 % of the sets mis-paired, 90 nT/m RMS error
     assert share == 0.0
     # RMS over ~2900 x 9 values of white noise: relative sd 1/sqrt(2 * 26000) < 0.5 %;
     # the floor's own C_j ~ 1 +- 3 %: within 10 %
     assert rms == pytest.approx(floor, rel=0.1)
-    # every epoch is accounted for: a set, an epoch a sensor lost, or a set rejected
+    m = live.matcher
+    # every epoch is accounted for: a set, an epoch a sensor lost, or a set rejected; here
+    # the only sets missing are the 8 epochs whose sample a sensor lost (each slip <= 3)
     assert len(sets) + m.incomplete + m.rejected == N
-    # the losses: 8 epochs lost by a sensor, the sets around the longer slip (3 samples
-    # lost while another stream was starved for 0.4 s) until the re-vote: at most 3 %
-    assert len(sets) >= 0.97 * N
+    assert m.incomplete == 8 and m.rejected == 0 and m.repaired == 6
 
 
 def test_what_the_calibration_nodes_check_sees_under_the_same_load():
@@ -199,22 +198,57 @@ def clean(seed, n=N, **kwargs):
     return arrivals(seed, n, **kwargs)
 
 
-@pytest.mark.parametrize('sensor', [0, 1, 2, 3])
-def test_a_lost_sample_is_re_paired_at_once(sensor):
+@pytest.mark.parametrize('sensor, lost', [(0, 1), (1, 1), (2, 1), (3, 1), (2, 2), (0, 3),
+                                          (3, 3)])
+def test_lost_samples_are_re_paired_before_the_next_set(sensor, lost):
     """
-    Lose one sample of one stream: no set is mis-paired, only the lost epoch is missing.
+    Lose 1-3 consecutive samples of one stream: no set is mis-paired, only the lost epochs.
 
-    Stamps alone keep the stream one epoch off until the vote's majority flips (up to half
-    its 200-sample window: test_sync); the check sees the first mis-paired set of the
-    turning array and the matcher shifts the stream before emitting it.
+    Stamps alone keep the stream off until the vote's majority flips (up to half its
+    200-sample window: test_sync); the check sees the first mis-paired set of the turning
+    array and the matcher shifts the stream before emitting it (StampMatcher max_shift 3).
     """
-    fields, g_true = truth(1500)
-    live, sets, epochs = run_corrector(clean(3, 1500, drops=[(sensor, 700)]), fields)
+    fields, _ = truth(1500)
+    live, sets, epochs = run_corrector(clean(3, 1500, drop_runs=[(sensor, 700, lost)]),
+                                       fields)
     m = live.matcher
     assert not np.any(epochs != epochs[:, :1])
     assert m.repaired == 1 and m.rejected == 0
-    assert m.incomplete == 1 and len(sets) == 1500 - 1
-    assert 700 not in epochs[:, 0]
+    assert m.incomplete == lost and len(sets) == 1500 - lost
+    assert not set(range(700, 700 + lost)) & set(epochs[:, 0])
+
+
+def test_a_longer_run_of_lost_samples_waits_for_the_vote_and_is_counted():
+    """Lose 8 samples of one stream: the sets until the vote sees it are dropped, counted."""
+    fields, g_true = truth(N)
+    live, sets, epochs = run_corrector(clean(3, drop_runs=[(1, 1000, 8)]), fields)
+    m = live.matcher
+    assert not np.any(epochs != epochs[:, :1])
+    assert m.repaired == 1 and m.incomplete == 8
+    # the stamp vote restarts on the samples after the first failed set: ~10 per stream,
+    # then its proposal is taken at the next failed set (measured: 15)
+    assert 0 < m.rejected <= 30
+    assert len(sets) + m.incomplete + m.rejected == N
+
+
+def test_stamps_of_one_sensor_late_by_more_than_half_a_period():
+    """
+    A sensor whose stamps lag by 1.6 periods (a USB-serial latency timer, a slow reader).
+
+    The stamp vote pairs it one or two epochs off for good; the old live tensor was wrong
+    for the whole record.  The check re-pairs it once, and the vote's later proposals do
+    not move a pairing that fits.
+    """
+    fields, g_true = truth(N)
+    events = sorted(((stamp + (0.016 if j == 3 else 0.0), j, e)
+                     for stamp, j, e in clean(4)), key=lambda ev: (ev[0], ev[1]))
+    old, old_sets, old_epochs = run_corrector(events, fields, check_pairing=False)
+    share, rms, floor = measure(old, old_sets, old_epochs, g_true)
+    assert share > 0.99 and rms > 20 * floor
+    live, sets, epochs = run_corrector(events, fields)
+    share, rms, floor = measure(live, sets, epochs, g_true)
+    assert share == 0.0 and rms == pytest.approx(floor, rel=0.1)
+    assert live.matcher.repaired == 1 and live.matcher.rejected == 0
 
 
 def test_no_false_alarm_on_clean_streams_and_the_same_tensors():

@@ -139,7 +139,8 @@ class LiveCorrector:
         self.no_gradient_reason = None
         self.positions_m = None
         self.pairing_dof, self.pairing_threshold = 0, np.inf
-        self._pairing_op = None
+        self._set_op = None            # (9 + dof, 3 S): the tensor, then K (pairing_chi2)
+        self._checked = None           # (the fields last checked, their _set_op product)
         self.no_check_reason = ('sets are paired by stamps alone (check_pairing off)'
                                 if not check_pairing else None)
         if positions_m is None:
@@ -163,9 +164,10 @@ class LiveCorrector:
             g = self.gradient_op @ block @ self.gradient_op.T
             self.gradient_cov_nt2 = 0.5 * (g + g.T)
             if check_pairing:
-                self._pairing_op = pairing_operator(pos, block)
-                self.pairing_dof = len(self._pairing_op)
+                k = pairing_operator(pos, block)
+                self.pairing_dof = len(k)
                 if self.pairing_dof:
+                    self._set_op = np.vstack([self.gradient_op, k])
                     self.pairing_threshold = float(chi2.isf(PAIRING_FALSE_ALARM,
                                                             self.pairing_dof))
                     self.matcher.misfit = self.pairing_chi2
@@ -345,9 +347,12 @@ class LiveCorrector:
             chi^2 (0 without a check: :attr:`no_check_reason`).
 
         """
-        if self._pairing_op is None:
+        if self._set_op is None:
             return 0.0
-        z = self._pairing_op @ np.concatenate(fields_nt)
+        # the tensor comes with it: gradients() takes it for a set that passed
+        y = self._set_op @ np.concatenate(fields_nt)
+        self._checked = (fields_nt, y)
+        z = y[9:]
         return float(z @ z)
 
     def gradients(self, j, t, field_nt):
@@ -365,8 +370,15 @@ class LiveCorrector:
         """
         if self.gradient_op is None:
             return []
-        return [(t_set, (self.gradient_op @ np.concatenate(fields)).reshape(3, 3))
-                for t_set, fields in self.sets(j, t, field_nt)]
+        out = []
+        for t_set, fields in self.sets(j, t, field_nt):
+            checked = self._checked
+            if checked is not None and checked[0] is fields:
+                g = checked[1][:9]                   # computed by the check
+            else:
+                g = self.gradient_op @ np.concatenate(fields)
+            out.append((t_set, g.reshape(3, 3)))
+        return out
 
 
 def pairing_operator(positions_m, cov_nt2):

@@ -31,7 +31,12 @@ Sets are therefore formed by epoch number. Within a stream the samples arrive in
 (normally) none is lost, so the k-th sample of sensor j belongs to epoch k + o_j with one
 integer offset o_j per sensor. The offsets are voted from the stamps (:class:`StampMatcher`),
 which only needs most samples, not all, to have a stamp close to their epoch. A lost sample
-shifts a stream by one epoch; the next vote corrects it.
+(the sensor-data QoS drops samples under load) shifts a stream by one epoch, which the vote
+sees only when its majority flips, up to a second later; a stream whose stamps lag by more
+than half a period is paired off for good.  Where the items of a set can be checked from
+the data (the corrected fields of a calibrated array: :class:`magcal_ros.core.live.
+LiveCorrector`), the matcher takes a ``misfit``: no set that fails is emitted, and a shifted
+stream is re-paired at the first set that shows it.
 """
 from collections import deque
 
@@ -103,6 +108,11 @@ def epoch_times(epochs, stamps_s):
     return t0 + slope * (e - e[0])
 
 
+#: largest change of the epoch offsets (epochs) that a failed set may take from the stamp
+#: vote's proposal (StampMatcher with ``misfit``): the sets wait for that many samples
+MAX_VOTE_SHIFT = 25
+
+
 class _Ring:
     """Last ``size`` (sequence number, stamp) pairs of one stream, as numpy arrays."""
 
@@ -149,8 +159,9 @@ class StampMatcher:
     chunks and bursts: every sample of sensor j in a sliding window votes for the epoch of
     the sensor-1 sample nearest in stamp (both :func:`backdate`-ed), if that is within
     ``tolerance_s``, and a clear majority wins. The vote is repeated every
-    ``align_every`` samples, so a lost sample (which shifts a stream by one epoch) is
-    corrected within that many samples. Sets are then formed by epoch number, like the
+    ``align_every`` samples; a lost sample (which shifts a stream by one epoch) is seen
+    when the majority of the window flips (test_sync: up to about half a window), sooner
+    with ``misfit``. Sets are then formed by epoch number, like the
     "approximate time" policy of message_filters but immune to stamp jitter: whenever every
     sensor has a queued sample, the heads of the queues either share an epoch (a set) or the
     oldest heads are dropped (an epoch some sensor never delivered).
@@ -177,12 +188,15 @@ class StampMatcher:
         sums the misfit of the pairing as it is and of each shift of one stream by 1 ..
         ``max_shift`` epochs (the maximum-likelihood pairing), and adopts at once a shift
         whose every set passes and whose sum beats every other candidate's by ``margin``
-        (a lost sample: :attr:`repaired`).  Otherwise the set is dropped (:attr:`rejected`):
-        when the pairing as it is fits best (this set alone was bad), or when no candidate
-        or more than one fits (a longer slip: the stamp vote restarts on the samples from
-        then on; the array too still to tell: the sets differ little anyway).  Stamps
-        alone cannot see a shifted stream until the vote's majority flips (about half a
-        ``window``).
+        (a lost sample: :attr:`repaired`).  Once aligned, the stamp vote only proposes
+        offsets (one more candidate, up to :data:`MAX_VOTE_SHIFT` epochs away): stamps
+        that lag by more than half a period no longer move a pairing that fits.
+        Otherwise the set is dropped (:attr:`rejected`): when the pairing as it is fits
+        best (this set alone was bad), or when no candidate or more than one fits (a
+        longer slip: the stamp vote restarts on the samples from then on, and its proposal
+        is tried at the next failed set; an array too still to tell: its sets differ
+        little anyway).  Stamps alone cannot see a shifted stream until the vote's
+        majority flips (about half a ``window``).
     threshold : float
         Largest misfit of a set that passes.
     max_shift : int
@@ -211,7 +225,7 @@ class StampMatcher:
     """
 
     def __init__(self, n_sensors, tolerance_s, window=200, align_every=40, max_queue=1000,
-                 misfit=None, threshold=np.inf, max_shift=2, confirm=5, margin=25.0):
+                 misfit=None, threshold=np.inf, max_shift=3, confirm=5, margin=25.0):
         if n_sensors < 1:
             raise ValueError(f'n_sensors must be >= 1, got {n_sensors}')
         if not tolerance_s > 0:
@@ -239,6 +253,7 @@ class StampMatcher:
         self._seq = [0] * self.n_sensors
         self._last_arrival = [None] * self.n_sensors
         self._offset = [0] + [None] * (self.n_sensors - 1)
+        self._proposal = [0] + [None] * (self.n_sensors - 1)    # the stamp vote's, checked
         self._aligned = self.n_sensors == 1
         self._since_align = 0
         self._backoff = self._skip = 0
@@ -323,6 +338,9 @@ class StampMatcher:
             if counts.max() <= 0.5 * len(votes):
                 continue           # no clear majority: keep the offset we have
             best = int(values[np.argmax(counts)])
+            if self.misfit is not None and self._aligned:
+                self._proposal[j] = best    # the data decide (_repair), stamps propose
+                continue
             if self._offset[j] is not None and best != self._offset[j]:
                 self.realigned += 1
             self._offset[j] = best
@@ -342,7 +360,8 @@ class StampMatcher:
             epochs = [qq[0][0] + o for qq, o in zip(queues, offset)]
             e = min(epochs)
             if all(x == e for x in epochs):
-                if misfit is not None and not misfit([qq[0][2] for qq in queues]) <= threshold:
+                items = [qq[0][2] for qq in queues]
+                if misfit is not None and not misfit(items) <= threshold:
                     repaired = self._repair()
                     if repaired is None:
                         break               # wait for the samples that decide it
@@ -353,7 +372,7 @@ class StampMatcher:
                     continue                # repaired: the heads pair anew
                 self._backoff = self._skip = 0
                 heads = [qq.popleft() for qq in queues]
-                out.append((e, _median([h[1] for h in heads]), [h[2] for h in heads]))
+                out.append((e, _median([h[1] for h in heads]), items))
                 self.complete += 1
             else:
                 for qq, x in zip(queues, epochs):
@@ -363,8 +382,9 @@ class StampMatcher:
         return out
 
     def _candidates(self):
-        """Offsets to try after a failed check: as they are, then one stream shifted."""
-        yield 0, 0, list(self._offset)
+        """Offsets to try after a failed set: as they are, one stream shifted, the vote's."""
+        yield 0, list(self._offset)
+        small = []
         for j in range(self.n_sensors):
             for d in range(1, self.max_shift + 1):
                 for delta in (d, -d):
@@ -373,7 +393,13 @@ class StampMatcher:
                         o[1:] = [x - delta for x in o[1:]]
                     else:
                         o[j] += delta
-                    yield j, delta, o
+                    small.append(o)
+                    yield delta, o
+        vote = [p if p is not None else o for p, o in zip(self._proposal, self._offset)]
+        diff = [p - o for p, o in zip(vote, self._offset)]
+        reach = max(diff) - min(diff)   # diff[0] = 0: sensor 1 keeps offset 0
+        if vote not in small and 0 < reach <= MAX_VOTE_SHIFT:
+            yield reach, vote           # e.g. a run of lost samples, once the vote sees it
 
     def _summed_misfit(self, offset, first):
         """Misfit summed over the ``confirm`` sets from epoch ``first`` on (inf: one fails)."""
@@ -403,16 +429,18 @@ class StampMatcher:
             self._skip -= 1
             return False
         queues = self._queues
-        if min(len(qq) for qq in queues) < self.max_shift + self.confirm + 1:
+        candidates = list(self._candidates())
+        reach = max(self.max_shift, max(abs(d) for d, _ in candidates))
+        if min(len(qq) for qq in queues) < reach + self.confirm + 1:
             return None
         heads = [qq[0][0] for qq in queues]
         fits = []
-        for j, delta, o in self._candidates():
+        for delta, o in candidates:
             first = (heads[0] + o[0] + 1 if delta == 0 else
                      max(h + x for h, x in zip(heads, o)))
-            fits.append((self._summed_misfit(o, first), delta, j, o))
+            fits.append((self._summed_misfit(o, first), delta, o))
         fits.sort(key=lambda f: f[0])
-        (best, delta, j, o), second = fits[0], fits[1][0]
+        (best, delta, o), second = fits[0], fits[1][0]
         if delta == 0 and best < np.inf:
             return False                # the pairing holds: this set alone is bad
         if not (best < np.inf and second - best >= self.margin):
@@ -427,7 +455,4 @@ class StampMatcher:
             return False
         self._offset = o
         self.repaired += 1
-        # the stamp vote starts afresh on the shifted streams (all: sensor 1 was shifted)
-        for k in (range(self.n_sensors) if j == 0 else [j]):
-            self._hist[k].clear()
         return True

@@ -325,7 +325,10 @@ class CalibrationNode(Node):
         """Apply ``cal`` to the incoming data from now on (residual and its diagnostics)."""
         s = prm.calibration_settings(self)
         positions = (doc.get('geometry') or {}).get('positions_m')
-        live = LiveCorrector(cal, self._n, positions, s.stamp_tolerance_s)
+        # the residual monitor sees every set, also one that fails the pairing check: a
+        # calibration that no longer fits must show in the residual, not be dropped
+        live = LiveCorrector(cal, self._n, positions, s.stamp_tolerance_s,
+                             check_pairing=False)
         with self._lock:
             live.temp[:] = self._temp
             live.aux.update(self._aux)

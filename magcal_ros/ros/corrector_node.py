@@ -35,8 +35,18 @@ Topics (relative to the node namespace, default ``/magcal``; docs/design.md §3)
   orthogonalised axes, at its position) of every calibration it installs, when tf2_ros is
   importable (REP 105 frames; README "Frames");
 - publishes its health on ``/diagnostics``: WARN without a usable calibration (then nothing
-  is published), when a calibration was refused (the last good one stays active), or while a
-  driven effect lacks its live signal.
+  is published), when a calibration was refused (the last good one stays active), while a
+  driven effect lacks its live signal, or when more than :data:`PAIRING_WARN_SHARE` of the
+  sets since the last report failed the pairing check.
+
+The sets of the tensor are paired by epoch (:class:`magcal_ros.core.sync.StampMatcher`, the
+offsets voted from the stamps) and checked from the data before they give a tensor
+(:meth:`magcal_ros.core.live.LiveCorrector.pairing_chi2`, when the calibration has noise
+estimates): a set whose four corrected fields do not fit one linear field is not published
+(``sets_failed_pairing_check`` on ``/diagnostics``), and a stream shifted by a lost sample is
+re-paired before its next set (``streams_re_paired``).  Under CPU load stamps arrive late and
+in bursts and the sensor-data QoS drops samples; stamps alone left a turning array's tensor
+mis-paired for up to a second after each loss (docs/failure_modes.md).
 
 A calibration with a ``site_gradient`` (docs/site_gradient.md) is corrected like any other:
 the site gradient is part of the field each sensor sees, and is ignored, unless the
@@ -54,7 +64,7 @@ import os
 import sys
 
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-from magcal_ros.core.live import LiveCorrector, MissingSignal
+from magcal_ros.core.live import LiveCorrector, MissingSignal, PAIRING_FALSE_ALARM
 from magcal_ros.io.calfile import CalibrationFileError, load_calibration, parse_calibration
 from magcal_ros.ros import params as prm
 from magcal_ros.ros.calibration_node import RESULT_QOS, SENSOR_QOS
@@ -68,6 +78,12 @@ import numpy as np
 from rclpy.node import Node
 from sensor_msgs.msg import MagneticField, Temperature
 from std_msgs.msg import Float64, Float64MultiArray, String
+
+
+#: share of the sets since the last diagnostics report that may fail the pairing check
+#: before the status is WARN (a lost sample costs one set; more means mis-paired streams
+#: that were not re-paired, or a calibration that no longer fits the sensors)
+PAIRING_WARN_SHARE = 0.01
 
 
 def _optional(module, name):
@@ -114,6 +130,7 @@ class CorrectorNode(Node):
         self._counts = np.zeros(self._n, int)     # corrected samples published per sensor
         self._received = 0                          # raw samples taken (all sensors)
         self._n_gradient = 0
+        self._pairing_seen = (0, 0)                # (failed, complete) at the last report
 
         self._pub_corr = [self.create_publisher(MagneticField, f'sensor{j}/corrected', 10)
                           for j in range(1, self._n + 1)]
@@ -400,6 +417,9 @@ class CorrectorNode(Node):
             problems.append('subtract_site_gradient is set but the calibration has no '
                             'site_gradient: nothing is subtracted (calibrate with model '
                             "['base', 'site_gradient'] and an imu_topic)")
+        pairing = self._pairing_report()
+        if pairing:
+            problems.append(pairing)
         if problems:
             st.level = DiagnosticStatus.WARN
             st.message = '; '.join(problems)
@@ -412,6 +432,10 @@ class CorrectorNode(Node):
                   ('gradient_published', str(self._n_gradient)),
                   ('incomplete_sets_dropped',
                    str(self._live.matcher.incomplete if self._live else 0)),
+                  ('pairing_check', self._describe_check()),
+                  ('sets_failed_pairing_check',
+                   str(self._live.matcher.rejected if self._live else 0)),
+                  ('streams_re_paired', str(self._live.matcher.repaired if self._live else 0)),
                   ('gradient_stamped', 'published' if self._pub_stamped else
                    'not published: magcal_interfaces is not importable'),
                   ('frame_id', self._frame)]
@@ -419,6 +443,33 @@ class CorrectorNode(Node):
                    for j, c in enumerate(self._counts)]
         st.values = [KeyValue(key=k, value=v) for k, v in values]
         return st
+
+    def _describe_check(self):
+        """One line: how the sets of the tensor are checked."""
+        live = self._live
+        if live is None:
+            return 'no calibration'
+        if live.no_check_reason:
+            return live.no_check_reason
+        return (f'chi-square of {live.pairing_dof} redundant components <= '
+                f'{live.pairing_threshold:.1f} (false alarm {PAIRING_FALSE_ALARM:g} per set)')
+
+    def _pairing_report(self):
+        """Return the problem if too many sets failed the check since the last report."""
+        live = self._live
+        if live is None:
+            return None
+        m = live.matcher
+        failed, complete = self._pairing_seen
+        if m.rejected < failed or m.complete < complete:
+            failed = complete = 0               # a new calibration: a new matcher
+        self._pairing_seen = (m.rejected, m.complete)
+        failed, complete = m.rejected - failed, m.complete - complete
+        if failed <= PAIRING_WARN_SHARE * (failed + complete):
+            return None
+        return (f'{failed} of {failed + complete} sets since the last report failed the '
+                'pairing check and gave no tensor (streams mis-paired under load, or a '
+                'calibration that no longer fits: see calibration/residual)')
 
     def _publish_diagnostics(self):
         self._updater.force_update()
