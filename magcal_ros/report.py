@@ -32,18 +32,20 @@ backend change, no display needed).  The noise floor is drawn on every residual 
 """
 import base64
 import html
-import io
 import os
 from pathlib import Path
 import re
+import struct
 import textwrap
+import zlib
 
 from magcal_ros.core.diagnose import (AT_FLOOR_RATIO, compact_spec, MIN_DELTA_BIC,
                                       MIN_EXPLAINED, noise_floor_from_data)
 from magcal_ros.core.tensor import cross_positions, tensor_cross, tensor_noise_floor
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
-from matplotlib.ticker import AutoLocator, FuncFormatter, MaxNLocator, NullLocator
+from matplotlib.ticker import (AutoLocator, FuncFormatter, Locator, LogLocator, MaxNLocator,
+                               NullLocator)
 import numpy as np
 
 #: at most this many points per scatter plot (evenly thinned; the extremes are added)
@@ -87,15 +89,65 @@ def _arrange(fig, rows=1, cols=1, left=0.8, right=0.25, bottom=0.55, top=0.3, ws
         text = next(t for t in fig.texts if t.get_text() == title)
         size = text.get_fontsize() / 72.0                    # points -> inches
         top = top + 0.1 + 1.25 * size * (title.count('\n') + 1)
-    cell_w = max((w - left - right - (cols - 1) * wspace) / cols, 0.5)
+    cell_w = _cell_width(fig, cols, left, right, wspace)
     cell_h = max((h - top - bottom - (rows - 1) * hspace) / rows, 0.3)
     fig.subplots_adjust(left=left / w, right=1.0 - right / w, bottom=bottom / h,
                         top=1.0 - top / h, wspace=wspace / cell_w, hspace=hspace / cell_h)
     for ax in fig.axes:
         for axis in (ax.xaxis, ax.yaxis):
-            if type(axis.get_major_locator()) is AutoLocator:
-                axis.set_major_locator(MaxNLocator(nbins=4, steps=[1, 2, 2.5, 5, 10]))
+            loc = axis.get_major_locator()
+            if type(loc) is AutoLocator:
+                axis.set_major_locator(_InView(MaxNLocator(
+                    nbins=3, steps=[1, 2, 2.5, 5, 10], min_n_ticks=3)))
+            elif type(loc) is LogLocator:
+                axis.set_major_locator(_InView(loc))
     return fig
+
+
+def _cell_width(fig, cols=1, left=0.8, right=0.25, wspace=1.0):
+    """Return the width of one axes that :func:`_arrange` gives these margins, inches."""
+    return max((fig.get_figwidth() - left - right - (cols - 1) * wspace) / cols, 0.5)
+
+
+def _columns(fig, cols=1, **margins):
+    """Return the pixel columns of one axes of :func:`_arrange` (``margins`` as there)."""
+    return int(np.ceil(DPI * _cell_width(fig, cols, **margins)))
+
+
+class _InView(Locator):
+    """
+    Return the ticks of another locator that lie inside the view limits.
+
+    MaxNLocator's and LogLocator's ticks reach past the limits (0..600 s gets -200 and
+    800); matplotlib creates a tick (five artists) for each before it drops the outer ones.
+    """
+
+    def __init__(self, inner):
+        self.inner = inner
+
+    def set_axis(self, axis):
+        """Attach both locators to ``axis``."""
+        super().set_axis(axis)
+        self.inner.set_axis(axis)
+
+    def __call__(self):
+        """Return the tick locations inside the view interval."""
+        vmin, vmax = sorted(self.axis.get_view_interval())
+        locs = np.asarray(self.inner())
+        slack = 1e-9 * max(vmax - vmin, abs(vmin), abs(vmax))
+        return locs[(locs >= vmin - slack) & (locs <= vmax + slack)]
+
+    def tick_values(self, vmin, vmax):
+        """Return the inner locator's ticks for these limits."""
+        return self.inner.tick_values(vmin, vmax)
+
+    def nonsingular(self, v0, v1):
+        """Return the inner locator's expanded limits."""
+        return self.inner.nonsingular(v0, v1)
+
+    def view_limits(self, vmin, vmax):
+        """Return the inner locator's view limits."""
+        return self.inner.view_limits(vmin, vmax)
 
 
 def _bottom_legend(fig, fontsize=7):
@@ -129,10 +181,46 @@ def _title(ax, text, **kwargs):
 
 
 def _png(fig):
-    """Return the figure as PNG bytes (zlib level 1: a third of the encoding time)."""
-    buf = io.BytesIO()
-    fig.savefig(buf, format='png', dpi=DPI, pil_kwargs={'compress_level': 1})
-    return buf.getvalue()
+    """Draw the figure on its Agg canvas and return it as PNG bytes (:func:`png_bytes`)."""
+    fig.canvas.draw()
+    return png_bytes(np.asarray(fig.canvas.buffer_rgba())[..., :3])
+
+
+def png_bytes(rgb):
+    """
+    Encode an 8-bit RGB image as PNG (ISO/IEC 15948: IHDR, one IDAT, IEND).
+
+    Every row with the 'Up' filter (type 2, the difference from the row above), deflated at
+    zlib level 1.  Pillow (behind ``savefig``) tries the five filters on every row and took
+    2-2.5 x as long for a file of the same size; a plot is mostly rows that repeat the one
+    above (white space, axes, horizontal lines), which 'Up' turns into zeros.
+
+    Parameters
+    ----------
+    rgb : numpy.ndarray
+        (H, W, 3) uint8 image, rows from the top.
+
+    Returns
+    -------
+    bytes
+        The PNG file.
+
+    """
+    rgb = np.ascontiguousarray(rgb, dtype=np.uint8)
+    h, w, _ = rgb.shape
+    rows = rgb.reshape(h, 3 * w)
+    scan = np.empty((h, 3 * w + 1), np.uint8)
+    scan[:, 0] = 2                                  # filter type of each row: Up
+    scan[:1, 1:] = rows[:1]
+    np.subtract(rows[1:], rows[:-1], out=scan[1:, 1:])     # modulo 256, as the filter is
+
+    def chunk(tag, body):
+        return (struct.pack('>I', len(body)) + tag + body
+                + struct.pack('>I', zlib.crc32(tag + body)))
+    # width, height, bit depth 8, colour type 2 (RGB), deflate, adaptive filtering, no interlace
+    header = struct.pack('>IIBBBBB', w, h, 8, 2, 0, 0, 0)
+    return (b'\x89PNG\r\n\x1a\n' + chunk(b'IHDR', header)
+            + chunk(b'IDAT', zlib.compress(scan.tobytes(), 1)) + chunk(b'IEND', b''))
 
 
 def _thin(n):
@@ -174,17 +262,17 @@ def _envelope(y, columns=PIXEL_COLUMNS):
     return np.unique(np.concatenate(parts))
 
 
-def _scatter_idx(n, *series):
+def _scatter_idx(n, *series, columns=PIXEL_COLUMNS):
     """
     Return evenly thinned samples plus the extremes of every series, sorted.
 
-    The thinned samples show the density of the cloud, the envelopes (:func:`_envelope`)
-    its extremes per pixel column.
+    The thinned samples show the density of the cloud, the envelopes (:func:`_envelope`,
+    over ``columns`` chunks) its extremes per pixel column.
     """
     idx = _thin(n)
     if len(idx) == n:
         return idx
-    return np.union1d(idx, np.concatenate([_envelope(y) for y in series]))
+    return np.union1d(idx, np.concatenate([_envelope(y, columns) for y in series]))
 
 
 def _binned(x, y, bins=20):
@@ -198,10 +286,26 @@ def _binned(x, y, bins=20):
     return (np.array([x[p].mean() for p in parts]), np.array([y[p].mean() for p in parts]))
 
 
-def _sensor_axes(fig, n):
+def _sensor_axes(fig, n, sharey=False):
+    """
+    Return ``n`` axes in rows of up to four.
+
+    ``sharey``: the axes of a row share the y axis, whose tick labels are drawn on the first
+    only (the y label is then set on the first of each row: :func:`_row_starts`).
+    """
     cols = min(n, 4)
     rows = int(np.ceil(n / cols))
-    return [fig.add_subplot(rows, cols, j + 1) for j in range(n)]
+    if not sharey:
+        return [fig.add_subplot(rows, cols, j + 1) for j in range(n)]
+    axes = list(fig.subplots(rows, cols, sharey='row', squeeze=False).ravel())
+    for ax in axes[n:]:
+        fig.delaxes(ax)
+    return axes[:n]
+
+
+def _row_starts(n):
+    """Return whether each of the ``n`` axes of :func:`_sensor_axes` starts its row."""
+    return [i % min(n, 4) == 0 for i in range(n)]
 
 
 def _floor_lines(ax, level, label='noise floor'):
@@ -247,12 +351,13 @@ def plot_magnitude(data, result):
     t = data.t - data.t[0]
     offs = magnitude_offsets(data, result)
     f = result.field_magnitude_nt
+    px = _columns(fig, min(s, 4))
     for j, ax in enumerate(_sensor_axes(fig, s), start=1):
         meas = np.linalg.norm(data.raw[j - 1], axis=1) - f
         model = np.linalg.norm(data.raw[j - 1] - result.residual_nt[j - 1], axis=1) - f
-        idx = _scatter_idx(len(t), meas)
+        idx = _scatter_idx(len(t), meas, columns=px)
         ax.plot(t[idx], meas[idx], '.', ms=1.5, color='0.6', label='measured |raw| - |B|')
-        idx = _envelope(model)
+        idx = _envelope(model, px)
         ax.plot(t[idx], model[idx], '-', lw=0.8, color='tab:blue',
                 label='model |A B + o + ...| - |B|')
         ax.axhline(0.0, color='k', lw=1.0, label='reference |B|')
@@ -273,15 +378,17 @@ def plot_residual_time(data, result, floor):
     fig = _figure(12, 2.2 * s + 0.6)
     t = data.t - data.t[0]
     axes = np.atleast_1d(fig.subplots(s, 1, sharex=True))
+    margins = {'right': 2.3}
+    px = _columns(fig, **margins)
     for j in range(1, s + 1):
         ax = axes[j - 1]
         scalar = result.scalar_residual_nt[j - 1]
-        idx = _scatter_idx(len(t), scalar)
+        idx = _scatter_idx(len(t), scalar, columns=px)
         ax.plot(t[idx], scalar[idx], '.', ms=1.5, color='0.3', label='scalar |corrected| - |B|')
         if j > 1:
             for c in range(3):
                 v = result.vector_residual_nt[j - 1, :, c]
-                idx = _envelope(v)
+                idx = _envelope(v, px)
                 ax.plot(t[idx], v[idx], '-', lw=0.6, color=COMPONENT_COLOURS[c], alpha=0.7,
                         label=f'vector {"xyz"[c]}: sensor {j} - sensor 1')
         _floor_lines(ax, floor.per_sensor_nt[j - 1])
@@ -292,7 +399,7 @@ def plot_residual_time(data, result, floor):
             ax.legend(fontsize=7, loc='upper left', bbox_to_anchor=(1.01, 1.0))
     _suptitle(fig, f'Residual over time (model {",".join(compact_spec(result.model))})',
               fontsize=11)
-    return _arrange(fig, s, 1, right=2.3, top=0.05, hspace=0.12)
+    return _arrange(fig, s, 1, top=0.05, hspace=0.12, **margins)
 
 
 def _driver_panels(data, result, floor, drivers, title, xlabel):
@@ -493,11 +600,13 @@ def plot_tensor(data, result, baseline_m=0.5, floor=None):
     fig = _figure(12, 6.5)
     comps = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
     axes = fig.subplots(2, 1, sharex=True)
+    margins = {'right': 2.6}
+    px = _columns(fig, **margins)
     for k, (g, label) in enumerate(((before, 'before (raw readings)'),
                                     (after, 'after correction'))):
         ax = axes[k]
         for n, (a, b) in enumerate(comps):
-            idx = _envelope(g[:, a, b])
+            idx = _envelope(g[:, a, b], px)
             ax.plot(t[idx], g[idx, a, b], '-', lw=0.7, color=f'C{n}',
                     label=f'G{"xyz"[a]}{"xyz"[b]}')
         if k == 1:
@@ -511,7 +620,7 @@ def plot_tensor(data, result, baseline_m=0.5, floor=None):
     fig.axes[-1].set_xlabel('time since start (s)')
     _suptitle(fig, f'Gradient tensor of the cross (baseline {baseline_m} m), uniform field: '
               'ideally zero', fontsize=11)
-    return _arrange(fig, 2, 1, right=2.6, hspace=0.35)
+    return _arrange(fig, 2, 1, hspace=0.35, **margins)
 
 
 def candidate_chart_data(diagnosis, top=15):
@@ -558,13 +667,16 @@ def plot_candidates(diagnosis, top=15):
     What decided the verdict: the held-out share of the excess over the floor each
     candidate removes (left; the verdict needs MIN_EXPLAINED), delta BIC (right); the
     verdict's bar is outlined.  Green: passes every test; orange: significant by the
-    likelihood tests but removes too small a share; grey: not significant.
+    likelihood tests but removes too small a share; grey: not significant.  A candidate
+    whose share was not tested (cross-validation stops at the verdict) has a grey cross at
+    0, named once in the legend.  The verdict's reason is the page's verdict line.
     """
     rows = candidate_chart_data(diagnosis, top)
     if not rows:
         return None
     fig = _figure(12, 0.35 * len(rows) + 1.8)
-    ax, ax2 = fig.subplots(1, 2, sharey=True, width_ratios=[3, 2])
+    # the right panel repeats the rows without tick marks (sharey would make each tick twice)
+    ax, ax2 = fig.subplots(1, 2, width_ratios=[3, 2])
     y = np.arange(len(rows))[::-1]
     colours = ['tab:green' if r['significant'] else
                ('tab:orange' if r['likelihood_tests'] else '0.7') for r in rows]
@@ -576,14 +688,16 @@ def plot_candidates(diagnosis, top=15):
             bar.set_edgecolor('k')
             bar.set_linewidth(2)
     for yi, r in zip(y, rows):
-        if r['explained_fraction'] is None:
-            txt = 'not tested for its share'
-        else:
+        if r['explained_fraction'] is not None:
             txt = f'{r["explained_fraction"]:.0%}'
             if r['held_out_drop_nt'] is not None:
                 txt += (f' (held-out {r["held_out_before_nt"]:.2f} -> '
                         f'{r["held_out_after_nt"]:.2f} nT)')
-        ax.text(0, yi, f'  {txt}', va='center', fontsize=7)
+            ax.text(0, yi, f'  {txt}', va='center', fontsize=7)
+    untested = [yi for yi, r in zip(y, rows) if r['explained_fraction'] is None]
+    if untested:
+        ax.plot(np.full(len(untested), 0.012), untested, 'x', ms=5, color='0.4',
+                clip_on=False, label='share not tested')
     ax.axvline(MIN_EXPLAINED, color='k', ls='--', lw=1,
                label=f'a verdict removes >= {MIN_EXPLAINED:.0%}')
     ax.set_xlim(0, 1)
@@ -596,14 +710,16 @@ def plot_candidates(diagnosis, top=15):
     ev = np.array([max(r['evidence'], 0.1) if r['evidence'] is not None else 0.1
                    for r in rows])
     ax2.barh(y, ev, color=colours)
+    ax2.set_ylim(ax.get_ylim())
+    ax2.set_yticks([])
     ax2.set_xscale('log')
     _plain_log_ticks(ax2.xaxis)
     ax2.axvline(-MIN_DELTA_BIC, color='k', ls='--', lw=1, label='-dBIC = 10 (strong evidence)')
     ax2.set_xlabel('-delta BIC (log scale): must exceed 10')
     ax2.set_ylabel('(same candidates)')
     ax2.legend(fontsize=7, loc='lower right')
-    _suptitle(fig, f'Candidate effects, best first; verdict: {diagnosis.verdict_token or "none"}'
-              f' ({diagnosis.verdict_reason})', fontsize=10)
+    _suptitle(fig, 'Candidate effects, best first; verdict: '
+              f'{diagnosis.verdict_token or "none"}', fontsize=10)
     # room for the longest effect token (8 pt: ~0.065 in per character) and the axis label
     longest = max(len(r['token']) for r in rows)
     return _arrange(fig, 1, 2, left=0.45 + 0.065 * longest, top=0.05, bottom=0.6, wspace=0.5)
@@ -618,10 +734,11 @@ def plot_ladder_rungs(data, ladder):
     fig = _figure(11, 1.9 * len(steps) + 0.8)
     axes = np.atleast_1d(fig.subplots(len(steps), 1, sharex=True))
     t = data.t - data.t[0]
+    px = _columns(fig)
     for ax, (i, st) in zip(axes, enumerate(steps)):
         res = st.result.scalar_residual_nt
         for j in range(res.shape[0]):
-            idx = _scatter_idx(len(t), res[j])
+            idx = _scatter_idx(len(t), res[j], columns=px)
             ax.plot(t[idx], res[j, idx], ',' if len(idx) > 3000 else '.', ms=1.5,
                     label=f'sensor {j + 1}', alpha=0.6)
         _floor_lines(ax, 3 * fl.value_nt, label='3 x floor')
@@ -693,7 +810,9 @@ def plot_residual_spectrum(findings):
     if not sensors or len(findings.t) < 30:
         return None
     fig = _figure(3.6 * min(len(sensors), 4), 3.2 * int(np.ceil(len(sensors) / 4)))
-    for ax, j in zip(_sensor_axes(fig, len(sensors)), sensors):
+    # one power axis per row: power over the white-noise level compares across sensors
+    for ax, first, j in zip(_sensor_axes(fig, len(sensors), sharey=True),
+                            _row_starts(len(sensors)), sensors):
         freqs, power, _ = periodogram(findings.t, findings.series[j])
         z = power.sum(axis=1) / np.sum(findings.noise_nt[j] ** 2)
         # about 400 log-spaced bins, each drawn at its maximum so that lines stay visible
@@ -704,15 +823,16 @@ def plot_residual_spectrum(findings):
         for f in findings.items:
             if f.kind == 'periodic' and f.sensor == j:
                 ax.axvline(f.value, color='tab:red', lw=1.0, alpha=0.7)
-                ax.annotate(_finding_label(f), (f.value, ax.get_ylim()[1]), fontsize=8,
-                            color='tab:red', ha='center', va='top')
+                ax.annotate(_finding_label(f), (f.value, 1.0), fontsize=8, color='tab:red',
+                            xycoords=('data', 'axes fraction'), ha='center', va='top')
         ax.set_xlabel('frequency [Hz]')
-        ax.set_ylabel('power / noise')
+        if first:
+            ax.set_ylabel('power / noise')
         _title(ax, f'sensor {j}', fontsize=10)
     fig.axes[0].legend(fontsize=8, loc='lower left')
     _suptitle(fig, f'residual spectrum per sensor ({findings.kind_of_series} residual; '
                    'a line is a periodic disturbance)')
-    return _arrange(fig, int(np.ceil(len(sensors) / 4)), min(len(sensors), 4), wspace=0.75)
+    return _arrange(fig, int(np.ceil(len(sensors) / 4)), min(len(sensors), 4), wspace=0.35)
 
 
 def plot_change_points(findings):

@@ -19,16 +19,20 @@ What the report's figures show (issue 10 item 6), tested on the data behind them
   wraps) is one closed ring in the equal-area projection, and the projection is equal-area;
 - the magnitude figure with a reference 3 000 nT away states the offset and plots about it;
 - the error ladder's legend covers no step;
-- the candidates chart plots what decided the verdict (the held-out RMS drop).
+- the candidates chart plots what decided the verdict (the held-out RMS drop);
+- the PNG encoder's files decode (with Pillow's decoder) to exactly the pixels given.
 The inputs are built here (plain numpy vectors and minimal stand-ins for a fit, a ladder and
 a diagnosis), independent of the model code.
 """
+import io
 from types import SimpleNamespace
 
 from magcal_ros import report
 from magcal_ros.core.dataset import Dataset
+from matplotlib.figure import Figure
 from matplotlib.transforms import Bbox
 import numpy as np
+from PIL import Image
 
 
 def cone(axis, half_angle_deg, n=720):
@@ -128,3 +132,27 @@ def test_candidates_chart_plots_the_share_that_decided():
     assert [p.get_linewidth() for p in fig.axes[0].patches][0] == 2
     assert 'held-out share' in fig.axes[0].get_xlabel()
     assert 'verdict: aux:aux_m@3' in fig.get_suptitle()
+
+
+def test_png_bytes_decode_to_the_pixels():
+    # every byte value, odd sizes, repeated rows (the 'Up' filter's zeros) and a first row;
+    # decoded by Pillow's PNG reader (its own inflate and un-filtering)
+    rng = np.random.default_rng(3)
+    img = rng.integers(0, 256, size=(37, 53, 3), dtype=np.uint8)
+    img[10:20] = img[9]
+    img[30:, :, 1] = 255
+    for rgb in (img, img[:1], img[:, :1]):
+        png = report.png_bytes(rgb)
+        assert png.startswith(b'\x89PNG\r\n\x1a\n')
+        with Image.open(io.BytesIO(png)) as back:
+            assert back.mode == 'RGB' and back.size == (rgb.shape[1], rgb.shape[0])
+            np.testing.assert_array_equal(np.asarray(back), rgb)
+    # a drawn figure: the report's PNG is the canvas's pixels, opaque
+    fig = Figure(figsize=(3, 2), dpi=report.DPI)
+    report.FigureCanvasAgg(fig)
+    fig.add_subplot().plot([0, 1, 3], [2, -1, 5], 'o-')
+    png = report._png(fig)
+    rgba = np.asarray(fig.canvas.buffer_rgba())
+    assert (rgba[..., 3] == 255).all()
+    with Image.open(io.BytesIO(png)) as back:
+        np.testing.assert_array_equal(np.asarray(back), rgba[..., :3])
