@@ -254,6 +254,8 @@ class StampMatcher:
         self._last_arrival = [None] * self.n_sensors
         self._offset = [0] + [None] * (self.n_sensors - 1)
         self._proposal = [0] + [None] * (self.n_sensors - 1)    # the stamp vote's, checked
+        self._pending = None            # a proposal to compare with the pairing as it is
+        self._refuted = None            # the last proposal the data refuted
         self._aligned = self.n_sensors == 1
         self._since_align = 0
         self._backoff = self._skip = 0
@@ -339,11 +341,15 @@ class StampMatcher:
                 continue           # no clear majority: keep the offset we have
             best = int(values[np.argmax(counts)])
             if self.misfit is not None and self._aligned:
-                self._proposal[j] = best    # the data decide (_repair), stamps propose
+                self._proposal[j] = best    # stamps propose, the data decide (_emit)
                 continue
             if self._offset[j] is not None and best != self._offset[j]:
                 self.realigned += 1
             self._offset[j] = best
+        if self.misfit is not None and self._aligned:
+            vote = [p if p is not None else o for p, o in zip(self._proposal, self._offset)]
+            self._pending = (vote if vote != self._offset and vote != self._refuted
+                             else None)
         self._aligned = all(o is not None for o in self._offset)
 
     @staticmethod
@@ -356,6 +362,8 @@ class StampMatcher:
         out = []
         queues, misfit, threshold = self._queues, self.misfit, self.threshold
         while all(queues):
+            if self._pending is not None and self._decide_vote() is None:
+                break                       # wait for the samples that decide it
             offset = self._offset
             epochs = [qq[0][0] + o for qq, o in zip(queues, offset)]
             e = min(epochs)
@@ -416,6 +424,34 @@ class StampMatcher:
                 return np.inf
             total += m
         return total
+
+    def _decide_vote(self):
+        """
+        Take the stamp vote's proposal unless the data refute it: True, False or None (wait).
+
+        The proposal and the pairing as it is are compared on the next ``confirm`` sets; it
+        is refuted when the pairing as it is fits better by ``margin`` (stamps that lag by
+        more than half a period), and taken otherwise, also when the array is too still to
+        tell (a lost sample while it turns slowly: the vote is then the only witness).
+        """
+        vote = self._pending
+        diff = [p - o for p, o in zip(vote, self._offset)]
+        reach = max(diff) - min(diff)
+        queues = self._queues
+        if reach <= MAX_VOTE_SHIFT:
+            if min(len(qq) for qq in queues) < reach + self.confirm + 1:
+                return None
+            heads = [qq[0][0] for qq in queues]
+            now = self._summed_misfit(self._offset,
+                                      max(h + o for h, o in zip(heads, self._offset)))
+            new = self._summed_misfit(vote, max(h + o for h, o in zip(heads, vote)))
+        self._pending = None
+        if reach > MAX_VOTE_SHIFT or now + self.margin <= new:
+            self._refuted = vote
+            return False
+        self._offset = vote
+        self.realigned += 1
+        return True
 
     def _repair(self):
         """
