@@ -99,13 +99,22 @@ class Screen:
             js = jac
             js /= d                          # in place: the Jacobian is not needed unscaled
             j4 = js.reshape(n, g, 3, -1)
+            ginv_gtr = (ginv @ gtr[..., None])[..., 0]                         # (N, 2)
             self.groups.append({
                 'sensors': grp, 'cols': prob.cols, 'd': d, 'b': b,
                 'jtj': js.T @ js, 'jtr': js.T @ r,
                 # per sensor: its rows of the scaled base Jacobian (3N, P), residual (3N,)
                 'js': [np.ascontiguousarray(j4[:, gi]).reshape(3 * n, -1) for gi in range(g)],
                 'r': [np.ascontiguousarray(r3[:, gi]).reshape(-1) for gi in range(g)],
-                'gb': gb, 'ginv': ginv, 'ginv_gtr': (ginv @ gtr[..., None])[..., 0]})
+                # per sensor, axis i and field direction a: the (N,) column G[:, i, a]
+                'gb': [[[np.ascontiguousarray(x_[:, i, a]) for a in range(2)]
+                        for i in range(3)] for x_ in gb],
+                # (G^T G)^-1 and (G^T G)^-1 G^T r per epoch, component by component (N,)
+                'ginv': [[np.ascontiguousarray(ginv[:, a, c]) for c in range(2)]
+                         for a in range(2)],
+                'ginv_gtr': [np.ascontiguousarray(ginv_gtr[:, a]) for a in range(2)]})
+        # base parameter (sensor, effect, name) -> its index in the base model
+        self._base_pos = {k[:3]: i for i, k in enumerate(model.param_info())}
 
     def step(self, m_ext, p_ext, added, with_decrease=False):
         """
@@ -116,11 +125,11 @@ class Screen:
         that enter linearly, to first order in the change of the profiled field).
         """
         info = m_ext.param_info()
-        old_pos = {k[:3]: i for i, k in enumerate(self.model.param_info())}
         new_of_old = np.empty(self.model.n_params, int)
-        for i, k in enumerate(info):
-            if k[:3] in old_pos:
-                new_of_old[old_pos[k[:3]]] = i
+        for i, key in enumerate(info):
+            pos = self._base_pos.get(key[:3])
+            if pos is not None:
+                new_of_old[pos] = i
         p_new = p_ext.copy()
         decrease = 0.0
         n = len(self.f)
@@ -135,31 +144,35 @@ class Screen:
             cross = np.zeros((nb, k))            # J_base^T C
             ctc = np.zeros((k, k))               # C^T C
             ctr = np.zeros(k)                    # C^T r
-            gtc = np.zeros((n, 2, k))            # G^T C per epoch
+            gtc = np.zeros((2, k, n))            # G^T C per epoch, (direction, column, epoch)
             for gi, j in enumerate(grp):
                 cols = [c for c, i in enumerate(idx) if info[i][0] in (j, 0)]
                 if not cols:
                     continue
-                diff, h = m_ext.forward_differences(j, p_ext, g['b'], self.ctx[j - 1],
-                                                    [idx[c] for c in cols])
-                cj = np.ascontiguousarray(np.moveaxis(diff, 0, -1)) / -(h * self.sigma[j - 1])
-                flat = cj.reshape(3 * n, -1)
-                cross[:, cols] += g['js'][gi].T @ flat
-                ctc[np.ix_(cols, cols)] += flat.T @ flat
-                ctr[cols] += flat.T @ g['r'][gi]
-                # G^T C per epoch, (N, 2, 3) x (N, 3, k) written out over the 3 components:
+                # the candidate's columns of this sensor, (k_j, N, 3) as differenced, scaled
+                # like the residual in place (no transposed copy: the products below read
+                # the (k_j, 3N) rows directly)
+                cj, h = m_ext.forward_differences(j, p_ext, g['b'], self.ctx[j - 1],
+                                                  [idx[c] for c in cols])
+                cj *= (-1.0 / (h * self.sigma[j - 1]))[:, None, None]
+                flat = cj.reshape(len(cols), 3 * n)
+                cross[:, cols] += g['js'][gi].T @ flat.T
+                ctc[np.ix_(cols, cols)] += flat @ flat.T
+                ctr[cols] += flat @ g['r'][gi]
+                # G^T C per epoch, (N, 3, 2) x (N, 3, k) written out over the 3 components:
                 # numpy's batched matmul of tiny matrices cost 3 ms per candidate
                 gbj = g['gb'][gi]
                 for a in range(2):
-                    gtc[:, a, cols] += sum(gbj[:, i, a, None] * cj[:, i] for i in range(3))
+                    gtc[a, cols] += (cj[:, :, 0] * gbj[0][a] + cj[:, :, 1] * gbj[1][a]
+                                     + cj[:, :, 2] * gbj[2][a])
             # project: subtract the part of C along the field directions of each epoch,
             # (G^T C)^T (G^T G)^-1 (G^T C) and (G^T C)^T (G^T G)^-1 G^T r, the 2 x 2 inverse
             # applied component by component (no batched matmul)
-            gi_ = g['ginv']
-            m0 = gi_[:, 0, 0, None] * gtc[:, 0] + gi_[:, 0, 1, None] * gtc[:, 1]
-            m1 = gi_[:, 1, 0, None] * gtc[:, 0] + gi_[:, 1, 1, None] * gtc[:, 1]
-            ctc -= gtc[:, 0].T @ m0 + gtc[:, 1].T @ m1
-            ctr -= gtc[:, 0].T @ g['ginv_gtr'][:, 0] + gtc[:, 1].T @ g['ginv_gtr'][:, 1]
+            (i00, i01), (i10, i11) = g['ginv']
+            m0 = gtc[0] * i00 + gtc[1] * i01
+            m1 = gtc[0] * i10 + gtc[1] * i11
+            ctc -= gtc[0] @ m0.T + gtc[1] @ m1.T
+            ctr -= gtc[0] @ g['ginv_gtr'][0] + gtc[1] @ g['ginv_gtr'][1]
             dc = np.sqrt(np.clip(np.diag(ctc), 0.0, None))
             dc[dc == 0] = 1.0
             cross_s = cross / dc
