@@ -962,14 +962,19 @@ def _table(rows, header):
     return f'<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>'
 
 
+def _nt(value):
+    """Return a residual RMS, nT, as text; '-' when not evaluated (a score-test candidate)."""
+    return '-' if value is None else f'{value:.2f}'
+
+
 def candidate_rows(diagnosis):
     """Rows of the candidate table (strings)."""
     rows = []
     for c in diagnosis.candidates:
         rows.append([c.token, c.n_params, f'{c.delta_bic:.1f}', f'{c.log10_p_value:.1f}',
-                     f'{c.rms_before_nt:.2f} -> {c.rms_after_nt:.2f}',
+                     f'{c.rms_before_nt:.2f} -> {_nt(c.rms_after_nt)}',
                      '' if c.vector_rms_before_nt is None else
-                     f'{c.vector_rms_before_nt:.2f} -> {c.vector_rms_after_nt:.2f}',
+                     f'{c.vector_rms_before_nt:.2f} -> {_nt(c.vector_rms_after_nt)}',
                      '' if c.cv_rms_before_nt is None else
                      f'{c.cv_rms_before_nt:.2f} -> {c.cv_rms_after_nt:.2f}',
                      '' if c.explained_fraction is None else f'{c.explained_fraction:.0%}',

@@ -69,8 +69,10 @@ from magcal_ros.core.diagnose.candidates import (Candidate, candidate_tokens, ex
                                                  token_label, tokens_from_findings)
 from magcal_ros.core.diagnose.constants import (ALPHA, AT_FLOOR_RATIO, BLOCKS_PER_FOLD,
                                                 DEFAULT_FOLDS, DEFAULT_MAX_REFIT,
-                                                DEFAULT_MAX_SAMPLES, MIN_BLOCK, MIN_DELTA_BIC,
-                                                MIN_EXPLAINED, NESTED, REFIT_MAX_NFEV)
+                                                DEFAULT_MAX_SAMPLES, EVIDENCE_TIE, MIN_BLOCK,
+                                                MIN_DELTA_BIC, MIN_EXPLAINED, NESTED,
+                                                REFIT_CHI2_TOL, REFIT_MAX_NFEV,
+                                                SCORE_RULE_OUT_BIC)
 from magcal_ros.core.diagnose.error_ladder import Ladder, ladder, LadderStep
 from magcal_ros.core.diagnose.measures import (dof_factor, evaluate_residuals, Evaluation,
                                                explained_share, likelihood_ratio,
@@ -84,9 +86,10 @@ from magcal_ros.core.noise import data_noise_floor as noise_floor_from_data, Noi
 
 __all__ = [
     'ALPHA', 'AT_FLOOR_RATIO', 'BLOCKS_PER_FOLD', 'Candidate', 'DEFAULT_FOLDS',
-    'DEFAULT_MAX_REFIT', 'DEFAULT_MAX_SAMPLES', 'Diagnosis', 'Evaluation', 'Ladder',
-    'LadderStep', 'MIN_BLOCK', 'MIN_DELTA_BIC', 'MIN_EXPLAINED', 'NESTED', 'NoiseFloor',
-    'REFIT_MAX_NFEV', 'Screen', 'candidate_tokens', 'compact_spec', 'cross_validate',
+    'DEFAULT_MAX_REFIT', 'DEFAULT_MAX_SAMPLES', 'Diagnosis', 'EVIDENCE_TIE', 'Evaluation',
+    'Ladder', 'LadderStep', 'MIN_BLOCK', 'MIN_DELTA_BIC', 'MIN_EXPLAINED', 'NESTED',
+    'NoiseFloor', 'REFIT_CHI2_TOL', 'REFIT_MAX_NFEV', 'SCORE_RULE_OUT_BIC', 'Screen',
+    'candidate_tokens', 'compact_spec', 'cross_validate',
     'diagnose', 'dof_factor', 'evaluate_residuals', 'explained_share', 'extend_model',
     'jsonable', 'ladder', 'likelihood_ratio', 'n_observations', 'noise_floor_from_data',
     'propose_from_residual', 'soft_l1_lr_loss', 'split_testable',

@@ -47,9 +47,11 @@ class Candidate:
     n_params : int
         Parameters added (k of the likelihood-ratio test).
     rms_before_nt, rms_after_nt : float
-        Scalar residual RMS of the affected sensors, base fit and with the effect.
+        Scalar residual RMS of the affected sensors, base fit and with the effect
+        (``rms_after_nt`` None when the residuals were not evaluated: method 'score').
     vector_rms_before_nt, vector_rms_after_nt : float or None
-        Vector residual RMS (vs sensor 1) involving the affected sensors.
+        Vector residual RMS (vs sensor 1) involving the affected sensors (after: None
+        for method 'score').
     delta_chi2 : float
         Decrease of chi-square (noise levels fixed at the base fit).
     delta_bic : float
@@ -57,8 +59,12 @@ class Candidate:
     p_value, log10_p_value : float
         Likelihood-ratio test, chi-square with k degrees of freedom.
     method : str
-        'refit' (full ML refit from the base solution) or 'one-step' (one Gauss-Newton
-        step from the base solution; a lower bound of delta_chi2).
+        'refit' (full ML refit from the base solution), 'one-step' (one Gauss-Newton
+        step from the base solution, evaluated; a lower bound of delta_chi2) or 'score'
+        (Rao's score test at the base solution: delta_chi2 is the decrease that step
+        predicts, exact for effects that enter linearly; used where it puts delta BIC
+        more than 20 units short of significance, :data:`SCORE_RULE_OUT_BIC`, so the
+        residuals are not evaluated).
     cv_rms_before_nt, cv_rms_after_nt : float or None
         Combined residual RMS on held-out time blocks (None when not computed).
     significant : bool
@@ -84,7 +90,7 @@ class Candidate:
     sensor: int | None
     n_params: int
     rms_before_nt: float
-    rms_after_nt: float
+    rms_after_nt: float | None
     vector_rms_before_nt: float | None
     vector_rms_after_nt: float | None
     delta_chi2: float

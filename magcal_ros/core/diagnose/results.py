@@ -200,18 +200,19 @@ class Diagnosis:
                          f'{"scalar RMS":>15s} {"vector RMS":>15s} {"held-out RMS":>15s} '
                          f'{"share":>6s}')
             for c in self.candidates[:max_candidates]:
-                vec = ('' if c.vector_rms_before_nt is None else
-                       f'{c.vector_rms_before_nt:6.2f}>{c.vector_rms_after_nt:6.2f}')
-                cv = ('' if c.cv_rms_before_nt is None else
-                      f'{c.cv_rms_before_nt:6.2f}>{c.cv_rms_after_nt:6.2f}')
+                vec = _before_after(c.vector_rms_before_nt, c.vector_rms_after_nt)
+                cv = _before_after(c.cv_rms_before_nt, c.cv_rms_after_nt)
                 share = ('' if c.explained_fraction is None else
                          f'{c.explained_fraction:6.0%}')
                 lines.append(f'{"*" if c.significant else " "} {c.token:34s} {c.n_params:2d} '
                              f'{c.delta_bic:10.1f} {c.log10_p_value:8.1f} '
-                             f'{c.rms_before_nt:6.2f}>{c.rms_after_nt:6.2f}   '
+                             f'{_before_after(c.rms_before_nt, c.rms_after_nt)}   '
                              f'{vec:>15s} {cv:>15s} {share:>6s}')
                 if c.note:
                     lines.append(f'    not adopted: {c.note}')
+            if any(c.method == 'score' for c in self.candidates[:max_candidates]):
+                lines.append("  '-': not evaluated, the score test rules the effect out "
+                             '(delta BIC from the predicted decrease of chi-square)')
             if len(self.candidates) > max_candidates:
                 lines.append(f'  ... {len(self.candidates) - max_candidates} more with less '
                              'evidence (all in the JSON output)')
@@ -224,3 +225,10 @@ class Diagnosis:
         else:
             lines.append(f'verdict: none ({self.verdict_reason})')
         return '\n'.join(lines)
+
+
+def _before_after(before, after):
+    """Return 'before>after' (nT, 6.2f each), after '-' when not evaluated, '' without before."""
+    if before is None:
+        return ''
+    return f'{before:6.2f}>' + ('     -' if after is None else f'{after:6.2f}')

@@ -30,9 +30,9 @@ from magcal_ros.core.diagnose.candidates import (added_params, Candidate, candid
                                                  tokens_from_findings)
 from magcal_ros.core.diagnose.constants import (ALPHA, AT_FLOOR_RATIO, BLOCKS_PER_FOLD,
                                                 DEFAULT_FOLDS, DEFAULT_MAX_REFIT,
-                                                DEFAULT_MAX_SAMPLES, MIN_BLOCK, MIN_DELTA_BIC,
-                                                MIN_EXPLAINED, REFIT_CHI2_TOL,
-                                                REFIT_MAX_NFEV)
+                                                DEFAULT_MAX_SAMPLES, EVIDENCE_TIE, MIN_BLOCK,
+                                                MIN_DELTA_BIC, MIN_EXPLAINED, REFIT_CHI2_TOL,
+                                                REFIT_MAX_NFEV, SCORE_RULE_OUT_BIC)
 from magcal_ros.core.diagnose.measures import (dof_factor, evaluate_residuals, Evaluation,
                                                explained_share, likelihood_ratio,
                                                n_observations, rms, scalar_rms_of,
@@ -72,10 +72,14 @@ class Trial:
         (P',) its parameters (one-step, then refitted).
     added : numpy.ndarray
         (P',) bool, the parameters the effect adds.
-    ev : Evaluation
-        Its residuals on the tested epochs.
+    ev : Evaluation or None
+        Its residuals on the tested epochs; None for a candidate the score test ruled out
+        (its residuals were not evaluated).
+    chi2 : float
+        Its chi-square: ``ev.chi2``, or, without ``ev``, the base fit's less the score
+        statistic (the one-step decrease predicted by the linearised problem).
     method : str
-        'one-step' or 'refit'.
+        'score', 'one-step' or 'refit'.
     reduces : str or None
         Why the fitted effect reduces to a simpler one (``Effect.reduces``).
     cv : dict or None
@@ -93,7 +97,8 @@ class Trial:
     model: Model
     p: np.ndarray
     added: np.ndarray
-    ev: Evaluation
+    ev: Evaluation | None
+    chi2: float
     method: str = 'one-step'
     reduces: str | None = None
     cv: dict | None = None
@@ -136,11 +141,11 @@ class _Base:
         return dof_factor(self.model) * np.mean(self.ev0.residual ** 2)
 
     def delta_bic(self, trial):
-        return -(self.ev0.chi2 - trial.ev.chi2) + trial.k * math.log(self.n_obs)
+        return -(self.ev0.chi2 - trial.chi2) + trial.k * math.log(self.n_obs)
 
     def test(self, trial):
         """Return (p-value, log10 p, delta BIC) of ``trial`` against the base fit."""
-        return likelihood_ratio(self.ev0.chi2 - trial.ev.chi2, trial.k, self.n_obs)
+        return likelihood_ratio(self.ev0.chi2 - trial.chi2, trial.k, self.n_obs)
 
 
 def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLDS,
@@ -248,6 +253,32 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
             excess_ms_nt2=float(b.ms0 - floor.value_nt ** 2))
 
 
+def order_by_evidence(trials, b):
+    """
+    Sort ``trials`` in place, best evidence (lowest delta BIC against ``b``) first.
+
+    Evidence equal within the refits' precision (:data:`EVIDENCE_TIE`, chi-square units)
+    is a tie that floating-point rounding would otherwise decide (two tokens for one model,
+    e.g. a user's effect and the periodic line the residual proposes at its frequency); a
+    tie goes to the candidate with fewer parameters, then to a named effect before one
+    with arguments ('wheel' before 'periodic(0.25)'), then by token.
+    """
+    _order_runs(trials, b.delta_bic, lambda c: (c.k, '(' in c.label, c.token))
+
+
+def _order_runs(items, bic, prefer):
+    """Sort ``items`` by ``bic``; runs within EVIDENCE_TIE of their first by ``prefer``."""
+    items.sort(key=bic)
+    out, i = [], 0
+    while i < len(items):
+        j = i + 1
+        while j < len(items) and bic(items[j]) - bic(items[i]) <= EVIDENCE_TIE:
+            j += 1
+        out.extend(sorted(items[i:j], key=prefer))
+        i = j
+    items[:] = out
+
+
 def _base_fit(data, model, f, base, constrained, progress, fit_kwargs):
     """Return the fit to diagnose: ``base`` as given (checked against ``data``) or fitted here."""
     if base is None:
@@ -307,7 +338,17 @@ def _candidate_tokens(b, candidates, propose, found):
 
 
 def _screen(b, testable, progress):
-    """One Gauss-Newton step of every candidate from the base fit; (trials best first, Screen)."""
+    """
+    Screen every candidate from the base fit; return (trials best first, Screen).
+
+    Each candidate gets one Gauss-Newton step (:meth:`Screen.step`) and its score
+    statistic, the chi-square decrease the step predicts (Rao's score test: the likelihood-
+    ratio statistic to first order, exact for effects that enter linearly).  Those whose
+    predicted delta BIC is above :data:`SCORE_RULE_OUT_BIC` (20 units short of
+    significance) keep that evidence, ``method`` 'score'; the others are evaluated at the
+    step (``method`` 'one-step').  Under the robust loss every candidate is evaluated (the
+    step is least squares on the inliers, the evidence the robust loss).
+    """
     trials = []
     screen = None
     if testable:
@@ -322,18 +363,23 @@ def _screen(b, testable, progress):
     for i, (tok, label, sensor) in enumerate(testable):
         report_progress(progress, 'screen', i, len(testable), tok)
         m_ext, p_ext, added = extend_model(b.model, b.params, tok, b.contexts)
-        p_step = screen.step(m_ext, p_ext, added)
+        p_step, score = screen.step(m_ext, p_ext, added, with_decrease=True)
+        trials.append(Trial(token=tok, label=label, sensor=sensor, model=m_ext, p=p_step,
+                            added=added, ev=None, chi2=b.ev0.chi2 - max(score, 0.0),
+                            method='score', start=p_ext))
+    report_progress(progress, 'screen', len(testable), len(testable), '')
+    for c in trials:
+        if not b.robust and np.isfinite(c.chi2) and b.delta_bic(c) > SCORE_RULE_OUT_BIC:
+            continue
         # from the base fit's field: one Gauss-Newton step of the profile (model.evaluate)
-        ev = evaluate_residuals(m_ext, p_step, b.data, b.f, b.sigma, b.contexts,
+        ev = evaluate_residuals(c.model, c.p, b.data, b.f, b.sigma, b.contexts,
                                 field0=b.ev0.field, loss=b.loss)
         if not np.isfinite(ev.chi2) or ev.chi2 > b.ev0.chi2:
-            p_step = p_ext
-            ev = evaluate_residuals(m_ext, p_ext, b.data, b.f, b.sigma, b.contexts,
+            c.p = c.start
+            ev = evaluate_residuals(c.model, c.start, b.data, b.f, b.sigma, b.contexts,
                                     loss=b.loss)
-        trials.append(Trial(token=tok, label=label, sensor=sensor, model=m_ext, p=p_step,
-                            added=added, ev=ev, start=p_ext))
-    report_progress(progress, 'screen', len(testable), len(testable), '')
-    trials.sort(key=b.delta_bic)
+        c.ev, c.chi2, c.method = ev, ev.chi2, 'one-step'
+    order_by_evidence(trials, b)
     return trials, screen
 
 
@@ -363,11 +409,11 @@ def _refit(b, trials, screen, max_refit, progress):
                 **({'f_scale': b.f_scale} if b.robust else {}))
         ev = evaluate_residuals(c.model, r.params, b.data, b.f, b.sigma, b.contexts,
                                 loss=b.loss)
-        if ev.chi2 <= c.ev.chi2:
-            c.p, c.ev, c.method = r.params, ev, 'refit'
+        if ev.chi2 <= c.chi2 or c.ev is None:
+            c.p, c.ev, c.chi2, c.method = r.params, ev, ev.chi2, 'refit'
             c.reduces = reduces_to_simpler(c.model, r.params, r.stderr, c.label, b.contexts)
     report_progress(progress, 'refit', n_refit, n_refit, '')
-    trials.sort(key=b.delta_bic)
+    order_by_evidence(trials, b)
     return n_refit
 
 
@@ -417,7 +463,7 @@ def _rank(b, trials, cv0, held_out, decided, p_thr):
     ev0 = b.ev0
     out = []
     for c in trials:
-        d_chi2 = ev0.chi2 - c.ev.chi2
+        d_chi2 = ev0.chi2 - c.chi2
         p_val, logp, d_bic = likelihood_ratio(d_chi2, c.k, b.n_obs)
         sens = sensors_of(c.sensor, s)
         cv_b = cv_a = None
@@ -425,6 +471,8 @@ def _rank(b, trials, cv0, held_out, decided, p_thr):
             cv_b, cv_a = cv0['rms_nt'], c.cv['rms_nt']
         if held_out:
             share, how = c.share, ('held-out' if c.share is not None else None)
+        elif c.ev is None:
+            share, how = None, None           # ruled out by the score test, not evaluated
         else:
             ms1 = dof_factor(c.model) * np.mean(c.ev.residual ** 2)
             share, how = explained_share(b.ms0, ms1, b.floor.value_nt), decided
@@ -434,15 +482,19 @@ def _rank(b, trials, cv0, held_out, decided, p_thr):
         out.append(Candidate(
             token=c.token, effect=c.label, sensor=c.sensor, n_params=c.k,
             rms_before_nt=scalar_rms_of(ev0.scalar, sens),
-            rms_after_nt=scalar_rms_of(c.ev.scalar, sens),
+            rms_after_nt=None if c.ev is None else scalar_rms_of(c.ev.scalar, sens),
             vector_rms_before_nt=vector_rms_of(ev0.vector, sens, s),
-            vector_rms_after_nt=vector_rms_of(c.ev.vector, sens, s),
+            vector_rms_after_nt=(None if c.ev is None else
+                                 vector_rms_of(c.ev.vector, sens, s)),
             delta_chi2=float(d_chi2), delta_bic=d_bic, p_value=p_val, log10_p_value=logp,
             method=c.method, cv_rms_before_nt=cv_b, cv_rms_after_nt=cv_a,
             significant=sig, params=added_params(c.model, c.p, c.added),
             explained_fraction=share, decided_by=how, note=c.reduces))
-    out.sort(key=lambda c: (not c.significant, c.delta_bic))
-    return out
+    sig = [c for c in out if c.significant]
+    rest = [c for c in out if not c.significant]
+    for part in (sig, rest):
+        _order_runs(part, lambda c: c.delta_bic, lambda c: (c.n_params, '(' in c.effect, c.token))
+    return sig + rest
 
 
 def _verdict(b, ranked, ratio, at_floor, held_out, p_thr):

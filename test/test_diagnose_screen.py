@@ -1,0 +1,122 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The diagnosis' screen: the score test rules candidates out, ties go to parsimony.
+
+Data are the test's own injections (test/injection.py, written without Model.forward).
+The score statistic of a candidate is the chi-square decrease its one Gauss-Newton step
+predicts; the diagnosis evaluates only the candidates it cannot rule out
+(``SCORE_RULE_OUT_BIC``).  Checked here against what evaluating each candidate gives: the
+ruled-out ones could not have been significant, and the ranking, verdict and evidence of the
+rest are those of evaluating everything.
+"""
+import math
+from types import SimpleNamespace
+
+import injection as inj
+from magcal_ros.core.diagnose import (diagnose, evaluate_residuals, EVIDENCE_TIE,
+                                      extend_model, MIN_DELTA_BIC, n_observations,
+                                      SCORE_RULE_OUT_BIC, Screen)
+import magcal_ros.core.diagnose.run as run
+from magcal_ros.core.model import fit
+import numpy as np
+import pytest
+
+F = inj.F_NT
+
+
+@pytest.fixture(scope='module', params=['lag', 'step'])
+def case(request):
+    fault = {'lag': inj.lag_fault(90.0, (4.0, -3.0, 2.5), 2),
+             'step': inj.step_fault(300.0, (40.0, 0.0, 0.0), 1)}[request.param]
+    data = inj.make(3000, seed=5, inject=fault)
+    base = fit(data, 'base', field_nt=F)
+    return data, base, diagnose(data, field_nt=F, base=base)
+
+
+def test_ruled_out_candidates_could_not_have_been_significant(case):
+    data, base, d = case
+    scored = [c for c in d.candidates if c.method == 'score']
+    # most of the ~90 candidates are ruled out, none of them significant
+    assert len(scored) > len(d.candidates) / 2, len(scored)
+    ctx = [data.context(j) for j in range(1, data.n_sensors + 1)]
+    base.model.prepare(ctx)
+    f = np.full(data.n_samples, F)
+    sigma = np.asarray(base.sigma_nt)
+    ev0 = evaluate_residuals(base.model, base.params, data, f, sigma, ctx)
+    screen = Screen(base.model, base.params, data.raw, ctx, f, sigma)
+    log_n = math.log(n_observations(base.model, data.n_samples))
+    for c in scored:
+        assert c.rms_after_nt is None and c.vector_rms_after_nt is None
+        assert c.delta_bic > SCORE_RULE_OUT_BIC and not c.significant
+        # evaluate the step the score stands for: its chi-square decrease is the predicted
+        # one (linear effects) or smaller, never enough for significance
+        m_ext, p_ext, added = extend_model(base.model, base.params, c.token, ctx)
+        p_step, predicted = screen.step(m_ext, p_ext, added, with_decrease=True)
+        assert c.delta_chi2 == pytest.approx(predicted, abs=1e-6)
+        ev = evaluate_residuals(m_ext, p_step, data, f, sigma, ctx, field0=ev0.field)
+        evaluated = ev0.chi2 - ev.chi2
+        assert evaluated <= predicted + 1.0, (c.token, evaluated, predicted)
+        assert -evaluated + c.n_params * log_n > MIN_DELTA_BIC + 10, c.token
+
+
+def test_the_verdict_and_the_evidence_are_those_of_evaluating_every_candidate(
+        case, monkeypatch):
+    data, base, d = case
+    monkeypatch.setattr(run, 'SCORE_RULE_OUT_BIC', math.inf)      # evaluate every candidate
+    full = diagnose(data, field_nt=F, base=base)
+    assert all(c.method != 'score' for c in full.candidates)
+    assert d.verdict_token == full.verdict_token is not None
+    assert d.verdict.explained_fraction == pytest.approx(full.verdict.explained_fraction,
+                                                         abs=1e-9)
+    evaluated = [c for c in d.candidates if c.method != 'score']
+    by_token = {c.token: c for c in full.candidates}
+    for c in evaluated:
+        assert c.delta_bic == pytest.approx(by_token[c.token].delta_bic, abs=1e-6)
+        assert c.rms_after_nt == pytest.approx(by_token[c.token].rms_after_nt, abs=1e-9)
+    # the evaluated candidates lead the ranking in the same order
+    assert [c.token for c in evaluated] == [c.token for c in full.candidates[:len(evaluated)]]
+
+
+def test_a_robust_diagnosis_evaluates_every_candidate():
+    data = inj.make(1500, seed=3, inject=inj.step_fault(150.0, (40.0, 0.0, 0.0), 1),
+                    noise=inj.student_noise)
+    base = fit(data, 'base', field_nt=F, robust=True)
+    d = diagnose(data, field_nt=F, base=base, max_refit=1)
+    assert d.candidates and all(c.method != 'score' for c in d.candidates)
+
+
+def _trial(token, k, bic):
+    label = token.split('@')[0]
+    return SimpleNamespace(token=token, label=label, k=k, bic=bic)
+
+
+def test_equal_evidence_goes_to_the_simpler_then_the_named_effect():
+    b = SimpleNamespace(delta_bic=lambda c: c.bic)
+    # a user's effect and the periodic line proposed at its frequency: the same model, the
+    # evidence equal to rounding; whichever rounds lower, the named effect comes first
+    for eps in (1e-4, -1e-4):
+        trials = [_trial('periodic(0.25)@3', 6, -500.0 + eps), _trial('wheel@3', 6, -500.0),
+                  _trial('drift@3', 3, -20.0)]
+        run.order_by_evidence(trials, b)
+        assert [t.token for t in trials] == ['wheel@3', 'periodic(0.25)@3', 'drift@3']
+    # within the tie the candidate with fewer parameters first, beyond it the evidence
+    trials = [_trial('a@1', 6, -100.0), _trial('b@1', 3, -100.0 + 0.5 * EVIDENCE_TIE),
+              _trial('c@1', 3, -100.0 + 2 * EVIDENCE_TIE)]
+    run.order_by_evidence(trials, b)
+    assert [t.token for t in trials] == ['b@1', 'a@1', 'c@1']
+    trials = [_trial('a@1', 6, -100.0), _trial('b@1', 3, -100.0 + 3 * EVIDENCE_TIE)]
+    run.order_by_evidence(trials, b)
+    assert [t.token for t in trials] == ['a@1', 'b@1']
