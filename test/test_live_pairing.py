@@ -288,3 +288,42 @@ def test_no_false_alarm_on_clean_streams_and_the_same_tensors():
     live, sets, epochs = run_corrector(clean(6, stalls_per_s=0.3), fields)
     assert live.matcher.rejected == 0 and live.matcher.repaired == 0
     assert not np.any(epochs != epochs[:, :1]) and len(sets) >= N - 10
+
+
+def test_the_chi_square_of_correct_sets_is_chi_square_with_4_dof():
+    """Monte Carlo: noisy sets of one epoch in a field with a gradient; the threshold's basis."""
+    rng = np.random.default_rng(11)
+    live = LiveCorrector(_calibration(), 4, POS)
+    assert live.pairing_dof == 4 and live.no_check_reason is None
+    # scipy.stats.chi2.isf(1e-6, 4), written out: the tail of chi-square with 4 dof is
+    # exp(-x/2) (1 + x/2), which is 1e-6 at x = 33.377
+    x = live.pairing_threshold
+    assert np.exp(-x / 2) * (1 + x / 2) == pytest.approx(1e-6, rel=1e-6)
+    fields, _ = truth(500)
+    n = 4000
+    chi = np.empty(n)
+    for i in range(n):
+        e = i % 500
+        chi[i] = live.pairing_chi2([live.correct(j + 1, 0.0, _raw(j + 1, fields[j, e])
+                                                 + rng.normal(scale=SIGMA_NT, size=3))
+                                    for j in range(4)])
+    # mean 4 and variance 8 for chi-square with 4 dof, within 5 standard errors: of the
+    # mean sqrt(8 / n), of the variance sqrt((mu_4 - 8^2) / n), mu_4 = 12 k (k + 4) = 384
+    assert chi.mean() == pytest.approx(4.0, abs=5 * np.sqrt(8 / n))
+    assert chi.var() == pytest.approx(8.0, abs=5 * np.sqrt((384 - 64) / n))
+    # a field with curl (not a linear source-free field: 50 nT/m antisymmetric) fails
+    curl = np.array([[0.0, 50.0, 0.0], [-50.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    bad = [live.correct(j + 1, 0.0, _raw(j + 1, fields[j, 0] + curl @ POS[j]))
+           for j in range(4)]
+    assert live.pairing_chi2(bad) > 3 * live.pairing_threshold
+
+
+def test_without_noise_estimates_or_geometry_there_is_no_check_and_it_says_why():
+    cal = _calibration()
+    cal.sigma_nt = np.full(4, np.nan)
+    live = LiveCorrector(cal, 4, POS)
+    assert live.pairing_dof == 0 and 'no noise estimate' in live.no_check_reason
+    assert live.matcher.misfit is None
+    assert 'no gradient' in LiveCorrector(_calibration(), 4).no_check_reason
+    assert 'check_pairing off' in LiveCorrector(_calibration(), 4, POS,
+                                                check_pairing=False).no_check_reason

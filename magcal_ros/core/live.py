@@ -142,7 +142,7 @@ class LiveCorrector:
         self._set_op = None            # (9 + dof, 3 S): the tensor, then K (pairing_chi2)
         self._checked = None           # (the fields last checked, their _set_op product)
         self.no_check_reason = ('sets are paired by stamps alone (check_pairing off)'
-                                if not check_pairing else None)
+                                if not check_pairing else 'no gradient, no sets to check')
         if positions_m is None:
             self.no_gradient_reason = 'the calibration has no array geometry (positions_m)'
             return
@@ -172,7 +172,9 @@ class LiveCorrector:
                                                             self.pairing_dof))
                     self.matcher.misfit = self.pairing_chi2
                     self.matcher.threshold = self.pairing_threshold
-        if check_pairing and not self.pairing_dof:
+        if check_pairing and self.pairing_dof:
+            self.no_check_reason = None
+        elif check_pairing:
             self.no_check_reason = (
                 'sets are paired by stamps alone: ' + (
                     'a sensor of the calibration has no noise estimate'
