@@ -25,7 +25,11 @@ another, and the BLAS thread setting can differ between cases) and reports
 - peak memory of each step: the kernel's high-water mark of the resident set (VmHWM) is
   reset before the step (``/proc/self/clear_refs``) and read after it; the figure is the
   increase over the resident set before the step (MiB);
-- the fitted scaling exponent b of time = a N^b (least squares in log-log).
+- the fitted scaling exponent b of time = a N^b (least squares in log-log);
+- side by side in one process on the same data (model ``base+2``, N = 3 000 and 10 000, at
+  most the largest ``--sizes``): the variable-projection normal equations J^T J, J^T r formed
+  from the dense projected Jacobian (the fit's path before) and block by block
+  (``ProfiledProblem.normal_equations``), per evaluation and per ``fit``, as ratios.
 
 Data: the seeded simulator (paper 004 section 4.1 errors, 3 nT noise, 'smooth' tumbling) over
 a fixed 600 s, so the sample rate grows with N (1.7 Hz .. 1.7 kHz); the models are ``base``
@@ -160,6 +164,63 @@ def run_case(n, model_key, seed, diagnose_too, timeout_s, blas_threads, max_fit_
     return out
 
 
+def _dense_normal_equations(prob, x):
+    """J^T J, J^T r from the dense projected Jacobian (the fit's path before)."""
+    jac = prob.jacobian(x)
+    return jac.T @ jac, jac.T @ prob.residuals(x)
+
+
+def engine_compare(n, seed, repeat):
+    """
+    Time the dense and the block-by-block normal equations side by side (one process).
+
+    Per evaluation at the fitted parameters (the same cached profile for both) and per
+    ``fit`` (closed-form start, LM, covariance) of model ``base+2`` on the same data;
+    evaluations interleaved, the minimum of ``repeat`` runs each (fits: the median).
+    """
+    from magcal_ros.core.engine import ProfiledProblem
+    from magcal_ros.core.model import fit
+    from magcal_ros.core.simulate import simulate
+    from magcal_ros.core.solvers import single_threaded_blas
+    spec, truth = MODELS['base+2']
+    data, _ = simulate(n_samples=n, rate_hz=n / DURATION_S, trajectory='smooth', truth=truth,
+                       seed=seed)
+    block = ProfiledProblem.normal_equations
+    paths = {'dense': _dense_normal_equations, 'block': block}
+    fits = {k: [] for k in paths}
+    res = {}
+    try:
+        for _ in range(max(1, repeat)):
+            for key, fn in paths.items():
+                ProfiledProblem.normal_equations = fn
+                t0 = time.perf_counter()
+                res[key] = fit(data, spec, field_nt=50000.0)
+                fits[key].append(time.perf_counter() - t0)
+    finally:
+        ProfiledProblem.normal_equations = block
+    r = res['block']
+    ctx = [data.context(j) for j in range(1, data.n_sensors + 1)]
+    prob = ProfiledProblem(r.model, data.raw, ctx, r.field_magnitude_nt,
+                           r.model.sensor_groups[0], r.sigma_nt, p_full=r.params)
+    x = r.params[prob.cols]
+    prob.residuals(x)
+    evals = {k: [] for k in paths}
+    with single_threaded_blas():
+        for _ in range(max(3, 3 * repeat)):
+            for key, fn in paths.items():
+                t0 = time.perf_counter()
+                fn(prob, x)
+                evals[key].append(time.perf_counter() - t0)
+    d_ref = res['dense']
+    return {'n': n, 'n_params': int(len(prob.cols)),
+            'eval_dense_s': min(evals['dense']), 'eval_block_s': min(evals['block']),
+            'fit_dense_s': float(np.median(fits['dense'])),
+            'fit_block_s': float(np.median(fits['block'])),
+            'nfev_dense': int(d_ref.nfev), 'nfev_block': int(r.nfev),
+            'max_param_diff_in_stderr': float(np.max(np.abs(r.params - d_ref.params)
+                                                     / d_ref.stderr))}
+
+
 def scaling_exponent(ns, ts):
     """Slope b of log t = log a + b log N (None with fewer than two finite points)."""
     pts = [(n, t) for n, t in zip(ns, ts) if t is not None and t > 0]
@@ -185,6 +246,11 @@ def main(argv=None):
                     help='OPENBLAS_NUM_THREADS of the main table (0: unset, what a user gets)')
     ap.add_argument('--no-blas-compare', action='store_true',
                     help='skip the default-vs-1-thread comparison at N = 1e4')
+    ap.add_argument('--engine-sizes', type=int, nargs='+', default=[3000, 10000],
+                    help='N of the dense vs block normal-equation comparison (at most the '
+                    'largest --sizes; that one when none is)')
+    ap.add_argument('--no-engine-compare', action='store_true',
+                    help='skip the dense vs block normal-equation comparison')
     ap.add_argument('--max-fit-samples', type=int, default=None,
                     help='override fit(max_fit_samples=...) (default: the library default)')
     ap.add_argument('--repeat', type=int, default=3,
@@ -273,7 +339,20 @@ def main(argv=None):
                                 r.get('diagnose_s')] for r in blas],
                               title='BLAS threads (fit() and diagnose() limit BLAS to 1 '
                               'thread themselves: both rows should agree)')
-    tables = [t_main, t_exp] + ([t_blas] if blas else [])
+    engine = []
+    if not args.no_engine_compare:
+        e_sizes = [n for n in args.engine_sizes if n <= max(sizes)] or [max(sizes)]
+        engine = [engine_compare(n, args.seed, args.repeat) for n in e_sizes]
+        t_engine = common.table(
+            ['N', 'P', 'evaluation dense / block', 'fit dense / block', 'nfev dense, block',
+             'largest parameter difference / stderr'],
+            [[e['n'], e['n_params'], e['eval_dense_s'] / e['eval_block_s'],
+              e['fit_dense_s'] / e['fit_block_s'], f'{e["nfev_dense"]}, {e["nfev_block"]}',
+              e['max_param_diff_in_stderr']] for e in engine],
+            title='Normal equations J^T J, J^T r of model base+2: from the dense projected '
+            'Jacobian vs block by block (ProfiledProblem.normal_equations), one process, '
+            'same data (ratios of times)')
+    tables = [t_main, t_exp] + ([t_blas] if blas else []) + ([t_engine] if engine else [])
     for model_key, gl in goals.items():
         tables.append(f'Goal 4 x 10 000 calibrated + diagnosed < 2 s, model {model_key}: '
                       f'{gl["total_s"]:.2f} s -> {"met" if gl["met"] else "MISSED"}')
@@ -285,7 +364,8 @@ def main(argv=None):
     settings['models'] = {k: MODELS[k][0] for k in args.models}
     path = common.write_result('solve_time', settings,
                                {'cases': cases, 'exponents': exps, 'goal': goal, 'goals': goals,
-                                'blas_compare': blas}, tables, args.out_dir, started)
+                                'blas_compare': blas, 'engine_compare': engine}, tables,
+                               args.out_dir, started)
     print(f'\nwrote {path}')
     return 0
 

@@ -38,7 +38,8 @@ information of p with the fields unknown (its inverse,
 
 :class:`ProfiledProblem` holds one group of sensors; the fit
 (:func:`magcal_ros.core.fitting.fit`) solves it with
-:func:`magcal_ros.core.solvers.levenberg_marquardt`, the diagnosis
+:func:`magcal_ros.core.solvers.levenberg_marquardt` on J^T J and J^T r formed block by block
+(:meth:`ProfiledProblem.normal_equations`, without the tall projected Jacobian), the diagnosis
 (:mod:`magcal_ros.core.diagnose`) reuses its Jacobian to screen and cross-validate candidate
 effects, and :mod:`magcal_ros.core.site_gradient` its covariance.
 """
@@ -357,6 +358,43 @@ class ProfiledProblem:
             out = np.concatenate([out, pr])
         return out
 
+    def _raw_columns(self, p, b):
+        """
+        Return the unprojected columns dr/dx of each sensor of the group, by sensor.
+
+        Forward differences (step 1e-6 max(1, |x_i|), Model.forward_differences) with the
+        field held at ``b`` (N, 3) nT.  Returns two lists over the group's sensors: the
+        sensor's own columns (P_j, N, 3) and the array-wide columns (n_arr, N, 3) (None
+        without array-wide parameters), in 1 / (unit of each parameter); the sensor's other
+        rows are zero in its own columns.
+        """
+        own, arr = [], []
+        for j in self.sensors:
+            sl = self.model.sensor_slices[j - 1]
+            # an additive effect's column differences that effect alone
+            # (Model.forward_differences)
+            block, h = self.model.forward_differences(j, p, b, self.ctx[j - 1],
+                                                      range(sl.start, sl.stop))
+            block /= -(h * self.sigma[j - 1])[:, None, None]
+            own.append(block)
+            if len(self.model.array_cols):
+                # array-wide parameters (site gradient): every sensor depends on them
+                block, h = self.model.forward_differences(j, p, b, self.ctx[j - 1],
+                                                          self.model.array_cols)
+                block /= -(h * self.sigma[j - 1])[:, None, None]
+                arr.append(block)
+            else:
+                arr.append(None)
+        return own, arr
+
+    def _prior_jacobian(self):
+        """Return (n_priors, P_g): 1 / sd on each prior's parameter column."""
+        pr = np.zeros((len(self.priors), len(self.cols)))
+        where = {c: k for k, c in enumerate(self.cols)}
+        for r, (i, _, s) in enumerate(self.priors):
+            pr[r, where[i]] = 1.0 / s
+        return pr
+
     def jacobian(self, x):
         """
         Return the variable-projection Jacobian of :meth:`residuals` at x.
@@ -364,7 +402,9 @@ class ProfiledProblem:
         The columns are dr/dx by forward differences (step 1e-6 max(1, |x_i|)) with the
         field held at its profile, then projected onto the complement of the two field
         directions of each epoch (module docstring), so that J^T J is the Fisher
-        information of x with the fields unknown.
+        information of x with the fields unknown.  A fit with the squares loss needs only
+        J^T J and J^T r: :meth:`normal_equations` forms them without this (3 G N, P_g)
+        array.
 
         Parameters
         ----------
@@ -382,33 +422,104 @@ class ProfiledProblem:
         """
         p, b, mats, res = self.evaluate(x)
         n, g = res.shape[0], len(self.sensors)
+        own, arr = self._raw_columns(p, b)
         jac = np.zeros((n, g, 3, len(self.cols)))
         col = 0
-        for gi, j in enumerate(self.sensors):
-            sl = self.model.sensor_slices[j - 1]
-            # this sensor's columns, filled contiguously (P_j, N, 3) and copied into the
-            # strided Jacobian once: about 2x faster than writing column by column; an
-            # additive effect's column differences that effect alone (Model.forward_differences)
-            block, h = self.model.forward_differences(j, p, b, self.ctx[j - 1],
-                                                      range(sl.start, sl.stop))
-            block /= -(h * self.sigma[j - 1])[:, None, None]
-            jac[:, gi, :, col:col + len(block)] = block.transpose(1, 2, 0)
-            col += len(block)
-        # array-wide parameters (site gradient): every sensor of the group depends on them
         n_arr = len(self.model.array_cols)
-        if n_arr:
-            for gi, j in enumerate(self.sensors):
-                block, h = self.model.forward_differences(j, p, b, self.ctx[j - 1],
-                                                          self.model.array_cols)
-                block /= -(h * self.sigma[j - 1])[:, None, None]
-                jac[:, gi, :, len(self.cols) - n_arr:] = block.transpose(1, 2, 0)
+        for gi in range(g):
+            # each sensor's columns, computed contiguously (P_j, N, 3) and copied into the
+            # strided Jacobian once: about 2x faster than writing column by column
+            jac[:, gi, :, col:col + len(own[gi])] = own[gi].transpose(1, 2, 0)
+            col += len(own[gi])
+            if n_arr:
+                jac[:, gi, :, len(self.cols) - n_arr:] = arr[gi].transpose(1, 2, 0)
         # project out the nuisance field directions (variable projection)
         jac = self.project_out_field(b, mats, jac.reshape(n, 3 * g, -1))
         jac = jac.reshape(n * 3 * g, -1)
         if self.priors:
-            pr = np.zeros((len(self.priors), len(self.cols)))
-            where = {c: k for k, c in enumerate(self.cols)}
-            for r, (i, _, s) in enumerate(self.priors):
-                pr[r, where[i]] = 1.0 / s
-            jac = np.vstack([jac, pr])
+            jac = np.vstack([jac, self._prior_jacobian()])
         return jac
+
+    def normal_equations(self, x):
+        """
+        Return J^T J and J^T r of the projected Jacobian at x, formed block by block.
+
+        The same numbers as ``J.T @ J`` and ``J.T @ r`` of :meth:`jacobian` and
+        :meth:`residuals` (to rounding), without forming the (3 G N, P_g) projected
+        Jacobian: with D the unprojected columns, G_k the (3G x 2) field-direction columns
+        of epoch k (:meth:`field_columns`) and P_k = I - G_k (G_k^T G_k)^-1 G_k^T the
+        symmetric, idempotent projector of each epoch (Golub & Pereyra 1973; Kaufman 1975;
+        docs/papers.md, "The maximum-likelihood engine"),
+
+            J^T J = D^T D - sum_k (G_k^T D_k)^T (G_k^T G_k)^-1 (G_k^T D_k)
+            J^T r = D^T r - sum_k (G_k^T D_k)^T (G_k^T G_k)^-1 (G_k^T r_k).
+
+        A sensor's own parameters move only its own 3 rows of each epoch, so D^T D is block
+        diagonal over the group's sensors plus the blocks of the array-wide columns
+        (site gradient), and G_k^T D_k (2 x P_g) is a sum over the sensors' blocks.  The
+        2 x 2 algebra is written out component by component with the Cholesky factor
+        L_k of G_k^T G_k, W_k = L_k^-1 G_k^T D_k, so the subtracted term is W^T W
+        (symmetric by construction).  Prior rows add 1 / sd^2 to their diagonal entry and
+        (p_i - mean) / sd^2 to the gradient.
+
+        Only for the squares loss: the soft-L1 loss reweights the rows of J (IRLS), and
+        row weights do not commute with the per-epoch projection, so a robust fit forms
+        the dense :meth:`jacobian` (as does ``solver='scipy'``).
+
+        Parameters
+        ----------
+        x : numpy.ndarray
+            (P_g,) the group's parameters.
+
+        Returns
+        -------
+        a : numpy.ndarray
+            (P_g, P_g) J^T J, in 1 / (unit of parameter i x unit of parameter j): the
+            Fisher information of x with the fields unknown.
+        g : numpy.ndarray
+            (P_g,) J^T r, in 1 / (unit of each parameter) (r is dimensionless).
+
+        """
+        p, b, mats, res = self.evaluate(x)
+        own, arr = self._raw_columns(p, b)
+        q = self.field_columns(b, mats)                              # (N, 3G, 2)
+        # Gram-Schmidt per epoch, G_k = Q_k L_k^T: (G^T G)^-1 = L^-T L^-1, so the subtracted
+        # terms are W^T W and W^T (Q^T r) with W = Q^T D (2 x P_g per epoch)
+        q[:, :, 0] /= np.linalg.norm(q[:, :, 0], axis=1, keepdims=True)
+        q[:, :, 1] -= np.einsum('ij,ij->i', q[:, :, 0], q[:, :, 1])[:, None] * q[:, :, 0]
+        q[:, :, 1] /= np.linalg.norm(q[:, :, 1], axis=1, keepdims=True)
+        n_p, n_arr = len(self.cols), len(self.model.array_cols)
+        a = np.zeros((n_p, n_p))
+        g = np.zeros(n_p)
+        # W and Q^T r of each epoch, columns first: (P_g, N) and (N,) per direction
+        w = np.zeros((2, n_p, res.shape[0]))
+        qtr = np.zeros((2, res.shape[0]))
+        sa = slice(n_p - n_arr, n_p)
+        col = 0
+        for gi, blk in enumerate(own):
+            so = slice(col, col + len(blk))
+            col = so.stop
+            flat = blk.reshape(len(blk), -1)                         # (P_j, 3N)
+            r = np.ascontiguousarray(res[:, gi])                     # (N, 3)
+            a[so, so] = flat @ flat.T
+            g[so] = flat @ r.ravel()
+            qj = q[:, 3 * gi:3 * gi + 3]                             # (N, 3, 2)
+            for d in range(2):
+                w[d, so] = sum(blk[:, :, i] * qj[:, i, d] for i in range(3))
+                qtr[d] += sum(r[:, i] * qj[:, i, d] for i in range(3))
+            if n_arr:
+                fa = arr[gi].reshape(n_arr, -1)                      # (n_arr, 3N)
+                a[so, sa] = flat @ fa.T
+                a[sa, so] = a[so, sa].T
+                a[sa, sa] += fa @ fa.T
+                g[sa] += fa @ r.ravel()
+                for d in range(2):
+                    w[d, sa] += sum(arr[gi][:, :, i] * qj[:, i, d] for i in range(3))
+        for d in range(2):
+            a -= w[d] @ w[d].T
+            g -= w[d] @ qtr[d]
+        for i, mean, sd in self.priors:
+            c = int(np.flatnonzero(self.cols == i)[0])
+            a[c, c] += 1.0 / sd ** 2
+            g[c] += (p[i] - mean) / sd ** 2
+        return a, g

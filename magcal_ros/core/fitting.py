@@ -40,7 +40,8 @@ from magcal_ros.core.engine import ProfiledProblem
 from magcal_ros.core.magnitude import reference_magnitude
 from magcal_ros.core.noise import mad_sd
 from magcal_ros.core.notes import Note
-from magcal_ros.core.solvers import (covariance_from_jacobian, levenberg_marquardt,
+from magcal_ros.core.solvers import (covariance_from_jacobian, covariance_from_normal,
+                                     levenberg_marquardt, resolves_covariance,
                                      single_threaded_blas)
 import numpy as np
 from scipy.optimize import least_squares
@@ -509,9 +510,13 @@ class _Solve:
                                     f_scale=self.f_scale, max_nfev=self.max_nfev, method='trf',
                                     **({} if self.ftol is None else {'ftol': self.ftol}))
             else:
+                # squares loss: the normal equations block by block, without the tall
+                # projected Jacobian (ProfiledProblem.normal_equations); the soft-L1 loss
+                # weights its rows and needs it
                 sol = levenberg_marquardt(prob.residuals, prob.jacobian, x0,
                                           robust=self.robust, f_scale=self.f_scale,
                                           max_nfev=self.max_nfev,
+                                          normal=None if self.robust else prob.normal_equations,
                                           **({} if self.ftol is None else {'ftol': self.ftol}))
             p[prob.cols] = sol.x
             problems.append(prob)
@@ -537,7 +542,7 @@ class _Solve:
 
     def covariance(self, p, sigma, with_jacobian=True):
         """
-        Return ((P, P) covariance, chi-square, n_obs) from the projected Jacobian at p.
+        Return ((P, P) covariance, chi-square, n_obs) from the projected J^T J at p.
 
         ``with_jacobian`` False: the covariance is not computed (NaN).
         """
@@ -551,8 +556,16 @@ class _Solve:
             r = prob.residuals(x)
             chi2 += float(np.sum(r ** 2))
             n_obs += (3 * len(grp) - 2) * self.raw.shape[1]
-            if with_jacobian:
-                cov[np.ix_(prob.cols, prob.cols)] = covariance_from_jacobian(prob.jacobian(x))
+            if not with_jacobian:
+                continue
+            # J^T J of the projected Jacobian, formed block by block (the same matrix for
+            # the robust fit and either solver: the loss weights only the steps); a nearly
+            # undetermined problem takes the dense Jacobian, whose rounding resolves the
+            # undetermined directions (resolves_covariance)
+            a = prob.normal_equations(x)[0]
+            cov[np.ix_(prob.cols, prob.cols)] = (
+                covariance_from_normal(a) if resolves_covariance(a)
+                else covariance_from_jacobian(prob.jacobian(x)))
         return cov, chi2, n_obs
 
 

@@ -17,9 +17,9 @@ Solvers of the maximum-likelihood fit: Levenberg-Marquardt, the covariance, one 
 
 :func:`levenberg_marquardt` minimises a sum of squared (or soft-L1) residuals given the
 residual and Jacobian functions of :class:`magcal_ros.core.engine.ProfiledProblem`;
-:func:`covariance_from_jacobian` turns the projected Jacobian at the solution into the
-parameter covariance (the Cramer-Rao bound, docs/papers.md, "The maximum-likelihood
-engine").
+:func:`covariance_from_normal` (:func:`covariance_from_jacobian`) turns J^T J of the
+projected Jacobian at the solution into the parameter covariance (the Cramer-Rao bound,
+docs/papers.md, "The maximum-likelihood engine").
 """
 import contextlib
 from dataclasses import dataclass
@@ -54,20 +54,24 @@ class Solution:
 
 
 def levenberg_marquardt(fun, jac, x0, robust=False, f_scale=3.0, max_nfev=200, xtol=1e-10,
-                        ftol=1e-12):
+                        ftol=1e-12, normal=None):
     """
     Minimise sum rho(r_i^2) by Levenberg-Marquardt on the normal equations.
 
     rho is the identity or the soft-L1 loss 2 f^2 (sqrt(1 + r^2/f^2) - 1) (handled by
     iteratively reweighted least squares).  Marquardt's diagonal scaling makes the damping
-    invariant to parameter units (Marquardt 1963).
+    invariant to parameter units (Marquardt 1963).  The iteration reads the Jacobian only
+    through J^T J and J^T r: with the squares loss ``normal`` may supply them directly
+    (:meth:`magcal_ros.core.engine.ProfiledProblem.normal_equations`, without the tall
+    Jacobian); the soft-L1 loss weights the rows of J and needs ``jac``.
 
     Parameters
     ----------
     fun : callable
         x (P,) -> residuals (M,), dimensionless (normalised by the noise sd).
-    jac : callable
-        x (P,) -> Jacobian (M, P) of ``fun``.
+    jac : callable or None
+        x (P,) -> Jacobian (M, P) of ``fun``; None only with ``normal`` and ``robust``
+        False.
     x0 : numpy.ndarray
         (P,) start.
     robust : bool
@@ -77,7 +81,12 @@ def levenberg_marquardt(fun, jac, x0, robust=False, f_scale=3.0, max_nfev=200, x
     max_nfev : int
         Most residual evaluations.
     xtol, ftol : float
-        Relative step and relative cost decrease that stop the iteration.
+        Relative step and relative cost decrease that stop the iteration (a rejected step
+        whose actual and predicted changes of the cost are both below ftol also stops it:
+        the cost is at its minimum to rounding).
+    normal : callable, optional
+        x (P,) -> (J^T J (P, P), J^T r (P,)) of ``fun`` at x, used instead of ``jac`` for
+        the squares loss (ignored with ``robust``).
 
     Returns
     -------
@@ -89,20 +98,27 @@ def levenberg_marquardt(fun, jac, x0, robust=False, f_scale=3.0, max_nfev=200, x
             return float(np.sum(f_scale ** 2 * (np.sqrt(1 + (r / f_scale) ** 2) - 1)))
         return 0.5 * float(r @ r)
 
+    if normal is None or robust:
+        if jac is None:
+            raise ValueError('levenberg_marquardt needs jac (the soft-L1 loss weights the '
+                             'rows of the Jacobian), or normal= with the squares loss')
+        normal = None
     x = np.asarray(x0, float).copy()
     r = fun(x)
     c = cost(r)
     nfev = 1
     lam = 1e-3
     for _ in range(max_nfev):
-        j = jac(x)
-        if robust:
-            w = np.sqrt(1.0 / np.sqrt(1 + (r / f_scale) ** 2))
-            j, rw = j * w[:, None], r * w
+        if normal is not None:
+            a, g = normal(x)
         else:
+            j = jac(x)
             rw = r
-        a = j.T @ j
-        g = j.T @ rw
+            if robust:
+                w = np.sqrt(1.0 / np.sqrt(1 + (r / f_scale) ** 2))
+                j, rw = j * w[:, None], r * w
+            a = j.T @ j
+            g = j.T @ rw
         d = np.diag(a).copy()
         d[d <= 0] = 1.0
         while True:
@@ -117,6 +133,13 @@ def levenberg_marquardt(fun, jac, x0, robust=False, f_scale=3.0, max_nfev=200, x
             c_new = cost(r_new)
             if c_new <= c:
                 break
+            # at the minimum a step changes the cost by rounding only, up or down: both the
+            # predicted and the actual change below ftol is convergence (MINPACK's ftol
+            # test, More 1978, docs/papers.md), not a reason to raise the damping until
+            # max_nfev
+            predicted = -float(g @ step) - 0.5 * float(step @ a @ step)
+            if max(predicted, c_new - c) <= ftol * max(c, 1e-300):
+                return Solution(x, True, 2, 'cost decrease below ftol', nfev)
             lam *= 10
             if lam > 1e12:
                 return Solution(x, True, 2, 'no further decrease of the cost', nfev)
@@ -141,8 +164,7 @@ def covariance_from_jacobian(jac):
     """
     Return the (P, P) inverse of J^T J with column scaling; inf for undetermined directions.
 
-    A pseudo-inverse would silently give *zero* variance along directions the data do not
-    determine; here such parameters get an infinite standard uncertainty instead.
+    :func:`covariance_from_normal` of ``jac.T @ jac``.
 
     Parameters
     ----------
@@ -157,10 +179,37 @@ def covariance_from_jacobian(jac):
         solution.
 
     """
-    d = np.linalg.norm(jac, axis=0)
+    return covariance_from_normal(jac.T @ jac)
+
+
+def covariance_from_normal(a):
+    """
+    Return the (P, P) inverse of J^T J with column scaling; inf for undetermined directions.
+
+    The columns are scaled to unit norm (d_i = sqrt((J^T J)_ii)) before the
+    eigendecomposition, so the rule below does not depend on the parameters' units.  A
+    pseudo-inverse would silently give *zero* variance along directions the data do not
+    determine; here such parameters (those with a weight above 1e-6 in an eigenvector of
+    the scaled matrix whose eigenvalue is below 1e-14 of the largest) get an infinite
+    standard uncertainty instead.
+
+    Parameters
+    ----------
+    a : numpy.ndarray
+        (P, P) J^T J of residuals normalised by the noise sd
+        (:meth:`magcal_ros.core.engine.ProfiledProblem.normal_equations`), in
+        1 / (unit of parameter i x unit of parameter j).
+
+    Returns
+    -------
+    numpy.ndarray
+        (P, P) covariance in the parameters' units squared: the Cramer-Rao bound at the
+        solution.
+
+    """
+    d = np.sqrt(np.clip(np.diag(a), 0.0, None))
     d[d == 0] = 1.0
-    js = jac / d
-    m = js.T @ js
+    m = a / np.outer(d, d)
     w, v = np.linalg.eigh(m)
     bad = w <= 1e-14 * max(w.max(), 1e-300)
     w_inv = np.where(bad, 0.0, 1.0 / np.where(bad, 1.0, w))
@@ -171,6 +220,40 @@ def covariance_from_jacobian(jac):
         cov[:, involved] = np.inf
         cov[involved, involved] = np.inf
     return cov
+
+
+def resolves_covariance(a, rcond=1e-8):
+    """
+    Return True when J^T J formed block by block determines the covariance to rounding.
+
+    :meth:`magcal_ros.core.engine.ProfiledProblem.normal_equations` subtracts the field
+    directions' part from D^T D of the unprojected columns D, so its rounding in the
+    column-scaled matrix is about eps |D_i| |D_k| / (|J_i| |J_k|) instead of eps: up to
+    ~1e-13 when a column lies mostly along the field directions (|D_i| / |J_i| ~ 20 for an
+    offset and scale along a turntable's axis).  A smallest scaled eigenvalue above
+    ``rcond`` (1e-8) of the largest carries a relative error below 1e-5, and so does the
+    variance along it; below, the undetermined directions (:func:`covariance_from_normal`:
+    eigenvalues below 1e-14) are not resolved and the caller forms the covariance from the
+    projected Jacobian (:func:`covariance_from_jacobian`), whose rounding is eps.
+
+    Parameters
+    ----------
+    a : numpy.ndarray
+        (P, P) J^T J, as for :func:`covariance_from_normal`.
+    rcond : float
+        Smallest eigenvalue of the column-scaled matrix, relative to its largest, that the
+        block-formed matrix resolves.
+
+    Returns
+    -------
+    bool
+
+    """
+    d = np.sqrt(np.clip(np.diag(a), 0.0, None))
+    if np.any(d == 0):
+        return False
+    w = np.linalg.eigvalsh(a / np.outer(d, d))
+    return bool(w[0] > rcond * w[-1])
 
 
 def single_threaded_blas():
