@@ -37,6 +37,7 @@ from pathlib import Path
 import re
 import struct
 import textwrap
+import warnings
 import zlib
 
 from magcal_ros.core.diagnose import (AT_FLOOR_RATIO, compact_spec, MIN_DELTA_BIC,
@@ -46,6 +47,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.ticker import (AutoLocator, FuncFormatter, Locator, LogLocator, MaxNLocator,
                                NullLocator)
+from matplotlib.transforms import ScaledTranslation
 import numpy as np
 
 #: at most this many points per scatter plot (evenly thinned; the extremes are added)
@@ -98,10 +100,59 @@ def _arrange(fig, rows=1, cols=1, left=0.8, right=0.25, bottom=0.55, top=0.3, ws
             loc = axis.get_major_locator()
             if type(loc) is AutoLocator:
                 axis.set_major_locator(_InView(MaxNLocator(
-                    nbins=3, steps=[1, 2, 2.5, 5, 10], min_n_ticks=3)))
+                    nbins=3, steps=[1, 2, 5, 10], min_n_ticks=3)))
             elif type(loc) is LogLocator:
                 axis.set_major_locator(_InView(loc))
+    _place_axis_labels(fig)
     return fig
+
+
+def _text_size(renderer, text, prop):
+    """Return the width and height of a (multi-line) text, points (as Text lays it out)."""
+    lines = text.split('\n')
+    sizes = [renderer.get_text_width_height_descent(ln, prop, ismath=False) for ln in lines]
+    size = prop.get_size_in_points()
+    width = max(sz[0] for sz in sizes) * 72.0 / renderer.dpi
+    height = sizes[-1][1] * 72.0 / renderer.dpi + (len(lines) - 1) * 1.2 * size
+    return width, height
+
+
+def _place_axis_labels(fig):
+    """
+    Put each x label below its tick labels and each y label left of them, once.
+
+    Matplotlib places an axis label at every draw from the extents of the tick labels,
+    locating, formatting and measuring the ticks a second time (a tenth of the drawing of a
+    panel).  The layout is final here, so the same rule is applied once: the tick mark and
+    its pad, the tallest (x) or widest (y) tick label, then the label's own pad, all from
+    the axis' own settings and the canvas's text metrics (which the drawing reuses).
+    """
+    renderer = fig.canvas.get_renderer()
+    for ax in fig.axes:
+        if not ax.axison:
+            continue
+        for axis, side in ((ax.xaxis, 'bottom'), (ax.yaxis, 'left')):
+            if axis.get_label_position() != side:
+                continue
+            lo, hi = sorted(axis.get_view_interval())
+            locs = [v for v in axis.get_major_locator()() if lo <= v <= hi]
+            tick = axis.majorTicks[0]
+            pad = 0.0
+            if locs and tick.tick1line.get_visible():
+                pad += tick.get_tick_padding()
+            if locs and tick.label1.get_visible():
+                pad += tick.get_pad()
+                prop = tick.label1.get_fontproperties()
+                labels = axis.get_major_formatter().format_ticks(locs)
+                pad += max((_text_size(renderer, s, prop)[side == 'bottom'] for s in labels),
+                           default=0.0)
+            pad = (pad + axis.labelpad) / 72.0                          # points -> inches
+            if side == 'bottom':
+                axis.set_label_coords(0.5, 0.0, ax.transAxes + ScaledTranslation(
+                    0.0, -pad, fig.dpi_scale_trans))
+            else:
+                axis.set_label_coords(0.0, 0.5, ax.transAxes + ScaledTranslation(
+                    -pad, 0.0, fig.dpi_scale_trans))
 
 
 def _cell_width(fig, cols=1, left=0.8, right=0.25, wspace=1.0):
@@ -250,16 +301,43 @@ def _envelope(y, columns=PIXEL_COLUMNS):
         return np.arange(n)
     y2 = y.reshape(n, -1)
     head = np.where(np.isfinite(y2[:k * columns]), y2[:k * columns], np.nan)
-    parts = [np.arange(k * columns, n)]              # the last partial chunk: all of it
+    keep = np.zeros(n, bool)
+    keep[k * columns:] = True                        # the last partial chunk: all of it
     for c in range(y2.shape[1]):
         blocks = head[:, c].reshape(columns, k)
         ok = np.isfinite(blocks).any(axis=1)
         start = np.arange(columns)[ok] * k
         b = np.where(np.isfinite(blocks[ok]), blocks[ok], np.inf)
-        parts += [start + np.argmin(b, axis=1)]
+        keep[start + np.argmin(b, axis=1)] = True
         b = np.where(np.isfinite(blocks[ok]), blocks[ok], -np.inf)
-        parts += [start + np.argmax(b, axis=1)]
-    return np.unique(np.concatenate(parts))
+        keep[start + np.argmax(b, axis=1)] = True
+    return np.flatnonzero(keep)
+
+
+def _band(ax, t, y, columns=PIXEL_COLUMNS, lw=0.5, **style):
+    """
+    Draw a series as its range per chunk: one filled polygon, min to max in each column.
+
+    The same pixels as a line through the extremes of each chunk (:func:`_envelope`), for
+    a fraction of the drawing: Agg strokes each of the 2 x ``columns`` segments of that
+    zig-zag, and fills this polygon in one pass.  The outline (``lw``, points) keeps a band
+    narrower than a pixel visible.  ``t``, ``y``: (N,); NaN are skipped (a chunk without
+    data leaves a gap).  Returns the PolyCollection (legend handle).
+    """
+    n = len(y)
+    k = int(np.ceil(n / columns))                # samples per chunk, the last one shorter
+    if k <= 2:
+        return ax.fill_between(t, y, y, lw=max(lw, 0.8), **style)
+    chunks = int(np.ceil(n / k))
+    blocks = np.full(chunks * k, np.nan)
+    blocks[:n] = y
+    with warnings.catch_warnings():
+        warnings.simplefilter('ignore', RuntimeWarning)   # an all-NaN chunk: a gap
+        lo = np.nanmin(blocks.reshape(chunks, k), axis=1)
+        hi = np.nanmax(blocks.reshape(chunks, k), axis=1)
+    edges = t[np.append(np.arange(0, n, k), n - 1)]
+    x = np.repeat(edges, 2)[1:-1]                # each chunk flat from its edge to the next
+    return ax.fill_between(x, np.repeat(lo, 2), np.repeat(hi, 2), lw=lw, **style)
 
 
 def _scatter_idx(n, *series, columns=PIXEL_COLUMNS):
@@ -272,7 +350,11 @@ def _scatter_idx(n, *series, columns=PIXEL_COLUMNS):
     idx = _thin(n)
     if len(idx) == n:
         return idx
-    return np.union1d(idx, np.concatenate([_envelope(y, columns) for y in series]))
+    keep = np.zeros(n, bool)
+    keep[idx] = True
+    for y in series:
+        keep[_envelope(y, columns)] = True
+    return np.flatnonzero(keep)
 
 
 def _binned(x, y, bins=20):
@@ -366,9 +448,8 @@ def plot_magnitude(data, result):
         ax.set_xlabel('time since start (s)')
         ax.set_ylabel('|B| - reference (nT)')
     bottom = _bottom_legend(fig, fontsize=7)
-    _suptitle(fig, 'Measured and modelled magnitude minus the reference magnitude (mean |B| '
-              f'{float(np.mean(result.field_magnitude_nt)):,.0f} nT; the residual is the small '
-              'difference between the two: see the next figure)', fontsize=10)
+    _suptitle(fig, 'Measured and modelled magnitude minus the reference |B| (mean '
+              f'{float(np.mean(result.field_magnitude_nt)):,.0f} nT)', fontsize=10)
     return _arrange(fig, int(np.ceil(s / 4)), min(s, 4), bottom=bottom)
 
 
@@ -388,9 +469,8 @@ def plot_residual_time(data, result, floor):
         if j > 1:
             for c in range(3):
                 v = result.vector_residual_nt[j - 1, :, c]
-                idx = _envelope(v, px)
-                ax.plot(t[idx], v[idx], '-', lw=0.6, color=COMPONENT_COLOURS[c], alpha=0.7,
-                        label=f'vector {"xyz"[c]}: sensor {j} - sensor 1')
+                _band(ax, t, v, px, color=COMPONENT_COLOURS[c], alpha=0.6,
+                      label=f'vector {"xyz"[c]}: sensor {j} - sensor 1')
         _floor_lines(ax, floor.per_sensor_nt[j - 1])
         ax.set_ylabel(f'sensor {j}\nresidual (nT)')
         if j == s:
@@ -570,9 +650,7 @@ def plot_direction_map(data, result, floor):
         ax.set_ylabel('equal-area y (centre = mean direction)')
         _title(ax, f'sensor {j}: centre ({c[0]:+.2f}, {c[1]:+.2f}, {c[2]:+.2f}), floor '
                f'{floor.per_sensor_nt[j - 1]:.1f} nT', fontsize=8)
-    _suptitle(fig, 'Residual over field direction (corrected field in the sensor frame, '
-              'Lambert equal-area about the mean direction; a pattern = missing '
-              'linear/nonlinear term)', fontsize=11)
+    _suptitle(fig, 'Residual over field direction (sensor frame, equal-area)', fontsize=11)
     return _arrange(fig, int(np.ceil(s / 4)), min(s, 4), right=0.6, wspace=1.3)
 
 
@@ -606,9 +684,12 @@ def plot_tensor(data, result, baseline_m=0.5, floor=None):
                                     (after, 'after correction'))):
         ax = axes[k]
         for n, (a, b) in enumerate(comps):
-            idx = _envelope(g[:, a, b], px)
-            ax.plot(t[idx], g[idx, a, b], '-', lw=0.7, color=f'C{n}',
-                    label=f'G{"xyz"[a]}{"xyz"[b]}')
+            name = f'G{"xyz"[a]}{"xyz"[b]}'
+            if k == 1:                  # after: noise about zero, drawn as its range
+                _band(ax, t, g[:, a, b], px, color=f'C{n}', alpha=0.7, label=name)
+            else:                       # before: smooth curves, one line each
+                idx = _envelope(g[:, a, b], px)
+                ax.plot(t[idx], g[idx, a, b], '-', lw=0.7, color=f'C{n}', label=name)
         if k == 1:
             lev = float(np.max(floor))
             ax.axhline(lev, color='k', ls='--', lw=1, label='noise floor (largest component)')
@@ -714,10 +795,9 @@ def plot_candidates(diagnosis, top=15):
     ax2.set_yticks([])
     ax2.set_xscale('log')
     _plain_log_ticks(ax2.xaxis)
-    ax2.axvline(-MIN_DELTA_BIC, color='k', ls='--', lw=1, label='-dBIC = 10 (strong evidence)')
-    ax2.set_xlabel('-delta BIC (log scale): must exceed 10')
+    ax2.axvline(-MIN_DELTA_BIC, color='k', ls='--', lw=1)
+    ax2.set_xlabel('-delta BIC (log scale): must exceed 10 (dashed)')
     ax2.set_ylabel('(same candidates)')
-    ax2.legend(fontsize=7, loc='lower right')
     _suptitle(fig, 'Candidate effects, best first; verdict: '
               f'{diagnosis.verdict_token or "none"}', fontsize=10)
     # room for the longest effect token (8 pt: ~0.065 in per character) and the axis label
@@ -827,11 +907,9 @@ def plot_residual_spectrum(findings):
                             xycoords=('data', 'axes fraction'), ha='center', va='top')
         ax.set_xlabel('frequency [Hz]')
         if first:
-            ax.set_ylabel('power / noise')
+            ax.set_ylabel('power / white noise')
         _title(ax, f'sensor {j}', fontsize=10)
-    fig.axes[0].legend(fontsize=8, loc='lower left')
-    _suptitle(fig, f'residual spectrum per sensor ({findings.kind_of_series} residual; '
-                   'a line is a periodic disturbance)')
+    _suptitle(fig, f'Residual spectrum per sensor ({findings.kind_of_series} residual)')
     return _arrange(fig, int(np.ceil(len(sensors) / 4)), min(len(sensors), 4), wspace=0.35)
 
 
@@ -872,8 +950,7 @@ def plot_change_points(findings):
         ax.set_xlabel('t [s]')
         ax.set_ylabel('residual [nT]')
         _title(ax, f'sensor {j}: {len(steps)} change point(s)', fontsize=10)
-    _suptitle(fig, f'change points: residual over time, running mean over {w} samples, '
-                   'segment means between the steps found (x, y, z)')
+    _suptitle(fig, f'Change points (running mean over {w} samples)')
     return _arrange(fig, int(np.ceil(len(sensors) / 4)), min(len(sensors), 4), wspace=0.75)
 
 
@@ -937,8 +1014,7 @@ def plot_residual_vs_lagged_channels(data, findings):
         ax.set_ylabel('residual along its direction [nT]')
         _title(ax, f'{"all sensors" if j is None else f"sensor {j}"}: {label}', fontsize=10)
         ax.legend(fontsize=8)
-    _suptitle(fig, 'residual against the driving channels, as is and through the fitted '
-                   'first-order lag')
+    _suptitle(fig, 'Residual against the driving channels')
     return _arrange(fig, 1, len(panels))
 
 
@@ -1040,6 +1116,28 @@ def _implicated(data, diagnosis, ladder, findings):
             channels.setdefault(ch, set()).update(_token_sensors(tok, data.n_sensors))
     return tokens, kinds, channels
 
+
+#: what a figure shows and how to read it, printed under it on the page (view name -> text)
+CAPTIONS = {
+    'magnitude': 'Measured |raw| (grey) and modelled |A B + o + ...| (blue) magnitude minus '
+                 'the reference magnitude |B|, per sensor; each title gives the mean offset '
+                 'of the raw readings.  The residual is the small difference between the '
+                 'two: see the next figure.',
+    'residual_direction': 'The corrected field direction in the sensor frame, Lambert '
+                          'equal-area projection about the mean direction (rings 45, 90, '
+                          '135 deg from it), coloured by the scalar residual: a pattern is a '
+                          'missing linear or non-linear term.',
+    'residual_spectrum': 'Power over the white-noise level (dashed line at 1): a line that '
+                         'stands out is a periodic disturbance, marked with the effect that '
+                         'models it.',
+    'change_points': "Each sensor's residual components (x, y, z) averaged over 1 % of the "
+                     'record, the segment means between the steps found, and the +-1 sd '
+                     'band of that running mean for white noise at the floor.',
+    'residual_lagged': 'The residual along the direction it moves with each driving channel, '
+                       'against the channel as is (grey) and through the fitted first-order '
+                       'lag (red): a lag shows as a loop that closes onto a line; curvature '
+                       'that remains is a non-linear coupling.',
+}
 
 #: the views drawn only when the diagnosis points at them: name -> what must point at them
 SELECTED_VIEWS = {
@@ -1250,7 +1348,9 @@ def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseli
             continue
         png = _png(fig)
         (out / f'{name}.png').write_bytes(png)
-        images.append(f'<h2>{html.escape(heading)}</h2><img alt="{name}" '
+        caption = (f'<p class="caption">{html.escape(CAPTIONS[name])}</p>'
+                   if name in CAPTIONS else '')
+        images.append(f'<h2>{html.escape(heading)}</h2>{caption}<img alt="{name}" '
                       f'src="data:image/png;base64,{base64.b64encode(png).decode("ascii")}">')
     if unexplained:
         parts.append('<p class="views">Every view is drawn: the residual is above the noise '
