@@ -108,8 +108,9 @@ def epoch_times(epochs, stamps_s):
     return t0 + slope * (e - e[0])
 
 
-#: largest change of the epoch offsets (epochs) that a failed set may take from the stamp
-#: vote's proposal (StampMatcher with ``misfit``): the sets wait for that many samples
+#: largest backward shift of one stream, and largest change of the offsets by the stamp
+#: vote's proposal, that StampMatcher with ``misfit`` tries, epochs (a proposal that far
+#: ahead makes the sets wait for that many samples once)
 MAX_VOTE_SHIFT = 25
 
 
@@ -184,28 +185,33 @@ class StampMatcher:
         ``misfit(items) -> float``: a chi-square of how far the S items of a set are from
         being the samples of one epoch (e.g. :meth:`magcal_ros.core.live.LiveCorrector.
         pairing_chi2`); a set passes when it is at most ``threshold``.  With it, a set
-        that fails is never emitted: on the ``confirm`` sets queued after it the matcher
-        sums the misfit of the pairing as it is and of each shift of one stream by 1 ..
-        ``max_shift`` epochs (the maximum-likelihood pairing), and adopts at once a shift
-        whose every set passes and whose sum beats every other candidate's by ``margin``
-        (a lost sample: :attr:`repaired`).  Once aligned, the stamp vote only proposes
-        offsets (one more candidate, up to :data:`MAX_VOTE_SHIFT` epochs away): stamps
-        that lag by more than half a period no longer move a pairing that fits.
-        Otherwise the set is dropped (:attr:`rejected`): when the pairing as it is fits
-        best (this set alone was bad), or when no candidate or more than one fits (a
-        longer slip: the stamp vote restarts on the samples from then on, and its proposal
-        is tried at the next failed set; an array too still to tell: its sets differ
-        little anyway).  Stamps alone cannot see a shifted stream until the vote's
-        majority flips (about half a ``window``).
+        that fails is never emitted.  The matcher sums, over ``confirm`` sets, the misfit
+        of the pairing as it is (the sets after the failed one), of each shift of one
+        stream forward by 1 .. ``max_shift`` epochs (a lost sample: its samples from the
+        failed set on against the others' queued ones) and back by 1 ..
+        :data:`MAX_VOTE_SHIFT` (stamps that lag: against the others' samples already
+        taken, so without waiting), and of the stamp vote's proposal; it adopts at once
+        the candidate whose every set passes and whose sum beats every other's by
+        ``margin`` (the maximum-likelihood pairing: :attr:`repaired`).  Otherwise the set
+        is dropped (:attr:`rejected`): when the pairing as it is fits best (this set alone
+        was bad), or when no candidate or more than one fits (a longer run of lost
+        samples: the stamp vote restarts on the samples from then on, and its proposal is
+        tried at the next failed set; an array too still to tell: its sets differ little
+        anyway).  Once aligned, a new stamp vote is taken unless the next ``confirm`` sets
+        refute it (the pairing as it is fits better by ``margin``): stamps that lag by
+        more than half a period no longer move a pairing that fits, and a slip too small
+        for the misfit to show is still moved by the vote when its majority flips (about
+        half a ``window``), as without ``misfit``.
     threshold : float
         Largest misfit of a set that passes.
     max_shift : int
-        Largest shift of one stream tried after a failed set, epochs.
+        Largest forward shift of one stream tried after a failed set, epochs (the sets
+        wait for ``max_shift + confirm + 1`` samples of every stream).
     confirm : int
-        Sets queued after a failed one on which the candidates are compared.
+        Sets on which the candidates are compared.
     margin : float
-        Least difference of summed misfit between the adopted shift and any other
-        candidate (2 ln of their likelihood ratio for a chi-square misfit).
+        Least difference of summed misfit between the adopted candidate and any other
+        (2 ln of their likelihood ratio for a chi-square misfit).
 
     Attributes
     ----------
@@ -243,19 +249,24 @@ class StampMatcher:
         # vote history per stream: a ring of (sequence number, stamp) in numpy arrays
         self._hist = [_Ring(self.window) for _ in range(self.n_sensors)]
         self._queues = [deque() for _ in range(self.n_sensors)]
+        # with misfit: the samples last taken from each queue, (sequence number, stamp, item),
+        # contiguous with the queue (a shift back is tested on them without waiting)
+        self._past = [deque(maxlen=MAX_VOTE_SHIFT + confirm + 2)
+                      for _ in range(self.n_sensors)]
         self.reset()
 
     def reset(self):
         """Forget queued samples, offsets and counters."""
-        for h, q in zip(self._hist, self._queues):
+        for h, q, p in zip(self._hist, self._queues, self._past):
             h.clear()
             q.clear()
+            p.clear()
         self._seq = [0] * self.n_sensors
         self._last_arrival = [None] * self.n_sensors
         self._offset = [0] + [None] * (self.n_sensors - 1)
         self._proposal = [0] + [None] * (self.n_sensors - 1)    # the stamp vote's, checked
         self._pending = None            # a proposal to compare with the pairing as it is
-        self._refuted = None            # the last proposal the data refuted
+        self._refuted = deque(maxlen=4)     # the last proposals the data refuted
         self._aligned = self.n_sensors == 1
         self._since_align = 0
         self._backoff = self._skip = 0
@@ -300,7 +311,7 @@ class StampMatcher:
         queue = self._queues[j]
         queue.append((q, s, item))
         if len(queue) > self.max_queue:
-            queue.popleft()
+            self._past[j].append(queue.popleft())
             self.incomplete += 1
         self._since_align += 1
         # until every stream has an offset, vote more often (but not on every sample: a
@@ -348,7 +359,7 @@ class StampMatcher:
             self._offset[j] = best
         if self.misfit is not None and self._aligned:
             vote = [p if p is not None else o for p, o in zip(self._proposal, self._offset)]
-            self._pending = (vote if vote != self._offset and vote != self._refuted
+            self._pending = (vote if vote != self._offset and vote not in self._refuted
                              else None)
         self._aligned = all(o is not None for o in self._offset)
 
@@ -361,6 +372,7 @@ class StampMatcher:
     def _emit(self):
         out = []
         queues, misfit, threshold = self._queues, self.misfit, self.threshold
+        pasts = self._past if misfit is not None else None
         while all(queues):
             if self._pending is not None and self._decide_vote() is None:
                 break                       # wait for the samples that decide it
@@ -374,51 +386,69 @@ class StampMatcher:
                     if repaired is None:
                         break               # wait for the samples that decide it
                     if not repaired:
-                        for qq in queues:
-                            qq.popleft()
+                        for qq, pp in zip(queues, pasts):
+                            pp.append(qq.popleft())
                         self.rejected += 1
                     continue                # repaired: the heads pair anew
-                self._backoff = self._skip = 0
                 heads = [qq.popleft() for qq in queues]
+                if pasts is not None:
+                    self._backoff = self._skip = 0
+                    for pp, h in zip(pasts, heads):
+                        pp.append(h)
                 out.append((e, _median([h[1] for h in heads]), items))
                 self.complete += 1
             else:
-                for qq, x in zip(queues, epochs):
+                for k, (qq, x) in enumerate(zip(queues, epochs)):
                     if x == e:
-                        qq.popleft()
+                        h = qq.popleft()
+                        if pasts is not None:
+                            pasts[k].append(h)
                 self.incomplete += 1
         return out
 
     def _candidates(self):
-        """Offsets to try after a failed set: as they are, one stream shifted, the vote's."""
-        yield 0, list(self._offset)
-        small = []
+        """
+        Offsets to try after a failed set: (stream or -1, shift, offsets).
+
+        As they are (shift 0); one stream shifted forward by 1 .. ``max_shift`` epochs (a
+        lost sample: tested on the samples queued after the failed set) or back by 1 ..
+        :data:`MAX_VOTE_SHIFT` (a stream whose stamps lag: tested on the others' samples
+        already taken, no wait); the stamp vote's proposal (stream -1).
+        """
+        yield 0, 0, list(self._offset)
+        single = []
         for j in range(self.n_sensors):
-            for d in range(1, self.max_shift + 1):
-                for delta in (d, -d):
-                    o = list(self._offset)
-                    if j == 0:          # sensor 1 keeps offset 0: shift the others instead
-                        o[1:] = [x - delta for x in o[1:]]
-                    else:
-                        o[j] += delta
-                    small.append(o)
-                    yield delta, o
+            for delta in [*range(1, self.max_shift + 1), *range(-1, -MAX_VOTE_SHIFT - 1, -1)]:
+                o = list(self._offset)
+                if j == 0:              # sensor 1 keeps offset 0: shift the others instead
+                    o[1:] = [x - delta for x in o[1:]]
+                else:
+                    o[j] += delta
+                single.append(o)
+                yield j, delta, o
         vote = [p if p is not None else o for p, o in zip(self._proposal, self._offset)]
         diff = [p - o for p, o in zip(vote, self._offset)]
         reach = max(diff) - min(diff)   # diff[0] = 0: sensor 1 keeps offset 0
-        if vote not in small and 0 < reach <= MAX_VOTE_SHIFT:
-            yield reach, vote           # e.g. a run of lost samples, once the vote sees it
+        if vote not in single and 0 < reach <= MAX_VOTE_SHIFT:
+            yield -1, reach, vote       # e.g. a run of lost samples, once the vote sees it
+
+    def _item(self, k, seq):
+        """Return the item of stream k with sequence number ``seq`` (queued or past), or None."""
+        qq = self._queues[k]
+        i = seq - qq[0][0]
+        if i >= 0:
+            return qq[i][2] if i < len(qq) else None
+        past = self._past[k]
+        i += len(past)
+        return past[i][2] if i >= 0 else None
 
     def _summed_misfit(self, offset, first):
         """Misfit summed over the ``confirm`` sets from epoch ``first`` on (inf: one fails)."""
-        queues, total = self._queues, 0.0
+        total = 0.0
         for e in range(first, first + self.confirm):
-            items = []
-            for qq, o in zip(queues, offset):
-                k = e - o - qq[0][0]            # index of the sample of epoch e
-                if not 0 <= k < len(qq):
-                    return np.inf
-                items.append(qq[k][2])
+            items = [self._item(k, e - o) for k, o in enumerate(offset)]
+            if any(item is None for item in items):
+                return np.inf
             m = self.misfit(items)
             if not m <= self.threshold:
                 return np.inf
@@ -447,7 +477,7 @@ class StampMatcher:
             new = self._summed_misfit(vote, max(h + o for h, o in zip(heads, vote)))
         self._pending = None
         if reach > MAX_VOTE_SHIFT or now + self.margin <= new:
-            self._refuted = vote
+            self._refuted.append(vote)
             return False
         self._offset = vote
         self.realigned += 1
@@ -466,14 +496,18 @@ class StampMatcher:
             return False
         queues = self._queues
         candidates = list(self._candidates())
-        reach = max(self.max_shift, max(abs(d) for d, _ in candidates))
-        if min(len(qq) for qq in queues) < reach + self.confirm + 1:
+        ahead = max([self.max_shift] + [d for j, d, _ in candidates if j < 0])
+        if min(len(qq) for qq in queues) < ahead + self.confirm + 1:
             return None
         heads = [qq[0][0] for qq in queues]
         fits = []
-        for delta, o in candidates:
-            first = (heads[0] + o[0] + 1 if delta == 0 else
-                     max(h + x for h, x in zip(heads, o)))
+        for j, delta, o in candidates:
+            if delta == 0:              # the sets after the failed one
+                first = heads[0] + o[0] + 1
+            elif j >= 0:                # the shifted stream's samples from its head on
+                first = heads[j] + o[j]
+            else:                       # every stream's samples from its head on
+                first = max(h + x for h, x in zip(heads, o))
             fits.append((self._summed_misfit(o, first), delta, o))
         fits.sort(key=lambda f: f[0])
         (best, delta, o), second = fits[0], fits[1][0]
