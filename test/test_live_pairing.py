@@ -286,6 +286,22 @@ def test_no_false_alarm_on_clean_streams_and_the_same_tensors():
     np.testing.assert_array_equal(sets, old_sets)
     np.testing.assert_array_equal(epochs, old_epochs)
     assert not np.any(epochs != epochs[:, :1])
+
+    def tensors(check):
+        """Tensors of LiveCorrector.gradients on the first 1000 epochs (nT/m)."""
+        rng = np.random.default_rng(0)
+        live = LiveCorrector(_calibration(), 4, POS, stamp_tolerance_s=0.5 * PERIOD,
+                             check_pairing=check)
+        out = []
+        for stamp, j, e in events[:4000]:
+            b = live.correct(j + 1, stamp,
+                             _raw(j + 1, fields[j, e]) + rng.normal(scale=SIGMA_NT, size=3))
+            out.extend(g for _, g in live.gradients(j + 1, stamp, b))
+        return np.array(out)
+    # the checked path takes the tensor from the check's product: the same to rounding
+    checked, plain = tensors(True), tensors(False)
+    assert len(checked) == len(plain) > 900
+    np.testing.assert_allclose(checked, plain, rtol=0, atol=1e-9)
     # stalls alone (no loss) do not shift a stream: nothing is rejected either
     live, sets, epochs = run_corrector(clean(6, stalls_per_s=0.3), fields)
     assert live.matcher.rejected == 0 and live.matcher.repaired == 0
