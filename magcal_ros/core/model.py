@@ -339,29 +339,45 @@ class Model:
 
         A parameter of one of sensor j's additive effects changes only that effect's
         contribution (the linear part and the other effects do not read it), so its
-        difference is that contribution's alone, without re-evaluating the whole reading;
-        other parameters (linear effects, the array's) re-evaluate :meth:`forward`.
+        difference is that contribution's alone, without re-evaluating the whole reading.
+        A parameter of a linear effect changes only A_j: its difference is
+        b' (A_j(p + h_i e_i) - A_j(p))^T (b' the field at the sensor) plus the change of
+        the additive effects that read the linear part (``depends_on_lin``).  The array's
+        parameters re-evaluate :meth:`forward`.
 
         """
         h = np.array([1e-6 * max(1.0, abs(p[i])) for i in cols])
         owner = {}
+        linear = set()
+        reading = []                    # additive effects that read the linear part
         for eff, sl in zip(self.effects[j - 1], self.slices[j - 1]):
             if eff.kind != 'linear':
                 owner.update({i: (eff, sl) for i in range(sl.start, sl.stop)})
+                if eff.depends_on_lin():
+                    reading.append((eff, sl))
+            else:
+                linear.update(range(sl.start, sl.stop))
         lin = None
         contrib = {}
         diff = np.empty((len(cols), len(b), 3))
         for c, i in enumerate(cols):
             pp = p.copy()
             pp[i] += h[c]
+            if (i in owner or i in linear) and lin is None:
+                bb = b + self.array_shift(j, p, ctx) if self.array_effects else b
+                a0 = self.matrix(j, p)
+                lin = bb @ a0.T
             if i in owner:
                 eff, sl = owner[i]
-                if lin is None:
-                    bb = b + self.array_shift(j, p, ctx) if self.array_effects else b
-                    lin = bb @ self.matrix(j, p).T
                 if sl.start not in contrib:
                     contrib[sl.start] = eff.contribution(p[sl], ctx, lin)
                 np.subtract(eff.contribution(pp[sl], ctx, lin), contrib[sl.start], out=diff[c])
+            elif i in linear:
+                np.matmul(bb, (self.matrix(j, pp) - a0).T, out=diff[c])
+                for eff, sl in reading:
+                    if sl.start not in contrib:
+                        contrib[sl.start] = eff.contribution(p[sl], ctx, lin)
+                    diff[c] += eff.contribution(p[sl], ctx, lin + diff[c]) - contrib[sl.start]
             else:
                 if base is None:
                     base = self.forward(j, p, b, ctx)
