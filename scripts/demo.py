@@ -426,9 +426,14 @@ def parse_args(argv=None):
                                        '(scripts/demo_site_gradient.py; add --help for its '
                                        'options)')
     p.add_argument('--out', default='demo_out', help='output directory (default ./demo_out)')
-    p.add_argument('--collect-s', type=float, default=65.0,
-                   help='seconds of rotation data to collect (default 65, about one period of '
-                        "the simulator's smooth trajectory)")
+    p.add_argument('--collect-s', type=float, default=30.0,
+                   help='seconds of rotation data to collect (default 30: about 3000 sets, '
+                        "by when the simulator's smooth trajectory has covered the attitudes); "
+                        'collection goes on past it until calibration/status says ready, at '
+                        'most --max-collect-s')
+    p.add_argument('--max-collect-s', type=float, default=120.0,
+                   help='longest collection, s (default 120): calibrate then even if the '
+                        'status is not ready (the reply says why if it refuses)')
     p.add_argument('--record-s', type=float, default=15.0,
                    help='seconds of corrected stream to record afterwards (default 15)')
     p.add_argument('--model', default='base', help='model to fit (default base)')
@@ -496,14 +501,22 @@ def main(argv=None):
             raise RuntimeError(f'calibration/start refused: {resp.message}')
         t0 = time.monotonic()
         next_print = 0.0
-        while (elapsed := time.monotonic() - t0) < args.collect_s:
+        told = False
+        # the set duration, then on until calibration/status says ready (enough sets and
+        # attitude coverage), at most --max-collect-s
+        while ((elapsed := time.monotonic() - t0) < args.collect_s
+               or (not (rec.status or {}).get('ready') and elapsed < args.max_collect_s)):
             if procs.dead():
                 raise RuntimeError(f'process(es) stopped during collection: {procs.dead()}')
+            if elapsed >= args.collect_s and not told:
+                print('  calibration/status not ready yet: collecting on until it is (at most '
+                      f'{args.max_collect_s:.0f} s)', flush=True)
+                told = True
             if elapsed >= next_print:
                 st = rec.status or {}
                 cov = ' '.join(f'{j}:{v if isinstance(v, str) else v["status"]}'
                                for j, v in st.get('coverage', {}).items())
-                bar = '#' * int(30 * elapsed / args.collect_s)
+                bar = '#' * min(30, int(30 * elapsed / args.collect_s))
                 print(f'  [{bar:<30}] {elapsed:5.1f}/{args.collect_s:.0f} s  sets '
                       f'{st.get("sets", 0):6d}  coverage {cov or "-"}', flush=True)
                 next_print += 5.0

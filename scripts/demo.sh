@@ -1,10 +1,11 @@
 #!/usr/bin/env bash
 # The magcal_ros main job on the simulated array (README "Demo"): starts fluxgate_sim,
 # fluxgate_driver, calibration_node and corrector_node, calibrates while the simulated array
-# tumbles (~65 s), then prints the total-field and gradient-tensor errors before and after
-# correction next to the noise floor and writes figures to ./demo_out (or --out DIR).
+# tumbles (30 s, longer until its attitudes are covered), then prints the total-field and
+# gradient-tensor errors before and after correction next to the noise floor and writes
+# figures to ./demo_out (or --out DIR).
 #
-#   scripts/demo.sh [--out DIR] [--collect-s 65] [--record-s 15] [--model base] ...
+#   scripts/demo.sh [--out DIR] [--collect-s 30] [--record-s 15] [--model base] ...
 #   scripts/demo.sh --site-gradient [GXX,GXY,GXZ,GYY,GYZ]   (offline before/after, nT/m)
 #   scripts/demo.sh --help
 #

@@ -25,7 +25,8 @@ Tolerances from the noise: an RMS over N white samples scatters by 1/sqrt(2N) re
 corrected error and the floor it is compared with are two such estimates, so their ratio
 scatters by about 1/sqrt(N) (N ~ 1500 in the 15 s record: 2.6 %); 4 of those (~10 %) is the
 bound. The calibration's own parameter error adds ~ p/(2 N_cal) ~ 0.2 % (12 parameters per
-sensor, ~4000 sets): negligible. A wrong calibration or a mis-paired tensor shows as tens
+sensor, ~3000 sets: the demo collects 30 s at 100 Hz, longer until the attitudes are
+covered): negligible. A wrong calibration or a mis-paired tensor shows as tens
 to hundreds of nT.
 
 This is also the suite's end-to-end test of the live pipeline at the noise floor (the
@@ -142,7 +143,7 @@ def test_make_demo_reaches_the_noise_floor():
     cal = res['calibration']
     assert cal['converged'] and cal['model'] == ['base']
     # the fit's own residual on the collected sets (calibrate's reply) is at the noise: it
-    # scatters by 1/sqrt(2 N) < 1 % over N ~ 6000 sets; the bound leaves 15 % for sets the
+    # scatters by 1/sqrt(2 N) ~ 1.3 % over N ~ 3000 sets; the bound leaves 15 % for sets the
     # stamps paired wrongly under load and the node did not re-pair
     for j in '1234':
         assert cal['scalar_rms_after_nt'][j] < 1.15 * SIM_NOISE_NT, (j, cal)
