@@ -215,10 +215,24 @@ def split_response(response):
 #: spin time after a new client sees its server, before the first request (see call_trigger)
 DISCOVERY_GRACE_S = 0.3
 
+# node -> {resolved service name: [client, reply writers of the server that last answered]}
+_TRIGGER_CLIENTS = weakref.WeakKeyDictionary()
+
+
+def _reply_writers(node, full_name):
+    """Return the GIDs of the response writers of service ``full_name`` (the servers)."""
+    infos = node.get_publishers_info_by_topic(f'rr{full_name}Reply', no_mangle=True)
+    return frozenset(bytes(info.endpoint_gid) for info in infos)
+
 
 def call_trigger(node, executor, service_name, timeout_sec=30.0):
     """
     Call a ``std_srvs/srv/Trigger`` service with ``call_async`` and bounded spinning.
+
+    The client is kept for the next call of the same service from the same node. A new
+    client, or one whose server is not the one that answered it last (another response
+    writer, e.g. a restarted node), first spins :data:`DISCOVERY_GRACE_S`; a client its
+    server has answered before is matched both ways already and calls at once.
 
     Parameters
     ----------
@@ -244,26 +258,33 @@ def call_trigger(node, executor, service_name, timeout_sec=30.0):
     """
     deadline = time.monotonic() + timeout_sec
     full_name = node.resolve_service_name(service_name)
-    client = node.create_client(Trigger, service_name)
+    clients = _TRIGGER_CLIENTS.setdefault(node, {})
+    if full_name not in clients:
+        clients[full_name] = [node.create_client(Trigger, service_name), None]
+    entry = clients[full_name]
+    client = entry[0]
     added = _ensure_in_executor(node, executor)
     try:
         spin_until(executor, client.service_is_ready, timeout_sec,
                    message=f'service {full_name} to become available')
-        # The client sees the server before the server has discovered the client's response
-        # reader; Fast DDS's server waits only 100 ms for it and then drops the response
-        # ("failed to send response (timeout)"). A short spin lets discovery finish both ways.
-        grace = time.monotonic() + DISCOVERY_GRACE_S
-        while time.monotonic() < grace:
-            executor.spin_once(timeout_sec=0.05)
+        writers = _reply_writers(node, full_name)
+        if not writers or writers != entry[1]:
+            # The client sees the server before the server has discovered the client's
+            # response reader; Fast DDS's server waits only 100 ms for it and then drops the
+            # response ("failed to send response (timeout)"). A short spin lets discovery
+            # finish both ways.
+            grace = time.monotonic() + DISCOVERY_GRACE_S
+            while time.monotonic() < grace:
+                executor.spin_once(timeout_sec=0.05)
         future = client.call_async(Trigger.Request())
         spin_until(executor, future.done, max(deadline - time.monotonic(), 0.1),
                    message=f'the response of {full_name}')
         exc = future.exception()
         if exc is not None:
             raise exc
+        entry[1] = writers
         return future.result()
     finally:
-        node.destroy_client(client)
         if added:
             executor.remove_node(node)
 
@@ -477,6 +498,74 @@ class ManagedProcess:
 
     def __repr__(self):
         return f'<ManagedProcess {self.describe()}>'
+
+
+def run_concurrently(commands, timeout_sec=60.0, max_running=None, cwd=None):
+    """
+    Run independent short-lived commands side by side; return each one's result.
+
+    For tests that start one process per case and only read how it ended (exit status and
+    output): the processes are the same as with :func:`subprocess.run`, one per command, but
+    up to ``max_running`` of them run at once, so the cores are not idle while each one
+    imports its modules.
+
+    Parameters
+    ----------
+    commands : dict
+        ``key -> (cmd, env)``: the command (list) and its full environment (None: this
+        process's); stdin is closed.
+    timeout_sec : float, optional
+        Bound on each process, counted from its own start, s.
+    max_running : int, optional
+        Most processes at once; default the number of CPUs plus one.
+    cwd : str or pathlib.Path, optional
+        Working directory of every process.
+
+    Returns
+    -------
+    dict
+        ``key -> subprocess.CompletedProcess`` with text ``stdout`` and ``stderr``.
+
+    Raises
+    ------
+    subprocess.TimeoutExpired
+        If a process outlives ``timeout_sec`` (every process still running is killed).
+
+    """
+    import tempfile
+    limit = max_running or (os.cpu_count() or 1) + 1
+    waiting = list(commands.items())
+    running = {}                    # key -> (Popen, deadline, stdout file, stderr file)
+    results = {}
+    try:
+        while waiting or running:
+            while waiting and len(running) < limit:
+                key, (cmd, env) = waiting.pop(0)
+                out, err = tempfile.TemporaryFile(), tempfile.TemporaryFile()
+                proc = subprocess.Popen([str(c) for c in cmd], stdin=subprocess.DEVNULL,
+                                        stdout=out, stderr=err, env=env, cwd=cwd,
+                                        preexec_fn=_die_with_parent)
+                running[key] = (proc, time.monotonic() + timeout_sec, out, err)
+            for key, (proc, deadline, out, err) in list(running.items()):
+                if proc.poll() is None:
+                    if time.monotonic() > deadline:
+                        raise subprocess.TimeoutExpired(proc.args, timeout_sec)
+                    continue
+                texts = []
+                for f in (out, err):
+                    f.seek(0)
+                    texts.append(f.read().decode('utf-8', errors='replace'))
+                    f.close()
+                results[key] = subprocess.CompletedProcess(proc.args, proc.returncode, *texts)
+                del running[key]
+            time.sleep(0.01)
+    finally:
+        for proc, _, out, err in running.values():
+            proc.kill()
+            proc.wait()
+            out.close()
+            err.close()
+    return results
 
 
 def stop_all_processes():

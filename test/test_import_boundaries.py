@@ -22,14 +22,14 @@ rclpy, no ROS message or service package and no rosidl runtime.
 """
 
 import ast
+import functools
 import json
 import pathlib
 import pkgutil
-import subprocess
 import sys
 
 import pytest
-from ros_helpers import REPO_ROOT, subprocess_env
+from ros_helpers import REPO_ROOT, run_concurrently, subprocess_env
 
 # Run in a fresh interpreter: import ``target`` and, if it is a subpackage, all its submodules
 # one by one, recording which import first brought a ROS module in. The top package itself is
@@ -78,9 +78,25 @@ def _ros_free_targets():
     return ['magcal_ros'] + [f'magcal_ros.{n}' for n in names if n != 'ros']
 
 
+#: the ROS layer's conversions: the detector must see rclpy there (test_the_check_detects_rclpy)
+ROS_TARGET = 'magcal_ros.ros.conversions'
+
+
+@functools.lru_cache(maxsize=None)
+def _reports():
+    """
+    Run the check on every target, each in its own fresh interpreter, side by side.
+
+    The interpreters are independent and only their reports are read, so they run at once
+    (run_concurrently) instead of one after the other; each test reads its own.
+    """
+    targets = _ros_free_targets() + [ROS_TARGET]
+    return run_concurrently({t: ([sys.executable, '-c', CHECK, t], subprocess_env())
+                             for t in targets}, timeout_sec=120, cwd=REPO_ROOT)
+
+
 def _check(target):
-    result = subprocess.run([sys.executable, '-c', CHECK, target], cwd=REPO_ROOT,
-                            env=subprocess_env(), capture_output=True, text=True, timeout=120)
+    result = _reports()[target]
     assert result.returncode == 0, result.stderr
     return json.loads(result.stdout.strip().splitlines()[-1])
 
@@ -111,10 +127,10 @@ def test_layer_imports_no_ros(target):
 
 def test_the_check_detects_rclpy():
     # the ROS layer does import rclpy: the detector is not blind
-    report = _check('magcal_ros.ros.conversions')
+    report = _check(ROS_TARGET)
     assert report['errors'] == {}
-    assert 'rclpy' in report['offenders']['magcal_ros.ros.conversions']
-    assert 'sensor_msgs' in report['offenders']['magcal_ros.ros.conversions']
+    assert 'rclpy' in report['offenders'][ROS_TARGET]
+    assert 'sensor_msgs' in report['offenders'][ROS_TARGET]
 
 
 # -- private names stay in their module ------------------------------------------------------

@@ -34,7 +34,8 @@ from magcal_ros.ros.corrector_node import CorrectorNode
 import numpy as np
 import pytest
 from rclpy.parameter import Parameter
-from ros_helpers import console_script, REPO_ROOT, spin_until, subprocess_env
+from ros_helpers import (console_script, REPO_ROOT, run_concurrently, spin_until,
+                         subprocess_env)
 from sensor_msgs.msg import MagneticField
 from sim_feed import Feeder
 from std_msgs.msg import String
@@ -156,25 +157,50 @@ def test_without_the_plugin_the_corrector_refuses_the_calibration(
     assert node.calibration is None and "unknown effect 'wheel'" in node.refusal
 
 
-@pytest.mark.parametrize('exe', ['calibration_node', 'corrector_node'])
-@pytest.mark.parametrize('override, match', [
+BAD_START_UP_EXES = ['calibration_node', 'corrector_node']
+BAD_START_UP_VALUES = [
     ('field_nt:=48000', 'field_nt'),               # an integer for a double
     ('field_nt:=abc', 'field_nt'),
     ('plugins:=[no_such_module_h5]', 'cannot import effect plugin'),
     ("plugins:=['os.path:no_such_class']", 'no_such_class'),
     ('stamp_tolerance_s:=-1.0', 'stamp_tolerance_s'),
     ('-p', 'bad command line'),
-])
-def test_bad_start_up_values_give_one_line_and_exit_2(exe, override, match, tmp_path):
-    import subprocess
+]
+
+
+def _bad_start_up_case(exe, override, match):
+    """Return (command-line arguments, expected text) of one bad start-up case."""
     if exe == 'corrector_node' and override.startswith('field_nt'):
         override = 'diagnostics_period_s:=' + override.split(':=')[1]
         match = 'diagnostics_period_s'
     args = ['--ros-args', '-p', override] if override != '-p' else ['--ros-args', '-p',
                                                                     'field_nt']
-    env = subprocess_env({'ROS_HOME': str(tmp_path)})
-    proc = subprocess.run(console_script(exe) + args, env=env, capture_output=True, text=True,
-                          timeout=60)
+    return args, match
+
+
+@pytest.fixture(scope='module')
+def bad_start_up_runs(tmp_path_factory):
+    """
+    Run every bad start-up case, each its own process with its own ROS_HOME, side by side.
+
+    Each process ends at start-up and the tests read only how it ended, so they are started
+    together (run_concurrently) instead of one after the other.
+    """
+    commands = {}
+    for exe in BAD_START_UP_EXES:
+        for override, match in BAD_START_UP_VALUES:
+            args, _ = _bad_start_up_case(exe, override, match)
+            home = tmp_path_factory.mktemp('ros_home')
+            commands[exe, override] = (console_script(exe) + args,
+                                       subprocess_env({'ROS_HOME': str(home)}))
+    return run_concurrently(commands, timeout_sec=60)
+
+
+@pytest.mark.parametrize('exe', BAD_START_UP_EXES)
+@pytest.mark.parametrize('override, match', BAD_START_UP_VALUES)
+def test_bad_start_up_values_give_one_line_and_exit_2(exe, override, match, bad_start_up_runs):
+    _, match = _bad_start_up_case(exe, override, match)
+    proc = bad_start_up_runs[exe, override]
     assert proc.returncode == 2, proc.stderr
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(exe + ': ') and match in lines[0], lines

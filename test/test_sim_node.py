@@ -284,28 +284,31 @@ def test_repeated_sigint_exits_cleanly(start_process, tmp_path):
 
 
 def test_process_sigterm_duration_and_bad_input(start_process, tmp_path):
-    # with the shipped parameter file, as the launch file passes it (rcl parses it)
-    proc = start_process(console_script('fluxgate_sim') + [
-        '--dir', tmp_path / 'a', '--ros-args', '--params-file', ROOT / 'config' / 'sim.yaml'],
-        name='sim_a', ready='streaming ascii at 100 Hz')
-    proc.popen.send_signal(signal.SIGTERM)
-    assert proc.wait(10) == 0
-    proc = start_process(console_script('fluxgate_sim') + ['--dir', tmp_path / 'b',
-                                                           '--duration', '0.3'], name='sim_b')
-    assert proc.wait(30) == 0 and 'stopped after' in proc.read_log()
+    # four independent processes (own folders), started together: each is checked below
+    # as it ends, so none waits for the previous one's start-up
     (tmp_path / 'c').mkdir()
     (tmp_path / 'c' / 'fluxgate1').write_text('not a device')
-    proc = start_process(console_script('fluxgate_sim') + ['--dir', tmp_path / 'c'],
-                         name='sim_c')
-    assert proc.wait(30) == 2
-    assert 'exists and is not a symlink' in proc.read_log()
-    assert (tmp_path / 'c' / 'fluxgate1').read_text() == 'not a device'
+    # with the shipped parameter file, as the launch file passes it (rcl parses it)
+    sim_a = start_process(console_script('fluxgate_sim') + [
+        '--dir', tmp_path / 'a', '--ros-args', '--params-file', ROOT / 'config' / 'sim.yaml'],
+        name='sim_a')
+    sim_b = start_process(console_script('fluxgate_sim') + ['--dir', tmp_path / 'b',
+                                                            '--duration', '0.3'], name='sim_b')
+    sim_c = start_process(console_script('fluxgate_sim') + ['--dir', tmp_path / 'c'],
+                          name='sim_c')
     # a parameter of the wrong type: one line, exit status 2
-    proc = start_process(console_script('fluxgate_sim') + [
+    sim_d = start_process(console_script('fluxgate_sim') + [
         '--dir', tmp_path / 'd', '--ros-args', '-p', 'rate:=abc'], name='sim_d')
-    assert proc.wait(30) == 2
-    assert 'fluxgate_sim: bad parameters' in proc.read_log(), proc.read_log()
-    assert 'Traceback' not in proc.read_log()
+    sim_a.wait_for_log('streaming ascii at 100 Hz', 30.0)
+    sim_a.popen.send_signal(signal.SIGTERM)
+    assert sim_a.wait(10) == 0
+    assert sim_b.wait(30) == 0 and 'stopped after' in sim_b.read_log()
+    assert sim_c.wait(30) == 2
+    assert 'exists and is not a symlink' in sim_c.read_log()
+    assert (tmp_path / 'c' / 'fluxgate1').read_text() == 'not a device'
+    assert sim_d.wait(30) == 2
+    assert 'fluxgate_sim: bad parameters' in sim_d.read_log(), sim_d.read_log()
+    assert 'Traceback' not in sim_d.read_log()
 
 
 def test_plain_process_without_ros(start_process, tmp_path):
