@@ -114,6 +114,11 @@ def epoch_times(epochs, stamps_s):
 MAX_VOTE_SHIFT = 25
 
 
+#: sets after a failed one that a re-pairing must pass before it is taken (fewer than
+#: ``confirm`` when another stream slips within them: each slip is then re-paired in turn)
+MIN_PASS = 2
+
+
 class _Ring:
     """Last ``size`` (sequence number, stamp) pairs of one stream, as numpy arrays."""
 
@@ -408,29 +413,36 @@ class StampMatcher:
 
     def _candidates(self):
         """
-        Offsets to try after a failed set: (stream or -1, shift, offsets).
+        Offsets to try after a failed set: (stream, shift, offsets), each once.
 
-        As they are (shift 0); one stream shifted forward by 1 .. ``max_shift`` epochs (a
-        lost sample: tested on the samples queued after the failed set) or back by 1 ..
-        :data:`MAX_VOTE_SHIFT` (a stream whose stamps lag: tested on the others' samples
-        already taken, no wait); the stamp vote's proposal (stream -1).
+        As they are (shift 0); one stream shifted forward by 1 .. ``max_shift`` epochs
+        (lost samples: tested on the samples queued after the failed set); the stamp vote's
+        proposal (stream -1); one stream back by 1 .. :data:`MAX_VOTE_SHIFT` (its stamps
+        lag: tested on the others' samples already taken, no wait).  Only one stream moves
+        at a time: the planar cross hardly tells two streams shifted the opposite ways from
+        none (:meth:`magcal_ros.core.live.LiveCorrector.pairing_chi2`), and candidates
+        that move several would offer such pairings; several slips at once wait for the
+        vote.
         """
-        yield 0, 0, list(self._offset)
+        base = self._offset
+        seen = {tuple(base)}
+        yield 0, 0, list(base)
         single = []
         for j in range(self.n_sensors):
-            for delta in [*range(1, self.max_shift + 1), *range(-1, -MAX_VOTE_SHIFT - 1, -1)]:
-                o = list(self._offset)
+            for delta in (*range(1, self.max_shift + 1), *range(-1, -MAX_VOTE_SHIFT - 1, -1)):
+                o = list(base)
                 if j == 0:              # sensor 1 keeps offset 0: shift the others instead
                     o[1:] = [x - delta for x in o[1:]]
                 else:
                     o[j] += delta
-                single.append(o)
-                yield j, delta, o
-        vote = [p if p is not None else o for p, o in zip(self._proposal, self._offset)]
-        diff = [p - o for p, o in zip(vote, self._offset)]
+                seen.add(tuple(o))
+                single.append((j, delta, o))
+        vote = [p if p is not None else o for p, o in zip(self._proposal, base)]
+        diff = [p - o for p, o in zip(vote, base)]
         reach = max(diff) - min(diff)   # diff[0] = 0: sensor 1 keeps offset 0
-        if vote not in single and 0 < reach <= MAX_VOTE_SHIFT:
+        if tuple(vote) not in seen and reach <= MAX_VOTE_SHIFT:
             yield -1, reach, vote       # e.g. a run of lost samples, once the vote sees it
+        yield from single
 
     def _item(self, k, seq):
         """Return the item of stream k with sequence number ``seq`` (queued or past), or None."""
@@ -442,27 +454,37 @@ class StampMatcher:
         i += len(past)
         return past[i][2] if i >= 0 else None
 
-    def _summed_misfit(self, offset, first):
-        """Misfit summed over the ``confirm`` sets from epoch ``first`` on (inf: one fails)."""
+    def _fit(self, offset, first):
+        """
+        Score a pairing on the ``confirm`` sets from epoch ``first`` on.
+
+        Returns (-n, sum): n sets pass before the first that fails (or lacks a sample),
+        sum is their misfit; smaller is better.
+        """
         total = 0.0
-        for e in range(first, first + self.confirm):
+        for n, e in enumerate(range(first, first + self.confirm)):
             items = [self._item(k, e - o) for k, o in enumerate(offset)]
             if any(item is None for item in items):
-                return np.inf
+                return -n, total
             m = self.misfit(items)
             if not m <= self.threshold:
-                return np.inf
+                return -n, total
             total += m
-        return total
+        return -self.confirm, total
+
+    def _better(self, a, b):
+        """Tell whether score ``a`` beats ``b`` clearly: more sets pass, or by ``margin``."""
+        return a[0] < b[0] or (a[0] == b[0] and a[1] + self.margin <= b[1])
 
     def _decide_vote(self):
         """
         Take the stamp vote's proposal unless the data refute it: True, False or None (wait).
 
         The proposal and the pairing as it is are compared on the next ``confirm`` sets; it
-        is refuted when the pairing as it is fits better by ``margin`` (stamps that lag by
-        more than half a period), and taken otherwise, also when the array is too still to
-        tell (a lost sample while it turns slowly: the vote is then the only witness).
+        is refuted when its first :data:`MIN_PASS` sets do not all pass or the pairing as
+        it is fits clearly better (:meth:`_better`; stamps that lag by more than half a
+        period), and taken otherwise, also when the array is too still to tell (a lost
+        sample while it turns slowly: the vote is then the only witness).
         """
         vote = self._pending
         diff = [p - o for p, o in zip(vote, self._offset)]
@@ -472,11 +494,10 @@ class StampMatcher:
             if min(len(qq) for qq in queues) < reach + self.confirm + 1:
                 return None
             heads = [qq[0][0] for qq in queues]
-            now = self._summed_misfit(self._offset,
-                                      max(h + o for h, o in zip(heads, self._offset)))
-            new = self._summed_misfit(vote, max(h + o for h, o in zip(heads, vote)))
+            now = self._fit(self._offset, max(h + o for h, o in zip(heads, self._offset)))
+            new = self._fit(vote, max(h + o for h, o in zip(heads, vote)))
         self._pending = None
-        if reach > MAX_VOTE_SHIFT or now + self.margin <= new:
+        if reach > MAX_VOTE_SHIFT or -new[0] < MIN_PASS or self._better(now, new):
             self._refuted.append(vote)
             return False
         self._offset = vote
@@ -496,7 +517,7 @@ class StampMatcher:
             return False
         queues = self._queues
         candidates = list(self._candidates())
-        ahead = max([self.max_shift] + [d for j, d, _ in candidates if j < 0])
+        ahead = max([self.max_shift] + [d for j, d, _ in candidates if j == -1])
         if min(len(qq) for qq in queues) < ahead + self.confirm + 1:
             return None
         heads = [qq[0][0] for qq in queues]
@@ -508,12 +529,12 @@ class StampMatcher:
                 first = heads[j] + o[j]
             else:                       # every stream's samples from its head on
                 first = max(h + x for h, x in zip(heads, o))
-            fits.append((self._summed_misfit(o, first), delta, o))
+            fits.append((self._fit(o, first), delta, o))
         fits.sort(key=lambda f: f[0])
         (best, delta, o), second = fits[0], fits[1][0]
-        if delta == 0 and best < np.inf:
+        if delta == 0 and -best[0] >= MIN_PASS:
             return False                # the pairing holds: this set alone is bad
-        if not (best < np.inf and second - best >= self.margin):
+        if not (-best[0] >= MIN_PASS and self._better(best, second)):
             if not self._backoff:
                 # a longer slip: vote afresh on the samples from now on (stamps are late,
                 # not shifted: after ~10 samples per stream the majority is the new offset)
