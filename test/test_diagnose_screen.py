@@ -69,7 +69,7 @@ def test_ruled_out_candidates_could_not_have_been_significant(case):
         ev = evaluate_residuals(m_ext, p_step, data, f, sigma, ctx, field0=ev0.field)
         evaluated = ev0.chi2 - ev.chi2
         assert evaluated <= predicted + 1.0, (c.token, evaluated, predicted)
-        assert -evaluated + c.n_params * log_n > MIN_DELTA_BIC + 10, c.token
+        assert -evaluated + c.n_params * log_n > MIN_DELTA_BIC + 5, c.token
 
 
 def test_the_verdict_and_the_evidence_are_those_of_evaluating_every_candidate(

@@ -63,7 +63,7 @@ class Candidate:
         step from the base solution, evaluated; a lower bound of delta_chi2) or 'score'
         (Rao's score test at the base solution: delta_chi2 is the decrease that step
         predicts, exact for effects that enter linearly; used where it puts delta BIC
-        more than 20 units short of significance, :data:`SCORE_RULE_OUT_BIC`, so the
+        above 0, 10 units short of significance, :data:`SCORE_RULE_OUT_BIC`, so the
         residuals are not evaluated).
     cv_rms_before_nt, cv_rms_after_nt : float or None
         Combined residual RMS on held-out time blocks (None when not computed).

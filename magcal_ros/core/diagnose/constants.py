@@ -55,11 +55,12 @@ REFIT_CHI2_TOL = 0.1
 EVIDENCE_TIE = REFIT_CHI2_TOL
 #: a candidate whose score test (the chi-square decrease its one Gauss-Newton step predicts,
 #: exact for effects that enter linearly) gives a delta BIC above this is not evaluated
-#: further: it is 20 units short of significance (MIN_DELTA_BIC), where the evaluated
-#: decrease exceeded the predicted one by at most 0.2 in chi-square over 555 candidates on
-#: six injected cases (step, periodic, lag at 3 000 and 10 000 epochs, current squared, no
-#: fault); about 3 in 4 candidates are ruled out so (issue 11 item 7)
-SCORE_RULE_OUT_BIC = 10.0
+#: further: BIC prefers the model without it, 10 units short of significance
+#: (MIN_DELTA_BIC), where the evaluated decrease exceeded the predicted one by at most 0.2
+#: in chi-square over 555 candidates on six injected cases (step, periodic, lag at 3 000 and
+#: 10 000 epochs, current squared, no fault); half to three quarters of the candidates are
+#: ruled out so (issue 11 item 7)
+SCORE_RULE_OUT_BIC = 0.0
 #: time constants (log-spaced, sample interval to a quarter of the record) a lag's refit
 #: start is chosen from, each by one linear step (Screen.lag_start)
 LAG_GRID_POINTS = 10

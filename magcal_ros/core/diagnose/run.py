@@ -344,7 +344,7 @@ def _screen(b, testable, progress):
     Each candidate gets one Gauss-Newton step (:meth:`Screen.step`) and its score
     statistic, the chi-square decrease the step predicts (Rao's score test: the likelihood-
     ratio statistic to first order, exact for effects that enter linearly).  Those whose
-    predicted delta BIC is above :data:`SCORE_RULE_OUT_BIC` (20 units short of
+    predicted delta BIC is above :data:`SCORE_RULE_OUT_BIC` (10 units short of
     significance) keep that evidence, ``method`` 'score'; the others are evaluated at the
     step (``method`` 'one-step').  Under the robust loss every candidate is evaluated (the
     step is least squares on the inliers, the evidence the robust loss).
