@@ -35,7 +35,8 @@ ORDER = [('accuracy', 'Accuracy against the noise floor and the Cramer-Rao bound
          ('live', 'Live throughput and latency: corrector vs relay'),
          ('driver_rate', 'Driver parsing rate and CPU'),
          ('solve_time', 'Solve time and scaling'),
-         ('workbench', 'Workbench speed: diagnose, report, ladder (before and after)')]
+         ('workbench', 'Workbench speed: diagnose, report, ladder (before and after)'),
+         ('pairing', 'Live set pairing check: cost per sample')]
 
 
 def _machine_line(m):
