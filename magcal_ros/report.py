@@ -46,6 +46,7 @@ from magcal_ros.core.tensor import cross_positions, tensor_cross, tensor_noise_f
 import matplotlib
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.text import Text
 from matplotlib.ticker import (AutoLocator, FuncFormatter, Locator, LogLocator, MaxNLocator,
                                NullLocator)
 from matplotlib.transforms import ScaledTranslation
@@ -113,14 +114,20 @@ def _arrange(fig, rows=1, cols=1, left=0.8, right=0.25, bottom=0.55, top=0.3, ws
     return fig
 
 
-def _text_size(renderer, text, prop):
-    """Return the width and height of a (multi-line) text, points (as Text lays it out)."""
-    lines = text.split('\n')
-    sizes = [renderer.get_text_width_height_descent(ln, prop, ismath=False) for ln in lines]
-    size = prop.get_size_in_points()
-    width = max(sz[0] for sz in sizes) * 72.0 / renderer.dpi
-    height = sizes[-1][1] * 72.0 / renderer.dpi + (len(lines) - 1) * 1.2 * size
-    return width, height
+def _text_size(fig, renderer, text, prop):
+    """
+    Return the width and height of a tick label as drawn, points.
+
+    One line: the renderer's text metrics, at least as tall and deep as 'lp' (as Text lays
+    a line out).  Several lines: a Text's own extent (the line spacing rule is
+    matplotlib's, and changed in 3.11).
+    """
+    if '\n' in text:
+        box = Text(0.0, 0.0, text, fontproperties=prop, figure=fig).get_window_extent(renderer)
+        return box.width * 72.0 / fig.dpi, box.height * 72.0 / fig.dpi
+    w, h, d = renderer.get_text_width_height_descent(text, prop, ismath=False)
+    _, lp_h, lp_d = renderer.get_text_width_height_descent('lp', prop, ismath=False)
+    return w * 72.0 / fig.dpi, (max(h - d, lp_h - lp_d) + max(d, lp_d)) * 72.0 / fig.dpi
 
 
 def _place_axis_labels(fig):
@@ -150,8 +157,8 @@ def _place_axis_labels(fig):
                 pad += tick.get_pad()
                 prop = tick.label1.get_fontproperties()
                 labels = axis.get_major_formatter().format_ticks(locs)
-                pad += max((_text_size(renderer, s, prop)[side == 'bottom'] for s in labels),
-                           default=0.0)
+                pad += max((_text_size(fig, renderer, s, prop)[side == 'bottom']
+                            for s in labels if s), default=0.0)
             pad = (pad + axis.labelpad) / 72.0                          # points -> inches
             if side == 'bottom':
                 axis.set_label_coords(0.5, 0.0, ax.transAxes + ScaledTranslation(
@@ -1020,7 +1027,8 @@ def plot_residual_vs_lagged_channels(data, findings):
         ax.set_xlabel(ch)
         ax.set_ylabel('residual along its direction [nT]')
         _title(ax, f'{"all sensors" if j is None else f"sensor {j}"}: {label}', fontsize=10)
-        ax.legend(fontsize=8)
+        if len(curves) > 1:                 # one curve: the x label names it
+            ax.legend(fontsize=8)
     _suptitle(fig, 'Residual against the driving channels')
     return _arrange(fig, 1, len(panels))
 

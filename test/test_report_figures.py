@@ -20,6 +20,8 @@ What the report's figures show (issue 10 item 6), tested on the data behind them
 - the magnitude figure with a reference 3 000 nT away states the offset and plots about it;
 - the error ladder's legend covers no step;
 - the candidates chart plots what decided the verdict (the held-out RMS drop);
+- the axis labels, placed once by the report, clear their tick labels by the label pad (as
+  matplotlib places them), and no axis makes a tick outside its view;
 - the PNG encoder's files decode (with Pillow's decoder) to exactly the pixels given.
 The inputs are built here (plain numpy vectors and minimal stand-ins for a fit, a ladder and
 a diagnosis), independent of the model code.
@@ -132,6 +134,47 @@ def test_candidates_chart_plots_the_share_that_decided():
     assert [p.get_linewidth() for p in fig.axes[0].patches][0] == 2
     assert 'held-out share' in fig.axes[0].get_xlabel()
     assert 'verdict: aux:aux_m@3' in fig.get_suptitle()
+
+
+def test_axis_labels_clear_the_tick_labels_by_the_label_pad():
+    # y tick labels of six characters ('−12020', a reference 12 000 nT above the field),
+    # two-line x tick labels ('start:\nbase', 8 pt): each axis label sits the label pad
+    # (4 pt) below / left of the outermost tick label, to a pixel
+    rng = np.random.default_rng(2)
+    n = 400
+    u = rng.normal(size=(n, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    raw = (50000.0 + 20.0 * np.sin(np.arange(n) / 30.0))[:, None] * u
+    data = Dataset(t=np.arange(n) / 10.0, raw=raw[None])
+    fit = SimpleNamespace(field_magnitude_nt=np.full(n, 62000.0),
+                          residual_nt=np.zeros((1, n, 3)))
+    steps = [SimpleNamespace(cv_rms_nt=v, residual_rms_nt=v * 0.98, model=('base',), added=tok)
+             for v, tok in ((12.0, None), (6.0, 'temperature@2'))]
+    lad = SimpleNamespace(steps=steps, noise_floor=SimpleNamespace(value_nt=3.0))
+    checked = 0
+    for fig in (report.plot_magnitude(data, fit), report.plot_ladder(lad)):
+        fig.canvas.draw()
+        renderer = fig.canvas.get_renderer()
+        for ax in fig.axes:
+            for axis, below in ((ax.xaxis, True), (ax.yaxis, False)):
+                lo, hi = sorted(axis.get_view_interval())
+                locs = axis.get_majorticklocs()
+                slack = 1e-9 * (hi - lo)
+                assert np.all((locs >= lo - slack) & (locs <= hi + slack)), (locs, lo, hi)
+                labels = [t.label1 for t in axis.get_major_ticks()[:len(locs)]
+                          if t.label1.get_visible() and t.label1.get_text()]
+                if not axis.label.get_text() or not labels:
+                    continue
+                box = axis.label.get_window_extent(renderer)
+                ticks = [t.get_window_extent(renderer) for t in labels]
+                gap = (min(b.y0 for b in ticks) - box.y1 if below
+                       else min(b.x0 for b in ticks) - box.x1)
+                assert abs(gap - axis.labelpad * fig.dpi / 72.0) < 1.0, (axis.label, gap)
+                checked += 1
+    assert checked == 4
+    assert any('\n' in t.get_text() for t in fig.axes[0].get_xticklabels())
+    assert any(len(t.get_text()) == 6 for t in report.plot_magnitude(data, fit).axes[0]
+               .get_yticklabels())
 
 
 def test_png_bytes_decode_to_the_pixels():
