@@ -68,15 +68,23 @@ def test_direction_projection_has_no_seam_and_is_equal_area():
         assert abs(np.mean(np.hypot(x, y) < rad) - rad ** 2 / 4) < 0.015
 
 
-def test_magnitude_figure_states_a_3000_nt_offset_and_plots_about_it():
-    rng = np.random.default_rng(1)
-    n = 500
-    u = rng.normal(size=(n, 3))
+def magnitude_case(n, reference_nt, seed):
+    """
+    Return one sensor reading a 50 000 nT field +- 20 nT in random directions, and a fit.
+
+    The stand-in fit has the reference magnitude ``reference_nt`` and zero residuals.
+    Returns (Dataset, fit, raw (n, 3) nT).
+    """
+    u = np.random.default_rng(seed).normal(size=(n, 3))
     u /= np.linalg.norm(u, axis=1, keepdims=True)
     raw = (50000.0 + 20.0 * np.sin(np.arange(n) / 30.0))[:, None] * u
-    data = Dataset(t=np.arange(n) / 10.0, raw=raw[None])
-    fit = SimpleNamespace(field_magnitude_nt=np.full(n, 47000.0),
+    fit = SimpleNamespace(field_magnitude_nt=np.full(n, reference_nt),
                           residual_nt=np.zeros((1, n, 3)))
+    return Dataset(t=np.arange(n) / 10.0, raw=raw[None]), fit, raw
+
+
+def test_magnitude_figure_states_a_3000_nt_offset_and_plots_about_it():
+    data, fit, raw = magnitude_case(500, 47000.0, seed=1)
     offs = report.magnitude_offsets(data, fit)
     expected = float(np.mean(np.linalg.norm(raw, axis=1))) - 47000.0     # 3 000 + mean swing
     assert abs(offs[1]['measured_nt'] - expected) < 1e-6 and abs(expected - 3000.0) < 20
@@ -94,12 +102,17 @@ def _extent(artist, fig):
     return artist.get_window_extent(fig.canvas.get_renderer())
 
 
+def ladder_case(*steps):
+    """Return a stand-in error ladder: steps (held-out RMS nT, effect added), floor 3 nT."""
+    return SimpleNamespace(
+        steps=[SimpleNamespace(cv_rms_nt=v, residual_rms_nt=v * 0.98, model=('base',),
+                               added=tok) for v, tok in steps],
+        noise_floor=SimpleNamespace(value_nt=3.0))
+
+
 def test_ladder_legend_covers_no_step():
-    steps = [SimpleNamespace(cv_rms_nt=v, residual_rms_nt=v * 0.98, model=('base',),
-                             added=tok)
-             for v, tok in ((12.0, None), (11.6, 'temperature@2'), (11.2, 'aux:aux_m@3'))]
     # steps that fall little: the last bar reaches the top right, where the legend sat
-    lad = SimpleNamespace(steps=steps, noise_floor=SimpleNamespace(value_nt=3.0))
+    lad = ladder_case((12.0, None), (11.6, 'temperature@2'), (11.2, 'aux:aux_m@3'))
     fig = report.plot_ladder(lad)
     fig.canvas.draw()
     ax = fig.axes[0]
@@ -140,17 +153,8 @@ def test_axis_labels_clear_the_tick_labels_by_the_label_pad():
     # y tick labels of six characters ('−12020', a reference 12 000 nT above the field),
     # two-line x tick labels ('start:\nbase', 8 pt): each axis label sits the label pad
     # (4 pt) below / left of the outermost tick label, to a pixel
-    rng = np.random.default_rng(2)
-    n = 400
-    u = rng.normal(size=(n, 3))
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    raw = (50000.0 + 20.0 * np.sin(np.arange(n) / 30.0))[:, None] * u
-    data = Dataset(t=np.arange(n) / 10.0, raw=raw[None])
-    fit = SimpleNamespace(field_magnitude_nt=np.full(n, 62000.0),
-                          residual_nt=np.zeros((1, n, 3)))
-    steps = [SimpleNamespace(cv_rms_nt=v, residual_rms_nt=v * 0.98, model=('base',), added=tok)
-             for v, tok in ((12.0, None), (6.0, 'temperature@2'))]
-    lad = SimpleNamespace(steps=steps, noise_floor=SimpleNamespace(value_nt=3.0))
+    data, fit, _ = magnitude_case(400, 62000.0, seed=2)
+    lad = ladder_case((12.0, None), (6.0, 'temperature@2'))
     checked = 0
     for fig in (report.plot_magnitude(data, fit), report.plot_ladder(lad)):
         fig.canvas.draw()
