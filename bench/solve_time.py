@@ -176,7 +176,9 @@ def engine_compare(n, seed, repeat):
 
     Per evaluation at the fitted parameters (the same cached profile for both) and per
     ``fit`` (closed-form start, LM, covariance) of model ``base+2`` on the same data;
-    evaluations interleaved, the minimum of ``repeat`` runs each (fits: the median).
+    interleaved, the minimum of the evaluations' and the median of the fits' CPU times of
+    this process (BLAS on one thread: CPU time is the work, unlike wall time on a machine
+    shared with other processes).
     """
     from magcal_ros.core.engine import ProfiledProblem
     from magcal_ros.core.model import fit
@@ -193,9 +195,9 @@ def engine_compare(n, seed, repeat):
         for _ in range(max(1, repeat)):
             for key, fn in paths.items():
                 ProfiledProblem.normal_equations = fn
-                t0 = time.perf_counter()
+                t0 = time.process_time()
                 res[key] = fit(data, spec, field_nt=50000.0)
-                fits[key].append(time.perf_counter() - t0)
+                fits[key].append(time.process_time() - t0)
     finally:
         ProfiledProblem.normal_equations = block
     r = res['block']
@@ -208,9 +210,9 @@ def engine_compare(n, seed, repeat):
     with single_threaded_blas():
         for _ in range(max(3, 3 * repeat)):
             for key, fn in paths.items():
-                t0 = time.perf_counter()
+                t0 = time.process_time()
                 fn(prob, x)
-                evals[key].append(time.perf_counter() - t0)
+                evals[key].append(time.process_time() - t0)
     d_ref = res['dense']
     return {'n': n, 'n_params': int(len(prob.cols)),
             'eval_dense_s': min(evals['dense']), 'eval_block_s': min(evals['block']),
@@ -351,7 +353,7 @@ def main(argv=None):
               e['max_param_diff_in_stderr']] for e in engine],
             title='Normal equations J^T J, J^T r of model base+2: from the dense projected '
             'Jacobian vs block by block (ProfiledProblem.normal_equations), one process, '
-            'same data (ratios of times)')
+            'same data (ratios of CPU times)')
     tables = [t_main, t_exp] + ([t_blas] if blas else []) + ([t_engine] if engine else [])
     for model_key, gl in goals.items():
         tables.append(f'Goal 4 x 10 000 calibrated + diagnosed < 2 s, model {model_key}: '
