@@ -225,32 +225,41 @@ class ProfiledProblem:
                                 1.0 / self.sigma[np.array(self.sensors) - 1] ** 2)
             u = acc / np.linalg.norm(acc, axis=1, keepdims=True)
             b, steps = u * self.f[:, None], 2
+        # -dr_j/d delta_a = F A_j e_a / sigma_j per epoch, so the 2 x 2 normal equations of
+        # the tangent directions are quadratic forms of M_j = A_j^T A_j / sigma_j^2 and the
+        # right-hand sides projections of s = sum_j A_j^T r_j / sigma_j: with equal weights
+        # the forms of M = sum_j M_j are taken once per step instead of once per sensor
+        a_sig = {j: mats[j] / self.sigma[j - 1] for j in self.sensors}
+        m_sum = sum(a_sig[j].T @ a_sig[j] for j in self.sensors)
+        f2 = self.f * self.f
         for _ in range(steps):
             u = b / self.f[:, None]
             e1, e2 = tangent_basis(u)
-            # per-epoch 2 x 2 normal equations of the two tangent directions, written out
-            # component by component: several times faster than stacking (N, 3, 2) arrays
-            # and batched matmuls of tiny matrices (profile of diagnose, bench/)
             h11, h12, h22 = np.zeros(n), np.zeros(n), np.zeros(n)
-            g1s, g2s = np.zeros(n), np.zeros(n)
+            s = np.zeros((n, 3))
             for j in self.sensors:
                 r = (self.raw[j - 1] - self.model.forward(j, p, b, self.ctx[j - 1], mats[j],
                                                           adds[j])) / self.sigma[j - 1]
-                scale = self.f[:, None] / self.sigma[j - 1]
-                g1 = (e1 @ mats[j].T) * scale          # (N, 3) = -dr/d delta_1
-                g2 = (e2 @ mats[j].T) * scale          # (N, 3) = -dr/d delta_2
                 if self.robust:
                     # IRLS weight of the soft-L1 loss on this sensor's residual at each epoch
                     w = 1.0 / np.sqrt(1.0 + np.sum(r * r, axis=1) / self.f_scale ** 2)
-                    wg1, wg2 = g1 * w[:, None], g2 * w[:, None]
-                else:
-                    wg1, wg2 = g1, g2
-                h11 += np.einsum('ij,ij->i', wg1, g1)
-                h12 += np.einsum('ij,ij->i', wg1, g2)
-                h22 += np.einsum('ij,ij->i', wg2, g2)
-                g1s += np.einsum('ij,ij->i', wg1, r)
-                g2s += np.einsum('ij,ij->i', wg2, r)
-            i11, i12, i21, i22 = inverse_2x2(h11, h12, h12, h22)
+                    m1 = e1 @ (a_sig[j].T @ a_sig[j])
+                    m2 = e2 @ (a_sig[j].T @ a_sig[j])
+                    h11 += w * np.einsum('ij,ij->i', m1, e1)
+                    h12 += w * np.einsum('ij,ij->i', m1, e2)
+                    h22 += w * np.einsum('ij,ij->i', m2, e2)
+                    r = r * w[:, None]
+                s += r @ a_sig[j]
+            if not self.robust:
+                m1, m2 = e1 @ m_sum, e2 @ m_sum
+                h11 = np.einsum('ij,ij->i', m1, e1)
+                h12 = np.einsum('ij,ij->i', m1, e2)
+                h22 = np.einsum('ij,ij->i', m2, e2)
+            # per-epoch 2 x 2 systems written out component by component: several times
+            # faster than batched matmuls of tiny matrices (profile of diagnose, bench/)
+            i11, i12, i21, i22 = inverse_2x2(h11 * f2, h12 * f2, h12 * f2, h22 * f2)
+            g1s = self.f * np.einsum('ij,ij->i', e1, s)
+            g2s = self.f * np.einsum('ij,ij->i', e2, s)
             d1 = i11 * g1s + i12 * g2s
             d2 = i21 * g1s + i22 * g2s
             b = b + self.f[:, None] * (d1[:, None] * e1 + d2[:, None] * e2)
