@@ -114,20 +114,29 @@ def _arrange(fig, rows=1, cols=1, left=0.8, right=0.25, bottom=0.55, top=0.3, ws
     return fig
 
 
-def _text_size(fig, renderer, text, prop):
+def _text_size(fig, renderer, text, prop, memo):
     """
     Return the width and height of a tick label as drawn, points.
 
     One line: the renderer's text metrics, at least as tall and deep as 'lp' (as Text lays
     a line out).  Several lines: a Text's own extent (the line spacing rule is
-    matplotlib's, and changed in 3.11).
+    matplotlib's, and changed in 3.11).  ``memo``: a dict of the sizes measured so far
+    (the same labels recur on every panel).
     """
-    if '\n' in text:
-        box = Text(0.0, 0.0, text, fontproperties=prop, figure=fig).get_window_extent(renderer)
-        return box.width * 72.0 / fig.dpi, box.height * 72.0 / fig.dpi
-    w, h, d = renderer.get_text_width_height_descent(text, prop, ismath=False)
-    _, lp_h, lp_d = renderer.get_text_width_height_descent('lp', prop, ismath=False)
-    return w * 72.0 / fig.dpi, (max(h - d, lp_h - lp_d) + max(d, lp_d)) * 72.0 / fig.dpi
+    key = (text, prop)
+    if key not in memo:
+        if '\n' in text:
+            box = Text(0.0, 0.0, text, fontproperties=prop,
+                       figure=fig).get_window_extent(renderer)
+            memo[key] = box.width, box.height
+        else:
+            w, h, d = renderer.get_text_width_height_descent(text, prop, ismath=False)
+            if ('lp', None, prop) not in memo:
+                memo['lp', None, prop] = renderer.get_text_width_height_descent(
+                    'lp', prop, ismath=False)
+            _, lp_h, lp_d = memo['lp', None, prop]
+            memo[key] = w, max(h - d, lp_h - lp_d) + max(d, lp_d)
+    return tuple(v * 72.0 / fig.dpi for v in memo[key])
 
 
 def _place_axis_labels(fig):
@@ -138,9 +147,10 @@ def _place_axis_labels(fig):
     locating, formatting and measuring the ticks a second time (a tenth of the drawing of a
     panel).  The layout is final here, so the same rule is applied once: the tick mark and
     its pad, the tallest (x) or widest (y) tick label, then the label's own pad, all from
-    the axis' own settings and the canvas's text metrics (which the drawing reuses).
+    the axis' own settings and the text metrics of the canvas's renderer.
     """
     renderer = fig.canvas.get_renderer()
+    memo = {}
     for ax in fig.axes:
         if not ax.axison:
             continue
@@ -157,7 +167,7 @@ def _place_axis_labels(fig):
                 pad += tick.get_pad()
                 prop = tick.label1.get_fontproperties()
                 labels = axis.get_major_formatter().format_ticks(locs)
-                pad += max((_text_size(fig, renderer, s, prop)[side == 'bottom']
+                pad += max((_text_size(fig, renderer, s, prop, memo)[side == 'bottom']
                             for s in labels if s), default=0.0)
             pad = (pad + axis.labelpad) / 72.0                          # points -> inches
             if side == 'bottom':
