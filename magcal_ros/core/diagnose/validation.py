@@ -76,8 +76,8 @@ def cross_validate(data, model, params, f, sigma, folds=DEFAULT_FOLDS, fold_init
         held-out block's rows removed from the normal equations,
         p_b = p - (J^T J - J_b^T J_b)^-1 (J^T r - J_b^T r_b) (the "approximate
         leave-out" of M-estimation; exact for a model linear in its parameters).  The
-        Jacobian is the variable-projection one of the fit, evaluated once per block,
-        so this costs about one iteration of one fit instead of ``folds`` fits; the
+        normal equations are the variable-projection ones of the fit, formed once per
+        block, so this costs about one iteration of one fit instead of ``folds`` fits; the
         held-out residuals are then evaluated exactly.  test_diagnose.py checks both
         methods agree.
     constrained : bool
@@ -134,11 +134,11 @@ def _newton_leave_out(data, model, params, f, sigma, blocks):
             prob = ProfiledProblem(model, sub.raw,
                                    [sub.context(j) for j in range(1, sub.n_sensors + 1)],
                                    f[test], grp, sigma, p_full=params)
-            x = params[prob.cols]
-            jac = prob.jacobian(x)
-            r = prob.residuals(x)
-            hess.append(jac.T @ jac)
-            grad.append(jac.T @ r)
+            # J^T J and J^T r of the block, formed without the dense projected Jacobian
+            # (ProfiledProblem.normal_equations: the same numbers to rounding)
+            a, g = prob.normal_equations(params[prob.cols])
+            hess.append(a)
+            grad.append(g)
         h_all, g_all = sum(hess), sum(grad)
         for b in range(len(blocks)):
             h, g = h_all - hess[b], g_all - grad[b]
