@@ -294,7 +294,7 @@ def png_bytes(rgb):
     # width, height, bit depth 8, colour type 2 (RGB), deflate, adaptive filtering, no interlace
     header = struct.pack('>IIBBBBB', w, h, 8, 2, 0, 0, 0)
     return (b'\x89PNG\r\n\x1a\n' + chunk(b'IHDR', header)
-            + chunk(b'IDAT', zlib.compress(scan.tobytes(), 1)) + chunk(b'IEND', b''))
+            + chunk(b'IDAT', zlib.compress(scan, 1)) + chunk(b'IEND', b''))
 
 
 def _thin(n):
@@ -1366,11 +1366,13 @@ def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseli
                      + f'<p class="verdict">ladder stopped: {html.escape(ladder.reason)}</p>')
     parts.append('<h2>Fit</h2><pre>' + html.escape(result.summary()) + '</pre>')
     images, skipped = [], []
-    for name, heading, make, why in plan:
-        with matplotlib.rc_context(RC):      # the figure's text measured and drawn alike
+    pngs = []
+    with matplotlib.rc_context(RC):          # the figures' text measured and drawn alike
+        for _, _, make, _ in plan:
             fig = None if make is None else make()
-            png = None if fig is None else _png(fig)
-        if fig is None:
+            pngs.append(None if fig is None else _png(fig))
+    for (name, heading, _, why), png in zip(plan, pngs):
+        if png is None:
             skipped.append((heading, why or 'the data do not allow it (too few epochs)'))
             continue
         (out / f'{name}.png').write_bytes(png)
