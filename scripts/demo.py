@@ -172,7 +172,8 @@ class Recorder:
                         for k in ('start', 'calibrate', 'diagnose')}
         self.executor = SingleThreadedExecutor(context=context)
         self.executor.add_node(n)
-        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self._stop = threading.Event()
+        self.thread = threading.Thread(target=self._spin, daemon=True)
         self.thread.start()
 
     def _stream(self, j, kind):
@@ -214,8 +215,17 @@ class Recorder:
             time.sleep(0.05)
         return fut.result()
 
+    def _spin(self):
+        while not self._stop.is_set():
+            self.executor.spin_once(timeout_sec=0.1)
+
     def close(self):
         """Stop spinning and destroy the node."""
+        # the spin thread ends first: shutting the executor down under a running spin raised
+        # InvalidHandle in that thread ('cannot use Destroyable because destruction was
+        # requested') at the end of some runs
+        self._stop.set()
+        self.thread.join(timeout=5.0)
         self.executor.shutdown()
         self.node.destroy_node()
 

@@ -507,7 +507,9 @@ def run_concurrently(commands, timeout_sec=60.0, max_running=None, cwd=None):
     For tests that start one process per case and only read how it ended (exit status and
     output): the processes are the same as with :func:`subprocess.run`, one per command, but
     up to ``max_running`` of them run at once, so the cores are not idle while each one
-    imports its modules.
+    imports its modules. Not for commands that compute (fits, benchmarks): numpy's OpenBLAS
+    runs a thread per core in each process, and side by side they were slower than one
+    after the other (test_cli's exit codes 5.3 s -> 8.9 s).
 
     Parameters
     ----------

@@ -55,8 +55,8 @@ import numpy as np
 import pytest
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
-from ros_helpers import (call_trigger, spin_for, spin_until, split_response as split,
-                         subprocess_env)
+from ros_helpers import (call_trigger, run_concurrently, spin_for, spin_until,
+                         split_response as split, subprocess_env)
 from sensor_msgs.msg import MagneticField
 from sim_feed import Feeder, T0
 from std_msgs.msg import Float64MultiArray, String
@@ -114,11 +114,16 @@ def test_cli_refuses_stuck_and_missing_sensors_naming_them(tmp_path, tumbling):
     missing = _copy(tumbling[0])
     missing.raw[3, 200:] = np.nan                   # sensor 4 stopped reporting at 2 s
     write_csv(tmp_path / 'missing.csv', missing)
-    for name, match in (('stuck.csv', 'sensor 2: output is constant'),
-                        # the CSV reader names the first bad cell and counts the rows
-                        ('missing.csv', r"line 202, column s4_x: 'nan' is not a finite number "
-                                        r'\(400 row\(s\) affected\)')):
-        res = _magcal('fit', name, '--field-nt', F, '-o', 'cal.yaml', cwd=tmp_path)
+    cases = (('stuck.csv', 'sensor 2: output is constant'),
+             # the CSV reader names the first bad cell and counts the rows
+             ('missing.csv', r"line 202, column s4_x: 'nan' is not a finite number "
+                             r'\(400 row\(s\) affected\)'))
+    # the two refusals are independent: side by side (run_concurrently)
+    runs = run_concurrently({name: ([sys.executable, '-m', 'magcal_ros.cli', 'fit', name,
+                                     '--field-nt', str(F), '-o', 'cal.yaml'], subprocess_env())
+                             for name, _ in cases}, timeout_sec=120, cwd=tmp_path)
+    for name, match in cases:
+        res = runs[name]
         assert res.returncode == 2, res.stderr
         assert res.stderr.count('\n') == 1 and res.stderr.startswith('magcal: error: ')
         assert re.search(match, res.stderr), res.stderr
