@@ -660,7 +660,9 @@ def plot_direction_map(data, result, floor):
         x, y, c = direction_projection(b)
         r = result.scalar_residual_nt[j - 1, idx]
         lim = max(3.0 * floor.per_sensor_nt[j - 1], float(np.percentile(np.abs(r), 98)))
-        sc = ax.scatter(x, y, c=r, s=4, cmap='coolwarm', vmin=-lim, vmax=lim)
+        # dots of the same 3 pt without an outline: Agg strokes each marker's edge, and
+        # that was a third of this figure's drawing
+        sc = ax.scatter(x, y, c=r, s=9, linewidths=0, cmap='coolwarm', vmin=-lim, vmax=lim)
         cb = fig.colorbar(sc, ax=ax, fraction=0.046, pad=0.03)
         cb.set_label('scalar residual (nT)')
         for deg in (45, 90, 135):                  # angle from the centre direction
