@@ -55,6 +55,22 @@ def test_document_content_and_round_trip(tmp_path, run):
     assert np.allclose(cal.correct_dataset(data), r.result.corrected_nt, atol=1e-6)
 
 
+def test_the_file_reads_the_same_with_libyaml_and_pyyaml(tmp_path, run):
+    # the calibration file is read with libyaml's safe loader when PyYAML has it: the same
+    # document as PyYAML's own safe loader, and a truncated file is refused by both
+    _, r = run
+    path = tmp_path / 'cal.yaml'
+    save_calibration(path, r.doc)
+    text = path.read_text()
+    assert yaml.load(text, Loader=calfile._SAFE_LOADER) == yaml.safe_load(text)
+    cut = text[:len(text) // 2] + '  - [1.0, 2.'
+    for loader in {calfile._SAFE_LOADER, yaml.SafeLoader}:
+        with pytest.raises(yaml.YAMLError):
+            yaml.load(cut, Loader=loader)  # noqa: S506 - safe loaders
+    with pytest.raises(CalibrationFileError, match='not valid YAML'):
+        calfile.parse_calibration(cut)
+
+
 def test_atomic_write_keeps_previous_on_failing_fsync(tmp_path, run):
     _, r = run
     path = tmp_path / 'cal.yaml'
