@@ -22,7 +22,6 @@ import json
 import os
 import sys
 
-from magcal_ros.core.diagnose import jsonable
 from magcal_ros.core.model import DegenerateDataError
 from magcal_ros.core.notes import format_note
 from magcal_ros.units import check_field_units, UNITS_NT
@@ -152,6 +151,9 @@ def load_plugins(args):
 
 def print_json(obj):
     """One JSON object on stdout."""
+    # here, not at the top: the diagnose package (scipy.stats, ndimage) is not needed by
+    # every command
+    from magcal_ros.core.diagnose import jsonable
     print(json.dumps(jsonable(obj)))
 
 

@@ -19,7 +19,6 @@ Contract: Hamilton convention, scalar first (qw, qx, qy, qz), the rotation that 
 from the array (body) frame into the world frame (NED or ENU, as the user states): v_w = R v_b.
 """
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 #: largest allowed deviation of |q| from 1 (an IMU's quaternion is normalised to ~1e-6;
 #: a larger error is a unit or column mix-up, not rounding)
@@ -110,7 +109,9 @@ def interpolate(t_msg, q_msg, t):
         (N, 4) unit quaternions (qw, qx, qy, qz).
 
     """
-    from scipy.spatial.transform import Slerp
+    # here, not at the top: scipy.spatial is slow to import (0.2 s) and the nodes import
+    # this module
+    from scipy.spatial.transform import Rotation, Slerp
     t_msg = np.asarray(t_msg, float)
     order = np.argsort(t_msg, kind='stable')
     t_u, first = np.unique(t_msg[order], return_index=True)
@@ -164,6 +165,7 @@ def with_attitude(data, t_msg, q_msg, source='attitude'):
 
 def quaternion_matrices(q):
     """(N, 3, 3) body-to-world rotation matrices of (N, 4) unit quaternions (qw, qx, qy, qz)."""
+    from scipy.spatial.transform import Rotation
     return Rotation.from_quat(np.asarray(q, float), scalar_first=True).as_matrix()
 
 

@@ -46,7 +46,6 @@ from dataclasses import dataclass, replace
 from magcal_ros.core.ellipsoid import fit_ellipsoid, procrustes_rotation
 from magcal_ros.core.noise import estimate_noise
 import numpy as np
-from scipy.ndimage import median_filter
 
 #: largest slip searched, epochs
 DEFAULT_MAX_LAG = 10
@@ -287,6 +286,7 @@ def find_slips(raw, epochs=None, max_lag=DEFAULT_MAX_LAG, window=DEFAULT_WINDOW,
                 use = np.isfinite(r) & (r <= cut * np.nanmedian(r))
             cost = np.sum((u[0][None] - shifted @ rot.T) ** 2, axis=2)   # (L, N), nan: none
             big = 1e6 * (np.nanmedian(cost[k0]) + noise_cost)
+            from scipy.ndimage import median_filter    # here: slow to import (0.3 s)
             windowed = median_filter(np.nan_to_num(cost, nan=big), size=(1, window),
                                      mode='nearest')
             best = np.argmin(windowed, axis=0)

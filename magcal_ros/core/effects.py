@@ -42,7 +42,6 @@ import math
 import sys
 
 import numpy as np
-from scipy.linalg import rq
 
 #: Full-scale field used to normalise the nonlinearity polynomial (nT).
 NONLINEARITY_FULL_SCALE_NT = 50000.0
@@ -99,6 +98,7 @@ def rq_positive(a):
     ``u`` (3, 3) upper triangular with a positive diagonal, ``q`` (3, 3) a proper rotation
     (det +1): the split of paper 004 eq. 2-3 (intrinsic map times misalignment).
     """
+    from scipy.linalg import rq          # here: scipy.linalg is slow to import
     u, q = rq(np.asarray(a, float))
     sign = np.sign(np.diag(u))
     u, q = u * sign[None, :], sign[:, None] * q

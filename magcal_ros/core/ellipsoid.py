@@ -21,7 +21,6 @@ These closed-form solutions are the starting values of the maximum-likelihood re
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 #: the fitted quadric counts as an ellipsoid when its smallest eigenvalue exceeds this many
 #: standard deviations of its noise uncertainty (one-sided, false-acceptance rate ~ 1e-4)
@@ -276,5 +275,6 @@ def procrustes_rotation(reference, other):
         (3, 3) rotation taking sensor i's corrected field into the reference frame.
 
     """
+    from scipy.spatial.transform import Rotation     # here: scipy.spatial is slow to import
     rot, _ = Rotation.align_vectors(np.asarray(reference, float), np.asarray(other, float))
     return rot.as_matrix()

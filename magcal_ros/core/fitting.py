@@ -44,7 +44,6 @@ from magcal_ros.core.solvers import (covariance_from_jacobian, covariance_from_n
                                      levenberg_marquardt, resolves_covariance,
                                      single_threaded_blas)
 import numpy as np
-from scipy.optimize import least_squares
 
 
 class DegenerateDataError(ValueError):
@@ -505,6 +504,7 @@ class _Solve:
             prob = self.problem(grp, sigma, p)
             x0 = p[prob.cols]
             if self.solver == 'scipy':
+                from scipy.optimize import least_squares     # the reference solver only
                 sol = least_squares(prob.residuals, x0, jac=prob.jacobian, x_scale='jac',
                                     loss='soft_l1' if self.robust else 'linear',
                                     f_scale=self.f_scale, max_nfev=self.max_nfev, method='trf',

@@ -35,7 +35,6 @@ from magcal_ros.core.noise import noise_floor
 from magcal_ros.core.sync import epoch_times, StampMatcher
 from magcal_ros.core.tensor import tensor_operator
 import numpy as np
-from scipy.stats import chi2
 
 #: consecutive raw samples further apart than this give no field-rate estimate, s
 MAX_RATE_GAP_S = 1.0
@@ -168,6 +167,7 @@ class LiveCorrector:
                 self.pairing_dof = len(k)
                 if self.pairing_dof:
                     self._set_op = np.vstack([self.gradient_op, k])
+                    from scipy.stats import chi2   # here: scipy.stats costs 0.2 s at start-up
                     self.pairing_threshold = float(chi2.isf(PAIRING_FALSE_ALARM,
                                                             self.pairing_dof))
                     self.matcher.misfit = self.pairing_chi2

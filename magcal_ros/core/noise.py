@@ -39,7 +39,6 @@ from dataclasses import dataclass
 from math import comb
 
 import numpy as np
-from scipy import signal as sps
 
 #: difference orders tried by the adaptive estimate
 ORDERS = (1, 2, 3, 4, 5, 6)
@@ -177,6 +176,7 @@ def nyquist_drop(x):
     if n < 64:
         return out
     d = np.diff(x, axis=1)
+    from scipy import signal as sps     # here: the nodes import this module, not welch
     f, p = sps.welch(d, fs=1.0, nperseg=min(256, n - 1), axis=1, detrend='constant')
     gain = 4 * np.sin(np.pi * f) ** 2
     with np.errstate(divide='ignore', invalid='ignore'):
