@@ -120,3 +120,27 @@ def test_equal_evidence_goes_to_the_simpler_then_the_named_effect():
     trials = [_trial('a@1', 6, -100.0), _trial('b@1', 3, -100.0 + 3 * EVIDENCE_TIE)]
     run.order_by_evidence(trials, b)
     assert [t.token for t in trials] == ['a@1', 'b@1']
+
+
+@pytest.mark.parametrize('n', [2000, 12000])
+def test_a_line_is_proposed_from_irregular_samples_also_past_the_periodogram_budget(n):
+    # a 0.23 Hz, 15 nT line on sensor 3 sampled at jittered times (a live record's stamps),
+    # residuals written here; 2 000 epochs: Lomb-Scargle, 12 000: past LS_BUDGET, the FFT of
+    # the residual regridded onto the median interval; both name the line to 1 / (10 span),
+    # and white noise alone proposes none
+    from magcal_ros.core.diagnose import propose_from_residual
+    from magcal_ros.core.diagnose.candidates import LS_BUDGET
+    assert (n * min(4 * n, 20000) > LS_BUDGET) == (n > 2000)
+    rng = np.random.default_rng(n)
+    t = np.arange(n) / 10.0 + rng.uniform(-0.03, 0.03, n)
+    t.sort()
+    noise = rng.normal(0.0, 3.0, (4, n, 3))
+    line = 15.0 * np.stack([np.cos(2 * np.pi * 0.23 * t), np.sin(2 * np.pi * 0.23 * t + 0.4),
+                            np.cos(2 * np.pi * 0.23 * t + 2.0)], axis=1)
+    with_line = noise.copy()
+    with_line[2] += line
+    span = t[-1] - t[0]
+    lines = [tok for tok in propose_from_residual(t, with_line) if tok.startswith('periodic(')]
+    assert len(lines) == 1, lines
+    assert abs(float(lines[0][len('periodic('):-1]) - 0.23) <= 1.0 / (10 * span) + 1e-4
+    assert not [tok for tok in propose_from_residual(t, noise) if tok.startswith('periodic(')]
