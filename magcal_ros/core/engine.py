@@ -230,7 +230,8 @@ class ProfiledProblem:
         # right-hand sides projections of s = sum_j A_j^T r_j / sigma_j: with equal weights
         # the forms of M = sum_j M_j are taken once per step instead of once per sensor
         a_sig = {j: mats[j] / self.sigma[j - 1] for j in self.sensors}
-        m_sum = sum(a_sig[j].T @ a_sig[j] for j in self.sensors)
+        m_j = {j: a_sig[j].T @ a_sig[j] for j in self.sensors}
+        m_sum = sum(m_j.values())
         f2 = self.f * self.f
         for _ in range(steps):
             u = b / self.f[:, None]
@@ -243,8 +244,7 @@ class ProfiledProblem:
                 if self.robust:
                     # IRLS weight of the soft-L1 loss on this sensor's residual at each epoch
                     w = 1.0 / np.sqrt(1.0 + np.sum(r * r, axis=1) / self.f_scale ** 2)
-                    m1 = e1 @ (a_sig[j].T @ a_sig[j])
-                    m2 = e2 @ (a_sig[j].T @ a_sig[j])
+                    m1, m2 = e1 @ m_j[j], e2 @ m_j[j]
                     h11 += w * np.einsum('ij,ij->i', m1, e1)
                     h12 += w * np.einsum('ij,ij->i', m1, e2)
                     h22 += w * np.einsum('ij,ij->i', m2, e2)

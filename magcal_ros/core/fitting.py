@@ -447,7 +447,8 @@ class _Solve:
     def __init__(self, model, raw, f, contexts, prior_list, robust, f_scale, solver,
                  max_nfev, ftol=None):
         self.model, self.raw, self.f, self.contexts = model, raw, f, contexts
-        self.ftol = ftol
+        # the solvers' own default tolerance unless one is given
+        self.ftol_kw = {} if ftol is None else {'ftol': ftol}
         self.prior_list = prior_list
         self.robust, self.f_scale = robust, f_scale
         self.solver, self.max_nfev = solver, max_nfev
@@ -508,7 +509,7 @@ class _Solve:
                 sol = least_squares(prob.residuals, x0, jac=prob.jacobian, x_scale='jac',
                                     loss='soft_l1' if self.robust else 'linear',
                                     f_scale=self.f_scale, max_nfev=self.max_nfev, method='trf',
-                                    **({} if self.ftol is None else {'ftol': self.ftol}))
+                                    **self.ftol_kw)
             else:
                 # squares loss: the normal equations block by block, without the tall
                 # projected Jacobian (ProfiledProblem.normal_equations); the soft-L1 loss
@@ -517,7 +518,7 @@ class _Solve:
                                           robust=self.robust, f_scale=self.f_scale,
                                           max_nfev=self.max_nfev,
                                           normal=None if self.robust else prob.normal_equations,
-                                          **({} if self.ftol is None else {'ftol': self.ftol}))
+                                          **self.ftol_kw)
             p[prob.cols] = sol.x
             problems.append(prob)
             nfev += sol.nfev

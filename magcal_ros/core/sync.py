@@ -363,7 +363,7 @@ class StampMatcher:
                 self.realigned += 1
             self._offset[j] = best
         if self.misfit is not None and self._aligned:
-            vote = [p if p is not None else o for p, o in zip(self._proposal, self._offset)]
+            vote = self._vote()
             self._pending = (vote if vote != self._offset and vote not in self._refuted
                              else None)
         self._aligned = all(o is not None for o in self._offset)
@@ -437,12 +437,20 @@ class StampMatcher:
                     o[j] += delta
                 seen.add(tuple(o))
                 single.append((j, delta, o))
-        vote = [p if p is not None else o for p, o in zip(self._proposal, base)]
-        diff = [p - o for p, o in zip(vote, base)]
-        reach = max(diff) - min(diff)   # diff[0] = 0: sensor 1 keeps offset 0
+        vote = self._vote()
+        reach = self._reach(vote)
         if tuple(vote) not in seen and reach <= MAX_VOTE_SHIFT:
             yield -1, reach, vote       # e.g. a run of lost samples, once the vote sees it
         yield from single
+
+    def _vote(self):
+        """Return the offsets the stamp vote proposes (the current one where it has none)."""
+        return [p if p is not None else o for p, o in zip(self._proposal, self._offset)]
+
+    def _reach(self, offsets):
+        """Return how far ``offsets`` move the streams against each other, epochs."""
+        diff = [p - o for p, o in zip(offsets, self._offset)]
+        return max(diff) - min(diff)    # diff[0] = 0: sensor 1 keeps offset 0
 
     def _item(self, k, seq):
         """Return the item of stream k with sequence number ``seq`` (queued or past), or None."""
@@ -487,8 +495,7 @@ class StampMatcher:
         sample while it turns slowly: the vote is then the only witness).
         """
         vote = self._pending
-        diff = [p - o for p, o in zip(vote, self._offset)]
-        reach = max(diff) - min(diff)
+        reach = self._reach(vote)
         queues = self._queues
         if reach <= MAX_VOTE_SHIFT:
             if min(len(qq) for qq in queues) < reach + self.confirm + 1:

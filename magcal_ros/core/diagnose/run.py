@@ -75,9 +75,9 @@ class Trial:
     ev : Evaluation or None
         Its residuals on the tested epochs; None for a candidate the score test ruled out
         (its residuals were not evaluated).
-    chi2 : float
-        Its chi-square: ``ev.chi2``, or, without ``ev``, the base fit's less the score
-        statistic (the one-step decrease predicted by the linearised problem).
+    score_chi2 : float
+        The base fit's chi-square less the score statistic (the one-step decrease
+        predicted by the linearised problem): :attr:`chi2` until ``ev`` is set.
     method : str
         'score', 'one-step' or 'refit'.
     reduces : str or None
@@ -98,7 +98,7 @@ class Trial:
     p: np.ndarray
     added: np.ndarray
     ev: Evaluation | None
-    chi2: float
+    score_chi2: float
     method: str = 'one-step'
     reduces: str | None = None
     cv: dict | None = None
@@ -109,6 +109,11 @@ class Trial:
     def k(self):
         """Parameters added (degrees of freedom of the likelihood-ratio test)."""
         return int(self.added.sum())
+
+    @property
+    def chi2(self):
+        """Its chi-square: ``ev.chi2`` once evaluated, else :attr:`score_chi2`."""
+        return self.score_chi2 if self.ev is None else self.ev.chi2
 
 
 @dataclass
@@ -365,7 +370,7 @@ def _screen(b, testable, progress):
         m_ext, p_ext, added = extend_model(b.model, b.params, tok, b.contexts)
         p_step, score = screen.step(m_ext, p_ext, added, with_decrease=True)
         trials.append(Trial(token=tok, label=label, sensor=sensor, model=m_ext, p=p_step,
-                            added=added, ev=None, chi2=b.ev0.chi2 - max(score, 0.0),
+                            added=added, ev=None, score_chi2=b.ev0.chi2 - max(score, 0.0),
                             method='score', start=p_ext))
     report_progress(progress, 'screen', len(testable), len(testable), '')
     for c in trials:
@@ -378,7 +383,7 @@ def _screen(b, testable, progress):
             c.p = c.start
             ev = evaluate_residuals(c.model, c.start, b.data, b.f, b.sigma, b.contexts,
                                     loss=b.loss)
-        c.ev, c.chi2, c.method = ev, ev.chi2, 'one-step'
+        c.ev, c.method = ev, 'one-step'
     order_by_evidence(trials, b)
     return trials, screen
 
@@ -410,7 +415,7 @@ def _refit(b, trials, screen, max_refit, progress):
         ev = evaluate_residuals(c.model, r.params, b.data, b.f, b.sigma, b.contexts,
                                 loss=b.loss)
         if ev.chi2 <= c.chi2 or c.ev is None:
-            c.p, c.ev, c.chi2, c.method = r.params, ev, ev.chi2, 'refit'
+            c.p, c.ev, c.method = r.params, ev, 'refit'
             c.reduces = reduces_to_simpler(c.model, r.params, r.stderr, c.label, b.contexts)
     report_progress(progress, 'refit', n_refit, n_refit, '')
     order_by_evidence(trials, b)
