@@ -42,6 +42,6 @@ from magcal_ros.core.effects.catalog import (  # noqa: F401 - re-exported
     Aux, AuxPoly, Drift, FieldRate, Lag, Misalignment, Nonlinearity, NonOrthogonality, Offset,
     Periodic, QuadraticDrift, Scale, SiteGradient, SoftIron, Step, Temperature)
 from magcal_ros.core.effects.registry import (  # noqa: F401 - re-exported
-    _REGISTRY, BASE, BUILTIN_EFFECTS, effect_class, load_plugin, load_plugins, make_effect,
+    BASE, BUILTIN_EFFECTS, effect_class, load_plugin, load_plugins, make_effect,
     needs_args, parse_token, register_effect, registered_effects, split_spec,
     unregister_effect)

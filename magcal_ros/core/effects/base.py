@@ -421,7 +421,8 @@ def upper_to_scale_nonorth(u):
 # -- signal helpers ------------------------------------------------------------------------
 
 
-def _number(text, what):
+def parse_number(text, what):
+    """Return the finite float of the argument ``text`` (``what`` names it in the error)."""
     try:
         v = float(text)
     except ValueError:
@@ -431,12 +432,12 @@ def _number(text, what):
     return v
 
 
-def _fmt(v):
+def format_arg(v):
     """Canonical text of a token argument: 4 significant digits are kept as given."""
     return format(float(v), '.6g')
 
 
-def _channel(name):
+def channel_name(name):
     """'temperature' or an auxiliary column, with its 'aux_' prefix."""
     name = name.strip()
     if name in ('temperature', 'temp'):
@@ -446,15 +447,16 @@ def _channel(name):
     return name if name.startswith('aux_') else 'aux_' + name
 
 
-def _signal(ctx, channel):
+def channel_values(ctx, channel):
     """(N,) values of 'temperature' or an auxiliary channel in ``ctx`` (None if absent)."""
     if channel == 'temperature':
         return ctx.temp
     return ctx.aux.get(channel)
 
 
-def _check_channel(ctx, channel, sensor):
-    a = _signal(ctx, channel)
+def check_channel(ctx, channel, sensor):
+    """Return None if the channel is present and varies in ``ctx``, else the reason why not."""
+    a = channel_values(ctx, channel)
     if a is None or not np.isfinite(a).any():
         col = f's{sensor}_temp' if channel == 'temperature' else channel
         return f'sensor {sensor}: no {channel} column ({col}) in the data'

@@ -23,10 +23,11 @@ the class below (the same numbers as the composition, test/test_grammar.py).
 """
 import math
 
-from magcal_ros.core.effects.base import (_channel, _check_channel, _fmt, _number, _signal,
-                                          Effect, first_order_lag, misalignment_angles,
-                                          misalignment_matrix, NONLINEARITY_FULL_SCALE_NT,
-                                          nonorthogonality_matrix, symmetric_traceless)
+from magcal_ros.core.effects.base import (channel_name, channel_values, check_channel,
+                                          Effect, first_order_lag, format_arg,
+                                          misalignment_angles, misalignment_matrix,
+                                          NONLINEARITY_FULL_SCALE_NT, nonorthogonality_matrix,
+                                          parse_number, symmetric_traceless)
 import numpy as np
 
 
@@ -322,10 +323,10 @@ class Step(Effect):
     def from_args(cls, args, sensor=1):
         if not args:
             raise ValueError('step needs the time(s) of the offset change, e.g. step(300)')
-        times = sorted(_number(a, 'step time [s]') for a in args)
+        times = sorted(parse_number(a, 'step time [s]') for a in args)
         eff = cls(sensor=sensor)
         eff.times = np.array(times)
-        eff.args = tuple(_fmt(x) for x in times)
+        eff.args = tuple(format_arg(x) for x in times)
         return eff
 
     @property
@@ -368,12 +369,12 @@ class Periodic(Effect):
     def from_args(cls, args, sensor=1):
         if len(args) != 1:
             raise ValueError('periodic needs one frequency in Hz, e.g. periodic(0.23)')
-        f = _number(args[0], 'periodic frequency [Hz]')
+        f = parse_number(args[0], 'periodic frequency [Hz]')
         if f <= 0:
             raise ValueError(f'periodic frequency must be positive, got {args[0]!r}')
         eff = cls(sensor=sensor)
         eff.freq_hz = f
-        eff.args = (_fmt(f),)
+        eff.args = (format_arg(f),)
         return eff
 
     def prepare(self, ctx):
@@ -415,7 +416,7 @@ class Lag(Effect):
             raise ValueError('lag needs one channel, e.g. lag(temperature) or '
                              'lag(aux_motor_current)')
         eff = cls(sensor=sensor)
-        eff.channel = _channel(args[0])
+        eff.channel = channel_name(args[0])
         eff.args = (eff.channel,)
         return eff
 
@@ -441,19 +442,19 @@ class Lag(Effect):
         return np.array([0.0, 0.0, 0.0, self.tau0_s])
 
     def prepare(self, ctx):
-        a = _signal(ctx, self.channel)
+        a = channel_values(ctx, self.channel)
         if a is not None and np.isfinite(a).any():
             self.refs.setdefault('x0', float(np.nanmean(a)))
 
     def check(self, ctx):
-        return _check_channel(ctx, self.channel, self.sensor)
+        return check_channel(ctx, self.channel, self.sensor)
 
     def lagged(self, ctx, tau):
         """(N,) the channel through the lag of time constant ``tau`` s, at ``ctx``'s samples."""
         whole, idx = ctx.whole()
         if idx is None and len(ctx.t) == 1:
-            return self._online(float(ctx.t[0]), _signal(ctx, self.channel), tau)
-        x = _signal(whole, self.channel)
+            return self._online(float(ctx.t[0]), channel_values(ctx, self.channel), tau)
+        x = channel_values(whole, self.channel)
         # the fit's Jacobian perturbs every other parameter at the same tau (and tau itself):
         # keep the last few filtered series, keyed by the record and tau
         key = (id(x), len(x), float(tau), self.refs.get('x0', 0.0))
@@ -523,11 +524,11 @@ class AuxPoly(Effect):
             raise ValueError('aux_poly needs a channel and a degree, e.g. '
                              'aux_poly(aux_motor_current,2)')
         eff = cls(sensor=sensor)
-        eff.channel = _channel(args[0])
+        eff.channel = channel_name(args[0])
         if eff.channel == 'temperature':
             raise ValueError('aux_poly couples an auxiliary channel (aux_<name>), not the '
                              'temperature')
-        d = _number(args[1], 'aux_poly degree')
+        d = parse_number(args[1], 'aux_poly degree')
         if d != int(d) or not 2 <= d <= 4:
             raise ValueError(f'aux_poly degree must be 2, 3 or 4, got {args[1]!r}')
         eff.degree = int(d)
@@ -558,7 +559,7 @@ class AuxPoly(Effect):
             self.refs.setdefault('a0', float(np.nanmean(ctx.aux[self.channel])))
 
     def check(self, ctx):
-        return _check_channel(ctx, self.channel, self.sensor)
+        return check_channel(ctx, self.channel, self.sensor)
 
     def contribution(self, p, ctx, lin):
         u = (ctx.aux[self.channel] - self.refs.get('a0', 0.0))[:, None]
