@@ -318,6 +318,12 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
         ident = _check_data(data, model, contexts_all, constrained, check_identifiability,
                             degenerate)
         idx = fit_epochs(data.n_samples, max_fit_samples)
+        if model.drops:
+            # drop(t0, t1) terms: the fit leaves those windows out
+            idx = idx[model.fit_mask(data.t[idx])]
+            if len(idx) < 10:
+                raise ValueError(f'the drop() windows {model.drops} leave {len(idx)} samples '
+                                 'to fit: drop less')
         raw, f = data.raw[:, idx], f_all[idx]
         contexts = [c.subset(idx) for c in contexts_all]
         if init is None:

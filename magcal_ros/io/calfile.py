@@ -181,6 +181,8 @@ def _calibration_from_doc(doc, source):
         raise CalibrationFileError(f'{source}: sensors must be a non-empty list')
     effects, params, stderr, sigma = [], [], [], []
 
+    shared = set()
+
     def read_effects(edocs, k, where):
         row = []
         for e in edocs:
@@ -197,6 +199,12 @@ def _calibration_from_doc(doc, source):
                 raise CalibrationFileError(
                     f'{where} effect {label}: parameters {list(pdoc)} but expected '
                     f'{list(eff.param_names)}')
+            if getattr(eff, 'shared', False):
+                # one parameter set of every sensor (@alike): laid out once by the Model
+                if eff.label in shared:
+                    row.append(eff)
+                    continue
+                shared.add(eff.label)
             for pn in eff.param_names:
                 entry = pdoc[pn]
                 try:
@@ -218,7 +226,14 @@ def _calibration_from_doc(doc, source):
         effects.append(read_effects(_need(sdoc, 'effects', where), k, where))
         sigma.append(float(sdoc.get('sigma_nt', np.nan)))
     array_effects = read_effects(doc.get('array_effects') or [], 0, f'{source}: array_effects')
-    model = Model(effects, array_effects)
+    drops = []
+    for term in doc.get('model') or []:
+        if isinstance(term, str) and term.replace(' ', '').startswith('drop('):
+            try:
+                drops.extend(fx.formula.parse(term).drops)
+            except ValueError as exc:
+                raise CalibrationFileError(f'{source}: model term {term!r}: {exc}') from None
+    model = Model(effects, array_effects, drops)
     cal = Calibration(model, np.array(params), np.array(stderr), np.array(sigma))
     site = doc.get('site_gradient_nt_per_m')
     if array_effects and isinstance(site, dict) and 'covariance_5' in site:
