@@ -725,11 +725,17 @@ def corrected_readings(model, p, raw, contexts):
 
 
 def centred_readings(model, p, corrected, contexts):
-    """Return (S, N, 3) ``corrected`` minus each sensor's modelled site shift, nT."""
+    """
+    Return (S, N, 3) ``corrected`` minus each sensor's modelled array shift, nT.
+
+    The site shift (site gradient) and the modelled change of the field's magnitude (a
+    ``field`` term, along the corrected reading): what is left is comparable with the
+    reference magnitude.
+    """
     if not model.array_effects:
         return corrected
     # residuals against the centre field: remove each sensor's modelled site shift
-    return corrected - np.stack([model.array_shift(j, p, contexts[j - 1])
+    return corrected - np.stack([model.array_shift(j, p, contexts[j - 1], corrected[j - 1])
                                  for j in range(1, model.n_sensors + 1)])
 
 

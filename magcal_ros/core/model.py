@@ -328,7 +328,7 @@ class Model:
         the field's magnitude) contribute only when ``b`` (N, 3) nT is given: without it
         this is the site shift alone (what centred readings subtract).
         """
-        out = 0.0
+        out = np.zeros((len(ctx.t), 3))
         for eff, sl in zip(self.array_effects, self.array_slices):
             if getattr(eff, 'reads_field', False):
                 if b is not None:
