@@ -167,9 +167,8 @@ class Simulator:
         found = [(eff, sl) for j, row in enumerate(self.model.effects) if j + 1 in sensors
                  for eff, sl in zip(row, self.model.slices[j])
                  if eff.label in (term.core, term.text) or eff.name == term.core]
-        found += [(eff, sl) for eff, sl in zip(self.model.array_effects,
-                                                self.model.array_slices)
-                  if eff.label == term.core]
+        arr = zip(self.model.array_effects, self.model.array_slices)
+        found += [(eff, sl) for eff, sl in arr if eff.label == term.core]
         if not found:
             raise ValueError(f'truth for {token!r} but no such term in the model')
         for eff, sl in found:
