@@ -270,7 +270,7 @@ def _alias_term(raw, core_text, scope_text):
     text_out = core if scope in ('each', 'array') else f'{core}@{scope}'
     signals = tuple(eff.signals) if eff is not None else ()
     return Term(text=text_out, kind='alias', core=core, scope=scope, signals=signals,
-                expansion=aliases.expansion(core))
+                expansion=aliases.expansion(text_out))
 
 
 @dataclass(frozen=True)
