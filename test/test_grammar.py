@@ -332,3 +332,37 @@ def test_plugin_names_cannot_shadow_builtins():
     with pytest.raises(TypeError):
         fx.register_coupling(SquareWave)
     assert fm.parse('offset(1)').terms[0].coupling == 'offset'
+
+
+@pytest.fixture
+def grammar_example(monkeypatch):
+    monkeypatch.syspath_prepend(str(pathlib.Path(__file__).resolve().parents[1] / 'examples'))
+    names = fx.load_plugin('my_grammar')
+    yield names
+    fx.unregister_driver('relay')
+    fx.unregister_coupling('zoffset')
+    import sys
+    sys.modules.pop('my_grammar', None)
+
+
+def test_example_grammar_plugin(grammar_example):
+    """examples/my_grammar.py (docs/plugins.md): zoffset(relay(...))@2 on a hand-written relay."""
+    assert sorted(grammar_example) == ['relay', 'zoffset']
+    code = (pathlib.Path(__file__).resolve().parents[1] / 'docs' / 'plugins.md').read_text()
+    snippet = code[code.index("load_plugin('my_grammar')"):].split('```')[0]
+    ns = {'load_plugin': fx.load_plugin, 'parse': fx.parse}
+    exec(snippet, ns)                  # noqa: S102 - the documentation's own snippet
+    assert ns['f'].terms[1].n_params(4) == 1
+
+    def inject(t, temp, aux, b):
+        on = (aux['aux_motor_current'] > 4).astype(float)
+        return {2: np.outer(on, [0.0, 0.0, 9.0])}
+    data = inj.make(n=1500, seed=6, inject=inject)
+    formula = 'base + zoffset(relay(aux_motor_current, threshold=4))@2 + offset(s(t, k=4))@3'
+    res = fit(data, formula, inj.F_NT, check_identifiability=False, on_degenerate='flag')
+    i = [k for k, info in enumerate(res.model.param_info()) if info[1].startswith('zoffset')]
+    assert len(i) == 1
+    # a 0/1 column switched about half the time: se about 2 x 3 nT / sqrt(1500) = 0.15 nT
+    assert abs(res.params[i[0]] - 9.0) < 5 * res.stderr[i[0]], (res.params[i[0]], res.stderr[i])
+    cal, _ = parse_calibration(dump_calibration(calibration_to_doc(res.calibration)), 'p')
+    np.testing.assert_array_equal(cal.params, res.params)
