@@ -28,8 +28,8 @@ optimiser's tolerance, except drift2 whose composition is centred and scaled dif
 import argparse
 import time
 
+from magcal_ros.core.data.simulate import simulate
 from magcal_ros.core.model import fit
-from magcal_ros.core.simulate import simulate
 
 PAIRS = [
     ('drift2', 'offset(poly(t, 2))', {'drift2': [0.02, -0.01, 0.01, 1e-5, 0, -1e-5]}),

@@ -240,7 +240,7 @@ def test_simulate_truth_takes_any_term():
     truth = _parse_truth(['offset(s(t, k=4))@2=1,2,3,4,5,6,7,8,9,10,11,12',
                           'temperature@2=3,-2,1.5,0,0,0', 'field(sin(0.02))=5,3'])
     assert list(truth) == ['offset(s(t, k=4))@2', 'temperature@2', 'field(sin(0.02))']
-    from magcal_ros.core.simulate import Simulator
+    from magcal_ros.core.data.simulate import Simulator
     sim = Simulator(truth={'offset(window(1, 2))@alike': [30, -20, 10],
                            'field(sin(0.02))': [5, 3]})
     info = sim.model.param_info()

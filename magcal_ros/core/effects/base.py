@@ -496,14 +496,3 @@ def first_order_lag(t, x, tau):
     # steady state at the first sample: y[0] = b0 x0 + z0 = x0
     y, _ = lfilter(b, [1.0, -a], xs, zi=np.array([(1.0 - b[0]) * xs[0]]))
     return y if uniform else np.interp(t, grid, y)
-
-
-def symmetric_traceless(g):
-    """
-    (3, 3) symmetric traceless tensor from g = (gxx, gxy, gxz, gyy, gyz), same unit.
-
-    Maxwell's equations in a source-free region: curl B = 0 (symmetric), div B = 0
-    (traceless), so gzz = -gxx - gyy (paper 004 eq. 1 uses the same five components).
-    """
-    gxx, gxy, gxz, gyy, gyz = g
-    return np.array([[gxx, gxy, gxz], [gxy, gyy, gyz], [gxz, gyz, -gxx - gyy]], float)
