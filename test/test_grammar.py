@@ -366,3 +366,21 @@ def test_example_grammar_plugin(grammar_example):
     assert abs(res.params[i[0]] - 9.0) < 5 * res.stderr[i[0]], (res.params[i[0]], res.stderr[i])
     cal, _ = parse_calibration(dump_calibration(calibration_to_doc(res.calibration)), 'p')
     np.testing.assert_array_equal(cal.params, res.params)
+
+
+def test_one_sample_at_a_time_corrects_as_the_whole_record():
+    """Live correction sees one sample per call: the drivers' references come from refs."""
+    formula = ('base + offset(s(t, k=5))@2 + scale(temperature)@3 + offset(window(50, 90))@alike'
+               ' + offset(cc(aux_motor_current, k=1, period=10) * t)@4 + offset(poly(t, 3))@1'
+               ' + rotation(sin(0.02))@2 + scale(poly(lin, 2))@1')
+    data = inj.make(n=600, seed=7)
+    res = fit(data, formula, inj.F_NT, check_identifiability=False, on_degenerate='flag')
+    cal, _ = parse_calibration(dump_calibration(calibration_to_doc(res.calibration)), 'live')
+    for j in range(1, 5):
+        ctx = data.context(j)
+        whole = cal.correct(j, data.raw[j - 1], ctx)
+        for k in (0, 137, 311, 599):
+            one = SensorContext(t=ctx.t[k:k + 1], temp=ctx.temp[k:k + 1],
+                                aux={a: v[k:k + 1] for a, v in ctx.aux.items()})
+            np.testing.assert_allclose(cal.correct(j, data.raw[j - 1][k:k + 1], one),
+                                       whole[k:k + 1], rtol=0, atol=1e-9)
