@@ -233,6 +233,8 @@ def cmd_fit(args):
     s = dict(run.summary)
     s['output'] = None if refused else out
     s['field_reference'] = fref
+    # the document the file holds (or would hold), built once: the JSON and the file agree
+    s['calibration'] = None if refused else run.doc
     if args.json:
         print_json(s)
     else:
@@ -291,15 +293,15 @@ def _fit_paper_method(args, data):
             data, field_nt, on_degenerate='flag' if args.flag_degenerate else 'raise')
         geometry = cross_geometry(args.baseline_m) if data.n_sensors == 4 else None
     out = args.output
+    doc = calibration_to_doc(res.calibration, geometry=geometry, field_reference=fref,
+                             provenance={'method': args.method,
+                                         'samples': int(data.n_samples),
+                                         'warnings': list(res.warnings)})
     if out:
-        doc = calibration_to_doc(res.calibration, geometry=geometry, field_reference=fref,
-                                 provenance={'method': args.method,
-                                             'samples': int(data.n_samples),
-                                             'warnings': list(res.warnings)})
         save_calibration(out, doc)
     if args.json:
         print_json({**res.to_dict(), 'noise_floor_nt': None, 'output': out,
-                    'field_reference': fref})
+                    'field_reference': fref, 'calibration': doc})
     else:
         print(res.summary())
         if out:
