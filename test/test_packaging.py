@@ -127,7 +127,8 @@ def test_colcon_build_installs_index_manifest_config_and_executables(colcon_inst
 #: pip") map to None
 _PY_DEPS = {'numpy': 'python3-numpy', 'scipy': 'python3-scipy', 'serial': 'python3-serial',
             'yaml': 'python3-yaml', 'matplotlib': 'python3-matplotlib', 'rosbags': None,
-            'ppigrf': None, 'threadpoolctl': None, 'zstandard': None}
+            'ppigrf': None, 'threadpoolctl': None, 'zstandard': None,
+            'jsonschema': 'python3-jsonschema'}
 
 
 def _imported_modules(paths):
