@@ -19,8 +19,8 @@ import os
 import re
 import warnings
 
-from magcal_ros.core.attitude import check_quaternions, COLUMNS as ATT_COLUMNS
-from magcal_ros.core.dataset import Dataset
+from magcal_ros.core.data.dataset import Dataset
+from magcal_ros.core.geometry.attitude import check_quaternions, COLUMNS as ATT_COLUMNS
 from magcal_ros.io.atomic import atomic_write_text
 from magcal_ros.io.compressed import compress_text, compression, CorruptArchiveError, open_text
 import numpy as np
