@@ -99,7 +99,7 @@ except ImportError as exc:  # a missing rclpy is a failure, never a skip
     ) from exc
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent / 'open_audit_site'))
-import open_audit  # noqa: E402  (files opened beside the repository fail the session)
+import open_audit  # noqa: E402,I100  (files opened beside the repository fail the session)
 import ros_helpers  # noqa: E402
 from ros_helpers import (  # noqa: E402,F401  (fixtures registered for every test)
     make_node, ros_context, ros_executor, ros_namespace, ros_node, start_process)

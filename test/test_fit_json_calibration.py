@@ -38,7 +38,7 @@ N = 3000
 
 @pytest.fixture(scope='module')
 def fitted(tmp_path_factory):
-    """(data, JSON printed by fit --json, the YAML file it wrote) on injected data."""
+    """Fit injected data: (data, JSON printed by fit --json, the YAML file it wrote)."""
     d = tmp_path_factory.mktemp('fitjson')
     data = make(n=N, seed=7)
     write_csv(d / 'rec.csv', data)

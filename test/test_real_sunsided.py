@@ -260,7 +260,8 @@ def test_static_recordings_checked_against_the_full_sphere(full_sphere, full_sph
 
 
 def test_readme_check_commands(tmp_path):
-    """The README's `magcal fit` and `magcal check` lines, as written, from the repository root.
+    """
+    Run the README's `magcal fit` and `magcal check` lines as written, from the root.
 
     Run in a directory holding a link to the repository's data/ (so that hmc.yaml does not
     land in the checkout): the README's paths are relative to the repository root.

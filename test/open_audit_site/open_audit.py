@@ -16,10 +16,11 @@
 The suite reads nothing beside the repository: files opened outside it are found and fail.
 
 Issue 22 item 1: the data the project's claims rest on live in the repository, so no test,
-README command or benchmark may read a file from the repository's parent folder (such as
-a ``shared`` folder next to the clone) that a fresh clone does not have.  An audit hook (:func:`sys.addaudithook`, event
-``open``) records every file opened under the repository's parent folder but outside the
-repository; the temporary directory, the Python environment and system paths are allowed.
+README command or benchmark may read a file from the repository's parent folder (such as a
+``shared`` folder next to the clone) that a fresh clone does not have.  An audit hook
+(:func:`sys.addaudithook`, event ``open``) records every file opened under the repository's
+parent folder but outside the repository; the temporary directory, the Python environment
+and system paths are allowed.
 
 - In the pytest process: installed by :func:`pytest_sessionstart` (test/conftest.py calls it);
   :func:`pytest_sessionfinish` fails the session and lists the paths.
