@@ -20,6 +20,7 @@ import re
 from magcal_ros.core.data.dataset import Dataset
 from magcal_ros.core.geometry.attitude import check_quaternions, COLUMNS as ATT_COLUMNS
 from magcal_ros.io.atomic import atomic_write_text
+from magcal_ros.io.compressed import compress_text, CorruptArchiveError, open_text
 import numpy as np
 
 _SENSOR_COL = re.compile(r'^s(\d+)_(x|y|z|temp)$')
@@ -38,14 +39,17 @@ def read_csv(path):
     ``ref_total`` (nT), ``ref_x/y/z`` (nT), ``angle_deg``, ``plane`` (xy|xz), ``aux_<name>``,
     ``att_qw, att_qx, att_qy, att_qz`` (all four: body-to-world unit quaternion, Hamilton,
     scalar first).
-    ``#`` lines are comments.  Unknown columns are an error.
+    ``#`` lines are comments.  Unknown columns are an error.  A ``.csv.gz`` or ``.csv.zst``
+    file is decompressed as it is read (:mod:`magcal_ros.io.compressed`).
     """
     path = os.fspath(path)
     try:
         # utf-8-sig: a spreadsheet's byte-order mark is not part of the first column's name
-        with open(path, encoding='utf-8-sig') as fh:
+        with open_text(path, encoding='utf-8-sig') as fh:
             numbered = [(no, ln) for no, ln in enumerate(fh, start=1)
                         if ln.strip() and not ln.lstrip().startswith('#')]
+    except CorruptArchiveError as exc:
+        raise CsvFormatError(str(exc)) from None
     except OSError as exc:
         raise CsvFormatError(f'cannot read {path}: {exc.strerror}') from exc
     except UnicodeDecodeError as exc:
@@ -200,5 +204,5 @@ def format_csv(data, comment=None):
 
 
 def write_csv(path, data, comment=None):
-    """Write a :class:`Dataset` as a wide CSV file, atomically."""
-    atomic_write_text(path, format_csv(data, comment), backup=False)
+    """Write a :class:`Dataset` as a wide CSV file, atomically (``.gz``/``.zst``: compressed)."""
+    atomic_write_text(path, compress_text(path, format_csv(data, comment)), backup=False)
