@@ -82,6 +82,10 @@ _HELD = {
 }
 
 
+#: the effects whose parameters are judged determined or not (the constant sensor map)
+_KINDS = ('offset', 'scale', 'nonorthogonality', 'soft_iron', 'misalignment')
+
+
 class PlanarError(ValueError):
     """The data are not a turn about one axis that planar mode can use."""
 
@@ -102,14 +106,17 @@ class PlanarResult:
     held : tuple of int
         Indices of the parameters with a prior in ``result.params``.
     undetermined : tuple of str
-        Names (``<effect>.<param>@<sensor>``) of the parameters whose posterior sd stays
-        above :data:`UNDETERMINED_RATIO` times their prior's.
+        Names (``<effect>.<param>@<sensor>``) of the sensor-map parameters whose posterior sd
+        stays above :data:`UNDETERMINED_RATIO` times the prior sd of their kind.
     determined : tuple of str
         The names of the other parameters.
     heading : list of dict
         Per sensor: :func:`heading_error` at the site's H and Z.
     h_nt, z_nt : numpy.ndarray
         (S,) horizontal and vertical field used for the heading error, nT.
+    residual_correlation : numpy.ndarray
+        (S,) lag-1 correlation of each sensor's scalar residual; the covariance is widened
+        by (1 + rho) / (1 - rho) for it (:func:`_inflate_for_correlation`).
 
     """
 
@@ -122,6 +129,7 @@ class PlanarResult:
     heading: list
     h_nt: np.ndarray
     z_nt: np.ndarray
+    residual_correlation: np.ndarray
 
 
 def turn_axis(m):
@@ -209,19 +217,31 @@ def fit_planar(data, model, field_nt, *, prior_params=None, inclination_deg=None
                          f'{model.n_params}: give the previous calibration of the same model')
     info = model.param_info()
     f0 = float(np.mean(field_nt))
-    sd = np.array([PRIOR_SD['offset'] * f0 if info[i][3] == 'nT' else
-                   PRIOR_SD['angle'] if info[i][3] == 'rad' else PRIOR_SD['scale']
-                   for i in held])
-    prior_list = [(i, float(p_prior[i]), float(s)) for i, s in zip(held, sd)]
+    kind_sd = np.array([PRIOR_SD['offset'] * f0 if unit == 'nT' else
+                        PRIOR_SD['angle'] if unit == 'rad' else PRIOR_SD['scale']
+                        for _, _, _, unit in info])
+    prior_list = [(i, float(p_prior[i]), float(kind_sd[i])) for i in held]
     init = fit_kwargs.pop('init', None)
+    # what the turn leaves open is held by priors alone: a long, flat valley whose floor
+    # the optimiser approaches in ever smaller steps; chi-square to 0.01 (a hundredth of a
+    # standard deviation along the valley) is the optimum for every purpose here
+    fit_kwargs.setdefault('max_nfev', 1000)
+    fit_kwargs.setdefault('ftol', 0.01 / max(1, data.n_samples * data.n_sensors))
     if init is None:
         init = _planar_start(data, model, field_nt, p_prior, held, axes)
     result = fit(data, model, field_nt=field_nt, extra_priors=prior_list, init=init,
                  check_identifiability=False, **fit_kwargs)
-    open_ = {i for i, s in zip(held, sd) if result.stderr[i] > UNDETERMINED_RATIO * s}
-    undetermined = tuple(n for i, n in zip(held, names) if i in open_)
-    determined = tuple(f'{info[k][1]}.{info[k][2]}@{info[k][0]}'
-                       for k in range(model.n_params) if k not in open_ and info[k][0])
+    result, rho = _inflate_for_correlation(result)
+    # held or not, a parameter known no better than half a prior's width of its kind is
+    # undetermined (a level turn's in-plane offsets: only their sum with the out-of-plane
+    # angles times Z is seen; see effective offsets in planar_summary)
+    open_ = {i for i in range(model.n_params)
+             if info[i][0] and info[i][1] in _KINDS and
+             not result.stderr[i] <= UNDETERMINED_RATIO * kind_sd[i]}
+    label = [f'{lab}.{nm}@{j}' for j, lab, nm, _ in info]
+    undetermined = tuple(label[k] for k in sorted(open_))
+    determined = tuple(label[k] for k in range(model.n_params)
+                       if k not in open_ and info[k][0])
     h, z, heading = [], [], []
     for j in range(1, data.n_sensors + 1):
         hj, zj = _field_split(result, j, axes[j - 1], inclination_deg)
@@ -230,7 +250,36 @@ def fit_planar(data, model, field_nt, *, prior_params=None, inclination_deg=None
         heading.append(heading_error(result, j, axes[j - 1], axis_index[j - 1], hj, zj))
     return PlanarResult(result=result, axis=np.array(axes), axis_index=tuple(axis_index),
                         held=tuple(held), undetermined=undetermined, determined=determined,
-                        heading=heading, h_nt=np.array(h), z_nt=np.array(z))
+                        heading=heading, h_nt=np.array(h), z_nt=np.array(z),
+                        residual_correlation=rho)
+
+
+def _inflate_for_correlation(result):
+    """
+    The fit with its covariance widened for serially correlated residuals, and the (S,) rho.
+
+    The fit's covariance assumes independent residuals.  A turn is one continuous
+    trajectory, and what the model leaves (a hand's wobble, the sensor's own dynamics) is
+    correlated from one sample to the next: with a lag-1 correlation rho of the scalar
+    residual, the variance of a least-squares estimate grows by about (1 + rho) / (1 - rho)
+    (the AR(1) variance inflation, Bartlett 1946).  Each sensor's block is widened by it
+    (never narrowed).  On the real HMC5883L turn rho = 0.28: a factor 1.33 in the standard
+    uncertainties, without which its two halves' headings disagreed by 1.2 x (RMS) the
+    stated error.
+    """
+    from dataclasses import replace
+    model = result.model
+    owner = np.array([s for s, *_ in model.param_info()])
+    scale = np.ones(model.n_params)
+    rho = np.zeros(model.n_sensors)
+    for j in range(1, model.n_sensors + 1):
+        r = result.scalar_residual_nt[j - 1]
+        if len(r) > 3 and np.std(r) > 0:
+            rho[j - 1] = float(np.corrcoef(r[:-1], r[1:])[0, 1])
+        c = min(max(rho[j - 1], 0.0), 0.99)
+        scale[owner == j] = np.sqrt((1 + c) / (1 - c))
+    cov = result.covariance * np.outer(scale, scale)
+    return replace(result, covariance=cov, stderr=result.stderr * scale), rho
 
 
 def _planar_start(data, model, field_nt, p_prior, held, axes):
@@ -367,6 +416,9 @@ def planar_summary(pr):
         if None not in off:
             entry['offset_nt'] = [float(r.params[i]) for i in off]
             entry['offset_stderr_nt'] = [float(r.stderr[i]) for i in off]
+        eff, eff_sd = effective_offset(r, j, pr.axis[j - 1], k, pr.z_nt[j - 1])
+        entry['effective_offset_nt'] = eff.tolist()
+        entry['effective_offset_stderr_nt'] = eff_sd.tolist()
         ku, kv = (index('scale', 'k' + 'xyz'[a]) for a in plane)
         if ku is not None and kv is not None:
             ratio = r.params[kv] / r.params[ku]
@@ -384,7 +436,38 @@ def planar_summary(pr):
         out['heading_error_rms_deg'][str(j)] = pr.heading[j - 1]['rms_deg']
         out['field_split_nt'][str(j)] = {'horizontal': float(pr.h_nt[j - 1]),
                                          'vertical': float(pr.z_nt[j - 1])}
+        out.setdefault('residual_lag1_correlation', {})[str(j)] = float(
+            pr.residual_correlation[j - 1])
     return out
+
+
+def effective_offset(result, j, axis, axis_index, z_nt):
+    """
+    ((2,) nT, (2,) nT sd): the centre of the circle a level turn draws in the plane.
+
+    The in-plane readings of sensor j turning level at a site with vertical field ``z_nt``
+    (along ``axis``) are ``A_pp B_p + A_pn Z + o_p``: their centre ``A_pn Z + o_p`` is what
+    a level turn determines even where the offsets ``o_p`` and the out-of-plane angles in
+    ``A_pn`` are not determined one by one.  Its sd from the covariance (central
+    differences).
+    """
+    model, p = result.model, result.params
+    plane = [a for a in range(3) if a != axis_index]
+    ctx = result.contexts[j - 1].subset(np.zeros(1, int))
+
+    def centre(params):
+        b = z_nt * np.asarray(axis, float)[None, :]
+        return model.forward(j, params, b, ctx)[0, plane]
+
+    own = [i for i, (s, *_rest) in enumerate(model.param_info()) if s == j]
+    jac = np.empty((2, len(own)))
+    for col, i in enumerate(own):
+        step = 1e-6 * max(1.0, abs(p[i]))
+        dp = np.zeros_like(p)
+        dp[i] = step
+        jac[:, col] = (centre(p + dp) - centre(p - dp)) / (2 * step)
+    cov = jac @ result.covariance[np.ix_(own, own)] @ jac.T
+    return centre(p), np.sqrt(np.clip(np.diag(cov), 0, None))
 
 
 def planar_notes(pr):
