@@ -284,10 +284,9 @@ def _print_planar(pl):
     for j, e in pl['in_plane'].items():
         axis = ', '.join(f'{x:+.2f}' for x in pl['axis'][j])
         parts = [f'sensor {j}: turn about ({axis}); in the {e["axes"]} plane']
-        if 'offset_nt' in e:
-            parts.append('offsets ' + ', '.join(
-                f'{v:.1f} +- {s:.1f}' for v, s in zip(e['offset_nt'], e['offset_stderr_nt']))
-                + ' nT')
+        parts.append('effective offsets (level) ' + ', '.join(
+            f'{v:.1f} +- {s:.1f}' for v, s in zip(e['effective_offset_nt'],
+                                                  e['effective_offset_stderr_nt'])) + ' nT')
         if 'scale_ratio' in e:
             parts.append(f'scale ratio {e["scale_ratio"]:.4f} +- {e["scale_ratio_stderr"]:.4f}')
         if 'nonorth_rad' in e:
@@ -296,7 +295,8 @@ def _print_planar(pl):
                      f'headings; inclination from {pl["inclination_source"]})')
         print('; '.join(parts))
     if pl['undetermined']:
-        print('undetermined (held at the prior): ' + ', '.join(pl['undetermined']))
+        print('undetermined (known no better than half the prior\'s width): '
+              + ', '.join(pl['undetermined']))
 
 
 def _fit_paper_method(args, data):
