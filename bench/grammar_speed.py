@@ -27,10 +27,15 @@ optimiser's tolerance, except drift2 whose composition is centred and scaled dif
     python bench/grammar_speed.py --n 3000 --repeat 2
 """
 import argparse
+import os
+import sys
 import time
 
-from magcal_ros.core.data.simulate import simulate
-from magcal_ros.core.model import fit
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+import common  # noqa: E402
+from magcal_ros.core.data.simulate import simulate  # noqa: E402
+from magcal_ros.core.model import fit  # noqa: E402
 
 PAIRS = [
     ('drift2', 'offset(poly(t, 2))', {'drift2': [0.02, -0.01, 0.01, 1e-5, 0, -1e-5]}),
@@ -57,25 +62,37 @@ def _time(data, formula, repeat):
     return best, cpu, res
 
 
-def main():
-    """Run the pairs and print the table."""
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[1])
+def main(argv=None):
+    """Run the pairs, print the table and write bench/results/grammar_speed.json."""
+    started = time.perf_counter()
+    ap = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     ap.add_argument('--n', type=int, default=10000, help='epochs (default 10 000)')
     ap.add_argument('--repeat', type=int, default=3)
-    args = ap.parse_args()
-    print(f'fit time, 4 sensors x {args.n} epochs over 600 s, best of {args.repeat}')
-    print(f'{"alias":24s} {"composition":44s} {"wall a":>7s} {"wall c":>7s} {"ratio":>6s}'
-          f' {"cpu a":>7s} {"cpu c":>7s} {"ratio":>6s} {"nfev":>7s} {"chi2 a":>9s} {"chi2 c":>9s}')
-    for alias, comp, truth in PAIRS:
+    ap.add_argument('--pairs', type=int, default=len(PAIRS), help='the first K pairs only')
+    common.add_common_args(ap)
+    args = ap.parse_args(argv)
+    rows, results = [], []
+    for alias, comp, truth in PAIRS[:args.pairs]:
         data, _ = simulate(n_samples=args.n, rate_hz=args.n / 600.0, trajectory='smooth',
                            seed=3, truth=truth)
         _time(data, 'base + ' + alias, 1)                   # warm-up of both paths
         _time(data, 'base + ' + comp, 1)
         ta, ca, ra = _time(data, 'base + ' + alias, args.repeat)
         tc, cc, rc = _time(data, 'base + ' + comp, args.repeat)
-        print(f'{alias:24s} {comp:44s} {ta:7.2f} {tc:7.2f} {tc / ta:6.2f} {ca:7.2f} {cc:7.2f}'
-              f' {cc / ca:6.2f} {ra.nfev:>3d}/{rc.nfev:<3d} {ra.chi2:9.1f} {rc.chi2:9.1f}',
-              flush=True)
+        results.append({'alias': alias, 'composition': comp, 'wall_alias_s': ta,
+                        'wall_comp_s': tc, 'cpu_alias_s': ca, 'cpu_comp_s': cc,
+                        'nfev_alias': int(ra.nfev), 'nfev_comp': int(rc.nfev),
+                        'chi2_alias': float(ra.chi2), 'chi2_comp': float(rc.chi2)})
+        rows.append([alias, comp, ta, tc, tc / ta, ca, cc, cc / ca,
+                     f'{ra.nfev}/{rc.nfev}', f'{ra.chi2:.1f}', f'{rc.chi2:.1f}'])
+    tab = common.table(['alias', 'composition', 'wall alias s', 'wall comp s', 'ratio',
+                        'CPU alias s', 'CPU comp s', 'ratio', 'nfev', 'chi2 alias',
+                        'chi2 comp'], rows,
+                       title=f'fit time, 4 sensors x {args.n} epochs over 600 s, best of '
+                             f'{args.repeat}')
+    print(tab)
+    common.write_result('grammar_speed', {'n': args.n, 'repeat': args.repeat}, {
+        'pairs': results}, [tab], args.out_dir, started)
 
 
 if __name__ == '__main__':
