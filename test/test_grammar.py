@@ -384,3 +384,13 @@ def test_one_sample_at_a_time_corrects_as_the_whole_record():
                                 aux={a: v[k:k + 1] for a, v in ctx.aux.items()})
             np.testing.assert_allclose(cal.correct(j, data.raw[j - 1][k:k + 1], one),
                                        whole[k:k + 1], rtol=0, atol=1e-9)
+
+
+def test_node_model_parameter_takes_formula_terms():
+    """The calibration node's ``model`` (a list of terms) is checked by the same parser."""
+    from magcal_ros.ros.params import model_check
+    check = model_check(4)
+    assert check(['base', 'offset(s(t, k=6))@2', 'field(s(t, k=8))', 'drop(120, 160)']) is None
+    assert check(['base + offset(window(120, 160))@alike']) is None
+    msg = check(['base', 'offset(s(t, k=60))@2'])
+    assert 'basis size' in msg and '3..20' in msg, msg
