@@ -60,6 +60,7 @@ FORMULAS = {
     'base + offset(cc(aux_a, k=1, period=360) * temperature)@{2}':
         'base + offset(cc(aux_a, k=1, period=360) * temperature)@2',
     'base + offset(1)@alike + field(temperature)': 'base + offset(1)@alike + field(temperature)',
+    'base + offset(sin(0.050, refine=true))@3': 'base + offset(sin(0.05, refine=true))@3',
 }
 
 
@@ -109,6 +110,7 @@ BAD = {
     'base + drop(1, 2)@2': ['drop leaves samples out for every sensor'],
     'base + offset(poly(t, 9))': ['poly degree', '1..4'],
     'base + offset(sin(-1))': ['sin frequency must be positive'],
+    'base + offset(sin(1, refine=maybe))': ['true or false'],
     'base + offset(window(5, 1))': ['the end must follow the start'],
     '': ['empty model'],
 }
