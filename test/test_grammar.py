@@ -152,7 +152,13 @@ def test_old_calibration_files_load_and_correct_as_written():
 
 
 def test_old_tokens_fit_to_the_same_numbers_as_written():
-    """The old specs refitted give the parameters the old code wrote (to 1e-6 relative)."""
+    """
+    The old specs refitted give the parameters the old code wrote, to 1e-4 standard error.
+
+    The same maximum of the likelihood: what may differ is where the optimiser stops, which
+    moves with its start (the noise estimate's constant 1.4826 became 1/Phi^-1(3/4) after
+    the files were written: 1.8e-6 nT on an offset of standard error 0.2 nT, 1e-5 se).
+    """
     data = read_csv(LEGACY / 'data.csv')
     for name in ('temperature', 'step_periodic', 'aux'):
         doc = yaml.safe_load((LEGACY / f'{name}.yaml').read_text())
@@ -160,7 +166,9 @@ def test_old_tokens_fit_to_the_same_numbers_as_written():
                   check_identifiability=False)
         old = [e['params'][k]['value'] for s in doc['sensors'] for e in s['effects']
                for k in e['params']]
-        np.testing.assert_allclose(res.params, old, rtol=1e-6, atol=1e-6, err_msg=name)
+        se = [e['params'][k]['stderr'] for s in doc['sensors'] for e in s['effects']
+              for k in e['params']]
+        assert np.all(np.abs(res.params - old) <= 1e-4 * np.array(se)), name
 
 
 def _ctx(n=50):
