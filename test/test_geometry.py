@@ -126,3 +126,31 @@ def test_simulator_places_any_number_of_sensors():
         np.testing.assert_allclose(b[4, k] - b[0, k], gb @ (np.array(CUBE[4]) - CUBE[0]),
                                    atol=1e-8)
     assert sim.sample(t).raw.shape == (8, 5, 3)
+
+
+def test_pairing_check_of_the_cube_and_off_for_collinear_sensors():
+    from magcal_ros.core.live import LiveCorrector
+    sigma = 3.0
+    model = Model.from_spec('base', 8)
+    cal = Calibration(model, model.default_params(), sigma_nt=np.full(8, sigma))
+    live = LiveCorrector(cal, 8, CUBE)
+    assert live.no_check_reason is None and live.pairing_dof == 3 * 8 - 8
+    g = np.array([[300.0, -250.0, 400.0], [-250.0, -150.0, 200.0], [400.0, 200.0, -150.0]])
+    b0 = np.array([17000.0, -1000.0, 47000.0])
+    rng = np.random.default_rng(4)
+    chi2 = []
+    for _ in range(2000):
+        fields = [b0 + g @ np.array(r) + rng.normal(scale=sigma, size=3) for r in CUBE]
+        chi2.append(live.pairing_chi2(fields))
+    # chi-square with 16 degrees of freedom: mean 16, sd of the mean of 2000 sqrt(32/2000)
+    assert abs(np.mean(chi2) - 16.0) < 4 * np.sqrt(32.0 / 2000)
+    # one sensor one epoch late on a turning array: its field 150 nT off (written here)
+    late = [b0 + g @ np.array(r) for r in CUBE]
+    late[3] = late[3] + np.array([0.0, 150.0, 0.0])
+    assert live.pairing_chi2(late) > live.pairing_threshold
+    # a vertical gradiometer: no tensor, so no set check, and it says so
+    cal2 = Calibration(Model.from_spec('base', 2), Model.from_spec('base', 2).default_params(),
+                       sigma_nt=np.full(2, sigma))
+    live2 = LiveCorrector(cal2, 2, [[0, 0, 0.25], [0, 0, -0.25]])
+    assert live2.gradient_op is None and 'no gradient' in live2.no_gradient_reason
+    assert live2.no_check_reason and live2.pairing_dof == 0

@@ -22,7 +22,7 @@ covariance filled in; a calibration file of another geometry refused with both n
 from diagnostic_msgs.msg import DiagnosticArray
 from magcal_ros.core.magnitude import igrf_total
 from magcal_ros.core.simulate import simulate
-from magcal_ros.io.calfile import calibration_to_doc, save_calibration
+from magcal_ros.io.calfile import calibration_to_doc, load_calibration, save_calibration
 from magcal_ros.pipeline import cross_geometry
 from magcal_ros.ros.calibration_node import CalibrationNode
 from magcal_ros.ros.conversions import field_nt_to_msg, msg_to_covariance_nt2, msg_to_field_nt
@@ -86,6 +86,9 @@ def test_imu_topic_calibrated_with_igrf_and_corrected_in_its_frame(
     assert ref['kind'] == 'igrf' and ref['date'] == SITE['site_date']
     assert ref['magnitude_nt'] == pytest.approx(f_igrf, rel=1e-12)
     assert f'field magnitude {f_igrf:.1f} nT (igrf)' in lines
+    _, doc = load_calibration(cal_file)
+    assert doc['provenance']['field_source'] == 'igrf'
+    assert doc['field_reference']['lat_deg'] == SITE['site_latitude_deg']
     # the fit at the noise: RMS over 1000 epochs scatters by 1/sqrt(2000) ~ 2 %; 4 of it
     assert abs(out['scalar_rms_after_nt']['1'] / NOISE_NT - 1.0) < 4.0 / np.sqrt(1000)
 

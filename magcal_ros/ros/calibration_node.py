@@ -726,6 +726,8 @@ class CalibrationNode(Node):
             reason = f'the fit did not converge ({run.result.message})'
             return False, f'not calibrated: {reason}; previous calibration stays active', {
                 'reason': reason, 'sets': n_sets, 'model': list(s.model), 'converged': False}
+        # where the magnitude came from, also in the provenance (field_reference has the rest)
+        run.doc['provenance']['field_source'] = s.field_source
         os.makedirs(os.path.dirname(os.path.abspath(s.calibration_file)), exist_ok=True)
         try:
             save_calibration(s.calibration_file, run.doc, history=s.history)
