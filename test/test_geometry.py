@@ -13,11 +13,11 @@
 # limitations under the License.
 
 """Array geometry from parameters, the tensor of any geometry, field magnitude of a site."""
-from magcal_ros.core.live import calibration_covariance_nt2, ResidualMonitor
-from magcal_ros.core.magnitude import site_field_reference
+from magcal_ros.core.live.corrector import calibration_covariance_nt2, ResidualMonitor
+from magcal_ros.core.data.magnitude import site_field_reference
 from magcal_ros.core.model import Calibration, Model
-from magcal_ros.core.simulate import Simulator
-from magcal_ros.core.tensor import cross_positions, tensor_lstsq
+from magcal_ros.core.data.simulate import Simulator
+from magcal_ros.core.geometry.tensor import cross_positions, tensor_lstsq
 from magcal_ros.pipeline import array_geometry, geometry_mismatch, tensor_undetermined
 import numpy as np
 import pytest
@@ -129,7 +129,7 @@ def test_simulator_places_any_number_of_sensors():
 
 
 def test_pairing_check_of_the_cube_and_off_for_collinear_sensors():
-    from magcal_ros.core.live import LiveCorrector
+    from magcal_ros.core.live.corrector import LiveCorrector
     sigma = 3.0
     model = Model.from_spec('base', 8)
     cal = Calibration(model, model.default_params(), sigma_nt=np.full(8, sigma))

@@ -34,7 +34,7 @@ import json
 import pathlib
 import re
 
-from magcal_ros.core.tensor import cross_positions, tensor_noise_floor
+from magcal_ros.core.geometry.tensor import cross_positions, tensor_noise_floor
 from magcal_ros.io.calfile import load_calibration
 from magcal_ros.ros.conversions import msg_to_field_nt
 import numpy as np

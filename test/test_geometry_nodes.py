@@ -20,8 +20,8 @@ magnitude of the site (``field_source: igrf``), corrected in the IMU's own frame
 covariance filled in; a calibration file of another geometry refused with both named.
 """
 from diagnostic_msgs.msg import DiagnosticArray
-from magcal_ros.core.magnitude import igrf_total
-from magcal_ros.core.simulate import simulate
+from magcal_ros.core.data.magnitude import igrf_total
+from magcal_ros.core.data.simulate import simulate
 from magcal_ros.io.calfile import calibration_to_doc, load_calibration, save_calibration
 from magcal_ros.pipeline import cross_geometry
 from magcal_ros.ros.calibration_node import CalibrationNode
