@@ -13,11 +13,11 @@
 # limitations under the License.
 
 """Array geometry from parameters, the tensor of any geometry, field magnitude of a site."""
-from magcal_ros.core.live.corrector import calibration_covariance_nt2, ResidualMonitor
 from magcal_ros.core.data.magnitude import site_field_reference
-from magcal_ros.core.model import Calibration, Model
 from magcal_ros.core.data.simulate import Simulator
 from magcal_ros.core.geometry.tensor import cross_positions, tensor_lstsq
+from magcal_ros.core.live.corrector import calibration_covariance_nt2, ResidualMonitor
+from magcal_ros.core.model import Calibration, Model
 from magcal_ros.pipeline import array_geometry, geometry_mismatch, tensor_undetermined
 import numpy as np
 import pytest
@@ -154,3 +154,15 @@ def test_pairing_check_of_the_cube_and_off_for_collinear_sensors():
     live2 = LiveCorrector(cal2, 2, [[0, 0, 0.25], [0, 0, -0.25]])
     assert live2.gradient_op is None and 'no gradient' in live2.no_gradient_reason
     assert live2.no_check_reason and live2.pairing_dof == 0
+
+
+def test_simulator_command_line_takes_positions(capsys):
+    from magcal_ros.sim import devices
+    st = devices.resolve_settings(['--sensors', '2', '--sensor-positions-m',
+                                   '0,0,0.25,0,0,-0.25', '--smooth-period-s', '10'])
+    assert st.sensor_positions_m == [0.0, 0.0, 0.25, 0.0, 0.0, -0.25]
+    assert st.sensors == 2 and st.smooth_period_s == 10.0
+    with pytest.raises(SystemExit) as exit_:
+        devices.resolve_settings(['--sensors', '3', '--sensor-positions-m', '0,0,0.25'])
+    assert exit_.value.code == 2
+    assert '9 numbers, got 3' in capsys.readouterr().err

@@ -544,6 +544,7 @@ class CalibrationNode(Node):
                                'quaternion (orientation_covariance[0] = -1, NaN or |q| != 1)')
         out['ready'] = self._collecting and not missing
         out.update({'model': list(s.model), 'field_nt': s.field_nt,
+                    'field_source': s.field_source,
                     'max_samples': s.max_samples, 'coverage_eigenvalues': eigenvalues,
                     'incomplete_sets_dropped': dropped, 'out_of_order_dropped': out_of_order,
                     'stream_realignments': realigned,
