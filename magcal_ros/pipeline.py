@@ -280,7 +280,8 @@ def calibrate(data, model='base', field_nt=None, geometry=None, field_reference=
 
     """
     run = _calibrate(data, model, field_nt, geometry, field_reference, **fit_kwargs)
-    if not exclude_outliers or fit_kwargs.get('robust') or fit_kwargs.get('heading_unknown'):
+    if (not exclude_outliers or fit_kwargs.get('robust') or fit_kwargs.get('heading_unknown')
+            or fit_kwargs.get('planar') is not None):
         return run
     if not [w for w in run.summary['warnings'] if w['kind'] == 'missing_effect']:
         run.summary['outlier_sets_excluded'] = 0

@@ -250,3 +250,16 @@ def test_real_turn_wobble_does_not_leak_into_the_axis_ratio(real_turn):
     kx, ky = full.params[:2]
     assert abs(ky / kx - 1.062) < 0.002
     assert abs(e['scale_ratio'] - ky / kx) < 4 * e['scale_ratio_stderr']
+
+
+def test_swept_angle_counts_turns_and_not_noise():
+    t, raw, heading = robot_turn(wobble_deg=1.0)
+    # the angle about the circle's centre is not the heading (the sensor's scale and angle
+    # make it an ellipse, the wobble tilts it): a few degrees over whole turns, up to 9 deg
+    # on a half turn (the circle fitted to half an ellipse): enough for counting turns
+    assert pl.swept_angle(raw) == pytest.approx(heading[-1] - heading[0], abs=0.06)
+    quarter = len(t) // 4
+    assert pl.swept_angle(raw[:quarter]) == pytest.approx(heading[quarter - 1], abs=0.15)
+    rng = np.random.default_rng(3)
+    still = raw[0] + rng.normal(0, 3.0, (400, 3))          # a robot that does not move
+    assert pl.swept_angle(still) == 0.0

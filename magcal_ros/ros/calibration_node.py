@@ -64,6 +64,7 @@ import threading
 import time
 
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+from geometry_msgs.msg import Twist
 from magcal_ros.core.geometry.attitude import UNIT_TOLERANCE
 from magcal_ros.core.live.consistency import GROSS_FRACTION, resync
 from magcal_ros.core.live.corrector import (LiveCorrector, MissingSignal, RESIDUAL_WARN_RATIO,
@@ -180,6 +181,8 @@ class CalibrationNode(Node):
         self.add_on_set_parameters_callback(self._on_set_parameters)
         s = prm.calibration_settings(self)
         self._n = s.n_sensors
+        self._active_cal = None                 # the calibration applied now (planar prior)
+        self._turn_stop = threading.Event()     # set on shutdown: calibration/turn stops
         self._aux_cols = ['aux_' + a for a in s.aux_topics]
 
         self._lock = threading.Lock()           # buffer, matcher, latest signals, state
@@ -233,7 +236,11 @@ class CalibrationNode(Node):
                                 callback_group=service_group),
             self.create_service(Trigger, 'calibration/reset', self._on_reset,
                                 callback_group=service_group),
+            self.create_service(Trigger, 'calibration/turn', self._on_turn,
+                                callback_group=service_group),
         ]
+        self._cmd_vel = (self.create_publisher(Twist, s.cmd_vel_topic, 10)
+                         if s.cmd_vel_topic else None)
         self._status_timer = self.create_timer(s.status_period_s, self._publish_status)
         self._updater = Updater(self, s.status_period_s)
         self._updater.setHardwareID(self.get_namespace())
@@ -266,8 +273,8 @@ class CalibrationNode(Node):
         date = s.site_date or time.strftime('%Y-%m-%d', time.gmtime())
         lat = None if math.isnan(s.site_latitude_deg) else s.site_latitude_deg
         lon = None if math.isnan(s.site_longitude_deg) else s.site_longitude_deg
-        return site_field_reference(s.field_source, s.field_nt, lat, lon,
-                                    s.site_altitude_m, date, raw)
+        source = 'shape-planar' if s.planar and s.field_source == 'shape' else s.field_source
+        return site_field_reference(source, s.field_nt, lat, lon, s.site_altitude_m, date, raw)
 
     def _describe_setup(self, s):
         """(level, lines) on the geometry and the field reference, said once at start-up."""
@@ -390,6 +397,7 @@ class CalibrationNode(Node):
         # calibration that no longer fits must show in the residual, not be dropped
         live = LiveCorrector(cal, self._n, positions, s.stamp_tolerance_s,
                              check_pairing=False)
+        self._active_cal = cal
         with self._lock:
             live.temp[:] = self._temp
             live.aux.update(self._aux)
@@ -529,10 +537,10 @@ class CalibrationNode(Node):
                 out['coverage'][str(j)] = v['status']
                 eigenvalues[str(j)] = [round(float(x), 4) for x in v['eigenvalues']]
             # the constrained mode is made for a partial or single-axis coverage (as in
-            # model.fit): not a missing item then
-            partial = ({j for j, v in rep['sensors'].items()
-                        if v['status'] in ('partial', 'single axis')}
-                       if s.constrained else set())
+            # model.fit), the planar mode for a single axis: not a missing item then
+            excused = (('partial', 'single axis') if s.constrained else
+                       ('single axis',) if s.planar else ())
+            partial = {j for j, v in rep['sensors'].items() if v['status'] in excused}
             missing.extend(p for p in rep['problems']
                            if not any(p.startswith(f'sensor {j}:') for j in partial))
         if s.imu_topic:
@@ -585,6 +593,84 @@ class CalibrationNode(Node):
                            'sets_dropped': dropped})
         finally:
             self._busy.release()
+
+    async def _on_turn(self, request, response):
+        # as the ROS calibration packages do: turn the robot in place through cmd_vel while
+        # collecting, until sensor 1 has seen turn_count turns or turn_timeout_s passed
+        s = prm.calibration_settings(self)
+        if self._cmd_vel is None:
+            return _reply(response, False, "no cmd_vel_topic: set it (read-only: at start-up) "
+                          'to turn the robot', {'state': self._state})
+        if not self._busy.acquire(blocking=False):
+            return self._reject_busy(response, 'turn')
+        try:
+            dropped = self._clear('collecting')
+            self.get_logger().info(
+                f'turning the robot on {s.cmd_vel_topic}: {s.turn_count:g} turns at '
+                f'{s.turn_speed_rad_s:g} rad/s (at most {s.turn_timeout_s:g} s)')
+            ok, summary, payload = await self._in_worker(self._turn, s)
+            payload['sets_dropped'] = dropped
+            return _reply(response, ok, summary, payload)
+        except Exception as exc:         # noqa: B902 -- a service must answer, never die
+            self.get_logger().error(f'turn failed: {exc!r}')
+            return _reply(response, False, f'turn failed: {exc}; the robot is stopped',
+                          {'error': str(exc), 'type': type(exc).__name__})
+        finally:
+            self._stop_robot()
+            self._busy.release()
+
+    def _turn(self, s):
+        """Drive cmd_vel until the turns are seen or time is up (worker thread)."""
+        from magcal_ros.core.model.planar import swept_angle
+        twist = Twist()
+        twist.angular.z = float(s.turn_speed_rad_s)
+        want = 2 * math.pi * s.turn_count
+        t0 = time.monotonic()
+        swept, last_check = 0.0, t0
+        try:
+            while not self._turn_stop.is_set():
+                now = time.monotonic()
+                if now - t0 > s.turn_timeout_s:
+                    break
+                self._cmd_vel.publish(twist)
+                if now - last_check >= 0.5:
+                    last_check = now
+                    n_sets, data, _ = self._snapshot()
+                    swept = swept_angle(data.raw[0]) if n_sets else 0.0
+                    if swept >= want:
+                        break
+                self._turn_stop.wait(0.1)
+        finally:
+            self._stop_robot()
+        elapsed = time.monotonic() - t0
+        n_sets = self._snapshot()[0]
+        payload = {'turns_asked': s.turn_count, 'turns_seen': swept / (2 * math.pi),
+                   'elapsed_s': round(elapsed, 2), 'sets': n_sets,
+                   'cmd_vel_topic': s.cmd_vel_topic}
+        if swept >= want:
+            return True, (f'turned {swept / (2 * math.pi):.2f} turns in {elapsed:.1f} s '
+                          f'({n_sets} sets collected): the robot is stopped; call '
+                          'calibration/calibrate (parameter planar: true for a robot that '
+                          'only turns about one axis)'), payload
+        why = ('the node is shutting down' if self._turn_stop.is_set() else
+               f'turn_timeout_s ({s.turn_timeout_s:g} s) passed')
+        return False, (f'turn incomplete: sensor 1 saw {swept / (2 * math.pi):.2f} of '
+                       f'{s.turn_count:g} turns when {why}; the robot is stopped (does the '
+                       f'base listen on {s.cmd_vel_topic}? wheels slipping?)'), payload
+
+    def _stop_robot(self):
+        """Publish a zero velocity on cmd_vel (after a turn, on error, on shutdown)."""
+        if self._cmd_vel is not None:
+            try:
+                self._cmd_vel.publish(Twist())
+            except Exception:       # noqa: B902 -- the context may be gone at shutdown
+                pass
+
+    def destroy_node(self):
+        """Stop a turn in progress (a zero velocity on cmd_vel), then destroy the node."""
+        self._turn_stop.set()
+        self._stop_robot()
+        return super().destroy_node()
 
     def _on_reset(self, request, response):
         """Forget the collected sets; collection goes on if it was running."""
@@ -711,12 +797,21 @@ class CalibrationNode(Node):
             reason = f'no field magnitude: {exc}'
             return False, f'not calibrated: {reason}; previous calibration stays active', {
                 'reason': reason, 'sets': n_sets}
+        extra = {}
+        if s.planar:
+            # what the turn leaves open is held at the active calibration (same model), else
+            # at an ideal sensor (magcal_ros.core.model.planar)
+            active = getattr(self, '_active_cal', None)
+            prior = (active.params if active is not None
+                     and active.model.spec() == model.spec() else None)
+            extra['planar'] = {'inclination_deg': field_ref.get('inclination_deg'),
+                               'prior_params': prior}
         try:
             run = run_calibration(
                 data, model=model, field_nt=field_nt, geometry=geometry or {},
                 field_reference=field_ref,
                 robust=s.robust, exclude_outliers=s.exclude_outliers,
-                constrained=s.constrained)
+                constrained=s.constrained, **extra)
         except DegenerateDataError as exc:
             return False, (f'not calibrated: {exc}; previous calibration stays active'), {
                 'reason': str(exc), 'sets': n_sets, 'model': list(s.model)}
@@ -789,6 +884,13 @@ class CalibrationNode(Node):
             g = np.array(summ['site_gradient_nt_per_m'])
             lines.append('site gradient (world frame, nT/m): ' + ', '.join(
                 f'{v:.1f}' for v in g[np.triu_indices(3)]) + ' (xx, xy, xz, yy, yz, zz)')
+        if 'planar' in summ:
+            pl = summ['planar']
+            payload.update(planar=pl, undetermined=summ['undetermined'],
+                           heading_error_deg=summ['heading_error_deg'])
+            lines.append(f'planar: heading error {summ["heading_error_deg"]:.2f} deg (1 sd, '
+                         f'level, inclination from {pl["inclination_source"]}); undetermined: '
+                         + (', '.join(summ['undetermined']) or 'none'))
         if s.robust:
             lines.append(f'robust fit: samples down-weighted as outliers per sensor: '
                          f'{_fmt_per_sensor(summ["downweighted"], "{:d}")} of {n_sets}')

@@ -353,6 +353,11 @@ class CalibrationSettings:
     site_longitude_deg: float = math.nan
     site_altitude_m: float = 0.0
     site_date: str = ''
+    planar: bool = False
+    cmd_vel_topic: str = '/cmd_vel'
+    turn_speed_rad_s: float = 0.3
+    turn_count: float = 2.0
+    turn_timeout_s: float = 120.0
 
 
 #: declared first: the model check of the other parameters depends on it
@@ -453,6 +458,22 @@ def calibration_specs(n_sensors=4):
                   'ellipsoid for field_source igrf, m', limits=(-1.0e4, 1.0e6)),
         ParamSpec('site_date', '', 'date of the calibration for field_source igrf, YYYY-MM-DD '
                   "('' = the day the calibration is made, UTC)", iso_date),
+        ParamSpec('planar', False, 'a robot that can only turn about one axis: calibrate '
+                  'what the turn determines (in-plane offsets, scale ratio, angle: '
+                  'heading-grade), hold the rest at the previous calibration or an ideal '
+                  'sensor and name it undetermined (docs/planar.md); without it a turn about '
+                  'one axis is refused; no unit'),
+        ParamSpec('cmd_vel_topic', '/cmd_vel', 'geometry_msgs/Twist topic calibration/turn '
+                  'drives the robot with; read-only', optional_topic, read_only=True),
+        ParamSpec('turn_speed_rad_s', 0.3, 'angular speed of calibration/turn about the '
+                  'robot z axis (positive: counter-clockwise seen from above), rad/s',
+                  limits=(-3.0, 3.0)),
+        ParamSpec('turn_count', 2.0, 'turns calibration/turn makes, as seen by sensor 1 (the '
+                  'angle its in-plane reading sweeps); turns', positive('turns'),
+                  limits=(0.25, 20.0)),
+        ParamSpec('turn_timeout_s', 120.0, 'calibration/turn stops the robot after this long '
+                  'even if the turns are not complete, s', positive('s'),
+                  limits=(1.0, 3600.0)),
     ]
 
 
@@ -497,6 +518,11 @@ def calibration_settings(node):
         site_longitude_deg=float(value(node, 'site_longitude_deg')),
         site_altitude_m=float(value(node, 'site_altitude_m')),
         site_date=str(value(node, 'site_date')),
+        planar=bool(value(node, 'planar')),
+        cmd_vel_topic=str(value(node, 'cmd_vel_topic')),
+        turn_speed_rad_s=float(value(node, 'turn_speed_rad_s')),
+        turn_count=float(value(node, 'turn_count')),
+        turn_timeout_s=float(value(node, 'turn_timeout_s')),
     )
 
 

@@ -137,10 +137,17 @@ def site_field_reference(source, field_nt=None, lat_deg=None, lon_deg=None, alt_
         if lat_deg is None or lon_deg is None or not date:
             raise ValueError('field_source igrf needs site_latitude_deg, site_longitude_deg '
                              'and site_date (YYYY-MM-DD)')
-        f = igrf_total(float(lat_deg), float(lon_deg), float(alt_m) / 1000.0, date)
+        f, inc = igrf_field(float(lat_deg), float(lon_deg), float(alt_m) / 1000.0, date)
         return f, {'kind': 'igrf', 'lat_deg': float(lat_deg), 'lon_deg': float(lon_deg),
-                   'alt_km': float(alt_m) / 1000.0, 'date': str(date), 'magnitude_nt': f}
+                   'alt_km': float(alt_m) / 1000.0, 'date': str(date), 'magnitude_nt': f,
+                   'inclination_deg': inc}
     if source == 'shape':
         f = auto_magnitude(raw)
         return f, {'kind': 'auto (mean radius, shape-only)', 'magnitude_nt': f}
+    if source == 'shape-planar':
+        # a turn about one axis: no ellipsoid, a circle and the mean along the axis
+        from magcal_ros.core.model.planar import planar_magnitude, turn_axis
+        f = planar_magnitude(raw, turn_axis(raw))
+        return f, {'kind': 'auto (planar: in-plane radius and mean along the axis, '
+                           'shape-only)', 'magnitude_nt': f}
     raise ValueError(f'field_source must be one of {FIELD_SOURCES}, got {source!r}')

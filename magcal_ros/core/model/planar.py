@@ -66,6 +66,10 @@ MAX_AXIS_OFFSET_DEG = 25.0
 #: 0.02 is too narrow for a consumer sensor (the HMC5883L's y-z angle is 0.084 rad)
 PRIOR_SD = {'offset': 0.05, 'scale': 0.05, 'angle': 0.05}
 
+#: the smallest radius (a fraction of the field) of a circle counted as a turn by
+#: :func:`swept_angle`: 2 % is a cone of a little over 1 deg, far above any sensor's noise
+MIN_TURN_RADIUS = 0.02
+
 #: a parameter is undetermined when its posterior sd exceeds this fraction of its prior sd
 UNDETERMINED_RATIO = 0.5
 
@@ -482,3 +486,34 @@ def planar_notes(pr):
         'offsets, scale ratio and angle are heading-grade for a sensor that turns level at '
         'this site; tilt the robot or turn the sensor about another axis for a full '
         'calibration', 'degenerate')]
+
+
+def swept_angle(m):
+    """
+    Angle (rad, >= 0) a sensor's readings m (N, 3) nT have swept about the turn axis.
+
+    The readings of a turn draw a circle about the offset, not about the origin: the
+    angle is unwrapped about the circle's centre (:func:`circle_centre`) in the plane of the
+    turn (:func:`turn_axis`; the sensor's z axis while the readings are too few to tell),
+    from the first reading to the last.  The node's ``calibration/turn`` stops the robot
+    when this reaches the turns asked for: the turn as the sensor saw it, not as the wheels
+    were told.
+    """
+    m = np.asarray(m, float)
+    if len(m) < 8:
+        return 0.0
+    try:
+        n = turn_axis(m)
+    except PlanarError:
+        n = np.array([0.0, 0.0, 1.0])
+    k = int(np.argmax(np.abs(n)))
+    plane = [a for a in range(3) if a != k]
+    xy = m[:, plane]
+    c = circle_centre(xy)
+    radius = np.linalg.norm(xy - c, axis=1)
+    if np.median(radius) < MIN_TURN_RADIUS * np.median(np.linalg.norm(m, axis=1)):
+        # a sensor that does not turn: its noise scatters about a point, and a circle fitted
+        # to the scatter sweeps any angle
+        return 0.0
+    ang = np.unwrap(np.arctan2(xy[:, 1] - c[1], xy[:, 0] - c[0]))
+    return float(abs(ang[-1] - ang[0]))
