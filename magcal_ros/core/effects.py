@@ -1162,7 +1162,13 @@ def load_plugin(ref):
 
     A module may define ``MAGCAL_EFFECTS = [Cls, ...]`` or call :func:`register_effect`
     itself.  Returns the list of registered names.
+
+    Each class is evaluated once on a context holding only the signals it declares
+    (:func:`magcal_ros.core.effect_safety.probe_effect`) before it is registered: one that
+    reads an undeclared signal, or fails, is refused (ValueError, one line naming the effect
+    and the signal).
     """
+    from magcal_ros.core.effect_safety import probe_effect   # here: it imports this module
     mod_name, _, attr = ref.partition(':')
     try:
         mod = importlib.import_module(mod_name)
@@ -1171,6 +1177,8 @@ def load_plugin(ref):
     classes = [getattr(mod, attr)] if attr else list(getattr(mod, 'MAGCAL_EFFECTS', []))
     names = []
     for cls in classes:
+        if isinstance(cls, type) and issubclass(cls, Effect):
+            probe_effect(cls, ref)
         if _REGISTRY.get(cls.name) is not cls:
             register_effect(cls)
         names.append(cls.name)
