@@ -23,7 +23,7 @@ import os
 import sys
 
 from magcal_ros.core.model import DegenerateDataError
-from magcal_ros.core.notes import format_note
+from magcal_ros.core.model.notes import format_note
 from magcal_ros.units import check_field_units, UNITS_NT
 import numpy as np
 
@@ -117,7 +117,7 @@ def resolve_field(args, data):
 
 def _resolve_field(args, data):
     if getattr(args, 'igrf', None):
-        from magcal_ros.core.magnitude import igrf_total
+        from magcal_ros.core.data.magnitude import igrf_total
         try:
             lat, lon, alt = (float(x) for x in args.igrf[:3])
         except ValueError:
@@ -127,7 +127,7 @@ def _resolve_field(args, data):
                    'date': args.igrf[3], 'magnitude_nt': f}
     if getattr(args, 'field_nt', None) is not None:
         if args.field_nt == 'auto':
-            from magcal_ros.core.magnitude import auto_magnitude
+            from magcal_ros.core.data.magnitude import auto_magnitude
             f = auto_magnitude(data.raw[0])
             return f, {'kind': 'auto (mean radius, shape-only)', 'magnitude_nt': f}
         try:
@@ -162,10 +162,17 @@ def print_json(obj):
 def _parse_truth(items):
     truth = {}
     for item in items or []:
-        token, sep, values = item.partition('=')
+        # the values follow the last '=' outside parentheses: offset(s(t, k=4))@2=1,2,...
+        depth, cut = 0, -1
+        for i, ch in enumerate(item):
+            depth += (ch in '({') - (ch in ')}')
+            if ch == '=' and depth == 0:
+                cut = i
+        token, sep, values = (item[:cut], '=', item[cut + 1:]) if cut >= 0 else (item, '', '')
         if not sep:
-            raise BadInput(f'--truth {item!r}: expected EFFECT=v1,v2,... '
-                           '(e.g. temperature@2=3,-2,1.5,0,0,0)')
+            raise BadInput(f'--truth {item!r}: expected TERM=v1,v2,... '
+                           '(e.g. temperature@2=3,-2,1.5,0,0,0 or '
+                           'offset(window(20, 40))@2=30,0,0)')
         try:
             truth[token.strip()] = [float(v) for v in values.split(',')]
         except ValueError:
@@ -174,13 +181,13 @@ def _parse_truth(items):
 
 
 def cmd_simulate(args):
-    from magcal_ros.core.simulate import simulate
+    from magcal_ros.core.data.simulate import simulate
     from magcal_ros.io.csvio import write_csv
     load_plugins(args)
     truth = _parse_truth(args.truth)
     grad = None
     if args.site_gradient:
-        from magcal_ros.core.effects import symmetric_traceless
+        from magcal_ros.core.geometry.tensor import symmetric_traceless
         try:
             g5 = [float(v) for v in args.site_gradient.split(',')]
         except ValueError:
@@ -263,7 +270,7 @@ def cmd_fit(args):
 
 def _fit_paper_method(args, data):
     """``magcal fit --method sine|reference``: the closed forms of papers 000 and 002."""
-    from magcal_ros.core import paper_methods
+    from magcal_ros.core.papers import paper_methods
     from magcal_ros.io.calfile import calibration_to_doc, save_calibration
     from magcal_ros.pipeline import cross_geometry
     for opt, given in (('--model', args.model != 'base'), ('--robust', args.robust),
@@ -355,7 +362,7 @@ def cmd_rollback(args):
 
 def cmd_check(args):
     """`magcal check CALFILE DATA...`: a calibration against static recordings."""
-    from magcal_ros.core.static_check import check_static
+    from magcal_ros.core.data.static_check import check_static
     from magcal_ros.io import calfile
     try:
         cal, doc = calfile.load_calibration(args.calfile)
@@ -416,8 +423,10 @@ def build_parser():
     s.add_argument('--field-nt', type=float, default=50000.0, help='total field, nT')
     s.add_argument('--seed', type=int, default=0)
     s.add_argument('--model', default='base', help='truth model (default base)')
-    s.add_argument('--truth', action='append', metavar='EFFECT=V1,V2,...',
-                   help='switch on a hidden effect, e.g. temperature@2=3,-2,1.5,0,0,0')
+    s.add_argument('--truth', action='append', metavar='TERM=V1,V2,...',
+                   help='switch on a hidden term with these parameter values (in the order of '
+                   'its parameters, docs/formulas.md), e.g. temperature@2=3,-2,1.5,0,0,0 or '
+                   "'offset(window(20, 40))@2=30,0,0'")
     s.add_argument('--no-aux', action='store_true', help='omit the auxiliary channels')
     s.add_argument('--ideal', action='store_true', help='ideal sensors (no paper 004 errors)')
     s.add_argument('--diurnal-nt', type=float, default=0.0,
