@@ -45,9 +45,8 @@ def test_document_content_and_round_trip(tmp_path, run):
     assert 't0_c' in temp['refs']
     # the derived matrices and their relations (paper 004 eq. 5, 14): A^-1 = R C^-1 with
     # C^-1 upper triangular and R a proper rotation; the offset is the offset parameters
-    a_inv, c_inv, rot = (np.asarray(s2[k]) for k in ('correction_matrix',
-                                                    'intrinsic_correction',
-                                                    'rotation_to_sensor1'))
+    keys = ('correction_matrix', 'intrinsic_correction', 'rotation_to_sensor1')
+    a_inv, c_inv, rot = (np.asarray(s2[k]) for k in keys)
     assert a_inv.shape == c_inv.shape == rot.shape == (3, 3)
     np.testing.assert_allclose(rot @ c_inv, a_inv, atol=1e-12)
     assert np.all(np.tril(c_inv, -1) == 0.0)

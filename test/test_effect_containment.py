@@ -33,11 +33,11 @@ from diagnostic_msgs.msg import DiagnosticStatus
 import faulty_effects
 import injection
 from magcal_ros.core import effects as fx
-from magcal_ros.core.effects.safety import (culprit, EffectError, EffectErrors, probe_context,
-                                           probe_effect)
+from magcal_ros.core.data.simulate import simulate
+from magcal_ros.core.effects.safety import (culprit, EffectError, EffectErrors,
+                                            probe_context, probe_effect)
 from magcal_ros.core.live.corrector import LiveCorrector
 from magcal_ros.core.model import Calibration, Model
-from magcal_ros.core.data.simulate import simulate
 from magcal_ros.io.calfile import calibration_to_doc, save_calibration
 from magcal_ros.pipeline import cross_geometry
 from magcal_ros.ros.calibration_node import CalibrationNode

@@ -217,7 +217,7 @@ _junk = st.one_of(st.none(), st.booleans(), st.integers(-3, 10**6), _text,
 
 @pytest.fixture(scope='module')
 def original(fitted):
-    """The calibration of the ``fitted`` document, loaded once."""
+    """Load the calibration of the ``fitted`` document once."""
     return parse_calibration(dump_calibration(fitted[1]))[0]
 
 
@@ -238,7 +238,7 @@ def _stated(doc):
 
 def assert_loads_what_it_states(cal, doc, original, original_doc):
     """
-    A document that loads is the calibration it states, and the original where it agrees.
+    Assert that a loaded document is the calibration it states (the original where it agrees).
 
     The parameters and the noise are what the document writes (the parameters are the
     source of truth: a changed number is indistinguishable from a hand edit, see
@@ -254,8 +254,8 @@ def assert_loads_what_it_states(cal, doc, original, original_doc):
 
 @settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(data=st.data())
-def test_property_hand_edits_are_refused_or_load_what_the_document_says(fitted, original,
-                                                                          data):
+def test_property_hand_edits_are_refused_or_load_what_the_document_says(
+        fitted, original, data):
     _, doc = fitted
     paths = list(_paths(doc))[1:]
     edited = copy.deepcopy(doc)

@@ -31,8 +31,8 @@ from collections import deque
 
 from magcal_ros.core.data.dataset import Dataset
 from magcal_ros.core.data.noise import noise_floor
-from magcal_ros.core.effects.safety import EffectError
 from magcal_ros.core.effects import raw_rate, SensorContext, SIGNALS
+from magcal_ros.core.effects.safety import EffectError
 from magcal_ros.core.geometry.tensor import tensor_operator
 from magcal_ros.core.live.sync import epoch_times, StampMatcher
 import numpy as np
