@@ -38,7 +38,17 @@ from ros_helpers import spin_until
 def _implementation(name):
     if name == 'shim':
         return diagnostics.FallbackUpdater
-    return pytest.importorskip('diagnostic_updater').Updater
+    # ROS 2's diagnostic_updater (package.xml declares it) has no wheel for this pip-based
+    # ROS install (`pip index versions ros-jazzy-diagnostic-updater`: no matching
+    # distribution, 2026-11); Debian's python3-diagnostic-updater is ROS 1's (rospy), and
+    # building ROS 2's from source needs its repository, which this machine cannot fetch.
+    # With a ROS install that has it (apt ros-jazzy-diagnostic-updater) this runs.
+    return pytest.importorskip(
+        'diagnostic_updater',
+        reason='ROS 2 diagnostic_updater is not installed: no wheel for the pip-based ROS '
+        '(ros-jazzy-diagnostic-updater is not on PyPI; Debian python3-diagnostic-updater is '
+        "ROS 1's); install ros-jazzy-diagnostic-updater from a ROS apt repository to run "
+        'these against it').Updater
 
 
 def _port(stat):

@@ -34,9 +34,11 @@ Topics (relative to the node namespace, default ``/magcal``; docs/design.md §3)
   residual |b_j - mean of the others| (:func:`magcal_ros.ros.conversions.residual_to_msg`;
   ``data[j-1]`` and ``data[S+j-1]`` plot in rqt_plot / PlotJuggler), and on ``/diagnostics``
   their rolling RMS over the noise floor of the data, WARN above
-  :data:`magcal_ros.core.live.corrector.RESIDUAL_WARN_RATIO`: the calibration no longer fits, time
-  to
-  diagnose (:class:`magcal_ros.core.live.corrector.ResidualMonitor`).
+  :data:`magcal_ros.core.live.corrector.RESIDUAL_WARN_RATIO`: the calibration no longer fits,
+  time to diagnose (:class:`magcal_ros.core.live.corrector.ResidualMonitor`); ERROR, naming
+  the effect and counting its errors, when the code of an effect raised (on a live sample: no
+  residual for it; in calibrate or diagnose: that call answers success=false naming the
+  effect), logged once per effect.
 
 Services (std_srvs/srv/Trigger; the response message is a short summary, a newline, then
 one JSON object):
@@ -65,6 +67,7 @@ import time
 
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Twist
+from magcal_ros.core.effects.safety import culprit, EffectError, EffectErrors
 from magcal_ros.core.geometry.attitude import UNIT_TOLERANCE
 from magcal_ros.core.live.consistency import GROSS_FRACTION, resync
 from magcal_ros.core.live.corrector import (LiveCorrector, MissingSignal, RESIDUAL_WARN_RATIO,
@@ -206,6 +209,7 @@ class CalibrationNode(Node):
         self._monitor = None
         self._residual_missing = None
         self._residual_sets = 0                 # residual messages published
+        self._effect_errors = EffectErrors()    # errors of effect code (live, calibrate, ...)
         self._taken = 0                         # raw samples taken (all sensors, any state)
 
         service_group = ReentrantCallbackGroup()
@@ -382,12 +386,44 @@ class CalibrationNode(Node):
         except MissingSignal as exc:
             self._residual_missing = str(exc)
             return
+        except EffectError as exc:
+            # contained: no residual of this sample; the node and the other sensors go on
+            self._effect_error(exc, f'no residual of sensor {j}')
+            return
         self._residual_missing = None
         monitor = self._monitor
         for _, fields in live.sets(j, t, corrected):
             scalar, vector = monitor.add(fields)
             self._residual_pub.publish(residual_to_msg(scalar, vector))
             self._residual_sets += 1
+
+    def _effect_error(self, exc, what):
+        """Count an error of effect code (:class:`EffectError`); log the first per effect."""
+        if self._effect_errors.add(exc, what):
+            self.get_logger().error(f'{exc} ({what}); further errors of it are counted on '
+                                    '/diagnostics, not logged')
+
+    def _named(self, exc, service):
+        """
+        (reason, payload entries) of an exception ending a calibrate/diagnose call.
+
+        An exception raised by the code of an effect names the effect (and is counted like a
+        live one, :meth:`_effect_error`); any other is described as it is.
+        """
+        effect = culprit(exc)
+        if effect is None:
+            return str(exc), {}
+        err = EffectError(exc, effect)
+        self._effect_error(err, f'calibration/{service} answered success=false')
+        return str(err), {'effect': effect}
+
+    def _failed(self, call, service, exc):
+        """Reply (summary, payload) of a calibrate/diagnose call that raised ``exc``."""
+        reason, extra = self._named(exc, service)
+        if not extra:
+            self.get_logger().error(f'{call} failed: {exc!r}')
+        return f'{call} failed: {reason}', {'error': reason, 'type': type(exc).__name__,
+                                            **extra}
 
     def _activate(self, cal, doc):
         """Apply ``cal`` to the incoming data from now on (residual and its diagnostics)."""
@@ -405,6 +441,7 @@ class CalibrationNode(Node):
         f = (doc.get('field_reference') or {}).get('magnitude_nt', s.field_nt)
         self._monitor = ResidualMonitor(self._n, float(f))
         self._residual_missing = None
+        self._effect_errors.clear()               # those of the calibration replaced
         self._live = live
 
     def _temp_cb(self, j):
@@ -477,7 +514,13 @@ class CalibrationNode(Node):
         monitor = self._monitor
         r = monitor.ratios() if monitor is not None else None
         values = [('residual_sets_published', str(self._residual_sets))]
-        if self._live is None:
+        errors = self._effect_errors
+        values += [('effect_errors', str(sum(errors.counts().values())))]
+        values += [(f'effect_errors {k}', str(n)) for k, n in errors.counts().items()]
+        if errors:
+            st.level = DiagnosticStatus.ERROR
+            st.message = f'effect code failed: {errors.summary()}'
+        elif self._live is None:
             st.message = 'no active calibration: no residual (run calibration/calibrate)'
         elif self._residual_missing:
             st.level = DiagnosticStatus.WARN
@@ -763,9 +806,7 @@ class CalibrationNode(Node):
             ok, summary, payload = await self._in_worker(self._calibrate, prev_state)
             return _reply(response, ok, summary, payload)
         except Exception as exc:         # noqa: B902 -- a service must answer, never die
-            self.get_logger().error(f'calibration failed: {exc!r}')
-            return _reply(response, False, f'calibration failed: {exc}',
-                          {'error': str(exc), 'type': type(exc).__name__})
+            return _reply(response, False, *self._failed('calibration', 'calibrate', exc))
         finally:
             with self._lock:
                 # collection goes on (the buffer is kept) if it was running before
@@ -816,8 +857,9 @@ class CalibrationNode(Node):
             return False, (f'not calibrated: {exc}; previous calibration stays active'), {
                 'reason': str(exc), 'sets': n_sets, 'model': list(s.model)}
         except ValueError as exc:
-            return False, f'not calibrated: {exc}; previous calibration stays active', {
-                'reason': str(exc), 'sets': n_sets, 'model': list(s.model)}
+            reason, extra = self._named(exc, 'calibrate')
+            return False, f'not calibrated: {reason}; previous calibration stays active', {
+                'reason': reason, 'sets': n_sets, 'model': list(s.model), **extra}
         solve_s = time.monotonic() - t0
         if not run.result.success:
             # a fit that ran out of iterations is not a calibration: never installed
@@ -919,9 +961,7 @@ class CalibrationNode(Node):
             ok, summary, payload = await self._in_worker(self._diagnose)
             return _reply(response, ok, summary, payload)
         except Exception as exc:         # noqa: B902 -- a service must answer, never die
-            self.get_logger().error(f'diagnosis failed: {exc!r}')
-            return _reply(response, False, f'diagnosis failed: {exc}',
-                          {'error': str(exc), 'type': type(exc).__name__})
+            return _reply(response, False, *self._failed('diagnosis', 'diagnose', exc))
         finally:
             self._busy.release()
 
@@ -943,7 +983,9 @@ class CalibrationNode(Node):
             diag = diagnose(data, model, field_nt=s.field_nt, constrained=s.constrained,
                             baseline_m=s.baseline_m)
         except ValueError as exc:
-            return False, f'not diagnosed: {exc}', {'reason': str(exc), 'sets': n_sets}
+            reason, extra = self._named(exc, 'diagnose')
+            return False, f'not diagnosed: {reason}', {'reason': reason, 'sets': n_sets,
+                                                       **extra}
         ranking = json.loads(diag.to_json())       # non-finite numbers as null
         report = write_report(s.report_dir, data, diagnosis=diag, baseline_m=s.baseline_m)
         ranking['report'] = os.fspath(report)
@@ -979,6 +1021,9 @@ class CalibrationNode(Node):
             if mismatch:
                 raise ValueError(f'{path}: {mismatch}')
             self._activate(cal, doc)
+        except EffectError as exc:
+            self._effect_error(exc, f'the existing calibration {path} was not published')
+            return
         except (CalibrationFileError, OSError, ValueError) as exc:
             self.get_logger().warning(f'existing calibration not published: {exc}')
             return

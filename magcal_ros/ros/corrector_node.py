@@ -37,7 +37,9 @@ Topics (relative to the node namespace, default ``/magcal``; docs/design.md §3)
 - publishes its health on ``/diagnostics``: WARN without a usable calibration (then nothing
   is published), when a calibration was refused (the last good one stays active), while a
   driven effect lacks its live signal, or when more than :data:`PAIRING_WARN_SHARE` of the
-  sets since the last report failed the pairing check.
+  sets since the last report failed the pairing check; ERROR, naming the effect and
+  counting its errors, when the code of an effect of the active calibration raised (that
+  sensor's sample is not published, logged once per effect; the other sensors go on).
 
 The sets of the tensor are paired by epoch (:class:`magcal_ros.core.live.sync.StampMatcher`, the
 offsets voted from the stamps) and checked from the data before they give a tensor
@@ -65,6 +67,7 @@ import os
 import sys
 
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+from magcal_ros.core.effects.safety import EffectError, EffectErrors
 from magcal_ros.core.live.corrector import LiveCorrector, MissingSignal, PAIRING_FALSE_ALARM
 from magcal_ros.io.calfile import CalibrationFileError, load_calibration, parse_calibration
 from magcal_ros.pipeline import array_geometry, geometry_mismatch, tensor_undetermined
@@ -128,6 +131,7 @@ class CorrectorNode(Node):
         self._source = None
         self._refused = None
         self._missing = {}
+        self._effect_errors = EffectErrors()     # of the active calibration's effect code
         self._temp = np.full(self._n, np.nan)
         self._aux = {}
         self._cov_t2 = [None] * self._n          # per sensor (9,) T^2 of the active calibration
@@ -246,9 +250,19 @@ class CorrectorNode(Node):
 
     def _update_site_shift(self):
         live = self._live
-        self._site_shift = (live.site_shift(self._site_attitude)
-                            if self._subtract_site and live is not None else None)
+        try:
+            self._site_shift = (live.site_shift(self._site_attitude)
+                                if self._subtract_site and live is not None else None)
+        except EffectError as exc:
+            self._site_shift = None
+            self._effect_error(exc, 'nothing is subtracted')
         self._update_fast_path()
+
+    def _effect_error(self, exc, what):
+        """Count an error of effect code (:class:`EffectError`); log the first per effect."""
+        if self._effect_errors.add(exc, what):
+            self.get_logger().error(f'{exc} ({what}); further errors of it are counted on '
+                                    '/diagnostics, not logged')
 
     # -- calibrations ----------------------------------------------------------------------
 
@@ -260,6 +274,9 @@ class CorrectorNode(Node):
             live = LiveCorrector(cal, self._n, (doc.get('geometry') or {}).get('positions_m'),
                                  self._tolerance_s, field_nt=(doc.get('field_reference') or {})
                                  .get('magnitude_nt'))
+        except EffectError as exc:
+            self._effect_error(exc, 'the calibration was refused')
+            raise CalibrationFileError(str(exc)) from exc
         except ValueError as exc:
             raise CalibrationFileError(str(exc)) from exc
         live.temp[:] = self._temp
@@ -279,6 +296,7 @@ class CorrectorNode(Node):
         self._source = source
         self._refused = None
         self._missing.clear()
+        self._effect_errors.clear()
         self._follow_temperature(live.needs_temperature)
         self._update_site_shift()
         self.get_logger().info(f'using the calibration from {source} ({self._describe()})')
@@ -402,6 +420,10 @@ class CorrectorNode(Node):
                 except MissingSignal as exc:
                     self._missing[j] = str(exc)
                     return
+                except EffectError as exc:
+                    # contained: this sample is not published, the node and the others go on
+                    self._effect_error(exc, f'sensor {sensor} samples not published')
+                    return
                 if j in self._missing:
                     del self._missing[j]
                 if self._site_shift is not None:
@@ -427,7 +449,8 @@ class CorrectorNode(Node):
         """Return the node's ``diagnostic_msgs/DiagnosticStatus``."""
         st = DiagnosticStatus(name=f'{self.get_name()}: correction',
                               hardware_id=self.get_namespace())
-        problems = []
+        errors = self._effect_errors
+        problems = [f'effect code failed: {errors.summary()}'] if errors else []
         if self._live is None:
             problems.append('no calibration: publishing nothing (run calibration/calibrate or '
                             'set calibration_file)')
@@ -445,7 +468,7 @@ class CorrectorNode(Node):
         if pairing:
             problems.append(pairing)
         if problems:
-            st.level = DiagnosticStatus.WARN
+            st.level = DiagnosticStatus.ERROR if errors else DiagnosticStatus.WARN
             st.message = '; '.join(problems)
         else:
             st.level = DiagnosticStatus.OK
@@ -470,6 +493,8 @@ class CorrectorNode(Node):
                   ('frame_id', self._frame)]
         values += [(f'sensor{j + 1}_corrected_published', str(c))
                    for j, c in enumerate(self._counts)]
+        values += [('effect_errors', str(sum(errors.counts().values())))]
+        values += [(f'effect_errors {k}', str(n)) for k, n in errors.counts().items()]
         st.values = [KeyValue(key=k, value=v) for k, v in values]
         return st
 

@@ -32,6 +32,7 @@ from collections import deque
 from magcal_ros.core.data.dataset import Dataset
 from magcal_ros.core.data.noise import noise_floor
 from magcal_ros.core.effects import raw_rate, SensorContext, SIGNALS
+from magcal_ros.core.effects.safety import EffectError
 from magcal_ros.core.geometry.tensor import tensor_operator
 from magcal_ros.core.live.sync import epoch_times, StampMatcher
 import numpy as np
@@ -142,6 +143,8 @@ class LiveCorrector:
     cal : magcal_ros.core.model.Calibration
     n_sensors : int
         Sensors of the array; a calibration for another count is refused (ValueError).
+        Effect code that raises while the calibration is made ready (a plug-in's matrix)
+        is re-raised as :class:`~magcal_ros.core.effects.safety.EffectError` naming it.
     positions_m : array_like, optional
         (S, 3) sensor positions in the array frame, m (the calibration document's
         ``geometry.positions_m``); without them no gradient is computed
@@ -180,7 +183,11 @@ class LiveCorrector:
                              f'corrector handles {n_sensors} (n_sensors)')
         self.cal = cal
         self.n_sensors = n_sensors
-        self._sensors = [_Sensor(cal, j, field_nt) for j in range(1, n_sensors + 1)]
+        try:
+            # runs the effects' code (their matrices, declarations): a failure names the effect
+            self._sensors = [_Sensor(cal, j, field_nt) for j in range(1, n_sensors + 1)]
+        except Exception as exc:           # noqa: B902 -- effect code may raise anything
+            raise EffectError(exc) from exc
         self.temp = np.full(n_sensors, np.nan)
         self.aux = {}
         self.matcher = StampMatcher(n_sensors, stamp_tolerance_s)
@@ -265,15 +272,19 @@ class LiveCorrector:
 
         The field at sensor j minus the centre field, R^T G_w R r_j (docs/site_gradient.md),
         at the fixed attitude ``quaternion`` (4,) (qw, qx, qy, qz, body-to-world): what a
-        stationary test subtracts to leave the anomaly.  None without a site gradient.
+        stationary test subtracts to leave the anomaly.  None without a site gradient;
+        :class:`~magcal_ros.core.effects.safety.EffectError` if the effect's code raises.
         """
         if self.cal.site_gradient() is None:
             return None
         from magcal_ros.core.geometry.attitude import quaternion_matrices
         ctx = SensorContext(t=np.zeros(1),
                             attitude=quaternion_matrices(np.asarray(quaternion, float)[None]))
-        return np.stack([self.cal.array_shift(j, ctx)[0]
-                         for j in range(1, self.n_sensors + 1)])
+        try:
+            return np.stack([self.cal.array_shift(j, ctx)[0]
+                             for j in range(1, self.n_sensors + 1)])
+        except Exception as exc:           # noqa: B902 -- effect code may raise anything
+            raise EffectError(exc) from exc
 
     def linear(self, j):
         """
@@ -333,6 +344,8 @@ class LiveCorrector:
         MissingSignal
             A driven effect has no live signal yet (temperature, auxiliary channel, or the
             field rate before the stream's period is known).
+        magcal_ros.core.effects.safety.EffectError
+            The code of an effect raised (naming the effect); the sample has no correction.
 
         """
         s = self._sensors[j - 1]
@@ -349,7 +362,10 @@ class LiveCorrector:
         for name in sorted(s.needs):
             if not (name in SIGNALS or name.startswith('aux_')) or not ctx.has(name):
                 raise MissingSignal(_waiting(j, name))
-        return self.cal.correct(j, raw, ctx)
+        try:
+            return self.cal.correct(j, raw, ctx)
+        except Exception as exc:           # noqa: B902 -- effect code may raise anything
+            raise EffectError(exc, where=f'the correction of sensor {j}') from exc
 
     @staticmethod
     def _rate(s):
