@@ -63,7 +63,13 @@ RUN_BY = [
      'driven (colcon build of a copy)'),
     (r'ros2 launch magcal_ros magcal\.launch\.py',
      'test_launch_file.py::test_generate_launch_description', 'driven (launch API)'),
-    (r'ros2 (run (?!.*geometry_)|service call|topic echo /magcal/calibration/status|'
+    (r'magcal fit .*--planar$', 'test_planar_node.py::test_readme_planar_commands',
+     'as written'),
+    (r'ros2 run magcal_ros \w+ --ros-args --params-file config/robot_planar\.yaml$',
+     'test_planar_node.py::test_readme_robot_block_as_written',
+     'as written (console scripts, a namespace of its own)'),
+    (r'ros2 (run (?!.*(geometry_|robot_planar))|service call|'
+     r'topic echo /magcal/calibration/status|'
      r'param set)|'
      r'ros2 topic echo /magcal/gradient$',
      'test_ros_user.py::test_readme_ros_commands_work_with_defaults', 'driven (rclpy)'),
