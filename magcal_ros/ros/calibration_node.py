@@ -70,6 +70,7 @@ from magcal_ros.core.live import (LiveCorrector, MissingSignal, RESIDUAL_WARN_RA
                                   ResidualMonitor, SampleBuffer)
 from magcal_ros.core.model import DegenerateDataError, Model
 from magcal_ros.core.notes import format_note
+from magcal_ros.core.readings import leave_out_unphysical
 from magcal_ros.core.sync import StampMatcher
 from magcal_ros.io.calfile import (CalibrationFileError, dump_calibration, load_calibration,
                                    parse_calibration, save_calibration)
@@ -684,6 +685,7 @@ class CalibrationNode(Node):
             'warnings': summ['warnings'],
             'resync': resync_payload,
             'outlier_sets_excluded': summ.get('outlier_sets_excluded', 0),
+            'readings_left_out': summ.get('readings_left_out'),
         }
         after = summ['scalar_rms_nt']
         lines = [f'calibrated {n_sets} sets with model {",".join(s.model)}: total-field RMS '
@@ -762,7 +764,9 @@ class CalibrationNode(Node):
         model = Model.from_spec(list(s.model), self._n)
         data, resync_payload, _ = self._resync(data, epochs, s)
         try:
-            diag = diagnose(data, model, field_nt=s.field_nt, constrained=s.constrained,
+            # readings no field produces are named and left out, as in calibrate
+            data, field_nt, screen = leave_out_unphysical(data, s.field_nt)
+            diag = diagnose(data, model, field_nt=field_nt, constrained=s.constrained,
                             baseline_m=s.baseline_m)
         except ValueError as exc:
             return False, f'not diagnosed: {exc}', {'reason': str(exc), 'sets': n_sets}
@@ -770,6 +774,7 @@ class CalibrationNode(Node):
         report = write_report(s.report_dir, data, diagnosis=diag, baseline_m=s.baseline_m)
         ranking['report'] = os.fspath(report)
         ranking['resync'] = resync_payload
+        ranking['readings_left_out'] = screen.to_dict()
         verdict = ranking.get('verdict') or {}
         if verdict.get('effect', 'none') == 'none':
             head = (f'nothing missing: model {",".join(ranking["model"])} explains the data '
@@ -782,6 +787,7 @@ class CalibrationNode(Node):
                 f'{f["kind"]}' + (f' (add {f["token"]})' if f.get('token') else '')
                 + ('' if f['sensor'] is None else f' on sensor {f["sensor"]}')
                 for f in ranking['findings'][:4]))
+        lines += [format_note(w) for w in screen.notes()]
         lines.append(f'HTML report: {ranking["report"]}')
         return True, '\n'.join(lines), ranking
 
