@@ -506,6 +506,166 @@ def plot_residual_time(data, result, floor):
     return _arrange(fig, s, 1, top=0.05, hspace=0.12, **margins)
 
 
+def adopted_fit(data, diagnosis, ladder=None):
+    """
+    Return the fit of the model with the verdict's term added, or None without a verdict.
+
+    The ladder's next rung when it added that term, else a refit (the base model plus the
+    verdict token, on the base fit's reference magnitude).  None also when the refit fails
+    (the structure figure then shows the residual without the term).
+    """
+    tok = diagnosis.verdict_token if diagnosis is not None else None
+    if not tok:
+        return None
+    if ladder is not None and len(ladder.steps) > 1 and ladder.steps[1].added == tok:
+        return ladder.steps[1].result
+    from magcal_ros.core.model import fit, Model
+    base = diagnosis.result
+    try:
+        model = Model.from_spec(list(base.model.spec()) + [tok], data.n_sensors)
+        return fit(data, model, field_nt=base.field_magnitude_nt, on_degenerate='flag',
+                   check_identifiability=False, covariance=False)
+    except (ValueError, np.linalg.LinAlgError):
+        return None
+
+
+def verdict_driver(data, token, j, term=None):
+    """
+    Return what the verdict's term follows on sensor j: (name, axis label, (N,) values).
+
+    A channel named in the token (the sensor's temperature, an auxiliary column), the phase
+    of a periodic term, |d raw / dt| for the field rate, the raw component a direction term
+    (nonlinearity, soft iron) varies with most (``term``: its (N,) scalar fit), else time.
+    """
+    t = data.t - data.t[0]
+    if not token:
+        return 'time', 'time since start (s)', t
+    if 'temperature' in token and data.temp is not None:
+        return 'temperature', f'sensor {j} temperature (degC)', data.temp[j - 1]
+    for name in sorted(data.aux or {}, key=len, reverse=True):
+        if name in token:
+            return name, f'{name} (channel unit)', data.aux[name]
+    m = re.search(r'periodic\(([0-9.eE+-]+)', token)
+    if m:
+        period = 1.0 / float(m.group(1))
+        return 'phase', f'phase of the {period:.4g} s period (cycles)', (t / period) % 1.0
+    if 'field_rate' in token:
+        rate = data.context(j).raw_rate
+        if rate is not None:
+            return 'field rate', '|d raw / dt| (nT/s)', np.linalg.norm(rate, axis=1)
+    if any(e in token for e in ('nonlinearity', 'soft_iron')):
+        raw = data.raw[j - 1]
+        k = 0
+        if term is not None and np.std(term) > 0:
+            k = int(np.argmax([abs(np.corrcoef(raw[:, c], term)[0, 1]) for c in range(3)]))
+        return f'raw {"xyz"[k]}', f'raw {"xyz"[k]} reading (nT)', raw[:, k]
+    return 'time', 'time since start (s)', t
+
+
+def plot_structure(data, result, floor, diagnosis=None, adopted=None, findings=None):
+    """
+    Draw the residual per sensor, scalar and vector, over time and against the driver.
+
+    One row per sensor: the scalar residual |corrected| - |B| over time, the vector residual
+    (sensor j - sensor 1, x y z) over time, and the scalar residual against what the verdict
+    follows (:func:`verdict_driver`; without a verdict, the channel of the largest finding,
+    if it names one).  Over each, in black/red, the adopted term's fit: what adding the
+    verdict changes in that residual (``result`` minus ``adopted``), so the term is seen
+    against the structure it is meant to take out.  The noise floor is dashed.
+    """
+    s = data.n_sensors
+    token = diagnosis.verdict_token if diagnosis is not None else None
+    chan = None
+    if not token and findings is not None:
+        chan = next((f.channel for f in findings.items if f.channel), None)
+    cols = 3 if (token or chan) else 2
+    fig = _figure(4.6 * cols, 2.3 * s + 0.9)
+    t = data.t - data.t[0]
+    margins = {'left': 0.9, 'wspace': 0.9}
+    px = _columns(fig, cols, **margins)
+    axes = fig.subplots(s, cols, squeeze=False)
+    ratio = {j: v / floor.per_sensor_nt[j - 1] for j, v in result.scalar_rms_nt.items()}
+    for j in range(1, s + 1):
+        scalar = result.scalar_residual_nt[j - 1]
+        term = None if adopted is None else scalar - adopted.scalar_residual_nt[j - 1]
+        ax = axes[j - 1, 0]
+        idx = _scatter_idx(len(t), scalar, columns=px)
+        ax.plot(t[idx], scalar[idx], '.', ms=1.2, color='0.55', label='scalar residual')
+        if term is not None:
+            e = _envelope(term, px)
+            ax.plot(t[e], term[e], '-', lw=1.0, color='tab:red',
+                    label=f'fit of {token} (what it takes out)')
+        _floor_lines(ax, floor.per_sensor_nt[j - 1])
+        after = ('' if adopted is None else
+                 f' -> {adopted.scalar_rms_nt[j]:.2f} nT with {token}')
+        _title(ax, f'sensor {j}: scalar RMS {result.scalar_rms_nt[j]:.2f} nT '
+               f'({ratio[j]:.2f} x floor){after}', fontsize=8, loc='left')
+        ax.set_ylabel('scalar (nT)')
+        ax.set_xlabel('time since start (s)')
+        ax = axes[j - 1, 1]
+        if j == 1:
+            ax.text(0.5, 0.5, 'sensor 1 defines the array frame:\nthe vector residuals of the '
+                    'others are taken against it', ha='center', va='center', fontsize=8,
+                    transform=ax.transAxes)
+            ax.set_axis_off()
+        else:
+            vec = result.vector_residual_nt[j - 1]
+            for c in range(3):
+                _band(ax, t, vec[:, c], px, color=COMPONENT_COLOURS[c], alpha=0.45,
+                      label=f'vector {"xyz"[c]} (sensor j - sensor 1)')
+            if adopted is not None:
+                vt = vec - adopted.vector_residual_nt[j - 1]
+                e = _envelope(vt, px)
+                for c in range(3):
+                    ax.plot(t[e], vt[e, c], '-', lw=0.9, color='k',
+                            label='fit of the term, x y z' if c == 0 else None)
+            _floor_lines(ax, floor.vector_floor_nt(j))
+            vr = result.vector_rms_nt.get(j, float('nan'))
+            _title(ax, f'sensor {j} - sensor 1: vector RMS {vr:.2f} nT', fontsize=8,
+                   loc='left')
+            ax.set_ylabel('vector (nT)')
+            ax.set_xlabel('time since start (s)')
+        if cols == 3:
+            ax = axes[j - 1, 2]
+            if token:
+                name, xlabel, x = verdict_driver(data, token, j, term)
+            else:
+                name, xlabel = chan, f'{chan} (channel unit)'
+                x = (data.temp[j - 1] if chan == 'temperature' and data.temp is not None
+                     else (data.aux or {}).get(chan))
+            if x is None or not np.isfinite(x).any():
+                ax.text(0.5, 0.5, f'no {name} on sensor {j}', ha='center', va='center',
+                        transform=ax.transAxes)
+                ax.set_axis_off()
+                continue
+            idx = _thin(len(x))
+            ax.plot(x[idx], scalar[idx], '.', ms=1.2, color='0.55')
+            if term is not None:
+                ax.plot(x[idx], term[idx], '.', ms=1.0, color='tab:red')
+            _floor_lines(ax, floor.per_sensor_nt[j - 1])
+            _title(ax, f'sensor {j}: scalar residual vs {name}', fontsize=8, loc='left')
+            ax.set_ylabel('scalar (nT)')
+            ax.set_xlabel(xlabel)
+    handles, labels = [], []
+    for ax in axes.ravel():
+        for h, lab in zip(*ax.get_legend_handles_labels()):
+            if lab not in labels:
+                handles.append(h)
+                labels.append(lab)
+    ncol = max(1, min(len(labels), int(fig.get_figwidth() / 3.2)))
+    fig.legend(handles, labels, loc='lower center', ncol=ncol, fontsize=7, frameon=False,
+               markerscale=3)
+    bottom = 0.55 + 0.2 * int(np.ceil(len(labels) / ncol))
+    head = (f'verdict {token}: its fit (red, black) drawn over the residual it explains'
+            if token and adopted is not None else
+            f'verdict {token} (its fit could not be drawn)' if token else
+            'no verdict: the residual as it is' + (f', against {chan} (a finding names it)'
+                                                    if chan else ''))
+    _suptitle(fig, f'Residual per sensor over time and against the driver; {head} '
+              f'(model {",".join(compact_spec(result.model))})', fontsize=10)
+    return _arrange(fig, s, cols, bottom=bottom, hspace=0.85, **margins)
+
+
 def _driver_panels(data, result, floor, drivers, title, xlabel):
     """
     One panel per (driver, sensor): scalar residual scatter + binned raw residual.
@@ -1144,8 +1304,19 @@ def _implicated(data, diagnosis, ladder, findings):
     return tokens, kinds, channels
 
 
+#: candidates shown in the page's table; the rest are folded away in a <details>
+TOP_CANDIDATES = 10
+
 #: what a figure shows and how to read it, printed under it on the page (view name -> text)
 CAPTIONS = {
+    'structure': 'Each row one sensor.  Left: the scalar residual |corrected| - |B| over time '
+                 '(grey dots) and, in red, what the verdict\'s term takes out of it (the '
+                 'residual without the term minus the residual with it).  Middle: the vector '
+                 'residual against sensor 1 (x y z bands) and the term\'s share (black).  '
+                 'Right: the scalar residual against what the term follows (a channel, the '
+                 'phase of a period, the field rate, a field component), the term in red.  '
+                 'Dashed: the noise floor.  Grey left over around the red is what the term '
+                 'does not explain.',
     'magnitude': 'Measured |raw| (grey) and modelled |A B + o + ...| (blue) magnitude minus '
                  'the reference magnitude |B|, per sensor; each title gives the mean offset '
                  'of the raw readings.  The residual is the small difference between the '
@@ -1220,7 +1391,8 @@ def _plan(data, result, floor, diagnosis, ladder, found, baseline_m, every):
     selected = {
         'residual_temperature': bool(temp_sel),
         'residual_aux': bool(aux_sel),
-        'residual_rate': any('field_rate' in t for t in tokens),
+        'residual_rate': (any('field_rate' in t for t in tokens)
+                          or 'field_rate' in channels),
         'residual_direction': ('direction' in kinds
                                or any(e in t for t in tokens
                                       for e in ('nonlinearity', 'soft_iron'))),
@@ -1228,6 +1400,9 @@ def _plan(data, result, floor, diagnosis, ladder, found, baseline_m, every):
         'residual_lagged': bool(kinds & {'lag', 'channel', 'channel_nonlinear'}),
     }
     views = [
+        ('structure', 'Residual per sensor: over time and against the driver of the verdict',
+         lambda: plot_structure(data, result, floor, diagnosis, adopted_fit(
+             data, diagnosis, ladder), found)),
         ('magnitude', 'Measured vs modelled magnitude', lambda: plot_magnitude(data, result)),
         ('residual_time', 'Residual over time',
          lambda: plot_residual_time(data, result, floor)),
@@ -1348,25 +1523,6 @@ def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseli
     if data.meta.get('synthetic_time'):
         parts.append(f'<p>The data have no time column: the time axis is synthetic, at an '
                      f'assumed {data.meta.get("assumed_rate_hz")} Hz.</p>')
-    if diagnosis is not None:
-        v = diagnosis.verdict_token
-        parts.append(f'<p class="verdict">verdict: <b>{html.escape(v or "none")}</b> — '
-                     f'{html.escape(diagnosis.verdict_reason)}</p>')
-        parts.append('<h2>Candidate effects</h2>'
-                     + _table(candidate_rows(diagnosis), CANDIDATE_HEADER))
-        if diagnosis.not_testable:
-            parts.append('<p>not testable:</p><ul>' + ''.join(
-                f'<li>{html.escape(t)}: {html.escape(r)}</li>'
-                for t, r in diagnosis.not_testable) + '</ul>')
-        parts.append('<h2>Summary</h2><pre>' + html.escape(diagnosis.summary()) + '</pre>')
-    parts.append('<h2>Findings (model-free: what is left)</h2>' + (
-        _table(finding_rows(found), FINDING_HEADER) if found.items
-        else '<p>none: no line, step, lag, trend, attitude pattern, gradient or heavy tail '
-             'above the false-alarm and effect-size thresholds</p>'))
-    if ladder is not None:
-        parts.append('<h2>Error ladder</h2><pre>' + html.escape(ladder.table()) + '</pre>'
-                     + f'<p class="verdict">ladder stopped: {html.escape(ladder.reason)}</p>')
-    parts.append('<h2>Fit</h2><pre>' + html.escape(result.summary()) + '</pre>')
     images, skipped = [], []
     pngs = []
     with matplotlib.rc_context(RC):          # the figures' text measured and drawn alike
@@ -1382,9 +1538,36 @@ def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseli
                    if name in CAPTIONS else '')
         images.append(f'<h2>{html.escape(heading)}</h2>{caption}<img alt="{name}" '
                       f'src="data:image/png;base64,{base64.b64encode(png).decode("ascii")}">')
+    # the structure first: the verdict, the residual it explains, then the evidence
+    if diagnosis is not None:
+        v = diagnosis.verdict_token
+        parts.append(f'<p class="verdict">verdict: <b>{html.escape(v or "none")}</b> — '
+                     f'{html.escape(diagnosis.verdict_reason)}</p>')
+    if images and images[0].split('<img alt="', 1)[1].startswith('structure"'):
+        parts.append(images.pop(0))
+    if diagnosis is not None:
+        rows = candidate_rows(diagnosis)
+        parts.append(f'<h2>Candidate effects: the {min(len(rows), TOP_CANDIDATES)} best</h2>'
+                     + _table(rows[:TOP_CANDIDATES], CANDIDATE_HEADER))
+        if len(rows) > TOP_CANDIDATES:
+            parts.append(f'<details><summary>{len(rows) - TOP_CANDIDATES} more candidates, '
+                         'with less evidence</summary>'
+                         + _table(rows[TOP_CANDIDATES:], CANDIDATE_HEADER) + '</details>')
+        if diagnosis.not_testable:
+            parts.append('<p>not testable:</p><ul>' + ''.join(
+                f'<li>{html.escape(t)}: {html.escape(r)}</li>'
+                for t, r in diagnosis.not_testable) + '</ul>')
+    parts.append('<h2>Findings (model-free: what is left)</h2>' + (
+        _table(finding_rows(found), FINDING_HEADER) if found.items
+        else '<p>none: no line, step, lag, trend, attitude pattern, gradient or heavy tail '
+             'above the false-alarm and effect-size thresholds</p>'))
+    if ladder is not None:
+        parts.append('<h2>Error ladder</h2><pre>' + html.escape(ladder.table()) + '</pre>'
+                     + f'<p class="verdict">ladder stopped: {html.escape(ladder.reason)}</p>')
     if unexplained:
         parts.append('<p class="views">Every view is drawn: the residual is above the noise '
                      'floor and neither a verdict nor a finding names the cause.</p>')
+    parts += images
     if skipped:
         parts.append('<h2>Views not drawn</h2><ul class="omitted">' + ''.join(
             f'<li>{html.escape(heading)}: {html.escape(why)}</li>' for heading, why in skipped)
@@ -1392,7 +1575,11 @@ def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseli
                          '<p>Every view: <code>--figures all</code> (<code>magcal diagnose '
                          '--report</code>, <code>magcal report</code>) or '
                          "<code>write_report(..., figures='all')</code>.</p>"))
-    parts += images
+    if diagnosis is not None:
+        parts.append('<details><summary>Summary (as printed by magcal diagnose)</summary><pre>'
+                     + html.escape(diagnosis.summary()) + '</pre></details>')
+    parts.append('<details><summary>Fit</summary><pre>' + html.escape(result.summary())
+                 + '</pre></details>')
     parts.append('</body></html>')
     index = out / 'index.html'
     index.write_text('\n'.join(parts), encoding='utf-8')
