@@ -32,13 +32,12 @@ backend change, no display needed).  The noise floor is drawn on every residual 
 """
 import base64
 import html
+import io
 import os
 from pathlib import Path
 import re
-import struct
 import textwrap
 import warnings
-import zlib
 
 from magcal_ros.core.diagnose import (AT_FLOOR_RATIO, compact_spec, MIN_DELTA_BIC,
                                       MIN_EXPLAINED, noise_floor_from_data)
@@ -46,10 +45,8 @@ from magcal_ros.core.tensor import cross_positions, tensor_cross, tensor_noise_f
 import matplotlib
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
-from matplotlib.text import Text
 from matplotlib.ticker import (AutoLocator, FuncFormatter, Locator, LogLocator, MaxNLocator,
                                NullLocator)
-from matplotlib.transforms import ScaledTranslation
 import numpy as np
 
 #: at most this many points per scatter plot (evenly thinned; the extremes are added)
@@ -84,13 +81,15 @@ def _arrange(fig, rows=1, cols=1, left=0.8, right=0.25, bottom=0.55, top=0.3, ws
     """
     Place the grid of axes with fixed margins and gaps (inches) and thin the ticks.
 
-    Matplotlib's constrained layout measured every tick label and title of every axes
-    (1.5-3 s of the 5 s a report took at 4 x 10 000 samples); these figures have known
-    contents, so fixed room is reserved instead: ``left`` for the y tick and axis labels,
+    Matplotlib's constrained layout measures every tick label and title of every axes: the
+    default report's figures took 1.30 x the CPU with it (bench/report_layout.py, 4 x 10 000
+    epochs; BENCHMARKS.md); these figures have known contents, so fixed room is reserved
+    instead: ``left`` for the y tick and axis labels,
     ``bottom`` for the x ones, ``top`` for the axes titles (below the figure title, whose
     wrapped lines are added here), ``right`` for legends placed outside the axes, and
     ``wspace``/``hspace`` between panels.  Linear axes get 3-5 major ticks instead of up to
-    10: each tick is five artists, and they were half the drawing time of an axes.
+    10: each tick is five artists, and they were half the drawing time of an axes.  The axis
+    labels are matplotlib's own (placed at draw by the tick labels' extents).
     """
     w, h = fig.get_size_inches()
     title = fig.get_suptitle()
@@ -110,72 +109,7 @@ def _arrange(fig, rows=1, cols=1, left=0.8, right=0.25, bottom=0.55, top=0.3, ws
                     nbins=3, steps=[1, 2, 5, 10], min_n_ticks=3)))
             elif type(loc) is LogLocator:
                 axis.set_major_locator(_InView(loc))
-    _place_axis_labels(fig)
     return fig
-
-
-def _text_size(fig, renderer, text, prop, memo):
-    """
-    Return the width and height of a tick label as drawn, points.
-
-    One line: the renderer's text metrics, at least as tall and deep as 'lp' (as Text lays
-    a line out).  Several lines: a Text's own extent (the line spacing rule is
-    matplotlib's, and changed in 3.11).  ``memo``: a dict of the sizes measured so far
-    (the same labels recur on every panel).
-    """
-    key = (text, prop)
-    if key not in memo:
-        if '\n' in text:
-            box = Text(0.0, 0.0, text, fontproperties=prop,
-                       figure=fig).get_window_extent(renderer)
-            memo[key] = box.width, box.height
-        else:
-            w, h, d = renderer.get_text_width_height_descent(text, prop, ismath=False)
-            if ('lp', None, prop) not in memo:
-                memo['lp', None, prop] = renderer.get_text_width_height_descent(
-                    'lp', prop, ismath=False)
-            _, lp_h, lp_d = memo['lp', None, prop]
-            memo[key] = w, max(h - d, lp_h - lp_d) + max(d, lp_d)
-    return tuple(v * 72.0 / fig.dpi for v in memo[key])
-
-
-def _place_axis_labels(fig):
-    """
-    Put each x label below its tick labels and each y label left of them, once.
-
-    Matplotlib places an axis label at every draw from the extents of the tick labels,
-    locating, formatting and measuring the ticks a second time (a tenth of the drawing of a
-    panel).  The layout is final here, so the same rule is applied once: the tick mark and
-    its pad, the tallest (x) or widest (y) tick label, then the label's own pad, all from
-    the axis' own settings and the text metrics of the canvas's renderer.
-    """
-    renderer = fig.canvas.get_renderer()
-    memo = {}
-    for ax in fig.axes:
-        if not ax.axison:
-            continue
-        for axis, side in ((ax.xaxis, 'bottom'), (ax.yaxis, 'left')):
-            if axis.get_label_position() != side:
-                continue
-            lo, hi = sorted(axis.get_view_interval())
-            locs = [v for v in axis.get_major_locator()() if lo <= v <= hi]
-            tick = axis.majorTicks[0]
-            pad = 0.0
-            if locs and tick.tick1line.get_visible():
-                pad += tick.get_tick_padding()
-            if locs and tick.label1.get_visible():
-                pad += tick.get_pad()
-                prop = tick.label1.get_fontproperties()
-                labels = axis.get_major_formatter().format_ticks(locs)
-                pad += max((_text_size(fig, renderer, s, prop, memo)[side == 'bottom']
-                            for s in labels if s), default=0.0)
-            pad = (pad + axis.labelpad) / 72.0                          # points -> inches
-            if side == 'bottom':
-                axis.set_label_coords(0.5, 0.0, ax.transAxes + ScaledTranslation(
-                    0.0, -pad, fig.dpi_scale_trans))
-            else:
-                axis.set_label_coords(0.0, 0.5, ax.transAxes + ScaledTranslation(
-                    -pad, 0.0, fig.dpi_scale_trans))
 
 
 def _cell_width(fig, cols=1, left=0.8, right=0.25, wspace=1.0):
@@ -255,46 +189,18 @@ def _title(ax, text, **kwargs):
 
 
 def _png(fig):
-    """Draw the figure on its Agg canvas and return it as PNG bytes (:func:`png_bytes`)."""
+    """
+    Draw the figure on its Agg canvas and return it as PNG bytes.
+
+    Pillow's encoder at zlib level 1 (``compress_level=1``): its default level 6 took 1.7 x
+    as long for 3 % smaller files (bench/report_layout.py).
+    """
+    from PIL import Image
     fig.canvas.draw()
-    return png_bytes(np.asarray(fig.canvas.buffer_rgba())[..., :3])
-
-
-def png_bytes(rgb):
-    """
-    Encode an 8-bit RGB image as PNG (ISO/IEC 15948: IHDR, one IDAT, IEND).
-
-    Every row with the 'Up' filter (type 2, the difference from the row above), deflated at
-    zlib level 1.  Pillow (behind ``savefig``) tries the five filters on every row and took
-    2-2.5 x as long for a file of the same size; a plot is mostly rows that repeat the one
-    above (white space, axes, horizontal lines), which 'Up' turns into zeros.
-
-    Parameters
-    ----------
-    rgb : numpy.ndarray
-        (H, W, 3) uint8 image, rows from the top.
-
-    Returns
-    -------
-    bytes
-        The PNG file.
-
-    """
-    rgb = np.ascontiguousarray(rgb, dtype=np.uint8)
-    h, w, _ = rgb.shape
-    rows = rgb.reshape(h, 3 * w)
-    scan = np.empty((h, 3 * w + 1), np.uint8)
-    scan[:, 0] = 2                                  # filter type of each row: Up
-    scan[:1, 1:] = rows[:1]
-    np.subtract(rows[1:], rows[:-1], out=scan[1:, 1:])     # modulo 256, as the filter is
-
-    def chunk(tag, body):
-        return (struct.pack('>I', len(body)) + tag + body
-                + struct.pack('>I', zlib.crc32(tag + body)))
-    # width, height, bit depth 8, colour type 2 (RGB), deflate, adaptive filtering, no interlace
-    header = struct.pack('>IIBBBBB', w, h, 8, 2, 0, 0, 0)
-    return (b'\x89PNG\r\n\x1a\n' + chunk(b'IHDR', header)
-            + chunk(b'IDAT', zlib.compress(scan, 1)) + chunk(b'IEND', b''))
+    buf = io.BytesIO()
+    Image.fromarray(np.asarray(fig.canvas.buffer_rgba())[..., :3]).save(
+        buf, 'PNG', compress_level=1)
+    return buf.getvalue()
 
 
 def _thin(n):
@@ -659,8 +565,8 @@ def plot_structure(data, result, floor, diagnosis=None, adopted=None, findings=N
     head = (f'verdict {token}: its fit (red, black) drawn over the residual it explains'
             if token and adopted is not None else
             f'verdict {token} (its fit could not be drawn)' if token else
-            'no verdict: the residual as it is' + (f', against {chan} (a finding names it)'
-                                                    if chan else ''))
+            'no verdict: the residual as it is'
+            + (f', against {chan} (a finding names it)' if chan else ''))
     _suptitle(fig, f'Residual per sensor over time and against the driver; {head} '
               f'(model {",".join(compact_spec(result.model))})', fontsize=10)
     return _arrange(fig, s, cols, bottom=bottom, hspace=0.85, **margins)
@@ -1310,9 +1216,9 @@ TOP_CANDIDATES = 10
 #: what a figure shows and how to read it, printed under it on the page (view name -> text)
 CAPTIONS = {
     'structure': 'Each row one sensor.  Left: the scalar residual |corrected| - |B| over time '
-                 '(grey dots) and, in red, what the verdict\'s term takes out of it (the '
+                 "(grey dots) and, in red, what the verdict's term takes out of it (the "
                  'residual without the term minus the residual with it).  Middle: the vector '
-                 'residual against sensor 1 (x y z bands) and the term\'s share (black).  '
+                 "residual against sensor 1 (x y z bands) and the term's share (black).  "
                  'Right: the scalar residual against what the term follows (a channel, the '
                  'phase of a period, the field rate, a field component), the term in red.  '
                  'Dashed: the noise floor.  Grey left over around the red is what the term '
