@@ -22,8 +22,8 @@ sensor 2):
 
 - PNG: Pillow's encoder (``PIL.Image.save``) at zlib level 1, as the report uses it, against
   its default level 6, on the same RGB buffers; the bytes must decode to the same pixels;
-- layout: the report's fixed margins (``report._arrange``) against matplotlib's constrained
-  layout (no fixed margins at all), each figure made and drawn.
+- layout: the report's fixed margins against matplotlib's constrained layout
+  (``report.FIXED_LAYOUT``; the same 3-5 ticks per axis), each figure made and drawn.
 
 Until the commit that made them Pillow's and matplotlib's, the report had its own PNG
 encoder (``png_bytes``) and placed the axis labels itself; BENCHMARKS.md has the run that
@@ -60,7 +60,7 @@ def main(argv=None):
     from magcal_ros import report
     from magcal_ros.core.diagnose import diagnose
     from magcal_ros.core.model import fit
-    from magcal_ros.core.simulate import simulate
+    from magcal_ros.core.data.simulate import simulate
     import numpy as np
     from PIL import Image
 
@@ -68,39 +68,22 @@ def main(argv=None):
                        truth={'temperature@2': [3.0, -2.0, 1.5, 0.0, 0.0, 0.0]})
     base = fit(data, 'base', field_nt=50000.0)
     diag = diagnose(data, base=base, field_nt=50000.0)
-    plan = report._plan(data, base, diag.noise_floor, diag, None, diag.findings, 0.5, False)
-    makers = [(name, make) for name, _, make, _ in plan if make is not None]
-
-    figure = report._figure
-    arrange = report._arrange
-
-    def constrained_figure(width, height):
-        fig = matplotlib.figure.Figure(figsize=(max(width, 7.0), height), dpi=report.DPI,
-                                       layout='constrained')
-        report.FigureCanvasAgg(fig)
-        return fig
-
-    def constrained_arrange(fig, *a, **k):
-        return fig                               # the layout engine places everything
+    makers = report.default_views(data, diag)
 
     variants = {
-        'fixed margins (the report)': lambda: None,
-        'constrained layout': lambda: (setattr(report, '_figure', constrained_figure),
-                                       setattr(report, '_arrange', constrained_arrange)),
+        'fixed margins (the report)': True,
+        'constrained layout': False,
     }
-
-    def restore():
-        report._figure, report._arrange = figure, arrange
 
     layout = {}
     png = {'Pillow level 1 (the report)': [], 'Pillow level 6 (default)': []}
     sizes = dict.fromkeys(png, 0)
     with matplotlib.rc_context(report.RC):
         for name, make in makers:                 # untimed: one-off costs
-            report._png(make())
+            report.figure_png(make())
         for _ in range(args.repeat):
-            for label, setup in variants.items():
-                setup()
+            for label, fixed in variants.items():
+                report.FIXED_LAYOUT = fixed
                 try:
                     total = 0.0
                     for name, make in makers:
@@ -109,7 +92,7 @@ def main(argv=None):
                         total += dt + dt2
                     layout.setdefault(label, []).append(total)
                 finally:
-                    restore()
+                    report.FIXED_LAYOUT = True
             rgbs = []
             for name, make in makers:
                 fig = make()

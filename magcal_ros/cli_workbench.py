@@ -119,7 +119,7 @@ def _run(args, cli, with_ladder):
         raise cli.BadInput(f'--model {args.model!r}: {exc}') from exc
     field_nt, fref = cli.resolve_field(args, data)
     # readings no field produces (pinned, clipped, repeating channels) are named and left out
-    from magcal_ros.core.readings import leave_out_unphysical
+    from magcal_ros.core.data.readings import leave_out_unphysical
     data, field_nt, screen = leave_out_unphysical(data, field_nt)
     prog = Progress(enabled=not args.quiet)
     prog('fit', 0, 1, ','.join(model.spec()))
@@ -145,7 +145,7 @@ def cmd_diagnose(args, cli):
         from magcal_ros.report import write_report
         index = write_report(args.report, data, diagnosis=diag, ladder=lad,
                              baseline_m=args.baseline_m, figures=args.figures)
-    from magcal_ros.core.notes import format_note, note_dict
+    from magcal_ros.core.model.notes import format_note, note_dict
     from magcal_ros.pipeline import fit_warnings
     warnings = [note_dict(w) for w in screen.notes()] + fit_warnings(diag.result,
                                                                      diag.noise_floor)
@@ -174,7 +174,7 @@ def cmd_diagnose(args, cli):
 def cmd_report(args, cli):
     """`magcal report`: diagnosis + error ladder as PNGs and a self-contained HTML page."""
     data, diag, lad, _, screen = _run(args, cli, not args.no_ladder)
-    from magcal_ros.core.notes import format_note
+    from magcal_ros.core.model.notes import format_note
     from magcal_ros.report import write_report
     if not args.quiet:
         for w in screen.notes():

@@ -39,9 +39,9 @@ import re
 import textwrap
 import warnings
 
-from magcal_ros.core.diagnose import (AT_FLOOR_RATIO, compact_spec, MIN_DELTA_BIC,
-                                      MIN_EXPLAINED, noise_floor_from_data)
-from magcal_ros.core.tensor import cross_positions, tensor_cross, tensor_noise_floor
+from magcal_ros.core.diagnose import (AT_FLOOR_RATIO, compact_spec, MIN_DELTA_BIC, MIN_EXPLAINED,
+                                      noise_floor_from_data)
+from magcal_ros.core.geometry.tensor import cross_positions, tensor_cross, tensor_noise_floor
 import matplotlib
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
@@ -62,16 +62,31 @@ DPI = 100
 RC = {'text.hinting': 'no_hinting'}
 
 
+#: True: the figures' fixed margins (:func:`_arrange`); False: matplotlib's constrained
+#: layout places the axes, the figure title and the bottom legends (1.03 x the CPU of the
+#: default figures with the same ticks: bench/report_layout.py)
+FIXED_LAYOUT = True
+
+
 def _figure(width, height):
     """Return a figure on its own Agg canvas, without a layout engine (:func:`_arrange`)."""
-    fig = Figure(figsize=(max(width, 7.0), height), dpi=DPI)
+    fig = Figure(figsize=(max(width, 7.0), height), dpi=DPI,
+                 layout=None if FIXED_LAYOUT else 'constrained')
     FigureCanvasAgg(fig)
     return fig
+
+
+def _BOTTOM():
+    """Return where a figure legend along the bottom goes (outside the axes when laid out)."""
+    return 'lower center' if FIXED_LAYOUT else 'outside lower center'
 
 
 def _suptitle(fig, text, fontsize=11):
     """Figure title wrapped to the figure width."""
     chars = int(fig.get_figwidth() * 110 / fontsize)
+    if not FIXED_LAYOUT:                      # placed by the layout engine
+        fig.suptitle(textwrap.fill(text, chars), fontsize=fontsize)
+        return
     fig.suptitle(textwrap.fill(text, chars), fontsize=fontsize, y=1.0 - 0.06 / fig.get_figheight(),
                  va='top')
 
@@ -81,10 +96,11 @@ def _arrange(fig, rows=1, cols=1, left=0.8, right=0.25, bottom=0.55, top=0.3, ws
     """
     Place the grid of axes with fixed margins and gaps (inches) and thin the ticks.
 
-    Matplotlib's constrained layout measures every tick label and title of every axes: the
-    default report's figures took 1.30 x the CPU with it (bench/report_layout.py, 4 x 10 000
-    epochs; BENCHMARKS.md); these figures have known contents, so fixed room is reserved
-    instead: ``left`` for the y tick and axis labels,
+    With :data:`FIXED_LAYOUT` False, matplotlib's constrained layout places them instead
+    (only the ticks are thinned here): the default figures took 1.03 x the CPU that way
+    (bench/report_layout.py, 4 x 10 000 epochs; BENCHMARKS.md), so speed is no reason for
+    the fixed margins; they stay the default until every figure has been checked under the
+    layout engine.  Fixed room is reserved: ``left`` for the y tick and axis labels,
     ``bottom`` for the x ones, ``top`` for the axes titles (below the figure title, whose
     wrapped lines are added here), ``right`` for legends placed outside the axes, and
     ``wspace``/``hspace`` between panels.  Linear axes get 3-5 major ticks instead of up to
@@ -93,6 +109,9 @@ def _arrange(fig, rows=1, cols=1, left=0.8, right=0.25, bottom=0.55, top=0.3, ws
     """
     w, h = fig.get_size_inches()
     title = fig.get_suptitle()
+    if not FIXED_LAYOUT:
+        _thin_ticks(fig)
+        return fig
     if title:
         text = next(t for t in fig.texts if t.get_text() == title)
         size = text.get_fontsize() / 72.0                    # points -> inches
@@ -101,6 +120,12 @@ def _arrange(fig, rows=1, cols=1, left=0.8, right=0.25, bottom=0.55, top=0.3, ws
     cell_h = max((h - top - bottom - (rows - 1) * hspace) / rows, 0.3)
     fig.subplots_adjust(left=left / w, right=1.0 - right / w, bottom=bottom / h,
                         top=1.0 - top / h, wspace=wspace / cell_w, hspace=hspace / cell_h)
+    _thin_ticks(fig)
+    return fig
+
+
+def _thin_ticks(fig):
+    """Give linear axes 3-5 major ticks and keep every axis' ticks inside its view."""
     for ax in fig.axes:
         for axis in (ax.xaxis, ax.yaxis):
             loc = axis.get_major_locator()
@@ -166,7 +191,7 @@ def _bottom_legend(fig, fontsize=7):
     """
     handles, labels = fig.axes[0].get_legend_handles_labels()
     ncol = max(1, min(len(labels), int(fig.get_figwidth() / 2.3)))
-    fig.legend(handles, labels, loc='lower center', ncol=ncol, fontsize=fontsize,
+    fig.legend(handles, labels, loc=_BOTTOM(), ncol=ncol, fontsize=fontsize,
                frameon=False, markerscale=2)
     return 0.55 + 0.2 * int(np.ceil(len(labels) / ncol))      # the bottom margin it needs
 
@@ -188,7 +213,7 @@ def _title(ax, text, **kwargs):
     ax.set_title(text, y=1.0, **kwargs)
 
 
-def _png(fig):
+def figure_png(fig):
     """
     Draw the figure on its Agg canvas and return it as PNG bytes.
 
@@ -473,11 +498,12 @@ def plot_structure(data, result, floor, diagnosis=None, adopted=None, findings=N
     Draw the residual per sensor, scalar and vector, over time and against the driver.
 
     One row per sensor: the scalar residual |corrected| - |B| over time, the vector residual
-    (sensor j - sensor 1, x y z) over time, and the scalar residual against what the verdict
-    follows (:func:`verdict_driver`; without a verdict, the channel of the largest finding,
-    if it names one).  Over each, in black/red, the adopted term's fit: what adding the
-    verdict changes in that residual (``result`` minus ``adopted``), so the term is seen
-    against the structure it is meant to take out.  The noise floor is dashed.
+    (sensor j - sensor 1, x y z) over time, and the residual in the sensor's own axes (x y z)
+    against what the verdict follows (:func:`verdict_driver`; without a verdict, the channel
+    of the largest finding, if it names one).  Over each, in red or black, the adopted term's
+    fit: what adding the verdict changes in that residual (``result`` minus ``adopted``), so
+    the term is seen against the structure it is meant to take out.  The noise floor is
+    dashed.
     """
     s = data.n_sensors
     token = diagnosis.verdict_token if diagnosis is not None else None
@@ -544,13 +570,20 @@ def plot_structure(data, result, floor, diagnosis=None, adopted=None, findings=N
                         transform=ax.transAxes)
                 ax.set_axis_off()
                 continue
+            # the residual in the sensor's own axes: an additive term shows whole here,
+            # not projected on a field direction that turns with the attitude
             idx = _thin(len(x))
-            ax.plot(x[idx], scalar[idx], '.', ms=1.2, color='0.55')
-            if term is not None:
-                ax.plot(x[idx], term[idx], '.', ms=1.0, color='tab:red')
+            raw_res = result.residual_nt[j - 1]
+            for c in range(3):
+                ax.plot(x[idx], raw_res[idx, c], '.', ms=1.0, alpha=0.5,
+                        color=COMPONENT_COLOURS[c], label=f'residual {"xyz"[c]}, sensor axes')
+            if adopted is not None and j in _token_sensors(token, s):
+                rt = raw_res - adopted.residual_nt[j - 1]
+                for c in range(3):
+                    ax.plot(x[idx], rt[idx, c], '.', ms=0.6, color='k')
             _floor_lines(ax, floor.per_sensor_nt[j - 1])
-            _title(ax, f'sensor {j}: scalar residual vs {name}', fontsize=8, loc='left')
-            ax.set_ylabel('scalar (nT)')
+            _title(ax, f'sensor {j}: residual x y z vs {name}', fontsize=8, loc='left')
+            ax.set_ylabel('sensor axes (nT)')
             ax.set_xlabel(xlabel)
     handles, labels = [], []
     for ax in axes.ravel():
@@ -559,7 +592,7 @@ def plot_structure(data, result, floor, diagnosis=None, adopted=None, findings=N
                 handles.append(h)
                 labels.append(lab)
     ncol = max(1, min(len(labels), int(fig.get_figwidth() / 3.2)))
-    fig.legend(handles, labels, loc='lower center', ncol=ncol, fontsize=7, frameon=False,
+    fig.legend(handles, labels, loc=_BOTTOM(), ncol=ncol, fontsize=7, frameon=False,
                markerscale=3)
     bottom = 0.55 + 0.2 * int(np.ceil(len(labels) / ncol))
     head = (f'verdict {token}: its fit (red, black) drawn over the residual it explains'
@@ -1219,10 +1252,11 @@ CAPTIONS = {
                  "(grey dots) and, in red, what the verdict's term takes out of it (the "
                  'residual without the term minus the residual with it).  Middle: the vector '
                  "residual against sensor 1 (x y z bands) and the term's share (black).  "
-                 'Right: the scalar residual against what the term follows (a channel, the '
-                 'phase of a period, the field rate, a field component), the term in red.  '
-                 'Dashed: the noise floor.  Grey left over around the red is what the term '
-                 'does not explain.',
+                 "Right: the residual in the sensor's own axes (x y z) against what the term "
+                 'follows (a channel, the phase of a period, the field rate, a field '
+                 'component), the term in black on the sensors it applies to.  Dashed: the '
+                 'noise floor.  What is left around the red and black is what the term does '
+                 'not explain.',
     'magnitude': 'Measured |raw| (grey) and modelled |A B + o + ...| (blue) magnitude minus '
                  'the reference magnitude |B|, per sensor; each title gives the mean offset '
                  'of the raw readings.  The residual is the small difference between the '
@@ -1364,6 +1398,17 @@ def _plan(data, result, floor, diagnosis, ladder, found, baseline_m, every):
     return plan
 
 
+def default_views(data, diagnosis, ladder=None, baseline_m=0.5):
+    """
+    Return the views ``write_report`` draws by default: [(name, make)], page order.
+
+    ``make()`` returns the matplotlib Figure (or None when the data do not allow it).
+    """
+    plan = _plan(data, diagnosis.result, diagnosis.noise_floor, diagnosis, ladder,
+                 diagnosis.findings, baseline_m, False)
+    return [(name, make) for name, _, make, _ in plan if make is not None]
+
+
 def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseline_m=0.5,
                  title='magcal diagnosis report', figures='relevant'):
     """
@@ -1434,7 +1479,7 @@ def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseli
     with matplotlib.rc_context(RC):          # the figures' text measured and drawn alike
         for _, _, make, _ in plan:
             fig = None if make is None else make()
-            pngs.append(None if fig is None else _png(fig))
+            pngs.append(None if fig is None else figure_png(fig))
     for (name, heading, _, why), png in zip(plan, pngs):
         if png is None:
             skipped.append((heading, why or 'the data do not allow it (too few epochs)'))

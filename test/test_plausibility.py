@@ -21,7 +21,7 @@ references are that file's stated sensor parameters (SENSORS), not the fit's.
 """
 import injection
 from magcal_ros.core.model import Model
-from magcal_ros.core.plausibility import parameter_notes
+from magcal_ros.core.model.plausibility import parameter_notes
 from magcal_ros.io.calfile import load_calibration, save_calibration
 from magcal_ros.pipeline import calibrate
 import numpy as np
@@ -141,10 +141,10 @@ def test_unit_gain_angle_and_offset_words():
     raw = np.tile(np.array([[60000.0, -60000.0, 60000.0], [-60000.0, 60000.0, -60000.0]]),
                   (4, 1, 1))
     p = _base_params(model, {(4, 'scale'): [1000.0, 996.0, 1011.0],
-                               (2, 'scale'): [1.0, 0.75, 1.0],
-                               (3, 'misalignment'): [np.radians(10.0), 0.0, 0.0],
-                               (1, 'nonorthogonality'): [0.0, np.radians(8.0), 0.0],
-                               (1, 'offset'): [0.0, 0.0, 90000.0]})
+                             (2, 'scale'): [1.0, 0.75, 1.0],
+                             (3, 'misalignment'): [np.radians(10.0), 0.0, 0.0],
+                             (1, 'nonorthogonality'): [0.0, np.radians(8.0), 0.0],
+                             (1, 'offset'): [0.0, 0.0, 90000.0]})
     notes = _notes(p, model, raw)
     by = {j: [t for s, t in notes if s == j] for j in (1, 2, 3, 4)}
     (unit,) = by[4]

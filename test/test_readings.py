@@ -22,9 +22,9 @@ computed from the injected data, not by the screen under test.
 import pathlib
 
 import injection
-from magcal_ros.core.dataset import Dataset
-from magcal_ros.core.readings import (leave_out_unphysical, repeat_bounds, screen_readings,
-                                      UnphysicalReadingsError)
+from magcal_ros.core.data.dataset import Dataset
+from magcal_ros.core.data.readings import (leave_out_unphysical, repeat_bounds,
+                                           screen_readings, UnphysicalReadingsError)
 from magcal_ros.io.csvio import read_csv, write_csv
 from magcal_ros.io.single_csv import read_single_sensor_csv
 from magcal_ros.pipeline import calibrate

@@ -30,7 +30,7 @@ import io
 from types import SimpleNamespace
 
 from magcal_ros import report
-from magcal_ros.core.dataset import Dataset
+from magcal_ros.core.data.dataset import Dataset
 from matplotlib.figure import Figure
 from matplotlib.transforms import Bbox
 import numpy as np
@@ -186,7 +186,7 @@ def test_report_png_is_the_canvas_pixels():
     fig = Figure(figsize=(3, 2), dpi=report.DPI)
     report.FigureCanvasAgg(fig)
     fig.add_subplot().plot([0, 1, 3], [2, -1, 5], 'o-')
-    png = report._png(fig)
+    png = report.figure_png(fig)
     rgba = np.asarray(fig.canvas.buffer_rgba())
     assert (rgba[..., 3] == 255).all()
     assert png.startswith(b'\x89PNG\r\n\x1a\n')

@@ -41,6 +41,7 @@ import importlib
 import math
 import sys
 
+from magcal_ros.core.geometry.tensor import symmetric_traceless
 import numpy as np
 
 #: Full-scale field used to normalise the nonlinearity polynomial (nT).
@@ -465,7 +466,7 @@ class AxisMap(Effect):
     y readings exchanged.  No parameters: A_j = M S C_NO R (the left-most factor, next to the
     reading), so scale and angles stay those of a real sensor (near 1, near 0) and the
     correction A_j^-1 undoes the map.  Found by the calibration when a fitted A_j has
-    det < 0 or a negative scale (:mod:`magcal_ros.core.plausibility`).
+    det < 0 or a negative scale (:mod:`magcal_ros.core.model.plausibility`).
     """
 
     name = 'axes'
@@ -1100,16 +1101,6 @@ class AuxPoly(Effect):
 
 
 # -- array-wide effects --------------------------------------------------------------------
-
-def symmetric_traceless(g):
-    """
-    (3, 3) symmetric traceless tensor from g = (gxx, gxy, gxz, gyy, gyz), same unit.
-
-    Maxwell's equations in a source-free region: curl B = 0 (symmetric), div B = 0
-    (traceless), so gzz = -gxx - gyy (paper 004 eq. 1 uses the same five components).
-    """
-    gxx, gxy, gxz, gyy, gyz = g
-    return np.array([[gxx, gxy, gxz], [gxy, gyy, gyz], [gxz, gyz, -gxx - gyy]], float)
 
 
 class SiteGradient(Effect):

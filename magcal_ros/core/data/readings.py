@@ -41,7 +41,7 @@ operator; here it is derived from the data so that a live, quantised channel is 
   sqrt(3) = 2 sqrt(0.75): given one small difference the next difference of white noise has
   0.75 of its variance, the conservative conditional spread);
 - sigma_w^2 = sigma^2 - q^2 / 12, sigma the per-axis noise floor of the differences
-  (:func:`magcal_ros.core.noise.estimate_noise`), the median over the sensor's three axes (a
+  (:func:`magcal_ros.core.data.noise.estimate_noise`), the median over the sensor's three axes (a
   pinned axis has no noise of its own);
 - a logger that reads faster than the sensor updates repeats whole samples (all three axes
   at once: the public HMC5883L recordings do so at 3 % of the epochs, legitimately); with
@@ -57,7 +57,7 @@ operator; here it is derived from the data so that a live, quantised channel is 
 from dataclasses import dataclass, field
 from math import erf, sqrt
 
-from magcal_ros.core.noise import estimate_noise
+from magcal_ros.core.data.noise import estimate_noise
 import numpy as np
 
 #: family-wise probability that a live channel of a record is flagged
@@ -199,8 +199,8 @@ class ReadingScreen:
         return out
 
     def notes(self):
-        """:class:`~magcal_ros.core.notes.Note` s of kind ``readings``, one per line."""
-        from magcal_ros.core.notes import Note
+        """:class:`~magcal_ros.core.model.notes.Note` s of kind ``readings``, one per line."""
+        from magcal_ros.core.model.notes import Note
         n = self.flags.shape[1]
         tail = (f'; no field produces these readings: the {self.n_left_out} of {n} sets that '
                 'hold them are left out of the fit')

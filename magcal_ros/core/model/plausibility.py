@@ -37,11 +37,11 @@ something about the installation is not what the user thinks:
 - an offset beyond every reading of its axis: the centre of the readings is outside what the
   sensor measured (too little of the sphere covered, or clipped readings).
 
-:func:`parameter_notes` gives these as :class:`~magcal_ros.core.notes.Note` s of kind
+:func:`parameter_notes` gives these as :class:`~magcal_ros.core.model.notes.Note` s of kind
 ``parameters``, the maps as kind ``mounting``; each says what the calibration file records.
 """
 from magcal_ros.core import effects as fx
-from magcal_ros.core.notes import Note
+from magcal_ros.core.model.notes import Note
 import numpy as np
 
 #: a scale factor further than this from 1 (and not a unit factor) is far from one: real
@@ -238,7 +238,7 @@ def parameter_notes(model, params, raw, field_nt):
         Reference magnitude the scales are relative to, nT.
 
     """
-    from magcal_ros.core.calibration import Calibration
+    from magcal_ros.core.model.calibration import Calibration
     cal = Calibration(model, params)
     lin = linear_summary(model, params)
     out = []
@@ -262,9 +262,10 @@ def parameter_notes(model, params, raw, field_nt):
         decades = {_unit_decade(kk) for kk in k}
         if scales_checked and len(decades) == 1 and None not in decades:
             n = decades.pop()
+            words = UNIT_WORDS.get(n, 'another unit')
             out.append(Note(
                 f'sensor {j}: scale factors {", ".join(f"{kk:.4g}" for kk in k)}: its readings '
-                f'are ~{10.0 ** n:g} x the field: a unit mistake ({UNIT_WORDS.get(n, "another unit")}); '
+                f'are ~{10.0 ** n:g} x the field: a unit mistake ({words}); '
                 f'{record}', 'parameters', j))
         elif scales_checked:
             for ax, kk in zip(fx.AXIS_NAMES, k):
