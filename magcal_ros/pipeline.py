@@ -21,6 +21,7 @@ residuals) and the calibration document (docs/design.md §4).
 """
 from dataclasses import dataclass
 
+from magcal_ros.core.data.magnitude import reference_magnitude
 from magcal_ros.core.data.noise import data_noise_floor
 from magcal_ros.core.geometry.site_gradient import centred_fields
 from magcal_ros.core.geometry.tensor import (cross_positions, gradient_from_fit, tensor_lstsq,
@@ -283,16 +284,34 @@ def _calibrate(data, model, field_nt, geometry, field_reference, **fit_kwargs):
     if positions is not None:
         model.set_positions(positions)          # where the site gradient acts
     mounting = []
+    planar = fit_kwargs.pop('planar', None)
     if fit_kwargs.pop('heading_unknown', False):
         # site gradient without attitude: the heading about the field per epoch
         from magcal_ros.core.geometry.site_gradient import fit_heading_unknown
         result = fit_heading_unknown(data, model, field_nt=field_nt, **fit_kwargs)
+    elif planar is not None:
+        # a turn about one axis (a ground robot): what it determines, the rest at a prior
+        from magcal_ros.core.model import planar as pl
+        fit_kwargs.pop('constrained', None)
+        fit_kwargs.pop('on_degenerate', None)
+        pr = pl.fit_planar(data, model, reference_magnitude(data, field_nt),
+                           prior_params=planar.get('prior_params'),
+                           inclination_deg=planar.get('inclination_deg'), **fit_kwargs)
+        result = pr.result
     else:
         result = fit(data, model, field_nt=field_nt, **fit_kwargs)
         result, mounting = _adopt_axis_maps(result, data, field_nt, positions, fit_kwargs)
     summary = summarize(result, data, positions)
-    summary['warnings'] += [note_dict(w) for w in mounting + parameter_notes(
-        result.model, result.params, data.raw, float(np.mean(result.field_magnitude_nt)))]
+    if planar is not None:
+        summary['planar'] = pl.planar_summary(pr)
+        summary['planar']['inclination_source'] = (
+            'IGRF' if planar.get('inclination_deg') is not None else 'the fitted field')
+        summary['undetermined'] = summary['planar']['undetermined']
+        summary['heading_error_deg'] = max(summary['planar']['heading_error_deg'].values())
+        summary['warnings'].extend(note_dict(n) for n in pl.planar_notes(pr))
+    if planar is None:        # a planar fit holds what a turn cannot determine at its prior
+        summary['warnings'] += [note_dict(w) for w in mounting + parameter_notes(
+            result.model, result.params, data.raw, float(np.mean(result.field_magnitude_nt)))]
     temp_range = {}
     if data.temp is not None:
         for j in range(data.n_sensors):
@@ -315,6 +334,11 @@ def _calibrate(data, model, field_nt, geometry, field_reference, **fit_kwargs):
                       if k in summary},
         'warnings': list(summary['warnings']),
     }
+    if planar is not None:
+        # what the turn left open, recorded with the calibration (issue 20)
+        prov['planar'] = {k: summary['planar'][k] for k in
+                          ('axis', 'undetermined', 'determined', 'heading_error_deg',
+                           'inclination_source')}
     if 'tensor_rms_nt_per_m' in summary:
         prov['residuals']['tensor_rms_nt_per_m'] = summary['tensor_rms_nt_per_m']
     fref = dict(field_reference or {})

@@ -33,17 +33,10 @@ import pytest
 from test_cli import run_cli
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
+#: the real recordings in the repository (issue 22 item 1), gzip-compressed CSV
+REAL = REPO / 'data' / 'real'
 #: the HMC5883L quantum: 1/1090 gauss (gain 1.3 Ga), nT
 Q_HMC = 1e5 / 1090.0
-
-
-def real_dir():
-    # in the repository (issue 22, item 1), else beside it (a clone or a worktree)
-    for d in (REPO / 'data' / 'real', REPO / '..' / 'shared' / 'data' / 'real',
-              REPO / '..' / '..' / 'shared' / 'data' / 'real'):
-        if (d / 'sunsided-hmc5883l').is_dir():
-            return d
-    return None
 
 
 def clipped_cross(n=3000, sensor=1, axis=0, fraction=0.06):
@@ -189,14 +182,11 @@ def test_real_recordings_are_not_flagged():
     # the public HMC5883L recordings (quantum 91.7 nT, ~1.5 quanta of noise, 3 % duplicated
     # epochs of an oversampling logger, runs of equal readings up to 15 long) and a consumer
     # IMU's full sphere: live sensors whose repeats are legitimate
-    root = real_dir()
-    if root is None:
-        pytest.skip('the real recordings are not here')
-    files = sorted((root / 'sunsided-hmc5883l').glob('*/*.csv'))
+    files = sorted((REAL / 'sunsided-hmc5883l').glob('*/*.csv.gz'))
     assert len(files) == 13
     for f in files:
         screen = screen_readings(read_csv(f))
         assert screen.channels == [], (f.name, screen.lines())
         assert screen.min_run.min() >= 19, f.name
-    ck = read_single_sensor_csv(root / 'ck-accmag' / 'acc_mag_log.csv', unit='gauss')
+    ck = read_single_sensor_csv(REAL / 'ck-accmag' / 'acc_mag_log.csv.gz', unit='gauss')
     assert screen_readings(ck).channels == []

@@ -41,6 +41,15 @@ def igrf_total(lat_deg, lon_deg, alt_km, date):
         'YYYY-MM-DD' or a date.
 
     """
+    return igrf_field(lat_deg, lon_deg, alt_km, date)[0]
+
+
+def igrf_field(lat_deg, lon_deg, alt_km, date):
+    """
+    (total intensity nT, inclination deg, positive down) of the IGRF at a place and date.
+
+    Arguments as :func:`igrf_total`.
+    """
     import ppigrf
     if isinstance(date, str):
         try:
@@ -51,8 +60,9 @@ def igrf_total(lat_deg, lon_deg, alt_km, date):
         date = datetime.datetime(date.year, date.month, date.day)
     if not (-90 <= lat_deg <= 90 and -360 <= lon_deg <= 360):
         raise ValueError(f'latitude/longitude out of range: {lat_deg}, {lon_deg}')
-    be, bn, bu = ppigrf.igrf(lon_deg, lat_deg, alt_km, date)
-    return float(np.sqrt(np.ravel(be)[0] ** 2 + np.ravel(bn)[0] ** 2 + np.ravel(bu)[0] ** 2))
+    be, bn, bu = (float(np.ravel(x)[0]) for x in ppigrf.igrf(lon_deg, lat_deg, alt_km, date))
+    total = float(np.sqrt(be ** 2 + bn ** 2 + bu ** 2))
+    return total, float(np.degrees(np.arctan2(-bu, np.hypot(be, bn))))
 
 
 def auto_magnitude(raw):

@@ -241,7 +241,7 @@ class FitResult:
 def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=False,
         priors=None, sigma_nt=None, on_degenerate='raise', max_fit_samples=20000,
         init=None, max_nfev=200, check_identifiability=True, solver='lm', covariance=True,
-        ftol=None):
+        ftol=None, extra_priors=None):
     """
     Fit ``model`` to rotation data in a uniform field by maximum likelihood.
 
@@ -263,6 +263,10 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
         0 +- 0.05 rad, soft iron identity +- 0.02) and the start is A = I.
     priors : dict, optional
         {effect name or label: (mean or None for default, sd)} overriding the priors.
+    extra_priors : list of (int, float, float), optional
+        Priors on single parameters, (index, mean, sd) in the parameter's unit, added to
+        those of ``priors`` (the planar mode holds the parameters a turn about one axis
+        leaves open: :mod:`magcal_ros.core.model.planar`).
     sigma_nt : float or numpy.ndarray, optional
         Fixed per-sensor noise (nT); default: estimated from the residuals.
     on_degenerate : {'raise', 'flag'}
@@ -319,6 +323,12 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
         ident = _check_data(data, model, contexts_all, constrained, check_identifiability,
                             degenerate)
         idx = fit_epochs(data.n_samples, max_fit_samples)
+        if model.drops:
+            # drop(t0, t1) terms: the fit leaves those windows out
+            idx = idx[model.fit_mask(data.t[idx])]
+            if len(idx) < 10:
+                raise ValueError(f'the drop() windows {model.drops} leave {len(idx)} samples '
+                                 'to fit: drop less')
         raw, f = data.raw[:, idx], f_all[idx]
         contexts = [c.subset(idx) for c in contexts_all]
         if init is None:
@@ -330,7 +340,7 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
             from magcal_ros.core.geometry.attitude import check_against_field
             check_against_field(contexts_all[0].attitude,
                                 model.correct(1, p0, data.raw[0], contexts_all[0]), data.t)
-        prior_list = priors_for(model, priors or {}, constrained)
+        prior_list = priors_for(model, priors or {}, constrained) + list(extra_priors or ())
         solve = _Solve(model, raw, f, contexts, prior_list, robust, f_scale, solver, max_nfev,
                        ftol)
         p, sigma, sol = solve.run(p0, sigma_nt)
@@ -696,11 +706,17 @@ def corrected_readings(model, p, raw, contexts):
 
 
 def centred_readings(model, p, corrected, contexts):
-    """Return (S, N, 3) ``corrected`` minus each sensor's modelled site shift, nT."""
+    """
+    Return (S, N, 3) ``corrected`` minus each sensor's modelled array shift, nT.
+
+    The site shift (site gradient) and the modelled change of the field's magnitude (a
+    ``field`` term, along the corrected reading): what is left is comparable with the
+    reference magnitude.
+    """
     if not model.array_effects:
         return corrected
     # residuals against the centre field: remove each sensor's modelled site shift
-    return corrected - np.stack([model.array_shift(j, p, contexts[j - 1])
+    return corrected - np.stack([model.array_shift(j, p, contexts[j - 1], corrected[j - 1])
                                  for j in range(1, model.n_sensors + 1)])
 
 
