@@ -50,6 +50,90 @@ def geometry_positions(geometry, n_sensors):
     return pos
 
 
+def array_geometry(n_sensors, positions_m=(), baseline_m=0.5):
+    """
+    Geometry dict of an array from node parameters (docs/design.md, "Array geometry").
+
+    Parameters
+    ----------
+    n_sensors : int
+        Sensors of the array.
+    positions_m : sequence of float
+        Flat x, y, z per sensor in the array frame, m (``sensor_positions_m``, 3 S values);
+        empty: paper 004's cross of ``baseline_m`` for four sensors, the origin for one.
+    baseline_m : float
+        Distance between the two sensors of an arm of the cross, m.
+
+    Returns
+    -------
+    dict or None
+        ``{'type': 'cross', 'baseline_m', 'positions_m'}`` or ``{'type': 'positions',
+        'positions_m'}`` (positions (S, 3) m as lists); None when no positions are given for
+        2, 3 or more than 4 sensors (the tensor is then not computed).
+
+    Raises
+    ------
+    ValueError
+        Naming the count expected when ``positions_m`` is not 3 finite numbers per sensor.
+
+    """
+    flat = np.asarray(list(positions_m), float)
+    if flat.size == 0:
+        if n_sensors == 4:
+            return cross_geometry(baseline_m)
+        if n_sensors == 1:
+            return {'type': 'positions', 'positions_m': [[0.0, 0.0, 0.0]]}
+        return None
+    if flat.size != 3 * n_sensors or not np.all(np.isfinite(flat)):
+        raise ValueError(f'sensor_positions_m must hold 3 finite numbers (x y z, m) per '
+                         f'sensor: {3 * n_sensors} for {n_sensors} sensors, got {flat.size}')
+    return {'type': 'positions', 'positions_m': flat.reshape(-1, 3).tolist()}
+
+
+def tensor_undetermined(positions):
+    """
+    Why the gradient tensor cannot be computed from sensors at ``positions``, or None.
+
+    ``positions`` (S, 3) m or None. The tensor (symmetric and traceless: 5 numbers, with
+    the centre field 8 unknowns, :func:`magcal_ros.core.geometry.tensor.tensor_operator`) needs the
+    sensors to span at least a plane: one sensor measures no difference, collinear sensors
+    only the derivatives along their line.
+    """
+    if positions is None:
+        return ('no sensor positions (give sensor_positions_m, x y z per sensor in m): the '
+                'gradient tensor is not computed')
+    pos = np.asarray(positions, float)
+    if len(pos) == 1:
+        return 'one sensor measures no field difference: there is no gradient tensor'
+    sv = np.linalg.svd(pos - pos.mean(axis=0), compute_uv=False)
+    if sv[0] <= 1e-9:
+        return (f'the {len(pos)} sensors are at one point: they measure no field '
+                'difference, there is no gradient tensor')
+    if len(sv) < 2 or sv[1] <= 1e-9 * sv[0]:
+        return (f'the {len(pos)} sensors are collinear: they measure the derivatives along '
+                'their line only, not the full gradient tensor (it needs sensors spanning a '
+                'plane)')
+    return None
+
+
+def geometry_mismatch(file_geometry, node_geometry, tol_m=1e-6):
+    """
+    Why a calibration file's geometry differs from the node's, naming both, or None.
+
+    Both are geometry dicts (``positions_m`` (S, 3) m); a file without positions, or a node
+    without a geometry, is not compared.
+    """
+    if not node_geometry or not file_geometry or 'positions_m' not in file_geometry:
+        return None
+    a = np.asarray(file_geometry['positions_m'], float)
+    b = np.asarray(node_geometry['positions_m'], float)
+    if a.shape == b.shape and np.all(np.abs(a - b) <= tol_m):
+        return None
+    return (f'its geometry (positions_m {np.round(a, 4).tolist()} m) differs from this '
+            f"node's (sensor_positions_m {np.round(b, 4).tolist()} m): calibrate this array, "
+            'or set sensor_positions_m (or baseline_m) to the geometry of the file')
+
+
 def tensor_stats(fields, positions):
     """
     RMS (about the mean) and max deviation of each tensor component, nT/m.
@@ -149,7 +233,7 @@ def summarize(result, data, positions=None):
         s['site_gradient_stderr_nt_per_m'] = site[1].tolist()
         s['site_gradient_frame'] = result.identifiability.get(
             'site_gradient_frame', "world (the attitude's)")
-    if positions is not None and data.n_sensors >= 3:
+    if positions is not None and tensor_undetermined(positions) is None:
         before = tensor_stats(data.raw, positions)
         # about the modelled site gradient: what is left is calibration error and noise
         after = tensor_stats(centred_fields(result), positions)

@@ -75,7 +75,8 @@ from magcal_ros.core.model.identifiability import check_coverage
 from magcal_ros.core.model.notes import format_note
 from magcal_ros.io.calfile import (CalibrationFileError, dump_calibration, load_calibration,
                                    parse_calibration, save_calibration)
-from magcal_ros.pipeline import calibrate as run_calibration, cross_geometry
+from magcal_ros.pipeline import (array_geometry, calibrate as run_calibration,
+                                 geometry_mismatch, tensor_undetermined)
 from magcal_ros.ros import params as prm
 from magcal_ros.ros.conversions import msg_to_field_nt, residual_to_msg, stamp_to_seconds
 from magcal_ros.ros.diagnostics import fill, Updater
@@ -207,10 +208,9 @@ class CalibrationNode(Node):
 
         service_group = ReentrantCallbackGroup()
         self._subs = []
-        for j in range(1, self._n + 1):
+        for j, topic in enumerate(s.input_topics, start=1):
             self._subs.append(self.create_subscription(
-                MagneticField, f'sensor{j}/raw', self._raw_cb(j - 1),
-                CALIBRATION_SENSOR_QOS))
+                MagneticField, topic, self._raw_cb(j - 1), CALIBRATION_SENSOR_QOS))
             self._subs.append(self.create_subscription(
                 Temperature, f'sensor{j}/temperature', self._temp_cb(j - 1),
                 SENSOR_QOS))
@@ -239,6 +239,12 @@ class CalibrationNode(Node):
         self._updater = Updater(self, s.status_period_s)
         self._updater.setHardwareID(self.get_namespace())
         self._updater.add('residual', lambda stat: fill(stat, self.residual_status()))
+        self._setup = self._describe_setup(s)
+        self._updater.add('setup', lambda stat: fill(stat, self.setup_status()))
+        say = (self.get_logger().info if self._setup[0] == DiagnosticStatus.OK else
+               self.get_logger().warning)
+        for line in self._setup[1]:
+            say(line)
         # triggered by the worker thread when a solve ends, so the executor wakes up and
         # resumes the awaiting service coroutine even when no sensor data flows
         self._wake = self.create_guard_condition(lambda: None)
@@ -248,6 +254,60 @@ class CalibrationNode(Node):
             f'calibration file {s.calibration_file}'
             + (f', plug-in effects {plugins}' if plugins else '')
             + '; call calibration/start to collect')
+
+    # -- geometry and field reference ------------------------------------------------------
+
+    def _geometry(self, s):
+        """Geometry dict of the node's parameters (None: no positions for 2, 3 or 5+)."""
+        return array_geometry(self._n, s.sensor_positions_m, s.baseline_m)
+
+    def _field(self, s, raw=None):
+        """(F nT, field_reference dict) of ``field_source`` (raw (N, 3) nT for 'shape')."""
+        from magcal_ros.core.data.magnitude import site_field_reference
+        date = s.site_date or time.strftime('%Y-%m-%d', time.gmtime())
+        lat = None if math.isnan(s.site_latitude_deg) else s.site_latitude_deg
+        lon = None if math.isnan(s.site_longitude_deg) else s.site_longitude_deg
+        return site_field_reference(s.field_source, s.field_nt, lat, lon,
+                                    s.site_altitude_m, date, raw)
+
+    def _describe_setup(self, s):
+        """(level, lines) on the geometry and the field reference, said once at start-up."""
+        level, lines = DiagnosticStatus.OK, []
+        geometry = self._geometry(s)
+        inputs = ', '.join(s.input_topics)
+        if geometry is None:
+            lines.append(f'{self._n} sensors on {inputs} without sensor_positions_m: the '
+                         'tensor residuals are not computed')
+        else:
+            pos = np.asarray(geometry['positions_m'])
+            what = (f'paper 004 cross, baseline {geometry["baseline_m"]} m'
+                    if geometry['type'] == 'cross' else f'positions {pos.tolist()} m')
+            reason = tensor_undetermined(pos)
+            lines.append(f'{self._n} sensors on {inputs}, {what}; '
+                         + ('gradient tensor determined' if reason is None else
+                            f'no gradient tensor: {reason}'))
+        if s.field_source == 'igrf':
+            try:
+                f, ref = self._field(s)
+                lines.append(f'field magnitude from IGRF: {f:.1f} nT at {ref["lat_deg"]} deg, '
+                             f'{ref["lon_deg"]} deg, {s.site_altitude_m} m on {ref["date"]}')
+            except (ValueError, ImportError) as exc:
+                level = DiagnosticStatus.WARN
+                lines.append(f'field_source igrf: {exc}; calibration/calibrate will refuse')
+        elif s.field_source == 'shape':
+            lines.append('field magnitude: shape only (no reference; the mean radius of '
+                         "sensor 1's data sets the scale)")
+        else:
+            lines.append(f'field magnitude: constant field_nt {s.field_nt:.1f} nT')
+        return level, lines
+
+    def setup_status(self):
+        """``DiagnosticStatus``: the geometry, the tensor and the field reference in use."""
+        level, lines = self._setup
+        st = DiagnosticStatus(name=f'{self.get_name()}: setup',
+                              hardware_id=self.get_namespace(), level=level,
+                              message='; '.join(lines))
+        return st
 
     # -- read-only state (for in-process users and tests; ROS users see calibration/status)
 
@@ -334,7 +394,9 @@ class CalibrationNode(Node):
         with self._lock:
             live.temp[:] = self._temp
             live.aux.update(self._aux)
-        self._monitor = ResidualMonitor(self._n, s.field_nt)
+        # the magnitude the calibration was made with (IGRF, shape only or field_nt)
+        f = (doc.get('field_reference') or {}).get('magnitude_nt', s.field_nt)
+        self._monitor = ResidualMonitor(self._n, float(f))
         self._residual_missing = None
         self._live = live
 
@@ -418,7 +480,7 @@ class CalibrationNode(Node):
         else:
             bad = []
             for j in range(self._n):
-                for kind in ('scalar', 'vector'):
+                for kind in monitor.kinds:
                     ratio = float(r[f'{kind}_ratio'][j])
                     values.append((f'sensor{j + 1}_{kind}_ratio', f'{ratio:.2f}'))
                     values.append((f'sensor{j + 1}_{kind}_rms_nt',
@@ -483,6 +545,7 @@ class CalibrationNode(Node):
                                'quaternion (orientation_covariance[0] = -1, NaN or |q| != 1)')
         out['ready'] = self._collecting and not missing
         out.update({'model': list(s.model), 'field_nt': s.field_nt,
+                    'field_source': s.field_source,
                     'max_samples': s.max_samples, 'coverage_eigenvalues': eigenvalues,
                     'incomplete_sets_dropped': dropped, 'out_of_order_dropped': out_of_order,
                     'stream_realignments': realigned,
@@ -640,13 +703,19 @@ class CalibrationNode(Node):
             return False, f'not calibrated: {reason}; previous calibration stays active', {
                 'reason': reason, 'sets': n_sets}
         model = Model.from_spec(list(s.model), self._n)
-        geometry = cross_geometry(s.baseline_m) if self._n == 4 else None
+        geometry = self._geometry(s)
         t0 = time.monotonic()
         data, resync_payload, resync_lines = self._resync(data, epochs, s)
         try:
+            field_nt, field_ref = self._field(s, data.raw[0])
+        except (ValueError, ImportError) as exc:
+            reason = f'no field magnitude: {exc}'
+            return False, f'not calibrated: {reason}; previous calibration stays active', {
+                'reason': reason, 'sets': n_sets}
+        try:
             run = run_calibration(
-                data, model=model, field_nt=s.field_nt, geometry=geometry,
-                field_reference={'kind': 'constant', 'magnitude_nt': s.field_nt},
+                data, model=model, field_nt=field_nt, geometry=geometry or {},
+                field_reference=field_ref,
                 robust=s.robust, exclude_outliers=s.exclude_outliers,
                 constrained=s.constrained)
         except DegenerateDataError as exc:
@@ -661,6 +730,8 @@ class CalibrationNode(Node):
             reason = f'the fit did not converge ({run.result.message})'
             return False, f'not calibrated: {reason}; previous calibration stays active', {
                 'reason': reason, 'sets': n_sets, 'model': list(s.model), 'converged': False}
+        # where the magnitude came from, also in the provenance (field_reference has the rest)
+        run.doc['provenance']['field_source'] = s.field_source
         os.makedirs(os.path.dirname(os.path.abspath(s.calibration_file)), exist_ok=True)
         try:
             save_calibration(s.calibration_file, run.doc, history=s.history)
@@ -672,6 +743,8 @@ class CalibrationNode(Node):
         summ = run.summary
         payload = {
             'calibration_file': s.calibration_file,
+            'field_reference': field_ref,
+            'geometry': geometry,
             'model': list(s.model),
             'effects': summ['model'],
             'sets': n_sets,
@@ -693,6 +766,7 @@ class CalibrationNode(Node):
         lines = [f'calibrated {n_sets} sets with model {",".join(s.model)}: total-field RMS '
                  f'{min(after.values()):.2f}-{max(after.values()):.2f} nT, noise floor '
                  f'{summ["noise_floor_nt"]:.2f} nT',
+                 f'field magnitude {field_nt:.1f} nT ({field_ref["kind"]})',
                  f'written to {s.calibration_file} (solve {solve_s:.1f} s; effects '
                  f'{",".join(summ["model"])})',
                  f'total-field RMS per sensor before [nT]: '
@@ -804,6 +878,10 @@ class CalibrationNode(Node):
             with open(path, encoding='utf-8') as fh:
                 text = fh.read()
             cal, doc = parse_calibration(text, path)
+            mismatch = geometry_mismatch(doc.get('geometry'),
+                                         self._geometry(prm.calibration_settings(self)))
+            if mismatch:
+                raise ValueError(f'{path}: {mismatch}')
             self._activate(cal, doc)
         except (CalibrationFileError, OSError, ValueError) as exc:
             self.get_logger().warning(f'existing calibration not published: {exc}')

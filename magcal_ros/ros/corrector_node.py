@@ -67,6 +67,7 @@ import sys
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from magcal_ros.core.live.corrector import LiveCorrector, MissingSignal, PAIRING_FALSE_ALARM
 from magcal_ros.io.calfile import CalibrationFileError, load_calibration, parse_calibration
+from magcal_ros.pipeline import array_geometry, geometry_mismatch, tensor_undetermined
 from magcal_ros.ros import params as prm
 from magcal_ros.ros.calibration_node import RESULT_QOS, SENSOR_QOS
 from magcal_ros.ros.conversions import (correct_msg_linear, covariance_to_t2,
@@ -105,7 +106,7 @@ class CorrectorNode(Node):
         # the effect classes a calibration may name: imported here at start-up only, never
         # because a calibration/result message names a module
         plugins = prm.load_plugins(self)
-        specs = prm.corrector_specs()
+        specs = prm.corrector_specs(int(prm.value(self, 'n_sensors')))
         self._specs = prm.declare(self, specs)
         self._specs.update(first)
         self.add_on_set_parameters_callback(self._on_set_parameters)
@@ -115,8 +116,13 @@ class CorrectorNode(Node):
         self._subtract_site = s.subtract_site_gradient
         self._site_attitude = s.site_attitude
         self._site_shift = None        # (S, 3) nT subtracted in a stationary test, or None
-        self._frame = s.array_frame_id
+        self._frame = s.array_frame_id          # '': each input's own frame_id
         self._tolerance_s = s.stamp_tolerance_s
+        # the array geometry of the parameters; the gradient topics exist only when it
+        # determines the tensor (docs/design.md, "Array geometry")
+        self._geometry = array_geometry(self._n, s.sensor_positions_m, s.baseline_m)
+        self._no_tensor = tensor_undetermined(
+            None if self._geometry is None else self._geometry['positions_m'])
 
         self._live = None
         self._source = None
@@ -135,18 +141,26 @@ class CorrectorNode(Node):
 
         self._pub_corr = [self.create_publisher(MagneticField, f'sensor{j}/corrected', 10)
                           for j in range(1, self._n + 1)]
-        self._pub_grad = self.create_publisher(Float64MultiArray, 'gradient', 10)
+        self._pub_grad = None
         self._grad_msg = tensor_to_msg(np.zeros((3, 3)))          # reused per tensor
         self._stamped_msg = None
         # the stamped gradient needs the message package magcal_interfaces (interfaces/,
         # README); without it the node says so once and publishes the rest
         self._stamped_cls, reason = _optional('magcal_interfaces.msg', 'GradientTensorStamped')
         self._pub_stamped = None
-        if self._stamped_cls is None:
-            self.get_logger().warning(f'not publishing gradient_stamped: {reason}; build the '
-                                      'magcal_interfaces package (README: Live: ROS 2)')
+        if self._no_tensor is not None:
+            # not advertised at all: a subscriber sees no publisher, the log says why once
+            self._stamped_cls = None
+            self.get_logger().warning(f'gradient and gradient_stamped are not advertised: '
+                                      f'{self._no_tensor}')
         else:
-            self._pub_stamped = self.create_publisher(self._stamped_cls, 'gradient_stamped', 10)
+            self._pub_grad = self.create_publisher(Float64MultiArray, 'gradient', 10)
+            if self._stamped_cls is None:
+                self.get_logger().warning(f'not publishing gradient_stamped: {reason}; build '
+                                          'the magcal_interfaces package (README: Live: ROS 2)')
+            else:
+                self._pub_stamped = self.create_publisher(self._stamped_cls,
+                                                          'gradient_stamped', 10)
         broadcaster, reason = _optional('tf2_ros', 'StaticTransformBroadcaster')
         self._tf = None
         if broadcaster is None:
@@ -155,9 +169,9 @@ class CorrectorNode(Node):
         else:
             self._tf = broadcaster(self)
         self._subs = []
-        for j in range(1, self._n + 1):
+        for j, topic in enumerate(s.input_topics, start=1):
             self._subs.append(self.create_subscription(
-                MagneticField, f'sensor{j}/raw', self._raw_cb(j - 1), SENSOR_QOS))
+                MagneticField, topic, self._raw_cb(j - 1), SENSOR_QOS))
         self._temp_subs = []     # created while the calibration has a temperature effect
         for name in s.aux_topics:
             self._subs.append(self.create_subscription(
@@ -239,15 +253,21 @@ class CorrectorNode(Node):
     # -- calibrations ----------------------------------------------------------------------
 
     def _install(self, cal, doc, source):
+        mismatch = geometry_mismatch(doc.get('geometry'), self._geometry)
+        if mismatch:
+            raise CalibrationFileError(mismatch)
         try:
             live = LiveCorrector(cal, self._n, (doc.get('geometry') or {}).get('positions_m'),
-                                 self._tolerance_s)
+                                 self._tolerance_s, field_nt=(doc.get('field_reference') or {})
+                                 .get('magnitude_nt'))
         except ValueError as exc:
             raise CalibrationFileError(str(exc)) from exc
         live.temp[:] = self._temp
         live.aux.update(self._aux)
-        # validated and converted once, not per message (it was 70 % of the callback)
-        self._cov_t2 = [covariance_to_t2(live.covariance_nt2(j)) for j in range(1, self._n + 1)]
+        # validated and converted once, not per message (it was 70 % of the callback): the
+        # noise and the calibration's own uncertainty (LiveCorrector.published_covariance_nt2)
+        self._cov_t2 = [covariance_to_t2(live.published_covariance_nt2(j))
+                        for j in range(1, self._n + 1)]
         self._grad_cov_t2 = gradient_covariance_to_t2(live.gradient_cov_nt2)
         if self._stamped_cls is not None:
             # one message object per tensor topic, reused: its covariance is set here once
@@ -262,7 +282,7 @@ class CorrectorNode(Node):
         self._follow_temperature(live.needs_temperature)
         self._update_site_shift()
         self.get_logger().info(f'using the calibration from {source} ({self._describe()})')
-        if live.no_gradient_reason:
+        if live.no_gradient_reason and self._no_tensor is None:
             self.get_logger().warning(live.no_gradient_reason)
         self._send_transforms(live)
 
@@ -272,7 +292,7 @@ class CorrectorNode(Node):
 
     def _send_transforms(self, live):
         """Send the static transforms array -> fluxgate{j} of the calibration (with tf2_ros)."""
-        if self._tf is None:
+        if self._tf is None or not self._frame:
             return
         frames = live.sensor_frames()
         if not frames:
@@ -345,7 +365,7 @@ class CorrectorNode(Node):
         corrector's Python work); when the first subscriber appears the matcher starts
         afresh (its queues would hold samples from before).
         """
-        on = self._publish_gradient and (
+        on = self._pub_grad is not None and self._publish_gradient and (
             self._pub_grad.get_subscription_count() > 0 or (
                 self._pub_stamped is not None
                 and self._pub_stamped.get_subscription_count() > 0))
@@ -387,7 +407,8 @@ class CorrectorNode(Node):
                 if self._site_shift is not None:
                     b = b - self._site_shift[j]         # stationary test: the anomaly only
                 set_field_nt(msg, b, self._cov_t2[j])
-            msg.header.frame_id = self._frame
+            if self._frame:
+                msg.header.frame_id = self._frame
             pub.publish(msg)
             self._counts[j] += 1
             if gradient:
@@ -395,7 +416,8 @@ class CorrectorNode(Node):
                     self._pub_grad.publish(tensor_to_msg(g, check=False, out=self._grad_msg))
                     if self._pub_stamped is not None:
                         self._pub_stamped.publish(fill_gradient_stamped(
-                            self._stamped_msg, t_set, self._frame, g, None))
+                            self._stamped_msg, t_set, self._frame or prm.DEFAULT_ARRAY_FRAME_ID,
+                            g, None))
                     self._n_gradient += 1
         return cb
 
@@ -412,7 +434,8 @@ class CorrectorNode(Node):
         if self._refused:
             problems.append(self._refused)
         problems.extend(self._missing[j] for j in sorted(self._missing))
-        if self._live is not None and self._live.no_gradient_reason:
+        if (self._live is not None and self._live.no_gradient_reason
+                and self._no_tensor is None):
             problems.append(self._live.no_gradient_reason)
         if self._subtract_site and self._live is not None and self._site_shift is None:
             problems.append('subtract_site_gradient is set but the calibration has no '
@@ -437,8 +460,13 @@ class CorrectorNode(Node):
                   ('sets_failed_pairing_check',
                    str(self._live.matcher.rejected if self._live else 0)),
                   ('streams_re_paired', str(self._live.matcher.repaired if self._live else 0)),
+                  ('gradient', 'advertised' if self._no_tensor is None else
+                   f'not advertised: {self._no_tensor}'),
                   ('gradient_stamped', 'published' if self._pub_stamped else
+                   f'not advertised: {self._no_tensor}' if self._no_tensor else
                    'not published: magcal_interfaces is not importable'),
+                  ('geometry', 'none' if self._geometry is None else
+                   str(self._geometry['positions_m'])),
                   ('frame_id', self._frame)]
         values += [(f'sensor{j + 1}_corrected_published', str(c))
                    for j, c in enumerate(self._counts)]
