@@ -36,6 +36,7 @@ ORDER = [('accuracy', 'Accuracy against the noise floor and the Cramer-Rao bound
          ('driver_rate', 'Driver parsing rate and CPU'),
          ('solve_time', 'Solve time and scaling'),
          ('workbench', 'Workbench speed: diagnose, report, ladder (before and after)'),
+         ('report_layout', "The report's PNG and layout: own code or the libraries'"),
          ('pairing', 'Live set pairing check: cost per sample')]
 
 

@@ -42,6 +42,7 @@ BENCHES = {
                                          '--node-duration', '4']),
     'real_data': (['real_data.py'], ['--no-diagnose']),
     'workbench': (['workbench.py'], ['--sizes', '3000', '--no-ladder']),
+    'report_layout': (['report_layout.py'], ['--n', '10000', '--repeat', '3']),
     'pairing': (['pairing.py'], ['--epochs', '2000', '--repeats', '3']),
     'grammar_speed': (['grammar_speed.py'], ['--n', '10000', '--repeat', '3']),
 }

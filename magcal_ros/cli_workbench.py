@@ -118,6 +118,9 @@ def _run(args, cli, with_ladder):
     except ValueError as exc:
         raise cli.BadInput(f'--model {args.model!r}: {exc}') from exc
     field_nt, fref = cli.resolve_field(args, data)
+    # readings no field produces (pinned, clipped, repeating channels) are named and left out
+    from magcal_ros.core.data.readings import leave_out_unphysical
+    data, field_nt, screen = leave_out_unphysical(data, field_nt)
     prog = Progress(enabled=not args.quiet)
     prog('fit', 0, 1, ','.join(model.spec()))
     base = fit(data, model, field_nt=field_nt, robust=args.robust,
@@ -131,23 +134,25 @@ def _run(args, cli, with_ladder):
         lad = ladder(data, base, field_nt=field_nt, folds=args.folds, progress=prog,
                      diagnosis=diag, alpha=args.alpha, baseline_m=args.baseline_m,
                      constrained=args.constrained)
-    return data, diag, lad, fref
+    return data, diag, lad, fref, screen
 
 
 def cmd_diagnose(args, cli):
     """`magcal diagnose`: print the diagnosis (text or one JSON object)."""
-    data, diag, lad, fref = _run(args, cli, args.ladder)
+    data, diag, lad, fref, screen = _run(args, cli, args.ladder)
     index = None
     if args.report:
         from magcal_ros.report import write_report
         index = write_report(args.report, data, diagnosis=diag, ladder=lad,
                              baseline_m=args.baseline_m, figures=args.figures)
-    from magcal_ros.core.model.notes import format_note
+    from magcal_ros.core.model.notes import format_note, note_dict
     from magcal_ros.pipeline import fit_warnings
-    warnings = fit_warnings(diag.result, diag.noise_floor)
+    warnings = [note_dict(w) for w in screen.notes()] + fit_warnings(diag.result,
+                                                                     diag.noise_floor)
     if args.json:
         doc = diag.to_dict()
         doc['warnings'] = warnings
+        doc['readings_left_out'] = screen.to_dict()
         doc['field_reference'] = fref
         doc['constrained'] = bool(args.constrained)
         doc['report'] = None if index is None else str(index)
@@ -168,8 +173,12 @@ def cmd_diagnose(args, cli):
 
 def cmd_report(args, cli):
     """`magcal report`: diagnosis + error ladder as PNGs and a self-contained HTML page."""
-    data, diag, lad, _ = _run(args, cli, not args.no_ladder)
+    data, diag, lad, _, screen = _run(args, cli, not args.no_ladder)
+    from magcal_ros.core.model.notes import format_note
     from magcal_ros.report import write_report
+    if not args.quiet:
+        for w in screen.notes():
+            print(format_note(w), file=sys.stderr)
     index = write_report(args.out, data, diagnosis=diag, ladder=lad,
                          baseline_m=args.baseline_m, figures=args.figures)
     print(index)

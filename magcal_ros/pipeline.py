@@ -28,6 +28,8 @@ from magcal_ros.core.geometry.tensor import (cross_positions, gradient_from_fit,
                                              tensor_noise_floor)
 from magcal_ros.core.model import data_hash, fit, Model
 from magcal_ros.core.model.notes import Note, note_dict
+from magcal_ros.core.model.plausibility import (axis_maps, fitted_scales_angles,
+                                                mounting_notes, parameter_notes, with_axis_maps)
 from magcal_ros.io.calfile import calibration_to_doc
 import numpy as np
 
@@ -251,7 +253,7 @@ MAX_OUTLIER_FRACTION = 0.05
 
 
 def calibrate(data, model='base', field_nt=None, geometry=None, field_reference=None,
-              exclude_outliers=False, **fit_kwargs):
+              exclude_outliers=False, screen=True, **fit_kwargs):
     """
     Fit ``model`` to ``data`` and build the summary and calibration document.
 
@@ -277,8 +279,32 @@ def calibrate(data, model='base', field_nt=None, geometry=None, field_reference=
         mis-paired stretch) then costs those sets only; a missing effect, which spreads over
         many sets, is left to the warning and to diagnose.  The summary gives
         ``outlier_sets_excluded``.
+    screen : bool
+        Before the fit, leave out the sets holding readings no field produces (a pinned,
+        clipped or repeating channel: :func:`magcal_ros.core.data.readings.leave_out_unphysical`);
+        each is named in a ``readings`` warning, and the summary and the provenance give
+        ``readings_left_out``.  Too few sets left raises
+        :class:`~magcal_ros.core.data.readings.UnphysicalReadingsError` (a ValueError) naming them.
 
     """
+    if not screen:
+        return _calibrate_clean(data, model, field_nt, geometry, field_reference,
+                                exclude_outliers, **fit_kwargs)
+    from magcal_ros.core.data.readings import leave_out_unphysical
+    data, field_nt, found = leave_out_unphysical(data, field_nt)
+    run = _calibrate_clean(data, model, field_nt, geometry, field_reference, exclude_outliers,
+                           **fit_kwargs)
+    left_out = found.to_dict()
+    run.summary['readings_left_out'] = left_out
+    run.doc['provenance']['readings_left_out'] = left_out
+    notes = [note_dict(w) for w in found.notes()]
+    run.summary['warnings'][:0] = notes
+    run.doc['provenance']['warnings'][:0] = notes
+    return run
+
+
+def _calibrate_clean(data, model, field_nt, geometry, field_reference, exclude_outliers,
+                     **fit_kwargs):
     run = _calibrate(data, model, field_nt, geometry, field_reference, **fit_kwargs)
     if (not exclude_outliers or fit_kwargs.get('robust') or fit_kwargs.get('heading_unknown')
             or fit_kwargs.get('planar') is not None):
@@ -315,6 +341,25 @@ def calibrate(data, model='base', field_nt=None, geometry=None, field_reference=
     return clean
 
 
+def _adopt_axis_maps(result, data, field_nt, positions, fit_kwargs):
+    """
+    Refit with the axis maps a mirrored, swapped or turned sensor needs (core.model.plausibility).
+
+    Returns the result (the refit when maps were found, else ``result``) and the ``mounting``
+    notes naming each map.
+    """
+    maps = axis_maps(result.model, result.params)
+    if not maps:
+        return result, []
+    model = with_axis_maps(result.model, maps)
+    if positions is not None:
+        model.set_positions(positions)
+    refit = fit(data, model, field_nt=field_nt, **fit_kwargs)
+    before = fitted_scales_angles(result.model, result.params)
+    after = fitted_scales_angles(refit.model, refit.params)
+    return refit, mounting_notes(maps, before, after, data.n_sensors)
+
+
 def _calibrate(data, model, field_nt, geometry, field_reference, **fit_kwargs):
     if geometry is None and data.n_sensors == 4:
         geometry = cross_geometry(0.5)
@@ -323,6 +368,7 @@ def _calibrate(data, model, field_nt, geometry, field_reference, **fit_kwargs):
     positions = geometry_positions(geometry, data.n_sensors)
     if positions is not None:
         model.set_positions(positions)          # where the site gradient acts
+    mounting = []
     planar = fit_kwargs.pop('planar', None)
     if fit_kwargs.pop('heading_unknown', False):
         # site gradient without attitude: the heading about the field per epoch
@@ -339,6 +385,7 @@ def _calibrate(data, model, field_nt, geometry, field_reference, **fit_kwargs):
         result = pr.result
     else:
         result = fit(data, model, field_nt=field_nt, **fit_kwargs)
+        result, mounting = _adopt_axis_maps(result, data, field_nt, positions, fit_kwargs)
     summary = summarize(result, data, positions)
     if planar is not None:
         summary['planar'] = pl.planar_summary(pr)
@@ -347,6 +394,9 @@ def _calibrate(data, model, field_nt, geometry, field_reference, **fit_kwargs):
         summary['undetermined'] = summary['planar']['undetermined']
         summary['heading_error_deg'] = max(summary['planar']['heading_error_deg'].values())
         summary['warnings'].extend(note_dict(n) for n in pl.planar_notes(pr))
+    if planar is None:        # a planar fit holds what a turn cannot determine at its prior
+        summary['warnings'] += [note_dict(w) for w in mounting + parameter_notes(
+            result.model, result.params, data.raw, float(np.mean(result.field_magnitude_nt)))]
     temp_range = {}
     if data.temp is not None:
         for j in range(data.n_sensors):

@@ -32,13 +32,12 @@ backend change, no display needed).  The noise floor is drawn on every residual 
 """
 import base64
 import html
+import io
 import os
 from pathlib import Path
 import re
-import struct
 import textwrap
 import warnings
-import zlib
 
 from magcal_ros.core.diagnose import (AT_FLOOR_RATIO, compact_spec, MIN_DELTA_BIC, MIN_EXPLAINED,
                                       noise_floor_from_data)
@@ -46,10 +45,8 @@ from magcal_ros.core.geometry.tensor import cross_positions, tensor_cross, tenso
 import matplotlib
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
-from matplotlib.text import Text
 from matplotlib.ticker import (AutoLocator, FuncFormatter, Locator, LogLocator, MaxNLocator,
                                NullLocator)
-from matplotlib.transforms import ScaledTranslation
 import numpy as np
 
 #: at most this many points per scatter plot (evenly thinned; the extremes are added)
@@ -65,16 +62,31 @@ DPI = 100
 RC = {'text.hinting': 'no_hinting'}
 
 
+#: True: the figures' fixed margins (:func:`_arrange`); False: matplotlib's constrained
+#: layout places the axes, the figure title and the bottom legends (1.03 x the CPU of the
+#: default figures with the same ticks: bench/report_layout.py)
+FIXED_LAYOUT = True
+
+
 def _figure(width, height):
     """Return a figure on its own Agg canvas, without a layout engine (:func:`_arrange`)."""
-    fig = Figure(figsize=(max(width, 7.0), height), dpi=DPI)
+    fig = Figure(figsize=(max(width, 7.0), height), dpi=DPI,
+                 layout=None if FIXED_LAYOUT else 'constrained')
     FigureCanvasAgg(fig)
     return fig
+
+
+def _BOTTOM():
+    """Return where a figure legend along the bottom goes (outside the axes when laid out)."""
+    return 'lower center' if FIXED_LAYOUT else 'outside lower center'
 
 
 def _suptitle(fig, text, fontsize=11):
     """Figure title wrapped to the figure width."""
     chars = int(fig.get_figwidth() * 110 / fontsize)
+    if not FIXED_LAYOUT:                      # placed by the layout engine
+        fig.suptitle(textwrap.fill(text, chars), fontsize=fontsize)
+        return
     fig.suptitle(textwrap.fill(text, chars), fontsize=fontsize, y=1.0 - 0.06 / fig.get_figheight(),
                  va='top')
 
@@ -84,16 +96,22 @@ def _arrange(fig, rows=1, cols=1, left=0.8, right=0.25, bottom=0.55, top=0.3, ws
     """
     Place the grid of axes with fixed margins and gaps (inches) and thin the ticks.
 
-    Matplotlib's constrained layout measured every tick label and title of every axes
-    (1.5-3 s of the 5 s a report took at 4 x 10 000 samples); these figures have known
-    contents, so fixed room is reserved instead: ``left`` for the y tick and axis labels,
+    With :data:`FIXED_LAYOUT` False, matplotlib's constrained layout places them instead
+    (only the ticks are thinned here): the default figures took 1.03 x the CPU that way
+    (bench/report_layout.py, 4 x 10 000 epochs; BENCHMARKS.md), so speed is no reason for
+    the fixed margins; they stay the default until every figure has been checked under the
+    layout engine.  Fixed room is reserved: ``left`` for the y tick and axis labels,
     ``bottom`` for the x ones, ``top`` for the axes titles (below the figure title, whose
     wrapped lines are added here), ``right`` for legends placed outside the axes, and
     ``wspace``/``hspace`` between panels.  Linear axes get 3-5 major ticks instead of up to
-    10: each tick is five artists, and they were half the drawing time of an axes.
+    10: each tick is five artists, and they were half the drawing time of an axes.  The axis
+    labels are matplotlib's own (placed at draw by the tick labels' extents).
     """
     w, h = fig.get_size_inches()
     title = fig.get_suptitle()
+    if not FIXED_LAYOUT:
+        _thin_ticks(fig)
+        return fig
     if title:
         text = next(t for t in fig.texts if t.get_text() == title)
         size = text.get_fontsize() / 72.0                    # points -> inches
@@ -102,6 +120,12 @@ def _arrange(fig, rows=1, cols=1, left=0.8, right=0.25, bottom=0.55, top=0.3, ws
     cell_h = max((h - top - bottom - (rows - 1) * hspace) / rows, 0.3)
     fig.subplots_adjust(left=left / w, right=1.0 - right / w, bottom=bottom / h,
                         top=1.0 - top / h, wspace=wspace / cell_w, hspace=hspace / cell_h)
+    _thin_ticks(fig)
+    return fig
+
+
+def _thin_ticks(fig):
+    """Give linear axes 3-5 major ticks and keep every axis' ticks inside its view."""
     for ax in fig.axes:
         for axis in (ax.xaxis, ax.yaxis):
             loc = axis.get_major_locator()
@@ -110,72 +134,7 @@ def _arrange(fig, rows=1, cols=1, left=0.8, right=0.25, bottom=0.55, top=0.3, ws
                     nbins=3, steps=[1, 2, 5, 10], min_n_ticks=3)))
             elif type(loc) is LogLocator:
                 axis.set_major_locator(_InView(loc))
-    _place_axis_labels(fig)
     return fig
-
-
-def _text_size(fig, renderer, text, prop, memo):
-    """
-    Return the width and height of a tick label as drawn, points.
-
-    One line: the renderer's text metrics, at least as tall and deep as 'lp' (as Text lays
-    a line out).  Several lines: a Text's own extent (the line spacing rule is
-    matplotlib's, and changed in 3.11).  ``memo``: a dict of the sizes measured so far
-    (the same labels recur on every panel).
-    """
-    key = (text, prop)
-    if key not in memo:
-        if '\n' in text:
-            box = Text(0.0, 0.0, text, fontproperties=prop,
-                       figure=fig).get_window_extent(renderer)
-            memo[key] = box.width, box.height
-        else:
-            w, h, d = renderer.get_text_width_height_descent(text, prop, ismath=False)
-            if ('lp', None, prop) not in memo:
-                memo['lp', None, prop] = renderer.get_text_width_height_descent(
-                    'lp', prop, ismath=False)
-            _, lp_h, lp_d = memo['lp', None, prop]
-            memo[key] = w, max(h - d, lp_h - lp_d) + max(d, lp_d)
-    return tuple(v * 72.0 / fig.dpi for v in memo[key])
-
-
-def _place_axis_labels(fig):
-    """
-    Put each x label below its tick labels and each y label left of them, once.
-
-    Matplotlib places an axis label at every draw from the extents of the tick labels,
-    locating, formatting and measuring the ticks a second time (a tenth of the drawing of a
-    panel).  The layout is final here, so the same rule is applied once: the tick mark and
-    its pad, the tallest (x) or widest (y) tick label, then the label's own pad, all from
-    the axis' own settings and the text metrics of the canvas's renderer.
-    """
-    renderer = fig.canvas.get_renderer()
-    memo = {}
-    for ax in fig.axes:
-        if not ax.axison:
-            continue
-        for axis, side in ((ax.xaxis, 'bottom'), (ax.yaxis, 'left')):
-            if axis.get_label_position() != side:
-                continue
-            lo, hi = sorted(axis.get_view_interval())
-            locs = [v for v in axis.get_major_locator()() if lo <= v <= hi]
-            tick = axis.majorTicks[0]
-            pad = 0.0
-            if locs and tick.tick1line.get_visible():
-                pad += tick.get_tick_padding()
-            if locs and tick.label1.get_visible():
-                pad += tick.get_pad()
-                prop = tick.label1.get_fontproperties()
-                labels = axis.get_major_formatter().format_ticks(locs)
-                pad += max((_text_size(fig, renderer, s, prop, memo)[side == 'bottom']
-                            for s in labels if s), default=0.0)
-            pad = (pad + axis.labelpad) / 72.0                          # points -> inches
-            if side == 'bottom':
-                axis.set_label_coords(0.5, 0.0, ax.transAxes + ScaledTranslation(
-                    0.0, -pad, fig.dpi_scale_trans))
-            else:
-                axis.set_label_coords(0.0, 0.5, ax.transAxes + ScaledTranslation(
-                    -pad, 0.0, fig.dpi_scale_trans))
 
 
 def _cell_width(fig, cols=1, left=0.8, right=0.25, wspace=1.0):
@@ -232,7 +191,7 @@ def _bottom_legend(fig, fontsize=7):
     """
     handles, labels = fig.axes[0].get_legend_handles_labels()
     ncol = max(1, min(len(labels), int(fig.get_figwidth() / 2.3)))
-    fig.legend(handles, labels, loc='lower center', ncol=ncol, fontsize=fontsize,
+    fig.legend(handles, labels, loc=_BOTTOM(), ncol=ncol, fontsize=fontsize,
                frameon=False, markerscale=2)
     return 0.55 + 0.2 * int(np.ceil(len(labels) / ncol))      # the bottom margin it needs
 
@@ -254,47 +213,19 @@ def _title(ax, text, **kwargs):
     ax.set_title(text, y=1.0, **kwargs)
 
 
-def _png(fig):
-    """Draw the figure on its Agg canvas and return it as PNG bytes (:func:`png_bytes`)."""
+def figure_png(fig):
+    """
+    Draw the figure on its Agg canvas and return it as PNG bytes.
+
+    Pillow's encoder at zlib level 1 (``compress_level=1``): its default level 6 took 1.7 x
+    as long for 3 % smaller files (bench/report_layout.py).
+    """
+    from PIL import Image
     fig.canvas.draw()
-    return png_bytes(np.asarray(fig.canvas.buffer_rgba())[..., :3])
-
-
-def png_bytes(rgb):
-    """
-    Encode an 8-bit RGB image as PNG (ISO/IEC 15948: IHDR, one IDAT, IEND).
-
-    Every row with the 'Up' filter (type 2, the difference from the row above), deflated at
-    zlib level 1.  Pillow (behind ``savefig``) tries the five filters on every row and took
-    2-2.5 x as long for a file of the same size; a plot is mostly rows that repeat the one
-    above (white space, axes, horizontal lines), which 'Up' turns into zeros.
-
-    Parameters
-    ----------
-    rgb : numpy.ndarray
-        (H, W, 3) uint8 image, rows from the top.
-
-    Returns
-    -------
-    bytes
-        The PNG file.
-
-    """
-    rgb = np.ascontiguousarray(rgb, dtype=np.uint8)
-    h, w, _ = rgb.shape
-    rows = rgb.reshape(h, 3 * w)
-    scan = np.empty((h, 3 * w + 1), np.uint8)
-    scan[:, 0] = 2                                  # filter type of each row: Up
-    scan[:1, 1:] = rows[:1]
-    np.subtract(rows[1:], rows[:-1], out=scan[1:, 1:])     # modulo 256, as the filter is
-
-    def chunk(tag, body):
-        return (struct.pack('>I', len(body)) + tag + body
-                + struct.pack('>I', zlib.crc32(tag + body)))
-    # width, height, bit depth 8, colour type 2 (RGB), deflate, adaptive filtering, no interlace
-    header = struct.pack('>IIBBBBB', w, h, 8, 2, 0, 0, 0)
-    return (b'\x89PNG\r\n\x1a\n' + chunk(b'IHDR', header)
-            + chunk(b'IDAT', zlib.compress(scan, 1)) + chunk(b'IEND', b''))
+    buf = io.BytesIO()
+    Image.fromarray(np.asarray(fig.canvas.buffer_rgba())[..., :3]).save(
+        buf, 'PNG', compress_level=1)
+    return buf.getvalue()
 
 
 def _thin(n):
@@ -504,6 +435,174 @@ def plot_residual_time(data, result, floor):
     _suptitle(fig, f'Residual over time (model {",".join(compact_spec(result.model))})',
               fontsize=11)
     return _arrange(fig, s, 1, top=0.05, hspace=0.12, **margins)
+
+
+def adopted_fit(data, diagnosis, ladder=None):
+    """
+    Return the fit of the model with the verdict's term added, or None without a verdict.
+
+    The ladder's next rung when it added that term, else a refit (the base model plus the
+    verdict token, on the base fit's reference magnitude).  None also when the refit fails
+    (the structure figure then shows the residual without the term).
+    """
+    tok = diagnosis.verdict_token if diagnosis is not None else None
+    if not tok:
+        return None
+    if ladder is not None and len(ladder.steps) > 1 and ladder.steps[1].added == tok:
+        return ladder.steps[1].result
+    from magcal_ros.core.model import fit, Model
+    base = diagnosis.result
+    try:
+        model = Model.from_spec(list(base.model.spec()) + [tok], data.n_sensors)
+        return fit(data, model, field_nt=base.field_magnitude_nt, on_degenerate='flag',
+                   check_identifiability=False, covariance=False)
+    except (ValueError, np.linalg.LinAlgError):
+        return None
+
+
+def verdict_driver(data, token, j, term=None):
+    """
+    Return what the verdict's term follows on sensor j: (name, axis label, (N,) values).
+
+    A channel named in the token (the sensor's temperature, an auxiliary column), the phase
+    of a periodic term, |d raw / dt| for the field rate, the raw component a direction term
+    (nonlinearity, soft iron) varies with most (``term``: its (N,) scalar fit), else time.
+    """
+    t = data.t - data.t[0]
+    if not token:
+        return 'time', 'time since start (s)', t
+    if 'temperature' in token and data.temp is not None:
+        return 'temperature', f'sensor {j} temperature (degC)', data.temp[j - 1]
+    for name in sorted(data.aux or {}, key=len, reverse=True):
+        if name in token:
+            return name, f'{name} (channel unit)', data.aux[name]
+    m = re.search(r'periodic\(([0-9.eE+-]+)', token)
+    if m:
+        period = 1.0 / float(m.group(1))
+        return 'phase', f'phase of the {period:.4g} s period (cycles)', (t / period) % 1.0
+    if 'field_rate' in token:
+        rate = data.context(j).raw_rate
+        if rate is not None:
+            return 'field rate', '|d raw / dt| (nT/s)', np.linalg.norm(rate, axis=1)
+    if any(e in token for e in ('nonlinearity', 'soft_iron')):
+        raw = data.raw[j - 1]
+        k = 0
+        if term is not None and np.std(term) > 0:
+            k = int(np.argmax([abs(np.corrcoef(raw[:, c], term)[0, 1]) for c in range(3)]))
+        return f'raw {"xyz"[k]}', f'raw {"xyz"[k]} reading (nT)', raw[:, k]
+    return 'time', 'time since start (s)', t
+
+
+def plot_structure(data, result, floor, diagnosis=None, adopted=None, findings=None):
+    """
+    Draw the residual per sensor, scalar and vector, over time and against the driver.
+
+    One row per sensor: the scalar residual |corrected| - |B| over time, the vector residual
+    (sensor j - sensor 1, x y z) over time, and the residual in the sensor's own axes (x y z)
+    against what the verdict follows (:func:`verdict_driver`; without a verdict, the channel
+    of the largest finding, if it names one).  Over each, in red or black, the adopted term's
+    fit: what adding the verdict changes in that residual (``result`` minus ``adopted``), so
+    the term is seen against the structure it is meant to take out.  The noise floor is
+    dashed.
+    """
+    s = data.n_sensors
+    token = diagnosis.verdict_token if diagnosis is not None else None
+    chan = None
+    if not token and findings is not None:
+        chan = next((f.channel for f in findings.items if f.channel), None)
+    cols = 3 if (token or chan) else 2
+    fig = _figure(4.6 * cols, 2.3 * s + 0.9)
+    t = data.t - data.t[0]
+    margins = {'left': 0.9, 'wspace': 0.9}
+    px = _columns(fig, cols, **margins)
+    axes = fig.subplots(s, cols, squeeze=False)
+    ratio = {j: v / floor.per_sensor_nt[j - 1] for j, v in result.scalar_rms_nt.items()}
+    for j in range(1, s + 1):
+        scalar = result.scalar_residual_nt[j - 1]
+        term = None if adopted is None else scalar - adopted.scalar_residual_nt[j - 1]
+        ax = axes[j - 1, 0]
+        idx = _scatter_idx(len(t), scalar, columns=px)
+        ax.plot(t[idx], scalar[idx], '.', ms=1.2, color='0.55', label='scalar residual')
+        if term is not None:
+            e = _envelope(term, px)
+            ax.plot(t[e], term[e], '-', lw=1.0, color='tab:red',
+                    label=f'fit of {token} (what it takes out)')
+        _floor_lines(ax, floor.per_sensor_nt[j - 1])
+        after = ('' if adopted is None else
+                 f' -> {adopted.scalar_rms_nt[j]:.2f} nT with {token}')
+        _title(ax, f'sensor {j}: scalar RMS {result.scalar_rms_nt[j]:.2f} nT '
+               f'({ratio[j]:.2f} x floor){after}', fontsize=8, loc='left')
+        ax.set_ylabel('scalar (nT)')
+        ax.set_xlabel('time since start (s)')
+        ax = axes[j - 1, 1]
+        if j == 1:
+            ax.text(0.5, 0.5, 'sensor 1 defines the array frame:\nthe vector residuals of the '
+                    'others are taken against it', ha='center', va='center', fontsize=8,
+                    transform=ax.transAxes)
+            ax.set_axis_off()
+        else:
+            vec = result.vector_residual_nt[j - 1]
+            for c in range(3):
+                _band(ax, t, vec[:, c], px, color=COMPONENT_COLOURS[c], alpha=0.45,
+                      label=f'vector {"xyz"[c]} (sensor j - sensor 1)')
+            if adopted is not None:
+                vt = vec - adopted.vector_residual_nt[j - 1]
+                e = _envelope(vt, px)
+                for c in range(3):
+                    ax.plot(t[e], vt[e, c], '-', lw=0.9, color='k',
+                            label='fit of the term, x y z' if c == 0 else None)
+            _floor_lines(ax, floor.vector_floor_nt(j))
+            vr = result.vector_rms_nt.get(j, float('nan'))
+            _title(ax, f'sensor {j} - sensor 1: vector RMS {vr:.2f} nT', fontsize=8,
+                   loc='left')
+            ax.set_ylabel('vector (nT)')
+            ax.set_xlabel('time since start (s)')
+        if cols == 3:
+            ax = axes[j - 1, 2]
+            if token:
+                name, xlabel, x = verdict_driver(data, token, j, term)
+            else:
+                name, xlabel = chan, f'{chan} (channel unit)'
+                x = (data.temp[j - 1] if chan == 'temperature' and data.temp is not None
+                     else (data.aux or {}).get(chan))
+            if x is None or not np.isfinite(x).any():
+                ax.text(0.5, 0.5, f'no {name} on sensor {j}', ha='center', va='center',
+                        transform=ax.transAxes)
+                ax.set_axis_off()
+                continue
+            # the residual in the sensor's own axes: an additive term shows whole here,
+            # not projected on a field direction that turns with the attitude
+            idx = _thin(len(x))
+            raw_res = result.residual_nt[j - 1]
+            for c in range(3):
+                ax.plot(x[idx], raw_res[idx, c], '.', ms=1.0, alpha=0.5,
+                        color=COMPONENT_COLOURS[c], label=f'residual {"xyz"[c]}, sensor axes')
+            if adopted is not None and j in _token_sensors(token, s):
+                rt = raw_res - adopted.residual_nt[j - 1]
+                for c in range(3):
+                    ax.plot(x[idx], rt[idx, c], '.', ms=0.6, color='k')
+            _floor_lines(ax, floor.per_sensor_nt[j - 1])
+            _title(ax, f'sensor {j}: residual x y z vs {name}', fontsize=8, loc='left')
+            ax.set_ylabel('sensor axes (nT)')
+            ax.set_xlabel(xlabel)
+    handles, labels = [], []
+    for ax in axes.ravel():
+        for h, lab in zip(*ax.get_legend_handles_labels()):
+            if lab not in labels:
+                handles.append(h)
+                labels.append(lab)
+    ncol = max(1, min(len(labels), int(fig.get_figwidth() / 3.2)))
+    fig.legend(handles, labels, loc=_BOTTOM(), ncol=ncol, fontsize=7, frameon=False,
+               markerscale=3)
+    bottom = 0.55 + 0.2 * int(np.ceil(len(labels) / ncol))
+    head = (f'verdict {token}: its fit (red, black) drawn over the residual it explains'
+            if token and adopted is not None else
+            f'verdict {token} (its fit could not be drawn)' if token else
+            'no verdict: the residual as it is'
+            + (f', against {chan} (a finding names it)' if chan else ''))
+    _suptitle(fig, f'Residual per sensor over time and against the driver; {head} '
+              f'(model {",".join(compact_spec(result.model))})', fontsize=10)
+    return _arrange(fig, s, cols, bottom=bottom, hspace=0.85, **margins)
 
 
 def _driver_panels(data, result, floor, drivers, title, xlabel):
@@ -1144,8 +1243,20 @@ def _implicated(data, diagnosis, ladder, findings):
     return tokens, kinds, channels
 
 
+#: candidates shown in the page's table; the rest are folded away in a <details>
+TOP_CANDIDATES = 10
+
 #: what a figure shows and how to read it, printed under it on the page (view name -> text)
 CAPTIONS = {
+    'structure': 'Each row one sensor.  Left: the scalar residual |corrected| - |B| over time '
+                 "(grey dots) and, in red, what the verdict's term takes out of it (the "
+                 'residual without the term minus the residual with it).  Middle: the vector '
+                 "residual against sensor 1 (x y z bands) and the term's share (black).  "
+                 "Right: the residual in the sensor's own axes (x y z) against what the term "
+                 'follows (a channel, the phase of a period, the field rate, a field '
+                 'component), the term in black on the sensors it applies to.  Dashed: the '
+                 'noise floor.  What is left around the red and black is what the term does '
+                 'not explain.',
     'magnitude': 'Measured |raw| (grey) and modelled |A B + o + ...| (blue) magnitude minus '
                  'the reference magnitude |B|, per sensor; each title gives the mean offset '
                  'of the raw readings.  The residual is the small difference between the '
@@ -1220,7 +1331,8 @@ def _plan(data, result, floor, diagnosis, ladder, found, baseline_m, every):
     selected = {
         'residual_temperature': bool(temp_sel),
         'residual_aux': bool(aux_sel),
-        'residual_rate': any('field_rate' in t for t in tokens),
+        'residual_rate': (any('field_rate' in t for t in tokens)
+                          or 'field_rate' in channels),
         'residual_direction': ('direction' in kinds
                                or any(e in t for t in tokens
                                       for e in ('nonlinearity', 'soft_iron'))),
@@ -1228,6 +1340,9 @@ def _plan(data, result, floor, diagnosis, ladder, found, baseline_m, every):
         'residual_lagged': bool(kinds & {'lag', 'channel', 'channel_nonlinear'}),
     }
     views = [
+        ('structure', 'Residual per sensor: over time and against the driver of the verdict',
+         lambda: plot_structure(data, result, floor, diagnosis, adopted_fit(
+             data, diagnosis, ladder), found)),
         ('magnitude', 'Measured vs modelled magnitude', lambda: plot_magnitude(data, result)),
         ('residual_time', 'Residual over time',
          lambda: plot_residual_time(data, result, floor)),
@@ -1281,6 +1396,17 @@ def _plan(data, result, floor, diagnosis, ladder, found, baseline_m, every):
             plan.append((None, f'Residual vs {", ".join(others)}', None,
                          f'nothing points at them (drawn for {SELECTED_VIEWS["residual_aux"]})'))
     return plan
+
+
+def default_views(data, diagnosis, ladder=None, baseline_m=0.5):
+    """
+    Return the views ``write_report`` draws by default: [(name, make)], page order.
+
+    ``make()`` returns the matplotlib Figure (or None when the data do not allow it).
+    """
+    plan = _plan(data, diagnosis.result, diagnosis.noise_floor, diagnosis, ladder,
+                 diagnosis.findings, baseline_m, False)
+    return [(name, make) for name, _, make, _ in plan if make is not None]
 
 
 def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseline_m=0.5,
@@ -1348,31 +1474,12 @@ def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseli
     if data.meta.get('synthetic_time'):
         parts.append(f'<p>The data have no time column: the time axis is synthetic, at an '
                      f'assumed {data.meta.get("assumed_rate_hz")} Hz.</p>')
-    if diagnosis is not None:
-        v = diagnosis.verdict_token
-        parts.append(f'<p class="verdict">verdict: <b>{html.escape(v or "none")}</b> — '
-                     f'{html.escape(diagnosis.verdict_reason)}</p>')
-        parts.append('<h2>Candidate effects</h2>'
-                     + _table(candidate_rows(diagnosis), CANDIDATE_HEADER))
-        if diagnosis.not_testable:
-            parts.append('<p>not testable:</p><ul>' + ''.join(
-                f'<li>{html.escape(t)}: {html.escape(r)}</li>'
-                for t, r in diagnosis.not_testable) + '</ul>')
-        parts.append('<h2>Summary</h2><pre>' + html.escape(diagnosis.summary()) + '</pre>')
-    parts.append('<h2>Findings (model-free: what is left)</h2>' + (
-        _table(finding_rows(found), FINDING_HEADER) if found.items
-        else '<p>none: no line, step, lag, trend, attitude pattern, gradient or heavy tail '
-             'above the false-alarm and effect-size thresholds</p>'))
-    if ladder is not None:
-        parts.append('<h2>Error ladder</h2><pre>' + html.escape(ladder.table()) + '</pre>'
-                     + f'<p class="verdict">ladder stopped: {html.escape(ladder.reason)}</p>')
-    parts.append('<h2>Fit</h2><pre>' + html.escape(result.summary()) + '</pre>')
     images, skipped = [], []
     pngs = []
     with matplotlib.rc_context(RC):          # the figures' text measured and drawn alike
         for _, _, make, _ in plan:
             fig = None if make is None else make()
-            pngs.append(None if fig is None else _png(fig))
+            pngs.append(None if fig is None else figure_png(fig))
     for (name, heading, _, why), png in zip(plan, pngs):
         if png is None:
             skipped.append((heading, why or 'the data do not allow it (too few epochs)'))
@@ -1382,9 +1489,36 @@ def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseli
                    if name in CAPTIONS else '')
         images.append(f'<h2>{html.escape(heading)}</h2>{caption}<img alt="{name}" '
                       f'src="data:image/png;base64,{base64.b64encode(png).decode("ascii")}">')
+    # the structure first: the verdict, the residual it explains, then the evidence
+    if diagnosis is not None:
+        v = diagnosis.verdict_token
+        parts.append(f'<p class="verdict">verdict: <b>{html.escape(v or "none")}</b> — '
+                     f'{html.escape(diagnosis.verdict_reason)}</p>')
+    if images and images[0].split('<img alt="', 1)[1].startswith('structure"'):
+        parts.append(images.pop(0))
+    if diagnosis is not None:
+        rows = candidate_rows(diagnosis)
+        parts.append(f'<h2>Candidate effects: the {min(len(rows), TOP_CANDIDATES)} best</h2>'
+                     + _table(rows[:TOP_CANDIDATES], CANDIDATE_HEADER))
+        if len(rows) > TOP_CANDIDATES:
+            parts.append(f'<details><summary>{len(rows) - TOP_CANDIDATES} more candidates, '
+                         'with less evidence</summary>'
+                         + _table(rows[TOP_CANDIDATES:], CANDIDATE_HEADER) + '</details>')
+        if diagnosis.not_testable:
+            parts.append('<p>not testable:</p><ul>' + ''.join(
+                f'<li>{html.escape(t)}: {html.escape(r)}</li>'
+                for t, r in diagnosis.not_testable) + '</ul>')
+    parts.append('<h2>Findings (model-free: what is left)</h2>' + (
+        _table(finding_rows(found), FINDING_HEADER) if found.items
+        else '<p>none: no line, step, lag, trend, attitude pattern, gradient or heavy tail '
+             'above the false-alarm and effect-size thresholds</p>'))
+    if ladder is not None:
+        parts.append('<h2>Error ladder</h2><pre>' + html.escape(ladder.table()) + '</pre>'
+                     + f'<p class="verdict">ladder stopped: {html.escape(ladder.reason)}</p>')
     if unexplained:
         parts.append('<p class="views">Every view is drawn: the residual is above the noise '
                      'floor and neither a verdict nor a finding names the cause.</p>')
+    parts += images
     if skipped:
         parts.append('<h2>Views not drawn</h2><ul class="omitted">' + ''.join(
             f'<li>{html.escape(heading)}: {html.escape(why)}</li>' for heading, why in skipped)
@@ -1392,7 +1526,11 @@ def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseli
                          '<p>Every view: <code>--figures all</code> (<code>magcal diagnose '
                          '--report</code>, <code>magcal report</code>) or '
                          "<code>write_report(..., figures='all')</code>.</p>"))
-    parts += images
+    if diagnosis is not None:
+        parts.append('<details><summary>Summary (as printed by magcal diagnose)</summary><pre>'
+                     + html.escape(diagnosis.summary()) + '</pre></details>')
+    parts.append('<details><summary>Fit</summary><pre>' + html.escape(result.summary())
+                 + '</pre></details>')
     parts.append('</body></html>')
     index = out / 'index.html'
     index.write_text('\n'.join(parts), encoding='utf-8')

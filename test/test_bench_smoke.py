@@ -42,6 +42,7 @@ CASES = {
                     'lemi025', '--node-duration', '1', '--node-warmup', '0.5'],
     'workbench': ['--sizes', '300', '--before', 'none', '--no-ladder'],
     'pairing': ['--epochs', '1500', '--repeats', '1'],
+    'report_layout': ['--n', '600', '--repeat', '1'],
     'grammar_speed': ['--n', '300', '--repeat', '1', '--pairs', '2'],
 }
 
@@ -133,6 +134,14 @@ def test_workbench(tmp_path):
     case = doc['results']['cases'][0]
     assert case['n'] == 300 and 'before' not in case
     assert case['after']['diagnose_s'] > 0 and case['after']['report_s'] > 0
+
+
+def test_report_layout(tmp_path):
+    doc = _run('report_layout', tmp_path)
+    best = doc['results']['cpu_s_best']
+    assert set(best) == {'fixed margins (the report)', 'constrained layout',
+                         'Pillow level 1 (the report)', 'Pillow level 6 (default)'}
+    assert all(v > 0 for v in best.values())
 
 
 def test_pairing(tmp_path):

@@ -20,6 +20,7 @@ simulator are published to it over DDS (test/sim_feed.py). The simulated sensors
 errors of paper 004 Table 1 and 3 nT of white noise per axis, so the tolerances below are
 derived from that noise.
 """
+import copy
 import json
 import os
 
@@ -236,6 +237,27 @@ def test_too_few_samples(make_node, ros_node, ros_executor, ros_namespace, tmp_p
     assert not resp.success
     assert 'only 100 complete sample sets collected, need at least 800' in resp.message
     assert not (tmp_path / 'cal' / 'calibration.yaml').exists()
+
+
+def test_clipped_axis_is_named_in_the_reply_and_left_out(
+        make_node, ros_node, ros_executor, ros_namespace, tmp_path, tumbling):
+    # sensor 1's x axis clipped at its measuring range in 6 % of the sets (issue 22, item
+    # 7): the node calibrates the rest and its reply names the clipped readings
+    data = copy.deepcopy(tumbling)
+    x = data.raw[0, :, 0]
+    lim = np.quantile(np.abs(x), 0.94)
+    n_clipped = int((np.abs(x) >= lim).sum())
+    data.raw[0, :, 0] = np.clip(x, -lim, lim)
+    node = start_node(make_node, ros_namespace, tmp_path)
+    resp = feed_and_calibrate(node, ros_node, ros_executor, data)
+    assert resp.success, resp.message
+    lines, out = split(resp)
+    assert out['readings_left_out']['sets_left_out'] == n_clipped == 60
+    (line,) = [ln for ln in lines if ln.startswith('warning [readings]:')]
+    assert line.startswith('warning [readings]: sensor 1 axis x: clipped at')
+    assert f'{n_clipped} of {data.n_samples} sets that hold them are left out' in line
+    for j in '1234':           # the same tolerance as for the whole record (test above)
+        assert 0.85 * NOISE_NT < out['scalar_rms_after_nt'][j] < 1.15 * NOISE_NT
 
 
 def _set(client, executor, **params):

@@ -100,7 +100,7 @@ def test_write_report_self_contained(case, tmp_path):
     index = report.write_report(tmp_path / 'rep', data, diagnosis=lad.steps[0].diagnosis,
                                 ladder=lad, figures='all')
     text = index.read_text()
-    names = ('magnitude', 'residual_time', 'residual_temperature', 'residual_aux',
+    names = ('structure', 'magnitude', 'residual_time', 'residual_temperature', 'residual_aux',
              'residual_rate', 'residual_direction', 'tensor', 'candidates', 'ladder',
              'ladder_rungs', 'residual_spectrum', 'change_points', 'residual_lagged')
     imgs = re.findall(r'<img alt="(\w+)" src="data:image/png;base64,([A-Za-z0-9+/=]+)"', text)
@@ -142,8 +142,8 @@ def test_report_draws_the_views_the_diagnosis_points_at(case, tmp_path):
     index = report.write_report(tmp_path, data, diagnosis=lad.steps[0].diagnosis, ladder=lad)
     text = index.read_text()
     drawn = re.findall(r'<img alt="(\w+)"', text)
-    always = ['magnitude', 'residual_time', 'tensor', 'candidates', 'ladder', 'ladder_rungs',
-              'residual_spectrum']
+    always = ['structure', 'magnitude', 'residual_time', 'tensor', 'candidates', 'ladder',
+              'ladder_rungs', 'residual_spectrum']
     assert [n for n in drawn if n in always] == always
     assert 'residual_aux' in drawn
     for name in ('residual_temperature', 'residual_rate', 'residual_direction',
@@ -167,6 +167,67 @@ def test_report_draws_the_views_the_diagnosis_points_at(case, tmp_path):
     assert _omitted(full) == {}
     with pytest.raises(ValueError, match="'relevant' or 'all'"):
         report.write_report(tmp_path, data, diagnosis=lad.steps[0].diagnosis, figures='some')
+
+
+def test_report_opens_with_the_structure_then_ten_candidates(case, tmp_path):
+    # issue 18, item 5: the verdict, the residual it explains, the ten best candidates (the
+    # rest folded away), then the findings and the other views
+    data, lad = case
+    diag = lad.steps[0].diagnosis
+    text = report.write_report(tmp_path, data, diagnosis=diag, ladder=lad).read_text()
+    order = [text.index(m) for m in (
+        'class="verdict"', '<img alt="structure"', '<h2>Candidate effects: the 10 best</h2>',
+        f'<details><summary>{len(diag.candidates) - 10} more candidates',
+        '<h2>Findings', '<img alt="magnitude"', '<h2>Views not drawn</h2>',
+        '<details><summary>Summary')]
+    assert order == sorted(order)
+    assert len(diag.candidates) > 10
+    top = re.search(r'the 10 best</h2><table>(.*?)</table>', text).group(1)
+    rows = re.findall(r'<tr><td>(.*?)</td>', top)
+    assert rows == [c.token for c in diag.candidates[:10]]
+    folded = re.search(r'more candidates, with less evidence</summary><table>(.*?)</table>',
+                       text).group(1)
+    assert re.findall(r'<tr><td>(.*?)</td>', folded) == [c.token for c in diag.candidates[10:]]
+
+
+def test_structure_draws_the_adopted_term_over_the_residual(case):
+    # the verdict couples the motor current into sensor 3: its row shows the scalar residual
+    # over time with the term's fit (base residual minus the residual with the term), the
+    # vector residual, and the residual against the motor current
+    data, lad = case
+    diag = lad.steps[0].diagnosis
+    base, adopted = diag.result, lad.steps[1].result
+    assert lad.steps[1].added == diag.verdict_token == 'aux:aux_motor_current@3'
+    fig = report.plot_structure(data, base, diag.noise_floor, diag, adopted, diag.findings)
+    axes = np.array(fig.axes).reshape(4, 3)
+    t = data.t - data.t[0]
+    term = base.scalar_residual_nt[2] - adopted.scalar_residual_nt[2]
+    (line,) = [ln for ln in axes[2, 0].get_lines()
+               if ln.get_label().startswith('fit of aux:aux_motor_current@3')]
+    x, y = line.get_data()
+    k = np.searchsorted(t, x)
+    assert np.allclose(y, term[k])
+    # the term takes out the excess: base residual = term + white noise at the floor, so
+    # its RMS is sqrt(RMS_before^2 - floor^2), to the 10 % the floor is known to over 2000
+    # epochs (the floor's own sd is ~2 %, the remaining misfit is below the floor)
+    fl = diag.noise_floor.per_sensor_nt[2]
+    excess = np.sqrt(base.scalar_rms_nt[3] ** 2 - fl ** 2)
+    assert abs(np.sqrt(np.mean(term ** 2)) / excess - 1) < 0.1
+    # the sensors without the term: its fit there is far below their floor
+    for j in (1, 2, 4):
+        other = base.scalar_residual_nt[j - 1] - adopted.scalar_residual_nt[j - 1]
+        assert np.sqrt(np.mean(other ** 2)) < 0.2 * diag.noise_floor.per_sensor_nt[j - 1]
+    assert axes[2, 2].get_xlabel() == 'aux_motor_current (channel unit)'
+    xd = axes[2, 2].get_lines()[0].get_xdata()
+    assert np.isin(xd, data.aux['aux_motor_current']).all()
+    assert axes[0, 1].axison is False                  # sensor 1: no vector residual
+    assert axes[2, 1].get_title(loc='left').startswith('sensor 3 - sensor 1: vector RMS')
+    assert 'verdict aux:aux_motor_current@3' in fig.get_suptitle()
+    # the driver of other kinds of verdict
+    assert np.array_equal(report.verdict_driver(data, 'temperature@2', 2)[2], data.temp[1])
+    name, label, phase = report.verdict_driver(data, 'periodic(0.25)@1', 1)
+    assert name == 'phase' and np.allclose(phase, (t * 0.25) % 1.0)
+    assert report.verdict_driver(data, 'drift@4', 4)[0] == 'time'
 
 
 def test_write_report_needs_a_result(tmp_path, case):

@@ -67,6 +67,7 @@ import time
 
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Twist
+from magcal_ros.core.data.readings import leave_out_unphysical
 from magcal_ros.core.effects.safety import culprit, EffectError, EffectErrors
 from magcal_ros.core.geometry.attitude import UNIT_TOLERANCE
 from magcal_ros.core.live.consistency import GROSS_FRACTION, resync
@@ -896,6 +897,7 @@ class CalibrationNode(Node):
             'warnings': summ['warnings'],
             'resync': resync_payload,
             'outlier_sets_excluded': summ.get('outlier_sets_excluded', 0),
+            'readings_left_out': summ.get('readings_left_out'),
         }
         after = summ['scalar_rms_nt']
         lines = [f'calibrated {n_sets} sets with model {",".join(s.model)}: total-field RMS '
@@ -980,7 +982,9 @@ class CalibrationNode(Node):
         model = Model.from_spec(list(s.model), self._n)
         data, resync_payload, _ = self._resync(data, epochs, s)
         try:
-            diag = diagnose(data, model, field_nt=s.field_nt, constrained=s.constrained,
+            # readings no field produces are named and left out, as in calibrate
+            data, field_nt, screen = leave_out_unphysical(data, s.field_nt)
+            diag = diagnose(data, model, field_nt=field_nt, constrained=s.constrained,
                             baseline_m=s.baseline_m)
         except ValueError as exc:
             reason, extra = self._named(exc, 'diagnose')
@@ -990,6 +994,7 @@ class CalibrationNode(Node):
         report = write_report(s.report_dir, data, diagnosis=diag, baseline_m=s.baseline_m)
         ranking['report'] = os.fspath(report)
         ranking['resync'] = resync_payload
+        ranking['readings_left_out'] = screen.to_dict()
         verdict = ranking.get('verdict') or {}
         if verdict.get('effect', 'none') == 'none':
             head = (f'nothing missing: model {",".join(ranking["model"])} explains the data '
@@ -1002,6 +1007,7 @@ class CalibrationNode(Node):
                 f'{f["kind"]}' + (f' (add {f["token"]})' if f.get('token') else '')
                 + ('' if f['sensor'] is None else f' on sensor {f["sensor"]}')
                 for f in ranking['findings'][:4]))
+        lines += [format_note(w) for w in screen.notes()]
         lines.append(f'HTML report: {ranking["report"]}')
         return True, '\n'.join(lines), ranking
 

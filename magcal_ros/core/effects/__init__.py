@@ -38,8 +38,9 @@ from magcal_ros.core.effects.base import (  # noqa: F401 - re-exported
     misalignment_matrix, NONLINEARITY_FULL_SCALE_NT, nonorthogonality_matrix, raw_rate,
     rot_r1, rot_r2, rot_r3, rq_positive, SensorContext, SIGNALS, upper_to_scale_nonorth)
 from magcal_ros.core.effects.catalog import (  # noqa: F401 - re-exported
-    Aux, AuxPoly, Drift, FieldRate, Lag, Misalignment, Nonlinearity, NonOrthogonality, Offset,
-    Periodic, QuadraticDrift, Scale, SiteGradient, SoftIron, Step, Temperature)
+    Aux, AuxPoly, axis_map_args, axis_map_matrix, AXIS_NAMES, AxisMap, Drift, FieldRate, Lag,
+    Misalignment, Nonlinearity, NonOrthogonality, Offset, Periodic, QuadraticDrift, Scale,
+    SiteGradient, SoftIron, Step, Temperature)
 from magcal_ros.core.effects.registry import (  # noqa: F401 - re-exported
     BASE, BUILTIN_EFFECTS, effect_class, load_plugin, load_plugins, make_effect,
     needs_args, parse_token, register_effect, registered_effects, split_spec,

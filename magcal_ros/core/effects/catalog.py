@@ -35,6 +35,69 @@ import numpy as np
 # -- linear effects -------------------------------------------------------------------------
 
 
+AXIS_NAMES = ('x', 'y', 'z')
+
+
+def axis_map_matrix(args):
+    """
+    (3, 3) signed permutation M of an axis map: reading = M @ (the sensor element's axes).
+
+    ``args`` are three of 'x', '-x', 'y', '-y', 'z', '-z' (one per reading axis x, y, z,
+    each sensor axis once): ('-x', 'y', 'z') is an x axis read with reversed sign, ('y', 'x',
+    'z') the x and y readings exchanged.
+    """
+    m = np.zeros((3, 3))
+    for i, a in enumerate(args):
+        a = str(a).strip().lower().lstrip('+')
+        sign = -1.0 if a.startswith('-') else 1.0
+        name = a.lstrip('-')
+        if name not in AXIS_NAMES:
+            raise ValueError(f'axes(...): {a!r} is not one of x, -x, y, -y, z, -z')
+        m[i, AXIS_NAMES.index(name)] = sign
+    if len(args) != 3 or not np.allclose(np.abs(m).sum(axis=0), 1):
+        raise ValueError(f'axes({",".join(map(str, args))}): give each of x, y, z once, with '
+                         'an optional sign, for the readings x, y, z, e.g. axes(-x,y,z)')
+    return m
+
+
+def axis_map_args(m):
+    """Inverse of :func:`axis_map_matrix`: the three tokens of a (3, 3) signed permutation."""
+    out = []
+    for row in np.asarray(m):
+        k = int(np.argmax(np.abs(row)))
+        out.append(('-' if row[k] < 0 else '') + AXIS_NAMES[k])
+    return tuple(out)
+
+
+class AxisMap(Effect):
+    """
+    How the readings' axes are wired to the sensor's axes: a fixed signed permutation.
+
+    Token ``axes(-x,y,z)@j``: reading x is the sensor's x axis with reversed sign (a coil or
+    channel wired with reversed polarity, a mirrored mounting); ``axes(y,x,z)@j``: the x and
+    y readings exchanged.  No parameters: A_j = M S C_NO R (the left-most factor, next to the
+    reading), so scale and angles stay those of a real sensor (near 1, near 0) and the
+    correction A_j^-1 undoes the map.  Found by the calibration when a fitted A_j has
+    det < 0 or a negative scale (:mod:`magcal_ros.core.model.plausibility`).
+    """
+
+    name = 'axes'
+    kind = 'linear'
+    usage = 'axes(<+-x|y|z>,<+-x|y|z>,<+-x|y|z>)'
+    linear_order = -10
+
+    @classmethod
+    def from_args(cls, args, sensor=1):
+        m = axis_map_matrix(args)
+        eff = cls(sensor=sensor)
+        eff.map = m
+        eff.args = axis_map_args(m)
+        return eff
+
+    def matrix(self, p):
+        return self.map
+
+
 class Scale(Effect):
     """Per-axis scale factors kx, ky, kz (paper 004 eq. 2, S)."""
 

@@ -25,7 +25,7 @@ import importlib
 import sys
 
 from magcal_ros.core.effects.base import Effect
-from magcal_ros.core.effects.catalog import (Aux, AuxPoly, Drift, FieldRate, Lag,
+from magcal_ros.core.effects.catalog import (Aux, AuxPoly, AxisMap, Drift, FieldRate, Lag,
                                              Misalignment, Nonlinearity, NonOrthogonality,
                                              Offset, Periodic, QuadraticDrift, Scale,
                                              SiteGradient, SoftIron, Step, Temperature)
@@ -53,8 +53,8 @@ def unregister_effect(name):
     _REGISTRY.pop(name, None)
 
 
-for _cls in (Scale, NonOrthogonality, Misalignment, SoftIron, Offset, Temperature, Drift,
-             QuadraticDrift, Nonlinearity, FieldRate, Step, Periodic, Lag, AuxPoly,
+for _cls in (AxisMap, Scale, NonOrthogonality, Misalignment, SoftIron, Offset, Temperature,
+             Drift, QuadraticDrift, Nonlinearity, FieldRate, Step, Periodic, Lag, AuxPoly,
              SiteGradient):
     register_effect(_cls)
 

@@ -617,7 +617,8 @@ def initial_params(raw, field_nt, model, constrained=False):
     corrected = []
     mats = []
     for j in range(1, s + 1):
-        m = raw[j - 1]
+        # in the frame of the sensor's axes (an axes(...) map M: reading = M x that frame)
+        m = raw[j - 1] @ model.axis_map(j)
         if constrained:
             # |m|^2 = 2 m.o + (F^2 - |o|^2): linear in (o, c)
             design = np.column_stack([2 * m, np.ones(len(m))])
@@ -634,8 +635,9 @@ def initial_params(raw, field_nt, model, constrained=False):
         rot = np.eye(3)
         if j > 1 and model.frame_rotation(j):
             rot = procrustes_rotation(corrected[0], corrected[j - 1])       # eq. 14
-        a = np.linalg.inv(c_inv) @ rot.T
-        p = model.params_from_linear(j, a, o, p)
+        amap = model.axis_map(j)
+        a = amap @ np.linalg.inv(c_inv) @ rot.T
+        p = model.params_from_linear(j, a, amap @ o, p)
     return p
 
 

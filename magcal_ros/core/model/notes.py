@@ -29,6 +29,11 @@ Kinds used by the library:
 ``degenerate``      the data do not determine the model (flagged instead of refused);
 ``outliers``        sets excluded as garbage, or too many to be garbage;
 ``input``           the input looks wrong (units, ...);
+``readings``        readings no field produces (a pinned, clipped or repeating channel),
+                    left out of the fit (:mod:`magcal_ros.core.data.readings`);
+``mounting``        a sensor's axes mirrored, exchanged or turned, recorded as ``axes(...)``
+                    (:mod:`magcal_ros.core.model.plausibility`);
+``parameters``      fitted values no real sensor has (unit, gain, angle, offset mistakes);
 ``note``            anything else (a plain string).
 """
 

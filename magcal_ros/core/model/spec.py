@@ -443,6 +443,13 @@ class Model:
                 lin = raw - self.additive(j, p, ctx, lin)
         return lin @ a_inv.T
 
+    def axis_map(self, j):
+        """(3, 3) signed permutation of sensor j's ``axes(...)`` effect, identity without."""
+        for eff in self.effects[j - 1]:
+            if isinstance(eff, fx.AxisMap):
+                return eff.map
+        return np.eye(3)
+
     def params_from_linear(self, j, a, o, p=None):
         """
         Set sensor j's linear and offset parameters from A (3, 3) and o (3,) nT.
@@ -453,6 +460,8 @@ class Model:
         are dropped (their part of A is not representable).
         """
         p = self.default_params() if p is None else p.copy()
+        # a fixed axis map M (axes(...)) is the left-most factor: the rest is M^T A
+        a = self.axis_map(j).T @ np.asarray(a, float)
         parts = fx.decompose_linear(a, o)
         for eff, sl in zip(self.effects[j - 1], self.slices[j - 1]):
             share = eff.params_from_linear(parts)

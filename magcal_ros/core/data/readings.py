@@ -1,0 +1,400 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Readings no field produces, found before the fit: pinned, clipped, repeated channels.
+
+A magnetometer channel that stops following the field breaks a calibration in ways that the
+fit cannot name (a clipped axis of sensor 1 bends the reference frame of every other
+sensor's misalignment and shows up as "alpha@3 and alpha@4 are correlated").  Such readings
+are found here, per sensor and axis, and left out of the fit with one line that says what
+they are:
+
+``pinned``    one value holds most of the channel (a dead axis, an ADC that reports a fixed
+              code: the HMC5883L writes -4096 to an axis that overflowed);
+``clipped``   the channel sits at the extreme of its own range for a stretch: the field went
+              beyond the measuring range and the reading stopped there (every reading at that
+              value is suspect, not only the long stretches);
+``repeated``  the channel repeats its last reading for longer than its noise allows (a stalled
+              driver or transport re-sending the last sample).
+
+The method is the flat-line test of the QARTOD real-time quality-control manuals (U.S.
+IOOS, e.g. the in-situ temperature and salinity manual, 2020): a reading is flagged when it
+equals the previous ones for more than a given count.  QARTOD leaves the count to the
+operator; here it is derived from the data so that a live, quantised channel is not flagged:
+
+- a channel reads r_k = Q(s_k + e_k) with quantisation step ``q`` (the smallest step between
+  its distinct values), white noise e ~ N(0, sigma_w^2) before quantisation and a signal s;
+  two consecutive readings are equal only if |e_k - e_(k-1) + (s_k - s_(k-1))| < q, which is
+  at most erf(q / (sqrt(3) sigma_w)) whatever the signal does (Delta s = 0 is the worst case;
+  sqrt(3) = 2 sqrt(0.75): given one small difference the next difference of white noise has
+  0.75 of its variance, the conservative conditional spread);
+- sigma_w^2 = sigma^2 - q^2 / 12, sigma the per-axis noise floor of the differences
+  (:func:`magcal_ros.core.data.noise.estimate_noise`), the median over the sensor's three axes (a
+  pinned axis has no noise of its own);
+- a logger that reads faster than the sensor updates repeats whole samples (all three axes
+  at once: the public HMC5883L recordings do so at 3 % of the epochs, legitimately); with
+  that duplicate rate ``d`` (the median over 20 blocks of the record, so a stalled stretch
+  does not raise it) a reading equals the previous one with probability at most
+  p = d + (1 - d) erf(q / (sqrt(3) sigma_w));
+- a run of L equal readings then has probability at most p^(L - 1) at each of N starts; runs
+  with N p^(L - 1) below ALPHA / (3 S) are flagged (family-wise level :data:`ALPHA` over the
+  3 S channels; at least :data:`MIN_RUN` readings).  On the HMC5883L recordings (quantum
+  91.7 nT, noise 1.5 quanta, 2 000-50 000 epochs) this asks for runs of 19-25 readings, where
+  the longest legitimate runs are 4-15; on 3 nT fluxgate data printed to 0.1 pT, 3.
+"""
+from dataclasses import dataclass, field
+from math import erf, sqrt
+
+from magcal_ros.core.data.noise import estimate_noise
+import numpy as np
+
+#: family-wise probability that a live channel of a record is flagged
+ALPHA = 1e-3
+#: a flagged stretch holds at least this many equal readings
+MIN_RUN = 3
+#: one value in at least this fraction of a channel's readings (in flagged runs): pinned
+PINNED_FRACTION = 0.5
+#: fewer than this fraction of the sets left after leaving the flagged ones out: refused
+MIN_KEPT_FRACTION = 0.5
+#: blocks over which the duplicate rate is taken (its median)
+DUPLICATE_BLOCKS = 20
+AXES = 'xyz'
+
+
+class UnphysicalReadingsError(ValueError):
+    """Too many readings no field produces to fit what is left: the message names them."""
+
+
+@dataclass(frozen=True)
+class SuspectChannel:
+    """
+    One channel's readings that no field produces.
+
+    Attributes
+    ----------
+    sensor : int
+        1-based sensor.
+    axis : str
+        'x', 'y' or 'z'.
+    kind : str
+        'pinned', 'clipped' or 'repeated'.
+    values_nt : tuple of float
+        The value it is pinned at, or the one or two values (top, bottom of its range) it
+        is clipped at, nT; empty for 'repeated' (each stretch repeats its own last reading).
+    count : int
+        Readings flagged.
+    n_samples : int
+        Readings of the channel.
+    stretches : tuple
+        ((t_start, t_end) s, ...) contiguous flagged stretches, in time order.
+    min_run : int
+        The shortest run of equal readings that is flagged on this channel.
+
+    """
+
+    sensor: int
+    axis: str
+    kind: str
+    values_nt: tuple
+    count: int
+    n_samples: int
+    stretches: tuple
+    min_run: int
+
+    def describe(self):
+        """Say what is wrong, in words (no sensor/axis prefix)."""
+        share = 100.0 * self.count / max(self.n_samples, 1)
+        where = _stretches_text(self.stretches)
+        vals = ' and '.join(f'{v:+.1f}' for v in self.values_nt)
+        if self.kind == 'pinned':
+            what = f'pinned at {vals} nT'
+        elif self.kind == 'clipped':
+            ends = 'both ends' if len(self.values_nt) > 1 else 'the end'
+            what = (f'clipped at {vals} nT ({ends} of its range: the field went beyond the '
+                    'measuring range)')
+        else:
+            what = (f'repeats its last reading (runs of {self.min_run} or more equal readings, '
+                    'more than its noise allows: a stalled driver or link)')
+        return f'{what} in {self.count} of {self.n_samples} readings ({share:.1f} %), {where}'
+
+    def to_dict(self):
+        """JSON-ready dict."""
+        return {'sensor': self.sensor, 'axis': self.axis, 'kind': self.kind,
+                'values_nt': list(self.values_nt), 'count': self.count,
+                'n_samples': self.n_samples,
+                'stretches_s': [list(s) for s in self.stretches], 'min_run': self.min_run}
+
+
+def _stretches_text(stretches, most=3):
+    parts = [f'{a:.1f} s' if b - a < 0.05 else f'{a:.1f}-{b:.1f} s' for a, b in stretches[:most]]
+    more = len(stretches) - most
+    head = ', '.join(parts) + (f' and {more} more stretch{"es" if more > 1 else ""}'
+                               if more > 0 else '')
+    return f'at t = {head}'
+
+
+@dataclass
+class ReadingScreen:
+    """
+    The screen of a record: which readings no field produces.
+
+    Attributes
+    ----------
+    flags : numpy.ndarray
+        (S, N, 3) bool, True where a reading is left out.
+    channels : list of SuspectChannel
+        One entry per flagged channel and kind, sensor and axis order.
+    min_run : numpy.ndarray
+        (S, 3) shortest flagged run per channel (a huge number where no run can be told
+        from a live channel: noise below the quantum and no duplicates model).
+    repeat_bound : numpy.ndarray
+        (S, 3) the bound p on the probability that a live reading equals the previous one.
+
+    """
+
+    flags: np.ndarray
+    channels: list = field(default_factory=list)
+    min_run: np.ndarray | None = None
+    repeat_bound: np.ndarray | None = None
+
+    @property
+    def keep(self):
+        """(N,) bool: the sets (epochs) in which no reading is flagged."""
+        return ~self.flags.any(axis=(0, 2))
+
+    @property
+    def n_left_out(self):
+        """Return the number of sets left out."""
+        return int((~self.keep).sum())
+
+    def lines(self):
+        """One line per flagged channel group (axes of a sensor with the same flags merged)."""
+        out = []
+        done = set()
+        for i, c in enumerate(self.channels):
+            if i in done:
+                continue
+            group = [c]
+            for k in range(i + 1, len(self.channels)):
+                o = self.channels[k]
+                if (o.sensor == c.sensor and o.kind == c.kind and o.count == c.count
+                        and o.stretches == c.stretches and c.kind == 'repeated'):
+                    group.append(o)
+                    done.add(k)
+            axes = ', '.join(g.axis for g in group)
+            label = f'axis {axes}' if len(group) == 1 else f'axes {axes}'
+            out.append((c.sensor, f'sensor {c.sensor} {label}: {c.describe()}'))
+        return out
+
+    def notes(self):
+        """:class:`~magcal_ros.core.model.notes.Note` s of kind ``readings``, one per line."""
+        from magcal_ros.core.model.notes import Note
+        n = self.flags.shape[1]
+        tail = (f'; no field produces these readings: the {self.n_left_out} of {n} sets that '
+                'hold them are left out of the fit')
+        return [Note(text + tail, 'readings', j) for j, text in self.lines()]
+
+    def to_dict(self):
+        """JSON-ready summary."""
+        return {'sets_left_out': self.n_left_out, 'sets': int(self.flags.shape[1]),
+                'channels': [c.to_dict() for c in self.channels]}
+
+
+def _runs(x):
+    """Start indices and lengths of the runs of equal consecutive values of x (N,)."""
+    change = np.flatnonzero(np.diff(x) != 0) + 1
+    starts = np.concatenate([[0], change])
+    lengths = np.diff(np.concatenate([starts, [len(x)]]))
+    return starts, lengths
+
+
+def _quantum(x):
+    """Smallest step between distinct values of x (nT), ignoring float jitter; 0 if none."""
+    u = np.unique(x)
+    if len(u) < 2:
+        return 0.0
+    d = np.diff(u)
+    tiny = 1e-9 * max(float(np.abs(u).max()), 1.0)
+    d = d[d > tiny]
+    return float(d.min()) if len(d) else 0.0
+
+
+def _duplicate_rate(raw_j):
+    """Median over blocks of the fraction of epochs repeating all three axes (raw_j (N, 3))."""
+    same = (np.diff(raw_j, axis=0) == 0).all(axis=1)
+    if len(same) < DUPLICATE_BLOCKS:
+        return float(np.mean(same)) if len(same) else 0.0
+    return float(np.median([b.mean() for b in np.array_split(same, DUPLICATE_BLOCKS)]))
+
+
+def repeat_bounds(raw):
+    """
+    Bound p on the probability that a live reading equals the previous one, per channel.
+
+    Parameters
+    ----------
+    raw : numpy.ndarray
+        (S, N, 3) readings, nT, in time order.
+
+    Returns
+    -------
+    numpy.ndarray
+        (S, 3) p in [0, 1] (module docstring: p = d + (1 - d) erf(q / (sqrt(3) sigma_w))).
+
+    """
+    s_count, n, _ = raw.shape
+    p = np.ones((s_count, 3))
+    if n < 16:
+        return p
+    sig = estimate_noise(raw.transpose(0, 2, 1).reshape(3 * s_count, n)).sigma
+    sig = sig.reshape(s_count, 3)
+    for j in range(s_count):
+        q = np.array([_quantum(raw[j, :, a]) for a in range(3)])
+        sw2 = sig[j] ** 2 - q ** 2 / 12.0
+        sw = float(np.median(np.sqrt(np.clip(sw2, 0.0, None))))
+        dup = _duplicate_rate(raw[j])
+        for a in range(3):
+            p0 = 1.0 if sw <= 0 else (erf(q[a] / (sqrt(3.0) * sw)) if q[a] > 0 else 0.0)
+            p[j, a] = min(1.0, dup + (1.0 - dup) * p0)
+    return p
+
+
+def min_flagged_run(p, n, n_channels, alpha=ALPHA):
+    """
+    Shortest run of equal readings improbable for a live channel.
+
+    N p^(L - 1) <= alpha / n_channels; at least :data:`MIN_RUN`; ``n + 1`` (never) when
+    p >= 1.
+    """
+    if p >= 1.0:
+        return n + 1
+    if p <= 0.0:
+        return MIN_RUN
+    need = np.log(alpha / (n_channels * max(n, 1))) / np.log(p)
+    return int(max(MIN_RUN, 1 + np.ceil(need)))
+
+
+def _stretches(t, mask):
+    """((t_start, t_end), ...) of the contiguous True stretches of mask (N,)."""
+    idx = np.flatnonzero(mask)
+    if not len(idx):
+        return ()
+    cut = np.flatnonzero(np.diff(idx) > 1)
+    first = np.concatenate([[idx[0]], idx[cut + 1]])
+    last = np.concatenate([idx[cut], [idx[-1]]])
+    return tuple((round(float(t[a]), 3), round(float(t[b]), 3)) for a, b in zip(first, last))
+
+
+def screen_readings(data, alpha=ALPHA):
+    """
+    Find the readings of ``data`` that no field produces (module docstring).
+
+    Parameters
+    ----------
+    data : Dataset
+        (S, N, 3) raw readings, nT, with times (N,) s.
+    alpha : float
+        Family-wise probability of flagging a live channel of the record.
+
+    Returns
+    -------
+    ReadingScreen
+
+    """
+    raw = np.asarray(data.raw, float)
+    s_count, n, _ = raw.shape
+    flags = np.zeros(raw.shape, bool)
+    p = repeat_bounds(raw)
+    min_run = np.full((s_count, 3), n + 1, int)
+    out = []
+    for j in range(s_count):
+        for a in range(3):
+            x = raw[j, :, a]
+            min_run[j, a] = lr = min_flagged_run(p[j, a], n, 3 * s_count, alpha)
+            if lr > n:
+                continue
+            starts, lengths = _runs(x)
+            long = lengths >= lr
+            if not long.any():
+                continue
+            values = x[starts[long]]
+            hi, lo = float(x.max()), float(x.min())
+            # pinned: one value holds most of the channel; clipped: runs at an extreme
+            vals, counts = np.unique(x, return_counts=True)
+            top = int(np.argmax(counts))
+            pinned = ()
+            if counts[top] >= PINNED_FRACTION * n and np.isin(vals[top], values):
+                pinned = (float(vals[top]),)
+            clipped = tuple(v for v in (hi, lo) if v not in pinned and np.isin(v, values))
+            for kind, special in (('pinned', pinned), ('clipped', clipped)):
+                if special:
+                    m = np.isin(x, special)
+                    flags[j, :, a] |= m
+                    out.append(SuspectChannel(j + 1, AXES[a], kind, special, int(m.sum()), n,
+                                              _stretches(data.t, m), lr))
+            special = pinned + clipped
+            rep = np.zeros(n, bool)
+            for s0, ln, v in zip(starts[long], lengths[long], values):
+                if float(v) not in special:
+                    rep[s0 + 1:s0 + ln] = True      # the first is the reading repeated
+            if rep.any():
+                flags[j, :, a] |= rep
+                out.append(SuspectChannel(j + 1, AXES[a], 'repeated', (), int(rep.sum()),
+                                          n, _stretches(data.t, rep), lr))
+    return ReadingScreen(flags=flags, channels=out, min_run=min_run, repeat_bound=p)
+
+
+def leave_out_unphysical(data, field_nt=None, alpha=ALPHA, min_kept=MIN_KEPT_FRACTION):
+    """
+    Screen ``data`` and leave out the sets that hold readings no field produces.
+
+    Parameters
+    ----------
+    data : Dataset
+        The record, (S, N, 3) nT.
+    field_nt : float or numpy.ndarray or None
+        Reference magnitude, nT: a scalar, or (N,) subset with the data.
+    alpha : float
+        See :func:`screen_readings`.
+    min_kept : float
+        Refuse when fewer than this fraction of the sets are left.
+
+    Returns
+    -------
+    (Dataset, field_nt, ReadingScreen)
+        The data and reference without the flagged sets (the same objects when nothing is
+        flagged) and the screen (its :meth:`ReadingScreen.notes` name what was left out).
+
+    Raises
+    ------
+    UnphysicalReadingsError
+        Fewer than ``min_kept`` of the sets are left; the message names the readings.
+
+    """
+    screen = screen_readings(data, alpha)
+    if not screen.channels:
+        return data, field_nt, screen
+    keep = screen.keep
+    n = data.n_samples
+    if keep.sum() < min_kept * n:
+        what = '; '.join(text for _, text in screen.lines())
+        raise UnphysicalReadingsError(
+            f'{what}: no field produces these readings, and without them only '
+            f'{int(keep.sum())} of {n} sets are left (need at least {min_kept:.0%}): check '
+            'the sensor, its wiring, its range setting and the driver, then record again')
+    idx = np.flatnonzero(keep)
+    if field_nt is not None and np.ndim(field_nt) > 0:
+        field_nt = np.asarray(field_nt)[idx]
+    return data.subset(idx), field_nt, screen
