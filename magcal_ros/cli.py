@@ -160,17 +160,11 @@ def print_json(obj):
 # -- simulate -------------------------------------------------------------------------------
 
 def _parse_truth(items):
-    truth = {}
-    for item in items or []:
-        token, sep, values = item.partition('=')
-        if not sep:
-            raise BadInput(f'--truth {item!r}: expected EFFECT=v1,v2,... '
-                           '(e.g. temperature@2=3,-2,1.5,0,0,0)')
-        try:
-            truth[token.strip()] = [float(v) for v in values.split(',')]
-        except ValueError:
-            raise BadInput(f'--truth {item!r}: values must be numbers')
-    return truth
+    from magcal_ros.core.simulate import parse_truth
+    try:
+        return parse_truth(items)
+    except ValueError as exc:
+        raise BadInput(f'--truth {exc}') from None
 
 
 def cmd_simulate(args):

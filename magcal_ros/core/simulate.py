@@ -301,16 +301,64 @@ def simulate(config=None, **overrides):
     sim = Simulator(config, **overrides)
     # driven effects act about references fixed by the simulator, set before sampling
     t = np.arange(sim.config.n_samples) / sim.config.rate_hz
-    _set_truth_refs(sim, t)
+    set_truth_refs(sim, t)
     data = sim.sample(t)
     return data, sim
 
 
-def _set_truth_refs(sim, t):
-    """Fix the truth's reference values (mean temperature etc.) from the time grid."""
+def set_truth_refs(sim, t):
+    """
+    Fix the truth's reference values (mean temperature etc.) from the time grid ``t`` (N,) s.
+
+    :func:`simulate` calls it with its own grid; a simulator sampled chunk by chunk (the live
+    ``fluxgate_sim``) calls it once with a nominal grid before the first chunk.
+    """
     temp = sim.temperature(t)
     aux = sim.aux_channels(t) if sim.config.aux else {}
     for j, row in enumerate(sim.model.effects):
         ctx = SensorContext(t=t, temp=temp[j], aux=aux)
         for eff in row:
             eff.prepare(ctx)
+
+
+def parse_truth(items):
+    """
+    Parse hidden effects ``EFFECT=V1,V2,...`` (``magcal simulate --truth``, ``fluxgate_sim``).
+
+    The effect is any model term, with its sensor (``temperature@2``,
+    ``aux:aux_motor_current@3``, ``periodic(0.23)@4``, a plug-in's name); the values are its
+    parameters in the order and units of the effect's ``param_names``/``units``. The text is
+    split at the last ``=``, so a term whose own text holds one (``k=6``) keeps it.
+
+    Parameters
+    ----------
+    items : iterable of str
+        One entry per hidden effect.
+
+    Returns
+    -------
+    dict
+        {term: list of float}, the ``truth`` of :class:`SimConfig`.
+
+    Raises
+    ------
+    ValueError
+        Naming the entry, for a missing ``=``, an empty term or a value that is not a finite
+        number.
+
+    """
+    truth = {}
+    for item in items or []:
+        token, sep, values = str(item).rpartition('=')
+        token = token.strip()
+        if not sep or not token:
+            raise ValueError(f'{item!r}: expected EFFECT=v1,v2,... '
+                             '(e.g. temperature@2=3,-2,1.5,0,0,0)')
+        try:
+            nums = [float(v) for v in values.split(',')]
+        except ValueError:
+            raise ValueError(f'{item!r}: values must be numbers') from None
+        if not np.all(np.isfinite(nums)):
+            raise ValueError(f'{item!r}: values must be finite numbers')
+        truth[token] = nums
+    return truth

@@ -42,6 +42,7 @@ from magcal_ros.serial import PROTOCOLS
 from magcal_ros.sim import devices
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from std_msgs.msg import Float64
 
 NODE_NAME = devices.NODE_NAME
 
@@ -79,6 +80,15 @@ def sim_specs():
                       read_only=True, limits=(0.0, 1.0e9)),
         prm.ParamSpec('unplug', (), "faults 'SENSOR:AT_S:FOR_S[:NEW_PATH]' (times in s), "
                       "e.g. ['2:10:1.5']", read_only=True),
+        prm.ParamSpec('truth', (), "hidden effects 'EFFECT=V1,V2,...' as magcal simulate "
+                      "--truth (values in the units of the effect's parameters), e.g. "
+                      "['aux:aux_motor_current@2=15,-10,8']", read_only=True),
+        prm.ParamSpec('plugins', (), 'effect plug-in modules imported before the truth is '
+                      'read, as magcal --plugin; no unit', read_only=True),
+        prm.ParamSpec('aux_topics', tuple(d['aux_topics']), 'std_msgs/Float64 topics '
+                      'publishing the simulated auxiliary channels, one message per sample '
+                      '(motor_current: A, pump_current: A, heater_power: W); the names the '
+                      'calibration and corrector nodes take in aux_topics', read_only=True),
         prm.ParamSpec('site_gradient', (), 'constant site gradient [GXX, GXY, GXZ, GYY, GYZ] '
                       'in the world (NED) frame, nT/m; empty: a uniform field',
                       read_only=True, item_type=float),
@@ -119,6 +129,12 @@ class FluxgateSimNode(Node):
             raise
         for line in devices.describe_start(self.sim, self.settings):
             log.info(line)
+        # the auxiliary channels, as a real vehicle's nodes would publish them (the value of
+        # each sample, published as the sample is written)
+        self._aux_pubs = {'aux_' + name: self.create_publisher(Float64, name, 10)
+                          for name in self.settings.aux_topics}
+        if self._aux_pubs:
+            self.sim.listeners.append(self._publish_aux)
         self._thread = threading.Thread(target=self._stream, name='fluxgate_sim',
                                         daemon=True)
         self._thread.start()
@@ -127,6 +143,11 @@ class FluxgateSimNode(Node):
     def paths(self):
         """Link paths of the simulated devices, sensor 1 first."""
         return list(self.sim.paths)
+
+    def _publish_aux(self, t, data):
+        for column, pub in self._aux_pubs.items():
+            for value in data.aux[column]:
+                pub.publish(Float64(data=float(value)))
 
     def _stream(self):
         try:
@@ -183,6 +204,8 @@ def overrides_from_options(args):
                 for u in value]))
         elif key == 'site_gradient':
             out.append(Parameter('site_gradient', value=[float(v) for v in value]))
+        elif key in ('truth', 'plugins'):
+            out.append(Parameter(key, value=[str(v) for v in value]))
         elif key == 'dir':
             out.append(Parameter('dir', value=str(value)))
         else:
