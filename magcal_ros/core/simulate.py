@@ -151,6 +151,7 @@ class Simulator:
         seed_rng = np.random.default_rng([cfg.seed, 7])
         self._phases = seed_rng.uniform(0, 2 * np.pi, size=16)
         self._levels = seed_rng.uniform(0.0, 5.0, size=4096)
+        self._tail = {}         # sensor -> (times (2,) s, noise-free readings (2, 3) nT)
 
     def _set_truth(self, p, token, values):
         name, _, where = token.partition('@')
@@ -264,9 +265,17 @@ class Simulator:
         raw = np.empty((s, n, 3))
         for j in range(1, s + 1):
             lin = b[j - 1] @ self.model.matrix(j, self.params).T
-            # the estimator of the fit and the live corrector, on the noise-free reading
-            rate = raw_rate(lin, t)
-            rate = np.zeros_like(lin) if rate is None else rate
+            # the estimator of the fit and the live corrector, on the noise-free reading; a
+            # chunk that continues the previous one (the live fluxgate_sim: one sample per
+            # write) takes that one's last two readings, so its rate is the stream's
+            tail = self._tail.get(j)
+            if tail is not None and n and t[0] > tail[0][-1]:
+                tt, ll = np.concatenate([tail[0], t]), np.concatenate([tail[1], lin])
+            else:
+                tt, ll = t, lin
+            rate = raw_rate(ll, tt)
+            rate = np.zeros_like(lin) if rate is None else rate[len(tt) - n:]
+            self._tail[j] = (tt[-2:], ll[-2:])
             ctx = SensorContext(t=t, temp=temp[j - 1], aux=aux, raw_rate=rate)
             raw[j - 1] = self.model.forward(j, self.params, b[j - 1], ctx)
         raw += self.rng.normal(size=raw.shape) * self.noise[:, None, None]

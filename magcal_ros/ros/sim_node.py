@@ -40,6 +40,7 @@ from magcal_ros.ros import params as prm
 from magcal_ros.ros.run import DEFAULT_NAMESPACE, spin_node
 from magcal_ros.serial import PROTOCOLS
 from magcal_ros.sim import devices
+import numpy as np
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import Float64
@@ -86,9 +87,13 @@ def sim_specs():
         prm.ParamSpec('plugins', (), 'effect plug-in modules imported before the truth is '
                       'read, as magcal --plugin; no unit', read_only=True),
         prm.ParamSpec('aux_topics', tuple(d['aux_topics']), 'std_msgs/Float64 topics '
-                      'publishing the simulated auxiliary channels, one message per sample '
-                      '(motor_current: A, pump_current: A, heater_power: W); the names the '
-                      'calibration and corrector nodes take in aux_topics', read_only=True),
+                      'publishing the simulated auxiliary channels (motor_current: A, '
+                      'pump_current: A, heater_power: W), every aux_period_s and at once '
+                      'when one jumps; the names the calibration and corrector nodes take '
+                      'in aux_topics', read_only=True),
+        prm.ParamSpec('aux_period_s', 0.1, 'longest interval between two messages of an '
+                      'auxiliary channel, s (sample time; a jump of more than 2 % is '
+                      'published at once)', prm.positive('s'), read_only=True),
         prm.ParamSpec('site_gradient', (), 'constant site gradient [GXX, GXY, GXZ, GYY, GYZ] '
                       'in the world (NED) frame, nT/m; empty: a uniform field',
                       read_only=True, item_type=float),
@@ -133,6 +138,7 @@ class FluxgateSimNode(Node):
         # each sample, published as the sample is written)
         self._aux_pubs = {'aux_' + name: self.create_publisher(Float64, name, 10)
                           for name in self.settings.aux_topics}
+        self._aux_last = {}                 # column -> (sample time s, value) last published
         if self._aux_pubs:
             self.sim.listeners.append(self._publish_aux)
         self._thread = threading.Thread(target=self._stream, name='fluxgate_sim',
@@ -145,9 +151,17 @@ class FluxgateSimNode(Node):
         return list(self.sim.paths)
 
     def _publish_aux(self, t, data):
+        # the channels change slowly or in steps: a message per sample (300 per second) cost
+        # the calibration node's executor samples under load; a value at most aux_period_s
+        # old (a pump current moving 0.007 A in 0.1 s) and every step at once
+        period = self.settings.aux_period_s
         for column, pub in self._aux_pubs.items():
-            for value in data.aux[column]:
-                pub.publish(Float64(data=float(value)))
+            for tk, value in zip(t, data.aux[column]):
+                t_last, v_last = self._aux_last.get(column, (-np.inf, np.nan))
+                if (tk - t_last >= period or not abs(value - v_last)
+                        <= 0.02 * max(1.0, abs(v_last))):
+                    pub.publish(Float64(data=float(value)))
+                    self._aux_last[column] = (tk, value)
 
     def _stream(self):
         try:

@@ -35,7 +35,8 @@ term of the model with its parameter values, plug-ins of ``plugins`` included) a
 the readings; their driving channels are the simulator's own: the sensor temperature goes out
 in the protocol's temperature field, the auxiliary channels
 (:data:`magcal_ros.core.simulate.AUX_CHANNELS`) are published by the ROS node on the
-std_msgs/Float64 topics of ``aux_topics`` (``motor_current`` carries ``aux_motor_current``),
+std_msgs/Float64 topics of ``aux_topics`` (``motor_current`` carries ``aux_motor_current``;
+a message every ``aux_period_s`` of sample time and at once when a channel jumps),
 the names the calibration and corrector nodes take in their own ``aux_topics``. The plain
 process has no topics: there only effects of time, temperature and the field act.
 
@@ -211,7 +212,7 @@ DEFAULTS = {'dir': DEFAULT_DIR, 'prefix': DEFAULT_PREFIX, 'sensors': 4, 'rate': 
             'tick': 0.01, 'protocol': 'ascii', 'option': [], 'seed': 0,
             'trajectory': 'smooth', 'field_nt': 50000.0, 'noise_nt': 3.0,
             'errors': 'paper004', 'duration': None, 'unplug': [], 'site_gradient': None,
-            'truth': [], 'plugins': [],
+            'truth': [], 'plugins': [], 'aux_period_s': 0.1,
             'aux_topics': [c[len('aux_'):] for c in AUX_CHANNELS]}
 
 
@@ -253,6 +254,8 @@ def _setting(key, value, source):
                       for v in (value or []) if v]}
     if key == 'truth':
         return {key: [parse_truth_item(v) for v in (value or []) if v]}
+    if key == 'aux_period_s':
+        return {key: float(value)}
     if key in ('plugins', 'aux_topics'):
         return {key: [str(v) for v in (value or []) if v]}
     if key == 'dir':
