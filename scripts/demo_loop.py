@@ -85,6 +85,8 @@ HIDDEN = (
     ('field_rate@{j}', (0.004, 0.002, 0.003)),
 )
 DIAG_NAME = 'calibration_node: residual'
+#: the most sets of a step that may be paired from different epochs
+MAX_MISPAIRED = 0.05
 
 
 def draw_hidden(seed):
@@ -147,22 +149,23 @@ class LoopClient:
         from std_msgs.msg import Float64MultiArray, String
         from std_srvs.srv import Trigger
 
-        from magcal_ros.ros.conversions import msg_to_field_nt, msg_to_residual_nt
-        self._to_nt, self._to_residual = msg_to_field_nt, msg_to_residual_nt
+        from magcal_ros.ros.conversions import msg_to_residual_nt
+        self._to_residual = msg_to_residual_nt
         self.Trigger = Trigger
         self.node = Node('magcal_demo_loop', namespace=NAMESPACE, context=context)
         self.lock = threading.Lock()
         self.t0 = time.monotonic()
         self.status = None
         self.raw_count = np.zeros(N_SENSORS, int)
-        self.raw = [[] for _ in range(N_SENSORS)]       # (arrival s, x, y, z nT)
         self.residual = []                              # (arrival s, scalar (S,), vector (S,))
         self.diagnostics = []                           # (arrival s, level, message, values)
         reliable = QoSProfile(depth=500, reliability=ReliabilityPolicy.RELIABLE)
         n = self.node
-        for j in range(N_SENSORS):
-            n.create_subscription(MagneticField, f'sensor{j + 1}/raw', self._on_raw(j),
-                                  reliable)
+        # raw samples only counted until they flow (then unsubscribed): 400 messages a second
+        # more in this process took samples from the nodes on a loaded machine
+        self._raw_subs = [n.create_subscription(MagneticField, f'sensor{j + 1}/raw',
+                                                self._on_raw(j), 5)
+                          for j in range(N_SENSORS)]
         n.create_subscription(Float64MultiArray, 'calibration/residual', self._on_residual,
                               reliable)
         n.create_subscription(String, 'calibration/status', self._on_status, 10)
@@ -184,8 +187,13 @@ class LoopClient:
         def cb(msg):
             with self.lock:
                 self.raw_count[j] += 1
-                self.raw[j].append((self.now(), *self._to_nt(msg)))
         return cb
+
+    def stop_counting_raw(self):
+        """Unsubscribe the raw streams (they were only counted)."""
+        for sub in self._raw_subs:
+            self.node.destroy_subscription(sub)
+        self._raw_subs = []
 
     def _on_residual(self, msg):
         scalar, vector = self._to_residual(msg)
@@ -249,9 +257,13 @@ class LoopClient:
         self.node.destroy_node()
 
 
-def window_stats(client, t_from, t_to):
+def window_stats(client, t_from, t_to, field_nt):
     """
     The live residual between ``t_from`` and ``t_to`` (client seconds) against its floor.
+
+    The floor sigma_j is the noise of sensor j's scalar residual series from its high-order
+    differences (:func:`magcal_ros.core.noise.noise_floor`, no model: a smooth misfit
+    cancels in them), which for white noise of sd sigma per axis is sigma.
 
     Returns
     -------
@@ -260,20 +272,26 @@ def window_stats(client, t_from, t_to):
         ``vector_floor_nt``: {sensor '1'..: nT}; ``sets``: residual messages in the window.
 
     """
+    from magcal_ros.core.consistency import GROSS_FRACTION
     from magcal_ros.core.noise import noise_floor
     with client.lock:
         res = [r for r in client.residual if t_from <= r[0] <= t_to]
-        raw = [np.array([r[1:] for r in rj if t_from <= r[0] <= t_to]) for rj in client.raw]
     if len(res) < 100:
         raise RuntimeError(f'only {len(res)} calibration/residual messages between '
                            f'{t_from:.1f} and {t_to:.1f} s')
-    n = min(len(r) for r in raw)
-    if n < 100:
-        raise RuntimeError(f'only {n} raw samples of a sensor between {t_from:.1f} and '
-                           f'{t_to:.1f} s')
     scalar = np.array([r[1] for r in res])                  # (M, S) nT
     vector = np.array([r[2] for r in res])
-    sigma = np.array([noise_floor(r) for r in raw])          # (S,) nT per axis
+    # a set the stamps paired from different epochs (a starved executor) is no reading: its
+    # vector residual is the field's turn between them, thousands of nT; those beyond the
+    # calibration node's own gross limit (2 % of the field) are left out and counted
+    gross = np.any(vector > GROSS_FRACTION * field_nt, axis=1)
+    if gross.mean() > MAX_MISPAIRED:
+        raise RuntimeError(f'{gross.sum()} of {len(gross)} sets between {t_from:.1f} and '
+                           f'{t_to:.1f} s were paired from different epochs (vector residual '
+                           f'> {GROSS_FRACTION * field_nt:.0f} nT): the machine is too loaded '
+                           'for the live stream')
+    scalar, vector = scalar[~gross], vector[~gross]
+    sigma = np.atleast_1d(noise_floor(scalar.T[:, :, None]))     # (S,) nT
     var = sigma ** 2
     vector_floor = np.sqrt(3 * (var + (var.sum() - var) / (N_SENSORS - 1) ** 2))
 
@@ -282,7 +300,7 @@ def window_stats(client, t_from, t_to):
     return {'scalar_rms_nt': per_sensor(np.sqrt(np.mean(scalar ** 2, 0))),
             'vector_rms_nt': per_sensor(np.sqrt(np.mean(vector ** 2, 0))),
             'floor_nt': per_sensor(sigma), 'vector_floor_nt': per_sensor(vector_floor),
-            'sets': len(res)}
+            'sets': int(len(scalar)), 'sets_mispaired_left_out': int(gross.sum())}
 
 
 def worst_ratio(step):
@@ -298,8 +316,10 @@ def worst_ratio(step):
 
 def print_step(k, step):
     """One step's RMS per sensor against the floor."""
+    left = step.get('sets_mispaired_left_out')
     print(f'step {k}: model {",".join(step["model"])}: live residual RMS (floor) over '
-          f'{step["sets"]} sets, nT')
+          f'{step["sets"]} sets, nT' + (f' ({left} sets paired from different epochs left '
+                                       'out)' if left else ''))
     for kind, floor in (('scalar', 'floor_nt'), ('vector', 'vector_floor_nt')):
         print(f'  {kind:>6}: ' + ', '.join(
             f'{j}: {v:6.2f} ({step[floor][j]:.2f}) x{v / step[floor][j]:.2f}'
@@ -350,6 +370,15 @@ def write_figure(client, marks, steps, path):
         ax.grid(alpha=0.3)
         for tm, label in marks:
             ax.axvline(tm - t0, color='k', lw=0.8, ls=':')
+        for k, step in enumerate(steps, start=1):
+            if 'window_s' in step:
+                a, b = step['window_s']
+                ax.axvspan(a - t0, b - t0, color='tab:blue', alpha=0.08, zorder=0,
+                           label='RMS windows' if k == 1 else None)
+        # a set paired from different epochs (left out of the RMS) would set the scale
+        lim = np.percentile(np.abs(series), 99.5) * 1.3
+        if np.abs(series).max() > lim:
+            ax.set_ylim(-lim if kind.startswith('scalar') else 0, lim)
     ymax = axes[0].get_ylim()[1]
     for tm, label in marks:
         axes[0].text(tm - t0, ymax, ' ' + label, rotation=90, va='top', ha='left', fontsize=8)
@@ -385,6 +414,10 @@ def parse_args(argv=None):
                    help='longest collection, s (default 120)')
     p.add_argument('--window-s', type=float, default=8.0,
                    help='seconds of live residual per step (default 8: ~800 sets)')
+    p.add_argument('--rate', type=float, default=50.0,
+                   help='samples per second per sensor of the simulated array, Hz (default '
+                        '50: the loop solves several times while the stream runs, and the '
+                        'nodes keep up with it on a busy 2-core machine)')
     p.add_argument('--field-nt', type=float, default=50000.0,
                    help='field magnitude of the simulator and the reference, nT')
     return p.parse_args(argv)
@@ -423,7 +456,8 @@ def _calibrate_and_watch(client, model, args, marks, label):
     t_from = client.now() + 0.5           # the node applies the new calibration from now on
     time.sleep(args.window_s + 0.5)
     t_to = client.now()
-    step = {'model': list(model), **window_stats(client, t_from, t_to)}
+    step = {'model': list(model), **window_stats(client, t_from, t_to, args.field_nt),
+            'window_s': [t_from, t_to]}
     step['diagnostics'] = last_diagnostics(client, t_from + 0.5 * args.window_s)
     return step
 
@@ -529,13 +563,16 @@ def main(argv=None):
     try:
         ros = ['--ros-args', '-r', f'__ns:={NAMESPACE}']
         procs.start('fluxgate_sim', ['--dir', sim_dir, '--seed', str(args.seed),
-                                     '--field-nt', str(args.field_nt)]
+                                     '--field-nt', str(args.field_nt),
+                                     '--rate', str(args.rate)]
                     + ros + ['-p', f'truth:={json.dumps([truth])}'])
         ports = [os.path.join(sim_dir, f'fluxgate{j}') for j in range(1, N_SENSORS + 1)]
         demo._wait(lambda: all(os.path.exists(p) for p in ports), 15, 'the simulated ports',
                    procs)
         procs.start('fluxgate_driver', ros + [a for j, p in enumerate(ports, 1)
-                                              for a in ('-p', f'sensor{j}.port:={p}')])
+                                              for a in ('-p', f'sensor{j}.port:={p}',
+                                                        '-p', f'sensor{j}.expected_rate_hz:='
+                                                        f'{args.rate}')])
         procs.start('calibration_node', ros + [
             '--params-file', str(ROOT / 'config' / 'calibration.yaml'),
             '-p', f'calibration_file:={cal_file}',
@@ -550,6 +587,7 @@ def main(argv=None):
                    procs)
         demo._wait(lambda: np.all(client.raw_count > 10), 30, 'raw samples of all sensors',
                    procs)
+        client.stop_counting_raw()
         failures, marks = run_loop(args, client, procs, result)
     except (RuntimeError, TimeoutError, ValueError) as exc:
         failures.append(str(exc))

@@ -88,12 +88,13 @@ def sim_specs():
                       'read, as magcal --plugin; no unit', read_only=True),
         prm.ParamSpec('aux_topics', tuple(d['aux_topics']), 'std_msgs/Float64 topics '
                       'publishing the simulated auxiliary channels (motor_current: A, '
-                      'pump_current: A, heater_power: W), every aux_period_s and at once '
-                      'when one jumps; the names the calibration and corrector nodes take '
-                      'in aux_topics', read_only=True),
-        prm.ParamSpec('aux_period_s', 0.1, 'longest interval between two messages of an '
-                      'auxiliary channel, s (sample time; a jump of more than 2 % is '
-                      'published at once)', prm.positive('s'), read_only=True),
+                      'pump_current: A, heater_power: W), see aux_period_s; the names the '
+                      'calibration and corrector nodes take in aux_topics', read_only=True),
+        prm.ParamSpec('aux_period_s', 0.0, 'longest interval between two messages of an '
+                      'auxiliary channel, s of sample time (0: one message per sample, what '
+                      'keeps a busy subscriber taking them in step with the raw fields; a jump '
+                      'of more than 2 % is published at once)', read_only=True,
+                      limits=(0.0, 1.0e6)),
         prm.ParamSpec('site_gradient', (), 'constant site gradient [GXX, GXY, GXZ, GYY, GYZ] '
                       'in the world (NED) frame, nT/m; empty: a uniform field',
                       read_only=True, item_type=float),
@@ -151,9 +152,10 @@ class FluxgateSimNode(Node):
         return list(self.sim.paths)
 
     def _publish_aux(self, t, data):
-        # the channels change slowly or in steps: a message per sample (300 per second) cost
-        # the calibration node's executor samples under load; a value at most aux_period_s
-        # old (a pump current moving 0.007 A in 0.1 s) and every step at once
+        # one message per sample by default: a subscriber behind its stream takes one message
+        # per subscription in turn, so channels published at the raw rate stay in step with
+        # the raw fields; aux_period_s > 0 thins them (a value at most that old, every jump
+        # at once) where the subscribers keep up
         period = self.settings.aux_period_s
         for column, pub in self._aux_pubs.items():
             for tk, value in zip(t, data.aux[column]):

@@ -36,7 +36,7 @@ the readings; their driving channels are the simulator's own: the sensor tempera
 in the protocol's temperature field, the auxiliary channels
 (:data:`magcal_ros.core.simulate.AUX_CHANNELS`) are published by the ROS node on the
 std_msgs/Float64 topics of ``aux_topics`` (``motor_current`` carries ``aux_motor_current``;
-a message every ``aux_period_s`` of sample time and at once when a channel jumps),
+one message per sample, or with ``aux_period_s`` one every so many s and at each jump),
 the names the calibration and corrector nodes take in their own ``aux_topics``. The plain
 process has no topics: there only effects of time, temperature and the field act.
 
@@ -212,7 +212,7 @@ DEFAULTS = {'dir': DEFAULT_DIR, 'prefix': DEFAULT_PREFIX, 'sensors': 4, 'rate': 
             'tick': 0.01, 'protocol': 'ascii', 'option': [], 'seed': 0,
             'trajectory': 'smooth', 'field_nt': 50000.0, 'noise_nt': 3.0,
             'errors': 'paper004', 'duration': None, 'unplug': [], 'site_gradient': None,
-            'truth': [], 'plugins': [], 'aux_period_s': 0.1,
+            'truth': [], 'plugins': [], 'aux_period_s': 0.0,
             'aux_topics': [c[len('aux_'):] for c in AUX_CHANNELS]}
 
 
