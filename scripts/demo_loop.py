@@ -42,6 +42,7 @@ vector residual |b_j - mean of the others|. Otherwise the demo says what did not
 what is left, and exits with status 1.
 """
 import argparse
+import importlib
 import json
 import os
 import pathlib
@@ -58,7 +59,7 @@ SCRIPTS = pathlib.Path(__file__).resolve().parent
 for _path in (SCRIPTS, SCRIPTS.parent):     # demo.py, and this checkout's magcal_ros
     if str(_path) not in sys.path:
         sys.path.insert(0, str(_path))
-import demo  # noqa: E402  (scripts/demo.py: processes, environment, waiting)
+demo = importlib.import_module('demo')   # scripts/demo.py: processes, environment, waiting
 
 ROOT = demo.ROOT
 NAMESPACE = demo.NAMESPACE
@@ -69,7 +70,7 @@ N_SENSORS = demo.N_SENSORS
 #: sd (sqrt(1 + 0.55^2) = 1.14) is at the bound
 CLOSE_FACTOR = 1.15
 #: the misfit the base calibration must show for the loop to mean anything (the calibration
-#: node's /diagnostics WARN threshold, magcal_ros.core.live.RESIDUAL_WARN_RATIO)
+#: node's /diagnostics WARN threshold, magcal_ros.core.live.corrector.RESIDUAL_WARN_RATIO)
 SHOW_FACTOR = 1.5
 #: the simulator's auxiliary channels, as topics (fluxgate_sim's aux_topics default)
 AUX_TOPICS = ('motor_current', 'pump_current', 'heater_power')
@@ -92,7 +93,7 @@ MAX_MISPAIRED = 0.05
 
 
 def draw_hidden(seed):
-    """The hidden term of ``seed``: (term, values), sensor and sign drawn too."""
+    """Draw the hidden term of ``seed``: return (term, values); sensor and sign drawn too."""
     rng = np.random.default_rng([seed, 21])
     template, values = HIDDEN[int(rng.integers(len(HIDDEN)))]
     j = int(rng.integers(1, N_SENSORS + 1))
@@ -260,10 +261,10 @@ class LoopClient:
 
 def window_stats(client, t_from, t_to, field_nt):
     """
-    The live residual between ``t_from`` and ``t_to`` (client seconds) against its floor.
+    Measure the live residual between ``t_from`` and ``t_to`` (client s) against its floor.
 
     The floor sigma_j is the noise of sensor j's scalar residual series from its high-order
-    differences (:func:`magcal_ros.core.noise.noise_floor`, no model: a smooth misfit
+    differences (:func:`magcal_ros.core.data.noise.noise_floor`, no model: a smooth misfit
     cancels in them), which for white noise of sd sigma per axis is sigma.
 
     Returns
@@ -273,8 +274,8 @@ def window_stats(client, t_from, t_to, field_nt):
         ``vector_floor_nt``: {sensor '1'..: nT}; ``sets``: residual messages in the window.
 
     """
-    from magcal_ros.core.consistency import GROSS_FRACTION
-    from magcal_ros.core.noise import noise_floor
+    from magcal_ros.core.live.consistency import GROSS_FRACTION
+    from magcal_ros.core.data.noise import noise_floor
     with client.lock:
         res = [r for r in client.residual if t_from <= r[0] <= t_to]
     if len(res) < 100:
@@ -305,7 +306,7 @@ def window_stats(client, t_from, t_to, field_nt):
 
 
 def worst_ratio(step):
-    """Largest residual RMS / floor of a step, and where: (ratio, 'scalar 2')."""
+    """Return the largest residual RMS / floor of a step, and where: (ratio, 'scalar 2')."""
     out = (0.0, '')
     for kind, floor in (('scalar', 'floor_nt'), ('vector', 'vector_floor_nt')):
         for j, v in step[f'{kind}_rms_nt'].items():
@@ -318,9 +319,9 @@ def worst_ratio(step):
 def print_step(k, step):
     """One step's RMS per sensor against the floor."""
     left = step.get('sets_mispaired_left_out')
+    note = f' ({left} sets paired from different epochs left out)' if left else ''
     print(f'step {k}: model {",".join(step["model"])}: live residual RMS (floor) over '
-          f'{step["sets"]} sets, nT' + (f' ({left} sets paired from different epochs left '
-                                       'out)' if left else ''))
+          f'{step["sets"]} sets, nT{note}')
     for kind, floor in (('scalar', 'floor_nt'), ('vector', 'vector_floor_nt')):
         print(f'  {kind:>6}: ' + ', '.join(
             f'{j}: {v:6.2f} ({step[floor][j]:.2f}) x{v / step[floor][j]:.2f}'
@@ -504,7 +505,7 @@ def run_loop(args, client, procs, result):
 
 
 def judge(result, failures):
-    """Whether the loop closed; appends the reasons it did not to ``failures``."""
+    """Tell whether the loop closed; append the reasons it did not to ``failures``."""
     hidden, diagnosed = result['hidden'], result.get('diagnosed')
     if diagnosed and not same_term(hidden, diagnosed):
         failures.append(f'the diagnosis named {diagnosed}, not the hidden {hidden}')
@@ -528,7 +529,7 @@ def main(argv=None):
     """Run the loop demo; return the exit status."""
     args = parse_args(argv)
     demo._ensure_ros_env()
-    from magcal_ros.core.simulate import parse_truth
+    from magcal_ros.core.data.simulate import parse_truth
     if args.hidden:
         try:
             (hidden, values), = parse_truth([args.hidden]).items()
@@ -622,8 +623,8 @@ def main(argv=None):
         print('\nLOOP NOT CLOSED:\n- ' + '\n- '.join(failures), file=sys.stderr)
         print('loop NOT closed (see above)')
         return 1
-    print(f'\nloop closed: the diagnosis named the hidden term and every sensor\'s live '
-          f'residual is within {CLOSE_FACTOR} x its floor')
+    print('\nloop closed: the diagnosis named the hidden term and the live residual of every '
+          f'sensor is within {CLOSE_FACTOR} x its floor')
     return 0
 
 

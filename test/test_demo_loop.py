@@ -28,6 +28,7 @@ so their ratio by ~3.5 %: the demo's closing bound 1.15 is 4 of those, the bound
 against the simulator's 3 nT (4/sqrt(N) = 14 % at N = 800) likewise. A missing term shows
 as tens of percent to many times the floor.
 """
+import importlib
 import json
 import os
 import pathlib
@@ -41,7 +42,7 @@ import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / 'scripts'))
-import demo_loop  # noqa: E402
+demo_loop = importlib.import_module('demo_loop')
 
 SIM_NOISE_NT = 3.0
 #: the seeds the test runs and the hidden term each draws (README's command: seed 0)
@@ -66,7 +67,7 @@ def _argv(cmd):
 @pytest.fixture(scope='module')
 def runs(tmp_path_factory):
     """
-    The four demo runs, two at a time, each in its own directory and DDS domain.
+    Run the four demo runs, two at a time, each in its own directory and DDS domain.
 
     README (seed 0), seeds 1 and 2, seed 2 with a forced wrong model; returns
     ({key: CompletedProcess}, {key: directory}).

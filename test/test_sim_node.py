@@ -329,7 +329,7 @@ def test_plain_process_without_ros(start_process, tmp_path):
 
 
 def _chunks(argv, tmp_path, n):
-    """Readings (S, 601 + n, 3) nT and aux channels: a chunk of 6 s, then n of one sample."""
+    """Return readings (S, 601 + n, 3) nT and aux channels: 6 s in one chunk, n of one."""
     sim = devices.FluxgateSim(settings(tmp_path, '--errors', 'none', '--noise-nt', '0',
                                        *argv))
     got = []

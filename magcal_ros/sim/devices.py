@@ -18,7 +18,7 @@ Simulated fluxgates on pseudo-terminals, without ROS: the devices ``fluxgate_sim
 Creates one :class:`~magcal_ros.serial.transport.PtyDevice` per sensor, linked as
 ``<dir>/fluxgate1`` ... ``fluxgate4`` (default: :func:`device_dir` of the namespace, i.e.
 ``/tmp/magcal_sim`` for ``/magcal``), and streams the output of
-:class:`magcal_ros.core.simulate.Simulator` in any registered serial protocol (default: the
+:class:`magcal_ros.core.data.simulate.Simulator` in any registered serial protocol (default: the
 ASCII contract line ``<x_nT>,<y_nT>,<z_nT>,<temp_C>\r\n``). The defaults are paper 004
 section 4.1: |B| = 50 000 nT, D = -7 deg, I = 55 deg, noise 3 nT per axis, the Table 1
 sensor errors, and a smooth tumbling trajectory that covers the sphere in about a minute,
@@ -34,7 +34,7 @@ Hidden effects (``truth``: entries ``EFFECT=V1,V2,...`` as ``magcal simulate --t
 term of the model with its parameter values, plug-ins of ``plugins`` included) are added to
 the readings; their driving channels are the simulator's own: the sensor temperature goes out
 in the protocol's temperature field, the auxiliary channels
-(:data:`magcal_ros.core.simulate.AUX_CHANNELS`) are published by the ROS node on the
+(:data:`magcal_ros.core.data.simulate.AUX_CHANNELS`) are published by the ROS node on the
 std_msgs/Float64 topics of ``aux_topics`` (``motor_current`` carries ``aux_motor_current``;
 one message per sample, or with ``aux_period_s`` one every so many s and at each jump),
 the names the calibration and corrector nodes take in their own ``aux_topics``. The plain
@@ -60,8 +60,8 @@ import sys
 import threading
 import time
 
-from magcal_ros.core.simulate import (AUX_CHANNELS, parse_truth, set_truth_refs, SimConfig,
-                                      Simulator, TRAJECTORIES)
+from magcal_ros.core.data.simulate import (AUX_CHANNELS, parse_truth, set_truth_refs,
+                                           SimConfig, Simulator, TRAJECTORIES)
 from magcal_ros.serial import make_encoder, PROTOCOLS, Sample
 from magcal_ros.serial.options import load_yaml, parse_options, parse_value
 from magcal_ros.serial.transport import PtyDevice
@@ -333,12 +333,12 @@ def check_settings(st):
 
 
 def _simulator(st):
-    """The :class:`Simulator` of settings ``st`` (plug-ins imported first), refs set."""
+    """Build the :class:`Simulator` of settings ``st`` (plug-ins imported first, refs set)."""
     from magcal_ros.core.effects import load_plugins
     load_plugins(st.get('plugins') or None)
     grad = st.get('site_gradient')
     if grad is not None:
-        from magcal_ros.core.effects import symmetric_traceless
+        from magcal_ros.core.geometry.tensor import symmetric_traceless
         grad = symmetric_traceless(grad)
     sim = Simulator(SimConfig(
         n_sensors=st['sensors'], rate_hz=st['rate'], field_nt=st['field_nt'],
@@ -409,7 +409,7 @@ class FluxgateSim:
                          for _ in range(settings.sensors)]
         self.sim = _simulator(dict(DEFAULTS, **vars(settings)))
         #: called as ``f(t, data)`` after each chunk is written: t (n,) s since start, data
-        #: the :class:`~magcal_ros.core.dataset.Dataset` (the node publishes ``data.aux``)
+        #: the :class:`~magcal_ros.core.data.dataset.Dataset` (the node publishes ``data.aux``)
         self.listeners = []
         self.paths = [os.path.join(settings.dir, f'{settings.prefix}{j}')
                       for j in range(1, settings.sensors + 1)]
