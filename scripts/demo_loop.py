@@ -65,9 +65,9 @@ ROOT = demo.ROOT
 NAMESPACE = demo.NAMESPACE
 N_SENSORS = demo.N_SENSORS
 #: the loop is closed when every residual RMS is within this factor of its floor.  An RMS of
-#: N ~ 800 sets of white noise scatters by 1/sqrt(2 N) = 2.5 % and the floor estimate by about
-#: as much: 1.15 is 4 of their combined scatter, and an effect left over of 55 % of the noise
-#: sd (sqrt(1 + 0.55^2) = 1.14) is at the bound
+#: N = 500 sets of white noise scatters by 1/sqrt(2 N) = 3.2 % and the floor estimated from
+#: the differences by a little more: their ratio by ~5 %, so 1.15 is 3 of that; an effect
+#: left over of 55 % of the noise sd (sqrt(1 + 0.55^2) = 1.14) is at the bound
 CLOSE_FACTOR = 1.15
 #: the misfit the base calibration must show for the loop to mean anything (the calibration
 #: node's /diagnostics WARN threshold, magcal_ros.core.live.corrector.RESIDUAL_WARN_RATIO)
@@ -317,7 +317,7 @@ def worst_ratio(step):
 
 
 def print_step(k, step):
-    """One step's RMS per sensor against the floor."""
+    """Print the live residual RMS of step ``k`` per sensor against its floor."""
     left = step.get('sets_mispaired_left_out')
     note = f' ({left} sets paired from different epochs left out)' if left else ''
     print(f'step {k}: model {",".join(step["model"])}: live residual RMS (floor) over '
@@ -332,7 +332,7 @@ def print_step(k, step):
 
 
 def last_diagnostics(client, t_from):
-    """The calibration node's last residual status on /diagnostics after ``t_from``."""
+    """Return the calibration node's last residual status on /diagnostics after ``t_from``."""
     with client.lock:
         found = [d for d in client.diagnostics if d[0] >= t_from]
     if not found:
@@ -343,7 +343,7 @@ def last_diagnostics(client, t_from):
 
 
 def write_figure(client, marks, steps, path):
-    """One figure: the live residual over the run, per sensor, with the steps marked."""
+    """Draw the live residual over the run, per sensor, with the steps marked."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
@@ -395,7 +395,7 @@ def write_figure(client, marks, steps, path):
 
 
 def parse_args(argv=None):
-    """Command line of the loop demo."""
+    """Parse the command line of the loop demo."""
     p = argparse.ArgumentParser(prog='scripts/demo.sh --loop',
                                 description=__doc__.strip().split('\n\n')[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -414,8 +414,8 @@ def parse_args(argv=None):
                         'calibration/status says ready, at most --max-collect-s')
     p.add_argument('--max-collect-s', type=float, default=120.0,
                    help='longest collection, s (default 120)')
-    p.add_argument('--window-s', type=float, default=8.0,
-                   help='seconds of live residual per step (default 8: ~800 sets)')
+    p.add_argument('--window-sets', type=int, default=500,
+                   help='sets of live residual per step (default 500: 10 s at 50 Hz)')
     p.add_argument('--rate', type=float, default=50.0,
                    help='samples per second per sensor of the simulated array, Hz (default '
                         '50: the loop solves several times while the stream runs, and the '
@@ -456,16 +456,24 @@ def _calibrate_and_watch(client, model, args, marks, label):
     if not ok:
         raise RuntimeError(f'calibration/calibrate with {",".join(model)} failed: {summary}')
     t_from = client.now() + 0.5           # the node applies the new calibration from now on
-    time.sleep(args.window_s + 0.5)
-    t_to = client.now()
+    # the next --window-sets sets (a node catching up after its solve publishes late)
+    deadline = time.monotonic() + 0.5 + max(60.0, 5.0 * args.window_sets / args.rate)
+    time.sleep(0.5)
+    while time.monotonic() < deadline:
+        with client.lock:
+            got = [r[0] for r in client.residual if r[0] >= t_from]
+        if len(got) >= args.window_sets:
+            break
+        time.sleep(0.2)
+    t_to = got[args.window_sets - 1] if len(got) >= args.window_sets else client.now()
     step = {'model': list(model), **window_stats(client, t_from, t_to, args.field_nt),
             'window_s': [t_from, t_to]}
-    step['diagnostics'] = last_diagnostics(client, t_from + 0.5 * args.window_s)
+    step['diagnostics'] = last_diagnostics(client, 0.5 * (t_from + t_to))
     return step
 
 
 def run_loop(args, client, procs, result):
-    """The loop through services and parameters; fills ``result``; returns failures."""
+    """Run the loop through services and parameters; fill ``result``; return failures."""
     marks = []
     _collect(client, procs, args)
     result['steps'].append(_calibrate_and_watch(client, ['base'], args, marks,

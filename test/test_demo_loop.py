@@ -22,11 +22,11 @@ demo keeps fluxgate_sim's default), the hidden terms the seeds draw (written her
 and read back from the simulator's own log), and for the vector residual |b_j - mean of the
 other three| its noise expectation sqrt(3 (1 + 3/9)) sigma = 2 sigma.
 
-Tolerances from the noise: a step's RMS over N ~ 800 white sets (8 s at 100 Hz) scatters by
-1/sqrt(2N) = 2.5 % relative, the floor estimated from the raw differences by about as much,
-so their ratio by ~3.5 %: the demo's closing bound 1.15 is 4 of those, the bound on the floor
-against the simulator's 3 nT (4/sqrt(N) = 14 % at N = 800) likewise. A missing term shows
-as tens of percent to many times the floor.
+Tolerances from the noise: a step's RMS over N = 500 white sets (the demo's window)
+scatters by 1/sqrt(2N) = 3.2 % relative, the floor estimated from the differences by a
+little more, so their ratio by ~5 %: the demo's closing bound 1.15 is 3 of those; the floor
+against the simulator's 3 nT is held to 4/sqrt(N) (18 %). A missing term shows as tens of
+percent to many times the floor.
 """
 import importlib
 import json
