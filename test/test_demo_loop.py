@@ -78,7 +78,9 @@ def runs(tmp_path_factory):
         'readme': readme,
         1: 'scripts/demo.sh --loop --seed 1',
         2: 'scripts/demo.sh --loop --seed 2',
-        'forced': f'scripts/demo.sh --loop --seed 2 --force-term {FORCED}',
+        # the wrong model shows with fewer sets: a shorter collection and window
+        'forced': f'scripts/demo.sh --loop --seed 2 --force-term {FORCED} --collect-s 20 '
+                  '--window-sets 200',
     }
     dirs = {k: tmp_path_factory.mktemp(f'loop_{k}') for k in commands}
     results = {}
