@@ -301,6 +301,9 @@ def window_stats(client, t_from, t_to, field_nt):
         return {str(j + 1): float(x) for j, x in enumerate(v)}
     return {'scalar_rms_nt': per_sensor(np.sqrt(np.mean(scalar ** 2, 0))),
             'vector_rms_nt': per_sensor(np.sqrt(np.mean(vector ** 2, 0))),
+            # for noise alone the median of the vector residual (a chi with 3 degrees of
+            # freedom) is 0.888 of its RMS: a far larger RMS is a few sets far off
+            'vector_median_nt': per_sensor(np.median(vector, 0)),
             'floor_nt': per_sensor(sigma), 'vector_floor_nt': per_sensor(vector_floor),
             'sets': int(len(scalar)), 'sets_mispaired_left_out': int(gross.sum())}
 
@@ -529,6 +532,16 @@ def judge(result, failures):
             failures.append(f'the residual did not fall to the floor (criterion: every '
                             f'sensor within {CLOSE_FACTOR} x its floor); left: '
                             + '; '.join(left))
+            scalar_ok = all(v <= CLOSE_FACTOR * last['floor_nt'][j]
+                            for j, v in last['scalar_rms_nt'].items())
+            med = last.get('vector_median_nt', {})
+            typical = all(med.get(j, np.inf) <= 0.888 * CLOSE_FACTOR * f
+                          for j, f in last['vector_floor_nt'].items())
+            if scalar_ok and typical:
+                failures.append('the scalar residual is at the floor and so is the typical '
+                                'vector residual (its median): the vector RMS is a few sets '
+                                'far off, paired from different epochs by their stamps; the '
+                                'machine did not keep up with the stream (see loop.png)')
     result['closed'] = not failures
     return result['closed']
 
