@@ -108,7 +108,7 @@ def test_parse_unplug_and_options():
     (['--sensors', '2', '--unplug', '3:1:1'], 'unplug sensor 3 but only 2 sensors'),
     (['--rate', '0'], 'must be > 0'),
     (['--site-gradient', '1,2'], 'five numbers'),
-    (['--truth', 'temperature@2'], 'expected EFFECT=v1,v2'),
+    (['--truth', 'temperature@2'], 'expected TERM=v1,v2'),
     (['--truth', 'nosuch@2=1,2,3'], "unknown effect 'nosuch'"),
     (['--truth', 'aux:aux_motor_current@2=1,2'], r'3 values expected \(vx, vy, vz\)'),
 ])
@@ -349,14 +349,16 @@ def test_hidden_effects_reach_the_readings_chunk_by_chunk(tmp_path):
     Ideal sensors without noise, 6 s in one chunk then one sample per step as the live stream
     writes them: the reading with the truth minus the one without is v (I - I0) for the
     coupling (I0 the mean current of the first minute, the reference the simulator states)
-    and -tau dx/dt for the lag, x the readings: inside a chunk the central difference
+    and -tau dx/dt for the lag, x the readings (and a boxcar offset of the formula grammar
+    inside its window): inside a chunk the central difference
     (x_k+1 - x_k-1) / 2h, for a sample alone the one-sided (3 x_k - 4 x_k-1 + x_k-2) / 2h of
     the stream (all a live stream has).
     """
     n = 200
     plain, aux = _chunks([], tmp_path / 'a', n)
     hidden, _ = _chunks(['--truth', 'aux:aux_motor_current@2=15,-10,8',
-                         '--truth', 'field_rate@3=0.01,0.02,0.005'], tmp_path / 'b', n)
+                         '--truth', 'field_rate@3=0.01,0.02,0.005',
+                         '--truth', 'offset(window(6.5, 7.25))@4=30,-20,0'], tmp_path / 'b', n)
     minute = devices.Simulator(devices.SimConfig()).aux_channels(np.arange(6000) / 100.0)
     i0 = minute['aux_motor_current'].mean()
     coupling = (aux['aux_motor_current'] - i0)[:, None] * np.array([15.0, -10.0, 8.0])
@@ -368,7 +370,12 @@ def test_hidden_effects_reach_the_readings_chunk_by_chunk(tmp_path):
     assert np.abs(tau * one_sided).max() > 10.0          # nT: a sizeable effect
     np.testing.assert_allclose(hidden[2, 1:600] - x[1:600], -tau * central, atol=1e-6)
     np.testing.assert_allclose(hidden[2, 601:] - x[601:], -tau * one_sided, atol=1e-6)
-    np.testing.assert_array_equal(hidden[[0, 3]], plain[[0, 3]])
+    np.testing.assert_array_equal(hidden[0], plain[0])
+    # a composed term of the formula grammar: a boxcar offset inside [6.5, 7.25] s
+    t = np.arange(hidden.shape[1]) / 100.0
+    inside = (t >= 6.5) & (t <= 7.25)
+    np.testing.assert_allclose(hidden[3] - plain[3], inside[:, None] * [30.0, -20.0, 0.0],
+                               atol=1e-6)
 
 
 def test_node_publishes_the_auxiliary_channels(make_node, ros_node, ros_executor,
