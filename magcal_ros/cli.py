@@ -38,6 +38,9 @@ def load_data(path, unit=None, rate_hz=100.0):
     """
     Dataset in nT from a wide CSV file, a rosbag2 directory or a single-sensor CSV.
 
+    A CSV may be compressed: ``.csv.gz`` (gzip) and ``.csv.zst`` (Zstandard) are decompressed
+    as they are read.
+
     ``unit`` (a key of :data:`magcal_ros.units.UNITS_NT`) is the unit of the field columns
     (readings, ``ref_total``, ``ref_x/y/z``); they are converted to nT here, once.  A CSV
     without wide-format sensor columns (``mx,my,mz``, ``x,y,z`` ...) is read as one
@@ -68,7 +71,8 @@ def load_data(path, unit=None, rate_hz=100.0):
 def _is_wide_csv(path):
     """Tell whether the first non-comment line of ``path`` names a wide-format column."""
     import re
-    with open(path, encoding='utf-8-sig', errors='replace') as fh:
+    from magcal_ros.io.compressed import open_text
+    with open_text(path, encoding='utf-8-sig', errors='replace') as fh:
         for line in fh:
             if line.strip() and not line.lstrip().startswith('#'):
                 return re.search(r'(^|[,;\t ])s\d+_x($|[,;\t ])', line.strip()) is not None
@@ -223,6 +227,8 @@ def cmd_fit(args):
     s = dict(run.summary)
     s['output'] = None if refused else out
     s['field_reference'] = fref
+    # the document the file holds (or would hold), built once: the JSON and the file agree
+    s['calibration'] = None if refused else run.doc
     if args.json:
         print_json(s)
     else:
@@ -281,15 +287,15 @@ def _fit_paper_method(args, data):
             data, field_nt, on_degenerate='flag' if args.flag_degenerate else 'raise')
         geometry = cross_geometry(args.baseline_m) if data.n_sensors == 4 else None
     out = args.output
+    doc = calibration_to_doc(res.calibration, geometry=geometry, field_reference=fref,
+                             provenance={'method': args.method,
+                                         'samples': int(data.n_samples),
+                                         'warnings': list(res.warnings)})
     if out:
-        doc = calibration_to_doc(res.calibration, geometry=geometry, field_reference=fref,
-                                 provenance={'method': args.method,
-                                             'samples': int(data.n_samples),
-                                             'warnings': list(res.warnings)})
         save_calibration(out, doc)
     if args.json:
         print_json({**res.to_dict(), 'noise_floor_nt': None, 'output': out,
-                    'field_reference': fref})
+                    'field_reference': fref, 'calibration': doc})
     else:
         print(res.summary())
         if out:
@@ -401,7 +407,8 @@ def build_parser():
     sub = p.add_subparsers(dest='command', required=True)
 
     s = sub.add_parser('simulate', help='write a simulated cross-gradiometer recording (CSV)')
-    s.add_argument('--out', required=True, help='output CSV file')
+    s.add_argument('--out', required=True,
+                   help='output CSV file (.csv.gz, .csv.zst: compressed)')
     s.add_argument('--n', type=int, default=3000, help='number of samples (default 3000)')
     s.add_argument('--rate', type=float, default=100.0, help='sample rate, Hz')
     s.add_argument('--trajectory', default='smooth',
@@ -430,7 +437,7 @@ def build_parser():
     s.set_defaults(func=cmd_simulate)
 
     f = sub.add_parser('fit', help='fit a model and write a calibration file')
-    f.add_argument('data', help='wide CSV file or rosbag2 directory')
+    f.add_argument('data', help='wide CSV file (.csv, .csv.gz, .csv.zst) or rosbag2 directory')
     f.add_argument('--model', default='base', help="effects, e.g. 'base,temperature@2'")
     f.add_argument('--method', default='ellipsoid', choices=['ellipsoid', 'sine', 'reference'],
                    help='ellipsoid: maximum-likelihood fit of --model from rotations in a '
@@ -470,8 +477,8 @@ def build_parser():
     c = sub.add_parser('check', help='check a calibration against static recordings: one '
                        '|B| at every attitude, equal to the reference, or why not')
     c.add_argument('calfile', help='calibration YAML written by magcal fit')
-    c.add_argument('data', nargs='+', help='static recordings (wide CSV or rosbag2), each '
-                   'at one attitude')
+    c.add_argument('data', nargs='+', help='static recordings (wide CSV, also .csv.gz or '
+                   '.csv.zst, or rosbag2), each at one attitude')
     c.add_argument('--sensor', type=int, default=1, help='sensor to check (default 1)')
     add_unit_arg(c)
     c.add_argument('--json', action='store_true', help='print one JSON object on stdout')

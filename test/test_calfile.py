@@ -130,3 +130,45 @@ def test_bad_files_refused(tmp_path, run, make, match):
     path.write_text(make(r.doc))
     with pytest.raises(CalibrationFileError, match=match):
         load_calibration(path)
+
+
+def test_the_written_document_follows_the_declared_schema(run):
+    # the schema (jsonschema, draft 2020-12) describes what calibration_to_doc writes: the
+    # fitted document with a temperature effect validates, and a matrix of 2 rows does not
+    import jsonschema
+    _, r = run
+    doc = yaml.safe_load(calfile.dump_calibration(r.doc))
+    jsonschema.Draft202012Validator.check_schema(calfile.SCHEMA)
+    jsonschema.validate(doc, calfile.SCHEMA)
+    doc['sensors'][0]['correction_matrix'] = doc['sensors'][0]['correction_matrix'][:2]
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate(doc, calfile.SCHEMA)
+
+
+_TODO = r'; write it again with magcal fit or roll back \(magcal rollback\)$'
+
+
+@pytest.mark.parametrize('edit,message', [
+    (lambda d: d['sensors'][1]['effects'][0]['params']['kx'].update(value='abc'),
+     r"^bad\.yaml: malformed calibration document: sensors\[1\]\.effects\[0\]\.params\.kx\."
+     r"value: value is not a number \('abc'\)" + _TODO),
+    (lambda d: d['sensors'][1].update(correction_matrix=[[1, 2, 3], [1, 2, 3]]),
+     r'^bad\.yaml: malformed calibration document: sensors\[1\]\.correction_matrix: '
+     r'correction_matrix must have at least 3 entries, has 2' + _TODO),
+    (lambda d: d['sensors'][0].update(id='one'),
+     r"^bad\.yaml: malformed calibration document: sensors\[0\]\.id: id is not an integer "
+     r"\('one'\)" + _TODO),
+    (lambda d: d['sensors'][0]['effects'][0].update(refs={'t0_c': 'warm'}),
+     r"sensors\[0\]\.effects\[0\]\.refs\.t0_c: t0_c is not a number \('warm'\)" + _TODO),
+    (lambda d: d.update(provenance=[1]),
+     r'^bad\.yaml: malformed calibration document: provenance: provenance is not a mapping'),
+    (lambda d: d['sensors'][2].pop('effects'),
+     r"^bad\.yaml: sensors\[2\]: missing key 'effects'; write the calibration again"),
+])
+def test_schema_errors_say_where_and_what_to_do(run, edit, message):
+    _, r = run
+    doc = yaml.safe_load(calfile.dump_calibration(r.doc))
+    assert len(doc['sensors']) == 4                    # the simulated cross
+    edit(doc)
+    with pytest.raises(CalibrationFileError, match=message):
+        calfile.parse_calibration(calfile.dump_calibration(doc), 'bad.yaml')

@@ -367,13 +367,13 @@ def test_irregular_sampling_pump_is_found_by_lomb_scargle():
 
 
 def test_real_hand_rotation_drift_is_named():
-    # issue 11: on the shared roll-and-tilt recording (HMC5883L, hand-rotated, 36 s) "a slow
+    # issue 11: on the real roll-and-tilt recording (HMC5883L, hand-rotated, 36 s) "a slow
     # drift of about 1 200 nT is plain in the residual plot"; the findings name it
     from magcal_ros.core.data.magnitude import auto_magnitude
     from magcal_ros.io.csvio import read_csv
     import pathlib
-    path = (pathlib.Path(__file__).resolve().parents[1] / '..' / 'shared' / 'data' / 'real'
-            / 'sunsided-hmc5883l' / 'roll-and-tilt-at-45-90' / 'roll-and-tilt-at-45-90.csv')
+    path = (pathlib.Path(__file__).resolve().parents[1] / 'data' / 'real'
+            / 'sunsided-hmc5883l' / 'roll-and-tilt-at-45-90' / 'roll-and-tilt-at-45-90.csv.gz')
     data = read_csv(path)
     result = fit(data, 'base', field_nt=auto_magnitude(data.raw[0]), on_degenerate='flag')
     found = find(data, result)

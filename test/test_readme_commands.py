@@ -54,7 +54,7 @@ RUN_BY = [
      'test_readme_commands.py::test_offline_block_as_written', 'as written'),
     (r'magcal (simulate --out turn\.csv|fit turn\.csv)',
      'test_readme_commands.py::test_degenerate_example_as_written', 'as written'),
-    (r'magcal (fit|check) .*\.\./shared/data/real/sunsided',
+    (r'magcal (fit|check) .*data/real/sunsided',
      'test_real_sunsided.py::test_readme_check_commands', 'as written'),
     (r'magcal fit test/data/paper002_table2\.csv',
      'test_fit_methods.py::test_readme_command_as_written', 'as written'),
