@@ -121,16 +121,26 @@ def resolve_field(args, data):
 
 def _resolve_field(args, data):
     if getattr(args, 'igrf', None):
-        from magcal_ros.core.data.magnitude import igrf_total
+        from magcal_ros.core.data.magnitude import igrf_field
         try:
             lat, lon, alt = (float(x) for x in args.igrf[:3])
         except ValueError:
             raise BadInput('--igrf LAT LON ALT_KM DATE: LAT, LON, ALT_KM must be numbers')
-        f = igrf_total(lat, lon, alt, args.igrf[3])
+        f, inc = igrf_field(lat, lon, alt, args.igrf[3])
         return f, {'kind': 'igrf', 'lat_deg': lat, 'lon_deg': lon, 'alt_km': alt,
-                   'date': args.igrf[3], 'magnitude_nt': f}
+                   'date': args.igrf[3], 'magnitude_nt': f, 'inclination_deg': inc}
     if getattr(args, 'field_nt', None) is not None:
         if args.field_nt == 'auto':
+            if getattr(args, 'planar', False):
+                # an ellipsoid needs a sphere; a turn gives a circle and the mean along it
+                from magcal_ros.core.model.planar import (planar_magnitude, PlanarError,
+                                                          turn_axis)
+                try:
+                    f = planar_magnitude(data.raw[0], turn_axis(data.raw[0]))
+                except PlanarError as exc:
+                    raise BadInput(str(exc)) from None
+                return f, {'kind': 'auto (planar: in-plane radius and mean along the axis, '
+                                   'shape-only)', 'magnitude_nt': f}
             from magcal_ros.core.data.magnitude import auto_magnitude
             f = auto_magnitude(data.raw[0])
             return f, {'kind': 'auto (mean radius, shape-only)', 'magnitude_nt': f}
@@ -216,10 +226,12 @@ def cmd_fit(args):
         return _fit_paper_method(args, data)
     field_nt, fref = resolve_field(args, data)
     geometry = cross_geometry(args.baseline_m) if data.n_sensors == 4 else None
+    extra = {'heading_unknown': True} if args.heading_unknown else {}
+    if args.planar:
+        extra = {'planar': {'inclination_deg': fref.get('inclination_deg')}}
     run = calibrate(data, args.model, field_nt=field_nt, geometry=geometry,
                     field_reference=fref, robust=args.robust, constrained=args.constrained,
-                    on_degenerate='flag' if args.flag_degenerate else 'raise',
-                    **({'heading_unknown': True} if args.heading_unknown else {}))
+                    on_degenerate='flag' if args.flag_degenerate else 'raise', **extra)
     out = args.output
     refused = not run.result.success and not args.force
     if out and not refused:
@@ -248,6 +260,8 @@ def cmd_fit(args):
                   'uncertainty):')
             for row, srow in zip(g, se):
                 print('  ' + '  '.join(f'{v:9.2f} +- {e:5.2f}' for v, e in zip(row, srow)))
+        if 'planar' in s:
+            _print_planar(s['planar'])
         kinds = sorted(set(s['noise_floor_status'].values()) - {'white'})
         print(f'noise floor (from the data): {s["noise_floor_nt"]:.2f} nT'
               + (f' ({" / ".join(kinds)}: see the noise_floor warnings)' if kinds else ''))
@@ -259,6 +273,26 @@ def cmd_fit(args):
               + 'rerun with --force to accept it anyway', file=sys.stderr)
         return EXIT_FAIL
     return EXIT_OK
+
+
+def _print_planar(pl):
+    """The planar calibration's account, one line per sensor and one for what is open."""
+    for j, e in pl['in_plane'].items():
+        axis = ', '.join(f'{x:+.2f}' for x in pl['axis'][j])
+        parts = [f'sensor {j}: turn about ({axis}); in the {e["axes"]} plane']
+        parts.append('effective offsets (level) ' + ', '.join(
+            f'{v:.1f} +- {s:.1f}' for v, s in zip(e['effective_offset_nt'],
+                                                  e['effective_offset_stderr_nt'])) + ' nT')
+        if 'scale_ratio' in e:
+            parts.append(f'scale ratio {e["scale_ratio"]:.4f} +- {e["scale_ratio_stderr"]:.4f}')
+        if 'nonorth_rad' in e:
+            parts.append(f'angle {e["nonorth_rad"]:+.4f} +- {e["nonorth_stderr_rad"]:.4f} rad')
+        parts.append(f'heading error {pl["heading_error_deg"][j]:.2f} deg (1 sd, largest over '
+                     f'headings; inclination from {pl["inclination_source"]})')
+        print('; '.join(parts))
+    if pl['undetermined']:
+        print('undetermined (known no better than half the prior\'s width): '
+              + ', '.join(pl['undetermined']))
 
 
 def _fit_paper_method(args, data):
@@ -457,6 +491,10 @@ def build_parser():
     f.add_argument('--force', action='store_true',
                    help='write the calibration even when the fit did not converge')
     f.add_argument('--plugin', action='append', help='import a module defining effects')
+    f.add_argument('--planar', action='store_true',
+                   help='a turn about one axis only (a ground robot): fit what it determines '
+                        '(in-plane offsets, scale ratio, angle: heading-grade), hold the rest '
+                        'at a prior and name it; reports the heading error')
     f.add_argument('--heading-unknown', action='store_true',
                    help='site_gradient without attitude columns: estimate the rotation about '
                         'the field at every epoch; the gradient is then given in a '

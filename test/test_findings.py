@@ -140,7 +140,10 @@ def test_heavy_tails_only_heavy_tails(n):
     for f in found.items:
         # Student t with 3 degrees of freedom: infinite kurtosis, the sample value is large
         assert f.value > 3.0
-        assert 0.0 <= f.explained_fraction <= 1.0
+        # nothing but the noise is left: its mean square is the floor's, so the tails
+        # account for all of the excess over the MAD level (share 1); the sample second
+        # moments of t3 noise scatter (infinite kurtosis): 0.89-1.0 at these seeds
+        assert f.explained_fraction > 0.8
 
 
 # -- a field gradient over the cross, written out in the test -----------------------------
