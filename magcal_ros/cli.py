@@ -174,24 +174,11 @@ def print_json(obj):
 # -- simulate -------------------------------------------------------------------------------
 
 def _parse_truth(items):
-    truth = {}
-    for item in items or []:
-        # the values follow the last '=' outside parentheses: offset(s(t, k=4))@2=1,2,...
-        depth, cut = 0, -1
-        for i, ch in enumerate(item):
-            depth += (ch in '({') - (ch in ')}')
-            if ch == '=' and depth == 0:
-                cut = i
-        token, sep, values = (item[:cut], '=', item[cut + 1:]) if cut >= 0 else (item, '', '')
-        if not sep:
-            raise BadInput(f'--truth {item!r}: expected TERM=v1,v2,... '
-                           '(e.g. temperature@2=3,-2,1.5,0,0,0 or '
-                           'offset(window(20, 40))@2=30,0,0)')
-        try:
-            truth[token.strip()] = [float(v) for v in values.split(',')]
-        except ValueError:
-            raise BadInput(f'--truth {item!r}: values must be numbers')
-    return truth
+    from magcal_ros.core.data.simulate import parse_truth
+    try:
+        return parse_truth(items)
+    except ValueError as exc:
+        raise BadInput(f'--truth {exc}') from None
 
 
 def cmd_simulate(args):

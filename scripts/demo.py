@@ -434,7 +434,10 @@ def parse_args(argv=None):
                                 epilog='scripts/demo.sh --site-gradient [GXX,GXY,GXZ,GYY,GYZ]: '
                                        'an offline before/after of a site gradient instead '
                                        '(scripts/demo_site_gradient.py; add --help for its '
-                                       'options)')
+                                       'options); scripts/demo.sh --loop [--seed N]: '
+                                       'the workbench loop live, a hidden effect diagnosed '
+                                       'and removed through ROS (scripts/demo_loop.py; '
+                                       '--loop --help for its options)')
     p.add_argument('--out', default='demo_out', help='output directory (default ./demo_out)')
     p.add_argument('--collect-s', type=float, default=30.0,
                    help='seconds of rotation data to collect (default 30: about 3000 sets, '

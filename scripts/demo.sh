@@ -6,6 +6,7 @@
 # figures to ./demo_out (or --out DIR).
 #
 #   scripts/demo.sh [--out DIR] [--collect-s 30] [--record-s 15] [--model base] ...
+#   scripts/demo.sh --loop [--seed N]   (a hidden effect found and removed through ROS)
 #   scripts/demo.sh --site-gradient [GXX,GXY,GXZ,GYY,GYZ]   (offline before/after, nT/m)
 #   scripts/demo.sh --help
 #
@@ -26,6 +27,8 @@ for arg in "$@"; do
     case "${arg}" in
         --site-gradient|--site-gradient=*)
             exec "${python}" "${repo}/scripts/demo_site_gradient.py" "$@" ;;
+        --loop)
+            exec "${python}" "${repo}/scripts/demo_loop.py" "$@" ;;
     esac
 done
 exec "${python}" "${repo}/scripts/demo.py" "$@"

@@ -44,6 +44,8 @@ RUN_BY = [
     (r'make demo$', 'test_demo.py::test_make_demo_reaches_the_noise_floor', 'as written'),
     (r'make test$', 'test_demo.py::test_readme_starts_with_make_demo_and_make_test',
      'make -n (CI runs it; the suite cannot run itself)'),
+    (r'scripts/demo\.sh --loop$',
+     'test_demo_loop.py::test_loop_closes_for_three_hidden_terms', 'as written'),
     (r'scripts/demo\.sh --site-gradient$',
      'test_demo_site_gradient.py::test_readme_site_gradient_demo', 'as written'),
     (r'source scripts/ros_env\.sh$', 'test_readme_commands.py::test_offline_block_as_written',

@@ -81,9 +81,14 @@ def test_shipped_config_equals_the_defaults():
     values = yaml.safe_load((ROOT / 'config' / 'sim.yaml').read_text())[
         '/**/fluxgate_sim']['ros__parameters']
     specs = {s.name: s for s in sim_specs()}
-    assert set(values) == set(specs) - {'unplug', 'site_gradient', 'sensor_positions_m'}
+    assert set(values) == set(specs) - {'unplug', 'site_gradient', 'sensor_positions_m',
+                                        'truth', 'plugins'}
     for name, value in values.items():
-        assert value == specs[name].default and type(value) is type(specs[name].default), name
+        default = specs[name].default
+        if isinstance(default, tuple):          # a ROS array parameter (YAML: a list)
+            assert value == list(default), name
+        else:
+            assert value == default and type(value) is type(default), name
 
 
 def test_parse_unplug_and_options():
@@ -104,6 +109,9 @@ def test_parse_unplug_and_options():
     (['--sensors', '2', '--unplug', '3:1:1'], 'unplug sensor 3 but only 2 sensors'),
     (['--rate', '0'], 'must be > 0'),
     (['--site-gradient', '1,2'], 'five numbers'),
+    (['--truth', 'temperature@2'], 'expected TERM=v1,v2'),
+    (['--truth', 'nosuch@2=1,2,3'], "unknown effect 'nosuch'"),
+    (['--truth', 'aux:aux_motor_current@2=1,2'], r'3 values expected \(vx, vy, vz\)'),
 ])
 def test_bad_options_exit_with_reason(argv, match, capsys):
     with pytest.raises(SystemExit) as exc:
@@ -119,6 +127,8 @@ def test_bad_options_exit_with_reason(argv, match, capsys):
     ({'sensors': 2, 'unplug': ['3:1:1']}, 'unplug sensor 3 but only 2 sensors'),
     ({'unplug': ['2:5']}, '--unplug expects SENSOR:AT_S:FOR_S'),
     ({'site_gradient': [1.0, 2.0]}, 'five numbers'),
+    ({'truth': ['periodic(0.23)@2=1,x']}, 'values must be numbers'),
+    ({'aux_topics': ['fan_current']}, "no simulated channel 'fan_current'"),
 ])
 def test_node_refuses_bad_parameters(ros_context, ros_namespace, tmp_path, params, match):
     overrides = [Parameter('dir', value=str(tmp_path))] + [
@@ -317,3 +327,71 @@ def test_plain_process_without_ros(start_process, tmp_path):
                           '--sensors', '1'], name='sim_plain', ready='streaming')
     assert os.path.islink(tmp_path / 'dev' / 'fluxgate1')
     assert proc.stop() == 0 and 'stopped after' in proc.read_log()
+
+
+def _chunks(argv, tmp_path, n):
+    """Return readings (S, 601 + n, 3) nT and aux channels: 6 s in one chunk, n of one."""
+    sim = devices.FluxgateSim(settings(tmp_path, '--errors', 'none', '--noise-nt', '0',
+                                       *argv))
+    got = []
+    sim.listeners.append(lambda t, data: got.append(data))
+    first = 600                         # one chunk of 601 samples, then one sample a step
+    for k in range(first, first + n):
+        sim.step(k / sim.settings.rate)
+    raw = np.concatenate([d.raw for d in got], axis=1)
+    aux = {c: np.concatenate([d.aux[c] for d in got]) for c in got[0].aux}
+    return raw, aux
+
+
+def test_hidden_effects_reach_the_readings_chunk_by_chunk(tmp_path):
+    """
+    ``--truth``: a motor-current coupling and a lag, computed here from the channels.
+
+    Ideal sensors without noise, 6 s in one chunk then one sample per step as the live stream
+    writes them: the reading with the truth minus the one without is v (I - I0) for the
+    coupling (I0 the mean current of the first minute, the reference the simulator states)
+    and -tau dx/dt for the lag, x the readings (and a boxcar offset of the formula grammar
+    inside its window): inside a chunk the central difference
+    (x_k+1 - x_k-1) / 2h, for a sample alone the one-sided (3 x_k - 4 x_k-1 + x_k-2) / 2h of
+    the stream (all a live stream has).
+    """
+    n = 200
+    plain, aux = _chunks([], tmp_path / 'a', n)
+    hidden, _ = _chunks(['--truth', 'aux:aux_motor_current@2=15,-10,8',
+                         '--truth', 'field_rate@3=0.01,0.02,0.005',
+                         '--truth', 'offset(window(6.5, 7.25))@4=30,-20,0'], tmp_path / 'b', n)
+    minute = devices.Simulator(devices.SimConfig()).aux_channels(np.arange(6000) / 100.0)
+    i0 = minute['aux_motor_current'].mean()
+    coupling = (aux['aux_motor_current'] - i0)[:, None] * np.array([15.0, -10.0, 8.0])
+    assert np.ptp(aux['aux_motor_current']) > 0          # the current steps at 7 s
+    np.testing.assert_allclose(hidden[1] - plain[1], coupling, atol=1e-6)
+    tau, h, x = np.array([0.01, 0.02, 0.005]), 0.01, plain[2]
+    central = (x[2:601] - x[:599]) / (2 * h)                         # samples 1..599
+    one_sided = (3 * x[601:] - 4 * x[600:-1] + x[599:-2]) / (2 * h)  # samples 601..
+    assert np.abs(tau * one_sided).max() > 10.0          # nT: a sizeable effect
+    np.testing.assert_allclose(hidden[2, 1:600] - x[1:600], -tau * central, atol=1e-6)
+    np.testing.assert_allclose(hidden[2, 601:] - x[601:], -tau * one_sided, atol=1e-6)
+    np.testing.assert_array_equal(hidden[0], plain[0])
+    # a composed term of the formula grammar: a boxcar offset inside [6.5, 7.25] s
+    t = np.arange(hidden.shape[1]) / 100.0
+    inside = (t >= 6.5) & (t <= 7.25)
+    np.testing.assert_allclose(hidden[3] - plain[3], inside[:, None] * [30.0, -20.0, 0.0],
+                               atol=1e-6)
+
+
+def test_node_publishes_the_auxiliary_channels(make_node, ros_node, ros_executor,
+                                               ros_namespace, tmp_path):
+    """The channels on std_msgs/Float64 topics, at least every aux_period_s of sample time."""
+    from std_msgs.msg import Float64
+    got = {name: [] for name in ('motor_current', 'pump_current', 'heater_power')}
+    for name, values in got.items():
+        ros_node.create_subscription(Float64, f'{ros_namespace}/{name}',
+                                     lambda msg, v=values: v.append(msg.data), 100)
+    make_node(FluxgateSimNode, namespace=ros_namespace, parameter_overrides=[
+        Parameter('dir', value=str(tmp_path)), Parameter('aux_period_s', value=0.05)])
+    spin_until(ros_executor, lambda: len(got['pump_current']) >= 20, timeout_sec=20,
+               message='20 pump_current messages')
+    # the simulator's channels: pump 1 +- 0.5 A, motor 0..5 A, heater 0..10 W
+    assert all(0.5 <= v <= 1.5 for v in got['pump_current'])
+    assert got['motor_current'] and all(0.0 <= v <= 5.0 for v in got['motor_current'])
+    assert got['heater_power'] and all(0.0 <= v <= 10.0 for v in got['heater_power'])

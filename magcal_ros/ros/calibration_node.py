@@ -222,8 +222,11 @@ class CalibrationNode(Node):
                 Temperature, f'sensor{j}/temperature', self._temp_cb(j - 1),
                 SENSOR_QOS))
         for name in s.aux_topics:
+            # as deep as the raw streams: behind a busy executor the messages are taken one
+            # per subscription in turn, and a shallow queue dropped the channels' backlog,
+            # leaving their values ahead of the raw samples they were paired with
             self._subs.append(self.create_subscription(
-                Float64, name, self._aux_cb('aux_' + name), SENSOR_QOS))
+                Float64, name, self._aux_cb('aux_' + name), CALIBRATION_SENSOR_QOS))
         if s.imu_topic:
             self._subs.append(self.create_subscription(Imu, s.imu_topic, self._imu_cb,
                                                        CALIBRATION_SENSOR_QOS))

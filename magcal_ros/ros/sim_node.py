@@ -40,8 +40,10 @@ from magcal_ros.ros import params as prm
 from magcal_ros.ros.run import DEFAULT_NAMESPACE, spin_node
 from magcal_ros.serial import PROTOCOLS
 from magcal_ros.sim import devices
+import numpy as np
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from std_msgs.msg import Float64
 
 NODE_NAME = devices.NODE_NAME
 
@@ -85,6 +87,20 @@ def sim_specs():
                       read_only=True, limits=(0.0, 1.0e9)),
         prm.ParamSpec('unplug', (), "faults 'SENSOR:AT_S:FOR_S[:NEW_PATH]' (times in s), "
                       "e.g. ['2:10:1.5']", read_only=True),
+        prm.ParamSpec('truth', (), "hidden effects 'EFFECT=V1,V2,...' as magcal simulate "
+                      "--truth (values in the units of the effect's parameters), e.g. "
+                      "['aux:aux_motor_current@2=15,-10,8']", read_only=True),
+        prm.ParamSpec('plugins', (), 'effect plug-in modules imported before the truth is '
+                      'read, as magcal --plugin; no unit', read_only=True),
+        prm.ParamSpec('aux_topics', tuple(d['aux_topics']), 'std_msgs/Float64 topics '
+                      'publishing the simulated auxiliary channels (motor_current: A, '
+                      'pump_current: A, heater_power: W), see aux_period_s; the names the '
+                      'calibration and corrector nodes take in aux_topics', read_only=True),
+        prm.ParamSpec('aux_period_s', 0.0, 'longest interval between two messages of an '
+                      'auxiliary channel, s of sample time (0: one message per sample, what '
+                      'keeps a busy subscriber taking them in step with the raw fields; a jump '
+                      'of more than 2 % is published at once)', read_only=True,
+                      limits=(0.0, 1.0e6)),
         prm.ParamSpec('site_gradient', (), 'constant site gradient [GXX, GXY, GXZ, GYY, GYZ] '
                       'in the world (NED) frame, nT/m; empty: a uniform field',
                       read_only=True, item_type=float),
@@ -125,6 +141,13 @@ class FluxgateSimNode(Node):
             raise
         for line in devices.describe_start(self.sim, self.settings):
             log.info(line)
+        # the auxiliary channels, as a real vehicle's nodes would publish them (the value of
+        # each sample, published as the sample is written)
+        self._aux_pubs = {'aux_' + name: self.create_publisher(Float64, name, 10)
+                          for name in self.settings.aux_topics}
+        self._aux_last = {}                 # column -> (sample time s, value) last published
+        if self._aux_pubs:
+            self.sim.listeners.append(self._publish_aux)
         self._thread = threading.Thread(target=self._stream, name='fluxgate_sim',
                                         daemon=True)
         self._thread.start()
@@ -133,6 +156,20 @@ class FluxgateSimNode(Node):
     def paths(self):
         """Link paths of the simulated devices, sensor 1 first."""
         return list(self.sim.paths)
+
+    def _publish_aux(self, t, data):
+        # one message per sample by default: a subscriber behind its stream takes one message
+        # per subscription in turn, so channels published at the raw rate stay in step with
+        # the raw fields; aux_period_s > 0 thins them (a value at most that old, every jump
+        # at once) where the subscribers keep up
+        period = self.settings.aux_period_s
+        for column, pub in self._aux_pubs.items():
+            for tk, value in zip(t, data.aux[column]):
+                t_last, v_last = self._aux_last.get(column, (-np.inf, np.nan))
+                if (tk - t_last >= period or not abs(value - v_last)
+                        <= 0.02 * max(1.0, abs(v_last))):
+                    pub.publish(Float64(data=float(value)))
+                    self._aux_last[column] = (tk, value)
 
     def _stream(self):
         try:
@@ -189,6 +226,8 @@ def overrides_from_options(args):
                 for u in value]))
         elif key in ('site_gradient', 'sensor_positions_m'):
             out.append(Parameter(key, value=[float(v) for v in value]))
+        elif key in ('truth', 'plugins'):
+            out.append(Parameter(key, value=[str(v) for v in value]))
         elif key == 'dir':
             out.append(Parameter('dir', value=str(value)))
         else:

@@ -30,6 +30,16 @@ A site gradient (``site_gradient``: GXX, GXY, GXZ, GYY, GYZ in nT/m, world NED f
 symmetric and traceless) makes the field differ over the cross as it does near buildings or
 a vehicle (docs/site_gradient.md); ``field_nt`` is then the magnitude at the array centre.
 
+Hidden effects (``truth``: entries ``EFFECT=V1,V2,...`` as ``magcal simulate --truth``, any
+term of the model with its parameter values, plug-ins of ``plugins`` included) are added to
+the readings; their driving channels are the simulator's own: the sensor temperature goes out
+in the protocol's temperature field, the auxiliary channels
+(:data:`magcal_ros.core.data.simulate.AUX_CHANNELS`) are published by the ROS node on the
+std_msgs/Float64 topics of ``aux_topics`` (``motor_current`` carries ``aux_motor_current``;
+one message per sample, or with ``aux_period_s`` one every so many s and at each jump),
+the names the calibration and corrector nodes take in their own ``aux_topics``. The plain
+process has no topics: there only effects of time, temperature and the field act.
+
 Faults for tests: ``unplug`` entries ``SENSOR:AT_S:FOR_S[:NEW_PATH]`` close that sensor's
 pseudo-terminal at ``AT_S`` s (readers get an I/O error, the link disappears) and plug a
 new one ``FOR_S`` s later, at ``NEW_PATH`` if given (a device that comes back under another
@@ -50,7 +60,8 @@ import sys
 import threading
 import time
 
-from magcal_ros.core.data.simulate import SimConfig, Simulator, TRAJECTORIES
+from magcal_ros.core.data.simulate import (AUX_CHANNELS, parse_truth, set_truth_refs,
+                                           SimConfig, Simulator, TRAJECTORIES)
 from magcal_ros.serial import make_encoder, PROTOCOLS, Sample
 from magcal_ros.serial.options import load_yaml, parse_options, parse_value
 from magcal_ros.serial.transport import PtyDevice
@@ -104,6 +115,15 @@ def parse_option(text):
     if not sep or not key.strip():
         raise argparse.ArgumentTypeError(f'--option expects KEY=VALUE, got {text!r}')
     return key.strip(), parse_value(raw)
+
+
+def parse_truth_item(text):
+    """Check one hidden effect ``EFFECT=V1,V2,...`` (``--truth``); return it unchanged."""
+    try:
+        parse_truth([text])
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f'--truth {exc}') from None
+    return str(text)
 
 
 def _positive(kind):
@@ -195,6 +215,13 @@ def build_parser():
     p.add_argument('--site-gradient', type=parse_gradient, metavar='GXX,GXY,GXZ,GYY,GYZ',
                    help='constant site gradient in the world (NED) frame, nT/m '
                         '(default: none, a uniform field)')
+    p.add_argument('--truth', type=parse_truth_item, action='append',
+                   metavar='EFFECT=V1,V2,...',
+                   help='hidden effect with its parameter values, as magcal simulate --truth '
+                        '(repeatable), e.g. --truth aux:aux_motor_current@2=15,-10,8')
+    p.add_argument('--plugin', dest='plugins', action='append', metavar='MODULE',
+                   help='import a module defining effects before the truth is read '
+                        '(repeatable, as magcal --plugin)')
     p.add_argument('--duration', type=_positive(float),
                    help='stop after this many seconds (default: run until SIGINT/SIGTERM)')
     p.add_argument('--unplug', type=parse_unplug, action='append',
@@ -208,7 +235,9 @@ DEFAULTS = {'dir': DEFAULT_DIR, 'prefix': DEFAULT_PREFIX, 'sensors': 4, 'rate': 
             'tick': 0.01, 'protocol': 'ascii', 'option': [], 'seed': 0,
             'trajectory': 'smooth', 'field_nt': 50000.0, 'noise_nt': 3.0,
             'errors': 'paper004', 'duration': None, 'unplug': [], 'site_gradient': None,
-            'sensor_positions_m': None, 'smooth_period_s': 60.0}
+            'sensor_positions_m': None, 'smooth_period_s': 60.0,
+            'truth': [], 'plugins': [], 'aux_period_s': 0.0,
+            'aux_topics': [c[len('aux_'):] for c in AUX_CHANNELS]}
 
 
 def settings_from_parameters(section, source):
@@ -250,6 +279,12 @@ def _setting(key, value, source):
     if key == 'unplug':
         return {key: [v if isinstance(v, Unplug) else parse_unplug(v)
                       for v in (value or []) if v]}
+    if key == 'truth':
+        return {key: [parse_truth_item(v) for v in (value or []) if v]}
+    if key == 'aux_period_s':
+        return {key: float(value)}
+    if key in ('plugins', 'aux_topics'):
+        return {key: [str(v) for v in (value or []) if v]}
     if key == 'dir':
         return {key: value} if value else {}
     if key == 'duration':
@@ -321,6 +356,33 @@ def check_settings(st):
         if u.sensor > st['sensors']:
             raise ValueError(f'unplug sensor {u.sensor} but only {st["sensors"]} sensors')
     make_encoder(st['protocol'], **dict(st['option']))     # raises on bad options
+    for name in st.get('aux_topics') or []:
+        if 'aux_' + name not in AUX_CHANNELS:
+            raise ValueError(f'aux_topics: no simulated channel {name!r}; the simulator has '
+                             f'{[c[len("aux_"):] for c in AUX_CHANNELS]}')
+    if st.get('truth'):
+        _simulator(st)          # an unknown term or a wrong number of values raises here
+
+
+def _simulator(st):
+    """Build the :class:`Simulator` of settings ``st`` (plug-ins imported first, refs set)."""
+    from magcal_ros.core.effects import load_plugins
+    load_plugins(st.get('plugins') or None)
+    grad = st.get('site_gradient')
+    if grad is not None:
+        from magcal_ros.core.geometry.tensor import symmetric_traceless
+        grad = symmetric_traceless(grad)
+    sim = Simulator(SimConfig(
+        n_sensors=st['sensors'], rate_hz=st['rate'], field_nt=st['field_nt'],
+        noise_nt=st['noise_nt'], trajectory=st['trajectory'],
+        errors=None if st['errors'] == 'none' else st['errors'],
+        seed=st['seed'], gradient_nt_per_m=grad, truth=parse_truth(st.get('truth')),
+        smooth_period_s=st.get('smooth_period_s') or 60.0,
+        positions_m=st.get('sensor_positions_m')))
+    # driven hidden effects act about references (mean temperature, mean current, start
+    # time) of the first minute, as a calibration of that minute would see them
+    set_truth_refs(sim, np.arange(0.0, 60.0, 1.0 / st['rate']))
+    return sim
 
 
 def resolve_settings(argv=None, namespace=DEFAULT_NAMESPACE):
@@ -379,17 +441,10 @@ class FluxgateSim:
         options = dict(settings.option)
         self.encoders = [make_encoder(settings.protocol, **options)
                          for _ in range(settings.sensors)]
-        grad = getattr(settings, 'site_gradient', None)
-        if grad is not None:
-            from magcal_ros.core.geometry.tensor import symmetric_traceless
-            grad = symmetric_traceless(grad)
-        self.sim = Simulator(SimConfig(
-            n_sensors=settings.sensors, rate_hz=settings.rate, field_nt=settings.field_nt,
-            noise_nt=settings.noise_nt, trajectory=settings.trajectory,
-            errors=None if settings.errors == 'none' else settings.errors,
-            seed=settings.seed, gradient_nt_per_m=grad,
-            smooth_period_s=getattr(settings, 'smooth_period_s', 60.0),
-            positions_m=getattr(settings, 'sensor_positions_m', None)))
+        self.sim = _simulator(dict(DEFAULTS, **vars(settings)))
+        #: called as ``f(t, data)`` after each chunk is written: t (n,) s since start, data
+        #: the :class:`~magcal_ros.core.data.dataset.Dataset` (the node publishes ``data.aux``)
+        self.listeners = []
         self.paths = [os.path.join(settings.dir, f'{settings.prefix}{j}')
                       for j in range(1, settings.sensors + 1)]
         self.devices = []
@@ -454,6 +509,8 @@ class FluxgateSim:
                 warn(f'sensor{j + 1}: the reader fell behind at {now_s:.3f} s; its unread '
                      f'output was discarded (flush {dev.flushes})')
             dev.read()              # drain commands a reader sent (start/stop); ignored
+        for listener in self.listeners:
+            listener(t, data)
         self.sent = due
         return n
 
@@ -503,8 +560,10 @@ def describe_start(sim, settings):
     """Return the lines saying where each sensor is and what streams (logged at start)."""
     lines = [f'sensor{j} -> {path} ({dev.slave_name})'
              for j, (path, dev) in enumerate(zip(sim.paths, sim.devices), start=1)]
+    truth = list(getattr(settings, 'truth', None) or [])
     return lines + [f'streaming {settings.protocol} at {settings.rate:g} Hz per sensor '
-                    f'(trajectory {settings.trajectory}, seed {settings.seed})']
+                    f'(trajectory {settings.trajectory}, seed {settings.seed})'
+                    + (f'; hidden effects {truth}' if truth else '')]
 
 
 def describe_stop(sim):

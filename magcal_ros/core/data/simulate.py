@@ -167,6 +167,7 @@ class Simulator:
         first = np.column_stack([self._phases[6:10], self._phases[10:14]])
         more = seed_rng.uniform(0, 2 * np.pi, size=(max(s - 4, 0), 2))
         self._temp_phases = np.vstack([first, more])[:s]
+        self._tail = {}         # sensor -> (times (2,) s, noise-free readings (2, 3) nT)
 
     def _set_truth(self, p, token, values):
         """
@@ -288,9 +289,17 @@ class Simulator:
         raw = np.empty((s, n, 3))
         for j in range(1, s + 1):
             lin = b[j - 1] @ self.model.matrix(j, self.params).T
-            # the estimator of the fit and the live corrector, on the noise-free reading
-            rate = raw_rate(lin, t)
-            rate = np.zeros_like(lin) if rate is None else rate
+            # the estimator of the fit and the live corrector, on the noise-free reading; a
+            # chunk that continues the previous one (the live fluxgate_sim: one sample per
+            # write) takes that one's last two readings, so its rate is the stream's
+            tail = self._tail.get(j)
+            if tail is not None and n and t[0] > tail[0][-1]:
+                tt, ll = np.concatenate([tail[0], t]), np.concatenate([tail[1], lin])
+            else:
+                tt, ll = t, lin
+            rate = raw_rate(ll, tt)
+            rate = np.zeros_like(lin) if rate is None else rate[len(tt) - n:]
+            self._tail[j] = (tt[-2:], ll[-2:])
             ctx = SensorContext(t=t, temp=temp[j - 1], aux=aux, raw_rate=rate)
             raw[j - 1] = self.model.forward(j, self.params, b[j - 1], ctx)
         raw += self.rng.normal(size=raw.shape) * self.noise[:, None, None]
@@ -325,14 +334,70 @@ def simulate(config=None, **overrides):
     sim = Simulator(config, **overrides)
     # driven effects act about references fixed by the simulator, set before sampling
     t = np.arange(sim.config.n_samples) / sim.config.rate_hz
-    _set_truth_refs(sim, t)
+    set_truth_refs(sim, t)
     data = sim.sample(t)
     return data, sim
 
 
-def _set_truth_refs(sim, t):
-    """Fix the truth's reference values (mean temperature etc.) from the time grid."""
+def set_truth_refs(sim, t):
+    """
+    Fix the truth's reference values (mean temperature etc.) from the time grid ``t`` (N,) s.
+
+    :func:`simulate` calls it with its own grid; a simulator sampled chunk by chunk (the live
+    ``fluxgate_sim``) calls it once with a nominal grid before the first chunk.
+    """
     temp = sim.temperature(t)
     aux = sim.aux_channels(t) if sim.config.aux else {}
     sim.model.prepare([SensorContext(t=t, temp=temp[j], aux=aux)
                        for j in range(len(sim.model.effects))])
+
+
+def parse_truth(items):
+    """
+    Parse hidden effects ``EFFECT=V1,V2,...`` (``magcal simulate --truth``, ``fluxgate_sim``).
+
+    The effect is any model term, with its sensor (``temperature@2``,
+    ``aux:aux_motor_current@3``, ``periodic(0.23)@4``, a plug-in's name); the values are its
+    parameters in the order and units of the effect's ``param_names``/``units``. The text is
+    split at the last ``=`` outside parentheses, so a term whose own text holds one
+    (``offset(s(t, k=4))@2``) keeps it.
+
+    Parameters
+    ----------
+    items : iterable of str
+        One entry per hidden effect.
+
+    Returns
+    -------
+    dict
+        {term: list of float}, the ``truth`` of :class:`SimConfig`.
+
+    Raises
+    ------
+    ValueError
+        Naming the entry, for a missing ``=``, an empty term or a value that is not a finite
+        number.
+
+    """
+    truth = {}
+    for item in items or []:
+        item = str(item)
+        # the values follow the last '=' outside parentheses: offset(s(t, k=4))@2=1,2,...
+        depth, cut = 0, -1
+        for i, ch in enumerate(item):
+            depth += (ch in '({') - (ch in ')}')
+            if ch == '=' and depth == 0:
+                cut = i
+        token, values = item[:cut].strip(), item[cut + 1:]
+        if cut < 0 or not token:
+            raise ValueError(f'{item!r}: expected TERM=v1,v2,... '
+                             '(e.g. temperature@2=3,-2,1.5,0,0,0 or '
+                             'offset(window(20, 40))@2=30,0,0)')
+        try:
+            nums = [float(v) for v in values.split(',')]
+        except ValueError:
+            raise ValueError(f'{item!r}: values must be numbers') from None
+        if not np.all(np.isfinite(nums)):
+            raise ValueError(f'{item!r}: values must be finite numbers')
+        truth[token] = nums
+    return truth
