@@ -65,6 +65,93 @@ def load_data(path, unit=None, rate_hz=100.0):
     return data
 
 
+def load_record(path, unit=None, rate_hz=100.0, progress=None, reduce_above=None):
+    """
+    (Dataset, Record or None): a recording, reduced when it is too long to hold.
+
+    A wide CSV of more than :data:`magcal_ros.core.reduce.REDUCE_ABOVE` epochs (estimated
+    from its size and its first lines) is read in chunks and reduced
+    (:mod:`magcal_ros.core.reduce`): the Dataset returned is the evenly spread sample (with
+    the noise blocks in its ``meta``) and the :class:`~magcal_ros.io.chunks.Record` reads the
+    whole record again for the residual statistics.  Anything else is read whole
+    (:func:`load_data`), with no Record.
+    """
+    from magcal_ros.core import reduce
+    limit = reduce.REDUCE_ABOVE if reduce_above is None else int(reduce_above)
+    if (os.path.isdir(path) or not os.path.exists(path) or (unit and not _is_wide_csv(path))
+            or _estimated_rows(path) <= limit):
+        return load_data(path, unit, rate_hz), None
+    from magcal_ros.io.chunks import open_record
+    rec = open_record(path)
+    k = UNITS_NT[unit or 'nT']
+    bar = (progress.bar('reading', total=rec.size, unit='B', scale=True)
+           if progress is not None else None)
+    try:
+        red = reduce.reduce_chunks(in_nt(rec.chunks(progress=None if bar is None else
+                                                    (lambda b: bar.update(b - bar.n))), k))
+    finally:
+        if bar is not None:
+            bar.close()
+    if unit:
+        red.sample.meta['unit'] = unit
+    rec.scale = k
+    return red.sample, rec
+
+
+def in_nt(chunks, k):
+    """Yield the Dataset ``chunks`` with their field columns multiplied by ``k`` (to nT)."""
+    for piece in chunks:
+        if k != 1.0:
+            piece.raw = piece.raw * k
+            if piece.ref_total is not None:
+                piece.ref_total = piece.ref_total * k
+            if piece.ref_vec is not None:
+                piece.ref_vec = piece.ref_vec * k
+        yield piece
+
+
+def _estimated_rows(path, probe=200):
+    """Data rows of a CSV file estimated from its size and the length of its first lines."""
+    size = os.path.getsize(path)
+    n = total = 0
+    with open(path, 'rb') as fh:
+        for line in fh:
+            if line.strip() and not line.lstrip().startswith(b'#'):
+                n += 1
+                total += len(line)
+                if n > probe:
+                    break
+    return 0 if n < 2 else int(size / (total / n))
+
+
+def full_record_statistics(run, record, positions, progress=None):
+    """
+    Put the residual statistics of every epoch of ``record`` into ``run`` (a long record).
+
+    ``run`` (CalibrationRun) was fitted on the reduced sample: its summary's RMS and
+    largest deviations are replaced by those of the whole record
+    (:func:`magcal_ros.core.reduce.residual_statistics`, one more pass over the chunks),
+    ``n_samples`` by the record's length, and ``reduction`` says how it was reduced.
+    """
+    from magcal_ros.core.reduce import residual_statistics
+    bar = (progress.bar('residuals', total=record.size, unit='B', scale=True)
+           if progress is not None else None)
+    try:
+        chunks = in_nt(record.chunks(progress=None if bar is None else
+                                     (lambda b: bar.update(b - bar.n))), record.scale)
+        stats = residual_statistics(chunks, run.result, positions)
+    finally:
+        if bar is not None:
+            bar.close()
+    run.summary.update(stats)
+    prov = run.doc['provenance']
+    prov['samples'] = stats['n_samples']
+    for key in ('scalar_rms_nt', 'vector_rms_nt', 'tensor_rms_nt_per_m'):
+        if key in stats:
+            prov['residuals'][key] = stats[key]
+    return stats
+
+
 def _is_wide_csv(path):
     """Tell whether the first non-comment line of ``path`` names a wide-format column."""
     import re
@@ -211,17 +298,26 @@ def cmd_simulate(args):
 
 def cmd_fit(args):
     from magcal_ros.io.calfile import save_calibration
-    from magcal_ros.pipeline import calibrate, cross_geometry
+    from magcal_ros.pipeline import calibrate, cross_geometry, geometry_positions
+    from magcal_ros.progress import Progress, wanted
     load_plugins(args)
-    data = load_data(args.data, args.unit)
+    prog = Progress(wanted(args.quiet, args.json))
     if args.method != 'ellipsoid':
-        return _fit_paper_method(args, data)
+        return _fit_paper_method(args, load_data(args.data, args.unit))
+    data, record = load_record(args.data, args.unit, progress=prog)
     field_nt, fref = resolve_field(args, data)
     geometry = cross_geometry(args.baseline_m) if data.n_sensors == 4 else None
+    prog('fit', 0, 1, args.model)
     run = calibrate(data, args.model, field_nt=field_nt, geometry=geometry,
                     field_reference=fref, robust=args.robust, constrained=args.constrained,
                     on_degenerate='flag' if args.flag_degenerate else 'raise',
                     **({'heading_unknown': True} if args.heading_unknown else {}))
+    prog('fit', 1, 1)
+    if record is not None:
+        full_record_statistics(run, record, geometry_positions(geometry, data.n_sensors),
+                               prog)
+        run.summary['reduction'] = data.meta['reduction']
+        run.doc['provenance']['reduction'] = data.meta['reduction']
     out = args.output
     refused = not run.result.success and not args.force
     if out and not refused:
@@ -454,6 +550,7 @@ def build_parser():
     f.add_argument('--force', action='store_true',
                    help='write the calibration even when the fit did not converge')
     f.add_argument('--plugin', action='append', help='import a module defining effects')
+    f.add_argument('-q', '--quiet', action='store_true', help='no progress bars on stderr')
     f.add_argument('--heading-unknown', action='store_true',
                    help='site_gradient without attitude columns: estimate the rotation about '
                         'the field at every epoch; the gradient is then given in a '

@@ -1284,7 +1284,7 @@ def _plan(data, result, floor, diagnosis, ladder, found, baseline_m, every):
 
 
 def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseline_m=0.5,
-                 title='magcal diagnosis report', figures='relevant'):
+                 title='magcal diagnosis report', figures='relevant', progress=None):
     """
     Write the figures (PNG) and ``index.html`` (self-contained) into ``out_dir``.
 
@@ -1310,6 +1310,8 @@ def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseli
         change-point and lag views) only when the verdict, a significant candidate, an
         adopted ladder step or a finding points at them, and lists the others with the
         reason under "Views not drawn"; 'all' draws every view the data allow.
+    progress : callable, optional
+        ``progress('report', i, n, view)`` as the figures are drawn.
 
     Returns
     -------
@@ -1370,9 +1372,13 @@ def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseli
     images, skipped = [], []
     pngs = []
     with matplotlib.rc_context(RC):          # the figures' text measured and drawn alike
-        for _, _, make, _ in plan:
+        for i, (name, _, make, _) in enumerate(plan):
+            if progress is not None:
+                progress('report', i, len(plan), name)
             fig = None if make is None else make()
             pngs.append(None if fig is None else _png(fig))
+    if progress is not None:
+        progress('report', len(plan), len(plan), '')
     for (name, heading, _, why), png in zip(plan, pngs):
         if png is None:
             skipped.append((heading, why or 'the data do not allow it (too few epochs)'))

@@ -61,7 +61,14 @@ def read_csv(path):
                                  'separator')
     if len(lines) == 1:
         raise CsvFormatError(f'{path}: no data rows (only the header)')
-    header = [h.strip() for h in lines[0].strip().split(',')]
+    layout = parse_header(path, lines[0])
+    arr, planes = parse_rows(path, layout, line_nos[1:], lines[1:])
+    return build_dataset(path, layout, arr, np.array(line_nos[1:]), lines[1:], planes)
+
+
+def parse_header(path, line):
+    """Return the column layout of a header ``line``: (header, {j: {axis: column}}, plane col)."""
+    header = [h.strip() for h in line.strip().split(',')]
     sensors = {}
     for i, h in enumerate(header):
         m = _SENSOR_COL.match(h)
@@ -85,9 +92,15 @@ def read_csv(path):
             raise CsvFormatError(f'{path}: sensor {j} lacks column(s) '
                                  f'{", ".join(f"s{j}_{a}" for a in missing)}')
     plane_col = header.index('plane') if 'plane' in header else None
+    return header, sensors, plane_col
+
+
+def parse_rows(path, layout, line_nos, lines):
+    """Return ((R, C) float array, plane strings or None) of data ``lines`` (R rows)."""
+    header, _, plane_col = layout
     rows = []
     planes = []
-    for ln_no, ln in zip(line_nos[1:], lines[1:]):
+    for ln_no, ln in zip(line_nos, lines):
         parts = [p.strip() for p in ln.strip().split(',')]
         if len(parts) != len(header):
             raise CsvFormatError(f'{path}: line {ln_no} has {len(parts)} fields, header has '
@@ -100,10 +113,19 @@ def read_csv(path):
         except ValueError:
             bad = next(p for p in parts if not _isfloat(p))
             raise CsvFormatError(f'{path}: line {ln_no}: {bad!r} is not a number') from None
-    arr = np.array(rows, float).reshape(-1, len(header))
-    rows_no = np.array(line_nos[1:])
-    _check_finite(path, header, arr, rows_no,
-                  [lines[k] for k in range(1, len(lines))])
+    return (np.array(rows, float).reshape(-1, len(header)),
+            np.array(planes) if plane_col is not None else None)
+
+
+def build_dataset(path, layout, arr, rows_no, lines, planes=None):
+    """
+    Check the rows ``arr`` (R, C) of a wide CSV and return them as a :class:`Dataset`.
+
+    ``rows_no`` (R,) are their line numbers and ``lines`` their text (for the messages).
+    """
+    header, sensors, plane_col = layout
+    n_s = max(sensors)
+    _check_finite(path, header, arr, rows_no, lines)
     col = {h: arr[:, i] for i, h in enumerate(header)}
     t = col['t']
     if len(t) and (not np.all(np.isfinite(t)) or np.any(np.diff(t) < 0)):
@@ -130,7 +152,7 @@ def read_csv(path):
             raise CsvFormatError(f'{path}: {exc}') from None
     return Dataset(t=t, raw=raw, temp=temp, ref_total=col.get('ref_total'), ref_vec=ref_vec,
                    angle_deg=col.get('angle_deg'),
-                   plane=np.array(planes) if plane_col is not None else None,
+                   plane=planes if plane_col is not None else None,
                    aux={h: col[h] for h in header if h.startswith('aux_')},
                    meta={'source': path}, attitude=attitude)
 
