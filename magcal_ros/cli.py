@@ -69,8 +69,9 @@ def load_record(path, unit=None, rate_hz=100.0, progress=None, reduce_above=None
     """
     (Dataset, Record or None): a recording, reduced when it is too long to hold.
 
-    A wide CSV of more than :data:`magcal_ros.core.reduce.REDUCE_ABOVE` epochs (estimated
-    from its size and its first lines) is read in chunks and reduced
+    A wide CSV or a rosbag2 recording of more than :data:`magcal_ros.core.reduce.REDUCE_ABOVE`
+    epochs (estimated from the CSV's size and its first lines; from the bag's metadata) is
+    read in chunks and reduced
     (:mod:`magcal_ros.core.reduce`): the Dataset returned is the evenly spread sample (with
     the noise blocks in its ``meta``) and the :class:`~magcal_ros.io.chunks.Record` reads the
     whole record again for the residual statistics.  Anything else is read whole
@@ -78,7 +79,8 @@ def load_record(path, unit=None, rate_hz=100.0, progress=None, reduce_above=None
     """
     from magcal_ros.core import reduce
     limit = reduce.REDUCE_ABOVE if reduce_above is None else int(reduce_above)
-    if (os.path.isdir(path) or not os.path.exists(path) or (unit and not _is_wide_csv(path))
+    if (not os.path.exists(path) or (unit and not os.path.isdir(path)
+                                      and not _is_wide_csv(path))
             or _estimated_rows(path) <= limit):
         return load_data(path, unit, rate_hz), None
     from magcal_ros.io.chunks import open_record
@@ -111,7 +113,10 @@ def in_nt(chunks, k):
 
 
 def _estimated_rows(path, probe=200):
-    """Data rows of a CSV file estimated from its size and the length of its first lines."""
+    """Epochs of a recording: a CSV's from its size and first lines, a bag's from metadata."""
+    if os.path.isdir(path):
+        from magcal_ros.io.bag import bag_epoch_count
+        return bag_epoch_count(path)
     size = os.path.getsize(path)
     n = total = 0
     with open(path, 'rb') as fh:
