@@ -267,7 +267,6 @@ def _parse_truth(items):
 
 def cmd_simulate(args):
     from magcal_ros.core.simulate import simulate
-    from magcal_ros.io.csvio import write_csv
     load_plugins(args)
     truth = _parse_truth(args.truth)
     grad = None
@@ -281,21 +280,40 @@ def cmd_simulate(args):
             raise BadInput(f'--site-gradient {args.site_gradient!r}: expected five numbers '
                            'GXX,GXY,GXZ,GYY,GYZ in nT/m (gzz = -gxx - gyy)')
         grad = symmetric_traceless(g5)
-    data, sim = simulate(gradient_nt_per_m=grad, attitude=args.attitude, n_samples=args.n,
-                         rate_hz=args.rate, trajectory=args.trajectory,
-                         noise_nt=args.noise_nt, seed=args.seed, truth=truth,
-                         model=args.model, aux=not args.no_aux,
-                         diurnal_swing_nt=args.diurnal_nt, outlier_fraction=args.outliers,
-                         field_nt=args.field_nt, errors=None if args.ideal else 'paper004')
-    if args.ref_total and data.ref_total is None:
-        data.ref_total = sim.field_magnitude(data.t)
+    settings = dict(gradient_nt_per_m=grad, attitude=args.attitude, n_samples=args.n,
+                    rate_hz=args.rate, trajectory=args.trajectory,
+                    noise_nt=args.noise_nt, seed=args.seed, truth=truth,
+                    model=args.model, aux=not args.no_aux,
+                    diurnal_swing_nt=args.diurnal_nt, outlier_fraction=args.outliers,
+                    field_nt=args.field_nt, errors=None if args.ideal else 'paper004')
+    from magcal_ros.core.reduce import REDUCE_ABOVE
+    if args.n <= REDUCE_ABOVE:
+        data, sim = simulate(**settings)
+        pieces = [data]
+    else:
+        # a long record: made and written a chunk at a time (core.simulate.simulate_chunks)
+        from magcal_ros.core.simulate import simulate_chunks
+        sim, pieces = simulate_chunks(**settings)
     comment = (f'magcal simulate: paper 004 cross, {args.n} samples at {args.rate} Hz, '
                f'trajectory {args.trajectory}, noise {args.noise_nt} nT, seed {args.seed}\n'
                f'truth model: {",".join(sim.model.spec())}\n'
                'truth params: ' + ' '.join(f'{v:.6g}' for v in sim.params))
-    write_csv(args.out, data, comment=comment)
-    print(f'wrote {args.out}: {data.n_samples} samples of {data.n_sensors} sensors',
-          file=sys.stderr)
+    from magcal_ros.io.chunks import write_csv_chunks
+    from magcal_ros.progress import Progress, wanted
+    prog = Progress(wanted(args.quiet))
+    bar = prog.bar('simulate', total=args.n, unit='sets', scale=True)
+
+    def with_ref(pieces):
+        for piece in pieces:
+            if args.ref_total and piece.ref_total is None:
+                piece.ref_total = sim.field_magnitude(piece.t)
+            bar.update(piece.n_samples)
+            yield piece
+    try:
+        n = write_csv_chunks(args.out, with_ref(pieces), comment=comment)
+    finally:
+        bar.close()
+    print(f'wrote {args.out}: {n} samples of {sim.config.n_sensors} sensors', file=sys.stderr)
     return EXIT_OK
 
 
@@ -472,8 +490,11 @@ def cmd_check(args):
         raise BadInput(f'{args.calfile}: no field_reference.magnitude_nt or provenance '
                        f'residual of sensor {j}: write it with magcal fit')
     corrected = {}
+    from magcal_ros.progress import Progress, wanted
+    prog = Progress(wanted(args.quiet, args.json))
     for path in args.data:
-        data = load_data(path, args.unit)
+        # a long static recording: its evenly spread sample (core.reduce), read in chunks
+        data, _ = load_record(path, args.unit, progress=prog)
         try:
             check_field_units(data.raw, None, '')
         except ValueError as exc:
@@ -526,6 +547,7 @@ def build_parser():
     s.add_argument('--ref-total', action='store_true', help='write a ref_total column')
     s.add_argument('--outliers', type=float, default=0.0, help='fraction of spike outliers')
     s.add_argument('--plugin', action='append', help='import a module defining effects')
+    s.add_argument('-q', '--quiet', action='store_true', help='no progress bar on stderr')
     s.add_argument('--site-gradient', metavar='GXX,GXY,GXZ,GYY,GYZ',
                    help='constant site gradient in the world (NED) frame, nT/m: the field is '
                         'not uniform over the cross (fit it with --model base,site_gradient)')
@@ -579,6 +601,7 @@ def build_parser():
     c.add_argument('data', nargs='+', help='static recordings (wide CSV or rosbag2), each '
                    'at one attitude')
     c.add_argument('--sensor', type=int, default=1, help='sensor to check (default 1)')
+    c.add_argument('-q', '--quiet', action='store_true', help='no progress bars on stderr')
     add_unit_arg(c)
     c.add_argument('--json', action='store_true', help='print one JSON object on stdout')
     c.set_defaults(func=cmd_check)

@@ -31,6 +31,7 @@ chunks either.  The rosbag2 pieces come from :func:`magcal_ros.io.bag.bag_chunks
 import os
 
 from magcal_ros.io import csvio
+from magcal_ros.io.atomic import atomic_write_text
 import numpy as np
 
 #: epochs per chunk: ~10 MB of a 4-sensor CSV chunk as float64
@@ -145,3 +146,23 @@ def csv_chunks(path, rows=CHUNK_ROWS, progress=None):
             raise csvio.CsvFormatError(f'{path} is not a text CSV file ({exc})') from exc
         if n_read == 0:
             raise csvio.CsvFormatError(f'{path}: no data rows (only the header)')
+
+
+def write_csv_chunks(path, pieces, comment=None):
+    """
+    Write consecutive Dataset ``pieces`` (the same columns) as one wide CSV, atomically.
+
+    One piece is formatted at a time (:func:`magcal_ros.io.csvio.format_csv`): memory is that
+    of a piece, whatever the length of the record.  Returns the number of epochs written.
+    """
+    count = [0]
+
+    def parts():
+        for i, piece in enumerate(pieces):
+            text = csvio.format_csv(piece, comment if i == 0 else None)
+            if i:
+                text = text.split('\n', 1)[1]          # the header once
+            count[0] += piece.n_samples
+            yield text
+    atomic_write_text(path, parts(), backup=False)
+    return count[0]
