@@ -1347,6 +1347,13 @@ def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseli
              f'the data: {floor.value_nt:.2f} nT '
              f'({"; ".join(f"s{j + 1}: " + html.escape(m) for j, m in enumerate(floor.method))}'
              f').</p>']
+    red = data.meta.get('reduction')
+    if red:
+        parts.append(f'<p>A long record: {red["epochs"]} epochs over {red["span_s"]:.0f} s, read '
+                     f'in chunks; the fit, the diagnosis and these figures use '
+                     f'{red["sample_epochs"]} evenly spread epochs (every '
+                     f'{red["sample_stride"]}th), the noise floor {red["noise_blocks"]} '
+                     f'contiguous full-rate blocks of {red["noise_block_epochs"]} epochs.</p>')
     if data.meta.get('synthetic_time'):
         parts.append(f'<p>The data have no time column: the time axis is synthetic, at an '
                      f'assumed {data.meta.get("assumed_rate_hz")} Hz.</p>')

@@ -65,7 +65,7 @@ def concat(pieces):
 
     def cat(name, axis=0):
         vals = [getattr(p, name) for p in pieces]
-        return None if vals[0] is None else np.concatenate(vals, axis=axis)
+        return None if any(v is None for v in vals) else np.concatenate(vals, axis=axis)
     return replace(first, origin=None, t=cat('t'), raw=cat('raw', 1), temp=cat('temp', 1),
                    ref_total=cat('ref_total'), ref_vec=cat('ref_vec'),
                    angle_deg=cat('angle_deg'), plane=cat('plane'),
@@ -139,12 +139,55 @@ def scalar_residual(result, piece):
     return np.linalg.norm(corrected(result, piece), axis=2) - field_of(result, piece)[None]
 
 
+def _rates(piece):
+    """(S, N, 3) nT/s field rate of ``piece``'s readings, or None (times that do not rise)."""
+    out = []
+    for j in range(piece.n_sensors):
+        r = raw_rate(piece.raw[j], piece.t)
+        if r is None:
+            return None
+        out.append(r)
+    return np.stack(out)
+
+
+def rated(chunks):
+    """
+    Yield the epochs of consecutive ``chunks`` with the field rate of the whole record.
+
+    Each piece's ``rate`` (S, N, 3) nT/s is :func:`~magcal_ros.core.effects.raw_rate` of the
+    record held whole (central differences inside, one-sided at its two ends), exactly: the
+    last epoch of a chunk waits for the next chunk's first.  None where the times do not
+    rise (as in memory: no field rate).
+    """
+    carry = None
+    for piece in chunks:
+        if piece.n_samples == 0:
+            continue
+        head = 0
+        if carry is not None:
+            head = carry.n_samples - 1              # the epoch still waiting for its rate
+            piece = concat([carry, piece])
+        rate = _rates(piece)
+        carry = _take(piece, np.arange(max(0, piece.n_samples - 3), piece.n_samples))
+        emit = np.arange(head, piece.n_samples - 1)
+        if len(emit):
+            out = _take(piece, emit)
+            out.rate = None if rate is None else rate[:, emit]
+            yield out
+    if carry is not None:
+        rate = _rates(carry)
+        out = _take(carry, [carry.n_samples - 1])
+        out.rate = None if rate is None else rate[:, -1:]
+        yield out
+
+
 class Reducer:
     """
     Reduce a record fed chunk by chunk (:meth:`add`) to a :class:`Reduced` (:meth:`finish`).
 
-    Memory: the sample (at most 2 x ``sample`` epochs), the noise blocks (at most
-    2 x ``blocks`` x ``block`` epochs) and one chunk.
+    The chunks come from :func:`rated` (their ``rate`` that of the whole record).  Memory:
+    the sample (at most 2 x ``sample`` epochs), the noise blocks (at most 2 x ``blocks`` x
+    ``block`` epochs) and one chunk.
     """
 
     def __init__(self, sample=SAMPLE_EPOCHS, block=NOISE_BLOCK, blocks=NOISE_BLOCKS):
@@ -156,50 +199,25 @@ class Reducer:
         self.n_kept = 0
         self.block_stride = 1
         self.blocks = {}            # block number -> [Dataset pieces]
-        self.n = 0                  # epochs seen (emitted to the sample)
-        self.carry = None           # the last epochs of the previous chunk (field rate)
-        self.rate_ok = True
+        self.n = 0                  # epochs seen
         self.t_first = self.t_last = None
 
     def add(self, piece):
-        """Take the next chunk (a Dataset of consecutive epochs)."""
+        """Take the next chunk (a Dataset of consecutive epochs, with ``rate``)."""
         if piece.n_samples == 0:
             return
         if self.t_first is None:
             self.t_first = float(piece.t[0])
         self.t_last = float(piece.t[-1])
-        self._blocks(piece)
-        # field rate of the full-rate record: central differences need the next epoch, so
-        # the last epoch of each chunk waits for the next one
-        head = 0
-        if self.carry is not None:
-            head = self.carry.n_samples - 1         # the epoch still waiting for its rate
-            piece = concat([self.carry, piece])
-        rate = self._rate(piece)
-        self.carry = _take(piece, np.arange(max(0, piece.n_samples - 3), piece.n_samples))
-        emit = np.arange(head, piece.n_samples - 1)
-        self._sample(piece, rate, emit)
+        g = self.n + np.arange(piece.n_samples)
+        self.n += piece.n_samples
+        self._blocks(piece, g)
+        self._sample(piece, g)
 
-    def _rate(self, piece):
-        if not self.rate_ok:
-            return None
-        out = []
-        for j in range(piece.n_sensors):
-            r = raw_rate(piece.raw[j], piece.t)
-            if r is None:
-                self.rate_ok = piece.n_samples < 3
-                return None
-            out.append(r)
-        return np.stack(out)
-
-    def _sample(self, piece, rate, emit):
-        g = self.n + np.arange(len(emit))
-        self.n += len(emit)
+    def _sample(self, piece, g):
         sel = g % self.stride == 0
         if sel.any():
-            sub = _take(piece, emit[sel])
-            sub.rate = None if rate is None else rate[:, emit[sel]]
-            self.kept.append((g[sel], sub))
+            self.kept.append((g[sel], _take(piece, np.flatnonzero(sel))))
             self.n_kept += int(sel.sum())
         while self.n_kept > 2 * self.cap:
             self.stride *= 2
@@ -210,11 +228,8 @@ class Reducer:
                     kept.append((gi[m], _take(d, np.flatnonzero(m))))
             self.kept = kept
             self.n_kept = sum(len(gi) for gi, _ in kept)
-            self.kept = [(gi, d) for gi, d in kept]
 
-    def _blocks(self, piece):
-        start = self.n + (0 if self.carry is None else 1)      # global index of piece[0]
-        g = start + np.arange(piece.n_samples)
+    def _blocks(self, piece, g):
         num = g // self.block
         for b in np.unique(num):
             if b % self.block_stride:
@@ -226,17 +241,9 @@ class Reducer:
 
     def finish(self):
         """Return the :class:`Reduced` record (after the last chunk)."""
-        if self.carry is not None:
-            # the last epoch: the one-sided rate of the record's end, as in memory
-            c = self.carry
-            rate = self._rate(c)
-            self._sample(c, rate, np.array([c.n_samples - 1]))
-            self.carry = None
         if not self.kept:
             raise ValueError('the record has no epochs')
         sample = concat([d for _, d in self.kept])
-        if not self.rate_ok:
-            sample.rate = None
         blocks = NoiseBlocks([concat(v) for _, v in sorted(self.blocks.items())])
         info = {'epochs': int(self.n), 'sample_epochs': int(sample.n_samples),
                 'sample_stride': int(self.stride), 'noise_block_epochs': int(self.block),
@@ -261,7 +268,7 @@ class Reduced:
 def reduce_chunks(chunks, **kwargs):
     """Reduce an iterable of consecutive Dataset chunks (:class:`Reducer`)."""
     red = Reducer(**kwargs)
-    for piece in chunks:
+    for piece in rated(chunks):
         red.add(piece)
     return red.finish()
 
@@ -290,8 +297,9 @@ def residual_statistics(chunks, result, positions=None):
     One pass; sums and extremes, so the figures are those of the whole record held in
     memory (the RMS exactly, the largest deviations exactly; the tensor's RMS about its
     mean from the running sums, its largest deviation from the running extremes).  A lag
-    effect's filter starts afresh in each chunk (a transient of a few time constants at
-    chunk starts, 65 536 epochs apart).
+    effect on a channel (``lag(temperature)``) filters each chunk afresh (a transient of a
+    few time constants at chunk starts, 65 536 epochs apart); the field rate is the whole
+    record's (:func:`rated`).
 
     Returns
     -------
@@ -306,7 +314,7 @@ def residual_statistics(chunks, result, positions=None):
     before, after, vector = _Moments(), _Moments(), _Moments()
     tens = {k: {'s': 0.0, 'ss': 0.0, 'lo': np.inf, 'hi': -np.inf} for k in ('b', 'a')}
     n = 0
-    for piece in chunks:
+    for piece in rated(chunks):
         f = field_of(result, piece)
         before.add(np.linalg.norm(piece.raw, axis=2) - f[None], 1)
         cen = corrected(result, piece)
