@@ -97,7 +97,7 @@ def read_time(bag_path):
 
 
 def series(data, code, code_dir, rows, field):
-    """fit and diagnose of ``data`` by ``code_dir``'s magcal; append rows."""
+    """Run fit and diagnose of ``data`` with ``code_dir``'s magcal; append to ``rows``."""
     for cmd in ('fit', 'diagnose'):
         argv = [sys.executable, '-m', 'magcal_ros.cli', cmd, data, '--field-nt', field,
                 '--json', '--flag-degenerate'] + (['-q'] if cmd == 'diagnose' else [])

@@ -79,9 +79,8 @@ def load_record(path, unit=None, rate_hz=100.0, progress=None, reduce_above=None
     """
     from magcal_ros.core import reduce
     limit = reduce.REDUCE_ABOVE if reduce_above is None else int(reduce_above)
-    if (not os.path.exists(path) or (unit and not os.path.isdir(path)
-                                      and not _is_wide_csv(path))
-            or _estimated_rows(path) <= limit):
+    other_csv = unit and not os.path.isdir(path) and not _is_wide_csv(path)
+    if not os.path.exists(path) or other_csv or _estimated_rows(path) <= limit:
         return load_data(path, unit, rate_hz), None
     from magcal_ros.io.chunks import open_record
     rec = open_record(path)
@@ -280,12 +279,12 @@ def cmd_simulate(args):
             raise BadInput(f'--site-gradient {args.site_gradient!r}: expected five numbers '
                            'GXX,GXY,GXZ,GYY,GYZ in nT/m (gzz = -gxx - gyy)')
         grad = symmetric_traceless(g5)
-    settings = dict(gradient_nt_per_m=grad, attitude=args.attitude, n_samples=args.n,
-                    rate_hz=args.rate, trajectory=args.trajectory,
-                    noise_nt=args.noise_nt, seed=args.seed, truth=truth,
-                    model=args.model, aux=not args.no_aux,
-                    diurnal_swing_nt=args.diurnal_nt, outlier_fraction=args.outliers,
-                    field_nt=args.field_nt, errors=None if args.ideal else 'paper004')
+    settings = {'gradient_nt_per_m': grad, 'attitude': args.attitude, 'n_samples': args.n,
+                'rate_hz': args.rate, 'trajectory': args.trajectory,
+                'noise_nt': args.noise_nt, 'seed': args.seed, 'truth': truth,
+                'model': args.model, 'aux': not args.no_aux,
+                'diurnal_swing_nt': args.diurnal_nt, 'outlier_fraction': args.outliers,
+                'field_nt': args.field_nt, 'errors': None if args.ideal else 'paper004'}
     from magcal_ros.core.reduce import REDUCE_ABOVE
     if args.n <= REDUCE_ABOVE:
         data, sim = simulate(**settings)

@@ -27,8 +27,8 @@ another tool (``mx,my,mz`` or ``x,y,z`` columns, optional ``ax,ay,az``).  The re
 magnitude comes from ``ref_total``, ``--field-nt NT|auto`` or ``--igrf``.  Progress: a
 bar per step on stderr when it is a terminal (:mod:`magcal_ros.progress`; none with
 ``--quiet``, ``--json`` or a stderr that is not a terminal; never on stdout).  A record
-too long to hold is read in chunks and reduced (:mod:`magcal_ros.core.reduce`).  Exit status 0 on success, 2 on bad
-input, 1 on other failures (handled by :func:`magcal_ros.cli.main`).
+too long to hold is read in chunks and reduced (:mod:`magcal_ros.core.reduce`).  Exit
+status 0 on success, 2 on bad input, 1 on other failures (handled by :func:`magcal_ros.cli.main`).
 """
 import sys
 

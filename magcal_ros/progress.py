@@ -60,7 +60,7 @@ class Progress:
             self.close()
 
     def bar(self, step, total=None, unit='it', scale=False):
-        """A tqdm bar named ``step`` (``total`` parts of ``unit``); disabled when silent."""
+        """Return a tqdm bar named ``step`` (``total`` parts of ``unit``); none when silent."""
         from tqdm import tqdm
         return tqdm(total=total, desc=step, unit=unit, unit_scale=scale, file=self.stream,
                     disable=not self.enabled, leave=True, dynamic_ncols=True,

@@ -374,8 +374,8 @@ def test_constrained_parameter(make_node, ros_node, ros_executor, ros_namespace,
         assert out['scalar_rms_after_nt'][j] < 1.3 * NOISE_NT
 
 
-def test_buffer_status_on_diagnostics_says_what_of_the_run_it_holds(ros_context, ros_namespace,
-                                                                     tmp_path):
+def test_buffer_status_on_diagnostics_says_what_of_the_run_it_holds(
+        ros_context, ros_namespace, tmp_path):
     node = CalibrationNode(context=ros_context, namespace=ros_namespace, parameter_overrides=[
         Parameter('max_samples', value=16),
         Parameter('calibration_file', value=str(tmp_path / 'c.yaml'))])

@@ -123,7 +123,7 @@ def test_colcon_build_installs_index_manifest_config_and_executables(colcon_inst
 #: pip") map to None
 _PY_DEPS = {'numpy': 'python3-numpy', 'scipy': 'python3-scipy', 'serial': 'python3-serial',
             'yaml': 'python3-yaml', 'matplotlib': 'python3-matplotlib', 'rosbags': None,
-            'ppigrf': None, 'threadpoolctl': None}
+            'ppigrf': None, 'threadpoolctl': None, 'tqdm': 'python3-tqdm'}
 
 
 def _imported_modules(paths):

@@ -405,10 +405,13 @@ def data_noise_floor(data, result=None):
     -------
     NoiseFloor
 
+    Notes
+    -----
     A record too long to hold (:mod:`magcal_ros.core.reduce`) is diagnosed on an evenly
     spread sample of its epochs, whose differences would see the motion between them, not
     the noise: its ``meta['noise_blocks']`` holds contiguous full-rate blocks of the record,
     and the floor is estimated from those (and the fit's residual on them).
+
     """
     blocks = data.meta.get('noise_blocks')
     if blocks is not None:

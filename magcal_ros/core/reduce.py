@@ -74,7 +74,7 @@ def concat(pieces):
 
 
 def _take(piece, idx):
-    """The epochs ``idx`` of ``piece`` as a Dataset of their own (no reference to ``piece``)."""
+    """Return the epochs ``idx`` of ``piece`` as a Dataset of its own (no link to ``piece``)."""
     sub = piece.subset(idx)
     return replace(sub, origin=None)
 

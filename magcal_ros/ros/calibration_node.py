@@ -395,7 +395,7 @@ class CalibrationNode(Node):
 
     def buffer_status(self):
         """
-        ``diagnostic_msgs/DiagnosticStatus`` of the buffer of sample sets: what of the run it holds.
+        ``diagnostic_msgs/DiagnosticStatus`` of the buffer of sets: what of the run it holds.
 
         The buffer keeps at most ``max_samples`` sets spread evenly over the whole run
         (:class:`magcal_ros.core.live.SampleBuffer`): the values say how many it holds, of how
