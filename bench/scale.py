@@ -21,8 +21,9 @@ temperature@2=3,-2,1.5,0,0,0``; below a minute the smooth trajectory has not tur
 array over: ``--flag-degenerate``).  For each size the two commands run as processes of their
 own, this tree's code and, with ``--base DIR``, another tree's (the code before the
 chunked reading: ``git worktree add /work/wt/base c43534d``) up to ``--base-max`` sets;
-wall time (s) and peak resident memory (``ru_maxrss`` of the process, MB) are recorded
-with the verdict.  ``--bag-max``: the same series from rosbag2 recordings (sqlite3 and
+wall time, CPU time (user + system of the process: on a shared machine the wall time
+grows with the other processes' load, the CPU time does not; BLAS runs on one thread)
+and peak resident memory (``ru_maxrss``, MB) are recorded with the verdict.  ``--bag-max``: the same series from rosbag2 recordings (sqlite3 and
 MCAP) up to that size, and the time of the rosbags library's own read loop (deserialise
 every message) on the same bag, against which the reading is measured.
 
@@ -44,7 +45,7 @@ TRUTH = 'temperature@2=3,-2,1.5,0,0,0'
 
 
 def rusage_of(cmd, code_dir):
-    """Wall s, peak RSS MB, exit code, stdout of ``cmd`` (os.wait4 of the child)."""
+    """Wall s, CPU s, peak RSS MB, exit code, stdout of ``cmd`` (os.wait4 of the child)."""
     env = dict(os.environ, PYTHONPATH=code_dir)
     out_path = os.path.join(RESULTS_DIR, '.scale_stdout')
     with open(out_path, 'w') as out, open(os.devnull, 'w') as devnull:
@@ -55,7 +56,8 @@ def rusage_of(cmd, code_dir):
     with open(out_path) as fh:
         text = fh.read()
     os.remove(out_path)
-    return wall, usage.ru_maxrss / 1024.0, os.waitstatus_to_exitcode(status), text
+    cpu = usage.ru_utime + usage.ru_stime
+    return wall, cpu, usage.ru_maxrss / 1024.0, os.waitstatus_to_exitcode(status), text
 
 
 def simulate(path, n, code_dir):
@@ -76,24 +78,24 @@ def to_bag(csv_path, bag_path, storage):
 
 
 def rosbags_loop(bag_path):
-    """Seconds of the rosbags library's own read loop: every message read and deserialised."""
+    """CPU seconds of the rosbags library's own read loop: every message read, deserialised."""
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import get_typestore, Stores
-    t0 = time.perf_counter()
+    t0 = time.process_time()
     with AnyReader([os.path.abspath(bag_path)],
                    default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
         for c, _, raw in reader.messages():
             reader.deserialize(raw, c.msgtype)
-    return time.perf_counter() - t0
+    return time.process_time() - t0
 
 
 def read_time(bag_path):
-    """Seconds this tree takes to read and reduce the bag (magcal_ros.io.bag.bag_chunks)."""
+    """CPU seconds this tree takes to read and reduce the bag (io.bag.bag_chunks)."""
     from magcal_ros.core.reduce import reduce_chunks
     from magcal_ros.io.chunks import open_record
-    t0 = time.perf_counter()
+    t0 = time.process_time()
     reduce_chunks(open_record(bag_path).chunks())
-    return time.perf_counter() - t0
+    return time.process_time() - t0
 
 
 def series(data, code, code_dir, rows, field):
@@ -101,12 +103,13 @@ def series(data, code, code_dir, rows, field):
     for cmd in ('fit', 'diagnose'):
         argv = [sys.executable, '-m', 'magcal_ros.cli', cmd, data, '--field-nt', field,
                 '--json', '--flag-degenerate'] + (['-q'] if cmd == 'diagnose' else [])
-        wall, rss, rc, out = rusage_of(argv, code_dir)
+        wall, cpu, rss, rc, out = rusage_of(argv, code_dir)
         verdict = None
         if rc == 0 and cmd == 'diagnose':
             v = json.loads(out).get('verdict') or {}
             verdict = v.get('effect', 'none') + (f'@{v["sensor"]}' if v.get('sensor') else '')
         rows.append({'code': code, 'command': cmd, 'wall_s': round(wall, 2),
+                     'cpu_s': round(cpu, 2),
                      'peak_rss_mb': round(rss, 1), 'exit': rc, 'verdict': verdict})
         print(rows[-1], flush=True)
 
@@ -122,7 +125,7 @@ def plot(results, path):
         if r['exit'] != 0:
             continue
         key = (r['code'], r['input'], r['command'])
-        lines.setdefault(key, []).append((r['sets'], r['wall_s'], r['peak_rss_mb']))
+        lines.setdefault(key, []).append((r['sets'], r['cpu_s'], r['peak_rss_mb']))
     for (code, inp, cmd), pts in sorted(lines.items()):
         pts.sort()
         n = [p[0] for p in pts]
@@ -132,7 +135,8 @@ def plot(results, path):
         axes[1].loglog(n, [p[2] for p in pts], style, marker='o', label=label)
     axes[0].axhline(60, color='grey', lw=0.8)
     axes[1].axhline(1024, color='grey', lw=0.8)
-    axes[0].set(xlabel='sets (4 sensors)', ylabel='wall time, s', title='time (goal 60 s)')
+    axes[0].set(xlabel='sets (4 sensors)', ylabel='CPU time of the process, s',
+                title='time (goal 60 s)')
     axes[1].set(xlabel='sets (4 sensors)', ylabel='peak RSS, MB', title='memory (goal 1 GB)')
     axes[1].legend(fontsize=7)
     fig.tight_layout()
@@ -177,13 +181,15 @@ def main():
                 for r in rows:
                     r.update(sets=n, input=inp)
                 results.extend(rows)
-    tables = [table(['sets', 'input', 'code', 'command', 'wall s', 'peak RSS MB', 'verdict'],
+    tables = [table(['sets', 'input', 'code', 'command', 'wall s', 'CPU s', 'peak RSS MB',
+                     'verdict'],
                     [[r['sets'], r['input'], r['code'], r['command'], f'{r["wall_s"]:.1f}',
-                      f'{r["peak_rss_mb"]:.0f}', r['verdict'] or ('' if r['exit'] == 0 else
+                      f'{r["cpu_s"]:.1f}', f'{r["peak_rss_mb"]:.0f}', r['verdict'] or ('' if r['exit'] == 0 else
                                                                   f'exit {r["exit"]}')]
                      for r in results], 'fit and diagnose against the record length')]
     if reads:
-        tables.append(table(['sets', 'storage', 'rosbags loop s', 'magcal read s', 'ratio'],
+        tables.append(table(['sets', 'storage', 'rosbags loop CPU s', 'magcal read CPU s',
+                             'ratio'],
                             [[r['sets'], r['storage'], r['rosbags_loop_s'], r['magcal_read_s'],
                               f'{r["magcal_read_s"] / r["rosbags_loop_s"]:.2f}']
                              for r in reads], 'bag reading against the rosbags read loop'))
