@@ -23,9 +23,10 @@ own, this tree's code and, with ``--base DIR``, another tree's (the code before 
 chunked reading: ``git worktree add /work/wt/base c43534d``) up to ``--base-max`` sets;
 wall time, CPU time (user + system of the process: on a shared machine the wall time
 grows with the other processes' load, the CPU time does not; BLAS runs on one thread)
-and peak resident memory (``ru_maxrss``, MB) are recorded with the verdict.  ``--bag-max``: the same series from rosbag2 recordings (sqlite3 and
-MCAP) up to that size, and the time of the rosbags library's own read loop (deserialise
-every message) on the same bag, against which the reading is measured.
+and peak resident memory (``ru_maxrss``, MB) are recorded with the verdict.
+``--bag-max``: the same series from rosbag2 recordings (sqlite3 and MCAP) up to that size,
+and the time of the rosbags library's own read loop (deserialise every message) on the
+same bag, against which the reading is measured.
 
     python bench/scale.py --base /work/wt/base            # ~1 h on an idle 2-core machine
     python bench/scale.py --sizes 10000 100000 --bag-max 100000   # a few minutes
