@@ -185,8 +185,8 @@ def main():
     tables = [table(['sets', 'input', 'code', 'command', 'wall s', 'CPU s', 'peak RSS MB',
                      'verdict'],
                     [[r['sets'], r['input'], r['code'], r['command'], f'{r["wall_s"]:.1f}',
-                      f'{r["cpu_s"]:.1f}', f'{r["peak_rss_mb"]:.0f}', r['verdict'] or ('' if r['exit'] == 0 else
-                                                                  f'exit {r["exit"]}')]
+                      f'{r["cpu_s"]:.1f}', f'{r["peak_rss_mb"]:.0f}',
+                      r['verdict'] or ('' if r['exit'] == 0 else f'exit {r["exit"]}')]
                      for r in results], 'fit and diagnose against the record length')]
     if reads:
         tables.append(table(['sets', 'storage', 'rosbags loop CPU s', 'magcal read CPU s',
