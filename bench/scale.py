@@ -36,6 +36,7 @@ Writes bench/results/scale.json and bench/results/scale.png (time and memory aga
 import argparse
 import json
 import os
+from pathlib import Path
 import subprocess
 import sys
 import time
@@ -83,7 +84,7 @@ def rosbags_loop(bag_path):
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import get_typestore, Stores
     t0 = time.process_time()
-    with AnyReader([os.path.abspath(bag_path)],
+    with AnyReader([Path(os.path.abspath(bag_path))],
                    default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
         for c, _, raw in reader.messages():
             reader.deserialize(raw, c.msgtype)
