@@ -33,7 +33,7 @@ import argparse
 import resource
 import time
 
-from common import table, write_result  # noqa: I100
+from common import add_common_args, table, write_result  # noqa: I100
 from magcal_ros.core.diagnose import diagnose
 from magcal_ros.core.model import fit
 from magcal_ros.core.noise import data_noise_floor
@@ -68,6 +68,7 @@ def main():
     """Compare the in-memory and the reduced computation at each size."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[1])
     ap.add_argument('--sizes', type=int, nargs='+', default=[10000, 1000000])
+    add_common_args(ap)
     args = ap.parse_args()
     started = time.perf_counter()
     rows = []
@@ -102,7 +103,8 @@ def main():
                   f'{floor_ratio(r):.3%}']
                  for r in rows], 'reduced against in-memory, hidden temperature@2')
     print(tab)
-    write_result('reduction_accuracy', vars(args), {'rows': rows}, [tab], started=started)
+    write_result('reduction_accuracy', vars(args), {'rows': rows}, [tab],
+                 out_dir=args.out_dir, started=started)
 
 
 if __name__ == '__main__':

@@ -41,7 +41,7 @@ import subprocess
 import sys
 import time
 
-from common import REPO_DIR, RESULTS_DIR, table, write_result  # noqa: I100
+from common import add_common_args, REPO_DIR, RESULTS_DIR, table, write_result  # noqa
 
 TRUTH = 'temperature@2=3,-2,1.5,0,0,0'
 
@@ -155,7 +155,7 @@ def main():
                     help='largest size run with the --base code')
     ap.add_argument('--bag-max', type=int, default=0,
                     help='largest size also run from rosbag2 (sqlite3 and mcap); 0: none')
-    ap.add_argument('--out', default=RESULTS_DIR)
+    add_common_args(ap)
     args = ap.parse_args()
     started = time.perf_counter()
     os.makedirs(args.data_dir, exist_ok=True)
@@ -197,11 +197,10 @@ def main():
                              for r in reads], 'bag reading against the rosbags read loop'))
     for t in tables:
         print(t)
-    os.makedirs(args.out, exist_ok=True)
-    png = os.path.join(args.out, 'scale.png')
-    plot(results, png)
+    os.makedirs(args.out_dir, exist_ok=True)
+    plot(results, os.path.join(args.out_dir, 'scale.png'))
     write_result('scale', vars(args), {'runs': results, 'bag_reads': reads}, tables,
-                 out_dir=args.out, started=started)
+                 out_dir=args.out_dir, started=started)
 
 
 if __name__ == '__main__':

@@ -42,6 +42,8 @@ CASES = {
                     'lemi025', '--node-duration', '1', '--node-warmup', '0.5'],
     'workbench': ['--sizes', '300', '--before', 'none', '--no-ladder'],
     'pairing': ['--epochs', '1500', '--repeats', '1'],
+    'scale': ['--sizes', '1500', '--bag-max', '1500'],
+    'reduction_accuracy': ['--sizes', '6000'],
 }
 
 
@@ -142,3 +144,19 @@ def test_pairing(tmp_path):
     assert res['clean']['checked']['rejected'] == 0
     assert res['loaded']['checked']['repaired'] >= 1
     assert all(r['us_per_sample_checked'] > 0 for r in res.values())
+
+
+def test_scale(tmp_path):
+    doc = _run('scale', tmp_path)
+    runs = doc['results']['runs']
+    assert {(r['input'], r['command']) for r in runs} == {
+        (i, c) for i in ('csv', 'bag sqlite3', 'bag mcap') for c in ('fit', 'diagnose')}
+    assert all(r['exit'] == 0 and r['peak_rss_mb'] > 0 for r in runs)
+    assert (tmp_path / 'scale' / 'scale.png').exists()
+    assert len(doc['results']['bag_reads']) == 2
+
+
+def test_reduction_accuracy(tmp_path):
+    rows = _run('reduction_accuracy', tmp_path)['results']['rows']
+    assert rows[0]['epochs'] == 6000 and rows[0]['sample_epochs'] < 6000
+    assert rows[0]['max_param_diff_sd'] < 4.5
