@@ -19,7 +19,7 @@ The held-out style of data: the cross on a smooth trajectory at 100 Hz with a hi
 temperature effect on sensor 2, 1e4 and 1e6 epochs.  Each record is fitted and diagnosed
 twice: held whole in memory (the code before the chunked reading: fit on its 20 000 evenly
 spaced epochs, noise floor and findings on every epoch) and reduced chunk by chunk
-(:mod:`magcal_ros.core.reduce`, as ``magcal`` does above 100 000 epochs; at 1e4 forced with
+(:mod:`magcal_ros.core.data.reduce`, as ``magcal`` does above 100 000 epochs; at 1e4 forced with
 a sample of 2 500 epochs).  Reported: the verdicts, the largest parameter difference in
 units of sqrt(sf^2 + sr^2) (the two fits' standard uncertainties: their errors are
 positively correlated through the epochs they share, so the difference has at most that
@@ -34,11 +34,11 @@ import resource
 import time
 
 from common import add_common_args, table, write_result  # noqa: I100
+from magcal_ros.core.data.noise import data_noise_floor
+from magcal_ros.core.data.reduce import reduce_chunks
+from magcal_ros.core.data.simulate import simulate
 from magcal_ros.core.diagnose import diagnose
 from magcal_ros.core.model import fit
-from magcal_ros.core.noise import data_noise_floor
-from magcal_ros.core.reduce import reduce_chunks
-from magcal_ros.core.simulate import simulate
 import numpy as np
 
 TRUTH = {'temperature@2': [3.0, -2.0, 1.5, 0.0, 0.0, 0.0]}

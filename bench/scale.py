@@ -93,7 +93,7 @@ def rosbags_loop(bag_path):
 
 def read_time(bag_path):
     """CPU seconds this tree takes to read and reduce the bag (io.bag.bag_chunks)."""
-    from magcal_ros.core.reduce import reduce_chunks
+    from magcal_ros.core.data.reduce import reduce_chunks
     from magcal_ros.io.chunks import open_record
     t0 = time.process_time()
     reduce_chunks(open_record(bag_path).chunks())

@@ -23,7 +23,7 @@ import os
 import sys
 
 from magcal_ros.core.model import DegenerateDataError
-from magcal_ros.core.notes import format_note
+from magcal_ros.core.model.notes import format_note
 from magcal_ros.units import check_field_units, UNITS_NT
 import numpy as np
 
@@ -69,15 +69,15 @@ def load_record(path, unit=None, rate_hz=100.0, progress=None, reduce_above=None
     """
     (Dataset, Record or None): a recording, reduced when it is too long to hold.
 
-    A wide CSV or a rosbag2 recording of more than :data:`magcal_ros.core.reduce.REDUCE_ABOVE`
+    A wide CSV or a rosbag2 recording of more than :data:`magcal_ros.core.data.reduce.REDUCE_ABOVE`
     epochs (estimated from the CSV's size and its first lines; from the bag's metadata) is
     read in chunks and reduced
-    (:mod:`magcal_ros.core.reduce`): the Dataset returned is the evenly spread sample (with
+    (:mod:`magcal_ros.core.data.reduce`): the Dataset returned is the evenly spread sample (with
     the noise blocks in its ``meta``) and the :class:`~magcal_ros.io.chunks.Record` reads the
     whole record again for the residual statistics.  Anything else is read whole
     (:func:`load_data`), with no Record.
     """
-    from magcal_ros.core import reduce
+    from magcal_ros.core.data import reduce
     limit = reduce.REDUCE_ABOVE if reduce_above is None else int(reduce_above)
     other_csv = unit and not os.path.isdir(path) and not _is_wide_csv(path)
     if not os.path.exists(path) or other_csv or _estimated_rows(path) <= limit:
@@ -134,10 +134,10 @@ def full_record_statistics(run, record, positions, progress=None):
 
     ``run`` (CalibrationRun) was fitted on the reduced sample: its summary's RMS and
     largest deviations are replaced by those of the whole record
-    (:func:`magcal_ros.core.reduce.residual_statistics`, one more pass over the chunks),
+    (:func:`magcal_ros.core.data.reduce.residual_statistics`, one more pass over the chunks),
     ``n_samples`` by the record's length, and ``reduction`` says how it was reduced.
     """
-    from magcal_ros.core.reduce import residual_statistics
+    from magcal_ros.core.data.reduce import residual_statistics
     bar = (progress.bar('residuals', total=record.size, unit='B', scale=True)
            if progress is not None else None)
     try:
@@ -208,7 +208,7 @@ def resolve_field(args, data):
 
 def _resolve_field(args, data):
     if getattr(args, 'igrf', None):
-        from magcal_ros.core.magnitude import igrf_total
+        from magcal_ros.core.data.magnitude import igrf_total
         try:
             lat, lon, alt = (float(x) for x in args.igrf[:3])
         except ValueError:
@@ -218,7 +218,7 @@ def _resolve_field(args, data):
                    'date': args.igrf[3], 'magnitude_nt': f}
     if getattr(args, 'field_nt', None) is not None:
         if args.field_nt == 'auto':
-            from magcal_ros.core.magnitude import auto_magnitude
+            from magcal_ros.core.data.magnitude import auto_magnitude
             f = auto_magnitude(data.raw[0])
             return f, {'kind': 'auto (mean radius, shape-only)', 'magnitude_nt': f}
         try:
@@ -253,10 +253,17 @@ def print_json(obj):
 def _parse_truth(items):
     truth = {}
     for item in items or []:
-        token, sep, values = item.partition('=')
+        # the values follow the last '=' outside parentheses: offset(s(t, k=4))@2=1,2,...
+        depth, cut = 0, -1
+        for i, ch in enumerate(item):
+            depth += (ch in '({') - (ch in ')}')
+            if ch == '=' and depth == 0:
+                cut = i
+        token, sep, values = (item[:cut], '=', item[cut + 1:]) if cut >= 0 else (item, '', '')
         if not sep:
-            raise BadInput(f'--truth {item!r}: expected EFFECT=v1,v2,... '
-                           '(e.g. temperature@2=3,-2,1.5,0,0,0)')
+            raise BadInput(f'--truth {item!r}: expected TERM=v1,v2,... '
+                           '(e.g. temperature@2=3,-2,1.5,0,0,0 or '
+                           'offset(window(20, 40))@2=30,0,0)')
         try:
             truth[token.strip()] = [float(v) for v in values.split(',')]
         except ValueError:
@@ -265,12 +272,12 @@ def _parse_truth(items):
 
 
 def cmd_simulate(args):
-    from magcal_ros.core.simulate import simulate
+    from magcal_ros.core.data.simulate import simulate
     load_plugins(args)
     truth = _parse_truth(args.truth)
     grad = None
     if args.site_gradient:
-        from magcal_ros.core.effects import symmetric_traceless
+        from magcal_ros.core.geometry.tensor import symmetric_traceless
         try:
             g5 = [float(v) for v in args.site_gradient.split(',')]
         except ValueError:
@@ -285,13 +292,13 @@ def cmd_simulate(args):
                 'model': args.model, 'aux': not args.no_aux,
                 'diurnal_swing_nt': args.diurnal_nt, 'outlier_fraction': args.outliers,
                 'field_nt': args.field_nt, 'errors': None if args.ideal else 'paper004'}
-    from magcal_ros.core.reduce import REDUCE_ABOVE
+    from magcal_ros.core.data.reduce import REDUCE_ABOVE
     if args.n <= REDUCE_ABOVE:
         data, sim = simulate(**settings)
         pieces = [data]
     else:
-        # a long record: made and written a chunk at a time (core.simulate.simulate_chunks)
-        from magcal_ros.core.simulate import simulate_chunks
+        # a long record: made and written a chunk at a time (core.data.simulate.simulate_chunks)
+        from magcal_ros.core.data.simulate import simulate_chunks
         sim, pieces = simulate_chunks(**settings)
     comment = (f'magcal simulate: paper 004 cross, {args.n} samples at {args.rate} Hz, '
                f'trajectory {args.trajectory}, noise {args.noise_nt} nT, seed {args.seed}\n'
@@ -381,7 +388,7 @@ def cmd_fit(args):
 
 def _fit_paper_method(args, data):
     """``magcal fit --method sine|reference``: the closed forms of papers 000 and 002."""
-    from magcal_ros.core import paper_methods
+    from magcal_ros.core.papers import paper_methods
     from magcal_ros.io.calfile import calibration_to_doc, save_calibration
     from magcal_ros.pipeline import cross_geometry
     for opt, given in (('--model', args.model != 'base'), ('--robust', args.robust),
@@ -473,7 +480,7 @@ def cmd_rollback(args):
 
 def cmd_check(args):
     """`magcal check CALFILE DATA...`: a calibration against static recordings."""
-    from magcal_ros.core.static_check import check_static
+    from magcal_ros.core.data.static_check import check_static
     from magcal_ros.io import calfile
     try:
         cal, doc = calfile.load_calibration(args.calfile)
@@ -492,7 +499,7 @@ def cmd_check(args):
     from magcal_ros.progress import Progress, wanted
     prog = Progress(wanted(args.quiet, args.json))
     for path in args.data:
-        # a long static recording: its evenly spread sample (core.reduce), read in chunks
+        # a long static recording: its evenly spread sample (core.data.reduce), read in chunks
         data, _ = load_record(path, args.unit, progress=prog)
         try:
             check_field_units(data.raw, None, '')
@@ -537,8 +544,10 @@ def build_parser():
     s.add_argument('--field-nt', type=float, default=50000.0, help='total field, nT')
     s.add_argument('--seed', type=int, default=0)
     s.add_argument('--model', default='base', help='truth model (default base)')
-    s.add_argument('--truth', action='append', metavar='EFFECT=V1,V2,...',
-                   help='switch on a hidden effect, e.g. temperature@2=3,-2,1.5,0,0,0')
+    s.add_argument('--truth', action='append', metavar='TERM=V1,V2,...',
+                   help='switch on a hidden term with these parameter values (in the order of '
+                   'its parameters, docs/formulas.md), e.g. temperature@2=3,-2,1.5,0,0,0 or '
+                   "'offset(window(20, 40))@2=30,0,0'")
     s.add_argument('--no-aux', action='store_true', help='omit the auxiliary channels')
     s.add_argument('--ideal', action='store_true', help='ideal sensors (no paper 004 errors)')
     s.add_argument('--diurnal-nt', type=float, default=0.0,

@@ -27,7 +27,7 @@ another tool (``mx,my,mz`` or ``x,y,z`` columns, optional ``ax,ay,az``).  The re
 magnitude comes from ``ref_total``, ``--field-nt NT|auto`` or ``--igrf``.  Progress: a
 bar per step on stderr when it is a terminal (:mod:`magcal_ros.progress`; none with
 ``--quiet``, ``--json`` or a stderr that is not a terminal; never on stdout).  A record
-too long to hold is read in chunks and reduced (:mod:`magcal_ros.core.reduce`).  Exit
+too long to hold is read in chunks and reduced (:mod:`magcal_ros.core.data.reduce`).  Exit
 status 0 on success, 2 on bad input, 1 on other failures (handled by :func:`magcal_ros.cli.main`).
 """
 import sys
@@ -114,7 +114,7 @@ def cmd_diagnose(args, cli):
         from magcal_ros.report import write_report
         index = write_report(args.report, data, diagnosis=diag, ladder=lad,
                              baseline_m=args.baseline_m, figures=args.figures, progress=prog)
-    from magcal_ros.core.notes import format_note
+    from magcal_ros.core.model.notes import format_note
     from magcal_ros.pipeline import fit_warnings
     warnings = fit_warnings(diag.result, diag.noise_floor)
     if args.json:

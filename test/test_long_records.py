@@ -28,10 +28,10 @@ import subprocess
 import sys
 import termios
 
+from magcal_ros.core.data.noise import data_noise_floor
+from magcal_ros.core.data.reduce import concat, reduce_chunks, residual_statistics
+from magcal_ros.core.data.simulate import simulate
 from magcal_ros.core.model import fit, Model
-from magcal_ros.core.noise import data_noise_floor
-from magcal_ros.core.reduce import concat, reduce_chunks, residual_statistics
-from magcal_ros.core.simulate import simulate
 from magcal_ros.io.bag import bag_chunks, read_bag, write_bag
 from magcal_ros.io.chunks import csv_chunks, write_csv_chunks
 from magcal_ros.io.csvio import CsvFormatError, read_csv, write_csv
@@ -166,7 +166,7 @@ def test_reduced_fit_and_verdict_agree_with_the_record_held_in_memory():
 
 
 def test_simulate_writes_a_long_record_in_chunks(tmp_path):
-    from magcal_ros.core.simulate import simulate_chunks
+    from magcal_ros.core.data.simulate import simulate_chunks
     sim, parts = simulate_chunks(n_samples=2500, rate_hz=20.0, seed=4, rows=1000)
     n = write_csv_chunks(tmp_path / 'sim.csv', parts, comment='chunks')
     back = read_csv(tmp_path / 'sim.csv')

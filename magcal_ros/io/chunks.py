@@ -16,7 +16,7 @@
 A recording read in chunks of epochs, in bounded memory (wide CSV and rosbag2).
 
 ``open_record(path)`` returns a :class:`Record`: its size (bytes or messages, for the
-progress bar) and ``chunks()``, an iterator over :class:`~magcal_ros.core.dataset.Dataset`
+progress bar) and ``chunks()``, an iterator over :class:`~magcal_ros.core.data.dataset.Dataset`
 pieces of at most ``rows`` epochs in time order.  Each call of ``chunks()`` reads the
 recording again from its start (a long record is read twice: once to reduce it, once for
 the residual statistics of every epoch, :mod:`magcal_ros.core.data.reduce`).

@@ -180,7 +180,7 @@ def module_paths(value):
 
 
 def model_check(n_sensors):
-    """Make a validator of a model spec (list of effect tokens) using :meth:`Model.from_spec`."""
+    """Make a validator of a model (list of formula terms, docs/formulas.md): Model.from_spec."""
     def check(value):
         try:
             Model.from_spec(list(value), n_sensors)
@@ -319,8 +319,8 @@ def calibration_specs(n_sensors=4):
     """Parameters of ``calibration_node`` other than :data:`N_SENSORS`."""
     return [
         ParamSpec('model', ('base',),
-                  'model to fit: list of effect names (docs/design.md §2), e.g. '
-                  "['base', 'temperature@2']; no unit",
+                  'model to fit: list of formula terms (docs/formulas.md), e.g. '
+                  "['base', 'temperature@2', 'offset(s(t, k=6))@2']; no unit",
                   model_check(n_sensors), item_type=str),
         ParamSpec('field_nt', 50000.0, 'reference magnitude of the (uniform) field at the '
                   'calibration site, nT', positive('nT'), limits=(1.0, 1.0e6)),
@@ -358,7 +358,7 @@ def calibration_specs(n_sensors=4):
                   'partial coverage is not a missing item of the status; no unit'),
         ParamSpec('resync_sets', True, 'before a calibration or diagnosis, find sets whose '
                   'sensors the stamps paired from different epochs and re-pair them from the '
-                  'data (magcal_ros.core.consistency); no unit'),
+                  'data (magcal_ros.core.live.consistency); no unit'),
         ParamSpec('exclude_outliers', True, 'when the fit leaves a sensor above 1.5 x its '
                   'noise floor, exclude the sets beyond 5 sigma of a robust fit if they are '
                   'at most 5 % of all, and fit the rest (magcal_ros.pipeline.calibrate); no '
@@ -412,7 +412,7 @@ class CorrectorSettings:
 
 def unit_quaternion(value):
     """Refuse anything but a unit quaternion (qw, qx, qy, qz)."""
-    from magcal_ros.core.attitude import check_quaternions
+    from magcal_ros.core.geometry.attitude import check_quaternions
     try:
         check_quaternions(np.asarray(value, float).reshape(1, -1))
     except ValueError as exc:

@@ -20,7 +20,7 @@ candidates are then refitted in full (:mod:`magcal_ros.core.diagnose.run`).
 """
 from magcal_ros.core.diagnose.constants import LAG_GRID_POINTS
 from magcal_ros.core.diagnose.measures import solve_psd
-from magcal_ros.core.engine import ProfiledProblem
+from magcal_ros.core.model.engine import ProfiledProblem
 import numpy as np
 
 

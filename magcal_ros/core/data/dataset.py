@@ -1,0 +1,142 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""In-memory form of a recording of an S-sensor array (the wide CSV of docs/design.md §1)."""
+from dataclasses import dataclass, field, replace
+
+from magcal_ros.core.effects import raw_rate, SensorContext
+import numpy as np
+
+
+@dataclass
+class Dataset:
+    """
+    Samples of S sensors taken at common epochs.
+
+    Attributes
+    ----------
+    t : numpy.ndarray
+        (N,) time in s, non-decreasing.
+    raw : numpy.ndarray
+        (S, N, 3) raw readings in nT, sensor axes; index 0 is sensor 1.
+    temp : numpy.ndarray or None
+        (S, N) sensor temperatures in degC (nan where a sensor has none).
+    ref_total : numpy.ndarray or None
+        (N,) scalar reference field magnitude in nT.
+    ref_vec : numpy.ndarray or None
+        (N, 3) reference field vector in nT (paper 002).
+    angle_deg : numpy.ndarray or None
+        (N,) turntable angle in degrees (paper 000).
+    plane : numpy.ndarray or None
+        (N,) str, which sensor plane is horizontal ('xy' or 'xz').
+    aux : dict of str to numpy.ndarray
+        Auxiliary channels 'aux_<name>' -> (N,), in their own units.
+    attitude : numpy.ndarray or None
+        (N, 4) body-to-world rotation of the array as unit quaternions (qw, qx, qy, qz),
+        Hamilton convention, scalar first (CSV columns att_qw..att_qz); the world frame (NED
+        or ENU) is the user's.
+    meta : dict
+        Free-form provenance (source file, simulator truth, ...).
+    rate : numpy.ndarray or None
+        (S, N, 3) d(raw)/dt in nT/s taken from the full-rate record when these epochs are a
+        sample of it (:mod:`magcal_ros.core.data.reduce`); None: from these epochs
+        (:func:`~magcal_ros.core.effects.raw_rate`).
+
+    """
+
+    t: np.ndarray
+    raw: np.ndarray
+    temp: np.ndarray | None = None
+    ref_total: np.ndarray | None = None
+    ref_vec: np.ndarray | None = None
+    angle_deg: np.ndarray | None = None
+    plane: np.ndarray | None = None
+    aux: dict = field(default_factory=dict)
+    meta: dict = field(default_factory=dict)
+    attitude: np.ndarray | None = None
+    rate: np.ndarray | None = field(default=None, repr=False)
+    #: (whole Dataset, (N,) int positions in it) of a :meth:`subset`: effects with memory (a
+    #: lag filter) run over the whole record, so a held-out block keeps their state
+    origin: tuple | None = field(default=None, repr=False, compare=False)
+
+    def __post_init__(self):
+        self.t = np.asarray(self.t, float)
+        self.raw = np.asarray(self.raw, float)
+        if self.raw.ndim == 2:
+            self.raw = self.raw[None]
+        if self.raw.ndim != 3 or self.raw.shape[2] != 3:
+            raise ValueError(f'raw must have shape (S, N, 3), got {self.raw.shape}')
+        if self.raw.shape[1] != self.t.shape[0]:
+            raise ValueError(f'raw has {self.raw.shape[1]} samples but t has {self.t.shape[0]}')
+        if self.attitude is not None:
+            from magcal_ros.core.geometry.attitude import check_quaternions
+            self.attitude = check_quaternions(self.attitude, self.t)
+        self._att_matrix = None
+
+    @property
+    def n_sensors(self):
+        """Return the number of sensors S."""
+        return self.raw.shape[0]
+
+    @property
+    def n_samples(self):
+        """Return the number of epochs N."""
+        return self.raw.shape[1]
+
+    def context(self, j):
+        """
+        Return the :class:`SensorContext` of sensor ``j`` (1-based).
+
+        :class:`SensorContext` of sensor ``j`` (1-based), with d(raw)/dt in nT/s
+        (:func:`magcal_ros.core.effects.raw_rate`).
+        """
+        rate = (raw_rate(self.raw[j - 1], self.t) if self.rate is None
+                else self.rate[j - 1])
+        temp = None if self.temp is None else self.temp[j - 1]
+        if temp is not None and not np.isfinite(temp).any():
+            temp = None
+        ctx = SensorContext(t=self.t, temp=temp, aux=dict(self.aux), raw_rate=rate,
+                            attitude=self.attitude_matrix())
+        if self.origin is not None:
+            whole, pos = self.origin
+            wt = None if whole.temp is None else whole.temp[j - 1]
+            ctx.parent = SensorContext(t=whole.t, temp=wt, aux=dict(whole.aux))
+            ctx.index = pos
+        return ctx
+
+    def attitude_matrix(self):
+        """(N, 3, 3) body-to-world rotation matrices, or None without attitude."""
+        if self.attitude is None:
+            return None
+        if self._att_matrix is None:
+            from magcal_ros.core.geometry.attitude import quaternion_matrices
+            self._att_matrix = quaternion_matrices(self.attitude)
+        return self._att_matrix
+
+    def subset(self, idx):
+        """Return a new Dataset with the epochs ``idx`` (index array or boolean mask)."""
+        idx = np.asarray(idx)
+
+        def take(a, axis=0):
+            if a is None:
+                return None
+            return np.take(a, np.flatnonzero(idx) if idx.dtype == bool else idx, axis=axis)
+        pos = np.arange(self.n_samples)[idx]
+        origin = (self, pos) if self.origin is None else (self.origin[0], self.origin[1][pos])
+        return replace(
+            self, origin=origin, t=take(self.t), raw=take(self.raw, 1), temp=take(self.temp, 1),
+            ref_total=take(self.ref_total), ref_vec=take(self.ref_vec),
+            angle_deg=take(self.angle_deg), plane=take(self.plane),
+            aux={k: take(v) for k, v in self.aux.items()}, meta=dict(self.meta),
+            attitude=take(self.attitude), rate=take(self.rate, 1))

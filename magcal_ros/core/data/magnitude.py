@@ -1,0 +1,84 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The reference field magnitude F (nT) of a fit.
+
+Where the reference field magnitude F (nT) of a fit comes from: a number, the data's
+``ref_total`` column, the IGRF model (ppigrf), or the data themselves (shape only).
+
+Not to be confused with :mod:`magcal_ros.core.papers.reference_vector` (paper 002: calibration
+against a reference field *vector*).
+"""
+import datetime
+
+from magcal_ros.core.papers.ellipsoid import fit_ellipsoid
+import numpy as np
+
+
+def igrf_total(lat_deg, lon_deg, alt_km, date):
+    """
+    IGRF total intensity in nT at a place and date.
+
+    Parameters
+    ----------
+    lat_deg, lon_deg : float
+        Geodetic latitude and longitude, degrees.
+    alt_km : float
+        Height above the ellipsoid, km.
+    date : str or datetime.date
+        'YYYY-MM-DD' or a date.
+
+    """
+    import ppigrf
+    if isinstance(date, str):
+        try:
+            date = datetime.datetime.strptime(date, '%Y-%m-%d')
+        except ValueError:
+            raise ValueError(f'--igrf date must be YYYY-MM-DD, got {date!r}') from None
+    elif isinstance(date, datetime.date) and not isinstance(date, datetime.datetime):
+        date = datetime.datetime(date.year, date.month, date.day)
+    if not (-90 <= lat_deg <= 90 and -360 <= lon_deg <= 360):
+        raise ValueError(f'latitude/longitude out of range: {lat_deg}, {lon_deg}')
+    be, bn, bu = ppigrf.igrf(lon_deg, lat_deg, alt_km, date)
+    return float(np.sqrt(np.ravel(be)[0] ** 2 + np.ravel(bn)[0] ** 2 + np.ravel(bu)[0] ** 2))
+
+
+def auto_magnitude(raw):
+    """
+    Magnitude for data without any reference: mean radius of sensor 1's ellipsoid, nT.
+
+    With no reference the absolute scale of the sensors is not observable; this keeps the
+    corrected magnitude equal to the average raw magnitude, so only the shape is corrected.
+
+    raw (N, 3) nT.
+    """
+    ell = fit_ellipsoid(raw, 1.0)
+    radii = np.linalg.norm(np.asarray(raw, float) - ell.b, axis=1)
+    return float(np.median(radii))
+
+
+def reference_magnitude(data, field_nt=None):
+    """(N,) reference magnitude in nT: ``field_nt`` (scalar or (N,)) or the data's ref_total."""
+    n = data.n_samples
+    if field_nt is not None:
+        f = np.broadcast_to(np.asarray(field_nt, float), (n,)).copy()
+    elif data.ref_total is not None:
+        f = np.asarray(data.ref_total, float)
+    else:
+        raise ValueError('no reference field magnitude: add a ref_total column, or give '
+                         '--field-nt or --igrf')
+    if not np.all(np.isfinite(f)) or np.any(f <= 0):
+        raise ValueError('the reference field magnitude must be finite and positive')
+    return f

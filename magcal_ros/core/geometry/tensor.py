@@ -1,0 +1,207 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""Magnetic gradient tensor of a sensor array (paper 004 eq. 1 and a least-squares form)."""
+import numpy as np
+
+
+def cross_positions(baseline_m=0.5):
+    """(4, 3) positions in m of paper 004's cross: 1 at +x, 2 at +y, 3 at -x, 4 at -y."""
+    h = baseline_m / 2.0
+    return np.array([[h, 0, 0], [0, h, 0], [-h, 0, 0], [0, -h, 0]], float)
+
+
+def tensor_cross(b, baseline_m=0.5):
+    """
+    Paper 004 eq. 1: gradient tensor at the centre of the cross.
+
+    Parameters
+    ----------
+    b : numpy.ndarray
+        (4, N, 3) or (4, 3) field of sensors 1..4 in the array frame, nT.
+    baseline_m : float
+        Distance between the two sensors of an arm, m.
+
+    Returns
+    -------
+    numpy.ndarray
+        (N, 3, 3) or (3, 3) tensor G_ij = dB_i/dx_j in nT/m.
+
+    """
+    b = np.asarray(b, float)
+    one = b.ndim == 2
+    if one:
+        b = b[:, None]
+    if b.shape[0] != 4 or b.shape[2] != 3:
+        raise ValueError(f'expected the field of 4 sensors, shape (4, N, 3); got {b.shape}')
+    b1, b2, b3, b4 = b
+    g = np.empty((b.shape[1], 3, 3))
+    g[:, 0, 0] = b1[:, 0] - b3[:, 0]
+    g[:, 0, 1] = b2[:, 0] - b4[:, 0]
+    g[:, 0, 2] = b1[:, 2] - b3[:, 2]
+    g[:, 1, 0] = b1[:, 1] - b3[:, 1]
+    g[:, 1, 1] = b2[:, 1] - b4[:, 1]
+    g[:, 1, 2] = b2[:, 2] - b4[:, 2]
+    g[:, 2, 0] = b1[:, 2] - b3[:, 2]
+    g[:, 2, 1] = b2[:, 2] - b4[:, 2]
+    g[:, 2, 2] = b4[:, 1] - b2[:, 1] + b3[:, 0] - b1[:, 0]
+    g /= baseline_m
+    return g[0] if one else g
+
+
+def tensor_operator(positions):
+    """
+    Linear map from stacked sensor fields to (B0, G) for any array geometry.
+
+    The field is modelled as B(r) = B0 + G r.  For an array spanning 3-D, G is taken symmetric
+    and traceless (curl- and divergence-free field: 5 unknowns) and solved with B0 by least
+    squares.  For a planar array only the in-plane columns of G can be measured; the
+    out-of-plane column follows from symmetry and zero trace.  For paper 004's cross this
+    reproduces eq. 1 exactly.
+
+    Parameters
+    ----------
+    positions : numpy.ndarray
+        (S, 3) sensor positions, m.
+
+    Returns
+    -------
+    numpy.ndarray
+        (12, 3 S) matrix L with [B0 (3), G row-major (9)] = L @ b.ravel(), b of shape (S, 3).
+
+    """
+    r = np.asarray(positions, float)
+    s = len(r)
+    rc = r - r.mean(axis=0)
+    _, sv, vt = np.linalg.svd(rc)
+    rank = int(np.sum(sv > 1e-9 * max(sv[0], 1e-12)))
+    if rank < 2:
+        raise ValueError('sensor positions must span at least a plane to measure a tensor')
+    basis = vt.T        # columns: principal directions, last = normal if planar
+    # unknowns in the rotated frame: B0 (3) + in-plane columns G'[:, :rank] (3*rank)
+    rp = rc @ basis     # (S, 3)
+    n_unk = 3 + 3 * rank
+    design = np.zeros((3 * s, n_unk))
+    for k in range(s):
+        for i in range(3):
+            design[3 * k + i, i] = 1.0
+            for c in range(rank):
+                design[3 * k + i, 3 + 3 * c + i] = rp[k, c]
+    # rotate field components into the principal frame: b' = basis^T b
+    rot = np.kron(np.eye(s), basis.T)
+    if rank == 3:
+        # symmetric traceless: parametrise G' by 5 numbers
+        sym = np.zeros((9, 5))
+        # g = [gxx, gxy, gxz, gyy, gyz]; columns of G' (column-major in design order)
+        idx = {(0, 0): [(0, 1.0)], (0, 1): [(1, 1.0)], (0, 2): [(2, 1.0)],
+               (1, 0): [(1, 1.0)], (1, 1): [(3, 1.0)], (1, 2): [(4, 1.0)],
+               (2, 0): [(2, 1.0)], (2, 1): [(4, 1.0)], (2, 2): [(0, -1.0), (3, -1.0)]}
+        for (i, c), terms in idx.items():
+            for q, w in terms:
+                sym[3 * c + i, q] = w
+        full = np.zeros((n_unk, 8))
+        full[:3, :3] = np.eye(3)
+        full[3:, 3:] = sym
+        sol = np.linalg.pinv(design @ full) @ rot
+        x = full @ sol
+        cols = x[3:].reshape(3, 3, -1)          # [column c][row i]
+    else:
+        x = np.linalg.pinv(design) @ rot
+        c0 = x[3:6]
+        c1 = x[6:9]
+        c2 = np.stack([c0[2], c1[2], -c0[0] - c1[1]])   # symmetry + zero trace
+        cols = np.stack([c0, c1, c2])
+    g_prime = np.transpose(cols, (1, 0, 2))      # (3 rows, 3 cols, 3S)
+    # back to the array frame: G = basis G' basis^T, B0 = basis B0'
+    g = np.einsum('ia,abk,jb->ijk', basis, g_prime, basis)
+    b0 = basis @ x[:3]
+    return np.vstack([b0, g.reshape(9, -1)])
+
+
+def tensor_lstsq(b, positions):
+    """
+    Gradient tensor for any geometry (see :func:`tensor_operator`).
+
+    Parameters
+    ----------
+    b : numpy.ndarray
+        (S, N, 3) field of each sensor in the array frame, nT.
+    positions : numpy.ndarray
+        (S, 3) sensor positions, m.
+
+    Returns
+    -------
+    (G (N, 3, 3) nT/m, B0 (N, 3) nT)
+
+    """
+    b = np.asarray(b, float)
+    op = tensor_operator(positions)
+    stacked = np.transpose(b, (1, 0, 2)).reshape(b.shape[1], -1)    # (N, 3S)
+    out = stacked @ op.T
+    return out[:, 3:].reshape(-1, 3, 3), out[:, :3]
+
+
+def tensor_noise_floor(sigma_nt, positions):
+    """
+    (3, 3) standard deviation of each tensor component, nT/m, for white sensor noise.
+
+    sigma_nt is the per-axis noise (scalar or (S,)) of the corrected fields.
+    """
+    op = tensor_operator(positions)[3:]
+    s = len(positions)
+    var = np.repeat(np.broadcast_to(np.asarray(sigma_nt, float) ** 2, (s,)), 3)
+    return np.sqrt((op ** 2) @ var).reshape(3, 3)
+
+
+def symmetric_traceless(g):
+    """
+    (3, 3) symmetric traceless tensor from g = (gxx, gxy, gxz, gyy, gyz), same unit.
+
+    Maxwell's equations in a source-free region: curl B = 0 (symmetric), div B = 0
+    (traceless), so gzz = -gxx - gyy (paper 004 eq. 1 uses the same five components).
+    """
+    gxx, gxy, gxz, gyy, gyz = g
+    return np.array([[gxx, gxy, gxz], [gxy, gyy, gyz], [gxz, gyz, -gxx - gyy]], float)
+
+
+#: d vec(G) / d (gxx, gxy, gxz, gyy, gyz): the 9 x 5 map of the symmetric traceless tensor
+TENSOR_MAP = np.stack([symmetric_traceless(e).ravel() for e in np.eye(5)], axis=1)
+
+
+def gradient_from_fit(model, params, covariance):
+    """
+    World-frame site gradient and its standard uncertainty from a fit.
+
+    Parameters
+    ----------
+    model : Model
+        The fitted model (with or without ``site_gradient``).
+    params : numpy.ndarray
+        (P,) parameters.
+    covariance : numpy.ndarray
+        (P, P) parameter covariance.
+
+    Returns
+    -------
+    (G (3, 3) nT/m, stderr (3, 3) nT/m, cov5 (5, 5) (nT/m)^2) or None without the effect.
+
+    """
+    for eff, sl in zip(model.array_effects, model.array_slices):
+        if eff.name == 'site_gradient':
+            g5 = params[sl]
+            c5 = covariance[sl, sl]
+            cov9 = TENSOR_MAP @ c5 @ TENSOR_MAP.T
+            se = np.sqrt(np.clip(np.diag(cov9), 0, None)).reshape(3, 3)
+            return symmetric_traceless(g5), se, c5
+    return None

@@ -1,0 +1,434 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Find and repair sample sets whose sensors were paired from different epochs.
+
+Live, the four streams of the array arrive separately and are grouped into sets by their
+stamps (:class:`magcal_ros.core.live.sync.StampMatcher`).  Stamps are arrival times, so a sensor
+whose bytes come systematically later than sensor 1's by more than half a sample period
+(a USB-serial adapter's 16 ms latency timer, a starved reader thread, a burst after a
+stall) can be paired one or more epochs off, and a rotating array then gives every set of
+that stretch an error of about (field change per epoch) x (epochs off): ~100 nT per epoch
+for the simulator's tumbling at 100 Hz, against 3 nT of noise.  A maximum-likelihood fit
+on such sets is not at the noise floor, and nothing in the stamps says why.
+
+The data say it.  For a rigid array in a uniform field, with the linear sensor model of
+paper 004 (eq. 1-3, ``raw_j = A_j R_j B + b_j``), every sensor's raw reading is an affine
+function of sensor 1's *at the same epoch*::
+
+    raw_j(e) = M_j raw_1(e) + c_j,    M_j = A_j R_j A_1^-1,   c_j = b_j - M_j b_1,
+
+whatever the attitude.  :func:`find_slips` fits (M_j, c_j) by least squares at the lag that
+explains the whole record best, then compares, in a sliding window of epochs, the misfit of
+pairing sensor j's epoch e + L with sensor 1's epoch e for L = -max_lag .. max_lag.  A
+stretch is declared slipped by L only where lag L fits clearly better than lag 0 (by
+``min_contrast`` in the windowed squared misfit): where the array is still, every lag fits
+equally, nothing is changed, and a mis-pairing there costs nothing anyway.  Driven effects
+(temperature, a motor current) add the same misfit at every lag and do not move the
+choice.  :func:`resync` then re-pairs: sensor j's sample of epoch e + L(e) joins sensor 1's
+of epoch e.  Sets whose sensor-j sample would be used twice at a change of lag, or that have
+no partner inside the same run of consecutive epochs, are dropped and counted.
+"""
+from dataclasses import dataclass, replace
+
+from magcal_ros.core.data.noise import estimate_noise
+from magcal_ros.core.papers.ellipsoid import fit_ellipsoid, procrustes_rotation
+import numpy as np
+
+#: largest slip searched, epochs
+DEFAULT_MAX_LAG = 10
+#: sets in the sliding window that decides a slip
+DEFAULT_WINDOW = 25
+#: a lag replaces lag 0 only where its windowed squared misfit is this many times smaller
+DEFAULT_MIN_CONTRAST = 4.0
+#: ... and only where that misfit is within this factor of the noise alone (per set:
+#: 3 (sigma_1^2 + sigma_j^2)); a driven effect (temperature, a motor current) that a lag
+#: happens to cancel in part leaves more than that
+DEFAULT_NOISE_FACTOR = 4.0
+#: a stretch of sets is re-paired only if the directions of the field change over it spread
+#: this much (second eigenvalue of their mean outer product; 0.1: about +-20 deg)
+MIN_SPREAD = 0.1
+#: value of :attr:`Slips.lags` for a set to drop (its partner was lost in a slip)
+DROP = np.iinfo(np.int64).max // 4
+#: windowed misfit, in units of the noise alone, beyond which a set counts as inconsistent
+INCONSISTENT_FACTOR = 100.0
+
+
+@dataclass(frozen=True)
+class Slips:
+    """
+    Outcome of :func:`find_slips`.
+
+    Attributes
+    ----------
+    lags : numpy.ndarray
+        (S, N) int, epochs by which sensor j's partner of each set is off (row 0, sensor
+        1, is all 0): the right partner of set e is sensor j's sample of set e + lag;
+        :data:`DROP` where that sample was lost.
+    rms_nt : numpy.ndarray
+        (S,) RMS per axis of the misfit of each sensor against sensor 1 after re-pairing,
+        nT (0 for sensor 1): sensor j's ellipsoid-corrected reading rotated onto sensor 1's
+        (paper 004 eq. 5 and 14).  About sqrt(sigma_1^2 + sigma_j^2) for a consistent record.
+    rms_as_paired_nt : numpy.ndarray
+        (S,) the same as the sets were paired, nT.
+    noise_nt : numpy.ndarray
+        (S,) per-axis noise of each sensor estimated from its own series, nT.
+    inconsistent : numpy.ndarray
+        (S,) sets that no lag within ``max_lag`` brings within 10x the noise (a longer slip,
+        a spike, or a large effect of the sensor itself); kept, only counted.
+
+    """
+
+    lags: np.ndarray
+    rms_nt: np.ndarray
+    rms_as_paired_nt: np.ndarray
+    noise_nt: np.ndarray
+    inconsistent: np.ndarray
+
+    @property
+    def n_slipped(self):
+        """(S,) number of sets re-paired per sensor."""
+        return np.count_nonzero((self.lags != 0) & (self.lags != DROP), axis=1)
+
+    @property
+    def n_drop(self):
+        """(S,) number of sets whose partner of this sensor was lost, to drop."""
+        return np.count_nonzero(self.lags == DROP, axis=1)
+
+    def summary(self):
+        """One line per sensor with re-paired sets (empty list if none)."""
+        out = []
+        for j in range(1, self.lags.shape[0]):
+            row = self.lags[j]
+            moved = row[(row != 0) & (row != DROP)]
+            if not len(moved):
+                continue
+            values, counts = np.unique(moved, return_counts=True)
+            out.append(f'sensor {j + 1}: {len(moved)} sets paired with the wrong epoch ('
+                       + ', '.join(f'{c} by {v:+d}' for v, c in zip(values, counts))
+                       + f' epochs), re-paired: misfit to sensor 1 '
+                       f'{self.rms_as_paired_nt[j]:.1f} -> {self.rms_nt[j]:.1f} nT per axis')
+        return out
+
+
+#: a sample this fraction of the field off the mean of its two neighbours is not a reading
+GROSS_FRACTION = 0.02
+
+
+def gross_outliers(raw, fraction=GROSS_FRACTION):
+    """
+    Find the sets holding a sample that cannot be a reading: a cut or garbled line.
+
+    A serial line opened in the middle of a stream, or overrun, can deliver a line that
+    lost its first bytes and still parses, e.g. ``45.6,-2345.1,43210.9`` from
+    ``12345.6,-2345.1,43210.9``: one sample thousands of nT off its neighbours.  The field
+    seen by a turning array changes smoothly, so a sample is tested against the mean of its
+    two neighbours in time: the second difference d(e) = m(e) - (m(e-1) + m(e+1)) / 2 is the
+    trajectory's curvature (tens of nT at 10-100 Hz of tumbling) plus noise, while a garbled
+    sample leaves d(e) its whole error.  A sample is a gross outlier where |d(e)| exceeds
+    ``fraction`` of the field (1000 nT at 50 000 nT) and is the largest of the three around
+    it (its neighbours carry half its error).  Only for a series that is smooth at its
+    sample rate (median |d| below 1 % of that threshold); a record of separate attitudes
+    (a turntable stepped, random attitudes) is left alone.
+
+    Parameters
+    ----------
+    raw : numpy.ndarray
+        (S, N, 3) raw readings in time order, nT.
+    fraction : float
+        Smallest jump counted, as a fraction of the median field magnitude.
+
+    Returns
+    -------
+    numpy.ndarray
+        (S, N) bool, True for a gross outlier.
+
+    """
+    raw = np.asarray(raw, float)
+    s, n = raw.shape[:2]
+    out = np.zeros((s, n), bool)
+    if n < 5:
+        return out
+    threshold = fraction * float(np.median(np.linalg.norm(raw[0], axis=1)))
+    d = np.linalg.norm(raw[:, 1:-1] - 0.5 * (raw[:, :-2] + raw[:, 2:]), axis=2)  # (S, N-2)
+    for j in range(s):
+        if not np.median(d[j]) < 0.01 * threshold:
+            continue                # not smooth at this rate: nothing can be told
+        big = np.flatnonzero(d[j] > threshold)
+        for i in big:
+            lo, hi = max(0, i - 1), min(len(d[j]), i + 2)
+            if d[j, i] >= d[j, lo:hi].max():
+                out[j, i + 1] = True
+    return out
+
+
+def _runs(n, epochs):
+    """(N,) id of the run of consecutive epochs each set belongs to."""
+    if epochs is None:
+        return np.zeros(n, int)
+    e = np.asarray(epochs)
+    if e.shape != (n,):
+        raise ValueError(f'epochs must have shape ({n},), got {e.shape}')
+    return np.concatenate([[0], np.cumsum(np.diff(e) != 1)])
+
+
+def _shifted(y, lag, run):
+    """y[e + lag] where e + lag lies in the same run as e, else nan; y (N, 3)."""
+    n = len(y)
+    out = np.full_like(y, np.nan)
+    src = np.arange(n) + lag
+    ok = (src >= 0) & (src < n)
+    ok[ok] &= run[src[ok]] == run[ok]
+    out[ok] = y[src[ok]]
+    return out
+
+
+def find_slips(raw, epochs=None, max_lag=DEFAULT_MAX_LAG, window=DEFAULT_WINDOW,
+               min_contrast=DEFAULT_MIN_CONTRAST, noise_factor=DEFAULT_NOISE_FACTOR):
+    """
+    Find the sets of a rigid array whose sensors were paired from different epochs.
+
+    Each sensor is first calibrated on its own by the ellipsoid fit and Cholesky factor of
+    paper 004 (eq. 8-13), which needs no pairing and leaves its reading as an unknown
+    rotation of the field, u_j = Q_j B.  Sensor j is then rotated onto sensor 1 by the
+    orthogonal Procrustes solution (eq. 14), three parameters that cannot absorb a slip,
+    fitted on the sets that agree with it (within 3x the median misfit).  The lag of every
+    set is chosen from the windowed *median* of the misfit |u_1(e) - R u_j(e + L)|^2 of each
+    lag (one spike neither creates nor hides a slip), the rotation refitted on the re-paired
+    sets, and so on until the lags stop changing (two or three rounds for a record a
+    quarter of which slipped).  A lag other than 0 is taken only where it fits clearly
+    better than 0 (``min_contrast``) *and* down to the noise (``noise_factor``): where the
+    array is still every lag fits alike and the pairing stays (a mis-pairing there costs
+    nothing), and an effect of the sensor itself is not mistaken for a slip.
+
+    Parameters
+    ----------
+    raw : numpy.ndarray
+        (S, N, 3) raw readings of S >= 2 sensors in set order, nT.
+    epochs : numpy.ndarray, optional
+        (N,) epoch number of each set; a jump other than +1 starts a new run, and no set is
+        re-paired across runs.  Default: one run.
+    max_lag : int
+        Largest slip searched, epochs.
+    window : int
+        Sets in the sliding window that decides a slip.
+    min_contrast, noise_factor : float
+        See :data:`DEFAULT_MIN_CONTRAST` and :data:`DEFAULT_NOISE_FACTOR`.
+
+    Returns
+    -------
+    Slips
+        All lags 0 when the record is too short or covers too few attitudes for the
+        ellipsoid fits (then nothing can be told).
+
+    """
+    raw = np.asarray(raw, float)
+    if raw.ndim != 3 or raw.shape[2] != 3:
+        raise ValueError(f'raw must have shape (S, N, 3), got {raw.shape}')
+    s, n = raw.shape[:2]
+    if max_lag < 0 or window < 1 or not min_contrast > 1 or not noise_factor > 0:
+        raise ValueError('need max_lag >= 0, window >= 1, min_contrast > 1, noise_factor > 0')
+    lags = np.zeros((s, n), int)
+    rms, rms0, inconsistent = np.zeros(s), np.zeros(s), np.zeros(s, int)
+    if s < 2 or n < max(4 * window, 8 * (2 * max_lag + 1)):
+        return Slips(lags, rms, rms0, np.zeros(s), inconsistent)
+    run = _runs(n, epochs)
+    noise = estimate_noise(raw).sigma
+    # each sensor on its own: ellipsoid fit + Cholesky (paper 004 eq. 8-13) needs no pairing
+    f0 = float(np.median(np.linalg.norm(raw[0], axis=1)))
+    try:
+        u = np.stack([fit_ellipsoid(raw[j], f0).correct(raw[j]) for j in range(s)])
+    except (ValueError, np.linalg.LinAlgError):
+        return Slips(lags, rms, rms0, noise, inconsistent)   # too few attitudes to tell
+    candidates = np.arange(-max_lag, max_lag + 1)
+    k0 = max_lag                                   # index of lag 0
+    cols = np.arange(n)
+    for j in range(1, s):
+        noise_cost = 3.0 * (noise[0] ** 2 + noise[j] ** 2)
+        shifted = np.stack([_shifted(u[j], lag, run) for lag in candidates])  # (L, N, 3)
+
+        def rotation(y, use):
+            """Return the Procrustes rotation of y onto u_1, rows ``use`` (paper 004 eq. 14)."""
+            use = use & np.all(np.isfinite(y), axis=1)
+            return procrustes_rotation(u[0][use], y[use])
+
+        # start from the pairing as it is, unless one lag explains the whole record clearly
+        # better (each lag with its own rotation)
+        med = []
+        for i in range(len(candidates)):
+            rot = rotation(shifted[i], np.ones(n, bool))
+            med.append(np.nanmedian(np.sum((u[0] - shifted[i] @ rot.T) ** 2, axis=1)))
+        i_best = int(np.argmin(med))
+        k = np.full(n, i_best if med[i_best] * min_contrast < med[k0] else k0)
+        # alternate: rotation from the sets at their lags, lags from that rotation (on
+        # contrast alone: with a rotation still biased by slipped sets the right lag may not
+        # reach the noise yet), then the final choice from the last rotation on both tests
+        for final in [False] * 10 + [True]:
+            y = shifted[k, cols]
+            # the rotation from the sets that agree with it: least trimmed squares (the best
+            # half, robust to up to half the sets slipped), then all within 3x the median
+            use = np.ones(n, bool)
+            for cut in (1.0, 1.0, 1.0, 1.0, 9.0):
+                rot = rotation(y, use)
+                r = np.sum((u[0] - y @ rot.T) ** 2, axis=1)
+                use = np.isfinite(r) & (r <= cut * np.nanmedian(r))
+            cost = np.sum((u[0][None] - shifted @ rot.T) ** 2, axis=2)   # (L, N), nan: none
+            big = 1e6 * (np.nanmedian(cost[k0]) + noise_cost)
+            from scipy.ndimage import median_filter    # here: slow to import (0.3 s)
+            windowed = median_filter(np.nan_to_num(cost, nan=big), size=(1, window),
+                                     mode='nearest')
+            best = np.argmin(windowed, axis=0)
+            w_best = windowed[best, cols]
+            take = w_best * min_contrast < windowed[k0]
+            new = np.where(take, best, k0)
+            if final or np.array_equal(new, k):
+                k = np.where(take & (w_best <= noise_factor * noise_cost), best, k0)
+                break
+            k = new
+        # the window blurs a change of lag: where one lag a gives way to one lag b, put the
+        # boundary where the summed misfit of "a before, b after" is least
+        for c in np.flatnonzero(np.diff(k)) + 1:
+            lo, hi = max(0, c - window), min(n, c + window)
+            a, b = k[c - 1], k[c]
+            if not ((k[lo:c] == a).all() and (k[c:hi] == b).all()):
+                continue            # several changes close together: leave them
+            ca = np.nan_to_num(cost[a, lo:hi], nan=big)
+            cb = np.nan_to_num(cost[b, lo:hi], nan=big)
+            total = (np.concatenate([[0.0], np.cumsum(ca)])
+                     + np.concatenate([np.cumsum(cb[::-1])[::-1], [0.0]]))
+            split = lo + int(np.argmin(total))
+            k[lo:split], k[split:hi] = a, b
+        lag = candidates[k].copy()      # a set whose partner is missing: dropped by resync
+        # a stretch of one lag must look like a slip, not like an effect that a lag cancels
+        # by chance: a slip moves every set along its own field change u_j(e+1) - u_j(e-1),
+        # whose direction turns as the array turns, while a cancelled offset stays put; so
+        # the field-change directions over the stretch must spread (second eigenvalue of
+        # their mean outer product >= MIN_SPREAD), and the whole stretch must fit to the noise
+        rate = np.gradient(u[j], axis=0)
+        rate /= np.maximum(np.linalg.norm(rate, axis=1, keepdims=True), 1e-300)
+        edges = np.flatnonzero(np.diff(lag)) + 1
+        for lo, hi in zip(np.r_[0, edges], np.r_[edges, n]):
+            if lag[lo] == 0:
+                continue
+            c_l = cost[lag[lo] + k0, lo:hi]
+            spread = np.linalg.eigvalsh(rate[lo:hi].T @ rate[lo:hi] / (hi - lo))[1]
+            c_l = np.nanmedian(c_l)        # medians: the sets at its ends may have lost
+            if (spread < MIN_SPREAD or not c_l <= noise_factor * noise_cost     # partners
+                    or not np.nanmedian(cost[k0, lo:hi]) >= min_contrast * c_l):
+                lag[lo:hi] = 0
+        # grow each re-paired stretch over its neighbours that fit its lag to the noise, or
+        # have no partner at its lag (at the ends of a run), and drop the neighbours that
+        # fit neither its lag nor 0 (the sample a slip skipped): resync drops those sets
+        edges = np.flatnonzero(np.diff(lag)) + 1
+        for lo, hi in zip(np.r_[0, edges], np.r_[edges, n]):
+            ell = lag[lo]
+            if ell == 0 or ell == DROP:
+                continue
+
+            def grow(e):
+                """Return the lag of neighbour e, or None to stop growing."""
+                if lag[e] != 0:
+                    return None
+                c = cost[ell + k0, e]
+                if not np.isfinite(c) or c <= noise_factor * noise_cost:
+                    return ell          # its partner is at this lag, or missing
+                if cost[k0, e] > noise_factor * noise_cost:
+                    return DROP         # fits neither: its partner was lost in the slip
+                return None
+            # its end sets must fit its lag too (the boundary search may take in the set
+            # whose sample the slip skipped): else 0 if that fits, else drop them
+            fits = noise_factor * noise_cost
+            ends = list(range(lo, min(lo + 3, hi))) + list(range(max(hi - 3, lo), hi))
+            for e in ends:
+                if np.isfinite(cost[ell + k0, e]) and cost[ell + k0, e] > fits:
+                    lag[e] = 0 if cost[k0, e] <= fits else DROP
+            while lo > 0 and (g := grow(lo - 1)) is not None:
+                lo -= 1
+                lag[lo] = g
+            while hi < n and (g := grow(hi)) is not None:
+                lag[hi] = g
+                hi += 1
+        rms0[j] = np.sqrt(np.mean(cost[k0]) / 3.0)
+        kept = lag != DROP
+        rms[j] = np.sqrt(np.nanmean(cost[lag[kept] + k0, cols[kept]]) / 3.0)
+        if rms[j] >= rms0[j]:
+            lag[:], rms[j] = 0, rms0[j]        # never a re-pairing that fits worse overall
+            kept[:] = True
+        lags[j] = lag
+        at = np.where(lag == DROP, 0, lag) + k0
+        inconsistent[j] = int(np.count_nonzero(
+            kept & np.isfinite(cost[at, cols])
+            & (windowed[at, cols] > INCONSISTENT_FACTOR * noise_cost)))
+    return Slips(lags, rms, rms0, noise, inconsistent)
+
+
+def resync(data, epochs=None, slips=None, **kwargs):
+    """
+    Drop garbled samples and re-pair the sets whose sensors came from different epochs.
+
+    Parameters
+    ----------
+    data : Dataset
+        (S sensors, N sets) in set order; ``temp`` rows move with their sensor, ``t`` and
+        the auxiliary channels stay with sensor 1.
+    epochs : numpy.ndarray, optional
+        (N,) epoch numbers (see :func:`find_slips`).
+    slips : Slips, optional
+        A result of :func:`find_slips` on ``data`` as it is (then no set is dropped as a
+        gross outlier first).  Default: sets with a :func:`gross_outliers` sample are
+        dropped, then :func:`find_slips` (with ``**kwargs``) runs on the rest.
+
+    Returns
+    -------
+    (Dataset, Slips, int, int)
+        The re-paired data (the sets that kept a partner for every sensor), the slips found
+        (indexed like the sets left after the gross outliers), the number of sets dropped
+        in re-pairing (at a change of lag a sensor's sample is claimed by two sets or by
+        none) and the number dropped as gross outliers.
+
+    """
+    n_gross = 0
+    if slips is None:
+        gross = gross_outliers(data.raw).any(axis=0)
+        n_gross = int(gross.sum())
+        if n_gross:
+            keep = np.flatnonzero(~gross)
+            data = data.subset(keep)
+            epochs = None if epochs is None else np.asarray(epochs)[keep]
+        slips = find_slips(data.raw, epochs, **kwargs)
+    if not (slips.n_slipped.any() or slips.n_drop.any()):
+        return data, slips, 0, n_gross
+    s, n = data.raw.shape[:2]
+    raw = data.raw.copy()
+    temp = None if data.temp is None else data.temp.copy()
+    keep = np.ones(n, bool)
+    run = _runs(n, epochs)
+    idx = np.arange(n)
+    for j in range(1, s):
+        drop = slips.lags[j] == DROP
+        src = idx + np.where(drop, 0, slips.lags[j])
+        ok = (src >= 0) & (src < n) & ~drop
+        ok[ok] &= run[src[ok]] == run[ok]
+        # a sample of sensor j claimed by two sets (at a change of lag): keep neither pairing
+        values, counts = np.unique(src[ok], return_counts=True)
+        dup = np.zeros(n, bool)
+        dup[ok] = np.isin(src[ok], values[counts > 1])
+        ok &= ~dup
+        keep &= ok
+        raw[j, ok] = data.raw[j, src[ok]]
+        if temp is not None:
+            temp[j, ok] = data.temp[j, src[ok]]
+    out = replace(data, raw=raw, temp=temp)
+    return out.subset(np.flatnonzero(keep)), slips, int(n - keep.sum()), n_gross

@@ -1,0 +1,657 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Live correction of an array, one sample at a time (no ROS: used by the corrector node).
+
+Also the other live pieces without ROS: :class:`ResidualMonitor` (the calibration node's
+``calibration/residual``) and :class:`SampleBuffer` (the sets it collects for a fit).
+
+:class:`LiveCorrector` holds everything a stream of raw samples needs besides the samples:
+the calibration's correction made ready per sensor (A_j^-1, offset, covariance), the latest
+driving signals (temperature, auxiliary channels), the field-rate estimate of each stream,
+the grouping of the sensors' samples into sets of one epoch (:class:`StampMatcher`) and the
+gradient operator of the array geometry with its covariance.  Every matrix is computed once
+when the corrector is built, so a sample costs a few 3x3 products.
+
+Units: nT, nT/s, nT/m, s, degC (the library's; a ROS node converts at its boundary).
+"""
+from collections import deque
+
+from magcal_ros.core.data.dataset import Dataset
+from magcal_ros.core.data.noise import noise_floor
+from magcal_ros.core.effects import raw_rate, SensorContext, SIGNALS
+from magcal_ros.core.geometry.tensor import tensor_operator
+from magcal_ros.core.live.sync import epoch_times, StampMatcher
+import numpy as np
+
+#: consecutive raw samples further apart than this give no field-rate estimate, s
+MAX_RATE_GAP_S = 1.0
+#: arrivals per stream used to estimate its sample period (field-rate effect)
+PERIOD_WINDOW = 200
+#: arrivals needed before the sample period (and so the field rate) is estimated
+_MIN_ARRIVALS = 11
+#: chance that a correctly paired set of Gaussian noise fails the pairing check
+#: (:meth:`LiveCorrector.pairing_chi2`): about once in 4 min of sets at 4 x 1 kHz
+PAIRING_FALSE_ALARM = 1e-6
+
+
+class MissingSignal(Exception):
+    """A driven effect of the calibration has no live signal yet (the message says which)."""
+
+
+def _waiting(j, name):
+    """Why the correction of sensor j waits for the signal ``name``."""
+    if name == 'temperature':
+        return (f'sensor {j}: waiting for sensor{j}/temperature (the calibration has an '
+                'effect that reads the temperature)')
+    if name == 'field_rate':
+        return f'sensor {j}: field rate needs three consecutive samples'
+    if name.startswith('aux_'):
+        return (f'sensor {j}: waiting for auxiliary channel {name} (topic {name[4:]} named in '
+                'aux_topics)')
+    return f'sensor {j}: the calibration needs the signal {name!r}, which is not received'
+
+
+class _Sensor:
+    """The calibration of one sensor made ready for per-sample correction."""
+
+    def __init__(self, cal, j):
+        self.j = j
+        self.a_inv = cal.correction_matrix(j)
+        self.offset = cal.offset(j)
+        # the signals the calibration's effects declare (Effect.signals); the stamp ('time')
+        # is always there
+        self.needs = set(cal.signals(j)) - {'time'}
+        self.driven = bool(cal.driven_effects(j))
+        sigma = float(cal.sigma_nt[j - 1])
+        # corrected = A^-1 raw: white raw noise sigma^2 I maps to sigma^2 A^-1 A^-T (nT^2)
+        self.cov_nt2 = None
+        if np.isfinite(sigma) and sigma > 0:
+            c = sigma ** 2 * self.a_inv @ self.a_inv.T
+            self.cov_nt2 = 0.5 * (c + c.T)
+        self.recent = deque(maxlen=3)    # (t s, raw (3,) nT) of the latest samples
+        self.arrivals = deque(maxlen=PERIOD_WINDOW)
+
+
+class LiveCorrector:
+    """
+    A calibration made ready to correct live samples of every sensor of an array.
+
+    Parameters
+    ----------
+    cal : magcal_ros.core.model.Calibration
+    n_sensors : int
+        Sensors of the array; a calibration for another count is refused (ValueError).
+    positions_m : array_like, optional
+        (S, 3) sensor positions in the array frame, m (the calibration document's
+        ``geometry.positions_m``); without them no gradient is computed
+        (:attr:`no_gradient_reason` says why).
+    stamp_tolerance_s : float
+        Tolerance of the set matcher (:class:`magcal_ros.core.live.sync.StampMatcher`), s.
+    check_pairing : bool
+        Check every set from the data before it gives a tensor (:meth:`pairing_chi2`) and
+        re-pair a shifted stream at once; off, sets are paired by stamps alone.
+
+    Attributes
+    ----------
+    gradient_op : numpy.ndarray or None
+        (9, 3 S) maps the stacked corrected fields (nT) to the row-major tensor (nT/m)
+        (paper 004 eq. 1 for the cross; :func:`magcal_ros.core.geometry.tensor.tensor_operator`).
+    gradient_cov_nt2 : numpy.ndarray or None
+        (9, 9) covariance of the row-major tensor, (nT/m)^2, from the sensors' corrected-field
+        covariances (independent sensors); None when a sensor has no noise estimate.
+    matcher : StampMatcher
+    pairing_dof : int
+        Redundant combinations of a set's 3 S field components the check tests (3 S - 8:
+        4 for the cross); 0 when there is no check (:attr:`no_check_reason` says why).
+    pairing_threshold : float
+        Largest chi-square of a set that passes the check (chi-square with
+        ``pairing_dof`` degrees of freedom at :data:`PAIRING_FALSE_ALARM`).
+
+    """
+
+    def __init__(self, cal, n_sensors, positions_m=None, stamp_tolerance_s=0.005,
+                 check_pairing=True):
+        if cal.n_sensors != n_sensors:
+            raise ValueError(f'the calibration is for {cal.n_sensors} sensors but this '
+                             f'corrector handles {n_sensors} (n_sensors)')
+        self.cal = cal
+        self.n_sensors = n_sensors
+        self._sensors = [_Sensor(cal, j) for j in range(1, n_sensors + 1)]
+        self.temp = np.full(n_sensors, np.nan)
+        self.aux = {}
+        self.matcher = StampMatcher(n_sensors, stamp_tolerance_s)
+        self.gradient_op = None
+        self.gradient_cov_nt2 = None
+        self.no_gradient_reason = None
+        self.positions_m = None
+        self.pairing_dof, self.pairing_threshold = 0, np.inf
+        self._set_op = None            # (9 + dof, 3 S): the tensor, then K (pairing_chi2)
+        self._checked = None           # (the fields last checked, their _set_op product)
+        self.no_check_reason = ('sets are paired by stamps alone (check_pairing off)'
+                                if not check_pairing else 'no gradient, no sets to check')
+        if positions_m is None:
+            self.no_gradient_reason = 'the calibration has no array geometry (positions_m)'
+            return
+        try:
+            pos = np.asarray(positions_m, float)
+            if pos.shape != (n_sensors, 3):
+                raise ValueError(f'positions_m has shape {pos.shape}, expected ({n_sensors}, 3)')
+            # rows 3.. of the operator: G row-major (9, 3 S)
+            self.gradient_op = tensor_operator(pos)[3:]
+            self.positions_m = pos
+        except ValueError as exc:
+            self.no_gradient_reason = f'no gradient: {exc}'
+            return
+        covs = [s.cov_nt2 for s in self._sensors]
+        if all(c is not None for c in covs):
+            block = np.zeros((3 * n_sensors, 3 * n_sensors))
+            for k, c in enumerate(covs):
+                block[3 * k:3 * k + 3, 3 * k:3 * k + 3] = c
+            g = self.gradient_op @ block @ self.gradient_op.T
+            self.gradient_cov_nt2 = 0.5 * (g + g.T)
+            if check_pairing:
+                k = pairing_operator(pos, block)
+                self.pairing_dof = len(k)
+                if self.pairing_dof:
+                    self._set_op = np.vstack([self.gradient_op, k])
+                    from scipy.stats import chi2   # here: scipy.stats costs 0.2 s at start-up
+                    self.pairing_threshold = float(chi2.isf(PAIRING_FALSE_ALARM,
+                                                            self.pairing_dof))
+                    self.matcher.misfit = self.pairing_chi2
+                    self.matcher.threshold = self.pairing_threshold
+        if check_pairing and self.pairing_dof:
+            self.no_check_reason = None
+        elif check_pairing:
+            self.no_check_reason = (
+                'sets are paired by stamps alone: ' + (
+                    'a sensor of the calibration has no noise estimate'
+                    if self.gradient_cov_nt2 is None else
+                    f'{n_sensors} sensors leave no redundancy to check a set'))
+
+    @property
+    def needs_temperature(self):
+        """Tell whether an effect of the calibration is driven by the sensor temperature."""
+        return any('temperature' in s.needs for s in self._sensors)
+
+    def sensor_frames(self):
+        """
+        Pose of each sensor's frame in the array frame, from the calibration and geometry.
+
+        The frame of sensor j is its own orthogonalised axes (C_j^-1 raw, paper 004 eq. 5);
+        R_j rotates it into the array frame (sensor 1's orthogonalised axes; eq. 14), so a
+        vector v_j of sensor j is R_j v_j in the array frame.  The scale and
+        non-orthogonality of the raw axes (C_j) are not a rigid transform and stay in the
+        calibration.
+
+        Returns
+        -------
+        list of (numpy.ndarray, numpy.ndarray)
+            Per sensor: R_j (3, 3) proper rotation and the position (3,) m; an empty list
+            without geometry (:attr:`no_gradient_reason`).
+
+        """
+        if self.positions_m is None:
+            return []
+        return [(self.cal.intrinsic_and_rotation(j)[1], self.positions_m[j - 1].copy())
+                for j in range(1, self.n_sensors + 1)]
+
+    def site_shift(self, quaternion):
+        """
+        (S, 3) nT shift of every sensor by the calibration's site gradient, or None.
+
+        The field at sensor j minus the centre field, R^T G_w R r_j (docs/site_gradient.md),
+        at the fixed attitude ``quaternion`` (4,) (qw, qx, qy, qz, body-to-world): what a
+        stationary test subtracts to leave the anomaly.  None without a site gradient.
+        """
+        if self.cal.site_gradient() is None:
+            return None
+        from magcal_ros.core.geometry.attitude import quaternion_matrices
+        ctx = SensorContext(t=np.zeros(1),
+                            attitude=quaternion_matrices(np.asarray(quaternion, float)[None]))
+        return np.stack([self.cal.array_shift(j, ctx)[0]
+                         for j in range(1, self.n_sensors + 1)])
+
+    def linear(self, j):
+        """
+        (A_j^-1 (3, 3), offset (3,) nT) when sensor j's correction is that alone, else None.
+
+        For a sensor without driven effects the correction is A_j^-1 (raw - o_j), the same in
+        any unit of the field: a caller may apply it to readings in tesla (the corrector's
+        fast path) after converting the offset.  No field-rate state is kept on that path.
+        """
+        s = self._sensors[j - 1]
+        return None if s.driven else (s.a_inv.copy(), s.offset.copy())
+
+    def covariance_nt2(self, j):
+        """(3, 3) covariance of sensor j's corrected field, nT^2 (None: no noise estimate)."""
+        return self._sensors[j - 1].cov_nt2
+
+    def set_temperature(self, j, temp_c):
+        """Latest temperature of sensor j (1-based), degC."""
+        self.temp[j - 1] = temp_c
+
+    def set_aux(self, column, value):
+        """Latest value of the auxiliary channel ``column`` (``aux_<name>``)."""
+        self.aux[column] = float(value)
+
+    def correct(self, j, t, raw):
+        """
+        Correct one finite raw sample of sensor j and remember it for the field rate.
+
+        Parameters
+        ----------
+        j : int
+            Sensor, 1-based.
+        t : float
+            Stamp of the sample, s.
+        raw : numpy.ndarray
+            (3,) raw reading, nT.
+
+        Returns
+        -------
+        numpy.ndarray
+            (3,) corrected field in the array frame, nT.
+
+        Raises
+        ------
+        MissingSignal
+            A driven effect has no live signal yet (temperature, auxiliary channel, or the
+            field rate before the stream's period is known).
+
+        """
+        s = self._sensors[j - 1]
+        s.recent.append((t, raw))
+        s.arrivals.append(t)
+        if not s.driven:
+            return s.a_inv @ (raw - s.offset)          # the common case: one 3x3 product
+        rate = self._rate(s) if 'field_rate' in s.needs else None
+        temp = self.temp[j - 1]
+        ctx = SensorContext(
+            t=np.array([t]), temp=np.array([temp]) if np.isfinite(temp) else None,
+            aux={k: np.array([v]) for k, v in self.aux.items()},
+            raw_rate=None if rate is None else rate[None])
+        for name in sorted(s.needs):
+            if not (name in SIGNALS or name.startswith('aux_')) or not ctx.has(name):
+                raise MissingSignal(_waiting(j, name))
+        return self.cal.correct(j, raw, ctx)
+
+    @staticmethod
+    def _rate(s):
+        """
+        Return d(raw)/dt of the newest sample, nT/s (3,).
+
+        d(raw)/dt, nT/s (3,), of the newest sample: :func:`~magcal_ros.core.effects.raw_rate`
+        on the last three samples (its second-order one-sided form; the fit's interior
+        samples use the central one: they agree to (w h)^2 / 2, see there).
+
+        Consecutive samples of one stream are one period apart, but their stamps are not
+        (samples read at once share one), so the period is the mean over the last
+        :data:`PERIOD_WINDOW` arrivals.
+        """
+        if (len(s.recent) < 3 or len(s.arrivals) < _MIN_ARRIVALS
+                or np.diff([t for t, _ in s.recent]).max() > MAX_RATE_GAP_S):
+            return None
+        period = (s.arrivals[-1] - s.arrivals[0]) / (len(s.arrivals) - 1)
+        rate = raw_rate(np.stack([r for _, r in s.recent]), period=period)
+        return None if rate is None else rate[-1]
+
+    def sets(self, j, t, field_nt):
+        """
+        Add a corrected sample of sensor j; return the sets of all sensors it completes.
+
+        ``j`` and ``t`` as for :meth:`correct`; ``field_nt`` (3,) is its result, nT.
+
+        Returns
+        -------
+        list of (float, list of numpy.ndarray)
+            (stamp of the set s, the S corrected fields (3,) nT) per completed set, oldest
+            first.
+
+        """
+        return [(t_set, fields) for _, t_set, fields in self.matcher.add(j - 1, t, field_nt)]
+
+    def pairing_chi2(self, fields_nt):
+        """
+        Chi-square of the S corrected fields of a set as the samples of one epoch.
+
+        A set of one epoch fits B(r) = B0 + G r with G symmetric and traceless (a curl- and
+        divergence-free field; the model of
+        :func:`magcal_ros.core.geometry.tensor.tensor_operator`,
+        paper 004 eq. 1 for the cross) to the noise: its weighted least-squares residual
+        chi^2 = |K b|^2 (:func:`pairing_operator`) is chi-square with :attr:`pairing_dof`
+        degrees of freedom, whatever the gradient.  A sample of another epoch of a turning
+        array adds the field change between the epochs (~50-200 nT per epoch at 100 Hz of
+        tumbling), which no symmetric traceless G absorbs: for the cross it makes the
+        centre fields of the two opposite pairs disagree.  (Not every mis-pairing shows:
+        two opposite sensors of the planar cross shifted the opposite ways look like a
+        gradient but in one component; a single lost sample never does that.)
+
+        Parameters
+        ----------
+        fields_nt : sequence of numpy.ndarray
+            S corrected fields (3,) nT, array frame.
+
+        Returns
+        -------
+        float
+            chi^2 (0 without a check: :attr:`no_check_reason`).
+
+        """
+        if self._set_op is None:
+            return 0.0
+        # the tensor comes with it: gradients() takes it for a set that passed
+        y = self._set_op @ np.concatenate(fields_nt)
+        self._checked = (fields_nt, y)
+        z = y[9:]
+        return float(z @ z)
+
+    def gradients(self, j, t, field_nt):
+        """
+        Add a corrected sample of sensor j; return the tensors of the sets it completes.
+
+        ``j`` and ``t`` as for :meth:`correct`; ``field_nt`` (3,) is its result, nT.
+
+        Returns
+        -------
+        list of (float, numpy.ndarray)
+            (stamp of the set s, tensor (3, 3) nT/m) per completed set, oldest first; empty
+            without geometry.
+
+        """
+        if self.gradient_op is None:
+            return []
+        out = []
+        for t_set, fields in self.sets(j, t, field_nt):
+            checked = self._checked
+            if checked is not None and checked[0] is fields:
+                g = checked[1][:9]                   # computed by the check
+            else:
+                g = self.gradient_op @ np.concatenate(fields)
+            out.append((t_set, g.reshape(3, 3)))
+        return out
+
+
+def pairing_operator(positions_m, cov_nt2):
+    """
+    Whitened residual map of the set check: chi^2 of a set = |K b|^2.
+
+    The least-squares residual of b = H theta + noise, theta = (B0, G symmetric traceless:
+    g_xx, g_xy, g_xz, g_yy, g_yz), H the linear field at the sensor positions, in the
+    metric of the noise covariance: with Sigma = L L^T and the QR decomposition of
+    L^-1 H, the last 3 S - rank(H) columns Q_r of Q span the residual, and K = Q_r^T L^-1.
+
+    Parameters
+    ----------
+    positions_m : numpy.ndarray
+        (S, 3) sensor positions, m.
+    cov_nt2 : numpy.ndarray
+        (3 S, 3 S) covariance of the stacked corrected fields, nT^2.
+
+    Returns
+    -------
+    numpy.ndarray
+        (3 S - rank(H), 3 S) K, 1/nT; (0, 3 S) when nothing is redundant.
+
+    """
+    pos = np.asarray(positions_m, float)
+    pos = pos - pos.mean(axis=0)
+    h = np.zeros((3 * len(pos), 8))
+    for k, (x, y, z) in enumerate(pos):
+        h[3 * k:3 * k + 3, :3] = np.eye(3)
+        h[3 * k:3 * k + 3, 3:] = [[x, y, z, 0.0, 0.0],
+                                  [0.0, x, 0.0, y, z],
+                                  [-z, 0.0, x, -z, y]]
+    chol = np.linalg.cholesky(cov_nt2)
+    hw = np.linalg.solve(chol, h)
+    rank = np.linalg.matrix_rank(hw)
+    q, _ = np.linalg.qr(hw, mode='complete')
+    return np.linalg.solve(chol.T, q[:, rank:]).T         # Q_r^T L^-1
+
+
+#: a rolling residual above this multiple of its noise-floor expectation means the
+#: calibration no longer fits (the pipeline's threshold for a fit above the floor)
+RESIDUAL_WARN_RATIO = 1.5
+
+
+class ResidualMonitor:
+    """
+    Residuals of the active calibration on live sets, and their ratio to the noise floor.
+
+    Per set of corrected fields b_j (array frame, nT) and sensor j:
+
+    - scalar residual ``|b_j| - F`` against the reference magnitude F (the fit's scalar
+      constraint);
+    - vector residual ``|b_j - mean_{k != j} b_k|``: the distance to the consensus of the
+      other sensors (the fit's inter-sensor consistency; in a uniform field only noise).
+
+    Over the last ``window`` sets the monitor compares their RMS with what noise alone
+    gives: the noise floor f_j of each corrected series from its high-order differences
+    (:func:`magcal_ros.core.data.noise.noise_floor`, no model) predicts an RMS of f_j for the
+    scalar residual and sqrt(3 (f_j^2 + sum_{k != j} f_k^2 / (S - 1)^2)) for the vector one.
+    A ratio above :data:`RESIDUAL_WARN_RATIO` means an effect the calibration lacks (or a
+    changed sensor): time to run the diagnosis.
+
+    Parameters
+    ----------
+    n_sensors : int
+    field_nt : float
+        Reference magnitude F, nT.
+    window : int
+        Sets in the rolling window.
+
+    """
+
+    def __init__(self, n_sensors, field_nt, window=1000):
+        if n_sensors < 2:
+            raise ValueError('the vector residual needs at least two sensors')
+        self.n_sensors = n_sensors
+        self.field_nt = float(field_nt)
+        self.window = int(window)
+        self._fields = np.zeros((n_sensors, self.window, 3))
+        self._scalar = np.zeros((n_sensors, self.window))
+        self._vector = np.zeros((n_sensors, self.window))
+        self.count = 0                                 # sets added
+
+    def add(self, fields_nt):
+        """
+        Add one set; return its residuals.
+
+        Parameters
+        ----------
+        fields_nt : array_like
+            (S, 3) corrected fields of the set, nT, sets in time order.
+
+        Returns
+        -------
+        (numpy.ndarray, numpy.ndarray)
+            Scalar residual (S,) nT (signed) and vector residual (S,) nT (a length).
+
+        """
+        b = np.asarray(fields_nt, float)
+        s = self.n_sensors
+        scalar = np.sqrt(np.einsum('ij,ij->i', b, b)) - self.field_nt
+        others = (b.sum(axis=0)[None, :] - b) / (s - 1)
+        vector = np.sqrt(np.sum((b - others) ** 2, axis=1))
+        k = self.count % self.window
+        self._fields[:, k] = b
+        self._scalar[:, k] = scalar
+        self._vector[:, k] = vector
+        self.count += 1
+        return scalar, vector
+
+    def ratios(self, min_sets=50):
+        """
+        Return the rolling RMS residuals and their ratio to the noise-only expectation.
+
+        Returns
+        -------
+        dict or None
+            ``scalar_rms_nt``, ``vector_rms_nt``, ``floor_nt`` (S,) nT, ``scalar_ratio``,
+            ``vector_ratio`` (S,), ``sets`` (int); None with fewer than ``min_sets`` sets.
+
+        """
+        n = min(self.count, self.window)
+        if n < max(min_sets, 14):                     # the floor needs a few differences
+            return None
+        order = (np.arange(self.count - n, self.count) % self.window)
+        floor = noise_floor(self._fields[:, order])
+        s = self.n_sensors
+        f2 = floor ** 2
+        vector_expected = np.sqrt(3.0 * (f2 + (f2.sum() - f2) / (s - 1) ** 2))
+        scalar_rms = np.sqrt(np.mean(self._scalar[:, order] ** 2, axis=1))
+        vector_rms = np.sqrt(np.mean(self._vector[:, order] ** 2, axis=1))
+        with np.errstate(divide='ignore', invalid='ignore'):
+            return {'sets': n, 'floor_nt': floor, 'scalar_rms_nt': scalar_rms,
+                    'vector_rms_nt': vector_rms, 'scalar_ratio': scalar_rms / floor,
+                    'vector_ratio': vector_rms / vector_expected}
+
+
+class SampleBuffer:
+    """
+    Matched sample sets of S sensors spread evenly over the whole run, in flat memory.
+
+    Not thread-safe (lock outside).  The buffer holds at most ``capacity`` sets whatever
+    the length of the run: while it has room it keeps every set; when it is full it drops
+    every other set it holds (the 2nd, 4th, ... in time) and from then on keeps every 2nd
+    set that arrives, then every 4th, ... (time-stratified thinning, the same as
+    :class:`magcal_ros.core.data.reduce.Reducer`'s sample).  The sets kept are thus evenly
+    spread from the first set to the latest, so the attitudes of the whole run (not of its
+    last ``capacity`` sets) enter the calibration; :meth:`coverage` says how much of the
+    run they stand for.  The price: after thinning the sets are ``stride`` epochs apart, so
+    the field rate d(raw)/dt of a lag effect is taken over that spacing.
+
+    Parameters
+    ----------
+    n_sensors : int
+    capacity : int
+        Most sets kept (at least 2).
+    aux_names : sequence of str
+        Auxiliary column names (``aux_<name>``).
+    source : str
+        ``meta['source']`` of the datasets it returns.
+
+    """
+
+    def __init__(self, n_sensors, capacity, aux_names=(), source='live (calibration_node)'):
+        self.n_sensors = n_sensors
+        self.source = source
+        self.capacity = max(2, int(capacity))
+        self.t = np.zeros(self.capacity)
+        self.epoch = np.zeros(self.capacity, np.int64)
+        self.raw = np.zeros((n_sensors, self.capacity, 3))
+        self.temp = np.full((n_sensors, self.capacity), np.nan)
+        self.aux = {a: np.full(self.capacity, np.nan) for a in aux_names}
+        self.clear()
+
+    def clear(self):
+        """Forget all sets."""
+        self.count = 0          # sets ever added since clear()
+        self.n = 0              # sets held
+        self.stride = 1         # every stride-th set that arrives is kept
+        self.t_first = self.t_last = None
+
+    def __len__(self):
+        return self.n
+
+    def append(self, epoch, t, raw, temp, aux):
+        """Add a set: epoch number, stamp t s, raw (S, 3) nT, temp (S,) degC (nan: none), aux."""
+        k = self.count
+        self.count += 1
+        if self.t_first is None:
+            self.t_first = float(t)
+        self.t_last = float(t)
+        if k % self.stride:
+            return
+        if self.n == self.capacity:
+            self._thin()
+            if k % self.stride:
+                return
+        i = self.n
+        self.epoch[i] = epoch
+        self.t[i] = t
+        self.raw[:, i] = raw
+        self.temp[:, i] = temp
+        for name, arr in self.aux.items():
+            arr[i] = aux.get(name, np.nan)
+        self.n += 1
+
+    def _thin(self):
+        """Keep every other set held (the 1st, 3rd, ...) and every 2 x stride-th from now."""
+        keep = np.arange(0, self.n, 2)
+        m = len(keep)
+        self.epoch[:m] = self.epoch[keep]
+        self.t[:m] = self.t[keep]
+        self.raw[:, :m] = self.raw[:, keep]
+        self.temp[:, :m] = self.temp[:, keep]
+        for arr in self.aux.values():
+            arr[:m] = arr[keep]
+        self.n = m
+        self.stride *= 2
+
+    def coverage(self):
+        """
+        How much of the run the sets held stand for (JSON-ready).
+
+        ``sets_held``, ``sets_received`` (since the start or the last reset),
+        ``stride`` (one set kept in ``stride``), ``run_s`` (first to latest set, s),
+        ``held_from_s`` / ``held_to_s`` (the span the sets held cover, s after the first
+        set) and ``fraction_of_run`` (that span over the run: 1 when they reach from its
+        start to its latest ``stride`` sets).
+        """
+        run = 0.0 if self.t_first is None else self.t_last - self.t_first
+        out = {'sets_held': int(self.n), 'sets_received': int(self.count),
+               'stride': int(self.stride), 'run_s': round(float(run), 3)}
+        if self.n:
+            lo = float(self.t[0] - self.t_first)
+            hi = float(self.t[self.n - 1] - self.t_first)
+            out.update(held_from_s=round(lo, 3), held_to_s=round(hi, 3),
+                       fraction_of_run=round((hi - lo) / run, 4) if run > 0 else 1.0)
+        return out
+
+    def _order(self, max_sets=None):
+        idx = np.arange(self.n)
+        if max_sets is not None and self.n > max_sets:
+            idx = idx[np.linspace(0, self.n - 1, max_sets).round().astype(int)]
+        return idx
+
+    def raw_view(self, max_sets=None):
+        """(S, M, 3) nT raw readings, chronological, at most ``max_sets`` evenly spaced."""
+        return self.raw[:, self._order(max_sets)]
+
+    def epochs(self):
+        """(N,) int epoch numbers of the buffered sets, chronological (a copy)."""
+        return self.epoch[self._order()].copy()
+
+    def stamps(self):
+        """(N,) s stamps of the buffered sets as they arrived, chronological (a copy)."""
+        return self.t[self._order()].copy()
+
+    def dataset(self):
+        """Return a :class:`Dataset` of the buffered sets in chronological order (copies)."""
+        idx = self._order()
+        temp = self.temp[:, idx]
+        aux = {}
+        for name, arr in self.aux.items():
+            col = arr[idx]
+            if np.isfinite(col).any():
+                # sample-and-hold before the first value arrived: use the first value
+                first = col[np.flatnonzero(np.isfinite(col))[0]]
+                aux[name] = np.where(np.isfinite(col), col, first)
+        # sample instants from the epoch numbers and the (late, jittery) arrival stamps
+        t = epoch_times(self.epoch[idx], self.t[idx])
+        return Dataset(t=t, raw=self.raw[:, idx].copy(),
+                       temp=temp.copy() if np.isfinite(temp).any() else None, aux=aux,
+                       meta={'source': self.source})

@@ -1,0 +1,556 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Group the samples of S sensors into sets taken at the same epoch.
+
+Pure Python/numpy (no rclpy), shared by the calibration node and the live correction
+(:mod:`magcal_ros.core.live.corrector`).
+
+A serial driver stamps each sample with the arrival time of its bytes, which lags the
+sampling instant by a varying latency: samples read in one chunk share a stamp, and a reader
+thread starved for a few hundred milliseconds delivers a burst. Measured here on the
+simulated array under the load of the full pipeline (2 cores), the stamps of the four
+samples of one epoch spread by more than 5 ms for 44 % of the epochs and by up to 0.45 s,
+so sets cannot be formed by matching stamps within a tolerance: that drops most epochs and
+mismatches others, and one mismatched set of a rotating array puts hundreds of nT/m into
+the gradient tensor.
+
+Sets are therefore formed by epoch number. Within a stream the samples arrive in order and
+(normally) none is lost, so the k-th sample of sensor j belongs to epoch k + o_j with one
+integer offset o_j per sensor. The offsets are voted from the stamps (:class:`StampMatcher`),
+which only needs most samples, not all, to have a stamp close to their epoch. A lost sample
+(the sensor-data QoS drops samples under load) shifts a stream by one epoch, which the vote
+sees only when its majority flips, up to a second later; a stream whose stamps lag by more
+than half a period is paired off for good.  Where the items of a set can be checked from
+the data (the corrected fields of a calibrated array: :class:`magcal_ros.core.live.corrector.
+LiveCorrector`), the matcher takes a ``misfit``: no set that fails is emitted, and a shifted
+stream is re-paired at the first set that shows it.
+"""
+from collections import deque
+
+import numpy as np
+
+
+def backdate(stamps, period_s):
+    """
+    Spread samples that arrived together back along the sample grid.
+
+    A run of samples whose stamps differ by less than a quarter period arrived in one read;
+    the last of the run is kept and each earlier one is moved one period earlier than its
+    successor (a chunk written by a device, or the backlog read after a stall).
+
+    Parameters
+    ----------
+    stamps : numpy.ndarray
+        (N,) non-decreasing arrival stamps of one stream, s.
+    period_s : float
+        Sample period T of the stream, s.
+
+    Returns
+    -------
+    numpy.ndarray
+        (N,) stamps, s.
+
+    """
+    a = np.asarray(stamps, float)
+    n = len(a)
+    if n < 2:
+        return a.copy()
+    together = np.diff(a) < 0.25 * period_s         # sample i arrived with sample i + 1
+    # each sample keeps the stamp of the last sample of its run, moved back one period per
+    # sample: out[i] = a[j] - (j - i) T, j = the first index >= i that ends a run
+    idx = np.arange(n)
+    ends = np.where(np.append(~together, True), idx, n)
+    last = np.minimum.accumulate(ends[::-1])[::-1]
+    return a[last] - (last - idx) * period_s
+
+
+def epoch_times(epochs, stamps_s):
+    """
+    Sample instants of consecutive epochs from noisy, late stamps: a linear clock.
+
+    Fits t = t0 + T e by least squares for the slope T, then sets t0 on the lower envelope
+    (latency is never negative, so the earliest stamps carry the sampling instants).
+
+    Parameters
+    ----------
+    epochs : numpy.ndarray
+        (N,) epoch numbers (integers, increasing).
+    stamps_s : numpy.ndarray
+        (N,) a stamp of each epoch, s (e.g. the median of its sensors' stamps).
+
+    Returns
+    -------
+    numpy.ndarray
+        (N,) times in s, strictly increasing.
+
+    """
+    e = np.asarray(epochs, float)
+    t = np.asarray(stamps_s, float)
+    if len(e) < 2:
+        return t.copy()
+    slope, _ = np.polyfit(e - e[0], t - t[0], 1)
+    if not slope > 0:
+        raise ValueError('stamps do not increase with the epoch number')
+    t0 = np.min(t - slope * (e - e[0]))
+    return t0 + slope * (e - e[0])
+
+
+#: largest backward shift of one stream, and largest change of the offsets by the stamp
+#: vote's proposal, that StampMatcher with ``misfit`` tries, epochs (a proposal that far
+#: ahead makes the sets wait for that many samples once)
+MAX_VOTE_SHIFT = 25
+
+
+#: sets after a failed one that a re-pairing must pass before it is taken (fewer than
+#: ``confirm`` when another stream slips within them: each slip is then re-paired in turn)
+MIN_PASS = 2
+
+
+class _Ring:
+    """Last ``size`` (sequence number, stamp) pairs of one stream, as numpy arrays."""
+
+    def __init__(self, size):
+        self.q = np.zeros(size)
+        self.s = np.zeros(size)
+        self.size = size
+        self.count = 0
+
+    def clear(self):
+        self.count = 0
+
+    def __len__(self):
+        return min(self.count, self.size)
+
+    def append(self, q, s):
+        k = self.count % self.size
+        self.q[k] = q
+        self.s[k] = s
+        self.count += 1
+
+    def arrays(self):
+        """(sequence numbers, stamps), oldest first (copies)."""
+        if self.count <= self.size:
+            return self.q[:self.count].copy(), self.s[:self.count].copy()
+        k = self.count % self.size
+        return np.concatenate([self.q[k:], self.q[:k]]), np.concatenate([self.s[k:], self.s[:k]])
+
+
+def _median(values):
+    """Median of a short list of floats (np.median costs ~10 us per call on the hot path)."""
+    v = sorted(values)
+    m = len(v) // 2
+    return float(v[m]) if len(v) % 2 else 0.5 * (v[m - 1] + v[m])
+
+
+class StampMatcher:
+    """
+    Group the samples of ``n_sensors`` streams into epochs.
+
+    Within a stream the samples come in order and (normally) none is lost, so the k-th
+    sample of sensor j belongs to epoch k + o_j with one integer offset o_j per sensor
+    (o_1 = 0). The offsets are estimated from the stamps by a vote that survives delayed
+    chunks and bursts: every sample of sensor j in a sliding window votes for the epoch of
+    the sensor-1 sample nearest in stamp (both :func:`backdate`-ed), if that is within
+    ``tolerance_s``, and a clear majority wins. The vote is repeated every
+    ``align_every`` samples; a lost sample (which shifts a stream by one epoch) is seen
+    when the majority of the window flips (test_sync: up to about half a window), sooner
+    with ``misfit``. Sets are then formed by epoch number, like the
+    "approximate time" policy of message_filters but immune to stamp jitter: whenever every
+    sensor has a queued sample, the heads of the queues either share an epoch (a set) or the
+    oldest heads are dropped (an epoch some sensor never delivered).
+
+    Parameters
+    ----------
+    n_sensors : int
+        Number of streams S.
+    tolerance_s : float
+        Largest stamp difference of two samples that may vote for the same epoch, s (about
+        half a sample period).
+    window : int
+        Samples per stream in the vote.
+    align_every : int
+        Samples (all streams together) between votes.
+    max_queue : int
+        Samples kept per stream while another stream is silent; older ones are dropped
+        (counted as incomplete sets).
+    misfit : callable, optional
+        ``misfit(items) -> float``: a chi-square of how far the S items of a set are from
+        being the samples of one epoch (e.g. :meth:`magcal_ros.core.live.corrector.LiveCorrector.
+        pairing_chi2`); a set passes when it is at most ``threshold``.  With it, a set
+        that fails is never emitted.  The matcher sums, over ``confirm`` sets, the misfit
+        of the pairing as it is (the sets after the failed one), of each shift of one
+        stream forward by 1 .. ``max_shift`` epochs (a lost sample: its samples from the
+        failed set on against the others' queued ones) and back by 1 ..
+        :data:`MAX_VOTE_SHIFT` (stamps that lag: against the others' samples already
+        taken, so without waiting), and of the stamp vote's proposal; it adopts at once
+        the candidate whose every set passes and whose sum beats every other's by
+        ``margin`` (the maximum-likelihood pairing: :attr:`repaired`).  Otherwise the set
+        is dropped (:attr:`rejected`): when the pairing as it is fits best (this set alone
+        was bad), or when no candidate or more than one fits (a longer run of lost
+        samples: the stamp vote restarts on the samples from then on, and its proposal is
+        tried at the next failed set; an array too still to tell: its sets differ little
+        anyway).  Once aligned, a new stamp vote is taken unless the next ``confirm`` sets
+        refute it (the pairing as it is fits better by ``margin``): stamps that lag by
+        more than half a period no longer move a pairing that fits, and a slip too small
+        for the misfit to show is still moved by the vote when its majority flips (about
+        half a ``window``), as without ``misfit``.
+    threshold : float
+        Largest misfit of a set that passes.
+    max_shift : int
+        Largest forward shift of one stream tried after a failed set, epochs (the sets
+        wait for ``max_shift + confirm + 1`` samples of every stream).
+    confirm : int
+        Sets on which the candidates are compared.
+    margin : float
+        Least difference of summed misfit between the adopted candidate and any other
+        (2 ln of their likelihood ratio for a chi-square misfit).
+
+    Attributes
+    ----------
+    complete : int
+        Sets emitted.
+    incomplete : int
+        Epochs dropped because a sensor's sample was missing.
+    out_of_order : int
+        Samples dropped because their stamp was older than the previous one of that sensor.
+    realigned : int
+        Times the stamp vote changed a stream's epoch offset after the first alignment.
+    rejected : int
+        Sets dropped because their misfit exceeded ``threshold`` (never emitted).
+    repaired : int
+        Times a stream's epoch offset was changed from the misfit.
+
+    """
+
+    def __init__(self, n_sensors, tolerance_s, window=200, align_every=40, max_queue=1000,
+                 misfit=None, threshold=np.inf, max_shift=3, confirm=5, margin=25.0):
+        if n_sensors < 1:
+            raise ValueError(f'n_sensors must be >= 1, got {n_sensors}')
+        if not tolerance_s > 0:
+            raise ValueError(f'tolerance_s must be > 0 s, got {tolerance_s}')
+        self.n_sensors = int(n_sensors)
+        self.tolerance_s = float(tolerance_s)
+        self.window = int(window)
+        self.align_every = int(align_every)
+        self.max_queue = int(max_queue)
+        self.misfit = misfit
+        self.threshold = float(threshold)
+        self.max_shift = int(max_shift)
+        self.confirm = int(confirm)
+        self.margin = float(margin)
+        # vote history per stream: a ring of (sequence number, stamp) in numpy arrays
+        self._hist = [_Ring(self.window) for _ in range(self.n_sensors)]
+        self._queues = [deque() for _ in range(self.n_sensors)]
+        # with misfit: the samples last taken from each queue, (sequence number, stamp, item),
+        # contiguous with the queue (a shift back is tested on them without waiting)
+        self._past = [deque(maxlen=MAX_VOTE_SHIFT + confirm + 2)
+                      for _ in range(self.n_sensors)]
+        self.reset()
+
+    def reset(self):
+        """Forget queued samples, offsets and counters."""
+        for h, q, p in zip(self._hist, self._queues, self._past):
+            h.clear()
+            q.clear()
+            p.clear()
+        self._seq = [0] * self.n_sensors
+        self._last_arrival = [None] * self.n_sensors
+        self._offset = [0] + [None] * (self.n_sensors - 1)
+        self._proposal = [0] + [None] * (self.n_sensors - 1)    # the stamp vote's, checked
+        self._pending = None            # a proposal to compare with the pairing as it is
+        self._refuted = deque(maxlen=4)     # the last proposals the data refuted
+        self._aligned = self.n_sensors == 1
+        self._since_align = 0
+        self._backoff = self._skip = 0
+        self.complete = self.incomplete = self.out_of_order = self.realigned = 0
+        self.rejected = self.repaired = 0
+
+    @property
+    def aligned(self):
+        """Tell whether every stream has an epoch offset."""
+        return self._aligned
+
+    @property
+    def queued(self):
+        """
+        Count the samples waiting for the other sensors of their set (tuple of S counts).
+
+        Each stays below ``max_queue``: older samples are dropped as incomplete sets.
+        """
+        return tuple(len(q) for q in self._queues)
+
+    def add(self, j, stamp_s, item):
+        """
+        Add the sample ``item`` of sensor ``j`` (0-based) stamped ``stamp_s`` seconds.
+
+        Returns
+        -------
+        list of (float, list)
+            Completed sets, oldest first: (epoch number, median stamp of the set in s,
+            [item of sensor 0, ..., item of sensor S-1]). The stamps are late by the
+            arrival latency; :func:`epoch_times` turns epochs into sample instants.
+
+        """
+        last = self._last_arrival[j]
+        if last is not None and stamp_s < last:
+            self.out_of_order += 1
+            return []
+        self._last_arrival[j] = stamp_s
+        s = stamp_s
+        q = self._seq[j]
+        self._seq[j] += 1
+        self._hist[j].append(q, s)
+        queue = self._queues[j]
+        queue.append((q, s, item))
+        if len(queue) > self.max_queue:
+            self._past[j].append(queue.popleft())
+            self.incomplete += 1
+        self._since_align += 1
+        # until every stream has an offset, vote more often (but not on every sample: a
+        # silent sensor would make each sample pay for a vote)
+        if self._since_align >= (self.align_every if self.aligned else 8):
+            self._align()
+        return self._emit() if self.aligned else []
+
+    def _align(self):
+        """Vote the epoch offset of every stream against sensor 1's."""
+        self._since_align = 0
+        ref = self._hist[0]
+        if len(ref) < 10:
+            return
+        q0, s0 = ref.arrays()
+        period = self._period(s0)
+        if period is None:
+            return
+        # raw stamps vote well when samples come one by one, backdated ones when they come
+        # in chunks; counting both votes was right in every window of the recorded data
+        refs = (s0, backdate(s0, period))
+        for j in range(1, self.n_sensors):
+            hist = self._hist[j]
+            if len(hist) < 10:
+                continue
+            qj, sj = hist.arrays()
+            votes = []
+            for ref_s, s in zip(refs, (sj, backdate(sj, period))):
+                k = np.clip(np.searchsorted(ref_s, s), 1, len(ref_s) - 1)
+                k = np.where(np.abs(ref_s[k - 1] - s) <= np.abs(ref_s[k] - s), k - 1, k)
+                ok = np.abs(ref_s[k] - s) <= self.tolerance_s
+                votes.append((q0[k] - qj)[ok])
+            votes = np.concatenate(votes).astype(int)
+            if len(votes) < 10:
+                continue
+            values, counts = np.unique(votes, return_counts=True)
+            if counts.max() <= 0.5 * len(votes):
+                continue           # no clear majority: keep the offset we have
+            best = int(values[np.argmax(counts)])
+            if self.misfit is not None and self._aligned:
+                self._proposal[j] = best    # stamps propose, the data decide (_emit)
+                continue
+            if self._offset[j] is not None and best != self._offset[j]:
+                self.realigned += 1
+            self._offset[j] = best
+        if self.misfit is not None and self._aligned:
+            vote = self._vote()
+            self._pending = (vote if vote != self._offset and vote not in self._refuted
+                             else None)
+        self._aligned = all(o is not None for o in self._offset)
+
+    @staticmethod
+    def _period(stamps):
+        if len(stamps) < 2 or stamps[-1] <= stamps[0]:
+            return None
+        return (stamps[-1] - stamps[0]) / (len(stamps) - 1)
+
+    def _emit(self):
+        out = []
+        queues, misfit, threshold = self._queues, self.misfit, self.threshold
+        pasts = self._past if misfit is not None else None
+        while all(queues):
+            if self._pending is not None and self._decide_vote() is None:
+                break                       # wait for the samples that decide it
+            offset = self._offset
+            epochs = [qq[0][0] + o for qq, o in zip(queues, offset)]
+            e = min(epochs)
+            if all(x == e for x in epochs):
+                items = [qq[0][2] for qq in queues]
+                if misfit is not None and not misfit(items) <= threshold:
+                    repaired = self._repair()
+                    if repaired is None:
+                        break               # wait for the samples that decide it
+                    if not repaired:
+                        for qq, pp in zip(queues, pasts):
+                            pp.append(qq.popleft())
+                        self.rejected += 1
+                    continue                # repaired: the heads pair anew
+                heads = [qq.popleft() for qq in queues]
+                if pasts is not None:
+                    self._backoff = self._skip = 0
+                    for pp, h in zip(pasts, heads):
+                        pp.append(h)
+                out.append((e, _median([h[1] for h in heads]), items))
+                self.complete += 1
+            else:
+                for k, (qq, x) in enumerate(zip(queues, epochs)):
+                    if x == e:
+                        h = qq.popleft()
+                        if pasts is not None:
+                            pasts[k].append(h)
+                self.incomplete += 1
+        return out
+
+    def _candidates(self):
+        """
+        Offsets to try after a failed set: (stream, shift, offsets), each once.
+
+        As they are (shift 0); one stream shifted forward by 1 .. ``max_shift`` epochs
+        (lost samples: tested on the samples queued after the failed set); the stamp vote's
+        proposal (stream -1); one stream back by 1 .. :data:`MAX_VOTE_SHIFT` (its stamps
+        lag: tested on the others' samples already taken, no wait).  Only one stream moves
+        at a time: the planar cross hardly tells two streams shifted the opposite ways from
+        none (:meth:`magcal_ros.core.live.corrector.LiveCorrector.pairing_chi2`), and candidates
+        that move several would offer such pairings; several slips at once wait for the
+        vote.
+        """
+        base = self._offset
+        seen = {tuple(base)}
+        yield 0, 0, list(base)
+        single = []
+        for j in range(self.n_sensors):
+            for delta in (*range(1, self.max_shift + 1), *range(-1, -MAX_VOTE_SHIFT - 1, -1)):
+                o = list(base)
+                if j == 0:              # sensor 1 keeps offset 0: shift the others instead
+                    o[1:] = [x - delta for x in o[1:]]
+                else:
+                    o[j] += delta
+                seen.add(tuple(o))
+                single.append((j, delta, o))
+        vote = self._vote()
+        reach = self._reach(vote)
+        if tuple(vote) not in seen and reach <= MAX_VOTE_SHIFT:
+            yield -1, reach, vote       # e.g. a run of lost samples, once the vote sees it
+        yield from single
+
+    def _vote(self):
+        """Return the offsets the stamp vote proposes (the current one where it has none)."""
+        return [p if p is not None else o for p, o in zip(self._proposal, self._offset)]
+
+    def _reach(self, offsets):
+        """Return how far ``offsets`` move the streams against each other, epochs."""
+        diff = [p - o for p, o in zip(offsets, self._offset)]
+        return max(diff) - min(diff)    # diff[0] = 0: sensor 1 keeps offset 0
+
+    def _item(self, k, seq):
+        """Return the item of stream k with sequence number ``seq`` (queued or past), or None."""
+        qq = self._queues[k]
+        i = seq - qq[0][0]
+        if i >= 0:
+            return qq[i][2] if i < len(qq) else None
+        past = self._past[k]
+        i += len(past)
+        return past[i][2] if i >= 0 else None
+
+    def _fit(self, offset, first):
+        """
+        Score a pairing on the ``confirm`` sets from epoch ``first`` on.
+
+        Returns (-n, sum): n sets pass before the first that fails (or lacks a sample),
+        sum is their misfit; smaller is better.
+        """
+        total = 0.0
+        for n, e in enumerate(range(first, first + self.confirm)):
+            items = [self._item(k, e - o) for k, o in enumerate(offset)]
+            if any(item is None for item in items):
+                return -n, total
+            m = self.misfit(items)
+            if not m <= self.threshold:
+                return -n, total
+            total += m
+        return -self.confirm, total
+
+    def _better(self, a, b):
+        """Tell whether score ``a`` beats ``b`` clearly: more sets pass, or by ``margin``."""
+        return a[0] < b[0] or (a[0] == b[0] and a[1] + self.margin <= b[1])
+
+    def _decide_vote(self):
+        """
+        Take the stamp vote's proposal unless the data refute it: True, False or None (wait).
+
+        The proposal and the pairing as it is are compared on the next ``confirm`` sets; it
+        is refuted when its first :data:`MIN_PASS` sets do not all pass or the pairing as
+        it is fits clearly better (:meth:`_better`; stamps that lag by more than half a
+        period), and taken otherwise, also when the array is too still to tell (a lost
+        sample while it turns slowly: the vote is then the only witness).
+        """
+        vote = self._pending
+        reach = self._reach(vote)
+        queues = self._queues
+        if reach <= MAX_VOTE_SHIFT:
+            if min(len(qq) for qq in queues) < reach + self.confirm + 1:
+                return None
+            heads = [qq[0][0] for qq in queues]
+            now = self._fit(self._offset, max(h + o for h, o in zip(heads, self._offset)))
+            new = self._fit(vote, max(h + o for h, o in zip(heads, vote)))
+        self._pending = None
+        if reach > MAX_VOTE_SHIFT or -new[0] < MIN_PASS or self._better(now, new):
+            self._refuted.append(vote)
+            return False
+        self._offset = vote
+        self.realigned += 1
+        return True
+
+    def _repair(self):
+        """
+        Decide a failed set: True (offsets changed), False (drop it) or None (wait).
+
+        Waits until every stream has queued the samples the candidate pairings need.  After
+        a failure no candidate explains, the next 1, 3, 7 .. 64 failing sets are dropped
+        without a search (a shift beyond ``max_shift`` waits for the stamp vote).
+        """
+        if self._skip:
+            self._skip -= 1
+            return False
+        queues = self._queues
+        candidates = list(self._candidates())
+        ahead = max([self.max_shift] + [d for j, d, _ in candidates if j == -1])
+        if min(len(qq) for qq in queues) < ahead + self.confirm + 1:
+            return None
+        heads = [qq[0][0] for qq in queues]
+        fits = []
+        for j, delta, o in candidates:
+            if delta == 0:              # the sets after the failed one
+                first = heads[0] + o[0] + 1
+            elif j >= 0:                # the shifted stream's samples from its head on
+                first = heads[j] + o[j]
+            else:                       # every stream's samples from its head on
+                first = max(h + x for h, x in zip(heads, o))
+            fits.append((self._fit(o, first), delta, o))
+        fits.sort(key=lambda f: f[0])
+        (best, delta, o), second = fits[0], fits[1][0]
+        if delta == 0 and -best[0] >= MIN_PASS:
+            return False                # the pairing holds: this set alone is bad
+        if not (-best[0] >= MIN_PASS and self._better(best, second)):
+            if not self._backoff:
+                # a longer slip: vote afresh on the samples from now on (stamps are late,
+                # not shifted: after ~10 samples per stream the majority is the new offset)
+                for h in self._hist:
+                    h.clear()
+                self._since_align = 0
+            self._skip = self._backoff
+            self._backoff = min(64, 2 * self._backoff + 1)
+            return False
+        self._offset = o
+        self.repaired += 1
+        return True

@@ -1,0 +1,168 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+A fitted model for live correction: :class:`Calibration`.
+
+Written to and read from the calibration file (docs/design.md §4, :mod:`magcal_ros.io`),
+used by the corrector node and :class:`magcal_ros.core.live.corrector.LiveCorrector`.  Paper 004's
+decomposition of the correction into the intrinsic matrix and the rotation into sensor 1's
+frame (docs/papers.md#paper-004, eq. 5 and 14) is :meth:`Calibration.intrinsic_and_rotation`.
+"""
+from magcal_ros.core import effects as fx
+import numpy as np
+
+
+class Calibration:
+    """
+    A fitted model for live correction.
+
+    Parameters
+    ----------
+    model : Model
+    params : numpy.ndarray
+        (P,) parameter vector.
+    stderr : numpy.ndarray, optional
+        (P,) standard uncertainties.
+    sigma_nt : numpy.ndarray, optional
+        (S,) per-sensor noise in nT.
+
+    """
+
+    def __init__(self, model, params, stderr=None, sigma_nt=None):
+        self.model = model
+        self.params = np.asarray(params, float)
+        self.stderr = np.zeros_like(self.params) if stderr is None else np.asarray(stderr)
+        self.sigma_nt = (np.full(model.n_sensors, np.nan) if sigma_nt is None
+                         else np.asarray(sigma_nt, float))
+        #: (K, K) covariance of the array-wide parameters (site gradient), when known
+        self.array_covariance = None
+        #: frame of the site gradient: the attitude's world frame, or the field-aligned
+        #: frame of a fit without attitude (core.site_gradient.FIELD_ALIGNED)
+        self.site_frame = 'world'
+        # A calibration is immutable: precompute what every correction needs
+        self._a_inv = [np.linalg.inv(model.matrix(j, self.params))
+                       for j in range(1, model.n_sensors + 1)]
+
+    @property
+    def n_sensors(self):
+        """Return the number of sensors."""
+        return self.model.n_sensors
+
+    def matrix(self, j):
+        """(3, 3) forward linear map A_j of sensor j."""
+        return self.model.matrix(j, self.params)
+
+    def correction_matrix(self, j):
+        """(3, 3) A_j^-1: corrected = A_j^-1 (raw - offset - driven)."""
+        return self._a_inv[j - 1].copy()
+
+    def offset(self, j):
+        """
+        Return the (3,) nT constant offset of sensor j.
+
+        The sum of its constant additive effects (``Effect.constant``, the offset); zero if
+        the model has none.
+        """
+        out = np.zeros(3)
+        ctx = fx.SensorContext(t=np.zeros(1))
+        for eff, sl in zip(self.model.effects[j - 1], self.model.slices[j - 1]):
+            if eff.kind != 'linear' and eff.constant:
+                out = out + eff.contribution(self.params[sl], ctx, np.zeros((1, 3)))[0]
+        return out
+
+    def intrinsic_and_rotation(self, j):
+        """
+        (C^-1 (3, 3) upper triangular, R (3, 3)) with A_j^-1 = R C^-1 (paper 004 eq. 5, 14).
+
+        R takes sensor j's corrected field into sensor 1's frame (identity for sensor 1).
+        """
+        u, q = fx.rq_positive(self.matrix(j))
+        return np.linalg.inv(u), q.T
+
+    def site_gradient(self):
+        """
+        (G_w (3, 3), stderr (3, 3)) nT/m, world frame, or None without the effect.
+
+        The standard uncertainty of gzz = -gxx - gyy needs the covariance of the fit
+        (``array_covariance``); without it that entry is nan.
+        """
+        from magcal_ros.core.geometry.tensor import gradient_from_fit
+        cov = np.diag(self.stderr ** 2)
+        cols = self.model.array_cols
+        if self.array_covariance is not None:
+            cov[np.ix_(cols, cols)] = self.array_covariance
+        out = gradient_from_fit(self.model, self.params, cov)
+        if out is None:
+            return None
+        se = out[1]
+        if self.array_covariance is None:
+            se[2, 2] = np.nan
+        return out[0], se
+
+    def array_shift(self, j, ctx):
+        """
+        (N, 3) nT modelled field at sensor j minus the centre field (site gradient).
+
+        ``ctx.attitude`` (N, 3, 3) is needed; zero without array-wide effects.
+        """
+        if not self.model.array_effects:
+            return np.zeros((len(ctx.t), 3))
+        return self.model.array_shift(j, self.params, ctx)
+
+    def driven_effects(self, j):
+        """
+        Return the labels of the additive effects of sensor j that are not constant.
+
+        They are evaluated per sample, from the signals they declare (temperature, aux, ...).
+        """
+        return [e.label for e in self.model.effects[j - 1]
+                if e.kind != 'linear' and not e.constant]
+
+    def signals(self, j):
+        """Driving signals the effects of sensor j read (``Effect.signals``), in order."""
+        out = []
+        for eff in self.model.effects[j - 1]:
+            out.extend(s for s in eff.signals if s not in out)
+        return out
+
+    def correct(self, j, raw, ctx=None):
+        """
+        Corrected field of sensor j in the array frame.
+
+        Parameters
+        ----------
+        j : int
+            Sensor, 1-based.
+        raw : numpy.ndarray
+            (N, 3) or (3,) raw reading in nT.
+        ctx : SensorContext, optional
+            Driving signals; required when the model has driven effects.
+
+        """
+        raw = np.asarray(raw, float)
+        one = raw.ndim == 1
+        raw2 = raw[None] if one else raw
+        if ctx is None:
+            if self.driven_effects(j):
+                raise ValueError(f'sensor {j} has driven effects {self.driven_effects(j)}: '
+                                 'pass their signals in ctx')
+            ctx = fx.SensorContext(t=np.zeros(len(raw2)))
+        out = self.model.correct(j, self.params, raw2, ctx, a_inv=self._a_inv[j - 1])
+        return out[0] if one else out
+
+    def correct_dataset(self, data):
+        """(S, N, 3) nT corrected readings of every sensor of a Dataset."""
+        return np.stack([self.correct(j, data.raw[j - 1], data.context(j))
+                         for j in range(1, self.n_sensors + 1)])

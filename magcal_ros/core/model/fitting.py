@@ -1,0 +1,748 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The maximum-likelihood fit of a :class:`magcal_ros.core.model.Model` and its result.
+
+:func:`fit` estimates the parameters from rotation data in a uniform field:
+
+1. closed-form start (paper 004 section 3, docs/papers.md#paper-004): ellipsoid fit +
+   Cholesky per sensor (eq. 8-13), orthogonal Procrustes into sensor 1's frame (eq. 14):
+   :func:`initial_params`;
+2. maximum-likelihood refinement of all sensors jointly: the noise is modelled on the raw
+   readings, raw_jk = f_j(B_k) + e_jk, e ~ N(0, sigma_j^2 I), with the unknown field B_k of
+   epoch k constrained to the reference magnitude |B_k| = F_k and eliminated by variable
+   projection (:mod:`magcal_ros.core.model.engine`), solved by Levenberg-Marquardt
+   (:mod:`magcal_ros.core.model.solvers`) or ``scipy.optimize.least_squares``;
+3. the noise levels re-estimated from the residuals, and the parameter covariance from the
+   projected Jacobian at the solution (the Cramer-Rao bound).
+
+:class:`FitResult` is immutable; its per-epoch arrays (corrected readings, residuals, the
+profiled field) are computed from the parameters on first access and then kept.
+"""
+from dataclasses import dataclass, field
+from functools import cached_property
+
+from magcal_ros.core.data.magnitude import reference_magnitude
+from magcal_ros.core.data.noise import mad_sd
+from magcal_ros.core.model.calibration import Calibration
+from magcal_ros.core.model.engine import ProfiledProblem
+from magcal_ros.core.model.notes import Note
+from magcal_ros.core.model.solvers import (covariance_from_jacobian, covariance_from_normal,
+                                           levenberg_marquardt, resolves_covariance,
+                                           single_threaded_blas, stderr_and_correlation)
+from magcal_ros.core.model.spec import Model
+from magcal_ros.core.papers.ellipsoid import fit_ellipsoid, procrustes_rotation
+import numpy as np
+
+
+class DegenerateDataError(ValueError):
+    """The data cannot determine the model: the message names what is missing."""
+
+
+# -- the result -----------------------------------------------------------------------------
+
+@dataclass(frozen=True, eq=False)
+class FitResult:
+    """
+    Outcome of :func:`fit` (attributes that end in _nt are in nT); immutable.
+
+    The per-epoch arrays (``corrected_nt``, ``residual_nt``, ``scalar_residual_nt``,
+    ``vector_residual_nt``, ``field_nt``, ``downweighted``) are computed from ``params`` on
+    all epochs of the fitted data when first read, and then kept: a fit of 10^6 epochs does
+    not hold the arrays nobody reads (four sensors: 96 MB each (S, N, 3) array).
+
+    Attributes
+    ----------
+    model : Model
+    params : numpy.ndarray
+        (P,) estimated parameters (units in ``model.param_info()``).
+    stderr : numpy.ndarray
+        (P,) standard uncertainties from the projected Jacobian (NaN: not computed, a fit
+        with ``covariance=False``).
+    covariance, correlation : numpy.ndarray
+        (P, P) (NaN and the identity when not computed).
+    sigma_nt : numpy.ndarray
+        (S,) per-sensor noise standard deviation estimated from the residuals, nT.
+    field_magnitude_nt : numpy.ndarray
+        (N,) reference magnitude used, nT.
+    success : bool
+        The optimiser converged.
+    status : int
+    message : str
+    nfev : int
+        Residual evaluations of the optimiser.
+    n_fit_samples : int
+        Epochs the parameters were fitted on (at most ``max_fit_samples``).
+    chi2 : float
+        Sum of squared normalised residuals at the solution, on the fitted epochs.
+    n_obs : int
+        Observations net of the profiled field: n_fit_samples sum(3G - 2) over the groups.
+    warnings : tuple of Note
+    identifiability : dict
+        :mod:`magcal_ros.core.model.identifiability` report.
+    initial_params : numpy.ndarray or None
+        (P,) the start.
+    contexts : list of SensorContext
+        (S,) the driving signals of all epochs.
+    robust : bool
+    f_scale : float
+    raw_nt : numpy.ndarray
+        (S, N, 3) the raw readings fitted, nT (the data's own array, not a copy).
+
+    """
+
+    model: object
+    params: np.ndarray
+    stderr: np.ndarray
+    covariance: np.ndarray
+    correlation: np.ndarray
+    sigma_nt: np.ndarray
+    field_magnitude_nt: np.ndarray
+    success: bool
+    status: int
+    message: str
+    nfev: int
+    n_fit_samples: int
+    chi2: float
+    n_obs: int
+    warnings: tuple = ()
+    identifiability: dict = field(default_factory=dict)
+    initial_params: np.ndarray | None = None
+    contexts: list | None = None
+    robust: bool = False
+    f_scale: float = 3.0
+    raw_nt: np.ndarray | None = field(default=None, repr=False)
+
+    # -- per-epoch arrays, computed on first access ---------------------------------------
+
+    @property
+    def n_samples(self):
+        """Return the number of epochs N of the fitted data."""
+        return int(self.raw_nt.shape[1])
+
+    def _profile(self):
+        return profile_residuals(self.model, self.params, self.raw_nt,
+                                 self.field_magnitude_nt, self.sigma_nt, self.contexts,
+                                 robust=self.robust, f_scale=self.f_scale)
+
+    @cached_property
+    def field_nt(self):
+        """(N, 3) estimated true field per epoch (array frame), nT."""
+        return self._profile()[0]
+
+    @cached_property
+    def residual_nt(self):
+        """(S, N, 3) raw reading minus model prediction, nT."""
+        field_nt, residual = self._profile()
+        self.__dict__.setdefault('field_nt', field_nt)     # the same computation: keep it
+        return residual
+
+    @cached_property
+    def corrected_nt(self):
+        """(S, N, 3) corrected readings in the array frame, nT."""
+        return corrected_readings(self.model, self.params, self.raw_nt, self.contexts)
+
+    def _centred(self):
+        corrected = self.__dict__.get('corrected_nt')
+        if corrected is None:
+            corrected = corrected_readings(self.model, self.params, self.raw_nt, self.contexts)
+        return centred_readings(self.model, self.params, corrected, self.contexts)
+
+    @cached_property
+    def scalar_residual_nt(self):
+        """(S, N) |corrected| - reference magnitude, nT (site gradient shift removed)."""
+        return np.linalg.norm(self._centred(), axis=2) - self.field_magnitude_nt[None]
+
+    @cached_property
+    def vector_residual_nt(self):
+        """(S, N, 3) corrected_j - corrected_1, nT (zero for sensor 1)."""
+        centred = self._centred()
+        return centred - centred[:1]
+
+    @cached_property
+    def downweighted(self):
+        """(S,) number of sensor samples the robust loss down-weighted (0 if not robust)."""
+        if not self.robust:
+            return np.zeros(self.model.n_sensors, int)
+        residual = self.__dict__.get('residual_nt')
+        if residual is None:
+            residual = self._profile()[1]
+        return downweighted_counts(residual, self.sigma_nt, self.f_scale)
+
+    # -- summaries ------------------------------------------------------------------------
+
+    @property
+    def n_params(self):
+        """Return the number of free parameters."""
+        return self.model.n_params
+
+    @property
+    def scalar_rms_nt(self):
+        """{sensor: RMS of the scalar residual} in nT."""
+        return {j + 1: float(np.sqrt(np.mean(r ** 2)))
+                for j, r in enumerate(self.scalar_residual_nt)}
+
+    @property
+    def vector_rms_nt(self):
+        """{sensor j > 1: per-component RMS of corrected_j - corrected_1} in nT."""
+        vector = self.__dict__.get('vector_residual_nt')
+        if vector is None:                  # not kept: the RMS needs only a passing copy
+            centred = self._centred()
+            vector = centred - centred[:1]
+        return {j + 1: float(np.sqrt(np.mean(vector[j] ** 2)))
+                for j in range(1, self.model.n_sensors)}
+
+    @property
+    def calibration(self):
+        """Return the :class:`Calibration` (model + parameters) for live correction."""
+        cal = Calibration(self.model, self.params, self.stderr, self.sigma_nt)
+        cols = self.model.array_cols
+        if len(cols):
+            cal.array_covariance = self.covariance[np.ix_(cols, cols)].copy()
+            cal.site_frame = self.identifiability.get('site_gradient_frame', cal.site_frame)
+        return cal
+
+    def param_table(self):
+        """Return a list of dicts: sensor, effect, name, unit, value, stderr."""
+        return [{'sensor': s, 'effect': e, 'name': n, 'unit': u, 'value': float(v),
+                 'stderr': float(se)}
+                for (s, e, n, u), v, se in zip(self.model.param_info(), self.params,
+                                               self.stderr)]
+
+    def summary(self):
+        """Short text report."""
+        lines = [f'model: {",".join(self.model.spec())}  ({self.n_params} parameters, '
+                 f'{self.n_fit_samples} epochs fitted)',
+                 f'converged: {self.success} ({self.message})']
+        vector_rms = self.vector_rms_nt
+        for j, r in self.scalar_rms_nt.items():
+            v = vector_rms.get(j)
+            lines.append(f'  sensor {j}: scalar RMS {r:8.2f} nT, sigma {self.sigma_nt[j-1]:.2f} nT'
+                         + (f', vector RMS vs sensor 1 {v:8.2f} nT' if v is not None else ''))
+        for i, w in enumerate(self.warnings, 1):
+            lines.append(f'[{i}] {w}')
+        return '\n'.join(lines)
+
+
+# -- the fit --------------------------------------------------------------------------------
+
+def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=False,
+        priors=None, sigma_nt=None, on_degenerate='raise', max_fit_samples=20000,
+        init=None, max_nfev=200, check_identifiability=True, solver='lm', covariance=True,
+        ftol=None):
+    """
+    Fit ``model`` to rotation data in a uniform field by maximum likelihood.
+
+    Parameters
+    ----------
+    data : Dataset
+        (S sensors, N epochs) raw readings in nT.
+    model : Model or str
+        Model or spec string ('base', 'base,temperature@2', ...).
+    field_nt : float or numpy.ndarray, optional
+        Reference magnitude in nT, scalar or (N,); default ``data.ref_total``.
+    robust : bool
+        Use the soft-L1 loss (outlier spikes).
+    f_scale : float
+        Scale of the soft-L1 loss, in units of sigma.
+    constrained : bool
+        Constrained mode for partial attitude coverage: effects get the priors they declare
+        (``Effect.prior``: scale 1 +- 0.02, non-orthogonality 0 +- 0.02 rad, misalignment
+        0 +- 0.05 rad, soft iron identity +- 0.02) and the start is A = I.
+    priors : dict, optional
+        {effect name or label: (mean or None for default, sd)} overriding the priors.
+    sigma_nt : float or numpy.ndarray, optional
+        Fixed per-sensor noise (nT); default: estimated from the residuals.
+    on_degenerate : {'raise', 'flag'}
+        Refuse (DegenerateDataError) or flag (warnings) data that cannot determine the model.
+    max_fit_samples : int or None
+        Fit on at most this many epochs, evenly spaced; residuals are reported for all.
+    init : numpy.ndarray, optional
+        (P,) starting parameters (default: closed-form start).
+    max_nfev : int
+        Most residual evaluations of the optimiser per sensor group and noise pass.
+    ftol : float, optional
+        Stop when an iteration lowers the cost by less than ``ftol`` times the cost (the
+        chi-square by less than ``ftol`` chi-square).  Default: the solver's own (1e-12 for
+        'lm', to the numerical limit; 1e-8 for 'scipy').  A caller that needs chi-square
+        only to a given precision (the diagnosis' refits: a tenth of a unit) passes that
+        precision divided by chi-square.
+    check_identifiability : bool
+        Check the attitude coverage and the Jacobian's conditioning
+        (:mod:`magcal_ros.core.model.identifiability`); off for warm-started refits.
+    solver : {'lm', 'scipy'}
+        'lm': Levenberg-Marquardt on the normal equations (J^T J is P x P; about 20x faster
+        than an SVD of the tall Jacobian, see bench/); 'scipy': scipy.optimize.least_squares
+        (trust-region reflective), the reference implementation.  Both minimise the same
+        cost (test_model_ml.py checks they agree).
+    covariance : bool
+        Compute the covariance (one more Jacobian at the solution); False (a caller that
+        reads only the parameters and the residuals, e.g. the diagnosis' refits): stderr and
+        covariance NaN; needs ``check_identifiability=False`` (the check reads it).
+
+    Returns
+    -------
+    FitResult
+
+    """
+    if on_degenerate not in ('raise', 'flag'):
+        raise ValueError("on_degenerate must be 'raise' or 'flag'")
+    if solver not in ('lm', 'scipy'):
+        raise ValueError(f"solver must be 'lm' or 'scipy', got {solver!r}")
+    if check_identifiability and not covariance:
+        raise ValueError('check_identifiability reads the covariance: pass '
+                         'check_identifiability=False with covariance=False')
+    # one BLAS thread: threads only contend on small shared machines (bench/)
+    with single_threaded_blas():
+        model = _model_for(data, model)
+        notes = []
+
+        def degenerate(msg):
+            if on_degenerate == 'raise':
+                raise DegenerateDataError(msg)
+            notes.append(Note(msg, 'degenerate'))
+
+        f_all = reference_magnitude(data, field_nt)
+        contexts_all = [data.context(j) for j in range(1, data.n_sensors + 1)]
+        ident = _check_data(data, model, contexts_all, constrained, check_identifiability,
+                            degenerate)
+        idx = fit_epochs(data.n_samples, max_fit_samples)
+        if model.drops:
+            # drop(t0, t1) terms: the fit leaves those windows out
+            idx = idx[model.fit_mask(data.t[idx])]
+            if len(idx) < 10:
+                raise ValueError(f'the drop() windows {model.drops} leave {len(idx)} samples '
+                                 'to fit: drop less')
+        raw, f = data.raw[:, idx], f_all[idx]
+        contexts = [c.subset(idx) for c in contexts_all]
+        if init is None:
+            p0 = _closed_form_start(raw, f, model, constrained, ident, degenerate)
+        else:
+            p0 = np.asarray(init, float).copy()
+        if model.array_effects and contexts_all[0].attitude is not None:
+            # the attitude must agree with the field direction (closed-form corrected sensor 1)
+            from magcal_ros.core.geometry.attitude import check_against_field
+            check_against_field(contexts_all[0].attitude,
+                                model.correct(1, p0, data.raw[0], contexts_all[0]), data.t)
+        prior_list = priors_for(model, priors or {}, constrained)
+        solve = _Solve(model, raw, f, contexts, prior_list, robust, f_scale, solver, max_nfev,
+                       ftol)
+        p, sigma, sol = solve.run(p0, sigma_nt)
+        cov, chi2, n_obs = solve.covariance(p, sigma, with_jacobian=covariance)
+        stderr, corr = stderr_and_correlation(cov)
+        if check_identifiability:
+            from magcal_ros.core.model import identifiability as idf
+            jac_rep = idf.jacobian_report(model, cov, corr, constrained=constrained)
+            ident.update(jac_rep)
+            for prob_msg in jac_rep['problems']:
+                degenerate(prob_msg)
+        if not sol.success:
+            notes.append(Note(f'the optimiser did not converge: {sol.message}', 'not_converged'))
+    return FitResult(
+        model=model, params=p, stderr=stderr, covariance=cov, correlation=corr,
+        sigma_nt=sigma, field_magnitude_nt=f_all, success=sol.success, status=sol.status,
+        message=sol.message, nfev=sol.nfev, n_fit_samples=len(idx), chi2=chi2, n_obs=n_obs,
+        warnings=tuple(notes), identifiability=ident, initial_params=p0,
+        contexts=contexts_all, robust=bool(robust), f_scale=float(f_scale), raw_nt=data.raw)
+
+
+def _model_for(data, model):
+    """Return ``model`` (a Model, or a spec string built here) checked against ``data``."""
+    if isinstance(model, str):
+        model = Model.from_spec(model, data.n_sensors)
+    if model.n_sensors != data.n_sensors:
+        raise ValueError(f'model has {model.n_sensors} sensors, data have {data.n_sensors}')
+    return model
+
+
+def _check_data(data, model, contexts, constrained, check_identifiability, degenerate):
+    """
+    Refuse or flag data that cannot determine ``model``; return the identifiability report.
+
+    Non-finite readings and too few epochs are errors; what the effects cannot be excited
+    by (``Effect.check``) and a poor attitude coverage go to ``degenerate`` (raise or
+    flag).  Prepares the model's reference values on ``contexts``.
+    """
+    raw = data.raw
+    if not np.all(np.isfinite(raw)):
+        bad = np.unique(np.nonzero(~np.isfinite(raw))[0]) + 1
+        raise ValueError(f'non-finite raw readings for sensor(s) {bad.tolist()}: drop those rows')
+    model.prepare(contexts)
+    for why in model.check(contexts):
+        degenerate(why)
+    n_min = max(12, int(np.ceil(2 * model.n_params / max(1, data.n_sensors))))
+    if data.n_samples < n_min:
+        raise DegenerateDataError(f'too few samples: {data.n_samples} epochs for '
+                                  f'{model.n_params} parameters; collect at least {n_min}')
+    ident = {}
+    if check_identifiability:
+        from magcal_ros.core.model import identifiability as idf
+        ident = idf.check_coverage(raw)
+        problems = ident['problems']
+        if constrained:
+            # the priors stand in for the attitudes a partial or single-axis coverage never
+            # saw; they cannot make up for a sensor that did not turn or is stuck
+            excused = [j for j, v in ident['sensors'].items()
+                       if v['status'] in ('partial', 'single axis')]
+            problems = [p for p in problems
+                        if not any(p.startswith(f'sensor {j}:') for j in excused)]
+        if problems:
+            degenerate(problems[0])
+    return ident
+
+
+def fit_epochs(n, max_fit_samples):
+    """Return the (M,) indices of the epochs fitted: all, or ``max_fit_samples`` evenly spaced."""
+    if max_fit_samples and n > max_fit_samples:
+        return np.unique(np.linspace(0, n - 1, max_fit_samples).round().astype(int))
+    return np.arange(n)
+
+
+def _closed_form_start(raw, f, model, constrained, ident, degenerate):
+    """Return the closed-form start; flagged degenerate data start from ideal sensors."""
+    try:
+        return initial_params(raw, f, model, constrained=constrained)
+    except ValueError as exc:
+        if constrained:
+            raise
+        degenerate(f'{exc}. {ident.get("summary", "")}'.strip())
+        # flagged: start from ideal sensors and the sphere-fit offsets instead
+        return initial_params(raw, f, model, constrained=True)
+
+
+class _Solve:
+    """The ML problem of each sensor group on the fitted epochs, and its noise levels."""
+
+    def __init__(self, model, raw, f, contexts, prior_list, robust, f_scale, solver,
+                 max_nfev, ftol=None):
+        self.model, self.raw, self.f, self.contexts = model, raw, f, contexts
+        # the solvers' own default tolerance unless one is given
+        self.ftol_kw = {} if ftol is None else {'ftol': ftol}
+        self.prior_list = prior_list
+        self.robust, self.f_scale = robust, f_scale
+        self.solver, self.max_nfev = solver, max_nfev
+
+    def problem(self, grp, sigma, p):
+        """Return the :class:`ProfiledProblem` of sensor group ``grp`` at ``p``."""
+        m = self.model
+        pr = [t for t in self.prior_list if any(
+            m.sensor_slices[j - 1].start <= t[0] < m.sensor_slices[j - 1].stop for j in grp)]
+        return ProfiledProblem(m, self.raw, self.contexts, self.f, grp, sigma, pr,
+                               self.robust, self.f_scale, p_full=p)
+
+    def run(self, p0, sigma_nt):
+        """
+        Return (p, sigma, solution): ML parameters, noise levels and the last solution.
+
+        With ``sigma_nt`` given the noise is fixed (one pass); otherwise it starts from a
+        robust estimate of the closed-form residuals and is re-estimated from the residuals
+        until it changes by less than 5 % (at most 3 passes).
+        """
+        model = self.model
+        fixed_sigma = sigma_nt is not None
+        if fixed_sigma:
+            sigma = np.broadcast_to(np.asarray(sigma_nt, float), (model.n_sensors,)).copy()
+        else:
+            sigma = self.start_sigma(p0)
+        p = p0.copy()
+        for _ in range(1 if fixed_sigma else 3):
+            p, problems, sol = self.solve_groups(p, sigma)
+            if fixed_sigma:
+                break
+            new_sigma = self.residual_sigma(p, sigma, problems)
+            converged = np.all(np.abs(new_sigma / sigma - 1) < 0.05)
+            sigma = np.maximum(new_sigma, 1e-6)
+            if converged:
+                break
+        return p, sigma, sol
+
+    def start_sigma(self, p):
+        """Return (S,) a robust noise estimate (MAD) of the scalar residual at ``p``, nT."""
+        model = self.model
+        sigma = np.empty(model.n_sensors)
+        for j in range(1, model.n_sensors + 1):
+            corr = model.correct(j, p, self.raw[j - 1], self.contexts[j - 1])
+            sigma[j - 1] = max(mad_sd(np.linalg.norm(corr, axis=1) - self.f), 1e-3)
+        return sigma
+
+    def solve_groups(self, p, sigma):
+        """Solve each sensor group at fixed ``sigma``; return (p, problems, summary)."""
+        p = p.copy()
+        problems = []
+        nfev, success, status, message = 0, True, 0, ''
+        for grp in self.model.sensor_groups:
+            prob = self.problem(grp, sigma, p)
+            x0 = p[prob.cols]
+            if self.solver == 'scipy':
+                from scipy.optimize import least_squares     # the reference solver only
+                sol = least_squares(prob.residuals, x0, jac=prob.jacobian, x_scale='jac',
+                                    loss='soft_l1' if self.robust else 'linear',
+                                    f_scale=self.f_scale, max_nfev=self.max_nfev, method='trf',
+                                    **self.ftol_kw)
+            else:
+                # squares loss: the normal equations block by block, without the tall
+                # projected Jacobian (ProfiledProblem.normal_equations); the soft-L1 loss
+                # weights its rows and needs it
+                sol = levenberg_marquardt(prob.residuals, prob.jacobian, x0,
+                                          robust=self.robust, f_scale=self.f_scale,
+                                          max_nfev=self.max_nfev,
+                                          normal=None if self.robust else prob.normal_equations,
+                                          **self.ftol_kw)
+            p[prob.cols] = sol.x
+            problems.append(prob)
+            nfev += sol.nfev
+            success &= bool(sol.success)
+            status, message = sol.status, sol.message
+        return p, problems, _Summary(success, status, message, nfev)
+
+    def residual_sigma(self, p, sigma, problems):
+        """Return (S,) the noise levels re-estimated from the raw residuals at ``p``, nT."""
+        new_sigma = sigma.copy()
+        for prob in problems:
+            _, _, _, res = prob.evaluate(p[prob.cols])
+            g = len(prob.sensors)
+            dof_per = max(1.0, (3 * g - 2) / g * res.shape[0] - len(prob.cols) / g)
+            for gi, j in enumerate(prob.sensors):
+                r = res[:, gi] * sigma[j - 1]
+                if self.robust:
+                    new_sigma[j - 1] = mad_sd(r) * np.sqrt((3 * g - 2) / (3 * g))
+                else:
+                    new_sigma[j - 1] = np.sqrt(np.sum(r ** 2) / dof_per)
+        return new_sigma
+
+    def covariance(self, p, sigma, with_jacobian=True):
+        """
+        Return ((P, P) covariance, chi-square, n_obs) from the projected J^T J at p.
+
+        ``with_jacobian`` False: the covariance is not computed (NaN).
+        """
+        n_p = self.model.n_params
+        cov = np.zeros((n_p, n_p)) if with_jacobian else np.full((n_p, n_p), np.nan)
+        chi2 = 0.0
+        n_obs = 0
+        for grp in self.model.sensor_groups:
+            prob = self.problem(grp, sigma, p)
+            x = p[prob.cols]
+            r = prob.residuals(x)
+            chi2 += float(np.sum(r ** 2))
+            n_obs += (3 * len(grp) - 2) * self.raw.shape[1]
+            if not with_jacobian:
+                continue
+            # J^T J of the projected Jacobian, formed block by block (the same matrix for
+            # the robust fit and either solver: the loss weights only the steps); a nearly
+            # undetermined problem takes the dense Jacobian, whose rounding resolves the
+            # undetermined directions (resolves_covariance)
+            a = prob.normal_equations(x)[0]
+            cov[np.ix_(prob.cols, prob.cols)] = (
+                covariance_from_normal(a) if resolves_covariance(a)
+                else covariance_from_jacobian(prob.jacobian(x)))
+        return cov, chi2, n_obs
+
+
+@dataclass(frozen=True)
+class _Summary:
+    """What the optimiser of the last group said (all groups: success and evaluations)."""
+
+    success: bool
+    status: int
+    message: str
+    nfev: int
+
+
+def priors_for(model, spec, constrained=False):
+    """
+    Prior list [(index, mean, sd)] from a {effect name or label: (mean, sd)} spec.
+
+    With ``constrained`` every effect that declares an ``Effect.prior`` gets it, unless
+    ``spec`` overrides it; a mean of None is the effect's default parameter value.
+    """
+    out = []
+    default = model.default_params()
+    for j, row in enumerate(model.effects):
+        for eff, sl in zip(row, model.slices[j]):
+            prior = spec.get(eff.label, spec.get(eff.name,
+                                                 eff.prior if constrained else None))
+            if prior is not None:
+                mean, sd = prior
+                for i in range(sl.start, sl.stop):
+                    out.append((i, default[i] if mean is None else mean, sd))
+    return out
+
+
+def initial_params(raw, field_nt, model, constrained=False):
+    """
+    Closed-form starting values (paper 004 section 3).
+
+    Per sensor: ellipsoid fit + Cholesky (eq. 8-13); Procrustes rotation of each corrected
+    sensor onto sensor 1 (eq. 14); A_j = C_j R_j^T.  In constrained mode (partial attitude
+    coverage, where the ellipsoid is ill-determined) A = I and only the offset is solved,
+    from the linear sphere fit |m - o|^2 = F^2.
+
+    Parameters
+    ----------
+    raw : numpy.ndarray
+        (S, N, 3) raw readings, nT.
+    field_nt : numpy.ndarray
+        (N,) reference magnitude, nT.
+    model : Model
+        The model whose parameters are started.
+    constrained : bool
+        A = I and the offset from the linear sphere fit only.
+
+    Returns
+    -------
+    numpy.ndarray
+        (P,) starting parameters.
+
+    """
+    s = raw.shape[0]
+    f0 = float(np.mean(field_nt))
+    p = model.default_params()
+    corrected = []
+    mats = []
+    for j in range(1, s + 1):
+        m = raw[j - 1]
+        if constrained:
+            # |m|^2 = 2 m.o + (F^2 - |o|^2): linear in (o, c)
+            design = np.column_stack([2 * m, np.ones(len(m))])
+            sol, *_ = np.linalg.lstsq(design, (m ** 2).sum(1) - field_nt ** 2 + f0 ** 2,
+                                      rcond=None)
+            c_inv, o = np.eye(3), sol[:3]
+        else:
+            ell = fit_ellipsoid(m, f0)
+            c_inv, o = ell.c_inv, ell.b
+        corrected.append((m - o) @ c_inv.T)
+        mats.append((c_inv, o))
+    for j in range(1, s + 1):
+        c_inv, o = mats[j - 1]
+        rot = np.eye(3)
+        if j > 1 and model.frame_rotation(j):
+            rot = procrustes_rotation(corrected[0], corrected[j - 1])       # eq. 14
+        a = np.linalg.inv(c_inv) @ rot.T
+        p = model.params_from_linear(j, a, o, p)
+    return p
+
+
+# -- residuals on all epochs ----------------------------------------------------------------
+
+def profile_residuals(model, p, raw, f, sigma, contexts, robust=False, f_scale=3.0,
+                      chunk=200000, field0=None):
+    """
+    Return the profiled field and the raw-space residual of ``p`` (chunked for large N).
+
+    Parameters
+    ----------
+    model : Model
+        The model, prepared.
+    p : numpy.ndarray
+        (P,) parameters.
+    raw : numpy.ndarray
+        (S, N, 3) raw readings, nT.
+    f : numpy.ndarray
+        (N,) reference magnitude, nT.
+    sigma : numpy.ndarray
+        (S,) noise levels, nT (weights of the joint field profile).
+    contexts : list of SensorContext
+        (S,) driving signals on the same epochs.
+    robust, f_scale : bool, float
+        Profile with the soft-L1 weights.
+    chunk : int
+        Epochs evaluated at a time (memory of the Jacobian-free evaluation).
+    field0 : numpy.ndarray, optional
+        (N, 3) nT field to start the profile from (joint models).
+
+    Returns
+    -------
+    field : numpy.ndarray
+        (N, 3) profiled field, nT (joint: shared; independent sensors: the last one's).
+    residual : numpy.ndarray
+        (S, N, 3) raw reading minus prediction, nT.
+
+    """
+    s, n = raw.shape[0], raw.shape[1]
+    field = np.zeros((n, 3))
+    residual = np.zeros((s, n, 3))
+    for start in range(0, n, chunk):
+        sl = slice(start, min(n, start + chunk))
+        if sl.start == 0 and sl.stop == n:
+            ctx = contexts                      # one chunk: no copies of the signals
+        else:
+            idx = np.arange(sl.start, sl.stop)
+            ctx = [c.subset(idx) for c in contexts]
+        for grp in model.sensor_groups:
+            prob = ProfiledProblem(model, raw[:, sl], ctx, f[sl], grp, sigma, (), robust,
+                                   f_scale, p_full=p,
+                                   field0=field0[sl] if field0 is not None and model.joint
+                                   else None)
+            _, b, _, res = prob.evaluate(p[prob.cols])
+            field[sl] = b
+            for gi, j in enumerate(grp):
+                residual[j - 1, sl] = res[:, gi] * sigma[j - 1]
+    return field, residual
+
+
+def corrected_readings(model, p, raw, contexts):
+    """Return (S, N, 3) the corrected readings of ``raw`` (S, N, 3) in the array frame, nT."""
+    return np.stack([model.correct(j, p, raw[j - 1], contexts[j - 1])
+                     for j in range(1, model.n_sensors + 1)])
+
+
+def centred_readings(model, p, corrected, contexts):
+    """
+    Return (S, N, 3) ``corrected`` minus each sensor's modelled array shift, nT.
+
+    The site shift (site gradient) and the modelled change of the field's magnitude (a
+    ``field`` term, along the corrected reading): what is left is comparable with the
+    reference magnitude.
+    """
+    if not model.array_effects:
+        return corrected
+    # residuals against the centre field: remove each sensor's modelled site shift
+    return corrected - np.stack([model.array_shift(j, p, contexts[j - 1], corrected[j - 1])
+                                 for j in range(1, model.n_sensors + 1)])
+
+
+def downweighted_counts(residual, sigma, f_scale):
+    """Return (S,) the epochs of each sensor with a normalised residual beyond ``f_scale``."""
+    return (np.abs(residual / sigma[:, None, None]) > f_scale).any(axis=2).sum(axis=1)
+
+
+def evaluate(model, p, data, f, sigma, contexts=None, robust=False, f_scale=3.0,
+             chunk=200000, field0=None):
+    """
+    Return the residuals of parameters ``p`` on all epochs of ``data`` (chunked for large N).
+
+    ``field0`` (N, 3) nT, optional: the profiled field of nearby parameters (e.g. the
+    ``field`` of an evaluation of the fit), to start the field profile from (joint models).
+
+    Returns
+    -------
+    dict
+        field (N, 3), corrected (S, N, 3), residual (S, N, 3), scalar (S, N), vector
+        (S, N, 3), all in nT, and downweighted (S,) counts.
+
+    """
+    if contexts is None:
+        contexts = [data.context(j) for j in range(1, data.n_sensors + 1)]
+    field, residual = profile_residuals(model, p, data.raw, f, sigma, contexts, robust,
+                                        f_scale, chunk, field0)
+    corrected = corrected_readings(model, p, data.raw, contexts)
+    centred = centred_readings(model, p, corrected, contexts)
+    scalar = np.linalg.norm(centred, axis=2) - f[None]
+    vector = centred - centred[:1]
+    down = (downweighted_counts(residual, sigma, f_scale) if robust
+            else np.zeros(data.n_sensors, int))
+    return {'field': field, 'corrected': corrected, 'residual': residual, 'scalar': scalar,
+            'vector': vector, 'downweighted': down}

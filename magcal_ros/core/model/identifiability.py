@@ -1,0 +1,336 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Can the data determine the model?  Checks run before and after every solve.
+
+Before: attitude coverage of each sensor (:func:`magcal_ros.core.model.coverage.direction_coverage`
+of the readings about the centre of the sensor's fitted ellipsoid, the hard-iron offset, so
+that an offset several times the field does not squeeze a full rotation into a cone): a
+rotation about a single axis leaves the field directions on one circle, so the linear map is
+not determined along the rotation axis (refusals name that axis in the sensor frame); a
+partial coverage (a cone, as on a ground vehicle) makes scale, non-orthogonality and offset
+strongly correlated.
+
+After: the parameter correlations and the condition number of the correlation matrix from
+the projected Jacobian (the Fisher information at the solution).
+"""
+from magcal_ros.core.model.coverage import direction_coverage
+from magcal_ros.core.papers.ellipsoid import fit_ellipsoid, reading_plane, RING_CV, ring_spread
+import numpy as np
+
+#: smallest direction-scatter eigenvalue of a single-axis rotation (noise and wobble only)
+SINGLE_AXIS_EIG = 3e-4
+#: below this the attitude coverage is partial (about a +-14 deg band or a cap < ~45 deg)
+PARTIAL_EIG = 0.02
+#: directions on a ring (coefficient of variation of their in-plane radius below
+#: :data:`magcal_ros.core.papers.ellipsoid.RING_CV`)
+#: whose spread along the ring's axis is below this fraction of the in-plane spread are a
+#: rotation about that axis with hand wobble (the shared hand-held single-axis recordings:
+#: 0.002-0.011), not a partial coverage (a vehicle tilting +-15 deg: 0.09)
+RING_RATIO = 0.015
+#: the sphere cross-check of the coverage applies where the sphere's relative radial residual
+#: variance is below this multiple of the ellipsoid's (the sphere fits as well as the ellipsoid
+#: up to the 6 extra parameters' share of the noise)
+SPHERE_VAR_FACTOR = 4.0
+#: an ellipsoid whose longest axis exceeds its shortest by more than this is not a
+#: sensor's (real ones: 1.1-1.3) but a fit bent to a partial set of directions (a cap of
+#: 30-55 deg gives 2.3-3.3): its centre is not used
+MAX_AXIS_RATIO = 1.6
+#: readings scattered radially by more than this fraction of the fitted radius (SNR < 4)
+#: fill a cloud rather than lie on a shell: a still sensor's noise, whose "ellipsoid" has
+#: the noise for radius (a Gaussian cloud: 0.42)
+MAX_RADIAL_SCATTER = 0.25
+#: parameter correlations above this make the pair inseparable
+MAX_CORRELATION = 0.995
+#: condition number of the correlation matrix above which the solution is unreliable
+MAX_CONDITION = 1e6
+
+
+def fitted_centre(m):
+    """
+    Fit the readings' ellipsoid; None when the data do not determine it.
+
+    Parameters
+    ----------
+    m : numpy.ndarray
+        (N, 3) raw readings of one sensor, nT.
+
+    Returns
+    -------
+    (numpy.ndarray, float, float) or None
+        Centre (3,) nT (the hard-iron offset, paper 004 eq. 12), the relative noise
+        variance of the readings about the ellipsoid, ``var(radial residual / radius)``,
+        and the ratio of its longest to its shortest axis (1.1-1.3 for real sensors).
+        None when :func:`magcal_ros.core.papers.ellipsoid.fit_ellipsoid` finds the ellipsoid not
+        determined against the noise (the fitted quadric not definite beyond its own
+        uncertainty), or when the readings scatter about it by more than
+        :data:`MAX_RADIAL_SCATTER` of its radius (they fill a cloud, not a shell).  A
+        centre that the ellipsoid bends to (a cap of directions) is caught in
+        :func:`classify_coverage` (axis ratio, cross-check with the sphere's centre).
+
+    """
+    try:
+        ell = fit_ellipsoid(m, 1.0)
+    except (ValueError, np.linalg.LinAlgError):
+        return None
+    if np.std(ell.residual_nt) > MAX_RADIAL_SCATTER:
+        return None             # a cloud of noise (a sensor lying still), not a shell
+    axes = np.linalg.svd(ell.c_inv, compute_uv=False)
+    return ell.b, float(np.var(ell.residual_nt)), float(axes[0] / axes[-1])
+
+
+def _fmt_axis(v):
+    return '(' + ', '.join(f'{0.0 if abs(x) < 0.005 else x:+.2f}' for x in v) + ')'
+
+
+def _single_axis_message(normal, how):
+    return (f'all field directions lie near one plane with normal '
+            f'{_fmt_axis(normal)} ({how}): the data come from a rotation about one axis only, '
+            f'about {_fmt_axis(normal)} in the sensor frame; rotate about another axis too '
+            '(tilt that axis by 45-90 deg and rotate again)')
+
+
+def classify_coverage(m):
+    """
+    Attitude coverage of one sensor's readings, judged about the fitted centre.
+
+    Parameters
+    ----------
+    m : numpy.ndarray
+        (N, 3) raw readings, nT (not all equal).
+
+    Returns
+    -------
+    dict
+        ``status`` ('good', 'partial', 'single axis', 'one attitude'), ``eigenvalues`` (3,)
+        of the direction scatter about the centre, less the scatter that the noise alone
+        gives (the variance of the ellipsoid's relative radial residual), ``normal`` (3,)
+        the missing rotation's axis in the sensor frame, ``cone_half_angle_deg``,
+        ``centre_nt`` (3,) or None, ``message`` (None when good).
+
+    """
+    fitted = fitted_centre(m)
+    noise_eig = 0.0
+    if fitted is not None:
+        centre, noise_eig, axis_ratio = fitted
+        if axis_ratio > MAX_AXIS_RATIO:
+            # no magnetometer is that anisotropic: the ellipsoid bent to a partial set of
+            # directions (a cap) and its centre is not the offset; use the sphere's
+            centre = _sphere_centre(m)
+    else:
+        # no ellipsoid: the raw directions (about the origin) tell whether the sensor
+        # turned at all; readings on one plane (a ring) are a rotation about its normal
+        plane = reading_plane(m)
+        cov = direction_coverage(m)
+        ev = cov.eigenvalues
+        if plane is not None:
+            return {'status': 'single axis', 'eigenvalues': ev, 'normal': plane,
+                    'cone_half_angle_deg': cov.cone_half_angle_deg, 'centre_nt': None,
+                    'message': _single_axis_message(
+                        plane, 'the readings are too flat to fit an ellipsoid')}
+        if ev[1] < SINGLE_AXIS_EIG or ev[2] < PARTIAL_EIG:
+            return {'status': 'one attitude', 'eigenvalues': ev, 'normal': cov.normal,
+                    'cone_half_angle_deg': cov.cone_half_angle_deg, 'centre_nt': None,
+                    'message': None}
+        # the sensor turned, but the ellipsoid is not determined: judge about the centre
+        # of the least-squares sphere (the origin would be arbitrary: with an offset near
+        # the field it lies close to the readings and makes any cap look wide)
+        centre = _sphere_centre(m)
+    out = _judge(m, centre, noise_eig)
+    if out['status'] == 'good' and fitted is not None and axis_ratio <= MAX_AXIS_RATIO:
+        # cross-check with the least-squares sphere's centre (4 parameters, stable on a
+        # cap where the 10-parameter ellipsoid can bend to a wrong centre): a partial
+        # coverage must not pass as good
+        # Only where a sphere describes the readings (its relative radial residual within
+        # a few times the ellipsoid's, i.e. no scale or soft-iron difference beyond the
+        # noise): a sphere fitted to an ellipsoid with 2 % scale errors on a cap has its
+        # centre thousands of nT off, and judging about it would call a good coverage partial.
+        sphere = _sphere_centre(m)
+        rad = np.linalg.norm(m - sphere, axis=1)
+        if np.var(rad / np.median(rad)) < SPHERE_VAR_FACTOR * max(noise_eig, 1e-12):
+            other = _judge(m, sphere, noise_eig)
+            if other['status'] != 'good':
+                out = other
+    return out
+
+
+def _sphere_centre(m):
+    """Centre (3,) nT of the least-squares sphere |m - o|^2 = r^2 (linear in o, r^2 - |o|^2)."""
+    design = np.column_stack([2.0 * m, np.ones(len(m))])
+    sol, *_ = np.linalg.lstsq(design, np.sum(m ** 2, axis=1), rcond=None)
+    return sol[:3]
+
+
+def _judge(m, centre, noise_eig):
+    """Coverage status of the readings m (N, 3) nT judged about ``centre`` (3,) nT."""
+    cov = direction_coverage(m - centre)
+    ev = np.clip(cov.eigenvalues - noise_eig, 0.0, None)
+    out = {'eigenvalues': ev, 'normal': cov.normal, 'cone_half_angle_deg': cov.cone_half_angle_deg,
+           'centre_nt': centre, 'message': None}
+    if ev[2] < PARTIAL_EIG or ev[1] < SINGLE_AXIS_EIG:
+        out['status'] = 'one attitude'
+    elif (ev[0] < max(SINGLE_AXIS_EIG, RING_RATIO * ev[1]) and ring_spread(
+            (m - centre) / np.linalg.norm(m - centre, axis=1)[:, None], cov.normal) < RING_CV):
+        out['status'] = 'single axis'
+        out['message'] = _single_axis_message(
+            cov.normal, f'spread {np.sqrt(ev[0]):.3f} along it against '
+                        f'{np.sqrt(ev[1]):.3f} within the plane, about the fitted centre')
+    elif ev[0] < PARTIAL_EIG:
+        out['status'] = 'partial'
+    else:
+        out['status'] = 'good'
+    return out
+
+
+def check_coverage(raw):
+    """
+    Coverage of each sensor's field directions, judged about each sensor's fitted centre.
+
+    A hard-iron offset several times the field squeezes the raw directions (about the
+    origin) into a narrow cone although the sensor turned over; the directions are
+    therefore judged about the centre of the sensor's fitted ellipsoid (the offset) when the
+    data determine it, with the spread that the noise alone gives removed.
+
+    Parameters
+    ----------
+    raw : numpy.ndarray
+        (S, N, 3) raw readings in nT.
+
+    Returns
+    -------
+    dict
+        ``sensors``: {j: {eigenvalues, normal, cone_half_angle_deg, status}} with status
+        'good', 'partial', 'single axis', 'one attitude' or 'constant' (stuck output);
+        ``normal`` is the missing rotation's axis in the sensor frame,
+        ``problems``: list of messages naming the missing rotation (empty when fine),
+        ``summary``: one line.
+
+    """
+    out = {'sensors': {}, 'problems': []}
+    messages = {}
+    for j in range(1, raw.shape[0] + 1):
+        m = raw[j - 1]
+        m = m[np.linalg.norm(m, axis=1) > 0]
+        if len(m) < 3:
+            messages[j] = f'sensor {j} reported no usable samples: check its cable/port'
+            continue
+        spread = np.ptp(m, axis=0)
+        if not np.any(spread > 0):
+            # a stuck sensor (frozen ADC, driver repeating its last value): not an attitude
+            # problem, rotating more would not help
+            out['sensors'][j] = {'eigenvalues': [0.0, 0.0, 1.0], 'normal': [0.0, 0.0, 0.0],
+                                 'cone_half_angle_deg': 0.0, 'status': 'constant'}
+            messages[j] = (f'sensor {j}: output is constant (all {len(m)} samples read '
+                           f'({", ".join(f"{x:.1f}" for x in m[0])}) nT): the sensor is stuck or '
+                           'not updating; check its power, cable and driver')
+            continue
+        c = classify_coverage(m)
+        ev, status = c['eigenvalues'], c['status']
+        n = ', '.join(f'{x:+.2f}' for x in c['normal'])
+        if status == 'one attitude':
+            msg = (f'sensor {j}: all samples have (nearly) the same field direction (within a '
+                   f'{c["cone_half_angle_deg"]:.0f} deg cone): the sensor hardly turned, '
+                   'or turned only about the field; rotate the array through many '
+                   'attitudes (turn it over, about at least two axes)')
+        elif status == 'single axis':
+            msg = f'sensor {j}: {c["message"]}'
+        elif status == 'partial':
+            cov_dir = direction_coverage(m - c['centre_nt'])
+            if cov_dir.mean_resultant_length > 0.5:
+                msg = (f'sensor {j}: field directions span only a '
+                       f'{2 * c["cone_half_angle_deg"]:.0f} deg cone around '
+                       f'({", ".join(f"{x:+.2f}" for x in cov_dir.mean_direction)}) about the '
+                       'fitted centre: scale, non-orthogonality and offset are poorly '
+                       'separated; turn the array over, or use the constrained mode '
+                       '(--constrained: priors on scale and angles)')
+            else:
+                msg = (f'sensor {j}: field directions stay within a band around the plane with '
+                       f'normal ({n}), i.e. mostly a rotation about ({n}) in the sensor frame: '
+                       'tilt that axis further, or use the constrained mode (--constrained)')
+        else:
+            msg = None
+        out['sensors'][j] = {'eigenvalues': [float(x) for x in ev],
+                             'normal': [float(x) for x in c['normal']],
+                             'cone_half_angle_deg': float(c['cone_half_angle_deg']),
+                             'status': status}
+        if msg:
+            messages[j] = msg
+    moved = [j for j, v in out['sensors'].items()
+             if v['status'] not in ('one attitude', 'constant')]
+    for j, v in out['sensors'].items():
+        if v['status'] == 'one attitude' and moved:
+            # the array turned (sensor moved[0] saw it) but this sensor's direction did not
+            spread = float(np.max(np.ptp(raw[j - 1], axis=0)))
+            v['status'] = 'constant'
+            messages[j] = (f'sensor {j}: output (nearly) constant (spread {spread:.1f} nT) '
+                           f'while sensor {moved[0]} saw the array turn: the sensor is stuck, '
+                           'saturated or not following the array; check it')
+    out['problems'] = [messages[j] for j in sorted(messages)]
+    out['summary'] = (out['problems'][0] if out['problems']
+                      else 'attitude coverage is adequate for every sensor')
+    return out
+
+
+def jacobian_report(model, cov, corr, constrained=False):
+    """
+    Parameter correlations and conditioning at the solution.
+
+    Parameters
+    ----------
+    model : Model
+        The fitted model (parameter names).
+    cov, corr : numpy.ndarray
+        (P, P) parameter covariance and correlation.
+    constrained : bool
+        The fit had priors (constrained mode): correlations are notes, not problems.
+
+    Returns
+    -------
+    dict with ``condition_number``, ``max_correlation`` [(name_a, name_b, rho)], ``problems``.
+
+    """
+    info = model.param_info()
+    names = [f'{e}.{n}@{s}' for s, e, n, _ in info]
+    out = {'problems': []}
+    ok = np.isfinite(np.diag(cov)) & (np.diag(cov) > 0)
+    if ok.sum() == 0:
+        out.update(condition_number=float('inf'), max_correlation=[])
+        return out
+    c = corr[np.ix_(ok, ok)]
+    sv = np.linalg.svd(c, compute_uv=False)
+    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float('inf')
+    out['condition_number'] = cond
+    idx = np.flatnonzero(ok)
+    tri = np.triu(np.abs(c), 1)
+    order = np.dstack(np.unravel_index(np.argsort(-tri, axis=None)[:5], tri.shape))[0]
+    top = [(names[idx[a]], names[idx[b]], float(c[a, b])) for a, b in order if tri[a, b] > 0]
+    out['max_correlation'] = top
+    if constrained:
+        # priors bound every parameter; strong posterior correlations are expected then
+        out['notes'] = [f'{a} ~ {b}: correlation {rho:+.4f}' for a, b, rho in top[:3]]
+    elif top and abs(top[0][2]) > MAX_CORRELATION:
+        a, b, rho = top[0]
+        out['problems'].append(
+            f'parameters {a} and {b} are correlated at {rho:+.4f}: the data cannot separate '
+            'them; add attitudes that excite them differently, drop one of the effects, '
+            'or use the constrained mode')
+    elif cond > MAX_CONDITION:
+        out['problems'].append(
+            f'the problem is ill-conditioned (condition number {cond:.3g} of the parameter '
+            'correlation matrix): add attitudes or simplify the model')
+    unexc = [names[i] for i in np.flatnonzero(~ok)]
+    if unexc:
+        out['problems'].append(f'parameters not determined by the data: {", ".join(unexc)}')
+    return out

@@ -1,0 +1,296 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Solvers of the maximum-likelihood fit: Levenberg-Marquardt, the covariance, one BLAS thread.
+
+:func:`levenberg_marquardt` minimises a sum of squared (or soft-L1) residuals given the
+residual and Jacobian functions of :class:`magcal_ros.core.model.engine.ProfiledProblem`;
+:func:`covariance_from_normal` (:func:`covariance_from_jacobian`) turns J^T J of the
+projected Jacobian at the solution into the parameter covariance (the Cramer-Rao bound,
+docs/papers.md, "The maximum-likelihood engine").
+"""
+import contextlib
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Solution:
+    """
+    Outcome of :func:`levenberg_marquardt` (the fields of scipy's OptimizeResult used here).
+
+    Attributes
+    ----------
+    x : numpy.ndarray
+        (P,) the solution.
+    success : bool
+    status : int
+        0: evaluation limit, 2: cost decrease below ftol (or no further decrease),
+        3: step below xtol.
+    message : str
+    nfev : int
+        Residual evaluations.
+
+    """
+
+    x: np.ndarray
+    success: bool
+    status: int
+    message: str
+    nfev: int
+
+
+def levenberg_marquardt(fun, jac, x0, robust=False, f_scale=3.0, max_nfev=200, xtol=1e-10,
+                        ftol=1e-12, normal=None):
+    """
+    Minimise sum rho(r_i^2) by Levenberg-Marquardt on the normal equations.
+
+    rho is the identity or the soft-L1 loss 2 f^2 (sqrt(1 + r^2/f^2) - 1) (handled by
+    iteratively reweighted least squares).  Marquardt's diagonal scaling makes the damping
+    invariant to parameter units (Marquardt 1963).  The iteration reads the Jacobian only
+    through J^T J and J^T r: with the squares loss ``normal`` may supply them directly
+    (:meth:`magcal_ros.core.model.engine.ProfiledProblem.normal_equations`, without the tall
+    Jacobian); the soft-L1 loss weights the rows of J and needs ``jac``.
+
+    Parameters
+    ----------
+    fun : callable
+        x (P,) -> residuals (M,), dimensionless (normalised by the noise sd).
+    jac : callable or None
+        x (P,) -> Jacobian (M, P) of ``fun``; None only with ``normal`` and ``robust``
+        False.
+    x0 : numpy.ndarray
+        (P,) start.
+    robust : bool
+        Soft-L1 loss instead of squares.
+    f_scale : float
+        Scale of the soft-L1 loss, in the residuals' unit.
+    max_nfev : int
+        Most residual evaluations.
+    xtol, ftol : float
+        Relative step and relative cost decrease that stop the iteration (a rejected step
+        whose actual and predicted changes of the cost are both below ftol also stops it:
+        the cost is at its minimum to rounding).
+    normal : callable, optional
+        x (P,) -> (J^T J (P, P), J^T r (P,)) of ``fun`` at x, used instead of ``jac`` for
+        the squares loss (ignored with ``robust``).
+
+    Returns
+    -------
+    Solution
+
+    """
+    def cost(r):
+        if robust:
+            return float(np.sum(f_scale ** 2 * (np.sqrt(1 + (r / f_scale) ** 2) - 1)))
+        return 0.5 * float(r @ r)
+
+    if normal is None or robust:
+        if jac is None:
+            raise ValueError('levenberg_marquardt needs jac (the soft-L1 loss weights the '
+                             'rows of the Jacobian), or normal= with the squares loss')
+        normal = None
+    x = np.asarray(x0, float).copy()
+    r = fun(x)
+    c = cost(r)
+    nfev = 1
+    lam = 1e-3
+    for _ in range(max_nfev):
+        if normal is not None:
+            a, g = normal(x)
+        else:
+            j = jac(x)
+            rw = r
+            if robust:
+                w = np.sqrt(1.0 / np.sqrt(1 + (r / f_scale) ** 2))
+                j, rw = j * w[:, None], r * w
+            a = j.T @ j
+            g = j.T @ rw
+        d = np.diag(a).copy()
+        d[d <= 0] = 1.0
+        while True:
+            try:
+                step = -np.linalg.solve(a + lam * np.diag(d), g)
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
+            x_new = x + step
+            r_new = fun(x_new)
+            nfev += 1
+            c_new = cost(r_new)
+            if c_new <= c:
+                break
+            # at the minimum a step changes the cost by rounding only, up or down: both the
+            # predicted and the actual change below ftol is convergence (MINPACK's ftol
+            # test, More 1978, docs/papers.md), not a reason to raise the damping until
+            # max_nfev
+            predicted = -float(g @ step) - 0.5 * float(step @ a @ step)
+            if max(predicted, c_new - c) <= ftol * max(c, 1e-300):
+                return Solution(x, True, 2, 'cost decrease below ftol', nfev)
+            lam *= 10
+            if lam > 1e12:
+                return Solution(x, True, 2, 'no further decrease of the cost', nfev)
+            if nfev >= max_nfev:
+                # out of evaluations while still looking for a downhill step: not converged
+                return Solution(x, False, 0, f'maximum number of evaluations ({max_nfev}) '
+                                'reached', nfev)
+        dc = c - c_new
+        x, r, c = x_new, r_new, c_new
+        lam = max(lam / 10, 1e-12)
+        scaled = np.sqrt(d)
+        if np.linalg.norm(scaled * step) <= xtol * (np.linalg.norm(scaled * x) + xtol):
+            return Solution(x, True, 3, 'step below xtol', nfev)
+        if dc <= ftol * max(c, 1e-300):
+            return Solution(x, True, 2, 'cost decrease below ftol', nfev)
+        if nfev >= max_nfev:
+            break
+    return Solution(x, False, 0, f'maximum number of evaluations ({max_nfev}) reached', nfev)
+
+
+def covariance_from_jacobian(jac):
+    """
+    Return the (P, P) inverse of J^T J with column scaling; inf for undetermined directions.
+
+    :func:`covariance_from_normal` of ``jac.T @ jac``.
+
+    Parameters
+    ----------
+    jac : numpy.ndarray
+        (M, P) Jacobian of residuals normalised by the noise sd
+        (:meth:`magcal_ros.core.model.engine.ProfiledProblem.jacobian`).
+
+    Returns
+    -------
+    numpy.ndarray
+        (P, P) covariance in the parameters' units squared: the Cramer-Rao bound at the
+        solution.
+
+    """
+    return covariance_from_normal(jac.T @ jac)
+
+
+def covariance_from_normal(a):
+    """
+    Return the (P, P) inverse of J^T J with column scaling; inf for undetermined directions.
+
+    The columns are scaled to unit norm (d_i = sqrt((J^T J)_ii)) before the
+    eigendecomposition, so the rule below does not depend on the parameters' units.  A
+    pseudo-inverse would silently give *zero* variance along directions the data do not
+    determine; here such parameters (those with a weight above 1e-6 in an eigenvector of
+    the scaled matrix whose eigenvalue is below 1e-14 of the largest) get an infinite
+    standard uncertainty instead.
+
+    Parameters
+    ----------
+    a : numpy.ndarray
+        (P, P) J^T J of residuals normalised by the noise sd
+        (:meth:`magcal_ros.core.model.engine.ProfiledProblem.normal_equations`), in
+        1 / (unit of parameter i x unit of parameter j).
+
+    Returns
+    -------
+    numpy.ndarray
+        (P, P) covariance in the parameters' units squared: the Cramer-Rao bound at the
+        solution.
+
+    """
+    d = np.sqrt(np.clip(np.diag(a), 0.0, None))
+    d[d == 0] = 1.0
+    m = a / np.outer(d, d)
+    w, v = np.linalg.eigh(m)
+    bad = w <= 1e-14 * max(w.max(), 1e-300)
+    w_inv = np.where(bad, 0.0, 1.0 / np.where(bad, 1.0, w))
+    cov = (v * w_inv) @ v.T / np.outer(d, d)
+    if bad.any():
+        involved = np.abs(v[:, bad]).max(axis=1) > 1e-6
+        cov[involved, :] = np.inf
+        cov[:, involved] = np.inf
+        cov[involved, involved] = np.inf
+    return cov
+
+
+def resolves_covariance(a, rcond=1e-8):
+    """
+    Return True when J^T J formed block by block determines the covariance to rounding.
+
+    :meth:`magcal_ros.core.model.engine.ProfiledProblem.normal_equations` subtracts the field
+    directions' part from D^T D of the unprojected columns D, so its rounding in the
+    column-scaled matrix is about eps |D_i| |D_k| / (|J_i| |J_k|) instead of eps: up to
+    ~1e-13 when a column lies mostly along the field directions (|D_i| / |J_i| ~ 20 for an
+    offset and scale along a turntable's axis).  A smallest scaled eigenvalue above
+    ``rcond`` (1e-8) of the largest carries a relative error below 1e-5, and so does the
+    variance along it; below, the undetermined directions (:func:`covariance_from_normal`:
+    eigenvalues below 1e-14) are not resolved and the caller forms the covariance from the
+    projected Jacobian (:func:`covariance_from_jacobian`), whose rounding is eps.
+
+    Parameters
+    ----------
+    a : numpy.ndarray
+        (P, P) J^T J, as for :func:`covariance_from_normal`.
+    rcond : float
+        Smallest eigenvalue of the column-scaled matrix, relative to its largest, that the
+        block-formed matrix resolves.
+
+    Returns
+    -------
+    bool
+
+    """
+    d = np.sqrt(np.clip(np.diag(a), 0.0, None))
+    if np.any(d == 0):
+        return False
+    w = np.linalg.eigvalsh(a / np.outer(d, d))
+    return bool(w[0] > rcond * w[-1])
+
+
+def single_threaded_blas():
+    """
+    Return a context that limits BLAS to one thread (optional threadpoolctl).
+
+    The fit's linear algebra is tall-skinny products and P x P solves; on small machines
+    shared with other processes (a robot's computer, CI), BLAS threads only contend:
+    measured 2-6x slower with two threads on a loaded 2-core machine (bench/).
+    """
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:                   # pragma: no cover - optional dependency
+        return contextlib.nullcontext()
+    return threadpool_limits(limits=1, user_api='blas')
+
+
+def stderr_and_correlation(cov):
+    """
+    Return the standard uncertainties and the correlation matrix of a covariance.
+
+    Parameters
+    ----------
+    cov : numpy.ndarray
+        (P, P) covariance, in the parameters' units squared (inf: undetermined).
+
+    Returns
+    -------
+    stderr : numpy.ndarray
+        (P,) square roots of the diagonal.
+    corr : numpy.ndarray
+        (P, P) correlation, 0 where undefined, 1 on the diagonal.
+
+    """
+    stderr = np.sqrt(np.clip(np.diag(cov), 0, None))
+    with np.errstate(invalid='ignore', divide='ignore'):
+        corr = cov / np.outer(stderr, stderr)
+    corr[~np.isfinite(corr)] = 0.0
+    np.fill_diagonal(corr, 1.0)
+    return stderr, corr

@@ -1,0 +1,469 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Composable calibration models of a magnetometer array: :class:`Model`.
+
+A :class:`Model` is a list of effects per sensor (see :mod:`magcal_ros.core.effects`) with a
+flat parameter vector, built from a spec string (``Model.from_spec('base,temperature@2',
+4)``, docs/design.md §2).  It predicts the raw reading of each sensor from the true field
+(:meth:`Model.forward`) and inverts that prediction (:meth:`Model.correct`).
+
+With one sensor, or with sensors that are not tied together by a misalignment term, the fit
+is the usual scalar calibration (each sensor's own field estimate); with misalignment on the
+other sensors the sensors share one field per epoch, which uses both the scalar constraint
+and the inter-sensor vector consistency (:attr:`Model.joint`, :attr:`Model.sensor_groups`).
+
+The fit, the engine and the live calibration are the package's other modules
+(:mod:`magcal_ros.core.model`); this module holds the model alone and imports none of them.
+"""
+import hashlib
+
+from magcal_ros.core import effects as fx
+import numpy as np
+
+__all__ = ['data_hash', 'Model']
+
+
+# -- model ----------------------------------------------------------------------------------
+
+class Model:
+    """
+    Effects per sensor, with a flat parameter vector.
+
+    Parameters
+    ----------
+    effects : list of list of Effect
+        ``effects[j-1]`` are the effects of sensor j.
+    array_effects : list of Effect, optional
+        Effects with one set of parameters for the whole array (``scope = 'array'``, e.g.
+        ``site_gradient``); their parameters follow those of the sensors in the vector.
+
+    """
+
+    def __init__(self, effects, array_effects=(), drops=()):
+        self.effects = [list(e) for e in effects]
+        self.array_effects = list(array_effects)
+        #: (t0, t1) s windows the fit leaves out (``drop(t0, t1)`` terms)
+        self.drops = [tuple(map(float, w)) for w in drops]
+        if self.array_effects and self.n_sensors == 4:
+            from magcal_ros.core.geometry.tensor import cross_positions
+            for eff in self.array_effects:
+                if hasattr(eff, 'set_positions') and 'x1' not in eff.refs:
+                    eff.set_positions(cross_positions(0.5))     # paper 004's cross
+        self._layout()
+
+    def _layout(self):
+        """
+        Lay the parameters out: each sensor's own, the array effects', the shared ones.
+
+        An effect with ``shared`` set (a composed term ``@alike``) has one parameter set for
+        every sensor: its instances on the sensors share one slice after the array effects.
+        """
+        self.slices = []
+        self.sensor_slices = []
+        i = 0
+        shared = {}
+        for sensor_effects in self.effects:
+            start = i
+            row = []
+            for eff in sensor_effects:
+                if getattr(eff, 'shared', False):
+                    row.append(None)
+                    shared.setdefault(eff.label, eff.n_params)
+                    continue
+                row.append(slice(i, i + eff.n_params))
+                i += eff.n_params
+            self.slices.append(row)
+            self.sensor_slices.append(slice(start, i))
+        self.array_slices = []
+        for eff in self.array_effects:
+            self.array_slices.append(slice(i, i + eff.n_params))
+            i += eff.n_params
+        #: {label: slice} of the parameters shared by every sensor (scope alike)
+        self.shared_slices = {}
+        for lab, n in shared.items():
+            self.shared_slices[lab] = slice(i, i + n)
+            i += n
+        for row, sls in zip(self.effects, self.slices):
+            for k, eff in enumerate(row):
+                if sls[k] is None:
+                    sls[k] = self.shared_slices[eff.label]
+        self.n_params = i
+
+    @property
+    def array_cols(self):
+        """(K,) indices of the parameters of the whole array (array effects, shared sets)."""
+        sls = self.array_slices + list(self.shared_slices.values())
+        return np.concatenate([np.arange(sl.start, sl.stop) for sl in sls]
+                              ).astype(int) if sls else np.zeros(0, int)
+
+    def set_positions(self, positions):
+        """Sensor positions (S, 3) m in the array frame, for the array-wide effects."""
+        for eff in self.array_effects:
+            if hasattr(eff, 'set_positions'):
+                eff.set_positions(positions)
+
+    @property
+    def n_sensors(self):
+        """Return the number of sensors S."""
+        return len(self.effects)
+
+    @classmethod
+    def from_spec(cls, spec, n_sensors):
+        """
+        Build a model from a formula (:func:`magcal_ros.core.effects.formula.parse`).
+
+        ``spec`` is formula text (``'base + offset(s(t, k=6))@2'``, ``'base,temperature@2'``),
+        a list of terms or a Formula.  ``base`` expands to offset, scale,
+        nonorthogonality, misalignment; ``term@j`` restricts a term to sensor j,
+        ``@{j,k}`` to those sensors, ``@alike`` shares one parameter set between every
+        sensor; ``aux:<column>`` couples an auxiliary channel; ``drop(t0, t1)`` leaves a
+        window out of the fit.  Effects that do not exist on sensor 1
+        (``Effect.on_sensor1`` False: the misalignment, sensor 1 defines the array frame)
+        are dropped there; linear effects are multiplied in the order of their
+        ``Effect.linear_order``.
+        """
+        from magcal_ros.core.effects.formula import parse
+        from magcal_ros.core.effects.terms import composed_effect
+        formula = parse(spec)
+        per_sensor = [[] for _ in range(n_sensors)]
+        seen = [set() for _ in range(n_sensors)]
+        array_effects = []
+        for term in formula.terms:
+            if term.kind == 'drop':
+                continue
+            if term.kind == 'composed':
+                eff0 = composed_effect(term, 0)
+                if eff0.scope == 'array':
+                    if eff0.label not in [e.label for e in array_effects]:
+                        array_effects.append(eff0)
+                    continue
+                if term.scope == 'alike' and n_sensors < 2:
+                    raise ValueError(f'{term.text}: @alike shares parameters between sensors; '
+                                     'the data have one sensor (drop @alike)')
+                makers = [(term.core, lambda j, t=term: composed_effect(t, j))]
+            elif term.scope == 'array':
+                if n_sensors < 3:
+                    raise ValueError(f'{term.core} needs an array of at least three sensors')
+                if term.core not in [e.name for e in array_effects]:
+                    array_effects.append(fx.make_effect(term.core, 0))
+                continue
+            else:
+                names = fx.BASE if term.core == 'base' else (term.core,)
+                makers = [(nm, lambda j, nm=nm: fx.make_effect(nm, j)) for nm in names]
+            sensors = term.sensors(n_sensors)
+            for _, make in makers:
+                for j in sensors:
+                    eff = make(j)
+                    if not eff.applies or eff.label in seen[j - 1] or any(
+                            eff.label in o.supersedes for o in per_sensor[j - 1]):
+                        continue
+                    # a larger form of an effect already there replaces it (aux_poly > aux)
+                    gone = [o for o in per_sensor[j - 1] if o.label in eff.supersedes]
+                    for o in gone:
+                        per_sensor[j - 1].remove(o)
+                        seen[j - 1].discard(o.label)
+                    clash = [o for o in per_sensor[j - 1]
+                             if {o.name, o.label} & set(eff.excludes)
+                             or {eff.name, eff.label} & set(o.excludes)]
+                    if clash:
+                        raise ValueError(
+                            f'{eff.label} and {clash[0].label} on sensor {j} describe the same '
+                            f'degrees of freedom ({eff.label}: {eff.describe()}; '
+                            f'{clash[0].label}: {clash[0].describe()}); use one or the other')
+                    seen[j - 1].add(eff.label)
+                    per_sensor[j - 1].append(eff)
+        for row in per_sensor:
+            row.sort(key=lambda e: (e.kind != 'linear', e.linear_order))
+        return cls(per_sensor, array_effects, formula.drops)
+
+    def spec(self):
+        """Canonical list of effect tokens (``name`` or ``name@j``)."""
+        out = []
+        labels = [[e.label for e in row] for row in self.effects]
+        first = {}                            # label -> one instance
+        for row in self.effects:
+            for eff in row:
+                first.setdefault(eff.label, eff)
+        for lab, eff in first.items():
+            have = [j + 1 for j, row in enumerate(labels) if lab in row]
+            expected = list(range(1 if eff.on_sensor1 else 2, self.n_sensors + 1))
+            if have == expected or getattr(eff, 'shared', False):
+                out.append(lab)
+            else:
+                out.extend(f'{lab}@{j}' for j in have)
+        from magcal_ros.core.effects.base import format_arg
+        return out + [e.label for e in self.array_effects] + [
+            f'drop({format_arg(a)}, {format_arg(b)})' for a, b in self.drops]
+
+    def with_effect(self, token):
+        """Return a new model with ``token`` (e.g. 'temperature@2') added."""
+        return Model.from_spec(self.spec() + [token], self.n_sensors)
+
+    def fit_mask(self, t):
+        """(N,) bool: the samples at times ``t`` (N,) s the fit uses (outside every drop)."""
+        keep = np.ones(len(t), bool)
+        for a, b in self.drops:
+            keep &= ~((t >= a) & (t <= b))
+        return keep
+
+    def has(self, j, name):
+        """Return True if sensor j has an effect with this label or name."""
+        return any(e.label == name or e.name == name for e in self.effects[j - 1])
+
+    def frame_rotation(self, j):
+        """Return True if sensor j has an effect holding its rotation into the array frame."""
+        return any(e.frame_rotation for e in self.effects[j - 1])
+
+    @property
+    def joint(self):
+        """
+        Whether the sensors are tied to one field per epoch.
+
+        True with an array-wide effect, or a frame rotation on j > 1 (misalignment, soft
+        iron).
+        """
+        return self.n_sensors > 1 and (
+            bool(self.array_effects) or bool(self.shared_slices)
+            or any(self.frame_rotation(j) for j in range(2, self.n_sensors + 1)))
+
+    @property
+    def sensor_groups(self):
+        """Sensors fitted together (1-based): all of them when :attr:`joint`, else one each."""
+        s = self.n_sensors
+        return [list(range(1, s + 1))] if self.joint else [[j] for j in range(1, s + 1)]
+
+    def default_params(self):
+        """(n_params,) parameters of ideal sensors."""
+        p = np.zeros(self.n_params)
+        for j, row in enumerate(self.effects):
+            for eff, sl in zip(row, self.slices[j]):
+                p[sl] = eff.default_params()
+        for eff, sl in zip(self.array_effects, self.array_slices):
+            p[sl] = eff.default_params()
+        return p
+
+    def param_info(self):
+        """List of (sensor, effect label, name, unit) for each parameter."""
+        out = [None] * self.n_params
+        for j, row in enumerate(self.effects):
+            for eff, sl in zip(row, self.slices[j]):
+                # a parameter set shared by every sensor (@alike) is the array's: sensor 0
+                who = 0 if getattr(eff, 'shared', False) else j + 1
+                for i, nm, un in zip(range(sl.start, sl.stop), eff.param_names, eff.units):
+                    out[i] = (who, eff.label, nm, un)
+        for eff, sl in zip(self.array_effects, self.array_slices):   # sensor 0: the array
+            for i, nm, un in zip(range(sl.start, sl.stop), eff.param_names, eff.units):
+                out[i] = (0, eff.label, nm, un)
+        return out
+
+    def prepare(self, contexts):
+        """Let effects compute their reference values (mean temperature, t0, ...)."""
+        for row, ctx in zip(self.effects, contexts):
+            for eff in row:
+                eff.prepare(ctx)
+        for eff in self.array_effects:
+            if contexts:
+                eff.prepare(contexts[0])
+
+    def check(self, contexts):
+        """Reasons why effects cannot be excited by the data (empty list if all fine)."""
+        out = []
+        for row, ctx in zip(self.effects, contexts):
+            for eff in row:
+                why = eff.check(ctx)
+                if why:
+                    out.append(f'{eff.label}@{eff.sensor}: {why}')
+        for eff in self.array_effects:
+            why = eff.check(contexts[0]) if contexts else None
+            if why:
+                out.append(f'{eff.label}: {why}')
+        return out
+
+    # -- evaluation ------------------------------------------------------------------------
+
+    def matrix(self, j, p):
+        """(3, 3) linear map A_j of sensor j for the global parameter vector p."""
+        a = np.eye(3)
+        for eff, sl in zip(self.effects[j - 1], self.slices[j - 1]):
+            if eff.kind == 'linear':
+                a = a @ eff.matrix(p[sl])
+        return a
+
+    def additive(self, j, p, ctx, lin):
+        """(N, 3) nT sum of the additive effects of sensor j."""
+        out = np.zeros_like(lin)
+        for eff, sl in zip(self.effects[j - 1], self.slices[j - 1]):
+            if eff.kind != 'linear':
+                out = out + eff.contribution(p[sl], ctx, lin)
+        return out
+
+    def array_shift(self, j, p, ctx, b=None):
+        """
+        (N, 3) nT field at sensor j minus the field ``b`` at the array centre (array effects).
+
+        Effects that read the field (``reads_field``: the ``field`` coupling, a change of
+        the field's magnitude) contribute only when ``b`` (N, 3) nT is given: without it
+        this is the site shift alone (what centred readings subtract).
+        """
+        out = np.zeros((len(ctx.t), 3))
+        for eff, sl in zip(self.array_effects, self.array_slices):
+            if getattr(eff, 'reads_field', False):
+                if b is not None:
+                    out = out + eff.shift(p[sl], ctx, j, b)
+            else:
+                out = out + eff.shift(p[sl], ctx, j)
+        return out
+
+    def forward(self, j, p, b, ctx, a=None, add=None):
+        """
+        Raw reading of sensor j (N, 3) nT for true field b (N, 3) nT in the array frame.
+
+        ``b`` is the field at the array centre; array-wide effects (site gradient) shift it
+        to the sensor's position before the sensor's linear map.  ``a`` (3, 3): A_j at p
+        when the caller has it; ``add`` (N, 3) nT: :meth:`additive` at p when the caller
+        has it and it does not depend on the field (:meth:`fixed_additive`).
+        """
+        if self.array_effects:
+            b = b + self.array_shift(j, p, ctx, b)
+        lin = b @ (self.matrix(j, p) if a is None else a).T
+        return lin + (self.additive(j, p, ctx, lin) if add is None else add)
+
+    def fixed_additive(self, j, p, ctx, n):
+        """
+        Return (n, 3) nT :meth:`additive` of sensor j at p when it does not depend on the field.
+
+        None when one of sensor j's additive effects reads the field (``depends_on_lin``):
+        callers that evaluate :meth:`forward` at several fields and the same p pass it as
+        ``add`` instead of recomputing every effect each time.
+        """
+        if any(e.depends_on_lin() for e in self.effects[j - 1] if e.kind != 'linear'):
+            return None
+        return self.additive(j, p, ctx, np.zeros((n, 3)))
+
+    def forward_differences(self, j, p, b, ctx, cols, base=None):
+        """
+        Forward differences of sensor j's reading in parameters ``cols``, for Jacobians.
+
+        Parameters
+        ----------
+        j : int
+            1-based sensor.
+        p : numpy.ndarray
+            (P,) parameters.
+        b : numpy.ndarray
+            (N, 3) true field at the array centre, nT.
+        ctx : SensorContext
+            Sensor j's driving signals.
+        cols : sequence of int
+            Global parameter indices.
+        base : numpy.ndarray, optional
+            (N, 3) ``forward(j, p, b, ctx)`` when the caller has it, nT.
+
+        Returns
+        -------
+        diff : numpy.ndarray
+            (len(cols), N, 3) forward(p + h_i e_i) - forward(p), nT.
+        h : numpy.ndarray
+            (len(cols),) the steps, 1e-6 max(1, |p_i|).
+
+        A parameter of one of sensor j's additive effects changes only that effect's
+        contribution (the linear part and the other effects do not read it), so its
+        difference is that contribution's alone, without re-evaluating the whole reading.
+        A parameter of a linear effect changes only A_j: its difference is
+        b' (A_j(p + h_i e_i) - A_j(p))^T (b' the field at the sensor) plus the change of
+        the additive effects that read the linear part (``depends_on_lin``).  The array's
+        parameters re-evaluate :meth:`forward`.
+
+        """
+        h = np.array([1e-6 * max(1.0, abs(p[i])) for i in cols])
+        owner = {}
+        linear = set()
+        reading = []                    # additive effects that read the linear part
+        for eff, sl in zip(self.effects[j - 1], self.slices[j - 1]):
+            if eff.kind != 'linear':
+                owner.update({i: (eff, sl) for i in range(sl.start, sl.stop)})
+                if eff.depends_on_lin():
+                    reading.append((eff, sl))
+            else:
+                linear.update(range(sl.start, sl.stop))
+        lin = None
+        contrib = {}
+        diff = np.empty((len(cols), len(b), 3))
+        for c, i in enumerate(cols):
+            pp = p.copy()
+            pp[i] += h[c]
+            if (i in owner or i in linear) and lin is None:
+                bb = b + self.array_shift(j, p, ctx, b) if self.array_effects else b
+                a0 = self.matrix(j, p)
+                lin = bb @ a0.T
+            if i in owner:
+                eff, sl = owner[i]
+                if sl.start not in contrib:
+                    contrib[sl.start] = eff.contribution(p[sl], ctx, lin)
+                np.subtract(eff.contribution(pp[sl], ctx, lin), contrib[sl.start], out=diff[c])
+            elif i in linear:
+                np.matmul(bb, (self.matrix(j, pp) - a0).T, out=diff[c])
+                for eff, sl in reading:
+                    if sl.start not in contrib:
+                        contrib[sl.start] = eff.contribution(p[sl], ctx, lin)
+                    diff[c] += eff.contribution(p[sl], ctx, lin + diff[c]) - contrib[sl.start]
+            else:
+                if base is None:
+                    base = self.forward(j, p, b, ctx)
+                np.subtract(self.forward(j, pp, b, ctx), base, out=diff[c])
+        return diff, h
+
+    def correct(self, j, p, raw, ctx, n_iter=4, a_inv=None):
+        """
+        Invert :meth:`forward`: corrected field (N, 3) nT in the array frame.
+
+        Additive effects that depend on the field itself (temperature scale, nonlinearity)
+        are inverted by fixed-point iteration, which converges at rate |effect/field|.
+        ``a_inv`` (3, 3) is A_j^-1 when the caller has it precomputed.
+        """
+        raw = np.asarray(raw, float)
+        if a_inv is None:
+            a_inv = np.linalg.inv(self.matrix(j, p))
+        lin = raw - self.additive(j, p, ctx, raw)
+        if any(e.depends_on_lin() for e in self.effects[j - 1]):
+            for _ in range(n_iter):
+                lin = raw - self.additive(j, p, ctx, lin)
+        return lin @ a_inv.T
+
+    def params_from_linear(self, j, a, o, p=None):
+        """
+        Set sensor j's linear and offset parameters from A (3, 3) and o (3,) nT.
+
+        A is decomposed as A = U Q (RQ decomposition, U upper triangular with positive
+        diagonal): U gives scale and nonorthogonality, Q the misalignment (paper 004 eq. 2-3);
+        each effect takes its share (``Effect.params_from_linear``).  Effects the model lacks
+        are dropped (their part of A is not representable).
+        """
+        p = self.default_params() if p is None else p.copy()
+        parts = fx.decompose_linear(a, o)
+        for eff, sl in zip(self.effects[j - 1], self.slices[j - 1]):
+            share = eff.params_from_linear(parts)
+            if share is not None:
+                p[sl] = share
+        return p
+
+
+def data_hash(data):
+    """SHA-256 of the raw readings and times (provenance)."""
+    h = hashlib.sha256()
+    h.update(np.ascontiguousarray(data.t).tobytes())
+    h.update(np.ascontiguousarray(data.raw).tobytes())
+    return h.hexdigest()

@@ -1,0 +1,233 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The closed-form calibrations of papers 000 and 002 on a recording (``magcal fit --method``).
+
+- ``sine`` (paper 000, docs/papers.md#paper-000): a turntable recording, every row with the
+  turntable angle ``angle_deg`` and the horizontal sensor plane ``plane`` (``xy`` for
+  position 1, ``xz`` for position 2); each sensor is calibrated alone by
+  :func:`magcal_ros.core.papers.sine.calibrate_turntable` (eq. 4-16).
+- ``reference`` (paper 002, docs/papers.md#paper-002): a recording with the undisturbed
+  reference field ``ref_x, ref_y, ref_z`` beside each reading; each sensor by
+  :func:`magcal_ros.core.papers.reference_vector.fit_reference` (eq. 4-7).
+
+Both results are written as an ordinary :class:`~magcal_ros.core.model.Calibration`, so the
+calibration file and the live corrector treat them like a maximum-likelihood fit:
+
+- sine: ``raw = L B + B0`` with L lower triangular in paper 000's frame (X along Xm).  With
+  ``L = U Q`` (RQ, :func:`magcal_ros.core.effects.rq_positive`) the calibration keeps U, as
+  scale and non-orthogonality (model ``offset,scale,nonorthogonality``): the corrected field
+  is in the sensor's orthogonalised axes (paper 004's convention), the rotation Q of paper
+  000's frame is dropped.  Each sensor is calibrated alone, so the rotations between sensors
+  are unknown: no array geometry is written and no gradient is formed from such a file.
+- reference: ``Hm = K He + Hh`` with K general, He in the reference's frame.  Sensor 1's
+  ``K_1 = U_1 Q_1`` defines the array frame (its orthogonalised axes); every sensor gets
+  ``A_j = K_j Q_1^T`` (model ``offset,soft_iron``; upper triangular on sensor 1), so all
+  sensors are corrected into one frame, Q_1 times the reference's.
+"""
+from dataclasses import dataclass, field
+
+from magcal_ros.core.effects import rq_positive
+from magcal_ros.core.model import Calibration, DegenerateDataError, Model
+import numpy as np
+
+#: the choices of ``magcal fit --method``
+METHODS = ('ellipsoid', 'sine', 'reference')
+
+
+@dataclass
+class PaperFit:
+    """
+    Result of :func:`sine_calibration` or :func:`reference_calibration`.
+
+    Attributes
+    ----------
+    method : str
+        'sine' or 'reference'.
+    calibration : Calibration
+        The result as a calibration of the package's model (see the module docstring).
+    sensor_params : list of list of tuple
+        Per sensor, the paper's parameters as (name, value, unit).
+    scalar_rms_before_nt, scalar_rms_nt : dict
+        {sensor: RMS of |raw| - F} and {sensor: RMS of |corrected| - F}, nT.
+    vector_rms_nt : dict
+        reference: {sensor: per-component RMS of corrected - reference (array frame)}, nT;
+        empty for sine.
+    warnings : list of str
+        What the data cannot determine.
+    corrected_nt : numpy.ndarray
+        (S, N, 3) corrected readings in the array frame, nT.
+
+    """
+
+    method: str
+    calibration: Calibration
+    sensor_params: list
+    scalar_rms_before_nt: dict
+    scalar_rms_nt: dict
+    vector_rms_nt: dict = field(default_factory=dict)
+    warnings: list = field(default_factory=list)
+    corrected_nt: np.ndarray | None = None
+
+    def summary(self):
+        """Short text report."""
+        lines = [f'method: {self.method} (closed form, {_PAPER[self.method]}); model '
+                 f'{",".join(self.calibration.model.spec())}']
+        for j, rows in enumerate(self.sensor_params, 1):
+            vals = ', '.join(f'{n} {v:.6g}{"" if u == "1" else " " + u}' for n, v, u in rows)
+            lines.append(f'  sensor {j}: {vals}')
+            v = self.vector_rms_nt.get(j)
+            lines.append(f'    scalar RMS {self.scalar_rms_before_nt[j]:.2f} nT before, '
+                         f'{self.scalar_rms_nt[j]:.2f} nT after'
+                         + (f'; vector RMS vs reference {v:.2f} nT' if v is not None else ''))
+        for i, w in enumerate(self.warnings, 1):
+            lines.append(f'[{i}] {w}')
+        return '\n'.join(lines)
+
+    def to_dict(self):
+        """JSON-ready dict (the keys of ``magcal fit --json``)."""
+        return {'method': self.method, 'model': self.calibration.model.spec(),
+                'scalar_rms_nt': self.scalar_rms_nt,
+                'scalar_rms_before_nt': self.scalar_rms_before_nt,
+                'vector_rms_nt': self.vector_rms_nt,
+                'params': [{n: {'value': v, 'unit': u} for n, v, u in rows}
+                           for rows in self.sensor_params],
+                'warnings': list(self.warnings)}
+
+
+_PAPER = {'sine': 'paper 000 turntable sine fits', 'reference': 'paper 002 reference field'}
+
+
+def _rms_scalar(vectors, f):
+    return float(np.sqrt(np.mean((np.linalg.norm(vectors, axis=1) - f) ** 2)))
+
+
+def _finish(method, model, p, data, f, rows, warnings, reference=None):
+    # the closed forms give no uncertainty: nan, never a zero that would claim exactness
+    cal = Calibration(model, p, stderr=np.full(model.n_params, np.nan))
+    corrected = np.stack([cal.correct(j, data.raw[j - 1]) for j in
+                          range(1, data.n_sensors + 1)])
+    before = {j: _rms_scalar(data.raw[j - 1], f) for j in range(1, data.n_sensors + 1)}
+    after = {j: _rms_scalar(corrected[j - 1], f) for j in range(1, data.n_sensors + 1)}
+    vec = {}
+    if reference is not None:
+        vec = {j: float(np.sqrt(np.mean((corrected[j - 1] - reference) ** 2)))
+               for j in range(1, data.n_sensors + 1)}
+    return PaperFit(method=method, calibration=cal, sensor_params=rows,
+                    scalar_rms_before_nt=before, scalar_rms_nt=after, vector_rms_nt=vec,
+                    warnings=warnings, corrected_nt=corrected)
+
+
+def _magnitude(f, n):
+    """(N,) nT from a scalar or (N,) magnitude."""
+    return np.broadcast_to(np.asarray(f, float), (n,)).astype(float)
+
+
+def sine_calibration(data, field_nt):
+    """
+    Paper 000 on a turntable recording (columns ``angle_deg`` and ``plane``).
+
+    Parameters
+    ----------
+    data : Dataset
+        (S, N) readings in nT; rows with plane 'xy' are position 1 (OXmYm horizontal),
+        rows with 'xz' position 2 (OXmZm horizontal), each a turn of the turntable.
+    field_nt : float or numpy.ndarray
+        Field magnitude B (eq. 16), nT, scalar or (N,) (its mean is used).
+
+    Returns
+    -------
+    PaperFit
+
+    """
+    if data.angle_deg is None or data.plane is None:
+        raise ValueError('--method sine needs the turntable columns angle_deg and plane '
+                         '(xy for position 1, xz for position 2; paper 000)')
+    from magcal_ros.core.papers.sine import calibrate_turntable
+    plane = np.char.lower(np.char.strip(np.asarray(data.plane, str)))
+    pos1, pos2 = plane == 'xy', plane == 'xz'
+    other = sorted(set(plane[~(pos1 | pos2)].tolist()))
+    if other:
+        raise ValueError(f'plane must be xy or xz on every row, found {other}')
+    if pos1.sum() < 3 or pos2.sum() < 3:
+        raise ValueError(f'--method sine needs a turn in both positions: {int(pos1.sum())} '
+                         f'rows with plane xy and {int(pos2.sum())} with plane xz (at least '
+                         '3 distinct angles each)')
+    theta = np.radians(np.asarray(data.angle_deg, float))
+    f = _magnitude(field_nt, data.n_samples)
+    model = Model.from_spec('offset,scale,nonorthogonality', data.n_sensors)
+    p = model.default_params()
+    rows = []
+    for j in range(1, data.n_sensors + 1):
+        m = data.raw[j - 1]
+        par = calibrate_turntable(theta[pos1], m[pos1], theta[pos2], m[pos2], float(f.mean()))
+        low, b0 = par.to_general()
+        u, _ = rq_positive(low)          # drop paper 000's frame rotation (module docstring)
+        p = model.params_from_linear(j, u, b0, p)
+        rows.append([('alpha', float(np.degrees(par.alpha)), 'deg'),
+                     ('beta', float(np.degrees(par.beta)), 'deg'),
+                     ('gamma', float(np.degrees(par.gamma)), 'deg'),
+                     ('kx', par.kx, '1'), ('ky', par.ky, '1'), ('kz', par.kz, '1'),
+                     ('Bx0', float(b0[0]), 'nT'), ('By0', float(b0[1]), 'nT'),
+                     ('Bz0', float(b0[2]), 'nT')])
+    warnings = []
+    if data.n_sensors > 1:
+        warnings.append('paper 000 calibrates each sensor alone: the rotations between the '
+                        'sensors are not determined, each sensor is corrected into its own '
+                        'axes and no gradient can be formed; use --method ellipsoid (the '
+                        'joint fit) for an array')
+    return _finish('sine', model, p, data, f, rows, warnings)
+
+
+def reference_calibration(data, field_nt=None, on_degenerate='raise'):
+    """
+    Paper 002 on a recording with a reference field vector (columns ``ref_x/y/z``).
+
+    Parameters
+    ----------
+    data : Dataset
+        (S, N) disturbed readings Hm in nT and ``ref_vec`` (N, 3) nT, the undisturbed field.
+    field_nt : float or numpy.ndarray, optional
+        Magnitude for the scalar residual, nT; default |ref_vec| per epoch.
+    on_degenerate : {'raise', 'flag'}
+        Refuse (DegenerateDataError) or flag (warnings) reference directions that cannot
+        determine K and Hh (paper 002's own Table 2 is such data).
+
+    Returns
+    -------
+    PaperFit
+
+    """
+    if data.ref_vec is None:
+        raise ValueError('--method reference needs the reference field columns ref_x, ref_y, '
+                         'ref_z (paper 002)')
+    from magcal_ros.core.papers.reference_vector import fit_reference
+    he = np.asarray(data.ref_vec, float)
+    f = np.linalg.norm(he, axis=1) if field_nt is None else _magnitude(field_nt,
+                                                                       data.n_samples)
+    fits = [fit_reference(he, data.raw[j - 1]) for j in range(1, data.n_sensors + 1)]
+    warnings = [f'sensor {j}: {ft.warning}' for j, ft in enumerate(fits, 1) if ft.warning]
+    if warnings and on_degenerate == 'raise':
+        raise DegenerateDataError(warnings[0] + ' (--flag-degenerate writes it anyway)')
+    model = Model.from_spec('offset,soft_iron', data.n_sensors)
+    _, q1 = rq_positive(fits[0].K)
+    p = model.default_params()
+    rows = []
+    for j, ft in enumerate(fits, 1):
+        p = model.params_from_linear(j, ft.K @ q1.T, ft.Hh, p)     # A_j = K_j Q_1^T
+        rows.append([(f'K{r + 1}{c + 1}', float(ft.K[r, c]), '1')
+                     for r in range(3) for c in range(3)]
+                    + [(f'Hh{a}', float(v), 'nT') for a, v in zip('xyz', ft.Hh)])
+    return _finish('reference', model, p, data, f, rows, warnings, reference=he @ q1.T)

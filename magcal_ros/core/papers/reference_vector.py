@@ -1,0 +1,253 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Paper 002: hard- and soft-iron compensation from a reference field vector.
+
+Paper 002: hard- and soft-iron compensation from a reference field vector, by linear least
+squares (not :mod:`magcal_ros.core.data.magnitude`, the reference *magnitude* of a fit).
+
+Model (paper 002, eq. 1-4): ``Hm = K He + Hh`` with ``He`` the undisturbed field (measured
+without the interference source: a reference) and ``Hm`` the disturbed reading, ``K = I + D``
+(soft iron, 9 unknowns) and ``Hh`` (hard iron, 3 unknowns). Eq. 5-7 stack one row block per
+attitude; the 12 unknowns need at least 4 attitudes. Here the three output components are
+solved together: ``Hm = [He 1] X`` with ``X = [K^T; Hh^T]`` (4, 3), by
+``numpy.linalg.lstsq``.
+
+What the paper does not check, and this module does: the reference directions must spread in
+three dimensions. If they lie in one plane (``n . He = c`` for all attitudes, which a rotation
+about one axis produces), the design ``[He 1]`` has the null vector ``(n, -c)``: for any ``v``,
+``K + v n^T`` and ``Hh - c v`` fit equally well, so ``K n`` (how the interference responds to
+the field along ``n``) and ``Hh`` are not separately identifiable, and the compensation is only
+valid for attitudes whose field stays in that plane. Paper 002's own Table 2 is such a data set
+(normal about (-0.866, 0.500, 0.003); docs/papers.md, paper 002).
+"""
+
+from dataclasses import dataclass
+
+from magcal_ros.core.model.coverage import Coverage, direction_coverage
+from magcal_ros.core.papers.paper_params import Paper002Params
+import numpy as np
+
+#: Minimum number of attitudes: 12 unknowns, 3 equations per attitude (paper 002, §1).
+MIN_ATTITUDES = 4
+
+
+def _fmt_vec(v):
+    return '(' + ', '.join('%.3f' % (0.0 if abs(x) < 0.0005 else x) for x in v) + ')'
+
+
+@dataclass(frozen=True, eq=False)
+class ReferenceFit:
+    """
+    Result of :func:`fit_reference`.
+
+    Attributes
+    ----------
+    K : numpy.ndarray
+        (3, 3) soft-iron matrix, dimensionless (paper 002 eq. 4).
+    Hh : numpy.ndarray
+        (3,) hard-iron field in nT.
+    residual : numpy.ndarray
+        (N, 3) ``Hm - (K He + Hh)`` in nT.
+    singular_values : numpy.ndarray
+        (3,) singular values in nT of the centred reference field ``He - mean(He)``,
+        descending: how far the reference field varied along each principal direction
+        (sqrt of the sum of squares over the attitudes). A small last value means the
+        attitudes do not determine ``K`` along the matching direction.
+    condition_number : float
+        2-norm condition number of the design ``[He 1]`` after scaling each column to unit
+        norm (``inf`` if rank deficient).
+    coverage : Coverage
+        Direction coverage of the reference field ``He``.
+    unobservable_direction : numpy.ndarray
+        (3,) unit vector, right singular vector of the centred ``He`` for its smallest
+        singular value: the direction along which the reference field varied least. When
+        the data are coplanar, ``K`` applied to this direction trades off against ``Hh``.
+        (Close to ``coverage.normal``, which uses directions only.)
+    identifiable : bool
+        False when the reference directions are coplanar or clustered, or the condition
+        number exceeds the limit given to :func:`fit_reference`.
+    warning : str or None
+        Human-readable explanation when not identifiable, naming the unobservable direction.
+    xtx_inv : numpy.ndarray
+        (4, 4) ``(X^T X)^+`` of the unscaled design ``X = [He 1]`` (nT^-2 in the He block),
+        for :meth:`stderr`.
+
+    """
+
+    K: np.ndarray
+    Hh: np.ndarray
+    residual: np.ndarray
+    singular_values: np.ndarray
+    condition_number: float
+    coverage: Coverage
+    unobservable_direction: np.ndarray
+    identifiable: bool
+    warning: str | None
+    xtx_inv: np.ndarray
+
+    @property
+    def n(self):
+        """Return the number of attitudes."""
+        return int(self.residual.shape[0])
+
+    @property
+    def rms(self):
+        """(3,) RMS residual per component in nT."""
+        return np.sqrt(np.mean(self.residual ** 2, axis=0))
+
+    def to_params(self) -> Paper002Params:
+        """Return the fit as :class:`~magcal_ros.core.papers.paper_params.Paper002Params`."""
+        return Paper002Params(K=self.K, Hh=self.Hh)
+
+    def stderr(self, sigma_hm_nt, sigma_he_nt=0.0):
+        """
+        First-order standard errors of K and Hh for given measurement noise.
+
+        Row ``j`` of ``[K | Hh]`` is an ordinary least-squares solution for output ``j``;
+        noise ``sigma_hm`` on Hm and ``sigma_he`` on each He component (errors in
+        variables, to first order) add an effective noise variance
+        ``sigma_hm^2 + sigma_he^2 |K_j|^2`` to it, so
+        ``cov(row j) = (sigma_hm^2 + sigma_he^2 |K_j|^2) (X^T X)^-1``.
+
+        Parameters
+        ----------
+        sigma_hm_nt : float
+            Standard deviation of the noise on each Hm component, nT.
+        sigma_he_nt : float, optional
+            Standard deviation of the noise on each He component, nT. For values rounded
+            to 1 nT, use ``sqrt(1/12)`` nT for both.
+
+        Returns
+        -------
+        k_se : numpy.ndarray
+            (3, 3) dimensionless.
+        hh_se : numpy.ndarray
+            (3,) nT.
+
+        """
+        var_eff = sigma_hm_nt ** 2 + sigma_he_nt ** 2 * np.sum(self.K ** 2, axis=1)
+        diag = np.clip(np.diag(self.xtx_inv), 0.0, None)
+        se = np.sqrt(var_eff[:, None] * diag[None, :])         # (3 outputs, 4 unknowns)
+        return se[:, :3], se[:, 3]
+
+
+def fit_reference(He, Hm, strict=False, max_condition=100.0,
+                  planar_threshold=0.02) -> ReferenceFit:
+    """
+    Fit ``Hm = K He + Hh`` by linear least squares (paper 002, eq. 4-7).
+
+    Parameters
+    ----------
+    He : array_like
+        (N, 3) reference (undisturbed) field in nT, one row per attitude, N >= 4.
+    Hm : array_like
+        (N, 3) disturbed reading in nT at the same attitudes.
+    strict : bool, optional
+        Raise ``ValueError`` instead of returning a fit flagged not identifiable.
+    max_condition : float, optional
+        Largest acceptable condition number of the column-scaled design.
+    planar_threshold : float, optional
+        Passed to :func:`~magcal_ros.core.model.coverage.direction_coverage`.
+
+    Returns
+    -------
+    ReferenceFit
+
+    Raises
+    ------
+    ValueError
+        On malformed input, fewer than 4 attitudes, or (``strict=True``) when the data
+        cannot determine all 12 parameters.
+
+    """
+    he = np.asarray(He, dtype=float)
+    hm = np.asarray(Hm, dtype=float)
+    if he.ndim != 2 or he.shape[1] != 3 or hm.shape != he.shape:
+        raise ValueError('He and Hm must both have shape (N, 3), got %s and %s'
+                         % (he.shape, hm.shape))
+    if not (np.all(np.isfinite(he)) and np.all(np.isfinite(hm))):
+        raise ValueError('He and Hm must be finite: drop NaN/inf rows first')
+    n = he.shape[0]
+    if n < MIN_ATTITUDES:
+        raise ValueError('need at least %d attitudes to solve the 12 unknowns of K and Hh '
+                         '(3 equations each), got %d' % (MIN_ATTITUDES, n))
+    # paper 002, eq. 5-7: rows [He^T 1], all three output components at once
+    design = np.column_stack([he, np.ones(n)])
+    sol, _, rank, _ = np.linalg.lstsq(design, hm, rcond=None)
+    k = sol[:3].T
+    hh = sol[3].copy()
+    residual = hm - design @ sol
+    col_norm = np.linalg.norm(design, axis=0)
+    col_norm[col_norm == 0.0] = 1.0
+    sv_scaled = np.linalg.svd(design / col_norm, compute_uv=False)
+    cond = float(sv_scaled[0] / sv_scaled[-1]) if sv_scaled[-1] > 0.0 else np.inf
+    _, singular_values, vt = np.linalg.svd(he - he.mean(axis=0))
+    weak = vt[2] if vt[2] @ he.mean(axis=0) >= 0.0 else -vt[2]
+    coverage = direction_coverage(he, planar_threshold=planar_threshold)
+
+    warning = None
+    if coverage.narrow:
+        warning = (
+            'reference field directions span only a %.0f deg cone around %s: K is not '
+            'determined in any direction across it and trades off against Hh; the '
+            'compensation is valid only near that direction. Turn the sensor over / through '
+            'larger angles.' % (coverage.cone_half_angle_deg,
+                                _fmt_vec(coverage.mean_direction)))
+    elif coverage.planar:
+        warning = (
+            'reference field directions lie in one plane with normal %s (singular values of '
+            'the centred reference field %.4g, %.4g, %.4g nT): K @ normal and Hh are not '
+            'separately identifiable (unobservable direction %s), so the compensation is '
+            'valid only for attitudes whose field lies in that plane, i.e. turned about the '
+            'same axis. Add attitudes rotated about another axis.'
+            % (_fmt_vec(weak), *singular_values, _fmt_vec(weak)))
+    elif rank < 4 or cond > max_condition:
+        warning = (
+            'the design [He 1] is ill-conditioned (condition number %.3g after column '
+            'scaling, limit %.3g): K and Hh are poorly determined. Spread the attitudes more '
+            'widely.' % (cond, max_condition))
+    if warning is not None and strict:
+        raise ValueError(warning)
+    return ReferenceFit(K=k, Hh=hh, residual=residual, singular_values=singular_values,
+                        condition_number=cond, coverage=coverage, unobservable_direction=weak,
+                        identifiable=warning is None, warning=warning,
+                        xtx_inv=np.linalg.pinv(design.T @ design))
+
+
+def correct(fit, Hm):
+    """
+    Compensate disturbed readings: ``He_hat = K^-1 (Hm - Hh)`` (inverse of paper 002 eq. 4).
+
+    Parameters
+    ----------
+    fit : ReferenceFit or Paper002Params
+        Anything with ``K`` (3, 3) and ``Hh`` (3,) nT.
+    Hm : array_like
+        (N, 3) or (3,) disturbed readings in nT.
+
+    Returns
+    -------
+    numpy.ndarray
+        Same shape as ``Hm``: the estimated undisturbed field in nT.
+
+    """
+    hm = np.asarray(Hm, dtype=float)
+    if hm.shape[-1:] != (3,) or hm.ndim > 2:
+        raise ValueError('Hm must have shape (N, 3) or (3,), got %s' % (hm.shape,))
+    k = np.asarray(fit.K, dtype=float)
+    if np.linalg.matrix_rank(k) < 3:
+        raise ValueError('K is singular: the fit cannot be inverted')
+    return np.linalg.solve(k, (hm - fit.Hh).T).T
