@@ -98,6 +98,11 @@ def _run(args, cli, with_ladder):
     prog('fit', 1, 1)
     diag = diagnose(data, field_nt=field_nt, base=base, folds=args.folds, alpha=args.alpha,
                     progress=prog, baseline_m=args.baseline_m, constrained=args.constrained)
+    if 'reduction' in data.meta:
+        # a long record: the epochs are the whole record's, tested on its reduced sample
+        from dataclasses import replace
+        diag = replace(diag, n_samples=data.meta['reduction']['epochs'],
+                       n_used=diag.n_used or diag.n_samples)
     lad = None
     if with_ladder:
         lad = ladder(data, base, field_nt=field_nt, folds=args.folds, progress=prog,

@@ -224,3 +224,40 @@ def test_a_terminal_shows_a_bar_with_the_step_and_the_time_left(small_csv):
 def test_no_bar_with_quiet_with_json_or_off_a_terminal(small_csv, extra, tty):
     err = run_fit(small_csv, extra, tty)
     assert '1/1 [' not in err and '%|' not in err
+
+
+def test_cli_reads_a_long_record_in_chunks_to_the_in_memory_result(
+        tmp_path, monkeypatch, capsys):
+    # 3000 epochs above a lowered threshold: read in chunks of 65 536 (one), sampled every
+    # epoch (3000 < 20 000) and one noise block (3000 < 4096): the reduced path must give
+    # exactly the in-memory figures, plus what it did
+    import json
+    from magcal_ros.cli import main
+    from magcal_ros.core.data import reduce
+    data, _ = simulate(n_samples=3000, rate_hz=10.0, trajectory='smooth', seed=8,
+                       truth={'temperature@2': [3.0, -2.0, 1.5, 0.0, 0.0, 0.0]})
+    path = tmp_path / 'r.csv'
+    write_csv(path, data)
+    argv = ['fit', str(path), '--field-nt', '50000', '--json']
+    assert main(argv) == 0
+    whole = json.loads(capsys.readouterr().out)
+    monkeypatch.setattr(reduce, 'REDUCE_ABOVE', 1000)
+    assert main(argv) == 0
+    chunked = json.loads(capsys.readouterr().out)
+    assert chunked.pop('reduction') == {
+        'epochs': 3000, 'sample_epochs': 3000, 'sample_stride': 1, 'noise_block_epochs': 4096,
+        'noise_blocks': 1, 'noise_epochs': 3000, 'span_s': 299.9}
+    assert chunked.keys() == whole.keys()
+    assert chunked['warnings'] == whole['warnings']
+    assert chunked['n_samples'] == whole['n_samples'] == 3000
+    for key in ('noise_floor_nt', 'scalar_rms_nt', 'vector_rms_nt', 'total_field_rms_before_nt',
+                'total_field_max_dev_after_nt', 'tensor_rms_nt_per_m', 'sigma_nt'):
+        a, b = chunked[key], whole[key]
+        if isinstance(a, dict):
+            a, b = list(a.values()), list(b.values())
+        np.testing.assert_allclose(np.array(a, float), np.array(b, float), rtol=1e-12,
+                                   err_msg=key)
+    assert main(['diagnose', str(path), '--field-nt', '50000', '--json', '--folds', '0']) == 0
+    diag = json.loads(capsys.readouterr().out)
+    assert diag['reduction']['epochs'] == diag['n_samples'] == 3000
+    assert diag['verdict']['token'] == 'temperature@2'
