@@ -41,23 +41,22 @@ import subprocess
 import sys
 import time
 
-from common import add_common_args, REPO_DIR, RESULTS_DIR, table, write_result  # noqa
+from common import add_common_args, REPO_DIR, table, write_result  # noqa: I100
 
 TRUTH = 'temperature@2=3,-2,1.5,0,0,0'
 
 
 def rusage_of(cmd, code_dir):
     """Wall s, CPU s, peak RSS MB, exit code, stdout of ``cmd`` (os.wait4 of the child)."""
+    import tempfile
     env = dict(os.environ, PYTHONPATH=code_dir)
-    out_path = os.path.join(RESULTS_DIR, '.scale_stdout')
-    with open(out_path, 'w') as out, open(os.devnull, 'w') as devnull:
+    with tempfile.TemporaryFile('w+') as out, open(os.devnull, 'w') as devnull:
         t0 = time.perf_counter()
         p = subprocess.Popen(cmd, cwd=code_dir, env=env, stdout=out, stderr=devnull)
         _, status, usage = os.wait4(p.pid, 0)
         wall = time.perf_counter() - t0
-    with open(out_path) as fh:
-        text = fh.read()
-    os.remove(out_path)
+        out.seek(0)
+        text = out.read()
     cpu = usage.ru_utime + usage.ru_stime
     return wall, cpu, usage.ru_maxrss / 1024.0, os.waitstatus_to_exitcode(status), text
 
