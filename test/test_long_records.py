@@ -144,11 +144,11 @@ def test_reduction_keeps_the_field_rate_and_the_statistics_of_every_epoch(record
 
 
 def test_reduced_fit_and_verdict_agree_with_the_record_held_in_memory():
-    # the held-out style: a hidden temperature effect on sensor 2, 4 x 24 000 epochs
+    # the held-out style: a hidden temperature effect on sensor 2, 4 x 12 000 epochs
     from magcal_ros.core.diagnose import diagnose
-    data, _ = simulate(n_samples=24000, rate_hz=20.0, trajectory='smooth', seed=11,
+    data, _ = simulate(n_samples=12000, rate_hz=20.0, trajectory='smooth', seed=11,
                        truth={'temperature@2': [3.0, -2.0, 1.5, 0.0, 0.0, 0.0]})
-    red = reduce_chunks(pieces(data, 5000), sample=3000)
+    red = reduce_chunks(pieces(data, 5000), sample=1500)
     assert red.info['sample_stride'] == 4
     model = 'base,temperature@2'
     full = fit(data, model, field_nt=50000.0, max_fit_samples=None)
