@@ -60,6 +60,7 @@ FORMULAS = {
     'base + offset(cc(aux_a, k=1, period=360) * temperature)@{2}':
         'base + offset(cc(aux_a, k=1, period=360) * temperature)@2',
     'base + offset(1)@alike + field(temperature)': 'base + offset(1)@alike + field(temperature)',
+    'base + offset(sin(0.050, refine=true))@3': 'base + offset(sin(0.05, refine=true))@3',
 }
 
 
@@ -109,6 +110,7 @@ BAD = {
     'base + drop(1, 2)@2': ['drop leaves samples out for every sensor'],
     'base + offset(poly(t, 9))': ['poly degree', '1..4'],
     'base + offset(sin(-1))': ['sin frequency must be positive'],
+    'base + offset(sin(1, refine=maybe))': ['true or false'],
     'base + offset(window(5, 1))': ['the end must follow the start'],
     '': ['empty model'],
 }
@@ -150,7 +152,13 @@ def test_old_calibration_files_load_and_correct_as_written():
 
 
 def test_old_tokens_fit_to_the_same_numbers_as_written():
-    """The old specs refitted give the parameters the old code wrote (to 1e-6 relative)."""
+    """
+    The old specs refitted give the parameters the old code wrote, to 1e-4 standard error.
+
+    The same maximum of the likelihood: what may differ is where the optimiser stops, which
+    moves with its start (the noise estimate's constant 1.4826 became 1/Phi^-1(3/4) after
+    the files were written: 1.8e-6 nT on an offset of standard error 0.2 nT, 1e-5 se).
+    """
     data = read_csv(LEGACY / 'data.csv')
     for name in ('temperature', 'step_periodic', 'aux'):
         doc = yaml.safe_load((LEGACY / f'{name}.yaml').read_text())
@@ -158,7 +166,9 @@ def test_old_tokens_fit_to_the_same_numbers_as_written():
                   check_identifiability=False)
         old = [e['params'][k]['value'] for s in doc['sensors'] for e in s['effects']
                for k in e['params']]
-        np.testing.assert_allclose(res.params, old, rtol=1e-6, atol=1e-6, err_msg=name)
+        se = [e['params'][k]['stderr'] for s in doc['sensors'] for e in s['effects']
+              for k in e['params']]
+        assert np.all(np.abs(res.params - old) <= 1e-4 * np.array(se)), name
 
 
 def _ctx(n=50):
@@ -384,3 +394,13 @@ def test_one_sample_at_a_time_corrects_as_the_whole_record():
                                 aux={a: v[k:k + 1] for a, v in ctx.aux.items()})
             np.testing.assert_allclose(cal.correct(j, data.raw[j - 1][k:k + 1], one),
                                        whole[k:k + 1], rtol=0, atol=1e-9)
+
+
+def test_node_model_parameter_takes_formula_terms():
+    """The calibration node's ``model`` (a list of terms) is checked by the same parser."""
+    from magcal_ros.ros.params import model_check
+    check = model_check(4)
+    assert check(['base', 'offset(s(t, k=6))@2', 'field(s(t, k=8))', 'drop(120, 160)']) is None
+    assert check(['base + offset(window(120, 160))@alike']) is None
+    msg = check(['base', 'offset(s(t, k=60))@2'])
+    assert 'basis size' in msg and '3..20' in msg, msg

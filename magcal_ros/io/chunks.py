@@ -90,11 +90,17 @@ def csv_chunks(path, rows=CHUNK_ROWS, progress=None):
     ``progress(bytes_read)`` is called after each chunk.
     """
     path = os.fspath(path)
+    from magcal_ros.io.compressed import CorruptArchiveError, open_text
     try:
-        fh = open(path, encoding='utf-8-sig')
+        yield from _csv_chunks(path, rows, progress, open_text)
+    except CorruptArchiveError as exc:
+        raise csvio.CsvFormatError(str(exc)) from None
     except OSError as exc:
         raise csvio.CsvFormatError(f'cannot read {path}: {exc.strerror}') from exc
-    with fh:
+
+
+def _csv_chunks(path, rows, progress, open_text):
+    with open_text(path, encoding='utf-8-sig') as fh:
         try:
             no, first = _header_line(fh)
             if first is None:
@@ -139,7 +145,7 @@ def csv_chunks(path, rows=CHUNK_ROWS, progress=None):
                         f'{path}: column t must be finite and non-decreasing (line {nos[0]})')
                 t_last = piece.t[-1]
                 n_read += len(data)
-                if progress is not None:
+                if progress is not None and hasattr(fh, 'buffer'):
                     progress(fh.buffer.tell())
                 yield piece
         except UnicodeDecodeError as exc:

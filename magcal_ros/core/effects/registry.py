@@ -90,8 +90,14 @@ def load_plugin(ref):
     :mod:`.couplings`, :mod:`.drivers`), or call the ``register_*`` functions itself;
     ``module:Class`` registers that one class, whichever of the three it is.  Returns the
     list of registered names.
+
+    Each effect class is evaluated once on a context holding only the signals it declares
+    (:func:`magcal_ros.core.effects.safety.probe_effect`) before it is registered: one that
+    reads an undeclared signal, or fails, is refused (ValueError, one line naming the effect
+    and the signal).  Couplings and drivers are not probed on their own.
     """
     from magcal_ros.core.effects import couplings, drivers
+    from magcal_ros.core.effects.safety import probe_effect   # here: it imports the package
     mod_name, _, attr = ref.partition(':')
     try:
         mod = importlib.import_module(mod_name)
@@ -111,6 +117,8 @@ def load_plugin(ref):
             if drivers.driver_class(cls.name) is not cls:
                 drivers.register_driver(cls)
         elif _REGISTRY.get(cls.name) is not cls:
+            if isinstance(cls, type) and issubclass(cls, Effect):
+                probe_effect(cls, ref)
             register_effect(cls)
         names.append(cls.name)
     return names
