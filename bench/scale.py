@@ -20,7 +20,8 @@ hidden temperature effect on sensor 2 (``magcal simulate --rate 1000 --truth
 temperature@2=3,-2,1.5,0,0,0``; below a minute the smooth trajectory has not turned the
 array over: ``--flag-degenerate``, and ``fit --force``: a few seconds need not converge).
 For each size the two commands run as processes of their own, this tree's code and, with
-``--base DIR``, another tree's (the code before the chunked reading: ``git worktree add /work/wt/base c43534d``) up to ``--base-max`` sets;
+``--base DIR``, another tree's (the code before the chunked reading: ``git worktree add
+/work/wt/base c43534d``) up to ``--base-max`` sets;
 wall time, CPU time (user + system of the process: on a shared machine the wall time
 grows with the other processes' load, the CPU time does not; BLAS runs on one thread)
 and peak resident memory (``ru_maxrss``, MB) are recorded with the verdict.
