@@ -1410,7 +1410,7 @@ def default_views(data, diagnosis, ladder=None, baseline_m=0.5):
 
 
 def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseline_m=0.5,
-                 title='magcal diagnosis report', figures='relevant'):
+                 title='magcal diagnosis report', figures='relevant', progress=None):
     """
     Write the figures (PNG) and ``index.html`` (self-contained) into ``out_dir``.
 
@@ -1436,6 +1436,8 @@ def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseli
         change-point and lag views) only when the verdict, a significant candidate, an
         adopted ladder step or a finding points at them, and lists the others with the
         reason under "Views not drawn"; 'all' draws every view the data allow.
+    progress : callable, optional
+        ``progress('report', i, n, view)`` as the figures are drawn.
 
     Returns
     -------
@@ -1471,15 +1473,26 @@ def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseli
              f'the data: {floor.value_nt:.2f} nT '
              f'({"; ".join(f"s{j + 1}: " + html.escape(m) for j, m in enumerate(floor.method))}'
              f').</p>']
+    red = data.meta.get('reduction')
+    if red:
+        parts.append(f'<p>A long record: {red["epochs"]} epochs over {red["span_s"]:.0f} s, read '
+                     f'in chunks; the fit, the diagnosis and these figures use '
+                     f'{red["sample_epochs"]} evenly spread epochs (every '
+                     f'{red["sample_stride"]}th), the noise floor {red["noise_blocks"]} '
+                     f'contiguous full-rate blocks of {red["noise_block_epochs"]} epochs.</p>')
     if data.meta.get('synthetic_time'):
         parts.append(f'<p>The data have no time column: the time axis is synthetic, at an '
                      f'assumed {data.meta.get("assumed_rate_hz")} Hz.</p>')
     images, skipped = [], []
     pngs = []
     with matplotlib.rc_context(RC):          # the figures' text measured and drawn alike
-        for _, _, make, _ in plan:
+        for i, (name, _, make, _) in enumerate(plan):
+            if progress is not None:
+                progress('report', i, len(plan), name)
             fig = None if make is None else make()
             pngs.append(None if fig is None else figure_png(fig))
+    if progress is not None:
+        progress('report', len(plan), len(plan), '')
     for (name, heading, _, why), png in zip(plan, pngs):
         if png is None:
             skipped.append((heading, why or 'the data do not allow it (too few epochs)'))
