@@ -26,7 +26,7 @@ from functools import partial
 
 from magcal_ros.core import model as model_mod
 from magcal_ros.core.dataset import Dataset
-from magcal_ros.core.diagnose import diagnose
+from magcal_ros.core.discovery import diagnose
 from magcal_ros.core.noise import data_noise_floor, estimate_noise, robust_sd
 from magcal_ros.core.simulate import simulate
 from magcal_ros.core.tensor import cross_positions, tensor_noise_floor

@@ -16,10 +16,10 @@
 Screening of candidate effects: one Gauss-Newton step of each extended model from the base fit.
 
 Exact for effects that enter linearly, as all driven effects do; the most promising
-candidates are then refitted in full (:mod:`magcal_ros.core.diagnose.run`).
+candidates are then refitted in full (:mod:`magcal_ros.core.discovery.run`).
 """
-from magcal_ros.core.diagnose.constants import LAG_GRID_POINTS
-from magcal_ros.core.diagnose.measures import solve_psd
+from magcal_ros.core.discovery.constants import LAG_GRID_POINTS
+from magcal_ros.core.discovery.measures import solve_psd
 from magcal_ros.core.engine import ProfiledProblem
 import numpy as np
 

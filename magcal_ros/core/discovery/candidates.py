@@ -26,8 +26,8 @@ from dataclasses import dataclass
 import math
 
 from magcal_ros.core import effects as fx
-from magcal_ros.core.diagnose.constants import NESTED
-from magcal_ros.core.findings import lomb_scargle as find_lomb_scargle
+from magcal_ros.core.discovery.constants import NESTED
+from magcal_ros.core.discovery.findings import lomb_scargle as find_lomb_scargle
 import numpy as np
 
 
@@ -225,7 +225,7 @@ def propose_from_residual(t, residual, max_steps=2, min_line_ratio=30.0):
     Change points: the least-squares single change in the mean of the 3-vector residual
     (the CUSUM statistic of the two-segment fit, maximised over the split; Hawkins 1977),
     applied recursively to the segments (binary segmentation).  Lines: the periodogram
-    (Lomb-Scargle for uneven sampling, magcal_ros.core.findings.lomb_scargle) of each
+    (Lomb-Scargle for uneven sampling, magcal_ros.core.discovery.findings.lomb_scargle) of each
     sensor's residual,
     summed over the axes, its peak refined on a grid 10x finer than 1/span.
 

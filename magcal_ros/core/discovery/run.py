@@ -23,24 +23,24 @@ from dataclasses import dataclass
 import math
 import time
 
-from magcal_ros.core.diagnose.candidates import (added_params, Candidate, candidate_tokens,
+from magcal_ros.core.discovery.candidates import (added_params, Candidate, candidate_tokens,
                                                  extend_model, propose_from_residual,
                                                  reads_stderr, reduces_to_simpler, sensors_of,
                                                  split_testable, token_label,
                                                  tokens_from_findings)
-from magcal_ros.core.diagnose.constants import (ALPHA, AT_FLOOR_RATIO, BLOCKS_PER_FOLD,
+from magcal_ros.core.discovery.constants import (ALPHA, AT_FLOOR_RATIO, BLOCKS_PER_FOLD,
                                                 DEFAULT_FOLDS, DEFAULT_MAX_REFIT,
                                                 DEFAULT_MAX_SAMPLES, EVIDENCE_TIE, MIN_BLOCK,
                                                 MIN_DELTA_BIC, MIN_EXPLAINED, REFIT_CHI2_TOL,
                                                 REFIT_MAX_NFEV, SCORE_RULE_OUT_BIC)
-from magcal_ros.core.diagnose.measures import (dof_factor, evaluate_residuals, Evaluation,
+from magcal_ros.core.discovery.measures import (dof_factor, evaluate_residuals, Evaluation,
                                                explained_share, likelihood_ratio,
                                                n_observations, rms, scalar_rms_of,
                                                soft_l1_lr_loss, vector_rms_of)
-from magcal_ros.core.diagnose.results import compact_spec, Diagnosis
-from magcal_ros.core.diagnose.screen import lag_grid, Screen
-from magcal_ros.core.diagnose.validation import cross_validate
-from magcal_ros.core.findings import find as find_findings
+from magcal_ros.core.discovery.results import compact_spec, Diagnosis
+from magcal_ros.core.discovery.screen import lag_grid, Screen
+from magcal_ros.core.discovery.validation import cross_validate
+from magcal_ros.core.discovery.findings import find as find_findings
 from magcal_ros.core.fitting import fit
 from magcal_ros.core.magnitude import reference_magnitude
 from magcal_ros.core.model import Model
@@ -190,7 +190,7 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
         the noise floor is estimated from all of them.  None: all.
     baseline_m : float
         Arm length of a four-sensor cross, m, for the gradient of a ``nonuniform_field``
-        finding (:func:`magcal_ros.core.findings.find`).
+        finding (:func:`magcal_ros.core.discovery.findings.find`).
     constrained : bool
         Partial attitude coverage: the base fit, every candidate's refit and the held-out
         fits use the priors of ``fit(constrained=True)``, and the held-out fits are refits
