@@ -911,7 +911,7 @@ def _tails(x, sd, sensor, alpha_test):
     p = float(stats.kurtosistest(d.ravel()).pvalue)
     # the robust (MAD) noise level reads low for heavy tails: the share of the excess over
     # it that the tails account for
-    mad = 1.4826 * np.median(np.abs(d - np.median(d, axis=0)), axis=0) * sd
+    mad = stats.median_abs_deviation(d, axis=0, scale='normal') * sd
     low = 1.0 - float(np.sqrt(np.mean(mad ** 2) / np.mean(sd ** 2)))
     if not (p < alpha_test and kurt >= MIN_EXCESS_KURTOSIS and low > 0):
         return None
