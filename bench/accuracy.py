@@ -40,7 +40,8 @@ Figures per method (means over seeds):
   data; in-sample and on held-out data (2000 fresh epochs of the same coverage, no outliers,
   and 2000 on the full sphere);
 - tensor (paper 004 eq. 1, baseline 0.5 m) component RMS on held-out data divided by the
-  noise-propagated floor :func:`magcal_ros.core.tensor.tensor_noise_floor` (the true tensor of
+  noise-propagated floor :func:`magcal_ros.core.geometry.tensor.tensor_noise_floor` (the true
+  tensor of
   a uniform field is zero), overall and worst component, and the same for the true parameters;
 - parameter error RMS over seeds divided by the Cramer-Rao bound, per parameter group
   (scale, non-orthogonality angles, offsets, misalignment): CRB = diag((J'^T J')^-1) with J'
@@ -62,11 +63,11 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import common  # noqa: E402
 from magcal_ros.core import model as mdl  # noqa: E402
-from magcal_ros.core.engine import ProfiledProblem  # noqa: E402
-from magcal_ros.core.magnitude import reference_magnitude  # noqa: E402
-from magcal_ros.core.simulate import SimConfig, Simulator  # noqa: E402
-from magcal_ros.core.solvers import covariance_from_jacobian  # noqa: E402
-from magcal_ros.core.tensor import cross_positions, tensor_cross, tensor_noise_floor  # noqa
+from magcal_ros.core.data.magnitude import reference_magnitude  # noqa: E402
+from magcal_ros.core.data.simulate import SimConfig, Simulator  # noqa: E402
+from magcal_ros.core.geometry.tensor import cross_positions, tensor_cross, tensor_noise_floor  # noqa
+from magcal_ros.core.model.engine import ProfiledProblem  # noqa: E402
+from magcal_ros.core.model.solvers import covariance_from_jacobian  # noqa: E402
 import numpy as np  # noqa: E402
 import site_gradient as site_scn  # noqa: E402
 
@@ -97,7 +98,7 @@ def crb_covariance(data, model, params, field_nt, sigma_nt, priors=None):
     """
     (P, P) inverse Fisher information of the ML problem at ``params`` (the Cramer-Rao bound).
 
-    The variable-projection Jacobian of :class:`magcal_ros.core.engine.ProfiledProblem` at
+    The variable-projection Jacobian of :class:`magcal_ros.core.model.engine.ProfiledProblem` at
     the given (true) parameters with the true noise sd; ``priors`` [(index, mean, sd)] add
     their information (the Bayesian bound of the constrained mode).
     """

@@ -63,7 +63,7 @@ NS = '/bench'
 
 def make_calibration(path):
     """Write a calibration (paper 004 errors, base model) for the corrector to load."""
-    from magcal_ros.core.simulate import simulate
+    from magcal_ros.core.data.simulate import simulate
     from magcal_ros.io.calfile import save_calibration
     from magcal_ros.pipeline import calibrate
     data, _ = simulate(n_samples=500, trajectory='random', seed=3, aux=False)

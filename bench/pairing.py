@@ -39,9 +39,9 @@ import time
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import common  # noqa: E402
-from magcal_ros.core.live import LiveCorrector  # noqa: E402
+from magcal_ros.core.geometry.tensor import cross_positions  # noqa: E402
+from magcal_ros.core.live.corrector import LiveCorrector  # noqa: E402
 from magcal_ros.core.model import Calibration, Model  # noqa: E402
-from magcal_ros.core.tensor import cross_positions  # noqa: E402
 import numpy as np  # noqa: E402
 
 SIGMA_NT = 3.0

@@ -15,12 +15,14 @@
 """
 Papers 000 and 002 on their own scenarios, against this package's refined fit on the same data.
 
-Paper 000 (sine fits on a two-position turntable, :mod:`magcal_ros.core.sine`): the sensor of
+Paper 000 (sine fits on a two-position turntable, :mod:`magcal_ros.core.papers.sine`): the sensor
+of
 the paper's section 3.1 (alpha 1.35 deg, beta 32.7 deg, gamma 1.07 deg, k = 0.909, 1.146,
 1.103, B0 = (143, 97.4, 123.7) nT; |B| = 50 000 nT, I = 43 deg) turned in 36 equal steps in
 each of the two positions, Gaussian noise sigma = 3 nT and 25 nT.
 
-Paper 002 (reference least squares ``Hm = K He + Hh``, :mod:`magcal_ros.core.reference_vector`):
+Paper 002 (reference least squares ``Hm = K He + Hh``,
+:mod:`magcal_ros.core.papers.reference_vector`):
 a Helmholtz-coil field of 4 000 nT as in the paper, a soft-iron K and hard-iron Hh of an iron
 plate (K = [[1.08, .03, -.02], [.05, .95, .04], [-.01, .02, 1.12]], Hh = (350, -220, 480) nT),
 60 random attitudes, reading noise 3 nT and reference noise 1 nT per axis; plus the paper's
@@ -57,10 +59,10 @@ import common  # noqa: E402
 from magcal_ros.core import model as mdl  # noqa: E402
 from magcal_ros.core import reference_vector as ref  # noqa: E402
 from magcal_ros.core import sine  # noqa: E402
-from magcal_ros.core.dataset import Dataset  # noqa: E402
-from magcal_ros.core.engine import ProfiledProblem  # noqa: E402
-from magcal_ros.core.paper_params import Paper000Params  # noqa: E402
-from magcal_ros.core.solvers import covariance_from_jacobian  # noqa: E402
+from magcal_ros.core.data.dataset import Dataset  # noqa: E402
+from magcal_ros.core.model.engine import ProfiledProblem  # noqa: E402
+from magcal_ros.core.model.solvers import covariance_from_jacobian  # noqa: E402
+from magcal_ros.core.papers.paper_params import Paper000Params  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 

@@ -25,7 +25,7 @@ about the fitted centre), the noise floor of the data, and for the accepted ones
 RMS of the base model against an independent geometric ellipsoid fit (the one of
 test/test_real_sunsided.py, not this package's code) and the diagnosis verdict.  The static
 recordings are corrected with the full-sphere calibration and checked by
-``magcal_ros.core.static_check`` (the `magcal check` command).
+``magcal_ros.core.data.static_check`` (the `magcal check` command).
 """
 import argparse
 import os
@@ -36,11 +36,11 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import common  # noqa: E402
 sys.path.insert(0, os.path.join(common.REPO_DIR, 'test'))
-from magcal_ros.core.identifiability import check_coverage  # noqa: E402
-from magcal_ros.core.magnitude import auto_magnitude  # noqa: E402
+from magcal_ros.core.data.magnitude import auto_magnitude  # noqa: E402
+from magcal_ros.core.data.noise import noise_floor  # noqa: E402
+from magcal_ros.core.data.static_check import check_static  # noqa: E402
 from magcal_ros.core.model import DegenerateDataError, fit  # noqa: E402
-from magcal_ros.core.noise import noise_floor  # noqa: E402
-from magcal_ros.core.static_check import check_static  # noqa: E402
+from magcal_ros.core.model.identifiability import check_coverage  # noqa: E402
 from magcal_ros.io.csvio import read_csv  # noqa: E402
 from magcal_ros.io.single_csv import read_single_sensor_csv  # noqa: E402
 import numpy as np  # noqa: E402

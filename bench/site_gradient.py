@@ -22,7 +22,7 @@ world-frame gradient with components up to 400 nT/m (symmetric, traceless).  Met
 - ``ml_base``: today's ``base`` fit, which assumes a uniform field (what a user without the
   effect gets);
 - ``ml_heading``: no attitude; the heading about the field estimated per epoch
-  (:func:`magcal_ros.core.site_gradient.fit_heading_unknown`), the gradient in the
+  (:func:`magcal_ros.core.geometry.site_gradient.fit_heading_unknown`), the gradient in the
   field-aligned frame (gyz = 0), compared with the truth in that frame and with the bound of
   the heading-unknown case;
 - the Cramer-Rao bounds of the three cases of docs/site_gradient.md: attitude known, heading
@@ -38,10 +38,10 @@ over the bound (1 = efficient).
 from dataclasses import replace
 
 from magcal_ros.core import model as mdl
-from magcal_ros.core.effects import symmetric_traceless
-from magcal_ros.core.simulate import SimConfig, Simulator
-from magcal_ros.core.site_gradient import (centred_fields, crb_covariance,
-                                           fit_heading_unknown, gradient_from_fit)
+from magcal_ros.core.data.simulate import SimConfig, Simulator
+from magcal_ros.core.geometry.site_gradient import (centred_fields, crb_covariance,
+                                                    fit_heading_unknown)
+from magcal_ros.core.geometry.tensor import gradient_from_fit, symmetric_traceless
 import numpy as np
 
 #: world (NED) gradient of the scenario, nT/m (gxx, gxy, gxz, gyy, gyz): up to 400 nT/m
@@ -120,7 +120,7 @@ def _field_aligned5(g_w, b_w):
 
 def _tensor_dev(result):
     """(N, 3, 3) nT/m tensor of the centre-referred corrected fields (zero if perfect)."""
-    from magcal_ros.core.tensor import tensor_cross
+    from magcal_ros.core.geometry.tensor import tensor_cross
     return tensor_cross(centred_fields(result), 0.5)
 
 

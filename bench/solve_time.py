@@ -95,7 +95,7 @@ class _Step:
 
 def worker(n, model_key, seed, diagnose_too, max_fit_samples, repeat=1):
     """Run one case in this process; return a dict of figures."""
-    from magcal_ros.core.simulate import simulate
+    from magcal_ros.core.data.simulate import simulate
     from magcal_ros.pipeline import calibrate
     spec, truth = MODELS[model_key]
     data, _ = simulate(n_samples=n, rate_hz=n / DURATION_S, trajectory='smooth', truth=truth,
@@ -180,10 +180,10 @@ def engine_compare(n, seed, repeat):
     this process (BLAS on one thread: CPU time is the work, unlike wall time on a machine
     shared with other processes).
     """
-    from magcal_ros.core.engine import ProfiledProblem
+    from magcal_ros.core.data.simulate import simulate
     from magcal_ros.core.model import fit
-    from magcal_ros.core.simulate import simulate
-    from magcal_ros.core.solvers import single_threaded_blas
+    from magcal_ros.core.model.engine import ProfiledProblem
+    from magcal_ros.core.model.solvers import single_threaded_blas
     spec, truth = MODELS['base+2']
     data, _ = simulate(n_samples=n, rate_hz=n / DURATION_S, trajectory='smooth', truth=truth,
                        seed=seed)

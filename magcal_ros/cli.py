@@ -23,7 +23,7 @@ import os
 import sys
 
 from magcal_ros.core.model import DegenerateDataError
-from magcal_ros.core.notes import format_note
+from magcal_ros.core.model.notes import format_note
 from magcal_ros.units import check_field_units, UNITS_NT
 import numpy as np
 
@@ -117,7 +117,7 @@ def resolve_field(args, data):
 
 def _resolve_field(args, data):
     if getattr(args, 'igrf', None):
-        from magcal_ros.core.magnitude import igrf_total
+        from magcal_ros.core.data.magnitude import igrf_total
         try:
             lat, lon, alt = (float(x) for x in args.igrf[:3])
         except ValueError:
@@ -127,7 +127,7 @@ def _resolve_field(args, data):
                    'date': args.igrf[3], 'magnitude_nt': f}
     if getattr(args, 'field_nt', None) is not None:
         if args.field_nt == 'auto':
-            from magcal_ros.core.magnitude import auto_magnitude
+            from magcal_ros.core.data.magnitude import auto_magnitude
             f = auto_magnitude(data.raw[0])
             return f, {'kind': 'auto (mean radius, shape-only)', 'magnitude_nt': f}
         try:
@@ -174,13 +174,13 @@ def _parse_truth(items):
 
 
 def cmd_simulate(args):
-    from magcal_ros.core.simulate import simulate
+    from magcal_ros.core.data.simulate import simulate
     from magcal_ros.io.csvio import write_csv
     load_plugins(args)
     truth = _parse_truth(args.truth)
     grad = None
     if args.site_gradient:
-        from magcal_ros.core.effects import symmetric_traceless
+        from magcal_ros.core.geometry.tensor import symmetric_traceless
         try:
             g5 = [float(v) for v in args.site_gradient.split(',')]
         except ValueError:
@@ -263,7 +263,7 @@ def cmd_fit(args):
 
 def _fit_paper_method(args, data):
     """``magcal fit --method sine|reference``: the closed forms of papers 000 and 002."""
-    from magcal_ros.core import paper_methods
+    from magcal_ros.core.papers import paper_methods
     from magcal_ros.io.calfile import calibration_to_doc, save_calibration
     from magcal_ros.pipeline import cross_geometry
     for opt, given in (('--model', args.model != 'base'), ('--robust', args.robust),
@@ -355,7 +355,7 @@ def cmd_rollback(args):
 
 def cmd_check(args):
     """`magcal check CALFILE DATA...`: a calibration against static recordings."""
-    from magcal_ros.core.static_check import check_static
+    from magcal_ros.core.data.static_check import check_static
     from magcal_ros.io import calfile
     try:
         cal, doc = calfile.load_calibration(args.calfile)

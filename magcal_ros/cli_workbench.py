@@ -142,7 +142,7 @@ def cmd_diagnose(args, cli):
         from magcal_ros.report import write_report
         index = write_report(args.report, data, diagnosis=diag, ladder=lad,
                              baseline_m=args.baseline_m, figures=args.figures)
-    from magcal_ros.core.notes import format_note
+    from magcal_ros.core.model.notes import format_note
     from magcal_ros.pipeline import fit_warnings
     warnings = fit_warnings(diag.result, diag.noise_floor)
     if args.json:

@@ -21,11 +21,12 @@ residuals) and the calibration document (docs/design.md §4).
 """
 from dataclasses import dataclass
 
+from magcal_ros.core.data.noise import data_noise_floor
+from magcal_ros.core.geometry.site_gradient import centred_fields
+from magcal_ros.core.geometry.tensor import (cross_positions, gradient_from_fit, tensor_lstsq,
+                                             tensor_noise_floor)
 from magcal_ros.core.model import data_hash, fit, Model
-from magcal_ros.core.noise import data_noise_floor
-from magcal_ros.core.notes import Note, note_dict
-from magcal_ros.core.site_gradient import centred_fields, gradient_from_fit
-from magcal_ros.core.tensor import cross_positions, tensor_lstsq, tensor_noise_floor
+from magcal_ros.core.model.notes import Note, note_dict
 from magcal_ros.io.calfile import calibration_to_doc
 import numpy as np
 
@@ -76,7 +77,7 @@ def _residual_warnings(result, floor):
     Structured warnings (:class:`Note`) on the fit's residual against the data's floor.
 
     ``result.sigma_nt`` (S,) is the fit's per-axis noise estimate from its residual and
-    ``floor`` the :class:`~magcal_ros.core.noise.NoiseFloor` of the data (needs no model): a
+    ``floor`` the :class:`~magcal_ros.core.data.noise.NoiseFloor` of the data (needs no model): a
     fit that is complete meets it; one far above it misses an effect, or was given
     inconsistent data (sets of the array paired from different epochs, a non-uniform field).
     A filtered series has no white floor to compare with: it gets a ``noise_floor`` warning
@@ -112,7 +113,7 @@ def summarize(result, data, positions=None):
     """
     Before/after figures of a fit (all nT, nT/m); JSON-ready.
 
-    The noise floor is :func:`~magcal_ros.core.noise.data_noise_floor` of the data and this
+    The noise floor is :func:`~magcal_ros.core.data.noise.data_noise_floor` of the data and this
     fit (the figure ``diagnose`` reports for the same data and model); the tensor floor is
     propagated from it, not from the fit's sigma (which grows when an effect is missing).
     ``warnings`` is a list of ``{kind, sensor, text}``.
@@ -238,7 +239,7 @@ def _calibrate(data, model, field_nt, geometry, field_reference, **fit_kwargs):
         model.set_positions(positions)          # where the site gradient acts
     if fit_kwargs.pop('heading_unknown', False):
         # site gradient without attitude: the heading about the field per epoch
-        from magcal_ros.core.site_gradient import fit_heading_unknown
+        from magcal_ros.core.geometry.site_gradient import fit_heading_unknown
         result = fit_heading_unknown(data, model, field_nt=field_nt, **fit_kwargs)
     else:
         result = fit(data, model, field_nt=field_nt, **fit_kwargs)

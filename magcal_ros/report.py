@@ -40,9 +40,9 @@ import textwrap
 import warnings
 import zlib
 
-from magcal_ros.core.discovery import (AT_FLOOR_RATIO, compact_spec, MIN_DELTA_BIC,
-                                      MIN_EXPLAINED, noise_floor_from_data)
-from magcal_ros.core.tensor import cross_positions, tensor_cross, tensor_noise_floor
+from magcal_ros.core.discovery import (AT_FLOOR_RATIO, compact_spec, MIN_DELTA_BIC, MIN_EXPLAINED,
+                                      noise_floor_from_data)
+from magcal_ros.core.geometry.tensor import cross_positions, tensor_cross, tensor_noise_floor
 import matplotlib
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure

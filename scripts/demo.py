@@ -247,9 +247,9 @@ def _rms(x, axis=None):
 
 def analyse(rec, field_nt, baseline_m, tolerance_s):
     """Errors before/after correction and their floors (all nT, nT/m)."""
-    from magcal_ros.core.noise import noise_floor
-    from magcal_ros.core.tensor import cross_positions, tensor_lstsq, tensor_noise_floor
-    from magcal_ros.core.sync import StampMatcher
+    from magcal_ros.core.data.noise import noise_floor
+    from magcal_ros.core.geometry.tensor import cross_positions, tensor_lstsq, tensor_noise_floor
+    from magcal_ros.core.live.sync import StampMatcher
 
     with rec.lock:
         raw = [np.array(r) for r in rec.raw]

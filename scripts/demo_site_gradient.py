@@ -77,7 +77,7 @@ def parse_gradient(text):
 
 def scalar_residuals(run, field_nt):
     """(S, N) nT: |field at the array centre| - F per sensor and set (about the modelled shift)."""
-    from magcal_ros.core.site_gradient import centred_fields
+    from magcal_ros.core.geometry.site_gradient import centred_fields
     return np.linalg.norm(centred_fields(run.result), axis=-1) - field_nt
 
 
@@ -156,8 +156,8 @@ def main(argv=None):
     if args.n < 100 or not args.noise_nt > 0:
         p.error('--n must be >= 100 and --noise-nt > 0')
 
-    from magcal_ros.core.effects import symmetric_traceless
-    from magcal_ros.core.simulate import simulate
+    from magcal_ros.core.data.simulate import simulate
+    from magcal_ros.core.geometry.tensor import symmetric_traceless
     from magcal_ros.io.csvio import write_csv
     from magcal_ros.pipeline import cross_geometry
     out = pathlib.Path(args.out)

@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 import re
 
 import injection as inj
-from magcal_ros.core.dataset import Dataset
+from magcal_ros.core.data.dataset import Dataset
 import numpy as np
 
 SIGMA_NT = inj.SIGMA_NT

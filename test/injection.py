@@ -15,7 +15,7 @@
 """
 Test data of a four-sensor cross written independently of ``Model.forward``.
 
-The simulator (``magcal_ros.core.simulate``) uses the forward model that the fit inverts, so a
+The simulator (``magcal_ros.core.data.simulate``) uses the forward model that the fit inverts, so a
 wrong physical definition of an effect would pass every test built on it.  Here each sensor
 is written out by hand: raw_j = K_j (B_body) + o_j + injected_j(t) + noise, with K_j a scale
 times a small non-orthogonal, rotated matrix of the size of paper 004's Table 1 errors, and
@@ -23,7 +23,7 @@ the injected faults (a step, a sinusoid, a lagged temperature, a current-squared
 heavy-tailed noise, a random walk) computed by the small functions below, not by
 ``magcal_ros.core.effects``.
 """
-from magcal_ros.core.dataset import Dataset
+from magcal_ros.core.data.dataset import Dataset
 import numpy as np
 
 F_NT = 50000.0

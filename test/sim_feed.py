@@ -15,7 +15,7 @@
 """
 Feed simulated array samples to in-process nodes (tests of the calibration/corrector nodes).
 
-The core simulator (:mod:`magcal_ros.core.simulate`) provides raw readings with known truth;
+The core simulator (:mod:`magcal_ros.core.data.simulate`) provides raw readings with known truth;
 they are published as ``sensor{j}/raw`` (tesla, exact stamps) and ``sensor{j}/temperature``
 through :mod:`magcal_ros.ros.conversions`, in small batches, spinning the executor between
 batches until the node under test has taken them (its best-effort queues are finite).

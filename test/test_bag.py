@@ -13,8 +13,8 @@
 # limitations under the License.
 
 """rosbag2 reader (magcal_ros.io.bag): write simulated data with rosbags' writer, read back."""
+from magcal_ros.core.data.simulate import simulate
 from magcal_ros.core.model import fit
-from magcal_ros.core.simulate import simulate
 from magcal_ros.io.bag import BagFormatError, read_bag, write_bag
 from magcal_ros.units import nt_to_t
 import numpy as np

@@ -15,7 +15,7 @@
 """Calibration file (docs/design.md §4): content, atomic writes, history, refusals."""
 import os
 
-from magcal_ros.core.simulate import simulate
+from magcal_ros.core.data.simulate import simulate
 from magcal_ros.io import calfile
 from magcal_ros.io.calfile import CalibrationFileError, load_calibration, save_calibration
 from magcal_ros.pipeline import calibrate

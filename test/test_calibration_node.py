@@ -23,8 +23,8 @@ derived from that noise.
 import json
 import os
 
-from magcal_ros.core.live import SampleBuffer
-from magcal_ros.core.simulate import simulate
+from magcal_ros.core.data.simulate import simulate
+from magcal_ros.core.live.corrector import SampleBuffer
 from magcal_ros.io.calfile import load_calibration, parse_calibration, save_calibration
 from magcal_ros.pipeline import calibrate
 from magcal_ros.ros.calibration_node import CalibrationNode, RESULT_QOS

@@ -24,7 +24,7 @@ after ``model: [base, temperature@2]`` and a calibrate it falls to the noise.
 """
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from magcal_ros.core.dataset import Dataset
+from magcal_ros.core.data.dataset import Dataset
 from magcal_ros.ros.calibration_node import CalibrationNode
 from magcal_ros.ros.conversions import RESIDUAL_KIND_LABEL
 import numpy as np

@@ -21,10 +21,10 @@ paired one epoch off is off by ~100 nT against a per-axis misfit of sqrt(2) x 3 
 for a right pairing.  Slips are made by re-indexing one sensor's samples, so the right
 pairing is known exactly and the repaired sets can be compared sample by sample.
 """
-from magcal_ros.core.consistency import DROP, find_slips, gross_outliers, resync
-from magcal_ros.core.dataset import Dataset
+from magcal_ros.core.data.dataset import Dataset
+from magcal_ros.core.data.simulate import simulate
+from magcal_ros.core.live.consistency import DROP, find_slips, gross_outliers, resync
 from magcal_ros.core.model import fit
-from magcal_ros.core.simulate import simulate
 import numpy as np
 import pytest
 

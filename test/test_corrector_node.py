@@ -18,7 +18,7 @@ corrector_node in-process: correction, gradient, calibration updates, refusals, 
 The calibrations used here are the simulator's true ones (:attr:`Simulator.truth`), so the
 corrected field must equal the simulated true field up to the sensor noise (3 nT per axis,
 propagated through A^-1), and the gradient of the uniform simulated field is zero up to the
-noise-propagated floor of :func:`magcal_ros.core.tensor.tensor_noise_floor`.
+noise-propagated floor of :func:`magcal_ros.core.geometry.tensor.tensor_noise_floor`.
 """
 import copy
 import sys
@@ -26,17 +26,15 @@ import types
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from magcal_interfaces.msg import GradientTensorStamped
+from magcal_ros.core.data.simulate import simulate
 from magcal_ros.core.effects import SensorContext
+from magcal_ros.core.geometry.tensor import cross_positions, tensor_noise_floor
 from magcal_ros.core.model import Calibration, Model
-from magcal_ros.core.simulate import simulate
-from magcal_ros.core.tensor import cross_positions, tensor_noise_floor
-from magcal_ros.io.calfile import (calibration_to_doc, dump_calibration,
-                                   save_calibration)
+from magcal_ros.io.calfile import (calibration_to_doc, dump_calibration, save_calibration)
 from magcal_ros.pipeline import cross_geometry
 from magcal_ros.ros.calibration_node import RESULT_QOS
 from magcal_ros.ros.conversions import (msg_to_covariance_nt2, msg_to_field_nt,
-                                        msg_to_gradient_stamped, msg_to_tensor,
-                                        stamp_to_seconds)
+                                        msg_to_gradient_stamped, msg_to_tensor, stamp_to_seconds)
 from magcal_ros.ros.corrector_node import CorrectorNode
 import numpy as np
 import pytest

@@ -13,7 +13,7 @@
 # limitations under the License.
 
 """Wide CSV (docs/design.md §1): round trip and clear errors."""
-from magcal_ros.core.simulate import simulate
+from magcal_ros.core.data.simulate import simulate
 from magcal_ros.io.csvio import CsvFormatError, read_csv, write_csv
 import numpy as np
 import pytest

@@ -27,7 +27,7 @@ calibration file untouched.
 """
 import json
 
-from magcal_ros.core.simulate import simulate
+from magcal_ros.core.data.simulate import simulate
 from magcal_ros.io.calfile import save_calibration
 from magcal_ros.pipeline import calibrate
 from ros_helpers import call_trigger, console_script, spin_until, split_response as split

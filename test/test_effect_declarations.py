@@ -23,10 +23,10 @@ of its name.  The recordings for the fit are made in this file from the formula,
 ``Model.forward``.
 """
 from magcal_ros.core import effects as fx
-from magcal_ros.core.dataset import Dataset
+from magcal_ros.core.data.dataset import Dataset
+from magcal_ros.core.data.simulate import simulate
 from magcal_ros.core.discovery import diagnose
 from magcal_ros.core.model import fit, Model, priors_for
-from magcal_ros.core.simulate import simulate
 from magcal_ros.io.calfile import calibration_from_doc, calibration_to_doc
 import numpy as np
 import pytest
@@ -184,7 +184,7 @@ def test_temperature_plugin_in_simulate(plugins):
 
 
 def test_temperature_plugin_fit_diagnose_file_and_live_correction(plugins):
-    from magcal_ros.core.live import LiveCorrector, MissingSignal
+    from magcal_ros.core.live.corrector import LiveCorrector, MissingSignal
 
     data, b = _recording()
     spec = f'offset,scale,{ThermalSquare.name}'

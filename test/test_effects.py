@@ -15,8 +15,8 @@
 """Every built-in effect: simulate it with known parameters, fit it, recover them."""
 import injection as inj  # test/injection.py: the cross written out by hand
 from magcal_ros.core import effects as fx
+from magcal_ros.core.data.simulate import simulate
 from magcal_ros.core.model import fit, Model
-from magcal_ros.core.simulate import simulate
 import numpy as np
 import pytest
 

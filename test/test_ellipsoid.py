@@ -13,8 +13,8 @@
 # limitations under the License.
 
 """Paper 004 eq. 8-14: ellipsoid fit, Cholesky factor, Procrustes."""
-from magcal_ros.core.ellipsoid import fit_ellipsoid, procrustes_rotation
-from magcal_ros.core.paper_params import table1_correction, table1_sensor
+from magcal_ros.core.papers.ellipsoid import fit_ellipsoid, procrustes_rotation
+from magcal_ros.core.papers.paper_params import table1_correction, table1_sensor
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation

@@ -22,12 +22,12 @@ random attitudes, a world field and gradient rotated into the body frame with sc
 Rotation, per-sensor linear maps and offsets written out below, a temperature drift on
 sensor 2.
 """
-from magcal_ros.core.dataset import Dataset
-from magcal_ros.core.engine import ProfiledProblem
-from magcal_ros.core.fitting import initial_params, priors_for
+from magcal_ros.core.data.dataset import Dataset
 from magcal_ros.core.model import fit, Model
-from magcal_ros.core.solvers import (covariance_from_jacobian, covariance_from_normal,
-                                     levenberg_marquardt, resolves_covariance)
+from magcal_ros.core.model.engine import ProfiledProblem
+from magcal_ros.core.model.fitting import initial_params, priors_for
+from magcal_ros.core.model.solvers import (covariance_from_jacobian, covariance_from_normal,
+                                           levenberg_marquardt, resolves_covariance)
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation

@@ -24,8 +24,8 @@ difference was off by several times the noise.
 The recording is written here from the physics (a true delay of sensor 2, evaluated from the
 attitude at t - tau), not with Model.forward.
 """
-from magcal_ros.core.dataset import Dataset
-from magcal_ros.core.live import LiveCorrector, MissingSignal
+from magcal_ros.core.data.dataset import Dataset
+from magcal_ros.core.live.corrector import LiveCorrector, MissingSignal
 from magcal_ros.core.model import fit
 import numpy as np
 import pytest

@@ -25,7 +25,7 @@ import functools
 import json
 
 import injection as inj
-from magcal_ros.core.dataset import Dataset
+from magcal_ros.core.data.dataset import Dataset
 from magcal_ros.core.discovery.findings import find, lomb_scargle, periodogram, white_noise_sd
 from magcal_ros.core.model import fit
 import numpy as np
@@ -369,9 +369,9 @@ def test_irregular_sampling_pump_is_found_by_lomb_scargle():
 def test_real_hand_rotation_drift_is_named():
     # issue 11: on the shared roll-and-tilt recording (HMC5883L, hand-rotated, 36 s) "a slow
     # drift of about 1 200 nT is plain in the residual plot"; the findings name it
-    import pathlib
-    from magcal_ros.core.magnitude import auto_magnitude
+    from magcal_ros.core.data.magnitude import auto_magnitude
     from magcal_ros.io.csvio import read_csv
+    import pathlib
     path = (pathlib.Path(__file__).resolve().parents[1] / '..' / 'shared' / 'data' / 'real'
             / 'sunsided-hmc5883l' / 'roll-and-tilt-at-45-90' / 'roll-and-tilt-at-45-90.csv')
     data = read_csv(path)

@@ -23,8 +23,8 @@ import pathlib
 import subprocess
 import sys
 
-from magcal_ros.core.paper_params import Paper000Params
-from magcal_ros.core.sine import simulate_turntable
+from magcal_ros.core.papers.paper_params import Paper000Params
+from magcal_ros.core.papers.sine import simulate_turntable
 from magcal_ros.io.calfile import load_calibration
 import numpy as np
 import pytest

@@ -19,10 +19,10 @@ Every data set here is generated in the test from its own few lines of geometry 
 directions, a hand-written sensor matrix, a hard-iron offset, Gaussian noise), not by the
 project's simulator, so the checks do not compare the code with itself.
 """
-from magcal_ros.core.dataset import Dataset
-from magcal_ros.core.ellipsoid import fit_ellipsoid
-from magcal_ros.core.identifiability import check_coverage
+from magcal_ros.core.data.dataset import Dataset
 from magcal_ros.core.model import DegenerateDataError, fit
+from magcal_ros.core.model.identifiability import check_coverage
+from magcal_ros.core.papers.ellipsoid import fit_ellipsoid
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation

@@ -184,9 +184,9 @@ def test_no_module_reaches_into_another_modules_private_names():
 def test_the_private_name_check_sees_both_forms():
     source = ('from magcal_ros.core.model import fit, _hidden\n'
               'from magcal_ros.core import effects as fx\n'
-              'import magcal_ros.core.engine as eng\n'
+              'import magcal_ros.core.model.engine as eng\n'
               'x = fx._REGISTRY, eng._cache, fx.make_effect, fx.__name__\n')
     assert [t for _, t in private_reaches(source)] == [
         'from magcal_ros.core.model import _hidden',
-        'eng._cache (magcal_ros.core.engine)',
+        'eng._cache (magcal_ros.core.model.engine)',
         'fx._REGISTRY (magcal_ros.core.effects)']

@@ -13,17 +13,17 @@
 # limitations under the License.
 
 """
-magcal_ros.core.live.LiveCorrector: the live correction without ROS.
+magcal_ros.core.live.corrector.LiveCorrector: the live correction without ROS.
 
 References are written here, not taken from the model code: raw readings are made by hand
 from a chosen A_j, offset and field; the tensor of a linear field B(r) = B0 + G r is chosen
 here; the field rate is the slope of a line; the tensor covariance is checked by Monte Carlo.
 """
 from magcal_ros.core.effects import SensorContext
-from magcal_ros.core.live import (LiveCorrector, MissingSignal, RESIDUAL_WARN_RATIO,
-                                  ResidualMonitor)
+from magcal_ros.core.geometry.tensor import cross_positions
+from magcal_ros.core.live.corrector import (LiveCorrector, MissingSignal, RESIDUAL_WARN_RATIO,
+                                            ResidualMonitor)
 from magcal_ros.core.model import Calibration, Model
-from magcal_ros.core.tensor import cross_positions
 import numpy as np
 import pytest
 

@@ -32,10 +32,10 @@ The tensor error is against the true tensor R(t)^T G_w R(t) of sensor 1's epoch;
 reference is the noise floor from the calibration's covariance (LiveCorrector.
 gradient_cov_nt2, checked against Monte Carlo in test_live).
 """
-from magcal_ros.core.consistency import find_slips
-from magcal_ros.core.live import LiveCorrector
-from magcal_ros.core.sync import StampMatcher
-from magcal_ros.core.tensor import cross_positions
+from magcal_ros.core.geometry.tensor import cross_positions
+from magcal_ros.core.live.consistency import find_slips
+from magcal_ros.core.live.corrector import LiveCorrector
+from magcal_ros.core.live.sync import StampMatcher
 import numpy as np
 import pytest
 from test_live import _calibration, _raw, SIGMA_NT

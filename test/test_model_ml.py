@@ -13,9 +13,9 @@
 # limitations under the License.
 
 """ML refinement: efficiency, partial coverage, reference drift, outliers, refusals."""
-from magcal_ros.core.ellipsoid import fit_ellipsoid
+from magcal_ros.core.data.simulate import simulate
 from magcal_ros.core.model import DegenerateDataError, fit, Model
-from magcal_ros.core.simulate import simulate
+from magcal_ros.core.papers.ellipsoid import fit_ellipsoid
 import numpy as np
 import pytest
 

@@ -18,11 +18,11 @@ Paper 004 section 4.1: N = 200 random attitudes, sigma 3 nT, baseline 0.5 m, Tab
 Tolerances come from the noise: the fit's own standard uncertainties (checked against
 Monte Carlo in test_model_ml.py) and Gaussian order statistics for the maxima.
 """
-from magcal_ros.core.ellipsoid import fit_ellipsoid, procrustes_rotation
+from magcal_ros.core.data.simulate import simulate
+from magcal_ros.core.geometry.tensor import cross_positions, tensor_cross, tensor_noise_floor
 from magcal_ros.core.model import fit
-from magcal_ros.core.paper_params import table1_correction
-from magcal_ros.core.simulate import simulate
-from magcal_ros.core.tensor import cross_positions, tensor_cross, tensor_noise_floor
+from magcal_ros.core.papers.ellipsoid import fit_ellipsoid, procrustes_rotation
+from magcal_ros.core.papers.paper_params import table1_correction
 import numpy as np
 import pytest
 

@@ -22,7 +22,7 @@ from functools import partial
 
 from magcal_ros import pipeline
 from magcal_ros.core import model as model_mod
-from magcal_ros.core.simulate import simulate
+from magcal_ros.core.data.simulate import simulate
 from magcal_ros.ros.calibration_node import RESULT_QOS
 from ros_helpers import call_trigger, spin_until, split_response as split
 from test_calibration_node import feed_and_calibrate, listen, start_node

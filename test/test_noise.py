@@ -13,9 +13,9 @@
 # limitations under the License.
 
 """
-The one noise-floor estimator (core/noise.py).
+The one noise-floor estimator (core/data/noise.py).
 
-The one noise-floor estimator (core/noise.py): heavy tails, filtered series, spikes, and
+The one noise-floor estimator (core/data/noise.py): heavy tails, filtered series, spikes, and
 the same floor from ``fit`` and ``diagnose``.
 
 The series are generated here, independently of the model's forward code: a smooth tumble of
@@ -25,11 +25,11 @@ drawn from numpy (Gaussian, Student-t) or shaped by scipy.signal (a Butterworth 
 from functools import partial
 
 from magcal_ros.core import model as model_mod
-from magcal_ros.core.dataset import Dataset
+from magcal_ros.core.data.dataset import Dataset
+from magcal_ros.core.data.noise import data_noise_floor, estimate_noise, robust_sd
+from magcal_ros.core.data.simulate import simulate
 from magcal_ros.core.discovery import diagnose
-from magcal_ros.core.noise import data_noise_floor, estimate_noise, robust_sd
-from magcal_ros.core.simulate import simulate
-from magcal_ros.core.tensor import cross_positions, tensor_noise_floor
+from magcal_ros.core.geometry.tensor import cross_positions, tensor_noise_floor
 from magcal_ros.pipeline import calibrate
 import numpy as np
 import pytest
@@ -161,7 +161,7 @@ def test_lm_out_of_evaluations_is_not_success(monkeypatch, tmp_path, capsys):
     from magcal_ros.io.csvio import write_csv
     rosen = lambda x: np.array([10 * (x[1] - x[0] ** 2), 1 - x[0]])        # noqa: E731
     jac = lambda x: np.array([[-20 * x[0], 10.0], [-1.0, 0.0]])            # noqa: E731
-    from magcal_ros.core.solvers import levenberg_marquardt
+    from magcal_ros.core.model.solvers import levenberg_marquardt
     short = levenberg_marquardt(rosen, jac, np.array([-1.2, 1.0]), max_nfev=5)
     assert not short.success and 'maximum number of evaluations' in short.message
     full = levenberg_marquardt(rosen, jac, np.array([-1.2, 1.0]), max_nfev=500)

@@ -12,11 +12,11 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""Tests for magcal_ros.core.paper_params."""
+"""Tests for magcal_ros.core.papers.paper_params."""
 
-from magcal_ros.core.paper_params import (
-    Paper000Params, Paper002Params, Paper004Params, rot_r1, rot_r2, rot_r3, table1_correction,
-    table1_sensor)
+from magcal_ros.core.papers.paper_params import (Paper000Params, Paper002Params, Paper004Params,
+                                                 rot_r1, rot_r2, rot_r3, table1_correction,
+                                                 table1_sensor)
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation

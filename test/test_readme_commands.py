@@ -282,8 +282,8 @@ def test_design_synopsis_matches_the_command_line():
 @pytest.fixture
 def doc_plugin():
     """Register the effect class of docs/plugins.md, as written, for one test."""
-    import types
     from magcal_ros.core import effects as fx
+    import types
     code = re.findall(r'```python\n(.*?)```', (REPO / 'docs' / 'plugins.md').read_text(),
                       flags=re.S)[0]
     module = types.ModuleType('doc_plugin')
@@ -306,8 +306,8 @@ def test_plugins_doc_example_effect_as_written(doc_plugin):
     hand here, and sensor 2's raw readings given v (sqrt(P) - mean sqrt(P)), written here
     (not through the model), with v = (6, -4, 5) nT/sqrt(W).
     """
+    from magcal_ros.core.data.simulate import simulate
     from magcal_ros.core.model import fit
-    from magcal_ros.core.simulate import simulate
     assert doc_plugin == ['heater_current']
     data, _ = simulate(n_samples=3000, rate_hz=10, trajectory='smooth', seed=11)
     rng = np.random.default_rng(5)

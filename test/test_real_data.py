@@ -33,7 +33,7 @@ import pathlib
 import subprocess
 import sys
 
-from magcal_ros.core.magnitude import auto_magnitude
+from magcal_ros.core.data.magnitude import auto_magnitude
 from magcal_ros.core.model import fit
 from magcal_ros.io.single_csv import read_single_sensor_csv, to_nt
 import numpy as np

@@ -27,10 +27,10 @@ import shutil
 import subprocess
 import sys
 
-from magcal_ros.core.identifiability import check_coverage
-from magcal_ros.core.magnitude import auto_magnitude
+from magcal_ros.core.data.magnitude import auto_magnitude
+from magcal_ros.core.data.noise import noise_floor
 from magcal_ros.core.model import DegenerateDataError, fit
-from magcal_ros.core.noise import noise_floor
+from magcal_ros.core.model.identifiability import check_coverage
 from magcal_ros.io.csvio import read_csv
 from magcal_ros.io.single_csv import read_single_sensor_csv
 import numpy as np

@@ -12,13 +12,13 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""Tests for magcal_ros.core.reference_vector (paper 002, reference least squares)."""
+"""Tests for magcal_ros.core.papers.reference_vector (paper 002, reference least squares)."""
 
 import io
 import pathlib
 
-from magcal_ros.core.paper_params import Paper002Params
-from magcal_ros.core.reference_vector import correct, fit_reference
+from magcal_ros.core.papers.paper_params import Paper002Params
+from magcal_ros.core.papers.reference_vector import correct, fit_reference
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation

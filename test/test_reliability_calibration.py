@@ -40,10 +40,10 @@ import re
 import subprocess
 import sys
 
-from magcal_ros.core.identifiability import check_coverage
+from magcal_ros.core.data.simulate import simulate
+from magcal_ros.core.live.sync import StampMatcher
 from magcal_ros.core.model import DegenerateDataError, fit
-from magcal_ros.core.simulate import simulate
-from magcal_ros.core.sync import StampMatcher
+from magcal_ros.core.model.identifiability import check_coverage
 from magcal_ros.io.calfile import (calibration_to_doc, list_history, load_calibration,
                                    save_calibration)
 from magcal_ros.io.csvio import write_csv

@@ -200,7 +200,7 @@ def rss_kib(pid):
 
 
 def test_corrector_under_a_10x_burst(start_process, ros_namespace, tmp_path):
-    from magcal_ros.core.simulate import simulate
+    from magcal_ros.core.data.simulate import simulate
     from magcal_ros.io.calfile import calibration_to_doc, save_calibration
     from magcal_ros.pipeline import cross_geometry
     from ros_helpers import console_script

@@ -47,7 +47,7 @@ import sys
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from hypothesis import given, HealthCheck, settings, strategies as st
-from magcal_ros.core.simulate import simulate
+from magcal_ros.core.data.simulate import simulate
 from magcal_ros.io import calfile
 from magcal_ros.io.calfile import (calibration_to_doc, CalibrationFileError, dump_calibration,
                                    list_history, load_calibration, parse_calibration,
@@ -90,8 +90,8 @@ def source_of(path):
 # -- a writer killed in the middle -----------------------------------------------------------
 
 WRITER = r"""
-import os, sys, time
 from magcal_ros.io.calfile import load_calibration, save_calibration
+import os, sys, time
 path, new_doc, stage = sys.argv[1], sys.argv[2], int(sys.argv[3])
 _, doc = load_calibration(new_doc)
 calls = []

@@ -19,9 +19,9 @@ import io
 import re
 
 from magcal_ros import report
+from magcal_ros.core.data.simulate import simulate
 from magcal_ros.core.discovery import diagnose, ladder
 from magcal_ros.core.model import fit
-from magcal_ros.core.simulate import simulate
 from matplotlib.image import imread
 import numpy as np
 import pytest

@@ -30,7 +30,7 @@ import io
 from types import SimpleNamespace
 
 from magcal_ros import report
-from magcal_ros.core.dataset import Dataset
+from magcal_ros.core.data.dataset import Dataset
 from matplotlib.figure import Figure
 from matplotlib.transforms import Bbox
 import numpy as np

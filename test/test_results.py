@@ -24,7 +24,7 @@ Lagrange multiplier lambda found per epoch by root finding (scipy.optimize.brent
 import dataclasses
 import inspect
 
-from magcal_ros.core.dataset import Dataset
+from magcal_ros.core.data.dataset import Dataset
 from magcal_ros.core.discovery import diagnose, ladder
 from magcal_ros.core.model import fit, FitResult
 import numpy as np

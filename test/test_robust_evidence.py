@@ -22,9 +22,9 @@ soft-L1 loss) is chi-square under the null: on data with 2 % spikes of 1000 nT a
 missing, no candidate may reach the evidence threshold, while a real missing effect still
 wins.
 """
+from magcal_ros.core.data.simulate import simulate
 from magcal_ros.core.discovery import diagnose, MIN_DELTA_BIC, soft_l1_lr_loss
 from magcal_ros.core.model import fit
-from magcal_ros.core.simulate import simulate
 import numpy as np
 
 

@@ -25,7 +25,7 @@ import sys
 
 from diagnostic_msgs.msg import DiagnosticArray
 from magcal_ros.core import effects as fx
-from magcal_ros.core.simulate import simulate
+from magcal_ros.core.data.simulate import simulate
 from magcal_ros.io.calfile import calibration_to_doc, dump_calibration, load_calibration
 from magcal_ros.pipeline import cross_geometry
 from magcal_ros.ros.calibration_node import CalibrationNode, RESULT_QOS
@@ -34,8 +34,7 @@ from magcal_ros.ros.corrector_node import CorrectorNode
 import numpy as np
 import pytest
 from rclpy.parameter import Parameter
-from ros_helpers import (console_script, REPO_ROOT, run_concurrently, spin_until,
-                         subprocess_env)
+from ros_helpers import (console_script, REPO_ROOT, run_concurrently, spin_until, subprocess_env)
 from sensor_msgs.msg import MagneticField
 from sim_feed import Feeder
 from std_msgs.msg import String

@@ -43,8 +43,8 @@ import shlex
 import signal
 import time
 
-from magcal_ros.core.simulate import simulate
-from magcal_ros.core.tensor import cross_positions, tensor_noise_floor
+from magcal_ros.core.data.simulate import simulate
+from magcal_ros.core.geometry.tensor import cross_positions, tensor_noise_floor
 from magcal_ros.io.calfile import calibration_to_doc, save_calibration
 from magcal_ros.pipeline import cross_geometry
 from magcal_ros.ros.conversions import msg_to_tensor

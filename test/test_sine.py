@@ -12,11 +12,11 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""Tests for magcal_ros.core.sine (paper 000, sine-fit turntable calibration)."""
+"""Tests for magcal_ros.core.papers.sine (paper 000, sine-fit turntable calibration)."""
 
-from magcal_ros.core.paper_params import Paper000Params
-from magcal_ros.core.sine import (
-    calibrate_turntable, correct, fit_sine, fit_turntable, simulate_turntable)
+from magcal_ros.core.papers.paper_params import Paper000Params
+from magcal_ros.core.papers.sine import (calibrate_turntable, correct, fit_sine, fit_turntable,
+                                         simulate_turntable)
 import numpy as np
 import pytest
 

@@ -23,9 +23,9 @@ import json
 import subprocess
 import sys
 
-from magcal_ros.core.attitude import AttitudeError, check_quaternions
-from magcal_ros.core.dataset import Dataset
+from magcal_ros.core.data.dataset import Dataset
 from magcal_ros.core.effects import SensorContext, SiteGradient
+from magcal_ros.core.geometry.attitude import AttitudeError, check_quaternions
 from magcal_ros.core.model import DegenerateDataError, fit, Model
 from magcal_ros.io.calfile import calibration_from_doc, load_calibration, save_calibration
 from magcal_ros.io.csvio import CsvFormatError, read_csv, write_csv
@@ -249,7 +249,7 @@ def test_bounds_of_the_three_cases():
     a per-epoch nuisance gradient exactly 20 of base's 45 directions are undetermined
     (5 differential offsets + 15 differential linear terms: docs/site_gradient.md).
     """
-    from magcal_ros.core.site_gradient import crb_covariance
+    from magcal_ros.core.geometry.site_gradient import crb_covariance
     data, _ = make_data(n=300, seed=7)
     m = Model.from_spec('base,site_gradient', 4)
     truth = m.default_params()
@@ -315,7 +315,7 @@ def test_bag_imu_orientation_round_trip(tmp_path):
 
 def test_bag_imu_interpolation_hand_computed():
     """Orientation about z at 0, 40, 80 deg at t = 0, 1, 2 s: at 0.5 s slerp gives 20 deg."""
-    from magcal_ros.core.attitude import interpolate
+    from magcal_ros.core.geometry.attitude import interpolate
     q = Rotation.from_euler('z', [[0], [40], [80]], degrees=True).as_quat(scalar_first=True)
     got = interpolate(np.array([0.0, 1.0, 2.0]), q, np.array([0.5, 1.5]))
     want = np.array([[np.cos(np.radians(10)), 0, 0, np.sin(np.radians(10))],
@@ -346,7 +346,7 @@ def test_heading_unknown_reaches_its_bound():
     out as with attitude (offsets within 4 sigma of the truth), the gradient in the
     field-aligned frame (its rotation about the field is not determined) within 4 sigma.
     """
-    from magcal_ros.core.site_gradient import fit_heading_unknown
+    from magcal_ros.core.geometry.site_gradient import fit_heading_unknown
     data, _ = make_data(n=800, seed=2, attitude=False)
     res = fit_heading_unknown(data, field_nt=FIELD_NT)
     info = res.model.param_info()
@@ -415,7 +415,7 @@ def test_fluxgate_sim_site_gradient_option(make_node, ros_namespace, tmp_path, c
 
     A malformed value is one line on stderr and exit status 2.
     """
-    from magcal_ros.core.effects import symmetric_traceless
+    from magcal_ros.core.geometry.tensor import symmetric_traceless
     from magcal_ros.ros.sim_node import FluxgateSimNode
     from magcal_ros.sim import devices
     from rclpy.parameter import Parameter
@@ -448,7 +448,7 @@ def test_diagnose_names_site_gradient():
 
 def test_calibration_file_names_the_frame_without_attitude(tmp_path):
     """A gradient fitted without attitude is stored with its field-aligned frame."""
-    from magcal_ros.core.site_gradient import FIELD_ALIGNED, fit_heading_unknown
+    from magcal_ros.core.geometry.site_gradient import FIELD_ALIGNED, fit_heading_unknown
     from magcal_ros.io.calfile import calibration_to_doc
     data, _ = make_data(n=600, seed=3, attitude=False)
     res = fit_heading_unknown(data, field_nt=FIELD_NT)

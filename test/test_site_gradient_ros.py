@@ -94,7 +94,7 @@ def test_corrector_subtracts_the_site_gradient_only_when_asked(
     corrected field is the field at each sensor (the site gradient is part of the field);
     with subtract_site_gradient it is the centre field and the tensor is zero.
     """
-    from magcal_ros.core.dataset import Dataset
+    from magcal_ros.core.data.dataset import Dataset
     from magcal_ros.core.model import Calibration, Model
     from magcal_ros.io.calfile import calibration_to_doc, save_calibration
     from magcal_ros.pipeline import cross_geometry

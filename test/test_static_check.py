@@ -12,8 +12,8 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""magcal_ros.core.static_check: static recordings against a calibration (hand-made fields)."""
-from magcal_ros.core.static_check import check_static
+"""magcal_ros.core.data.static_check: static recordings against a calibration, hand-made fields."""
+from magcal_ros.core.data.static_check import check_static
 import numpy as np
 import pytest
 

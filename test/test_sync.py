@@ -13,14 +13,14 @@
 # limitations under the License.
 
 """
-magcal_ros.core.sync: grouping four sample streams into epochs despite late, bursty stamps.
+magcal_ros.core.live.sync: grouping four sample streams into epochs despite late, bursty stamps.
 
 Streams are synthesised with known epochs: each sample carries its true epoch as the item, so
 a set whose items differ is a mismatch. The arrival model follows what was measured on the
 simulated array under load: exponential latency (mean 1 ms), chunks written together, and
 stalls of a reader (20-150 ms) after which the backlog arrives with one stamp.
 """
-from magcal_ros.core.sync import backdate, epoch_times, StampMatcher
+from magcal_ros.core.live.sync import backdate, epoch_times, StampMatcher
 import numpy as np
 import pytest
 

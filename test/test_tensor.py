@@ -13,9 +13,9 @@
 # limitations under the License.
 
 """Gradient tensor: paper 004 eq. 1, the least-squares form, and its noise floor."""
-from magcal_ros.core.simulate import simulate
-from magcal_ros.core.tensor import (cross_positions, tensor_cross, tensor_lstsq,
-                                    tensor_noise_floor, tensor_operator)
+from magcal_ros.core.data.simulate import simulate
+from magcal_ros.core.geometry.tensor import (cross_positions, tensor_cross, tensor_lstsq,
+                                             tensor_noise_floor, tensor_operator)
 import numpy as np
 import pytest
 

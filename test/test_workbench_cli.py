@@ -20,7 +20,7 @@ import subprocess
 import sys
 
 from magcal_ros.cli import main
-from magcal_ros.core.simulate import simulate
+from magcal_ros.core.data.simulate import simulate
 from magcal_ros.io.bag import write_bag
 from magcal_ros.io.csvio import write_csv
 import pytest

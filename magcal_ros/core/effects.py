@@ -41,6 +41,7 @@ import importlib
 import math
 import sys
 
+from magcal_ros.core.geometry.tensor import symmetric_traceless
 import numpy as np
 
 #: Full-scale field used to normalise the nonlinearity polynomial (nT).
@@ -1037,16 +1038,6 @@ class AuxPoly(Effect):
 
 
 # -- array-wide effects --------------------------------------------------------------------
-
-def symmetric_traceless(g):
-    """
-    (3, 3) symmetric traceless tensor from g = (gxx, gxy, gxz, gyy, gyz), same unit.
-
-    Maxwell's equations in a source-free region: curl B = 0 (symmetric), div B = 0
-    (traceless), so gzz = -gxx - gyy (paper 004 eq. 1 uses the same five components).
-    """
-    gxx, gxy, gxz, gyy, gyz = g
-    return np.array([[gxx, gxy, gxz], [gxy, gyy, gyz], [gxz, gyz, -gxx - gyy]], float)
 
 
 class SiteGradient(Effect):

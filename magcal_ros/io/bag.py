@@ -13,7 +13,7 @@
 # limitations under the License.
 
 """
-rosbag2 recordings of the array -> :class:`~magcal_ros.core.dataset.Dataset` (no rclpy).
+rosbag2 recordings of the array -> :class:`~magcal_ros.core.data.dataset.Dataset` (no rclpy).
 
 Reads with the ``rosbags`` library (pure Python; sqlite3 and mcap storage, any ROS 2 distro
 the bag declares, Jazzy message definitions by default).  Topics, under a namespace
@@ -42,7 +42,7 @@ import os
 from pathlib import Path
 import re
 
-from magcal_ros.core.dataset import Dataset
+from magcal_ros.core.data.dataset import Dataset
 from magcal_ros.units import nt_to_t, t_to_nt
 import numpy as np
 
@@ -237,7 +237,7 @@ def read_bag(path, namespace='/magcal', aux_topics=None, imu_topic=None):
                          'dropped_epochs': int((~keep).sum()),
                          'topics': sorted(c.topic for c in conns)})
     if imu[0]:
-        from magcal_ros.core.attitude import with_attitude
+        from magcal_ros.core.geometry.attitude import with_attitude
         try:
             data, kept = with_attitude(data, imu[0], imu[1], source=f'{path}: {imu_name}')
         except ValueError as exc:

@@ -17,8 +17,8 @@ import io as _io
 import os
 import re
 
-from magcal_ros.core.attitude import check_quaternions, COLUMNS as ATT_COLUMNS
-from magcal_ros.core.dataset import Dataset
+from magcal_ros.core.data.dataset import Dataset
+from magcal_ros.core.geometry.attitude import check_quaternions, COLUMNS as ATT_COLUMNS
 from magcal_ros.io.atomic import atomic_write_text
 import numpy as np
 

@@ -30,7 +30,7 @@ uniform field), see ``test/test_real_data.py``.
 """
 import os
 
-from magcal_ros.core.dataset import Dataset
+from magcal_ros.core.data.dataset import Dataset
 from magcal_ros.units import t_to_nt
 import numpy as np
 

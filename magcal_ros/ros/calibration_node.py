@@ -34,8 +34,9 @@ Topics (relative to the node namespace, default ``/magcal``; docs/design.md §3)
   residual |b_j - mean of the others| (:func:`magcal_ros.ros.conversions.residual_to_msg`;
   ``data[j-1]`` and ``data[S+j-1]`` plot in rqt_plot / PlotJuggler), and on ``/diagnostics``
   their rolling RMS over the noise floor of the data, WARN above
-  :data:`magcal_ros.core.live.RESIDUAL_WARN_RATIO`: the calibration no longer fits, time to
-  diagnose (:class:`magcal_ros.core.live.ResidualMonitor`).
+  :data:`magcal_ros.core.live.corrector.RESIDUAL_WARN_RATIO`: the calibration no longer fits, time
+  to
+  diagnose (:class:`magcal_ros.core.live.corrector.ResidualMonitor`).
 
 Services (std_srvs/srv/Trigger; the response message is a short summary, a newline, then
 one JSON object):
@@ -63,14 +64,14 @@ import threading
 import time
 
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-from magcal_ros.core.attitude import UNIT_TOLERANCE
-from magcal_ros.core.consistency import GROSS_FRACTION, resync
-from magcal_ros.core.identifiability import check_coverage
-from magcal_ros.core.live import (LiveCorrector, MissingSignal, RESIDUAL_WARN_RATIO,
-                                  ResidualMonitor, SampleBuffer)
+from magcal_ros.core.geometry.attitude import UNIT_TOLERANCE
+from magcal_ros.core.live.consistency import GROSS_FRACTION, resync
+from magcal_ros.core.live.corrector import (LiveCorrector, MissingSignal, RESIDUAL_WARN_RATIO,
+                                            ResidualMonitor, SampleBuffer)
+from magcal_ros.core.live.sync import StampMatcher
 from magcal_ros.core.model import DegenerateDataError, Model
-from magcal_ros.core.notes import format_note
-from magcal_ros.core.sync import StampMatcher
+from magcal_ros.core.model.identifiability import check_coverage
+from magcal_ros.core.model.notes import format_note
 from magcal_ros.io.calfile import (CalibrationFileError, dump_calibration, load_calibration,
                                    parse_calibration, save_calibration)
 from magcal_ros.pipeline import calibrate as run_calibration, cross_geometry
@@ -375,7 +376,7 @@ class CalibrationNode(Node):
         if not n:
             return data, epochs
         from dataclasses import replace
-        from magcal_ros.core.attitude import with_attitude
+        from magcal_ros.core.geometry.attitude import with_attitude
         rows = self._imu[:n]
         out, kept = with_attitude(replace(data, t=stamps), rows[:, 0], rows[:, 1:],
                                   source=prm.value(self, 'imu_topic'))
@@ -397,7 +398,8 @@ class CalibrationNode(Node):
         ``diagnostic_msgs/DiagnosticStatus`` of the active calibration on the live data.
 
         WARN when a sensor's rolling residual exceeds :data:`RESIDUAL_WARN_RATIO` times what
-        its noise floor predicts (:class:`magcal_ros.core.live.ResidualMonitor`), or when a
+        its noise floor predicts (:class:`magcal_ros.core.live.corrector.ResidualMonitor`), or
+        when a
         driven effect lacks its live signal.
         """
         st = DiagnosticStatus(name=f'{self.get_name()}: residual',

@@ -39,9 +39,9 @@ Topics (relative to the node namespace, default ``/magcal``; docs/design.md §3)
   driven effect lacks its live signal, or when more than :data:`PAIRING_WARN_SHARE` of the
   sets since the last report failed the pairing check.
 
-The sets of the tensor are paired by epoch (:class:`magcal_ros.core.sync.StampMatcher`, the
+The sets of the tensor are paired by epoch (:class:`magcal_ros.core.live.sync.StampMatcher`, the
 offsets voted from the stamps) and checked from the data before they give a tensor
-(:meth:`magcal_ros.core.live.LiveCorrector.pairing_chi2`, when the calibration has noise
+(:meth:`magcal_ros.core.live.corrector.LiveCorrector.pairing_chi2`, when the calibration has noise
 estimates): a set whose four corrected fields do not fit one linear field is not published
 (``sets_failed_pairing_check`` on ``/diagnostics``), and a stream shifted by a lost sample is
 re-paired before its next set (``streams_re_paired``).  Under CPU load stamps arrive late and
@@ -54,7 +54,8 @@ parameter ``subtract_site_gradient`` is set for a stationary test: then the site
 R^T G_w R r_j at the fixed attitude ``site_attitude`` is subtracted from each corrected field
 (and so from the tensor), leaving the anomaly of what is placed near the array.
 
-The correction itself is :class:`magcal_ros.core.live.LiveCorrector` (no ROS): per message
+The correction itself is :class:`magcal_ros.core.live.corrector.LiveCorrector` (no ROS): per
+message
 a few 3x3 products, every matrix (A_j^-1, the covariances, the gradient operator) computed
 once when a calibration is installed.
 """
@@ -64,7 +65,7 @@ import os
 import sys
 
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-from magcal_ros.core.live import LiveCorrector, MissingSignal, PAIRING_FALSE_ALARM
+from magcal_ros.core.live.corrector import LiveCorrector, MissingSignal, PAIRING_FALSE_ALARM
 from magcal_ros.io.calfile import CalibrationFileError, load_calibration, parse_calibration
 from magcal_ros.ros import params as prm
 from magcal_ros.ros.calibration_node import RESULT_QOS, SENSOR_QOS

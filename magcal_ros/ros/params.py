@@ -357,7 +357,7 @@ def calibration_specs(n_sensors=4):
                   'partial coverage is not a missing item of the status; no unit'),
         ParamSpec('resync_sets', True, 'before a calibration or diagnosis, find sets whose '
                   'sensors the stamps paired from different epochs and re-pair them from the '
-                  'data (magcal_ros.core.consistency); no unit'),
+                  'data (magcal_ros.core.live.consistency); no unit'),
         ParamSpec('exclude_outliers', True, 'when the fit leaves a sensor above 1.5 x its '
                   'noise floor, exclude the sets beyond 5 sigma of a robust fit if they are '
                   'at most 5 % of all, and fit the rest (magcal_ros.pipeline.calibrate); no '
@@ -411,7 +411,7 @@ class CorrectorSettings:
 
 def unit_quaternion(value):
     """Refuse anything but a unit quaternion (qw, qx, qy, qz)."""
-    from magcal_ros.core.attitude import check_quaternions
+    from magcal_ros.core.geometry.attitude import check_quaternions
     try:
         check_quaternions(np.asarray(value, float).reshape(1, -1))
     except ValueError as exc:

@@ -18,7 +18,7 @@ Simulated fluxgates on pseudo-terminals, without ROS: the devices ``fluxgate_sim
 Creates one :class:`~magcal_ros.serial.transport.PtyDevice` per sensor, linked as
 ``<dir>/fluxgate1`` ... ``fluxgate4`` (default: :func:`device_dir` of the namespace, i.e.
 ``/tmp/magcal_sim`` for ``/magcal``), and streams the output of
-:class:`magcal_ros.core.simulate.Simulator` in any registered serial protocol (default: the
+:class:`magcal_ros.core.data.simulate.Simulator` in any registered serial protocol (default: the
 ASCII contract line ``<x_nT>,<y_nT>,<z_nT>,<temp_C>\r\n``). The defaults are paper 004
 section 4.1: |B| = 50 000 nT, D = -7 deg, I = 55 deg, noise 3 nT per axis, the Table 1
 sensor errors, and a smooth tumbling trajectory that covers the sphere in about a minute,
@@ -50,7 +50,7 @@ import sys
 import threading
 import time
 
-from magcal_ros.core.simulate import SimConfig, Simulator, TRAJECTORIES
+from magcal_ros.core.data.simulate import SimConfig, Simulator, TRAJECTORIES
 from magcal_ros.serial import make_encoder, PROTOCOLS, Sample
 from magcal_ros.serial.options import load_yaml, parse_options, parse_value
 from magcal_ros.serial.transport import PtyDevice
@@ -349,7 +349,7 @@ class FluxgateSim:
                          for _ in range(settings.sensors)]
         grad = getattr(settings, 'site_gradient', None)
         if grad is not None:
-            from magcal_ros.core.effects import symmetric_traceless
+            from magcal_ros.core.geometry.tensor import symmetric_traceless
             grad = symmetric_traceless(grad)
         self.sim = Simulator(SimConfig(
             n_sensors=settings.sensors, rate_hz=settings.rate, field_nt=settings.field_nt,

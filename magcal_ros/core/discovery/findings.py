@@ -762,8 +762,8 @@ def _gradient(t, corrected, baseline_m, alpha, drivers=None):
     004 eq. 1: r_1 = -r_3, r_2 = -r_4).  The test needs no smoothness in time, so it works
     for random attitudes too: F-test of A = mean(a_x^2 + a_y^2) against 4 mean(s^2).
     """
+    from magcal_ros.core.geometry.tensor import tensor_cross
     from scipy.signal import savgol_filter
-    from magcal_ros.core.tensor import tensor_cross
     m = corrected - corrected.mean(axis=0)
     if drivers is not None and len(drivers):
         # sensors that differ in how a channel (a motor current, a temperature) or time
@@ -971,7 +971,7 @@ def _same(a, b, t_res, f_res):
 
 def find(data, result, **kwargs):
     # one BLAS thread: the designs are thin (N x 10-30), threads only contend
-    from magcal_ros.core.solvers import single_threaded_blas
+    from magcal_ros.core.model.solvers import single_threaded_blas
     with single_threaded_blas():
         return _find(data, result, **kwargs)
 
@@ -1003,7 +1003,7 @@ def _find(data, result, *, baseline_m=0.5, alpha=ALPHA, corrected=None, field=No
     t = np.asarray(data.t, float)
     if corrected is None:
         # the field where each sensor is, minus a modelled site gradient (site_gradient)
-        from magcal_ros.core.site_gradient import centred_fields
+        from magcal_ros.core.geometry.site_gradient import centred_fields
         corrected = centred_fields(result)
     corrected = np.asarray(corrected, float)
     field_ = np.asarray(result.field_nt if field is None else field, float)

@@ -29,7 +29,7 @@ Residual measures (all nT):
 from dataclasses import dataclass
 import math
 
-from magcal_ros.core.fitting import evaluate
+from magcal_ros.core.model.fitting import evaluate
 import numpy as np
 from scipy import stats
 

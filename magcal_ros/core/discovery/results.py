@@ -17,8 +17,8 @@ from dataclasses import dataclass, field
 import json
 
 from magcal_ros.core import effects as fx
+from magcal_ros.core.data.noise import NoiseFloor
 from magcal_ros.core.discovery.constants import AT_FLOOR_RATIO, MIN_DELTA_BIC, MIN_EXPLAINED
-from magcal_ros.core.noise import NoiseFloor
 import numpy as np
 
 

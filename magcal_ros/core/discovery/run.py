@@ -23,29 +23,27 @@ from dataclasses import dataclass
 import math
 import time
 
+from magcal_ros.core.data.magnitude import reference_magnitude
+from magcal_ros.core.data.noise import data_noise_floor, NoiseFloor
 from magcal_ros.core.discovery.candidates import (added_params, Candidate, candidate_tokens,
-                                                 extend_model, propose_from_residual,
-                                                 reads_stderr, reduces_to_simpler, sensors_of,
-                                                 split_testable, token_label,
-                                                 tokens_from_findings)
+                                                 extend_model, propose_from_residual, reads_stderr,
+                                                 reduces_to_simpler, sensors_of, split_testable,
+                                                 token_label, tokens_from_findings)
 from magcal_ros.core.discovery.constants import (ALPHA, AT_FLOOR_RATIO, BLOCKS_PER_FOLD,
                                                 DEFAULT_FOLDS, DEFAULT_MAX_REFIT,
                                                 DEFAULT_MAX_SAMPLES, EVIDENCE_TIE, MIN_BLOCK,
                                                 MIN_DELTA_BIC, MIN_EXPLAINED, REFIT_CHI2_TOL,
                                                 REFIT_MAX_NFEV, SCORE_RULE_OUT_BIC)
 from magcal_ros.core.discovery.measures import (dof_factor, evaluate_residuals, Evaluation,
-                                               explained_share, likelihood_ratio,
-                                               n_observations, rms, scalar_rms_of,
-                                               soft_l1_lr_loss, vector_rms_of)
+                                               explained_share, likelihood_ratio, n_observations,
+                                               rms, scalar_rms_of, soft_l1_lr_loss, vector_rms_of)
 from magcal_ros.core.discovery.results import compact_spec, Diagnosis
 from magcal_ros.core.discovery.screen import lag_grid, Screen
 from magcal_ros.core.discovery.validation import cross_validate
 from magcal_ros.core.discovery.findings import find as find_findings
-from magcal_ros.core.fitting import fit
-from magcal_ros.core.magnitude import reference_magnitude
 from magcal_ros.core.model import Model
-from magcal_ros.core.noise import data_noise_floor, NoiseFloor
-from magcal_ros.core.solvers import single_threaded_blas
+from magcal_ros.core.model.fitting import fit
+from magcal_ros.core.model.solvers import single_threaded_blas
 import numpy as np
 
 
@@ -521,7 +519,7 @@ def _verdict(b, ranked, ratio, at_floor, held_out, p_thr):
             f'removes {best.explained_fraction:.0%} of the excess over the floor '
             f'({best.decided_by}), floor {floor.value_nt:.2f} nT')
     # a filtered series has no white floor: its floor is a lower bound, the ratio an upper
-    # bound (core/noise.py)
+    # bound (core/data/noise.py)
     floor_word = ('noise floor' if 'filtered' not in floor.status else
                   'lower bound of the noise floor (low-pass-filtered series)')
     if not ranked:

@@ -20,7 +20,7 @@ candidates are then refitted in full (:mod:`magcal_ros.core.discovery.run`).
 """
 from magcal_ros.core.discovery.constants import LAG_GRID_POINTS
 from magcal_ros.core.discovery.measures import solve_psd
-from magcal_ros.core.engine import ProfiledProblem
+from magcal_ros.core.model.engine import ProfiledProblem
 import numpy as np
 
 

@@ -22,8 +22,8 @@ others (by default one Gauss-Newton step from the all-data fit with the fold's r
 """
 from magcal_ros.core.discovery.constants import BLOCKS_PER_FOLD, DEFAULT_FOLDS, MIN_BLOCK
 from magcal_ros.core.discovery.measures import dof_factor, solve_psd
-from magcal_ros.core.engine import ProfiledProblem
-from magcal_ros.core.fitting import evaluate, fit
+from magcal_ros.core.model.engine import ProfiledProblem
+from magcal_ros.core.model.fitting import evaluate, fit
 import numpy as np
 
 

@@ -18,10 +18,10 @@ The closed-form calibrations of papers 000 and 002 on a recording (``magcal fit 
 - ``sine`` (paper 000, docs/papers.md#paper-000): a turntable recording, every row with the
   turntable angle ``angle_deg`` and the horizontal sensor plane ``plane`` (``xy`` for
   position 1, ``xz`` for position 2); each sensor is calibrated alone by
-  :func:`magcal_ros.core.sine.calibrate_turntable` (eq. 4-16).
+  :func:`magcal_ros.core.papers.sine.calibrate_turntable` (eq. 4-16).
 - ``reference`` (paper 002, docs/papers.md#paper-002): a recording with the undisturbed
   reference field ``ref_x, ref_y, ref_z`` beside each reading; each sensor by
-  :func:`magcal_ros.core.reference_vector.fit_reference` (eq. 4-7).
+  :func:`magcal_ros.core.papers.reference_vector.fit_reference` (eq. 4-7).
 
 Both results are written as an ordinary :class:`~magcal_ros.core.model.Calibration`, so the
 calibration file and the live corrector treat them like a maximum-likelihood fit:
@@ -155,7 +155,7 @@ def sine_calibration(data, field_nt):
     if data.angle_deg is None or data.plane is None:
         raise ValueError('--method sine needs the turntable columns angle_deg and plane '
                          '(xy for position 1, xz for position 2; paper 000)')
-    from magcal_ros.core.sine import calibrate_turntable
+    from magcal_ros.core.papers.sine import calibrate_turntable
     plane = np.char.lower(np.char.strip(np.asarray(data.plane, str)))
     pos1, pos2 = plane == 'xy', plane == 'xz'
     other = sorted(set(plane[~(pos1 | pos2)].tolist()))
@@ -213,7 +213,7 @@ def reference_calibration(data, field_nt=None, on_degenerate='raise'):
     if data.ref_vec is None:
         raise ValueError('--method reference needs the reference field columns ref_x, ref_y, '
                          'ref_z (paper 002)')
-    from magcal_ros.core.reference_vector import fit_reference
+    from magcal_ros.core.papers.reference_vector import fit_reference
     he = np.asarray(data.ref_vec, float)
     f = np.linalg.norm(he, axis=1) if field_nt is None else _magnitude(field_nt,
                                                                        data.n_samples)

@@ -21,42 +21,10 @@ and the fit without attitude (the heading about the field estimated per epoch).
 The effect itself is :class:`magcal_ros.core.effects.SiteGradient` (docs/site_gradient.md has
 the physics and the identifiability analysis summarised here).  Units: nT, nT/m, m, rad.
 """
-from magcal_ros.core.effects import symmetric_traceless
-from magcal_ros.core.engine import ProfiledProblem
-from magcal_ros.core.fitting import stderr_and_correlation
-from magcal_ros.core.solvers import covariance_from_jacobian
+from magcal_ros.core.geometry.tensor import symmetric_traceless
+from magcal_ros.core.model.engine import ProfiledProblem
+from magcal_ros.core.model.solvers import covariance_from_jacobian, stderr_and_correlation
 import numpy as np
-
-#: d vec(G) / d (gxx, gxy, gxz, gyy, gyz): the 9 x 5 map of the symmetric traceless tensor
-TENSOR_MAP = np.stack([symmetric_traceless(e).ravel() for e in np.eye(5)], axis=1)
-
-
-def gradient_from_fit(model, params, covariance):
-    """
-    World-frame site gradient and its standard uncertainty from a fit.
-
-    Parameters
-    ----------
-    model : Model
-        The fitted model (with or without ``site_gradient``).
-    params : numpy.ndarray
-        (P,) parameters.
-    covariance : numpy.ndarray
-        (P, P) parameter covariance.
-
-    Returns
-    -------
-    (G (3, 3) nT/m, stderr (3, 3) nT/m, cov5 (5, 5) (nT/m)^2) or None without the effect.
-
-    """
-    for eff, sl in zip(model.array_effects, model.array_slices):
-        if eff.name == 'site_gradient':
-            g5 = params[sl]
-            c5 = covariance[sl, sl]
-            cov9 = TENSOR_MAP @ c5 @ TENSOR_MAP.T
-            se = np.sqrt(np.clip(np.diag(cov9), 0, None)).reshape(3, 3)
-            return symmetric_traceless(g5), se, c5
-    return None
 
 
 def centred_fields(result):
@@ -146,7 +114,7 @@ def crb_covariance(data, model, params, field_nt, sigma_nt, case='attitude', pos
         determine at all ('epoch_gradient').
 
     """
-    from magcal_ros.core.magnitude import reference_magnitude
+    from magcal_ros.core.data.magnitude import reference_magnitude
     if case not in CRB_CASES:
         raise ValueError(f'unknown case {case!r}; use one of {CRB_CASES}')
     contexts = [data.context(j) for j in range(1, data.n_sensors + 1)]
@@ -187,7 +155,7 @@ def crb_covariance(data, model, params, field_nt, sigma_nt, case='attitude', pos
     else:
         if model.array_effects:
             raise ValueError("case 'epoch_gradient' takes a model without site_gradient")
-        from magcal_ros.core.tensor import cross_positions
+        from magcal_ros.core.geometry.tensor import cross_positions
         pos = cross_positions(0.5) if positions is None else np.asarray(positions, float)
         cols = []
         for j in grp:
@@ -342,7 +310,7 @@ def fit_heading_unknown(data, model='base,site_gradient', field_nt=None, n_iter=
         if it == 0:
             # start: psi_k from the body tensor of the uniform-field calibration, the phase
             # of (Gxz + i Gyz) in the aligned frame (e^{-i psi} times that of G_w)
-            from magcal_ros.core.tensor import tensor_lstsq
+            from magcal_ros.core.geometry.tensor import tensor_lstsq
             g_b, _ = tensor_lstsq(c, positions)
             m_k = np.einsum('nij,njk,nlk->nil', r_a, g_b, r_a)
             psi = -np.angle(m_k[:, 0, 2] + 1j * m_k[:, 1, 2])
@@ -370,7 +338,7 @@ def fit_heading_unknown(data, model='base,site_gradient', field_nt=None, n_iter=
     p[sl] = [g_w[0, 0], g_w[0, 1], g_w[0, 2], g_w[1, 1], 0.0]
     att = Rotation.from_matrix(_rz(psi - phi) @ r_a).as_quat(scalar_first=True)
     fixed = replace(bare, attitude=att)
-    from magcal_ros.core.magnitude import reference_magnitude
+    from magcal_ros.core.data.magnitude import reference_magnitude
     # the fit's noise estimate counted 3 S - 2 residual degrees of freedom per epoch; the
     # heading psi_k takes one more
     s = data.n_sensors

@@ -23,8 +23,8 @@ The maximum-likelihood fit of a :class:`magcal_ros.core.model.Model` and its res
 2. maximum-likelihood refinement of all sensors jointly: the noise is modelled on the raw
    readings, raw_jk = f_j(B_k) + e_jk, e ~ N(0, sigma_j^2 I), with the unknown field B_k of
    epoch k constrained to the reference magnitude |B_k| = F_k and eliminated by variable
-   projection (:mod:`magcal_ros.core.engine`), solved by Levenberg-Marquardt
-   (:mod:`magcal_ros.core.solvers`) or ``scipy.optimize.least_squares``;
+   projection (:mod:`magcal_ros.core.model.engine`), solved by Levenberg-Marquardt
+   (:mod:`magcal_ros.core.model.solvers`) or ``scipy.optimize.least_squares``;
 3. the noise levels re-estimated from the residuals, and the parameter covariance from the
    projected Jacobian at the solution (the Cramer-Rao bound).
 
@@ -34,15 +34,16 @@ profiled field) are computed from the parameters on first access and then kept.
 from dataclasses import dataclass, field
 from functools import cached_property
 
-from magcal_ros.core.calibration import Calibration
-from magcal_ros.core.ellipsoid import fit_ellipsoid, procrustes_rotation
-from magcal_ros.core.engine import ProfiledProblem
-from magcal_ros.core.magnitude import reference_magnitude
-from magcal_ros.core.noise import mad_sd
-from magcal_ros.core.notes import Note
-from magcal_ros.core.solvers import (covariance_from_jacobian, covariance_from_normal,
-                                     levenberg_marquardt, resolves_covariance,
-                                     single_threaded_blas)
+from magcal_ros.core.data.magnitude import reference_magnitude
+from magcal_ros.core.data.noise import mad_sd
+from magcal_ros.core.model.calibration import Calibration
+from magcal_ros.core.model.engine import ProfiledProblem
+from magcal_ros.core.model.notes import Note
+from magcal_ros.core.model.solvers import (covariance_from_jacobian, covariance_from_normal,
+                                           levenberg_marquardt, resolves_covariance,
+                                           single_threaded_blas, stderr_and_correlation)
+from magcal_ros.core.model.spec import Model
+from magcal_ros.core.papers.ellipsoid import fit_ellipsoid, procrustes_rotation
 import numpy as np
 
 
@@ -90,7 +91,7 @@ class FitResult:
         Observations net of the profiled field: n_fit_samples sum(3G - 2) over the groups.
     warnings : tuple of Note
     identifiability : dict
-        :mod:`magcal_ros.core.identifiability` report.
+        :mod:`magcal_ros.core.model.identifiability` report.
     initial_params : numpy.ndarray or None
         (P,) the start.
     contexts : list of SensorContext
@@ -280,7 +281,7 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
         precision divided by chi-square.
     check_identifiability : bool
         Check the attitude coverage and the Jacobian's conditioning
-        (:mod:`magcal_ros.core.identifiability`); off for warm-started refits.
+        (:mod:`magcal_ros.core.model.identifiability`); off for warm-started refits.
     solver : {'lm', 'scipy'}
         'lm': Levenberg-Marquardt on the normal equations (J^T J is P x P; about 20x faster
         than an SVD of the tall Jacobian, see bench/); 'scipy': scipy.optimize.least_squares
@@ -326,7 +327,7 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
             p0 = np.asarray(init, float).copy()
         if model.array_effects and contexts_all[0].attitude is not None:
             # the attitude must agree with the field direction (closed-form corrected sensor 1)
-            from magcal_ros.core.attitude import check_against_field
+            from magcal_ros.core.geometry.attitude import check_against_field
             check_against_field(contexts_all[0].attitude,
                                 model.correct(1, p0, data.raw[0], contexts_all[0]), data.t)
         prior_list = priors_for(model, priors or {}, constrained)
@@ -336,7 +337,7 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
         cov, chi2, n_obs = solve.covariance(p, sigma, with_jacobian=covariance)
         stderr, corr = stderr_and_correlation(cov)
         if check_identifiability:
-            from magcal_ros.core import identifiability as idf
+            from magcal_ros.core.model import identifiability as idf
             jac_rep = idf.jacobian_report(model, cov, corr, constrained=constrained)
             ident.update(jac_rep)
             for prob_msg in jac_rep['problems']:
@@ -354,7 +355,6 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
 def _model_for(data, model):
     """Return ``model`` (a Model, or a spec string built here) checked against ``data``."""
     if isinstance(model, str):
-        from magcal_ros.core.model import Model
         model = Model.from_spec(model, data.n_sensors)
     if model.n_sensors != data.n_sensors:
         raise ValueError(f'model has {model.n_sensors} sensors, data have {data.n_sensors}')
@@ -382,7 +382,7 @@ def _check_data(data, model, contexts, constrained, check_identifiability, degen
                                   f'{model.n_params} parameters; collect at least {n_min}')
     ident = {}
     if check_identifiability:
-        from magcal_ros.core import identifiability as idf
+        from magcal_ros.core.model import identifiability as idf
         ident = idf.check_coverage(raw)
         problems = ident['problems']
         if constrained:
@@ -414,31 +414,6 @@ def _closed_form_start(raw, f, model, constrained, ident, degenerate):
         degenerate(f'{exc}. {ident.get("summary", "")}'.strip())
         # flagged: start from ideal sensors and the sphere-fit offsets instead
         return initial_params(raw, f, model, constrained=True)
-
-
-def stderr_and_correlation(cov):
-    """
-    Return the standard uncertainties and the correlation matrix of a covariance.
-
-    Parameters
-    ----------
-    cov : numpy.ndarray
-        (P, P) covariance, in the parameters' units squared (inf: undetermined).
-
-    Returns
-    -------
-    stderr : numpy.ndarray
-        (P,) square roots of the diagonal.
-    corr : numpy.ndarray
-        (P, P) correlation, 0 where undefined, 1 on the diagonal.
-
-    """
-    stderr = np.sqrt(np.clip(np.diag(cov), 0, None))
-    with np.errstate(invalid='ignore', divide='ignore'):
-        corr = cov / np.outer(stderr, stderr)
-    corr[~np.isfinite(corr)] = 0.0
-    np.fill_diagonal(corr, 1.0)
-    return stderr, corr
 
 
 class _Solve:

@@ -15,7 +15,7 @@
 """
 Can the data determine the model?  Checks run before and after every solve.
 
-Before: attitude coverage of each sensor (:func:`magcal_ros.core.coverage.direction_coverage`
+Before: attitude coverage of each sensor (:func:`magcal_ros.core.model.coverage.direction_coverage`
 of the readings about the centre of the sensor's fitted ellipsoid, the hard-iron offset, so
 that an offset several times the field does not squeeze a full rotation into a cone): a
 rotation about a single axis leaves the field directions on one circle, so the linear map is
@@ -26,8 +26,8 @@ strongly correlated.
 After: the parameter correlations and the condition number of the correlation matrix from
 the projected Jacobian (the Fisher information at the solution).
 """
-from magcal_ros.core.coverage import direction_coverage
-from magcal_ros.core.ellipsoid import fit_ellipsoid, reading_plane, RING_CV, ring_spread
+from magcal_ros.core.model.coverage import direction_coverage
+from magcal_ros.core.papers.ellipsoid import fit_ellipsoid, reading_plane, RING_CV, ring_spread
 import numpy as np
 
 #: smallest direction-scatter eigenvalue of a single-axis rotation (noise and wobble only)
@@ -35,7 +35,7 @@ SINGLE_AXIS_EIG = 3e-4
 #: below this the attitude coverage is partial (about a +-14 deg band or a cap < ~45 deg)
 PARTIAL_EIG = 0.02
 #: directions on a ring (coefficient of variation of their in-plane radius below
-#: :data:`magcal_ros.core.ellipsoid.RING_CV`)
+#: :data:`magcal_ros.core.papers.ellipsoid.RING_CV`)
 #: whose spread along the ring's axis is below this fraction of the in-plane spread are a
 #: rotation about that axis with hand wobble (the shared hand-held single-axis recordings:
 #: 0.002-0.011), not a partial coverage (a vehicle tilting +-15 deg: 0.09)
@@ -73,7 +73,7 @@ def fitted_centre(m):
         Centre (3,) nT (the hard-iron offset, paper 004 eq. 12), the relative noise
         variance of the readings about the ellipsoid, ``var(radial residual / radius)``,
         and the ratio of its longest to its shortest axis (1.1-1.3 for real sensors).
-        None when :func:`magcal_ros.core.ellipsoid.fit_ellipsoid` finds the ellipsoid not
+        None when :func:`magcal_ros.core.papers.ellipsoid.fit_ellipsoid` finds the ellipsoid not
         determined against the noise (the fitted quadric not definite beyond its own
         uncertainty), or when the readings scatter about it by more than
         :data:`MAX_RADIAL_SCATTER` of its radius (they fill a cloud, not a shell).  A

@@ -29,11 +29,11 @@ Units: nT, nT/s, nT/m, s, degC (the library's; a ROS node converts at its bounda
 """
 from collections import deque
 
-from magcal_ros.core.dataset import Dataset
+from magcal_ros.core.data.dataset import Dataset
+from magcal_ros.core.data.noise import noise_floor
 from magcal_ros.core.effects import raw_rate, SensorContext, SIGNALS
-from magcal_ros.core.noise import noise_floor
-from magcal_ros.core.sync import epoch_times, StampMatcher
-from magcal_ros.core.tensor import tensor_operator
+from magcal_ros.core.geometry.tensor import tensor_operator
+from magcal_ros.core.live.sync import epoch_times, StampMatcher
 import numpy as np
 
 #: consecutive raw samples further apart than this give no field-rate estimate, s
@@ -99,7 +99,7 @@ class LiveCorrector:
         ``geometry.positions_m``); without them no gradient is computed
         (:attr:`no_gradient_reason` says why).
     stamp_tolerance_s : float
-        Tolerance of the set matcher (:class:`magcal_ros.core.sync.StampMatcher`), s.
+        Tolerance of the set matcher (:class:`magcal_ros.core.live.sync.StampMatcher`), s.
     check_pairing : bool
         Check every set from the data before it gives a tensor (:meth:`pairing_chi2`) and
         re-pair a shifted stream at once; off, sets are paired by stamps alone.
@@ -108,7 +108,7 @@ class LiveCorrector:
     ----------
     gradient_op : numpy.ndarray or None
         (9, 3 S) maps the stacked corrected fields (nT) to the row-major tensor (nT/m)
-        (paper 004 eq. 1 for the cross; :func:`magcal_ros.core.tensor.tensor_operator`).
+        (paper 004 eq. 1 for the cross; :func:`magcal_ros.core.geometry.tensor.tensor_operator`).
     gradient_cov_nt2 : numpy.ndarray or None
         (9, 9) covariance of the row-major tensor, (nT/m)^2, from the sensors' corrected-field
         covariances (independent sensors); None when a sensor has no noise estimate.
@@ -218,7 +218,7 @@ class LiveCorrector:
         """
         if self.cal.site_gradient() is None:
             return None
-        from magcal_ros.core.attitude import quaternion_matrices
+        from magcal_ros.core.geometry.attitude import quaternion_matrices
         ctx = SensorContext(t=np.zeros(1),
                             attitude=quaternion_matrices(np.asarray(quaternion, float)[None]))
         return np.stack([self.cal.array_shift(j, ctx)[0]
@@ -328,7 +328,8 @@ class LiveCorrector:
         Chi-square of the S corrected fields of a set as the samples of one epoch.
 
         A set of one epoch fits B(r) = B0 + G r with G symmetric and traceless (a curl- and
-        divergence-free field; the model of :func:`magcal_ros.core.tensor.tensor_operator`,
+        divergence-free field; the model of
+        :func:`magcal_ros.core.geometry.tensor.tensor_operator`,
         paper 004 eq. 1 for the cross) to the noise: its weighted least-squares residual
         chi^2 = |K b|^2 (:func:`pairing_operator`) is chi-square with :attr:`pairing_dof`
         degrees of freedom, whatever the gradient.  A sample of another epoch of a turning
@@ -438,7 +439,7 @@ class ResidualMonitor:
 
     Over the last ``window`` sets the monitor compares their RMS with what noise alone
     gives: the noise floor f_j of each corrected series from its high-order differences
-    (:func:`magcal_ros.core.noise.noise_floor`, no model) predicts an RMS of f_j for the
+    (:func:`magcal_ros.core.data.noise.noise_floor`, no model) predicts an RMS of f_j for the
     scalar residual and sqrt(3 (f_j^2 + sum_{k != j} f_k^2 / (S - 1)^2)) for the vector one.
     A ratio above :data:`RESIDUAL_WARN_RATIO` means an effect the calibration lacks (or a
     changed sensor): time to run the diagnosis.

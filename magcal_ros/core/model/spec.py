@@ -25,25 +25,15 @@ is the usual scalar calibration (each sensor's own field estimate); with misalig
 other sensors the sensors share one field per epoch, which uses both the scalar constraint
 and the inter-sensor vector consistency (:attr:`Model.joint`, :attr:`Model.sensor_groups`).
 
-The rest of the calibration lives in its own modules, re-exported here so that
-``from magcal_ros.core.model import fit, FitResult, Calibration, Model`` keeps working:
-
-- :mod:`magcal_ros.core.engine`: the profiled (variable-projection) problem;
-- :mod:`magcal_ros.core.solvers`: Levenberg-Marquardt, the covariance;
-- :mod:`magcal_ros.core.fitting`: :func:`fit`, :class:`FitResult`, :func:`evaluate`;
-- :mod:`magcal_ros.core.calibration`: :class:`Calibration`, for live correction.
+The fit, the engine and the live calibration are the package's other modules
+(:mod:`magcal_ros.core.model`); this module holds the model alone and imports none of them.
 """
 import hashlib
 
 from magcal_ros.core import effects as fx
-# re-exported (see the module docstring); fitting imports Model only inside fit()
-from magcal_ros.core.calibration import Calibration
-from magcal_ros.core.fitting import (DegenerateDataError, evaluate, fit, fit_epochs,
-                                     FitResult, initial_params, priors_for)
 import numpy as np
 
-__all__ = ['Calibration', 'data_hash', 'DegenerateDataError', 'evaluate', 'fit', 'fit_epochs',
-           'FitResult', 'initial_params', 'Model', 'priors_for']
+__all__ = ['data_hash', 'Model']
 
 
 # -- model ----------------------------------------------------------------------------------
@@ -66,7 +56,7 @@ class Model:
         self.effects = [list(e) for e in effects]
         self.array_effects = list(array_effects)
         if self.array_effects and self.n_sensors == 4:
-            from magcal_ros.core.tensor import cross_positions
+            from magcal_ros.core.geometry.tensor import cross_positions
             for eff in self.array_effects:
                 if hasattr(eff, 'set_positions') and 'x1' not in eff.refs:
                     eff.set_positions(cross_positions(0.5))     # paper 004's cross

@@ -162,3 +162,46 @@ def tensor_noise_floor(sigma_nt, positions):
     s = len(positions)
     var = np.repeat(np.broadcast_to(np.asarray(sigma_nt, float) ** 2, (s,)), 3)
     return np.sqrt((op ** 2) @ var).reshape(3, 3)
+
+
+def symmetric_traceless(g):
+    """
+    (3, 3) symmetric traceless tensor from g = (gxx, gxy, gxz, gyy, gyz), same unit.
+
+    Maxwell's equations in a source-free region: curl B = 0 (symmetric), div B = 0
+    (traceless), so gzz = -gxx - gyy (paper 004 eq. 1 uses the same five components).
+    """
+    gxx, gxy, gxz, gyy, gyz = g
+    return np.array([[gxx, gxy, gxz], [gxy, gyy, gyz], [gxz, gyz, -gxx - gyy]], float)
+
+
+#: d vec(G) / d (gxx, gxy, gxz, gyy, gyz): the 9 x 5 map of the symmetric traceless tensor
+TENSOR_MAP = np.stack([symmetric_traceless(e).ravel() for e in np.eye(5)], axis=1)
+
+
+def gradient_from_fit(model, params, covariance):
+    """
+    World-frame site gradient and its standard uncertainty from a fit.
+
+    Parameters
+    ----------
+    model : Model
+        The fitted model (with or without ``site_gradient``).
+    params : numpy.ndarray
+        (P,) parameters.
+    covariance : numpy.ndarray
+        (P, P) parameter covariance.
+
+    Returns
+    -------
+    (G (3, 3) nT/m, stderr (3, 3) nT/m, cov5 (5, 5) (nT/m)^2) or None without the effect.
+
+    """
+    for eff, sl in zip(model.array_effects, model.array_slices):
+        if eff.name == 'site_gradient':
+            g5 = params[sl]
+            c5 = covariance[sl, sl]
+            cov9 = TENSOR_MAP @ c5 @ TENSOR_MAP.T
+            se = np.sqrt(np.clip(np.diag(cov9), 0, None)).reshape(3, 3)
+            return symmetric_traceless(g5), se, c5
+    return None

@@ -16,7 +16,7 @@
 Group the samples of S sensors into sets taken at the same epoch.
 
 Pure Python/numpy (no rclpy), shared by the calibration node and the live correction
-(:mod:`magcal_ros.core.live`).
+(:mod:`magcal_ros.core.live.corrector`).
 
 A serial driver stamps each sample with the arrival time of its bytes, which lags the
 sampling instant by a varying latency: samples read in one chunk share a stamp, and a reader
@@ -34,7 +34,7 @@ which only needs most samples, not all, to have a stamp close to their epoch. A 
 (the sensor-data QoS drops samples under load) shifts a stream by one epoch, which the vote
 sees only when its majority flips, up to a second later; a stream whose stamps lag by more
 than half a period is paired off for good.  Where the items of a set can be checked from
-the data (the corrected fields of a calibrated array: :class:`magcal_ros.core.live.
+the data (the corrected fields of a calibrated array: :class:`magcal_ros.core.live.corrector.
 LiveCorrector`), the matcher takes a ``misfit``: no set that fails is emitted, and a shifted
 stream is re-paired at the first set that shows it.
 """
@@ -188,7 +188,7 @@ class StampMatcher:
         (counted as incomplete sets).
     misfit : callable, optional
         ``misfit(items) -> float``: a chi-square of how far the S items of a set are from
-        being the samples of one epoch (e.g. :meth:`magcal_ros.core.live.LiveCorrector.
+        being the samples of one epoch (e.g. :meth:`magcal_ros.core.live.corrector.LiveCorrector.
         pairing_chi2`); a set passes when it is at most ``threshold``.  With it, a set
         that fails is never emitted.  The matcher sums, over ``confirm`` sets, the misfit
         of the pairing as it is (the sets after the failed one), of each shift of one
@@ -420,7 +420,7 @@ class StampMatcher:
         proposal (stream -1); one stream back by 1 .. :data:`MAX_VOTE_SHIFT` (its stamps
         lag: tested on the others' samples already taken, no wait).  Only one stream moves
         at a time: the planar cross hardly tells two streams shifted the opposite ways from
-        none (:meth:`magcal_ros.core.live.LiveCorrector.pairing_chi2`), and candidates
+        none (:meth:`magcal_ros.core.live.corrector.LiveCorrector.pairing_chi2`), and candidates
         that move several would offer such pairings; several slips at once wait for the
         vote.
         """

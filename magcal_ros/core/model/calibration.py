@@ -16,7 +16,7 @@
 A fitted model for live correction: :class:`Calibration`.
 
 Written to and read from the calibration file (docs/design.md §4, :mod:`magcal_ros.io`),
-used by the corrector node and :class:`magcal_ros.core.live.LiveCorrector`.  Paper 004's
+used by the corrector node and :class:`magcal_ros.core.live.corrector.LiveCorrector`.  Paper 004's
 decomposition of the correction into the intrinsic matrix and the rotation into sensor 1's
 frame (docs/papers.md#paper-004, eq. 5 and 14) is :meth:`Calibration.intrinsic_and_rotation`.
 """
@@ -98,7 +98,7 @@ class Calibration:
         The standard uncertainty of gzz = -gxx - gyy needs the covariance of the fit
         (``array_covariance``); without it that entry is nan.
         """
-        from magcal_ros.core.site_gradient import gradient_from_fit
+        from magcal_ros.core.geometry.tensor import gradient_from_fit
         cov = np.diag(self.stderr ** 2)
         cols = self.model.array_cols
         if self.array_covariance is not None:

@@ -18,12 +18,12 @@ The reference field magnitude F (nT) of a fit.
 Where the reference field magnitude F (nT) of a fit comes from: a number, the data's
 ``ref_total`` column, the IGRF model (ppigrf), or the data themselves (shape only).
 
-Not to be confused with :mod:`magcal_ros.core.reference_vector` (paper 002: calibration
+Not to be confused with :mod:`magcal_ros.core.papers.reference_vector` (paper 002: calibration
 against a reference field *vector*).
 """
 import datetime
 
-from magcal_ros.core.ellipsoid import fit_ellipsoid
+from magcal_ros.core.papers.ellipsoid import fit_ellipsoid
 import numpy as np
 
 

@@ -23,11 +23,11 @@ the trajectory, temperatures and auxiliary channels continue smoothly across chu
 """
 from dataclasses import dataclass, field
 
-from magcal_ros.core.dataset import Dataset
+from magcal_ros.core.data.dataset import Dataset
 from magcal_ros.core.effects import raw_rate, SensorContext
+from magcal_ros.core.geometry.tensor import cross_positions
 from magcal_ros.core.model import Model
-from magcal_ros.core.paper_params import table1_sensor
-from magcal_ros.core.tensor import cross_positions
+from magcal_ros.core.papers.paper_params import table1_sensor
 import numpy as np
 from scipy.spatial.transform import Rotation
 

@@ -16,7 +16,7 @@
 Solvers of the maximum-likelihood fit: Levenberg-Marquardt, the covariance, one BLAS thread.
 
 :func:`levenberg_marquardt` minimises a sum of squared (or soft-L1) residuals given the
-residual and Jacobian functions of :class:`magcal_ros.core.engine.ProfiledProblem`;
+residual and Jacobian functions of :class:`magcal_ros.core.model.engine.ProfiledProblem`;
 :func:`covariance_from_normal` (:func:`covariance_from_jacobian`) turns J^T J of the
 projected Jacobian at the solution into the parameter covariance (the Cramer-Rao bound,
 docs/papers.md, "The maximum-likelihood engine").
@@ -62,7 +62,7 @@ def levenberg_marquardt(fun, jac, x0, robust=False, f_scale=3.0, max_nfev=200, x
     iteratively reweighted least squares).  Marquardt's diagonal scaling makes the damping
     invariant to parameter units (Marquardt 1963).  The iteration reads the Jacobian only
     through J^T J and J^T r: with the squares loss ``normal`` may supply them directly
-    (:meth:`magcal_ros.core.engine.ProfiledProblem.normal_equations`, without the tall
+    (:meth:`magcal_ros.core.model.engine.ProfiledProblem.normal_equations`, without the tall
     Jacobian); the soft-L1 loss weights the rows of J and needs ``jac``.
 
     Parameters
@@ -170,7 +170,7 @@ def covariance_from_jacobian(jac):
     ----------
     jac : numpy.ndarray
         (M, P) Jacobian of residuals normalised by the noise sd
-        (:meth:`magcal_ros.core.engine.ProfiledProblem.jacobian`).
+        (:meth:`magcal_ros.core.model.engine.ProfiledProblem.jacobian`).
 
     Returns
     -------
@@ -197,7 +197,7 @@ def covariance_from_normal(a):
     ----------
     a : numpy.ndarray
         (P, P) J^T J of residuals normalised by the noise sd
-        (:meth:`magcal_ros.core.engine.ProfiledProblem.normal_equations`), in
+        (:meth:`magcal_ros.core.model.engine.ProfiledProblem.normal_equations`), in
         1 / (unit of parameter i x unit of parameter j).
 
     Returns
@@ -226,7 +226,7 @@ def resolves_covariance(a, rcond=1e-8):
     """
     Return True when J^T J formed block by block determines the covariance to rounding.
 
-    :meth:`magcal_ros.core.engine.ProfiledProblem.normal_equations` subtracts the field
+    :meth:`magcal_ros.core.model.engine.ProfiledProblem.normal_equations` subtracts the field
     directions' part from D^T D of the unprojected columns D, so its rounding in the
     column-scaled matrix is about eps |D_i| |D_k| / (|J_i| |J_k|) instead of eps: up to
     ~1e-13 when a column lies mostly along the field directions (|D_i| / |J_i| ~ 20 for an
@@ -269,3 +269,28 @@ def single_threaded_blas():
     except ImportError:                   # pragma: no cover - optional dependency
         return contextlib.nullcontext()
     return threadpool_limits(limits=1, user_api='blas')
+
+
+def stderr_and_correlation(cov):
+    """
+    Return the standard uncertainties and the correlation matrix of a covariance.
+
+    Parameters
+    ----------
+    cov : numpy.ndarray
+        (P, P) covariance, in the parameters' units squared (inf: undetermined).
+
+    Returns
+    -------
+    stderr : numpy.ndarray
+        (P,) square roots of the diagonal.
+    corr : numpy.ndarray
+        (P, P) correlation, 0 where undefined, 1 on the diagonal.
+
+    """
+    stderr = np.sqrt(np.clip(np.diag(cov), 0, None))
+    with np.errstate(invalid='ignore', divide='ignore'):
+        corr = cov / np.outer(stderr, stderr)
+    corr[~np.isfinite(corr)] = 0.0
+    np.fill_diagonal(corr, 1.0)
+    return stderr, corr

@@ -16,7 +16,7 @@
 Paper 002: hard- and soft-iron compensation from a reference field vector.
 
 Paper 002: hard- and soft-iron compensation from a reference field vector, by linear least
-squares (not :mod:`magcal_ros.core.magnitude`, the reference *magnitude* of a fit).
+squares (not :mod:`magcal_ros.core.data.magnitude`, the reference *magnitude* of a fit).
 
 Model (paper 002, eq. 1-4): ``Hm = K He + Hh`` with ``He`` the undisturbed field (measured
 without the interference source: a reference) and ``Hm`` the disturbed reading, ``K = I + D``
@@ -36,8 +36,8 @@ valid for attitudes whose field stays in that plane. Paper 002's own Table 2 is 
 
 from dataclasses import dataclass
 
-from magcal_ros.core.coverage import Coverage, direction_coverage
-from magcal_ros.core.paper_params import Paper002Params
+from magcal_ros.core.model.coverage import Coverage, direction_coverage
+from magcal_ros.core.papers.paper_params import Paper002Params
 import numpy as np
 
 #: Minimum number of attitudes: 12 unknowns, 3 equations per attitude (paper 002, §1).
@@ -109,7 +109,7 @@ class ReferenceFit:
         return np.sqrt(np.mean(self.residual ** 2, axis=0))
 
     def to_params(self) -> Paper002Params:
-        """Return the fit as :class:`~magcal_ros.core.paper_params.Paper002Params`."""
+        """Return the fit as :class:`~magcal_ros.core.papers.paper_params.Paper002Params`."""
         return Paper002Params(K=self.K, Hh=self.Hh)
 
     def stderr(self, sigma_hm_nt, sigma_he_nt=0.0):
@@ -160,7 +160,7 @@ def fit_reference(He, Hm, strict=False, max_condition=100.0,
     max_condition : float, optional
         Largest acceptable condition number of the column-scaled design.
     planar_threshold : float, optional
-        Passed to :func:`~magcal_ros.core.coverage.direction_coverage`.
+        Passed to :func:`~magcal_ros.core.model.coverage.direction_coverage`.
 
     Returns
     -------

@@ -75,7 +75,7 @@ class Dataset:
         if self.raw.shape[1] != self.t.shape[0]:
             raise ValueError(f'raw has {self.raw.shape[1]} samples but t has {self.t.shape[0]}')
         if self.attitude is not None:
-            from magcal_ros.core.attitude import check_quaternions
+            from magcal_ros.core.geometry.attitude import check_quaternions
             self.attitude = check_quaternions(self.attitude, self.t)
         self._att_matrix = None
 
@@ -114,7 +114,7 @@ class Dataset:
         if self.attitude is None:
             return None
         if self._att_matrix is None:
-            from magcal_ros.core.attitude import quaternion_matrices
+            from magcal_ros.core.geometry.attitude import quaternion_matrices
             self._att_matrix = quaternion_matrices(self.attitude)
         return self._att_matrix
 

@@ -16,7 +16,7 @@
 Find and repair sample sets whose sensors were paired from different epochs.
 
 Live, the four streams of the array arrive separately and are grouped into sets by their
-stamps (:class:`magcal_ros.core.sync.StampMatcher`).  Stamps are arrival times, so a sensor
+stamps (:class:`magcal_ros.core.live.sync.StampMatcher`).  Stamps are arrival times, so a sensor
 whose bytes come systematically later than sensor 1's by more than half a sample period
 (a USB-serial adapter's 16 ms latency timer, a starved reader thread, a burst after a
 stall) can be paired one or more epochs off, and a rotating array then gives every set of
@@ -43,8 +43,8 @@ no partner inside the same run of consecutive epochs, are dropped and counted.
 """
 from dataclasses import dataclass, replace
 
-from magcal_ros.core.ellipsoid import fit_ellipsoid, procrustes_rotation
-from magcal_ros.core.noise import estimate_noise
+from magcal_ros.core.data.noise import estimate_noise
+from magcal_ros.core.papers.ellipsoid import fit_ellipsoid, procrustes_rotation
 import numpy as np
 
 #: largest slip searched, epochs

@@ -16,7 +16,7 @@
 Paper 000: sine-fit calibration of a three-axis magnetometer on a turntable.
 
 Model (paper 000, eq. 1): ``raw = L B + B0`` with ``L`` lower triangular (see
-:class:`~magcal_ros.core.paper_params.Paper000Params`). The sensor is turned on a level,
+:class:`~magcal_ros.core.papers.paper_params.Paper000Params`). The sensor is turned on a level,
 non-magnetic turntable in a uniform field, first with its OXmYm plane horizontal, then with
 its OXmZm plane horizontal; every axis output is fitted by ``A sin(theta + C) + D`` (eq. 4),
 and the nine parameters follow from amplitudes, phases and shifts (eq. 5-16) without any
@@ -61,7 +61,7 @@ a bias equal to the noise mean.
 
 from dataclasses import dataclass
 
-from magcal_ros.core.paper_params import Paper000Params
+from magcal_ros.core.papers.paper_params import Paper000Params
 import numpy as np
 
 

@@ -34,14 +34,14 @@ the orthogonal complement of the two field directions of each epoch,
 
 so that Gauss-Newton on p alone converges like the joint problem and J^T J is the Fisher
 information of p with the fields unknown (its inverse,
-:func:`magcal_ros.core.solvers.covariance_from_jacobian`, is the Cramer-Rao bound).
+:func:`magcal_ros.core.model.solvers.covariance_from_jacobian`, is the Cramer-Rao bound).
 
 :class:`ProfiledProblem` holds one group of sensors; the fit
-(:func:`magcal_ros.core.fitting.fit`) solves it with
-:func:`magcal_ros.core.solvers.levenberg_marquardt` on J^T J and J^T r formed block by block
+(:func:`magcal_ros.core.model.fitting.fit`) solves it with
+:func:`magcal_ros.core.model.solvers.levenberg_marquardt` on J^T J and J^T r formed block by block
 (:meth:`ProfiledProblem.normal_equations`, without the tall projected Jacobian), the diagnosis
 (:mod:`magcal_ros.core.discovery`) reuses its Jacobian to screen and cross-validate candidate
-effects, and :mod:`magcal_ros.core.site_gradient` its covariance.
+effects, and :mod:`magcal_ros.core.geometry.site_gradient` its covariance.
 """
 import numpy as np
 
