@@ -162,10 +162,17 @@ def print_json(obj):
 def _parse_truth(items):
     truth = {}
     for item in items or []:
-        token, sep, values = item.partition('=')
+        # the values follow the last '=' outside parentheses: offset(s(t, k=4))@2=1,2,...
+        depth, cut = 0, -1
+        for i, ch in enumerate(item):
+            depth += (ch in '({') - (ch in ')}')
+            if ch == '=' and depth == 0:
+                cut = i
+        token, sep, values = (item[:cut], '=', item[cut + 1:]) if cut >= 0 else (item, '', '')
         if not sep:
-            raise BadInput(f'--truth {item!r}: expected EFFECT=v1,v2,... '
-                           '(e.g. temperature@2=3,-2,1.5,0,0,0)')
+            raise BadInput(f'--truth {item!r}: expected TERM=v1,v2,... '
+                           '(e.g. temperature@2=3,-2,1.5,0,0,0 or '
+                           'offset(window(20, 40))@2=30,0,0)')
         try:
             truth[token.strip()] = [float(v) for v in values.split(',')]
         except ValueError:
@@ -416,8 +423,10 @@ def build_parser():
     s.add_argument('--field-nt', type=float, default=50000.0, help='total field, nT')
     s.add_argument('--seed', type=int, default=0)
     s.add_argument('--model', default='base', help='truth model (default base)')
-    s.add_argument('--truth', action='append', metavar='EFFECT=V1,V2,...',
-                   help='switch on a hidden effect, e.g. temperature@2=3,-2,1.5,0,0,0')
+    s.add_argument('--truth', action='append', metavar='TERM=V1,V2,...',
+                   help='switch on a hidden term with these parameter values (in the order of '
+                   'its parameters, docs/formulas.md), e.g. temperature@2=3,-2,1.5,0,0,0 or '
+                   "'offset(window(20, 40))@2=30,0,0'")
     s.add_argument('--no-aux', action='store_true', help='omit the auxiliary channels')
     s.add_argument('--ideal', action='store_true', help='ideal sensors (no paper 004 errors)')
     s.add_argument('--diurnal-nt', type=float, default=0.0,

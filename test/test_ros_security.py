@@ -62,7 +62,8 @@ def evil_module(tmp_path, monkeypatch):
 def wheel_unloaded():
     """Leave the registry without the example's 'wheel' effect after the test."""
     yield
-    fx._REGISTRY.pop('wheel', None)
+    if fx.effect_class('wheel') is not None:
+        fx.unregister_effect('wheel')
     sys.modules.pop('my_effect', None)
 
 

@@ -179,7 +179,8 @@ def _calibration_from_doc(doc, source):
     sensors = _need(doc, 'sensors', source)
     if not isinstance(sensors, list) or not sensors:
         raise CalibrationFileError(f'{source}: sensors must be a non-empty list')
-    effects, params, stderr, sigma = [], [], [], []
+    effects, sigma = [], []
+    values = {}                  # id(effect) -> ((n,) values, (n,) stderr) from the file
 
     def read_effects(edocs, k, where):
         row = []
@@ -197,17 +198,17 @@ def _calibration_from_doc(doc, source):
                 raise CalibrationFileError(
                     f'{where} effect {label}: parameters {list(pdoc)} but expected '
                     f'{list(eff.param_names)}')
+            v, s = [], []
             for pn in eff.param_names:
                 entry = pdoc[pn]
                 try:
-                    v = float(_need(entry, 'value', f'{where} {label}.{pn}'))
-                    s = float(entry.get('stderr', 0.0))
+                    v.append(float(_need(entry, 'value', f'{where} {label}.{pn}')))
+                    s.append(float(entry.get('stderr', 0.0)))
                 except (TypeError, ValueError):
                     raise CalibrationFileError(f'{where} {label}.{pn}: value is not a number')
-                if not np.isfinite(v):
+                if not np.isfinite(v[-1]):
                     raise CalibrationFileError(f'{where} {label}.{pn}: value is not finite')
-                params.append(v)
-                stderr.append(s)
+            values[id(eff)] = (v, s)
             row.append(eff)
         return row
 
@@ -218,8 +219,25 @@ def _calibration_from_doc(doc, source):
         effects.append(read_effects(_need(sdoc, 'effects', where), k, where))
         sigma.append(float(sdoc.get('sigma_nt', np.nan)))
     array_effects = read_effects(doc.get('array_effects') or [], 0, f'{source}: array_effects')
-    model = Model(effects, array_effects)
-    cal = Calibration(model, np.array(params), np.array(stderr), np.array(sigma))
+    drops = []
+    for term in doc.get('model') or []:
+        if isinstance(term, str) and term.replace(' ', '').startswith('drop('):
+            try:
+                drops.extend(fx.formula.parse(term).drops)
+            except ValueError as exc:
+                raise CalibrationFileError(f'{source}: model term {term!r}: {exc}') from None
+    model = Model(effects, array_effects, drops)
+    # every effect's values into its place of the parameter vector; an @alike term's one set
+    # (written under every sensor) into its shared slice, the same on every sensor
+    params, stderr = np.full(model.n_params, np.nan), np.zeros(model.n_params)
+    placed = [(e, sl) for row, sls in zip(model.effects, model.slices) for e, sl in zip(row, sls)]
+    for eff, sl in placed + list(zip(model.array_effects, model.array_slices)):
+        v, s = values[id(eff)]
+        if not np.isnan(params[sl]).all() and not np.allclose(params[sl], v, rtol=0, atol=0):
+            raise CalibrationFileError(f'{source}: {eff.label}: the sensors disagree on the '
+                                       'values of a parameter set they share (hand-edited?)')
+        params[sl], stderr[sl] = v, s
+    cal = Calibration(model, params, stderr, np.array(sigma))
     site = doc.get('site_gradient_nt_per_m')
     if array_effects and isinstance(site, dict) and 'covariance_5' in site:
         cov = np.asarray(site['covariance_5'], float)

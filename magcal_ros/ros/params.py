@@ -180,7 +180,7 @@ def module_paths(value):
 
 
 def model_check(n_sensors):
-    """Make a validator of a model spec (list of effect tokens) using :meth:`Model.from_spec`."""
+    """Make a validator of a model (list of formula terms, docs/formulas.md): Model.from_spec."""
     def check(value):
         try:
             Model.from_spec(list(value), n_sensors)
@@ -319,8 +319,8 @@ def calibration_specs(n_sensors=4):
     """Parameters of ``calibration_node`` other than :data:`N_SENSORS`."""
     return [
         ParamSpec('model', ('base',),
-                  'model to fit: list of effect names (docs/design.md §2), e.g. '
-                  "['base', 'temperature@2']; no unit",
+                  'model to fit: list of formula terms (docs/formulas.md), e.g. '
+                  "['base', 'temperature@2', 'offset(s(t, k=6))@2']; no unit",
                   model_check(n_sensors), item_type=str),
         ParamSpec('field_nt', 50000.0, 'reference magnitude of the (uniform) field at the '
                   'calibration site, nT', positive('nT'), limits=(1.0, 1.0e6)),

@@ -132,7 +132,7 @@ class Simulator:
         self.rng = np.random.default_rng(cfg.seed)
         s = cfg.n_sensors
         tokens = [cfg.model] + [t for t in cfg.truth if t not in ('base',)]
-        self.model = Model.from_spec(','.join(tokens), s)
+        self.model = Model.from_spec(' + '.join(tokens), s)
         p = self.model.default_params()
         if cfg.errors == 'paper004':
             if s > 4:
@@ -153,21 +153,29 @@ class Simulator:
         self._levels = seed_rng.uniform(0.0, 5.0, size=4096)
 
     def _set_truth(self, p, token, values):
-        name, _, where = token.partition('@')
+        """
+        Set the true parameters of the term ``token`` (any formula term) to ``values``.
+
+        ``token`` is parsed as a formula term (``temperature@2``, ``offset(s(t, k=4))@2``,
+        ``field(sin(0.01))``); every sensor of its scope gets ``values`` (one set for
+        ``@alike`` and the array's terms), in the order of the effect's ``param_names``.
+        """
+        from magcal_ros.core.effects.formula import parse_term
+        term = parse_term(token)
         values = np.asarray(values, float)
-        hit = False
-        for j, row in enumerate(self.model.effects):
-            if where and j + 1 != int(where):
-                continue
-            for eff, sl in zip(row, self.model.slices[j]):
-                if eff.label == name or eff.name == name:
-                    if values.size != eff.n_params:
-                        raise ValueError(f'{token}: {eff.n_params} values expected '
-                                         f'({", ".join(eff.param_names)})')
-                    p[sl] = values
-                    hit = True
-        if not hit:
-            raise ValueError(f'truth for {token!r} but no such effect in the model')
+        sensors = term.sensors(self.model.n_sensors)
+        found = [(eff, sl) for j, row in enumerate(self.model.effects) if j + 1 in sensors
+                 for eff, sl in zip(row, self.model.slices[j])
+                 if eff.label in (term.core, term.text) or eff.name == term.core]
+        arr = zip(self.model.array_effects, self.model.array_slices)
+        found += [(eff, sl) for eff, sl in arr if eff.label == term.core]
+        if not found:
+            raise ValueError(f'truth for {token!r} but no such term in the model')
+        for eff, sl in found:
+            if values.size != eff.n_params:
+                raise ValueError(f'{token}: {eff.n_params} values expected '
+                                 f'({", ".join(eff.param_names)})')
+            p[sl] = values
 
     # -- time functions ---------------------------------------------------------------------
 
@@ -310,7 +318,5 @@ def _set_truth_refs(sim, t):
     """Fix the truth's reference values (mean temperature etc.) from the time grid."""
     temp = sim.temperature(t)
     aux = sim.aux_channels(t) if sim.config.aux else {}
-    for j, row in enumerate(sim.model.effects):
-        ctx = SensorContext(t=t, temp=temp[j], aux=aux)
-        for eff in row:
-            eff.prepare(ctx)
+    sim.model.prepare([SensorContext(t=t, temp=temp[j], aux=aux)
+                       for j in range(len(sim.model.effects))])

@@ -36,7 +36,8 @@ def centred_fields(result):
     model = result.model
     if not model.array_effects:
         return result.corrected_nt
-    shift = np.stack([model.array_shift(j, result.params, result.contexts[j - 1])
+    shift = np.stack([model.array_shift(j, result.params, result.contexts[j - 1],
+                                        result.corrected_nt[j - 1])
                       for j in range(1, model.n_sensors + 1)])
     return result.corrected_nt - shift
 

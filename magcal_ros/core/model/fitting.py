@@ -319,6 +319,12 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
         ident = _check_data(data, model, contexts_all, constrained, check_identifiability,
                             degenerate)
         idx = fit_epochs(data.n_samples, max_fit_samples)
+        if model.drops:
+            # drop(t0, t1) terms: the fit leaves those windows out
+            idx = idx[model.fit_mask(data.t[idx])]
+            if len(idx) < 10:
+                raise ValueError(f'the drop() windows {model.drops} leave {len(idx)} samples '
+                                 'to fit: drop less')
         raw, f = data.raw[:, idx], f_all[idx]
         contexts = [c.subset(idx) for c in contexts_all]
         if init is None:
@@ -694,11 +700,17 @@ def corrected_readings(model, p, raw, contexts):
 
 
 def centred_readings(model, p, corrected, contexts):
-    """Return (S, N, 3) ``corrected`` minus each sensor's modelled site shift, nT."""
+    """
+    Return (S, N, 3) ``corrected`` minus each sensor's modelled array shift, nT.
+
+    The site shift (site gradient) and the modelled change of the field's magnitude (a
+    ``field`` term, along the corrected reading): what is left is comparable with the
+    reference magnitude.
+    """
     if not model.array_effects:
         return corrected
     # residuals against the centre field: remove each sensor's modelled site shift
-    return corrected - np.stack([model.array_shift(j, p, contexts[j - 1])
+    return corrected - np.stack([model.array_shift(j, p, contexts[j - 1], corrected[j - 1])
                                  for j in range(1, model.n_sensors + 1)])
 
 

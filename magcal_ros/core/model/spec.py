@@ -52,9 +52,11 @@ class Model:
 
     """
 
-    def __init__(self, effects, array_effects=()):
+    def __init__(self, effects, array_effects=(), drops=()):
         self.effects = [list(e) for e in effects]
         self.array_effects = list(array_effects)
+        #: (t0, t1) s windows the fit leaves out (``drop(t0, t1)`` terms)
+        self.drops = [tuple(map(float, w)) for w in drops]
         if self.array_effects and self.n_sensors == 4:
             from magcal_ros.core.geometry.tensor import cross_positions
             for eff in self.array_effects:
@@ -63,13 +65,24 @@ class Model:
         self._layout()
 
     def _layout(self):
+        """
+        Lay the parameters out: each sensor's own, the array effects', the shared ones.
+
+        An effect with ``shared`` set (a composed term ``@alike``) has one parameter set for
+        every sensor: its instances on the sensors share one slice after the array effects.
+        """
         self.slices = []
         self.sensor_slices = []
         i = 0
+        shared = {}
         for sensor_effects in self.effects:
             start = i
             row = []
             for eff in sensor_effects:
+                if getattr(eff, 'shared', False):
+                    row.append(None)
+                    shared.setdefault(eff.label, eff.n_params)
+                    continue
                 row.append(slice(i, i + eff.n_params))
                 i += eff.n_params
             self.slices.append(row)
@@ -78,13 +91,23 @@ class Model:
         for eff in self.array_effects:
             self.array_slices.append(slice(i, i + eff.n_params))
             i += eff.n_params
+        #: {label: slice} of the parameters shared by every sensor (scope alike)
+        self.shared_slices = {}
+        for lab, n in shared.items():
+            self.shared_slices[lab] = slice(i, i + n)
+            i += n
+        for row, sls in zip(self.effects, self.slices):
+            for k, eff in enumerate(row):
+                if sls[k] is None:
+                    sls[k] = self.shared_slices[eff.label]
         self.n_params = i
 
     @property
     def array_cols(self):
-        """(K,) indices of the array-wide parameters in the parameter vector."""
-        return np.concatenate([np.arange(sl.start, sl.stop) for sl in self.array_slices]
-                              ).astype(int) if self.array_slices else np.zeros(0, int)
+        """(K,) indices of the parameters of the whole array (array effects, shared sets)."""
+        sls = self.array_slices + list(self.shared_slices.values())
+        return np.concatenate([np.arange(sl.start, sl.stop) for sl in sls]
+                              ).astype(int) if sls else np.zeros(0, int)
 
     def set_positions(self, positions):
         """Sensor positions (S, 3) m in the array frame, for the array-wide effects."""
@@ -100,47 +123,50 @@ class Model:
     @classmethod
     def from_spec(cls, spec, n_sensors):
         """
-        Build a model from a comma-separated spec (docs/design.md §2).
+        Build a model from a formula (:func:`magcal_ros.core.effects.formula.parse`).
 
-        ``base`` expands to offset, scale, nonorthogonality, misalignment; ``name@j``
-        restricts an effect to sensor j; ``aux:<column>`` couples an auxiliary channel.
-        Effects that do not exist on sensor 1 (``Effect.on_sensor1`` False: the
-        misalignment, sensor 1 defines the array frame) are dropped there; linear effects
-        are multiplied in the order of their ``Effect.linear_order``.
+        ``spec`` is formula text (``'base + offset(s(t, k=6))@2'``, ``'base,temperature@2'``),
+        a list of terms or a Formula.  ``base`` expands to offset, scale,
+        nonorthogonality, misalignment; ``term@j`` restricts a term to sensor j,
+        ``@{j,k}`` to those sensors, ``@alike`` shares one parameter set between every
+        sensor; ``aux:<column>`` couples an auxiliary channel; ``drop(t0, t1)`` leaves a
+        window out of the fit.  Effects that do not exist on sensor 1
+        (``Effect.on_sensor1`` False: the misalignment, sensor 1 defines the array frame)
+        are dropped there; linear effects are multiplied in the order of their
+        ``Effect.linear_order``.
         """
-        tokens = spec if isinstance(spec, (list, tuple)) else fx.split_spec(spec)
-        tokens = [t.strip() for t in tokens if t.strip()]
-        if not tokens:
-            raise ValueError('empty model: give at least one effect, e.g. --model base')
+        from magcal_ros.core.effects.formula import parse
+        from magcal_ros.core.effects.terms import composed_effect
+        formula = parse(spec)
         per_sensor = [[] for _ in range(n_sensors)]
         seen = [set() for _ in range(n_sensors)]
         array_effects = []
-        for tok in tokens:
-            # name(arguments)@j: a step time, a frequency, a channel (effects.parse_token)
-            name, where = (tok.rsplit('@', 1) if tok.rfind('@') > tok.rfind(')')
-                           else (tok, ''))
-            if getattr(fx.effect_class(name), 'scope', 'sensor') == 'array':
-                if where:
-                    raise ValueError(f'{name} is one effect of the whole array: drop @{where}')
-                if n_sensors < 3:
-                    raise ValueError(f'{name} needs an array of at least three sensors')
-                if name not in [e.name for e in array_effects]:
-                    array_effects.append(fx.make_effect(name, 0))
+        for term in formula.terms:
+            if term.kind == 'drop':
                 continue
-            names = fx.BASE if name == 'base' else (name,)
-            if where:
-                try:
-                    sensors = [int(where)]
-                except ValueError:
-                    raise ValueError(f'bad sensor in {tok!r}: expected name@<1..{n_sensors}>')
-                if not 1 <= sensors[0] <= n_sensors:
-                    raise ValueError(f'{tok!r}: sensor {sensors[0]} does not exist '
-                                     f'(the data have sensors 1..{n_sensors})')
+            if term.kind == 'composed':
+                eff0 = composed_effect(term, 0)
+                if eff0.scope == 'array':
+                    if eff0.label not in [e.label for e in array_effects]:
+                        array_effects.append(eff0)
+                    continue
+                if term.scope == 'alike' and n_sensors < 2:
+                    raise ValueError(f'{term.text}: @alike shares parameters between sensors; '
+                                     'the data have one sensor (drop @alike)')
+                makers = [(term.core, lambda j, t=term: composed_effect(t, j))]
+            elif term.scope == 'array':
+                if n_sensors < 3:
+                    raise ValueError(f'{term.core} needs an array of at least three sensors')
+                if term.core not in [e.name for e in array_effects]:
+                    array_effects.append(fx.make_effect(term.core, 0))
+                continue
             else:
-                sensors = range(1, n_sensors + 1)
-            for nm in names:
+                names = fx.BASE if term.core == 'base' else (term.core,)
+                makers = [(nm, lambda j, nm=nm: fx.make_effect(nm, j)) for nm in names]
+            sensors = term.sensors(n_sensors)
+            for _, make in makers:
                 for j in sensors:
-                    eff = fx.make_effect(nm, j)
+                    eff = make(j)
                     if not eff.applies or eff.label in seen[j - 1] or any(
                             eff.label in o.supersedes for o in per_sensor[j - 1]):
                         continue
@@ -161,7 +187,7 @@ class Model:
                     per_sensor[j - 1].append(eff)
         for row in per_sensor:
             row.sort(key=lambda e: (e.kind != 'linear', e.linear_order))
-        return cls(per_sensor, array_effects)
+        return cls(per_sensor, array_effects, formula.drops)
 
     def spec(self):
         """Canonical list of effect tokens (``name`` or ``name@j``)."""
@@ -174,15 +200,24 @@ class Model:
         for lab, eff in first.items():
             have = [j + 1 for j, row in enumerate(labels) if lab in row]
             expected = list(range(1 if eff.on_sensor1 else 2, self.n_sensors + 1))
-            if have == expected:
+            if have == expected or getattr(eff, 'shared', False):
                 out.append(lab)
             else:
                 out.extend(f'{lab}@{j}' for j in have)
-        return out + [e.label for e in self.array_effects]
+        from magcal_ros.core.effects.base import format_arg
+        return out + [e.label for e in self.array_effects] + [
+            f'drop({format_arg(a)}, {format_arg(b)})' for a, b in self.drops]
 
     def with_effect(self, token):
         """Return a new model with ``token`` (e.g. 'temperature@2') added."""
         return Model.from_spec(self.spec() + [token], self.n_sensors)
+
+    def fit_mask(self, t):
+        """(N,) bool: the samples at times ``t`` (N,) s the fit uses (outside every drop)."""
+        keep = np.ones(len(t), bool)
+        for a, b in self.drops:
+            keep &= ~((t >= a) & (t <= b))
+        return keep
 
     def has(self, j, name):
         """Return True if sensor j has an effect with this label or name."""
@@ -200,8 +235,9 @@ class Model:
         True with an array-wide effect, or a frame rotation on j > 1 (misalignment, soft
         iron).
         """
-        return self.n_sensors > 1 and (bool(self.array_effects) or any(
-            self.frame_rotation(j) for j in range(2, self.n_sensors + 1)))
+        return self.n_sensors > 1 and (
+            bool(self.array_effects) or bool(self.shared_slices)
+            or any(self.frame_rotation(j) for j in range(2, self.n_sensors + 1)))
 
     @property
     def sensor_groups(self):
@@ -221,13 +257,16 @@ class Model:
 
     def param_info(self):
         """List of (sensor, effect label, name, unit) for each parameter."""
-        out = []
+        out = [None] * self.n_params
         for j, row in enumerate(self.effects):
-            for eff in row:
-                for nm, un in zip(eff.param_names, eff.units):
-                    out.append((j + 1, eff.label, nm, un))
-        for eff in self.array_effects:          # sensor 0: the whole array
-            out.extend((0, eff.label, nm, un) for nm, un in zip(eff.param_names, eff.units))
+            for eff, sl in zip(row, self.slices[j]):
+                # a parameter set shared by every sensor (@alike) is the array's: sensor 0
+                who = 0 if getattr(eff, 'shared', False) else j + 1
+                for i, nm, un in zip(range(sl.start, sl.stop), eff.param_names, eff.units):
+                    out[i] = (who, eff.label, nm, un)
+        for eff, sl in zip(self.array_effects, self.array_slices):   # sensor 0: the array
+            for i, nm, un in zip(range(sl.start, sl.stop), eff.param_names, eff.units):
+                out[i] = (0, eff.label, nm, un)
         return out
 
     def prepare(self, contexts):
@@ -235,6 +274,9 @@ class Model:
         for row, ctx in zip(self.effects, contexts):
             for eff in row:
                 eff.prepare(ctx)
+        for eff in self.array_effects:
+            if contexts:
+                eff.prepare(contexts[0])
 
     def check(self, contexts):
         """Reasons why effects cannot be excited by the data (empty list if all fine)."""
@@ -268,11 +310,21 @@ class Model:
                 out = out + eff.contribution(p[sl], ctx, lin)
         return out
 
-    def array_shift(self, j, p, ctx):
-        """(N, 3) nT field at sensor j minus the field at the array centre (array effects)."""
-        out = 0.0
+    def array_shift(self, j, p, ctx, b=None):
+        """
+        (N, 3) nT field at sensor j minus the field ``b`` at the array centre (array effects).
+
+        Effects that read the field (``reads_field``: the ``field`` coupling, a change of
+        the field's magnitude) contribute only when ``b`` (N, 3) nT is given: without it
+        this is the site shift alone (what centred readings subtract).
+        """
+        out = np.zeros((len(ctx.t), 3))
         for eff, sl in zip(self.array_effects, self.array_slices):
-            out = out + eff.shift(p[sl], ctx, j)
+            if getattr(eff, 'reads_field', False):
+                if b is not None:
+                    out = out + eff.shift(p[sl], ctx, j, b)
+            else:
+                out = out + eff.shift(p[sl], ctx, j)
         return out
 
     def forward(self, j, p, b, ctx, a=None, add=None):
@@ -285,7 +337,7 @@ class Model:
         has it and it does not depend on the field (:meth:`fixed_additive`).
         """
         if self.array_effects:
-            b = b + self.array_shift(j, p, ctx)
+            b = b + self.array_shift(j, p, ctx, b)
         lin = b @ (self.matrix(j, p) if a is None else a).T
         return lin + (self.additive(j, p, ctx, lin) if add is None else add)
 
@@ -354,7 +406,7 @@ class Model:
             pp = p.copy()
             pp[i] += h[c]
             if (i in owner or i in linear) and lin is None:
-                bb = b + self.array_shift(j, p, ctx) if self.array_effects else b
+                bb = b + self.array_shift(j, p, ctx, b) if self.array_effects else b
                 a0 = self.matrix(j, p)
                 lin = bb @ a0.T
             if i in owner:

@@ -1,0 +1,54 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Physical error terms ("effects") of a vector magnetometer, and the grammar that composes them.
+
+An effect is a *coupling* applied to a *driver* on a *scope* (docs/formulas.md):
+
+- :mod:`.base`: :class:`Effect`, :class:`SensorContext`, :class:`LinearParts`, the paper
+  004 rotations and the signal helpers;
+- :mod:`.catalog`: the named effects of today's tokens (scale, offset, temperature, ...);
+- :mod:`.drivers`: bases of a driving signal (s, cc, poly, sin, step, window, lag, a
+  channel, rate, lin, products);
+- :mod:`.couplings`: how a driver enters the reading (offset, scale, linear, nonorth,
+  rotation, field);
+- :mod:`.terms`: a coupling of a driver composed into an Effect, and ``drop``;
+- :mod:`.aliases`: today's tokens as compositions;
+- :mod:`.formula`: the one parser, :func:`parse` (CLI ``--model``, the node's ``model``
+  parameter, the calibration file, ``magcal simulate --truth``);
+- :mod:`.registry`: named effects and plug-ins.
+
+The names below are re-exported so that ``from magcal_ros.core.effects import X`` keeps
+working for everything that imported the former single module.
+"""
+from magcal_ros.core.effects.base import (  # noqa: F401 - re-exported
+    decompose_linear, Effect, first_order_lag, LinearParts, misalignment_angles,
+    misalignment_matrix, NONLINEARITY_FULL_SCALE_NT, nonorthogonality_matrix, raw_rate,
+    rot_r1, rot_r2, rot_r3, rq_positive, SensorContext, SIGNALS, symmetric_traceless,
+    upper_to_scale_nonorth)
+from magcal_ros.core.effects.catalog import (  # noqa: F401 - re-exported
+    Aux, AuxPoly, Drift, FieldRate, Lag, Misalignment, Nonlinearity, NonOrthogonality, Offset,
+    Periodic, QuadraticDrift, Scale, SiteGradient, SoftIron, Step, Temperature)
+from magcal_ros.core.effects.registry import (  # noqa: F401 - re-exported
+    BASE, BUILTIN_EFFECTS, effect_class, load_plugin, load_plugins, make_effect,
+    needs_args, parse_token, register_effect, registered_effects, split_spec,
+    unregister_effect)
+from magcal_ros.core.effects import formula  # noqa: F401,I100 - the grammar, after the catalog
+from magcal_ros.core.effects.couplings import (  # noqa: F401 - re-exported
+    Coupling, register_coupling, registered_couplings, unregister_coupling)
+from magcal_ros.core.effects.drivers import (  # noqa: F401 - re-exported
+    Driver, FormulaError, register_driver, registered_drivers, unregister_driver)
+from magcal_ros.core.effects.formula import Formula, parse, Term  # noqa: F401 - re-exported
+from magcal_ros.core.effects.terms import ComposedEffect, FieldEffect  # noqa: F401

@@ -1,0 +1,499 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+"""
+The foundation of every effect: :class:`Effect`, :class:`SensorContext`, :class:`LinearParts`.
+
+Every sensor j of an array is described by the forward model
+
+    raw_j = A_j @ B + offset_j + sum_k d_k(context, lin_j) + noise,     lin_j = A_j @ B
+
+where ``B`` (nT) is the true field in the array frame (sensor 1's orthogonalised axes) and
+``A_j`` is the product of the *linear* effects (composed by matrix product, in the order
+scale . nonorthogonality . soft_iron . misalignment, paper 004 eq. 2-3) and ``d_k`` are the
+*additive* effects (offset, temperature, drift, nonlinearity, auxiliary currents, field rate),
+which add in the raw sensor frame.  This is the composition rule: linear maps
+compose, offsets and driven effects add.
+
+An effect is a small object with named parameters (each with a unit) and either a
+``matrix(p)`` (linear effects) or a ``contribution(p, ctx, lin)`` (additive effects).  It also
+declares everything the rest of the code asks about it (the live signals it reads, its prior
+in the constrained mode, its place in the product of linear effects, whether it carries the
+rotation into the array frame, how it takes its share of a closed-form linear map): the
+model, the fit, the diagnosis and the live corrector derive their behaviour from these
+declarations and never from effect names.  This module also holds the paper 004 rotations
+and the signal helpers every effect shares.
+"""
+from dataclasses import dataclass, field
+import math
+
+from magcal_ros.core.geometry.tensor import symmetric_traceless  # noqa: F401 - re-exported
+import numpy as np
+
+
+#: Full-scale field used to normalise the nonlinearity polynomial (nT).
+NONLINEARITY_FULL_SCALE_NT = 50000.0
+
+#: Driving signals an effect may declare in :attr:`Effect.signals`, and the
+#: :class:`SensorContext` attribute that holds each; auxiliary channels are named by their
+#: column, ``aux_<name>`` (held in ``SensorContext.aux``).
+SIGNALS = {'time': 't', 'temperature': 'temp', 'field_rate': 'raw_rate',
+           'attitude': 'attitude'}
+
+
+@dataclass(frozen=True)
+class LinearParts:
+    """
+    A closed-form linear map and offset of one sensor, decomposed (paper 004 eq. 2-3).
+
+    ``a = u @ q`` (RQ decomposition) with ``u`` upper triangular with a positive diagonal
+    (scale and non-orthogonality) and ``q`` a proper rotation (misalignment).
+
+    Attributes
+    ----------
+    a, u, q : numpy.ndarray
+        (3, 3) dimensionless.
+    scale : numpy.ndarray
+        (3,) row norms of ``u`` (kx, ky, kz), dimensionless.
+    nonorth : tuple of float
+        (psi, varphi, theta) of C_NO, rad.
+    offset : numpy.ndarray
+        (3,) nT.
+
+    """
+
+    a: np.ndarray
+    u: np.ndarray
+    q: np.ndarray
+    scale: np.ndarray
+    nonorth: tuple
+    offset: np.ndarray
+
+
+def decompose_linear(a, offset):
+    """:class:`LinearParts` of the (3, 3) map ``a`` and the (3,) nT ``offset``."""
+    a = np.asarray(a, float)
+    u, q = rq_positive(a)
+    k, psi, varphi, theta = upper_to_scale_nonorth(u)
+    return LinearParts(a=a, u=u, q=q, scale=k, nonorth=(psi, varphi, theta),
+                       offset=np.asarray(offset, float))
+
+
+def rq_positive(a):
+    """
+    RQ decomposition a = u @ q of a (3, 3) matrix with det(a) > 0.
+
+    ``u`` (3, 3) upper triangular with a positive diagonal, ``q`` (3, 3) a proper rotation
+    (det +1): the split of paper 004 eq. 2-3 (intrinsic map times misalignment).
+    """
+    from scipy.linalg import rq          # here: scipy.linalg is slow to import
+    u, q = rq(np.asarray(a, float))
+    sign = np.sign(np.diag(u))
+    u, q = u * sign[None, :], sign[:, None] * q
+    if np.linalg.det(q) < 0:
+        u, q = -u, -q
+    return u, q
+
+
+@dataclass
+class SensorContext:
+    """
+    Driving signals seen by one sensor.
+
+    Attributes
+    ----------
+    t : numpy.ndarray
+        (N,) time in s.
+    temp : numpy.ndarray or None
+        (N,) sensor temperature in degC.
+    aux : dict of str to numpy.ndarray
+        Auxiliary channels, each (N,), in the channel's own unit (A, W, ...).
+    raw_rate : numpy.ndarray or None
+        (N, 3) time derivative of the raw reading, nT/s.
+    parent : SensorContext or None
+        The whole record this context was cut from (:meth:`subset`), so that an effect with
+        memory (a lag filter) runs over the whole record and keeps its state across the
+        cut, e.g. across the held-out blocks of a cross-validation.
+    index : numpy.ndarray or None
+        (N,) int, positions of these samples in ``parent``.
+    attitude : numpy.ndarray or None
+        (N, 3, 3) body-to-world rotation matrices of the array (from the quaternion columns
+        att_qw..att_qz), or None when the attitude is unknown.
+
+    """
+
+    t: np.ndarray
+    temp: np.ndarray | None = None
+    aux: dict = field(default_factory=dict)
+    raw_rate: np.ndarray | None = None
+    parent: 'SensorContext | None' = None
+    index: np.ndarray | None = None
+    attitude: np.ndarray | None = None
+
+    def has(self, signal):
+        """Tell whether the driving signal ``signal`` (see :data:`SIGNALS`) is present."""
+        if signal.startswith('aux_'):
+            return signal in self.aux
+        if signal not in SIGNALS:
+            raise ValueError(f'unknown signal {signal!r}: known signals are '
+                             f'{", ".join(SIGNALS)} and aux_<column>')
+        value = getattr(self, SIGNALS[signal])
+        return value is not None and bool(np.isfinite(value).any())
+
+    def subset(self, idx):
+        """Return the context restricted to samples ``idx`` (remembering the whole record)."""
+        pos = np.arange(len(self.t))[idx]
+        root = self if self.parent is None else self.parent
+        return SensorContext(
+            t=self.t[idx],
+            temp=None if self.temp is None else self.temp[idx],
+            aux={k: v[idx] for k, v in self.aux.items()},
+            raw_rate=None if self.raw_rate is None else self.raw_rate[idx],
+            attitude=None if self.attitude is None else self.attitude[idx],
+            parent=root, index=pos if self.index is None else self.index[pos])
+
+    def whole(self):
+        """(context of the whole record, (N,) int positions of these samples in it)."""
+        if self.parent is None:
+            return self, None
+        return self.parent, self.index
+
+
+class Effect:
+    """
+    Base class of an error term.
+
+    Subclasses set ``name``, ``kind`` ('linear' or 'additive'), ``param_names`` and ``units``
+    and implement ``matrix`` (linear) or ``contribution`` (additive).  Effects that depend on a
+    reference value of a driving signal (mean temperature, start time, mean current) compute it
+    in :meth:`prepare` from the calibration data and store it in ``self.refs`` so that live
+    correction uses the same reference.
+
+    The class attributes below are the effect's declarations;
+    :class:`~magcal_ros.core.model.Model`, the fit, the diagnosis and the live corrector read
+    them instead of recognising names.
+    """
+
+    name = 'effect'
+    kind = 'additive'
+    param_names = ()
+    units = ()
+    #: effects that are the same physical degree of freedom, and cannot be combined
+    excludes = ()
+    #: labels of effects this one contains (its parameters of the same name are theirs):
+    #: adding it to a model replaces them, e.g. aux_poly(aux_x,2) replaces aux:aux_x
+    supersedes = ()
+    #: how a token of an effect that needs arguments is written (None: takes none)
+    usage = None
+    #: the arguments of a token ``name(a, b)`` (a step time, a frequency, a channel), as
+    #: canonical strings; () for an effect without arguments
+    args = ()
+    #: driving signals ``contribution`` reads from the :class:`SensorContext`: keys of
+    #: :data:`SIGNALS` ('time', 'temperature', 'field_rate') or an auxiliary column
+    #: 'aux_<name>'.  The live corrector subscribes and waits for exactly these.
+    signals = ()
+    #: True for an additive effect whose contribution is a constant (N, 3) vector (the
+    #: offset): live correction folds it into ``A^-1 (raw - offset)``.  Any other additive
+    #: effect is *driven* and evaluated per sample.
+    constant = False
+    #: prior of the constrained mode (partial attitude coverage) on every parameter:
+    #: (mean, or None for :meth:`default_params`, standard deviation in the parameters' unit);
+    #: None: no prior
+    prior = None
+    #: place of a linear effect in the product A = A_1 A_2 ... (paper 004 eq. 2-3): effects
+    #: are multiplied in increasing order (the smallest is left-most, next to the output)
+    linear_order = 0
+    #: True if the effect holds the rotation of the sensor's axes into the array frame
+    #: (sensor 1's axes): on a sensor j > 1 it ties the sensors to one field per epoch
+    frame_rotation = False
+    #: False if the effect does not exist on sensor 1 because sensor 1 defines the array
+    #: frame (the misalignment); the model leaves it out there
+    on_sensor1 = True
+    #: 'sensor': one instance and parameter set per sensor; 'array': one for the whole array
+    #: (the site gradient)
+    scope = 'sensor'
+
+    def __init__(self, sensor=1, refs=None):
+        self.sensor = int(sensor)
+        self.refs = dict(refs or {})
+
+    @classmethod
+    def suggest_args(cls, ctx):
+        """
+        Argument tuples worth testing on data ``ctx`` (the diagnosis' candidates); [] if none.
+
+        Effects whose arguments come from the residual (a step time, a frequency) are
+        proposed by the diagnosis itself and return [].
+        """
+        return []
+
+    @classmethod
+    def from_args(cls, args, sensor=1):
+        """
+        Make the effect of token ``name(args)`` on ``sensor``; ``args`` are strings.
+
+        Effects with arguments override this (and set :attr:`args`); the default accepts none.
+        """
+        if args:
+            raise ValueError(f'effect {cls.name!r} takes no arguments, got '
+                             f'{cls.name}({",".join(args)})')
+        return cls(sensor=sensor)
+
+    @property
+    def n_params(self):
+        """Return the number of parameters."""
+        return len(self.param_names)
+
+    @property
+    def label(self):
+        """Model-spec label of this effect, e.g. ``temperature`` or ``step(300)``."""
+        return f'{self.name}({",".join(self.args)})' if self.args else self.name
+
+    @property
+    def applies(self):
+        """Tell whether this effect exists on its sensor (see :attr:`on_sensor1`)."""
+        return self.on_sensor1 or self.sensor != 1
+
+    def default_params(self):
+        """Parameter values of an ideal sensor (the effect switched off), shape (n_params,)."""
+        return np.zeros(self.n_params)
+
+    def params_from_linear(self, parts):
+        """
+        Return this effect's share of a closed-form linear map and offset (closed-form start).
+
+        ``parts`` is a :class:`LinearParts`; return the (n_params,) parameters, or None when
+        the effect has no share (it then starts at :meth:`default_params`).
+        """
+        return None
+
+    def prepare(self, ctx):
+        """Compute reference values from calibration data (default: none)."""
+
+    def check(self, ctx):
+        """Return None if the data can excite this effect, else the reason why not."""
+        return None
+
+    def matrix(self, p):
+        """(3, 3) dimensionless matrix of a linear effect."""
+        raise NotImplementedError
+
+    def contribution(self, p, ctx, lin):
+        """(N, 3) nT added to the raw reading, given ``lin`` = A @ B (N, 3) nT."""
+        raise NotImplementedError
+
+    def depends_on_lin(self):
+        """Tell whether ``contribution`` depends on ``lin`` (needs fixed-point inversion)."""
+        return False
+
+    def reduces(self, p, stderr, ctx):
+        """
+        Say why the fitted effect reduces to a simpler one of the catalog, or return None.
+
+        Reason why the fitted parameters ``p`` (stderr: their uncertainties, or None) make
+        this effect a simpler one already in the catalog (a lag of zero time constant), else
+        None.  The diagnosis does not adopt such a candidate: the simpler effect is tested
+        on its own.
+        """
+        return None
+
+    def describe(self):
+        """One-line physical description (first docstring line)."""
+        return (self.__doc__ or '').strip().splitlines()[0]
+
+    def __repr__(self):
+        return f'{type(self).__name__}(sensor={self.sensor})'
+
+
+def raw_rate(x, t=None, period=None):
+    """
+    (N, 3) nT/s time derivative of readings ``x`` (N, 3) nT: the field-rate signal.
+
+    The one estimator of ``SensorContext.raw_rate`` for a recording (Dataset), the simulator
+    and the live corrector.  Second-order finite differences (``numpy.gradient``,
+    ``edge_order=2``): central at interior samples, and one-sided at the ends, at the last
+    sample (3 x_k - 4 x_k-1 + x_k-2) / 2h, which is all a live stream has (only the past).
+    The central difference leaves the sample's own noise out of its rate, so a tau fitted
+    with it is unbiased (a one-sided rate shares the sample's noise: biased by
+    1.5 sigma^2 / (h |dB/dt|^2)).  For a field turning at w rad/s sampled every h s the two
+    forms give (1 - (w h)^2 / 6) and (1 + (w h)^2 / 3) times the true rate, so live and
+    offline correction agree to (w h)^2 / 2 of tau |dB/dt|: 2 % at w h = 0.2 (1 rad/s at
+    5 Hz).  The backward difference x_k - x_k-1 the corrector used before lags half a
+    sample instead: (w h) / 2 of the rate, 10 % at w h = 0.2, along the field.
+
+    Parameters
+    ----------
+    x : numpy.ndarray
+        (N, 3) readings, nT.
+    t : numpy.ndarray, optional
+        (N,) strictly increasing sample times, s.
+    period : float, optional
+        Uniform sample period, s, instead of ``t`` (a live stream, whose stamps bunch when
+        samples are read together).
+
+    Returns
+    -------
+    numpy.ndarray or None
+        (N, 3) nT/s; None with fewer than 3 samples or times that do not increase.
+
+    """
+    x = np.asarray(x, float)
+    if len(x) < 3:
+        return None
+    if period is not None:
+        return np.gradient(x, float(period), axis=0, edge_order=2) if period > 0 else None
+    t = np.asarray(t, float)
+    if not np.all(np.diff(t) > 0):
+        return None
+    return np.gradient(x, t, axis=0, edge_order=2)
+
+
+# -- rotations of paper 004 eq. 3 ----------------------------------------------------------
+
+
+def rot_r1(g):
+    """Paper 004 eq. 3: R1(gamma), rotation about y."""
+    c, s = np.cos(g), np.sin(g)
+    return np.array([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]])
+
+
+def rot_r2(b):
+    """Paper 004 eq. 3: R2(beta), rotation about x."""
+    c, s = np.cos(b), np.sin(b)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, s], [0.0, -s, c]])
+
+
+def rot_r3(a):
+    """Paper 004 eq. 3: R3(alpha), rotation about z."""
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def misalignment_matrix(alpha, beta, gamma):
+    """Paper 004 eq. 3: B_i = R1(gamma) R2(beta) R3(alpha) B_1, angles in rad."""
+    return rot_r1(gamma) @ rot_r2(beta) @ rot_r3(alpha)
+
+
+def misalignment_angles(r):
+    """Inverse of :func:`misalignment_matrix`: (3, 3) rotation -> (alpha, beta, gamma) rad."""
+    # R = R1(g) R2(b) R3(a); row 1 of R = [-cb sa ... ] -- solve from the closed form:
+    # R[1] = [-cb*sa, cb*ca, sb]
+    beta = np.arcsin(np.clip(r[1, 2], -1.0, 1.0))
+    alpha = np.arctan2(-r[1, 0], r[1, 1])
+    # R[0,2] = -sg*cb, R[2,2] = cg*cb
+    gamma = np.arctan2(-r[0, 2], r[2, 2])
+    return float(alpha), float(beta), float(gamma)
+
+
+def nonorthogonality_matrix(psi, varphi, theta):
+    """Paper 004 eq. 2: C_NO, upper triangular, z axis as reference (angles in rad)."""
+    ct = np.cos(theta)
+    return np.array([
+        [ct * np.cos(varphi), ct * np.sin(varphi), np.sin(theta)],
+        [0.0, np.cos(psi), np.sin(psi)],
+        [0.0, 0.0, 1.0]])
+
+
+def upper_to_scale_nonorth(u):
+    """
+    Split an upper-triangular (3, 3) matrix into S = diag(kx, ky, kz) and C_NO angles.
+
+    The rows of C_NO are unit vectors (paper 004 eq. 2), so k = row norms of ``u``.
+    Returns (k (3,), psi, varphi, theta) in rad.
+    """
+    k = np.linalg.norm(u, axis=1)
+    c = u / k[:, None]
+    theta = np.arcsin(np.clip(c[0, 2], -1.0, 1.0))
+    varphi = np.arctan2(c[0, 1], c[0, 0])
+    psi = np.arctan2(c[1, 2], c[1, 1])
+    return k, float(psi), float(varphi), float(theta)
+
+
+# -- signal helpers ------------------------------------------------------------------------
+
+
+def parse_number(text, what):
+    """Return the finite float of the argument ``text`` (``what`` names it in the error)."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise ValueError(f'{what}: {text!r} is not a number') from None
+    if not np.isfinite(v):
+        raise ValueError(f'{what}: {text!r} is not finite')
+    return v
+
+
+def format_arg(v):
+    """Canonical text of a token argument: 4 significant digits are kept as given."""
+    return format(float(v), '.6g')
+
+
+def channel_name(name):
+    """'temperature' or an auxiliary column, with its 'aux_' prefix."""
+    name = name.strip()
+    if name in ('temperature', 'temp'):
+        return 'temperature'
+    if name.startswith('aux:'):
+        name = name[4:]
+    return name if name.startswith('aux_') else 'aux_' + name
+
+
+def channel_values(ctx, channel):
+    """(N,) values of 'temperature' or an auxiliary channel in ``ctx`` (None if absent)."""
+    if channel == 'temperature':
+        return ctx.temp
+    return ctx.aux.get(channel)
+
+
+def check_channel(ctx, channel, sensor):
+    """Return None if the channel is present and varies in ``ctx``, else the reason why not."""
+    a = channel_values(ctx, channel)
+    if a is None or not np.isfinite(a).any():
+        col = f's{sensor}_temp' if channel == 'temperature' else channel
+        return f'sensor {sensor}: no {channel} column ({col}) in the data'
+    if channel != 'temperature' and not np.isfinite(a).all():
+        return f'channel {channel!r} contains non-finite values'
+    if np.nanmax(a) - np.nanmin(a) <= 1e-9 * max(1.0, float(np.nanmax(np.abs(a)))):
+        return (f'channel {channel!r} never changes: its coupling cannot be separated from '
+                'the offset')
+    return None
+
+
+def first_order_lag(t, x, tau):
+    """
+    (N,) response y of tau dy/dt = x - y to x (N,) sampled at t (N,) s, y(t0) = x(t0).
+
+    Exact for x linear between samples (first-order hold): y_k = a y_k-1 + b0 x_k + b1 x_k-1,
+    a = exp(-dt/tau), b0 = 1 - tau/dt (1 - a), b1 = tau/dt (1 - a) - a.  Irregular sampling
+    is interpolated onto a uniform grid at the median interval and back.
+    """
+    from scipy.signal import lfilter
+    t = np.asarray(t, float)
+    x = np.asarray(x, float)
+    if len(x) < 2:
+        return x.copy()
+    dts = np.diff(t)
+    dt = float(np.median(dts))
+    uniform = np.ptp(dts) <= 1e-6 * dt
+    if not uniform:
+        grid = np.arange(t[0], t[-1] + 0.5 * dt, dt)
+        xs = np.interp(grid, t, x)
+    else:
+        xs = x
+    tau = max(abs(float(tau)), 1e-3 * dt)
+    a = math.exp(-dt / tau)
+    g = (tau / dt) * (1.0 - a)
+    b = [1.0 - g, g - a]
+    # steady state at the first sample: y[0] = b0 x0 + z0 = x0
+    y, _ = lfilter(b, [1.0, -a], xs, zi=np.array([(1.0 - b[0]) * xs[0]]))
+    return y if uniform else np.interp(t, grid, y)

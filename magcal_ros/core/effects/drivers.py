@@ -1,0 +1,745 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Drivers: what an effect follows, as a basis of columns X (docs/formulas.md).
+
+A driver turns the driving signals of a sensor (:class:`~.base.SensorContext`: time,
+temperature, auxiliary channels, the field rate, the sensor's own linear reading) into
+columns ``X``: (N, m) for a scalar driver, (N, 3, m) for a per-axis one (``rate``,
+``lin``), each column in the driver's unit (:attr:`Driver.unit`).  A coupling
+(:mod:`.couplings`) turns the columns into a change of the reading, with parameters per
+column.  Reference values (a mean, a range, a start time) are computed once in
+:meth:`Driver.prepare` from the calibration data and stored in the effect's ``refs``, so
+that live correction uses the same reference.
+
+Factors (``factor`` of the grammar; ``*`` multiplies them, the tensor product of their
+columns):
+
+- a variable ``v`` itself (``t``, ``temperature``, ``aux_<name>``: centred on its
+  calibration mean; ``rate``, ``lin``: per axis, uncentred, their zero is physical);
+- ``s(v, k=K)``: a cubic regression spline of K columns (mgcv's ``s``), centred;
+- ``cc(v, k=K[, period=P])``: Fourier harmonics 1..K of a v that wraps (2K columns), centred;
+- ``poly(v, D)``: (v - v0) / h to the powers 1..D, v0 the mean, h the half range;
+- ``sin(F)``: cos and sin of 2 pi F (t - t0), F in Hz;
+- ``step(T, ...)``: [t >= T_k], T in s;  ``window(T0, T1)``: [T0 <= t <= T1];
+- ``lag(v[, tau=S])``: v through the first-order lag tau dy/dt = v - y, centred on v's mean;
+  tau (s) is a parameter of the fit unless given.
+
+A plug-in adds a factor by subclassing :class:`Driver` and calling :func:`register_driver`.
+"""
+import math
+
+from magcal_ros.core.effects.base import (first_order_lag, format_arg,
+                                          NONLINEARITY_FULL_SCALE_NT, parse_number)
+import numpy as np
+
+#: variables a driver may read: name -> (unit, per axis)
+VARIABLES = {'t': ('s', False), 'temperature': ('degC', False), 'rate': ('nT/s', True),
+             'lin': ('1', True)}
+#: the signal (``SensorContext.has``, the live corrector's subscriptions) of each variable
+VARIABLE_SIGNALS = {'t': ('time',), 'temperature': ('temperature',),
+                    'rate': ('field_rate',), 'lin': ()}
+
+
+class FormulaError(ValueError):
+    """A model formula that cannot be used; the message names the bad part."""
+
+
+def variable_name(text):
+    """Return the canonical variable of ``text`` (t, temperature, aux_<name>, rate, lin)."""
+    v = str(text).strip()
+    if v in ('time',):
+        v = 't'
+    if v in ('temp',):
+        v = 'temperature'
+    if v.startswith('aux:'):
+        v = 'aux_' + v[4:]
+    if v in VARIABLES or (v.startswith('aux_') and len(v) > 4 and v[4:].replace('_', 'a')
+                          .isalnum()):
+        return v
+    raise FormulaError(f'unknown variable {text!r}: a driver reads t, temperature, '
+                       'aux_<channel>, rate (dB/dt) or lin (the linear reading)')
+
+
+def variable_unit(v):
+    """Return the unit of variable ``v``."""
+    return VARIABLES.get(v, ('unit', False))[0]
+
+
+def variable_values(ctx, v, lin=None):
+    """(N,) or (N, 3) values of variable ``v`` in ``ctx`` (None if absent)."""
+    if v == 't':
+        return ctx.t
+    if v == 'temperature':
+        return ctx.temp
+    if v == 'rate':
+        return ctx.raw_rate
+    if v == 'lin':
+        return None if lin is None else lin / NONLINEARITY_FULL_SCALE_NT
+    return ctx.aux.get(v)
+
+
+def check_variable(ctx, v, sensor):
+    """Return None if ``v`` is present and varies in ``ctx``, else the reason why not."""
+    if v == 'lin':
+        return None
+    a = variable_values(ctx, v)
+    if a is None or not np.isfinite(a).any():
+        col = {'temperature': f's{sensor}_temp', 't': 't', 'rate': 't'}.get(v, v)
+        return f'sensor {sensor}: no {v} in the data (column {col})'
+    a = np.asarray(a, float)
+    if np.nanmax(a) - np.nanmin(a) <= 1e-9 * max(1.0, float(np.nanmax(np.abs(a)))):
+        return f'{v} never changes: its coupling cannot be separated from the offset'
+    return None
+
+
+def _kwargs(kwargs, allowed, usage):
+    bad = sorted(set(kwargs) - set(allowed))
+    if bad:
+        raise FormulaError(f'unknown option {bad[0]}= in {usage}: allowed '
+                           f'{", ".join(a + "=" for a in allowed) or "none"}')
+
+
+def _count(text, what, lo, hi):
+    v = parse_number(text, what)
+    if v != int(v) or not lo <= v <= hi:
+        raise FormulaError(f'{what} must be a whole number {lo}..{hi}, got {text!r}')
+    return int(v)
+
+
+class Driver:
+    """
+    Base class of a driver factor: columns X of the driving signals.
+
+    Subclasses set ``name`` (how the factor is written, ``name(...)``), ``usage`` and
+    implement :meth:`from_args`, :attr:`text`, :attr:`column_names`, :meth:`columns`.
+    """
+
+    name = 'driver'
+    usage = 'driver(...)'
+    #: True when the columns are per axis, (N, 3, m)
+    per_axis = False
+    #: True when the columns read the sensor's linear reading (fixed-point correction)
+    reads_lin = False
+    #: the driver's own parameters (a lag's time constant), names and units
+    param_names = ()
+    units = ()
+
+    @classmethod
+    def from_args(cls, args, kwargs):
+        """Make the factor ``name(args, key=value)``; ``args`` and values are strings."""
+        raise NotImplementedError
+
+    @property
+    def text(self):
+        """Canonical text of the factor (pasteable)."""
+        raise NotImplementedError
+
+    @property
+    def column_names(self):
+        """Names of the m columns (parameter names are built from them)."""
+        raise NotImplementedError
+
+    @property
+    def unit(self):
+        """Return the unit of every column (the coupling's parameters are per this unit)."""
+        return '1'
+
+    @property
+    def signals(self):
+        """Driving signals read (keys of base.SIGNALS or aux_<name>)."""
+        return ()
+
+    def default_params(self):
+        """(n,) starting values of the driver's own parameters."""
+        return np.zeros(len(self.param_names))
+
+    def prepare(self, ctx, refs, prefix=''):
+        """Store reference values computed from the calibration data ``ctx`` in ``refs``."""
+
+    def check(self, ctx, sensor):
+        """Return None if the data can excite the factor, else the reason why not."""
+        return None
+
+    def columns(self, ctx, lin, refs, q, prefix=''):
+        """(N, m) or (N, 3, m) columns at ``ctx`` (``lin`` (N, 3) nT; ``q`` own params)."""
+        raise NotImplementedError
+
+    def __eq__(self, other):
+        return type(self) is type(other) and self.text == other.text
+
+    def __hash__(self):
+        return hash(self.text)
+
+    def __repr__(self):
+        return self.text
+
+
+class Variable(Driver):
+    """A variable itself: t, temperature, aux_<name> centred on its mean; rate, lin per axis."""
+
+    name = 'v'
+    usage = 't | temperature | aux_<name> | rate | lin'
+
+    def __init__(self, v):
+        self.v = variable_name(v)
+        self.per_axis = VARIABLES.get(self.v, ('', False))[1]
+        self.reads_lin = self.v == 'lin'
+
+    @property
+    def text(self):
+        return self.v
+
+    @property
+    def column_names(self):
+        return (self.v,)
+
+    @property
+    def unit(self):
+        return variable_unit(self.v)
+
+    @property
+    def signals(self):
+        return VARIABLE_SIGNALS.get(self.v, (self.v,))
+
+    @property
+    def centred(self):
+        """Tell whether the column is centred on its calibration mean."""
+        return not self.per_axis
+
+    def prepare(self, ctx, refs, prefix=''):
+        if self.centred:
+            a = variable_values(ctx, self.v)
+            if a is not None and np.isfinite(a).any():
+                refs.setdefault(prefix + self.v + '0', float(np.nanmean(a)))
+
+    def check(self, ctx, sensor):
+        return check_variable(ctx, self.v, sensor)
+
+    def columns(self, ctx, lin, refs, q, prefix=''):
+        a = variable_values(ctx, self.v, lin)
+        if a is None:
+            raise ValueError(f'no {self.v} in the data')
+        if self.per_axis:
+            return np.asarray(a, float)[:, :, None]
+        x0 = refs.get(prefix + self.v + '0', 0.0)
+        return (np.nan_to_num(np.asarray(a, float), nan=x0) - x0)[:, None]
+
+
+class Constant(Driver):
+    """The constant 1: ``offset(1)`` is the plain offset."""
+
+    name = '1'
+    usage = '1'
+    text = '1'
+    column_names = ('1',)
+
+    def columns(self, ctx, lin, refs, q, prefix=''):
+        return np.ones((len(ctx.t), 1))
+
+
+class _OfVariable(Driver):
+    """A factor of one scalar variable with options (s, cc, poly, lag)."""
+
+    def _var(self, text):
+        v = variable_name(text)
+        if VARIABLES.get(v, ('', False))[1]:
+            raise FormulaError(f'{self.name}({v}, ...) needs a scalar variable (t, '
+                               f'temperature, aux_<name>); {v} is per axis')
+        return v
+
+    @property
+    def signals(self):
+        return VARIABLE_SIGNALS.get(self.v, (self.v,))
+
+    def check(self, ctx, sensor):
+        return check_variable(ctx, self.v, sensor)
+
+    def _values(self, ctx, refs, prefix):
+        a = variable_values(ctx, self.v)
+        if a is None:
+            raise ValueError(f'no {self.v} in the data')
+        return np.nan_to_num(np.asarray(a, float), nan=refs.get(prefix + 'mean', 0.0))
+
+    def _range(self, ctx, refs, prefix):
+        a = variable_values(ctx, self.v)
+        if a is not None and np.isfinite(a).any():
+            refs.setdefault(prefix + 'lo', float(np.nanmin(a)))
+            refs.setdefault(prefix + 'hi', float(np.nanmax(a)))
+            refs.setdefault(prefix + 'mean', float(np.nanmean(a)))
+
+    def _centre(self, x, ctx, refs, prefix):
+        """Subtract the calibration means of the columns (stored at the first call)."""
+        names = [prefix + f'm{k + 1}' for k in range(x.shape[1])]
+        if names[0] not in refs:
+            for nm, v in zip(names, x.mean(axis=0)):
+                refs[nm] = float(v)
+        return x - np.array([refs[nm] for nm in names])
+
+
+class Spline(_OfVariable):
+    """
+    ``s(v, k=K)``: a smooth function of v, K cubic B-spline columns, centred.
+
+    K + 1 cubic B-splines on equally spaced knots over the calibration range of v
+    [lo, hi] (mgcv's regression spline ``s(v, k=K, bs='bs')``, Wood 2017 ch. 5); the first
+    is dropped (the K + 1 sum to one: with the offset they would be collinear) and each
+    column is centred on its calibration mean.  Outside [lo, hi] (live correction later)
+    v is held at the nearer end: the smooth is extrapolated as a constant.
+    """
+
+    name = 's'
+    usage = 's(<v>, k=<3..20>)'
+
+    @classmethod
+    def from_args(cls, args, kwargs):
+        _kwargs(kwargs, ('k',), cls.usage)
+        if len(args) != 1:
+            raise FormulaError(f's takes one variable and k=, e.g. s(t, k=6); usage {cls.usage}')
+        d = cls()
+        d.v = d._var(args[0])
+        d.k = _count(kwargs.get('k', '5'), 's(..., k=K) basis size', 3, 20)
+        return d
+
+    @property
+    def text(self):
+        return f's({self.v}, k={self.k})'
+
+    @property
+    def column_names(self):
+        return tuple(f's{i + 1}' for i in range(self.k))
+
+    def prepare(self, ctx, refs, prefix=''):
+        self._range(ctx, refs, prefix)
+        self.columns(ctx, None, refs, (), prefix)        # stores the column means
+
+    def basis(self, x, lo, hi):
+        """(N, k) the uncentred columns at x (N,)."""
+        from scipy.interpolate import BSpline
+        n_basis, deg = self.k + 1, 3
+        inner = np.linspace(lo, hi, n_basis - deg + 1)
+        knots = np.concatenate([[lo] * deg, inner, [hi] * deg])
+        xc = np.clip(x, lo, hi)
+        dm = BSpline.design_matrix(xc, knots, deg, extrapolate=False).toarray()
+        return dm[:, 1:]
+
+    def columns(self, ctx, lin, refs, q, prefix=''):
+        lo, hi = refs.get(prefix + 'lo', 0.0), refs.get(prefix + 'hi', 1.0)
+        if not hi > lo:
+            hi = lo + 1.0
+        return self._centre(self.basis(self._values(ctx, refs, prefix), lo, hi), ctx, refs,
+                            prefix)
+
+
+class Cyclic(_OfVariable):
+    """
+    ``cc(v, k=K[, period=P])``: a periodic function of a v that wraps (an angle).
+
+    cos and sin of 2 pi h v / P, harmonics h = 1..K (2K columns), centred.  Without
+    ``period`` it is 2 pi when the calibration range of v lies within 2 pi (radians), 360
+    within 360 (degrees), else the range itself.
+    """
+
+    name = 'cc'
+    usage = 'cc(<v>, k=<1..10>[, period=<P>])'
+
+    @classmethod
+    def from_args(cls, args, kwargs):
+        _kwargs(kwargs, ('k', 'period'), cls.usage)
+        if len(args) != 1:
+            raise FormulaError(f'cc takes one variable, e.g. cc(aux_wheel_angle, k=2); usage '
+                               f'{cls.usage}')
+        d = cls()
+        d.v = d._var(args[0])
+        d.k = _count(kwargs.get('k', '2'), 'cc(..., k=K) harmonics', 1, 10)
+        d.period = None
+        if 'period' in kwargs:
+            d.period = parse_number(kwargs['period'], 'cc period')
+            if d.period <= 0:
+                raise FormulaError(f'cc period must be positive, got {kwargs["period"]!r}')
+        return d
+
+    @property
+    def text(self):
+        per = '' if self.period is None else f', period={format_arg(self.period)}'
+        return f'cc({self.v}, k={self.k}{per})'
+
+    @property
+    def column_names(self):
+        return tuple(f'{c}{h}' for h in range(1, self.k + 1) for c in ('c', 's'))
+
+    def prepare(self, ctx, refs, prefix=''):
+        self._range(ctx, refs, prefix)
+        if self.period is not None:
+            refs.setdefault(prefix + 'period', float(self.period))
+        else:
+            span = refs.get(prefix + 'hi', 1.0) - refs.get(prefix + 'lo', 0.0)
+            per = 2 * math.pi if span <= 2 * math.pi * 1.001 else (
+                360.0 if span <= 360.0 * 1.001 else span)
+            refs.setdefault(prefix + 'period', per)
+        self.columns(ctx, None, refs, (), prefix)
+
+    def columns(self, ctx, lin, refs, q, prefix=''):
+        ph = (2 * math.pi / refs.get(prefix + 'period', 2 * math.pi)) * self._values(
+            ctx, refs, prefix)
+        cols = []
+        for h in range(1, self.k + 1):
+            cols += [np.cos(h * ph), np.sin(h * ph)]
+        return self._centre(np.stack(cols, axis=1), ctx, refs, prefix)
+
+
+class Poly(_OfVariable):
+    """
+    ``poly(v, D)``: u, u^2, .., u^D with u = (v - v0) / h (v0 the mean, h the half range).
+
+    Per-axis variables (``lin``) are not centred or scaled: u = lin / 50 000 nT per axis.
+    """
+
+    name = 'poly'
+    usage = 'poly(<v>, <degree 1..4>)'
+
+    @classmethod
+    def from_args(cls, args, kwargs):
+        _kwargs(kwargs, (), cls.usage)
+        if len(args) != 2:
+            raise FormulaError(f'poly takes a variable and a degree, e.g. poly(t, 2); usage '
+                               f'{cls.usage}')
+        d = cls()
+        d.v = variable_name(args[0])
+        d.per_axis = VARIABLES.get(d.v, ('', False))[1]
+        d.reads_lin = d.v == 'lin'
+        d.degree = _count(args[1], 'poly degree', 1, 4)
+        return d
+
+    @property
+    def text(self):
+        return f'poly({self.v}, {self.degree})'
+
+    @property
+    def column_names(self):
+        return tuple(f'p{i}' for i in range(1, self.degree + 1))
+
+    def prepare(self, ctx, refs, prefix=''):
+        if not self.per_axis:
+            self._range(ctx, refs, prefix)
+
+    def columns(self, ctx, lin, refs, q, prefix=''):
+        if self.per_axis:
+            u = variable_values(ctx, self.v, lin)
+            return np.stack([u ** d for d in range(1, self.degree + 1)], axis=2)
+        h = 0.5 * (refs.get(prefix + 'hi', 1.0) - refs.get(prefix + 'lo', -1.0)) or 1.0
+        u = (self._values(ctx, refs, prefix) - refs.get(prefix + 'mean', 0.0)) / h
+        return np.stack([u ** d for d in range(1, self.degree + 1)], axis=1)
+
+
+class Sinusoid(Driver):
+    """``sin(F)``: cos and sin of 2 pi F (t - t0), F in Hz, t0 the first calibration time."""
+
+    name = 'sin'
+    usage = 'sin(<f_hz>)'
+    signals = ('time',)
+    column_names = ('cos', 'sin')
+
+    @classmethod
+    def from_args(cls, args, kwargs):
+        _kwargs(kwargs, (), cls.usage)
+        if len(args) != 1:
+            raise FormulaError(f'sin takes one frequency in Hz, e.g. sin(0.23); usage {cls.usage}')
+        d = cls()
+        d.freq_hz = parse_number(args[0], 'sin frequency [Hz]')
+        if d.freq_hz <= 0:
+            raise FormulaError(f'sin frequency must be positive, got {args[0]!r}')
+        return d
+
+    @property
+    def text(self):
+        return f'sin({format_arg(self.freq_hz)})'
+
+    def prepare(self, ctx, refs, prefix=''):
+        refs.setdefault(prefix + 't0', float(ctx.t[0]) if len(ctx.t) else 0.0)
+
+    def check(self, ctx, sensor):
+        span = float(ctx.t[-1] - ctx.t[0]) if len(ctx.t) > 1 else 0.0
+        if span * self.freq_hz < 2.0:
+            return (f'the data span {span:.1f} s, less than 2 periods of {self.freq_hz:g} Hz: '
+                    'the sinusoid cannot be separated from the offset')
+        return None
+
+    def columns(self, ctx, lin, refs, q, prefix=''):
+        ph = (2 * math.pi * self.freq_hz) * (ctx.t - refs.get(prefix + 't0', 0.0))
+        return np.stack([np.cos(ph), np.sin(ph)], axis=1)
+
+
+class Steps(Driver):
+    """``step(T, ...)``: Heaviside steps [t >= T_k] at times T_k s (one column each)."""
+
+    name = 'step'
+    usage = 'step(<t_s>[, <t_s>...])'
+    signals = ('time',)
+
+    @classmethod
+    def from_args(cls, args, kwargs):
+        _kwargs(kwargs, (), cls.usage)
+        if not args:
+            raise FormulaError(f'step needs at least one time in s, e.g. step(300); usage '
+                               f'{cls.usage}')
+        d = cls()
+        d.times = tuple(sorted(parse_number(a, 'step time [s]') for a in args))
+        return d
+
+    @property
+    def text(self):
+        return f'step({", ".join(format_arg(x) for x in self.times)})'
+
+    @property
+    def column_names(self):
+        return ('step',) if len(self.times) == 1 else tuple(
+            f'step{i + 1}' for i in range(len(self.times)))
+
+    def check(self, ctx, sensor):
+        for tk in self.times:
+            before = int(np.sum(ctx.t < tk))
+            if before < 3 or len(ctx.t) - before < 3:
+                return (f'step at t = {tk:g} s lies outside the data '
+                        f'({ctx.t[0]:g} .. {ctx.t[-1]:g} s)')
+        return None
+
+    def columns(self, ctx, lin, refs, q, prefix=''):
+        return (ctx.t[:, None] >= np.array(self.times)[None, :]).astype(float)
+
+
+class Window(Driver):
+    """``window(T0, T1)``: a boxcar in time, 1 inside [T0, T1] s, 0 outside."""
+
+    name = 'window'
+    usage = 'window(<t0_s>, <t1_s>)'
+    signals = ('time',)
+    column_names = ('win',)
+
+    @classmethod
+    def from_args(cls, args, kwargs):
+        _kwargs(kwargs, (), cls.usage)
+        if len(args) != 2:
+            raise FormulaError(f'window takes two times in s, e.g. window(120, 160); usage '
+                               f'{cls.usage}')
+        d = cls()
+        d.t0, d.t1 = (parse_number(a, 'window time [s]') for a in args)
+        if not d.t1 > d.t0:
+            raise FormulaError(f'window({args[0]}, {args[1]}): the end must follow the start')
+        return d
+
+    @property
+    def text(self):
+        return f'window({format_arg(self.t0)}, {format_arg(self.t1)})'
+
+    def check(self, ctx, sensor):
+        inside = int(np.sum((ctx.t >= self.t0) & (ctx.t <= self.t1)))
+        if inside < 3 or len(ctx.t) - inside < 3:
+            return (f'window {self.t0:g} .. {self.t1:g} s holds {inside} of {len(ctx.t)} '
+                    'samples: it cannot be separated from the offset')
+        return None
+
+    def columns(self, ctx, lin, refs, q, prefix=''):
+        return ((ctx.t >= self.t0) & (ctx.t <= self.t1)).astype(float)[:, None]
+
+
+class Lagged(_OfVariable):
+    """
+    ``lag(v[, tau=S])``: v through a first-order lag, tau dy/dt = v - y, centred on v's mean.
+
+    Without ``tau`` the time constant is a parameter of the fit (s, starting at 30 s).  The
+    filter runs over the whole record (``SensorContext.whole``), so held-out blocks keep its
+    state; live correction filters one sample at a time.
+    """
+
+    name = 'lag'
+    usage = 'lag(<v>[, tau=<s>])'
+    tau0_s = 30.0
+
+    @classmethod
+    def from_args(cls, args, kwargs):
+        _kwargs(kwargs, ('tau',), cls.usage)
+        if len(args) != 1:
+            raise FormulaError(f'lag takes one variable, e.g. lag(temperature); usage {cls.usage}')
+        d = cls()
+        d.v = d._var(args[0])
+        d.tau = None
+        if 'tau' in kwargs:
+            d.tau = parse_number(kwargs['tau'], 'lag tau [s]')
+            if d.tau <= 0:
+                raise FormulaError(f'lag tau must be positive, got {kwargs["tau"]!r}')
+        d.param_names = () if d.tau is not None else ('tau',)
+        d.units = () if d.tau is not None else ('s',)
+        return d
+
+    @property
+    def text(self):
+        return f'lag({self.v}' + ('' if self.tau is None else f', tau={format_arg(self.tau)}') \
+            + ')'
+
+    @property
+    def column_names(self):
+        return ('lag',)
+
+    @property
+    def unit(self):
+        return variable_unit(self.v)
+
+    @property
+    def signals(self):
+        return tuple(dict.fromkeys(('time',) + VARIABLE_SIGNALS.get(self.v, (self.v,))))
+
+    def default_params(self):
+        return np.array([self.tau0_s]) if self.tau is None else np.zeros(0)
+
+    def prepare(self, ctx, refs, prefix=''):
+        self._range(ctx, refs, prefix)
+
+    def columns(self, ctx, lin, refs, q, prefix=''):
+        tau = self.tau if self.tau is not None else float(q[0])
+        x0 = refs.get(prefix + 'mean', 0.0)
+        whole, idx = ctx.whole()
+        if idx is None and len(ctx.t) == 1:
+            return (self._online(float(ctx.t[0]), variable_values(ctx, self.v), tau, x0)
+                    - x0)[:, None]
+        x = variable_values(whole, self.v)
+        key = (id(x), len(x), float(tau), x0)
+        cache = self.__dict__.setdefault('_cache', {})
+        hit = cache.get(key)
+        if hit is None or hit[1] is not x:
+            hit = (first_order_lag(whole.t, np.nan_to_num(np.asarray(x, float), nan=x0), tau),
+                   x)
+            if len(cache) >= 4:
+                cache.pop(next(iter(cache)))
+            cache[key] = hit
+        y = hit[0] if idx is None else hit[0][idx]
+        return (y - x0)[:, None]
+
+    def _online(self, t, x, tau, x0):
+        """One sample of the live correction: y <- x + (y - x) exp(-dt / tau)."""
+        x = float(x0 if x is None or not np.isfinite(x[0]) else x[0])
+        state = self.__dict__.get('_state')
+        if state is None or t <= state[0]:
+            y = x
+        else:
+            y = x + (state[1] - x) * math.exp(-(t - state[0]) / max(abs(float(tau)), 1e-9))
+        self._state = (t, y)
+        return np.array([y])
+
+
+class Product(Driver):
+    """``a * b * ...``: the tensor product of the factors' columns (row by row)."""
+
+    name = '*'
+    usage = '<factor> * <factor>'
+
+    def __init__(self, factors):
+        self.factors = list(factors)
+        self.per_axis = any(f.per_axis for f in self.factors)
+        self.reads_lin = any(f.reads_lin for f in self.factors)
+        self.param_names = tuple(f'{p}{i + 1}' for i, f in enumerate(self.factors)
+                                 for p in f.param_names)
+        self.units = tuple(u for f in self.factors for u in f.units)
+
+    @property
+    def text(self):
+        return ' * '.join(f.text for f in self.factors)
+
+    @property
+    def column_names(self):
+        out = ('',)
+        for f in self.factors:
+            out = tuple(f'{a}*{b}' if a else b for a in out for b in f.column_names)
+        return out
+
+    @property
+    def unit(self):
+        us = [f.unit for f in self.factors if f.unit != '1']
+        return '*'.join(us) or '1'
+
+    @property
+    def signals(self):
+        return tuple(dict.fromkeys(s for f in self.factors for s in f.signals))
+
+    def default_params(self):
+        return np.concatenate([f.default_params() for f in self.factors] + [np.zeros(0)])
+
+    def _split(self, q):
+        out, i = [], 0
+        for f in self.factors:
+            out.append(q[i:i + len(f.param_names)])
+            i += len(f.param_names)
+        return out
+
+    def prepare(self, ctx, refs, prefix=''):
+        for i, f in enumerate(self.factors):
+            f.prepare(ctx, refs, f'{prefix}{i + 1}.')
+
+    def check(self, ctx, sensor):
+        for f in self.factors:
+            why = f.check(ctx, sensor)
+            if why:
+                return why
+        return None
+
+    def columns(self, ctx, lin, refs, q, prefix=''):
+        out = None
+        for i, (f, qf) in enumerate(zip(self.factors, self._split(q))):
+            x = f.columns(ctx, lin, refs, qf, f'{prefix}{i + 1}.')
+            if x.ndim == 2 and (self.per_axis):
+                x = np.broadcast_to(x[:, None, :], (x.shape[0], 3, x.shape[1]))
+            if out is None:
+                out = x
+            else:
+                out = (out[..., :, None] * x[..., None, :]).reshape(*x.shape[:-1], -1)
+        return out
+
+
+_DRIVERS = {}
+
+
+def register_driver(cls, name=None):
+    """Register a :class:`Driver` subclass as the factor ``name(...)`` (default ``cls.name``)."""
+    if not (isinstance(cls, type) and issubclass(cls, Driver)):
+        raise TypeError(f'{cls!r} is not a subclass of magcal_ros.core.effects.drivers.Driver')
+    key = name or cls.name
+    if key in _DRIVERS and _DRIVERS[key] is not cls:
+        raise ValueError(f'a driver named {key!r} is already registered ({_DRIVERS[key]!r})')
+    _DRIVERS[key] = cls
+    return cls
+
+
+def unregister_driver(name):
+    """Remove a plug-in driver (tests, interactive sessions)."""
+    if name in BUILTIN_DRIVERS:
+        raise ValueError(f'{name!r} is a built-in driver and cannot be unregistered')
+    _DRIVERS.pop(name, None)
+
+
+def driver_class(name):
+    """Return the driver class of factor ``name(...)``, or None."""
+    return _DRIVERS.get(name)
+
+
+def registered_drivers():
+    """Names of the factors ``name(...)`` (plus the variables)."""
+    return sorted(_DRIVERS)
+
+
+for _cls in (Spline, Cyclic, Poly, Sinusoid, Steps, Window, Lagged):
+    register_driver(_cls)
+
+#: the factors that ship with the library
+BUILTIN_DRIVERS = tuple(_DRIVERS)

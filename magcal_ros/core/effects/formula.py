@@ -1,0 +1,321 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The one parser of model formulas: :func:`parse` (docs/formulas.md).
+
+::
+
+    model    := term (('+' | ',') term)*
+    term     := alias-token ['@' scope]                 base, temperature@2, step(300), ...
+              | coupling '(' driver ')' ['@' scope]     offset(s(t, k=6))@2
+              | 'drop(' t0 ',' t1 ')'                   leave [t0, t1] s out of the fit
+    driver   := factor ('*' factor)*
+    factor   := name '(' arg (',' arg)* ')' | variable | '1'      arg := value | key '=' value
+    scope    := J | each | alike | '{' J (',' J)* '}' | array
+
+The command line (``--model``), the calibration node's ``model`` parameter, the
+calibration file and ``magcal simulate --truth`` all read models through :func:`parse`.
+:class:`Formula` prints canonical text (``str``): ``parse(str(f)) == f``.
+"""
+from dataclasses import dataclass
+import re
+
+from magcal_ros.core.effects import aliases
+from magcal_ros.core.effects import couplings as cp
+from magcal_ros.core.effects import drivers as dv
+from magcal_ros.core.effects.base import format_arg, parse_number
+from magcal_ros.core.effects.drivers import FormulaError
+from magcal_ros.core.effects.registry import make_effect
+
+_NAME = re.compile(r'^[A-Za-z_][A-Za-z0-9_.:]*$')
+_OPEN, _CLOSE = '({', ')}'
+
+__all__ = ['Formula', 'FormulaError', 'parse', 'parse_driver', 'Term']
+
+
+def split_top(text, seps):
+    """Split ``text`` at the characters ``seps`` outside parentheses and braces."""
+    out, cur, depth = [], [], 0
+    for ch in text:
+        if ch in _OPEN:
+            depth += 1
+        elif ch in _CLOSE:
+            depth -= 1
+            if depth < 0:
+                raise FormulaError(f'unbalanced {ch!r} in {text!r}')
+        if ch in seps and depth == 0:
+            out.append(''.join(cur))
+            cur = []
+        else:
+            cur.append(ch)
+    if depth:
+        raise FormulaError(f'unbalanced "(" or "{{" in {text!r}: close every parenthesis')
+    out.append(''.join(cur))
+    return out
+
+
+def _call(text):
+    """'name(a, b)' -> ('name', 'a, b'); 'name' -> ('name', None)."""
+    text = text.strip()
+    if '(' not in text:
+        return text, None
+    name, _, rest = text.partition('(')
+    if not rest.endswith(')'):
+        raise FormulaError(f'{text!r}: expected name(arguments) with nothing after ")"')
+    return name.strip(), rest[:-1]
+
+
+def _arguments(inner, where):
+    """Positional and keyword arguments of a factor, as strings."""
+    args, kwargs = [], {}
+    for part in split_top(inner, ','):
+        part = part.strip()
+        if not part:
+            raise FormulaError(f'empty argument in {where!r}')
+        key, eq, value = part.partition('=')
+        if eq:
+            kwargs[key.strip()] = value.strip()
+        elif kwargs:
+            raise FormulaError(f'{where!r}: positional argument {part!r} after a keyword')
+        else:
+            args.append(part)
+    return args, kwargs
+
+
+def parse_driver(text):
+    """Return the :class:`~.drivers.Driver` of ``text`` ('s(t, k=6)', 'temperature * t')."""
+    factors = []
+    for part in split_top(text, '*'):
+        part = part.strip()
+        if not part:
+            raise FormulaError(f'empty factor in driver {text!r}: write factor * factor')
+        name, inner = _call(part)
+        if inner is None:
+            factors.append(dv.Constant() if name == '1' else dv.Variable(name))
+            continue
+        cls = dv.driver_class(name)
+        if cls is None:
+            raise FormulaError(
+                f'unknown driver {name!r} in {part!r}: drivers are '
+                f'{", ".join(d + "(...)" for d in dv.registered_drivers())}, a variable '
+                '(t, temperature, aux_<name>, rate, lin) or 1')
+        args, kwargs = _arguments(inner, part)
+        factors.append(cls.from_args(args, kwargs))
+    return factors[0] if len(factors) == 1 else dv.Product(factors)
+
+
+@dataclass(frozen=True)
+class Term:
+    """
+    One term of a formula.
+
+    Attributes
+    ----------
+    text : str
+        Canonical, pasteable text (``offset(s(t, k=6))@2``).
+    kind : str
+        'composed' (coupling(driver)), 'alias' (a catalog or plug-in token) or 'drop'.
+    core : str
+        ``text`` without the scope.
+    coupling : str or None
+        Coupling name of a composed term.
+    driver : str or None
+        Canonical driver text of a composed term.
+    scope : str
+        'each', 'alike', 'array', 'J' (a sensor number) or '{J,J,...}'.
+    signals : tuple of str
+        Channels the term reads (keys of ``base.SIGNALS`` or aux_<name>).
+    expansion : str or None
+        The composition an alias stands for (:mod:`.aliases`).
+    window : tuple or None
+        (t0, t1) s of a ``drop`` term.
+
+    """
+
+    text: str
+    kind: str
+    core: str
+    coupling: str | None = None
+    driver: str | None = None
+    scope: str = 'each'
+    signals: tuple = ()
+    expansion: str | None = None
+    window: tuple | None = None
+
+    def sensors(self, n_sensors):
+        """1-based sensors the term is on (all of them for each, alike, array)."""
+        if self.scope in ('each', 'alike', 'array'):
+            return list(range(1, n_sensors + 1))
+        js = [int(j) for j in self.scope.strip('{}').split(',')]
+        for j in js:
+            if not 1 <= j <= n_sensors:
+                raise FormulaError(f'{self.text!r}: sensor {j} does not exist (the data have '
+                                   f'sensors 1..{n_sensors})')
+        return js
+
+    def n_params(self, n_sensors):
+        """Return the number of parameters the term adds to a model of ``n_sensors`` sensors."""
+        from magcal_ros.core.model import Model
+        if self.kind == 'drop':
+            return 0
+        return Model.from_spec(Formula((self,)), n_sensors).n_params
+
+    def __str__(self):
+        return self.text
+
+
+def _scope(text, where, field):
+    s = text.strip().replace(' ', '')
+    if field:
+        if s not in ('', 'array'):
+            raise FormulaError(f'{where!r}: field() is common to every sensor, its scope is '
+                               'always the array: drop @' + s)
+        return 'array'
+    if s in ('', 'each'):
+        return 'each'
+    if s in ('alike',):
+        return s
+    if s.startswith('{') and s.endswith('}'):
+        try:
+            js = sorted({int(j) for j in s[1:-1].split(',')})
+        except ValueError:
+            js = []
+        if not js:
+            raise FormulaError(f'{where!r}: bad sensor set @{text}: write @{{1,3}}')
+        return str(js[0]) if len(js) == 1 else '{' + ','.join(map(str, js)) + '}'
+    if s.isdigit():
+        return str(int(s))
+    raise FormulaError(f'{where!r}: unknown scope @{text}: use @J (a sensor number), @each, '
+                       '@alike, @{J,J,...} or (field only) @array')
+
+
+def parse_term(text):
+    """Return the :class:`Term` of one term's text."""
+    raw = text.strip()
+    if not raw:
+        raise FormulaError('empty term: two separators in a row, or one at the end')
+    parts = split_top(raw, '@')
+    if len(parts) > 2:
+        raise FormulaError(f'{raw!r}: more than one "@"')
+    core_text, scope_text = parts[0].strip(), (parts[1] if len(parts) == 2 else '')
+    if len(parts) == 2 and not scope_text.strip():
+        raise FormulaError(f'{raw!r}: nothing after "@": give a sensor, each, alike or {{J,J}}')
+    name, inner = _call(core_text)
+    if not _NAME.match(name or ''):
+        raise FormulaError(f'{raw!r}: {name!r} is not a term name: write coupling(driver), '
+                           'a catalog token (base, temperature, step(300), ...) or drop(t0, t1)')
+    if name == 'drop':
+        args, kw = _arguments(inner or '', raw) if inner is not None else ([], {})
+        if inner is None or len(args) != 2 or kw:
+            raise FormulaError(f'{raw!r}: drop takes two times in s, e.g. drop(120, 160)')
+        if scope_text:
+            raise FormulaError(f'{raw!r}: drop leaves samples out for every sensor: drop @')
+        t0, t1 = (parse_number(a, 'drop time [s]') for a in args)
+        if not t1 > t0:
+            raise FormulaError(f'{raw!r}: the end of the dropped window must follow its start')
+        core = f'drop({format_arg(t0)}, {format_arg(t1)})'
+        return Term(text=core, kind='drop', core=core, scope='array', window=(t0, t1))
+    ccls = cp.coupling_class(name)
+    if inner is not None and ccls is not None:
+        coupling = ccls()
+        try:
+            driver = parse_driver(inner)
+        except FormulaError as exc:
+            raise FormulaError(f'{raw!r}: {exc}') from None
+        if driver.per_axis and not coupling.per_axis_ok:
+            raise FormulaError(f'{raw!r}: {name}() takes a scalar driver; rate and lin are per '
+                               'axis (use offset(...) or scale(...))')
+        if driver.reads_lin and coupling.scope == 'array':
+            raise FormulaError(f"{raw!r}: field() cannot follow lin (the sensor's own reading)")
+        scope = _scope(scope_text, raw, coupling.scope == 'array')
+        core = f'{name}({driver.text})'
+        text_out = core if scope in ('each', 'array') else f'{core}@{scope}'
+        return Term(text=text_out, kind='composed', core=core, coupling=name,
+                    driver=driver.text, scope=scope, signals=tuple(driver.signals))
+    return _alias_term(raw, core_text, scope_text)
+
+
+def _alias_term(raw, core_text, scope_text):
+    """Return the term of a catalog or plug-in token, validated by building its effect."""
+    if core_text == 'base':
+        core, eff = 'base', None
+    else:
+        try:
+            eff = make_effect(core_text, 1)
+        except ValueError as exc:
+            raise FormulaError(
+                f'{raw!r}: {exc}; or a composed term coupling(driver) with couplings '
+                f'{", ".join(cp.registered_couplings())}') from None
+        core = eff.label
+    array = eff is not None and getattr(eff, 'scope', 'sensor') == 'array'
+    if array and scope_text.strip():
+        raise FormulaError(f'{raw!r}: {core} is one effect of the whole array: drop '
+                           f'@{scope_text.strip()}')
+    scope = 'array' if array else _scope(scope_text, raw, False)
+    if scope == 'alike':
+        raise FormulaError(f'{raw!r}: @alike shares one parameter set between sensors and is '
+                           'for composed terms, e.g. offset(t)@alike')
+    text_out = core if scope in ('each', 'array') else f'{core}@{scope}'
+    signals = tuple(eff.signals) if eff is not None else ()
+    return Term(text=text_out, kind='alias', core=core, scope=scope, signals=signals,
+                expansion=aliases.expansion(text_out))
+
+
+@dataclass(frozen=True)
+class Formula:
+    """A parsed model: its terms, in order.  ``str(f)`` is canonical; ``parse(str(f)) == f``."""
+
+    terms: tuple
+
+    def __str__(self):
+        return ' + '.join(t.text for t in self.terms)
+
+    @property
+    def drops(self):
+        """(t0, t1) s windows left out of the fit."""
+        return [t.window for t in self.terms if t.kind == 'drop']
+
+    def model(self, n_sensors):
+        """Return the :class:`~magcal_ros.core.model.Model` of this formula for ``n_sensors``."""
+        from magcal_ros.core.model import Model
+        return Model.from_spec(self, n_sensors)
+
+    def effects(self, n_sensors):
+        """(per-sensor lists of Effect, array-wide Effects) the Model and engine consume."""
+        m = self.model(n_sensors)
+        return m.effects, m.array_effects
+
+    def __add__(self, other):
+        other = other if isinstance(other, Formula) else parse(other)
+        return Formula(self.terms + other.terms)
+
+
+def parse(text):
+    """
+    Parse a model formula: ``'base + offset(s(t, k=6))@2'`` -> :class:`Formula`.
+
+    ``text`` may also be a list of terms (the node's ``model`` parameter, the calibration
+    file's ``model``) or a Formula.  Raises :class:`FormulaError` (a ValueError) naming the
+    bad part and what is allowed.
+    """
+    if isinstance(text, Formula):
+        return text
+    if isinstance(text, (list, tuple)):
+        text = ' , '.join(str(t) for t in text)
+    text = str(text)
+    if not text.strip():
+        raise FormulaError('empty model: give at least one term, e.g. --model base')
+    pieces = split_top(text, '+,')
+    return Formula(tuple(parse_term(p) for p in pieces))

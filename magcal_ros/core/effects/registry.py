@@ -1,0 +1,215 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+"""
+The registry of named effects (catalog and plug-ins) and the legacy token helpers.
+
+A plug-in module defines :class:`~magcal_ros.core.effects.base.Effect` subclasses and
+registers them (:func:`register_effect`, or ``MAGCAL_EFFECTS = [...]``); a plug-in coupling
+or driver of the grammar registers with :func:`magcal_ros.core.effects.couplings.
+register_coupling` / :func:`magcal_ros.core.effects.drivers.register_driver`
+(docs/plugins.md).  Plug-ins are imported only at start-up (``magcal --plugin``, the nodes'
+``plugins`` parameter), never from a model or a calibration file.
+"""
+import importlib
+import sys
+
+from magcal_ros.core.effects.base import Effect
+from magcal_ros.core.effects.catalog import (Aux, AuxPoly, Drift, FieldRate, Lag,
+                                             Misalignment, Nonlinearity, NonOrthogonality,
+                                             Offset, Periodic, QuadraticDrift, Scale,
+                                             SiteGradient, SoftIron, Step, Temperature)
+
+# -- registry -------------------------------------------------------------------------------
+
+_REGISTRY = {}
+
+
+def register_effect(cls, name=None):
+    """Register an :class:`Effect` subclass under ``name`` (default ``cls.name``)."""
+    if not (isinstance(cls, type) and issubclass(cls, Effect)):
+        raise TypeError(f'{cls!r} is not a subclass of magcal_ros.core.effects.Effect')
+    key = name or cls.name
+    if key in _REGISTRY and _REGISTRY[key] is not cls:
+        raise ValueError(f'an effect named {key!r} is already registered ({_REGISTRY[key]!r})')
+    _REGISTRY[key] = cls
+    return cls
+
+
+def unregister_effect(name):
+    """Remove the effect registered under ``name`` (tests, interactive sessions)."""
+    if name in BUILTIN_EFFECTS:
+        raise ValueError(f'{name!r} is a built-in effect and cannot be unregistered')
+    _REGISTRY.pop(name, None)
+
+
+for _cls in (Scale, NonOrthogonality, Misalignment, SoftIron, Offset, Temperature, Drift,
+             QuadraticDrift, Nonlinearity, FieldRate, Step, Periodic, Lag, AuxPoly,
+             SiteGradient):
+    register_effect(_cls)
+
+#: names of the effects that ship with the library
+BUILTIN_EFFECTS = tuple(_REGISTRY)
+
+#: the model of paper 004 (offset, scale, nonorthogonality, misalignment)
+BASE = ('offset', 'scale', 'nonorthogonality', 'misalignment')
+
+
+def registered_effects():
+    """Names of all registered effects (plus 'aux:<column>')."""
+    return sorted(_REGISTRY) + ['aux:<column>']
+
+
+def effect_class(name):
+    """Return the Effect class registered as ``name`` (without arguments), or None."""
+    return _REGISTRY.get(name)
+
+
+def needs_args(name):
+    """Tell whether the registered effect ``name`` is only written with arguments."""
+    cls = _REGISTRY.get(name)
+    return cls is not None and cls.usage is not None
+
+
+def load_plugin(ref):
+    """
+    Import ``module`` or ``module:Class`` and register the effect classes it names.
+
+    A module may define ``MAGCAL_EFFECTS = [Cls, ...]`` or call :func:`register_effect`
+    itself.  Returns the list of registered names.
+    """
+    mod_name, _, attr = ref.partition(':')
+    try:
+        mod = importlib.import_module(mod_name)
+    except ImportError as exc:
+        raise ValueError(f'cannot import effect plugin {ref!r}: {exc}') from exc
+    classes = [getattr(mod, attr)] if attr else list(getattr(mod, 'MAGCAL_EFFECTS', []))
+    names = []
+    for cls in classes:
+        if _REGISTRY.get(cls.name) is not cls:
+            register_effect(cls)
+        names.append(cls.name)
+    return names
+
+
+def split_spec(spec):
+    """
+    Tokens of a comma-separated model spec; commas inside ``name(a, b)`` do not split.
+
+    'base,step(120,300)@2, periodic(0.23)' -> ['base', 'step(120,300)@2', 'periodic(0.23)'].
+    """
+    out, depth, cur = [], 0, []
+    for ch in str(spec):
+        if ch == '(':
+            depth += 1
+        elif ch == ')':
+            depth -= 1
+            if depth < 0:
+                raise ValueError(f'unbalanced ")" in model {spec!r}')
+        if ch == ',' and depth == 0:
+            out.append(''.join(cur).strip())
+            cur = []
+        else:
+            cur.append(ch)
+    if depth:
+        raise ValueError(f'unbalanced "(" in model {spec!r}')
+    out.append(''.join(cur).strip())
+    return [t for t in out if t]
+
+
+def parse_token(token):
+    """
+    'step(120,300)@2' -> ('step', ('120', '300'), 2); 'drift' -> ('drift', (), None).
+
+    The sensor is None when the token has no ``@j`` (the effect on every sensor).
+    """
+    tok = token.strip()
+    name, at, where = tok.rpartition('@') if tok.rfind('@') > tok.rfind(')') else (tok, '', '')
+    sensor = None
+    if at:
+        try:
+            sensor = int(where)
+        except ValueError:
+            raise ValueError(f'bad sensor in {token!r}: expected name@<sensor number>') from None
+    name = name.strip()
+    args = ()
+    if '(' in name:
+        if not name.endswith(')'):
+            raise ValueError(f'bad effect {token!r}: expected name(arguments)@sensor')
+        name, _, inner = name[:-1].partition('(')
+        args = tuple(a.strip() for a in inner.split(','))
+        if any(not a for a in args):
+            raise ValueError(f'empty argument in {token!r}')
+        name = name.strip()
+    return name, args, sensor
+
+
+def load_plugins(refs):
+    """
+    Load every plug-in of ``refs`` and return the registered names.
+
+    :func:`load_plugin` for each of ``refs`` (``--plugin``, a node's ``plugins``); the
+    registered names, in order.
+    """
+    return [name for ref in refs or () for name in load_plugin(ref)]
+
+
+def _loaded_effect_name(ref):
+    """
+    Return the registered name of the effect class ``module:Class`` of a loaded plug-in.
+
+    Never imports: a model token or a calibration document (which may come from a ROS
+    parameter write or message) must not run code; plug-ins are loaded beforehand by
+    :func:`load_plugin` (``magcal --plugin``, the nodes' start-up parameter ``plugins``).
+    """
+    mod_name, _, attr = ref.partition(':')
+    module = sys.modules.get(mod_name)
+    cls = getattr(module, attr, None) if module is not None and attr else None
+    name = getattr(cls, 'name', None)
+    if name is None or _REGISTRY.get(name) is not cls:
+        raise ValueError(f'effect {ref!r} is not loaded: plug-in effects are imported only at '
+                         'start-up (magcal --plugin MODULE, ROS start-up parameter plugins), '
+                         'never from a model or a calibration file')
+    return name
+
+
+def make_effect(token, sensor):
+    """
+    Create the effect ``token`` ('offset', 'aux:aux_motor_current', 'step(300)', ...).
+
+    A composed term ``coupling(driver)`` (``offset(s(t, k=6))``, ``...@alike``) is built by
+    the grammar (:func:`magcal_ros.core.effects.terms.composed_effect`).
+    """
+    head = token.partition('(')[0].strip()
+    if '(' in token:
+        from magcal_ros.core.effects.couplings import coupling_class
+        if coupling_class(head) is not None:
+            from magcal_ros.core.effects.formula import parse_term
+            from magcal_ros.core.effects.terms import composed_effect
+            return composed_effect(parse_term(token), sensor)
+    if '(' in token:
+        name, args, _ = parse_token(token)
+        if name not in _REGISTRY:
+            raise ValueError(f'unknown effect {name!r} in {token!r}; known effects: '
+                             f'{", ".join(registered_effects())}')
+        return _REGISTRY[name].from_args(args, sensor)
+    if token.startswith('aux:'):
+        return Aux(sensor=sensor, channel=token[4:])
+    if token not in _REGISTRY and ':' in token:
+        token = _loaded_effect_name(token)
+    if token not in _REGISTRY:
+        raise ValueError(f'unknown effect {token!r}; known effects: '
+                         f'{", ".join(registered_effects())}')
+    if needs_args(token):
+        raise ValueError(f'effect {token!r} needs arguments: {_REGISTRY[token].usage}')
+    return _REGISTRY[token](sensor=sensor)

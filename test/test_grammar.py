@@ -1,0 +1,334 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The model formula: parsing, canonical text, aliases, old calibration files, errors, plug-ins.
+
+Recovery of each coupling x driver from injected data is test_grammar_recovery.py.
+"""
+import pathlib
+
+import inject_terms as it
+import injection as inj
+from magcal_ros.cli import _parse_truth, main
+from magcal_ros.core import effects as fx
+from magcal_ros.core.effects import formula as fm
+from magcal_ros.core.effects.base import SensorContext
+from magcal_ros.core.model import fit, Model
+from magcal_ros.io.calfile import calibration_to_doc, dump_calibration, parse_calibration
+from magcal_ros.io.csvio import read_csv, write_csv
+import numpy as np
+import pytest
+import yaml
+
+LEGACY = pathlib.Path(__file__).parent / 'data' / 'legacy_cal'
+
+#: FORMULA.md's examples and more: text as a user writes it -> canonical text
+FORMULAS = {
+    'base + offset(s(t, k=6))@2': 'base + offset(s(t, k=6))@2',
+    'base + scale(temperature)@2': 'base + scale(temperature)@2',
+    'base + offset(lag(aux_motor))@3': 'base + offset(lag(aux_motor))@3',
+    'base + offset(cc(aux_wheel_angle, k=2))': 'base + offset(cc(aux_wheel_angle, k=2))',
+    'base + field(s(t, k=8))': 'base + field(s(t, k=8))',
+    'base + offset(window(120, 160))@alike': 'base + offset(window(120, 160))@alike',
+    'base + offset(temperature * t)@1': 'base + offset(temperature * t)@1',
+    'base + drop(120, 160)': 'base + drop(120, 160)',
+    'base,temperature@2': 'base + temperature@2',
+    'base, step(120,300)@2, periodic(0.23)@3': 'base + step(120,300)@2 + periodic(0.23)@3',
+    'offset+soft_iron': 'offset + soft_iron',
+    'base,lag(temp),aux_poly(aux_x, 2)@1,aux:x,field_rate,nonlinearity,drift,drift2':
+        'base + lag(temperature) + aux_poly(aux_x,2)@1 + aux:aux_x + field_rate + '
+        'nonlinearity + drift + drift2',
+    'base,site_gradient': 'base + site_gradient',
+    'base+offset(rate)@{3, 1}+scale(poly(lin,3))@ 2':
+        'base + offset(rate)@{1,3} + scale(poly(lin, 3))@2',
+    'base + linear(t) + nonorth(poly(t,2))@each + rotation(sin(0.1000))':
+        'base + linear(t) + nonorth(poly(t, 2)) + rotation(sin(0.1))',
+    'base + offset(lag(temperature, tau=40))@4 + offset(step(300, 100))':
+        'base + offset(lag(temperature, tau=40))@4 + offset(step(100, 300))',
+    'base + offset(cc(aux_a, k=1, period=360) * temperature)@{2}':
+        'base + offset(cc(aux_a, k=1, period=360) * temperature)@2',
+    'base + offset(1)@alike + field(temperature)': 'base + offset(1)@alike + field(temperature)',
+}
+
+
+@pytest.mark.parametrize('text', sorted(FORMULAS))
+def test_formula_canonical_text_round_trips(text):
+    f = fx.parse(text)
+    assert str(f) == FORMULAS[text]
+    assert fx.parse(str(f)) == f
+    assert fx.parse([t.text for t in f.terms]) == f          # the node's list form
+
+
+def test_terms_say_what_they_are():
+    f = fx.parse('base + offset(s(t, k=6))@2 + field(s(t, k=8)) + '
+                 'offset(window(120, 160))@alike + scale(temperature) + temperature@2 + '
+                 'offset(lag(aux_motor))@{1,3} + drop(10, 20)')
+    base, spl, fld, win, sc, tmp, lag, drop = f.terms
+    assert (spl.kind, spl.coupling, spl.driver, spl.scope, spl.signals) == (
+        'composed', 'offset', 's(t, k=6)', '2', ('time',))
+    # parameters: 3 per column and sensor; the field's 1 per column for the array; the
+    # alike window's 3 for every sensor; scale 3 per sensor; lag 3 + tau per sensor
+    assert [t.n_params(4) for t in f.terms] == [45, 18, 8, 3, 12, 6, 8, 0]
+    assert fld.scope == 'array' and win.scope == 'alike' and lag.scope == '{1,3}'
+    assert lag.signals == ('time', 'aux_motor') and lag.sensors(4) == [1, 3]
+    assert tmp.kind == 'alias' and tmp.expansion == 'offset(temperature)@2 + scale(temperature)@2'
+    assert base.expansion == 'offset + scale + nonorthogonality + misalignment'
+    assert drop.kind == 'drop' and drop.window == (10.0, 20.0) and f.drops == [(10.0, 20.0)]
+    m = f.model(4)
+    assert m.drops == [(10.0, 20.0)] and m.n_params == 45 + 18 + 8 + 3 + 12 + 6 + 8
+    assert fx.parse(m.spec()).model(4).spec() == m.spec()
+
+
+#: a bad formula -> words its one-line error must hold (the bad part, what is allowed)
+BAD = {
+    'base + ofset(t)': ["'ofset(t)'", 'unknown effect', 'offset, rotation, scale'],
+    'base + offset(wndow(1, 2))': ["'wndow'", 'window(...)', 'drivers are'],
+    'base + offset(s(t, k=1))': ['basis size', '3..20', "'1'"],
+    'base + offset(s(t, q=4))': ['unknown option q=', 'k='],
+    'base + offset(s(x))': ["'x'", 't, temperature, aux_<channel>, rate'],
+    'base + offset(t)@9': ['sensor 9 does not exist', '1..4'],
+    'base + offset(t)@somewhere': ['unknown scope @somewhere', '@alike'],
+    'base + field(t)@2': ['scope is', 'always the array'],
+    'base + linear(rate)': ['per axis', 'offset(...) or scale(...)'],
+    'base + offset(step(10)': ['unbalanced'],
+    'base + + drift': ['empty term'],
+    'base + temperature@alike': ['@alike', 'composed terms'],
+    'base + drop(20, 10)': ['must follow its start'],
+    'base + drop(1, 2)@2': ['drop leaves samples out for every sensor'],
+    'base + offset(poly(t, 9))': ['poly degree', '1..4'],
+    'base + offset(sin(-1))': ['sin frequency must be positive'],
+    'base + offset(window(5, 1))': ['the end must follow the start'],
+    '': ['empty model'],
+}
+
+
+@pytest.mark.parametrize('text', sorted(BAD))
+def test_bad_formula_names_the_bad_part_and_what_is_allowed(text):
+    with pytest.raises(ValueError) as err:
+        Model.from_spec(text, 4)
+    msg = str(err.value)
+    for word in BAD[text]:
+        assert word in msg, (word, msg)
+
+
+def test_cli_refuses_a_bad_formula_in_one_line(tmp_path, capsys):
+    data = inj.make(n=200, seed=1)
+    write_csv(tmp_path / 'd.csv', data)
+    code = main(['fit', str(tmp_path / 'd.csv'), '--field-nt', '50000',
+                 '--model', 'base + offset(wndow(1, 2))@2'])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "'wndow'" in err[0], err
+
+
+# -- old tokens and old calibration files ------------------------------------------------------
+
+def test_old_calibration_files_load_and_correct_as_written():
+    """Files written by the code before the grammar (c43534d) correct to 1e-9 nT as then."""
+    data = read_csv(LEGACY / 'data.csv')
+    want = np.load(LEGACY / 'corrected.npz')
+    assert len(want.files) == 9
+    for name in want.files:
+        text = (LEGACY / f'{name}.yaml').read_text()
+        cal, doc = parse_calibration(text, name)
+        got = np.stack([cal.correct(j, data.raw[j - 1], data.context(j))
+                        for j in range(1, 5)])[:, ::4]
+        np.testing.assert_allclose(got, want[name], rtol=0, atol=1e-9, err_msg=name)
+        # the old model list parses to the same model (the old code's spec, written then)
+        assert Model.from_spec(doc['model'], 4).spec() == doc['model']
+
+
+def test_old_tokens_fit_to_the_same_numbers_as_written():
+    """The old specs refitted give the parameters the old code wrote (to 1e-6 relative)."""
+    data = read_csv(LEGACY / 'data.csv')
+    for name in ('temperature', 'step_periodic', 'aux'):
+        doc = yaml.safe_load((LEGACY / f'{name}.yaml').read_text())
+        res = fit(data, ','.join(doc['model']), 50000.0, on_degenerate='flag',
+                  check_identifiability=False)
+        old = [e['params'][k]['value'] for s in doc['sensors'] for e in s['effects']
+               for k in e['params']]
+        np.testing.assert_allclose(res.params, old, rtol=1e-6, atol=1e-6, err_msg=name)
+
+
+def _ctx(n=50):
+    rng = np.random.default_rng(4)
+    t = np.linspace(0.0, 200.0, n)
+    return SensorContext(t=t, temp=20 + 5 * np.sin(t / 30), raw_rate=rng.normal(0, 50, (n, 3)),
+                         aux={'aux_x': 2 + np.cos(t / 17)}), rng.normal(0, 3e4, (n, 3))
+
+
+#: alias -> (composition, parameter map: alias params -> composition params)
+ALIAS_MAPS = {
+    'temperature': ('offset(temperature) + scale(temperature)', lambda p, refs: p),
+    'aux:aux_x': ('offset(aux_x)', lambda p, refs: p),
+    'periodic(0.02)': ('offset(sin(0.02))', lambda p, refs: p),
+    'step(80,150)': ('offset(step(80, 150))', lambda p, refs: p),
+    'field_rate': ('offset(rate)', lambda p, refs: -p),
+    'lag(temperature)': ('offset(lag(temperature))',
+                         lambda p, refs: np.r_[p[:3], p[3]]),
+    'aux_poly(aux_x,2)': ('offset(poly(aux_x, 2))',
+                          lambda p, refs: np.r_[p[:3] * refs['h'], p[3:] * refs['h'] ** 2]),
+    'drift2': ('offset(poly(t, 2))',
+               lambda p, refs: np.r_[p[:3] * refs['ht'], p[3:] * refs['ht'] ** 2]),
+}
+
+
+@pytest.mark.parametrize('alias', sorted(ALIAS_MAPS))
+def test_alias_and_its_composition_change_the_reading_alike(alias):
+    """Each old token and the composition it stands for: the same change, to a constant."""
+    comp, to_comp = ALIAS_MAPS[alias]
+    ctx, lin = _ctx()
+    old = Model.from_spec(alias, 1)
+    new = Model.from_spec(comp, 1)
+    old.prepare([ctx])
+    new.prepare([ctx])
+    rng = np.random.default_rng(1)
+    p_old = old.default_params() + rng.normal(0, 1, old.n_params) * np.r_[
+        [1.0] * (old.n_params - 3), [1e-4] * 3 if alias == 'temperature' else [1.0] * 3]
+    if alias == 'lag(temperature)':
+        p_old[3] = 25.0
+    # poly scales (v - mean) by the half range h; drift2's t is referred to t0 = t[0], poly
+    # to the mean: the change differs by a polynomial of lower degree, here by a constant
+    # and a linear term in t that the comparison below removes with the mean and the slope
+    refs = {'h': (ctx.aux['aux_x'].max() - ctx.aux['aux_x'].min()) / 2,
+            'ht': (ctx.t.max() - ctx.t.min()) / 2}
+    p_new = to_comp(p_old, refs)
+    a = old.additive(1, p_old, ctx, lin)
+    b = new.additive(1, p_new, ctx, lin)
+    if alias == 'drift2':
+        # same quadratic coefficient: the difference is linear in t
+        d = a - b
+        fit_lin = np.polynomial.polynomial.polyfit(ctx.t, d, 1)
+        d = d - np.polynomial.polynomial.polyval(ctx.t, fit_lin).T
+        assert np.abs(d).max() < 1e-8 * np.abs(a).max()
+        return
+    np.testing.assert_allclose(it.centred(a), it.centred(b), rtol=0,
+                               atol=1e-9 * max(1.0, np.abs(a).max()))
+
+
+# -- calibration file and simulator --------------------------------------------------------------
+
+def test_composed_terms_round_trip_through_the_calibration_file():
+    formula = ('base + offset(s(t, k=4))@2 + offset(window(100, 140))@alike + '
+               'field(sin(0.01)) + scale(temperature)@3 + offset(lag(temperature))@4 + '
+               'drop(200, 220)')
+    data = inj.make(n=1500, seed=2)
+    res = fit(data, formula, inj.F_NT, check_identifiability=False, on_degenerate='flag')
+    doc = calibration_to_doc(res.calibration)
+    cal, doc2 = parse_calibration(dump_calibration(doc), 'composed')
+    assert fx.parse(doc2['model']) == fx.parse(res.model.spec())
+    assert cal.model.drops == [(200.0, 220.0)]
+    for j in range(1, 5):
+        want = res.calibration.correct(j, data.raw[j - 1], data.context(j))
+        got = cal.correct(j, data.raw[j - 1], data.context(j))
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(cal.params, res.params)
+
+
+def test_simulate_truth_takes_any_term():
+    truth = _parse_truth(['offset(s(t, k=4))@2=1,2,3,4,5,6,7,8,9,10,11,12',
+                          'temperature@2=3,-2,1.5,0,0,0', 'field(sin(0.02))=5,3'])
+    assert list(truth) == ['offset(s(t, k=4))@2', 'temperature@2', 'field(sin(0.02))']
+    from magcal_ros.core.data.simulate import Simulator
+    sim = Simulator(truth={'offset(window(1, 2))@alike': [30, -20, 10],
+                           'field(sin(0.02))': [5, 3]})
+    info = sim.model.param_info()
+    got = {(s, lab, nm): v for (s, lab, nm, _), v in zip(info, sim.params)}
+    assert got[(0, 'offset(window(1, 2))@alike', 'bz')] == 10
+    assert got[(0, 'field(sin(0.02))', 'f_sin')] == 3
+    with pytest.raises(ValueError, match='3 values expected'):
+        Simulator(truth={'offset(t)@2': [1, 2]})
+
+
+# -- plug-ins ----------------------------------------------------------------------------------
+
+class SquareWave(fx.Driver):
+    """sq(P): a square wave of period P s in time, +-1 (a relay that toggles)."""
+
+    name = 'sq'
+    usage = 'sq(<period_s>)'
+    signals = ('time',)
+    column_names = ('sq',)
+
+    @classmethod
+    def from_args(cls, args, kwargs):
+        d = cls()
+        d.period = float(args[0])
+        return d
+
+    @property
+    def text(self):
+        return f'sq({self.period:g})'
+
+    def columns(self, ctx, lin, refs, q, prefix=''):
+        return np.sign(np.sin(2 * np.pi * ctx.t / self.period))[:, None]
+
+
+class ZOnly(fx.Coupling):
+    """An offset along the sensor's z axis only (a coil wound around z)."""
+
+    name = 'zoffset'
+    stems = ('bz',)
+    unit = 'nT'
+    doc = 'offset along z only'
+
+    def contribution(self, y, lin):
+        out = np.zeros_like(lin)
+        out[:, 2] = y[:, 0]
+        return out
+
+
+@pytest.fixture
+def plugins():
+    fx.register_driver(SquareWave)
+    fx.register_coupling(ZOnly)
+    yield
+    fx.unregister_driver('sq')
+    fx.unregister_coupling('zoffset')
+
+
+def test_plugin_coupling_and_driver_combine_with_the_builtins(plugins):
+    """zoffset(temperature)@3 + offset(sq(20))@2 + zoffset(sq(20))@1, injected by hand."""
+    def sq(t):
+        return np.sign(np.sin(2 * np.pi * t / 20.0))
+
+    inject = it.combine(
+        it.offset(2, lambda t, T, a: np.outer(sq(t), [12.0, -8.0, 5.0])),
+        it.offset(3, lambda t, T, a: np.outer(T[2] - T[2].mean(), [0.0, 0.0, 2.0])),
+        it.offset(1, lambda t, T, a: np.outer(sq(t), [0.0, 0.0, -7.0])))
+    data = inj.make(n=1500, seed=5, inject=inject)
+    formula = 'base + offset(sq(20))@2 + zoffset(temperature)@3 + zoffset(sq(20))@1'
+    assert str(fx.parse(formula)) == formula
+    res = fit(data, formula, inj.F_NT, check_identifiability=False, on_degenerate='flag')
+    got = {(s, lab, nm): (v, e) for (s, lab, nm, _), v, e in
+           zip(res.model.param_info(), res.params, res.stderr) if '(' in lab}
+    want = {(2, 'offset(sq(20))', 'bx'): 12.0, (2, 'offset(sq(20))', 'by'): -8.0,
+            (2, 'offset(sq(20))', 'bz'): 5.0, (3, 'zoffset(temperature)', 'bz'): 2.0,
+            (1, 'zoffset(sq(20))', 'bz'): -7.0}
+    assert set(got) == set(want)
+    for k, v in want.items():
+        # a +-1 column over 1500 epochs: se about 3 nT / sqrt(1500) = 0.08 nT (the fit's
+        # own stderr is used); 5 standard errors allowed
+        assert abs(got[k][0] - v) < 5 * got[k][1], (k, got[k], v)
+    assert np.all(np.abs(res.sigma_nt - 3.0) < 0.3), res.sigma_nt
+
+
+def test_plugin_names_cannot_shadow_builtins():
+    with pytest.raises(ValueError, match='already registered'):
+        fx.register_driver(type('S2', (fx.Driver,), {'name': 's'}))
+    with pytest.raises(ValueError, match='built-in'):
+        fx.unregister_coupling('offset')
+    with pytest.raises(TypeError):
+        fx.register_coupling(SquareWave)
+    assert fm.parse('offset(1)').terms[0].coupling == 'offset'
