@@ -231,10 +231,38 @@ def propose_from_residual(t, residual, max_steps=2, min_line_ratio=30.0):
 
     """
     t = np.asarray(t, float)
-    n = len(t)
     out = []
-    if n < 50:
+    found, lines = residual_features(t, residual, max_steps, min_line_ratio)
+    if not len(t) or len(t) < 50:
         return out
+    dt = float(np.median(np.diff(t)))
+    # the change lies between two samples: the time of the first sample after it, to the
+    # sampling interval's decimal (step(300), not step(300.0001))
+    q = 10.0 ** math.floor(math.log10(dt)) if dt > 0 else 1.0
+
+    def at(k):
+        return f'{float(np.round(t[k] / q) * q):.10g}'
+    for k in sorted(found):
+        out.append(f'step({at(k)})')
+    if len(found) > 1:
+        out.append('step(' + ','.join(at(k) for k in sorted(found)) + ')')
+    if lines:
+        _, fbest = max(lines.values())
+        out.append(f'periodic({fbest:.5g})')
+    return out
+
+
+def residual_features(t, residual, max_steps=2, min_line_ratio=30.0):
+    """
+    Change points and spectral lines of a residual (see :func:`propose_from_residual`).
+
+    Returns (change points: sorted epoch indices (the first sample after each change),
+    lines: {sensor index: (peak power / median power, refined frequency Hz)}).
+    """
+    t = np.asarray(t, float)
+    n = len(t)
+    if n < 50:
+        return [], {}
     r = residual - residual.mean(axis=1, keepdims=True)
     # -- steps: one change in the mean, on the sensors' residuals together
     flat = r.transpose(1, 0, 2).reshape(n, -1)              # (N, 3S)
@@ -265,20 +293,10 @@ def propose_from_residual(t, residual, max_steps=2, min_line_ratio=30.0):
         segs.remove((a, b))
         segs += [(a, best[1]), (best[1], b)]
     dt = float(np.median(np.diff(t)))
-    # the change lies between two samples: the time of the first sample after it, to the
-    # sampling interval's decimal (step(300), not step(300.0001))
-    q = 10.0 ** math.floor(math.log10(dt)) if dt > 0 else 1.0
-
-    def at(k):
-        return f'{float(np.round(t[k] / q) * q):.10g}'
-    for k in sorted(found):
-        out.append(f'step({at(k)})')
-    if len(found) > 1:
-        out.append('step(' + ','.join(at(k) for k in sorted(found)) + ')')
     # -- lines
     span = float(t[-1] - t[0])
     if span <= 0:
-        return out
+        return sorted(found), {}
     uniform = np.ptp(np.diff(t)) <= 1e-6 * dt
     f_lo, f_hi = 5.0 / span, 0.5 / dt
     m_ls = min(4 * n, 20000)
@@ -317,10 +335,7 @@ def propose_from_residual(t, residual, max_steps=2, min_line_ratio=30.0):
         pw = [np.sum(np.abs(np.exp(-2j * np.pi * g * tt) @ r[j]) ** 2) for g in grid]
         fbest = float(grid[int(np.argmax(pw))])
         lines[j] = (ps[i] / np.median(ps), fbest)
-    if lines:
-        _, fbest = max(lines.values())
-        out.append(f'periodic({fbest:.5g})')
-    return out
+    return sorted(found), lines
 
 
 def _copy_refs(src, dst):

@@ -27,20 +27,24 @@ from magcal_ros.core.data.magnitude import reference_magnitude
 from magcal_ros.core.data.noise import data_noise_floor, NoiseFloor
 from magcal_ros.core.discovery.candidates import (added_params, Candidate, candidate_tokens,
                                                  extend_model, propose_from_residual, reads_stderr,
-                                                 reduces_to_simpler, sensors_of, split_testable,
-                                                 token_label, tokens_from_findings)
+                                                 reduces_to_simpler, residual_features,
+                                                 sensors_of, split_testable, token_label,
+                                                 tokens_from_findings)
 from magcal_ros.core.discovery.constants import (ALPHA, AT_FLOOR_RATIO, BLOCKS_PER_FOLD,
                                                 DEFAULT_FOLDS, DEFAULT_MAX_REFIT,
                                                 DEFAULT_MAX_SAMPLES, EVIDENCE_TIE, MIN_BLOCK,
                                                 MIN_DELTA_BIC, MIN_EXPLAINED, REFIT_CHI2_TOL,
-                                                REFIT_MAX_NFEV, SCORE_RULE_OUT_BIC)
+                                                REFIT_MAX_NFEV, SCORE_RULE_OUT_BIC,
+                                                SEARCH_CHANGE_POINTS, SEARCH_LISTED)
+from magcal_ros.core.discovery.findings import find as find_findings
 from magcal_ros.core.discovery.measures import (dof_factor, evaluate_residuals, Evaluation,
                                                explained_share, likelihood_ratio, n_observations,
                                                rms, scalar_rms_of, soft_l1_lr_loss, vector_rms_of)
 from magcal_ros.core.discovery.results import compact_spec, Diagnosis
 from magcal_ros.core.discovery.screen import lag_grid, Screen
+from magcal_ros.core.discovery.search import (EXPLAINS_SHARE, FLOOR_RATIO, search as run_search,
+                                              SEARCH_MAX_EPOCHS)
 from magcal_ros.core.discovery.validation import cross_validate
-from magcal_ros.core.discovery.findings import find as find_findings
 from magcal_ros.core.model import Model
 from magcal_ros.core.model.fitting import fit
 from magcal_ros.core.model.solvers import single_threaded_blas
@@ -243,6 +247,12 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
         ratio = max([v / floor.per_sensor_nt[j - 1] for j, v in scalar_rms.items()]
                     + [v / floor.vector_floor_nt(j) for j, v in vector_rms.items()])
         verdict, reason = _verdict(b, ranked, ratio, at_floor, held_out, p_thr)
+        if candidates is None and propose and not b.robust and not constrained:
+            t0 = time.perf_counter()
+            found_terms = _search(b, screen, alpha)
+            seconds['search'] = time.perf_counter() - t0
+            verdict, reason, ranked = _merge_search(b, trials, ranked, verdict, reason,
+                                                    found_terms, at_floor)
         seconds['total'] = time.perf_counter() - t_start
         return Diagnosis(
             model=tuple(compact_spec(b.model)), n_samples=data.n_samples, n_used=n,
@@ -254,6 +264,137 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
             verdict_token=verdict, verdict_reason=reason, p_threshold=p_thr, folds=folds,
             seconds=seconds, result=base, findings=found, decided_by=decided,
             excess_ms_nt2=float(b.ms0 - floor.value_nt ** 2))
+
+
+def _search(b, screen, alpha):
+    """Run the formula search (:mod:`.search`) on the base fit's residual; SearchResult."""
+    data, resid, n_obs = b.data, b.ev0.residual, b.n_obs
+    if data.n_samples > SEARCH_MAX_EPOCHS:
+        keep = np.unique(np.linspace(0, data.n_samples - 1, SEARCH_MAX_EPOCHS).round()
+                         .astype(int))
+        data, resid = data.subset(keep), resid[:, keep]
+        n_obs = n_observations(b.model, len(keep))
+        screen = Screen(b.model, b.params, data.raw, [c.subset(keep) for c in b.contexts],
+                        b.f[keep], b.sigma)
+    elif screen is None:
+        screen = Screen(b.model, b.params, data.raw, b.contexts, b.f, b.sigma)
+    t = data.t
+    cps, lines = residual_features(t, resid, max_steps=SEARCH_CHANGE_POINTS)
+    times = [float(t[k]) for k in cps]
+    steps = [(x,) for x in times] + ([tuple(times)] if len(times) > 1 else [])
+    span = float(t[-1] - t[0])
+    windows = [(a, c) for a, c in zip(times[:-1], times[1:]) if c - a < 0.5 * span]
+    freqs = sorted({round(f, 6) for _, f in lines.values()})
+    return run_search(data, resid, screen, b.sigma, b.floor, n_obs, alpha=alpha,
+                      steps=steps, windows=windows, lines=freqs, dof=dof_factor(b.model))
+
+
+def _trial_ratio(b, trial):
+    """Largest residual RMS / floor over the sensors (scalar and vector) of a trial, or None."""
+    if trial is None or trial.ev is None:
+        return None
+    fl = b.floor
+    sc = [rms(trial.ev.scalar[j - 1]) / fl.per_sensor_nt[j - 1]
+          for j in range(1, b.data.n_sensors + 1)]
+    vc = [rms(trial.ev.vector[j - 1]) / fl.vector_floor_nt(j)
+          for j in range(2, b.data.n_sensors + 1)]
+    return max(sc + vc)
+
+
+def _merge_search(b, trials, ranked, verdict, reason, res, at_floor):
+    """
+    Put the search's terms among the candidates and choose the verdict between the two.
+
+    The catalog's verdict stands when it brings every sensor to its floor
+    (:data:`.search.FLOOR_RATIO`), unless the search's term does too on fewer sensors (the
+    catalog offers an effect on one sensor or on all; the search names the sensors that
+    carry it).  Otherwise the search's adopted term is the verdict when it leaves less
+    (largest ratio to the floor over the sensors).
+    """
+    s = b.data.n_sensors
+    extra = [_term_candidate(b, tm, res) for tm in res.terms[:SEARCH_LISTED]]
+    extra_c = [c for c in extra if c.token not in {r.token for r in ranked}]
+    if at_floor:
+        return verdict, reason, ranked + extra_c
+    adopted = res.adopted
+    cat = next((c for c in trials if c.token == verdict), None) if verdict else None
+    c_ratio = _trial_ratio(b, cat)
+    a_ratio = None if adopted is None else max(adopted.ratios.values())
+    c_expl = cat is not None and c_ratio is not None and c_ratio <= FLOOR_RATIO and (
+        cat.share is None or cat.share >= EXPLAINS_SHARE)
+    a_expl = a_ratio is not None and a_ratio <= FLOOR_RATIO and adopted.share >= EXPLAINS_SHARE
+    best_ratio = min([r for r in (c_ratio, a_ratio) if r is not None], default=None)
+    if not (c_expl or a_expl):
+        # nothing explains it: an excess confined in time is left out instead
+        loc = res.localised
+        if loc is not None:
+            cand = _localised_candidate(b, loc)
+            why = (f'no term brings every sensor to its floor (best {best_ratio:.2f} x)'
+                   if best_ratio is not None else 'no term explains the residual')
+            why += (f'; {loc.share:.0%} of the excess over the floor lies within '
+                    f'{loc.t0:.6g}-{loc.t1:.6g} s on sensor(s) '
+                    f'{", ".join(str(j) for j in loc.sensors)}, nothing simple describes '
+                    f'it: leave it out (every sensor within '
+                    f'{max(loc.ratios_outside.values()):.2f} x its floor outside)')
+            return loc.token, why, [cand] + ranked + extra_c
+    if adopted is None:
+        return verdict, reason, ranked + extra_c
+    a_text = adopted.text_for(s)
+    use_search = (verdict is None or c_ratio is None
+                  or (not c_expl and a_ratio < c_ratio)
+                  or (a_expl and set(adopted.sensors) < set(sensors_of(cat.sensor, s))))
+    if not use_search:
+        return verdict, reason, ranked + extra_c
+    top = next(c for c in extra if c.token == a_text)
+    rest = [c for c in ranked + extra_c if c.token != a_text]
+    why = (f'formula search over {res.n_generated} candidate terms: delta BIC '
+           f'{adopted.delta_bic:.0f}, p = {adopted.p_value:.2g}, removes '
+           f'{adopted.share:.0%} of the held-out excess over the floor '
+           f'(linearised refit on interleaved time blocks), largest residual / floor after '
+           f'{a_ratio:.2f}')
+    if verdict:
+        why += f'; the catalog\'s best, {verdict}, leaves {c_ratio:.2f} x the floor'
+    return a_text, why, [top] + rest
+
+
+def _localised_candidate(b, loc):
+    """A :class:`Candidate` for leaving out an excess confined in time (``drop``)."""
+    s = b.data.n_sensors
+    sens = list(loc.sensors)
+    return Candidate(
+        token=loc.token, effect='drop', sensor=sens[0] if len(sens) == 1 else None,
+        n_params=0, rms_before_nt=scalar_rms_of(b.ev0.scalar, sens), rms_after_nt=None,
+        vector_rms_before_nt=vector_rms_of(b.ev0.vector, sens, s), vector_rms_after_nt=None,
+        delta_chi2=float('nan'), delta_bic=float('nan'), p_value=float('nan'),
+        log10_p_value=float('nan'), method='localised', significant=True,
+        explained_fraction=loc.share, decided_by='model-free (excess inside the interval)',
+        note=('vector' if loc.vector else 'scalar') + ' excess confined in time')
+
+
+def _term_candidate(b, tm, res):
+    """A :class:`Candidate` of a search term (its evidence from the linearised problem)."""
+    s = b.data.n_sensors
+    text = tm.text_for(s)
+    sens = list(tm.sensors)
+    sensor = sens[0] if len(sens) == 1 else None
+    d_chi2 = float(tm.delta_chi2 if tm.delta_chi2 is not None else tm.approx)
+    p_val, logp, d_bic = likelihood_ratio(d_chi2, tm.k, b.n_obs)
+    after = None
+    if tm.ratios:
+        after = float(np.sqrt(np.mean([(tm.ratios[j] * b.floor.per_sensor_nt[j - 1]) ** 2
+                                       for j in sens])))
+    sig = bool(tm is res.adopted or (tm.share is not None and tm.share >= MIN_EXPLAINED
+                                     and p_val < res.p_threshold and d_bic < MIN_DELTA_BIC))
+    return Candidate(
+        token=text, effect=text.split('@')[0], sensor=sensor, n_params=tm.k,
+        rms_before_nt=scalar_rms_of(b.ev0.scalar, sens), rms_after_nt=after,
+        vector_rms_before_nt=vector_rms_of(b.ev0.vector, sens, s), vector_rms_after_nt=None,
+        delta_chi2=d_chi2, delta_bic=d_bic, p_value=p_val, log10_p_value=logp,
+        method='search' if tm.delta_chi2 is not None else 'search pre-screen',
+        cv_rms_before_nt=tm.cv_before, cv_rms_after_nt=tm.cv_after, significant=sig,
+        explained_fraction=tm.share,
+        decided_by=None if tm.share is None else 'held-out (linearised, search)',
+        note=None)
 
 
 def order_by_evidence(trials, b):

@@ -56,13 +56,25 @@ CV_TOP = 10
 #: pairs are formed from this many of the best validated singles
 PAIR_TOP = 5
 #: epochs of the pre-screen (evenly spaced)
-PRESCREEN_EPOCHS = 3000
+PRESCREEN_EPOCHS = 2000
 #: blocks of the held-out test: folds x blocks per fold
 SEARCH_FOLDS, SEARCH_BLOCKS_PER_FOLD = 3, 8
 #: held-out shares within this of the best are a tie, decided by fewer parameters
 TIE_SHARE = 0.03
+#: a sensor is in a term's scope when the driver explains at least this share of what it
+#: explains on the sensor it explains most (a disturbance of two sensors leaks ~5 % into
+#: the others through the field they share)
+SCOPE_SHARE = 0.15
 #: a sensor is at its floor when its residual is within this ratio of it
 FLOOR_RATIO = 1.10
+#: a term "explains" the excess when it also removes this share of it held out (a smooth
+#: that follows a short disturbance in-sample but cannot predict it does not)
+EXPLAINS_SHARE = 0.8
+#: epochs the search works on (evenly spaced; its cost is then independent of the record)
+SEARCH_MAX_EPOCHS = 4000
+#: most parameters of one candidate term (a smooth of 64 functions on each sensor's offset
+#: would add 756: the array's field or one sensor's offset carry such smooths)
+MAX_TERM_PARAMS = 200
 #: normalisation of the sensor's linear reading in scale/linear/field couplings, nT
 LIN_NT = 50000.0
 
@@ -130,7 +142,8 @@ def solve_psd(a, b, rcond=1e-9):
     """Solve a x = b for a symmetric PSD (n, n) a, directions below ``rcond`` dropped."""
     w, v = np.linalg.eigh(a)
     keep = w > rcond * max(w.max(), 1e-300)
-    return v[:, keep] @ ((v[:, keep].T @ b) / w[keep])
+    vb = v[:, keep].T @ b
+    return v[:, keep] @ (vb / (w[keep] if vb.ndim == 1 else w[keep][:, None]))
 
 
 def _orth(x):
@@ -143,8 +156,8 @@ def _orth(x):
 
 def _proj_ss(x, y):
     """Sum of squares of y (N,) or (N, c) explained by least squares on x (N, m)."""
-    q = _orth(x)
-    return float(np.sum((q.T @ y) ** 2))
+    xty = x.T @ y
+    return float(np.sum(xty * solve_psd(x.T @ x, xty)))
 
 
 def coupling_columns(coupling, x, lin, per_axis=False):
@@ -252,6 +265,19 @@ class BlockSums:
         per_epoch = 3.0 * float(sum(w[j - 1] for j in self.sensors)) - tr
         self.floor_chi2 = np.array([float(np.sum(per_epoch[e0:e1]))
                                     for e0, e1 in zip(self.edges[:-1], self.edges[1:])])
+        # per sensor and epoch, the block j of tr(P W P), P = I - G M G^T, M = (G^T G)^-1:
+        # 3 w_j - 2 w_j tr(M G_j^T G_j) + tr(M G^T W G M G_j^T G_j)
+        mm = [[i00, i01], [i10, i11]]
+        mwm = [[sum(mm[a][x] * gwg[x, y] * mm[y][c] for x in range(2) for y in range(2))
+                for c in range(2)] for a in range(2)]
+        self.floor_epoch = np.zeros((len(self.sensors), n))
+        for gi, j in enumerate(self.sensors):
+            gbj = g['gb'][gi]
+            gg = [[gbj[0][a] * gbj[0][c] + gbj[1][a] * gbj[1][c] + gbj[2][a] * gbj[2][c]
+                   for c in range(2)] for a in range(2)]
+            t1 = sum(mm[a][c] * gg[c][a] for a in range(2) for c in range(2))
+            t2 = sum(mwm[a][c] * gg[c][a] for a in range(2) for c in range(2))
+            self.floor_epoch[gi] = 3.0 * w[j - 1] - 2.0 * w[j - 1] * t1 + t2
 
     def candidate(self, cols):
         """
@@ -346,6 +372,7 @@ class SearchResult:
     p_threshold: float
     floor_ratio_after: dict | None = None
     seconds: dict = field(default_factory=dict)
+    localised: object = None
 
 
 def _lin(data):
@@ -403,6 +430,8 @@ def prescreen(data, resid, sigma, drivers, n_obs, n_eval=PRESCREEN_EPOCHS):
                                                    for j in range(1, s + 1)])) * scale_n
                 out.append(Term(cp, drv, tuple(range(1, s + 1)), k=k, approx=dchi))
                 continue
+            if k > MAX_TERM_PARAMS:
+                continue
             per = {}
             for j in range(1, s + 1):
                 x, yy, ll = xs[j], y[j - 1], lin[j - 1]
@@ -417,10 +446,12 @@ def prescreen(data, resid, sigma, drivers, n_obs, n_eval=PRESCREEN_EPOCHS):
                     ss = sum(_proj_ss(np.concatenate([x * ll[:, b:b + 1] for b in range(3)],
                                                      axis=1), yy[:, a]) for a in range(3))
                 per[j] = ss * scale_n
-            sig = [j for j in range(1, s + 1) if per[j] - k * log_n > -MIN_DELTA_BIC]
+            top = max(per.values())
+            sig = [j for j in range(1, s + 1) if per[j] - k * log_n > -MIN_DELTA_BIC
+                   and per[j] >= SCOPE_SHARE * top]
             for j in sig:
                 out.append(Term(cp, drv, (j,), k=k, approx=per[j]))
-            if len(sig) >= 2:
+            if len(sig) >= 2 and k * len(sig) <= MAX_TERM_PARAMS:
                 out.append(Term(cp, drv, tuple(sig), k=k * len(sig),
                                 approx=sum(per[j] for j in sig)))
             if len(sig) == s and s > 1:
@@ -550,10 +581,12 @@ def search(data, resid, screen, sigma, floor, n_obs, alpha=0.01, steps=(), windo
     secs['pairs'] = time.perf_counter() - t0
     validated.sort(key=lambda c: -(c.share or 0.0))
     rest = [c for c in scored if c not in validated]
+    loc = localised(data.t, sums_all)
+    secs['localised'] = time.perf_counter() - t0
     return SearchResult(terms=validated + rest, adopted=adopt, n_generated=n_gen,
                         p_threshold=p_thr,
                         floor_ratio_after=None if adopt is None else adopt.ratios,
-                        seconds=secs)
+                        seconds=secs, localised=loc)
 
 
 def _choose(terms):
@@ -567,16 +600,210 @@ def _choose(terms):
 
 
 def _ratios_after(sums, cols, sol, sigma, floor_j, dof):
-    """{sensor: in-sample residual RMS / floor} after the step ``sol`` (field part kept)."""
+    """
+    {sensor: in-sample residual RMS / floor} after the step ``sol``.
+
+    The ratio of the sensor's sum of squares to what it holds at the floor
+    (:meth:`BlockSums.set_floor`, the profiled field's share of it removed).
+    """
     g = sums.g
     nb = g['jtj'].shape[0]
     sb, sc = sol[:nb], sol[nb:]
+    n = sums.n
+    u = {}
+    for jj, idx, c in cols:
+        du = np.tensordot(sc[idx], c, axes=(0, 0)) / sigma[jj - 1]          # (N, 3)
+        u[jj] = u.get(jj, 0.0) + du
+    # the profiled field takes up the part of the term along the field directions
+    gtu = np.zeros((2, n))
+    for gi, j in enumerate(sums.sensors):
+        if j in u:
+            for a in range(2):
+                gtu[a] += sum(g['gb'][gi][i][a] * u[j][:, i] for i in range(3))
+    (i00, i01), (i10, i11) = g['ginv']
+    mg = [i00 * gtu[0] + i01 * gtu[1], i10 * gtu[0] + i11 * gtu[1]]
     out = {}
     for gi, j in enumerate(sums.sensors):
-        r = g['r'][gi] + g['js'][gi] @ sb
-        for jj, idx, c in cols:
-            if jj == j:
-                r = r + (c / sigma[j - 1]).reshape(len(idx), -1).T @ sc[idx]
-        rms_nt = math.sqrt(dof * float(np.mean(r ** 2))) * sigma[j - 1]
-        out[j] = rms_nt / floor_j[j - 1]
+        du = u.get(j, np.zeros((n, 3)))
+        du = du - np.stack([g['gb'][gi][i][0] * mg[0] + g['gb'][gi][i][1] * mg[1]
+                            for i in range(3)], axis=1)
+        r = g['r'][gi] + g['js'][gi] @ sb + du.reshape(-1)
+        out[j] = math.sqrt(float(r @ r) / float(sums.floor_epoch[gi].sum()))
     return out
+
+
+@dataclass
+class Localized:
+    """
+    An excess over the floor confined to one interval of time (a model-free description).
+
+    Attributes
+    ----------
+    t0, t1 : float
+        The interval, s.
+    sensors : tuple of int
+        The sensors that carry it (each holding at least 10 % of the excess inside).
+    share : float
+        Share of the excess (over the floor, every sensor) inside the interval.
+    ratios_outside : dict
+        {sensor: residual RMS / floor outside the interval}.
+    vector : bool
+        Whether it is mostly across the field (vector) rather than along it (scalar).
+
+    """
+
+    t0: float
+    t1: float
+    sensors: tuple
+    share: float
+    ratios_outside: dict
+    vector: bool
+
+    @property
+    def token(self):
+        """The formula term that leaves the interval out: 'drop(t0, t1)'."""
+        return f'drop({bases.fmt(self.t0)}, {bases.fmt(self.t1)})'
+
+
+#: a disturbance is localised when its interval is at most this share of the record
+MAX_LOCALISED_FRACTION = 0.25
+
+
+def localised(t, sums):
+    """
+    Describe an excess confined in time, or None (model-free; see :class:`Localized`).
+
+    ``sums``: the :class:`BlockSums` of the base fit, its floor set.  The per-epoch excess of
+    every sensor over what it holds at the floor is summed over the sensors; the interval of
+    largest total excess (the maximum-sum subarray, Kadane's algorithm) must hold at least
+    half of the whole excess.  Widened by 0, 1, 2 or 5 % of the record on each side, the
+    base model is refitted (linearised) without it; the first interval after which every
+    sensor is within :data:`FLOOR_RATIO` of its floor is returned, if it is at most
+    :data:`MAX_LOCALISED_FRACTION` of the record.
+    """
+    t = np.asarray(t, float)
+    g = sums.g
+    n, sens = sums.n, sums.sensors
+    if n < 100:
+        return None
+    span = float(t[-1] - t[0])
+    fe = sums.floor_epoch
+    dt = float(np.median(np.diff(t)))
+    nsens = len(sens)
+
+    def refit_outside(out):
+        rows = np.repeat(out, 3)
+        jtj = sum(g['js'][gi][rows].T @ g['js'][gi][rows] for gi in range(nsens))
+        jtr = sum(g['js'][gi][rows].T @ g['r'][gi][rows] for gi in range(nsens))
+        return solve_psd(jtj, -jtr)
+    step = np.zeros(g['jtj'].shape[0])
+    for _ in range(3):
+        res = [(g['r'][gi] + g['js'][gi] @ step).reshape(n, 3) for gi in range(nsens)]
+        ex_j = np.stack([np.sum(r ** 2, axis=1) for r in res]) - fe      # (S, N) signed
+        ex = ex_j.sum(axis=0)
+        total = float(ex.sum())
+        if total <= 0:
+            return None
+        # the interval of largest excess above half the mean excess per epoch (maximum-sum
+        # subarray, Kadane): a concentration, not the whole record
+        cum = np.concatenate([[0.0], np.cumsum(ex - 0.5 * total / n)])
+        low = np.minimum.accumulate(cum)
+        i1 = int(np.argmax(cum - low))
+        i0 = int(np.argmax(cum[:i1 + 1] == low[i1]))
+        if i1 <= i0:
+            return None
+        for margin in (0.0, 0.01, 0.02, 0.05):
+            a = int(np.searchsorted(t, t[i0] - margin * span))
+            b = min(n - 1, int(np.searchsorted(t, t[i1 - 1] + margin * span, side='right')) - 1)
+            if t[b] - t[a] > MAX_LOCALISED_FRACTION * span:
+                return None
+            out = np.ones(n, bool)
+            out[a:b + 1] = False
+            st = refit_outside(out)
+            rat = {}
+            for gi, j in enumerate(sens):
+                r = (g['r'][gi] + g['js'][gi] @ st).reshape(n, 3)[out]
+                rat[j] = math.sqrt(float(np.sum(r ** 2)) / float(fe[gi, out].sum()))
+            if margin == 0.0:
+                step_next = st
+            if max(rat.values()) <= FLOOR_RATIO:
+                inside = np.clip(ex_j[:, a:b + 1].sum(axis=1), 0.0, None)
+                carry = tuple(int(sens[gi])
+                              for gi in np.flatnonzero(inside >= 0.1 * inside.sum()))
+                q = 10.0 ** math.floor(math.log10(dt)) if dt > 0 else 1.0
+                return Localized(t0=float(np.floor(t[a] / q) * q),
+                                 t1=float(np.ceil(t[b] / q) * q), sensors=carry,
+                                 share=float(np.clip(ex[a:b + 1].sum() / total, 0, 1)),
+                                 ratios_outside=rat, vector=False)
+        step = step_next
+    return None
+    # the interval of largest total excess (maximum-sum subarray of the signed excess)
+    cum = np.concatenate([[0.0], np.cumsum(ex)])
+    low = np.minimum.accumulate(cum)
+    i1 = int(np.argmax(cum - low))
+    i0 = int(np.argmax(cum[:i1 + 1] == low[i1]))
+    inside_ex = float(cum[i1] - cum[i0])
+    if i1 <= i0 or inside_ex < 0.5 * total:
+        return None
+    dt = float(np.median(np.diff(t)))
+    for margin in (0.0, 0.01, 0.02, 0.05):
+        a = int(np.searchsorted(t, t[i0] - margin * span))
+        b = min(n - 1, int(np.searchsorted(t, t[i1 - 1] + margin * span, side='right')) - 1)
+        if t[b] - t[a] > MAX_LOCALISED_FRACTION * span:
+            return None
+        out = np.ones(n, bool)
+        out[a:b + 1] = False
+        rows = np.repeat(out, 3)
+        # the base model refitted (one linear step) on the epochs outside
+        jtj = sum(g['js'][gi][rows].T @ g['js'][gi][rows] for gi in range(len(sens)))
+        jtr = sum(g['js'][gi][rows].T @ g['r'][gi][rows] for gi in range(len(sens)))
+        step = solve_psd(jtj, -jtr)
+        rat = {}
+        for gi, j in enumerate(sens):
+            r = (g['r'][gi] + g['js'][gi] @ step)[rows]
+            rat[j] = math.sqrt(float(r @ r) / float(fe[gi, out].sum()))
+        if max(rat.values()) <= FLOOR_RATIO:
+            inside = np.clip(ex_j[:, a:b + 1].sum(axis=1), 0.0, None)
+            carry = tuple(int(sens[gi]) for gi in np.flatnonzero(inside >= 0.1 * inside.sum()))
+            q = 10.0 ** math.floor(math.log10(dt)) if dt > 0 else 1.0
+            return Localized(t0=float(np.floor(t[a] / q) * q), t1=float(np.ceil(t[b] / q) * q),
+                             sensors=carry, share=float(ex[a:b + 1].sum() / total),
+                             ratios_outside=rat, vector=False)
+    return None
+    span = float(t[-1] - t[0])
+    ms = np.stack([np.sum(g['r'][gi].reshape(n, 3) ** 2, axis=1) for gi in range(len(sens))])
+    w = max(5, int(0.01 * n))
+    sm = uniform_filter1d(ms, w, axis=1, mode='nearest')
+    fe = sums.floor_epoch
+    ex_j = np.clip(sm - fe, 0.0, None)
+    ex = ex_j.sum(axis=0)
+    total = float(ex.sum())
+    if total <= 0:
+        return None
+    cum = np.concatenate([[0.0], np.cumsum(ex)])
+    for q in (0.9, 0.95, 0.99, 0.995):
+        ends = np.searchsorted(cum, cum[:-1] + q * total)
+        lengths = np.where(ends <= n, ends - np.arange(n), n + 1)
+        i0 = int(np.argmin(lengths))
+        i1 = min(n - 1, int(ends[i0]))
+        a, b = max(0, i0 - w), min(n - 1, i1 + w)
+        if t[b] - t[a] > MAX_LOCALISED_FRACTION * span:
+            return None
+        out = np.ones(n, bool)
+        out[a:b + 1] = False
+        rows = np.repeat(out, 3)
+        # the base model refitted (one linear step) on the epochs outside
+        jtj = sum(g['js'][gi][rows].T @ g['js'][gi][rows] for gi in range(len(sens)))
+        jtr = sum(g['js'][gi][rows].T @ g['r'][gi][rows] for gi in range(len(sens)))
+        step = solve_psd(jtj, -jtr)
+        rat = {}
+        for gi, j in enumerate(sens):
+            r = (g['r'][gi] + g['js'][gi] @ step)[rows]
+            rat[j] = math.sqrt(float(r @ r) / float(fe[gi, out].sum()))
+        if max(rat.values()) <= FLOOR_RATIO:
+            inside = ex_j[:, a:b + 1].sum(axis=1)
+            carry = tuple(int(sens[gi]) for gi in np.flatnonzero(inside >= 0.1 * inside.sum()))
+            return Localized(t0=float(t[a]), t1=float(t[b]), sensors=carry,
+                             share=float(ex[a:b + 1].sum() / total), ratios_outside=rat,
+                             vector=False)
+    return None
