@@ -50,8 +50,10 @@ CONTROL_RATIO = 1.10
 def _magcal(code, args, timeout=600):
     env = dict(os.environ, PYTHONPATH=code)
     t0 = time.perf_counter()
+    # cwd: not this tree (python -m puts the working directory first on sys.path)
     p = subprocess.run([sys.executable, '-m', 'magcal_ros.cli'] + args, env=env,
-                       capture_output=True, text=True, timeout=timeout)
+                       capture_output=True, text=True, timeout=timeout,
+                       cwd=os.path.dirname(args[1]))
     dt = time.perf_counter() - t0
     out = None
     if p.returncode == 0:
@@ -63,7 +65,7 @@ def _magcal(code, args, timeout=600):
 
 
 def offered_term(diag):
-    """The term a user would add: the verdict's token, else the first finding's token."""
+    """Return the term a user would add: the verdict's token, else a finding's token."""
     tok = (diag.get('verdict') or {}).get('token')
     if tok:
         return tok, 'verdict'

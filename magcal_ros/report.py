@@ -40,8 +40,8 @@ import textwrap
 import warnings
 import zlib
 
-from magcal_ros.core.discovery import (AT_FLOOR_RATIO, compact_spec, MIN_DELTA_BIC, MIN_EXPLAINED,
-                                      noise_floor_from_data)
+from magcal_ros.core.discovery import (AT_FLOOR_RATIO, compact_spec, MIN_DELTA_BIC,
+                                       MIN_EXPLAINED, noise_floor_from_data)
 from magcal_ros.core.geometry.tensor import cross_positions, tensor_cross, tensor_noise_floor
 import matplotlib
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -897,7 +897,7 @@ def plot_ladder(ladder):
 
 # -- the page -------------------------------------------------------------------------------
 
-# -- model-free findings (magcal_ros.core.discovery.findings) -----------------------------------------
+# -- model-free findings (magcal_ros.core.discovery.findings) -------------------------------
 
 def _finding_label(f):
     return f.token or f.kind
@@ -907,7 +907,8 @@ def plot_residual_spectrum(findings):
     """
     Power spectrum of each sensor's residual series over its white-noise level, log-log.
 
-    The series are :class:`~magcal_ros.core.discovery.findings.Findings`' (consensus residuals, nT);
+    The series are :class:`~magcal_ros.core.discovery.findings.Findings`' (consensus
+    residuals, nT);
     power divided by the summed white-noise variance, so white noise sits at 1 and a line
     stands out of its neighbourhood; the lines found are marked with their token.
     """

@@ -170,7 +170,7 @@ def _vec(*c):
 # -- the disturbances, each written out ---------------------------------------------------------
 
 def warmup(sensor=2, tau_frac=0.12, amp=_vec(28.0, -20.0, 14.0)):
-    """Offset settling exponentially after switch-on (tau = a fraction of the record)."""
+    """Return an offset settling exponentially after switch-on (tau: a share of the record)."""
     def f(t, temp, aux, clean):
         tau = tau_frac * (t[-1] - t[0])
         return {sensor: np.exp(-(t - t[0]) / tau)[:, None] * amp}
@@ -178,7 +178,7 @@ def warmup(sensor=2, tau_frac=0.12, amp=_vec(28.0, -20.0, 14.0)):
 
 
 def scale_follows(channel, sensor, coef, ref=None):
-    """Scale factors (per axis, 1/unit) following a channel (temperature of ``sensor``)."""
+    """Return scale factors (per axis, 1/unit) following a channel (``sensor``'s temperature)."""
     def f(t, temp, aux, clean):
         x = temp[sensor - 1] if channel == 'temperature' else aux[channel]
         x = x - (np.mean(x) if ref is None else ref)
@@ -187,7 +187,7 @@ def scale_follows(channel, sensor, coef, ref=None):
 
 
 def rotor(sensor=1, channel='aux_wheel_angle', amp=(18.0, 12.0, -9.0), harmonic=1):
-    """A magnetised rotating part: a field periodic in the wheel angle (wraps at 360 deg)."""
+    """Return a magnetised rotating part: a field periodic in the wheel angle (360 deg)."""
     def f(t, temp, aux, clean):
         th = np.deg2rad(aux[channel]) * harmonic
         a = np.asarray(amp)
@@ -197,7 +197,7 @@ def rotor(sensor=1, channel='aux_wheel_angle', amp=(18.0, 12.0, -9.0), harmonic=
 
 
 def relay_lag(sensor=4, tau=6.0, coef=_vec(9.0, -7.0, 5.0)):
-    """A relay's current reaching the sensor through eddy currents: first-order lag."""
+    """Return a relay's current reaching the sensor through eddy currents (first-order lag)."""
     def f(t, temp, aux, clean):
         y = inj.lowpass(t, aux['aux_relay'], tau)
         return {sensor: (y - y.mean())[:, None] * coef}
@@ -205,7 +205,7 @@ def relay_lag(sensor=4, tau=6.0, coef=_vec(9.0, -7.0, 5.0)):
 
 
 def vehicle(t_frac=0.45, width_s=40.0, amp=45.0):
-    """A vehicle passing: the field magnitude changes by a smooth bump of ~40 s."""
+    """Return a vehicle passing: the field magnitude changes by a smooth bump of ~40 s."""
     def g(t):
         tc = t[0] + t_frac * (t[-1] - t[0])
         return amp * np.exp(-0.5 * ((t - tc) / (width_s / 4.0)) ** 2)
@@ -213,14 +213,14 @@ def vehicle(t_frac=0.45, width_s=40.0, amp=45.0):
 
 
 def diurnal(amp=120.0, period_s=3 * 3600.0, phase=0.8):
-    """The field's diurnal variation (all sensors alike), a slow curve over the record."""
+    """Return the field's diurnal variation (all sensors alike), a slow curve."""
     def g(t):
         return amp * np.sin(2 * np.pi * t / period_s + phase) - amp * np.sin(phase)
     return g
 
 
 def arm(sensors=(2, 4), channel='aux_pump_current', coef=_vec(10.0, 6.0, -8.0)):
-    """A cable along one arm: the sensors of that arm see a current's field."""
+    """Return a cable along one arm: the sensors of that arm see a current's field."""
     def f(t, temp, aux, clean):
         x = aux[channel] - aux[channel].mean()
         return {j: x[:, None] * coef * (1.0 + 0.2 * k) for k, j in enumerate(sensors)}
@@ -228,8 +228,11 @@ def arm(sensors=(2, 4), channel='aux_pump_current', coef=_vec(10.0, 6.0, -8.0)):
 
 
 def product(sensor=1, a='aux_motor_current', b='temperature', coef=_vec(1.2, -0.9, 0.7)):
-    """A coupling following the product of two centred channels (a current's field whose
-    gain drifts with temperature: nT per A degC)."""
+    """
+    Return a coupling following the product of two centred channels.
+
+    A current's field whose gain drifts with temperature: nT per A degC.
+    """
     def f(t, temp, aux, clean):
         xa = aux[a] - aux[a].mean()
         xb = temp[sensor - 1] if b == 'temperature' else aux[b]
@@ -239,8 +242,11 @@ def product(sensor=1, a='aux_motor_current', b='temperature', coef=_vec(1.2, -0.
 
 
 def induced(sensor=3, channel='aux_servo_pos', gain=2.0e-5):
-    """A soft part moved by a servo: an induced field proportional to the field, whose
-    3 x 3 coupling matrix (per degree) follows the servo's position."""
+    """
+    Return a soft part moved by a servo: an induced field proportional to the field.
+
+    Its 3 x 3 coupling matrix (per degree) follows the servo's position.
+    """
     m = gain * np.array([[0.6, 0.3, -0.2], [-0.4, 0.8, 0.1], [0.2, -0.3, -0.5]])
 
     def f(t, temp, aux, clean):
@@ -250,7 +256,7 @@ def induced(sensor=3, channel='aux_servo_pos', gain=2.0e-5):
 
 
 def gain_switch(sensor=2, t_frac=0.55, dk=_vec(4e-4, -3e-4, 5e-4)):
-    """A range (gain) switch: the scale factors step at one time."""
+    """Return a range (gain) switch: the scale factors step at one time."""
     def f(t, temp, aux, clean):
         t0 = t[0] + t_frac * (t[-1] - t[0])
         return {sensor: (t >= t0)[:, None] * dk * clean[sensor - 1]}
@@ -258,7 +264,7 @@ def gain_switch(sensor=2, t_frac=0.55, dk=_vec(4e-4, -3e-4, 5e-4)):
 
 
 def skew(sensor=4, delay_s=6e-4):
-    """One sensor sampled late by ``delay_s``: it reads B(t - delay)."""
+    """Return one sensor sampled late by ``delay_s``: it reads B(t - delay)."""
     def f(t, temp, aux, clean):
         # B(t - d) = B(t) - d dB/dt to first order (d dB/dt ~ 12 nT, the next term ~1e-5 nT)
         return {sensor: -delay_s * np.gradient(clean[sensor - 1], t, axis=0)}
@@ -266,7 +272,7 @@ def skew(sensor=4, delay_s=6e-4):
 
 
 def trajectory_line(sensor=2, amp=_vec(12.0, -10.0, 8.0)):
-    """A source periodic at a frequency of the trajectory (the tumble's axis wander)."""
+    """Return a source periodic at a frequency of the trajectory (the axis wander)."""
     def f(t, temp, aux, clean):
         ph = 0.07 * t + 1.1           # the same phase as the axis wander in injection
         return {sensor: np.stack([amp[0] * np.cos(ph), amp[1] * np.sin(ph),
@@ -275,7 +281,7 @@ def trajectory_line(sensor=2, amp=_vec(12.0, -10.0, 8.0)):
 
 
 def localized(sensor=3, t_frac=(0.30, 0.37), amp=35.0, seed=5):
-    """Something nothing simple describes, over a few tens of seconds on one sensor."""
+    """Return something nothing simple describes, over a few tens of seconds on one sensor."""
     def f(t, temp, aux, clean):
         t0, t1 = (t[0] + q * (t[-1] - t[0]) for q in t_frac)
         inside = (t >= t0) & (t <= t1)
@@ -289,7 +295,7 @@ def localized(sensor=3, t_frac=(0.30, 0.37), amp=35.0, seed=5):
 
 
 def temp_drifting_coef(sensor=1, coef=_vec(0.8, -0.6, 0.5)):
-    """A temperature coefficient (nT/degC) that changes linearly over the record."""
+    """Return a temperature coefficient (nT/degC) that changes linearly over the record."""
     def f(t, temp, aux, clean):
         x = temp[sensor - 1] - temp[sensor - 1].mean()
         u = (t - t.mean()) / (t[-1] - t[0]) * 2.0
@@ -298,7 +304,7 @@ def temp_drifting_coef(sensor=1, coef=_vec(0.8, -0.6, 0.5)):
 
 
 def common_offset(amp=_vec(14.0, -10.0, 9.0), period_frac=0.9):
-    """The electronics of every sensor warming alike: one slow offset in each sensor's axes."""
+    """Return every sensor's electronics warming alike: one slow offset in its axes."""
     def f(t, temp, aux, clean):
         u = (t - t[0]) / (t[-1] - t[0])
         s = np.tanh((u - 0.35) / 0.12) + 0.3 * np.sin(2 * np.pi * u / period_frac)
@@ -307,7 +313,7 @@ def common_offset(amp=_vec(14.0, -10.0, 9.0), period_frac=0.9):
 
 
 def supply_offset_sq(sensor=3, coef=_vec(25.0, -18.0, 12.0)):
-    """A regulator whose stray field goes with the square of the supply's deviation."""
+    """Return a regulator's stray field, with the square of the supply's deviation."""
     def f(t, temp, aux, clean):
         x = aux['aux_supply_v'] - 12.0
         x2 = x ** 2 - np.mean(x ** 2)
@@ -347,7 +353,7 @@ CASES = [
          time=(0.30, 0.37), inject=localized()),
     Case('temp_coef_drift', 'a temperature coefficient that drifts over the record, sensor 1',
          (1,), 'temperature', inject=temp_drifting_coef()),
-    Case('common_warmup', 'every sensor\'s offset drifting alike (common electronics)', ALL,
+    Case('common_warmup', "every sensor's offset drifting alike (common electronics)", ALL,
          't', inject=common_offset()),
     Case('supply_squared', 'a stray field with the square of the supply deviation, sensor 3',
          (3,), 'aux_supply_v', inject=supply_offset_sq()),
@@ -359,7 +365,7 @@ BY_NAME = {c.name: c for c in CASES}
 # -- attribution of a formula term --------------------------------------------------------------
 
 def term_sensors(term, n_sensors=4):
-    """The sensors a formula term acts on (tuple), from its scope."""
+    """Return the sensors a formula term acts on (tuple), from its scope."""
     if term is None:
         return ()
     m = re.search(r'@\s*\{([^}]*)\}\s*$', term)

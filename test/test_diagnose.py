@@ -34,8 +34,8 @@ from magcal_ros.core import effects as fx
 from magcal_ros.core.data.noise import estimate_noise, noise_floor
 from magcal_ros.core.data.simulate import simulate
 from magcal_ros.core.discovery import (AT_FLOOR_RATIO, candidate_tokens, compact_spec,
-                                      cross_validate, diagnose, EVIDENCE_TIE, ladder,
-                                      likelihood_ratio, noise_floor_from_data, time_blocks)
+                                       cross_validate, diagnose, EVIDENCE_TIE, ladder,
+                                       likelihood_ratio, noise_floor_from_data, time_blocks)
 from magcal_ros.core.model import fit, Model
 import numpy as np
 import pytest

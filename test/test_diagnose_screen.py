@@ -27,8 +27,8 @@ from types import SimpleNamespace
 
 import injection as inj
 from magcal_ros.core.discovery import (diagnose, evaluate_residuals, EVIDENCE_TIE,
-                                      extend_model, MIN_DELTA_BIC, n_observations,
-                                      SCORE_RULE_OUT_BIC, Screen)
+                                       extend_model, MIN_DELTA_BIC, n_observations,
+                                       SCORE_RULE_OUT_BIC, Screen)
 import magcal_ros.core.discovery.run as run
 from magcal_ros.core.model import fit
 import numpy as np

@@ -34,8 +34,9 @@ import math
 from magcal_ros.core.effects import first_order_lag
 import numpy as np
 
-#: numbers of basis functions of the smooth in time the search tries (capped by the record)
-SMOOTH_K = (4, 8, 16, 32, 64)
+#: numbers of basis functions of the smooth in time the search tries (the grammar's s()
+#: takes 3..20; capped by the record)
+SMOOTH_K = (4, 8, 12, 20)
 #: fewest samples per basis function of a smooth in time
 MIN_SAMPLES_PER_K = 25
 #: time constants of a lag, as fractions of the record (log-spaced grid), plus 1-4 samples
@@ -91,17 +92,16 @@ def centred(x):
 
 def spline_basis(t, k):
     """
-    (N, k - 1) cubic regression-spline basis of ``k`` functions over t, centred.
+    (N, k) cubic regression-spline basis ``s(t, k=K)`` over t, centred.
 
-    B-splines (scipy.interpolate.BSpline.design_matrix) on k - 3 equal intervals of the
-    record; they sum to one, so one is dropped after centring (the constant is the model's
-    offset).
+    As the grammar's ``s`` (magcal_ros.core.effects.drivers.Spline): k + 1 cubic B-splines
+    (scipy.interpolate.BSpline.design_matrix) on equally spaced knots over the record, the
+    first dropped (they sum to one: the constant is the model's offset).
     """
     from scipy.interpolate import BSpline
     t = np.asarray(t, float)
     lo, hi = float(t[0]), float(t[-1])
-    n_int = max(1, k - 3)
-    inner = np.linspace(lo, hi, n_int + 1)
+    inner = np.linspace(lo, hi, k + 1 - 3 + 1)
     knots = np.concatenate([[lo] * 3, inner, [hi] * 3])
     x = BSpline.design_matrix(np.clip(t, lo, hi), knots, 3).toarray()
     return centred(x[:, 1:])
@@ -175,8 +175,11 @@ def channels_of(data):
 
 def time_drivers(t, steps=(), windows=(), lines=()):
     """
-    Drivers in time: smooths with 3 to ~N/25 basis functions, polynomials of degree 1-3,
-    the steps and windows at the change points given (s) and sinusoids at the lines (Hz).
+    Return the drivers in time.
+
+    Smooths with 4 to 20 basis functions (at least 25 samples each), polynomials of degree
+    1-3, the steps and windows at the change points given (s) and sinusoids at the lines
+    (Hz).
     """
     t = np.asarray(t, float)
     n = len(t)
@@ -254,7 +257,7 @@ def product_drivers(data, names):
 
 
 def rate_driver(data):
-    """The field rate, dB/dt of the raw reading per axis (a timing skew): per-axis."""
+    """Return the field rate driver, dB/dt of the raw reading per axis (a timing skew)."""
     from magcal_ros.core.effects import raw_rate
     return Driver('rate', 'rate', 'rate',
                   lambda j: centred(raw_rate(data.raw[j - 1], data.t)), per_axis=True)

@@ -26,24 +26,26 @@ import time
 from magcal_ros.core.data.magnitude import reference_magnitude
 from magcal_ros.core.data.noise import data_noise_floor, NoiseFloor
 from magcal_ros.core.discovery.candidates import (added_params, Candidate, candidate_tokens,
-                                                 extend_model, propose_from_residual, reads_stderr,
-                                                 reduces_to_simpler, residual_features,
-                                                 sensors_of, split_testable, token_label,
-                                                 tokens_from_findings)
+                                                  extend_model, propose_from_residual,
+                                                  reads_stderr, reduces_to_simpler,
+                                                  residual_features,
+                                                  sensors_of, split_testable, token_label,
+                                                  tokens_from_findings)
 from magcal_ros.core.discovery.constants import (ALPHA, AT_FLOOR_RATIO, BLOCKS_PER_FOLD,
-                                                DEFAULT_FOLDS, DEFAULT_MAX_REFIT,
-                                                DEFAULT_MAX_SAMPLES, EVIDENCE_TIE, MIN_BLOCK,
-                                                MIN_DELTA_BIC, MIN_EXPLAINED, REFIT_CHI2_TOL,
-                                                REFIT_MAX_NFEV, SCORE_RULE_OUT_BIC,
-                                                SEARCH_CHANGE_POINTS, SEARCH_LISTED)
+                                                 DEFAULT_FOLDS, DEFAULT_MAX_REFIT,
+                                                 DEFAULT_MAX_SAMPLES, EVIDENCE_TIE, MIN_BLOCK,
+                                                 MIN_DELTA_BIC, MIN_EXPLAINED, REFIT_CHI2_TOL,
+                                                 REFIT_MAX_NFEV, SCORE_RULE_OUT_BIC,
+                                                 SEARCH_CHANGE_POINTS, SEARCH_LISTED)
 from magcal_ros.core.discovery.findings import find as find_findings
 from magcal_ros.core.discovery.measures import (dof_factor, evaluate_residuals, Evaluation,
-                                               explained_share, likelihood_ratio, n_observations,
-                                               rms, scalar_rms_of, soft_l1_lr_loss, vector_rms_of)
+                                                explained_share, likelihood_ratio, n_observations,
+                                                rms, scalar_rms_of, soft_l1_lr_loss, vector_rms_of)
 from magcal_ros.core.discovery.results import compact_spec, Diagnosis
 from magcal_ros.core.discovery.screen import lag_grid, Screen
-from magcal_ros.core.discovery.search import (EXPLAINS_SHARE, FLOOR_RATIO, search as run_search,
-                                              SEARCH_MAX_EPOCHS)
+from magcal_ros.core.discovery.search import (EXPLAINS_SHARE, FLOOR_RATIO,
+                                              SCOPE_SHARE as SEARCH_SCOPE_SHARE,
+                                              search as run_search, SEARCH_MAX_EPOCHS)
 from magcal_ros.core.discovery.validation import cross_validate
 from magcal_ros.core.model import Model
 from magcal_ros.core.model.fitting import fit
@@ -253,6 +255,8 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
             seconds['search'] = time.perf_counter() - t0
             verdict, reason, ranked = _merge_search(b, trials, ranked, verdict, reason,
                                                     found_terms, at_floor)
+            if found is not None and not at_floor:
+                found = _describe(b, found, found_terms, verdict, scalar_rms, vector_rms)
         seconds['total'] = time.perf_counter() - t_start
         return Diagnosis(
             model=tuple(compact_spec(b.model)), n_samples=data.n_samples, n_used=n,
@@ -301,6 +305,11 @@ def _trial_ratio(b, trial):
     return max(sc + vc)
 
 
+#: a search term that leaves this much less (ratio to the floor) than the catalog's verdict
+#: takes its place even when both reach the floor
+CLEARLY_LESS = 0.03
+
+
 def _merge_search(b, trials, ranked, verdict, reason, res, at_floor):
     """
     Put the search's terms among the candidates and choose the verdict between the two.
@@ -309,7 +318,8 @@ def _merge_search(b, trials, ranked, verdict, reason, res, at_floor):
     (:data:`.search.FLOOR_RATIO`), unless the search's term does too on fewer sensors (the
     catalog offers an effect on one sensor or on all; the search names the sensors that
     carry it).  Otherwise the search's adopted term is the verdict when it leaves less
-    (largest ratio to the floor over the sensors).
+    (largest ratio to the floor over the sensors), or when both reach the floor and the
+    search's leaves clearly less (:data:`CLEARLY_LESS`).
     """
     s = b.data.n_sensors
     extra = [_term_candidate(b, tm, res) for tm in res.terms[:SEARCH_LISTED]]
@@ -323,14 +333,16 @@ def _merge_search(b, trials, ranked, verdict, reason, res, at_floor):
     c_expl = cat is not None and c_ratio is not None and c_ratio <= FLOOR_RATIO and (
         cat.share is None or cat.share >= EXPLAINS_SHARE)
     a_expl = a_ratio is not None and a_ratio <= FLOOR_RATIO and adopted.share >= EXPLAINS_SHARE
-    best_ratio = min([r for r in (c_ratio, a_ratio) if r is not None], default=None)
     if not (c_expl or a_expl):
         # nothing explains it: an excess confined in time is left out instead
         loc = res.localised
         if loc is not None:
             cand = _localised_candidate(b, loc)
-            why = (f'no term brings every sensor to its floor (best {best_ratio:.2f} x)'
-                   if best_ratio is not None else 'no term explains the residual')
+            why = ('no term brings every sensor to its floor and removes '
+                   f'{EXPLAINS_SHARE:.0%} of the excess held out')
+            if adopted is not None:
+                why += (f' (the best term of the search, {adopted.text_for(s)}, leaves '
+                        f'{a_ratio:.2f} x the floor in-sample, {adopted.share:.0%} held out)')
             why += (f'; {loc.share:.0%} of the excess over the floor lies within '
                     f'{loc.t0:.6g}-{loc.t1:.6g} s on sensor(s) '
                     f'{", ".join(str(j) for j in loc.sensors)}, nothing simple describes '
@@ -342,7 +354,8 @@ def _merge_search(b, trials, ranked, verdict, reason, res, at_floor):
     a_text = adopted.text_for(s)
     use_search = (verdict is None or c_ratio is None
                   or (not c_expl and a_ratio < c_ratio)
-                  or (a_expl and set(adopted.sensors) < set(sensors_of(cat.sensor, s))))
+                  or (a_expl and set(adopted.sensors) < set(sensors_of(cat.sensor, s)))
+                  or (a_expl and a_ratio < c_ratio - CLEARLY_LESS))
     if not use_search:
         return verdict, reason, ranked + extra_c
     top = next(c for c in extra if c.token == a_text)
@@ -353,12 +366,73 @@ def _merge_search(b, trials, ranked, verdict, reason, res, at_floor):
            f'(linearised refit on interleaved time blocks), largest residual / floor after '
            f'{a_ratio:.2f}')
     if verdict:
-        why += f'; the catalog\'s best, {verdict}, leaves {c_ratio:.2f} x the floor'
+        why += f'; the best of the catalog, {verdict}, leaves {c_ratio:.2f} x the floor'
     return a_text, why, [top] + rest
 
 
+def _describe(b, found, res, verdict, scalar_rms, vector_rms):
+    """
+    Add the model-free descriptions of the search to the findings (each with its token).
+
+    'localised': an excess confined in time (:func:`.search.localised`), token
+    ``drop(t0, t1)``.  'unexplained': when there is no verdict, which sensors carry the
+    excess (one, an arm of the cross, every sensor alike, or a set), whether it shows in the
+    scalar or only in the vector residual, and what the search's best term follows (time, a
+    channel, the field rate), with that term as the token to try.
+    """
+    from dataclasses import replace
+    from magcal_ros.core.discovery.findings import Finding
+    s = b.data.n_sensors
+    fl = b.floor
+    new = []
+    loc = res.localised
+    if loc is not None:
+        sens = loc.sensors
+        new.append(Finding(
+            kind='localised', sensor=sens[0] if len(sens) == 1 else None, channel='t',
+            value=float(loc.t1 - loc.t0), unit='s', explained_fraction=float(loc.share),
+            text=(f'{_who(sens, s)}: an excess over the floor confined to '
+                  f'{loc.t0:.6g}-{loc.t1:.6g} s ({loc.share:.0%} of it); every sensor within '
+                  f'{max(loc.ratios_outside.values()):.2f} x its floor outside: add '
+                  f'{loc.token} to leave it out'), token=loc.token))
+    if verdict is None:
+        ex = {j: max(v ** 2 - fl.per_sensor_nt[j - 1] ** 2, 0.0) for j, v in scalar_rms.items()}
+        vex = {j: max(v ** 2 - fl.vector_floor_nt(j) ** 2, 0.0) for j, v in vector_rms.items()}
+        both = {j: ex[j] + vex.get(j, 0.0) for j in ex}
+        top = max(both.values()) if both else 0.0
+        if top > 0:
+            sens = tuple(j for j in sorted(both) if both[j] >= SEARCH_SCOPE_SHARE * top)
+            scalar = sum(ex[j] for j in sens) >= 0.5 * sum(vex.get(j, 0.0) for j in sens)
+            best = next((t for t in res.terms if t.delta_chi2 is not None), None)
+            follows = ('nothing the search tried' if best is None else
+                       {'time': 'time', 'rate': 'the field rate'}.get(
+                           best.driver.kind, f'the channel {best.driver.channel}'))
+            token = None if best is None else best.text_for(s)
+            new.append(Finding(
+                kind='unexplained', sensor=sens[0] if len(sens) == 1 else None,
+                channel=None if best is None else best.driver.channel, value=None, unit='',
+                explained_fraction=float(best.share or 0.0) if best is not None else 0.0,
+                text=(f'{_who(sens, s)}: a {"scalar" if scalar else "vector"} excess over '
+                      f'the floor that no term explains; it follows {follows} most'
+                      + ('' if token is None else f' (try {token})')), token=token))
+    if not new:
+        return found
+    return replace(found, items=tuple(new) + tuple(found.items))
+
+
+def _who(sens, s):
+    """Words for a set of sensors: one, an arm of the cross, every sensor, a set."""
+    if len(sens) == 1:
+        return f'sensor {sens[0]}'
+    if len(sens) == s:
+        return 'every sensor'
+    if s == 4 and set(sens) in ({1, 3}, {2, 4}):
+        return f'the arm of sensors {sens[0]} and {sens[1]}'
+    return 'sensors ' + ', '.join(str(j) for j in sens)
+
+
 def _localised_candidate(b, loc):
-    """A :class:`Candidate` for leaving out an excess confined in time (``drop``)."""
+    """Return a :class:`Candidate` leaving out an excess confined in time (``drop``)."""
     s = b.data.n_sensors
     sens = list(loc.sensors)
     return Candidate(
@@ -372,7 +446,7 @@ def _localised_candidate(b, loc):
 
 
 def _term_candidate(b, tm, res):
-    """A :class:`Candidate` of a search term (its evidence from the linearised problem)."""
+    """Return a :class:`Candidate` of a search term (evidence of the linearised problem)."""
     s = b.data.n_sensors
     text = tm.text_for(s)
     sens = list(tm.sensors)

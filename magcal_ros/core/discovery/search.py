@@ -123,7 +123,7 @@ class Term:
     parts: tuple = field(default_factory=tuple)
 
     def text_for(self, n_sensors):
-        """The formula term, e.g. 'offset(s(t, k=8))@2'."""
+        """Return the formula term, e.g. 'offset(s(t, k=8))@2'."""
         if self.parts:
             return ' + '.join(p.text_for(n_sensors) for p in self.parts)
         body = f'{self.coupling}({self.driver.text})'
@@ -216,7 +216,8 @@ class BlockSums:
     r'Pr + 2 s'g + s'M s on the held-out blocks.
     """
 
-    def __init__(self, screen, sigma, n, folds=SEARCH_FOLDS, blocks_per_fold=SEARCH_BLOCKS_PER_FOLD):
+    def __init__(self, screen, sigma, n, folds=SEARCH_FOLDS,
+                 blocks_per_fold=SEARCH_BLOCKS_PER_FOLD):
         self.g = screen.groups[0]
         self.sensors = list(self.g['sensors'])
         self.sigma = np.asarray(sigma, float)
@@ -244,7 +245,7 @@ class BlockSums:
 
     def set_floor(self, floor_nt):
         """
-        Expected r'Pr of each block at the noise floor (S,) nT: tr(P W) per epoch.
+        Set the expected r'Pr of each block at the noise floor (S,) nT: tr(P W) per epoch.
 
         W = diag(floor_j^2 / sigma_j^2) (the residual is scaled by the fit's sigma_j);
         tr(P W) = tr(W) - tr((G^T G)^-1 G^T W G): the profiled field takes its two directions
@@ -569,9 +570,8 @@ def search(data, resid, screen, sigma, floor, n_obs, alpha=0.01, steps=(), windo
             if a.driver.channel == b.driver.channel and a.coupling == b.coupling and (
                     set(a.sensors) & set(b.sensors)):
                 continue            # one driver's bases nest: not two effects
-            pairs.append(evaluate(Term('pair', a.driver, tuple(sorted(set(a.sensors)
-                                                                       | set(b.sensors))),
-                                       parts=(a, b)), True))
+            both = tuple(sorted(set(a.sensors) | set(b.sensors)))
+            pairs.append(evaluate(Term('pair', a.driver, both, parts=(a, b)), True))
         pairs = [c for c in pairs if c.p_value < p_thr and c.delta_bic < MIN_DELTA_BIC]
         best_pair = _choose(pairs)
         if best_pair is not None and (adopt is None or best_pair.share > adopt.share
@@ -590,7 +590,7 @@ def search(data, resid, screen, sigma, floor, n_obs, alpha=0.01, steps=(), windo
 
 
 def _choose(terms):
-    """The adoptable term with the largest held-out share; ties to fewer parameters."""
+    """Return the adoptable term with the largest held-out share; ties to fewer parameters."""
     ok = [c for c in terms if c.share is not None and c.share >= MIN_EXPLAINED]
     if not ok:
         return None
@@ -736,74 +736,4 @@ def localised(t, sums):
                                  share=float(np.clip(ex[a:b + 1].sum() / total, 0, 1)),
                                  ratios_outside=rat, vector=False)
         step = step_next
-    return None
-    # the interval of largest total excess (maximum-sum subarray of the signed excess)
-    cum = np.concatenate([[0.0], np.cumsum(ex)])
-    low = np.minimum.accumulate(cum)
-    i1 = int(np.argmax(cum - low))
-    i0 = int(np.argmax(cum[:i1 + 1] == low[i1]))
-    inside_ex = float(cum[i1] - cum[i0])
-    if i1 <= i0 or inside_ex < 0.5 * total:
-        return None
-    dt = float(np.median(np.diff(t)))
-    for margin in (0.0, 0.01, 0.02, 0.05):
-        a = int(np.searchsorted(t, t[i0] - margin * span))
-        b = min(n - 1, int(np.searchsorted(t, t[i1 - 1] + margin * span, side='right')) - 1)
-        if t[b] - t[a] > MAX_LOCALISED_FRACTION * span:
-            return None
-        out = np.ones(n, bool)
-        out[a:b + 1] = False
-        rows = np.repeat(out, 3)
-        # the base model refitted (one linear step) on the epochs outside
-        jtj = sum(g['js'][gi][rows].T @ g['js'][gi][rows] for gi in range(len(sens)))
-        jtr = sum(g['js'][gi][rows].T @ g['r'][gi][rows] for gi in range(len(sens)))
-        step = solve_psd(jtj, -jtr)
-        rat = {}
-        for gi, j in enumerate(sens):
-            r = (g['r'][gi] + g['js'][gi] @ step)[rows]
-            rat[j] = math.sqrt(float(r @ r) / float(fe[gi, out].sum()))
-        if max(rat.values()) <= FLOOR_RATIO:
-            inside = np.clip(ex_j[:, a:b + 1].sum(axis=1), 0.0, None)
-            carry = tuple(int(sens[gi]) for gi in np.flatnonzero(inside >= 0.1 * inside.sum()))
-            q = 10.0 ** math.floor(math.log10(dt)) if dt > 0 else 1.0
-            return Localized(t0=float(np.floor(t[a] / q) * q), t1=float(np.ceil(t[b] / q) * q),
-                             sensors=carry, share=float(ex[a:b + 1].sum() / total),
-                             ratios_outside=rat, vector=False)
-    return None
-    span = float(t[-1] - t[0])
-    ms = np.stack([np.sum(g['r'][gi].reshape(n, 3) ** 2, axis=1) for gi in range(len(sens))])
-    w = max(5, int(0.01 * n))
-    sm = uniform_filter1d(ms, w, axis=1, mode='nearest')
-    fe = sums.floor_epoch
-    ex_j = np.clip(sm - fe, 0.0, None)
-    ex = ex_j.sum(axis=0)
-    total = float(ex.sum())
-    if total <= 0:
-        return None
-    cum = np.concatenate([[0.0], np.cumsum(ex)])
-    for q in (0.9, 0.95, 0.99, 0.995):
-        ends = np.searchsorted(cum, cum[:-1] + q * total)
-        lengths = np.where(ends <= n, ends - np.arange(n), n + 1)
-        i0 = int(np.argmin(lengths))
-        i1 = min(n - 1, int(ends[i0]))
-        a, b = max(0, i0 - w), min(n - 1, i1 + w)
-        if t[b] - t[a] > MAX_LOCALISED_FRACTION * span:
-            return None
-        out = np.ones(n, bool)
-        out[a:b + 1] = False
-        rows = np.repeat(out, 3)
-        # the base model refitted (one linear step) on the epochs outside
-        jtj = sum(g['js'][gi][rows].T @ g['js'][gi][rows] for gi in range(len(sens)))
-        jtr = sum(g['js'][gi][rows].T @ g['r'][gi][rows] for gi in range(len(sens)))
-        step = solve_psd(jtj, -jtr)
-        rat = {}
-        for gi, j in enumerate(sens):
-            r = (g['r'][gi] + g['js'][gi] @ step)[rows]
-            rat[j] = math.sqrt(float(r @ r) / float(fe[gi, out].sum()))
-        if max(rat.values()) <= FLOOR_RATIO:
-            inside = ex_j[:, a:b + 1].sum(axis=1)
-            carry = tuple(int(sens[gi]) for gi in np.flatnonzero(inside >= 0.1 * inside.sum()))
-            return Localized(t0=float(t[a]), t1=float(t[b]), sensors=carry,
-                             share=float(ex[a:b + 1].sum() / total), ratios_outside=rat,
-                             vector=False)
     return None
