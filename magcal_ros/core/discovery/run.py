@@ -305,11 +305,6 @@ def _trial_ratio(b, trial):
     return max(sc + vc)
 
 
-#: a search term that leaves this much less (ratio to the floor) than the catalog's verdict
-#: takes its place even when both reach the floor
-CLEARLY_LESS = 0.03
-
-
 def _merge_search(b, trials, ranked, verdict, reason, res, at_floor):
     """
     Put the search's terms among the candidates and choose the verdict between the two.
@@ -318,14 +313,14 @@ def _merge_search(b, trials, ranked, verdict, reason, res, at_floor):
     (:data:`.search.FLOOR_RATIO`), unless the search's term does too on fewer sensors (the
     catalog offers an effect on one sensor or on all; the search names the sensors that
     carry it).  Otherwise the search's adopted term is the verdict when it leaves less
-    (largest ratio to the floor over the sensors), or when both reach the floor and the
-    search's leaves clearly less (:data:`CLEARLY_LESS`).
+    (largest ratio to the floor over the sensors).  The search's terms are listed among
+    the candidates (after the verdict and the catalog's, method 'score': their evidence is
+    the linearised problem's) only when the verdict is the search's; the catalog's ranking
+    is kept as it is otherwise.
     """
     s = b.data.n_sensors
-    extra = [_term_candidate(b, tm, res) for tm in res.terms[:SEARCH_LISTED]]
-    extra_c = [c for c in extra if c.token not in {r.token for r in ranked}]
     if at_floor:
-        return verdict, reason, ranked + extra_c
+        return verdict, reason, ranked
     adopted = res.adopted
     cat = next((c for c in trials if c.token == verdict), None) if verdict else None
     c_ratio = _trial_ratio(b, cat)
@@ -348,18 +343,17 @@ def _merge_search(b, trials, ranked, verdict, reason, res, at_floor):
                     f'{", ".join(str(j) for j in loc.sensors)}, nothing simple describes '
                     f'it: leave it out (every sensor within '
                     f'{max(loc.ratios_outside.values()):.2f} x its floor outside)')
-            return loc.token, why, [cand] + ranked + extra_c
+            return loc.token, why, [cand] + ranked + _listed(b, res, ranked, None)
     if adopted is None:
-        return verdict, reason, ranked + extra_c
+        return verdict, reason, ranked
     a_text = adopted.text_for(s)
     use_search = (verdict is None or c_ratio is None
                   or (not c_expl and a_ratio < c_ratio)
-                  or (a_expl and set(adopted.sensors) < set(sensors_of(cat.sensor, s)))
-                  or (a_expl and a_ratio < c_ratio - CLEARLY_LESS))
+                  or (a_expl and set(adopted.sensors) < set(sensors_of(cat.sensor, s))))
     if not use_search:
-        return verdict, reason, ranked + extra_c
-    top = next(c for c in extra if c.token == a_text)
-    rest = [c for c in ranked + extra_c if c.token != a_text]
+        return verdict, reason, ranked
+    top = _term_candidate(b, adopted, res, verdict=True)
+    rest = [c for c in ranked if c.token != a_text] + _listed(b, res, ranked, a_text)
     why = (f'formula search over {res.n_generated} candidate terms: delta BIC '
            f'{adopted.delta_bic:.0f}, p = {adopted.p_value:.2g}, removes '
            f'{adopted.share:.0%} of the held-out excess over the floor '
@@ -445,7 +439,15 @@ def _localised_candidate(b, loc):
         note=('vector' if loc.vector else 'scalar') + ' excess confined in time')
 
 
-def _term_candidate(b, tm, res):
+def _listed(b, res, ranked, verdict):
+    """Candidates of the search's best terms not already listed (nor the verdict)."""
+    s = b.data.n_sensors
+    have = {c.token for c in ranked} | {verdict}
+    return [_term_candidate(b, tm, res) for tm in res.terms[:SEARCH_LISTED]
+            if tm.text_for(s) not in have]
+
+
+def _term_candidate(b, tm, res, verdict=False):
     """Return a :class:`Candidate` of a search term (evidence of the linearised problem)."""
     s = b.data.n_sensors
     text = tm.text_for(s)
@@ -457,15 +459,13 @@ def _term_candidate(b, tm, res):
     if tm.ratios:
         after = float(np.sqrt(np.mean([(tm.ratios[j] * b.floor.per_sensor_nt[j - 1]) ** 2
                                        for j in sens])))
-    sig = bool(tm is res.adopted or (tm.share is not None and tm.share >= MIN_EXPLAINED
-                                     and p_val < res.p_threshold and d_bic < MIN_DELTA_BIC))
     return Candidate(
         token=text, effect=text.split('@')[0], sensor=sensor, n_params=tm.k,
         rms_before_nt=scalar_rms_of(b.ev0.scalar, sens), rms_after_nt=after,
         vector_rms_before_nt=vector_rms_of(b.ev0.vector, sens, s), vector_rms_after_nt=None,
         delta_chi2=d_chi2, delta_bic=d_bic, p_value=p_val, log10_p_value=logp,
-        method='search' if tm.delta_chi2 is not None else 'search pre-screen',
-        cv_rms_before_nt=tm.cv_before, cv_rms_after_nt=tm.cv_after, significant=sig,
+        method='search' if verdict else 'score',
+        cv_rms_before_nt=tm.cv_before, cv_rms_after_nt=tm.cv_after, significant=verdict,
         explained_fraction=tm.share,
         decided_by=None if tm.share is None else 'held-out (linearised, search)',
         note=None)
