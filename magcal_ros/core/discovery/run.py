@@ -249,7 +249,10 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
         ratio = max([v / floor.per_sensor_nt[j - 1] for j, v in scalar_rms.items()]
                     + [v / floor.vector_floor_nt(j) for j, v in vector_rms.items()])
         verdict, reason = _verdict(b, ranked, ratio, at_floor, held_out, p_thr)
-        if candidates is None and propose and not b.robust and not constrained:
+        # the formula search: only when something is missing (at the floor it has nothing
+        # to find, and a control costs what it did)
+        if (candidates is None and propose and not b.robust and not constrained
+                and not at_floor):
             t0 = time.perf_counter()
             found_terms = _search(b, screen, alpha)
             seconds['search'] = time.perf_counter() - t0
@@ -350,7 +353,8 @@ def _merge_search(b, trials, ranked, verdict, reason, res, at_floor):
     use_search = (verdict is None or c_ratio is None
                   or (not c_expl and a_ratio < c_ratio)
                   or (a_expl and set(adopted.sensors) < set(sensors_of(cat.sensor, s))))
-    if not use_search:
+    if not use_search or (verdict and _same_term(a_text, verdict)):
+        # the catalog's token when the search found the composition it stands for
         return verdict, reason, ranked
     top = _term_candidate(b, adopted, res, verdict=True)
     rest = [c for c in ranked if c.token != a_text] + _listed(b, res, ranked, a_text)
@@ -437,6 +441,20 @@ def _localised_candidate(b, loc):
         log10_p_value=float('nan'), method='localised', significant=True,
         explained_fraction=loc.share, decided_by='model-free (excess inside the interval)',
         note=('vector' if loc.vector else 'scalar') + ' excess confined in time')
+
+
+def _same_term(text, token):
+    """Tell whether formula term ``text`` is the composition catalog ``token`` stands for."""
+    from magcal_ros.core.effects.formula import parse
+
+    def norm(x):
+        return x.replace(' ', '')
+    try:
+        term = parse(token).terms[0]
+        mine = parse(text).terms[0].text
+    except ValueError:
+        return False
+    return norm(mine) in {norm(term.text), norm(str(term.expansion or ''))}
 
 
 def _listed(b, res, ranked, verdict):
