@@ -95,7 +95,7 @@ def run_case(case, n, code, tmp, seed):
     diag, err, dt = _magcal(code, ['diagnose', path, '--model', 'base', '--json'])
     row['diagnose_s'] = dt
     if diag is None:
-        row.update(term=None, ok=False, why=f'diagnose failed: {err}')
+        row.update(term=None, ok=False, ok_comma=False, why=f'diagnose failed: {err}')
         return row
     term, source = offered_term(diag)
     row.update(term=term, source=source, verdict_reason=diag['verdict'].get('reason'),
