@@ -665,6 +665,9 @@ class Localized:
         return f'drop({bases.fmt(self.t0)}, {bases.fmt(self.t1)})'
 
 
+#: share of an interval's excess its 5 % largest epochs may hold (more: outliers, not a
+#: disturbance confined in time)
+SPIKE_SHARE = 0.5
 #: a disturbance is localised when its interval is at most this share of the record
 MAX_LOCALISED_FRACTION = 0.25
 
@@ -727,6 +730,11 @@ def localised(t, sums):
             if margin == 0.0:
                 step_next = st
             if max(rat.values()) <= FLOOR_RATIO:
+                # a disturbance, not a few outliers: the 5 % largest epochs of the interval
+                # must not hold half of its excess (heavy-tailed noise: fit --robust)
+                pos = np.sort(np.clip(ex[a:b + 1], 0.0, None))[::-1]
+                if pos[:max(1, len(pos) // 20)].sum() > SPIKE_SHARE * pos.sum():
+                    return None
                 inside = np.clip(ex_j[:, a:b + 1].sum(axis=1), 0.0, None)
                 carry = tuple(int(sens[gi])
                               for gi in np.flatnonzero(inside >= 0.1 * inside.sum()))
