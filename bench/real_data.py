@@ -18,7 +18,7 @@ Real recordings: what the package makes of each public hand-held recording.
     python bench/real_data.py                 # every recording, with the diagnosis
     python bench/real_data.py --no-diagnose   # coverage, fit and floor only (faster)
 
-Recordings: ../shared/data/real/sunsided-hmc5883l (HMC5883L: full sphere, single-axis
+Recordings: data/real/sunsided-hmc5883l (HMC5883L: full sphere, single-axis
 rotations, pans, roll-and-tilt, static; PROVENANCE.md there) and ck-accmag (a consumer IMU's
 full sphere, gauss, no time column).  Per recording: the attitude coverage verdict (judged
 about the fitted centre), the noise floor of the data, and for the accepted ones the scalar
@@ -46,18 +46,18 @@ from magcal_ros.io.single_csv import read_single_sensor_csv  # noqa: E402
 import numpy as np  # noqa: E402
 from test_real_sunsided import geometric_ellipsoid_fit  # noqa: E402
 
-SHARED = os.path.normpath(os.path.join(common.REPO_DIR, '..', 'shared', 'data', 'real'))
-HMC = os.path.join(SHARED, 'sunsided-hmc5883l')
+REAL = os.path.join(common.REPO_DIR, 'data', 'real')
+HMC = os.path.join(REAL, 'sunsided-hmc5883l')
 
 
 def recordings():
-    """[(label, loader)] of every shared recording, the full spheres first."""
+    """[(label, loader)] of every real recording, the full spheres first."""
     out = [('hmc5883l/full-sphere', lambda: read_csv(os.path.join(
-        HMC, 'full-sphere', 'full-sphere.csv'))),
+        HMC, 'full-sphere', 'full-sphere.csv.gz'))),
         ('ck-accmag', lambda: read_single_sensor_csv(
-            os.path.join(SHARED, 'ck-accmag', 'acc_mag_log.csv'), unit='gauss'))]
+            os.path.join(REAL, 'ck-accmag', 'acc_mag_log.csv.gz'), unit='gauss'))]
     for name in sorted(os.listdir(HMC)):
-        path = os.path.join(HMC, name, f'{name}.csv')
+        path = os.path.join(HMC, name, f'{name}.csv.gz')
         if name != 'full-sphere' and os.path.exists(path):
             out.append((f'hmc5883l/{name}', lambda p=path: read_csv(p)))
     return out
@@ -126,7 +126,7 @@ def main(argv=None):
          'independent fit nT', 'RMS / floor', 'verdict'],
         [[r['recording'], r['samples'], r['coverage'], r['floor_nt'], r.get('scalar_rms_nt'),
           r.get('independent_rms_nt'), r.get('rms_over_floor'), r['verdict']] for r in rows],
-        title='Each shared recording: coverage (about the fitted centre), noise floor, base '
+        title='Each real recording: coverage (about the fitted centre), noise floor, base '
               'model scalar RMS against an independent geometric ellipsoid fit, verdict')]
     tables.append(common.table(
         ['static recording', 'samples', 'field nT', 'minus full sphere nT', 'sd nT'],

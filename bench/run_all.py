@@ -43,6 +43,7 @@ BENCHES = {
     'real_data': (['real_data.py'], ['--no-diagnose']),
     'workbench': (['workbench.py'], ['--sizes', '3000', '--no-ladder']),
     'pairing': (['pairing.py'], ['--epochs', '2000', '--repeats', '3']),
+    'grammar_speed': (['grammar_speed.py'], ['--n', '10000', '--repeat', '3']),
 }
 
 

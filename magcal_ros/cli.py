@@ -38,6 +38,9 @@ def load_data(path, unit=None, rate_hz=100.0):
     """
     Dataset in nT from a wide CSV file, a rosbag2 directory or a single-sensor CSV.
 
+    A CSV may be compressed: ``.csv.gz`` (gzip) and ``.csv.zst`` (Zstandard) are decompressed
+    as they are read.
+
     ``unit`` (a key of :data:`magcal_ros.units.UNITS_NT`) is the unit of the field columns
     (readings, ``ref_total``, ``ref_x/y/z``); they are converted to nT here, once.  A CSV
     without wide-format sensor columns (``mx,my,mz``, ``x,y,z`` ...) is read as one
@@ -68,7 +71,8 @@ def load_data(path, unit=None, rate_hz=100.0):
 def _is_wide_csv(path):
     """Tell whether the first non-comment line of ``path`` names a wide-format column."""
     import re
-    with open(path, encoding='utf-8-sig', errors='replace') as fh:
+    from magcal_ros.io.compressed import open_text
+    with open_text(path, encoding='utf-8-sig', errors='replace') as fh:
         for line in fh:
             if line.strip() and not line.lstrip().startswith('#'):
                 return re.search(r'(^|[,;\t ])s\d+_x($|[,;\t ])', line.strip()) is not None
@@ -117,16 +121,26 @@ def resolve_field(args, data):
 
 def _resolve_field(args, data):
     if getattr(args, 'igrf', None):
-        from magcal_ros.core.data.magnitude import igrf_total
+        from magcal_ros.core.data.magnitude import igrf_field
         try:
             lat, lon, alt = (float(x) for x in args.igrf[:3])
         except ValueError:
             raise BadInput('--igrf LAT LON ALT_KM DATE: LAT, LON, ALT_KM must be numbers')
-        f = igrf_total(lat, lon, alt, args.igrf[3])
+        f, inc = igrf_field(lat, lon, alt, args.igrf[3])
         return f, {'kind': 'igrf', 'lat_deg': lat, 'lon_deg': lon, 'alt_km': alt,
-                   'date': args.igrf[3], 'magnitude_nt': f}
+                   'date': args.igrf[3], 'magnitude_nt': f, 'inclination_deg': inc}
     if getattr(args, 'field_nt', None) is not None:
         if args.field_nt == 'auto':
+            if getattr(args, 'planar', False):
+                # an ellipsoid needs a sphere; a turn gives a circle and the mean along it
+                from magcal_ros.core.model.planar import (planar_magnitude, PlanarError,
+                                                          turn_axis)
+                try:
+                    f = planar_magnitude(data.raw[0], turn_axis(data.raw[0]))
+                except PlanarError as exc:
+                    raise BadInput(str(exc)) from None
+                return f, {'kind': 'auto (planar: in-plane radius and mean along the axis, '
+                                   'shape-only)', 'magnitude_nt': f}
             from magcal_ros.core.data.magnitude import auto_magnitude
             f = auto_magnitude(data.raw[0])
             return f, {'kind': 'auto (mean radius, shape-only)', 'magnitude_nt': f}
@@ -225,10 +239,12 @@ def cmd_fit(args):
         return _fit_paper_method(args, data)
     field_nt, fref = resolve_field(args, data)
     geometry = cross_geometry(args.baseline_m) if data.n_sensors == 4 else None
+    extra = {'heading_unknown': True} if args.heading_unknown else {}
+    if args.planar:
+        extra = {'planar': {'inclination_deg': fref.get('inclination_deg')}}
     run = calibrate(data, args.model, field_nt=field_nt, geometry=geometry,
                     field_reference=fref, robust=args.robust, constrained=args.constrained,
-                    on_degenerate='flag' if args.flag_degenerate else 'raise',
-                    **({'heading_unknown': True} if args.heading_unknown else {}))
+                    on_degenerate='flag' if args.flag_degenerate else 'raise', **extra)
     out = args.output
     refused = not run.result.success and not args.force
     if out and not refused:
@@ -236,6 +252,8 @@ def cmd_fit(args):
     s = dict(run.summary)
     s['output'] = None if refused else out
     s['field_reference'] = fref
+    # the document the file holds (or would hold), built once: the JSON and the file agree
+    s['calibration'] = None if refused else run.doc
     if args.json:
         print_json(s)
     else:
@@ -255,6 +273,8 @@ def cmd_fit(args):
                   'uncertainty):')
             for row, srow in zip(g, se):
                 print('  ' + '  '.join(f'{v:9.2f} +- {e:5.2f}' for v, e in zip(row, srow)))
+        if 'planar' in s:
+            _print_planar(s['planar'])
         kinds = sorted(set(s['noise_floor_status'].values()) - {'white'})
         print(f'noise floor (from the data): {s["noise_floor_nt"]:.2f} nT'
               + (f' ({" / ".join(kinds)}: see the noise_floor warnings)' if kinds else ''))
@@ -266,6 +286,26 @@ def cmd_fit(args):
               + 'rerun with --force to accept it anyway', file=sys.stderr)
         return EXIT_FAIL
     return EXIT_OK
+
+
+def _print_planar(pl):
+    """The planar calibration's account, one line per sensor and one for what is open."""
+    for j, e in pl['in_plane'].items():
+        axis = ', '.join(f'{x:+.2f}' for x in pl['axis'][j])
+        parts = [f'sensor {j}: turn about ({axis}); in the {e["axes"]} plane']
+        parts.append('effective offsets (level) ' + ', '.join(
+            f'{v:.1f} +- {s:.1f}' for v, s in zip(e['effective_offset_nt'],
+                                                  e['effective_offset_stderr_nt'])) + ' nT')
+        if 'scale_ratio' in e:
+            parts.append(f'scale ratio {e["scale_ratio"]:.4f} +- {e["scale_ratio_stderr"]:.4f}')
+        if 'nonorth_rad' in e:
+            parts.append(f'angle {e["nonorth_rad"]:+.4f} +- {e["nonorth_stderr_rad"]:.4f} rad')
+        parts.append(f'heading error {pl["heading_error_deg"][j]:.2f} deg (1 sd, largest over '
+                     f'headings; inclination from {pl["inclination_source"]})')
+        print('; '.join(parts))
+    if pl['undetermined']:
+        print('undetermined (known no better than half the prior\'s width): '
+              + ', '.join(pl['undetermined']))
 
 
 def _fit_paper_method(args, data):
@@ -294,15 +334,15 @@ def _fit_paper_method(args, data):
             data, field_nt, on_degenerate='flag' if args.flag_degenerate else 'raise')
         geometry = cross_geometry(args.baseline_m) if data.n_sensors == 4 else None
     out = args.output
+    doc = calibration_to_doc(res.calibration, geometry=geometry, field_reference=fref,
+                             provenance={'method': args.method,
+                                         'samples': int(data.n_samples),
+                                         'warnings': list(res.warnings)})
     if out:
-        doc = calibration_to_doc(res.calibration, geometry=geometry, field_reference=fref,
-                                 provenance={'method': args.method,
-                                             'samples': int(data.n_samples),
-                                             'warnings': list(res.warnings)})
         save_calibration(out, doc)
     if args.json:
         print_json({**res.to_dict(), 'noise_floor_nt': None, 'output': out,
-                    'field_reference': fref})
+                    'field_reference': fref, 'calibration': doc})
     else:
         print(res.summary())
         if out:
@@ -414,7 +454,8 @@ def build_parser():
     sub = p.add_subparsers(dest='command', required=True)
 
     s = sub.add_parser('simulate', help='write a simulated cross-gradiometer recording (CSV)')
-    s.add_argument('--out', required=True, help='output CSV file')
+    s.add_argument('--out', required=True,
+                   help='output CSV file (.csv.gz, .csv.zst: compressed)')
     s.add_argument('--n', type=int, default=3000, help='number of samples (default 3000)')
     s.add_argument('--rate', type=float, default=100.0, help='sample rate, Hz')
     s.add_argument('--trajectory', default='smooth',
@@ -443,7 +484,7 @@ def build_parser():
     s.set_defaults(func=cmd_simulate)
 
     f = sub.add_parser('fit', help='fit a model and write a calibration file')
-    f.add_argument('data', help='wide CSV file or rosbag2 directory')
+    f.add_argument('data', help='wide CSV file (.csv, .csv.gz, .csv.zst) or rosbag2 directory')
     f.add_argument('--model', default='base', help="effects, e.g. 'base,temperature@2'")
     f.add_argument('--method', default='ellipsoid', choices=['ellipsoid', 'sine', 'reference'],
                    help='ellipsoid: maximum-likelihood fit of --model from rotations in a '
@@ -463,6 +504,10 @@ def build_parser():
     f.add_argument('--force', action='store_true',
                    help='write the calibration even when the fit did not converge')
     f.add_argument('--plugin', action='append', help='import a module defining effects')
+    f.add_argument('--planar', action='store_true',
+                   help='a turn about one axis only (a ground robot): fit what it determines '
+                        '(in-plane offsets, scale ratio, angle: heading-grade), hold the rest '
+                        'at a prior and name it; reports the heading error')
     f.add_argument('--heading-unknown', action='store_true',
                    help='site_gradient without attitude columns: estimate the rotation about '
                         'the field at every epoch; the gradient is then given in a '
@@ -483,8 +528,8 @@ def build_parser():
     c = sub.add_parser('check', help='check a calibration against static recordings: one '
                        '|B| at every attitude, equal to the reference, or why not')
     c.add_argument('calfile', help='calibration YAML written by magcal fit')
-    c.add_argument('data', nargs='+', help='static recordings (wide CSV or rosbag2), each '
-                   'at one attitude')
+    c.add_argument('data', nargs='+', help='static recordings (wide CSV, also .csv.gz or '
+                   '.csv.zst, or rosbag2), each at one attitude')
     c.add_argument('--sensor', type=int, default=1, help='sensor to check (default 1)')
     add_unit_arg(c)
     c.add_argument('--json', action='store_true', help='print one JSON object on stdout')

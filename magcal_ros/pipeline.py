@@ -21,6 +21,7 @@ residuals) and the calibration document (docs/design.md §4).
 """
 from dataclasses import dataclass
 
+from magcal_ros.core.data.magnitude import reference_magnitude
 from magcal_ros.core.data.noise import data_noise_floor
 from magcal_ros.core.geometry.site_gradient import centred_fields
 from magcal_ros.core.geometry.tensor import (cross_positions, gradient_from_fit, tensor_lstsq,
@@ -45,6 +46,90 @@ def geometry_positions(geometry, n_sensors):
     if pos.shape != (n_sensors, 3):
         raise ValueError(f'geometry has {len(pos)} positions for {n_sensors} sensors')
     return pos
+
+
+def array_geometry(n_sensors, positions_m=(), baseline_m=0.5):
+    """
+    Geometry dict of an array from node parameters (docs/design.md, "Array geometry").
+
+    Parameters
+    ----------
+    n_sensors : int
+        Sensors of the array.
+    positions_m : sequence of float
+        Flat x, y, z per sensor in the array frame, m (``sensor_positions_m``, 3 S values);
+        empty: paper 004's cross of ``baseline_m`` for four sensors, the origin for one.
+    baseline_m : float
+        Distance between the two sensors of an arm of the cross, m.
+
+    Returns
+    -------
+    dict or None
+        ``{'type': 'cross', 'baseline_m', 'positions_m'}`` or ``{'type': 'positions',
+        'positions_m'}`` (positions (S, 3) m as lists); None when no positions are given for
+        2, 3 or more than 4 sensors (the tensor is then not computed).
+
+    Raises
+    ------
+    ValueError
+        Naming the count expected when ``positions_m`` is not 3 finite numbers per sensor.
+
+    """
+    flat = np.asarray(list(positions_m), float)
+    if flat.size == 0:
+        if n_sensors == 4:
+            return cross_geometry(baseline_m)
+        if n_sensors == 1:
+            return {'type': 'positions', 'positions_m': [[0.0, 0.0, 0.0]]}
+        return None
+    if flat.size != 3 * n_sensors or not np.all(np.isfinite(flat)):
+        raise ValueError(f'sensor_positions_m must hold 3 finite numbers (x y z, m) per '
+                         f'sensor: {3 * n_sensors} for {n_sensors} sensors, got {flat.size}')
+    return {'type': 'positions', 'positions_m': flat.reshape(-1, 3).tolist()}
+
+
+def tensor_undetermined(positions):
+    """
+    Why the gradient tensor cannot be computed from sensors at ``positions``, or None.
+
+    ``positions`` (S, 3) m or None. The tensor (symmetric and traceless: 5 numbers, with
+    the centre field 8 unknowns, :func:`magcal_ros.core.geometry.tensor.tensor_operator`) needs the
+    sensors to span at least a plane: one sensor measures no difference, collinear sensors
+    only the derivatives along their line.
+    """
+    if positions is None:
+        return ('no sensor positions (give sensor_positions_m, x y z per sensor in m): the '
+                'gradient tensor is not computed')
+    pos = np.asarray(positions, float)
+    if len(pos) == 1:
+        return 'one sensor measures no field difference: there is no gradient tensor'
+    sv = np.linalg.svd(pos - pos.mean(axis=0), compute_uv=False)
+    if sv[0] <= 1e-9:
+        return (f'the {len(pos)} sensors are at one point: they measure no field '
+                'difference, there is no gradient tensor')
+    if len(sv) < 2 or sv[1] <= 1e-9 * sv[0]:
+        return (f'the {len(pos)} sensors are collinear: they measure the derivatives along '
+                'their line only, not the full gradient tensor (it needs sensors spanning a '
+                'plane)')
+    return None
+
+
+def geometry_mismatch(file_geometry, node_geometry, tol_m=1e-6):
+    """
+    Why a calibration file's geometry differs from the node's, naming both, or None.
+
+    Both are geometry dicts (``positions_m`` (S, 3) m); a file without positions, or a node
+    without a geometry, is not compared.
+    """
+    if not node_geometry or not file_geometry or 'positions_m' not in file_geometry:
+        return None
+    a = np.asarray(file_geometry['positions_m'], float)
+    b = np.asarray(node_geometry['positions_m'], float)
+    if a.shape == b.shape and np.all(np.abs(a - b) <= tol_m):
+        return None
+    return (f'its geometry (positions_m {np.round(a, 4).tolist()} m) differs from this '
+            f"node's (sensor_positions_m {np.round(b, 4).tolist()} m): calibrate this array, "
+            'or set sensor_positions_m (or baseline_m) to the geometry of the file')
 
 
 def tensor_stats(fields, positions):
@@ -146,7 +231,7 @@ def summarize(result, data, positions=None):
         s['site_gradient_stderr_nt_per_m'] = site[1].tolist()
         s['site_gradient_frame'] = result.identifiability.get(
             'site_gradient_frame', "world (the attitude's)")
-    if positions is not None and data.n_sensors >= 3:
+    if positions is not None and tensor_undetermined(positions) is None:
         before = tensor_stats(data.raw, positions)
         # about the modelled site gradient: what is left is calibration error and noise
         after = tensor_stats(centred_fields(result), positions)
@@ -195,7 +280,8 @@ def calibrate(data, model='base', field_nt=None, geometry=None, field_reference=
 
     """
     run = _calibrate(data, model, field_nt, geometry, field_reference, **fit_kwargs)
-    if not exclude_outliers or fit_kwargs.get('robust') or fit_kwargs.get('heading_unknown'):
+    if (not exclude_outliers or fit_kwargs.get('robust') or fit_kwargs.get('heading_unknown')
+            or fit_kwargs.get('planar') is not None):
         return run
     if not [w for w in run.summary['warnings'] if w['kind'] == 'missing_effect']:
         run.summary['outlier_sets_excluded'] = 0
@@ -237,13 +323,30 @@ def _calibrate(data, model, field_nt, geometry, field_reference, **fit_kwargs):
     positions = geometry_positions(geometry, data.n_sensors)
     if positions is not None:
         model.set_positions(positions)          # where the site gradient acts
+    planar = fit_kwargs.pop('planar', None)
     if fit_kwargs.pop('heading_unknown', False):
         # site gradient without attitude: the heading about the field per epoch
         from magcal_ros.core.geometry.site_gradient import fit_heading_unknown
         result = fit_heading_unknown(data, model, field_nt=field_nt, **fit_kwargs)
+    elif planar is not None:
+        # a turn about one axis (a ground robot): what it determines, the rest at a prior
+        from magcal_ros.core.model import planar as pl
+        fit_kwargs.pop('constrained', None)
+        fit_kwargs.pop('on_degenerate', None)
+        pr = pl.fit_planar(data, model, reference_magnitude(data, field_nt),
+                           prior_params=planar.get('prior_params'),
+                           inclination_deg=planar.get('inclination_deg'), **fit_kwargs)
+        result = pr.result
     else:
         result = fit(data, model, field_nt=field_nt, **fit_kwargs)
     summary = summarize(result, data, positions)
+    if planar is not None:
+        summary['planar'] = pl.planar_summary(pr)
+        summary['planar']['inclination_source'] = (
+            'IGRF' if planar.get('inclination_deg') is not None else 'the fitted field')
+        summary['undetermined'] = summary['planar']['undetermined']
+        summary['heading_error_deg'] = max(summary['planar']['heading_error_deg'].values())
+        summary['warnings'].extend(note_dict(n) for n in pl.planar_notes(pr))
     temp_range = {}
     if data.temp is not None:
         for j in range(data.n_sensors):
@@ -266,6 +369,11 @@ def _calibrate(data, model, field_nt, geometry, field_reference, **fit_kwargs):
                       if k in summary},
         'warnings': list(summary['warnings']),
     }
+    if planar is not None:
+        # what the turn left open, recorded with the calibration (issue 20)
+        prov['planar'] = {k: summary['planar'][k] for k in
+                          ('axis', 'undetermined', 'determined', 'heading_error_deg',
+                           'inclination_source')}
     if 'tensor_rms_nt_per_m' in summary:
         prov['residuals']['tensor_rms_nt_per_m'] = summary['tensor_rms_nt_per_m']
     fref = dict(field_reference or {})

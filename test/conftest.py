@@ -28,6 +28,9 @@ inherited by every process the tests start:
   whose Fast DDS ports are already bound on this machine, so parallel runs do not meet.
   Set ``MAGCAL_TEST_ROS_DOMAIN_ID`` to force one.
 
+Every file opened by the session or a Python process it starts under the repository's parent
+folder but outside the repository fails the session (``open_audit_site/open_audit.py``).
+
 rclpy is required: if it cannot be imported the session errors out (it is not skipped);
 ``make setup`` installs it.
 """
@@ -95,9 +98,15 @@ except ImportError as exc:  # a missing rclpy is a failure, never a skip
         'Run `make setup` and the tests with `make test` (or .venv/bin/python -m pytest).'
     ) from exc
 
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent / 'open_audit_site'))
+import open_audit  # noqa: E402,I100  (files opened beside the repository fail the session)
 import ros_helpers  # noqa: E402
 from ros_helpers import (  # noqa: E402,F401  (fixtures registered for every test)
     make_node, ros_context, ros_executor, ros_namespace, ros_node, start_process)
+
+
+def pytest_sessionstart(session):
+    open_audit.pytest_sessionstart(session)
 
 
 def pytest_report_header(config):
@@ -113,3 +122,4 @@ def pytest_runtest_makereport(item, call):
 
 def pytest_sessionfinish(session, exitstatus):
     ros_helpers.stop_all_processes()
+    open_audit.pytest_sessionfinish(session, exitstatus)

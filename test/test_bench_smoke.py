@@ -42,6 +42,7 @@ CASES = {
                     'lemi025', '--node-duration', '1', '--node-warmup', '0.5'],
     'workbench': ['--sizes', '300', '--before', 'none', '--no-ladder'],
     'pairing': ['--epochs', '1500', '--repeats', '1'],
+    'grammar_speed': ['--n', '300', '--repeat', '1', '--pairs', '2'],
 }
 
 
@@ -142,3 +143,10 @@ def test_pairing(tmp_path):
     assert res['clean']['checked']['rejected'] == 0
     assert res['loaded']['checked']['repaired'] >= 1
     assert all(r['us_per_sample_checked'] > 0 for r in res.values())
+
+
+def test_grammar_speed(tmp_path):
+    doc = _run('grammar_speed', tmp_path)
+    pairs = doc['results']['pairs']
+    assert [p['alias'] for p in pairs] == ['drift2', 'periodic(0.05)@3']
+    assert all(p['cpu_comp_s'] > 0 and p['nfev_comp'] > 0 for p in pairs)

@@ -43,8 +43,17 @@ def test_document_content_and_round_trip(tmp_path, run):
     assert temp['params']['cx']['unit'] == 'nT/degC'
     assert temp['params']['cx']['stderr'] > 0
     assert 't0_c' in temp['refs']
-    for key in ('correction_matrix', 'intrinsic_correction', 'offset_nt', 'rotation_to_sensor1'):
-        assert np.asarray(s2[key]).size in (3, 9)
+    # the derived matrices and their relations (paper 004 eq. 5, 14): A^-1 = R C^-1 with
+    # C^-1 upper triangular and R a proper rotation; the offset is the offset parameters
+    keys = ('correction_matrix', 'intrinsic_correction', 'rotation_to_sensor1')
+    a_inv, c_inv, rot = (np.asarray(s2[k]) for k in keys)
+    assert a_inv.shape == c_inv.shape == rot.shape == (3, 3)
+    np.testing.assert_allclose(rot @ c_inv, a_inv, atol=1e-12)
+    assert np.all(np.tril(c_inv, -1) == 0.0)
+    np.testing.assert_allclose(rot @ rot.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(rot) == pytest.approx(1.0, abs=1e-12)
+    offset = next(e for e in s2['effects'] if e['name'] == 'offset')['params']
+    assert s2['offset_nt'] == [offset[k]['value'] for k in ('bx', 'by', 'bz')]
     prov = doc['provenance']
     for key in ('created', 'samples', 'data_hash', 'temperature_range_c', 'attitude_coverage',
                 'residuals'):
@@ -110,7 +119,8 @@ def _mutate(doc, fn):
 
 
 @pytest.mark.parametrize('make,match', [
-    (lambda d: calfile.dump_calibration(d)[:200], 'not valid YAML|missing key'),
+    # cut inside the flow list of a sensor position
+    (lambda d: calfile.dump_calibration(d)[:200], 'not valid YAML'),
     (lambda d: '', 'file is empty'),
     (lambda d: '\x00\x01garbage: [', 'not valid YAML'),
     (lambda d: _mutate(d, lambda x: x.update(schema_version=99)), 'schema_version 99 is newer'),
@@ -130,3 +140,45 @@ def test_bad_files_refused(tmp_path, run, make, match):
     path.write_text(make(r.doc))
     with pytest.raises(CalibrationFileError, match=match):
         load_calibration(path)
+
+
+def test_the_written_document_follows_the_declared_schema(run):
+    # the schema (jsonschema, draft 2020-12) describes what calibration_to_doc writes: the
+    # fitted document with a temperature effect validates, and a matrix of 2 rows does not
+    import jsonschema
+    _, r = run
+    doc = yaml.safe_load(calfile.dump_calibration(r.doc))
+    jsonschema.Draft202012Validator.check_schema(calfile.SCHEMA)
+    jsonschema.validate(doc, calfile.SCHEMA)
+    doc['sensors'][0]['correction_matrix'] = doc['sensors'][0]['correction_matrix'][:2]
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate(doc, calfile.SCHEMA)
+
+
+_TODO = r'; write it again with magcal fit or roll back \(magcal rollback\)$'
+
+
+@pytest.mark.parametrize('edit,message', [
+    (lambda d: d['sensors'][1]['effects'][0]['params']['kx'].update(value='abc'),
+     r"^bad\.yaml: malformed calibration document: sensors\[1\]\.effects\[0\]\.params\.kx\."
+     r"value: value is not a number \('abc'\)" + _TODO),
+    (lambda d: d['sensors'][1].update(correction_matrix=[[1, 2, 3], [1, 2, 3]]),
+     r'^bad\.yaml: malformed calibration document: sensors\[1\]\.correction_matrix: '
+     r'correction_matrix must have at least 3 entries, has 2' + _TODO),
+    (lambda d: d['sensors'][0].update(id='one'),
+     r"^bad\.yaml: malformed calibration document: sensors\[0\]\.id: id is not an integer "
+     r"\('one'\)" + _TODO),
+    (lambda d: d['sensors'][0]['effects'][0].update(refs={'t0_c': 'warm'}),
+     r"sensors\[0\]\.effects\[0\]\.refs\.t0_c: t0_c is not a number \('warm'\)" + _TODO),
+    (lambda d: d.update(provenance=[1]),
+     r'^bad\.yaml: malformed calibration document: provenance: provenance is not a mapping'),
+    (lambda d: d['sensors'][2].pop('effects'),
+     r"^bad\.yaml: sensors\[2\]: missing key 'effects'; write the calibration again"),
+])
+def test_schema_errors_say_where_and_what_to_do(run, edit, message):
+    _, r = run
+    doc = yaml.safe_load(calfile.dump_calibration(r.doc))
+    assert len(doc['sensors']) == 4                    # the simulated cross
+    edit(doc)
+    with pytest.raises(CalibrationFileError, match=message):
+        calfile.parse_calibration(calfile.dump_calibration(doc), 'bad.yaml')

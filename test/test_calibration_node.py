@@ -215,7 +215,7 @@ def test_single_axis_rotation_is_refused_and_previous_stays(
     head = ' '.join(lines[:2])         # a short first line, the reason on the next
     assert 'rotate about another axis' in head
     assert head.endswith('previous calibration stays active')
-    assert 'single axis' in out['reason'] or 'one axis' in out['reason']
+    assert 'the data come from a rotation about one axis only' in out['reason'], out['reason']
     assert path.read_bytes() == before
     # the sentinel, not a fixed wait: tumbling data calibrate, and the one new result is
     # theirs (the refused turntable fit published none)

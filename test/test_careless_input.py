@@ -122,17 +122,16 @@ def test_utf8_bom_loads_through_the_cli(tmp_path, capsys, rec):
     assert json.loads(out)['n_samples'] == len(rec[0])
 
 
-REAL = Path(__file__).resolve().parents[1] / '..' / 'shared' / 'data' / 'real' / \
-    'sunsided-hmc5883l'
+REAL = Path(__file__).resolve().parents[1] / 'data' / 'real' / 'sunsided-hmc5883l'
 
 
-def test_every_shared_real_recording_passes_the_unit_check_and_in_ut_is_refused():
+def test_every_real_recording_passes_the_unit_check_and_in_ut_is_refused():
     # the 13 HMC5883L recordings (full sphere, one-axis rotations, pans, static): good data
     # in nT must never be refused by the unit check, whatever the coverage; the same numbers
     # in uT are refused naming uT
     from magcal_ros.io.csvio import read_csv
     from magcal_ros.units import check_field_units
-    files = sorted(REAL.glob('*/*.csv'))
+    files = sorted(REAL.glob('*/*.csv.gz'))
     assert len(files) == 13
     for f in files:
         raw = read_csv(f).raw

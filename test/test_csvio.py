@@ -39,7 +39,10 @@ def test_round_trip(tmp_path):
     ('t,s1_x,s1_y,s1_z,bogus\n0,1,2,3,4\n', "unknown column 'bogus'"),
     ('t,s1_x,s1_y\n0,1,2\n', r'sensor 1 lacks column\(s\) s1_z'),
     ('s1_x,s1_y,s1_z\n1,2,3\n', 'time column t is missing'),
-    ('t,s1_x,s1_y,s1_z\n0,1,2,abc\n', "line 2: 'abc' is not a number"),
+    ('t,s1_x,s1_y,s1_z\n0,1,2,abc\n', "line 2, column s1_z: 'abc' is not a number"),
+    ('# c\n\nt,s1_x,s1_y,s1_z\n0,1,2,3\n\n# c\n1,x1,2,3\n',
+     "line 7, column s1_x: 'x1' is not a number"),
+    ('t,s1_x,s1_y,s1_z\n0,1,2,3\n1,1,2,3,4\n', 'line 3 has 5 fields, header has 4'),
     ('t,s1_x,s1_y,s1_z\n0,1,2\n', 'line 2 has 3 fields, header has 4'),
     # issue 10: careless input, each with the line and column or the cause named
     ('# c\nt,s1_x,s1_y,s1_z\n0,1,2,3\n1,1,,3\n2,1,2,3\n',

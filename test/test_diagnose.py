@@ -385,3 +385,24 @@ def test_candidates_tested_on_evenly_spaced_epochs_above_max_samples():
     # control data: nothing missing on the subsample either
     control = diagnose(sim({}, 2), 'base', field_nt=F, max_samples=1500)
     assert control.verdict_token is None and control.n_used == 1500
+
+
+# -- a fault written out in the test, not by the effect's own code ---------------------------
+
+def test_hand_written_temperature_fault_is_found_with_its_coefficients():
+    # test/injection.py's cross with dB = c (T2 - mean T2) on sensor 2, c stated by hand;
+    # its temperature swings +-8 degC: c x 5.7 degC RMS = 22 nT per axis, far above 3 nT
+    import injection
+
+    c_true = np.array([3.0, -2.0, 1.5])                             # nT/degC
+
+    def inject(t, temp, aux, b):
+        return {2: (temp[1] - temp[1].mean())[:, None] * c_true}
+
+    d = diagnose(injection.make(n=2000, seed=8, inject=inject), 'base', field_nt=F)
+    assert d.verdict_token == 'temperature@2', d.summary()
+    # stderr of a slope over +-8 degC with 3 nT noise and 2000 samples: ~0.012 nT/degC;
+    # 0.1 nT/degC is 8 of them
+    vals = {p['name']: p['value'] for p in d.verdict.params}
+    np.testing.assert_allclose([vals[k] for k in ('cx', 'cy', 'cz')], c_true, atol=0.1)
+    assert d.verdict.rms_after_nt <= AT_FLOOR_RATIO * d.noise_floor.per_sensor_nt[1]

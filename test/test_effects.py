@@ -47,6 +47,48 @@ def test_effect_is_recovered(token, values):
     assert worse > 3.0 * 1.15
 
 
+def _temperature_fault(t, temp, aux, b):
+    # dB = c (T - T0) + s (T - T0) * (K_2 b), T0 the mean temperature of the record
+    dt = (temp[1] - temp[1].mean())[:, None]
+    return {2: dt * np.array([3.0, -2.0, 1.5])
+            + dt * np.array([2e-4, -1e-4, 1e-4]) * (b @ inj.sensor_matrix(2).T)}
+
+
+def _drift_fault(t, temp, aux, b):
+    return {3: (t - t[0])[:, None] * np.array([0.5, -0.3, 0.2])}          # nT/s
+
+
+def _aux_fault(t, temp, aux, b):
+    a = aux['aux_motor_current']
+    return {4: (a - a.mean())[:, None] * np.array([4.0, -3.0, 2.0])}      # nT/A
+
+
+HAND = [('temperature@2', _temperature_fault, [3.0, -2.0, 1.5, 2e-4, -1e-4, 1e-4]),
+        ('drift@3', _drift_fault, [0.5, -0.3, 0.2]),
+        ('aux:aux_motor_current@4', _aux_fault, [4.0, -3.0, 2.0])]
+
+
+@pytest.mark.parametrize('token,inject,values', HAND, ids=[c[0] for c in HAND])
+def test_hand_written_effect_is_recovered(token, inject, values):
+    # the effect written out in the test (not by the effect's own code), on the hand-written
+    # cross: the fitted coefficients are the stated ones within 4.5 of the fit's standard
+    # uncertainties (checked against Monte Carlo in test_model_ml.py), and each sensor's
+    # linear map and offset the stated K_j and o_j (noise bounds as in
+    # test_model_paper004.py: 6 sd per entry, 5 sd per offset, N = 600)
+    n = 600
+    res = fit(inj.make(n=n, seed=5, inject=inject), 'base,' + token, field_nt=inj.F_NT)
+    sl = [s for e, s in zip(res.model.effects[int(token[-1]) - 1],
+                            res.model.slices[int(token[-1]) - 1]) if e.label == token[:-2]]
+    assert len(sl) == 1, res.model.spec()
+    z = (res.params[sl[0]] - values) / res.stderr[sl[0]]
+    assert np.abs(z).max() < 4.5, (res.params[sl[0]], values, res.stderr[sl[0]])
+    cal = res.calibration
+    for j in range(1, 5):
+        a = np.linalg.inv(cal.correction_matrix(j))
+        assert np.abs(a - inj.sensor_matrix(j)).max() < 6 * 3.0 / F / np.sqrt(n / 3), j
+        assert np.abs(cal.offset(j) - inj.SENSORS[j - 1][3]).max() < 5 * 3.0 * np.sqrt(3 / n)
+
+
 def test_field_rate_shows_in_vector_residual_not_scalar():
     """A lag is perpendicular to B under rotation: invisible in |B|, visible between sensors."""
     data, _ = simulate(n_samples=3000, trajectory='smooth', seed=12, truth={

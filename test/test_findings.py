@@ -140,7 +140,10 @@ def test_heavy_tails_only_heavy_tails(n):
     for f in found.items:
         # Student t with 3 degrees of freedom: infinite kurtosis, the sample value is large
         assert f.value > 3.0
-        assert 0.0 <= f.explained_fraction <= 1.0
+        # nothing but the noise is left: its mean square is the floor's, so the tails
+        # account for all of the excess over the MAD level (share 1); the sample second
+        # moments of t3 noise scatter (infinite kurtosis): 0.89-1.0 at these seeds
+        assert f.explained_fraction > 0.8
 
 
 # -- a field gradient over the cross, written out in the test -----------------------------
@@ -367,13 +370,13 @@ def test_irregular_sampling_pump_is_found_by_lomb_scargle():
 
 
 def test_real_hand_rotation_drift_is_named():
-    # issue 11: on the shared roll-and-tilt recording (HMC5883L, hand-rotated, 36 s) "a slow
+    # issue 11: on the real roll-and-tilt recording (HMC5883L, hand-rotated, 36 s) "a slow
     # drift of about 1 200 nT is plain in the residual plot"; the findings name it
     from magcal_ros.core.data.magnitude import auto_magnitude
     from magcal_ros.io.csvio import read_csv
     import pathlib
-    path = (pathlib.Path(__file__).resolve().parents[1] / '..' / 'shared' / 'data' / 'real'
-            / 'sunsided-hmc5883l' / 'roll-and-tilt-at-45-90' / 'roll-and-tilt-at-45-90.csv')
+    path = (pathlib.Path(__file__).resolve().parents[1] / 'data' / 'real'
+            / 'sunsided-hmc5883l' / 'roll-and-tilt-at-45-90' / 'roll-and-tilt-at-45-90.csv.gz')
     data = read_csv(path)
     result = fit(data, 'base', field_nt=auto_magnitude(data.raw[0]), on_degenerate='flag')
     found = find(data, result)

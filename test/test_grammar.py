@@ -60,6 +60,7 @@ FORMULAS = {
     'base + offset(cc(aux_a, k=1, period=360) * temperature)@{2}':
         'base + offset(cc(aux_a, k=1, period=360) * temperature)@2',
     'base + offset(1)@alike + field(temperature)': 'base + offset(1)@alike + field(temperature)',
+    'base + offset(sin(0.050, refine=true))@3': 'base + offset(sin(0.05, refine=true))@3',
 }
 
 
@@ -109,6 +110,7 @@ BAD = {
     'base + drop(1, 2)@2': ['drop leaves samples out for every sensor'],
     'base + offset(poly(t, 9))': ['poly degree', '1..4'],
     'base + offset(sin(-1))': ['sin frequency must be positive'],
+    'base + offset(sin(1, refine=maybe))': ['true or false'],
     'base + offset(window(5, 1))': ['the end must follow the start'],
     '': ['empty model'],
 }
@@ -150,7 +152,13 @@ def test_old_calibration_files_load_and_correct_as_written():
 
 
 def test_old_tokens_fit_to_the_same_numbers_as_written():
-    """The old specs refitted give the parameters the old code wrote (to 1e-6 relative)."""
+    """
+    The old specs refitted give the parameters the old code wrote, to 1e-4 standard error.
+
+    The same maximum of the likelihood: what may differ is where the optimiser stops, which
+    moves with its start (the noise estimate's constant 1.4826 became 1/Phi^-1(3/4) after
+    the files were written: 1.8e-6 nT on an offset of standard error 0.2 nT, 1e-5 se).
+    """
     data = read_csv(LEGACY / 'data.csv')
     for name in ('temperature', 'step_periodic', 'aux'):
         doc = yaml.safe_load((LEGACY / f'{name}.yaml').read_text())
@@ -158,7 +166,9 @@ def test_old_tokens_fit_to_the_same_numbers_as_written():
                   check_identifiability=False)
         old = [e['params'][k]['value'] for s in doc['sensors'] for e in s['effects']
                for k in e['params']]
-        np.testing.assert_allclose(res.params, old, rtol=1e-6, atol=1e-6, err_msg=name)
+        se = [e['params'][k]['stderr'] for s in doc['sensors'] for e in s['effects']
+              for k in e['params']]
+        assert np.all(np.abs(res.params - old) <= 1e-4 * np.array(se)), name
 
 
 def _ctx(n=50):
@@ -332,3 +342,65 @@ def test_plugin_names_cannot_shadow_builtins():
     with pytest.raises(TypeError):
         fx.register_coupling(SquareWave)
     assert fm.parse('offset(1)').terms[0].coupling == 'offset'
+
+
+@pytest.fixture
+def grammar_example(monkeypatch):
+    monkeypatch.syspath_prepend(str(pathlib.Path(__file__).resolve().parents[1] / 'examples'))
+    names = fx.load_plugin('my_grammar')
+    yield names
+    fx.unregister_driver('relay')
+    fx.unregister_coupling('zoffset')
+    import sys
+    sys.modules.pop('my_grammar', None)
+
+
+def test_example_grammar_plugin(grammar_example):
+    """examples/my_grammar.py (docs/plugins.md): zoffset(relay(...))@2 on a hand-written relay."""
+    assert sorted(grammar_example) == ['relay', 'zoffset']
+    code = (pathlib.Path(__file__).resolve().parents[1] / 'docs' / 'plugins.md').read_text()
+    snippet = code[code.index("load_plugin('my_grammar')"):].split('```')[0]
+    ns = {'load_plugin': fx.load_plugin, 'parse': fx.parse}
+    exec(snippet, ns)                  # noqa: S102 - the documentation's own snippet
+    assert ns['f'].terms[1].n_params(4) == 1
+
+    def inject(t, temp, aux, b):
+        on = (aux['aux_motor_current'] > 4).astype(float)
+        return {2: np.outer(on, [0.0, 0.0, 9.0])}
+    data = inj.make(n=1500, seed=6, inject=inject)
+    formula = 'base + zoffset(relay(aux_motor_current, threshold=4))@2 + offset(s(t, k=4))@3'
+    res = fit(data, formula, inj.F_NT, check_identifiability=False, on_degenerate='flag')
+    i = [k for k, info in enumerate(res.model.param_info()) if info[1].startswith('zoffset')]
+    assert len(i) == 1
+    # a 0/1 column switched about half the time: se about 2 x 3 nT / sqrt(1500) = 0.15 nT
+    assert abs(res.params[i[0]] - 9.0) < 5 * res.stderr[i[0]], (res.params[i[0]], res.stderr[i])
+    cal, _ = parse_calibration(dump_calibration(calibration_to_doc(res.calibration)), 'p')
+    np.testing.assert_array_equal(cal.params, res.params)
+
+
+def test_one_sample_at_a_time_corrects_as_the_whole_record():
+    """Live correction sees one sample per call: the drivers' references come from refs."""
+    formula = ('base + offset(s(t, k=5))@2 + scale(temperature)@3 + offset(window(50, 90))@alike'
+               ' + offset(cc(aux_motor_current, k=1, period=10) * t)@4 + offset(poly(t, 3))@1'
+               ' + rotation(sin(0.02))@2 + scale(poly(lin, 2))@1')
+    data = inj.make(n=600, seed=7)
+    res = fit(data, formula, inj.F_NT, check_identifiability=False, on_degenerate='flag')
+    cal, _ = parse_calibration(dump_calibration(calibration_to_doc(res.calibration)), 'live')
+    for j in range(1, 5):
+        ctx = data.context(j)
+        whole = cal.correct(j, data.raw[j - 1], ctx)
+        for k in (0, 137, 311, 599):
+            one = SensorContext(t=ctx.t[k:k + 1], temp=ctx.temp[k:k + 1],
+                                aux={a: v[k:k + 1] for a, v in ctx.aux.items()})
+            np.testing.assert_allclose(cal.correct(j, data.raw[j - 1][k:k + 1], one),
+                                       whole[k:k + 1], rtol=0, atol=1e-9)
+
+
+def test_node_model_parameter_takes_formula_terms():
+    """The calibration node's ``model`` (a list of terms) is checked by the same parser."""
+    from magcal_ros.ros.params import model_check
+    check = model_check(4)
+    assert check(['base', 'offset(s(t, k=6))@2', 'field(s(t, k=8))', 'drop(120, 160)']) is None
+    assert check(['base + offset(window(120, 160))@alike']) is None
+    msg = check(['base', 'offset(s(t, k=60))@2'])
+    assert 'basis size' in msg and '3..20' in msg, msg

@@ -215,3 +215,19 @@ def test_drop_leaves_a_disturbance_out_of_the_fit():
     assert abs(res.sigma_nt[1] - SIGMA) < 0.3, res.sigma_nt
     plain = fit(data, 'base', inj.F_NT, check_identifiability=False, on_degenerate='flag')
     assert plain.sigma_nt[1] > 10 * SIGMA, plain.sigma_nt
+
+
+def test_sinusoid_frequency_refined():
+    """offset(sin(0.05, refine=true))@3: a 0.0503 Hz line found from 0.05 Hz (df fitted)."""
+    f_true, amp = 0.0503, np.array([14.0, -9.0, 6.0])
+
+    def inject(t, temp, aux, b):
+        return {3: np.outer(np.cos(2 * np.pi * f_true * t), amp)}
+    res, _ = _fit('offset(sin(0.05, refine=true))@3', inject)
+    info = res.model.param_info()
+    i = [k for k, (j, lab, nm, _) in enumerate(info) if j == 3 and nm == 'df'][0]
+    # the fit's stderr of df (Cramer-Rao for a line of ~10 nT in 3 nT noise over 300 s is
+    # of order 1e-6 Hz); 5 standard errors allowed
+    assert abs(res.params[i] - (f_true - 0.05)) < 5 * res.stderr[i], (res.params[i],
+                                                                       res.stderr[i])
+    assert abs(res.sigma_nt[2] - SIGMA) < 0.3, res.sigma_nt

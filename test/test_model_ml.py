@@ -13,6 +13,8 @@
 # limitations under the License.
 
 """ML refinement: efficiency, partial coverage, reference drift, outliers, refusals."""
+import injection
+from magcal_ros.core.data.dataset import Dataset
 from magcal_ros.core.data.simulate import simulate
 from magcal_ros.core.model import DegenerateDataError, fit, Model
 from magcal_ros.core.papers.ellipsoid import fit_ellipsoid
@@ -34,6 +36,43 @@ def test_uncertainties_match_monte_carlo_spread():
     # 108 z-values: sd of a unit normal estimated to +-7 %; accept 0.75..1.3
     assert 0.75 < z.std() < 1.3
     assert np.abs(z.mean()) < 0.35          # no bias beyond 3.6 standard errors of the mean
+
+
+def _hand_written_sensor(seed, n=150):
+    """
+    One sensor of test/injection.py (sensor 2's errors, unrotated), written without the model.
+
+    raw = diag(k) N b + o + 3 nT noise at 0.25 Hz (600 s of the tumble: the sphere covered),
+    N the non-orthogonality of injection.SENSORS.  Returns the data and the stated
+    parameters of 'offset,scale,nonorthogonality' by name, from paper 004 eq. 2
+    (C_NO rows (cos th cos phi, cos th sin phi, sin th), (0, cos psi, sin psi), (0, 0, 1)):
+    the injection's rows (1, phi_i, th_i) / norm and (0, 1, psi_i) / norm give
+    psi = atan(psi_i), phi = atan(phi_i), th = asin(th_i / |(1, phi_i, th_i)|).
+    """
+    k, (psi_i, phi_i, th_i), _, o = injection.SENSORS[1]
+    non = np.array([[1.0, phi_i, th_i], [0.0, 1.0, psi_i], [0.0, 0.0, 1.0]])
+    non /= np.linalg.norm(non, axis=1, keepdims=True)
+    t, b = injection.tumbling_field(n, rate_hz=0.25, seed=seed)
+    rng = np.random.default_rng(seed + 7)
+    raw = b @ (np.diag(k) @ non).T + np.array(o) + rng.normal(0.0, 3.0, (n, 3))
+    stated = dict(zip(('bx', 'by', 'bz'), o)) | dict(zip(('kx', 'ky', 'kz'), k)) | {
+        'psi': np.arctan(psi_i), 'varphi': np.arctan(phi_i),
+        'theta': np.arcsin(th_i / np.sqrt(1.0 + phi_i ** 2 + th_i ** 2))}
+    return Dataset(t=t, raw=raw[None]), stated
+
+
+def test_uncertainties_match_monte_carlo_spread_on_hand_written_data():
+    """The same check on data written without the model, truth stated by hand."""
+    zs = []
+    for seed in range(12):
+        data, stated = _hand_written_sensor(100 + seed)
+        res = fit(data, 'offset,scale,nonorthogonality', field_nt=injection.F_NT)
+        truth = [stated[name] for _, _, name, _ in res.model.param_info()]
+        zs.append((res.params - truth) / res.stderr)
+    z = np.array(zs)
+    # as above: 108 z-values, sd within 0.75..1.3, mean within 0.35
+    assert 0.75 < z.std() < 1.3, z.std()
+    assert np.abs(z.mean()) < 0.35, z.mean()
 
 
 def test_ml_is_as_good_as_algebraic_on_full_sphere():

@@ -18,6 +18,7 @@ Paper 004 section 4.1: N = 200 random attitudes, sigma 3 nT, baseline 0.5 m, Tab
 Tolerances come from the noise: the fit's own standard uncertainties (checked against
 Monte Carlo in test_model_ml.py) and Gaussian order statistics for the maxima.
 """
+import injection
 from magcal_ros.core.data.simulate import simulate
 from magcal_ros.core.geometry.tensor import cross_positions, tensor_cross, tensor_noise_floor
 from magcal_ros.core.model import fit
@@ -58,6 +59,25 @@ def test_procrustes_recovers_misalignment(paper_run):
         ang = np.degrees(np.arccos(np.clip((np.trace(r.T @ r_true) - 1) / 2, -1, 1)))
         # angular noise ~ sigma*sqrt(2)/F / sqrt(N) rad = 4e-4 deg; 0.01 deg is > 20 sigma
         assert ang < 0.01
+
+
+def test_ml_fit_recovers_hand_written_sensors():
+    # data written without the model (test/injection.py): raw_j = K_j b + o_j + 3 nT noise,
+    # K_j = scale x non-orthogonality x rotation of Table-1 size, sensor 1 unrotated (so its
+    # orthogonalised axes are the body axes the field is written in).  The fitted linear
+    # map and offset of every sensor are K_j and o_j as stated in injection.SENSORS.
+    # Noise: an entry of A_j from N epochs in three axes has sd ~ sigma / (F sqrt(N / 3)) =
+    # 4.2e-6 at N = 600; bound 6 sd (max of 36 entries; Table-1 errors are ~1e-2). An
+    # offset has sd ~ sigma sqrt(3 / N) = 0.21 nT; bound 5 sd.
+    n = 600
+    data = injection.make(n=n, seed=4)
+    res = fit(data, 'base', field_nt=injection.F_NT)
+    cal = res.calibration
+    for j in range(1, 5):
+        a = np.linalg.inv(cal.correction_matrix(j))
+        assert np.abs(a - injection.sensor_matrix(j)).max() < 6 * SIGMA / F / np.sqrt(n / 3), j
+        assert np.abs(cal.offset(j) - injection.SENSORS[j - 1][3]).max() < \
+            5 * SIGMA * np.sqrt(3 / n), j
 
 
 def test_ml_fit_recovers_truth_within_uncertainty(paper_run):

@@ -117,13 +117,18 @@ def test_colcon_build_installs_index_manifest_config_and_executables(colcon_inst
                            cwd=colcon_install, env=subprocess_env({'PYTHONPATH': str(site[0])}),
                            capture_output=True, text=True, timeout=60)
     assert pathlib.Path(where.stdout.strip()).is_relative_to(site[0]), where
+    # the real recordings (data/, test data) are the repository's, never installed as code
+    installed = [p.relative_to(colcon_install) for p in colcon_install.rglob('*')]
+    assert not [p for p in installed if p.name.endswith(('.csv', '.csv.gz', '.csv.zst'))
+                or 'real' in p.parts or 'sunsided-hmc5883l' in p.parts], installed
 
 
 #: third-party Python modules and their rosdep keys; the pip-only ones (README: "come from
 #: pip") map to None
 _PY_DEPS = {'numpy': 'python3-numpy', 'scipy': 'python3-scipy', 'serial': 'python3-serial',
             'yaml': 'python3-yaml', 'matplotlib': 'python3-matplotlib', 'rosbags': None,
-            'ppigrf': None, 'threadpoolctl': None}
+            'ppigrf': None, 'threadpoolctl': None, 'zstandard': None,
+            'jsonschema': 'python3-jsonschema'}
 
 
 def _imported_modules(paths):

@@ -52,7 +52,7 @@ RUN_BY = [
      'test_readme_commands.py::test_offline_block_as_written', 'as written'),
     (r'magcal (simulate --out turn\.csv|fit turn\.csv)',
      'test_readme_commands.py::test_degenerate_example_as_written', 'as written'),
-    (r'magcal (fit|check) .*\.\./shared/data/real/sunsided',
+    (r'magcal (fit|check) .*data/real/sunsided',
      'test_real_sunsided.py::test_readme_check_commands', 'as written'),
     (r'magcal fit test/data/paper002_table2\.csv',
      'test_fit_methods.py::test_readme_command_as_written', 'as written'),
@@ -63,9 +63,13 @@ RUN_BY = [
      'driven (colcon build of a copy)'),
     (r'ros2 launch magcal_ros magcal\.launch\.py',
      'test_launch_file.py::test_generate_launch_description', 'driven (launch API)'),
-    (r'ros2 (run|service call|topic echo /magcal/calibration/status|param set)|'
+    (r'ros2 (run (?!.*geometry_)|service call|topic echo /magcal/calibration/status|'
+     r'param set)|'
      r'ros2 topic echo /magcal/gradient$',
      'test_ros_user.py::test_readme_ros_commands_work_with_defaults', 'driven (rclpy)'),
+    (r'ros2 run magcal_ros \w+ --ros-args --params-file config/geometry_8\.yaml$',
+     'test_geometry_e2e.py::test_geometry_end_to_end_at_the_noise_floor',
+     'as written (console scripts; each shipped geometry file, its own namespace)'),
     (r'ros2 topic echo /magcal/gradient_stamped',
      'test_corrector_node.py::test_corrects_to_the_true_field_and_publishes_the_gradient',
      'driven (rclpy subscriber)'),

@@ -13,7 +13,7 @@
 # limitations under the License.
 
 """
-Real data: a hand-held consumer IMU log (test/data/ck_accmag, see its PROVENANCE.md).
+Real data: a hand-held consumer IMU log (data/real/ck-accmag, see its PROVENANCE.md).
 
 12 000 rows of ``ax,ay,az`` (g, calibrated) and ``mx,my,mz`` (gauss), no time column, no
 temperature, no reference magnitude.  The loader converts the field to nT and makes a
@@ -40,8 +40,8 @@ import numpy as np
 import pytest
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
-#: copied unchanged from ../shared/data/real/ck-accmag (Apache-2.0, see PROVENANCE.md there)
-CSV = REPO / 'test' / 'data' / 'ck_accmag' / 'acc_mag_log.csv'
+#: the source's file, gzip-compressed (Apache-2.0, see data/real/ck-accmag/PROVENANCE.md)
+CSV = REPO / 'data' / 'real' / 'ck-accmag' / 'acc_mag_log.csv.gz'
 
 
 def angle_deg(b, g):

@@ -39,6 +39,7 @@ import os
 import re
 import subprocess
 import sys
+import threading
 
 from magcal_ros.core.data.simulate import simulate
 from magcal_ros.core.live.sync import StampMatcher
@@ -48,6 +49,7 @@ from magcal_ros.io.calfile import (calibration_to_doc, list_history, load_calibr
                                    save_calibration)
 from magcal_ros.io.csvio import write_csv
 from magcal_ros.pipeline import calibrate, cross_geometry
+from magcal_ros.ros import calibration_node as node_module
 from magcal_ros.ros.calibration_node import CalibrationNode, RESULT_QOS
 from magcal_ros.ros.conversions import field_nt_to_msg, msg_to_field_nt
 from magcal_ros.ros.corrector_node import CorrectorNode
@@ -313,7 +315,7 @@ def test_node_robust_fit_reports_down_weighted_spikes(make_node, ros_node, ros_e
 
 
 def test_simultaneous_requests_and_invalid_parameters_leave_a_consistent_state(
-        make_node, ros_node, ros_executor, ros_namespace, tmp_path, tumbling):
+        make_node, ros_node, ros_executor, ros_namespace, tmp_path, tumbling, monkeypatch):
     data, _ = tumbling
     node = start_node(make_node, ros_namespace, tmp_path)
     path = tmp_path / 'cal' / 'calibration.yaml'
@@ -330,29 +332,25 @@ def test_simultaneous_requests_and_invalid_parameters_leave_a_consistent_state(
         spin_until(ros_executor, lambda: all(f.done() for f in futures), 90.0)
         return [f.result() for f in futures]
 
-    # start and calibrate at the same moment, with a full buffer: whichever runs first, the
-    # other either works on a consistent buffer or is refused cleanly
-    assert call_trigger(ros_node, ros_executor, 'calibration/start').success
-    feeder.feed(ros_executor, data, taken=lambda: int(node.received.sum()), temperature=False)
-    start, calib = at_once('start', 'calibrate')
-    if start.success:
-        # start ran first (or the calibrate finished first, then start cleared the buffer)
-        assert calib.success or 'only 0 complete sample sets' in calib.message or \
-            calib.message.startswith('a calibration is already running'), calib.message
-    else:
-        assert 'a calibration is running' in start.message
-        assert calib.success, calib.message
-    assert node.state == 'collecting'         # collection goes on after a calibrate
-    if path.exists():
-        load_calibration(path)                          # a complete, valid file
+    # the solve is held inside the fit until the test lets it go (not "a solve slower than
+    # two service calls"): every request below arrives during it, on every machine
+    entered, release = threading.Event(), threading.Event()
+    solve = node_module.run_calibration
 
-    # during a solve: diagnose and start are refused, invalid parameters are refused, a
-    # valid one is taken, and the solve is not disturbed
+    def held_solve(*args, **kwargs):
+        entered.set()
+        assert release.wait(60.0), 'the test never released the solve'
+        return solve(*args, **kwargs)
+
+    monkeypatch.setattr(node_module, 'run_calibration', held_solve)
     assert call_trigger(ros_node, ros_executor, 'calibration/start').success
     feeder.feed(ros_executor, data, taken=lambda: int(node.received.sum()), temperature=False)
     n_hist = len(list_history(path))
+    # during a solve: diagnose and start are refused, invalid parameters are refused, a
+    # valid one is taken, and the solve is not disturbed
     calib = clients['calibrate'].call_async(Trigger.Request())
-    spin_until(ros_executor, lambda: node.state == 'calibrating', 10.0, 'the solve')
+    spin_until(ros_executor, entered.is_set, 10.0, 'the solve')
+    assert node.state == 'calibrating'
     diag, start = at_once('diagnose', 'start')
     bad = {'model': ['base', 'warp_drive'], 'min_samples': -5, 'stamp_tolerance_s': -0.01,
            'field_nt': float('nan'), 'calibration_file': ''}
@@ -364,7 +362,8 @@ def test_simultaneous_requests_and_invalid_parameters_leave_a_consistent_state(
     fut = params.set_parameters([Parameter('min_samples', value=200)])
     spin_until(ros_executor, fut.done, 10.0)
     assert fut.result().results[0].successful
-    assert not calib.done(), 'the solve ended before the requests were made'
+    assert not calib.done()
+    release.set()
     spin_until(ros_executor, calib.done, 120.0)
     assert calib.result().success, calib.result().message
     assert not diag.success and diag.message.startswith('a calibration is already running')
@@ -382,6 +381,14 @@ def test_simultaneous_requests_and_invalid_parameters_leave_a_consistent_state(
     assert out['sets'] == data.n_samples and out['calibration_file'] == str(path)
     assert len(list_history(path)) == n_hist + 1
     assert load_calibration(path)[1]['provenance']['samples'] == data.n_samples
+    assert node.state == 'collecting'         # collection goes on after a calibrate
+    # a calibrate right after a start works on the buffer the start emptied: refused, and
+    # the calibration file stays the one just written
+    assert call_trigger(ros_node, ros_executor, 'calibration/start').success
+    calib = call_trigger(ros_node, ros_executor, 'calibration/calibrate')
+    assert not calib.success and calib.message.startswith(
+        'not calibrated:\nonly 0 complete sample sets collected'), calib.message
+    assert len(list_history(path)) == n_hist + 1
     assert node.state == 'collecting'
 
 

@@ -73,7 +73,7 @@ def readme_ros_lines():
     """Return the ``ros2 ...`` lines of the README block that shows ``ros2 run`` (comments cut)."""
     text = (REPO_ROOT / 'README.md').read_text()
     blocks = re.findall(r'```(?:bash|sh)?\n(.*?)```', text, flags=re.S)
-    (block,) = [b for b in blocks if 'ros2 run magcal_ros calibration_node' in b]
+    (block,) = [b for b in blocks if 'ros2 run magcal_ros calibration_node &' in b]
     lines = []
     for line in block.splitlines():
         line = line.split('  #')[0].strip().rstrip('&').strip()

@@ -24,7 +24,8 @@ def atomic_write_text(path, text, backup=True, fsync=os.fsync):
 
     The previous file, if any, is kept as ``<path>.bak`` when ``backup`` is true.  If anything
     fails before the final rename the original file is untouched and the temporary is removed.
-    ``fsync`` is injectable so that tests can simulate a failing disk.
+    ``fsync`` is injectable so that tests can simulate a failing disk.  ``text`` may be
+    ``bytes`` (written as they are).
     """
     path = os.fspath(path)
     directory = os.path.dirname(os.path.abspath(path))
@@ -32,7 +33,9 @@ def atomic_write_text(path, text, backup=True, fsync=os.fsync):
     fd, tmp = tempfile.mkstemp(prefix='.' + os.path.basename(path) + '.', suffix='.tmp',
                                dir=directory)
     try:
-        with os.fdopen(fd, 'w', encoding='utf-8') as fh:
+        binary = isinstance(text, bytes)
+        with os.fdopen(fd, 'wb' if binary else 'w',
+                       **({} if binary else {'encoding': 'utf-8'})) as fh:
             fh.write(text)
             fh.flush()
             fsync(fh.fileno())

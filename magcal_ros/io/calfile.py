@@ -55,6 +55,124 @@ class CalibrationFileError(ValueError):
     """A calibration file that cannot be used; the message names the problem."""
 
 
+_NUMBER = {'type': 'number'}
+_VEC3 = {'type': 'array', 'items': _NUMBER, 'minItems': 3, 'maxItems': 3}
+_MAT3 = {'type': 'array', 'items': _VEC3, 'minItems': 3, 'maxItems': 3}
+_EFFECT = {
+    'type': 'object',
+    'required': ['name', 'params'],
+    'properties': {
+        'name': {'type': 'string'},
+        'label': {'type': 'string'},
+        'refs': {'type': ['object', 'null'], 'additionalProperties': _NUMBER},
+        'params': {'type': 'object', 'additionalProperties': {
+            'type': 'object',
+            'required': ['value'],
+            'properties': {'value': _NUMBER, 'unit': {'type': 'string'},
+                           'stderr': _NUMBER}}},
+    },
+}
+
+#: The calibration document's structure (schema_version 1), a JSON Schema (draft 2020-12)
+#: checked with the jsonschema library before the document is read.  What a schema cannot say
+#: is checked in :func:`calibration_from_doc`: the effects exist (plug-ins included) with
+#: exactly their parameters, ids run 1..S, positions_m has one row per sensor, the stored
+#: matrices agree with the parameters, the model list matches the sensors' effects.
+SCHEMA = {
+    '$schema': 'https://json-schema.org/draft/2020-12/schema',
+    'title': 'magcal_ros calibration file, schema_version 1 (docs/design.md section 4)',
+    'type': 'object',
+    'required': ['schema_version', 'sensors', 'provenance'],
+    'properties': {
+        'schema_version': {'type': 'integer'},
+        'kind': {'const': 'magcal_ros/calibration'},
+        'model': {'type': 'array', 'items': {'type': 'string'}},
+        # positions_m: one row of 3 numbers (m) per sensor, checked against the sensors
+        'geometry': {'type': ['object', 'null']},
+        'field_reference': {'type': ['object', 'null']},
+        'sensors': {'type': 'array', 'minItems': 1, 'items': {
+            'type': 'object',
+            'required': ['id', 'effects'],
+            'properties': {
+                'id': {'type': 'integer'},
+                'sigma_nt': _NUMBER,
+                'effects': {'type': 'array', 'items': _EFFECT},
+                'correction_matrix': _MAT3,
+                'intrinsic_correction': _MAT3,
+                'offset_nt': _VEC3,
+                'rotation_to_sensor1': _MAT3,
+            }}},
+        'array_effects': {'type': ['array', 'null'], 'items': _EFFECT},
+        'site_gradient_nt_per_m': {'type': 'object', 'properties': {
+            'frame': {'type': 'string'},
+            'value': _MAT3, 'stderr': _MAT3,
+            'covariance_5': {'type': 'array', 'items': {'type': 'array', 'items': _NUMBER}}}},
+        'provenance': {'type': 'object'},
+    },
+}
+
+_TYPE_WORDS = {'object': 'a mapping', 'array': 'a list', 'number': 'a number',
+               'integer': 'an integer', 'string': 'a string', 'null': 'empty'}
+_VALIDATOR = []
+
+
+def _where(path):
+    """'sensors[2].effects[0].params.kx' from a jsonschema error path."""
+    out = ''
+    for p in path:
+        out += f'[{p}]' if isinstance(p, int) else (f'.{p}' if out else str(p))
+    return out
+
+
+def _schema_error(err, source):
+    """One CalibrationFileError naming where in the document and what is wrong."""
+    where = _where(err.absolute_path)
+    at = f'{source}: {where}' if where else source
+    if err.validator == 'required':
+        missing = next(k for k in err.validator_value if k not in err.instance)
+        if missing == 'provenance' and not where:
+            return CalibrationFileError(f"{source}: missing key 'provenance' (the file ends "
+                                        'early: truncated write?)')
+        return CalibrationFileError(f'{at}: missing key {missing!r}; write the calibration '
+                                    'again with magcal fit or roll back (magcal rollback)')
+    if err.validator == 'type':
+        want = err.validator_value if isinstance(err.validator_value, list) \
+            else [err.validator_value]
+        what = ' or '.join(_TYPE_WORDS.get(w, w) for w in want)
+        key = where.rsplit('.', 1)[-1] if where else 'the document'
+        problem = f'{key} is not {what} ({err.instance!r:.40})'
+    elif err.validator in ('minItems', 'maxItems'):
+        key = where.rsplit('.', 1)[-1] if where else 'the document'
+        problem = (f'{key} must have {"at least" if err.validator == "minItems" else "at most"}'
+                   f' {err.validator_value} entries, has {len(err.instance)}')
+    else:
+        problem = err.message[:120]
+    return CalibrationFileError(
+        f'{source}: malformed calibration document: {where or "top level"}: {problem}; write '
+        'it again with magcal fit or roll back (magcal rollback)')
+
+
+def validate_document(doc, source='calibration'):
+    """
+    Check ``doc`` against :data:`SCHEMA`; raise CalibrationFileError on the first problem.
+
+    The problem reported is the one jsonschema ranks first (``best_match``), except that a
+    missing ``provenance`` (written last: the file was cut short) is told only when nothing
+    earlier in the document is wrong, so that a cut inside the sensors names the sensor.
+    """
+    if not _VALIDATOR:
+        import jsonschema                        # here: not every user of calfile needs it
+        _VALIDATOR.append(jsonschema.Draft202012Validator(SCHEMA))
+    from jsonschema.exceptions import best_match
+    errors = list(_VALIDATOR[0].iter_errors(doc))
+    if not errors:
+        return
+    truncated = [e for e in errors if e.validator == 'required' and not e.absolute_path
+                 and 'provenance' not in e.instance]
+    rest = [e for e in errors if e not in truncated]
+    raise _schema_error(best_match(rest) if rest else truncated[0], source)
+
+
 def _mat(a):
     return [[float(x) for x in row] for row in np.asarray(a)]
 
@@ -135,12 +253,7 @@ def _check_complete(doc, model, source):
     """Refuse a document cut short (truncated write) or whose parts disagree."""
     # provenance is written last: without it the file ended early, possibly in the middle
     # of the sensors list (fewer sensors or effects than were calibrated)
-    prov = doc.get('provenance')
-    if prov is None:
-        raise CalibrationFileError(f"{source}: missing key 'provenance' (the file ends early: "
-                                   'truncated write?)')
-    if not isinstance(prov, dict):
-        raise CalibrationFileError(f'{source}: provenance must be a mapping')
+    # (its presence and type: the schema)
     spec = doc.get('model')
     if spec is not None:
         if not isinstance(spec, list) or sorted(map(str, spec)) != sorted(model.spec()):
@@ -148,8 +261,6 @@ def _check_complete(doc, model, source):
                 f'{source}: model {spec!r} does not match the effects of the sensors '
                 f'{model.spec()!r} (truncated or hand-edited?)')
     geometry = doc.get('geometry') or {}
-    if not isinstance(geometry, dict):
-        raise CalibrationFileError(f'{source}: geometry must be a mapping')
     if 'positions_m' in geometry:
         try:
             pos = np.asarray(geometry['positions_m'], float)
@@ -176,16 +287,15 @@ def _calibration_from_doc(doc, source):
         raise CalibrationFileError(f'{source}: unknown schema_version {version}')
     if doc.get('kind', KIND) != KIND:
         raise CalibrationFileError(f'{source}: kind is {doc.get("kind")!r}, expected {KIND!r}')
-    sensors = _need(doc, 'sensors', source)
-    if not isinstance(sensors, list) or not sensors:
-        raise CalibrationFileError(f'{source}: sensors must be a non-empty list')
+    validate_document(doc, source)
+    sensors = doc['sensors']
     effects, sigma = [], []
     values = {}                  # id(effect) -> ((n,) values, (n,) stderr) from the file
 
     def read_effects(edocs, k, where):
         row = []
         for e in edocs:
-            name = _need(e, 'name', where)
+            name = e['name']
             label = e.get('label', name)
             try:
                 eff = fx.make_effect(label if label.startswith('aux:') or '(' in label
@@ -193,7 +303,7 @@ def _calibration_from_doc(doc, source):
             except ValueError as exc:
                 raise CalibrationFileError(f'{where}: {exc}') from None
             eff.refs = {str(a): float(b) for a, b in (e.get('refs') or {}).items()}
-            pdoc = _need(e, 'params', f'{where} effect {label}')
+            pdoc = e['params']
             if list(pdoc) != list(eff.param_names):
                 raise CalibrationFileError(
                     f'{where} effect {label}: parameters {list(pdoc)} but expected '
@@ -201,11 +311,8 @@ def _calibration_from_doc(doc, source):
             v, s = [], []
             for pn in eff.param_names:
                 entry = pdoc[pn]
-                try:
-                    v.append(float(_need(entry, 'value', f'{where} {label}.{pn}')))
-                    s.append(float(entry.get('stderr', 0.0)))
-                except (TypeError, ValueError):
-                    raise CalibrationFileError(f'{where} {label}.{pn}: value is not a number')
+                v.append(float(entry['value']))              # a number: the schema
+                s.append(float(entry.get('stderr', 0.0)))
                 if not np.isfinite(v[-1]):
                     raise CalibrationFileError(f'{where} {label}.{pn}: value is not finite')
             values[id(eff)] = (v, s)
@@ -214,9 +321,9 @@ def _calibration_from_doc(doc, source):
 
     for k, sdoc in enumerate(sensors, start=1):
         where = f'{source}: sensors[{k - 1}]'
-        if _need(sdoc, 'id', where) != k:
+        if sdoc['id'] != k:
             raise CalibrationFileError(f'{where}: id must be {k} (sensors in order 1..S)')
-        effects.append(read_effects(_need(sdoc, 'effects', where), k, where))
+        effects.append(read_effects(sdoc['effects'], k, where))
         sigma.append(float(sdoc.get('sigma_nt', np.nan)))
     array_effects = read_effects(doc.get('array_effects') or [], 0, f'{source}: array_effects')
     drops = []
@@ -254,12 +361,8 @@ def _calibration_from_doc(doc, source):
             raise CalibrationFileError(f'{source}: sensor {k}: the linear map is singular')
         stored = sdoc.get('correction_matrix')
         if stored is not None:
-            try:
-                stored = np.asarray(stored, float)
-            except (TypeError, ValueError):
-                raise CalibrationFileError(f'{source}: sensor {k}: correction_matrix is not '
-                                           'a 3x3 matrix of numbers')
-            if stored.shape != (3, 3) or not np.allclose(stored, np.linalg.inv(a), atol=1e-6):
+            stored = np.asarray(stored, float)                  # 3 x 3 numbers: the schema
+            if not np.allclose(stored, np.linalg.inv(a), atol=1e-6):
                 raise CalibrationFileError(
                     f'{source}: sensor {k}: correction_matrix does not match the parameters '
                     '(hand-edited?); edit the parameters, not the derived matrices')

@@ -13,13 +13,16 @@
 # limitations under the License.
 
 """The wide CSV format of docs/design.md §1 (read and write)."""
+import csv
 import io as _io
 import os
 import re
+import warnings
 
 from magcal_ros.core.data.dataset import Dataset
 from magcal_ros.core.geometry.attitude import check_quaternions, COLUMNS as ATT_COLUMNS
 from magcal_ros.io.atomic import atomic_write_text
+from magcal_ros.io.compressed import compress_text, compression, CorruptArchiveError, open_text
 import numpy as np
 
 _SENSOR_COL = re.compile(r'^s(\d+)_(x|y|z|temp)$')
@@ -30,6 +33,10 @@ class CsvFormatError(ValueError):
     """The file is not a valid wide CSV; the message says what and where."""
 
 
+class _Recheck(Exception):
+    """The fast read met something to report: read again row by row to name line and column."""
+
+
 def read_csv(path):
     """
     Read a wide CSV file into a :class:`Dataset`.
@@ -38,72 +45,61 @@ def read_csv(path):
     ``ref_total`` (nT), ``ref_x/y/z`` (nT), ``angle_deg``, ``plane`` (xy|xz), ``aux_<name>``,
     ``att_qw, att_qx, att_qy, att_qz`` (all four: body-to-world unit quaternion, Hamilton,
     scalar first).
-    ``#`` lines are comments.  Unknown columns are an error.
+    ``#`` lines are comments.  Unknown columns are an error.  A ``.csv.gz`` or ``.csv.zst``
+    file is decompressed as it is read (:mod:`magcal_ros.io.compressed`).
+
+    The numbers are parsed by numpy's C reader (:func:`numpy.loadtxt`); a file with empty cells
+    (an optional value not given: NaN) is read again with them filled in.  When that read
+    meets anything to report (a cell that is not a number, a row of the wrong length, an
+    empty or non-finite required cell, a bad attitude) or the file has a text column
+    (``plane``), the file is read once more row by row with the :mod:`csv` module, so that
+    the error names the line and the column.
     """
     path = os.fspath(path)
+    for how in ('numpy', 'numpy, empty cells filled'):
+        try:
+            return _read(path, fast=True, fill=how != 'numpy')
+        except _Recheck:
+            pass
+    return _read(path, fast=False)
+
+
+def _read(path, fast, fill=False):
     try:
         # utf-8-sig: a spreadsheet's byte-order mark is not part of the first column's name
-        with open(path, encoding='utf-8-sig') as fh:
-            numbered = [(no, ln) for no, ln in enumerate(fh, start=1)
-                        if ln.strip() and not ln.lstrip().startswith('#')]
+        with open_text(path, encoding='utf-8-sig') as fh:
+            header_no, header_line = _header_line(fh)
+            if header_line is None:
+                raise CsvFormatError(f'{path} has no header row')
+            header, sensors = _parse_header(path, header_line)
+            plane_col = header.index('plane') if 'plane' in header else None
+            if fast:
+                if plane_col is not None:
+                    raise _Recheck()
+                arr, planes, rows_no = _fast_rows(fh, len(header), fill), None, None
+            else:
+                try:
+                    arr, planes, rows_no, cells = _csv_rows(path, fh, header, plane_col,
+                                                            header_no)
+                except (CsvFormatError, UnicodeDecodeError):
+                    if compression(path):
+                        # a corrupt archive garbles rows before its checksum is reached:
+                        # read to its end, so that the archive's own error is the one told
+                        while fh.read(1 << 20):
+                            pass
+                    raise
+    except CorruptArchiveError as exc:
+        raise CsvFormatError(str(exc)) from None
     except OSError as exc:
         raise CsvFormatError(f'cannot read {path}: {exc.strerror}') from exc
     except UnicodeDecodeError as exc:
         raise CsvFormatError(f'{path} is not a text CSV file ({exc})') from exc
-    if not numbered:
-        raise CsvFormatError(f'{path} has no header row')
-    line_nos = [no for no, _ in numbered]
-    lines = [ln for _, ln in numbered]
-    for sep, name in ((';', 'semicolon'), ('\t', 'tab')):
-        if lines[0].count(sep) > lines[0].count(','):
-            raise CsvFormatError(f'{path}: the fields are separated by {name}s ({sep!r}); the '
-                                 "wide CSV is comma separated: export it with ',' as the "
-                                 'separator')
-    if len(lines) == 1:
-        raise CsvFormatError(f'{path}: no data rows (only the header)')
-    header = [h.strip() for h in lines[0].strip().split(',')]
-    sensors = {}
-    for i, h in enumerate(header):
-        m = _SENSOR_COL.match(h)
-        if m:
-            sensors.setdefault(int(m.group(1)), {})[m.group(2)] = i
-        elif h not in _KNOWN and not h.startswith('aux_'):
-            raise CsvFormatError(
-                f'{path}: unknown column {h!r}; allowed: t, s<j>_x, s<j>_y, s<j>_z, s<j>_temp, '
-                'ref_total, ref_x, ref_y, ref_z, angle_deg, plane, aux_<name>, '
-                'att_qw, att_qx, att_qy, att_qz')
-    if len(set(header)) != len(header):
-        raise CsvFormatError(f'{path}: duplicate column names in the header')
-    if 't' not in header:
-        raise CsvFormatError(f'{path}: the time column t is missing')
-    if not sensors:
-        raise CsvFormatError(f'{path}: no sensor columns (s1_x, s1_y, s1_z, ...)')
+    if fast:
+        if _first_non_finite(header, arr) is not None:
+            raise _Recheck()
+    else:
+        _check_finite(path, header, arr, rows_no, cells)
     n_s = max(sensors)
-    for j in range(1, n_s + 1):
-        missing = [a for a in 'xyz' if a not in sensors.get(j, {})]
-        if missing:
-            raise CsvFormatError(f'{path}: sensor {j} lacks column(s) '
-                                 f'{", ".join(f"s{j}_{a}" for a in missing)}')
-    plane_col = header.index('plane') if 'plane' in header else None
-    rows = []
-    planes = []
-    for ln_no, ln in zip(line_nos[1:], lines[1:]):
-        parts = [p.strip() for p in ln.strip().split(',')]
-        if len(parts) != len(header):
-            raise CsvFormatError(f'{path}: line {ln_no} has {len(parts)} fields, header has '
-                                 f'{len(header)}')
-        if plane_col is not None:
-            planes.append(parts[plane_col])
-            parts[plane_col] = 'nan'
-        try:
-            rows.append([float(p) if p != '' else np.nan for p in parts])
-        except ValueError:
-            bad = next(p for p in parts if not _isfloat(p))
-            raise CsvFormatError(f'{path}: line {ln_no}: {bad!r} is not a number') from None
-    arr = np.array(rows, float).reshape(-1, len(header))
-    rows_no = np.array(line_nos[1:])
-    _check_finite(path, header, arr, rows_no,
-                  [lines[k] for k in range(1, len(lines))])
     col = {h: arr[:, i] for i, h in enumerate(header)}
     t = col['t']
     if len(t) and (not np.all(np.isfinite(t)) or np.any(np.diff(t) < 0)):
@@ -127,6 +123,8 @@ def read_csv(path):
             attitude = check_quaternions(np.column_stack([col[c] for c in ATT_COLUMNS]),
                                          rows=rows_no)
         except ValueError as exc:
+            if fast:
+                raise _Recheck() from None
             raise CsvFormatError(f'{path}: {exc}') from None
     return Dataset(t=t, raw=raw, temp=temp, ref_total=col.get('ref_total'), ref_vec=ref_vec,
                    angle_deg=col.get('angle_deg'),
@@ -135,21 +133,123 @@ def read_csv(path):
                    meta={'source': path}, attitude=attitude)
 
 
+def _is_content(line):
+    return bool(line.strip()) and not line.lstrip().startswith('#')
+
+
+def _header_line(fh):
+    """(line number, text) of the first line that is neither blank nor a comment."""
+    for no, line in enumerate(fh, start=1):
+        if _is_content(line):
+            return no, line
+    return None, None
+
+
+def _parse_header(path, line):
+    """(column names, {sensor: {axis: column index}}) of the header line, checked."""
+    for sep, name in ((';', 'semicolon'), ('\t', 'tab')):
+        if line.count(sep) > line.count(','):
+            raise CsvFormatError(f'{path}: the fields are separated by {name}s ({sep!r}); the '
+                                 "wide CSV is comma separated: export it with ',' as the "
+                                 'separator')
+    header = [h.strip() for h in next(csv.reader([line]))]
+    sensors = {}
+    for i, h in enumerate(header):
+        m = _SENSOR_COL.match(h)
+        if m:
+            sensors.setdefault(int(m.group(1)), {})[m.group(2)] = i
+        elif h not in _KNOWN and not h.startswith('aux_'):
+            raise CsvFormatError(
+                f'{path}: unknown column {h!r}; allowed: t, s<j>_x, s<j>_y, s<j>_z, s<j>_temp, '
+                'ref_total, ref_x, ref_y, ref_z, angle_deg, plane, aux_<name>, '
+                'att_qw, att_qx, att_qy, att_qz')
+    if len(set(header)) != len(header):
+        raise CsvFormatError(f'{path}: duplicate column names in the header')
+    if 't' not in header:
+        raise CsvFormatError(f'{path}: the time column t is missing')
+    if not sensors:
+        raise CsvFormatError(f'{path}: no sensor columns (s1_x, s1_y, s1_z, ...)')
+    for j in range(1, max(sensors) + 1):
+        missing = [a for a in 'xyz' if a not in sensors.get(j, {})]
+        if missing:
+            raise CsvFormatError(f'{path}: sensor {j} lacks column(s) '
+                                 f'{", ".join(f"s{j}_{a}" for a in missing)}')
+    return header, sensors
+
+
+#: an empty cell (between commas, or at either end of a line)
+_EMPTY_CELL = re.compile(r'(?:(?<=,)|^)[ \t]*(?=,|\r?\n?$)')
+
+
+def _filled(lines):
+    for line in lines:
+        if ',,' in line or line.startswith(',') or line.rstrip().endswith(','):
+            line = _EMPTY_CELL.sub('nan', line)
+        yield line
+
+
+def _fast_rows(fh, n_cols, fill):
+    """(N, n_cols) floats of the rest of ``fh`` by numpy's C reader, or raise _Recheck."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter('ignore', UserWarning)        # 'input contained no data'
+            arr = np.loadtxt(_filled(fh) if fill else fh, delimiter=',', comments='#',
+                             dtype=float, ndmin=2)
+    except ValueError:
+        raise _Recheck() from None
+    if arr.shape[0] == 0 or arr.shape[1] != n_cols:
+        raise _Recheck()
+    return arr
+
+
+def _csv_rows(path, fh, header, plane_col, header_no):
+    """Rows after the header by the csv module: (floats, planes, line numbers, cells)."""
+    rows, planes, line_nos, cells = [], [], [], []
+    for ln_no, line in enumerate(fh, start=header_no + 1):
+        if not _is_content(line):
+            continue
+        parts = [p.strip() for p in next(csv.reader([line]))]
+        if len(parts) != len(header):
+            raise CsvFormatError(f'{path}: line {ln_no} has {len(parts)} fields, header has '
+                                 f'{len(header)}')
+        cells.append(list(parts))
+        if plane_col is not None:
+            planes.append(parts[plane_col])
+            parts[plane_col] = 'nan'
+        try:
+            rows.append([float(p) if p != '' else np.nan for p in parts])
+        except ValueError:
+            i = next(i for i, p in enumerate(parts) if not _isfloat(p))
+            raise CsvFormatError(f'{path}: line {ln_no}, column {header[i]}: {parts[i]!r} is '
+                                 'not a number') from None
+        line_nos.append(ln_no)
+    if not rows:
+        raise CsvFormatError(f'{path}: no data rows (only the header)')
+    return np.array(rows, float).reshape(-1, len(header)), planes, np.array(line_nos), cells
+
+
 #: columns that must hold a finite number in every row (the others may be empty: no value)
 _REQUIRED_FINITE = re.compile(r'^(t|s\d+_[xyz]|ref_total|ref_[xyz])$')
 
 
-def _check_finite(path, header, arr, line_nos, lines):
-    """Raise a CsvFormatError naming the first line and column with an empty, nan or inf cell."""
+def _first_non_finite(header, arr):
+    """(row, column index) of the first empty, nan or inf required cell, or None."""
     cols = [i for i, h in enumerate(header) if _REQUIRED_FINITE.match(h)]
     bad = ~np.isfinite(arr[:, cols])
     if not bad.any():
-        return
+        return None
     r, c = np.argwhere(bad)[0]
-    i = cols[c]
-    cell = lines[r].strip().split(',')[i].strip()
+    return int(r), cols[c], int(bad.any(axis=1).sum())
+
+
+def _check_finite(path, header, arr, line_nos, cells):
+    """Raise a CsvFormatError naming the first line and column with an empty, nan or inf cell."""
+    found = _first_non_finite(header, arr)
+    if found is None:
+        return
+    r, i, n_bad = found
+    cell = cells[r][i]
     what = 'an empty cell' if cell == '' else f'{cell!r} is not a finite number'
-    n_bad = int(bad.any(axis=1).sum())
     raise CsvFormatError(f'{path}: line {line_nos[r]}, column {header[i]}: {what} '
                          f'({n_bad} row(s) affected); fill or drop those rows')
 
@@ -200,5 +300,5 @@ def format_csv(data, comment=None):
 
 
 def write_csv(path, data, comment=None):
-    """Write a :class:`Dataset` as a wide CSV file, atomically."""
-    atomic_write_text(path, format_csv(data, comment), backup=False)
+    """Write a :class:`Dataset` as a wide CSV file, atomically (``.gz``/``.zst``: compressed)."""
+    atomic_write_text(path, compress_text(path, format_csv(data, comment)), backup=False)

@@ -31,6 +31,7 @@ uniform field), see ``test/test_real_data.py``.
 import os
 
 from magcal_ros.core.data.dataset import Dataset
+from magcal_ros.io.compressed import open_text
 from magcal_ros.units import t_to_nt
 import numpy as np
 
@@ -87,28 +88,15 @@ def read_single_sensor_csv(path, unit='gauss', rate_hz=100.0, field_columns=None
     """
     path = os.fspath(path)
     try:
-        with open(path, encoding='utf-8') as fh:
+        with open_text(path, encoding='utf-8') as fh:
             header = fh.readline().strip().split(',')
+            fcols, acols = _columns(path, header, field_columns, accel_columns)
+            try:
+                arr = np.loadtxt(fh, delimiter=',', ndmin=2, comments='#')
+            except ValueError as exc:
+                raise ValueError(f'{path}: not a numeric CSV after the header ({exc})') from exc
     except OSError as exc:
         raise ValueError(f'cannot read {path}: {exc.strerror}') from exc
-    if field_columns:
-        low = [h.strip().lower() for h in header]
-        missing = [c for c in field_columns if c.lower() not in low]
-        if missing:
-            raise ValueError(f'{path}: no column(s) {missing}; header: {header}')
-        fcols = [low.index(c.lower()) for c in field_columns]
-    else:
-        fcols = _find(header, _FIELD_NAMES, 'field')
-        if fcols is None:
-            raise ValueError(f'{path}: cannot find the magnetometer columns (mx,my,mz or '
-                             f'x,y,z ...) in the header {header}; name them with '
-                             'field_columns=')
-    acols = (_find(header, (tuple(c.lower() for c in accel_columns),), 'accel')
-             if accel_columns else _find(header, _ACC_NAMES, 'accel'))
-    try:
-        arr = np.loadtxt(path, delimiter=',', skiprows=1, ndmin=2, comments='#')
-    except ValueError as exc:
-        raise ValueError(f'{path}: not a numeric CSV after the header ({exc})') from exc
     if arr.shape[0] < 3:
         raise ValueError(f'{path}: only {arr.shape[0]} data rows')
     raw = to_nt(arr[:, fcols], unit)
@@ -128,3 +116,22 @@ def read_single_sensor_csv(path, unit='gauss', rate_hz=100.0, field_columns=None
         'source': path, 'unit': unit, 'synthetic_time': synthetic,
         'assumed_rate_hz': float(rate_hz) if synthetic else None,
         'accel': None if acols is None else arr[:, acols]})
+
+
+def _columns(path, header, field_columns, accel_columns):
+    """(field column indices, accelerometer column indices or None) from the header."""
+    if field_columns:
+        low = [h.strip().lower() for h in header]
+        missing = [c for c in field_columns if c.lower() not in low]
+        if missing:
+            raise ValueError(f'{path}: no column(s) {missing}; header: {header}')
+        fcols = [low.index(c.lower()) for c in field_columns]
+    else:
+        fcols = _find(header, _FIELD_NAMES, 'field')
+        if fcols is None:
+            raise ValueError(f'{path}: cannot find the magnetometer columns (mx,my,mz or '
+                             f'x,y,z ...) in the header {header}; name them with '
+                             'field_columns=')
+    acols = (_find(header, (tuple(c.lower() for c in accel_columns),), 'accel')
+             if accel_columns else _find(header, _ACC_NAMES, 'accel'))
+    return fcols, acols

@@ -34,9 +34,11 @@ Topics (relative to the node namespace, default ``/magcal``; docs/design.md §3)
   residual |b_j - mean of the others| (:func:`magcal_ros.ros.conversions.residual_to_msg`;
   ``data[j-1]`` and ``data[S+j-1]`` plot in rqt_plot / PlotJuggler), and on ``/diagnostics``
   their rolling RMS over the noise floor of the data, WARN above
-  :data:`magcal_ros.core.live.corrector.RESIDUAL_WARN_RATIO`: the calibration no longer fits, time
-  to
-  diagnose (:class:`magcal_ros.core.live.corrector.ResidualMonitor`).
+  :data:`magcal_ros.core.live.corrector.RESIDUAL_WARN_RATIO`: the calibration no longer fits,
+  time to diagnose (:class:`magcal_ros.core.live.corrector.ResidualMonitor`); ERROR, naming
+  the effect and counting its errors, when the code of an effect raised (on a live sample: no
+  residual for it; in calibrate or diagnose: that call answers success=false naming the
+  effect), logged once per effect.
 
 Services (std_srvs/srv/Trigger; the response message is a short summary, a newline, then
 one JSON object):
@@ -64,6 +66,8 @@ import threading
 import time
 
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+from geometry_msgs.msg import Twist
+from magcal_ros.core.effects.safety import culprit, EffectError, EffectErrors
 from magcal_ros.core.geometry.attitude import UNIT_TOLERANCE
 from magcal_ros.core.live.consistency import GROSS_FRACTION, resync
 from magcal_ros.core.live.corrector import (LiveCorrector, MissingSignal, RESIDUAL_WARN_RATIO,
@@ -74,7 +78,8 @@ from magcal_ros.core.model.identifiability import check_coverage
 from magcal_ros.core.model.notes import format_note
 from magcal_ros.io.calfile import (CalibrationFileError, dump_calibration, load_calibration,
                                    parse_calibration, save_calibration)
-from magcal_ros.pipeline import calibrate as run_calibration, cross_geometry
+from magcal_ros.pipeline import (array_geometry, calibrate as run_calibration,
+                                 geometry_mismatch, tensor_undetermined)
 from magcal_ros.ros import params as prm
 from magcal_ros.ros.conversions import msg_to_field_nt, residual_to_msg, stamp_to_seconds
 from magcal_ros.ros.diagnostics import fill, Updater
@@ -179,6 +184,8 @@ class CalibrationNode(Node):
         self.add_on_set_parameters_callback(self._on_set_parameters)
         s = prm.calibration_settings(self)
         self._n = s.n_sensors
+        self._active_cal = None                 # the calibration applied now (planar prior)
+        self._turn_stop = threading.Event()     # set on shutdown: calibration/turn stops
         self._aux_cols = ['aux_' + a for a in s.aux_topics]
 
         self._lock = threading.Lock()           # buffer, matcher, latest signals, state
@@ -202,14 +209,14 @@ class CalibrationNode(Node):
         self._monitor = None
         self._residual_missing = None
         self._residual_sets = 0                 # residual messages published
+        self._effect_errors = EffectErrors()    # errors of effect code (live, calibrate, ...)
         self._taken = 0                         # raw samples taken (all sensors, any state)
 
         service_group = ReentrantCallbackGroup()
         self._subs = []
-        for j in range(1, self._n + 1):
+        for j, topic in enumerate(s.input_topics, start=1):
             self._subs.append(self.create_subscription(
-                MagneticField, f'sensor{j}/raw', self._raw_cb(j - 1),
-                CALIBRATION_SENSOR_QOS))
+                MagneticField, topic, self._raw_cb(j - 1), CALIBRATION_SENSOR_QOS))
             self._subs.append(self.create_subscription(
                 Temperature, f'sensor{j}/temperature', self._temp_cb(j - 1),
                 SENSOR_QOS))
@@ -233,11 +240,21 @@ class CalibrationNode(Node):
                                 callback_group=service_group),
             self.create_service(Trigger, 'calibration/reset', self._on_reset,
                                 callback_group=service_group),
+            self.create_service(Trigger, 'calibration/turn', self._on_turn,
+                                callback_group=service_group),
         ]
+        self._cmd_vel = (self.create_publisher(Twist, s.cmd_vel_topic, 10)
+                         if s.cmd_vel_topic else None)
         self._status_timer = self.create_timer(s.status_period_s, self._publish_status)
         self._updater = Updater(self, s.status_period_s)
         self._updater.setHardwareID(self.get_namespace())
         self._updater.add('residual', lambda stat: fill(stat, self.residual_status()))
+        self._setup = self._describe_setup(s)
+        self._updater.add('setup', lambda stat: fill(stat, self.setup_status()))
+        say = (self.get_logger().info if self._setup[0] == DiagnosticStatus.OK else
+               self.get_logger().warning)
+        for line in self._setup[1]:
+            say(line)
         # triggered by the worker thread when a solve ends, so the executor wakes up and
         # resumes the awaiting service coroutine even when no sensor data flows
         self._wake = self.create_guard_condition(lambda: None)
@@ -247,6 +264,60 @@ class CalibrationNode(Node):
             f'calibration file {s.calibration_file}'
             + (f', plug-in effects {plugins}' if plugins else '')
             + '; call calibration/start to collect')
+
+    # -- geometry and field reference ------------------------------------------------------
+
+    def _geometry(self, s):
+        """Geometry dict of the node's parameters (None: no positions for 2, 3 or 5+)."""
+        return array_geometry(self._n, s.sensor_positions_m, s.baseline_m)
+
+    def _field(self, s, raw=None):
+        """(F nT, field_reference dict) of ``field_source`` (raw (N, 3) nT for 'shape')."""
+        from magcal_ros.core.data.magnitude import site_field_reference
+        date = s.site_date or time.strftime('%Y-%m-%d', time.gmtime())
+        lat = None if math.isnan(s.site_latitude_deg) else s.site_latitude_deg
+        lon = None if math.isnan(s.site_longitude_deg) else s.site_longitude_deg
+        source = 'shape-planar' if s.planar and s.field_source == 'shape' else s.field_source
+        return site_field_reference(source, s.field_nt, lat, lon, s.site_altitude_m, date, raw)
+
+    def _describe_setup(self, s):
+        """(level, lines) on the geometry and the field reference, said once at start-up."""
+        level, lines = DiagnosticStatus.OK, []
+        geometry = self._geometry(s)
+        inputs = ', '.join(s.input_topics)
+        if geometry is None:
+            lines.append(f'{self._n} sensors on {inputs} without sensor_positions_m: the '
+                         'tensor residuals are not computed')
+        else:
+            pos = np.asarray(geometry['positions_m'])
+            what = (f'paper 004 cross, baseline {geometry["baseline_m"]} m'
+                    if geometry['type'] == 'cross' else f'positions {pos.tolist()} m')
+            reason = tensor_undetermined(pos)
+            lines.append(f'{self._n} sensors on {inputs}, {what}; '
+                         + ('gradient tensor determined' if reason is None else
+                            f'no gradient tensor: {reason}'))
+        if s.field_source == 'igrf':
+            try:
+                f, ref = self._field(s)
+                lines.append(f'field magnitude from IGRF: {f:.1f} nT at {ref["lat_deg"]} deg, '
+                             f'{ref["lon_deg"]} deg, {s.site_altitude_m} m on {ref["date"]}')
+            except (ValueError, ImportError) as exc:
+                level = DiagnosticStatus.WARN
+                lines.append(f'field_source igrf: {exc}; calibration/calibrate will refuse')
+        elif s.field_source == 'shape':
+            lines.append('field magnitude: shape only (no reference; the mean radius of '
+                         "sensor 1's data sets the scale)")
+        else:
+            lines.append(f'field magnitude: constant field_nt {s.field_nt:.1f} nT')
+        return level, lines
+
+    def setup_status(self):
+        """``DiagnosticStatus``: the geometry, the tensor and the field reference in use."""
+        level, lines = self._setup
+        st = DiagnosticStatus(name=f'{self.get_name()}: setup',
+                              hardware_id=self.get_namespace(), level=level,
+                              message='; '.join(lines))
+        return st
 
     # -- read-only state (for in-process users and tests; ROS users see calibration/status)
 
@@ -315,12 +386,44 @@ class CalibrationNode(Node):
         except MissingSignal as exc:
             self._residual_missing = str(exc)
             return
+        except EffectError as exc:
+            # contained: no residual of this sample; the node and the other sensors go on
+            self._effect_error(exc, f'no residual of sensor {j}')
+            return
         self._residual_missing = None
         monitor = self._monitor
         for _, fields in live.sets(j, t, corrected):
             scalar, vector = monitor.add(fields)
             self._residual_pub.publish(residual_to_msg(scalar, vector))
             self._residual_sets += 1
+
+    def _effect_error(self, exc, what):
+        """Count an error of effect code (:class:`EffectError`); log the first per effect."""
+        if self._effect_errors.add(exc, what):
+            self.get_logger().error(f'{exc} ({what}); further errors of it are counted on '
+                                    '/diagnostics, not logged')
+
+    def _named(self, exc, service):
+        """
+        (reason, payload entries) of an exception ending a calibrate/diagnose call.
+
+        An exception raised by the code of an effect names the effect (and is counted like a
+        live one, :meth:`_effect_error`); any other is described as it is.
+        """
+        effect = culprit(exc)
+        if effect is None:
+            return str(exc), {}
+        err = EffectError(exc, effect)
+        self._effect_error(err, f'calibration/{service} answered success=false')
+        return str(err), {'effect': effect}
+
+    def _failed(self, call, service, exc):
+        """Reply (summary, payload) of a calibrate/diagnose call that raised ``exc``."""
+        reason, extra = self._named(exc, service)
+        if not extra:
+            self.get_logger().error(f'{call} failed: {exc!r}')
+        return f'{call} failed: {reason}', {'error': reason, 'type': type(exc).__name__,
+                                            **extra}
 
     def _activate(self, cal, doc):
         """Apply ``cal`` to the incoming data from now on (residual and its diagnostics)."""
@@ -330,11 +433,15 @@ class CalibrationNode(Node):
         # calibration that no longer fits must show in the residual, not be dropped
         live = LiveCorrector(cal, self._n, positions, s.stamp_tolerance_s,
                              check_pairing=False)
+        self._active_cal = cal
         with self._lock:
             live.temp[:] = self._temp
             live.aux.update(self._aux)
-        self._monitor = ResidualMonitor(self._n, s.field_nt)
+        # the magnitude the calibration was made with (IGRF, shape only or field_nt)
+        f = (doc.get('field_reference') or {}).get('magnitude_nt', s.field_nt)
+        self._monitor = ResidualMonitor(self._n, float(f))
         self._residual_missing = None
+        self._effect_errors.clear()               # those of the calibration replaced
         self._live = live
 
     def _temp_cb(self, j):
@@ -407,7 +514,13 @@ class CalibrationNode(Node):
         monitor = self._monitor
         r = monitor.ratios() if monitor is not None else None
         values = [('residual_sets_published', str(self._residual_sets))]
-        if self._live is None:
+        errors = self._effect_errors
+        values += [('effect_errors', str(sum(errors.counts().values())))]
+        values += [(f'effect_errors {k}', str(n)) for k, n in errors.counts().items()]
+        if errors:
+            st.level = DiagnosticStatus.ERROR
+            st.message = f'effect code failed: {errors.summary()}'
+        elif self._live is None:
             st.message = 'no active calibration: no residual (run calibration/calibrate)'
         elif self._residual_missing:
             st.level = DiagnosticStatus.WARN
@@ -417,7 +530,7 @@ class CalibrationNode(Node):
         else:
             bad = []
             for j in range(self._n):
-                for kind in ('scalar', 'vector'):
+                for kind in monitor.kinds:
                     ratio = float(r[f'{kind}_ratio'][j])
                     values.append((f'sensor{j + 1}_{kind}_ratio', f'{ratio:.2f}'))
                     values.append((f'sensor{j + 1}_{kind}_rms_nt',
@@ -467,10 +580,10 @@ class CalibrationNode(Node):
                 out['coverage'][str(j)] = v['status']
                 eigenvalues[str(j)] = [round(float(x), 4) for x in v['eigenvalues']]
             # the constrained mode is made for a partial or single-axis coverage (as in
-            # model.fit): not a missing item then
-            partial = ({j for j, v in rep['sensors'].items()
-                        if v['status'] in ('partial', 'single axis')}
-                       if s.constrained else set())
+            # model.fit), the planar mode for a single axis: not a missing item then
+            excused = (('partial', 'single axis') if s.constrained else
+                       ('single axis',) if s.planar else ())
+            partial = {j for j, v in rep['sensors'].items() if v['status'] in excused}
             missing.extend(p for p in rep['problems']
                            if not any(p.startswith(f'sensor {j}:') for j in partial))
         if s.imu_topic:
@@ -482,6 +595,7 @@ class CalibrationNode(Node):
                                'quaternion (orientation_covariance[0] = -1, NaN or |q| != 1)')
         out['ready'] = self._collecting and not missing
         out.update({'model': list(s.model), 'field_nt': s.field_nt,
+                    'field_source': s.field_source,
                     'max_samples': s.max_samples, 'coverage_eigenvalues': eigenvalues,
                     'incomplete_sets_dropped': dropped, 'out_of_order_dropped': out_of_order,
                     'stream_realignments': realigned,
@@ -522,6 +636,84 @@ class CalibrationNode(Node):
                            'sets_dropped': dropped})
         finally:
             self._busy.release()
+
+    async def _on_turn(self, request, response):
+        # as the ROS calibration packages do: turn the robot in place through cmd_vel while
+        # collecting, until sensor 1 has seen turn_count turns or turn_timeout_s passed
+        s = prm.calibration_settings(self)
+        if self._cmd_vel is None:
+            return _reply(response, False, "no cmd_vel_topic: set it (read-only: at start-up) "
+                          'to turn the robot', {'state': self._state})
+        if not self._busy.acquire(blocking=False):
+            return self._reject_busy(response, 'turn')
+        try:
+            dropped = self._clear('collecting')
+            self.get_logger().info(
+                f'turning the robot on {s.cmd_vel_topic}: {s.turn_count:g} turns at '
+                f'{s.turn_speed_rad_s:g} rad/s (at most {s.turn_timeout_s:g} s)')
+            ok, summary, payload = await self._in_worker(self._turn, s)
+            payload['sets_dropped'] = dropped
+            return _reply(response, ok, summary, payload)
+        except Exception as exc:         # noqa: B902 -- a service must answer, never die
+            self.get_logger().error(f'turn failed: {exc!r}')
+            return _reply(response, False, f'turn failed: {exc}; the robot is stopped',
+                          {'error': str(exc), 'type': type(exc).__name__})
+        finally:
+            self._stop_robot()
+            self._busy.release()
+
+    def _turn(self, s):
+        """Drive cmd_vel until the turns are seen or time is up (worker thread)."""
+        from magcal_ros.core.model.planar import swept_angle
+        twist = Twist()
+        twist.angular.z = float(s.turn_speed_rad_s)
+        want = 2 * math.pi * s.turn_count
+        t0 = time.monotonic()
+        swept, last_check = 0.0, t0
+        try:
+            while not self._turn_stop.is_set():
+                now = time.monotonic()
+                if now - t0 > s.turn_timeout_s:
+                    break
+                self._cmd_vel.publish(twist)
+                if now - last_check >= 0.5:
+                    last_check = now
+                    n_sets, data, _ = self._snapshot()
+                    swept = swept_angle(data.raw[0]) if n_sets else 0.0
+                    if swept >= want:
+                        break
+                self._turn_stop.wait(0.1)
+        finally:
+            self._stop_robot()
+        elapsed = time.monotonic() - t0
+        n_sets = self._snapshot()[0]
+        payload = {'turns_asked': s.turn_count, 'turns_seen': swept / (2 * math.pi),
+                   'elapsed_s': round(elapsed, 2), 'sets': n_sets,
+                   'cmd_vel_topic': s.cmd_vel_topic}
+        if swept >= want:
+            return True, (f'turned {swept / (2 * math.pi):.2f} turns in {elapsed:.1f} s '
+                          f'({n_sets} sets collected): the robot is stopped; call '
+                          'calibration/calibrate (parameter planar: true for a robot that '
+                          'only turns about one axis)'), payload
+        why = ('the node is shutting down' if self._turn_stop.is_set() else
+               f'turn_timeout_s ({s.turn_timeout_s:g} s) passed')
+        return False, (f'turn incomplete: sensor 1 saw {swept / (2 * math.pi):.2f} of '
+                       f'{s.turn_count:g} turns when {why}; the robot is stopped (does the '
+                       f'base listen on {s.cmd_vel_topic}? wheels slipping?)'), payload
+
+    def _stop_robot(self):
+        """Publish a zero velocity on cmd_vel (after a turn, on error, on shutdown)."""
+        if self._cmd_vel is not None:
+            try:
+                self._cmd_vel.publish(Twist())
+            except Exception:       # noqa: B902 -- the context may be gone at shutdown
+                pass
+
+    def destroy_node(self):
+        """Stop a turn in progress (a zero velocity on cmd_vel), then destroy the node."""
+        self._turn_stop.set()
+        self._stop_robot()
+        return super().destroy_node()
 
     def _on_reset(self, request, response):
         """Forget the collected sets; collection goes on if it was running."""
@@ -614,9 +806,7 @@ class CalibrationNode(Node):
             ok, summary, payload = await self._in_worker(self._calibrate, prev_state)
             return _reply(response, ok, summary, payload)
         except Exception as exc:         # noqa: B902 -- a service must answer, never die
-            self.get_logger().error(f'calibration failed: {exc!r}')
-            return _reply(response, False, f'calibration failed: {exc}',
-                          {'error': str(exc), 'type': type(exc).__name__})
+            return _reply(response, False, *self._failed('calibration', 'calibrate', exc))
         finally:
             with self._lock:
                 # collection goes on (the buffer is kept) if it was running before
@@ -639,27 +829,45 @@ class CalibrationNode(Node):
             return False, f'not calibrated: {reason}; previous calibration stays active', {
                 'reason': reason, 'sets': n_sets}
         model = Model.from_spec(list(s.model), self._n)
-        geometry = cross_geometry(s.baseline_m) if self._n == 4 else None
+        geometry = self._geometry(s)
         t0 = time.monotonic()
         data, resync_payload, resync_lines = self._resync(data, epochs, s)
         try:
+            field_nt, field_ref = self._field(s, data.raw[0])
+        except (ValueError, ImportError) as exc:
+            reason = f'no field magnitude: {exc}'
+            return False, f'not calibrated: {reason}; previous calibration stays active', {
+                'reason': reason, 'sets': n_sets}
+        extra = {}
+        if s.planar:
+            # what the turn leaves open is held at the active calibration (same model), else
+            # at an ideal sensor (magcal_ros.core.model.planar)
+            active = getattr(self, '_active_cal', None)
+            prior = (active.params if active is not None
+                     and active.model.spec() == model.spec() else None)
+            extra['planar'] = {'inclination_deg': field_ref.get('inclination_deg'),
+                               'prior_params': prior}
+        try:
             run = run_calibration(
-                data, model=model, field_nt=s.field_nt, geometry=geometry,
-                field_reference={'kind': 'constant', 'magnitude_nt': s.field_nt},
+                data, model=model, field_nt=field_nt, geometry=geometry or {},
+                field_reference=field_ref,
                 robust=s.robust, exclude_outliers=s.exclude_outliers,
-                constrained=s.constrained)
+                constrained=s.constrained, **extra)
         except DegenerateDataError as exc:
             return False, (f'not calibrated: {exc}; previous calibration stays active'), {
                 'reason': str(exc), 'sets': n_sets, 'model': list(s.model)}
         except ValueError as exc:
-            return False, f'not calibrated: {exc}; previous calibration stays active', {
-                'reason': str(exc), 'sets': n_sets, 'model': list(s.model)}
+            reason, extra = self._named(exc, 'calibrate')
+            return False, f'not calibrated: {reason}; previous calibration stays active', {
+                'reason': reason, 'sets': n_sets, 'model': list(s.model), **extra}
         solve_s = time.monotonic() - t0
         if not run.result.success:
             # a fit that ran out of iterations is not a calibration: never installed
             reason = f'the fit did not converge ({run.result.message})'
             return False, f'not calibrated: {reason}; previous calibration stays active', {
                 'reason': reason, 'sets': n_sets, 'model': list(s.model), 'converged': False}
+        # where the magnitude came from, also in the provenance (field_reference has the rest)
+        run.doc['provenance']['field_source'] = s.field_source
         os.makedirs(os.path.dirname(os.path.abspath(s.calibration_file)), exist_ok=True)
         try:
             save_calibration(s.calibration_file, run.doc, history=s.history)
@@ -671,6 +879,8 @@ class CalibrationNode(Node):
         summ = run.summary
         payload = {
             'calibration_file': s.calibration_file,
+            'field_reference': field_ref,
+            'geometry': geometry,
             'model': list(s.model),
             'effects': summ['model'],
             'sets': n_sets,
@@ -691,6 +901,7 @@ class CalibrationNode(Node):
         lines = [f'calibrated {n_sets} sets with model {",".join(s.model)}: total-field RMS '
                  f'{min(after.values()):.2f}-{max(after.values()):.2f} nT, noise floor '
                  f'{summ["noise_floor_nt"]:.2f} nT',
+                 f'field magnitude {field_nt:.1f} nT ({field_ref["kind"]})',
                  f'written to {s.calibration_file} (solve {solve_s:.1f} s; effects '
                  f'{",".join(summ["model"])})',
                  f'total-field RMS per sensor before [nT]: '
@@ -715,6 +926,13 @@ class CalibrationNode(Node):
             g = np.array(summ['site_gradient_nt_per_m'])
             lines.append('site gradient (world frame, nT/m): ' + ', '.join(
                 f'{v:.1f}' for v in g[np.triu_indices(3)]) + ' (xx, xy, xz, yy, yz, zz)')
+        if 'planar' in summ:
+            pl = summ['planar']
+            payload.update(planar=pl, undetermined=summ['undetermined'],
+                           heading_error_deg=summ['heading_error_deg'])
+            lines.append(f'planar: heading error {summ["heading_error_deg"]:.2f} deg (1 sd, '
+                         f'level, inclination from {pl["inclination_source"]}); undetermined: '
+                         + (', '.join(summ['undetermined']) or 'none'))
         if s.robust:
             lines.append(f'robust fit: samples down-weighted as outliers per sensor: '
                          f'{_fmt_per_sensor(summ["downweighted"], "{:d}")} of {n_sets}')
@@ -743,9 +961,7 @@ class CalibrationNode(Node):
             ok, summary, payload = await self._in_worker(self._diagnose)
             return _reply(response, ok, summary, payload)
         except Exception as exc:         # noqa: B902 -- a service must answer, never die
-            self.get_logger().error(f'diagnosis failed: {exc!r}')
-            return _reply(response, False, f'diagnosis failed: {exc}',
-                          {'error': str(exc), 'type': type(exc).__name__})
+            return _reply(response, False, *self._failed('diagnosis', 'diagnose', exc))
         finally:
             self._busy.release()
 
@@ -767,7 +983,9 @@ class CalibrationNode(Node):
             diag = diagnose(data, model, field_nt=s.field_nt, constrained=s.constrained,
                             baseline_m=s.baseline_m)
         except ValueError as exc:
-            return False, f'not diagnosed: {exc}', {'reason': str(exc), 'sets': n_sets}
+            reason, extra = self._named(exc, 'diagnose')
+            return False, f'not diagnosed: {reason}', {'reason': reason, 'sets': n_sets,
+                                                       **extra}
         ranking = json.loads(diag.to_json())       # non-finite numbers as null
         report = write_report(s.report_dir, data, diagnosis=diag, baseline_m=s.baseline_m)
         ranking['report'] = os.fspath(report)
@@ -798,7 +1016,14 @@ class CalibrationNode(Node):
             with open(path, encoding='utf-8') as fh:
                 text = fh.read()
             cal, doc = parse_calibration(text, path)
+            mismatch = geometry_mismatch(doc.get('geometry'),
+                                         self._geometry(prm.calibration_settings(self)))
+            if mismatch:
+                raise ValueError(f'{path}: {mismatch}')
             self._activate(cal, doc)
+        except EffectError as exc:
+            self._effect_error(exc, f'the existing calibration {path} was not published')
+            return
         except (CalibrationFileError, OSError, ValueError) as exc:
             self.get_logger().warning(f'existing calibration not published: {exc}')
             return

@@ -37,7 +37,9 @@ Topics (relative to the node namespace, default ``/magcal``; docs/design.md §3)
 - publishes its health on ``/diagnostics``: WARN without a usable calibration (then nothing
   is published), when a calibration was refused (the last good one stays active), while a
   driven effect lacks its live signal, or when more than :data:`PAIRING_WARN_SHARE` of the
-  sets since the last report failed the pairing check.
+  sets since the last report failed the pairing check; ERROR, naming the effect and
+  counting its errors, when the code of an effect of the active calibration raised (that
+  sensor's sample is not published, logged once per effect; the other sensors go on).
 
 The sets of the tensor are paired by epoch (:class:`magcal_ros.core.live.sync.StampMatcher`, the
 offsets voted from the stamps) and checked from the data before they give a tensor
@@ -65,8 +67,10 @@ import os
 import sys
 
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+from magcal_ros.core.effects.safety import EffectError, EffectErrors
 from magcal_ros.core.live.corrector import LiveCorrector, MissingSignal, PAIRING_FALSE_ALARM
 from magcal_ros.io.calfile import CalibrationFileError, load_calibration, parse_calibration
+from magcal_ros.pipeline import array_geometry, geometry_mismatch, tensor_undetermined
 from magcal_ros.ros import params as prm
 from magcal_ros.ros.calibration_node import RESULT_QOS, SENSOR_QOS
 from magcal_ros.ros.conversions import (correct_msg_linear, covariance_to_t2,
@@ -105,7 +109,7 @@ class CorrectorNode(Node):
         # the effect classes a calibration may name: imported here at start-up only, never
         # because a calibration/result message names a module
         plugins = prm.load_plugins(self)
-        specs = prm.corrector_specs()
+        specs = prm.corrector_specs(int(prm.value(self, 'n_sensors')))
         self._specs = prm.declare(self, specs)
         self._specs.update(first)
         self.add_on_set_parameters_callback(self._on_set_parameters)
@@ -115,13 +119,19 @@ class CorrectorNode(Node):
         self._subtract_site = s.subtract_site_gradient
         self._site_attitude = s.site_attitude
         self._site_shift = None        # (S, 3) nT subtracted in a stationary test, or None
-        self._frame = s.array_frame_id
+        self._frame = s.array_frame_id          # '': each input's own frame_id
         self._tolerance_s = s.stamp_tolerance_s
+        # the array geometry of the parameters; the gradient topics exist only when it
+        # determines the tensor (docs/design.md, "Array geometry")
+        self._geometry = array_geometry(self._n, s.sensor_positions_m, s.baseline_m)
+        self._no_tensor = tensor_undetermined(
+            None if self._geometry is None else self._geometry['positions_m'])
 
         self._live = None
         self._source = None
         self._refused = None
         self._missing = {}
+        self._effect_errors = EffectErrors()     # of the active calibration's effect code
         self._temp = np.full(self._n, np.nan)
         self._aux = {}
         self._cov_t2 = [None] * self._n          # per sensor (9,) T^2 of the active calibration
@@ -135,18 +145,26 @@ class CorrectorNode(Node):
 
         self._pub_corr = [self.create_publisher(MagneticField, f'sensor{j}/corrected', 10)
                           for j in range(1, self._n + 1)]
-        self._pub_grad = self.create_publisher(Float64MultiArray, 'gradient', 10)
+        self._pub_grad = None
         self._grad_msg = tensor_to_msg(np.zeros((3, 3)))          # reused per tensor
         self._stamped_msg = None
         # the stamped gradient needs the message package magcal_interfaces (interfaces/,
         # README); without it the node says so once and publishes the rest
         self._stamped_cls, reason = _optional('magcal_interfaces.msg', 'GradientTensorStamped')
         self._pub_stamped = None
-        if self._stamped_cls is None:
-            self.get_logger().warning(f'not publishing gradient_stamped: {reason}; build the '
-                                      'magcal_interfaces package (README: Live: ROS 2)')
+        if self._no_tensor is not None:
+            # not advertised at all: a subscriber sees no publisher, the log says why once
+            self._stamped_cls = None
+            self.get_logger().warning(f'gradient and gradient_stamped are not advertised: '
+                                      f'{self._no_tensor}')
         else:
-            self._pub_stamped = self.create_publisher(self._stamped_cls, 'gradient_stamped', 10)
+            self._pub_grad = self.create_publisher(Float64MultiArray, 'gradient', 10)
+            if self._stamped_cls is None:
+                self.get_logger().warning(f'not publishing gradient_stamped: {reason}; build '
+                                          'the magcal_interfaces package (README: Live: ROS 2)')
+            else:
+                self._pub_stamped = self.create_publisher(self._stamped_cls,
+                                                          'gradient_stamped', 10)
         broadcaster, reason = _optional('tf2_ros', 'StaticTransformBroadcaster')
         self._tf = None
         if broadcaster is None:
@@ -155,9 +173,9 @@ class CorrectorNode(Node):
         else:
             self._tf = broadcaster(self)
         self._subs = []
-        for j in range(1, self._n + 1):
+        for j, topic in enumerate(s.input_topics, start=1):
             self._subs.append(self.create_subscription(
-                MagneticField, f'sensor{j}/raw', self._raw_cb(j - 1), SENSOR_QOS))
+                MagneticField, topic, self._raw_cb(j - 1), SENSOR_QOS))
         self._temp_subs = []     # created while the calibration has a temperature effect
         for name in s.aux_topics:
             self._subs.append(self.create_subscription(
@@ -232,22 +250,41 @@ class CorrectorNode(Node):
 
     def _update_site_shift(self):
         live = self._live
-        self._site_shift = (live.site_shift(self._site_attitude)
-                            if self._subtract_site and live is not None else None)
+        try:
+            self._site_shift = (live.site_shift(self._site_attitude)
+                                if self._subtract_site and live is not None else None)
+        except EffectError as exc:
+            self._site_shift = None
+            self._effect_error(exc, 'nothing is subtracted')
         self._update_fast_path()
+
+    def _effect_error(self, exc, what):
+        """Count an error of effect code (:class:`EffectError`); log the first per effect."""
+        if self._effect_errors.add(exc, what):
+            self.get_logger().error(f'{exc} ({what}); further errors of it are counted on '
+                                    '/diagnostics, not logged')
 
     # -- calibrations ----------------------------------------------------------------------
 
     def _install(self, cal, doc, source):
+        mismatch = geometry_mismatch(doc.get('geometry'), self._geometry)
+        if mismatch:
+            raise CalibrationFileError(mismatch)
         try:
             live = LiveCorrector(cal, self._n, (doc.get('geometry') or {}).get('positions_m'),
-                                 self._tolerance_s)
+                                 self._tolerance_s, field_nt=(doc.get('field_reference') or {})
+                                 .get('magnitude_nt'))
+        except EffectError as exc:
+            self._effect_error(exc, 'the calibration was refused')
+            raise CalibrationFileError(str(exc)) from exc
         except ValueError as exc:
             raise CalibrationFileError(str(exc)) from exc
         live.temp[:] = self._temp
         live.aux.update(self._aux)
-        # validated and converted once, not per message (it was 70 % of the callback)
-        self._cov_t2 = [covariance_to_t2(live.covariance_nt2(j)) for j in range(1, self._n + 1)]
+        # validated and converted once, not per message (it was 70 % of the callback): the
+        # noise and the calibration's own uncertainty (LiveCorrector.published_covariance_nt2)
+        self._cov_t2 = [covariance_to_t2(live.published_covariance_nt2(j))
+                        for j in range(1, self._n + 1)]
         self._grad_cov_t2 = gradient_covariance_to_t2(live.gradient_cov_nt2)
         if self._stamped_cls is not None:
             # one message object per tensor topic, reused: its covariance is set here once
@@ -259,10 +296,11 @@ class CorrectorNode(Node):
         self._source = source
         self._refused = None
         self._missing.clear()
+        self._effect_errors.clear()
         self._follow_temperature(live.needs_temperature)
         self._update_site_shift()
         self.get_logger().info(f'using the calibration from {source} ({self._describe()})')
-        if live.no_gradient_reason:
+        if live.no_gradient_reason and self._no_tensor is None:
             self.get_logger().warning(live.no_gradient_reason)
         self._send_transforms(live)
 
@@ -272,7 +310,7 @@ class CorrectorNode(Node):
 
     def _send_transforms(self, live):
         """Send the static transforms array -> fluxgate{j} of the calibration (with tf2_ros)."""
-        if self._tf is None:
+        if self._tf is None or not self._frame:
             return
         frames = live.sensor_frames()
         if not frames:
@@ -345,7 +383,7 @@ class CorrectorNode(Node):
         corrector's Python work); when the first subscriber appears the matcher starts
         afresh (its queues would hold samples from before).
         """
-        on = self._publish_gradient and (
+        on = self._pub_grad is not None and self._publish_gradient and (
             self._pub_grad.get_subscription_count() > 0 or (
                 self._pub_stamped is not None
                 and self._pub_stamped.get_subscription_count() > 0))
@@ -382,12 +420,17 @@ class CorrectorNode(Node):
                 except MissingSignal as exc:
                     self._missing[j] = str(exc)
                     return
+                except EffectError as exc:
+                    # contained: this sample is not published, the node and the others go on
+                    self._effect_error(exc, f'sensor {sensor} samples not published')
+                    return
                 if j in self._missing:
                     del self._missing[j]
                 if self._site_shift is not None:
                     b = b - self._site_shift[j]         # stationary test: the anomaly only
                 set_field_nt(msg, b, self._cov_t2[j])
-            msg.header.frame_id = self._frame
+            if self._frame:
+                msg.header.frame_id = self._frame
             pub.publish(msg)
             self._counts[j] += 1
             if gradient:
@@ -395,7 +438,8 @@ class CorrectorNode(Node):
                     self._pub_grad.publish(tensor_to_msg(g, check=False, out=self._grad_msg))
                     if self._pub_stamped is not None:
                         self._pub_stamped.publish(fill_gradient_stamped(
-                            self._stamped_msg, t_set, self._frame, g, None))
+                            self._stamped_msg, t_set, self._frame or prm.DEFAULT_ARRAY_FRAME_ID,
+                            g, None))
                     self._n_gradient += 1
         return cb
 
@@ -405,14 +449,16 @@ class CorrectorNode(Node):
         """Return the node's ``diagnostic_msgs/DiagnosticStatus``."""
         st = DiagnosticStatus(name=f'{self.get_name()}: correction',
                               hardware_id=self.get_namespace())
-        problems = []
+        errors = self._effect_errors
+        problems = [f'effect code failed: {errors.summary()}'] if errors else []
         if self._live is None:
             problems.append('no calibration: publishing nothing (run calibration/calibrate or '
                             'set calibration_file)')
         if self._refused:
             problems.append(self._refused)
         problems.extend(self._missing[j] for j in sorted(self._missing))
-        if self._live is not None and self._live.no_gradient_reason:
+        if (self._live is not None and self._live.no_gradient_reason
+                and self._no_tensor is None):
             problems.append(self._live.no_gradient_reason)
         if self._subtract_site and self._live is not None and self._site_shift is None:
             problems.append('subtract_site_gradient is set but the calibration has no '
@@ -422,7 +468,7 @@ class CorrectorNode(Node):
         if pairing:
             problems.append(pairing)
         if problems:
-            st.level = DiagnosticStatus.WARN
+            st.level = DiagnosticStatus.ERROR if errors else DiagnosticStatus.WARN
             st.message = '; '.join(problems)
         else:
             st.level = DiagnosticStatus.OK
@@ -437,11 +483,18 @@ class CorrectorNode(Node):
                   ('sets_failed_pairing_check',
                    str(self._live.matcher.rejected if self._live else 0)),
                   ('streams_re_paired', str(self._live.matcher.repaired if self._live else 0)),
+                  ('gradient', 'advertised' if self._no_tensor is None else
+                   f'not advertised: {self._no_tensor}'),
                   ('gradient_stamped', 'published' if self._pub_stamped else
+                   f'not advertised: {self._no_tensor}' if self._no_tensor else
                    'not published: magcal_interfaces is not importable'),
+                  ('geometry', 'none' if self._geometry is None else
+                   str(self._geometry['positions_m'])),
                   ('frame_id', self._frame)]
         values += [(f'sensor{j + 1}_corrected_published', str(c))
                    for j, c in enumerate(self._counts)]
+        values += [('effect_errors', str(sum(errors.counts().values())))]
+        values += [(f'effect_errors {k}', str(n)) for k, n in errors.counts().items()]
         st.values = [KeyValue(key=k, value=v) for k, v in values]
         return st
 

@@ -159,6 +159,72 @@ def optional_topic(value):
     return None
 
 
+def positions_check(n_sensors):
+    """Make a validator of ``sensor_positions_m``: empty, or 3 finite numbers per sensor."""
+    def check(value):
+        v = list(value)
+        if v and (len(v) != 3 * n_sensors or not all(math.isfinite(x) for x in v)):
+            return (f'must be empty (paper 004 cross for 4 sensors) or x y z per sensor in m: '
+                    f'{3 * n_sensors} finite numbers for n_sensors {n_sensors}, got {len(v)}')
+        return None
+    return check
+
+
+def input_topics_check(n_sensors):
+    """Make a validator of ``input_topics``: empty, or one topic name per sensor."""
+    def check(value):
+        v = list(value)
+        if not v:
+            return None
+        if len(v) != n_sensors:
+            return (f'must name one sensor_msgs/MagneticField topic per sensor: {n_sensors} '
+                    f'for n_sensors {n_sensors}, got {len(v)} ({v})')
+        for name in v:
+            if not name or optional_topic(name):
+                return f'{name!r} is not a topic name (letters, digits, _ and /)'
+        if len(set(v)) != len(v):
+            return f'input topics must differ, got {v}'
+        return None
+    return check
+
+
+def default_input_topics(n_sensors, given=()):
+    """Return the input topic of each sensor: ``given``, or the driver's ``sensor{j}/raw``."""
+    return tuple(given) if given else tuple(f'sensor{j}/raw' for j in range(1, n_sensors + 1))
+
+
+def latitude(value):
+    """Refuse a latitude outside -90..90 deg (NaN: not given)."""
+    if math.isnan(value) or -90.0 <= value <= 90.0:
+        return None
+    return f'must be a latitude in -90..90 deg (or .nan: not given), got {value!r}'
+
+
+def longitude(value):
+    """Refuse a longitude outside -180..360 deg (NaN: not given)."""
+    if math.isnan(value) or -180.0 <= value <= 360.0:
+        return None
+    return f'must be a longitude in -180..360 deg (or .nan: not given), got {value!r}'
+
+
+def iso_date(value):
+    """Refuse a date that is neither '' nor YYYY-MM-DD."""
+    import datetime
+    if value:
+        try:
+            datetime.datetime.strptime(value, '%Y-%m-%d')
+        except ValueError:
+            return f"must be YYYY-MM-DD (or '' for the day of the calibration), got {value!r}"
+    return None
+
+
+def one_of(choices):
+    """Make a validator accepting one of ``choices``."""
+    def check(value):
+        return None if value in choices else f'must be one of {list(choices)}, got {value!r}'
+    return check
+
+
 def frame_id(value):
     """Refuse a frame id tf2 cannot use: empty, a leading '/', or whitespace in it."""
     if not isinstance(value, str) or not value or value.startswith('/') or \
@@ -280,6 +346,18 @@ class CalibrationSettings:
     resync_sets: bool
     exclude_outliers: bool
     imu_topic: str = ''
+    sensor_positions_m: tuple = ()
+    input_topics: tuple = ()
+    field_source: str = 'constant'
+    site_latitude_deg: float = math.nan
+    site_longitude_deg: float = math.nan
+    site_altitude_m: float = 0.0
+    site_date: str = ''
+    planar: bool = False
+    cmd_vel_topic: str = '/cmd_vel'
+    turn_speed_rad_s: float = 0.3
+    turn_count: float = 2.0
+    turn_timeout_s: float = 120.0
 
 
 #: declared first: the model check of the other parameters depends on it
@@ -366,6 +444,49 @@ def calibration_specs(n_sensors=4):
                   'of the array (body-to-world, the IMU axes being the array axes), for the '
                   "site_gradient effect; '' for none; read-only", optional_topic,
                   read_only=True),
+        *geometry_specs(n_sensors),
+        ParamSpec('field_source', 'constant', 'where the reference field magnitude comes '
+                  'from: constant (field_nt), igrf (the IGRF model at site_latitude_deg, '
+                  'site_longitude_deg, site_altitude_m and site_date) or shape (none: the '
+                  "mean radius of sensor 1's data, shape only); no unit",
+                  one_of(('constant', 'igrf', 'shape'))),
+        ParamSpec('site_latitude_deg', math.nan, 'geodetic latitude of the calibration site '
+                  'for field_source igrf, deg (.nan: not given)', latitude),
+        ParamSpec('site_longitude_deg', math.nan, 'longitude of the calibration site for '
+                  'field_source igrf, deg east (.nan: not given)', longitude),
+        ParamSpec('site_altitude_m', 0.0, 'height of the calibration site above the WGS84 '
+                  'ellipsoid for field_source igrf, m', limits=(-1.0e4, 1.0e6)),
+        ParamSpec('site_date', '', 'date of the calibration for field_source igrf, YYYY-MM-DD '
+                  "('' = the day the calibration is made, UTC)", iso_date),
+        ParamSpec('planar', False, 'a robot that can only turn about one axis: calibrate '
+                  'what the turn determines (in-plane offsets, scale ratio, angle: '
+                  'heading-grade), hold the rest at the previous calibration or an ideal '
+                  'sensor and name it undetermined (docs/planar.md); without it a turn about '
+                  'one axis is refused; no unit'),
+        ParamSpec('cmd_vel_topic', '/cmd_vel', 'geometry_msgs/Twist topic calibration/turn '
+                  'drives the robot with; read-only', optional_topic, read_only=True),
+        ParamSpec('turn_speed_rad_s', 0.3, 'angular speed of calibration/turn about the '
+                  'robot z axis (positive: counter-clockwise seen from above), rad/s',
+                  limits=(-3.0, 3.0)),
+        ParamSpec('turn_count', 2.0, 'turns calibration/turn makes, as seen by sensor 1 (the '
+                  'angle its in-plane reading sweeps); turns', positive('turns'),
+                  limits=(0.25, 20.0)),
+        ParamSpec('turn_timeout_s', 120.0, 'calibration/turn stops the robot after this long '
+                  'even if the turns are not complete, s', positive('s'),
+                  limits=(1.0, 3600.0)),
+    ]
+
+
+def geometry_specs(n_sensors):
+    """``sensor_positions_m`` and ``input_topics``, shared by both nodes."""
+    return [
+        ParamSpec('sensor_positions_m', (), 'array geometry: x y z of each sensor in the '
+                  'array frame, flat (3 x n_sensors values), m; empty: paper 004 cross of '
+                  'baseline_m for 4 sensors, the origin for 1; read-only',
+                  positions_check(n_sensors), read_only=True, item_type=float),
+        ParamSpec('input_topics', (), 'sensor_msgs/MagneticField topic of each sensor, '
+                  "in sensor order (e.g. ['/imu/mag']); empty: the driver's sensor{j}/raw; "
+                  'read-only', input_topics_check(n_sensors), read_only=True, item_type=str),
     ]
 
 
@@ -389,6 +510,19 @@ def calibration_settings(node):
         resync_sets=bool(value(node, 'resync_sets')),
         exclude_outliers=bool(value(node, 'exclude_outliers')),
         imu_topic=str(value(node, 'imu_topic', '')),
+        sensor_positions_m=tuple(value(node, 'sensor_positions_m', [])),
+        input_topics=default_input_topics(int(value(node, 'n_sensors')),
+                                          value(node, 'input_topics', [])),
+        field_source=str(value(node, 'field_source')),
+        site_latitude_deg=float(value(node, 'site_latitude_deg')),
+        site_longitude_deg=float(value(node, 'site_longitude_deg')),
+        site_altitude_m=float(value(node, 'site_altitude_m')),
+        site_date=str(value(node, 'site_date')),
+        planar=bool(value(node, 'planar')),
+        cmd_vel_topic=str(value(node, 'cmd_vel_topic')),
+        turn_speed_rad_s=float(value(node, 'turn_speed_rad_s')),
+        turn_count=float(value(node, 'turn_count')),
+        turn_timeout_s=float(value(node, 'turn_timeout_s')),
     )
 
 
@@ -407,6 +541,9 @@ class CorrectorSettings:
     array_frame_id: str
     subtract_site_gradient: bool = False
     site_attitude: tuple = (1.0, 0.0, 0.0, 0.0)
+    sensor_positions_m: tuple = ()
+    input_topics: tuple = ()
+    baseline_m: float = 0.5
 
 
 def unit_quaternion(value):
@@ -420,7 +557,7 @@ def unit_quaternion(value):
     return None
 
 
-def corrector_specs():
+def corrector_specs(n_sensors=4):
     """Parameters of ``corrector_node`` other than :data:`N_SENSORS`."""
     return [
         ParamSpec('calibration_file', default_calibration_file(),
@@ -441,8 +578,9 @@ def corrector_specs():
         ParamSpec('array_frame_id', DEFAULT_ARRAY_FRAME_ID, 'frame_id of the corrected fields '
                   'and of the gradient tensor: the array frame (sensor 1 orthogonalised); '
                   'the static transforms array -> fluxgate{j} are published from the '
-                  'calibration when tf2_ros is importable; read-only', frame_id,
-                  read_only=True),
+                  "calibration when tf2_ros is importable; '' keeps each input's frame_id "
+                  '(a single IMU magnetometer: its own frame, REP 145); read-only',
+                  lambda v: None if v == '' else frame_id(v), read_only=True),
         ParamSpec('subtract_site_gradient', False, 'stationary test: subtract the site '
                   'gradient of the calibration (effect site_gradient), seen at site_attitude, '
                   'from the corrected fields and the tensor, leaving the anomaly; off: the '
@@ -451,6 +589,10 @@ def corrector_specs():
                   'stationary test, body-to-world unit quaternion [qw, qx, qy, qz] in the '
                   "world frame of the calibration's site gradient; dimensionless",
                   unit_quaternion, item_type=float),
+        *geometry_specs(n_sensors),
+        ParamSpec('baseline_m', 0.5, 'distance between the two sensors of an arm of the '
+                  'cross (paper 004; when sensor_positions_m is empty), m; read-only',
+                  positive('m'), read_only=True, limits=(1.0e-3, 100.0)),
     ]
 
 
@@ -466,4 +608,8 @@ def corrector_settings(node):
         array_frame_id=str(value(node, 'array_frame_id')),
         subtract_site_gradient=bool(value(node, 'subtract_site_gradient')),
         site_attitude=tuple(float(v) for v in value(node, 'site_attitude')),
+        sensor_positions_m=tuple(value(node, 'sensor_positions_m', [])),
+        input_topics=default_input_topics(int(value(node, 'n_sensors')),
+                                          value(node, 'input_topics', [])),
+        baseline_m=float(value(node, 'baseline_m')),
     )

@@ -56,7 +56,13 @@ def sim_specs():
         prm.ParamSpec('prefix', d['prefix'], 'link name prefix, sensor j is <dir>/<prefix>j; '
                       'no unit', read_only=True),
         prm.ParamSpec('sensors', d['sensors'], 'number of simulated sensors; count',
-                      read_only=True, limits=(1, 4)),
+                      read_only=True, limits=(1, devices.MAX_SENSORS)),
+        prm.ParamSpec('sensor_positions_m', (), 'x y z of each sensor in the array frame, '
+                      'flat (3 x sensors values), m; empty: paper 004 cross of 0.5 m for 4 '
+                      'sensors, the origin otherwise', read_only=True, item_type=float),
+        prm.ParamSpec('smooth_period_s', d['smooth_period_s'], 'period of the smooth '
+                      'tumbling (trajectory smooth covers the sphere in about one), s',
+                      prm.positive('s'), read_only=True, limits=(0.1, 1.0e6)),
         prm.ParamSpec('rate', d['rate'], 'samples per second per sensor, Hz',
                       prm.positive('Hz'), read_only=True),
         prm.ParamSpec('tick', d['tick'], 'write period (samples are written in chunks), s',
@@ -181,8 +187,8 @@ def overrides_from_options(args):
             out.append(Parameter('unplug', value=[
                 f'{u.sensor}:{u.at_s}:{u.for_s}' + (f':{u.new_path}' if u.new_path else '')
                 for u in value]))
-        elif key == 'site_gradient':
-            out.append(Parameter('site_gradient', value=[float(v) for v in value]))
+        elif key in ('site_gradient', 'sensor_positions_m'):
+            out.append(Parameter(key, value=[float(v) for v in value]))
         elif key == 'dir':
             out.append(Parameter('dir', value=str(value)))
         else:

@@ -140,6 +140,23 @@ def parse_gradient(text):
     return values
 
 
+#: most sensors the simulator serves (as the nodes' n_sensors)
+MAX_SENSORS = 64
+
+
+def parse_positions(text):
+    """Parse 'X1,Y1,Z1,...' (m, 3 per sensor) into a list of floats."""
+    try:
+        values = [float(v) for v in text.split(',')] if text.strip() else []
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f'sensor positions must be numbers X1,Y1,Z1,... in m, got {text!r}') from None
+    if len(values) % 3 or not all(math.isfinite(v) for v in values):
+        raise argparse.ArgumentTypeError(
+            f'sensor positions must be 3 finite numbers (x y z, m) per sensor, got {text!r}')
+    return values
+
+
 def build_parser():
     """Return the argparse parser of ``fluxgate_sim``."""
     p = argparse.ArgumentParser(
@@ -152,8 +169,14 @@ def build_parser():
                                  f'the namespace {DEFAULT_NAMESPACE}, <that>_<ns> in another)')
     p.add_argument('--prefix', help=f'link name prefix, sensor j is <dir>/<prefix>j '
                                     f'(default {DEFAULT_PREFIX})')
-    p.add_argument('--sensors', type=int, choices=range(1, 5), metavar='{1..4}',
-                   help='number of sensors (default 4)')
+    p.add_argument('--sensors', type=int, choices=range(1, MAX_SENSORS + 1),
+                   metavar=f'{{1..{MAX_SENSORS}}}', help='number of sensors (default 4)')
+    p.add_argument('--sensor-positions-m', type=parse_positions, metavar='X1,Y1,Z1,...',
+                   help='x y z of each sensor in the array frame, m (default: paper 004 '
+                        'cross of 0.5 m for 4 sensors, the origin otherwise)')
+    p.add_argument('--smooth-period-s', type=_positive(float),
+                   help='period of the smooth tumbling, s (default 60: the sphere in about '
+                        'a minute)')
     p.add_argument('--rate', type=_positive(float), help='samples per second per sensor, Hz '
                                                          '(default 100)')
     p.add_argument('--tick', type=_positive(float),
@@ -184,7 +207,8 @@ def build_parser():
 DEFAULTS = {'dir': DEFAULT_DIR, 'prefix': DEFAULT_PREFIX, 'sensors': 4, 'rate': 100.0,
             'tick': 0.01, 'protocol': 'ascii', 'option': [], 'seed': 0,
             'trajectory': 'smooth', 'field_nt': 50000.0, 'noise_nt': 3.0,
-            'errors': 'paper004', 'duration': None, 'unplug': [], 'site_gradient': None}
+            'errors': 'paper004', 'duration': None, 'unplug': [], 'site_gradient': None,
+            'sensor_positions_m': None, 'smooth_period_s': 60.0}
 
 
 def settings_from_parameters(section, source):
@@ -217,6 +241,9 @@ def _setting(key, value, source):
             return {'option': list(parse_options(value).items())}
         except ValueError as exc:
             raise ValueError(f'{source}: {exc}') from None
+    if key == 'sensor_positions_m':
+        return {key: None if value is None or len(value) == 0 else parse_positions(
+            ','.join(map(str, value)) if isinstance(value, (list, tuple)) else value)}
     if key == 'site_gradient':
         return {key: None if value is None or len(value) == 0 else parse_gradient(
             ','.join(map(str, value)) if isinstance(value, (list, tuple)) else value)}
@@ -275,8 +302,13 @@ def check_settings(st):
     number('noise_nt', 0, False)
     if st['duration'] is not None:
         number('duration', 0, False)
-    if not (isinstance(st['sensors'], int) and 1 <= st['sensors'] <= 4):
-        raise ValueError(f'sensors must be 1..4, got {st["sensors"]!r}')
+    number('smooth_period_s', 0, True)
+    if not (isinstance(st['sensors'], int) and 1 <= st['sensors'] <= MAX_SENSORS):
+        raise ValueError(f'sensors must be 1..{MAX_SENSORS}, got {st["sensors"]!r}')
+    pos = st['sensor_positions_m']
+    if pos is not None and len(pos) != 3 * st['sensors']:
+        raise ValueError(f'sensor_positions_m must hold x y z (m) of each of the '
+                         f'{st["sensors"]} sensors: {3 * st["sensors"]} numbers, got {len(pos)}')
     if st['protocol'] not in PROTOCOLS:
         raise ValueError(f'unknown protocol {st["protocol"]!r}; choose one of '
                          f'{sorted(PROTOCOLS)}')
@@ -355,7 +387,9 @@ class FluxgateSim:
             n_sensors=settings.sensors, rate_hz=settings.rate, field_nt=settings.field_nt,
             noise_nt=settings.noise_nt, trajectory=settings.trajectory,
             errors=None if settings.errors == 'none' else settings.errors,
-            seed=settings.seed, gradient_nt_per_m=grad))
+            seed=settings.seed, gradient_nt_per_m=grad,
+            smooth_period_s=getattr(settings, 'smooth_period_s', 60.0),
+            positions_m=getattr(settings, 'sensor_positions_m', None)))
         self.paths = [os.path.join(settings.dir, f'{settings.prefix}{j}')
                       for j in range(1, settings.sensors + 1)]
         self.devices = []

@@ -41,6 +41,15 @@ def igrf_total(lat_deg, lon_deg, alt_km, date):
         'YYYY-MM-DD' or a date.
 
     """
+    return igrf_field(lat_deg, lon_deg, alt_km, date)[0]
+
+
+def igrf_field(lat_deg, lon_deg, alt_km, date):
+    """
+    (total intensity nT, inclination deg, positive down) of the IGRF at a place and date.
+
+    Arguments as :func:`igrf_total`.
+    """
     import ppigrf
     if isinstance(date, str):
         try:
@@ -51,8 +60,9 @@ def igrf_total(lat_deg, lon_deg, alt_km, date):
         date = datetime.datetime(date.year, date.month, date.day)
     if not (-90 <= lat_deg <= 90 and -360 <= lon_deg <= 360):
         raise ValueError(f'latitude/longitude out of range: {lat_deg}, {lon_deg}')
-    be, bn, bu = ppigrf.igrf(lon_deg, lat_deg, alt_km, date)
-    return float(np.sqrt(np.ravel(be)[0] ** 2 + np.ravel(bn)[0] ** 2 + np.ravel(bu)[0] ** 2))
+    be, bn, bu = (float(np.ravel(x)[0]) for x in ppigrf.igrf(lon_deg, lat_deg, alt_km, date))
+    total = float(np.sqrt(be ** 2 + bn ** 2 + bu ** 2))
+    return total, float(np.degrees(np.arctan2(-bu, np.hypot(be, bn))))
 
 
 def auto_magnitude(raw):
@@ -82,3 +92,62 @@ def reference_magnitude(data, field_nt=None):
     if not np.all(np.isfinite(f)) or np.any(f <= 0):
         raise ValueError('the reference field magnitude must be finite and positive')
     return f
+
+
+#: where a node's reference magnitude comes from (``field_source``)
+FIELD_SOURCES = ('constant', 'igrf', 'shape')
+
+
+def site_field_reference(source, field_nt=None, lat_deg=None, lon_deg=None, alt_m=0.0,
+                         date=None, raw=None):
+    """
+    Return the reference magnitude and its ``field_reference`` record, as a node sets it.
+
+    Parameters
+    ----------
+    source : str
+        'constant' (``field_nt``), 'igrf' (IGRF at the site and date: :func:`igrf_total`)
+        or 'shape' (no reference: :func:`auto_magnitude` of ``raw``, shape only).
+    field_nt : float
+        Magnitude for 'constant', nT.
+    lat_deg, lon_deg : float
+        Geodetic latitude and longitude of the site for 'igrf', degrees.
+    alt_m : float
+        Height of the site above the ellipsoid for 'igrf', m.
+    date : str
+        'YYYY-MM-DD' of the data for 'igrf'.
+    raw : numpy.ndarray
+        (N, 3) raw readings of sensor 1 for 'shape', nT.
+
+    Returns
+    -------
+    (float, dict)
+        F in nT and the calibration file's ``field_reference`` (kind, inputs, magnitude_nt).
+
+    Raises
+    ------
+    ValueError
+        Naming what is missing or out of range.
+
+    """
+    if source == 'constant':
+        f = float(field_nt)
+        return f, {'kind': 'constant', 'magnitude_nt': f}
+    if source == 'igrf':
+        if lat_deg is None or lon_deg is None or not date:
+            raise ValueError('field_source igrf needs site_latitude_deg, site_longitude_deg '
+                             'and site_date (YYYY-MM-DD)')
+        f, inc = igrf_field(float(lat_deg), float(lon_deg), float(alt_m) / 1000.0, date)
+        return f, {'kind': 'igrf', 'lat_deg': float(lat_deg), 'lon_deg': float(lon_deg),
+                   'alt_km': float(alt_m) / 1000.0, 'date': str(date), 'magnitude_nt': f,
+                   'inclination_deg': inc}
+    if source == 'shape':
+        f = auto_magnitude(raw)
+        return f, {'kind': 'auto (mean radius, shape-only)', 'magnitude_nt': f}
+    if source == 'shape-planar':
+        # a turn about one axis: no ellipsoid, a circle and the mean along the axis
+        from magcal_ros.core.model.planar import planar_magnitude, turn_axis
+        f = planar_magnitude(raw, turn_axis(raw))
+        return f, {'kind': 'auto (planar: in-plane radius and mean along the axis, '
+                           'shape-only)', 'magnitude_nt': f}
+    raise ValueError(f'field_source must be one of {FIELD_SOURCES}, got {source!r}')

@@ -62,9 +62,14 @@ RAW_FLOOR_EXCESS = 1.2
 
 
 def mad_sd(x):
-    """Gaussian-consistent sd from the median absolute deviation: 1.4826 MAD (unit of x)."""
-    x = np.asarray(x, float).ravel()
-    return float(1.4826 * np.median(np.abs(x - np.median(x))))
+    """
+    Gaussian-consistent sd from the median absolute deviation (unit of x).
+
+    MAD / Phi^-1(3/4) = 1.4826 MAD: scipy.stats.median_abs_deviation(scale='normal') of the
+    values of ``x`` (any shape, flattened).
+    """
+    from scipy.stats import median_abs_deviation    # here: scipy.stats is slow to import
+    return float(median_abs_deviation(np.asarray(x, float).ravel(), scale='normal'))
 
 
 def robust_sd(d):

@@ -53,7 +53,11 @@ class SimConfig:
     rate_hz : float
         Sample rate, Hz.
     n_sensors : int
-        4 for the cross (positions from ``baseline_m``); 1 for a single sensor.
+        Sensors of the array: 4 is the cross (positions from ``baseline_m``) unless
+        ``positions_m`` is given; any other count sits at ``positions_m`` (default: all at
+        the origin).
+    positions_m : sequence or None
+        (S, 3) or flat (3 S,) sensor positions in the array frame, m.
     baseline_m : float
         Distance between the two sensors of an arm, m.
     field_nt, declination_deg, inclination_deg : float
@@ -66,7 +70,8 @@ class SimConfig:
         'cone' (field directions in a cap of ``cone_half_angle_deg`` around body +z),
         'vehicle' (any heading, roll and pitch within +-``tilt_deg``).
     errors : str or None
-        'paper004' (Table 1), or None for ideal sensors.
+        'paper004' (Table 1; sensor j > 4 gets the errors of Table 1's sensor
+        ((j - 1) mod 4) + 1), or None for ideal sensors.
     model : str
         Model spec of the truth; extra effects are set with ``truth``.
     truth : dict
@@ -115,6 +120,7 @@ class SimConfig:
     gradient_nt_per_m: object = None
     attitude: bool = False
     seed: int = 0
+    positions_m: object = None
 
 
 class Simulator:
@@ -135,22 +141,32 @@ class Simulator:
         self.model = Model.from_spec(' + '.join(tokens), s)
         p = self.model.default_params()
         if cfg.errors == 'paper004':
-            if s > 4:
-                raise ValueError('paper 004 Table 1 has four sensors')
+            # Table 1 has four sensors: more repeat them (their misalignment to sensor 1
+            # is then that of the sensor they repeat)
             for j in range(1, s + 1):
-                a, o = table1_sensor(j).to_general()
+                a, o = table1_sensor((j - 1) % 4 + 1).to_general()
                 p = self.model.params_from_linear(j, a, o, p)
         elif cfg.errors is not None:
             raise ValueError("errors must be 'paper004' or None")
         for token, values in cfg.truth.items():
             self._set_truth(p, token, values)
         self.params = p
-        self.positions = cross_positions(cfg.baseline_m) if s == 4 else np.zeros((s, 3))
+        if cfg.positions_m is not None:
+            self.positions = np.asarray(cfg.positions_m, float).reshape(-1, 3)
+            if len(self.positions) != s:
+                raise ValueError(f'positions_m has {len(self.positions)} positions for {s} '
+                                 'sensors')
+        else:
+            self.positions = cross_positions(cfg.baseline_m) if s == 4 else np.zeros((s, 3))
         self.noise = np.broadcast_to(np.asarray(cfg.noise_nt, float), (s,)).copy()
         self.b_world = earth_field(cfg.field_nt, cfg.declination_deg, cfg.inclination_deg)
         seed_rng = np.random.default_rng([cfg.seed, 7])
         self._phases = seed_rng.uniform(0, 2 * np.pi, size=16)
         self._levels = seed_rng.uniform(0.0, 5.0, size=4096)
+        # temperature phases of each sensor: those of the first four as before, more drawn
+        first = np.column_stack([self._phases[6:10], self._phases[10:14]])
+        more = seed_rng.uniform(0, 2 * np.pi, size=(max(s - 4, 0), 2))
+        self._temp_phases = np.vstack([first, more])[:s]
 
     def _set_truth(self, p, token, values):
         """
@@ -223,8 +239,8 @@ class Simulator:
         out = np.empty((s, len(t)))
         for j in range(s):
             out[j] = cfg.temp_mean_c + j * 0.7 + cfg.temp_swing_c * np.sin(
-                2 * np.pi * t / 240.0 + self._phases[6 + j]) * (0.8 + 0.2 * np.cos(
-                    2 * np.pi * t / 97.0 + self._phases[10 + j]))
+                2 * np.pi * t / 240.0 + self._temp_phases[j, 0]) * (0.8 + 0.2 * np.cos(
+                    2 * np.pi * t / 97.0 + self._temp_phases[j, 1]))
         return out
 
     def aux_channels(self, t):

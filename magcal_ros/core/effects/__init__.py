@@ -36,8 +36,7 @@ working for everything that imported the former single module.
 from magcal_ros.core.effects.base import (  # noqa: F401 - re-exported
     decompose_linear, Effect, first_order_lag, LinearParts, misalignment_angles,
     misalignment_matrix, NONLINEARITY_FULL_SCALE_NT, nonorthogonality_matrix, raw_rate,
-    rot_r1, rot_r2, rot_r3, rq_positive, SensorContext, SIGNALS, symmetric_traceless,
-    upper_to_scale_nonorth)
+    rot_r1, rot_r2, rot_r3, rq_positive, SensorContext, SIGNALS, upper_to_scale_nonorth)
 from magcal_ros.core.effects.catalog import (  # noqa: F401 - re-exported
     Aux, AuxPoly, Drift, FieldRate, Lag, Misalignment, Nonlinearity, NonOrthogonality, Offset,
     Periodic, QuadraticDrift, Scale, SiteGradient, SoftIron, Step, Temperature)
@@ -45,6 +44,7 @@ from magcal_ros.core.effects.registry import (  # noqa: F401 - re-exported
     BASE, BUILTIN_EFFECTS, effect_class, load_plugin, load_plugins, make_effect,
     needs_args, parse_token, register_effect, registered_effects, split_spec,
     unregister_effect)
+from magcal_ros.core.geometry.tensor import symmetric_traceless  # noqa: F401,I100
 from magcal_ros.core.effects import formula  # noqa: F401,I100 - the grammar, after the catalog
 from magcal_ros.core.effects.couplings import (  # noqa: F401 - re-exported
     Coupling, register_coupling, registered_couplings, unregister_coupling)

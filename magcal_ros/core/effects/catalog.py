@@ -27,7 +27,8 @@ from magcal_ros.core.effects.base import (channel_name, channel_values, check_ch
                                           Effect, first_order_lag, format_arg,
                                           misalignment_angles, misalignment_matrix,
                                           NONLINEARITY_FULL_SCALE_NT, nonorthogonality_matrix,
-                                          parse_number, symmetric_traceless)
+                                          parse_number)
+from magcal_ros.core.geometry.tensor import symmetric_traceless
 import numpy as np
 
 

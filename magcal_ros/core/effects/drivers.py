@@ -32,7 +32,8 @@ columns):
 - ``s(v, k=K)``: a cubic regression spline of K columns (mgcv's ``s``), centred;
 - ``cc(v, k=K[, period=P])``: Fourier harmonics 1..K of a v that wraps (2K columns), centred;
 - ``poly(v, D)``: (v - v0) / h to the powers 1..D, v0 the mean, h the half range;
-- ``sin(F)``: cos and sin of 2 pi F (t - t0), F in Hz;
+- ``sin(F[, refine=true])``: cos and sin of 2 pi F (t - t0), F in Hz (refined by the fit
+  with ``refine=true``);
 - ``step(T, ...)``: [t >= T_k], T in s;  ``window(T0, T1)``: [T0 <= t <= T1];
 - ``lag(v[, tau=S])``: v through the first-order lag tau dy/dt = v - y, centred on v's mean;
   tau (s) is a parameter of the fit unless given.
@@ -445,27 +446,39 @@ class Poly(_OfVariable):
 
 
 class Sinusoid(Driver):
-    """``sin(F)``: cos and sin of 2 pi F (t - t0), F in Hz, t0 the first calibration time."""
+    """
+    ``sin(F[, refine=true])``: cos and sin of 2 pi F (t - t0), F in Hz, t0 the first time.
+
+    With ``refine=true`` the frequency is F + df, df (Hz) a parameter of the fit starting
+    at 0 (a line whose frequency is known only roughly, e.g. from a periodogram: within
+    about 1 / (4 span) of the truth for the fit to find it).
+    """
 
     name = 'sin'
-    usage = 'sin(<f_hz>)'
+    usage = 'sin(<f_hz>[, refine=true])'
     signals = ('time',)
     column_names = ('cos', 'sin')
 
     @classmethod
     def from_args(cls, args, kwargs):
-        _kwargs(kwargs, (), cls.usage)
+        _kwargs(kwargs, ('refine',), cls.usage)
         if len(args) != 1:
             raise FormulaError(f'sin takes one frequency in Hz, e.g. sin(0.23); usage {cls.usage}')
         d = cls()
         d.freq_hz = parse_number(args[0], 'sin frequency [Hz]')
         if d.freq_hz <= 0:
             raise FormulaError(f'sin frequency must be positive, got {args[0]!r}')
+        refine = kwargs.get('refine', 'false').lower()
+        if refine not in ('true', 'false'):
+            raise FormulaError(f'sin(..., refine=...) is true or false, got {refine!r}')
+        d.refine = refine == 'true'
+        d.param_names = ('df',) if d.refine else ()
+        d.units = ('Hz',) if d.refine else ()
         return d
 
     @property
     def text(self):
-        return f'sin({format_arg(self.freq_hz)})'
+        return f'sin({format_arg(self.freq_hz)}' + (', refine=true)' if self.refine else ')')
 
     def prepare(self, ctx, refs, prefix=''):
         refs.setdefault(prefix + 't0', float(ctx.t[0]) if len(ctx.t) else 0.0)
@@ -478,7 +491,8 @@ class Sinusoid(Driver):
         return None
 
     def columns(self, ctx, lin, refs, q, prefix=''):
-        ph = (2 * math.pi * self.freq_hz) * (ctx.t - refs.get(prefix + 't0', 0.0))
+        f = self.freq_hz + (float(q[0]) if self.refine else 0.0)
+        ph = (2 * math.pi * f) * (ctx.t - refs.get(prefix + 't0', 0.0))
         return np.stack([np.cos(ph), np.sin(ph)], axis=1)
 
 

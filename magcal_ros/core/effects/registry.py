@@ -83,20 +83,42 @@ def needs_args(name):
 
 def load_plugin(ref):
     """
-    Import ``module`` or ``module:Class`` and register the effect classes it names.
+    Import ``module`` or ``module:Class`` and register the classes it names.
 
-    A module may define ``MAGCAL_EFFECTS = [Cls, ...]`` or call :func:`register_effect`
-    itself.  Returns the list of registered names.
+    A module may define ``MAGCAL_EFFECTS = [Cls, ...]`` (named effects),
+    ``MAGCAL_COUPLINGS`` and ``MAGCAL_DRIVERS`` (the grammar's couplings and driver factors,
+    :mod:`.couplings`, :mod:`.drivers`), or call the ``register_*`` functions itself;
+    ``module:Class`` registers that one class, whichever of the three it is.  Returns the
+    list of registered names.
+
+    Each effect class is evaluated once on a context holding only the signals it declares
+    (:func:`magcal_ros.core.effects.safety.probe_effect`) before it is registered: one that
+    reads an undeclared signal, or fails, is refused (ValueError, one line naming the effect
+    and the signal).  Couplings and drivers are not probed on their own.
     """
+    from magcal_ros.core.effects import couplings, drivers
+    from magcal_ros.core.effects.safety import probe_effect   # here: it imports the package
     mod_name, _, attr = ref.partition(':')
     try:
         mod = importlib.import_module(mod_name)
     except ImportError as exc:
         raise ValueError(f'cannot import effect plugin {ref!r}: {exc}') from exc
-    classes = [getattr(mod, attr)] if attr else list(getattr(mod, 'MAGCAL_EFFECTS', []))
+    if attr:
+        classes = [getattr(mod, attr)]
+    else:
+        classes = [c for key in ('MAGCAL_EFFECTS', 'MAGCAL_COUPLINGS', 'MAGCAL_DRIVERS')
+                   for c in getattr(mod, key, [])]
     names = []
     for cls in classes:
-        if _REGISTRY.get(cls.name) is not cls:
+        if isinstance(cls, type) and issubclass(cls, couplings.Coupling):
+            if couplings.coupling_class(cls.name) is not cls:
+                couplings.register_coupling(cls)
+        elif isinstance(cls, type) and issubclass(cls, drivers.Driver):
+            if drivers.driver_class(cls.name) is not cls:
+                drivers.register_driver(cls)
+        elif _REGISTRY.get(cls.name) is not cls:
+            if isinstance(cls, type) and issubclass(cls, Effect):
+                probe_effect(cls, ref)
             register_effect(cls)
         names.append(cls.name)
     return names

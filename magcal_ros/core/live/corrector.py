@@ -32,6 +32,7 @@ from collections import deque
 from magcal_ros.core.data.dataset import Dataset
 from magcal_ros.core.data.noise import noise_floor
 from magcal_ros.core.effects import raw_rate, SensorContext, SIGNALS
+from magcal_ros.core.effects.safety import EffectError
 from magcal_ros.core.geometry.tensor import tensor_operator
 from magcal_ros.core.live.sync import epoch_times, StampMatcher
 import numpy as np
@@ -64,10 +65,55 @@ def _waiting(j, name):
     return f'sensor {j}: the calibration needs the signal {name!r}, which is not received'
 
 
+def calibration_covariance_nt2(cal, j, field_nt):
+    """
+    (3, 3) covariance of sensor j's corrected field from the calibration's uncertainty, nT^2.
+
+    The corrected field c = A'^-1 (raw - o') of a calibration whose parameters are off by
+    their standard uncertainty differs from the true field b by M b + d (M = A'^-1 A - I,
+    d = A'^-1 (o - o')), per parameter of the sensor's linear effects and offset; over field
+    directions uniform on the sphere of magnitude ``field_nt`` (E[b b^T] = F^2 I / 3) that is
+    M M^T F^2 / 3 + d d^T, summed over the parameters (their correlations are not in the
+    calibration file: neglected). Driven effects (temperature, ...) are not included.
+
+    Parameters
+    ----------
+    cal : magcal_ros.core.model.Calibration
+        The calibration, with the standard uncertainties of its parameters.
+    j : int
+        Sensor, 1-based.
+    field_nt : float
+        Magnitude of the field, nT.
+
+    Returns
+    -------
+    numpy.ndarray
+        (3, 3) nT^2; zeros when the calibration has no uncertainties.
+
+    """
+    from magcal_ros.core.model.calibration import Calibration
+    model = cal.model
+    a, o = cal.matrix(j), cal.offset(j)
+    out = np.zeros((3, 3))
+    for sl in model.slices[j - 1]:
+        for k in range(sl.start, sl.stop):
+            se = float(cal.stderr[k]) if k < len(cal.stderr) else 0.0
+            if not (np.isfinite(se) and se > 0):
+                continue
+            p = cal.params.copy()
+            p[k] += se
+            moved = Calibration(model, p)
+            a_inv = moved.correction_matrix(j)
+            m = a_inv @ a - np.eye(3)
+            d = a_inv @ (o - moved.offset(j))
+            out += m @ m.T * field_nt ** 2 / 3.0 + np.outer(d, d)
+    return 0.5 * (out + out.T)
+
+
 class _Sensor:
     """The calibration of one sensor made ready for per-sample correction."""
 
-    def __init__(self, cal, j):
+    def __init__(self, cal, j, field_nt=None):
         self.j = j
         self.a_inv = cal.correction_matrix(j)
         self.offset = cal.offset(j)
@@ -78,6 +124,9 @@ class _Sensor:
         sigma = float(cal.sigma_nt[j - 1])
         # corrected = A^-1 raw: white raw noise sigma^2 I maps to sigma^2 A^-1 A^-T (nT^2)
         self.cov_nt2 = None
+        #: (3, 3) nT^2 of the calibration's own uncertainty (field_nt given), else zeros
+        self.cal_cov_nt2 = (calibration_covariance_nt2(cal, j, field_nt)
+                            if field_nt else np.zeros((3, 3)))
         if np.isfinite(sigma) and sigma > 0:
             c = sigma ** 2 * self.a_inv @ self.a_inv.T
             self.cov_nt2 = 0.5 * (c + c.T)
@@ -94,6 +143,8 @@ class LiveCorrector:
     cal : magcal_ros.core.model.Calibration
     n_sensors : int
         Sensors of the array; a calibration for another count is refused (ValueError).
+        Effect code that raises while the calibration is made ready (a plug-in's matrix)
+        is re-raised as :class:`~magcal_ros.core.effects.safety.EffectError` naming it.
     positions_m : array_like, optional
         (S, 3) sensor positions in the array frame, m (the calibration document's
         ``geometry.positions_m``); without them no gradient is computed
@@ -103,6 +154,9 @@ class LiveCorrector:
     check_pairing : bool
         Check every set from the data before it gives a tensor (:meth:`pairing_chi2`) and
         re-pair a shifted stream at once; off, sets are paired by stamps alone.
+    field_nt : float, optional
+        Field magnitude of the calibration, nT: with it :meth:`covariance_nt2` adds the
+        calibration's own uncertainty (:func:`calibration_covariance_nt2`) to the noise.
 
     Attributes
     ----------
@@ -123,13 +177,17 @@ class LiveCorrector:
     """
 
     def __init__(self, cal, n_sensors, positions_m=None, stamp_tolerance_s=0.005,
-                 check_pairing=True):
+                 check_pairing=True, field_nt=None):
         if cal.n_sensors != n_sensors:
             raise ValueError(f'the calibration is for {cal.n_sensors} sensors but this '
                              f'corrector handles {n_sensors} (n_sensors)')
         self.cal = cal
         self.n_sensors = n_sensors
-        self._sensors = [_Sensor(cal, j) for j in range(1, n_sensors + 1)]
+        try:
+            # runs the effects' code (their matrices, declarations): a failure names the effect
+            self._sensors = [_Sensor(cal, j, field_nt) for j in range(1, n_sensors + 1)]
+        except Exception as exc:           # noqa: B902 -- effect code may raise anything
+            raise EffectError(exc) from exc
         self.temp = np.full(n_sensors, np.nan)
         self.aux = {}
         self.matcher = StampMatcher(n_sensors, stamp_tolerance_s)
@@ -214,15 +272,19 @@ class LiveCorrector:
 
         The field at sensor j minus the centre field, R^T G_w R r_j (docs/site_gradient.md),
         at the fixed attitude ``quaternion`` (4,) (qw, qx, qy, qz, body-to-world): what a
-        stationary test subtracts to leave the anomaly.  None without a site gradient.
+        stationary test subtracts to leave the anomaly.  None without a site gradient;
+        :class:`~magcal_ros.core.effects.safety.EffectError` if the effect's code raises.
         """
         if self.cal.site_gradient() is None:
             return None
         from magcal_ros.core.geometry.attitude import quaternion_matrices
         ctx = SensorContext(t=np.zeros(1),
                             attitude=quaternion_matrices(np.asarray(quaternion, float)[None]))
-        return np.stack([self.cal.array_shift(j, ctx)[0]
-                         for j in range(1, self.n_sensors + 1)])
+        try:
+            return np.stack([self.cal.array_shift(j, ctx)[0]
+                             for j in range(1, self.n_sensors + 1)])
+        except Exception as exc:           # noqa: B902 -- effect code may raise anything
+            raise EffectError(exc) from exc
 
     def linear(self, j):
         """
@@ -238,6 +300,18 @@ class LiveCorrector:
     def covariance_nt2(self, j):
         """(3, 3) covariance of sensor j's corrected field, nT^2 (None: no noise estimate)."""
         return self._sensors[j - 1].cov_nt2
+
+    def published_covariance_nt2(self, j):
+        """
+        (3, 3) covariance a corrected sample of sensor j is published with, nT^2.
+
+        The noise (:meth:`covariance_nt2`) plus the calibration's own uncertainty
+        (:func:`calibration_covariance_nt2`, with ``field_nt``); None without a noise
+        estimate.  The tensor's covariance and the pairing check use the noise alone: the
+        calibration error is common to every set, not a scatter between them.
+        """
+        s = self._sensors[j - 1]
+        return None if s.cov_nt2 is None else s.cov_nt2 + s.cal_cov_nt2
 
     def set_temperature(self, j, temp_c):
         """Latest temperature of sensor j (1-based), degC."""
@@ -270,6 +344,8 @@ class LiveCorrector:
         MissingSignal
             A driven effect has no live signal yet (temperature, auxiliary channel, or the
             field rate before the stream's period is known).
+        magcal_ros.core.effects.safety.EffectError
+            The code of an effect raised (naming the effect); the sample has no correction.
 
         """
         s = self._sensors[j - 1]
@@ -286,7 +362,10 @@ class LiveCorrector:
         for name in sorted(s.needs):
             if not (name in SIGNALS or name.startswith('aux_')) or not ctx.has(name):
                 raise MissingSignal(_waiting(j, name))
-        return self.cal.correct(j, raw, ctx)
+        try:
+            return self.cal.correct(j, raw, ctx)
+        except Exception as exc:           # noqa: B902 -- effect code may raise anything
+            raise EffectError(exc, where=f'the correction of sensor {j}') from exc
 
     @staticmethod
     def _rate(s):
@@ -442,7 +521,8 @@ class ResidualMonitor:
     (:func:`magcal_ros.core.data.noise.noise_floor`, no model) predicts an RMS of f_j for the
     scalar residual and sqrt(3 (f_j^2 + sum_{k != j} f_k^2 / (S - 1)^2)) for the vector one.
     A ratio above :data:`RESIDUAL_WARN_RATIO` means an effect the calibration lacks (or a
-    changed sensor): time to run the diagnosis.
+    changed sensor): time to run the diagnosis.  A single sensor has no vector residual
+    (NaN, :attr:`kinds` is ``('scalar',)``).
 
     Parameters
     ----------
@@ -455,9 +535,11 @@ class ResidualMonitor:
     """
 
     def __init__(self, n_sensors, field_nt, window=1000):
-        if n_sensors < 2:
-            raise ValueError('the vector residual needs at least two sensors')
+        if n_sensors < 1:
+            raise ValueError('the residual needs at least one sensor')
         self.n_sensors = n_sensors
+        #: the residuals this array has: the vector one needs a second sensor
+        self.kinds = ('scalar', 'vector') if n_sensors > 1 else ('scalar',)
         self.field_nt = float(field_nt)
         self.window = int(window)
         self._fields = np.zeros((n_sensors, self.window, 3))
@@ -483,8 +565,11 @@ class ResidualMonitor:
         b = np.asarray(fields_nt, float)
         s = self.n_sensors
         scalar = np.sqrt(np.einsum('ij,ij->i', b, b)) - self.field_nt
-        others = (b.sum(axis=0)[None, :] - b) / (s - 1)
-        vector = np.sqrt(np.sum((b - others) ** 2, axis=1))
+        if s > 1:
+            others = (b.sum(axis=0)[None, :] - b) / (s - 1)
+            vector = np.sqrt(np.sum((b - others) ** 2, axis=1))
+        else:
+            vector = np.full(1, np.nan)
         k = self.count % self.window
         self._fields[:, k] = b
         self._scalar[:, k] = scalar
@@ -510,7 +595,8 @@ class ResidualMonitor:
         floor = noise_floor(self._fields[:, order])
         s = self.n_sensors
         f2 = floor ** 2
-        vector_expected = np.sqrt(3.0 * (f2 + (f2.sum() - f2) / (s - 1) ** 2))
+        vector_expected = (np.sqrt(3.0 * (f2 + (f2.sum() - f2) / (s - 1) ** 2)) if s > 1
+                           else np.full(1, np.nan))
         scalar_rms = np.sqrt(np.mean(self._scalar[:, order] ** 2, axis=1))
         vector_rms = np.sqrt(np.mean(self._vector[:, order] ** 2, axis=1))
         with np.errstate(divide='ignore', invalid='ignore'):

@@ -250,7 +250,7 @@ class FitResult:
 def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=False,
         priors=None, sigma_nt=None, on_degenerate='raise', max_fit_samples=20000,
         init=None, max_nfev=200, check_identifiability=True, solver='lm', covariance=True,
-        ftol=None):
+        ftol=None, extra_priors=None):
     """
     Fit ``model`` to rotation data in a uniform field by maximum likelihood.
 
@@ -272,6 +272,10 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
         0 +- 0.05 rad, soft iron identity +- 0.02) and the start is A = I.
     priors : dict, optional
         {effect name or label: (mean or None for default, sd)} overriding the priors.
+    extra_priors : list of (int, float, float), optional
+        Priors on single parameters, (index, mean, sd) in the parameter's unit, added to
+        those of ``priors`` (the planar mode holds the parameters a turn about one axis
+        leaves open: :mod:`magcal_ros.core.model.planar`).
     sigma_nt : float or numpy.ndarray, optional
         Fixed per-sensor noise (nT); default: estimated from the residuals.
     on_degenerate : {'raise', 'flag'}
@@ -345,7 +349,7 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
             from magcal_ros.core.geometry.attitude import check_against_field
             check_against_field(contexts_all[0].attitude,
                                 model.correct(1, p0, data.raw[0], contexts_all[0]), data.t)
-        prior_list = priors_for(model, priors or {}, constrained)
+        prior_list = priors_for(model, priors or {}, constrained) + list(extra_priors or ())
         solve = _Solve(model, raw, f, contexts, prior_list, robust, f_scale, solver, max_nfev,
                        ftol)
         p, sigma, sol = solve.run(p0, sigma_nt)

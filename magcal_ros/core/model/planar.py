@@ -1,0 +1,519 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Planar calibration: what a turn about one axis determines, and what it does not.
+
+A ground robot can only turn about its vertical axis.  Its magnetometer then sees the field
+rotate on a cone about that axis n (in the sensor frame): with the horizontal field H and
+the vertical field Z, ``B_k = H (cos psi_k u - sin psi_k v) + Z n`` for an orthonormal
+(u, v, n).  Such data determine
+
+- the offsets in the plane (u, v) and the in-plane linear map up to one common factor
+  (the ratio of the two in-plane scale factors and their non-orthogonality): everything a
+  heading needs;
+
+and leave undetermined
+
+- the offset along n (it only ever adds to ``a_nn Z``: one constant),
+- the scale along n, and the angles between n and the plane (``a_un Z`` and ``a_vn Z`` are
+  constants that add to the in-plane offsets: only those sums are seen),
+- with no known inclination, the split of F into H and Z, hence the common in-plane scale
+  (held with the offset along n: one of the two has to be).
+
+:func:`fit_planar` fits the full three-axis model (so the wobble of a hand-held turn, which
+moves part of Z into the plane, is described by the n reading and the |B| = F constraint
+and does not bend the in-plane result, as it bends a two-dimensional ellipse fit: on the
+real HMC5883L turn a 2D ellipse reads an axis ratio of 1.67 where the full sphere says
+1.06) with a prior on each parameter the turn leaves open: centred on the previous
+calibration's value when given, else an ideal sensor's, with a standard deviation
+(:data:`PRIOR_SD`) wide enough for cheap sensors (5 % in scale, 0.05 rad in angle).  A
+parameter whose posterior standard uncertainty stays above half its prior's is
+*undetermined* (the data added less than three times the prior's information) and named.
+The priors' uncertainty is kept in the covariance, so what the held parameters could be
+reaches the in-plane parameters through their correlations: holding them exactly instead
+understated the heading error of the real turn threefold (its two halves disagreed by
+0.93 deg RMS against a stated 0.3 deg).
+
+:func:`heading_error` propagates the covariance to the heading of a level sensor at the
+site's inclination: the standard uncertainty of a heading computed from the corrected
+field, as a function of the heading, its largest value and its RMS.  It is the error of
+the calibration, for a sensor that turns level at this site; one reading's noise adds
+``sigma / H`` rad on top.  Units: nT, rad, deg where the name says so.
+"""
+from dataclasses import dataclass
+
+from magcal_ros.core.model.fitting import fit
+import numpy as np
+
+#: how far (deg) the turn axis may be from a sensor axis: the held parameters are those of
+#: that axis (a tilted mounting mixes the sensor's parameters with the plane's)
+MAX_AXIS_OFFSET_DEG = 25.0
+
+#: standard deviation of the prior on a parameter the turn leaves open: an offset's as a
+#: fraction of F, a scale's (dimensionless) and an angle's (rad); the constrained mode's
+#: 0.02 is too narrow for a consumer sensor (the HMC5883L's y-z angle is 0.084 rad)
+PRIOR_SD = {'offset': 0.05, 'scale': 0.05, 'angle': 0.05}
+
+#: the smallest radius (a fraction of the field) of a circle counted as a turn by
+#: :func:`swept_angle`: 2 % is a cone of a little over 1 deg, far above any sensor's noise
+MIN_TURN_RADIUS = 0.02
+
+#: a parameter is undetermined when its posterior sd exceeds this fraction of its prior sd
+UNDETERMINED_RATIO = 0.5
+
+#: the parameters a turn about sensor axis a (0, 1, 2: x, y, z) leaves open, by effect
+#: name: the offset and scale along a, the non-orthogonality angles between a and the plane
+#: (paper 004 eq. 2: psi is y-z, varphi x-y, theta x-z)
+_HELD = {
+    0: {'offset': ('bx',), 'scale': ('kx',), 'nonorthogonality': ('varphi', 'theta'),
+        'soft_iron': ('a00', 'a01', 'a02', 'a10', 'a20')},
+    1: {'offset': ('by',), 'scale': ('ky',), 'nonorthogonality': ('varphi', 'psi'),
+        'soft_iron': ('a11', 'a01', 'a10', 'a12', 'a21')},
+    2: {'offset': ('bz',), 'scale': ('kz',), 'nonorthogonality': ('psi', 'theta'),
+        'soft_iron': ('a22', 'a02', 'a20', 'a12', 'a21')},
+}
+
+
+#: the effects whose parameters are judged determined or not (the constant sensor map)
+_KINDS = ('offset', 'scale', 'nonorthogonality', 'soft_iron', 'misalignment')
+
+
+class PlanarError(ValueError):
+    """The data are not a turn about one axis that planar mode can use."""
+
+
+@dataclass(frozen=True)
+class PlanarResult:
+    """
+    A planar calibration.
+
+    Attributes
+    ----------
+    result : FitResult
+        The fit (held parameters at their prior, their stderr not meaningful).
+    axis : numpy.ndarray
+        (S, 3) unit turn axis n of each sensor, in its own frame.
+    axis_index : tuple of int
+        The sensor axis (0, 1, 2 for x, y, z) n is nearest to, per sensor.
+    held : tuple of int
+        Indices of the parameters with a prior in ``result.params``.
+    undetermined : tuple of str
+        Names (``<effect>.<param>@<sensor>``) of the sensor-map parameters whose posterior sd
+        stays above :data:`UNDETERMINED_RATIO` times the prior sd of their kind.
+    determined : tuple of str
+        The names of the other parameters.
+    heading : list of dict
+        Per sensor: :func:`heading_error` at the site's H and Z.
+    h_nt, z_nt : numpy.ndarray
+        (S,) horizontal and vertical field used for the heading error, nT.
+    residual_correlation : numpy.ndarray
+        (S,) lag-1 correlation of each sensor's scalar residual; the covariance is widened
+        by (1 + rho) / (1 - rho) for it (:func:`_inflate_for_correlation`).
+
+    """
+
+    result: object
+    axis: np.ndarray
+    axis_index: tuple
+    held: tuple
+    undetermined: tuple
+    determined: tuple
+    heading: list
+    h_nt: np.ndarray
+    z_nt: np.ndarray
+    residual_correlation: np.ndarray
+
+
+def turn_axis(m):
+    """
+    Unit axis (3,) of a turn about one axis, in the sensor frame, from readings m (N, 3) nT.
+
+    The readings of a turn lie on a circle: the axis is the direction in which they spread
+    least (the smallest principal axis of their scatter), signed to point along the mean
+    reading's component on it (towards the field's part along the axis).
+    """
+    m = np.asarray(m, float)
+    c = m - m.mean(axis=0)
+    w, v = np.linalg.eigh(c.T @ c / len(m))
+    n = v[:, 0]
+    if w[1] <= 0 or w[0] > 0.25 * w[1]:
+        raise PlanarError(
+            'the readings do not lie near one plane (principal spreads '
+            f'{", ".join(f"{np.sqrt(max(x, 0)):.0f}" for x in w)} nT): the sensor did not turn '
+            'about one axis; planar mode is for a turn in place about one axis (drop '
+            '--planar for a full calibration)')
+    return n if n @ m.mean(axis=0) >= 0 else -n
+
+
+def held_parameters(model, axis_index):
+    """(indices, names) of the parameters a turn about the given sensor axes leaves open."""
+    idx, names = [], []
+    for k, (j, label, name, _) in enumerate(model.param_info()):
+        if j == 0:
+            continue
+        effect = label.split('(')[0]
+        if name in _HELD[axis_index[j - 1]].get(effect, ()):
+            idx.append(k)
+            names.append(f'{label}.{name}@{j}')
+    return idx, names
+
+
+def fit_planar(data, model, field_nt, *, prior_params=None, inclination_deg=None,
+               **fit_kwargs):
+    """
+    Fit ``model`` to a turn about one axis, the undetermined parameters held at a prior.
+
+    Parameters
+    ----------
+    data : Dataset
+        (S, N, 3) raw readings, nT, of a turn about one axis.
+    model : Model or str
+        The model ('base' or a spec).
+    field_nt : float or numpy.ndarray
+        Reference magnitude F, nT (scalar or (N,)).
+    prior_params : numpy.ndarray, optional
+        (P,) parameters the held ones are held at (the previous calibration's); default an
+        ideal sensor's (offset 0, scale 1, angles 0).
+    inclination_deg : float, optional
+        The site's inclination I (IGRF): H = F cos I, Z = F sin I for the heading error;
+        default the fitted field's own split.
+    **fit_kwargs
+        Passed to :func:`magcal_ros.core.model.fitting.fit`.
+
+    Returns
+    -------
+    PlanarResult
+
+    """
+    from magcal_ros.core.model.spec import Model
+    if isinstance(model, str):
+        model = Model.from_spec(model, data.n_sensors)
+    axes, axis_index = [], []
+    for j in range(data.n_sensors):
+        n = turn_axis(data.raw[j])
+        k = int(np.argmax(np.abs(n)))
+        off = np.degrees(np.arccos(min(1.0, abs(n[k]))))
+        if off > MAX_AXIS_OFFSET_DEG:
+            raise PlanarError(
+                f'sensor {j + 1}: the turn axis ({", ".join(f"{x:+.2f}" for x in n)}) is '
+                f'{off:.0f} deg from the sensor\'s {"xyz"[k]} axis (more than '
+                f'{MAX_AXIS_OFFSET_DEG:.0f}): planar mode holds the parameters of the axis '
+                'the sensor turns about; mount the sensor with one axis along the turn axis')
+        axes.append(n)
+        axis_index.append(k)
+    held, names = held_parameters(model, axis_index)
+    p_prior = model.default_params() if prior_params is None else np.asarray(prior_params,
+                                                                             float)
+    if p_prior.shape != (model.n_params,):
+        raise ValueError(f'prior_params has {p_prior.shape} values, the model '
+                         f'{model.n_params}: give the previous calibration of the same model')
+    info = model.param_info()
+    f0 = float(np.mean(field_nt))
+    kind_sd = np.array([PRIOR_SD['offset'] * f0 if unit == 'nT' else
+                        PRIOR_SD['angle'] if unit == 'rad' else PRIOR_SD['scale']
+                        for _, _, _, unit in info])
+    prior_list = [(i, float(p_prior[i]), float(kind_sd[i])) for i in held]
+    init = fit_kwargs.pop('init', None)
+    # what the turn leaves open is held by priors alone: a long, flat valley whose floor
+    # the optimiser approaches in ever smaller steps; chi-square to 0.01 (a hundredth of a
+    # standard deviation along the valley) is the optimum for every purpose here
+    fit_kwargs.setdefault('max_nfev', 1000)
+    fit_kwargs.setdefault('ftol', 0.01 / max(1, data.n_samples * data.n_sensors))
+    if init is None:
+        init = _planar_start(data, model, field_nt, p_prior, held, axes)
+    result = fit(data, model, field_nt=field_nt, extra_priors=prior_list, init=init,
+                 check_identifiability=False, **fit_kwargs)
+    result, rho = _inflate_for_correlation(result)
+    # held or not, a parameter known no better than half a prior's width of its kind is
+    # undetermined (a level turn's in-plane offsets: only their sum with the out-of-plane
+    # angles times Z is seen; see effective offsets in planar_summary)
+    open_ = {i for i in range(model.n_params)
+             if info[i][0] and info[i][1] in _KINDS and
+             not result.stderr[i] <= UNDETERMINED_RATIO * kind_sd[i]}
+    label = [f'{lab}.{nm}@{j}' for j, lab, nm, _ in info]
+    undetermined = tuple(label[k] for k in sorted(open_))
+    determined = tuple(label[k] for k in range(model.n_params)
+                       if k not in open_ and info[k][0])
+    h, z, heading = [], [], []
+    for j in range(1, data.n_sensors + 1):
+        hj, zj = _field_split(result, j, axes[j - 1], inclination_deg)
+        h.append(hj)
+        z.append(zj)
+        heading.append(heading_error(result, j, axes[j - 1], axis_index[j - 1], hj, zj))
+    return PlanarResult(result=result, axis=np.array(axes), axis_index=tuple(axis_index),
+                        held=tuple(held), undetermined=undetermined, determined=determined,
+                        heading=heading, h_nt=np.array(h), z_nt=np.array(z),
+                        residual_correlation=rho)
+
+
+def _inflate_for_correlation(result):
+    """
+    The fit with its covariance widened for serially correlated residuals, and the (S,) rho.
+
+    The fit's covariance assumes independent residuals.  A turn is one continuous
+    trajectory, and what the model leaves (a hand's wobble, the sensor's own dynamics) is
+    correlated from one sample to the next: with a lag-1 correlation rho of the scalar
+    residual, the variance of a least-squares estimate grows by about (1 + rho) / (1 - rho)
+    (the AR(1) variance inflation, Bartlett 1946).  Each sensor's block is widened by it
+    (never narrowed).  On the real HMC5883L turn rho = 0.28: a factor 1.33 in the standard
+    uncertainties, without which its two halves' headings disagreed by 1.2 x (RMS) the
+    stated error.
+    """
+    from dataclasses import replace
+    model = result.model
+    owner = np.array([s for s, *_ in model.param_info()])
+    scale = np.ones(model.n_params)
+    rho = np.zeros(model.n_sensors)
+    for j in range(1, model.n_sensors + 1):
+        r = result.scalar_residual_nt[j - 1]
+        if len(r) > 3 and np.std(r) > 0:
+            rho[j - 1] = float(np.corrcoef(r[:-1], r[1:])[0, 1])
+        c = min(max(rho[j - 1], 0.0), 0.99)
+        scale[owner == j] = np.sqrt((1 + c) / (1 - c))
+    cov = result.covariance * np.outer(scale, scale)
+    return replace(result, covariance=cov, stderr=result.stderr * scale), rho
+
+
+def _planar_start(data, model, field_nt, p_prior, held, axes):
+    """Start: the prior, with each sensor's in-plane offset from a circle fit."""
+    p = p_prior.copy()
+    info = model.param_info()
+    for j in range(1, data.n_sensors + 1):
+        m = data.raw[j - 1]
+        n = axes[j - 1]
+        k = int(np.argmax(np.abs(n)))
+        plane = [a for a in range(3) if a != k]
+        centre = circle_centre(m[:, plane])
+        for i, (s, label, name, _) in enumerate(info):
+            if s == j and label == 'offset' and i not in held:
+                p[i] = centre[plane.index('xyz'.index(name[1]))]
+    return p
+
+
+def circle_centre(xy):
+    """Centre (2,) of the least-squares circle through points xy (N, 2) (algebraic, Kasa)."""
+    xy = np.asarray(xy, float)
+    design = np.column_stack([2 * xy, np.ones(len(xy))])
+    sol, *_ = np.linalg.lstsq(design, (xy ** 2).sum(axis=1), rcond=None)
+    return sol[:2]
+
+
+def planar_magnitude(raw, axis):
+    """
+    Shape-only magnitude (nT) for a turn with no reference: the in-plane radius about the
+    circle's centre combined with the mean reading along the axis.
+
+    raw (N, 3) nT, axis (3,) unit.  The common scale of the sensor is then arbitrary (no
+    reference fixes it); the shape, hence the heading, is not.
+    """
+    raw = np.asarray(raw, float)
+    k = int(np.argmax(np.abs(axis)))
+    plane = [a for a in range(3) if a != k]
+    centre = circle_centre(raw[:, plane])
+    r = float(np.median(np.linalg.norm(raw[:, plane] - centre, axis=1)))
+    return float(np.hypot(r, np.mean(raw[:, k])))
+
+
+def _field_split(result, j, axis, inclination_deg):
+    """(H, Z) nT for the heading error: the site's inclination, else the fitted field's."""
+    f = float(np.mean(result.field_magnitude_nt))
+    if inclination_deg is not None:
+        inc = np.radians(inclination_deg)
+        return f * abs(np.cos(inc)), f * np.sin(inc)
+    b = result.corrected_nt[j - 1]
+    along = b @ axis
+    return float(np.median(np.linalg.norm(b - np.outer(along, axis), axis=1))), \
+        float(np.median(along))
+
+
+def heading_error(result, j, axis, axis_index, h_nt, z_nt, n_headings=72):
+    """
+    Standard uncertainty of the heading of a level sensor j, from the fit's covariance.
+
+    The sensor turns about ``axis`` (its own frame) at a site with horizontal field
+    ``h_nt`` and vertical ``z_nt`` (nT).  For each heading psi of a grid over [0, 360) deg
+    the raw reading the fitted model predicts is corrected with parameters moved along each
+    of sensor j's parameters, and the heading of the corrected field in the plane is
+    differentiated (central differences); the covariance of those parameters (the priors'
+    uncertainty included) gives its variance.
+
+    Returns
+    -------
+    dict
+        ``max_deg`` and ``rms_deg`` over psi, ``psi_deg`` (M,), ``sd_deg`` (M,).
+
+    """
+    model, p = result.model, result.params
+    n = np.asarray(axis, float)
+    k = axis_index
+    u_ax, v_ax = [a for a in range(3) if a != k]
+    u, v = np.eye(3)[u_ax], np.eye(3)[v_ax]
+    psi = np.radians(np.arange(n_headings) * 360.0 / n_headings)
+    b = h_nt * (np.cos(psi)[:, None] * u - np.sin(psi)[:, None] * v) + z_nt * n[None, :]
+    ctx = result.contexts[j - 1]
+    ctx0 = ctx.subset(np.zeros(n_headings, int))
+    raw = model.forward(j, p, b, ctx0)
+
+    def heading(params):
+        c = model.correct(j, params, raw, ctx0)
+        return np.arctan2(-(c @ v), c @ u)
+
+    free = [i for i, (s, *_rest) in enumerate(model.param_info()) if s == j]
+    cov = result.covariance[np.ix_(free, free)]
+    jac = np.empty((n_headings, len(free)))
+    for col, i in enumerate(free):
+        step = max(1e-6, 1e-4 * max(abs(p[i]), result.stderr[i] if np.isfinite(
+            result.stderr[i]) else 0.0))
+        dp = np.zeros_like(p)
+        dp[i] = step
+        d = heading(p + dp) - heading(p - dp)
+        jac[:, col] = np.angle(np.exp(1j * d)) / (2 * step)
+    var = np.einsum('ij,jk,ik->i', jac, cov, jac)
+    sd = np.degrees(np.sqrt(np.clip(var, 0, None)))
+    return {'max_deg': float(sd.max()), 'rms_deg': float(np.sqrt(np.mean(sd ** 2))),
+            'psi_deg': np.degrees(psi), 'sd_deg': sd}
+
+
+#: the in-plane non-orthogonality angle of a turn about sensor axis a (paper 004 eq. 2)
+_IN_PLANE_ANGLE = {0: 'psi', 1: 'theta', 2: 'varphi'}
+
+
+def planar_summary(pr):
+    """
+    JSON-ready account of a :class:`PlanarResult` (nT, rad, deg as named).
+
+    ``axis`` per sensor (its own frame), ``determined`` / ``undetermined`` parameter names,
+    ``in_plane`` per sensor (offsets, the ratio of the two in-plane scale factors and their
+    non-orthogonality angle, each with its standard uncertainty), ``heading_error_deg`` and
+    ``heading_error_rms_deg`` per sensor (the largest and the RMS over headings of the
+    heading's standard uncertainty, level sensor at H, Z), ``field_split_nt``.
+    """
+    r = pr.result
+    info = r.model.param_info()
+    out = {'axis': {}, 'in_plane': {}, 'heading_error_deg': {}, 'heading_error_rms_deg': {},
+           'field_split_nt': {}, 'determined': list(pr.determined),
+           'undetermined': list(pr.undetermined)}
+    for j in range(1, r.model.n_sensors + 1):
+        k = pr.axis_index[j - 1]
+        plane = [a for a in range(3) if a != k]
+
+        def index(label, name, j=j):
+            for i, (s, lab, nm, _) in enumerate(info):
+                if s == j and lab == label and nm == name:
+                    return i
+            return None
+
+        entry = {'axes': ''.join('xyz'[a] for a in plane)}
+        off = [index('offset', 'b' + 'xyz'[a]) for a in plane]
+        if None not in off:
+            entry['offset_nt'] = [float(r.params[i]) for i in off]
+            entry['offset_stderr_nt'] = [float(r.stderr[i]) for i in off]
+        eff, eff_sd = effective_offset(r, j, pr.axis[j - 1], k, pr.z_nt[j - 1])
+        entry['effective_offset_nt'] = eff.tolist()
+        entry['effective_offset_stderr_nt'] = eff_sd.tolist()
+        ku, kv = (index('scale', 'k' + 'xyz'[a]) for a in plane)
+        if ku is not None and kv is not None:
+            ratio = r.params[kv] / r.params[ku]
+            g = np.array([-ratio / r.params[ku], 1.0 / r.params[ku]])
+            c = r.covariance[np.ix_([ku, kv], [ku, kv])]
+            entry['scale_ratio'] = float(ratio)
+            entry['scale_ratio_stderr'] = float(np.sqrt(max(g @ c @ g, 0.0)))
+        ang = index('nonorthogonality', _IN_PLANE_ANGLE[k])
+        if ang is not None:
+            entry['nonorth_rad'] = float(r.params[ang])
+            entry['nonorth_stderr_rad'] = float(r.stderr[ang])
+        out['axis'][str(j)] = [float(x) for x in pr.axis[j - 1]]
+        out['in_plane'][str(j)] = entry
+        out['heading_error_deg'][str(j)] = pr.heading[j - 1]['max_deg']
+        out['heading_error_rms_deg'][str(j)] = pr.heading[j - 1]['rms_deg']
+        out['field_split_nt'][str(j)] = {'horizontal': float(pr.h_nt[j - 1]),
+                                         'vertical': float(pr.z_nt[j - 1])}
+        out.setdefault('residual_lag1_correlation', {})[str(j)] = float(
+            pr.residual_correlation[j - 1])
+    return out
+
+
+def effective_offset(result, j, axis, axis_index, z_nt):
+    """
+    ((2,) nT, (2,) nT sd): the centre of the circle a level turn draws in the plane.
+
+    The in-plane readings of sensor j turning level at a site with vertical field ``z_nt``
+    (along ``axis``) are ``A_pp B_p + A_pn Z + o_p``: their centre ``A_pn Z + o_p`` is what
+    a level turn determines even where the offsets ``o_p`` and the out-of-plane angles in
+    ``A_pn`` are not determined one by one.  Its sd from the covariance (central
+    differences).
+    """
+    model, p = result.model, result.params
+    plane = [a for a in range(3) if a != axis_index]
+    ctx = result.contexts[j - 1].subset(np.zeros(1, int))
+
+    def centre(params):
+        b = z_nt * np.asarray(axis, float)[None, :]
+        return model.forward(j, params, b, ctx)[0, plane]
+
+    own = [i for i, (s, *_rest) in enumerate(model.param_info()) if s == j]
+    jac = np.empty((2, len(own)))
+    for col, i in enumerate(own):
+        step = 1e-6 * max(1.0, abs(p[i]))
+        dp = np.zeros_like(p)
+        dp[i] = step
+        jac[:, col] = (centre(p + dp) - centre(p - dp)) / (2 * step)
+    cov = jac @ result.covariance[np.ix_(own, own)] @ jac.T
+    return centre(p), np.sqrt(np.clip(np.diag(cov), 0, None))
+
+
+def planar_notes(pr):
+    """Warnings (:class:`~magcal_ros.core.model.notes.Note`) of what the turn left open."""
+    from magcal_ros.core.model.notes import Note
+    if not pr.undetermined:
+        return []
+    return [Note(
+        'planar calibration: a turn about one axis does not determine '
+        f'{", ".join(pr.undetermined)}: held at their prior (the previous calibration or an '
+        'ideal sensor, within 5 % and 0.05 rad) and marked undetermined; the in-plane '
+        'offsets, scale ratio and angle are heading-grade for a sensor that turns level at '
+        'this site; tilt the robot or turn the sensor about another axis for a full '
+        'calibration', 'degenerate')]
+
+
+def swept_angle(m):
+    """
+    Angle (rad, >= 0) a sensor's readings m (N, 3) nT have swept about the turn axis.
+
+    The readings of a turn draw a circle about the offset, not about the origin: the
+    angle is unwrapped about the circle's centre (:func:`circle_centre`) in the plane of the
+    turn (:func:`turn_axis`; the sensor's z axis while the readings are too few to tell),
+    from the first reading to the last.  The node's ``calibration/turn`` stops the robot
+    when this reaches the turns asked for: the turn as the sensor saw it, not as the wheels
+    were told.
+    """
+    m = np.asarray(m, float)
+    if len(m) < 8:
+        return 0.0
+    try:
+        n = turn_axis(m)
+    except PlanarError:
+        n = np.array([0.0, 0.0, 1.0])
+    k = int(np.argmax(np.abs(n)))
+    plane = [a for a in range(3) if a != k]
+    xy = m[:, plane]
+    c = circle_centre(xy)
+    radius = np.linalg.norm(xy - c, axis=1)
+    if np.median(radius) < MIN_TURN_RADIUS * np.median(np.linalg.norm(m, axis=1)):
+        # a sensor that does not turn: its noise scatters about a point, and a circle fitted
+        # to the scatter sweeps any angle
+        return 0.0
+    ang = np.unwrap(np.arctan2(xy[:, 1] - c[1], xy[:, 0] - c[0]))
+    return float(abs(ang[-1] - ang[0]))
