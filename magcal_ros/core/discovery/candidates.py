@@ -64,7 +64,9 @@ class Candidate:
         (Rao's score test at the base solution: delta_chi2 is the decrease that step
         predicts, exact for effects that enter linearly; used where it puts delta BIC
         above 0, 10 units short of significance, :data:`SCORE_RULE_OUT_BIC`, so the
-        residuals are not evaluated).
+        residuals are not evaluated; a term of the formula search is listed with 'score',
+        its evidence the linearised problem's) or 'search' (the formula search's term that
+        is the verdict) or 'localised' (a ``drop`` of an excess confined in time).
     cv_rms_before_nt, cv_rms_after_nt : float or None
         Combined residual RMS on held-out time blocks (None when not computed).
     significant : bool
