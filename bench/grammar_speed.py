@@ -20,8 +20,9 @@ simulated once (4 sensors, paper 004 errors, 3 nT noise, 'smooth' tumbling over 
 alias's effect switched on), then ``fit(data, 'base + <term>')`` is timed for the alias and
 the composition alternately, ``--repeat`` times each; the table gives the best time of each
 and the ratio composition / alias (wall clock, and this process's CPU time, which a
-loaded machine disturbs less), the optimiser's evaluations and the chi-square of both (the same fit: equal to the
-optimiser's tolerance, except drift2 whose composition is centred and scaled differently).
+loaded machine disturbs less), the optimiser's evaluations and the chi-square of both
+(the same fit: equal to the optimiser's tolerance, except drift2 whose composition is
+centred and scaled differently).
 
     python bench/grammar_speed.py                  # 4 x 10 000 epochs, 3 repeats
     python bench/grammar_speed.py --n 3000 --repeat 2

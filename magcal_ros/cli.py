@@ -289,7 +289,7 @@ def cmd_fit(args):
 
 
 def _print_planar(pl):
-    """The planar calibration's account, one line per sensor and one for what is open."""
+    """Print the planar calibration's account: a line per sensor, one for what is open."""
     for j, e in pl['in_plane'].items():
         axis = ', '.join(f'{x:+.2f}' for x in pl['axis'][j])
         parts = [f'sensor {j}: turn about ({axis}); in the {e["axes"]} plane']
@@ -304,7 +304,7 @@ def _print_planar(pl):
                      f'headings; inclination from {pl["inclination_source"]})')
         print('; '.join(parts))
     if pl['undetermined']:
-        print('undetermined (known no better than half the prior\'s width): '
+        print("undetermined (known no better than half the prior's width): "
               + ', '.join(pl['undetermined']))
 
 

@@ -57,7 +57,7 @@ def scale(sensor, coef, driver):
 
 
 def linear(sensor, m, driver):
-    """Linear coupling, dB = x(t) M lin: the nine entries of the map follow x; M (3, 3) per unit."""
+    """Linear coupling, dB = x(t) M lin: the 9 entries of the map follow x; M (3, 3) per unit."""
     def inject(t, temp, aux, b):
         x = driver(t, temp, aux)
         return {sensor: x[:, None] * (lin(b, sensor) @ np.asarray(m).T)}

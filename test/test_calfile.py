@@ -160,13 +160,13 @@ _TODO = r'; write it again with magcal fit or roll back \(magcal rollback\)$'
 
 @pytest.mark.parametrize('edit,message', [
     (lambda d: d['sensors'][1]['effects'][0]['params']['kx'].update(value='abc'),
-     r"^bad\.yaml: malformed calibration document: sensors\[1\]\.effects\[0\]\.params\.kx\."
+     r'^bad\.yaml: malformed calibration document: sensors\[1\]\.effects\[0\]\.params\.kx\.'
      r"value: value is not a number \('abc'\)" + _TODO),
     (lambda d: d['sensors'][1].update(correction_matrix=[[1, 2, 3], [1, 2, 3]]),
      r'^bad\.yaml: malformed calibration document: sensors\[1\]\.correction_matrix: '
      r'correction_matrix must have at least 3 entries, has 2' + _TODO),
     (lambda d: d['sensors'][0].update(id='one'),
-     r"^bad\.yaml: malformed calibration document: sensors\[0\]\.id: id is not an integer "
+     r'^bad\.yaml: malformed calibration document: sensors\[0\]\.id: id is not an integer '
      r"\('one'\)" + _TODO),
     (lambda d: d['sensors'][0]['effects'][0].update(refs={'t0_c': 'warm'}),
      r"sensors\[0\]\.effects\[0\]\.refs\.t0_c: t0_c is not a number \('warm'\)" + _TODO),

@@ -228,6 +228,6 @@ def test_sinusoid_frequency_refined():
     i = [k for k, (j, lab, nm, _) in enumerate(info) if j == 3 and nm == 'df'][0]
     # the fit's stderr of df (Cramer-Rao for a line of ~10 nT in 3 nT noise over 300 s is
     # of order 1e-6 Hz); 5 standard errors allowed
-    assert abs(res.params[i] - (f_true - 0.05)) < 5 * res.stderr[i], (res.params[i],
-                                                                       res.stderr[i])
+    assert abs(res.params[i] - (f_true - 0.05)) < 5 * res.stderr[i], (
+        res.params[i], res.stderr[i])
     assert abs(res.sigma_nt[2] - SIGMA) < 0.3, res.sigma_nt

@@ -16,9 +16,10 @@
 Real recordings (issue 10, item 7): what each of the shared hand-held recordings must show.
 
 data/real/sunsided-hmc5883l (HMC5883L, 13 recordings, PROVENANCE.md there) and
-data/real/ck-accmag (a consumer IMU's full sphere), gzip-compressed CSV in the repository.  Real data have no noise model
-to derive tolerances from: each threshold below says where it comes from (the issue's
-2 %, the noise floor measured on the static recordings, the sensor axes of the README).
+data/real/ck-accmag (a consumer IMU's full sphere), gzip-compressed CSV in the repository.
+Real data have no noise model to derive tolerances from: each threshold below says where it
+comes from (the issue's 2 %, the noise floor measured on the static recordings, the sensor
+axes of the README).
 """
 import json
 import pathlib

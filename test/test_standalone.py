@@ -34,7 +34,7 @@ REPO = pathlib.Path(__file__).resolve().parents[1]
 SITE = REPO / 'test' / 'open_audit_site'
 REAL = REPO / 'data' / 'real'
 
-_NESTED_TEST = '''
+_NESTED_TEST = """
 import subprocess
 import sys
 
@@ -52,7 +52,7 @@ def test_reads():
     else:
         open(INSIDE).read()
         subprocess.run([sys.executable, '-c', f'open({{INSIDE!r}}).read()'], check=True)
-'''
+"""
 
 
 def _nested_session(tmp_path, mode):

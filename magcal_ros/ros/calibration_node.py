@@ -642,7 +642,7 @@ class CalibrationNode(Node):
         # collecting, until sensor 1 has seen turn_count turns or turn_timeout_s passed
         s = prm.calibration_settings(self)
         if self._cmd_vel is None:
-            return _reply(response, False, "no cmd_vel_topic: set it (read-only: at start-up) "
+            return _reply(response, False, 'no cmd_vel_topic: set it (read-only: at start-up) '
                           'to turn the robot', {'state': self._state})
         if not self._busy.acquire(blocking=False):
             return self._reject_busy(response, 'turn')

@@ -138,7 +138,7 @@ class PlanarResult:
 
 def turn_axis(m):
     """
-    Unit axis (3,) of a turn about one axis, in the sensor frame, from readings m (N, 3) nT.
+    Return the unit axis (3,) of a turn, in the sensor frame, from readings m (N, 3) nT.
 
     The readings of a turn lie on a circle: the axis is the direction in which they spread
     least (the smallest principal axis of their scatter), signed to point along the mean
@@ -158,7 +158,7 @@ def turn_axis(m):
 
 
 def held_parameters(model, axis_index):
-    """(indices, names) of the parameters a turn about the given sensor axes leaves open."""
+    """Return (indices, names) of the parameters a turn about the given axes leaves open."""
     idx, names = [], []
     for k, (j, label, name, _) in enumerate(model.param_info()):
         if j == 0:
@@ -260,7 +260,7 @@ def fit_planar(data, model, field_nt, *, prior_params=None, inclination_deg=None
 
 def _inflate_for_correlation(result):
     """
-    The fit with its covariance widened for serially correlated residuals, and the (S,) rho.
+    Return the fit with its covariance widened for correlated residuals, and the (S,) rho.
 
     The fit's covariance assumes independent residuals.  A turn is one continuous
     trajectory, and what the model leaves (a hand's wobble, the sensor's own dynamics) is
@@ -312,10 +312,10 @@ def circle_centre(xy):
 
 def planar_magnitude(raw, axis):
     """
-    Shape-only magnitude (nT) for a turn with no reference: the in-plane radius about the
-    circle's centre combined with the mean reading along the axis.
+    Return a shape-only magnitude (nT) for a turn with no reference.
 
-    raw (N, 3) nT, axis (3,) unit.  The common scale of the sensor is then arbitrary (no
+    The in-plane radius about the circle's centre combined with the mean reading along the
+    axis; raw (N, 3) nT, axis (3,) unit.  The common scale of the sensor is then arbitrary (no
     reference fixes it); the shape, hence the heading, is not.
     """
     raw = np.asarray(raw, float)
@@ -340,7 +340,7 @@ def _field_split(result, j, axis, inclination_deg):
 
 def heading_error(result, j, axis, axis_index, h_nt, z_nt, n_headings=72):
     """
-    Standard uncertainty of the heading of a level sensor j, from the fit's covariance.
+    Return the standard uncertainty of the heading of a level sensor j (fit's covariance).
 
     The sensor turns about ``axis`` (its own frame) at a site with horizontal field
     ``h_nt`` and vertical ``z_nt`` (nT).  For each heading psi of a grid over [0, 360) deg
