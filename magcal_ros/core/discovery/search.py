@@ -661,7 +661,7 @@ class Localized:
 
     @property
     def token(self):
-        """The formula term that leaves the interval out: 'drop(t0, t1)'."""
+        """Return the formula term that leaves the interval out: 'drop(t0, t1)'."""
         return f'drop({bases.fmt(self.t0)}, {bases.fmt(self.t1)})'
 
 
