@@ -258,7 +258,7 @@ def print_json(obj):
     """One JSON object on stdout."""
     # here, not at the top: the diagnose package (scipy.stats, ndimage) is not needed by
     # every command
-    from magcal_ros.core.diagnose import jsonable
+    from magcal_ros.core.discovery import jsonable
     print(json.dumps(jsonable(obj)))
 
 

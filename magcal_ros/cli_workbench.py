@@ -80,7 +80,7 @@ def _validate(args, cli):
 
 
 def _run(args, cli, with_ladder):
-    from magcal_ros.core.diagnose import diagnose, ladder
+    from magcal_ros.core.discovery import diagnose, ladder
     from magcal_ros.core.model import fit, Model
     _validate(args, cli)
     load_plugins(args.plugin)

@@ -24,7 +24,7 @@ The figures answer "where does the model fail?":
   frame): nonlinearity or a missing linear term shows as a pattern on the sphere;
 - gradient tensor components before and after correction (four-sensor cross);
 - the candidate ranking (delta BIC) and the error ladder (held-out RMS per step);
-- what is left, model-free (:mod:`magcal_ros.core.findings`): the residual spectrum per
+- what is left, model-free (:mod:`magcal_ros.core.discovery.findings`): the residual spectrum per
   sensor, a change-point view, and the residual against the lagged driving channels.
 
 Matplotlib is used through its object API with the Agg canvas (no pyplot, no global
@@ -39,8 +39,8 @@ import re
 import textwrap
 import warnings
 
-from magcal_ros.core.diagnose import (AT_FLOOR_RATIO, compact_spec, MIN_DELTA_BIC, MIN_EXPLAINED,
-                                      noise_floor_from_data)
+from magcal_ros.core.discovery import (AT_FLOOR_RATIO, compact_spec, MIN_DELTA_BIC,
+                                       MIN_EXPLAINED, noise_floor_from_data)
 from magcal_ros.core.geometry.tensor import cross_positions, tensor_cross, tensor_noise_floor
 import matplotlib
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -996,7 +996,7 @@ def plot_ladder(ladder):
 
 # -- the page -------------------------------------------------------------------------------
 
-# -- model-free findings (magcal_ros.core.findings) -----------------------------------------
+# -- model-free findings (magcal_ros.core.discovery.findings) -------------------------------
 
 def _finding_label(f):
     return f.token or f.kind
@@ -1006,11 +1006,12 @@ def plot_residual_spectrum(findings):
     """
     Power spectrum of each sensor's residual series over its white-noise level, log-log.
 
-    The series are :class:`~magcal_ros.core.findings.Findings`' (consensus residuals, nT);
+    The series are :class:`~magcal_ros.core.discovery.findings.Findings`' (consensus
+    residuals, nT);
     power divided by the summed white-noise variance, so white noise sits at 1 and a line
     stands out of its neighbourhood; the lines found are marked with their token.
     """
-    from magcal_ros.core.findings import periodogram
+    from magcal_ros.core.discovery.findings import periodogram
     sensors = sorted(findings.series)
     if not sensors or len(findings.t) < 30:
         return None
@@ -1090,7 +1091,7 @@ def plot_residual_vs_lagged_channels(data, findings):
     such findings, each sensor's temperature at the lag that fits it best.
     """
     from magcal_ros.core.effects import first_order_lag
-    from magcal_ros.core.findings import best_lag
+    from magcal_ros.core.discovery.findings import best_lag
     t = findings.t
     if len(t) < 30:
         return None
@@ -1460,7 +1461,7 @@ def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseli
         data, result)
     found = diagnosis.findings if diagnosis is not None else None
     if found is None:
-        from magcal_ros.core.findings import find
+        from magcal_ros.core.discovery.findings import find
         found = find(data, result, baseline_m=baseline_m)
     unexplained = figures != 'all' and _unexplained(result, floor, diagnosis, found)
     every = figures == 'all' or unexplained

@@ -157,7 +157,7 @@ def test_calibrate_flow(make_node, ros_node, ros_executor, ros_namespace, tmp_pa
     assert ranking['verdict']['effect'] == 'none'
     assert ranking['candidates']
     assert os.path.isfile(ranking['report'])
-    # nor does anything model-free stand out (core.findings)
+    # nor does anything model-free stand out (core.discovery.findings)
     assert ranking['findings'] == [] and not any('left in the residuals' in ln for ln in lines)
 
     # calibrating again keeps the previous file as a backup

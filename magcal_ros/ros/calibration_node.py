@@ -48,7 +48,7 @@ one JSON object):
   (:func:`magcal_ros.pipeline.calibrate`), write ``calibration_file`` atomically (the
   previous one kept) and publish it; refused data leave the previous calibration active;
 - ``calibration/diagnose``: rank the candidate effects missing from ``model``
-  (:func:`magcal_ros.core.diagnose.diagnose`) and write the HTML report to ``report_dir``.
+  (:func:`magcal_ros.core.discovery.diagnose`) and write the HTML report to ``report_dir``.
 
 The solve must not block the sensor callbacks. It runs in a worker thread; the service
 callbacks are coroutines (in a reentrant callback group) that await it, so the executor
@@ -1000,7 +1000,7 @@ class CalibrationNode(Node):
     def _diagnose(self):
         """Rank the missing effects; returns (success, summary text, JSON payload)."""
         try:
-            from magcal_ros.core.diagnose import diagnose
+            from magcal_ros.core.discovery import diagnose
             from magcal_ros.report import write_report
         except ImportError as exc:
             return False, f'diagnosis is not available: {exc}', {'error': str(exc)}
@@ -1032,7 +1032,7 @@ class CalibrationNode(Node):
         else:
             head = f'most likely missing effect: {verdict.get("token") or verdict["effect"]}'
         lines = [head] + ([verdict['reason']] if verdict.get('reason') else [])
-        if ranking.get('findings'):       # model-free: what is left (core.findings)
+        if ranking.get('findings'):       # model-free: what is left (core.discovery.findings)
             lines.append('left in the residuals: ' + '; '.join(
                 f'{f["kind"]}' + (f' (add {f["token"]})' if f.get('token') else '')
                 + ('' if f['sensor'] is None else f' on sensor {f["sensor"]}')
