@@ -327,7 +327,7 @@ def cmd_simulate(args):
 # -- fit ------------------------------------------------------------------------------------
 
 def cmd_fit(args):
-    from magcal_ros.io.calfile import save_calibration
+    from magcal_ros.io.calfile import save_calibration, stamp_checksum
     from magcal_ros.pipeline import calibrate, cross_geometry, geometry_positions
     from magcal_ros.progress import Progress, wanted
     load_plugins(args)
@@ -358,7 +358,7 @@ def cmd_fit(args):
     s['output'] = None if refused else out
     s['field_reference'] = fref
     # the document the file holds (or would hold), built once: the JSON and the file agree
-    s['calibration'] = None if refused else run.doc
+    s['calibration'] = None if refused else stamp_checksum(run.doc)
     if args.json:
         print_json(s)
     else:
@@ -416,7 +416,7 @@ def _print_planar(pl):
 def _fit_paper_method(args, data):
     """``magcal fit --method sine|reference``: the closed forms of papers 000 and 002."""
     from magcal_ros.core.papers import paper_methods
-    from magcal_ros.io.calfile import calibration_to_doc, save_calibration
+    from magcal_ros.io.calfile import calibration_to_doc, save_calibration, stamp_checksum
     from magcal_ros.pipeline import cross_geometry
     for opt, given in (('--model', args.model != 'base'), ('--robust', args.robust),
                        ('--constrained', args.constrained)):
@@ -447,7 +447,7 @@ def _fit_paper_method(args, data):
         save_calibration(out, doc)
     if args.json:
         print_json({**res.to_dict(), 'noise_floor_nt': None, 'output': out,
-                    'field_reference': fref, 'calibration': doc})
+                    'field_reference': fref, 'calibration': stamp_checksum(doc)})
     else:
         print(res.summary())
         if out:
