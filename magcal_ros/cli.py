@@ -224,8 +224,8 @@ def _resolve_field(args, data):
         if args.field_nt == 'auto':
             if getattr(args, 'planar', False):
                 # an ellipsoid needs a sphere; a turn gives a circle and the mean along it
-                from magcal_ros.core.model.planar import (planar_magnitude, PlanarError,
-                                                          turn_axis)
+                from magcal_ros.core.geometry.turn import (planar_magnitude, PlanarError,
+                                                           turn_axis)
                 try:
                     f = planar_magnitude(data.raw[0], turn_axis(data.raw[0]))
                 except PlanarError as exc:

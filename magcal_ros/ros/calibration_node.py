@@ -695,7 +695,7 @@ class CalibrationNode(Node):
 
     def _turn(self, s):
         """Drive cmd_vel until the turns are seen or time is up (worker thread)."""
-        from magcal_ros.core.model.planar import swept_angle
+        from magcal_ros.core.geometry.turn import swept_angle
         twist = Twist()
         twist.angular.z = float(s.turn_speed_rad_s)
         want = 2 * math.pi * s.turn_count
