@@ -23,7 +23,6 @@ must have no strongly connected component of more than one file, so each folder 
 """
 
 import ast
-import pathlib
 
 from ros_helpers import REPO_ROOT
 from scipy.sparse import csr_matrix
@@ -33,7 +32,7 @@ PKG = REPO_ROOT / 'magcal_ros'
 
 
 def module_name(path):
-    """Dotted name of a source file (a package's ``__init__.py`` is the package)."""
+    """Return the dotted name of a source file (a package's ``__init__.py`` is the package)."""
     parts = list(path.relative_to(REPO_ROOT).with_suffix('').parts)
     if parts[-1] == '__init__':
         parts.pop()
@@ -41,7 +40,7 @@ def module_name(path):
 
 
 def import_graph():
-    """{module: set of magcal_ros modules it imports}, over every source file."""
+    """Return {module: set of magcal_ros modules it imports}, over every source file."""
     files = {module_name(p): p for p in PKG.rglob('*.py')}
     graph = {}
     for name, path in files.items():
@@ -71,7 +70,7 @@ def import_graph():
 
 
 def cycles(graph):
-    """Strongly connected components of more than one module, as sorted lists."""
+    """Return the strongly connected components of more than one module (sorted lists)."""
     names = sorted(graph)
     index = {n: k for k, n in enumerate(names)}
     rows = [index[a] for a in names for b in graph[a]]

@@ -166,7 +166,6 @@ class Term:
                                    f'sensors 1..{n_sensors})')
         return js
 
-
     def __str__(self):
         return self.text
 
@@ -281,8 +280,6 @@ class Formula:
     def drops(self):
         """(t0, t1) s windows left out of the fit."""
         return [t.window for t in self.terms if t.kind == 'drop']
-
-
 
     def __add__(self, other):
         other = other if isinstance(other, Formula) else parse(other)
