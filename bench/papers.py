@@ -57,11 +57,11 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import common  # noqa: E402
 from magcal_ros.core import model as mdl  # noqa: E402
-from magcal_ros.core import reference_vector as ref  # noqa: E402
-from magcal_ros.core import sine  # noqa: E402
 from magcal_ros.core.data.dataset import Dataset  # noqa: E402
 from magcal_ros.core.model.engine import ProfiledProblem  # noqa: E402
 from magcal_ros.core.model.solvers import covariance_from_jacobian  # noqa: E402
+from magcal_ros.core.papers import reference_vector as ref  # noqa: E402
+from magcal_ros.core.papers import sine  # noqa: E402
 from magcal_ros.core.papers.paper_params import Paper000Params  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402

@@ -93,7 +93,7 @@ def one(label, data, f_full, diagnose_too):
                result=res)
     row['rms_over_floor'] = row['scalar_rms_nt'] / row['floor_nt']
     if diagnose_too:
-        from magcal_ros.core.diagnose import diagnose
+        from magcal_ros.core.discovery import diagnose
         diag = diagnose(data, field_nt=f, base=res)
         row['verdict'] = diag.verdict_token or 'none'
         row['reason'] = diag.verdict_reason

@@ -45,6 +45,9 @@ BENCHES = {
     'report_layout': (['report_layout.py'], ['--n', '10000', '--repeat', '3']),
     'pairing': (['pairing.py'], ['--epochs', '2000', '--repeats', '3']),
     'grammar_speed': (['grammar_speed.py'], ['--n', '10000', '--repeat', '3']),
+    # the hour-long series: python bench/scale.py --base <tree of c43534d> (BENCHMARKS.md)
+    'scale': (['scale.py'], ['--sizes', '10000', '100000', '--bag-max', '10000']),
+    'reduction_accuracy': (['reduction_accuracy.py'], ['--sizes', '10000', '200000']),
 }
 
 

@@ -20,7 +20,7 @@ another, and the BLAS thread setting can differ between cases) and reports
 
 - wall time of ``magcal_ros.pipeline.calibrate`` (identifiability checks, closed-form start,
   maximum-likelihood fit on at most ``max_fit_samples`` epochs, residuals of all epochs,
-  summary and calibration document) and of ``magcal_ros.core.diagnose.diagnose`` (every
+  summary and calibration document) and of ``magcal_ros.core.discovery.diagnose`` (every
   candidate effect) given that fit;
 - peak memory of each step: the kernel's high-water mark of the resident set (VmHWM) is
   reset before the step (``/proc/self/clear_refs``) and read after it; the figure is the
@@ -117,7 +117,7 @@ def worker(n, model_key, seed, diagnose_too, max_fit_samples, repeat=1):
                scalar_rms_nt=float(np.sqrt(np.mean(res.scalar_residual_nt ** 2))),
                sigma_nt=float(np.mean(res.sigma_nt)))
     if diagnose_too:
-        from magcal_ros.core.diagnose import diagnose
+        from magcal_ros.core.discovery import diagnose
         with _Step() as st:
             d = diagnose(data, base=res, field_nt=50000.0)
         verdict = d.verdict

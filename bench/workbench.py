@@ -54,7 +54,7 @@ GOALS = {'diagnose+report': 3.0, 'report': 1.0, 'ladder': 10.0}
 def _child(args):
     """Time one code on one CSV file (run in its own process); print one JSON object."""
     from magcal_ros.core.data.simulate import simulate
-    from magcal_ros.core.diagnose import diagnose, ladder
+    from magcal_ros.core.discovery import diagnose, ladder
     from magcal_ros.core.model import fit
     from magcal_ros.io.csvio import read_csv
     from magcal_ros.report import write_report

@@ -68,6 +68,97 @@ def load_data(path, unit=None, rate_hz=100.0):
     return data
 
 
+def load_record(path, unit=None, rate_hz=100.0, progress=None, reduce_above=None):
+    """
+    (Dataset, Record or None): a recording, reduced when it is too long to hold.
+
+    A wide CSV or a rosbag2 recording of more than :data:`magcal_ros.core.data.reduce.REDUCE_ABOVE`
+    epochs (estimated from the CSV's size and its first lines; from the bag's metadata) is
+    read in chunks and reduced
+    (:mod:`magcal_ros.core.data.reduce`): the Dataset returned is the evenly spread sample (with
+    the noise blocks in its ``meta``) and the :class:`~magcal_ros.io.chunks.Record` reads the
+    whole record again for the residual statistics.  Anything else is read whole
+    (:func:`load_data`), with no Record.
+    """
+    from magcal_ros.core.data import reduce
+    limit = reduce.REDUCE_ABOVE if reduce_above is None else int(reduce_above)
+    other_csv = unit and not os.path.isdir(path) and not _is_wide_csv(path)
+    if not os.path.exists(path) or other_csv or _estimated_rows(path) <= limit:
+        return load_data(path, unit, rate_hz), None
+    from magcal_ros.io.chunks import open_record
+    rec = open_record(path)
+    k = UNITS_NT[unit or 'nT']
+    bar = (progress.bar('reading', total=rec.size, unit='B', scale=True)
+           if progress is not None else None)
+    try:
+        red = reduce.reduce_chunks(in_nt(rec.chunks(progress=None if bar is None else
+                                                    (lambda b: bar.update(b - bar.n))), k))
+    finally:
+        if bar is not None:
+            bar.close()
+    if unit:
+        red.sample.meta['unit'] = unit
+    rec.scale = k
+    return red.sample, rec
+
+
+def in_nt(chunks, k):
+    """Yield the Dataset ``chunks`` with their field columns multiplied by ``k`` (to nT)."""
+    for piece in chunks:
+        if k != 1.0:
+            piece.raw = piece.raw * k
+            if piece.ref_total is not None:
+                piece.ref_total = piece.ref_total * k
+            if piece.ref_vec is not None:
+                piece.ref_vec = piece.ref_vec * k
+        yield piece
+
+
+def _estimated_rows(path, probe=200):
+    """Epochs of a recording: a CSV's from its size and first lines, a bag's from metadata."""
+    if os.path.isdir(path):
+        from magcal_ros.io.bag import bag_epoch_count
+        return bag_epoch_count(path)
+    size = os.path.getsize(path)
+    n = total = 0
+    with open(path, 'rb') as fh:
+        for line in fh:
+            if line.strip() and not line.lstrip().startswith(b'#'):
+                n += 1
+                total += len(line)
+                if n > probe:
+                    break
+    return 0 if n < 2 else int(size / (total / n))
+
+
+def full_record_statistics(run, record, positions, progress=None):
+    """
+    Put the residual statistics of every epoch of ``record`` into ``run`` (a long record).
+
+    ``run`` (CalibrationRun) was fitted on the reduced sample: its summary's RMS and
+    largest deviations are replaced by those of the whole record
+    (:func:`magcal_ros.core.data.reduce.residual_statistics`, one more pass over the chunks),
+    ``n_samples`` by the record's length, and ``reduction`` says how it was reduced.
+    """
+    from magcal_ros.core.data.reduce import residual_statistics
+    bar = (progress.bar('residuals', total=record.size, unit='B', scale=True)
+           if progress is not None else None)
+    try:
+        chunks = in_nt(record.chunks(progress=None if bar is None else
+                                     (lambda b: bar.update(b - bar.n))), record.scale)
+        stats = residual_statistics(chunks, run.result, positions)
+    finally:
+        if bar is not None:
+            bar.close()
+    run.summary.update(stats)
+    prov = run.doc['provenance']
+    prov['samples'] = stats['n_samples']
+    for key in ('scalar_rms_nt', 'vector_rms_nt', 'tensor_rms_nt_per_m'):
+        if key in stats:
+            prov['residuals'][key] = stats[key]
+    return stats
+
+
 def _is_wide_csv(path):
     """Tell whether the first non-comment line of ``path`` names a wide-format column."""
     import re
@@ -133,8 +224,8 @@ def _resolve_field(args, data):
         if args.field_nt == 'auto':
             if getattr(args, 'planar', False):
                 # an ellipsoid needs a sphere; a turn gives a circle and the mean along it
-                from magcal_ros.core.model.planar import (planar_magnitude, PlanarError,
-                                                          turn_axis)
+                from magcal_ros.core.geometry.turn import (planar_magnitude, PlanarError,
+                                                           turn_axis)
                 try:
                     f = planar_magnitude(data.raw[0], turn_axis(data.raw[0]))
                 except PlanarError as exc:
@@ -167,7 +258,7 @@ def print_json(obj):
     """One JSON object on stdout."""
     # here, not at the top: the diagnose package (scipy.stats, ndimage) is not needed by
     # every command
-    from magcal_ros.core.diagnose import jsonable
+    from magcal_ros.core.discovery import jsonable
     print(json.dumps(jsonable(obj)))
 
 
@@ -183,7 +274,6 @@ def _parse_truth(items):
 
 def cmd_simulate(args):
     from magcal_ros.core.data.simulate import simulate
-    from magcal_ros.io.csvio import write_csv
     load_plugins(args)
     truth = _parse_truth(args.truth)
     grad = None
@@ -197,41 +287,69 @@ def cmd_simulate(args):
             raise BadInput(f'--site-gradient {args.site_gradient!r}: expected five numbers '
                            'GXX,GXY,GXZ,GYY,GYZ in nT/m (gzz = -gxx - gyy)')
         grad = symmetric_traceless(g5)
-    data, sim = simulate(gradient_nt_per_m=grad, attitude=args.attitude, n_samples=args.n,
-                         rate_hz=args.rate, trajectory=args.trajectory,
-                         noise_nt=args.noise_nt, seed=args.seed, truth=truth,
-                         model=args.model, aux=not args.no_aux,
-                         diurnal_swing_nt=args.diurnal_nt, outlier_fraction=args.outliers,
-                         field_nt=args.field_nt, errors=None if args.ideal else 'paper004')
-    if args.ref_total and data.ref_total is None:
-        data.ref_total = sim.field_magnitude(data.t)
+    settings = {'gradient_nt_per_m': grad, 'attitude': args.attitude, 'n_samples': args.n,
+                'rate_hz': args.rate, 'trajectory': args.trajectory,
+                'noise_nt': args.noise_nt, 'seed': args.seed, 'truth': truth,
+                'model': args.model, 'aux': not args.no_aux,
+                'diurnal_swing_nt': args.diurnal_nt, 'outlier_fraction': args.outliers,
+                'field_nt': args.field_nt, 'errors': None if args.ideal else 'paper004'}
+    from magcal_ros.core.data.reduce import REDUCE_ABOVE
+    if args.n <= REDUCE_ABOVE:
+        data, sim = simulate(**settings)
+        pieces = [data]
+    else:
+        # a long record: made and written a chunk at a time (core.data.simulate.simulate_chunks)
+        from magcal_ros.core.data.simulate import simulate_chunks
+        sim, pieces = simulate_chunks(**settings)
     comment = (f'magcal simulate: paper 004 cross, {args.n} samples at {args.rate} Hz, '
                f'trajectory {args.trajectory}, noise {args.noise_nt} nT, seed {args.seed}\n'
                f'truth model: {",".join(sim.model.spec())}\n'
                'truth params: ' + ' '.join(f'{v:.6g}' for v in sim.params))
-    write_csv(args.out, data, comment=comment)
-    print(f'wrote {args.out}: {data.n_samples} samples of {data.n_sensors} sensors',
-          file=sys.stderr)
+    from magcal_ros.io.chunks import write_csv_chunks
+    from magcal_ros.progress import Progress, wanted
+    prog = Progress(wanted(args.quiet))
+    bar = prog.bar('simulate', total=args.n, unit='sets', scale=True)
+
+    def with_ref(pieces):
+        for piece in pieces:
+            if args.ref_total and piece.ref_total is None:
+                piece.ref_total = sim.field_magnitude(piece.t)
+            bar.update(piece.n_samples)
+            yield piece
+    try:
+        n = write_csv_chunks(args.out, with_ref(pieces), comment=comment)
+    finally:
+        bar.close()
+    print(f'wrote {args.out}: {n} samples of {sim.config.n_sensors} sensors', file=sys.stderr)
     return EXIT_OK
 
 
 # -- fit ------------------------------------------------------------------------------------
 
 def cmd_fit(args):
-    from magcal_ros.io.calfile import save_calibration
-    from magcal_ros.pipeline import calibrate, cross_geometry
+    from magcal_ros.io.calfile import save_calibration, stamp_checksum
+    from magcal_ros.pipeline import calibrate, cross_geometry, geometry_positions
+    from magcal_ros.progress import Progress, wanted
     load_plugins(args)
-    data = load_data(args.data, args.unit)
+    prog = Progress(wanted(args.quiet, args.json))
     if args.method != 'ellipsoid':
-        return _fit_paper_method(args, data)
+        return _fit_paper_method(args, load_data(args.data, args.unit))
+    data, record = load_record(args.data, args.unit, progress=prog)
     field_nt, fref = resolve_field(args, data)
     geometry = cross_geometry(args.baseline_m) if data.n_sensors == 4 else None
     extra = {'heading_unknown': True} if args.heading_unknown else {}
     if args.planar:
         extra = {'planar': {'inclination_deg': fref.get('inclination_deg')}}
+    prog('fit', 0, 1, args.model)
     run = calibrate(data, args.model, field_nt=field_nt, geometry=geometry,
                     field_reference=fref, robust=args.robust, constrained=args.constrained,
                     on_degenerate='flag' if args.flag_degenerate else 'raise', **extra)
+    prog('fit', 1, 1)
+    if record is not None:
+        full_record_statistics(run, record, geometry_positions(geometry, data.n_sensors),
+                               prog)
+        run.summary['reduction'] = data.meta['reduction']
+        run.doc['provenance']['reduction'] = data.meta['reduction']
     out = args.output
     refused = not run.result.success and not args.force
     if out and not refused:
@@ -240,7 +358,7 @@ def cmd_fit(args):
     s['output'] = None if refused else out
     s['field_reference'] = fref
     # the document the file holds (or would hold), built once: the JSON and the file agree
-    s['calibration'] = None if refused else run.doc
+    s['calibration'] = None if refused else stamp_checksum(run.doc)
     if args.json:
         print_json(s)
     else:
@@ -298,7 +416,7 @@ def _print_planar(pl):
 def _fit_paper_method(args, data):
     """``magcal fit --method sine|reference``: the closed forms of papers 000 and 002."""
     from magcal_ros.core.papers import paper_methods
-    from magcal_ros.io.calfile import calibration_to_doc, save_calibration
+    from magcal_ros.io.calfile import calibration_to_doc, save_calibration, stamp_checksum
     from magcal_ros.pipeline import cross_geometry
     for opt, given in (('--model', args.model != 'base'), ('--robust', args.robust),
                        ('--constrained', args.constrained)):
@@ -329,7 +447,7 @@ def _fit_paper_method(args, data):
         save_calibration(out, doc)
     if args.json:
         print_json({**res.to_dict(), 'noise_floor_nt': None, 'output': out,
-                    'field_reference': fref, 'calibration': doc})
+                    'field_reference': fref, 'calibration': stamp_checksum(doc)})
     else:
         print(res.summary())
         if out:
@@ -405,8 +523,11 @@ def cmd_check(args):
         raise BadInput(f'{args.calfile}: no field_reference.magnitude_nt or provenance '
                        f'residual of sensor {j}: write it with magcal fit')
     corrected = {}
+    from magcal_ros.progress import Progress, wanted
+    prog = Progress(wanted(args.quiet, args.json))
     for path in args.data:
-        data = load_data(path, args.unit)
+        # a long static recording: its evenly spread sample (core.data.reduce), read in chunks
+        data, _ = load_record(path, args.unit, progress=prog)
         try:
             check_field_units(data.raw, None, '')
         except ValueError as exc:
@@ -462,6 +583,7 @@ def build_parser():
     s.add_argument('--ref-total', action='store_true', help='write a ref_total column')
     s.add_argument('--outliers', type=float, default=0.0, help='fraction of spike outliers')
     s.add_argument('--plugin', action='append', help='import a module defining effects')
+    s.add_argument('-q', '--quiet', action='store_true', help='no progress bar on stderr')
     s.add_argument('--site-gradient', metavar='GXX,GXY,GXZ,GYY,GYZ',
                    help='constant site gradient in the world (NED) frame, nT/m: the field is '
                         'not uniform over the cross (fit it with --model base,site_gradient)')
@@ -491,6 +613,7 @@ def build_parser():
     f.add_argument('--force', action='store_true',
                    help='write the calibration even when the fit did not converge')
     f.add_argument('--plugin', action='append', help='import a module defining effects')
+    f.add_argument('-q', '--quiet', action='store_true', help='no progress bars on stderr')
     f.add_argument('--planar', action='store_true',
                    help='a turn about one axis only (a ground robot): fit what it determines '
                         '(in-plane offsets, scale ratio, angle: heading-grade), hold the rest '
@@ -518,6 +641,7 @@ def build_parser():
     c.add_argument('data', nargs='+', help='static recordings (wide CSV, also .csv.gz or '
                    '.csv.zst, or rosbag2), each at one attitude')
     c.add_argument('--sensor', type=int, default=1, help='sensor to check (default 1)')
+    c.add_argument('-q', '--quiet', action='store_true', help='no progress bars on stderr')
     add_unit_arg(c)
     c.add_argument('--json', action='store_true', help='print one JSON object on stdout')
     c.set_defaults(func=cmd_check)

@@ -24,52 +24,24 @@
 
 DATA is a wide CSV, a rosbag2 directory, or (with ``--unit``) a single-magnetometer CSV of
 another tool (``mx,my,mz`` or ``x,y,z`` columns, optional ``ax,ay,az``).  The reference
-magnitude comes from ``ref_total``, ``--field-nt NT|auto`` or ``--igrf``.  Progress goes to
-stderr (a bar per stage when stderr is a terminal, one line per stage otherwise; never on
-stdout, so ``--json`` output stays one JSON object).  Exit status 0 on success, 2 on bad
-input, 1 on other failures (handled by :func:`magcal_ros.cli.main`).
+magnitude comes from ``ref_total``, ``--field-nt NT|auto`` or ``--igrf``.  Progress: a
+bar per step on stderr when it is a terminal (:mod:`magcal_ros.progress`; none with
+``--quiet``, ``--json`` or a stderr that is not a terminal; never on stdout).  A record
+too long to hold is read in chunks and reduced (:mod:`magcal_ros.core.data.reduce`).  Exit
+status 0 on success, 2 on bad input, 1 on other failures (handled by :func:`magcal_ros.cli.main`).
 """
 import sys
-import time
 
 from magcal_ros.core.effects import load_plugins
+from magcal_ros.progress import Progress, wanted
 
 EXIT_OK = 0
 
 
-class Progress:
-    """Progress of the diagnosis on a stream (stderr): a bar on a terminal, lines otherwise."""
-
-    def __init__(self, stream=None, enabled=True, width=30):
-        self.stream = stream or sys.stderr
-        self.enabled = enabled
-        self.tty = bool(getattr(self.stream, 'isatty', lambda: False)())
-        self.width = width
-        self.stage = None
-        self.t0 = time.perf_counter()
-
-    def __call__(self, stage, i, n, label=''):
-        """Report that ``i`` of ``n`` steps of ``stage`` are done (``label``: current item)."""
-        if not self.enabled:
-            return
-        if self.tty:
-            done = int(self.width * i / max(n, 1))
-            bar = '#' * done + '.' * (self.width - done)
-            end = '\n' if i >= n else ''
-            self.stream.write(f'\r{stage:15s} [{bar}] {i}/{n} {label[:40]:40s}{end}')
-            self.stream.flush()
-        elif i >= n or stage != self.stage:
-            if i >= n:
-                self.stream.write(f'{stage}: {n} done ({time.perf_counter() - self.t0:.1f} s)\n')
-            elif stage in ('fit',):
-                self.stream.write(f'fit: {label}\n')
-            self.stream.flush()
-        self.stage = stage
-
-
-def _load(args, cli):
+def _load(args, cli, prog):
     """Dataset from DATA (wide CSV, rosbag2 directory, or single-sensor CSV with --unit)."""
-    return cli.load_data(args.data, args.unit, args.rate_hz)
+    data, _ = cli.load_record(args.data, args.unit, args.rate_hz, progress=prog)
+    return data
 
 
 def _common(p, cli):
@@ -108,11 +80,12 @@ def _validate(args, cli):
 
 
 def _run(args, cli, with_ladder):
-    from magcal_ros.core.diagnose import diagnose, ladder
+    from magcal_ros.core.discovery import diagnose, ladder
     from magcal_ros.core.model import fit, Model
     _validate(args, cli)
     load_plugins(args.plugin)
-    data = _load(args, cli)
+    prog = Progress(wanted(args.quiet, getattr(args, 'json', False)))
+    data = _load(args, cli, prog)
     try:
         model = Model.from_spec(args.model, data.n_sensors)
     except ValueError as exc:
@@ -121,7 +94,6 @@ def _run(args, cli, with_ladder):
     # readings no field produces (pinned, clipped, repeating channels) are named and left out
     from magcal_ros.core.data.readings import leave_out_unphysical
     data, field_nt, screen = leave_out_unphysical(data, field_nt)
-    prog = Progress(enabled=not args.quiet)
     prog('fit', 0, 1, ','.join(model.spec()))
     base = fit(data, model, field_nt=field_nt, robust=args.robust,
                constrained=args.constrained,
@@ -129,22 +101,27 @@ def _run(args, cli, with_ladder):
     prog('fit', 1, 1)
     diag = diagnose(data, field_nt=field_nt, base=base, folds=args.folds, alpha=args.alpha,
                     progress=prog, baseline_m=args.baseline_m, constrained=args.constrained)
+    if 'reduction' in data.meta:
+        # a long record: the epochs are the whole record's, tested on its reduced sample
+        from dataclasses import replace
+        diag = replace(diag, n_samples=data.meta['reduction']['epochs'],
+                       n_used=diag.n_used or diag.n_samples)
     lad = None
     if with_ladder:
         lad = ladder(data, base, field_nt=field_nt, folds=args.folds, progress=prog,
                      diagnosis=diag, alpha=args.alpha, baseline_m=args.baseline_m,
                      constrained=args.constrained)
-    return data, diag, lad, fref, screen
+    return data, diag, lad, fref, screen, prog
 
 
 def cmd_diagnose(args, cli):
     """`magcal diagnose`: print the diagnosis (text or one JSON object)."""
-    data, diag, lad, fref, screen = _run(args, cli, args.ladder)
+    data, diag, lad, fref, screen, prog = _run(args, cli, args.ladder)
     index = None
     if args.report:
         from magcal_ros.report import write_report
         index = write_report(args.report, data, diagnosis=diag, ladder=lad,
-                             baseline_m=args.baseline_m, figures=args.figures)
+                             baseline_m=args.baseline_m, figures=args.figures, progress=prog)
     from magcal_ros.core.model.notes import format_note, note_dict
     from magcal_ros.pipeline import fit_warnings
     warnings = [note_dict(w) for w in screen.notes()] + fit_warnings(diag.result,
@@ -156,10 +133,14 @@ def cmd_diagnose(args, cli):
         doc['field_reference'] = fref
         doc['constrained'] = bool(args.constrained)
         doc['report'] = None if index is None else str(index)
+        if 'reduction' in data.meta:
+            doc['reduction'] = data.meta['reduction']
         if lad is not None:
             doc['ladder'] = lad.to_dict()
         cli.print_json(doc)
     else:
+        if 'reduction' in data.meta:
+            print(reduction_line(data.meta['reduction']))
         print(diag.summary())
         for w in warnings:
             print(format_note(w))
@@ -173,19 +154,27 @@ def cmd_diagnose(args, cli):
 
 def cmd_report(args, cli):
     """`magcal report`: diagnosis + error ladder as PNGs and a self-contained HTML page."""
-    data, diag, lad, _, screen = _run(args, cli, not args.no_ladder)
+    data, diag, lad, _, screen, prog = _run(args, cli, not args.no_ladder)
     from magcal_ros.core.model.notes import format_note
     from magcal_ros.report import write_report
     if not args.quiet:
         for w in screen.notes():
             print(format_note(w), file=sys.stderr)
     index = write_report(args.out, data, diagnosis=diag, ladder=lad,
-                         baseline_m=args.baseline_m, figures=args.figures)
+                         baseline_m=args.baseline_m, figures=args.figures, progress=prog)
     print(index)
     if not args.quiet:
         print(f'verdict: {diag.verdict_token or "none"} ({diag.verdict_reason})',
               file=sys.stderr)
     return EXIT_OK
+
+
+def reduction_line(info):
+    """One line saying that a long record was diagnosed on its reduction (and how)."""
+    return (f'long record: {info["epochs"]} epochs over {info["span_s"]:.0f} s, read in '
+            f'chunks; fitted and diagnosed on {info["sample_epochs"]} evenly spread epochs '
+            f'(every {info["sample_stride"]}th), noise floor from {info["noise_blocks"]} '
+            f'full-rate blocks of {info["noise_block_epochs"]} epochs')
 
 
 def _figures_arg(p):

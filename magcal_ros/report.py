@@ -24,7 +24,7 @@ The figures answer "where does the model fail?":
   frame): nonlinearity or a missing linear term shows as a pattern on the sphere;
 - gradient tensor components before and after correction (four-sensor cross);
 - the candidate ranking (delta BIC) and the error ladder (held-out RMS per step);
-- what is left, model-free (:mod:`magcal_ros.core.findings`): the residual spectrum per
+- what is left, model-free (:mod:`magcal_ros.core.discovery.findings`): the residual spectrum per
   sensor, a change-point view, and the residual against the lagged driving channels.
 
 Matplotlib is used through its object API with the Agg canvas (no pyplot, no global
@@ -39,8 +39,8 @@ import re
 import textwrap
 import warnings
 
-from magcal_ros.core.diagnose import (AT_FLOOR_RATIO, compact_spec, MIN_DELTA_BIC, MIN_EXPLAINED,
-                                      noise_floor_from_data)
+from magcal_ros.core.discovery import (AT_FLOOR_RATIO, compact_spec, MIN_DELTA_BIC,
+                                       MIN_EXPLAINED, noise_floor_from_data)
 from magcal_ros.core.geometry.tensor import cross_positions, tensor_cross, tensor_noise_floor
 import matplotlib
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -996,7 +996,7 @@ def plot_ladder(ladder):
 
 # -- the page -------------------------------------------------------------------------------
 
-# -- model-free findings (magcal_ros.core.findings) -----------------------------------------
+# -- model-free findings (magcal_ros.core.discovery.findings) -------------------------------
 
 def _finding_label(f):
     return f.token or f.kind
@@ -1006,11 +1006,12 @@ def plot_residual_spectrum(findings):
     """
     Power spectrum of each sensor's residual series over its white-noise level, log-log.
 
-    The series are :class:`~magcal_ros.core.findings.Findings`' (consensus residuals, nT);
+    The series are :class:`~magcal_ros.core.discovery.findings.Findings`' (consensus
+    residuals, nT);
     power divided by the summed white-noise variance, so white noise sits at 1 and a line
     stands out of its neighbourhood; the lines found are marked with their token.
     """
-    from magcal_ros.core.findings import periodogram
+    from magcal_ros.core.discovery.findings import periodogram
     sensors = sorted(findings.series)
     if not sensors or len(findings.t) < 30:
         return None
@@ -1090,7 +1091,7 @@ def plot_residual_vs_lagged_channels(data, findings):
     such findings, each sensor's temperature at the lag that fits it best.
     """
     from magcal_ros.core.effects import first_order_lag
-    from magcal_ros.core.findings import best_lag
+    from magcal_ros.core.discovery.findings import best_lag
     t = findings.t
     if len(t) < 30:
         return None
@@ -1410,7 +1411,7 @@ def default_views(data, diagnosis, ladder=None, baseline_m=0.5):
 
 
 def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseline_m=0.5,
-                 title='magcal diagnosis report', figures='relevant'):
+                 title='magcal diagnosis report', figures='relevant', progress=None):
     """
     Write the figures (PNG) and ``index.html`` (self-contained) into ``out_dir``.
 
@@ -1436,6 +1437,8 @@ def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseli
         change-point and lag views) only when the verdict, a significant candidate, an
         adopted ladder step or a finding points at them, and lists the others with the
         reason under "Views not drawn"; 'all' draws every view the data allow.
+    progress : callable, optional
+        ``progress('report', i, n, view)`` as the figures are drawn.
 
     Returns
     -------
@@ -1458,7 +1461,7 @@ def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseli
         data, result)
     found = diagnosis.findings if diagnosis is not None else None
     if found is None:
-        from magcal_ros.core.findings import find
+        from magcal_ros.core.discovery.findings import find
         found = find(data, result, baseline_m=baseline_m)
     unexplained = figures != 'all' and _unexplained(result, floor, diagnosis, found)
     every = figures == 'all' or unexplained
@@ -1471,15 +1474,26 @@ def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseli
              f'the data: {floor.value_nt:.2f} nT '
              f'({"; ".join(f"s{j + 1}: " + html.escape(m) for j, m in enumerate(floor.method))}'
              f').</p>']
+    red = data.meta.get('reduction')
+    if red:
+        parts.append(f'<p>A long record: {red["epochs"]} epochs over {red["span_s"]:.0f} s, read '
+                     f'in chunks; the fit, the diagnosis and these figures use '
+                     f'{red["sample_epochs"]} evenly spread epochs (every '
+                     f'{red["sample_stride"]}th), the noise floor {red["noise_blocks"]} '
+                     f'contiguous full-rate blocks of {red["noise_block_epochs"]} epochs.</p>')
     if data.meta.get('synthetic_time'):
         parts.append(f'<p>The data have no time column: the time axis is synthetic, at an '
                      f'assumed {data.meta.get("assumed_rate_hz")} Hz.</p>')
     images, skipped = [], []
     pngs = []
     with matplotlib.rc_context(RC):          # the figures' text measured and drawn alike
-        for _, _, make, _ in plan:
+        for i, (name, _, make, _) in enumerate(plan):
+            if progress is not None:
+                progress('report', i, len(plan), name)
             fig = None if make is None else make()
             pngs.append(None if fig is None else figure_png(fig))
+    if progress is not None:
+        progress('report', len(plan), len(plan), '')
     for (name, heading, _, why), png in zip(plan, pngs):
         if png is None:
             skipped.append((heading, why or 'the data do not allow it (too few epochs)'))

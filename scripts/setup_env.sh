@@ -61,9 +61,8 @@ VENV="${VENV}" scripts/build_interfaces.sh
 import importlib
 for name in ('rclpy', 'rclpy.executors', 'sensor_msgs.msg', 'std_msgs.msg', 'std_srvs.srv',
              'diagnostic_msgs.msg', 'numpy', 'scipy', 'serial', 'yaml', 'matplotlib',
-             'rosbags', 'ppigrf', 'zstandard', 'jsonschema', 'pytest', 'hypothesis',
-             'pytest_timeout', 'colcon_core',
-             'magcal_ros'):
+             'rosbags', 'ppigrf', 'zstandard', 'jsonschema', 'tqdm', 'pytest', 'hypothesis',
+             'pytest_timeout', 'colcon_core', 'magcal_ros'):
     importlib.import_module(name)
 PY
 for exe in "${EXECUTABLES[@]}"; do

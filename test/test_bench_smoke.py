@@ -44,6 +44,8 @@ CASES = {
     'pairing': ['--epochs', '1500', '--repeats', '1'],
     'report_layout': ['--n', '600', '--repeat', '1'],
     'grammar_speed': ['--n', '300', '--repeat', '1', '--pairs', '2'],
+    'scale': ['--sizes', '1500', '--bag-max', '1500'],
+    'reduction_accuracy': ['--sizes', '6000'],
 }
 
 
@@ -159,3 +161,19 @@ def test_grammar_speed(tmp_path):
     pairs = doc['results']['pairs']
     assert [p['alias'] for p in pairs] == ['drift2', 'periodic(0.05)@3']
     assert all(p['cpu_comp_s'] > 0 and p['nfev_comp'] > 0 for p in pairs)
+
+
+def test_scale(tmp_path):
+    doc = _run('scale', tmp_path)
+    runs = doc['results']['runs']
+    assert {(r['input'], r['command']) for r in runs} == {
+        (i, c) for i in ('csv', 'bag sqlite3', 'bag mcap') for c in ('fit', 'diagnose')}
+    assert all(r['exit'] == 0 and r['peak_rss_mb'] > 0 for r in runs)
+    assert (tmp_path / 'scale' / 'scale.png').exists()
+    assert len(doc['results']['bag_reads']) == 2
+
+
+def test_reduction_accuracy(tmp_path):
+    rows = _run('reduction_accuracy', tmp_path)['results']['rows']
+    assert rows[0]['epochs'] == 6000 and rows[0]['sample_epochs'] < 6000
+    assert rows[0]['max_param_diff_sd'] < 4.5

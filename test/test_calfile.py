@@ -16,6 +16,7 @@
 import os
 
 from magcal_ros.core.data.simulate import simulate
+from magcal_ros.core.model import Calibration, Model
 from magcal_ros.io import calfile
 from magcal_ros.io.calfile import CalibrationFileError, load_calibration, save_calibration
 from magcal_ros.pipeline import calibrate
@@ -127,6 +128,8 @@ def _mutate(doc, fn):
     (lambda d: _mutate(d, lambda x: x.update(schema_version='one')), 'must be an integer'),
     (lambda d: _mutate(d, lambda x: x['sensors'][0]['correction_matrix'][0].__setitem__(0, 2.0)),
      'correction_matrix does not match the parameters'),
+    (lambda d: _mutate(d, lambda x: x['sensors'][1]['offset_nt'].__setitem__(2, 1.0)),
+     'sensor 2: offset_nt does not match the parameters'),
     (lambda d: _mutate(d, lambda x: x['sensors'][0]['effects'][0]['params']['kx'].update(
         value='abc')), 'value is not a number'),
     (lambda d: _mutate(d, lambda x: x['sensors'][0]['effects'][0].update(name='warp')),
@@ -182,3 +185,38 @@ def test_schema_errors_say_where_and_what_to_do(run, edit, message):
     edit(doc)
     with pytest.raises(CalibrationFileError, match=message):
         calfile.parse_calibration(calfile.dump_calibration(doc), 'bad.yaml')
+
+
+def test_a_mirrored_sensor_shows_its_own_scale_and_angles(tmp_path):
+    # sensor 2 mounted mirrored (reading y is its y axis reversed): a calibration written by
+    # hand, A_2 = M S C_NO R with M = diag(1, -1, 1) (docs/design.md section 4).  The file's
+    # intrinsic_correction and rotation_to_sensor1 decompose S C_NO R, without M: the
+    # diagonal of C^-1 is 1/k (C_NO's diagonal differs from 1 by at most the square of the
+    # angles, < 1e-4 here) and R turns by no more than the misalignment angles (|.| < 0.026
+    # rad); M is recorded beside them and A^-1 = R C^-1 M^T
+    model = Model.from_spec('base,axes(x,-y,z)@2', 2)
+    scale, angles = np.array([1.02, 0.98, 1.01]), np.array([0.01, -0.02, 0.015])
+    values = {'offset': [100.0, -50.0, 30.0], 'scale': scale,
+              'nonorthogonality': [0.004, -0.003, 0.002], 'misalignment': angles}
+    p = model.default_params()
+    for eff, sl in zip(model.effects[1], model.slices[1]):
+        if eff.name in values:
+            p[sl] = values[eff.name]
+    path = tmp_path / 'mirrored.yaml'
+    save_calibration(path, calfile.calibration_to_doc(Calibration(model, p)))
+    _, doc = load_calibration(path)
+    s2 = doc['sensors'][1]
+    mirror = np.diag([1.0, -1.0, 1.0])
+    np.testing.assert_array_equal(s2['axis_map'], mirror)
+    c_inv, rot = np.asarray(s2['intrinsic_correction']), np.asarray(s2['rotation_to_sensor1'])
+    np.testing.assert_allclose(np.diag(c_inv), 1 / scale, atol=1e-4)
+    angle = np.arccos((np.trace(rot) - 1) / 2)
+    assert np.linalg.det(rot) == pytest.approx(1.0, abs=1e-12)
+    assert 0.01 < angle < np.linalg.norm(angles) + 1e-3
+    np.testing.assert_allclose(rot @ c_inv @ mirror.T, s2['correction_matrix'], atol=1e-12)
+    assert 'axis_map' not in doc['sensors'][0]          # only a sensor with axes(...)
+    # a hand edit of the recorded map (a sign) is refused, naming it
+    bad = yaml.safe_load(path.read_text())
+    bad['sensors'][1]['axis_map'][1][1] = 1.0
+    with pytest.raises(CalibrationFileError, match='sensor 2: axis_map does not match'):
+        calfile.calibration_from_doc(bad)

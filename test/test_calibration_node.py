@@ -157,7 +157,7 @@ def test_calibrate_flow(make_node, ros_node, ros_executor, ros_namespace, tmp_pa
     assert ranking['verdict']['effect'] == 'none'
     assert ranking['candidates']
     assert os.path.isfile(ranking['report'])
-    # nor does anything model-free stand out (core.findings)
+    # nor does anything model-free stand out (core.discovery.findings)
     assert ranking['findings'] == [] and not any('left in the residuals' in ln for ln in lines)
 
     # calibrating again keeps the previous file as a backup
@@ -325,24 +325,47 @@ def test_bad_start_up_parameter_is_refused(ros_context, ros_namespace, tmp_path)
             Parameter('calibration_file', value=str(tmp_path / 'c.yaml'))])
 
 
-def test_sample_buffer_is_a_ring_in_time_order():
+def test_sample_buffer_thins_evenly_over_the_run_in_time_order():
     buf = SampleBuffer(2, capacity=5, aux_names=['aux_motor_current'])
     for k in range(7):
         temp = [np.nan, 20.0 + k] if k else [np.nan, np.nan]
         aux = {'aux_motor_current': 1.5} if k >= 4 else {}
         buf.append(k, 0.01 * k + 0.003 * (k % 2), np.full((2, 3), float(k)), temp, aux)
     data = buf.dataset()
-    assert len(buf) == 5 and data.n_samples == 5
-    np.testing.assert_array_equal(data.raw[0, :, 0], [2, 3, 4, 5, 6])
+    # full at the 6th set: every other set held is dropped, every 2nd new one kept
+    assert len(buf) == 4 and data.n_samples == 4
+    np.testing.assert_array_equal(data.raw[0, :, 0], [0, 2, 4, 6])
+    np.testing.assert_array_equal(buf.epochs(), [0, 2, 4, 6])
     # times from the epoch numbers: a straight line on the lower envelope of the stamps
-    stamps = 0.01 * np.arange(2, 7) + 0.003 * (np.arange(2, 7) % 2)
+    e = np.array([0, 2, 4, 6])
+    stamps = 0.01 * e + 0.003 * (e % 2)
     np.testing.assert_allclose(np.diff(data.t), np.diff(data.t)[0])
     assert np.all(data.t <= stamps + 1e-12) and np.isclose(data.t, stamps).any()
     # aux before its first value is held at the first value
-    np.testing.assert_array_equal(data.aux['aux_motor_current'], [1.5] * 5)
+    np.testing.assert_array_equal(data.aux['aux_motor_current'], [1.5] * 4)
     assert np.isnan(data.temp[0]).all() and data.temp[1, -1] == 26.0
+    cov = buf.coverage()
+    assert cov == {'sets_held': 4, 'sets_received': 7, 'stride': 2, 'run_s': 0.06,
+                   'held_from_s': 0.0, 'held_to_s': 0.06, 'fraction_of_run': 1.0}
     buf.clear()
-    assert len(buf) == 0
+    assert len(buf) == 0 and buf.coverage()['sets_received'] == 0
+
+
+def test_sample_buffer_memory_is_flat_and_keeps_the_whole_run():
+    # 100 x capacity sets: the arrays never grow, and the sets held reach from the first
+    # to the last stride of the run, evenly spaced (stride a power of 2)
+    cap = 64
+    buf = SampleBuffer(1, capacity=cap)
+    shapes = (buf.raw.shape, buf.t.shape)
+    n = 100 * cap
+    for k in range(n):
+        buf.append(k, 0.1 * k, np.full((1, 3), float(k)), [np.nan], {})
+    assert (buf.raw.shape, buf.t.shape) == shapes
+    e = buf.epochs()
+    assert cap // 2 <= len(e) <= cap and e[0] == 0
+    assert np.all(np.diff(e) == buf.stride) and n - 1 - e[-1] < buf.stride
+    cov = buf.coverage()
+    assert cov['sets_received'] == n and cov['fraction_of_run'] >= 1 - buf.stride / n
 
 
 def test_constrained_parameter(make_node, ros_node, ros_executor, ros_namespace, tmp_path):
@@ -371,3 +394,26 @@ def test_constrained_parameter(make_node, ros_node, ros_executor, ros_namespace,
     # 3 nT white noise per axis: the scalar residual of a complete model is that noise
     for j in '1234':
         assert out['scalar_rms_after_nt'][j] < 1.3 * NOISE_NT
+
+
+def test_buffer_status_on_diagnostics_says_what_of_the_run_it_holds(
+        ros_context, ros_namespace, tmp_path):
+    node = CalibrationNode(context=ros_context, namespace=ros_namespace, parameter_overrides=[
+        Parameter('max_samples', value=16),
+        Parameter('calibration_file', value=str(tmp_path / 'c.yaml'))])
+    try:
+        assert node.buffer_status().message == 'no sample sets yet'
+        for k in range(40):
+            node._buffer.append(k, 0.5 * k, np.zeros((node._n, 3)), np.full(node._n, np.nan),
+                                {})
+        st = node.buffer_status()
+        values = {kv.key: kv.value for kv in st.values}
+        # 40 sets into 16: thinned twice (stride 4): sets 0, 4, ..., 36 held
+        assert values['sets_held'] == '10' and values['sets_received'] == '40'
+        assert values['stride'] == '4' and values['max_samples'] == '16'
+        assert values['run_s'] == '19.5' and values['held_to_s'] == '18.0'
+        assert st.message == ('10 of 40 sets held (one in 4, at most 16), spread over 92 % of '
+                              'the 20 s run')
+        assert node.status()['buffer']['sets_held'] == 10
+    finally:
+        node.destroy_node()

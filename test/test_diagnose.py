@@ -13,7 +13,7 @@
 # limitations under the License.
 
 """
-Model diagnosis on data with a hidden effect (magcal_ros.core.diagnose).
+Model diagnosis on data with a hidden effect (magcal_ros.core.discovery).
 
 Every dataset: paper 004's cross with Table 1 errors, 3 nT Gaussian noise per axis,
 3000 samples at 10 Hz of smooth tumbling (300 s: the sphere is covered several times, the
@@ -33,9 +33,9 @@ import sys
 from magcal_ros.core import effects as fx
 from magcal_ros.core.data.noise import estimate_noise, noise_floor
 from magcal_ros.core.data.simulate import simulate
-from magcal_ros.core.diagnose import (AT_FLOOR_RATIO, candidate_tokens, compact_spec,
-                                      cross_validate, diagnose, EVIDENCE_TIE, ladder,
-                                      likelihood_ratio, noise_floor_from_data, time_blocks)
+from magcal_ros.core.discovery import (AT_FLOOR_RATIO, candidate_tokens, compact_spec,
+                                       cross_validate, diagnose, EVIDENCE_TIE, ladder,
+                                       likelihood_ratio, noise_floor_from_data, time_blocks)
 from magcal_ros.core.model import fit, Model
 import numpy as np
 import pytest

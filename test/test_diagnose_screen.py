@@ -26,10 +26,10 @@ import math
 from types import SimpleNamespace
 
 import injection as inj
-from magcal_ros.core.diagnose import (diagnose, evaluate_residuals, EVIDENCE_TIE,
-                                      extend_model, MIN_DELTA_BIC, n_observations,
-                                      SCORE_RULE_OUT_BIC, Screen)
-import magcal_ros.core.diagnose.run as run
+from magcal_ros.core.discovery import (diagnose, evaluate_residuals, EVIDENCE_TIE,
+                                       extend_model, MIN_DELTA_BIC, n_observations,
+                                       SCORE_RULE_OUT_BIC, Screen)
+import magcal_ros.core.discovery.run as run
 from magcal_ros.core.model import fit
 import numpy as np
 import pytest
@@ -128,8 +128,8 @@ def test_a_line_is_proposed_from_irregular_samples_also_past_the_periodogram_bud
     # residuals written here; 2 000 epochs: Lomb-Scargle, 12 000: past LS_BUDGET, the FFT of
     # the residual regridded onto the median interval; both name the line to 1 / (10 span),
     # and white noise alone proposes none
-    from magcal_ros.core.diagnose import propose_from_residual
-    from magcal_ros.core.diagnose.candidates import LS_BUDGET
+    from magcal_ros.core.discovery import propose_from_residual
+    from magcal_ros.core.discovery.candidates import LS_BUDGET
     assert (n * min(4 * n, 20000) > LS_BUDGET) == (n > 2000)
     rng = np.random.default_rng(n)
     t = np.arange(n) / 10.0 + rng.uniform(-0.03, 0.03, n)

@@ -25,7 +25,7 @@ of its name.  The recordings for the fit are made in this file from the formula,
 from magcal_ros.core import effects as fx
 from magcal_ros.core.data.dataset import Dataset
 from magcal_ros.core.data.simulate import simulate
-from magcal_ros.core.diagnose import diagnose
+from magcal_ros.core.discovery import diagnose
 from magcal_ros.core.model import fit, Model, priors_for
 from magcal_ros.io.calfile import calibration_from_doc, calibration_to_doc
 import numpy as np

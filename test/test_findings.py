@@ -13,7 +13,7 @@
 # limitations under the License.
 
 """
-Model-free findings (magcal_ros.core.findings) on faults written by hand.
+Model-free findings (magcal_ros.core.discovery.findings) on faults written by hand.
 
 The data are test/injection.py's cross (each sensor's matrix, offset and fault written out,
 not Model.forward); the real base fit is run and its residuals are passed to the findings.
@@ -26,7 +26,7 @@ import json
 
 import injection as inj
 from magcal_ros.core.data.dataset import Dataset
-from magcal_ros.core.findings import find, lomb_scargle, periodogram, white_noise_sd
+from magcal_ros.core.discovery.findings import find, lomb_scargle, periodogram, white_noise_sd
 from magcal_ros.core.model import fit
 import numpy as np
 import pytest
@@ -238,7 +238,7 @@ def test_periodogram_irregular_sampling_finds_the_line():
 
 
 def test_findings_are_in_the_diagnosis_json_and_text():
-    from magcal_ros.core.diagnose import diagnose
+    from magcal_ros.core.discovery import diagnose
     data, result, _ = _case('step', 3000)
     diag = diagnose(data, field_nt=inj.F_NT, base=result, folds=0)
     doc = json.loads(diag.to_json())

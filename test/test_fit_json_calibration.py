@@ -26,7 +26,7 @@ import pathlib
 
 from injection import F_NT, make, SENSORS, SIGMA_NT
 from magcal_ros.cli import main
-from magcal_ros.core.diagnose import jsonable
+from magcal_ros.core.discovery import jsonable
 from magcal_ros.io.csvio import write_csv
 import numpy as np
 import pytest

@@ -81,15 +81,16 @@ def test_terms_say_what_they_are():
         'composed', 'offset', 's(t, k=6)', '2', ('time',))
     # parameters: 3 per column and sensor; the field's 1 per column for the array; the
     # alike window's 3 for every sensor; scale 3 per sensor; lag 3 + tau per sensor
-    assert [t.n_params(4) for t in f.terms] == [45, 18, 8, 3, 12, 6, 8, 0]
+    assert [Model.from_spec([t.text], 4).n_params if t.kind != 'drop' else 0
+            for t in f.terms] == [45, 18, 8, 3, 12, 6, 8, 0]
     assert fld.scope == 'array' and win.scope == 'alike' and lag.scope == '{1,3}'
     assert lag.signals == ('time', 'aux_motor') and lag.sensors(4) == [1, 3]
     assert tmp.kind == 'alias' and tmp.expansion == 'offset(temperature)@2 + scale(temperature)@2'
     assert base.expansion == 'offset + scale + nonorthogonality + misalignment'
     assert drop.kind == 'drop' and drop.window == (10.0, 20.0) and f.drops == [(10.0, 20.0)]
-    m = f.model(4)
+    m = Model.from_spec(f, 4)
     assert m.drops == [(10.0, 20.0)] and m.n_params == 45 + 18 + 8 + 3 + 12 + 6 + 8
-    assert fx.parse(m.spec()).model(4).spec() == m.spec()
+    assert Model.from_spec(fx.parse(m.spec()), 4).spec() == m.spec()
 
 
 #: a bad formula -> words its one-line error must hold (the bad part, what is allowed)
@@ -360,9 +361,9 @@ def test_example_grammar_plugin(grammar_example):
     assert sorted(grammar_example) == ['relay', 'zoffset']
     code = (pathlib.Path(__file__).resolve().parents[1] / 'docs' / 'plugins.md').read_text()
     snippet = code[code.index("load_plugin('my_grammar')"):].split('```')[0]
-    ns = {'load_plugin': fx.load_plugin, 'parse': fx.parse}
+    ns = {'load_plugin': fx.load_plugin, 'parse': fx.parse, 'Model': Model}
     exec(snippet, ns)                  # noqa: S102 - the documentation's own snippet
-    assert ns['f'].terms[1].n_params(4) == 1
+    assert Model.from_spec([ns['f'].terms[1].text], 4).n_params == 1
 
     def inject(t, temp, aux, b):
         on = (aux['aux_motor_current'] > 4).astype(float)

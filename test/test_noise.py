@@ -28,7 +28,7 @@ from magcal_ros.core import model as model_mod
 from magcal_ros.core.data.dataset import Dataset
 from magcal_ros.core.data.noise import data_noise_floor, estimate_noise, robust_sd
 from magcal_ros.core.data.simulate import simulate
-from magcal_ros.core.diagnose import diagnose
+from magcal_ros.core.discovery import diagnose
 from magcal_ros.core.geometry.tensor import cross_positions, tensor_noise_floor
 from magcal_ros.pipeline import calibrate
 import numpy as np

@@ -20,7 +20,7 @@ import re
 
 from magcal_ros import report
 from magcal_ros.core.data.simulate import simulate
-from magcal_ros.core.diagnose import diagnose, ladder
+from magcal_ros.core.discovery import diagnose, ladder
 from magcal_ros.core.model import fit
 from matplotlib.image import imread
 import numpy as np

@@ -25,7 +25,7 @@ import dataclasses
 import inspect
 
 from magcal_ros.core.data.dataset import Dataset
-from magcal_ros.core.diagnose import diagnose, ladder
+from magcal_ros.core.discovery import diagnose, ladder
 from magcal_ros.core.model import fit, FitResult
 import numpy as np
 import pytest

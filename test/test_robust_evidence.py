@@ -23,7 +23,7 @@ missing, no candidate may reach the evidence threshold, while a real missing eff
 wins.
 """
 from magcal_ros.core.data.simulate import simulate
-from magcal_ros.core.diagnose import diagnose, MIN_DELTA_BIC, soft_l1_lr_loss
+from magcal_ros.core.discovery import diagnose, MIN_DELTA_BIC, soft_l1_lr_loss
 from magcal_ros.core.model import fit
 import numpy as np
 

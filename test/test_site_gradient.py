@@ -402,7 +402,7 @@ def test_nonuniform_field_finding_points_to_the_effect():
     The workbench's model-free finding on the base fit names site_gradient (a smooth
     tumbling: the finding separates signal from noise by its continuity in time).
     """
-    from magcal_ros.core.findings import find
+    from magcal_ros.core.discovery.findings import find
     data, _ = make_data(n=3000, smooth_period_s=10.0)
     found = find(data, fit(data, 'base', field_nt=FIELD_NT))
     texts = [f.text for f in found.items if f.kind == 'nonuniform_field']
@@ -439,7 +439,7 @@ def test_diagnose_names_site_gradient():
     The workbench ranks the missing effect: with attitude, site_gradient (array-wide, one
     token, no @j) is the verdict of a base model in a site gradient.
     """
-    from magcal_ros.core.diagnose import diagnose
+    from magcal_ros.core.discovery import diagnose
     data, _ = make_data(n=1500, seed=6, smooth_period_s=10.0)
     doc = json.loads(diagnose(data, Model.from_spec('base', 4), field_nt=FIELD_NT).to_json())
     assert doc['verdict']['token'] == 'site_gradient', doc['verdict']

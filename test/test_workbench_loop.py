@@ -33,7 +33,7 @@ import json
 
 import injection as inj
 from magcal_ros.core import effects as fx
-from magcal_ros.core.diagnose import diagnose, MIN_EXPLAINED
+from magcal_ros.core.discovery import diagnose, MIN_EXPLAINED
 from magcal_ros.core.model import fit
 import numpy as np
 import pytest
@@ -146,7 +146,7 @@ def test_a_lag_of_no_time_constant_is_the_plain_coupling():
 
 
 def test_tokens_from_findings():
-    from magcal_ros.core.diagnose import tokens_from_findings
+    from magcal_ros.core.discovery import tokens_from_findings
     got = tokens_from_findings([
         {'kind': 'periodic', 'sensor': 3, 'value': 0.23, 'token': 'periodic(0.23)@3'},
         {'kind': 'step', 'sensor': 1, 'value': 300.0, 'token': None},
@@ -175,6 +175,6 @@ def test_site_gradient_adopts_no_fix_and_is_named_by_the_finding(n):
     assert shares and max(shares) < MIN_EXPLAINED
     kinds = [f['kind'] for f in json.loads(diag.to_json())['findings']]
     assert 'nonuniform_field' in kinds
-    from magcal_ros.core.diagnose import ladder
+    from magcal_ros.core.discovery import ladder
     lad = ladder(data, diag.result, field_nt=F, diagnosis=diag)
     assert len(lad.steps) == 1 and lad.reason.startswith('verdict none')

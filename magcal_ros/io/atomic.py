@@ -22,6 +22,8 @@ def atomic_write_text(path, text, backup=True, fsync=os.fsync):
     """
     Write ``text`` to ``path`` so that readers see the old or the new file, never a mix.
 
+    ``text``: a str, or an iterable of str written one after the other (a long file made
+    piece by piece, never whole in memory).
     The previous file, if any, is kept as ``<path>.bak`` when ``backup`` is true.  If anything
     fails before the final rename the original file is untouched and the temporary is removed.
     ``fsync`` is injectable so that tests can simulate a failing disk.  ``text`` may be
@@ -36,7 +38,8 @@ def atomic_write_text(path, text, backup=True, fsync=os.fsync):
         binary = isinstance(text, bytes)
         with os.fdopen(fd, 'wb' if binary else 'w',
                        **({} if binary else {'encoding': 'utf-8'})) as fh:
-            fh.write(text)
+            for part in ([text] if isinstance(text, (str, bytes)) else text):
+                fh.write(part)
             fh.flush()
             fsync(fh.fileno())
         if backup and os.path.exists(path):

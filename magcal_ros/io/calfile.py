@@ -19,6 +19,7 @@ Layout (schema_version 1)::
 
     schema_version: 1
     kind: magcal_ros/calibration
+    checksum: sha256:<64 hex digits>   # of the rest of the document (written by dump/save)
     model: [offset, scale, nonorthogonality, misalignment]
     geometry: {type: cross, baseline_m: 0.5, positions_m: [[x, y, z], ...]}
     field_reference: {kind: constant|ref_total|igrf, magnitude_nt: 50000.0, ...}
@@ -31,14 +32,21 @@ Layout (schema_version 1)::
         intrinsic_correction: [[...]]   # C^-1 of paper 004 eq. 5 (upper triangular)
         offset_nt: [bx, by, bz]
         rotation_to_sensor1: [[...]]    # R of paper 004 eq. 14
+        axis_map: [[...]]               # M of axes(...), only a sensor with one:
+                                        # correction_matrix = R C^-1 M^T
     provenance: {created, samples, data_hash, temperature_range_c, attitude_coverage,
                  residuals: {scalar_rms_nt, vector_rms_nt, tensor_rms_nt_per_m}, software}
 
-The parameters are the source of truth; the matrices are derived and checked on load, so a
-hand edit that makes them disagree is refused.
+The parameters are the source of truth; the matrices and the offset are derived and checked
+on load, so a hand edit that makes them disagree is refused.  The checksum (sha256 of a
+canonical serialisation of everything else, :func:`content_checksum`) catches what such a
+check cannot: a changed digit of a parameter, sigma_nt or a reference value.  A file without
+one (written before it existed) still loads.
 """
 import datetime
 import glob
+import hashlib
+import json
 import os
 
 from magcal_ros.core import effects as fx
@@ -49,6 +57,7 @@ import yaml
 
 SCHEMA_VERSION = 1
 KIND = 'magcal_ros/calibration'
+_SAFE_LOADER = getattr(yaml, 'CSafeLoader', yaml.SafeLoader)
 
 
 class CalibrationFileError(ValueError):
@@ -86,6 +95,7 @@ SCHEMA = {
     'properties': {
         'schema_version': {'type': 'integer'},
         'kind': {'const': 'magcal_ros/calibration'},
+        'checksum': {'type': 'string'},
         'model': {'type': 'array', 'items': {'type': 'string'}},
         # positions_m: one row of 3 numbers (m) per sensor, checked against the sensors
         'geometry': {'type': ['object', 'null']},
@@ -101,6 +111,7 @@ SCHEMA = {
                 'intrinsic_correction': _MAT3,
                 'offset_nt': _VEC3,
                 'rotation_to_sensor1': _MAT3,
+                'axis_map': _MAT3,
             }}},
         'array_effects': {'type': ['array', 'null'], 'items': _EFFECT},
         'site_gradient_nt_per_m': {'type': 'object', 'properties': {
@@ -191,7 +202,7 @@ def calibration_to_doc(cal, geometry=None, field_reference=None, provenance=None
         effs = [effect_doc(eff, sl)
                 for eff, sl in zip(cal.model.effects[j - 1], cal.model.slices[j - 1])]
         c_inv, rot = cal.intrinsic_and_rotation(j)
-        sensors.append({
+        sdoc = {
             'id': j,
             'sigma_nt': float(cal.sigma_nt[j - 1]),
             'effects': effs,
@@ -199,7 +210,11 @@ def calibration_to_doc(cal, geometry=None, field_reference=None, provenance=None
             'intrinsic_correction': _mat(c_inv),
             'offset_nt': [float(x) for x in cal.offset(j)],
             'rotation_to_sensor1': _mat(rot),
-        })
+        }
+        if _has_axis_map(cal.model, j):
+            # intrinsic_correction and rotation_to_sensor1 decompose the map without it
+            sdoc['axis_map'] = _mat(cal.model.axis_map(j))
+        sensors.append(sdoc)
     prov = {'created': datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds'),
             'software': 'magcal_ros'}
     prov.update(provenance or {})
@@ -220,9 +235,52 @@ def calibration_to_doc(cal, geometry=None, field_reference=None, provenance=None
     return doc
 
 
-def dump_calibration(doc):
-    """YAML text of a calibration document."""
+def _has_axis_map(model, j):
+    return any(isinstance(e, fx.AxisMap) for e in model.effects[j - 1])
+
+
+def _yaml(doc):
     return yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=100)
+
+
+def content_checksum(doc):
+    """
+    Return ``'sha256:<hex>'`` of a document's content, its ``checksum`` entry left out.
+
+    The content is serialised canonically: JSON in the document's own key order, numbers as
+    Python writes them (the shortest text that reads back to the same float, so YAML and
+    JSON agree), no spaces.  What YAML does not carry (comments, layout, quoting) does not
+    count; every key and value does.
+    """
+    body = {k: v for k, v in doc.items() if k != 'checksum'}
+    text = json.dumps(body, separators=(',', ':'), ensure_ascii=True, allow_nan=True,
+                      default=repr)
+    return 'sha256:' + hashlib.sha256(text.encode('ascii')).hexdigest()
+
+
+def stamp_checksum(doc):
+    """
+    Return a copy of a calibration document with its ``checksum`` (after ``kind``).
+
+    The checksum is of the document as its YAML text reads back (a tuple becomes a list),
+    and replaces any the document had: writing a loaded and changed document is a new
+    write.  ``magcal fit --json`` prints this, the document the file holds.
+    """
+    body = {k: v for k, v in doc.items() if k != 'checksum'}
+    stamp = content_checksum(yaml.load(_yaml(body), Loader=_SAFE_LOADER))  # noqa: S506
+    out = {}
+    for k, v in body.items():
+        out[k] = v
+        if k == 'kind':
+            out['checksum'] = stamp
+    if 'checksum' not in out:
+        out = {'checksum': stamp, **out}
+    return out
+
+
+def dump_calibration(doc):
+    """YAML text of a calibration document, with its checksum (:func:`stamp_checksum`)."""
+    return _yaml(stamp_checksum(doc))
 
 
 def _need(d, key, where):
@@ -366,11 +424,50 @@ def _calibration_from_doc(doc, source):
                 raise CalibrationFileError(
                     f'{source}: sensor {k}: correction_matrix does not match the parameters '
                     '(hand-edited?); edit the parameters, not the derived matrices')
+        _check_derived(cal, k, sdoc, source)
     _check_complete(doc, model, source)
+    _check_checksum(doc, source)
     return cal
 
 
-_SAFE_LOADER = getattr(yaml, 'CSafeLoader', yaml.SafeLoader)
+def _check_derived(cal, k, sdoc, source):
+    """Refuse offset_nt, axis_map, intrinsic_correction, rotation_to_sensor1 not derived."""
+    def refuse(key):
+        raise CalibrationFileError(
+            f'{source}: sensor {k}: {key} does not match the parameters (hand-edited?); edit '
+            'the parameters, not the derived values')
+
+    stored = sdoc.get('offset_nt')
+    # written from the same parameters by the same sum: equal to rounding (1e-9 nT)
+    if stored is not None and not np.allclose(np.asarray(stored, float), cal.offset(k),
+                                              rtol=1e-9, atol=1e-9):
+        refuse('offset_nt')
+    has_map = _has_axis_map(cal.model, k)
+    stored = sdoc.get('axis_map')
+    if stored is not None and not np.array_equal(np.asarray(stored, float),
+                                                 cal.model.axis_map(k)):
+        refuse('axis_map')
+    if has_map and stored is None:
+        return          # written before axis_map was: decomposed from the whole map
+    c_inv, rot = cal.intrinsic_and_rotation(k)
+    for key, value in (('intrinsic_correction', c_inv), ('rotation_to_sensor1', rot)):
+        stored = sdoc.get(key)
+        if stored is not None and not np.allclose(np.asarray(stored, float), value,
+                                                  atol=1e-6):
+            refuse(key)
+
+
+def _check_checksum(doc, source):
+    """Refuse a document whose content is not what its writer's checksum says."""
+    stated = doc.get('checksum')
+    if stated is None:
+        return                  # written before the checksum existed
+    if stated != content_checksum(doc):
+        raise CalibrationFileError(
+            f'{source}: checksum does not match the content: the file changed after it was '
+            'written (corrupt, or hand-edited); roll back to the previous calibration (magcal '
+            'rollback) or recalibrate (magcal fit); to keep a deliberate hand edit, delete '
+            'the checksum line')
 
 
 def parse_calibration(text, source='calibration'):

@@ -302,3 +302,83 @@ def format_csv(data, comment=None):
 def write_csv(path, data, comment=None):
     """Write a :class:`Dataset` as a wide CSV file, atomically (``.gz``/``.zst``: compressed)."""
     atomic_write_text(path, compress_text(path, format_csv(data, comment)), backup=False)
+
+
+# -- pieces of a long file (magcal_ros.io.chunks) --------------------------------------------
+
+def parse_header(path, line):
+    """Return the column layout of a header ``line``: (header, {j: {axis: column}}, plane col)."""
+    header, sensors = _parse_header(path, line)
+    return header, sensors, (header.index('plane') if 'plane' in header else None)
+
+
+def parse_rows(path, layout, line_nos, lines):
+    """Return ((R, C) float array, plane strings or None) of data ``lines`` (R rows)."""
+    header, _, plane_col = layout
+    rows = []
+    planes = []
+    for ln_no, ln in zip(line_nos, lines):
+        parts = [p.strip() for p in ln.strip().split(',')]
+        if len(parts) != len(header):
+            raise CsvFormatError(f'{path}: line {ln_no} has {len(parts)} fields, header has '
+                                 f'{len(header)}')
+        if plane_col is not None:
+            planes.append(parts[plane_col])
+            parts[plane_col] = 'nan'
+        try:
+            rows.append([float(p) if p != '' else np.nan for p in parts])
+        except ValueError:
+            bad = next(p for p in parts if not _isfloat(p))
+            raise CsvFormatError(f'{path}: line {ln_no}: {bad!r} is not a number') from None
+    return (np.array(rows, float).reshape(-1, len(header)),
+            np.array(planes) if plane_col is not None else None)
+
+
+class _Cells:
+    """The cells of ``lines``, split when one is asked for (an error message)."""
+
+    def __init__(self, lines):
+        self.lines = lines
+
+    def __getitem__(self, r):
+        return [c.strip() for c in self.lines[r].strip().split(',')]
+
+
+def build_dataset(path, layout, arr, rows_no, lines, planes=None):
+    """
+    Check the rows ``arr`` (R, C) of a wide CSV and return them as a :class:`Dataset`.
+
+    ``rows_no`` (R,) are their line numbers and ``lines`` their text (for the messages).
+    """
+    header, sensors, plane_col = layout
+    n_s = max(sensors)
+    _check_finite(path, header, arr, rows_no, _Cells(lines))
+    col = {h: arr[:, i] for i, h in enumerate(header)}
+    t = col['t']
+    if len(t) and (not np.all(np.isfinite(t)) or np.any(np.diff(t) < 0)):
+        raise CsvFormatError(f'{path}: column t must be finite and non-decreasing')
+    raw = np.stack([np.column_stack([arr[:, sensors[j][a]] for a in 'xyz'])
+                    for j in range(1, n_s + 1)])
+    temp = None
+    if any('temp' in sensors[j] for j in sensors):
+        temp = np.stack([arr[:, sensors[j]['temp']] if 'temp' in sensors[j]
+                         else np.full(len(t), np.nan) for j in range(1, n_s + 1)])
+    ref_vec = (np.column_stack([col['ref_x'], col['ref_y'], col['ref_z']])
+               if 'ref_x' in col else None)
+    attitude = None
+    have_att = [c for c in ATT_COLUMNS if c in col]
+    if have_att:
+        if len(have_att) != 4:
+            raise CsvFormatError(f'{path}: attitude needs all four columns '
+                                 f'{", ".join(ATT_COLUMNS)}; missing '
+                                 f'{", ".join(c for c in ATT_COLUMNS if c not in col)}')
+        try:
+            attitude = check_quaternions(np.column_stack([col[c] for c in ATT_COLUMNS]),
+                                         rows=rows_no)
+        except ValueError as exc:
+            raise CsvFormatError(f'{path}: {exc}') from None
+    return Dataset(t=t, raw=raw, temp=temp, ref_total=col.get('ref_total'), ref_vec=ref_vec,
+                   angle_deg=col.get('angle_deg'),
+                   plane=planes if plane_col is not None else None,
+                   aux={h: col[h] for h in header if h.startswith('aux_')},
+                   meta={'source': path}, attitude=attitude)

@@ -48,7 +48,7 @@ one JSON object):
   (:func:`magcal_ros.pipeline.calibrate`), write ``calibration_file`` atomically (the
   previous one kept) and publish it; refused data leave the previous calibration active;
 - ``calibration/diagnose``: rank the candidate effects missing from ``model``
-  (:func:`magcal_ros.core.diagnose.diagnose`) and write the HTML report to ``report_dir``.
+  (:func:`magcal_ros.core.discovery.diagnose`) and write the HTML report to ``report_dir``.
 
 The solve must not block the sensor callbacks. It runs in a worker thread; the service
 callbacks are coroutines (in a reentrant callback group) that await it, so the executor
@@ -253,6 +253,7 @@ class CalibrationNode(Node):
         self._updater = Updater(self, s.status_period_s)
         self._updater.setHardwareID(self.get_namespace())
         self._updater.add('residual', lambda stat: fill(stat, self.residual_status()))
+        self._updater.add('buffer', lambda stat: fill(stat, self.buffer_status()))
         self._setup = self._describe_setup(s)
         self._updater.add('setup', lambda stat: fill(stat, self.setup_status()))
         say = (self.get_logger().info if self._setup[0] == DiagnosticStatus.OK else
@@ -504,6 +505,30 @@ class CalibrationNode(Node):
                 live.set_aux(column, msg.data)
         return cb
 
+    def buffer_status(self):
+        """
+        ``diagnostic_msgs/DiagnosticStatus`` of the buffer of sets: what of the run it holds.
+
+        The buffer keeps at most ``max_samples`` sets spread evenly over the whole run
+        (:class:`magcal_ros.core.live.corrector.SampleBuffer`): the values say how many it
+        holds, of how many received, one in how many, and which span of the run they cover.
+        """
+        with self._lock:
+            cov = self._buffer.coverage()
+            cap = self._buffer.capacity
+        st = DiagnosticStatus(name=f'{self.get_name()}: buffer',
+                              hardware_id=self.get_namespace(), level=DiagnosticStatus.OK)
+        if not cov['sets_received']:
+            st.message = 'no sample sets yet'
+        else:
+            st.message = (f'{cov["sets_held"]} of {cov["sets_received"]} sets held (one in '
+                          f'{cov["stride"]}, at most {cap}), spread over '
+                          f'{100 * cov.get("fraction_of_run", 1.0):.0f} % of the '
+                          f'{cov["run_s"]:.0f} s run')
+        st.values = [KeyValue(key=k, value=str(v)) for k, v in cov.items()]
+        st.values.append(KeyValue(key='max_samples', value=str(cap)))
+        return st
+
     def residual_status(self):
         """
         ``diagnostic_msgs/DiagnosticStatus`` of the active calibration on the live data.
@@ -565,6 +590,7 @@ class CalibrationNode(Node):
             out_of_order = self._matcher.out_of_order
             realigned = self._matcher.realigned
             received = self._received.tolist()
+            buffer = self._buffer.coverage()
             state = self._state
         # the short fields first: `ros2 topic echo` shows the first 128 characters
         out = {'state': state, 'sets': n_sets, 'min_samples': s.min_samples, 'ready': False,
@@ -601,6 +627,7 @@ class CalibrationNode(Node):
         out.update({'model': list(s.model), 'field_nt': s.field_nt,
                     'field_source': s.field_source,
                     'max_samples': s.max_samples, 'coverage_eigenvalues': eigenvalues,
+                    'buffer': buffer,
                     'incomplete_sets_dropped': dropped, 'out_of_order_dropped': out_of_order,
                     'stream_realignments': realigned,
                     'samples_received': {str(j + 1): r for j, r in enumerate(received)}})
@@ -668,7 +695,7 @@ class CalibrationNode(Node):
 
     def _turn(self, s):
         """Drive cmd_vel until the turns are seen or time is up (worker thread)."""
-        from magcal_ros.core.model.planar import swept_angle
+        from magcal_ros.core.geometry.turn import swept_angle
         twist = Twist()
         twist.angular.z = float(s.turn_speed_rad_s)
         want = 2 * math.pi * s.turn_count
@@ -973,7 +1000,7 @@ class CalibrationNode(Node):
     def _diagnose(self):
         """Rank the missing effects; returns (success, summary text, JSON payload)."""
         try:
-            from magcal_ros.core.diagnose import diagnose
+            from magcal_ros.core.discovery import diagnose
             from magcal_ros.report import write_report
         except ImportError as exc:
             return False, f'diagnosis is not available: {exc}', {'error': str(exc)}
@@ -1005,7 +1032,7 @@ class CalibrationNode(Node):
         else:
             head = f'most likely missing effect: {verdict.get("token") or verdict["effect"]}'
         lines = [head] + ([verdict['reason']] if verdict.get('reason') else [])
-        if ranking.get('findings'):       # model-free: what is left (core.findings)
+        if ranking.get('findings'):       # model-free: what is left (core.discovery.findings)
             lines.append('left in the residuals: ' + '; '.join(
                 f'{f["kind"]}' + (f' (add {f["token"]})' if f.get('token') else '')
                 + ('' if f['sensor'] is None else f' on sensor {f["sensor"]}')

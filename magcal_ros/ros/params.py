@@ -409,8 +409,9 @@ def calibration_specs(n_sensors=4):
                   non_empty_path, read_only=True),
         ParamSpec('min_samples', 1000, 'fewest complete sample sets calibration/calibrate '
                   'accepts; count', at_least(12, 'sets'), limits=(12, 10 ** 9)),
-        ParamSpec('max_samples', 20000, 'size of the ring buffer of sample sets (oldest '
-                  'dropped); count, read-only', at_least(12, 'sets'), read_only=True,
+        ParamSpec('max_samples', 20000, 'most sample sets held, spread evenly over the '
+                  'whole run (when full, every other set is dropped and every other new one '
+                  'kept); count, read-only', at_least(12, 'sets'), read_only=True,
                   limits=(12, 10 ** 9)),
         ParamSpec('baseline_m', 0.5, 'distance between the two sensors of an arm of the '
                   'cross (paper 004), m', positive('m'), limits=(1.0e-3, 100.0)),

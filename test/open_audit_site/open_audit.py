@@ -78,7 +78,9 @@ def install(log_path):
             key = (path, os.getcwd()) if not os.path.isabs(path) else path
             bad = cache.get(key)
             if bad is None:
-                bad = cache[key] = outside(path, parent, allowed)
+                # a tool probing for a file that is not there (flake8 and pydocstyle look for
+                # setup.cfg, tox.ini, ... in every folder up to the root) reads nothing
+                bad = cache[key] = outside(path, parent, allowed) and os.path.exists(path)
             if bad:
                 line = f'{os.path.realpath(path)}\t{os.getpid()}\t{" ".join(sys.argv)[:200]}\n'
                 fd = os.open(log_path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o600)

@@ -48,6 +48,10 @@ class Dataset:
         or ENU) is the user's.
     meta : dict
         Free-form provenance (source file, simulator truth, ...).
+    rate : numpy.ndarray or None
+        (S, N, 3) d(raw)/dt in nT/s taken from the full-rate record when these epochs are a
+        sample of it (:mod:`magcal_ros.core.data.reduce`); None: from these epochs
+        (:func:`~magcal_ros.core.effects.raw_rate`).
 
     """
 
@@ -61,6 +65,7 @@ class Dataset:
     aux: dict = field(default_factory=dict)
     meta: dict = field(default_factory=dict)
     attitude: np.ndarray | None = None
+    rate: np.ndarray | None = field(default=None, repr=False)
     #: (whole Dataset, (N,) int positions in it) of a :meth:`subset`: effects with memory (a
     #: lag filter) run over the whole record, so a held-out block keeps their state
     origin: tuple | None = field(default=None, repr=False, compare=False)
@@ -96,7 +101,8 @@ class Dataset:
         :class:`SensorContext` of sensor ``j`` (1-based), with d(raw)/dt in nT/s
         (:func:`magcal_ros.core.effects.raw_rate`).
         """
-        rate = raw_rate(self.raw[j - 1], self.t)
+        rate = (raw_rate(self.raw[j - 1], self.t) if self.rate is None
+                else self.rate[j - 1])
         temp = None if self.temp is None else self.temp[j - 1]
         if temp is not None and not np.isfinite(temp).any():
             temp = None
@@ -133,4 +139,4 @@ class Dataset:
             ref_total=take(self.ref_total), ref_vec=take(self.ref_vec),
             angle_deg=take(self.angle_deg), plane=take(self.plane),
             aux={k: take(v) for k, v in self.aux.items()}, meta=dict(self.meta),
-            attitude=take(self.attitude))
+            attitude=take(self.attitude), rate=take(self.rate, 1))

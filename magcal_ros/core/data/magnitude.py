@@ -146,7 +146,7 @@ def site_field_reference(source, field_nt=None, lat_deg=None, lon_deg=None, alt_
         return f, {'kind': 'auto (mean radius, shape-only)', 'magnitude_nt': f}
     if source == 'shape-planar':
         # a turn about one axis: no ellipsoid, a circle and the mean along the axis
-        from magcal_ros.core.model.planar import planar_magnitude, turn_axis
+        from magcal_ros.core.geometry.turn import planar_magnitude, turn_axis
         f = planar_magnitude(raw, turn_axis(raw))
         return f, {'kind': 'auto (planar: in-plane radius and mean along the axis, '
                            'shape-only)', 'magnitude_nt': f}

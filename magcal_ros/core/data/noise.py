@@ -124,7 +124,24 @@ def robust_sd(d):
     return float(np.sqrt(var)), float(s_mad), alpha, n_out
 
 
-def difference_sigmas(x, orders=ORDERS):
+def differences(x, k, starts=None, axis=1):
+    """
+    k-th differences of ``x`` along ``axis``, without those that span a segment start.
+
+    ``starts``: sorted indices where a new contiguous segment of the series begins (a
+    record reduced to blocks, :mod:`magcal_ros.core.data.reduce`); a difference reaching across
+    one would see the jump between two blocks, not the noise.  None: one segment.
+    """
+    d = np.diff(x, n=k, axis=axis)
+    if starts is None or len(starts) < 2:
+        return d
+    keep = np.ones(d.shape[axis], bool)
+    for s0 in starts[1:]:
+        keep[max(0, s0 - k):s0] = False
+    return np.compress(keep, d, axis=axis)
+
+
+def difference_sigmas(x, orders=ORDERS, starts=None):
     """
     White-noise sd from k-th differences, for each order k (:func:`robust_sd` scale).
 
@@ -134,6 +151,8 @@ def difference_sigmas(x, orders=ORDERS):
         (S, N, C) series in time order (any unit; C channels pooled), or (S, N).
     orders : sequence of int
         Difference orders k.
+    starts : sequence of int, optional
+        Indices where contiguous segments begin (:func:`differences`).
 
     Returns
     -------
@@ -146,14 +165,14 @@ def difference_sigmas(x, orders=ORDERS):
         x = x[..., None]
     out = np.empty((len(orders), x.shape[0]))
     for i, k in enumerate(orders):
-        d = np.diff(x, n=k, axis=1)
+        d = differences(x, k, starts)
         d = d - np.median(d, axis=1, keepdims=True)
         for j in range(x.shape[0]):
             out[i, j] = robust_sd(d[j])[0] / np.sqrt(comb(2 * k, k))
     return out
 
 
-def nyquist_drop(x):
+def nyquist_drop(x, starts=None):
     """
     How far the spectrum falls from mid band to Nyquist, per series.
 
@@ -166,6 +185,8 @@ def nyquist_drop(x):
     ----------
     x : numpy.ndarray
         (S, N, C) or (S, N) series in time order.
+    starts : sequence of int, optional
+        Indices where contiguous segments begin (:func:`differences`).
 
     Returns
     -------
@@ -180,7 +201,8 @@ def nyquist_drop(x):
     out = np.full(x.shape[0], np.nan)
     if n < 64:
         return out
-    d = np.diff(x, axis=1)
+    d = differences(x, 1, starts)
+    n = d.shape[1] + 1
     from scipy import signal as sps     # here: the nodes import this module, not welch
     f, p = sps.welch(d, fs=1.0, nperseg=min(256, n - 1), axis=1, detrend='constant')
     gain = 4 * np.sin(np.pi * f) ** 2
@@ -231,7 +253,7 @@ class NoiseEstimate:
     drop: np.ndarray | None = None
 
 
-def estimate_noise(x, orders=ORDERS):
+def estimate_noise(x, orders=ORDERS, starts=None):
     """
     Adaptive noise estimate from the plateau of the difference estimates of several orders.
 
@@ -249,6 +271,8 @@ def estimate_noise(x, orders=ORDERS):
         (S, N, C) or (S, N) series in time order.
     orders : sequence of int
         Difference orders tried (those with at least k + 8 samples are used).
+    starts : sequence of int, optional
+        Indices where contiguous segments begin (:func:`differences`).
 
     Returns
     -------
@@ -260,12 +284,12 @@ def estimate_noise(x, orders=ORDERS):
     orders = tuple(k for k in orders if n >= k + 8)
     if not orders:
         raise ValueError(f'need at least {min(ORDERS) + 8} samples to estimate the noise floor')
-    by = difference_sigmas(x, orders)
+    by = difference_sigmas(x, orders, starts)
     s = by.shape[1]
     sigma = np.empty(s)
     first = np.empty(s, int)
     plateau = np.empty(s, bool)
-    drop = nyquist_drop(x)
+    drop = nyquist_drop(x, starts)
     status = []
     for j in range(s):
         on = by[:, j] <= PLATEAU_RATIO * by[:, j].min()
@@ -386,9 +410,24 @@ def data_noise_floor(data, result=None):
     -------
     NoiseFloor
 
+    Notes
+    -----
+    A record too long to hold (:mod:`magcal_ros.core.data.reduce`) is diagnosed on an evenly
+    spread sample of its epochs, whose differences would see the motion between them, not
+    the noise: its ``meta['noise_blocks']`` holds contiguous full-rate blocks of the record,
+    and the floor is estimated from those (and the fit's residual on them).
+
     """
-    raw_est = estimate_noise(data.raw)
-    s = data.n_sensors
+    blocks = data.meta.get('noise_blocks')
+    if blocks is not None:
+        return blocks.floor(result)
+    return noise_floor_of(data.raw, result)
+
+
+def noise_floor_of(raw, result, starts=None):
+    """:func:`data_noise_floor` of readings ``raw`` (S, N, 3) nT and segment ``starts``."""
+    raw_est = estimate_noise(raw, starts=starts)
+    s = raw.shape[0]
     sigma = raw_est.sigma.copy()
     order = raw_est.order.copy()
     status = list(raw_est.status)
@@ -396,7 +435,7 @@ def data_noise_floor(data, result=None):
     source = ['raw'] * s
     res_sigma = None
     if result is not None:
-        res_est = estimate_noise(result.scalar_residual_nt)
+        res_est = estimate_noise(result.scalar_residual_nt, starts=starts)
         res_sigma = res_est.sigma
         for j in range(s):
             # the raw estimate pools three axes and needs no model: keep it unless the
@@ -431,8 +470,8 @@ def data_noise_floor(data, result=None):
             lower[j] = 0.0
     tails = np.empty(s)
     for j in range(s):
-        x = data.raw[j] if source[j] == 'raw' else result.scalar_residual_nt[j]
-        d = np.diff(np.asarray(x, float), n=int(order[j]), axis=0)
+        x = raw[j] if source[j] == 'raw' else result.scalar_residual_nt[j]
+        d = differences(np.asarray(x, float), int(order[j]), starts, axis=0)
         tails[j] = robust_sd(d - np.median(d, axis=0))[2]
     method = tuple(f'{src} differences (order {k})' if st != 'filtered' else
                    f'{src} differences (filtered: no plateau up to order {ORDERS[-1]})'

@@ -339,6 +339,26 @@ def simulate(config=None, **overrides):
     return data, sim
 
 
+def simulate_chunks(config=None, rows=65536, **overrides):
+    """
+    Simulate a long record piece by piece: (Simulator, iterator of Datasets of ``rows`` epochs).
+
+    The same array, truth and time functions as :func:`simulate`, in memory bounded by
+    ``rows``.  The driven effects' reference values (mean temperature, ...) come from at
+    most 100 000 evenly spaced instants of the record (all of them up to that length, so a
+    short record gets :func:`simulate`'s references); the noise is drawn chunk by chunk (the
+    same distribution, other numbers) and the field rate of a lag is taken within each chunk.
+    """
+    sim = Simulator(config, **overrides)
+    n, rate = int(sim.config.n_samples), float(sim.config.rate_hz)
+    set_truth_refs(sim, np.arange(0, n, max(1, -(-n // 100000))) / rate)
+
+    def pieces():
+        for i in range(0, n, int(rows)):
+            yield sim.sample(np.arange(i, min(n, i + int(rows))) / rate)
+    return sim, pieces()
+
+
 def set_truth_refs(sim, t):
     """
     Fix the truth's reference values (mean temperature etc.) from the time grid ``t`` (N,) s.

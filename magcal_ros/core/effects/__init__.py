@@ -42,7 +42,7 @@ from magcal_ros.core.effects.catalog import (  # noqa: F401 - re-exported
     Misalignment, Nonlinearity, NonOrthogonality, Offset, Periodic, QuadraticDrift, Scale,
     SiteGradient, SoftIron, Step, Temperature)
 from magcal_ros.core.effects.registry import (  # noqa: F401 - re-exported
-    BASE, BUILTIN_EFFECTS, effect_class, load_plugin, load_plugins, make_effect,
+    BASE, BUILTIN_EFFECTS, effect_class, load_plugin, load_plugins, make_catalog_effect,
     needs_args, parse_token, register_effect, registered_effects, split_spec,
     unregister_effect)
 from magcal_ros.core.geometry.tensor import symmetric_traceless  # noqa: F401,I100
@@ -51,5 +51,6 @@ from magcal_ros.core.effects.couplings import (  # noqa: F401 - re-exported
     Coupling, register_coupling, registered_couplings, unregister_coupling)
 from magcal_ros.core.effects.drivers import (  # noqa: F401 - re-exported
     Driver, FormulaError, register_driver, registered_drivers, unregister_driver)
-from magcal_ros.core.effects.formula import Formula, parse, Term  # noqa: F401 - re-exported
+from magcal_ros.core.effects.formula import (  # noqa: F401 - re-exported
+    composed_effect, Formula, make_effect, parse, Term)
 from magcal_ros.core.effects.terms import ComposedEffect, FieldEffect  # noqa: F401

@@ -37,6 +37,7 @@ and the signal helpers every effect shares.
 from dataclasses import dataclass, field
 import math
 
+from magcal_ros.core.geometry.tensor import symmetric_traceless  # noqa: F401 - re-exported
 import numpy as np
 
 

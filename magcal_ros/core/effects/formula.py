@@ -37,7 +37,8 @@ from magcal_ros.core.effects import couplings as cp
 from magcal_ros.core.effects import drivers as dv
 from magcal_ros.core.effects.base import format_arg, parse_number
 from magcal_ros.core.effects.drivers import FormulaError
-from magcal_ros.core.effects.registry import make_effect
+from magcal_ros.core.effects.registry import make_catalog_effect
+from magcal_ros.core.effects.terms import ComposedEffect, FieldEffect
 
 _NAME = re.compile(r'^[A-Za-z_][A-Za-z0-9_.:]*$')
 _OPEN, _CLOSE = '({', ')}'
@@ -165,12 +166,6 @@ class Term:
                                    f'sensors 1..{n_sensors})')
         return js
 
-    def n_params(self, n_sensors):
-        """Return the number of parameters the term adds to a model of ``n_sensors`` sensors."""
-        from magcal_ros.core.model import Model
-        if self.kind == 'drop':
-            return 0
-        return Model.from_spec(Formula((self,)), n_sensors).n_params
 
     def __str__(self):
         return self.text
@@ -287,15 +282,7 @@ class Formula:
         """(t0, t1) s windows left out of the fit."""
         return [t.window for t in self.terms if t.kind == 'drop']
 
-    def model(self, n_sensors):
-        """Return the :class:`~magcal_ros.core.model.Model` of this formula for ``n_sensors``."""
-        from magcal_ros.core.model import Model
-        return Model.from_spec(self, n_sensors)
 
-    def effects(self, n_sensors):
-        """(per-sensor lists of Effect, array-wide Effects) the Model and engine consume."""
-        m = self.model(n_sensors)
-        return m.effects, m.array_effects
 
     def __add__(self, other):
         other = other if isinstance(other, Formula) else parse(other)
@@ -319,3 +306,31 @@ def parse(text):
         raise FormulaError('empty model: give at least one term, e.g. --model base')
     pieces = split_top(text, '+,')
     return Formula(tuple(parse_term(p) for p in pieces))
+
+
+def composed_effect(term, sensor):
+    """
+    Return the effect of the composed :class:`~.formula.Term` ``term`` on ``sensor``.
+
+    A :class:`FieldEffect` (sensor 0, the array) for the field coupling, else a
+    :class:`ComposedEffect`, shared between the sensors when the scope is ``alike``.
+    """
+    coupling = cp.coupling_class(term.coupling)()
+    driver = parse_driver(term.driver)
+    if coupling.scope == 'array':
+        return FieldEffect(coupling, driver, sensor=0)
+    return ComposedEffect(coupling, driver, sensor=sensor, shared=term.scope == 'alike')
+
+
+def make_effect(token, sensor):
+    """
+    Create the effect of a term's core text on ``sensor``: a catalog token or a composition.
+
+    ``offset``, ``aux:aux_motor_current``, ``step(300)`` are the catalog's
+    (:func:`.registry.make_catalog_effect`); ``coupling(driver)`` (``offset(s(t, k=6))``) is
+    built from its coupling and driver (:func:`composed_effect`).
+    """
+    head = token.partition('(')[0].strip()
+    if '(' in token and cp.coupling_class(head) is not None:
+        return composed_effect(parse_term(token), sensor)
+    return make_catalog_effect(token, sensor)

@@ -205,20 +205,13 @@ def _loaded_effect_name(ref):
     return name
 
 
-def make_effect(token, sensor):
+def make_catalog_effect(token, sensor):
     """
-    Create the effect ``token`` ('offset', 'aux:aux_motor_current', 'step(300)', ...).
+    Create the catalog effect ``token`` ('offset', 'aux:aux_motor_current', 'step(300)', ...).
 
-    A composed term ``coupling(driver)`` (``offset(s(t, k=6))``, ``...@alike``) is built by
-    the grammar (:func:`magcal_ros.core.effects.terms.composed_effect`).
+    A composed term ``coupling(driver)`` is the grammar's: :func:`.formula.make_effect` builds
+    both (this module sits below the grammar and imports none of it).
     """
-    head = token.partition('(')[0].strip()
-    if '(' in token:
-        from magcal_ros.core.effects.couplings import coupling_class
-        if coupling_class(head) is not None:
-            from magcal_ros.core.effects.formula import parse_term
-            from magcal_ros.core.effects.terms import composed_effect
-            return composed_effect(parse_term(token), sensor)
     if '(' in token:
         name, args, _ = parse_token(token)
         if name not in _REGISTRY:

@@ -156,19 +156,3 @@ class FieldEffect(ComposedEffect):
     def magnitude(self, p, ctx):
         """(N,) nT the modelled change of the field magnitude."""
         return self.coupling.magnitude(self.coupled(p, ctx, None))
-
-
-def composed_effect(term, sensor):
-    """
-    Return the effect of the composed :class:`~.formula.Term` ``term`` on ``sensor``.
-
-    A :class:`FieldEffect` (sensor 0, the array) for the field coupling, else a
-    :class:`ComposedEffect`, shared between the sensors when the scope is ``alike``.
-    """
-    from magcal_ros.core.effects.couplings import coupling_class
-    from magcal_ros.core.effects.formula import parse_driver
-    coupling = coupling_class(term.coupling)()
-    driver = parse_driver(term.driver)
-    if coupling.scope == 'array':
-        return FieldEffect(coupling, driver, sensor=0)
-    return ComposedEffect(coupling, driver, sensor=sensor, shared=term.scope == 'alike')

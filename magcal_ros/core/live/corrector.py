@@ -607,13 +607,23 @@ class ResidualMonitor:
 
 class SampleBuffer:
     """
-    Ring buffer of matched sample sets of S sensors (not thread-safe; lock outside).
+    Matched sample sets of S sensors spread evenly over the whole run, in flat memory.
+
+    Not thread-safe (lock outside).  The buffer holds at most ``capacity`` sets whatever
+    the length of the run: while it has room it keeps every set; when it is full it drops
+    every other set it holds (the 2nd, 4th, ... in time) and from then on keeps every 2nd
+    set that arrives, then every 4th, ... (time-stratified thinning, the same as
+    :class:`magcal_ros.core.data.reduce.Reducer`'s sample).  The sets kept are thus evenly
+    spread from the first set to the latest, so the attitudes of the whole run (not of its
+    last ``capacity`` sets) enter the calibration; :meth:`coverage` says how much of the
+    run they stand for.  The price: after thinning the sets are ``stride`` epochs apart, so
+    the field rate d(raw)/dt of a lag effect is taken over that spacing.
 
     Parameters
     ----------
     n_sensors : int
     capacity : int
-        Sets kept; the oldest is overwritten.
+        Most sets kept (at least 2).
     aux_names : sequence of str
         Auxiliary column names (``aux_<name>``).
     source : str
@@ -624,38 +634,83 @@ class SampleBuffer:
     def __init__(self, n_sensors, capacity, aux_names=(), source='live (calibration_node)'):
         self.n_sensors = n_sensors
         self.source = source
-        self.capacity = int(capacity)
+        self.capacity = max(2, int(capacity))
         self.t = np.zeros(self.capacity)
         self.epoch = np.zeros(self.capacity, np.int64)
         self.raw = np.zeros((n_sensors, self.capacity, 3))
         self.temp = np.full((n_sensors, self.capacity), np.nan)
         self.aux = {a: np.full(self.capacity, np.nan) for a in aux_names}
-        self.count = 0          # sets ever added since clear()
+        self.clear()
 
     def clear(self):
         """Forget all sets."""
-        self.count = 0
+        self.count = 0          # sets ever added since clear()
+        self.n = 0              # sets held
+        self.stride = 1         # every stride-th set that arrives is kept
+        self.t_first = self.t_last = None
 
     def __len__(self):
-        return min(self.count, self.capacity)
+        return self.n
 
     def append(self, epoch, t, raw, temp, aux):
         """Add a set: epoch number, stamp t s, raw (S, 3) nT, temp (S,) degC (nan: none), aux."""
-        k = self.count % self.capacity
-        self.epoch[k] = epoch
-        self.t[k] = t
-        self.raw[:, k] = raw
-        self.temp[:, k] = temp
-        for name, arr in self.aux.items():
-            arr[k] = aux.get(name, np.nan)
+        k = self.count
         self.count += 1
+        if self.t_first is None:
+            self.t_first = float(t)
+        self.t_last = float(t)
+        if k % self.stride:
+            return
+        if self.n == self.capacity:
+            self._thin()
+            if k % self.stride:
+                return
+        i = self.n
+        self.epoch[i] = epoch
+        self.t[i] = t
+        self.raw[:, i] = raw
+        self.temp[:, i] = temp
+        for name, arr in self.aux.items():
+            arr[i] = aux.get(name, np.nan)
+        self.n += 1
+
+    def _thin(self):
+        """Keep every other set held (the 1st, 3rd, ...) and every 2 x stride-th from now."""
+        keep = np.arange(0, self.n, 2)
+        m = len(keep)
+        self.epoch[:m] = self.epoch[keep]
+        self.t[:m] = self.t[keep]
+        self.raw[:, :m] = self.raw[:, keep]
+        self.temp[:, :m] = self.temp[:, keep]
+        for arr in self.aux.values():
+            arr[:m] = arr[keep]
+        self.n = m
+        self.stride *= 2
+
+    def coverage(self):
+        """
+        How much of the run the sets held stand for (JSON-ready).
+
+        ``sets_held``, ``sets_received`` (since the start or the last reset),
+        ``stride`` (one set kept in ``stride``), ``run_s`` (first to latest set, s),
+        ``held_from_s`` / ``held_to_s`` (the span the sets held cover, s after the first
+        set) and ``fraction_of_run`` (that span over the run: 1 when they reach from its
+        start to its latest ``stride`` sets).
+        """
+        run = 0.0 if self.t_first is None else self.t_last - self.t_first
+        out = {'sets_held': int(self.n), 'sets_received': int(self.count),
+               'stride': int(self.stride), 'run_s': round(float(run), 3)}
+        if self.n:
+            lo = float(self.t[0] - self.t_first)
+            hi = float(self.t[self.n - 1] - self.t_first)
+            out.update(held_from_s=round(lo, 3), held_to_s=round(hi, 3),
+                       fraction_of_run=round((hi - lo) / run, 4) if run > 0 else 1.0)
+        return out
 
     def _order(self, max_sets=None):
-        n = len(self)
-        start = self.count - n
-        idx = (np.arange(start, self.count) % self.capacity)
-        if max_sets is not None and n > max_sets:
-            idx = idx[np.linspace(0, n - 1, max_sets).round().astype(int)]
+        idx = np.arange(self.n)
+        if max_sets is not None and self.n > max_sets:
+            idx = idx[np.linspace(0, self.n - 1, max_sets).round().astype(int)]
         return idx
 
     def raw_view(self, max_sets=None):

@@ -84,11 +84,15 @@ class Calibration:
 
     def intrinsic_and_rotation(self, j):
         """
-        (C^-1 (3, 3) upper triangular, R (3, 3)) with A_j^-1 = R C^-1 (paper 004 eq. 5, 14).
+        (C^-1 (3, 3) upper triangular, R (3, 3)): A_j^-1 = R C^-1 M^T (paper 004 eq. 5, 14).
 
-        R takes sensor j's corrected field into sensor 1's frame (identity for sensor 1).
+        M (3, 3) is sensor j's fixed axis map (``axes(...)``, ``model.axis_map(j)``, the
+        identity without one; A_j = M S C_NO R_mis): C and R decompose M^T A_j, the map of
+        the sensor itself, so a mirrored or swapped mounting still shows scales near +1 and
+        small angles.  R takes sensor j's corrected field into sensor 1's frame (identity
+        for sensor 1).
         """
-        u, q = fx.rq_positive(self.matrix(j))
+        u, q = fx.rq_positive(self.model.axis_map(j).T @ self.matrix(j))
         return np.linalg.inv(u), q.T
 
     def site_gradient(self):

@@ -40,7 +40,7 @@ information of p with the fields unknown (its inverse,
 (:func:`magcal_ros.core.model.fitting.fit`) solves it with
 :func:`magcal_ros.core.model.solvers.levenberg_marquardt` on J^T J and J^T r formed block by block
 (:meth:`ProfiledProblem.normal_equations`, without the tall projected Jacobian), the diagnosis
-(:mod:`magcal_ros.core.diagnose`) reuses its Jacobian to screen and cross-validate candidate
+(:mod:`magcal_ros.core.discovery`) reuses its Jacobian to screen and cross-validate candidate
 effects, and :mod:`magcal_ros.core.geometry.site_gradient` its covariance.
 """
 import numpy as np

@@ -188,20 +188,29 @@ class FitResult:
         """Return the number of free parameters."""
         return self.model.n_params
 
+    def _kept(self):
+        """Index of the epochs the residual summaries cover: all but the drop() windows."""
+        drops = getattr(self.model, 'drops', ())
+        if not drops or not self.contexts:
+            return slice(None)
+        return self.model.fit_mask(np.asarray(self.contexts[0].t))
+
     @property
     def scalar_rms_nt(self):
-        """{sensor: RMS of the scalar residual} in nT."""
-        return {j + 1: float(np.sqrt(np.mean(r ** 2)))
+        """{sensor: RMS of the scalar residual} in nT (outside any drop() window)."""
+        keep = self._kept()
+        return {j + 1: float(np.sqrt(np.mean(r[keep] ** 2)))
                 for j, r in enumerate(self.scalar_residual_nt)}
 
     @property
     def vector_rms_nt(self):
-        """{sensor j > 1: per-component RMS of corrected_j - corrected_1} in nT."""
+        """{sensor j > 1: per-component RMS of corrected_j - corrected_1} in nT (no drops)."""
         vector = self.__dict__.get('vector_residual_nt')
         if vector is None:                  # not kept: the RMS needs only a passing copy
             centred = self._centred()
             vector = centred - centred[:1]
-        return {j + 1: float(np.sqrt(np.mean(vector[j] ** 2)))
+        keep = self._kept()
+        return {j + 1: float(np.sqrt(np.mean(vector[j][keep] ** 2)))
                 for j in range(1, self.model.n_sensors)}
 
     @property

@@ -54,6 +54,9 @@ the calibration, for a sensor that turns level at this site; one reading's noise
 """
 from dataclasses import dataclass
 
+from magcal_ros.core.geometry.turn import (circle_centre,  # noqa: F401 - public here too
+                                           planar_magnitude, PlanarError,
+                                           swept_angle, turn_axis)
 from magcal_ros.core.model.fitting import fit
 import numpy as np
 
@@ -65,10 +68,6 @@ MAX_AXIS_OFFSET_DEG = 25.0
 #: fraction of F, a scale's (dimensionless) and an angle's (rad); the constrained mode's
 #: 0.02 is too narrow for a consumer sensor (the HMC5883L's y-z angle is 0.084 rad)
 PRIOR_SD = {'offset': 0.05, 'scale': 0.05, 'angle': 0.05}
-
-#: the smallest radius (a fraction of the field) of a circle counted as a turn by
-#: :func:`swept_angle`: 2 % is a cone of a little over 1 deg, far above any sensor's noise
-MIN_TURN_RADIUS = 0.02
 
 #: a parameter is undetermined when its posterior sd exceeds this fraction of its prior sd
 UNDETERMINED_RATIO = 0.5
@@ -88,10 +87,6 @@ _HELD = {
 
 #: the effects whose parameters are judged determined or not (the constant sensor map)
 _KINDS = ('offset', 'scale', 'nonorthogonality', 'soft_iron', 'misalignment')
-
-
-class PlanarError(ValueError):
-    """The data are not a turn about one axis that planar mode can use."""
 
 
 @dataclass(frozen=True)
@@ -134,27 +129,6 @@ class PlanarResult:
     h_nt: np.ndarray
     z_nt: np.ndarray
     residual_correlation: np.ndarray
-
-
-def turn_axis(m):
-    """
-    Return the unit axis (3,) of a turn, in the sensor frame, from readings m (N, 3) nT.
-
-    The readings of a turn lie on a circle: the axis is the direction in which they spread
-    least (the smallest principal axis of their scatter), signed to point along the mean
-    reading's component on it (towards the field's part along the axis).
-    """
-    m = np.asarray(m, float)
-    c = m - m.mean(axis=0)
-    w, v = np.linalg.eigh(c.T @ c / len(m))
-    n = v[:, 0]
-    if w[1] <= 0 or w[0] > 0.25 * w[1]:
-        raise PlanarError(
-            'the readings do not lie near one plane (principal spreads '
-            f'{", ".join(f"{np.sqrt(max(x, 0)):.0f}" for x in w)} nT): the sensor did not turn '
-            'about one axis; planar mode is for a turn in place about one axis (drop '
-            '--planar for a full calibration)')
-    return n if n @ m.mean(axis=0) >= 0 else -n
 
 
 def held_parameters(model, axis_index):
@@ -300,30 +274,6 @@ def _planar_start(data, model, field_nt, p_prior, held, axes):
             if s == j and label == 'offset' and i not in held:
                 p[i] = centre[plane.index('xyz'.index(name[1]))]
     return p
-
-
-def circle_centre(xy):
-    """Centre (2,) of the least-squares circle through points xy (N, 2) (algebraic, Kasa)."""
-    xy = np.asarray(xy, float)
-    design = np.column_stack([2 * xy, np.ones(len(xy))])
-    sol, *_ = np.linalg.lstsq(design, (xy ** 2).sum(axis=1), rcond=None)
-    return sol[:2]
-
-
-def planar_magnitude(raw, axis):
-    """
-    Return a shape-only magnitude (nT) for a turn with no reference.
-
-    The in-plane radius about the circle's centre combined with the mean reading along the
-    axis; raw (N, 3) nT, axis (3,) unit.  The common scale of the sensor is then arbitrary (no
-    reference fixes it); the shape, hence the heading, is not.
-    """
-    raw = np.asarray(raw, float)
-    k = int(np.argmax(np.abs(axis)))
-    plane = [a for a in range(3) if a != k]
-    centre = circle_centre(raw[:, plane])
-    r = float(np.median(np.linalg.norm(raw[:, plane] - centre, axis=1)))
-    return float(np.hypot(r, np.mean(raw[:, k])))
 
 
 def _field_split(result, j, axis, inclination_deg):
@@ -486,34 +436,3 @@ def planar_notes(pr):
         'offsets, scale ratio and angle are heading-grade for a sensor that turns level at '
         'this site; tilt the robot or turn the sensor about another axis for a full '
         'calibration', 'degenerate')]
-
-
-def swept_angle(m):
-    """
-    Angle (rad, >= 0) a sensor's readings m (N, 3) nT have swept about the turn axis.
-
-    The readings of a turn draw a circle about the offset, not about the origin: the
-    angle is unwrapped about the circle's centre (:func:`circle_centre`) in the plane of the
-    turn (:func:`turn_axis`; the sensor's z axis while the readings are too few to tell),
-    from the first reading to the last.  The node's ``calibration/turn`` stops the robot
-    when this reaches the turns asked for: the turn as the sensor saw it, not as the wheels
-    were told.
-    """
-    m = np.asarray(m, float)
-    if len(m) < 8:
-        return 0.0
-    try:
-        n = turn_axis(m)
-    except PlanarError:
-        n = np.array([0.0, 0.0, 1.0])
-    k = int(np.argmax(np.abs(n)))
-    plane = [a for a in range(3) if a != k]
-    xy = m[:, plane]
-    c = circle_centre(xy)
-    radius = np.linalg.norm(xy - c, axis=1)
-    if np.median(radius) < MIN_TURN_RADIUS * np.median(np.linalg.norm(m, axis=1)):
-        # a sensor that does not turn: its noise scatters about a point, and a circle fitted
-        # to the scatter sweeps any angle
-        return 0.0
-    ang = np.unwrap(np.arctan2(xy[:, 1] - c[1], xy[:, 0] - c[0]))
-    return float(abs(ang[-1] - ang[0]))

@@ -136,7 +136,7 @@ class Model:
         ``Effect.linear_order``.
         """
         from magcal_ros.core.effects.formula import parse
-        from magcal_ros.core.effects.terms import composed_effect
+        from magcal_ros.core.effects.formula import composed_effect
         formula = parse(spec)
         per_sensor = [[] for _ in range(n_sensors)]
         seen = [set() for _ in range(n_sensors)]

@@ -16,10 +16,10 @@
 Screening of candidate effects: one Gauss-Newton step of each extended model from the base fit.
 
 Exact for effects that enter linearly, as all driven effects do; the most promising
-candidates are then refitted in full (:mod:`magcal_ros.core.diagnose.run`).
+candidates are then refitted in full (:mod:`magcal_ros.core.discovery.run`).
 """
-from magcal_ros.core.diagnose.constants import LAG_GRID_POINTS
-from magcal_ros.core.diagnose.measures import solve_psd
+from magcal_ros.core.discovery.constants import LAG_GRID_POINTS
+from magcal_ros.core.discovery.measures import solve_psd
 from magcal_ros.core.model.engine import ProfiledProblem
 import numpy as np
 
@@ -112,7 +112,10 @@ class Screen:
                 # (G^T G)^-1 and (G^T G)^-1 G^T r per epoch, component by component (N,)
                 'ginv': [[np.ascontiguousarray(ginv[:, a, c]) for c in range(2)]
                          for a in range(2)],
-                'ginv_gtr': [np.ascontiguousarray(ginv_gtr[:, a]) for a in range(2)]})
+                'ginv_gtr': [np.ascontiguousarray(ginv_gtr[:, a]) for a in range(2)],
+                # (G^T r)^T (G^T G)^-1 G^T r per epoch (N,): the residual along the field
+                # directions, which a candidate cannot remove (the search's held-out sums)
+                'rgr': np.einsum('na,na->n', gtr, ginv_gtr)})
         # base parameter (sensor, effect, name) -> its index in the base model
         self._base_pos = {k[:3]: i for i, k in enumerate(model.param_info())}
 

@@ -18,7 +18,7 @@ import json
 
 from magcal_ros.core import effects as fx
 from magcal_ros.core.data.noise import NoiseFloor
-from magcal_ros.core.diagnose.constants import AT_FLOOR_RATIO, MIN_DELTA_BIC, MIN_EXPLAINED
+from magcal_ros.core.discovery.constants import AT_FLOOR_RATIO, MIN_DELTA_BIC, MIN_EXPLAINED
 import numpy as np
 
 
@@ -85,7 +85,7 @@ class Diagnosis:
         The base fit.
     findings : Findings or None
         What is left in the base fit's residuals, model-free
-        (:func:`magcal_ros.core.findings.find`).
+        (:func:`magcal_ros.core.discovery.findings.find`).
 
     """
 

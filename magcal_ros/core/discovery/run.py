@@ -25,22 +25,28 @@ import time
 
 from magcal_ros.core.data.magnitude import reference_magnitude
 from magcal_ros.core.data.noise import data_noise_floor, NoiseFloor
-from magcal_ros.core.diagnose.candidates import (added_params, Candidate, candidate_tokens,
-                                                 extend_model, propose_from_residual, reads_stderr,
-                                                 reduces_to_simpler, sensors_of, split_testable,
-                                                 token_label, tokens_from_findings)
-from magcal_ros.core.diagnose.constants import (ALPHA, AT_FLOOR_RATIO, BLOCKS_PER_FOLD,
-                                                DEFAULT_FOLDS, DEFAULT_MAX_REFIT,
-                                                DEFAULT_MAX_SAMPLES, EVIDENCE_TIE, MIN_BLOCK,
-                                                MIN_DELTA_BIC, MIN_EXPLAINED, REFIT_CHI2_TOL,
-                                                REFIT_MAX_NFEV, SCORE_RULE_OUT_BIC)
-from magcal_ros.core.diagnose.measures import (dof_factor, evaluate_residuals, Evaluation,
-                                               explained_share, likelihood_ratio, n_observations,
-                                               rms, scalar_rms_of, soft_l1_lr_loss, vector_rms_of)
-from magcal_ros.core.diagnose.results import compact_spec, Diagnosis
-from magcal_ros.core.diagnose.screen import lag_grid, Screen
-from magcal_ros.core.diagnose.validation import cross_validate
-from magcal_ros.core.findings import find as find_findings
+from magcal_ros.core.discovery.candidates import (added_params, Candidate, candidate_tokens,
+                                                  extend_model, propose_from_residual,
+                                                  reads_stderr, reduces_to_simpler,
+                                                  residual_features,
+                                                  sensors_of, split_testable, token_label,
+                                                  tokens_from_findings)
+from magcal_ros.core.discovery.constants import (ALPHA, AT_FLOOR_RATIO, BLOCKS_PER_FOLD,
+                                                 DEFAULT_FOLDS, DEFAULT_MAX_REFIT,
+                                                 DEFAULT_MAX_SAMPLES, EVIDENCE_TIE, MIN_BLOCK,
+                                                 MIN_DELTA_BIC, MIN_EXPLAINED, REFIT_CHI2_TOL,
+                                                 REFIT_MAX_NFEV, SCORE_RULE_OUT_BIC,
+                                                 SEARCH_CHANGE_POINTS, SEARCH_LISTED)
+from magcal_ros.core.discovery.findings import find as find_findings
+from magcal_ros.core.discovery.measures import (dof_factor, evaluate_residuals, Evaluation,
+                                                explained_share, likelihood_ratio, n_observations,
+                                                rms, scalar_rms_of, soft_l1_lr_loss, vector_rms_of)
+from magcal_ros.core.discovery.results import compact_spec, Diagnosis
+from magcal_ros.core.discovery.screen import lag_grid, Screen
+from magcal_ros.core.discovery.search import (EXPLAINS_SHARE, FLOOR_RATIO,
+                                              SCOPE_SHARE as SEARCH_SCOPE_SHARE,
+                                              search as run_search, SEARCH_MAX_EPOCHS)
+from magcal_ros.core.discovery.validation import cross_validate
 from magcal_ros.core.model import Model
 from magcal_ros.core.model.fitting import fit
 from magcal_ros.core.model.solvers import single_threaded_blas
@@ -188,7 +194,7 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
         the noise floor is estimated from all of them.  None: all.
     baseline_m : float
         Arm length of a four-sensor cross, m, for the gradient of a ``nonuniform_field``
-        finding (:func:`magcal_ros.core.findings.find`).
+        finding (:func:`magcal_ros.core.discovery.findings.find`).
     constrained : bool
         Partial attitude coverage: the base fit, every candidate's refit and the held-out
         fits use the priors of ``fit(constrained=True)``, and the held-out fits are refits
@@ -243,6 +249,17 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
         ratio = max([v / floor.per_sensor_nt[j - 1] for j, v in scalar_rms.items()]
                     + [v / floor.vector_floor_nt(j) for j, v in vector_rms.items()])
         verdict, reason = _verdict(b, ranked, ratio, at_floor, held_out, p_thr)
+        # the formula search: only when something is missing (at the floor it has nothing
+        # to find, and a control costs what it did)
+        if (candidates is None and propose and not b.robust and not constrained
+                and not at_floor):
+            t0 = time.perf_counter()
+            found_terms = _search(b, screen, alpha)
+            seconds['search'] = time.perf_counter() - t0
+            verdict, reason, ranked = _merge_search(b, trials, ranked, verdict, reason,
+                                                    found_terms, at_floor)
+            if found is not None and not at_floor:
+                found = _describe(b, found, found_terms, verdict, scalar_rms, vector_rms)
         seconds['total'] = time.perf_counter() - t_start
         return Diagnosis(
             model=tuple(compact_spec(b.model)), n_samples=data.n_samples, n_used=n,
@@ -254,6 +271,222 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
             verdict_token=verdict, verdict_reason=reason, p_threshold=p_thr, folds=folds,
             seconds=seconds, result=base, findings=found, decided_by=decided,
             excess_ms_nt2=float(b.ms0 - floor.value_nt ** 2))
+
+
+def _search(b, screen, alpha):
+    """Run the formula search (:mod:`.search`) on the base fit's residual; SearchResult."""
+    data, resid, n_obs = b.data, b.ev0.residual, b.n_obs
+    if data.n_samples > SEARCH_MAX_EPOCHS:
+        keep = np.unique(np.linspace(0, data.n_samples - 1, SEARCH_MAX_EPOCHS).round()
+                         .astype(int))
+        data, resid = data.subset(keep), resid[:, keep]
+        n_obs = n_observations(b.model, len(keep))
+        screen = Screen(b.model, b.params, data.raw, [c.subset(keep) for c in b.contexts],
+                        b.f[keep], b.sigma)
+    elif screen is None:
+        screen = Screen(b.model, b.params, data.raw, b.contexts, b.f, b.sigma)
+    t = data.t
+    cps, lines = residual_features(t, resid, max_steps=SEARCH_CHANGE_POINTS)
+    times = [float(t[k]) for k in cps]
+    steps = [(x,) for x in times] + ([tuple(times)] if len(times) > 1 else [])
+    span = float(t[-1] - t[0])
+    windows = [(a, c) for a, c in zip(times[:-1], times[1:]) if c - a < 0.5 * span]
+    freqs = sorted({round(f, 6) for _, f in lines.values()})
+    return run_search(data, resid, screen, b.sigma, b.floor, n_obs, alpha=alpha,
+                      steps=steps, windows=windows, lines=freqs, dof=dof_factor(b.model))
+
+
+def _trial_ratio(b, trial):
+    """Largest residual RMS / floor over the sensors (scalar and vector) of a trial, or None."""
+    if trial is None or trial.ev is None:
+        return None
+    fl = b.floor
+    sc = [rms(trial.ev.scalar[j - 1]) / fl.per_sensor_nt[j - 1]
+          for j in range(1, b.data.n_sensors + 1)]
+    vc = [rms(trial.ev.vector[j - 1]) / fl.vector_floor_nt(j)
+          for j in range(2, b.data.n_sensors + 1)]
+    return max(sc + vc)
+
+
+def _merge_search(b, trials, ranked, verdict, reason, res, at_floor):
+    """
+    Put the search's terms among the candidates and choose the verdict between the two.
+
+    The catalog's verdict stands when it brings every sensor to its floor
+    (:data:`.search.FLOOR_RATIO`), unless the search's term does too on fewer sensors (the
+    catalog offers an effect on one sensor or on all; the search names the sensors that
+    carry it).  Otherwise the search's adopted term is the verdict when it leaves less
+    (largest ratio to the floor over the sensors).  The search's terms are listed among
+    the candidates (after the verdict and the catalog's, method 'score': their evidence is
+    the linearised problem's) only when the verdict is the search's; the catalog's ranking
+    is kept as it is otherwise.
+    """
+    s = b.data.n_sensors
+    if at_floor:
+        return verdict, reason, ranked
+    adopted = res.adopted
+    cat = next((c for c in trials if c.token == verdict), None) if verdict else None
+    c_ratio = _trial_ratio(b, cat)
+    a_ratio = None if adopted is None else max(adopted.ratios.values())
+    c_expl = cat is not None and c_ratio is not None and c_ratio <= FLOOR_RATIO and (
+        cat.share is None or cat.share >= EXPLAINS_SHARE)
+    a_expl = a_ratio is not None and a_ratio <= FLOOR_RATIO and adopted.share >= EXPLAINS_SHARE
+    if not (c_expl or a_expl):
+        # nothing explains it: an excess confined in time is left out instead
+        loc = res.localised
+        if loc is not None:
+            cand = _localised_candidate(b, loc)
+            why = ('no term brings every sensor to its floor and removes '
+                   f'{EXPLAINS_SHARE:.0%} of the excess held out')
+            if adopted is not None:
+                why += (f' (the best term of the search, {adopted.text_for(s)}, leaves '
+                        f'{a_ratio:.2f} x the floor in-sample, {adopted.share:.0%} held out)')
+            why += (f'; {loc.share:.0%} of the excess over the floor lies within '
+                    f'{loc.t0:.6g}-{loc.t1:.6g} s on sensor(s) '
+                    f'{", ".join(str(j) for j in loc.sensors)}, nothing simple describes '
+                    f'it: leave it out (every sensor within '
+                    f'{max(loc.ratios_outside.values()):.2f} x its floor outside)')
+            return loc.token, why, [cand] + ranked + _listed(b, res, ranked, None)
+    if adopted is None:
+        return verdict, reason, ranked
+    a_text = adopted.text_for(s)
+    use_search = (verdict is None or c_ratio is None
+                  or (not c_expl and a_ratio < c_ratio)
+                  or (a_expl and set(adopted.sensors) < set(sensors_of(cat.sensor, s))))
+    if not use_search or (verdict and _same_term(a_text, verdict)):
+        # the catalog's token when the search found the composition it stands for
+        return verdict, reason, ranked
+    top = _term_candidate(b, adopted, res, verdict=True)
+    rest = [c for c in ranked if c.token != a_text] + _listed(b, res, ranked, a_text)
+    why = (f'formula search over {res.n_generated} candidate terms: delta BIC '
+           f'{adopted.delta_bic:.0f}, p = {adopted.p_value:.2g}, removes '
+           f'{adopted.share:.0%} of the held-out excess over the floor '
+           f'(linearised refit on interleaved time blocks), largest residual / floor after '
+           f'{a_ratio:.2f}')
+    if verdict:
+        why += f'; the best of the catalog, {verdict}, leaves {c_ratio:.2f} x the floor'
+    return a_text, why, [top] + rest
+
+
+def _describe(b, found, res, verdict, scalar_rms, vector_rms):
+    """
+    Add the model-free descriptions of the search to the findings (each with its token).
+
+    'localised': an excess confined in time (:func:`.search.localised`), token
+    ``drop(t0, t1)``.  'unexplained': when there is no verdict, which sensors carry the
+    excess (one, an arm of the cross, every sensor alike, or a set), whether it shows in the
+    scalar or only in the vector residual, and what the search's best term follows (time, a
+    channel, the field rate), with that term as the token to try.
+    """
+    from dataclasses import replace
+    from magcal_ros.core.discovery.findings import Finding
+    s = b.data.n_sensors
+    fl = b.floor
+    new = []
+    loc = res.localised
+    if loc is not None:
+        sens = loc.sensors
+        new.append(Finding(
+            kind='localised', sensor=sens[0] if len(sens) == 1 else None, channel='t',
+            value=float(loc.t1 - loc.t0), unit='s', explained_fraction=float(loc.share),
+            text=(f'{_who(sens, s)}: an excess over the floor confined to '
+                  f'{loc.t0:.6g}-{loc.t1:.6g} s ({loc.share:.0%} of it); every sensor within '
+                  f'{max(loc.ratios_outside.values()):.2f} x its floor outside: add '
+                  f'{loc.token} to leave it out'), token=loc.token))
+    if verdict is None:
+        ex = {j: max(v ** 2 - fl.per_sensor_nt[j - 1] ** 2, 0.0) for j, v in scalar_rms.items()}
+        vex = {j: max(v ** 2 - fl.vector_floor_nt(j) ** 2, 0.0) for j, v in vector_rms.items()}
+        both = {j: ex[j] + vex.get(j, 0.0) for j in ex}
+        top = max(both.values()) if both else 0.0
+        if top > 0:
+            sens = tuple(j for j in sorted(both) if both[j] >= SEARCH_SCOPE_SHARE * top)
+            scalar = sum(ex[j] for j in sens) >= 0.5 * sum(vex.get(j, 0.0) for j in sens)
+            best = next((t for t in res.terms if t.delta_chi2 is not None), None)
+            follows = ('nothing the search tried' if best is None else
+                       {'time': 'time', 'rate': 'the field rate'}.get(
+                           best.driver.kind, f'the channel {best.driver.channel}'))
+            token = None if best is None else best.text_for(s)
+            new.append(Finding(
+                kind='unexplained', sensor=sens[0] if len(sens) == 1 else None,
+                channel=None if best is None else best.driver.channel, value=None, unit='',
+                explained_fraction=float(best.share or 0.0) if best is not None else 0.0,
+                text=(f'{_who(sens, s)}: a {"scalar" if scalar else "vector"} excess over '
+                      f'the floor that no term explains; it follows {follows} most'
+                      + ('' if token is None else f' (try {token})')), token=token))
+    if not new:
+        return found
+    return replace(found, items=tuple(new) + tuple(found.items))
+
+
+def _who(sens, s):
+    """Words for a set of sensors: one, an arm of the cross, every sensor, a set."""
+    if len(sens) == 1:
+        return f'sensor {sens[0]}'
+    if len(sens) == s:
+        return 'every sensor'
+    if s == 4 and set(sens) in ({1, 3}, {2, 4}):
+        return f'the arm of sensors {sens[0]} and {sens[1]}'
+    return 'sensors ' + ', '.join(str(j) for j in sens)
+
+
+def _localised_candidate(b, loc):
+    """Return a :class:`Candidate` leaving out an excess confined in time (``drop``)."""
+    s = b.data.n_sensors
+    sens = list(loc.sensors)
+    return Candidate(
+        token=loc.token, effect='drop', sensor=sens[0] if len(sens) == 1 else None,
+        n_params=0, rms_before_nt=scalar_rms_of(b.ev0.scalar, sens), rms_after_nt=None,
+        vector_rms_before_nt=vector_rms_of(b.ev0.vector, sens, s), vector_rms_after_nt=None,
+        delta_chi2=float('nan'), delta_bic=float('nan'), p_value=float('nan'),
+        log10_p_value=float('nan'), method='localised', significant=True,
+        explained_fraction=loc.share, decided_by='model-free (excess inside the interval)',
+        note=('vector' if loc.vector else 'scalar') + ' excess confined in time')
+
+
+def _same_term(text, token):
+    """Tell whether formula term ``text`` is the composition catalog ``token`` stands for."""
+    from magcal_ros.core.effects.formula import parse
+
+    def norm(x):
+        return x.replace(' ', '')
+    try:
+        term = parse(token).terms[0]
+        mine = parse(text).terms[0].text
+    except ValueError:
+        return False
+    return norm(mine) in {norm(term.text), norm(str(term.expansion or ''))}
+
+
+def _listed(b, res, ranked, verdict):
+    """Candidates of the search's best terms not already listed (nor the verdict)."""
+    s = b.data.n_sensors
+    have = {c.token for c in ranked} | {verdict}
+    return [_term_candidate(b, tm, res) for tm in res.terms[:SEARCH_LISTED]
+            if tm.text_for(s) not in have]
+
+
+def _term_candidate(b, tm, res, verdict=False):
+    """Return a :class:`Candidate` of a search term (evidence of the linearised problem)."""
+    s = b.data.n_sensors
+    text = tm.text_for(s)
+    sens = list(tm.sensors)
+    sensor = sens[0] if len(sens) == 1 else None
+    d_chi2 = float(tm.delta_chi2 if tm.delta_chi2 is not None else tm.approx)
+    p_val, logp, d_bic = likelihood_ratio(d_chi2, tm.k, b.n_obs)
+    after = None
+    if tm.ratios:
+        after = float(np.sqrt(np.mean([(tm.ratios[j] * b.floor.per_sensor_nt[j - 1]) ** 2
+                                       for j in sens])))
+    return Candidate(
+        token=text, effect=text.split('@')[0], sensor=sensor, n_params=tm.k,
+        rms_before_nt=scalar_rms_of(b.ev0.scalar, sens), rms_after_nt=after,
+        vector_rms_before_nt=vector_rms_of(b.ev0.vector, sens, s), vector_rms_after_nt=None,
+        delta_chi2=d_chi2, delta_bic=d_bic, p_value=p_val, log10_p_value=logp,
+        method='search' if verdict else 'score',
+        cv_rms_before_nt=tm.cv_before, cv_rms_after_nt=tm.cv_after, significant=verdict,
+        explained_fraction=tm.share,
+        decided_by=None if tm.share is None else 'held-out (linearised, search)',
+        note=None)
 
 
 def order_by_evidence(trials, b):

@@ -20,8 +20,8 @@ interleaved contiguous blocks of time (:func:`time_blocks`), and each fold is fi
 others (by default one Gauss-Newton step from the all-data fit with the fold's rows removed:
 :func:`cross_validate`).
 """
-from magcal_ros.core.diagnose.constants import BLOCKS_PER_FOLD, DEFAULT_FOLDS, MIN_BLOCK
-from magcal_ros.core.diagnose.measures import dof_factor, solve_psd
+from magcal_ros.core.discovery.constants import BLOCKS_PER_FOLD, DEFAULT_FOLDS, MIN_BLOCK
+from magcal_ros.core.discovery.measures import dof_factor, solve_psd
 from magcal_ros.core.model.engine import ProfiledProblem
 from magcal_ros.core.model.fitting import evaluate, fit
 import numpy as np

@@ -69,3 +69,8 @@ LAG_GRID_POINTS = 10
 DEFAULT_MAX_SAMPLES = 20000
 #: effects that contain each other (adding one when the other is present duplicates terms)
 NESTED = {'drift': ('drift2',), 'drift2': ('drift',)}
+
+#: change points of the residual the formula search makes steps and windows of
+SEARCH_CHANGE_POINTS = 4
+#: search terms listed among the diagnosis' candidates
+SEARCH_LISTED = 10

@@ -26,8 +26,8 @@ from dataclasses import dataclass
 import math
 
 from magcal_ros.core import effects as fx
-from magcal_ros.core.diagnose.constants import NESTED
-from magcal_ros.core.findings import lomb_scargle as find_lomb_scargle
+from magcal_ros.core.discovery.constants import NESTED
+from magcal_ros.core.discovery.findings import lomb_scargle as find_lomb_scargle
 import numpy as np
 
 
@@ -64,7 +64,9 @@ class Candidate:
         (Rao's score test at the base solution: delta_chi2 is the decrease that step
         predicts, exact for effects that enter linearly; used where it puts delta BIC
         above 0, 10 units short of significance, :data:`SCORE_RULE_OUT_BIC`, so the
-        residuals are not evaluated).
+        residuals are not evaluated; a term of the formula search is listed with 'score',
+        its evidence the linearised problem's) or 'search' (the formula search's term that
+        is the verdict) or 'localised' (a ``drop`` of an excess confined in time).
     cv_rms_before_nt, cv_rms_after_nt : float or None
         Combined residual RMS on held-out time blocks (None when not computed).
     significant : bool
@@ -225,16 +227,44 @@ def propose_from_residual(t, residual, max_steps=2, min_line_ratio=30.0):
     Change points: the least-squares single change in the mean of the 3-vector residual
     (the CUSUM statistic of the two-segment fit, maximised over the split; Hawkins 1977),
     applied recursively to the segments (binary segmentation).  Lines: the periodogram
-    (Lomb-Scargle for uneven sampling, magcal_ros.core.findings.lomb_scargle) of each
+    (Lomb-Scargle for uneven sampling, magcal_ros.core.discovery.findings.lomb_scargle) of each
     sensor's residual,
     summed over the axes, its peak refined on a grid 10x finer than 1/span.
 
     """
     t = np.asarray(t, float)
-    n = len(t)
     out = []
-    if n < 50:
+    found, lines = residual_features(t, residual, max_steps, min_line_ratio)
+    if not len(t) or len(t) < 50:
         return out
+    dt = float(np.median(np.diff(t)))
+    # the change lies between two samples: the time of the first sample after it, to the
+    # sampling interval's decimal (step(300), not step(300.0001))
+    q = 10.0 ** math.floor(math.log10(dt)) if dt > 0 else 1.0
+
+    def at(k):
+        return f'{float(np.round(t[k] / q) * q):.10g}'
+    for k in sorted(found):
+        out.append(f'step({at(k)})')
+    if len(found) > 1:
+        out.append('step(' + ','.join(at(k) for k in sorted(found)) + ')')
+    if lines:
+        _, fbest = max(lines.values())
+        out.append(f'periodic({fbest:.5g})')
+    return out
+
+
+def residual_features(t, residual, max_steps=2, min_line_ratio=30.0):
+    """
+    Change points and spectral lines of a residual (see :func:`propose_from_residual`).
+
+    Returns (change points: sorted epoch indices (the first sample after each change),
+    lines: {sensor index: (peak power / median power, refined frequency Hz)}).
+    """
+    t = np.asarray(t, float)
+    n = len(t)
+    if n < 50:
+        return [], {}
     r = residual - residual.mean(axis=1, keepdims=True)
     # -- steps: one change in the mean, on the sensors' residuals together
     flat = r.transpose(1, 0, 2).reshape(n, -1)              # (N, 3S)
@@ -265,20 +295,10 @@ def propose_from_residual(t, residual, max_steps=2, min_line_ratio=30.0):
         segs.remove((a, b))
         segs += [(a, best[1]), (best[1], b)]
     dt = float(np.median(np.diff(t)))
-    # the change lies between two samples: the time of the first sample after it, to the
-    # sampling interval's decimal (step(300), not step(300.0001))
-    q = 10.0 ** math.floor(math.log10(dt)) if dt > 0 else 1.0
-
-    def at(k):
-        return f'{float(np.round(t[k] / q) * q):.10g}'
-    for k in sorted(found):
-        out.append(f'step({at(k)})')
-    if len(found) > 1:
-        out.append('step(' + ','.join(at(k) for k in sorted(found)) + ')')
     # -- lines
     span = float(t[-1] - t[0])
     if span <= 0:
-        return out
+        return sorted(found), {}
     uniform = np.ptp(np.diff(t)) <= 1e-6 * dt
     f_lo, f_hi = 5.0 / span, 0.5 / dt
     m_ls = min(4 * n, 20000)
@@ -317,10 +337,7 @@ def propose_from_residual(t, residual, max_steps=2, min_line_ratio=30.0):
         pw = [np.sum(np.abs(np.exp(-2j * np.pi * g * tt) @ r[j]) ** 2) for g in grid]
         fbest = float(grid[int(np.argmax(pw))])
         lines[j] = (ps[i] / np.median(ps), fbest)
-    if lines:
-        _, fbest = max(lines.values())
-        out.append(f'periodic({fbest:.5g})')
-    return out
+    return sorted(found), lines
 
 
 def _copy_refs(src, dst):

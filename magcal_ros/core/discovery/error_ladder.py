@@ -21,12 +21,12 @@ from dataclasses import dataclass, field
 
 from magcal_ros.core.data.magnitude import reference_magnitude
 from magcal_ros.core.data.noise import data_noise_floor, NoiseFloor
-from magcal_ros.core.diagnose.candidates import extend_model
-from magcal_ros.core.diagnose.constants import DEFAULT_FOLDS
-from magcal_ros.core.diagnose.measures import dof_factor, evaluate_residuals
-from magcal_ros.core.diagnose.results import compact_spec
-from magcal_ros.core.diagnose.run import diagnose, report_progress
-from magcal_ros.core.diagnose.validation import cross_validate
+from magcal_ros.core.discovery.candidates import extend_model
+from magcal_ros.core.discovery.constants import DEFAULT_FOLDS
+from magcal_ros.core.discovery.measures import dof_factor, evaluate_residuals
+from magcal_ros.core.discovery.results import compact_spec
+from magcal_ros.core.discovery.run import diagnose, report_progress
+from magcal_ros.core.discovery.validation import cross_validate
 from magcal_ros.core.model.fitting import fit
 import numpy as np
 

@@ -66,22 +66,23 @@ The package, one module per stage (every name below is importable from here):
 """
 # the one noise-floor estimator (fit, diagnose, report, nodes); the old name is kept here
 from magcal_ros.core.data.noise import data_noise_floor as noise_floor_from_data, NoiseFloor
-from magcal_ros.core.diagnose.candidates import (Candidate, candidate_tokens, extend_model,
-                                                 propose_from_residual, split_testable,
-                                                 token_label, tokens_from_findings)
-from magcal_ros.core.diagnose.constants import (ALPHA, AT_FLOOR_RATIO, BLOCKS_PER_FOLD,
-                                                DEFAULT_FOLDS, DEFAULT_MAX_REFIT,
-                                                DEFAULT_MAX_SAMPLES, EVIDENCE_TIE, MIN_BLOCK,
-                                                MIN_DELTA_BIC, MIN_EXPLAINED, NESTED,
-                                                REFIT_CHI2_TOL, REFIT_MAX_NFEV, SCORE_RULE_OUT_BIC)
-from magcal_ros.core.diagnose.error_ladder import Ladder, ladder, LadderStep
-from magcal_ros.core.diagnose.measures import (dof_factor, evaluate_residuals, Evaluation,
-                                               explained_share, likelihood_ratio, n_observations,
-                                               soft_l1_lr_loss)
-from magcal_ros.core.diagnose.results import compact_spec, Diagnosis, jsonable
-from magcal_ros.core.diagnose.run import diagnose
-from magcal_ros.core.diagnose.screen import Screen
-from magcal_ros.core.diagnose.validation import cross_validate, time_blocks
+from magcal_ros.core.discovery.candidates import (Candidate, candidate_tokens, extend_model,
+                                                  propose_from_residual, split_testable,
+                                                  token_label, tokens_from_findings)
+from magcal_ros.core.discovery.constants import (ALPHA, AT_FLOOR_RATIO, BLOCKS_PER_FOLD,
+                                                 DEFAULT_FOLDS, DEFAULT_MAX_REFIT,
+                                                 DEFAULT_MAX_SAMPLES, EVIDENCE_TIE, MIN_BLOCK,
+                                                 MIN_DELTA_BIC, MIN_EXPLAINED, NESTED,
+                                                 REFIT_CHI2_TOL, REFIT_MAX_NFEV,
+                                                 SCORE_RULE_OUT_BIC)
+from magcal_ros.core.discovery.error_ladder import Ladder, ladder, LadderStep
+from magcal_ros.core.discovery.measures import (dof_factor, evaluate_residuals, Evaluation,
+                                                explained_share, likelihood_ratio, n_observations,
+                                                soft_l1_lr_loss)
+from magcal_ros.core.discovery.results import compact_spec, Diagnosis, jsonable
+from magcal_ros.core.discovery.run import diagnose
+from magcal_ros.core.discovery.screen import Screen
+from magcal_ros.core.discovery.validation import cross_validate, time_blocks
 
 __all__ = [
     'ALPHA', 'AT_FLOOR_RATIO', 'BLOCKS_PER_FOLD', 'Candidate', 'DEFAULT_FOLDS',

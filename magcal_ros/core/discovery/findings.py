@@ -43,7 +43,7 @@ A finding needs
    p-value comes from its own null distribution (below);
 2. effect size: its model removes at least :data:`MIN_SIGNAL_RATIO` x the noise variance
    (pooled per component), i.e. alone it would lift the residual RMS above 1.10 x the floor,
-   the rule by which :mod:`magcal_ros.core.diagnose` calls a residual "at the floor"; and at
+   the rule by which :mod:`magcal_ros.core.discovery` calls a residual "at the floor"; and at
    least :data:`MIN_EXPLAINED` of the sensor's excess mean square over the floor.
 
 The tests:
@@ -911,7 +911,7 @@ def _tails(x, sd, sensor, alpha_test):
     p = float(stats.kurtosistest(d.ravel()).pvalue)
     # the robust (MAD) noise level reads low for heavy tails: the share of the excess over
     # it that the tails account for
-    mad = 1.4826 * np.median(np.abs(d - np.median(d, axis=0)), axis=0) * sd
+    mad = stats.median_abs_deviation(d, axis=0, scale='normal') * sd
     low = 1.0 - float(np.sqrt(np.mean(mad ** 2) / np.mean(sd ** 2)))
     if not (p < alpha_test and kurt >= MIN_EXCESS_KURTOSIS and low > 0):
         return None
@@ -931,7 +931,7 @@ def _in_model(f, model):
     if model is None or not f.token:
         return f
     from dataclasses import replace
-    from magcal_ros.core.diagnose import compact_spec
+    from magcal_ros.core.discovery.results import compact_spec
     try:
         new = model.with_effect(f.token)
     except ValueError:

@@ -1,0 +1,351 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+A record too long to hold, reduced chunk by chunk to a bounded, representative form.
+
+An hour of the cross at 1 kHz is 3.6e6 sets (0.75 GB of CSV); the fit and the diagnosis
+already work on at most 20 000 evenly spaced epochs (``fit(max_fit_samples)``,
+``diagnose(max_samples)``), but they held the whole record to take them, and the noise
+floor, the findings and the residual statistics ran on every epoch.  A long record is
+instead read in chunks (:mod:`magcal_ros.io.chunks`) and reduced, in memory bounded by
+constants, not by its length (docs/design.md, "Long records"):
+
+- **the sample**: every k-th epoch, k doubling as the record grows so that between
+  :data:`SAMPLE_EPOCHS` and twice as many are kept, evenly spread over the whole record
+  (the fit's and the diagnosis' own evenly spaced epochs are taken from it).  Each keeps the
+  field rate d(raw)/dt of the full-rate record (central differences of its neighbours, as in
+  memory), not one from the sample's own spacing.  The fit, the screening, the
+  cross-validation, the findings (lines, steps, lags, trends; model-free) and the report's
+  figures use the sample; a line above the sample's Nyquist frequency (k / 2 of the full
+  rate: ~2.8 Hz for an hour at 1 kHz) is out of their reach and aliases;
+- **the noise blocks**: :data:`NOISE_BLOCKS` to twice as many contiguous full-rate blocks
+  of :data:`NOISE_BLOCK` epochs, evenly spread (a block every k-th block, k doubling): the
+  noise floor is a property of consecutive samples, estimated from the differences within
+  each block (:func:`magcal_ros.core.data.noise.noise_floor_of`), the fit's residual on them
+  included;
+- **the residual statistics of every epoch**: a second pass over the chunks with the fitted
+  calibration (:func:`residual_statistics`): RMS and largest deviation of |B| before and
+  after, the vector and tensor residuals, accumulated as sums and extremes (exact).
+"""
+from dataclasses import dataclass, replace
+
+from magcal_ros.core.data.dataset import Dataset
+from magcal_ros.core.data.noise import noise_floor_of
+from magcal_ros.core.effects import raw_rate
+import numpy as np
+
+#: the sample keeps between this many and twice as many evenly spread epochs
+SAMPLE_EPOCHS = 20000
+#: contiguous full-rate epochs per noise block
+NOISE_BLOCK = 4096
+#: between this many and twice as many noise blocks are kept
+NOISE_BLOCKS = 8
+#: records of more epochs than this are reduced (below, the record is held: 4 x 100 000
+#: epochs diagnose in ~0.6 GB)
+REDUCE_ABOVE = 100000
+
+
+def concat(pieces):
+    """Return one Dataset of the epochs of ``pieces`` (Datasets of the same columns), in order."""
+    first = pieces[0]
+    if len(pieces) == 1:
+        return replace(first, origin=None)
+
+    def cat(name, axis=0):
+        vals = [getattr(p, name) for p in pieces]
+        return None if any(v is None for v in vals) else np.concatenate(vals, axis=axis)
+    return replace(first, origin=None, t=cat('t'), raw=cat('raw', 1), temp=cat('temp', 1),
+                   ref_total=cat('ref_total'), ref_vec=cat('ref_vec'),
+                   angle_deg=cat('angle_deg'), plane=cat('plane'),
+                   aux={k: np.concatenate([p.aux[k] for p in pieces]) for k in first.aux},
+                   attitude=cat('attitude'), rate=cat('rate', 1), meta=dict(first.meta))
+
+
+def _take(piece, idx):
+    """Return the epochs ``idx`` of ``piece`` as a Dataset of its own (no link to ``piece``)."""
+    sub = piece.subset(idx)
+    return replace(sub, origin=None)
+
+
+class NoiseBlocks:
+    """Contiguous full-rate blocks of a long record: the data of its noise floor."""
+
+    def __init__(self, blocks):
+        self.blocks = [b for b in blocks if b.n_samples >= 64] or blocks
+        self.data = concat(self.blocks)
+        self.starts = np.cumsum([0] + [b.n_samples for b in self.blocks[:-1]])
+        self._cache = {}
+
+    @property
+    def n_samples(self):
+        """Return the number of epochs in the blocks."""
+        return self.data.n_samples
+
+    def floor(self, result=None):
+        """
+        :class:`~magcal_ros.core.data.noise.NoiseFloor` from the blocks and ``result``'s residual.
+
+        ``result``: a FitResult of the sample; its calibration is applied to the blocks and
+        its scalar residual there gives the floor's second estimate, as in memory.
+        """
+        key = None if result is None else id(result)
+        if key not in self._cache:
+            res = None
+            if result is not None:
+                res = _Residual(np.concatenate([scalar_residual(result, b) for b in self.blocks],
+                                               axis=1), np.asarray(result.sigma_nt, float))
+            self._cache[key] = noise_floor_of(self.data.raw, res, self.starts)
+        return self._cache[key]
+
+
+@dataclass
+class _Residual:
+    """What :func:`noise_floor_of` reads of a fit: the scalar residual and sigma."""
+
+    scalar_residual_nt: np.ndarray
+    sigma_nt: np.ndarray
+
+
+def field_of(result, piece):
+    """(N,) reference magnitude of ``piece``'s epochs for ``result``: its constant or ref_total."""
+    f = np.asarray(result.field_magnitude_nt, float)
+    if np.ptp(f) == 0 or piece.ref_total is None:
+        return np.full(piece.n_samples, f[0])
+    return np.asarray(piece.ref_total, float)
+
+
+def corrected(result, piece):
+    """(S, N, 3) nT: ``result``'s calibration applied to ``piece`` (centred on the array)."""
+    from magcal_ros.core.model.fitting import centred_readings, corrected_readings
+    ctx = [piece.context(j) for j in range(1, piece.n_sensors + 1)]
+    cor = corrected_readings(result.model, result.params, piece.raw, ctx)
+    return centred_readings(result.model, result.params, cor, ctx)
+
+
+def scalar_residual(result, piece):
+    """(S, N) nT: |corrected| - reference magnitude of ``result`` on ``piece``."""
+    return np.linalg.norm(corrected(result, piece), axis=2) - field_of(result, piece)[None]
+
+
+def _rates(piece):
+    """(S, N, 3) nT/s field rate of ``piece``'s readings, or None (times that do not rise)."""
+    out = []
+    for j in range(piece.n_sensors):
+        r = raw_rate(piece.raw[j], piece.t)
+        if r is None:
+            return None
+        out.append(r)
+    return np.stack(out)
+
+
+def rated(chunks):
+    """
+    Yield the epochs of consecutive ``chunks`` with the field rate of the whole record.
+
+    Each piece's ``rate`` (S, N, 3) nT/s is :func:`~magcal_ros.core.effects.raw_rate` of the
+    record held whole (central differences inside, one-sided at its two ends), exactly: the
+    last epoch of a chunk waits for the next chunk's first.  None where the times do not
+    rise (as in memory: no field rate).
+    """
+    carry = None
+    for piece in chunks:
+        if piece.n_samples == 0:
+            continue
+        head = 0
+        if carry is not None:
+            head = carry.n_samples - 1              # the epoch still waiting for its rate
+            piece = concat([carry, piece])
+        rate = _rates(piece)
+        carry = _take(piece, np.arange(max(0, piece.n_samples - 3), piece.n_samples))
+        emit = np.arange(head, piece.n_samples - 1)
+        if len(emit):
+            out = _take(piece, emit)
+            out.rate = None if rate is None else rate[:, emit]
+            yield out
+    if carry is not None:
+        rate = _rates(carry)
+        out = _take(carry, [carry.n_samples - 1])
+        out.rate = None if rate is None else rate[:, -1:]
+        yield out
+
+
+class Reducer:
+    """
+    Reduce a record fed chunk by chunk (:meth:`add`) to a :class:`Reduced` (:meth:`finish`).
+
+    The chunks come from :func:`rated` (their ``rate`` that of the whole record).  Memory:
+    the sample (at most 2 x ``sample`` epochs), the noise blocks (at most 2 x ``blocks`` x
+    ``block`` epochs) and one chunk.
+    """
+
+    def __init__(self, sample=SAMPLE_EPOCHS, block=NOISE_BLOCK, blocks=NOISE_BLOCKS):
+        self.cap = int(sample)
+        self.block = int(block)
+        self.max_blocks = int(blocks)
+        self.stride = 1
+        self.kept = []              # [(global index array, Dataset)]
+        self.n_kept = 0
+        self.block_stride = 1
+        self.blocks = {}            # block number -> [Dataset pieces]
+        self.n = 0                  # epochs seen
+        self.t_first = self.t_last = None
+
+    def add(self, piece):
+        """Take the next chunk (a Dataset of consecutive epochs, with ``rate``)."""
+        if piece.n_samples == 0:
+            return
+        if self.t_first is None:
+            self.t_first = float(piece.t[0])
+        self.t_last = float(piece.t[-1])
+        g = self.n + np.arange(piece.n_samples)
+        self.n += piece.n_samples
+        self._blocks(piece, g)
+        self._sample(piece, g)
+
+    def _sample(self, piece, g):
+        sel = g % self.stride == 0
+        if sel.any():
+            self.kept.append((g[sel], _take(piece, np.flatnonzero(sel))))
+            self.n_kept += int(sel.sum())
+        while self.n_kept > 2 * self.cap:
+            self.stride *= 2
+            kept = []
+            for gi, d in self.kept:
+                m = gi % self.stride == 0
+                if m.any():
+                    kept.append((gi[m], _take(d, np.flatnonzero(m))))
+            self.kept = kept
+            self.n_kept = sum(len(gi) for gi, _ in kept)
+
+    def _blocks(self, piece, g):
+        num = g // self.block
+        for b in np.unique(num):
+            if b % self.block_stride:
+                continue
+            self.blocks.setdefault(int(b), []).append(_take(piece, np.flatnonzero(num == b)))
+        while len(self.blocks) > 2 * self.max_blocks:
+            self.block_stride *= 2
+            self.blocks = {b: v for b, v in self.blocks.items() if b % self.block_stride == 0}
+
+    def finish(self):
+        """Return the :class:`Reduced` record (after the last chunk)."""
+        if not self.kept:
+            raise ValueError('the record has no epochs')
+        sample = concat([d for _, d in self.kept])
+        blocks = NoiseBlocks([concat(v) for _, v in sorted(self.blocks.items())])
+        info = {'epochs': int(self.n), 'sample_epochs': int(sample.n_samples),
+                'sample_stride': int(self.stride), 'noise_block_epochs': int(self.block),
+                'noise_blocks': len(blocks.blocks),
+                'noise_epochs': int(blocks.n_samples),
+                'span_s': float(self.t_last - self.t_first)}
+        sample.meta['noise_blocks'] = blocks
+        sample.meta['reduction'] = info
+        return Reduced(sample=sample, blocks=blocks, n_total=int(self.n), info=info)
+
+
+@dataclass
+class Reduced:
+    """A long record reduced: ``sample`` (Dataset), ``blocks``, ``n_total`` epochs, ``info``."""
+
+    sample: Dataset
+    blocks: NoiseBlocks
+    n_total: int
+    info: dict
+
+
+def reduce_chunks(chunks, **kwargs):
+    """Reduce an iterable of consecutive Dataset chunks (:class:`Reducer`)."""
+    red = Reducer(**kwargs)
+    for piece in rated(chunks):
+        red.add(piece)
+    return red.finish()
+
+
+class _Moments:
+    """Running count, sum of squares and largest absolute value, per leading index."""
+
+    def __init__(self):
+        self.n = 0
+        self.ss = 0.0
+        self.mx = 0.0
+
+    def add(self, x, axis):
+        self.n = self.n + np.shape(x)[axis]
+        self.ss = self.ss + np.sum(np.square(x), axis=axis)
+        self.mx = np.maximum(self.mx, np.max(np.abs(x), axis=axis))
+
+    def rms(self):
+        return np.sqrt(self.ss / max(self.n, 1))
+
+
+def residual_statistics(chunks, result, positions=None):
+    """
+    Residual statistics of ``result``'s calibration on every epoch of ``chunks``, nT, nT/m.
+
+    One pass; sums and extremes, so the figures are those of the whole record held in
+    memory (the RMS exactly, the largest deviations exactly; the tensor's RMS about its
+    mean from the running sums, its largest deviation from the running extremes).  A lag
+    effect on a channel (``lag(temperature)``) filters each chunk afresh (a transient of a
+    few time constants at chunk starts, 65 536 epochs apart); the field rate is the whole
+    record's (:func:`rated`).
+
+    Returns
+    -------
+    dict
+        The summary keys of :func:`magcal_ros.pipeline.summarize` that read every epoch:
+        ``scalar_rms_nt``, ``vector_rms_nt``, ``total_field_rms_before_nt``,
+        ``total_field_max_dev_before_nt``, ``total_field_max_dev_after_nt`` and, with
+        ``positions`` (S, 3) m, ``tensor_rms_nt_per_m``, ``tensor_rms_before_nt_per_m``,
+        ``tensor_max_dev_before_nt_per_m``, ``tensor_max_dev_after_nt_per_m``; ``n_samples``.
+
+    """
+    before, after, vector = _Moments(), _Moments(), _Moments()
+    tens = {k: {'s': 0.0, 'ss': 0.0, 'lo': np.inf, 'hi': -np.inf} for k in ('b', 'a')}
+    n = 0
+    for piece in rated(chunks):
+        f = field_of(result, piece)
+        before.add(np.linalg.norm(piece.raw, axis=2) - f[None], 1)
+        cen = corrected(result, piece)
+        after.add(np.linalg.norm(cen, axis=2) - f[None], 1)
+        vector.add((cen - cen[:1]).reshape(cen.shape[0], -1), 1)
+        n += piece.n_samples
+        if positions is not None and piece.n_sensors >= 3:
+            from magcal_ros.core.geometry.tensor import tensor_lstsq
+            for key, fields in (('b', piece.raw), ('a', cen)):
+                g, _ = tensor_lstsq(fields, positions)
+                acc = tens[key]
+                acc['s'] = acc['s'] + g.sum(axis=0)
+                acc['ss'] = acc['ss'] + (g ** 2).sum(axis=0)
+                acc['lo'] = np.minimum(acc['lo'], g.min(axis=0))
+                acc['hi'] = np.maximum(acc['hi'], g.max(axis=0))
+    s = after.ss.shape[0]
+    out = {'n_samples': int(n),
+           'scalar_rms_nt': {str(j + 1): float(v) for j, v in enumerate(after.rms())},
+           'vector_rms_nt': {str(j + 1): float(np.sqrt(vector.ss[j] / max(vector.n, 1)))
+                             for j in range(1, s)},
+           'total_field_rms_before_nt': {str(j + 1): float(v)
+                                         for j, v in enumerate(before.rms())},
+           'total_field_max_dev_before_nt': float(np.max(before.mx)),
+           'total_field_max_dev_after_nt': float(np.max(after.mx))}
+    if positions is not None and s >= 3 and n:
+        for key, rms_key, max_key in (('b', 'tensor_rms_before_nt_per_m',
+                                       'tensor_max_dev_before_nt_per_m'),
+                                      ('a', 'tensor_rms_nt_per_m',
+                                       'tensor_max_dev_after_nt_per_m')):
+            acc = tens[key]
+            mean = acc['s'] / n
+            out[rms_key] = np.sqrt(np.maximum(acc['ss'] / n - mean ** 2, 0.0)).tolist()
+            out[max_key] = float(np.max(np.maximum(acc['hi'] - mean, mean - acc['lo'])))
+    return out

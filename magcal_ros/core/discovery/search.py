@@ -1,0 +1,747 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Discovery as a search over the model formula (issue 18 item 3).
+
+Candidates are generated from what the record holds (:mod:`.bases`: smooths, polynomials,
+steps, windows and sinusoids in time; each channel linear, polynomial, lagged, cyclic when
+it wraps; products of two channels; the field rate) and combined with every coupling
+(``offset``, ``scale``, ``linear``, ``field``) on every scope the data point to (one sensor,
+a set of sensors, each, alike, the array), then
+
+1. **pre-screened** by least squares of each sensor's base residual on the candidate's
+   columns (a cheap lower bound of the score statistic; it ranks ~10^3 candidates in a few
+   tens of ms), the scope read from which sensors the driver explains;
+2. **scored** exactly by Rao's score test at the base fit (the one Gauss-Newton step of
+   :class:`.screen.Screen`, base Jacobian and profiled field included; exact for terms that
+   enter linearly, as every coupling of a fixed driver does), for the best ``SCORE_TOP``;
+3. **validated on held-out data**: the same linearised problem fitted on all but one fold of
+   interleaved time blocks and evaluated on that fold (:class:`BlockSums`: every sum of the
+   normal equations is formed per block once, so a fold costs one small solve).  A term is
+   adopted only if it is significant (likelihood ratio below the Bonferroni threshold over
+   every candidate generated, delta BIC < -10) AND removes at least 20 % of the held-out
+   excess over the noise floor; among those, the lowest held-out residual wins, ties within
+   :data:`TIE_SHARE` going to fewer parameters.
+4. When no single term brings every sensor to its floor, **pairs** of the best terms are
+   searched the same way.
+
+The adopted term is written in the formula syntax (``offset(s(t, k=8))@2``); the grammar
+refits it when the user adds it.
+"""
+from dataclasses import dataclass, field
+import itertools
+import math
+
+from magcal_ros.core.discovery import bases
+from magcal_ros.core.discovery.constants import MIN_DELTA_BIC, MIN_EXPLAINED
+import numpy as np
+from scipy import stats
+
+#: candidates scored exactly after the pre-screen
+SCORE_TOP = 40
+#: candidates cross-validated after the exact score
+CV_TOP = 10
+#: pairs are formed from this many of the best validated singles
+PAIR_TOP = 5
+#: epochs of the pre-screen (evenly spaced)
+PRESCREEN_EPOCHS = 2000
+#: blocks of the held-out test: folds x blocks per fold
+SEARCH_FOLDS, SEARCH_BLOCKS_PER_FOLD = 3, 8
+#: held-out shares within this of the best are a tie, decided by fewer parameters
+TIE_SHARE = 0.03
+#: a sensor is in a term's scope when the driver explains at least this share of what it
+#: explains on the sensor it explains most (a disturbance of two sensors leaks ~5 % into
+#: the others through the field they share)
+SCOPE_SHARE = 0.15
+#: a sensor is at its floor when its residual is within this ratio of it
+FLOOR_RATIO = 1.10
+#: a term "explains" the excess when it also removes this share of it held out (a smooth
+#: that follows a short disturbance in-sample but cannot predict it does not)
+EXPLAINS_SHARE = 0.8
+#: epochs the search works on (evenly spaced; its cost is then independent of the record)
+SEARCH_MAX_EPOCHS = 4000
+#: most parameters of one candidate term (a smooth of 64 functions on each sensor's offset
+#: would add 756: the array's field or one sensor's offset carry such smooths)
+MAX_TERM_PARAMS = 200
+#: normalisation of the sensor's linear reading in scale/linear/field couplings, nT
+LIN_NT = 50000.0
+
+
+@dataclass
+class Term:
+    """
+    One candidate term: a coupling of a driver on a scope, and its evidence.
+
+    Attributes
+    ----------
+    coupling : str
+        'offset', 'scale', 'linear' or 'field'.
+    driver : bases.Driver
+        The driver.
+    sensors : tuple of int
+        The sensors it acts on (1-based).
+    alike : bool
+        One parameter set shared by the sensors (in each sensor's axes).
+    k : int
+        Parameters it adds.
+    approx : float
+        Pre-screen chi-square decrease.
+    delta_chi2, delta_bic, p_value : float or None
+        Exact score test (decrease predicted by one Gauss-Newton step).
+    share : float or None
+        Held-out share of the excess over the floor it removes.
+    ratios : dict or None
+        {sensor: residual RMS / floor} in-sample after the step.
+
+    """
+
+    coupling: str
+    driver: bases.Driver
+    sensors: tuple
+    alike: bool = False
+    k: int = 0
+    approx: float = 0.0
+    delta_chi2: float | None = None
+    delta_bic: float | None = None
+    p_value: float | None = None
+    share: float | None = None
+    ratios: dict | None = None
+    cv_before: float | None = None
+    cv_after: float | None = None
+    parts: tuple = field(default_factory=tuple)
+
+    def text_for(self, n_sensors):
+        """Return the formula term, e.g. 'offset(s(t, k=8))@2'."""
+        if self.parts:
+            return ' + '.join(p.text_for(n_sensors) for p in self.parts)
+        body = f'{self.coupling}({self.driver.text})'
+        if self.coupling == 'field':
+            return body
+        if self.alike:
+            return body + '@alike'
+        if len(self.sensors) == n_sensors:
+            return body
+        if len(self.sensors) == 1:
+            return f'{body}@{self.sensors[0]}'
+        return body + '@{' + ','.join(str(j) for j in self.sensors) + '}'
+
+
+def solve_psd(a, b, rcond=1e-9):
+    """Solve a x = b for a symmetric PSD (n, n) a, directions below ``rcond`` dropped."""
+    w, v = np.linalg.eigh(a)
+    keep = w > rcond * max(w.max(), 1e-300)
+    vb = v[:, keep].T @ b
+    return v[:, keep] @ (vb / (w[keep] if vb.ndim == 1 else w[keep][:, None]))
+
+
+def _orth(x):
+    """Orthonormal basis (N, r) of the columns of x (N, m), rank-revealing."""
+    q, r = np.linalg.qr(x)
+    d = np.abs(np.diag(r))
+    keep = d > 1e-9 * max(d.max(), 1e-300)
+    return q[:, keep]
+
+
+def _proj_ss(x, y):
+    """Sum of squares of y (N,) or (N, c) explained by least squares on x (N, m)."""
+    xty = x.T @ y
+    return float(np.sum(xty * solve_psd(x.T @ x, xty)))
+
+
+def coupling_columns(coupling, x, lin, per_axis=False):
+    """
+    Raw-space columns (k, N, 3) of a coupling of driver columns x (N, m).
+
+    offset: dB = X P (3 per column); scale: dB_i = (X P)_i lin_i; linear: dB = M(x) lin
+    (9 per column); field: dB = (X P) lin (the field along itself, m columns); a per-axis
+    driver (rate): dB_i = P_i X_i.  lin (N, 3): the sensor's reading / 50 000 nT.
+    """
+    n, m = x.shape
+    if per_axis:
+        out = np.zeros((3, n, 3))
+        for a in range(3):
+            out[a, :, a] = x[:, a]
+        return out
+    if coupling == 'offset':
+        out = np.zeros((3 * m, n, 3))
+        for c in range(m):
+            for a in range(3):
+                out[3 * c + a, :, a] = x[:, c]
+        return out
+    if coupling == 'scale':
+        out = np.zeros((3 * m, n, 3))
+        for c in range(m):
+            for a in range(3):
+                out[3 * c + a, :, a] = x[:, c] * lin[:, a]
+        return out
+    if coupling == 'linear':
+        out = np.zeros((9 * m, n, 3))
+        for c in range(m):
+            for a in range(3):
+                for b in range(3):
+                    out[9 * c + 3 * a + b, :, a] = x[:, c] * lin[:, b]
+        return out
+    if coupling == 'field':
+        return x.T[:, :, None] * lin[None, :, :]
+    raise ValueError(f'unknown coupling {coupling!r}')
+
+
+def n_params(coupling, m, per_axis=False):
+    """Parameters of a coupling of m driver columns, per sensor (field: in all)."""
+    if per_axis:
+        return 3
+    return {'offset': 3 * m, 'scale': 3 * m, 'linear': 9 * m, 'field': m}[coupling]
+
+
+class BlockSums:
+    """
+    The base fit's linearised problem summed per time block, for held-out tests of terms.
+
+    Built from a :class:`.screen.Screen` (the scaled base Jacobian J, the residual r and the
+    field-direction projector of each epoch).  For a candidate with raw columns C the blocks
+    of the normal equations [J C]^T P [J C] and [J C]^T P r are formed per block; the fit on
+    a fold's training blocks is one solve, its held-out sum of squares
+    r'Pr + 2 s'g + s'M s on the held-out blocks.
+    """
+
+    def __init__(self, screen, sigma, n, folds=SEARCH_FOLDS,
+                 blocks_per_fold=SEARCH_BLOCKS_PER_FOLD):
+        self.g = screen.groups[0]
+        self.sensors = list(self.g['sensors'])
+        self.sigma = np.asarray(sigma, float)
+        self.n = n
+        self.folds = folds
+        nb_total = max(folds, min(folds * blocks_per_fold, n // 20))
+        self.edges = np.linspace(0, n, nb_total + 1).round().astype(int)
+        self.fold_of = np.arange(nb_total) % folds
+        g = self.g
+        nb = g['jtj'].shape[0]
+        self.a = np.zeros((nb_total, nb, nb))
+        self.gj = np.zeros((nb_total, nb))
+        self.rr = np.zeros(nb_total)
+        for gi in range(len(self.sensors)):
+            js, r = g['js'][gi], g['r'][gi]
+            for b, (e0, e1) in enumerate(zip(self.edges[:-1], self.edges[1:])):
+                rows = slice(3 * e0, 3 * e1)
+                self.a[b] += js[rows].T @ js[rows]
+                self.gj[b] += js[rows].T @ r[rows]
+                self.rr[b] += float(r[rows] @ r[rows])
+        for b, (e0, e1) in enumerate(zip(self.edges[:-1], self.edges[1:])):
+            self.rr[b] -= float(np.sum(g['rgr'][e0:e1]))
+        self.epochs = np.diff(self.edges)
+        self.floor_chi2 = None
+
+    def set_floor(self, floor_nt):
+        """
+        Set the expected r'Pr of each block at the noise floor (S,) nT: tr(P W) per epoch.
+
+        W = diag(floor_j^2 / sigma_j^2) (the residual is scaled by the fit's sigma_j);
+        tr(P W) = tr(W) - tr((G^T G)^-1 G^T W G): the profiled field takes its two directions
+        mostly from the sensors weighted most.
+        """
+        g = self.g
+        w = (np.asarray(floor_nt, float) / self.sigma) ** 2
+        n = self.n
+        gwg = np.zeros((2, 2, n))
+        for gi, j in enumerate(self.sensors):
+            gbj = g['gb'][gi]
+            for a in range(2):
+                for c in range(2):
+                    gwg[a, c] += w[j - 1] * (gbj[0][a] * gbj[0][c] + gbj[1][a] * gbj[1][c]
+                                             + gbj[2][a] * gbj[2][c])
+        (i00, i01), (i10, i11) = g['ginv']
+        tr = i00 * gwg[0, 0] + i01 * gwg[1, 0] + i10 * gwg[0, 1] + i11 * gwg[1, 1]
+        per_epoch = 3.0 * float(sum(w[j - 1] for j in self.sensors)) - tr
+        self.floor_chi2 = np.array([float(np.sum(per_epoch[e0:e1]))
+                                    for e0, e1 in zip(self.edges[:-1], self.edges[1:])])
+        # per sensor and epoch, the block j of tr(P W P), P = I - G M G^T, M = (G^T G)^-1:
+        # 3 w_j - 2 w_j tr(M G_j^T G_j) + tr(M G^T W G M G_j^T G_j)
+        mm = [[i00, i01], [i10, i11]]
+        mwm = [[sum(mm[a][x] * gwg[x, y] * mm[y][c] for x in range(2) for y in range(2))
+                for c in range(2)] for a in range(2)]
+        self.floor_epoch = np.zeros((len(self.sensors), n))
+        for gi, j in enumerate(self.sensors):
+            gbj = g['gb'][gi]
+            gg = [[gbj[0][a] * gbj[0][c] + gbj[1][a] * gbj[1][c] + gbj[2][a] * gbj[2][c]
+                   for c in range(2)] for a in range(2)]
+            t1 = sum(mm[a][c] * gg[c][a] for a in range(2) for c in range(2))
+            t2 = sum(mwm[a][c] * gg[c][a] for a in range(2) for c in range(2))
+            self.floor_epoch[gi] = 3.0 * w[j - 1] - 2.0 * w[j - 1] * t1 + t2
+
+    def candidate(self, cols):
+        """
+        Per-block sums of a candidate: (B (nb_blk, nb, k), D (nb_blk, k, k), gc (nb_blk, k)).
+
+        ``cols``: list of (sensor j, parameter indices (k_j,), raw columns (k_j, N, 3) nT per
+        unit), scaled here by 1/sigma_j.
+        """
+        g = self.g
+        k = 1 + max(int(np.max(idx)) for _, idx, _ in cols)
+        # one entry per sensor, so that the products of two parts' columns are formed
+        merged = {}
+        for j, idx, c in cols:
+            if j in merged:
+                merged[j] = (np.concatenate([merged[j][0], idx]),
+                             np.concatenate([merged[j][1], c]))
+            else:
+                merged[j] = (np.asarray(idx), c)
+        cols = [(j, idx, c) for j, (idx, c) in merged.items()]
+        n, nbk = self.n, len(self.edges) - 1
+        nb = g['jtj'].shape[0]
+        bb = np.zeros((nbk, nb, k))
+        dd = np.zeros((nbk, k, k))
+        gc = np.zeros((nbk, k))
+        gtc = np.zeros((2, k, n))
+        for j, idx, c in cols:
+            gi = self.sensors.index(j)
+            cj = c / self.sigma[j - 1]
+            flat = cj.reshape(len(idx), 3 * n)
+            js, r = g['js'][gi], g['r'][gi]
+            for b, (e0, e1) in enumerate(zip(self.edges[:-1], self.edges[1:])):
+                rows = slice(3 * e0, 3 * e1)
+                fb = flat[:, rows]
+                bb[b][:, idx] += js[rows].T @ fb.T
+                dd[b][np.ix_(idx, idx)] += fb @ fb.T
+                gc[b][idx] += fb @ r[rows]
+            gbj = g['gb'][gi]
+            for a in range(2):
+                gtc[a, idx] += (cj[:, :, 0] * gbj[0][a] + cj[:, :, 1] * gbj[1][a]
+                                + cj[:, :, 2] * gbj[2][a])
+        (i00, i01), (i10, i11) = g['ginv']
+        m0 = gtc[0] * i00 + gtc[1] * i01
+        m1 = gtc[0] * i10 + gtc[1] * i11
+        for b, (e0, e1) in enumerate(zip(self.edges[:-1], self.edges[1:])):
+            s = slice(e0, e1)
+            dd[b] -= gtc[0][:, s] @ m0[:, s].T + gtc[1][:, s] @ m1[:, s].T
+            gc[b] -= gtc[0][:, s] @ g['ginv_gtr'][0][s] + gtc[1][:, s] @ g['ginv_gtr'][1][s]
+        return bb, dd, gc
+
+    @staticmethod
+    def _system(a, bb, dd, gj, gc):
+        m = np.block([[a, bb], [bb.T, dd]])
+        return m, np.concatenate([gj, gc])
+
+    def score(self, sums):
+        """Predicted chi-square decrease of the candidate on all epochs, and the step."""
+        bb, dd, gc = sums
+        m, g = self._system(self.a.sum(0), bb.sum(0), dd.sum(0), self.gj.sum(0), gc.sum(0))
+        d = np.sqrt(np.clip(np.diag(m), 1e-300, None))
+        sol = solve_psd(m / np.outer(d, d), -g / d) / d
+        return float(-g @ sol), sol
+
+    def held_out(self, sums):
+        """Return (held-out SS of the base, of the candidate, held-out epochs), chi-square."""
+        bb, dd, gc = sums
+        ss0 = ss1 = 0.0
+        for f in range(self.folds):
+            h = self.fold_of == f
+            tr = ~h
+            a_t, gj_t = self.a[tr].sum(0), self.gj[tr].sum(0)
+            a_h, gj_h, rr_h = self.a[h].sum(0), self.gj[h].sum(0), self.rr[h].sum()
+            da = np.sqrt(np.clip(np.diag(a_t), 1e-300, None))
+            s0 = solve_psd(a_t / np.outer(da, da), -gj_t / da) / da
+            ss0 += rr_h + 2 * s0 @ gj_h + s0 @ a_h @ s0
+            if sums is None:
+                continue
+            m_t, g_t = self._system(a_t, bb[tr].sum(0), dd[tr].sum(0), gj_t, gc[tr].sum(0))
+            m_h, g_h = self._system(a_h, bb[h].sum(0), dd[h].sum(0), gj_h, gc[h].sum(0))
+            d = np.sqrt(np.clip(np.diag(m_t), 1e-300, None))
+            s1 = solve_psd(m_t / np.outer(d, d), -g_t / d) / d
+            ss1 += rr_h + 2 * s1 @ g_h + s1 @ m_h @ s1
+        return float(ss0), max(float(ss1), 0.0)
+
+
+@dataclass
+class SearchResult:
+    """What the search found: the terms tested (best first) and the adopted one."""
+
+    terms: list
+    adopted: Term | None
+    n_generated: int
+    p_threshold: float
+    floor_ratio_after: dict | None = None
+    seconds: dict = field(default_factory=dict)
+    localised: object = None
+
+
+def _lin(data):
+    return [data.raw[j] / LIN_NT for j in range(data.n_sensors)]
+
+
+def generate(data, steps=(), windows=(), lines=()):
+    """Return the drivers of the record (bases.py) in the order time, channels, products."""
+    drivers = bases.time_drivers(data.t, steps, windows, lines)
+    names = bases.channels_of(data)
+    for name in names:
+        drivers += bases.channel_drivers(data, name)
+    drivers += bases.product_drivers(data, names)
+    drivers.append(bases.rate_driver(data))
+    return drivers
+
+
+def couplings_of(driver):
+    """Couplings tried with a driver."""
+    if driver.per_axis:
+        return ('offset',)
+    if driver.kind == 'time':
+        return ('offset', 'scale', 'field')
+    if driver.kind == 'channel':
+        if driver.text == driver.channel:
+            return ('offset', 'scale', 'linear')
+        return ('offset', 'scale')
+    return ('offset',)
+
+
+def prescreen(data, resid, sigma, drivers, n_obs, n_eval=PRESCREEN_EPOCHS):
+    """
+    Rank every (driver, coupling, scope) by a least-squares lower bound of its score.
+
+    ``resid`` (S, N, 3) nT: the base fit's raw-space residual.  Returns a list of Term
+    with ``approx`` set (the chi-square decrease scaled to all N epochs), best first.
+    """
+    s, n = resid.shape[0], resid.shape[1]
+    keep = (np.arange(n) if n <= n_eval else
+            np.unique(np.linspace(0, n - 1, n_eval).round().astype(int)))
+    scale_n = n / len(keep)
+    y = [resid[j][keep] / sigma[j] for j in range(s)]
+    lin = [x[keep] for x in _lin(data)]
+    log_n = math.log(n_obs)
+    out = []
+    for drv in drivers:
+        xs = {j: drv.x(j)[keep] for j in range(1, s + 1)}
+        for cp in couplings_of(drv):
+            m = xs[1].shape[1]
+            k = n_params(cp, m, drv.per_axis)
+            if cp == 'field':
+                z = np.concatenate([coupling_columns('field', xs[j], lin[j - 1])
+                                    .reshape(m, -1).T for j in range(1, s + 1)])
+                dchi = _proj_ss(z, np.concatenate([y[j - 1].ravel()
+                                                   for j in range(1, s + 1)])) * scale_n
+                out.append(Term(cp, drv, tuple(range(1, s + 1)), k=k, approx=dchi))
+                continue
+            if k > MAX_TERM_PARAMS:
+                continue
+            per = {}
+            for j in range(1, s + 1):
+                x, yy, ll = xs[j], y[j - 1], lin[j - 1]
+                if drv.per_axis:
+                    ss = sum(float(x[:, a] @ yy[:, a]) ** 2 / max(float(x[:, a] @ x[:, a]),
+                                                                  1e-300) for a in range(3))
+                elif cp == 'offset':
+                    ss = _proj_ss(x, yy)
+                elif cp == 'scale':
+                    ss = sum(_proj_ss(x * ll[:, a:a + 1], yy[:, a]) for a in range(3))
+                else:
+                    ss = sum(_proj_ss(np.concatenate([x * ll[:, b:b + 1] for b in range(3)],
+                                                     axis=1), yy[:, a]) for a in range(3))
+                per[j] = ss * scale_n
+            top = max(per.values())
+            sig = [j for j in range(1, s + 1) if per[j] - k * log_n > -MIN_DELTA_BIC
+                   and per[j] >= SCOPE_SHARE * top]
+            for j in sig:
+                out.append(Term(cp, drv, (j,), k=k, approx=per[j]))
+            if len(sig) >= 2 and k * len(sig) <= MAX_TERM_PARAMS:
+                out.append(Term(cp, drv, tuple(sig), k=k * len(sig),
+                                approx=sum(per[j] for j in sig)))
+            if len(sig) == s and s > 1:
+                out.append(Term(cp, drv, tuple(sig), alike=True, k=k,
+                                approx=sum(per[j] for j in sig)))
+    out.sort(key=lambda c: -(c.approx - c.k * log_n))
+    return out
+
+
+def term_columns(term, data):
+    """Columns of ``term`` for :meth:`BlockSums.candidate`: [(j, idx, C_j)], and k."""
+    lin = _lin(data)
+    cols, k0 = [], 0
+    parts = term.parts or (term,)
+    for p in parts:
+        kp = n_params(p.coupling, p.driver.x(p.sensors[0]).shape[1], p.driver.per_axis)
+        shared = p.alike or p.coupling == 'field'
+        for i, j in enumerate(p.sensors):
+            c = coupling_columns(p.coupling, p.driver.x(j), lin[j - 1], p.driver.per_axis)
+            start = k0 if shared else k0 + i * kp
+            cols.append((j, np.arange(start, start + kp), c))
+        k0 += kp if shared else kp * len(p.sensors)
+    return cols, k0
+
+
+def _dedupe(terms, n_sensors):
+    seen, out = set(), []
+    for t in terms:
+        key = t.text_for(n_sensors)
+        if key not in seen:
+            seen.add(key)
+            out.append(t)
+    return out
+
+
+def search(data, resid, screen, sigma, floor, n_obs, alpha=0.01, steps=(), windows=(),
+           lines=(), dof=1.0):
+    """
+    Search the formula's terms for what the base fit misses (see the module docstring).
+
+    Parameters
+    ----------
+    data : Dataset
+        The tested epochs (S sensors, N epochs).
+    resid : numpy.ndarray
+        (S, N, 3) the base fit's raw-space residual on them, nT.
+    screen : Screen
+        The base fit's one-step screen on the same epochs.
+    sigma : numpy.ndarray
+        (S,) the base fit's noise levels, nT.
+    floor : NoiseFloor
+        The data's noise floor.
+    n_obs : int
+        Observations net of the profiled field (BIC).
+    alpha : float
+        Family-wise significance level (Bonferroni over every candidate generated).
+    steps, windows, lines : sequences
+        Change points (tuples of s), windows ((t0, t1) s) and spectral lines (Hz) of the
+        residual.
+    dof : float
+        3G / (3G - 2): the profiled field's share of the residual (measures.dof_factor).
+
+    Returns
+    -------
+    SearchResult
+
+    """
+    import time
+    t0 = time.perf_counter()
+    s, n = resid.shape[0], resid.shape[1]
+    drivers = generate(data, steps, windows, lines)
+    ranked = prescreen(data, resid, sigma, drivers, n_obs)
+    secs = {'prescreen': time.perf_counter() - t0}
+    n_gen = max(1, len(ranked))
+    p_thr = alpha / n_gen
+    log_n = math.log(n_obs)
+    sums_all = BlockSums(screen, sigma, n)
+    floor_j = np.asarray(floor.per_sensor_nt, float)
+    sums_all.set_floor(floor_j)
+    floor_chi2 = float(sums_all.floor_chi2.sum())      # every epoch is held out once
+    n_held = float(n)
+
+    def evaluate(term, with_cv):
+        cols, k = term_columns(term, data)
+        term.k = k
+        sm = sums_all.candidate(cols)
+        dchi, sol = sums_all.score(sm)
+        term.delta_chi2 = dchi
+        term.delta_bic = -dchi + k * log_n
+        term.p_value = float(stats.chi2.sf(max(dchi, 0.0), k))
+        if with_cv:
+            ss0, ss1 = sums_all.held_out(sm)
+            exc = ss0 - floor_chi2
+            term.share = float((ss0 - ss1) / exc) if exc > 0 else 0.0
+            term.cv_before = math.sqrt(max(ss0, 0.0) / (3 * s * n_held))
+            term.cv_after = math.sqrt(max(ss1, 0.0) / (3 * s * n_held))
+            term.ratios = _ratios_after(sums_all, cols, sol, sigma, floor_j, dof)
+        return term
+
+    scored = []
+    for term in _dedupe(ranked, s)[:SCORE_TOP]:
+        scored.append(evaluate(term, False))
+    secs['score'] = time.perf_counter() - t0
+    scored.sort(key=lambda c: c.delta_bic)
+    # keep the best lag of each (coupling, scope) only: its time constant is the grid's best
+    scored = _dedupe(scored, s)
+    good = [c for c in scored if c.p_value < p_thr and c.delta_bic < MIN_DELTA_BIC]
+    validated = [evaluate(c, True) for c in good[:CV_TOP]]
+    secs['held_out'] = time.perf_counter() - t0
+    adopt = _choose(validated)
+    if adopt is None or max(adopt.ratios.values()) > FLOOR_RATIO:
+        singles = [c for c in validated if c.share is not None and c.share > 0][:PAIR_TOP]
+        pairs = []
+        for a, b in itertools.combinations(singles, 2):
+            if a.driver.channel == b.driver.channel and a.coupling == b.coupling and (
+                    set(a.sensors) & set(b.sensors)):
+                continue            # one driver's bases nest: not two effects
+            both = tuple(sorted(set(a.sensors) | set(b.sensors)))
+            pairs.append(evaluate(Term('pair', a.driver, both, parts=(a, b)), True))
+        pairs = [c for c in pairs if c.p_value < p_thr and c.delta_bic < MIN_DELTA_BIC]
+        best_pair = _choose(pairs)
+        if best_pair is not None and (adopt is None or best_pair.share > adopt.share
+                                      + TIE_SHARE):
+            validated.append(best_pair)
+            adopt = best_pair
+    secs['pairs'] = time.perf_counter() - t0
+    validated.sort(key=lambda c: -(c.share or 0.0))
+    rest = [c for c in scored if c not in validated]
+    loc = localised(data.t, sums_all)
+    secs['localised'] = time.perf_counter() - t0
+    return SearchResult(terms=validated + rest, adopted=adopt, n_generated=n_gen,
+                        p_threshold=p_thr,
+                        floor_ratio_after=None if adopt is None else adopt.ratios,
+                        seconds=secs, localised=loc)
+
+
+def _choose(terms):
+    """Return the adoptable term with the largest held-out share; ties to fewer parameters."""
+    ok = [c for c in terms if c.share is not None and c.share >= MIN_EXPLAINED]
+    if not ok:
+        return None
+    best = max(c.share for c in ok)
+    tied = [c for c in ok if c.share >= best - TIE_SHARE]
+    return min(tied, key=lambda c: (c.k, -c.share))
+
+
+def _ratios_after(sums, cols, sol, sigma, floor_j, dof):
+    """
+    {sensor: in-sample residual RMS / floor} after the step ``sol``.
+
+    The ratio of the sensor's sum of squares to what it holds at the floor
+    (:meth:`BlockSums.set_floor`, the profiled field's share of it removed).
+    """
+    g = sums.g
+    nb = g['jtj'].shape[0]
+    sb, sc = sol[:nb], sol[nb:]
+    n = sums.n
+    u = {}
+    for jj, idx, c in cols:
+        du = np.tensordot(sc[idx], c, axes=(0, 0)) / sigma[jj - 1]          # (N, 3)
+        u[jj] = u.get(jj, 0.0) + du
+    # the profiled field takes up the part of the term along the field directions
+    gtu = np.zeros((2, n))
+    for gi, j in enumerate(sums.sensors):
+        if j in u:
+            for a in range(2):
+                gtu[a] += sum(g['gb'][gi][i][a] * u[j][:, i] for i in range(3))
+    (i00, i01), (i10, i11) = g['ginv']
+    mg = [i00 * gtu[0] + i01 * gtu[1], i10 * gtu[0] + i11 * gtu[1]]
+    out = {}
+    for gi, j in enumerate(sums.sensors):
+        du = u.get(j, np.zeros((n, 3)))
+        du = du - np.stack([g['gb'][gi][i][0] * mg[0] + g['gb'][gi][i][1] * mg[1]
+                            for i in range(3)], axis=1)
+        r = g['r'][gi] + g['js'][gi] @ sb + du.reshape(-1)
+        out[j] = math.sqrt(float(r @ r) / float(sums.floor_epoch[gi].sum()))
+    return out
+
+
+@dataclass
+class Localized:
+    """
+    An excess over the floor confined to one interval of time (a model-free description).
+
+    Attributes
+    ----------
+    t0, t1 : float
+        The interval, s.
+    sensors : tuple of int
+        The sensors that carry it (each holding at least 10 % of the excess inside).
+    share : float
+        Share of the excess (over the floor, every sensor) inside the interval.
+    ratios_outside : dict
+        {sensor: residual RMS / floor outside the interval}.
+    vector : bool
+        Whether it is mostly across the field (vector) rather than along it (scalar).
+
+    """
+
+    t0: float
+    t1: float
+    sensors: tuple
+    share: float
+    ratios_outside: dict
+    vector: bool
+
+    @property
+    def token(self):
+        """Return the formula term that leaves the interval out: 'drop(t0, t1)'."""
+        return f'drop({bases.fmt(self.t0)}, {bases.fmt(self.t1)})'
+
+
+#: share of an interval's excess its 5 % largest epochs may hold (more: outliers, not a
+#: disturbance confined in time)
+SPIKE_SHARE = 0.5
+#: a disturbance is localised when its interval is at most this share of the record
+MAX_LOCALISED_FRACTION = 0.25
+
+
+def localised(t, sums):
+    """
+    Describe an excess confined in time, or None (model-free; see :class:`Localized`).
+
+    ``sums``: the :class:`BlockSums` of the base fit, its floor set.  The per-epoch excess of
+    every sensor over what it holds at the floor is summed over the sensors; the interval of
+    largest total excess (the maximum-sum subarray, Kadane's algorithm) must hold at least
+    half of the whole excess.  Widened by 0, 1, 2 or 5 % of the record on each side, the
+    base model is refitted (linearised) without it; the first interval after which every
+    sensor is within :data:`FLOOR_RATIO` of its floor is returned, if it is at most
+    :data:`MAX_LOCALISED_FRACTION` of the record.
+    """
+    t = np.asarray(t, float)
+    g = sums.g
+    n, sens = sums.n, sums.sensors
+    if n < 100:
+        return None
+    span = float(t[-1] - t[0])
+    fe = sums.floor_epoch
+    dt = float(np.median(np.diff(t)))
+    nsens = len(sens)
+
+    def refit_outside(out):
+        rows = np.repeat(out, 3)
+        jtj = sum(g['js'][gi][rows].T @ g['js'][gi][rows] for gi in range(nsens))
+        jtr = sum(g['js'][gi][rows].T @ g['r'][gi][rows] for gi in range(nsens))
+        return solve_psd(jtj, -jtr)
+    step = np.zeros(g['jtj'].shape[0])
+    for _ in range(3):
+        res = [(g['r'][gi] + g['js'][gi] @ step).reshape(n, 3) for gi in range(nsens)]
+        ex_j = np.stack([np.sum(r ** 2, axis=1) for r in res]) - fe      # (S, N) signed
+        ex = ex_j.sum(axis=0)
+        total = float(ex.sum())
+        if total <= 0:
+            return None
+        # the interval of largest excess above half the mean excess per epoch (maximum-sum
+        # subarray, Kadane): a concentration, not the whole record
+        cum = np.concatenate([[0.0], np.cumsum(ex - 0.5 * total / n)])
+        low = np.minimum.accumulate(cum)
+        i1 = int(np.argmax(cum - low))
+        i0 = int(np.argmax(cum[:i1 + 1] == low[i1]))
+        if i1 <= i0:
+            return None
+        for margin in (0.0, 0.01, 0.02, 0.05):
+            a = int(np.searchsorted(t, t[i0] - margin * span))
+            b = min(n - 1, int(np.searchsorted(t, t[i1 - 1] + margin * span, side='right')) - 1)
+            if t[b] - t[a] > MAX_LOCALISED_FRACTION * span:
+                return None
+            out = np.ones(n, bool)
+            out[a:b + 1] = False
+            st = refit_outside(out)
+            rat = {}
+            for gi, j in enumerate(sens):
+                r = (g['r'][gi] + g['js'][gi] @ st).reshape(n, 3)[out]
+                rat[j] = math.sqrt(float(np.sum(r ** 2)) / float(fe[gi, out].sum()))
+            if margin == 0.0:
+                step_next = st
+            if max(rat.values()) <= FLOOR_RATIO:
+                # a disturbance, not a few outliers: the 5 % largest epochs of the interval
+                # must not hold half of its excess (heavy-tailed noise: fit --robust)
+                pos = np.sort(np.clip(ex[a:b + 1], 0.0, None))[::-1]
+                if pos[:max(1, len(pos) // 20)].sum() > SPIKE_SHARE * pos.sum():
+                    return None
+                inside = np.clip(ex_j[:, a:b + 1].sum(axis=1), 0.0, None)
+                carry = tuple(int(sens[gi])
+                              for gi in np.flatnonzero(inside >= 0.1 * inside.sum()))
+                q = 10.0 ** math.floor(math.log10(dt)) if dt > 0 else 1.0
+                return Localized(t0=float(np.floor(t[a] / q) * q),
+                                 t1=float(np.ceil(t[b] / q) * q), sensors=carry,
+                                 share=float(np.clip(ex[a:b + 1].sum() / total, 0, 1)),
+                                 ratios_outside=rat, vector=False)
+        step = step_next
+    return None

@@ -1,0 +1,109 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The geometry of a turn about one axis: its axis, its circle, the angle it has swept.
+
+A sensor turned about one axis n (a robot turning in place) reads a circle in the plane
+perpendicular to n, about its offset, and a constant along n.  These functions read that
+from the readings alone, with no model: :func:`turn_axis`, :func:`circle_centre` (the
+algebraic circle fit), :func:`swept_angle` (what the node's ``calibration/turn`` counts) and
+:func:`planar_magnitude` (a shape-only field magnitude for a turn).  The planar calibration
+itself is :mod:`magcal_ros.core.model.planar`.  Units: nT, rad.
+"""
+import numpy as np
+
+#: the smallest radius (a fraction of the field) of a circle counted as a turn by
+#: :func:`swept_angle`: 2 % is a cone of a little over 1 deg, far above any sensor's noise
+MIN_TURN_RADIUS = 0.02
+
+
+class PlanarError(ValueError):
+    """The data are not a turn about one axis that planar mode can use."""
+
+
+def turn_axis(m):
+    """
+    Return the unit axis (3,) of a turn, in the sensor frame, from readings m (N, 3) nT.
+
+    The readings of a turn lie on a circle: the axis is the direction in which they spread
+    least (the smallest principal axis of their scatter), signed to point along the mean
+    reading's component on it (towards the field's part along the axis).
+    """
+    m = np.asarray(m, float)
+    c = m - m.mean(axis=0)
+    w, v = np.linalg.eigh(c.T @ c / len(m))
+    n = v[:, 0]
+    if w[1] <= 0 or w[0] > 0.25 * w[1]:
+        raise PlanarError(
+            'the readings do not lie near one plane (principal spreads '
+            f'{", ".join(f"{np.sqrt(max(x, 0)):.0f}" for x in w)} nT): the sensor did not turn '
+            'about one axis; planar mode is for a turn in place about one axis (drop '
+            '--planar for a full calibration)')
+    return n if n @ m.mean(axis=0) >= 0 else -n
+
+
+def circle_centre(xy):
+    """Centre (2,) of the least-squares circle through points xy (N, 2) (algebraic, Kasa)."""
+    xy = np.asarray(xy, float)
+    design = np.column_stack([2 * xy, np.ones(len(xy))])
+    sol, *_ = np.linalg.lstsq(design, (xy ** 2).sum(axis=1), rcond=None)
+    return sol[:2]
+
+
+def planar_magnitude(raw, axis):
+    """
+    Return a shape-only magnitude (nT) for a turn with no reference.
+
+    The in-plane radius about the circle's centre combined with the mean reading along the
+    axis; raw (N, 3) nT, axis (3,) unit.  The common scale of the sensor is then arbitrary (no
+    reference fixes it); the shape, hence the heading, is not.
+    """
+    raw = np.asarray(raw, float)
+    k = int(np.argmax(np.abs(axis)))
+    plane = [a for a in range(3) if a != k]
+    centre = circle_centre(raw[:, plane])
+    r = float(np.median(np.linalg.norm(raw[:, plane] - centre, axis=1)))
+    return float(np.hypot(r, np.mean(raw[:, k])))
+
+
+def swept_angle(m):
+    """
+    Angle (rad, >= 0) a sensor's readings m (N, 3) nT have swept about the turn axis.
+
+    The readings of a turn draw a circle about the offset, not about the origin: the
+    angle is unwrapped about the circle's centre (:func:`circle_centre`) in the plane of the
+    turn (:func:`turn_axis`; the sensor's z axis while the readings are too few to tell),
+    from the first reading to the last.  The node's ``calibration/turn`` stops the robot
+    when this reaches the turns asked for: the turn as the sensor saw it, not as the wheels
+    were told.
+    """
+    m = np.asarray(m, float)
+    if len(m) < 8:
+        return 0.0
+    try:
+        n = turn_axis(m)
+    except PlanarError:
+        n = np.array([0.0, 0.0, 1.0])
+    k = int(np.argmax(np.abs(n)))
+    plane = [a for a in range(3) if a != k]
+    xy = m[:, plane]
+    c = circle_centre(xy)
+    radius = np.linalg.norm(xy - c, axis=1)
+    if np.median(radius) < MIN_TURN_RADIUS * np.median(np.linalg.norm(m, axis=1)):
+        # a sensor that does not turn: its noise scatters about a point, and a circle fitted
+        # to the scatter sweeps any angle
+        return 0.0
+    ang = np.unwrap(np.arctan2(xy[:, 1] - c[1], xy[:, 0] - c[0]))
+    return float(abs(ang[-1] - ang[0]))
