@@ -25,8 +25,8 @@ Schedule (rate per sensor; nominal is the driver's default 100 Hz): 100 Hz for 3
 for 6 s (10x, 4000 messages/s in), 100 Hz for 3 s, 1000 Hz for 6 s again, 100 Hz for 3 s.
 Each phase is as long as its figures need: a 1 kHz queue of 25 fills in 25 ms, so 6 s of
 burst are 240 times the time to saturate and hold 24 000 input messages (a leak shows
-against that count, below); 3 s at 100 Hz give 1 200 latencies per nominal phase (a p99
-from its 12 largest) and the 2 s of memory samples the comparison takes (8 of them).
+against that count, below); 3 s at 100 Hz give 1 200 latencies per nominal phase (its median
+and 90th percentile) and the 2 s of memory samples the comparison takes (8 of them).
 Each message carries its publish time in the stamp (unique, increasing), which the
 corrector copies to its output; the load process keeps the sequence number of each stamp,
 so it measures loss, order and latency (receive time - publish time) per phase.
@@ -48,6 +48,9 @@ import numpy as np
 #: (rate per sensor Hz, duration s) of each phase
 SCHEDULE = [(100.0, 3.0), (1000.0, 6.0), (100.0, 3.0), (1000.0, 6.0), (100.0, 3.0)]
 N_SENSORS = 4
+#: the corrector's input queue per sensor (magcal_ros.ros.calibration_node.SENSOR_QOS: keep
+#: the last 25, a quarter second of 100 Hz), as the module docstring states it
+QUEUE_DEPTH = 25
 
 # -- the load process (publisher + receiver) ------------------------------------------------
 
@@ -173,7 +176,7 @@ def _load_main(argv):
             ph, published=int((s1 - s0) * N_SENSORS), received=int(got.sum()),
             received_per_sensor=got.sum(axis=1).tolist(), in_order=all(order),
             latency_ms=pct(lat[settled]), latency_first_500ms_ms=pct(lat[early]),
-            latency_last_s_ms=pct(lat[last_s]),
+            latency_last_s_ms=pct(lat[last_s]), received_last_s=int(last_s.sum()),
             last_received=[int(np.flatnonzero(got[j])[-1]) + s0 if got[j].any() else None
                            for j in range(N_SENSORS)]))
     print(json.dumps(out), flush=True)
@@ -255,30 +258,34 @@ def test_corrector_under_a_10x_burst(start_process, ros_namespace, tmp_path):
     # during a burst the corrector keeps working on the newest samples (the oldest queued
     # are dropped): each sensor's output reaches the burst's last second, and the latency
     # there stays bounded
-    # Had the queue kept every sample, the samples would wait behind the backlog:
-    # (published - received) samples at the rate the corrector managed, seconds. The bounds
-    # are relative to that age and to this run's own baseline phase, never wall-clock
-    # constants (the shared machine's speed is not what is tested).
-
-    def backlog_ms(burst):
-        rate_done = burst['received'] / (burst['t1'] - burst['t0'])
-        return 1e3 * (burst['published'] - burst['received']) / rate_done
-
     for p in (burst1, burst2):
         assert all(last is not None and last >= p['seq1'] - p['rate_hz'] for last in
                    p['last_received']), p
         assert p['received'] > 0.1 * p['published'], p
-        # the newest samples are served: latency at the burst's end far below the backlog
-        # (or near the baseline, if the corrector kept up with the burst)
-        assert p['latency_last_s_ms']['p50'] < max(5.0 * base['latency_ms']['p50'],
-                                                   backlog_ms(p) / 5.0), (backlog_ms(p), p)
-    # after the burst: latency back near this run's baseline (a few ms on an idle machine:
-    # DDS delivery, a 3x3 product, Python scheduling), far below the backlog's age
+    # The latency bounds follow from the queue, not from the latencies under test: a sample
+    # waits behind at most QUEUE_DEPTH samples of each of the N_SENSORS subscriptions, taken
+    # at the rate the corrector took them in the burst's last second (at most its capacity),
+    # so the wait is at most drain_ms(burst) (30-50 ms at load 15, where 24-28 ms were
+    # measured with the queue full). Delivery without any queue (DDS, Python scheduling on
+    # the shared machine) is this run's baseline phase, its 90th percentile the allowance
+    # for that jitter when compared with a median. A queue keeping every sample gives its
+    # backlog's age instead (2.5 s at the burst's end with a 5000-deep queue, checked).
+
+    def drain_ms(burst):
+        return 1e3 * N_SENSORS * QUEUE_DEPTH / burst['received_last_s']   # in 1 s
+
+    jitter = base['latency_ms']['p90']
+    for p in (burst1, burst2):
+        assert p['latency_last_s_ms']['p50'] < jitter + drain_ms(p), (drain_ms(p), p)
+    # after the burst: the leftover queue is served within drain_ms, so the phase's first
+    # 0.5 s has a median within it, and what follows (drain_ms well below 0.5 s) is delivery
+    # alone. Not the 99th percentiles: stalls of the shared machine (p99 44-176 ms, max
+    # 116-192 ms in every phase at load 15, the baseline's included) are no property of the
+    # corrector.
     for burst, p in ((burst1, nominal1), (burst2, nominal2)):
-        assert p['latency_ms']['p50'] < max(5.0 * base['latency_ms']['p50'],
-                                            backlog_ms(burst) / 20.0), (backlog_ms(burst), p)
-        assert p['latency_ms']['p99'] < max(5.0 * base['latency_ms']['p99'],
-                                            backlog_ms(burst) / 5.0), (backlog_ms(burst), p)
+        assert drain_ms(burst) < 500.0, (drain_ms(burst), burst)
+        assert p['latency_first_500ms_ms']['p50'] < jitter + drain_ms(burst), (drain_ms(burst), p)
+        assert p['latency_ms']['p50'] < jitter, (jitter, p)
     # memory: a second identical burst must not grow it: 2 MiB is what a leak of 90 bytes
     # per input message would add (24 000 per burst; one leaked MagneticField with its
     # header and covariance is several hundred bytes); the first burst may fill allocator

@@ -177,17 +177,22 @@ def test_readme_ros_commands_work_with_defaults(start_process, ros_node, ros_exe
                 assert '"coverage":{"1":' in head, head
             else:
                 # the corrector applies the calibration the node reported: the tensor of the
-                # uniform simulated field is zero up to the error the calibrate reply gives
-                # (per sensor total-field RMS: the 3 nT noise on a quiet machine, more when
-                # load made the stamps pair samples of different epochs), propagated
-                # through the cross; the median |G_ik| of white errors is 0.67 sd, the bound
-                # 2 sd. Uncalibrated it is ~3000 nT/m; in nT/m units (not T/m) 1e9 x more.
+                # uniform simulated field is zero up to the simulator's 3 nT white noise per
+                # axis propagated through the cross (a calibration from ~2500 sets adds about
+                # 1/sqrt(2500) of that); the median |G_ik| of white errors is 0.67 sd, the
+                # bound 2 sd. Uncalibrated it is ~3000 nT/m; in nT/m units (not T/m) 1e9 x
+                # more. Not the calibrate reply's RMS: a calibration biased by sets paired
+                # from different epochs (the node starved of CPU: 69-188 sets per sensor
+                # flagged inconsistent and kept, total-field RMS 3-188 nT) gave medians of
+                # 58-550 nT/m off the diagonal, which such a bound accepted. The reply's
+                # figures are printed on failure.
                 _, cal = split_response(replies['/magcal/calibration/calibrate'])
-                sigma = max(SIM_NOISE_NT, max(cal['scalar_rms_after_nt'].values()))
                 spin_until(ros_executor, lambda: len(box) >= 100, 30.0, '100 tensors')
                 g = np.abs([msg_to_tensor(m) for m in box])          # nT/m
-                floor = tensor_noise_floor(sigma, cross_positions(0.5))
-                assert np.all(np.median(g, axis=0) < 2.0 * floor), (np.median(g, 0), floor, cal)
+                floor = tensor_noise_floor(SIM_NOISE_NT, cross_positions(0.5))
+                assert np.all(np.median(g, axis=0) < 2.0 * floor), (
+                    np.median(g, 0), floor, {k: cal[k] for k in (
+                        'scalar_rms_after_nt', 'resync', 'outlier_sets_excluded', 'warnings')})
         elif words[1:3] == ['param', 'set']:
             node_name, pname, value = words[3], words[4], yaml.safe_load(words[5])
             client = ros_node.create_client(SetParameters, f'{node_name}/set_parameters')
