@@ -37,7 +37,7 @@ from common import add_common_args, table, write_result  # noqa: I100
 from magcal_ros.core.data.noise import data_noise_floor
 from magcal_ros.core.data.reduce import reduce_chunks
 from magcal_ros.core.data.simulate import simulate
-from magcal_ros.core.diagnose import diagnose
+from magcal_ros.core.discovery import diagnose
 from magcal_ros.core.model import fit
 import numpy as np
 

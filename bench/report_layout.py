@@ -58,7 +58,7 @@ def main(argv=None):
 
     import matplotlib
     from magcal_ros import report
-    from magcal_ros.core.diagnose import diagnose
+    from magcal_ros.core.discovery import diagnose
     from magcal_ros.core.model import fit
     from magcal_ros.core.data.simulate import simulate
     import numpy as np

@@ -146,7 +146,7 @@ def test_reduction_keeps_the_field_rate_and_the_statistics_of_every_epoch(record
 
 def test_reduced_fit_and_verdict_agree_with_the_record_held_in_memory():
     # the held-out style: a hidden temperature effect on sensor 2, 4 x 12 000 epochs
-    from magcal_ros.core.diagnose import diagnose
+    from magcal_ros.core.discovery import diagnose
     data, _ = simulate(n_samples=12000, rate_hz=20.0, trajectory='smooth', seed=11,
                        truth={'temperature@2': [3.0, -2.0, 1.5, 0.0, 0.0, 0.0]})
     red = reduce_chunks(pieces(data, 5000), sample=1500)

@@ -18,7 +18,7 @@ import shutil
 import tempfile
 
 
-def atomic_write_text(path, text, backup=True, fsync=os.fsync):
+def atomic_write_text(path, text, backup=True, fsync=os.fsync, binary=None):
     """
     Write ``text`` to ``path`` so that readers see the old or the new file, never a mix.
 
@@ -27,7 +27,7 @@ def atomic_write_text(path, text, backup=True, fsync=os.fsync):
     The previous file, if any, is kept as ``<path>.bak`` when ``backup`` is true.  If anything
     fails before the final rename the original file is untouched and the temporary is removed.
     ``fsync`` is injectable so that tests can simulate a failing disk.  ``text`` may be
-    ``bytes`` (written as they are).
+    ``bytes`` (written as they are), or an iterable of bytes with ``binary=True``.
     """
     path = os.fspath(path)
     directory = os.path.dirname(os.path.abspath(path))
@@ -35,7 +35,7 @@ def atomic_write_text(path, text, backup=True, fsync=os.fsync):
     fd, tmp = tempfile.mkstemp(prefix='.' + os.path.basename(path) + '.', suffix='.tmp',
                                dir=directory)
     try:
-        binary = isinstance(text, bytes)
+        binary = isinstance(text, bytes) if binary is None else binary
         with os.fdopen(fd, 'wb' if binary else 'w',
                        **({} if binary else {'encoding': 'utf-8'})) as fh:
             for part in ([text] if isinstance(text, (str, bytes)) else text):

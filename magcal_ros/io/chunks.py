@@ -170,5 +170,7 @@ def write_csv_chunks(path, pieces, comment=None):
                 text = text.split('\n', 1)[1]          # the header once
             count[0] += piece.n_samples
             yield text
-    atomic_write_text(path, parts(), backup=False)
+    from magcal_ros.io.compressed import compress_parts, compression
+    atomic_write_text(path, compress_parts(path, parts()), backup=False,
+                      binary=compression(path) is not None)
     return count[0]

@@ -51,6 +51,30 @@ def compress_text(path, text):
     return text
 
 
+def compress_parts(path, parts):
+    """
+    Compress an iterable of str ``parts`` as the name of ``path`` says, as they come.
+
+    Yields bytes (one gzip member or one zstd frame for the whole stream); for a plain name,
+    the str parts unchanged.  Memory is that of one part, whatever the length.
+    """
+    kind = compression(path)
+    if kind is None:
+        yield from parts
+        return
+    if kind == 'gzip':
+        import zlib
+        z = zlib.compressobj(9, zlib.DEFLATED, 31)        # wbits 31: the gzip container
+    else:
+        import zstandard
+        z = zstandard.ZstdCompressor(level=10).compressobj()
+    for part in parts:
+        out = z.compress(part.encode('utf-8'))
+        if out:
+            yield out
+    yield z.flush()
+
+
 def _zstd_errors():
     import zstandard
     return (zstandard.ZstdError,)
