@@ -141,7 +141,8 @@ def test_wrapper_merge_rules():
     (FluxgateDriver, {'n_sensors': 2, 'sensor1.port': '/nonexistent/a',
                       'sensor2.port': '/nonexistent/b'},
      ['fluxgate_driver: sensor1', 'fluxgate_driver: sensor2']),
-    (CalibrationNode, {}, ['calibration_node: residual', 'calibration_node: setup']),
+    (CalibrationNode, {}, ['calibration_node: residual', 'calibration_node: buffer',
+                           'calibration_node: setup']),
     (CorrectorNode, {}, ['corrector_node: correction']),
 ])
 def test_every_node_publishes_through_the_updater(make_node, ros_node, ros_executor,
