@@ -7,7 +7,9 @@
 #   make clean   remove build products and caches (keeps .venv); distclean also removes .venv
 #
 # Variables: PYTHON (a Python 3.11 for the venv, default: found on PATH), TEST_TIMEOUT (seconds per
-# test, default 180), PYTEST_ARGS (extra pytest arguments, e.g. PYTEST_ARGS='-k conversions').
+# test, default 300), TEST_WORKERS (pytest-xdist processes, default 3: the live tests mostly wait
+# on real time, so three share two cores well; 0 runs in this process), PYTEST_ARGS (extra pytest
+# arguments, e.g. PYTEST_ARGS='-k conversions').
 
 SHELL := /bin/bash
 .DEFAULT_GOAL := test
@@ -16,7 +18,8 @@ PYTHON ?=
 VENV := .venv
 VPY := $(VENV)/bin/python
 STAMP := $(VENV)/.magcal_setup_stamp
-TEST_TIMEOUT ?= 180
+TEST_TIMEOUT ?= 300
+TEST_WORKERS ?= 3
 PYTEST_ARGS ?=
 # Loopback-only DDS, per-run ROS_DOMAIN_ID, .venv/bin on PATH (see scripts/ros_env.sh).
 ROS_ENV := source scripts/ros_env.sh &&
@@ -32,7 +35,7 @@ $(STAMP): requirements.txt setup.py setup.cfg package.xml scripts/setup_env.sh \
 	PYTHON='$(PYTHON)' VENV='$(CURDIR)/$(VENV)' scripts/setup_env.sh
 
 test: setup
-	$(ROS_ENV) $(VPY) -m pytest test -p no:cacheprovider -ra --durations=15 --timeout=$(TEST_TIMEOUT) $(PYTEST_ARGS)
+	$(ROS_ENV) $(VPY) -m pytest test -p no:cacheprovider -ra --durations=25 --timeout=$(TEST_TIMEOUT) -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS)
 
 demo: setup
 	$(ROS_ENV) scripts/demo.sh

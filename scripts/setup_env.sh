@@ -62,7 +62,7 @@ import importlib
 for name in ('rclpy', 'rclpy.executors', 'sensor_msgs.msg', 'std_msgs.msg', 'std_srvs.srv',
              'diagnostic_msgs.msg', 'numpy', 'scipy', 'serial', 'yaml', 'matplotlib',
              'rosbags', 'ppigrf', 'zstandard', 'jsonschema', 'tqdm', 'pytest', 'hypothesis',
-             'pytest_timeout', 'colcon_core', 'magcal_ros'):
+             'pytest_timeout', 'xdist', 'colcon_core', 'magcal_ros'):
     importlib.import_module(name)
 PY
 for exe in "${EXECUTABLES[@]}"; do

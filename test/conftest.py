@@ -24,7 +24,8 @@ inherited by every process the tests start:
 - ``ROS_AUTOMATIC_DISCOVERY_RANGE=SYSTEM_DEFAULT`` so the profile is used unchanged,
   ``RMW_IMPLEMENTATION=rmw_fastrtps_cpp``; ``ROS_LOCALHOST_ONLY`` and ``ROS_STATIC_PEERS``
   are removed.
-- ``ROS_DOMAIN_ID``: chosen per run in 1..101, starting from the PID and skipping domains
+- ``ROS_DOMAIN_ID``: chosen per run (per pytest-xdist worker) in 1..101, starting from the
+  PID (spread by the worker's index) and skipping domains
   whose Fast DDS ports are already bound on this machine, so parallel runs do not meet.
   Set ``MAGCAL_TEST_ROS_DOMAIN_ID`` to force one.
 
@@ -83,7 +84,11 @@ def _configure_ros_environment():
     os.environ.pop('ROS_LOCALHOST_ONLY', None)
     os.environ.pop('ROS_STATIC_PEERS', None)
     forced = os.environ.get('MAGCAL_TEST_ROS_DOMAIN_ID')
-    os.environ['ROS_DOMAIN_ID'] = str(int(forced) if forced else pick_domain_id())
+    # pytest-xdist workers (gw0, gw1, ...) start side by side: each from its own PID, spread
+    # by its index so that two never probe the same free domain at once
+    worker = os.environ.get('PYTEST_XDIST_WORKER', 'gw0')[2:]
+    seed = os.getpid() + 31 * (int(worker) if worker.isdigit() else 0)
+    os.environ['ROS_DOMAIN_ID'] = str(int(forced) if forced else pick_domain_id(seed))
     os.environ.setdefault('RCUTILS_COLORIZED_OUTPUT', '0')
     os.environ.setdefault('MPLBACKEND', 'Agg')
 

@@ -125,12 +125,14 @@ def test_magnetic_field_between_processes_over_loopback(ros_node, ros_executor, 
         response = call_trigger(ros_node, ros_executor, 'smoke/ping', timeout_sec=20.0)
         assert (response.success, response.message) == (True, f'pong {k}')
 
-    # DDS sockets of both processes: UDP only, bound to 127.0.0.1 only.
+    # DDS sockets of both processes: UDP only, bound to 127.0.0.1 only.  The publisher runs
+    # rclpy alone: no TCP at all.  This process also runs the test runner, whose pytest-xdist
+    # plug-in holds a TCP socket on 127.0.0.1 (not DDS): here every socket is on loopback.
     for pid in (pub.pid, os.getpid()):
         sockets = bound_inet_sockets(pid)
         assert any(proto == 'udp' for proto, _, _ in sockets), f'no UDP socket in {pid}'
         assert _non_loopback(sockets) == [], f'non-loopback sockets of {pid}: {sockets}'
-        assert [s for s in sockets if s[0].startswith('tcp')] == []
+    assert [s for s in bound_inet_sockets(pub.pid) if s[0].startswith('tcp')] == []
 
     # SIGINT gives the publisher a clean rclpy shutdown.
     assert pub.stop() == 0, pub.log_tail()
