@@ -1,15 +1,16 @@
 # magcal_ros project tasks. `make test` is what CI runs (.ci/run).
 #
 #   make setup   create/update .venv (Python 3.11, ROS 2 Jazzy wheels, deps, editable install)
-#   make test    setup, then pytest on test/ in the loopback-only ROS environment
+#   make test    setup, then pytest on test/ in the loopback-only ROS environment: all but the
+#                live ROS pipelines on pytest-xdist workers, then those one at a time
 #   make demo    setup, then scripts/demo.sh in the loopback-only ROS environment
 #   make bench   setup, then bench/run_all.py
 #   make clean   remove build products and caches (keeps .venv); distclean also removes .venv
 #
 # Variables: PYTHON (a Python 3.11 for the venv, default: found on PATH), TEST_TIMEOUT (seconds per
-# test, default 300), TEST_WORKERS (pytest-xdist processes, default 3: the live tests mostly wait
-# on real time, so three share two cores well; 0 runs in this process), PYTEST_ARGS (extra pytest
-# arguments, e.g. PYTEST_ARGS='-k conversions').
+# test, default 300), TEST_WORKERS (pytest-xdist processes for all but the live pipelines, default
+# 3; 0 runs in this process; the live pipelines, marked `live` in test/conftest.py, always run one
+# at a time after the rest), PYTEST_ARGS (extra pytest arguments, e.g. PYTEST_ARGS='-k conversions').
 
 SHELL := /bin/bash
 .DEFAULT_GOAL := test
@@ -35,7 +36,8 @@ $(STAMP): requirements.txt setup.py setup.cfg package.xml scripts/setup_env.sh \
 	PYTHON='$(PYTHON)' VENV='$(CURDIR)/$(VENV)' scripts/setup_env.sh
 
 test: setup
-	$(ROS_ENV) $(VPY) -m pytest test -p no:cacheprovider -ra --durations=25 --timeout=$(TEST_TIMEOUT) -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS)
+	$(ROS_ENV) $(VPY) -m pytest test -p no:cacheprovider -ra --durations=15 --timeout=$(TEST_TIMEOUT) -m 'not live' -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS) || [ $$? -eq 5 ]
+	$(ROS_ENV) $(VPY) -m pytest test -p no:cacheprovider -ra --durations=15 --timeout=$(TEST_TIMEOUT) -m live $(PYTEST_ARGS) || [ $$? -eq 5 ]
 
 demo: setup
 	$(ROS_ENV) scripts/demo.sh

@@ -128,3 +128,26 @@ def pytest_runtest_makereport(item, call):
 def pytest_sessionfinish(session, exitstatus):
     ros_helpers.stop_all_processes()
     open_audit.pytest_sessionfinish(session, exitstatus)
+
+
+#: test files whose pipelines of ROS processes stream real-time data and judge it against the
+#: noise: `make test` runs them one at a time after the rest (which runs on pytest-xdist
+#: workers), because two of them side by side on two cores starve each other's streams
+LIVE_FILES = frozenset({
+    'test_calibration_node.py', 'test_calibration_residual.py', 'test_corrector_node.py',
+    'test_demo.py', 'test_demo_loop.py', 'test_driver_node.py', 'test_e2e.py',
+    'test_field_rate_live.py', 'test_geometry_e2e.py', 'test_geometry_nodes.py',
+    'test_planar_node.py', 'test_reliability_calibration.py', 'test_reliability_driver.py',
+    'test_reliability_load.py', 'test_ros_user.py', 'test_sim_node.py',
+    'test_site_gradient_ros.py'})
+
+
+def pytest_configure(config):
+    config.addinivalue_line('markers', 'live: a live ROS pipeline judged against the noise '
+                            '(conftest.LIVE_FILES; `make test` runs these serially)')
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if item.path.name in LIVE_FILES:
+            item.add_marker(pytest.mark.live)

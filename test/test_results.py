@@ -139,7 +139,7 @@ def test_fit_and_diagnose_show_every_keyword():
     kw, var = _keywords(fit)
     assert kw == {'robust', 'f_scale', 'constrained', 'priors', 'sigma_nt', 'on_degenerate',
                   'max_fit_samples', 'init', 'max_nfev', 'check_identifiability', 'solver',
-                  'covariance', 'ftol'}
+                  'covariance', 'ftol', 'extra_priors'}
     assert var == []
     kw, var = _keywords(diagnose)
     assert kw == {'base', 'folds', 'alpha', 'max_refit', 'candidates', 'progress',
