@@ -99,6 +99,18 @@ def _read(path, fast, fill=False):
             raise _Recheck()
     else:
         _check_finite(path, header, arr, rows_no, cells)
+    return _dataset(path, header, sensors, plane_col, arr, rows_no,
+                    np.array(planes) if plane_col is not None else None,
+                    recheck=fast)
+
+
+def _dataset(path, header, sensors, plane_col, arr, rows_no, planes, recheck=False):
+    """
+    Return the checked rows ``arr`` (R, C) of a wide CSV as a :class:`Dataset` (both readers).
+
+    ``rows_no`` (R,) are the rows' line numbers (for the messages); with ``recheck`` a bad
+    attitude sends the fast reader back to the row-by-row one, which names the line.
+    """
     n_s = max(sensors)
     col = {h: arr[:, i] for i, h in enumerate(header)}
     t = col['t']
@@ -123,12 +135,11 @@ def _read(path, fast, fill=False):
             attitude = check_quaternions(np.column_stack([col[c] for c in ATT_COLUMNS]),
                                          rows=rows_no)
         except ValueError as exc:
-            if fast:
+            if recheck:
                 raise _Recheck() from None
             raise CsvFormatError(f'{path}: {exc}') from None
     return Dataset(t=t, raw=raw, temp=temp, ref_total=col.get('ref_total'), ref_vec=ref_vec,
-                   angle_deg=col.get('angle_deg'),
-                   plane=np.array(planes) if plane_col is not None else None,
+                   angle_deg=col.get('angle_deg'), plane=planes,
                    aux={h: col[h] for h in header if h.startswith('aux_')},
                    meta={'source': path}, attitude=attitude)
 
@@ -351,34 +362,5 @@ def build_dataset(path, layout, arr, rows_no, lines, planes=None):
     ``rows_no`` (R,) are their line numbers and ``lines`` their text (for the messages).
     """
     header, sensors, plane_col = layout
-    n_s = max(sensors)
     _check_finite(path, header, arr, rows_no, _Cells(lines))
-    col = {h: arr[:, i] for i, h in enumerate(header)}
-    t = col['t']
-    if len(t) and (not np.all(np.isfinite(t)) or np.any(np.diff(t) < 0)):
-        raise CsvFormatError(f'{path}: column t must be finite and non-decreasing')
-    raw = np.stack([np.column_stack([arr[:, sensors[j][a]] for a in 'xyz'])
-                    for j in range(1, n_s + 1)])
-    temp = None
-    if any('temp' in sensors[j] for j in sensors):
-        temp = np.stack([arr[:, sensors[j]['temp']] if 'temp' in sensors[j]
-                         else np.full(len(t), np.nan) for j in range(1, n_s + 1)])
-    ref_vec = (np.column_stack([col['ref_x'], col['ref_y'], col['ref_z']])
-               if 'ref_x' in col else None)
-    attitude = None
-    have_att = [c for c in ATT_COLUMNS if c in col]
-    if have_att:
-        if len(have_att) != 4:
-            raise CsvFormatError(f'{path}: attitude needs all four columns '
-                                 f'{", ".join(ATT_COLUMNS)}; missing '
-                                 f'{", ".join(c for c in ATT_COLUMNS if c not in col)}')
-        try:
-            attitude = check_quaternions(np.column_stack([col[c] for c in ATT_COLUMNS]),
-                                         rows=rows_no)
-        except ValueError as exc:
-            raise CsvFormatError(f'{path}: {exc}') from None
-    return Dataset(t=t, raw=raw, temp=temp, ref_total=col.get('ref_total'), ref_vec=ref_vec,
-                   angle_deg=col.get('angle_deg'),
-                   plane=planes if plane_col is not None else None,
-                   aux={h: col[h] for h in header if h.startswith('aux_')},
-                   meta={'source': path}, attitude=attitude)
+    return _dataset(path, header, sensors, plane_col, arr, rows_no, planes)
