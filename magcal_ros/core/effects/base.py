@@ -497,3 +497,18 @@ def first_order_lag(t, x, tau):
     # steady state at the first sample: y[0] = b0 x0 + z0 = x0
     y, _ = lfilter(b, [1.0, -a], xs, zi=np.array([(1.0 - b[0]) * xs[0]]))
     return y if uniform else np.interp(t, grid, y)
+
+
+def lag_step(state, t, x, tau):
+    """
+    One sample of a first-order lag for the live correction: ((t, y) state, y).
+
+    ``state`` is the previous (t s, y) or None; ``x`` the input at ``t`` s, ``tau`` s.
+    y <- x + (y - x) exp(-dt / tau), the exact response to x held since the last sample; the
+    first sample (or a time that does not advance) starts in steady state, y = x.
+    """
+    if state is None or t <= state[0]:
+        y = x
+    else:
+        y = x + (state[1] - x) * math.exp(-(t - state[0]) / max(abs(float(tau)), 1e-9))
+    return (t, y), y

@@ -21,10 +21,9 @@ gradient of the array.  In the formula grammar (:mod:`magcal_ros.core.effects.fo
 each is an alias of a composition coupling(driver)@scope (:mod:`.aliases`), evaluated by
 the class below (the same numbers as the composition, test/test_grammar.py).
 """
-import math
 
-from magcal_ros.core.effects.base import (channel_name, channel_values, check_channel,
-                                          Effect, first_order_lag, format_arg,
+from magcal_ros.core.effects.base import (channel_name, channel_values, check_channel, Effect,
+                                          first_order_lag, format_arg, lag_step,
                                           misalignment_angles, misalignment_matrix,
                                           NONLINEARITY_FULL_SCALE_NT, nonorthogonality_matrix,
                                           parse_number)
@@ -542,12 +541,7 @@ class Lag(Effect):
         sample; the first sample starts in steady state).
         """
         x = float(self.refs.get('x0', 0.0) if x is None or not np.isfinite(x[0]) else x[0])
-        state = self.__dict__.get('_state')
-        if state is None or t <= state[0]:
-            y = x
-        else:
-            y = x + (state[1] - x) * math.exp(-(t - state[0]) / max(abs(float(tau)), 1e-9))
-        self._state = (t, y)
+        self._state, y = lag_step(self.__dict__.get('_state'), t, x, tau)
         return np.array([y])
 
     def reduces(self, p, stderr, ctx):

@@ -42,7 +42,7 @@ A plug-in adds a factor by subclassing :class:`Driver` and calling :func:`regist
 """
 import math
 
-from magcal_ros.core.effects.base import (first_order_lag, format_arg,
+from magcal_ros.core.effects.base import (first_order_lag, format_arg, lag_step,
                                           NONLINEARITY_FULL_SCALE_NT, parse_number)
 import numpy as np
 
@@ -644,12 +644,7 @@ class Lagged(_OfVariable):
     def _online(self, t, x, tau, x0):
         """One sample of the live correction: y <- x + (y - x) exp(-dt / tau)."""
         x = float(x0 if x is None or not np.isfinite(x[0]) else x[0])
-        state = self.__dict__.get('_state')
-        if state is None or t <= state[0]:
-            y = x
-        else:
-            y = x + (state[1] - x) * math.exp(-(t - state[0]) / max(abs(float(tau)), 1e-9))
-        self._state = (t, y)
+        self._state, y = lag_step(self.__dict__.get('_state'), t, x, tau)
         return np.array([y])
 
 
