@@ -512,3 +512,17 @@ def lag_step(state, t, x, tau):
     else:
         y = x + (state[1] - x) * math.exp(-(t - state[0]) / max(abs(float(tau)), 1e-9))
     return (t, y), y
+
+
+def steps_outside(times, t):
+    """
+    Say which step time lies outside the data, or return None.
+
+    ``times`` step times and ``t`` (N,) sample times, s: a step needs at least 3 samples on
+    each side to be told from the offset.
+    """
+    for tk in times:
+        before = int(np.sum(t < tk))
+        if before < 3 or len(t) - before < 3:
+            return f'step at t = {tk:g} s lies outside the data ({t[0]:g} .. {t[-1]:g} s)'
+    return None

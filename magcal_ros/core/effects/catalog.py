@@ -26,7 +26,7 @@ from magcal_ros.core.effects.base import (channel_name, channel_values, check_ch
                                           first_order_lag, format_arg, lag_step,
                                           misalignment_angles, misalignment_matrix,
                                           NONLINEARITY_FULL_SCALE_NT, nonorthogonality_matrix,
-                                          parse_number)
+                                          parse_number, steps_outside)
 from magcal_ros.core.geometry.tensor import symmetric_traceless
 import numpy as np
 
@@ -403,12 +403,7 @@ class Step(Effect):
         return ('nT',) * (3 * len(self.args))
 
     def check(self, ctx):
-        for tk in self.times:
-            before = int(np.sum(ctx.t < tk))
-            if before < 3 or len(ctx.t) - before < 3:
-                return (f'step at t = {tk:g} s lies outside the data '
-                        f'({ctx.t[0]:g} .. {ctx.t[-1]:g} s)')
-        return None
+        return steps_outside(self.times, ctx.t)
 
     def contribution(self, p, ctx, lin):
         on = (ctx.t[:, None] >= self.times[None, :]).astype(float)        # (N, K)

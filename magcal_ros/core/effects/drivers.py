@@ -43,7 +43,7 @@ A plug-in adds a factor by subclassing :class:`Driver` and calling :func:`regist
 import math
 
 from magcal_ros.core.effects.base import (first_order_lag, format_arg, lag_step,
-                                          NONLINEARITY_FULL_SCALE_NT, parse_number)
+                                          NONLINEARITY_FULL_SCALE_NT, parse_number, steps_outside)
 import numpy as np
 
 #: variables a driver may read: name -> (unit, per axis)
@@ -523,12 +523,7 @@ class Steps(Driver):
             f'step{i + 1}' for i in range(len(self.times)))
 
     def check(self, ctx, sensor):
-        for tk in self.times:
-            before = int(np.sum(ctx.t < tk))
-            if before < 3 or len(ctx.t) - before < 3:
-                return (f'step at t = {tk:g} s lies outside the data '
-                        f'({ctx.t[0]:g} .. {ctx.t[-1]:g} s)')
-        return None
+        return steps_outside(self.times, ctx.t)
 
     def columns(self, ctx, lin, refs, q, prefix=''):
         return (ctx.t[:, None] >= np.array(self.times)[None, :]).astype(float)
