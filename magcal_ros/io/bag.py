@@ -61,12 +61,6 @@ def _typestore():
     return get_typestore(Stores.ROS2_JAZZY)
 
 
-def _stamp(msg, recv_ns):
-    st = msg.header.stamp
-    ns = int(st.sec) * 1_000_000_000 + int(st.nanosec)
-    return (ns if ns > 0 else int(recv_ns)) * 1e-9
-
-
 def _hold(t_msg, v_msg, t):
     """Value of the last message at or before each time t (the first one before it)."""
     order = np.argsort(t_msg, kind='stable')
@@ -154,9 +148,14 @@ def bag_chunks(path, rows=65536, progress=None, namespace='/magcal', aux_topics=
     with _Collector(path, namespace, aux_topics, imu_topic) as col:
         n_msg = 0
         per_chunk = rows * max(1, len(col.conns))
+        pending = col.pending
         for c, recv, data in col.reader.messages(connections=col.conns):
-            col.add(c, recv, data)
+            p = pending[c.id]            # col.add without a call per message
+            p[0].append(data)
+            p[1].append(recv)
             n_msg += 1
+            if n_msg % col.FLUSH == 0:
+                col.flush()
             if n_msg % per_chunk == 0:
                 piece = col.take(col.safe_time())
                 if progress is not None:
@@ -170,8 +169,114 @@ def bag_chunks(path, rows=65536, progress=None, namespace='/magcal', aux_topics=
             yield piece
 
 
+#: The message types read without rosbags' deserialiser: {type: (has a std_msgs/Header,
+#: bytes after the header (the whole payload without one), float fields read at the start
+#: of those bytes, their CDR type)}.  CDR (OMG CDR, ROS 2's rmw): a 4-byte encapsulation
+#: header (0x00 0x01 little endian, 0x00 0x00 big endian, then two option bytes), then the
+#: payload, each primitive aligned to its size from the payload's start; a Header is int32
+#: sec, uint32 nanosec, uint32 length of frame_id (with its NUL), the characters and the NUL.
+#: After it the float64 fields start at the next multiple of 8, so the message length fixes
+#: where they are: MagneticField 3 + 9 float64 (field, covariance), Temperature 2, Imu
+#: 4 + 9 + 3 + 9 + 3 + 9 (orientation x y z w first, then its covariance).
+_LAYOUT = {
+    MAG_TYPE: (True, 96, 3, 'f8'),
+    TEMP_TYPE: (True, 16, 1, 'f8'),
+    IMU_TYPE: (True, 296, 5, 'f8'),          # orientation x, y, z, w, covariance[0]
+    'std_msgs/msg/Float64': (False, 8, 1, 'f8'),
+    'std_msgs/msg/Float32': (False, 4, 1, 'f4'),
+}
+
+
+def _decode_fixed(datas, msgtype):
+    """
+    Decode serialised messages of a type in ``_LAYOUT`` from their bytes, in batches.
+
+    Messages of one length are joined and read with ``numpy.frombuffer`` through a
+    structured dtype.  A message is decoded here only when its encapsulation is plain CDR
+    (either byte order) and its length is exactly what its frame_id's length makes it (the
+    string non-empty, NUL-terminated, ASCII); everything else is left to rosbags.
+
+    Parameters
+    ----------
+    datas : list of bytes
+        M serialised messages.
+    msgtype : str
+        Their type (a key of ``_LAYOUT``).
+
+    Returns
+    -------
+    stamp_ns : (M,) int64 or None
+        Header stamps, ns (None for a type without header).
+    values : (M, k) float64
+        The fields of ``_LAYOUT`` (message units).
+    ok : (M,) bool
+        False where the message was not decoded (values and stamp 0 there).
+
+    """
+    has_header, tail, k, kind = _LAYOUT[msgtype]
+    m = len(datas)
+    stamp = np.zeros(m, np.int64) if has_header else None
+    values = np.zeros((m, k))
+    ok = np.zeros(m, bool)
+    lens = np.fromiter(map(len, datas), np.int64, m)
+    if m == 0:
+        return stamp, values, ok
+    sizes = np.unique(lens)
+    for n in sizes.tolist():
+        if n < 4 + tail + (16 if has_header else 0):
+            continue
+        idx = np.flatnonzero(lens == n) if len(sizes) > 1 else np.arange(m)
+        buf = b''.join([datas[i] for i in idx]) if len(sizes) > 1 else b''.join(datas)
+        raw = np.frombuffer(buf, np.uint8).reshape(len(idx), n)
+        for order, flag in (('<', 1), ('>', 0)):
+            rows = np.flatnonzero((raw[:, 0] == 0) & (raw[:, 1] == flag))
+            if not len(rows):
+                continue
+            names, formats, offsets = ['v'], [(order + kind, (k,))], [n - tail]
+            if has_header:
+                names += ['sec', 'nsec', 'len']
+                formats += [order + 'i4', order + 'u4', order + 'u4']
+                offsets += [4, 8, 12]
+            rec = np.frombuffer(buf, np.dtype({'names': names, 'formats': formats,
+                                               'offsets': offsets, 'itemsize': n}))[rows]
+            good = np.ones(len(rows), bool)
+            if has_header:
+                length = rec['len'].astype(np.int64)
+                # float64 fields start at 4 + the next multiple of 8 after 12 + length
+                good = (length >= 1) & (4 + (12 + length + 7) // 8 * 8 + tail == n)
+                nul = np.minimum(15 + length, n - 1)
+                good &= raw[rows, nul] == 0
+                cols = np.arange(16, n - tail)
+                text = cols[None, :] < (15 + length)[:, None]
+                good &= ~((raw[rows, 16:n - tail] >= 0x80) & text).any(axis=1)
+                stamp[idx[rows[good]]] = (rec['sec'][good].astype(np.int64) * 1_000_000_000
+                                          + rec['nsec'][good].astype(np.int64))
+            values[idx[rows[good]]] = rec['v'][good].astype(np.float64)
+            ok[idx[rows[good]]] = True
+    return stamp, values, ok
+
+
+def _message_values(msg, msgtype):
+    """Return (stamp ns or None, the ``_LAYOUT`` fields) of a message rosbags decoded."""
+    if msgtype == MAG_TYPE:
+        v = msg.magnetic_field
+        vals = (v.x, v.y, v.z)
+    elif msgtype == TEMP_TYPE:
+        vals = (msg.temperature,)
+    elif msgtype == IMU_TYPE:
+        o = msg.orientation
+        vals = (o.x, o.y, o.z, o.w, msg.orientation_covariance[0])
+    else:
+        return None, (msg.data,)
+    st = msg.header.stamp
+    return int(st.sec) * 1_000_000_000 + int(st.nanosec), vals
+
+
 class _Collector:
     """The messages of a bag's array topics, turned into epochs (all at once or in chunks)."""
+
+    #: messages held serialised before they are decoded (memory: about 150 bytes each)
+    FLUSH = 65536
 
     def __init__(self, path, namespace, aux_topics, imu_topic):
         from rosbags.highlevel import AnyReader
@@ -187,7 +292,7 @@ class _Collector:
         self.wanted_aux = {topic: (col if col.startswith('aux_') else 'aux_' + col)
                            for col, topic in (aux_topics or {}).items()}
         self.imu_name = imu_topic or ns + '/imu'
-        self.imu = ([], [])
+        self.imu = _empty(4)
         try:
             self.reader = AnyReader([path], default_typestore=_typestore())
             self.reader.open()
@@ -202,6 +307,9 @@ class _Collector:
         self.dropped = 0
         self.dropped_att = 0
         self.emitted = False
+        self.pending = {c.id: ([], []) for c in self.conns}
+        self.n_pending = 0
+        self.n_decoded = {c.id: 0 for c in self.conns}
 
     def __enter__(self):
         return self
@@ -218,7 +326,7 @@ class _Collector:
         for c in self.reader.connections:
             m = self.raw_re.match(c.topic)
             if m and c.msgtype == MAG_TYPE:
-                self.mags[int(m.group(1))] = ([], [])
+                self.mags[int(m.group(1))] = _empty(3)
                 self.kind[c.id] = ('mag', int(m.group(1)))
                 conns.append(c)
                 continue
@@ -228,7 +336,7 @@ class _Collector:
                 continue
             m = self.temp_re.match(c.topic)
             if m and c.msgtype == TEMP_TYPE:
-                self.temps[int(m.group(1))] = ([], [])
+                self.temps[int(m.group(1))] = _empty()
                 self.kind[c.id] = ('temp', int(m.group(1)))
                 conns.append(c)
                 continue
@@ -236,11 +344,11 @@ class _Collector:
                 m = self.aux_re.match(c.topic)
                 if c.topic in self.wanted_aux or m:
                     name = self.wanted_aux.get(c.topic) or 'aux_' + m.group(1)
-                    self.aux[name] = ([], [])
+                    self.aux[name] = _empty()
                     self.kind[c.id] = ('aux', name)
                     conns.append(c)
                 elif c.topic == ns + '/ref_total':
-                    self.ref = ([], [])
+                    self.ref = _empty()
                     self.kind[c.id] = ('ref', None)
                     conns.append(c)
         if not self.mags:
@@ -255,48 +363,79 @@ class _Collector:
         if imu_topic and not any(c.topic == self.imu_name for c in conns):
             raise BagFormatError(f'{path}: no {IMU_TYPE} messages on {self.imu_name}')
         self.conns = conns
+        self.by_id = {c.id: c for c in conns}
         self.topics = sorted(c.topic for c in conns)
 
     def add(self, c, recv, data):
         """Take one message (connection, receive time ns, serialised bytes)."""
-        msg = self.reader.deserialize(data, c.msgtype)
+        p = self.pending[c.id]
+        p[0].append(data)
+        p[1].append(recv)
+        self.n_pending += 1
+        if self.n_pending >= self.FLUSH:
+            self.flush()
+
+    def flush(self):
+        """Decode the messages held serialised (``_decode_fixed``, else rosbags)."""
+        for cid, (datas, recvs) in self.pending.items():
+            if datas:
+                self._decode(self.by_id[cid], datas, np.asarray(recvs, np.int64))
+                datas.clear()
+                recvs.clear()
+        self.n_pending = 0
+
+    def _decode(self, c, datas, recv):
+        stamp, vals, ok = _decode_fixed(datas, c.msgtype)
+        for i in np.flatnonzero(~ok).tolist():
+            try:
+                msg = self.reader.deserialize(datas[i], c.msgtype)
+            except Exception as exc:      # rosbags' own error types
+                first = self.n_decoded[c.id] + 1
+                raise BagFormatError(
+                    f'{self.path}: message {first + i} of {c.topic} ({c.msgtype}, recorded '
+                    f'at {int(recv[i])} ns) cannot be decoded ({exc}): the recording is '
+                    'damaged there; re-record it, or leave this topic out (e.g. namespace=, '
+                    'aux_topics=) or copy the bag without it (ros2 bag convert)') from None
+            st, v = _message_values(msg, c.msgtype)
+            if stamp is not None:
+                stamp[i] = st
+            vals[i] = v
+        self.n_decoded[c.id] += len(datas)
         kind, key = self.kind[c.id]
+        if stamp is not None:
+            t = np.where(stamp > 0, stamp, recv) * 1e-9
+        else:
+            t = recv * 1e-9
         if kind == 'mag':
-            v = msg.magnetic_field
-            self.mags[key][0].append(_stamp(msg, recv))
-            self.mags[key][1].append((v.x, v.y, v.z))
+            self.mags[key] = _extend(self.mags[key], t, vals)
         elif kind == 'temp':
-            self.temps[key][0].append(_stamp(msg, recv))
-            self.temps[key][1].append(msg.temperature)
+            self.temps[key] = _extend(self.temps[key], t, vals[:, 0])
         elif kind == 'imu':
-            if msg.orientation_covariance[0] == -1:
+            if (vals[:, 4] == -1).any():
                 raise BagFormatError(
                     f'{self.path}: {self.imu_name}: the Imu messages carry no orientation '
                     '(orientation_covariance[0] = -1); record an orientation estimate')
-            o = msg.orientation
-            self.imu[0].append(_stamp(msg, recv))
-            self.imu[1].append((o.w, o.x, o.y, o.z))
+            self.imu = _extend(self.imu, t, vals[:, [3, 0, 1, 2]])
         elif kind == 'ref':
-            self.ref[0].append(recv * 1e-9)
-            self.ref[1].append(msg.data)
+            self.ref = _extend(self.ref, t, vals[:, 0])
         else:
-            self.aux[key][0].append(recv * 1e-9)
-            self.aux[key][1].append(msg.data)
+            self.aux[key] = _extend(self.aux[key], t, vals[:, 0])
 
     def safe_time(self):
         """Latest time every sensor stream has passed by half a period (None: not yet)."""
-        lasts = [max(tt) for tt, _ in self.mags.values() if tt]
-        if len(lasts) < len(self.mags) or not self.mags[1][0]:
+        self.flush()
+        lasts = [tt.max() for tt, _ in self.mags.values() if len(tt)]
+        if len(lasts) < len(self.mags) or not len(self.mags[1][0]):
             return None
         for tt, _ in list(self.temps.values()) + [self.imu]:
-            if tt:
-                lasts.append(max(tt))
+            if len(tt):
+                lasts.append(tt.max())
         if self.period is None:
-            t1 = np.sort(np.asarray(self.mags[1][0], float))
+            t1 = np.sort(self.mags[1][0])
             if len(t1) < 2:
                 return None
             self.period = float(np.median(np.diff(t1)))
-        return min(lasts) - 2 * self.period
+        return float(min(lasts)) - 2 * self.period
 
     def take(self, upto, final=False):
         """
@@ -307,14 +446,15 @@ class _Collector:
         """
         if not final and upto is None:
             return None
+        self.flush()
         path, ns = self.path, self.ns
         s = max(self.mags)
-        absent = [j for j in range(1, s + 1) if j not in self.mags or not self.mags[j][0]]
+        absent = [j for j in range(1, s + 1) if j not in self.mags or not len(self.mags[j][0])]
         if any(j not in self.mags for j in absent) or (absent and final and not self.emitted):
             names = ', '.join(f'{ns}/sensor{j}/raw' for j in absent)
             raise BagFormatError(f'{path}: no messages on {names} (sensors must be numbered '
                                  f'1..{s})')
-        t1 = np.asarray(self.mags[1][0], float)
+        t1 = self.mags[1][0]
         order = np.argsort(t1, kind='stable')
         t_all = t1[order]
         if final and not self.emitted and len(t_all) < 2:
@@ -324,13 +464,12 @@ class _Collector:
             period = float(np.median(np.diff(t_all))) if len(t_all) > 1 else 0.0
         sel = np.ones(len(t_all), bool) if final else t_all <= upto
         t = t_all[sel]
-        v1 = np.asarray(self.mags[1][1], float).reshape(-1, 3)[order]
+        v1 = self.mags[1][1][order]
         raw = np.empty((s, len(t), 3))
         raw[0] = v1[sel]
         keep = np.ones(len(t), bool)
         for j in range(2, s + 1):
-            tj = np.asarray(self.mags[j][0], float)
-            vj = np.asarray(self.mags[j][1], float).reshape(-1, 3)
+            tj, vj = self.mags[j]
             oj = np.argsort(tj, kind='stable')
             tj, vj = tj[oj], vj[oj]
             if len(tj) == 0:
@@ -352,18 +491,16 @@ class _Collector:
         if self.temps:
             temp = np.full((s, len(t)), np.nan)
             for j, (tt, vv) in self.temps.items():
-                if 1 <= j <= s and tt:
-                    temp[j - 1] = _interp(np.asarray(tt), np.asarray(vv, float), t)
-        aux_out = {k: _hold(np.asarray(tt), np.asarray(vv, float), t)
-                   for k, (tt, vv) in self.aux.items() if tt}
+                if 1 <= j <= s and len(tt):
+                    temp[j - 1] = _interp(tt, vv, t)
+        aux_out = {k: _hold(tt, vv, t) for k, (tt, vv) in self.aux.items() if len(tt)}
         ref_total = None
-        if self.ref is not None and self.ref[0]:
-            ref_total = t_to_nt(_interp(np.asarray(self.ref[0]), np.asarray(self.ref[1], float),
-                                        t))
+        if self.ref is not None and len(self.ref[0]):
+            ref_total = t_to_nt(_interp(self.ref[0], self.ref[1], t))
         data = Dataset(t=t, raw=raw, temp=temp, ref_total=ref_total, aux=aux_out,
                        meta={'source': str(path), 'namespace': ns or '/',
                              'dropped_epochs': self.dropped, 'topics': self.topics})
-        if self.imu[0] and len(t):
+        if len(self.imu[0]) and len(t):
             from magcal_ros.core.geometry.attitude import with_attitude
             try:
                 data, kept = with_attitude(data, self.imu[0], self.imu[1],
@@ -385,18 +522,17 @@ class _Collector:
 
         def trim(tt_vv, hold_one=True):
             tt, vv = tt_vv
-            if not tt:
+            if not len(tt):
                 return tt_vv
-            ta = np.asarray(tt, float)
-            later = np.flatnonzero(ta > margin)
+            later = np.flatnonzero(tt > margin)
             if hold_one:
-                before = np.flatnonzero(ta <= margin)
+                before = np.flatnonzero(tt <= margin)
                 if len(before):
-                    later = np.concatenate([[before[np.argmax(ta[before])]], later])
-            return ([tt[i] for i in later], [vv[i] for i in later])
-        t1 = np.asarray(self.mags[1][0], float)
+                    later = np.concatenate([[before[np.argmax(tt[before])]], later])
+            return tt[later], vv[later]
+        t1, v1 = self.mags[1]
         rest = np.flatnonzero(t1 > upto)
-        self.mags[1] = ([self.mags[1][0][i] for i in rest], [self.mags[1][1][i] for i in rest])
+        self.mags[1] = (t1[rest], v1[rest])
         for j in list(self.mags):
             if j != 1:
                 self.mags[j] = trim(self.mags[j], hold_one=False)
@@ -407,6 +543,16 @@ class _Collector:
         if self.ref is not None:
             self.ref = trim(self.ref)
         self.imu = trim(self.imu)
+
+
+def _empty(k=None):
+    """Return (times (0,) s, values (0,) or (0, k)) of a stream with no message yet."""
+    return np.empty(0), np.empty((0, k) if k else 0)
+
+
+def _extend(stream, t, v):
+    """Return the stream with messages (times t (M,) s, values v (M, ...)) appended."""
+    return np.concatenate([stream[0], t]), np.concatenate([stream[1], v])
 
 
 def write_bag(path, data, namespace='/magcal', storage='sqlite3', frame_id='fluxgate'):
@@ -445,64 +591,104 @@ def write_bag(path, data, namespace='/magcal', storage='sqlite3', frame_id='flux
     pieces = iter([data] if isinstance(data, Dataset) else data)
     first = next(pieces)
     ts = _typestore()
-    mag_cls = ts.types[MAG_TYPE]
-    temp_cls = ts.types[TEMP_TYPE]
-    f64 = ts.types['std_msgs/msg/Float64']
     header = ts.types['std_msgs/msg/Header']
-    stamp_cls = ts.types['builtin_interfaces/msg/Time']
+    stamp0 = ts.types['builtin_interfaces/msg/Time'](sec=0, nanosec=0)
     vec = ts.types['geometry_msgs/msg/Vector3']
-    imu_cls = ts.types[IMU_TYPE]
-    quat = ts.types['geometry_msgs/msg/Quaternion']
     unknown = np.array([-1.0] + [0.0] * 8)       # REP 145: no rate / acceleration
     ns = '/' + namespace.strip('/') if namespace.strip('/') else ''
-    cov = np.zeros(9)
+    f64 = 'std_msgs/msg/Float64'
+    # one message of each stream serialised by rosbags, its stamp and values then filled in
+    # per message (_Template): the bytes rosbags' serialize_cdr writes, ~5 us less each
     with Writer(path, version=9, storage_plugin=plugins[storage]) as w:
-        conn = {}
+        streams = []
         for j in range(1, first.n_sensors + 1):
-            conn[('raw', j)] = w.add_connection(f'{ns}/sensor{j}/raw', MAG_TYPE, typestore=ts)
+            hdr = header(stamp=stamp0, frame_id=f'{frame_id}{j}')
+            streams.append((('raw', j), w.add_connection(
+                f'{ns}/sensor{j}/raw', MAG_TYPE, typestore=ts), _Template(ts, MAG_TYPE, ts.types[
+                    MAG_TYPE](header=hdr, magnetic_field=vec(0.0, 0.0, 0.0),
+                              magnetic_field_covariance=np.zeros(9)))))
             if first.temp is not None and np.isfinite(first.temp[j - 1]).any():
-                conn[('temp', j)] = w.add_connection(f'{ns}/sensor{j}/temperature', TEMP_TYPE,
-                                                     typestore=ts)
+                streams.append((('temp', j), w.add_connection(
+                    f'{ns}/sensor{j}/temperature', TEMP_TYPE, typestore=ts), _Template(
+                        ts, TEMP_TYPE, ts.types[TEMP_TYPE](header=hdr, temperature=0.0,
+                                                           variance=0.0))))
         for name in sorted(first.aux):
-            conn[('aux', name)] = w.add_connection(f'{ns}/aux/{name[4:]}',
-                                                   'std_msgs/msg/Float64', typestore=ts)
+            streams.append((('aux', name), w.add_connection(f'{ns}/aux/{name[4:]}', f64,
+                                                            typestore=ts),
+                            _Template(ts, f64, ts.types[f64](data=0.0))))
         if first.ref_total is not None:
-            conn[('ref',)] = w.add_connection(f'{ns}/ref_total', 'std_msgs/msg/Float64',
-                                              typestore=ts)
+            streams.append((('ref',), w.add_connection(f'{ns}/ref_total', f64, typestore=ts),
+                            _Template(ts, f64, ts.types[f64](data=0.0))))
         if first.attitude is not None:
-            conn[('imu',)] = w.add_connection(f'{ns}/imu', IMU_TYPE, typestore=ts)
+            quat = ts.types['geometry_msgs/msg/Quaternion'](x=0.0, y=0.0, z=0.0, w=1.0)
+            streams.append((('imu',), w.add_connection(f'{ns}/imu', IMU_TYPE, typestore=ts),
+                            _Template(ts, IMU_TYPE, ts.types[IMU_TYPE](
+                                header=header(stamp=stamp0, frame_id=frame_id),
+                                orientation=quat, orientation_covariance=np.zeros(9),
+                                angular_velocity=vec(0.0, 0.0, 0.0),
+                                angular_velocity_covariance=unknown,
+                                linear_acceleration=vec(0.0, 0.0, 0.0),
+                                linear_acceleration_covariance=unknown))))
         for data in chain([first], pieces):
             t_ns = np.round(np.asarray(data.t, float) * 1e9).astype(np.int64)
             raw_t = nt_to_t(data.raw)
-            for k in range(data.n_samples):
-                st = stamp_cls(sec=int(t_ns[k] // 1_000_000_000),
-                               nanosec=int(t_ns[k] % 1_000_000_000))
-                for j in range(1, data.n_sensors + 1):
-                    hdr = header(stamp=st, frame_id=f'{frame_id}{j}')
-                    msg = mag_cls(header=hdr, magnetic_field=vec(*map(float, raw_t[j - 1, k])),
-                                  magnetic_field_covariance=cov)
-                    w.write(conn[('raw', j)], int(t_ns[k]), ts.serialize_cdr(msg, MAG_TYPE))
-                    if ('temp', j) in conn:
-                        msg = temp_cls(header=hdr, temperature=float(data.temp[j - 1, k]),
-                                       variance=0.0)
-                        w.write(conn[('temp', j)], int(t_ns[k]),
-                                ts.serialize_cdr(msg, TEMP_TYPE))
-                for name in sorted(data.aux):
-                    w.write(conn[('aux', name)], int(t_ns[k]),
-                            ts.serialize_cdr(f64(data=float(data.aux[name][k])),
-                                             'std_msgs/msg/Float64'))
-                if ('ref',) in conn:
-                    w.write(conn[('ref',)], int(t_ns[k]),
-                            ts.serialize_cdr(f64(data=float(nt_to_t(data.ref_total[k]))),
-                                             'std_msgs/msg/Float64'))
-                if ('imu',) in conn:
-                    qw, qx, qy, qz = map(float, data.attitude[k])
-                    msg = imu_cls(header=header(stamp=st, frame_id=frame_id),
-                                  orientation=quat(x=qx, y=qy, z=qz, w=qw),
-                                  orientation_covariance=np.zeros(9),
-                                  angular_velocity=vec(0.0, 0.0, 0.0),
-                                  angular_velocity_covariance=unknown,
-                                  linear_acceleration=vec(0.0, 0.0, 0.0),
-                                  linear_acceleration_covariance=unknown)
-                    w.write(conn[('imu',)], int(t_ns[k]), ts.serialize_cdr(msg, IMU_TYPE))
+            columns = []
+            for key, conn, tmpl in streams:
+                if key[0] == 'raw':
+                    v = raw_t[key[1] - 1]
+                elif key[0] == 'temp':
+                    v = data.temp[key[1] - 1]
+                elif key[0] == 'aux':
+                    v = data.aux[key[1]]
+                elif key[0] == 'ref':
+                    v = nt_to_t(data.ref_total)
+                else:                               # Dataset: w x y z; Imu: x y z w
+                    v = np.asarray(data.attitude, float)[:, [1, 2, 3, 0]]
+                columns.append((conn, tmpl.messages(t_ns, v)))
+            for k, tk in enumerate(t_ns.tolist()):
+                for conn, msgs in columns:
+                    w.write(conn, tk, msgs[k])
     return path
+
+
+class _Template:
+    """Serialised messages of one type that differ only in their stamp and leading fields."""
+
+    def __init__(self, ts, msgtype, msg):
+        self.raw = np.frombuffer(ts.serialize_cdr(msg, msgtype), np.uint8)
+        has_header, tail, _, kind = _LAYOUT[msgtype]
+        n = len(self.raw)
+        order = '<' if self.raw[1] == 1 else '>'
+        self.has_header = has_header
+        names, formats, offsets = ['v'], [order + kind], [n - tail]
+        if has_header:
+            names += ['sec', 'nsec']
+            formats += [order + 'i4', order + 'u4']
+            offsets += [4, 8]
+        self.dtype = np.dtype({'names': names, 'formats': formats, 'offsets': offsets,
+                               'itemsize': n})
+        self.width = {MAG_TYPE: 3, IMU_TYPE: 4}.get(msgtype, 1)
+
+    def messages(self, t_ns, values):
+        """
+        Return M serialised copies (list of bytes): stamps t_ns (M,) ns, values (M, w).
+
+        ``values`` go to the first ``w`` float fields after the header (MagneticField:
+        the field in T; Temperature: degC; Float64: data; Imu: orientation x y z w).
+        """
+        n = len(self.raw)
+        m = len(t_ns)
+        buf = np.tile(self.raw, m)
+        rec = buf.view(self.dtype)
+        if self.has_header:
+            rec['sec'] = t_ns // 1_000_000_000
+            rec['nsec'] = t_ns % 1_000_000_000
+        vals = np.asarray(values, float).reshape(m, -1)
+        if self.width == 1:
+            rec['v'] = vals[:, 0]
+        else:
+            fields = np.dtype({'names': ['v'], 'formats': [(self.dtype['v'], (self.width,))],
+                               'offsets': [self.dtype.fields['v'][1]], 'itemsize': n})
+            buf.view(fields)['v'] = vals
+        blob = buf.tobytes()
+        return [blob[i:i + n] for i in range(0, m * n, n)]
