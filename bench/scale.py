@@ -25,12 +25,19 @@ For each size the two commands run as processes of their own, this tree's code a
 wall time, CPU time (user + system of the process: on a shared machine the wall time
 grows with the other processes' load, the CPU time does not; BLAS runs on one thread)
 and peak resident memory (``ru_maxrss``, MB) are recorded with the verdict.
-``--bag-max``: the same series from rosbag2 recordings (sqlite3 and MCAP) up to that size,
-and the time of the rosbags library's own read loop (deserialise every message) on the
-same bag, against which the reading is measured.
+``--bag-max``: the same series from rosbag2 recordings (sqlite3 and MCAP, ``--storages``)
+up to that size, written from the CSV by ``write_bag`` (its CPU time per million messages
+recorded; the bags are kept in ``--data-dir`` and reused), and three read loops over every
+message of each bag, each a process of its own: rosbags' ``messages()`` alone (the storage's
+cost), the rosbags library's own read loop (every message deserialised) and this tree's
+reading (``bag_chunks``); the ratio of the last two is the reading's cost.  Every run
+records the 1-minute load average at its start and end.  ``--no-csv --keep``: only the
+bags, the other rows of the existing scale.json kept with the commit and date they were
+measured at.  Run it under ``nice -n 19`` on a shared machine.
 
     python bench/scale.py --base /work/wt/base            # ~1 h on an idle 2-core machine
     python bench/scale.py --sizes 10000 100000 --bag-max 100000   # a few minutes
+    nice -n 19 python bench/scale.py --sizes 1000000 3600000 --bag-max 3600000 --no-csv --keep
 
 Writes bench/results/scale.json and bench/results/scale.png (time and memory against sets).
 """
@@ -42,24 +49,45 @@ import subprocess
 import sys
 import time
 
-from common import add_common_args, REPO_DIR, table, write_result  # noqa: I100
+from common import add_common_args, BENCH_DIR, REPO_DIR, table, write_result  # noqa: I100
 
 TRUTH = 'temperature@2=3,-2,1.5,0,0,0'
 
 
 def rusage_of(cmd, code_dir):
-    """Wall s, CPU s, peak RSS MB, exit code, stdout of ``cmd`` (os.wait4 of the child)."""
+    """
+    Wall s, CPU s, peak RSS MB, exit code, stdout, load averages of ``cmd``.
+
+    ``cmd`` is ``[python, '-m', module, args...]`` or ``[python, script, args...]``; it runs
+    under bench/peak_rss.py, whose ``VmHWM`` is the peak RSS (``ru_maxrss`` of ``wait4``
+    would carry this benchmark's own peak into the child).  CPU: user + system of the child
+    (``wait4``).  The 1-minute load average is read at the start and at the end of the run:
+    on a shared machine it says how much the wall time was stretched by the other processes.
+    """
     import tempfile
     env = dict(os.environ, PYTHONPATH=code_dir)
-    with tempfile.TemporaryFile('w+') as out, open(os.devnull, 'w') as devnull:
+    if cmd[1] == '-m':
+        module, rest = cmd[2], cmd[3:]
+    else:                                   # a script of bench/: run as a module of it
+        module, rest = os.path.splitext(os.path.basename(cmd[1]))[0], cmd[2:]
+        env['PYTHONPATH'] = os.pathsep.join([os.path.dirname(cmd[1]), code_dir])
+    load0 = os.getloadavg()[0]
+    with tempfile.TemporaryFile('w+') as out, open(os.devnull, 'w') as devnull, \
+            tempfile.NamedTemporaryFile('r') as hwm:
         t0 = time.perf_counter()
-        p = subprocess.Popen(cmd, cwd=code_dir, env=env, stdout=out, stderr=devnull)
+        p = subprocess.Popen([cmd[0], os.path.join(BENCH_DIR, 'peak_rss.py'), hwm.name,
+                              module] + rest, cwd=code_dir, env=env, stdout=out,
+                             stderr=devnull)
         _, status, usage = os.wait4(p.pid, 0)
         wall = time.perf_counter() - t0
         out.seek(0)
         text = out.read()
+        hwm.seek(0)
+        peak = hwm.read().strip()
     cpu = usage.ru_utime + usage.ru_stime
-    return wall, cpu, usage.ru_maxrss / 1024.0, os.waitstatus_to_exitcode(status), text
+    return (wall, cpu, int(peak) / 1024.0 if peak else float('nan'),
+            os.waitstatus_to_exitcode(status), text,
+            {'load_start': round(load0, 2), 'load_end': round(os.getloadavg()[0], 2)})
 
 
 def simulate(path, n, code_dir):
@@ -71,48 +99,94 @@ def simulate(path, n, code_dir):
 
 
 def to_bag(csv_path, bag_path, storage):
-    """Convert a wide CSV to a rosbag2 directory, chunk by chunk (this tree's code)."""
+    """
+    Convert a wide CSV to a rosbag2 directory, chunk by chunk (this tree's write_bag).
+
+    Returns None when the bag exists (cached in --data-dir), else the write's wall and CPU
+    time, its messages and CPU seconds per million messages.
+    """
     if os.path.exists(bag_path):
-        return
-    from magcal_ros.io.bag import write_bag
+        return None
+    import shutil
+    from magcal_ros.io.bag import bag_message_count, write_bag
     from magcal_ros.io.chunks import open_record
-    write_bag(bag_path, open_record(csv_path).chunks(), storage=storage)
+    part = bag_path + '.part'
+    shutil.rmtree(part, ignore_errors=True)
+    load0 = os.getloadavg()[0]
+    t0, c0 = time.perf_counter(), time.process_time()
+    write_bag(part, open_record(csv_path).chunks(), storage=storage)
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    # written under another name so that an interrupted write is not taken for a bag
+    # (metadata.yaml names its file relative to the directory)
+    os.rename(part, bag_path)
+    msgs = bag_message_count(bag_path)
+    return {'messages': msgs, 'write_wall_s': round(wall, 1), 'write_cpu_s': round(cpu, 1),
+            'write_cpu_s_per_million': round(cpu / msgs * 1e6, 2),
+            'load_start': round(load0, 2), 'load_end': round(os.getloadavg()[0], 2)}
 
 
-def rosbags_loop(bag_path):
-    """CPU seconds of the rosbags library's own read loop: every message read, deserialised."""
+def read_loop(mode, bag_path):
+    """
+    Read every message of the bag one way (run in a process of its own).
+
+    ``iterate``: rosbags' ``AnyReader.messages()`` alone (what the storage costs);
+    ``rosbags``: the rosbags library's own read loop, every message deserialised;
+    ``magcal``: this tree's reading, :func:`magcal_ros.io.bag.bag_chunks` (the epochs of the
+    whole record, decoded, paired and interpolated, chunk by chunk).
+    Returns the count read and the CPU and wall seconds of the loop itself (imports and
+    interpreter start left out: they are the same for all three).
+    """
+    from magcal_ros.io.bag import bag_chunks
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import get_typestore, Stores
-    t0 = time.process_time()
-    with AnyReader([Path(os.path.abspath(bag_path))],
-                   default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
-        for c, _, raw in reader.messages():
-            reader.deserialize(raw, c.msgtype)
-    return time.process_time() - t0
+    c0, t0 = time.process_time(), time.perf_counter()
+    n = 0
+    if mode == 'magcal':
+        n = sum(piece.n_samples for piece in bag_chunks(bag_path))
+    else:
+        with AnyReader([Path(os.path.abspath(bag_path))],
+                       default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
+            for c, _, raw in reader.messages():
+                if mode == 'rosbags':
+                    reader.deserialize(raw, c.msgtype)
+                n += 1
+    return {'count': n, 'loop_cpu_s': round(time.process_time() - c0, 2),
+            'loop_wall_s': round(time.perf_counter() - t0, 2)}
 
 
-def read_time(bag_path):
-    """CPU seconds this tree takes to read and reduce the bag (io.bag.bag_chunks)."""
-    from magcal_ros.core.data.reduce import reduce_chunks
-    from magcal_ros.io.chunks import open_record
-    t0 = time.process_time()
-    reduce_chunks(open_record(bag_path).chunks())
-    return time.process_time() - t0
+def read_times(bag_path, modes=('magcal', 'rosbags', 'iterate')):
+    """
+    Run read loops (:func:`read_loop`) on ``bag_path``, each in its own process.
+
+    Per loop: the process's wall and CPU s and peak RSS MB, and the loop's own CPU and wall
+    s (``loop_cpu_s``: what the ratio is taken of).
+    """
+    out = {}
+    for mode in modes:
+        wall, cpu, rss, rc, text, load = rusage_of(
+            [sys.executable, os.path.abspath(__file__), '--read-loop', mode, bag_path],
+            REPO_DIR)
+        if rc != 0:
+            raise RuntimeError(f'read loop {mode} on {bag_path} failed (exit {rc})')
+        out[mode] = {'wall_s': round(wall, 2), 'cpu_s': round(cpu, 2),
+                     'peak_rss_mb': round(rss, 1), **json.loads(text), **load}
+        print(mode, out[mode], flush=True)
+    return out
 
 
-def series(data, code, code_dir, rows, field):
+def series(data, code, code_dir, rows, field, commands=('fit', 'diagnose')):
     """Run fit and diagnose of ``data`` with ``code_dir``'s magcal; append to ``rows``."""
-    for cmd in ('fit', 'diagnose'):
+    for cmd in commands:
         argv = [sys.executable, '-m', 'magcal_ros.cli', cmd, data, '--field-nt', field,
                 '--json', '--flag-degenerate'] + (['-q'] if cmd == 'diagnose' else ['--force'])
-        wall, cpu, rss, rc, out = rusage_of(argv, code_dir)
+        wall, cpu, rss, rc, out, load = rusage_of(argv, code_dir)
         verdict = None
         if rc == 0 and cmd == 'diagnose':
             v = json.loads(out).get('verdict') or {}
             verdict = v.get('effect', 'none') + (f'@{v["sensor"]}' if v.get('sensor') else '')
         rows.append({'code': code, 'command': cmd, 'wall_s': round(wall, 2),
                      'cpu_s': round(cpu, 2),
-                     'peak_rss_mb': round(rss, 1), 'exit': rc, 'verdict': verdict})
+                     'peak_rss_mb': round(rss, 1), 'exit': rc, 'verdict': verdict, **load})
         print(rows[-1], flush=True)
 
 
@@ -155,52 +229,125 @@ def main():
                     help='largest size run with the --base code')
     ap.add_argument('--bag-max', type=int, default=0,
                     help='largest size also run from rosbag2 (sqlite3 and mcap); 0: none')
+    ap.add_argument('--storages', nargs='+', default=['sqlite3', 'mcap'],
+                    choices=['sqlite3', 'mcap'])
+    ap.add_argument('--no-csv', action='store_true',
+                    help='only the bags (the CSV rows of an earlier run are kept, --keep)')
+    ap.add_argument('--keep', action='store_true',
+                    help='keep the rows of the existing scale.json this run does not measure '
+                    '(each keeps the commit and date it was measured at)')
+    ap.add_argument('--read-loop', nargs=2, metavar=('MODE', 'BAG'), help=argparse.SUPPRESS)
     add_common_args(ap)
     args = ap.parse_args()
+    if args.read_loop:
+        print(json.dumps(read_loop(*args.read_loop)))
+        return
     started = time.perf_counter()
     os.makedirs(args.data_dir, exist_ok=True)
+    from common import machine_info
+    from magcal_ros.io.bag import bag_message_count
+    stamp = {k: machine_info()[k] for k in ('git_commit', 'date_utc')}
+    old = None
+    out_json = os.path.join(args.out_dir, 'scale.json')
+    if args.keep and os.path.exists(out_json):
+        with open(out_json) as fh:
+            old = json.load(fh)
     results, reads = [], []
+
+    def save():
+        # after every step: an interrupted series keeps what it measured
+        report(args, results, reads, old, started)
+
     for n in args.sizes:
         csv_path = os.path.join(args.data_dir, f'cross_{n}.csv')
         simulate(csv_path, n, REPO_DIR)
-        inputs = [('csv', csv_path)]
+        inputs = [] if args.no_csv else [('csv', csv_path)]
         if n <= args.bag_max:
-            for storage in ('sqlite3', 'mcap'):
-                bag = os.path.join(args.data_dir, f'cross_{n}_{storage}')
-                to_bag(csv_path, bag, storage)
-                inputs.append((f'bag {storage}', bag))
-                reads.append({'sets': n, 'storage': storage,
-                              'rosbags_loop_s': round(rosbags_loop(bag), 2),
-                              'magcal_read_s': round(read_time(bag), 2)})
-                print(reads[-1], flush=True)
+            inputs += [(f'bag {st}', os.path.join(args.data_dir, f'cross_{n}_{st}'))
+                       for st in args.storages]
         for inp, path in inputs:
+            read = None
+            if inp.startswith('bag'):
+                write = to_bag(csv_path, path, inp[4:])
+                print('write', n, inp, write, flush=True)
+                read = {'sets': n, 'storage': inp[4:], 'write': write,
+                        'messages': bag_message_count(path), **stamp}
+                reads.append(read)
+                read.update(read_times(path, ('magcal',)))
+                save()
             codes = [('this tree', REPO_DIR)]
             if args.base and n <= args.base_max:
                 codes.append(('c43534d', os.path.abspath(args.base)))
             for code, code_dir in codes:
-                rows = []
-                series(path, code, code_dir, rows, '50000')
-                for r in rows:
-                    r.update(sets=n, input=inp)
-                results.extend(rows)
+                for cmd in ('fit', 'diagnose'):
+                    rows = []
+                    series(path, code, code_dir, rows, '50000', (cmd,))
+                    for r in rows:
+                        r.update(sets=n, input=inp, **stamp)
+                    results.extend(rows)
+                    save()
+            if read is not None:
+                for mode in ('rosbags', 'iterate'):
+                    read.update(read_times(path, (mode,)))
+                    save()
+    for t in report(args, results, reads, old, started):
+        print(t)
+
+
+def report(args, results, reads, old, started):
+    """Write scale.json and scale.png of the runs so far (+ ``old``'s others); the tables."""
+    results, reads = list(results), list(reads)
+    if old is not None:
+        prev = {k: old['machine'].get(k) for k in ('git_commit', 'date_utc')}
+        done = {(r['sets'], r['input'], r['code'], r['command']) for r in results}
+        results += [dict(prev, **r) for r in old['results']['runs']
+                    if (r['sets'], r['input'], r['code'], r['command']) not in done]
+        done = {(r['sets'], r['storage']) for r in reads}
+        reads += [dict(prev, **r) for r in old['results']['bag_reads']
+                  if (r['sets'], r['storage']) not in done]
+    results.sort(key=lambda r: (r['sets'], r['input'], r['code'] != 'this tree',
+                                r['command'] != 'fit'))
+    reads.sort(key=lambda r: (r['sets'], r['storage']))
     tables = [table(['sets', 'input', 'code', 'command', 'wall s', 'CPU s', 'peak RSS MB',
-                     'verdict'],
+                     'verdict', 'load start/end', 'measured'],
                     [[r['sets'], r['input'], r['code'], r['command'], f'{r["wall_s"]:.1f}',
                       f'{r["cpu_s"]:.1f}', f'{r["peak_rss_mb"]:.0f}',
-                      r['verdict'] or ('' if r['exit'] == 0 else f'exit {r["exit"]}')]
+                      r['verdict'] or ('' if r['exit'] == 0 else f'exit {r["exit"]}'),
+                      _load(r), _when(r)]
                      for r in results], 'fit and diagnose against the record length')]
-    if reads:
-        tables.append(table(['sets', 'storage', 'rosbags loop CPU s', 'magcal read CPU s',
-                             'ratio'],
-                            [[r['sets'], r['storage'], r['rosbags_loop_s'], r['magcal_read_s'],
-                              f'{r["magcal_read_s"] / r["rosbags_loop_s"]:.2f}']
-                             for r in reads], 'bag reading against the rosbags read loop'))
-    for t in tables:
-        print(t)
+    new_reads = [r for r in reads if 'magcal' in r]
+    if new_reads:
+        def cpu(r, mode):
+            return r[mode]['loop_cpu_s'] if mode in r else None
+
+        def ratio(r):
+            if 'rosbags' not in r:
+                return 'not measured'
+            return f'{r["magcal"]["loop_cpu_s"] / r["rosbags"]["loop_cpu_s"]:.2f}'
+        tables.append(table(
+            ['sets', 'storage', 'messages', 'iterate CPU s', 'rosbags loop CPU s',
+             'magcal read CPU s', 'ratio', 'magcal read peak RSS MB', 'write CPU s/1e6 msg',
+             'load start/end', 'measured'],
+            [[r['sets'], r['storage'], r['messages'], cpu(r, 'iterate'), cpu(r, 'rosbags'),
+              cpu(r, 'magcal'), ratio(r), f'{r["magcal"]["peak_rss_mb"]:.0f}',
+              (r['write'] or {}).get('write_cpu_s_per_million', 'cached'),
+              ' '.join(f'{m}: {r[m]["load_start"]}/{r[m]["load_end"]}'
+                       for m in ('magcal', 'rosbags', 'iterate') if m in r), _when(r)]
+             for r in new_reads], 'bag reading against the rosbags read loop (CPU s)'))
     os.makedirs(args.out_dir, exist_ok=True)
     plot(results, os.path.join(args.out_dir, 'scale.png'))
-    write_result('scale', vars(args), {'runs': results, 'bag_reads': reads}, tables,
-                 out_dir=args.out_dir, started=started)
+    write_result('scale', {k: v for k, v in vars(args).items() if k != 'read_loop'},
+                 {'runs': results, 'bag_reads': reads}, tables, out_dir=args.out_dir,
+                 started=started)
+    return tables
+
+
+def _load(r):
+    return f'{r["load_start"]}/{r["load_end"]}' if 'load_start' in r else '-'
+
+
+def _when(r):
+    return f'{r.get("git_commit")} {str(r.get("date_utc"))[11:16]}'
 
 
 if __name__ == '__main__':
