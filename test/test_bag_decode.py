@@ -165,8 +165,12 @@ def test_decoder_leaves_what_it_cannot_read_to_rosbags():
     np.testing.assert_array_equal(vals[0], [1.0, 2.0, 3.0])
 
 
-def _hand_bag(path, storage, corrupt=None):
-    """Bag of 3 sensors x 400 hand-packed messages (frame_ids of lengths 0..8), + temps."""
+def _hand_bag(path, storage, corrupt=None, stop=None):
+    """
+    Bag of 3 sensors x 400 hand-packed messages (frame_ids of lengths 0..8), + temps.
+
+    ``stop``: (epoch where sensor 2's temperature stops, epoch where sensor 3 stops).
+    """
     from rosbags.rosbag2 import StoragePlugin, Writer
     ts = _typestore()
     plugin = {'sqlite3': StoragePlugin.SQLITE3, 'mcap': StoragePlugin.MCAP}[storage]
@@ -180,6 +184,8 @@ def _hand_bag(path, storage, corrupt=None):
         aux = w.add_connection('/magcal/aux/heater', F32, typestore=ts)
         for k in range(n):
             for j, c in enumerate(conns):
+                if stop and j == 2 and k >= stop[1]:
+                    continue
                 xyz = (1e-6 * (j + 1) + 1e-9 * k, -2e-5 - 1e-10 * k, 4.5e-5)
                 field[j, k] = xyz
                 frame = 'g' * ((k + 3 * j) % 9)
@@ -188,8 +194,9 @@ def _hand_bag(path, storage, corrupt=None):
                 if corrupt == (j, k):
                     data = data[:-5]
                 w.write(c, t_ns[k], data)
-            w.write(temp, t_ns[k], temp_bytes(t_ns[k] // 10 ** 9, t_ns[k] % 10 ** 9, 'tt',
-                                              20.0 + 0.01 * k))
+            if not stop or k < stop[0]:
+                w.write(temp, t_ns[k], temp_bytes(t_ns[k] // 10 ** 9, t_ns[k] % 10 ** 9, 'tt',
+                                                  20.0 + 0.01 * k))
             w.write(aux, t_ns[k], b'\x00\x01\x00\x00' + struct.pack('<f', 0.5 * (k // 100)))
     return np.array(t_ns) * 1e-9, field
 
@@ -208,6 +215,23 @@ def test_bag_of_hand_packed_messages_reads_the_known_numbers(tmp_path, storage):
     chunks = list(bag_chunks(tmp_path / 'bag', rows=37))
     assert len(chunks) > 5
     np.testing.assert_array_equal(np.concatenate([c.raw for c in chunks], axis=1), got.raw)
+
+
+def test_a_stream_that_stops_is_not_waited_for(tmp_path):
+    # sensor 2's temperature stops at epoch 60, sensor 3 at epoch 150 (of 400): the chunks
+    # stay about `rows` epochs (not everything after the stop in one piece at the end), and
+    # they hold what read_bag reads (epochs without sensor 3 dropped, the temperature held)
+    from magcal_ros.io.bag import bag_chunks
+    _hand_bag(tmp_path / 'bag', 'mcap', stop=(60, 150))
+    whole = read_bag(tmp_path / 'bag')
+    assert whole.n_samples == 150 and whole.meta['dropped_epochs'] == 250
+    chunks = list(bag_chunks(tmp_path / 'bag', rows=20))
+    assert max(c.n_samples for c in chunks) <= 2 * 20
+    for key in ('t', 'raw', 'temp'):
+        np.testing.assert_array_equal(
+            np.concatenate([getattr(c, key) for c in chunks], axis=-2 if key == 'raw' else -1),
+            getattr(whole, key))
+    np.testing.assert_array_equal(whole.temp[1, 59:], 20.0 + 0.01 * 59)
 
 
 def test_a_damaged_message_is_named(tmp_path):

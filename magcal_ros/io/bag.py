@@ -145,7 +145,7 @@ def bag_chunks(path, rows=65536, progress=None, namespace='/magcal', aux_topics=
     next chunk needs.  The sample period is the median interval of sensor 1's stamps in the
     first chunk (:func:`read_bag`: of the whole record).  ``progress(messages read)``.
     """
-    with _Collector(path, namespace, aux_topics, imu_topic) as col:
+    with _Collector(path, namespace, aux_topics, imu_topic, rows) as col:
         n_msg = 0
         per_chunk = rows * max(1, len(col.conns))
         pending = col.pending
@@ -278,7 +278,7 @@ class _Collector:
     #: messages held serialised before they are decoded (memory: about 150 bytes each)
     FLUSH = 65536
 
-    def __init__(self, path, namespace, aux_topics, imu_topic):
+    def __init__(self, path, namespace, aux_topics, imu_topic, rows=None):
         from rosbags.highlevel import AnyReader
         path = Path(os.fspath(path))
         if not (path / 'metadata.yaml').is_file():
@@ -304,6 +304,8 @@ class _Collector:
             self.reader.close()
             raise
         self.period = None
+        self.rows = rows
+        self.t1_first = None
         self.dropped = 0
         self.dropped_att = 0
         self.emitted = False
@@ -407,6 +409,8 @@ class _Collector:
         else:
             t = recv * 1e-9
         if kind == 'mag':
+            if key == 1 and self.t1_first is None and len(t):
+                self.t1_first = float(t.min())
             self.mags[key] = _extend(self.mags[key], t, vals)
         elif kind == 'temp':
             self.temps[key] = _extend(self.temps[key], t, vals[:, 0])
@@ -422,20 +426,36 @@ class _Collector:
             self.aux[key] = _extend(self.aux[key], t, vals[:, 0])
 
     def safe_time(self):
-        """Latest time every sensor stream has passed by half a period (None: not yet)."""
+        """
+        Latest time every sensor stream has passed by half a period (None: not yet).
+
+        A stream whose last message is more than ``rows`` periods behind sensor 1's (it
+        stopped, or has a gap that long) is not waited for, nor a sensor with no message
+        yet once sensor 1 has run that long: the messages held stay about a chunk's, not
+        the rest of the record.  Across such a gap a temperature is held at its last value
+        and epochs lose their attitude, where :func:`read_bag` interpolates over the gap.
+        """
         self.flush()
-        lasts = [tt.max() for tt, _ in self.mags.values() if len(tt)]
-        if len(lasts) < len(self.mags) or not len(self.mags[1][0]):
+        t1 = self.mags[1][0]
+        if not len(t1):
             return None
-        for tt, _ in list(self.temps.values()) + [self.imu]:
-            if len(tt):
-                lasts.append(tt.max())
         if self.period is None:
-            t1 = np.sort(self.mags[1][0])
             if len(t1) < 2:
                 return None
-            self.period = float(np.median(np.diff(t1)))
-        return float(min(lasts)) - 2 * self.period
+            self.period = float(np.median(np.diff(np.sort(t1))))
+        now = float(t1.max())
+        horizon = np.inf if self.rows is None else self.rows * self.period
+        lasts = [now]
+        for tt, _ in self.mags.values():
+            if not len(tt):
+                if now - self.t1_first <= horizon:
+                    return None
+            elif tt.max() >= now - horizon:
+                lasts.append(float(tt.max()))
+        for tt, _ in list(self.temps.values()) + [self.imu]:
+            if len(tt) and tt.max() >= now - horizon:
+                lasts.append(float(tt.max()))
+        return min(lasts) - 2 * self.period
 
     def take(self, upto, final=False):
         """
