@@ -236,6 +236,7 @@ def main():
     ap.add_argument('--keep', action='store_true',
                     help='keep the rows of the existing scale.json this run does not measure '
                     '(each keeps the commit and date it was measured at)')
+    ap.add_argument('--note', help='a remark kept in the settings of the JSON')
     ap.add_argument('--read-loop', nargs=2, metavar=('MODE', 'BAG'), help=argparse.SUPPRESS)
     add_common_args(ap)
     args = ap.parse_args()
