@@ -236,6 +236,10 @@ def main():
     ap.add_argument('--keep', action='store_true',
                     help='keep the rows of the existing scale.json this run does not measure '
                     '(each keeps the commit and date it was measured at)')
+    steps = ['read', 'fit', 'diagnose', 'rosbags', 'iterate']
+    ap.add_argument('--steps', nargs='+', choices=steps, default=steps,
+                    help='what to measure: the bag read loops (read: ours, rosbags, iterate), '
+                    'fit, diagnose (in this order, per size and input)')
     ap.add_argument('--note', help='a remark kept in the settings of the JSON')
     ap.add_argument('--read-loop', nargs=2, metavar=('MODE', 'BAG'), help=argparse.SUPPRESS)
     add_common_args(ap)
@@ -271,16 +275,21 @@ def main():
             if inp.startswith('bag'):
                 write = to_bag(csv_path, path, inp[4:])
                 print('write', n, inp, write, flush=True)
-                read = {'sets': n, 'storage': inp[4:], 'write': write,
-                        'messages': bag_message_count(path), **stamp}
+                read = {'sets': n, 'storage': inp[4:], 'messages': bag_message_count(path),
+                        **stamp}
+                if write is not None:
+                    read['write'] = write
                 reads.append(read)
-                read.update(read_times(path, ('magcal',)))
-                save()
+                if 'read' in args.steps:
+                    read.update(read_times(path, ('magcal',)))
+                    save()
             codes = [('this tree', REPO_DIR)]
             if args.base and n <= args.base_max:
                 codes.append(('c43534d', os.path.abspath(args.base)))
             for code, code_dir in codes:
                 for cmd in ('fit', 'diagnose'):
+                    if cmd not in args.steps:
+                        continue
                     rows = []
                     series(path, code, code_dir, rows, '50000', (cmd,))
                     for r in rows:
@@ -289,8 +298,9 @@ def main():
                     save()
             if read is not None:
                 for mode in ('rosbags', 'iterate'):
-                    read.update(read_times(path, (mode,)))
-                    save()
+                    if mode in args.steps:
+                        read.update(read_times(path, (mode,)))
+                        save()
     for t in report(args, results, reads, old, started):
         print(t)
 
@@ -303,9 +313,14 @@ def report(args, results, reads, old, started):
         done = {(r['sets'], r['input'], r['code'], r['command']) for r in results}
         results += [dict(prev, **r) for r in old['results']['runs']
                     if (r['sets'], r['input'], r['code'], r['command']) not in done]
-        done = {(r['sets'], r['storage']) for r in reads}
-        reads += [dict(prev, **r) for r in old['results']['bag_reads']
-                  if (r['sets'], r['storage']) not in done]
+        new = {(r['sets'], r['storage']): r for r in reads}
+        reads = [dict(prev, **r) for r in old['results']['bag_reads']
+                 if (r['sets'], r['storage']) not in new]
+        for r in old['results']['bag_reads']:       # a bag measured in parts: the union
+            key = (r['sets'], r['storage'])
+            if key in new:
+                new[key] = {**(dict(prev, **r) if 'magcal' in r else {}), **new[key]}
+        reads += list(new.values())
     results.sort(key=lambda r: (r['sets'], r['input'], r['code'] != 'this tree',
                                 r['command'] != 'fit'))
     reads.sort(key=lambda r: (r['sets'], r['storage']))
@@ -331,7 +346,7 @@ def report(args, results, reads, old, started):
              'load start/end', 'measured'],
             [[r['sets'], r['storage'], r['messages'], cpu(r, 'iterate'), cpu(r, 'rosbags'),
               cpu(r, 'magcal'), ratio(r), f'{r["magcal"]["peak_rss_mb"]:.0f}',
-              (r['write'] or {}).get('write_cpu_s_per_million', 'cached'),
+              r.get('write', {}).get('write_cpu_s_per_million', 'cached'),
               ' '.join(f'{m}: {r[m]["load_start"]}/{r[m]["load_end"]}'
                        for m in ('magcal', 'rosbags', 'iterate') if m in r), _when(r)]
              for r in new_reads], 'bag reading against the rosbags read loop (CPU s)'))

@@ -38,6 +38,8 @@ the epochs, auxiliary channels held from their last message (a switched current 
 when its message says so).  A message whose header stamp is zero is stamped with the time
 the bag recorded it.  Tesla are converted to nT with :mod:`magcal_ros.units`.
 """
+from itertools import islice
+from operator import attrgetter, itemgetter
 import os
 from pathlib import Path
 import re
@@ -45,6 +47,9 @@ import re
 from magcal_ros.core.data.dataset import Dataset
 from magcal_ros.units import nt_to_t, t_to_nt
 import numpy as np
+
+_CONN, _RECV, _DATA = itemgetter(0), itemgetter(1), itemgetter(2)
+_ID = attrgetter('id')
 
 MAG_TYPE = 'sensor_msgs/msg/MagneticField'
 TEMP_TYPE = 'sensor_msgs/msg/Temperature'
@@ -99,8 +104,9 @@ def read_bag(path, namespace='/magcal', aux_topics=None, imu_topic=None):
 
     """
     with _Collector(path, namespace, aux_topics, imu_topic) as col:
-        for c, recv, data in col.reader.messages(connections=col.conns):
-            col.add(c, recv, data)
+        messages = col.reader.messages(connections=col.conns)
+        while col.read(messages, col.FLUSH):
+            pass
         return col.take(None, final=True)
 
 
@@ -148,14 +154,13 @@ def bag_chunks(path, rows=65536, progress=None, namespace='/magcal', aux_topics=
     with _Collector(path, namespace, aux_topics, imu_topic, rows) as col:
         n_msg = 0
         per_chunk = rows * max(1, len(col.conns))
-        pending = col.pending
-        for c, recv, data in col.reader.messages(connections=col.conns):
-            p = pending[c.id]            # col.add without a call per message
-            p[0].append(data)
-            p[1].append(recv)
-            n_msg += 1
-            if n_msg % col.FLUSH == 0:
-                col.flush()
+        messages = col.reader.messages(connections=col.conns)
+        while True:
+            # a chunk every per_chunk messages, read and decoded FLUSH at a time
+            got = col.read(messages, min(col.FLUSH, per_chunk - n_msg % per_chunk))
+            n_msg += got
+            if got == 0:
+                break
             if n_msg % per_chunk == 0:
                 piece = col.take(col.safe_time())
                 if progress is not None:
@@ -275,7 +280,7 @@ def _message_values(msg, msgtype):
 class _Collector:
     """The messages of a bag's array topics, turned into epochs (all at once or in chunks)."""
 
-    #: messages held serialised before they are decoded (memory: about 150 bytes each)
+    #: messages read and decoded at a time (held serialised meanwhile: ~150 bytes each)
     FLUSH = 65536
 
     def __init__(self, path, namespace, aux_topics, imu_topic, rows=None):
@@ -309,8 +314,6 @@ class _Collector:
         self.dropped = 0
         self.dropped_att = 0
         self.emitted = False
-        self.pending = {c.id: ([], []) for c in self.conns}
-        self.n_pending = 0
         self.n_decoded = {c.id: 0 for c in self.conns}
 
     def __enter__(self):
@@ -368,23 +371,31 @@ class _Collector:
         self.by_id = {c.id: c for c in conns}
         self.topics = sorted(c.topic for c in conns)
 
-    def add(self, c, recv, data):
-        """Take one message (connection, receive time ns, serialised bytes)."""
-        p = self.pending[c.id]
-        p[0].append(data)
-        p[1].append(recv)
-        self.n_pending += 1
-        if self.n_pending >= self.FLUSH:
-            self.flush()
+    def read(self, messages, count):
+        """
+        Read and decode up to ``count`` messages of the iterator ``messages``.
 
-    def flush(self):
-        """Decode the messages held serialised (``_decode_fixed``, else rosbags)."""
-        for cid, (datas, recvs) in self.pending.items():
-            if datas:
-                self._decode(self.by_id[cid], datas, np.asarray(recvs, np.int64))
-                datas.clear()
-                recvs.clear()
-        self.n_pending = 0
+        The iterator is rosbags' ``AnyReader.messages()``, (connection, receive time ns,
+        serialised bytes) each; the messages are taken by ``itertools.islice`` and sorted
+        by connection with numpy, no Python code run per message.  Returns how many were
+        read (0: the bag is done).
+        """
+        batch = list(islice(messages, count))
+        m = len(batch)
+        if m == 0:
+            return 0
+        ids = np.fromiter(map(_ID, map(_CONN, batch)), np.int64, m)
+        recv = np.fromiter(map(_RECV, batch), np.int64, m)
+        datas = list(map(_DATA, batch))
+        del batch
+        for cid in np.unique(ids).tolist():
+            idx = np.flatnonzero(ids == cid)
+            if len(idx) == m:
+                self._decode(self.by_id[cid], datas, recv)
+            else:
+                got = itemgetter(*idx.tolist())(datas)
+                self._decode(self.by_id[cid], list(got) if len(idx) > 1 else [got], recv[idx])
+        return m
 
     def _decode(self, c, datas, recv):
         stamp, vals, ok = _decode_fixed(datas, c.msgtype)
@@ -435,7 +446,6 @@ class _Collector:
         the rest of the record.  Across such a gap a temperature is held at its last value
         and epochs lose their attitude, where :func:`read_bag` interpolates over the gap.
         """
-        self.flush()
         t1 = self.mags[1][0]
         if not len(t1):
             return None
@@ -466,7 +476,6 @@ class _Collector:
         """
         if not final and upto is None:
             return None
-        self.flush()
         path, ns = self.path, self.ns
         s = max(self.mags)
         absent = [j for j in range(1, s + 1) if j not in self.mags or not len(self.mags[j][0])]
