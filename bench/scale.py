@@ -320,7 +320,7 @@ def report(args, results, reads, old, started):
         for r in old['results']['bag_reads']:       # a bag measured in parts: the union
             key = (r['sets'], r['storage'])
             if key in new:
-                new[key] = {**(dict(prev, **r) if 'magcal' in r else {}), **new[key]}
+                new[key] = {**(dict(prev, **r) if 'messages' in r else {}), **new[key]}
         reads += list(new.values())
     results.sort(key=lambda r: (r['sets'], r['input'], r['code'] != 'this tree',
                                 r['command'] != 'fit'))
