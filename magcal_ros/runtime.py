@@ -20,9 +20,10 @@ coverage in every status message, P x P solves, products with a few columns. Wit
 OpenBLAS' default of one thread per core, each such call starts and spins the other
 threads: on this project's 2-core machine with a second process busy, a 2000 x 10 SVD took
 36 ms of CPU against 0.4 ms on one thread (BENCHMARKS.md, "One BLAS thread per process"),
-and a live node spent a fifth of a core on its status alone. The library's fit and diagnosis already limit BLAS
-around themselves (:func:`magcal_ros.core.model.solvers.single_threaded_blas`); this does it
-once for the whole process. A user who sets ``OPENBLAS_NUM_THREADS``, ``OMP_NUM_THREADS`` or
+and a live node spent a fifth of a core on its status alone. The library's fit and
+diagnosis already limit BLAS around themselves
+(:func:`magcal_ros.core.model.solvers.single_threaded_blas`); this does it once for the
+whole process. A user who sets ``OPENBLAS_NUM_THREADS``, ``OMP_NUM_THREADS`` or
 ``MKL_NUM_THREADS`` keeps that setting.
 """
 import os
