@@ -29,7 +29,13 @@ N = 3000
 SIGMA = 3.0
 
 
-def _readings(rng):
+def _record(seed):
+    """Times (N,) s, readings (4, N, 3) nT and a white residual (4, N, 3) nT of a seed."""
+    rng = np.random.default_rng(seed)
+    return np.arange(N) * 0.1, _readings(), rng.normal(0, SIGMA, (4, N, 3))
+
+
+def _readings():
     """(4, N, 3) nT: a 50 000 nT field in directions spread over the sphere, in time order."""
     k = np.arange(N)
     th = np.arccos(1 - 2 * ((k * 0.618034) % 1.0))     # spread over the sphere
@@ -39,10 +45,7 @@ def _readings(rng):
 
 
 def test_a_scale_step_is_found_in_the_gains_not_in_the_mean():
-    rng = np.random.default_rng(2)
-    t = np.arange(N) * 0.1
-    m = _readings(rng)
-    resid = rng.normal(0, SIGMA, (4, N, 3))
+    t, m, resid = _record(2)
     k0 = 1650
     dk = np.array([4e-4, -3e-4, 5e-4])
     resid[1, k0:] += dk * m[1, k0:]
@@ -54,10 +57,7 @@ def test_a_scale_step_is_found_in_the_gains_not_in_the_mean():
 
 
 def test_an_offset_step_is_found_once():
-    rng = np.random.default_rng(4)
-    t = np.arange(N) * 0.1
-    m = _readings(rng)
-    resid = rng.normal(0, SIGMA, (4, N, 3))
+    t, m, resid = _record(4)
     k0 = 900
     resid[2, k0:] += np.array([4.0, -3.0, 2.0])
     found, _ = residual_features(t, resid, readings=m)
@@ -67,8 +67,6 @@ def test_an_offset_step_is_found_once():
 
 @pytest.mark.parametrize('seed', range(5))
 def test_white_noise_has_no_change_point(seed):
-    rng = np.random.default_rng(100 + seed)
-    t = np.arange(N) * 0.1
-    found, _ = residual_features(t, rng.normal(0, SIGMA, (4, N, 3)),
-                                 readings=_readings(rng))
+    t, m, resid = _record(100 + seed)
+    found, _ = residual_features(t, resid, readings=m)
     assert found == []
