@@ -30,7 +30,7 @@ SIGMA = 3.0
 
 
 def _record(seed):
-    """Times (N,) s, readings (4, N, 3) nT and a white residual (4, N, 3) nT of a seed."""
+    """Return times (N,) s, readings (4, N, 3) nT and a white residual (4, N, 3) nT."""
     rng = np.random.default_rng(seed)
     return np.arange(N) * 0.1, _readings(), rng.normal(0, SIGMA, (4, N, 3))
 
