@@ -38,6 +38,7 @@ ORDER = [('accuracy', 'Accuracy against the noise floor and the Cramer-Rao bound
          ('workbench', 'Workbench speed: diagnose, report, ladder (before and after)'),
          ('report_layout', "The report's PNG and layout: own code or the libraries'"),
          ('pairing', 'Live set pairing check: cost per sample'),
+         ('executor', "rclpy's executors: CPU per received message"),
          ('scale', 'Long records: time and memory from 1e4 to 3.6e6 sets'),
          ('reduction_accuracy', 'Long records: the reduction against the record held in '
                                 'memory')]

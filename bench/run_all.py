@@ -44,6 +44,7 @@ BENCHES = {
     'workbench': (['workbench.py'], ['--sizes', '3000', '--no-ladder']),
     'report_layout': (['report_layout.py'], ['--n', '10000', '--repeat', '3']),
     'pairing': (['pairing.py'], ['--epochs', '2000', '--repeats', '3']),
+    'executor': (['executor.py'], ['--rate', '200', '--duration', '8', '--repeats', '3']),
     'grammar_speed': (['grammar_speed.py'], ['--n', '10000', '--repeat', '3']),
     # the hour-long series: python bench/scale.py --base <tree of c43534d> (BENCHMARKS.md)
     'scale': (['scale.py'], ['--sizes', '10000', '100000', '--bag-max', '10000']),

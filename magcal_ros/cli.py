@@ -24,6 +24,7 @@ import sys
 
 from magcal_ros.core.model import DegenerateDataError
 from magcal_ros.core.model.notes import format_note
+from magcal_ros.runtime import limit_blas_threads
 from magcal_ros.units import check_field_units, UNITS_NT
 import numpy as np
 
@@ -663,6 +664,7 @@ def register_workbench_commands(sub):
 
 def main(argv=None):
     """Entry point of ``magcal``."""
+    limit_blas_threads()
     parser = build_parser()
     args = parser.parse_args(argv)
     try:

@@ -53,13 +53,15 @@ ACCEPT_FACTOR = 1.5
 
 
 def _ensure_ros_env():
-    """Keep DDS on loopback even when run without scripts/demo.sh (before rclpy loads)."""
+    """Keep DDS on loopback even without scripts/demo.sh (before rclpy loads); one BLAS thread."""
     profile = str(ROOT / 'config' / 'fastdds_loopback.xml')
     os.environ.setdefault('FASTRTPS_DEFAULT_PROFILES_FILE', profile)
     os.environ.setdefault('FASTDDS_DEFAULT_PROFILES_FILE', profile)
     os.environ.setdefault('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'SYSTEM_DEFAULT'
     os.environ.setdefault('ROS_DOMAIN_ID', str(100 + os.getpid() % 100))
+    from magcal_ros.runtime import limit_blas_threads
+    limit_blas_threads()              # this process' analysis, as the nodes do (runtime.py)
 
 
 def executable(name):

@@ -95,6 +95,15 @@ def _configure_ros_environment():
 
 _configure_ros_environment()
 
+
+def _limit_blas_threads():
+    """Run BLAS as magcal's executables do (runtime.py): three workers on two cores."""
+    from magcal_ros.runtime import limit_blas_threads
+    limit_blas_threads()
+
+
+_limit_blas_threads()
+
 try:
     import rclpy  # noqa: E402,F401  (after the environment is set)
 except ImportError as exc:  # a missing rclpy is a failure, never a skip
@@ -144,7 +153,8 @@ LIVE_FILES = frozenset({
 
 def pytest_configure(config):
     config.addinivalue_line('markers', 'live: a live ROS pipeline judged against the noise '
-                            '(conftest.LIVE_FILES; `make test` runs these serially)')
+                            '(conftest.LIVE_FILES, or marked one by one; `make test` runs '
+                            'these serially)')
 
 
 def pytest_collection_modifyitems(config, items):

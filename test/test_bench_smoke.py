@@ -46,6 +46,7 @@ CASES = {
     'grammar_speed': ['--n', '300', '--repeat', '1', '--pairs', '2'],
     'scale': ['--sizes', '1500', '--bag-max', '1500'],
     'reduction_accuracy': ['--sizes', '6000'],
+    'executor': ['--rate', '50', '--duration', '1', '--repeats', '1'],
 }
 
 
@@ -97,6 +98,7 @@ def test_solve_time(tmp_path):
     assert res['exponents']['base']['calibrate_all'] is not None
 
 
+@pytest.mark.live           # a live ROS pipeline: with the parallel pass it lost half its messages
 def test_live(tmp_path):
     res = _run('live', tmp_path)['results']
     runs = {r['node']: r for r in res['runs']}
@@ -177,3 +179,13 @@ def test_reduction_accuracy(tmp_path):
     rows = _run('reduction_accuracy', tmp_path)['results']['rows']
     assert rows[0]['epochs'] == 6000 and rows[0]['sample_epochs'] < 6000
     assert rows[0]['max_param_diff_sd'] < 4.5
+
+
+@pytest.mark.live           # ROS messages counted in real time (see test_live)
+def test_executor(tmp_path):
+    res = _run('executor', tmp_path)['results']
+    runs = res['runs']
+    assert [r['executor'] for r in runs] == ['single', 'events']
+    # 4 topics at 50 Hz for 1 s: about 200 messages each, some lost to start-up at most
+    assert all(100 <= r['messages'] <= 220 and r['cpu_s'] > 0 for r in runs), runs
+    assert res['ratio'] > 0

@@ -27,7 +27,7 @@ bound, at least 10 standard errors above what a right model leaves.  Controls mu
 "none" with the base fit within 1.10x the floor (the diagnosis' own at-floor rule).
 
 The cases here cover each driver kind (smooth/step/window in time, a channel linear, its
-lag, a cyclic channel, a product), each coupling (offset, scale, linear, field), each scope
+lag, a cyclic channel, a product, a step), each coupling (offset, scale, linear, field), each scope
 (one sensor, a set, alike, the array) and the model-free drop at least once, at both sizes
 between them; the rest run in bench/discovery.py.
 """
@@ -53,6 +53,7 @@ CHOSEN = [
     ('common_warmup', 3000),        # smooth in time, offset alike on every sensor
     ('product', 3000),              # a product of two channels
     ('relay_lag', 10000),           # a channel through a lag
+    ('gain_switch', 3000),          # a step in time, scale: found in the gains' change point
 ]
 
 _CACHE = {}

@@ -210,3 +210,46 @@ def test_with_a_misfit_no_set_is_mismatched_and_losses_are_re_paired(seed, case,
     # every epoch: a set, one a sensor lost, or one dropped (less the first alignment; a
     # sample whose partners a re-pairing finds already used counts as a drop too)
     assert n - 20 <= m.complete + m.incomplete + m.rejected <= n + 10
+
+
+def test_epoch_times_follow_the_sample_clock_across_lost_samples():
+    """
+    Samples of the reference stream lost in transport: epochs count only what arrived.
+
+    Written here: a 50 Hz clock; 25 of 3000 samples lost at random instants (the epoch
+    numbers run on without them); stamps 0.3 ms + exponential latency (mean 2 ms) late,
+    with a 0.4 s stall. A straight line through (epoch, stamp) is a period off per loss,
+    up to 3 periods here (60 ms); the stepped clock must put every set within 1 ms of its
+    sample instant.
+    """
+    rng = np.random.default_rng(11)
+    period = 0.02
+    n_true = 3025
+    lost = np.sort(rng.choice(np.arange(100, n_true - 100), 25, replace=False))
+    kept = np.setdiff1d(np.arange(n_true), lost)
+    true = 500.0 + period * kept                     # the sample instants of what arrived
+    epochs = np.arange(kept.size)                    # counted as they arrive
+    stamps = true + 0.0003 + rng.exponential(0.002, kept.size)
+    stamps[1500:1520] = np.maximum(stamps[1500:1520], stamps[1520])     # a stall
+    t = epoch_times(epochs, stamps)
+    assert np.all(np.diff(t) > 0)
+    err = np.abs(t - true)
+    # every set on its sample instant: a loss is placed between the last set whose stamp
+    # could not come before its instant at the higher step and the first that could
+    assert np.max(err) < 1e-3, np.max(err)
+    # the straight line of before: periods off
+    line = np.polyval(np.polyfit(epochs, stamps, 1), epochs)
+    assert np.abs(line - true).max() > 2 * period
+
+
+def test_epoch_times_add_no_step_without_a_loss():
+    """No sample lost, latency up to tens of ms in bursts: one straight clock, 1 ms."""
+    rng = np.random.default_rng(3)
+    epochs = np.arange(6000)
+    true = 10.0 + 0.01 * epochs
+    late = rng.exponential(0.002, epochs.size)
+    burst = rng.random(epochs.size) < 0.05
+    late[burst] += rng.uniform(0.005, 0.03, burst.sum())   # starved reader, a few periods
+    t = epoch_times(epochs, true + 0.0003 + late)
+    assert np.max(np.abs(t - true)) < 1e-3
+    assert np.allclose(np.diff(t), np.diff(t)[0])

@@ -1069,7 +1069,8 @@ class CalibrationNode(Node):
 
 def main(args=None):
     """Run calibration_node (``ros2 run magcal_ros calibration_node``)."""
-    return spin_node(CalibrationNode, 'calibration_node', args)
+    # its services are coroutines awaiting the solve thread: not for the EventsExecutor
+    return spin_node(CalibrationNode, 'calibration_node', args, events=False)
 
 
 if __name__ == '__main__':

@@ -254,22 +254,19 @@ def propose_from_residual(t, residual, max_steps=2, min_line_ratio=30.0):
     return out
 
 
-def residual_features(t, residual, max_steps=2, min_line_ratio=30.0):
+def _binary_segmentation(flat, max_steps):
     """
-    Change points and spectral lines of a residual (see :func:`propose_from_residual`).
+    Change points of the mean of the columns of ``flat`` (N, C): binary segmentation.
 
-    Returns (change points: sorted epoch indices (the first sample after each change),
-    lines: {sensor index: (peak power / median power, refined frequency Hz)}).
+    The least-squares single change in the mean of the C-vector (the CUSUM statistic of
+    the two-segment fit, maximised over the split; Hawkins 1977), applied recursively to
+    the segments; a change is kept only far above what white noise gives (the statistic
+    is ~ chi2(C) sigma^2 there, sigma from the first differences).
     """
-    t = np.asarray(t, float)
-    n = len(t)
-    if n < 50:
-        return [], {}
-    r = residual - residual.mean(axis=1, keepdims=True)
-    # -- steps: one change in the mean, on the sensors' residuals together
-    flat = r.transpose(1, 0, 2).reshape(n, -1)              # (N, 3S)
+    n = flat.shape[0]
     found = []
     segs = [(0, n)]
+    sig2 = np.median(np.diff(flat, axis=0) ** 2) / 2.0 / 0.455
     for _ in range(max_steps):
         best = None
         for a, b in segs:
@@ -286,14 +283,49 @@ def residual_features(t, residual, max_steps=2, min_line_ratio=30.0):
                 best = (stat[i], a + i + 1, (a, b))
         if best is None:
             break
-        # keep a change only if it is far above what noise gives: stat ~ chi2(3S) sigma^2
-        sig2 = np.median(np.diff(flat, axis=0) ** 2) / 2.0 / 0.455
         if best[0] < 10.0 * sig2 * flat.shape[1] + 5.0 * sig2 * math.log(n) * flat.shape[1]:
             break
         found.append(best[1])
         a, b = best[2]
         segs.remove((a, b))
         segs += [(a, best[1]), (best[1], b)]
+    return found
+
+
+def residual_features(t, residual, max_steps=2, min_line_ratio=30.0, readings=None):
+    """
+    Change points and spectral lines of a residual (see :func:`propose_from_residual`).
+
+    ``readings``: (S, N, 3) nT, the sensors' readings. Given, changes are also sought in
+    how the residual follows the reading's direction u = m / |m| (the 9 products r_a u_b
+    per sensor): a step of a scale factor, an angle or a cross-coupling (a range switch, a
+    knock to the mount) leaves a residual dM m that averages out over the attitudes, and
+    so no change in its mean, but a change in the mean of r_a u_b (dM_ab |m| / 3 for a
+    well-turned record).
+
+    Returns (change points: sorted epoch indices (the first sample after each change),
+    lines: {sensor index: (peak power / median power, refined frequency Hz)}).
+    """
+    t = np.asarray(t, float)
+    n = len(t)
+    if n < 50:
+        return [], {}
+    r = residual - residual.mean(axis=1, keepdims=True)
+    # -- steps: one change in the mean, on the sensors' residuals together
+    flat = r.transpose(1, 0, 2).reshape(n, -1)              # (N, 3S)
+    found = _binary_segmentation(flat, max_steps)
+    if readings is not None:
+        m = np.asarray(readings, float)
+        norm = np.linalg.norm(m, axis=2, keepdims=True)
+        u = np.divide(m, norm, out=np.zeros_like(m), where=norm > 0)
+        lin = (residual[:, :, :, None] * u[:, :, None, :])             # (S, N, 3, 3)
+        lin = lin - lin.mean(axis=1, keepdims=True)
+        flat_lin = lin.transpose(1, 0, 2, 3).reshape(n, -1)            # (N, 9S)
+        # a change point of the gains near one of the mean's is the same change
+        tol = max(3, n // 100)
+        for k in _binary_segmentation(flat_lin, max_steps):
+            if all(abs(k - f) > tol for f in found):
+                found.append(k)
     dt = float(np.median(np.diff(t)))
     # -- lines
     span = float(t[-1] - t[0])

@@ -286,7 +286,8 @@ def _search(b, screen, alpha):
     elif screen is None:
         screen = Screen(b.model, b.params, data.raw, b.contexts, b.f, b.sigma)
     t = data.t
-    cps, lines = residual_features(t, resid, max_steps=SEARCH_CHANGE_POINTS)
+    cps, lines = residual_features(t, resid, max_steps=SEARCH_CHANGE_POINTS,
+                                   readings=data.raw)
     times = [float(t[k]) for k in cps]
     steps = [(x,) for x in times] + ([tuple(times)] if len(times) > 1 else [])
     span = float(t[-1] - t[0])

@@ -77,19 +77,38 @@ def backdate(stamps, period_s):
     return a[last] - (last - idx) * period_s
 
 
-def epoch_times(epochs, stamps_s):
-    """
-    Sample instants of consecutive epochs from noisy, late stamps: a linear clock.
+#: length of the blocks whose earliest stamp tracks the sample clock in epoch_times, s
+CLOCK_BLOCK_S = 2.0
 
-    Fits t = t0 + T e by least squares for the slope T, then sets t0 on the lower envelope
-    (latency is never negative, so the earliest stamps carry the sampling instants).
+
+def epoch_times(epochs, stamps_s, block_s=CLOCK_BLOCK_S):
+    """
+    Sample instants of epochs from noisy, late stamps: a linear clock, stepped where lost.
+
+    Epoch numbers count the samples of the reference stream that arrived; a sample the
+    transport lost (the sensor-data QoS drops samples under load) makes every later epoch
+    number one short of the sample clock, so a single line t = t0 + T e is off by a period
+    per loss, and a periodic term fitted on those times loses its phase. Latency is never
+    negative, so the promptest stamp of each block of ``block_s`` carries its sample
+    instant: the period T is the one that puts those stamps on one grid (the phases
+    t_k / T - e_k of all blocks equal, searched within 3 % of the line's slope, as a
+    periodogram of the block stamps), and each block's phase then counts the whole periods
+    lost before it (median-filtered over three blocks, never decreasing: epochs are never
+    gained). Within a block a set takes the largest count that keeps its own and every
+    later set's stamp after its sample instant (half a period spare). When the block
+    phases do not agree (resultant length <= 0.9: the promptest stamps scatter by a good
+    part of a period), the straight line through all stamps is kept. t0 sits on the lower
+    envelope of the stamps.
 
     Parameters
     ----------
     epochs : numpy.ndarray
-        (N,) epoch numbers (integers, increasing).
+        (N,) epoch numbers (integers, increasing; gaps where sets were dropped).
     stamps_s : numpy.ndarray
         (N,) a stamp of each epoch, s (e.g. the median of its sensors' stamps).
+    block_s : float
+        Length of the blocks in which the earliest stamp is taken, s (2 s: ~100 stamps at
+        50 Hz, among which some arrive promptly even on a loaded machine).
 
     Returns
     -------
@@ -97,15 +116,52 @@ def epoch_times(epochs, stamps_s):
         (N,) times in s, strictly increasing.
 
     """
+    from scipy.ndimage import median_filter
     e = np.asarray(epochs, float)
     t = np.asarray(stamps_s, float)
     if len(e) < 2:
         return t.copy()
-    slope, _ = np.polyfit(e - e[0], t - t[0], 1)
+    e = e - e[0]
+    slope = np.polyfit(e, t - t[0], 1)[0]
     if not slope > 0:
         raise ValueError('stamps do not increase with the epoch number')
-    t0 = np.min(t - slope * (e - e[0]))
-    return t0 + slope * (e - e[0])
+    n_blocks = int(np.clip(round((t[-1] - t[0]) / block_s), 1, len(e) // 10))
+    if n_blocks >= 3:
+        edges = np.linspace(0, len(e), n_blocks + 1).round().astype(int)
+        sizes = np.diff(edges)
+        # the promptest stamp of each block: its sample instant plus the least latency
+        d = t - slope * e
+        first = np.array([a + np.argmin(d[a:b]) for a, b in zip(edges[:-1], edges[1:])])
+        ek, tk = e[first], t[first] - t[0]
+        # the period that puts those stamps on one grid: every block's phase the same
+        # (a loss moves the later blocks by whole periods, a wrong period by a drifting
+        # fraction); searched within +-3 % of the line's slope, then refined
+        period = slope
+        for span, n in ((0.03, 6001), (2e-5, 401)):
+            grid = period * (1.0 + np.linspace(-span, span, n))
+            phase = np.exp(2j * np.pi * (tk[None, :] / grid[:, None] - ek[None, :]))
+            r = np.abs(phase.mean(axis=1))
+            period = grid[np.argmax(r)]
+        ph = tk / period - ek
+        mean_phase = np.angle(np.exp(2j * np.pi * ph).mean()) / (2 * np.pi)
+        if r.max() > 0.9:
+            # concentrated: whole periods lost before each block (noise of the promptest
+            # stamps well under half a period); else the straight line is kept
+            steps = np.round(ph - mean_phase)
+            steps = median_filter(steps, size=3, mode='nearest')
+            steps = np.maximum.accumulate(steps - steps[0])
+            # the line through the promptest stamps (latency tens of us, not ms)
+            slope = np.polyfit(ek + steps, tk, 1)[0]
+            t0 = t[0] + np.min(tk - slope * (ek + steps))
+            # each set's step: at most what keeps its own and every later set's latency
+            # >= 0 (half a period spare), at least the previous block's
+            upto = np.floor((t - t0) / slope - e + 0.5)
+            upto = np.minimum.accumulate(upto[::-1])[::-1]
+            floor_ = np.repeat(np.concatenate([[0.0], steps[:-1]]), sizes)
+            e = e + np.clip(upto, floor_, steps[-1])
+            return t0 + slope * e
+    t0 = np.min(t - slope * e)
+    return t0 + slope * e
 
 
 #: largest backward shift of one stream, and largest change of the offsets by the stamp

@@ -1,0 +1,72 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Change points of the base fit's residual (core/discovery/candidates.residual_features).
+
+Residuals written here by hand: white noise of 3 nT per axis on 4 sensors, readings of a
+50 000 nT field turning through every direction. A step of an offset changes the
+residual's mean; a step of a scale factor (a range switch) leaves dk * m, whose mean over
+the attitudes is 0, and changes instead the mean of r_a u_b (u = m / |m|): dk_a * F / 3 on
+the diagonal, 4e-4 * 50 000 / 3 = 6.7 nT here, against 3 nT / sqrt(3) of noise per epoch.
+"""
+from magcal_ros.core.discovery.candidates import residual_features
+import numpy as np
+import pytest
+
+N = 3000
+SIGMA = 3.0
+
+
+def _record(seed):
+    """Return times (N,) s, readings (4, N, 3) nT and a white residual (4, N, 3) nT."""
+    rng = np.random.default_rng(seed)
+    return np.arange(N) * 0.1, _readings(), rng.normal(0, SIGMA, (4, N, 3))
+
+
+def _readings():
+    """(4, N, 3) nT: a 50 000 nT field in directions spread over the sphere, in time order."""
+    k = np.arange(N)
+    th = np.arccos(1 - 2 * ((k * 0.618034) % 1.0))     # spread over the sphere
+    ph = 0.05 * k
+    u = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], axis=1)
+    return np.repeat(50000.0 * u[None], 4, axis=0)
+
+
+def test_a_scale_step_is_found_in_the_gains_not_in_the_mean():
+    t, m, resid = _record(2)
+    k0 = 1650
+    dk = np.array([4e-4, -3e-4, 5e-4])
+    resid[1, k0:] += dk * m[1, k0:]
+    # the mean alone misses it (the step averages out over the attitudes)
+    found_mean, _ = residual_features(t, resid)
+    assert not any(abs(k - k0) <= 30 for k in found_mean), found_mean
+    found, _ = residual_features(t, resid, readings=m)
+    assert any(abs(k - k0) <= 30 for k in found), found
+
+
+def test_an_offset_step_is_found_once():
+    t, m, resid = _record(4)
+    k0 = 900
+    resid[2, k0:] += np.array([4.0, -3.0, 2.0])
+    found, _ = residual_features(t, resid, readings=m)
+    near = [k for k in found if abs(k - k0) <= 30]
+    assert len(near) == 1, found
+
+
+@pytest.mark.parametrize('seed', range(5))
+def test_white_noise_has_no_change_point(seed):
+    t, m, resid = _record(100 + seed)
+    found, _ = residual_features(t, resid, readings=m)
+    assert found == []
