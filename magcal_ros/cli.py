@@ -60,11 +60,7 @@ def load_data(path, unit=None, rate_hz=100.0):
         data = read_csv(path)
     k = UNITS_NT[unit or 'nT']
     if k != 1.0:
-        data.raw = data.raw * k
-        if data.ref_total is not None:
-            data.ref_total = data.ref_total * k
-        if data.ref_vec is not None:
-            data.ref_vec = data.ref_vec * k
+        _scale_to_nt(data, k)
         data.meta['unit'] = unit
     return data
 
@@ -103,15 +99,20 @@ def load_record(path, unit=None, rate_hz=100.0, progress=None, reduce_above=None
     return red.sample, rec
 
 
+def _scale_to_nt(data, k):
+    """Multiply the field columns of a Dataset (raw, ref_total, ref_vec) by ``k``, in place."""
+    data.raw = data.raw * k
+    if data.ref_total is not None:
+        data.ref_total = data.ref_total * k
+    if data.ref_vec is not None:
+        data.ref_vec = data.ref_vec * k
+
+
 def in_nt(chunks, k):
     """Yield the Dataset ``chunks`` with their field columns multiplied by ``k`` (to nT)."""
     for piece in chunks:
         if k != 1.0:
-            piece.raw = piece.raw * k
-            if piece.ref_total is not None:
-                piece.ref_total = piece.ref_total * k
-            if piece.ref_vec is not None:
-                piece.ref_vec = piece.ref_vec * k
+            _scale_to_nt(piece, k)
         yield piece
 
 

@@ -232,6 +232,24 @@ class Recorder:
         self.node.destroy_node()
 
 
+def shut_down(client, rclpy, context, procs, sim_dir, failures):
+    """
+    Close ``client`` (if any) and ROS, stop every process, remove the simulator's folder.
+
+    A process that had stopped by itself is added to ``failures`` with the tail of its log;
+    the exit codes are printed. Shared by the demo and the loop demo (``finally``).
+    """
+    if client is not None:
+        client.close()
+    rclpy.try_shutdown(context=context)
+    died = procs.dead()
+    codes = procs.stop_all()
+    shutil.rmtree(sim_dir, ignore_errors=True)
+    for name, code in died.items():
+        failures.append(f'{name} stopped by itself with exit code {code}:\n{procs.tail(name)}')
+    print(f'stopped all processes (exit codes {codes})')
+
+
 def _wait(predicate, timeout_s, what, procs):
     deadline = time.monotonic() + timeout_s
     while not predicate():
@@ -604,15 +622,7 @@ def main(argv=None):
     except KeyboardInterrupt:
         failures.append('interrupted')
     finally:
-        if rec is not None:
-            rec.close()
-        rclpy.try_shutdown(context=context)
-        died = procs.dead()
-        codes = procs.stop_all()
-        shutil.rmtree(sim_dir, ignore_errors=True)
-    for name, code in died.items():
-        failures.append(f'{name} stopped by itself with exit code {code}:\n{procs.tail(name)}')
-    print(f'stopped all processes (exit codes {codes})')
+        shut_down(rec, rclpy, context, procs, sim_dir, failures)
     if failures:
         print('\nDEMO FAILED:\n- ' + '\n- '.join(failures), file=sys.stderr)
         return 1

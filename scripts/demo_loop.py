@@ -623,15 +623,7 @@ def main(argv=None):
     except KeyboardInterrupt:
         failures.append('interrupted')
     finally:
-        if client is not None:
-            client.close()
-        rclpy.try_shutdown(context=context)
-        died = procs.dead()
-        codes = procs.stop_all()
-        shutil.rmtree(sim_dir, ignore_errors=True)
-    for name, code in died.items():
-        failures.append(f'{name} stopped by itself with exit code {code}:\n{procs.tail(name)}')
-    print(f'stopped all processes (exit codes {codes})')
+        demo.shut_down(client, rclpy, context, procs, sim_dir, failures)
     closed = judge(result, failures)
     figure = None
     if client is not None and result['steps']:

@@ -213,6 +213,26 @@ def _fast_rows(fh, n_cols, fill):
     return arr
 
 
+def _row_values(path, header, ln_no, parts, plane_col, planes):
+    """
+    Return the floats of one row's cells ``parts`` (empty: nan), or raise CsvFormatError.
+
+    The plane cell, when there is one, is appended to ``planes`` and read as nan.
+    """
+    if len(parts) != len(header):
+        raise CsvFormatError(f'{path}: line {ln_no} has {len(parts)} fields, header has '
+                             f'{len(header)}')
+    if plane_col is not None:
+        planes.append(parts[plane_col])
+        parts[plane_col] = 'nan'
+    try:
+        return [float(p) if p != '' else np.nan for p in parts]
+    except ValueError:
+        i = next(i for i, p in enumerate(parts) if not _isfloat(p))
+        raise CsvFormatError(f'{path}: line {ln_no}, column {header[i]}: {parts[i]!r} is '
+                             'not a number') from None
+
+
 def _csv_rows(path, fh, header, plane_col, header_no):
     """Rows after the header by the csv module: (floats, planes, line numbers, cells)."""
     rows, planes, line_nos, cells = [], [], [], []
@@ -220,19 +240,8 @@ def _csv_rows(path, fh, header, plane_col, header_no):
         if not _is_content(line):
             continue
         parts = [p.strip() for p in next(csv.reader([line]))]
-        if len(parts) != len(header):
-            raise CsvFormatError(f'{path}: line {ln_no} has {len(parts)} fields, header has '
-                                 f'{len(header)}')
         cells.append(list(parts))
-        if plane_col is not None:
-            planes.append(parts[plane_col])
-            parts[plane_col] = 'nan'
-        try:
-            rows.append([float(p) if p != '' else np.nan for p in parts])
-        except ValueError:
-            i = next(i for i, p in enumerate(parts) if not _isfloat(p))
-            raise CsvFormatError(f'{path}: line {ln_no}, column {header[i]}: {parts[i]!r} is '
-                                 'not a number') from None
+        rows.append(_row_values(path, header, ln_no, parts, plane_col, planes))
         line_nos.append(ln_no)
     if not rows:
         raise CsvFormatError(f'{path}: no data rows (only the header)')
@@ -330,17 +339,7 @@ def parse_rows(path, layout, line_nos, lines):
     planes = []
     for ln_no, ln in zip(line_nos, lines):
         parts = [p.strip() for p in ln.strip().split(',')]
-        if len(parts) != len(header):
-            raise CsvFormatError(f'{path}: line {ln_no} has {len(parts)} fields, header has '
-                                 f'{len(header)}')
-        if plane_col is not None:
-            planes.append(parts[plane_col])
-            parts[plane_col] = 'nan'
-        try:
-            rows.append([float(p) if p != '' else np.nan for p in parts])
-        except ValueError:
-            bad = next(p for p in parts if not _isfloat(p))
-            raise CsvFormatError(f'{path}: line {ln_no}: {bad!r} is not a number') from None
+        rows.append(_row_values(path, header, ln_no, parts, plane_col, planes))
     return (np.array(rows, float).reshape(-1, len(header)),
             np.array(planes) if plane_col is not None else None)
 
