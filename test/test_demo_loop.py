@@ -16,7 +16,7 @@
 The workbench loop, live (README "Demo": ``scripts/demo.sh --loop``).
 
 The README's command as written, two more seeds and a forced wrong model run as separate
-processes, two at a time (each is mostly waiting for the live stream). The references are
+processes, one after the other. The references are
 independent of the demo's own numbers: the simulator's noise (3 nT per axis, white; the
 demo keeps fluxgate_sim's default), the hidden terms the seeds draw (written here by hand,
 and read back from the simulator's own log), and for the vector residual |b_j - mean of the
@@ -71,12 +71,11 @@ def _argv(cmd):
 @pytest.fixture(scope='module')
 def runs(tmp_path_factory):
     """
-    Run the four demo runs two at a time, each in its own directory and DDS domain.
+    Run the four demo runs one after the other, each in its own directory and DDS domain.
 
-    Two side by side: each run is mostly waiting on its 50 Hz stream. (Under a load of 20,
-    before the nodes ran BLAS on one thread and the corrector on the EventsExecutor, two
-    side by side starved each other's streams; a loop that does not close for want of CPU
-    tests nothing of the loop.)
+    One at a time: two side by side passed three times on a quiet machine but failed once
+    (2026-11-26 20:36, cause not recorded), and a loop that does not close for want of CPU
+    tests nothing of the loop.
 
     README (seed 0), seeds 1 and 2, seed 2 with a forced wrong model; returns
     ({key: CompletedProcess}, {key: directory}).
@@ -94,7 +93,7 @@ def runs(tmp_path_factory):
     dirs = {k: tmp_path_factory.mktemp(f'loop_{k}') for k in commands}
     results = {}
     keys = list(commands)
-    for pair in (keys[:2], keys[2:]):
+    for pair in ([k] for k in keys):
         procs = {}
         # scripts/ros_env.sh keeps a ROS_DOMAIN_ID already set: the session's for one run,
         # another free one for the other
