@@ -46,6 +46,8 @@ def limit_blas_threads():
 
     """
     global _limits
+    if _limits is not None:
+        return '1 thread'
     chosen = [f'{k}={os.environ[k]}' for k in THREAD_VARIABLES if os.environ.get(k)]
     if chosen:
         return 'as ' + ', '.join(chosen)
@@ -53,9 +55,12 @@ def limit_blas_threads():
         from threadpoolctl import threadpool_limits
     except ImportError:                   # pragma: no cover - a declared dependency
         return 'unchanged (threadpoolctl not installed)'
-    if _limits is None:
-        # the limit reaches only libraries already loaded: numpy's and scipy's own OpenBLAS
-        import numpy  # noqa: F401
-        import scipy.linalg  # noqa: F401
-        _limits = threadpool_limits(limits=1, user_api='blas')
+    # the limit reaches only libraries already loaded: numpy's OpenBLAS now; scipy's
+    # own OpenBLAS, loaded later (or never: a driver or a simulator needs none of it,
+    # and importing scipy.linalg only to limit it cost a node ~0.3 s of CPU at every
+    # start), reads the variable when it loads. Processes started from here inherit
+    # it, and run on one thread as they would anyway.
+    import numpy  # noqa: F401
+    _limits = threadpool_limits(limits=1, user_api='blas')
+    os.environ['OPENBLAS_NUM_THREADS'] = '1'
     return '1 thread'
