@@ -1,16 +1,18 @@
 # magcal_ros project tasks. `make test` is what CI runs (.ci/run).
 #
 #   make setup   create/update .venv (Python 3.11, ROS 2 Jazzy wheels, deps, editable install)
-#   make test    setup, then pytest on test/ in the loopback-only ROS environment: all but the
-#                live ROS pipelines on pytest-xdist workers, then those one at a time
+#   make test    setup, then pytest on test/ in the loopback-only ROS environment, in three lanes
+#                side by side (scripts/test_lanes.py): the live ROS pipelines one at a time,
+#                the light ones (50 Hz) one at a time beside them, the rest on pytest-xdist
+#                workers at the idle CPU policy
 #   make demo    setup, then scripts/demo.sh in the loopback-only ROS environment
 #   make bench   setup, then bench/run_all.py
 #   make clean   remove build products and caches (keeps .venv); distclean also removes .venv
 #
 # Variables: PYTHON (a Python 3.11 for the venv, default: found on PATH), TEST_TIMEOUT (seconds per
-# test, default 300), TEST_WORKERS (pytest-xdist processes for all but the live pipelines, default
-# 3; 0 runs in this process; the live pipelines, marked `live` in test/conftest.py, always run one
-# at a time after the rest), PYTEST_ARGS (extra pytest arguments, e.g. PYTEST_ARGS='-k conversions').
+# test, default 300), TEST_WORKERS (pytest-xdist processes of the batch lane, default 2; 0 runs it
+# in one process; the live pipelines, marked `live` in test/conftest.py, always run one at a time
+# in their lanes), PYTEST_ARGS (extra pytest arguments, e.g. PYTEST_ARGS='-k conversions').
 
 SHELL := /bin/bash
 .DEFAULT_GOAL := test
@@ -20,7 +22,7 @@ VENV := .venv
 VPY := $(VENV)/bin/python
 STAMP := $(VENV)/.magcal_setup_stamp
 TEST_TIMEOUT ?= 300
-TEST_WORKERS ?= 3
+TEST_WORKERS ?= 2
 PYTEST_ARGS ?=
 # Loopback-only DDS, per-run ROS_DOMAIN_ID, .venv/bin on PATH (see scripts/ros_env.sh).
 ROS_ENV := source scripts/ros_env.sh &&
@@ -36,8 +38,7 @@ $(STAMP): requirements.txt setup.py setup.cfg package.xml scripts/setup_env.sh \
 	PYTHON='$(PYTHON)' VENV='$(CURDIR)/$(VENV)' scripts/setup_env.sh
 
 test: setup
-	$(ROS_ENV) $(VPY) -m pytest test -p no:cacheprovider -ra --durations=15 --timeout=$(TEST_TIMEOUT) -m 'not live' -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS) || [ $$? -eq 5 ]
-	$(ROS_ENV) $(VPY) -m pytest test -p no:cacheprovider -ra --durations=15 --timeout=$(TEST_TIMEOUT) -m live $(PYTEST_ARGS) || [ $$? -eq 5 ]
+	$(ROS_ENV) $(VPY) scripts/test_lanes.py --workers $(TEST_WORKERS) --timeout $(TEST_TIMEOUT) --pytest-args '$(PYTEST_ARGS)'
 
 demo: setup
 	$(ROS_ENV) scripts/demo.sh

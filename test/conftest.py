@@ -86,8 +86,11 @@ def _configure_ros_environment():
     forced = os.environ.get('MAGCAL_TEST_ROS_DOMAIN_ID')
     # pytest-xdist workers (gw0, gw1, ...) start side by side: each from its own PID, spread
     # by its index so that two never probe the same free domain at once
+    # and the lanes of scripts/test_lanes.py (MAGCAL_TEST_LANE) start side by side too
     worker = os.environ.get('PYTEST_XDIST_WORKER', 'gw0')[2:]
-    seed = os.getpid() + 31 * (int(worker) if worker.isdigit() else 0)
+    lane = os.environ.get('MAGCAL_TEST_LANE', '0')
+    seed = (os.getpid() + 31 * (int(worker) if worker.isdigit() else 0)
+            + 43 * (int(lane) if lane.isdigit() else 0))
     os.environ['ROS_DOMAIN_ID'] = str(int(forced) if forced else pick_domain_id(seed))
     os.environ.setdefault('RCUTILS_COLORIZED_OUTPUT', '0')
     os.environ.setdefault('MPLBACKEND', 'Agg')
@@ -140,8 +143,9 @@ def pytest_sessionfinish(session, exitstatus):
 
 
 #: test files whose pipelines of ROS processes stream real-time data and judge it against the
-#: noise: `make test` runs them one at a time after the rest (which runs on pytest-xdist
-#: workers), because two of them side by side on two cores starve each other's streams
+#: noise: `make test` (scripts/test_lanes.py) runs them one at a time, beside the rest (which
+#: runs on pytest-xdist workers at the idle CPU policy), because two of them side by side on
+#: two cores starve each other's streams
 LIVE_FILES = frozenset({
     'test_calibration_node.py', 'test_calibration_residual.py', 'test_corrector_node.py',
     'test_demo.py', 'test_demo_loop.py', 'test_driver_node.py', 'test_e2e.py',
@@ -151,13 +155,26 @@ LIVE_FILES = frozenset({
     'test_site_gradient_ros.py'})
 
 
+#: live test files whose pipelines stream at 50 Hz or less: they keep up beside one other
+#: live pipeline, so `make test` runs them in a lane of their own (marked live_light too)
+LIGHT_FILES = frozenset({'test_demo_loop.py'})
+
+
 def pytest_configure(config):
     config.addinivalue_line('markers', 'live: a live ROS pipeline judged against the noise '
                             '(conftest.LIVE_FILES, or marked one by one; `make test` runs '
-                            'these serially)')
+                            'these one at a time)')
+    config.addinivalue_line('markers', 'live_light: a live pipeline at 50 Hz or less that '
+                            'keeps up beside one other (conftest.LIGHT_FILES, or marked one '
+                            'by one; `make test` runs these one at a time in a lane of their '
+                            'own, beside the other live tests)')
 
 
 def pytest_collection_modifyitems(config, items):
     for item in items:
         if item.path.name in LIVE_FILES:
+            item.add_marker(pytest.mark.live)
+        if item.path.name in LIGHT_FILES:
+            item.add_marker(pytest.mark.live_light)
+        if item.get_closest_marker('live_light') and not item.get_closest_marker('live'):
             item.add_marker(pytest.mark.live)

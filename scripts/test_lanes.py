@@ -1,0 +1,180 @@
+#!/usr/bin/env python3
+
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Run the test suite in three lanes side by side (``make test``).
+
+The suite has two kinds of tests that want the machine differently:
+
+- *live* tests (marked ``live``, test/conftest.py) run ROS pipelines in real time and judge
+  them against the noise: a pipeline that does not get the CPU when a sample arrives loses
+  it, and the test fails for a reason that is not in the code. Two 4 x 1 kHz pipelines side
+  by side on two cores starve each other, so these run one at a time.
+- *batch* tests compute: they take CPU whenever they get it and only their total matters.
+
+So the lanes are:
+
+``live``
+    the live tests, one at a time, at normal priority;
+``light``
+    the live tests marked ``live_light`` too (a pipeline at 50 Hz or less that keeps up
+    beside one other live pipeline: the workbench loop demo), one at a time, at normal
+    priority;
+``batch``
+    everything else on pytest-xdist workers at the idle CPU policy (``SCHED_IDLE``: the kernel
+    runs it only on a core the live lanes leave free, and preempts it the moment a live
+    process wakes), or ``nice 19`` where that policy cannot be set.
+
+Each lane is its own pytest session with its own ROS domain; its output goes to a log that
+is printed whole when the lane ends, then a summary. The exit status is 0 when every lane
+passed or collected nothing (pytest's 5), else 1.
+
+    scripts/test_lanes.py [--workers N] [--timeout S] [--pytest-args '...'] [--only LANE ...]
+                          [--tests PATH ...]
+"""
+import argparse
+import os
+import re
+import shlex
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+#: the last progress percentage pytest printed, and its final summary line
+_PERCENT = re.compile(r'\[\s*(\d+)%\]')
+_SUMMARY = re.compile(r'^=+ (.*(passed|failed|error|no tests ran|deselected).*) =+$', re.M)
+
+
+def lanes(workers):
+    """Return {name: (pytest marker arguments, CPU policy)} of the three lanes."""
+    return {
+        'live': (['-m', 'live and not live_light'], 'normal'),
+        'light': (['-m', 'live_light'], 'normal'),
+        'batch': (['-m', 'not live and not live_light']
+                  + (['-n', str(workers), '--dist', 'loadfile'] if workers > 0 else []),
+                  'idle'),
+    }
+
+
+def _idle():
+    """Put this (forked) process at the idle CPU policy, else at nice 19."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+    except (AttributeError, OSError):
+        os.nice(19)
+
+
+def _progress(path):
+    try:
+        with open(path, 'rb') as fh:
+            fh.seek(max(0, os.path.getsize(path) - 4096))
+            tail = fh.read().decode('utf-8', 'replace')
+    except OSError:
+        return '?'
+    found = _PERCENT.findall(tail)
+    return f'{found[-1]}%' if found else 'starting'
+
+
+def main(argv=None):
+    """Run the lanes; return the exit status."""
+    ap = argparse.ArgumentParser(description=__doc__.strip().split('\n\n')[0])
+    ap.add_argument('--workers', type=int, default=2,
+                    help='pytest-xdist workers of the batch lane (0: in its own process)')
+    ap.add_argument('--timeout', type=float, default=300.0, help='seconds per test')
+    ap.add_argument('--pytest-args', default='', help='more pytest arguments, one string')
+    ap.add_argument('--tests', nargs='+', default=['test'],
+                    help='test files or folders (default: test)')
+    ap.add_argument('--only', nargs='+', choices=('live', 'light', 'batch'),
+                    help='run these lanes only')
+    ap.add_argument('--report-every', type=float, default=60.0,
+                    help="print each lane's progress this often, s (0: never)")
+    args = ap.parse_args(argv)
+
+    common = [sys.executable, '-m', 'pytest', *args.tests, '-p', 'no:cacheprovider', '-ra',
+              '--durations=15', f'--timeout={args.timeout:g}']
+    extra = shlex.split(args.pytest_args)
+    log_dir = tempfile.mkdtemp(prefix='magcal_lanes_')
+    env = dict(os.environ)
+    procs = {}
+    started = time.monotonic()
+    for k, (name, (marker, policy)) in enumerate(lanes(args.workers).items()):
+        if args.only and name not in args.only:
+            continue
+        log = os.path.join(log_dir, f'{name}.log')
+        # a ROS domain of its own per lane (test/conftest.py spreads its choice by this)
+        with open(log, 'wb') as out:
+            procs[name] = (subprocess.Popen(
+                common + marker + extra, cwd=ROOT, env=dict(env, MAGCAL_TEST_LANE=str(k)),
+                stdout=out,
+                stderr=subprocess.STDOUT, start_new_session=True,
+                preexec_fn=_idle if policy == 'idle' else None), log, policy)
+        print(f'lane {name}: pytest {" ".join(marker + extra)} ({policy} CPU policy; log {log})',
+              flush=True)
+
+    ended = {}
+
+    def stop_all(signum, frame):
+        for p, _, _ in procs.values():
+            if p.poll() is None:
+                os.killpg(p.pid, signal.SIGINT)
+    signal.signal(signal.SIGTERM, stop_all)
+    next_report = args.report_every
+    try:
+        while len(ended) < len(procs):
+            time.sleep(0.5)
+            for name, (p, log, _) in procs.items():
+                if name not in ended and p.poll() is not None:
+                    ended[name] = (p.returncode, time.monotonic() - started)
+                    with open(log, encoding='utf-8', errors='replace') as fh:
+                        text = fh.read()
+                    print(f'\n{"#" * 20} lane {name}: exit {p.returncode} after '
+                          f'{ended[name][1]:.0f} s {"#" * 20}\n{text}', flush=True)
+            elapsed = time.monotonic() - started
+            if args.report_every and elapsed >= next_report and len(ended) < len(procs):
+                print(f'[{elapsed:4.0f} s] ' + ', '.join(
+                    f'{name} {_progress(log) if name not in ended else "done"}'
+                    for name, (_, log, _) in procs.items()), flush=True)
+                next_report += args.report_every
+    except KeyboardInterrupt:
+        stop_all(None, None)
+        for p, _, _ in procs.values():
+            p.wait()
+        print('interrupted', file=sys.stderr)
+        return 1
+
+    print(f'\n{"#" * 20} summary: {time.monotonic() - started:.0f} s {"#" * 20}')
+    failed = []
+    for name, (p, log, policy) in procs.items():
+        rc, t = ended[name]
+        with open(log, encoding='utf-8', errors='replace') as fh:
+            found = _SUMMARY.findall(fh.read())
+        line = found[-1][0] if found else 'no summary line'
+        ok = rc in (0, 5)
+        if not ok:
+            failed.append(name)
+        print(f'lane {name:5s} ({policy}): {"ok" if ok else "FAILED"}, exit {rc}, {t:.0f} s: '
+              f'{line}')
+    if failed:
+        print(f'lanes that failed: {", ".join(failed)}', file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

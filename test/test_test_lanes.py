@@ -1,0 +1,108 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The lanes of ``make test`` (scripts/test_lanes.py).
+
+Who runs where, at which CPU policy, and that a failing lane fails the run.
+
+The lanes are three pytest sessions side by side; which tests each takes is decided by the
+markers (``live``, ``live_light``) that test/conftest.py puts on the items, so the partition
+is checked on conftest's own hook with items made here, and the policy by a probe that runs
+in whatever lane the suite puts it in.
+"""
+import importlib
+import os
+import pathlib
+import subprocess
+import sys
+import types
+
+import conftest
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / 'scripts'))
+test_lanes = importlib.import_module('test_lanes')
+
+
+def test_this_process_runs_at_the_policy_of_its_lane():
+    """The batch lane (MAGCAL_TEST_LANE=2) at SCHED_IDLE (or nice 19); anything else not."""
+    lane = os.environ.get('MAGCAL_TEST_LANE')
+    policy = os.sched_getscheduler(0)
+    if lane == str(list(test_lanes.lanes(2)).index('batch')):
+        assert policy == os.SCHED_IDLE or os.nice(0) == 19, (policy, os.nice(0))
+    else:
+        # a plain pytest, or the live lanes: the policy pytest was started with
+        assert policy != os.SCHED_IDLE, policy
+
+
+class _Item:
+    def __init__(self, name, marks=()):
+        self.path = pathlib.Path('/x') / name
+        self.marks = set(marks)
+
+    def add_marker(self, mark):
+        self.marks.add(mark.name)
+
+    def get_closest_marker(self, name):
+        return types.SimpleNamespace(name=name) if name in self.marks else None
+
+
+def _lane_of(item):
+    live, light = 'live' in item.marks, 'live_light' in item.marks
+    # the marker expressions of test_lanes.lanes(), evaluated by hand
+    return [name for name, ok in (('live', live and not light), ('light', light),
+                                  ('batch', not live and not light)) if ok]
+
+
+def test_every_test_is_in_exactly_one_lane():
+    exprs = {name: ' '.join(marker) for name, (marker, _) in test_lanes.lanes(2).items()}
+    assert exprs == {'live': '-m live and not live_light', 'light': '-m live_light',
+                     'batch': '-m not live and not live_light -n 2 --dist loadfile'}
+    items = [_Item('test_demo.py'), _Item('test_demo_loop.py'), _Item('test_cli.py'),
+             _Item('test_bench_smoke.py', ['live_light']),
+             _Item('test_bench_smoke.py', ['live']), _Item('test_bench_smoke.py')]
+    conftest.pytest_collection_modifyitems(None, items)
+    assert [_lane_of(i) for i in items] == [['live'], ['light'], ['batch'], ['light'],
+                                            ['live'], ['batch']]
+    # a light test is a live one too (`-m live` selects it)
+    assert all('live' in i.marks for i in items if 'live_light' in i.marks)
+    assert conftest.LIGHT_FILES <= conftest.LIVE_FILES
+
+
+def _run(*args):
+    return subprocess.run([sys.executable, str(ROOT / 'scripts' / 'test_lanes.py'),
+                           '--report-every', '0', '--tests', __file__, *args], cwd=ROOT,
+                          capture_output=True, text=True, timeout=240)
+
+
+def test_lanes_run_side_by_side_and_the_probe_sees_its_policy():
+    p = _run('--pytest-args', '-k this_process_runs_at_the_policy')
+    assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-2000:]
+    summary = p.stdout[p.stdout.index('summary:'):]
+    # the probe is a batch test: it passed there (at the idle policy), the live lanes had
+    # nothing to run (pytest's exit 5, not a failure)
+    assert 'lane batch (idle): ok, exit 0' in summary and '1 passed' in summary, summary
+    assert 'lane live  (normal): ok, exit 5' in summary, summary
+    assert 'lane light (normal): ok, exit 5' in summary, summary
+
+
+def test_a_failing_lane_fails_the_run():
+    p = _run('--only', 'batch', '--pytest-args=--no-such-option')
+    assert p.returncode == 1, p.stdout[-3000:]
+    assert 'lane batch (idle): FAILED, exit 4' in p.stdout, p.stdout[-3000:]
+    assert 'lanes that failed: batch' in p.stderr
+    # --only: the other lanes were not started
+    assert [ln.split()[1] for ln in p.stdout.splitlines()
+            if ln.startswith('lane ') and 'pytest' in ln] == ['batch:'], p.stdout[:1000]
