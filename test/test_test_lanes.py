@@ -81,6 +81,14 @@ def test_every_test_is_in_exactly_one_lane():
     assert conftest.LIGHT_FILES <= conftest.LIVE_FILES
 
 
+def test_bytecode_goes_to_a_cache_outside_the_checkout():
+    env = test_lanes.bytecode_cache({'PYTHONDONTWRITEBYTECODE': '1'})
+    assert 'PYTHONDONTWRITEBYTECODE' not in env
+    assert not pathlib.Path(env['PYTHONPYCACHEPREFIX']).resolve().is_relative_to(ROOT)
+    assert test_lanes.bytecode_cache({'PYTHONPYCACHEPREFIX': '/mine'}) == {
+        'PYTHONPYCACHEPREFIX': '/mine'}
+
+
 def _run(*args):
     return subprocess.run([sys.executable, str(ROOT / 'scripts' / 'test_lanes.py'),
                            '--report-every', '0', '--tests', __file__, *args], cwd=ROOT,
