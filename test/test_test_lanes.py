@@ -30,6 +30,7 @@ import sys
 import types
 
 import conftest
+import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / 'scripts'))
@@ -45,6 +46,17 @@ def test_this_process_runs_at_the_policy_of_its_lane():
     else:
         # a plain pytest, or the live lanes: the policy pytest was started with
         assert policy != os.SCHED_IDLE, policy
+
+
+@pytest.mark.live_light
+def test_the_light_lane_runs_at_nice_5_above_its_parent():
+    """Run in the light lane by `make test` (it is marked so): nice 5 over make's niceness."""
+    lane = os.environ.get('MAGCAL_TEST_LANE')
+    if lane == str(list(test_lanes.lanes(2)).index('light')):
+        assert os.nice(0) == min(19, int(os.environ['MAGCAL_TEST_PARENT_NICE'])
+                                 + test_lanes.LIGHT_NICE)
+    else:
+        assert os.sched_getscheduler(0) != os.SCHED_IDLE
 
 
 class _Item:
@@ -95,15 +107,17 @@ def _run(*args):
                           capture_output=True, text=True, timeout=240)
 
 
-def test_lanes_run_side_by_side_and_the_probe_sees_its_policy():
-    p = _run('--pytest-args', '-k this_process_runs_at_the_policy')
+def test_lanes_run_side_by_side_and_the_probes_see_their_policies():
+    p = _run('--pytest-args',
+             '-k "this_process_runs_at_the_policy or light_lane_runs_at_nice"')
     assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-2000:]
     summary = p.stdout[p.stdout.index('summary:'):]
-    # the probe is a batch test: it passed there (at the idle policy), the live lanes had
-    # nothing to run (pytest's exit 5, not a failure)
-    assert 'lane batch (idle): ok, exit 0' in summary and '1 passed' in summary, summary
-    assert 'lane live  (normal): ok, exit 5' in summary, summary
-    assert 'lane light (normal): ok, exit 5' in summary, summary
+    # each probe passed in its lane (the batch one at the idle policy, the light one at
+    # nice 5); the live lane had nothing to run (pytest's exit 5, not a failure)
+    lines = {ln.split()[1]: ln for ln in summary.splitlines() if ln.startswith('lane ')}
+    assert 'ok, exit 0' in lines['batch'] and '1 passed' in lines['batch'], summary
+    assert 'ok, exit 0' in lines['light'] and '1 passed' in lines['light'], summary
+    assert 'ok, exit 5' in lines['live'], summary
 
 
 def test_a_failing_lane_fails_the_run():
