@@ -15,30 +15,25 @@
 # limitations under the License.
 
 """
-Run the test suite in three lanes side by side (``make test``).
+Run the test suite in two lanes side by side (``make test``).
 
 The suite has two kinds of tests that want the machine differently:
 
 - *live* tests (marked ``live``, test/conftest.py) run ROS pipelines in real time and judge
   them against the noise: a pipeline that does not get the CPU when a sample arrives loses
-  it, and the test fails for a reason that is not in the code. Two 4 x 1 kHz pipelines side
-  by side on two cores starve each other, so these run one at a time.
+  it, and the test fails for a reason that is not in the code. Two of them side by side on
+  two cores starve each other (a 4 x 1 kHz burst beside a loop demo run that diagnoses: once
+  in four runs; the loop's floor check beside the burst at nice 5: once in one), so they run
+  one at a time.
 - *batch* tests compute: they take CPU whenever they get it and only their total matters.
 
 So the lanes are:
 
 ``live``
     the live tests, one at a time, at normal priority;
-``light``
-    the live tests marked ``live_light`` too (a pipeline at 50 Hz or less that keeps up
-    beside one other live pipeline: the workbench loop demo), one at a time, at nice 5:
-    where both want more than the two cores (a live lane's 10x burst while a loop run
-    diagnoses), the live lane's 4 kHz streams get three quarters of the contested core, and
-    a loop run's 50 Hz stream and its solves, which wait on nothing, are late instead (the
-    burst test failed once in four runs at equal priority: its own publisher starved);
 ``batch``
     everything else on pytest-xdist workers at the idle CPU policy (``SCHED_IDLE``: the kernel
-    runs it only on a core the live lanes leave free, and preempts it the moment a live
+    runs it only on a core the live lane leaves free, and preempts it the moment a live
     process wakes), or ``nice 19`` where that policy cannot be set.
 
 Each lane is its own pytest session with its own ROS domain; its output goes to a log that
@@ -58,9 +53,6 @@ import sys
 import tempfile
 import time
 
-#: the light lane's niceness: CFS weight 335 against 1024 at nice 0 (a quarter of a contested
-#: core), still over 20 times the batch lane's weight at SCHED_IDLE
-LIGHT_NICE = 5
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 #: the last progress percentage pytest printed, and its final summary line
 _PERCENT = re.compile(r'\[\s*(\d+)%\]')
@@ -68,19 +60,13 @@ _SUMMARY = re.compile(r'^=+ (.*(passed|failed|error|no tests ran|deselected).*) 
 
 
 def lanes(workers):
-    """Return {name: (pytest marker arguments, CPU policy)} of the three lanes."""
+    """Return {name: (pytest marker arguments, CPU policy)} of the lanes."""
     return {
-        'live': (['-m', 'live and not live_light'], 'normal'),
-        'light': (['-m', 'live_light'], 'nice'),
-        'batch': (['-m', 'not live and not live_light']
+        'live': (['-m', 'live'], 'normal'),
+        'batch': (['-m', 'not live']
                   + (['-n', str(workers), '--dist', 'loadfile'] if workers > 0 else []),
                   'idle'),
     }
-
-
-def _nice():
-    """Lower this (forked) process' priority a little (nice 5)."""
-    os.nice(LIGHT_NICE)
 
 
 def _idle():
@@ -128,7 +114,7 @@ def main(argv=None):
     ap.add_argument('--pytest-args', default='', help='more pytest arguments, one string')
     ap.add_argument('--tests', nargs='+', default=['test'],
                     help='test files or folders (default: test)')
-    ap.add_argument('--only', nargs='+', choices=('live', 'light', 'batch'),
+    ap.add_argument('--only', nargs='+', choices=('live', 'batch'),
                     help='run these lanes only')
     ap.add_argument('--report-every', type=float, default=60.0,
                     help="print each lane's progress this often, s (0: never)")
@@ -139,7 +125,6 @@ def main(argv=None):
     extra = shlex.split(args.pytest_args)
     log_dir = tempfile.mkdtemp(prefix='magcal_lanes_')
     env = bytecode_cache(dict(os.environ))
-    env['MAGCAL_TEST_PARENT_NICE'] = str(os.nice(0))      # for test_test_lanes' probe
     procs = {}
     started = time.monotonic()
     for k, (name, (marker, policy)) in enumerate(lanes(args.workers).items()):
@@ -152,7 +137,7 @@ def main(argv=None):
                 common + marker + extra, cwd=ROOT, env=dict(env, MAGCAL_TEST_LANE=str(k)),
                 stdout=out,
                 stderr=subprocess.STDOUT, start_new_session=True,
-                preexec_fn={'idle': _idle, 'nice': _nice}.get(policy)), log, policy)
+                preexec_fn=_idle if policy == 'idle' else None), log, policy)
         print(f'lane {name}: pytest {" ".join(marker + extra)} ({policy} CPU policy; log {log})',
               flush=True)
 

@@ -155,26 +155,13 @@ LIVE_FILES = frozenset({
     'test_site_gradient_ros.py'})
 
 
-#: live test files whose pipelines stream at 50 Hz or less: they keep up beside one other
-#: live pipeline, so `make test` runs them in a lane of their own (marked live_light too)
-LIGHT_FILES = frozenset({'test_demo_loop.py'})
-
-
 def pytest_configure(config):
     config.addinivalue_line('markers', 'live: a live ROS pipeline judged against the noise '
                             '(conftest.LIVE_FILES, or marked one by one; `make test` runs '
                             'these one at a time)')
-    config.addinivalue_line('markers', 'live_light: a live pipeline at 50 Hz or less that '
-                            'keeps up beside one other (conftest.LIGHT_FILES, or marked one '
-                            'by one; `make test` runs these one at a time in a lane of their '
-                            'own, beside the other live tests)')
 
 
 def pytest_collection_modifyitems(config, items):
     for item in items:
         if item.path.name in LIVE_FILES:
-            item.add_marker(pytest.mark.live)
-        if item.path.name in LIGHT_FILES:
-            item.add_marker(pytest.mark.live_light)
-        if item.get_closest_marker('live_light') and not item.get_closest_marker('live'):
             item.add_marker(pytest.mark.live)

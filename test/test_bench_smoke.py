@@ -99,7 +99,7 @@ def test_solve_time(tmp_path):
     assert res['exponents']['base']['calibrate_all'] is not None
 
 
-@pytest.mark.live_light     # a live pipeline at 50 Hz: beside the batch it lost half its messages
+@pytest.mark.live           # a live pipeline: beside the batch tests it lost half its messages
 def test_live(tmp_path):
     res = _run('live', tmp_path)['results']
     runs = {r['node']: r for r in res['runs']}
@@ -182,7 +182,7 @@ def test_reduction_accuracy(tmp_path):
     assert rows[0]['max_param_diff_sd'] < 4.5
 
 
-@pytest.mark.live_light     # ROS messages counted in real time at 50 Hz (see test_live)
+@pytest.mark.live           # ROS messages counted in real time (see test_live)
 def test_executor(tmp_path):
     res = _run('executor', tmp_path)['results']
     runs = res['runs']

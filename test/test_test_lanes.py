@@ -17,8 +17,8 @@ The lanes of ``make test`` (scripts/test_lanes.py).
 
 Who runs where, at which CPU policy, and that a failing lane fails the run.
 
-The lanes are three pytest sessions side by side; which tests each takes is decided by the
-markers (``live``, ``live_light``) that test/conftest.py puts on the items, so the partition
+The lanes are two pytest sessions side by side; which tests each takes is decided by the
+marker ``live`` that test/conftest.py puts on the items, so the partition
 is checked on conftest's own hook with items made here, and the policy by a probe that runs
 in whatever lane the suite puts it in.
 """
@@ -30,7 +30,6 @@ import sys
 import types
 
 import conftest
-import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / 'scripts'))
@@ -48,17 +47,6 @@ def test_this_process_runs_at_the_policy_of_its_lane():
         assert policy != os.SCHED_IDLE, policy
 
 
-@pytest.mark.live_light
-def test_the_light_lane_runs_at_nice_5_above_its_parent():
-    """Run in the light lane by `make test` (it is marked so): nice 5 over make's niceness."""
-    lane = os.environ.get('MAGCAL_TEST_LANE')
-    if lane == str(list(test_lanes.lanes(2)).index('light')):
-        assert os.nice(0) == min(19, int(os.environ['MAGCAL_TEST_PARENT_NICE'])
-                                 + test_lanes.LIGHT_NICE)
-    else:
-        assert os.sched_getscheduler(0) != os.SCHED_IDLE
-
-
 class _Item:
     def __init__(self, name, marks=()):
         self.path = pathlib.Path('/x') / name
@@ -72,25 +60,19 @@ class _Item:
 
 
 def _lane_of(item):
-    live, light = 'live' in item.marks, 'live_light' in item.marks
+    live = 'live' in item.marks
     # the marker expressions of test_lanes.lanes(), evaluated by hand
-    return [name for name, ok in (('live', live and not light), ('light', light),
-                                  ('batch', not live and not light)) if ok]
+    return [name for name, ok in (('live', live), ('batch', not live)) if ok]
 
 
 def test_every_test_is_in_exactly_one_lane():
     exprs = {name: ' '.join(marker) for name, (marker, _) in test_lanes.lanes(2).items()}
-    assert exprs == {'live': '-m live and not live_light', 'light': '-m live_light',
-                     'batch': '-m not live and not live_light -n 2 --dist loadfile'}
+    assert exprs == {'live': '-m live', 'batch': '-m not live -n 2 --dist loadfile'}
     items = [_Item('test_demo.py'), _Item('test_demo_loop.py'), _Item('test_cli.py'),
-             _Item('test_bench_smoke.py', ['live_light']),
              _Item('test_bench_smoke.py', ['live']), _Item('test_bench_smoke.py')]
     conftest.pytest_collection_modifyitems(None, items)
-    assert [_lane_of(i) for i in items] == [['live'], ['light'], ['batch'], ['light'],
-                                            ['live'], ['batch']]
-    # a light test is a live one too (`-m live` selects it)
-    assert all('live' in i.marks for i in items if 'live_light' in i.marks)
-    assert conftest.LIGHT_FILES <= conftest.LIVE_FILES
+    assert [_lane_of(i) for i in items] == [['live'], ['live'], ['batch'], ['live'],
+                                            ['batch']]
 
 
 def test_bytecode_goes_to_a_cache_outside_the_checkout():
@@ -107,16 +89,14 @@ def _run(*args):
                           capture_output=True, text=True, timeout=240)
 
 
-def test_lanes_run_side_by_side_and_the_probes_see_their_policies():
-    p = _run('--pytest-args',
-             '-k "this_process_runs_at_the_policy or light_lane_runs_at_nice"')
+def test_lanes_run_side_by_side_and_the_probe_sees_its_policy():
+    p = _run('--pytest-args', '-k this_process_runs_at_the_policy')
     assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-2000:]
     summary = p.stdout[p.stdout.index('summary:'):]
-    # each probe passed in its lane (the batch one at the idle policy, the light one at
-    # nice 5); the live lane had nothing to run (pytest's exit 5, not a failure)
+    # the probe passed in the batch lane (at the idle policy); the live lane had nothing to
+    # run (pytest's exit 5, not a failure)
     lines = {ln.split()[1]: ln for ln in summary.splitlines() if ln.startswith('lane ')}
     assert 'ok, exit 0' in lines['batch'] and '1 passed' in lines['batch'], summary
-    assert 'ok, exit 0' in lines['light'] and '1 passed' in lines['light'], summary
     assert 'ok, exit 5' in lines['live'], summary
 
 
