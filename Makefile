@@ -11,7 +11,7 @@
 # Variables: PYTHON (a Python 3.11 for the venv, default: found on PATH), TEST_TIMEOUT (seconds per
 # test, default 300), TEST_WORKERS (pytest-xdist processes of the batch lane, default 2; 0 runs it
 # in one process; the live pipelines, marked `live` in test/conftest.py, always run one at a time
-# in their lanes), PYTEST_ARGS (extra pytest arguments, e.g. PYTEST_ARGS='-k conversions').
+# in the live lane), PYTEST_ARGS (extra pytest arguments, e.g. PYTEST_ARGS='-k conversions').
 
 SHELL := /bin/bash
 .DEFAULT_GOAL := test

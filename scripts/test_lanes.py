@@ -154,9 +154,9 @@ def main(argv=None):
             time.sleep(0.5)
             for name, (p, log, _) in procs.items():
                 if name not in ended and p.poll() is not None:
-                    ended[name] = (p.returncode, time.monotonic() - started)
                     with open(log, encoding='utf-8', errors='replace') as fh:
                         text = fh.read()
+                    ended[name] = (p.returncode, time.monotonic() - started, text)
                     print(f'\n{"#" * 20} lane {name}: exit {p.returncode} after '
                           f'{ended[name][1]:.0f} s {"#" * 20}\n{text}', flush=True)
             elapsed = time.monotonic() - started
@@ -174,10 +174,9 @@ def main(argv=None):
 
     print(f'\n{"#" * 20} summary: {time.monotonic() - started:.0f} s {"#" * 20}')
     failed = []
-    for name, (p, log, policy) in procs.items():
-        rc, t = ended[name]
-        with open(log, encoding='utf-8', errors='replace') as fh:
-            found = _SUMMARY.findall(fh.read())
+    for name, (_, _, policy) in procs.items():
+        rc, t, text = ended[name]
+        found = _SUMMARY.findall(text)
         line = found[-1][0] if found else 'no summary line'
         ok = rc in (0, 5)
         if not ok:
