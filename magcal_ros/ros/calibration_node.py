@@ -84,6 +84,7 @@ from magcal_ros.pipeline import (array_geometry, calibrate as run_calibration,
 from magcal_ros.ros import params as prm
 from magcal_ros.ros.conversions import msg_to_field_nt, residual_to_msg, stamp_to_seconds
 from magcal_ros.ros.diagnostics import fill, Updater
+from magcal_ros.ros.intake import Intake
 from magcal_ros.ros.run import DEFAULT_NAMESPACE, spin_node
 import numpy as np
 from rclpy.callback_groups import ReentrantCallbackGroup
@@ -165,6 +166,24 @@ def _silent_sensors(received):
     return out
 
 
+#: niceness added to the solve thread (calibrate, diagnose): on a loaded machine the sample
+#: intake of this node, and the driver and corrector beside it, keep the CPU they need
+#: while a solve takes what is left (a diagnosis beside a 4 x 1 kHz stream starved it)
+SOLVE_NICENESS = 10
+
+
+def _yield_cpu():
+    """Lower the calling thread's CPU priority by :data:`SOLVE_NICENESS` (Linux; else no-op)."""
+    if not sys.platform.startswith('linux'):   # elsewhere a tid is not a PRIO_PROCESS id
+        return
+    try:
+        tid = threading.get_native_id()
+        now = os.getpriority(os.PRIO_PROCESS, tid)
+        os.setpriority(os.PRIO_PROCESS, tid, min(19, now + SOLVE_NICENESS))
+    except OSError:
+        pass
+
+
 def _tensor_rms(components):
     """One RMS over the nine tensor components (list of lists, nT/m)."""
     return float(np.sqrt(np.mean(np.square(np.asarray(components, float)))))
@@ -214,22 +233,22 @@ class CalibrationNode(Node):
         self._taken = 0                         # raw samples taken (all sensors, any state)
 
         service_group = ReentrantCallbackGroup()
-        self._subs = []
+        # the sensor streams are taken on the EventsExecutor in a thread of their own and
+        # handed to the callbacks below on this node's executor (magcal_ros.ros.intake)
+        self._intake = Intake(self)
         for j, topic in enumerate(s.input_topics, start=1):
-            self._subs.append(self.create_subscription(
-                MagneticField, topic, self._raw_cb(j - 1), CALIBRATION_SENSOR_QOS))
-            self._subs.append(self.create_subscription(
-                Temperature, f'sensor{j}/temperature', self._temp_cb(j - 1),
-                SENSOR_QOS))
+            self._intake.subscribe(MagneticField, topic, self._raw_cb(j - 1),
+                                   CALIBRATION_SENSOR_QOS)
+            self._intake.subscribe(Temperature, f'sensor{j}/temperature',
+                                   self._temp_cb(j - 1), SENSOR_QOS)
         for name in s.aux_topics:
-            # as deep as the raw streams: behind a busy executor the messages are taken one
-            # per subscription in turn, and a shallow queue dropped the channels' backlog,
-            # leaving their values ahead of the raw samples they were paired with
-            self._subs.append(self.create_subscription(
-                Float64, name, self._aux_cb('aux_' + name), CALIBRATION_SENSOR_QOS))
+            # as deep as the raw streams: a shallow queue dropped the channels' backlog
+            # while the interpreter was held by a solve, leaving their values ahead of the
+            # raw samples they were paired with
+            self._intake.subscribe(Float64, name, self._aux_cb('aux_' + name),
+                                   CALIBRATION_SENSOR_QOS)
         if s.imu_topic:
-            self._subs.append(self.create_subscription(Imu, s.imu_topic, self._imu_cb,
-                                                       CALIBRATION_SENSOR_QOS))
+            self._intake.subscribe(Imu, s.imu_topic, self._imu_cb, CALIBRATION_SENSOR_QOS)
 
         self._status_pub = self.create_publisher(String, 'calibration/status', 10)
         self._result_pub = self.create_publisher(String, 'calibration/result', RESULT_QOS)
@@ -264,6 +283,7 @@ class CalibrationNode(Node):
         # resumes the awaiting service coroutine even when no sensor data flows
         self._wake = self.create_guard_condition(lambda: None)
         self._publish_existing(s.calibration_file)
+        self._intake.start()
         self.get_logger().info(
             f'ready: {self._n} sensors, model {list(s.model)}, field {s.field_nt:.1f} nT, '
             f'calibration file {s.calibration_file}'
@@ -630,6 +650,7 @@ class CalibrationNode(Node):
                     'buffer': buffer,
                     'incomplete_sets_dropped': dropped, 'out_of_order_dropped': out_of_order,
                     'stream_realignments': realigned,
+                    'intake_dropped': self._intake.dropped,
                     'samples_received': {str(j + 1): r for j, r in enumerate(received)}})
         if self._t_started is not None and self._collecting:
             dt = time.monotonic() - self._t_started
@@ -744,6 +765,7 @@ class CalibrationNode(Node):
         """Stop a turn in progress (a zero velocity on cmd_vel), then destroy the node."""
         self._turn_stop.set()
         self._stop_robot()
+        self._intake.destroy()
         return super().destroy_node()
 
     def _on_reset(self, request, response):
@@ -817,6 +839,7 @@ class CalibrationNode(Node):
         future = Future()
 
         def work():
+            _yield_cpu()
             try:
                 future.set_result(fn(*args))
             except Exception as exc:        # noqa: B902 -- handed to the awaiting service

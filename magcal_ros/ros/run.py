@@ -50,7 +50,7 @@ SPIN_PERIOD_S = 0.1
 EXECUTOR_VARIABLE = 'MAGCAL_EXECUTOR'
 
 
-def make_executor(events=True):
+def make_executor(events=True, context=None):
     """
     Return the executor a node spins on, and its name (``'events'`` or ``'single'``).
 
@@ -61,6 +61,7 @@ def make_executor(events=True):
     in Jazzy it takes neither guard conditions nor coroutine (``async def``) callbacks, and
     the calibration node's services are coroutines. ``MAGCAL_EXECUTOR=single`` chooses the
     classic executor for every node; an rclpy without the EventsExecutor gets it too.
+    ``context``: the rclpy context of the nodes it will spin (None: the default one).
     """
     choice = os.environ.get(EXECUTOR_VARIABLE, 'events').strip().lower()
     if choice not in ('events', 'single'):
@@ -71,8 +72,8 @@ def make_executor(events=True):
         except ImportError:
             pass
         else:
-            return EventsExecutor(), 'events'
-    return SingleThreadedExecutor(), 'single'
+            return EventsExecutor(context=context), 'events'
+    return SingleThreadedExecutor(context=context), 'single'
 
 
 def _one_line(exc):
