@@ -123,6 +123,27 @@ class SimConfig:
     positions_m: object = None
 
 
+def causal_rate(x, t):
+    """
+    Rate of ``x`` (N, 3) nT at times ``t`` (N,) s from each sample and the two before it.
+
+    The one-sided second-order difference a stream written one sample at a time allows
+    (:func:`magcal_ros.core.effects.raw_rate` on the last three samples: numpy's gradient at
+    its end, ``edge_order=2``); (N, 3) nT/s, zero for the first two samples; None with fewer
+    than 3 samples or times that do not increase (as ``raw_rate``).
+    """
+    x = np.asarray(x, float)
+    t = np.asarray(t, float)
+    if len(x) < 3 or not np.all(np.diff(t) > 0):
+        return None
+    h1 = (t[1:-1] - t[:-2])[:, None]          # t_k-1 - t_k-2
+    h2 = (t[2:] - t[1:-1])[:, None]           # t_k - t_k-1
+    out = np.zeros_like(x)
+    out[2:] = (h2 / (h1 * (h1 + h2)) * x[:-2] - (h1 + h2) / (h1 * h2) * x[1:-1]
+               + (2 * h2 + h1) / (h2 * (h1 + h2)) * x[2:])
+    return out
+
+
 class Simulator:
     """Generate samples of the configured array at arbitrary times."""
 
@@ -276,8 +297,16 @@ class Simulator:
             out = out + np.einsum('nij,sj->sni', g_body, self.positions)
         return out
 
-    def sample(self, t):
-        """Simulate a Dataset at times t (N,) s; ``meta['truth_field']`` holds the true field."""
+    def sample(self, t, causal=False):
+        """
+        Simulate a Dataset at times t (N,) s; ``meta['truth_field']`` holds the true field.
+
+        The field rate seen by rate-dependent effects (a lag, ``field_rate``) is the fit's
+        estimator inside the chunk (central differences). ``causal=True`` gives each sample
+        the rate a stream written one sample at a time has: from that sample and the two
+        before it (:func:`causal_rate`), as the live corrector computes it, so that a chunk
+        simulated ahead of a live stream reads as if it had been simulated sample by sample.
+        """
         cfg = self.config
         t = np.asarray(t, float)
         n = len(t)
@@ -297,7 +326,7 @@ class Simulator:
                 tt, ll = np.concatenate([tail[0], t]), np.concatenate([tail[1], lin])
             else:
                 tt, ll = t, lin
-            rate = raw_rate(ll, tt)
+            rate = causal_rate(ll, tt) if causal else raw_rate(ll, tt)
             rate = np.zeros_like(lin) if rate is None else rate[len(tt) - n:]
             self._tail[j] = (tt[-2:], ll[-2:])
             ctx = SensorContext(t=t, temp=temp[j - 1], aux=aux, raw_rate=rate)
