@@ -410,8 +410,8 @@ def parse_args(argv=None):
                    help='this hidden effect instead of a drawn one (as magcal simulate '
                         '--truth), e.g. aux:aux_heater_power@2=3,-2,1')
     p.add_argument('--force-term', metavar='TERM',
-                   help='set the model to base + TERM whatever the diagnosis names (to see a '
-                        'loop that does not close)')
+                   help='set the model to base + TERM instead of asking calibration/diagnose '
+                        '(to see a loop that does not close)')
     p.add_argument('--collect-s', type=float, default=30.0,
                    help='seconds of rotation data to collect (default 30); on until '
                         'calibration/status says ready, at most --max-collect-s')
@@ -488,19 +488,24 @@ def run_loop(args, client, procs, result):
         failures.append(f'the base calibration shows no misfit (worst residual {shown:.2f} x '
                         f'its floor, {where}; {SHOW_FACTOR} needed): the hidden effect is too '
                         'small to see live')
-    print('calling calibration/diagnose ...')
-    ok, summary, doc = client.call('diagnose', 300)
-    marks.append((client.now(), 'diagnose'))
-    print('\n'.join('  ' + line for line in summary.splitlines()))
-    verdict = doc.get('verdict') or {}
-    diagnosed = verdict.get('token') if verdict.get('effect', 'none') != 'none' else None
-    result['diagnosed'] = diagnosed
-    result['diagnosis'] = {'success': ok, 'summary': summary,
-                           'reason': verdict.get('reason'), 'report': doc.get('report')}
-    term = args.force_term or diagnosed
     if args.force_term:
-        print(f'forced: the model takes {args.force_term} (not the diagnosis)')
+        # a model of the user's choosing instead of the diagnosis': not asked for one
+        print(f'forced: the model takes {args.force_term} (calibration/diagnose is not '
+              'called)')
         result['forced_term'] = args.force_term
+        term = args.force_term
+    else:
+        print('calling calibration/diagnose ...')
+        ok, summary, doc = client.call('diagnose', 300)
+        marks.append((client.now(), 'diagnose'))
+        print('\n'.join('  ' + line for line in summary.splitlines()))
+        verdict = doc.get('verdict') or {}
+        diagnosed = (verdict.get('token') if verdict.get('effect', 'none') != 'none'
+                     else None)
+        result['diagnosed'] = diagnosed
+        result['diagnosis'] = {'success': ok, 'summary': summary,
+                               'reason': verdict.get('reason'), 'report': doc.get('report')}
+        term = diagnosed
     if not term:
         failures.append('the diagnosis named no missing term')
         result['closed'] = False

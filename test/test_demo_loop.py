@@ -181,6 +181,10 @@ def test_loop_with_a_wrong_model_says_so_and_fails(runs):
     assert 'LOOP NOT CLOSED' in p.stderr and 'did not fall to the floor' in p.stderr
     res = _loop_json(dirs, 'forced')
     assert res['closed'] is False and res['forced_term'] == FORCED
+    # the model is the user's, not the diagnosis': none is asked for
+    assert res['diagnosed'] is None and 'diagnosis' not in res
+    assert 'calibration/diagnose is not called' in p.stdout
+    assert 'calling calibration/diagnose' not in p.stdout
     assert res['hidden'] == SEEDS[2]
     last = res['steps'][-1]
     assert last['model'] == ['base', FORCED]
