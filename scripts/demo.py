@@ -79,6 +79,18 @@ def executable(name):
     return [sys.executable, '-m', module]
 
 
+def _die_with_parent():
+    """
+    In the forked child: SIGTERM it when the demo dies (Linux ``PR_SET_PDEATHSIG``).
+
+    The nodes run in sessions of their own (a Ctrl-C reaches the demo, which stops them in
+    order); a demo killed outright (SIGKILL, a test's timeout) left them streaming for good.
+    """
+    if sys.platform.startswith('linux'):
+        import ctypes
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM, 0, 0, 0)  # PR_SET_PDEATHSIG
+
+
 class Processes:
     """The demo's child processes, each logging to <out>/logs/<name>.log."""
 
@@ -95,7 +107,7 @@ class Processes:
         env['PYTHONPATH'] = os.pathsep.join(
             [str(ROOT)] + [p for p in env.get('PYTHONPATH', '').split(os.pathsep) if p])
         proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env,
-                                start_new_session=True)
+                                start_new_session=True, preexec_fn=_die_with_parent)
         log.close()
         self.procs[name] = proc
         return proc
