@@ -22,11 +22,13 @@ marker ``live`` that test/conftest.py puts on the items, so the partition
 is checked on conftest's own hook with items made here, and the policy by a probe that runs
 in whatever lane the suite puts it in.
 """
+import fcntl
 import importlib
 import os
 import pathlib
 import subprocess
 import sys
+import tempfile
 import types
 
 import conftest
@@ -66,13 +68,22 @@ def _lane_of(item):
 
 
 def test_every_test_is_in_exactly_one_lane():
-    exprs = {name: ' '.join(marker) for name, (marker, _) in test_lanes.lanes(2).items()}
-    assert exprs == {'live': '-m live', 'batch': '-m not live -n 2 --dist loadfile'}
+    exprs = {name: ' '.join(marker) for name, (marker, _) in test_lanes.lanes(2, 2).items()}
+    assert exprs == {'live': '-m live -n 2 --dist loadfile',
+                     'batch': '-m not live -n 2 --dist loadfile'}
+    # one live test at a time: no xdist in the live lane
+    assert test_lanes.lanes(2, 1)['live'] == (['-m', 'live'], 'normal')
     items = [_Item('test_demo.py'), _Item('test_demo_loop.py'), _Item('test_cli.py'),
              _Item('test_bench_smoke.py', ['live']), _Item('test_bench_smoke.py')]
     conftest.pytest_collection_modifyitems(None, items)
     assert [_lane_of(i) for i in items] == [['live'], ['live'], ['batch'], ['live'],
                                             ['batch']]
+    # the loop demo's tests are collected through test_demo.py: one file, so one live
+    # worker runs them and the main job one after the other (--dist loadfile)
+    assert 'test_demo_loop.py' in conftest.collect_ignore
+    import test_demo
+    assert {'runs', 'test_loop_closes_for_three_hidden_terms',
+            'test_loop_with_a_wrong_model_says_so_and_fails'} <= set(vars(test_demo))
 
 
 def test_bytecode_goes_to_a_cache_outside_the_checkout():
@@ -108,3 +119,25 @@ def test_a_failing_lane_fails_the_run():
     # --only: the other lanes were not started
     assert [ln.split()[1] for ln in p.stdout.splitlines()
             if ln.startswith('lane ') and 'pytest' in ln] == ['batch:'], p.stdout[:1000]
+
+
+def test_processes_choosing_at_once_never_share_a_ros_domain():
+    """A domain claimed by a live process is skipped; its claim ends with the process."""
+    child = subprocess.Popen(
+        [sys.executable, '-c', 'import os, sys; sys.path.insert(0, "test"); import conftest; '
+         'print(os.environ["ROS_DOMAIN_ID"], conftest.pick_domain_id(5), flush=True); '
+         'sys.stdin.read()'],
+        cwd=ROOT, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        session, picked = (int(x) for x in child.stdout.readline().split())
+        taken = {session, picked}
+        assert len(taken) == 2                   # its session's domain and one more
+        # no DDS port of them is bound yet (no participant): only the claim keeps them apart
+        mine = conftest.pick_domain_id(5)
+        assert mine not in taken and mine != int(os.environ['ROS_DOMAIN_ID'])
+    finally:
+        child.communicate('', timeout=30)
+    path = pathlib.Path(tempfile.gettempdir()) / f'magcal_ros_domain_{picked}.lock'
+    with open(path, 'a') as fh:                   # released with the process
+        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        fcntl.flock(fh, fcntl.LOCK_UN)
