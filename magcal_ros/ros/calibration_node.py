@@ -169,7 +169,7 @@ def _silent_sensors(received):
 #: niceness added to the solve thread (calibrate, diagnose): on a loaded machine the sample
 #: intake of this node, and the driver and corrector beside it, keep the CPU they need
 #: while a solve takes what is left (a diagnosis beside a 4 x 1 kHz stream starved it)
-SOLVE_NICENESS = 10
+SOLVE_NICENESS = 5
 
 
 def _yield_cpu():
