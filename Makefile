@@ -2,7 +2,7 @@
 #
 #   make setup   create/update .venv (Python 3.11, ROS 2 Jazzy wheels, deps, editable install)
 #   make test    setup, then pytest on test/ in the loopback-only ROS environment, in two lanes
-#                side by side (scripts/test_lanes.py): the live ROS pipelines one at a time,
+#                side by side (scripts/test_lanes.py): the live ROS pipelines two at a time,
 #                the rest on pytest-xdist workers at the idle CPU policy
 #   make demo    setup, then scripts/demo.sh in the loopback-only ROS environment
 #   make bench   setup, then bench/run_all.py
@@ -10,8 +10,9 @@
 #
 # Variables: PYTHON (a Python 3.11 for the venv, default: found on PATH), TEST_TIMEOUT (seconds per
 # test, default 300), TEST_WORKERS (pytest-xdist processes of the batch lane, default 2; 0 runs it
-# in one process; the live pipelines, marked `live` in test/conftest.py, always run one at a time
-# in the live lane), PYTEST_ARGS (extra pytest arguments, e.g. PYTEST_ARGS='-k conversions').
+# in one process), LIVE_WORKERS (those of the live lane, where the pipelines marked `live` in
+# test/conftest.py run, default 2; 1 runs them one at a time), PYTEST_ARGS (extra pytest
+# arguments, e.g. PYTEST_ARGS='-k conversions').
 
 SHELL := /bin/bash
 .DEFAULT_GOAL := test
@@ -22,6 +23,7 @@ VPY := $(VENV)/bin/python
 STAMP := $(VENV)/.magcal_setup_stamp
 TEST_TIMEOUT ?= 300
 TEST_WORKERS ?= 2
+LIVE_WORKERS ?= 2
 PYTEST_ARGS ?=
 # Loopback-only DDS, per-run ROS_DOMAIN_ID, .venv/bin on PATH (see scripts/ros_env.sh).
 ROS_ENV := source scripts/ros_env.sh &&
@@ -37,7 +39,7 @@ $(STAMP): requirements.txt setup.py setup.cfg package.xml scripts/setup_env.sh \
 	PYTHON='$(PYTHON)' VENV='$(CURDIR)/$(VENV)' scripts/setup_env.sh
 
 test: setup
-	$(ROS_ENV) $(VPY) scripts/test_lanes.py --workers $(TEST_WORKERS) --timeout $(TEST_TIMEOUT) --pytest-args '$(PYTEST_ARGS)'
+	$(ROS_ENV) $(VPY) scripts/test_lanes.py --workers $(TEST_WORKERS) --live-workers $(LIVE_WORKERS) --timeout $(TEST_TIMEOUT) --pytest-args '$(PYTEST_ARGS)'
 
 demo: setup
 	$(ROS_ENV) scripts/demo.sh

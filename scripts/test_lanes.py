@@ -21,16 +21,17 @@ The suite has two kinds of tests that want the machine differently:
 
 - *live* tests (marked ``live``, test/conftest.py) run ROS pipelines in real time and judge
   them against the noise: a pipeline that does not get the CPU when a sample arrives loses
-  it, and the test fails for a reason that is not in the code. Two of them side by side on
-  two cores starve each other (a 4 x 1 kHz burst beside a loop demo run that diagnoses: once
-  in four runs; the loop's floor check beside the burst at nice 5: once in one), so they run
-  one at a time.
+  it, and the test fails for a reason that is not in the code. Most of their time is real
+  time (a 30 s collection, a 10 s window), not CPU, so two run side by side; the two
+  heaviest pipelines, the main job and the loop demo, never beside each other (the loop's
+  tests are collected through test_demo.py, and a worker takes a file at a time).
 - *batch* tests compute: they take CPU whenever they get it and only their total matters.
 
 So the lanes are:
 
 ``live``
-    the live tests, one at a time, at normal priority;
+    the live tests on two pytest-xdist workers (``--dist loadfile``: a file per worker at a
+    time), at normal priority; ``--live-workers 1``: one at a time;
 ``batch``
     everything else on pytest-xdist workers at the idle CPU policy (``SCHED_IDLE``: the kernel
     runs it only on a core the live lane leaves free, and preempts it the moment a live
@@ -40,8 +41,8 @@ Each lane is its own pytest session with its own ROS domain; its output goes to 
 is printed whole when the lane ends, then a summary. The exit status is 0 when every lane
 passed or collected nothing (pytest's 5), else 1.
 
-    scripts/test_lanes.py [--workers N] [--timeout S] [--pytest-args '...'] [--only LANE ...]
-                          [--tests PATH ...]
+    scripts/test_lanes.py [--workers N] [--live-workers N] [--timeout S] [--pytest-args '...']
+                          [--only LANE ...] [--tests PATH ...]
 """
 import argparse
 import os
@@ -56,13 +57,17 @@ import time
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 #: the last progress percentage pytest printed, and its final summary line
 _PERCENT = re.compile(r'\[\s*(\d+)%\]')
+#: pytest-xdist workers of the live lane (1: one test at a time, in pytest's own process)
+LIVE_WORKERS = 2
 _SUMMARY = re.compile(r'^=+ (.*(passed|failed|error|no tests ran|deselected).*) =+$', re.M)
 
 
-def lanes(workers):
+def lanes(workers, live_workers=LIVE_WORKERS):
     """Return {name: (pytest marker arguments, CPU policy)} of the lanes."""
     return {
-        'live': (['-m', 'live'], 'normal'),
+        'live': (['-m', 'live']
+                 + (['-n', str(live_workers), '--dist', 'loadfile'] if live_workers > 1
+                    else []), 'normal'),
         'batch': (['-m', 'not live']
                   + (['-n', str(workers), '--dist', 'loadfile'] if workers > 0 else []),
                   'idle'),
@@ -110,6 +115,9 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.strip().split('\n\n')[0])
     ap.add_argument('--workers', type=int, default=2,
                     help='pytest-xdist workers of the batch lane (0: in its own process)')
+    ap.add_argument('--live-workers', type=int, default=LIVE_WORKERS,
+                    help='pytest-xdist workers of the live lane (default %(default)s; 1: one '
+                         'live test at a time)')
     ap.add_argument('--timeout', type=float, default=300.0, help='seconds per test')
     ap.add_argument('--pytest-args', default='', help='more pytest arguments, one string')
     ap.add_argument('--tests', nargs='+', default=['test'],
@@ -127,7 +135,8 @@ def main(argv=None):
     env = bytecode_cache(dict(os.environ))
     procs = {}
     started = time.monotonic()
-    for k, (name, (marker, policy)) in enumerate(lanes(args.workers).items()):
+    layout = lanes(args.workers, args.live_workers)
+    for k, (name, (marker, policy)) in enumerate(layout.items()):
         if args.only and name not in args.only:
             continue
         log = os.path.join(log_dir, f'{name}.log')
