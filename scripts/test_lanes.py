@@ -57,6 +57,9 @@ import time
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 #: the last progress percentage pytest printed, and its final summary line
 _PERCENT = re.compile(r'\[\s*(\d+)%\]')
+#: pytest-xdist's "2 workers [138 items]", and a line's leading run of result characters
+_WORKERS = re.compile(r'\d+ workers \[(\d+) items?\]')
+_RESULTS = re.compile(r'^[.FEsxX]+', re.M)
 #: pytest-xdist workers of the live lane (1: one test at a time, in pytest's own process)
 LIVE_WORKERS = 2
 _SUMMARY = re.compile(r'^=+ (.*(passed|failed|error|no tests ran|deselected).*) =+$', re.M)
@@ -102,11 +105,17 @@ def bytecode_cache(env):
 def _progress(path):
     try:
         with open(path, 'rb') as fh:
-            fh.seek(max(0, os.path.getsize(path) - 4096))
-            tail = fh.read().decode('utf-8', 'replace')
+            text = fh.read().decode('utf-8', 'replace')
     except OSError:
         return '?'
-    found = _PERCENT.findall(tail)
+    workers = _WORKERS.search(text)
+    if workers:
+        # pytest-xdist prints one character per result, in lines a log line may cut into
+        # ('..[WARN] ...'), with a percentage only at each line's end
+        body = text[workers.end():].split('\n=', 1)[0]
+        done = sum(len(m.group(0)) for m in _RESULTS.finditer(body))
+        return f'{100 * done // max(1, int(workers.group(1)))}%'
+    found = _PERCENT.findall(text[-4096:])
     return f'{found[-1]}%' if found else 'starting'
 
 

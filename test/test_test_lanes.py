@@ -141,3 +141,14 @@ def test_processes_choosing_at_once_never_share_a_ros_domain():
     with open(path, 'a') as fh:                   # released with the process
         fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
         fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+def test_progress_counts_the_results_of_xdist_workers(tmp_path):
+    log = tmp_path / 'lane.log'
+    # xdist: one character per result, a log line cutting into one line, % only at line ends
+    log.write_text('created: 2/2 workers\n2 workers [10 items]\n\n...[WARN] [1.0] lost x\n'
+                   '.. [ 50%]\nF\n')
+    assert test_lanes._progress(log) == '60%'
+    log.write_text('collected 12 items\n\ntest/test_a.py ....                 [ 33%]\n')
+    assert test_lanes._progress(log) == '33%'
+    assert test_lanes._progress(tmp_path / 'absent.log') == '?'
