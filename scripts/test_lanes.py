@@ -22,9 +22,10 @@ The suite has two kinds of tests that want the machine differently:
 - *live* tests (marked ``live``, test/conftest.py) run ROS pipelines in real time and judge
   them against the noise: a pipeline that does not get the CPU when a sample arrives loses
   it, and the test fails for a reason that is not in the code. Most of their time is real
-  time (a 30 s collection, a 10 s window), not CPU, so two run side by side; the two
-  heaviest pipelines, the main job and the loop demo, never beside each other (the loop's
-  tests are collected through test_demo.py, and a worker takes a file at a time).
+  time (a 30 s collection, a 10 s window), not CPU, so two run side by side; the three
+  heaviest pipelines, the main job, the loop demo and the corrector's 4 x 1 kHz burst, never
+  beside each other (their tests are collected through one file,
+  test/test_serial_pipelines.py, and a worker takes a file at a time).
 - *batch* tests compute: they take CPU whenever they get it and only their total matters.
 
 So the lanes are:

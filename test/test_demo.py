@@ -49,12 +49,6 @@ import time
 
 import numpy as np
 import pytest
-# the loop demo's tests, run in this file's process after or before the main job's, never
-# beside it (conftest.collect_ignore)
-from test_demo_loop import (runs, test_judge_by_hand,  # noqa: F401
-                            test_loop_closes_for_three_hidden_terms,
-                            test_loop_with_a_wrong_model_says_so_and_fails,
-                            test_same_term_by_hand)
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 STAMP = '.venv/.magcal_setup_stamp'

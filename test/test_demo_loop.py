@@ -72,8 +72,8 @@ def runs(tmp_path_factory):
     """
     Run the four demo runs one after the other, each in its own directory.
 
-    These tests are collected through test_demo.py (conftest.collect_ignore), after the main
-    job's test in the same process.
+    These tests are collected through test_serial_pipelines.py (conftest.collect_ignore),
+    one after the other with the main job's and the 10x burst's in one process.
 
     One at a time: two side by side passed three times on a quiet machine but failed once
     (2026-11-26 20:36, cause not recorded; the ROS domain then was chosen without a claim,
