@@ -32,6 +32,7 @@ profile and a private ROS_DOMAIN_ID). The simulated field is uniform (no gradien
 true tensor is zero and the true total field is ``--field-nt``.
 """
 import argparse
+import ctypes
 import json
 import os
 import pathlib
@@ -79,6 +80,11 @@ def executable(name):
     return [sys.executable, '-m', module]
 
 
+#: libc's prctl, looked up here: the forked child (``preexec_fn``) only calls it
+_PRCTL = ctypes.CDLL(None).prctl if sys.platform.startswith('linux') else None
+_PR_SET_PDEATHSIG = 1
+
+
 def _die_with_parent():
     """
     In the forked child: SIGTERM it when the demo dies (Linux ``PR_SET_PDEATHSIG``).
@@ -86,9 +92,8 @@ def _die_with_parent():
     The nodes run in sessions of their own (a Ctrl-C reaches the demo, which stops them in
     order); a demo killed outright (SIGKILL, a test's timeout) left them streaming for good.
     """
-    if sys.platform.startswith('linux'):
-        import ctypes
-        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM, 0, 0, 0)  # PR_SET_PDEATHSIG
+    if _PRCTL is not None:
+        _PRCTL(_PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
 
 
 class Processes:

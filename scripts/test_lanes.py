@@ -58,12 +58,12 @@ import time
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 #: the last progress percentage pytest printed, and its final summary line
 _PERCENT = re.compile(r'\[\s*(\d+)%\]')
+_SUMMARY = re.compile(r'^=+ (.*(passed|failed|error|no tests ran|deselected).*) =+$', re.M)
 #: pytest-xdist's "2 workers [138 items]", and a line's leading run of result characters
 _WORKERS = re.compile(r'\d+ workers \[(\d+) items?\]')
 _RESULTS = re.compile(r'^[.FEsxX]+', re.M)
 #: pytest-xdist workers of the live lane (1: one test at a time, in pytest's own process)
 LIVE_WORKERS = 2
-_SUMMARY = re.compile(r'^=+ (.*(passed|failed|error|no tests ran|deselected).*) =+$', re.M)
 
 
 def lanes(workers, live_workers=LIVE_WORKERS):

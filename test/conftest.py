@@ -75,7 +75,7 @@ def _claim(domain_id):
 
     The ports of a domain are bound only once its first participant starts, so processes
     choosing at the same moment (the lanes' pytest-xdist workers, started together) could
-    all see a domain free: twice two live tests shared one (a loop demo run's calibration
+    all see a domain free: two live tests shared one (a loop demo run's calibration
     reached the README test's corrector). The lock is the kernel's (``flock``): it goes with
     the process, however it ends.
     """
@@ -176,10 +176,6 @@ def pytest_sessionfinish(session, exitstatus):
     open_audit.pytest_sessionfinish(session, exitstatus)
 
 
-#: test files whose pipelines of ROS processes stream real-time data and judge it against the
-#: noise: `make test` (scripts/test_lanes.py) runs them one at a time, beside the rest (which
-#: runs on pytest-xdist workers at the idle CPU policy), because two of them side by side on
-#: two cores starve each other's streams
 #: live files whose pipelines must never run beside each other: the main job, the loop
 #: demo (its diagnoses) and the corrector's 4 x 1 kHz burst. Their tests are collected
 #: through test_serial_pipelines.py, one file, which one live pytest-xdist worker runs
@@ -190,6 +186,9 @@ def pytest_sessionfinish(session, exitstatus):
 SERIAL_FILES = ('test_demo.py', 'test_demo_loop.py', 'test_reliability_load.py')
 collect_ignore = list(SERIAL_FILES)
 
+#: test files whose pipelines of ROS processes stream real-time data and judge it against the
+#: noise: `make test` (scripts/test_lanes.py) runs them in the live lane, two at a time at
+#: most, beside the rest (which runs on pytest-xdist workers at the idle CPU policy)
 LIVE_FILES = frozenset({
     'test_calibration_node.py', 'test_calibration_residual.py', 'test_corrector_node.py',
     'test_demo.py', 'test_demo_loop.py', 'test_driver_node.py', 'test_e2e.py',
@@ -202,7 +201,7 @@ LIVE_FILES = frozenset({
 def pytest_configure(config):
     config.addinivalue_line('markers', 'live: a live ROS pipeline judged against the noise '
                             '(conftest.LIVE_FILES, or marked one by one; `make test` runs '
-                            'these one at a time)')
+                            'these in its live lane, two at a time at most)')
 
 
 def pytest_collection_modifyitems(config, items):

@@ -30,7 +30,6 @@ percent to many times the floor.
 """
 import importlib
 import json
-import os
 import pathlib
 import re
 import shlex
@@ -97,8 +96,8 @@ def runs(tmp_path_factory):
     results = {}
     for k, cmd in commands.items():
         # scripts/ros_env.sh keeps the session's ROS_DOMAIN_ID (claimed by conftest)
-        p = subprocess.Popen(_argv(cmd), cwd=dirs[k], env=dict(os.environ),
-                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        p = subprocess.Popen(_argv(cmd), cwd=dirs[k], stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True)
         try:
             stdout, stderr = p.communicate(timeout=400)
         finally:

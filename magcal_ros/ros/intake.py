@@ -79,7 +79,6 @@ class Intake:
         self._node = node
         self._queue = collections.deque()
         self.dropped = 0
-        self._subs = []
         self._stop = threading.Event()
         self._thread = None
         self._helper = None
@@ -102,25 +101,19 @@ class Intake:
     def subscribe(self, msg_type, topic, callback, qos):
         """Subscribe ``callback`` (called on the node's executor) to ``topic``."""
         if not self.threaded:
-            sub = self._node.create_subscription(msg_type, topic, callback, qos)
-        else:
-            name = self._node.resolve_topic_name(topic)
-            queue = self._queue
+            return self._node.create_subscription(msg_type, topic, callback, qos)
+        queue, wake = self._queue, self._wake
 
-            wake = self._wake
-
-            def take(msg):
-                n = len(queue)
-                if n >= MAX_QUEUED:
-                    self.dropped += 1
-                    return
-                queue.append((callback, msg))
-                if n + 1 == DRAIN_AT:
-                    wake.trigger()
-
-            sub = self._helper.create_subscription(msg_type, name, take, qos)
-        self._subs.append(sub)
-        return sub
+        def take(msg):
+            n = len(queue)
+            if n >= MAX_QUEUED:
+                self.dropped += 1
+                return
+            queue.append((callback, msg))
+            if n + 1 == DRAIN_AT:
+                wake.trigger()
+        return self._helper.create_subscription(
+            msg_type, self._node.resolve_topic_name(topic), take, qos)
 
     def start(self):
         """Start taking messages (after the last :meth:`subscribe`)."""
