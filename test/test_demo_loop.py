@@ -30,12 +30,14 @@ percent to many times the floor.
 """
 import importlib
 import json
+import os
 import pathlib
 import re
 import shlex
 import subprocess
 import sys
 
+import conftest
 import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -69,15 +71,18 @@ def _argv(cmd):
 @pytest.fixture(scope='module')
 def runs(tmp_path_factory):
     """
-    Run the four demo runs one after the other, each in its own directory.
+    Run the four demo runs, two at a time, each in its own directory and ROS domain.
 
     These tests are collected through test_serial_pipelines.py (conftest.collect_ignore),
     one after the other with the main job's and the 10x burst's in one process.
 
-    One at a time: two side by side passed three times on a quiet machine but failed once
-    (2026-11-26 20:36, cause not recorded; the ROS domain then was chosen without a claim,
-    conftest._claim), and a loop that does not close for want of CPU tests nothing of the
-    loop.
+    Two at a time: a run is real time (30 s of collection, two 10 s windows) at 4 x 50 Hz
+    and takes about half a core, so a pair takes about as long as one run. Measured
+    2026-11-27: README and seed 1 side by side, 73 and 75 s (one alone: 67 s); seed 2 and the
+    forced run beside a busy loop at normal priority on one core, 74 and 63 s, both as
+    expected. Each run of a pair in a ROS domain of its own (the second claimed here,
+    conftest.pick_domain_id): in one domain the two pipelines would hear each other. An
+    earlier pair failed once (2026-11-26 20:36) when domains were chosen without a claim.
 
     README (seed 0), seeds 1 and 2, seed 2 with a forced wrong model; returns
     ({key: CompletedProcess}, {key: directory}).
@@ -93,18 +98,30 @@ def runs(tmp_path_factory):
         'forced': f'scripts/demo.sh --loop --seed 2 --force-term {FORCED}',
     }
     dirs = {k: tmp_path_factory.mktemp(f'loop_{k}') for k in commands}
+    # the session's domain (claimed by conftest) for the first of a pair, one more for the
+    # second; scripts/ros_env.sh keeps the ROS_DOMAIN_ID it is given
+    domains = [os.environ['ROS_DOMAIN_ID'], str(conftest.pick_domain_id())]
     results = {}
-    for k, cmd in commands.items():
-        # scripts/ros_env.sh keeps the session's ROS_DOMAIN_ID (claimed by conftest)
-        p = subprocess.Popen(_argv(cmd), cwd=dirs[k], stdout=subprocess.PIPE,
-                             stderr=subprocess.PIPE, text=True)
+    for pair in (('readme', 1), (2, 'forced')):
+        procs = {}
         try:
-            stdout, stderr = p.communicate(timeout=400)
+            for k, domain in zip(pair, domains):
+                # output to files: a pipe not read while the other run is waited for fills
+                with open(dirs[k] / 'stdout.txt', 'w') as out, \
+                        open(dirs[k] / 'stderr.txt', 'w') as err:
+                    procs[k] = subprocess.Popen(_argv(commands[k]), cwd=dirs[k], stdout=out,
+                                                stderr=err,
+                                                env={**os.environ, 'ROS_DOMAIN_ID': domain})
+            for k, p in procs.items():
+                p.wait(timeout=400)
+                results[k] = subprocess.CompletedProcess(
+                    p.args, p.returncode, (dirs[k] / 'stdout.txt').read_text(),
+                    (dirs[k] / 'stderr.txt').read_text())
         finally:
-            if p.poll() is None:
-                p.kill()
-                p.wait()
-        results[k] = subprocess.CompletedProcess(p.args, p.returncode, stdout, stderr)
+            for p in procs.values():
+                if p.poll() is None:
+                    p.kill()
+                    p.wait()
     return results, dirs
 
 
