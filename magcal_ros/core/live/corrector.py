@@ -225,9 +225,12 @@ class LiveCorrector:
                 self.pairing_dof = len(k)
                 if self.pairing_dof:
                     self._set_op = np.vstack([self.gradient_op, k])
-                    from scipy.stats import chi2   # here: scipy.stats costs 0.2 s at start-up
-                    self.pairing_threshold = float(chi2.isf(PAIRING_FALSE_ALARM,
-                                                            self.pairing_dof))
+                    # chi-square's upper quantile: scipy.special.chdtri(k, q), which is what
+                    # scipy.stats.chi2.isf(q, k) calls; importing scipy.stats (1.17) for it
+                    # cost the node 0.5-0.8 s of CPU at every start (BENCHMARKS.md)
+                    from scipy.special import chdtri
+                    self.pairing_threshold = float(chdtri(self.pairing_dof,
+                                                          PAIRING_FALSE_ALARM))
                     self.matcher.misfit = self.pairing_chi2
                     self.matcher.threshold = self.pairing_threshold
         if check_pairing and self.pairing_dof:
