@@ -73,9 +73,6 @@ def runs(tmp_path_factory):
     """
     Run the four demo runs, two at a time, each in its own directory and ROS domain.
 
-    These tests are collected through test_serial_pipelines.py (conftest.collect_ignore),
-    one after the other with the main job's and the 10x burst's in one process.
-
     Two at a time: a run is real time (30 s of collection, two 10 s windows) at 4 x 50 Hz
     and takes about half a core, so a pair takes about as long as one run. Measured
     2026-11-27: README and seed 1 side by side, 73 and 75 s (one alone: 67 s); seed 2 and the

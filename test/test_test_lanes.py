@@ -62,32 +62,29 @@ class _Item:
 
 
 def _lane_of(item):
-    live = 'live' in item.marks
+    live, solo = 'live' in item.marks, 'solo' in item.marks
     # the marker expressions of test_lanes.lanes(), evaluated by hand
-    return [name for name, ok in (('live', live), ('batch', not live)) if ok]
+    return [name for name, ok in (('live', live and not solo),
+                                  ('batch', not live and not solo), ('solo', solo)) if ok]
 
 
 def test_every_test_is_in_exactly_one_lane():
     exprs = {name: ' '.join(marker) for name, (marker, _) in test_lanes.lanes(2, 2).items()}
-    assert exprs == {'live': '-m live -n 2 --dist loadfile',
-                     'batch': '-m not live -n 2 --dist loadfile'}
+    assert exprs == {'live': '-m live and not solo -n 2 --dist loadfile',
+                     'batch': '-m not live and not solo -n 2 --dist loadfile',
+                     'solo': '-m solo'}
     # one live test at a time: no xdist in the live lane
-    assert test_lanes.lanes(2, 1)['live'] == (['-m', 'live'], 'normal')
+    assert test_lanes.lanes(2, 1)['live'] == (['-m', 'live and not solo'], 'normal')
+    # the solo lane waits for the live lane
+    assert test_lanes.AFTER == {'solo': 'live'}
     items = [_Item('test_demo.py'), _Item('test_demo_loop.py'), _Item('test_cli.py'),
-             _Item('test_bench_smoke.py', ['live']), _Item('test_bench_smoke.py')]
+             _Item('test_bench_smoke.py', ['live']), _Item('test_bench_smoke.py'),
+             _Item('test_reliability_load.py')]
     conftest.pytest_collection_modifyitems(None, items)
-    assert [_lane_of(i) for i in items] == [['live'], ['live'], ['batch'], ['live'],
-                                            ['batch']]
-    # the heaviest pipelines are collected through one file, so one live worker runs them
-    # one after the other (--dist loadfile); each of their own files is left out
-    import test_serial_pipelines
-    collected = {name for name in vars(test_serial_pipelines) if name.startswith('test_')}
-    for fname in conftest.SERIAL_FILES:
-        assert fname in conftest.collect_ignore
-        module = importlib.import_module(fname[:-3])
-        tests = {name for name in vars(module) if name.startswith('test_')}
-        assert tests and tests <= collected, fname
-    assert 'test_serial_pipelines.py' in conftest.LIVE_FILES
+    assert [_lane_of(i) for i in items] == [['solo'], ['live'], ['batch'], ['live'],
+                                            ['batch'], ['solo']]
+    # the solo files are live files too (a plain pytest -m live runs them)
+    assert conftest.SOLO_FILES <= conftest.LIVE_FILES
 
 
 def test_bytecode_goes_to_a_cache_outside_the_checkout():
@@ -113,6 +110,11 @@ def test_lanes_run_side_by_side_and_the_probe_sees_its_policy():
     lines = {ln.split()[1]: ln for ln in summary.splitlines() if ln.startswith('lane ')}
     assert 'ok, exit 0' in lines['batch'] and '1 passed' in lines['batch'], summary
     assert 'ok, exit 5' in lines['live'], summary
+    # the solo lane (nothing to run either) started only once the live lane had ended
+    assert 'ok, exit 5' in lines['solo'], summary
+    out = p.stdout
+    assert out.index('lane live: exit 5') < out.index(
+        'lane solo: starts now that lane live has ended') < out.index('lane solo: pytest')
 
 
 def test_a_failing_lane_fails_the_run():
