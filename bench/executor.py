@@ -47,9 +47,9 @@ node = Node(f'bench_executor_{role}_{os.getpid()}')
 topics = [f'/bench_executor/sensor{j}/raw' for j in range(1, 5)]
 if role == 'pub':
     pubs = [node.create_publisher(MagneticField, t, 100) for t in topics]
-    time.sleep(1.0)                                   # discovery
     t0, k = time.monotonic(), 0
-    while time.monotonic() - t0 < duration + 2.0:
+    # until the parent stops it, once the subscriber has measured (at most a minute)
+    while time.monotonic() - t0 < duration + 60.0:
         for p in pubs:
             p.publish(MagneticField())
         k += 1
@@ -66,8 +66,13 @@ os.environ['MAGCAL_EXECUTOR'] = executor
 ex, name = make_executor()
 assert name == executor, (name, executor)
 ex.add_node(node)
-deadline = time.monotonic() + 1.5
-while time.monotonic() < deadline:                   # discovery, first messages
+# discovery: measure from the first message on, plus half a second (not after a fixed
+# time: a process that started slowly on a busy machine once measured nothing)
+deadline = time.monotonic() + 30.0
+while not got[0] and time.monotonic() < deadline:
+    ex.spin_once(timeout_sec=0.1)
+settle = time.monotonic() + 0.5
+while time.monotonic() < settle:
     ex.spin_once(timeout_sec=0.1)
 n0, c0 = got[0], time.process_time()
 t0 = time.monotonic()
