@@ -81,6 +81,22 @@ def test_the_file_reads_the_same_with_libyaml_and_pyyaml(tmp_path, run):
         calfile.parse_calibration(cut)
 
 
+def test_the_file_is_written_as_pyyaml_writes_it(tmp_path, run):
+    # written with libyaml's emitter when PyYAML has it: byte for byte what PyYAML's own
+    # emitter writes (the reference), for a fitted document as the file holds it (checksum,
+    # provenance, a temperature term) and for one with a sensor without a noise estimate (nan)
+    _, r = run
+    path = tmp_path / 'cal.yaml'
+    save_calibration(path, r.doc)
+    doc = yaml.safe_load(path.read_text())
+    nan_doc = yaml.safe_load(path.read_text())
+    nan_doc['sensors'][2]['sigma_nt'] = float('nan')
+    for d in (doc, nan_doc):
+        assert calfile._yaml(d) == yaml.safe_dump(d, sort_keys=False, default_flow_style=None,
+                                                  width=100)
+    assert calfile._SAFE_DUMPER is getattr(yaml, 'CSafeDumper', yaml.SafeDumper)
+
+
 def test_atomic_write_keeps_previous_on_failing_fsync(tmp_path, run):
     _, r = run
     path = tmp_path / 'cal.yaml'
