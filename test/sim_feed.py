@@ -58,13 +58,16 @@ class Feeder:
             for j, pub in enumerate(self.temp):
                 pub.publish(temperature_msg(float(data.temp[j, k]), stamp=stamp))
 
-    def feed(self, executor, data, taken, start=0, stop=None, batch=5, timeout_sec=60.0,
+    def feed(self, executor, data, taken, start=0, stop=None, batch=8, timeout_sec=60.0,
              temperature=True, latency_s=None):
         """
         Publish epochs ``start:stop`` in batches; ``taken()`` counts samples consumed.
 
         ``taken`` returns how many raw samples (all sensors) the node under test has taken
-        so far; each batch waits until it has caught up.
+        so far; each batch waits until it has caught up.  A batch of 8 epochs of the cross
+        is 32 raw messages, which the calibration node's intake hands over at once
+        (magcal_ros.ros.intake.DRAIN_AT), not at its next 50 ms drain; 8 per topic fit the
+        nodes' sensor queues (25 deep).
         """
         stop = data.n_samples if stop is None else stop
         deadline = time.monotonic() + timeout_sec

@@ -53,6 +53,7 @@ from magcal_ros.ros import calibration_node as node_module
 from magcal_ros.ros.calibration_node import CalibrationNode, RESULT_QOS
 from magcal_ros.ros.conversions import field_nt_to_msg, msg_to_field_nt
 from magcal_ros.ros.corrector_node import CorrectorNode
+from magcal_ros.ros.intake import DRAIN_AT
 import numpy as np
 import pytest
 from rclpy.parameter import Parameter
@@ -198,9 +199,15 @@ def start_node(make_node, namespace, tmp_path, **params):
         Parameter(k, value=v) for k, v in overrides.items()])
 
 
-def feed_sensors(feeder, executor, node, data, sensors, stop=None, batch=5):
-    """Publish epochs of ``data`` for the given sensors only (1-based); wait until taken."""
+def feed_sensors(feeder, executor, node, data, sensors, stop=None, batch=None):
+    """
+    Publish epochs of ``data`` for the given sensors only (1-based); wait until taken.
+
+    By default a batch is as many epochs as make DRAIN_AT messages, which the node's intake
+    hands over at once instead of at its next drain period (magcal_ros.ros.intake).
+    """
     stop = data.n_samples if stop is None else stop
+    batch = batch or -(-DRAIN_AT // len(sensors))
     base = int(node.received.sum())
     for k0 in range(0, stop, batch):
         k1 = min(k0 + batch, stop)

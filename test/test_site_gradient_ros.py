@@ -23,6 +23,7 @@ import time
 
 from magcal_ros.ros.calibration_node import CalibrationNode
 from magcal_ros.ros.conversions import to_stamp
+from magcal_ros.ros.intake import DRAIN_AT
 import numpy as np
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -66,8 +67,9 @@ def test_calibration_node_fits_site_gradient_with_imu(make_node, ros_node, ros_e
         msg.orientation.w, msg.orientation.x = float(qw), float(qx)
         msg.orientation.y, msg.orientation.z = float(qy), float(qz)
         imu_pub.publish(msg)
-        if k % 5 == 4 or k == data.n_samples - 1:
-            # best-effort queue: wait until the node has taken this batch
+        if k % DRAIN_AT == DRAIN_AT - 1 or k == data.n_samples - 1:
+            # wait until the node has taken this batch (as many as its intake hands over at
+            # once, magcal_ros.ros.intake)
             deadline = time.monotonic() + 30.0
             while node.imu_received < k + 1:
                 assert time.monotonic() < deadline, f'the node took {node.imu_received} of {k + 1}'

@@ -42,14 +42,14 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 #: longest wait of a queued message for the node's callbacks, s.  Every wake of the node's
-#: SingleThreadedExecutor rebuilds its wait set: with 20 ms and 16 messages the calibration
-#: node took 4.9-5.3 s of CPU over 30 s of collection at 4 x 100 Hz, with 50 ms and 64
-#: messages 3.7 s (2026-11-27, BENCHMARKS.md); its callbacks collect and publish the live
-#: residual, for which 50 ms is no delay that matters
+#: SingleThreadedExecutor rebuilds its wait set: over 30 s of collection at 4 x 100 Hz the
+#: calibration node took 4.9-5.3 s of CPU with 20 ms and 16 messages, 4.4 s with 50 ms and
+#: 16, 3.75 s with 50 ms and 32, 3.7 s with 50 ms and 64 (2026-11-27, BENCHMARKS.md); its
+#: callbacks collect and publish the live residual, for which 50 ms is no delay that matters
 DRAIN_PERIOD_S = 0.05
 #: this many queued messages wake the node's executor at once (a burst is not held back
 #: by the period: a publisher waiting for the node to take its batch, a stream catching up)
-DRAIN_AT = 64
+DRAIN_AT = 32
 #: most messages held for the node's callbacks (beyond: dropped and counted); 60 s of 8
 #: sensors at 100 Hz with their temperatures
 MAX_QUEUED = 100_000
