@@ -66,9 +66,12 @@ NAMESPACE = demo.NAMESPACE
 N_SENSORS = demo.N_SENSORS
 #: the loop is closed when every residual RMS is within this factor of its floor.  An RMS of
 #: N = 500 sets of white noise scatters by 1/sqrt(2 N) = 3.2 % and the floor estimated from
-#: the differences by a little more: their ratio by ~5 %, so 1.15 is 3 of that; an effect
-#: left over of 55 % of the noise sd (sqrt(1 + 0.55^2) = 1.14) is at the bound
-CLOSE_FACTOR = 1.15
+#: the differences by a little more: their ratio by ~5 %.  A run judges 8 ratios (4 sensors,
+#: scalar and vector): at a family-wise false alarm of 0.1 % each is held to its one-sided
+#: 1.25e-4 quantile, 3.66 sd, so 1.18 (1.15, one ratio's 3 sd, failed on noise in about 3 %
+#: of the test's three-run passes: sensor 4 at x1.17 on 2026-11-27).  An effect left over of
+#: 63 % of the noise sd (sqrt(1 + 0.63^2) = 1.18) is at the bound
+CLOSE_FACTOR = 1.18
 #: the misfit the base calibration must show for the loop to mean anything (the calibration
 #: node's /diagnostics WARN threshold, magcal_ros.core.live.corrector.RESIDUAL_WARN_RATIO)
 SHOW_FACTOR = 1.5

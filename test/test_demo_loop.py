@@ -24,7 +24,8 @@ other three| its noise expectation sqrt(3 (1 + 3/9)) sigma = 2 sigma.
 
 Tolerances from the noise: a step's RMS over N = 500 white sets (the demo's window)
 scatters by 1/sqrt(2N) = 3.2 % relative, the floor estimated from the differences by a
-little more, so their ratio by ~5 %: the demo's closing bound 1.15 is 3 of those; the floor
+little more, so their ratio by ~5 %: the demo's closing bound 1.18 is 3.66 of those (a
+family-wise 0.1 % over a run's 8 ratios); the floor
 against the simulator's 3 nT is held to 4/sqrt(N) (18 %). A missing term shows as tens of
 percent to many times the floor.
 """
@@ -168,7 +169,7 @@ def test_loop_closes_for_three_hidden_terms(runs):
                     for kind, floor in (('scalar', 'floor_nt'), ('vector', 'vector_floor_nt')))
         assert worst > 1.5, (k, first)
         # with the diagnosed term: every sensor at its floor, above it by no more than the
-        # noise of the ratio (4 of its 3.5 % scatter) and not below it by more either
+        # noise of the ratio (the demo's bound, above) and not below it by 3 of its ~5 %
         for kind, floor in (('scalar', 'floor_nt'), ('vector', 'vector_floor_nt')):
             for j in '1234':
                 ratio = last[f'{kind}_rms_nt'][j] / last[floor][j]
@@ -214,7 +215,7 @@ def test_same_term_by_hand():
 
 
 def test_judge_by_hand():
-    """A loop is closed only with the term named and every ratio within 1.15, by hand."""
+    """A loop is closed only with the term named and every ratio within 1.18, by hand."""
     def step(model, scalar, vector):
         return {'model': model, 'scalar_rms_nt': {'1': scalar, '2': 3.0},
                 'vector_rms_nt': {'1': vector, '2': 6.0},
@@ -225,10 +226,10 @@ def test_judge_by_hand():
           'steps': [base, step(['base', 'nonlinearity@1'], 3.3, 6.6)]}   # x1.10
     failures = []
     assert demo_loop.judge(ok, failures) and failures == []
-    high = dict(ok, steps=[base, step(['base', 'nonlinearity@1'], 3.5, 6.0)])  # x1.17
+    high = dict(ok, steps=[base, step(['base', 'nonlinearity@1'], 3.6, 6.0)])  # x1.20
     failures = []
     assert not demo_loop.judge(high, failures)
-    assert 'sensor 1 scalar 3.50 nT' in failures[0]
+    assert 'sensor 1 scalar 3.60 nT' in failures[0]
     # 26 of 500 sets (5.2 %) left out of the vector RMS: not closed, and said why
     far = dict(ok, steps=[base, dict(ok['steps'][1], vector_sets_left_out=26)])
     failures = []
