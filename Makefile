@@ -1,9 +1,10 @@
 # magcal_ros project tasks. `make test` is what CI runs (.ci/run).
 #
 #   make setup   create/update .venv (Python 3.11, ROS 2 Jazzy wheels, deps, editable install)
-#   make test    setup, then pytest on test/ in the loopback-only ROS environment, in two lanes
-#                side by side (scripts/test_lanes.py): the live ROS pipelines two at a time,
-#                the rest on pytest-xdist workers at the idle CPU policy
+#   make test    setup, then pytest on test/ in the loopback-only ROS environment, in three
+#                lanes (scripts/test_lanes.py): the live ROS pipelines two at a time, beside
+#                them the rest on pytest-xdist workers at the idle CPU policy, and after them
+#                the two pipelines that judge their own timing, one at a time
 #   make demo    setup, then scripts/demo.sh in the loopback-only ROS environment
 #   make bench   setup, then bench/run_all.py
 #   make clean   remove build products and caches (keeps .venv); distclean also removes .venv

@@ -15,7 +15,7 @@
 # limitations under the License.
 
 """
-Run the test suite in two lanes side by side (``make test``).
+Run the test suite in three lanes: live and batch side by side, solo after live (``make test``).
 
 The suite has two kinds of tests that want the machine differently:
 
