@@ -191,8 +191,8 @@ LIVE_FILES = frozenset({
     'test_demo.py', 'test_demo_loop.py', 'test_driver_node.py', 'test_e2e.py',
     'test_field_rate_live.py', 'test_geometry_e2e.py', 'test_geometry_nodes.py',
     'test_planar_node.py', 'test_reliability_calibration.py', 'test_reliability_driver.py',
-    'test_reliability_load.py', 'test_ros_user.py',
-    'test_sim_node.py', 'test_site_gradient_ros.py'})
+    'test_reliability_load.py', 'test_ros_user.py', 'test_sim_node.py',
+    'test_site_gradient_ros.py'})
 
 
 def pytest_configure(config):

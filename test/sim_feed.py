@@ -23,11 +23,22 @@ batches until the node under test has taken them (its best-effort queues are fin
 import time
 
 from magcal_ros.ros.conversions import field_nt_to_msg, temperature_msg
+from magcal_ros.ros.intake import DRAIN_AT
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import MagneticField, Temperature
 
 #: stamp of the first simulated sample, s (a plausible ROS time)
 T0 = 1_700_000_000.0
+
+
+def intake_batch(n_topics):
+    """
+    Epochs per batch on ``n_topics`` raw topics that make DRAIN_AT messages.
+
+    The calibration node's intake hands that many queued messages over at once
+    (magcal_ros.ros.intake), a smaller batch only at its next drain period (50 ms).
+    """
+    return -(-DRAIN_AT // n_topics)
 
 
 class Feeder:
@@ -58,17 +69,17 @@ class Feeder:
             for j, pub in enumerate(self.temp):
                 pub.publish(temperature_msg(float(data.temp[j, k]), stamp=stamp))
 
-    def feed(self, executor, data, taken, start=0, stop=None, batch=8, timeout_sec=60.0,
+    def feed(self, executor, data, taken, start=0, stop=None, batch=None, timeout_sec=60.0,
              temperature=True, latency_s=None):
         """
         Publish epochs ``start:stop`` in batches; ``taken()`` counts samples consumed.
 
         ``taken`` returns how many raw samples (all sensors) the node under test has taken
-        so far; each batch waits until it has caught up.  A batch of 8 epochs of the cross
-        is 32 raw messages, which the calibration node's intake hands over at once
-        (magcal_ros.ros.intake.DRAIN_AT), not at its next 50 ms drain; 8 per topic fit the
-        nodes' sensor queues (25 deep).
+        so far; each batch waits until it has caught up.  The default batch is
+        :func:`intake_batch` of the raw topics (8 epochs of the cross: 8 per topic fit the
+        nodes' sensor queues, 25 deep).
         """
+        batch = batch or intake_batch(len(self.raw))
         stop = data.n_samples if stop is None else stop
         deadline = time.monotonic() + timeout_sec
         base = taken()

@@ -53,7 +53,6 @@ from magcal_ros.ros import calibration_node as node_module
 from magcal_ros.ros.calibration_node import CalibrationNode, RESULT_QOS
 from magcal_ros.ros.conversions import field_nt_to_msg, msg_to_field_nt
 from magcal_ros.ros.corrector_node import CorrectorNode
-from magcal_ros.ros.intake import DRAIN_AT
 import numpy as np
 import pytest
 from rclpy.parameter import Parameter
@@ -61,7 +60,7 @@ from rclpy.parameter_client import AsyncParameterClient
 from ros_helpers import (call_trigger, run_concurrently, spin_for, spin_until,
                          split_response as split, subprocess_env)
 from sensor_msgs.msg import MagneticField
-from sim_feed import Feeder, T0
+from sim_feed import Feeder, intake_batch, T0
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import Trigger
 
@@ -200,14 +199,9 @@ def start_node(make_node, namespace, tmp_path, **params):
 
 
 def feed_sensors(feeder, executor, node, data, sensors, stop=None, batch=None):
-    """
-    Publish epochs of ``data`` for the given sensors only (1-based); wait until taken.
-
-    By default a batch is as many epochs as make DRAIN_AT messages, which the node's intake
-    hands over at once instead of at its next drain period (magcal_ros.ros.intake).
-    """
+    """Publish epochs of ``data`` for the given sensors only (1-based); wait until taken."""
     stop = data.n_samples if stop is None else stop
-    batch = batch or -(-DRAIN_AT // len(sensors))
+    batch = batch or intake_batch(len(sensors))
     base = int(node.received.sum())
     for k0 in range(0, stop, batch):
         k1 = min(k0 + batch, stop)

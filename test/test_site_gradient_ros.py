@@ -23,13 +23,12 @@ import time
 
 from magcal_ros.ros.calibration_node import CalibrationNode
 from magcal_ros.ros.conversions import to_stamp
-from magcal_ros.ros.intake import DRAIN_AT
 import numpy as np
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from ros_helpers import call_trigger, split_response as split
 from sensor_msgs.msg import Imu
-from sim_feed import Feeder, T0
+from sim_feed import Feeder, intake_batch, T0
 from test_site_gradient import G_W, make_data
 
 
@@ -60,6 +59,7 @@ def test_calibration_node_fits_site_gradient_with_imu(make_node, ros_node, ros_e
     status = node.status()
     assert status['attitude_messages'] == 0 and status['attitude_messages_refused'] == 2
     assert any('unit orientation' in m for m in status['missing'])
+    batch = intake_batch(1)                  # one IMU topic
     for k in range(data.n_samples):
         msg = Imu()
         msg.header.stamp = to_stamp(T0 + float(data.t[k]))
@@ -67,9 +67,9 @@ def test_calibration_node_fits_site_gradient_with_imu(make_node, ros_node, ros_e
         msg.orientation.w, msg.orientation.x = float(qw), float(qx)
         msg.orientation.y, msg.orientation.z = float(qy), float(qz)
         imu_pub.publish(msg)
-        if k % DRAIN_AT == DRAIN_AT - 1 or k == data.n_samples - 1:
+        if k % batch == batch - 1 or k == data.n_samples - 1:
             # wait until the node has taken this batch (as many as its intake hands over at
-            # once, magcal_ros.ros.intake)
+            # once)
             deadline = time.monotonic() + 30.0
             while node.imu_received < k + 1:
                 assert time.monotonic() < deadline, f'the node took {node.imu_received} of {k + 1}'
