@@ -194,3 +194,27 @@ def test_lm_solver_agrees_with_scipy_least_squares():
     # same cost minimum: parameters agree to a small fraction of their uncertainty
     assert np.abs((a.params - b.params) / a.stderr).max() < 0.01
     assert abs(a.chi2 - b.chi2) < 1e-6 * a.chi2
+
+
+@pytest.mark.parametrize('noise_nt', [(2.0, 5.0), (1.0, 3.0, 6.0)])
+def test_each_sensor_noise_level_is_its_own(noise_nt):
+    """
+    Sensors of unequal noise in one group: each gets its own sigma, not a share of the others'.
+
+    Hand-written data (test/injection.py's tumble and the first sensors of its cross), the
+    noise of each sensor stated here.  The field is profiled from all sensors, so the
+    residual of a sensor holds part of the others' noise; the estimate must undo that
+    (fitting.group_noise_variances).  The former estimate, a sensor's residual over its
+    share of the degrees of freedom, gave 1.44 and 6.2 nT for 2 and 5 nT, and 0.66, 3.4
+    and 6.8 nT for 1, 3 and 6 nT (2026-11-27).  Tolerance from the noise: each sensor's
+    own radial residual alone gives N degrees of freedom, so sigma's relative sd is at
+    most 1 / sqrt(2 N) (0.013 at N = 3000); 4 of them.
+    """
+    n = 3000
+    t, b = injection.tumbling_field(n, seed=5)
+    rng = np.random.default_rng(11)
+    raw = np.stack([b @ injection.sensor_matrix(j).T + np.array(injection.SENSORS[j - 1][3])
+                    + rng.normal(0.0, s, (n, 3)) for j, s in enumerate(noise_nt, start=1)])
+    res = fit(Dataset(t=t, raw=raw), 'base', field_nt=injection.F_NT)
+    np.testing.assert_allclose(res.sigma_nt / np.array(noise_nt), 1.0,
+                               atol=4.0 / np.sqrt(2 * n))

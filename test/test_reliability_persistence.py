@@ -365,8 +365,10 @@ def test_a_file_without_checksum_still_loads_and_a_changed_digit_is_refused(tmp_
     assert stamp and stamp.group(1) == calfile.content_checksum(yaml.safe_load(text))
     legacy = text.replace(stamp.group(0) + '\n', '')
     assert same_calibration(parse_calibration(legacy)[0], parse_calibration(text)[0])
-    sigma = re.search(r'sigma_nt: (\d+\.\d+)', text)
-    changed = sigma.group(1)[:-1] + str((int(sigma.group(1)[-1]) + 1) % 10)
+    # the first decimal: the last of a 17-digit repr may name the same double once changed
+    sigma = re.search(r'sigma_nt: (\d+)\.(\d)(\d*)', text)
+    changed = f'{sigma.group(1)}.{(int(sigma.group(2)) + 1) % 10}{sigma.group(3)}'
+    assert float(changed) != float(sigma.group(0).split()[1])
     path = tmp_path / 'edited.yaml'
     path.write_text(text.replace(sigma.group(0), 'sigma_nt: ' + changed, 1))
     with pytest.raises(CalibrationFileError, match=r'edited\.yaml: checksum does not match the '

@@ -25,8 +25,9 @@ The maximum-likelihood fit of a :class:`magcal_ros.core.model.Model` and its res
    epoch k constrained to the reference magnitude |B_k| = F_k and eliminated by variable
    projection (:mod:`magcal_ros.core.model.engine`), solved by Levenberg-Marquardt
    (:mod:`magcal_ros.core.model.solvers`) or ``scipy.optimize.least_squares``;
-3. the noise levels re-estimated from the residuals, and the parameter covariance from the
-   projected Jacobian at the solution (the Cramer-Rao bound).
+3. the noise levels re-estimated from the residuals (:func:`group_noise_variances`, each
+   sensor's own part of the residual), and the parameter covariance from the projected
+   Jacobian at the solution (the Cramer-Rao bound).
 
 :class:`FitResult` is immutable; its per-epoch arrays (corrected readings, residuals, the
 profiled field) are computed from the parameters on first access and then kept.
@@ -435,6 +436,54 @@ def _closed_form_start(raw, f, model, constrained, ident, degenerate):
         return initial_params(raw, f, model, constrained=True)
 
 
+def group_noise_variances(res, g_cols, n_params):
+    """
+    Unbiased moment estimate of each sensor's noise variance in a group, relative to its weight.
+
+    The profiled residual of an epoch is r = (I - P) e with P the orthogonal projector on the
+    two field-direction columns G (the field is estimated from the same readings), e the
+    noise normalised by the current sigma_j.  With E[e e^T] = diag(d_j I_3), d_j = (true
+    sigma_j / current sigma_j)^2, E ||r_j||^2 = sum_k C_jk d_k, C_jk = ||(I - P)_jk||_F^2
+    summed over epochs; C d = sum ||r_j||^2 is solved for d >= 0 (scipy.optimize.nnls).
+    This is the heteroscedastic variance-component estimator of Rao (1970, MINQUE's unbiased
+    form; for three instruments Grubbs' three-cornered hat).  The sensor's own share of the
+    residual is not taken as its variance: with the field a weighted mean, a sensor weighted
+    less leaves more of the common residual in its own, so that estimate diverges from the
+    truth pass after pass (two sensors: 2-3x the scatter of this one, bench/ and
+    test_model_ml.py).  The parameters' degrees of freedom scale every d by
+    (3 G - 2) N / ((3 G - 2) N - P).
+
+    Parameters
+    ----------
+    res : numpy.ndarray
+        (N, G, 3) residuals normalised by the current sigma_j, dimensionless.
+    g_cols : numpy.ndarray
+        (N, 3 G, 2) the field-direction columns, normalised likewise
+        (:meth:`ProfiledProblem.field_columns`).
+    n_params : int
+        Parameters fitted in the group.
+
+    Returns
+    -------
+    numpy.ndarray
+        (G,) d_j, dimensionless: the new sigma_j is the current one times sqrt(d_j).
+
+    """
+    from scipy.optimize import nnls
+    n, g = res.shape[0], res.shape[1]
+    gj = g_cols.reshape(n, g, 3, 2)
+    k = np.einsum('ngaq,ngar->ngqr', gj, gj)                 # (N, G, 2, 2) G_j^T G_j
+    s = np.linalg.inv(k.sum(axis=1))                           # (N, 2, 2) (G^T G)^-1
+    sk = np.einsum('nqr,ngrs->ngqs', s, k)                     # S K_j
+    # ||(I - P)_jk||_F^2 = 3 delta_jk - 2 delta_jk tr(S K_j) + tr(S K_k S K_j)
+    c = np.einsum('nkqr,njrq->jk', sk, sk)
+    c[np.diag_indices(g)] += np.einsum('njqq->j', 1.5 * np.eye(2) - 2.0 * sk)
+    m = np.einsum('nga,nga->g', res, res)
+    dof = (3 * g - 2) * n
+    d, _ = nnls(c, m * dof / max(dof - n_params, 1.0))
+    return np.maximum(d, 1e-12)
+
+
 class _Solve:
     """The ML problem of each sensor group on the fitted epochs, and its noise levels."""
 
@@ -521,18 +570,27 @@ class _Solve:
         return p, problems, _Summary(success, status, message, nfev)
 
     def residual_sigma(self, p, sigma, problems):
-        """Return (S,) the noise levels re-estimated from the raw residuals at ``p``, nT."""
+        """
+        Return (S,) the noise levels re-estimated from the raw residuals at ``p``, nT.
+
+        Least squares: the unbiased moment estimator of :func:`group_noise_variances`
+        (each sensor's share of the residual follows from the projection, not from the
+        weights of the current ``sigma``).  Robust: each sensor's MAD, scaled by the
+        residual's degrees of freedom per epoch.
+        """
         new_sigma = sigma.copy()
         for prob in problems:
-            _, _, _, res = prob.evaluate(p[prob.cols])
+            x = p[prob.cols]
+            _, b, mats, res = prob.evaluate(x)
             g = len(prob.sensors)
-            dof_per = max(1.0, (3 * g - 2) / g * res.shape[0] - len(prob.cols) / g)
+            if self.robust:
+                for gi, j in enumerate(prob.sensors):
+                    new_sigma[j - 1] = (mad_sd(res[:, gi] * sigma[j - 1])
+                                        * np.sqrt((3 * g - 2) / (3 * g)))
+                continue
+            ratio = group_noise_variances(res, prob.field_columns(b, mats), len(prob.cols))
             for gi, j in enumerate(prob.sensors):
-                r = res[:, gi] * sigma[j - 1]
-                if self.robust:
-                    new_sigma[j - 1] = mad_sd(r) * np.sqrt((3 * g - 2) / (3 * g))
-                else:
-                    new_sigma[j - 1] = np.sqrt(np.sum(r ** 2) / dof_per)
+                new_sigma[j - 1] = sigma[j - 1] * np.sqrt(ratio[gi])
         return new_sigma
 
     def covariance(self, p, sigma, with_jacobian=True):
