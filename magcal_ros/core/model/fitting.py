@@ -484,6 +484,40 @@ def group_noise_variances(res, g_cols, n_params):
     return np.maximum(d, 1e-12)
 
 
+def own_residual(res, g_cols, gi):
+    """
+    (N,) the residual of sensor ``gi`` of a group normal to its two field-direction columns.
+
+    The profiled field moves each sensor's prediction only within the span of its own two
+    columns G_j (the tangent plane of the field, as sensor j reads it), so the residual's
+    component along w_j = G_j1 x G_j2 / |G_j1 x G_j2| is w_j^T e_j: sensor j's normalised
+    noise alone, one value per epoch, whatever the other sensors' noise.  Its robust
+    spread is sensor j's noise level relative to its current one; the MAD of all three
+    components of r_j instead mixes that sensor's radial noise with the components the
+    field took up (a single sensor: 2 of 3 near zero), which put a 3 nT sensor at
+    0.64 nT and its uncertainties 4.9x too small (2026-11-27, test_model_ml.py).
+
+    Parameters
+    ----------
+    res : numpy.ndarray
+        (N, G, 3) residuals normalised by the current sigma_j, dimensionless.
+    g_cols : numpy.ndarray
+        (N, 3 G, 2) the field-direction columns, normalised likewise.
+    gi : int
+        The sensor's position in the group.
+
+    Returns
+    -------
+    numpy.ndarray
+        (N,) dimensionless.
+
+    """
+    cols = g_cols[:, 3 * gi:3 * gi + 3]
+    w = np.cross(cols[:, :, 0], cols[:, :, 1])
+    w /= np.linalg.norm(w, axis=1, keepdims=True)
+    return np.einsum('na,na->n', w, res[:, gi])
+
+
 class _Solve:
     """The ML problem of each sensor group on the fitted epochs, and its noise levels."""
 
@@ -575,20 +609,25 @@ class _Solve:
 
         Least squares: the unbiased moment estimator of :func:`group_noise_variances`
         (each sensor's share of the residual follows from the projection, not from the
-        weights of the current ``sigma``).  Robust: each sensor's MAD, scaled by the
-        residual's degrees of freedom per epoch.
+        weights of the current ``sigma``).  Robust: the MAD of each sensor's residual
+        across its two field-direction columns (:func:`own_residual`), which holds that
+        sensor's noise alone.
         """
         new_sigma = sigma.copy()
         for prob in problems:
             x = p[prob.cols]
             _, b, mats, res = prob.evaluate(x)
             g = len(prob.sensors)
+            g_cols = prob.field_columns(b, mats)
             if self.robust:
+                n = res.shape[0]
+                dof = (3 * g - 2) * n
+                scale = np.sqrt(dof / max(dof - len(prob.cols), 1.0))
                 for gi, j in enumerate(prob.sensors):
-                    new_sigma[j - 1] = (mad_sd(res[:, gi] * sigma[j - 1])
-                                        * np.sqrt((3 * g - 2) / (3 * g)))
+                    new_sigma[j - 1] = (sigma[j - 1] * scale
+                                        * mad_sd(own_residual(res, g_cols, gi)))
                 continue
-            ratio = group_noise_variances(res, prob.field_columns(b, mats), len(prob.cols))
+            ratio = group_noise_variances(res, g_cols, len(prob.cols))
             for gi, j in enumerate(prob.sensors):
                 new_sigma[j - 1] = sigma[j - 1] * np.sqrt(ratio[gi])
         return new_sigma
