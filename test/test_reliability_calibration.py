@@ -482,6 +482,25 @@ def test_a_calibration_far_above_the_noise_floor_says_so():
     assert [w['sensor'] for w in warned] == [3]
 
 
+def test_garbage_of_a_single_magnetometer_is_excluded():
+    # the one magnetometer of an ordinary robot: three garbled lines (a cut line, a lost
+    # digit, a 12 000 nT jump) pull the least-squares fit to 160 nT; the robust fit's noise
+    # must be that sensor's own (3 nT), so that 5 sigma of it finds the three.  Before
+    # 2026-11-27 it read 0.64 nT (the MAD of all three residual components, two of which the
+    # field takes up), 194 of 2600 sets were beyond "5 sigma", too many for garbage, and
+    # nothing was excluded.  The clean fit's noise within 4/sqrt(2 N) of 3 nT.
+    data, _ = simulate(n_samples=2600, rate_hz=100.0, n_sensors=1, trajectory='smooth', seed=0)
+    bad = data.subset(np.arange(data.n_samples))
+    bad.raw = data.raw.copy()
+    bad.raw[0, 500, 0] = 45.6
+    bad.raw[0, 1200, 2] /= 10.0
+    bad.raw[0, 2000, 1] += 12000.0
+    assert calibrate(bad, 'base', field_nt=50000.0).result.sigma_nt[0] > 30 * 3.0
+    clean = calibrate(bad, 'base', field_nt=50000.0, exclude_outliers=True)
+    assert clean.summary['outlier_sets_excluded'] == 3
+    np.testing.assert_allclose(clean.result.sigma_nt, 3.0, rtol=4.0 / np.sqrt(2 * 2597))
+
+
 def test_garbage_that_survived_the_transport_is_excluded_and_counted():
     # what a live calibration can be handed: a cut line (x off by ~12 000 nT), a digit lost
     # (z / 10), and 80 sets of one sensor paired 30 epochs off (beyond resync's 10): the
