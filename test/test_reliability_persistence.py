@@ -281,7 +281,7 @@ def test_property_hand_edits_are_refused_or_load_what_the_document_says(
 
 def as_loaded(text):
     """
-    The YAML document ``text`` as the calibration file's loader reads it (PyYAML on libyaml).
+    Read the YAML document ``text`` as the calibration file's loader does (PyYAML on libyaml).
 
     libyaml takes a tab after a flow indicator (``bz: {value:<TAB>18.9, ...}``, a flip that
     changes no value, found by hypothesis on 2026-11-27) that PyYAML's pure-Python scanner
