@@ -355,6 +355,8 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
                        ftol)
         p, sigma, sol = solve.run(p0, sigma_nt)
         cov, chi2, n_obs = solve.covariance(p, sigma, with_jacobian=covariance)
+        if robust and covariance:
+            cov = solve.sandwich(p, sigma, cov)
         stderr, corr = stderr_and_correlation(cov)
         if check_identifiability:
             from magcal_ros.core.model import identifiability as idf
@@ -659,6 +661,50 @@ class _Solve:
                 covariance_from_normal(a) if resolves_covariance(a)
                 else covariance_from_jacobian(prob.jacobian(x)))
         return cov, chi2, n_obs
+
+    def sandwich(self, p, sigma, cov):
+        """
+        Return the robust fit's (P, P) covariance: the M-estimator's sandwich A^-1 B A^-1.
+
+        The soft-L1 loss rho(|z|^2) of each sensor's normalised residual z (3,) at an epoch
+        (f_scale c) gives the estimating equation sum_k sum_j w_kj J_kj^T z_kj = 0 with
+        w = 1 / sqrt(1 + |z|^2 / c^2); its covariance is A^-1 B A^-1 with
+        A = sum J^T (w I - w^3 z z^T / c^2) J (the derivative of the score) and B the sum over
+        epochs of the outer product of each epoch's score (the sensors of an epoch share its
+        field): Huber, P. J. (1967), The behavior of maximum likelihood estimates under
+        nonstandard conditions, Proc. Fifth Berkeley Symposium 1, 221-233.  J is the
+        projected Jacobian (the field profiled); prior rows enter A and B as the unit-variance
+        observations they stand for.  On Gaussian noise it is the Cramer-Rao bound the least
+        squares fit states; with outliers it counts the loss's lost efficiency, which the
+        bound does not (5 % spikes of 1000 nT on the cross: z-values spread 1.37 with the
+        bound, 1.21 with this; one sensor, spikes of either sign: 1.50 and 1.19, the rest
+        the sandwich's own scatter from a few spikes).  A bias from outliers of one sign is
+        in no covariance.  A group with a direction the data do not determine keeps ``cov``
+        (its infinite entries).
+        """
+        cov = cov.copy()
+        c2 = self.f_scale ** 2
+        for grp in self.model.sensor_groups:
+            prob = self.problem(grp, sigma, p)
+            x = p[prob.cols]
+            _, _, _, res = prob.evaluate(x)
+            n, g = res.shape[0], res.shape[1]
+            jac = prob.jacobian(x)
+            jr = jac[:3 * g * n].reshape(n, g, 3, -1)
+            jp = jac[3 * g * n:]
+            w = 1.0 / np.sqrt(1.0 + np.einsum('nga,nga->ng', res, res) / c2)
+            zj = np.einsum('nga,ngap->ngp', res, jr)                    # z^T J, (N, G, P)
+            a = (np.einsum('ng,ngap,ngaq->pq', w, jr, jr, optimize=True)
+                 - np.einsum('ng,ngp,ngq->pq', w ** 3 / c2, zj, zj, optimize=True)
+                 + jp.T @ jp)
+            score = np.einsum('ng,ngp->np', w, zj)                      # per epoch, (N, P)
+            b = score.T @ score + jp.T @ jp
+            a_inv = covariance_from_normal(0.5 * (a + a.T))
+            if not np.all(np.isfinite(a_inv)):
+                continue
+            sw = a_inv @ b @ a_inv
+            cov[np.ix_(prob.cols, prob.cols)] = 0.5 * (sw + sw.T)
+        return cov
 
 
 @dataclass(frozen=True)
