@@ -168,10 +168,16 @@ def test_geometry_end_to_end_at_the_noise_floor(n, start_process, ros_node, ros_
         rms = float(np.sqrt(np.mean(err ** 2)))
         rms_corr.append(rms)
         assert abs(rms / SIM_NOISE_NT - 1.0) < 4.0 / np.sqrt(len(b)), (j, rms)
-        # published covariance: noise (sigma^2 A^-1 A^-T, A near identity) plus the
-        # calibration's uncertainty (small): the diagonal near 9 nT^2
+        # published covariance: noise (sigma^2 A^-1 A^-T) plus the calibration's uncertainty:
+        # the diagonal near 9 nT^2, within the sum of (a) the estimated sigma^2, whose
+        # relative sd is at most sqrt(2 / n_sets) from the sensor's own radial residual
+        # (4 of them: 0.17 at 1 000 sets), (b) A^-1 A^-T's diagonal, 0.957-1.037 for paper
+        # 004's errors, and (c) the calibration's part, < 3 % (~p / n_sets, 12 parameters):
+        # 0.25.  It read 1.25 on a 2-sensor array once (2026-11-27), when each sensor's noise
+        # level was a share of the pair's (model/fitting.py, group_noise_variances).
         cov = np.array(msgs[-1].magnetic_field_covariance).reshape(3, 3) * 1e18
-        assert np.all(np.abs(np.diag(cov) / SIM_NOISE_NT ** 2 - 1.0) < 0.25), (j, cov)
+        bound = 4.0 * np.sqrt(2.0 / n_sets) + 0.043 + 0.03
+        assert np.all(np.abs(np.diag(cov) / SIM_NOISE_NT ** 2 - 1.0) < bound), (j, cov, bound)
         assert msgs[-1].header.frame_id == 'magcal_array'
     line = (f'geometry {n}: {n_sets} sets, fit RMS '
             f'{min(out["scalar_rms_after_nt"].values()):.2f}-'
