@@ -355,8 +355,6 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
                        ftol)
         p, sigma, sol = solve.run(p0, sigma_nt)
         cov, chi2, n_obs = solve.covariance(p, sigma, with_jacobian=covariance)
-        if robust and covariance:
-            cov = solve.sandwich(p, sigma, cov)
         stderr, corr = stderr_and_correlation(cov)
         if check_identifiability:
             from magcal_ros.core.model import identifiability as idf
@@ -481,9 +479,19 @@ def group_noise_variances(res, g_cols, n_params):
     c = np.einsum('nkqr,njrq->jk', sk, sk)
     c[np.diag_indices(g)] += np.einsum('njqq->j', 1.5 * np.eye(2) - 2.0 * sk)
     m = np.einsum('nga,nga->g', res, res)
-    dof = (3 * g - 2) * n
-    d, _ = nnls(c, m * dof / max(dof - n_params, 1.0))
+    d, _ = nnls(c, m * dof_scale(n, g, n_params) ** 2)
     return np.maximum(d, 1e-12)
+
+
+def dof_scale(n, g, n_params):
+    """
+    Return sqrt((3 G - 2) N / ((3 G - 2) N - P)), which scales a group's residual noise sd.
+
+    Each epoch leaves 3 G - 2 residual degrees of freedom (two go to the field's direction);
+    the P fitted parameters take theirs from the total.
+    """
+    dof = (3 * g - 2) * n
+    return float(np.sqrt(dof / max(dof - n_params, 1.0)))
 
 
 def own_residual(res, g_cols, gi):
@@ -622,9 +630,7 @@ class _Solve:
             g = len(prob.sensors)
             g_cols = prob.field_columns(b, mats)
             if self.robust:
-                n = res.shape[0]
-                dof = (3 * g - 2) * n
-                scale = np.sqrt(dof / max(dof - len(prob.cols), 1.0))
+                scale = dof_scale(res.shape[0], g, len(prob.cols))
                 for gi, j in enumerate(prob.sensors):
                     new_sigma[j - 1] = (sigma[j - 1] * scale
                                         * mad_sd(own_residual(res, g_cols, gi)))
@@ -638,6 +644,7 @@ class _Solve:
         """
         Return ((P, P) covariance, chi-square, n_obs) from the projected J^T J at p.
 
+        The robust fit's is the sandwich of :meth:`sandwich` on each group's J^T J.
         ``with_jacobian`` False: the covariance is not computed (NaN).
         """
         n_p = self.model.n_params
@@ -653,18 +660,22 @@ class _Solve:
             if not with_jacobian:
                 continue
             # J^T J of the projected Jacobian, formed block by block (the same matrix for
-            # the robust fit and either solver: the loss weights only the steps); a nearly
-            # undetermined problem takes the dense Jacobian, whose rounding resolves the
-            # undetermined directions (resolves_covariance)
+            # either solver); a nearly undetermined problem takes the dense Jacobian, whose
+            # rounding resolves the undetermined directions (resolves_covariance)
             a = prob.normal_equations(x)[0]
-            cov[np.ix_(prob.cols, prob.cols)] = (
-                covariance_from_normal(a) if resolves_covariance(a)
-                else covariance_from_jacobian(prob.jacobian(x)))
+            block = (covariance_from_normal(a) if resolves_covariance(a)
+                     else covariance_from_jacobian(prob.jacobian(x)))
+            if self.robust:
+                block = self.sandwich(prob, x, block)
+            cov[np.ix_(prob.cols, prob.cols)] = block
         return cov, chi2, n_obs
 
-    def sandwich(self, p, sigma, cov):
+    def sandwich(self, prob, x, bound):
         """
-        Return the robust fit's (P, P) covariance: the M-estimator's sandwich A^-1 B A^-1.
+        Return a group's robust covariance: the M-estimator's sandwich A^-1 B A^-1.
+
+        ``prob`` is the group's :class:`ProfiledProblem` at its parameters ``x``, ``bound``
+        its (P_g, P_g) Cramer-Rao bound.
 
         The soft-L1 loss rho(|z|^2) of each sensor's normalised residual z (3,) at an epoch
         (f_scale c) gives the estimating equation sum_k sum_j w_kj J_kj^T z_kj = 0 with
@@ -679,32 +690,27 @@ class _Solve:
         bound does not (5 % spikes of 1000 nT on the cross: z-values spread 1.37 with the
         bound, 1.21 with this; one sensor, spikes of either sign: 1.50 and 1.19, the rest
         the sandwich's own scatter from a few spikes).  A bias from outliers of one sign is
-        in no covariance.  A group with a direction the data do not determine keeps ``cov``
-        (its infinite entries).
+        in no covariance.  A group with a direction the data do not determine keeps
+        ``bound`` (its infinite entries).
         """
-        cov = cov.copy()
         c2 = self.f_scale ** 2
-        for grp in self.model.sensor_groups:
-            prob = self.problem(grp, sigma, p)
-            x = p[prob.cols]
-            _, _, _, res = prob.evaluate(x)
-            n, g = res.shape[0], res.shape[1]
-            jac = prob.jacobian(x)
-            jr = jac[:3 * g * n].reshape(n, g, 3, -1)
-            jp = jac[3 * g * n:]
-            w = 1.0 / np.sqrt(1.0 + np.einsum('nga,nga->ng', res, res) / c2)
-            zj = np.einsum('nga,ngap->ngp', res, jr)                    # z^T J, (N, G, P)
-            a = (np.einsum('ng,ngap,ngaq->pq', w, jr, jr, optimize=True)
-                 - np.einsum('ng,ngp,ngq->pq', w ** 3 / c2, zj, zj, optimize=True)
-                 + jp.T @ jp)
-            score = np.einsum('ng,ngp->np', w, zj)                      # per epoch, (N, P)
-            b = score.T @ score + jp.T @ jp
-            a_inv = covariance_from_normal(0.5 * (a + a.T))
-            if not np.all(np.isfinite(a_inv)):
-                continue
-            sw = a_inv @ b @ a_inv
-            cov[np.ix_(prob.cols, prob.cols)] = 0.5 * (sw + sw.T)
-        return cov
+        _, _, _, res = prob.evaluate(x)
+        n, g = res.shape[0], res.shape[1]
+        jac = prob.jacobian(x)
+        jr = jac[:3 * g * n].reshape(n, g, 3, -1)
+        jp = jac[3 * g * n:]
+        w = 1.0 / np.sqrt(1.0 + np.einsum('nga,nga->ng', res, res) / c2)
+        zj = np.einsum('nga,ngap->ngp', res, jr)                        # z^T J, (N, G, P)
+        a = (np.einsum('ng,ngap,ngaq->pq', w, jr, jr, optimize=True)
+             - np.einsum('ng,ngp,ngq->pq', w ** 3 / c2, zj, zj, optimize=True)
+             + jp.T @ jp)
+        score = np.einsum('ng,ngp->np', w, zj)                          # per epoch, (N, P)
+        b = score.T @ score + jp.T @ jp
+        a_inv = covariance_from_normal(0.5 * (a + a.T))
+        if not np.all(np.isfinite(a_inv)):
+            return bound
+        sw = a_inv @ b @ a_inv
+        return 0.5 * (sw + sw.T)
 
 
 @dataclass(frozen=True)
