@@ -242,6 +242,11 @@ def main():
                     help='what to measure: fit, diagnose, and the read loops of a bag (read: '
                     'ours, rosbags, iterate), in this order per size and input')
     ap.add_argument('--note', help='a remark kept in the settings of the JSON')
+    ap.add_argument('--plot-at-end', action='store_true',
+                    help='draw scale.png once, at the end (default: after every step with '
+                    'the JSON, so that an interrupted series keeps its figure too; each '
+                    'drawing costs about a second of CPU in this process, none of it in the '
+                    'processes measured)')
     ap.add_argument('--read-loop', nargs=2, metavar=('MODE', 'BAG'), help=argparse.SUPPRESS)
     add_common_args(ap)
     args = ap.parse_args()
@@ -262,7 +267,7 @@ def main():
 
     def save():
         # after every step: an interrupted series keeps what it measured
-        report(args, results, reads, old, started)
+        report(args, results, reads, old, started, draw=not args.plot_at_end)
 
     for n in args.sizes:
         csv_path = os.path.join(args.data_dir, f'cross_{n}.csv')
@@ -306,8 +311,12 @@ def main():
         print(t)
 
 
-def report(args, results, reads, old, started):
-    """Write scale.json and scale.png of the runs so far (+ ``old``'s others); the tables."""
+def report(args, results, reads, old, started, draw=True):
+    """
+    Write scale.json and scale.png of the runs so far (+ ``old``'s others); the tables.
+
+    ``draw=False``: scale.json only (``--plot-at-end`` between the steps).
+    """
     results, reads = list(results), list(reads)
     if old is not None:
         prev = {k: old['machine'].get(k) for k in ('git_commit', 'date_utc')}
@@ -352,7 +361,8 @@ def report(args, results, reads, old, started):
                        for m in ('magcal', 'rosbags', 'iterate') if m in r), _when(r)]
              for r in new_reads], 'bag reading against the rosbags read loop (CPU s)'))
     os.makedirs(args.out_dir, exist_ok=True)
-    plot(results, os.path.join(args.out_dir, 'scale.png'))
+    if draw:
+        plot(results, os.path.join(args.out_dir, 'scale.png'))
     write_result('scale', {k: v for k, v in vars(args).items() if k != 'read_loop'},
                  {'runs': results, 'bag_reads': reads}, tables, out_dir=args.out_dir,
                  started=started)

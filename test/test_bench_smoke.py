@@ -45,16 +45,17 @@ CASES = {
     'report_layout': ['--n', '600', '--repeat', '1'],
     'grammar_speed': ['--n', '300', '--repeat', '1', '--pairs', '2'],
     # one storage: both are read by the same code, tested in test_bag_decode / test_long_records
-    'scale': ['--sizes', '1500', '--bag-max', '1500', '--storages', 'mcap'],
+    'scale': ['--sizes', '1500', '--bag-max', '1500', '--storages', 'mcap', '--plot-at-end'],
     'reduction_accuracy': ['--sizes', '6000'],
     'executor': ['--rate', '50', '--duration', '1', '--repeats', '1'],
 }
 
 
-def _run(name, tmp_path):
+def _run(name, tmp_path, extra=()):
     out = tmp_path / name
     proc = subprocess.run([sys.executable, str(BENCH / f'{name}.py'), '--out-dir', str(out)]
-                          + CASES[name], capture_output=True, text=True, timeout=120)
+                          + CASES[name] + list(extra), capture_output=True, text=True,
+                          timeout=120)
     assert proc.returncode == 0, proc.stderr[-2000:]
     doc = json.loads((out / f'{name}.json').read_text())
     assert doc['benchmark'] == name
@@ -167,13 +168,17 @@ def test_grammar_speed(tmp_path):
 
 
 def test_scale(tmp_path):
-    doc = _run('scale', tmp_path)
+    # its own data folder: the default /tmp/magcal_scale is shared by every run on the
+    # machine (a record or bag left there by other code would be reused, and the simulation
+    # and the bag writing would not run)
+    doc = _run('scale', tmp_path, ['--data-dir', str(tmp_path / 'data')])
     runs = doc['results']['runs']
     assert {(r['input'], r['command']) for r in runs} == {
         (i, c) for i in ('csv', 'bag mcap') for c in ('fit', 'diagnose')}
     assert all(r['exit'] == 0 and r['peak_rss_mb'] > 0 for r in runs)
     assert (tmp_path / 'scale' / 'scale.png').exists()
     assert len(doc['results']['bag_reads']) == 1
+    assert doc['results']['bag_reads'][0]['write']['messages'] > 0    # written, not cached
 
 
 def test_reduction_accuracy(tmp_path):
