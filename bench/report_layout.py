@@ -29,6 +29,11 @@ Until the commit that made them Pillow's and matplotlib's, the report had its ow
 encoder (``png_bytes``) and placed the axis labels itself; BENCHMARKS.md has the run that
 compared them (this script then had those two variants as well).
 
+The PNG encoders are timed on the buffers of the figures just drawn with the fixed margins
+(the report's layout).  Every figure is first made and encoded once, untimed (matplotlib's
+one-off costs); ``--no-warmup`` skips that round (for a smoke test: its one-off costs then
+land in the first timed round).
+
     python bench/report_layout.py --n 10000 --repeat 3
 """
 import argparse
@@ -52,6 +57,9 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[1])
     p.add_argument('--n', type=int, default=10000, help='epochs (default 10000)')
     p.add_argument('--repeat', type=int, default=3, help='alternating rounds (default 3)')
+    p.add_argument('--no-warmup', action='store_true',
+                   help='skip the untimed first drawing of every figure (a smoke test: the '
+                   "one-off costs then land in the first round's times)")
     common.add_common_args(p)
     args = p.parse_args(argv)
     started = time.perf_counter()
@@ -79,9 +87,11 @@ def main(argv=None):
     png = {'Pillow level 1 (the report)': [], 'Pillow level 6 (default)': []}
     sizes = dict.fromkeys(png, 0)
     with matplotlib.rc_context(report.RC):
-        for name, make in makers:                 # untimed: one-off costs
-            report.figure_png(make())
+        if not args.no_warmup:
+            for name, make in makers:             # untimed: one-off costs
+                report.figure_png(make())
         for _ in range(args.repeat):
+            rgbs = []
             for label, fixed in variants.items():
                 report.FIXED_LAYOUT = fixed
                 try:
@@ -90,14 +100,11 @@ def main(argv=None):
                         dt, fig = _cpu(lambda: make())
                         dt2, _ = _cpu(fig.canvas.draw)
                         total += dt + dt2
+                        if fixed:                 # the report's figures: the PNGs' pixels
+                            rgbs.append(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())
                     layout.setdefault(label, []).append(total)
                 finally:
                     report.FIXED_LAYOUT = True
-            rgbs = []
-            for name, make in makers:
-                fig = make()
-                fig.canvas.draw()
-                rgbs.append(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())
 
             def pil(rgb, level):
                 buf = io.BytesIO()

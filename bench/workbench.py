@@ -28,7 +28,8 @@ main revision this round started from), each in its own Python process (the earl
 extracted with ``git archive``: a whole package, so that a later split of its modules cannot
 break the comparison), alternating the two so that a shared machine's load affects both
 alike.  Every process first runs its code once on 600 samples, untimed (matplotlib's
-one-off costs, lazy imports).  With ``--repeat R`` each code runs R times per size and the
+one-off costs, lazy imports; ``--no-warmup`` skips it, for a smoke test: those costs then
+land in the timed steps).  With ``--repeat R`` each code runs R times per size and the
 fastest is reported.  The ratio after/before is the figure to read; absolute seconds depend
 on the machine and on what else runs on it (the load average is recorded per run).
 
@@ -59,11 +60,12 @@ def _child(args):
     from magcal_ros.io.csvio import read_csv
     from magcal_ros.report import write_report
 
-    warm, _ = simulate(n_samples=600, rate_hz=1.0, trajectory='smooth', seed=args.seed,
-                       truth=TRUTH)
-    base = fit(warm, 'base', field_nt=50000.0)
-    with tempfile.TemporaryDirectory() as tmp:
-        write_report(tmp, warm, diagnosis=diagnose(warm, field_nt=50000.0, base=base))
+    if not args.no_warmup:
+        warm, _ = simulate(n_samples=600, rate_hz=1.0, trajectory='smooth', seed=args.seed,
+                           truth=TRUTH)
+        base = fit(warm, 'base', field_nt=50000.0)
+        with tempfile.TemporaryDirectory() as tmp:
+            write_report(tmp, warm, diagnosis=diagnose(warm, field_nt=50000.0, base=base))
     data = read_csv(args.child)
     base = fit(data, 'base', field_nt=50000.0)
     load = os.getloadavg()[0]
@@ -103,6 +105,8 @@ def _run_child(code_dir, csv, args):
     cmd = [sys.executable, os.path.abspath(__file__), '--child', csv, '--seed', str(args.seed)]
     if args.no_ladder:
         cmd.append('--no-ladder')
+    if args.no_warmup:
+        cmd.append('--no-warmup')
     p = subprocess.run(cmd, cwd=code_dir, env=env, capture_output=True, text=True)
     if p.returncode != 0:
         raise RuntimeError(f'{code_dir}: {p.stderr[-2000:]}')
@@ -117,6 +121,9 @@ def main(argv=None):
                     help=f'git revision of the code compared with (default {BEFORE_REV}; '
                          "'none': current code only)")
     ap.add_argument('--no-ladder', action='store_true', help='skip the whole-ladder timing')
+    ap.add_argument('--no-warmup', action='store_true',
+                    help='skip the untimed run on 600 samples that every process makes first '
+                    '(a smoke test: the one-off costs then land in the timed steps)')
     ap.add_argument('--repeat', type=int, default=1,
                     help='runs per code and size (alternating); the fastest is reported')
     ap.add_argument('--seed', type=int, default=1)

@@ -40,9 +40,9 @@ CASES = {
     'real_data': ['--no-diagnose'],
     'driver_rate': ['--samples', '300', '--pty-mbytes', '0.05', '--protocols', 'ascii',
                     'lemi025', '--node-duration', '1', '--node-warmup', '0.5'],
-    'workbench': ['--sizes', '300', '--before', 'none', '--no-ladder'],
+    'workbench': ['--sizes', '300', '--before', 'none', '--no-ladder', '--no-warmup'],
     'pairing': ['--epochs', '1500', '--repeats', '1'],
-    'report_layout': ['--n', '600', '--repeat', '1'],
+    'report_layout': ['--n', '600', '--repeat', '1', '--no-warmup'],
     'grammar_speed': ['--n', '300', '--repeat', '1', '--pairs', '2'],
     # one storage: both are read by the same code, tested in test_bag_decode / test_long_records
     'scale': ['--sizes', '1500', '--bag-max', '1500', '--storages', 'mcap', '--plot-at-end'],
