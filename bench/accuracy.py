@@ -65,7 +65,6 @@ import common  # noqa: E402
 from magcal_ros.core import model as mdl  # noqa: E402
 from magcal_ros.core.data.magnitude import reference_magnitude  # noqa: E402
 from magcal_ros.core.data.simulate import SimConfig, Simulator  # noqa: E402
-import magcal_ros.core.discovery  # noqa: E402, F401 (before any timing; see common.jsonable)
 from magcal_ros.core.geometry.tensor import cross_positions, tensor_cross, tensor_noise_floor  # noqa
 from magcal_ros.core.model.engine import ProfiledProblem  # noqa: E402
 from magcal_ros.core.model.solvers import covariance_from_jacobian  # noqa: E402

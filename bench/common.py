@@ -26,6 +26,7 @@ import subprocess
 import sys
 import time
 
+from magcal_ros.core.data.plain import jsonable  # noqa: F401 (re-exported for the benches)
 import numpy as np
 
 BENCH_DIR = os.path.dirname(os.path.abspath(__file__))
@@ -34,32 +35,6 @@ RESULTS_DIR = os.path.join(BENCH_DIR, 'results')
 
 if REPO_DIR not in sys.path:
     sys.path.insert(0, REPO_DIR)
-
-
-def jsonable(x):
-    """
-    Plain-JSON copy of nested dicts/lists/numpy values (non-finite floats -> None).
-
-    The same rules as :func:`magcal_ros.core.discovery.jsonable`, written here because
-    importing that package costs about 1.2 s of CPU per process (scipy.stats and the whole
-    discovery stage), which a benchmark that never diagnoses (the live, serial and executor
-    ones, scale.py's parent) need not pay.  A benchmark that times library code in its own
-    process imports the discovery package itself before any timing, as it was loaded when
-    this module imported it from there: its figures are measured as before.
-    """
-    if isinstance(x, dict):
-        return {str(k): jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return jsonable(x.tolist())
-    if isinstance(x, (bool, np.bool_)):
-        return bool(x)
-    if isinstance(x, np.integer):
-        return int(x)
-    if isinstance(x, (float, np.floating)):
-        return float(x) if np.isfinite(x) else None
-    return x
 
 
 def _cpu_model():

@@ -36,7 +36,6 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import common  # noqa: E402
 from magcal_ros.core.data.simulate import simulate  # noqa: E402
-import magcal_ros.core.discovery  # noqa: E402, F401 (before any timing; see common.jsonable)
 from magcal_ros.core.model import fit  # noqa: E402
 
 PAIRS = [

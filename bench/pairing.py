@@ -39,7 +39,6 @@ import time
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import common  # noqa: E402
-import magcal_ros.core.discovery  # noqa: E402, F401 (before any timing; see common.jsonable)
 from magcal_ros.core.geometry.tensor import cross_positions  # noqa: E402
 from magcal_ros.core.live.corrector import LiveCorrector  # noqa: E402
 from magcal_ros.core.model import Calibration, Model  # noqa: E402

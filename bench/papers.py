@@ -58,7 +58,6 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import common  # noqa: E402
 from magcal_ros.core import model as mdl  # noqa: E402
 from magcal_ros.core.data.dataset import Dataset  # noqa: E402
-import magcal_ros.core.discovery  # noqa: E402, F401 (before any timing; see common.jsonable)
 from magcal_ros.core.model.engine import ProfiledProblem  # noqa: E402
 from magcal_ros.core.model.solvers import covariance_from_jacobian  # noqa: E402
 from magcal_ros.core.papers import reference_vector as ref  # noqa: E402

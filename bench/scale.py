@@ -108,9 +108,6 @@ def to_bag(csv_path, bag_path, storage):
     if os.path.exists(bag_path):
         return None
     import shutil
-    # loaded before the timing, as when bench/common.py imported it (see common.jsonable):
-    # the modules it brings (csv, email, importlib.metadata, ...) are then not timed here
-    import magcal_ros.core.discovery  # noqa: F401
     from magcal_ros.io.bag import bag_message_count, write_bag
     from magcal_ros.io.chunks import open_record
     part = bag_path + '.part'
@@ -140,9 +137,6 @@ def read_loop(mode, bag_path):
     Returns the count read and the CPU and wall seconds of the loop itself (imports and
     interpreter start left out: they are the same for all three).
     """
-    # the discovery package too, unused: loaded when bench/common.py imported it, it is in
-    # the peak RSS and process CPU figures of every run so far (see common.jsonable)
-    import magcal_ros.core.discovery  # noqa: F401
     from magcal_ros.io.bag import bag_chunks
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import get_typestore, Stores
@@ -251,7 +245,7 @@ def main():
     ap.add_argument('--plot-at-end', action='store_true',
                     help='draw scale.png once, at the end (default: after every step with '
                     'the JSON, so that an interrupted series keeps its figure too; each '
-                    'drawing costs about a second of CPU in this process, none of it in the '
+                    'drawing costs about half a second of CPU in this process, none of it in the '
                     'processes measured)')
     ap.add_argument('--read-loop', nargs=2, metavar=('MODE', 'BAG'), help=argparse.SUPPRESS)
     add_common_args(ap)

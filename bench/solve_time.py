@@ -49,7 +49,6 @@ import time
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import common  # noqa: E402
-import magcal_ros.core.discovery  # noqa: E402, F401 (before any timing; see common.jsonable)
 import numpy as np  # noqa: E402
 
 DURATION_S = 600.0
