@@ -38,7 +38,7 @@ CASES = {
     'live': ['--rates', '50', '--repeats', '1', '--duration', '1', '--warmup', '0.5',
              '--drain', '0.5', '--no-search'],
     'real_data': ['--no-diagnose'],
-    # the node at 4 x 100 Hz, not the default 4 x 1 kHz: the driver still uses ~10 % of a core
+    # the node at 4 x 100 Hz, not the default 4 x 1 kHz: the driver still uses ~12 % of a core
     'driver_rate': ['--samples', '300', '--pty-mbytes', '0.05', '--protocols', 'ascii',
                     'lemi025', '--node-duration', '1', '--node-warmup', '0.5',
                     '--node-rate', '100'],
