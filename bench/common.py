@@ -26,7 +26,7 @@ import subprocess
 import sys
 import time
 
-from magcal_ros.core.discovery import jsonable  # noqa: F401 (re-exported for the benches)
+from magcal_ros.core.data.plain import jsonable  # noqa: F401 (re-exported for the benches)
 import numpy as np
 
 BENCH_DIR = os.path.dirname(os.path.abspath(__file__))

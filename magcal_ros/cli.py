@@ -258,9 +258,7 @@ def load_plugins(args):
 
 def print_json(obj):
     """One JSON object on stdout."""
-    # here, not at the top: the diagnose package (scipy.stats, ndimage) is not needed by
-    # every command
-    from magcal_ros.core.discovery import jsonable
+    from magcal_ros.core.data.plain import jsonable
     print(json.dumps(jsonable(obj)))
 
 

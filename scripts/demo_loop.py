@@ -432,7 +432,9 @@ def parse_args(argv=None):
 
 
 def _collect(client, procs, args):
-    ok, summary, _ = client.call('start', 10)
+    # the node's first service answer: on a loaded machine (four pipelines starting on two
+    # cores) it came after more than 10 s, and the loop stopped before it began
+    ok, summary, _ = client.call('start', 60)
     print(f'calibration/start: {summary.splitlines()[0]}')
     if not ok:
         raise RuntimeError(f'calibration/start refused: {summary}')

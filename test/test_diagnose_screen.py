@@ -144,3 +144,53 @@ def test_a_line_is_proposed_from_irregular_samples_also_past_the_periodogram_bud
     assert len(lines) == 1, lines
     assert abs(float(lines[0][len('periodic('):-1]) - 0.23) <= 1.0 / (10 * span) + 1e-4
     assert not [tok for tok in propose_from_residual(t, noise) if tok.startswith('periodic(')]
+
+
+def _live_clock(n, seed, lost=0.01):
+    """50 Hz stamps read with a varying delay (0.3 ms normal + 1 ms exponential), some lost."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * 0.02 + rng.normal(0.0, 0.0003, n) + rng.exponential(0.001, n)
+    return np.sort(np.delete(t, rng.choice(n, int(lost * n), replace=False))), rng
+
+
+def test_a_clock_read_with_jitter_is_told_from_irregular_sampling():
+    from magcal_ros.core.discovery.candidates import sampled_on_a_clock
+    # live stamps: every interval within 20 ms -+ 5 ms but the 1 % lost (40 ms)
+    t, rng = _live_clock(3000, 1)
+    assert sampled_on_a_clock(t)
+    # jitter of -+0.3 intervals (uniform): the difference of two such reads lies outside
+    # -+0.25 intervals with probability (0.35 / 0.6)^2 = 34 % > 5 %
+    t_wide = np.sort(np.arange(3000) * 0.1 + rng.uniform(-0.03, 0.03, 3000))
+    assert not sampled_on_a_clock(t_wide)
+    # a fifth of the epochs dropped at random: 20 % of the intervals are 2 or more
+    keep = np.sort(rng.choice(3000, 2400, replace=False))
+    assert not sampled_on_a_clock(np.arange(3000)[keep] * 0.02)
+    # random times
+    assert not sampled_on_a_clock(np.sort(rng.uniform(0.0, 60.0, 3000)))
+    assert not sampled_on_a_clock(np.array([1.0])) and not sampled_on_a_clock(np.zeros(5))
+
+
+def test_a_line_on_live_stamps_is_the_one_lomb_scargle_finds():
+    # 1 500 live sets (30 s at 50 Hz): the FFT of the residual regridded onto the clock names
+    # the line Lomb-Scargle names on the stamps (forced here), both to 1 / (10 span) of the
+    # 0.23 Hz written in; white noise alone proposes none
+    from unittest import mock
+
+    from magcal_ros.core.discovery import candidates
+    t, rng = _live_clock(1500, 2)
+    noise = rng.normal(0.0, 3.0, (4, len(t), 3))
+    line = 6.0 * np.stack([np.cos(2 * np.pi * 0.23 * t), np.sin(2 * np.pi * 0.23 * t + 0.4),
+                           np.cos(2 * np.pi * 0.23 * t + 2.0)], axis=1)
+    with_line = noise.copy()
+    with_line[2] += line
+    span = t[-1] - t[0]
+    found = {}
+    for clock in (True, False):
+        with mock.patch.object(candidates, 'sampled_on_a_clock', return_value=clock):
+            _, lines = candidates.residual_features(t, with_line)
+            assert sorted(lines) == [2], lines
+            found[clock] = lines[2][1]
+            assert abs(found[clock] - 0.23) <= 1.0 / (10 * span)
+            assert not candidates.residual_features(t, noise)[1]
+    # the refinement grid's step is 1 / (20 span): the two agree to a step
+    assert abs(found[True] - found[False]) <= 1.0 / (20 * span) + 1e-9

@@ -229,3 +229,26 @@ def test_mad_sd_by_hand():
     # 37 %): 0.011 nT at n = 1e5, 5 of them allowed
     x = np.random.default_rng(5).normal(0.0, SD, 100_000)
     assert abs(mad_sd(x) - SD) < 5 * 1.166 * SD / np.sqrt(x.size)
+
+
+def test_mad_sd_and_welch_are_scipys_numbers():
+    # written with numpy to spare every fitting process the import of scipy.stats and
+    # scipy.signal (noise.py); the references are scipy's own functions
+    from magcal_ros.core.data.noise import mad_sd, welch
+    from scipy import signal, stats
+    rng = np.random.default_rng(8)
+    for n in (1, 2, 7, 1000, 1001):
+        x = 5.0 * rng.standard_t(3, n)
+        assert mad_sd(x) == pytest.approx(stats.median_abs_deviation(x, scale='normal'),
+                                          rel=1e-12, abs=0.0)
+    assert np.isnan(mad_sd([]))
+    # odd and even segments (the Nyquist bin of an even one is not doubled), one segment,
+    # the tail that fills no segment, one channel and three
+    for shape, nperseg in (((4, 3000, 3), 256), ((2, 301, 3), 255), ((3, 100, 1), 99),
+                           ((1, 257, 2), 256), ((2, 1000, 3), 7)):
+        x = rng.normal(size=shape).cumsum(axis=1)
+        f_ref, p_ref = signal.welch(x, fs=1.0, nperseg=nperseg, axis=1, detrend='constant')
+        f, p = welch(x, nperseg)
+        np.testing.assert_allclose(f, f_ref, rtol=0, atol=1e-15)
+        assert p.shape == p_ref.shape
+        np.testing.assert_allclose(p, p_ref, rtol=1e-12, atol=1e-12 * p_ref.max())

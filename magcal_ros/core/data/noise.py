@@ -61,15 +61,23 @@ FILTERED_DROP = 10.0
 RAW_FLOOR_EXCESS = 1.2
 
 
+#: 1 / Phi^-1(3/4): the MAD of Gaussian values times this is their sd
+MAD_TO_SD = 1.482602218505602
+
+
 def mad_sd(x):
     """
     Gaussian-consistent sd from the median absolute deviation (unit of x).
 
-    MAD / Phi^-1(3/4) = 1.4826 MAD: scipy.stats.median_abs_deviation(scale='normal') of the
-    values of ``x`` (any shape, flattened).
+    MAD / Phi^-1(3/4) = 1.4826 MAD of the values of ``x`` (any shape, flattened; nan when
+    empty): the numbers of scipy.stats.median_abs_deviation(scale='normal') (test_noise),
+    written with numpy because importing scipy.stats cost every process that fits 0.5-0.8 s
+    of CPU (scipy 1.17 parses its docstrings at import; BENCHMARKS.md, "Start-up").
     """
-    from scipy.stats import median_abs_deviation    # here: scipy.stats is slow to import
-    return float(median_abs_deviation(np.asarray(x, float).ravel(), scale='normal'))
+    x = np.asarray(x, float).ravel()
+    if not x.size:
+        return float('nan')
+    return float(np.median(np.abs(x - np.median(x))) * MAD_TO_SD)
 
 
 def robust_sd(d):
@@ -172,6 +180,40 @@ def difference_sigmas(x, orders=ORDERS, starts=None):
     return out
 
 
+def welch(x, nperseg):
+    """
+    Welch's (1967) power spectral density along axis 1, at a sampling rate of 1.
+
+    Hann-windowed segments of ``nperseg`` samples overlapping by half, each less its mean,
+    their one-sided periodograms averaged: the numbers of
+    ``scipy.signal.welch(x, fs=1.0, nperseg=nperseg, axis=1, detrend='constant')``
+    (test_noise), written with numpy because importing scipy.signal (which imports
+    scipy.stats) cost every process that fits 0.5-0.8 s of CPU (BENCHMARKS.md, "Start-up").
+
+    Parameters
+    ----------
+    x : numpy.ndarray
+        (S, N, C) series, any unit u, N >= nperseg.
+    nperseg : int
+        Samples per segment.
+
+    Returns
+    -------
+    f : numpy.ndarray
+        (F,) frequencies, cycles per sample.
+    p : numpy.ndarray
+        (S, F, C) power spectral density, u^2 per (cycle per sample).
+
+    """
+    step = nperseg - nperseg // 2
+    seg = np.lib.stride_tricks.sliding_window_view(x, nperseg, axis=1)[:, ::step]
+    win = 0.5 - 0.5 * np.cos(2.0 * np.pi * np.arange(nperseg) / nperseg)   # periodic Hann
+    spec = np.fft.rfft((seg - seg.mean(axis=-1, keepdims=True)) * win, axis=-1)
+    p = (spec.real ** 2 + spec.imag ** 2).mean(axis=1) / np.sum(win ** 2)     # (S, C, F)
+    p[..., 1:(nperseg + 1) // 2] *= 2.0            # one-sided: all but 0 and Nyquist twice
+    return np.fft.rfftfreq(nperseg), np.moveaxis(p, -1, 1)
+
+
 def nyquist_drop(x, starts=None):
     """
     How far the spectrum falls from mid band to Nyquist, per series.
@@ -203,8 +245,7 @@ def nyquist_drop(x, starts=None):
         return out
     d = differences(x, 1, starts)
     n = d.shape[1] + 1
-    from scipy import signal as sps     # here: the nodes import this module, not welch
-    f, p = sps.welch(d, fs=1.0, nperseg=min(256, n - 1), axis=1, detrend='constant')
+    f, p = welch(d, min(256, n - 1))
     gain = 4 * np.sin(np.pi * f) ** 2
     with np.errstate(divide='ignore', invalid='ignore'):
         p = p / np.where(gain > 0, gain, np.nan)[None, :, None]

@@ -18,25 +18,9 @@ import json
 
 from magcal_ros.core import effects as fx
 from magcal_ros.core.data.noise import NoiseFloor
+from magcal_ros.core.data.plain import jsonable
 from magcal_ros.core.discovery.constants import AT_FLOOR_RATIO, MIN_DELTA_BIC, MIN_EXPLAINED
 import numpy as np
-
-
-def jsonable(x):
-    """Plain-JSON copy of nested dicts/lists/numpy values (non-finite floats -> None)."""
-    if isinstance(x, dict):
-        return {str(k): jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return jsonable(x.tolist())
-    if isinstance(x, (bool, np.bool_)):
-        return bool(x)
-    if isinstance(x, (np.integer,)):
-        return int(x)
-    if isinstance(x, (float, np.floating)):
-        return float(x) if np.isfinite(x) else None
-    return x
 
 
 def compact_spec(model):
