@@ -35,8 +35,23 @@ from scipy.spatial.transform import Rotation
 SIZES = (3000, 10000)
 
 
-@functools.lru_cache(maxsize=None)
 def _case(name, n, model='base'):
+    """Return (data, fit of ``model``, findings) of a fault; shared, not to be changed."""
+    # one cache key for _case(name, n) and _case(name, n, 'base') (lru_cache tells them
+    # apart): the same fit and findings were computed twice
+    return _fitted(name, n, model)
+
+
+@functools.lru_cache(maxsize=None)
+def _fitted(name, n, model):
+    data = _data(name, n)
+    result = fit(data, model, field_nt=inj.F_NT)
+    return data, result, find(data, result)
+
+
+@functools.lru_cache(maxsize=None)
+def _data(name, n):
+    """Return the record of a fault (one for every model fitted to it; fit reads it only)."""
     faults = {
         'none': {}, 'step': {'inject': inj.step_fault(300.0, (40.0, 0.0, 0.0), 1)},
         'pump': {'inject': inj.periodic_fault(0.23, 15.0, 3)},
@@ -46,9 +61,7 @@ def _case(name, n, model='base'):
         'heavy': {'noise': inj.student_noise},
         'walk': {'inject': inj.random_walk_fault(0.02)},
     }
-    data = inj.make(n, **faults[name])
-    result = fit(data, model, field_nt=inj.F_NT)
-    return data, result, find(data, result)
+    return inj.make(n, **faults[name])
 
 
 def _current_squared_on(sensor):

@@ -19,6 +19,7 @@ The faults are written here (clip, hold, pin) on the hand-written cross of test/
 and on quantised channels built below; the counts and times they must be named with are
 computed from the injected data, not by the screen under test.
 """
+import functools
 import pathlib
 
 import injection
@@ -134,6 +135,12 @@ def test_pinned_axis_refuses_with_the_reason(tmp_path):
     assert err.startswith('magcal: error: sensor 2 axis z: pinned at')
 
 
+@functools.lru_cache(maxsize=None)
+def _tumble(n, seed):
+    """Return injection.tumbling_field(n, seed=seed), once for the four noise levels."""
+    return injection.tumbling_field(n, seed=seed)
+
+
 def quantised(n, q, sigma_w, seed, still=(), dup=0.0):
     """
     One quantised three-axis sensor on the tumbling field: Q(b + e), e ~ N(0, sigma_w^2).
@@ -142,7 +149,7 @@ def quantised(n, q, sigma_w, seed, still=(), dup=0.0):
     of epochs at which a logger re-reads the previous sample (all three axes).
     """
     rng = np.random.default_rng(seed)
-    t, b = injection.tumbling_field(n, seed=seed)
+    t, b = (x.copy() for x in _tumble(n, seed))
     for a, z in still:
         b[a:z] = b[a]
     raw = q * np.round((b + rng.normal(0, sigma_w, b.shape)) / q)
