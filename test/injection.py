@@ -23,6 +23,8 @@ the injected faults (a step, a sinusoid, a lagged temperature, a current-squared
 heavy-tailed noise, a random walk) computed by the small functions below, not by
 ``magcal_ros.core.effects``.
 """
+import functools
+
 from magcal_ros.core.data.dataset import Dataset
 import numpy as np
 
@@ -44,8 +46,18 @@ def tumbling_field(n, rate_hz=RATE_HZ, seed=0, rotations=False):
     With ``rotations``, also the (N, 3, 3) body-to-world rotations (b_body = R^T b_world).
 
     The body turns at 0.2-0.6 rad/s about an axis that wanders (periods 57-126 s), so every
-    direction is visited several times in 600 s.
+    direction is visited several times in 600 s.  Fresh arrays at every call (the caller may
+    change them); the tumble itself, a product of N small rotations taken one by one, is
+    computed once per (n, rate_hz, seed).
     """
+    args = (int(n), float(rate_hz), seed)
+    t, out, rots = (_tumble(*args) if isinstance(seed, (int, np.integer))
+                    else _tumble.__wrapped__(*args))
+    return (t.copy(), out.copy(), rots.copy()) if rotations else (t.copy(), out.copy())
+
+
+@functools.lru_cache(maxsize=32)
+def _tumble(n, rate_hz, seed):
     rng = np.random.default_rng(seed)
     t = np.arange(n) / rate_hz
     dt = 1.0 / rate_hz
@@ -62,7 +74,9 @@ def tumbling_field(n, rate_hz=RATE_HZ, seed=0, rotations=False):
         out[k] = r.T @ b_world
         rots[k] = r
         r = r @ _rotation(w_axis[k], speed[k] * dt)
-    return (t, out, rots) if rotations else (t, out)
+    for a in (t, out, rots):
+        a.flags.writeable = False           # the cached copy: never handed out
+    return t, out, rots
 
 
 #: per sensor: scale (3,), non-orthogonality (rad, 3), rotation vector (rad, 3), offset nT (3,)
