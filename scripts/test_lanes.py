@@ -70,6 +70,10 @@ _RESULTS = re.compile(r'^[.FEsxX]+', re.M)
 LIVE_WORKERS = 2
 
 
+#: pytest-xdist for a lane, the worker count last: a file per worker at a time, handed out
+#: in the order collected (test/conftest.py puts the slowest files first), not reordered by
+#: their number of tests
+XDIST = ['--dist', 'loadfile', '--no-loadscope-reorder', '-n']
 #: a lane that starts only when another has ended: {lane: the lane it waits for}
 AFTER = {'solo': 'live'}
 
@@ -78,11 +82,9 @@ def lanes(workers, live_workers=LIVE_WORKERS):
     """Return {name: (pytest marker arguments, CPU policy)} of the lanes."""
     return {
         'live': (['-m', 'live and not solo']
-                 + (['-n', str(live_workers), '--dist', 'loadfile'] if live_workers > 1
-                    else []), 'normal'),
+                 + (XDIST + [str(live_workers)] if live_workers > 1 else []), 'normal'),
         'batch': (['-m', 'not live and not solo']
-                  + (['-n', str(workers), '--dist', 'loadfile'] if workers > 0 else []),
-                  'idle'),
+                  + (XDIST + [str(workers)] if workers > 0 else []), 'idle'),
         'solo': (['-m', 'solo'], 'normal'),
     }
 

@@ -70,9 +70,9 @@ def _lane_of(item):
 
 def test_every_test_is_in_exactly_one_lane():
     exprs = {name: ' '.join(marker) for name, (marker, _) in test_lanes.lanes(2, 2).items()}
-    assert exprs == {'live': '-m live and not solo -n 2 --dist loadfile',
-                     'batch': '-m not live and not solo -n 2 --dist loadfile',
-                     'solo': '-m solo'}
+    xdist = '--dist loadfile --no-loadscope-reorder -n 2'
+    assert exprs == {'live': f'-m live and not solo {xdist}',
+                     'batch': f'-m not live and not solo {xdist}', 'solo': '-m solo'}
     # one live test at a time: no xdist in the live lane
     assert test_lanes.lanes(2, 1)['live'] == (['-m', 'live and not solo'], 'normal')
     # the solo lane waits for the live lane
@@ -80,9 +80,15 @@ def test_every_test_is_in_exactly_one_lane():
     items = [_Item('test_demo.py'), _Item('test_demo_loop.py'), _Item('test_cli.py'),
              _Item('test_bench_smoke.py', ['live']), _Item('test_bench_smoke.py'),
              _Item('test_reliability_load.py')]
+    originals = list(items)
+    lanes = [['solo'], ['live'], ['batch'], ['live'], ['batch'], ['solo']]
     conftest.pytest_collection_modifyitems(None, items)
-    assert [_lane_of(i) for i in items] == [['solo'], ['live'], ['batch'], ['live'],
-                                            ['batch'], ['solo']]
+    assert [_lane_of(i) for i in originals] == lanes
+    # the slowest files first, in conftest.SLOWEST_FIRST's order, each file's items in theirs
+    assert [i.path.name for i in items] == [
+        'test_demo_loop.py', 'test_bench_smoke.py', 'test_bench_smoke.py', 'test_demo.py',
+        'test_cli.py', 'test_reliability_load.py']
+    assert [i for i in items if i.path.name == 'test_bench_smoke.py'] == originals[3:5]
     # the solo files are live files too (a plain pytest -m live runs them)
     assert conftest.SOLO_FILES <= conftest.LIVE_FILES
 
