@@ -51,6 +51,11 @@ def _roots():
         os.path.dirname(os.path.abspath(__file__)), '..', '..'))
     allowed = [repo, os.path.realpath(tempfile.gettempdir())]
     allowed += [os.path.realpath(p) for p in {sys.prefix, sys.base_prefix, sys.exec_prefix}]
+    # the interpreter's bytecode cache (PYTHONPYCACHEPREFIX: scripts/test_lanes.py puts it in
+    # the temporary folder, which a test's processes may see elsewhere through their TMPDIR;
+    # a clone in /tmp then found the cache beside it)
+    if getattr(sys, 'pycache_prefix', None):
+        allowed.append(os.path.realpath(sys.pycache_prefix))
     return os.path.dirname(repo), allowed
 
 
