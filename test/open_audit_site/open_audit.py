@@ -37,6 +37,9 @@ import sys
 import tempfile
 
 ENV_LOG = 'MAGCAL_TEST_OPEN_LOG'
+#: the temporary folder of the session that made the log: its processes may get a TMPDIR of
+#: their own (test_ros_user's user shell), and still write where the session's tests do
+ENV_TMP = 'MAGCAL_TEST_OPEN_TMP'
 ENV_REPO = 'MAGCAL_TEST_OPEN_REPO'
 
 _state = {'busy': False, 'cache': {}, 'log': None, 'created': False}
@@ -50,10 +53,11 @@ def _roots():
     repo = os.path.realpath(os.environ.get(ENV_REPO) or os.path.join(
         os.path.dirname(os.path.abspath(__file__)), '..', '..'))
     allowed = [repo, os.path.realpath(tempfile.gettempdir())]
+    if os.environ.get(ENV_TMP):
+        allowed.append(os.path.realpath(os.environ[ENV_TMP]))
     allowed += [os.path.realpath(p) for p in {sys.prefix, sys.base_prefix, sys.exec_prefix}]
     # the interpreter's bytecode cache (PYTHONPYCACHEPREFIX: scripts/test_lanes.py puts it in
-    # the temporary folder, which a test's processes may see elsewhere through their TMPDIR;
-    # a clone in /tmp then found the cache beside it)
+    # the temporary folder; a clone in /tmp found it beside the repository)
     if getattr(sys, 'pycache_prefix', None):
         allowed.append(os.path.realpath(sys.pycache_prefix))
     return os.path.dirname(repo), allowed
@@ -128,6 +132,7 @@ def pytest_sessionstart(session):
         fd, log_path = tempfile.mkstemp(prefix='magcal-open-audit-', suffix='.log')
         os.close(fd)
         os.environ[ENV_LOG] = log_path
+        os.environ[ENV_TMP] = os.path.realpath(tempfile.gettempdir())
         _state['created'] = True
     here = os.path.dirname(os.path.abspath(__file__))
     paths = os.environ.get('PYTHONPATH', '').split(os.pathsep)
