@@ -513,18 +513,20 @@ class ProfiledProblem:
             a[so, so] = flat @ flat.T
             g[so] = flat @ r.ravel()
             qj = q[:, 3 * gi:3 * gi + 3]                             # (N, 3, 2)
-            # (N, P_j, 3) x (N, 3, 2) per epoch: 3.5x the speed of the three products summed
-            w[:, so] = np.matmul(blk.transpose(1, 0, 2), qj).transpose(2, 1, 0)
-            for d in range(2):
-                qtr[d] += sum(r[:, i] * qj[:, i, d] for i in range(3))
+
+            def qt(x, qj=qj):
+                # Q^T x per epoch for columns x (K, N, 3): (2, K, N); one batched
+                # (N, K, 3) x (N, 3, 2) product, 3.5x the speed of three products summed
+                return np.matmul(x.transpose(1, 0, 2), qj).transpose(2, 1, 0)
+            w[:, so] = qt(blk)
+            qtr += qt(r[None])[:, 0]
             if n_arr:
                 fa = arr[gi].reshape(n_arr, -1)                      # (n_arr, 3N)
                 a[so, sa] = flat @ fa.T
                 a[sa, so] = a[so, sa].T
                 a[sa, sa] += fa @ fa.T
                 g[sa] += fa @ r.ravel()
-                for d in range(2):
-                    w[d, sa] += sum(arr[gi][:, :, i] * qj[:, i, d] for i in range(3))
+                w[:, sa] += qt(arr[gi])
         for d in range(2):
             a -= w[d] @ w[d].T
             g -= w[d] @ qtr[d]
