@@ -24,6 +24,7 @@ register_coupling` / :func:`magcal_ros.core.effects.drivers.register_driver`
 import importlib
 import sys
 
+from magcal_ros.core.effects.attitude_ref import AttitudeFull, AttitudeReference
 from magcal_ros.core.effects.base import Effect
 from magcal_ros.core.effects.catalog import (Aux, AuxPoly, AxisMap, Drift, FieldRate, Lag,
                                              Misalignment, Nonlinearity, NonOrthogonality,
@@ -55,7 +56,7 @@ def unregister_effect(name):
 
 for _cls in (AxisMap, Scale, NonOrthogonality, Misalignment, SoftIron, Offset, Temperature,
              Drift, QuadraticDrift, Nonlinearity, FieldRate, Step, Periodic, Lag, AuxPoly,
-             SiteGradient):
+             SiteGradient, AttitudeReference, AttitudeFull):
     register_effect(_cls)
 
 #: names of the effects that ship with the library

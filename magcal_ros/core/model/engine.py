@@ -174,11 +174,52 @@ class ProfiledProblem:
         self._cache_key = None
         self.p_full = model.default_params() if p_full is None else np.array(p_full, float)
         self.field0 = field0
+        self._aid_setup()
+
+    def _aid_setup(self):
+        """
+        Set up the attitude's observation of the field, when the model has one.
+
+        :mod:`magcal_ros.core.effects.attitude_ref`: a virtual member of the group whose
+        rows, after the sensors' of each epoch, are proj_k (y_k - B_k) / sigma_a (the
+        attitude's error as a field, ``sigma_nt`` of the effect); its parameters (the world
+        field's angles) are among the array-wide columns.
+        """
+        from magcal_ros.core.effects.attitude_ref import attitude_reference
+        found = attitude_reference(self.model)
+        rot = self.ctx[0].attitude if self.ctx else None
+        self.aid = None
+        if found is None or rot is None:
+            return
+        eff, sl = found
+        self.aid = eff
+        self.aid_slice = sl
+        self.rot = rot
+        arr = list(self.model.array_cols)
+        #: positions of the attitude's parameters among the array-wide columns
+        self.aid_arr = np.array([arr.index(i) for i in range(sl.start, sl.stop)], int)
+        self.aid_proj = eff.observation(self.p_full[sl], rot, self.f)[0]
+
+    @property
+    def aid_sigma(self):
+        """The attitude observation's sd, nT (1 deg of the field until estimated)."""
+        s = self.aid.sigma_nt
+        return s if np.isfinite(s) and s > 0 else float(np.mean(self.f)) * np.radians(1.0)
+
+    @property
+    def n_members(self):
+        """Rows of 3 per epoch: the group's sensors, and the attitude when it observes."""
+        return len(self.sensors) + (self.aid is not None)
+
+    def _aid_residual(self, p, b):
+        """(N, 3) the attitude's normalised residual proj (y - B) / sigma_a."""
+        proj, y, _ = self.aid.observation(p[self.aid_slice], self.rot, self.f)
+        return np.einsum('nij,nj->ni', proj, y - b) / self.aid_sigma
 
     @property
     def n_residuals(self):
-        """Length of :meth:`residuals`: 3 G N, plus one per prior."""
-        return 3 * len(self.sensors) * self.raw.shape[1] + len(self.priors)
+        """Length of :meth:`residuals`: 3 G N (G with the attitude), plus one per prior."""
+        return 3 * self.n_members * self.raw.shape[1] + len(self.priors)
 
     def full(self, x):
         """
@@ -255,6 +296,18 @@ class ProfiledProblem:
                 h11 = np.einsum('ij,ij->i', m1, e1)
                 h12 = np.einsum('ij,ij->i', m1, e2)
                 h22 = np.einsum('ij,ij->i', m2, e2)
+            if self.aid is not None:
+                # the attitude's rows: -dr/d delta_a = F proj e_a / sigma_a
+                r = self._aid_residual(p, b)
+                sa2 = self.aid_sigma ** 2
+                w = (1.0 / np.sqrt(1.0 + np.sum(r * r, axis=1) / self.f_scale ** 2)
+                     if self.robust else np.ones(n))
+                p1 = np.einsum('nij,nj->ni', self.aid_proj, e1)
+                p2 = np.einsum('nij,nj->ni', self.aid_proj, e2)
+                h11 = h11 + w * np.einsum('ij,ij->i', p1, p1) / sa2
+                h12 = h12 + w * np.einsum('ij,ij->i', p1, p2) / sa2
+                h22 = h22 + w * np.einsum('ij,ij->i', p2, p2) / sa2
+                s = s + r * (w / self.aid_sigma)[:, None]
             # per-epoch 2 x 2 systems written out component by component: several times
             # faster than batched matmuls of tiny matrices (profile of diagnose, bench/)
             i11, i12, i21, i22 = inverse_2x2(h11 * f2, h12 * f2, h12 * f2, h22 * f2)
@@ -282,13 +335,16 @@ class ProfiledProblem:
         numpy.ndarray
             (N, 3G, 2) dimensionless: -dr_k/d(delta_1, delta_2) for a rotation of B_k by
             delta (rad) in the tangent plane (:func:`tangent_basis`), rows in the order
-            sensor of the group, axis.
+            sensor of the group, axis (then the attitude's three rows, when it observes).
 
         """
         e1, e2 = tangent_basis(b / self.f[:, None])
-        return np.concatenate([np.stack([e1 @ mats[j].T, e2 @ mats[j].T], axis=2)
-                               * (self.f[:, None, None] / self.sigma[j - 1])
-                               for j in self.sensors], axis=1)
+        blocks = [np.stack([e1 @ mats[j].T, e2 @ mats[j].T], axis=2)
+                  * (self.f[:, None, None] / self.sigma[j - 1]) for j in self.sensors]
+        if self.aid is not None:
+            e = np.stack([e1, e2], axis=2)                                  # (N, 3, 2)
+            blocks.append(self.aid_proj @ e * (self.f[:, None, None] / self.aid_sigma))
+        return np.concatenate(blocks, axis=1)
 
     def project_out_field(self, b, mats, m):
         """
@@ -329,16 +385,20 @@ class ProfiledProblem:
         mats : dict
             {sensor: (3, 3) linear map A_j of the model at p}.
         res : numpy.ndarray
-            (N, G, 3) normalised residuals (raw - prediction) / sigma_j, dimensionless.
+            (N, G, 3) normalised residuals (raw - prediction) / sigma_j, dimensionless;
+            (N, G + 1, 3) with the attitude's residual last when it observes the field.
 
         """
         key = x.tobytes()
         if key != self._cache_key:
             p = self.full(x)
             b, mats, adds = self._field(p)
-            res = np.stack([(self.raw[j - 1] - self.model.forward(j, p, b, self.ctx[j - 1],
-                                                                  mats[j], adds[j]))
-                            / self.sigma[j - 1] for j in self.sensors], axis=1)   # (N, G, 3)
+            rows = [(self.raw[j - 1] - self.model.forward(j, p, b, self.ctx[j - 1], mats[j],
+                                                          adds[j])) / self.sigma[j - 1]
+                    for j in self.sensors]
+            if self.aid is not None:
+                rows.append(self._aid_residual(p, b))
+            res = np.stack(rows, axis=1)                            # (N, G (+1), 3)
             self._cache = (p, b, mats, res)
             self._cache_key = key
         return self._cache
@@ -396,6 +456,18 @@ class ProfiledProblem:
                 arr.append(None)
         return own, arr
 
+    def _aid_columns(self, p):
+        """
+        (n_arr, N, 3) dr/dx of the attitude's rows in the array-wide columns.
+
+        Analytic: proj dy/d(angles) / sigma_a in its own columns (y lies in the projector's
+        range, so proj dy = dy), zero in the others (site gradient, shared sets).
+        """
+        _, _, dy = self.aid.observation(p[self.aid_slice], self.rot, self.f)
+        out = np.zeros((len(self.model.array_cols), dy.shape[1], 3))
+        out[self.aid_arr] = dy / self.aid_sigma
+        return out
+
     def _prior_jacobian(self):
         """Return (n_priors, P_g): 1 / sd on each prior's parameter column."""
         pr = np.zeros((len(self.priors), len(self.cols)))
@@ -432,7 +504,7 @@ class ProfiledProblem:
         p, b, mats, res = self.evaluate(x)
         n, g = res.shape[0], len(self.sensors)
         own, arr = self._raw_columns(p, b)
-        jac = np.zeros((n, g, 3, len(self.cols)))
+        jac = np.zeros((n, self.n_members, 3, len(self.cols)))
         col = 0
         n_arr = len(self.model.array_cols)
         for gi in range(g):
@@ -442,9 +514,12 @@ class ProfiledProblem:
             col += len(own[gi])
             if n_arr:
                 jac[:, gi, :, len(self.cols) - n_arr:] = arr[gi].transpose(1, 2, 0)
+        if self.aid is not None:
+            jac[:, g, :, len(self.cols) - n_arr:] = self._aid_columns(p).transpose(1, 2, 0)
         # project out the nuisance field directions (variable projection)
-        jac = self.project_out_field(b, mats, jac.reshape(n, 3 * g, -1))
-        jac = jac.reshape(n * 3 * g, -1)
+        rows = 3 * self.n_members
+        jac = self.project_out_field(b, mats, jac.reshape(n, rows, -1))
+        jac = jac.reshape(n * rows, -1)
         if self.priors:
             jac = np.vstack([jac, self._prior_jacobian()])
         return jac
@@ -527,6 +602,17 @@ class ProfiledProblem:
                 a[sa, sa] += fa @ fa.T
                 g[sa] += fa @ r.ravel()
                 w[:, sa] += qt(arr[gi])
+        if self.aid is not None:
+            # the attitude's rows: only the array-wide columns (its angles) move them
+            gi = len(self.sensors)
+            fa = self._aid_columns(p)
+            r = np.ascontiguousarray(res[:, gi])
+            qj = q[:, 3 * gi:3 * gi + 3]
+            flat = fa.reshape(n_arr, -1)
+            a[sa, sa] += flat @ flat.T
+            g[sa] += flat @ r.ravel()
+            w[:, sa] += np.matmul(fa.transpose(1, 0, 2), qj).transpose(2, 1, 0)
+            qtr += np.matmul(r[:, None], qj).transpose(2, 1, 0)[:, 0]
         for d in range(2):
             a -= w[d] @ w[d].T
             g -= w[d] @ qtr[d]

@@ -345,7 +345,8 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
             p0 = _closed_form_start(raw, f, model, constrained, ident, degenerate)
         else:
             p0 = np.asarray(init, float).copy()
-        if model.array_effects and contexts_all[0].attitude is not None:
+        if (any(hasattr(e, 'set_positions') for e in model.array_effects)
+                and contexts_all[0].attitude is not None):
             # the attitude must agree with the field direction (closed-form corrected sensor 1)
             from magcal_ros.core.geometry.attitude import check_against_field
             check_against_field(contexts_all[0].attitude,
@@ -405,6 +406,11 @@ def _check_data(data, model, contexts, constrained, check_identifiability, degen
         from magcal_ros.core.model import identifiability as idf
         ident = idf.check_coverage(raw)
         problems = ident['problems']
+        from magcal_ros.core.effects.attitude_ref import attitude_reference
+        if attitude_reference(model) is not None and contexts[0].attitude is not None:
+            # the attitude observes the field's direction: what a partial coverage leaves
+            # open is found from the Jacobian and named (core/model/attitude_fit.py)
+            problems = []
         if constrained:
             # the priors stand in for the attitudes a partial or single-axis coverage never
             # saw; they cannot make up for a sensor that did not turn or is stuck
@@ -436,7 +442,7 @@ def _closed_form_start(raw, f, model, constrained, ident, degenerate):
         return initial_params(raw, f, model, constrained=True)
 
 
-def group_noise_variances(res, g_cols, n_params):
+def group_noise_variances(res, g_cols, n_params, ranks=None):
     """
     Unbiased moment estimate of each sensor's noise variance in a group, relative to its weight.
 
@@ -462,6 +468,11 @@ def group_noise_variances(res, g_cols, n_params):
         (:meth:`ProfiledProblem.field_columns`).
     n_params : int
         Parameters fitted in the group.
+    ranks : sequence of int, optional
+        (G,) the rank of each member's noise (3 for a sensor; the attitude's observation
+        of the field, :mod:`magcal_ros.core.effects.attitude_ref`, is a member whose
+        noise lies in its projector's range, rank 1 or 3): the 3 of the formula above is
+        the trace of the member's noise covariance.
 
     Returns
     -------
@@ -479,20 +490,22 @@ def group_noise_variances(res, g_cols, n_params):
     # summed over epochs as one (G, 4N) x (4N, G) product (half the time of the einsum)
     c = np.tensordot(sk.transpose(0, 1, 3, 2).reshape(n, g, 4), sk.reshape(n, g, 4),
                      axes=([0, 2], [0, 2]))
-    c[np.diag_indices(g)] += 3.0 * n - 2.0 * np.einsum('njqq->j', sk)
+    rk = np.full(g, 3.0) if ranks is None else np.asarray(ranks, float)
+    c[np.diag_indices(g)] += rk * n - 2.0 * np.einsum('njqq->j', sk)
     m = np.einsum('nga,nga->g', res, res)
-    d, _ = nnls(c, m * dof_scale(n, g, n_params) ** 2)
+    d, _ = nnls(c, m * dof_scale(n, g, n_params, rk.sum()) ** 2)
     return np.maximum(d, 1e-12)
 
 
-def dof_scale(n, g, n_params):
+def dof_scale(n, g, n_params, rows=None):
     """
     Return sqrt((3 G - 2) N / ((3 G - 2) N - P)), which scales a group's residual noise sd.
 
     Each epoch leaves 3 G - 2 residual degrees of freedom (two go to the field's direction);
-    the P fitted parameters take theirs from the total.
+    the P fitted parameters take theirs from the total.  ``rows``: the observations per
+    epoch when they are not 3 G (an attitude observing the field adds its rank).
     """
-    dof = (3 * g - 2) * n
+    dof = ((3 * g if rows is None else rows) - 2) * n
     return float(np.sqrt(dof / max(dof - n_params, 1.0)))
 
 
@@ -569,8 +582,10 @@ class _Solve:
             p, problems, sol = self.solve_groups(p, sigma)
             if fixed_sigma:
                 break
+            self.aid_change = 0.0
             new_sigma = self.residual_sigma(p, sigma, problems)
-            converged = np.all(np.abs(new_sigma / sigma - 1) < 0.05)
+            converged = (np.all(np.abs(new_sigma / sigma - 1) < 0.05)
+                         and self.aid_change < 0.05)
             sigma = np.maximum(new_sigma, 1e-6)
             if converged:
                 break
@@ -631,15 +646,21 @@ class _Solve:
             _, b, mats, res = prob.evaluate(x)
             g = len(prob.sensors)
             g_cols = prob.field_columns(b, mats)
-            if self.robust:
+            if self.robust and prob.aid is None:
                 scale = dof_scale(res.shape[0], g, len(prob.cols))
                 for gi, j in enumerate(prob.sensors):
                     new_sigma[j - 1] = (sigma[j - 1] * scale
                                         * mad_sd(own_residual(res, g_cols, gi)))
                 continue
-            ratio = group_noise_variances(res, g_cols, len(prob.cols))
+            ranks = [3] * g + ([prob.aid.rank] if prob.aid is not None else [])
+            ratio = group_noise_variances(res, g_cols, len(prob.cols), ranks)
             for gi, j in enumerate(prob.sensors):
                 new_sigma[j - 1] = sigma[j - 1] * np.sqrt(ratio[gi])
+            if prob.aid is not None:
+                old = prob.aid_sigma
+                prob.aid.sigma_nt = max(prob.aid_sigma * np.sqrt(ratio[-1]),
+                                        prob.aid.floor_nt(np.mean(self.f)))
+                self.aid_change = abs(prob.aid.sigma_nt / old - 1.0)
         return new_sigma
 
     def covariance(self, p, sigma, with_jacobian=True):
@@ -658,7 +679,8 @@ class _Solve:
             x = p[prob.cols]
             r = prob.residuals(x)
             chi2 += float(np.sum(r ** 2))
-            n_obs += (3 * len(grp) - 2) * self.raw.shape[1]
+            n_obs += (3 * len(grp) - 2 + (prob.aid.rank if prob.aid is not None else 0)
+                      ) * self.raw.shape[1]
             if not with_jacobian:
                 continue
             # J^T J of the projected Jacobian, formed block by block (the same matrix for

@@ -1,0 +1,175 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The attitude as a reference: the world field seen through the vehicle's attitude.
+
+A vehicle log (a drone, boat or ground robot) rarely turns its compass through a sphere: it
+stays within a few tens of degrees of level and turns through part of a circle, so the
+magnitude constraint |B_k| = F alone leaves the vertical axis' offset and scale and the
+couplings to it open.  What such a log offers instead is the attitude R_k (body-to-world,
+from the autopilot's EKF or an AHRS): in a uniform world field m the field at the sensor is
+B_k = R_k^T m.  This effect makes that an *observation* of the profiled field B_k of each
+epoch (:class:`magcal_ros.core.model.engine.ProfiledProblem`), a virtual sensor of the array
+whose noise is the attitude's error seen as a field, ``sigma_nt`` (about F x the attitude's
+error in rad; estimated from the residuals with the real sensors' noise by the same
+variance-component estimator, :func:`magcal_ros.core.model.fitting.group_noise_variances`):
+
+``full``  (token ``attitude_full``) the whole attitude is trusted: the observation is the
+          vector y_k = R_k^T m, m = F (cos I cos D, cos I sin D, sin I) in the attitude's
+          world frame (NED: I the inclination, D the declination; ENU: the same vector in
+          other angles).  Two parameters, I and D, rad, estimated: a constant heading bias of
+          the attitude (true against magnetic north, a yaw offset of the EKF) goes into D.
+``tilt``  (token ``attitude_tilt``) roll and pitch only: a vehicle's heading usually comes
+          from the very compass being calibrated, so it is not used.  The observation is the
+          field's component along the world vertical, g_k . B_k = F sin I with g_k = R_k^T e_z
+          the vertical in the body frame; one parameter, I, rad.
+
+The field keeps its magnitude constraint |B_k| = F_k; the observation adds what the
+attitude knows about its direction (Gebre-Egziabher et al. 2006, "Calibration of strapdown
+magnetometers in magnetic field domain", J. Aerosp. Eng. 19(2), use the same two
+constraints, magnitude and the vertical component, for an attitude-aided calibration; here
+they enter the maximum-likelihood problem as a weighted observation, so that the attitude's
+error is estimated, not assumed, and the uncertainties count it).  The sensors' own
+readings are untouched (:meth:`shift` is zero): the effect is no correction, and a
+calibration's live correction never needs the attitude.
+
+Units: nT, rad.
+"""
+from magcal_ros.core.effects.base import Effect
+import numpy as np
+
+#: the attitude's error is never taken below 0.01 deg (an EKF's attitude is good to a tenth
+#: of a degree at best; a simulated, exact attitude would otherwise weigh infinitely)
+MIN_SD_RAD = np.radians(0.01)
+
+
+class AttitudeReference(Effect):
+    """The world field seen through the attitude (module docstring); array-wide, no shift."""
+
+    name = 'attitude_tilt'
+    kind = 'array'
+    scope = 'array'
+    signals = ('attitude',)
+    param_names = ('inclination',)
+    units = ('rad',)
+    #: the attitude's trust: 'tilt' (roll and pitch) or 'full' (and the heading)
+    mode = 'tilt'
+    #: rows of the observation per epoch (the rank of its projector)
+    rank = 1
+
+    def check(self, ctx):
+        if ctx.attitude is None:
+            return ('the attitude reference needs the attitude (CSV columns att_qw..att_qz, '
+                    'an Imu topic, a vehicle log)')
+        return None
+
+    @property
+    def sigma_nt(self):
+        """The attitude's error as a field sd, nT per observed axis (estimated by the fit)."""
+        return float(self.refs.get('sigma_nt', np.nan))
+
+    @sigma_nt.setter
+    def sigma_nt(self, value):
+        self.refs['sigma_nt'] = float(value)
+
+    def floor_nt(self, f_nt):
+        """The least sd the fit gives the observation, nT: :data:`MIN_SD_RAD` of the field."""
+        return MIN_SD_RAD * float(f_nt)
+
+    def shift(self, p, ctx, j, b=None):
+        """(N, 3) zeros: the attitude corrects no sensor."""
+        return np.zeros((len(ctx.t), 3))
+
+    def world_unit(self, p):
+        """(3,) the unit world field direction of parameters ``p`` (full mode)."""
+        inc, dec = p[0], (p[1] if len(p) > 1 else 0.0)
+        return np.array([np.cos(inc) * np.cos(dec), np.cos(inc) * np.sin(dec), np.sin(inc)])
+
+    def observation(self, p, rot, f):
+        """
+        Return the observation of the field at each epoch and its derivatives.
+
+        Parameters
+        ----------
+        p : numpy.ndarray
+            (n_params,) this effect's parameters, rad.
+        rot : numpy.ndarray
+            (N, 3, 3) body-to-world rotations.
+        f : numpy.ndarray
+            (N,) reference magnitude, nT.
+
+        Returns
+        -------
+        proj : numpy.ndarray
+            (N, 3, 3) the orthogonal projector onto what is observed (the identity, or
+            g g^T with g the world vertical in the body frame), dimensionless.
+        y : numpy.ndarray
+            (N, 3) the observation, nT, in the range of ``proj``: the residual of a field
+            B_k is proj (y - B_k).
+        dy : numpy.ndarray
+            (n_params, N, 3) dy/dp, nT/rad.
+
+        """
+        if self.mode == 'full':
+            u = self.world_unit(p)
+            inc, dec = p
+            du = np.array([[-np.sin(inc) * np.cos(dec), -np.sin(inc) * np.sin(dec),
+                            np.cos(inc)],
+                           [-np.cos(inc) * np.sin(dec), np.cos(inc) * np.cos(dec), 0.0]])
+            y = np.einsum('nji,j->ni', rot, u) * f[:, None]
+            dy = np.einsum('nji,pj->pni', rot, du) * f[None, :, None]
+            proj = np.broadcast_to(np.eye(3), (len(f), 3, 3))
+            return proj, y, dy
+        g = rot[:, 2, :]                                     # world vertical, body frame
+        proj = g[:, :, None] * g[:, None, :]
+        y = g * (f * np.sin(p[0]))[:, None]
+        dy = (g * (f * np.cos(p[0]))[:, None])[None]
+        return proj, y, dy
+
+    def start(self, rot, field_body):
+        """
+        (n_params,) rad: the world field's angles from a roughly corrected field.
+
+        ``field_body`` (N, 3) nT, e.g. sensor 1 after the closed-form start.
+        """
+        w = np.einsum('nij,nj->ni', rot, field_body)
+        w = w / np.linalg.norm(w, axis=1, keepdims=True)
+        inc = float(np.arcsin(np.clip(np.median(w[:, 2]), -1.0, 1.0)))
+        if self.mode == 'full':
+            m = np.median(w, axis=0)
+            return np.array([inc, float(np.arctan2(m[1], m[0]))])
+        return np.array([inc])
+
+
+class AttitudeFull(AttitudeReference):
+    """The whole attitude trusted (heading included): two angles of the world field."""
+
+    name = 'attitude_full'
+    param_names = ('inclination', 'declination')
+    units = ('rad', 'rad')
+    mode = 'full'
+    rank = 3
+
+
+#: the attitude modes and their effect classes
+MODES = {'tilt': AttitudeReference, 'full': AttitudeFull}
+
+
+def attitude_reference(model):
+    """Return (effect, slice of its parameters) of ``model``'s attitude reference, or None."""
+    for eff, sl in zip(model.array_effects, model.array_slices):
+        if isinstance(eff, AttitudeReference):
+            return eff, sl
+    return None

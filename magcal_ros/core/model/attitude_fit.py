@@ -1,0 +1,252 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Attitude-aided calibration: a vehicle that stays near level and turns part of a circle.
+
+The attitude (body-to-world, from the vehicle's EKF or AHRS) observes the direction of the
+field at the sensor, B_k = R_k^T m (:mod:`magcal_ros.core.effects.attitude_ref`), so a log
+that a full sphere would never have determines the offsets, scales and couplings the magnitude
+alone leaves open along the vertical, as far as the vehicle tilts.  :func:`fit_attitude`:
+
+1. adds the attitude's observation to the model (``tilt``: roll and pitch only, the vertical
+   component of the field; ``full``: the whole attitude, the field vector), its world-field
+   angles estimated;
+2. starts from a closed form that uses the attitude: each sensor's offset and the world
+   vertical component from the linear least squares of |raw - o| = F and g_k . (raw - o) =
+   Z (A = I), the world angles from the started sensor 1;
+3. fits by maximum likelihood with a prior on each map parameter of the kinds the planar
+   mode holds (:data:`magcal_ros.core.model.planar.PRIOR_SD`: 5 % in scale, 0.05 rad in
+   angle; none on the offsets), so that what the motion leaves open is held at an ideal
+   sensor's value instead of wandering; a parameter whose posterior sd stays above
+   :data:`~magcal_ros.core.model.planar.UNDETERMINED_RATIO` of its kind's prior sd is
+   *undetermined* and named, as in planar mode (docs/planar.md);
+4. widens the covariance for the residual's serial correlation (a flight is one trajectory);
+5. checks the attitude's heading against the corrected compass (:func:`heading_check`).
+
+Units: nT, rad; degrees where a name says so.
+"""
+from dataclasses import dataclass
+
+from magcal_ros.core.effects.attitude_ref import attitude_reference, MODES
+from magcal_ros.core.model.fitting import fit, initial_params
+from magcal_ros.core.model.planar import (_inflate_for_correlation, _KINDS, PRIOR_SD,
+                                          UNDETERMINED_RATIO)
+from magcal_ros.core.model.spec import Model
+import numpy as np
+
+#: heading disagreement (deg, RMS about its mean) above which the attitude's heading and the
+#: corrected compass are said to disagree
+HEADING_DISAGREE_DEG = 5.0
+
+
+@dataclass(frozen=True)
+class AttitudeResult:
+    """
+    Outcome of :func:`fit_attitude`.
+
+    Attributes
+    ----------
+    result : FitResult
+        The fit (its model carries the attitude's effect; covariance widened for the
+        residual's serial correlation).
+    mode : str
+        'tilt' or 'full'.
+    undetermined, determined : tuple of str
+        Parameter names ``<effect>.<param>@<sensor>`` (as planar mode names them).
+    attitude_sd_deg : float
+        The attitude's error as an angle, deg: its observation's sd over the field.
+    world_field : dict
+        Inclination (and declination in full mode) of the world field in the attitude's
+        frame, deg, with standard uncertainties.
+    heading : dict
+        :func:`heading_check`.
+    residual_correlation : numpy.ndarray
+        (S,) lag-1 correlation of each sensor's scalar residual.
+
+    """
+
+    result: object
+    mode: str
+    undetermined: tuple
+    determined: tuple
+    attitude_sd_deg: float
+    world_field: dict
+    heading: dict
+    residual_correlation: np.ndarray
+
+
+def with_attitude(model, mode, n_sensors=None):
+    """
+    Return ``model`` (a Model or a formula) with the attitude's observation of ``mode``.
+
+    An attitude effect already in the model is replaced by that of ``mode``.
+    """
+    if mode not in MODES:
+        raise ValueError(f"attitude mode must be one of {', '.join(MODES)}, got {mode!r}")
+    if isinstance(model, str):
+        model = Model.from_spec(model, n_sensors)
+    keep = [e for e in model.array_effects if attitude_reference_of(e) is None]
+    return Model(model.effects, keep + [MODES[mode](sensor=0)], model.drops)
+
+
+def attitude_reference_of(eff):
+    """Return ``eff`` if it is an attitude observation, else None."""
+    from magcal_ros.core.effects.attitude_ref import AttitudeReference
+    return eff if isinstance(eff, AttitudeReference) else None
+
+
+def attitude_start(data, model, f):
+    """
+    (P,) closed-form start that uses the attitude (module docstring, step 2).
+
+    Parameters
+    ----------
+    data : Dataset
+        With ``attitude``; raw (S, N, 3) nT.
+    model : Model
+        With the attitude's effect.
+    f : numpy.ndarray
+        (N,) reference magnitude, nT.
+
+    """
+    rot = data.attitude_matrix()
+    g = rot[:, 2, :]                                   # world vertical in the body frame
+    f0 = float(np.mean(f))
+    p = initial_params(data.raw, f, model, constrained=True)
+    for j in range(1, data.n_sensors + 1):
+        m = data.raw[j - 1]
+        n = len(m)
+        # |m - o|^2 = F^2: 2 m.o + c = |m|^2 - F^2 (c = F^2 - |o|^2 + ...), over 2F: nT;
+        # g.(m - o) = Z: g.o + Z = g.m
+        sphere = np.column_stack([2 * m, np.ones(n), np.zeros(n)]) / (2 * f0)
+        vert = np.column_stack([g, np.zeros(n), np.ones(n)])
+        rhs = np.concatenate([((m ** 2).sum(1) - f ** 2) / (2 * f0), (g * m).sum(1)])
+        sol, *_ = np.linalg.lstsq(np.vstack([sphere, vert]), rhs, rcond=None)
+        p = model.params_from_linear(j, model.matrix(j, p), sol[:3], p)
+    eff, sl = attitude_reference(model)
+    p[sl] = eff.start(rot, model.correct(1, p, data.raw[0], data.context(1)))
+    return p
+
+
+def fit_attitude(data, model, field_nt=None, mode='tilt', **fit_kwargs):
+    """
+    Fit ``model`` with the attitude observing the field (module docstring).
+
+    Parameters
+    ----------
+    data : Dataset
+        (S, N) raw readings, nT, with ``attitude`` (N, 4).
+    model : Model or str
+        The model without the attitude (it is added here).
+    field_nt : float or numpy.ndarray, optional
+        Reference magnitude, nT (default ``data.ref_total``).
+    mode : {'tilt', 'full'}
+        Trust roll and pitch only, or the whole attitude.
+    **fit_kwargs
+        Passed to :func:`magcal_ros.core.model.fitting.fit` (``init``, ``max_fit_samples``,
+        ``robust``, ...).
+
+    Returns
+    -------
+    AttitudeResult
+
+    """
+    from magcal_ros.core.data.magnitude import reference_magnitude
+    if data.attitude is None:
+        raise ValueError('the data carry no attitude (att_qw..att_qz, an Imu topic or a '
+                         'vehicle log): fit without --attitude, or add it')
+    model = with_attitude(model, mode, data.n_sensors)
+    f = reference_magnitude(data, field_nt)
+    f0 = float(np.mean(f))
+    eff, sl = attitude_reference(model)
+    info = model.param_info()
+    kind_sd = np.array([PRIOR_SD['offset'] * f0 if unit == 'nT' else
+                        PRIOR_SD['angle'] if unit == 'rad' else PRIOR_SD['scale']
+                        for _, _, _, unit in info])
+    default = model.default_params()
+    # a prior on each map parameter but the offsets (a scale's prior holds an offset the
+    # motion leaves open along with it)
+    prior_list = [(i, float(default[i]), float(kind_sd[i])) for i in range(model.n_params)
+                  if info[i][0] and info[i][1] in _KINDS and info[i][1] != 'offset']
+    init = fit_kwargs.pop('init', None)
+    if init is None:
+        init = attitude_start(data, model, f)
+    if not np.isfinite(eff.sigma_nt):
+        eff.sigma_nt = _start_sigma(data, model, init, f)
+    fit_kwargs.pop('constrained', None)
+    fit_kwargs.setdefault('max_nfev', 1000)
+    result = fit(data, model, field_nt=field_nt, extra_priors=prior_list, init=init,
+                 constrained=True, **fit_kwargs)
+    result, rho = _inflate_for_correlation(result)
+    label = [f'{lab}.{nm}@{j}' for j, lab, nm, _ in info]
+    open_ = {i for i in range(model.n_params)
+             if info[i][0] and info[i][1] in _KINDS and
+             not result.stderr[i] <= UNDETERMINED_RATIO * kind_sd[i]}
+    undetermined = tuple(label[k] for k in sorted(open_))
+    determined = tuple(label[k] for k in range(model.n_params)
+                       if k not in open_ and info[k][0])
+    ang = result.params[sl]
+    se = result.stderr[sl]
+    world = {'frame': data.meta.get('attitude_frame', "the attitude's world frame"),
+             'inclination_deg': float(np.degrees(ang[0])),
+             'inclination_stderr_deg': float(np.degrees(se[0]))}
+    if mode == 'full':
+        world.update(declination_deg=float(np.degrees(ang[1])),
+                     declination_stderr_deg=float(np.degrees(se[1])))
+    return AttitudeResult(
+        result=result, mode=mode, undetermined=undetermined, determined=determined,
+        attitude_sd_deg=float(np.degrees(eff.sigma_nt / f0)), world_field=world,
+        heading=heading_check(result, data), residual_correlation=rho)
+
+
+def _start_sigma(data, model, p, f):
+    """The attitude observation's sd at the start, nT: its residual against sensor 1."""
+    eff, sl = attitude_reference(model)
+    rot = data.attitude_matrix()
+    cor = model.correct(1, p, data.raw[0], data.context(1))
+    b = cor / np.linalg.norm(cor, axis=1, keepdims=True) * f[:, None]
+    proj, y, _ = eff.observation(p[sl], rot, f)
+    r = np.einsum('nij,nj->ni', proj, y - b)
+    return max(float(np.sqrt(np.mean(np.sum(r * r, axis=1)) / eff.rank)), 1e-3 * float(
+        np.mean(f)))
+
+
+def heading_check(result, data):
+    """
+    Compare the attitude's heading with the corrected compass's (sensor 1).
+
+    The compass's heading is that of the corrected field levelled by the attitude's roll and
+    pitch: psi_c = atan2(-E, N) of the world-frame field without the heading ... taken here
+    as the angle of the world-horizontal field R_k b_k about the vertical, which is the
+    attitude's heading error plus the declination; its mean is a constant (declination and
+    any yaw offset), its spread about the mean is the disagreement.
+
+    Returns
+    -------
+    dict
+        ``offset_deg`` (circular mean), ``rms_deg`` (RMS about it), ``max_deg``,
+        ``disagree`` (``rms_deg`` above :data:`HEADING_DISAGREE_DEG`).
+
+    """
+    rot = data.attitude_matrix()
+    p = result.params
+    cor = result.model.correct(1, p, data.raw[0], data.context(1))
+    w = np.einsum('nij,nj->ni', rot, cor)
+    ang = np.arctan2(w[:, 1], w[:, 0])
+    mean = np.angle(np.mean(np.exp(1j * ang)))
+    dev = np.degrees(np.angle(np.exp(1j * (ang - mean))))
+    rms = float(np.sqrt(np.mean(dev ** 2)))
+    return {'offset_deg': float(np.degrees(mean)), 'rms_deg': rms,
+            'max_deg': float(np.max(np.abs(dev))), 'disagree': rms > HEADING_DISAGREE_DEG}
