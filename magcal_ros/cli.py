@@ -341,6 +341,7 @@ def cmd_fit(args):
     if args.planar:
         extra = {'planar': {'inclination_deg': fref.get('inclination_deg')}}
     prog('fit', 0, 1, args.model)
+    extra['attitude'] = attitude_option(args, data) or 'off'
     run = calibrate(data, args.model, field_nt=field_nt, geometry=geometry,
                     field_reference=fref, robust=args.robust, constrained=args.constrained,
                     on_degenerate='flag' if args.flag_degenerate else 'raise', **extra)
@@ -380,6 +381,8 @@ def cmd_fit(args):
                 print('  ' + '  '.join(f'{v:9.2f} +- {e:5.2f}' for v, e in zip(row, srow)))
         if 'planar' in s:
             _print_planar(s['planar'])
+        if 'attitude' in s:
+            _print_attitude(s['attitude'])
         kinds = sorted(set(s['noise_floor_status'].values()) - {'white'})
         print(f'noise floor (from the data): {s["noise_floor_nt"]:.2f} nT'
               + (f' ({" / ".join(kinds)}: see the noise_floor warnings)' if kinds else ''))
@@ -411,6 +414,48 @@ def _print_planar(pl):
     if pl['undetermined']:
         print("undetermined (known no better than half the prior's width): "
               + ', '.join(pl['undetermined']))
+
+
+def _print_attitude(at):
+    """Print the attitude-aided fit's account: the mode, the world field, what is open."""
+    wf = at['world_field']
+    line = (f"attitude: {at['mode']} ({at['trusted']} from {at['source']}, error "
+            f"{at['attitude_sd_deg']:.2f} deg as estimated); world field inclination "
+            f"{wf['inclination_deg']:.2f} +- {wf['inclination_stderr_deg']:.2f} deg")
+    if 'declination_deg' in wf:
+        line += f", declination {wf['declination_deg']:.2f} +- {wf['declination_stderr_deg']:.2f} deg"
+    print(line)
+    h = at['heading_check']
+    print(f"heading: attitude against the corrected compass {h['offset_deg']:+.1f} deg, "
+          f"{h['rms_deg']:.2f} deg RMS about it")
+    if at['undetermined']:
+        print("undetermined (known no better than half the prior's width): "
+              + ', '.join(at['undetermined']))
+
+
+def attitude_option(args, data):
+    """The attitude mode of ``--attitude`` for ``data`` ('tilt', 'full' or None)."""
+    from magcal_ros.pipeline import attitude_mode
+    if getattr(args, 'planar', False) or getattr(args, 'heading_unknown', False):
+        return None if getattr(args, 'attitude', 'auto') == 'auto' else _attitude_conflict(args)
+    try:
+        return attitude_mode(getattr(args, 'attitude', 'auto'), data)
+    except ValueError as exc:
+        raise BadInput(str(exc)) from None
+
+
+def _attitude_conflict(args):
+    raise BadInput(f'--attitude {args.attitude} goes with neither --planar nor '
+                   '--heading-unknown: choose one')
+
+
+def add_attitude_arg(p):
+    """The --attitude option (how an attitude in the data is used)."""
+    p.add_argument('--attitude', default='auto', choices=['auto', 'tilt', 'full', 'off'],
+                   help="use the data's attitude (att_q* columns, an Imu topic, a vehicle "
+                        "log): tilt = roll and pitch only (auto's choice when the data carry "
+                        'an attitude: a vehicle\'s heading often comes from this compass), '
+                        'full = the heading too, off = the field magnitude alone')
 
 
 def _fit_paper_method(args, data):
@@ -618,6 +663,7 @@ def build_parser():
                    help='a turn about one axis only (a ground robot): fit what it determines '
                         '(in-plane offsets, scale ratio, angle: heading-grade), hold the rest '
                         'at a prior and name it; reports the heading error')
+    add_attitude_arg(f)
     f.add_argument('--heading-unknown', action='store_true',
                    help='site_gradient without attitude columns: estimate the rotation about '
                         'the field at every epoch; the gradient is then given in a '

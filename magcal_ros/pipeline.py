@@ -360,6 +360,65 @@ def _adopt_axis_maps(result, data, field_nt, positions, fit_kwargs):
     return refit, mounting_notes(maps, before, after, data.n_sensors)
 
 
+#: values of the ``attitude`` option: 'auto' uses the roll and pitch when the data carry an
+#: attitude (a vehicle's heading usually comes from the compass being calibrated)
+ATTITUDE_MODES = ('auto', 'tilt', 'full', 'off')
+
+
+def attitude_mode(option, data):
+    """
+    The attitude mode a fit of ``data`` uses: 'tilt', 'full' or None (the magnitude alone).
+
+    ``option`` is one of :data:`ATTITUDE_MODES` or None ('auto').  'tilt' or 'full' on data
+    without attitude is refused (ValueError naming what to add).
+    """
+    option = option or 'auto'
+    if option not in ATTITUDE_MODES:
+        raise ValueError(f"attitude must be one of {', '.join(ATTITUDE_MODES)}, got {option!r}")
+    if option == 'off':
+        return None
+    if data.attitude is None:
+        if option == 'auto':
+            return None
+        raise ValueError(f'attitude {option}: the data carry no attitude (CSV columns '
+                         'att_qw..att_qz, a sensor_msgs/Imu topic, a vehicle log); give '
+                         'one or fit without it (--attitude off)')
+    return 'tilt' if option == 'auto' else option
+
+
+def attitude_summary(aided, data):
+    """JSON-ready account of an attitude-aided fit (deg, nT as named)."""
+    return {'mode': aided.mode,
+            'trusted': 'roll and pitch' if aided.mode == 'tilt' else 'roll, pitch and heading',
+            'source': data.meta.get('attitude_source', 'the data'),
+            'attitude_sd_deg': aided.attitude_sd_deg,
+            'world_field': aided.world_field,
+            'heading_check': aided.heading,
+            'determined': list(aided.determined),
+            'undetermined': list(aided.undetermined),
+            'residual_lag1_correlation': [float(r) for r in aided.residual_correlation]}
+
+
+def attitude_notes(aided):
+    """Warnings (note dicts) of an attitude-aided fit: what is open, a heading at odds."""
+    out = []
+    if aided.undetermined:
+        out.append({'kind': 'undetermined', 'text': (
+            'the motion leaves these parameters open; they are held at an ideal sensor\'s '
+            'value within the prior (tilt or turn the vehicle more to determine them): '
+            + ', '.join(aided.undetermined))})
+    h = aided.heading
+    if h['disagree']:
+        out.append({'kind': 'attitude', 'text': (
+            f"the attitude's heading and the corrected compass disagree by {h['rms_deg']:.1f} "
+            f"deg RMS (largest {h['max_deg']:.1f} deg) about a constant {h['offset_deg']:.1f} "
+            'deg: the heading in the log may come from this compass (before this calibration), '
+            'or the attitude lags the compass; the fit trusted '
+            + ('roll and pitch only' if aided.mode == 'tilt' else 'the heading too: '
+               'try --attitude tilt'))})
+    return out
+
+
 def _calibrate(data, model, field_nt, geometry, field_reference, **fit_kwargs):
     if geometry is None and data.n_sensors == 4:
         geometry = cross_geometry(0.5)
@@ -370,7 +429,16 @@ def _calibrate(data, model, field_nt, geometry, field_reference, **fit_kwargs):
         model.set_positions(positions)          # where the site gradient acts
     mounting = []
     planar = fit_kwargs.pop('planar', None)
-    if fit_kwargs.pop('heading_unknown', False):
+    attitude = attitude_mode(fit_kwargs.pop('attitude', None), data)
+    aided = None
+    if attitude is not None:
+        # a vehicle: the attitude observes the field's direction (core/model/attitude_fit.py)
+        from magcal_ros.core.model.attitude_fit import fit_attitude
+        fit_kwargs.pop('on_degenerate', None)
+        aided = fit_attitude(data, model, field_nt=field_nt, mode=attitude,
+                             on_degenerate='flag', **fit_kwargs)
+        result = aided.result
+    elif fit_kwargs.pop('heading_unknown', False):
         # site gradient without attitude: the heading about the field per epoch
         from magcal_ros.core.geometry.site_gradient import fit_heading_unknown
         result = fit_heading_unknown(data, model, field_nt=field_nt, **fit_kwargs)
@@ -394,7 +462,11 @@ def _calibrate(data, model, field_nt, geometry, field_reference, **fit_kwargs):
         summary['undetermined'] = summary['planar']['undetermined']
         summary['heading_error_deg'] = max(summary['planar']['heading_error_deg'].values())
         summary['warnings'].extend(note_dict(n) for n in pl.planar_notes(pr))
-    if planar is None:        # a planar fit holds what a turn cannot determine at its prior
+    if aided is not None:
+        summary['attitude'] = attitude_summary(aided, data)
+        summary['undetermined'] = list(aided.undetermined)
+        summary['warnings'].extend(note_dict(n) for n in attitude_notes(aided))
+    if planar is None and aided is None:   # these hold what the motion leaves open at a prior
         summary['warnings'] += [note_dict(w) for w in mounting + parameter_notes(
             result.model, result.params, data.raw, float(np.mean(result.field_magnitude_nt)))]
     temp_range = {}
@@ -424,6 +496,8 @@ def _calibrate(data, model, field_nt, geometry, field_reference, **fit_kwargs):
         prov['planar'] = {k: summary['planar'][k] for k in
                           ('axis', 'undetermined', 'determined', 'heading_error_deg',
                            'inclination_source')}
+    if aided is not None:
+        prov['attitude'] = summary['attitude']
     if 'tensor_rms_nt_per_m' in summary:
         prov['residuals']['tensor_rms_nt_per_m'] = summary['tensor_rms_nt_per_m']
     fref = dict(field_reference or {})

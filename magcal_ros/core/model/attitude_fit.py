@@ -26,11 +26,11 @@ alone leaves open along the vertical, as far as the vehicle tilts.  :func:`fit_a
 2. starts from a closed form that uses the attitude: each sensor's offset and the world
    vertical component from the linear least squares of |raw - o| = F and g_k . (raw - o) =
    Z (A = I), the world angles from the started sensor 1;
-3. fits by maximum likelihood with a prior on each map parameter of the kinds the planar
-   mode holds (:data:`magcal_ros.core.model.planar.PRIOR_SD`: 5 % in scale, 0.05 rad in
-   angle; none on the offsets), so that what the motion leaves open is held at an ideal
-   sensor's value instead of wandering; a parameter whose posterior sd stays above
-   :data:`~magcal_ros.core.model.planar.UNDETERMINED_RATIO` of its kind's prior sd is
+3. fits by maximum likelihood with the constrained mode's priors (each effect's own,
+   ``Effect.prior``: 2 % in scale, 0.02 rad in non-orthogonality, ...; none on the
+   offsets), so that what the motion leaves open is held at an ideal sensor's value instead
+   of wandering; a parameter the priors determine more than the data (:func:`prior_held`:
+   the data add less than three times the priors' information, planar mode's rule) is
    *undetermined* and named, as in planar mode (docs/planar.md);
 4. widens the covariance for the residual's serial correlation (a flight is one trajectory);
 5. checks the attitude's heading against the corrected compass (:func:`heading_check`).
@@ -40,11 +40,14 @@ Units: nT, rad; degrees where a name says so.
 from dataclasses import dataclass
 
 from magcal_ros.core.effects.attitude_ref import attitude_reference, MODES
-from magcal_ros.core.model.fitting import fit, initial_params
-from magcal_ros.core.model.planar import (_inflate_for_correlation, _KINDS, PRIOR_SD,
-                                          UNDETERMINED_RATIO)
+from magcal_ros.core.model.fitting import fit, initial_params, priors_for
+from magcal_ros.core.model.planar import _inflate_for_correlation, _KINDS
 from magcal_ros.core.model.spec import Model
 import numpy as np
+
+#: a parameter is held by the priors when twice as strong priors would shrink its variance
+#: by more than this factor (:func:`prior_held`)
+PRIOR_HELD_RATIO = 1.25
 
 #: heading disagreement (deg, RMS about its mean) above which the attitude's heading and the
 #: corrected compass are said to disagree
@@ -66,7 +69,9 @@ class AttitudeResult:
     undetermined, determined : tuple of str
         Parameter names ``<effect>.<param>@<sensor>`` (as planar mode names them).
     attitude_sd_deg : float
-        The attitude's error as an angle, deg: its observation's sd over the field.
+        The attitude's error as an angle, deg: its observation's sd over the field (the
+        fit weighs it as an error serial_inflation() times larger, for its correlation:
+        ``refs['sigma_nt']`` of the attitude's effect).
     world_field : dict
         Inclination (and declination in full mode) of the world field in the attitude's
         frame, deg, with standard uncertainties.
@@ -140,7 +145,13 @@ def attitude_start(data, model, f):
     return p
 
 
-def fit_attitude(data, model, field_nt=None, mode='tilt', **fit_kwargs):
+#: sd of the prior an IGRF inclination puts on the fitted one, rad (the model's own error and
+#: a local anomaly: tenths of a degree)
+INCLINATION_PRIOR_SD = np.radians(0.5)
+
+
+def fit_attitude(data, model, field_nt=None, mode='tilt', inclination_deg=None,
+                 **fit_kwargs):
     """
     Fit ``model`` with the attitude observing the field (module docstring).
 
@@ -154,6 +165,12 @@ def fit_attitude(data, model, field_nt=None, mode='tilt', **fit_kwargs):
         Reference magnitude, nT (default ``data.ref_total``).
     mode : {'tilt', 'full'}
         Trust roll and pitch only, or the whole attitude.
+    inclination_deg : float, optional
+        The field's inclination at the site (IGRF), deg, positive down: a prior of
+        :data:`INCLINATION_PRIOR_SD` on the fitted one when the attitude's world frame is
+        known (``data.meta['attitude_frame']`` 'NED' or 'ENU').  Without it a level vehicle
+        leaves the split of F into its horizontal and vertical parts open, and with it the
+        common scale of the horizontal axes (docs/planar.md).
     **fit_kwargs
         Passed to :func:`magcal_ros.core.model.fitting.fit` (``init``, ``max_fit_samples``,
         ``robust``, ...).
@@ -172,34 +189,50 @@ def fit_attitude(data, model, field_nt=None, mode='tilt', **fit_kwargs):
     f0 = float(np.mean(f))
     eff, sl = attitude_reference(model)
     info = model.param_info()
-    kind_sd = np.array([PRIOR_SD['offset'] * f0 if unit == 'nT' else
-                        PRIOR_SD['angle'] if unit == 'rad' else PRIOR_SD['scale']
-                        for _, _, _, unit in info])
-    default = model.default_params()
-    # a prior on each map parameter but the offsets (a scale's prior holds an offset the
-    # motion leaves open along with it)
-    prior_list = [(i, float(default[i]), float(kind_sd[i])) for i in range(model.n_params)
-                  if info[i][0] and info[i][1] in _KINDS and info[i][1] != 'offset']
     init = fit_kwargs.pop('init', None)
-    if init is None:
+    if init is None and mode == 'full':
+        # from the roll and pitch alone first: the heading's error, the larger part of a
+        # full attitude's, does not then pull the start (nor the first noise estimates)
+        tilt = fit_attitude(data, model, field_nt, 'tilt', **dict(fit_kwargs, covariance=False,
+                                                                  check_identifiability=False))
+        init = model.default_params()
+        where = {k: i for i, k in enumerate(info)}
+        for i, k in enumerate(tilt.result.model.param_info()):
+            if k in where:                      # every parameter but the attitude's own
+                init[where[k]] = tilt.result.params[i]
+        cor = model.correct(1, init, data.raw[0], data.context(1))
+        init[sl] = eff.start(data.attitude_matrix(), cor)
+    elif init is None:
         init = attitude_start(data, model, f)
     if not np.isfinite(eff.sigma_nt):
         eff.sigma_nt = _start_sigma(data, model, init, f)
     fit_kwargs.pop('constrained', None)
     fit_kwargs.setdefault('max_nfev', 1000)
-    result = fit(data, model, field_nt=field_nt, extra_priors=prior_list, init=init,
-                 constrained=True, **fit_kwargs)
+    # the constrained mode's priors (each effect's own, Effect.prior: none on the offsets,
+    # which a scale's prior holds along with it where the motion leaves both open)
+    extra = []
+    frame = str(data.meta.get('attitude_frame', '')).upper()
+    if inclination_deg is not None and frame in ('NED', 'ENU'):
+        inc = np.radians(float(inclination_deg)) * (1.0 if frame == 'NED' else -1.0)
+        extra = [(sl.start, inc, INCLINATION_PRIOR_SD)]
+        if init[sl.start] * inc < 0:
+            init[sl.start] = inc
+    result = fit(data, model, field_nt=field_nt, init=init, constrained=True,
+                 extra_priors=extra, **fit_kwargs)
+    open_ = prior_held(result, priors_for(model, {}, constrained=True) + extra)
     result, rho = _inflate_for_correlation(result)
     label = [f'{lab}.{nm}@{j}' for j, lab, nm, _ in info]
-    open_ = {i for i in range(model.n_params)
-             if info[i][0] and info[i][1] in _KINDS and
-             not result.stderr[i] <= UNDETERMINED_RATIO * kind_sd[i]}
+    open_ = {i for i in open_ if info[i][0] and info[i][1] in _KINDS}
     undetermined = tuple(label[k] for k in sorted(open_))
     determined = tuple(label[k] for k in range(model.n_params)
                        if k not in open_ and info[k][0])
     ang = result.params[sl]
     se = result.stderr[sl]
     world = {'frame': data.meta.get('attitude_frame', "the attitude's world frame"),
+             'inclination_prior': ('IGRF' if extra else 'none (estimated)' if
+                                   inclination_deg is None else
+                                   'none: the attitude\'s world frame is not known to be NED '
+                                   'or ENU (the inclination was estimated)'),
              'inclination_deg': float(np.degrees(ang[0])),
              'inclination_stderr_deg': float(np.degrees(se[0]))}
     if mode == 'full':
@@ -207,8 +240,45 @@ def fit_attitude(data, model, field_nt=None, mode='tilt', **fit_kwargs):
                      declination_stderr_deg=float(np.degrees(se[1])))
     return AttitudeResult(
         result=result, mode=mode, undetermined=undetermined, determined=determined,
-        attitude_sd_deg=float(np.degrees(eff.sigma_nt / f0)), world_field=world,
+        attitude_sd_deg=float(np.degrees(eff.refs.get('white_sigma_nt', eff.sigma_nt) / f0)),
+        world_field=world,
         heading=heading_check(result, data), residual_correlation=rho)
+
+
+def prior_held(result, prior_list, ratio=PRIOR_HELD_RATIO):
+    """
+    Return the indices of the parameters the priors, not the data, determine.
+
+    With A the posterior information (the inverse of the fit's covariance) and L the
+    priors' (diagonal, 1 / sd^2), the variance of parameter i at priors twice as strong is
+    [(A + L)^-1]_ii: the data's own information leaves it nearly unchanged, a prior's halves
+    it.  A parameter with its own prior and data information d against the prior's l has the
+    ratio (d + 2 l) / (d + l); ``ratio`` 1.25 is d = 3 l, planar mode's rule (posterior sd
+    above half the prior's, docs/planar.md), and the same test holds an offset that only a
+    scale's prior fixes (a level vehicle's vertical offset and scale: one constant).
+
+    Parameters
+    ----------
+    result : FitResult
+        A fit with the priors ``prior_list`` [(index, mean, sd)] (its covariance unwidened).
+
+    Returns
+    -------
+    set of int
+
+    """
+    cov = np.asarray(result.covariance, float)
+    if not np.all(np.isfinite(cov)):
+        return {i for i in range(len(cov)) if not np.isfinite(cov[i, i])}
+    lam = np.zeros(len(cov))
+    for i, _, sd in prior_list:
+        lam[i] += 1.0 / sd ** 2
+    d = np.sqrt(np.diag(cov))
+    d[d == 0] = 1.0
+    # in correlation units, so that nT and rad do not spoil the inverse
+    a = np.linalg.inv(cov / np.outer(d, d))
+    cov2 = np.linalg.inv(a + np.diag(lam * d * d))
+    return {i for i in range(len(cov)) if 1.0 / cov2[i, i] > ratio}
 
 
 def _start_sigma(data, model, p, f):

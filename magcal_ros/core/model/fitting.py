@@ -543,6 +543,23 @@ def own_residual(res, g_cols, gi):
     return np.einsum('na,na->n', w, res[:, gi])
 
 
+def serial_inflation(r):
+    """
+    sqrt((1 + rho) / (1 - rho)): how much a serially correlated error weighs less.
+
+    ``r`` (N, 3) residuals in time order (each row's components summed into one series
+    per axis); rho is their lag-1 correlation (the AR(1) variance inflation of a mean,
+    Bartlett 1946, as :func:`magcal_ros.core.model.planar._inflate_for_correlation` widens a
+    planar fit).  An attitude's error is smooth (an EKF's drifts over tens of seconds): as
+    N independent observations it would outweigh the compass and bend the fit to its drift.
+    """
+    r = np.asarray(r, float)
+    num = float(np.sum(r[1:] * r[:-1]))
+    den = float(np.sum(r * r))
+    rho = min(max(num / den if den > 0 else 0.0, 0.0), 0.999)
+    return float(np.sqrt((1 + rho) / (1 - rho)))
+
+
 class _Solve:
     """The ML problem of each sensor group on the fitted epochs, and its noise levels."""
 
@@ -558,7 +575,7 @@ class _Solve:
     def problem(self, grp, sigma, p):
         """Return the :class:`ProfiledProblem` of sensor group ``grp`` at ``p``."""
         m = self.model
-        pr = [t for t in self.prior_list if any(
+        pr = [t for t in self.prior_list if t[0] in m.array_cols or any(
             m.sensor_slices[j - 1].start <= t[0] < m.sensor_slices[j - 1].stop for j in grp)]
         return ProfiledProblem(m, self.raw, self.contexts, self.f, grp, sigma, pr,
                                self.robust, self.f_scale, p_full=p)
@@ -578,7 +595,11 @@ class _Solve:
         else:
             sigma = self.start_sigma(p0)
         p = p0.copy()
-        for _ in range(1 if fixed_sigma else 3):
+        # an attitude observing the field is one more variance component, whose share the
+        # iteration settles more slowly (core/effects/attitude_ref.py)
+        from magcal_ros.core.effects.attitude_ref import attitude_reference
+        passes = 6 if attitude_reference(model) is not None else 3
+        for _ in range(1 if fixed_sigma else passes):
             p, problems, sol = self.solve_groups(p, sigma)
             if fixed_sigma:
                 break
@@ -658,8 +679,10 @@ class _Solve:
                 new_sigma[j - 1] = sigma[j - 1] * np.sqrt(ratio[gi])
             if prob.aid is not None:
                 old = prob.aid_sigma
-                prob.aid.sigma_nt = max(prob.aid_sigma * np.sqrt(ratio[-1]),
-                                        prob.aid.floor_nt(np.mean(self.f)))
+                white = max(prob.aid_sigma * np.sqrt(ratio[-1]),
+                            prob.aid.floor_nt(np.mean(self.f)))
+                prob.aid.sigma_nt = white * serial_inflation(res[:, -1])
+                prob.aid.refs['white_sigma_nt'] = float(white)
                 self.aid_change = abs(prob.aid.sigma_nt / old - 1.0)
         return new_sigma
 

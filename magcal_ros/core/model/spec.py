@@ -209,8 +209,18 @@ class Model:
             f'drop({format_arg(a)}, {format_arg(b)})' for a, b in self.drops]
 
     def with_effect(self, token):
-        """Return a new model with ``token`` (e.g. 'temperature@2') added."""
-        return Model.from_spec(self.spec() + [token], self.n_sensors)
+        """
+        Return a new model with ``token`` (e.g. 'temperature@2') added.
+
+        The array effects keep their references (the sensor positions of a site gradient,
+        the attitude's estimated error): the spec does not carry them.
+        """
+        new = Model.from_spec(self.spec() + [token], self.n_sensors)
+        old = {e.label: e for e in self.array_effects}
+        for eff in new.array_effects:
+            if eff.label in old:
+                eff.refs = dict(old[eff.label].refs)
+        return new
 
     def fit_mask(self, t):
         """(N,) bool: the samples at times ``t`` (N,) s the fit uses (outside every drop)."""

@@ -1,0 +1,152 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Attitude-aided calibration (issue 31 item 2): a vehicle near level, turning, its attitude logged.
+
+The simulator's vehicle (heading turning, roll and pitch within +-tilt) with the true
+attitude spoiled by a smooth error of a known size (as an EKF's is: correlated, tenths of a
+degree).  The references are the simulator's own truth, and the tolerances the fit's stated
+uncertainties (4 sd) or what the noise allows.
+"""
+import json
+import subprocess
+import sys
+
+from magcal_ros.core.data.simulate import simulate
+from magcal_ros.core.model.attitude_fit import fit_attitude
+from magcal_ros.core.model.fitting import DegenerateDataError, fit
+from magcal_ros.io.csvio import write_csv
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+F = 50000.0
+CACHE = {}
+
+
+def vehicle(tilt_deg=15.0, att_err_deg=0.3, n=3000, seed=1, yaw_err_deg=0.0):
+    """(data, sim): one compass on a turning vehicle, the attitude with a smooth error."""
+    key = (tilt_deg, att_err_deg, n, seed, yaw_err_deg)
+    if key not in CACHE:
+        data, sim = simulate(n_samples=n, rate_hz=10, n_sensors=1, trajectory='vehicle',
+                             tilt_deg=tilt_deg, attitude=True, seed=seed, aux=False,
+                             temp_swing_c=0)
+        rng = np.random.default_rng(seed + 100)
+        t = data.t
+        # a smooth error about each axis: a few sinusoids of periods 20-200 s, RMS att_err
+        err = np.zeros((n, 3))
+        for k in range(3):
+            for _ in range(4):
+                per, ph = rng.uniform(20, 200), rng.uniform(0, 2 * np.pi)
+                err[:, k] += np.sin(2 * np.pi * t / per + ph)
+            err[:, k] *= np.radians(att_err_deg) / np.std(err[:, k])
+        err[:, 2] += np.radians(yaw_err_deg) * np.sin(2 * np.pi * t / 60.0)
+        true = Rotation.from_quat(data.attitude, scalar_first=True)
+        data.attitude = (true * Rotation.from_rotvec(err)).as_quat(scalar_first=True)
+        CACHE[key] = (data, sim)
+    return CACHE[key]
+
+
+def test_tilted_turns_recover_the_truth_within_the_stated_uncertainty():
+    data, sim = vehicle()
+    for mode in ('tilt', 'full'):
+        ar = fit_attitude(data, 'base', field_nt=F, mode=mode)
+        r = ar.result
+        truth = sim.params[:9]
+        z = (r.params[:9] - truth) / r.stderr[:9]
+        assert np.all(np.abs(z) < 4.0), (mode, z)
+        # the noise is the simulator's 3 nT, and the residual reaches it
+        assert abs(r.sigma_nt[0] / 3.0 - 1) < 0.05
+        assert r.scalar_rms_nt[1] < 3.0 * 1.05
+        assert ar.undetermined == ()
+        # the world field: inclination 55 deg (the simulator's); the attitude error stated
+        # within a factor of its true 0.3 deg RMS per axis (the vertical sees two axes)
+        assert abs(ar.world_field['inclination_deg'] - 55.0) < 0.2
+        assert 0.1 < ar.attitude_sd_deg < 0.6
+    # full mode: the declination in the attitude's frame is the simulator's -7 deg
+    assert abs(ar.world_field['declination_deg'] + 7.0) < 0.3
+
+
+def test_level_flight_names_what_it_leaves_open_instead_of_refusing():
+    data, sim = vehicle(tilt_deg=0.5)
+    with pytest.raises(DegenerateDataError, match='one axis only'):
+        fit(data, 'base', field_nt=F)
+    ar = fit_attitude(data, 'base', field_nt=F, mode='tilt')
+    # level: the vertical reading is k_z Z + b_z (one constant), so the z scale and offset
+    # are open; so is the common scale of x and y while the split of F into H and Z is
+    # (the inclination estimated); the in-plane offsets are determined
+    assert {'scale.kz@1', 'offset.bz@1', 'scale.kx@1', 'scale.ky@1'} <= set(ar.undetermined)
+    assert {'offset.bx@1', 'offset.by@1'} <= set(ar.determined)
+    # the site's inclination (IGRF's +- 0.5 deg, in the simulator's NED frame) narrows the
+    # split, and the in-plane scales with it
+    se0 = ar.result.stderr[:2]
+    inc0 = ar.world_field['inclination_stderr_deg']
+    data.meta['attitude_frame'] = 'NED'
+    ar = fit_attitude(data, 'base', field_nt=F, mode='tilt', inclination_deg=55.0)
+    se = ar.result.stderr[:2]
+    assert np.all(se < se0), (se0, se)
+    inc = ar.world_field['inclination_stderr_deg']
+    assert inc < min(inc0, 0.5) and abs(ar.world_field['inclination_deg'] - 55.0) < 4 * inc
+    assert ar.world_field['inclination_prior'] == 'IGRF'
+    r = ar.result
+    truth = sim.params[:9]
+    inplane = [0, 1, 6, 7]
+    z = (r.params[inplane] - truth[inplane]) / r.stderr[inplane]
+    assert np.all(np.abs(z) < 4.0), z
+
+
+def test_a_heading_at_odds_with_the_compass_is_said():
+    data, _ = vehicle(yaw_err_deg=20.0)
+    ar = fit_attitude(data, 'base', field_nt=F, mode='tilt')
+    assert ar.heading['disagree'] and ar.heading['rms_deg'] > 10
+    # tilt mode did not trust the heading: the calibration is still right
+    assert ar.result.scalar_rms_nt[1] < 3.0 * 1.05
+    ok, _ = vehicle()
+    assert not fit_attitude(ok, 'base', field_nt=F, mode='tilt').heading['disagree']
+
+
+def magcal(*args, cwd):
+    return subprocess.run([sys.executable, '-m', 'magcal_ros.cli', *args], cwd=cwd,
+                          capture_output=True, text=True)
+
+
+def test_cli_uses_the_attitude_and_says_so(tmp_path):
+    data, sim = vehicle()
+    write_csv(str(tmp_path / 'veh.csv'), data)
+    out = magcal('fit', 'veh.csv', '--field-nt', '50000', '--json', '-o', 'cal.yaml',
+                 cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    doc = json.loads(out.stdout)
+    assert doc['attitude']['mode'] == 'tilt'
+    assert doc['attitude']['trusted'] == 'roll and pitch'
+    assert doc['undetermined'] == []
+    assert doc['scalar_rms_nt']['1'] < 3.0 * 1.05
+    # the magnitude alone refuses the partial coverage, naming it
+    off = magcal('fit', 'veh.csv', '--field-nt', '50000', '--attitude', 'off', cwd=tmp_path)
+    assert off.returncode == 2 and 'cone' in off.stderr
+    # the calibration loads and corrects without the attitude (it is no correction)
+    from magcal_ros.io.calfile import load_calibration
+    cal = load_calibration(str(tmp_path / 'cal.yaml'))[0]
+    corrected = cal.correct(1, data.raw[0], data.context(1))
+    assert abs(np.sqrt(np.mean((np.linalg.norm(corrected, axis=1) - F) ** 2)) / 3.0 - 1) < 0.05
+
+
+def test_cli_full_mode_without_attitude_is_refused(tmp_path):
+    data, _ = simulate(n_samples=300, n_sensors=1, seed=2)
+    write_csv(str(tmp_path / 'plain.csv'), data)
+    out = magcal('fit', 'plain.csv', '--field-nt', '50000', '--attitude', 'full',
+                 cwd=tmp_path)
+    assert out.returncode == 2
+    assert 'no attitude' in out.stderr and out.stderr.count('\n') == 1
