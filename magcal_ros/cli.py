@@ -342,6 +342,8 @@ def cmd_fit(args):
         extra = {'planar': {'inclination_deg': fref.get('inclination_deg')}}
     prog('fit', 0, 1, args.model)
     extra['attitude'] = attitude_option(args, data) or 'off'
+    if extra['attitude'] != 'off':
+        extra['inclination_deg'] = fref.get('inclination_deg')
     run = calibrate(data, args.model, field_nt=field_nt, geometry=geometry,
                     field_reference=fref, robust=args.robust, constrained=args.constrained,
                     on_degenerate='flag' if args.flag_degenerate else 'raise', **extra)
@@ -431,6 +433,12 @@ def _print_attitude(at):
     if at['undetermined']:
         print("undetermined (known no better than half the prior's width): "
               + ', '.join(at['undetermined']))
+
+
+def attitude_summary(aided, data):
+    """The JSON account of an attitude-aided fit (:func:`magcal_ros.pipeline.attitude_summary`)."""
+    from magcal_ros.pipeline import attitude_summary as summary
+    return summary(aided, data)
 
 
 def attitude_option(args, data):

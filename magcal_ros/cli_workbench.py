@@ -70,6 +70,7 @@ def _common(p, cli):
     p.add_argument('--rate-hz', type=float, default=100.0,
                    help='assumed sample rate of a single-sensor CSV without a time column')
     p.add_argument('-q', '--quiet', action='store_true', help='no progress on stderr')
+    cli.add_attitude_arg(p)
 
 
 def _validate(args, cli):
@@ -95,12 +96,24 @@ def _run(args, cli, with_ladder):
     from magcal_ros.core.data.readings import leave_out_unphysical
     data, field_nt, screen = leave_out_unphysical(data, field_nt)
     prog('fit', 0, 1, ','.join(model.spec()))
-    base = fit(data, model, field_nt=field_nt, robust=args.robust,
-               constrained=args.constrained,
-               on_degenerate='flag' if args.flag_degenerate else 'raise')
+    mode = cli.attitude_option(args, data)
+    constrained = args.constrained
+    if mode is not None:
+        # the attitude observes the field (core/model/attitude_fit.py): its priors hold what
+        # the motion leaves open, in every fit of the diagnosis
+        from magcal_ros.core.model.attitude_fit import fit_attitude
+        aided = fit_attitude(data, model, field_nt=field_nt, mode=mode, robust=args.robust,
+                             inclination_deg=fref.get('inclination_deg'),
+                             on_degenerate='flag')
+        base, constrained = aided.result, True
+        fref = dict(fref, attitude=cli.attitude_summary(aided, data))
+    else:
+        base = fit(data, model, field_nt=field_nt, robust=args.robust,
+                   constrained=constrained,
+                   on_degenerate='flag' if args.flag_degenerate else 'raise')
     prog('fit', 1, 1)
     diag = diagnose(data, field_nt=field_nt, base=base, folds=args.folds, alpha=args.alpha,
-                    progress=prog, baseline_m=args.baseline_m, constrained=args.constrained)
+                    progress=prog, baseline_m=args.baseline_m, constrained=constrained)
     if 'reduction' in data.meta:
         # a long record: the epochs are the whole record's, tested on its reduced sample
         from dataclasses import replace
@@ -110,7 +123,7 @@ def _run(args, cli, with_ladder):
     if with_ladder:
         lad = ladder(data, base, field_nt=field_nt, folds=args.folds, progress=prog,
                      diagnosis=diag, alpha=args.alpha, baseline_m=args.baseline_m,
-                     constrained=args.constrained)
+                     constrained=constrained)
     return data, diag, lad, fref, screen, prog
 
 
@@ -132,6 +145,9 @@ def cmd_diagnose(args, cli):
         doc['readings_left_out'] = screen.to_dict()
         doc['field_reference'] = fref
         doc['constrained'] = bool(args.constrained)
+        if 'attitude' in fref:
+            doc['attitude'] = fref['attitude']
+            doc['undetermined'] = fref['attitude']['undetermined']
         doc['report'] = None if index is None else str(index)
         if 'reduction' in data.meta:
             doc['reduction'] = data.meta['reduction']
@@ -142,6 +158,8 @@ def cmd_diagnose(args, cli):
         if 'reduction' in data.meta:
             print(reduction_line(data.meta['reduction']))
         print(diag.summary())
+        if 'attitude' in fref:
+            cli._print_attitude(fref['attitude'])
         for w in warnings:
             print(format_note(w))
         if lad is not None:

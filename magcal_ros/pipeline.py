@@ -430,13 +430,14 @@ def _calibrate(data, model, field_nt, geometry, field_reference, **fit_kwargs):
     mounting = []
     planar = fit_kwargs.pop('planar', None)
     attitude = attitude_mode(fit_kwargs.pop('attitude', None), data)
+    inclination = fit_kwargs.pop('inclination_deg', None)
     aided = None
     if attitude is not None:
         # a vehicle: the attitude observes the field's direction (core/model/attitude_fit.py)
         from magcal_ros.core.model.attitude_fit import fit_attitude
         fit_kwargs.pop('on_degenerate', None)
         aided = fit_attitude(data, model, field_nt=field_nt, mode=attitude,
-                             on_degenerate='flag', **fit_kwargs)
+                             inclination_deg=inclination, on_degenerate='flag', **fit_kwargs)
         result = aided.result
     elif fit_kwargs.pop('heading_unknown', False):
         # site gradient without attitude: the heading about the field per epoch

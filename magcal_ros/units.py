@@ -177,3 +177,40 @@ def check_field_units(raw, reference_nt=None, reference_name='the reference'):
     raise ValueError(
         f'the readings have a field magnitude of about {m:.4g} nT and {reference_name} is '
         f'{f:.4g} nT: ' + _looks(m))
+
+
+#: the unit of an auxiliary channel, by the ending of its name (the vehicle logs' channels,
+#: docs/design.md §1): the first match wins
+CHANNEL_UNITS = (('_current', 'A'), ('_voltage', 'V'), ('_power', 'W'), ('_temp', 'degC'),
+                 ('_throttle', '1'))
+
+
+def channel_unit(name):
+    """
+    The unit of auxiliary channel ``name`` (``aux_battery_current`` -> ``A``), or None.
+
+    Known from the name's ending (:data:`CHANNEL_UNITS`); a coupling to the channel is then
+    stated in nT per that unit (``nT/A``) instead of nT per the channel's unit.
+    """
+    low = str(name).lower()
+    for end, unit in CHANNEL_UNITS:
+        if low.endswith(end):
+            return unit
+    return None
+
+
+def coupling_unit(unit, label):
+    """
+    ``unit`` of a parameter of the effect ``label`` with the channel's unit put in.
+
+    ``'nT/unit'`` of ``aux:aux_battery_current`` is ``'nT/A'``; any other unit is returned as
+    it is.
+    """
+    if 'unit' not in unit:
+        return unit
+    import re
+    for name in re.findall(r'aux_[A-Za-z0-9_]+', str(label)):
+        ch = channel_unit(name)
+        if ch is not None:
+            return unit.replace('unit', ch)
+    return unit

@@ -150,3 +150,27 @@ def test_cli_full_mode_without_attitude_is_refused(tmp_path):
                  cwd=tmp_path)
     assert out.returncode == 2
     assert 'no attitude' in out.stderr and out.stderr.count('\n') == 1
+
+
+def test_the_loop_on_a_vehicle_finds_the_motor_current_in_amperes(tmp_path):
+    # a turning vehicle whose motor current (the simulator's aux_motor_current, A) pulls
+    # the compass by (40, -25, 60) nT/A: diagnose names it unasked, and the fit with it
+    # reaches the noise and states the coupling in nT/A within its uncertainty
+    data, _ = simulate(n_samples=3000, rate_hz=10, n_sensors=1, trajectory='vehicle',
+                       tilt_deg=15, attitude=True, seed=3, temp_swing_c=0,
+                       truth={'aux:aux_motor_current@1': [40.0, -25.0, 60.0]})
+    write_csv(str(tmp_path / 'veh.csv'), data)
+    d = magcal('diagnose', 'veh.csv', '--field-nt', '50000', '--json', '-q', cwd=tmp_path)
+    assert d.returncode == 0, d.stderr
+    diag = json.loads(d.stdout)
+    assert diag['verdict']['token'] == 'aux:aux_motor_current@1'
+    assert diag['attitude']['mode'] == 'tilt'
+    f = magcal('fit', 'veh.csv', '--field-nt', '50000', '--json', '-q', '--model',
+               'base,' + diag['verdict']['token'], cwd=tmp_path)
+    doc = json.loads(f.stdout)
+    assert doc['scalar_rms_nt']['1'] < 3.0 * 1.05 < diag['scalar_rms_nt']['1']
+    aux = [e for e in doc['calibration']['sensors'][0]['effects'] if e['name'] == 'aux'][0]
+    for name, truth in zip(('vx', 'vy', 'vz'), (40.0, -25.0, 60.0)):
+        par = aux['params'][name]
+        assert par['unit'] == 'nT/A'
+        assert abs(par['value'] - truth) < 4 * par['stderr'], (name, par)

@@ -52,6 +52,7 @@ import os
 from magcal_ros.core import effects as fx
 from magcal_ros.core.model import Calibration, Model
 from magcal_ros.io.atomic import atomic_write_text
+from magcal_ros.units import coupling_unit
 import numpy as np
 import yaml
 
@@ -194,7 +195,8 @@ def calibration_to_doc(cal, geometry=None, field_reference=None, provenance=None
     def effect_doc(eff, sl):
         return {'name': eff.name, 'label': eff.label,
                 'refs': {k: float(v) for k, v in eff.refs.items()},
-                'params': {n: {'value': float(v), 'unit': u, 'stderr': float(s)}
+                'params': {n: {'value': float(v), 'unit': coupling_unit(u, eff.label),
+                               'stderr': float(s)}
                            for n, u, v, s in zip(eff.param_names, eff.units,
                                                  cal.params[sl], cal.stderr[sl])}}
 

@@ -85,20 +85,22 @@ class Screen:
             _, b, mats, _ = prob.evaluate(x)
             n, g = len(f), len(grp)
             # (N, 3, 2) field-direction columns of each sensor, scaled like the residual
+            # (and of the attitude, when it observes the field: a member without candidates)
+            gm = prob.n_members
             g_all = prob.field_columns(b, mats)
-            gb = [g_all[:, 3 * gi:3 * gi + 3] for gi in range(g)]
+            gb = [g_all[:, 3 * gi:3 * gi + 3] for gi in range(gm)]
             gtg = sum(np.swapaxes(x_, 1, 2) @ x_ for x_ in gb)
             a, bb, c, d_ = gtg[:, 0, 0], gtg[:, 0, 1], gtg[:, 1, 0], gtg[:, 1, 1]
             ginv = np.stack([np.stack([d_, -bb], axis=1), np.stack([-c, a], axis=1)],
                             axis=1) / (a * d_ - bb * c)[:, None, None]       # (N, 2, 2)
-            r3 = r.reshape(n, g, 3)
+            r3 = r.reshape(n, gm, 3)
             gtr = sum((np.swapaxes(gb[gi], 1, 2) @ r3[:, gi, :, None])[..., 0]
-                      for gi in range(g))                                     # (N, 2)
+                      for gi in range(gm))                                    # (N, 2)
             d = np.linalg.norm(jac, axis=0)
             d[d == 0] = 1.0
             js = jac
             js /= d                          # in place: the Jacobian is not needed unscaled
-            j4 = js.reshape(n, g, 3, -1)
+            j4 = js.reshape(n, gm, 3, -1)
             ginv_gtr = (ginv @ gtr[..., None])[..., 0]                         # (N, 2)
             self.groups.append({
                 'sensors': grp, 'cols': prob.cols, 'd': d, 'b': b,
@@ -108,7 +110,7 @@ class Screen:
                 'r': [np.ascontiguousarray(r3[:, gi]).reshape(-1) for gi in range(g)],
                 # per sensor, axis i and field direction a: the (N,) column G[:, i, a]
                 'gb': [[[np.ascontiguousarray(x_[:, i, a]) for a in range(2)]
-                        for i in range(3)] for x_ in gb],
+                        for i in range(3)] for x_ in gb[:g]],
                 # (G^T G)^-1 and (G^T G)^-1 G^T r per epoch, component by component (N,)
                 'ginv': [[np.ascontiguousarray(ginv[:, a, c]) for c in range(2)]
                          for a in range(2)],

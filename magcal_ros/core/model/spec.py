@@ -155,10 +155,12 @@ class Model:
                                      'the data have one sensor (drop @alike)')
                 makers = [(term.core, lambda j, t=term: composed_effect(t, j))]
             elif term.scope == 'array':
-                if n_sensors < 3:
+                eff = fx.make_effect(term.core, 0)
+                if n_sensors < 3 and hasattr(eff, 'set_positions'):
+                    # a gradient across the array (the attitude's observation is not one)
                     raise ValueError(f'{term.core} needs an array of at least three sensors')
                 if term.core not in [e.name for e in array_effects]:
-                    array_effects.append(fx.make_effect(term.core, 0))
+                    array_effects.append(eff)
                 continue
             else:
                 names = fx.BASE if term.core == 'base' else (term.core,)
