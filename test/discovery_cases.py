@@ -138,6 +138,9 @@ class Case:
         As :func:`build`.
     rate_hz : float
         Sampling rate.
+    time_kind : tuple of str
+        For a disturbance in time ('t'): the kinds of time driver that describe it
+        (:data:`TIME_KINDS`): a smooth basis, steps, a sinusoid, a window or left-out interval.
 
     """
 
@@ -150,6 +153,7 @@ class Case:
     field_change: object = None
     rate_hz: float = inj.RATE_HZ
     tags: tuple = field(default_factory=tuple)
+    time_kind: tuple = ()
 
     def data(self, n, seed=11):
         """Return the Dataset of this case with ``n`` epochs."""
@@ -321,11 +325,19 @@ def supply_offset_sq(sensor=3, coef=_vec(25.0, -18.0, 12.0)):
     return f
 
 
+#: the kinds of time driver a term in time may use, by what they match in the term
+TIME_KINDS = {
+    'smooth': r'\bs\(t\b|\bpoly\(t\b|\bdrift2?\b',
+    'step': r'\bstep\(',
+    'periodic': r'\bperiodic\(|\bsin\(t\b',
+    'window': r'\bdrop\(|\bwindow\(',
+}
+
 CASES = [
     Case('control', 'nothing missing; every decoy channel varies', (), None),
     Case('control_fast', 'nothing missing, sampled at 10 Hz', (), None, rate_hz=10.0),
     Case('warmup', 'offset settling exponentially after switch-on, sensor 2', (2,), 't',
-         inject=warmup()),
+         inject=warmup(), time_kind=('smooth', 'step')),   # steps at its fast start
     Case('scale_temperature', 'scale factors of sensor 3 follow its temperature', (3,),
          'temperature', inject=scale_follows('temperature', 3, _vec(5e-5, -4e-5, 6e-5))),
     Case('rotor', 'a magnetised wheel near sensor 1, periodic in the wrapped wheel angle',
@@ -333,9 +345,9 @@ CASES = [
     Case('relay_lag', 'a relay current through a 6 s lag, sensor 4', (4,), 'aux_relay',
          inject=relay_lag()),
     Case('vehicle', 'a vehicle passing: a 40 s bump of the field seen by every sensor', ALL,
-         't', time=(0.40, 0.50), field_change=vehicle()),
+         't', time=(0.40, 0.50), field_change=vehicle(), time_kind=('window',)),
     Case('diurnal', 'the diurnal variation: the field changes alike for every sensor', ALL,
-         't', field_change=diurnal()),
+         't', field_change=diurnal(), time_kind=('smooth',)),
     Case('arm', 'a current along the arm of sensors 2 and 4', (2, 4), 'aux_pump_current',
          inject=arm()),
     Case('product', 'a current coupling whose gain follows temperature, sensor 1', (1,),
@@ -345,16 +357,16 @@ CASES = [
     Case('induced', 'a soft part moved by a servo near sensor 3 (field-proportional)', (3,),
          'aux_servo_pos', inject=induced()),
     Case('gain_switch', 'the scale factors of sensor 2 step at a range switch', (2,), 't',
-         time=(0.55, 0.55), inject=gain_switch()),
+         time=(0.55, 0.55), inject=gain_switch(), time_kind=('step',)),
     Case('skew', 'sensor 4 sampled 0.6 ms late', (4,), 'rate', inject=skew()),
     Case('trajectory_line', 'a source at a frequency of the trajectory, sensor 2', (2,), 't',
-         inject=trajectory_line()),
+         inject=trajectory_line(), time_kind=('periodic',)),
     Case('localized', 'a 40 s disturbance nothing simple describes, sensor 3', (3,), 't',
-         time=(0.30, 0.37), inject=localized()),
+         time=(0.30, 0.37), inject=localized(), time_kind=('window',)),
     Case('temp_coef_drift', 'a temperature coefficient that drifts over the record, sensor 1',
          (1,), 'temperature', inject=temp_drifting_coef()),
     Case('common_warmup', "every sensor's offset drifting alike (common electronics)", ALL,
-         't', inject=common_offset()),
+         't', inject=common_offset(), time_kind=('smooth',)),
     Case('supply_squared', 'a stray field with the square of the supply deviation, sensor 3',
          (3,), 'aux_supply_v', inject=supply_offset_sq()),
 ]
@@ -387,8 +399,9 @@ def attributed(case, term, t):
 
     Sensors: the term's scope must be exactly the case's sensors (a term on every sensor,
     alike or on the array, for a disturbance of the whole array).  Channel: the channel's
-    name must appear in the term ('t' for time: a basis in t, a drift, a step, a sinusoid,
-    a window or a left-out interval; 'rate': the field rate).  Time: a localised
+    name must appear in the term ('t' for time: a driver of one of the case's
+    ``time_kind``, e.g. a step for a gain switch, not a smooth basis that also brings the
+    residual to the floor; 'rate': the field rate).  Time: a localised
     disturbance's term must name a time inside its window widened by 5 % of the span (a
     step), or an interval overlapping it by at least half of the window.
     """
@@ -401,8 +414,9 @@ def attributed(case, term, t):
         return False, f'sensors {scope} != {case.sensors}'
     ch = case.channel
     if ch == 't':
-        if not re.search(r'\bt\b|drift|step|periodic|sin\(|window|drop', term):
-            return False, 'not a function of time'
+        kinds = [k for k in case.time_kind if re.search(TIME_KINDS[k], term)]
+        if not kinds:
+            return False, f'not a function of time of the kind {" or ".join(case.time_kind)}'
     elif ch == 'rate':
         if 'rate' not in term:
             return False, 'not the field rate'

@@ -24,7 +24,8 @@ Tolerance: the noise floor is estimated from the data (4th differences, 3 000-10
 its relative standard error is below 1 %), and a model that holds the truth leaves the
 residual at the floor up to the parameters it fits (k / 3N < 1 %): 1.15 is the issue's
 bound, at least 10 standard errors above what a right model leaves.  Controls must stay
-"none" with the base fit within 1.10x the floor (the diagnosis' own at-floor rule).
+"none", at the floor by the diagnosis' own rule, with the base fit leaving the noise the
+case was written with (3 nT per axis) within 4 standard errors of an RMS.
 
 The cases here cover each driver kind (smooth/step/window in time, a channel linear, its
 lag, a cyclic channel, a product, a step), each coupling (offset, scale, linear, field), each scope
@@ -38,7 +39,6 @@ import numpy as np
 import pytest
 
 PASS_RATIO = 1.15
-CONTROL_RATIO = 1.10
 
 #: (case, epochs): which driver, coupling and scope each one exercises
 CHOSEN = [
@@ -88,7 +88,16 @@ def test_control_stays_none(name, n):
     base = diag.result
     assert base.model.spec() == Model.from_spec('base', data.n_sensors).spec()
     assert base.n_fit_samples == data.n_samples
-    assert _worst_ratio(data, base) <= CONTROL_RATIO
+    # and it leaves the noise the case was written with (independent of the floor the
+    # diagnosis estimates): the scalar residual SIGMA_NT, sensor j against sensor 1
+    # sqrt(2) SIGMA_NT per axis, each within 4 standard errors of an RMS of N values
+    # (1 / sqrt(2 N): 5.2 % at 3 000 epochs, 2.8 % at 10 000; the 45 fitted parameters
+    # take less than 0.4 % of it)
+    tol = 4.0 / np.sqrt(2 * n)
+    for j, rms in base.scalar_rms_nt.items():
+        assert abs(rms / dc.SIGMA_NT - 1) < tol, (j, rms)
+    for j, rms in base.vector_rms_nt.items():
+        assert abs(rms / (np.sqrt(2) * dc.SIGMA_NT) - 1) < tol, (j, rms)
 
 
 @pytest.mark.parametrize('name,n', [c for c in CHOSEN if dc.BY_NAME[c[0]].sensors])
@@ -109,12 +118,21 @@ def test_offered_term_is_attributed_and_reaches_the_floor(name, n):
 def test_json_contract_keys_and_verdict_among_candidates():
     _, data, diag = _run('rotor', 3000)
     d = diag.to_dict()
-    for key in ('candidates', 'verdict', 'findings', 'token'):
-        assert key in d or key in d['verdict']
-    assert d['verdict']['token'] == diag.verdict_token
-    assert any(c['token'] == diag.verdict_token for c in d['candidates'])
-    top = next(c for c in d['candidates'] if c['token'] == diag.verdict_token)
-    assert top['explained_fraction'] >= 0.8
+    # docs/design.md §2, `diagnose --json`: the keys at the top and in the verdict
+    assert {'model', 'noise_floor_nt', 'scalar_rms_nt', 'vector_rms_nt', 'candidates',
+            'verdict', 'findings'} <= set(d)
+    verdict = d['verdict']
+    assert {'effect', 'sensor', 'token', 'explained_fraction', 'decided_by'} <= set(verdict)
+    assert verdict['token'] == diag.verdict_token == f"{verdict['effect']}@{verdict['sensor']}"
+    # candidates best first: the verdict is the first, with its own explained fraction, at
+    # least the 80 % of the held-out excess a search term must remove to become the verdict
+    top = d['candidates'][0]
+    assert top['token'] == verdict['token']
+    assert top['explained_fraction'] == verdict['explained_fraction'] >= 0.8
+    assert verdict['decided_by'] == 'held-out'
+    for finding in d['findings']:
+        assert {'kind', 'sensor', 'channel', 'value', 'unit', 'explained_fraction', 'text',
+                'token'} <= set(finding)
 
 
 def test_localised_finding_names_the_window():
@@ -137,3 +155,11 @@ def test_attribution_helper_rejects_wrong_scope_and_channel():
     assert not dc.attributed(arm, 'offset(aux_pump_current)', t)[0]
     assert not dc.attributed(arm, 'offset(aux_relay)@{2,4}', t)[0]
     assert not dc.attributed(dc.BY_NAME['control'], 'offset(t)@1', t)[0]
+    # a disturbance in time must be named by a driver of its kind: a gain switch by a step
+    # (a smooth basis also brings its residual to the floor: BENCHMARKS.md, the gain switch
+    # before the gains' change points), the diurnal variation by a smooth basis
+    switch, diurnal = dc.BY_NAME['gain_switch'], dc.BY_NAME['diurnal']
+    assert dc.attributed(switch, 'scale(step(330))@2', t)[0]
+    assert not dc.attributed(switch, 'scale(s(t, k=12))@2', t)[0]
+    assert dc.attributed(diurnal, 'field(poly(t, 1))', t)[0]
+    assert not dc.attributed(diurnal, 'field(step(100))', t)[0]

@@ -17,6 +17,8 @@ Citations of docs/design.md and docs/papers.md point at existing sections.
 
 Every citation of docs/design.md and docs/papers.md in the repository points at a section
 that exists, and the background files of the development (never shipped) are not cited.
+Every page of docs/ that the package's source (docstrings and comments) or docs/ cites, as
+``docs/NAME.md`` or as a Markdown link ``(NAME.md)`` between two pages of docs/, exists.
 """
 import pathlib
 import re
@@ -55,3 +57,25 @@ def test_citations_point_at_existing_sections():
         for missing in (stem + '.md' for stem in ('DESIGN', 'SEEDS', 'API', 'STYLE')):
             assert missing not in text, f'{name} cites {missing}, which is not in the repository'
     assert seen > 30
+
+
+def cited_doc_pages(name, text):
+    """Return the docs/ pages a file cites: ``docs/NAME.md``, and links ``](NAME.md)`` in docs/."""
+    pages = set(re.findall(r'\bdocs/([\w-]+\.md)', text))
+    if name.startswith('docs/'):
+        pages |= set(re.findall(r'\]\(([\w-]+\.md)(?:#[\w-]*)?\)', text))
+    return pages
+
+
+def test_cited_doc_pages_exist():
+    assert cited_doc_pages('docs/a.md', 'see docs/formula.md and [f](plugins.md#x)') == \
+        {'formula.md', 'plugins.md'}
+    existing = {p.name for p in (ROOT / 'docs').glob('*.md')}
+    cited = 0
+    for name, text in _tracked_text():
+        if name.endswith('.py') and name.startswith('magcal_ros/') or \
+                name.startswith('docs/') and name.endswith('.md'):
+            for page in cited_doc_pages(name, text):
+                assert page in existing, f'{name} cites docs/{page}, which does not exist'
+                cited += 1
+    assert cited > 50

@@ -28,7 +28,10 @@ CUBE = [[x, y, z] for z in (0.2, -0.2)
 
 
 def test_array_geometry_from_parameters():
-    assert array_geometry(4, (), 0.5)['positions_m'] == cross_positions(0.5).tolist()
+    # paper 004's cross (docs/papers.md, eq. 1: G_xx = (B1x - B3x) / d, G_xy = (B2x - B4x) / d):
+    # sensor 1 at +x, 3 at -x, 2 at +y, 4 at -y, d between the two sensors of an arm
+    assert array_geometry(4, (), 0.5)['positions_m'] == [
+        [0.25, 0.0, 0.0], [0.0, 0.25, 0.0], [-0.25, 0.0, 0.0], [0.0, -0.25, 0.0]]
     assert array_geometry(4, (), 0.5)['type'] == 'cross'
     assert array_geometry(1)['positions_m'] == [[0.0, 0.0, 0.0]]
     assert array_geometry(2) is None                   # no positions: no tensor

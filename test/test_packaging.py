@@ -21,7 +21,6 @@ A copy of the package source is built with the colcon from this environment into
 workspace (no writes to the repository). This is the slow test of the suite (about 10 s).
 """
 
-import ast
 import configparser
 import os
 import pathlib
@@ -122,34 +121,3 @@ def test_colcon_build_installs_index_manifest_config_and_executables(colcon_inst
     assert not [p for p in installed if p.name.endswith(('.csv', '.csv.gz', '.csv.zst'))
                 or 'real' in p.parts or 'sunsided-hmc5883l' in p.parts], installed
 
-
-#: third-party Python modules and their rosdep keys; the pip-only ones (README: "come from
-#: pip") map to None
-_PY_DEPS = {'numpy': 'python3-numpy', 'scipy': 'python3-scipy', 'serial': 'python3-serial',
-            'yaml': 'python3-yaml', 'matplotlib': 'python3-matplotlib', 'rosbags': None,
-            'ppigrf': None, 'threadpoolctl': None, 'zstandard': None,
-            'jsonschema': 'python3-jsonschema', 'tqdm': 'python3-tqdm', 'PIL': 'python3-pil'}
-
-
-def _imported_modules(paths):
-    names = set()
-    for path in paths:
-        for node in ast.walk(ast.parse(path.read_text())):
-            if isinstance(node, ast.Import):
-                names.update(a.name.split('.')[0] for a in node.names)
-            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-                names.add(node.module.split('.')[0])
-    return names - set(sys.stdlib_module_names) - {PACKAGE}
-
-
-def test_every_imported_package_is_declared_in_package_xml():
-    """Each ROS package the nodes or the launch file import is an exec_depend (rosdep)."""
-    root = ET.parse(REPO_ROOT / 'package.xml').getroot()
-    declared = {e.text for e in root.findall('exec_depend')}
-    paths = list((REPO_ROOT / PACKAGE).rglob('*.py')) + list(
-        (REPO_ROOT / 'launch').glob('*.py'))
-    needed = {_PY_DEPS.get(m, m) for m in _imported_modules(paths)} - {None}
-    assert needed <= declared, f'imported but not in package.xml: {sorted(needed - declared)}'
-    test_deps = {e.text for e in root.findall('test_depend')}
-    assert {'python3-pytest', 'python3-pytest-timeout', 'python3-hypothesis',
-            'ament_flake8', 'ament_pep257', 'ament_copyright'} <= test_deps

@@ -15,7 +15,7 @@
 """
 The drivers the discovery search tries, built from what a record holds.
 
-A :class:`Driver` is one factor of the model formula (docs/formula.md, FORMULA syntax:
+A :class:`Driver` is one factor of the model formula (docs/formulas.md, FORMULA syntax:
 ``s(t, k=8)``, ``cc(aux_wheel_angle, k=2)``, ``lag(aux_relay)``, ``poly(temperature, 2)``,
 ``sin(0.0112)``, ``step(300)``, ``window(120, 160)``, ``temperature * t``, ``rate``) with its
 design columns X (N, m) on the tested epochs, centred, so that the search can score it
