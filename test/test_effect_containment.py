@@ -81,13 +81,11 @@ def test_probe_refuses_an_undeclared_signal_in_one_line():
 
     # a built-in effect with its declaration taken away is caught the same way: the probe
     # looks at what the code reads, not at names
-    class NoTemp(fx.Temperature):
+    class NoTemp(fx.effect_class('temperature')):
         signals = ()
 
-    class NoAux(fx.Aux):
-        @property
-        def signals(self):
-            return ()
+    class NoAux(fx.TOKEN_CLASSES['aux']):
+        signals = ()
 
     with pytest.raises(ValueError, match="reads the signal 'temperature'"):
         probe_effect(NoTemp)
@@ -98,7 +96,7 @@ def test_probe_refuses_an_undeclared_signal_in_one_line():
 def test_probe_accepts_every_built_in_effect_and_the_example():
     for name in fx.BUILTIN_EFFECTS:
         probe_effect(fx.effect_class(name))
-    probe_effect(fx.Aux)
+    probe_effect(fx.TOKEN_CLASSES['aux'])
     # the context holds exactly the declared signals; has() says no to the others
     ctx = probe_context(('temperature', 'aux_pump'))
     assert ctx.has('temperature') and ctx.has('aux_pump') and ctx.has('time')

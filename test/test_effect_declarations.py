@@ -108,11 +108,16 @@ def _recording(n=2000, seed=3):
 
 def test_declarations_of_the_builtin_effects():
     # what model.py and the corrector once recognised by name, now declared by each class
-    assert fx.Temperature.signals == ('temperature',)
-    assert fx.FieldRate.signals == ('field_rate',)
-    assert fx.Drift.signals == ('time',)
-    assert fx.Aux(channel='motor_current').signals == ('aux_motor_current',)
-    assert fx.Offset.constant and not fx.Temperature.constant
+    def token(name, *args):
+        return fx.TOKEN_CLASSES[name](args=args)
+    assert token('temperature').signals == ('temperature',)
+    assert token('field_rate').signals == ('field_rate',)
+    assert token('drift').signals == ('time',)
+    assert token('aux', 'motor_current').signals == ('aux_motor_current',)
+    assert token('lag', 'aux_pump').signals == ('time', 'aux_pump')
+    assert token('nonlinearity').signals == () and token('nonlinearity').depends_on_lin()
+    assert token('temperature').depends_on_lin() and not token('drift2').depends_on_lin()
+    assert fx.Offset.constant and not token('temperature').constant
     assert [c.linear_order for c in (fx.Scale, fx.NonOrthogonality, fx.SoftIron,
                                      fx.Misalignment)] == [0, 1, 2, 3]
     assert not fx.Misalignment(sensor=1).applies and fx.Misalignment(sensor=2).applies

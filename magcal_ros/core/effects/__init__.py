@@ -19,7 +19,8 @@ An effect is a *coupling* applied to a *driver* on a *scope* (docs/formulas.md):
 
 - :mod:`.base`: :class:`Effect`, :class:`SensorContext`, :class:`LinearParts`, the paper
   004 rotations and the signal helpers;
-- :mod:`.catalog`: the named effects of today's tokens (scale, offset, temperature, ...);
+- :mod:`.catalog`: the named effects of today's tokens (scale, offset; temperature, lag(v),
+  ... as compositions of the grammar);
 - :mod:`.drivers`: bases of a driving signal (s, cc, poly, sin, step, window, lag, a
   channel, rate, lin, products);
 - :mod:`.couplings`: how a driver enters the reading (offset, scale, linear, nonorth,
@@ -38,9 +39,8 @@ from magcal_ros.core.effects.base import (  # noqa: F401 - re-exported
     misalignment_matrix, NONLINEARITY_FULL_SCALE_NT, nonorthogonality_matrix, raw_rate,
     rot_r1, rot_r2, rot_r3, rq_positive, SensorContext, SIGNALS, upper_to_scale_nonorth)
 from magcal_ros.core.effects.catalog import (  # noqa: F401 - re-exported
-    Aux, AuxPoly, axis_map_args, axis_map_matrix, AXIS_NAMES, AxisMap, Drift, FieldRate, Lag,
-    Misalignment, Nonlinearity, NonOrthogonality, Offset, Periodic, QuadraticDrift, Scale,
-    SiteGradient, SoftIron, Step, Temperature)
+    axis_map_args, axis_map_matrix, AXIS_NAMES, AxisMap, Misalignment, NonOrthogonality, Offset,
+    Scale, SiteGradient, SoftIron, TOKEN_CLASSES, TokenEffect, TOKENS)
 from magcal_ros.core.effects.registry import (  # noqa: F401 - re-exported
     BASE, BUILTIN_EFFECTS, effect_class, load_plugin, load_plugins, make_catalog_effect,
     needs_args, parse_token, register_effect, registered_effects, split_spec,

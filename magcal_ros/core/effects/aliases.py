@@ -16,19 +16,19 @@
 Today's model tokens as compositions coupling(driver) of the grammar (docs/formulas.md).
 
 Every token accepted before the grammar (``base``, ``temperature@2``, ``step(300)``,
-``aux:aux_x``, ...) stays a term of the formula.  It keeps its catalog class
-(:mod:`.catalog`), its parameter names and its reference values, so that every calibration
-file written before loads and corrects exactly as before; :func:`expansion` gives the
-composition it is (test/test_grammar.py checks that the class and the composition give the
-same change of the reading).  Differences a user may notice: the catalog's drift is
-referred to the first sample (the composition ``offset(t)`` to the mean), ``aux_poly`` and
-``drift2`` are unscaled powers (``poly`` scales by the half range), ``nonlinearity`` has the
-degrees 2 and 3 only, ``field_rate`` is written with -tau (s).
+``aux:aux_x``, ...) stays a term of the formula.  A driven token is evaluated by its
+composition (:data:`.catalog.TOKENS`, the grammar's code) under its own parameter names and
+reference values, so that every calibration file written before loads and corrects as
+before; :func:`expansion` prints that composition.  Differences a user may notice: the
+token's drift is referred to the first sample (the composition ``offset(t)`` to the mean),
+``aux_poly`` and ``drift2`` are unscaled powers (``poly`` scales by the half range),
+``nonlinearity`` has the degrees 2 and 3 only, ``field_rate`` is written with -tau (s).
+The constant linear map and offset are the model's core, not compositions.
 """
-from magcal_ros.core.effects.registry import parse_token
+from magcal_ros.core.effects.registry import make_catalog_effect
 
-#: token (or pattern) -> composition; {x}, {d}, {a} are the token's arguments
-ALIASES = {
+#: the tokens that are not compositions: what each stands for
+CONSTANT = {
     'base': 'offset + scale + nonorthogonality + misalignment',
     'offset': 'offset(1)',
     'scale': 'the constant scale factors (paper 004 eq. 2, S)',
@@ -36,36 +36,20 @@ ALIASES = {
     'misalignment': 'the constant orientation relative to sensor 1 (paper 004 eq. 3)',
     'soft_iron': 'the constant full linear map (paper 002, K = I + D)',
     'site_gradient': 'the constant gradient of the site, world frame (paper 004 eq. 1)',
-    'temperature': 'offset(temperature) + scale(temperature)',
-    'drift': 'offset(t)',
-    'drift2': 'offset(poly(t, 2))',
-    'aux': 'offset({x})',
-    'aux_poly': 'offset(poly({x}, {d}))',
-    'step': 'offset(step({a}))',
-    'periodic': 'offset(sin({a}))',
-    'lag': 'offset(lag({x}))',
-    'field_rate': 'offset(rate)   (dB = -tau rate, tau in s)',
-    'nonlinearity': 'offset(poly(lin, 3)) without the linear column (degrees 2 and 3)',
 }
 
 
 def expansion(token):
     """
-    Return the composition a legacy token stands for, e.g. 'offset(poly(aux_x, 2))'.
+    Return the composition a legacy token stands for, e.g. 'offset(poly(aux_x, 2))@2'.
 
     None for a token that is no alias (a plug-in effect of its own).
     """
-    tok = str(token).strip()
-    core, _, where = tok.partition('@')
+    core, _, where = str(token).strip().partition('@')
     scope = f'@{where}' if where else ''
-    if core.startswith('aux:'):
-        return ALIASES['aux'].format(x=core[4:]) + scope
-    name, args, _ = parse_token(core)
-    pattern = ALIASES.get(name)
-    if pattern is None:
+    if core in CONSTANT:
+        return CONSTANT[core] + (scope if core == 'offset' else '')
+    eff = make_catalog_effect(core, 1)
+    if not hasattr(eff, 'parts'):
         return None
-    text = pattern.format(x=args[0] if args else '', d=args[1] if len(args) > 1 else '',
-                          a=', '.join(args))
-    if scope and '+' in text:
-        return ' + '.join(f'{t.strip()}{scope}' for t in text.split('+'))
-    return text + (scope if '(' in text else '')
+    return ' + '.join(p.text + scope for p in eff.parts) + eff.comp.note

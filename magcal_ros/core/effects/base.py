@@ -448,70 +448,78 @@ def channel_name(name):
     return name if name.startswith('aux_') else 'aux_' + name
 
 
-def channel_values(ctx, channel):
-    """(N,) values of 'temperature' or an auxiliary channel in ``ctx`` (None if absent)."""
-    if channel == 'temperature':
-        return ctx.temp
-    return ctx.aux.get(channel)
+def lag_coefficients(dt, tau):
+    """
+    (a, b0, b1) of one step of the lag tau dy/dt = x - y: y_k = a y_k-1 + b0 x_k + b1 x_k-1.
 
+    The one discretisation of the lag, for the batch filter (:func:`first_order_lag`) and
+    the live one (:func:`lag_step`): exact when x is linear between samples (the
+    first-order-hold or "triangle-hold" equivalent of 1 / (tau s + 1): Franklin, Powell and
+    Workman, Digital Control of Dynamic Systems, 3rd ed. 1998, sec. 6.3):
+    a = exp(-dt/tau), b0 = 1 - g, b1 = g - a, g = tau/dt (1 - a), so b0 + b1 = 1 - a (a
+    constant passes unchanged).  A step of dt = 0 holds y (two samples of one stamp), one
+    of dt < 0 (the clock went back) restarts in steady state, y = x; tau is at least
+    1e-3 dt.  ``dt`` s: a float or (K,) array; returns floats or (K,) arrays.
 
-def check_channel(ctx, channel, sensor):
-    """Return None if the channel is present and varies in ``ctx``, else the reason why not."""
-    a = channel_values(ctx, channel)
-    if a is None or not np.isfinite(a).any():
-        col = f's{sensor}_temp' if channel == 'temperature' else channel
-        return f'sensor {sensor}: no {channel} column ({col}) in the data'
-    if channel != 'temperature' and not np.isfinite(a).all():
-        return f'channel {channel!r} contains non-finite values'
-    if np.nanmax(a) - np.nanmin(a) <= 1e-9 * max(1.0, float(np.nanmax(np.abs(a)))):
-        return (f'channel {channel!r} never changes: its coupling cannot be separated from '
-                'the offset')
-    return None
+    g is written as the files before were (not as -expm1(-dt/tau) tau/dt, which loses
+    less to rounding when tau >> dt): test/data/legacy_cal/lag.yaml has tau = 1.4e5 s at
+    dt = 0.5 s, where the two differ by 1e-11 and its correction by 2.4e-8 nT.
+    """
+    dt = np.asarray(dt, float)
+    tau = np.maximum(abs(float(tau)), 1e-3 * dt)
+    pos = dt > 0
+    with np.errstate(divide='ignore', invalid='ignore'):
+        a = np.where(pos, np.exp(-dt / tau), np.where(dt == 0, 1.0, 0.0))
+        g = np.where(pos, (tau / dt) * (1.0 - a), a)
+    return a, 1.0 - g, g - a
 
 
 def first_order_lag(t, x, tau):
     """
     (N,) response y of tau dy/dt = x - y to x (N,) sampled at t (N,) s, y(t0) = x(t0).
 
-    Exact for x linear between samples (first-order hold): y_k = a y_k-1 + b0 x_k + b1 x_k-1,
-    a = exp(-dt/tau), b0 = 1 - tau/dt (1 - a), b1 = tau/dt (1 - a) - a.  Irregular sampling
-    is interpolated onto a uniform grid at the median interval and back.
+    The recursion of :func:`lag_coefficients` over the samples (scipy.signal.lfilter when
+    every step is the same, else a scan by recursive doubling): what :func:`lag_step`
+    computes one sample at a time, live.
     """
-    from scipy.signal import lfilter
     t = np.asarray(t, float)
     x = np.asarray(x, float)
+    y = x.copy()
     if len(x) < 2:
-        return x.copy()
-    dts = np.diff(t)
-    dt = float(np.median(dts))
-    uniform = np.ptp(dts) <= 1e-6 * dt
-    if not uniform:
-        grid = np.arange(t[0], t[-1] + 0.5 * dt, dt)
-        xs = np.interp(grid, t, x)
-    else:
-        xs = x
-    tau = max(abs(float(tau)), 1e-3 * dt)
-    a = math.exp(-dt / tau)
-    g = (tau / dt) * (1.0 - a)
-    b = [1.0 - g, g - a]
-    # steady state at the first sample: y[0] = b0 x0 + z0 = x0
-    y, _ = lfilter(b, [1.0, -a], xs, zi=np.array([(1.0 - b[0]) * xs[0]]))
-    return y if uniform else np.interp(t, grid, y)
+        return y
+    a, b0, b1 = lag_coefficients(np.diff(t), tau)
+    if np.ptp(a) == 0 and np.ptp(b0) == 0 and np.ptp(b1) == 0:
+        from scipy.signal import lfilter
+        # y_k = b0 x_k + (b1 x_k-1 + a y_k-1), in lag_step's order; the state after y_0 = x_0
+        y[1:], _ = lfilter([b0[0], b1[0]], [1.0, -a[0]], x[1:],
+                           zi=[b1[0] * x[0] + a[0] * x[0]])
+        return y
+    # y_k = A_k y_k-1 + U_k; doubling composes each step with the d before it
+    u = np.concatenate([x[:1], b0 * x[1:] + b1 * x[:-1]])
+    g = np.concatenate([[0.0], a])
+    d = 1
+    while d < len(u) and g[d:].any():
+        u[d:] += g[d:] * u[:-d]
+        g[d:] = g[d:] * g[:-d]
+        d *= 2
+    return u
 
 
 def lag_step(state, t, x, tau):
     """
-    One sample of a first-order lag for the live correction: ((t, y) state, y).
+    One sample of the lag for the live correction: (new state, y).
 
-    ``state`` is the previous (t s, y) or None; ``x`` the input at ``t`` s, ``tau`` s.
-    y <- x + (y - x) exp(-dt / tau), the exact response to x held since the last sample; the
-    first sample (or a time that does not advance) starts in steady state, y = x.
+    ``state`` is the previous sample's (t s, x, y), or None before the first (which starts
+    in steady state, y = x); ``x`` the input at ``t`` s.  The step of
+    :func:`first_order_lag` (:func:`lag_coefficients`), so a record corrected one sample at a
+    time gives the batch filter's values; a second call at the same ``t`` (the fixed-point
+    correction of an effect that reads the field) holds y.
     """
-    if state is None or t <= state[0]:
-        y = x
-    else:
-        y = x + (state[1] - x) * math.exp(-(t - state[0]) / max(abs(float(tau)), 1e-9))
-    return (t, y), y
+    if state is None:
+        return (t, x, x), x
+    a, b0, b1 = lag_coefficients(t - state[0], tau)
+    y = float(b0 * x + (b1 * state[1] + a * state[2]))
+    return (t, x, y), y
 
 
 def steps_outside(times, t):

@@ -14,19 +14,21 @@
 """
 The catalog: the named effects that ship with the library (today's model tokens).
 
-Linear effects (paper 004 eq. 2-3: scale, non-orthogonality, misalignment; soft iron),
-additive effects (offset, temperature, drift, nonlinearity, auxiliary channels, field rate),
-effects with arguments (steps, sinusoids, lags, polynomials of a channel) and the site
-gradient of the array.  In the formula grammar (:mod:`magcal_ros.core.effects.formula`)
-each is an alias of a composition coupling(driver)@scope (:mod:`.aliases`), evaluated by
-the class below (the same numbers as the composition, test/test_grammar.py).
+The constant linear map (paper 004 eq. 2-3: scale, non-orthogonality, misalignment; soft
+iron; a fixed axis map), the constant offset and the site gradient of the array are
+effects of their own: the model's linear core, which the grammar's couplings change.
+Every driven token (temperature, drift, drift2, nonlinearity, aux:<column>, field_rate,
+step(T), periodic(F), lag(v), aux_poly(v, D)) is a composition coupling(driver) of the
+grammar (:data:`TOKENS`), evaluated by the grammar's code (:class:`~.terms.Part`) under
+the token's own parameter names and reference values.
 """
 
-from magcal_ros.core.effects.base import (channel_name, channel_values, check_channel, Effect,
-                                          first_order_lag, format_arg, lag_step,
-                                          misalignment_angles, misalignment_matrix,
-                                          NONLINEARITY_FULL_SCALE_NT, nonorthogonality_matrix,
-                                          parse_number, steps_outside)
+from magcal_ros.core.effects import drivers as dv
+from magcal_ros.core.effects.base import (channel_name, Effect, format_arg, misalignment_angles,
+                                          misalignment_matrix, nonorthogonality_matrix,
+                                          parse_number)
+from magcal_ros.core.effects.couplings import coupling_class
+from magcal_ros.core.effects.terms import no_lag, Part
 from magcal_ros.core.geometry.tensor import symmetric_traceless
 import numpy as np
 
@@ -219,410 +221,310 @@ class Offset(Effect):
         return parts.offset
 
 
-class Temperature(Effect):
-    """Offset and scale drift with sensor temperature: dB = c_off (T-T0) + c_scale (T-T0) * lin."""
-
-    name = 'temperature'
-    param_names = ('cx', 'cy', 'cz', 'sx', 'sy', 'sz')
-    units = ('nT/degC',) * 3 + ('1/degC',) * 3
-    signals = ('temperature',)
-    min_span_c = 1.0
-
-    def prepare(self, ctx):
-        if ctx.temp is not None and np.isfinite(ctx.temp).any():
-            self.refs.setdefault('t0_c', float(np.nanmean(ctx.temp)))
-
-    def check(self, ctx):
-        if ctx.temp is None or not np.isfinite(ctx.temp).any():
-            return (f'sensor {self.sensor} has no temperature column (s{self.sensor}_temp): '
-                    'the temperature effect cannot be fitted')
-        span = float(np.nanmax(ctx.temp) - np.nanmin(ctx.temp))
-        if span < self.min_span_c:
-            return (f'temperature of sensor {self.sensor} varies only {span:.2f} degC '
-                    f'(< {self.min_span_c} degC): heat or cool the sensor by several degC during '
-                    'the calibration, or drop the temperature effect')
-        return None
-
-    def contribution(self, p, ctx, lin):
-        dt = (np.nan_to_num(ctx.temp, nan=self.refs.get('t0_c', 0.0))
-              - self.refs.get('t0_c', 0.0))[:, None]
-        return dt * p[:3] + dt * p[3:] * lin
-
-    def depends_on_lin(self):
-        return True
+# -- today's tokens: compositions of the grammar ---------------------------------------------
 
 
-class Drift(Effect):
-    """Offset drifting linearly in time: dB = d1 (t - t0), nT/s."""
-
-    name = 'drift'
-    param_names = ('dx', 'dy', 'dz')
-    units = ('nT/s',) * 3
-    signals = ('time',)
-    min_span_s = 1.0
-
-    def prepare(self, ctx):
-        self.refs.setdefault('t0_s', float(ctx.t[0]) if len(ctx.t) else 0.0)
-
-    def check(self, ctx):
-        span = float(ctx.t[-1] - ctx.t[0]) if len(ctx.t) else 0.0
-        if span < self.min_span_s:
-            return f'the data span only {span:.2f} s: drift cannot be separated from the offset'
-        return None
-
-    def _tau(self, ctx):
-        return (ctx.t - self.refs.get('t0_s', 0.0))[:, None]
-
-    def contribution(self, p, ctx, lin):
-        return self._tau(ctx) * p[:3]
-
-
-class QuadraticDrift(Drift):
-    """Offset drifting quadratically in time: dB = d1 (t - t0) + d2 (t - t0)^2."""
-
-    name = 'drift2'
-    param_names = ('dx', 'dy', 'dz', 'qx', 'qy', 'qz')
-    units = ('nT/s',) * 3 + ('nT/s^2',) * 3
-
-    def contribution(self, p, ctx, lin):
-        tau = self._tau(ctx)
-        return tau * p[:3] + tau ** 2 * p[3:]
-
-
-class Nonlinearity(Effect):
+class Composition:
     """
-    Per-axis quadratic and cubic response: dB = q (lin/F0)^2 + c (lin/F0)^3, F0 = 50 000 nT.
+    What one token with its arguments stands for: coupling(driver) parts and its bookkeeping.
 
-    ``q`` and ``c`` are the deviations (nT) at a full-scale field F0 along that axis.
+    ``parts`` [(coupling name, Driver)]; ``params``, ``units`` the token's own parameter
+    names and units; ``refs`` {token's reference: (how, variable, the drivers' reference)},
+    how 'mean' (the calibration mean of the variable) or 'first' (the first time);
+    ``fixed`` constant references of the drivers; ``sign`` and ``lead`` (zero parameters
+    before the token's) map the token's parameters onto the parts'.
     """
 
-    name = 'nonlinearity'
-    param_names = ('qx', 'qy', 'qz', 'cx', 'cy', 'cz')
-    units = ('nT',) * 6
-
-    def contribution(self, p, ctx, lin):
-        u = lin / NONLINEARITY_FULL_SCALE_NT
-        u2 = u * u                      # products, not float powers: 5x faster (profile)
-        return p[:3] * u2 + p[3:] * (u2 * u)
-
-    def depends_on_lin(self):
-        return True
+    def __init__(self, args, parts, params, units, refs=None, fixed=None, sign=1.0, lead=0,
+                 label=None, supersedes=(), note=''):
+        self.args, self.parts, self.params, self.units = tuple(args), parts, params, units
+        self.refs, self.fixed = refs or {}, fixed or {}
+        self.sign, self.lead, self.label = sign, lead, label
+        self.supersedes, self.note = tuple(supersedes), note
 
 
-class Aux(Effect):
-    """Linear coupling of an auxiliary channel (e.g. a motor current): dB = v (a - a0)."""
+class TokenEffect(Effect):
+    """
+    A token of the catalog (``temperature``, ``lag(temperature)``, ...): grammar parts, summed.
 
-    name = 'aux'
+    The change of the reading is the sum of its parts' (:class:`~.terms.Part`, the one
+    evaluation of the grammar's terms).  The token keeps only its bookkeeping: the parameter
+    names, units and reference values (``t0_c``, ``t0_s``, ``a0``, ``x0``) that calibration
+    files written before the grammar hold, so they load and correct as they did.  Each
+    token is a row of :data:`TOKENS`; :func:`token_class` makes the class registered under
+    its name.
+    """
 
-    def __init__(self, sensor=1, refs=None, channel='aux_current'):
+    kind = 'additive'
+    #: the token's row of :data:`TOKENS`
+    row = None
+
+    def __init__(self, sensor=1, refs=None, args=()):
         super().__init__(sensor, refs)
-        self.channel = channel if channel.startswith('aux_') else 'aux_' + channel
+        comp = self.row.compose(tuple(args))
+        self.comp = comp
+        self.args = comp.args
+        self.param_names, self.units = comp.params, comp.units
+        self.supersedes = comp.supersedes
+        self.parts = [Part(coupling_class(c)(), d) for c, d in comp.parts]
+        self._seen = None
+
+    @classmethod
+    def from_args(cls, args, sensor=1):
+        """Make the token ``name(args)`` on ``sensor`` (arguments as strings)."""
+        if cls.usage is None:
+            return super().from_args(args, sensor)
+        return cls(sensor=sensor, args=args)
+
+    @classmethod
+    def suggest_args(cls, ctx):
+        """Argument tuples worth testing on data ``ctx`` (lag, aux_poly: its channels)."""
+        return cls.row.suggest(ctx) if cls.row.suggest else []
 
     @property
     def label(self):
-        return 'aux:' + self.channel
-
-    param_names = ('vx', 'vy', 'vz')
-    units = ('nT/unit',) * 3
+        """Model-spec label: ``temperature``, ``step(300)``, ``aux:aux_x``."""
+        return self.comp.label or super().label
 
     @property
     def signals(self):
-        return (self.channel,)
-
-    def prepare(self, ctx):
-        if self.channel in ctx.aux:
-            self.refs.setdefault('a0', float(np.nanmean(ctx.aux[self.channel])))
-
-    def check(self, ctx):
-        if self.channel not in ctx.aux:
-            return (f'no auxiliary column {self.channel!r} in the data '
-                    f'(have: {sorted(ctx.aux) or "none"})')
-        a = ctx.aux[self.channel]
-        if not np.isfinite(a).all():
-            return f'auxiliary channel {self.channel!r} contains non-finite values'
-        if np.ptp(a) <= 1e-9 * max(1.0, float(np.abs(a).max())):
-            return (f'auxiliary channel {self.channel!r} never changes: its coupling cannot be '
-                    'separated from the offset; switch the load on and off during calibration')
-        return None
-
-    def contribution(self, p, ctx, lin):
-        return (ctx.aux[self.channel] - self.refs.get('a0', 0.0))[:, None] * p
-
-
-class FieldRate(Effect):
-    """
-    Response to dB/dt (eddy currents, sensor lag, sampling skew): dB = -tau * d(raw)/dt, s.
-
-    Under pure rotation in a uniform field dB/dt is perpendicular to B, so this term hardly
-    shows in the scalar residual; it shows in the inter-sensor vector residual.
-    """
-
-    name = 'field_rate'
-    param_names = ('tau_x', 'tau_y', 'tau_z')
-    units = ('s', 's', 's')
-    signals = ('field_rate',)
-
-    def check(self, ctx):
-        if ctx.raw_rate is None:
-            return 'no time derivative of the field available (need a time column t)'
-        return None
-
-    def contribution(self, p, ctx, lin):
-        return -ctx.raw_rate * p
-
-
-class Step(Effect):
-    """
-    Offset change(s) at given times: dB = sum_k s_k [t >= t_k], nT (a jump, a relay).
-
-    Token ``step(t1, t2, ...)``, times in s on the data's time axis; 3 parameters per step.
-    """
-
-    name = 'step'
-    usage = 'step(<t_s>[,<t_s>...])'
-    signals = ('time',)
-
-    @classmethod
-    def from_args(cls, args, sensor=1):
-        if not args:
-            raise ValueError('step needs the time(s) of the offset change, e.g. step(300)')
-        times = sorted(parse_number(a, 'step time [s]') for a in args)
-        eff = cls(sensor=sensor)
-        eff.times = np.array(times)
-        eff.args = tuple(format_arg(x) for x in times)
-        return eff
-
-    @property
-    def param_names(self):
-        if len(self.args) == 1:
-            return ('sx', 'sy', 'sz')
-        return tuple(f's{k}{ax}' for k in range(1, len(self.args) + 1) for ax in 'xyz')
-
-    @property
-    def units(self):
-        return ('nT',) * (3 * len(self.args))
-
-    def check(self, ctx):
-        return steps_outside(self.times, ctx.t)
-
-    def contribution(self, p, ctx, lin):
-        on = (ctx.t[:, None] >= self.times[None, :]).astype(float)        # (N, K)
-        return on @ np.asarray(p).reshape(-1, 3)
-
-
-class Periodic(Effect):
-    """
-    Sinusoidal interference at a given frequency (pump, fan, wheel), per axis, nT.
-
-    Token ``periodic(f_hz)``: dB = a cos(2 pi f (t - t0)) + b sin(2 pi f (t - t0)).
-    """
-
-    name = 'periodic'
-    usage = 'periodic(<f_hz>)'
-    signals = ('time',)
-    param_names = ('ax', 'ay', 'az', 'bx', 'by', 'bz')
-    units = ('nT',) * 6
-
-    @classmethod
-    def from_args(cls, args, sensor=1):
-        if len(args) != 1:
-            raise ValueError('periodic needs one frequency in Hz, e.g. periodic(0.23)')
-        f = parse_number(args[0], 'periodic frequency [Hz]')
-        if f <= 0:
-            raise ValueError(f'periodic frequency must be positive, got {args[0]!r}')
-        eff = cls(sensor=sensor)
-        eff.freq_hz = f
-        eff.args = (format_arg(f),)
-        return eff
-
-    def prepare(self, ctx):
-        self.refs.setdefault('t0_s', float(ctx.t[0]) if len(ctx.t) else 0.0)
-
-    def check(self, ctx):
-        span = float(ctx.t[-1] - ctx.t[0]) if len(ctx.t) > 1 else 0.0
-        if span * self.freq_hz < 2.0:
-            return (f'the data span {span:.1f} s, less than 2 periods of {self.freq_hz:g} Hz: '
-                    'the sinusoid cannot be separated from the offset')
-        dt = float(np.median(np.diff(ctx.t)))
-        if self.freq_hz >= 0.5 / dt:
-            return (f'{self.freq_hz:g} Hz is at or above the Nyquist frequency '
-                    f'{0.5 / dt:g} Hz of the data')
-        return None
-
-    def contribution(self, p, ctx, lin):
-        ph = (2.0 * np.pi * self.freq_hz) * (ctx.t - self.refs.get('t0_s', 0.0))
-        return np.cos(ph)[:, None] * p[:3] + np.sin(ph)[:, None] * p[3:]
-
-
-class Lag(Effect):
-    """
-    A channel (temperature or aux) acting through a first-order lag: dB = c (y - x0), nT.
-
-    Token ``lag(temperature)`` or ``lag(aux_<name>)``; y solves tau dy/dt = x - y (a sensor
-    head that follows its thermometer with time constant tau, fitted, s).  The filter runs
-    over the whole record (``SensorContext.whole``), so held-out blocks keep its state.
-    """
-
-    name = 'lag'
-    usage = 'lag(temperature|aux_<name>)'
-    #: starting time constant, s, of a fit that starts from nothing (the diagnosis tries more)
-    tau0_s = 30.0
-
-    @classmethod
-    def from_args(cls, args, sensor=1):
-        if len(args) != 1:
-            raise ValueError('lag needs one channel, e.g. lag(temperature) or '
-                             'lag(aux_motor_current)')
-        eff = cls(sensor=sensor)
-        eff.channel = channel_name(args[0])
-        eff.args = (eff.channel,)
-        return eff
-
-    @classmethod
-    def suggest_args(cls, ctx):
-        out = [('temperature',)] if ctx.temp is not None else []
-        return out + [(c,) for c in sorted(ctx.aux)]
-
-    @property
-    def signals(self):
-        return ('time', self.channel)
-
-    @property
-    def param_names(self):
-        return ('cx', 'cy', 'cz', 'tau')
-
-    @property
-    def units(self):
-        u = 'nT/degC' if self.channel == 'temperature' else 'nT/unit'
-        return (u, u, u, 's')
+        """Driving signals of the parts' drivers."""
+        return tuple(dict.fromkeys(s for p in self.parts for s in p.driver.signals))
 
     def default_params(self):
-        return np.array([0.0, 0.0, 0.0, self.tau0_s])
+        """The parts' own starting values (a lag's tau); zero for a mapped token."""
+        if self.comp.sign != 1.0 or self.comp.lead:
+            return np.zeros(self.n_params)
+        return np.concatenate([p.default_params() for p in self.parts])
 
     def prepare(self, ctx):
-        a = channel_values(ctx, self.channel)
-        if a is not None and np.isfinite(a).any():
-            self.refs.setdefault('x0', float(np.nanmean(a)))
+        """Store the token's reference values computed from the calibration data."""
+        for key, (how, v, _) in self.comp.refs.items():
+            if how == 'first':
+                self.refs.setdefault(key, float(ctx.t[0]) if len(ctx.t) else 0.0)
+            else:
+                a = dv.variable_values(ctx, v)
+                if a is not None and np.isfinite(a).any():
+                    self.refs.setdefault(key, float(np.nanmean(a)))
 
     def check(self, ctx):
-        return check_channel(ctx, self.channel, self.sensor)
+        """Return None if the data can excite every part, else the reason why not."""
+        for p in self.parts:
+            why = p.driver.check(ctx, self.sensor)
+            if why:
+                return why
+        return self.row.check(self, ctx) if self.row.check else None
 
-    def lagged(self, ctx, tau):
-        """(N,) the channel through the lag of time constant ``tau`` s, at ``ctx``'s samples."""
-        whole, idx = ctx.whole()
-        if idx is None and len(ctx.t) == 1:
-            return self._online(float(ctx.t[0]), channel_values(ctx, self.channel), tau)
-        x = channel_values(whole, self.channel)
-        # the fit's Jacobian perturbs every other parameter at the same tau (and tau itself):
-        # keep the last few filtered series, keyed by the record and tau
-        key = (id(x), len(x), float(tau), self.refs.get('x0', 0.0))
-        cache = self.__dict__.setdefault('_cache', {})
-        hit = cache.get(key)
-        if hit is None or hit[1] is not x:
-            xx = np.nan_to_num(x, nan=self.refs.get('x0', 0.0))
-            hit = (first_order_lag(whole.t, xx, tau), x)
-            if len(cache) >= 4:
-                cache.pop(next(iter(cache)))
-            cache[key] = hit
-        y = hit[0]
-        return y if idx is None else y[idx]
+    def depends_on_lin(self):
+        """Tell whether a part reads the linear reading."""
+        return any(p.reads_lin for p in self.parts)
 
-    def _online(self, t, x, tau):
-        """
-        Filter one sample at a time for the live correction.
-
-        Live correction, one sample at a time: the filter's state is kept between calls
-        (y <- x + (y - x) exp(-dt / tau), the exact response to x held since the last
-        sample; the first sample starts in steady state).
-        """
-        x = float(self.refs.get('x0', 0.0) if x is None or not np.isfinite(x[0]) else x[0])
-        self._state, y = lag_step(self.__dict__.get('_state'), t, x, tau)
-        return np.array([y])
-
-    def reduces(self, p, stderr, ctx):
-        """
-        Why the fitted lag is no lag (tau indistinguishable from 0), or None.
-
-        A time constant below two sample intervals, or within 3 standard uncertainties of
-        zero, is the plain coupling of the channel (``temperature``, ``aux:<channel>``):
-        the diagnosis then prefers that simpler, established effect.
-        """
-        tau, se = abs(float(p[3])), float(stderr[3]) if stderr is not None else 0.0
-        dt = float(np.median(np.diff(ctx.t))) if len(ctx.t) > 1 else 0.0
-        if tau < 2.0 * dt or (np.isfinite(se) and tau < 3.0 * se):
-            return (f'fitted time constant {tau:.3g} +- {se:.2g} s is no lag (below '
-                    f'{max(2 * dt, 3 * se):.3g} s): the plain coupling of {self.channel}')
-        return None
+    def _refs(self):
+        """The drivers' reference values, from the token's (caches cleared when they change)."""
+        if self._seen != self.refs:
+            self._seen = dict(self.refs)
+            self._driver_refs = dict(self.comp.fixed, **{
+                new: self.refs[key] for key, (_, _, new) in self.comp.refs.items()
+                if key in self.refs})
+            for p in self.parts:
+                p.cache = {}
+        return self._driver_refs
 
     def contribution(self, p, ctx, lin):
-        y = self.lagged(ctx, p[3]) - self.refs.get('x0', 0.0)
-        return y[:, None] * p[:3]
-
-
-class AuxPoly(Effect):
-    """
-    Polynomial coupling of an auxiliary channel: dB = sum_k v_k (a - a0)^k, k = 1..d, nT.
-
-    Token ``aux_poly(aux_<name>, d)``, 2 <= d <= 4 (e.g. a field that grows with the square
-    of a current, from heating or saturation).  Includes the linear term, so it replaces
-    ``aux:aux_<name>`` (its linear parameters vx, vy, vz are that effect's).
-    """
-
-    name = 'aux_poly'
-    usage = 'aux_poly(aux_<name>,<degree>)'
-
-    @classmethod
-    def from_args(cls, args, sensor=1):
-        if len(args) != 2:
-            raise ValueError('aux_poly needs a channel and a degree, e.g. '
-                             'aux_poly(aux_motor_current,2)')
-        eff = cls(sensor=sensor)
-        eff.channel = channel_name(args[0])
-        if eff.channel == 'temperature':
-            raise ValueError('aux_poly couples an auxiliary channel (aux_<name>), not the '
-                             'temperature')
-        d = parse_number(args[1], 'aux_poly degree')
-        if d != int(d) or not 2 <= d <= 4:
-            raise ValueError(f'aux_poly degree must be 2, 3 or 4, got {args[1]!r}')
-        eff.degree = int(d)
-        eff.args = (eff.channel, str(eff.degree))
-        eff.supersedes = ('aux:' + eff.channel,)
-        return eff
-
-    @classmethod
-    def suggest_args(cls, ctx):
-        return [(c, '2') for c in sorted(ctx.aux)]
-
-    @property
-    def signals(self):
-        return (self.channel,)
-
-    @property
-    def param_names(self):
-        return ('vx', 'vy', 'vz') + tuple(f'v{k}{ax}' for k in range(2, self.degree + 1)
-                                          for ax in 'xyz')
-
-    @property
-    def units(self):
-        return tuple('nT/unit' if k == 1 else f'nT/unit^{k}'
-                     for k in range(1, self.degree + 1) for _ in 'xyz')
-
-    def prepare(self, ctx):
-        if self.channel in ctx.aux:
-            self.refs.setdefault('a0', float(np.nanmean(ctx.aux[self.channel])))
-
-    def check(self, ctx):
-        return check_channel(ctx, self.channel, self.sensor)
-
-    def contribution(self, p, ctx, lin):
-        u = (ctx.aux[self.channel] - self.refs.get('a0', 0.0))[:, None]
-        v = np.asarray(p).reshape(-1, 3)
-        out = u * v[0]
-        uk = u
-        for k in range(1, self.degree):
-            uk = uk * u
-            out = out + uk * v[k]
+        """(N, 3) nT added to the raw reading: the sum of the parts'."""
+        refs = self._refs()
+        q = np.concatenate([np.zeros(self.comp.lead), self.comp.sign * np.asarray(p, float)])
+        out, i = 0.0, 0
+        for part in self.parts:
+            n = len(part.param_names)
+            out = out + part.contribution(q[i:i + n], ctx, lin, refs)
+            i += n
         return out
+
+
+def _channel_arg(args, usage):
+    if len(args) != 1:
+        raise ValueError(f'{usage} needs one channel')
+    return channel_name(args[0])
+
+
+def _temperature(args):
+    v = dv.Variable('temperature')
+    return Composition(args, [('offset', v), ('scale', v)], ('cx', 'cy', 'cz', 'sx', 'sy', 'sz'),
+                       ('nT/degC',) * 3 + ('1/degC',) * 3,
+                       refs={'t0_c': ('mean', 'temperature', 'temperature0')})
+
+
+def _drift(degree):
+    def compose(args):
+        names = ('dx', 'dy', 'dz', 'qx', 'qy', 'qz')[:3 * degree]
+        units = ('nT/s',) * 3 + ('nT/s^2',) * 3
+        if degree == 1:
+            return Composition(args, [('offset', dv.Variable('t'))], names, units[:3],
+                               refs={'t0_s': ('first', 't', 't0')})
+        return Composition(args, [('offset', dv.Poly.from_args(['t', '2'], {}))], names, units,
+                           refs={'t0_s': ('first', 't', 'mean')}, fixed=UNSCALED)
+    return compose
+
+
+def _nonlinearity(args):
+    return Composition(args, [('offset', dv.Poly.from_args(['lin', '3'], {}))],
+                       ('qx', 'qy', 'qz', 'cx', 'cy', 'cz'), ('nT',) * 6, lead=3,
+                       note=' without the linear column (degrees 2 and 3)')
+
+
+def _aux(args):
+    ch = _channel_arg(args, 'aux:<column>') if args else 'aux_current'
+
+    return Composition((), [('offset', dv.Variable(ch))], ('vx', 'vy', 'vz'), ('nT/unit',) * 3,
+                       refs={'a0': ('mean', ch, ch + '0')}, label='aux:' + ch)
+
+
+def _aux_poly(args):
+    if len(args) != 2:
+        raise ValueError('aux_poly needs a channel and a degree, e.g. '
+                         'aux_poly(aux_motor_current,2)')
+    ch = channel_name(args[0])
+    if ch == 'temperature':
+        raise ValueError('aux_poly couples an auxiliary channel (aux_<name>), not the '
+                         'temperature')
+    d = parse_number(args[1], 'aux_poly degree')
+    if d != int(d) or not 2 <= d <= 4:
+        raise ValueError(f'aux_poly degree must be 2, 3 or 4, got {args[1]!r}')
+    d = int(d)
+    return Composition((ch, str(d)), [('offset', dv.Poly.from_args([ch, str(d)], {}))],
+                       tuple(f'v{k if k > 1 else ""}{ax}' for k in range(1, d + 1)
+                             for ax in 'xyz'),
+                       tuple('nT/unit' if k == 1 else f'nT/unit^{k}'
+                             for k in range(1, d + 1) for _ in 'xyz'),
+                       refs={'a0': ('mean', ch, 'mean')}, fixed=UNSCALED,
+                       supersedes=('aux:' + ch,))
+
+
+def _step(args):
+    d = dv.Steps.from_args(list(args), {})
+    k = len(d.times)
+    return Composition(tuple(format_arg(x) for x in d.times), [('offset', d)],
+                       ('sx', 'sy', 'sz') if k == 1 else tuple(
+                           f's{i}{ax}' for i in range(1, k + 1) for ax in 'xyz'),
+                       ('nT',) * (3 * k))
+
+
+def _periodic(args):
+    if len(args) != 1:
+        raise ValueError('periodic needs one frequency in Hz, e.g. periodic(0.23)')
+    f = parse_number(args[0], 'periodic frequency [Hz]')
+    if f <= 0:
+        raise ValueError(f'periodic frequency must be positive, got {args[0]!r}')
+    return Composition((format_arg(f),), [('offset', dv.Sinusoid.from_args([args[0]], {}))],
+                       ('ax', 'ay', 'az', 'bx', 'by', 'bz'), ('nT',) * 6,
+                       refs={'t0_s': ('first', 't', 't0')})
+
+
+def _lag(args):
+    ch = _channel_arg(args, 'lag(temperature|aux_<name>)')
+    u = 'nT/degC' if ch == 'temperature' else 'nT/unit'
+    return Composition((ch,), [('offset', dv.Lagged.from_args([ch], {}))],
+                       ('cx', 'cy', 'cz', 'tau'), (u, u, u, 's'),
+                       refs={'x0': ('mean', ch, 'mean')})
+
+
+def _field_rate(args):
+    return Composition(args, [('offset', dv.Variable('rate'))], ('tau_x', 'tau_y', 'tau_z'),
+                       ('s',) * 3, sign=-1.0, note=' (dB = -tau rate, tau in s)')
+
+
+def _min_span(v, least, what):
+    """A check: ``v`` spans at least ``least`` (its unit), else ``what(sensor, span)``."""
+    def check(eff, ctx):
+        a = dv.variable_values(ctx, v)
+        span = float(np.nanmax(a) - np.nanmin(a))
+        if span < least:
+            return what(eff.sensor, span)
+        return None
+    return check
+
+
+def _finite(eff, ctx):
+    for p in eff.parts:
+        a = dv.variable_values(ctx, p.driver.v)
+        if p.driver.v.startswith('aux_') and not np.isfinite(a).all():
+            return f'auxiliary channel {p.driver.v!r} contains non-finite values'
+    return None
+
+
+class Token:
+    """A row of :data:`TOKENS`: how the token is written, composed, checked and proposed."""
+
+    def __init__(self, doc, compose, usage=None, check=None, suggest=None, lag=False):
+        self.doc, self.compose, self.usage = doc, compose, usage
+        self.check, self.suggest, self.lag = check, suggest, lag
+
+
+def _lag_reduces(self, p, stderr, ctx):
+    """Say why the fitted lag is no lag (tau indistinguishable from 0): the plain coupling."""
+    return no_lag(p[3], None if stderr is None else stderr[3], ctx, self.args[0])
+
+
+#: references of a polynomial of unscaled powers (v - v0)^k: half range 1
+UNSCALED = {'lo': -1.0, 'hi': 1.0}
+
+_DRIFT_SPAN = _min_span('t', 1.0, lambda j, span: (
+    f'the data span only {span:.2f} s: drift cannot be separated from the offset'))
+
+#: today's tokens: name -> row (docstring, composition of the arguments, ...)
+TOKENS = {
+    'temperature': Token(
+        'Offset and scale drift with sensor temperature: dB = c_off (T-T0) + c_scale (T-T0) '
+        '* lin.', _temperature, check=_min_span('temperature', 1.0, lambda j, span: (
+            f'temperature of sensor {j} varies only {span:.2f} degC (< 1 degC): heat or cool '
+            'the sensor by several degC during the calibration, or drop the temperature '
+            'effect'))),
+    'drift': Token('Offset drifting linearly in time: dB = d1 (t - t0), nT/s.', _drift(1),
+                   check=_DRIFT_SPAN),
+    'drift2': Token('Offset drifting quadratically in time: dB = d1 (t - t0) + d2 (t - t0)^2.',
+                    _drift(2), check=_DRIFT_SPAN),
+    'nonlinearity': Token(
+        'Per-axis quadratic and cubic response: dB = q (lin/F0)^2 + c (lin/F0)^3, '
+        'F0 = 50 000 nT.', _nonlinearity),
+    'aux': Token('Linear coupling of an auxiliary channel (e.g. a motor current): '
+                 'dB = v (a - a0).', _aux, check=_finite),
+    'field_rate': Token(
+        'Response to dB/dt (eddy currents, sensor lag, sampling skew): dB = -tau * d(raw)/dt, '
+        's.', _field_rate),
+    'step': Token('Offset change(s) at given times: dB = sum_k s_k [t >= t_k], nT (a jump, '
+                  'a relay).', _step, usage='step(<t_s>[,<t_s>...])'),
+    'periodic': Token('Sinusoidal interference at a given frequency (pump, fan, wheel): '
+                      'dB = a cos(2 pi f (t - t0)) + b sin(2 pi f (t - t0)).', _periodic,
+                      usage='periodic(<f_hz>)'),
+    'lag': Token('A channel (temperature or aux) acting through a first-order lag: '
+                 'dB = c (y - x0), tau dy/dt = x - y.', _lag,
+                 usage='lag(temperature|aux_<name>)', check=_finite, lag=True,
+                 suggest=lambda ctx: ([('temperature',)] if ctx.temp is not None else [])
+                 + [(c,) for c in sorted(ctx.aux)]),
+    'aux_poly': Token('Polynomial coupling of an auxiliary channel: dB = sum_k v_k (a - a0)^k, '
+                      'k = 1..d, nT.', _aux_poly, usage='aux_poly(aux_<name>,<degree>)',
+                      check=_finite, suggest=lambda ctx: [(c, '2') for c in sorted(ctx.aux)]),
+}
+
+
+def token_class(name):
+    """The :class:`TokenEffect` class of token ``name`` (what the registry holds)."""
+    row = TOKENS[name]
+    attrs = {'name': name, 'row': row, 'usage': row.usage, '__doc__': row.doc}
+    if row.lag:
+        attrs['reduces'] = _lag_reduces
+        attrs['tau0_s'] = dv.Lagged.tau0_s
+    return type(f'Token_{name}', (TokenEffect,), attrs)
+
+
+#: the class of every token, by name
+TOKEN_CLASSES = {name: token_class(name) for name in TOKENS}
+
+
+def aux_effect(channel, sensor=1):
+    """Return the effect of token ``aux:<channel>`` on ``sensor``."""
+    return TOKEN_CLASSES['aux'](sensor=sensor, args=(channel,))
 
 
 # -- array-wide effects --------------------------------------------------------------------

@@ -98,11 +98,13 @@ def check_variable(ctx, v, sensor):
         return None
     a = variable_values(ctx, v)
     if a is None or not np.isfinite(a).any():
+        if v.startswith('aux_'):
+            return f'no auxiliary column {v!r} in the data (have: {sorted(ctx.aux) or "none"})'
         col = {'temperature': f's{sensor}_temp', 't': 't', 'rate': 't'}.get(v, v)
         return f'sensor {sensor}: no {v} in the data (column {col})'
     a = np.asarray(a, float)
     if np.nanmax(a) - np.nanmin(a) <= 1e-9 * max(1.0, float(np.nanmax(np.abs(a)))):
-        return f'{v} never changes: its coupling cannot be separated from the offset'
+        return f'{v!r} never changes: its coupling cannot be separated from the offset'
     return None
 
 
@@ -488,6 +490,10 @@ class Sinusoid(Driver):
         if span * self.freq_hz < 2.0:
             return (f'the data span {span:.1f} s, less than 2 periods of {self.freq_hz:g} Hz: '
                     'the sinusoid cannot be separated from the offset')
+        dt = float(np.median(np.diff(ctx.t)))
+        if self.freq_hz >= 0.5 / dt:
+            return (f'{self.freq_hz:g} Hz is at or above the Nyquist frequency '
+                    f'{0.5 / dt:g} Hz of the data')
         return None
 
     def columns(self, ctx, lin, refs, q, prefix=''):
@@ -569,8 +575,9 @@ class Lagged(_OfVariable):
     ``lag(v[, tau=S])``: v through a first-order lag, tau dy/dt = v - y, centred on v's mean.
 
     Without ``tau`` the time constant is a parameter of the fit (s, starting at 30 s).  The
-    filter runs over the whole record (``SensorContext.whole``), so held-out blocks keep its
-    state; live correction filters one sample at a time.
+    filter (:func:`~.base.first_order_lag`, exact for v linear between samples) runs over the
+    whole record (``SensorContext.whole``), so held-out blocks keep its state; live correction
+    takes the same filter's steps one sample at a time (:func:`~.base.lag_step`).
     """
 
     name = 'lag'
@@ -637,7 +644,7 @@ class Lagged(_OfVariable):
         return (y - x0)[:, None]
 
     def _online(self, t, x, tau, x0):
-        """One sample of the live correction: y <- x + (y - x) exp(-dt / tau)."""
+        """One sample of the live correction: :func:`~.base.lag_step`, the batch filter's step."""
         x = float(x0 if x is None or not np.isfinite(x[0]) else x[0])
         self._state, y = lag_step(self.__dict__.get('_state'), t, x, tau)
         return np.array([y])

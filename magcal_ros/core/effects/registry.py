@@ -26,10 +26,9 @@ import sys
 
 from magcal_ros.core.effects.attitude_ref import AttitudeFull, AttitudeReference
 from magcal_ros.core.effects.base import Effect
-from magcal_ros.core.effects.catalog import (Aux, AuxPoly, AxisMap, Drift, FieldRate, Lag,
-                                             Misalignment, Nonlinearity, NonOrthogonality,
-                                             Offset, Periodic, QuadraticDrift, Scale,
-                                             SiteGradient, SoftIron, Step, Temperature)
+from magcal_ros.core.effects.catalog import (aux_effect, AxisMap, Misalignment,
+                                             NonOrthogonality, Offset, Scale, SiteGradient,
+                                             SoftIron, TOKEN_CLASSES)
 
 # -- registry -------------------------------------------------------------------------------
 
@@ -54,8 +53,9 @@ def unregister_effect(name):
     _REGISTRY.pop(name, None)
 
 
-for _cls in (AxisMap, Scale, NonOrthogonality, Misalignment, SoftIron, Offset, Temperature,
-             Drift, QuadraticDrift, Nonlinearity, FieldRate, Step, Periodic, Lag, AuxPoly,
+for _cls in (AxisMap, Scale, NonOrthogonality, Misalignment, SoftIron, Offset,
+             *(TOKEN_CLASSES[n] for n in ('temperature', 'drift', 'drift2', 'nonlinearity',
+                                          'field_rate', 'step', 'periodic', 'lag', 'aux_poly')),
              SiteGradient, AttitudeReference, AttitudeFull):
     register_effect(_cls)
 
@@ -220,7 +220,7 @@ def make_catalog_effect(token, sensor):
                              f'{", ".join(registered_effects())}')
         return _REGISTRY[name].from_args(args, sensor)
     if token.startswith('aux:'):
-        return Aux(sensor=sensor, channel=token[4:])
+        return aux_effect(token[4:], sensor)
     if token not in _REGISTRY and ':' in token:
         token = _loaded_effect_name(token)
     if token not in _REGISTRY:

@@ -15,47 +15,116 @@
 """
 A coupling of a driver composed into an :class:`~.base.Effect` the model and engine consume.
 
-:class:`ComposedEffect` is an additive effect of one sensor: its contribution is the
-coupling's change of the reading for the driver's columns X (:mod:`.drivers`) and the
-parameters P (:mod:`.couplings`); scale, linear, nonorth and rotation couplings read the
-linear reading (``depends_on_lin``: the correction inverts them by fixed-point iteration,
-as for the catalog's temperature scale).  With scope ``alike`` one instance per sensor
-shares one parameter set (:attr:`ComposedEffect.shared`, laid out once by the Model).
-:class:`FieldEffect` is the ``field`` coupling: an effect of the whole array that changes
-the magnitude of the field every sensor sees (``Model.array_shift`` with the field).
+:class:`Part` is the one evaluation of coupling(driver): the coupling's change of the
+reading for the driver's columns X (:mod:`.drivers`) and the parameters P
+(:mod:`.couplings`).  :class:`ComposedEffect` is a composed term of one sensor, one Part;
+the catalog's tokens (:mod:`.catalog`: ``temperature``, ``lag(v)``, ...) are sums of Parts.
+Scale, linear, nonorth and rotation couplings read the linear reading (``depends_on_lin``:
+the correction inverts them by fixed-point iteration).  With scope ``alike`` one instance
+per sensor shares one parameter set (:attr:`ComposedEffect.shared`, laid out once by the
+Model).  :class:`FieldEffect` is the ``field`` coupling: an effect of the whole array that
+changes the magnitude of the field every sensor sees (``Model.array_shift`` with the field).
 """
 from magcal_ros.core.effects.base import Effect
 from magcal_ros.core.effects.couplings import per_unit
 import numpy as np
 
 
-class ComposedEffect(Effect):
+class Part:
     """
-    coupling(driver) on one sensor: dB = coupling(X P, lin).
+    coupling(driver): dB = coupling(X P, lin), the grammar's one evaluation of a term.
 
     Parameters (``param_names``): c per driver column, named ``<stem>`` for a one-column
     driver (bx, by, bz; kx, ky, kz; ...) or ``<stem>_<column>`` (bx_s1, ...), then the
-    driver's own (a lag's tau).
+    driver's own (a lag's tau).  The driver reads its reference values from the ``refs``
+    every call is given (the effect's).
     """
+
+    def __init__(self, coupling, driver):
+        self.coupling = coupling
+        self.driver = driver
+        cols = driver.column_names
+        self.m, self.c = len(cols), coupling.n_per_column
+        self.param_names = tuple(
+            (st if self.m == 1 else f'{st}_{col}') for col in cols for st in coupling.stems
+        ) + tuple(driver.param_names)
+        self.units = (per_unit(coupling.unit, driver.unit),) * (self.m * self.c) + tuple(
+            driver.units)
+        self.cache = {}
+
+    @property
+    def text(self):
+        """Canonical text, ``offset(s(t, k=6))``."""
+        return f'{self.coupling.name}({self.driver.text})'
+
+    @property
+    def reads_lin(self):
+        """Tell whether the change reads the linear reading."""
+        return bool(self.coupling.reads_lin or self.driver.reads_lin)
+
+    def default_params(self):
+        """Coupling switched off; the driver's own parameters at their start (a lag's tau)."""
+        return np.concatenate([np.zeros(self.m * self.c), self.driver.default_params()])
+
+    def columns(self, ctx, lin, q, refs):
+        """(N, m) or (N, 3, m) driver columns, cached per context and driver parameters."""
+        if self.driver.reads_lin:
+            return self.driver.columns(ctx, lin, refs, q)
+        key = (id(ctx), tuple(np.asarray(q, float)))
+        hit = self.cache.get(key)
+        if hit is None or hit[0] is not ctx:
+            hit = (ctx, self.driver.columns(ctx, lin, refs, q))
+            if len(self.cache) >= 8:
+                self.cache.pop(next(iter(self.cache)))
+            self.cache[key] = hit
+        return hit[1]
+
+    def coupled(self, p, ctx, lin, refs):
+        """Return y = X P: (N, c), or (N, 3) for a per-axis driver."""
+        mc = self.m * self.c
+        x = self.columns(ctx, lin, p[mc:], refs)
+        pm = np.asarray(p[:mc], float).reshape(self.m, self.c)
+        if x.ndim == 3:
+            return np.einsum('nim,mi->ni', x, pm)
+        return x @ pm
+
+    def contribution(self, p, ctx, lin, refs):
+        """(N, 3) nT added to the raw reading."""
+        return self.coupling.contribution(self.coupled(p, ctx, lin, refs), lin)
+
+
+def no_lag(tau, se, ctx, what):
+    """
+    Say why a fitted time constant ``tau`` +- ``se`` s is no lag, or return None.
+
+    Below two sample intervals, or within 3 standard uncertainties of zero, the lag is the
+    plain coupling of ``what`` (the variable), which the diagnosis then prefers.
+    """
+    tau, se = abs(float(tau)), float(se) if se is not None else 0.0
+    if len(ctx.t) < 2:
+        return None
+    dt = float(np.median(np.diff(ctx.t)))
+    if tau < 2.0 * dt or (np.isfinite(se) and tau < 3.0 * se):
+        return (f'fitted time constant {tau:.3g} +- {se:.2g} s is no lag (below '
+                f'{max(2 * dt, 3 * se):.3g} s): the plain coupling of {what}')
+    return None
+
+
+class ComposedEffect(Effect):
+    """coupling(driver) on one sensor: one :class:`Part`, parameters named as the Part's."""
 
     kind = 'additive'
 
     def __init__(self, coupling, driver, sensor=1, refs=None, shared=False):
         super().__init__(sensor, refs)
+        self.part = Part(coupling, driver)
         self.coupling = coupling
         self.driver = driver
         self.shared = bool(shared)
-        self.name = f'{coupling.name}({driver.text})'
-        cols = driver.column_names
-        self._m = len(cols)
-        self._c = coupling.n_per_column
-        self.param_names = tuple(
-            (st if self._m == 1 else f'{st}_{col}') for col in cols for st in coupling.stems
-        ) + tuple(driver.param_names)
-        self.units = (per_unit(coupling.unit, driver.unit),) * (self._m * self._c) + tuple(
-            driver.units)
+        self.name = self.part.text
+        self.param_names = self.part.param_names
+        self.units = self.part.units
         self.signals = tuple(driver.signals)
-        self._cache = {}
 
     @property
     def label(self):
@@ -68,12 +137,12 @@ class ComposedEffect(Effect):
 
     def default_params(self):
         """Coupling switched off; the driver's own parameters at their start (a lag's tau)."""
-        return np.concatenate([np.zeros(self._m * self._c), self.driver.default_params()])
+        return self.part.default_params()
 
     def prepare(self, ctx):
         """Store the driver's reference values (means, ranges, start time) in ``refs``."""
         self.driver.prepare(ctx, self.refs)
-        self._cache = {}
+        self.part.cache = {}
 
     def check(self, ctx):
         """Return None if the data can excite the driver, else the reason why not."""
@@ -81,46 +150,21 @@ class ComposedEffect(Effect):
 
     def depends_on_lin(self):
         """Tell whether the contribution reads the linear reading."""
-        return bool(self.coupling.reads_lin or self.driver.reads_lin)
-
-    def columns(self, ctx, lin, q):
-        """(N, m) or (N, 3, m) driver columns, cached per context and driver parameters."""
-        if self.driver.reads_lin:
-            return self.driver.columns(ctx, lin, self.refs, q)
-        key = (id(ctx), tuple(np.asarray(q, float)))
-        hit = self._cache.get(key)
-        if hit is None or hit[0] is not ctx:
-            hit = (ctx, self.driver.columns(ctx, lin, self.refs, q))
-            if len(self._cache) >= 8:
-                self._cache.pop(next(iter(self._cache)))
-            self._cache[key] = hit
-        return hit[1]
+        return self.part.reads_lin
 
     def coupled(self, p, ctx, lin):
         """Return y = X P: (N, c), or (N, 3) for a per-axis driver."""
-        mc = self._m * self._c
-        x = self.columns(ctx, lin, p[mc:])
-        pm = np.asarray(p[:mc], float).reshape(self._m, self._c)
-        if x.ndim == 3:
-            return np.einsum('nim,mi->ni', x, pm)
-        return x @ pm
+        return self.part.coupled(p, ctx, lin, self.refs)
 
     def contribution(self, p, ctx, lin):
         """(N, 3) nT added to the raw reading."""
-        return self.coupling.contribution(self.coupled(p, ctx, lin), lin)
+        return self.part.contribution(p, ctx, lin, self.refs)
 
     def reduces(self, p, stderr, ctx):
         """Say why a fitted lag of zero time constant is the plain coupling, or None."""
-        if 'tau' not in self.param_names or len(ctx.t) < 2:
+        if 'tau' not in self.param_names:
             return None
-        i = len(self.param_names) - 1
-        tau = abs(float(p[i]))
-        se = float(stderr[i]) if stderr is not None else 0.0
-        dt = float(np.median(np.diff(ctx.t)))
-        if tau < 2.0 * dt or (np.isfinite(se) and tau < 3.0 * se):
-            return (f'fitted time constant {tau:.3g} +- {se:.2g} s is no lag: the plain '
-                    'coupling of the variable')
-        return None
+        return no_lag(p[-1], None if stderr is None else stderr[-1], ctx, 'the variable')
 
     def __repr__(self):
         return f'ComposedEffect({self.label!r}, sensor={self.sensor})'
