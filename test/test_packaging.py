@@ -128,7 +128,8 @@ def test_colcon_build_installs_index_manifest_config_and_executables(colcon_inst
 _PY_DEPS = {'numpy': 'python3-numpy', 'scipy': 'python3-scipy', 'serial': 'python3-serial',
             'yaml': 'python3-yaml', 'matplotlib': 'python3-matplotlib', 'rosbags': None,
             'ppigrf': None, 'threadpoolctl': None, 'zstandard': None,
-            'jsonschema': 'python3-jsonschema', 'tqdm': 'python3-tqdm', 'PIL': 'python3-pil'}
+            'jsonschema': 'python3-jsonschema', 'tqdm': 'python3-tqdm', 'PIL': 'python3-pil',
+            'pymavlink': 'python3-pymavlink', 'pyulog': 'python3-pyulog-pip'}
 
 
 def _imported_modules(paths):

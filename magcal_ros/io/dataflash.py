@@ -94,7 +94,7 @@ class _Log:
         self._params = None
 
     def _count_fmt(self):
-        return self.count('FMT') if not self.text else 1
+        return int(self.r.counts[0x80]) if not self.text else 1
 
     def close(self):
         """Release the file."""
