@@ -37,10 +37,13 @@ class BadInput(ValueError):
 
 def load_data(path, unit=None, rate_hz=100.0):
     """
-    Dataset in nT from a wide CSV file, a rosbag2 directory or a single-sensor CSV.
+    Dataset in nT from a wide CSV file, a rosbag2 directory, a vehicle log or a single-sensor CSV.
 
     A CSV may be compressed: ``.csv.gz`` (gzip) and ``.csv.zst`` (Zstandard) are decompressed
-    as they are read.
+    as they are read.  A vehicle log (ArduPilot DataFlash ``.bin``/``.log``, PX4 ULog
+    ``.ulg``: :mod:`magcal_ros.io.vehicle`) is found by its first bytes; what the reader
+    warns about (no attitude, a compass that stops, ...) is printed on stderr, one
+    ``warning [input]: ...`` line each.
 
     ``unit`` (a key of :data:`magcal_ros.units.UNITS_NT`) is the unit of the field columns
     (readings, ``ref_total``, ``ref_x/y/z``); they are converted to nT here, once.  A CSV
@@ -52,6 +55,8 @@ def load_data(path, unit=None, rate_hz=100.0):
         data = read_bag(path)
     elif not os.path.exists(path):
         raise BadInput(f'{path}: no such file or directory')
+    elif _vehicle_log(path):
+        return _read_vehicle(path, unit)
     elif unit and not _is_wide_csv(path):
         from magcal_ros.io.single_csv import read_single_sensor_csv
         return read_single_sensor_csv(path, unit=unit, rate_hz=rate_hz)
@@ -79,6 +84,15 @@ def load_record(path, unit=None, rate_hz=100.0, progress=None, reduce_above=None
     """
     from magcal_ros.core.data import reduce
     limit = reduce.REDUCE_ABOVE if reduce_above is None else int(reduce_above)
+    if os.path.exists(path) and _vehicle_log(path):
+        # a vehicle log is read once, whole (its compass epochs: io.vehicle), then reduced
+        data = _read_vehicle(path, unit)
+        if data.n_samples <= limit:
+            return data, None
+        from magcal_ros.io.vehicle import VehicleRecord
+        rec = VehicleRecord(path, data)
+        red = reduce.reduce_chunks(rec.chunks())
+        return red.sample, rec
     other_csv = unit and not os.path.isdir(path) and not _is_wide_csv(path)
     if not os.path.exists(path) or other_csv or _estimated_rows(path) <= limit:
         return load_data(path, unit, rate_hz), None
@@ -97,6 +111,24 @@ def load_record(path, unit=None, rate_hz=100.0, progress=None, reduce_above=None
         red.sample.meta['unit'] = unit
     rec.scale = k
     return red.sample, rec
+
+
+def _vehicle_log(path):
+    """Tell whether ``path`` is an ArduPilot or PX4 log (:func:`magcal_ros.io.vehicle.log_format`)."""
+    from magcal_ros.io.vehicle import log_format
+    return log_format(path) is not None
+
+
+def _read_vehicle(path, unit):
+    """Read a vehicle log (nT from the log's own units); print its warnings on stderr."""
+    if unit not in (None, 'nT'):
+        raise BadInput(f'--unit {unit}: a vehicle log is read in its own units (ArduPilot '
+                       'milligauss, PX4 gauss) and converted to nT; leave --unit out')
+    from magcal_ros.io.vehicle import read_vehicle_log
+    data = read_vehicle_log(path)
+    for w in data.meta.get('warnings', []):
+        print(format_note(w), file=sys.stderr)
+    return data
 
 
 def _scale_to_nt(data, k):
@@ -246,6 +278,15 @@ def _resolve_field(args, data):
         return f, {'kind': 'constant', 'magnitude_nt': f}
     if data.ref_total is not None:
         return None, {'kind': 'ref_total', 'magnitude_nt': float(np.mean(data.ref_total))}
+    site = data.meta.get('igrf')
+    if site:
+        # a vehicle log's GPS: IGRF at its median fix and date (magcal_ros.io.vehicle)
+        from magcal_ros.core.data.magnitude import igrf_field
+        f, inc = igrf_field(site['lat_deg'], site['lon_deg'], site['alt_km'], site['date'])
+        return f, {'kind': 'igrf', 'lat_deg': site['lat_deg'], 'lon_deg': site['lon_deg'],
+                   'alt_km': site['alt_km'], 'date': site['date'], 'magnitude_nt': f,
+                   'inclination_deg': inc,
+                   'note': f"from the log's GPS (median of {site.get('fixes', 0)} 3-D fixes)"}
     raise BadInput('no reference field: the data have no ref_total column; give --field-nt NT, '
                    '--field-nt auto or --igrf LAT LON ALT_KM DATE')
 
@@ -360,6 +401,12 @@ def cmd_fit(args):
     s = dict(run.summary)
     s['output'] = None if refused else out
     s['field_reference'] = fref
+    if 'onboard_calibration' in data.meta:
+        # a vehicle log: the autopilot's own calibration (its parameters) beside ours
+        s['onboard_calibration'] = data.meta['onboard_calibration']
+        s['log'] = {k: data.meta.get(k) for k in (
+            'source_format', 'firmware', 'vehicle', 'compasses', 'attitude_source',
+            'attitude_frame', 'aux_units', 'dropped_epochs')}
     # the document the file holds (or would hold), built once: the JSON and the file agree
     s['calibration'] = None if refused else stamp_checksum(run.doc)
     if args.json:
@@ -646,7 +693,8 @@ def build_parser():
     s.set_defaults(func=cmd_simulate)
 
     f = sub.add_parser('fit', help='fit a model and write a calibration file')
-    f.add_argument('data', help='wide CSV file (.csv, .csv.gz, .csv.zst) or rosbag2 directory')
+    f.add_argument('data', help='wide CSV file (.csv, .csv.gz, .csv.zst), rosbag2 directory, '
+                                'or vehicle log (ArduPilot .bin/.log, PX4 .ulg)')
     f.add_argument('--model', default='base', help="effects, e.g. 'base,temperature@2'")
     f.add_argument('--method', default='ellipsoid', choices=['ellipsoid', 'sine', 'reference'],
                    help='ellipsoid: maximum-likelihood fit of --model from rotations in a '
@@ -693,7 +741,7 @@ def build_parser():
                        '|B| at every attitude, equal to the reference, or why not')
     c.add_argument('calfile', help='calibration YAML written by magcal fit')
     c.add_argument('data', nargs='+', help='static recordings (wide CSV, also .csv.gz or '
-                   '.csv.zst, or rosbag2), each at one attitude')
+                   '.csv.zst, rosbag2, or vehicle log), each at one attitude')
     c.add_argument('--sensor', type=int, default=1, help='sensor to check (default 1)')
     c.add_argument('-q', '--quiet', action='store_true', help='no progress bars on stderr')
     add_unit_arg(c)

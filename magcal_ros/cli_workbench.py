@@ -46,7 +46,8 @@ def _load(args, cli, prog):
 
 def _common(p, cli):
     p.add_argument('data', help='wide CSV file (.csv, .csv.gz, .csv.zst), rosbag2 directory, '
-                                'or single-sensor CSV (with --unit)')
+                                'vehicle log (ArduPilot .bin/.log, PX4 .ulg), or '
+                                'single-sensor CSV (with --unit)')
     p.add_argument('--model', default='base',
                    help="effects of the model to diagnose, e.g. 'base,temperature@2' "
                         '(default base)')

@@ -53,6 +53,8 @@ DECLARED = {
     'ppigrf': ('ppigrf', 'python3-ppigrf-pip'),
     'zstandard': ('zstandard', 'python3-zstandard-pip'),
     'threadpoolctl': ('threadpoolctl', 'python3-threadpoolctl-pip'),
+    'pymavlink': ('pymavlink', 'python3-pymavlink-pip'),
+    'pyulog': ('pyulog', 'python3-pyulog-pip'),
     # the ROS 2 Jazzy wheels: each ROS package is its own distribution, installed by the
     # requirement named here; its rosdep key is the ROS package's name
     'ros-rclpy': ('ros-jazzy-rclpy', 'rclpy'),
@@ -72,7 +74,8 @@ DECLARED = {
 ROS_ONLY = {'diagnostic_updater': 'diagnostic_updater', 'tf2_ros': 'tf2_ros',
             'launch': 'launch', 'launch_ros': 'launch_ros'}
 #: the pip keys rosdistro lacks, defined in rosdep.yaml
-OWN_PIP_KEYS = {'python3-ppigrf-pip', 'python3-zstandard-pip', 'python3-threadpoolctl-pip'}
+OWN_PIP_KEYS = {'python3-ppigrf-pip', 'python3-zstandard-pip', 'python3-threadpoolctl-pip',
+                'python3-pymavlink-pip', 'python3-pyulog-pip'}
 
 
 def imported_modules(paths):

@@ -1,0 +1,542 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+ArduPilot DataFlash logs (``.bin``, text ``.log``) -> :class:`~magcal_ros.io.vehicle.VehicleLog`.
+
+pymavlink's DFReader opens the log and indexes it (the offsets of every message of every
+type, its C indexer for ``.bin``) and parses the formats (FMT, FMTU) and parameters.  Only
+the message types needed are then decoded, and a binary log's messages of one type are
+decoded all at once: their bytes gathered by the index's offsets into one array and read
+through a numpy structured dtype built from the type's FMT (the format characters of
+DFReader's ``FORMAT_TO_STRUCT``, with their multipliers), not one Python message object
+each.  A text log is read through DFReader's own ``recv_match`` (slow, for small logs).
+
+The compass (``MAG``, instance ``I``; ``MAG``, ``MAG2``, ``MAG3`` in older logs) is logged in
+milligauss in the body frame, after AP_Compass's ``correct_field`` (AP_Compass_Backend.cpp;
+the order also in pymavlink's tools/magfit_WMM.py ``correct``)::
+
+    F = M s (r + o) + m            (firmware 3.6 and later)
+    F = M (r + o + m)              (older: the motor offset before the matrix)
+
+with r the raw reading rotated into the body frame (board orientation, COMPASS_ORIENT), o the
+offsets (logged per sample: OfsX..), s COMPASS_SCALE where 0.85 <= s <= 1.4 (else 1: the
+scale is not applied), M the symmetric matrix of COMPASS_DIA (diagonal; all zero means 1) and
+COMPASS_ODI (xy, xz, yz), m the motor compensation (logged per sample: MOX.., or MOfsX..).
+:func:`ardupilot_raw` inverts it exactly: r = M^-1 (F - m) / s - o.  DIA, ODI and SCALE are
+taken at each sample's time (a PARM message changes them from its time on).  The logged
+values are whole milligauss (100 nT): F, o and m are each rounded to 50 nT.
+
+Attitude: the EKF's quaternion of the autopilot body (EKF3 ``XKQ``, ``XKQ1``; EKF2 ``NKQ``,
+``NKQ1``; the one AHRS_EKF_TYPE selects first, core 0), Hamilton body-to-NED: NavEKF3's
+``getRotationBodyToNED`` is that quaternion's matrix times the trim rotation.  Without EKF
+quaternions, ``ATT`` roll, pitch, yaw (the vehicle body: AHRS_TRIM applied) with the trim
+removed: R_autopilot = R(ATT) R(AHRS_TRIM_X, _Y, _Z) (AP_AHRS: vehicle = autopilot x
+the transposed trim rotation).
+"""
+import datetime
+import re
+
+from magcal_ros.io.vehicle import gps_site, NT_PER_MGAUSS, SLOW_RATE_HZ, Stream, \
+    VehicleLog, VehicleLogError
+import numpy as np
+
+#: DataFlash format characters -> (numpy type, multiplier): pymavlink's FORMAT_TO_STRUCT
+_NP = {
+    'a': (('<i2', (32,)), None), 'b': ('i1', None), 'B': ('u1', None), 'h': ('<i2', None),
+    'H': ('<u2', None), 'i': ('<i4', None), 'I': ('<u4', None), 'f': ('<f4', None),
+    'd': ('<f8', None), 'n': ('S4', None), 'N': ('S16', None), 'Z': ('S64', None),
+    'c': ('<i2', 0.01), 'C': ('<u2', 0.01), 'e': ('<i4', 0.01), 'E': ('<u4', 0.01),
+    'L': ('<i4', 1e-7), 'M': ('u1', None), 'q': ('<i8', None), 'Q': ('<u8', None),
+    'g': ('<f2', None),
+}
+#: messages gathered at a time (bounds the index array: rows x message length x 8 bytes)
+_BLOCK = 65536
+#: COMPASS_SCALE is applied only inside these bounds (AP_Compass have_scale_factor)
+SCALE_BOUNDS = (0.85, 1.4)
+#: GPS time: week 0 starts on 1980-01-06
+_GPS_EPOCH = datetime.datetime(1980, 1, 6)
+_INSTANCE = ('I', 'Inst', 'Instance')
+
+
+class _Log:
+    """A DataFlash log opened by DFReader; ``table(name)`` decodes one message type."""
+
+    def __init__(self, path, text):
+        from pymavlink import DFReader
+        self.path = path
+        self.text = text
+        try:
+            self.r = (DFReader.DFReader_text if text else DFReader.DFReader_binary)(path)
+        except Exception as exc:           # DFReader raises anything on a damaged file
+            raise VehicleLogError(
+                f'{path}: cannot read this DataFlash log ({type(exc).__name__}: {exc}): the '
+                'file is damaged or not a DataFlash log; download it from the autopilot '
+                'again') from None
+        if text:
+            self.by_name = dict(self.r.formats)
+        else:
+            self.by_name = {f.name: f for f in self.r.formats.values()}
+        if 'FMT' not in self.by_name or self._count_fmt() == 0:
+            raise VehicleLogError(f'{path}: no FMT message: not a DataFlash log, or its start '
+                                  'is missing; download it from the autopilot again')
+        self._params = None
+
+    def _count_fmt(self):
+        return int(self.r.counts[0x80]) if not self.text else 1
+
+    def close(self):
+        """Release the file."""
+        self.r.close()
+
+    def count(self, name):
+        """Return the number of messages of type ``name``."""
+        if self.text:
+            return int(self.r.counts.get(name, 0))
+        tid = self.r.name_to_id.get(name)
+        return 0 if tid is None else int(self.r.counts[tid])
+
+    def columns(self, name):
+        """Return the column names of type ``name`` (empty when the log does not define it)."""
+        f = self.by_name.get(name)
+        return list(f.columns) if f is not None else []
+
+    def table(self, name, every=1):
+        """
+        Return {column: (M,) array} of every ``every``-th message of type ``name``, or None.
+
+        Numbers are float64 with the format's multiplier applied; strings are str arrays;
+        ``t`` is the time in s (TimeUS, or TimeMS in old logs).
+        """
+        if self.count(name) == 0:
+            return None
+        cols = self._text_table(name, every) if self.text else self._binary_table(name, every)
+        if 'TimeUS' in cols:
+            cols['t'] = cols['TimeUS'] * 1e-6
+        elif 'TimeMS' in cols:
+            cols['t'] = cols['TimeMS'] * 1e-3
+        else:
+            raise VehicleLogError(f'{self.path}: message {name} has no TimeUS or TimeMS field: '
+                                  'this DataFlash version is not supported')
+        return cols
+
+    def _binary_table(self, name, every):
+        fmt = self.by_name[name]
+        names, formats, offsets, mults = [], [], [], {}
+        off = 0
+        for col, ch in zip(fmt.columns, fmt.format):
+            if ch not in _NP:
+                raise VehicleLogError(f'{self.path}: message {name}: unknown format character '
+                                      f'{ch!r}: this DataFlash version is not supported')
+            np_t, mult = _NP[ch]
+            if col in names:
+                col = f'{col}_{len(names)}'
+            names.append(col)
+            formats.append(np_t)
+            offsets.append(off)
+            off += np.dtype(np_t).itemsize
+            if mult:
+                mults[col] = mult
+        length = fmt.len - 3
+        if off != length:
+            raise VehicleLogError(f'{self.path}: message {name}: its FMT says {fmt.len} bytes '
+                                  f'but its format {fmt.format!r} makes {off + 3}: the log is '
+                                  'damaged')
+        dtype = np.dtype({'names': names, 'formats': formats, 'offsets': offsets,
+                          'itemsize': length})
+        buf = np.frombuffer(self.r.data_map, np.uint8)
+        try:
+            ofs = np.asarray(self.r.offsets[fmt.type], np.int64)[::every] + 3
+            ofs = ofs[ofs + length <= len(buf)]
+            ar = np.arange(length)
+            rows = np.concatenate([buf[ofs[a:a + _BLOCK, None] + ar]
+                                   for a in range(0, len(ofs), _BLOCK)] or
+                                  [np.zeros((0, length), np.uint8)])
+        finally:
+            del buf
+        rec = rows.view(dtype)[:, 0]
+        out = {}
+        for col in names:
+            a = rec[col]
+            if a.dtype.kind == 'S':
+                out[col] = np.char.decode(np.char.rstrip(a, b'\0'), 'ascii', 'replace')
+            else:
+                a = a.astype(float)
+                out[col] = a * mults[col] if col in mults else a
+        return out
+
+    def _text_table(self, name, every):
+        r = self.r
+        r.rewind()
+        rows = []
+        while True:
+            m = r.recv_match(type=name)
+            if m is None:
+                break
+            rows.append(m.to_dict())
+        rows = rows[::every]
+        out = {}
+        for col in self.columns(name):
+            vals = [row.get(col) for row in rows]
+            try:
+                out[col] = np.array(vals, float)
+            except (TypeError, ValueError):
+                out[col] = np.array([str(v) for v in vals])
+        return out
+
+    def params(self):
+        """Return {name: (times (K,) s, values (K,))} of the PARM messages, in time order."""
+        if self._params is None:
+            self._params = {}
+            tab = self.table('PARM')
+            if tab is not None:
+                order = np.argsort(tab['t'], kind='stable')
+                names = tab['Name'][order]
+                t, v = tab['t'][order], tab['Value'][order]
+                for n in np.unique(names):
+                    sel = names == n
+                    self._params[str(n)] = (t[sel], v[sel])
+        return self._params
+
+    def param(self, name, default=None):
+        """Return the first value of parameter ``name`` in the log, or ``default``."""
+        p = self.params().get(name)
+        return default if p is None else float(p[1][0])
+
+    def param_at(self, name, t, default):
+        """(M,) value of parameter ``name`` at times ``t`` (the last PARM before each)."""
+        p = self.params().get(name)
+        if p is None:
+            return np.full(len(t), float(default))
+        i = np.searchsorted(p[0], t, side='right') - 1
+        return p[1][np.clip(i, 0, len(p[1]) - 1)]
+
+
+def ardupilot_raw(field, offsets, motor, diag, offdiag, scale, motor_first=False):
+    """
+    The raw body-frame reading from what ArduPilot logs (module docstring), any one unit.
+
+    Parameters
+    ----------
+    field : numpy.ndarray
+        (N, 3) logged corrected field F (MAG.MagX..).
+    offsets, motor : numpy.ndarray
+        (N, 3) offsets o and motor compensation m as logged (OfsX.., MOX..).
+    diag, offdiag : numpy.ndarray
+        (N, 3) or (3,): COMPASS_DIA (x, y, z; all zero is read as 1, 1, 1) and COMPASS_ODI
+        (xy, xz, yz).
+    scale : numpy.ndarray or float
+        (N,) or scalar COMPASS_SCALE; outside :data:`SCALE_BOUNDS` the firmware does not
+        apply it and neither does this.
+    motor_first : bool
+        Firmware older than 3.6: F = M (r + o + m).
+
+    Returns
+    -------
+    numpy.ndarray
+        (N, 3) r = M^-1 (F - m) / s - o  (older: M^-1 F - o - m).
+
+    """
+    field = np.asarray(field, float)
+    n = len(field)
+    d = np.broadcast_to(np.asarray(diag, float), (n, 3)).copy()
+    d[(d == 0).all(axis=1)] = 1.0
+    od = np.broadcast_to(np.asarray(offdiag, float), (n, 3))
+    mat = np.empty((n, 3, 3))
+    mat[:, 0, 0], mat[:, 1, 1], mat[:, 2, 2] = d[:, 0], d[:, 1], d[:, 2]
+    mat[:, 0, 1] = mat[:, 1, 0] = od[:, 0]
+    mat[:, 0, 2] = mat[:, 2, 0] = od[:, 1]
+    mat[:, 1, 2] = mat[:, 2, 1] = od[:, 2]
+    s = np.broadcast_to(np.asarray(scale, float), (n,)).copy()
+    s[~((s >= SCALE_BOUNDS[0]) & (s <= SCALE_BOUNDS[1]))] = 1.0
+    o = np.asarray(offsets, float)
+    m = np.asarray(motor, float)
+    if motor_first:
+        return np.linalg.solve(mat, field[..., None])[..., 0] - o - m
+    return np.linalg.solve(mat, (field - m)[..., None])[..., 0] / s[:, None] - o
+
+
+def _pname(log, kind, k, axis=''):
+    """Name in the log of compass ``k``'s parameter (COMPASS_OFS2_X or COMPASS2_OFS_X)."""
+    suffix = f'_{axis}' if axis else ''
+    first = {'EXTERNAL': 'EXTERNAL', 'DEV_ID': 'DEV_ID'}.get(kind, kind)
+    other = {'EXTERNAL': 'EXTERN'}.get(kind, kind)
+    names = ([f'COMPASS_{first}{suffix}'] if k == 1 else
+             [f'COMPASS_{other}{k}{suffix}']) + [f'COMPASS{k}_{kind}{suffix}']
+    params = log.params()
+    return next((n for n in names if n in params), names[0])
+
+
+def _split(tab, numbered, log, name, every=1):
+    """
+    [(instance 0.., table)] of a message with an instance field, or of NAME, NAME2, NAME3.
+
+    ``numbered`` (e.g. '{name}{k}') names the old per-instance messages (k = 2, 3, ...).
+    """
+    if tab is None:
+        return []
+    inst = next((c for c in _INSTANCE if c in tab), None)
+    if inst is not None:
+        out = []
+        for k in np.unique(tab[inst]).astype(int).tolist():
+            sel = tab[inst] == k
+            out.append((k, {c: v[sel] for c, v in tab.items()}))
+        return out
+    out = [(0, tab)]
+    for k in range(2, 9):
+        other = log.table(numbered.format(name=name, k=k), every)
+        if other is None:
+            break
+        out.append((k - 1, other))
+    return out
+
+
+def _firmware(log):
+    """Return (vehicle name, (major, minor)) from the log's MSG texts, or (None, None)."""
+    tab = log.table('MSG')
+    if tab is None:
+        return None, None
+    for text in tab['Message'].tolist():
+        m = re.search(r'\b(Ardu\w+|Rover|Blimp|AntennaTracker|AP_Periph)\s+V(\d+)\.(\d+)',
+                      str(text))
+        if m:
+            return m.group(1), (int(m.group(2)), int(m.group(3)))
+    return None, None
+
+
+def read_dataflash(path, text=False):
+    """
+    Read an ArduPilot DataFlash log into a :class:`~magcal_ros.io.vehicle.VehicleLog`.
+
+    ``text``: a text ``.log`` (DFReader_text), else a binary ``.bin``.
+    """
+    log = _Log(path, text)
+    try:
+        return _read(log, path, text)
+    finally:
+        log.close()
+
+
+def _read(log, path, text):
+    vehicle, version = _firmware(log)
+    out = VehicleLog('ArduPilot DataFlash (text)' if text else 'ArduPilot DataFlash')
+    if vehicle:
+        out.info['vehicle'] = vehicle
+        out.info['firmware'] = f'{vehicle} V{version[0]}.{version[1]}'
+    motor_first = version is not None and version < (3, 6)
+    mags = _split(log.table('MAG'), '{name}{k}', log, 'MAG')
+    span = None
+    for k, tab in mags:
+        j = k + 1
+        t = tab['t']
+        if span is None and len(t) > 1:
+            span = (float(t.min()), float(t.max()))
+        f = np.column_stack([tab['MagX'], tab['MagY'], tab['MagZ']])
+        o = np.column_stack([tab.get(f'Ofs{a}', np.zeros(len(t))) for a in 'XYZ'])
+        mo_cols = [next((c for c in (f'MO{a}', f'MOfs{a}') if c in tab), None) for a in 'XYZ']
+        motct = log.param('COMPASS_MOTCT', 0.0)
+        if None in mo_cols:
+            mo = np.zeros((len(t), 3))
+            if motct or log.param('COMPASS_PMOT_EN', 0.0):
+                out.warnings.append(f'compass {j}: the log has no motor offsets (MOX..) though '
+                                    'motor compensation is on: it is not undone')
+        else:
+            mo = np.column_stack([tab[c] for c in mo_cols])
+        dia = np.column_stack([log.param_at(_pname(log, 'DIA', j, a), t, 1.0) for a in 'XYZ'])
+        odi = np.column_stack([log.param_at(_pname(log, 'ODI', j, a), t, 0.0) for a in 'XYZ'])
+        scale = log.param_at(_pname(log, 'SCALE', j), t, 0.0)
+        raw = ardupilot_raw(f, o, mo, dia, odi, scale, motor_first) * NT_PER_MGAUSS
+        name = 'MAG' if 'I' in tab else ('MAG' if j == 1 else f'MAG{j}')
+        out.compasses.append(Stream(t, raw, f'{name} instance {k}'))
+        out.compass_temps.append(None)
+        out.onboard.append(_onboard(log, j, tab, motct))
+    duration = (span[1] - span[0]) if span else None
+    _attitude(log, out)
+    _gps(log, out)
+    _aux(log, out, vehicle, duration)
+    return out
+
+
+def _onboard(log, j, tab, motct):
+    """The onboard calibration of compass ``j`` as the log's parameters say (nT)."""
+    def vec(kind, default):
+        return [log.param(_pname(log, kind, j, a), default) for a in 'XYZ']
+    scale = log.param(_pname(log, 'SCALE', j), 0.0)
+    prio = log.param(f'COMPASS_PRIO{j}_ID')
+    dev = prio if prio is not None else log.param(_pname(log, 'DEV_ID', j))
+    types = {0: 'none', 1: 'throttle', 2: 'current'}
+    pmot = bool(log.param('COMPASS_PMOT_EN', 0.0)) and j == 1
+    dia = vec('DIA', 1.0)
+    out = {
+        'compass': j, 'autopilot': 'ArduPilot',
+        'device_id': None if dev is None else int(dev),
+        'external': (None if log.param(_pname(log, 'EXTERNAL', j)) is None
+                     else int(log.param(_pname(log, 'EXTERNAL', j)))),
+        'orientation': (None if log.param(_pname(log, 'ORIENT', j)) is None
+                        else int(log.param(_pname(log, 'ORIENT', j)))),
+        'offsets_nt': [x * NT_PER_MGAUSS for x in vec('OFS', 0.0)],
+        'diagonals': [1.0, 1.0, 1.0] if all(x == 0 for x in dia) else dia,
+        'offdiagonals': vec('ODI', 0.0),
+        'scale': scale,
+        'scale_applied': SCALE_BOUNDS[0] <= scale <= SCALE_BOUNDS[1],
+        'motor_compensation': {
+            'type': 'per-motor' if pmot else types.get(int(motct), f'unknown ({motct})'),
+            'vector_nt_per_unit': [x * NT_PER_MGAUSS for x in vec('MOT', 0.0)],
+            'unit': {1: 'nT per unit throttle (0..1)', 2: 'nT per A'}.get(int(motct), '')},
+    }
+    if 'OfsX' in tab and len(tab['OfsX']):
+        logged = np.column_stack([tab[f'Ofs{a}'] for a in 'XYZ'])
+        if np.ptp(logged, axis=0).max() > 0:
+            out['offsets_changed_in_log'] = True
+    return out
+
+
+def _euler_quaternions(roll, pitch, yaw, degrees=True):
+    """(M, 4) body-to-NED quaternions (w, x, y, z) of ZYX Euler angles."""
+    from scipy.spatial.transform import Rotation
+    return Rotation.from_euler('ZYX', np.column_stack([yaw, pitch, roll]),
+                               degrees=degrees).as_quat(scalar_first=True)
+
+
+def _attitude(log, out):
+    ekf = log.param('AHRS_EKF_TYPE')
+    order = [('XKQ', 'EKF3'), ('NKQ', 'EKF2')]
+    if ekf == 2:
+        order.reverse()
+    for name, label in order:
+        tab = log.table(name) if log.count(name) else log.table(f'{name}1')
+        if tab is None:
+            continue
+        if 'C' in tab:
+            core = int(np.min(tab['C']))
+            sel = tab['C'] == core
+            tab = {c: v[sel] for c, v in tab.items()}
+            src = f'ArduPilot {label} {name} core {core}'
+        else:
+            src = f'ArduPilot {label} {name}1 core 0'
+        q = np.column_stack([tab['Q1'], tab['Q2'], tab['Q3'], tab['Q4']])
+        out.attitude = Stream(tab['t'], q, src)
+        out.attitude_source = src
+        return
+    tab = log.table('ATT')
+    if tab is None:
+        return
+    from scipy.spatial.transform import Rotation
+    q = _euler_quaternions(tab['Roll'], tab['Pitch'], tab['Yaw'])
+    trim = [log.param(f'AHRS_TRIM_{a}', 0.0) for a in 'XYZ']
+    r = Rotation.from_quat(q, scalar_first=True) * Rotation.from_euler(
+        'ZYX', [trim[2], trim[1], trim[0]])
+    src = 'ArduPilot ATT (roll, pitch, yaw; AHRS_TRIM removed)'
+    out.attitude = Stream(tab['t'], r.as_quat(scalar_first=True), src)
+    out.attitude_source = src
+
+
+def _gps(log, out):
+    parts = _split(log.table('GPS'), '{name}{k}', log, 'GPS')
+    if not parts:
+        return
+    tab = parts[0][1]
+    week = tab.get('GWk', tab.get('Week'))
+    ms = tab.get('GMS', tab.get('TimeMS') if 'TimeUS' in tab else None)
+    good = tab['Status'] >= 3
+    if week is None or ms is None or not good.any():
+        return
+    dates = [(_GPS_EPOCH + datetime.timedelta(weeks=float(w), milliseconds=float(s)))
+             .strftime('%Y-%m-%d') if w > 0 else '' for w, s in zip(week[good], ms[good])]
+    out.gps = gps_site(tab['Lat'][good], tab['Lng'][good], tab['Alt'][good], dates)
+
+
+def _every(log, name, duration):
+    """Read every k-th message of a fast stream so that it is read at ~SLOW_RATE_HZ."""
+    if not duration:
+        return 1
+    return max(1, int(log.count(name) / (duration * SLOW_RATE_HZ)))
+
+
+def _aux(log, out, vehicle, duration):
+    # batteries
+    bats = _split(log.table('BAT'), '{name}{k}', log, 'BAT')
+    for k, tab in bats:
+        tag = 'battery' if k == 0 else f'battery{k + 1}'
+        if 'Curr' in tab:
+            out.add_aux(f'aux_{tag}_current', tab['t'], tab['Curr'], 'A', f'BAT[{k}].Curr')
+        if 'Volt' in tab:
+            out.add_aux(f'aux_{tag}_voltage', tab['t'], tab['Volt'], 'V', f'BAT[{k}].Volt')
+        if 'Temp' in tab and np.any(tab['Temp'] != 0):
+            out.add_aux(f'aux_{tag}_temp', tab['t'], tab['Temp'], 'degC', f'BAT[{k}].Temp')
+    if not bats:
+        tab = log.table('CURR')
+        if tab is not None:
+            fmt = log.by_name['CURR']
+            ints = {c: ch in 'hHiI' for c, ch in zip(fmt.columns, fmt.format)}
+            for col, name, unit in (('Curr', 'aux_battery_current', 'A'),
+                                    ('Volt', 'aux_battery_voltage', 'V')):
+                if col in tab:
+                    v = tab[col] / 100.0 if ints.get(col) else tab[col]
+                    out.add_aux(name, tab['t'], v, unit, f'CURR.{col}')
+    # throttle
+    tab = log.table('CTUN')
+    if tab is not None and vehicle:
+        col = 'ThO' if 'ThO' in tab else ('ThrOut' if 'ThrOut' in tab else None)
+        div = None
+        if vehicle in ('ArduCopter', 'ArduSub') or 'Heli' in vehicle:
+            div = 1.0 if col == 'ThO' else 1000.0
+        elif vehicle == 'ArduPlane':
+            div = 100.0
+        if col is not None and div is not None:
+            out.add_aux('aux_throttle', tab['t'], tab[col] / div, '0..1', f'CTUN.{col}')
+    # motors: the outputs whose SERVOn_FUNCTION is a motor
+    motors = {}
+    for n in range(1, 33):
+        f = log.param(f'SERVO{n}_FUNCTION', log.param(f'RC{n}_FUNCTION'))
+        if f is None:
+            continue
+        f = int(f)
+        if 33 <= f <= 40:
+            motors[n] = f - 32
+        elif 82 <= f <= 85:
+            motors[n] = f - 73
+    tables = {}
+    for n, k in sorted(motors.items()):
+        msg = 'RCOU' if n <= 14 else ('RCO2' if n <= 18 else 'RCO3')
+        if msg not in tables:
+            tables[msg] = log.table(msg)
+        tab = tables[msg]
+        if tab is not None and f'C{n}' in tab:
+            out.add_aux(f'aux_motor{k}', tab['t'], tab[f'C{n}'], 'PWM us', f'{msg}.C{n}')
+    # ESCs: ESC with an instance field, or ESC1..ESC8 in older logs
+    escs = (_split(log.table('ESC'), '{name}{k}', log, 'ESC') if log.count('ESC') else
+            [(k - 1, log.table(f'ESC{k}')) for k in range(1, 9) if log.count(f'ESC{k}')])
+    for k, tab in escs:
+        for col, what, unit in (('Curr', 'current', 'A'), ('RPM', 'rpm', 'rpm'),
+                                ('Temp', 'temp', 'degC')):
+            if col in tab:
+                out.add_aux(f'aux_esc{k + 1}_{what}', tab['t'], tab[col], unit,
+                            f'ESC[{k}].{col}')
+    # temperatures and the board's voltage (slow: read at ~SLOW_RATE_HZ)
+    imu = _split(log.table('IMU', _every(log, 'IMU', duration)), '{name}{k}', log, 'IMU',
+                 _every(log, 'IMU', duration))
+    for k, tab in imu:
+        if 'T' in tab:
+            out.add_aux('aux_imu_temp' if k == 0 else f'aux_imu{k + 1}_temp', tab['t'],
+                        tab['T'], 'degC', f'IMU[{k}].T')
+    baro = _split(log.table('BARO', _every(log, 'BARO', duration)), 'BAR{k}', log, 'BARO',
+                  _every(log, 'BARO', duration))
+    for k, tab in baro:
+        if 'Temp' in tab:
+            out.add_aux('aux_baro_temp' if k == 0 else f'aux_baro{k + 1}_temp', tab['t'],
+                        tab['Temp'], 'degC', f'BARO[{k}].Temp')
+    tab = log.table('POWR', _every(log, 'POWR', duration))
+    if tab is not None and 'Vcc' in tab:
+        out.add_aux('aux_board_voltage', tab['t'], tab['Vcc'], 'V', 'POWR.Vcc')
