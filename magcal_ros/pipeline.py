@@ -506,3 +506,86 @@ def _calibrate(data, model, field_nt, geometry, field_reference, **fit_kwargs):
     doc = calibration_to_doc(result.calibration, geometry=geometry or {},
                              field_reference=fref, provenance=prov)
     return CalibrationRun(result=result, summary=summary, doc=doc)
+
+
+#: the attitude mode of the learning's refits: the one place it is chosen.  None: the
+#: magnitude-only fit (data.attitude is carried, not used); the attitude-aided fit's mode
+#: ('tilt', 'full') when it is the pipeline's (one line: ``{'attitude': LEARN_ATTITUDE}``)
+LEARN_ATTITUDE = None
+#: prior sd of a held (undetermined) parameter, as a fraction of its kind's prior sd
+HELD_FRACTION = 1e-3
+#: a learned parameter is determined when its standard uncertainty moves the corrected
+#: field (an offset directly, a scale or an angle times F) by at most this many noise sds
+DETERMINED_NOISE = 1.0
+
+
+def refit_recent(data, active, field_nt, geometry=None, field_reference=None):
+    """
+    Refit what recent data determine, the rest held at the active calibration (issue 34).
+
+    Every parameter of the active calibration's model gets a prior centred on its active
+    value: the constant sensor map's (offset, scale, angles) with the planar mode's widths
+    (:func:`magcal_ros.core.model.planar.prior_sd`: 5 % of F, 5 %, 0.05 rad), any other
+    (a driven effect's coupling) held.  A parameter whose posterior sd stays above
+    :data:`magcal_ros.core.model.planar.UNDETERMINED_RATIO` of its prior's, or whose
+    uncertainty moves the corrected field by more than :data:`DETERMINED_NOISE` noise sds
+    (an offset's in nT, a scale's or angle's times F), is not determined by these data: it
+    is named and the fit is repeated with it held at the active value
+    (prior :data:`HELD_FRACTION` of its width), so that it cannot wander in a valley the data
+    do not see.
+
+    Parameters
+    ----------
+    data : Dataset
+        (S, N, 3) raw readings, nT, of the recent window (with attitude when known).
+    active : magcal_ros.core.model.Calibration
+        The calibration in use.
+    field_nt : float
+        Reference magnitude, nT.
+    geometry, field_reference : dict, optional
+        As for :func:`calibrate`.
+
+    Returns
+    -------
+    (Calibration, dict, list of str)
+        The estimate, its calibration document (§4) and the undetermined parameters
+        (``<effect>.<param>@<sensor>``).
+
+    """
+    from magcal_ros.core.model.planar import prior_sd, SENSOR_MAP_KINDS, UNDETERMINED_RATIO
+    model = Model.from_spec(active.model.spec(), data.n_sensors)
+    info = model.param_info()
+    f0 = float(np.mean(field_nt))
+    sd = prior_sd(model, f0)
+    mean = np.asarray(active.params, float)
+    kind = [label.split('(')[0] for _, label, _, _ in info]
+    mapped = np.array([bool(j) and k in SENSOR_MAP_KINDS for (j, *_), k in zip(info, kind)])
+    offsets = mapped & np.array([k == 'offset' for k in kind])
+    held_sd = (np.abs(mean) + sd) * HELD_FRACTION
+    kwargs = {} if LEARN_ATTITUDE is None else {'attitude': LEARN_ATTITUDE}
+
+    def run(open_, init):
+        priors = [(i, float(mean[i]), float(sd[i] if open_[i] else held_sd[i]))
+                  for i in range(model.n_params)]
+        return calibrate(data, Model.from_spec(model.spec(), data.n_sensors), field_nt,
+                         geometry, field_reference, screen=False, init=init,
+                         extra_priors=priors, check_identifiability=False, **kwargs)
+
+    def determined(res, open_):
+        # known to a fraction of the prior (the planar rule) and to the noise: its
+        # uncertainty moves the corrected field by at most DETERMINED_NOISE noise sds
+        noise = np.array([res.sigma_nt[j - 1] if j else np.nan for j, *_ in info])
+        tol = np.where([unit == 'nT' for *_, unit in info], noise, noise / f0)
+        return open_ & (res.stderr <= UNDETERMINED_RATIO * sd) & (
+            res.stderr <= DETERMINED_NOISE * tol)
+
+    # offsets first, the rest held: what a vehicle's turns determine best; then the whole
+    # sensor map open, and what that determines to the noise joins them
+    first = run(offsets, mean)
+    open_ = determined(first.result, offsets)
+    whole = run(mapped, first.result.params)
+    open_ = open_ | determined(whole.result, mapped & ~offsets)
+    final = first if np.array_equal(open_, offsets) else run(open_, first.result.params)
+    names = [f'{label}.{name}@{j}' for j, label, name, _ in info]
+    undetermined = [names[i] for i in range(model.n_params) if mapped[i] and not open_[i]]
+    return final.result.calibration, final.doc, undetermined

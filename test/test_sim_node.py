@@ -395,3 +395,30 @@ def test_node_publishes_the_auxiliary_channels(make_node, ros_node, ros_executor
     assert all(0.5 <= v <= 1.5 for v in got['pump_current'])
     assert got['motor_current'] and all(0.0 <= v <= 5.0 for v in got['motor_current'])
     assert got['heater_power'] and all(0.0 <= v <= 10.0 for v in got['heater_power'])
+
+
+def test_node_publishes_the_attitude_as_imu_in_enu(make_node, ros_node, ros_executor,
+                                                   ros_namespace, tmp_path):
+    """imu_topic: sensor_msgs/Imu, body-to-ENU, the vehicle's: body z within its tilt of up."""
+    from scipy.spatial.transform import Rotation
+    from sensor_msgs.msg import Imu
+    got = []
+    ros_node.create_subscription(Imu, f'{ros_namespace}/imu', got.append, 100)
+    make_node(FluxgateSimNode, namespace=ros_namespace, parameter_overrides=[
+        Parameter('dir', value=str(tmp_path)), Parameter('trajectory', value='vehicle'),
+        Parameter('imu_topic', value='imu'), Parameter('imu_period_s', value=0.05),
+        Parameter('tilt_deg', value=10.0)])
+    spin_until(ros_executor, lambda: len(got) >= 30, timeout_sec=20,
+               message='30 Imu messages')
+    q = np.array([[m.orientation.w, m.orientation.x, m.orientation.y, m.orientation.z]
+                  for m in got])
+    np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-9)
+    up = Rotation.from_quat(q, scalar_first=True).apply([0.0, 0.0, 1.0])
+    # roll and pitch within 10 deg: body z within 14.1 deg of the ENU up axis
+    assert np.degrees(np.arccos(up[:, 2])).max() < 14.2
+    stamps = np.array([m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec for m in got])
+    assert np.all(np.diff(stamps) > 0)
+    # one message per 0.05 s of sample time (100 Hz samples: every 5th)
+    assert np.median(np.diff(stamps)) == pytest.approx(0.05, abs=0.02)
+    assert got[0].angular_velocity_covariance[0] == -1.0
+    assert got[0].orientation_covariance[0] > 0

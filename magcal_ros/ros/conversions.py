@@ -34,6 +34,9 @@ Message layouts
 - ``geometry_msgs/TransformStamped``: the static transform array -> fluxgate{j}, translation
   in m, rotation as a unit quaternion (REP 103).
 - ``sensor_msgs/Temperature``: degrees Celsius, variance in degC^2.
+- ``sensor_msgs/Imu`` (attitude only): ``orientation`` the body-to-world unit quaternion
+  (REP 103/145: world ENU), its covariance in rad^2 about the world axes; angular velocity
+  and linear acceleration not given (``covariance[0] = -1``, REP 145) (:func:`attitude_msg`).
 """
 
 import math
@@ -44,7 +47,7 @@ from geometry_msgs.msg import TransformStamped
 from magcal_ros.units import NT_PER_T, nt_to_t, t_to_nt
 import numpy as np
 import rclpy.time
-from sensor_msgs.msg import MagneticField, Temperature
+from sensor_msgs.msg import Imu, MagneticField, Temperature
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, MultiArrayLayout
 
 #: Labels of the gradient tensor's ``layout.dim`` entries (docs/design.md §3).
@@ -586,4 +589,49 @@ def temperature_msg(temp_c, stamp=None, frame_id='', variance_c2=0.0):
     msg.header.frame_id = _check_frame_id(frame_id)
     msg.temperature = temp
     msg.variance = variance
+    return msg
+
+
+def attitude_msg(quaternion, stamp=None, frame_id='', sd_rad=0.0):
+    """
+    Build a ``sensor_msgs/Imu`` that carries an attitude only.
+
+    Parameters
+    ----------
+    quaternion : sequence of float
+        (4,) body-to-world unit quaternion (qw, qx, qy, qz), Hamilton; world ENU (REP 103).
+    stamp : builtin_interfaces.msg.Time or rclpy.time.Time or float or None, optional
+        Header stamp (see :func:`to_stamp`).
+    frame_id : str, optional
+        Header frame id (the body frame).
+    sd_rad : float, optional
+        Standard uncertainty of the orientation about each world axis, rad (0: unknown).
+
+    Returns
+    -------
+    sensor_msgs.msg.Imu
+        Angular velocity and linear acceleration marked as not given (covariance[0] = -1).
+
+    Raises
+    ------
+    ValueError
+        If the quaternion is not 4 finite numbers of unit norm (within 1e-3) or ``sd_rad``
+        is negative or not finite.
+
+    """
+    q = np.asarray(quaternion, dtype=np.float64).reshape(-1)
+    if q.size != 4 or not np.all(np.isfinite(q)) or abs(np.linalg.norm(q) - 1.0) > 1e-3:
+        raise ValueError(f'quaternion must be 4 finite numbers (qw, qx, qy, qz) of unit norm, '
+                         f'got {quaternion!r}')
+    sd = float(sd_rad)
+    if not math.isfinite(sd) or sd < 0.0:
+        raise ValueError(f'sd_rad must be finite and >= 0 rad, got {sd_rad!r}')
+    msg = Imu()
+    msg.header.stamp = to_stamp(stamp)
+    msg.header.frame_id = _check_frame_id(frame_id)
+    msg.orientation.w, msg.orientation.x, msg.orientation.y, msg.orientation.z = (
+        float(v) for v in q)
+    msg.orientation_covariance = [sd * sd, 0.0, 0.0, 0.0, sd * sd, 0.0, 0.0, 0.0, sd * sd]
+    msg.angular_velocity_covariance[0] = -1.0
+    msg.linear_acceleration_covariance[0] = -1.0
     return msg

@@ -36,16 +36,22 @@ import json
 import sys
 import threading
 
+from magcal_ros.core.data.simulate import attitude_enu
 from magcal_ros.ros import params as prm
+from magcal_ros.ros.conversions import attitude_msg
 from magcal_ros.ros.run import DEFAULT_NAMESPACE, spin_node
 from magcal_ros.serial import PROTOCOLS
 from magcal_ros.sim import devices
 import numpy as np
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from sensor_msgs.msg import Imu
 from std_msgs.msg import Float64
 
 NODE_NAME = devices.NODE_NAME
+#: orientation uncertainty stated on the simulated Imu messages (the truth: an AHRS's
+#: order of magnitude, for a consumer that weighs the attitude), rad
+IMU_SD_RAD = 0.01
 
 
 def sim_specs():
@@ -101,6 +107,15 @@ def sim_specs():
                       'keeps a busy subscriber taking them in step with the raw fields; a jump '
                       'of more than 2 % is published at once)', read_only=True,
                       limits=(0.0, 1.0e6)),
+        prm.ParamSpec('imu_topic', d['imu_topic'], 'sensor_msgs/Imu topic publishing the '
+                      'true attitude of the array (orientation body-to-world, world ENU, REP '
+                      "103/145: the calibration node's imu_topic); '' for none",
+                      read_only=True),
+        prm.ParamSpec('imu_period_s', d['imu_period_s'], 'interval between two Imu messages, '
+                      's of sample time (one per sample when shorter than the sample period)',
+                      prm.positive('s'), read_only=True, limits=(1.0e-6, 1.0e6)),
+        prm.ParamSpec('tilt_deg', d['tilt_deg'], 'largest roll and pitch of the vehicle '
+                      'trajectory, deg', read_only=True, limits=(0.0, 90.0)),
         prm.ParamSpec('site_gradient', (), 'constant site gradient [GXX, GXY, GXZ, GYY, GYZ] '
                       'in the world (NED) frame, nT/m; empty: a uniform field',
                       read_only=True, item_type=float),
@@ -148,6 +163,11 @@ class FluxgateSimNode(Node):
         self._aux_last = {}                 # column -> (sample time s, value) last published
         if self._aux_pubs:
             self.sim.listeners.append(self._publish_aux)
+        self._imu_pub = None
+        self._imu_next = 0.0                # sample time of the next Imu message, s
+        if self.settings.imu_topic:
+            self._imu_pub = self.create_publisher(Imu, self.settings.imu_topic, 50)
+            self.sim.listeners.append(self._publish_imu)
         self._thread = threading.Thread(target=self._stream, name='fluxgate_sim',
                                         daemon=True)
         self._thread.start()
@@ -170,6 +190,22 @@ class FluxgateSimNode(Node):
                         <= 0.02 * max(1.0, abs(v_last))):
                     pub.publish(Float64(data=float(value)))
                     self._aux_last[column] = (tk, value)
+
+    def _publish_imu(self, t, data):
+        # the true attitude as an AHRS would give it: body-to-world in ENU (the simulator's
+        # world is NED), stamped on the node's clock as the samples are written (the driver
+        # stamps the readings at their arrival, a few ms later)
+        if data.attitude is None or not len(t):
+            return
+        now = self.get_clock().now().nanoseconds * 1e-9
+        for k in range(len(t)):
+            if t[k] + 1e-9 < self._imu_next:
+                continue
+            self._imu_next = t[k] + self.settings.imu_period_s
+            q = attitude_enu(data.attitude[k:k + 1])[0]
+            self._imu_pub.publish(attitude_msg(q, stamp=now - (t[-1] - t[k]),
+                                               frame_id='magcal_array',
+                                               sd_rad=IMU_SD_RAD))
 
     def _stream(self):
         try:

@@ -38,7 +38,15 @@ in the protocol's temperature field, the auxiliary channels
 std_msgs/Float64 topics of ``aux_topics`` (``motor_current`` carries ``aux_motor_current``;
 one message per sample, or with ``aux_period_s`` one every so many s and at each jump),
 the names the calibration and corrector nodes take in their own ``aux_topics``. The plain
-process has no topics: there only effects of time, temperature and the field act.
+process has no topics: there only effects of time, temperature and the field act.  With
+``imu_topic`` the ROS node also publishes the true attitude as sensor_msgs/Imu (body-to-world,
+world ENU as REP 145 wants it; the simulator's own world is NED), one message per
+``imu_period_s``, for the calibration node's ``imu_topic``.  The ``vehicle`` trajectory is a
+vehicle near level (body z up, roll and pitch within ``tilt_deg``) turning part circles.
+Terms of time in ``truth`` change during the run: ``offset(step(60))@1=100,0,0`` (a payload
+put on at 60 s), ``offset(window(60, 65))@1=...`` (a magnet passing), ``drift@1=...`` (a slow
+drift, nT/s), ``field(window(60, 120))=...`` (a minute in another field); times in s from the
+start of the stream.
 
 Faults for tests: ``unplug`` entries ``SENSOR:AT_S:FOR_S[:NEW_PATH]`` close that sensor's
 pseudo-terminal at ``AT_S`` s (readers get an I/O error, the link disappears) and plug a
@@ -220,7 +228,14 @@ def build_parser():
     p.add_argument('--truth', type=parse_truth_item, action='append',
                    metavar='EFFECT=V1,V2,...',
                    help='hidden effect with its parameter values, as magcal simulate --truth '
-                        '(repeatable), e.g. --truth aux:aux_motor_current@2=15,-10,8')
+                        '(repeatable), e.g. --truth aux:aux_motor_current@2=15,-10,8; one '
+                        'that changes during the run is a term of time: an offset step of '
+                        "sensor 1 at 60 s 'offset(step(60))@1=100,0,0', a magnet passing "
+                        "for 5 s 'offset(window(60, 65))@1=500,0,0', a slow drift "
+                        "'drift@1=0.5,0,0' (nT/s), a minute in another field "
+                        "'field(window(60, 120))=80' (nT; times in s from the start)")
+    p.add_argument('--tilt-deg', type=_non_negative,
+                   help='largest roll and pitch of the vehicle trajectory, deg (default 15)')
     p.add_argument('--plugin', dest='plugins', action='append', metavar='MODULE',
                    help='import a module defining effects before the truth is read '
                         '(repeatable, as magcal --plugin)')
@@ -238,7 +253,8 @@ DEFAULTS = {'dir': DEFAULT_DIR, 'prefix': DEFAULT_PREFIX, 'sensors': 4, 'rate': 
             'trajectory': 'smooth', 'field_nt': 50000.0, 'noise_nt': 3.0,
             'errors': 'paper004', 'duration': None, 'unplug': [], 'site_gradient': None,
             'sensor_positions_m': None, 'smooth_period_s': 60.0,
-            'truth': [], 'plugins': [], 'aux_period_s': 0.0,
+            'truth': [], 'plugins': [], 'aux_period_s': 0.0, 'imu_topic': '',
+            'imu_period_s': 0.02, 'tilt_deg': 15.0,
             'aux_topics': [c[len('aux_'):] for c in AUX_CHANNELS]}
 
 
@@ -283,8 +299,10 @@ def _setting(key, value, source):
                       for v in (value or []) if v]}
     if key == 'truth':
         return {key: [parse_truth_item(v) for v in (value or []) if v]}
-    if key == 'aux_period_s':
+    if key in ('aux_period_s', 'imu_period_s', 'tilt_deg'):
         return {key: float(value)}
+    if key == 'imu_topic':
+        return {key: str(value or '')}
     if key in ('plugins', 'aux_topics'):
         return {key: [str(v) for v in (value or []) if v]}
     if key == 'dir':
@@ -340,6 +358,8 @@ def check_settings(st):
     if st['duration'] is not None:
         number('duration', 0, False)
     number('smooth_period_s', 0, True)
+    number('imu_period_s', 0, True)
+    number('tilt_deg', 0, False)
     if not (isinstance(st['sensors'], int) and 1 <= st['sensors'] <= MAX_SENSORS):
         raise ValueError(f'sensors must be 1..{MAX_SENSORS}, got {st["sensors"]!r}')
     pos = st['sensor_positions_m']
@@ -380,6 +400,8 @@ def _simulator(st):
         errors=None if st['errors'] == 'none' else st['errors'],
         seed=st['seed'], gradient_nt_per_m=grad, truth=parse_truth(st.get('truth')),
         smooth_period_s=st.get('smooth_period_s') or 60.0,
+        tilt_deg=float(st.get('tilt_deg', 15.0)),
+        attitude=bool(st.get('imu_topic')),
         positions_m=st.get('sensor_positions_m')))
     # driven hidden effects act about references (mean temperature, mean current, start
     # time) of the first minute, as a calibration of that minute would see them

@@ -68,7 +68,8 @@ class SimConfig:
         'random' (uniform random attitudes), 'smooth' (continuous tumbling that covers the
         sphere in about a minute), 'turntable' (rotation about the body z axis only),
         'cone' (field directions in a cap of ``cone_half_angle_deg`` around body +z),
-        'vehicle' (any heading, roll and pitch within +-``tilt_deg``).
+        'vehicle' (a vehicle near level, body z up, turning part circles back and forth,
+        roll and pitch within +-``tilt_deg``: :func:`vehicle_attitude`).
     errors : str or None
         'paper004' (Table 1; sensor j > 4 gets the errors of Table 1's sensor
         ((j - 1) mod 4) + 1), or None for ideal sensors.
@@ -121,6 +122,62 @@ class SimConfig:
     attitude: bool = False
     seed: int = 0
     positions_m: object = None
+
+
+#: world coordinates ENU (REP 103) -> NED (the simulator's world): east and north swapped, up
+#: turned down; a proper rotation and its own inverse (R_ned = ENU_TO_NED @ R_enu)
+ENU_TO_NED = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+
+
+def vehicle_attitude(t, period_s=60.0, tilt_deg=15.0, phases=(0.0, 0.0, 0.0)):
+    """
+    Body-to-world (NED) rotation of a vehicle that stays near level and turns part circles.
+
+    The vehicle's body axes are REP 103's (x forward, y left, z up); level means its z axis
+    points up (world -z in NED).  Its heading (ENU yaw, from east towards north) swings
+    through +-0.8 of a circle and back over ``period_s`` and drifts by a third of a circle
+    per period (so full circles are rare: a vehicle on a mission, not a calibration turn);
+    its pitch and roll are slow sinusoids within +-``tilt_deg``.
+
+    Parameters
+    ----------
+    t : numpy.ndarray
+        (N,) s.
+    period_s : float
+        Period of the heading swing, s.
+    tilt_deg : float
+        Largest roll and pitch, deg.
+    phases : sequence of float
+        Three phases (rad) of heading, pitch and roll.
+
+    Returns
+    -------
+    scipy.spatial.transform.Rotation
+        N rotations body -> NED (the simulator's world frame); ``ENU_TO_NED.T @ R`` is the
+        same rotation into ENU (the ROS world frame, REP 103).
+
+    """
+    t = np.asarray(t, float)
+    w = 2 * np.pi / period_s
+    tilt = np.radians(tilt_deg)
+    yaw = (phases[0] + 0.8 * 2 * np.pi * np.sin(w * t)
+           + 2 * np.pi / 3 * t / period_s)
+    pitch = tilt * np.sin(w * 2.3 * t + phases[1])
+    roll = tilt * np.sin(w * 3.7 * t + phases[2])
+    body_enu = Rotation.from_euler('ZYX', np.column_stack([yaw, pitch, roll]))
+    return Rotation.from_matrix(ENU_TO_NED) * body_enu
+
+
+def attitude_enu(q_ned):
+    """
+    Body-to-ENU quaternions (N, 4) (qw, qx, qy, qz) of body-to-NED ones (N, 4).
+
+    The simulator's world frame is NED; ROS's (REP 103/145, an Imu's orientation) is ENU:
+    the same body, the world axes exchanged by :data:`ENU_TO_NED` (R_enu = ENU_TO_NED^T
+    R_ned).  The field in ENU is ``ENU_TO_NED.T @ b_ned``, so R_enu^T m_enu = R_ned^T m_ned.
+    """
+    rot = Rotation.from_quat(np.asarray(q_ned, float).reshape(-1, 4), scalar_first=True)
+    return (Rotation.from_matrix(ENU_TO_NED.T) * rot).as_quat(scalar_first=True)
 
 
 def causal_rate(x, t):
@@ -234,13 +291,7 @@ class Simulator:
             yaw = 2 * np.pi * t / cfg.smooth_period_s * 3
             return Rotation.from_euler('Z', yaw[:, None])
         if cfg.trajectory == 'vehicle':
-            w = 2 * np.pi / cfg.smooth_period_s
-            ph = self._phases
-            tilt = np.radians(cfg.tilt_deg)
-            yaw = w * 2 * t + ph[3]
-            pitch = tilt * np.sin(w * 5.3 * t + ph[4])
-            roll = tilt * np.sin(w * 7.1 * t + ph[5])
-            return Rotation.from_euler('ZYX', np.column_stack([yaw, pitch, roll]))
+            return vehicle_attitude(t, cfg.smooth_period_s, cfg.tilt_deg, self._phases[3:6])
         # cone: body-frame field directions in a cap around +z
         half = np.radians(cfg.cone_half_angle_deg)
         cos_t = self.rng.uniform(np.cos(half), 1.0, n)

@@ -86,7 +86,7 @@ _HELD = {
 
 
 #: the effects whose parameters are judged determined or not (the constant sensor map)
-_KINDS = ('offset', 'scale', 'nonorthogonality', 'soft_iron', 'misalignment')
+SENSOR_MAP_KINDS = _KINDS = ('offset', 'scale', 'nonorthogonality', 'soft_iron', 'misalignment')
 
 
 @dataclass(frozen=True)
@@ -129,6 +129,18 @@ class PlanarResult:
     h_nt: np.ndarray
     z_nt: np.ndarray
     residual_correlation: np.ndarray
+
+
+def prior_sd(model, field_nt):
+    """
+    (P,) standard deviation of the prior on each parameter of ``model`` (:data:`PRIOR_SD`).
+
+    An offset's (nT) is a fraction of the field magnitude ``field_nt`` (nT), an angle's in
+    rad, any other (scale, dimensionless) as a scale's.
+    """
+    return np.array([PRIOR_SD['offset'] * float(field_nt) if unit == 'nT' else
+                     PRIOR_SD['angle'] if unit == 'rad' else PRIOR_SD['scale']
+                     for _, _, _, unit in model.param_info()])
 
 
 def held_parameters(model, axis_index):
@@ -194,10 +206,7 @@ def fit_planar(data, model, field_nt, *, prior_params=None, inclination_deg=None
         raise ValueError(f'prior_params has {p_prior.shape} values, the model '
                          f'{model.n_params}: give the previous calibration of the same model')
     info = model.param_info()
-    f0 = float(np.mean(field_nt))
-    kind_sd = np.array([PRIOR_SD['offset'] * f0 if unit == 'nT' else
-                        PRIOR_SD['angle'] if unit == 'rad' else PRIOR_SD['scale']
-                        for _, _, _, unit in info])
+    kind_sd = prior_sd(model, float(np.mean(field_nt)))
     prior_list = [(i, float(p_prior[i]), float(kind_sd[i])) for i in held]
     init = fit_kwargs.pop('init', None)
     # what the turn leaves open is held by priors alone: a long, flat valley whose floor

@@ -1,0 +1,602 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Learning in operation (issue 34): keep the calibration right while the vehicle works.
+
+No ROS here: the calibration node feeds a :class:`Learner` with every matched set of raw
+readings (and the attitude), runs its refits in a worker thread, publishes what it says and
+installs what it adopts.  Units: nT, s.
+
+**The window.**  The recent sets, at most :attr:`LearnConfig.window_sets` of the last
+:attr:`LearnConfig.window_s` seconds, thinned evenly in time as they arrive (a set is kept
+when it is at least ``window_s / window_sets`` after the last one kept): flat arrays, the
+same memory whatever the rate or the length of the run.  Per set the learner also adds the
+set to the current block of :attr:`LearnConfig.block_s` (plain list appends); each block is
+judged once, when it ends, in a few vectorised operations: the CPU per set does not grow
+with time (bench/learning.py measures it at 1 kHz).
+
+**Change versus disturbance** (the test statistic).  The active calibration, applied to a
+block of n sets, gives each sensor's scalar residual r_j = |b_j| - F.  For an array the
+common mode is removed, e_j = r_j - mean_{k != j} r_k: a change of the field itself (a
+passing vehicle, a region of another field, the diurnal variation) is seen alike by every
+sensor and cancels, while a change of one sensor (an offset step from a payload or a battery
+next to it, a magnetised part) does not.  With sigma_j the per-axis noise floor of the block
+(:func:`magcal_ros.core.data.noise.noise_floor`: differences of the raw series, no model,
+heavy-tail corrected) the noise alone gives e_j the variance
+v_j = sigma_j^2 + sum_{k != j} sigma_k^2 / (S - 1)^2.  The block's statistic is the robust
+mean square z_j = (median |e_j| / 0.6745)^2 / v_j: 1 under the noise, its sd 2.33 / sqrt(n)
+(the sample median of a half-normal: var = 1 / (4 n f(m)^2)), insensitive to spikes (a few
+per cent of the sets can be anything).  A block *exceeds* when some z_j is above
+1 + :attr:`LearnConfig.exceed_sigmas` x 2.33 / sqrt(n).
+
+Persistence decides: an exceeding block starts a *change detected* (its onset); the change
+ends as a *transient* (not learned) as soon as :attr:`LearnConfig.clear_blocks` blocks in a
+row are clean again; it is *persistent* once :attr:`LearnConfig.persist_s` have passed since
+its onset with at least :attr:`LearnConfig.persist_fraction` of the blocks exceeding and the
+latest exceeding.  A persistent change is refitted on the sets since its onset only.  So a
+magnet passing for a few seconds, spikes, or anything shorter than ``persist_s`` is never
+learned; a step gives a proposal ``persist_s`` plus at most one refit
+(:attr:`LearnConfig.refit_period_s` and the fit's own time) after its onset; a slow drift
+once it reaches the detection threshold.  With one sensor there is no common mode to remove:
+a field excursion longer than ``persist_s`` reads as a change (the default 90 s is longer than
+a minute-long excursion; the validation then adopts only what lowers the held-out residual).
+
+**What is refitted.**  Every refit (each ``refit_period_s``, and when a change turns
+persistent) fits the active calibration's model to the window (since the onset when a change
+is on), each sensor-map parameter with a prior centred on the active calibration
+(``refit`` callable: :func:`magcal_ros.pipeline.refit_recent`), names what the recent motion
+does not determine and holds it at the active value.  The estimate, with its uncertainties and
+the undetermined parameters, is what the node publishes on ``calibration/learned``.
+
+**Validated adoption.**  The window's sets are split into interleaved blocks of
+:attr:`LearnConfig.holdout_block_s`: every :attr:`LearnConfig.holdout_every`-th is held out
+and the proposal is fitted on the rest.  On the held-out blocks both calibrations give the
+residual of the detector (e_j, common mode removed for an array, in units of the noise);
+per held-out block l_b = log(mean e_act^2 / v over the block's sets and sensors / the same
+of the proposal), the log of the ratio of the two mean squares.  The proposal is valid when
+the mean of l_b over at least three blocks exceeds :attr:`LearnConfig.validate_sigmas` times
+its standard error over the blocks (blocks, not sets: the residual of a slow trajectory is
+correlated within a block; a log ratio, not a difference: a change's residual varies with
+the heading by orders of magnitude, its ratio to the proposal's much less): it lowers the
+residual by more than the noise allows.  Under the noise alone (a proposal that only fitted
+noise) l_b scatters about a small negative value (the held-out penalty of fitted
+parameters).  Only a valid proposal of a persistent change is *ready*, or one that refines
+the change adopted last (fitted on its sets alone, with no new change on); it is adopted at
+once with ``auto_adopt``, else on request.
+"""
+from dataclasses import dataclass, field
+
+from magcal_ros.core.data.dataset import Dataset
+from magcal_ros.core.data.noise import noise_floor
+import numpy as np
+
+#: states the learner reports (the node's /diagnostics)
+TRACKING = 'tracking'
+CHANGE = 'change detected'
+READY = 'proposal ready'
+ADOPTED = 'adopted'
+UNDETERMINED = 'not determined by the recent motion'
+
+#: sd of the robust mean square z of n residuals of unit variance is this over sqrt(n)
+#: (the median of |e|, a half-normal's: sd(med) / med = 1.166 / sqrt(n); z = (med/m)^2)
+Z_SD_UNIT = 2.33
+
+
+@dataclass
+class LearnConfig:
+    """
+    Settings of the learning (the node's ``learn_*`` parameters; s, counts, sds).
+
+    Attributes
+    ----------
+    window_s : float
+        The recent data a refit sees, s.
+    window_sets : int
+        Most sets the window holds (thinned evenly in time).
+    block_s : float
+        Length of the detector's blocks, s.
+    exceed_sigmas : float
+        A block exceeds when its z is this many of its sds above 1.
+    persist_s : float
+        A change must last this long before it is refitted, s.
+    persist_fraction : float
+        Share of the blocks since the onset that must exceed for a persistent change.
+    clear_blocks : int
+        Clean blocks in a row that end a change as a transient.
+    refit_period_s : float
+        Interval of the periodic refits (the estimate on ``calibration/learned``), s.
+    holdout_block_s : float
+        Length of the interleaved blocks of the validation, s.
+    holdout_every : int
+        Every this-th block is held out of the fit and validates it.
+    validate_sigmas : float
+        A proposal is valid when its held-out improvement exceeds this many standard errors.
+    min_sets : int
+        Fewest sets a refit takes.
+
+    """
+
+    window_s: float = 120.0
+    window_sets: int = 4000
+    block_s: float = 1.0
+    exceed_sigmas: float = 4.0
+    persist_s: float = 90.0
+    persist_fraction: float = 0.8
+    clear_blocks: int = 3
+    refit_period_s: float = 10.0
+    holdout_block_s: float = 1.0
+    holdout_every: int = 3
+    validate_sigmas: float = 3.0
+    min_sets: int = 200
+
+    def check(self):
+        """Raise ValueError naming the first setting out of its range."""
+        for name in ('window_s', 'block_s', 'persist_s', 'refit_period_s',
+                     'holdout_block_s', 'exceed_sigmas', 'validate_sigmas'):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f'learning: {name} must be > 0, got {v!r}')
+        if not 0 < self.persist_fraction <= 1:
+            raise ValueError('learning: persist_fraction must be in (0, 1]')
+        if self.window_sets < 50 or self.holdout_every < 2 or self.clear_blocks < 1:
+            raise ValueError('learning: window_sets >= 50, holdout_every >= 2 and '
+                             'clear_blocks >= 1 are needed')
+        return self
+
+
+@dataclass
+class Proposal:
+    """
+    The result of a refit.
+
+    Attributes
+    ----------
+    calibration : magcal_ros.core.model.Calibration
+        The estimate (fitted on the window's non-held-out blocks).
+    doc : dict
+        Its calibration document (docs/design.md §4), provenance ``learning`` filled.
+    undetermined : list of str
+        Parameters the recent motion does not determine (held at the active value).
+    improvement : float
+        Mean held-out log ratio of the mean squares, active over proposal (0: no change).
+    stderr : float
+        Its standard error over the held-out blocks.
+    valid : bool
+        ``improvement > validate_sigmas * stderr``.
+    persistent : bool
+        Fitted on a persistent change (only such a valid proposal is ready to adopt).
+    t_from, t_to : float
+        Span of the sets it was fitted on, s.
+    sets : int
+        Sets fitted.
+    held_out_rms : dict
+        ``{'active': (S,), 'proposal': (S,)}`` RMS of the detector's residual e_j on the
+        held-out sets, nT.
+
+    """
+
+    calibration: object
+    doc: dict
+    undetermined: list
+    improvement: float
+    stderr: float
+    valid: bool
+    persistent: bool
+    t_from: float
+    t_to: float
+    sets: int
+    held_out_rms: dict = field(default_factory=dict)
+
+
+def detector_residual(cal, data, field_nt):
+    """
+    The detector's residual of a calibration on sets: e (S, N) nT and the scalar r (S, N).
+
+    r_j = |b_j| - F with b_j the corrected field of sensor j; for an array the common mode is
+    removed, e_j = r_j - mean_{k != j} r_k (a change of the field cancels); for one sensor
+    e = r.  ``data`` a :class:`Dataset` (its temperatures and channels drive the effects).
+    """
+    s = data.n_sensors
+    r = np.empty((s, data.n_samples))
+    for j in range(1, s + 1):
+        ctx = data.context(j)
+        b = cal.correct(j, data.raw[j - 1], ctx)
+        r[j - 1] = np.linalg.norm(b, axis=1) - field_nt
+    if s == 1:
+        return r, r
+    total = r.sum(axis=0)
+    return r - (total[None] - r) / (s - 1), r
+
+
+def common_mode_variance(sigma):
+    """(S,) variance of e_j under the noise alone, nT^2, from per-axis noise sds (S,) nT."""
+    sigma = np.asarray(sigma, float)
+    s = len(sigma)
+    if s == 1:
+        return sigma ** 2
+    f2 = sigma ** 2
+    return f2 + (f2.sum() - f2) / (s - 1) ** 2
+
+
+class Learner:
+    """
+    The learning of one array (not thread-safe: the node serialises the calls).
+
+    Parameters
+    ----------
+    n_sensors : int
+    config : LearnConfig
+    aux_names : sequence of str
+        Auxiliary columns (``aux_<name>``) kept with the sets.
+
+    """
+
+    def __init__(self, n_sensors, config=None, aux_names=()):
+        self.config = (config or LearnConfig()).check()
+        self.n = int(n_sensors)
+        c = self.config.window_sets
+        self._t = np.full(c, np.nan)
+        self._raw = np.zeros((self.n, c, 3))
+        self._temp = np.full((self.n, c), np.nan)
+        self._aux = {a: np.full(c, np.nan) for a in aux_names}
+        self._att_t = np.full(2 * c, np.nan)
+        self._att_q = np.zeros((2 * c, 4))
+        self._att_count = 0
+        self._count = 0                     # sets kept in the window (ring position)
+        self._last_kept = -np.inf
+        self._block = []                    # (t, raw (S, 3), temp (S,), aux dict)
+        self._block_start = None
+        self._floors = []                   # recent blocks' per-axis noise floors (S,)
+        self.active = None
+        self.field_nt = None
+        self.state = TRACKING
+        self.onset = None                   # start of the change, s
+        self._since = []                    # exceedances of the blocks since the onset
+        self.last_z = None                  # (S,) z of the latest block
+        self.last_block_t = None
+        self.transients = []                # (onset, end) s of changes not learned
+        self.proposal = None
+        self.adoptions = []                 # (t, improvement) of each adoption
+        self._last_refit = -np.inf
+        self._data_from = None              # onset of the change adopted last, s
+        self.sets_seen = 0
+
+    # -- feeding -----------------------------------------------------------------------------
+
+    def set_active(self, cal, field_nt, t=None):
+        """Start tracking calibration ``cal`` (magnitude ``field_nt`` nT) from time ``t``."""
+        self.active = cal
+        self.field_nt = float(field_nt)
+        self.state = TRACKING if t is None or not self.adoptions else ADOPTED
+        self.onset = None
+        self._since = []
+        self.proposal = None
+        if t is not None:
+            self._last_refit = float(t)
+
+    def add_attitude(self, t, q):
+        """One attitude (body-to-world unit quaternion (4,) qw, qx, qy, qz) at time ``t`` s."""
+        k = self._att_count % len(self._att_t)
+        self._att_t[k] = t
+        self._att_q[k] = q
+        self._att_count += 1
+
+    def add(self, t, raw, temp=None, aux=None):
+        """
+        Add one matched set: stamp ``t`` s, raw (S, 3) nT, temp (S,) degC, aux {column: value}.
+
+        Returns
+        -------
+        bool
+            True when the set closed a block (the state may have changed).
+
+        """
+        self.sets_seen += 1
+        cfg = self.config
+        if t - self._last_kept >= cfg.window_s / cfg.window_sets:
+            k = self._count % cfg.window_sets
+            self._t[k] = t
+            self._raw[:, k] = raw
+            self._temp[:, k] = np.nan if temp is None else temp
+            for name, arr in self._aux.items():
+                arr[k] = (aux or {}).get(name, np.nan)
+            self._count += 1
+            self._last_kept = t
+        if self.active is None:
+            return False
+        if self._block_start is None:
+            self._block_start = t
+        self._block.append((t, raw, temp, aux))
+        if t - self._block_start < cfg.block_s:
+            return False
+        self._judge_block()
+        return True
+
+    # -- the detector ------------------------------------------------------------------------
+
+    def _block_data(self, rows):
+        t = np.array([r[0] for r in rows], float)
+        raw = np.stack([np.asarray(r[1], float) for r in rows], axis=1)
+        temps = [r[2] for r in rows]
+        temp = (None if any(x is None for x in temps) else
+                np.stack([np.asarray(x, float) for x in temps], axis=1))
+        aux = {}
+        for name in self._aux:
+            col = np.array([(r[3] or {}).get(name, np.nan) for r in rows], float)
+            if np.isfinite(col).all():
+                aux[name] = col
+        return Dataset(t=t, raw=raw, temp=temp, aux=aux)
+
+    def _judge_block(self):
+        rows, self._block = self._block, []
+        self._block_start = None
+        if len(rows) < 14:
+            return
+        data = self._block_data(rows)
+        t_end = float(data.t[-1])
+        floor = noise_floor(data.raw)
+        if np.all(np.isfinite(floor)):
+            self._floors = (self._floors + [floor])[-30:]
+        if not self._floors:
+            return
+        sigma = np.median(np.array(self._floors), axis=0)
+        try:
+            e, _ = detector_residual(self.active, data, self.field_nt)
+        except Exception:        # noqa: B902 -- a driven effect without its signal: no verdict
+            return
+        v = common_mode_variance(sigma)
+        z = (np.median(np.abs(e), axis=1) / 0.6745) ** 2 / v
+        self.last_z = z
+        self.last_block_t = t_end
+        limit = 1.0 + self.config.exceed_sigmas * Z_SD_UNIT / np.sqrt(e.shape[1])
+        self._step(bool(np.any(z > limit)), float(data.t[0]), t_end)
+
+    def _step(self, exceed, t_start, t_end):
+        cfg = self.config
+        if self.state in (TRACKING, ADOPTED):
+            if exceed:
+                self.state = CHANGE
+                self.onset = t_start
+                self._since = [True]
+            return
+        if self.state == READY:
+            return                         # waiting for its adoption
+        self._since.append(exceed)
+        if len(self._since) >= cfg.clear_blocks and not any(self._since[-cfg.clear_blocks:]):
+            self.transients.append((self.onset, t_end))
+            self.state = TRACKING
+            self.onset = None
+            self._since = []
+
+    def persistent(self, now):
+        """True when the change on has lasted ``persist_s`` and persists (see the module)."""
+        cfg = self.config
+        if self.state not in (CHANGE, UNDETERMINED) or self.onset is None or not self._since:
+            return False
+        return (now - self.onset >= cfg.persist_s and self._since[-1]
+                and np.mean(self._since) >= cfg.persist_fraction)
+
+    # -- refits ------------------------------------------------------------------------------
+
+    def refit_due(self, now):
+        """True when a refit should run now (periodic, or a change just turned persistent)."""
+        if self.active is None or self.state == READY:
+            return False
+        if self.persistent(now) and (self.proposal is None or not self.proposal.persistent):
+            return True
+        return now - self._last_refit >= self.config.refit_period_s
+
+    def window(self, since=None):
+        """
+        The window's sets as a Dataset (chronological copies; with attitude when it covers).
+
+        ``since`` (s): only the sets from then on.  None when fewer than
+        :attr:`LearnConfig.min_sets`.
+        """
+        cfg = self.config
+        n = min(self._count, cfg.window_sets)
+        idx = (np.arange(self._count - n, self._count) % cfg.window_sets)
+        t = self._t[idx]
+        keep = t >= t[-1] - cfg.window_s if n else np.zeros(0, bool)
+        if since is not None:
+            keep &= t >= since
+        idx = idx[keep]
+        if len(idx) < cfg.min_sets:
+            return None
+        temp = self._temp[:, idx]
+        aux = {}
+        for name, arr in self._aux.items():
+            col = arr[idx]
+            if np.isfinite(col).any():
+                first = col[np.flatnonzero(np.isfinite(col))[0]]
+                aux[name] = np.where(np.isfinite(col), col, first)
+        data = Dataset(t=self._t[idx].copy(), raw=self._raw[:, idx].copy(),
+                       temp=temp.copy() if np.isfinite(temp).all() else None, aux=aux,
+                       meta={'source': 'live (learning window)'})
+        m = min(self._att_count, len(self._att_t))
+        if m >= 2:
+            from magcal_ros.core.geometry.attitude import with_attitude
+            try:
+                data, _ = with_attitude(data, self._att_t[:m], self._att_q[:m],
+                                        source='attitude')
+            except ValueError:
+                pass                        # no overlap: the magnitude-only fit
+            if data.n_samples < cfg.min_sets:
+                return None
+        return data
+
+    def split(self, data):
+        """(fit indices, held-out indices) of interleaved blocks of ``holdout_block_s``."""
+        cfg = self.config
+        block = np.floor((data.t - data.t[0]) / cfg.holdout_block_s).astype(int)
+        held = block % cfg.holdout_every == cfg.holdout_every - 1
+        return np.flatnonzero(~held), np.flatnonzero(held)
+
+    def refit(self, now, refit_fn):
+        """
+        Refit the window (since the onset of a persistent change) and validate the result.
+
+        Parameters
+        ----------
+        now : float
+            Time of the call, s (the stamps' clock).
+        refit_fn : callable
+            ``refit_fn(data, active) -> (calibration, doc, undetermined)``
+            (:func:`magcal_ros.pipeline.refit_recent` with the node's field and geometry).
+
+        Returns
+        -------
+        Proposal or None
+            None when the window holds too few sets.
+
+        """
+        self._last_refit = now
+        persistent = self.persistent(now)
+        data = self.window(since=self.onset if persistent else self._data_from)
+        if data is None:
+            return None
+        fit_idx, held_idx = self.split(data)
+        if len(fit_idx) < self.config.min_sets // 2 or len(held_idx) < 20:
+            return None
+        cal, doc, undetermined = refit_fn(data.subset(fit_idx), self.active)
+        held = data.subset(held_idx)
+        improvement, stderr, rms = self._validate(cal, held)
+        valid = bool(np.isfinite(improvement) and np.isfinite(stderr)
+                     and improvement > self.config.validate_sigmas * stderr)
+        doc.setdefault('provenance', {})['learning'] = {
+            'window_s': [float(data.t[0]), float(data.t[-1])],
+            'sets': int(len(fit_idx)), 'held_out_sets': int(len(held_idx)),
+            'undetermined': list(undetermined),
+            'held_out_improvement': float(improvement),
+            'held_out_improvement_stderr': float(stderr),
+            'valid': valid, 'change_persistent': bool(persistent),
+            'held_out_rms_nt': {k: [float(x) for x in v] for k, v in rms.items()}}
+        self.proposal = Proposal(cal, doc, list(undetermined), float(improvement),
+                                 float(stderr), valid, bool(persistent), float(data.t[0]),
+                                 float(data.t[-1]), int(len(fit_idx)), rms)
+        if persistent:
+            self.state = READY if valid else UNDETERMINED
+        elif valid and self._data_from is not None and self.state != CHANGE:
+            # a refinement of the change adopted last: fitted on its sets alone (all after
+            # its onset), more of them than when it was adopted
+            self.state = READY
+        return self.proposal
+
+    def _validate(self, cal, held):
+        """(mean d, its standard error, held-out RMS) of ``cal`` against the active one."""
+        sigma = (np.median(np.array(self._floors), axis=0) if self._floors else
+                 noise_floor(held.raw))
+        v = common_mode_variance(sigma)
+        e_act, _ = detector_residual(self.active, held, self.field_nt)
+        e_new, _ = detector_residual(cal, held, self.field_nt)
+        a = (e_act ** 2 / v[:, None]).sum(axis=0)
+        b = (e_new ** 2 / v[:, None]).sum(axis=0)
+        block = np.floor((held.t - held.t[0]) / self.config.holdout_block_s).astype(int)
+        ids = np.unique(block)
+        ratios = np.array([np.log(a[block == k].mean() / b[block == k].mean()) for k in ids])
+        rms = {'active': np.sqrt(np.mean(e_act ** 2, axis=1)),
+               'proposal': np.sqrt(np.mean(e_new ** 2, axis=1))}
+        if len(ratios) < 3:
+            return float(ratios.mean()), float('nan'), rms
+        return float(ratios.mean()), float(ratios.std(ddof=1) / np.sqrt(len(ratios))), rms
+
+    def adopt(self, now):
+        """
+        Adopt the ready proposal: it becomes the active calibration; return it (or None).
+
+        Only a ready proposal is adopted (a valid one of a persistent change, or refining the
+        change adopted last).
+        """
+        p = self.proposal
+        if self.state != READY or p is None:
+            return None
+        self.adoptions.append((float(now), p.improvement))
+        onset = self.onset
+        self.set_active(p.calibration, self.field_nt, now)
+        if onset is not None:               # a refinement keeps its change's onset
+            self._data_from = onset         # what came before the change is another sensor
+        self.state = ADOPTED
+        return p
+
+    def status(self):
+        """JSON-ready state for /diagnostics: ``state``, ``message`` and values."""
+        out = {'state': self.state, 'sets_seen': int(self.sets_seen),
+               'window_sets': int(min(self._count, self.config.window_sets)),
+               'transients_not_learned': len(self.transients),
+               'adoptions': len(self.adoptions)}
+        if self.last_z is not None:
+            out['z'] = [round(float(x), 3) for x in self.last_z]
+        if self.onset is not None:
+            out['change_onset_s'] = float(self.onset)
+        p = self.proposal
+        if p is not None:
+            out.update(proposal_valid=p.valid, proposal_improvement=round(p.improvement, 3),
+                       proposal_improvement_stderr=round(p.stderr, 3),
+                       undetermined=list(p.undetermined))
+        return out
+
+
+def feed(learner, data, refit_fn, auto_adopt=True, on_adopt=None):
+    """
+    Feed a recording to ``learner`` set by set, as the node does (offline runs, tests, bench).
+
+    Refits run synchronously when due; a ready proposal is adopted when ``auto_adopt``
+    (then ``on_adopt(t, proposal)`` is called).
+
+    Parameters
+    ----------
+    learner : Learner
+    data : Dataset
+        (S, N, 3) raw nT with times (and attitude, temperatures, channels when known).
+    refit_fn : callable
+        As for :meth:`Learner.refit`.
+    auto_adopt : bool
+    on_adopt : callable, optional
+
+    Returns
+    -------
+    list of (float, str, object)
+        Events (time s, what, detail): ``state`` on each change of state, ``refit`` with the
+        :class:`Proposal`, ``adopted`` with it.
+
+    """
+    events = []
+    state = learner.state
+    att = data.attitude
+    temp = data.temp
+    aux_names = list(data.aux or {})
+    for k in range(data.n_samples):
+        t = float(data.t[k])
+        if att is not None:
+            learner.add_attitude(t, att[k])
+        aux = {a: float(data.aux[a][k]) for a in aux_names} if aux_names else None
+        if not learner.add(t, data.raw[:, k], None if temp is None else temp[:, k], aux):
+            continue
+        if learner.state != state:
+            state = learner.state
+            events.append((t, 'state', state))
+        if learner.refit_due(t):
+            p = learner.refit(t, refit_fn)
+            if p is not None:
+                events.append((t, 'refit', p))
+        if learner.state == READY and auto_adopt:
+            p = learner.adopt(t)
+            events.append((t, 'adopted', p))
+            if on_adopt is not None:
+                on_adopt(t, p)
+        if learner.state != state:
+            state = learner.state
+            events.append((t, 'state', state))
+    return events
