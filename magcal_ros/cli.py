@@ -472,7 +472,8 @@ def _print_attitude(at):
             f"{at['attitude_sd_deg']:.2f} deg as estimated); world field inclination "
             f"{wf['inclination_deg']:.2f} +- {wf['inclination_stderr_deg']:.2f} deg")
     if 'declination_deg' in wf:
-        line += f", declination {wf['declination_deg']:.2f} +- {wf['declination_stderr_deg']:.2f} deg"
+        line += (f", declination {wf['declination_deg']:.2f} +- "
+                 f"{wf['declination_stderr_deg']:.2f} deg")
     print(line)
     h = at['heading_check']
     print(f"heading: attitude against the corrected compass {h['offset_deg']:+.1f} deg, "
@@ -483,13 +484,13 @@ def _print_attitude(at):
 
 
 def attitude_summary(aided, data):
-    """The JSON account of an attitude-aided fit (:func:`magcal_ros.pipeline.attitude_summary`)."""
+    """Return the JSON account of an attitude-aided fit (pipeline.attitude_summary)."""
     from magcal_ros.pipeline import attitude_summary as summary
     return summary(aided, data)
 
 
 def attitude_option(args, data):
-    """The attitude mode of ``--attitude`` for ``data`` ('tilt', 'full' or None)."""
+    """Return the attitude mode of ``--attitude`` for ``data`` ('tilt', 'full' or None)."""
     from magcal_ros.pipeline import attitude_mode
     if getattr(args, 'planar', False) or getattr(args, 'heading_unknown', False):
         return None if getattr(args, 'attitude', 'auto') == 'auto' else _attitude_conflict(args)
@@ -505,11 +506,11 @@ def _attitude_conflict(args):
 
 
 def add_attitude_arg(p):
-    """The --attitude option (how an attitude in the data is used)."""
+    """Add the --attitude option (how an attitude in the data is used)."""
     p.add_argument('--attitude', default='auto', choices=['auto', 'tilt', 'full', 'off'],
                    help="use the data's attitude (att_q* columns, an Imu topic, a vehicle "
                         "log): tilt = roll and pitch only (auto's choice when the data carry "
-                        'an attitude: a vehicle\'s heading often comes from this compass), '
+                        "an attitude: a vehicle's heading often comes from this compass), "
                         'full = the heading too, off = the field magnitude alone')
 
 

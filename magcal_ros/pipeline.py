@@ -367,7 +367,7 @@ ATTITUDE_MODES = ('auto', 'tilt', 'full', 'off')
 
 def attitude_mode(option, data):
     """
-    The attitude mode a fit of ``data`` uses: 'tilt', 'full' or None (the magnitude alone).
+    Return the attitude mode a fit of ``data`` uses: 'tilt', 'full' or None (magnitude only).
 
     ``option`` is one of :data:`ATTITUDE_MODES` or None ('auto').  'tilt' or 'full' on data
     without attitude is refused (ValueError naming what to add).
@@ -404,7 +404,7 @@ def attitude_notes(aided):
     out = []
     if aided.undetermined:
         out.append({'kind': 'undetermined', 'text': (
-            'the motion leaves these parameters open; they are held at an ideal sensor\'s '
+            "the motion leaves these parameters open; they are held at an ideal sensor's "
             'value within the prior (tilt or turn the vehicle more to determine them): '
             + ', '.join(aided.undetermined))})
     h = aided.heading

@@ -187,7 +187,7 @@ CHANNEL_UNITS = (('_current', 'A'), ('_voltage', 'V'), ('_power', 'W'), ('_temp'
 
 def channel_unit(name):
     """
-    The unit of auxiliary channel ``name`` (``aux_battery_current`` -> ``A``), or None.
+    Return the unit of auxiliary channel ``name`` (``aux_battery_current``: ``A``), or None.
 
     Known from the name's ending (:data:`CHANNEL_UNITS`); a coupling to the channel is then
     stated in nT per that unit (``nT/A``) instead of nT per the channel's unit.
@@ -201,7 +201,7 @@ def channel_unit(name):
 
 def coupling_unit(unit, label):
     """
-    ``unit`` of a parameter of the effect ``label`` with the channel's unit put in.
+    Return ``unit`` of a parameter of the effect ``label`` with the channel's unit put in.
 
     ``'nT/unit'`` of ``aux:aux_battery_current`` is ``'nT/A'``; any other unit is returned as
     it is.

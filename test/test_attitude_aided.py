@@ -37,7 +37,7 @@ CACHE = {}
 
 
 def vehicle(tilt_deg=15.0, att_err_deg=0.3, n=3000, seed=1, yaw_err_deg=0.0):
-    """(data, sim): one compass on a turning vehicle, the attitude with a smooth error."""
+    """Return (data, sim): one compass on a turning vehicle, its attitude with a smooth error."""
     key = (tilt_deg, att_err_deg, n, seed, yaw_err_deg)
     if key not in CACHE:
         data, sim = simulate(n_samples=n, rate_hz=10, n_sensors=1, trajectory='vehicle',

@@ -77,7 +77,7 @@ class AttitudeReference(Effect):
 
     @property
     def sigma_nt(self):
-        """The attitude's error as a field sd, nT per observed axis (estimated by the fit)."""
+        """Return the attitude's error as a field sd, nT per observed axis (fitted)."""
         return float(self.refs.get('sigma_nt', np.nan))
 
     @sigma_nt.setter
@@ -85,7 +85,7 @@ class AttitudeReference(Effect):
         self.refs['sigma_nt'] = float(value)
 
     def floor_nt(self, f_nt):
-        """The least sd the fit gives the observation, nT: :data:`MIN_SD_RAD` of the field."""
+        """Return the least sd the fit gives the observation, nT (MIN_SD_RAD of the field)."""
         return MIN_SD_RAD * float(f_nt)
 
     def shift(self, p, ctx, j, b=None):

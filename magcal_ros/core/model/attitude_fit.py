@@ -231,7 +231,7 @@ def fit_attitude(data, model, field_nt=None, mode='tilt', inclination_deg=None,
     world = {'frame': data.meta.get('attitude_frame', "the attitude's world frame"),
              'inclination_prior': ('IGRF' if extra else 'none (estimated)' if
                                    inclination_deg is None else
-                                   'none: the attitude\'s world frame is not known to be NED '
+                                   "none: the attitude's world frame is not known to be NED "
                                    'or ENU (the inclination was estimated)'),
              'inclination_deg': float(np.degrees(ang[0])),
              'inclination_stderr_deg': float(np.degrees(se[0]))}
@@ -260,7 +260,11 @@ def prior_held(result, prior_list, ratio=PRIOR_HELD_RATIO):
     Parameters
     ----------
     result : FitResult
-        A fit with the priors ``prior_list`` [(index, mean, sd)] (its covariance unwidened).
+        A fit with the priors ``prior_list`` (its covariance unwidened).
+    prior_list : list of tuple
+        (index, mean, sd) of each prior, sd in the parameter's unit.
+    ratio : float
+        The shrink of the variance beyond which the priors hold a parameter.
 
     Returns
     -------
@@ -282,7 +286,7 @@ def prior_held(result, prior_list, ratio=PRIOR_HELD_RATIO):
 
 
 def _start_sigma(data, model, p, f):
-    """The attitude observation's sd at the start, nT: its residual against sensor 1."""
+    """Return the attitude observation's sd at the start, nT: its residual against sensor 1."""
     eff, sl = attitude_reference(model)
     rot = data.attitude_matrix()
     cor = model.correct(1, p, data.raw[0], data.context(1))

@@ -202,7 +202,7 @@ class ProfiledProblem:
 
     @property
     def aid_sigma(self):
-        """The attitude observation's sd, nT (1 deg of the field until estimated)."""
+        """Return the attitude observation's sd, nT (1 deg of the field until estimated)."""
         s = self.aid.sigma_nt
         return s if np.isfinite(s) and s > 0 else float(np.mean(self.f)) * np.radians(1.0)
 
