@@ -312,9 +312,12 @@ def _calibrate_clean(data, model, field_nt, geometry, field_reference, exclude_o
     if not [w for w in run.summary['warnings'] if w['kind'] == 'missing_effect']:
         run.summary['outlier_sets_excluded'] = 0
         return run
+    from magcal_ros.core.effects.attitude_ref import attitude_reference
+    kw = {k: v for k, v in fit_kwargs.items() if k not in ('attitude', 'inclination_deg')}
+    if attitude_reference(run.result.model) is not None:
+        kw['constrained'] = True         # the aided fit's priors (core/model/attitude_fit.py)
     rob = fit(data, run.result.model, field_nt=field_nt,
-              **dict(fit_kwargs, robust=True, check_identifiability=False,
-                     on_degenerate='flag'))
+              **dict(kw, robust=True, check_identifiability=False, on_degenerate='flag'))
     z = np.abs(rob.residual_nt) / rob.sigma_nt[:, None, None]
     bad = (z > OUTLIER_SIGMAS).any(axis=(0, 2))
     n_bad = int(bad.sum())
@@ -408,7 +411,13 @@ def attitude_notes(aided):
             'value within the prior (tilt or turn the vehicle more to determine them): '
             + ', '.join(aided.undetermined))})
     h = aided.heading
-    if h['disagree']:
+    inplane = {'offset.bx@1', 'offset.by@1', 'scale.kx@1', 'scale.ky@1'}
+    if h['disagree'] and inplane & set(aided.undetermined):
+        out.append({'kind': 'attitude', 'text': (
+            f"the attitude's heading and the corrected compass differ by {h['rms_deg']:.1f} "
+            'deg RMS, but the horizontal map of sensor 1 is undetermined: the comparison '
+            'says nothing of the attitude until the calibration is determined')})
+    elif h['disagree']:
         out.append({'kind': 'attitude', 'text': (
             f"the attitude's heading and the corrected compass disagree by {h['rms_deg']:.1f} "
             f"deg RMS (largest {h['max_deg']:.1f} deg) about a constant {h['offset_deg']:.1f} "
@@ -429,7 +438,15 @@ def _calibrate(data, model, field_nt, geometry, field_reference, **fit_kwargs):
         model.set_positions(positions)          # where the site gradient acts
     mounting = []
     planar = fit_kwargs.pop('planar', None)
-    attitude = attitude_mode(fit_kwargs.pop('attitude', None), data)
+    option = fit_kwargs.pop('attitude', None)
+    if planar is not None or fit_kwargs.get('heading_unknown'):
+        # the planar mode and the heading-unknown site gradient are their own answers to a
+        # partial motion: the attitude is theirs ('auto'), or the caller said both
+        if option not in (None, 'auto', 'off'):
+            raise ValueError(f'attitude {option} goes with neither planar nor heading_unknown: '
+                             'choose one')
+        option = 'off'
+    attitude = attitude_mode(option, data)
     inclination = fit_kwargs.pop('inclination_deg', None)
     aided = None
     if attitude is not None:

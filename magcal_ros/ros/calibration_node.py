@@ -514,6 +514,9 @@ class CalibrationNode(Node):
                                   source=prm.value(self, 'imu_topic'))
         out = replace(out, t=data.t[kept], meta=dict(data.meta))
         out.meta['dropped_attitude_epochs'] = int((~kept).sum())
+        # sensor_msgs/Imu orientation: body to the ENU world of REP 103
+        out.meta['attitude_frame'] = 'ENU'
+        out.meta['attitude_source'] = f"sensor_msgs/Imu on {prm.value(self, 'imu_topic')}"
         return out, epochs[kept]
 
     def _aux_cb(self, column):
@@ -892,7 +895,8 @@ class CalibrationNode(Node):
             reason = f'no field magnitude: {exc}'
             return False, f'not calibrated: {reason}; previous calibration stays active', {
                 'reason': reason, 'sets': n_sets}
-        extra = {}
+        extra = {'attitude': s.attitude_mode,
+                 'inclination_deg': field_ref.get('inclination_deg')}
         if s.planar:
             # what the turn leaves open is held at the active calibration (same model), else
             # at an ideal sensor (magcal_ros.core.model.planar)
@@ -987,6 +991,12 @@ class CalibrationNode(Node):
                            heading_error_deg=summ['heading_error_deg'])
             lines.append(f'planar: heading error {summ["heading_error_deg"]:.2f} deg (1 sd, '
                          f'level, inclination from {pl["inclination_source"]}); undetermined: '
+                         + (', '.join(summ['undetermined']) or 'none'))
+        if 'attitude' in summ:
+            at = summ['attitude']
+            payload.update(attitude=at, undetermined=summ['undetermined'])
+            lines.append(f"attitude: {at['mode']} ({at['trusted']}), error "
+                         f"{at['attitude_sd_deg']:.2f} deg; undetermined: "
                          + (', '.join(summ['undetermined']) or 'none'))
         if s.robust:
             lines.append(f'robust fit: samples down-weighted as outliers per sensor: '

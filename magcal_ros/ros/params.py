@@ -354,6 +354,7 @@ class CalibrationSettings:
     site_altitude_m: float = 0.0
     site_date: str = ''
     planar: bool = False
+    attitude_mode: str = 'auto'
     cmd_vel_topic: str = '/cmd_vel'
     turn_speed_rad_s: float = 0.3
     turn_count: float = 2.0
@@ -442,8 +443,9 @@ def calibration_specs(n_sensors=4):
                   'at most 5 % of all, and fit the rest (magcal_ros.pipeline.calibrate); no '
                   'unit'),
         ParamSpec('imu_topic', '', 'sensor_msgs/Imu topic whose orientation is the attitude '
-                  'of the array (body-to-world, the IMU axes being the array axes), for the '
-                  "site_gradient effect; '' for none; read-only", optional_topic,
+                  'of the array (body-to-world, ENU, the IMU axes being the array axes), for '
+                  "attitude-aided fits (attitude_mode) and the site_gradient effect; '' for "
+                  'none; read-only', optional_topic,
                   read_only=True),
         *geometry_specs(n_sensors),
         ParamSpec('field_source', 'constant', 'where the reference field magnitude comes '
@@ -459,6 +461,11 @@ def calibration_specs(n_sensors=4):
                   'ellipsoid for field_source igrf, m', limits=(-1.0e4, 1.0e6)),
         ParamSpec('site_date', '', 'date of the calibration for field_source igrf, YYYY-MM-DD '
                   "('' = the day the calibration is made, UTC)", iso_date),
+        ParamSpec('attitude_mode', 'auto', 'how the attitude of imu_topic enters the fit: '
+                  'tilt (roll and pitch observe the field\'s vertical component), full (the '
+                  'heading too: the field vector), off (the magnitude alone), auto (tilt when '
+                  'imu_topic is set; docs/design.md §2 "Attitude-aided fits"); no unit',
+                  one_of(('auto', 'tilt', 'full', 'off'))),
         ParamSpec('planar', False, 'a robot that can only turn about one axis: calibrate '
                   'what the turn determines (in-plane offsets, scale ratio, angle: '
                   'heading-grade), hold the rest at the previous calibration or an ideal '
@@ -520,6 +527,7 @@ def calibration_settings(node):
         site_altitude_m=float(value(node, 'site_altitude_m')),
         site_date=str(value(node, 'site_date')),
         planar=bool(value(node, 'planar')),
+        attitude_mode=str(value(node, 'attitude_mode')),
         cmd_vel_topic=str(value(node, 'cmd_vel_topic')),
         turn_speed_rad_s=float(value(node, 'turn_speed_rad_s')),
         turn_count=float(value(node, 'turn_count')),
