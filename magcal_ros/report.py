@@ -437,6 +437,12 @@ def plot_residual_time(data, result, floor):
     return _arrange(fig, s, 1, top=0.05, hspace=0.12, **margins)
 
 
+def _unit_of(channel):
+    """Return the unit of an auxiliary channel for an axis label ('channel unit' if unknown)."""
+    from magcal_ros.units import channel_unit
+    return channel_unit(channel) or 'channel unit'
+
+
 def adopted_fit(data, diagnosis, ladder=None):
     """
     Return the fit of the model with the verdict's term added, or None without a verdict.
@@ -450,12 +456,15 @@ def adopted_fit(data, diagnosis, ladder=None):
         return None
     if ladder is not None and len(ladder.steps) > 1 and ladder.steps[1].added == tok:
         return ladder.steps[1].result
-    from magcal_ros.core.model import fit, Model
+    from magcal_ros.core.effects.attitude_ref import attitude_reference
+    from magcal_ros.core.model import fit
     base = diagnosis.result
     try:
-        model = Model.from_spec(list(base.model.spec()) + [tok], data.n_sensors)
+        # with_effect keeps the attitude's estimated error; an aided fit keeps its priors
+        model = base.model.with_effect(tok)
         return fit(data, model, field_nt=base.field_magnitude_nt, on_degenerate='flag',
-                   check_identifiability=False, covariance=False)
+                   check_identifiability=False, covariance=False,
+                   constrained=attitude_reference(model) is not None)
     except (ValueError, np.linalg.LinAlgError):
         return None
 
@@ -475,7 +484,7 @@ def verdict_driver(data, token, j, term=None):
         return 'temperature', f'sensor {j} temperature (degC)', data.temp[j - 1]
     for name in sorted(data.aux or {}, key=len, reverse=True):
         if name in token:
-            return name, f'{name} (channel unit)', data.aux[name]
+            return name, f'{name} ({_unit_of(name)})', data.aux[name]
     m = re.search(r'periodic\(([0-9.eE+-]+)', token)
     if m:
         period = 1.0 / float(m.group(1))
@@ -562,7 +571,7 @@ def plot_structure(data, result, floor, diagnosis=None, adopted=None, findings=N
             if token:
                 name, xlabel, x = verdict_driver(data, token, j, term)
             else:
-                name, xlabel = chan, f'{chan} (channel unit)'
+                name, xlabel = chan, f'{chan} ({_unit_of(chan)})'
                 x = (data.temp[j - 1] if chan == 'temperature' and data.temp is not None
                      else (data.aux or {}).get(chan))
             if x is None or not np.isfinite(x).any():
@@ -674,7 +683,7 @@ def plot_residual_vs_aux(data, result, floor, channels=None):
     return _driver_panels(
         data, result, floor, drivers,
         'Residual vs auxiliary channels (a trend = a coupling of that channel)',
-        lambda n: f'{n} (channel unit)')
+        lambda n: f'{n} ({_unit_of(n)})')
 
 
 def plot_residual_vs_rate(data, result, floor):

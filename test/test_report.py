@@ -217,7 +217,7 @@ def test_structure_draws_the_adopted_term_over_the_residual(case):
     for j in (1, 2, 4):
         other = base.scalar_residual_nt[j - 1] - adopted.scalar_residual_nt[j - 1]
         assert np.sqrt(np.mean(other ** 2)) < 0.2 * diag.noise_floor.per_sensor_nt[j - 1]
-    assert axes[2, 2].get_xlabel() == 'aux_motor_current (channel unit)'
+    assert axes[2, 2].get_xlabel() == 'aux_motor_current (A)'
     xd = axes[2, 2].get_lines()[0].get_xdata()
     assert np.isin(xd, data.aux['aux_motor_current']).all()
     assert axes[0, 1].axison is False                  # sensor 1: no vector residual
