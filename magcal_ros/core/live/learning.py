@@ -36,10 +36,13 @@ next to it, a magnetised part) does not.  With sigma_j the per-axis noise floor 
 (:func:`magcal_ros.core.data.noise.noise_floor`: differences of the raw series, no model,
 heavy-tail corrected) the noise alone gives e_j the variance
 v_j = sigma_j^2 + sum_{k != j} sigma_k^2 / (S - 1)^2.  The block's statistic is the robust
-mean square z_j = (median |e_j| / 0.6745)^2 / v_j: 1 under the noise, its sd 2.33 / sqrt(n)
-(the sample median of a half-normal: var = 1 / (4 n f(m)^2)), insensitive to spikes (a few
-per cent of the sets can be anything).  A block *exceeds* when some z_j is above
-1 + :attr:`LearnConfig.exceed_sigmas` x 2.33 / sqrt(n).
+mean square z_j = (median |e_j| / 0.6745)^2 / v_j: 1 under the noise, insensitive to spikes
+(a few per cent of the sets can be anything).  Its square root, a robust RMS ratio, is close
+to normal with sd 1.166 / sqrt(n) (the sample median of a half-normal: var = 1 / (4 n f(m)^2));
+a block *exceeds* when some sqrt(z_j) is above 1 + :attr:`LearnConfig.exceed_sigmas` x
+1.166 / sqrt(n) (z itself is skewed: at 4 of its own sds, 2.3 at n = 50, the simulated
+vehicle's noise exceeded it in 1e-3 of the blocks per sensor; at 5 sds of sqrt(z) none of
+4 x 1 470, 25 min at 50 Hz).
 
 Persistence decides: an exceeding block starts a *change detected* (its onset); the change
 ends as a *transient* (not learned) as soon as :attr:`LearnConfig.clear_blocks` blocks in a
@@ -73,8 +76,8 @@ the heading by orders of magnitude, its ratio to the proposal's much less): it l
 residual by more than the noise allows.  Under the noise alone (a proposal that only fitted
 noise) l_b scatters about a small negative value (the held-out penalty of fitted
 parameters).  Only a valid proposal of a persistent change is *ready*, or one that refines
-the change adopted last (fitted on its sets alone, with no new change on); it is adopted at
-once with ``auto_adopt``, else on request.
+the change adopted last (fitted on the sets since its onset, more than it had); it is adopted
+at once with ``auto_adopt``, else on request.
 """
 from dataclasses import dataclass, field
 
@@ -89,9 +92,9 @@ READY = 'proposal ready'
 ADOPTED = 'adopted'
 UNDETERMINED = 'not determined by the recent motion'
 
-#: sd of the robust mean square z of n residuals of unit variance is this over sqrt(n)
-#: (the median of |e|, a half-normal's: sd(med) / med = 1.166 / sqrt(n); z = (med/m)^2)
-Z_SD_UNIT = 2.33
+#: sd of the robust RMS ratio sqrt(z) of n residuals of unit variance is this over sqrt(n)
+#: (the sample median of |e|, a half-normal's: sd(med) / med = 1.166 / sqrt(n))
+Z_SD_UNIT = 1.166
 
 
 @dataclass
@@ -108,7 +111,7 @@ class LearnConfig:
     block_s : float
         Length of the detector's blocks, s.
     exceed_sigmas : float
-        A block exceeds when its z is this many of its sds above 1.
+        A block exceeds when its sqrt(z) is this many of its sds above 1.
     persist_s : float
         A change must last this long before it is refitted, s.
     persist_fraction : float
@@ -131,7 +134,7 @@ class LearnConfig:
     window_s: float = 120.0
     window_sets: int = 4000
     block_s: float = 1.0
-    exceed_sigmas: float = 4.0
+    exceed_sigmas: float = 5.0
     persist_s: float = 90.0
     persist_fraction: float = 0.8
     clear_blocks: int = 3
@@ -361,7 +364,7 @@ class Learner:
         self.last_z = z
         self.last_block_t = t_end
         limit = 1.0 + self.config.exceed_sigmas * Z_SD_UNIT / np.sqrt(e.shape[1])
-        self._step(bool(np.any(z > limit)), float(data.t[0]), t_end)
+        self._step(bool(np.any(np.sqrt(z) > limit)), float(data.t[0]), t_end)
 
     def _step(self, exceed, t_start, t_end):
         cfg = self.config
@@ -488,9 +491,10 @@ class Learner:
                                  float(data.t[-1]), int(len(fit_idx)), rms)
         if persistent:
             self.state = READY if valid else UNDETERMINED
-        elif valid and self._data_from is not None and self.state != CHANGE:
+        elif valid and self._data_from is not None:
             # a refinement of the change adopted last: fitted on its sets alone (all after
-            # its onset), more of them than when it was adopted
+            # its onset), more of them than when it was adopted (a change detected since is
+            # most often what the first estimate left: the validation decides)
             self.state = READY
         return self.proposal
 
