@@ -51,7 +51,7 @@ def drive(active, truth, seconds, **sim):
     data = simulator.sample(t)
     learner = Learner(4, LearnConfig(persist_s=PERSIST_S, refit_period_s=20.0))
     learner.set_active(active, F)
-    events = feed(learner, data, lambda d, a: refit_recent(d, a, F))
+    events = feed(learner, data, lambda d, a, s: refit_recent(d, a, F, sensors=s))
     return learner, events, data
 
 
