@@ -529,14 +529,20 @@ def _calibrate(data, model, field_nt, geometry, field_reference, **fit_kwargs):
 #: magnitude-only fit (data.attitude is carried, not used); the attitude-aided fit's mode
 #: ('tilt', 'full') when it is the pipeline's (one line: ``{'attitude': LEARN_ATTITUDE}``)
 LEARN_ATTITUDE = None
-#: prior sd of a held (undetermined) parameter, as a fraction of its kind's prior sd
-HELD_FRACTION = 1e-3
+#: prior sd of a held (undetermined, or another sensor's) parameter, as a fraction of its
+#: kind's prior sd (1e-3 let a held scale move by 1e-4: 5 nT at 50 000 nT)
+HELD_FRACTION = 1e-6
 #: a learned parameter is determined when its standard uncertainty moves the corrected
 #: field (an offset directly, a scale or an angle times F) by at most this many noise sds
-DETERMINED_NOISE = 1.0
+#: (1 held a 60 nT vertical offset step of the simulated vehicle, known to 4 nT, at its old
+#: value; 3 learns it); the rest of the sensor map (scale, angles) to DETERMINED_NOISE_MAP
+#: sds: on a few seconds of a turn they are known to a few sds, and any that moved by noise
+#: stays in every later estimate that holds it
+DETERMINED_NOISE = 3.0
+DETERMINED_NOISE_MAP = 1.0
 
 
-def refit_recent(data, active, field_nt, geometry=None, field_reference=None):
+def refit_recent(data, active, field_nt, geometry=None, field_reference=None, sensors=None):
     """
     Refit what recent data determine, the rest held at the active calibration (issue 34).
 
@@ -561,6 +567,9 @@ def refit_recent(data, active, field_nt, geometry=None, field_reference=None):
         Reference magnitude, nT.
     geometry, field_reference : dict, optional
         As for :func:`calibrate`.
+    sensors : sequence of int, optional
+        The sensors (1-based) whose parameters are learned; the others' are held (default:
+        every sensor).
 
     Returns
     -------
@@ -576,9 +585,11 @@ def refit_recent(data, active, field_nt, geometry=None, field_reference=None):
     sd = prior_sd(model, f0)
     mean = np.asarray(active.params, float)
     kind = [label.split('(')[0] for _, label, _, _ in info]
-    mapped = np.array([bool(j) and k in SENSOR_MAP_KINDS for (j, *_), k in zip(info, kind)])
+    learned = set(range(1, data.n_sensors + 1) if sensors is None else sensors)
+    mapped = np.array([j in learned and k in SENSOR_MAP_KINDS
+                       for (j, *_), k in zip(info, kind)])
     offsets = mapped & np.array([k == 'offset' for k in kind])
-    held_sd = (np.abs(mean) + sd) * HELD_FRACTION
+    held_sd = sd * HELD_FRACTION
     kwargs = {} if LEARN_ATTITUDE is None else {'attitude': LEARN_ATTITUDE}
 
     def run(open_, init):
@@ -588,20 +599,20 @@ def refit_recent(data, active, field_nt, geometry=None, field_reference=None):
                          geometry, field_reference, screen=False, init=init,
                          extra_priors=priors, check_identifiability=False, **kwargs)
 
-    def determined(res, open_):
+    def determined(res, open_, noise_sds):
         # known to a fraction of the prior (the planar rule) and to the noise: its
-        # uncertainty moves the corrected field by at most DETERMINED_NOISE noise sds
+        # uncertainty moves the corrected field by at most noise_sds noise sds
         noise = np.array([res.sigma_nt[j - 1] if j else np.nan for j, *_ in info])
         tol = np.where([unit == 'nT' for *_, unit in info], noise, noise / f0)
         return open_ & (res.stderr <= UNDETERMINED_RATIO * sd) & (
-            res.stderr <= DETERMINED_NOISE * tol)
+            res.stderr <= noise_sds * tol)
 
     # offsets first, the rest held: what a vehicle's turns determine best; then the whole
     # sensor map open, and what that determines to the noise joins them
     first = run(offsets, mean)
-    open_ = determined(first.result, offsets)
+    open_ = determined(first.result, offsets, DETERMINED_NOISE)
     whole = run(mapped, first.result.params)
-    open_ = open_ | determined(whole.result, mapped & ~offsets)
+    open_ = open_ | determined(whole.result, mapped & ~offsets, DETERMINED_NOISE_MAP)
     final = first if np.array_equal(open_, offsets) else run(open_, first.result.params)
     names = [f'{label}.{name}@{j}' for j, label, name, _ in info]
     undetermined = [names[i] for i in range(model.n_params) if mapped[i] and not open_[i]]

@@ -7,6 +7,7 @@
 #
 #   scripts/demo.sh [--out DIR] [--collect-s 30] [--record-s 15] [--model base] ...
 #   scripts/demo.sh --loop [--seed N]   (a hidden effect found and removed through ROS)
+#   scripts/demo.sh --learn   (the vehicle drives, an offset changes, the node learns it)
 #   scripts/demo.sh --site-gradient [GXX,GXY,GXZ,GYY,GYZ]   (offline before/after, nT/m)
 #   scripts/demo.sh --help
 #
@@ -29,6 +30,8 @@ for arg in "$@"; do
             exec "${python}" "${repo}/scripts/demo_site_gradient.py" "$@" ;;
         --loop)
             exec "${python}" "${repo}/scripts/demo_loop.py" "$@" ;;
+        --learn)
+            exec "${python}" "${repo}/scripts/demo_learn.py" "$@" ;;
     esac
 done
 exec "${python}" "${repo}/scripts/demo.py" "$@"

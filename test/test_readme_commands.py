@@ -46,6 +46,8 @@ RUN_BY = [
      'make -n (CI runs it; the suite cannot run itself)'),
     (r'scripts/demo\.sh --loop$',
      'test_demo_loop.py::test_loop_closes_for_three_hidden_terms', 'as written'),
+    (r'scripts/demo\.sh --learn$', 'test_demo_learn.py::test_learn_demo_as_written',
+     'as written'),
     (r'scripts/demo\.sh --site-gradient$',
      'test_demo_site_gradient.py::test_readme_site_gradient_demo', 'as written'),
     (r'source scripts/ros_env\.sh$', 'test_readme_commands.py::test_offline_block_as_written',

@@ -85,6 +85,7 @@ from magcal_ros.ros import params as prm
 from magcal_ros.ros.conversions import msg_to_field_nt, residual_to_msg, stamp_to_seconds
 from magcal_ros.ros.diagnostics import fill, Updater
 from magcal_ros.ros.intake import Intake
+from magcal_ros.ros.learning import LearningMixin
 from magcal_ros.ros.run import DEFAULT_NAMESPACE, spin_node
 import numpy as np
 from rclpy.callback_groups import ReentrantCallbackGroup
@@ -189,7 +190,7 @@ def _tensor_rms(components):
     return float(np.sqrt(np.mean(np.square(np.asarray(components, float)))))
 
 
-class CalibrationNode(Node):
+class CalibrationNode(LearningMixin, Node):
     """Collect rotation data of the array and serve calibrate/diagnose requests."""
 
     def __init__(self, **kwargs):
@@ -282,6 +283,7 @@ class CalibrationNode(Node):
         # triggered by the worker thread when a solve ends, so the executor wakes up and
         # resumes the awaiting service coroutine even when no sensor data flows
         self._wake = self.create_guard_condition(lambda: None)
+        self._learn_init(RESULT_QOS)            # learning mode (magcal_ros.ros.learning)
         self._publish_existing(s.calibration_file)
         self._intake.start()
         self.get_logger().info(
@@ -388,12 +390,14 @@ class CalibrationNode(Node):
             self._taken += 1
             collecting = self._collecting
             live = self._live
-            if not collecting and live is None:
+            if not collecting and live is None and self._learner is None:
                 return
             t = stamp_to_seconds(msg.header.stamp)
             b = msg_to_field_nt(msg)
             if not np.all(np.isfinite(b)):
                 return
+            if self._learner is not None:
+                self._learn_raw(j, t, b)
             if collecting:
                 with self._lock:
                     self._received[j] += 1
@@ -468,6 +472,7 @@ class CalibrationNode(Node):
         self._residual_missing = None
         self._effect_errors.clear()               # those of the calibration replaced
         self._live = live
+        self._learn_activate(cal, doc)
 
     def _temp_cb(self, j):
         def cb(msg):
@@ -479,6 +484,8 @@ class CalibrationNode(Node):
         return cb
 
     def _imu_cb(self, msg):
+        if self._learner is not None:
+            self._learn_imu(msg)
         if not self._collecting:
             return
         o = msg.orientation

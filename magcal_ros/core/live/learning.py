@@ -29,17 +29,22 @@ with time (bench/learning.py measures it at 1 kHz).
 
 **Change versus disturbance** (the test statistic).  The active calibration, applied to a
 block of n sets, gives each sensor's scalar residual r_j = |b_j| - F.  For an array the
-common mode is removed, e_j = r_j - mean_{k != j} r_k: a change of the field itself (a
+common mode is removed, e_j = r_j - median_{k != j} r_k: a change of the field itself (a
 passing vehicle, a region of another field, the diurnal variation) is seen alike by every
 sensor and cancels, while a change of one sensor (an offset step from a payload or a battery
-next to it, a magnetised part) does not.  With sigma_j the per-axis noise floor of the block
-(:func:`magcal_ros.core.data.noise.noise_floor`: differences of the raw series, no model,
-heavy-tail corrected) the noise alone gives e_j the variance
-v_j = sigma_j^2 + sum_{k != j} sigma_k^2 / (S - 1)^2.  The block's statistic is the robust
-mean square z_j = (median |e_j| / 0.6745)^2 / v_j: 1 under the noise, its sd 2.33 / sqrt(n)
-(the sample median of a half-normal: var = 1 / (4 n f(m)^2)), insensitive to spikes (a few
-per cent of the sets can be anything).  A block *exceeds* when some z_j is above
-1 + :attr:`LearnConfig.exceed_sigmas` x 2.33 / sqrt(n).
+next to it, a magnetised part) does not, and stays in that sensor's e_j alone (the median of
+the others ignores it; a mean would spread a third of it onto the others of a cross).  With
+sigma_j the per-axis noise floor of the block (:func:`magcal_ros.core.data.noise.noise_floor`:
+differences of the raw series, no model, heavy-tail corrected) the noise alone gives e_j the
+variance v_j = sigma_j^2 + c_m mean_{k != j} sigma_k^2, c_m the variance of the median of
+m = S - 1 unit normals (0.449 for the cross).  The block's statistic is the robust
+mean square z_j = (median |e_j| / 0.6745)^2 / v_j: 1 under the noise, insensitive to spikes
+(a few per cent of the sets can be anything).  Its square root, a robust RMS ratio, is close
+to normal with sd 1.166 / sqrt(n) (the sample median of a half-normal: var = 1 / (4 n f(m)^2));
+a block *exceeds* when some sqrt(z_j) is above 1 + :attr:`LearnConfig.exceed_sigmas` x
+1.166 / sqrt(n) (z itself is skewed: at 4 of its own sds, 2.3 at n = 50, the simulated
+vehicle's noise exceeded it in 1e-3 of the blocks per sensor; at 5 sds of sqrt(z) none of
+4 x 1 470, 25 min at 50 Hz).
 
 Persistence decides: an exceeding block starts a *change detected* (its onset); the change
 ends as a *transient* (not learned) as soon as :attr:`LearnConfig.clear_blocks` blocks in a
@@ -55,7 +60,10 @@ a minute-long excursion; the validation then adopts only what lowers the held-ou
 
 **What is refitted.**  Every refit (each ``refit_period_s``, and when a change turns
 persistent) fits the active calibration's model to the window (since the onset when a change
-is on), each sensor-map parameter with a prior centred on the active calibration
+is on).  A persistent change is learned on the sensors that exceeded in at least half of its
+blocks (the others are held: with them the array's agreement pins the changed sensor's
+offset down within seconds, where its own turn would need a large part of a circle); each
+sensor-map parameter of those gets a prior centred on the active calibration
 (``refit`` callable: :func:`magcal_ros.pipeline.refit_recent`), names what the recent motion
 does not determine and holds it at the active value.  The estimate, with its uncertainties and
 the undetermined parameters, is what the node publishes on ``calibration/learned``.
@@ -63,9 +71,11 @@ the undetermined parameters, is what the node publishes on ``calibration/learned
 **Validated adoption.**  The window's sets are split into interleaved blocks of
 :attr:`LearnConfig.holdout_block_s`: every :attr:`LearnConfig.holdout_every`-th is held out
 and the proposal is fitted on the rest.  On the held-out blocks both calibrations give the
-residual of the detector (e_j, common mode removed for an array, in units of the noise);
-per held-out block l_b = log(mean e_act^2 / v over the block's sets and sensors / the same
-of the proposal), the log of the ratio of the two mean squares.  The proposal is valid when
+scalar residual r_j and, for an array, the detector's e_j (in units of the noise: r_j^2 /
+sigma_j^2 + e_j^2 / v_j, so that a proposal cannot trade an error common to all sensors,
+which e does not see, for a lower e); per held-out block l_b = log(mean of that over the
+block's sets and sensors with the active calibration / the same with the proposal), the log
+of the ratio of the two mean squares.  The proposal is valid when
 the mean of l_b over at least three blocks exceeds :attr:`LearnConfig.validate_sigmas` times
 its standard error over the blocks (blocks, not sets: the residual of a slow trajectory is
 correlated within a block; a log ratio, not a difference: a change's residual varies with
@@ -73,8 +83,8 @@ the heading by orders of magnitude, its ratio to the proposal's much less): it l
 residual by more than the noise allows.  Under the noise alone (a proposal that only fitted
 noise) l_b scatters about a small negative value (the held-out penalty of fitted
 parameters).  Only a valid proposal of a persistent change is *ready*, or one that refines
-the change adopted last (fitted on its sets alone, with no new change on); it is adopted at
-once with ``auto_adopt``, else on request.
+the change adopted last (fitted on the sets since its onset, more than it had); it is adopted
+at once with ``auto_adopt``, else on request.
 """
 from dataclasses import dataclass, field
 
@@ -89,9 +99,9 @@ READY = 'proposal ready'
 ADOPTED = 'adopted'
 UNDETERMINED = 'not determined by the recent motion'
 
-#: sd of the robust mean square z of n residuals of unit variance is this over sqrt(n)
-#: (the median of |e|, a half-normal's: sd(med) / med = 1.166 / sqrt(n); z = (med/m)^2)
-Z_SD_UNIT = 2.33
+#: sd of the robust RMS ratio sqrt(z) of n residuals of unit variance is this over sqrt(n)
+#: (the sample median of |e|, a half-normal's: sd(med) / med = 1.166 / sqrt(n))
+Z_SD_UNIT = 1.166
 
 
 @dataclass
@@ -108,7 +118,7 @@ class LearnConfig:
     block_s : float
         Length of the detector's blocks, s.
     exceed_sigmas : float
-        A block exceeds when its z is this many of its sds above 1.
+        A block exceeds when its sqrt(z) is this many of its sds above 1.
     persist_s : float
         A change must last this long before it is refitted, s.
     persist_fraction : float
@@ -131,7 +141,7 @@ class LearnConfig:
     window_s: float = 120.0
     window_sets: int = 4000
     block_s: float = 1.0
-    exceed_sigmas: float = 4.0
+    exceed_sigmas: float = 5.0
     persist_s: float = 90.0
     persist_fraction: float = 0.8
     clear_blocks: int = 3
@@ -205,8 +215,9 @@ def detector_residual(cal, data, field_nt):
     The detector's residual of a calibration on sets: e (S, N) nT and the scalar r (S, N).
 
     r_j = |b_j| - F with b_j the corrected field of sensor j; for an array the common mode is
-    removed, e_j = r_j - mean_{k != j} r_k (a change of the field cancels); for one sensor
-    e = r.  ``data`` a :class:`Dataset` (its temperatures and channels drive the effects).
+    removed, e_j = r_j - median_{k != j} r_k (a change of the field cancels; a change of one
+    sensor stays in its own e_j, the median of the others ignores it); for one sensor e = r.
+    ``data`` a :class:`Dataset` (its temperatures and channels drive the effects).
     """
     s = data.n_sensors
     r = np.empty((s, data.n_samples))
@@ -216,8 +227,13 @@ def detector_residual(cal, data, field_nt):
         r[j - 1] = np.linalg.norm(b, axis=1) - field_nt
     if s == 1:
         return r, r
-    total = r.sum(axis=0)
-    return r - (total[None] - r) / (s - 1), r
+    others = np.stack([np.median(np.delete(r, j, axis=0), axis=0) for j in range(s)])
+    return r - others, r
+
+
+#: variance of the median of m independent unit normals (exact for m <= 4; pi / (2 m), a
+#: slight overestimate, beyond)
+_MEDIAN_VAR = {1: 1.0, 2: 0.5, 3: 0.4487, 4: 0.3573}
 
 
 def common_mode_variance(sigma):
@@ -227,7 +243,8 @@ def common_mode_variance(sigma):
     if s == 1:
         return sigma ** 2
     f2 = sigma ** 2
-    return f2 + (f2.sum() - f2) / (s - 1) ** 2
+    m = s - 1
+    return f2 + _MEDIAN_VAR.get(m, np.pi / (2 * m)) * (f2.sum() - f2) / m
 
 
 class Learner:
@@ -264,6 +281,8 @@ class Learner:
         self.state = TRACKING
         self.onset = None                   # start of the change, s
         self._since = []                    # exceedances of the blocks since the onset
+        self._by_sensor = np.zeros(self.n)   # blocks since the onset each sensor exceeded
+        self.changed = None                 # sensors (1-based) of the change adopted last
         self.last_z = None                  # (S,) z of the latest block
         self.last_block_t = None
         self.transients = []                # (onset, end) s of changes not learned
@@ -361,7 +380,11 @@ class Learner:
         self.last_z = z
         self.last_block_t = t_end
         limit = 1.0 + self.config.exceed_sigmas * Z_SD_UNIT / np.sqrt(e.shape[1])
-        self._step(bool(np.any(z > limit)), float(data.t[0]), t_end)
+        over = np.sqrt(z) > limit
+        if self.state in (TRACKING, ADOPTED) and over.any():
+            self._by_sensor[:] = 0
+        self._by_sensor += over
+        self._step(bool(np.any(over)), float(data.t[0]), t_end)
 
     def _step(self, exceed, t_start, t_end):
         cfg = self.config
@@ -389,6 +412,13 @@ class Learner:
                 and np.mean(self._since) >= cfg.persist_fraction)
 
     # -- refits ------------------------------------------------------------------------------
+
+    def changed_sensors(self):
+        """Sensors (1-based tuple) that exceeded in at least half the blocks since the onset."""
+        if not self._since:
+            return tuple(range(1, self.n + 1))
+        hit = np.flatnonzero(self._by_sensor >= 0.5 * len(self._since)) + 1
+        return tuple(int(j) for j in hit) or tuple(range(1, self.n + 1))
 
     def refit_due(self, now):
         """True when a refit should run now (periodic, or a change just turned persistent)."""
@@ -453,7 +483,8 @@ class Learner:
         now : float
             Time of the call, s (the stamps' clock).
         refit_fn : callable
-            ``refit_fn(data, active) -> (calibration, doc, undetermined)``
+            ``refit_fn(data, active, sensors) -> (calibration, doc, undetermined)``: the
+            parameters of ``sensors`` (1-based tuple) learned, the others held
             (:func:`magcal_ros.pipeline.refit_recent` with the node's field and geometry).
 
         Returns
@@ -464,13 +495,21 @@ class Learner:
         """
         self._last_refit = now
         persistent = self.persistent(now)
-        data = self.window(since=self.onset if persistent else self._data_from)
+        # the block the change was first seen in holds sets of before it: from its end on
+        start = None if self.onset is None else self.onset + self.config.block_s
+        data = self.window(since=start if persistent else self._data_from)
         if data is None:
             return None
         fit_idx, held_idx = self.split(data)
         if len(fit_idx) < self.config.min_sets // 2 or len(held_idx) < 20:
             return None
-        cal, doc, undetermined = refit_fn(data.subset(fit_idx), self.active)
+        if persistent:
+            sensors = self.changed_sensors()
+        elif self._data_from is not None:
+            sensors = self.changed or tuple(range(1, self.n + 1))
+        else:
+            sensors = tuple(range(1, self.n + 1))
+        cal, doc, undetermined = refit_fn(data.subset(fit_idx), self.active, sensors)
         held = data.subset(held_idx)
         improvement, stderr, rms = self._validate(cal, held)
         valid = bool(np.isfinite(improvement) and np.isfinite(stderr)
@@ -482,15 +521,17 @@ class Learner:
             'held_out_improvement': float(improvement),
             'held_out_improvement_stderr': float(stderr),
             'valid': valid, 'change_persistent': bool(persistent),
+            'sensors_learned': list(sensors),
             'held_out_rms_nt': {k: [float(x) for x in v] for k, v in rms.items()}}
         self.proposal = Proposal(cal, doc, list(undetermined), float(improvement),
                                  float(stderr), valid, bool(persistent), float(data.t[0]),
                                  float(data.t[-1]), int(len(fit_idx)), rms)
         if persistent:
             self.state = READY if valid else UNDETERMINED
-        elif valid and self._data_from is not None and self.state != CHANGE:
+        elif valid and self._data_from is not None:
             # a refinement of the change adopted last: fitted on its sets alone (all after
-            # its onset), more of them than when it was adopted
+            # its onset), more of them than when it was adopted (a change detected since is
+            # most often what the first estimate left: the validation decides)
             self.state = READY
         return self.proposal
 
@@ -499,10 +540,17 @@ class Learner:
         sigma = (np.median(np.array(self._floors), axis=0) if self._floors else
                  noise_floor(held.raw))
         v = common_mode_variance(sigma)
-        e_act, _ = detector_residual(self.active, held, self.field_nt)
-        e_new, _ = detector_residual(cal, held, self.field_nt)
-        a = (e_act ** 2 / v[:, None]).sum(axis=0)
-        b = (e_new ** 2 / v[:, None]).sum(axis=0)
+        e_act, r_act = detector_residual(self.active, held, self.field_nt)
+        e_new, r_new = detector_residual(cal, held, self.field_nt)
+        # the scalar residual itself and, for an array, its part the sensors do not share:
+        # a proposal must not trade one for the other (a common error of all sensors is
+        # invisible to e alone)
+        w = 1.0 / (sigma ** 2)[:, None]
+        a = (r_act ** 2 * w).sum(axis=0)
+        b = (r_new ** 2 * w).sum(axis=0)
+        if held.n_sensors > 1:
+            a = a + (e_act ** 2 / v[:, None]).sum(axis=0)
+            b = b + (e_new ** 2 / v[:, None]).sum(axis=0)
         block = np.floor((held.t - held.t[0]) / self.config.holdout_block_s).astype(int)
         ids = np.unique(block)
         ratios = np.array([np.log(a[block == k].mean() / b[block == k].mean()) for k in ids])
@@ -524,9 +572,12 @@ class Learner:
             return None
         self.adoptions.append((float(now), p.improvement))
         onset = self.onset
+        if p.persistent:
+            self.changed = tuple(p.doc['provenance']['learning']['sensors_learned'])
         self.set_active(p.calibration, self.field_nt, now)
         if onset is not None:               # a refinement keeps its change's onset
-            self._data_from = onset         # what came before the change is another sensor
+            # what came before the change is another sensor (its first block: both)
+            self._data_from = onset + self.config.block_s
         self.state = ADOPTED
         return p
 

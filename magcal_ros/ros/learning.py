@@ -1,0 +1,245 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The calibration node's learning mode (issue 34; docs/design.md §3), kept apart from the node.
+
+:class:`LearningMixin` is a part of :class:`magcal_ros.ros.calibration_node.CalibrationNode`:
+with the parameter ``learn`` it matches the raw samples into sets of its own (whether or not
+the node collects), hands them and the attitude (``imu_topic``) to a
+:class:`magcal_ros.core.live.learning.Learner`, runs the refits in a worker thread
+(:func:`magcal_ros.pipeline.refit_recent`), publishes each estimate on
+``calibration/learned`` (std_msgs/String, the calibration YAML of §4, reliable and transient
+local like ``calibration/result``), reports the state on ``/diagnostics``
+(``calibration_node: learning``), and adopts a ready proposal at once with ``auto_adopt``, or
+on the Trigger service ``calibration/adopt``: written with ``save_calibration`` (the previous
+calibration stays in the history, ``magcal rollback`` goes back to it), published on
+``calibration/result`` (the corrector installs it between two samples) and made active.
+"""
+from collections import deque
+import math
+import threading
+
+from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+from magcal_ros.core.live.learning import (ADOPTED, CHANGE, LearnConfig, Learner, READY,
+                                           TRACKING, UNDETERMINED)
+from magcal_ros.core.live.sync import StampMatcher
+from magcal_ros.io.calfile import dump_calibration, save_calibration
+from magcal_ros.pipeline import refit_recent
+from magcal_ros.ros import params as prm
+from magcal_ros.ros.conversions import stamp_to_seconds
+import numpy as np
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+
+#: /diagnostics level of each learning state
+_LEVEL = {TRACKING: DiagnosticStatus.OK, ADOPTED: DiagnosticStatus.OK,
+          CHANGE: DiagnosticStatus.WARN, READY: DiagnosticStatus.WARN,
+          UNDETERMINED: DiagnosticStatus.WARN}
+
+
+def learning_specs():
+    """Parameters of the learning mode (declared by the calibration node)."""
+    return [
+        prm.ParamSpec('learn', False, 'learning in operation: keep estimating from the recent '
+                      'sets (and imu_topic), publish calibration/learned, detect persistent '
+                      'changes and propose a validated calibration; no unit, read-only',
+                      read_only=True),
+        prm.ParamSpec('auto_adopt', False, 'adopt a validated proposal of the learning at '
+                      'once (else on calibration/adopt); no unit'),
+        prm.ParamSpec('learn_persist_s', 90.0, 'a change must last this long before it is '
+                      'learned (shorter disturbances are not), s; read-only',
+                      prm.positive('s'), read_only=True, limits=(1.0, 1.0e5)),
+        prm.ParamSpec('learn_window_s', 120.0, 'the recent data a learning refit sees, s; '
+                      'read-only', prm.positive('s'), read_only=True, limits=(5.0, 1.0e5)),
+        prm.ParamSpec('learn_refit_period_s', 10.0, 'interval of the learning refits (the '
+                      'estimate on calibration/learned), s; read-only', prm.positive('s'),
+                      read_only=True, limits=(1.0, 1.0e5)),
+    ]
+
+
+class LearningMixin:
+    """The learning mode of the calibration node (its methods start with ``_learn``)."""
+
+    def _learn_init(self, result_qos):
+        """Declare the parameters; with ``learn`` set up the learner, topic and service."""
+        self._specs_by_name.update(prm.declare(self, learning_specs()))
+        self._learner = None
+        self._learn_busy = False                 # a refit thread runs
+        self._learn_lock = threading.RLock()     # the learner (callbacks, refits, adopt)
+        self._learn_queue = deque()
+        self._learn_errors = []
+        if not prm.value(self, 'learn'):
+            return
+        cfg = LearnConfig(persist_s=float(prm.value(self, 'learn_persist_s')),
+                          window_s=float(prm.value(self, 'learn_window_s')),
+                          refit_period_s=float(prm.value(self, 'learn_refit_period_s')))
+        self._learner = Learner(self._n, cfg, self._aux_cols)
+        s = prm.calibration_settings(self)
+        self._learn_matcher = StampMatcher(self._n, s.stamp_tolerance_s)
+        self._learned_pub = self.create_publisher(String, 'calibration/learned', result_qos)
+        self._srv.append(self.create_service(Trigger, 'calibration/adopt',
+                                             self._learn_on_adopt))
+        self._updater.add('learning', lambda stat: self._learn_fill(stat))
+
+    @property
+    def learner(self):
+        """The :class:`Learner` (None without ``learn``)."""
+        return self._learner
+
+    def _learn_activate(self, cal, doc, now=None):
+        """Track the calibration made active (``doc`` its document)."""
+        if self._learner is None:
+            return
+        f = (doc.get('field_reference') or {}).get('magnitude_nt',
+                                                   prm.value(self, 'field_nt'))
+        with self._learn_lock:
+            if self._learner.active is not cal:
+                self._learner.set_active(cal, float(f), now)
+        self._learn_field_ref = dict(doc.get('field_reference') or {})
+
+    def _learn_raw(self, j, t, b):
+        """A raw sample of sensor j (0-based), stamp t s, b (3,) nT: sets to the learner."""
+        done = self._learn_matcher.add(j, t, b)
+        if not done:
+            return
+        with self._lock:
+            temp = self._temp.copy()
+            aux = dict(self._aux)
+        for _, t_set, items in done:
+            self._learn_queue.append((t_set, np.array(items), temp, aux))
+        self._learn_drain()
+
+    def _learn_imu(self, msg):
+        """An Imu message: its orientation to the learner (unit quaternions only)."""
+        o = msg.orientation
+        q = (o.w, o.x, o.y, o.z)
+        if (msg.orientation_covariance[0] == -1 or not all(map(math.isfinite, q))
+                or abs(math.sqrt(sum(v * v for v in q)) - 1.0) > 1e-3):
+            return
+        self._learn_queue.append((stamp_to_seconds(msg.header.stamp), None, q, None))
+
+    def _learn_drain(self):
+        """Hand the queued sets to the learner unless a refit holds it; start a due refit."""
+        if not self._learn_lock.acquire(blocking=False):
+            return                              # a refit holds it: the queue waits
+        try:
+            learner = self._learner
+            now = None
+            while self._learn_queue:
+                t, raw, temp, aux = self._learn_queue.popleft()
+                if raw is None:
+                    learner.add_attitude(t, temp)
+                    continue
+                learner.add(t, raw, temp, aux)
+                now = t
+            if (now is not None and not self._learn_busy and learner.active is not None
+                    and learner.refit_due(now)):
+                self._learn_busy = True
+                threading.Thread(target=self._learn_refit, args=(now,),
+                                 name='magcal-learn', daemon=True).start()
+        finally:
+            self._learn_lock.release()
+
+    def _learn_refit(self, now):
+        """Worker thread: refit, publish the estimate, adopt when ready and auto_adopt."""
+        from magcal_ros.ros.calibration_node import _yield_cpu
+        _yield_cpu()
+        s = prm.calibration_settings(self)
+        geometry = self._geometry(s) or {}
+        ref = getattr(self, '_learn_field_ref', {})
+        try:
+            with self._learn_lock:
+                learner = self._learner
+                f = learner.field_nt
+                p = learner.refit(now, lambda d, a, sensors: refit_recent(
+                    d, a, f, geometry=geometry, field_reference=ref, sensors=sensors))
+                if p is None:
+                    return
+                p.doc['provenance']['field_source'] = s.field_source
+                self._learned_pub.publish(String(data=dump_calibration(p.doc)))
+                if learner.state == READY and prm.value(self, 'auto_adopt'):
+                    self._learn_adopt(now)
+        except Exception as exc:      # noqa: B902 -- a refit must never end the node
+            self._learn_errors.append(str(exc))
+            self.get_logger().error(f'learning refit failed: {exc!r}')
+        finally:
+            self._learn_busy = False
+
+    def _learn_adopt(self, now):
+        """Adopt the ready proposal (under the learn lock); return (ok, text)."""
+        learner = self._learner
+        if learner.state != READY:
+            return False, (f'no proposal ready: the learning is {learner.state!r}'
+                           + ('' if learner.proposal is None else
+                              f' (last proposal valid: {learner.proposal.valid})'))
+        s = prm.calibration_settings(self)
+        p = learner.adopt(now)
+        p.doc['provenance']['source'] = 'learned (calibration_node learn)'
+        try:
+            save_calibration(s.calibration_file, p.doc, history=s.history)
+        except Exception as exc:      # noqa: B902 -- written or not, say it
+            self.get_logger().error(f'learned calibration adopted but not written: {exc}')
+        self._result_pub.publish(String(data=dump_calibration(p.doc)))
+        self._activate(p.calibration, p.doc)
+        text = (f'adopted the learned calibration (sets stamped up to {now:.1f} s): held-out '
+                f'residual '
+                f'{np.round(p.held_out_rms["active"], 2).tolist()} -> '
+                f'{np.round(p.held_out_rms["proposal"], 2).tolist()} nT; undetermined '
+                f'(held): {len(p.undetermined)}')
+        self.get_logger().info(text)
+        return True, text
+
+    def _learn_on_adopt(self, request, response):
+        if self._learner is None:
+            response.success, response.message = False, 'learning is off (parameter learn)'
+            return response
+        with self._learn_lock:
+            now = self._learner.last_block_t or 0.0
+            ok, text = self._learn_adopt(now)
+        response.success, response.message = ok, text
+        return response
+
+    def learning_status(self):
+        """``DiagnosticStatus`` of the learning (``calibration_node: learning``)."""
+        st = DiagnosticStatus(name=f'{self.get_name()}: learning',
+                              hardware_id=self.get_namespace(), level=DiagnosticStatus.OK)
+        learner = self._learner
+        with self._learn_lock:
+            info = learner.status()
+        state = info['state']
+        st.level = _LEVEL.get(state, DiagnosticStatus.OK)
+        if learner.active is None:
+            st.message = 'learning waits for an active calibration (calibration/calibrate)'
+        elif state == CHANGE:
+            st.message = (f'change detected at {info.get("change_onset_s", 0.0):.1f} s: '
+                          f'learned when it lasts {learner.config.persist_s:g} s')
+        elif state == READY:
+            st.message = 'proposal ready: validated on held-out data; call calibration/adopt'
+        elif state == UNDETERMINED:
+            st.message = ('not determined by the recent motion: the proposal does not lower '
+                          'the held-out residual beyond the noise; keep moving')
+        elif state == ADOPTED:
+            st.message = f'adopted a learned calibration ({info["adoptions"]} so far)'
+        else:
+            st.message = 'tracking: the active calibration fits the recent data'
+        if self._learn_errors:
+            st.level = DiagnosticStatus.ERROR
+            st.message += f'; refit failed: {self._learn_errors[-1]}'
+        st.values = [KeyValue(key=k, value=str(v)) for k, v in info.items()]
+        return st
+
+    def _learn_fill(self, stat):
+        from magcal_ros.ros.diagnostics import fill
+        return fill(stat, self.learning_status())

@@ -1,0 +1,131 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Learning in operation (issue 34 items 1-4), ROS-free, on the simulator's vehicle.
+
+The array is calibrated once on a tumble (the active calibration); then it drives (the
+vehicle trajectory: near level, turning part circles) while the truth changes: a payload's
+offset step, a slow drift (persistent: learned, within the stated time, back to the noise
+floor), a magnet passing, spikes, a minute in another field, nothing at all (not learned).
+The references are the simulator's truth and the noise floor of the data before the change,
+not the learner's own figures.
+"""
+from magcal_ros.core.data.simulate import set_truth_refs, SimConfig, simulate, Simulator
+from magcal_ros.core.live.learning import (ADOPTED, detector_residual, feed, LearnConfig,
+                                           Learner, TRACKING)
+from magcal_ros.pipeline import calibrate, refit_recent
+import numpy as np
+import pytest
+
+F = 50000.0
+RATE = 50.0
+PERSIST_S = 15.0
+
+
+@pytest.fixture(scope='module')
+def active():
+    """The calibration of the array made on a tumble before the drive."""
+    data, _ = simulate(n_samples=3000, rate_hz=20.0, trajectory='smooth', seed=1)
+    return calibrate(data, 'base', F).result.calibration
+
+
+def drive(active, truth, seconds, **sim):
+    """Simulate the drive with ``truth``, feed it to a learner; (learner, events, data)."""
+    cfg = SimConfig(rate_hz=RATE, trajectory='vehicle', attitude=True, seed=5,
+                    truth=truth, **sim)
+    simulator = Simulator(cfg)
+    t = np.arange(int(seconds * RATE)) / RATE
+    set_truth_refs(simulator, t)
+    data = simulator.sample(t)
+    learner = Learner(4, LearnConfig(persist_s=PERSIST_S, refit_period_s=20.0))
+    learner.set_active(active, F)
+    events = feed(learner, data, lambda d, a, s: refit_recent(d, a, F, sensors=s))
+    return learner, events, data
+
+
+def rms(cal, data, t0, t1):
+    """(S,) RMS of the detector's residual of ``cal`` on the sets in [t0, t1) s, nT."""
+    idx = np.flatnonzero((data.t >= t0) & (data.t < t1))
+    e, _ = detector_residual(cal, data.subset(idx), F)
+    return np.sqrt(np.mean(e ** 2, axis=1))
+
+
+def adoptions(events):
+    return [(t, p) for t, what, p in events if what == 'adopted']
+
+
+def test_offset_step_is_learned_within_the_stated_time(active):
+    """A payload at 40 s: proposal and adoption within persist_s + 2 blocks of the step."""
+    learner, events, data = drive(active, {'offset(step(40))@2': [120.0, 0.0, -60.0]}, 110)
+    adopted = adoptions(events)
+    assert adopted, f'nothing adopted: {[(t, w, p) for t, w, p in events if w == "state"]}'
+    t_first = adopted[0][0]
+    # the onset is the start of the block holding the step (blocks of 1 s)
+    assert 40.0 - 1.0 + PERSIST_S <= t_first <= 40.0 + PERSIST_S + 2.0
+    assert adopted[0][1].valid and adopted[0][1].persistent
+    floor = rms(active, data, 5.0, 40.0)              # the active calibration before it
+    assert rms(active, data, 45.0, 110.0)[1] > 5 * floor[1]     # the step is no detail
+    after = rms(learner.active, data, 80.0, 110.0)
+    assert np.all(after <= 1.15 * floor), (after, floor)
+    # the held-out check that admitted it: lower residual by many standard errors
+    p = adopted[0][1]
+    assert p.improvement > 3 * p.stderr > 0
+    assert learner.state in (ADOPTED, TRACKING)
+
+
+def test_slow_drift_gives_a_proposal(active):
+    """Sensor 3's x offset drifting 1 nT/s: detected, proposed, adopted; residual lowered."""
+    learner, events, data = drive(active, {'drift@3': [1.0, 0.0, 0.0]}, 100)
+    adopted = adoptions(events)
+    assert adopted
+    t_first = adopted[0][0]
+    assert t_first <= 70.0
+    # at adoption the new calibration fits the recent drive better than the old one
+    before = rms(active, data, t_first - 10, t_first)
+    new = rms(adopted[0][1].calibration, data, t_first - 10, t_first)
+    assert new[2] < 0.5 * before[2]
+
+
+@pytest.mark.parametrize('truth, sim, what', [
+    ({'offset(window(40, 45))@2': [600.0, 0.0, 0.0]}, {}, 'a magnet passing for 5 s'),
+    ({}, {'outlier_fraction': 0.02}, 'spikes of 1000 nT in 2 % of the samples'),
+    ({'field(window(40, 100))': [150.0]}, {}, 'a minute in a field 150 nT stronger'),
+    ({}, {}, 'nothing'),
+])
+def test_disturbances_are_not_learned(active, truth, sim, what):
+    learner, events, data = drive(active, truth, 110, **sim)
+    assert not adoptions(events), what
+    assert learner.active is active
+    assert learner.state == TRACKING, (what, learner.status())
+    if 'magnet' in what:
+        # seen, and let go as a transient
+        assert any(38.0 <= t0 <= 46.0 for t0, _ in learner.transients), learner.transients
+    elif 'field' in what:
+        # the common mode cancels a change of the field: not even a change detected
+        assert not learner.transients
+
+
+def test_memory_is_bounded_by_the_window(active):
+    """The window holds at most window_sets sets whatever the run's length."""
+    learner = Learner(4, LearnConfig(window_s=10.0, window_sets=100, min_sets=50))
+    learner.set_active(active, F)
+    data, _ = simulate(n_samples=3000, rate_hz=RATE, trajectory='vehicle', seed=2)
+    for k in range(data.n_samples):
+        learner.add(float(data.t[k]), data.raw[:, k])
+    window = learner.window()
+    assert window.n_samples <= 100
+    assert window.t[-1] == pytest.approx(data.t[-1], abs=0.2)
+    assert window.t[0] >= data.t[-1] - 10.0 - 1e-9
+    assert len(learner._block) < RATE * learner.config.block_s + 1
