@@ -50,7 +50,8 @@ channel                               unit     source
                                                PX4 actuator_controls_0.control[3], else
                                                the norm of vehicle_thrust_setpoint.xyz
 ``aux_motor{k}``                      PWM us   ArduPilot RCOU: the output whose SERVOn_FUNCTION
-                                               is motor k (33..40, 82..85)
+                                               is motor k (33..40, 82..85); Copter 3.4 and
+                                               older: output k of the frame ('Frame: QUAD')
 ``aux_motor{k}``                      0..1     PX4 actuator_motors.control[k-1] (normalised)
 ``aux_output{k}``                     PWM us   PX4 actuator_outputs (instance 0) output[k-1],
                                                for logs without actuator_motors
@@ -74,7 +75,8 @@ say, in nT and plain numbers), ``aux_units``, ``dropped_epochs`` and ``warnings`
 Errors (:class:`VehicleLogError`, a ValueError: one line, exit status 2 from ``magcal``): a
 file that is not a log of its format or is damaged, an unsupported log version, a log without
 compass data, and a gap in compass 1's stream longer than :data:`GAP_PERIODS` sample periods
-(its epochs are the record's: a gap there cuts the record in two).  A gap in another
+(its epochs are the record's: a gap there cuts the record in two; ``allow_gaps``, the CLI's
+``--allow-gaps``, keeps such a record whole with a warning).  A gap in another
 compass's stream or in the attitude drops the epochs inside it, with a warning.
 
 A long log is held in memory as its compass epochs only (about 100 bytes an epoch for three
@@ -179,9 +181,13 @@ def log_format(path):
     return None
 
 
-def read_vehicle_log(path):
+def read_vehicle_log(path, allow_gaps=False):
     """
     Read an ArduPilot DataFlash (``.bin``, text ``.log``) or PX4 ULog (``.ulg``) log.
+
+    ``allow_gaps``: keep a record whose compass 1 stops for a while (a log dropout) as it
+    is, with a warning naming the gaps (``meta['gaps']``: [(t s, length s)]), instead of
+    refusing it.
 
     Returns
     -------
@@ -206,7 +212,7 @@ def read_vehicle_log(path):
     else:
         from magcal_ros.io.dataflash import read_dataflash
         log = read_dataflash(path, text=kind == 'dataflash-text')
-    return assemble(log, path)
+    return assemble(log, path, allow_gaps)
 
 
 def _median_period(t):
@@ -259,7 +265,7 @@ def _describe_gaps(gaps):
     return f'{length:.2f} s at t = {start:.2f} s{more}'
 
 
-def assemble(log, path):
+def assemble(log, path, allow_gaps=False):
     """
     Return the :class:`Dataset` of a :class:`VehicleLog` (the shared part of every format).
 
@@ -277,12 +283,17 @@ def assemble(log, path):
     if len(t) < 2:
         raise VehicleLogError(f'{path}: compass 1 has only {len(t)} valid sample(s)')
     period, gaps = _gaps(t)
-    if gaps:
+    if gaps and not allow_gaps:
         raise VehicleLogError(
             f'{path}: compass 1 ({log.compasses[0].name}) stops for {_describe_gaps(gaps)} '
             f'(more than {GAP_PERIODS} of its {period * 1e3:.0f} ms sample periods): the '
-            'record is cut in two there; calibrate each part alone (cut the log at the gap, '
-            'e.g. with mavlogdump.py or ulog2csv, or export each part to the wide CSV)')
+            'record is cut there; calibrate each part alone (cut the log at the gap, e.g. '
+            'with mavlogdump.py or ulog2csv), or keep it whole with --allow-gaps')
+    if gaps:
+        warnings.append(Note(
+            f'compass 1 ({log.compasses[0].name}) stops for {_describe_gaps(gaps)} (kept '
+            'with --allow-gaps): the epochs on both sides are used; a noise floor, a drift or '
+            'a lag estimated across a gap is less sure', kind='input', sensor=1))
     keep = np.ones(len(t), bool)
     raws = [v1]
     for j, comp in enumerate(log.compasses[1:], start=2):
@@ -350,6 +361,7 @@ def assemble(log, path):
             'onboard_calibration': log.onboard,
             'aux_units': {k: log.aux_units[k] for k in aux},
             'dropped_epochs': dropped,
+            'gaps': gaps,
             'warnings': warnings}
     if log.gps is not None:
         meta['igrf'] = dict(log.gps)
