@@ -450,3 +450,54 @@ def test_ulog_slow_sensor_mag_reads_vehicle_magnetometer_with_its_calibration_un
         'vehicle_magnetometer')
     np.testing.assert_allclose(d.raw[0], raw1, atol=0.1)
     assert any('logged at 1.0 Hz only' in str(x) for x in d.meta['warnings'])
+
+
+# -- rosbag2: sensor_msgs/BatteryState ---------------------------------------------------
+
+def test_bag_battery_state_gives_the_vehicle_log_channels(tmp_path):
+    """Two BatteryState topics: current and voltage held from each message, NaN left out."""
+    from magcal_ros.io.bag import read_bag
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import get_typestore, Stores
+    ts = get_typestore(Stores.ROS2_JAZZY)
+    mag_t, bat_t = 'sensor_msgs/msg/MagneticField', 'sensor_msgs/msg/BatteryState'
+    hdr = ts.types['std_msgs/msg/Header']
+    tm = ts.types['builtin_interfaces/msg/Time']
+    vec = ts.types['geometry_msgs/msg/Vector3']
+    n = 40
+    t = 100.0 + np.arange(n) * 0.1
+
+    def header(ns, frame):
+        return hdr(stamp=tm(sec=ns // 10**9, nanosec=ns % 10**9), frame_id=frame)
+
+    path = tmp_path / 'battery'
+    with Writer(path, version=9) as w:
+        cm = w.add_connection('/magcal/sensor1/raw', mag_t, typestore=ts)
+        cb = [w.add_connection(topic, bat_t, typestore=ts) for topic in ('/bat_a', '/bat_b')]
+        for k in range(n):
+            ns = int(round(t[k] * 1e9))
+            w.write(cm, ns, ts.serialize_cdr(ts.types[mag_t](
+                header=header(ns, 'imu'), magnetic_field=vec(2e-5, 0.0, 4e-5),
+                magnetic_field_covariance=np.zeros(9)), mag_t))
+            if k % 4 == 0:                       # 2.5 Hz
+                for j, c in enumerate(cb):
+                    cur = float('nan') if (j == 0 and k == 8) else 10.0 * (j + 1) + k
+                    msg = ts.types[bat_t](
+                        header=header(ns, 'battery'), voltage=16.0 - 0.01 * k - j,
+                        temperature=25.0, current=cur, charge=1.0, capacity=2.0,
+                        design_capacity=2.0, percentage=0.5, power_supply_status=2,
+                        power_supply_health=1, power_supply_technology=3, present=True,
+                        cell_voltage=np.array([4.0, 4.0, 4.0, 4.0], np.float32),
+                        cell_temperature=np.array([], np.float32), location='slot',
+                        serial_number='x')
+                    w.write(c, ns, ts.serialize_cdr(msg, bat_t))
+    d = read_bag(path)
+    k = np.arange(n)
+    last = (k // 4) * 4                          # the last battery message at or before
+    expect_a = 10.0 + last.astype(float)
+    expect_a[(last == 8)] = 10.0 + 4            # the NaN message is left out: the one before
+    np.testing.assert_allclose(d.aux['aux_battery_current'], expect_a, atol=1e-5)
+    np.testing.assert_allclose(d.aux['aux_battery2_current'], 20.0 + last, atol=1e-5)
+    np.testing.assert_allclose(d.aux['aux_battery_voltage'], 16.0 - 0.01 * last, atol=1e-5)
+    np.testing.assert_allclose(d.aux['aux_battery2_voltage'], 15.0 - 0.01 * last, atol=1e-5)
+    assert '/bat_a' in d.meta['topics'] and '/bat_b' in d.meta['topics']
