@@ -139,3 +139,22 @@ def test_roboto_px4_undone_calibration_gives_back_sensor_mag():
     assert np.median(undone, axis=0).max() < 1000.0
     # the offsets left in (a sign error would do this) are several thousand nT off
     assert np.median(kept, axis=0).max() > 3000.0
+
+
+def test_readme_vehicle_log_command(tmp_path):
+    """Run the README's vehicle-log line as written, from a folder linking data/."""
+    import shutil
+    import subprocess
+    import sys
+    text = (REAL.parents[1] / 'README.md').read_text()
+    lines = [ln for ln in text.splitlines() if ln.startswith('magcal ') and 'log171' in ln]
+    assert len(lines) == 1
+    (tmp_path / 'data').symlink_to(REAL.parent)
+    magcal = shutil.which('magcal') or f'{sys.executable} -m magcal_ros.cli'
+    p = subprocess.run(lines[0].replace('magcal ', magcal + ' ', 1), shell=True, cwd=tmp_path,
+                       capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    assert 'warning [input]: compass 1 (MAG instance 0) stops for 2.10 s at t = 72.58 s' \
+        in p.stderr
+    for j in (1, 2, 3):
+        assert f'sensor {j}' in p.stdout

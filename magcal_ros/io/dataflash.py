@@ -52,6 +52,7 @@ Old logs (before 3.4: TimeMS, PARM and MSG without time, MAG/MAG2/MAG3, CURR in 
 and centivolts, RCOU ``Ch1``.., GPS with its boot time in ``T``) are read too.
 """
 import datetime
+import mmap
 import re
 
 from magcal_ros.io.vehicle import gps_site, NT_PER_MGAUSS, SLOW_RATE_HZ, Stream, \
@@ -74,6 +75,13 @@ SCALE_BOUNDS = (0.85, 1.4)
 #: GPS time: week 0 starts on 1980-01-06
 _GPS_EPOCH = datetime.datetime(1980, 1, 6)
 _INSTANCE = ('I', 'Inst', 'Instance')
+#: the message types the reader may read (their index is kept; DFReader's is dropped)
+_TYPES = re.compile(r'(MAG\d?|XKQ\d?|NKQ\d?|ATT|GPS\d?|BAT\d?|CURR|CTUN|RCOU|RCO2|RCO3|'
+                    r'ESC\d?|IMU\d?|BARO|BAR\d|POWR|MSG|PARM)')
+#: the fields the reader uses (the others are not decoded)
+_FIELDS = re.compile(r'(TimeUS|TimeMS|T|Week|I|Inst|Instance|C|Mag[XYZ]|Ofs[XYZ]|MO[XYZ]|'
+                     r'MOfs[XYZ]|Health|Q[1-4]|Roll|Pitch|Yaw|Status|GWk|GMS|Lat|Lng|Alt|Curr|'
+                     r'Volt|Temp|ThO|ThrOut|RPM|Vcc|Name|Value|Message|(C|Ch|Chan)\d+)')
 
 
 class _Log:
@@ -98,6 +106,19 @@ class _Log:
             raise VehicleLogError(f'{path}: no FMT message: not a DataFlash log, or its start '
                                   'is missing; download it from the autopilot again')
         self._params = None
+        if not text:
+            # DFReader's index is a Python list per type (~36 bytes a message): keep only
+            # the types read, as int64 arrays, and let the pages of the file go
+            self.offsets = {f.type: np.asarray(self.r.offsets[f.type], np.int64)
+                            for f in self.by_name.values()
+                            if _TYPES.fullmatch(f.name) and self.r.counts[f.type]}
+            self.r.offsets = None
+            self._release()
+
+    def _release(self):
+        """Drop the file's pages from this process's memory (they are read again if needed)."""
+        if hasattr(self.r.data_map, 'madvise'):
+            self.r.data_map.madvise(mmap.MADV_DONTNEED)
 
     def _count_fmt(self):
         return int(self.r.counts[0x80]) if not self.text else 1
@@ -111,7 +132,7 @@ class _Log:
         if self.text:
             return int(self.r.counts.get(name, 0))
         tid = self.r.name_to_id.get(name)
-        return 0 if tid is None else int(self.r.counts[tid])
+        return 0 if tid is None or tid not in self.offsets else len(self.offsets[tid])
 
     def columns(self, name):
         """Return the column names of type ``name`` (empty when the log does not define it)."""
@@ -166,25 +187,27 @@ class _Log:
                                   'damaged')
         dtype = np.dtype({'names': names, 'formats': formats, 'offsets': offsets,
                           'itemsize': length})
+        wanted = [c for c in names if _FIELDS.fullmatch(c)]
         buf = np.frombuffer(self.r.data_map, np.uint8)
         try:
-            ofs = np.asarray(self.r.offsets[fmt.type], np.int64)[::every] + 3
+            ofs = self.offsets[fmt.type][::every] + 3
             ofs = ofs[ofs + length <= len(buf)]
+            m = len(ofs)
+            out = {c: np.empty(m, float if dtype[c].kind != 'S' else dtype[c])
+                   for c in wanted}
             ar = np.arange(length)
-            rows = np.concatenate([buf[ofs[a:a + _BLOCK, None] + ar]
-                                   for a in range(0, len(ofs), _BLOCK)] or
-                                  [np.zeros((0, length), np.uint8)])
+            for a in range(0, m, _BLOCK):
+                rec = buf[ofs[a:a + _BLOCK, None] + ar].view(dtype)[:, 0]
+                for c in wanted:
+                    out[c][a:a + _BLOCK] = rec[c]
         finally:
             del buf
-        rec = rows.view(dtype)[:, 0]
-        out = {}
-        for col in names:
-            a = rec[col]
-            if a.dtype.kind == 'S':
-                out[col] = np.char.decode(np.char.rstrip(a, b'\0'), 'ascii', 'replace')
-            else:
-                a = a.astype(float)
-                out[col] = a * mults[col] if col in mults else a
+        self._release()
+        for c in wanted:
+            if out[c].dtype.kind == 'S':
+                out[c] = np.char.decode(np.char.rstrip(out[c], b'\0'), 'ascii', 'replace')
+            elif c in mults:
+                out[c] *= mults[c]
         return out
 
     def _text_table(self, name, every):
@@ -199,6 +222,8 @@ class _Log:
         rows = rows[::every]
         out = {}
         for col in self.columns(name):
+            if not _FIELDS.fullmatch(col):
+                continue
             vals = [row.get(col) for row in rows]
             try:
                 out[col] = np.array(vals, float)
