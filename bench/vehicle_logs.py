@@ -89,8 +89,8 @@ def write_dataflash(path, minutes, rate):
                 .as_euler('ZYX', degrees=True).T
             df.write('ATT', TimeUS=u50, Roll=roll, Pitch=pitch, Yaw=np.mod(yaw, 360.0))
             df.write('CTUN', TimeUS=u50, ThO=np.full(3000, 0.4))
-            df.write('RCOU', **{'TimeUS': u50, **{f'C{c}': np.full(3000, 1500)
-                                                 for c in range(1, 15)}})
+            outputs = {f'C{c}': np.full(3000, 1500) for c in range(1, 15)}
+            df.write('RCOU', TimeUS=u50, **outputs)
             t10 = t50[::5]
             df.write('BAT', TimeUS=np.round(t10 * 1e6), Inst=np.zeros(600), Volt=16.0 +
                      0 * t10, Curr=10.0 + np.sin(t10))
@@ -159,7 +159,7 @@ def write_ulog(path, minutes, rate):
 
 
 def read_only(path):
-    """The reading alone (run in the measured process): print sets, sensors, epochs held."""
+    """Read the log alone (in the measured process); print the epochs, sensors, channels."""
     from magcal_ros.io.vehicle import read_vehicle_log
     t0 = time.perf_counter()
     d = read_vehicle_log(path)

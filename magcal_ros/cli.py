@@ -116,7 +116,7 @@ def load_record(path, unit=None, rate_hz=100.0, progress=None, reduce_above=None
 
 
 def _vehicle_log(path):
-    """Tell whether ``path`` is an ArduPilot or PX4 log (:func:`magcal_ros.io.vehicle.log_format`)."""
+    """Tell whether ``path`` is an ArduPilot or PX4 log (magcal_ros.io.vehicle.log_format)."""
     from magcal_ros.io.vehicle import log_format
     return log_format(path) is not None
 

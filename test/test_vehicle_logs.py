@@ -50,15 +50,15 @@ def _matrix(diag, offdiag):
 
 
 #: compass 1's onboard calibration: offsets (mG), DIA, ODI, SCALE, MOT (mG per A)
-CAL1 = dict(ofs=np.array([-31.0, 22.0, -14.0]), dia=np.array([1.02, 0.98, 1.01]),
-            odi=np.array([0.01, -0.02, 0.005]), scale=1.1, mot=np.array([2.0, -1.5, 3.0]))
+CAL1 = {'ofs': np.array([-31.0, 22.0, -14.0]), 'dia': np.array([1.02, 0.98, 1.01]),
+        'odi': np.array([0.01, -0.02, 0.005]), 'scale': 1.1, 'mot': np.array([2.0, -1.5, 3.0])}
 #: compass 2: no DIA set (all zero: identity), no SCALE (0: not applied)
-CAL2 = dict(ofs=np.array([5.0, -7.0, 12.0]), dia=np.zeros(3), odi=np.zeros(3), scale=0.0,
-            mot=np.array([-1.0, 0.5, 0.8]))
+CAL2 = {'ofs': np.array([5.0, -7.0, 12.0]), 'dia': np.zeros(3), 'odi': np.zeros(3),
+        'scale': 0.0, 'mot': np.array([-1.0, 0.5, 0.8])}
 
 
 def _scenario(seed=0, n=N):
-    """Times (n,) s, attitudes (n, 4), current (n,) A, raw body field of two compasses (nT)."""
+    """Return times (n,) s, attitudes (n, 4), current (n,) A, two compasses' raw fields (nT)."""
     rng = np.random.default_rng(seed)
     t = 10.0 + np.arange(n) / RATE
     rot = Rotation.random(n, random_state=seed)       # every attitude: a full sphere
@@ -87,7 +87,7 @@ def _ap_params(extra=None):
 
 
 def _ap_logged(raw_nt, cal, current, motor_first=False):
-    """What ArduPilot logs (MagX.., OfsX.., MOX..; whole mG) for raw body readings in nT."""
+    """Return what ArduPilot logs (MagX.., OfsX.., MOX..; whole mG) for raw readings in nT."""
     r = raw_nt / 100.0
     dia = cal['dia'] if np.any(cal['dia']) else np.ones(3)
     m = _matrix(dia, cal['odi'])
@@ -132,8 +132,8 @@ def _write_ap(path, seed=0, n=N, attitude='XKQ', gap=None, extra_params=None,
     df.write('BAT', TimeUS=us[half], Inst=np.zeros(len(us[half])), Volt=16.8 - 0.01 * t[half],
              Curr=cur[half], Temp=np.zeros(len(us[half])))
     df.write('CTUN', TimeUS=us, ThO=0.4 + 0.001 * (t - t[0]))
-    df.write('RCOU', **{'TimeUS': us, **{f'C{c}': 1100 + 10 * c + np.floor(t - t[0])
-                                        for c in range(1, 9)}})
+    outputs = {f'C{c}': 1100 + 10 * c + np.floor(t - t[0]) for c in range(1, 9)}
+    df.write('RCOU', TimeUS=us, **outputs)
     g = np.arange(0, n, 4)
     status = np.where(np.arange(len(g)) < 3, 1, 3)
     lat = np.where(status >= 3, LAT, 10.0)
@@ -319,8 +319,8 @@ def test_cli_exit_2_with_one_line(tmp_path, capsys):
     assert '--unit uT: a vehicle log' in capsys.readouterr().err
 
 
-def test_cli_fit_takes_igrf_from_the_log_gps_and_reports_the_onboard_calibration(ap_log,
-                                                                                   capsys):
+def test_cli_fit_takes_igrf_from_the_log_gps_and_reports_the_onboard_calibration(
+        ap_log, capsys):
     path, _ = ap_log
     assert cli.main(['fit', str(path), '--json', '-q']) == 0
     out = json.loads(capsys.readouterr().out)

@@ -76,9 +76,8 @@ class DataFlash:
         dtype = np.dtype([('h1', 'u1'), ('h2', 'u1'), ('type', 'u1')] +
                          [(c, DF_TYPES[ch][0]) for c, ch in zip(fields, fmt)])
         self.types[name] = (tid, dtype, fmt, fields)
-        self.buf += b'\xa3\x95\x80' + struct.pack('<BB4s16s64s', tid, dtype.itemsize,
-                                                   name.encode(), fmt.encode(),
-                                                   columns.encode())
+        self.buf += b'\xa3\x95\x80' + struct.pack(
+            '<BB4s16s64s', tid, dtype.itemsize, name.encode(), fmt.encode(), columns.encode())
 
     def write(self, name, **columns):
         """

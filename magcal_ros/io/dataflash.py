@@ -261,7 +261,7 @@ class _Log:
 
 def ardupilot_raw(field, offsets, motor, diag, offdiag, scale, motor_first=False):
     """
-    The raw body-frame reading from what ArduPilot logs (module docstring), any one unit.
+    Return the raw body-frame reading from what ArduPilot logs (module docstring), any unit.
 
     Parameters
     ----------
@@ -409,7 +409,7 @@ def _read(log, path, text):
 
 
 def _onboard(log, j, tab, motct):
-    """The onboard calibration of compass ``j`` as the log's parameters say (nT)."""
+    """Return the onboard calibration of compass ``j`` as the log's parameters say (nT)."""
     def vec(kind, default):
         return [log.param(_pname(log, kind, j, a), default) for a in 'XYZ']
     scale = log.param(_pname(log, 'SCALE', j), 0.0)
@@ -584,9 +584,9 @@ def _aux(log, out, vehicle, duration):
         # before SERVOn_FUNCTION (Copter 3.4 and older) the motors are outputs 1..n of
         # the frame the start-up message names ('Frame: QUAD')
         tab = log.table('MSG')
-        frame = next((m.group(1) for m in (re.search(r'Frame: (\w+)', str(x)) for x in
-                                          (tab['Message'] if tab is not None else []))
-                      if m), None)
+        texts = tab['Message'] if tab is not None else []
+        found = [re.search(r'Frame: (\w+)', str(x)) for x in texts]
+        frame = next((m.group(1) for m in found if m), None)
         count = {'QUAD': 4, 'HEXA': 6, 'OCTA': 8, 'OCTA_QUAD': 8, 'Y6': 6, 'TRI': 3,
                  'DODECA_HEXA': 12}.get(frame, 0)
         motors = {n: n for n in range(1, count + 1)}
