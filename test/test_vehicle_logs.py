@@ -140,6 +140,13 @@ def _write_ap(path, seed=0, n=N, attitude='XKQ', gap=None, extra_params=None,
     df.write('GPS', TimeUS=us[g], I=np.zeros(len(g)), Status=status, GMS=GPS_MS + 200 * g,
              GWk=np.full(len(g), GPS_WEEK), Lat=lat, Lng=np.full(len(g), LON),
              Alt=np.full(len(g), ALT_M))
+    for k in range(2):                      # two batteries, four ESCs
+        if k:
+            df.write('BAT', TimeUS=us[half], Inst=np.ones(len(us[half])),
+                     Volt=np.full(len(us[half]), 5.1), Curr=np.full(len(us[half]), 0.3))
+    for k in range(4):
+        df.write('ESC', TimeUS=us, Instance=np.full(n, k), RPM=5000.0 + 100 * k + 0 * t,
+                 Curr=2.0 + k + 0.01 * (t - t[0]), Temp=np.full(n, 30.0 + k))
     ti = 10.0 + np.arange(int(n / RATE * 200)) / 200.0
     df.write('IMU', TimeUS=np.round(ti * 1e6), I=np.zeros(len(ti)), T=40.0 + 0.1 * (ti - 10.0))
     return df.save(path), (t, q, cur, raw1, raw2)
@@ -173,6 +180,7 @@ def test_dataflash_gives_the_raw_body_reading_with_every_correction_undone(ap_lo
 def test_dataflash_channels_names_units_and_meta(ap_log):
     path, (t, q, cur, raw1, raw2) = ap_log
     d = read_vehicle_log(path)
+    units = d.meta['aux_units']
     # the battery at half the compass rate, a linear ramp: interpolation is exact inside
     # its span, and its last message held after it (the last compass epoch)
     np.testing.assert_allclose(d.aux['aux_battery_current'][:-1], cur[:-1], atol=1e-4)
@@ -184,10 +192,18 @@ def test_dataflash_channels_names_units_and_meta(ap_log):
         np.testing.assert_array_equal(d.aux[f'aux_motor{k}'], 1100 + 10 * k +
                                       np.floor(t - t[0]))
     assert 'aux_motor5' not in d.aux
+    np.testing.assert_allclose(d.aux['aux_battery2_current'], 0.3, atol=1e-6)
+    np.testing.assert_allclose(d.aux['aux_battery2_voltage'], 5.1, atol=1e-6)
+    for k in range(1, 5):
+        # Curr is a centiamp integer ('c'): 0.005 A of rounding
+        np.testing.assert_allclose(d.aux[f'aux_esc{k}_current'], 1.0 + k + 0.01 * (t - t[0]),
+                                   atol=0.0051)
+        np.testing.assert_allclose(d.aux[f'aux_esc{k}_rpm'], 4900.0 + 100 * k, atol=1e-6)
+        np.testing.assert_allclose(d.aux[f'aux_esc{k}_temp'], 29.0 + k, atol=1e-6)
+    assert units['aux_esc1_current'] == 'A' and units['aux_esc1_rpm'] == 'rpm'
     # IMU at 200 Hz read at 10 Hz (a temperature is slow): every 20th message
     np.testing.assert_allclose(d.aux['aux_imu_temp'][:-1], 40.0 + 0.1 * (t[:-1] - 10.0),
                                atol=1e-4)
-    units = d.meta['aux_units']
     assert units['aux_battery_current'] == 'A' and units['aux_motor1'] == 'PWM us'
     assert units['aux_imu_temp'] == 'degC' and units['aux_throttle'] == '0..1'
     # GPS: the median of the 3-D fixes (the first three are not), its date by hand
@@ -308,6 +324,22 @@ def test_errors_name_the_problem(tmp_path):
     notulog.write_bytes(b'not a log at all, just text')
     with pytest.raises(VehicleLogError, match='not a ULog file'):
         read_vehicle_log(notulog)
+
+
+def test_a_log_cut_inside_its_last_message_reads_the_messages_before(tmp_path, ap_log):
+    path, (t, q, cur, raw1, raw2) = ap_log
+    data = path.read_bytes()
+    cut = tmp_path / 'cut.bin'
+    # the writer puts the 2 x 1200 MAG messages first after the PARMs; cut inside MAG 600
+    start = data.index(b'\xa3\x95', data.index(b'ArduCopter V4.5.1'))
+    mag_len = 3 + 8 + 1 + 9 * 2 + 1 + 4
+    first_mag = next(i for i in range(start, len(data)) if data[i:i + 2] == b'\xa3\x95' and
+                     data[i + 2] == w.DataFlash().types['MAG'][0])
+    cut.write_bytes(data[:first_mag + 599 * mag_len + 10])
+    d = read_vehicle_log(cut)
+    assert d.n_samples == 599 and d.n_sensors == 1
+    assert np.abs(d.raw[0] - raw1[:599]).max() <= _bound_nt(CAL1)
+    assert any('no attitude' in str(x) for x in d.meta['warnings'])
 
 
 def test_cli_exit_2_with_one_line(tmp_path, capsys):

@@ -49,6 +49,7 @@ AP4 = {
     'GPS': ('QBBIHBcLLeffffB', 'TimeUS,I,Status,GMS,GWk,NSats,HDop,Lat,Lng,Alt,Spd,GCrs,VZ,'
             'Yaw,U'),
     'IMU': ('QBffffffIIfBBHH', 'TimeUS,I,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,EG,EA,T,GH,AH,GHz,AHz'),
+    'ESC': ('QBeffcfcf', 'TimeUS,Instance,RPM,RawRPM,Volt,Curr,Temp,CTot,MotTemp,Err'),
 }
 #: ArduPilot 3.5's per-instance compass messages (no instance field, old names)
 AP35 = {
