@@ -533,3 +533,16 @@ def test_bag_battery_state_gives_the_vehicle_log_channels(tmp_path):
     np.testing.assert_allclose(d.aux['aux_battery_voltage'], 16.0 - 0.01 * last, atol=1e-5)
     np.testing.assert_allclose(d.aux['aux_battery2_voltage'], 15.0 - 0.01 * last, atol=1e-5)
     assert '/bat_a' in d.meta['topics'] and '/bat_b' in d.meta['topics']
+
+
+def test_ulog_with_damaged_data_is_read_with_a_warning(tmp_path):
+    path, (t, q, cur, raw1, raw2) = _px4_log(tmp_path / 'px4.ulg')
+    data = bytearray(path.read_bytes())
+    mid = len(data) // 2
+    data[mid:mid + 200] = bytes(range(200))          # garbage inside the data section
+    bad = tmp_path / 'bad.ulg'
+    bad.write_bytes(bytes(data))
+    d = read_vehicle_log(bad)
+    assert any('pyulog found damaged data' in str(x) for x in d.meta['warnings'])
+    # what was written before the damage is read exactly
+    np.testing.assert_allclose(d.raw[0], raw1[:d.n_samples], atol=0.05)
