@@ -298,6 +298,15 @@ def test_att_attitude_has_the_ahrs_trim_removed(tmp_path):
     assert np.abs(naive - _world_field()).max() > 1000.0
 
 
+def test_parameters_that_are_not_the_logged_compass_s_are_named(tmp_path):
+    path, _ = _write_ap(tmp_path / 'swapped.bin', n=200, extra_params={'COMPASS_OFS_X': 99.0})
+    d = read_vehicle_log(path)
+    notes = [str(x) for x in d.meta['warnings']]
+    assert any(x.startswith('compass 1: its logged offsets (-31, 22, -14 mG) are not its '
+                            "parameters' (99, 22, -14 mG)") for x in notes), notes
+    assert not any(x.startswith('compass 2') for x in notes)
+
+
 def test_a_log_without_attitude_is_plain_compass_data_with_a_warning(tmp_path):
     path, _ = _write_ap(tmp_path / 'noatt.bin', n=200, attitude=None)
     d = read_vehicle_log(path)

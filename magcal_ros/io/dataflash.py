@@ -393,6 +393,17 @@ def _read(log, path, text):
                                     'motor compensation is on: it is not undone')
         else:
             mo = np.column_stack([tab[c] for c in mo_cols])
+        ofs_p = np.column_stack([log.param_at(_pname(log, 'OFS', j, a), t, np.nan)
+                                 for a in 'XYZ'])
+        if len(t) and np.isfinite(ofs_p[0]).all() and np.abs(ofs_p[0] - o[0]).max() > 1.0:
+            # the parameters read as compass j's are another compass's: DIA, ODI and SCALE
+            # would be wrong too
+            logged = ', '.join(f'{x:.0f}' for x in o[0])
+            param = ', '.join(f'{x:.0f}' for x in ofs_p[0])
+            out.warnings.append(
+                f"compass {j}: its logged offsets ({logged} mG) are not its parameters' "
+                f"({param} mG): the soft-iron and scale parameters undone may be another "
+                "compass's")
         dia = np.column_stack([log.param_at(_pname(log, 'DIA', j, a), t, 1.0) for a in 'XYZ'])
         odi = np.column_stack([log.param_at(_pname(log, 'ODI', j, a), t, 0.0) for a in 'XYZ'])
         scale = log.param_at(_pname(log, 'SCALE', j), t, 0.0)
