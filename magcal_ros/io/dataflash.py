@@ -55,7 +55,7 @@ import datetime
 import mmap
 import re
 
-from magcal_ros.io.vehicle import gps_site, NT_PER_MGAUSS, SLOW_RATE_HZ, Stream, \
+from magcal_ros.io.vehicle_base import gps_site, NT_PER_MGAUSS, SLOW_RATE_HZ, Stream, \
     VehicleLog, VehicleLogError
 import numpy as np
 

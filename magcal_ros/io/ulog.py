@@ -47,7 +47,7 @@ import contextlib
 import datetime
 import io
 
-from magcal_ros.io.vehicle import gps_site, NT_PER_GAUSS, SLOW_RATE_HZ, Stream, \
+from magcal_ros.io.vehicle_base import gps_site, NT_PER_GAUSS, SLOW_RATE_HZ, Stream, \
     ULOG_MAGIC, VehicleLog, VehicleLogError
 import numpy as np
 
