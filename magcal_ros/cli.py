@@ -35,7 +35,7 @@ class BadInput(ValueError):
     """Bad user input: reported on stderr with exit status 2."""
 
 
-def load_data(path, unit=None, rate_hz=100.0):
+def load_data(path, unit=None, rate_hz=100.0, allow_gaps=False):
     """
     Dataset in nT from a wide CSV file, a rosbag2 directory, a vehicle log or a single-sensor CSV.
 
@@ -43,7 +43,8 @@ def load_data(path, unit=None, rate_hz=100.0):
     as they are read.  A vehicle log (ArduPilot DataFlash ``.bin``/``.log``, PX4 ULog
     ``.ulg``: :mod:`magcal_ros.io.vehicle`) is found by its first bytes; what the reader
     warns about (no attitude, a compass that stops, ...) is printed on stderr, one
-    ``warning [input]: ...`` line each.
+    ``warning [input]: ...`` line each; ``allow_gaps`` keeps a log whose compass stops for
+    a while (refused otherwise).
 
     ``unit`` (a key of :data:`magcal_ros.units.UNITS_NT`) is the unit of the field columns
     (readings, ``ref_total``, ``ref_x/y/z``); they are converted to nT here, once.  A CSV
@@ -56,7 +57,7 @@ def load_data(path, unit=None, rate_hz=100.0):
     elif not os.path.exists(path):
         raise BadInput(f'{path}: no such file or directory')
     elif _vehicle_log(path):
-        return _read_vehicle(path, unit)
+        return _read_vehicle(path, unit, allow_gaps)
     elif unit and not _is_wide_csv(path):
         from magcal_ros.io.single_csv import read_single_sensor_csv
         return read_single_sensor_csv(path, unit=unit, rate_hz=rate_hz)
@@ -70,7 +71,8 @@ def load_data(path, unit=None, rate_hz=100.0):
     return data
 
 
-def load_record(path, unit=None, rate_hz=100.0, progress=None, reduce_above=None):
+def load_record(path, unit=None, rate_hz=100.0, progress=None, reduce_above=None,
+                allow_gaps=False):
     """
     (Dataset, Record or None): a recording, reduced when it is too long to hold.
 
@@ -86,7 +88,7 @@ def load_record(path, unit=None, rate_hz=100.0, progress=None, reduce_above=None
     limit = reduce.REDUCE_ABOVE if reduce_above is None else int(reduce_above)
     if os.path.exists(path) and _vehicle_log(path):
         # a vehicle log is read once, whole (its compass epochs: io.vehicle), then reduced
-        data = _read_vehicle(path, unit)
+        data = _read_vehicle(path, unit, allow_gaps)
         if data.n_samples <= limit:
             return data, None
         from magcal_ros.io.vehicle import VehicleRecord
@@ -114,18 +116,18 @@ def load_record(path, unit=None, rate_hz=100.0, progress=None, reduce_above=None
 
 
 def _vehicle_log(path):
-    """Tell whether ``path`` is an ArduPilot or PX4 log (:func:`magcal_ros.io.vehicle.log_format`)."""
+    """Tell whether ``path`` is an ArduPilot or PX4 log (magcal_ros.io.vehicle.log_format)."""
     from magcal_ros.io.vehicle import log_format
     return log_format(path) is not None
 
 
-def _read_vehicle(path, unit):
+def _read_vehicle(path, unit, allow_gaps=False):
     """Read a vehicle log (nT from the log's own units); print its warnings on stderr."""
     if unit not in (None, 'nT'):
         raise BadInput(f'--unit {unit}: a vehicle log is read in its own units (ArduPilot '
                        'milligauss, PX4 gauss) and converted to nT; leave --unit out')
     from magcal_ros.io.vehicle import read_vehicle_log
-    data = read_vehicle_log(path)
+    data = read_vehicle_log(path, allow_gaps=allow_gaps)
     for w in data.meta.get('warnings', []):
         print(format_note(w), file=sys.stderr)
     return data
@@ -202,6 +204,13 @@ def _is_wide_csv(path):
             if line.strip() and not line.lstrip().startswith('#'):
                 return re.search(r'(^|[,;\t ])s\d+_x($|[,;\t ])', line.strip()) is not None
     return False
+
+
+def add_gaps_arg(p):
+    """Add --allow-gaps (a vehicle log whose compass stops for a while is kept whole)."""
+    p.add_argument('--allow-gaps', action='store_true',
+                   help='a vehicle log whose compass stops for more than 10 sample periods '
+                        '(a log dropout) is refused; keep it whole, with a warning')
 
 
 def add_unit_arg(p):
@@ -375,7 +384,8 @@ def cmd_fit(args):
     prog = Progress(wanted(args.quiet, args.json))
     if args.method != 'ellipsoid':
         return _fit_paper_method(args, load_data(args.data, args.unit))
-    data, record = load_record(args.data, args.unit, progress=prog)
+    data, record = load_record(args.data, args.unit, progress=prog,
+                               allow_gaps=getattr(args, 'allow_gaps', False))
     field_nt, fref = resolve_field(args, data)
     geometry = cross_geometry(args.baseline_m) if data.n_sensors == 4 else None
     extra = {'heading_unknown': True} if args.heading_unknown else {}
@@ -628,7 +638,8 @@ def cmd_check(args):
     prog = Progress(wanted(args.quiet, args.json))
     for path in args.data:
         # a long static recording: its evenly spread sample (core.data.reduce), read in chunks
-        data, _ = load_record(path, args.unit, progress=prog)
+        data, _ = load_record(path, args.unit, progress=prog,
+                              allow_gaps=getattr(args, 'allow_gaps', False))
         try:
             check_field_units(data.raw, None, '')
         except ValueError as exc:
@@ -706,6 +717,7 @@ def build_parser():
     f.add_argument('--json', action='store_true', help='print one JSON object on stdout')
     add_field_args(f)
     add_unit_arg(f)
+    add_gaps_arg(f)
     f.add_argument('--baseline-m', type=float, default=0.5, help='cross baseline, m')
     f.add_argument('--robust', action='store_true', help='robust (soft-L1) loss for outliers')
     f.add_argument('--constrained', action='store_true',
@@ -746,6 +758,7 @@ def build_parser():
     c.add_argument('--sensor', type=int, default=1, help='sensor to check (default 1)')
     c.add_argument('-q', '--quiet', action='store_true', help='no progress bars on stderr')
     add_unit_arg(c)
+    add_gaps_arg(c)
     c.add_argument('--json', action='store_true', help='print one JSON object on stdout')
     c.set_defaults(func=cmd_check)
 

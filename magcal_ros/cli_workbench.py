@@ -40,7 +40,8 @@ EXIT_OK = 0
 
 def _load(args, cli, prog):
     """Dataset from DATA (wide CSV, rosbag2 directory, or single-sensor CSV with --unit)."""
-    data, _ = cli.load_record(args.data, args.unit, args.rate_hz, progress=prog)
+    data, _ = cli.load_record(args.data, args.unit, args.rate_hz, progress=prog,
+                              allow_gaps=args.allow_gaps)
     return data
 
 
@@ -68,6 +69,7 @@ def _common(p, cli):
                    help='diagnose degenerate data anyway and flag it instead of refusing')
     p.add_argument('--baseline-m', type=float, default=0.5, help='cross baseline, m')
     cli.add_unit_arg(p)
+    cli.add_gaps_arg(p)
     p.add_argument('--rate-hz', type=float, default=100.0,
                    help='assumed sample rate of a single-sensor CSV without a time column')
     p.add_argument('-q', '--quiet', action='store_true', help='no progress on stderr')

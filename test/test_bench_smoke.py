@@ -50,6 +50,7 @@ CASES = {
     'scale': ['--sizes', '1500', '--bag-max', '1500', '--storages', 'mcap', '--plot-at-end'],
     'reduction_accuracy': ['--sizes', '6000'],
     'executor': ['--rate', '50', '--duration', '1', '--repeats', '1'],
+    'vehicle_logs': ['--minutes', '1', '--mag-rate', '50'],
 }
 
 
@@ -197,3 +198,13 @@ def test_executor(tmp_path):
     # 4 topics at 50 Hz for 1 s: about 200 messages each, some lost to start-up at most
     assert all(100 <= r['messages'] <= 220 and r['cpu_s'] > 0 for r in runs), runs
     assert res['ratio'] > 0
+
+
+def test_vehicle_logs(tmp_path):
+    runs = _run('vehicle_logs', tmp_path)['results']['runs']
+    assert [r['format'] for r in runs] == ['dataflash', 'ulog']
+    for r in runs:
+        # a minute at 50 Hz: every epoch read, the fit takes IGRF from the log's GPS
+        assert r['read_exit'] == 0 and r['epochs'] == 3000 and r['sensors'] == 3
+        assert r['fit_exit'] == 0 and r['fit_field_reference'] == 'igrf'
+        assert r['read_peak_rss_mb'] > 0 and r['fit_cpu_s'] > 0

@@ -58,6 +58,8 @@ RUN_BY = [
      'test_readme_commands.py::test_degenerate_example_as_written', 'as written'),
     (r'magcal (fit|check) .*data/real/sunsided',
      'test_real_sunsided.py::test_readme_check_commands', 'as written'),
+    (r'magcal fit data/real/dronekit-log171/',
+     'test_vehicle_logs_real.py::test_readme_vehicle_log_command', 'as written'),
     (r'magcal fit test/data/paper002_table2\.csv',
      'test_fit_methods.py::test_readme_command_as_written', 'as written'),
     (r'magcal (simulate --out site\.csv|fit site\.csv)',

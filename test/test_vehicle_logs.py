@@ -50,15 +50,15 @@ def _matrix(diag, offdiag):
 
 
 #: compass 1's onboard calibration: offsets (mG), DIA, ODI, SCALE, MOT (mG per A)
-CAL1 = dict(ofs=np.array([-31.0, 22.0, -14.0]), dia=np.array([1.02, 0.98, 1.01]),
-            odi=np.array([0.01, -0.02, 0.005]), scale=1.1, mot=np.array([2.0, -1.5, 3.0]))
+CAL1 = {'ofs': np.array([-31.0, 22.0, -14.0]), 'dia': np.array([1.02, 0.98, 1.01]),
+        'odi': np.array([0.01, -0.02, 0.005]), 'scale': 1.1, 'mot': np.array([2.0, -1.5, 3.0])}
 #: compass 2: no DIA set (all zero: identity), no SCALE (0: not applied)
-CAL2 = dict(ofs=np.array([5.0, -7.0, 12.0]), dia=np.zeros(3), odi=np.zeros(3), scale=0.0,
-            mot=np.array([-1.0, 0.5, 0.8]))
+CAL2 = {'ofs': np.array([5.0, -7.0, 12.0]), 'dia': np.zeros(3), 'odi': np.zeros(3),
+        'scale': 0.0, 'mot': np.array([-1.0, 0.5, 0.8])}
 
 
 def _scenario(seed=0, n=N):
-    """Times (n,) s, attitudes (n, 4), current (n,) A, raw body field of two compasses (nT)."""
+    """Return times (n,) s, attitudes (n, 4), current (n,) A, two compasses' raw fields (nT)."""
     rng = np.random.default_rng(seed)
     t = 10.0 + np.arange(n) / RATE
     rot = Rotation.random(n, random_state=seed)       # every attitude: a full sphere
@@ -87,7 +87,7 @@ def _ap_params(extra=None):
 
 
 def _ap_logged(raw_nt, cal, current, motor_first=False):
-    """What ArduPilot logs (MagX.., OfsX.., MOX..; whole mG) for raw body readings in nT."""
+    """Return what ArduPilot logs (MagX.., OfsX.., MOX..; whole mG) for raw readings in nT."""
     r = raw_nt / 100.0
     dia = cal['dia'] if np.any(cal['dia']) else np.ones(3)
     m = _matrix(dia, cal['odi'])
@@ -132,14 +132,21 @@ def _write_ap(path, seed=0, n=N, attitude='XKQ', gap=None, extra_params=None,
     df.write('BAT', TimeUS=us[half], Inst=np.zeros(len(us[half])), Volt=16.8 - 0.01 * t[half],
              Curr=cur[half], Temp=np.zeros(len(us[half])))
     df.write('CTUN', TimeUS=us, ThO=0.4 + 0.001 * (t - t[0]))
-    df.write('RCOU', **{'TimeUS': us, **{f'C{c}': 1100 + 10 * c + np.floor(t - t[0])
-                                        for c in range(1, 9)}})
+    outputs = {f'C{c}': 1100 + 10 * c + np.floor(t - t[0]) for c in range(1, 9)}
+    df.write('RCOU', TimeUS=us, **outputs)
     g = np.arange(0, n, 4)
     status = np.where(np.arange(len(g)) < 3, 1, 3)
     lat = np.where(status >= 3, LAT, 10.0)
     df.write('GPS', TimeUS=us[g], I=np.zeros(len(g)), Status=status, GMS=GPS_MS + 200 * g,
              GWk=np.full(len(g), GPS_WEEK), Lat=lat, Lng=np.full(len(g), LON),
              Alt=np.full(len(g), ALT_M))
+    for k in range(2):                      # two batteries, four ESCs
+        if k:
+            df.write('BAT', TimeUS=us[half], Inst=np.ones(len(us[half])),
+                     Volt=np.full(len(us[half]), 5.1), Curr=np.full(len(us[half]), 0.3))
+    for k in range(4):
+        df.write('ESC', TimeUS=us, Instance=np.full(n, k), RPM=5000.0 + 100 * k + 0 * t,
+                 Curr=2.0 + k + 0.01 * (t - t[0]), Temp=np.full(n, 30.0 + k))
     ti = 10.0 + np.arange(int(n / RATE * 200)) / 200.0
     df.write('IMU', TimeUS=np.round(ti * 1e6), I=np.zeros(len(ti)), T=40.0 + 0.1 * (ti - 10.0))
     return df.save(path), (t, q, cur, raw1, raw2)
@@ -173,6 +180,7 @@ def test_dataflash_gives_the_raw_body_reading_with_every_correction_undone(ap_lo
 def test_dataflash_channels_names_units_and_meta(ap_log):
     path, (t, q, cur, raw1, raw2) = ap_log
     d = read_vehicle_log(path)
+    units = d.meta['aux_units']
     # the battery at half the compass rate, a linear ramp: interpolation is exact inside
     # its span, and its last message held after it (the last compass epoch)
     np.testing.assert_allclose(d.aux['aux_battery_current'][:-1], cur[:-1], atol=1e-4)
@@ -184,10 +192,18 @@ def test_dataflash_channels_names_units_and_meta(ap_log):
         np.testing.assert_array_equal(d.aux[f'aux_motor{k}'], 1100 + 10 * k +
                                       np.floor(t - t[0]))
     assert 'aux_motor5' not in d.aux
+    np.testing.assert_allclose(d.aux['aux_battery2_current'], 0.3, atol=1e-6)
+    np.testing.assert_allclose(d.aux['aux_battery2_voltage'], 5.1, atol=1e-6)
+    for k in range(1, 5):
+        # Curr is a centiamp integer ('c'): 0.005 A of rounding
+        np.testing.assert_allclose(d.aux[f'aux_esc{k}_current'], 1.0 + k + 0.01 * (t - t[0]),
+                                   atol=0.0051)
+        np.testing.assert_allclose(d.aux[f'aux_esc{k}_rpm'], 4900.0 + 100 * k, atol=1e-6)
+        np.testing.assert_allclose(d.aux[f'aux_esc{k}_temp'], 29.0 + k, atol=1e-6)
+    assert units['aux_esc1_current'] == 'A' and units['aux_esc1_rpm'] == 'rpm'
     # IMU at 200 Hz read at 10 Hz (a temperature is slow): every 20th message
     np.testing.assert_allclose(d.aux['aux_imu_temp'][:-1], 40.0 + 0.1 * (t[:-1] - 10.0),
                                atol=1e-4)
-    units = d.meta['aux_units']
     assert units['aux_battery_current'] == 'A' and units['aux_motor1'] == 'PWM us'
     assert units['aux_imu_temp'] == 'degC' and units['aux_throttle'] == '0..1'
     # GPS: the median of the 3-D fixes (the first three are not), its date by hand
@@ -282,6 +298,15 @@ def test_att_attitude_has_the_ahrs_trim_removed(tmp_path):
     assert np.abs(naive - _world_field()).max() > 1000.0
 
 
+def test_parameters_that_are_not_the_logged_compass_s_are_named(tmp_path):
+    path, _ = _write_ap(tmp_path / 'swapped.bin', n=200, extra_params={'COMPASS_OFS_X': 99.0})
+    d = read_vehicle_log(path)
+    notes = [str(x) for x in d.meta['warnings']]
+    assert any(x.startswith('compass 1: its logged offsets (-31, 22, -14 mG) are not its '
+                            "parameters' (99, 22, -14 mG)") for x in notes), notes
+    assert not any(x.startswith('compass 2') for x in notes)
+
+
 def test_a_log_without_attitude_is_plain_compass_data_with_a_warning(tmp_path):
     path, _ = _write_ap(tmp_path / 'noatt.bin', n=200, attitude=None)
     d = read_vehicle_log(path)
@@ -310,6 +335,22 @@ def test_errors_name_the_problem(tmp_path):
         read_vehicle_log(notulog)
 
 
+def test_a_log_cut_inside_its_last_message_reads_the_messages_before(tmp_path, ap_log):
+    path, (t, q, cur, raw1, raw2) = ap_log
+    data = path.read_bytes()
+    cut = tmp_path / 'cut.bin'
+    # the writer puts the 2 x 1200 MAG messages first after the PARMs; cut inside MAG 600
+    start = data.index(b'\xa3\x95', data.index(b'ArduCopter V4.5.1'))
+    mag_len = 3 + 8 + 1 + 9 * 2 + 1 + 4
+    first_mag = next(i for i in range(start, len(data)) if data[i:i + 2] == b'\xa3\x95' and
+                     data[i + 2] == w.DataFlash().types['MAG'][0])
+    cut.write_bytes(data[:first_mag + 599 * mag_len + 10])
+    d = read_vehicle_log(cut)
+    assert d.n_samples == 599 and d.n_sensors == 1
+    assert np.abs(d.raw[0] - raw1[:599]).max() <= _bound_nt(CAL1)
+    assert any('no attitude' in str(x) for x in d.meta['warnings'])
+
+
 def test_cli_exit_2_with_one_line(tmp_path, capsys):
     path, _ = _write_ap(tmp_path / 'gap.bin', n=600, gap=(25.0, 3.0))
     assert cli.main(['fit', str(path), '--field-nt', 'auto']) == 2
@@ -319,8 +360,8 @@ def test_cli_exit_2_with_one_line(tmp_path, capsys):
     assert '--unit uT: a vehicle log' in capsys.readouterr().err
 
 
-def test_cli_fit_takes_igrf_from_the_log_gps_and_reports_the_onboard_calibration(ap_log,
-                                                                                   capsys):
+def test_cli_fit_takes_igrf_from_the_log_gps_and_reports_the_onboard_calibration(
+        ap_log, capsys):
     path, _ = ap_log
     assert cli.main(['fit', str(path), '--json', '-q']) == 0
     out = json.loads(capsys.readouterr().out)
@@ -450,3 +491,67 @@ def test_ulog_slow_sensor_mag_reads_vehicle_magnetometer_with_its_calibration_un
         'vehicle_magnetometer')
     np.testing.assert_allclose(d.raw[0], raw1, atol=0.1)
     assert any('logged at 1.0 Hz only' in str(x) for x in d.meta['warnings'])
+
+
+# -- rosbag2: sensor_msgs/BatteryState ---------------------------------------------------
+
+def test_bag_battery_state_gives_the_vehicle_log_channels(tmp_path):
+    """Two BatteryState topics: current and voltage held from each message, NaN left out."""
+    from magcal_ros.io.bag import read_bag
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import get_typestore, Stores
+    ts = get_typestore(Stores.ROS2_JAZZY)
+    mag_t, bat_t = 'sensor_msgs/msg/MagneticField', 'sensor_msgs/msg/BatteryState'
+    hdr = ts.types['std_msgs/msg/Header']
+    tm = ts.types['builtin_interfaces/msg/Time']
+    vec = ts.types['geometry_msgs/msg/Vector3']
+    n = 40
+    t = 100.0 + np.arange(n) * 0.1
+
+    def header(ns, frame):
+        return hdr(stamp=tm(sec=ns // 10**9, nanosec=ns % 10**9), frame_id=frame)
+
+    path = tmp_path / 'battery'
+    with Writer(path, version=9) as w:
+        cm = w.add_connection('/magcal/sensor1/raw', mag_t, typestore=ts)
+        cb = [w.add_connection(topic, bat_t, typestore=ts) for topic in ('/bat_a', '/bat_b')]
+        for k in range(n):
+            ns = int(round(t[k] * 1e9))
+            w.write(cm, ns, ts.serialize_cdr(ts.types[mag_t](
+                header=header(ns, 'imu'), magnetic_field=vec(2e-5, 0.0, 4e-5),
+                magnetic_field_covariance=np.zeros(9)), mag_t))
+            if k % 4 == 0:                       # 2.5 Hz
+                for j, c in enumerate(cb):
+                    cur = float('nan') if (j == 0 and k == 8) else 10.0 * (j + 1) + k
+                    msg = ts.types[bat_t](
+                        header=header(ns, 'battery'), voltage=16.0 - 0.01 * k - j,
+                        temperature=25.0, current=cur, charge=1.0, capacity=2.0,
+                        design_capacity=2.0, percentage=0.5, power_supply_status=2,
+                        power_supply_health=1, power_supply_technology=3, present=True,
+                        cell_voltage=np.array([4.0, 4.0, 4.0, 4.0], np.float32),
+                        cell_temperature=np.array([], np.float32), location='slot',
+                        serial_number='x')
+                    w.write(c, ns, ts.serialize_cdr(msg, bat_t))
+    d = read_bag(path)
+    k = np.arange(n)
+    last = (k // 4) * 4                          # the last battery message at or before
+    expect_a = 10.0 + last.astype(float)
+    expect_a[(last == 8)] = 10.0 + 4            # the NaN message is left out: the one before
+    np.testing.assert_allclose(d.aux['aux_battery_current'], expect_a, atol=1e-5)
+    np.testing.assert_allclose(d.aux['aux_battery2_current'], 20.0 + last, atol=1e-5)
+    np.testing.assert_allclose(d.aux['aux_battery_voltage'], 16.0 - 0.01 * last, atol=1e-5)
+    np.testing.assert_allclose(d.aux['aux_battery2_voltage'], 15.0 - 0.01 * last, atol=1e-5)
+    assert '/bat_a' in d.meta['topics'] and '/bat_b' in d.meta['topics']
+
+
+def test_ulog_with_damaged_data_is_read_with_a_warning(tmp_path):
+    path, (t, q, cur, raw1, raw2) = _px4_log(tmp_path / 'px4.ulg')
+    data = bytearray(path.read_bytes())
+    mid = len(data) // 2
+    data[mid:mid + 200] = bytes(range(200))          # garbage inside the data section
+    bad = tmp_path / 'bad.ulg'
+    bad.write_bytes(bytes(data))
+    d = read_vehicle_log(bad)
+    assert any('pyulog found damaged data' in str(x) for x in d.meta['warnings'])
+    # what was written before the damage is read exactly
+    np.testing.assert_allclose(d.raw[0], raw1[:d.n_samples], atol=0.05)

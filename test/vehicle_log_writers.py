@@ -49,6 +49,7 @@ AP4 = {
     'GPS': ('QBBIHBcLLeffffB', 'TimeUS,I,Status,GMS,GWk,NSats,HDop,Lat,Lng,Alt,Spd,GCrs,VZ,'
             'Yaw,U'),
     'IMU': ('QBffffffIIfBBHH', 'TimeUS,I,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,EG,EA,T,GH,AH,GHz,AHz'),
+    'ESC': ('QBeffcfcf', 'TimeUS,Instance,RPM,RawRPM,Volt,Curr,Temp,CTot,MotTemp,Err'),
 }
 #: ArduPilot 3.5's per-instance compass messages (no instance field, old names)
 AP35 = {
@@ -76,9 +77,8 @@ class DataFlash:
         dtype = np.dtype([('h1', 'u1'), ('h2', 'u1'), ('type', 'u1')] +
                          [(c, DF_TYPES[ch][0]) for c, ch in zip(fields, fmt)])
         self.types[name] = (tid, dtype, fmt, fields)
-        self.buf += b'\xa3\x95\x80' + struct.pack('<BB4s16s64s', tid, dtype.itemsize,
-                                                   name.encode(), fmt.encode(),
-                                                   columns.encode())
+        self.buf += b'\xa3\x95\x80' + struct.pack(
+            '<BB4s16s64s', tid, dtype.itemsize, name.encode(), fmt.encode(), columns.encode())
 
     def write(self, name, **columns):
         """

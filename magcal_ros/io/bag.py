@@ -29,14 +29,21 @@ the bag declares, Jazzy message definitions by default).  Topics, under a namesp
 - ``{ns}/imu`` (or ``imu_topic``) -- ``sensor_msgs/msg/Imu`` (optional): its ``orientation``
   is the body-to-world attitude of the array (REP 103/145; the IMU's axes are taken as the
   array's), interpolated (slerp) onto the epochs; epochs outside the IMU's time span are
-  dropped and counted in ``meta['dropped_attitude_epochs']``.
+  dropped and counted in ``meta['dropped_attitude_epochs']``;
+- any ``sensor_msgs/msg/BatteryState`` topic (optional): its ``current`` and ``voltage``
+  become the channels ``aux_battery_current`` (A) and ``aux_battery_voltage`` (V), the
+  names of the vehicle logs (:mod:`magcal_ros.io.vehicle`); a second battery topic (in
+  name order) ``aux_battery2_current``, ... ; messages whose value is NaN (not measured)
+  are left out.
 
 Epochs are sensor 1's header stamps; each other sensor is matched to the nearest stamp
 within half a sample period (epochs where a sensor has no match are dropped and counted in
 ``meta['dropped_epochs']``).  Temperatures and the reference are interpolated linearly onto
 the epochs, auxiliary channels held from their last message (a switched current changes
 when its message says so).  A message whose header stamp is zero is stamped with the time
-the bag recorded it.  Tesla are converted to nT with :mod:`magcal_ros.units`.
+the bag recorded it.  Tesla are converted to nT with :mod:`magcal_ros.units`.  BatteryState
+messages (a few a second, of variable length: cell voltages, strings) are decoded by rosbags'
+deserialiser; the array's fixed-layout messages by their CDR layout (docs/design.md §2).
 """
 from itertools import islice
 from operator import attrgetter, itemgetter
@@ -55,6 +62,7 @@ MAG_TYPE = 'sensor_msgs/msg/MagneticField'
 TEMP_TYPE = 'sensor_msgs/msg/Temperature'
 SCALAR_TYPES = ('std_msgs/msg/Float64', 'std_msgs/msg/Float32')
 IMU_TYPE = 'sensor_msgs/msg/Imu'
+BATTERY_TYPE = 'sensor_msgs/msg/BatteryState'
 
 
 class BagFormatError(ValueError):
@@ -262,7 +270,7 @@ def _decode_fixed(datas, msgtype):
 
 
 def _message_values(msg, msgtype):
-    """Return (stamp ns or None, the ``_LAYOUT`` fields) of a message rosbags decoded."""
+    """Return (stamp ns or None, the fields read) of a message rosbags decoded."""
     if msgtype == MAG_TYPE:
         v = msg.magnetic_field
         vals = (v.x, v.y, v.z)
@@ -271,6 +279,8 @@ def _message_values(msg, msgtype):
     elif msgtype == IMU_TYPE:
         o = msg.orientation
         vals = (o.x, o.y, o.z, o.w, msg.orientation_covariance[0])
+    elif msgtype == BATTERY_TYPE:
+        vals = (msg.current, msg.voltage)
     else:
         return None, (msg.data,)
     st = msg.header.stamp
@@ -356,6 +366,16 @@ class _Collector:
                     self.ref = _empty()
                     self.kind[c.id] = ('ref', None)
                     conns.append(c)
+        batteries = sorted({c.topic for c in self.reader.connections
+                            if c.msgtype == BATTERY_TYPE})
+        for c in self.reader.connections:
+            if c.msgtype == BATTERY_TYPE:
+                k = batteries.index(c.topic)
+                tag = 'aux_battery' if k == 0 else f'aux_battery{k + 1}'
+                for what in ('current', 'voltage'):
+                    self.aux.setdefault(f'{tag}_{what}', _empty())
+                self.kind[c.id] = ('battery', tag)
+                conns.append(c)
         if not self.mags:
             topics = sorted(f'{c.topic} ({c.msgtype})' for c in self.reader.connections)
             raise BagFormatError(
@@ -398,7 +418,11 @@ class _Collector:
         return m
 
     def _decode(self, c, datas, recv):
-        stamp, vals, ok = _decode_fixed(datas, c.msgtype)
+        if c.msgtype in _LAYOUT:
+            stamp, vals, ok = _decode_fixed(datas, c.msgtype)
+        else:                                   # BatteryState: rosbags decodes each
+            stamp, vals = np.zeros(len(datas), np.int64), np.zeros((len(datas), 2))
+            ok = np.zeros(len(datas), bool)
         for i in np.flatnonzero(~ok).tolist():
             try:
                 msg = self.reader.deserialize(datas[i], c.msgtype)
@@ -433,6 +457,11 @@ class _Collector:
             self.imu = _extend(self.imu, t, vals[:, [3, 0, 1, 2]])
         elif kind == 'ref':
             self.ref = _extend(self.ref, t, vals[:, 0])
+        elif kind == 'battery':
+            for col, what in ((0, 'current'), (1, 'voltage')):
+                fin = np.isfinite(vals[:, col])
+                name = f'{key}_{what}'
+                self.aux[name] = _extend(self.aux[name], t[fin], vals[fin, col])
         else:
             self.aux[key] = _extend(self.aux[key], t, vals[:, 0])
 

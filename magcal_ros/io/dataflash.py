@@ -40,15 +40,22 @@ values are whole milligauss (100 nT): F, o and m are each rounded to 50 nT.
 
 Attitude: the EKF's quaternion of the autopilot body (EKF3 ``XKQ``, ``XKQ1``; EKF2 ``NKQ``,
 ``NKQ1``; the one AHRS_EKF_TYPE selects first, core 0), Hamilton body-to-NED: NavEKF3's
-``getRotationBodyToNED`` is that quaternion's matrix times the trim rotation.  Without EKF
+``getRotationBodyToNED`` is that quaternion's matrix times the trim rotation.  It is used
+only when it agrees with ``ATT`` within :data:`EKF_ATT_AGREEMENT_DEG` (median): ATT is what the
+AHRS used (the active core, or DCM: a ground-handled ArduPlane 4.2 log has XKQ at identity
+throughout while ATT turns), and a warning says when it does not.  Otherwise, and without EKF
 quaternions, ``ATT`` roll, pitch, yaw (the vehicle body: AHRS_TRIM applied) with the trim
 removed: R_autopilot = R(ATT) R(AHRS_TRIM_X, _Y, _Z) (AP_AHRS: vehicle = autopilot x
 the transposed trim rotation).
+
+Old logs (before 3.4: TimeMS, PARM and MSG without time, MAG/MAG2/MAG3, CURR in centiamps
+and centivolts, RCOU ``Ch1``.., GPS with its boot time in ``T``) are read too.
 """
 import datetime
+import mmap
 import re
 
-from magcal_ros.io.vehicle import gps_site, NT_PER_MGAUSS, SLOW_RATE_HZ, Stream, \
+from magcal_ros.io.vehicle_base import gps_site, NT_PER_MGAUSS, SLOW_RATE_HZ, Stream, \
     VehicleLog, VehicleLogError
 import numpy as np
 
@@ -68,6 +75,13 @@ SCALE_BOUNDS = (0.85, 1.4)
 #: GPS time: week 0 starts on 1980-01-06
 _GPS_EPOCH = datetime.datetime(1980, 1, 6)
 _INSTANCE = ('I', 'Inst', 'Instance')
+#: the message types the reader may read (their index is kept; DFReader's is dropped)
+_TYPES = re.compile(r'(MAG\d?|XKQ\d?|NKQ\d?|ATT|GPS\d?|BAT\d?|CURR|CTUN|RCOU|RCO2|RCO3|'
+                    r'ESC\d?|IMU\d?|BARO|BAR\d|POWR|MSG|PARM)')
+#: the fields the reader uses (the others are not decoded)
+_FIELDS = re.compile(r'(TimeUS|TimeMS|T|Week|I|Inst|Instance|C|Mag[XYZ]|Ofs[XYZ]|MO[XYZ]|'
+                     r'MOfs[XYZ]|Health|Q[1-4]|Roll|Pitch|Yaw|Status|GWk|GMS|Lat|Lng|Alt|Curr|'
+                     r'Volt|Temp|ThO|ThrOut|RPM|Vcc|Name|Value|Message|(C|Ch|Chan)\d+)')
 
 
 class _Log:
@@ -92,6 +106,19 @@ class _Log:
             raise VehicleLogError(f'{path}: no FMT message: not a DataFlash log, or its start '
                                   'is missing; download it from the autopilot again')
         self._params = None
+        if not text:
+            # DFReader's index is a Python list per type (~36 bytes a message): keep only
+            # the types read, as int64 arrays, and let the pages of the file go
+            self.offsets = {f.type: np.asarray(self.r.offsets[f.type], np.int64)
+                            for f in self.by_name.values()
+                            if _TYPES.fullmatch(f.name) and self.r.counts[f.type]}
+            self.r.offsets = None
+            self._release()
+
+    def _release(self):
+        """Drop the file's pages from this process's memory (they are read again if needed)."""
+        if hasattr(self.r.data_map, 'madvise'):
+            self.r.data_map.madvise(mmap.MADV_DONTNEED)
 
     def _count_fmt(self):
         return int(self.r.counts[0x80]) if not self.text else 1
@@ -105,7 +132,7 @@ class _Log:
         if self.text:
             return int(self.r.counts.get(name, 0))
         tid = self.r.name_to_id.get(name)
-        return 0 if tid is None else int(self.r.counts[tid])
+        return 0 if tid is None or tid not in self.offsets else len(self.offsets[tid])
 
     def columns(self, name):
         """Return the column names of type ``name`` (empty when the log does not define it)."""
@@ -122,10 +149,15 @@ class _Log:
         if self.count(name) == 0:
             return None
         cols = self._text_table(name, every) if self.text else self._binary_table(name, every)
+        n = len(next(iter(cols.values()))) if cols else 0
         if 'TimeUS' in cols:
             cols['t'] = cols['TimeUS'] * 1e-6
+        elif 'T' in cols and 'Week' in cols:
+            cols['t'] = cols['T'] * 1e-3            # old GPS: TimeMS is the GPS time of week
         elif 'TimeMS' in cols:
             cols['t'] = cols['TimeMS'] * 1e-3
+        elif name in ('PARM', 'MSG'):
+            cols['t'] = np.zeros(n)                 # old logs: written at start-up
         else:
             raise VehicleLogError(f'{self.path}: message {name} has no TimeUS or TimeMS field: '
                                   'this DataFlash version is not supported')
@@ -155,25 +187,27 @@ class _Log:
                                   'damaged')
         dtype = np.dtype({'names': names, 'formats': formats, 'offsets': offsets,
                           'itemsize': length})
+        wanted = [c for c in names if _FIELDS.fullmatch(c)]
         buf = np.frombuffer(self.r.data_map, np.uint8)
         try:
-            ofs = np.asarray(self.r.offsets[fmt.type], np.int64)[::every] + 3
+            ofs = self.offsets[fmt.type][::every] + 3
             ofs = ofs[ofs + length <= len(buf)]
+            m = len(ofs)
+            out = {c: np.empty(m, float if dtype[c].kind != 'S' else dtype[c])
+                   for c in wanted}
             ar = np.arange(length)
-            rows = np.concatenate([buf[ofs[a:a + _BLOCK, None] + ar]
-                                   for a in range(0, len(ofs), _BLOCK)] or
-                                  [np.zeros((0, length), np.uint8)])
+            for a in range(0, m, _BLOCK):
+                rec = buf[ofs[a:a + _BLOCK, None] + ar].view(dtype)[:, 0]
+                for c in wanted:
+                    out[c][a:a + _BLOCK] = rec[c]
         finally:
             del buf
-        rec = rows.view(dtype)[:, 0]
-        out = {}
-        for col in names:
-            a = rec[col]
-            if a.dtype.kind == 'S':
-                out[col] = np.char.decode(np.char.rstrip(a, b'\0'), 'ascii', 'replace')
-            else:
-                a = a.astype(float)
-                out[col] = a * mults[col] if col in mults else a
+        self._release()
+        for c in wanted:
+            if out[c].dtype.kind == 'S':
+                out[c] = np.char.decode(np.char.rstrip(out[c], b'\0'), 'ascii', 'replace')
+            elif c in mults:
+                out[c] *= mults[c]
         return out
 
     def _text_table(self, name, every):
@@ -188,6 +222,8 @@ class _Log:
         rows = rows[::every]
         out = {}
         for col in self.columns(name):
+            if not _FIELDS.fullmatch(col):
+                continue
             vals = [row.get(col) for row in rows]
             try:
                 out[col] = np.array(vals, float)
@@ -225,7 +261,7 @@ class _Log:
 
 def ardupilot_raw(field, offsets, motor, diag, offdiag, scale, motor_first=False):
     """
-    The raw body-frame reading from what ArduPilot logs (module docstring), any one unit.
+    Return the raw body-frame reading from what ArduPilot logs (module docstring), any unit.
 
     Parameters
     ----------
@@ -308,10 +344,14 @@ def _firmware(log):
     if tab is None:
         return None, None
     for text in tab['Message'].tolist():
-        m = re.search(r'\b(Ardu\w+|Rover|Blimp|AntennaTracker|AP_Periph)\s+V(\d+)\.(\d+)',
-                      str(text))
+        m = re.search(r'\b(Ardu\w+|APM:\w+|Rover|Blimp|AntennaTracker|AP_Periph)\s+'
+                      r'V(\d+)\.(\d+)', str(text))
         if m:
-            return m.group(1), (int(m.group(2)), int(m.group(3)))
+            name = m.group(1)
+            if name.startswith('APM:'):             # 'APM:Copter V3.3' (before 3.4)
+                name = {'Copter': 'ArduCopter', 'Plane': 'ArduPlane', 'Rover': 'ArduRover'}.get(
+                    name[4:], name[4:])
+            return name, (int(m.group(2)), int(m.group(3)))
     return None, None
 
 
@@ -353,6 +393,17 @@ def _read(log, path, text):
                                     'motor compensation is on: it is not undone')
         else:
             mo = np.column_stack([tab[c] for c in mo_cols])
+        ofs_p = np.column_stack([log.param_at(_pname(log, 'OFS', j, a), t, np.nan)
+                                 for a in 'XYZ'])
+        if len(t) and np.isfinite(ofs_p[0]).all() and np.abs(ofs_p[0] - o[0]).max() > 1.0:
+            # the parameters read as compass j's are another compass's: DIA, ODI and SCALE
+            # would be wrong too
+            logged = ', '.join(f'{x:.0f}' for x in o[0])
+            param = ', '.join(f'{x:.0f}' for x in ofs_p[0])
+            out.warnings.append(
+                f"compass {j}: its logged offsets ({logged} mG) are not its parameters' "
+                f"({param} mG): the soft-iron and scale parameters undone may be another "
+                "compass's")
         dia = np.column_stack([log.param_at(_pname(log, 'DIA', j, a), t, 1.0) for a in 'XYZ'])
         odi = np.column_stack([log.param_at(_pname(log, 'ODI', j, a), t, 0.0) for a in 'XYZ'])
         scale = log.param_at(_pname(log, 'SCALE', j), t, 0.0)
@@ -369,7 +420,7 @@ def _read(log, path, text):
 
 
 def _onboard(log, j, tab, motct):
-    """The onboard calibration of compass ``j`` as the log's parameters say (nT)."""
+    """Return the onboard calibration of compass ``j`` as the log's parameters say (nT)."""
     def vec(kind, default):
         return [log.param(_pname(log, kind, j, a), default) for a in 'XYZ']
     scale = log.param(_pname(log, 'SCALE', j), 0.0)
@@ -409,7 +460,26 @@ def _euler_quaternions(roll, pitch, yaw, degrees=True):
                                degrees=degrees).as_quat(scalar_first=True)
 
 
-def _attitude(log, out):
+#: an EKF quaternion is used only when it agrees with ATT within this (median, deg): ATT is
+#: what the AHRS used (the active EKF core, or DCM when no EKF was running)
+EKF_ATT_AGREEMENT_DEG = 2.0
+
+
+def _att_attitude(log):
+    """Return (t (M,) s, (M, 4) autopilot-body quaternions) of ATT, AHRS_TRIM removed."""
+    tab = log.table('ATT')
+    if tab is None:
+        return None
+    from scipy.spatial.transform import Rotation
+    q = _euler_quaternions(tab['Roll'], tab['Pitch'], tab['Yaw'])
+    trim = [log.param(f'AHRS_TRIM_{a}', 0.0) for a in 'XYZ']
+    r = Rotation.from_quat(q, scalar_first=True) * Rotation.from_euler(
+        'ZYX', [trim[2], trim[1], trim[0]])
+    return tab['t'], r.as_quat(scalar_first=True)
+
+
+def _ekf_attitude(log):
+    """Return (t, (M, 4) quaternions, source) of the EKF's XKQ or NKQ (core 0), or None."""
     ekf = log.param('AHRS_EKF_TYPE')
     order = [('XKQ', 'EKF3'), ('NKQ', 'EKF2')]
     if ekf == 2:
@@ -425,21 +495,35 @@ def _attitude(log, out):
             src = f'ArduPilot {label} {name} core {core}'
         else:
             src = f'ArduPilot {label} {name}1 core 0'
-        q = np.column_stack([tab['Q1'], tab['Q2'], tab['Q3'], tab['Q4']])
-        out.attitude = Stream(tab['t'], q, src)
-        out.attitude_source = src
-        return
-    tab = log.table('ATT')
-    if tab is None:
-        return
-    from scipy.spatial.transform import Rotation
-    q = _euler_quaternions(tab['Roll'], tab['Pitch'], tab['Yaw'])
-    trim = [log.param(f'AHRS_TRIM_{a}', 0.0) for a in 'XYZ']
-    r = Rotation.from_quat(q, scalar_first=True) * Rotation.from_euler(
-        'ZYX', [trim[2], trim[1], trim[0]])
-    src = 'ArduPilot ATT (roll, pitch, yaw; AHRS_TRIM removed)'
-    out.attitude = Stream(tab['t'], r.as_quat(scalar_first=True), src)
-    out.attitude_source = src
+        return tab['t'], np.column_stack([tab['Q1'], tab['Q2'], tab['Q3'], tab['Q4']]), src
+    return None
+
+
+def _attitude(log, out):
+    ekf = _ekf_attitude(log)
+    att = _att_attitude(log)
+    att_src = 'ArduPilot ATT (roll, pitch, yaw; AHRS_TRIM removed)'
+    if ekf is not None and att is not None:
+        from magcal_ros.core.geometry.attitude import interpolate
+        t, q, src = ekf
+        ok = (t >= att[0].min()) & (t <= att[0].max())
+        norm = np.linalg.norm(q, axis=1)
+        ok &= np.abs(norm - 1) < 1e-3
+        if ok.sum() >= 2:
+            qa = interpolate(att[0], att[1], t[ok])
+            dot = np.abs(np.einsum('ij,ij->i', q[ok] / norm[ok, None], qa))
+            ang = float(np.degrees(np.median(2 * np.arccos(np.clip(dot, -1, 1)))))
+            if ang > EKF_ATT_AGREEMENT_DEG:
+                out.warnings.append(
+                    f'{src} differs from ATT by {ang:.1f} deg (median): the AHRS was not '
+                    'using it (another core, or DCM); the attitude is taken from ATT')
+                ekf = None
+    if ekf is not None:
+        out.attitude = Stream(ekf[0], ekf[1], ekf[2])
+        out.attitude_source = ekf[2]
+    elif att is not None:
+        out.attitude = Stream(att[0], att[1], att_src)
+        out.attitude_source = att_src
 
 
 def _gps(log, out):
@@ -448,7 +532,7 @@ def _gps(log, out):
         return
     tab = parts[0][1]
     week = tab.get('GWk', tab.get('Week'))
-    ms = tab.get('GMS', tab.get('TimeMS') if 'TimeUS' in tab else None)
+    ms = tab.get('GMS', tab.get('TimeMS') if 'Week' in tab else None)
     good = tab['Status'] >= 3
     if week is None or ms is None or not good.any():
         return
@@ -507,14 +591,26 @@ def _aux(log, out, vehicle, duration):
             motors[n] = f - 32
         elif 82 <= f <= 85:
             motors[n] = f - 73
+    if not motors and vehicle == 'ArduCopter':
+        # before SERVOn_FUNCTION (Copter 3.4 and older) the motors are outputs 1..n of
+        # the frame the start-up message names ('Frame: QUAD')
+        tab = log.table('MSG')
+        texts = tab['Message'] if tab is not None else []
+        found = [re.search(r'Frame: (\w+)', str(x)) for x in texts]
+        frame = next((m.group(1) for m in found if m), None)
+        count = {'QUAD': 4, 'HEXA': 6, 'OCTA': 8, 'OCTA_QUAD': 8, 'Y6': 6, 'TRI': 3,
+                 'DODECA_HEXA': 12}.get(frame, 0)
+        motors = {n: n for n in range(1, count + 1)}
     tables = {}
     for n, k in sorted(motors.items()):
         msg = 'RCOU' if n <= 14 else ('RCO2' if n <= 18 else 'RCO3')
         if msg not in tables:
             tables[msg] = log.table(msg)
         tab = tables[msg]
-        if tab is not None and f'C{n}' in tab:
-            out.add_aux(f'aux_motor{k}', tab['t'], tab[f'C{n}'], 'PWM us', f'{msg}.C{n}')
+        col = next((c for c in (f'C{n}', f'Ch{n}', f'Chan{n}') if tab is not None and c in tab),
+                   None)
+        if col is not None:
+            out.add_aux(f'aux_motor{k}', tab['t'], tab[col], 'PWM us', f'{msg}.{col}')
     # ESCs: ESC with an instance field, or ESC1..ESC8 in older logs
     escs = (_split(log.table('ESC'), '{name}{k}', log, 'ESC') if log.count('ESC') else
             [(k - 1, log.table(f'ESC{k}')) for k in range(1, 9) if log.count(f'ESC{k}')])
@@ -528,9 +624,10 @@ def _aux(log, out, vehicle, duration):
     imu = _split(log.table('IMU', _every(log, 'IMU', duration)), '{name}{k}', log, 'IMU',
                  _every(log, 'IMU', duration))
     for k, tab in imu:
-        if 'T' in tab:
+        col = 'T' if 'T' in tab else ('Temp' if 'Temp' in tab else None)
+        if col is not None:
             out.add_aux('aux_imu_temp' if k == 0 else f'aux_imu{k + 1}_temp', tab['t'],
-                        tab['T'], 'degC', f'IMU[{k}].T')
+                        tab[col], 'degC', f'IMU[{k}].{col}')
     baro = _split(log.table('BARO', _every(log, 'BARO', duration)), 'BAR{k}', log, 'BARO',
                   _every(log, 'BARO', duration))
     for k, tab in baro:

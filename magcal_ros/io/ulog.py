@@ -47,7 +47,7 @@ import contextlib
 import datetime
 import io
 
-from magcal_ros.io.vehicle import gps_site, NT_PER_GAUSS, SLOW_RATE_HZ, Stream, \
+from magcal_ros.io.vehicle_base import gps_site, NT_PER_GAUSS, SLOW_RATE_HZ, Stream, \
     ULOG_MAGIC, VehicleLog, VehicleLogError
 import numpy as np
 
@@ -79,7 +79,7 @@ def rotation_matrix(rot, level_deg=(0.0, 0.0, 0.0)):
     from scipy.spatial.transform import Rotation
     rot = int(rot)
     if not 0 <= rot < len(ROTATIONS):
-        raise VehicleLogError(f'rotation {rot} is not one of PX4\'s 0..{len(ROTATIONS) - 1}')
+        raise VehicleLogError(f"rotation {rot} is not one of PX4's 0..{len(ROTATIONS) - 1}")
     r, p, y = ROTATIONS[rot]
     m = Rotation.from_euler('ZYX', [y, p, r], degrees=True).as_matrix()
     m = np.round(m, 12)
@@ -89,7 +89,7 @@ def rotation_matrix(rot, level_deg=(0.0, 0.0, 0.0)):
 
 def px4_raw(v, rot, scale, offset, comp=None, power=None):
     """
-    The raw body-frame reading r = R d from PX4's corrected v = R S ((d + p c) - o).
+    Return the raw body-frame reading r = R d from PX4's corrected v = R S ((d + p c) - o).
 
     ``v`` (N, 3) corrected (any unit; ``offset`` (3,) and ``comp`` (3,) per unit of power in
     the same), ``rot`` (3, 3) R, ``scale`` (3, 3) S, ``power`` (N,) p or None.
@@ -107,7 +107,7 @@ def read_ulog(path):
     with open(path, 'rb') as fh:
         head = fh.read(16)
     if len(head) < 16 or head[:7] != ULOG_MAGIC:
-        raise VehicleLogError(f'{path}: not a ULog file (its header is not ULog\'s): the file '
+        raise VehicleLogError(f"{path}: not a ULog file (its header is not ULog's): the file "
                               'is damaged or not a PX4 log; download it again')
     if head[7] > 1:
         raise VehicleLogError(f'{path}: ULog file version {head[7]}: only versions 0 and 1 are '
@@ -247,7 +247,7 @@ def _compasses(path, topics, params, out):
         t = d['timestamp'] * 1e-6
         v = np.column_stack([d[f'{field}[{i}]'] for i in range(3)])
         if cal is None:
-            out.warnings.append(f'compass {j} ({name} instance {k}): the autopilot\'s corrected '
+            out.warnings.append(f"compass {j} ({name} instance {k}): the autopilot's corrected "
                                 'field, whose calibration is not matched to a device in the '
                                 'log: its corrections are not undone')
             r = v

@@ -50,7 +50,8 @@ channel                               unit     source
                                                PX4 actuator_controls_0.control[3], else
                                                the norm of vehicle_thrust_setpoint.xyz
 ``aux_motor{k}``                      PWM us   ArduPilot RCOU: the output whose SERVOn_FUNCTION
-                                               is motor k (33..40, 82..85)
+                                               is motor k (33..40, 82..85); Copter 3.4 and
+                                               older: output k of the frame ('Frame: QUAD')
 ``aux_motor{k}``                      0..1     PX4 actuator_motors.control[k-1] (normalised)
 ``aux_output{k}``                     PWM us   PX4 actuator_outputs (instance 0) output[k-1],
                                                for logs without actuator_motors
@@ -74,84 +75,25 @@ say, in nT and plain numbers), ``aux_units``, ``dropped_epochs`` and ``warnings`
 Errors (:class:`VehicleLogError`, a ValueError: one line, exit status 2 from ``magcal``): a
 file that is not a log of its format or is damaged, an unsupported log version, a log without
 compass data, and a gap in compass 1's stream longer than :data:`GAP_PERIODS` sample periods
-(its epochs are the record's: a gap there cuts the record in two).  A gap in another
+(its epochs are the record's: a gap there cuts the record in two; ``allow_gaps``, the CLI's
+``--allow-gaps``, keeps such a record whole with a warning).  A gap in another
 compass's stream or in the attitude drops the epochs inside it, with a warning.
 
 A long log is held in memory as its compass epochs only (about 100 bytes an epoch for three
 compasses, attitude and a dozen channels): an hour at 100 Hz is ~40 MB.  :class:`VehicleRecord`
 hands it to the reduction of long records (:mod:`magcal_ros.core.data.reduce`) in chunks.
 """
-from dataclasses import dataclass, field
 import os
 
 from magcal_ros.core.data.dataset import Dataset
 from magcal_ros.core.model.notes import Note
+# the shared types, re-exported: the front-ends import them from vehicle_base (no cycle)
+from magcal_ros.io.vehicle_base import DATAFLASH_MAGIC, gps_site, NT_PER_GAUSS, \
+    NT_PER_MGAUSS, SLOW_RATE_HZ, Stream, ULOG_MAGIC, VehicleLog, VehicleLogError  # noqa: F401
 import numpy as np
 
 #: a compass stream interval longer than this many median sample periods is a gap
 GAP_PERIODS = 10
-#: slow channels (temperatures, voltages) are read at most at this rate, Hz
-SLOW_RATE_HZ = 10.0
-#: nT per milligauss (ArduPilot's compass unit) and per gauss (PX4's)
-NT_PER_MGAUSS = 100.0
-NT_PER_GAUSS = 1e5
-
-ULOG_MAGIC = b'ULog\x01\x12\x35'
-DATAFLASH_MAGIC = b'\xa3\x95'
-
-
-class VehicleLogError(ValueError):
-    """A vehicle log that cannot be used; the message says what and what to do."""
-
-
-@dataclass
-class Stream:
-    """
-    One timed stream of a log, in the library's units.
-
-    ``t`` (M,) s; ``v`` (M,) or (M, k) values; ``name`` where it came from (a message and
-    field, for the messages).
-    """
-
-    t: np.ndarray
-    v: np.ndarray
-    name: str = ''
-
-
-@dataclass
-class VehicleLog:
-    """
-    What a format front-end read: the streams and what the log says about them.
-
-    ``compasses`` are :class:`Stream` of (M, 3) raw body-frame readings in nT, compass 1
-    first; ``compass_temps`` the matching (M,) degC streams or None; ``attitude`` a Stream of
-    (M, 4) body-to-NED quaternions (w, x, y, z) or None; ``aux`` {channel name: Stream of
-    (M,)}; ``aux_units`` {channel name: unit}; ``gps`` {lat_deg, lon_deg, alt_km, date} or
-    None; ``onboard`` one dict per compass; ``info`` more ``meta`` entries; ``warnings``
-    texts.
-    """
-
-    source_format: str
-    compasses: list = field(default_factory=list)
-    compass_temps: list = field(default_factory=list)
-    attitude: Stream | None = None
-    attitude_source: str | None = None
-    aux: dict = field(default_factory=dict)
-    aux_units: dict = field(default_factory=dict)
-    gps: dict | None = None
-    onboard: list = field(default_factory=list)
-    info: dict = field(default_factory=dict)
-    warnings: list = field(default_factory=list)
-
-    def add_aux(self, name, t, v, unit, source):
-        """Add channel ``name`` (times ``t`` (M,) s, values ``v`` (M,)) when it has data."""
-        t = np.asarray(t, float)
-        v = np.asarray(v, float)
-        ok = np.isfinite(t) & np.isfinite(v)
-        if ok.sum() < 1:
-            return
-        self.aux[name] = Stream(t[ok], v[ok], source)
-        self.aux_units[name] = unit
 
 
 def log_format(path):
@@ -179,9 +121,13 @@ def log_format(path):
     return None
 
 
-def read_vehicle_log(path):
+def read_vehicle_log(path, allow_gaps=False):
     """
     Read an ArduPilot DataFlash (``.bin``, text ``.log``) or PX4 ULog (``.ulg``) log.
+
+    ``allow_gaps``: keep a record whose compass 1 stops for a while (a log dropout) as it
+    is, with a warning naming the gaps (``meta['gaps']``: [(t s, length s)]), instead of
+    refusing it.
 
     Returns
     -------
@@ -206,7 +152,7 @@ def read_vehicle_log(path):
     else:
         from magcal_ros.io.dataflash import read_dataflash
         log = read_dataflash(path, text=kind == 'dataflash-text')
-    return assemble(log, path)
+    return assemble(log, path, allow_gaps)
 
 
 def _median_period(t):
@@ -259,7 +205,7 @@ def _describe_gaps(gaps):
     return f'{length:.2f} s at t = {start:.2f} s{more}'
 
 
-def assemble(log, path):
+def assemble(log, path, allow_gaps=False):
     """
     Return the :class:`Dataset` of a :class:`VehicleLog` (the shared part of every format).
 
@@ -277,12 +223,17 @@ def assemble(log, path):
     if len(t) < 2:
         raise VehicleLogError(f'{path}: compass 1 has only {len(t)} valid sample(s)')
     period, gaps = _gaps(t)
-    if gaps:
+    if gaps and not allow_gaps:
         raise VehicleLogError(
             f'{path}: compass 1 ({log.compasses[0].name}) stops for {_describe_gaps(gaps)} '
             f'(more than {GAP_PERIODS} of its {period * 1e3:.0f} ms sample periods): the '
-            'record is cut in two there; calibrate each part alone (cut the log at the gap, '
-            'e.g. with mavlogdump.py or ulog2csv, or export each part to the wide CSV)')
+            'record is cut there; calibrate each part alone (cut the log at the gap, e.g. '
+            'with mavlogdump.py or ulog2csv), or keep it whole with --allow-gaps')
+    if gaps:
+        warnings.append(Note(
+            f'compass 1 ({log.compasses[0].name}) stops for {_describe_gaps(gaps)} (kept '
+            'with --allow-gaps): the epochs on both sides are used; a noise floor, a drift or '
+            'a lag estimated across a gap is less sure', kind='input', sensor=1))
     keep = np.ones(len(t), bool)
     raws = [v1]
     for j, comp in enumerate(log.compasses[1:], start=2):
@@ -350,36 +301,12 @@ def assemble(log, path):
             'onboard_calibration': log.onboard,
             'aux_units': {k: log.aux_units[k] for k in aux},
             'dropped_epochs': dropped,
+            'gaps': gaps,
             'warnings': warnings}
     if log.gps is not None:
         meta['igrf'] = dict(log.gps)
     meta.update(log.info)
     return Dataset(t=t, raw=raw, temp=temp, aux=aux, attitude=attitude, meta=meta)
-
-
-def gps_site(lat_deg, lon_deg, alt_m, dates):
-    """
-    ``{lat_deg, lon_deg, alt_km, date, fixes}`` of the good GPS fixes, or None.
-
-    ``lat_deg``, ``lon_deg`` (deg), ``alt_m`` (m) (M,) of the fixes already selected as
-    good (3-D); the position is their median.  ``dates`` (M,) the fixes' dates (YYYY-MM-DD,
-    '' unknown): the first known one.  None without a fix that has a position and a date.
-    """
-    lat = np.asarray(lat_deg, float)
-    lon = np.asarray(lon_deg, float)
-    alt = np.asarray(alt_m, float)
-    ok = np.isfinite(lat) & np.isfinite(lon) & (np.abs(lat) <= 90) & (np.abs(lon) <= 360) & \
-        ~((lat == 0) & (lon == 0))
-    if not ok.any():
-        return None
-    date = next((d for d, k in zip(dates, ok) if k and d), None)
-    if date is None:
-        return None
-    altk = alt[ok]
-    altk = altk[np.isfinite(altk)]
-    return {'lat_deg': float(np.median(lat[ok])), 'lon_deg': float(np.median(lon[ok])),
-            'alt_km': float(np.median(altk)) / 1000.0 if len(altk) else 0.0, 'date': date,
-            'fixes': int(ok.sum())}
 
 
 class VehicleRecord:
