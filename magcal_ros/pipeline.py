@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 from magcal_ros.core.data.magnitude import reference_magnitude
 from magcal_ros.core.data.noise import data_noise_floor
-from magcal_ros.core.geometry.site_gradient import centred_fields
+from magcal_ros.core.model.site_gradient import centred_fields
 from magcal_ros.core.geometry.tensor import (cross_positions, gradient_from_fit, tensor_lstsq,
                                              tensor_noise_floor)
 from magcal_ros.core.model import data_hash, fit, Model
@@ -372,7 +372,7 @@ def _calibrate(data, model, field_nt, geometry, field_reference, **fit_kwargs):
     planar = fit_kwargs.pop('planar', None)
     if fit_kwargs.pop('heading_unknown', False):
         # site gradient without attitude: the heading about the field per epoch
-        from magcal_ros.core.geometry.site_gradient import fit_heading_unknown
+        from magcal_ros.core.model.site_gradient import fit_heading_unknown
         result = fit_heading_unknown(data, model, field_nt=field_nt, **fit_kwargs)
     elif planar is not None:
         # a turn about one axis (a ground robot): what it determines, the rest at a prior
