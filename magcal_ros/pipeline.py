@@ -21,7 +21,6 @@ residuals) and the calibration document (docs/design.md §4).
 """
 from dataclasses import dataclass
 
-from magcal_ros.core.data.magnitude import reference_magnitude
 from magcal_ros.core.data.noise import data_noise_floor
 from magcal_ros.core.model.site_gradient import centred_fields
 from magcal_ros.core.geometry.tensor import (cross_positions, gradient_from_fit, tensor_lstsq,
@@ -379,7 +378,7 @@ def _calibrate(data, model, field_nt, geometry, field_reference, **fit_kwargs):
         from magcal_ros.core.model import planar as pl
         fit_kwargs.pop('constrained', None)
         fit_kwargs.pop('on_degenerate', None)
-        pr = pl.fit_planar(data, model, reference_magnitude(data, field_nt),
+        pr = pl.fit_planar(data, model, data.reference_magnitude(field_nt),
                            prior_params=planar.get('prior_params'),
                            inclination_deg=planar.get('inclination_deg'), **fit_kwargs)
         result = pr.result

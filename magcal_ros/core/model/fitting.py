@@ -35,7 +35,6 @@ profiled field) are computed from the parameters on first access and then kept.
 from dataclasses import dataclass, field
 from functools import cached_property
 
-from magcal_ros.core.data.magnitude import reference_magnitude
 from magcal_ros.core.data.noise import mad_sd
 from magcal_ros.core.model.calibration import Calibration
 from magcal_ros.core.model.engine import ProfiledProblem
@@ -328,7 +327,7 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
                 raise DegenerateDataError(msg)
             notes.append(Note(msg, 'degenerate'))
 
-        f_all = reference_magnitude(data, field_nt)
+        f_all = data.reference_magnitude(field_nt)
         contexts_all = [data.context(j) for j in range(1, data.n_sensors + 1)]
         ident = _check_data(data, model, contexts_all, constrained, check_identifiability,
                             degenerate)
