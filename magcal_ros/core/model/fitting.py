@@ -35,12 +35,11 @@ profiled field) are computed from the parameters on first access and then kept.
 from dataclasses import dataclass, field
 from functools import cached_property
 
-from magcal_ros.core.data.noise import mad_sd
 from magcal_ros.core.model.calibration import Calibration
 from magcal_ros.core.model.engine import ProfiledProblem
 from magcal_ros.core.model.notes import Note
 from magcal_ros.core.model.solvers import (covariance_from_jacobian, covariance_from_normal,
-                                           levenberg_marquardt, resolves_covariance,
+                                           levenberg_marquardt, mad_sd, resolves_covariance,
                                            single_threaded_blas, stderr_and_correlation)
 from magcal_ros.core.model.spec import Model
 from magcal_ros.core.papers.ellipsoid import fit_ellipsoid, procrustes_rotation
