@@ -39,9 +39,9 @@ from dataclasses import replace
 
 from magcal_ros.core import model as mdl
 from magcal_ros.core.data.simulate import SimConfig, Simulator
-from magcal_ros.core.model.site_gradient import (centred_fields, crb_covariance,
-                                                    fit_heading_unknown)
 from magcal_ros.core.geometry.tensor import gradient_from_fit, symmetric_traceless
+from magcal_ros.core.model.site_gradient import (centred_fields, crb_covariance,
+                                                 fit_heading_unknown)
 import numpy as np
 
 #: world (NED) gradient of the scenario, nT/m (gxx, gxy, gxz, gyy, gyz): up to 400 nT/m

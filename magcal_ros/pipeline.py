@@ -22,13 +22,13 @@ residuals) and the calibration document (docs/design.md §4).
 from dataclasses import dataclass
 
 from magcal_ros.core.data.noise import data_noise_floor
-from magcal_ros.core.model.site_gradient import centred_fields
 from magcal_ros.core.geometry.tensor import (cross_positions, gradient_from_fit, tensor_lstsq,
                                              tensor_noise_floor)
 from magcal_ros.core.model import data_hash, fit, Model
 from magcal_ros.core.model.notes import Note, note_dict
 from magcal_ros.core.model.plausibility import (axis_maps, fitted_scales_angles,
                                                 mounting_notes, parameter_notes, with_axis_maps)
+from magcal_ros.core.model.site_gradient import centred_fields
 from magcal_ros.io.calfile import calibration_to_doc
 import numpy as np
 

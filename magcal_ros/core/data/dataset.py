@@ -116,7 +116,7 @@ class Dataset:
         return ctx
 
     def reference_magnitude(self, field_nt=None):
-        """(N,) reference magnitude in nT: ``field_nt`` (scalar or (N,)) or the ref_total column."""
+        """(N,) reference magnitude in nT: ``field_nt`` (scalar or (N,)) or ref_total."""
         n = self.n_samples
         if field_nt is not None:
             f = np.broadcast_to(np.asarray(field_nt, float), (n,)).copy()
