@@ -63,7 +63,6 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import common  # noqa: E402
 from magcal_ros.core import model as mdl  # noqa: E402
-from magcal_ros.core.data.magnitude import reference_magnitude  # noqa: E402
 from magcal_ros.core.data.simulate import SimConfig, Simulator  # noqa: E402
 from magcal_ros.core.geometry.tensor import cross_positions, tensor_cross, tensor_noise_floor  # noqa
 from magcal_ros.core.model.engine import ProfiledProblem  # noqa: E402
@@ -104,7 +103,7 @@ def crb_covariance(data, model, params, field_nt, sigma_nt, priors=None):
     """
     contexts = [data.context(j) for j in range(1, data.n_sensors + 1)]
     model.prepare(contexts)
-    f = reference_magnitude(data, field_nt)
+    f = data.reference_magnitude(field_nt)
     sigma = np.broadcast_to(np.asarray(sigma_nt, float), (model.n_sensors,)).copy()
     cov = np.zeros((model.n_params, model.n_params))
     for grp in model.sensor_groups:

@@ -22,7 +22,7 @@ world-frame gradient with components up to 400 nT/m (symmetric, traceless).  Met
 - ``ml_base``: today's ``base`` fit, which assumes a uniform field (what a user without the
   effect gets);
 - ``ml_heading``: no attitude; the heading about the field estimated per epoch
-  (:func:`magcal_ros.core.geometry.site_gradient.fit_heading_unknown`), the gradient in the
+  (:func:`magcal_ros.core.model.site_gradient.fit_heading_unknown`), the gradient in the
   field-aligned frame (gyz = 0), compared with the truth in that frame and with the bound of
   the heading-unknown case;
 - the Cramer-Rao bounds of the three cases of docs/site_gradient.md: attitude known, heading
@@ -39,9 +39,9 @@ from dataclasses import replace
 
 from magcal_ros.core import model as mdl
 from magcal_ros.core.data.simulate import SimConfig, Simulator
-from magcal_ros.core.geometry.site_gradient import (centred_fields, crb_covariance,
-                                                    fit_heading_unknown)
 from magcal_ros.core.geometry.tensor import gradient_from_fit, symmetric_traceless
+from magcal_ros.core.model.site_gradient import (centred_fields, crb_covariance,
+                                                 fit_heading_unknown)
 import numpy as np
 
 #: world (NED) gradient of the scenario, nT/m (gxx, gxy, gxz, gyy, gyz): up to 400 nT/m

@@ -526,7 +526,7 @@ def add_attitude_arg(p):
 
 def _fit_paper_method(args, data):
     """``magcal fit --method sine|reference``: the closed forms of papers 000 and 002."""
-    from magcal_ros.core.papers import paper_methods
+    from magcal_ros.core.model import paper_methods
     from magcal_ros.io.calfile import calibration_to_doc, save_calibration, stamp_checksum
     from magcal_ros.pipeline import cross_geometry
     for opt, given in (('--model', args.model != 'base'), ('--robust', args.robust),

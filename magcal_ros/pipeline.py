@@ -21,15 +21,14 @@ residuals) and the calibration document (docs/design.md §4).
 """
 from dataclasses import dataclass
 
-from magcal_ros.core.data.magnitude import reference_magnitude
 from magcal_ros.core.data.noise import data_noise_floor
-from magcal_ros.core.geometry.site_gradient import centred_fields
 from magcal_ros.core.geometry.tensor import (cross_positions, gradient_from_fit, tensor_lstsq,
                                              tensor_noise_floor)
 from magcal_ros.core.model import data_hash, fit, Model
 from magcal_ros.core.model.notes import Note, note_dict
 from magcal_ros.core.model.plausibility import (axis_maps, fitted_scales_angles,
                                                 mounting_notes, parameter_notes, with_axis_maps)
+from magcal_ros.core.model.site_gradient import centred_fields
 from magcal_ros.io.calfile import calibration_to_doc
 import numpy as np
 
@@ -458,14 +457,14 @@ def _calibrate(data, model, field_nt, geometry, field_reference, **fit_kwargs):
         result = aided.result
     elif fit_kwargs.pop('heading_unknown', False):
         # site gradient without attitude: the heading about the field per epoch
-        from magcal_ros.core.geometry.site_gradient import fit_heading_unknown
+        from magcal_ros.core.model.site_gradient import fit_heading_unknown
         result = fit_heading_unknown(data, model, field_nt=field_nt, **fit_kwargs)
     elif planar is not None:
         # a turn about one axis (a ground robot): what it determines, the rest at a prior
         from magcal_ros.core.model import planar as pl
         fit_kwargs.pop('constrained', None)
         fit_kwargs.pop('on_degenerate', None)
-        pr = pl.fit_planar(data, model, reference_magnitude(data, field_nt),
+        pr = pl.fit_planar(data, model, data.reference_magnitude(field_nt),
                            prior_params=planar.get('prior_params'),
                            inclination_deg=planar.get('inclination_deg'), **fit_kwargs)
         result = pr.result

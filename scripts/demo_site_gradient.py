@@ -77,7 +77,7 @@ def parse_gradient(text):
 
 def scalar_residuals(run, field_nt):
     """(S, N) nT: |field at the array centre| - F per sensor and set (about the modelled shift)."""
-    from magcal_ros.core.geometry.site_gradient import centred_fields
+    from magcal_ros.core.model.site_gradient import centred_fields
     return np.linalg.norm(centred_fields(run.result), axis=-1) - field_nt
 
 

@@ -66,7 +66,25 @@ def test_an_offset_step_is_found_once():
 
 
 @pytest.mark.parametrize('seed', range(5))
-def test_white_noise_has_no_change_point(seed):
+def test_white_noise_has_no_change_point_and_a_step_at_the_stated_threshold_is_one(seed):
+    # the stated threshold (candidates._binary_segmentation): a split's statistic
+    # |c_k - k/n c_n|^2 / (k (n - k) / n) above T = sigma^2 C (10 + 5 ln n), C = 3 S columns;
+    # here T = 600 sigma^2.  An offset step d at the middle adds n |d|^2 / 4 to the
+    # statistic at its split (white noise: ~ sigma^2 C = 12 sigma^2, its cross term with
+    # the step of sd 2 sigma |d| sqrt(n / 4), 60 sigma^2 at 1.5 T): a step worth 1.5 T is
+    # found once, within 30 epochs of its own (as above; the split's error is in units of
+    # sigma^2 / |d|^2 = 0.8 epoch here), one worth 0.5 T is not, white noise alone gives none
     t, m, resid = _record(100 + seed)
     found, _ = residual_features(t, resid, readings=m)
     assert found == []
+    k0 = N // 2
+    threshold = SIGMA ** 2 * 12 * (10 + 5 * np.log(N))
+    direction = np.array([2.0, -1.0, 2.0]) / 3.0
+    for worth, expected in ((1.5, True), (0.5, False)):
+        stepped = resid.copy()
+        stepped[3, k0:] += direction * np.sqrt(worth * threshold * 4 / N)
+        found, _ = residual_features(t, stepped, readings=m)
+        if expected:
+            assert len(found) == 1 and abs(found[0] - k0) <= 30, (worth, found)
+        else:
+            assert found == [], (worth, found)

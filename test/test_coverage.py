@@ -12,9 +12,9 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""Tests for magcal_ros.core.model.coverage."""
+"""Tests for magcal_ros.core.geometry.coverage."""
 
-from magcal_ros.core.model.coverage import direction_coverage
+from magcal_ros.core.geometry.coverage import direction_coverage
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation

@@ -219,7 +219,7 @@ def test_diagnose_prints_the_structured_warnings_in_text_and_json(tmp_path, caps
 
 
 def test_mad_sd_by_hand():
-    from magcal_ros.core.data.noise import mad_sd
+    from magcal_ros.core.model.solvers import mad_sd
     # median 3, absolute deviations 2, 1, 0, 1, 97: MAD 1; Gaussian-consistent scale
     # 1 / Phi^-1(3/4) = 1 / 0.6744897501960817 = 1.482602218505602 (the spike does not count)
     assert mad_sd([1.0, 2.0, 3.0, 4.0, 100.0]) == pytest.approx(1.482602218505602, rel=1e-12)
@@ -234,7 +234,8 @@ def test_mad_sd_by_hand():
 def test_mad_sd_and_welch_are_scipys_numbers():
     # written with numpy to spare every fitting process the import of scipy.stats and
     # scipy.signal (noise.py); the references are scipy's own functions
-    from magcal_ros.core.data.noise import mad_sd, welch
+    from magcal_ros.core.data.noise import welch
+    from magcal_ros.core.model.solvers import mad_sd
     from scipy import signal, stats
     rng = np.random.default_rng(8)
     for n in (1, 2, 7, 1000, 1001):

@@ -120,4 +120,3 @@ def test_colcon_build_installs_index_manifest_config_and_executables(colcon_inst
     installed = [p.relative_to(colcon_install) for p in colcon_install.rglob('*')]
     assert not [p for p in installed if p.name.endswith(('.csv', '.csv.gz', '.csv.zst'))
                 or 'real' in p.parts or 'sunsided-hmc5883l' in p.parts], installed
-

@@ -249,7 +249,7 @@ def test_bounds_of_the_three_cases():
     a per-epoch nuisance gradient exactly 20 of base's 45 directions are undetermined
     (5 differential offsets + 15 differential linear terms: docs/site_gradient.md).
     """
-    from magcal_ros.core.geometry.site_gradient import crb_covariance
+    from magcal_ros.core.model.site_gradient import crb_covariance
     data, _ = make_data(n=300, seed=7)
     m = Model.from_spec('base,site_gradient', 4)
     truth = m.default_params()
@@ -346,7 +346,7 @@ def test_heading_unknown_reaches_its_bound():
     out as with attitude (offsets within 4 sigma of the truth), the gradient in the
     field-aligned frame (its rotation about the field is not determined) within 4 sigma.
     """
-    from magcal_ros.core.geometry.site_gradient import fit_heading_unknown
+    from magcal_ros.core.model.site_gradient import fit_heading_unknown
     data, _ = make_data(n=800, seed=2, attitude=False)
     res = fit_heading_unknown(data, field_nt=FIELD_NT)
     info = res.model.param_info()
@@ -448,7 +448,7 @@ def test_diagnose_names_site_gradient():
 
 def test_calibration_file_names_the_frame_without_attitude(tmp_path):
     """A gradient fitted without attitude is stored with its field-aligned frame."""
-    from magcal_ros.core.geometry.site_gradient import FIELD_ALIGNED, fit_heading_unknown
+    from magcal_ros.core.model.site_gradient import FIELD_ALIGNED, fit_heading_unknown
     from magcal_ros.io.calfile import calibration_to_doc
     data, _ = make_data(n=600, seed=3, attitude=False)
     res = fit_heading_unknown(data, field_nt=FIELD_NT)

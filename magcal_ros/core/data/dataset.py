@@ -115,6 +115,20 @@ class Dataset:
             ctx.index = pos
         return ctx
 
+    def reference_magnitude(self, field_nt=None):
+        """(N,) reference magnitude in nT: ``field_nt`` (scalar or (N,)) or ref_total."""
+        n = self.n_samples
+        if field_nt is not None:
+            f = np.broadcast_to(np.asarray(field_nt, float), (n,)).copy()
+        elif self.ref_total is not None:
+            f = np.asarray(self.ref_total, float)
+        else:
+            raise ValueError('no reference field magnitude: add a ref_total column, or give '
+                             '--field-nt or --igrf')
+        if not np.all(np.isfinite(f)) or np.any(f <= 0):
+            raise ValueError('the reference field magnitude must be finite and positive')
+        return f
+
     def attitude_matrix(self):
         """(N, 3, 3) body-to-world rotation matrices, or None without attitude."""
         if self.attitude is None:

@@ -16,7 +16,9 @@
 The reference field magnitude F (nT) of a fit.
 
 Where the reference field magnitude F (nT) of a fit comes from: a number, the data's
-``ref_total`` column, the IGRF model (ppigrf), or the data themselves (shape only).
+``ref_total`` column (the two per epoch:
+:meth:`magcal_ros.core.data.dataset.Dataset.reference_magnitude`), the IGRF model (ppigrf),
+or the data themselves (shape only).
 
 Not to be confused with :mod:`magcal_ros.core.papers.reference_vector` (paper 002: calibration
 against a reference field *vector*).
@@ -77,21 +79,6 @@ def auto_magnitude(raw):
     ell = fit_ellipsoid(raw, 1.0)
     radii = np.linalg.norm(np.asarray(raw, float) - ell.b, axis=1)
     return float(np.median(radii))
-
-
-def reference_magnitude(data, field_nt=None):
-    """(N,) reference magnitude in nT: ``field_nt`` (scalar or (N,)) or the data's ref_total."""
-    n = data.n_samples
-    if field_nt is not None:
-        f = np.broadcast_to(np.asarray(field_nt, float), (n,)).copy()
-    elif data.ref_total is not None:
-        f = np.asarray(data.ref_total, float)
-    else:
-        raise ValueError('no reference field magnitude: add a ref_total column, or give '
-                         '--field-nt or --igrf')
-    if not np.all(np.isfinite(f)) or np.any(f <= 0):
-        raise ValueError('the reference field magnitude must be finite and positive')
-    return f
 
 
 #: where a node's reference magnitude comes from (``field_source``)

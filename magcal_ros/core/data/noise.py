@@ -38,6 +38,7 @@ Student-t noise of 3 dof and sd 3 nT reads 3.0 nT (the Gaussian-consistent MAD r
 from dataclasses import dataclass
 from math import comb
 
+from magcal_ros.core.model.solvers import mad_sd
 import numpy as np
 
 #: difference orders tried by the adaptive estimate
@@ -59,25 +60,6 @@ MIN_TAIL_INDEX = 2.5
 FILTERED_DROP = 10.0
 #: the raw-difference floor is replaced by the residual one when it exceeds it by this factor
 RAW_FLOOR_EXCESS = 1.2
-
-
-#: 1 / Phi^-1(3/4): the MAD of Gaussian values times this is their sd
-MAD_TO_SD = 1.482602218505602
-
-
-def mad_sd(x):
-    """
-    Gaussian-consistent sd from the median absolute deviation (unit of x).
-
-    MAD / Phi^-1(3/4) = 1.4826 MAD of the values of ``x`` (any shape, flattened; nan when
-    empty): the numbers of scipy.stats.median_abs_deviation(scale='normal') (test_noise),
-    written with numpy because importing scipy.stats cost every process that fits 0.5-0.8 s
-    of CPU (scipy 1.17 parses its docstrings at import; BENCHMARKS.md, "Start-up").
-    """
-    x = np.asarray(x, float).ravel()
-    if not x.size:
-        return float('nan')
-    return float(np.median(np.abs(x - np.median(x))) * MAD_TO_SD)
 
 
 def robust_sd(d):

@@ -19,7 +19,6 @@ The error ladder: diagnose, add the verdict, refit, until nothing is missing.
 """
 from dataclasses import dataclass, field
 
-from magcal_ros.core.data.magnitude import reference_magnitude
 from magcal_ros.core.data.noise import data_noise_floor, NoiseFloor
 from magcal_ros.core.discovery.candidates import extend_model
 from magcal_ros.core.discovery.constants import DEFAULT_FOLDS
@@ -180,7 +179,7 @@ def ladder(data, start_model='base', steps=None, auto=True, field_nt=None, *,
     Ladder
 
     """
-    f = reference_magnitude(data, field_nt)
+    f = data.reference_magnitude(field_nt)
     constrained = bool(diag_kwargs.get('constrained', False))
     if hasattr(start_model, 'params') and hasattr(start_model, 'model'):
         result = start_model

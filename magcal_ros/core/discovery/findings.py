@@ -1003,7 +1003,7 @@ def _find(data, result, *, baseline_m=0.5, alpha=ALPHA, corrected=None, field=No
     t = np.asarray(data.t, float)
     if corrected is None:
         # the field where each sensor is, minus a modelled site gradient (site_gradient)
-        from magcal_ros.core.geometry.site_gradient import centred_fields
+        from magcal_ros.core.model.site_gradient import centred_fields
         corrected = centred_fields(result)
     corrected = np.asarray(corrected, float)
     field_ = np.asarray(result.field_nt if field is None else field, float)

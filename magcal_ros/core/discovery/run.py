@@ -23,7 +23,6 @@ from dataclasses import dataclass
 import math
 import time
 
-from magcal_ros.core.data.magnitude import reference_magnitude
 from magcal_ros.core.data.noise import data_noise_floor, NoiseFloor
 from magcal_ros.core.discovery.candidates import (added_params, Candidate, candidate_tokens,
                                                   extend_model, propose_from_residual,
@@ -216,7 +215,7 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
     with single_threaded_blas():
         t_start = time.perf_counter()
         seconds = {}
-        f = reference_magnitude(data, field_nt)
+        f = data.reference_magnitude(field_nt)
         base = _base_fit(data, model, f, base, constrained, progress, fit_kwargs)
         seconds['base_fit'] = time.perf_counter() - t_start
         floor = data_noise_floor(data, base)

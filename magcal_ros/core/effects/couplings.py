@@ -37,6 +37,7 @@ Per-axis drivers (``rate``, ``lin``: X (N, 3, m)) act axis by axis, dB_i = sum_k
 with ``offset`` and ``scale`` only.  A plug-in adds a coupling by subclassing
 :class:`Coupling` and calling :func:`register_coupling`.
 """
+from magcal_ros.core.effects.names import Registry
 import numpy as np
 
 
@@ -177,40 +178,15 @@ class Field(Coupling):
         return y[:, 0]
 
 
-_COUPLINGS = {}
-
-
-def register_coupling(cls, name=None):
-    """Register a :class:`Coupling` subclass as ``name(driver)`` (default ``cls.name``)."""
-    if not (isinstance(cls, type) and issubclass(cls, Coupling)):
-        raise TypeError(f'{cls!r} is not a subclass of magcal_ros.core.effects.couplings.'
-                        'Coupling')
-    key = name or cls.name
-    if key in _COUPLINGS and _COUPLINGS[key] is not cls:
-        raise ValueError(f'a coupling named {key!r} is already registered ({_COUPLINGS[key]!r})')
-    _COUPLINGS[key] = cls
-    return cls
-
-
-def unregister_coupling(name):
-    """Remove a plug-in coupling (tests, interactive sessions)."""
-    if name in BUILTIN_COUPLINGS:
-        raise ValueError(f'{name!r} is a built-in coupling and cannot be unregistered')
-    _COUPLINGS.pop(name, None)
-
-
-def coupling_class(name):
-    """Return the coupling class registered as ``name``, or None."""
-    return _COUPLINGS.get(name)
-
-
-def registered_couplings():
-    """Names of the registered couplings."""
-    return sorted(_COUPLINGS)
-
+#: the couplings ``name(driver)`` by name (docs/plugins.md)
+COUPLINGS = Registry(Coupling, 'coupling', 'magcal_ros.core.effects.couplings.Coupling')
+register_coupling = COUPLINGS.register
+unregister_coupling = COUPLINGS.unregister
+coupling_class = COUPLINGS.get
+registered_couplings = COUPLINGS.names
 
 for _cls in (Offset, Scale, Linear, NonOrth, Rotation, Field):
     register_coupling(_cls)
 
 #: the couplings that ship with the library
-BUILTIN_COUPLINGS = tuple(_COUPLINGS)
+BUILTIN_COUPLINGS = COUPLINGS.seal_builtin()

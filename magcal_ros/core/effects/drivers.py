@@ -44,6 +44,7 @@ import math
 
 from magcal_ros.core.effects.base import (first_order_lag, format_arg, lag_step,
                                           NONLINEARITY_FULL_SCALE_NT, parse_number, steps_outside)
+from magcal_ros.core.effects.names import Registry
 import numpy as np
 
 #: variables a driver may read: name -> (unit, per axis)
@@ -718,39 +719,15 @@ class Product(Driver):
         return out
 
 
-_DRIVERS = {}
-
-
-def register_driver(cls, name=None):
-    """Register a :class:`Driver` subclass as the factor ``name(...)`` (default ``cls.name``)."""
-    if not (isinstance(cls, type) and issubclass(cls, Driver)):
-        raise TypeError(f'{cls!r} is not a subclass of magcal_ros.core.effects.drivers.Driver')
-    key = name or cls.name
-    if key in _DRIVERS and _DRIVERS[key] is not cls:
-        raise ValueError(f'a driver named {key!r} is already registered ({_DRIVERS[key]!r})')
-    _DRIVERS[key] = cls
-    return cls
-
-
-def unregister_driver(name):
-    """Remove a plug-in driver (tests, interactive sessions)."""
-    if name in BUILTIN_DRIVERS:
-        raise ValueError(f'{name!r} is a built-in driver and cannot be unregistered')
-    _DRIVERS.pop(name, None)
-
-
-def driver_class(name):
-    """Return the driver class of factor ``name(...)``, or None."""
-    return _DRIVERS.get(name)
-
-
-def registered_drivers():
-    """Names of the factors ``name(...)`` (plus the variables)."""
-    return sorted(_DRIVERS)
-
+#: the factors ``name(...)`` of a driver by name (docs/plugins.md)
+DRIVERS = Registry(Driver, 'driver', 'magcal_ros.core.effects.drivers.Driver')
+register_driver = DRIVERS.register
+unregister_driver = DRIVERS.unregister
+driver_class = DRIVERS.get
+registered_drivers = DRIVERS.names
 
 for _cls in (Spline, Cyclic, Poly, Sinusoid, Steps, Window, Lagged):
     register_driver(_cls)
 
 #: the factors that ship with the library
-BUILTIN_DRIVERS = tuple(_DRIVERS)
+BUILTIN_DRIVERS = DRIVERS.seal_builtin()

@@ -18,7 +18,8 @@ A plug-in module defines :class:`~magcal_ros.core.effects.base.Effect` subclasse
 registers them (:func:`register_effect`, or ``MAGCAL_EFFECTS = [...]``); a plug-in coupling
 or driver of the grammar registers with :func:`magcal_ros.core.effects.couplings.
 register_coupling` / :func:`magcal_ros.core.effects.drivers.register_driver`
-(docs/plugins.md).  Plug-ins are imported only at start-up (``magcal --plugin``, the nodes'
+(docs/plugins.md); the three registries are one mechanism, :class:`.names.Registry`.
+Plug-ins are imported only at start-up (``magcal --plugin``, the nodes'
 ``plugins`` parameter), never from a model or a calibration file.
 """
 import importlib
@@ -29,29 +30,16 @@ from magcal_ros.core.effects.base import Effect
 from magcal_ros.core.effects.catalog import (aux_effect, AxisMap, Misalignment,
                                              NonOrthogonality, Offset, Scale, SiteGradient,
                                              SoftIron, TOKEN_CLASSES)
+from magcal_ros.core.effects.names import Registry
 
 # -- registry -------------------------------------------------------------------------------
 
-_REGISTRY = {}
-
-
-def register_effect(cls, name=None):
-    """Register an :class:`Effect` subclass under ``name`` (default ``cls.name``)."""
-    if not (isinstance(cls, type) and issubclass(cls, Effect)):
-        raise TypeError(f'{cls!r} is not a subclass of magcal_ros.core.effects.Effect')
-    key = name or cls.name
-    if key in _REGISTRY and _REGISTRY[key] is not cls:
-        raise ValueError(f'an effect named {key!r} is already registered ({_REGISTRY[key]!r})')
-    _REGISTRY[key] = cls
-    return cls
-
-
-def unregister_effect(name):
-    """Remove the effect registered under ``name`` (tests, interactive sessions)."""
-    if name in BUILTIN_EFFECTS:
-        raise ValueError(f'{name!r} is a built-in effect and cannot be unregistered')
-    _REGISTRY.pop(name, None)
-
+#: the named effects (catalog and plug-ins)
+EFFECTS = Registry(Effect, 'effect', 'magcal_ros.core.effects.Effect')
+register_effect = EFFECTS.register
+unregister_effect = EFFECTS.unregister
+#: the Effect class registered as a name (without arguments), or None
+effect_class = EFFECTS.get
 
 for _cls in (AxisMap, Scale, NonOrthogonality, Misalignment, SoftIron, Offset,
              *(TOKEN_CLASSES[n] for n in ('temperature', 'drift', 'drift2', 'nonlinearity',
@@ -60,7 +48,7 @@ for _cls in (AxisMap, Scale, NonOrthogonality, Misalignment, SoftIron, Offset,
     register_effect(_cls)
 
 #: names of the effects that ship with the library
-BUILTIN_EFFECTS = tuple(_REGISTRY)
+BUILTIN_EFFECTS = EFFECTS.seal_builtin()
 
 #: the model of paper 004 (offset, scale, nonorthogonality, misalignment)
 BASE = ('offset', 'scale', 'nonorthogonality', 'misalignment')
@@ -68,17 +56,12 @@ BASE = ('offset', 'scale', 'nonorthogonality', 'misalignment')
 
 def registered_effects():
     """Names of all registered effects (plus 'aux:<column>')."""
-    return sorted(_REGISTRY) + ['aux:<column>']
-
-
-def effect_class(name):
-    """Return the Effect class registered as ``name`` (without arguments), or None."""
-    return _REGISTRY.get(name)
+    return EFFECTS.names() + ['aux:<column>']
 
 
 def needs_args(name):
     """Tell whether the registered effect ``name`` is only written with arguments."""
-    cls = _REGISTRY.get(name)
+    cls = EFFECTS.get(name)
     return cls is not None and cls.usage is not None
 
 
@@ -111,16 +94,12 @@ def load_plugin(ref):
                    for c in getattr(mod, key, [])]
     names = []
     for cls in classes:
-        if isinstance(cls, type) and issubclass(cls, couplings.Coupling):
-            if couplings.coupling_class(cls.name) is not cls:
-                couplings.register_coupling(cls)
-        elif isinstance(cls, type) and issubclass(cls, drivers.Driver):
-            if drivers.driver_class(cls.name) is not cls:
-                drivers.register_driver(cls)
-        elif _REGISTRY.get(cls.name) is not cls:
-            if isinstance(cls, type) and issubclass(cls, Effect):
+        registry = next((r for r in (couplings.COUPLINGS, drivers.DRIVERS)
+                         if isinstance(cls, type) and issubclass(cls, r.base)), EFFECTS)
+        if registry.get(cls.name) is not cls:
+            if registry is EFFECTS and isinstance(cls, type) and issubclass(cls, Effect):
                 probe_effect(cls, ref)
-            register_effect(cls)
+            registry.register(cls)
         names.append(cls.name)
     return names
 
@@ -199,7 +178,7 @@ def _loaded_effect_name(ref):
     module = sys.modules.get(mod_name)
     cls = getattr(module, attr, None) if module is not None and attr else None
     name = getattr(cls, 'name', None)
-    if name is None or _REGISTRY.get(name) is not cls:
+    if name is None or EFFECTS.get(name) is not cls:
         raise ValueError(f'effect {ref!r} is not loaded: plug-in effects are imported only at '
                          'start-up (magcal --plugin MODULE, ROS start-up parameter plugins), '
                          'never from a model or a calibration file')
@@ -215,17 +194,19 @@ def make_catalog_effect(token, sensor):
     """
     if '(' in token:
         name, args, _ = parse_token(token)
-        if name not in _REGISTRY:
+        cls = EFFECTS.get(name)
+        if cls is None:
             raise ValueError(f'unknown effect {name!r} in {token!r}; known effects: '
                              f'{", ".join(registered_effects())}')
-        return _REGISTRY[name].from_args(args, sensor)
+        return cls.from_args(args, sensor)
     if token.startswith('aux:'):
         return aux_effect(token[4:], sensor)
-    if token not in _REGISTRY and ':' in token:
+    if EFFECTS.get(token) is None and ':' in token:
         token = _loaded_effect_name(token)
-    if token not in _REGISTRY:
+    cls = EFFECTS.get(token)
+    if cls is None:
         raise ValueError(f'unknown effect {token!r}; known effects: '
                          f'{", ".join(registered_effects())}')
-    if needs_args(token):
-        raise ValueError(f'effect {token!r} needs arguments: {_REGISTRY[token].usage}')
-    return _REGISTRY[token](sensor=sensor)
+    if cls.usage is not None:
+        raise ValueError(f'effect {token!r} needs arguments: {cls.usage}')
+    return cls(sensor=sensor)

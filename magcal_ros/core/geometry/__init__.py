@@ -12,4 +12,9 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""Geometry of the array: sensor positions, the gradient tensor (paper 004 eq. 1), attitude."""
+"""
+Geometry of the array: sensor positions, the gradient tensor (paper 004 eq. 1), attitude.
+
+Also the coverage of field directions and the geometry of a turn about one axis: numpy
+only, imported by the other folders of the core and importing none of them.
+"""

@@ -21,7 +21,12 @@ The model and its engine: what is fitted, and how.
 - :mod:`.fitting`: :func:`fit`, :class:`FitResult`, :func:`evaluate` (maximum likelihood,
   paper 004's closed form as the start);
 - :mod:`.calibration`: :class:`Calibration`, a fit made ready for live correction;
-- :mod:`.identifiability`, :mod:`.coverage`: what the data can determine;
+- :mod:`.identifiability`: what the data can determine (with
+  :mod:`magcal_ros.core.geometry.coverage`);
+- :mod:`.planar`, :mod:`.plausibility`, :mod:`.site_gradient`: a turn about one axis,
+  parameters no real sensor has, the site gradient's report and bounds;
+- :mod:`.paper_methods`: the closed forms of :mod:`magcal_ros.core.papers` (papers 000
+  and 002) written as a :class:`Calibration` (``magcal fit --method sine|reference``);
 - :mod:`.notes`: structured warnings.
 
 The names most code needs are importable from here

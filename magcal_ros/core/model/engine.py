@@ -41,7 +41,7 @@ information of p with the fields unknown (its inverse,
 :func:`magcal_ros.core.model.solvers.levenberg_marquardt` on J^T J and J^T r formed block by block
 (:meth:`ProfiledProblem.normal_equations`, without the tall projected Jacobian), the diagnosis
 (:mod:`magcal_ros.core.discovery`) reuses its Jacobian to screen and cross-validate candidate
-effects, and :mod:`magcal_ros.core.geometry.site_gradient` its covariance.
+effects, and :mod:`magcal_ros.core.model.site_gradient` its covariance.
 """
 import numpy as np
 

@@ -35,13 +35,11 @@ profiled field) are computed from the parameters on first access and then kept.
 from dataclasses import dataclass, field
 from functools import cached_property
 
-from magcal_ros.core.data.magnitude import reference_magnitude
-from magcal_ros.core.data.noise import mad_sd
 from magcal_ros.core.model.calibration import Calibration
 from magcal_ros.core.model.engine import ProfiledProblem
 from magcal_ros.core.model.notes import Note
 from magcal_ros.core.model.solvers import (covariance_from_jacobian, covariance_from_normal,
-                                           levenberg_marquardt, resolves_covariance,
+                                           levenberg_marquardt, mad_sd, resolves_covariance,
                                            single_threaded_blas, stderr_and_correlation)
 from magcal_ros.core.model.spec import Model
 from magcal_ros.core.papers.ellipsoid import fit_ellipsoid, procrustes_rotation
@@ -328,7 +326,7 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
                 raise DegenerateDataError(msg)
             notes.append(Note(msg, 'degenerate'))
 
-        f_all = reference_magnitude(data, field_nt)
+        f_all = data.reference_magnitude(field_nt)
         contexts_all = [data.context(j) for j in range(1, data.n_sensors + 1)]
         ident = _check_data(data, model, contexts_all, constrained, check_identifiability,
                             degenerate)

@@ -15,18 +15,19 @@
 """
 Can the data determine the model?  Checks run before and after every solve.
 
-Before: attitude coverage of each sensor (:func:`magcal_ros.core.model.coverage.direction_coverage`
-of the readings about the centre of the sensor's fitted ellipsoid, the hard-iron offset, so
-that an offset several times the field does not squeeze a full rotation into a cone): a
-rotation about a single axis leaves the field directions on one circle, so the linear map is
-not determined along the rotation axis (refusals name that axis in the sensor frame); a
+Before: attitude coverage of each sensor
+(:func:`magcal_ros.core.geometry.coverage.direction_coverage` of the readings about the
+centre of the sensor's fitted ellipsoid, the hard-iron offset, so that an offset several
+times the field does not squeeze a full rotation into a cone): a rotation about a single
+axis leaves the field directions on one circle, so the linear map is not determined along
+the rotation axis (refusals name that axis in the sensor frame); a
 partial coverage (a cone, as on a ground vehicle) makes scale, non-orthogonality and offset
 strongly correlated.
 
 After: the parameter correlations and the condition number of the correlation matrix from
 the projected Jacobian (the Fisher information at the solution).
 """
-from magcal_ros.core.model.coverage import direction_coverage
+from magcal_ros.core.geometry.coverage import direction_coverage
 from magcal_ros.core.papers.ellipsoid import fit_ellipsoid, reading_plane, RING_CV, ring_spread
 import numpy as np
 

@@ -15,6 +15,8 @@
 """
 Solvers of the maximum-likelihood fit: Levenberg-Marquardt, the covariance, one BLAS thread.
 
+Also :func:`mad_sd`, the robust sd the fit and the noise floor (core/data/noise.py) use.
+
 :func:`levenberg_marquardt` minimises a sum of squared (or soft-L1) residuals given the
 residual and Jacobian functions of :class:`magcal_ros.core.model.engine.ProfiledProblem`;
 :func:`covariance_from_normal` (:func:`covariance_from_jacobian`) turns J^T J of the
@@ -25,6 +27,24 @@ import contextlib
 from dataclasses import dataclass
 
 import numpy as np
+
+#: 1 / Phi^-1(3/4): the MAD of Gaussian values times this is their sd
+MAD_TO_SD = 1.482602218505602
+
+
+def mad_sd(x):
+    """
+    Gaussian-consistent sd from the median absolute deviation (unit of x).
+
+    MAD / Phi^-1(3/4) = 1.4826 MAD of the values of ``x`` (any shape, flattened; nan when
+    empty): the numbers of scipy.stats.median_abs_deviation(scale='normal') (test_noise),
+    written with numpy because importing scipy.stats cost every process that fits 0.5-0.8 s
+    of CPU (scipy 1.17 parses its docstrings at import; BENCHMARKS.md, "Start-up").
+    """
+    x = np.asarray(x, float).ravel()
+    if not x.size:
+        return float('nan')
+    return float(np.median(np.abs(x - np.median(x))) * MAD_TO_SD)
 
 
 @dataclass(frozen=True)

@@ -36,7 +36,7 @@ valid for attitudes whose field stays in that plane. Paper 002's own Table 2 is 
 
 from dataclasses import dataclass
 
-from magcal_ros.core.model.coverage import Coverage, direction_coverage
+from magcal_ros.core.geometry.coverage import Coverage, direction_coverage
 from magcal_ros.core.papers.paper_params import Paper002Params
 import numpy as np
 
@@ -160,7 +160,7 @@ def fit_reference(He, Hm, strict=False, max_condition=100.0,
     max_condition : float, optional
         Largest acceptable condition number of the column-scaled design.
     planar_threshold : float, optional
-        Passed to :func:`~magcal_ros.core.model.coverage.direction_coverage`.
+        Passed to :func:`~magcal_ros.core.geometry.coverage.direction_coverage`.
 
     Returns
     -------

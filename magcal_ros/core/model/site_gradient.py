@@ -115,12 +115,11 @@ def crb_covariance(data, model, params, field_nt, sigma_nt, case='attitude', pos
         determine at all ('epoch_gradient').
 
     """
-    from magcal_ros.core.data.magnitude import reference_magnitude
     if case not in CRB_CASES:
         raise ValueError(f'unknown case {case!r}; use one of {CRB_CASES}')
     contexts = [data.context(j) for j in range(1, data.n_sensors + 1)]
     model.prepare(contexts)
-    f = reference_magnitude(data, field_nt)
+    f = data.reference_magnitude(field_nt)
     s = model.n_sensors
     sigma = np.broadcast_to(np.asarray(sigma_nt, float), (s,)).copy()
     grp = list(range(1, s + 1))
@@ -339,12 +338,11 @@ def fit_heading_unknown(data, model='base,site_gradient', field_nt=None, n_iter=
     p[sl] = [g_w[0, 0], g_w[0, 1], g_w[0, 2], g_w[1, 1], 0.0]
     att = Rotation.from_matrix(_rz(psi - phi) @ r_a).as_quat(scalar_first=True)
     fixed = replace(bare, attitude=att)
-    from magcal_ros.core.data.magnitude import reference_magnitude
     # the fit's noise estimate counted 3 S - 2 residual degrees of freedom per epoch; the
     # heading psi_k takes one more
     s = data.n_sensors
     sigma = res.sigma_nt * np.sqrt((3 * s - 2) / (3 * s - 3))
-    out = crb_covariance(fixed, model, p, reference_magnitude(data, field_nt), sigma,
+    out = crb_covariance(fixed, model, p, data.reference_magnitude(field_nt), sigma,
                          case='heading', fix_gyz=True)
     cov = out['covariance']
     cov[np.ix_(np.arange(sl.start, sl.start + 4), np.arange(sl.start, sl.start + 4))] = \

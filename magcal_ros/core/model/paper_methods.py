@@ -40,7 +40,9 @@ calibration file and the live corrector treat them like a maximum-likelihood fit
 from dataclasses import dataclass, field
 
 from magcal_ros.core.effects import rq_positive
-from magcal_ros.core.model import Calibration, DegenerateDataError, Model
+from magcal_ros.core.model.calibration import Calibration
+from magcal_ros.core.model.fitting import DegenerateDataError
+from magcal_ros.core.model.spec import Model
 import numpy as np
 
 #: the choices of ``magcal fit --method``
