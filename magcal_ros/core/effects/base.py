@@ -35,7 +35,6 @@ declarations and never from effect names.  This module also holds the paper 004 
 and the signal helpers every effect shares.
 """
 from dataclasses import dataclass, field
-import math
 
 from magcal_ros.core.geometry.tensor import symmetric_traceless  # noqa: F401 - re-exported
 import numpy as np
@@ -450,7 +449,7 @@ def channel_name(name):
 
 def lag_coefficients(dt, tau):
     """
-    (a, b0, b1) of one step of the lag tau dy/dt = x - y: y_k = a y_k-1 + b0 x_k + b1 x_k-1.
+    Return (a, b0, b1) of one step of tau dy/dt = x - y: y_k = a y_k-1 + b0 x_k + b1 x_k-1.
 
     The one discretisation of the lag, for the batch filter (:func:`first_order_lag`) and
     the live one (:func:`lag_step`): exact when x is linear between samples (the
