@@ -243,7 +243,7 @@ def test_lag_one_sample_at_a_time_keeps_its_state():
     Keep the state of the lag filter between one-sample calls.
 
     Live correction feeds one sample per call: the filter state is carried between calls
-    and follows the batch filter (0.02 of a 10 degC step: zero- vs first-order hold).
+    and takes the batch filter's steps (one discretisation: equal to rounding).
     """
     t = np.arange(2000) * 0.2
     x = np.where(t > 100, 10.0, 0.0)
@@ -253,7 +253,10 @@ def test_lag_one_sample_at_a_time_keeps_its_state():
     batch = eff.contribution(p, fx.SensorContext(t=t, temp=x), np.zeros((2000, 3)))[:, 0]
     live = [eff.contribution(p, fx.SensorContext(t=t[k:k + 1], temp=x[k:k + 1]),
                              np.zeros((1, 3)))[0, 0] for k in range(2000)]
-    assert np.max(np.abs(batch - np.array(live))) < 0.05
-    # 300 s after the step: 10 (1 - exp(-300 / 50)) degC, minus the mean (hand formula)
-    assert live[-1] == pytest.approx(10.0 * (1 - np.exp(-300.0 / 50.0)) - eff.refs['x0'],
-                                     abs=0.02)
+    np.testing.assert_allclose(live, batch, rtol=0, atol=1e-12)
+    # by hand: x ramps 0 -> 10 over the sample at 100 .. 100.2 s (linear between samples),
+    # y(100.2) = 10 (1 - tau/h (1 - e^-h/tau)), then relaxes to 10 with e^-(t - 100.2)/tau
+    h, tau = 0.2, 50.0
+    y0 = 10.0 * (1 - tau / h * (1 - np.exp(-h / tau)))
+    want = 10.0 + (y0 - 10.0) * np.exp(-(t[-1] - 100.2) / tau) - eff.refs['x0']
+    assert live[-1] == pytest.approx(want, abs=1e-9)

@@ -172,60 +172,95 @@ def test_old_tokens_fit_to_the_same_numbers_as_written():
         assert np.all(np.abs(res.params - old) <= 1e-4 * np.array(se)), name
 
 
-def _ctx(n=50):
-    rng = np.random.default_rng(4)
-    t = np.linspace(0.0, 200.0, n)
-    return SensorContext(t=t, temp=20 + 5 * np.sin(t / 30), raw_rate=rng.normal(0, 50, (n, 3)),
-                         aux={'aux_x': 2 + np.cos(t / 17)}), rng.normal(0, 3e4, (n, 3))
-
-
-#: alias -> (composition, parameter map: alias params -> composition params)
-ALIAS_MAPS = {
-    'temperature': ('offset(temperature) + scale(temperature)', lambda p, refs: p),
-    'aux:aux_x': ('offset(aux_x)', lambda p, refs: p),
-    'periodic(0.02)': ('offset(sin(0.02))', lambda p, refs: p),
-    'step(80,150)': ('offset(step(80, 150))', lambda p, refs: p),
-    'field_rate': ('offset(rate)', lambda p, refs: -p),
-    'lag(temperature)': ('offset(lag(temperature))',
-                         lambda p, refs: np.r_[p[:3], p[3]]),
-    'aux_poly(aux_x,2)': ('offset(poly(aux_x, 2))',
-                          lambda p, refs: np.r_[p[:3] * refs['h'], p[3:] * refs['h'] ** 2]),
-    'drift2': ('offset(poly(t, 2))',
-               lambda p, refs: np.r_[p[:3] * refs['ht'], p[3:] * refs['ht'] ** 2]),
+#: old token -> the grammar's parts it is evaluated by
+TOKEN_PARTS = {
+    'temperature': ['offset(temperature)', 'scale(temperature)'],
+    'drift': ['offset(t)'],
+    'drift2': ['offset(poly(t, 2))'],
+    'nonlinearity': ['offset(poly(lin, 3))'],
+    'aux:aux_x': ['offset(aux_x)'],
+    'aux_poly(aux_x,3)': ['offset(poly(aux_x, 3))'],
+    'field_rate': ['offset(rate)'],
+    'step(80,150)': ['offset(step(80, 150))'],
+    'periodic(0.02)': ['offset(sin(0.02))'],
+    'lag(temperature)': ['offset(lag(temperature))'],
 }
 
 
-@pytest.mark.parametrize('alias', sorted(ALIAS_MAPS))
-def test_alias_and_its_composition_change_the_reading_alike(alias):
-    """Each old token and the composition it stands for: the same change, to a constant."""
-    comp, to_comp = ALIAS_MAPS[alias]
-    ctx, lin = _ctx()
-    old = Model.from_spec(alias, 1)
-    new = Model.from_spec(comp, 1)
-    old.prepare([ctx])
-    new.prepare([ctx])
-    rng = np.random.default_rng(1)
-    p_old = old.default_params() + rng.normal(0, 1, old.n_params) * np.r_[
-        [1.0] * (old.n_params - 3), [1e-4] * 3 if alias == 'temperature' else [1.0] * 3]
-    if alias == 'lag(temperature)':
-        p_old[3] = 25.0
-    # poly scales (v - mean) by the half range h; drift2's t is referred to t0 = t[0], poly
-    # to the mean: the change differs by a polynomial of lower degree, here by a constant
-    # and a linear term in t that the comparison below removes with the mean and the slope
-    refs = {'h': (ctx.aux['aux_x'].max() - ctx.aux['aux_x'].min()) / 2,
-            'ht': (ctx.t.max() - ctx.t.min()) / 2}
-    p_new = to_comp(p_old, refs)
-    a = old.additive(1, p_old, ctx, lin)
-    b = new.additive(1, p_new, ctx, lin)
-    if alias == 'drift2':
-        # same quadratic coefficient: the difference is linear in t
-        d = a - b
-        fit_lin = np.polynomial.polynomial.polyfit(ctx.t, d, 1)
-        d = d - np.polynomial.polynomial.polyval(ctx.t, fit_lin).T
-        assert np.abs(d).max() < 1e-8 * np.abs(a).max()
-        return
-    np.testing.assert_allclose(it.centred(a), it.centred(b), rtol=0,
-                               atol=1e-9 * max(1.0, np.abs(a).max()))
+def test_every_driven_token_is_evaluated_by_its_composition():
+    """No token evaluates itself: its change of the reading is its grammar parts' sum."""
+    for token, parts in TOKEN_PARTS.items():
+        eff = fx.make_effect(token, 1)
+        assert isinstance(eff, fx.TokenEffect), token
+        assert [p.text for p in eff.parts] == parts, token
+        assert type(eff).contribution is fx.TokenEffect.contribution, token
+        assert fx.parse(token).terms[0].expansion.startswith(' + '.join(parts)), token
+    # every additive effect that ships is a token, but the constant offset (and the array's)
+    additive = {n for n in fx.BUILTIN_EFFECTS if fx.effect_class(n).kind == 'additive'}
+    assert additive - {'offset'} == {n for n in fx.TOKENS if n != 'aux'}
+    assert all(issubclass(fx.effect_class(n), fx.TokenEffect) for n in additive - {'offset'})
+
+
+# the grammar's terms the tokens are made of, against their formulas written out by hand
+# (docs/formulas.md); the tokens themselves against theirs: test/test_effect_golden.py
+B = np.array([[20000.0, -5000.0, 45000.0], [-30000.0, 38000.0, 10000.0],
+              [1000.0, 2000.0, -49000.0]])                                  # (3, 3) nT
+T = np.array([10.0, 10.5, 12.0])                                            # s
+TEMP = np.array([20.0, 27.0, 31.0])                                         # degC
+CUR = np.array([0.0, 2.0, 5.0])                                             # A
+RATE = np.array([[100.0, -50.0, 20.0], [0.0, 300.0, -10.0], [-40.0, 0.0, 80.0]])   # nT/s
+V1, V2, V3 = np.array([3.0, -2.0, 1.5]), np.array([0.5, 0.1, -0.4]), np.array([-7.0, 4.0, 2.0])
+
+
+def _hand_poly(u, *coefs):
+    return sum(u[:, None] ** (k + 1) * c if u.ndim == 1 else u ** (k + 1) * c
+               for k, c in enumerate(coefs))
+
+
+#: term -> (parameters, references, raw reading written out by hand)
+COMPOSED = {
+    'offset(temperature)': (V1, {'temperature0': 25.0}, B + (TEMP - 25.0)[:, None] * V1),
+    'scale(temperature)': (V1 * 1e-4, {'temperature0': 25.0},
+                           B + (TEMP - 25.0)[:, None] * V1 * 1e-4 * B),
+    'offset(t)': (V1, {'t0': 8.0}, B + (T - 8.0)[:, None] * V1),
+    # u = (t - mean) / half range: (t - 11) / 2
+    'offset(poly(t, 2))': ([*V1, *V2], {'mean': 11.0, 'lo': 9.0, 'hi': 13.0},
+                           B + _hand_poly((T - 11.0) / 2.0, V1, V2)),
+    'offset(aux_motor_current)': (V1, {'aux_motor_current0': 1.0},
+                                  B + (CUR - 1.0)[:, None] * V1),
+    'offset(poly(aux_motor_current, 3))': ([*V1, *V2, *V3], {'mean': 2.0, 'lo': 0.0, 'hi': 5.0},
+                                           B + _hand_poly((CUR - 2.0) / 2.5, V1, V2, V3)),
+    'offset(rate)': (V1 * 1e-3, {}, B + RATE * V1 * 1e-3),
+    # per axis u = lin / 50 000 nT, unscaled
+    'offset(poly(lin, 3))': ([*V1, *V2, *V3], {}, B + _hand_poly(B / 50000.0, V1, V2, V3)),
+    'offset(step(10.2, 11))': ([*V1, *V2], {}, B + (T >= 10.2)[:, None] * V1
+                               + (T >= 11.0)[:, None] * V2),
+    'offset(sin(0.25))': ([*V1, *V2], {'t0': 9.0},
+                          B + np.cos(2 * np.pi * 0.25 * (T - 9.0))[:, None] * V1
+                          + np.sin(2 * np.pi * 0.25 * (T - 9.0))[:, None] * V2),
+}
+
+
+@pytest.mark.parametrize('term', sorted(COMPOSED))
+def test_composed_term_against_its_formula_by_hand(term):
+    params, refs, want = COMPOSED[term]
+    m = Model.from_spec(term, 1)
+    m.effects[0][0].refs.update(refs)
+    ctx = SensorContext(t=T, temp=TEMP, aux={'aux_motor_current': CUR}, raw_rate=RATE)
+    np.testing.assert_allclose(m.forward(1, np.asarray(params, float), B, ctx), want,
+                               rtol=1e-14, atol=1e-9)
+
+
+def test_composed_lag_of_a_ramp():
+    # tau y' = x - y, x = 2 t (degC), y(0) = x(0) = 0: y = 2 (t - tau + tau e^(-t/tau))
+    t = np.arange(0.0, 50.0, 0.5)
+    tau, c = 4.0, np.array([1.5, -0.5, 0.2])
+    m = Model.from_spec('offset(lag(temperature))', 1)
+    m.effects[0][0].refs['mean'] = 30.0
+    b = np.tile(B[:1], (len(t), 1))
+    y = 2.0 * (t - tau + tau * np.exp(-t / tau))
+    got = m.forward(1, np.array([*c, tau]), b, SensorContext(t=t, temp=2 * t))
+    np.testing.assert_allclose(got, b + (y - 30.0)[:, None] * c, rtol=1e-12, atol=1e-9)
 
 
 # -- calibration file and simulator --------------------------------------------------------------

@@ -35,7 +35,6 @@ declarations and never from effect names.  This module also holds the paper 004 
 and the signal helpers every effect shares.
 """
 from dataclasses import dataclass, field
-import math
 
 from magcal_ros.core.geometry.tensor import symmetric_traceless  # noqa: F401 - re-exported
 import numpy as np
@@ -450,7 +449,7 @@ def channel_name(name):
 
 def lag_coefficients(dt, tau):
     """
-    (a, b0, b1) of one step of the lag tau dy/dt = x - y: y_k = a y_k-1 + b0 x_k + b1 x_k-1.
+    Return (a, b0, b1) of one step of tau dy/dt = x - y: y_k = a y_k-1 + b0 x_k + b1 x_k-1.
 
     The one discretisation of the lag, for the batch filter (:func:`first_order_lag`) and
     the live one (:func:`lag_step`): exact when x is linear between samples (the
@@ -487,13 +486,14 @@ def first_order_lag(t, x, tau):
     y = x.copy()
     if len(x) < 2:
         return y
-    a, b0, b1 = lag_coefficients(np.diff(t), tau)
-    if np.ptp(a) == 0 and np.ptp(b0) == 0 and np.ptp(b1) == 0:
+    dt = np.diff(t)
+    if np.ptp(dt) == 0:
         from scipy.signal import lfilter
+        a, b0, b1 = (float(c) for c in lag_coefficients(dt[0], tau))
         # y_k = b0 x_k + (b1 x_k-1 + a y_k-1), in lag_step's order; the state after y_0 = x_0
-        y[1:], _ = lfilter([b0[0], b1[0]], [1.0, -a[0]], x[1:],
-                           zi=[b1[0] * x[0] + a[0] * x[0]])
+        y[1:], _ = lfilter([b0, b1], [1.0, -a], x[1:], zi=[b1 * x[0] + a * x[0]])
         return y
+    a, b0, b1 = lag_coefficients(dt, tau)
     # y_k = A_k y_k-1 + U_k; doubling composes each step with the d before it
     u = np.concatenate([x[:1], b0 * x[1:] + b1 * x[:-1]])
     g = np.concatenate([[0.0], a])

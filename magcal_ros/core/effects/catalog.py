@@ -292,7 +292,7 @@ class TokenEffect(Effect):
         return tuple(dict.fromkeys(s for p in self.parts for s in p.driver.signals))
 
     def default_params(self):
-        """The parts' own starting values (a lag's tau); zero for a mapped token."""
+        """Start at the parts' own values (a lag's tau); zero for a mapped token."""
         if self.comp.sign != 1.0 or self.comp.lead:
             return np.zeros(self.n_params)
         return np.concatenate([p.default_params() for p in self.parts])
@@ -320,7 +320,7 @@ class TokenEffect(Effect):
         return any(p.reads_lin for p in self.parts)
 
     def _refs(self):
-        """The drivers' reference values, from the token's (caches cleared when they change)."""
+        """Map the token's reference values onto the drivers' (caches cleared on a change)."""
         if self._seen != self.refs:
             self._seen = dict(self.refs)
             self._driver_refs = dict(self.comp.fixed, **{
@@ -435,7 +435,7 @@ def _field_rate(args):
 
 
 def _min_span(v, least, what):
-    """A check: ``v`` spans at least ``least`` (its unit), else ``what(sensor, span)``."""
+    """Check that ``v`` spans at least ``least`` (its unit), else ``what(sensor, span)``."""
     def check(eff, ctx):
         a = dv.variable_values(ctx, v)
         span = float(np.nanmax(a) - np.nanmin(a))
@@ -509,7 +509,7 @@ TOKENS = {
 
 
 def token_class(name):
-    """The :class:`TokenEffect` class of token ``name`` (what the registry holds)."""
+    """Make the :class:`TokenEffect` class of token ``name`` (what the registry holds)."""
     row = TOKENS[name]
     attrs = {'name': name, 'row': row, 'usage': row.usage, '__doc__': row.doc}
     if row.lag:
