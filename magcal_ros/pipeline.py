@@ -603,8 +603,9 @@ def refit_recent(data, active, field_nt, geometry=None, field_reference=None, se
         # uncertainty moves the corrected field by at most noise_sds noise sds
         noise = np.array([res.sigma_nt[j - 1] if j else np.nan for j, *_ in info])
         tol = np.where([unit == 'nT' for *_, unit in info], noise, noise / f0)
-        return open_ & (res.stderr <= UNDETERMINED_RATIO * sd) & (
-            res.stderr <= noise_sds * tol)
+        # an attitude-aided fit appends the world field's angles after these parameters
+        se = res.stderr[:model.n_params]
+        return open_ & (se <= UNDETERMINED_RATIO * sd) & (se <= noise_sds * tol)
 
     # offsets first, the rest held: what a vehicle's turns determine best; then the whole
     # sensor map open, and what that determines to the noise joins them

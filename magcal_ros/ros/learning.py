@@ -39,6 +39,7 @@ from magcal_ros.io.calfile import dump_calibration, save_calibration
 from magcal_ros.pipeline import refit_recent
 from magcal_ros.ros import params as prm
 from magcal_ros.ros.conversions import stamp_to_seconds
+from magcal_ros.ros.run import yield_cpu
 import numpy as np
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
@@ -154,8 +155,7 @@ class LearningMixin:
 
     def _learn_refit(self, now):
         """Worker thread: refit, publish the estimate, adopt when ready and auto_adopt."""
-        from magcal_ros.ros.calibration_node import _yield_cpu
-        _yield_cpu()
+        yield_cpu()
         s = prm.calibration_settings(self)
         geometry = self._geometry(s) or {}
         ref = getattr(self, '_learn_field_ref', {})

@@ -180,12 +180,11 @@ def fit_attitude(data, model, field_nt=None, mode='tilt', inclination_deg=None,
     AttitudeResult
 
     """
-    from magcal_ros.core.data.magnitude import reference_magnitude
     if data.attitude is None:
         raise ValueError('the data carry no attitude (att_qw..att_qz, an Imu topic or a '
                          'vehicle log): fit without --attitude, or add it')
     model = with_attitude(model, mode, data.n_sensors)
-    f = reference_magnitude(data, field_nt)
+    f = data.reference_magnitude(field_nt)
     f0 = float(np.mean(f))
     eff, sl = attitude_reference(model)
     info = model.param_info()
@@ -204,12 +203,21 @@ def fit_attitude(data, model, field_nt=None, mode='tilt', inclination_deg=None,
         init[sl] = eff.start(data.attitude_matrix(), cor)
     elif init is None:
         init = attitude_start(data, model, f)
+    elif len(init) == model.n_params - eff.n_params and sl.stop == model.n_params:
+        # the parameters of the model without the attitude (a calibration in use): the
+        # world field's angles from its corrected sensor 1
+        init = np.concatenate([np.asarray(init, float), np.zeros(eff.n_params)])
+        init[sl] = eff.start(data.attitude_matrix(),
+                             model.correct(1, init, data.raw[0], data.context(1)))
     if not np.isfinite(eff.sigma_nt):
         eff.sigma_nt = _start_sigma(data, model, init, f)
     fit_kwargs.pop('constrained', None)
     fit_kwargs.setdefault('max_nfev', 1000)
     # the constrained mode's priors (each effect's own, Effect.prior: none on the offsets,
     # which a scale's prior holds along with it where the motion leaves both open)
+    # the caller's own priors (a calibration in use, held where the data are silent:
+    # pipeline.refit_recent) stand instead of the constrained mode's
+    own = list(fit_kwargs.pop('extra_priors', None) or [])
     extra = []
     frame = str(data.meta.get('attitude_frame', '')).upper()
     if inclination_deg is not None and frame in ('NED', 'ENU'):
@@ -217,9 +225,9 @@ def fit_attitude(data, model, field_nt=None, mode='tilt', inclination_deg=None,
         extra = [(sl.start, inc, INCLINATION_PRIOR_SD)]
         if init[sl.start] * inc < 0:
             init[sl.start] = inc
-    result = fit(data, model, field_nt=field_nt, init=init, constrained=True,
-                 extra_priors=extra, **fit_kwargs)
-    open_ = prior_held(result, priors_for(model, {}, constrained=True) + extra)
+    result = fit(data, model, field_nt=field_nt, init=init, constrained=not own,
+                 extra_priors=extra + own, **fit_kwargs)
+    open_ = prior_held(result, (own or priors_for(model, {}, constrained=True)) + extra)
     result, rho = _inflate_for_correlation(result)
     label = [f'{lab}.{nm}@{j}' for j, lab, nm, _ in info]
     open_ = {i for i in open_ if info[i][0] and info[i][1] in _KINDS}
