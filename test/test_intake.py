@@ -26,7 +26,7 @@ import sys
 import threading
 import time
 
-from magcal_ros.ros import calibration_node, intake, run
+from magcal_ros.ros import intake, run
 from magcal_ros.ros.intake import Intake
 import pytest
 import rclpy
