@@ -555,3 +555,23 @@ def test_ulog_with_damaged_data_is_read_with_a_warning(tmp_path):
     assert any('pyulog found damaged data' in str(x) for x in d.meta['warnings'])
     # what was written before the damage is read exactly
     np.testing.assert_allclose(d.raw[0], raw1[:d.n_samples], atol=0.05)
+
+
+def test_a_long_log_is_reduced_like_a_long_record(ap_log):
+    """Above the reduction threshold: the sample, and a record whose chunks are every epoch."""
+    path, (t, q, cur, raw1, raw2) = ap_log
+    whole = read_vehicle_log(path)
+    sample, rec = cli.load_record(str(path), reduce_above=500)
+    assert rec is not None and rec.size == N
+    # (the sample keeps at least 20 000 epochs: here all of them)
+    assert sample.meta['reduction']['epochs'] == N and sample.n_samples == N
+    assert sample.meta['noise_blocks']
+    assert sample.meta['igrf']['date'] == '2024-02-08'          # the log's meta kept
+    pieces = list(rec.chunks(rows=512))
+    assert [p.n_samples for p in pieces] == [512, 512, 176]
+    np.testing.assert_array_equal(np.concatenate([p.raw for p in pieces], axis=1), whole.raw)
+    dots = np.einsum('ij,ij->i', np.concatenate([p.attitude for p in pieces]), whole.attitude)
+    np.testing.assert_allclose(np.abs(dots), 1.0, atol=1e-12)         # q and -q: one rotation
+    # the sample's epochs are epochs of the log, with their readings
+    idx = np.searchsorted(whole.t, sample.t)
+    np.testing.assert_array_equal(sample.raw, whole.raw[:, idx])

@@ -402,7 +402,7 @@ def _read(log, path, text):
             param = ', '.join(f'{x:.0f}' for x in ofs_p[0])
             out.warnings.append(
                 f"compass {j}: its logged offsets ({logged} mG) are not its parameters' "
-                f"({param} mG): the soft-iron and scale parameters undone may be another "
+                f'({param} mG): the soft-iron and scale parameters undone may be another '
                 "compass's")
         dia = np.column_stack([log.param_at(_pname(log, 'DIA', j, a), t, 1.0) for a in 'XYZ'])
         odi = np.column_stack([log.param_at(_pname(log, 'ODI', j, a), t, 0.0) for a in 'XYZ'])
