@@ -307,6 +307,30 @@ def test_parameters_that_are_not_the_logged_compass_s_are_named(tmp_path):
     assert not any(x.startswith('compass 2') for x in notes)
 
 
+@pytest.mark.parametrize('with_att', [True, False])
+def test_the_ekf_core_the_ahrs_used(tmp_path, with_att):
+    """Core 1 is ATT's (core 0, the primary, 10 deg off in yaw); without ATT, EK3_PRIMARY's."""
+    t, q, cur, raw1, raw2 = _scenario(6, 200)
+    r = Rotation.from_quat(q, scalar_first=True)
+    off = r * Rotation.from_euler('z', 10, degrees=True)
+    df = w.DataFlash()
+    df.params(_ap_params({'EK3_PRIMARY': 0 if with_att else 1}))
+    us = np.round(t * 1e6)
+    z = np.zeros(len(t))
+    f = raw1 / 100.0
+    df.write('MAG', TimeUS=us, I=z, MagX=f[:, 0], MagY=f[:, 1], MagZ=f[:, 2], Health=z + 1)
+    for core, rot in ((0, off), (1, r)):
+        qq = rot.as_quat(scalar_first=True)
+        df.write('XKQ', TimeUS=us, C=z + core, Q1=qq[:, 0], Q2=qq[:, 1], Q3=qq[:, 2],
+                 Q4=qq[:, 3])
+    if with_att:
+        yaw, pitch, roll = r.as_euler('ZYX', degrees=True).T
+        df.write('ATT', TimeUS=us, Roll=roll, Pitch=pitch, Yaw=np.mod(yaw, 360.0))
+    d = read_vehicle_log(df.save(tmp_path / 'cores.bin'))
+    assert d.meta['attitude_source'] == 'ArduPilot EKF3 XKQ core 1'
+    assert np.abs(np.einsum('ij,ij->i', d.attitude, q)).min() > 1 - 1e-6
+
+
 def test_a_log_without_attitude_is_plain_compass_data_with_a_warning(tmp_path):
     path, _ = _write_ap(tmp_path / 'noatt.bin', n=200, attitude=None)
     d = read_vehicle_log(path)
