@@ -307,6 +307,30 @@ def test_parameters_that_are_not_the_logged_compass_s_are_named(tmp_path):
     assert not any(x.startswith('compass 2') for x in notes)
 
 
+@pytest.mark.parametrize('with_att', [True, False])
+def test_the_ekf_core_the_ahrs_used(tmp_path, with_att):
+    """Core 1 is ATT's (core 0, the primary, 10 deg off in yaw); without ATT, EK3_PRIMARY's."""
+    t, q, cur, raw1, raw2 = _scenario(6, 200)
+    r = Rotation.from_quat(q, scalar_first=True)
+    off = r * Rotation.from_euler('z', 10, degrees=True)
+    df = w.DataFlash()
+    df.params(_ap_params({'EK3_PRIMARY': 0 if with_att else 1}))
+    us = np.round(t * 1e6)
+    z = np.zeros(len(t))
+    f = raw1 / 100.0
+    df.write('MAG', TimeUS=us, I=z, MagX=f[:, 0], MagY=f[:, 1], MagZ=f[:, 2], Health=z + 1)
+    for core, rot in ((0, off), (1, r)):
+        qq = rot.as_quat(scalar_first=True)
+        df.write('XKQ', TimeUS=us, C=z + core, Q1=qq[:, 0], Q2=qq[:, 1], Q3=qq[:, 2],
+                 Q4=qq[:, 3])
+    if with_att:
+        yaw, pitch, roll = r.as_euler('ZYX', degrees=True).T
+        df.write('ATT', TimeUS=us, Roll=roll, Pitch=pitch, Yaw=np.mod(yaw, 360.0))
+    d = read_vehicle_log(df.save(tmp_path / 'cores.bin'))
+    assert d.meta['attitude_source'] == 'ArduPilot EKF3 XKQ core 1'
+    assert np.abs(np.einsum('ij,ij->i', d.attitude, q)).min() > 1 - 1e-6
+
+
 def test_a_log_without_attitude_is_plain_compass_data_with_a_warning(tmp_path):
     path, _ = _write_ap(tmp_path / 'noatt.bin', n=200, attitude=None)
     d = read_vehicle_log(path)
@@ -555,3 +579,23 @@ def test_ulog_with_damaged_data_is_read_with_a_warning(tmp_path):
     assert any('pyulog found damaged data' in str(x) for x in d.meta['warnings'])
     # what was written before the damage is read exactly
     np.testing.assert_allclose(d.raw[0], raw1[:d.n_samples], atol=0.05)
+
+
+def test_a_long_log_is_reduced_like_a_long_record(ap_log):
+    """Above the reduction threshold: the sample, and a record whose chunks are every epoch."""
+    path, (t, q, cur, raw1, raw2) = ap_log
+    whole = read_vehicle_log(path)
+    sample, rec = cli.load_record(str(path), reduce_above=500)
+    assert rec is not None and rec.size == N
+    # (the sample keeps at least 20 000 epochs: here all of them)
+    assert sample.meta['reduction']['epochs'] == N and sample.n_samples == N
+    assert sample.meta['noise_blocks']
+    assert sample.meta['igrf']['date'] == '2024-02-08'          # the log's meta kept
+    pieces = list(rec.chunks(rows=512))
+    assert [p.n_samples for p in pieces] == [512, 512, 176]
+    np.testing.assert_array_equal(np.concatenate([p.raw for p in pieces], axis=1), whole.raw)
+    dots = np.einsum('ij,ij->i', np.concatenate([p.attitude for p in pieces]), whole.attitude)
+    np.testing.assert_allclose(np.abs(dots), 1.0, atol=1e-12)         # q and -q: one rotation
+    # the sample's epochs are epochs of the log, with their readings
+    idx = np.searchsorted(whole.t, sample.t)
+    np.testing.assert_array_equal(sample.raw, whole.raw[:, idx])

@@ -39,11 +39,12 @@ taken at each sample's time (a PARM message changes them from its time on).  The
 values are whole milligauss (100 nT): F, o and m are each rounded to 50 nT.
 
 Attitude: the EKF's quaternion of the autopilot body (EKF3 ``XKQ``, ``XKQ1``; EKF2 ``NKQ``,
-``NKQ1``; the one AHRS_EKF_TYPE selects first, core 0), Hamilton body-to-NED: NavEKF3's
-``getRotationBodyToNED`` is that quaternion's matrix times the trim rotation.  It is used
-only when it agrees with ``ATT`` within :data:`EKF_ATT_AGREEMENT_DEG` (median): ATT is what the
-AHRS used (the active core, or DCM: a ground-handled ArduPlane 4.2 log has XKQ at identity
-throughout while ATT turns), and a warning says when it does not.  Otherwise, and without EKF
+``NKQ1``; the one AHRS_EKF_TYPE selects first), Hamilton body-to-NED: NavEKF3's
+``getRotationBodyToNED`` is that quaternion's matrix times the trim rotation.  Of the cores
+logged, the one closest to ``ATT`` (median angle) is used, when within
+:data:`EKF_ATT_AGREEMENT_DEG`: ATT is what the AHRS used (the active core, or DCM: a
+ground-handled ArduPlane 4.2 log has XKQ at identity throughout while ATT turns), and a
+warning says when no core agrees.  Otherwise, and without EKF
 quaternions, ``ATT`` roll, pitch, yaw (the vehicle body: AHRS_TRIM applied) with the trim
 removed: R_autopilot = R(ATT) R(AHRS_TRIM_X, _Y, _Z) (AP_AHRS: vehicle = autopilot x
 the transposed trim rotation).
@@ -402,7 +403,7 @@ def _read(log, path, text):
             param = ', '.join(f'{x:.0f}' for x in ofs_p[0])
             out.warnings.append(
                 f"compass {j}: its logged offsets ({logged} mG) are not its parameters' "
-                f"({param} mG): the soft-iron and scale parameters undone may be another "
+                f'({param} mG): the soft-iron and scale parameters undone may be another '
                 "compass's")
         dia = np.column_stack([log.param_at(_pname(log, 'DIA', j, a), t, 1.0) for a in 'XYZ'])
         odi = np.column_stack([log.param_at(_pname(log, 'ODI', j, a), t, 0.0) for a in 'XYZ'])
@@ -478,49 +479,75 @@ def _att_attitude(log):
     return tab['t'], r.as_quat(scalar_first=True)
 
 
-def _ekf_attitude(log):
-    """Return (t, (M, 4) quaternions, source) of the EKF's XKQ or NKQ (core 0), or None."""
+def _ekf_attitudes(log):
+    """
+    Return [(t, (M, 4) quaternions, source)] of the EKF's cores (XKQ or NKQ), or [].
+
+    The EKF AHRS_EKF_TYPE selects first (EKF3 otherwise); every core it logged, the primary
+    (EK3_PRIMARY, EK2_PRIMARY, default 0) first; old logs: XKQ1/NKQ1 (core 0).
+    """
     ekf = log.param('AHRS_EKF_TYPE')
-    order = [('XKQ', 'EKF3'), ('NKQ', 'EKF2')]
+    order = [('XKQ', 'EKF3', 'EK3_PRIMARY'), ('NKQ', 'EKF2', 'EK2_PRIMARY')]
     if ekf == 2:
         order.reverse()
-    for name, label in order:
+    for name, label, primary in order:
         tab = log.table(name) if log.count(name) else log.table(f'{name}1')
         if tab is None:
             continue
-        if 'C' in tab:
-            core = int(np.min(tab['C']))
+        if 'C' not in tab:
+            q = np.column_stack([tab['Q1'], tab['Q2'], tab['Q3'], tab['Q4']])
+            return [(tab['t'], q, f'ArduPilot {label} {name}1 core 0')]
+        first = int(log.param(primary, 0.0))
+        cores = sorted(np.unique(tab['C']).astype(int).tolist(), key=lambda c: c != first)
+        out = []
+        for core in cores:
             sel = tab['C'] == core
-            tab = {c: v[sel] for c, v in tab.items()}
-            src = f'ArduPilot {label} {name} core {core}'
-        else:
-            src = f'ArduPilot {label} {name}1 core 0'
-        return tab['t'], np.column_stack([tab['Q1'], tab['Q2'], tab['Q3'], tab['Q4']]), src
-    return None
+            q = np.column_stack([tab['Q1'][sel], tab['Q2'][sel], tab['Q3'][sel],
+                                 tab['Q4'][sel]])
+            out.append((tab['t'][sel], q, f'ArduPilot {label} {name} core {core}'))
+        return out
+    return []
+
+
+def _disagreement_deg(ekf, att):
+    """Median angle (deg) between an EKF core's attitude and ATT's, or None (no overlap)."""
+    from magcal_ros.core.geometry.attitude import interpolate
+    t, q, _ = ekf
+    norm = np.linalg.norm(q, axis=1)
+    ok = (t >= att[0].min()) & (t <= att[0].max()) & (np.abs(norm - 1) < 1e-3)
+    if ok.sum() < 2:
+        return None
+    qa = interpolate(att[0], att[1], t[ok])
+    dot = np.abs(np.einsum('ij,ij->i', q[ok] / norm[ok, None], qa))
+    return float(np.degrees(np.median(2 * np.arccos(np.clip(dot, -1, 1)))))
 
 
 def _attitude(log, out):
-    ekf = _ekf_attitude(log)
+    """
+    Set the log's attitude: the EKF core that agrees with ATT, else ATT.
+
+    With ATT in the log, the core closest to it (median angle) within
+    :data:`EKF_ATT_AGREEMENT_DEG`: the one the AHRS used; none within it, ATT itself (with a
+    warning).  Without ATT, the primary core.
+    """
+    cores = _ekf_attitudes(log)
     att = _att_attitude(log)
     att_src = 'ArduPilot ATT (roll, pitch, yaw; AHRS_TRIM removed)'
-    if ekf is not None and att is not None:
-        from magcal_ros.core.geometry.attitude import interpolate
-        t, q, src = ekf
-        ok = (t >= att[0].min()) & (t <= att[0].max())
-        norm = np.linalg.norm(q, axis=1)
-        ok &= np.abs(norm - 1) < 1e-3
-        if ok.sum() >= 2:
-            qa = interpolate(att[0], att[1], t[ok])
-            dot = np.abs(np.einsum('ij,ij->i', q[ok] / norm[ok, None], qa))
-            ang = float(np.degrees(np.median(2 * np.arccos(np.clip(dot, -1, 1)))))
-            if ang > EKF_ATT_AGREEMENT_DEG:
+    chosen = cores[0] if cores else None
+    if cores and att is not None:
+        angles = [_disagreement_deg(c, att) for c in cores]
+        known = [(a, k) for k, a in enumerate(angles) if a is not None]
+        if known:
+            best, k = min(known)
+            chosen = cores[k] if best <= EKF_ATT_AGREEMENT_DEG else None
+            if chosen is None:
                 out.warnings.append(
-                    f'{src} differs from ATT by {ang:.1f} deg (median): the AHRS was not '
-                    'using it (another core, or DCM); the attitude is taken from ATT')
-                ekf = None
-    if ekf is not None:
-        out.attitude = Stream(ekf[0], ekf[1], ekf[2])
-        out.attitude_source = ekf[2]
+                    f'{cores[k][2]} differs from ATT by {best:.1f} deg (median; the other '
+                    'cores more): the AHRS was not using the EKF (DCM); the attitude is '
+                    'taken from ATT')
+    if chosen is not None:
+        out.attitude = Stream(chosen[0], chosen[1], chosen[2])
+        out.attitude_source = chosen[2]
     elif att is not None:
         out.attitude = Stream(att[0], att[1], att_src)
         out.attitude_source = att_src

@@ -13,8 +13,10 @@
 # limitations under the License.
 
 """
-What the vehicle-log front-ends and :mod:`magcal_ros.io.vehicle` share: the streams a
-front-end reads, the error, the units and the GPS site (docs/design.md §1, "Vehicle logs").
+What the vehicle-log front-ends and :mod:`magcal_ros.io.vehicle` share.
+
+The streams a front-end reads, the error, the units and the GPS site (docs/design.md §1,
+"Vehicle logs").
 
 The front-ends (:mod:`magcal_ros.io.dataflash`, :mod:`magcal_ros.io.ulog`) fill a
 :class:`VehicleLog`; :mod:`magcal_ros.io.vehicle` turns it into a Dataset.
