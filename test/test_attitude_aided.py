@@ -174,3 +174,30 @@ def test_the_loop_on_a_vehicle_finds_the_motor_current_in_amperes(tmp_path):
         par = aux['params'][name]
         assert par['unit'] == 'nT/A'
         assert abs(par['value'] - truth) < 4 * par['stderr'], (name, par)
+
+
+REAL = 'data/real/dronekit-log171/log171.bin'
+
+
+def test_a_real_flight_log_calibrates_with_its_attitude_and_current():
+    # an ArduCopter 3.3 flight (data/real/dronekit-log171: three compasses, ATT, CURR):
+    # the roll and pitch observe the field (the log's GPS gives IGRF's magnitude and
+    # inclination, -65.96 deg at CMAC, Canberra), and the battery current explains most of
+    # what the internal compasses 2 and 3 leave, in nT/A
+    import pathlib
+    repo = pathlib.Path(__file__).resolve().parents[1]
+    base = magcal('fit', str(repo / REAL), '--allow-gaps', '--json', '-q', cwd=repo)
+    assert base.returncode == 0, base.stderr
+    b = json.loads(base.stdout)
+    assert b['attitude']['mode'] == 'tilt' and b['field_reference']['kind'] == 'igrf'
+    wf = b['attitude']['world_field']
+    assert abs(wf['inclination_deg'] - b['field_reference']['inclination_deg']) < 3 * max(
+        wf['inclination_stderr_deg'], 0.5)
+    cur = magcal('fit', str(repo / REAL), '--allow-gaps', '--json', '-q', '--model',
+                 'base,aux:aux_battery_current', cwd=repo)
+    c = json.loads(cur.stdout)
+    for j in ('2', '3'):
+        assert c['scalar_rms_nt'][j] < 0.6 * b['scalar_rms_nt'][j], (j, b, c)
+    s3 = [e for e in c['calibration']['sensors'][2]['effects'] if e['name'] == 'aux'][0]
+    vz = s3['params']['vz']
+    assert vz['unit'] == 'nT/A' and vz['value'] > 10 * vz['stderr']
