@@ -503,7 +503,8 @@ def attitude_option(args, data):
     """Return the attitude mode of ``--attitude`` for ``data`` ('tilt', 'full' or None)."""
     from magcal_ros.pipeline import attitude_mode
     if getattr(args, 'planar', False) or getattr(args, 'heading_unknown', False):
-        return None if getattr(args, 'attitude', 'auto') == 'auto' else _attitude_conflict(args)
+        return (None if getattr(args, 'attitude', 'auto') in ('auto', 'off')
+                else _attitude_conflict(args))
     try:
         return attitude_mode(getattr(args, 'attitude', 'auto'), data)
     except ValueError as exc:
