@@ -527,7 +527,6 @@ def token_class(name):
     attrs = {'name': name, 'row': row, 'usage': row.usage, '__doc__': row.doc}
     if row.lag:
         attrs['reduces'] = _lag_reduces
-        attrs['tau0_s'] = dv.Lagged.tau0_s
     return type(f'Token_{name}', (TokenEffect,), attrs)
 
 
