@@ -26,7 +26,6 @@ An effect is a *coupling* applied to a *driver* on a *scope* (docs/formulas.md):
 - :mod:`.couplings`: how a driver enters the reading (offset, scale, linear, nonorth,
   rotation, field);
 - :mod:`.terms`: a coupling of a driver composed into an Effect, and ``drop``;
-- :mod:`.aliases`: today's tokens as compositions;
 - :mod:`.formula`: the one parser, :func:`parse` (CLI ``--model``, the node's ``model``
   parameter, the calibration file, ``magcal simulate --truth``);
 - :mod:`.registry`: named effects and plug-ins.

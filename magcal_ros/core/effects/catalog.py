@@ -20,7 +20,12 @@ effects of their own: the model's linear core, which the grammar's couplings cha
 Every driven token (temperature, drift, drift2, nonlinearity, aux:<column>, field_rate,
 step(T), periodic(F), lag(v), aux_poly(v, D)) is a composition coupling(driver) of the
 grammar (:data:`TOKENS`), evaluated by the grammar's code (:class:`~.terms.Part`) under
-the token's own parameter names and reference values.
+the token's own parameter names and reference values, so that every calibration file
+written before the grammar loads and corrects as it did.  Where a token differs from the
+composition written out (docs/formulas.md): drift is referred to the first sample (the
+composition ``offset(t)`` to the mean), ``aux_poly`` and ``drift2`` are unscaled powers
+(``poly`` scales by the half range), ``nonlinearity`` has the degrees 2 and 3 only,
+``field_rate`` is written with -tau (s).
 """
 
 from magcal_ros.core.effects import drivers as dv
@@ -220,6 +225,10 @@ class Offset(Effect):
     def params_from_linear(self, parts):
         return parts.offset
 
+    def expansion(self, at=''):
+        """Return the composition the token stands for, ``offset(1)@2`` (``at``: '@2')."""
+        return 'offset(1)' + at
+
 
 # -- today's tokens: compositions of the grammar ---------------------------------------------
 
@@ -315,6 +324,10 @@ class TokenEffect(Effect):
                 return why
         return self.row.check(self, ctx) if self.row.check else None
 
+    def expansion(self, at=''):
+        """Return the composition the token stands for, ``offset(t)@2`` (``at``: '@2')."""
+        return ' + '.join(p.text + at for p in self.parts) + self.comp.note
+
     def depends_on_lin(self):
         """Tell whether a part reads the linear reading."""
         return any(p.reads_lin for p in self.parts)
@@ -342,9 +355,9 @@ class TokenEffect(Effect):
         return out
 
 
-def _channel_arg(args, usage):
+def _channel_arg(args, example):
     if len(args) != 1:
-        raise ValueError(f'{usage} needs one channel')
+        raise ValueError(f'{example.partition("(")[0]} needs one channel, e.g. {example}')
     return channel_name(args[0])
 
 
@@ -374,7 +387,7 @@ def _nonlinearity(args):
 
 
 def _aux(args):
-    ch = _channel_arg(args, 'aux:<column>') if args else 'aux_current'
+    ch = _channel_arg(args, 'aux:aux_motor_current') if args else 'aux_current'
 
     return Composition((), [('offset', dv.Variable(ch))], ('vx', 'vy', 'vz'), ('nT/unit',) * 3,
                        refs={'a0': ('mean', ch, ch + '0')}, label='aux:' + ch)
@@ -422,7 +435,7 @@ def _periodic(args):
 
 
 def _lag(args):
-    ch = _channel_arg(args, 'lag(temperature|aux_<name>)')
+    ch = _channel_arg(args, 'lag(temperature) or lag(aux_motor_current)')
     u = 'nT/degC' if ch == 'temperature' else 'nT/unit'
     return Composition((ch,), [('offset', dv.Lagged.from_args([ch], {}))],
                        ('cx', 'cy', 'cz', 'tau'), (u, u, u, 's'),
@@ -514,7 +527,6 @@ def token_class(name):
     attrs = {'name': name, 'row': row, 'usage': row.usage, '__doc__': row.doc}
     if row.lag:
         attrs['reduces'] = _lag_reduces
-        attrs['tau0_s'] = dv.Lagged.tau0_s
     return type(f'Token_{name}', (TokenEffect,), attrs)
 
 

@@ -32,12 +32,11 @@ calibration file and ``magcal simulate --truth`` all read models through :func:`
 from dataclasses import dataclass
 import re
 
-from magcal_ros.core.effects import aliases
 from magcal_ros.core.effects import couplings as cp
 from magcal_ros.core.effects import drivers as dv
 from magcal_ros.core.effects.base import format_arg, parse_number
 from magcal_ros.core.effects.drivers import FormulaError
-from magcal_ros.core.effects.registry import make_catalog_effect
+from magcal_ros.core.effects.registry import BASE, make_catalog_effect
 from magcal_ros.core.effects.terms import ComposedEffect, FieldEffect
 
 _NAME = re.compile(r'^[A-Za-z_][A-Za-z0-9_.:]*$')
@@ -139,7 +138,8 @@ class Term:
     signals : tuple of str
         Channels the term reads (keys of ``base.SIGNALS`` or aux_<name>).
     expansion : str or None
-        The composition an alias stands for (:mod:`.aliases`).
+        The composition a catalog token stands for (``offset(t)@2`` for ``drift@2``;
+        :data:`.catalog.TOKENS`), None for the constant linear map and plug-ins.
     window : tuple or None
         (t0, t1) s of a ``drop`` term.
 
@@ -263,8 +263,11 @@ def _alias_term(raw, core_text, scope_text):
                            'for composed terms, e.g. offset(t)@alike')
     text_out = core if scope in ('each', 'array') else f'{core}@{scope}'
     signals = tuple(eff.signals) if eff is not None else ()
+    at = '' if scope in ('each', 'array') else f'@{scope}'
+    expansion = (' + '.join(BASE) if eff is None else
+                 eff.expansion(at) if hasattr(eff, 'expansion') else None)
     return Term(text=text_out, kind='alias', core=core, scope=scope, signals=signals,
-                expansion=aliases.expansion(text_out))
+                expansion=expansion)
 
 
 @dataclass(frozen=True)
