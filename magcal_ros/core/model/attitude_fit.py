@@ -41,7 +41,7 @@ from dataclasses import dataclass
 
 from magcal_ros.core.effects.attitude_ref import attitude_reference, MODES
 from magcal_ros.core.model.fitting import fit, initial_params, priors_for
-from magcal_ros.core.model.planar import _inflate_for_correlation, _KINDS
+from magcal_ros.core.model.planar import inflate_for_correlation, SENSOR_MAP_KINDS
 from magcal_ros.core.model.spec import Model
 import numpy as np
 
@@ -228,9 +228,9 @@ def fit_attitude(data, model, field_nt=None, mode='tilt', inclination_deg=None,
     result = fit(data, model, field_nt=field_nt, init=init, constrained=not own,
                  extra_priors=extra + own, **fit_kwargs)
     open_ = prior_held(result, (own or priors_for(model, {}, constrained=True)) + extra)
-    result, rho = _inflate_for_correlation(result)
+    result, rho = inflate_for_correlation(result)
     label = [f'{lab}.{nm}@{j}' for j, lab, nm, _ in info]
-    open_ = {i for i in open_ if info[i][0] and info[i][1] in _KINDS}
+    open_ = {i for i in open_ if info[i][0] and info[i][1] in SENSOR_MAP_KINDS}
     undetermined = tuple(label[k] for k in sorted(open_))
     determined = tuple(label[k] for k in range(model.n_params)
                        if k not in open_ and info[k][0])

@@ -547,7 +547,7 @@ def serial_inflation(r):
 
     ``r`` (N, 3) residuals in time order (each row's components summed into one series
     per axis); rho is their lag-1 correlation (the AR(1) variance inflation of a mean,
-    Bartlett 1946, as :func:`magcal_ros.core.model.planar._inflate_for_correlation` widens a
+    Bartlett 1946, as :func:`magcal_ros.core.model.planar.inflate_for_correlation` widens a
     planar fit).  An attitude's error is smooth (an EKF's drifts over tens of seconds): as
     N independent observations it would outweigh the compass and bend the fit to its drift.
     """

@@ -86,7 +86,7 @@ _HELD = {
 
 
 #: the effects whose parameters are judged determined or not (the constant sensor map)
-SENSOR_MAP_KINDS = _KINDS = ('offset', 'scale', 'nonorthogonality', 'soft_iron', 'misalignment')
+SENSOR_MAP_KINDS = ('offset', 'scale', 'nonorthogonality', 'soft_iron', 'misalignment')
 
 
 @dataclass(frozen=True)
@@ -115,7 +115,7 @@ class PlanarResult:
         (S,) horizontal and vertical field used for the heading error, nT.
     residual_correlation : numpy.ndarray
         (S,) lag-1 correlation of each sensor's scalar residual; the covariance is widened
-        by (1 + rho) / (1 - rho) for it (:func:`_inflate_for_correlation`).
+        by (1 + rho) / (1 - rho) for it (:func:`inflate_for_correlation`).
 
     """
 
@@ -218,12 +218,12 @@ def fit_planar(data, model, field_nt, *, prior_params=None, inclination_deg=None
         init = _planar_start(data, model, field_nt, p_prior, held, axes)
     result = fit(data, model, field_nt=field_nt, extra_priors=prior_list, init=init,
                  check_identifiability=False, **fit_kwargs)
-    result, rho = _inflate_for_correlation(result)
+    result, rho = inflate_for_correlation(result)
     # held or not, a parameter known no better than half a prior's width of its kind is
     # undetermined (a level turn's in-plane offsets: only their sum with the out-of-plane
     # angles times Z is seen; see effective offsets in planar_summary)
     open_ = {i for i in range(model.n_params)
-             if info[i][0] and info[i][1] in _KINDS and
+             if info[i][0] and info[i][1] in SENSOR_MAP_KINDS and
              not result.stderr[i] <= UNDETERMINED_RATIO * kind_sd[i]}
     label = [f'{lab}.{nm}@{j}' for j, lab, nm, _ in info]
     undetermined = tuple(label[k] for k in sorted(open_))
@@ -241,7 +241,7 @@ def fit_planar(data, model, field_nt, *, prior_params=None, inclination_deg=None
                         residual_correlation=rho)
 
 
-def _inflate_for_correlation(result):
+def inflate_for_correlation(result):
     """
     Return the fit with its covariance widened for correlated residuals, and the (S,) rho.
 
