@@ -36,7 +36,7 @@ PERSIST_S = 15.0
 
 @pytest.fixture(scope='module')
 def active():
-    """The calibration of the array made on a tumble before the drive."""
+    """Calibrate the array on a tumble before the drive (the active calibration)."""
     data, _ = simulate(n_samples=3000, rate_hz=20.0, trajectory='smooth', seed=1)
     return calibrate(data, 'base', F).result.calibration
 

@@ -41,7 +41,7 @@ RATE = 50.0
 
 
 def test_learning_node_adopts_a_persistent_change(make_node, ros_node, ros_executor,
-                                                   ros_namespace, tmp_path):
+                                                  ros_namespace, tmp_path):
     tumble, _ = simulate(n_samples=3000, rate_hz=20.0, trajectory='smooth', seed=1)
     run = calibrate(tumble, 'base', F)
     path = tmp_path / 'cal' / 'calibration.yaml'

@@ -95,7 +95,7 @@ class LearningMixin:
 
     @property
     def learner(self):
-        """The :class:`Learner` (None without ``learn``)."""
+        """Return the :class:`Learner` (None without ``learn``)."""
         return self._learner
 
     def _learn_activate(self, cal, doc, now=None):
@@ -110,7 +110,7 @@ class LearningMixin:
         self._learn_field_ref = dict(doc.get('field_reference') or {})
 
     def _learn_raw(self, j, t, b):
-        """A raw sample of sensor j (0-based), stamp t s, b (3,) nT: sets to the learner."""
+        """Match a raw sample of sensor j (0-based, stamp t s, b (3,) nT) into learning sets."""
         done = self._learn_matcher.add(j, t, b)
         if not done:
             return
@@ -122,7 +122,7 @@ class LearningMixin:
         self._learn_drain()
 
     def _learn_imu(self, msg):
-        """An Imu message: its orientation to the learner (unit quaternions only)."""
+        """Queue an Imu message's orientation for the learner (unit quaternions only)."""
         o = msg.orientation
         q = (o.w, o.x, o.y, o.z)
         if (msg.orientation_covariance[0] == -1 or not all(map(math.isfinite, q))

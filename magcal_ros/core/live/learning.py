@@ -86,6 +86,7 @@ parameters).  Only a valid proposal of a persistent change is *ready*, or one th
 the change adopted last (fitted on the sets since its onset, more than it had); it is adopted
 at once with ``auto_adopt``, else on request.
 """
+from collections import deque
 from dataclasses import dataclass, field
 
 from magcal_ros.core.data.dataset import Dataset
@@ -212,7 +213,7 @@ class Proposal:
 
 def detector_residual(cal, data, field_nt):
     """
-    The detector's residual of a calibration on sets: e (S, N) nT and the scalar r (S, N).
+    Return the detector's residual of a calibration on sets: e (S, N) nT, the scalar r (S, N).
 
     r_j = |b_j| - F with b_j the corrected field of sensor j; for an array the common mode is
     removed, e_j = r_j - median_{k != j} r_k (a change of the field cancels; a change of one
@@ -230,6 +231,9 @@ def detector_residual(cal, data, field_nt):
     others = np.stack([np.median(np.delete(r, j, axis=0), axis=0) for j in range(s)])
     return r - others, r
 
+
+#: the learner keeps the times of this many latest transients and adoptions (memory flat)
+KEEP_EVENTS = 100
 
 #: variance of the median of m independent unit normals (exact for m <= 4; pi / (2 m), a
 #: slight overestimate, beyond)
@@ -285,9 +289,12 @@ class Learner:
         self.changed = None                 # sensors (1-based) of the change adopted last
         self.last_z = None                  # (S,) z of the latest block
         self.last_block_t = None
-        self.transients = []                # (onset, end) s of changes not learned
+        #: (onset, end) s of the latest changes not learned (at most :data:`KEEP_EVENTS`)
+        self.transients = deque(maxlen=KEEP_EVENTS)
         self.proposal = None
-        self.adoptions = []                 # (t, improvement) of each adoption
+        #: (t, improvement) of the latest adoptions (at most :data:`KEEP_EVENTS`)
+        self.adoptions = deque(maxlen=KEEP_EVENTS)
+        self.n_transients = self.n_adoptions = 0
         self._last_refit = -np.inf
         self._data_from = None              # onset of the change adopted last, s
         self.sets_seen = 0
@@ -399,12 +406,13 @@ class Learner:
         self._since.append(exceed)
         if len(self._since) >= cfg.clear_blocks and not any(self._since[-cfg.clear_blocks:]):
             self.transients.append((self.onset, t_end))
+            self.n_transients += 1
             self.state = TRACKING
             self.onset = None
             self._since = []
 
     def persistent(self, now):
-        """True when the change on has lasted ``persist_s`` and persists (see the module)."""
+        """Tell whether the change on has lasted ``persist_s`` and persists (see the module)."""
         cfg = self.config
         if self.state not in (CHANGE, UNDETERMINED) or self.onset is None or not self._since:
             return False
@@ -421,7 +429,7 @@ class Learner:
         return tuple(int(j) for j in hit) or tuple(range(1, self.n + 1))
 
     def refit_due(self, now):
-        """True when a refit should run now (periodic, or a change just turned persistent)."""
+        """Tell whether a refit is due now (periodic, or a change just turned persistent)."""
         if self.active is None or self.state == READY:
             return False
         if self.persistent(now) and (self.proposal is None or not self.proposal.persistent):
@@ -430,7 +438,7 @@ class Learner:
 
     def window(self, since=None):
         """
-        The window's sets as a Dataset (chronological copies; with attitude when it covers).
+        Return the window's sets as a Dataset (chronological copies; attitude when it covers).
 
         ``since`` (s): only the sets from then on.  None when fewer than
         :attr:`LearnConfig.min_sets`.
@@ -571,6 +579,7 @@ class Learner:
         if self.state != READY or p is None:
             return None
         self.adoptions.append((float(now), p.improvement))
+        self.n_adoptions += 1
         onset = self.onset
         if p.persistent:
             self.changed = tuple(p.doc['provenance']['learning']['sensors_learned'])
@@ -585,8 +594,8 @@ class Learner:
         """JSON-ready state for /diagnostics: ``state``, ``message`` and values."""
         out = {'state': self.state, 'sets_seen': int(self.sets_seen),
                'window_sets': int(min(self._count, self.config.window_sets)),
-               'transients_not_learned': len(self.transients),
-               'adoptions': len(self.adoptions)}
+               'transients_not_learned': self.n_transients,
+               'adoptions': self.n_adoptions}
         if self.last_z is not None:
             out['z'] = [round(float(x), 3) for x in self.last_z]
         if self.onset is not None:
@@ -609,12 +618,15 @@ def feed(learner, data, refit_fn, auto_adopt=True, on_adopt=None):
     Parameters
     ----------
     learner : Learner
+        The learner, its active calibration set.
     data : Dataset
         (S, N, 3) raw nT with times (and attitude, temperatures, channels when known).
     refit_fn : callable
         As for :meth:`Learner.refit`.
     auto_adopt : bool
+        Adopt a ready proposal at once.
     on_adopt : callable, optional
+        Called as ``on_adopt(t, proposal)`` after each adoption.
 
     Returns
     -------
