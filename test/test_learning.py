@@ -129,3 +129,21 @@ def test_memory_is_bounded_by_the_window(active):
     assert window.t[-1] == pytest.approx(data.t[-1], abs=0.2)
     assert window.t[0] >= data.t[-1] - 10.0 - 1e-9
     assert len(learner._block) < RATE * learner.config.block_s + 1
+
+
+def test_bench_learning_runs(tmp_path):
+    """bench/learning.py with small settings: its table and JSON (CPU per set, memory)."""
+    import json
+    import pathlib
+    import subprocess
+    import sys
+    bench = pathlib.Path(__file__).resolve().parents[1] / 'bench' / 'learning.py'
+    proc = subprocess.run([sys.executable, str(bench), '--out-dir', str(tmp_path),
+                           '--rate', '200', '--duration', '20', '--segment-s', '10',
+                           '--persist-s', '5'], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    doc = json.loads((tmp_path / 'learning.json').read_text())
+    res = doc['results']
+    assert res['sets'] == 4000 and len(res['segments']) == 2
+    assert all(s['sets'] == 2000 and s['add_us_per_set'] > 0 for s in res['segments'])
+    assert doc['tables'][0] in proc.stdout
