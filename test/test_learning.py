@@ -24,7 +24,7 @@ not the learner's own figures.
 """
 from magcal_ros.core.data.simulate import set_truth_refs, SimConfig, simulate, Simulator
 from magcal_ros.core.live.learning import (ADOPTED, detector_residual, feed, LearnConfig,
-                                           Learner, TRACKING)
+                                           Learner, TRACKING, UNDETERMINED)
 from magcal_ros.pipeline import calibrate, refit_recent
 import numpy as np
 import pytest
@@ -83,6 +83,53 @@ def test_offset_step_is_learned_within_the_stated_time(active):
     p = adopted[0][1]
     assert p.improvement > 3 * p.stderr > 0
     assert learner.state in (ADOPTED, TRACKING)
+
+
+def test_one_sensor_learns_its_offset_step():
+    """An IMU's one magnetometer (no other sensor to compare with): learned from its turns."""
+    data, _ = simulate(n_samples=3000, rate_hz=20.0, trajectory='smooth', seed=1,
+                       n_sensors=1)
+    one = calibrate(data, 'base', F).result.calibration
+    cfg = SimConfig(n_sensors=1, rate_hz=RATE, trajectory='vehicle', attitude=True, seed=5,
+                    truth={'offset(step(40))@1': [120.0, 0.0, -60.0]})
+    simulator = Simulator(cfg)
+    t = np.arange(int(120 * RATE)) / RATE
+    set_truth_refs(simulator, t)
+    drive_data = simulator.sample(t)
+    learner = Learner(1, LearnConfig(persist_s=PERSIST_S, refit_period_s=10.0))
+    learner.set_active(one, F)
+    events = feed(learner, drive_data, lambda d, a, s: refit_recent(d, a, F, sensors=s))
+    adopted = adoptions(events)
+    assert adopted and 40.0 - 1.0 + PERSIST_S <= adopted[0][0] <= 40.0 + PERSIST_S + 2.0
+    floor = rms(one, drive_data, 5.0, 40.0)
+    assert rms(one, drive_data, 60.0, 120.0)[0] > 10 * floor[0]
+    assert rms(learner.active, drive_data, 100.0, 120.0)[0] <= 1.15 * floor[0]
+
+
+def test_not_determined_until_enough_data(active):
+    """
+    Too little held out to judge a proposal: ``not determined``, then adopted with more.
+
+    Held-out blocks of 8 s, every 3rd: at persist_s (15 s) the change's window holds one,
+    and a proposal needs three to be judged; the state says so and the learner keeps
+    refitting the change until it can tell.
+    """
+    cfg = SimConfig(rate_hz=RATE, trajectory='vehicle', attitude=True, seed=5,
+                    truth={'offset(step(40))@2': [120.0, 0.0, -60.0]})
+    simulator = Simulator(cfg)
+    t = np.arange(int(140 * RATE)) / RATE
+    set_truth_refs(simulator, t)
+    data = simulator.sample(t)
+    learner = Learner(4, LearnConfig(persist_s=PERSIST_S, refit_period_s=10.0,
+                                     holdout_block_s=8.0))
+    learner.set_active(active, F)
+    events = feed(learner, data, lambda d, a, s: refit_recent(d, a, F, sensors=s))
+    states = [(t, p) for t, what, p in events if what == 'state']
+    undetermined = [t for t, p in states if p == UNDETERMINED]
+    adopted = adoptions(events)
+    assert undetermined and adopted, states
+    assert 40.0 + PERSIST_S - 1.0 <= undetermined[0] < adopted[0][0]
+    assert learner.status()['adoptions'] >= 1
 
 
 def test_slow_drift_gives_a_proposal(active):
