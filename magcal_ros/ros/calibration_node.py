@@ -40,6 +40,12 @@ Topics (relative to the node namespace, default ``/magcal``; docs/design.md §3)
   residual for it; in calibrate or diagnose: that call answers success=false naming the
   effect), logged once per effect.
 
+With the parameter ``learn`` (issue 34; :mod:`magcal_ros.ros.learning`, the logic in
+:mod:`magcal_ros.core.live.learning`) it also keeps learning from the live sets while the
+robot works: ``calibration/learned`` (the estimate, calibration YAML), ``/diagnostics``
+``learning``, the service ``calibration/adopt`` and, with ``auto_adopt``, adoption of a
+validated proposal of a persistent change (docs/design.md §3).
+
 Services (std_srvs/srv/Trigger; the response message is a short summary, a newline, then
 one JSON object):
 
@@ -283,7 +289,7 @@ class CalibrationNode(LearningMixin, Node):
         # triggered by the worker thread when a solve ends, so the executor wakes up and
         # resumes the awaiting service coroutine even when no sensor data flows
         self._wake = self.create_guard_condition(lambda: None)
-        self._learn_init(RESULT_QOS)            # learning mode (magcal_ros.ros.learning)
+        self._learn_init(RESULT_QOS, _yield_cpu)    # learning mode (magcal_ros.ros.learning)
         self._publish_existing(s.calibration_file)
         self._intake.start()
         self.get_logger().info(

@@ -72,8 +72,14 @@ def learning_specs():
 class LearningMixin:
     """The learning mode of the calibration node (its methods start with ``_learn``)."""
 
-    def _learn_init(self, result_qos):
-        """Declare the parameters; with ``learn`` set up the learner, topic and service."""
+    def _learn_init(self, result_qos, lower_priority=lambda: None):
+        """
+        Declare the parameters; with ``learn`` set up the learner, topic and service.
+
+        ``result_qos``: the QoS of ``calibration/learned`` (``calibration/result``'s);
+        ``lower_priority()`` is called first in each refit thread (the node's solve niceness).
+        """
+        self._learn_lower_priority = lower_priority
         self._specs_by_name.update(prm.declare(self, learning_specs()))
         self._learner = None
         self._learn_busy = False                 # a refit thread runs
@@ -154,8 +160,7 @@ class LearningMixin:
 
     def _learn_refit(self, now):
         """Worker thread: refit, publish the estimate, adopt when ready and auto_adopt."""
-        from magcal_ros.ros.calibration_node import _yield_cpu
-        _yield_cpu()
+        self._learn_lower_priority()
         s = prm.calibration_settings(self)
         geometry = self._geometry(s) or {}
         ref = getattr(self, '_learn_field_ref', {})
