@@ -251,6 +251,21 @@ def common_mode_variance(sigma):
     return f2 + _MEDIAN_VAR.get(m, np.pi / (2 * m)) * (f2.sum() - f2) / m
 
 
+class _Run:
+    """Counts of the blocks since a change's onset (flat memory however long it lasts)."""
+
+    def __init__(self):
+        self.blocks = 0          # blocks judged since the onset
+        self.exceeded = 0        # of which exceeded
+        self.clean = 0           # clean blocks in a row, latest last (0: the latest exceeded)
+
+    def add(self, exceed):
+        """Count one more block (``exceed``: it exceeded)."""
+        self.blocks += 1
+        self.exceeded += bool(exceed)
+        self.clean = 0 if exceed else self.clean + 1
+
+
 class Learner:
     """
     The learning of one array (not thread-safe: the node serialises the calls).
@@ -284,7 +299,7 @@ class Learner:
         self.field_nt = None
         self.state = TRACKING
         self.onset = None                   # start of the change, s
-        self._since = []                    # exceedances of the blocks since the onset
+        self._since = _Run()                # the blocks since the onset
         self._by_sensor = np.zeros(self.n)   # blocks since the onset each sensor exceeded
         self.changed = None                 # sensors (1-based) of the change adopted last
         self.last_z = None                  # (S,) z of the latest block
@@ -307,10 +322,13 @@ class Learner:
         self.field_nt = float(field_nt)
         self.state = TRACKING if t is None or not self.adoptions else ADOPTED
         self.onset = None
-        self._since = []
+        self._since = _Run()
         self.proposal = None
         if t is not None:
             self._last_refit = float(t)
+        else:                               # a calibration from elsewhere: a fresh start
+            self._data_from = None
+            self.changed = None
 
     def add_attitude(self, t, q):
         """One attitude (body-to-world unit quaternion (4,) qw, qx, qy, qz) at time ``t`` s."""
@@ -399,33 +417,35 @@ class Learner:
             if exceed:
                 self.state = CHANGE
                 self.onset = t_start
-                self._since = [True]
+                self._since = _Run()
+                self._since.add(True)
             return
         if self.state == READY:
             return                         # waiting for its adoption
-        self._since.append(exceed)
-        if len(self._since) >= cfg.clear_blocks and not any(self._since[-cfg.clear_blocks:]):
+        self._since.add(exceed)
+        if self._since.clean >= cfg.clear_blocks:
             self.transients.append((self.onset, t_end))
             self.n_transients += 1
             self.state = TRACKING
             self.onset = None
-            self._since = []
+            self._since = _Run()
 
     def persistent(self, now):
         """Tell whether the change on has lasted ``persist_s`` and persists (see the module)."""
         cfg = self.config
-        if self.state not in (CHANGE, UNDETERMINED) or self.onset is None or not self._since:
+        run = self._since
+        if self.state not in (CHANGE, UNDETERMINED) or self.onset is None or not run.blocks:
             return False
-        return (now - self.onset >= cfg.persist_s and self._since[-1]
-                and np.mean(self._since) >= cfg.persist_fraction)
+        return (now - self.onset >= cfg.persist_s and run.clean == 0
+                and run.exceeded >= cfg.persist_fraction * run.blocks)
 
     # -- refits ------------------------------------------------------------------------------
 
     def changed_sensors(self):
         """Sensors (1-based tuple) that exceeded in at least half the blocks since the onset."""
-        if not self._since:
+        if not self._since.blocks:
             return tuple(range(1, self.n + 1))
-        hit = np.flatnonzero(self._by_sensor >= 0.5 * len(self._since)) + 1
+        hit = np.flatnonzero(self._by_sensor >= 0.5 * self._since.blocks) + 1
         return tuple(int(j) for j in hit) or tuple(range(1, self.n + 1))
 
     def refit_due(self, now):
