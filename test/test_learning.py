@@ -164,6 +164,34 @@ def test_disturbances_are_not_learned(active, truth, sim, what):
         assert not learner.transients
 
 
+def test_one_sensor_lets_a_minute_in_another_field_pass():
+    """
+    One sensor, a minute 150 nT stronger, the default persist_s (90 s): not learned.
+
+    One sensor has no other to tell a change of the field from its own: the excursion is
+    detected as a change and let go when it ends, before it has lasted persist_s.
+    """
+    data, _ = simulate(n_samples=3000, rate_hz=20.0, trajectory='smooth', seed=1,
+                       n_sensors=1)
+    one = calibrate(data, 'base', F).result.calibration
+    cfg = SimConfig(n_sensors=1, rate_hz=RATE, trajectory='vehicle', attitude=True, seed=5,
+                    truth={'field(window(20, 80))': [150.0]})
+    simulator = Simulator(cfg)
+    t = np.arange(int(130 * RATE)) / RATE
+    set_truth_refs(simulator, t)
+    drive_data = simulator.sample(t)
+    learner = Learner(1, LearnConfig(refit_period_s=30.0))
+    assert learner.config.persist_s == 90.0
+    learner.set_active(one, F)
+    events = feed(learner, drive_data, lambda d, a, s: refit_recent(d, a, F, sensors=s))
+    assert not adoptions(events) and learner.active is one
+    assert learner.state == TRACKING
+    # seen from the block holding its start to the third clean block after its end
+    assert len(learner.transients) == 1, list(learner.transients)
+    start, end = learner.transients[0]
+    assert 19.0 <= start <= 21.0 and 80.0 <= end <= 85.0
+
+
 def test_memory_is_bounded_by_the_window(active):
     """The window holds at most window_sets sets whatever the run's length."""
     learner = Learner(4, LearnConfig(window_s=10.0, window_sets=100, min_sets=50))
