@@ -138,7 +138,10 @@ def test_slow_drift_gives_a_proposal(active):
     adopted = adoptions(events)
     assert adopted
     t_first = adopted[0][0]
-    assert t_first <= 70.0
+    # seen once the drift's residual clears a block's threshold (about 12 nT here, at 12 s),
+    # proposed persist_s (15 s) later; then learned again as it goes on
+    assert t_first <= 35.0
+    assert len(adopted) >= 2
     # at adoption the new calibration fits the recent drive better than the old one
     before = rms(active, data, t_first - 10, t_first)
     new = rms(adopted[0][1].calibration, data, t_first - 10, t_first)
