@@ -85,7 +85,8 @@ class LearningMixin:
         self._learn_busy = False                 # a refit thread runs
         self._learn_lock = threading.RLock()     # the learner (callbacks, refits, adopt)
         self._learn_queue = deque()
-        self._learn_errors = []
+        self._learn_errors = deque(maxlen=5)     # the latest refit failures (text)
+        self._learn_failed = 0                    # refits that failed
         if not prm.value(self, 'learn'):
             return
         cfg = LearnConfig(persist_s=float(prm.value(self, 'learn_persist_s')),
@@ -170,6 +171,7 @@ class LearningMixin:
                 f = learner.field_nt
                 p = learner.refit(now, lambda d, a, sensors: refit_recent(
                     d, a, f, geometry=geometry, field_reference=ref, sensors=sensors))
+                self._learn_errors.clear()        # ERROR only while the latest failed
                 if p is None:
                     return
                 p.doc['provenance']['field_source'] = s.field_source
@@ -178,6 +180,7 @@ class LearningMixin:
                     self._learn_adopt(now)
         except Exception as exc:      # noqa: B902 -- a refit must never end the node
             self._learn_errors.append(str(exc))
+            self._learn_failed += 1
             self.get_logger().error(f'learning refit failed: {exc!r}')
         finally:
             self._learn_busy = False
@@ -241,7 +244,8 @@ class LearningMixin:
             st.message = 'tracking: the active calibration fits the recent data'
         if self._learn_errors:
             st.level = DiagnosticStatus.ERROR
-            st.message += f'; refit failed: {self._learn_errors[-1]}'
+            st.message += (f'; {self._learn_failed} refit(s) failed, the latest: '
+                           f'{self._learn_errors[-1]}')
         st.values = [KeyValue(key=k, value=str(v)) for k, v in info.items()]
         return st
 

@@ -512,7 +512,8 @@ class Learner:
             Time of the call, s (the stamps' clock).
         refit_fn : callable
             ``refit_fn(data, active, sensors) -> (calibration, doc, undetermined)``: the
-            parameters of ``sensors`` (1-based tuple) learned, the others held
+            parameters of ``sensors`` (1-based tuple) learned, the others held; a ``doc``
+            with ``provenance.converged`` false is never valid
             (:func:`magcal_ros.pipeline.refit_recent` with the node's field and geometry).
 
         Returns
@@ -540,7 +541,8 @@ class Learner:
         cal, doc, undetermined = refit_fn(data.subset(fit_idx), self.active, sensors)
         held = data.subset(held_idx)
         improvement, stderr, rms = self._validate(cal, held)
-        valid = bool(np.isfinite(improvement) and np.isfinite(stderr)
+        converged = bool(doc.get('provenance', {}).get('converged', True))
+        valid = bool(converged and np.isfinite(improvement) and np.isfinite(stderr)
                      and improvement > self.config.validate_sigmas * stderr)
         doc.setdefault('provenance', {})['learning'] = {
             'window_s': [float(data.t[0]), float(data.t[-1])],
