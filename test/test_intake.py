@@ -26,7 +26,7 @@ import sys
 import threading
 import time
 
-from magcal_ros.ros import calibration_node, intake
+from magcal_ros.ros import intake, run
 from magcal_ros.ros.intake import Intake
 import pytest
 import rclpy
@@ -149,10 +149,10 @@ def test_solve_thread_yields_the_cpu_and_only_it():
     seen = {}
 
     def work():
-        calibration_node._yield_cpu()
+        run.yield_cpu()
         seen['solve'] = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
     t = threading.Thread(target=work)
     t.start()
     t.join()
-    assert seen['solve'] == min(19, base + calibration_node.SOLVE_NICENESS)
+    assert seen['solve'] == min(19, base + run.SOLVE_NICENESS)
     assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == base

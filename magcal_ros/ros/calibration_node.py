@@ -92,7 +92,7 @@ from magcal_ros.ros.conversions import msg_to_field_nt, residual_to_msg, stamp_t
 from magcal_ros.ros.diagnostics import fill, Updater
 from magcal_ros.ros.intake import Intake
 from magcal_ros.ros.learning import LearningMixin
-from magcal_ros.ros.run import DEFAULT_NAMESPACE, spin_node
+from magcal_ros.ros.run import DEFAULT_NAMESPACE, spin_node, yield_cpu
 import numpy as np
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
@@ -171,24 +171,6 @@ def _silent_sensors(received):
             out.append(f'sensor {j} sent only {n} samples, the others up to {most}: its data '
                        'are missing for part of the collection (unplugged?)')
     return out
-
-
-#: niceness added to the solve thread (calibrate, diagnose): on a loaded machine the sample
-#: intake of this node, and the driver and corrector beside it, keep the CPU they need
-#: while a solve takes what is left (a diagnosis beside a 4 x 1 kHz stream starved it)
-SOLVE_NICENESS = 5
-
-
-def _yield_cpu():
-    """Lower the calling thread's CPU priority by :data:`SOLVE_NICENESS` (Linux; else no-op)."""
-    if not sys.platform.startswith('linux'):   # elsewhere a tid is not a PRIO_PROCESS id
-        return
-    try:
-        tid = threading.get_native_id()
-        now = os.getpriority(os.PRIO_PROCESS, tid)
-        os.setpriority(os.PRIO_PROCESS, tid, min(19, now + SOLVE_NICENESS))
-    except OSError:
-        pass
 
 
 def _tensor_rms(components):
@@ -289,7 +271,7 @@ class CalibrationNode(LearningMixin, Node):
         # triggered by the worker thread when a solve ends, so the executor wakes up and
         # resumes the awaiting service coroutine even when no sensor data flows
         self._wake = self.create_guard_condition(lambda: None)
-        self._learn_init(RESULT_QOS, _yield_cpu)    # learning mode (magcal_ros.ros.learning)
+        self._learn_init(RESULT_QOS)            # learning mode (magcal_ros.ros.learning)
         self._publish_existing(s.calibration_file)
         self._intake.start()
         self.get_logger().info(
@@ -852,7 +834,7 @@ class CalibrationNode(LearningMixin, Node):
         future = Future()
 
         def work():
-            _yield_cpu()
+            yield_cpu()
             try:
                 future.set_result(fn(*args))
             except Exception as exc:        # noqa: B902 -- handed to the awaiting service

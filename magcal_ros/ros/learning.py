@@ -39,6 +39,7 @@ from magcal_ros.io.calfile import dump_calibration, save_calibration
 from magcal_ros.pipeline import refit_recent
 from magcal_ros.ros import params as prm
 from magcal_ros.ros.conversions import stamp_to_seconds
+from magcal_ros.ros.run import yield_cpu
 import numpy as np
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
@@ -72,14 +73,8 @@ def learning_specs():
 class LearningMixin:
     """The learning mode of the calibration node (its methods start with ``_learn``)."""
 
-    def _learn_init(self, result_qos, lower_priority=lambda: None):
-        """
-        Declare the parameters; with ``learn`` set up the learner, topic and service.
-
-        ``result_qos``: the QoS of ``calibration/learned`` (``calibration/result``'s);
-        ``lower_priority()`` is called first in each refit thread (the node's solve niceness).
-        """
-        self._learn_lower_priority = lower_priority
+    def _learn_init(self, result_qos):
+        """Declare the parameters; with ``learn`` set up the learner, topic and service."""
         self._specs_by_name.update(prm.declare(self, learning_specs()))
         self._learner = None
         self._learn_busy = False                 # a refit thread runs
@@ -161,7 +156,7 @@ class LearningMixin:
 
     def _learn_refit(self, now):
         """Worker thread: refit, publish the estimate, adopt when ready and auto_adopt."""
-        self._learn_lower_priority()
+        yield_cpu()
         s = prm.calibration_settings(self)
         geometry = self._geometry(s) or {}
         ref = getattr(self, '_learn_field_ref', {})
