@@ -573,8 +573,8 @@ def refit_recent(data, active, field_nt, geometry=None, field_reference=None, se
     Returns
     -------
     (Calibration, dict, list of str)
-        The estimate, its calibration document (§4) and the undetermined parameters
-        (``<effect>.<param>@<sensor>``).
+        The estimate, its calibration document (§4; ``provenance.converged`` says whether
+        the fit converged) and the undetermined parameters (``<effect>.<param>@<sensor>``).
 
     """
     from magcal_ros.core.model.planar import prior_sd, SENSOR_MAP_KINDS, UNDETERMINED_RATIO
@@ -616,4 +616,6 @@ def refit_recent(data, active, field_nt, geometry=None, field_reference=None, se
     final = first if np.array_equal(open_, offsets) else run(open_, first.result.params)
     names = [f'{label}.{name}@{j}' for j, label, name, _ in info]
     undetermined = [names[i] for i in range(model.n_params) if mapped[i] and not open_[i]]
+    # a fit that ran out of iterations is no calibration (the learner never adopts it)
+    final.doc['provenance']['converged'] = bool(final.result.success)
     return final.result.calibration, final.doc, undetermined

@@ -17,11 +17,14 @@ The calibration node's learning mode in-process (issue 34, docs/design.md §3).
 
 A calibration of a tumble is on disk when the node starts (it is active); the simulator's
 vehicle then drives (raw fields and its attitude as sensor_msgs/Imu) while sensor 2's offset
-steps.  With ``learn`` and ``auto_adopt`` the node publishes its estimates on
-``calibration/learned``, adopts a validated one, writes it with the previous calibration
-kept in the history (``rollback`` brings it back) and publishes it on ``calibration/result``;
-``calibration/adopt`` refuses when nothing is ready, naming the state.
+steps.  With ``learn`` the node publishes its estimates on ``calibration/learned``; a
+validated proposal waits (``proposal ready`` on /diagnostics) until ``calibration/adopt``
+(which refuses, naming the state, when nothing is ready), then with ``auto_adopt`` set at
+run time a refinement is adopted at once; each is written with the previous calibration
+kept in the history (``rollback`` brings the first back) and published on
+``calibration/result``.
 """
+from diagnostic_msgs.msg import DiagnosticStatus
 from magcal_ros.core.data.simulate import (attitude_enu, set_truth_refs, SimConfig, simulate,
                                            Simulator)
 from magcal_ros.io.calfile import (list_history, load_calibration, parse_calibration,
@@ -30,18 +33,21 @@ from magcal_ros.pipeline import calibrate
 from magcal_ros.ros.calibration_node import CalibrationNode, RESULT_QOS
 from magcal_ros.ros.conversions import attitude_msg
 import numpy as np
+import pytest
 from rclpy.parameter import Parameter
 from ros_helpers import call_trigger, spin_until
 from sensor_msgs.msg import Imu
 from sim_feed import Feeder, T0
 from std_msgs.msg import String
 
+pytestmark = pytest.mark.live
+
 F = 50000.0
 RATE = 50.0
 
 
 def test_learning_node_adopts_a_persistent_change(make_node, ros_node, ros_executor,
-                                                   ros_namespace, tmp_path):
+                                                  ros_namespace, tmp_path):
     tumble, _ = simulate(n_samples=3000, rate_hz=20.0, trajectory='smooth', seed=1)
     run = calibrate(tumble, 'base', F)
     path = tmp_path / 'cal' / 'calibration.yaml'
@@ -53,7 +59,7 @@ def test_learning_node_adopts_a_persistent_change(make_node, ros_node, ros_execu
         Parameter('calibration_file', value=str(path)),
         Parameter('report_dir', value=str(tmp_path / 'report')),
         Parameter('imu_topic', value='imu'), Parameter('learn', value=True),
-        Parameter('auto_adopt', value=True), Parameter('learn_persist_s', value=10.0),
+        Parameter('auto_adopt', value=False), Parameter('learn_persist_s', value=10.0),
         Parameter('learn_refit_period_s', value=10.0), Parameter('history', value=5)])
     assert node.learner is not None and node.learner.active is not None
     learned, results = [], []
@@ -72,18 +78,35 @@ def test_learning_node_adopts_a_persistent_change(make_node, ros_node, ros_execu
     imu = ros_node.create_publisher(Imu, 'imu', 100)
     feeder.wait_for_subscribers(ros_executor)
     q_enu = attitude_enu(drive.attitude)
-    step = 50
-    for k0 in range(0, drive.n_samples, step):
-        for k in range(k0, min(k0 + step, drive.n_samples), 5):
-            imu.publish(attitude_msg(q_enu[k], stamp=T0 + float(drive.t[k])))
-        feeder.feed(ros_executor, drive, taken=lambda: node._taken, start=k0,
-                    stop=min(k0 + step, drive.n_samples))
-    spin_until(ros_executor, lambda: node.learner.adoptions and not node._learn_busy, 60.0,
-               'an adoption of the learned calibration')
-
     learner = node.learner
-    t_adopt = learner.adoptions[0][0] - T0
-    assert 20.0 - 1.0 + 10.0 <= t_adopt <= 20.0 + 10.0 + 2.0
+
+    def drive_until(stop_s, step=50):
+        start = feeder_at[0]
+        stop = int(stop_s * RATE)
+        for k0 in range(start, stop, step):
+            for k in range(k0, min(k0 + step, stop), 5):
+                imu.publish(attitude_msg(q_enu[k], stamp=T0 + float(drive.t[k])))
+            feeder.feed(ros_executor, drive, taken=lambda: node._taken, start=k0,
+                        stop=min(k0 + step, stop))
+        feeder_at[0] = stop
+    feeder_at = [0]
+    # without auto_adopt a validated proposal waits: proposal ready, on /diagnostics too
+    drive_until(40.0)
+    spin_until(ros_executor, lambda: learner.state == 'proposal ready' and
+               not node._learn_busy, 60.0, 'a proposal ready')
+    ready = learner.proposal
+    # the stated time: persist_s after the 1 s block holding the step, plus one block
+    assert ready.persistent and ready.valid
+    assert 20.0 - 1.0 + 10.0 <= ready.t_to - T0 <= 20.0 + 10.0 + 2.0
+    st = node.learning_status()
+    assert st.level == DiagnosticStatus.WARN and 'calibration/adopt' in st.message
+    resp = call_trigger(ros_node, ros_executor, 'calibration/adopt')
+    assert resp.success and resp.message.startswith('adopted'), resp.message
+    assert learner.state == 'adopted' and learner.n_adoptions == 1
+    # from now on at once (a refinement of the change on more of its sets)
+    node.set_parameters([Parameter('auto_adopt', value=True)])
+    drive_until(70.0)
+    spin_until(ros_executor, lambda: not node._learn_busy, 60.0, 'the last refit')
     # the attitude reached the learner (the Imu topic, ENU)
     assert learner._att_count >= drive.n_samples // 5 - 10
     # estimates on calibration/learned: calibration documents with what was learned
@@ -110,6 +133,5 @@ def test_learning_node_adopts_a_persistent_change(make_node, ros_node, ros_execu
     st = node.learning_status()
     assert st.message and any(v.key == 'adoptions' and int(v.value) >= 1 for v in st.values)
     # magcal rollback goes back through the history to the calibration of the tumble
-    steps = len(learner.adoptions)
-    rollback(path, steps=steps)
+    rollback(path, steps=learner.n_adoptions)
     assert path.read_text() == original

@@ -65,3 +65,15 @@ def test_truth_terms_of_time_act_when_due():
     np.testing.assert_allclose(d2, inside[:, None] * [0.0, 400.0, 0.0], atol=1e-9)
     np.testing.assert_array_equal(changed.raw[2:], plain.raw[2:])
     np.testing.assert_array_equal(changed.attitude, plain.attitude)
+
+
+def test_fluxgate_sim_settings_of_the_vehicle(tmp_path):
+    """--tilt-deg and imu_topic reach the simulator (the attitude is then simulated)."""
+    from magcal_ros.sim import devices
+    st = devices.resolve_settings(['--dir', str(tmp_path), '--trajectory', 'vehicle',
+                                   '--tilt-deg', '25'])
+    sim = devices.FluxgateSim(st)
+    assert sim.sim.config.tilt_deg == 25.0 and not sim.sim.config.attitude
+    st = devices.resolve_settings(['--dir', str(tmp_path), '--trajectory', 'vehicle'])
+    st.imu_topic = 'imu'
+    assert devices.FluxgateSim(st).sim.config.attitude

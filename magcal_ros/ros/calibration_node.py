@@ -40,6 +40,12 @@ Topics (relative to the node namespace, default ``/magcal``; docs/design.md §3)
   residual for it; in calibrate or diagnose: that call answers success=false naming the
   effect), logged once per effect.
 
+With the parameter ``learn`` (issue 34; :mod:`magcal_ros.ros.learning`, the logic in
+:mod:`magcal_ros.core.live.learning`) it also keeps learning from the live sets while the
+robot works: ``calibration/learned`` (the estimate, calibration YAML), ``/diagnostics``
+``learning``, the service ``calibration/adopt`` and, with ``auto_adopt``, adoption of a
+validated proposal of a persistent change (docs/design.md §3).
+
 Services (std_srvs/srv/Trigger; the response message is a short summary, a newline, then
 one JSON object):
 

@@ -80,7 +80,8 @@ class LearningMixin:
         self._learn_busy = False                 # a refit thread runs
         self._learn_lock = threading.RLock()     # the learner (callbacks, refits, adopt)
         self._learn_queue = deque()
-        self._learn_errors = []
+        self._learn_errors = deque(maxlen=5)     # the latest refit failures (text)
+        self._learn_failed = 0                    # refits that failed
         if not prm.value(self, 'learn'):
             return
         cfg = LearnConfig(persist_s=float(prm.value(self, 'learn_persist_s')),
@@ -96,7 +97,7 @@ class LearningMixin:
 
     @property
     def learner(self):
-        """The :class:`Learner` (None without ``learn``)."""
+        """Return the :class:`Learner` (None without ``learn``)."""
         return self._learner
 
     def _learn_activate(self, cal, doc, now=None):
@@ -111,7 +112,7 @@ class LearningMixin:
         self._learn_field_ref = dict(doc.get('field_reference') or {})
 
     def _learn_raw(self, j, t, b):
-        """A raw sample of sensor j (0-based), stamp t s, b (3,) nT: sets to the learner."""
+        """Match a raw sample of sensor j (0-based, stamp t s, b (3,) nT) into learning sets."""
         done = self._learn_matcher.add(j, t, b)
         if not done:
             return
@@ -123,7 +124,7 @@ class LearningMixin:
         self._learn_drain()
 
     def _learn_imu(self, msg):
-        """An Imu message: its orientation to the learner (unit quaternions only)."""
+        """Queue an Imu message's orientation for the learner (unit quaternions only)."""
         o = msg.orientation
         q = (o.w, o.x, o.y, o.z)
         if (msg.orientation_covariance[0] == -1 or not all(map(math.isfinite, q))
@@ -165,6 +166,7 @@ class LearningMixin:
                 f = learner.field_nt
                 p = learner.refit(now, lambda d, a, sensors: refit_recent(
                     d, a, f, geometry=geometry, field_reference=ref, sensors=sensors))
+                self._learn_errors.clear()        # ERROR only while the latest failed
                 if p is None:
                     return
                 p.doc['provenance']['field_source'] = s.field_source
@@ -173,6 +175,7 @@ class LearningMixin:
                     self._learn_adopt(now)
         except Exception as exc:      # noqa: B902 -- a refit must never end the node
             self._learn_errors.append(str(exc))
+            self._learn_failed += 1
             self.get_logger().error(f'learning refit failed: {exc!r}')
         finally:
             self._learn_busy = False
@@ -236,7 +239,8 @@ class LearningMixin:
             st.message = 'tracking: the active calibration fits the recent data'
         if self._learn_errors:
             st.level = DiagnosticStatus.ERROR
-            st.message += f'; refit failed: {self._learn_errors[-1]}'
+            st.message += (f'; {self._learn_failed} refit(s) failed, the latest: '
+                           f'{self._learn_errors[-1]}')
         st.values = [KeyValue(key=k, value=str(v)) for k, v in info.items()]
         return st
 

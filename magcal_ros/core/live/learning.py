@@ -86,6 +86,7 @@ parameters).  Only a valid proposal of a persistent change is *ready*, or one th
 the change adopted last (fitted on the sets since its onset, more than it had); it is adopted
 at once with ``auto_adopt``, else on request.
 """
+from collections import deque
 from dataclasses import dataclass, field
 
 from magcal_ros.core.data.dataset import Dataset
@@ -212,7 +213,7 @@ class Proposal:
 
 def detector_residual(cal, data, field_nt):
     """
-    The detector's residual of a calibration on sets: e (S, N) nT and the scalar r (S, N).
+    Return the detector's residual of a calibration on sets: e (S, N) nT, the scalar r (S, N).
 
     r_j = |b_j| - F with b_j the corrected field of sensor j; for an array the common mode is
     removed, e_j = r_j - median_{k != j} r_k (a change of the field cancels; a change of one
@@ -231,6 +232,9 @@ def detector_residual(cal, data, field_nt):
     return r - others, r
 
 
+#: the learner keeps the times of this many latest transients and adoptions (memory flat)
+KEEP_EVENTS = 100
+
 #: variance of the median of m independent unit normals (exact for m <= 4; pi / (2 m), a
 #: slight overestimate, beyond)
 _MEDIAN_VAR = {1: 1.0, 2: 0.5, 3: 0.4487, 4: 0.3573}
@@ -245,6 +249,21 @@ def common_mode_variance(sigma):
     f2 = sigma ** 2
     m = s - 1
     return f2 + _MEDIAN_VAR.get(m, np.pi / (2 * m)) * (f2.sum() - f2) / m
+
+
+class _Run:
+    """Counts of the blocks since a change's onset (flat memory however long it lasts)."""
+
+    def __init__(self):
+        self.blocks = 0          # blocks judged since the onset
+        self.exceeded = 0        # of which exceeded
+        self.clean = 0           # clean blocks in a row, latest last (0: the latest exceeded)
+
+    def add(self, exceed):
+        """Count one more block (``exceed``: it exceeded)."""
+        self.blocks += 1
+        self.exceeded += bool(exceed)
+        self.clean = 0 if exceed else self.clean + 1
 
 
 class Learner:
@@ -280,14 +299,17 @@ class Learner:
         self.field_nt = None
         self.state = TRACKING
         self.onset = None                   # start of the change, s
-        self._since = []                    # exceedances of the blocks since the onset
+        self._since = _Run()                # the blocks since the onset
         self._by_sensor = np.zeros(self.n)   # blocks since the onset each sensor exceeded
         self.changed = None                 # sensors (1-based) of the change adopted last
         self.last_z = None                  # (S,) z of the latest block
         self.last_block_t = None
-        self.transients = []                # (onset, end) s of changes not learned
+        #: (onset, end) s of the latest changes not learned (at most :data:`KEEP_EVENTS`)
+        self.transients = deque(maxlen=KEEP_EVENTS)
         self.proposal = None
-        self.adoptions = []                 # (t, improvement) of each adoption
+        #: (t, improvement) of the latest adoptions (at most :data:`KEEP_EVENTS`)
+        self.adoptions = deque(maxlen=KEEP_EVENTS)
+        self.n_transients = self.n_adoptions = 0
         self._last_refit = -np.inf
         self._data_from = None              # onset of the change adopted last, s
         self.sets_seen = 0
@@ -300,10 +322,13 @@ class Learner:
         self.field_nt = float(field_nt)
         self.state = TRACKING if t is None or not self.adoptions else ADOPTED
         self.onset = None
-        self._since = []
+        self._since = _Run()
         self.proposal = None
         if t is not None:
             self._last_refit = float(t)
+        else:                               # a calibration from elsewhere: a fresh start
+            self._data_from = None
+            self.changed = None
 
     def add_attitude(self, t, q):
         """One attitude (body-to-world unit quaternion (4,) qw, qx, qy, qz) at time ``t`` s."""
@@ -392,36 +417,39 @@ class Learner:
             if exceed:
                 self.state = CHANGE
                 self.onset = t_start
-                self._since = [True]
+                self._since = _Run()
+                self._since.add(True)
             return
         if self.state == READY:
             return                         # waiting for its adoption
-        self._since.append(exceed)
-        if len(self._since) >= cfg.clear_blocks and not any(self._since[-cfg.clear_blocks:]):
+        self._since.add(exceed)
+        if self._since.clean >= cfg.clear_blocks:
             self.transients.append((self.onset, t_end))
+            self.n_transients += 1
             self.state = TRACKING
             self.onset = None
-            self._since = []
+            self._since = _Run()
 
     def persistent(self, now):
-        """True when the change on has lasted ``persist_s`` and persists (see the module)."""
+        """Tell whether the change on has lasted ``persist_s`` and persists (see the module)."""
         cfg = self.config
-        if self.state not in (CHANGE, UNDETERMINED) or self.onset is None or not self._since:
+        run = self._since
+        if self.state not in (CHANGE, UNDETERMINED) or self.onset is None or not run.blocks:
             return False
-        return (now - self.onset >= cfg.persist_s and self._since[-1]
-                and np.mean(self._since) >= cfg.persist_fraction)
+        return (now - self.onset >= cfg.persist_s and run.clean == 0
+                and run.exceeded >= cfg.persist_fraction * run.blocks)
 
     # -- refits ------------------------------------------------------------------------------
 
     def changed_sensors(self):
         """Sensors (1-based tuple) that exceeded in at least half the blocks since the onset."""
-        if not self._since:
+        if not self._since.blocks:
             return tuple(range(1, self.n + 1))
-        hit = np.flatnonzero(self._by_sensor >= 0.5 * len(self._since)) + 1
+        hit = np.flatnonzero(self._by_sensor >= 0.5 * self._since.blocks) + 1
         return tuple(int(j) for j in hit) or tuple(range(1, self.n + 1))
 
     def refit_due(self, now):
-        """True when a refit should run now (periodic, or a change just turned persistent)."""
+        """Tell whether a refit is due now (periodic, or a change just turned persistent)."""
         if self.active is None or self.state == READY:
             return False
         if self.persistent(now) and (self.proposal is None or not self.proposal.persistent):
@@ -430,7 +458,7 @@ class Learner:
 
     def window(self, since=None):
         """
-        The window's sets as a Dataset (chronological copies; with attitude when it covers).
+        Return the window's sets as a Dataset (chronological copies; attitude when it covers).
 
         ``since`` (s): only the sets from then on.  None when fewer than
         :attr:`LearnConfig.min_sets`.
@@ -484,7 +512,8 @@ class Learner:
             Time of the call, s (the stamps' clock).
         refit_fn : callable
             ``refit_fn(data, active, sensors) -> (calibration, doc, undetermined)``: the
-            parameters of ``sensors`` (1-based tuple) learned, the others held
+            parameters of ``sensors`` (1-based tuple) learned, the others held; a ``doc``
+            with ``provenance.converged`` false is never valid
             (:func:`magcal_ros.pipeline.refit_recent` with the node's field and geometry).
 
         Returns
@@ -512,7 +541,8 @@ class Learner:
         cal, doc, undetermined = refit_fn(data.subset(fit_idx), self.active, sensors)
         held = data.subset(held_idx)
         improvement, stderr, rms = self._validate(cal, held)
-        valid = bool(np.isfinite(improvement) and np.isfinite(stderr)
+        converged = bool(doc.get('provenance', {}).get('converged', True))
+        valid = bool(converged and np.isfinite(improvement) and np.isfinite(stderr)
                      and improvement > self.config.validate_sigmas * stderr)
         doc.setdefault('provenance', {})['learning'] = {
             'window_s': [float(data.t[0]), float(data.t[-1])],
@@ -571,6 +601,7 @@ class Learner:
         if self.state != READY or p is None:
             return None
         self.adoptions.append((float(now), p.improvement))
+        self.n_adoptions += 1
         onset = self.onset
         if p.persistent:
             self.changed = tuple(p.doc['provenance']['learning']['sensors_learned'])
@@ -585,8 +616,8 @@ class Learner:
         """JSON-ready state for /diagnostics: ``state``, ``message`` and values."""
         out = {'state': self.state, 'sets_seen': int(self.sets_seen),
                'window_sets': int(min(self._count, self.config.window_sets)),
-               'transients_not_learned': len(self.transients),
-               'adoptions': len(self.adoptions)}
+               'transients_not_learned': self.n_transients,
+               'adoptions': self.n_adoptions}
         if self.last_z is not None:
             out['z'] = [round(float(x), 3) for x in self.last_z]
         if self.onset is not None:
@@ -609,12 +640,15 @@ def feed(learner, data, refit_fn, auto_adopt=True, on_adopt=None):
     Parameters
     ----------
     learner : Learner
+        The learner, its active calibration set.
     data : Dataset
         (S, N, 3) raw nT with times (and attitude, temperatures, channels when known).
     refit_fn : callable
         As for :meth:`Learner.refit`.
     auto_adopt : bool
+        Adopt a ready proposal at once.
     on_adopt : callable, optional
+        Called as ``on_adopt(t, proposal)`` after each adoption.
 
     Returns
     -------
