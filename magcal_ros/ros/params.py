@@ -462,7 +462,7 @@ def calibration_specs(n_sensors=4):
         ParamSpec('site_date', '', 'date of the calibration for field_source igrf, YYYY-MM-DD '
                   "('' = the day the calibration is made, UTC)", iso_date),
         ParamSpec('attitude_mode', 'auto', 'how the attitude of imu_topic enters the fit: '
-                  'tilt (roll and pitch observe the field\'s vertical component), full (the '
+                  "tilt (roll and pitch observe the field's vertical component), full (the "
                   'heading too: the field vector), off (the magnitude alone), auto (tilt when '
                   'imu_topic is set; docs/design.md §2 "Attitude-aided fits"); no unit',
                   one_of(('auto', 'tilt', 'full', 'off'))),
