@@ -42,19 +42,13 @@ def vehicle(tilt_deg=15.0, att_err_deg=0.3, n=3000, seed=1, yaw_err_deg=0.0):
     if key not in CACHE:
         data, sim = simulate(n_samples=n, rate_hz=10, n_sensors=1, trajectory='vehicle',
                              tilt_deg=tilt_deg, attitude=True, seed=seed, aux=False,
-                             temp_swing_c=0)
-        rng = np.random.default_rng(seed + 100)
-        t = data.t
-        # a smooth error about each axis: a few sinusoids of periods 20-200 s, RMS att_err
-        err = np.zeros((n, 3))
-        for k in range(3):
-            for _ in range(4):
-                per, ph = rng.uniform(20, 200), rng.uniform(0, 2 * np.pi)
-                err[:, k] += np.sin(2 * np.pi * t / per + ph)
-            err[:, k] *= np.radians(att_err_deg) / np.std(err[:, k])
-        err[:, 2] += np.radians(yaw_err_deg) * np.sin(2 * np.pi * t / 60.0)
-        true = Rotation.from_quat(data.attitude, scalar_first=True)
-        data.attitude = (true * Rotation.from_rotvec(err)).as_quat(scalar_first=True)
+                             temp_swing_c=0, attitude_error_deg=att_err_deg)
+        if yaw_err_deg:
+            # a heading that wanders +-yaw_err_deg over a minute (the compass's own, say)
+            yaw = np.radians(yaw_err_deg) * np.sin(2 * np.pi * data.t / 60.0)
+            q = Rotation.from_quat(data.attitude, scalar_first=True)
+            data.attitude = (q * Rotation.from_rotvec(np.outer(yaw, [0.0, 0.0, 1.0]))
+                             ).as_quat(scalar_first=True)
         CACHE[key] = (data, sim)
     return CACHE[key]
 

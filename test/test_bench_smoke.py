@@ -51,6 +51,7 @@ CASES = {
     'reduction_accuracy': ['--sizes', '6000'],
     'executor': ['--rate', '50', '--duration', '1', '--repeats', '1'],
     'vehicle_logs': ['--minutes', '1', '--mag-rate', '50'],
+    'attitude_aided': ['--seeds', '1', '--tilts', '15', '--n', '1200'],
 }
 
 
@@ -208,3 +209,12 @@ def test_vehicle_logs(tmp_path):
         assert r['read_exit'] == 0 and r['epochs'] == 3000 and r['sensors'] == 3
         assert r['fit_exit'] == 0 and r['fit_field_reference'] == 'igrf'
         assert r['read_peak_rss_mb'] > 0 and r['fit_cpu_s'] > 0
+
+
+def test_attitude_aided(tmp_path):
+    cases = _run('attitude_aided', tmp_path)['results']['cases']
+    assert [(c['tilt_deg'], c['mode']) for c in cases] == [(15.0, 'tilt'), (15.0, 'full')]
+    for c in cases:
+        # one seed, 1200 epochs of 3 nT noise: the residual at the noise, nothing left open
+        assert abs(c['residual_over_noise_median'] - 1) < 0.1 and c['n_z'] == 9
+        assert c['undetermined_counts'] == {} and c['cpu_s_median'] > 0

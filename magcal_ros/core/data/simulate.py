@@ -92,6 +92,10 @@ class SimConfig:
     attitude : bool
         Put the true attitude (body-to-world quaternions, ``Dataset.attitude``, CSV columns
         att_qw..att_qz) into the samples, as an IMU would give it.
+    attitude_error_deg : float
+        RMS error about each body axis of the attitude put into the samples, deg: a smooth
+        error, as an EKF's (four sinusoids per axis of periods 20-200 s, drawn from the
+        seed: :func:`attitude_error`); 0: the true attitude.
     seed : int
 
     """
@@ -120,6 +124,7 @@ class SimConfig:
     outlier_nt: float = 1000.0
     gradient_nt_per_m: object = None
     attitude: bool = False
+    attitude_error_deg: float = 0.0
     seed: int = 0
     positions_m: object = None
 
@@ -127,6 +132,23 @@ class SimConfig:
 #: world coordinates ENU (REP 103) -> NED (the simulator's world): east and north swapped, up
 #: turned down; a proper rotation and its own inverse (R_ned = ENU_TO_NED @ R_enu)
 ENU_TO_NED = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+
+
+def attitude_error(t, rms_deg, seed=0):
+    """
+    Return (N, 3) rad: a smooth attitude error about each body axis at times ``t`` (N,) s.
+
+    Four sinusoids per axis, periods 20-200 s and phases drawn from ``seed`` (the same
+    functions of time for every chunk of a record), scaled to ``rms_deg`` RMS each (an
+    EKF's attitude error drifts over tens of seconds rather than jumping per sample).
+    """
+    rng = np.random.default_rng([int(seed), 7001])
+    per = rng.uniform(20.0, 200.0, (3, 4))
+    ph = rng.uniform(0.0, 2 * np.pi, (3, 4))
+    t = np.asarray(t, float)
+    err = np.sin(2 * np.pi * t[:, None, None] / per[None] + ph[None]).sum(axis=2)
+    # each sinusoid has RMS 1/sqrt(2), four independent ones sqrt(2) together
+    return err * (np.radians(rms_deg) / np.sqrt(2.0))
 
 
 def vehicle_attitude(t, period_s=60.0, tilt_deg=15.0, phases=(0.0, 0.0, 0.0)):
@@ -389,6 +411,9 @@ class Simulator:
             d /= np.linalg.norm(d, axis=2, keepdims=True)
             raw[hit] += cfg.outlier_nt * d[hit]
         ref_total = self.field_magnitude(t) if cfg.diurnal_swing_nt else None
+        if cfg.attitude and cfg.attitude_error_deg:
+            rot = rot * Rotation.from_rotvec(attitude_error(t, cfg.attitude_error_deg,
+                                                            cfg.seed))
         return Dataset(t=t, raw=raw, temp=temp, ref_total=ref_total, aux=aux,
                        meta={'truth_field': b, 'simulator': cfg},
                        attitude=rot.as_quat(scalar_first=True) if cfg.attitude else None)
