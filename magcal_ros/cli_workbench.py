@@ -33,6 +33,7 @@ status 0 on success, 2 on bad input, 1 on other failures (handled by :func:`magc
 import sys
 
 from magcal_ros.core.effects import load_plugins
+from magcal_ros.pipeline import attitude_lines
 from magcal_ros.progress import Progress, wanted
 
 EXIT_OK = 0
@@ -162,7 +163,8 @@ def cmd_diagnose(args, cli):
             print(reduction_line(data.meta['reduction']))
         print(diag.summary())
         if 'attitude' in fref:
-            cli._print_attitude(fref['attitude'])
+            for line in attitude_lines(fref['attitude']):
+                print(line)
         for w in warnings:
             print(format_note(w))
         if lad is not None:

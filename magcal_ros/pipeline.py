@@ -25,7 +25,7 @@ from magcal_ros.core.data.noise import data_noise_floor
 from magcal_ros.core.geometry.tensor import (cross_positions, gradient_from_fit, tensor_lstsq,
                                              tensor_noise_floor)
 from magcal_ros.core.model import data_hash, fit, Model
-from magcal_ros.core.model.notes import Note, note_dict
+from magcal_ros.core.model.notes import format_note, Note, note_dict
 from magcal_ros.core.model.plausibility import (axis_maps, fitted_scales_angles,
                                                 mounting_notes, parameter_notes, with_axis_maps)
 from magcal_ros.core.model.site_gradient import centred_fields
@@ -522,6 +522,171 @@ def _calibrate(data, model, field_nt, geometry, field_reference, **fit_kwargs):
     doc = calibration_to_doc(result.calibration, geometry=geometry or {},
                              field_reference=fref, provenance=prov)
     return CalibrationRun(result=result, summary=summary, doc=doc)
+
+
+@dataclass
+class CalibrationRequest:
+    """
+    One calibration asked for: the model, the field reference, the mode and its options.
+
+    The command line builds it from its options (``magcal fit``), the calibration node from
+    its parameters; :func:`run_request` runs it and :func:`summary_lines` describes the
+    result, the same for both.
+
+    Attributes
+    ----------
+    model : str, list of str or Model
+        The effects (``'base,temperature@2'``) or a built Model.
+    field_nt : float or numpy.ndarray or None
+        Reference magnitude, nT (scalar or (N,)); None: ``data.ref_total``.
+    field_reference : dict
+        How the reference was obtained (recorded in the provenance); its
+        ``inclination_deg`` (IGRF) is the planar and attitude-aided fits' inclination.
+    geometry : dict or None
+        Array geometry (``positions_m`` (S, 3) m); None: paper 004's cross for four sensors.
+    attitude : str
+        One of :data:`ATTITUDE_MODES` (:func:`attitude_mode`).
+    planar : bool
+        A turn about one axis (:mod:`magcal_ros.core.model.planar`); wins over
+        ``heading_unknown``.
+    prior_params : numpy.ndarray or None
+        (P,) parameters of the planar mode's prior (the active calibration's); None: an
+        ideal sensor.
+    heading_unknown : bool
+        Site gradient without attitude
+        (:func:`magcal_ros.core.model.site_gradient.fit_heading_unknown`).
+    robust, constrained : bool
+        Soft-L1 loss; priors for a partial attitude coverage (:func:`magcal_ros.core.model.fit`).
+    exclude_outliers : bool
+        As for :func:`calibrate`.
+    on_degenerate : str
+        'raise' (refuse degenerate data) or 'flag'.
+
+    """
+
+    model: object = 'base'
+    field_nt: object = None
+    field_reference: dict = None
+    geometry: dict = None
+    attitude: str = 'auto'
+    planar: bool = False
+    prior_params: object = None
+    heading_unknown: bool = False
+    robust: bool = False
+    constrained: bool = False
+    exclude_outliers: bool = False
+    on_degenerate: str = 'raise'
+
+
+def run_request(data, request):
+    """
+    Run a :class:`CalibrationRequest` on ``data`` (Dataset, (S, N, 3) nT): a CalibrationRun.
+
+    The one place the request's mode becomes the arguments of :func:`calibrate`.
+    """
+    fref = dict(request.field_reference or {})
+    inclination = fref.get('inclination_deg')
+    kwargs = {'attitude': request.attitude, 'inclination_deg': inclination}
+    if request.planar:
+        kwargs['planar'] = {'inclination_deg': inclination,
+                            'prior_params': request.prior_params}
+    elif request.heading_unknown:
+        kwargs['heading_unknown'] = True
+    return calibrate(data, request.model, field_nt=request.field_nt, geometry=request.geometry,
+                     field_reference=fref, exclude_outliers=request.exclude_outliers,
+                     robust=request.robust, constrained=request.constrained,
+                     on_degenerate=request.on_degenerate, **kwargs)
+
+
+def _tensor_rms(components):
+    """One RMS over the nine tensor components (list of lists, nT/m)."""
+    return float(np.sqrt(np.mean(np.square(np.asarray(components, float)))))
+
+
+def tensor_figures(summary):
+    """
+    Return the tensor's RMS before, after and its floor, one number each over the components.
+
+    ``{'tensor_rms_before_nt_per_m', 'tensor_rms_after_nt_per_m', 'tensor_floor_nt_per_m'}``
+    (nT/m) from a :func:`summarize` summary; empty when the tensor was not computed.
+    """
+    if 'tensor_rms_nt_per_m' not in summary:
+        return {}
+    return {'tensor_rms_before_nt_per_m': _tensor_rms(summary['tensor_rms_before_nt_per_m']),
+            'tensor_rms_after_nt_per_m': _tensor_rms(summary['tensor_rms_nt_per_m']),
+            'tensor_floor_nt_per_m': _tensor_rms(summary['tensor_floor_nt_per_m'])}
+
+
+def summary_lines(summary, request=None, skip_kinds=()):
+    """
+    Return the human account of a calibration (the command line prints it, the node replies).
+
+    ``summary`` is a :attr:`CalibrationRun.summary`: the lines give the gradient tensor's RMS
+    before and after, the site gradient, the planar and attitude-aided fits' accounts, the
+    robust fit's down-weighted samples (when ``request.robust``) and one line per warning
+    (those of a kind in ``skip_kinds`` left out: the caller printed them already).
+    """
+    lines = []
+    t = tensor_figures(summary)
+    if t:
+        lines.append(f"tensor RMS before {t['tensor_rms_before_nt_per_m']:.1f} nT/m, after "
+                     f"{t['tensor_rms_after_nt_per_m']:.2f} nT/m (noise floor "
+                     f"{t['tensor_floor_nt_per_m']:.2f} nT/m)")
+    if 'site_gradient_nt_per_m' in summary:
+        lines.append(f"site gradient ({summary['site_gradient_frame']}; nT/m, +- standard "
+                     'uncertainty):')
+        for row, srow in zip(summary['site_gradient_nt_per_m'],
+                             summary['site_gradient_stderr_nt_per_m']):
+            lines.append('  ' + '  '.join(f'{v:9.2f} +- {e:5.2f}' for v, e in zip(row, srow)))
+    if 'planar' in summary:
+        lines += _planar_lines(summary['planar'], summary['heading_error_deg'])
+    if 'attitude' in summary:
+        lines += attitude_lines(summary['attitude'])
+    if request is not None and request.robust:
+        per = ', '.join(f'{k}: {v:d}' for k, v in summary['downweighted'].items())
+        lines.append(f'robust fit: samples down-weighted as outliers per sensor: {per} of '
+                     f"{summary['n_fit_samples']}")
+    lines += [format_note(w) for w in summary['warnings'] if w['kind'] not in skip_kinds]
+    return lines
+
+
+def _planar_lines(pl, heading_error_deg):
+    """Return the planar fit's account: the heading error, what is open, a line per sensor."""
+    lines = [f'planar: heading error {heading_error_deg:.2f} deg (1 sd, level, inclination '
+             f"from {pl['inclination_source']}); undetermined (known no better than half the "
+             "prior's width): " + (', '.join(pl['undetermined']) or 'none')]
+    for j, e in pl['in_plane'].items():
+        axis = ', '.join(f'{x:+.2f}' for x in pl['axis'][j])
+        parts = [f'sensor {j}: turn about ({axis}); in the {e["axes"]} plane']
+        parts.append('effective offsets (level) ' + ', '.join(
+            f'{v:.1f} +- {s:.1f}' for v, s in zip(e['effective_offset_nt'],
+                                                  e['effective_offset_stderr_nt'])) + ' nT')
+        if 'scale_ratio' in e:
+            parts.append(f'scale ratio {e["scale_ratio"]:.4f} +- {e["scale_ratio_stderr"]:.4f}')
+        if 'nonorth_rad' in e:
+            parts.append(f'angle {e["nonorth_rad"]:+.4f} +- {e["nonorth_stderr_rad"]:.4f} rad')
+        parts.append(f'heading error {pl["heading_error_deg"][j]:.2f} deg (1 sd, largest over '
+                     'headings)')
+        lines.append('; '.join(parts))
+    return lines
+
+
+def attitude_lines(at):
+    """Return the attitude-aided fit's account (:func:`attitude_summary`) as lines."""
+    wf = at['world_field']
+    line = (f"attitude: {at['mode']} ({at['trusted']} from {at['source']}, error "
+            f"{at['attitude_sd_deg']:.2f} deg as estimated); world field inclination "
+            f"{wf['inclination_deg']:.2f} +- {wf['inclination_stderr_deg']:.2f} deg")
+    if 'declination_deg' in wf:
+        line += (f", declination {wf['declination_deg']:.2f} +- "
+                 f"{wf['declination_stderr_deg']:.2f} deg")
+    h = at['heading_check']
+    lines = [line, f"heading: attitude against the corrected compass {h['offset_deg']:+.1f} "
+                   f"deg, {h['rms_deg']:.2f} deg RMS about it"]
+    if at['undetermined']:
+        lines.append("undetermined (known no better than half the prior's width): "
+                     + ', '.join(at['undetermined']))
+    return lines
 
 
 #: the attitude mode of the learning's refits: the one place it is chosen.  None: the

@@ -79,8 +79,9 @@ from magcal_ros.core.model.identifiability import check_coverage
 from magcal_ros.core.model.notes import format_note
 from magcal_ros.io.calfile import (CalibrationFileError, dump_calibration, load_calibration,
                                    parse_calibration, save_calibration)
-from magcal_ros.pipeline import (array_geometry, calibrate as run_calibration,
-                                 geometry_mismatch, tensor_undetermined)
+from magcal_ros.pipeline import (array_geometry, CalibrationRequest, geometry_mismatch,
+                                 run_request as run_calibration, summary_lines,
+                                 tensor_figures, tensor_undetermined)
 from magcal_ros.ros import params as prm
 from magcal_ros.ros.conversions import msg_to_field_nt, residual_to_msg, stamp_to_seconds
 from magcal_ros.ros.diagnostics import fill, Updater
@@ -167,9 +168,10 @@ def _silent_sensors(received):
     return out
 
 
-def _tensor_rms(components):
-    """One RMS over the nine tensor components (list of lists, nT/m)."""
-    return float(np.sqrt(np.mean(np.square(np.asarray(components, float)))))
+#: the summary's entries of the planar, attitude-aided and site-gradient fits that the
+#: calibrate reply carries as they are
+_REPLY_KEYS = ('site_gradient_nt_per_m', 'site_gradient_stderr_nt_per_m', 'planar',
+               'undetermined', 'heading_error_deg', 'attitude')
 
 
 class CalibrationNode(LearningMixin, Node):
@@ -884,22 +886,17 @@ class CalibrationNode(LearningMixin, Node):
             reason = f'no field magnitude: {exc}'
             return False, f'not calibrated: {reason}; previous calibration stays active', {
                 'reason': reason, 'sets': n_sets}
-        extra = {'attitude': s.attitude_mode,
-                 'inclination_deg': field_ref.get('inclination_deg')}
-        if s.planar:
-            # what the turn leaves open is held at the active calibration (same model), else
-            # at an ideal sensor (magcal_ros.core.model.planar)
-            active = getattr(self, '_active_cal', None)
-            prior = (active.params if active is not None
-                     and active.model.spec() == model.spec() else None)
-            extra['planar'] = {'inclination_deg': field_ref.get('inclination_deg'),
-                               'prior_params': prior}
+        # what a turn leaves open (planar) is held at the active calibration (same model),
+        # else at an ideal sensor (magcal_ros.core.model.planar)
+        active = self._active_cal
+        request = CalibrationRequest(
+            model=model, field_nt=field_nt, field_reference=field_ref, geometry=geometry,
+            attitude=s.attitude_mode, planar=s.planar,
+            prior_params=(active.params if active is not None
+                          and active.model.spec() == model.spec() else None),
+            robust=s.robust, constrained=s.constrained, exclude_outliers=s.exclude_outliers)
         try:
-            run = run_calibration(
-                data, model=model, field_nt=field_nt, geometry=geometry or {},
-                field_reference=field_ref,
-                robust=s.robust, exclude_outliers=s.exclude_outliers,
-                constrained=s.constrained, **extra)
+            run = run_calibration(data, request)
         except DegenerateDataError as exc:
             return False, (f'not calibrated: {exc}; previous calibration stays active'), {
                 'reason': str(exc), 'sets': n_sets, 'model': list(s.model)}
@@ -944,7 +941,13 @@ class CalibrationNode(LearningMixin, Node):
             'resync': resync_payload,
             'outlier_sets_excluded': summ.get('outlier_sets_excluded', 0),
             'readings_left_out': summ.get('readings_left_out'),
+            **tensor_figures(summ),
+            **{k: summ[k] for k in _REPLY_KEYS if k in summ},
         }
+        if 'tensor_rms_nt_per_m' in summ:
+            payload['tensor_rms_components_after_nt_per_m'] = summ['tensor_rms_nt_per_m']
+        if 'site_gradient_nt_per_m' in summ:
+            payload['dropped_attitude_epochs'] = data.meta.get('dropped_attitude_epochs', 0)
         after = summ['scalar_rms_nt']
         lines = [f'calibrated {n_sets} sets with model {",".join(s.model)}: total-field RMS '
                  f'{min(after.values()):.2f}-{max(after.values()):.2f} nT, noise floor '
@@ -957,41 +960,7 @@ class CalibrationNode(LearningMixin, Node):
                  f'total-field RMS per sensor after  [nT]: '
                  f'{_fmt_per_sensor(summ["scalar_rms_nt"])} '
                  f'(noise floor {summ["noise_floor_nt"]:.2f} nT)']
-        if 'tensor_rms_nt_per_m' in summ:
-            before = _tensor_rms(summ['tensor_rms_before_nt_per_m'])
-            after = _tensor_rms(summ['tensor_rms_nt_per_m'])
-            floor = _tensor_rms(summ['tensor_floor_nt_per_m'])
-            payload.update(tensor_rms_before_nt_per_m=before, tensor_rms_after_nt_per_m=after,
-                           tensor_floor_nt_per_m=floor,
-                           tensor_rms_components_after_nt_per_m=summ['tensor_rms_nt_per_m'])
-            lines.append(f'tensor RMS before {before:.1f} nT/m, after {after:.2f} nT/m '
-                         f'(noise floor {floor:.2f} nT/m)')
-        if 'site_gradient_nt_per_m' in summ:
-            # world frame of the Imu orientation, nT/m, with standard uncertainties
-            payload.update(site_gradient_nt_per_m=summ['site_gradient_nt_per_m'],
-                           site_gradient_stderr_nt_per_m=summ['site_gradient_stderr_nt_per_m'],
-                           dropped_attitude_epochs=data.meta.get('dropped_attitude_epochs', 0))
-            g = np.array(summ['site_gradient_nt_per_m'])
-            lines.append('site gradient (world frame, nT/m): ' + ', '.join(
-                f'{v:.1f}' for v in g[np.triu_indices(3)]) + ' (xx, xy, xz, yy, yz, zz)')
-        if 'planar' in summ:
-            pl = summ['planar']
-            payload.update(planar=pl, undetermined=summ['undetermined'],
-                           heading_error_deg=summ['heading_error_deg'])
-            lines.append(f'planar: heading error {summ["heading_error_deg"]:.2f} deg (1 sd, '
-                         f'level, inclination from {pl["inclination_source"]}); undetermined: '
-                         + (', '.join(summ['undetermined']) or 'none'))
-        if 'attitude' in summ:
-            at = summ['attitude']
-            payload.update(attitude=at, undetermined=summ['undetermined'])
-            lines.append(f"attitude: {at['mode']} ({at['trusted']}), error "
-                         f"{at['attitude_sd_deg']:.2f} deg; undetermined: "
-                         + (', '.join(summ['undetermined']) or 'none'))
-        if s.robust:
-            lines.append(f'robust fit: samples down-weighted as outliers per sensor: '
-                         f'{_fmt_per_sensor(summ["downweighted"], "{:d}")} of {n_sets}')
-        for w in summ['warnings']:
-            lines.append(format_note(w))
+        lines += summary_lines(summ, request)
         for w in resync_lines:
             lines.append(f'resync: {w}')
         changed = self._model_changed
