@@ -437,12 +437,6 @@ def cmd_fit(args):
     return EXIT_OK
 
 
-def attitude_summary(aided, data):
-    """Return the JSON account of an attitude-aided fit (pipeline.attitude_summary)."""
-    from magcal_ros.pipeline import attitude_summary as summary
-    return summary(aided, data)
-
-
 def attitude_option(args, data):
     """Return the attitude mode of ``--attitude`` for ``data`` ('tilt', 'full' or None)."""
     from magcal_ros.pipeline import attitude_mode

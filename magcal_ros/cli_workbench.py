@@ -33,7 +33,7 @@ status 0 on success, 2 on bad input, 1 on other failures (handled by :func:`magc
 import sys
 
 from magcal_ros.core.effects import load_plugins
-from magcal_ros.pipeline import attitude_lines
+from magcal_ros.pipeline import attitude_lines, attitude_summary
 from magcal_ros.progress import Progress, wanted
 
 EXIT_OK = 0
@@ -110,7 +110,7 @@ def _run(args, cli, with_ladder):
                              inclination_deg=fref.get('inclination_deg'),
                              on_degenerate='flag')
         base, constrained = aided.result, True
-        fref = dict(fref, attitude=cli.attitude_summary(aided, data))
+        fref = dict(fref, attitude=attitude_summary(aided, data))
     else:
         base = fit(data, model, field_nt=field_nt, robust=args.robust,
                    constrained=constrained,

@@ -37,7 +37,7 @@ from magcal_ros.io.calfile import CalibrationFileError, dump_calibration, save_c
 from magcal_ros.pipeline import (CalibrationRequest, run_request as run_calibration,
                                  summary_lines, tensor_figures)
 from magcal_ros.ros import params as prm
-from magcal_ros.ros.collection import _silent_sensors
+from magcal_ros.ros.collection import silent_sensors
 from magcal_ros.ros.replies import reply as _reply
 import numpy as np
 from std_msgs.msg import String
@@ -80,7 +80,7 @@ class CalibrationMixin:
         if n_sets < s.min_samples:
             with self._lock:
                 received = self._received.tolist()
-            silent = [] if state == 'idle' else _silent_sensors(received)
+            silent = [] if state == 'idle' else silent_sensors(received)
             reason = (f'only {n_sets} complete sample sets collected, need at least '
                       f'{s.min_samples}' + (': call calibration/start and rotate the array'
                                             if state == 'idle' else

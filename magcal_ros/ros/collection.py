@@ -39,7 +39,7 @@ from std_msgs.msg import String
 _STATUS_SUBSAMPLE = 2000
 
 
-def _silent_sensors(received):
+def silent_sensors(received):
     """
     Messages naming the sensors that sent nothing, or far less than the others.
 
@@ -237,7 +237,7 @@ class CollectionMixin:
         if not self._collecting:
             missing.append('not collecting: call calibration/start')
         else:
-            missing.extend(_silent_sensors(received))
+            missing.extend(silent_sensors(received))
         if n_sets < s.min_samples:
             missing.append(f'{s.min_samples - n_sets} more complete sample sets '
                            f'(have {n_sets}, need {s.min_samples})')
