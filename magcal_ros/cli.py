@@ -440,17 +440,10 @@ def cmd_fit(args):
 def attitude_option(args, data):
     """Return the attitude mode of ``--attitude`` for ``data`` ('tilt', 'full' or None)."""
     from magcal_ros.pipeline import attitude_mode
-    if getattr(args, 'planar', False) or getattr(args, 'heading_unknown', False):
-        return None if getattr(args, 'attitude', 'auto') == 'auto' else _attitude_conflict(args)
     try:
         return attitude_mode(getattr(args, 'attitude', 'auto'), data)
     except ValueError as exc:
         raise BadInput(str(exc)) from None
-
-
-def _attitude_conflict(args):
-    raise BadInput(f'--attitude {args.attitude} goes with neither --planar nor '
-                   '--heading-unknown: choose one')
 
 
 def add_attitude_arg(p):

@@ -45,8 +45,9 @@ one JSON object):
 
 - ``calibration/start``: clear the buffer and start collecting;
 - ``calibration/calibrate``: fit the ``model`` parameter to the collected sets
-  (:func:`magcal_ros.pipeline.run_request`, as ``magcal fit``), write ``calibration_file`` atomically (the
-  previous one kept) and publish it; refused data leave the previous calibration active;
+  (:func:`magcal_ros.pipeline.run_request`, as ``magcal fit``), write ``calibration_file``
+  atomically (the previous one kept) and publish it; refused data leave the previous
+  calibration active;
 - ``calibration/diagnose``: rank the candidate effects missing from ``model``
   (:func:`magcal_ros.core.discovery.diagnose`) and write the HTML report to ``report_dir``;
 - ``calibration/reset``, ``calibration/turn`` (``cmd_vel_topic``), ``calibration/adopt``
