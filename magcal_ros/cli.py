@@ -254,48 +254,39 @@ def resolve_field(args, data):
 
 
 def _resolve_field(args, data):
+    # the node's field_source, from the options (core.data.magnitude.site_field_reference)
+    from magcal_ros.core.data.magnitude import site_field_reference
+    from magcal_ros.core.geometry.turn import PlanarError
     if getattr(args, 'igrf', None):
-        from magcal_ros.core.data.magnitude import igrf_field
         try:
             lat, lon, alt = (float(x) for x in args.igrf[:3])
         except ValueError:
             raise BadInput('--igrf LAT LON ALT_KM DATE: LAT, LON, ALT_KM must be numbers')
-        f, inc = igrf_field(lat, lon, alt, args.igrf[3])
-        return f, {'kind': 'igrf', 'lat_deg': lat, 'lon_deg': lon, 'alt_km': alt,
-                   'date': args.igrf[3], 'magnitude_nt': f, 'inclination_deg': inc}
+        return site_field_reference('igrf', None, lat, lon, alt * 1000.0, args.igrf[3])
     if getattr(args, 'field_nt', None) is not None:
         if args.field_nt == 'auto':
-            if getattr(args, 'planar', False):
-                # an ellipsoid needs a sphere; a turn gives a circle and the mean along it
-                from magcal_ros.core.geometry.turn import (planar_magnitude, PlanarError,
-                                                           turn_axis)
-                try:
-                    f = planar_magnitude(data.raw[0], turn_axis(data.raw[0]))
-                except PlanarError as exc:
-                    raise BadInput(str(exc)) from None
-                return f, {'kind': 'auto (planar: in-plane radius and mean along the axis, '
-                                   'shape-only)', 'magnitude_nt': f}
-            from magcal_ros.core.data.magnitude import auto_magnitude
-            f = auto_magnitude(data.raw[0])
-            return f, {'kind': 'auto (mean radius, shape-only)', 'magnitude_nt': f}
+            # an ellipsoid needs a sphere; a turn gives a circle and the mean along it
+            source = 'shape-planar' if getattr(args, 'planar', False) else 'shape'
+            try:
+                return site_field_reference(source, raw=data.raw[0])
+            except PlanarError as exc:
+                raise BadInput(str(exc)) from None
         try:
             f = float(args.field_nt)
         except ValueError:
             raise BadInput(f"--field-nt must be a number of nT or 'auto', got {args.field_nt!r}")
         if not np.isfinite(f) or f <= 0:
             raise BadInput('--field-nt must be positive')
-        return f, {'kind': 'constant', 'magnitude_nt': f}
+        return site_field_reference('constant', f)
     if data.ref_total is not None:
         return None, {'kind': 'ref_total', 'magnitude_nt': float(np.mean(data.ref_total))}
     site = data.meta.get('igrf')
     if site:
         # a vehicle log's GPS: IGRF at its median fix and date (magcal_ros.io.vehicle)
-        from magcal_ros.core.data.magnitude import igrf_field
-        f, inc = igrf_field(site['lat_deg'], site['lon_deg'], site['alt_km'], site['date'])
-        return f, {'kind': 'igrf', 'lat_deg': site['lat_deg'], 'lon_deg': site['lon_deg'],
-                   'alt_km': site['alt_km'], 'date': site['date'], 'magnitude_nt': f,
-                   'inclination_deg': inc,
-                   'note': f"from the log's GPS (median of {site.get('fixes', 0)} 3-D fixes)"}
+        f, ref = site_field_reference('igrf', None, site['lat_deg'], site['lon_deg'],
+                                      site['alt_km'] * 1000.0, site['date'])
+        ref['note'] = f"from the log's GPS (median of {site.get('fixes', 0)} 3-D fixes)"
+        return f, ref
     raise BadInput('no reference field: the data have no ref_total column; give --field-nt NT, '
                    '--field-nt auto or --igrf LAT LON ALT_KM DATE')
 
