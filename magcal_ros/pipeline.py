@@ -17,7 +17,10 @@ Calibration run shared by the `magcal` command line and the calibration node (no
 
 ``calibrate(data, ...)`` = identifiability check + closed-form start + ML refinement
 (:func:`magcal_ros.core.model.fit`), then the before/after figures (scalar, vector and tensor
-residuals) and the calibration document (docs/design.md §4).
+residuals) and the calibration document (docs/design.md §4).  Both callers build a
+:class:`CalibrationRequest` (the model, the field reference, the mode: attitude-aided, planar,
+heading unknown or plain, and its options), run it with :func:`run_request` and print
+:func:`summary_lines`.
 """
 from dataclasses import dataclass
 
