@@ -254,48 +254,39 @@ def resolve_field(args, data):
 
 
 def _resolve_field(args, data):
+    # the node's field_source, from the options (core.data.magnitude.site_field_reference)
+    from magcal_ros.core.data.magnitude import site_field_reference
+    from magcal_ros.core.geometry.turn import PlanarError
     if getattr(args, 'igrf', None):
-        from magcal_ros.core.data.magnitude import igrf_field
         try:
             lat, lon, alt = (float(x) for x in args.igrf[:3])
         except ValueError:
             raise BadInput('--igrf LAT LON ALT_KM DATE: LAT, LON, ALT_KM must be numbers')
-        f, inc = igrf_field(lat, lon, alt, args.igrf[3])
-        return f, {'kind': 'igrf', 'lat_deg': lat, 'lon_deg': lon, 'alt_km': alt,
-                   'date': args.igrf[3], 'magnitude_nt': f, 'inclination_deg': inc}
+        return site_field_reference('igrf', None, lat, lon, alt * 1000.0, args.igrf[3])
     if getattr(args, 'field_nt', None) is not None:
         if args.field_nt == 'auto':
-            if getattr(args, 'planar', False):
-                # an ellipsoid needs a sphere; a turn gives a circle and the mean along it
-                from magcal_ros.core.geometry.turn import (planar_magnitude, PlanarError,
-                                                           turn_axis)
-                try:
-                    f = planar_magnitude(data.raw[0], turn_axis(data.raw[0]))
-                except PlanarError as exc:
-                    raise BadInput(str(exc)) from None
-                return f, {'kind': 'auto (planar: in-plane radius and mean along the axis, '
-                                   'shape-only)', 'magnitude_nt': f}
-            from magcal_ros.core.data.magnitude import auto_magnitude
-            f = auto_magnitude(data.raw[0])
-            return f, {'kind': 'auto (mean radius, shape-only)', 'magnitude_nt': f}
+            # an ellipsoid needs a sphere; a turn gives a circle and the mean along it
+            source = 'shape-planar' if getattr(args, 'planar', False) else 'shape'
+            try:
+                return site_field_reference(source, raw=data.raw[0])
+            except PlanarError as exc:
+                raise BadInput(str(exc)) from None
         try:
             f = float(args.field_nt)
         except ValueError:
             raise BadInput(f"--field-nt must be a number of nT or 'auto', got {args.field_nt!r}")
         if not np.isfinite(f) or f <= 0:
             raise BadInput('--field-nt must be positive')
-        return f, {'kind': 'constant', 'magnitude_nt': f}
+        return site_field_reference('constant', f)
     if data.ref_total is not None:
         return None, {'kind': 'ref_total', 'magnitude_nt': float(np.mean(data.ref_total))}
     site = data.meta.get('igrf')
     if site:
         # a vehicle log's GPS: IGRF at its median fix and date (magcal_ros.io.vehicle)
-        from magcal_ros.core.data.magnitude import igrf_field
-        f, inc = igrf_field(site['lat_deg'], site['lon_deg'], site['alt_km'], site['date'])
-        return f, {'kind': 'igrf', 'lat_deg': site['lat_deg'], 'lon_deg': site['lon_deg'],
-                   'alt_km': site['alt_km'], 'date': site['date'], 'magnitude_nt': f,
-                   'inclination_deg': inc,
-                   'note': f"from the log's GPS (median of {site.get('fixes', 0)} 3-D fixes)"}
+        f, ref = site_field_reference('igrf', None, site['lat_deg'], site['lon_deg'],
+                                      site['alt_km'] * 1000.0, site['date'])
+        ref['note'] = f"from the log's GPS (median of {site.get('fixes', 0)} 3-D fixes)"
+        return f, ref
     raise BadInput('no reference field: the data have no ref_total column; give --field-nt NT, '
                    '--field-nt auto or --igrf LAT LON ALT_KM DATE')
 
@@ -378,7 +369,8 @@ def cmd_simulate(args):
 
 def cmd_fit(args):
     from magcal_ros.io.calfile import save_calibration, stamp_checksum
-    from magcal_ros.pipeline import calibrate, cross_geometry, geometry_positions
+    from magcal_ros.pipeline import (CalibrationRequest, cross_geometry, geometry_positions,
+                                     run_request, summary_lines)
     from magcal_ros.progress import Progress, wanted
     load_plugins(args)
     prog = Progress(wanted(args.quiet, args.json))
@@ -388,16 +380,13 @@ def cmd_fit(args):
                                allow_gaps=getattr(args, 'allow_gaps', False))
     field_nt, fref = resolve_field(args, data)
     geometry = cross_geometry(args.baseline_m) if data.n_sensors == 4 else None
-    extra = {'heading_unknown': True} if args.heading_unknown else {}
-    if args.planar:
-        extra = {'planar': {'inclination_deg': fref.get('inclination_deg')}}
+    request = CalibrationRequest(
+        model=args.model, field_nt=field_nt, field_reference=fref, geometry=geometry,
+        attitude=args.attitude, planar=args.planar, heading_unknown=args.heading_unknown,
+        robust=args.robust, constrained=args.constrained,
+        on_degenerate='flag' if args.flag_degenerate else 'raise')
     prog('fit', 0, 1, args.model)
-    extra['attitude'] = attitude_option(args, data) or 'off'
-    if extra['attitude'] != 'off':
-        extra['inclination_deg'] = fref.get('inclination_deg')
-    run = calibrate(data, args.model, field_nt=field_nt, geometry=geometry,
-                    field_reference=fref, robust=args.robust, constrained=args.constrained,
-                    on_degenerate='flag' if args.flag_degenerate else 'raise', **extra)
+    run = run_request(data, request)
     prog('fit', 1, 1)
     if record is not None:
         full_record_statistics(run, record, geometry_positions(geometry, data.n_sensors),
@@ -423,25 +412,9 @@ def cmd_fit(args):
         print_json(s)
     else:
         print(run.result.summary())
-        for w in s['warnings']:
-            if w['kind'] not in ('degenerate', 'not_converged'):   # already in the summary
-                print(format_note(w))
-        if 'tensor_rms_nt_per_m' in s:
-            t = np.array(s['tensor_rms_nt_per_m'])
-            tb = np.array(s['tensor_rms_before_nt_per_m'])
-            print(f'tensor RMS: before max {tb.max():.1f} nT/m, after max {t.max():.1f} nT/m '
-                  f'(noise floor {np.array(s["tensor_floor_nt_per_m"]).max():.1f} nT/m)')
-        if 'site_gradient_nt_per_m' in s:
-            g = np.array(s['site_gradient_nt_per_m'])
-            se = np.array(s['site_gradient_stderr_nt_per_m'])
-            print(f'site gradient ({s["site_gradient_frame"]}; nT/m, +- standard '
-                  'uncertainty):')
-            for row, srow in zip(g, se):
-                print('  ' + '  '.join(f'{v:9.2f} +- {e:5.2f}' for v, e in zip(row, srow)))
-        if 'planar' in s:
-            _print_planar(s['planar'])
-        if 'attitude' in s:
-            _print_attitude(s['attitude'])
+        # the degenerate and not-converged warnings are in the fit's own summary
+        for line in summary_lines(s, request, skip_kinds=('degenerate', 'not_converged')):
+            print(line)
         kinds = sorted(set(s['noise_floor_status'].values()) - {'white'})
         print(f'noise floor (from the data): {s["noise_floor_nt"]:.2f} nT'
               + (f' ({" / ".join(kinds)}: see the noise_floor warnings)' if kinds else ''))
@@ -455,65 +428,13 @@ def cmd_fit(args):
     return EXIT_OK
 
 
-def _print_planar(pl):
-    """Print the planar calibration's account: a line per sensor, one for what is open."""
-    for j, e in pl['in_plane'].items():
-        axis = ', '.join(f'{x:+.2f}' for x in pl['axis'][j])
-        parts = [f'sensor {j}: turn about ({axis}); in the {e["axes"]} plane']
-        parts.append('effective offsets (level) ' + ', '.join(
-            f'{v:.1f} +- {s:.1f}' for v, s in zip(e['effective_offset_nt'],
-                                                  e['effective_offset_stderr_nt'])) + ' nT')
-        if 'scale_ratio' in e:
-            parts.append(f'scale ratio {e["scale_ratio"]:.4f} +- {e["scale_ratio_stderr"]:.4f}')
-        if 'nonorth_rad' in e:
-            parts.append(f'angle {e["nonorth_rad"]:+.4f} +- {e["nonorth_stderr_rad"]:.4f} rad')
-        parts.append(f'heading error {pl["heading_error_deg"][j]:.2f} deg (1 sd, largest over '
-                     f'headings; inclination from {pl["inclination_source"]})')
-        print('; '.join(parts))
-    if pl['undetermined']:
-        print("undetermined (known no better than half the prior's width): "
-              + ', '.join(pl['undetermined']))
-
-
-def _print_attitude(at):
-    """Print the attitude-aided fit's account: the mode, the world field, what is open."""
-    wf = at['world_field']
-    line = (f"attitude: {at['mode']} ({at['trusted']} from {at['source']}, error "
-            f"{at['attitude_sd_deg']:.2f} deg as estimated); world field inclination "
-            f"{wf['inclination_deg']:.2f} +- {wf['inclination_stderr_deg']:.2f} deg")
-    if 'declination_deg' in wf:
-        line += (f", declination {wf['declination_deg']:.2f} +- "
-                 f"{wf['declination_stderr_deg']:.2f} deg")
-    print(line)
-    h = at['heading_check']
-    print(f"heading: attitude against the corrected compass {h['offset_deg']:+.1f} deg, "
-          f"{h['rms_deg']:.2f} deg RMS about it")
-    if at['undetermined']:
-        print("undetermined (known no better than half the prior's width): "
-              + ', '.join(at['undetermined']))
-
-
-def attitude_summary(aided, data):
-    """Return the JSON account of an attitude-aided fit (pipeline.attitude_summary)."""
-    from magcal_ros.pipeline import attitude_summary as summary
-    return summary(aided, data)
-
-
 def attitude_option(args, data):
     """Return the attitude mode of ``--attitude`` for ``data`` ('tilt', 'full' or None)."""
     from magcal_ros.pipeline import attitude_mode
-    if getattr(args, 'planar', False) or getattr(args, 'heading_unknown', False):
-        return (None if getattr(args, 'attitude', 'auto') in ('auto', 'off')
-                else _attitude_conflict(args))
     try:
         return attitude_mode(getattr(args, 'attitude', 'auto'), data)
     except ValueError as exc:
         raise BadInput(str(exc)) from None
-
-
-def _attitude_conflict(args):
-    raise BadInput(f'--attitude {args.attitude} goes with neither --planar nor '
-                   '--heading-unknown: choose one')
 
 
 def add_attitude_arg(p):

@@ -33,6 +33,7 @@ status 0 on success, 2 on bad input, 1 on other failures (handled by :func:`magc
 import sys
 
 from magcal_ros.core.effects import load_plugins
+from magcal_ros.pipeline import attitude_lines, attitude_summary
 from magcal_ros.progress import Progress, wanted
 
 EXIT_OK = 0
@@ -109,7 +110,7 @@ def _run(args, cli, with_ladder):
                              inclination_deg=fref.get('inclination_deg'),
                              on_degenerate='flag')
         base, constrained = aided.result, True
-        fref = dict(fref, attitude=cli.attitude_summary(aided, data))
+        fref = dict(fref, attitude=attitude_summary(aided, data))
     else:
         base = fit(data, model, field_nt=field_nt, robust=args.robust,
                    constrained=constrained,
@@ -162,7 +163,8 @@ def cmd_diagnose(args, cli):
             print(reduction_line(data.meta['reduction']))
         print(diag.summary())
         if 'attitude' in fref:
-            cli._print_attitude(fref['attitude'])
+            for line in attitude_lines(fref['attitude']):
+                print(line)
         for w in warnings:
             print(format_note(w))
         if lad is not None:

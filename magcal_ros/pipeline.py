@@ -17,7 +17,10 @@ Calibration run shared by the `magcal` command line and the calibration node (no
 
 ``calibrate(data, ...)`` = identifiability check + closed-form start + ML refinement
 (:func:`magcal_ros.core.model.fit`), then the before/after figures (scalar, vector and tensor
-residuals) and the calibration document (docs/design.md §4).
+residuals) and the calibration document (docs/design.md §4).  Both callers build a
+:class:`CalibrationRequest` (the model, the field reference, the mode: attitude-aided, planar,
+heading unknown or plain, and its options), run it with :func:`run_request` and print
+:func:`summary_lines`.
 """
 from dataclasses import dataclass
 
@@ -25,7 +28,7 @@ from magcal_ros.core.data.noise import data_noise_floor
 from magcal_ros.core.geometry.tensor import (cross_positions, gradient_from_fit, tensor_lstsq,
                                              tensor_noise_floor)
 from magcal_ros.core.model import data_hash, fit, Model
-from magcal_ros.core.model.notes import Note, note_dict
+from magcal_ros.core.model.notes import format_note, Note, note_dict
 from magcal_ros.core.model.plausibility import (axis_maps, fitted_scales_angles,
                                                 mounting_notes, parameter_notes, with_axis_maps)
 from magcal_ros.core.model.site_gradient import centred_fields
@@ -251,8 +254,84 @@ OUTLIER_SIGMAS = 5.0
 MAX_OUTLIER_FRACTION = 0.05
 
 
+@dataclass
+class CalibrationRequest:
+    """
+    One calibration asked for: the model, the field reference, the mode and its options.
+
+    The command line builds it from its options (``magcal fit``), the calibration node from
+    its parameters; :func:`run_request` runs it and :func:`summary_lines` describes the
+    result, the same for both.
+
+    Attributes
+    ----------
+    model : str, list of str or Model
+        The effects (``'base,temperature@2'``) or a built Model.
+    field_nt : float or numpy.ndarray or None
+        Reference magnitude, nT (scalar or (N,)); None: ``data.ref_total``.
+    field_reference : dict
+        How the reference was obtained (recorded in the provenance); its
+        ``inclination_deg`` (IGRF) is the planar and attitude-aided fits' inclination.
+    geometry : dict or None
+        Array geometry (``positions_m`` (S, 3) m); None: paper 004's cross for four sensors.
+    attitude : str
+        One of :data:`ATTITUDE_MODES` (:func:`attitude_mode`).
+    planar : bool
+        A turn about one axis (:mod:`magcal_ros.core.model.planar`); wins over
+        ``heading_unknown``.
+    prior_params : numpy.ndarray or None
+        (P,) parameters of the planar mode's prior (the active calibration's); None: an
+        ideal sensor.
+    heading_unknown : bool
+        Site gradient without attitude
+        (:func:`magcal_ros.core.model.site_gradient.fit_heading_unknown`).
+    robust, constrained : bool
+        Soft-L1 loss; priors for a partial attitude coverage (:func:`magcal_ros.core.model.fit`).
+    exclude_outliers : bool
+        As for :func:`calibrate`.
+    on_degenerate : str
+        'raise' (refuse degenerate data) or 'flag'.
+
+    """
+
+    model: object = 'base'
+    field_nt: object = None
+    field_reference: dict = None
+    geometry: dict = None
+    attitude: str = 'auto'
+    planar: bool = False
+    prior_params: object = None
+    heading_unknown: bool = False
+    robust: bool = False
+    constrained: bool = False
+    exclude_outliers: bool = False
+    on_degenerate: str = 'raise'
+
+
+def run_request(data, request, screen=True, **fit_kwargs):
+    """
+    Run a :class:`CalibrationRequest` on ``data`` (Dataset, (S, N, 3) nT): a CalibrationRun.
+
+    The one calibration of ``magcal fit`` and calibration_node: ``screen`` and the
+    outlier exclusion as :func:`calibrate` says, then the request's mode (attitude-aided,
+    planar, heading unknown or the plain fit); ``fit_kwargs`` go to the fit.
+    """
+    if not screen:
+        return _calibrate_clean(data, request, request.field_nt, fit_kwargs)
+    from magcal_ros.core.data.readings import leave_out_unphysical
+    data, field_nt, found = leave_out_unphysical(data, request.field_nt)
+    run = _calibrate_clean(data, request, field_nt, fit_kwargs)
+    left_out = found.to_dict()
+    run.summary['readings_left_out'] = left_out
+    run.doc['provenance']['readings_left_out'] = left_out
+    notes = [note_dict(w) for w in found.notes()]
+    run.summary['warnings'][:0] = notes
+    run.doc['provenance']['warnings'][:0] = notes
+    return run
+
+
 def calibrate(data, model='base', field_nt=None, geometry=None, field_reference=None,
-              exclude_outliers=False, screen=True, **fit_kwargs):
+              exclude_outliers=False, screen=True, **options):
     """
     Fit ``model`` to ``data`` and build the summary and calibration document.
 
@@ -284,37 +363,36 @@ def calibrate(data, model='base', field_nt=None, geometry=None, field_reference=
         each is named in a ``readings`` warning, and the summary and the provenance give
         ``readings_left_out``.  Too few sets left raises
         :class:`~magcal_ros.core.data.readings.UnphysicalReadingsError` (a ValueError) naming them.
+    **options
+        The mode and options of a :class:`CalibrationRequest` (``attitude``, ``planar``,
+        ``prior_params``, ``heading_unknown``, ``robust``, ``constrained``,
+        ``on_degenerate``); any other keyword goes to the fit
+        (:func:`magcal_ros.core.model.fit`: ``init``, ``extra_priors``, ...).
 
     """
-    if not screen:
-        return _calibrate_clean(data, model, field_nt, geometry, field_reference,
-                                exclude_outliers, **fit_kwargs)
-    from magcal_ros.core.data.readings import leave_out_unphysical
-    data, field_nt, found = leave_out_unphysical(data, field_nt)
-    run = _calibrate_clean(data, model, field_nt, geometry, field_reference, exclude_outliers,
-                           **fit_kwargs)
-    left_out = found.to_dict()
-    run.summary['readings_left_out'] = left_out
-    run.doc['provenance']['readings_left_out'] = left_out
-    notes = [note_dict(w) for w in found.notes()]
-    run.summary['warnings'][:0] = notes
-    run.doc['provenance']['warnings'][:0] = notes
-    return run
+    mode = {k: options.pop(k) for k in _REQUEST_OPTIONS if k in options}
+    return run_request(data, CalibrationRequest(
+        model=model, field_nt=field_nt, field_reference=field_reference, geometry=geometry,
+        exclude_outliers=exclude_outliers, **mode), screen=screen, **options)
 
 
-def _calibrate_clean(data, model, field_nt, geometry, field_reference, exclude_outliers,
-                     **fit_kwargs):
-    run = _calibrate(data, model, field_nt, geometry, field_reference, **fit_kwargs)
-    if (not exclude_outliers or fit_kwargs.get('robust') or fit_kwargs.get('heading_unknown')
-            or fit_kwargs.get('planar') is not None):
+#: the keywords of :func:`calibrate` that are a :class:`CalibrationRequest`'s mode and options
+_REQUEST_OPTIONS = ('attitude', 'planar', 'prior_params', 'heading_unknown', 'robust',
+                    'constrained', 'on_degenerate')
+
+
+def _calibrate_clean(data, request, field_nt, fit_kwargs):
+    run = _calibrate(data, request, request.model, field_nt, fit_kwargs)
+    if (not request.exclude_outliers or request.robust or request.heading_unknown
+            or request.planar):
         return run
     if not [w for w in run.summary['warnings'] if w['kind'] == 'missing_effect']:
         run.summary['outlier_sets_excluded'] = 0
         return run
     from magcal_ros.core.effects.attitude_ref import attitude_reference
-    kw = {k: v for k, v in fit_kwargs.items() if k not in ('attitude', 'inclination_deg')}
-    if attitude_reference(run.result.model) is not None:
-        kw['constrained'] = True         # the aided fit's priors (core/model/attitude_fit.py)
+    # an attitude-aided fit's model: with its priors (core/model/attitude_fit.py)
+    kw = dict(fit_kwargs, constrained=request.constrained
+              or attitude_reference(run.result.model) is not None)
     rob = fit(data, run.result.model, field_nt=field_nt,
               **dict(kw, robust=True, check_identifiability=False, on_degenerate='flag'))
     z = np.abs(rob.residual_nt) / rob.sigma_nt[:, None, None]
@@ -332,8 +410,7 @@ def _calibrate_clean(data, model, field_nt, geometry, field_reference, exclude_o
     f_keep = field_nt if field_nt is None or np.ndim(field_nt) == 0 else \
         np.asarray(field_nt)[keep]
     spec = Model.from_spec(run.result.model.spec(), data.n_sensors)
-    clean = _calibrate(data.subset(keep), spec, f_keep, geometry, field_reference,
-                       **fit_kwargs)
+    clean = _calibrate(data.subset(keep), request, spec, f_keep, fit_kwargs)
     clean.summary['outlier_sets_excluded'] = n_bad
     excluded = note_dict(Note(
         f'{n_bad} of {data.n_samples} sets excluded: beyond {OUTLIER_SIGMAS:g} sigma of a '
@@ -427,18 +504,19 @@ def attitude_notes(aided):
     return out
 
 
-def _calibrate(data, model, field_nt, geometry, field_reference, **fit_kwargs):
+def _calibrate(data, request, model, field_nt, fit_kwargs):
+    """Fit ``model`` in the request's mode; the summary and document (a CalibrationRun)."""
+    geometry = request.geometry
     if geometry is None and data.n_sensors == 4:
         geometry = cross_geometry(0.5)
-    if isinstance(model, str):
+    if not isinstance(model, Model):
         model = Model.from_spec(model, data.n_sensors)
     positions = geometry_positions(geometry, data.n_sensors)
     if positions is not None:
         model.set_positions(positions)          # where the site gradient acts
     mounting = []
-    planar = fit_kwargs.pop('planar', None)
-    option = fit_kwargs.pop('attitude', None)
-    if planar is not None or fit_kwargs.get('heading_unknown'):
+    option = request.attitude
+    if request.planar or request.heading_unknown:
         # the planar mode and the heading-unknown site gradient are their own answers to a
         # partial motion: the attitude is theirs ('auto'), or the caller said both
         if option not in (None, 'auto', 'off'):
@@ -446,36 +524,37 @@ def _calibrate(data, model, field_nt, geometry, field_reference, **fit_kwargs):
                              'choose one')
         option = 'off'
     attitude = attitude_mode(option, data)
-    inclination = fit_kwargs.pop('inclination_deg', None)
-    aided = None
+    inclination = (request.field_reference or {}).get('inclination_deg')
+    kw = dict(fit_kwargs, robust=request.robust)
+    aided = pr = None
     if attitude is not None:
         # a vehicle: the attitude observes the field's direction (core/model/attitude_fit.py)
         from magcal_ros.core.model.attitude_fit import fit_attitude
-        fit_kwargs.pop('on_degenerate', None)
         aided = fit_attitude(data, model, field_nt=field_nt, mode=attitude,
-                             inclination_deg=inclination, on_degenerate='flag', **fit_kwargs)
+                             inclination_deg=inclination, on_degenerate='flag',
+                             constrained=request.constrained, **kw)
         result = aided.result
-    elif fit_kwargs.pop('heading_unknown', False):
-        # site gradient without attitude: the heading about the field per epoch
-        from magcal_ros.core.model.site_gradient import fit_heading_unknown
-        result = fit_heading_unknown(data, model, field_nt=field_nt, **fit_kwargs)
-    elif planar is not None:
+    elif request.planar:
         # a turn about one axis (a ground robot): what it determines, the rest at a prior
         from magcal_ros.core.model import planar as pl
-        fit_kwargs.pop('constrained', None)
-        fit_kwargs.pop('on_degenerate', None)
         pr = pl.fit_planar(data, model, data.reference_magnitude(field_nt),
-                           prior_params=planar.get('prior_params'),
-                           inclination_deg=planar.get('inclination_deg'), **fit_kwargs)
+                           prior_params=request.prior_params, inclination_deg=inclination,
+                           **kw)
         result = pr.result
     else:
-        result = fit(data, model, field_nt=field_nt, **fit_kwargs)
-        result, mounting = _adopt_axis_maps(result, data, field_nt, positions, fit_kwargs)
+        kw.update(constrained=request.constrained, on_degenerate=request.on_degenerate)
+        if request.heading_unknown:
+            # site gradient without attitude: the heading about the field per epoch
+            from magcal_ros.core.model.site_gradient import fit_heading_unknown
+            result = fit_heading_unknown(data, model, field_nt=field_nt, **kw)
+        else:
+            result = fit(data, model, field_nt=field_nt, **kw)
+            result, mounting = _adopt_axis_maps(result, data, field_nt, positions, kw)
     summary = summarize(result, data, positions)
-    if planar is not None:
+    if pr is not None:
         summary['planar'] = pl.planar_summary(pr)
         summary['planar']['inclination_source'] = (
-            'IGRF' if planar.get('inclination_deg') is not None else 'the fitted field')
+            'IGRF' if inclination is not None else 'the fitted field')
         summary['undetermined'] = summary['planar']['undetermined']
         summary['heading_error_deg'] = max(summary['planar']['heading_error_deg'].values())
         summary['warnings'].extend(note_dict(n) for n in pl.planar_notes(pr))
@@ -483,7 +562,7 @@ def _calibrate(data, model, field_nt, geometry, field_reference, **fit_kwargs):
         summary['attitude'] = attitude_summary(aided, data)
         summary['undetermined'] = list(aided.undetermined)
         summary['warnings'].extend(note_dict(n) for n in attitude_notes(aided))
-    if planar is None and aided is None:   # these hold what the motion leaves open at a prior
+    if pr is None and aided is None:   # these hold what the motion leaves open at a prior
         summary['warnings'] += [note_dict(w) for w in mounting + parameter_notes(
             result.model, result.params, data.raw, float(np.mean(result.field_magnitude_nt)))]
     temp_range = {}
@@ -508,7 +587,7 @@ def _calibrate(data, model, field_nt, geometry, field_reference, **fit_kwargs):
                       if k in summary},
         'warnings': list(summary['warnings']),
     }
-    if planar is not None:
+    if pr is not None:
         # what the turn left open, recorded with the calibration (issue 20)
         prov['planar'] = {k: summary['planar'][k] for k in
                           ('axis', 'undetermined', 'determined', 'heading_error_deg',
@@ -517,11 +596,102 @@ def _calibrate(data, model, field_nt, geometry, field_reference, **fit_kwargs):
         prov['attitude'] = summary['attitude']
     if 'tensor_rms_nt_per_m' in summary:
         prov['residuals']['tensor_rms_nt_per_m'] = summary['tensor_rms_nt_per_m']
-    fref = dict(field_reference or {})
+    fref = dict(request.field_reference or {})
     fref.setdefault('magnitude_nt', float(np.mean(result.field_magnitude_nt)))
     doc = calibration_to_doc(result.calibration, geometry=geometry or {},
                              field_reference=fref, provenance=prov)
     return CalibrationRun(result=result, summary=summary, doc=doc)
+
+
+def _tensor_rms(components):
+    """One RMS over the nine tensor components (list of lists, nT/m)."""
+    return float(np.sqrt(np.mean(np.square(np.asarray(components, float)))))
+
+
+def tensor_figures(summary):
+    """
+    Return the tensor's RMS before, after and its floor, one number each over the components.
+
+    ``{'tensor_rms_before_nt_per_m', 'tensor_rms_after_nt_per_m', 'tensor_floor_nt_per_m'}``
+    (nT/m) from a :func:`summarize` summary; empty when the tensor was not computed.
+    """
+    if 'tensor_rms_nt_per_m' not in summary:
+        return {}
+    return {'tensor_rms_before_nt_per_m': _tensor_rms(summary['tensor_rms_before_nt_per_m']),
+            'tensor_rms_after_nt_per_m': _tensor_rms(summary['tensor_rms_nt_per_m']),
+            'tensor_floor_nt_per_m': _tensor_rms(summary['tensor_floor_nt_per_m'])}
+
+
+def summary_lines(summary, request=None, skip_kinds=()):
+    """
+    Return the human account of a calibration (the command line prints it, the node replies).
+
+    ``summary`` is a :attr:`CalibrationRun.summary`: the lines give the gradient tensor's RMS
+    before and after, the site gradient, the planar and attitude-aided fits' accounts, the
+    robust fit's down-weighted samples (when ``request.robust``) and one line per warning
+    (those of a kind in ``skip_kinds`` left out: the caller printed them already).
+    """
+    lines = []
+    t = tensor_figures(summary)
+    if t:
+        lines.append(f"tensor RMS before {t['tensor_rms_before_nt_per_m']:.1f} nT/m, after "
+                     f"{t['tensor_rms_after_nt_per_m']:.2f} nT/m (noise floor "
+                     f"{t['tensor_floor_nt_per_m']:.2f} nT/m)")
+    if 'site_gradient_nt_per_m' in summary:
+        lines.append(f"site gradient ({summary['site_gradient_frame']}; nT/m, +- standard "
+                     'uncertainty):')
+        for row, srow in zip(summary['site_gradient_nt_per_m'],
+                             summary['site_gradient_stderr_nt_per_m']):
+            lines.append('  ' + '  '.join(f'{v:9.2f} +- {e:5.2f}' for v, e in zip(row, srow)))
+    if 'planar' in summary:
+        lines += _planar_lines(summary['planar'], summary['heading_error_deg'])
+    if 'attitude' in summary:
+        lines += attitude_lines(summary['attitude'])
+    if request is not None and request.robust:
+        per = ', '.join(f'{k}: {v:d}' for k, v in summary['downweighted'].items())
+        lines.append(f'robust fit: samples down-weighted as outliers per sensor: {per} of '
+                     f"{summary['n_fit_samples']}")
+    lines += [format_note(w) for w in summary['warnings'] if w['kind'] not in skip_kinds]
+    return lines
+
+
+def _planar_lines(pl, heading_error_deg):
+    """Return the planar fit's account: the heading error, what is open, a line per sensor."""
+    lines = [f'planar: heading error {heading_error_deg:.2f} deg (1 sd, level, inclination '
+             f"from {pl['inclination_source']}); undetermined (known no better than half the "
+             "prior's width): " + (', '.join(pl['undetermined']) or 'none')]
+    for j, e in pl['in_plane'].items():
+        axis = ', '.join(f'{x:+.2f}' for x in pl['axis'][j])
+        parts = [f'sensor {j}: turn about ({axis}); in the {e["axes"]} plane']
+        parts.append('effective offsets (level) ' + ', '.join(
+            f'{v:.1f} +- {s:.1f}' for v, s in zip(e['effective_offset_nt'],
+                                                  e['effective_offset_stderr_nt'])) + ' nT')
+        if 'scale_ratio' in e:
+            parts.append(f'scale ratio {e["scale_ratio"]:.4f} +- {e["scale_ratio_stderr"]:.4f}')
+        if 'nonorth_rad' in e:
+            parts.append(f'angle {e["nonorth_rad"]:+.4f} +- {e["nonorth_stderr_rad"]:.4f} rad')
+        parts.append(f'heading error {pl["heading_error_deg"][j]:.2f} deg (1 sd, largest over '
+                     'headings)')
+        lines.append('; '.join(parts))
+    return lines
+
+
+def attitude_lines(at):
+    """Return the attitude-aided fit's account (:func:`attitude_summary`) as lines."""
+    wf = at['world_field']
+    line = (f"attitude: {at['mode']} ({at['trusted']} from {at['source']}, error "
+            f"{at['attitude_sd_deg']:.2f} deg as estimated); world field inclination "
+            f"{wf['inclination_deg']:.2f} +- {wf['inclination_stderr_deg']:.2f} deg")
+    if 'declination_deg' in wf:
+        line += (f", declination {wf['declination_deg']:.2f} +- "
+                 f"{wf['declination_stderr_deg']:.2f} deg")
+    h = at['heading_check']
+    lines = [line, f"heading: attitude against the corrected compass {h['offset_deg']:+.1f} "
+                   f"deg, {h['rms_deg']:.2f} deg RMS about it"]
+    if at['undetermined']:
+        lines.append("undetermined (known no better than half the prior's width): "
+                     + ', '.join(at['undetermined']))
+    return lines
 
 
 #: the attitude mode of the learning's refits: the one place it is chosen.  None: the

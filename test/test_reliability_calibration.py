@@ -49,7 +49,7 @@ from magcal_ros.io.calfile import (calibration_to_doc, list_history, load_calibr
                                    save_calibration)
 from magcal_ros.io.csvio import write_csv
 from magcal_ros.pipeline import calibrate, cross_geometry
-from magcal_ros.ros import calibration_node as node_module
+from magcal_ros.ros import calibrating
 from magcal_ros.ros.calibration_node import CalibrationNode, RESULT_QOS
 from magcal_ros.ros.conversions import field_nt_to_msg, msg_to_field_nt
 from magcal_ros.ros.corrector_node import CorrectorNode
@@ -336,14 +336,14 @@ def test_simultaneous_requests_and_invalid_parameters_leave_a_consistent_state(
     # the solve is held inside the fit until the test lets it go (not "a solve slower than
     # two service calls"): every request below arrives during it, on every machine
     entered, release = threading.Event(), threading.Event()
-    solve = node_module.run_calibration
+    solve = calibrating.run_calibration
 
     def held_solve(*args, **kwargs):
         entered.set()
         assert release.wait(60.0), 'the test never released the solve'
         return solve(*args, **kwargs)
 
-    monkeypatch.setattr(node_module, 'run_calibration', held_solve)
+    monkeypatch.setattr(calibrating, 'run_calibration', held_solve)
     assert call_trigger(ros_node, ros_executor, 'calibration/start').success
     feeder.feed(ros_executor, data, taken=lambda: int(node.received.sum()), temperature=False)
     n_hist = len(list_history(path))

@@ -51,10 +51,19 @@ one JSON object):
 
 - ``calibration/start``: clear the buffer and start collecting;
 - ``calibration/calibrate``: fit the ``model`` parameter to the collected sets
-  (:func:`magcal_ros.pipeline.calibrate`), write ``calibration_file`` atomically (the
-  previous one kept) and publish it; refused data leave the previous calibration active;
+  (:func:`magcal_ros.pipeline.run_request`, as ``magcal fit``), write ``calibration_file``
+  atomically (the previous one kept) and publish it; refused data leave the previous
+  calibration active;
 - ``calibration/diagnose``: rank the candidate effects missing from ``model``
-  (:func:`magcal_ros.core.discovery.diagnose`) and write the HTML report to ``report_dir``.
+  (:func:`magcal_ros.core.discovery.diagnose`) and write the HTML report to ``report_dir``;
+- ``calibration/reset``, ``calibration/turn`` (``cmd_vel_topic``), ``calibration/adopt``
+  (learning).
+
+The node is put together from its parts: the collection (sensor callbacks, buffer, start,
+reset, status: :mod:`magcal_ros.ros.collection`), the solves (calibrate, diagnose:
+:mod:`magcal_ros.ros.calibrating`), the turn (:mod:`magcal_ros.ros.turn`) and the learning
+(:mod:`magcal_ros.ros.learning`); this module holds the set-up, the parameters, the live
+residual of the active calibration and the worker thread.
 
 The solve must not block the sensor callbacks. It runs in a worker thread; the service
 callbacks are coroutines (in a reentrant callback group) that await it, so the executor
@@ -64,7 +73,6 @@ node spins on a SingleThreadedExecutor: rclpy's MultiThreadedExecutor was measur
 receive only about half of the 4 x 100 Hz samples (4 threads) or to run callbacks of one
 subscription out of order (2 threads), which breaks the matching of sample sets by stamp.
 """
-import json
 import math
 import os
 import sys
@@ -73,26 +81,21 @@ import time
 
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Twist
-from magcal_ros.core.data.readings import leave_out_unphysical
-from magcal_ros.core.effects.safety import culprit, EffectError, EffectErrors
-from magcal_ros.core.geometry.attitude import UNIT_TOLERANCE
-from magcal_ros.core.live.consistency import GROSS_FRACTION, resync
+from magcal_ros.core.effects.safety import EffectError, EffectErrors
 from magcal_ros.core.live.corrector import (LiveCorrector, MissingSignal, RESIDUAL_WARN_RATIO,
                                             ResidualMonitor, SampleBuffer)
 from magcal_ros.core.live.sync import StampMatcher
-from magcal_ros.core.model import DegenerateDataError, Model
-from magcal_ros.core.model.identifiability import check_coverage
-from magcal_ros.core.model.notes import format_note
-from magcal_ros.io.calfile import (CalibrationFileError, dump_calibration, load_calibration,
-                                   parse_calibration, save_calibration)
-from magcal_ros.pipeline import (array_geometry, calibrate as run_calibration,
-                                 geometry_mismatch, tensor_undetermined)
+from magcal_ros.io.calfile import CalibrationFileError, load_calibration, parse_calibration
+from magcal_ros.pipeline import array_geometry, geometry_mismatch, tensor_undetermined
 from magcal_ros.ros import params as prm
-from magcal_ros.ros.conversions import msg_to_field_nt, residual_to_msg, stamp_to_seconds
+from magcal_ros.ros.calibrating import CalibrationMixin
+from magcal_ros.ros.collection import CollectionMixin
+from magcal_ros.ros.conversions import residual_to_msg
 from magcal_ros.ros.diagnostics import fill, Updater
 from magcal_ros.ros.intake import Intake
 from magcal_ros.ros.learning import LearningMixin
 from magcal_ros.ros.run import DEFAULT_NAMESPACE, spin_node, yield_cpu
+from magcal_ros.ros.turn import TurnMixin
 import numpy as np
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
@@ -125,60 +128,8 @@ CALIBRATION_SENSOR_QOS = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
                                     reliability=qos_profile_sensor_data.reliability,
                                     durability=qos_profile_sensor_data.durability)
 
-#: at most this many sets enter the coverage figures of the status message
-_STATUS_SUBSAMPLE = 2000
 
-
-#: longest first line of a service reply (``ros2 service call`` prints the whole message
-#: on one line with ``\n`` escapes: the first line is what a user reads)
-_HEADLINE = 100
-
-
-def _reply(response, success, summary, payload):
-    """
-    Fill a Trigger response: a short first line, more lines, newline, one JSON object.
-
-    A long first line is broken after its lead (``not calibrated: <reason>`` becomes
-    ``not calibrated:`` and the reason on the next line).
-    """
-    first, _, rest = summary.strip().partition('\n')
-    lead, sep, reason = first.partition(': ')
-    if len(first) > _HEADLINE and sep:
-        first = lead + ':\n' + reason
-    summary = first + ('\n' + rest if rest else '')
-    response.success = bool(success)
-    response.message = summary + '\n' + json.dumps(payload, sort_keys=False)
-    return response
-
-
-def _fmt_per_sensor(d, fmt='{:.2f}'):
-    return ', '.join(f'{k}: {fmt.format(v)}' for k, v in d.items())
-
-
-def _silent_sensors(received):
-    """
-    Messages naming the sensors that sent nothing, or far less than the others.
-
-    ``received`` lists the raw samples taken per sensor since calibration/start.
-    """
-    most = max(received) if received else 0
-    out = []
-    for j, n in enumerate(received, start=1):
-        if n == 0:
-            out.append(f'sensor {j} sent no samples since calibration/start: check its driver, '
-                       f'cable and the topic sensor{j}/raw')
-        elif most >= 100 and n < 0.5 * most:
-            out.append(f'sensor {j} sent only {n} samples, the others up to {most}: its data '
-                       'are missing for part of the collection (unplugged?)')
-    return out
-
-
-def _tensor_rms(components):
-    """One RMS over the nine tensor components (list of lists, nT/m)."""
-    return float(np.sqrt(np.mean(np.square(np.asarray(components, float)))))
-
-
-class CalibrationNode(LearningMixin, Node):
+class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixin, Node):
     """Collect rotation data of the array and serve calibrate/diagnose requests."""
 
     def __init__(self, **kwargs):
@@ -334,23 +285,6 @@ class CalibrationNode(LearningMixin, Node):
                               message='; '.join(lines))
         return st
 
-    # -- read-only state (for in-process users and tests; ROS users see calibration/status)
-
-    @property
-    def received(self):
-        """(S,) raw samples taken per sensor since calibration/start (a copy; counts)."""
-        return self._received.copy()
-
-    @property
-    def imu_received(self):
-        """Attitude (Imu) samples taken since calibration/start (count)."""
-        return self._imu_count
-
-    @property
-    def state(self):
-        """'idle', 'collecting' or 'calibrating'."""
-        return self._state
-
     # -- parameters ------------------------------------------------------------------------
 
     def _on_set_parameters(self, parameters):
@@ -371,30 +305,7 @@ class CalibrationNode(LearningMixin, Node):
                         'them with this model; call calibration/reset to collect afresh')
         return result
 
-    # -- sensor callbacks (short) ----------------------------------------------------------
-
-    def _raw_cb(self, j):
-        def cb(msg):
-            self._taken += 1
-            collecting = self._collecting
-            live = self._live
-            if not collecting and live is None and self._learner is None:
-                return
-            t = stamp_to_seconds(msg.header.stamp)
-            b = msg_to_field_nt(msg)
-            if not np.all(np.isfinite(b)):
-                return
-            if self._learner is not None:
-                self._learn_raw(j, t, b)
-            if collecting:
-                with self._lock:
-                    self._received[j] += 1
-                    for epoch, t_set, items in self._matcher.add(j, t, b):
-                        self._buffer.append(epoch, t_set, np.array(items), self._temp,
-                                            self._aux)
-            if live is not None:
-                self._residual(live, j + 1, t, b)
-        return cb
+    # -- the active calibration on the live data (calibration/residual) ------------------
 
     def _residual(self, live, j, t, raw):
         """Correct a sample with the active calibration; publish the residual of each set."""
@@ -420,28 +331,6 @@ class CalibrationNode(LearningMixin, Node):
             self.get_logger().error(f'{exc} ({what}); further errors of it are counted on '
                                     '/diagnostics, not logged')
 
-    def _named(self, exc, service):
-        """
-        (reason, payload entries) of an exception ending a calibrate/diagnose call.
-
-        An exception raised by the code of an effect names the effect (and is counted like a
-        live one, :meth:`_effect_error`); any other is described as it is.
-        """
-        effect = culprit(exc)
-        if effect is None:
-            return str(exc), {}
-        err = EffectError(exc, effect)
-        self._effect_error(err, f'calibration/{service} answered success=false')
-        return str(err), {'effect': effect}
-
-    def _failed(self, call, service, exc):
-        """Reply (summary, payload) of a calibrate/diagnose call that raised ``exc``."""
-        reason, extra = self._named(exc, service)
-        if not extra:
-            self.get_logger().error(f'{call} failed: {exc!r}')
-        return f'{call} failed: {reason}', {'error': reason, 'type': type(exc).__name__,
-                                            **extra}
-
     def _activate(self, cal, doc):
         """Apply ``cal`` to the incoming data from now on (residual and its diagnostics)."""
         s = prm.calibration_settings(self)
@@ -461,91 +350,6 @@ class CalibrationNode(LearningMixin, Node):
         self._effect_errors.clear()               # those of the calibration replaced
         self._live = live
         self._learn_activate(cal, doc)
-
-    def _temp_cb(self, j):
-        def cb(msg):
-            with self._lock:
-                self._temp[j] = msg.temperature
-            live = self._live
-            if live is not None:
-                live.set_temperature(j + 1, msg.temperature)
-        return cb
-
-    def _imu_cb(self, msg):
-        if self._learner is not None:
-            self._learn_imu(msg)
-        if not self._collecting:
-            return
-        o = msg.orientation
-        row = (stamp_to_seconds(msg.header.stamp), o.w, o.x, o.y, o.z)
-        if (msg.orientation_covariance[0] == -1 or not np.all(np.isfinite(row))
-                or abs(math.sqrt(o.w ** 2 + o.x ** 2 + o.y ** 2 + o.z ** 2) - 1.0)
-                > UNIT_TOLERANCE):
-            # REP 145: no orientation in this message; or not a unit quaternion
-            with self._lock:
-                self._imu_refused += 1
-            return
-        with self._lock:
-            self._imu[self._imu_count % len(self._imu)] = row
-            self._imu_count += 1
-
-    def _attitude(self, data, epochs, stamps):
-        """
-        Attach the collected attitude to (data, epochs) (under the lock).
-
-        The attitude is interpolated at the sets' own stamps (``stamps`` (N,) s, as the
-        sensors' messages arrived), not at the sample instants reconstructed from them
-        (``data.t``): Imu messages are stamped the same way by their driver, so the two
-        share one clock and one latency even when samples are lost.  Sets outside the time
-        span of the Imu messages are dropped; unchanged without any.
-        """
-        n = min(self._imu_count, len(self._imu))
-        if not n:
-            return data, epochs
-        from dataclasses import replace
-        from magcal_ros.core.geometry.attitude import with_attitude
-        rows = self._imu[:n]
-        out, kept = with_attitude(replace(data, t=stamps), rows[:, 0], rows[:, 1:],
-                                  source=prm.value(self, 'imu_topic'))
-        out = replace(out, t=data.t[kept], meta=dict(data.meta))
-        out.meta['dropped_attitude_epochs'] = int((~kept).sum())
-        # sensor_msgs/Imu orientation: body to the ENU world of REP 103
-        out.meta['attitude_frame'] = 'ENU'
-        out.meta['attitude_source'] = f"sensor_msgs/Imu on {prm.value(self, 'imu_topic')}"
-        return out, epochs[kept]
-
-    def _aux_cb(self, column):
-        def cb(msg):
-            with self._lock:
-                self._aux[column] = float(msg.data)
-            live = self._live
-            if live is not None:
-                live.set_aux(column, msg.data)
-        return cb
-
-    def buffer_status(self):
-        """
-        ``diagnostic_msgs/DiagnosticStatus`` of the buffer of sets: what of the run it holds.
-
-        The buffer keeps at most ``max_samples`` sets spread evenly over the whole run
-        (:class:`magcal_ros.core.live.corrector.SampleBuffer`): the values say how many it
-        holds, of how many received, one in how many, and which span of the run they cover.
-        """
-        with self._lock:
-            cov = self._buffer.coverage()
-            cap = self._buffer.capacity
-        st = DiagnosticStatus(name=f'{self.get_name()}: buffer',
-                              hardware_id=self.get_namespace(), level=DiagnosticStatus.OK)
-        if not cov['sets_received']:
-            st.message = 'no sample sets yet'
-        else:
-            st.message = (f'{cov["sets_held"]} of {cov["sets_received"]} sets held (one in '
-                          f'{cov["stride"]}, at most {cap}), spread over '
-                          f'{100 * cov.get("fraction_of_run", 1.0):.0f} % of the '
-                          f'{cov["run_s"]:.0f} s run')
-        st.values = [KeyValue(key=k, value=str(v)) for k, v in cov.items()]
-        st.values.append(KeyValue(key='max_samples', value=str(cap)))
-        return st
 
     def residual_status(self):
         """
@@ -596,168 +400,7 @@ class CalibrationNode(LearningMixin, Node):
         st.values = [KeyValue(key=k, value=v) for k, v in values]
         return st
 
-    # -- status ----------------------------------------------------------------------------
-
-    def status(self):
-        """Return progress and coverage (JSON-ready dict), as published on calibration/status."""
-        s = prm.calibration_settings(self)
-        with self._lock:
-            n_sets = len(self._buffer)
-            raw = self._buffer.raw_view(_STATUS_SUBSAMPLE) if n_sets else None
-            dropped = self._matcher.incomplete
-            out_of_order = self._matcher.out_of_order
-            realigned = self._matcher.realigned
-            received = self._received.tolist()
-            buffer = self._buffer.coverage()
-            state = self._state
-        # the short fields first: `ros2 topic echo` shows the first 128 characters
-        out = {'state': state, 'sets': n_sets, 'min_samples': s.min_samples, 'ready': False,
-               'coverage': {}, 'missing': []}
-        missing = out['missing']
-        if not self._collecting:
-            missing.append('not collecting: call calibration/start')
-        else:
-            missing.extend(_silent_sensors(received))
-        if n_sets < s.min_samples:
-            missing.append(f'{s.min_samples - n_sets} more complete sample sets '
-                           f'(have {n_sets}, need {s.min_samples})')
-        eigenvalues = {}
-        if raw is not None and raw.shape[1] >= 3:
-            rep = check_coverage(raw)
-            for j, v in rep['sensors'].items():
-                out['coverage'][str(j)] = v['status']
-                eigenvalues[str(j)] = [round(float(x), 4) for x in v['eigenvalues']]
-            # the constrained mode is made for a partial or single-axis coverage (as in
-            # model.fit), the planar mode for a single axis: not a missing item then
-            excused = (('partial', 'single axis') if s.constrained else
-                       ('single axis',) if s.planar else ())
-            partial = {j for j, v in rep['sensors'].items() if v['status'] in excused}
-            missing.extend(p for p in rep['problems']
-                           if not any(p.startswith(f'sensor {j}:') for j in partial))
-        if s.imu_topic:
-            with self._lock:
-                out['attitude_messages'] = int(self._imu_count)
-                out['attitude_messages_refused'] = int(self._imu_refused)
-            if self._collecting and self._imu_refused and not self._imu_count:
-                missing.append(f'every message on {s.imu_topic} lacks a unit orientation '
-                               'quaternion (orientation_covariance[0] = -1, NaN or |q| != 1)')
-        out['ready'] = self._collecting and not missing
-        out.update({'model': list(s.model), 'field_nt': s.field_nt,
-                    'field_source': s.field_source,
-                    'max_samples': s.max_samples, 'coverage_eigenvalues': eigenvalues,
-                    'buffer': buffer,
-                    'incomplete_sets_dropped': dropped, 'out_of_order_dropped': out_of_order,
-                    'stream_realignments': realigned,
-                    'intake_dropped': self._intake.dropped,
-                    'samples_received': {str(j + 1): r for j, r in enumerate(received)}})
-        if self._t_started is not None and self._collecting:
-            dt = time.monotonic() - self._t_started
-            out['collecting_for_s'] = round(dt, 1)
-            out['set_rate_hz'] = round(n_sets / dt, 2) if dt > 0 else 0.0
-        if self._last_result is not None:
-            out['last_calibration'] = self._last_result
-        return out
-
-    def _publish_status(self):
-        try:
-            msg = String(data=json.dumps(self.status(), separators=(',', ':')))
-        except ValueError as exc:         # a degenerate buffer must not kill the timer
-            msg = String(data=json.dumps({'state': self._state, 'error': str(exc)}))
-        self._status_pub.publish(msg)
-
-    # -- services --------------------------------------------------------------------------
-
-    def _reject_busy(self, response, service):
-        """Answer a call that arrived during a calibration (the state is not touched)."""
-        return _reply(response, False, f'rejected: a calibration is running; call '
-                      f'calibration/{service} again when it has finished',
-                      {'state': self._state})
-
-    def _on_start(self, request, response):
-        if not self._busy.acquire(blocking=False):
-            return self._reject_busy(response, 'start')
-        try:
-            dropped = self._clear('collecting')
-            s = prm.calibration_settings(self)
-            return _reply(response, True,
-                          f'collecting ({dropped} old sets dropped): rotate the array through '
-                          f'many attitudes; calibrate after at least {s.min_samples} sets',
-                          {'state': 'collecting', 'min_samples': s.min_samples,
-                           'sets_dropped': dropped})
-        finally:
-            self._busy.release()
-
-    async def _on_turn(self, request, response):
-        # as the ROS calibration packages do: turn the robot in place through cmd_vel while
-        # collecting, until sensor 1 has seen turn_count turns or turn_timeout_s passed
-        s = prm.calibration_settings(self)
-        if self._cmd_vel is None:
-            return _reply(response, False, 'no cmd_vel_topic: set it (read-only: at start-up) '
-                          'to turn the robot', {'state': self._state})
-        if not self._busy.acquire(blocking=False):
-            return self._reject_busy(response, 'turn')
-        try:
-            dropped = self._clear('collecting')
-            self.get_logger().info(
-                f'turning the robot on {s.cmd_vel_topic}: {s.turn_count:g} turns at '
-                f'{s.turn_speed_rad_s:g} rad/s (at most {s.turn_timeout_s:g} s)')
-            ok, summary, payload = await self._in_worker(self._turn, s)
-            payload['sets_dropped'] = dropped
-            return _reply(response, ok, summary, payload)
-        except Exception as exc:         # noqa: B902 -- a service must answer, never die
-            self.get_logger().error(f'turn failed: {exc!r}')
-            return _reply(response, False, f'turn failed: {exc}; the robot is stopped',
-                          {'error': str(exc), 'type': type(exc).__name__})
-        finally:
-            self._stop_robot()
-            self._busy.release()
-
-    def _turn(self, s):
-        """Drive cmd_vel until the turns are seen or time is up (worker thread)."""
-        from magcal_ros.core.geometry.turn import swept_angle
-        twist = Twist()
-        twist.angular.z = float(s.turn_speed_rad_s)
-        want = 2 * math.pi * s.turn_count
-        t0 = time.monotonic()
-        swept, last_check = 0.0, t0
-        try:
-            while not self._turn_stop.is_set():
-                now = time.monotonic()
-                if now - t0 > s.turn_timeout_s:
-                    break
-                self._cmd_vel.publish(twist)
-                if now - last_check >= 0.5:
-                    last_check = now
-                    n_sets, data, _ = self._snapshot()
-                    swept = swept_angle(data.raw[0]) if n_sets else 0.0
-                    if swept >= want:
-                        break
-                self._turn_stop.wait(0.1)
-        finally:
-            self._stop_robot()
-        elapsed = time.monotonic() - t0
-        n_sets = self._snapshot()[0]
-        payload = {'turns_asked': s.turn_count, 'turns_seen': swept / (2 * math.pi),
-                   'elapsed_s': round(elapsed, 2), 'sets': n_sets,
-                   'cmd_vel_topic': s.cmd_vel_topic}
-        if swept >= want:
-            return True, (f'turned {swept / (2 * math.pi):.2f} turns in {elapsed:.1f} s '
-                          f'({n_sets} sets collected): the robot is stopped; call '
-                          'calibration/calibrate (parameter planar: true for a robot that '
-                          'only turns about one axis)'), payload
-        why = ('the node is shutting down' if self._turn_stop.is_set() else
-               f'turn_timeout_s ({s.turn_timeout_s:g} s) passed')
-        return False, (f'turn incomplete: sensor 1 saw {swept / (2 * math.pi):.2f} of '
-                       f'{s.turn_count:g} turns when {why}; the robot is stopped (does the '
-                       f'base listen on {s.cmd_vel_topic}? wheels slipping?)'), payload
-
-    def _stop_robot(self):
-        """Publish a zero velocity on cmd_vel (after a turn, on error, on shutdown)."""
-        if self._cmd_vel is not None:
-            try:
-                self._cmd_vel.publish(Twist())
-            except Exception:       # noqa: B902 -- the context may be gone at shutdown
-                pass
+    # -- shutdown and the solve thread ----------------------------------------------------
 
     def destroy_node(self):
         """Stop a turn in progress (a zero velocity on cmd_vel), then destroy the node."""
@@ -765,72 +408,6 @@ class CalibrationNode(LearningMixin, Node):
         self._stop_robot()
         self._intake.destroy()
         return super().destroy_node()
-
-    def _on_reset(self, request, response):
-        """Forget the collected sets; collection goes on if it was running."""
-        if not self._busy.acquire(blocking=False):
-            return self._reject_busy(response, 'reset')
-        try:
-            with self._lock:
-                state = self._state
-            dropped = self._clear(state)
-            what = ('collection goes on from now' if state == 'collecting' else
-                    'call calibration/start to collect')
-            return _reply(response, True, f'reset: {dropped} sets dropped; {what}',
-                          {'state': state, 'sets_dropped': dropped})
-        finally:
-            self._busy.release()
-
-    def _clear(self, state):
-        """Empty the buffer and the matcher, set ``state``; return the sets dropped."""
-        with self._lock:
-            dropped = len(self._buffer)
-            self._buffer.clear()
-            self._matcher.reset()
-            self._received[:] = 0
-            self._imu_count = 0
-            self._imu_refused = 0
-            self._state = state
-            self._collecting = state == 'collecting'
-            self._t_started = time.monotonic() if self._collecting else None
-            self._model_changed = None
-        return dropped
-
-    def _snapshot(self):
-        with self._lock:
-            n_sets = len(self._buffer)
-            data = self._buffer.dataset() if n_sets else None
-            epochs = self._buffer.epochs() if n_sets else None
-            if n_sets:
-                data, epochs = self._attitude(data, epochs, self._buffer.stamps())
-            return n_sets, data, epochs
-
-    def _resync(self, data, epochs, settings):
-        """Re-pair sets paired from different epochs; return (data, payload, warning lines)."""
-        if not settings.resync_sets or data.n_sensors < 2:
-            return data, None, []
-        fixed, slips, dropped, gross = resync(data, epochs)
-        keys = [str(j) for j in range(2, data.n_sensors + 1)]
-        payload = {
-            'sets_repaired': dict(zip(keys, slips.n_slipped[1:].tolist())),
-            'sets_dropped': dropped,
-            'sets_dropped_garbled': gross,
-            'misfit_as_paired_nt': dict(zip(keys, np.round(slips.rms_as_paired_nt[1:], 2)
-                                            .tolist())),
-            'misfit_nt': dict(zip(keys, np.round(slips.rms_nt[1:], 2).tolist())),
-            'inconsistent_sets': dict(zip(keys, slips.inconsistent[1:].tolist())),
-        }
-        lines = slips.summary()
-        if gross:
-            lines.append(f'{gross} sets dropped with a sample more than '
-                         f'{GROSS_FRACTION:.0%} of the field off the mean of its neighbours '
-                         'in time (a cut or garbled serial line)')
-        if dropped:
-            lines.append(f'{dropped} sets dropped where a re-paired sample had no unique '
-                         'partner')
-        for line in lines:
-            self.get_logger().warning(f'resync: {line}')
-        return fixed, payload, lines
 
     def _in_worker(self, fn, *args):
         """Run ``fn(*args)`` in a worker thread; return an awaitable rclpy Future."""
@@ -846,228 +423,6 @@ class CalibrationNode(LearningMixin, Node):
                 self._wake.trigger()
         threading.Thread(target=work, name='magcal-solve', daemon=True).start()
         return future
-
-    async def _on_calibrate(self, request, response):
-        if not self._busy.acquire(blocking=False):
-            return _reply(response, False, 'a calibration is already running',
-                          {'state': self._state})
-        with self._lock:
-            prev_state = self._state
-            self._state = 'calibrating'
-        try:
-            ok, summary, payload = await self._in_worker(self._calibrate, prev_state)
-            return _reply(response, ok, summary, payload)
-        except Exception as exc:         # noqa: B902 -- a service must answer, never die
-            return _reply(response, False, *self._failed('calibration', 'calibrate', exc))
-        finally:
-            with self._lock:
-                # collection goes on (the buffer is kept) if it was running before
-                self._state = prev_state
-            self._busy.release()
-
-    def _calibrate(self, state):
-        """Run the fit; returns (success, summary text, JSON payload)."""
-        s = prm.calibration_settings(self)
-        n_sets, data, epochs = self._snapshot()
-        if n_sets < s.min_samples:
-            with self._lock:
-                received = self._received.tolist()
-            silent = [] if state == 'idle' else _silent_sensors(received)
-            reason = (f'only {n_sets} complete sample sets collected, need at least '
-                      f'{s.min_samples}' + (': call calibration/start and rotate the array'
-                                            if state == 'idle' else
-                                            '; ' + '; '.join(silent) if silent else
-                                            ': keep rotating the array'))
-            return False, f'not calibrated: {reason}; previous calibration stays active', {
-                'reason': reason, 'sets': n_sets}
-        model = Model.from_spec(list(s.model), self._n)
-        geometry = self._geometry(s)
-        t0 = time.monotonic()
-        data, resync_payload, resync_lines = self._resync(data, epochs, s)
-        try:
-            field_nt, field_ref = self._field(s, data.raw[0])
-        except (ValueError, ImportError) as exc:
-            reason = f'no field magnitude: {exc}'
-            return False, f'not calibrated: {reason}; previous calibration stays active', {
-                'reason': reason, 'sets': n_sets}
-        extra = {'attitude': s.attitude_mode,
-                 'inclination_deg': field_ref.get('inclination_deg')}
-        if s.planar:
-            # what the turn leaves open is held at the active calibration (same model), else
-            # at an ideal sensor (magcal_ros.core.model.planar)
-            active = getattr(self, '_active_cal', None)
-            prior = (active.params if active is not None
-                     and active.model.spec() == model.spec() else None)
-            extra['planar'] = {'inclination_deg': field_ref.get('inclination_deg'),
-                               'prior_params': prior}
-        try:
-            run = run_calibration(
-                data, model=model, field_nt=field_nt, geometry=geometry or {},
-                field_reference=field_ref,
-                robust=s.robust, exclude_outliers=s.exclude_outliers,
-                constrained=s.constrained, **extra)
-        except DegenerateDataError as exc:
-            return False, (f'not calibrated: {exc}; previous calibration stays active'), {
-                'reason': str(exc), 'sets': n_sets, 'model': list(s.model)}
-        except ValueError as exc:
-            reason, extra = self._named(exc, 'calibrate')
-            return False, f'not calibrated: {reason}; previous calibration stays active', {
-                'reason': reason, 'sets': n_sets, 'model': list(s.model), **extra}
-        solve_s = time.monotonic() - t0
-        if not run.result.success:
-            # a fit that ran out of iterations is not a calibration: never installed
-            reason = f'the fit did not converge ({run.result.message})'
-            return False, f'not calibrated: {reason}; previous calibration stays active', {
-                'reason': reason, 'sets': n_sets, 'model': list(s.model), 'converged': False}
-        # where the magnitude came from, also in the provenance (field_reference has the rest)
-        run.doc['provenance']['field_source'] = s.field_source
-        os.makedirs(os.path.dirname(os.path.abspath(s.calibration_file)), exist_ok=True)
-        try:
-            save_calibration(s.calibration_file, run.doc, history=s.history)
-        except (OSError, CalibrationFileError) as exc:
-            return False, (f'calibrated but could not write {s.calibration_file}: {exc}; '
-                           'previous calibration stays active'), {'reason': str(exc)}
-        self._result_pub.publish(String(data=dump_calibration(run.doc)))
-        self._activate(run.result.calibration, run.doc)
-        summ = run.summary
-        payload = {
-            'calibration_file': s.calibration_file,
-            'field_reference': field_ref,
-            'geometry': geometry,
-            'model': list(s.model),
-            'effects': summ['model'],
-            'sets': n_sets,
-            'solve_s': round(solve_s, 2),
-            'converged': summ['converged'],
-            'noise_floor_nt': summ['noise_floor_nt'],
-            'scalar_rms_before_nt': summ['total_field_rms_before_nt'],
-            'scalar_rms_after_nt': summ['scalar_rms_nt'],
-            'vector_rms_after_nt': summ['vector_rms_nt'],
-            'robust': s.robust,
-            'constrained': s.constrained,
-            'downweighted': summ['downweighted'],
-            'warnings': summ['warnings'],
-            'resync': resync_payload,
-            'outlier_sets_excluded': summ.get('outlier_sets_excluded', 0),
-            'readings_left_out': summ.get('readings_left_out'),
-        }
-        after = summ['scalar_rms_nt']
-        lines = [f'calibrated {n_sets} sets with model {",".join(s.model)}: total-field RMS '
-                 f'{min(after.values()):.2f}-{max(after.values()):.2f} nT, noise floor '
-                 f'{summ["noise_floor_nt"]:.2f} nT',
-                 f'field magnitude {field_nt:.1f} nT ({field_ref["kind"]})',
-                 f'written to {s.calibration_file} (solve {solve_s:.1f} s; effects '
-                 f'{",".join(summ["model"])})',
-                 f'total-field RMS per sensor before [nT]: '
-                 f'{_fmt_per_sensor(summ["total_field_rms_before_nt"], "{:.1f}")}',
-                 f'total-field RMS per sensor after  [nT]: '
-                 f'{_fmt_per_sensor(summ["scalar_rms_nt"])} '
-                 f'(noise floor {summ["noise_floor_nt"]:.2f} nT)']
-        if 'tensor_rms_nt_per_m' in summ:
-            before = _tensor_rms(summ['tensor_rms_before_nt_per_m'])
-            after = _tensor_rms(summ['tensor_rms_nt_per_m'])
-            floor = _tensor_rms(summ['tensor_floor_nt_per_m'])
-            payload.update(tensor_rms_before_nt_per_m=before, tensor_rms_after_nt_per_m=after,
-                           tensor_floor_nt_per_m=floor,
-                           tensor_rms_components_after_nt_per_m=summ['tensor_rms_nt_per_m'])
-            lines.append(f'tensor RMS before {before:.1f} nT/m, after {after:.2f} nT/m '
-                         f'(noise floor {floor:.2f} nT/m)')
-        if 'site_gradient_nt_per_m' in summ:
-            # world frame of the Imu orientation, nT/m, with standard uncertainties
-            payload.update(site_gradient_nt_per_m=summ['site_gradient_nt_per_m'],
-                           site_gradient_stderr_nt_per_m=summ['site_gradient_stderr_nt_per_m'],
-                           dropped_attitude_epochs=data.meta.get('dropped_attitude_epochs', 0))
-            g = np.array(summ['site_gradient_nt_per_m'])
-            lines.append('site gradient (world frame, nT/m): ' + ', '.join(
-                f'{v:.1f}' for v in g[np.triu_indices(3)]) + ' (xx, xy, xz, yy, yz, zz)')
-        if 'planar' in summ:
-            pl = summ['planar']
-            payload.update(planar=pl, undetermined=summ['undetermined'],
-                           heading_error_deg=summ['heading_error_deg'])
-            lines.append(f'planar: heading error {summ["heading_error_deg"]:.2f} deg (1 sd, '
-                         f'level, inclination from {pl["inclination_source"]}); undetermined: '
-                         + (', '.join(summ['undetermined']) or 'none'))
-        if 'attitude' in summ:
-            at = summ['attitude']
-            payload.update(attitude=at, undetermined=summ['undetermined'])
-            lines.append(f"attitude: {at['mode']} ({at['trusted']}), error "
-                         f"{at['attitude_sd_deg']:.2f} deg; undetermined: "
-                         + (', '.join(summ['undetermined']) or 'none'))
-        if s.robust:
-            lines.append(f'robust fit: samples down-weighted as outliers per sensor: '
-                         f'{_fmt_per_sensor(summ["downweighted"], "{:d}")} of {n_sets}')
-        for w in summ['warnings']:
-            lines.append(format_note(w))
-        for w in resync_lines:
-            lines.append(f'resync: {w}')
-        changed = self._model_changed
-        if changed is not None and changed[1] > 0:
-            payload['model_changed_after_sets'] = changed[1]
-            lines.append(f'note: the model was set to {",".join(changed[0])} after {changed[1]} '
-                         'sets had been collected; all buffered sets were fitted with it '
-                         '(calibration/reset collects afresh)')
-        if state == 'collecting':
-            lines.append('collection goes on: calibrate again later, or call '
-                         'calibration/reset to drop the sets collected so far')
-        self._last_result = {k: payload[k] for k in ('calibration_file', 'model', 'sets')}
-        self.get_logger().info(lines[0])
-        return True, '\n'.join(lines), payload
-
-    async def _on_diagnose(self, request, response):
-        if not self._busy.acquire(blocking=False):
-            return _reply(response, False, 'a calibration is already running',
-                          {'state': self._state})
-        try:
-            ok, summary, payload = await self._in_worker(self._diagnose)
-            return _reply(response, ok, summary, payload)
-        except Exception as exc:         # noqa: B902 -- a service must answer, never die
-            return _reply(response, False, *self._failed('diagnosis', 'diagnose', exc))
-        finally:
-            self._busy.release()
-
-    def _diagnose(self):
-        """Rank the missing effects; returns (success, summary text, JSON payload)."""
-        try:
-            from magcal_ros.core.discovery import diagnose
-            from magcal_ros.report import write_report
-        except ImportError as exc:
-            return False, f'diagnosis is not available: {exc}', {'error': str(exc)}
-        s = prm.calibration_settings(self)
-        n_sets, data, epochs = self._snapshot()
-        if n_sets < s.min_samples:
-            reason = f'only {n_sets} complete sample sets collected, need {s.min_samples}'
-            return False, f'not diagnosed: {reason}', {'reason': reason, 'sets': n_sets}
-        model = Model.from_spec(list(s.model), self._n)
-        data, resync_payload, _ = self._resync(data, epochs, s)
-        try:
-            # readings no field produces are named and left out, as in calibrate
-            data, field_nt, screen = leave_out_unphysical(data, s.field_nt)
-            diag = diagnose(data, model, field_nt=field_nt, constrained=s.constrained,
-                            baseline_m=s.baseline_m)
-        except ValueError as exc:
-            reason, extra = self._named(exc, 'diagnose')
-            return False, f'not diagnosed: {reason}', {'reason': reason, 'sets': n_sets,
-                                                       **extra}
-        ranking = json.loads(diag.to_json())       # non-finite numbers as null
-        report = write_report(s.report_dir, data, diagnosis=diag, baseline_m=s.baseline_m)
-        ranking['report'] = os.fspath(report)
-        ranking['resync'] = resync_payload
-        ranking['readings_left_out'] = screen.to_dict()
-        verdict = ranking.get('verdict') or {}
-        if verdict.get('effect', 'none') == 'none':
-            head = (f'nothing missing: model {",".join(ranking["model"])} explains the data '
-                    f'down to the noise floor ({ranking["noise_floor_nt"]:.2f} nT)')
-        else:
-            head = f'most likely missing effect: {verdict.get("token") or verdict["effect"]}'
-        lines = [head] + ([verdict['reason']] if verdict.get('reason') else [])
-        if ranking.get('findings'):       # model-free: what is left (core.discovery.findings)
-            lines.append('left in the residuals: ' + '; '.join(
-                f'{f["kind"]}' + (f' (add {f["token"]})' if f.get('token') else '')
-                + ('' if f['sensor'] is None else f' on sensor {f["sensor"]}')
-                for f in ranking['findings'][:4]))
-        lines += [format_note(w) for w in screen.notes()]
-        lines.append(f'HTML report: {ranking["report"]}')
-        return True, '\n'.join(lines), ranking
 
     # -- start-up --------------------------------------------------------------------------
 

@@ -1,0 +1,294 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The calibration node's solves (docs/design.md §3), kept apart from the node.
+
+:class:`CalibrationMixin` is a part of :class:`magcal_ros.ros.calibration_node.CalibrationNode`:
+the services ``calibration/calibrate`` (the node's parameters as a
+:class:`magcal_ros.pipeline.CalibrationRequest`, run by :func:`magcal_ros.pipeline.run_request`
+and described by :func:`magcal_ros.pipeline.summary_lines`, as ``magcal fit`` does; the
+calibration written, published and made active) and ``calibration/diagnose``
+(:func:`magcal_ros.core.discovery.diagnose` and the HTML report), both in a worker thread,
+on the buffer's sets re-paired where the stamps paired them from different epochs
+(:func:`magcal_ros.core.live.consistency.resync`).
+"""
+import json
+import os
+import time
+
+from magcal_ros.core.data.readings import leave_out_unphysical
+from magcal_ros.core.effects.safety import culprit, EffectError
+from magcal_ros.core.live.consistency import GROSS_FRACTION, resync
+from magcal_ros.core.model import DegenerateDataError, Model
+from magcal_ros.core.model.notes import format_note
+from magcal_ros.io.calfile import CalibrationFileError, dump_calibration, save_calibration
+from magcal_ros.pipeline import (CalibrationRequest, run_request as run_calibration,
+                                 summary_lines, tensor_figures)
+from magcal_ros.ros import params as prm
+from magcal_ros.ros.collection import silent_sensors
+from magcal_ros.ros.replies import reply as _reply
+import numpy as np
+from std_msgs.msg import String
+
+#: the summary's entries of the planar, attitude-aided and site-gradient fits that the
+#: calibrate reply carries as they are
+_REPLY_KEYS = ('site_gradient_nt_per_m', 'site_gradient_stderr_nt_per_m', 'planar',
+               'undetermined', 'heading_error_deg', 'attitude')
+
+
+def _fmt_per_sensor(d, fmt='{:.2f}'):
+    return ', '.join(f'{k}: {fmt.format(v)}' for k, v in d.items())
+
+
+class CalibrationMixin:
+    """The calibrate and diagnose services of the calibration node."""
+
+    async def _on_calibrate(self, request, response):
+        if not self._busy.acquire(blocking=False):
+            return _reply(response, False, 'a calibration is already running',
+                          {'state': self._state})
+        with self._lock:
+            prev_state = self._state
+            self._state = 'calibrating'
+        try:
+            ok, summary, payload = await self._in_worker(self._calibrate, prev_state)
+            return _reply(response, ok, summary, payload)
+        except Exception as exc:         # noqa: B902 -- a service must answer, never die
+            return _reply(response, False, *self._failed('calibration', 'calibrate', exc))
+        finally:
+            with self._lock:
+                # collection goes on (the buffer is kept) if it was running before
+                self._state = prev_state
+            self._busy.release()
+
+    def _calibrate(self, state):
+        """Run the fit; returns (success, summary text, JSON payload)."""
+        s = prm.calibration_settings(self)
+        n_sets, data, epochs = self._snapshot()
+        if n_sets < s.min_samples:
+            with self._lock:
+                received = self._received.tolist()
+            silent = [] if state == 'idle' else silent_sensors(received)
+            reason = (f'only {n_sets} complete sample sets collected, need at least '
+                      f'{s.min_samples}' + (': call calibration/start and rotate the array'
+                                            if state == 'idle' else
+                                            '; ' + '; '.join(silent) if silent else
+                                            ': keep rotating the array'))
+            return False, f'not calibrated: {reason}; previous calibration stays active', {
+                'reason': reason, 'sets': n_sets}
+        model = Model.from_spec(list(s.model), self._n)
+        geometry = self._geometry(s)
+        t0 = time.monotonic()
+        data, resync_payload, resync_lines = self._resync(data, epochs, s)
+        try:
+            field_nt, field_ref = self._field(s, data.raw[0])
+        except (ValueError, ImportError) as exc:
+            reason = f'no field magnitude: {exc}'
+            return False, f'not calibrated: {reason}; previous calibration stays active', {
+                'reason': reason, 'sets': n_sets}
+        # what a turn leaves open (planar) is held at the active calibration (same model),
+        # else at an ideal sensor (magcal_ros.core.model.planar)
+        active = self._active_cal
+        request = CalibrationRequest(
+            model=model, field_nt=field_nt, field_reference=field_ref, geometry=geometry,
+            attitude=s.attitude_mode, planar=s.planar,
+            prior_params=(active.params if active is not None
+                          and active.model.spec() == model.spec() else None),
+            robust=s.robust, constrained=s.constrained, exclude_outliers=s.exclude_outliers)
+        try:
+            run = run_calibration(data, request)
+        except DegenerateDataError as exc:
+            return False, (f'not calibrated: {exc}; previous calibration stays active'), {
+                'reason': str(exc), 'sets': n_sets, 'model': list(s.model)}
+        except ValueError as exc:
+            reason, extra = self._named(exc, 'calibrate')
+            return False, f'not calibrated: {reason}; previous calibration stays active', {
+                'reason': reason, 'sets': n_sets, 'model': list(s.model), **extra}
+        solve_s = time.monotonic() - t0
+        if not run.result.success:
+            # a fit that ran out of iterations is not a calibration: never installed
+            reason = f'the fit did not converge ({run.result.message})'
+            return False, f'not calibrated: {reason}; previous calibration stays active', {
+                'reason': reason, 'sets': n_sets, 'model': list(s.model), 'converged': False}
+        # where the magnitude came from, also in the provenance (field_reference has the rest)
+        run.doc['provenance']['field_source'] = s.field_source
+        os.makedirs(os.path.dirname(os.path.abspath(s.calibration_file)), exist_ok=True)
+        try:
+            save_calibration(s.calibration_file, run.doc, history=s.history)
+        except (OSError, CalibrationFileError) as exc:
+            return False, (f'calibrated but could not write {s.calibration_file}: {exc}; '
+                           'previous calibration stays active'), {'reason': str(exc)}
+        self._result_pub.publish(String(data=dump_calibration(run.doc)))
+        self._activate(run.result.calibration, run.doc)
+        summ = run.summary
+        payload = {
+            'calibration_file': s.calibration_file,
+            'field_reference': field_ref,
+            'geometry': geometry,
+            'model': list(s.model),
+            'effects': summ['model'],
+            'sets': n_sets,
+            'solve_s': round(solve_s, 2),
+            'converged': summ['converged'],
+            'noise_floor_nt': summ['noise_floor_nt'],
+            'scalar_rms_before_nt': summ['total_field_rms_before_nt'],
+            'scalar_rms_after_nt': summ['scalar_rms_nt'],
+            'vector_rms_after_nt': summ['vector_rms_nt'],
+            'robust': s.robust,
+            'constrained': s.constrained,
+            'downweighted': summ['downweighted'],
+            'warnings': summ['warnings'],
+            'resync': resync_payload,
+            'outlier_sets_excluded': summ.get('outlier_sets_excluded', 0),
+            'readings_left_out': summ.get('readings_left_out'),
+            **tensor_figures(summ),
+            **{k: summ[k] for k in _REPLY_KEYS if k in summ},
+        }
+        if 'tensor_rms_nt_per_m' in summ:
+            payload['tensor_rms_components_after_nt_per_m'] = summ['tensor_rms_nt_per_m']
+        if 'site_gradient_nt_per_m' in summ:
+            payload['dropped_attitude_epochs'] = data.meta.get('dropped_attitude_epochs', 0)
+        after = summ['scalar_rms_nt']
+        lines = [f'calibrated {n_sets} sets with model {",".join(s.model)}: total-field RMS '
+                 f'{min(after.values()):.2f}-{max(after.values()):.2f} nT, noise floor '
+                 f'{summ["noise_floor_nt"]:.2f} nT',
+                 f'field magnitude {field_nt:.1f} nT ({field_ref["kind"]})',
+                 f'written to {s.calibration_file} (solve {solve_s:.1f} s; effects '
+                 f'{",".join(summ["model"])})',
+                 f'total-field RMS per sensor before [nT]: '
+                 f'{_fmt_per_sensor(summ["total_field_rms_before_nt"], "{:.1f}")}',
+                 f'total-field RMS per sensor after  [nT]: '
+                 f'{_fmt_per_sensor(summ["scalar_rms_nt"])} '
+                 f'(noise floor {summ["noise_floor_nt"]:.2f} nT)']
+        lines += summary_lines(summ, request)
+        for w in resync_lines:
+            lines.append(f'resync: {w}')
+        changed = self._model_changed
+        if changed is not None and changed[1] > 0:
+            payload['model_changed_after_sets'] = changed[1]
+            lines.append(f'note: the model was set to {",".join(changed[0])} after {changed[1]} '
+                         'sets had been collected; all buffered sets were fitted with it '
+                         '(calibration/reset collects afresh)')
+        if state == 'collecting':
+            lines.append('collection goes on: calibrate again later, or call '
+                         'calibration/reset to drop the sets collected so far')
+        self._last_result = {k: payload[k] for k in ('calibration_file', 'model', 'sets')}
+        self.get_logger().info(lines[0])
+        return True, '\n'.join(lines), payload
+
+    async def _on_diagnose(self, request, response):
+        if not self._busy.acquire(blocking=False):
+            return _reply(response, False, 'a calibration is already running',
+                          {'state': self._state})
+        try:
+            ok, summary, payload = await self._in_worker(self._diagnose)
+            return _reply(response, ok, summary, payload)
+        except Exception as exc:         # noqa: B902 -- a service must answer, never die
+            return _reply(response, False, *self._failed('diagnosis', 'diagnose', exc))
+        finally:
+            self._busy.release()
+
+    def _diagnose(self):
+        """Rank the missing effects; returns (success, summary text, JSON payload)."""
+        try:
+            from magcal_ros.core.discovery import diagnose
+            from magcal_ros.report import write_report
+        except ImportError as exc:
+            return False, f'diagnosis is not available: {exc}', {'error': str(exc)}
+        s = prm.calibration_settings(self)
+        n_sets, data, epochs = self._snapshot()
+        if n_sets < s.min_samples:
+            reason = f'only {n_sets} complete sample sets collected, need {s.min_samples}'
+            return False, f'not diagnosed: {reason}', {'reason': reason, 'sets': n_sets}
+        model = Model.from_spec(list(s.model), self._n)
+        data, resync_payload, _ = self._resync(data, epochs, s)
+        try:
+            # readings no field produces are named and left out, as in calibrate
+            data, field_nt, screen = leave_out_unphysical(data, s.field_nt)
+            diag = diagnose(data, model, field_nt=field_nt, constrained=s.constrained,
+                            baseline_m=s.baseline_m)
+        except ValueError as exc:
+            reason, extra = self._named(exc, 'diagnose')
+            return False, f'not diagnosed: {reason}', {'reason': reason, 'sets': n_sets,
+                                                       **extra}
+        ranking = json.loads(diag.to_json())       # non-finite numbers as null
+        report = write_report(s.report_dir, data, diagnosis=diag, baseline_m=s.baseline_m)
+        ranking['report'] = os.fspath(report)
+        ranking['resync'] = resync_payload
+        ranking['readings_left_out'] = screen.to_dict()
+        verdict = ranking.get('verdict') or {}
+        if verdict.get('effect', 'none') == 'none':
+            head = (f'nothing missing: model {",".join(ranking["model"])} explains the data '
+                    f'down to the noise floor ({ranking["noise_floor_nt"]:.2f} nT)')
+        else:
+            head = f'most likely missing effect: {verdict.get("token") or verdict["effect"]}'
+        lines = [head] + ([verdict['reason']] if verdict.get('reason') else [])
+        if ranking.get('findings'):       # model-free: what is left (core.discovery.findings)
+            lines.append('left in the residuals: ' + '; '.join(
+                f'{f["kind"]}' + (f' (add {f["token"]})' if f.get('token') else '')
+                + ('' if f['sensor'] is None else f' on sensor {f["sensor"]}')
+                for f in ranking['findings'][:4]))
+        lines += [format_note(w) for w in screen.notes()]
+        lines.append(f'HTML report: {ranking["report"]}')
+        return True, '\n'.join(lines), ranking
+
+    def _resync(self, data, epochs, settings):
+        """Re-pair sets paired from different epochs; return (data, payload, warning lines)."""
+        if not settings.resync_sets or data.n_sensors < 2:
+            return data, None, []
+        fixed, slips, dropped, gross = resync(data, epochs)
+        keys = [str(j) for j in range(2, data.n_sensors + 1)]
+        payload = {
+            'sets_repaired': dict(zip(keys, slips.n_slipped[1:].tolist())),
+            'sets_dropped': dropped,
+            'sets_dropped_garbled': gross,
+            'misfit_as_paired_nt': dict(zip(keys, np.round(slips.rms_as_paired_nt[1:], 2)
+                                            .tolist())),
+            'misfit_nt': dict(zip(keys, np.round(slips.rms_nt[1:], 2).tolist())),
+            'inconsistent_sets': dict(zip(keys, slips.inconsistent[1:].tolist())),
+        }
+        lines = slips.summary()
+        if gross:
+            lines.append(f'{gross} sets dropped with a sample more than '
+                         f'{GROSS_FRACTION:.0%} of the field off the mean of its neighbours '
+                         'in time (a cut or garbled serial line)')
+        if dropped:
+            lines.append(f'{dropped} sets dropped where a re-paired sample had no unique '
+                         'partner')
+        for line in lines:
+            self.get_logger().warning(f'resync: {line}')
+        return fixed, payload, lines
+
+    def _named(self, exc, service):
+        """
+        (reason, payload entries) of an exception ending a calibrate/diagnose call.
+
+        An exception raised by the code of an effect names the effect (and is counted like a
+        live one, :meth:`_effect_error`); any other is described as it is.
+        """
+        effect = culprit(exc)
+        if effect is None:
+            return str(exc), {}
+        err = EffectError(exc, effect)
+        self._effect_error(err, f'calibration/{service} answered success=false')
+        return str(err), {'effect': effect}
+
+    def _failed(self, call, service, exc):
+        """Reply (summary, payload) of a calibrate/diagnose call that raised ``exc``."""
+        reason, extra = self._named(exc, service)
+        if not extra:
+            self.get_logger().error(f'{call} failed: {exc!r}')
+        return f'{call} failed: {reason}', {'error': reason, 'type': type(exc).__name__,
+                                            **extra}
