@@ -82,10 +82,10 @@ def main(argv=None):
         for mode in ('tilt', 'full'):
             r = run_case(tilt, mode, args.seeds, args.n, args.att_err)
             results.append(r)
+            counts = sorted(r['undetermined_counts'].items())
             rows.append([f'{tilt:g}', mode, r['residual_over_noise_median'],
                          r['z_rms'], r['z_max_abs'], r['n_z'],
-                         ', '.join(f'{k} ({v})' for k, v in sorted(r['undetermined_counts']
-                                                                 .items())) or 'none',
+                         ', '.join(f'{k} ({v})' for k, v in counts) or 'none',
                          r['cpu_s_median']])
     tab = common.table(['tilt deg', 'mode', 'resid/noise', 'z RMS', 'max |z|', 'z values',
                         'undetermined (seeds)', 'CPU s'], rows,

@@ -29,6 +29,7 @@ import sys
 import types
 
 from magcal_ros.ros import params as prm
+from magcal_ros.ros.learning import learning_specs
 import pytest
 import yaml
 
@@ -87,7 +88,7 @@ def test_config_files_exist_and_are_installed():
 
 
 @pytest.mark.parametrize('node_name, specs', [
-    ('calibration_node', prm.calibration_specs()),
+    ('calibration_node', prm.calibration_specs() + learning_specs()),
     ('corrector_node', prm.corrector_specs()),
 ])
 def test_parameter_files_match_declared_parameters(node_name, specs):

@@ -111,7 +111,7 @@ def test_magcal_diagnose_cli_and_report(real, tmp_path):
     assert 50.0 < fl < 1000.0 and d['noise_floor_reliable']
     assert d['scalar_rms_nt']['1'] > fl
     why = {x['token']: x['reason'] for x in d['not_testable']}
-    assert why['temperature@1'].startswith('sensor 1 has no temperature')
+    assert why['temperature@1'].startswith('sensor 1: no temperature')
     # no temperature or aux channel: only effects of time, field and direction are tested
     allowed = {'drift', 'drift2', 'nonlinearity', 'field_rate', 'step', 'periodic'}
     assert {c['effect'].split('(')[0] for c in d['candidates']} <= allowed

@@ -68,6 +68,8 @@ class AttitudeReference(Effect):
     mode = 'tilt'
     #: rows of the observation per epoch (the rank of its projector)
     rank = 1
+    #: a way of fitting, never offered by the diagnosis as a missing effect
+    candidate = False
 
     def check(self, ctx):
         if ctx.attitude is None:

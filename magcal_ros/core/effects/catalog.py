@@ -579,9 +579,6 @@ class SiteGradient(Effect):
                              'geometry') from None
 
     def check(self, ctx):
-        if 'x1' not in self.refs:
-            return ('site_gradient needs the sensor positions (the array geometry: '
-                    'sensor_positions_m, or the cross of four sensors)')
         if ctx.attitude is None:
             return ('site_gradient needs the attitude of the array (CSV columns att_qw, att_qx, '
                     'att_qy, att_qz; an Imu topic): without it the world-frame gradient cannot '
