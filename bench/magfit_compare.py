@@ -189,6 +189,7 @@ def _magfit_child(out_npz, magfit_argv):
         res = slsqp(*a, **k)
         record['slsqp_s'] = time.perf_counter() - t0
         record['result'] = res
+        record['start'] = np.array(a[1], float)
         record['bounds'] = k.get('bounds')
         return res
     scipy.optimize.fmin_slsqp = recorded
@@ -240,14 +241,16 @@ def _magfit_child(out_npz, magfit_argv):
         # the module's own error function at its own solution: the reference that
         # magfit_error() must reproduce
         info['module_error_mg'] = float(g['wmm_error'](p))
+        info['p0'] = record['start'].tolist()
+        info['module_error_at_start_mg'] = float(g['wmm_error'](record['start']))
     info['options'] = {'elliptical': bool(args.elliptical), 'cmot': bool(args.cmot),
                        'cmot_throttle': bool(args.cmot_throttle)}
     np.savez(out_npz, info=json.dumps(info), **arrays)
 
 
-def run_magfit(log, options, extra, workdir):
-    """Run MAGFit once in its own process; return (info dict, arrays dict)."""
-    out = os.path.join(workdir, f'magfit-{len(os.listdir(workdir))}.npz')
+def run_magfit(log, options, extra, workdir, tag='run'):
+    """Run MAGFit once in its own process (its samples go to WORKDIR/magfit-TAG.npz)."""
+    out = os.path.join(workdir, f'magfit-{tag}.npz')
     cmd = [sys.executable, os.path.abspath(__file__), '--magfit-child', out, '--'] \
         + options + extra + [log]
     env = dict(os.environ, MPLBACKEND='Agg')
@@ -447,7 +450,7 @@ def compare_log(log, option_names, extra, magcal_variants, diagnose_args, workdi
             out['skipped'][name] = 'the log has no CTUN throttle'
             continue
         print(f'  MAGFit {name} ...', flush=True)
-        info, arrays = run_magfit(log, MAGFIT_OPTIONS[name], extra, workdir)
+        info, arrays = run_magfit(log, opts, extra, workdir, tag=name)
         if base is None and arrays:
             base = arrays
             base_info = info
@@ -525,6 +528,8 @@ def compare_log(log, option_names, extra, magcal_variants, diagnose_args, workdi
             s['exit_code'] = code
             out['scores'][f'magcal {label}'] = s
             rec['parameters'] = magcal_parameters(doc)
+    if diagnose_args is None:
+        return out
     print('  magcal diagnose ...', flush=True)
     code, doc, err, wall = run_magcal('diagnose', data_path, igrf + diagnose_args, workdir)
     out['diagnose'] = {'args': diagnose_args, 'exit_code': code, 'wall_s': wall,
@@ -601,6 +606,7 @@ def main(argv=None):
                     '--condition (so both see the same samples), else the log if readable')
     ap.add_argument('--diagnose-args', default='--constrained',
                     help="arguments of 'magcal diagnose' (default --constrained)")
+    ap.add_argument('--no-diagnose', action='store_true', help="skip 'magcal diagnose'")
     ap.add_argument('--magcal-variant', action='append', metavar='LABEL=ARGS',
                     help="a magcal fit run, e.g. 'current=--model base,aux:aux_battery_current"
                     " --constrained' (default: base and base+current, both --constrained)")
@@ -635,14 +641,15 @@ def main(argv=None):
             mode = args.magcal_input
             if mode == 'auto':
                 mode = 'log' if readable and '--condition' not in x else 'csv'
-            results.append(compare_log(log, names, x, variants,
-                                       shlex.split(args.diagnose_args), work, mode))
+            diag = None if args.no_diagnose else shlex.split(args.diagnose_args)
+            results.append(compare_log(log, names, x, variants, diag, work, mode))
             if results[-1].get('site'):
                 print('\n' + _table(results[-1]) + '\n', flush=True)
     tables = [_table(r) for r in results if r.get('site')]
     settings = {'logs': args.logs, 'magfit_options': names, 'magfit_extra_args': extra,
                 'magcal_variants': variants, 'magcal_reads_logs': readable,
-                'magcal_input': args.magcal_input, 'diagnose_args': args.diagnose_args}
+                'magcal_input': args.magcal_input,
+                'diagnose_args': None if args.no_diagnose else args.diagnose_args}
     from importlib.metadata import version
     settings['pymavlink'] = version('pymavlink')
     path = common.write_result('magfit_compare', settings, {'logs': results}, tables,
