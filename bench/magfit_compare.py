@@ -43,7 +43,10 @@ same samples by
   magfit_WMM.py's ``wmm_error``/``get_yaw``/``expected_field`` in a few vectorised lines;
   checked here against the module's own ``wmm_error`` at MAGFit's fitted parameters);
 - magcal_ros's: the RMS of |c| - F and the RMS of |c - R^T m| (nT), R the log's whole
-  attitude (yaw included), m the IGRF (ppigrf) at the log's GPS position and date.
+  attitude (yaw included), m the IGRF (ppigrf) at the log's GPS position and date;
+- and the heading of c (MAGFit's tilt-compensated one) minus the log's yaw (median and
+  quartiles, deg): where the autopilot's heading does not follow the compass, the vector
+  RMS measures that disagreement, not the calibration.
 
 Units: MAGFit works in milligauss (1 mG = 100 nT).  The parameters, the time of each tool
 (wall time of its process) and whether a MAGFit parameter ended on its bound are written to
@@ -411,7 +414,12 @@ def scores(corrected_nt, rpy_deg, earth_mg, declination_deg, m_ned_nt):
     f = float(np.linalg.norm(m_ned_nt))
     rot = euler_dcm(rpy_deg[:, 0], rpy_deg[:, 1], rpy_deg[:, 2])
     expected = np.einsum('nji,j->ni', rot, m_ned_nt)
-    return {'magfit_error_mg': magfit_error(corrected_nt / MG_NT, rpy_deg[:, 0], rpy_deg[:, 1],
+    # the heading the corrected compass gives (MAGFit's) against the log's yaw
+    dyaw = (magfit_yaw(corrected_nt, rpy_deg[:, 0], rpy_deg[:, 1], declination_deg)
+            - rpy_deg[:, 2] + 180.0) % 360.0 - 180.0
+    return {'heading_minus_log_yaw_deg': dict(zip(('p25', 'median', 'p75'), map(
+                float, np.percentile(dyaw, [25, 50, 75])))),
+            'magfit_error_mg': magfit_error(corrected_nt / MG_NT, rpy_deg[:, 0], rpy_deg[:, 1],
                                             earth_mg, declination_deg),
             'scalar_rms_nt': float(np.sqrt(np.mean(
                 (np.linalg.norm(corrected_nt, axis=1) - f) ** 2))),
@@ -450,7 +458,8 @@ def compare_log(log, option_names, extra, magcal_variants, diagnose_args, workdi
             out['skipped'][name] = 'the log has no CTUN throttle'
             continue
         print(f'  MAGFit {name} ...', flush=True)
-        info, arrays = run_magfit(log, opts, extra, workdir, tag=name)
+        info, arrays = run_magfit(log, opts, extra, workdir,
+                                  tag=f'{os.path.basename(log)}-{name}')
         if base is None and arrays:
             base = arrays
             base_info = info
@@ -573,13 +582,16 @@ def magcal_parameters(doc):
 def _table(res):
     rows = []
     for name, s in res['scores'].items():
+        h = s['heading_minus_log_yaw_deg']
         info = res['magfit'].get(name.replace('MAGFit ', ''), {}) if name.startswith(
             'MAGFit') else res['magcal'].get(name.replace('magcal ', ''), {})
         rows.append([name, s['magfit_error_mg'], s['scalar_rms_nt'], s['vector_rms_nt'],
+                     f"{h['median']:+.1f} ({h['p25']:+.1f}..{h['p75']:+.1f})",
                      ', '.join(info.get('on_bounds', [])) or '-',
                      info.get('wall_s')])
     return common.table(['calibration', 'MAGFit error mG', 'RMS of abs(B)-F nT',
-                         'vector RMS nT', 'on a bound', 'time s'], rows,
+                         'vector RMS nT', 'heading - log yaw deg, median (IQR)',
+                         'on a bound', 'time s'], rows,
                         title=f'{os.path.basename(res["log"])}: '
                               f'{res["site"]["n_samples"]} samples, '
                               f'{res["site"]["span_s"]:.0f} s' if res.get('site') else

@@ -34,7 +34,7 @@ import pytest
 pytest.importorskip('pymavlink')
 BENCH = pathlib.Path(__file__).resolve().parents[1] / 'bench'
 sys.path.insert(0, str(BENCH))
-import magfit_compare as mc  # noqa: E402
+import magfit_compare as mc  # noqa: E402, I100
 
 LAT, LON = -35.3632, 149.1652
 TRUTH = {'offsets': np.array([40.0, -75.0, 120.0]), 'scale': 1.1,
@@ -114,7 +114,7 @@ def test_parameters_raw_form_reproduces_the_correction():
 
 @pytest.fixture(scope='module')
 def bench_run(tmp_path_factory):
-    """The bench on the synthetic log: MAGFit without and with --cmot, magcal base."""
+    """Run the bench on the synthetic log: MAGFit without and with --cmot, magcal base."""
     tmp = tmp_path_factory.mktemp('magfit')
     log = write_log(tmp / 'synth.log')
     out, keep = tmp / 'out', tmp / 'work'
@@ -132,7 +132,7 @@ def bench_run(tmp_path_factory):
 def test_magfit_finds_the_truth_and_the_bench_scores_it_as_magfit_does(bench_run):
     doc, _, keep = bench_run
     info = doc['results']['logs'][0]['magfit']['cmot']
-    arrays = np.load(keep / 'magfit-cmot.npz')
+    arrays = np.load(keep / 'magfit-synth.log-cmot.npz')
     assert json.loads(str(arrays['info']))['argv'][0] == '--cmot'
     n = len(arrays['t'])
     assert info['exit_code'] == 0 and info['n'] == n == N
