@@ -376,6 +376,109 @@ def write_csv(path, t, raw_nt, rpy_deg, aux):
     return list(cols)
 
 
+# -- a simulated vehicle, written as a DataFlash text log ----------------------------------
+
+def write_dataflash_text(path, t, mag_mg, rpy_deg, current, lat, lon, alt_m, gps_week,
+                         gps_ms):
+    """
+    Write a DataFlash text log (pymavlink reads it as ArduPilot's) of one compass.
+
+    t (N,) s; mag_mg (N, 3) the raw reading in mG, body frame, logged as integers (MAG is
+    int16 in ArduPilot's logs) with the log's calibration all zero (so MAGFit's raw is the
+    logged value); rpy_deg (N, 3) ATT roll, pitch, yaw; current (N,) A (BAT.Curr) or None;
+    one 3-D GPS fix at the start (its week and milliseconds give the date).
+    """
+    lines = ['FMT, 128, 89, FMT, BBnNZ, Type,Length,Name,Format,Columns',
+             'FMT, 129, 31, PARM, QNf, TimeUS,Name,Value',
+             'FMT, 130, 36, GPS, QBIHLLf, TimeUS,Status,GMS,GWk,Lat,Lng,Alt',
+             'FMT, 131, 27, ATT, Qfff, TimeUS,Roll,Pitch,Yaw',
+             'FMT, 132, 39, MAG, Qhhhhhh, TimeUS,MagX,MagY,MagZ,OfsX,OfsY,OfsZ',
+             'FMT, 133, 20, BAT, QBf, TimeUS,Instance,Curr']
+    for k in ('AHRS_TRIM_X', 'AHRS_TRIM_Y', 'AHRS_TRIM_Z', 'COMPASS_OFS_X', 'COMPASS_OFS_Y',
+              'COMPASS_OFS_Z'):
+        lines.append(f'PARM, 0, {k}, 0')
+    lines.append('PARM, 0, AHRS_EKF_TYPE, 3')
+    lines.append(f'GPS, {int(t[0] * 1e6) - 1000}, 3, {gps_ms}, {gps_week}, {lat:.7f}, '
+                 f'{lon:.7f}, {alt_m:.2f}')
+    for i in range(len(t)):
+        us = int(round(t[i] * 1e6))
+        lines.append(f'ATT, {us}, {rpy_deg[i, 0]:.4f}, {rpy_deg[i, 1]:.4f}, '
+                     f'{rpy_deg[i, 2] % 360:.4f}')
+        if current is not None:
+            lines.append(f'BAT, {us + 50}, 0, {current[i]:.4f}')
+        lines.append(f'MAG, {us + 100}, ' + ', '.join(str(int(v)) for v in mag_mg[i])
+                     + ', 0, 0, 0')
+    with open(path, 'w') as fh:
+        fh.write('\n'.join(lines) + '\n')
+    return path
+
+
+#: the simulated vehicle: CMAC (Canberra), GPS week 2300 + 4 days (2024-02-08)
+SIM_SITE = {'lat': -35.3632, 'lon': 149.1652, 'alt_m': 585.0, 'gps_week': 2300,
+            'gps_ms': 345600000, 'date': datetime.date(2024, 2, 8)}
+
+
+def simulate_vehicle_log(path, seed, n=3000, rate_hz=10.0, noise_nt=200.0, tilt_deg=20.0):
+    """
+    Write a multirotor's compass on a simulated flight as a DataFlash text log; return the truth.
+
+    magcal_ros's simulator (``trajectory='vehicle'``: roll and pitch within +-tilt_deg,
+    the heading turning through 270 deg over the record; paper 004's errors of sensor 1;
+    Gaussian noise) in the IGRF field at :data:`SIM_SITE`, plus a drone-sized hard-iron
+    offset and a battery-current coupling the simulator does not have: raw += b + k I(t),
+    I(t) between about 5 and 25 A.  The truth, in the form corrected = C (raw - b0 - k I):
+    ``correction_matrix`` C (3, 3), ``offset_nt`` b0 (3,), ``coupling_nt_per_a`` k (3,).
+    """
+    from magcal_ros.core.data.simulate import simulate
+    m = igrf_ned(SIM_SITE['lat'], SIM_SITE['lon'], SIM_SITE['alt_m'] / 1000.0,
+                 SIM_SITE['date'])
+    total = float(np.linalg.norm(m))
+    data, sim = simulate(n_samples=n, rate_hz=rate_hz, n_sensors=1, trajectory='vehicle',
+                         tilt_deg=tilt_deg, smooth_period_s=8.0 * n / rate_hz / 3.0,
+                         field_nt=total,
+                         declination_deg=float(np.degrees(np.arctan2(m[1], m[0]))),
+                         inclination_deg=float(np.degrees(np.arcsin(m[2] / total))),
+                         noise_nt=noise_nt, errors='paper004', aux=False, attitude=True,
+                         seed=seed)
+    t = data.t + 10.0
+    rng = np.random.default_rng(seed + 1000)
+    ph = rng.uniform(0, 2 * np.pi, 2)
+    current = 15 + 8 * np.sin(2 * np.pi * t / 53 + ph[0]) + 2 * np.sin(2 * np.pi * t / 11
+                                                                       + ph[1])
+    b_extra = np.array([15000.0, -8000.0, 22000.0])
+    k = np.array([300.0, -500.0, 150.0])
+    raw = data.raw[0] + b_extra + current[:, None] * k
+    from scipy.spatial.transform import Rotation
+    q = data.attitude
+    ypr = Rotation.from_quat(np.c_[q[:, 1:], q[:, 0]]).as_euler('ZYX', degrees=True)
+    write_dataflash_text(path, t, raw / MG_NT, ypr[:, ::-1], current, SIM_SITE['lat'],
+                         SIM_SITE['lon'], SIM_SITE['alt_m'], SIM_SITE['gps_week'],
+                         SIM_SITE['gps_ms'])
+    truth = sim.truth
+    return {'seed': seed, 'n': n, 'rate_hz': rate_hz, 'noise_nt': noise_nt,
+            'tilt_deg': tilt_deg, 'correction_matrix': truth.correction_matrix(1).tolist(),
+            'offset_nt': (truth.offset(1) + b_extra).tolist(),
+            'coupling_nt_per_a': k.tolist(), 'current_a': [float(current.min()),
+                                                           float(current.max())]}
+
+
+def truth_errors(par, truth):
+    """
+    Distance of a calibration's parameters from the truth (dict).
+
+    par: ``offset_nt`` b0 (at zero current), ``correction_matrix`` C, ``coupling_nt_per_a``
+    k (None: no coupling fitted, compared as zero).  Offsets and couplings in nT and nT/A
+    (Euclidean norm of the difference), the matrix as the Frobenius norm of C - C_true.
+    """
+    k = np.zeros(3) if par.get('coupling_nt_per_a') is None else par['coupling_nt_per_a']
+    return {'offset_nt': float(np.linalg.norm(np.subtract(par['offset_nt'],
+                                                          truth['offset_nt']))),
+            'coupling_nt_per_a': float(np.linalg.norm(np.subtract(
+                k, truth['coupling_nt_per_a']))),
+            'correction_matrix': float(np.linalg.norm(np.subtract(
+                par['correction_matrix'], truth['correction_matrix'])))}
+
+
 # -- magcal_ros ------------------------------------------------------------------------------
 
 def can_read_logs():
@@ -440,13 +543,15 @@ def sha256(path):
 
 
 def compare_log(log, option_names, extra, magcal_variants, diagnose_args, workdir,
-                magcal_input):
+                magcal_input, truth=None):
     """Every MAGFit option set and every magcal variant on one log (dict)."""
     channels = log_channels(log)
     where = site(channels)
     digest = sha256(log)
     out = {'log': os.path.abspath(log), 'sha256': digest, 'magfit_extra_args': extra,
            'site': None, 'magfit': {}, 'magcal': {}, 'scores': {}, 'skipped': {}}
+    if truth is not None:
+        out['truth'] = truth
     has = {'cmot': len(channels['bat'][0]) > 0, 'cmot_throttle': len(channels['tho'][0]) > 0}
     base = None
     for name in option_names:
@@ -489,6 +594,11 @@ def compare_log(log, option_names, extra, magcal_variants, diagnose_args, workdi
         magfit_correct(raw_mg, lc['offsets'], lc['scale'], lc['diag'], lc['offdiag'],
                        lc['cmot'], motor.get(lc['cmot_mode'], motor[0])) * MG_NT,
         rpy, earth_mg, decl, m_ned)
+    if truth is not None:
+        rf = magfit_parameters_raw(lc)
+        out['scores']['log calibration']['truth_error'] = truth_errors(
+            {'offset_nt': rf['offset_nt'], 'correction_matrix': rf['correction_matrix'],
+             'coupling_nt_per_a': None}, truth)
     for name, info in out['magfit'].items():
         if 'p' not in info:
             continue
@@ -505,6 +615,12 @@ def compare_log(log, option_names, extra, magcal_variants, diagnose_args, workdi
         s['module_error_mg'] = info['module_error_mg']
         s['reimplementation_minus_module_mg'] = s['magfit_error_mg'] - info['module_error_mg']
         s['exit_code'] = info['exit_code']
+        if truth is not None:
+            rf = info['parameters_raw_form']
+            s['truth_error'] = truth_errors(
+                {'offset_nt': rf['offset_nt'], 'correction_matrix': rf['correction_matrix'],
+                 'coupling_nt_per_a': rf['motor_coupling_raw_nt'] if o['cmot'] else None},
+                truth)
         out['scores'][f'MAGFit {name}'] = s
     ok = {k: v for k, v in out['scores'].items()
           if k.startswith('MAGFit') and v['exit_code'] == 0}
@@ -535,8 +651,10 @@ def compare_log(log, option_names, extra, magcal_variants, diagnose_args, workdi
         if code == 0 and os.path.exists(cal):
             s = scores(magcal_corrected(cal, csv_path), rpy, earth_mg, decl, m_ned)
             s['exit_code'] = code
-            out['scores'][f'magcal {label}'] = s
             rec['parameters'] = magcal_parameters(doc)
+            if truth is not None and rec['parameters']:
+                s['truth_error'] = truth_errors(magcal_common_form(rec['parameters']), truth)
+            out['scores'][f'magcal {label}'] = s
     if diagnose_args is None:
         return out
     print('  magcal diagnose ...', flush=True)
@@ -579,19 +697,36 @@ def magcal_parameters(doc):
     return out
 
 
+def magcal_common_form(par, current='aux:aux_battery_current'):
+    """magcal_parameters() -> offset at zero current, correction matrix, current coupling."""
+    b = np.array(par['offset_nt'], float)
+    k = None
+    c = par['couplings'].get(current)
+    if c is not None:
+        k = np.array(c['value'], float)
+        b = b - k * float((c.get('refs') or {}).get('a0', 0.0))   # the effect is k (I - a0)
+    return {'offset_nt': b, 'correction_matrix': par['correction_matrix'],
+            'coupling_nt_per_a': k}
+
+
 def _table(res):
     rows = []
     for name, s in res['scores'].items():
         h = s['heading_minus_log_yaw_deg']
         info = res['magfit'].get(name.replace('MAGFit ', ''), {}) if name.startswith(
             'MAGFit') else res['magcal'].get(name.replace('magcal ', ''), {})
+        te = s.get('truth_error') or {}
         rows.append([name, s['magfit_error_mg'], s['scalar_rms_nt'], s['vector_rms_nt'],
                      f"{h['median']:+.1f} ({h['p25']:+.1f}..{h['p75']:+.1f})",
                      ', '.join(info.get('on_bounds', [])) or '-',
-                     info.get('wall_s')])
+                     info.get('wall_s')] + ([te.get('offset_nt'), te.get('coupling_nt_per_a'),
+                                             te.get('correction_matrix')]
+                                            if 'truth' in res else []))
+    extra = ['offset error nT', 'current coupling error nT/A', 'matrix error'] \
+        if 'truth' in res else []
     return common.table(['calibration', 'MAGFit error mG', 'RMS of abs(B)-F nT',
                          'vector RMS nT', 'heading - log yaw deg, median (IQR)',
-                         'on a bound', 'time s'], rows,
+                         'on a bound', 'time s'] + extra, rows,
                         title=f'{os.path.basename(res["log"])}: '
                               f'{res["site"]["n_samples"]} samples, '
                               f'{res["site"]["span_s"]:.0f} s' if res.get('site') else
@@ -605,7 +740,12 @@ def main(argv=None):
         _magfit_child(argv[1], argv[3:])
         return 0
     ap = argparse.ArgumentParser(description=__doc__.strip().split('\n')[0])
-    ap.add_argument('logs', nargs='+', help='ArduPilot DataFlash logs (.bin, .log)')
+    ap.add_argument('logs', nargs='*', help='ArduPilot DataFlash logs (.bin, .log)')
+    ap.add_argument('--simulate', type=int, default=0, metavar='K',
+                    help='also K simulated multirotor flights with a known calibration and '
+                    'current coupling (seeds 0..K-1; simulate_vehicle_log)')
+    ap.add_argument('--sim-samples', type=int, default=3000,
+                    help='samples of each simulated flight at 10 Hz (default 3000)')
     ap.add_argument('--magfit-options', default=','.join(MAGFIT_OPTIONS),
                     help='comma-separated MAGFit option sets: ' + ', '.join(MAGFIT_OPTIONS))
     ap.add_argument('--condition', help='MAGFit --condition (e.g. a time window), also '
@@ -627,6 +767,8 @@ def main(argv=None):
     args = ap.parse_args(argv)
     started = time.perf_counter()
     names = [n.strip() for n in args.magfit_options.split(',') if n.strip()]
+    if not args.logs and not args.simulate:
+        ap.error('give LOG files or --simulate K')
     bad = [n for n in names if n not in MAGFIT_OPTIONS]
     if bad:
         ap.error(f'unknown MAGFit option set(s) {bad}; known: {list(MAGFIT_OPTIONS)}')
@@ -647,18 +789,25 @@ def main(argv=None):
     with tempfile.TemporaryDirectory() as tmp:
         work = args.keep or tmp
         os.makedirs(work, exist_ok=True)
-        for log in args.logs:
+        runs = [(log, None) for log in args.logs]
+        for seed in range(args.simulate):
+            path = os.path.join(work, f'sim_vehicle_{seed}.log')
+            runs.append((path, simulate_vehicle_log(path, seed, n=args.sim_samples)))
+        for log, truth in runs:
             print(f'{log}:', flush=True)
             x = extra if extra is not None else LOG_PRESETS.get(sha256(log), [])
+            if truth is not None and extra is None:
+                x = ['--att-source', 'ATT']     # its ATT is the true attitude
             mode = args.magcal_input
             if mode == 'auto':
                 mode = 'log' if readable and '--condition' not in x else 'csv'
             diag = None if args.no_diagnose else shlex.split(args.diagnose_args)
-            results.append(compare_log(log, names, x, variants, diag, work, mode))
+            results.append(compare_log(log, names, x, variants, diag, work, mode, truth))
             if results[-1].get('site'):
                 print('\n' + _table(results[-1]) + '\n', flush=True)
     tables = [_table(r) for r in results if r.get('site')]
-    settings = {'logs': args.logs, 'magfit_options': names, 'magfit_extra_args': extra,
+    settings = {'logs': args.logs, 'simulate': args.simulate, 'sim_samples': args.sim_samples,
+                'magfit_options': names, 'magfit_extra_args': extra,
                 'magcal_variants': variants, 'magcal_reads_logs': readable,
                 'magcal_input': args.magcal_input,
                 'diagnose_args': None if args.no_diagnose else args.diagnose_args}

@@ -44,36 +44,19 @@ TRUTH = {'offsets': np.array([40.0, -75.0, 120.0]), 'scale': 1.1,
 N = 80
 
 
-def write_log(path, n=N, cmot=True):
+def write_log(path, n=N):
     """Write a DataFlash text log whose MAG is TRUTH's raw reading (integers, mG)."""
     from pymavlink import mavextra
     ef = mavextra.expected_earth_field_lat_lon(LAT, LON)
     m = np.array([ef.x, ef.y, ef.z])
     t = np.arange(n) * 0.1 + 1.0
     roll, pitch, yaw = 25 * np.sin(2.1 * t), 20 * np.cos(1.3 * t), (45.0 * t) % 360
-    current = 10 + 10 * np.sin(0.9 * t) if cmot else np.zeros(n)
+    current = 10 + 10 * np.sin(0.9 * t)
     body = np.einsum('nji,j->ni', mc.euler_dcm(roll, pitch, yaw), m)
     # corrected = (raw + ofs) scale + cmot I  =>  raw = (body - cmot I) / scale - ofs
     raw = (body - current[:, None] * TRUTH['cmot']) / TRUTH['scale'] - TRUTH['offsets']
-    lines = ['FMT, 128, 89, FMT, BBnNZ, Type,Length,Name,Format,Columns',
-             'FMT, 129, 31, PARM, QNf, TimeUS,Name,Value',
-             'FMT, 130, 36, GPS, QBIHLLf, TimeUS,Status,GMS,GWk,Lat,Lng,Alt',
-             'FMT, 131, 27, ATT, Qfff, TimeUS,Roll,Pitch,Yaw',
-             'FMT, 132, 39, MAG, Qhhhhhh, TimeUS,MagX,MagY,MagZ,OfsX,OfsY,OfsZ',
-             'FMT, 133, 20, BAT, QBf, TimeUS,Instance,Curr']
-    for k in ('AHRS_TRIM_X', 'AHRS_TRIM_Y', 'AHRS_TRIM_Z', 'COMPASS_OFS_X', 'COMPASS_OFS_Y',
-              'COMPASS_OFS_Z'):
-        lines.append(f'PARM, 0, {k}, 0')
-    lines.append('PARM, 0, AHRS_EKF_TYPE, 3')
-    lines.append(f'GPS, 500000, 3, 345600000, 2300, {LAT}, {LON}, 580.0')
-    for i in range(n):
-        us = int(t[i] * 1e6)
-        lines.append(f'ATT, {us}, {roll[i]:.4f}, {pitch[i]:.4f}, {yaw[i]:.4f}')
-        lines.append(f'BAT, {us + 50}, 0, {current[i]:.4f}')
-        lines.append(f'MAG, {us + 100}, ' + ', '.join(str(int(v)) for v in raw[i])
-                     + ', 0, 0, 0')
-    path.write_text('\n'.join(lines) + '\n')
-    return path
+    return mc.write_dataflash_text(path, t, raw, np.c_[roll, pitch, yaw], current, LAT, LON,
+                                   580.0, 2300, 345600000)
 
 
 def test_euler_dcm_is_scipys_zyx():
@@ -177,3 +160,47 @@ def test_bench_end_to_end(bench_run):
     # GPS week 2000 began on 2018-05-06; week 2300 plus 4 days (345 600 000 ms)
     assert res['site']['date'] == '2024-02-08' and res['site']['n_samples'] == N
     assert doc['tables'][0] in stdout
+
+
+def test_simulated_vehicle_log_holds_its_truth(tmp_path):
+    """The simulated flight, read back by pymavlink, corrected with its truth: the noise."""
+    from pymavlink import mavutil
+    truth = mc.simulate_vehicle_log(tmp_path / 'sim.log', seed=3, n=400)
+    mlog = mavutil.mavlink_connection(str(tmp_path / 'sim.log'))
+    att, bat, mag = [], [], []
+    while True:
+        m = mlog.recv_match(type=['ATT', 'BAT', 'MAG'])
+        if m is None:
+            break
+        {'ATT': att, 'BAT': bat, 'MAG': mag}[m.get_type()].append(
+            [m.Roll, m.Pitch, m.Yaw] if m.get_type() == 'ATT' else
+            [m.Curr] if m.get_type() == 'BAT' else [m.MagX, m.MagY, m.MagZ])
+    att, cur, raw = np.array(att), np.array(bat)[:, 0], np.array(mag) * mc.MG_NT
+    assert len(raw) == len(att) == len(cur) == 400
+    assert 4.0 < truth['current_a'][0] and truth['current_a'][1] < 26.0
+    site = mc.SIM_SITE
+    m_ned = mc.igrf_ned(site['lat'], site['lon'], site['alt_m'] / 1000, site['date'])
+    expected = np.einsum('nji,j->ni', mc.euler_dcm(*att.T), m_ned)
+
+    def residual(k):
+        c = (raw - truth['offset_nt'] - cur[:, None] * k) @ np.array(
+            truth['correction_matrix']).T
+        return np.sqrt(np.mean(np.sum((c - expected) ** 2, axis=1)))
+    # noise 200 nT per axis and the logged integers' truncation (< 100 nT per axis)
+    assert residual(np.array(truth['coupling_nt_per_a'])) < np.sqrt(3) * (200 + 100)
+    assert residual(np.zeros(3)) > 5 * np.sqrt(3) * (200 + 100)
+
+
+def test_magcal_common_form_offset_at_zero_current():
+    par = {'offset_nt': [100.0, 0.0, -20.0], 'correction_matrix': np.eye(3).tolist(),
+           'couplings': {'aux:aux_battery_current': {'value': [10.0, 0.0, 2.0],
+                                                     'refs': {'a0': 5.0}}}}
+    out = mc.magcal_common_form(par)
+    # the effect is k (I - a0): at I = 0 the offset is b - k a0
+    assert np.allclose(out['offset_nt'], [50.0, 0.0, -30.0])
+    assert np.allclose(out['coupling_nt_per_a'], [10.0, 0.0, 2.0])
+    err = mc.truth_errors(out, {'offset_nt': [50.0, 3.0, -30.0],
+                                'coupling_nt_per_a': [10.0, 0.0, 0.0],
+                                'correction_matrix': np.eye(3).tolist()})
+    assert err == pytest.approx({'offset_nt': 3.0, 'coupling_nt_per_a': 2.0,
+                                 'correction_matrix': 0.0})
