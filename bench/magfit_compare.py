@@ -212,7 +212,10 @@ def _magfit_child(out_npz, magfit_argv):
     data = g.get('data') or []
     args = g['args']
     info = {'argv': list(magfit_argv), 'exit_code': exit_code, 'run_s': wall,
-            'slsqp_s': record.get('slsqp_s'), 'stdout_tail': stdout.getvalue()[-2000:],
+            'slsqp_s': record.get('slsqp_s'),
+            'stdout': [ln for ln in stdout.getvalue().splitlines() if ln.startswith((
+                'Attitude source', 'Earth field', 'Extracted', 'Current:', 'New:',
+                'Fit failed', 'Optimization', '            '))],
             'pymavlink_file': spec.origin, 'n': len(data)}
     arrays = {}
     if data:
@@ -646,7 +649,8 @@ def compare_log(log, option_names, extra, magcal_variants, diagnose_args, workdi
         rec = {'args': vargs, 'exit_code': code, 'wall_s': wall,
                'stderr': err.splitlines()[-3:]}
         if doc is not None:
-            rec['json'] = doc
+            # the calibration document itself is summed up in 'parameters' below
+            rec['json'] = {k: v for k, v in doc.items() if k != 'calibration'}
         out['magcal'][label] = rec
         if code == 0 and os.path.exists(cal):
             s = scores(magcal_corrected(cal, csv_path), rpy, earth_mg, decl, m_ned)
@@ -660,8 +664,24 @@ def compare_log(log, option_names, extra, magcal_variants, diagnose_args, workdi
     print('  magcal diagnose ...', flush=True)
     code, doc, err, wall = run_magcal('diagnose', data_path, igrf + diagnose_args, workdir)
     out['diagnose'] = {'args': diagnose_args, 'exit_code': code, 'wall_s': wall,
-                       'stderr': err.splitlines()[-3:], 'json': doc}
+                       'stderr': err.splitlines()[-3:], 'summary': diagnose_summary(doc)}
     return out
+
+
+def diagnose_summary(doc):
+    """Sum up a ``diagnose --json``: its verdict, findings and each candidate's figures."""
+    if not doc:
+        return None
+    keep = ('token', 'delta_bic', 'log10_p_value', 'cv_rms_before_nt', 'cv_rms_after_nt',
+            'explained_fraction', 'significant', 'decided_by')
+    return {'verdict': doc.get('verdict'), 'noise_floor_nt': doc.get('noise_floor_nt'),
+            'residual_rms_nt': doc.get('residual_rms_nt'),
+            'ratio_to_floor': doc.get('ratio_to_floor'),
+            'findings': [{k: f.get(k) for k in ('token', 'text', 'explained_fraction')}
+                         for f in doc.get('findings') or []],
+            'candidates': [{k: c.get(k) for k in keep} for c in doc.get('candidates') or []],
+            'warnings': [w.get('text') if isinstance(w, dict) else w
+                         for w in doc.get('warnings') or []]}
 
 
 def magfit_parameters_raw(prm):
@@ -724,13 +744,25 @@ def _table(res):
                                             if 'truth' in res else []))
     extra = ['offset error nT', 'current coupling error nT/A', 'matrix error'] \
         if 'truth' in res else []
-    return common.table(['calibration', 'MAGFit error mG', 'RMS of abs(B)-F nT',
-                         'vector RMS nT', 'heading - log yaw deg, median (IQR)',
-                         'on a bound', 'time s'] + extra, rows,
-                        title=f'{os.path.basename(res["log"])}: '
-                              f'{res["site"]["n_samples"]} samples, '
-                              f'{res["site"]["span_s"]:.0f} s' if res.get('site') else
-                              os.path.basename(res['log']))
+    out = common.table(['calibration', 'MAGFit error mG', 'RMS of abs(B)-F nT',
+                        'vector RMS nT', 'heading - log yaw deg, median (IQR)',
+                        'on a bound', 'time s'] + extra, rows,
+                       title=f'{os.path.basename(res["log"])}: '
+                             f'{res["site"]["n_samples"]} samples, '
+                             f'{res["site"]["span_s"]:.0f} s' if res.get('site') else
+                             os.path.basename(res['log']))
+    notes = [f'MAGFit best: {res.get("magfit_best")}']
+    if res.get('skipped'):
+        notes.append('MAGFit not run: ' + ', '.join(sorted(res['skipped'])) + ' (no channel)')
+    summary = (res.get('diagnose') or {}).get('summary')
+    if summary:
+        v = summary.get('verdict') or {}
+        notes.append(f'magcal diagnose {" ".join(res["diagnose"]["args"])}: '
+                     f'{v.get("token") or v.get("effect")} ({v.get("reason")})')
+    elif res.get('diagnose'):
+        notes.append(f'magcal diagnose: exit {res["diagnose"]["exit_code"]}: '
+                     + ' '.join(res['diagnose']['stderr'][-1:]))
+    return out + '\n\n' + '\n'.join(f'- {n}' for n in notes)
 
 
 def main(argv=None):
