@@ -508,11 +508,16 @@ def run_magcal(command, data_path, args, workdir):
 
 
 def magcal_corrected(cal_path, csv_path):
-    """(N, 3) nT: sensor 1 of the CSV corrected with a calibration file of magcal_ros."""
+    """
+    (N, 3) nT: sensor 1 of the CSV corrected with a calibration file of magcal_ros.
+
+    Sensor 1 only: a calibration fitted on the log itself has every compass of it.
+    """
     from magcal_ros.io.calfile import load_calibration
     from magcal_ros.io.csvio import read_csv
     cal = load_calibration(cal_path)[0]
-    return cal.correct_dataset(read_csv(csv_path))[0]
+    data = read_csv(csv_path)
+    return cal.correct(1, data.raw[0], data.context(1))
 
 
 def scores(corrected_nt, rpy_deg, earth_mg, declination_deg, m_ned_nt):
@@ -644,10 +649,19 @@ def compare_log(log, option_names, extra, magcal_variants, diagnose_args, workdi
     for label, vargs in magcal_variants:
         cal = os.path.join(workdir, f'cal-{len(os.listdir(workdir))}.yaml')
         print(f'  magcal fit {label} ...', flush=True)
-        code, doc, err, wall = run_magcal('fit', data_path, igrf + vargs + ['-o', cal],
-                                          workdir)
+        # 'log:...' variants read the log itself (every compass; its own samples and place,
+        # e.g. with drop(T0, T1) for a window), scored on MAGFit's samples like the others
+        on_log = label.startswith('log:')
+        if on_log and not can_read_logs():
+            out['magcal'][label] = {'args': vargs, 'exit_code': None,
+                                    'stderr': ['this tree reads no vehicle logs']}
+            continue
+        code, doc, err, wall = run_magcal(
+            'fit', os.path.abspath(log) if on_log else data_path,
+            (vargs if on_log else igrf + vargs) + ['-o', cal], workdir)
         rec = {'args': vargs, 'exit_code': code, 'wall_s': wall,
-               'stderr': err.splitlines()[-3:]}
+               'stderr': err.splitlines()[-3:], 'input': 'log' if on_log else
+               ('log' if use_log else 'csv')}
         if doc is not None:
             # the calibration document itself is summed up in 'parameters' below
             rec['json'] = {k: v for k, v in doc.items() if k != 'calibration'}
@@ -658,6 +672,8 @@ def compare_log(log, option_names, extra, magcal_variants, diagnose_args, workdi
             rec['parameters'] = magcal_parameters(doc)
             if truth is not None and rec['parameters']:
                 s['truth_error'] = truth_errors(magcal_common_form(rec['parameters']), truth)
+            if doc and doc.get('attitude'):
+                rec['attitude'] = doc['attitude']
             out['scores'][f'magcal {label}'] = s
     if diagnose_args is None:
         return out
@@ -793,7 +809,9 @@ def main(argv=None):
     ap.add_argument('--no-diagnose', action='store_true', help="skip 'magcal diagnose'")
     ap.add_argument('--magcal-variant', action='append', metavar='LABEL=ARGS',
                     help="a magcal fit run, e.g. 'current=--model base,aux:aux_battery_current"
-                    " --constrained' (default: base and base+current, both --constrained)")
+                    " --constrained' (default: base and base+current, both --constrained); "
+                    "a LABEL starting with 'log:' fits the log itself (this tree must read "
+                    "logs), e.g. 'log:tilt=--allow-gaps --model base,drop(220,400)'")
     ap.add_argument('--keep', metavar='DIR', help='keep the work files (CSV, YAML) in DIR')
     common.add_common_args(ap)
     args = ap.parse_args(argv)
