@@ -603,6 +603,12 @@ def compare_log(log, option_names, extra, magcal_variants, diagnose_args, workdi
                        lc['cmot'], motor.get(lc['cmot_mode'], motor[0])) * MG_NT,
         rpy, earth_mg, decl, m_ned)
     if truth is not None:
+        # the true calibration on the same samples: what every measure reads at the floor
+        # (the noise and the logged integers' truncation)
+        corr = (raw_mg * MG_NT - np.asarray(truth['offset_nt'])
+                - current[:, None] * np.asarray(truth['coupling_nt_per_a'])) \
+            @ np.asarray(truth['correction_matrix']).T
+        out['scores']['truth'] = scores(corr, rpy, earth_mg, decl, m_ned)
         rf = magfit_parameters_raw(lc)
         out['scores']['log calibration']['truth_error'] = truth_errors(
             {'offset_nt': rf['offset_nt'], 'correction_matrix': rf['correction_matrix'],
