@@ -261,7 +261,11 @@ def run_magfit(log, options, extra, workdir, tag='run'):
         + options + extra + [log]
     env = dict(os.environ, MPLBACKEND='Agg')
     t0 = time.perf_counter()
-    proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    # common.popen: the child cannot outlive the benchmark (parent-death signal)
+    with common.popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                      env=env) as child:
+        _, stderr = child.communicate()
+    proc = subprocess.CompletedProcess(cmd, child.returncode, '', stderr)
     wall = time.perf_counter() - t0
     if proc.returncode != 0 or not os.path.exists(out):
         raise RuntimeError(f'MAGFit child failed on {log} {options}: '
@@ -806,10 +810,11 @@ def main(argv=None):
                     'defines the samples magcal_ros gets')
     ap.add_argument('--att-source', help='MAGFit --att-source (ATT for logs without '
                     'AHRS_EKF_TYPE)')
-    ap.add_argument('--magcal-input', choices=['auto', 'csv', 'log'], default='auto',
-                    help='what magcal_ros reads: the log (when this tree can read logs), or '
-                    "the CSV of MAGFit's samples; auto: the CSV when MAGFit gets a "
-                    '--condition (so both see the same samples), else the log if readable')
+    ap.add_argument('--magcal-input', choices=['auto', 'csv', 'log'], default='csv',
+                    help="what magcal_ros's variants read: the CSV of MAGFit's samples "
+                    '(default: both tools see the same samples), the log (when this tree '
+                    'reads logs), or auto: the CSV when MAGFit gets a --condition, else the '
+                    "log if readable; a variant labelled 'log:...' always reads the log")
     ap.add_argument('--diagnose-args', default='--constrained',
                     help="arguments of 'magcal diagnose' (default --constrained)")
     ap.add_argument('--no-diagnose', action='store_true', help="skip 'magcal diagnose'")
