@@ -673,8 +673,7 @@ def compare_log(log, option_names, extra, magcal_variants, diagnose_args, workdi
                'stderr': err.splitlines()[-3:], 'input': 'log' if on_log else
                ('log' if use_log else 'csv')}
         if doc is not None:
-            # the calibration document itself is summed up in 'parameters' below
-            rec['json'] = {k: v for k, v in doc.items() if k != 'calibration'}
+            rec['json'] = fit_summary(doc)
         out['magcal'][label] = rec
         if code == 0 and os.path.exists(cal):
             s = scores(magcal_corrected(cal, csv_path), rpy, earth_mg, decl, m_ned)
@@ -691,6 +690,16 @@ def compare_log(log, option_names, extra, magcal_variants, diagnose_args, workdi
     code, doc, err, wall = run_magcal('diagnose', data_path, igrf + diagnose_args, workdir)
     out['diagnose'] = {'args': diagnose_args, 'exit_code': code, 'wall_s': wall,
                        'stderr': err.splitlines()[-3:], 'summary': diagnose_summary(doc)}
+    return out
+
+
+def fit_summary(doc):
+    """Keep the figures of a ``fit --json`` (its calibration is summed up in 'parameters')."""
+    keep = ('model', 'n_samples', 'n_fit_samples', 'converged', 'noise_floor_nt',
+            'scalar_rms_nt', 'undetermined', 'onboard_calibration')
+    out = {k: doc.get(k) for k in keep if k in doc}
+    out['warnings'] = [w.get('text') if isinstance(w, dict) else w
+                       for w in doc.get('warnings') or []]
     return out
 
 
