@@ -41,7 +41,8 @@ ORDER = [('accuracy', 'Accuracy against the noise floor and the Cramer-Rao bound
          ('executor', "rclpy's executors: CPU per received message"),
          ('scale', 'Long records: time and memory from 1e4 to 3.6e6 sets'),
          ('reduction_accuracy', 'Long records: the reduction against the record held in '
-                                'memory')]
+                                'memory'),
+         ('magfit_compare', 'MAGFit against magcal_ros on vehicle logs')]
 
 
 def _machine_line(m):
