@@ -515,13 +515,22 @@ def magcal_corrected(cal_path, csv_path):
     """
     (N, 3) nT: sensor 1 of the CSV corrected with a calibration file of magcal_ros.
 
-    Sensor 1 only: a calibration fitted on the log itself has every compass of it.
+    Sensor 1 only: a calibration fitted on the log itself has every compass of it.  In the
+    attitude's body frame: an attitude-aided fit's mounting rotation is undone.
     """
     from magcal_ros.io.calfile import load_calibration
     from magcal_ros.io.csvio import read_csv
+    from magcal_ros.core.effects.attitude_ref import attitude_reference
     cal = load_calibration(cal_path)[0]
     data = read_csv(csv_path)
-    return cal.correct(1, data.raw[0], data.context(1))
+    cor = cal.correct(1, data.raw[0], data.context(1))
+    found = attitude_reference(cal.model)
+    if found is not None:
+        # an attitude-aided fit also found the compass's mounting Q against the attitude's
+        # body frame (sensor 1's frame = Q x the body's): the scores read the body frame
+        eff, sl = found
+        cor = cor @ eff.mount(cal.params[sl])
+    return cor
 
 
 def scores(corrected_nt, rpy_deg, earth_mg, declination_deg, m_ned_nt):

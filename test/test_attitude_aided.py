@@ -101,6 +101,24 @@ def test_level_flight_names_what_it_leaves_open_instead_of_refusing():
     assert np.all(np.abs(z) < 4.0), z
 
 
+def test_the_compass_mounting_against_the_imu_is_fitted():
+    # the attitude's body frame turned against the compass's by a fixed rotation M (a
+    # compass mounted a few degrees off the IMU's axes): the fit finds M (the mounting Q
+    # maps the attitude's body frame to sensor 1's: Q = M) within its uncertainty
+    data, sim = vehicle()
+    m = np.radians([2.0, -3.0, 1.5])
+    from dataclasses import replace
+    d = replace(data, attitude=(Rotation.from_quat(data.attitude, scalar_first=True)
+                                * Rotation.from_rotvec(m)).as_quat(scalar_first=True))
+    for mode in ('tilt', 'full'):
+        ar = fit_attitude(d, 'base', field_nt=F, mode=mode)
+        got = np.radians(ar.world_field['mount_deg'])
+        se = np.radians(ar.world_field['mount_stderr_deg'])
+        assert np.all(np.abs(got - m) < 4 * se + np.radians(0.05)), (mode, got, se)
+        assert ar.result.scalar_rms_nt[1] < 3.0 * 1.05
+        assert not ar.heading['disagree']
+
+
 def test_a_heading_at_odds_with_the_compass_is_said():
     data, _ = vehicle(yaw_err_deg=20.0)
     ar = fit_attitude(data, 'base', field_nt=F, mode='tilt')

@@ -27,7 +27,7 @@ error in rad; estimated from the residuals with the real sensors' noise by the s
 variance-component estimator, :func:`magcal_ros.core.model.fitting.group_noise_variances`):
 
 ``full``  (token ``attitude_full``) the whole attitude is trusted: the observation is the
-          vector y_k = R_k^T m, m = F (cos I cos D, cos I sin D, sin I) in the attitude's
+          vector y_k = Q R_k^T m, m = F (cos I cos D, cos I sin D, sin I) in the attitude's
           world frame (NED: I the inclination, D the declination; ENU: the same vector in
           other angles).  Two parameters, I and D, rad, estimated: a constant heading bias of
           the attitude (true against magnetic north, a yaw offset of the EKF) goes into D.
@@ -35,6 +35,12 @@ variance-component estimator, :func:`magcal_ros.core.model.fitting.group_noise_v
           from the very compass being calibrated, so it is not used.  The observation is the
           field's component along the world vertical, g_k . B_k = F sin I with g_k = R_k^T e_z
           the vertical in the body frame; one parameter, I, rad.
+
+Both modes also fit Q, the rotation of sensor 1 against the attitude's body frame (three
+angles, ``mount_x``, ``mount_y``, ``mount_z``, rad, a rotation vector: a compass is mounted
+to within a few degrees of the IMU's axes), with a prior of :data:`MOUNT_PRIOR_SD_RAD` on
+each (:mod:`magcal_ros.core.model.attitude_fit`); what the motion leaves open of it (the
+angle about the vertical of a level vehicle) is named undetermined.
 
 The field keeps its magnitude constraint |B_k| = F_k; the observation adds what the
 attitude knows about its direction (Gebre-Egziabher et al. 2006, "Calibration of strapdown
@@ -53,6 +59,8 @@ import numpy as np
 #: the attitude's error is never taken below 0.01 deg (an EKF's attitude is good to a tenth
 #: of a degree at best; a simulated, exact attitude would otherwise weigh infinitely)
 MIN_SD_RAD = np.radians(0.01)
+#: prior sd of each angle of the compass's mounting against the attitude's frame, rad
+MOUNT_PRIOR_SD_RAD = np.radians(10.0)
 
 
 class AttitudeReference(Effect):
@@ -62,8 +70,8 @@ class AttitudeReference(Effect):
     kind = 'array'
     scope = 'array'
     signals = ('attitude',)
-    param_names = ('inclination',)
-    units = ('rad',)
+    param_names = ('inclination', 'mount_x', 'mount_y', 'mount_z')
+    units = ('rad',) * 4
     #: the attitude's trust: 'tilt' (roll and pitch) or 'full' (and the heading)
     mode = 'tilt'
     #: rows of the observation per epoch (the rank of its projector)
@@ -94,14 +102,31 @@ class AttitudeReference(Effect):
         """(N, 3) zeros: the attitude corrects no sensor."""
         return np.zeros((len(ctx.t), 3))
 
+    @property
+    def n_field(self):
+        """Return how many of the parameters are the world field's angles (1 or 2)."""
+        return len(self.param_names) - 3
+
+    def mount(self, p):
+        """
+        Return Q (3, 3): the rotation from the attitude's body frame to sensor 1's.
+
+        The compass is rarely mounted exactly along the IMU's axes (ArduPilot's
+        COMPASS_ORIENT fixes right angles only; a few degrees remain): the field the
+        attitude predicts in its body frame is Q B in sensor 1's (the array's) frame.
+        ``p[-3:]`` is its rotation vector, rad.
+        """
+        from scipy.spatial.transform import Rotation
+        return Rotation.from_rotvec(np.asarray(p[-3:], float)).as_matrix()
+
     def world_unit(self, p):
         """(3,) the unit world field direction of parameters ``p`` (full mode)."""
-        inc, dec = p[0], (p[1] if len(p) > 1 else 0.0)
+        inc, dec = p[0], (p[1] if self.n_field > 1 else 0.0)
         return np.array([np.cos(inc) * np.cos(dec), np.cos(inc) * np.sin(dec), np.sin(inc)])
 
     def observation(self, p, rot, f):
         """
-        Return the observation of the field at each epoch and its derivatives.
+        Return what the attitude observes of the field at each epoch, in sensor 1's frame.
 
         Parameters
         ----------
@@ -116,29 +141,27 @@ class AttitudeReference(Effect):
         -------
         proj : numpy.ndarray
             (N, 3, 3) the orthogonal projector onto what is observed (the identity, or
-            g g^T with g the world vertical in the body frame), dimensionless.
+            g g^T with g the world vertical in sensor 1's frame), dimensionless.
         y : numpy.ndarray
             (N, 3) the observation, nT, in the range of ``proj``: the residual of a field
             B_k is proj (y - B_k).
-        dy : numpy.ndarray
-            (n_params, N, 3) dy/dp, nT/rad.
 
         """
+        q = self.mount(p)
         if self.mode == 'full':
             u = self.world_unit(p)
-            inc, dec = p
-            du = np.array([[-np.sin(inc) * np.cos(dec), -np.sin(inc) * np.sin(dec),
-                            np.cos(inc)],
-                           [-np.cos(inc) * np.sin(dec), np.cos(inc) * np.cos(dec), 0.0]])
-            y = np.einsum('nji,j->ni', rot, u) * f[:, None]
-            dy = np.einsum('nji,pj->pni', rot, du) * f[None, :, None]
+            y = np.einsum('ab,nkb,k->na', q, rot, u) * f[:, None]       # Q R^T m
             proj = np.broadcast_to(np.eye(3), (len(f), 3, 3))
-            return proj, y, dy
-        g = rot[:, 2, :]                                     # world vertical, body frame
+            return proj, y
+        g = rot[:, 2, :] @ q.T                          # world vertical, sensor 1's frame
         proj = g[:, :, None] * g[:, None, :]
         y = g * (f * np.sin(p[0]))[:, None]
-        dy = (g * (f * np.cos(p[0]))[:, None])[None]
-        return proj, y, dy
+        return proj, y
+
+    def residual(self, p, rot, f, b):
+        """(N, 3) nT: proj (y - B) of :meth:`observation` for the field ``b`` (N, 3) nT."""
+        proj, y = self.observation(p, rot, f)
+        return np.einsum('nij,nj->ni', proj, y - b)
 
     def start(self, rot, field_body):
         """
@@ -151,16 +174,16 @@ class AttitudeReference(Effect):
         inc = float(np.arcsin(np.clip(np.median(w[:, 2]), -1.0, 1.0)))
         if self.mode == 'full':
             m = np.median(w, axis=0)
-            return np.array([inc, float(np.arctan2(m[1], m[0]))])
-        return np.array([inc])
+            return np.array([inc, float(np.arctan2(m[1], m[0])), 0.0, 0.0, 0.0])
+        return np.array([inc, 0.0, 0.0, 0.0])
 
 
 class AttitudeFull(AttitudeReference):
     """The whole attitude trusted (heading included): two angles of the world field."""
 
     name = 'attitude_full'
-    param_names = ('inclination', 'declination')
-    units = ('rad', 'rad')
+    param_names = ('inclination', 'declination', 'mount_x', 'mount_y', 'mount_z')
+    units = ('rad',) * 5
     mode = 'full'
     rank = 3
 

@@ -39,7 +39,8 @@ Units: nT, rad; degrees where a name says so.
 """
 from dataclasses import dataclass
 
-from magcal_ros.core.effects.attitude_ref import attitude_reference, MODES
+from magcal_ros.core.effects.attitude_ref import (attitude_reference, MODES,
+                                                  MOUNT_PRIOR_SD_RAD)
 from magcal_ros.core.model.fitting import fit, initial_params, priors_for
 from magcal_ros.core.model.planar import inflate_for_correlation, SENSOR_MAP_KINDS
 from magcal_ros.core.model.spec import Model
@@ -201,6 +202,7 @@ def fit_attitude(data, model, field_nt=None, mode='tilt', inclination_deg=None,
                 init[where[k]] = tilt.result.params[i]
         cor = model.correct(1, init, data.raw[0], data.context(1))
         init[sl] = eff.start(data.attitude_matrix(), cor)
+        init[sl.stop - 3:sl.stop] = tilt.result.params[-3:]      # the mounting found
     elif init is None:
         init = attitude_start(data, model, f)
     elif len(init) == model.n_params - eff.n_params and sl.stop == model.n_params:
@@ -218,11 +220,12 @@ def fit_attitude(data, model, field_nt=None, mode='tilt', inclination_deg=None,
     # the caller's own priors (a calibration in use, held where the data are silent:
     # pipeline.refit_recent) stand instead of the constrained mode's
     own = list(fit_kwargs.pop('extra_priors', None) or [])
-    extra = []
+    # the compass's mounting against the attitude's frame: a few degrees at most
+    extra = [(i, 0.0, MOUNT_PRIOR_SD_RAD) for i in range(sl.stop - 3, sl.stop)]
     frame = str(data.meta.get('attitude_frame', '')).upper()
     if inclination_deg is not None and frame in ('NED', 'ENU'):
         inc = np.radians(float(inclination_deg)) * (1.0 if frame == 'NED' else -1.0)
-        extra = [(sl.start, inc, INCLINATION_PRIOR_SD)]
+        extra.append((sl.start, inc, INCLINATION_PRIOR_SD))
         if init[sl.start] * inc < 0:
             init[sl.start] = inc
     result = fit(data, model, field_nt=field_nt, init=init, constrained=not own,
@@ -230,14 +233,16 @@ def fit_attitude(data, model, field_nt=None, mode='tilt', inclination_deg=None,
     open_ = prior_held(result, (own or priors_for(model, {}, constrained=True)) + extra)
     result, rho = inflate_for_correlation(result)
     label = [f'{lab}.{nm}@{j}' for j, lab, nm, _ in info]
-    open_ = {i for i in open_ if info[i][0] and info[i][1] in SENSOR_MAP_KINDS}
+    mount = list(range(sl.stop - 3, sl.stop))
+    open_ = {i for i in open_ if (info[i][0] and info[i][1] in SENSOR_MAP_KINDS)
+             or i in mount}
     undetermined = tuple(label[k] for k in sorted(open_))
     determined = tuple(label[k] for k in range(model.n_params)
-                       if k not in open_ and info[k][0])
+                       if k not in open_ and (info[k][0] or k in mount))
     ang = result.params[sl]
     se = result.stderr[sl]
     world = {'frame': data.meta.get('attitude_frame', "the attitude's world frame"),
-             'inclination_prior': ('IGRF' if extra else 'none (estimated)' if
+             'inclination_prior': ('IGRF' if len(extra) > 3 else 'none (estimated)' if
                                    inclination_deg is None else
                                    "none: the attitude's world frame is not known to be NED "
                                    'or ENU (the inclination was estimated)'),
@@ -246,6 +251,8 @@ def fit_attitude(data, model, field_nt=None, mode='tilt', inclination_deg=None,
     if mode == 'full':
         world.update(declination_deg=float(np.degrees(ang[1])),
                      declination_stderr_deg=float(np.degrees(se[1])))
+    world['mount_deg'] = [float(v) for v in np.degrees(ang[-3:])]
+    world['mount_stderr_deg'] = [float(v) for v in np.degrees(se[-3:])]
     return AttitudeResult(
         result=result, mode=mode, undetermined=undetermined, determined=determined,
         attitude_sd_deg=float(np.degrees(eff.refs.get('white_sigma_nt', eff.sigma_nt) / f0)),
@@ -299,8 +306,7 @@ def _start_sigma(data, model, p, f):
     rot = data.attitude_matrix()
     cor = model.correct(1, p, data.raw[0], data.context(1))
     b = cor / np.linalg.norm(cor, axis=1, keepdims=True) * f[:, None]
-    proj, y, _ = eff.observation(p[sl], rot, f)
-    r = np.einsum('nij,nj->ni', proj, y - b)
+    r = eff.residual(p[sl], rot, f, b)
     return max(float(np.sqrt(np.mean(np.sum(r * r, axis=1)) / eff.rank)), 1e-3 * float(
         np.mean(f)))
 
@@ -325,6 +331,9 @@ def heading_check(result, data):
     rot = data.attitude_matrix()
     p = result.params
     cor = result.model.correct(1, p, data.raw[0], data.context(1))
+    eff, sl = attitude_reference(result.model)
+    # into the attitude's body frame (Q^T: the mounting found), then the world frame
+    cor = cor @ eff.mount(p[sl])
     w = np.einsum('nij,nj->ni', rot, cor)
     ang = np.arctan2(w[:, 1], w[:, 0])
     mean = np.angle(np.mean(np.exp(1j * ang)))

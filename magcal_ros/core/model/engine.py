@@ -198,6 +198,8 @@ class ProfiledProblem:
         arr = list(self.model.array_cols)
         #: positions of the attitude's parameters among the array-wide columns
         self.aid_arr = np.array([arr.index(i) for i in range(sl.start, sl.stop)], int)
+        #: the observation's projector at the parameters last evaluated (the mounting
+        #: rotation moves it): :meth:`field_columns` reads it after :meth:`evaluate`
         self.aid_proj = eff.observation(self.p_full[sl], rot, self.f)[0]
 
     @property
@@ -213,7 +215,8 @@ class ProfiledProblem:
 
     def _aid_residual(self, p, b):
         """(N, 3) the attitude's normalised residual proj (y - B) / sigma_a."""
-        proj, y, _ = self.aid.observation(p[self.aid_slice], self.rot, self.f)
+        proj, y = self.aid.observation(p[self.aid_slice], self.rot, self.f)
+        self.aid_proj = proj
         return np.einsum('nij,nj->ni', proj, y - b) / self.aid_sigma
 
     @property
@@ -456,16 +459,24 @@ class ProfiledProblem:
                 arr.append(None)
         return own, arr
 
-    def _aid_columns(self, p):
+    def _aid_columns(self, p, b):
         """
         (n_arr, N, 3) dr/dx of the attitude's rows in the array-wide columns.
 
-        Analytic: proj dy/d(angles) / sigma_a in its own columns (y lies in the projector's
-        range, so proj dy = dy), zero in the others (site gradient, shared sets).
+        Forward differences of the residual with the field held (the projector moves with
+        the mounting angles), step 1e-7 rad; zero in the other array-wide columns (site
+        gradient, shared sets).
         """
-        _, _, dy = self.aid.observation(p[self.aid_slice], self.rot, self.f)
-        out = np.zeros((len(self.model.array_cols), dy.shape[1], 3))
-        out[self.aid_arr] = dy / self.aid_sigma
+        pa = np.array(p[self.aid_slice], float)
+        r0 = self.aid.residual(pa, self.rot, self.f, b)
+        out = np.zeros((len(self.model.array_cols), len(self.f), 3))
+        h = 1e-7
+        for k, col in enumerate(self.aid_arr):
+            dp = pa.copy()
+            dp[k] += h
+            out[col] = (self.aid.residual(dp, self.rot, self.f, b) - r0) / (h * self.aid_sigma)
+        proj, _ = self.aid.observation(pa, self.rot, self.f)
+        self.aid_proj = proj
         return out
 
     def _prior_jacobian(self):
@@ -515,7 +526,7 @@ class ProfiledProblem:
             if n_arr:
                 jac[:, gi, :, len(self.cols) - n_arr:] = arr[gi].transpose(1, 2, 0)
         if self.aid is not None:
-            jac[:, g, :, len(self.cols) - n_arr:] = self._aid_columns(p).transpose(1, 2, 0)
+            jac[:, g, :, len(self.cols) - n_arr:] = self._aid_columns(p, b).transpose(1, 2, 0)
         # project out the nuisance field directions (variable projection)
         rows = 3 * self.n_members
         jac = self.project_out_field(b, mats, jac.reshape(n, rows, -1))
@@ -605,7 +616,7 @@ class ProfiledProblem:
         if self.aid is not None:
             # the attitude's rows: only the array-wide columns (its angles) move them
             gi = len(self.sensors)
-            fa = self._aid_columns(p)
+            fa = self._aid_columns(p, b)
             r = np.ascontiguousarray(res[:, gi])
             qj = q[:, 3 * gi:3 * gi + 3]
             flat = fa.reshape(n_arr, -1)
