@@ -26,7 +26,8 @@ import time
 from magcal_ros.core.data.magnitude import reference_magnitude
 from magcal_ros.core.data.noise import data_noise_floor, NoiseFloor
 from magcal_ros.core.discovery.candidates import (added_params, Candidate, candidate_tokens,
-                                                  extend_model, propose_from_residual,
+                                                  demodulated_lines, extend_model,
+                                                  propose_from_residual,
                                                   reads_stderr, reduces_to_simpler,
                                                   residual_features,
                                                   sensors_of, split_testable, token_label,
@@ -305,7 +306,8 @@ def _search(b, screen, alpha):
     steps = [(x,) for x in times] + ([tuple(times)] if len(times) > 1 else [])
     span = float(t[-1] - t[0])
     windows = [(a, c) for a, c in zip(times[:-1], times[1:]) if c - a < 0.5 * span]
-    freqs = sorted({round(f, 6) for _, f in lines.values()})
+    freqs = sorted({round(f, 6) for _, f in lines.values()}
+                   | set(demodulated_lines(t, resid, data.raw)))
     return run_search(data, resid, screen, b.sigma, b.floor, n_obs, alpha=alpha,
                       steps=steps, windows=windows, lines=freqs, dof=dof_factor(b.model))
 
