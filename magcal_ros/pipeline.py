@@ -324,19 +324,24 @@ def calibrate(data, model='base', field_nt=None, geometry=None, field_reference=
         mis-paired stretch) then costs those sets only; a missing effect, which spreads over
         many sets, is left to the warning and to diagnose.  The summary gives
         ``outlier_sets_excluded``.
-    screen : bool
+    screen : bool or ReadingScreen
         Before the fit, leave out the sets holding readings no field produces (a pinned,
-        clipped or repeating channel: :func:`magcal_ros.core.data.readings.leave_out_unphysical`);
-        each is named in a ``readings`` warning, and the summary and the provenance give
-        ``readings_left_out``.  Too few sets left raises
-        :class:`~magcal_ros.core.data.readings.UnphysicalReadingsError` (a ValueError) naming them.
+        clipped or repeating channel, spikes:
+        :func:`magcal_ros.core.data.readings.leave_out_unphysical`); each is named in a
+        ``readings`` warning, and the summary and the provenance give ``readings_left_out``.
+        Too few sets left raises :class:`~magcal_ros.core.data.readings.UnphysicalReadingsError`
+        (a ValueError) naming them.  A ReadingScreen: the caller has left its sets out of
+        ``data`` already (the calibration node, before its pairing check); it is reported.
 
     """
     if not screen:
         return _calibrate_clean(data, model, field_nt, geometry, field_reference,
                                 exclude_outliers, **fit_kwargs)
-    from magcal_ros.core.data.readings import leave_out_unphysical
-    data, field_nt, found = leave_out_unphysical(data, field_nt)
+    from magcal_ros.core.data.readings import leave_out_unphysical, ReadingScreen
+    if isinstance(screen, ReadingScreen):
+        found = screen
+    else:
+        data, field_nt, found = leave_out_unphysical(data, field_nt)
     run = _calibrate_clean(data, model, field_nt, geometry, field_reference, exclude_outliers,
                            **fit_kwargs)
     left_out = found.to_dict()

@@ -235,6 +235,19 @@ def tested_verdict(b, verdict, reason, ranked, cv0, folds, cv_method='newton',
         if c.token in failed:
             c = replace(c, significant=False, note=failed[c.token].reason)
         out.append(c)
+    if chosen is not None:
+        split = _each_variant(b, chosen, cv0, folds, cv_method, on_degenerate, cache)
+        if split is not None:
+            v = split[0]
+            tried.append(v)
+            base = next(c for c in out if c.token == chosen.token)
+            first = replace(base, token=v.token, effect=v.token.split('(')[0], sensor=None,
+                            params=(), significant=True, explained_fraction=v.share,
+                            cv_rms_before_nt=v.rms_before_nt, cv_rms_after_nt=v.rms_after_nt,
+                            rms_after_nt=None, vector_rms_after_nt=None, method='refit',
+                            decided_by='held-out' if cv0 is not None else 'in-sample',
+                            note=None)
+            return v.token, f'{reason}; {split[1]}', [first] + out, tried
     if chosen is None:
         why = '; '.join(f'{v.token}: {v.reason}' for v in tried)
         return None, (f'no term passes when fitted with the model as magcal fit fits it '
@@ -287,3 +300,49 @@ def tested_findings(b, found, cv0, folds, cv_method='newton', on_degenerate='rai
                 f = replace(f, token=None, text=f'{text} ({f.token} is not offered: {v.reason})')
         items.append(f)
     return replace(found, items=tuple(items))
+
+
+#: a term tying the sensors together (``@alike``, ``field``) is replaced by its variant with
+#: each sensor's own parameters when that removes this much more of the held-out excess
+SPLIT_SHARE = 0.1
+
+
+def each_variant(token):
+    """
+    Return the term with each sensor's own parameters for a term that ties them, or None.
+
+    ``coupling(driver)@alike`` -> ``coupling(driver)`` (each sensor its own parameters, in
+    its own axes); ``field(driver)`` (the field magnitude, one for the array, seen along the
+    field by every sensor) -> ``scale(driver)`` (each sensor's scale factors follow the
+    driver: the same change seen through each sensor's own axes and gains).
+    """
+    t = token.replace(' ', '')
+    if t.endswith('@alike') and '+' not in t:
+        return token[:token.rindex('@')].rstrip()
+    if t.startswith('field(') and t.endswith(')') and '@' not in t and '+' not in t:
+        return 'scale(' + token.strip()[len('field('):]
+    return None
+
+
+def _each_variant(b, chosen, cv0, folds, cv_method, on_degenerate, cache):
+    """
+    Check that the sensors follow a term that ties them (``@alike``, ``field``) alike.
+
+    The measurable test (docs/formulas.md): the same driver with each sensor's own
+    parameters (:func:`each_variant`) is fitted as :func:`verify_term` fits any term; if it
+    passes and removes :data:`SPLIT_SHARE` more of the held-out excess over the floor, the
+    sensors do not see the driver alike (their axes or gains differ in how they take it:
+    a misalignment the shared term would hide), and the variant is offered instead.
+    Returns (Verified of the variant, the reason's words) or None.
+    """
+    alt = each_variant(chosen.token)
+    if alt is None or chosen.share is None:
+        return None
+    if alt not in cache:
+        cache[alt] = verify_term(b, alt, cv0, folds, cv_method, on_degenerate)
+    v = cache[alt]
+    if not v.ok or v.share is None or v.share < chosen.share + SPLIT_SHARE:
+        return None
+    return v, (f"the sensors do not follow {chosen.token} alike: with each sensor's own "
+               f'parameters, {alt} removes {v.share:.0%} of the held-out excess against '
+               f'{chosen.share:.0%} ({v.reason}); {alt} is offered instead')
