@@ -175,11 +175,13 @@ def _residual_warnings(result, floor):
     """
     out = []
     for j, (sig, fl) in enumerate(zip(result.sigma_nt, floor.per_sensor_nt), start=1):
-        gross = _gross_note(j, sig, fl, floor.raw_nt[j - 1])
+        gross = (None if floor.status[j - 1] == 'filtered' else
+                 _gross_note(j, sig, fl, floor.raw_nt[j - 1]))
         if gross is not None:
             # two orders of magnitude above the floor (or above the raw readings' own
             # difference floor, which no fit moves: a floor taken from a diverged fit's
-            # residual is as large as the residual)
+            # residual is as large as the residual); a filtered series has only a lower
+            # bound of its floor, never "N x" it (the worse-than-raw check still holds)
             out.append(gross)
             continue
         if floor.status[j - 1] == 'filtered':
