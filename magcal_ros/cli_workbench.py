@@ -96,7 +96,7 @@ def _run(args, cli, with_ladder):
     except ValueError as exc:
         raise cli.BadInput(f'--model {args.model!r}: {exc}') from exc
     field_nt, fref = cli.resolve_field(args, data)
-    # readings no field produces (pinned, clipped, repeating channels) are named and left out
+    # readings no field produces (pinned, clipped, repeating channels, spikes): named, left out
     from magcal_ros.core.data.readings import leave_out_unphysical
     data, field_nt, screen = leave_out_unphysical(data, field_nt)
     prog('fit', 0, 1, ','.join(model.spec()))

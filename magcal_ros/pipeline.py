@@ -159,6 +159,9 @@ class CalibrationRun:
 
 #: a sensor's fitted noise above this multiple of the data's own noise floor is reported
 RESIDUAL_WARN_RATIO = 1.5
+#: ... and above this multiple (two orders of magnitude) of the floor, or of the raw
+#: readings' difference floor (model-free), as a failed fit, not a missing effect
+GROSS_RATIO = 100.0
 
 
 def _residual_warnings(result, floor):
@@ -174,6 +177,15 @@ def _residual_warnings(result, floor):
     """
     out = []
     for j, (sig, fl) in enumerate(zip(result.sigma_nt, floor.per_sensor_nt), start=1):
+        gross = (None if floor.status[j - 1] == 'filtered' else
+                 _gross_note(j, sig, fl, floor.raw_nt[j - 1]))
+        if gross is not None:
+            # two orders of magnitude above the floor (or above the raw readings' own
+            # difference floor, which no fit moves: a floor taken from a diverged fit's
+            # residual is as large as the residual); a filtered series has only a lower
+            # bound of its floor, never "N x" it (the worse-than-raw check still holds)
+            out.append(gross)
+            continue
         if floor.status[j - 1] == 'filtered':
             out.append(Note(floor.describe(j) + '; the residual cannot be compared with it',
                             'noise_floor', j))
@@ -186,6 +198,30 @@ def _residual_warnings(result, floor):
                             'effect is missing (run diagnose) or the data are inconsistent',
                             'missing_effect', j))
     return out
+
+
+def _lower_floor(*floors):
+    """Return the lowest finite positive floor of ``floors`` (nT), nan when there is none."""
+    ok = [float(x) for x in floors if np.isfinite(x) and x > 0]
+    return min(ok) if ok else float('nan')
+
+
+def _gross_note(j, sig, fl, raw_fl):
+    """
+    Return a warning when sensor ``j``'s residual is orders of magnitude above its floor.
+
+    ``sig`` the fit's per-axis residual sd, ``fl`` the floor and ``raw_fl`` the floor from
+    the raw readings' differences (model-free), nT.  The lower of the two floors decides.
+    """
+    ref = _lower_floor(fl, raw_fl)
+    if not (np.isfinite(sig) and np.isfinite(ref)) or sig <= GROSS_RATIO * ref:
+        return None
+    ratio = sig / ref
+    return Note(f'sensor {j}: the model leaves {sig:.3g} nT of residual per axis, {ratio:.3g} x '
+                f'({np.log10(ratio):.1f} orders of magnitude above) the noise floor of its data '
+                f'({ref:.3g} nT): the fit failed (a term that diverged or data the model cannot '
+                'describe); do not use this calibration: fit a simpler model, run diagnose',
+                'missing_effect', j)
 
 
 def fit_warnings(result, floor):
@@ -228,6 +264,17 @@ def summarize(result, data, positions=None):
         'downweighted': {str(j + 1): int(x) for j, x in enumerate(result.downweighted)},
         'warnings': fit_warnings(result, floor),
     }
+    for j, r in enumerate(raw_tot, start=1):
+        # worse than no calibration, beyond the scatter of two RMS at the floor
+        before, after = float(np.sqrt(np.mean(r ** 2))), result.scalar_rms_nt.get(j)
+        if after is not None and np.isfinite(before) and not (
+                after <= 1.1 * before or after <= RESIDUAL_WARN_RATIO * _lower_floor(
+                    floor.per_sensor_nt[j - 1], floor.raw_nt[j - 1])):
+            s['warnings'].append(note_dict(Note(
+                f'sensor {j}: the calibrated total field deviates more than the raw readings '
+                f'do ({after:.3g} nT RMS after, {before:.3g} nT before): this calibration '
+                'makes the sensor worse; do not use it (fit a simpler model, run diagnose)',
+                'missing_effect', j)))
     site = gradient_from_fit(result.model, result.params, result.covariance)
     if site is not None:
         # world frame of the attitude (NED or ENU, the user's); standard uncertainties
@@ -318,8 +365,11 @@ def run_request(data, request, screen=True, **fit_kwargs):
     """
     if not screen:
         return _calibrate_clean(data, request, request.field_nt, fit_kwargs)
-    from magcal_ros.core.data.readings import leave_out_unphysical
-    data, field_nt, found = leave_out_unphysical(data, request.field_nt)
+    from magcal_ros.core.data.readings import leave_out_unphysical, ReadingScreen
+    if isinstance(screen, ReadingScreen):
+        found, field_nt = screen, request.field_nt       # left out by the caller already
+    else:
+        data, field_nt, found = leave_out_unphysical(data, request.field_nt)
     run = _calibrate_clean(data, request, field_nt, fit_kwargs)
     left_out = found.to_dict()
     run.summary['readings_left_out'] = left_out
@@ -357,12 +407,14 @@ def calibrate(data, model='base', field_nt=None, geometry=None, field_reference=
         mis-paired stretch) then costs those sets only; a missing effect, which spreads over
         many sets, is left to the warning and to diagnose.  The summary gives
         ``outlier_sets_excluded``.
-    screen : bool
+    screen : bool or ReadingScreen
         Before the fit, leave out the sets holding readings no field produces (a pinned,
-        clipped or repeating channel: :func:`magcal_ros.core.data.readings.leave_out_unphysical`);
-        each is named in a ``readings`` warning, and the summary and the provenance give
-        ``readings_left_out``.  Too few sets left raises
-        :class:`~magcal_ros.core.data.readings.UnphysicalReadingsError` (a ValueError) naming them.
+        clipped or repeating channel, spikes:
+        :func:`magcal_ros.core.data.readings.leave_out_unphysical`); each is named in a
+        ``readings`` warning, and the summary and the provenance give ``readings_left_out``.
+        Too few sets left raises :class:`~magcal_ros.core.data.readings.UnphysicalReadingsError`
+        (a ValueError) naming them.  A ReadingScreen: the caller has left its sets out of
+        ``data`` already (the calibration node, before its pairing check); it is reported.
     **options
         The mode and options of a :class:`CalibrationRequest` (``attitude``, ``planar``,
         ``prior_params``, ``heading_unknown``, ``robust``, ``constrained``,

@@ -30,7 +30,8 @@ import time
 
 from magcal_ros.core.data.readings import leave_out_unphysical
 from magcal_ros.core.effects.safety import culprit, EffectError
-from magcal_ros.core.live.consistency import GROSS_FRACTION, resync
+from magcal_ros.core.live.consistency import (DEFAULT_MAX_LAG, GROSS_FRACTION, LONG_MAX_LAG,
+                                              resync)
 from magcal_ros.core.model import DegenerateDataError, Model
 from magcal_ros.core.model.notes import format_note
 from magcal_ros.io.calfile import CalibrationFileError, dump_calibration, save_calibration
@@ -41,6 +42,11 @@ from magcal_ros.ros.collection import silent_sensors
 from magcal_ros.ros.replies import reply as _reply
 import numpy as np
 from std_msgs.msg import String
+
+#: sets the consistency check flags (core/live/consistency.py: no pairing within its lags
+#: fits them) are dropped before the fit up to this share of the sets; beyond, the node
+#: refuses with the count (issue 32: never a calibration on sets its own check flags)
+MAX_INCONSISTENT_FRACTION = 0.1
 
 #: the summary's entries of the planar, attitude-aided and site-gradient fits that the
 #: calibrate reply carries as they are
@@ -91,7 +97,15 @@ class CalibrationMixin:
         model = Model.from_spec(list(s.model), self._n)
         geometry = self._geometry(s)
         t0 = time.monotonic()
-        data, resync_payload, resync_lines = self._resync(data, epochs, s)
+        try:
+            # readings no field produces first (a clipped axis of sensor 1 would make every
+            # other sensor inconsistent with it), then the pairing check on the rest
+            data, epochs, screen = self._screen(data, epochs)
+            data, resync_payload, resync_lines = self._resync(data, epochs, s)
+        except ValueError as exc:
+            reason, extra = self._named(exc, 'calibrate')
+            return False, f'not calibrated: {reason}; previous calibration stays active', {
+                'reason': reason, 'sets': n_sets, 'model': list(s.model), **extra}
         try:
             field_nt, field_ref = self._field(s, data.raw[0])
         except (ValueError, ImportError) as exc:
@@ -108,7 +122,7 @@ class CalibrationMixin:
                           and active.model.spec() == model.spec() else None),
             robust=s.robust, constrained=s.constrained, exclude_outliers=s.exclude_outliers)
         try:
-            run = run_calibration(data, request)
+            run = run_calibration(data, request, screen=screen)
         except DegenerateDataError as exc:
             return False, (f'not calibrated: {exc}; previous calibration stays active'), {
                 'reason': str(exc), 'sets': n_sets, 'model': list(s.model)}
@@ -117,6 +131,13 @@ class CalibrationMixin:
             return False, f'not calibrated: {reason}; previous calibration stays active', {
                 'reason': reason, 'sets': n_sets, 'model': list(s.model), **extra}
         solve_s = time.monotonic() - t0
+        refuse = (resync_payload or {}).get('refuse')
+        if refuse:
+            # the fit's own refusals (degenerate data, a stuck sensor) came first; a fit of
+            # these sets is never activated
+            return False, f'not calibrated: {refuse}; previous calibration stays active', {
+                'reason': refuse, 'sets': n_sets, 'model': list(s.model),
+                'resync': resync_payload}
         if not run.result.success:
             # a fit that ran out of iterations is not a calibration: never installed
             reason = f'the fit did not converge ({run.result.message})'
@@ -213,10 +234,17 @@ class CalibrationMixin:
             reason = f'only {n_sets} complete sample sets collected, need {s.min_samples}'
             return False, f'not diagnosed: {reason}', {'reason': reason, 'sets': n_sets}
         model = Model.from_spec(list(s.model), self._n)
-        data, resync_payload, _ = self._resync(data, epochs, s)
         try:
-            # readings no field produces are named and left out, as in calibrate
-            data, field_nt, screen = leave_out_unphysical(data, s.field_nt)
+            # readings no field produces are named and left out, as in calibrate, before
+            # the pairing check
+            data, epochs, screen = self._screen(data, epochs)
+            data, resync_payload, _ = self._resync(data, epochs, s)
+        except ValueError as exc:
+            reason, extra = self._named(exc, 'diagnose')
+            return False, f'not diagnosed: {reason}', {'reason': reason, 'sets': n_sets,
+                                                       **extra}
+        field_nt = s.field_nt
+        try:
             diag = diagnose(data, model, field_nt=field_nt, constrained=s.constrained,
                             baseline_m=s.baseline_m)
         except ValueError as exc:
@@ -244,11 +272,41 @@ class CalibrationMixin:
         lines.append(f'HTML report: {ranking["report"]}')
         return True, '\n'.join(lines), ranking
 
+    @staticmethod
+    def _screen(data, epochs):
+        """Leave out readings no field produces: (data, epochs, ReadingScreen) of the rest."""
+        data_kept, _, screen = leave_out_unphysical(data)
+        if data_kept is not data and epochs is not None:
+            epochs = np.asarray(epochs)[screen.keep]
+        return data_kept, epochs, screen
+
     def _resync(self, data, epochs, settings):
-        """Re-pair sets paired from different epochs; return (data, payload, warning lines)."""
+        """
+        Re-pair sets paired from different epochs; return (data, payload, warning lines).
+
+        The sets the check still finds inconsistent are dropped (counted in the payload and
+        a line), up to :data:`MAX_INCONSISTENT_FRACTION` of them; beyond, none is dropped and
+        the payload's ``refuse`` says why no calibration may be made of these sets.
+        """
         if not settings.resync_sets or data.n_sensors < 2:
             return data, None, []
-        fixed, slips, dropped, gross = resync(data, epochs)
+        fixed, slips, dropped, gross = resync(data, epochs, drop_inconsistent=True)
+        n_bad = slips.dropped_inconsistent
+        refuse = None
+        if n_bad > MAX_INCONSISTENT_FRACTION * data.n_samples:
+            # never a calibration on sets the consistency check flags: too many to drop
+            fixed, slips, dropped, gross = resync(data, epochs)
+            refuse = (
+                f'{n_bad} of {data.n_samples} sets are inconsistent with sensor 1 at every '
+                f'pairing within +-{DEFAULT_MAX_LAG} epochs (per sensor: '
+                + ', '.join(f'{j}: {c}' for j, c in enumerate(slips.inconsistent[1:].tolist(),
+                                                              start=2))
+                + f') and fit at one up to +-{LONG_MAX_LAG} epochs apart: the sensors were '
+                'paired from epochs further apart (a reader that lost pace: CPU starvation, a '
+                f'stalled link); more than {MAX_INCONSISTENT_FRACTION:.0%} of the sets, so none '
+                'is dropped and no calibration is made: collect again (calibration/start), or '
+                'set resync_sets false to fit the sets as paired')
+            n_bad = 0
         keys = [str(j) for j in range(2, data.n_sensors + 1)]
         payload = {
             'sets_repaired': dict(zip(keys, slips.n_slipped[1:].tolist())),
@@ -258,8 +316,14 @@ class CalibrationMixin:
                                             .tolist())),
             'misfit_nt': dict(zip(keys, np.round(slips.rms_nt[1:], 2).tolist())),
             'inconsistent_sets': dict(zip(keys, slips.inconsistent[1:].tolist())),
+            'sets_dropped_inconsistent': n_bad,
+            'refuse': refuse,
         }
         lines = slips.summary()
+        if n_bad:
+            lines.append(f'{n_bad} sets dropped: inconsistent with sensor 1 at every pairing '
+                         f'within +-{DEFAULT_MAX_LAG} epochs, consistent at one up to '
+                         f'+-{LONG_MAX_LAG} epochs apart (paired from epochs further apart)')
         if gross:
             lines.append(f'{gross} sets dropped with a sample more than '
                          f'{GROSS_FRACTION:.0%} of the field off the mean of its neighbours '

@@ -410,6 +410,28 @@ def residual_features(t, residual, max_steps=2, min_line_ratio=30.0, readings=No
     return sorted(found), lines
 
 
+def demodulated_lines(t, residual, readings, min_line_ratio=30.0):
+    """
+    Spectral lines of how the residual follows the reading's direction (frequencies, Hz).
+
+    A line that modulates a scale factor, an angle or the linear map (``scale(sin(f))``,
+    ``rotation(sin(f))``) leaves a residual dM(t) m whose spectrum is the line mixed with
+    the turning of the sensor (side bands at f +- the turn rates, the line itself absent);
+    the 9 products r_a u_b (u = m / |m|, as for the steps in :func:`residual_features`)
+    hold dM(t) |m| u u^T, whose attitude average is dM(t) |m| / 3: the line at f.
+
+    ``residual``, ``readings``: (S, N, 3) nT.  Returns the sorted frequencies of the
+    sensors' strongest lines of the products (:func:`residual_features`' test).
+    """
+    m = np.asarray(readings, float)
+    norm = np.linalg.norm(m, axis=2, keepdims=True)
+    u = np.divide(m, norm, out=np.zeros_like(m), where=norm > 0)
+    prod = (np.asarray(residual, float)[:, :, :, None] * u[:, :, None, :])
+    prod = prod.reshape(m.shape[0], m.shape[1], 9)
+    _, lines = residual_features(t, prod, max_steps=0, min_line_ratio=min_line_ratio)
+    return sorted({round(f, 6) for _, f in lines.values()})
+
+
 def _copy_refs(src, dst):
     """Give ``dst``'s effects the reference values of the same effects in ``src``."""
     for row_s, row_d in zip(src.effects, dst.effects):

@@ -25,7 +25,8 @@ import time
 
 from magcal_ros.core.data.noise import data_noise_floor, NoiseFloor
 from magcal_ros.core.discovery.candidates import (added_params, Candidate, candidate_tokens,
-                                                  extend_model, propose_from_residual,
+                                                  demodulated_lines, extend_model,
+                                                  propose_from_residual,
                                                   reads_stderr, reduces_to_simpler,
                                                   residual_features,
                                                   sensors_of, split_testable, token_label,
@@ -46,6 +47,7 @@ from magcal_ros.core.discovery.search import (EXPLAINS_SHARE, FLOOR_RATIO,
                                               SCOPE_SHARE as SEARCH_SCOPE_SHARE,
                                               search as run_search, SEARCH_MAX_EPOCHS)
 from magcal_ros.core.discovery.validation import cross_validate
+from magcal_ros.core.discovery.verify import tested_findings, tested_verdict
 from magcal_ros.core.model import Model
 from magcal_ros.core.model.fitting import fit
 from magcal_ros.core.model.solvers import single_threaded_blas
@@ -250,6 +252,7 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
         verdict, reason = _verdict(b, ranked, ratio, at_floor, held_out, p_thr)
         # the formula search: only when something is missing (at the floor it has nothing
         # to find, and a control costs what it did)
+        found_terms = None
         if (candidates is None and propose and not b.robust and not constrained
                 and not at_floor):
             t0 = time.perf_counter()
@@ -257,8 +260,19 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
             seconds['search'] = time.perf_counter() - t0
             verdict, reason, ranked = _merge_search(b, trials, ranked, verdict, reason,
                                                     found_terms, at_floor)
-            if found is not None and not at_floor:
-                found = _describe(b, found, found_terms, verdict, scalar_rms, vector_rms)
+        # every term offered (the verdict, a finding's token) is first fitted with the model
+        # as `magcal fit` fits it and must lower the held-out residual (issue 32, verify.py)
+        t0 = time.perf_counter()
+        tested = {}
+        on_deg = fit_kwargs.get('on_degenerate', 'raise')
+        verdict, reason, ranked, _ = tested_verdict(b, verdict, reason, ranked, cv0, folds,
+                                                    cv_method, on_deg, tested, p_thr)
+        if found is not None and not at_floor and found_terms is not None:
+            found = _describe(b, found, found_terms, verdict, scalar_rms, vector_rms)
+        found = tested_findings(b, found, cv0, folds, cv_method, on_deg, tested)
+        if verdict is None and not at_floor:
+            reason = _stop_reason(reason, found)
+        seconds['verify'] = time.perf_counter() - t0
         seconds['total'] = time.perf_counter() - t_start
         return Diagnosis(
             model=tuple(compact_spec(b.model)), n_samples=data.n_samples, n_used=n,
@@ -291,7 +305,8 @@ def _search(b, screen, alpha):
     steps = [(x,) for x in times] + ([tuple(times)] if len(times) > 1 else [])
     span = float(t[-1] - t[0])
     windows = [(a, c) for a, c in zip(times[:-1], times[1:]) if c - a < 0.5 * span]
-    freqs = sorted({round(f, 6) for _, f in lines.values()})
+    freqs = sorted({round(f, 6) for _, f in lines.values()}
+                   | set(demodulated_lines(t, resid, data.raw)))
     return run_search(data, resid, screen, b.sigma, b.floor, n_obs, alpha=alpha,
                       steps=steps, windows=windows, lines=freqs, dof=dof_factor(b.model))
 
@@ -373,15 +388,12 @@ def _describe(b, found, res, verdict, scalar_rms, vector_rms):
     Add the model-free descriptions of the search to the findings (each with its token).
 
     'localised': an excess confined in time (:func:`.search.localised`), token
-    ``drop(t0, t1)``.  'unexplained': when there is no verdict, which sensors carry the
-    excess (one, an arm of the cross, every sensor alike, or a set), whether it shows in the
-    scalar or only in the vector residual, and what the search's best term follows (time, a
-    channel, the field rate), with that term as the token to try.
+    ``drop(t0, t1)``.  'unexplained': when there is no verdict, what is left
+    (:func:`_what_is_left`).
     """
     from dataclasses import replace
     from magcal_ros.core.discovery.findings import Finding
     s = b.data.n_sensors
-    fl = b.floor
     new = []
     loc = res.localised
     if loc is not None:
@@ -394,28 +406,117 @@ def _describe(b, found, res, verdict, scalar_rms, vector_rms):
                   f'{max(loc.ratios_outside.values()):.2f} x its floor outside: add '
                   f'{loc.token} to leave it out'), token=loc.token))
     if verdict is None:
-        ex = {j: max(v ** 2 - fl.per_sensor_nt[j - 1] ** 2, 0.0) for j, v in scalar_rms.items()}
-        vex = {j: max(v ** 2 - fl.vector_floor_nt(j) ** 2, 0.0) for j, v in vector_rms.items()}
-        both = {j: ex[j] + vex.get(j, 0.0) for j in ex}
-        top = max(both.values()) if both else 0.0
-        if top > 0:
-            sens = tuple(j for j in sorted(both) if both[j] >= SEARCH_SCOPE_SHARE * top)
-            scalar = sum(ex[j] for j in sens) >= 0.5 * sum(vex.get(j, 0.0) for j in sens)
-            best = next((t for t in res.terms if t.delta_chi2 is not None), None)
-            follows = ('nothing the search tried' if best is None else
-                       {'time': 'time', 'rate': 'the field rate'}.get(
-                           best.driver.kind, f'the channel {best.driver.channel}'))
-            token = None if best is None else best.text_for(s)
-            new.append(Finding(
-                kind='unexplained', sensor=sens[0] if len(sens) == 1 else None,
-                channel=None if best is None else best.driver.channel, value=None, unit='',
-                explained_fraction=float(best.share or 0.0) if best is not None else 0.0,
-                text=(f'{_who(sens, s)}: a {"scalar" if scalar else "vector"} excess over '
-                      f'the floor that no term explains; it follows {follows} most'
-                      + ('' if token is None else f' (try {token})')), token=token))
+        left = _what_is_left(b, found, res, scalar_rms, vector_rms)
+        if left is not None:
+            new.append(left)
     if not new:
         return found
     return replace(found, items=tuple(new) + tuple(found.items))
+
+
+#: what a model-free finding of each kind follows, in words (the 'unexplained' finding)
+_FOLLOWS = {
+    'direction': lambda f: 'the field direction in the sensor (the attitude)',
+    'periodic': lambda f: f'a line at {f.value:.4g} Hz',
+    'step': lambda f: f'a step at {f.value:.6g} s',
+    'time': lambda f: 'time (a trend)',
+    'channel': lambda f: f'the channel {f.channel}',
+    'lag': lambda f: f'the channel {f.channel} through a lag',
+    'channel_nonlinear': lambda f: f'the channel {f.channel}, not linearly',
+    'nonuniform_field': lambda f: 'a field gradient across the array',
+}
+#: the excess "lies within" an interval holding this share of it ...
+WHEN_SHARE = 0.8
+#: ... when the interval is at most this share of the record (else "throughout the record")
+WHEN_SPAN = 0.5
+
+
+def _what_is_left(b, found, res, scalar_rms, vector_rms):
+    """
+    Describe the excess nothing explains (a Finding of kind 'unexplained'), or None.
+
+    Which sensors carry it (one, an arm of the cross, every sensor alike, or a set), whether
+    it shows in the scalar or only in the vector residual and how far above the floor, when
+    (the shortest interval holding :data:`WHEN_SHARE` of it, if at most :data:`WHEN_SPAN` of
+    the record, else throughout), and what it follows most: the search's best term (its
+    held-out share) or a model-free finding on those sensors (its share of their excess):
+    the field direction (attitude), a line, a step, a trend, a channel, a gradient.  The
+    token is that term's or finding's (:func:`.verify.tested_findings` fits it before it
+    is offered).
+    """
+    from magcal_ros.core.discovery.findings import Finding
+    s = b.data.n_sensors
+    fl = b.floor
+    ex = {j: max(v ** 2 - fl.per_sensor_nt[j - 1] ** 2, 0.0) for j, v in scalar_rms.items()}
+    vex = {j: max(v ** 2 - fl.vector_floor_nt(j) ** 2, 0.0) for j, v in vector_rms.items()}
+    both = {j: ex[j] + vex.get(j, 0.0) for j in ex}
+    top = max(both.values()) if both else 0.0
+    if top <= 0:
+        return None
+    sens = tuple(j for j in sorted(both) if both[j] >= SEARCH_SCOPE_SHARE * top)
+    scalar = sum(ex[j] for j in sens) >= 0.5 * sum(vex.get(j, 0.0) for j in sens)
+    ratio = max([scalar_rms[j] / fl.per_sensor_nt[j - 1] for j in sens]
+                + [vector_rms[j] / fl.vector_floor_nt(j) for j in sens if j in vector_rms])
+    options = []
+    best = None if res is None else next((t for t in res.terms if t.delta_chi2 is not None),
+                                         None)
+    if best is not None:
+        words = {'time': 'time', 'rate': 'the field rate'}.get(
+            best.driver.kind, f'the channel {best.driver.channel}')
+        options.append((float(best.share or 0.0), words, best.text_for(s),
+                        best.driver.channel))
+    for f in found.items:
+        if f.kind in _FOLLOWS and (f.sensor is None or f.sensor in sens):
+            options.append((float(f.explained_fraction or 0.0), _FOLLOWS[f.kind](f),
+                            f.token, f.channel))
+    share, follows, token, channel = (max(options, key=lambda o: o[0]) if options else
+                                      (0.0, 'nothing the diagnosis tried', None, None))
+    return Finding(
+        kind='unexplained', sensor=sens[0] if len(sens) == 1 else None, channel=channel,
+        value=float(ratio), unit='x floor', explained_fraction=float(share),
+        text=(f'{_who(sens, s)}: a {"scalar" if scalar else "vector"} excess of up to '
+              f'{ratio:.1f} x the floor {_when(b, sens)} that no term explains; it follows '
+              f'{follows} most ({share:.0%} of it)' + ('' if token is None else
+                                                       f' (try {token})')), token=token)
+
+
+def _when(b, sens):
+    """Words for when the excess of sensors ``sens`` lies: an interval, or throughout."""
+    t = b.data.t
+    n = len(t)
+    fl = b.floor.per_sensor_nt
+    r = b.ev0.residual
+    e = sum(np.sum(r[j - 1] ** 2, axis=1) - 3.0 * fl[j - 1] ** 2 for j in sens)
+    nb = min(100, max(1, n // 10))
+    edges = np.linspace(0, n, nb + 1).round().astype(int)
+    blk = np.clip([e[a:c].sum() for a, c in zip(edges[:-1], edges[1:])], 0.0, None)
+    total = float(blk.sum())
+    if total <= 0 or nb < 4:
+        return 'throughout the record'
+    cum = np.concatenate([[0.0], np.cumsum(blk)])
+    span = float(t[-1] - t[0])
+    best = None
+    for i in range(nb):
+        k = int(np.searchsorted(cum, cum[i] + WHEN_SHARE * total - 1e-12 * total))
+        if k <= nb and (best is None or k - i < best[1] - best[0]):
+            best = (i, k)
+    if best is None:
+        return 'throughout the record'
+    t0, t1 = float(t[edges[best[0]]]), float(t[edges[best[1]] - 1])
+    if t1 - t0 > WHEN_SPAN * span:
+        return 'throughout the record'
+    return f'mostly within {t0:.6g}-{t1:.6g} s'
+
+
+def _stop_reason(reason, found):
+    """Return the verdict 'none' with what is left (the 'unexplained' finding) and the stop."""
+    left = None if found is None else next(
+        (f for f in found.items if f.kind == 'unexplained'), None)
+    if left is None:
+        return reason
+    return (f'{reason}. What is left: {left.text}. No term is offered: adding more would '
+            'fit the noise or the unknown effect no better held out (a plug-in effect can '
+            'describe it, docs/plugins.md)')
 
 
 def _who(sens, s):

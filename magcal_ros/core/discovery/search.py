@@ -17,9 +17,10 @@ Discovery as a search over the model formula (issue 18 item 3).
 
 Candidates are generated from what the record holds (:mod:`.bases`: smooths, polynomials,
 steps, windows and sinusoids in time; each channel linear, polynomial, lagged, cyclic when
-it wraps; products of two channels; the field rate) and combined with every coupling
-(``offset``, ``scale``, ``linear``, ``field``) on every scope the data point to (one sensor,
-a set of sensors, each, alike, the array), then
+it wraps; products of two channels; the field rate) and combined with every coupling of
+the grammar (``offset``, ``scale``, ``linear``, ``nonorth``, ``rotation``, ``field``; a
+per-axis driver offset and scale) on every scope (the sensors the driver explains, each
+alone and as a set; every sensor, each its own and alike; the array), then
 
 1. **pre-screened** by least squares of each sensor's base residual on the candidate's
    columns (a cheap lower bound of the score statistic; it ranks ~10^3 candidates in a few
@@ -75,6 +76,9 @@ SEARCH_MAX_EPOCHS = 4000
 #: most parameters of one candidate term (a smooth of 64 functions on each sensor's offset
 #: would add 756: the array's field or one sensor's offset carry such smooths)
 MAX_TERM_PARAMS = 200
+#: the pre-screen of an @alike term is its own joint least squares up to this many
+#: parameters (beyond, the sum over the sensors, an upper bound)
+ALIKE_EXACT_PARAMS = 60
 #: normalisation of the sensor's linear reading in scale/linear/field couplings, nT
 LIN_NT = 50000.0
 
@@ -160,19 +164,43 @@ def _proj_ss(x, y):
     return float(np.sum(xty * solve_psd(x.T @ x, xty)))
 
 
+#: for each coupling of the grammar (core/effects/couplings.py), the raw-space pattern of
+#: each of its parameters per driver column: ((axis of dB, axis of lin or None, sign), ...)
+#: (None: the driver itself, the offset); the first order of each coupling's contribution
+_PATTERNS = {
+    'offset': [((0, None, 1.0),), ((1, None, 1.0),), ((2, None, 1.0),)],
+    'scale': [((0, 0, 1.0),), ((1, 1, 1.0),), ((2, 2, 1.0),)],
+    # psi: dB_y = x lin_z; varphi: dB_x = x lin_y; theta: dB_x = x lin_z
+    'nonorth': [((1, 2, 1.0),), ((0, 1, 1.0),), ((0, 2, 1.0),)],
+    # alpha: (lin_y, -lin_x, 0); beta: (0, lin_z, -lin_y); gamma: (-lin_z, 0, lin_x)
+    'rotation': [((0, 1, 1.0), (1, 0, -1.0)), ((1, 2, 1.0), (2, 1, -1.0)),
+                 ((0, 2, -1.0), (2, 0, 1.0))],
+}
+
+
 def coupling_columns(coupling, x, lin, per_axis=False):
     """
     Raw-space columns (k, N, 3) of a coupling of driver columns x (N, m).
 
     offset: dB = X P (3 per column); scale: dB_i = (X P)_i lin_i; linear: dB = M(x) lin
-    (9 per column); field: dB = (X P) lin (the field along itself, m columns); a per-axis
-    driver (rate): dB_i = P_i X_i.  lin (N, 3): the sensor's reading / 50 000 nT.
+    (9 per column); nonorth: the angles (psi, varphi, theta) = X P, dB = dC lin; rotation:
+    the angles (alpha, beta, gamma) = X P, dB = W lin (3 per column each, the first order
+    of core/effects/couplings.py); field: dB = (X P) lin (the field along itself, m
+    columns); a per-axis driver (rate): dB_i = P_i X_i (offset) or P_i X_i lin_i (scale).
+    lin (N, 3): the sensor's reading / 50 000 nT.
     """
     n, m = x.shape
     if per_axis:
         out = np.zeros((3, n, 3))
         for a in range(3):
-            out[a, :, a] = x[:, a]
+            out[a, :, a] = x[:, a] * (lin[:, a] if coupling == 'scale' else 1.0)
+        return out
+    if coupling in ('nonorth', 'rotation'):
+        out = np.zeros((3 * m, n, 3))
+        for c in range(m):
+            for q, pattern in enumerate(_PATTERNS[coupling]):
+                for axis, src, sign in pattern:
+                    out[3 * c + q, :, axis] += sign * x[:, c] * lin[:, src]
         return out
     if coupling == 'offset':
         out = np.zeros((3 * m, n, 3))
@@ -202,7 +230,8 @@ def n_params(coupling, m, per_axis=False):
     """Parameters of a coupling of m driver columns, per sensor (field: in all)."""
     if per_axis:
         return 3
-    return {'offset': 3 * m, 'scale': 3 * m, 'linear': 9 * m, 'field': m}[coupling]
+    return {'offset': 3 * m, 'scale': 3 * m, 'linear': 9 * m, 'nonorth': 3 * m,
+            'rotation': 3 * m, 'field': m}[coupling]
 
 
 class BlockSums:
@@ -307,14 +336,21 @@ class BlockSums:
         for j, idx, c in cols:
             gi = self.sensors.index(j)
             cj = c / self.sigma[j - 1]
-            flat = cj.reshape(len(idx), 3 * n)
             js, r = g['js'][gi], g['r'][gi]
-            for b, (e0, e1) in enumerate(zip(self.edges[:-1], self.edges[1:])):
-                rows = slice(3 * e0, 3 * e1)
-                fb = flat[:, rows]
-                bb[b][:, idx] += js[rows].T @ fb.T
-                dd[b][np.ix_(idx, idx)] += fb @ fb.T
-                gc[b][idx] += fb @ r[rows]
+            # axis by axis, each with the parameters whose columns touch it (an offset,
+            # scale or linear parameter moves one axis, an angle two): the same sums, a
+            # fraction of the products
+            for a in range(3):
+                on = np.flatnonzero(np.any(cj[:, :, a] != 0.0, axis=1))
+                if not len(on):
+                    continue
+                ia, ca = idx[on], cj[on, :, a]
+                for b, (e0, e1) in enumerate(zip(self.edges[:-1], self.edges[1:])):
+                    rows = slice(3 * e0 + a, 3 * e1, 3)
+                    fb = ca[:, e0:e1]
+                    bb[b][:, ia] += js[rows].T @ fb.T
+                    dd[b][np.ix_(ia, ia)] += fb @ fb.T
+                    gc[b][ia] += fb @ r[rows]
             gbj = g['gb'][gi]
             for a in range(2):
                 gtc[a, idx] += (cj[:, :, 0] * gbj[0][a] + cj[:, :, 1] * gbj[1][a]
@@ -391,17 +427,30 @@ def generate(data, steps=(), windows=(), lines=()):
     return drivers
 
 
+#: every coupling of the grammar (docs/formulas.md), tried with every driver
+COUPLINGS = ('offset', 'scale', 'linear', 'nonorth', 'rotation', 'field')
+
+
+#: the linear coupling (9 parameters per driver column and sensor) is tried with drivers
+#: of at most this many columns (a channel, its polynomials, a sinusoid, steps): all nine
+#: entries of the map following a smooth of 8-20 functions (72-180 parameters a sensor)
+#: describe nothing physical that scale, nonorth and rotation with it do not, and cost
+#: most of the search's exact score (bench/discovery_speed.py)
+LINEAR_MAX_COLUMNS = 3
+
+
 def couplings_of(driver):
-    """Couplings tried with a driver."""
+    """
+    Couplings tried with a driver: every one of the grammar (issue 32 item 4).
+
+    A per-axis driver (the field rate) acts axis by axis: offset and scale only, as the
+    grammar allows; ``linear`` with drivers of at most :data:`LINEAR_MAX_COLUMNS` columns.
+    """
     if driver.per_axis:
-        return ('offset',)
-    if driver.kind == 'time':
-        return ('offset', 'scale', 'field')
-    if driver.kind == 'channel':
-        if driver.text == driver.channel:
-            return ('offset', 'scale', 'linear')
         return ('offset', 'scale')
-    return ('offset',)
+    if driver.x(1).shape[1] > LINEAR_MAX_COLUMNS:
+        return tuple(c for c in COUPLINGS if c != 'linear')
+    return COUPLINGS
 
 
 def prescreen(data, resid, sigma, drivers, n_obs, n_eval=PRESCREEN_EPOCHS):
@@ -421,9 +470,16 @@ def prescreen(data, resid, sigma, drivers, n_obs, n_eval=PRESCREEN_EPOCHS):
     out = []
     for drv in drivers:
         xs = {j: drv.x(j)[keep] for j in range(1, s + 1)}
-        for cp in couplings_of(drv):
+        # 'linear' first: scale, nonorth and rotation are within its span (their chi-square
+        # decrease on a sensor is at most its), so when no sensor could pass the scope rule
+        # with linear's decrease they are not formed at all
+        lin_top = None
+        for cp in sorted(couplings_of(drv), key=lambda c: c != 'linear'):
             m = xs[1].shape[1]
             k = n_params(cp, m, drv.per_axis)
+            if (lin_top is not None and cp in ('scale', 'nonorth', 'rotation')
+                    and lin_top - k * log_n <= -MIN_DELTA_BIC):
+                continue
             if cp == 'field':
                 z = np.concatenate([coupling_columns('field', xs[j], lin[j - 1])
                                     .reshape(m, -1).T for j in range(1, s + 1)])
@@ -437,8 +493,13 @@ def prescreen(data, resid, sigma, drivers, n_obs, n_eval=PRESCREEN_EPOCHS):
             for j in range(1, s + 1):
                 x, yy, ll = xs[j], y[j - 1], lin[j - 1]
                 if drv.per_axis:
-                    ss = sum(float(x[:, a] @ yy[:, a]) ** 2 / max(float(x[:, a] @ x[:, a]),
-                                                                  1e-300) for a in range(3))
+                    xa = x * ll if cp == 'scale' else x
+                    ss = sum(float(xa[:, a] @ yy[:, a]) ** 2 / max(float(xa[:, a] @ xa[:, a]),
+                                                                   1e-300) for a in range(3))
+                elif cp in ('nonorth', 'rotation'):
+                    # the angles couple the axes: one joint least squares of the 3 N values
+                    z = coupling_columns(cp, x, ll).reshape(k, -1).T
+                    ss = _proj_ss(z, yy.ravel())
                 elif cp == 'offset':
                     ss = _proj_ss(x, yy)
                 elif cp == 'scale':
@@ -448,6 +509,8 @@ def prescreen(data, resid, sigma, drivers, n_obs, n_eval=PRESCREEN_EPOCHS):
                                                      axis=1), yy[:, a]) for a in range(3))
                 per[j] = ss * scale_n
             top = max(per.values())
+            if cp == 'linear' and not drv.per_axis:
+                lin_top = top
             sig = [j for j in range(1, s + 1) if per[j] - k * log_n > -MIN_DELTA_BIC
                    and per[j] >= SCOPE_SHARE * top]
             for j in sig:
@@ -455,9 +518,21 @@ def prescreen(data, resid, sigma, drivers, n_obs, n_eval=PRESCREEN_EPOCHS):
             if len(sig) >= 2 and k * len(sig) <= MAX_TERM_PARAMS:
                 out.append(Term(cp, drv, tuple(sig), k=k * len(sig),
                                 approx=sum(per[j] for j in sig)))
-            if len(sig) == s and s > 1:
-                out.append(Term(cp, drv, tuple(sig), alike=True, k=k,
-                                approx=sum(per[j] for j in sig)))
+            if s > 1 and len(sig) >= 2:
+                # every sensor, each its own parameters, and alike (one parameter set in each
+                # sensor's axes: one joint least squares over the sensors), when the driver
+                # explains more than one sensor
+                every = tuple(range(1, s + 1))
+                if len(sig) < s and k * s <= MAX_TERM_PARAMS:
+                    out.append(Term(cp, drv, every, k=k * s, approx=sum(per.values())))
+                if k <= ALIKE_EXACT_PARAMS:
+                    z = np.concatenate([coupling_columns(cp, xs[j], lin[j - 1], drv.per_axis)
+                                        .reshape(k, -1).T for j in every])
+                    yy = np.concatenate([y[j - 1].ravel() for j in every])
+                    approx = _proj_ss(z, yy) * scale_n
+                else:
+                    approx = sum(per.values())      # an upper bound; the score is exact
+                out.append(Term(cp, drv, every, alike=True, k=k, approx=approx))
     out.sort(key=lambda c: -(c.approx - c.k * log_n))
     return out
 

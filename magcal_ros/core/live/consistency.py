@@ -64,6 +64,10 @@ MIN_SPREAD = 0.1
 DROP = np.iinfo(np.int64).max // 4
 #: windowed misfit, in units of the noise alone, beyond which a set counts as inconsistent
 INCONSISTENT_FACTOR = 100.0
+#: the longer search that tells an inconsistent set paired from epochs further apart (some
+#: pairing within this many epochs fits it) from a property of the sensor (none does: a
+#: missing effect, a site gradient), epochs
+LONG_MAX_LAG = 50
 
 
 @dataclass(frozen=True)
@@ -87,7 +91,12 @@ class Slips:
         (S,) per-axis noise of each sensor estimated from its own series, nT.
     inconsistent : numpy.ndarray
         (S,) sets that no lag within ``max_lag`` brings within 10x the noise (a longer slip,
-        a spike, or a large effect of the sensor itself); kept, only counted.
+        a spike, or a large effect of the sensor itself); counted, and dropped by
+        :func:`resync` with ``drop_inconsistent``.
+    inconsistent_sets : numpy.ndarray or None
+        (S, N) bool, which sets those are (row 0 all False).
+    dropped_inconsistent : int
+        Sets :func:`resync` dropped as inconsistent (``drop_inconsistent``).
 
     """
 
@@ -96,6 +105,8 @@ class Slips:
     rms_as_paired_nt: np.ndarray
     noise_nt: np.ndarray
     inconsistent: np.ndarray
+    inconsistent_sets: np.ndarray | None = None
+    dropped_inconsistent: int = 0
 
     @property
     def n_slipped(self):
@@ -242,6 +253,7 @@ def find_slips(raw, epochs=None, max_lag=DEFAULT_MAX_LAG, window=DEFAULT_WINDOW,
         raise ValueError('need max_lag >= 0, window >= 1, min_contrast > 1, noise_factor > 0')
     lags = np.zeros((s, n), int)
     rms, rms0, inconsistent = np.zeros(s), np.zeros(s), np.zeros(s, int)
+    bad = np.zeros((s, n), bool)
     if s < 2 or n < max(4 * window, 8 * (2 * max_lag + 1)):
         return Slips(lags, rms, rms0, np.zeros(s), inconsistent)
     run = _runs(n, epochs)
@@ -368,13 +380,13 @@ def find_slips(raw, epochs=None, max_lag=DEFAULT_MAX_LAG, window=DEFAULT_WINDOW,
             kept[:] = True
         lags[j] = lag
         at = np.where(lag == DROP, 0, lag) + k0
-        inconsistent[j] = int(np.count_nonzero(
-            kept & np.isfinite(cost[at, cols])
-            & (windowed[at, cols] > INCONSISTENT_FACTOR * noise_cost)))
-    return Slips(lags, rms, rms0, noise, inconsistent)
+        bad[j] = (kept & np.isfinite(cost[at, cols])
+                  & (windowed[at, cols] > INCONSISTENT_FACTOR * noise_cost))
+        inconsistent[j] = int(np.count_nonzero(bad[j]))
+    return Slips(lags, rms, rms0, noise, inconsistent, bad)
 
 
-def resync(data, epochs=None, slips=None, **kwargs):
+def resync(data, epochs=None, slips=None, drop_inconsistent=False, **kwargs):
     """
     Drop garbled samples and re-pair the sets whose sensors came from different epochs.
 
@@ -389,6 +401,12 @@ def resync(data, epochs=None, slips=None, **kwargs):
         A result of :func:`find_slips` on ``data`` as it is (then no set is dropped as a
         gross outlier first).  Default: sets with a :func:`gross_outliers` sample are
         dropped, then :func:`find_slips` (with ``**kwargs``) runs on the rest.
+    drop_inconsistent : bool
+        Also drop the sets :func:`find_slips` counts inconsistent that a longer search (to
+        :data:`LONG_MAX_LAG` epochs) finds paired from epochs further apart (a longer slip,
+        a reader that lost pace); their number is the returned slips'
+        ``dropped_inconsistent``.  Sets no pairing fits (an effect of the sensor itself, a
+        site gradient) are kept: the fit's residual and diagnose describe them.
 
     Returns
     -------
@@ -408,7 +426,20 @@ def resync(data, epochs=None, slips=None, **kwargs):
             data = data.subset(keep)
             epochs = None if epochs is None else np.asarray(epochs)[keep]
         slips = find_slips(data.raw, epochs, **kwargs)
+    bad = None
+    if drop_inconsistent and slips.inconsistent_sets is not None and \
+            slips.inconsistent_sets.any():
+        bad = slips.inconsistent_sets.any(axis=0)
+        longer = find_slips(data.raw, epochs, max_lag=LONG_MAX_LAG)
+        if longer.inconsistent_sets is None:
+            bad = None          # too short a record for the longer search: none is known
+        else:
+            # mis-paired: at the pairing the longer search chose, it is consistent
+            bad &= ~longer.inconsistent_sets.any(axis=0)
     if not (slips.n_slipped.any() or slips.n_drop.any()):
+        if bad is not None and bad.any():
+            return (data.subset(np.flatnonzero(~bad)),
+                    replace(slips, dropped_inconsistent=int(bad.sum())), 0, n_gross)
         return data, slips, 0, n_gross
     s, n = data.raw.shape[:2]
     raw = data.raw.copy()
@@ -431,4 +462,8 @@ def resync(data, epochs=None, slips=None, **kwargs):
         if temp is not None:
             temp[j, ok] = data.temp[j, src[ok]]
     out = replace(data, raw=raw, temp=temp)
-    return out.subset(np.flatnonzero(keep)), slips, int(n - keep.sum()), n_gross
+    n_repair = int(n - keep.sum())
+    if bad is not None and bad.any():
+        slips = replace(slips, dropped_inconsistent=int((bad & keep).sum()))
+        keep &= ~bad
+    return out.subset(np.flatnonzero(keep)), slips, n_repair, n_gross

@@ -29,7 +29,7 @@ Kinds used by the library:
 ``degenerate``      the data do not determine the model (flagged instead of refused);
 ``outliers``        sets excluded as garbage, or too many to be garbage;
 ``input``           the input looks wrong (units, ...);
-``readings``        readings no field produces (a pinned, clipped or repeating channel),
+``readings``        readings no field produces (a pinned, clipped or repeating channel, spikes),
                     left out of the fit (:mod:`magcal_ros.core.data.readings`);
 ``mounting``        a sensor's axes mirrored, exchanged or turned, recorded as ``axes(...)``
                     (:mod:`magcal_ros.core.model.plausibility`);

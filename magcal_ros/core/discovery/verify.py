@@ -1,0 +1,348 @@
+# Copyright 2026 The magcal_ros authors
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Every term the diagnosis offers is fitted first, as ``magcal fit`` would fit it (issue 32).
+
+The screen, the refits and the formula search judge a term by a linearised problem or by a
+refit that skips the identifiability check; the user then runs ``magcal fit --model
+MODEL,TERM``, which checks identifiability, fits from paper 004's closed form and may
+refuse ("excite them differently, drop one of the effects, or use the constrained mode")
+or land elsewhere.  :func:`verify_term` runs that fit (:func:`magcal_ros.core.model.fit`
+with its defaults: identifiability checked, degenerate data refused, the diagnosis' robust
+and constrained settings; warm-started from the diagnosed fit, which changes where the
+solver starts, not the problem it solves) and the held-out test of the diagnosis
+(:func:`.validation.cross_validate`, the folds of the base model's held-out RMS).  A term
+is offered only when the fit accepts it, converges and removes at least
+:data:`~.constants.MIN_EXPLAINED` of the held-out excess over the floor (so its held-out
+RMS is lower than the model's); otherwise the reason is kept and shown among the
+candidates.  A ``drop(t0, t1)`` is judged by the held-out RMS on the epochs it keeps,
+against the model's on all of them (what the calibration is then built on).
+"""
+from dataclasses import dataclass
+
+from magcal_ros.core.discovery.candidates import extend_model
+from magcal_ros.core.discovery.constants import MIN_DELTA_BIC, MIN_EXPLAINED
+from magcal_ros.core.discovery.measures import dof_factor, evaluate_residuals, explained_share
+from magcal_ros.core.discovery.validation import cross_validate
+from magcal_ros.core.model.fitting import fit
+import numpy as np
+
+#: at most this many terms are fitted to find one the verdict can offer
+MAX_VERDICT_TRIES = 3
+#: at most this many tokens of the findings are fitted (the rest lose their token)
+MAX_FINDING_TRIES = 3
+
+
+@dataclass(frozen=True)
+class Verified:
+    """
+    A term fitted with the diagnosed model as ``magcal fit`` fits it.
+
+    Attributes
+    ----------
+    token : str
+        The term.
+    ok : bool
+        The fit accepts it, converges, and it removes at least MIN_EXPLAINED of the
+        held-out excess over the floor.
+    reason : str
+        Why not (empty when ``ok``), or the figures when it is.
+    rms_before_nt, rms_after_nt : float or None
+        Combined held-out RMS (in-sample without a held-out test) of the model and of the
+        model with the term, nT.
+    share : float or None
+        Share of the excess over the floor the term removes (held out when possible).
+
+    """
+
+    token: str
+    ok: bool
+    reason: str
+    rms_before_nt: float | None = None
+    rms_after_nt: float | None = None
+    share: float | None = None
+
+
+def verify_term(b, token, cv0, folds, cv_method='newton', on_degenerate='raise',
+                replaces=(), start=None):
+    """
+    Fit ``token`` with the diagnosed model and test it held out (module docstring).
+
+    Parameters
+    ----------
+    b : run._Base
+        The diagnosed fit on the tested epochs (data, reference, noise levels, floor).
+    token : str
+        The term, in the formula syntax the user adds to ``--model``.
+    cv0 : dict or None
+        :func:`cross_validate` of the diagnosed model (None: no held-out test; the
+        in-sample residuals decide).
+    folds : int
+        Folds of the held-out test.
+    cv_method : str
+        As :func:`cross_validate`.
+    on_degenerate : str
+        As :func:`magcal_ros.core.model.fit` (the user's ``--flag-degenerate``).
+    replaces : sequence of str
+        Terms of the model ``token`` takes the place of (a finding's ``replaces``): the
+        model fitted is the diagnosed one without them, plus ``token``, from the closed
+        form as the user's fit starts.
+    start : sequence of float, optional
+        Values of the parameters the term adds (a candidate's refit), to start from.
+
+    Returns
+    -------
+    Verified
+
+    """
+    try:
+        if replaces:
+            from magcal_ros.core.model import Model
+            m_ext = Model.from_spec([t for t in b.model.spec() if t not in set(replaces)]
+                                    + [token], b.model.n_sensors)
+            m_ext.prepare(b.contexts)
+            p_ext = None
+        else:
+            m_ext, p_ext, added = extend_model(b.model, b.params, token, b.contexts)
+            if start is not None and len(start) == int(added.sum()):
+                p_ext[added] = start
+    except ValueError as exc:
+        return Verified(token, False, f'the model does not take it: {_first_line(exc)}')
+    kw = {'f_scale': b.f_scale} if b.robust else {}
+    try:
+        r = fit(b.data, m_ext, field_nt=b.f, init=p_ext, robust=b.robust,
+                constrained=b.constrained, on_degenerate=on_degenerate, **kw)
+    except ValueError as exc:
+        return Verified(token, False, f'magcal fit refuses it: {_first_line(exc)}')
+    except np.linalg.LinAlgError as exc:
+        return Verified(token, False, f'the fit fails: {exc}')
+    if not r.success:
+        return Verified(token, False, f'the fit does not converge ({r.message})')
+    floor = b.floor.value_nt
+    # a drop() leaves epochs out: the model with it is judged on the epochs it keeps
+    data, f, contexts = b.data, b.f, b.contexts
+    if getattr(m_ext, 'drops', ()):
+        keep = np.flatnonzero(m_ext.fit_mask(b.data.t))
+        data, f = b.data.subset(keep), b.f[keep]
+        contexts = [data.context(j) for j in range(1, data.n_sensors + 1)]
+        m_ext.prepare(contexts)
+    if cv0 is not None:
+        before = float(cv0['rms_nt'])
+        try:
+            cv1 = cross_validate(data, m_ext, r.params, f, b.sigma, folds,
+                                 method=cv_method, constrained=b.constrained)
+        except (ValueError, np.linalg.LinAlgError) as exc:
+            return Verified(token, False, f'its held-out test fails: {exc}')
+        after = float(cv1['rms_nt'])
+        how = 'held-out'
+    else:
+        before = float(np.sqrt(b.ms0))
+        ev = evaluate_residuals(m_ext, r.params, data, f, b.sigma, contexts)
+        after = float(np.sqrt(dof_factor(m_ext) * np.mean(ev.residual ** 2)))
+        how = 'in-sample'
+    if not np.isfinite(after):
+        return Verified(token, False, f'its {how} residual is not finite', before, after)
+    share = explained_share(before ** 2, after ** 2, floor)
+    figures = f'{how} RMS {before:.3g} -> {after:.3g} nT'
+    if after >= before:
+        return Verified(token, False, f'fitted as magcal fit fits it, it raises the {figures}',
+                        before, after, share)
+    if share < MIN_EXPLAINED:
+        return Verified(token, False, f'fitted as magcal fit fits it, it removes only '
+                        f'{share:.0%} of the excess over the floor ({figures})',
+                        before, after, share)
+    return Verified(token, True, f'fitted as magcal fit fits it: {figures}', before, after,
+                    share)
+
+
+def _first_line(exc):
+    """Return the first line of an exception's message."""
+    return str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+
+
+def tested_verdict(b, verdict, reason, ranked, cv0, folds, cv_method='newton',
+                   on_degenerate='raise', cache=None, p_thr=0.0):
+    """
+    Keep a verdict only when its term passes :func:`verify_term`; else try the next ones.
+
+    Parameters
+    ----------
+    b : run._Base
+        The diagnosed fit.
+    verdict : str or None
+        The verdict's token.
+    reason : str
+        The verdict's reason.
+    ranked : list of Candidate
+        The candidates, best first.
+    cv0 : dict or None
+        :func:`cross_validate` of the diagnosed model.
+    folds : int
+        Folds of the held-out test.
+    cv_method, on_degenerate : str
+        As :func:`verify_term`.
+    cache : dict, optional
+        {token: Verified}, filled here.
+    p_thr : float
+        The Bonferroni threshold of the likelihood-ratio test: a candidate that passes it
+        and the BIC rule may replace a verdict that fails (its held-out share is then
+        :func:`verify_term`'s).
+
+    Returns
+    -------
+    (str or None, str, list, list)
+        The verdict (the first of the verdict and the next candidates that pass the
+        likelihood tests, best evidence first, at most :data:`MAX_VERDICT_TRIES`, that
+        passes :func:`verify_term`; None when none does), its reason, the candidates (a
+        term that failed loses ``significant`` and says why in ``note``) and the Verified
+        of every term tried.
+
+    """
+    from dataclasses import replace
+    cache = {} if cache is None else cache
+    if verdict is None:
+        return verdict, reason, ranked, []
+    order = [verdict] + [c.token for c in ranked if c.token != verdict and (
+        c.significant or (c.p_value < p_thr and c.delta_bic < MIN_DELTA_BIC))]
+    by_token = {c.token: c for c in ranked}
+    tried, chosen = [], None
+    for tok in order[:MAX_VERDICT_TRIES]:
+        if tok not in cache:
+            cand = by_token.get(tok)
+            start = ([q['value'] for q in cand.params] if cand is not None and cand.params
+                     else None)
+            cache[tok] = verify_term(b, tok, cv0, folds, cv_method, on_degenerate,
+                                     start=start)
+        tried.append(cache[tok])
+        if cache[tok].ok:
+            chosen = cache[tok]
+            break
+    failed = {v.token: v for v in tried if not v.ok}
+    out = []
+    for c in ranked:
+        if c.token in failed:
+            c = replace(c, significant=False, note=failed[c.token].reason)
+        out.append(c)
+    if chosen is not None:
+        split = _each_variant(b, chosen, cv0, folds, cv_method, on_degenerate, cache)
+        if split is not None:
+            v = split[0]
+            tried.append(v)
+            base = next(c for c in out if c.token == chosen.token)
+            first = replace(base, token=v.token, effect=v.token.split('(')[0], sensor=None,
+                            params=(), significant=True, explained_fraction=v.share,
+                            cv_rms_before_nt=v.rms_before_nt, cv_rms_after_nt=v.rms_after_nt,
+                            rms_after_nt=None, vector_rms_after_nt=None, method='refit',
+                            decided_by='held-out' if cv0 is not None else 'in-sample',
+                            note=None)
+            return v.token, f'{reason}; {split[1]}', [first] + out, tried
+    if chosen is None:
+        why = '; '.join(f'{v.token}: {v.reason}' for v in tried)
+        return None, (f'no term passes when fitted with the model as magcal fit fits it '
+                      f'({why})'), out, tried
+    if chosen.token == verdict:
+        return verdict, f'{reason}; {chosen.reason}', out, tried
+    # the verdict's candidate first, significant now (its held-out share: verify_term's)
+    out = [replace(c, significant=True, explained_fraction=chosen.share,
+                   cv_rms_before_nt=chosen.rms_before_nt, cv_rms_after_nt=chosen.rms_after_nt)
+           if c.token == chosen.token else c for c in out]
+    out.sort(key=lambda c: c.token != chosen.token)
+    first = failed[verdict].reason
+    return chosen.token, (f'{verdict} is not offered ({first}); the next best, '
+                          f'{chosen.token}, {chosen.reason}'), out, tried
+
+
+def tested_findings(b, found, cv0, folds, cv_method='newton', on_degenerate='raise',
+                    cache=None):
+    """
+    Keep a finding's token only when it passes :func:`verify_term` (module docstring).
+
+    At most :data:`MAX_FINDING_TRIES` tokens not fitted yet are fitted (largest effect
+    first); a finding whose token fails, or is not fitted, keeps its text with why it is
+    not offered, and its token is None.  Returns the findings (``found`` itself when no
+    finding has a token).
+    """
+    from dataclasses import replace
+    cache = {} if cache is None else cache
+    if found is None or not any(f.token for f in found.items):
+        return found
+    budget = MAX_FINDING_TRIES
+    for f in sorted((f for f in found.items if f.token),
+                    key=lambda f: -(f.explained_fraction or 0.0)):
+        if f.token in cache or budget <= 0:
+            continue
+        cache[f.token] = verify_term(b, f.token, cv0, folds, cv_method, on_degenerate,
+                                     replaces=tuple(getattr(f, 'replaces', ()) or ()))
+        budget -= 1
+    items = []
+    for f in found.items:
+        if f.token:
+            v = cache.get(f.token)
+            if v is None:
+                text = f.text.replace(f' (try {f.token})', '')
+                f = replace(f, token=None, text=f'{text} ({f.token} is not offered: not '
+                            f'fitted, the diagnosis fits at most {MAX_FINDING_TRIES} terms '
+                            'of the findings)')
+            elif not v.ok:
+                text = f.text.replace(f' (try {f.token})', '')
+                f = replace(f, token=None, text=f'{text} ({f.token} is not offered: {v.reason})')
+        items.append(f)
+    return replace(found, items=tuple(items))
+
+
+#: a term tying the sensors together (``@alike``, ``field``) is replaced by its variant with
+#: each sensor's own parameters when that removes this much more of the held-out excess
+SPLIT_SHARE = 0.1
+
+
+def each_variant(token):
+    """
+    Return the term with each sensor's own parameters for a term that ties them, or None.
+
+    ``coupling(driver)@alike`` -> ``coupling(driver)`` (each sensor its own parameters, in
+    its own axes); ``field(driver)`` (the field magnitude, one for the array, seen along the
+    field by every sensor) -> ``scale(driver)`` (each sensor's scale factors follow the
+    driver: the same change seen through each sensor's own axes and gains).
+    """
+    t = token.replace(' ', '')
+    if t.endswith('@alike') and '+' not in t:
+        return token[:token.rindex('@')].rstrip()
+    if t.startswith('field(') and t.endswith(')') and '@' not in t and '+' not in t:
+        return 'scale(' + token.strip()[len('field('):]
+    return None
+
+
+def _each_variant(b, chosen, cv0, folds, cv_method, on_degenerate, cache):
+    """
+    Check that the sensors follow a term that ties them (``@alike``, ``field``) alike.
+
+    The measurable test (docs/formulas.md): the same driver with each sensor's own
+    parameters (:func:`each_variant`) is fitted as :func:`verify_term` fits any term; if it
+    passes and removes :data:`SPLIT_SHARE` more of the held-out excess over the floor, the
+    sensors do not see the driver alike (their axes or gains differ in how they take it:
+    a misalignment the shared term would hide), and the variant is offered instead.
+    Returns (Verified of the variant, the reason's words) or None.
+    """
+    alt = each_variant(chosen.token)
+    if alt is None or chosen.share is None:
+        return None
+    if alt not in cache:
+        cache[alt] = verify_term(b, alt, cv0, folds, cv_method, on_degenerate)
+    v = cache[alt]
+    if not v.ok or v.share is None or v.share < chosen.share + SPLIT_SHARE:
+        return None
+    return v, (f"the sensors do not follow {chosen.token} alike: with each sensor's own "
+               f'parameters, {alt} removes {v.share:.0%} of the held-out excess against '
+               f'{chosen.share:.0%} ({v.reason}); {alt} is offered instead')
