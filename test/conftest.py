@@ -213,7 +213,9 @@ def pytest_configure(config):
 SLOWEST_FIRST = (
     'test_demo_loop.py', 'test_workbench_loop.py', 'test_discovery_cases.py',
     'test_bench_smoke.py', 'test_ros_user.py', 'test_reliability_persistence.py',
-    'test_geometry_e2e.py', 'test_findings.py', 'test_calibration_node.py',
+    'test_geometry_e2e.py', 'test_findings.py', 'test_attitude_aided.py',
+    'test_learning.py', 'test_user_loop.py', 'test_demo_learn.py', 'test_magfit_compare.py',
+    'test_calibration_node.py',
     'test_diagnose.py', 'test_planar_node.py', 'test_readme_commands.py',
     'test_diagnose_screen.py', 'test_long_records.py', 'test_import_boundaries.py',
     'test_live_pairing.py', 'test_reliability_driver.py', 'test_real_sunsided.py',
