@@ -33,7 +33,7 @@ status 0 on success, 2 on bad input, 1 on other failures (handled by :func:`magc
 import sys
 
 from magcal_ros.core.effects import load_plugins
-from magcal_ros.pipeline import attitude_lines, attitude_summary
+from magcal_ros.pipeline import attitude_lines, diagnosis_base
 from magcal_ros.progress import Progress, wanted
 
 EXIT_OK = 0
@@ -86,7 +86,7 @@ def _validate(args, cli):
 
 def _run(args, cli, with_ladder):
     from magcal_ros.core.discovery import diagnose, ladder
-    from magcal_ros.core.model import fit, Model
+    from magcal_ros.core.model import Model
     _validate(args, cli)
     load_plugins(args.plugin)
     prog = Progress(wanted(args.quiet, getattr(args, 'json', False)))
@@ -100,21 +100,13 @@ def _run(args, cli, with_ladder):
     from magcal_ros.core.data.readings import leave_out_unphysical
     data, field_nt, screen = leave_out_unphysical(data, field_nt)
     prog('fit', 0, 1, ','.join(model.spec()))
-    mode = cli.attitude_option(args, data)
-    constrained = args.constrained
-    if mode is not None:
-        # the attitude observes the field (core/model/attitude_fit.py): its priors hold what
-        # the motion leaves open, in every fit of the diagnosis
-        from magcal_ros.core.model.attitude_fit import fit_attitude
-        aided = fit_attitude(data, model, field_nt=field_nt, mode=mode, robust=args.robust,
-                             inclination_deg=fref.get('inclination_deg'),
-                             on_degenerate='flag')
-        base, constrained = aided.result, True
-        fref = dict(fref, attitude=attitude_summary(aided, data))
-    else:
-        base = fit(data, model, field_nt=field_nt, robust=args.robust,
-                   constrained=constrained,
-                   on_degenerate='flag' if args.flag_degenerate else 'raise')
+    base, constrained, aided = diagnosis_base(
+        data, model, field_nt, attitude=cli.attitude_option(args, data) or 'off',
+        inclination_deg=fref.get('inclination_deg'), robust=args.robust,
+        constrained=args.constrained,
+        on_degenerate='flag' if args.flag_degenerate else 'raise')
+    if aided is not None:
+        fref = dict(fref, attitude=aided)
     prog('fit', 1, 1)
     diag = diagnose(data, field_nt=field_nt, base=base, folds=args.folds, alpha=args.alpha,
                     progress=prog, baseline_m=args.baseline_m, constrained=constrained)

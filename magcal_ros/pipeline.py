@@ -517,6 +517,27 @@ def attitude_mode(option, data):
     return 'tilt' if option == 'auto' else option
 
 
+def diagnosis_base(data, model, field_nt, attitude=None, inclination_deg=None, robust=False,
+                   constrained=False, on_degenerate='raise'):
+    """
+    Return (base fit, constrained, attitude summary or None): the fit a diagnosis starts from.
+
+    With an attitude in ``data`` (``attitude`` as :func:`attitude_mode` reads it) the
+    attitude-aided fit (:func:`magcal_ros.core.model.attitude_fit.fit_attitude`), whose
+    priors then hold what the motion leaves open in every fit of the diagnosis
+    (``constrained`` True); else the plain fit.  One choice for ``magcal diagnose``/``report``
+    and the calibration node's ``calibration/diagnose``.
+    """
+    mode = attitude_mode(attitude, data)
+    if mode is None:
+        return (fit(data, model, field_nt=field_nt, robust=robust, constrained=constrained,
+                    on_degenerate=on_degenerate), constrained, None)
+    from magcal_ros.core.model.attitude_fit import fit_attitude
+    aided = fit_attitude(data, model, field_nt=field_nt, mode=mode, robust=robust,
+                         inclination_deg=inclination_deg, on_degenerate='flag')
+    return aided.result, True, attitude_summary(aided, data)
+
+
 def attitude_summary(aided, data):
     """JSON-ready account of an attitude-aided fit (deg, nT as named)."""
     return {'mode': aided.mode,

@@ -92,6 +92,11 @@ def test_attitude_aided_calibration_on_the_node(make_node, ros_node, ros_executo
     assert payload['scalar_rms_after_nt']['1'] < 3.0 * 1.15
     # ENU: the fitted inclination is that of -z, -65 deg
     assert abs(payload['attitude']['world_field']['inclination_deg'] + 65.0) < 1.0
+    # calibration/diagnose starts from the same attitude-aided fit, and finds nothing missing
+    resp = call_trigger(ros_node, ros_executor, 'calibration/diagnose', timeout_sec=120.0)
+    summary, diag = split_response(resp)
+    assert resp.success, summary
+    assert diag['attitude']['mode'] == 'tilt' and diag['verdict']['effect'] == 'none', diag
 
 
 def test_without_the_attitude_the_cone_is_refused(make_node, ros_node, ros_executor,

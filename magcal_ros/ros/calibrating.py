@@ -35,7 +35,8 @@ from magcal_ros.core.live.consistency import (DEFAULT_MAX_LAG, GROSS_FRACTION, L
 from magcal_ros.core.model import DegenerateDataError, Model
 from magcal_ros.core.model.notes import format_note
 from magcal_ros.io.calfile import CalibrationFileError, dump_calibration, save_calibration
-from magcal_ros.pipeline import (CalibrationRequest, run_request as run_calibration,
+from magcal_ros.pipeline import (CalibrationRequest, diagnosis_base,
+                                 run_request as run_calibration,
                                  summary_lines, tensor_figures)
 from magcal_ros.ros import params as prm
 from magcal_ros.ros.collection import silent_sensors
@@ -245,7 +246,11 @@ class CalibrationMixin:
                                                        **extra}
         field_nt = s.field_nt
         try:
-            diag = diagnose(data, model, field_nt=field_nt, constrained=s.constrained,
+            # with imu_topic the attitude-aided fit, as calibrate makes it (pipeline)
+            base, constrained, aided = diagnosis_base(data, model, field_nt,
+                                                      attitude=s.attitude_mode,
+                                                      constrained=s.constrained)
+            diag = diagnose(data, model, field_nt=field_nt, base=base, constrained=constrained,
                             baseline_m=s.baseline_m)
         except ValueError as exc:
             reason, extra = self._named(exc, 'diagnose')
@@ -256,6 +261,8 @@ class CalibrationMixin:
         ranking['report'] = os.fspath(report)
         ranking['resync'] = resync_payload
         ranking['readings_left_out'] = screen.to_dict()
+        if aided is not None:
+            ranking['attitude'] = aided
         verdict = ranking.get('verdict') or {}
         if verdict.get('effect', 'none') == 'none':
             head = (f'nothing missing: model {",".join(ranking["model"])} explains the data '
