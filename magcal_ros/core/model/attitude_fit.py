@@ -39,8 +39,8 @@ Units: nT, rad; degrees where a name says so.
 """
 from dataclasses import dataclass
 
-from magcal_ros.core.effects.attitude_ref import (attitude_reference, MODES,
-                                                  MOUNT_PRIOR_SD_RAD)
+from magcal_ros.core.effects.attitude_ref import (attitude_reference, AttitudeReference,
+                                                  MODES, MOUNT_PRIOR_SD_RAD)
 from magcal_ros.core.model.fitting import fit, initial_params, priors_for
 from magcal_ros.core.model.planar import inflate_for_correlation, SENSOR_MAP_KINDS
 from magcal_ros.core.model.spec import Model
@@ -103,14 +103,8 @@ def with_attitude(model, mode, n_sensors=None):
         raise ValueError(f"attitude mode must be one of {', '.join(MODES)}, got {mode!r}")
     if isinstance(model, str):
         model = Model.from_spec(model, n_sensors)
-    keep = [e for e in model.array_effects if attitude_reference_of(e) is None]
+    keep = [e for e in model.array_effects if not isinstance(e, AttitudeReference)]
     return Model(model.effects, keep + [MODES[mode](sensor=0)], model.drops)
-
-
-def attitude_reference_of(eff):
-    """Return ``eff`` if it is an attitude observation, else None."""
-    from magcal_ros.core.effects.attitude_ref import AttitudeReference
-    return eff if isinstance(eff, AttitudeReference) else None
 
 
 def attitude_start(data, model, f):

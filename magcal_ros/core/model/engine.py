@@ -199,8 +199,9 @@ class ProfiledProblem:
         #: positions of the attitude's parameters among the array-wide columns
         self.aid_arr = np.array([arr.index(i) for i in range(sl.start, sl.stop)], int)
         #: the observation's projector at the parameters last evaluated (the mounting
-        #: rotation moves it): :meth:`field_columns` reads it after :meth:`evaluate`
-        self.aid_proj = eff.observation(self.p_full[sl], rot, self.f)[0]
+        #: rotation moves it), set by :meth:`_aid_residual`: :meth:`field_columns` reads it
+        #: after :meth:`evaluate`
+        self.aid_proj = None
 
     @property
     def aid_sigma(self):
@@ -475,8 +476,6 @@ class ProfiledProblem:
             dp = pa.copy()
             dp[k] += h
             out[col] = (self.aid.residual(dp, self.rot, self.f, b) - r0) / (h * self.aid_sigma)
-        proj, _ = self.aid.observation(pa, self.rot, self.f)
-        self.aid_proj = proj
         return out
 
     def _prior_jacobian(self):
