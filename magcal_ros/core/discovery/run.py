@@ -864,8 +864,17 @@ def _verdict(b, ranked, ratio, at_floor, held_out, p_thr):
               f'it (p-value, BIC and a share of at least {MIN_EXPLAINED:.0%} of the excess '
               f'{"held-out" if held_out else "in-sample"})')
     if small:
-        reason += (f'; the best, {small[0].token}, removes only '
-                   f'{small[0].explained_fraction:.0%}')
+        c = small[0]
+        # the rule it missed: the share, or (with a share enough) why it was not taken
+        why = (f'removes only {c.explained_fraction:.0%}'
+               if c.explained_fraction < MIN_EXPLAINED else
+               f'removes {c.explained_fraction:.0%} but reduces to a simpler effect ({c.note})'
+               if c.note else
+               f'removes {c.explained_fraction:.0%} by the one-step screen but was not '
+               'refitted, and the constrained mode judges only refitted terms'
+               if b.constrained and c.method != 'refit' else
+               f'removes {c.explained_fraction:.0%} but not by the held-out test')
+        reason += f'; the best, {c.token}, {why}'
     return None, reason + (': the missing effect is not in the list (write a plug-in effect), '
                            'or the field is not uniform'
                            + (', or there are outliers (try --robust)' if not b.robust else ''))
