@@ -746,7 +746,9 @@ def _refit(b, trials, screen, max_refit, progress):
                 **({'f_scale': b.f_scale} if b.robust else {}))
         ev = evaluate_residuals(c.model, r.params, b.data, b.f, b.sigma, b.contexts,
                                 loss=b.loss)
-        if ev.chi2 <= c.chi2 or c.ev is None:
+        # with priors (constrained) the one-step screen's chi-square leaves them out, so it
+        # is no bar for the refit's, which honours them: the refit stands
+        if ev.chi2 <= c.chi2 or c.ev is None or b.constrained:
             c.p, c.ev, c.method = r.params, ev, 'refit'
             c.reduces = reduces_to_simpler(c.model, r.params, r.stderr, c.label, b.contexts)
     report_progress(progress, 'refit', n_refit, n_refit, '')
