@@ -161,7 +161,7 @@ def test_the_attitude_rows_stay_when_one_sensor_is_dropped():
     mask = model.reading_mask(data.t)
     n_in = int(np.sum(~mask[1]))
     f = np.full(data.n_samples, 50000.0)
-    prob = ProfiledProblem(model, data.raw, ctx, f, [1, 2], np.array([3.0, 3.0]), mask=mask)
+    prob = ProfiledProblem(model, data.raw, ctx, f, [1, 2], np.array([3.0, 3.0]))
     assert prob.aid is not None
     assert list(prob.member_counts) == [400, 400 - n_in, 400]
     # rows: sensors 3 each, the attitude its rank, less the field's 2 per set
@@ -178,3 +178,11 @@ def test_the_attitude_rows_stay_when_one_sensor_is_dropped():
     np.testing.assert_allclose(a, jac.T @ jac, rtol=1e-7, atol=1e-9 * np.abs(a).max())
     np.testing.assert_allclose(g, jac.T @ r, rtol=1e-7, atol=1e-9 * np.abs(g).max())
     assert np.all(jac.reshape(400, 3, 3, -1)[inside, 1] == 0)
+    # the array-wide drop leaves the attitude's rows of those sets out too
+    model = with_attitude('base + drop(10, 20)', 'tilt', 2)
+    model.prepare(ctx)
+    prob = ProfiledProblem(model, data.raw, ctx, f, [1, 2], np.array([3.0, 3.0]))
+    assert list(prob.member_counts) == [400 - n_in] * 3
+    assert prob.n_observations == (3 * 2 + rank - 2) * (400 - n_in)
+    _, _, _, res = prob.evaluate(prob.p_full[prob.cols])
+    assert np.all(res[inside] == 0) and np.all(np.any(res[~inside, 2] != 0, axis=1))

@@ -149,13 +149,14 @@ class ProfiledProblem:
     field0 : numpy.ndarray, optional
         (N, 3) nT, the profiled field of nearby parameters: the profile starts from it and
         takes one Gauss-Newton step instead of two from the mean corrected reading.
-    mask : numpy.ndarray, optional
-        (S, N) bool, the readings used (``Model.reading_mask``: ``drop(t0, t1)@J``
-        leaves sensor J's readings of those sets out).  A reading left out has no residual
-        row (its residual, Jacobian and field-direction rows are zero) and does not inform
-        its set's field; the other sensors' readings of the set still count.  A set none
-        of the group's sensors keeps is profiled from all of them (for the residuals of
-        every reading) and has no rows: the fit leaves out the sets no sensor keeps.
+
+    The model's ``drop`` terms leave readings out (``Model.reading_mask`` at the times of
+    ``contexts``: ``drop(t0, t1)@J`` sensor J's readings of the window, ``drop(t0, t1)``
+    every sensor's and the attitude's).  A reading left out has no residual rows (its
+    residual, Jacobian and field-direction rows are zero) and does not inform its set's
+    field; the other sensors' readings of the set still count.  A set without any reading
+    kept is profiled from all of them (for the residual of every reading,
+    :meth:`reading_residuals`) and has no rows (the fit does not pass such sets).
 
     Attributes
     ----------
@@ -166,7 +167,7 @@ class ProfiledProblem:
     """
 
     def __init__(self, model, data_raw, contexts, f_nt, sensors, sigma, priors=(),
-                 robust=False, f_scale=3.0, p_full=None, field0=None, mask=None):
+                 robust=False, f_scale=3.0, p_full=None, field0=None):
         self.robust = robust
         self.f_scale = f_scale
         self.model = model
@@ -181,16 +182,29 @@ class ProfiledProblem:
         self._cache_key = None
         self.p_full = model.default_params() if p_full is None else np.array(p_full, float)
         self.field0 = field0
-        #: (N, G) 0/1 row weight of each reading of the group's sensors, None: all used
-        self.keep = None
-        #: (N, G) the weights of the field profile: ``keep``, a set without any reading 1
-        self.field_w = None
-        if mask is not None:
-            m = np.asarray(mask, bool)[np.array(self.sensors) - 1].T
-            if not m.all():
-                self.keep = m.astype(float)
-                self.field_w = np.where(m.any(axis=1, keepdims=True), self.keep, 1.0)
         self._aid_setup()
+        self._drop_setup()
+
+    def _drop_setup(self):
+        """
+        Set the row weights of the readings the model's ``drop`` terms leave out.
+
+        :attr:`keep` (N, G (+1)) 0/1 per member (the group's sensors, then the attitude,
+        which a set keeps while any sensor of the model does), None when every reading is
+        used; :attr:`field_w`, the weights of the field profile: ``keep``, with a set
+        that keeps no reading weighted 1 throughout.
+        """
+        self.keep = self.field_w = None
+        if not self.model.drops or not self.ctx:
+            return
+        mask = self.model.reading_mask(self.ctx[0].t)
+        m = mask[np.array(self.sensors) - 1].T
+        if self.aid is not None:
+            m = np.concatenate([m, mask.any(axis=0)[:, None]], axis=1)
+        if m.all():
+            return
+        self.keep = m.astype(float)
+        self.field_w = np.where(m.any(axis=1, keepdims=True), self.keep, 1.0)
 
     def _aid_setup(self):
         """
@@ -238,11 +252,10 @@ class ProfiledProblem:
 
     @property
     def member_counts(self):
-        """(G,) or (G + 1,) int: the sets each member has rows in (the attitude: every set)."""
-        n = self.raw.shape[1]
-        counts = (np.full(len(self.sensors), n) if self.keep is None
-                  else self.keep.sum(axis=0).astype(int))
-        return np.append(counts, n) if self.aid is not None else counts
+        """(G,) or (G + 1,) int: the sets each member (sensor, attitude) has rows in."""
+        if self.keep is None:
+            return np.full(self.n_members, self.raw.shape[1])
+        return self.keep.sum(axis=0).astype(int)
 
     @property
     def n_observations(self):
@@ -252,10 +265,11 @@ class ProfiledProblem:
         A set has 3 rows per sensor reading it keeps (and the attitude's rank); the field's
         two directions take two of them.  A set without rows counts nothing.
         """
+        g = len(self.sensors)
         aid = self.aid.rank if self.aid is not None else 0
         if self.keep is None:
-            return int((3 * len(self.sensors) + aid - 2) * self.raw.shape[1])
-        rows = 3 * self.keep.sum(axis=1) + aid
+            return int((3 * g + aid - 2) * self.raw.shape[1])
+        rows = 3 * self.keep[:, :g].sum(axis=1) + (aid * self.keep[:, g] if aid else 0)
         return int(np.sum(np.where(rows > 0, rows - 2, 0)))
 
     @property
@@ -301,7 +315,7 @@ class ProfiledProblem:
         else:
             cor = np.stack([self.model.correct(j, p, self.raw[j - 1], self.ctx[j - 1])
                             for j in self.sensors])
-            fw = self.field_w
+            fw = None if self.field_w is None else self.field_w[:, :len(self.sensors)]
             if self.robust and len(self.sensors) > 2:
                 # one spiking sensor cannot pull the field
                 acc = (np.median(cor, axis=0) if fw is None else
@@ -352,6 +366,8 @@ class ProfiledProblem:
                 sa2 = self.aid_sigma ** 2
                 w = (1.0 / np.sqrt(1.0 + np.sum(r * r, axis=1) / self.f_scale ** 2)
                      if self.robust else np.ones(n))
+                if self.field_w is not None:
+                    w = w * self.field_w[:, -1]
                 p1 = np.einsum('nij,nj->ni', self.aid_proj, e1)
                 p2 = np.einsum('nij,nj->ni', self.aid_proj, e2)
                 h11 = h11 + w * np.einsum('ij,ij->i', p1, p1) / sa2
@@ -392,13 +408,13 @@ class ProfiledProblem:
         e1, e2 = tangent_basis(b / self.f[:, None])
         blocks = [np.stack([e1 @ mats[j].T, e2 @ mats[j].T], axis=2)
                   * (self.f[:, None, None] / self.sigma[j - 1]) for j in self.sensors]
+        if self.aid is not None:
+            e = np.stack([e1, e2], axis=2)                                  # (N, 3, 2)
+            blocks.append(self.aid_proj @ e * (self.f[:, None, None] / self.aid_sigma))
         if self.field_w is not None:
             # a reading left out has no rows (a set without any: the columns of all, which
             # project nothing, as its rows are zero)
             blocks = [blk * self.field_w[:, gi, None, None] for gi, blk in enumerate(blocks)]
-        if self.aid is not None:
-            e = np.stack([e1, e2], axis=2)                                  # (N, 3, 2)
-            blocks.append(self.aid_proj @ e * (self.f[:, None, None] / self.aid_sigma))
         return np.concatenate(blocks, axis=1)
 
     def project_out_field(self, b, mats, m):
@@ -457,8 +473,7 @@ class ProfiledProblem:
             every = np.stack(rows, axis=1)                          # (N, G (+1), 3)
             res = every
             if self.keep is not None:
-                res = every.copy()
-                res[:, :len(self.sensors)] *= self.keep[:, :, None]
+                res = every * self.keep[:, :, None]
             self._cache = (p, b, mats, res)
             self._every = every
             self._cache_key = key
@@ -548,6 +563,8 @@ class ProfiledProblem:
             dp = pa.copy()
             dp[k] += h
             out[col] = (self.aid.residual(dp, self.rot, self.f, b) - r0) / (h * self.aid_sigma)
+        if self.keep is not None:
+            out *= self.keep[None, :, -1, None]                 # the sets left out: no rows
         return out
 
     def _prior_jacobian(self):

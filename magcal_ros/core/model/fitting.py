@@ -138,8 +138,7 @@ class FitResult:
     def _profile(self):
         return profile_residuals(self.model, self.params, self.raw_nt,
                                  self.field_magnitude_nt, self.sigma_nt, self.contexts,
-                                 robust=self.robust, f_scale=self.f_scale,
-                                 mask=self.reading_mask)
+                                 robust=self.robust, f_scale=self.f_scale)
 
     @cached_property
     def field_nt(self):
@@ -633,7 +632,8 @@ class _Solve:
     def __init__(self, model, raw, f, contexts, prior_list, robust, f_scale, solver,
                  max_nfev, ftol=None, mask=None):
         self.model, self.raw, self.f, self.contexts = model, raw, f, contexts
-        #: (S, N) bool, the readings fitted (None: all; :func:`fitted_readings`)
+        #: (S, N) bool, the readings fitted (None: all; :func:`fitted_readings`): the start
+        #: and its noise levels leave the others out (the problems do from the model's drops)
         self.mask = mask
         # the solvers' own default tolerance unless one is given
         self.ftol_kw = {} if ftol is None else {'ftol': ftol}
@@ -647,7 +647,7 @@ class _Solve:
         pr = [t for t in self.prior_list if t[0] in m.array_cols or any(
             m.sensor_slices[j - 1].start <= t[0] < m.sensor_slices[j - 1].stop for j in grp)]
         return ProfiledProblem(m, self.raw, self.contexts, self.f, grp, sigma, pr,
-                               self.robust, self.f_scale, p_full=p, mask=self.mask)
+                               self.robust, self.f_scale, p_full=p)
 
     def run(self, p0, sigma_nt):
         """
@@ -930,7 +930,7 @@ def initial_params(raw, field_nt, model, constrained=False, mask=None):
 # -- residuals on all epochs ----------------------------------------------------------------
 
 def profile_residuals(model, p, raw, f, sigma, contexts, robust=False, f_scale=3.0,
-                      chunk=200000, field0=None, mask=None):
+                      chunk=200000, field0=None):
     """
     Return the profiled field and the raw-space residual of ``p`` (chunked for large N).
 
@@ -954,17 +954,15 @@ def profile_residuals(model, p, raw, f, sigma, contexts, robust=False, f_scale=3
         Epochs evaluated at a time (memory of the Jacobian-free evaluation).
     field0 : numpy.ndarray, optional
         (N, 3) nT field to start the profile from (joint models).
-    mask : numpy.ndarray, optional
-        (S, N) bool, the readings the field is profiled from (``Model.reading_mask``);
-        default all.
 
     Returns
     -------
     field : numpy.ndarray
-        (N, 3) profiled field, nT (joint: shared; independent sensors: the last one's).
+        (N, 3) profiled field, nT (joint: shared; independent sensors: the last one's);
+        profiled without the readings the model's ``drop`` terms leave out.
     residual : numpy.ndarray
-        (S, N, 3) raw reading minus prediction, nT (a reading left out by ``mask``: against
-        the field of the others, :meth:`ProfiledProblem.reading_residuals`).
+        (S, N, 3) raw reading minus prediction, nT (a reading left out: against the field
+        of the others, :meth:`ProfiledProblem.reading_residuals`).
 
     """
     s, n = raw.shape[0], raw.shape[1]
@@ -981,7 +979,7 @@ def profile_residuals(model, p, raw, f, sigma, contexts, robust=False, f_scale=3
             prob = ProfiledProblem(model, raw[:, sl], ctx, f[sl], grp, sigma, (), robust,
                                    f_scale, p_full=p,
                                    field0=field0[sl] if field0 is not None and model.joint
-                                   else None, mask=None if mask is None else mask[:, sl])
+                                   else None)
             _, b, _, _ = prob.evaluate(p[prob.cols])
             res = prob.reading_residuals(p[prob.cols])
             field[sl] = b
@@ -1033,9 +1031,8 @@ def evaluate(model, p, data, f, sigma, contexts=None, robust=False, f_scale=3.0,
     """
     if contexts is None:
         contexts = [data.context(j) for j in range(1, data.n_sensors + 1)]
-    mask = model.reading_mask(data.t) if getattr(model, 'drops', ()) else None
     field, residual = profile_residuals(model, p, data.raw, f, sigma, contexts, robust,
-                                        f_scale, chunk, field0, mask)
+                                        f_scale, chunk, field0)
     corrected = corrected_readings(model, p, data.raw, contexts)
     centred = centred_readings(model, p, corrected, contexts)
     scalar = np.linalg.norm(centred, axis=2) - f[None]
