@@ -186,3 +186,24 @@ def test_the_attitude_rows_stay_when_one_sensor_is_dropped():
     assert prob.n_observations == (3 * 2 + rank - 2) * (400 - n_in)
     _, _, _, res = prob.evaluate(prob.p_full[prob.cols])
     assert np.all(res[inside] == 0) and np.all(np.any(res[~inside, 2] != 0, axis=1))
+
+
+def test_the_diagnosis_does_not_call_dropped_readings_misfit():
+    """diagnose of base + drop@2: every measure on the readings kept, at the floor."""
+    from magcal_ros.core.discovery import diagnose
+    before = diagnose(_record(), 'base', inj.F_NT, base=_fit('base'))
+    assert not before.at_floor and before.scalar_rms_nt[2] > 10 * SIGMA
+    dg = diagnose(_record(), 'base + drop(120, 160)@2', inj.F_NT,
+                  base=_fit('base + drop(120, 160)@2'))
+    assert dg.at_floor, dg.verdict_reason
+    assert dg.verdict_token is None
+    n2 = N - int(np.sum((_record().t >= T0) & (_record().t <= T1)))
+    for j in range(1, 5):
+        assert abs(dg.scalar_rms_nt[j] / SIGMA - 1) < 4 / np.sqrt(n2), dg.scalar_rms_nt
+        # the floor, from the sets every sensor keeps, is the noise (a robust sd of about
+        # 3 x 1300 differences: a few per cent of scatter; 0.1 is more than 4 of it)
+        assert abs(dg.noise_floor.per_sensor_nt[j - 1] / SIGMA - 1) < 0.1, dg.noise_floor
+    # the combined residual and its held-out value: the noise, sensor 2's window left out
+    assert abs(dg.residual_rms_nt / SIGMA - 1) < 4 / np.sqrt(n2)
+    assert abs(dg.cv_rms_nt / SIGMA - 1) < 4 / np.sqrt(n2)
+    assert not any(f.kind == 'localised' for f in dg.findings.items)

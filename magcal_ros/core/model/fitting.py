@@ -1022,11 +1022,17 @@ def evaluate(model, p, data, f, sigma, contexts=None, robust=False, f_scale=3.0,
     ``field0`` (N, 3) nT, optional: the profiled field of nearby parameters (e.g. the
     ``field`` of an evaluation of the fit), to start the field profile from (joint models).
 
+    The readings the model's ``drop`` terms leave out (``Model.reading_mask``) are not
+    residuals of the model: their residual, scalar and vector entries (the vector's where
+    sensor j's or sensor 1's reading is left out) are zero, and ``kept`` says which are
+    (a mean square over the readings kept divides by its count, not by N).
+
     Returns
     -------
     dict
         field (N, 3), corrected (S, N, 3), residual (S, N, 3), scalar (S, N), vector
-        (S, N, 3), all in nT, and downweighted (S,) counts.
+        (S, N, 3), all in nT, downweighted (S,) counts and kept ((S, N) bool, the readings
+        the model keeps, or None: all).
 
     """
     if contexts is None:
@@ -1037,7 +1043,12 @@ def evaluate(model, p, data, f, sigma, contexts=None, robust=False, f_scale=3.0,
     centred = centred_readings(model, p, corrected, contexts)
     scalar = np.linalg.norm(centred, axis=2) - f[None]
     vector = centred - centred[:1]
+    kept = model.reading_mask(data.t) if getattr(model, 'drops', ()) else None
+    if kept is not None:
+        residual = residual * kept[:, :, None]
+        scalar = scalar * kept
+        vector = vector * (kept & kept[:1])[:, :, None]
     down = (downweighted_counts(residual, sigma, f_scale) if robust
             else np.zeros(data.n_sensors, int))
     return {'field': field, 'corrected': corrected, 'residual': residual, 'scalar': scalar,
-            'vector': vector, 'downweighted': down}
+            'vector': vector, 'downweighted': down, 'kept': kept}
