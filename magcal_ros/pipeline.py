@@ -246,6 +246,11 @@ def summarize(result, data, positions=None):
     f = result.field_magnitude_nt
     raw_tot = np.linalg.norm(data.raw, axis=2) - f[None]
     cor_tot = result.scalar_residual_nt
+    kept = getattr(result, 'reading_mask', None)
+    if kept is not None:
+        # the readings a drop() leaves out are in neither the before nor the after
+        raw_tot = [r[k] for r, k in zip(raw_tot, kept)]
+        cor_tot = np.concatenate([r[k] for r, k in zip(cor_tot, kept)])
     floor = data_noise_floor(data, result)
     s = {
         'model': result.model.spec(),
@@ -259,7 +264,7 @@ def summarize(result, data, positions=None):
         'vector_rms_nt': {str(k): v for k, v in result.vector_rms_nt.items()},
         'total_field_rms_before_nt': {str(j + 1): float(np.sqrt(np.mean(r ** 2)))
                                       for j, r in enumerate(raw_tot)},
-        'total_field_max_dev_before_nt': float(np.abs(raw_tot).max()),
+        'total_field_max_dev_before_nt': float(max(np.abs(r).max() for r in raw_tot)),
         'total_field_max_dev_after_nt': float(np.abs(cor_tot).max()),
         'downweighted': {str(j + 1): int(x) for j, x in enumerate(result.downweighted)},
         'warnings': fit_warnings(result, floor),
@@ -448,6 +453,8 @@ def _calibrate_clean(data, request, field_nt, fit_kwargs):
     rob = fit(data, run.result.model, field_nt=field_nt,
               **dict(kw, robust=True, check_identifiability=False, on_degenerate='flag'))
     z = np.abs(rob.residual_nt) / rob.sigma_nt[:, None, None]
+    if rob.reading_mask is not None:
+        z = z * rob.reading_mask[:, :, None]        # a reading a drop() leaves out: no outlier
     bad = (z > OUTLIER_SIGMAS).any(axis=(0, 2))
     n_bad = int(bad.sum())
     if n_bad == 0 or n_bad > MAX_OUTLIER_FRACTION * data.n_samples:

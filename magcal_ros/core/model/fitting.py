@@ -259,6 +259,10 @@ class FitResult:
         lines = [f'model: {",".join(self.model.spec())}  ({self.n_params} parameters, '
                  f'{self.n_fit_samples} epochs fitted)',
                  f'converged: {self.success} ({self.message})']
+        if self.n_fit_readings is not None and np.any(self.n_fit_readings < self.n_fit_samples):
+            lines.append('readings left out by drop(): ' + ', '.join(
+                f'sensor {j} {self.n_fit_samples - int(n)}'
+                for j, n in enumerate(self.n_fit_readings, start=1) if n < self.n_fit_samples))
         vector_rms = self.vector_rms_nt
         for j, r in self.scalar_rms_nt.items():
             v = vector_rms.get(j)
