@@ -288,9 +288,11 @@ def summarize(result, data, positions=None):
         s['site_gradient_frame'] = result.identifiability.get(
             'site_gradient_frame', "world (the attitude's)")
     if positions is not None and tensor_undetermined(positions) is None:
-        before = tensor_stats(data.raw, positions)
+        # on the sets every sensor keeps (a drop() leaves a reading out: no tensor there)
+        sets = slice(None) if kept is None else np.flatnonzero(kept.all(axis=0))
+        before = tensor_stats(data.raw[:, sets], positions)
         # about the modelled site gradient: what is left is calibration error and noise
-        after = tensor_stats(centred_fields(result), positions)
+        after = tensor_stats(centred_fields(result)[:, sets], positions)
         floor_t = tensor_noise_floor(floor.per_sensor_nt, positions)
         s['tensor_rms_nt_per_m'] = after['rms'].tolist()
         s['tensor_rms_before_nt_per_m'] = before['rms'].tolist()
