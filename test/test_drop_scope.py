@@ -189,7 +189,7 @@ def test_the_attitude_rows_stay_when_one_sensor_is_dropped():
 
 
 def test_the_diagnosis_does_not_call_dropped_readings_misfit():
-    """diagnose of base + drop@2: every measure on the readings kept, at the floor."""
+    """The diagnosis of base + drop@2: every measure on the readings kept, at the floor."""
     from magcal_ros.core.discovery import diagnose
     before = diagnose(_record(), 'base', inj.F_NT, base=_fit('base'))
     assert not before.at_floor and before.scalar_rms_nt[2] > 10 * SIGMA

@@ -40,7 +40,7 @@ from magcal_ros.core.discovery.constants import (ALPHA, AT_FLOOR_RATIO, BLOCKS_P
 from magcal_ros.core.discovery.findings import find as find_findings
 from magcal_ros.core.discovery.measures import (dof_factor, evaluate_residuals, Evaluation,
                                                 explained_share, likelihood_ratio, n_observations,
-                                                rms, scalar_rms_of, soft_l1_lr_loss, vector_rms_of)
+                                                scalar_rms_of, soft_l1_lr_loss, vector_rms_of)
 from magcal_ros.core.discovery.results import compact_spec, Diagnosis
 from magcal_ros.core.discovery.screen import lag_grid, Screen
 from magcal_ros.core.discovery.search import (EXPLAINS_SHARE, FLOOR_RATIO,

@@ -402,7 +402,7 @@ class ProfiledProblem:
             (N, 3G, 2) dimensionless: -dr_k/d(delta_1, delta_2) for a rotation of B_k by
             delta (rad) in the tangent plane (:func:`tangent_basis`), rows in the order
             sensor of the group, axis (then the attitude's three rows, when it observes);
-            zero rows for the readings left out (``mask``).
+            zero rows for the readings the model's ``drop`` terms leave out.
 
         """
         e1, e2 = tangent_basis(b / self.f[:, None])
@@ -458,7 +458,8 @@ class ProfiledProblem:
         res : numpy.ndarray
             (N, G, 3) normalised residuals (raw - prediction) / sigma_j, dimensionless;
             (N, G + 1, 3) with the attitude's residual last when it observes the field.
-            Zero for the readings left out (``mask``; :meth:`reading_residuals` has them).
+            Zero for the readings the ``drop`` terms leave out (:meth:`reading_residuals`
+            has them).
 
         """
         key = x.tobytes()
@@ -483,7 +484,7 @@ class ProfiledProblem:
         """
         Return (N, G (+1), 3) the normalised residual of every reading at x.
 
-        :meth:`evaluate`'s ``res`` with the readings left out (``mask``) included: their
+        :meth:`evaluate`'s ``res`` with the readings the ``drop`` terms leave out included: their
         residual against the field profiled from the other sensors' readings (what the
         reports show of a dropped reading; the fit and the noise levels do not see it).
         """
