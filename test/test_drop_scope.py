@@ -25,8 +25,10 @@ a fitted parameter within 4 of its stated standard errors.
 """
 import injection as inj
 from magcal_ros.core.data.dataset import Dataset
-from magcal_ros.core.model import fit
+from magcal_ros.core.effects import formula as fm
+from magcal_ros.core.model import fit, Model
 from magcal_ros.core.model.engine import ProfiledProblem
+from magcal_ros.io.calfile import calibration_to_doc, dump_calibration, parse_calibration
 import numpy as np
 import pytest
 
@@ -135,6 +137,7 @@ def test_one_sensor_drop_at_1_is_drop():
     ('base + drop(120, 160)@0', ['sensor 0 does not exist', '1..4']),
     ('base + drop(120, 160)@5', ['sensor 5 does not exist', 'sensors 1..4']),
     ('base + drop(160, 120)@2', ['must follow its start']),
+    ('base + drop(120, 120)@2', ['must follow its start']),
     ('base + drop(120, 160)@alike', ['drop takes a sensor scope']),
     ('base + drop(-1, 400)@3', ['sensor 3', 'with 0 of 1500 samples', 'drop less']),
     ('base + drop(0, 299)@3', ['sensor 3', 'with 4 of 1500 samples', 'at least 12']),
@@ -207,3 +210,20 @@ def test_the_diagnosis_does_not_call_dropped_readings_misfit():
     assert abs(dg.residual_rms_nt / SIGMA - 1) < 4 / np.sqrt(n2)
     assert abs(dg.cv_rms_nt / SIGMA - 1) < 4 / np.sqrt(n2)
     assert not any(f.kind == 'localised' for f in dg.findings.items)
+
+
+def test_the_scope_round_trips_through_the_spec_and_the_calibration_file():
+    text = 'base + drop(120, 160)@{3, 1} + drop(10,20.0)@4 + drop(200, 210)'
+    m = Model.from_spec(text, 4)
+    assert m.drops == [(120.0, 160.0, (1, 3)), (10.0, 20.0, (4,)), (200.0, 210.0, None)]
+    spec = m.spec()
+    assert spec[-3:] == ['drop(120, 160)@{1,3}', 'drop(10, 20)@4', 'drop(200, 210)']
+    assert [str(t) for t in fm.parse(text).terms[1:]] == spec[-3:]
+    assert Model.from_spec(spec, 4).drops == m.drops
+    res = _fit('base + drop(120, 160)@2')
+    cal, doc = parse_calibration(dump_calibration(calibration_to_doc(res.calibration)), 'x')
+    assert 'drop(120, 160)@2' in doc['model']
+    assert cal.model.drops == [(120.0, 160.0, (2,))]
+    t = _record().t
+    np.testing.assert_array_equal(cal.model.reading_mask(t), res.model.reading_mask(t))
+    np.testing.assert_array_equal(cal.params, res.params)
