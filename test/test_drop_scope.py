@@ -227,3 +227,37 @@ def test_the_scope_round_trips_through_the_spec_and_the_calibration_file():
     t = _record().t
     np.testing.assert_array_equal(cal.model.reading_mask(t), res.model.reading_mask(t))
     np.testing.assert_array_equal(cal.params, res.params)
+
+
+def test_the_noise_variances_count_each_sensor_s_own_rows():
+    """
+    group_noise_variances with a sensor's rows left out: unbiased, by simulation.
+
+    Three sensors' normalised noise e_j ~ N(0, d_j I) at N epochs, sensor 2's rows of 40 %
+    of them left out (zero), the field's two directions projected out of each epoch's rows
+    kept: r = (I - G (G^T G)^-1 G^T) e.  The estimate of d_j has a relative sd of about
+    sqrt(2 / (3 n_j - 2 n_j / G)); counting sensor 2's left-out rows as rows would bias its
+    d low by about 40 % x 3 / 2.
+    """
+    from magcal_ros.core.model.fitting import group_noise_variances
+    rng = np.random.default_rng(7)
+    n, g = 4000, 3
+    d_true = np.array([1.0, 4.0, 0.25])
+    keep = np.ones((n, g))
+    keep[rng.random(n) < 0.4, 1] = 0.0
+    basis = np.linalg.qr(rng.normal(size=(n, 3, 3)))[0][:, :, :2]       # (N, 3, 2)
+    mats = np.eye(3) + 0.05 * rng.normal(size=(g, 3, 3))
+    cols = np.concatenate([mats[j] @ basis * keep[:, j, None, None] for j in range(g)],
+                          axis=1)                                        # (N, 3G, 2)
+    e = rng.normal(size=(n, g, 3)) * np.sqrt(d_true)[None, :, None] * keep[:, :, None]
+    e = e.reshape(n, 3 * g)
+    gtg = np.swapaxes(cols, 1, 2) @ cols
+    proj = cols @ np.linalg.solve(gtg, np.swapaxes(cols, 1, 2))
+    res = (e - np.einsum('nab,nb->na', proj, e)).reshape(n, g, 3)
+    d = group_noise_variances(res, cols, 0, keep=keep)
+    n_j = keep.sum(axis=0)
+    tol = 4 * np.sqrt(2.0 / (3 * n_j - 2 * n_j / g))
+    assert np.all(np.abs(d / d_true - 1) < tol), (d, tol)
+    # without the counts (every row taken for one) sensor 2 comes out far too low
+    wrong = group_noise_variances(res, cols, 0)
+    assert wrong[1] / d_true[1] - 1 < -5 * tol[1], wrong
