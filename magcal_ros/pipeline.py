@@ -246,6 +246,11 @@ def summarize(result, data, positions=None):
     f = result.field_magnitude_nt
     raw_tot = np.linalg.norm(data.raw, axis=2) - f[None]
     cor_tot = result.scalar_residual_nt
+    kept = getattr(result, 'reading_mask', None)
+    if kept is not None:
+        # the readings a drop() leaves out are in neither the before nor the after
+        raw_tot = [r[k] for r, k in zip(raw_tot, kept)]
+        cor_tot = np.concatenate([r[k] for r, k in zip(cor_tot, kept)])
     floor = data_noise_floor(data, result)
     s = {
         'model': result.model.spec(),
@@ -259,7 +264,7 @@ def summarize(result, data, positions=None):
         'vector_rms_nt': {str(k): v for k, v in result.vector_rms_nt.items()},
         'total_field_rms_before_nt': {str(j + 1): float(np.sqrt(np.mean(r ** 2)))
                                       for j, r in enumerate(raw_tot)},
-        'total_field_max_dev_before_nt': float(np.abs(raw_tot).max()),
+        'total_field_max_dev_before_nt': float(max(np.abs(r).max() for r in raw_tot)),
         'total_field_max_dev_after_nt': float(np.abs(cor_tot).max()),
         'downweighted': {str(j + 1): int(x) for j, x in enumerate(result.downweighted)},
         'warnings': fit_warnings(result, floor),
@@ -283,9 +288,11 @@ def summarize(result, data, positions=None):
         s['site_gradient_frame'] = result.identifiability.get(
             'site_gradient_frame', "world (the attitude's)")
     if positions is not None and tensor_undetermined(positions) is None:
-        before = tensor_stats(data.raw, positions)
+        # on the sets every sensor keeps (a drop() leaves a reading out: no tensor there)
+        sets = slice(None) if kept is None else np.flatnonzero(kept.all(axis=0))
+        before = tensor_stats(data.raw[:, sets], positions)
         # about the modelled site gradient: what is left is calibration error and noise
-        after = tensor_stats(centred_fields(result), positions)
+        after = tensor_stats(centred_fields(result)[:, sets], positions)
         floor_t = tensor_noise_floor(floor.per_sensor_nt, positions)
         s['tensor_rms_nt_per_m'] = after['rms'].tolist()
         s['tensor_rms_before_nt_per_m'] = before['rms'].tolist()
@@ -448,6 +455,8 @@ def _calibrate_clean(data, request, field_nt, fit_kwargs):
     rob = fit(data, run.result.model, field_nt=field_nt,
               **dict(kw, robust=True, check_identifiability=False, on_degenerate='flag'))
     z = np.abs(rob.residual_nt) / rob.sigma_nt[:, None, None]
+    if rob.reading_mask is not None:
+        z = z * rob.reading_mask[:, :, None]        # a reading a drop() leaves out: no outlier
     bad = (z > OUTLIER_SIGMAS).any(axis=(0, 2))
     n_bad = int(bad.sum())
     if n_bad == 0 or n_bad > MAX_OUTLIER_FRACTION * data.n_samples:

@@ -44,7 +44,7 @@ def data():
 
 
 def test_the_doc_has_its_examples():
-    assert len(EXAMPLES) == 10 and all(e.startswith('base') for e in EXAMPLES)
+    assert len(EXAMPLES) == 11 and all(e.startswith('base') for e in EXAMPLES)
 
 
 @pytest.mark.parametrize('text', EXAMPLES)

@@ -44,6 +44,9 @@ FORMULAS = {
     'base + offset(window(120, 160))@alike': 'base + offset(window(120, 160))@alike',
     'base + offset(temperature * t)@1': 'base + offset(temperature * t)@1',
     'base + drop(120, 160)': 'base + drop(120, 160)',
+    'base + drop(120, 160)@2': 'base + drop(120, 160)@2',
+    'base + drop(120,160.0)@{3, 1}': 'base + drop(120, 160)@{1,3}',
+    'base + drop(120, 160)@{2}': 'base + drop(120, 160)@2',
     'base,temperature@2': 'base + temperature@2',
     'base, step(120,300)@2, periodic(0.23)@3': 'base + step(120,300)@2 + periodic(0.23)@3',
     'offset+soft_iron': 'offset + soft_iron',
@@ -87,9 +90,10 @@ def test_terms_say_what_they_are():
     assert lag.signals == ('time', 'aux_motor') and lag.sensors(4) == [1, 3]
     assert tmp.kind == 'alias' and tmp.expansion == 'offset(temperature)@2 + scale(temperature)@2'
     assert base.expansion == 'offset + scale + nonorthogonality + misalignment'
-    assert drop.kind == 'drop' and drop.window == (10.0, 20.0) and f.drops == [(10.0, 20.0)]
+    assert drop.kind == 'drop' and drop.window == (10.0, 20.0)
+    assert f.drops == [(10.0, 20.0, None)]                   # None: every sensor
     m = Model.from_spec(f, 4)
-    assert m.drops == [(10.0, 20.0)] and m.n_params == 45 + 18 + 8 + 3 + 12 + 6 + 8
+    assert m.drops == [(10.0, 20.0, None)] and m.n_params == 45 + 18 + 8 + 3 + 12 + 6 + 8
     assert Model.from_spec(fx.parse(m.spec()), 4).spec() == m.spec()
 
 
@@ -108,7 +112,10 @@ BAD = {
     'base + + drift': ['empty term'],
     'base + temperature@alike': ['@alike', 'composed terms'],
     'base + drop(20, 10)': ['must follow its start'],
-    'base + drop(1, 2)@2': ['drop leaves samples out for every sensor'],
+    'base + drop(1, 2)@each': ['drop takes a sensor scope', '@J or @{J,K}'],
+    'base + drop(1, 2)@0': ['sensor 0 does not exist', '1..4'],
+    'base + drop(1, 2)@5': ['sensor 5 does not exist', '1..4'],
+    'base + drop(1, 2)@{2,7}': ['sensor 7 does not exist', '1..4'],
     'base + offset(poly(t, 9))': ['poly degree', '1..4'],
     'base + offset(sin(-1))': ['sin frequency must be positive'],
     'base + offset(sin(1, refine=maybe))': ['true or false'],
@@ -268,13 +275,14 @@ def test_composed_lag_of_a_ramp():
 def test_composed_terms_round_trip_through_the_calibration_file():
     formula = ('base + offset(s(t, k=4))@2 + offset(window(100, 140))@alike + '
                'field(sin(0.01)) + scale(temperature)@3 + offset(lag(temperature))@4 + '
-               'drop(200, 220)')
+               'drop(200, 220) + drop(50, 70)@3')
     data = inj.make(n=1500, seed=2)
     res = fit(data, formula, inj.F_NT, check_identifiability=False, on_degenerate='flag')
     doc = calibration_to_doc(res.calibration)
     cal, doc2 = parse_calibration(dump_calibration(doc), 'composed')
     assert fx.parse(doc2['model']) == fx.parse(res.model.spec())
-    assert cal.model.drops == [(200.0, 220.0)]
+    assert cal.model.drops == [(200.0, 220.0, None), (50.0, 70.0, (3,))]
+    assert 'drop(50, 70)@3' in doc2['model']
     for j in range(1, 5):
         want = res.calibration.correct(j, data.raw[j - 1], data.context(j))
         got = cal.correct(j, data.raw[j - 1], data.context(j))

@@ -440,11 +440,30 @@ def data_noise_floor(data, result=None):
     the noise: its ``meta['noise_blocks']`` holds contiguous full-rate blocks of the record,
     and the floor is estimated from those (and the fit's residual on them).
 
+    A fit whose model leaves readings out (``drop`` terms: its ``reading_mask``) is
+    estimated on the sets where every sensor's reading is kept, each stretch between the
+    windows a segment: a disturbance the model drops is not noise.
+
     """
     blocks = data.meta.get('noise_blocks')
     if blocks is not None:
         return blocks.floor(result)
-    return noise_floor_of(data.raw, result)
+    kept = getattr(result, 'reading_mask', None)
+    if kept is None or kept.all():
+        return noise_floor_of(data.raw, result)
+    sets = np.flatnonzero(kept.all(axis=0))
+    starts = [0] + list(np.flatnonzero(np.diff(sets) > 1) + 1)
+    return noise_floor_of(data.raw[:, sets],
+                          _KeptResidual(result.scalar_residual_nt[:, sets], result.sigma_nt),
+                          starts)
+
+
+@dataclass(frozen=True)
+class _KeptResidual:
+    """What :func:`noise_floor_of` reads of a fit, on some of its sets."""
+
+    scalar_residual_nt: np.ndarray      # (S, M) nT
+    sigma_nt: np.ndarray                # (S,) nT
 
 
 def noise_floor_of(raw, result, starts=None):

@@ -138,7 +138,7 @@ def _rung(result, data, f, added, diagnosis, folds, constrained=False):
     return LadderStep(
         model=tuple(compact_spec(model)), added=added, n_params=model.n_params,
         scalar_rms_nt=dict(result.scalar_rms_nt), vector_rms_nt=dict(result.vector_rms_nt),
-        residual_rms_nt=float(np.sqrt(fac * np.mean(ev.residual ** 2))), cv_rms_nt=cv,
+        residual_rms_nt=float(np.sqrt(fac * ev.mean_square)), cv_rms_nt=cv,
         cv_per_sensor_nt=cvp, diagnosis=diagnosis, result=result)
 
 

@@ -987,7 +987,8 @@ def _find(data, result, *, baseline_m=0.5, alpha=ALPHA, corrected=None, field=No
         driving channels tested.
     result : FitResult
         A fit on ``data``: its ``corrected_nt`` (S, N, 3) nT, ``scalar_residual_nt`` (S, N)
-        nT and ``field_nt`` (N, 3) nT are used.
+        nT and ``field_nt`` (N, 3) nT are used, on the sets where its model's ``drop``
+        terms keep every sensor's reading (``reading_mask``).
     baseline_m : float
         Arm length of the four-sensor cross, m (paper 004), for the gradient magnitude.
     alpha : float
@@ -1007,8 +1008,14 @@ def _find(data, result, *, baseline_m=0.5, alpha=ALPHA, corrected=None, field=No
         corrected = centred_fields(result)
     corrected = np.asarray(corrected, float)
     field_ = np.asarray(result.field_nt if field is None else field, float)
-    s, n = corrected.shape[:2]
     scalar = np.asarray(result.scalar_residual_nt, float)
+    kept = getattr(result, 'reading_mask', None)
+    if kept is not None and not kept.all():
+        # the model's drop() terms: the tests look at the sets every sensor keeps
+        sets = np.flatnonzero(kept.all(axis=0))
+        data, t = data.subset(sets), t[sets]
+        corrected, field_, scalar = corrected[:, sets], field_[sets], scalar[:, sets]
+    s, n = corrected.shape[:2]
     if n < MIN_EPOCHS:
         return Findings(items=(), t=t, series={}, noise_nt={}, note=(
             f'{n} epochs, fewer than the {MIN_EPOCHS} the tests need'))

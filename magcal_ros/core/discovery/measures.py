@@ -40,29 +40,58 @@ def dof_factor(model):
     return 3.0 * g / (3.0 * g - 2.0)
 
 
-def n_observations(model, n):
-    """Return the observations of ``n`` epochs net of the profiled field: N sum(3G - 2)."""
-    return int(n * sum(3 * len(g) - 2 for g in model.sensor_groups))
+def n_observations(model, n, kept=None):
+    """
+    Return the observations of ``n`` epochs net of the profiled field: N sum(3G - 2).
+
+    ``kept`` (S, N) bool: the readings the model keeps (``drop`` terms); each group's epoch
+    then counts 3 per reading kept less 2, nothing without one.
+    """
+    if kept is None:
+        return int(n * sum(3 * len(g) - 2 for g in model.sensor_groups))
+    out = 0
+    for g in model.sensor_groups:
+        rows = 3 * kept[[j - 1 for j in g]].sum(axis=0)
+        out += int(np.sum(np.where(rows > 0, rows - 2, 0)))
+    return out
 
 
-def rms(x):
-    """Return the root mean square of ``x`` (any shape, nT); NaN when empty."""
+def rms(x, kept=None):
+    """
+    Return the root mean square of ``x`` (any shape, nT); NaN when empty.
+
+    ``kept``: bool of ``x``'s leading dimensions, the entries counted (the readings a
+    ``drop`` term leaves out are not).
+    """
     x = np.asarray(x, float)
+    if kept is not None:
+        x = x[np.asarray(kept, bool)]
     return float(np.sqrt(np.mean(x ** 2))) if x.size else float('nan')
 
 
-def scalar_rms_of(scalar, sensors):
-    """Return the pooled RMS of the (S, N) scalar residual of ``sensors`` (1-based), nT."""
-    return rms(scalar[[j - 1 for j in sensors]])
+def scalar_rms_of(scalar, sensors, kept=None):
+    """
+    Return the pooled RMS of the (S, N) scalar residual of ``sensors`` (1-based), nT.
+
+    ``kept`` (S, N) bool: the readings counted (default all).
+    """
+    rows = [j - 1 for j in sensors]
+    return rms(scalar[rows], None if kept is None else kept[rows])
 
 
-def vector_rms_of(vector, sensors, n_sensors):
-    """Return the pooled per-component RMS of the vector residuals involving ``sensors``, nT."""
+def vector_rms_of(vector, sensors, n_sensors, kept=None):
+    """
+    Return the pooled per-component RMS of the vector residuals involving ``sensors``, nT.
+
+    ``kept`` (S, N) bool: the readings counted (default all); sensor j's vector residual
+    counts where j's and sensor 1's readings are kept.
+    """
     if n_sensors < 2:
         return None
     js = sorted({j for j in sensors if j > 1} if 1 not in sensors
                 else set(range(2, n_sensors + 1)))
-    return rms(vector[[j - 1 for j in js]])
+    rows = [j - 1 for j in js]
+    return rms(vector[rows], None if kept is None else (kept & kept[:1])[rows])
 
 
 @dataclass
@@ -82,6 +111,9 @@ class Evaluation:
         (S, N, 3) raw-space residual, nT.
     field : numpy.ndarray
         (N, 3) the profiled field, nT.
+    kept : numpy.ndarray or None
+        (S, N) bool, the readings the model keeps (None: all): those a ``drop`` term leaves
+        out are zero in ``scalar``, ``vector``, ``residual`` and count in no measure.
 
     """
 
@@ -90,6 +122,20 @@ class Evaluation:
     vector: np.ndarray
     residual: np.ndarray
     field: np.ndarray
+    kept: np.ndarray | None = None
+
+    @property
+    def mean_square(self):
+        """Return the raw-space residual's mean square over the readings kept, nT^2."""
+        return rms(self.residual, self.kept) ** 2
+
+    def scalar_rms(self, j):
+        """Return sensor j's scalar residual RMS over its readings kept, nT."""
+        return rms(self.scalar[j - 1], None if self.kept is None else self.kept[j - 1])
+
+    def vector_rms(self, j):
+        """Return sensor j's vector residual RMS (vs sensor 1) where both are kept, nT."""
+        return vector_rms_of(self.vector, [j], self.scalar.shape[0], self.kept)
 
 
 def evaluate_residuals(model, p, data, f, sigma, contexts, field0=None, loss=None):
@@ -124,7 +170,7 @@ def evaluate_residuals(model, p, data, f, sigma, contexts, field0=None, loss=Non
     z = out['residual'] / sigma[:, None, None]
     chi2 = float(np.sum(z ** 2)) if loss is None else loss(z)
     return Evaluation(chi2=chi2, scalar=out['scalar'], vector=out['vector'],
-                      residual=out['residual'], field=out['field'])
+                      residual=out['residual'], field=out['field'], kept=out['kept'])
 
 
 def soft_l1_lr_loss(z0, f_scale):

@@ -40,7 +40,7 @@ from magcal_ros.core.discovery.constants import (ALPHA, AT_FLOOR_RATIO, BLOCKS_P
 from magcal_ros.core.discovery.findings import find as find_findings
 from magcal_ros.core.discovery.measures import (dof_factor, evaluate_residuals, Evaluation,
                                                 explained_share, likelihood_ratio, n_observations,
-                                                rms, scalar_rms_of, soft_l1_lr_loss, vector_rms_of)
+                                                scalar_rms_of, soft_l1_lr_loss, vector_rms_of)
 from magcal_ros.core.discovery.results import compact_spec, Diagnosis
 from magcal_ros.core.discovery.screen import lag_grid, Screen
 from magcal_ros.core.discovery.search import (EXPLAINS_SHARE, FLOOR_RATIO,
@@ -143,12 +143,12 @@ class _Base:
 
     @property
     def n_obs(self):
-        return n_observations(self.model, self.data.n_samples)
+        return n_observations(self.model, self.data.n_samples, self.ev0.kept)
 
     @property
     def ms0(self):
-        """Return the combined in-sample mean square of the base fit, nT^2."""
-        return dof_factor(self.model) * np.mean(self.ev0.residual ** 2)
+        """Return the combined in-sample mean square of the base fit, nT^2 (readings kept)."""
+        return dof_factor(self.model) * self.ev0.mean_square
 
     def delta_bic(self, trial):
         return -(self.ev0.chi2 - trial.chi2) + trial.k * math.log(self.n_obs)
@@ -316,9 +316,9 @@ def _trial_ratio(b, trial):
     if trial is None or trial.ev is None:
         return None
     fl = b.floor
-    sc = [rms(trial.ev.scalar[j - 1]) / fl.per_sensor_nt[j - 1]
+    sc = [trial.ev.scalar_rms(j) / fl.per_sensor_nt[j - 1]
           for j in range(1, b.data.n_sensors + 1)]
-    vc = [rms(trial.ev.vector[j - 1]) / fl.vector_floor_nt(j)
+    vc = [trial.ev.vector_rms(j) / fl.vector_floor_nt(j)
           for j in range(2, b.data.n_sensors + 1)]
     return max(sc + vc)
 
@@ -536,8 +536,10 @@ def _localised_candidate(b, loc):
     sens = list(loc.sensors)
     return Candidate(
         token=loc.token, effect='drop', sensor=sens[0] if len(sens) == 1 else None,
-        n_params=0, rms_before_nt=scalar_rms_of(b.ev0.scalar, sens), rms_after_nt=None,
-        vector_rms_before_nt=vector_rms_of(b.ev0.vector, sens, s), vector_rms_after_nt=None,
+        n_params=0, rms_before_nt=scalar_rms_of(b.ev0.scalar, sens, b.ev0.kept),
+        rms_after_nt=None,
+        vector_rms_before_nt=vector_rms_of(b.ev0.vector, sens, s, b.ev0.kept),
+        vector_rms_after_nt=None,
         delta_chi2=float('nan'), delta_bic=float('nan'), p_value=float('nan'),
         log10_p_value=float('nan'), method='localised', significant=True,
         explained_fraction=loc.share, decided_by='model-free (excess inside the interval)',
@@ -580,8 +582,9 @@ def _term_candidate(b, tm, res, verdict=False):
                                        for j in sens])))
     return Candidate(
         token=text, effect=text.split('@')[0], sensor=sensor, n_params=tm.k,
-        rms_before_nt=scalar_rms_of(b.ev0.scalar, sens), rms_after_nt=after,
-        vector_rms_before_nt=vector_rms_of(b.ev0.vector, sens, s), vector_rms_after_nt=None,
+        rms_before_nt=scalar_rms_of(b.ev0.scalar, sens, b.ev0.kept), rms_after_nt=after,
+        vector_rms_before_nt=vector_rms_of(b.ev0.vector, sens, s, b.ev0.kept),
+        vector_rms_after_nt=None,
         delta_chi2=d_chi2, delta_bic=d_bic, p_value=p_val, log10_p_value=logp,
         method='search' if verdict else 'score',
         cv_rms_before_nt=tm.cv_before, cv_rms_after_nt=tm.cv_after, significant=verdict,
@@ -631,12 +634,18 @@ def _base_fit(data, model, f, base, constrained, progress, fit_kwargs):
 def _prepare(data, f, base, floor, max_samples, constrained):
     """Return the tested epochs (at most ``max_samples``) and the base fit's residuals on them."""
     n_all = data.n_samples
+    keep = np.arange(n_all)
     if max_samples and n_all > max_samples:
         # the same evenly spaced epochs as fit(max_fit_samples): the time order (and so the
         # contiguous cross-validation blocks) is kept
         keep = np.unique(np.linspace(0, n_all - 1, int(max_samples)).round().astype(int))
-        data, f = data.subset(keep), f[keep]
     model = base.model
+    if model.drops:
+        # the sets the drop() terms leave out for every sensor are not tested (a sensor's
+        # readings left out alone count in no measure: Evaluation.kept)
+        keep = keep[model.fit_mask(data.t[keep])]
+    if len(keep) < n_all:
+        data, f = data.subset(keep), f[keep]
     sigma = np.asarray(base.sigma_nt, float)
     contexts = [data.context(j) for j in range(1, data.n_sensors + 1)]
     model.prepare(contexts)
@@ -645,6 +654,8 @@ def _prepare(data, f, base, floor, max_samples, constrained):
     if bool(getattr(base, 'robust', False)):
         f_scale = float(getattr(base, 'f_scale', 3.0))
         z_all = np.asarray(base.residual_nt) / sigma[:, None, None]
+        if getattr(base, 'reading_mask', None) is not None:
+            z_all = z_all[base.reading_mask]            # the readings the fit kept
         loss = soft_l1_lr_loss(z_all, f_scale)
     ev0 = evaluate_residuals(model, base.params, data, f, sigma, contexts, loss=loss)
     return _Base(data=data, f=f, sigma=sigma, contexts=contexts, model=model,
@@ -655,8 +666,8 @@ def _prepare(data, f, base, floor, max_samples, constrained):
 def _base_measures(b):
     """Return ({j: scalar RMS}, {j: vector RMS}, at the floor) of the base fit, nT."""
     s, floor = b.data.n_sensors, b.floor
-    scalar_rms = {j: rms(b.ev0.scalar[j - 1]) for j in range(1, s + 1)}
-    vector_rms = {j: rms(b.ev0.vector[j - 1]) for j in range(2, s + 1)}
+    scalar_rms = {j: b.ev0.scalar_rms(j) for j in range(1, s + 1)}
+    vector_rms = {j: b.ev0.vector_rms(j) for j in range(2, s + 1)}
     at_floor = (all(v <= AT_FLOOR_RATIO * floor.per_sensor_nt[j - 1]
                     for j, v in scalar_rms.items())
                 and all(v <= AT_FLOOR_RATIO * floor.vector_floor_nt(j)
@@ -813,18 +824,19 @@ def _rank(b, trials, cv0, held_out, decided, p_thr):
         elif c.ev is None:
             share, how = None, None           # ruled out by the score test, not evaluated
         else:
-            ms1 = dof_factor(c.model) * np.mean(c.ev.residual ** 2)
+            ms1 = dof_factor(c.model) * c.ev.mean_square
             share, how = explained_share(b.ms0, ms1, b.floor.value_nt), decided
         sig = bool(p_val < p_thr and d_bic < MIN_DELTA_BIC and share is not None
                    and share >= MIN_EXPLAINED
                    and (c.method == 'refit' or not b.constrained) and not c.reduces)
         out.append(Candidate(
             token=c.token, effect=c.label, sensor=c.sensor, n_params=c.k,
-            rms_before_nt=scalar_rms_of(ev0.scalar, sens),
-            rms_after_nt=None if c.ev is None else scalar_rms_of(c.ev.scalar, sens),
-            vector_rms_before_nt=vector_rms_of(ev0.vector, sens, s),
+            rms_before_nt=scalar_rms_of(ev0.scalar, sens, ev0.kept),
+            rms_after_nt=(None if c.ev is None else
+                          scalar_rms_of(c.ev.scalar, sens, c.ev.kept)),
+            vector_rms_before_nt=vector_rms_of(ev0.vector, sens, s, ev0.kept),
             vector_rms_after_nt=(None if c.ev is None else
-                                 vector_rms_of(c.ev.vector, sens, s)),
+                                 vector_rms_of(c.ev.vector, sens, s, c.ev.kept)),
             delta_chi2=float(d_chi2), delta_bic=d_bic, p_value=p_val, log10_p_value=logp,
             method=c.method, cv_rms_before_nt=cv_b, cv_rms_after_nt=cv_a,
             significant=sig, params=added_params(c.model, c.p, c.added),

@@ -150,7 +150,7 @@ def verify_term(b, token, cv0, folds, cv_method='newton', on_degenerate='raise',
     else:
         before = float(np.sqrt(b.ms0))
         ev = evaluate_residuals(m_ext, r.params, data, f, b.sigma, contexts)
-        after = float(np.sqrt(dof_factor(m_ext) * np.mean(ev.residual ** 2)))
+        after = float(np.sqrt(dof_factor(m_ext) * ev.mean_square))
         how = 'in-sample'
     if not np.isfinite(after):
         return Verified(token, False, f'its {how} residual is not finite', before, after)

@@ -20,7 +20,9 @@ The one parser of model formulas: :func:`parse` (docs/formulas.md).
     model    := term (('+' | ',') term)*
     term     := alias-token ['@' scope]                 base, temperature@2, step(300), ...
               | coupling '(' driver ')' ['@' scope]     offset(s(t, k=6))@2
-              | 'drop(' t0 ',' t1 ')'                   leave [t0, t1] s out of the fit
+              | 'drop(' t0 ',' t1 ')' ['@' J | '{' J (',' J)* '}']
+                                                        leave [t0, t1] s out of the fit:
+                                                        every sensor, or those of the scope
     driver   := factor ('*' factor)*
     factor   := name '(' arg (',' arg)* ')' | variable | '1'      arg := value | key '=' value
     scope    := J | each | alike | '{' J (',' J)* '}' | array
@@ -142,6 +144,9 @@ class Term:
         :data:`.catalog.TOKENS`), None for the constant linear map and plug-ins.
     window : tuple or None
         (t0, t1) s of a ``drop`` term.
+    dropped : tuple or None
+        The 1-based sensors a ``drop`` term leaves out (``drop(t0, t1)@2``), None for every
+        sensor (and the attitude's observation of the field, when the model has one).
 
     """
 
@@ -154,6 +159,7 @@ class Term:
     signals: tuple = ()
     expansion: str | None = None
     window: tuple | None = None
+    dropped: tuple | None = None
 
     def sensors(self, n_sensors):
         """1-based sensors the term is on (all of them for each, alike, array)."""
@@ -211,16 +217,7 @@ def parse_term(text):
         raise FormulaError(f'{raw!r}: {name!r} is not a term name: write coupling(driver), '
                            'a catalog token (base, temperature, step(300), ...) or drop(t0, t1)')
     if name == 'drop':
-        args, kw = _arguments(inner or '', raw) if inner is not None else ([], {})
-        if inner is None or len(args) != 2 or kw:
-            raise FormulaError(f'{raw!r}: drop takes two times in s, e.g. drop(120, 160)')
-        if scope_text:
-            raise FormulaError(f'{raw!r}: drop leaves samples out for every sensor: drop @')
-        t0, t1 = (parse_number(a, 'drop time [s]') for a in args)
-        if not t1 > t0:
-            raise FormulaError(f'{raw!r}: the end of the dropped window must follow its start')
-        core = f'drop({format_arg(t0)}, {format_arg(t1)})'
-        return Term(text=core, kind='drop', core=core, scope='array', window=(t0, t1))
+        return _drop_term(raw, inner, scope_text)
     ccls = cp.coupling_class(name)
     if inner is not None and ccls is not None:
         coupling = ccls()
@@ -239,6 +236,33 @@ def parse_term(text):
         return Term(text=text_out, kind='composed', core=core, coupling=name,
                     driver=driver.text, scope=scope, signals=tuple(driver.signals))
     return _alias_term(raw, core_text, scope_text)
+
+
+def _drop_term(raw, inner, scope_text):
+    """
+    Return the term of ``drop(t0, t1)`` (every sensor) or ``drop(t0, t1)@J`` / ``@{J,K}``.
+
+    Without a scope the sets in [t0, t1] s are left out of the fit (every sensor's readings
+    and the attitude's observation); with one, only those sensors' readings are, and the
+    other sensors' readings of those sets still count.
+    """
+    args, kw = _arguments(inner or '', raw) if inner is not None else ([], {})
+    if inner is None or len(args) != 2 or kw:
+        raise FormulaError(f'{raw!r}: drop takes two times in s, e.g. drop(120, 160)')
+    t0, t1 = (parse_number(a, 'drop time [s]') for a in args)
+    if not t1 > t0:
+        raise FormulaError(f'{raw!r}: the end of the dropped window must follow its start')
+    core = f'drop({format_arg(t0)}, {format_arg(t1)})'
+    if not scope_text:
+        return Term(text=core, kind='drop', core=core, scope='array', window=(t0, t1))
+    given = scope_text.strip().replace(' ', '')
+    if not (given.isdigit() or given.startswith('{')):
+        raise FormulaError(f'{raw!r}: drop takes a sensor scope, @J or @{{J,K}} (without one '
+                           'it leaves the window out for every sensor)')
+    scope = _scope(scope_text, raw, False)
+    dropped = tuple(int(j) for j in scope.strip('{}').split(','))
+    return Term(text=f'{core}@{scope}', kind='drop', core=core, scope=scope, window=(t0, t1),
+                dropped=dropped)
 
 
 def _alias_term(raw, core_text, scope_text):
@@ -281,8 +305,13 @@ class Formula:
 
     @property
     def drops(self):
-        """(t0, t1) s windows left out of the fit."""
-        return [t.window for t in self.terms if t.kind == 'drop']
+        """
+        Return the windows left out of the fit: (t0, t1, sensors), t0 and t1 in s.
+
+        ``sensors`` is a tuple of 1-based sensors (``drop(t0, t1)@J``), None for every
+        sensor (``drop(t0, t1)``).
+        """
+        return [(*t.window, t.dropped) for t in self.terms if t.kind == 'drop']
 
     def __add__(self, other):
         other = other if isinstance(other, Formula) else parse(other)

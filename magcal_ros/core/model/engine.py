@@ -150,6 +150,14 @@ class ProfiledProblem:
         (N, 3) nT, the profiled field of nearby parameters: the profile starts from it and
         takes one Gauss-Newton step instead of two from the mean corrected reading.
 
+    The model's ``drop`` terms leave readings out (``Model.reading_mask`` at the times of
+    ``contexts``: ``drop(t0, t1)@J`` sensor J's readings of the window, ``drop(t0, t1)``
+    every sensor's and the attitude's).  A reading left out has no residual rows (its
+    residual, Jacobian and field-direction rows are zero) and does not inform its set's
+    field; the other sensors' readings of the set still count.  A set without any reading
+    kept is profiled from all of them (for the residual of every reading,
+    :meth:`reading_residuals`) and has no rows (the fit does not pass such sets).
+
     Attributes
     ----------
     cols : numpy.ndarray
@@ -175,6 +183,28 @@ class ProfiledProblem:
         self.p_full = model.default_params() if p_full is None else np.array(p_full, float)
         self.field0 = field0
         self._aid_setup()
+        self._drop_setup()
+
+    def _drop_setup(self):
+        """
+        Set the row weights of the readings the model's ``drop`` terms leave out.
+
+        :attr:`keep` (N, G (+1)) 0/1 per member (the group's sensors, then the attitude,
+        which a set keeps while any sensor of the model does), None when every reading is
+        used; :attr:`field_w`, the weights of the field profile: ``keep``, with a set
+        that keeps no reading weighted 1 throughout.
+        """
+        self.keep = self.field_w = None
+        if not self.model.drops or not self.ctx:
+            return
+        mask = self.model.reading_mask(self.ctx[0].t)
+        m = mask[np.array(self.sensors) - 1].T
+        if self.aid is not None:
+            m = np.concatenate([m, mask.any(axis=0)[:, None]], axis=1)
+        if m.all():
+            return
+        self.keep = m.astype(float)
+        self.field_w = np.where(m.any(axis=1, keepdims=True), self.keep, 1.0)
 
     def _aid_setup(self):
         """
@@ -221,6 +251,28 @@ class ProfiledProblem:
         return np.einsum('nij,nj->ni', proj, y - b) / self.aid_sigma
 
     @property
+    def member_counts(self):
+        """(G,) or (G + 1,) int: the sets each member (sensor, attitude) has rows in."""
+        if self.keep is None:
+            return np.full(self.n_members, self.raw.shape[1])
+        return self.keep.sum(axis=0).astype(int)
+
+    @property
+    def n_observations(self):
+        """
+        Return the observations net of the profiled field: the sum over sets of rows - 2.
+
+        A set has 3 rows per sensor reading it keeps (and the attitude's rank); the field's
+        two directions take two of them.  A set without rows counts nothing.
+        """
+        g = len(self.sensors)
+        aid = self.aid.rank if self.aid is not None else 0
+        if self.keep is None:
+            return int((3 * g + aid - 2) * self.raw.shape[1])
+        rows = 3 * self.keep[:, :g].sum(axis=1) + (aid * self.keep[:, g] if aid else 0)
+        return int(np.sum(np.where(rows > 0, rows - 2, 0)))
+
+    @property
     def n_residuals(self):
         """Length of :meth:`residuals`: 3 G N (G with the attitude), plus one per prior."""
         return 3 * self.n_members * self.raw.shape[1] + len(self.priors)
@@ -263,17 +315,23 @@ class ProfiledProblem:
         else:
             cor = np.stack([self.model.correct(j, p, self.raw[j - 1], self.ctx[j - 1])
                             for j in self.sensors])
+            fw = None if self.field_w is None else self.field_w[:, :len(self.sensors)]
             if self.robust and len(self.sensors) > 2:
-                acc = np.median(cor, axis=0)      # one spiking sensor cannot pull the field
+                # one spiking sensor cannot pull the field
+                acc = (np.median(cor, axis=0) if fw is None else
+                       np.nanmedian(np.where(fw.T[:, :, None] > 0, cor, np.nan), axis=0))
             else:
-                acc = np.einsum('gnc,g->nc', cor,
-                                1.0 / self.sigma[np.array(self.sensors) - 1] ** 2)
+                wts = 1.0 / self.sigma[np.array(self.sensors) - 1] ** 2
+                acc = (np.einsum('gnc,g->nc', cor, wts) if fw is None
+                       else np.einsum('gnc,ng,g->nc', cor, fw, wts))
             u = acc / np.linalg.norm(acc, axis=1, keepdims=True)
             b, steps = u * self.f[:, None], 2
         # -dr_j/d delta_a = F A_j e_a / sigma_j per epoch, so the 2 x 2 normal equations of
         # the tangent directions are quadratic forms of M_j = A_j^T A_j / sigma_j^2 and the
         # right-hand sides projections of s = sum_j A_j^T r_j / sigma_j: with equal weights
-        # the forms of M = sum_j M_j are taken once per step instead of once per sensor
+        # the forms of M = sum_j M_j are taken once per step instead of once per sensor;
+        # per-epoch weights (the robust loss, readings left out: field_w) sum per sensor
+        per_sensor = self.robust or self.field_w is not None
         a_sig = {j: mats[j] / self.sigma[j - 1] for j in self.sensors}
         m_j = {j: a_sig[j].T @ a_sig[j] for j in self.sensors}
         m_sum = sum(m_j.values())
@@ -283,19 +341,21 @@ class ProfiledProblem:
             e1, e2 = tangent_basis(u)
             h11, h12, h22 = np.zeros(n), np.zeros(n), np.zeros(n)
             s = np.zeros((n, 3))
-            for j in self.sensors:
+            for gi, j in enumerate(self.sensors):
                 r = (self.raw[j - 1] - self.model.forward(j, p, b, self.ctx[j - 1], mats[j],
                                                           adds[j])) / self.sigma[j - 1]
-                if self.robust:
-                    # IRLS weight of the soft-L1 loss on this sensor's residual at each epoch
-                    w = 1.0 / np.sqrt(1.0 + np.sum(r * r, axis=1) / self.f_scale ** 2)
+                if per_sensor:
+                    w = np.ones(n) if self.field_w is None else self.field_w[:, gi]
+                    if self.robust:
+                        # IRLS weight of the soft-L1 loss on this sensor's residual per epoch
+                        w = w / np.sqrt(1.0 + np.sum(r * r, axis=1) / self.f_scale ** 2)
                     m1, m2 = e1 @ m_j[j], e2 @ m_j[j]
                     h11 += w * np.einsum('ij,ij->i', m1, e1)
                     h12 += w * np.einsum('ij,ij->i', m1, e2)
                     h22 += w * np.einsum('ij,ij->i', m2, e2)
                     r = r * w[:, None]
                 s += r @ a_sig[j]
-            if not self.robust:
+            if not per_sensor:
                 m1, m2 = e1 @ m_sum, e2 @ m_sum
                 h11 = np.einsum('ij,ij->i', m1, e1)
                 h12 = np.einsum('ij,ij->i', m1, e2)
@@ -306,6 +366,8 @@ class ProfiledProblem:
                 sa2 = self.aid_sigma ** 2
                 w = (1.0 / np.sqrt(1.0 + np.sum(r * r, axis=1) / self.f_scale ** 2)
                      if self.robust else np.ones(n))
+                if self.field_w is not None:
+                    w = w * self.field_w[:, -1]
                 p1 = np.einsum('nij,nj->ni', self.aid_proj, e1)
                 p2 = np.einsum('nij,nj->ni', self.aid_proj, e2)
                 h11 = h11 + w * np.einsum('ij,ij->i', p1, p1) / sa2
@@ -339,7 +401,8 @@ class ProfiledProblem:
         numpy.ndarray
             (N, 3G, 2) dimensionless: -dr_k/d(delta_1, delta_2) for a rotation of B_k by
             delta (rad) in the tangent plane (:func:`tangent_basis`), rows in the order
-            sensor of the group, axis (then the attitude's three rows, when it observes).
+            sensor of the group, axis (then the attitude's three rows, when it observes);
+            zero rows for the readings the model's ``drop`` terms leave out.
 
         """
         e1, e2 = tangent_basis(b / self.f[:, None])
@@ -348,6 +411,10 @@ class ProfiledProblem:
         if self.aid is not None:
             e = np.stack([e1, e2], axis=2)                                  # (N, 3, 2)
             blocks.append(self.aid_proj @ e * (self.f[:, None, None] / self.aid_sigma))
+        if self.field_w is not None:
+            # a reading left out has no rows (a set without any: the columns of all, which
+            # project nothing, as its rows are zero)
+            blocks = [blk * self.field_w[:, gi, None, None] for gi, blk in enumerate(blocks)]
         return np.concatenate(blocks, axis=1)
 
     def project_out_field(self, b, mats, m):
@@ -391,6 +458,8 @@ class ProfiledProblem:
         res : numpy.ndarray
             (N, G, 3) normalised residuals (raw - prediction) / sigma_j, dimensionless;
             (N, G + 1, 3) with the attitude's residual last when it observes the field.
+            Zero for the readings the ``drop`` terms leave out (:meth:`reading_residuals`
+            has them).
 
         """
         key = x.tobytes()
@@ -402,10 +471,25 @@ class ProfiledProblem:
                     for j in self.sensors]
             if self.aid is not None:
                 rows.append(self._aid_residual(p, b))
-            res = np.stack(rows, axis=1)                            # (N, G (+1), 3)
+            every = np.stack(rows, axis=1)                          # (N, G (+1), 3)
+            res = every
+            if self.keep is not None:
+                res = every * self.keep[:, :, None]
             self._cache = (p, b, mats, res)
+            self._every = every
             self._cache_key = key
         return self._cache
+
+    def reading_residuals(self, x):
+        """
+        Return (N, G (+1), 3) the normalised residual of every reading at x.
+
+        :meth:`evaluate`'s ``res`` with the readings the ``drop`` terms leave out included: their
+        residual against the field profiled from the other sensors' readings (what the
+        reports show of a dropped reading; the fit and the noise levels do not see it).
+        """
+        self.evaluate(x)
+        return self._every
 
     def residuals(self, x):
         """
@@ -439,22 +523,26 @@ class ProfiledProblem:
         field held at ``b`` (N, 3) nT.  Returns two lists over the group's sensors: the
         sensor's own columns (P_j, N, 3) and the array-wide columns (n_arr, N, 3) (None
         without array-wide parameters), in 1 / (unit of each parameter); the sensor's other
-        rows are zero in its own columns.
+        rows are zero in its own columns, and so are the rows of its readings left out.
         """
         own, arr = [], []
-        for j in self.sensors:
+        for gi, j in enumerate(self.sensors):
             sl = self.model.sensor_slices[j - 1]
             # an additive effect's column differences that effect alone
             # (Model.forward_differences)
             block, h = self.model.forward_differences(j, p, b, self.ctx[j - 1],
                                                       range(sl.start, sl.stop))
             block /= -(h * self.sigma[j - 1])[:, None, None]
+            if self.keep is not None:
+                block *= self.keep[None, :, gi, None]           # a reading left out: no row
             own.append(block)
             if len(self.model.array_cols):
                 # array-wide parameters (site gradient): every sensor depends on them
                 block, h = self.model.forward_differences(j, p, b, self.ctx[j - 1],
                                                           self.model.array_cols)
                 block /= -(h * self.sigma[j - 1])[:, None, None]
+                if self.keep is not None:
+                    block *= self.keep[None, :, gi, None]
                 arr.append(block)
             else:
                 arr.append(None)
@@ -476,6 +564,8 @@ class ProfiledProblem:
             dp = pa.copy()
             dp[k] += h
             out[col] = (self.aid.residual(dp, self.rot, self.f, b) - r0) / (h * self.aid_sigma)
+        if self.keep is not None:
+            out *= self.keep[None, :, -1, None]                 # the sets left out: no rows
         return out
 
     def _prior_jacobian(self):

@@ -84,6 +84,9 @@ class FitResult:
         Residual evaluations of the optimiser.
     n_fit_samples : int
         Epochs the parameters were fitted on (at most ``max_fit_samples``).
+    n_fit_readings : numpy.ndarray or None
+        (S,) int, the readings of each sensor the parameters were fitted on: n_fit_samples
+        less the sets a ``drop(t0, t1)@j`` leaves out of sensor j.
     chi2 : float
         Sum of squared normalised residuals at the solution, on the fitted epochs.
     n_obs : int
@@ -123,6 +126,7 @@ class FitResult:
     robust: bool = False
     f_scale: float = 3.0
     raw_nt: np.ndarray | None = field(default=None, repr=False)
+    n_fit_readings: np.ndarray | None = None
 
     # -- per-epoch arrays, computed on first access ---------------------------------------
 
@@ -143,7 +147,12 @@ class FitResult:
 
     @cached_property
     def residual_nt(self):
-        """(S, N, 3) raw reading minus model prediction, nT."""
+        """
+        (S, N, 3) raw reading minus model prediction, nT.
+
+        A reading a ``drop`` term leaves out has its residual against the field profiled
+        from the readings kept (the summaries leave it out: :attr:`reading_mask`).
+        """
         field_nt, residual = self._profile()
         self.__dict__.setdefault('field_nt', field_nt)     # the same computation: keep it
         return residual
@@ -178,6 +187,9 @@ class FitResult:
         residual = self.__dict__.get('residual_nt')
         if residual is None:
             residual = self._profile()[1]
+        keep = self.reading_mask
+        if keep is not None:
+            residual = residual * keep[:, :, None]
         return downweighted_counts(residual, self.sigma_nt, self.f_scale)
 
     # -- summaries ------------------------------------------------------------------------
@@ -187,29 +199,42 @@ class FitResult:
         """Return the number of free parameters."""
         return self.model.n_params
 
-    def _kept(self):
-        """Index of the epochs the residual summaries cover: all but the drop() windows."""
-        drops = getattr(self.model, 'drops', ())
-        if not drops or not self.contexts:
+    @cached_property
+    def reading_mask(self):
+        """
+        (S, N) bool: the readings the summaries cover (``Model.reading_mask``), or None.
+
+        None when the model has no ``drop`` term: every reading.
+        """
+        if not getattr(self.model, 'drops', ()) or not self.contexts:
+            return None
+        return self.model.reading_mask(np.asarray(self.contexts[0].t))
+
+    def _kept(self, j, other=None):
+        """Index of sensor j's epochs the summaries cover (and sensor ``other``'s)."""
+        keep = self.reading_mask
+        if keep is None:
             return slice(None)
-        return self.model.fit_mask(np.asarray(self.contexts[0].t))
+        return keep[j - 1] if other is None else keep[j - 1] & keep[other - 1]
 
     @property
     def scalar_rms_nt(self):
-        """{sensor: RMS of the scalar residual} in nT (outside any drop() window)."""
-        keep = self._kept()
-        return {j + 1: float(np.sqrt(np.mean(r[keep] ** 2)))
+        """{sensor: RMS of the scalar residual} in nT (outside its drop() windows)."""
+        return {j + 1: float(np.sqrt(np.mean(r[self._kept(j + 1)] ** 2)))
                 for j, r in enumerate(self.scalar_residual_nt)}
 
     @property
     def vector_rms_nt(self):
-        """{sensor j > 1: per-component RMS of corrected_j - corrected_1} in nT (no drops)."""
+        """
+        {sensor j > 1: per-component RMS of corrected_j - corrected_1} in nT.
+
+        On the sets both sensors keep (outside their drop() windows).
+        """
         vector = self.__dict__.get('vector_residual_nt')
         if vector is None:                  # not kept: the RMS needs only a passing copy
             centred = self._centred()
             vector = centred - centred[:1]
-        keep = self._kept()
-        return {j + 1: float(np.sqrt(np.mean(vector[j][keep] ** 2)))
+        return {j + 1: float(np.sqrt(np.mean(vector[j][self._kept(j + 1, 1)] ** 2)))
                 for j in range(1, self.model.n_sensors)}
 
     @property
@@ -234,6 +259,10 @@ class FitResult:
         lines = [f'model: {",".join(self.model.spec())}  ({self.n_params} parameters, '
                  f'{self.n_fit_samples} epochs fitted)',
                  f'converged: {self.success} ({self.message})']
+        if self.n_fit_readings is not None and np.any(self.n_fit_readings < self.n_fit_samples):
+            lines.append('readings left out by drop(): ' + ', '.join(
+                f'sensor {j} {self.n_fit_samples - int(n)}'
+                for j, n in enumerate(self.n_fit_readings, start=1) if n < self.n_fit_samples))
         vector_rms = self.vector_rms_nt
         for j, r in self.scalar_rms_nt.items():
             v = vector_rms.get(j)
@@ -330,17 +359,11 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
         contexts_all = [data.context(j) for j in range(1, data.n_sensors + 1)]
         ident = _check_data(data, model, contexts_all, constrained, check_identifiability,
                             degenerate)
-        idx = fit_epochs(data.n_samples, max_fit_samples)
-        if model.drops:
-            # drop(t0, t1) terms: the fit leaves those windows out
-            idx = idx[model.fit_mask(data.t[idx])]
-            if len(idx) < 10:
-                raise ValueError(f'the drop() windows {model.drops} leave {len(idx)} samples '
-                                 'to fit: drop less')
+        idx, mask = fitted_readings(model, data.t, fit_epochs(data.n_samples, max_fit_samples))
         raw, f = data.raw[:, idx], f_all[idx]
         contexts = [c.subset(idx) for c in contexts_all]
         if init is None:
-            p0 = _closed_form_start(raw, f, model, constrained, ident, degenerate)
+            p0 = _closed_form_start(raw, f, model, constrained, ident, degenerate, mask)
         else:
             p0 = np.asarray(init, float).copy()
         if (any(hasattr(e, 'set_positions') for e in model.array_effects)
@@ -351,7 +374,7 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
                                 model.correct(1, p0, data.raw[0], contexts_all[0]), data.t)
         prior_list = priors_for(model, priors or {}, constrained) + list(extra_priors or ())
         solve = _Solve(model, raw, f, contexts, prior_list, robust, f_scale, solver, max_nfev,
-                       ftol)
+                       ftol, mask)
         p, sigma, sol = solve.run(p0, sigma_nt)
         cov, chi2, n_obs = solve.covariance(p, sigma, with_jacobian=covariance)
         stderr, corr = stderr_and_correlation(cov)
@@ -368,7 +391,9 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
         sigma_nt=sigma, field_magnitude_nt=f_all, success=sol.success, status=sol.status,
         message=sol.message, nfev=sol.nfev, n_fit_samples=len(idx), chi2=chi2, n_obs=n_obs,
         warnings=tuple(notes), identifiability=ident, initial_params=p0,
-        contexts=contexts_all, robust=bool(robust), f_scale=float(f_scale), raw_nt=data.raw)
+        contexts=contexts_all, robust=bool(robust), f_scale=float(f_scale), raw_nt=data.raw,
+        n_fit_readings=(np.full(model.n_sensors, len(idx)) if mask is None
+                        else mask.sum(axis=1)))
 
 
 def _model_for(data, model):
@@ -421,6 +446,34 @@ def _check_data(data, model, contexts, constrained, check_identifiability, degen
     return ident
 
 
+def fitted_readings(model, t, idx):
+    """
+    Return the fitted sets and readings: (M,) indices into ``t`` and (S, M) bool or None.
+
+    ``idx`` (M0,) are the candidate sets (:func:`fit_epochs`), ``t`` (N,) s all the times.
+    The model's ``drop`` terms leave readings out (``Model.reading_mask``); a set whose
+    every reading is left out is removed.  The mask is None when every reading of the sets
+    kept is used.  Raises ValueError when fewer than 10 sets are left, or when a sensor
+    keeps fewer readings than max(10, its parameters).
+    """
+    if not model.drops:
+        return idx, None
+    mask = model.reading_mask(np.asarray(t)[idx])
+    sets = mask.any(axis=0)
+    idx, mask = idx[sets], mask[:, sets]
+    terms = ' + '.join(w for w in model.spec() if w.startswith('drop('))
+    if len(idx) < 10:
+        raise ValueError(f'the drop() windows ({terms}) leave {len(idx)} samples to fit: '
+                         'drop less')
+    for j, n_j in enumerate(mask.sum(axis=1), start=1):
+        need = max(10, model.sensor_slices[j - 1].stop - model.sensor_slices[j - 1].start)
+        if n_j < need:
+            raise ValueError(f'the drop() windows ({terms}) leave sensor {j} with {int(n_j)} of '
+                             f'{len(idx)} samples to fit (it needs at least {need}): drop '
+                             'less of it')
+    return idx, None if mask.all() else mask
+
+
 def fit_epochs(n, max_fit_samples):
     """Return the (M,) indices of the epochs fitted: all, or ``max_fit_samples`` evenly spaced."""
     if max_fit_samples and n > max_fit_samples:
@@ -428,19 +481,19 @@ def fit_epochs(n, max_fit_samples):
     return np.arange(n)
 
 
-def _closed_form_start(raw, f, model, constrained, ident, degenerate):
+def _closed_form_start(raw, f, model, constrained, ident, degenerate, mask=None):
     """Return the closed-form start; flagged degenerate data start from ideal sensors."""
     try:
-        return initial_params(raw, f, model, constrained=constrained)
+        return initial_params(raw, f, model, constrained=constrained, mask=mask)
     except ValueError as exc:
         if constrained:
             raise
         degenerate(f'{exc}. {ident.get("summary", "")}'.strip())
         # flagged: start from ideal sensors and the sphere-fit offsets instead
-        return initial_params(raw, f, model, constrained=True)
+        return initial_params(raw, f, model, constrained=True, mask=mask)
 
 
-def group_noise_variances(res, g_cols, n_params, ranks=None):
+def group_noise_variances(res, g_cols, n_params, ranks=None, keep=None):
     """
     Unbiased moment estimate of each sensor's noise variance in a group, relative to its weight.
 
@@ -471,6 +524,12 @@ def group_noise_variances(res, g_cols, n_params, ranks=None):
         of the field, :mod:`magcal_ros.core.effects.attitude_ref`, is a member whose
         noise lies in its projector's range, rank 1 or 3): the 3 of the formula above is
         the trace of the member's noise covariance.
+    keep : numpy.ndarray, optional
+        (N, G) 0/1: the sensors' readings the fit keeps (:attr:`ProfiledProblem.keep`;
+        the attitude, a member after them, keeps every epoch).  A reading left out has no
+        noise in the residual: its rows of ``res`` and ``g_cols`` are zero, and its sensor's
+        3 of the formula counts only the epochs it keeps; an epoch without any reading
+        counts nothing.
 
     Returns
     -------
@@ -480,6 +539,14 @@ def group_noise_variances(res, g_cols, n_params, ranks=None):
     """
     from scipy.optimize import nnls
     n, g = res.shape[0], res.shape[1]
+    counts = np.full(g, float(n))
+    if keep is not None:
+        w = np.ones((n, g))
+        w[:, :keep.shape[1]] = keep
+        rows = w.any(axis=1)                    # epochs with a reading (or the attitude)
+        res, g_cols, w, n = res[rows], g_cols[rows], w[rows], int(rows.sum())
+        g_cols = g_cols * np.repeat(w, 3, axis=1)[:, :, None]
+        counts = w.sum(axis=0)
     gj = g_cols.reshape(n, g, 3, 2)
     k = np.einsum('ngaq,ngar->ngqr', gj, gj, optimize=True)   # (N, G, 2, 2) G_j^T G_j
     s = np.linalg.inv(k.sum(axis=1))                           # (N, 2, 2) (G^T G)^-1
@@ -489,21 +556,26 @@ def group_noise_variances(res, g_cols, n_params, ranks=None):
     c = np.tensordot(sk.transpose(0, 1, 3, 2).reshape(n, g, 4), sk.reshape(n, g, 4),
                      axes=([0, 2], [0, 2]))
     rk = np.full(g, 3.0) if ranks is None else np.asarray(ranks, float)
-    c[np.diag_indices(g)] += rk * n - 2.0 * np.einsum('njqq->j', sk)
+    c[np.diag_indices(g)] += rk * counts - 2.0 * np.einsum('njqq->j', sk)
     m = np.einsum('nga,nga->g', res, res)
-    d, _ = nnls(c, m * dof_scale(n, g, n_params, rk.sum()) ** 2)
+    d, _ = nnls(c, m * dof_scale(n, g, n_params, row_total=float(rk @ counts)) ** 2)
     return np.maximum(d, 1e-12)
 
 
-def dof_scale(n, g, n_params, rows=None):
+def dof_scale(n, g, n_params, rows=None, row_total=None):
     """
     Return sqrt((3 G - 2) N / ((3 G - 2) N - P)), which scales a group's residual noise sd.
 
     Each epoch leaves 3 G - 2 residual degrees of freedom (two go to the field's direction);
     the P fitted parameters take theirs from the total.  ``rows``: the observations per
-    epoch when they are not 3 G (an attitude observing the field adds its rank).
+    epoch when they are not 3 G (an attitude observing the field adds its rank);
+    ``row_total``: the observations of all N epochs when the epochs do not have the same
+    (a sensor's readings left out by ``drop(t0, t1)@j``).
     """
-    dof = ((3 * g if rows is None else rows) - 2) * n
+    if row_total is not None:
+        dof = row_total - 2 * n
+    else:
+        dof = ((3 * g if rows is None else rows) - 2) * n
     return float(np.sqrt(dof / max(dof - n_params, 1.0)))
 
 
@@ -562,8 +634,11 @@ class _Solve:
     """The ML problem of each sensor group on the fitted epochs, and its noise levels."""
 
     def __init__(self, model, raw, f, contexts, prior_list, robust, f_scale, solver,
-                 max_nfev, ftol=None):
+                 max_nfev, ftol=None, mask=None):
         self.model, self.raw, self.f, self.contexts = model, raw, f, contexts
+        #: (S, N) bool, the readings fitted (None: all; :func:`fitted_readings`): the start
+        #: and its noise levels leave the others out (the problems do from the model's drops)
+        self.mask = mask
         # the solvers' own default tolerance unless one is given
         self.ftol_kw = {} if ftol is None else {'ftol': ftol}
         self.prior_list = prior_list
@@ -616,7 +691,9 @@ class _Solve:
         sigma = np.empty(model.n_sensors)
         for j in range(1, model.n_sensors + 1):
             corr = model.correct(j, p, self.raw[j - 1], self.contexts[j - 1])
-            sigma[j - 1] = max(mad_sd(np.linalg.norm(corr, axis=1) - self.f), 1e-3)
+            scalar = np.linalg.norm(corr, axis=1) - self.f
+            sigma[j - 1] = max(mad_sd(scalar if self.mask is None
+                                      else scalar[self.mask[j - 1]]), 1e-3)
         return sigma
 
     def solve_groups(self, p, sigma):
@@ -666,13 +743,18 @@ class _Solve:
             g = len(prob.sensors)
             g_cols = prob.field_columns(b, mats)
             if self.robust and prob.aid is None:
-                scale = dof_scale(res.shape[0], g, len(prob.cols))
+                kept = prob.member_counts
+                scale = dof_scale(int(np.count_nonzero(prob.keep.any(axis=1)))
+                                  if prob.keep is not None else res.shape[0], g,
+                                  len(prob.cols), row_total=3.0 * kept.sum())
                 for gi, j in enumerate(prob.sensors):
-                    new_sigma[j - 1] = (sigma[j - 1] * scale
-                                        * mad_sd(own_residual(res, g_cols, gi)))
+                    own = own_residual(res, g_cols, gi)
+                    if prob.keep is not None:
+                        own = own[prob.keep[:, gi] > 0]
+                    new_sigma[j - 1] = sigma[j - 1] * scale * mad_sd(own)
                 continue
             ranks = [3] * g + ([prob.aid.rank] if prob.aid is not None else [])
-            ratio = group_noise_variances(res, g_cols, len(prob.cols), ranks)
+            ratio = group_noise_variances(res, g_cols, len(prob.cols), ranks, prob.keep)
             for gi, j in enumerate(prob.sensors):
                 new_sigma[j - 1] = sigma[j - 1] * np.sqrt(ratio[gi])
             if prob.aid is not None:
@@ -700,8 +782,7 @@ class _Solve:
             x = p[prob.cols]
             r = prob.residuals(x)
             chi2 += float(np.sum(r ** 2))
-            n_obs += (3 * len(grp) - 2 + (prob.aid.rank if prob.aid is not None else 0)
-                      ) * self.raw.shape[1]
+            n_obs += prob.n_observations
             if not with_jacobian:
                 continue
             # J^T J of the projected Jacobian, formed block by block (the same matrix for
@@ -788,7 +869,7 @@ def priors_for(model, spec, constrained=False):
     return out
 
 
-def initial_params(raw, field_nt, model, constrained=False):
+def initial_params(raw, field_nt, model, constrained=False, mask=None):
     """
     Closed-form starting values (paper 004 section 3).
 
@@ -807,6 +888,9 @@ def initial_params(raw, field_nt, model, constrained=False):
         The model whose parameters are started.
     constrained : bool
         A = I and the offset from the linear sphere fit only.
+    mask : numpy.ndarray, optional
+        (S, N) bool, the readings to start from (a sensor's readings left out by
+        ``drop(t0, t1)@j`` are not); default all.
 
     Returns
     -------
@@ -819,17 +903,19 @@ def initial_params(raw, field_nt, model, constrained=False):
     p = model.default_params()
     corrected = []
     mats = []
+    keep = np.ones(raw.shape[:2], bool) if mask is None else np.asarray(mask, bool)
     for j in range(1, s + 1):
         # in the frame of the sensor's axes (an axes(...) map M: reading = M x that frame)
         m = raw[j - 1] @ model.axis_map(j)
+        mk, fk = m[keep[j - 1]], field_nt[keep[j - 1]]
         if constrained:
             # |m|^2 = 2 m.o + (F^2 - |o|^2): linear in (o, c)
-            design = np.column_stack([2 * m, np.ones(len(m))])
-            sol, *_ = np.linalg.lstsq(design, (m ** 2).sum(1) - field_nt ** 2 + f0 ** 2,
+            design = np.column_stack([2 * mk, np.ones(len(mk))])
+            sol, *_ = np.linalg.lstsq(design, (mk ** 2).sum(1) - fk ** 2 + f0 ** 2,
                                       rcond=None)
             c_inv, o = np.eye(3), sol[:3]
         else:
-            ell = fit_ellipsoid(m, f0)
+            ell = fit_ellipsoid(mk, f0)
             c_inv, o = ell.c_inv, ell.b
         corrected.append((m - o) @ c_inv.T)
         mats.append((c_inv, o))
@@ -837,7 +923,8 @@ def initial_params(raw, field_nt, model, constrained=False):
         c_inv, o = mats[j - 1]
         rot = np.eye(3)
         if j > 1 and model.frame_rotation(j):
-            rot = procrustes_rotation(corrected[0], corrected[j - 1])       # eq. 14
+            both = keep[0] & keep[j - 1]
+            rot = procrustes_rotation(corrected[0][both], corrected[j - 1][both])   # eq. 14
         amap = model.axis_map(j)
         a = amap @ np.linalg.inv(c_inv) @ rot.T
         p = model.params_from_linear(j, a, amap @ o, p)
@@ -875,9 +962,11 @@ def profile_residuals(model, p, raw, f, sigma, contexts, robust=False, f_scale=3
     Returns
     -------
     field : numpy.ndarray
-        (N, 3) profiled field, nT (joint: shared; independent sensors: the last one's).
+        (N, 3) profiled field, nT (joint: shared; independent sensors: the last one's);
+        profiled without the readings the model's ``drop`` terms leave out.
     residual : numpy.ndarray
-        (S, N, 3) raw reading minus prediction, nT.
+        (S, N, 3) raw reading minus prediction, nT (a reading left out: against the field
+        of the others, :meth:`ProfiledProblem.reading_residuals`).
 
     """
     s, n = raw.shape[0], raw.shape[1]
@@ -895,7 +984,8 @@ def profile_residuals(model, p, raw, f, sigma, contexts, robust=False, f_scale=3
                                    f_scale, p_full=p,
                                    field0=field0[sl] if field0 is not None and model.joint
                                    else None)
-            _, b, _, res = prob.evaluate(p[prob.cols])
+            _, b, _, _ = prob.evaluate(p[prob.cols])
+            res = prob.reading_residuals(p[prob.cols])
             field[sl] = b
             for gi, j in enumerate(grp):
                 residual[j - 1, sl] = res[:, gi] * sigma[j - 1]
@@ -936,11 +1026,17 @@ def evaluate(model, p, data, f, sigma, contexts=None, robust=False, f_scale=3.0,
     ``field0`` (N, 3) nT, optional: the profiled field of nearby parameters (e.g. the
     ``field`` of an evaluation of the fit), to start the field profile from (joint models).
 
+    The readings the model's ``drop`` terms leave out (``Model.reading_mask``) are not
+    residuals of the model: their residual, scalar and vector entries (the vector's where
+    sensor j's or sensor 1's reading is left out) are zero, and ``kept`` says which are
+    (a mean square over the readings kept divides by its count, not by N).
+
     Returns
     -------
     dict
         field (N, 3), corrected (S, N, 3), residual (S, N, 3), scalar (S, N), vector
-        (S, N, 3), all in nT, and downweighted (S,) counts.
+        (S, N, 3), all in nT, downweighted (S,) counts and kept ((S, N) bool, the readings
+        the model keeps, or None: all).
 
     """
     if contexts is None:
@@ -951,7 +1047,12 @@ def evaluate(model, p, data, f, sigma, contexts=None, robust=False, f_scale=3.0,
     centred = centred_readings(model, p, corrected, contexts)
     scalar = np.linalg.norm(centred, axis=2) - f[None]
     vector = centred - centred[:1]
+    kept = model.reading_mask(data.t) if getattr(model, 'drops', ()) else None
+    if kept is not None:
+        residual = residual * kept[:, :, None]
+        scalar = scalar * kept
+        vector = vector * (kept & kept[:1])[:, :, None]
     down = (downweighted_counts(residual, sigma, f_scale) if robust
             else np.zeros(data.n_sensors, int))
     return {'field': field, 'corrected': corrected, 'residual': residual, 'scalar': scalar,
-            'vector': vector, 'downweighted': down}
+            'vector': vector, 'downweighted': down, 'kept': kept}

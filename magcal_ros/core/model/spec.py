@@ -49,14 +49,25 @@ class Model:
     array_effects : list of Effect, optional
         Effects with one set of parameters for the whole array (``scope = 'array'``, e.g.
         ``site_gradient``); their parameters follow those of the sensors in the vector.
+    drops : sequence of tuple, optional
+        The ``drop`` terms: (t0, t1) s, every sensor, or (t0, t1, sensors) with ``sensors``
+        a sequence of 1-based sensors (``drop(t0, t1)@J``) or None (every sensor).
 
     """
 
     def __init__(self, effects, array_effects=(), drops=()):
         self.effects = [list(e) for e in effects]
         self.array_effects = list(array_effects)
-        #: (t0, t1) s windows the fit leaves out (``drop(t0, t1)`` terms)
-        self.drops = [tuple(map(float, w)) for w in drops]
+        #: (t0, t1, sensors) the fit leaves out: t0, t1 in s, ``sensors`` a tuple of 1-based
+        #: sensors (``drop(t0, t1)@J``) or None (``drop(t0, t1)``: every sensor)
+        self.drops = []
+        for w in drops:
+            who = tuple(int(j) for j in w[2]) if len(w) > 2 and w[2] is not None else None
+            bad = [j for j in who or () if not 1 <= j <= self.n_sensors]
+            if bad:
+                raise ValueError(f'drop({w[0]:g}, {w[1]:g})@{bad[0]}: sensor {bad[0]} does '
+                                 f'not exist (the data have sensors 1..{self.n_sensors})')
+            self.drops.append((float(w[0]), float(w[1]), who))
         if self.array_effects and self.n_sensors == 4:
             from magcal_ros.core.geometry.tensor import cross_positions
             for eff in self.array_effects:
@@ -130,7 +141,8 @@ class Model:
         nonorthogonality, misalignment; ``term@j`` restricts a term to sensor j,
         ``@{j,k}`` to those sensors, ``@alike`` shares one parameter set between every
         sensor; ``aux:<column>`` couples an auxiliary channel; ``drop(t0, t1)`` leaves a
-        window out of the fit.  Effects that do not exist on sensor 1
+        window out of the fit (``drop(t0, t1)@j``: sensor j's readings in it).  Effects
+        that do not exist on sensor 1
         (``Effect.on_sensor1`` False: the misalignment, sensor 1 defines the array frame)
         are dropped there; linear effects are multiplied in the order of their
         ``Effect.linear_order``.
@@ -143,6 +155,8 @@ class Model:
         array_effects = []
         for term in formula.terms:
             if term.kind == 'drop':
+                if term.dropped:
+                    term.sensors(n_sensors)         # refuses a sensor the data do not have
                 continue
             if term.kind == 'composed':
                 eff0 = composed_effect(term, 0)
@@ -208,7 +222,10 @@ class Model:
                 out.extend(f'{lab}@{j}' for j in have)
         from magcal_ros.core.effects.base import format_arg
         return out + [e.label for e in self.array_effects] + [
-            f'drop({format_arg(a)}, {format_arg(b)})' for a, b in self.drops]
+            f'drop({format_arg(a)}, {format_arg(b)})' + (
+                '' if who is None else f'@{who[0]}' if len(who) == 1
+                else '@{' + ','.join(map(str, who)) + '}')
+            for a, b, who in self.drops]
 
     def with_effect(self, token):
         """
@@ -224,12 +241,29 @@ class Model:
                 eff.refs = dict(old[eff.label].refs)
         return new
 
-    def fit_mask(self, t):
-        """(N,) bool: the samples at times ``t`` (N,) s the fit uses (outside every drop)."""
-        keep = np.ones(len(t), bool)
-        for a, b in self.drops:
-            keep &= ~((t >= a) & (t <= b))
+    def reading_mask(self, t):
+        """
+        Return (S, N) bool: the readings at times ``t`` (N,) s the fit uses.
+
+        Sensor j's reading of a set is left out when the set is in a ``drop(t0, t1)``
+        window (every sensor) or a ``drop(t0, t1)@j`` one (sensor j alone).
+        """
+        t = np.asarray(t, float)
+        keep = np.ones((self.n_sensors, len(t)), bool)
+        for a, b, who in self.drops:
+            inside = (t >= a) & (t <= b)
+            rows = slice(None) if who is None else [j - 1 for j in who]
+            keep[rows] &= ~inside
         return keep
+
+    def fit_mask(self, t):
+        """
+        Return (N,) bool: the sets at times ``t`` (N,) s the fit uses.
+
+        A set is left out when every sensor's reading is (:meth:`reading_mask`); a set where
+        some sensors' readings are dropped keeps the others'.
+        """
+        return self.reading_mask(t).any(axis=0)
 
     def has(self, j, name):
         """Return True if sensor j has an effect with this label or name."""
