@@ -195,6 +195,94 @@ def test_one_sensor_lets_a_minute_in_another_field_pass():
     assert 19.0 <= start <= 21.0 and 80.0 <= end <= 85.0
 
 
+#: a motor current's coupling of the one sensor (nT/A) at calibration, and its change at
+#: 40 s (a battery moved next to the harness: the current's field at the sensor changes)
+COUPLING = 'aux:aux_motor_current'
+C0 = [8.0, -5.0, 4.0]
+DC = [10.0, -6.0, 5.0]
+
+
+def current_drive(hold_a=None, seconds=150):
+    """
+    One sensor whose model couples the motor current; the truth's coupling changes by DC at 40 s.
+
+    The active calibration is fitted on a tumble of the same simulator seed (the current's
+    calibration mean, the truth's reference, is the same).  ``hold_a``: the current held at
+    that value (A) during the drive, its truth reference staying the varying current's mean
+    (so the coupling's change is an offset step of DC x (hold_a - mean)).  Returns
+    (active, learner, events, data, indices of the coupling's parameters).
+    """
+    truth = {f'{COUPLING}@1': C0}
+    tumble, _ = simulate(n_samples=3000, rate_hz=20.0, trajectory='smooth', seed=5,
+                         n_sensors=1, truth=truth)
+    one = calibrate(tumble, 'base + ' + COUPLING, F).result.calibration
+    cfg = SimConfig(n_sensors=1, rate_hz=RATE, trajectory='vehicle', attitude=True, seed=5,
+                    truth=dict(truth, **{'offset(aux_motor_current * step(40))@1': DC}))
+    simulator = Simulator(cfg)
+    t = np.arange(int(seconds * RATE)) / RATE
+    set_truth_refs(simulator, t)
+    if hold_a is not None:
+        channels = simulator.aux_channels
+
+        def held(tt):
+            return dict(channels(tt), aux_motor_current=np.full(len(tt), float(hold_a)))
+        simulator.aux_channels = held
+    data = simulator.sample(t)
+    learner = Learner(1, LearnConfig(persist_s=PERSIST_S, refit_period_s=10.0),
+                      aux_names=('aux_motor_current',))
+    learner.set_active(one, F)
+    events = feed(learner, data, lambda d, a, s: refit_recent(d, a, F, sensors=s))
+    idx = [i for i, (_, label, _, _) in enumerate(one.model.param_info()) if label == COUPLING]
+    return one, learner, events, data, idx
+
+
+def test_changed_current_coupling_is_learned():
+    """
+    The current's coupling changes mid-run, the current varying: learned, validated, adopted.
+
+    The new coupling C0 + DC is the simulator's truth; the reference for the residual is
+    the active calibration's before the change (the floor).
+    """
+    one, learner, events, data, idx = current_drive()
+    adopted = adoptions(events)
+    assert adopted, [(t, p) for t, w, p in events if w == 'state']
+    assert all(p.valid for _, p in adopted)
+    last = adopted[-1][1]
+    names = [f'{COUPLING}.{n}@1' for n in ('vx', 'vy', 'vz')]
+    assert not set(names) & set(last.undetermined), last.undetermined
+    c, se = learner.active.params[idx], learner.active.stderr[idx]
+    # a change of many standard uncertainties, learned to within 4 of them
+    assert np.all(np.abs(DC) > 5 * se), (DC, se)
+    assert np.all(np.abs(c - np.add(C0, DC)) <= 4 * se), (c, se)
+    floor = rms(one, data, 5.0, 40.0)
+    assert rms(one, data, 60.0, 150.0)[0] > 3 * floor[0]       # the change is no detail
+    assert rms(learner.active, data, 120.0, 150.0)[0] <= 1.15 * floor[0]
+
+
+def test_coupling_of_a_constant_current_is_held():
+    """
+    The same change with the current held at 4 A: the coupling is undetermined and held.
+
+    A constant current's coupling is an offset: every refit names the coupling undetermined
+    and keeps it at the active value (to rounding, 1e-9 nT/A); what is adopted is the
+    offset, which follows the change as long as the current stays.
+    """
+    one, learner, events, data, idx = current_drive(hold_a=4.0)
+    refits = [p for _, w, p in events if w == 'refit']
+    assert refits
+    names = [f'{COUPLING}.{n}@1' for n in ('vx', 'vy', 'vz')]
+    for p in refits:
+        assert set(names) <= set(p.undetermined), p.undetermined
+        np.testing.assert_allclose(p.calibration.params[idx], one.params[idx], rtol=0,
+                                   atol=1e-9)
+    adopted = adoptions(events)
+    assert adopted
+    np.testing.assert_allclose(learner.active.params[idx], one.params[idx], rtol=0, atol=1e-9)
+    floor = rms(one, data, 5.0, 40.0)
+    assert rms(one, data, 60.0, 150.0)[0] > 3 * floor[0]
+    assert rms(learner.active, data, 120.0, 150.0)[0] <= 1.15 * floor[0]
+
+
 def test_memory_is_bounded_by_the_window(active):
     """The window holds at most window_sets sets whatever the run's length."""
     learner = Learner(4, LearnConfig(window_s=10.0, window_sets=100, min_sets=50))
