@@ -202,22 +202,24 @@ C0 = [8.0, -5.0, 4.0]
 DC = [10.0, -6.0, 5.0]
 
 
-def current_drive(hold_a=None, seconds=150):
+def one_sensor_drive(token, c0, change, dc, hold_a=None, seconds=150):
     """
-    One sensor whose model couples the motor current; the truth's coupling changes by DC at 40 s.
+    One sensor whose model has the driven effect ``token`` (truth ``c0``), changed at 40 s.
 
-    The active calibration is fitted on a tumble of the same simulator seed (the current's
-    calibration mean, the truth's reference, is the same).  ``hold_a``: the current held at
-    that value (A) during the drive, its truth reference staying the varying current's mean
-    (so the coupling's change is an offset step of DC x (hold_a - mean)).  Returns
-    (active, learner, events, data, indices of the coupling's parameters).
+    The truth gains the term ``change`` with parameters ``dc`` (the coupling's change).  The
+    active calibration (``base + token``) is fitted on a tumble of the same simulator seed
+    (the driver's calibration mean, the truth's reference, is the same).  ``hold_a``: the
+    motor current held at that value (A) during the drive, its truth reference staying the
+    varying current's mean (so a change of its coupling is an offset step of
+    dc x (hold_a - mean)).  Returns (active, learner, events, data, indices of the
+    parameters of ``token``).
     """
-    truth = {f'{COUPLING}@1': C0}
+    truth = {f'{token}@1': c0}
     tumble, _ = simulate(n_samples=3000, rate_hz=20.0, trajectory='smooth', seed=5,
                          n_sensors=1, truth=truth)
-    one = calibrate(tumble, 'base + ' + COUPLING, F).result.calibration
+    one = calibrate(tumble, 'base + ' + token, F).result.calibration
     cfg = SimConfig(n_sensors=1, rate_hz=RATE, trajectory='vehicle', attitude=True, seed=5,
-                    truth=dict(truth, **{'offset(aux_motor_current * step(40))@1': DC}))
+                    truth=dict(truth, **{change: dc}))
     simulator = Simulator(cfg)
     t = np.arange(int(seconds * RATE)) / RATE
     set_truth_refs(simulator, t)
@@ -232,8 +234,14 @@ def current_drive(hold_a=None, seconds=150):
                       aux_names=('aux_motor_current',))
     learner.set_active(one, F)
     events = feed(learner, data, lambda d, a, s: refit_recent(d, a, F, sensors=s))
-    idx = [i for i, (_, label, _, _) in enumerate(one.model.param_info()) if label == COUPLING]
+    idx = [i for i, (_, label, _, _) in enumerate(one.model.param_info()) if label == token]
     return one, learner, events, data, idx
+
+
+def current_drive(hold_a=None):
+    """The motor current's coupling C0 changed by DC at 40 s (:func:`one_sensor_drive`)."""
+    return one_sensor_drive(COUPLING, C0, 'offset(aux_motor_current * step(40))@1', DC,
+                            hold_a)
 
 
 def test_changed_current_coupling_is_learned():
@@ -278,6 +286,31 @@ def test_coupling_of_a_constant_current_is_held():
     adopted = adoptions(events)
     assert adopted
     np.testing.assert_allclose(learner.active.params[idx], one.params[idx], rtol=0, atol=1e-9)
+    floor = rms(one, data, 5.0, 40.0)
+    assert rms(one, data, 60.0, 150.0)[0] > 3 * floor[0]
+    assert rms(learner.active, data, 120.0, 150.0)[0] <= 1.15 * floor[0]
+
+
+def test_changed_temperature_coupling_is_learned_where_the_motion_determines_it():
+    """
+    The x offset's temperature coefficient changes by 6 nT/degC at 40 s: learned, adopted.
+
+    The simulator's temperature swings slowly (a 240 s period): the refits of the change
+    on its first seconds hold the coefficients (undetermined), the offset follows; the
+    longer windows after it learn cx.  The z offset's and the z scale's coefficients stay
+    undetermined: on a level vehicle the z axis reads a nearly constant field, so
+    cz (T - T0) and sz (T - T0) lin_z are the same column.
+    """
+    t0 = [3.0, -2.0, 1.5, 1e-4, -1e-4, 5e-5]       # nT/degC x3, 1/degC x3
+    one, learner, events, data, idx = one_sensor_drive(
+        'temperature', t0, 'offset(temperature * step(40))@1', [6.0, 0.0, 0.0])
+    adopted = adoptions(events)
+    assert adopted
+    last = adopted[-1][1]
+    assert 'temperature.cx@1' not in last.undetermined
+    assert {'temperature.cz@1', 'temperature.sz@1'} <= set(last.undetermined)
+    cx, se = learner.active.params[idx[0]], learner.active.stderr[idx[0]]
+    assert 6.0 > 5 * se and abs(cx - 9.0) <= 4 * se, (cx, se)
     floor = rms(one, data, 5.0, 40.0)
     assert rms(one, data, 60.0, 150.0)[0] > 3 * floor[0]
     assert rms(learner.active, data, 120.0, 150.0)[0] <= 1.15 * floor[0]
