@@ -927,12 +927,16 @@ def refit_recent(data, active, field_nt, geometry=None, field_reference=None, se
         di = np.flatnonzero(driven)
         varying, whole = coupling_reach(active, data, di)
         still[di] = varying <= STILL_FRACTION * whole
-        base = np.where(still[di], whole, varying)
         with np.errstate(divide='ignore'):
-            width = PRIOR_SD['offset'] * f0 / base
-        sd[di] = np.where(np.isfinite(width) & (base > 0), width, sd[di])
+            width = PRIOR_SD['offset'] * f0 / np.where(still[di], whole, varying)
+            held = PRIOR_SD['offset'] * f0 / whole
+        sd[di] = np.where(np.isfinite(width), width, sd[di])
         reach[di] = whole
     held_sd = sd * HELD_FRACTION
+    if driven.any():
+        # held, a coupling moves the field by as little as a held offset: its width from
+        # its whole reach (the part a constant map could absorb too), not the varying one
+        held_sd[di] = np.where(np.isfinite(held), held, sd[di]) * HELD_FRACTION
     kwargs = {} if LEARN_ATTITUDE is None else {'attitude': LEARN_ATTITUDE}
     runs = {}
 
