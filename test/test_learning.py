@@ -239,7 +239,7 @@ def one_sensor_drive(token, c0, change, dc, hold_a=None, seconds=150):
 
 
 def current_drive(hold_a=None):
-    """The motor current's coupling C0 changed by DC at 40 s (:func:`one_sensor_drive`)."""
+    """Drive with the motor current's coupling C0 changed by DC at 40 s (one_sensor_drive)."""
     return one_sensor_drive(COUPLING, C0, 'offset(aux_motor_current * step(40))@1', DC,
                             hold_a)
 
