@@ -291,6 +291,40 @@ def test_coupling_of_a_constant_current_is_held():
     assert rms(learner.active, data, 120.0, 150.0)[0] <= 1.15 * floor[0]
 
 
+def test_array_learns_one_sensors_changed_coupling():
+    """
+    The cross, sensor 2's current coupling changed by DC at 40 s: learned on sensor 2 alone.
+
+    The others are held (they did not change); the learned coupling is within 4 reported
+    standard uncertainties of the truth and the residual of every sensor back within 1.15 x
+    its floor (the active calibration's before the change).
+    """
+    truth = {f'{COUPLING}@2': C0}
+    tumble, _ = simulate(n_samples=3000, rate_hz=20.0, trajectory='smooth', seed=5,
+                         truth=truth)
+    act = calibrate(tumble, f'base + {COUPLING}@2', F).result.calibration
+    cfg = SimConfig(rate_hz=RATE, trajectory='vehicle', attitude=True, seed=5,
+                    truth=dict(truth, **{'offset(aux_motor_current * step(40))@2': DC}))
+    simulator = Simulator(cfg)
+    t = np.arange(int(110 * RATE)) / RATE
+    set_truth_refs(simulator, t)
+    data = simulator.sample(t)
+    learner = Learner(4, LearnConfig(persist_s=PERSIST_S, refit_period_s=20.0),
+                      aux_names=('aux_motor_current',))
+    learner.set_active(act, F)
+    events = feed(learner, data, lambda d, a, s: refit_recent(d, a, F, sensors=s))
+    adopted = adoptions(events)
+    assert adopted
+    assert adopted[0][1].doc['provenance']['learning']['sensors_learned'] == [2]
+    idx = [i for i, (_, label, _, _) in enumerate(act.model.param_info()) if label == COUPLING]
+    c, se = learner.active.params[idx], learner.active.stderr[idx]
+    assert np.all(np.abs(DC) > 5 * se) and np.all(np.abs(c - np.add(C0, DC)) <= 4 * se), (c, se)
+    floor = rms(act, data, 5.0, 40.0)
+    assert rms(act, data, 60.0, 110.0)[1] > 3 * floor[1]
+    after = rms(learner.active, data, 80.0, 110.0)
+    assert np.all(after <= 1.15 * floor), (after, floor)
+
+
 @pytest.fixture(scope='module')
 def temperature_drive():
     """
