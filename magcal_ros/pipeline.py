@@ -791,27 +791,107 @@ HELD_FRACTION = 1e-6
 #: stays in every later estimate that holds it
 DETERMINED_NOISE = 3.0
 DETERMINED_NOISE_MAP = 1.0
+#: a driven effect's parameter (a coupling) is determined when its standard uncertainty
+#: moves the corrected field, over the window's driver values measured from the driver's
+#: calibration reference, by at most this many noise sds (as scale and angles: a coupling
+#: that moved by noise stays in every later estimate that holds it)
+DETERMINED_NOISE_COUPLING = 1.0
+#: a driven effect's parameter did not vary in the window when the part of its effect on
+#: the reading that the sensor's constant map cannot produce is below this fraction of its
+#: whole effect: a driver constant over the window is exactly an offset's (or a scale's)
+#: column, zero to rounding (about 1e-9 of the whole)
+STILL_FRACTION = 1e-6
+
+
+def coupling_reach(cal, data, indices):
+    """
+    How far parameters of driven effects move the readings over ``data``: (varying, whole).
+
+    For each parameter (index into ``cal.params``) of a driven effect of sensor j, the
+    derivative of sensor j's reading, d raw_j / d p_i (N, 3) nT per the parameter's unit, at
+    the calibration ``cal`` and the field its correction of ``data`` gives
+    (:meth:`Model.forward_differences`).  ``whole`` is its RMS over the sets (of the vector
+    norm); ``varying`` the RMS of its part that sensor j's constant map (offset, scale,
+    angles: the least-squares fit of their derivatives) cannot produce, which is what the
+    data can tell apart from the sensor map.  A driver that did not vary in ``data`` gives a
+    ``varying`` of zero to rounding: a constant current is an offset, a scale coupling of a
+    constant temperature a scale.
+
+    Parameters
+    ----------
+    cal : magcal_ros.core.model.Calibration
+        The calibration (its model prepared: the drivers' references).
+    data : Dataset
+        (S, N, 3) raw readings, nT, with the channels the effects read.
+    indices : sequence of int
+        Parameters of driven effects of sensors j >= 1.
+
+    Returns
+    -------
+    (numpy.ndarray, numpy.ndarray)
+        (len(indices),) each, nT per the parameter's unit.
+
+    """
+    model, p = cal.model, np.asarray(cal.params, float)
+    info = model.param_info()
+    indices = [int(i) for i in indices]
+    varying, whole = np.zeros(len(indices)), np.zeros(len(indices))
+    n = max(data.n_samples, 1)
+    for j in sorted({info[i][0] for i in indices}):
+        mine = [k for k, i in enumerate(indices) if info[i][0] == j]
+        const = [i for eff, sl in zip(model.effects[j - 1], model.slices[j - 1])
+                 if eff.kind == 'linear' or eff.constant for i in range(sl.start, sl.stop)]
+        ctx = data.context(j)
+        b = cal.correct(j, data.raw[j - 1], ctx)
+        dc, hc = model.forward_differences(j, p, b, ctx, [indices[k] for k in mine])
+        jc = (dc / hc[:, None, None]).reshape(len(mine), -1).T          # (3N, C)
+        res = jc
+        if const:
+            dm, hm = model.forward_differences(j, p, b, ctx, const)
+            jm = (dm / hm[:, None, None]).reshape(len(const), -1).T     # (3N, M)
+            norm = np.linalg.norm(jm, axis=0)
+            jm = jm[:, norm > 0] / norm[norm > 0]
+            if jm.shape[1]:
+                q, _ = np.linalg.qr(jm)
+                res = jc - q @ (q.T @ jc)
+        whole[mine] = np.linalg.norm(jc, axis=0) / np.sqrt(n)
+        varying[mine] = np.linalg.norm(res, axis=0) / np.sqrt(n)
+    return varying, whole
 
 
 def refit_recent(data, active, field_nt, geometry=None, field_reference=None, sensors=None):
     """
     Refit what recent data determine, the rest held at the active calibration (issue 34).
 
-    Every parameter of the active calibration's model gets a prior centred on its active
-    value: the constant sensor map's (offset, scale, angles) with the planar mode's widths
-    (:func:`magcal_ros.core.model.planar.prior_sd`: 5 % of F, 5 %, 0.05 rad), any other
-    (a driven effect's coupling) held.  A parameter whose posterior sd stays above
+    The model is the active calibration's, with its drivers' references (a current centred
+    on the calibration's mean, not the window's: a parameter means what it means in the
+    active calibration).  Every parameter gets a prior centred on its active value: the
+    constant sensor map's (offset, scale, angles) with the planar mode's widths
+    (:func:`magcal_ros.core.model.planar.prior_sd`: 5 % of F, 5 %, 0.05 rad); a driven
+    effect's (a coupling: ``aux:<channel>``, ``temperature``, ``offset(aux_x)``, a lag's
+    time constant too) the width at which it moves the reading by 5 % of F (as an offset at
+    its prior sd), RMS over the window, beyond what the sensor's constant map can do
+    (:func:`coupling_reach`, ``varying``: the driver's observed variation in the window).
+    Array-wide and shared (``@alike``) parameters are held.
+
+    A parameter whose posterior sd stays above
     :data:`magcal_ros.core.model.planar.UNDETERMINED_RATIO` of its prior's, or whose
-    uncertainty moves the corrected field by more than :data:`DETERMINED_NOISE` noise sds
-    (an offset's in nT, a scale's or angle's times F), is not determined by these data: it
-    is named and the fit is repeated with it held at the active value
-    (prior :data:`HELD_FRACTION` of its width), so that it cannot wander in a valley the data
-    do not see.
+    uncertainty moves the corrected field by more than a number of noise sds (an offset's in
+    nT, a scale's or angle's times F, a coupling's times its reach over the window measured
+    from the driver's reference, :func:`coupling_reach` ``whole``), is not determined by
+    these data: it is named and the fit is repeated with it held at the active value (prior
+    :data:`HELD_FRACTION` of its width), so that it cannot wander in a valley the data do
+    not see.  A coupling whose driver did not vary in the window (:data:`STILL_FRACTION`: a
+    constant current is an offset) is held without a fit.  The stages: offsets first (the
+    rest held), to :data:`DETERMINED_NOISE` sds; then the whole sensor map, whose scale and
+    angles join to :data:`DETERMINED_NOISE_MAP`; then the couplings that varied, with what
+    is determined so far, to :data:`DETERMINED_NOISE_COUPLING`.
 
     Parameters
     ----------
     data : Dataset
-        (S, N, 3) raw readings, nT, of the recent window (with attitude when known).
+        (S, N, 3) raw readings, nT, of the recent window (with attitude when known, with
+        the temperatures and channels the model's effects read).
     active : magcal_ros.core.model.Calibration
         The calibration in use.
     field_nt : float
@@ -826,48 +906,85 @@ def refit_recent(data, active, field_nt, geometry=None, field_reference=None, se
     -------
     (Calibration, dict, list of str)
         The estimate, its calibration document (§4; ``provenance.converged`` says whether
-        the fit converged) and the undetermined parameters (``<effect>.<param>@<sensor>``).
+        the fit converged) and the undetermined parameters (``<effect>.<param>@<sensor>``:
+        the sensor map's and the couplings' of the learned sensors).
 
     """
-    from magcal_ros.core.model.planar import prior_sd, SENSOR_MAP_KINDS, UNDETERMINED_RATIO
-    model = Model.from_spec(active.model.spec(), data.n_sensors)
+    from magcal_ros.core.model.planar import (PRIOR_SD, prior_sd, SENSOR_MAP_KINDS,
+                                              UNDETERMINED_RATIO)
+    spec = active.model.spec()
+    model = Model.from_spec(spec, data.n_sensors).take_refs(active.model)
     info = model.param_info()
     f0 = float(np.mean(field_nt))
     sd = prior_sd(model, f0)
     mean = np.asarray(active.params, float)
-    kind = [label.split('(')[0] for _, label, _, _ in info]
     learned = set(range(1, data.n_sensors + 1) if sensors is None else sensors)
-    mapped = np.array([j in learned and k in SENSOR_MAP_KINDS
-                       for (j, *_), k in zip(info, kind)])
-    offsets = mapped & np.array([k == 'offset' for k in kind])
+    owner = [None] * model.n_params
+    for row, slices in zip(model.effects, model.slices):
+        for eff, sl in zip(row, slices):
+            owner[sl] = [eff] * (sl.stop - sl.start)
+    mine = np.array([j in learned for j, *_ in info])
+    # the constant sensor map (by label: ``offset(aux_x)`` is a coupling, not the offset)
+    mapped = mine & np.array([label in SENSOR_MAP_KINDS for _, label, _, _ in info])
+    offsets = mapped & np.array([label == 'offset' for _, label, _, _ in info])
+    driven = mine & np.array([e is not None and e.kind != 'linear' and not e.constant
+                              for e in owner])
+    # how far a parameter moves the field per its unit: an offset 1, scale and angles F
+    reach = np.where([unit == 'nT' for *_, unit in info], 1.0, f0)
+    still = np.zeros(model.n_params, bool)
+    if driven.any():
+        di = np.flatnonzero(driven)
+        varying, whole = coupling_reach(active, data, di)
+        still[di] = varying <= STILL_FRACTION * whole
+        with np.errstate(divide='ignore'):
+            width = PRIOR_SD['offset'] * f0 / np.where(still[di], whole, varying)
+            held = PRIOR_SD['offset'] * f0 / whole
+        sd[di] = np.where(np.isfinite(width), width, sd[di])
+        reach[di] = whole
     held_sd = sd * HELD_FRACTION
+    if driven.any():
+        # held, a coupling moves the field by as little as a held offset: its width from
+        # its whole reach (the part a constant map could absorb too), not the varying one
+        held_sd[di] = np.where(np.isfinite(held), held, sd[di]) * HELD_FRACTION
     kwargs = {} if LEARN_ATTITUDE is None else {'attitude': LEARN_ATTITUDE}
+    runs = {}
 
     def run(open_, init):
-        priors = [(i, float(mean[i]), float(sd[i] if open_[i] else held_sd[i]))
-                  for i in range(model.n_params)]
-        return calibrate(data, Model.from_spec(model.spec(), data.n_sensors), field_nt,
-                         geometry, field_reference, screen=False, init=init,
-                         extra_priors=priors, check_identifiability=False, **kwargs)
+        key = open_.tobytes()
+        if key not in runs:
+            priors = [(i, float(mean[i]), float(sd[i] if open_[i] else held_sd[i]))
+                      for i in range(model.n_params)]
+            fresh = Model.from_spec(spec, data.n_sensors).take_refs(active.model)
+            runs[key] = calibrate(data, fresh, field_nt, geometry, field_reference,
+                                  screen=False, init=init, extra_priors=priors,
+                                  check_identifiability=False, **kwargs)
+        return runs[key]
 
     def determined(res, open_, noise_sds):
         # known to a fraction of the prior (the planar rule) and to the noise: its
         # uncertainty moves the corrected field by at most noise_sds noise sds
         noise = np.array([res.sigma_nt[j - 1] if j else np.nan for j, *_ in info])
-        tol = np.where([unit == 'nT' for *_, unit in info], noise, noise / f0)
+        with np.errstate(divide='ignore'):
+            tol = noise_sds * noise / reach
         # an attitude-aided fit appends the world field's angles after these parameters
         se = res.stderr[:model.n_params]
-        return open_ & (se <= UNDETERMINED_RATIO * sd) & (se <= noise_sds * tol)
+        return open_ & (se <= UNDETERMINED_RATIO * sd) & (se <= tol)
 
     # offsets first, the rest held: what a vehicle's turns determine best; then the whole
-    # sensor map open, and what that determines to the noise joins them
+    # sensor map open, and what that determines to the noise joins them; then the
+    # couplings whose driver varied, with what is determined so far
     first = run(offsets, mean)
     open_ = determined(first.result, offsets, DETERMINED_NOISE)
-    whole = run(mapped, first.result.params)
-    open_ = open_ | determined(whole.result, mapped & ~offsets, DETERMINED_NOISE_MAP)
-    final = first if np.array_equal(open_, offsets) else run(open_, first.result.params)
+    open_ = open_ | determined(run(mapped, first.result.params).result, mapped & ~offsets,
+                               DETERMINED_NOISE_MAP)
+    free = driven & ~still
+    if free.any():
+        joined = run(open_ | free, first.result.params)
+        open_ = open_ | determined(joined.result, free, DETERMINED_NOISE_COUPLING)
+    final = run(open_, first.result.params)
     names = [f'{label}.{name}@{j}' for j, label, name, _ in info]
-    undetermined = [names[i] for i in range(model.n_params) if mapped[i] and not open_[i]]
+    undetermined = [names[i] for i in range(model.n_params)
+                    if (mapped[i] or driven[i]) and not open_[i]]
     # a fit that ran out of iterations is no calibration (the learner never adopts it)
     final.doc['provenance']['converged'] = bool(final.result.success)
     return final.result.calibration, final.doc, undetermined

@@ -432,15 +432,6 @@ def demodulated_lines(t, residual, readings, min_line_ratio=30.0):
     return sorted({round(f, 6) for _, f in lines.values()})
 
 
-def _copy_refs(src, dst):
-    """Give ``dst``'s effects the reference values of the same effects in ``src``."""
-    for row_s, row_d in zip(src.effects, dst.effects):
-        refs = {e.label: e.refs for e in row_s}
-        for e in row_d:
-            if e.label in refs:
-                e.refs = dict(refs[e.label])
-
-
 def extend_model(model, params, token, contexts):
     """
     ``model`` with ``token`` added, its parameters carried over, the new ones at default.
@@ -448,7 +439,7 @@ def extend_model(model, params, token, contexts):
     Returns (new model, (P',) parameters, (P',) bool mask of the added parameters).
     """
     new = model.with_effect(token)
-    _copy_refs(model, new)
+    new.take_refs(model)
     new.prepare(contexts)
     p = new.default_params()
     old = {info[:3]: v for info, v in zip(model.param_info(), params)}

@@ -241,6 +241,25 @@ class Model:
                 eff.refs = dict(old[eff.label].refs)
         return new
 
+    def take_refs(self, other):
+        """
+        Give this model's effects the reference values of the same effects in ``other``.
+
+        Per sensor and for the array, matched by label: a model built again from ``other``'s
+        spec then means by its parameters what ``other`` does (a driver centred on the same
+        calibration mean); references ``other`` lacks are left to :meth:`prepare`.
+        """
+        for row_s, row_d in zip(other.effects, self.effects):
+            refs = {e.label: e.refs for e in row_s}
+            for e in row_d:
+                if e.label in refs:
+                    e.refs = dict(refs[e.label])
+        old = {e.label: e.refs for e in other.array_effects}
+        for e in self.array_effects:
+            if e.label in old:
+                e.refs = dict(old[e.label])
+        return self
+
     def reading_mask(self, t):
         """
         Return (S, N) bool: the readings at times ``t`` (N,) s the fit uses.
