@@ -40,7 +40,7 @@ $(STAMP): requirements.txt setup.py setup.cfg package.xml scripts/setup_env.sh \
 	PYTHON='$(PYTHON)' VENV='$(CURDIR)/$(VENV)' scripts/setup_env.sh
 
 test: setup
-	$(ROS_ENV) $(VPY) scripts/test_lanes.py --workers $(TEST_WORKERS) --live-workers $(LIVE_WORKERS) --timeout $(TEST_TIMEOUT) --pytest-args '$(PYTEST_ARGS)'
+	$(ROS_ENV) $(VPY) scripts/test_lanes.py --workers $(TEST_WORKERS) --live-workers $(LIVE_WORKERS) --timeout $(TEST_TIMEOUT) --pytest-args='$(PYTEST_ARGS)'
 
 demo: setup
 	$(ROS_ENV) scripts/demo.sh
