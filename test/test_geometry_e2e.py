@@ -127,7 +127,7 @@ def test_geometry_4_is_the_cross_of_the_demo():
     np.testing.assert_allclose(geometry_file_positions(4), cross_positions(0.5), atol=1e-15)
 
 
-@pytest.mark.timeout(180)
+@pytest.mark.timeout(240)
 @pytest.mark.parametrize('n', [1, 2, 8])
 def test_geometry_end_to_end_at_the_noise_floor(n, start_process, ros_node, ros_executor,
                                                 ros_namespace, tmp_path):
@@ -136,12 +136,20 @@ def test_geometry_end_to_end_at_the_noise_floor(n, start_process, ros_node, ros_
         # the corrector says once why there is no tensor, and does not advertise it
         p.procs['corrector_node'].wait_for_log('not advertised', 30.0)
     sub = p.listen_status(ros_node)
-    assert call_trigger(ros_node, ros_executor, 'calibration/start', timeout_sec=30.0).success
-    spin_until(ros_executor, lambda: p.status and p.status[-1]['ready'], 60.0,
-               'full coverage')
+    for attempt in range(2):
+        # a collection whose sets a starved reader paired at random is refused with the count
+        # (the node's contract, test_calibration_node); collected again once, as its reply says
+        p.status.clear()
+        assert call_trigger(ros_node, ros_executor, 'calibration/start',
+                            timeout_sec=30.0).success
+        spin_until(ros_executor, lambda: p.status and p.status[-1]['ready'], 60.0,
+                   'full coverage')
+        resp = call_trigger(ros_node, ros_executor, 'calibration/calibrate', timeout_sec=60.0)
+        lines, out = split(resp)
+        if resp.success or 'inconsistent with sensor 1' not in resp.message:
+            break
+        print(f'geometry {n}: collected again after: {resp.message}')
     ros_node.destroy_subscription(sub)
-    resp = call_trigger(ros_node, ros_executor, 'calibration/calibrate', timeout_sec=60.0)
-    lines, out = split(resp)
     assert resp.success, lines
     subs = p.listen_outputs(ros_node)
     spin_until(ros_executor, p.enough, 60.0, 'corrected samples (and tensors)')

@@ -48,6 +48,12 @@ from std_msgs.msg import String
 #: fits them) are dropped before the fit up to this share of the sets; beyond, the node
 #: refuses with the count (issue 32: never a calibration on sets its own check flags)
 MAX_INCONSISTENT_FRACTION = 0.1
+#: a sensor whose fitted total-field RMS is this many times the noise floor while the check
+#: still flags more than MAX_INCONSISTENT_FRACTION of its sets (no pairing up to
+#: consistency.LONG_MAX_LAG epochs fits them: a reader that lost pace at random, or the
+#: sensors not seeing one field) is never activated: 10 x is far beyond any bias a missing
+#: effect of the demo's size leaves (a few x), and a mis-paired array shows hundreds
+OFF_FLOOR_FACTOR = 10.0
 
 #: the summary's entries of the planar, attitude-aided and site-gradient fits that the
 #: calibrate reply carries as they are
@@ -139,6 +145,12 @@ class CalibrationMixin:
             return False, f'not calibrated: {refuse}; previous calibration stays active', {
                 'reason': refuse, 'sets': n_sets, 'model': list(s.model),
                 'resync': resync_payload}
+        refuse = self._inconsistent_and_off(resync_payload, run.summary, n_sets)
+        if refuse:
+            return False, f'not calibrated: {refuse}; previous calibration stays active', {
+                'reason': refuse, 'sets': n_sets, 'model': list(s.model),
+                'resync': resync_payload,
+                'scalar_rms_after_nt': run.summary['scalar_rms_nt']}
         if not run.result.success:
             # a fit that ran out of iterations is not a calibration: never installed
             reason = f'the fit did not converge ({run.result.message})'
@@ -278,6 +290,33 @@ class CalibrationMixin:
         lines += [format_note(w) for w in screen.notes()]
         lines.append(f'HTML report: {ranking["report"]}')
         return True, '\n'.join(lines), ranking
+
+    @staticmethod
+    def _inconsistent_and_off(resync_payload, summ, n_sets):
+        """
+        Why a fit must not be activated: sensors off the floor on sets the check flags.
+
+        Returns None, or one line naming each sensor whose total-field RMS is above
+        :data:`OFF_FLOOR_FACTOR` x the noise floor while more than
+        :data:`MAX_INCONSISTENT_FRACTION` of its sets are inconsistent with sensor 1 at every
+        pairing the check tried (issue 32 item 5: never a calibration on such sets).
+        """
+        if not resync_payload:
+            return None
+        floor = summ['noise_floor_nt']
+        bad = {j: (c, summ['scalar_rms_nt'][j])
+               for j, c in resync_payload['inconsistent_sets'].items()
+               if c > MAX_INCONSISTENT_FRACTION * n_sets
+               and summ['scalar_rms_nt'][j] > OFF_FLOOR_FACTOR * floor}
+        if not bad:
+            return None
+        return ('the fit leaves ' + ', '.join(
+            f'sensor {j} at {rms:.1f} nT with {c} of {n_sets} sets inconsistent with sensor 1'
+            for j, (c, rms) in bad.items())
+            + f' (noise floor {floor:.2f} nT): no pairing of its epochs fits those sets (a '
+            'reader that lost pace at random: CPU starvation, a stalled link; or the sensors '
+            'do not see one field): collect again (calibration/start), or run '
+            'calibration/diagnose to see what the residual follows')
 
     @staticmethod
     def _screen(data, epochs):
