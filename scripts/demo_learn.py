@@ -194,48 +194,13 @@ def summary(doc):
 
 def write_figure(client, t_sim0, events, steps, path):
     """Draw the live residual over time with the change and the adoptions marked."""
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-    with client.lock:
-        res = list(client.residual)
-    if not res:
-        return None
-    t = np.array([r[0] for r in res]) - t_sim0
-    # no line across the stretches with no residual message (the node's refits hold the
-    # interpreter): a NaN after each gap of more than 0.2 s
-    cut = np.flatnonzero(np.diff(t) > 0.2) + 1
-    t = np.insert(t, cut, np.nan)
-    fig, axes = plt.subplots(2, 1, figsize=(11, 7), sharex=True)
-    for ax, k, kind in ((axes[0], 1, 'scalar |b_j| - F'),
-                        (axes[1], 2, 'vector |b_j - mean of the others|')):
-        series = np.insert(np.array([r[k] for r in res]), cut, np.nan, axis=0)
-        for j in range(N_SENSORS):
-            ax.plot(t, series[:, j], lw=0.5, label=f'sensor {j + 1}')
-        if steps:
-            f = float(np.mean(list(steps[0]['floor_nt' if k == 1 else
-                                            'vector_floor_nt'].values())))
-            if k == 1:
-                ax.axhspan(-f, f, color='0.8', zorder=0, label=f'+-floor ({f:.1f} nT)')
-            else:
-                ax.axhline(f, color='0.4', ls='--', lw=1, label=f'floor RMS ({f:.1f} nT)')
-        for s in steps:
-            ax.axvspan(*s['window_s'], color='tab:blue', alpha=0.08, zorder=0)
-        for te, label in events:
-            ax.axvline(te, color='k', lw=0.8, ls=':')
-        ax.set_ylabel(f'{kind} (nT)')
-        ax.grid(alpha=0.3)
-        ax.legend(loc='upper left', bbox_to_anchor=(1.01, 1.0), fontsize=8)
-    ymax = axes[0].get_ylim()[1]
-    for te, label in events:
-        axes[0].text(te, ymax, ' ' + label, rotation=90, va='top', ha='left', fontsize=8)
-    axes[0].set_title('calibration/residual while driving (live, one point per set; shaded: '
-                      'the RMS windows)')
-    axes[1].set_xlabel('time since the simulator started (s)')
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    # the events and windows are in seconds since the simulator started
+    return demo_loop.write_figure(
+        client, [(te + t_sim0, label) for te, label in events],
+        [{**s, 'window_s': [w + t_sim0 for w in s['window_s']]} for s in steps], path,
+        t0=t_sim0, floor_step=0,
+        title='calibration/residual while driving (live, one point per set; shaded: the '
+              'RMS windows)', xlabel='time since the simulator started (s)')
 
 
 def parse_args(argv=None):

@@ -348,8 +348,16 @@ def last_diagnostics(client, t_from):
         level, str(level)), 'message': message, 'values': values}
 
 
-def write_figure(client, marks, steps, path):
-    """Draw the live residual over the run, per sensor, with the steps marked."""
+def write_figure(client, marks, steps, path, t0=None, floor_step=-1,
+                 title='calibration/residual over the loop (live, one point per set)',
+                 xlabel='time since the first calibration (s)'):
+    """
+    Draw the live residual over the run, per sensor, with the events and RMS windows marked.
+
+    ``marks`` [(t, label)] and the steps' ``window_s`` are in the residual's time (s); the
+    axis starts at ``t0`` (default: the first mark); the floor band is that of
+    ``steps[floor_step]``.  Also the learning demo's figure (scripts/demo_learn.py).
+    """
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
@@ -359,18 +367,22 @@ def write_figure(client, marks, steps, path):
     if not res:
         return None
     t = np.array([r[0] for r in res])
-    scalar = np.array([r[1] for r in res])
-    vector = np.array([r[2] for r in res])
-    t0 = marks[0][0] if marks else t[0]
+    if t0 is None:
+        t0 = marks[0][0] if marks else t[0]
+    # no line across the stretches with no residual message (a refit holding the
+    # interpreter, a calibration being swapped): a NaN after each gap of more than 0.2 s
+    cut = np.flatnonzero(np.diff(t) > 0.2) + 1
+    t = np.insert(t, cut, np.nan) - t0
     fig, axes = plt.subplots(2, 1, figsize=(11, 7), sharex=True)
-    for ax, series, kind, floor in ((axes[0], scalar, 'scalar |b_j| - F', 'floor_nt'),
-                                    (axes[1], vector, 'vector |b_j - mean of the others|',
-                                     'vector_floor_nt')):
+    for ax, k, kind, floor in ((axes[0], 1, 'scalar |b_j| - F', 'floor_nt'),
+                               (axes[1], 2, 'vector |b_j - mean of the others|',
+                                'vector_floor_nt')):
+        series = np.insert(np.array([r[k] for r in res]), cut, np.nan, axis=0)
         for j in range(N_SENSORS):
-            ax.plot(t - t0, series[:, j], lw=0.5, label=f'sensor {j + 1}')
-        f = float(np.mean(list(steps[-1][floor].values()))) if steps else None
+            ax.plot(t, series[:, j], lw=0.5, label=f'sensor {j + 1}')
+        f = float(np.mean(list(steps[floor_step][floor].values()))) if steps else None
         if f:
-            if kind.startswith('scalar'):
+            if k == 1:
                 ax.axhspan(-f, f, color='0.8', zorder=0, label=f'+-floor ({f:.1f} nT)')
             else:
                 ax.axhline(f, color='0.4', ls='--', lw=1, label=f'floor RMS ({f:.1f} nT)')
@@ -378,22 +390,21 @@ def write_figure(client, marks, steps, path):
         ax.grid(alpha=0.3)
         for tm, label in marks:
             ax.axvline(tm - t0, color='k', lw=0.8, ls=':')
-        for k, step in enumerate(steps, start=1):
+        for n, step in enumerate(steps, start=1):
             if 'window_s' in step:
                 a, b = step['window_s']
                 ax.axvspan(a - t0, b - t0, color='tab:blue', alpha=0.08, zorder=0,
-                           label='RMS windows' if k == 1 else None)
+                           label='RMS windows' if n == 1 else None)
         # a set paired from different epochs (left out of the RMS) would set the scale
-        lim = np.percentile(np.abs(series), 99.5) * 1.3
-        if np.abs(series).max() > lim:
-            ax.set_ylim(-lim if kind.startswith('scalar') else 0, lim)
+        lim = np.nanpercentile(np.abs(series), 99.5) * 1.3
+        if np.nanmax(np.abs(series)) > lim:
+            ax.set_ylim(-lim if k == 1 else 0, lim)
+        ax.legend(loc='upper left', bbox_to_anchor=(1.01, 1.0), fontsize=8)
     ymax = axes[0].get_ylim()[1]
     for tm, label in marks:
         axes[0].text(tm - t0, ymax, ' ' + label, rotation=90, va='top', ha='left', fontsize=8)
-    axes[0].legend(loc='upper left', bbox_to_anchor=(1.01, 1.0), fontsize=8)
-    axes[1].legend(loc='upper left', bbox_to_anchor=(1.01, 1.0), fontsize=8)
-    axes[0].set_title('calibration/residual over the loop (live, one point per set)')
-    axes[1].set_xlabel('time since the first calibration (s)')
+    axes[0].set_title(title)
+    axes[1].set_xlabel(xlabel)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
