@@ -18,21 +18,9 @@ Screening of candidate effects: one Gauss-Newton step of each extended model fro
 Exact for effects that enter linearly, as all driven effects do; the most promising
 candidates are then refitted in full (:mod:`magcal_ros.core.discovery.run`).
 """
-from magcal_ros.core.discovery.constants import LAG_GRID_POINTS
 from magcal_ros.core.discovery.measures import solve_psd
 from magcal_ros.core.model.engine import ProfiledProblem
 import numpy as np
-
-
-def lag_grid(t):
-    """
-    Return the time constants, s, a lag's refit start is chosen from (:meth:`Screen.lag_start`).
-
-    :data:`LAG_GRID_POINTS` log-spaced values from the median sample interval of ``t`` (N,) s
-    to a quarter of the record.
-    """
-    dt = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
-    return np.geomspace(dt, max(dt, 0.25 * float(t[-1] - t[0])), LAG_GRID_POINTS)
 
 
 class Screen:

@@ -46,7 +46,7 @@ import itertools
 import math
 
 from magcal_ros.core.discovery import bases
-from magcal_ros.core.discovery.constants import MIN_DELTA_BIC, MIN_EXPLAINED
+from magcal_ros.core.discovery.constants import AT_FLOOR_RATIO, MIN_DELTA_BIC, MIN_EXPLAINED
 import numpy as np
 from scipy import stats
 
@@ -66,8 +66,6 @@ TIE_SHARE = 0.03
 #: explains on the sensor it explains most (a disturbance of two sensors leaks ~5 % into
 #: the others through the field they share)
 SCOPE_SHARE = 0.15
-#: a sensor is at its floor when its residual is within this ratio of it
-FLOOR_RATIO = 1.10
 #: a term "explains" the excess when it also removes this share of it held out (a smooth
 #: that follows a short disturbance in-sample but cannot predict it does not)
 EXPLAINS_SHARE = 0.8
@@ -638,7 +636,7 @@ def search(data, resid, screen, sigma, floor, n_obs, alpha=0.01, steps=(), windo
     validated = [evaluate(c, True) for c in good[:CV_TOP]]
     secs['held_out'] = time.perf_counter() - t0
     adopt = _choose(validated)
-    if adopt is None or max(adopt.ratios.values()) > FLOOR_RATIO:
+    if adopt is None or max(adopt.ratios.values()) > AT_FLOOR_RATIO:
         singles = [c for c in validated if c.share is not None and c.share > 0][:PAIR_TOP]
         pairs = []
         for a, b in itertools.combinations(singles, 2):
@@ -756,7 +754,7 @@ def localised(t, sums):
     largest total excess (the maximum-sum subarray, Kadane's algorithm) must hold at least
     half of the whole excess.  Widened by 0, 1, 2 or 5 % of the record on each side, the
     base model is refitted (linearised) without it; the first interval after which every
-    sensor is within :data:`FLOOR_RATIO` of its floor is returned, if it is at most
+    sensor is within :data:`~.constants.AT_FLOOR_RATIO` of its floor is returned, if it is at most
     :data:`MAX_LOCALISED_FRACTION` of the record.
     """
     t = np.asarray(t, float)
@@ -804,7 +802,7 @@ def localised(t, sums):
                 rat[j] = math.sqrt(float(np.sum(r ** 2)) / float(fe[gi, out].sum()))
             if margin == 0.0:
                 step_next = st
-            if max(rat.values()) <= FLOOR_RATIO:
+            if max(rat.values()) <= AT_FLOOR_RATIO:
                 # a disturbance, not a few outliers: the 5 % largest epochs of the interval
                 # must not hold half of its excess (heavy-tailed noise: fit --robust)
                 pos = np.sort(np.clip(ex[a:b + 1], 0.0, None))[::-1]
