@@ -86,7 +86,6 @@ smooth signals cancel), not a robust (MAD) estimate, which reads low for heavy t
 from dataclasses import dataclass, field
 import math
 
-from magcal_ros.core.discovery.bases import legendre_basis
 from magcal_ros.core.discovery.constants import (ALPHA, ECHO_RATIO, LINE_NEIGHBOURHOOD,
                                                  MAX_PER_SENSOR, MIN_EPOCHS,
                                                  MIN_EXCESS_KURTOSIS, MIN_EXPLAINED,
@@ -326,8 +325,9 @@ def _test_step(t, x, sd, mod=None):
 
 
 def _trend(t, degree):
-    """(N, degree + 1) the constant and Legendre polynomials 1..degree of time."""
-    return np.column_stack([np.ones(len(t)), legendre_basis(t, degree)])
+    """(N, degree + 1) Legendre polynomials 0..degree of time scaled to [-1, 1]."""
+    u = 2.0 * (t - t[0]) / max(t[-1] - t[0], 1e-300) - 1.0
+    return np.polynomial.legendre.legvander(u, degree)
 
 
 def _test_time(t, x, sd, mod=None):
@@ -836,7 +836,7 @@ def _in_model(f, model):
 
 
 def _sameness(t):
-    """Return same(a, b): findings ``a`` and ``b`` are one (kind, channel, and time or frequency)."""
+    """Return same(a, b): findings ``a`` and ``b`` are one (kind, channel, time or frequency)."""
     _, dt = evenly_sampled(t)
     t_res = max(5 * dt, 0.01 * (t[-1] - t[0]))
     f_res = 2.0 / max(t[-1] - t[0], 1e-300)
