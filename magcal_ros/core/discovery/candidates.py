@@ -281,10 +281,7 @@ def residual_features(t, residual, max_steps=2, min_line_ratio=30.0, readings=No
         return binary_segmentation(x, max_steps, c * (10.0 + 5.0 * math.log(n)))
     found = changes(r.transpose(1, 0, 2).reshape(n, -1))              # (N, 3S)
     if readings is not None:
-        m = np.asarray(readings, float)
-        norm = np.linalg.norm(m, axis=2, keepdims=True)
-        u = np.divide(m, norm, out=np.zeros_like(m), where=norm > 0)
-        lin = (residual[:, :, :, None] * u[:, :, None, :])             # (S, N, 3, 3)
+        lin = _gain_products(residual, readings)                         # (S, N, 3, 3)
         lin = lin - lin.mean(axis=1, keepdims=True)
         # a change point of the gains near one of the mean's is the same change
         tol = max(3, n // 100)
@@ -314,6 +311,14 @@ def residual_features(t, residual, max_steps=2, min_line_ratio=30.0, readings=No
     return sorted(found), lines
 
 
+def _gain_products(residual, readings):
+    """(S, N, 3, 3) products r_a u_b of a residual and its reading's direction u = m / |m|."""
+    m = np.asarray(readings, float)
+    norm = np.linalg.norm(m, axis=2, keepdims=True)
+    u = np.divide(m, norm, out=np.zeros_like(m), where=norm > 0)
+    return np.asarray(residual, float)[:, :, :, None] * u[:, :, None, :]
+
+
 def demodulated_lines(t, residual, readings, min_line_ratio=30.0):
     """
     Spectral lines of how the residual follows the reading's direction (frequencies, Hz).
@@ -327,12 +332,9 @@ def demodulated_lines(t, residual, readings, min_line_ratio=30.0):
     ``residual``, ``readings``: (S, N, 3) nT.  Returns the sorted frequencies of the
     sensors' strongest lines of the products (:func:`residual_features`' test).
     """
-    m = np.asarray(readings, float)
-    norm = np.linalg.norm(m, axis=2, keepdims=True)
-    u = np.divide(m, norm, out=np.zeros_like(m), where=norm > 0)
-    prod = (np.asarray(residual, float)[:, :, :, None] * u[:, :, None, :])
-    prod = prod.reshape(m.shape[0], m.shape[1], 9)
-    _, lines = residual_features(t, prod, max_steps=0, min_line_ratio=min_line_ratio)
+    prod = _gain_products(residual, readings)
+    _, lines = residual_features(t, prod.reshape(*prod.shape[:2], 9), max_steps=0,
+                                 min_line_ratio=min_line_ratio)
     return sorted({round(f, 6) for _, f in lines.values()})
 
 

@@ -349,17 +349,9 @@ def _test_time(t, x, sd, mod=None):
 
 
 def _direction_design(u):
-    cols = [np.ones(len(u))]
-    for a in range(3):
-        cols.append(u[:, a])
-    for a in range(3):
-        for b in range(a, 3):
-            cols.append(u[:, a] * u[:, b])
-    for a in range(3):
-        for b in range(a, 3):
-            for cc in range(b, 3):
-                cols.append(u[:, a] * u[:, b] * u[:, cc])
-    return np.column_stack(cols)
+    """(N, 20) the :func:`_nuisance` columns and the cubes u_a u_b u_c of the direction."""
+    return np.column_stack([_nuisance(u)] + [u[:, a] * u[:, b] * u[:, c] for a in range(3)
+                                             for b in range(a, 3) for c in range(b, 3)])
 
 
 def _test_direction(u, x):
@@ -400,27 +392,30 @@ class _Driver:
         return first_order_lag(self.t, self.a, tau)
 
 
+def _refined_tau(drv, neg_gain, grid_values):
+    """Time constant, s: the grid's best (least ``grid_values``), refined between neighbours."""
+    from scipy.optimize import minimize_scalar
+    i = int(np.argmin(grid_values))
+    logs = np.log(drv.taus)
+    lo, hi = logs[max(i - 1, 0)], logs[min(i + 1, len(logs) - 1)]
+    if hi <= lo:
+        return float(drv.taus[i])
+    return float(math.exp(minimize_scalar(neg_gain, bounds=(lo, hi), method='bounded',
+                                          options={'xatol': 3e-3}).x))
+
+
 def _best_tau(drv, x_perp):
     """Time constant (refined between grid points) maximising the fit of x_perp (N, C)."""
     good = drv.lag_norm2 > 1e-12 * len(drv.a)
     if not good.any():
         return None
     gain = np.sum((drv.lags_perp.T @ x_perp) ** 2, axis=1) / np.where(good, drv.lag_norm2, 1)
-    gain[~good] = -1.0
-    i = int(np.argmax(gain))
-    lo = drv.taus[max(i - 1, 0)]
-    hi = drv.taus[min(i + 1, len(drv.taus) - 1)]
 
     def neg(log_tau):
         y = drv.lag_response(math.exp(log_tau))
         y = y - drv.q @ (drv.q.T @ y)
         return -float(np.sum((y @ x_perp) ** 2) / max(y @ y, 1e-300))
-    if hi > lo:
-        from scipy.optimize import minimize_scalar
-        r = minimize_scalar(neg, bounds=(math.log(lo), math.log(hi)), method='bounded',
-                            options={'xatol': 3e-3})
-        return float(math.exp(r.x))
-    return float(drv.taus[i])
+    return _refined_tau(drv, neg, np.where(good, -gain, 1.0))
 
 
 def _test_channel(t, x, drv, mod=None):
@@ -504,15 +499,8 @@ def _best_tau_modulated(drv, x, mod):
         y = (drv.lag_response(math.exp(log_tau)) if y is None else y)[:, None] * mod
         y = y - q @ (q.T @ y)                                     # (N, 3)
         return -float(np.sum(regress(x, y)[0] ** 2))
-    logs = np.log(drv.taus)
-    vals = [neg_gain(v, drv.lags[:, i]) for i, v in enumerate(logs)]
-    i = int(np.argmin(vals))
-    lo, hi = logs[max(i - 1, 0)], logs[min(i + 1, len(logs) - 1)]
-    if hi <= lo:
-        return float(drv.taus[i])
-    from scipy.optimize import minimize_scalar
-    return float(math.exp(minimize_scalar(neg_gain, bounds=(lo, hi), method='bounded',
-                                          options={'xatol': 3e-3}).x))
+    return _refined_tau(drv, neg_gain, [neg_gain(0.0, drv.lags[:, i])
+                                        for i in range(len(drv.taus))])
 
 
 # -- the kinds of finding: one table the description, the tokens and the report read -------

@@ -196,11 +196,12 @@ def explained_share(ms_before, ms_after, floor_nt):
     return float(np.clip((float(ms_before) - float(ms_after)) / excess, 0.0, 1.0))
 
 
-def solve_psd(a, b):
-    """Solve a x = b for a symmetric positive semi-definite (n, n) a (pseudo-inverse)."""
+def solve_psd(a, b, rcond=1e-12):
+    """Solve a x = b for a symmetric PSD (n, n) a, directions below ``rcond`` dropped."""
     w, v = np.linalg.eigh(a)
-    keep = w > 1e-12 * max(w.max(), 1e-300)
-    return v[:, keep] @ ((v[:, keep].T @ b) / w[keep])
+    keep = w > rcond * max(w.max(), 1e-300)
+    vb = v[:, keep].T @ b
+    return v[:, keep] @ (vb / (w[keep] if vb.ndim == 1 else w[keep][:, None]))
 
 
 # -- the residual toolkit ----------------------------------------------------------------------

@@ -45,8 +45,9 @@ from dataclasses import dataclass, field
 import itertools
 import math
 
-from magcal_ros.core.discovery import bases
+from magcal_ros.core.discovery import bases, measures
 from magcal_ros.core.discovery.constants import AT_FLOOR_RATIO, MIN_DELTA_BIC, MIN_EXPLAINED
+from magcal_ros.core.discovery.screen import add_gtc, ginv_times
 import numpy as np
 from scipy import stats
 
@@ -140,12 +141,9 @@ class Term:
         return body + '@{' + ','.join(str(j) for j in self.sensors) + '}'
 
 
-def solve_psd(a, b, rcond=1e-9):
-    """Solve a x = b for a symmetric PSD (n, n) a, directions below ``rcond`` dropped."""
-    w, v = np.linalg.eigh(a)
-    keep = w > rcond * max(w.max(), 1e-300)
-    vb = v[:, keep].T @ b
-    return v[:, keep] @ (vb / (w[keep] if vb.ndim == 1 else w[keep][:, None]))
+def solve_psd(a, b):
+    """Solve a x = b for a PSD a, directions below 1e-9 dropped (:func:`.measures.solve_psd`)."""
+    return measures.solve_psd(a, b, rcond=1e-9)
 
 
 def _orth(x):
@@ -349,13 +347,8 @@ class BlockSums:
                     bb[b][:, ia] += js[rows].T @ fb.T
                     dd[b][np.ix_(ia, ia)] += fb @ fb.T
                     gc[b][ia] += fb @ r[rows]
-            gbj = g['gb'][gi]
-            for a in range(2):
-                gtc[a, idx] += (cj[:, :, 0] * gbj[0][a] + cj[:, :, 1] * gbj[1][a]
-                                + cj[:, :, 2] * gbj[2][a])
-        (i00, i01), (i10, i11) = g['ginv']
-        m0 = gtc[0] * i00 + gtc[1] * i01
-        m1 = gtc[0] * i10 + gtc[1] * i11
+            add_gtc(gtc, idx, cj, g['gb'][gi])
+        m0, m1 = ginv_times(gtc, g)
         for b, (e0, e1) in enumerate(zip(self.edges[:-1], self.edges[1:])):
             s = slice(e0, e1)
             dd[b] -= gtc[0][:, s] @ m0[:, s].T + gtc[1][:, s] @ m1[:, s].T
