@@ -510,19 +510,11 @@ class Kind:
     """
     What the description, the candidate tokens and the report read of one kind (:data:`KINDS`).
 
-    Attributes
-    ----------
-    token : callable
-        (value, channel, detail dict, '@j' or '') -> the effect token to add, or None.  An
-        empty detail (a finding read back as a dict) gives the token it points to without it.
-    text : callable or None
-        (candidate, '@j' or '', token, sensor text, share text) -> what it is and what to add;
-        None for the kinds that write their own (nonuniform_field, heavy_tails).
-    follows : callable or None
-        Finding -> what the residual follows, in words (the diagnosis' 'unexplained' finding).
-    view : str or None
-        The report's figure that shows it.
-
+    ``token(value, channel, detail, '@j' or '')``: the effect token to add, or None (an empty
+    detail, a finding read back as a dict: the token it points to without it); ``text(candidate,
+    '@j' or '', token, sensor text, share text)``: what it is and what to add (None: the kind
+    writes its own); ``follows(finding)``: what the residual follows, in words (the diagnosis'
+    'unexplained' finding); ``view``: the report's figure that shows it.
     """
 
     token: object

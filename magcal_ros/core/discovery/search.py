@@ -198,17 +198,11 @@ def coupling_columns(coupling, x, lin, per_axis=False):
                 for axis, src, sign in pattern:
                     out[3 * c + q, :, axis] += sign * x[:, c] * lin[:, src]
         return out
-    if coupling == 'offset':
+    if coupling in ('offset', 'scale'):
         out = np.zeros((3 * m, n, 3))
         for c in range(m):
             for a in range(3):
-                out[3 * c + a, :, a] = x[:, c]
-        return out
-    if coupling == 'scale':
-        out = np.zeros((3 * m, n, 3))
-        for c in range(m):
-            for a in range(3):
-                out[3 * c + a, :, a] = x[:, c] * lin[:, a]
+                out[3 * c + a, :, a] = x[:, c] * (lin[:, a] if coupling == 'scale' else 1.0)
         return out
     if coupling == 'linear':
         out = np.zeros((9 * m, n, 3))
