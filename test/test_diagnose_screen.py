@@ -170,6 +170,19 @@ def test_a_clock_read_with_jitter_is_told_from_irregular_sampling():
     assert not sampled_on_a_clock(np.array([1.0])) and not sampled_on_a_clock(np.zeros(5))
 
 
+def test_unix_epoch_stamps_are_evenly_sampled_and_jitter_is_not():
+    from magcal_ros.core.discovery.measures import evenly_sampled
+    # 100 Hz stamps on the Unix epoch: float64 rounds 1.7e9 s to 2.4e-7 s, 2.4e-5 of an
+    # interval (a tolerance of 1e-6 of it called them irregular); 1 % jitter is irregular
+    t = 1.7e9 + np.arange(3000) * 0.01
+    assert np.ptp(np.diff(t)) > 1e-6 * 0.01
+    even, dt = evenly_sampled(t)
+    assert even and abs(dt - 0.01) < 1e-6
+    jitter = np.random.default_rng(0).uniform(-1e-4, 1e-4, 3000)
+    assert not evenly_sampled(np.arange(3000) * 0.01 + jitter)[0]
+    assert not evenly_sampled(np.array([1.0]))[0]
+
+
 def test_a_line_on_live_stamps_is_the_one_lomb_scargle_finds():
     # 1 500 live sets (30 s at 50 Hz): the FFT of the residual regridded onto the clock names
     # the line Lomb-Scargle names on the stamps (forced here), both to 1 / (10 span) of the
