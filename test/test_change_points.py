@@ -98,7 +98,7 @@ def test_the_threshold_is_in_units_of_the_mean_noise_variance_of_unequal_sensors
     # A step worth 1.5 T of it is found, within 30 epochs; one worth 0.75 T is not (its
     # statistic 0.75 T + C, sd 2 sqrt(0.75 T) = 42 below T = 600 by 3.3 sd)
     rng = np.random.default_rng(200 + seed)
-    t, m = np.arange(N) * 0.1, _readings()
+    t = np.arange(N) * 0.1
     sd = np.array([1.0, 1.5, 2.0, 1.0]) * SIGMA
     resid = rng.normal(0.0, 1.0, (4, N, 3)) * sd[:, None, None]
     mean_var = float(np.mean(sd ** 2))
