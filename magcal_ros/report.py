@@ -41,6 +41,8 @@ import warnings
 
 from magcal_ros.core.discovery import (AT_FLOOR_RATIO, compact_spec, MIN_DELTA_BIC,
                                        MIN_EXPLAINED, noise_floor_from_data)
+from magcal_ros.core.discovery.findings import best_lag, view_of
+from magcal_ros.core.discovery.measures import periodogram
 from magcal_ros.core.geometry.tensor import cross_positions, tensor_cross, tensor_noise_floor
 import matplotlib
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -1020,7 +1022,6 @@ def plot_residual_spectrum(findings):
     power divided by the summed white-noise variance, so white noise sits at 1 and a line
     stands out of its neighbourhood; the lines found are marked with their token.
     """
-    from magcal_ros.core.discovery.findings import periodogram
     sensors = sorted(findings.series)
     if not sensors or len(findings.t) < 30:
         return None
@@ -1036,7 +1037,7 @@ def plot_residual_spectrum(findings):
         _plain_log_ticks(ax.xaxis, ax.yaxis)
         ax.axhline(1.0, color='k', ls='--', lw=1.0, label='white noise')
         for f in findings.items:
-            if f.kind == 'periodic' and f.sensor == j:
+            if view_of(f) == 'residual_spectrum' and f.sensor == j:
                 ax.axvline(f.value, color='tab:red', lw=1.0, alpha=0.7)
                 ax.annotate(_finding_label(f), (f.value, 1.0), fontsize=8, color='tab:red',
                             xycoords=('data', 'axes fraction'), ha='center', va='top')
@@ -1068,7 +1069,8 @@ def plot_change_points(findings):
     for ax, j in zip(_sensor_axes(fig, len(sensors)), sensors):
         x = findings.series[j] - findings.series[j].mean(axis=0)
         sm = uniform_filter1d(x, w, axis=0, mode='nearest')
-        steps = sorted(f.value for f in findings.items if f.kind == 'step' and f.sensor == j)
+        steps = sorted(f.value for f in findings.items
+                       if view_of(f) == 'change_points' and f.sensor == j)
         edges = [0] + [int(np.searchsorted(t, v)) for v in steps] + [n]
         for c in range(x.shape[1]):
             colour = COMPONENT_COLOURS[c] if x.shape[1] == 3 else 'tab:blue'
@@ -1100,13 +1102,12 @@ def plot_residual_vs_lagged_channels(data, findings):
     such findings, each sensor's temperature at the lag that fits it best.
     """
     from magcal_ros.core.effects import first_order_lag
-    from magcal_ros.core.discovery.findings import best_lag
     t = findings.t
     if len(t) < 30:
         return None
     panels = []
     for f in findings.items:
-        if f.kind in ('lag', 'channel', 'channel_nonlinear') and f.channel:
+        if view_of(f) == 'residual_lagged' and f.channel:
             panels.append((f.sensor, f.channel, f.value if f.kind == 'lag' else 0.0,
                            _finding_label(f)))
     if not panels and data.temp is not None:
@@ -1215,7 +1216,7 @@ def _token_sensors(token, n_sensors):
 
 def _implicated(data, diagnosis, ladder, findings):
     """
-    Return what the diagnosis points at: tokens, finding kinds and channels.
+    Return what the diagnosis points at: tokens, the findings' views and channels.
 
     The verdict, every significant candidate, every effect the ladder added, and every
     finding (its token, kind, channel and sensor).  Candidates that pass the likelihood
@@ -1225,11 +1226,12 @@ def _implicated(data, diagnosis, ladder, findings):
     Returns
     -------
     tuple
-        (tokens: set of str, kinds: set of str (finding kinds), channels: dict
+        (tokens: set of str, views: set of str (the report figures that show the findings:
+        :data:`~magcal_ros.core.discovery.findings.KINDS`), channels: dict
         {'temperature' or a ``data.aux`` name: set of sensors (1-based)}).
 
     """
-    tokens, kinds, channels = set(), set(), {}
+    tokens, views, channels = set(), set(), {}
     if diagnosis is not None:
         tokens.update(c.token for c in diagnosis.candidates if c.significant)
         if diagnosis.verdict_token:
@@ -1238,7 +1240,7 @@ def _implicated(data, diagnosis, ladder, findings):
         tokens.update(st.added for st in ladder.steps if st.added)
     everyone = set(range(1, data.n_sensors + 1))
     for f in findings.items:
-        kinds.add(f.kind)
+        views.add(view_of(f))
         if f.token:
             tokens.add(f.token)
         if f.channel:
@@ -1250,7 +1252,7 @@ def _implicated(data, diagnosis, ladder, findings):
         ch = next((ch for ch in names if ch in tok), None)
         if ch is not None:
             channels.setdefault(ch, set()).update(_token_sensors(tok, data.n_sensors))
-    return tokens, kinds, channels
+    return tokens, views, channels
 
 
 #: candidates shown in the page's table; the rest are folded away in a <details>
@@ -1331,7 +1333,7 @@ def _plan(data, result, floor, diagnosis, ladder, found, baseline_m, every):
     points at is not drawn, the channel views keep only the (channel, sensor) panels
     something points at, and ``why`` says what was left out and why.
     """
-    tokens, kinds, channels = _implicated(data, diagnosis, ladder, found)
+    tokens, views, channels = _implicated(data, diagnosis, ladder, found)
     everyone = set(range(1, data.n_sensors + 1))
     has_temp = data.temp is not None and bool(np.isfinite(data.temp).any())
     temp_sel = everyone if every else channels.get('temperature', set())
@@ -1343,11 +1345,11 @@ def _plan(data, result, floor, diagnosis, ladder, found, baseline_m, every):
         'residual_aux': bool(aux_sel),
         'residual_rate': (any('field_rate' in t for t in tokens)
                           or 'field_rate' in channels),
-        'residual_direction': ('direction' in kinds
+        'residual_direction': ('residual_direction' in views
                                or any(e in t for t in tokens
                                       for e in ('nonlinearity', 'soft_iron'))),
-        'change_points': 'step' in kinds or any(t.startswith('step(') for t in tokens),
-        'residual_lagged': bool(kinds & {'lag', 'channel', 'channel_nonlinear'}),
+        'change_points': 'change_points' in views or any(t.startswith('step(') for t in tokens),
+        'residual_lagged': 'residual_lagged' in views,
     }
     views = [
         ('structure', 'Residual per sensor: over time and against the driver of the verdict',

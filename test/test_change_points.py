@@ -88,3 +88,28 @@ def test_white_noise_has_no_change_point_and_a_step_at_the_stated_threshold_is_o
             assert len(found) == 1 and abs(found[0] - k0) <= 30, (worth, found)
         else:
             assert found == [], (worth, found)
+
+
+@pytest.mark.parametrize('seed', range(5))
+def test_the_threshold_is_in_units_of_the_mean_noise_variance_of_unequal_sensors(seed):
+    # sensors of 3, 4.5, 6 and 3 nT: the statistic's null mean is sum sigma_c^2, so the
+    # threshold is stated in the mean column variance, here 18.6 nT^2 (the median of the
+    # pooled squared differences read 14.4: a step worth 0.75 T then counted as 0.97 T).
+    # A step worth 1.5 T of it is found, within 30 epochs; one worth 0.75 T is not (its
+    # statistic 0.75 T + C, sd 2 sqrt(0.75 T) = 42 below T = 600 by 3.3 sd)
+    rng = np.random.default_rng(200 + seed)
+    t = np.arange(N) * 0.1
+    sd = np.array([1.0, 1.5, 2.0, 1.0]) * SIGMA
+    resid = rng.normal(0.0, 1.0, (4, N, 3)) * sd[:, None, None]
+    mean_var = float(np.mean(sd ** 2))
+    threshold = mean_var * 12 * (10 + 5 * np.log(N))
+    k0 = N // 2
+    direction = np.array([2.0, -1.0, 2.0]) / 3.0
+    for worth, expected in ((1.5, True), (0.75, False)):
+        stepped = resid.copy()
+        stepped[0, k0:] += direction * np.sqrt(worth * threshold * 4 / N)
+        found, _ = residual_features(t, stepped)
+        if expected:
+            assert len(found) == 1 and abs(found[0] - k0) <= 30, (worth, found)
+        else:
+            assert found == [], (worth, found)

@@ -23,7 +23,8 @@ reduction test reads no uncertainties skips the covariance (fit(covariance=False
 import injection as inj
 from magcal_ros.core.discovery.candidates import extend_model, reads_stderr
 from magcal_ros.core.discovery.constants import REFIT_CHI2_TOL, REFIT_MAX_NFEV
-from magcal_ros.core.discovery.screen import lag_grid, Screen
+from magcal_ros.core.discovery.measures import lag_grid
+from magcal_ros.core.discovery.screen import Screen
 from magcal_ros.core.model import fit
 import numpy as np
 import pytest

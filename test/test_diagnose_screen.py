@@ -129,7 +129,7 @@ def test_a_line_is_proposed_from_irregular_samples_also_past_the_periodogram_bud
     # the residual regridded onto the median interval; both name the line to 1 / (10 span),
     # and white noise alone proposes none
     from magcal_ros.core.discovery import propose_from_residual
-    from magcal_ros.core.discovery.candidates import LS_BUDGET
+    from magcal_ros.core.discovery.constants import LS_BUDGET
     assert (n * min(4 * n, 20000) > LS_BUDGET) == (n > 2000)
     rng = np.random.default_rng(n)
     t = np.arange(n) / 10.0 + rng.uniform(-0.03, 0.03, n)
@@ -154,7 +154,7 @@ def _live_clock(n, seed, lost=0.01):
 
 
 def test_a_clock_read_with_jitter_is_told_from_irregular_sampling():
-    from magcal_ros.core.discovery.candidates import sampled_on_a_clock
+    from magcal_ros.core.discovery.measures import sampled_on_a_clock
     # live stamps: every interval within 20 ms -+ 5 ms but the 1 % lost (40 ms)
     t, rng = _live_clock(3000, 1)
     assert sampled_on_a_clock(t)
@@ -170,13 +170,26 @@ def test_a_clock_read_with_jitter_is_told_from_irregular_sampling():
     assert not sampled_on_a_clock(np.array([1.0])) and not sampled_on_a_clock(np.zeros(5))
 
 
+def test_unix_epoch_stamps_are_evenly_sampled_and_jitter_is_not():
+    from magcal_ros.core.discovery.measures import evenly_sampled
+    # 100 Hz stamps on the Unix epoch: float64 rounds 1.7e9 s to 2.4e-7 s, 2.4e-5 of an
+    # interval (a tolerance of 1e-6 of it called them irregular); 1 % jitter is irregular
+    t = 1.7e9 + np.arange(3000) * 0.01
+    assert np.ptp(np.diff(t)) > 1e-6 * 0.01
+    even, dt = evenly_sampled(t)
+    assert even and abs(dt - 0.01) < 1e-6
+    jitter = np.random.default_rng(0).uniform(-1e-4, 1e-4, 3000)
+    assert not evenly_sampled(np.arange(3000) * 0.01 + jitter)[0]
+    assert not evenly_sampled(np.array([1.0]))[0]
+
+
 def test_a_line_on_live_stamps_is_the_one_lomb_scargle_finds():
     # 1 500 live sets (30 s at 50 Hz): the FFT of the residual regridded onto the clock names
     # the line Lomb-Scargle names on the stamps (forced here), both to 1 / (10 span) of the
     # 0.23 Hz written in; white noise alone proposes none
     from unittest import mock
 
-    from magcal_ros.core.discovery import candidates
+    from magcal_ros.core.discovery import candidates, measures
     t, rng = _live_clock(1500, 2)
     noise = rng.normal(0.0, 3.0, (4, len(t), 3))
     line = 6.0 * np.stack([np.cos(2 * np.pi * 0.23 * t), np.sin(2 * np.pi * 0.23 * t + 0.4),
@@ -186,7 +199,7 @@ def test_a_line_on_live_stamps_is_the_one_lomb_scargle_finds():
     span = t[-1] - t[0]
     found = {}
     for clock in (True, False):
-        with mock.patch.object(candidates, 'sampled_on_a_clock', return_value=clock):
+        with mock.patch.object(measures, 'sampled_on_a_clock', return_value=clock):
             _, lines = candidates.residual_features(t, with_line)
             assert sorted(lines) == [2], lines
             found[clock] = lines[2][1]

@@ -26,7 +26,8 @@ import json
 
 import injection as inj
 from magcal_ros.core.data.dataset import Dataset
-from magcal_ros.core.discovery.findings import find, lomb_scargle, periodogram, white_noise_sd
+from magcal_ros.core.discovery.findings import find
+from magcal_ros.core.discovery.measures import lomb_scargle, periodogram, white_noise_sd
 from magcal_ros.core.model import fit
 import numpy as np
 import pytest

@@ -25,13 +25,15 @@ of the shortest feature worth describing), the change points and spectral lines 
 base residual, each channel (its range; a channel that wraps gets a cyclic basis), the
 first-order lag of each channel on a grid of time constants, and products of two channels.
 
-The columns span the same space as the formula's driver (the grammar's own basis may differ
-by an invertible map, which changes no fit); the term adopted is refitted by the grammar.
+The columns are the formula's own driver's (:func:`grammar_columns`), centred; the term
+adopted is refitted by the grammar.
 """
 from dataclasses import dataclass, field
 import math
 
-from magcal_ros.core.effects import first_order_lag
+from magcal_ros.core.discovery.measures import lag_grid
+from magcal_ros.core.effects.base import SensorContext
+from magcal_ros.core.effects.formula import parse_driver
 import numpy as np
 
 #: numbers of basis functions of the smooth in time the search tries (the grammar's s()
@@ -39,8 +41,9 @@ import numpy as np
 SMOOTH_K = (4, 8, 12, 20)
 #: fewest samples per basis function of a smooth in time
 MIN_SAMPLES_PER_K = 25
-#: time constants of a lag, as fractions of the record (log-spaced grid), plus 1-4 samples
-LAG_FRACTIONS = (0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2)
+#: time constants of a lag: LAG_POINTS log-spaced from the first share of the record (at
+#: least a sample interval) to the second (:func:`~.measures.lag_grid`)
+LAG_FRACTIONS, LAG_POINTS = (0.002, 0.2), 7
 #: harmonics of a cyclic smooth
 CYCLIC_K = (1, 2, 3)
 
@@ -90,30 +93,17 @@ def centred(x):
     return x - x.mean(axis=0)
 
 
-def spline_basis(t, k):
+def grammar_columns(text, ctx, q=()):
     """
-    (N, k) cubic regression-spline basis ``s(t, k=K)`` over t, centred.
+    (N, m) columns of the grammar's driver ``text`` in ``ctx`` (a SensorContext), centred.
 
-    As the grammar's ``s`` (magcal_ros.core.effects.drivers.Spline): k + 1 cubic B-splines
-    (scipy.interpolate.BSpline.design_matrix) on equally spaced knots over the record, the
-    first dropped (they sum to one: the constant is the model's offset).
+    The driver is the formula's own (:func:`magcal_ros.core.effects.formula.parse_driver`),
+    prepared on ``ctx``; ``q`` holds its own parameters (a lag's time constant, s).
     """
-    from scipy.interpolate import BSpline
-    t = np.asarray(t, float)
-    lo, hi = float(t[0]), float(t[-1])
-    inner = np.linspace(lo, hi, k + 1 - 3 + 1)
-    knots = np.concatenate([[lo] * 3, inner, [hi] * 3])
-    x = BSpline.design_matrix(np.clip(t, lo, hi), knots, 3).toarray()
-    return centred(x[:, 1:])
-
-
-def legendre_basis(x, degree):
-    """(N, degree) Legendre polynomials 1..degree of ``x`` scaled to [-1, 1], centred."""
-    x = np.asarray(x, float)
-    lo, hi = float(np.min(x)), float(np.max(x))
-    u = 2.0 * (x - lo) / (hi - lo) - 1.0 if hi > lo else np.zeros_like(x)
-    cols = [np.polynomial.legendre.legval(u, [0] * d + [1]) for d in range(1, degree + 1)]
-    return centred(np.stack(cols, axis=1))
+    d = parse_driver(text)
+    refs = {}
+    d.prepare(ctx, refs)
+    return centred(d.columns(ctx, None, refs, np.atleast_1d(np.asarray(q, float))))
 
 
 def wrap_period(x):
@@ -136,15 +126,6 @@ def wrap_period(x):
         if 0.8 * period <= rng <= 1.001 * period:
             return period
     return None
-
-
-def cyclic_basis(x, k, period):
-    """(N, 2k) Fourier harmonics 1..k of a wrapped channel of ``period``, centred."""
-    ph = 2.0 * math.pi * np.asarray(x, float) / period
-    cols = []
-    for h in range(1, k + 1):
-        cols += [np.cos(h * ph), np.sin(h * ph)]
-    return centred(np.stack(cols, axis=1))
 
 
 def fmt(v):
@@ -173,6 +154,11 @@ def channels_of(data):
     return out
 
 
+def _driver(text, kind, channel, ctx_of, note='', q=()):
+    """Return a :class:`Driver` whose columns are the grammar's (:func:`grammar_columns`)."""
+    return Driver(text, kind, channel, lambda j: grammar_columns(text, ctx_of(j), q), note=note)
+
+
 def time_drivers(t, steps=(), windows=(), lines=()):
     """
     Return the drivers in time.
@@ -181,79 +167,39 @@ def time_drivers(t, steps=(), windows=(), lines=()):
     1-3, the steps and windows at the change points given (s) and sinusoids at the lines
     (Hz).
     """
-    t = np.asarray(t, float)
-    n = len(t)
-    out = []
-    for d in (1, 2, 3):
-        out.append(Driver(f'poly(t, {d})', 'time', 't',
-                          lambda j, d=d: legendre_basis(t, d)))
-    for k in SMOOTH_K:
-        if n >= MIN_SAMPLES_PER_K * k:
-            out.append(Driver(f's(t, k={k})', 'time', 't', lambda j, k=k: spline_basis(t, k)))
-    for ts in steps:
-        ts = tuple(ts)
-        txt = ', '.join(fmt(x) for x in ts)
-        out.append(Driver(f'step({txt})', 'time', 't',
-                          lambda j, ts=ts: centred(np.stack([t >= x for x in ts], 1)),
-                          note='change point'))
-    for a, b in windows:
-        out.append(Driver(f'window({fmt(a)}, {fmt(b)})', 'time', 't',
-                          lambda j, a=a, b=b: centred((t >= a) & (t <= b)),
-                          note='change points'))
-    for f in lines:
-        out.append(Driver(f'sin({fmt(f)})', 'time', 't',
-                          lambda j, f=f: centred(np.stack([np.cos(2 * np.pi * f * t),
-                                                           np.sin(2 * np.pi * f * t)], 1)),
-                          note='spectral line'))
+    ctx = SensorContext(t=np.asarray(t, float))
+    n = len(ctx.t)
+
+    def drv(text, note=''):
+        return _driver(text, 'time', 't', lambda j: ctx, note)
+    out = [drv(f'poly(t, {d})') for d in (1, 2, 3)]
+    out += [drv(f's(t, k={k})') for k in SMOOTH_K if n >= MIN_SAMPLES_PER_K * k]
+    out += [drv(f'step({", ".join(fmt(x) for x in ts)})', 'change point') for ts in steps]
+    out += [drv(f'window({fmt(a)}, {fmt(b)})', 'change points') for a, b in windows]
+    out += [drv(f'sin({fmt(f)})', 'spectral line') for f in lines]
     return out
 
 
 def channel_drivers(data, name):
     """Drivers of one channel: linear, polynomial (2, 3), cyclic when it wraps, lags."""
-    t = data.t
-    span = float(t[-1] - t[0])
-    dt = float(np.median(np.diff(t)))
-
-    def val(j):
-        return channel_values(data, name, j)
-    period = wrap_period(val(1))
-    out = []
+    period = wrap_period(channel_values(data, name, 1))
     if period is not None:
         p_txt = '' if period == 360.0 else f', period={fmt(period)}'
-        for k in CYCLIC_K:
-            out.append(Driver(f'cc({name}, k={k}{p_txt})', 'channel', name,
-                              lambda j, k=k: cyclic_basis(val(j), k, period)))
-        return out
-    out.append(Driver(name, 'channel', name, lambda j: centred(val(j))))
-    for d in (2, 3):
-        out.append(Driver(f'poly({name}, {d})', 'channel', name,
-                          lambda j, d=d: legendre_basis(val(j), d)))
-    taus = sorted({max(dt, f * span) for f in LAG_FRACTIONS})
-    for tau in taus:
-        out.append(Driver(f'lag({name})', 'channel', name,
-                          lambda j, tau=tau: centred(first_order_lag(t, val(j), tau)),
-                          note=f'tau={fmt(tau)}'))
+        return [_driver(f'cc({name}, k={k}{p_txt})', 'channel', name, data.context)
+                for k in CYCLIC_K]
+    out = [_driver(t, 'channel', name, data.context)
+           for t in (name, f'poly({name}, 2)', f'poly({name}, 3)')]
+    out += [_driver(f'lag({name})', 'channel', name, data.context, f'tau={fmt(tau)}', [tau])
+            for tau in lag_grid(data.t, LAG_POINTS, *LAG_FRACTIONS)]
     return out
 
 
 def product_drivers(data, names):
     """Products of two linear channels (and of each channel with time)."""
-    t = data.t
-    out = []
     lin = list(names) + ['t']
-
-    def val(name, j):
-        return t if name == 't' else channel_values(data, name, j)
-    for i, a in enumerate(lin):
-        for b in lin[i + 1:]:
-            if a != 't' and wrap_period(val(a, 1)) is not None:
-                continue
-            if b != 't' and wrap_period(val(b, 1)) is not None:
-                continue
-            out.append(Driver(f'{a} * {b}', 'product', a if b == 't' else f'{a}*{b}',
-                              lambda j, a=a, b=b: centred(
-                                  centred(val(a, j))[:, 0] * centred(val(b, j))[:, 0])))
-    return out
+    wraps = {a for a in names if wrap_period(channel_values(data, a, 1)) is not None}
+    return [_driver(f'{a} * {b}', 'product', a if b == 't' else f'{a}*{b}', data.context)
+            for i, a in enumerate(lin) for b in lin[i + 1:] if not {a, b} & wraps]
 
 
 def rate_driver(data):

@@ -27,7 +27,8 @@ import math
 
 from magcal_ros.core import effects as fx
 from magcal_ros.core.discovery.constants import NESTED
-from magcal_ros.core.discovery.findings import lomb_scargle as find_lomb_scargle
+from magcal_ros.core.discovery.findings import KINDS
+from magcal_ros.core.discovery.measures import binary_segmentation, periodogram
 import numpy as np
 
 
@@ -201,41 +202,6 @@ def token_label(tok):
     return fx.make_effect(full, sensor or 1).label, sensor
 
 
-#: most complex exponentials (epochs x frequencies) of one sensor's Lomb-Scargle periodogram
-#: in :func:`propose_from_residual` (~1 s per sensor); larger irregular records are regridded
-LS_BUDGET = 4e7
-#: a clock with jitter: the stamps of a stream sampled at a fixed rate, read with a delay that
-#: varies (a live record's arrival stamps) and with samples lost, when at most this fraction
-#: of the intervals lies outside (1 -+ CLOCK_JITTER) x the median interval
-CLOCK_OUTLIERS = 0.05
-CLOCK_JITTER = 0.25
-#: the regridded residual's FFT is zero-padded to this many times its length: the frequency
-#: spacing 1 / (8 span) of the Lomb-Scargle grid (4 N frequencies up to the Nyquist
-#: frequency), so that a line between two bins loses at most 1.3 % of its power, not 60 %
-REGRID_PAD = 8
-
-
-def sampled_on_a_clock(t, dt=None):
-    """
-    Tell whether times ``t`` (N,) s are a fixed-rate clock read with jitter, samples lost.
-
-    True when at most :data:`CLOCK_OUTLIERS` of the intervals lie outside (1 -+
-    :data:`CLOCK_JITTER`) times the median interval ``dt`` (s; computed when None): the
-    residual can then be interpolated onto the clock's grid without losing a line below the
-    Nyquist frequency (a timing error of a quarter interval shifts a line's phase by at most
-    pi f / (2 f_Nyquist)), and its periodogram is an FFT instead of Lomb-Scargle's N x M sum
-    (live records, four sensors: 2.7 s of a diagnose call at 1 500 sets, 9.5 s at 3 000).
-    """
-    d = np.diff(np.asarray(t, float))
-    if not d.size:
-        return False
-    dt = float(np.median(d)) if dt is None else dt
-    if dt <= 0:
-        return False
-    off = np.abs(d - dt) > CLOCK_JITTER * dt
-    return bool(off.mean() <= CLOCK_OUTLIERS)
-
-
 def propose_from_residual(t, residual, max_steps=2, min_line_ratio=30.0):
     """
     Effects with arguments suggested by the residual: offset steps and periodic lines.
@@ -259,12 +225,10 @@ def propose_from_residual(t, residual, max_steps=2, min_line_ratio=30.0):
         Names with arguments, e.g. ['step(300)', 'periodic(0.23)'] (the diagnosis tests each
         per sensor and on all sensors).
 
-    Change points: the least-squares single change in the mean of the 3-vector residual
-    (the CUSUM statistic of the two-segment fit, maximised over the split; Hawkins 1977),
-    applied recursively to the segments (binary segmentation).  Lines: the periodogram
-    (Lomb-Scargle for uneven sampling, magcal_ros.core.discovery.findings.lomb_scargle) of each
-    sensor's residual,
-    summed over the axes, its peak refined on a grid 10x finer than 1/span.
+    Change points: binary segmentation of the mean of the 3-vector residuals
+    (:func:`~.measures.binary_segmentation`).  Lines: the periodogram
+    (:func:`~.measures.periodogram`) of each sensor's residual, summed over the axes, its peak
+    refined on a grid 10x finer than 1/span.
 
     """
     t = np.asarray(t, float)
@@ -289,44 +253,6 @@ def propose_from_residual(t, residual, max_steps=2, min_line_ratio=30.0):
     return out
 
 
-def _binary_segmentation(flat, max_steps):
-    """
-    Change points of the mean of the columns of ``flat`` (N, C): binary segmentation.
-
-    The least-squares single change in the mean of the C-vector (the CUSUM statistic of
-    the two-segment fit, maximised over the split; Hawkins 1977), applied recursively to
-    the segments; a change is kept only far above what white noise gives (the statistic
-    is ~ chi2(C) sigma^2 there, sigma from the first differences).
-    """
-    n = flat.shape[0]
-    found = []
-    segs = [(0, n)]
-    sig2 = np.median(np.diff(flat, axis=0) ** 2) / 2.0 / 0.455
-    for _ in range(max_steps):
-        best = None
-        for a, b in segs:
-            m = b - a
-            if m < 20:
-                continue
-            c = np.cumsum(flat[a:b], axis=0)
-            k = np.arange(1, m)
-            dev = c[:-1] - k[:, None] / m * c[-1]
-            stat = np.sum(dev ** 2, axis=1) / (k * (m - k) / m)
-            stat[:5] = stat[-5:] = 0.0
-            i = int(np.argmax(stat))
-            if best is None or stat[i] > best[0]:
-                best = (stat[i], a + i + 1, (a, b))
-        if best is None:
-            break
-        if best[0] < 10.0 * sig2 * flat.shape[1] + 5.0 * sig2 * math.log(n) * flat.shape[1]:
-            break
-        found.append(best[1])
-        a, b = best[2]
-        segs.remove((a, b))
-        segs += [(a, best[1]), (best[1], b)]
-    return found
-
-
 def residual_features(t, residual, max_steps=2, min_line_ratio=30.0, readings=None):
     """
     Change points and spectral lines of a residual (see :func:`propose_from_residual`).
@@ -346,59 +272,34 @@ def residual_features(t, residual, max_steps=2, min_line_ratio=30.0, readings=No
     if n < 50:
         return [], {}
     r = residual - residual.mean(axis=1, keepdims=True)
-    # -- steps: one change in the mean, on the sensors' residuals together
-    flat = r.transpose(1, 0, 2).reshape(n, -1)              # (N, 3S)
-    found = _binary_segmentation(flat, max_steps)
+    # -- steps: one change in the mean, on the sensors' residuals together; a change is kept
+    # only far above what white noise gives (C (10 + 5 ln N) for C columns: a split's
+    # statistic is ~ chi2(C) there)
+
+    def changes(x):
+        c = x.shape[1]
+        return binary_segmentation(x, max_steps, c * (10.0 + 5.0 * math.log(n)))
+    found = changes(r.transpose(1, 0, 2).reshape(n, -1))              # (N, 3S)
     if readings is not None:
-        m = np.asarray(readings, float)
-        norm = np.linalg.norm(m, axis=2, keepdims=True)
-        u = np.divide(m, norm, out=np.zeros_like(m), where=norm > 0)
-        lin = (residual[:, :, :, None] * u[:, :, None, :])             # (S, N, 3, 3)
+        lin = _gain_products(residual, readings)                         # (S, N, 3, 3)
         lin = lin - lin.mean(axis=1, keepdims=True)
-        flat_lin = lin.transpose(1, 0, 2, 3).reshape(n, -1)            # (N, 9S)
         # a change point of the gains near one of the mean's is the same change
         tol = max(3, n // 100)
-        for k in _binary_segmentation(flat_lin, max_steps):
+        for k in changes(lin.transpose(1, 0, 2, 3).reshape(n, -1)):    # (N, 9S)
             if all(abs(k - f) > tol for f in found):
                 found.append(k)
-    dt = float(np.median(np.diff(t)))
-    # -- lines
+    # -- lines: each sensor's strongest, over the median power
     span = float(t[-1] - t[0])
     if span <= 0:
         return sorted(found), {}
-    uniform = np.ptp(np.diff(t)) <= 1e-6 * dt
-    f_lo, f_hi = 5.0 / span, 0.5 / dt
-    m_ls = min(4 * n, 20000)
-    # irregular sampling: Lomb-Scargle costs N x M. A fixed-rate clock read with jitter
-    # (live stamps: sampled_on_a_clock), and beyond LS_BUDGET any irregular record (more
-    # than ~3 000 epochs, e.g. the evenly spaced subset of a long record that diagnose
-    # tests), take the FFT of the residual interpolated linearly onto a uniform grid at the
-    # median interval instead (a gentle low-pass: a line well below the Nyquist frequency
-    # keeps its power over the median), zero-padded to the Lomb-Scargle grid's spacing;
-    # either way the line's frequency is refined on the actual sample times below.  Before:
-    # 47 s at 20 000 epochs of a 100 000-epoch record (bench/solve_time.py); 0.75 s per
-    # sensor for 1 500 live sets
-    regrid = not uniform and (n * m_ls > LS_BUDGET or sampled_on_a_clock(t, dt))
-    if regrid:
-        t_u = t[0] + dt * np.arange(int(span / dt) + 1)
+    f_lo, f_hi = 5.0 / span, 0.5 / float(np.median(np.diff(t)))
     lines = {}
     for j in range(r.shape[0]):
-        if uniform or regrid:
-            x = r[j] if uniform else np.stack([np.interp(t_u, t, r[j][:, c])
-                                               for c in range(r.shape[2])], axis=1)
-            nfft = len(x) if uniform else REGRID_PAD * len(x)
-            spec = np.abs(np.fft.rfft(x, n=nfft, axis=0)) ** 2
-            freqs = np.fft.rfftfreq(nfft, dt)
-            spec = spec.sum(axis=1)
-        else:
-            freqs = np.linspace(f_lo, f_hi, m_ls)
-            # the vectorised periodogram (same numbers as scipy.signal.lombscargle, which
-            # loops in Python: 85 s vs 9 s per sensor for 3000 live sets with jittery stamps)
-            spec = find_lomb_scargle(t, r[j], freqs).sum(axis=1)
+        freqs, power, _ = periodogram(t, r[j], oversample=8)
         keep = (freqs >= f_lo) & (freqs < 0.98 * f_hi)
         if keep.sum() < 20:
             continue
-        fs, ps = freqs[keep], spec[keep]
+        fs, ps = freqs[keep], power[keep].sum(axis=1)
         i = int(np.argmax(ps))
         if ps[i] < min_line_ratio * np.median(ps):
             continue
@@ -408,6 +309,14 @@ def residual_features(t, residual, max_steps=2, min_line_ratio=30.0, readings=No
         fbest = float(grid[int(np.argmax(pw))])
         lines[j] = (ps[i] / np.median(ps), fbest)
     return sorted(found), lines
+
+
+def _gain_products(residual, readings):
+    """(S, N, 3, 3) products r_a u_b of a residual and its reading's direction u = m / |m|."""
+    m = np.asarray(readings, float)
+    norm = np.linalg.norm(m, axis=2, keepdims=True)
+    u = np.divide(m, norm, out=np.zeros_like(m), where=norm > 0)
+    return np.asarray(residual, float)[:, :, :, None] * u[:, :, None, :]
 
 
 def demodulated_lines(t, residual, readings, min_line_ratio=30.0):
@@ -423,12 +332,9 @@ def demodulated_lines(t, residual, readings, min_line_ratio=30.0):
     ``residual``, ``readings``: (S, N, 3) nT.  Returns the sorted frequencies of the
     sensors' strongest lines of the products (:func:`residual_features`' test).
     """
-    m = np.asarray(readings, float)
-    norm = np.linalg.norm(m, axis=2, keepdims=True)
-    u = np.divide(m, norm, out=np.zeros_like(m), where=norm > 0)
-    prod = (np.asarray(residual, float)[:, :, :, None] * u[:, :, None, :])
-    prod = prod.reshape(m.shape[0], m.shape[1], 9)
-    _, lines = residual_features(t, prod, max_steps=0, min_line_ratio=min_line_ratio)
+    prod = _gain_products(residual, readings)
+    _, lines = residual_features(t, prod.reshape(*prod.shape[:2], 9), max_steps=0,
+                                 min_line_ratio=min_line_ratio)
     return sorted({round(f, 6) for _, f in lines.values()})
 
 
@@ -540,28 +446,20 @@ def tokens_from_findings(findings):
     """
     Names with arguments that model-free findings point to (tested like any candidate).
 
-    ``findings``: dicts {"kind", "sensor", "channel", "value", ...} (issue 11 item 3):
-    ``step`` (value = time, s) -> ``step(t)``; ``periodic`` (value = Hz) -> ``periodic(f)``;
-    ``lag`` (channel) -> ``lag(channel)``; ``channel_nonlinear`` (an aux channel) ->
-    ``aux_poly(channel,2)``.  Other kinds point to nothing in the catalog.
+    ``findings``: dicts {"kind", "sensor", "channel", "value", "token", ...} (issue 11 item
+    3): the finding's token, else the one its kind points to (:data:`.findings.KINDS`), on
+    every sensor: ``step(t)``, ``periodic(f)``, ``lag(channel)``, ``aux_poly(channel,2)``.
+    Tokens without arguments are in the catalog's candidates already.
     """
     out = []
     for fd in findings:
-        kind, val, ch = fd.get('kind'), fd.get('value'), fd.get('channel')
-        if fd.get('token'):                 # the finding's own suggestion, on every sensor
-            try:
-                name, args, _ = fx.parse_token(fd['token'])
-            except ValueError:
-                name, args = None, ()
-            if args:
-                out.append(f'{name}({",".join(args)})')
-                continue
-        if kind == 'step' and val is not None:
-            out.append(f'step({float(val):.6g})')
-        elif kind == 'periodic' and val is not None:
-            out.append(f'periodic({float(val):.5g})')
-        elif kind == 'lag' and ch:
-            out.append(f'lag({ch})')
-        elif kind == 'channel_nonlinear' and ch and ch != 'temperature':
-            out.append(f'aux_poly({ch},2)')
+        tok, kind = fd.get('token'), KINDS.get(fd.get('kind'))
+        if not tok and kind is not None:
+            tok = kind.token(fd.get('value'), fd.get('channel'), {}, '')
+        try:
+            name, args, _ = fx.parse_token(tok or '')
+        except ValueError:
+            continue
+        if args:
+            out.append(f'{name}({",".join(args)})')
     return list(dict.fromkeys(out))

@@ -17,8 +17,12 @@
 ALPHA = 0.01
 #: delta BIC a candidate must beat (Kass & Raftery: < -10 is very strong evidence)
 MIN_DELTA_BIC = -10.0
-#: "at the noise floor": every residual RMS within this ratio of its floor
+#: "at the noise floor": every residual RMS within this ratio of its floor (the diagnosis,
+#: the formula search and the findings' effect size)
 AT_FLOOR_RATIO = 1.10
+#: a finding's model must remove at least this many noise variances (pooled per component):
+#: alone it lifts the RMS above AT_FLOOR_RATIO x the floor
+MIN_SIGNAL_RATIO = AT_FLOOR_RATIO ** 2 - 1.0
 #: folds of the cross-validation (each made of interleaved contiguous blocks: time_blocks)
 DEFAULT_FOLDS = 3
 #: contiguous blocks per fold, interleaved over the record (time_blocks)
@@ -74,3 +78,40 @@ NESTED = {'drift': ('drift2',), 'drift2': ('drift',)}
 SEARCH_CHANGE_POINTS = 4
 #: search terms listed among the diagnosis' candidates
 SEARCH_LISTED = 10
+
+# -- the residual toolkit (measures.py) -------------------------------------------------------
+#: evenly sampled: every interval within this share of the median one.  Not tighter: stamps
+#: on a Unix-epoch clock (1.7e9 s) carry 2e-7 s of float64 rounding, 2e-5 of a 100 Hz
+#: interval, which a tolerance of 1e-6 called irregular; a timing error of 1e-3 interval
+#: moves the phase of a line at the Nyquist frequency by pi 1e-3 rad, nothing an FFT shows
+EVEN_SAMPLING = 1e-3
+#: most complex exponentials (epochs x frequencies) of one Lomb-Scargle periodogram (~1 s);
+#: a larger irregular record is regridded onto its median interval and FFT-ed
+LS_BUDGET = 4e7
+#: a clock with jitter: the stamps of a stream sampled at a fixed rate, read with a delay that
+#: varies (a live record's arrival stamps) and with samples lost, when at most this fraction
+#: of the intervals lies outside (1 -+ CLOCK_JITTER) x the median interval
+CLOCK_OUTLIERS = 0.05
+CLOCK_JITTER = 0.25
+
+# -- the model-free findings (findings.py) ----------------------------------------------------
+#: findings per sensor (greedy rounds)
+MAX_PER_SENSOR = 4
+#: a step is preferred to the best trend when it removes this share of what the trend does
+STEP_OVER_TREND = 0.95
+#: shortest segment of a step, as a share of the record
+MIN_SEGMENT_FRACTION = 0.02
+#: excess kurtosis from which tails count as heavy (a Student t with 10 degrees of freedom;
+#: the sample excess kurtosis of Gaussian noise has sd sqrt(24 / N) = 0.09 at N = 3000)
+MIN_EXCESS_KURTOSIS = 1.0
+#: a finding on another sensor with the same kind and value is the consensus' echo of the
+#: faulty sensor's if it removes less than this share of the largest one's mean square (the
+#: echo through the median of 3 others is a few per cent, through the mean of 2 a quarter)
+ECHO_RATIO = 0.5
+#: fewer epochs than this: no search (the fit leaves too few degrees of freedom per
+#: parameter for the residual to be white, and the tests' null distributions are asymptotic)
+MIN_EPOCHS = 200
+#: lag time constants tried per channel
+N_TAU = 24
+#: half width, in independent frequencies, of the neighbourhood a line is compared with
+LINE_NEIGHBOURHOOD = 50

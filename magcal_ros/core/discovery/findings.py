@@ -86,39 +86,16 @@ smooth signals cancel), not a robust (MAD) estimate, which reads low for heavy t
 from dataclasses import dataclass, field
 import math
 
+from magcal_ros.core.discovery.constants import (ALPHA, ECHO_RATIO, LINE_NEIGHBOURHOOD,
+                                                 MAX_PER_SENSOR, MIN_EPOCHS,
+                                                 MIN_EXCESS_KURTOSIS, MIN_EXPLAINED,
+                                                 MIN_SEGMENT_FRACTION, MIN_SIGNAL_RATIO, N_TAU,
+                                                 STEP_OVER_TREND)
+from magcal_ros.core.discovery.measures import (cusum, evenly_sampled, lag_grid, periodogram,
+                                                regress, white_noise_sd)
 from magcal_ros.core.effects import first_order_lag
 import numpy as np
 from scipy import ndimage, stats
-
-#: family-wise false-alarm probability of the findings
-ALPHA = 0.01
-#: a finding's model must remove at least this many noise variances (pooled per component):
-#: alone it lifts the RMS above 1.10 x the floor (diagnose.AT_FLOOR_RATIO ** 2 - 1)
-MIN_SIGNAL_RATIO = 1.10 ** 2 - 1.0
-#: and at least this share of the sensor's excess mean square over the floor
-MIN_EXPLAINED = 0.2
-#: findings per sensor (greedy rounds)
-MAX_PER_SENSOR = 4
-#: a step is preferred to the best trend when it removes this share of what the trend does
-STEP_OVER_TREND = 0.95
-#: shortest segment of a step, as a share of the record
-MIN_SEGMENT_FRACTION = 0.02
-#: excess kurtosis from which tails count as heavy (a Student t with 10 degrees of freedom;
-#: the sample excess kurtosis of Gaussian noise has sd sqrt(24 / N) = 0.09 at N = 3000)
-MIN_EXCESS_KURTOSIS = 1.0
-#: a finding on another sensor with the same kind and value is the consensus' echo of the
-#: faulty sensor's if it removes less than this share of the largest one's mean square (the
-#: echo through the median of 3 others is a few per cent, through the mean of 2 a quarter)
-ECHO_RATIO = 0.5
-#: fewer epochs than this: no search (the fit leaves too few degrees of freedom per
-#: parameter for the residual to be white, and the tests' null distributions are asymptotic)
-MIN_EPOCHS = 200
-#: lag time constants tried per channel
-N_TAU = 24
-#: frequencies of the Lomb-Scargle periodogram for irregular sampling (cost N x this)
-MAX_LS_FREQS = 4000
-#: half width, in independent frequencies, of the neighbourhood a line is compared with
-LINE_NEIGHBOURHOOD = 50
 
 
 @dataclass(frozen=True)
@@ -236,146 +213,6 @@ class Findings:
 
 # -- helpers ---------------------------------------------------------------------------------
 
-def white_noise_sd(x):
-    """
-    Per-component white-noise sd of a series from its third differences.
-
-    Parameters
-    ----------
-    x : numpy.ndarray
-        (N,) or (N, C) series in time order (any unit).
-
-    Returns
-    -------
-    numpy.ndarray
-        (C,) sd in the unit of ``x``: sqrt(mean((Delta^3 x)^2) / 20), 20 = C(6, 3) the
-        variance gain of the third difference.  Mean square, not MAD: unbiased for any noise
-        distribution; a signal smooth at the sample rate, or a few steps, barely contribute.
-
-    """
-    x = np.asarray(x, float)
-    if x.ndim == 1:
-        x = x[:, None]
-    d = np.diff(x, n=3, axis=0)
-    return np.sqrt(np.mean(d ** 2, axis=0) / 20.0)
-
-
-def _uniform(t):
-    dt = np.diff(t)
-    med = float(np.median(dt)) if dt.size else 0.0
-    return med > 0 and bool(np.all(np.abs(dt - med) <= 1e-3 * med)), med
-
-
-def periodogram(t, x):
-    """
-    Power spectrum of a residual series, also for irregular sampling.
-
-    Parameters
-    ----------
-    t : numpy.ndarray
-        (N,) time, s.
-    x : numpy.ndarray
-        (N,) or (N, C) series, nT (the mean is removed).
-
-    Returns
-    -------
-    freqs : numpy.ndarray
-        (M,) frequencies, Hz (oversampled 2x, from 1/T).
-    power : numpy.ndarray
-        (M, C) power, nT^2: the squared amplitude of the best-fitting sinusoid times N / 4
-        (FFT for uniform sampling, Lomb-Scargle otherwise; white noise of variance s^2 has
-        mean power s^2).
-    n_independent : int
-        Number of independent frequencies in the band (N / 2 for uniform sampling).
-
-    """
-    x = np.asarray(x, float)
-    if x.ndim == 1:
-        x = x[:, None]
-    x = x - x.mean(axis=0)
-    n = len(t)
-    uniform, dt = _uniform(t)
-    span = float(t[-1] - t[0]) + dt
-    if uniform:
-        nfft = 2 * n
-        spec = np.fft.rfft(x, n=nfft, axis=0)
-        freqs = np.fft.rfftfreq(nfft, dt)
-        power = np.abs(spec) ** 2 / n
-        return freqs[1:], power[1:], n // 2
-    f_nyq = 0.5 / dt
-    # cost N x M: at most MAX_LS_FREQS frequencies, fewer for long records
-    m = int(min(MAX_LS_FREQS, 2 * f_nyq * span, max(500, 1.2e7 / n)))
-    freqs = np.linspace(1.0 / span, f_nyq, m)
-    return freqs, lomb_scargle(t, x, freqs), max(1, int(f_nyq * span))
-
-
-def lomb_scargle(t, x, freqs, chunk=256):
-    """
-    Classical Lomb-Scargle periodogram (Lomb 1976, Scargle 1982 eq. 10), vectorised.
-
-    Parameters
-    ----------
-    t : numpy.ndarray
-        (N,) sample times, s (any spacing).
-    x : numpy.ndarray
-        (N, C) series with its mean removed.
-    freqs : numpy.ndarray
-        (M,) frequencies, Hz.
-    chunk : int
-        Frequencies computed at a time (bounds the (chunk, N) work arrays).
-
-    Returns
-    -------
-    numpy.ndarray
-        (M, C) power P = [(sum x cos)^2 / sum cos^2 + (sum x sin)^2 / sum sin^2] / 2 with the
-        phases taken from tau (tan 2 w tau = sum sin 2wt / sum cos 2wt): N A^2 / 4 for a
-        sinusoid of amplitude A, the same numbers as :func:`scipy.signal.lombscargle`
-        (which loops in Python and takes seconds for 3000 x 4000).
-
-    """
-    t = np.asarray(t, float) - t[0]
-    freqs = np.asarray(freqs, float)
-    out = np.empty((len(freqs), x.shape[1]))
-    df = np.diff(freqs)
-    even = len(freqs) > 1 and np.allclose(df, df[0], rtol=1e-9, atol=0)
-    for a in range(0, len(freqs), chunk):
-        f = freqs[a:a + chunk]
-        if even:
-            # exp(i w t) for the chunk's frequencies by repeated multiplication with
-            # exp(i dw t): one complex product per sample instead of two trigonometric calls
-            rows = np.empty((len(f), len(t)), complex)
-            rows[0] = np.exp(2j * np.pi * f[0] * t)
-            rows[1:] = np.exp(2j * np.pi * df[0] * t)
-            z = np.cumprod(rows, axis=0)
-        else:
-            z = np.exp(2j * np.pi * f[:, None] * t)
-        z2 = z * z
-        tau2 = np.angle(z2.sum(axis=1))                                 # 2 w tau
-        zr = z * np.exp(-0.5j * tau2)[:, None]                          # exp(i w (t - tau))
-        c, s = zr.real, zr.imag
-        out[a:a + chunk] = 0.5 * ((c @ x) ** 2 / (c * c).sum(axis=1)[:, None]
-                                  + (s @ x) ** 2 / (s * s).sum(axis=1)[:, None])
-    return out
-
-
-def _regress(x, design):
-    """
-    Least-squares fit of every column of x (N, C) on design (N, K); (fitted, rank).
-
-    Normal equations, columns scaled to unit norm and solved by eigen-decomposition with
-    the directions below 1e-10 of the largest eigenvalue dropped (a rank-deficient design,
-    e.g. u_x^2 + u_y^2 + u_z^2 = 1, is allowed): about 20x faster than an SVD of the design
-    for N >> K, and accurate for the well-scaled designs used here.
-    """
-    g = design.T @ design
-    d = np.sqrt(np.diag(g))
-    d[d == 0] = 1.0
-    w, v = np.linalg.eigh(g / np.outer(d, d))
-    keep = w > 1e-10 * w.max()
-    coef = (v[:, keep] / w[keep]) @ (v[:, keep].T @ ((design.T @ x) / d[:, None]))
-    return design @ (coef / d[:, None]), int(keep.sum())
-
-
 def _f_test(ss0, ss1, k, dof):
     """p-value of the F-test of k extra regressors lowering SS from ss0 to ss1."""
     if k <= 0 or dof <= 0 or ss1 <= 0:
@@ -461,7 +298,7 @@ def _test_periodic(t, x, sd, mod=None):
             f0 = freqs[i] + 0.5 * (y0 - y2) / den * (freqs[1] - freqs[0])
     w = 2 * np.pi * f0 * (t - t[0])
     design = _expand(np.column_stack([np.ones(n), np.cos(w), np.sin(w)]), mod)
-    fitted, rank = _regress(x, design)
+    fitted, rank = regress(x, design)
     fitted -= x.mean(axis=0)
     return _Candidate('periodic', fitted, c0 * (rank - 1) + 1, p, n_ind, value=float(f0),
                       unit='Hz',
@@ -475,19 +312,11 @@ def _test_step(t, x, sd, mod=None):
         return None
     x_det, sd = _detect(x, sd, mod)
     c = x_det.shape[1]
-    xw = (x_det - x_det.mean(axis=0)) / sd
-    cs = np.cumsum(xw, axis=0)[:-1]                      # sum of the first k, k = 1..n-1
-    k = np.arange(1, n)
-    # chi-square of the mean shift between [0, k) and [k, n), per component summed
-    stat = np.sum(cs ** 2, axis=1) * n / (k * (n - k))
-    stat[:m - 1] = 0.0
-    stat[n - m:] = 0.0
-    i = int(np.argmax(stat))
-    kk = i + 1
-    p = float(stats.chi2.sf(stat[i], c))
+    kk, stat = cusum((x_det - x_det.mean(axis=0)) / sd, margin=m - 1)
+    p = float(stats.chi2.sf(stat, c))
     after = (np.arange(n) >= kk).astype(float)
     design = _expand(np.column_stack([np.ones(n), after]), mod)
-    fitted, rank = _regress(x, design)
+    fitted, rank = regress(x, design)
     coef = np.linalg.lstsq(design, fitted, rcond=None)[0]
     fitted = fitted - x.mean(axis=0)
     jump = coef[10:, 0] if mod is not None else coef[1]
@@ -495,7 +324,8 @@ def _test_step(t, x, sd, mod=None):
                       unit='s', detail={'index': kk, 'jump_nt': np.ravel(jump).tolist()})
 
 
-def _legendre(t, degree):
+def _trend(t, degree):
+    """(N, degree + 1) Legendre polynomials 0..degree of time scaled to [-1, 1]."""
     u = 2.0 * (t - t[0]) / max(t[-1] - t[0], 1e-300) - 1.0
     return np.polynomial.legendre.legvander(u, degree)
 
@@ -505,7 +335,7 @@ def _test_time(t, x, sd, mod=None):
     ss0 = float(np.sum((x - x.mean(axis=0)) ** 2))
     best = None
     for d in range(1, 6):
-        fitted, rank = _regress(x, _expand(_legendre(t, d), mod))
+        fitted, rank = regress(x, _expand(_trend(t, d), mod))
         ss1 = float(np.sum((x - fitted) ** 2))
         bic = np.sum(np.sum((x - fitted) ** 2, axis=0) / sd ** 2) + c * (rank - 1) * math.log(n)
         if best is None or bic < best[0]:
@@ -519,33 +349,18 @@ def _test_time(t, x, sd, mod=None):
 
 
 def _direction_design(u):
-    cols = [np.ones(len(u))]
-    for a in range(3):
-        cols.append(u[:, a])
-    for a in range(3):
-        for b in range(a, 3):
-            cols.append(u[:, a] * u[:, b])
-    for a in range(3):
-        for b in range(a, 3):
-            for cc in range(b, 3):
-                cols.append(u[:, a] * u[:, b] * u[:, cc])
-    return np.column_stack(cols)
+    """(N, 20) the :func:`_nuisance` columns and the cubes u_a u_b u_c of the direction."""
+    return np.column_stack([_nuisance(u)] + [u[:, a] * u[:, b] * u[:, c] for a in range(3)
+                                             for b in range(a, 3) for c in range(b, 3)])
 
 
 def _test_direction(u, x):
     n, c = x.shape
     ss0 = float(np.sum((x - x.mean(axis=0)) ** 2))
-    fitted, rank = _regress(x, _direction_design(u))
+    fitted, rank = regress(x, _direction_design(u))
     ss1 = float(np.sum((x - fitted) ** 2))
     p = _f_test(ss0, ss1, c * (rank - 1), n * c - c * rank)
     return _Candidate('direction', fitted - x.mean(axis=0), c * (rank - 1), p, 1)
-
-
-def _tau_grid(t):
-    _, dt = _uniform(t)
-    span = float(t[-1] - t[0])
-    lo = max(3.0 * dt, span * 1e-4)
-    return np.geomspace(lo, span / 2.0, N_TAU) if span / 2.0 > lo else np.array([])
 
 
 class _Driver:
@@ -559,7 +374,7 @@ class _Driver:
             return
         n = len(a)
         self.a = (a - a.mean()) / np.std(a)
-        self.taus = _tau_grid(t)
+        self.taus = lag_grid(t, N_TAU, shortest=1e-4, longest=0.5, samples=3)
         self.base = np.column_stack([np.ones(n), self.a])
         q, _ = np.linalg.qr(self.base)
         self.q = q
@@ -577,27 +392,30 @@ class _Driver:
         return first_order_lag(self.t, self.a, tau)
 
 
+def _refined_tau(drv, neg_gain, grid_values):
+    """Time constant, s: the grid's best (least ``grid_values``), refined between neighbours."""
+    from scipy.optimize import minimize_scalar
+    i = int(np.argmin(grid_values))
+    logs = np.log(drv.taus)
+    lo, hi = logs[max(i - 1, 0)], logs[min(i + 1, len(logs) - 1)]
+    if hi <= lo:
+        return float(drv.taus[i])
+    return float(math.exp(minimize_scalar(neg_gain, bounds=(lo, hi), method='bounded',
+                                          options={'xatol': 3e-3}).x))
+
+
 def _best_tau(drv, x_perp):
     """Time constant (refined between grid points) maximising the fit of x_perp (N, C)."""
     good = drv.lag_norm2 > 1e-12 * len(drv.a)
     if not good.any():
         return None
     gain = np.sum((drv.lags_perp.T @ x_perp) ** 2, axis=1) / np.where(good, drv.lag_norm2, 1)
-    gain[~good] = -1.0
-    i = int(np.argmax(gain))
-    lo = drv.taus[max(i - 1, 0)]
-    hi = drv.taus[min(i + 1, len(drv.taus) - 1)]
 
     def neg(log_tau):
         y = drv.lag_response(math.exp(log_tau))
         y = y - drv.q @ (drv.q.T @ y)
         return -float(np.sum((y @ x_perp) ** 2) / max(y @ y, 1e-300))
-    if hi > lo:
-        from scipy.optimize import minimize_scalar
-        r = minimize_scalar(neg, bounds=(math.log(lo), math.log(hi)), method='bounded',
-                            options={'xatol': 3e-3})
-        return float(math.exp(r.x))
-    return float(drv.taus[i])
+    return _refined_tau(drv, neg, np.where(good, -gain, 1.0))
 
 
 def _test_channel(t, x, drv, mod=None):
@@ -612,7 +430,7 @@ def _test_channel(t, x, drv, mod=None):
     if mod is None:
         lin, r1 = drv.q @ (drv.q.T @ x), 2
     else:
-        lin, r1 = _regress(x, _expand(drv.base, mod))
+        lin, r1 = regress(x, _expand(drv.base, mod))
     ss1 = ss(lin)
     out = [_Candidate('channel', lin - xm, c * (r1 - 1), _f_test(ss0, ss1, c * (r1 - 1),
                                                                  n * c - c * r1),
@@ -623,8 +441,8 @@ def _test_channel(t, x, drv, mod=None):
     else:
         tau = _best_tau_modulated(drv, x, mod)
     if tau is not None:
-        fit_l, rank = _regress(x, _expand(np.column_stack([drv.base, drv.lag_response(tau)]),
-                                          mod))
+        fit_l, rank = regress(x, _expand(np.column_stack([drv.base, drv.lag_response(tau)]),
+                                         mod))
         out.append(_Candidate('lag', fit_l - xm, c * (rank - 1) + 1,
                               _f_test(ss1, ss(fit_l), c * (rank - r1), n * c - c * rank),
                               N_TAU, channel=name, value=tau, unit='s'))
@@ -632,8 +450,8 @@ def _test_channel(t, x, drv, mod=None):
     design = drv.nonlin
 
     def ss_of(cols):
-        return ss(_regress(x, _expand(design[:, :cols], mod))[0])
-    fit_n, rank = _regress(x, _expand(design, mod))
+        return ss(regress(x, _expand(design[:, :cols], mod))[0])
+    fit_n, rank = regress(x, _expand(design, mod))
     s = ss(fit_n)
     # which term carries it: refit without the hysteresis column, then without x^3
     form = 'hysteretic' if ss_of(4) - s > 0.5 * (ss1 - s) else 'curved'
@@ -680,72 +498,109 @@ def _best_tau_modulated(drv, x, mod):
     def neg_gain(log_tau, y=None):
         y = (drv.lag_response(math.exp(log_tau)) if y is None else y)[:, None] * mod
         y = y - q @ (q.T @ y)                                     # (N, 3)
-        return -float(np.sum(_regress(x, y)[0] ** 2))
-    logs = np.log(drv.taus)
-    vals = [neg_gain(v, drv.lags[:, i]) for i, v in enumerate(logs)]
-    i = int(np.argmin(vals))
-    lo, hi = logs[max(i - 1, 0)], logs[min(i + 1, len(logs) - 1)]
-    if hi <= lo:
-        return float(drv.taus[i])
-    from scipy.optimize import minimize_scalar
-    return float(math.exp(minimize_scalar(neg_gain, bounds=(lo, hi), method='bounded',
-                                          options={'xatol': 3e-3}).x))
+        return -float(np.sum(regress(x, y)[0] ** 2))
+    return _refined_tau(drv, neg_gain, [neg_gain(0.0, drv.lags[:, i])
+                                        for i in range(len(drv.taus))])
 
 
-# -- texts and tokens ------------------------------------------------------------------------
+# -- the kinds of finding: one table the description, the tokens and the report read -------
+
+@dataclass(frozen=True)
+class Kind:
+    """
+    What the description, the candidate tokens and the report read of one kind (:data:`KINDS`).
+
+    ``token(value, channel, detail, '@j' or '')``: the effect token to add, or None (an empty
+    detail, a finding read back as a dict: the token it points to without it); ``text(candidate,
+    '@j' or '', token, sensor text, share text)``: what it is and what to add (None: the kind
+    writes its own); ``follows(finding)``: what the residual follows, in words (the diagnosis'
+    'unexplained' finding); ``view``: the report's figure that shows it.
+    """
+
+    token: object
+    text: object = None
+    follows: object = None
+    view: str | None = None
+
+
+def _drift(v, ch, d, at):
+    return {1: f'drift{at}', 2: f'drift2{at}'}.get(d.get('degree'))
+
+
+def _poly(v, ch, d, at):
+    curved = d.get('form', 'curved') == 'curved'
+    return f'aux_poly({ch},{d.get("degree", 2)}){at}' if ch and ch != 'temperature' and curved \
+        else None
+
+
+_LAGGED = 'residual_lagged'
+#: the kinds of finding, kind -> :class:`Kind`
+KINDS = {
+    'periodic': Kind(
+        lambda v, ch, d, at: None if v is None else f'periodic({v:.4g}){at}',
+        lambda c, at, tok, on, pct: (
+            f'{on}: a spectral line at {c.value:.4g} Hz (period {1 / c.value:.3g} s, '
+            f'{c.detail["peak_over_continuum"]:.0f} x the spectrum around it) removes {pct}: '
+            f'add {tok} (or log the source as an aux channel)'),
+        lambda f: f'a line at {f.value:.4g} Hz', 'residual_spectrum'),
+    'step': Kind(
+        lambda v, ch, d, at: None if v is None else f'step({v:.6g}){at}',
+        lambda c, at, tok, on, pct: (
+            f'{on}: an offset step of {np.linalg.norm(c.detail["jump_nt"]):.1f} nT at '
+            f't = {c.value:.6g} s removes {pct}: add {tok}'),
+        lambda f: f'a step at {f.value:.6g} s', 'change_points'),
+    'time': Kind(
+        _drift,
+        lambda c, at, tok, on, pct: (
+            f'{on}: a slow trend over time ({c.value:.1f} nT peak to peak) removes {pct}: '
+            + (f'add {tok}' if tok else
+               f'a slow trend of degree {c.detail["degree"]}: drift2{at} takes its quadratic '
+               'part; check the reference field (a diurnal variation) or the temperature')),
+        lambda f: 'time (a trend)'),
+    'direction': Kind(
+        lambda v, ch, d, at: f'nonlinearity{at}',
+        lambda c, at, tok, on, pct: (
+            f'{on}: the residual depends on the field direction (attitude) and removes {pct}: '
+            f'add {tok} or soft_iron{at} (or a magnetic part that turns with the sensor)'),
+        lambda f: 'the field direction in the sensor (the attitude)', 'residual_direction'),
+    'channel': Kind(
+        lambda v, ch, d, at: f'temperature{at}' if ch == 'temperature' else f'aux:{ch}{at}',
+        lambda c, at, tok, on, pct: (
+            f'{on}: the residual follows {c.channel} linearly ({pct}): add {tok}'),
+        lambda f: f'the channel {f.channel}', _LAGGED),
+    'lag': Kind(
+        lambda v, ch, d, at: f'lag({ch}){at}' if ch else None,
+        lambda c, at, tok, on, pct: (
+            f'{on}: {c.channel} acts through a first-order lag of about {c.value:.3g} s '
+            f'({pct}): add {tok}'),
+        lambda f: f'the channel {f.channel} through a lag', _LAGGED),
+    'channel_nonlinear': Kind(
+        _poly,
+        lambda c, at, tok, on, pct: (
+            f'{on}: the residual against {c.channel} is {c.detail["form"]} ({pct}): '
+            + (f'add {tok}' if tok else 'the catalog has no such coupling: write a plug-in '
+               'effect (docs/plugins.md)')),
+        lambda f: f'the channel {f.channel}, not linearly', _LAGGED),
+    'nonuniform_field': Kind(lambda v, ch, d, at: 'site_gradient',
+                             follows=lambda f: 'a field gradient across the array'),
+    'heavy_tails': Kind(lambda v, ch, d, at: None),
+}
+
+
+def view_of(finding):
+    """Return the report's figure that shows ``finding`` (:attr:`Kind.view`), or None."""
+    return getattr(KINDS.get(finding.kind), 'view', None)
+
 
 def _describe(cand, sensor, share):
     """(token or None, text) of a finding on ``sensor`` (None: every sensor alike)."""
-    share = min(share, 1.0)
-    j = '' if sensor is None else f'@{sensor}'
+    at = '' if sensor is None else f'@{sensor}'
     on = (f'sensor {sensor}' if sensor is not None else
           'every sensor alike (in the mean scalar residual)')
-    pct = f'{100 * share:.0f} % of the excess over the floor'
-    k = cand.kind
-    if k == 'periodic':
-        tok = f'periodic({cand.value:.4g}){j}'
-        txt = (f'{on}: a spectral line at {cand.value:.4g} Hz (period {1 / cand.value:.3g} s, '
-               f'{cand.detail["peak_over_continuum"]:.0f} x the spectrum around it) removes '
-               f'{pct}: add {tok} (or log the source as an aux channel)')
-    elif k == 'step':
-        tok = f'step({cand.value:.6g}){j}'
-        jump = np.linalg.norm(cand.detail['jump_nt'])
-        txt = (f'{on}: an offset step of {jump:.1f} nT at t = {cand.value:.6g} s removes {pct}: '
-               f'add {tok}')
-    elif k == 'time':
-        d = cand.detail['degree']
-        tok = f'drift{j}' if d == 1 else (f'drift2{j}' if d == 2 else None)
-        what = f'add {tok}' if tok else (
-            f'a slow trend of degree {d}: drift2{j} takes its quadratic part; check the '
-            'reference field (a diurnal variation) or the temperature')
-        txt = (f'{on}: a slow trend over time ({cand.value:.1f} nT peak to peak) removes '
-               f'{pct}: {what}')
-    elif k == 'direction':
-        tok = f'nonlinearity{j}'
-        txt = (f'{on}: the residual depends on the field direction (attitude) and removes '
-               f'{pct}: add {tok} or soft_iron{j} (or a magnetic part that turns with the '
-               'sensor)')
-    elif k == 'channel':
-        tok = (f'temperature{j}' if cand.channel == 'temperature'
-               else f'aux:{cand.channel}{j}')
-        txt = f'{on}: the residual follows {cand.channel} linearly ({pct}): add {tok}'
-    elif k == 'lag':
-        tok = f'lag({cand.channel}){j}'
-        txt = (f'{on}: {cand.channel} acts through a first-order lag of about '
-               f'{cand.value:.3g} s ({pct}): add {tok}')
-    elif k == 'channel_nonlinear':
-        form = cand.detail['form']
-        if cand.channel != 'temperature' and form == 'curved':
-            tok = f'aux_poly({cand.channel},{cand.detail["degree"]}){j}'
-            what = f'add {tok}'
-        else:
-            tok = None
-            what = ('the catalog has no such coupling: write a plug-in effect '
-                    '(docs/plugins.md)')
-        txt = f'{on}: the residual against {cand.channel} is {form} ({pct}): {what}'
-    else:
-        raise ValueError(k)
-    return tok, txt
+    pct = f'{100 * min(share, 1.0):.0f} % of the excess over the floor'
+    kind = KINDS[cand.kind]
+    tok = kind.token(cand.value, cand.channel, cand.detail, at)
+    return tok, kind.text(cand, at, tok, on, pct)
 
 
 # -- the array: a non-uniform field ----------------------------------------------------------
@@ -770,7 +625,7 @@ def _gradient(t, corrected, baseline_m, alpha, drivers=None):
         # moves them are not a field gradient of the site: those parts are taken out first
         n_ = m.shape[1]
         flat = m.transpose(1, 0, 2).reshape(n_, -1)
-        flat = flat - _regress(flat, drivers)[0]
+        flat = flat - regress(flat, drivers)[0]
         m = flat.reshape(n_, 4, 3).transpose(1, 0, 2)
     ax = 0.5 * (m[0] - m[2])
     ay = 0.5 * (m[1] - m[3])
@@ -803,7 +658,8 @@ def _gradient(t, corrected, baseline_m, alpha, drivers=None):
             '(docs/site_gradient.md)')
     f = Finding(kind='nonuniform_field', sensor=None, channel=None, value=value, unit='nT/m',
                 explained_fraction=float(np.clip(share, 0.0, 1.0)), text=text,
-                token='site_gradient', p_value=p, rms_nt=float(math.sqrt(excess / 2.0)))
+                token=KINDS['nonuniform_field'].token(value, None, {}, ''), p_value=p,
+                rms_nt=float(math.sqrt(excess / 2.0)))
     # smoothed over time (cubic Savitzky-Golay, 11 samples): the gradient changes with the
     # attitude, the noise of the other sensor of the arm does not follow
     if n < 11:
@@ -959,14 +815,110 @@ def _in_model(f, model):
     return replace(f, replaces=tuple(out), text=f'{f.text} in place of {" ".join(out)}')
 
 
-def _same(a, b, t_res, f_res):
-    if a.kind != b.kind or a.channel != b.channel:
-        return False
-    if a.kind == 'step':
-        return abs(a.value - b.value) <= t_res
-    if a.kind == 'periodic':
-        return abs(a.value - b.value) <= f_res
-    return True
+def _sameness(t):
+    """Return same(a, b): findings ``a`` and ``b`` are one (kind, channel, time or frequency)."""
+    _, dt = evenly_sampled(t)
+    t_res = max(5 * dt, 0.01 * (t[-1] - t[0]))
+    f_res = 2.0 / max(t[-1] - t[0], 1e-300)
+
+    def same(a, b):
+        if a.kind != b.kind or a.channel != b.channel:
+            return False
+        if a.kind in ('step', 'periodic'):
+            return abs(a.value - b.value) <= (t_res if a.kind == 'step' else f_res)
+        return True
+    return same
+
+
+# -- the stages of find ------------------------------------------------------------------------
+
+def _array_stage(data, t, corrected, baseline_m, alpha):
+    """Test the four-sensor cross: ([nonuniform_field finding] or [], corrected less it)."""
+    if corrected.shape[0] != 4:
+        return [], corrected
+    cols = [_trend(t, 3)]
+    for a in list(data.aux.values()) + ([] if data.temp is None else list(data.temp)):
+        a = np.asarray(a, float)
+        if np.all(np.isfinite(a)) and np.ptp(a) > 0:
+            a = (a - a.mean()) / np.std(a)
+            cols.append(np.column_stack([a, a ** 2]))
+    grad, part = _gradient(t, corrected, baseline_m, alpha, np.concatenate(cols, axis=1))
+    if grad is None:
+        return [], corrected
+    return [grad], corrected if part is None else corrected - part
+
+
+def _sensor_stage(data, t, series, kind, noise, u, aux_drivers, alpha_test, alpha_tails):
+    """
+    Every sensor's tests: (list of (Finding, ms removed), {sensor: (N, C) explained, nT}).
+
+    ``explained``: what the sensor's findings' models took out of its series.
+    """
+    per, explained = [], {}
+    for j, x in series.items():
+        if np.any(noise[j] <= 0):
+            continue
+        mod = None
+        if kind == 'scalar':
+            # one sensor: its vector faults show along the field direction only
+            mod = u
+            x = x - regress(x, _nuisance(u))[0]
+        found, rest = _sensor_findings(t, x, noise[j], u, _drivers(data, j, aux_drivers), j,
+                                       alpha_test, mod=mod)
+        explained[j] = x - x.mean(axis=0) - rest
+        tails = _tails(rest, noise[j], j, alpha_tails)
+        per.extend(found + ([] if tails is None else [(tails, 0.0)]))
+    return per, explained
+
+
+def _attribute(per, gradient, same):
+    """
+    Return the findings each sensor has of its own (list of Finding).
+
+    The same finding on several sensors is the faulty sensor's echo through the others'
+    consensus unless it is comparable in size; with a field ``gradient`` every sensor's
+    residual depends on the attitude, and what is left of it shows alike on the two sensors
+    of an arm: not their faults.
+    """
+    keep = []
+    for f, removed in per:
+        rivals = [r for g, r in per if g is not f and g.sensor != f.sensor
+                  and g.kind != 'heavy_tails' and same(f, g)]
+        if not rivals or removed >= ECHO_RATIO * max(rivals):
+            keep.append(f)
+    if gradient:
+        arm = {1: 3, 3: 1, 2: 4, 4: 2}
+        keep = [f for f in keep if f.kind != 'direction' and not any(
+            g.sensor == arm.get(f.sensor) and same(f, g) for g in keep)]
+    return keep
+
+
+def _common_stage(data, t, scalar, explained, u, aux_drivers, alpha_test, keep, same):
+    """
+    Test what every sensor has alike: (findings, ``keep`` less their echoes, (N, 1) nT).
+
+    It cancels in the consensus, and is left in the mean of the scalar residuals as its
+    component along the field direction ``u``, less each sensor's own findings.
+    """
+    s = scalar.shape[0]
+    x0 = np.mean(scalar, axis=0)
+    for j, e in explained.items():
+        x0 = x0 - np.sum(e * u, axis=1) / s
+    x0 = x0[:, None] - regress(x0[:, None], _nuisance(u))[0]
+    sd0 = white_noise_sd(x0)
+    common = []
+    if not np.all(sd0 > 0):
+        return common, keep, x0
+    drivers = aux_drivers
+    if data.temp is not None and np.all(np.isfinite(data.temp)):
+        drivers = [_Driver(t, 'temperature', np.mean(data.temp, axis=0))] + drivers
+    found, _ = _sensor_findings(t, x0, sd0, None, drivers, None, alpha_test, mod=u)
+    for f, _ in found:
+        alike = {g.sensor for g in keep if same(f, g)}
+        if len(alike) != 1:         # one sensor's fault, seen in the mean: reported there
+            keep = [g for g in keep if g.sensor not in alike or not same(f, g)]
+            common.append(f)
+    return common, keep, x0
 
 
 def find(data, result, **kwargs):
@@ -1019,84 +971,22 @@ def _find(data, result, *, baseline_m=0.5, alpha=ALPHA, corrected=None, field=No
     if n < MIN_EPOCHS:
         return Findings(items=(), t=t, series={}, noise_nt={}, note=(
             f'{n} epochs, fewer than the {MIN_EPOCHS} the tests need'))
-    array_items = []
-    if s == 4 and n >= 30:
-        cols = [_legendre(t, 3)]
-        for a in list(data.aux.values()) + ([] if data.temp is None else list(data.temp)):
-            a = np.asarray(a, float)
-            if np.all(np.isfinite(a)) and np.ptp(a) > 0:
-                a = (a - a.mean()) / np.std(a)
-                cols.append(np.column_stack([a, a ** 2]))
-        grad, part = _gradient(t, corrected, baseline_m, alpha, np.concatenate(cols, axis=1))
-        if grad is not None:
-            array_items.append(grad)
-            if part is not None:
-                corrected = corrected - part
+    array_items, corrected = _array_stage(data, t, corrected, baseline_m, alpha)
     series, kind = _series(corrected, scalar)
     norm = np.linalg.norm(field_, axis=1, keepdims=True)
-    u = field_ / np.where(norm > 0, norm, 1.0) if n >= 30 else None
+    u = field_ / np.where(norm > 0, norm, 1.0)
     noise = {j: white_noise_sd(x) for j, x in series.items()}
     n_tests = 5 + 3 * (len(data.aux) + (data.temp is not None))
     alpha_test = alpha / ((s + 1) * n_tests)      # the sensors and their common part
-    aux_drivers = [_Driver(t, name, data.aux[name]) for name in sorted(data.aux)] \
-        if n >= 30 else []
-    per = []
-    explained = {}          # {sensor: (N, C) what its findings' models took out}
-    for j, x in series.items():
-        if n < 30 or np.any(noise[j] <= 0):
-            continue
-        mod = None
-        if kind == 'scalar':
-            # one sensor: its vector faults show along the field direction only
-            mod = u
-            x = x - _regress(x, _nuisance(u))[0]
-        found, rest = _sensor_findings(t, x, noise[j], u, _drivers(data, j, aux_drivers), j,
-                                       alpha_test, mod=mod)
-        explained[j] = x - x.mean(axis=0) - rest
-        tails = _tails(rest, noise[j], j, alpha / s)
-        if tails is not None:
-            found.append((tails, 0.0))
-        per.extend(found)
-    # attribution: the same finding on several sensors is the faulty sensor's echo through
-    # the others' consensus unless it is comparable in size
-    _, dt = _uniform(t)
-    t_res = max(5 * dt, 0.01 * (t[-1] - t[0])) if n > 1 else 0.0
-    f_res = 2.0 / max(t[-1] - t[0], 1e-300) if n > 1 else 0.0
-    keep = []
-    for f, removed in per:
-        rivals = [r for g, r in per if g is not f and g.sensor != f.sensor
-                  and g.kind != 'heavy_tails' and _same(f, g, t_res, f_res)]
-        if rivals and removed < ECHO_RATIO * max(rivals):
-            continue
-        keep.append(f)
-    if array_items:
-        # a gradient makes every sensor's residual depend on the attitude, and what is left
-        # of it shows alike on the two sensors of an arm: not their faults
-        arm = {1: 3, 3: 1, 2: 4, 4: 2}
-        keep = [f for f in keep if f.kind != 'direction' and not any(
-            g.sensor == arm.get(f.sensor) and _same(f, g, t_res, f_res) for g in keep)]
-    common = []
-    x0 = None
-    if kind == 'consensus' and u is not None:
-        # what every sensor has alike cancels in the consensus: it is left in the mean of
-        # the scalar residuals, as its component along the field direction
-        x0 = np.mean(scalar, axis=0)
-        for j, e in explained.items():       # sensor j's own faults, seen in the mean
-            x0 = x0 - np.sum(e * u, axis=1) / s
-        x0 = x0[:, None] - _regress(x0[:, None], _nuisance(u))[0]
-        sd0 = white_noise_sd(x0)
-        if np.all(sd0 > 0):
-            drivers = aux_drivers
-            if data.temp is not None and np.all(np.isfinite(data.temp)):
-                drivers = [_Driver(t, 'temperature', np.mean(data.temp, axis=0))] + drivers
-            found, _ = _sensor_findings(t, x0, sd0, None, drivers, None, alpha_test, mod=u)
-            for f, _ in found:
-                alike = {g.sensor for g in keep if _same(f, g, t_res, f_res)}
-                if len(alike) == 1:
-                    continue        # one sensor's fault, seen in the mean: reported there
-                keep = [g for g in keep if g.sensor not in alike or not _same(f, g, t_res,
-                                                                              f_res)]
-                common.append(f)
+    aux_drivers = [_Driver(t, name, data.aux[name]) for name in sorted(data.aux)]
+    per, explained = _sensor_stage(data, t, series, kind, noise, u, aux_drivers, alpha_test,
+                                   alpha / s)
+    same = _sameness(t)
+    keep = _attribute(per, array_items, same)
+    common, x0 = [], None
+    if kind == 'consensus':
+        common, keep, x0 = _common_stage(data, t, scalar, explained, u, aux_drivers,
+                                         alpha_test, keep, same)
     items = tuple(_in_model(f, getattr(result, 'model', None)) for f in
                   array_items + common + sorted(keep, key=lambda f: (f.sensor,
                                                                      -f.explained_fraction)))

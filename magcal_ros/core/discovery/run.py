@@ -37,14 +37,14 @@ from magcal_ros.core.discovery.constants import (ALPHA, AT_FLOOR_RATIO, BLOCKS_P
                                                  MIN_DELTA_BIC, MIN_EXPLAINED, REFIT_CHI2_TOL,
                                                  REFIT_MAX_NFEV, SCORE_RULE_OUT_BIC,
                                                  SEARCH_CHANGE_POINTS, SEARCH_LISTED)
-from magcal_ros.core.discovery.findings import find as find_findings
+from magcal_ros.core.discovery.findings import find as find_findings, KINDS
 from magcal_ros.core.discovery.measures import (dof_factor, evaluate_residuals, Evaluation,
-                                                explained_share, likelihood_ratio, n_observations,
-                                                scalar_rms_of, soft_l1_lr_loss, vector_rms_of)
+                                                explained_share, lag_grid, likelihood_ratio,
+                                                n_observations, scalar_rms_of,
+                                                soft_l1_lr_loss, vector_rms_of)
 from magcal_ros.core.discovery.results import compact_spec, Diagnosis
-from magcal_ros.core.discovery.screen import lag_grid, Screen
-from magcal_ros.core.discovery.search import (EXPLAINS_SHARE, FLOOR_RATIO,
-                                              SCOPE_SHARE as SEARCH_SCOPE_SHARE,
+from magcal_ros.core.discovery.screen import Screen
+from magcal_ros.core.discovery.search import (EXPLAINS_SHARE, SCOPE_SHARE as SEARCH_SCOPE_SHARE,
                                               search as run_search, SEARCH_MAX_EPOCHS)
 from magcal_ros.core.discovery.validation import cross_validate
 from magcal_ros.core.discovery.verify import tested_findings, tested_verdict
@@ -328,7 +328,7 @@ def _merge_search(b, trials, ranked, verdict, reason, res, at_floor):
     Put the search's terms among the candidates and choose the verdict between the two.
 
     The catalog's verdict stands when it brings every sensor to its floor
-    (:data:`.search.FLOOR_RATIO`), unless the search's term does too on fewer sensors (the
+    (:data:`.constants.AT_FLOOR_RATIO`), unless the search's term does too on fewer sensors (the
     catalog offers an effect on one sensor or on all; the search names the sensors that
     carry it).  Otherwise the search's adopted term is the verdict when it leaves less
     (largest ratio to the floor over the sensors).  The search's terms are listed among
@@ -343,9 +343,9 @@ def _merge_search(b, trials, ranked, verdict, reason, res, at_floor):
     cat = next((c for c in trials if c.token == verdict), None) if verdict else None
     c_ratio = _trial_ratio(b, cat)
     a_ratio = None if adopted is None else max(adopted.ratios.values())
-    c_expl = cat is not None and c_ratio is not None and c_ratio <= FLOOR_RATIO and (
+    c_expl = cat is not None and c_ratio is not None and c_ratio <= AT_FLOOR_RATIO and (
         cat.share is None or cat.share >= EXPLAINS_SHARE)
-    a_expl = a_ratio is not None and a_ratio <= FLOOR_RATIO and adopted.share >= EXPLAINS_SHARE
+    a_expl = a_ratio is not None and a_ratio <= AT_FLOOR_RATIO and adopted.share >= EXPLAINS_SHARE
     if not (c_expl or a_expl):
         # nothing explains it: an excess confined in time is left out instead
         loc = res.localised
@@ -414,17 +414,6 @@ def _describe(b, found, res, verdict, scalar_rms, vector_rms):
     return replace(found, items=tuple(new) + tuple(found.items))
 
 
-#: what a model-free finding of each kind follows, in words (the 'unexplained' finding)
-_FOLLOWS = {
-    'direction': lambda f: 'the field direction in the sensor (the attitude)',
-    'periodic': lambda f: f'a line at {f.value:.4g} Hz',
-    'step': lambda f: f'a step at {f.value:.6g} s',
-    'time': lambda f: 'time (a trend)',
-    'channel': lambda f: f'the channel {f.channel}',
-    'lag': lambda f: f'the channel {f.channel} through a lag',
-    'channel_nonlinear': lambda f: f'the channel {f.channel}, not linearly',
-    'nonuniform_field': lambda f: 'a field gradient across the array',
-}
 #: the excess "lies within" an interval holding this share of it ...
 WHEN_SHARE = 0.8
 #: ... when the interval is at most this share of the record (else "throughout the record")
@@ -466,8 +455,9 @@ def _what_is_left(b, found, res, scalar_rms, vector_rms):
         options.append((float(best.share or 0.0), words, best.text_for(s),
                         best.driver.channel))
     for f in found.items:
-        if f.kind in _FOLLOWS and (f.sensor is None or f.sensor in sens):
-            options.append((float(f.explained_fraction or 0.0), _FOLLOWS[f.kind](f),
+        words = getattr(KINDS.get(f.kind), 'follows', None)
+        if words is not None and (f.sensor is None or f.sensor in sens):
+            options.append((float(f.explained_fraction or 0.0), words(f),
                             f.token, f.channel))
     share, follows, token, channel = (max(options, key=lambda o: o[0]) if options else
                                       (0.0, 'nothing the diagnosis tried', None, None))

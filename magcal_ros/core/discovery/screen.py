@@ -18,21 +18,26 @@ Screening of candidate effects: one Gauss-Newton step of each extended model fro
 Exact for effects that enter linearly, as all driven effects do; the most promising
 candidates are then refitted in full (:mod:`magcal_ros.core.discovery.run`).
 """
-from magcal_ros.core.discovery.constants import LAG_GRID_POINTS
 from magcal_ros.core.discovery.measures import solve_psd
 from magcal_ros.core.model.engine import ProfiledProblem
 import numpy as np
 
 
-def lag_grid(t):
+def add_gtc(gtc, cols, cj, gb):
     """
-    Return the time constants, s, a lag's refit start is chosen from (:meth:`Screen.lag_start`).
+    Add G^T C per epoch to ``gtc`` (2, K, N) at ``cols``: C ``cj`` (k, N, 3), G ``gb``.
 
-    :data:`LAG_GRID_POINTS` log-spaced values from the median sample interval of ``t`` (N,) s
-    to a quarter of the record.
+    (N, 3, 2) x (N, 3, k) written out over the 3 components: numpy's batched matmul of tiny
+    matrices cost 3 ms per candidate.
     """
-    dt = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
-    return np.geomspace(dt, max(dt, 0.25 * float(t[-1] - t[0])), LAG_GRID_POINTS)
+    for a in range(2):
+        gtc[a, cols] += cj[:, :, 0] * gb[0][a] + cj[:, :, 1] * gb[1][a] + cj[:, :, 2] * gb[2][a]
+
+
+def ginv_times(gtc, g):
+    """Return (G^T G)^-1 G^T C, the 2 x 2 inverse applied component by component."""
+    (i00, i01), (i10, i11) = g['ginv']
+    return gtc[0] * i00 + gtc[1] * i01, gtc[0] * i10 + gtc[1] * i11
 
 
 class Screen:
@@ -164,18 +169,10 @@ class Screen:
                 cross[:, cols] += (flat @ g['js'][gi]).T     # as C J: 1.7-1.9x J^T C^T's speed
                 ctc[np.ix_(cols, cols)] += flat @ flat.T
                 ctr[cols] += flat @ g['r'][gi]
-                # G^T C per epoch, (N, 3, 2) x (N, 3, k) written out over the 3 components:
-                # numpy's batched matmul of tiny matrices cost 3 ms per candidate
-                gbj = g['gb'][gi]
-                for a in range(2):
-                    gtc[a, cols] += (cj[:, :, 0] * gbj[0][a] + cj[:, :, 1] * gbj[1][a]
-                                     + cj[:, :, 2] * gbj[2][a])
+                add_gtc(gtc, cols, cj, g['gb'][gi])
             # project: subtract the part of C along the field directions of each epoch,
-            # (G^T C)^T (G^T G)^-1 (G^T C) and (G^T C)^T (G^T G)^-1 G^T r, the 2 x 2 inverse
-            # applied component by component (no batched matmul)
-            (i00, i01), (i10, i11) = g['ginv']
-            m0 = gtc[0] * i00 + gtc[1] * i01
-            m1 = gtc[0] * i10 + gtc[1] * i11
+            # (G^T C)^T (G^T G)^-1 (G^T C) and (G^T C)^T (G^T G)^-1 G^T r
+            m0, m1 = ginv_times(gtc, g)
             ctc -= gtc[0] @ m0.T + gtc[1] @ m1.T
             ctr -= gtc[0] @ g['ginv_gtr'][0] + gtc[1] @ g['ginv_gtr'][1]
             dc = np.sqrt(np.clip(np.diag(ctc), 0.0, None))

@@ -45,8 +45,9 @@ from dataclasses import dataclass, field
 import itertools
 import math
 
-from magcal_ros.core.discovery import bases
-from magcal_ros.core.discovery.constants import MIN_DELTA_BIC, MIN_EXPLAINED
+from magcal_ros.core.discovery import bases, measures
+from magcal_ros.core.discovery.constants import AT_FLOOR_RATIO, MIN_DELTA_BIC, MIN_EXPLAINED
+from magcal_ros.core.discovery.screen import add_gtc, ginv_times
 import numpy as np
 from scipy import stats
 
@@ -66,8 +67,6 @@ TIE_SHARE = 0.03
 #: explains on the sensor it explains most (a disturbance of two sensors leaks ~5 % into
 #: the others through the field they share)
 SCOPE_SHARE = 0.15
-#: a sensor is at its floor when its residual is within this ratio of it
-FLOOR_RATIO = 1.10
 #: a term "explains" the excess when it also removes this share of it held out (a smooth
 #: that follows a short disturbance in-sample but cannot predict it does not)
 EXPLAINS_SHARE = 0.8
@@ -142,12 +141,9 @@ class Term:
         return body + '@{' + ','.join(str(j) for j in self.sensors) + '}'
 
 
-def solve_psd(a, b, rcond=1e-9):
-    """Solve a x = b for a symmetric PSD (n, n) a, directions below ``rcond`` dropped."""
-    w, v = np.linalg.eigh(a)
-    keep = w > rcond * max(w.max(), 1e-300)
-    vb = v[:, keep].T @ b
-    return v[:, keep] @ (vb / (w[keep] if vb.ndim == 1 else w[keep][:, None]))
+def solve_psd(a, b):
+    """Solve a x = b for a PSD a, directions below 1e-9 dropped (:func:`.measures.solve_psd`)."""
+    return measures.solve_psd(a, b, rcond=1e-9)
 
 
 def _orth(x):
@@ -202,17 +198,11 @@ def coupling_columns(coupling, x, lin, per_axis=False):
                 for axis, src, sign in pattern:
                     out[3 * c + q, :, axis] += sign * x[:, c] * lin[:, src]
         return out
-    if coupling == 'offset':
+    if coupling in ('offset', 'scale'):
         out = np.zeros((3 * m, n, 3))
         for c in range(m):
             for a in range(3):
-                out[3 * c + a, :, a] = x[:, c]
-        return out
-    if coupling == 'scale':
-        out = np.zeros((3 * m, n, 3))
-        for c in range(m):
-            for a in range(3):
-                out[3 * c + a, :, a] = x[:, c] * lin[:, a]
+                out[3 * c + a, :, a] = x[:, c] * (lin[:, a] if coupling == 'scale' else 1.0)
         return out
     if coupling == 'linear':
         out = np.zeros((9 * m, n, 3))
@@ -351,13 +341,8 @@ class BlockSums:
                     bb[b][:, ia] += js[rows].T @ fb.T
                     dd[b][np.ix_(ia, ia)] += fb @ fb.T
                     gc[b][ia] += fb @ r[rows]
-            gbj = g['gb'][gi]
-            for a in range(2):
-                gtc[a, idx] += (cj[:, :, 0] * gbj[0][a] + cj[:, :, 1] * gbj[1][a]
-                                + cj[:, :, 2] * gbj[2][a])
-        (i00, i01), (i10, i11) = g['ginv']
-        m0 = gtc[0] * i00 + gtc[1] * i01
-        m1 = gtc[0] * i10 + gtc[1] * i11
+            add_gtc(gtc, idx, cj, g['gb'][gi])
+        m0, m1 = ginv_times(gtc, g)
         for b, (e0, e1) in enumerate(zip(self.edges[:-1], self.edges[1:])):
             s = slice(e0, e1)
             dd[b] -= gtc[0][:, s] @ m0[:, s].T + gtc[1][:, s] @ m1[:, s].T
@@ -638,7 +623,7 @@ def search(data, resid, screen, sigma, floor, n_obs, alpha=0.01, steps=(), windo
     validated = [evaluate(c, True) for c in good[:CV_TOP]]
     secs['held_out'] = time.perf_counter() - t0
     adopt = _choose(validated)
-    if adopt is None or max(adopt.ratios.values()) > FLOOR_RATIO:
+    if adopt is None or max(adopt.ratios.values()) > AT_FLOOR_RATIO:
         singles = [c for c in validated if c.share is not None and c.share > 0][:PAIR_TOP]
         pairs = []
         for a, b in itertools.combinations(singles, 2):
@@ -756,7 +741,7 @@ def localised(t, sums):
     largest total excess (the maximum-sum subarray, Kadane's algorithm) must hold at least
     half of the whole excess.  Widened by 0, 1, 2 or 5 % of the record on each side, the
     base model is refitted (linearised) without it; the first interval after which every
-    sensor is within :data:`FLOOR_RATIO` of its floor is returned, if it is at most
+    sensor is within :data:`~.constants.AT_FLOOR_RATIO` of its floor is returned, if it is at most
     :data:`MAX_LOCALISED_FRACTION` of the record.
     """
     t = np.asarray(t, float)
@@ -804,7 +789,7 @@ def localised(t, sums):
                 rat[j] = math.sqrt(float(np.sum(r ** 2)) / float(fe[gi, out].sum()))
             if margin == 0.0:
                 step_next = st
-            if max(rat.values()) <= FLOOR_RATIO:
+            if max(rat.values()) <= AT_FLOOR_RATIO:
                 # a disturbance, not a few outliers: the 5 % largest epochs of the interval
                 # must not hold half of its excess (heavy-tailed noise: fit --robust)
                 pos = np.sort(np.clip(ex[a:b + 1], 0.0, None))[::-1]
