@@ -72,10 +72,3 @@ class Progress:
             self._bar.close()
         self._bar = None
         self._step = None
-
-
-class NoProgress(Progress):
-    """Silent progress (library calls)."""
-
-    def __init__(self):
-        super().__init__(enabled=False)

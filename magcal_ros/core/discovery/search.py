@@ -48,6 +48,7 @@ import math
 from magcal_ros.core.discovery import bases, measures
 from magcal_ros.core.discovery.constants import AT_FLOOR_RATIO, MIN_DELTA_BIC, MIN_EXPLAINED
 from magcal_ros.core.discovery.screen import add_gtc, ginv_times
+from magcal_ros.core.effects.base import format_arg
 import numpy as np
 from scipy import stats
 
@@ -144,14 +145,6 @@ class Term:
 def solve_psd(a, b):
     """Solve a x = b for a PSD a, directions below 1e-9 dropped (:func:`.measures.solve_psd`)."""
     return measures.solve_psd(a, b, rcond=1e-9)
-
-
-def _orth(x):
-    """Orthonormal basis (N, r) of the columns of x (N, m), rank-revealing."""
-    q, r = np.linalg.qr(x)
-    d = np.abs(np.diag(r))
-    keep = d > 1e-9 * max(d.max(), 1e-300)
-    return q[:, keep]
 
 
 def _proj_ss(x, y):
@@ -722,7 +715,7 @@ class Localized:
     @property
     def token(self):
         """Return the formula term that leaves the interval out: 'drop(t0, t1)'."""
-        return f'drop({bases.fmt(self.t0)}, {bases.fmt(self.t1)})'
+        return f'drop({format_arg(self.t0)}, {format_arg(self.t1)})'
 
 
 #: share of an interval's excess its 5 % largest epochs may hold (more: outliers, not a

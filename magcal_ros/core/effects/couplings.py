@@ -78,10 +78,6 @@ class Coupling:
         """Return c, the number of parameters per driver column."""
         return len(self.stems)
 
-    def default_column(self):
-        """(c,) parameters of one column switched off."""
-        return np.zeros(self.n_per_column)
-
     def contribution(self, y, lin):
         """
         (N, 3) nT change of the reading.
