@@ -448,3 +448,22 @@ def test_node_model_parameter_takes_formula_terms():
     assert check(['base + offset(window(120, 160))@alike']) is None
     msg = check(['base', 'offset(s(t, k=60))@2'])
     assert 'basis size' in msg and '3..20' in msg, msg
+
+
+def test_times_on_a_1970_clock_keep_their_milliseconds():
+    # a ROS stamp is ~1.8e9 s: 6 significant digits put step(1795889560.9) 500 s off and made
+    # a 10 s window end before it starts (the live loop demo's diagnose, 2026-11-28)
+    t0 = 1795889560.905
+    term = fx.formula.parse(f'base + offset(window({t0}, {t0 + 10.2}))@2').terms[-1]
+    assert term.text == 'offset(window(1795889560.905, 1795889571.105))@2'
+    assert fx.formula.parse('step(1795889560.9)@1').terms[0].text == 'step(1795889560.9)@1'
+    # the search's window driver at such times: the indicator of its 102 samples, centred
+    from magcal_ros.core.discovery.bases import time_drivers
+    t = t0 - 5.0 + 0.1 * np.arange(300)
+    (drv,) = [d for d in time_drivers(t, windows=[(t0, t0 + 10.2)])
+              if d.text.startswith('window(')]
+    inside = ((t >= t0) & (t <= t0 + 10.2)).astype(float)
+    np.testing.assert_allclose(drv.columns(1)[:, 0], inside - inside.mean(), atol=1e-12)
+    # small values keep the 6 significant digits of the canonical text
+    (term,) = fx.formula.parse('offset(sin(0.233751234))@1').terms
+    assert term.text == 'offset(sin(0.233751))@1'

@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 import math
 
 from magcal_ros.core.discovery.measures import lag_grid
-from magcal_ros.core.effects.base import SensorContext
+from magcal_ros.core.effects.base import format_arg, SensorContext
 from magcal_ros.core.effects.formula import parse_driver
 import numpy as np
 
@@ -128,11 +128,6 @@ def wrap_period(x):
     return None
 
 
-def fmt(v):
-    """Short decimal text of a number in a formula ('300', '0.0112')."""
-    return f'{float(v):.6g}'
-
-
 def channel_values(data, name, j):
     """(N,) values of channel ``name`` for sensor ``j`` (temperature: the sensor's own)."""
     if name == 'temperature':
@@ -174,9 +169,9 @@ def time_drivers(t, steps=(), windows=(), lines=()):
         return _driver(text, 'time', 't', lambda j: ctx, note)
     out = [drv(f'poly(t, {d})') for d in (1, 2, 3)]
     out += [drv(f's(t, k={k})') for k in SMOOTH_K if n >= MIN_SAMPLES_PER_K * k]
-    out += [drv(f'step({", ".join(fmt(x) for x in ts)})', 'change point') for ts in steps]
-    out += [drv(f'window({fmt(a)}, {fmt(b)})', 'change points') for a, b in windows]
-    out += [drv(f'sin({fmt(f)})', 'spectral line') for f in lines]
+    out += [drv(f'step({", ".join(format_arg(x) for x in ts)})', 'change point') for ts in steps]
+    out += [drv(f'window({format_arg(a)}, {format_arg(b)})', 'change points') for a, b in windows]
+    out += [drv(f'sin({format_arg(f)})', 'spectral line') for f in lines]
     return out
 
 
@@ -184,12 +179,12 @@ def channel_drivers(data, name):
     """Drivers of one channel: linear, polynomial (2, 3), cyclic when it wraps, lags."""
     period = wrap_period(channel_values(data, name, 1))
     if period is not None:
-        p_txt = '' if period == 360.0 else f', period={fmt(period)}'
+        p_txt = '' if period == 360.0 else f', period={format_arg(period)}'
         return [_driver(f'cc({name}, k={k}{p_txt})', 'channel', name, data.context)
                 for k in CYCLIC_K]
     out = [_driver(t, 'channel', name, data.context)
            for t in (name, f'poly({name}, 2)', f'poly({name}, 3)')]
-    out += [_driver(f'lag({name})', 'channel', name, data.context, f'tau={fmt(tau)}', [tau])
+    out += [_driver(f'lag({name})', 'channel', name, data.context, f'tau={format_arg(tau)}', [tau])
             for tau in lag_grid(data.t, LAG_POINTS, *LAG_FRACTIONS)]
     return out
 

@@ -94,6 +94,7 @@ from magcal_ros.core.discovery.constants import (ALPHA, ECHO_RATIO, LINE_NEIGHBO
 from magcal_ros.core.discovery.measures import (cusum, evenly_sampled, lag_grid, periodogram,
                                                 regress, white_noise_sd)
 from magcal_ros.core.effects import first_order_lag
+from magcal_ros.core.effects.base import format_arg
 import numpy as np
 from scipy import ndimage, stats
 
@@ -544,11 +545,11 @@ KINDS = {
             f'add {tok} (or log the source as an aux channel)'),
         lambda f: f'a line at {f.value:.4g} Hz', 'residual_spectrum'),
     'step': Kind(
-        lambda v, ch, d, at: None if v is None else f'step({v:.6g}){at}',
+        lambda v, ch, d, at: None if v is None else f'step({format_arg(v)}){at}',
         lambda c, at, tok, on, pct: (
             f'{on}: an offset step of {np.linalg.norm(c.detail["jump_nt"]):.1f} nT at '
-            f't = {c.value:.6g} s removes {pct}: add {tok}'),
-        lambda f: f'a step at {f.value:.6g} s', 'change_points'),
+            f't = {format_arg(c.value)} s removes {pct}: add {tok}'),
+        lambda f: f'a step at {format_arg(f.value)} s', 'change_points'),
     'time': Kind(
         _drift,
         lambda c, at, tok, on, pct: (

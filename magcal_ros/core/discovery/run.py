@@ -48,6 +48,7 @@ from magcal_ros.core.discovery.search import (EXPLAINS_SHARE, SCOPE_SHARE as SEA
                                               search as run_search, SEARCH_MAX_EPOCHS)
 from magcal_ros.core.discovery.validation import cross_validate
 from magcal_ros.core.discovery.verify import tested_findings, tested_verdict
+from magcal_ros.core.effects.base import format_arg
 from magcal_ros.core.model import Model
 from magcal_ros.core.model.fitting import fit
 from magcal_ros.core.model.solvers import single_threaded_blas
@@ -357,7 +358,7 @@ def _merge_search(b, trials, ranked, verdict, reason, res, at_floor):
                 why += (f' (the best term of the search, {adopted.text_for(s)}, leaves '
                         f'{a_ratio:.2f} x the floor in-sample, {adopted.share:.0%} held out)')
             why += (f'; {loc.share:.0%} of the excess over the floor lies within '
-                    f'{loc.t0:.6g}-{loc.t1:.6g} s on sensor(s) '
+                    f'{format_arg(loc.t0)}-{format_arg(loc.t1)} s on sensor(s) '
                     f'{", ".join(str(j) for j in loc.sensors)}, nothing simple describes '
                     f'it: leave it out (every sensor within '
                     f'{max(loc.ratios_outside.values()):.2f} x its floor outside)')
@@ -402,8 +403,9 @@ def _describe(b, found, res, verdict, scalar_rms, vector_rms):
             kind='localised', sensor=sens[0] if len(sens) == 1 else None, channel='t',
             value=float(loc.t1 - loc.t0), unit='s', explained_fraction=float(loc.share),
             text=(f'{_who(sens, s)}: an excess over the floor confined to '
-                  f'{loc.t0:.6g}-{loc.t1:.6g} s ({loc.share:.0%} of it); every sensor within '
-                  f'{max(loc.ratios_outside.values()):.2f} x its floor outside: add '
+                  f'{format_arg(loc.t0)}-{format_arg(loc.t1)} s ({loc.share:.0%} of it); '
+                  f'every sensor within {max(loc.ratios_outside.values()):.2f} x its floor '
+                  'outside: add '
                   f'{loc.token} to leave it out'), token=loc.token))
     if verdict is None:
         left = _what_is_left(b, found, res, scalar_rms, vector_rms)
@@ -495,7 +497,7 @@ def _when(b, sens):
     t0, t1 = float(t[edges[best[0]]]), float(t[edges[best[1]] - 1])
     if t1 - t0 > WHEN_SPAN * span:
         return 'throughout the record'
-    return f'mostly within {t0:.6g}-{t1:.6g} s'
+    return f'mostly within {format_arg(t0)}-{format_arg(t1)} s'
 
 
 def _stop_reason(reason, found):

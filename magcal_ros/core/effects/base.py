@@ -35,6 +35,7 @@ declarations and never from effect names.  This module also holds the paper 004 
 and the signal helpers every effect shares.
 """
 from dataclasses import dataclass, field
+import math
 
 from magcal_ros.core.geometry.tensor import symmetric_traceless  # noqa: F401 - re-exported
 import numpy as np
@@ -433,8 +434,17 @@ def parse_number(text, what):
 
 
 def format_arg(v):
-    """Canonical text of a token argument: 4 significant digits are kept as given."""
-    return format(float(v), '.6g')
+    """
+    Canonical text of a token argument: 6 significant digits, a value of 1e5 or more to 1e-3.
+
+    A time on a clock since 1970 (a ROS stamp, about 1.8e9 s) keeps its milliseconds: with
+    6 digits ``step(1795889560.9)`` would read ``step(1.79589e+09)``, 500 s off, and a
+    ``window`` of a few seconds there would end before it starts.
+    """
+    v = float(v)
+    if abs(v) >= 1e5 and math.isfinite(v):
+        return format(round(v, 3), 'f').rstrip('0').rstrip('.')
+    return format(v, '.6g')
 
 
 def channel_name(name):
