@@ -29,6 +29,7 @@ Tolerances: "within 1.15 x the floor" is the issue's criterion; a complete model
 so 1.15 is more than 4 sd away from a false failure.  A step time is exact to one sample
 (0.2 s); a frequency to 1/(10 span) (the refinement grid of propose_from_residual).
 """
+import dataclasses
 import json
 
 import injection as inj
@@ -178,3 +179,18 @@ def test_site_gradient_adopts_no_fix_and_is_named_by_the_finding(n):
     from magcal_ros.core.discovery import ladder
     lad = ladder(data, diag.result, field_nt=F, diagnosis=diag)
     assert len(lad.steps) == 1 and lad.reason.startswith('verdict none')
+
+
+def test_a_record_stamped_since_1970_names_its_step_to_the_sample():
+    # a ROS bag's stamps (~1.8e9 s): the step's token keeps its time to the sample (6
+    # significant digits put it 500 s off, and the live loop demo's window drivers failed)
+    fault, _ = KINDS['step']
+    data = inj.make(3000, seed=5, inject=fault)
+    t0 = 1795889560.905
+    data = dataclasses.replace(data, t=data.t + t0)
+    diag = diagnose(data, 'base', field_nt=F)
+    token = json.loads(diag.to_json())['verdict']['token']
+    got, args, where = fx.parse_token(token)
+    assert (got, where) == ('step', 1), diag.summary()
+    assert abs(float(args[0]) - (t0 + 300.0)) <= 0.2
+    assert_within(fit(data, 'base,' + token, field_nt=F), diag.noise_floor)
