@@ -196,6 +196,11 @@ def test_the_diagnosis_does_not_call_dropped_readings_misfit():
     from magcal_ros.core.discovery import diagnose
     before = diagnose(_record(), 'base', inj.F_NT, base=_fit('base'))
     assert not before.at_floor and before.scalar_rms_nt[2] > 10 * SIGMA
+    # the finding that leaves the window out scopes it to the one sensor that carries it
+    (loc,) = [f for f in before.findings.items if f.kind == 'localised']
+    assert loc.token.startswith('drop(') and loc.token.endswith(')@2'), loc.token
+    lo, hi = (float(x) for x in loc.token[5:-3].split(','))
+    assert lo <= T0 and hi >= T1 and hi - lo < T1 - T0 + 5, loc.token
     dg = diagnose(_record(), 'base + drop(120, 160)@2', inj.F_NT,
                   base=_fit('base + drop(120, 160)@2'))
     assert dg.at_floor, dg.verdict_reason

@@ -714,8 +714,18 @@ class Localized:
 
     @property
     def token(self):
-        """Return the formula term that leaves the interval out: 'drop(t0, t1)'."""
-        return f'drop({format_arg(self.t0)}, {format_arg(self.t1)})'
+        """
+        Return the formula term that leaves the interval out of the sensors that carry it.
+
+        'drop(t0, t1)' when every sensor does; 'drop(t0, t1)@J' or 'drop(t0, t1)@{J,K}' when
+        only some do: the others' readings of the interval still inform the field.
+        """
+        core = f'drop({format_arg(self.t0)}, {format_arg(self.t1)})'
+        if not self.sensors or set(self.sensors) >= set(self.ratios_outside):
+            return core
+        if len(self.sensors) == 1:
+            return f'{core}@{self.sensors[0]}'
+        return f'{core}@{{{",".join(str(j) for j in sorted(self.sensors))}}}'
 
 
 #: share of an interval's excess its 5 % largest epochs may hold (more: outliers, not a
