@@ -37,14 +37,14 @@ the others ignores it; a mean would spread a third of it onto the others of a cr
 sigma_j the per-axis noise floor of the block (:func:`magcal_ros.core.data.noise.noise_floor`:
 differences of the raw series, no model, heavy-tail corrected) the noise alone gives e_j the
 variance v_j = sigma_j^2 + c_m mean_{k != j} sigma_k^2, c_m the variance of the median of
-m = S - 1 unit normals (0.449 for the cross).  The block's statistic is the robust
-mean square z_j = (median |e_j| / 0.6745)^2 / v_j: 1 under the noise, insensitive to spikes
-(a few per cent of the sets can be anything).  Its square root, a robust RMS ratio, is close
-to normal with sd 1.166 / sqrt(n) (the sample median of a half-normal: var = 1 / (4 n f(m)^2));
-a block *exceeds* when some sqrt(z_j) is above 1 + :attr:`LearnConfig.exceed_sigmas` x
-1.166 / sqrt(n) (z itself is skewed: at 4 of its own sds, 2.3 at n = 50, the simulated
-vehicle's noise exceeded it in 1e-3 of the blocks per sensor; at 5 sds of sqrt(z) none of
-4 x 1 470, 25 min at 50 Hz).
+m = S - 1 unit normals (0.449 for the cross).  The block's statistic is the robust mean
+square z_j = (1.4826 median |e_j|)^2 / v_j (the Gaussian-consistent MAD about zero): 1
+under the noise, insensitive to spikes (a few per cent of the sets can be anything). Its
+square root, a robust RMS ratio, is close to normal with sd 1.166 / sqrt(n) (the sample
+median of a half-normal: var = 1 / (4 n f(m)^2)); a block *exceeds* when some sqrt(z_j) is
+above 1 + :attr:`LearnConfig.exceed_sigmas` x 1.166 / sqrt(n) (z itself is skewed: at 4 of
+its own sds, 2.3 at n = 50, the simulated vehicle's noise exceeded it in 1e-3 of the blocks
+per sensor; at 5 sds of sqrt(z) none of 4 x 1 470, 25 min at 50 Hz).
 
 Persistence decides: an exceeding block starts a *change detected* (its onset); the change
 ends as a *transient* (not learned) as soon as :attr:`LearnConfig.clear_blocks` blocks in a
@@ -91,6 +91,7 @@ from dataclasses import dataclass, field
 
 from magcal_ros.core.data.dataset import Dataset
 from magcal_ros.core.data.noise import noise_floor
+from magcal_ros.core.model.solvers import MAD_TO_SD
 import numpy as np
 
 #: states the learner reports (the node's /diagnostics)
@@ -401,7 +402,7 @@ class Learner:
         except Exception:        # noqa: B902 -- a driven effect without its signal: no verdict
             return
         v = common_mode_variance(sigma)
-        z = (np.median(np.abs(e), axis=1) / 0.6745) ** 2 / v
+        z = (np.median(np.abs(e), axis=1) * MAD_TO_SD) ** 2 / v
         self.last_z = z
         self.last_block_t = t_end
         limit = 1.0 + self.config.exceed_sigmas * Z_SD_UNIT / np.sqrt(e.shape[1])
