@@ -15,13 +15,10 @@
 """
 The reference field magnitude F (nT) of a fit.
 
-Where the reference field magnitude F (nT) of a fit comes from: a number, the data's
-``ref_total`` column (the two per epoch:
-:meth:`magcal_ros.core.data.dataset.Dataset.reference_magnitude`), the IGRF model (ppigrf),
-or the data themselves (shape only).
-
-Not to be confused with :mod:`magcal_ros.core.papers.reference_vector` (paper 002: calibration
-against a reference field *vector*).
+A number or the data's ``ref_total`` column
+(:meth:`magcal_ros.core.data.dataset.Dataset.reference_magnitude`), the IGRF (ppigrf), or the
+data themselves (shape only).  A reference *vector* is paper 002's
+(:mod:`magcal_ros.core.papers.reference_vector`).
 """
 import datetime
 
@@ -29,9 +26,9 @@ from magcal_ros.core.papers.ellipsoid import fit_ellipsoid
 import numpy as np
 
 
-def igrf_total(lat_deg, lon_deg, alt_km, date):
+def igrf_field(lat_deg, lon_deg, alt_km, date):
     """
-    IGRF total intensity in nT at a place and date.
+    (total intensity nT, inclination deg, positive down) of the IGRF at a place and date.
 
     Parameters
     ----------
@@ -42,15 +39,6 @@ def igrf_total(lat_deg, lon_deg, alt_km, date):
     date : str or datetime.date
         'YYYY-MM-DD' or a date.
 
-    """
-    return igrf_field(lat_deg, lon_deg, alt_km, date)[0]
-
-
-def igrf_field(lat_deg, lon_deg, alt_km, date):
-    """
-    (total intensity nT, inclination deg, positive down) of the IGRF at a place and date.
-
-    Arguments as :func:`igrf_total`.
     """
     import ppigrf
     if isinstance(date, str):
@@ -71,10 +59,7 @@ def auto_magnitude(raw):
     """
     Magnitude for data without any reference: mean radius of sensor 1's ellipsoid, nT.
 
-    With no reference the absolute scale of the sensors is not observable; this keeps the
-    corrected magnitude equal to the average raw magnitude, so only the shape is corrected.
-
-    raw (N, 3) nT.
+    raw (N, 3) nT.  The absolute scale is then not observable: only the shape is corrected.
     """
     ell = fit_ellipsoid(raw, 1.0)
     radii = np.linalg.norm(np.asarray(raw, float) - ell.b, axis=1)
@@ -93,8 +78,8 @@ def site_field_reference(source, field_nt=None, lat_deg=None, lon_deg=None, alt_
     Parameters
     ----------
     source : str
-        'constant' (``field_nt``), 'igrf' (IGRF at the site and date: :func:`igrf_total`)
-        or 'shape' (no reference: :func:`auto_magnitude` of ``raw``, shape only).
+        'constant' (``field_nt``), 'igrf' (:func:`igrf_field` at the site and date), 'shape'
+        (:func:`auto_magnitude` of ``raw``) or 'shape-planar' (a turn about one axis).
     field_nt : float
         Magnitude for 'constant', nT.
     lat_deg, lon_deg : float

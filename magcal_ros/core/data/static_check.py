@@ -15,11 +15,9 @@
 """
 Check a calibration against static recordings: one |B| everywhere, or why not.
 
-A sensor lying still in a uniform field reads the same field for minutes, so its corrected
-magnitude |B| is a check of a calibration that needs no reference: recordings at different
-attitudes must give one |B| (the field of the site), equal to the calibration's reference
-magnitude when both were made at the same place and time.  When they do not agree, the
-pattern says why, as far as the data can tell:
+Recordings of a still sensor at different attitudes must give one corrected |B|, equal to
+the calibration's reference when made at the same place and time.  When they do not agree,
+the pattern says why, as far as the data can tell:
 
 - two recordings at the same attitude (field directions a few degrees apart) with different
   |B|: the calibration is the same for both, so the field at the sensor or the sensor's own
@@ -31,9 +29,8 @@ pattern says why, as far as the data can tell:
 - recordings at different attitudes that disagree: the calibration does not hold at those
   attitudes, or the field changed too; the recordings cannot tell which.
 
-Differences are judged against the calibration's own scalar residual (its RMS misfit, a
-direction-dependent error of that size is expected), not against the static noise, whose
-mean over thousands of samples is known to about 1 nT.
+Differences are judged against the calibration's own scalar residual RMS (an error of that
+size that depends on the direction is expected), not the static noise.
 """
 from dataclasses import dataclass, field
 
@@ -50,29 +47,17 @@ class StaticCheck:
     """
     Outcome of :func:`check_static`.
 
-    Attributes
-    ----------
-    rows : list of dict
-        Per recording: ``name``, ``n``, ``b_nt`` mean corrected |B|, ``sd_nt`` its sd
-        over the recording, ``direction`` (3,) mean field direction (unit, sensor's
-        corrected frame), ``minus_reference_nt`` |B| - reference magnitude.
-    tolerance_nt : float
-        Largest |B| difference that counts as agreement, nT.
-    same_attitude : list of (str, str, float, float)
-        Pairs at the same attitude: names, angle between their fields (deg), |B|
-        difference (nT).
-    findings : list of str
-        One sentence each: what the recordings show.
-    consistent : bool
-        All recordings give one |B| within ``tolerance_nt``, equal to the reference.
-
+    ``rows`` per recording: ``name``, ``n``, ``b_nt`` mean corrected |B|, ``sd_nt`` its sd,
+    ``direction`` (3,) mean unit field direction (sensor's corrected frame) and
+    ``minus_reference_nt`` |B| - reference magnitude.
     """
 
     rows: list
-    tolerance_nt: float
+    tolerance_nt: float                 # largest |B| difference that agrees, nT
+    #: pairs at the same attitude: names, angle between their fields (deg), |B| difference (nT)
     same_attitude: list = field(default_factory=list)
-    findings: list = field(default_factory=list)
-    consistent: bool = True
+    findings: list = field(default_factory=list)    # one sentence each
+    consistent: bool = True             # one |B| within tolerance_nt, equal to the reference
 
 
 def check_static(corrected, reference_nt, residual_rms_nt):

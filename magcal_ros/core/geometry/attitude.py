@@ -20,13 +20,10 @@ from the array (body) frame into the world frame (NED or ENU, as the user states
 """
 import numpy as np
 
-#: largest allowed deviation of |q| from 1 (an IMU's quaternion is normalised to ~1e-6;
-#: a larger error is a unit or column mix-up, not rounding)
+#: largest allowed deviation of |q| from 1 (beyond it: a unit or column mix-up, not rounding)
 UNIT_TOLERANCE = 1e-3
-#: largest angle (deg) between the world-frame field direction of one epoch and the median
-#: of all epochs; beyond it the attitude and the magnetometer disagree (a jump, a lag,
-#: another convention).  IMU attitude errors are a few degrees; calibration errors after the
-#: closed-form start below one.
+#: largest angle (deg) between an epoch's world-frame field direction and the median of all:
+#: beyond it the attitude and the magnetometer disagree (a jump, a lag, another convention)
 MAX_FIELD_DISAGREEMENT_DEG = 10.0
 
 COLUMNS = ('att_qw', 'att_qx', 'att_qy', 'att_qz')
@@ -109,8 +106,6 @@ def interpolate(t_msg, q_msg, t):
         (N, 4) unit quaternions (qw, qx, qy, qz).
 
     """
-    # here, not at the top: scipy.spatial is slow to import (0.2 s) and the nodes import
-    # this module
     from scipy.spatial.transform import Rotation, Slerp
     t_msg = np.asarray(t_msg, float)
     order = np.argsort(t_msg, kind='stable')
@@ -173,11 +168,9 @@ def check_against_field(rot, field_body, t=None, max_deg=MAX_FIELD_DISAGREEMENT_
     """
     Refuse an attitude that disagrees with the measured field direction.
 
-    In a constant world field the world-frame direction R_k b_k of the (roughly calibrated)
-    body-frame field b_k is the same at every epoch; a jump of the attitude, a lag between
-    attitude and magnetometer, the inverse rotation (world to body) or a scalar-last
-    quaternion all make it wander.  A rotation about the field direction itself is invisible
-    to this check (the magnetometer cannot see it).
+    In a constant world field R_k b_k is the same at every epoch; a jump, a lag, the inverse
+    rotation or a scalar-last quaternion make it wander (a rotation about the field itself
+    is invisible).
 
     Parameters
     ----------

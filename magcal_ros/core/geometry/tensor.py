@@ -64,11 +64,9 @@ def tensor_operator(positions):
     """
     Linear map from stacked sensor fields to (B0, G) for any array geometry.
 
-    The field is modelled as B(r) = B0 + G r.  For an array spanning 3-D, G is taken symmetric
-    and traceless (curl- and divergence-free field: 5 unknowns) and solved with B0 by least
-    squares.  For a planar array only the in-plane columns of G can be measured; the
-    out-of-plane column follows from symmetry and zero trace.  For paper 004's cross this
-    reproduces eq. 1 exactly.
+    B(r) = B0 + G r by least squares: G symmetric traceless (5 unknowns) for an array spanning
+    3-D; for a planar one the in-plane columns, the third from symmetry and zero trace
+    (paper 004's eq. 1 for the cross, exactly).
 
     Parameters
     ----------
@@ -88,8 +86,8 @@ def tensor_operator(positions):
     rank = int(np.sum(sv > 1e-9 * max(sv[0], 1e-12)))
     if rank < 2:
         raise ValueError('sensor positions must span at least a plane to measure a tensor')
-    basis = vt.T        # columns: principal directions, last = normal if planar
-    # unknowns in the rotated frame: B0 (3) + in-plane columns G'[:, :rank] (3*rank)
+    basis = vt.T        # principal directions, last = normal if planar
+    # unknowns in that frame: B0 (3) + in-plane columns G'[:, :rank]
     rp = rc @ basis     # (S, 3)
     n_unk = 3 + 3 * rank
     design = np.zeros((3 * s, n_unk))
@@ -98,12 +96,10 @@ def tensor_operator(positions):
             design[3 * k + i, i] = 1.0
             for c in range(rank):
                 design[3 * k + i, 3 + 3 * c + i] = rp[k, c]
-    # rotate field components into the principal frame: b' = basis^T b
     rot = np.kron(np.eye(s), basis.T)
     if rank == 3:
-        # symmetric traceless: parametrise G' by 5 numbers
+        # G' from g = [gxx, gxy, gxz, gyy, gyz], column-major in design order
         sym = np.zeros((9, 5))
-        # g = [gxx, gxy, gxz, gyy, gyz]; columns of G' (column-major in design order)
         idx = {(0, 0): [(0, 1.0)], (0, 1): [(1, 1.0)], (0, 2): [(2, 1.0)],
                (1, 0): [(1, 1.0)], (1, 1): [(3, 1.0)], (1, 2): [(4, 1.0)],
                (2, 0): [(2, 1.0)], (2, 1): [(4, 1.0)], (2, 2): [(0, -1.0), (3, -1.0)]}
@@ -168,8 +164,7 @@ def symmetric_traceless(g):
     """
     (3, 3) symmetric traceless tensor from g = (gxx, gxy, gxz, gyy, gyz), same unit.
 
-    Maxwell's equations in a source-free region: curl B = 0 (symmetric), div B = 0
-    (traceless), so gzz = -gxx - gyy (paper 004 eq. 1 uses the same five components).
+    A source-free field: curl B = 0 (symmetric), div B = 0 (gzz = -gxx - gyy).
     """
     gxx, gxy, gxz, gyy, gyz = g
     return np.array([[gxx, gxy, gxz], [gxy, gyy, gyz], [gxz, gyz, -gxx - gyy]], float)

@@ -502,7 +502,7 @@ class Learner:
         if p.persistent:
             self.changed = tuple(p.doc['provenance']['learning']['sensors_learned'])
         self.set_active(p.calibration, self.field_nt, now)
-        if onset is not None:               # before the change (and its first block): another sensor
+        if onset is not None:       # before the change (and its first block): another sensor
             self._data_from = onset + self.config.block_s
         self.state = ADOPTED
         return p

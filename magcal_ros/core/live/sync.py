@@ -288,9 +288,7 @@ class StampMatcher:
 
     @property
     def queued(self):
-        """
-        Count the samples waiting for the other sensors of their set (tuple of S counts).
-        """
+        """Count the samples waiting for the other sensors of their set (tuple of S counts)."""
         return tuple(len(q) for q in self._queues)
 
     def add(self, j, stamp_s, item):
