@@ -75,32 +75,11 @@ def site_field_reference(source, field_nt=None, lat_deg=None, lon_deg=None, alt_
     """
     Return the reference magnitude and its ``field_reference`` record, as a node sets it.
 
-    Parameters
-    ----------
-    source : str
-        'constant' (``field_nt``), 'igrf' (:func:`igrf_field` at the site and date), 'shape'
-        (:func:`auto_magnitude` of ``raw``) or 'shape-planar' (a turn about one axis).
-    field_nt : float
-        Magnitude for 'constant', nT.
-    lat_deg, lon_deg : float
-        Geodetic latitude and longitude of the site for 'igrf', degrees.
-    alt_m : float
-        Height of the site above the ellipsoid for 'igrf', m.
-    date : str
-        'YYYY-MM-DD' of the data for 'igrf'.
-    raw : numpy.ndarray
-        (N, 3) raw readings of sensor 1 for 'shape', nT.
-
-    Returns
-    -------
-    (float, dict)
-        F in nT and the calibration file's ``field_reference`` (kind, inputs, magnitude_nt).
-
-    Raises
-    ------
-    ValueError
-        Naming what is missing or out of range.
-
+    ``source``: 'constant' (``field_nt``, nT), 'igrf' (:func:`igrf_field` at ``lat_deg``,
+    ``lon_deg`` (deg), ``alt_m`` (m above the ellipsoid) and ``date`` 'YYYY-MM-DD'), 'shape'
+    (:func:`auto_magnitude` of sensor 1's ``raw`` (N, 3) nT) or 'shape-planar' (a turn about
+    one axis).  Returns (F nT, the calibration file's ``field_reference``: kind, inputs,
+    magnitude_nt); ValueError naming what is missing or out of range.
     """
     if source == 'constant':
         f = float(field_nt)

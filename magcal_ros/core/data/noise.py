@@ -62,16 +62,8 @@ def robust_sd(d):
     A tail with alpha <= :data:`OUTLIER_TAIL_INDEX` is gross outliers, left out; fewer than
     :data:`MIN_TAIL` tail values add nothing.
 
-    Parameters
-    ----------
-    d : numpy.ndarray
-        (M,) values about their centre (any unit).
-
-    Returns
-    -------
-    tuple
-        (sd, s_mad, alpha or nan, n_outliers) in the unit of ``d``.
-
+    ``d`` (M,) values about their centre, any unit; returns (sd, s_mad, alpha or nan,
+    n_outliers), sd and s_mad in the unit of ``d``.
     """
     d = np.asarray(d, float).ravel()
     a = np.abs(d - np.median(d))
@@ -118,20 +110,8 @@ def difference_sigmas(x, orders=ORDERS, starts=None):
     """
     White-noise sd from k-th differences, for each order k (:func:`robust_sd` scale).
 
-    Parameters
-    ----------
-    x : numpy.ndarray
-        (S, N, C) series in time order (any unit; C channels pooled), or (S, N).
-    orders : sequence of int
-        Difference orders k.
-    starts : sequence of int, optional
-        Indices where contiguous segments begin (:func:`differences`).
-
-    Returns
-    -------
-    numpy.ndarray
-        (K, S) sd estimates in the unit of ``x``, one row per order.
-
+    ``x`` (S, N, C) (C channels pooled) or (S, N), in time order, any unit; ``starts`` as for
+    :func:`differences`.  Returns (K, S) estimates in the unit of ``x``, a row per order.
     """
     x = np.asarray(x, float)
     if x.ndim == 2:
@@ -151,22 +131,8 @@ def welch(x, nperseg):
 
     The numbers of ``scipy.signal.welch(x, fs=1.0, nperseg=nperseg, axis=1,
     detrend='constant')`` (test_noise), without importing scipy.signal (BENCHMARKS.md,
-    "Start-up").
-
-    Parameters
-    ----------
-    x : numpy.ndarray
-        (S, N, C) series, any unit u, N >= nperseg.
-    nperseg : int
-        Samples per segment.
-
-    Returns
-    -------
-    f : numpy.ndarray
-        (F,) frequencies, cycles per sample.
-    p : numpy.ndarray
-        (S, F, C) power spectral density, u^2 per (cycle per sample).
-
+    "Start-up").  ``x`` (S, N, C) in a unit u, N >= ``nperseg``; returns the frequencies
+    (F,) in cycles per sample and the density (S, F, C), u^2 per (cycle per sample).
     """
     step = nperseg - nperseg // 2
     seg = np.lib.stride_tricks.sliding_window_view(x, nperseg, axis=1)[:, ::step]
@@ -183,20 +149,9 @@ def nyquist_drop(x, starts=None):
 
     Welch spectrum of the first difference (no leakage from a smooth trajectory) over its
     gain 4 sin^2(pi f / fs): mean density in 0.45-0.65 of the band over that in 0.85-1.0
-    (white noise ~1; a low-pass-filtered series many decades).
-
-    Parameters
-    ----------
-    x : numpy.ndarray
-        (S, N, C) or (S, N) series in time order.
-    starts : sequence of int, optional
-        Indices where contiguous segments begin (:func:`differences`).
-
-    Returns
-    -------
-    numpy.ndarray
-        (S,) ratio (>= 0; inf when the top of the band is empty, nan for short series).
-
+    (white noise ~1; a low-pass-filtered series many decades).  ``x`` (S, N, C) or (S, N)
+    in time order, ``starts`` as for :func:`differences`; returns (S,) ratios (inf: the top
+    of the band is empty, nan: too short).
     """
     x = np.asarray(x, float)
     if x.ndim == 2:
@@ -246,21 +201,8 @@ def estimate_noise(x, orders=ORDERS, starts=None):
     A slowly sampled trajectory leaves its curvature in low-order differences; the plateau
     starts at the lowest order within :data:`PLATEAU_RATIO` of the smallest estimate, and the
     estimate is the median over it (not the minimum: no bias low).  Without a plateau the
-    spectrum decides the ``status``.
-
-    Parameters
-    ----------
-    x : numpy.ndarray
-        (S, N, C) or (S, N) series in time order.
-    orders : sequence of int
-        Difference orders tried (those with at least k + 8 samples are used).
-    starts : sequence of int, optional
-        Indices where contiguous segments begin (:func:`differences`).
-
-    Returns
-    -------
-    NoiseEstimate
-
+    spectrum decides the ``status``.  ``x`` (S, N, C) or (S, N) in time order; ``orders``
+    tried where there are k + 8 samples; ``starts`` as for :func:`differences`.
     """
     x = np.asarray(x, float)
     n = x.shape[1]
@@ -358,24 +300,11 @@ def data_noise_floor(data, result=None):
     """
     Estimate the noise floor of each sensor (the one estimator of fit, diagnose, report).
 
-    Parameters
-    ----------
-    data : Dataset
-        (S sensors, N epochs) in time order.
-    result : FitResult, optional
-        A fit on ``data``: its scalar residual (S, N) nT gives the second estimate, and its
-        ``sigma_nt`` (S,) nT the upper end of the range of a filtered series.
-
-    Returns
-    -------
-    NoiseFloor
-
-    Notes
-    -----
-    A reduced long record is estimated on its ``meta['noise_blocks']`` (contiguous full-rate
-    blocks).  A fit whose model drops readings (its ``reading_mask``) is estimated on the
-    sets where every reading is kept, each stretch a segment.
-
+    ``data`` (S sensors, N epochs) in time order; ``result``, a fit on it: its scalar
+    residual (S, N) nT gives the second estimate, its ``sigma_nt`` (S,) nT the upper end of a
+    filtered series' range.  A reduced long record is estimated on its
+    ``meta['noise_blocks']``; a fit whose model drops readings (``reading_mask``) on the sets
+    where every reading is kept, each stretch a segment.
     """
     blocks = data.meta.get('noise_blocks')
     if blocks is not None:
@@ -454,18 +383,8 @@ def noise_floor(raw, order=None):
     """
     Per-axis noise sd of each sensor's raw series (no model; see :func:`data_noise_floor`).
 
-    Parameters
-    ----------
-    raw : numpy.ndarray
-        (S, N, 3) or (N, 3) readings in nT, in time order.
-    order : int, optional
-        Difference order k; default: adaptive (:func:`estimate_noise`, orders 1..6).
-
-    Returns
-    -------
-    numpy.ndarray
-        (S,) or scalar: noise sd in nT (pooled over the three axes).
-
+    ``raw`` (S, N, 3) or (N, 3) nT in time order; ``order`` k, default adaptive
+    (:func:`estimate_noise`).  Returns the sd (S,) or a scalar, nT, pooled over the axes.
     """
     raw = np.asarray(raw, float)
     one = raw.ndim == 2

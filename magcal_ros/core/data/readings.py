@@ -231,18 +231,8 @@ def repeat_bounds(raw, est=None):
     """
     Bound p on the probability that a live reading equals the previous one, per channel.
 
-    Parameters
-    ----------
-    raw : numpy.ndarray
-        (S, N, 3) readings, nT, in time order.
-    est : NoiseEstimate, optional
-        :func:`channel_noise` of ``raw`` (computed here when not given).
-
-    Returns
-    -------
-    numpy.ndarray
-        (S, 3) p in [0, 1] (module docstring: p = d + (1 - d) erf(q / (sqrt(3) sigma_w))).
-
+    ``raw`` (S, N, 3) nT in time order; ``est`` its :func:`channel_noise` (computed when not
+    given).  Returns (S, 3) p in [0, 1] (module docstring).
     """
     s_count, n, _ = raw.shape
     p = np.ones((s_count, 3))
@@ -308,23 +298,10 @@ def spike_threshold(z, n_values, alpha=ALPHA):
     """
     Threshold (in MAD-sd) of the spike test on one sensor's pooled differences ``z``.
 
-    Parameters
-    ----------
-    z : numpy.ndarray
-        (M,) centred differences of the sensor's three axes, each divided by its
-        Gaussian-consistent MAD (1.4826 MAD), dimensionless.
-    n_values : int
-        Values tested in the whole record (N x 3 x S).
-    alpha : float
-        Family-wise false-alarm rate.
-
-    Returns
-    -------
-    (float, bool)
-        The threshold (the Gaussian quantile of alpha / (2 n_values), or the power law of a
-        heavy tail extrapolated to the same rate: module docstring; inf when the tail is so
-        heavy that nothing can be told from it) and whether the noise is heavy-tailed.
-
+    ``z`` (M,): centred differences of the sensor's axes over their Gaussian-consistent MAD;
+    ``n_values`` tested in the record (N x 3 x S); ``alpha`` the family-wise rate.  Returns
+    (threshold, heavy-tailed): the Gaussian quantile of alpha / (2 n_values), or the heavy
+    tail's power law at that rate (module docstring; inf when nothing can be told).
     """
     a = np.abs(np.asarray(z, float))
     gauss = _normal_isf(alpha / (2.0 * n_values))
@@ -388,27 +365,11 @@ def find_spikes(raw, flags=None, alpha=ALPHA, est=None):
     """
     Find one-to-three-reading spikes per sensor and axis (module docstring: the method).
 
-    Parameters
-    ----------
-    raw : numpy.ndarray
-        (S, N, 3) readings, nT, in time order.
-    flags : numpy.ndarray, optional
-        (S, N, 3) bool, readings already left out (pinned, clipped, repeated): a cluster
-        that reaches one is not tested.
-    alpha : float
-        Family-wise false-alarm rate over the N x 3 x S values.
-    est : NoiseEstimate, optional
-        :func:`channel_noise` of ``raw`` (computed here when not given): an axis is tested
-        when its series has a white floor, with the lowest even order at or above the
-        largest plateau order of the sensor's axes so tested.
-
-    Returns
-    -------
-    (numpy.ndarray, list)
-        (S, N, 3) bool, True on a spike's readings; per sensor and axis the size of each
-        spike, in time order, nT: the largest distance of its readings from the
-        interpolation of their neighbours ([[array (spikes,), x3], ...]).
-
+    ``raw`` (S, N, 3) nT in time order; ``flags`` (S, N, 3) bool, readings already left out
+    (a cluster reaching one is not tested); ``alpha`` the family-wise rate over the N x 3 x S
+    values; ``est`` :func:`channel_noise` of ``raw`` (computed when not given).  Returns
+    ((S, N, 3) bool, True on a spike's readings; per sensor and axis the (spikes,) sizes in
+    time order, nT: [[array, x3], ...]).
     """
     raw = np.asarray(raw, float)
     s_count, n, _ = raw.shape
@@ -458,19 +419,9 @@ def find_spikes(raw, flags=None, alpha=ALPHA, est=None):
 
 def screen_readings(data, alpha=ALPHA):
     """
-    Find the readings of ``data`` that no field produces (module docstring).
+    Find the readings of ``data`` that no field produces (module docstring): a ReadingScreen.
 
-    Parameters
-    ----------
-    data : Dataset
-        (S, N, 3) raw readings, nT, with times (N,) s.
-    alpha : float
-        Family-wise probability of flagging a live channel of the record.
-
-    Returns
-    -------
-    ReadingScreen
-
+    ``alpha``: family-wise probability of flagging a live channel of the record.
     """
     raw = np.asarray(data.raw, float)
     s_count, n, _ = raw.shape
@@ -530,22 +481,9 @@ def leave_out_unphysical(data, field_nt=None, alpha=ALPHA, min_kept=MIN_KEPT_FRA
     """
     Screen ``data`` and leave out the sets that hold readings no field produces.
 
-    Parameters
-    ----------
-    data : Dataset
-        The record, (S, N, 3) nT.
-    field_nt : float or numpy.ndarray or None
-        Reference magnitude, nT: a scalar, or (N,) subset with the data.
-    alpha : float
-        See :func:`screen_readings`.
-    min_kept : float
-        Refuse when fewer than this fraction of the sets are left.
-
-    Returns
-    -------
-    (Dataset, field_nt, ReadingScreen)
-        The data and reference without the flagged sets (the same objects when nothing is
-        flagged) and the screen (its :meth:`ReadingScreen.notes` name what was left out).
+    ``field_nt``: reference magnitude, nT, a scalar or (N,) (subset with the data);
+    ``alpha`` as for :func:`screen_readings`.  Returns (data, field_nt, ReadingScreen), the
+    first two without the flagged sets (the same objects when nothing is flagged).
 
     Raises
     ------

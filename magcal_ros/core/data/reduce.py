@@ -269,15 +269,11 @@ def residual_statistics(chunks, result, positions=None):
     One pass of sums and extremes: the figures of the record held whole.  A lag effect on a
     channel (``lag(temperature)``) filters each chunk afresh (a transient at chunk starts).
 
-    Returns
-    -------
-    dict
-        The summary keys of :func:`magcal_ros.pipeline.summarize` that read every epoch:
-        ``scalar_rms_nt``, ``vector_rms_nt``, ``total_field_rms_before_nt``,
-        ``total_field_max_dev_before_nt``, ``total_field_max_dev_after_nt`` and, with
-        ``positions`` (S, 3) m, ``tensor_rms_nt_per_m``, ``tensor_rms_before_nt_per_m``,
-        ``tensor_max_dev_before_nt_per_m``, ``tensor_max_dev_after_nt_per_m``; ``n_samples``.
-
+    Returns the keys of :func:`magcal_ros.pipeline.summarize` that read every epoch:
+    ``scalar_rms_nt``, ``vector_rms_nt``, ``total_field_rms_before_nt``,
+    ``total_field_max_dev_before_nt``, ``total_field_max_dev_after_nt``, ``n_samples`` and,
+    with ``positions`` (S, 3) m, ``tensor_rms_nt_per_m``, ``tensor_rms_before_nt_per_m``,
+    ``tensor_max_dev_before_nt_per_m``, ``tensor_max_dev_after_nt_per_m``.
     """
     before, after, vector = _Moments(), _Moments(), _Moments()
     tens = {k: {'s': 0.0, 'ss': 0.0, 'lo': np.inf, 'hi': -np.inf} for k in ('b', 'a')}

@@ -115,23 +115,8 @@ def vehicle_attitude(t, period_s=60.0, tilt_deg=15.0, phases=(0.0, 0.0, 0.0)):
     +-0.8 of a circle over ``period_s`` and drifts by a third of a circle per period; pitch
     and roll are slow sinusoids within +-``tilt_deg``.
 
-    Parameters
-    ----------
-    t : numpy.ndarray
-        (N,) s.
-    period_s : float
-        Period of the heading swing, s.
-    tilt_deg : float
-        Largest roll and pitch, deg.
-    phases : sequence of float
-        Three phases (rad) of heading, pitch and roll.
-
-    Returns
-    -------
-    scipy.spatial.transform.Rotation
-        N rotations body -> NED (the simulator's world frame); ``ENU_TO_NED.T @ R`` is the
-        same rotation into ENU (the ROS world frame, REP 103).
-
+    ``t`` (N,) s; ``phases`` of heading, pitch and roll, rad.  Returns N scipy Rotations
+    body -> NED (``ENU_TO_NED.T @ R`` is the same into ENU, the ROS world frame).
     """
     t = np.asarray(t, float)
     w = 2 * np.pi / period_s
@@ -422,22 +407,9 @@ def parse_truth(items):
     parameters in the order and units of its ``param_names``/``units``.  The text is split at
     the last ``=`` outside parentheses (``offset(s(t, k=4))@2=...``).
 
-    Parameters
-    ----------
-    items : iterable of str
-        One entry per hidden effect.
-
-    Returns
-    -------
-    dict
-        {term: list of float}, the ``truth`` of :class:`SimConfig`.
-
-    Raises
-    ------
-    ValueError
-        Naming the entry, for a missing ``=``, an empty term or a value that is not a finite
-        number.
-
+    Returns {term: list of float}, the ``truth`` of :class:`SimConfig`, from one item per
+    hidden effect; ValueError naming the item for a missing ``=``, an empty term or a value
+    that is not a finite number.
     """
     truth = {}
     for item in items or []:

@@ -64,20 +64,9 @@ def check_static(corrected, reference_nt, residual_rms_nt):
     """
     Compare static recordings' corrected |B| with each other and with the reference.
 
-    Parameters
-    ----------
-    corrected : dict
-        {name: (N, 3) corrected field of one static recording, nT}.
-    reference_nt : float
-        The calibration's reference magnitude |B|, nT.
-    residual_rms_nt : float
-        The calibration's scalar residual RMS, nT (sets the tolerance:
-        :data:`AGREE_FACTOR` times it).
-
-    Returns
-    -------
-    StaticCheck
-
+    ``corrected``: {name: (N, 3) corrected field of one static recording, nT};
+    ``reference_nt``: the calibration's reference |B|, nT; ``residual_rms_nt``: its scalar
+    residual RMS, nT (the tolerance is :data:`AGREE_FACTOR` times it).
     """
     if not corrected:
         raise ValueError('no static recordings to check')

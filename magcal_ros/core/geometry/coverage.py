@@ -86,24 +86,9 @@ def direction_coverage(vectors, planar_threshold=0.02) -> Coverage:
     """
     Measure how the directions of field vectors cover the unit sphere.
 
-    Parameters
-    ----------
-    vectors : array_like
-        (N, 3) field vectors in any unit (nT in this package); only their directions are
-        used. N >= 1; no zero or non-finite vectors.
-    planar_threshold : float, optional
-        An eigenvalue below this is "no spread" (0.02: within about +-14 deg of a plane).
-
-    Returns
-    -------
-    Coverage
-
-    Raises
-    ------
-    ValueError
-        If ``vectors`` is not (N, 3) with N >= 1, contains non-finite values or zero vectors,
-        or ``planar_threshold`` is not in (0, 1/3].
-
+    ``vectors`` (N >= 1, 3) in any unit, their directions used; ``planar_threshold``: an
+    eigenvalue below it is "no spread" (0.02: within about +-14 deg of a plane).  ValueError
+    for another shape, non-finite or zero vectors, or a threshold not in (0, 1/3].
     """
     v = np.asarray(vectors, dtype=float)
     if v.ndim != 2 or v.shape[1] != 3 or v.shape[0] < 1:

@@ -119,18 +119,8 @@ def gross_outliers(raw, fraction=GROSS_FRACTION):
     of the three around it; only for a series smooth at its rate (median d below 1 % of that
     threshold), so a record of separate attitudes is left alone.
 
-    Parameters
-    ----------
-    raw : numpy.ndarray
-        (S, N, 3) raw readings in time order, nT.
-    fraction : float
-        Smallest jump counted, as a fraction of the median field magnitude.
-
-    Returns
-    -------
-    numpy.ndarray
-        (S, N) bool, True for a gross outlier.
-
+    ``raw`` (S, N, 3) nT in time order; ``fraction`` of the median field magnitude.  Returns
+    (S, N) bool, True for a gross outlier.
     """
     raw = np.asarray(raw, float)
     s, n = raw.shape[:2]
@@ -189,20 +179,17 @@ def find_slips(raw, epochs=None, max_lag=DEFAULT_MAX_LAG, window=DEFAULT_WINDOW,
     raw : numpy.ndarray
         (S, N, 3) raw readings of S >= 2 sensors in set order, nT.
     epochs : numpy.ndarray, optional
-        (N,) epoch number of each set; a jump other than +1 starts a new run, and no set is
-        re-paired across runs.  Default: one run.
-    max_lag : int
-        Largest slip searched, epochs.
-    window : int
-        Sets in the sliding window that decides a slip.
+        (N,) epoch number of each set; a jump other than +1 starts a new run (no set is
+        re-paired across runs).  Default: one run.
+    max_lag, window : int
+        Largest slip searched, epochs; sets in the sliding window that decides a slip.
     min_contrast, noise_factor : float
-        See :data:`DEFAULT_MIN_CONTRAST` and :data:`DEFAULT_NOISE_FACTOR`.
+        :data:`DEFAULT_MIN_CONTRAST`, :data:`DEFAULT_NOISE_FACTOR`.
 
     Returns
     -------
     Slips
-        All lags 0 when the record is too short or covers too few attitudes for the
-        ellipsoid fits (then nothing can be told).
+        All lags 0 when the record is too short or too poor in attitudes to tell.
 
     """
     raw = np.asarray(raw, float)
@@ -341,28 +328,15 @@ def resync(data, epochs=None, slips=None, drop_inconsistent=False, **kwargs):
     """
     Drop garbled samples and re-pair the sets whose sensors came from different epochs.
 
-    Parameters
-    ----------
-    data : Dataset
-        (S sensors, N sets) in set order; ``temp`` rows move with their sensor.
-    epochs : numpy.ndarray, optional
-        (N,) epoch numbers (see :func:`find_slips`).
-    slips : Slips, optional
-        A result of :func:`find_slips` on ``data`` as it is (then no set is dropped as a
-        gross outlier first).  Default: sets with a :func:`gross_outliers` sample are
-        dropped, then :func:`find_slips` (with ``**kwargs``) runs on the rest.
-    drop_inconsistent : bool
-        Also drop the inconsistent sets that a search to :data:`LONG_MAX_LAG` epochs finds
-        paired from epochs further apart (counted in ``dropped_inconsistent``); sets no
-        pairing fits (an effect of the sensor itself) are kept.
+    ``data``: (S sensors, N sets) in set order (``temp`` rows move with their sensor);
+    ``epochs`` as for :func:`find_slips`.  ``slips``: a :func:`find_slips` result on ``data``
+    as it is; default: the sets with a :func:`gross_outliers` sample are dropped, then
+    :func:`find_slips` (``**kwargs``) runs on the rest.  ``drop_inconsistent``: also drop the
+    inconsistent sets a search to :data:`LONG_MAX_LAG` epochs finds paired further apart
+    (``dropped_inconsistent``); sets no pairing fits are kept.
 
-    Returns
-    -------
-    (Dataset, Slips, int, int)
-        The re-paired data, the slips (indexed like the sets left after the gross
-        outliers), the number of sets dropped in re-pairing and the number dropped as gross
-        outliers.
-
+    Returns (re-paired Dataset, Slips (indexed like the sets left after the gross outliers),
+    sets dropped in re-pairing, sets dropped as gross outliers).
     """
     n_gross = 0
     if slips is None:

@@ -28,7 +28,7 @@ from magcal_ros.core.data.dataset import Dataset
 from magcal_ros.core.data.noise import noise_floor
 from magcal_ros.core.effects import raw_rate, SensorContext, SIGNALS
 from magcal_ros.core.effects.safety import EffectError
-from magcal_ros.core.geometry.tensor import tensor_operator
+from magcal_ros.core.geometry.tensor import TENSOR_MAP, tensor_operator
 from magcal_ros.core.live.sync import epoch_times, StampMatcher
 import numpy as np
 
@@ -68,20 +68,8 @@ def calibration_covariance_nt2(cal, j, field_nt):
     sphere of radius F (E[b b^T] = F^2 I / 3) that is M M^T F^2 / 3 + d d^T, summed over the
     sensor's linear and offset parameters (correlations neglected; driven effects left out).
 
-    Parameters
-    ----------
-    cal : magcal_ros.core.model.Calibration
-        The calibration, with the standard uncertainties of its parameters.
-    j : int
-        Sensor, 1-based.
-    field_nt : float
-        Magnitude of the field, nT.
-
-    Returns
-    -------
-    numpy.ndarray
-        (3, 3) nT^2; zeros when the calibration has no uncertainties.
-
+    ``cal`` a Calibration with its standard uncertainties, ``j`` 1-based; zeros without
+    uncertainties.
     """
     from magcal_ros.core.model.calibration import Calibration
     model = cal.model
@@ -129,10 +117,10 @@ class LiveCorrector:
     Parameters
     ----------
     cal : magcal_ros.core.model.Calibration
-    n_sensors : int
-        Sensors of the array; another count than the calibration's: ValueError.  Effect
-        code that raises here is re-raised as
+        Effect code that raises here is re-raised as
         :class:`~magcal_ros.core.effects.safety.EffectError` naming it.
+    n_sensors : int
+        Sensors of the array; another count than the calibration's: ValueError.
     positions_m : array_like, optional
         (S, 3) sensor positions in the array frame, m; without them no gradient
         (:attr:`no_gradient_reason`).
@@ -144,22 +132,6 @@ class LiveCorrector:
     field_nt : float, optional
         Field magnitude of the calibration, nT: :meth:`published_covariance_nt2` then adds
         :func:`calibration_covariance_nt2`.
-
-    Attributes
-    ----------
-    gradient_op : numpy.ndarray or None
-        (9, 3 S) stacked corrected fields (nT) to the row-major tensor (nT/m)
-        (:func:`magcal_ros.core.geometry.tensor.tensor_operator`).
-    gradient_cov_nt2 : numpy.ndarray or None
-        (9, 9) covariance of the row-major tensor, (nT/m)^2 (independent sensors); None
-        when a sensor has no noise estimate.
-    matcher : StampMatcher
-    pairing_dof : int
-        Redundant combinations the check tests (3 S - 8); 0 without a check
-        (:attr:`no_check_reason`).
-    pairing_threshold : float
-        Largest chi-square of a set that passes (``pairing_dof`` dof at
-        :data:`PAIRING_FALSE_ALARM`).
 
     """
 
@@ -177,10 +149,14 @@ class LiveCorrector:
         self.temp = np.full(n_sensors, np.nan)
         self.aux = {}
         self.matcher = StampMatcher(n_sensors, stamp_tolerance_s)
+        #: (9, 3 S) stacked corrected fields (nT) to the row-major tensor (nT/m), or None
         self.gradient_op = None
+        #: (9, 9) covariance of that tensor, (nT/m)^2; None: a sensor has no noise estimate
         self.gradient_cov_nt2 = None
         self.no_gradient_reason = None
         self.positions_m = None
+        #: redundant combinations the check tests (3 S - 8; 0: none), and the largest
+        #: chi-square that passes (at :data:`PAIRING_FALSE_ALARM`)
         self.pairing_dof, self.pairing_threshold = 0, np.inf
         self._set_op = None            # (9 + dof, 3 S): the tensor, then K (pairing_chi2)
         self._checked = None           # (the fields last checked, their _set_op product)
@@ -238,12 +214,8 @@ class LiveCorrector:
         rotates it into the array frame (eq. 14).  C_j is not rigid and stays in the
         calibration.
 
-        Returns
-        -------
-        list of (numpy.ndarray, numpy.ndarray)
-            Per sensor: R_j (3, 3) proper rotation and the position (3,) m; an empty list
-            without geometry (:attr:`no_gradient_reason`).
-
+        Returns [(R_j (3, 3) proper rotation, position (3,) m)] per sensor; [] without
+        geometry (:attr:`no_gradient_reason`).
         """
         if self.positions_m is None:
             return []
@@ -306,19 +278,8 @@ class LiveCorrector:
         """
         Correct one finite raw sample of sensor j and remember it for the field rate.
 
-        Parameters
-        ----------
-        j : int
-            Sensor, 1-based.
-        t : float
-            Stamp of the sample, s.
-        raw : numpy.ndarray
-            (3,) raw reading, nT.
-
-        Returns
-        -------
-        numpy.ndarray
-            (3,) corrected field in the array frame, nT.
+        ``j`` 1-based, ``t`` its stamp s, ``raw`` (3,) nT; returns the corrected field (3,) nT
+        in the array frame.
 
         Raises
         ------
@@ -368,14 +329,8 @@ class LiveCorrector:
         """
         Add a corrected sample of sensor j; return the sets of all sensors it completes.
 
-        ``j`` and ``t`` as for :meth:`correct`; ``field_nt`` (3,) is its result, nT.
-
-        Returns
-        -------
-        list of (float, list of numpy.ndarray)
-            (stamp of the set s, the S corrected fields (3,) nT) per completed set, oldest
-            first.
-
+        ``j``, ``t`` as for :meth:`correct`, ``field_nt`` (3,) nT its result.  Returns
+        [(stamp of the set s, the S corrected fields (3,) nT)], oldest first.
         """
         return [(t_set, fields) for _, t_set, fields in self.matcher.add(j - 1, t, field_nt)]
 
@@ -391,16 +346,8 @@ class LiveCorrector:
         opposite sensors of the planar cross shifted the opposite ways can hide in one
         component; a single lost sample never does).
 
-        Parameters
-        ----------
-        fields_nt : sequence of numpy.ndarray
-            S corrected fields (3,) nT, array frame.
-
-        Returns
-        -------
-        float
-            chi^2 (0 without a check: :attr:`no_check_reason`).
-
+        ``fields_nt``: S corrected fields (3,) nT, array frame; 0 without a check
+        (:attr:`no_check_reason`).
         """
         if self._set_op is None:
             return 0.0
@@ -413,14 +360,8 @@ class LiveCorrector:
         """
         Add a corrected sample of sensor j; return the tensors of the sets it completes.
 
-        ``j`` and ``t`` as for :meth:`correct`; ``field_nt`` (3,) is its result, nT.
-
-        Returns
-        -------
-        list of (float, numpy.ndarray)
-            (stamp of the set s, tensor (3, 3) nT/m) per completed set, oldest first; empty
-            without geometry.
-
+        As :meth:`sets`, with the tensor (3, 3) nT/m in place of the fields; [] without
+        geometry.
         """
         if self.gradient_op is None:
             return []
@@ -443,27 +384,14 @@ def pairing_operator(positions_m, cov_nt2):
     noise metric: Sigma = L L^T, L^-1 H = Q R, Q_r the last 3 S - rank(H) columns of Q,
     K = Q_r^T L^-1.
 
-    Parameters
-    ----------
-    positions_m : numpy.ndarray
-        (S, 3) sensor positions, m.
-    cov_nt2 : numpy.ndarray
-        (3 S, 3 S) covariance of the stacked corrected fields, nT^2.
-
-    Returns
-    -------
-    numpy.ndarray
-        (3 S - rank(H), 3 S) K, 1/nT; (0, 3 S) when nothing is redundant.
-
+    ``positions_m`` (S, 3) m, ``cov_nt2`` (3 S, 3 S) nT^2 of the stacked corrected fields;
+    returns K (3 S - rank(H), 3 S), 1/nT ((0, 3 S) when nothing is redundant).
     """
     pos = np.asarray(positions_m, float)
     pos = pos - pos.mean(axis=0)
-    h = np.zeros((3 * len(pos), 8))
-    for k, (x, y, z) in enumerate(pos):
-        h[3 * k:3 * k + 3, :3] = np.eye(3)
-        h[3 * k:3 * k + 3, 3:] = [[x, y, z, 0.0, 0.0],
-                                  [0.0, x, 0.0, y, z],
-                                  [-z, 0.0, x, -z, y]]
+    # rows 3 k + i: B0_i + (G r_k)_i, G = TENSOR_MAP theta[3:] (+ 0.0: no -0.0)
+    lin = np.einsum('ijq,kj->kiq', TENSOR_MAP.reshape(3, 3, 5), pos).reshape(-1, 5) + 0.0
+    h = np.hstack([np.tile(np.eye(3), (len(pos), 1)), lin])
     chol = np.linalg.cholesky(cov_nt2)
     hw = np.linalg.solve(chol, h)
     rank = np.linalg.matrix_rank(hw)
@@ -488,14 +416,7 @@ class ResidualMonitor:
     :data:`RESIDUAL_WARN_RATIO` asks for the diagnosis.  One sensor has no vector residual
     (NaN; :attr:`kinds` is ``('scalar',)``).
 
-    Parameters
-    ----------
-    n_sensors : int
-    field_nt : float
-        Reference magnitude F, nT.
-    window : int
-        Sets in the rolling window.
-
+    ``field_nt``: reference magnitude F, nT; ``window``: sets in the rolling window.
     """
 
     def __init__(self, n_sensors, field_nt, window=1000):
@@ -512,18 +433,9 @@ class ResidualMonitor:
 
     def add(self, fields_nt):
         """
-        Add one set; return its residuals.
+        Add one set of (S, 3) corrected fields, nT (in time order); return its residuals.
 
-        Parameters
-        ----------
-        fields_nt : array_like
-            (S, 3) corrected fields of the set, nT, sets in time order.
-
-        Returns
-        -------
-        (numpy.ndarray, numpy.ndarray)
-            Scalar residual (S,) nT (signed) and vector residual (S,) nT (a length).
-
+        Returns (scalar residual (S,) nT, signed; vector residual (S,) nT, a length).
         """
         b = np.asarray(fields_nt, float)
         s = self.n_sensors
@@ -544,12 +456,8 @@ class ResidualMonitor:
         """
         Return the rolling RMS residuals and their ratio to the noise-only expectation.
 
-        Returns
-        -------
-        dict or None
-            ``scalar_rms_nt``, ``vector_rms_nt``, ``floor_nt`` (S,) nT, ``scalar_ratio``,
-            ``vector_ratio`` (S,), ``sets`` (int); None with fewer than ``min_sets`` sets.
-
+        {``scalar_rms_nt``, ``vector_rms_nt``, ``floor_nt`` (S,) nT, ``scalar_ratio``,
+        ``vector_ratio`` (S,), ``sets``}; None with fewer than ``min_sets`` sets.
         """
         n = min(self.count, self.window)
         if n < max(min_sets, 14):
@@ -578,16 +486,8 @@ class SampleBuffer:
     enter the calibration (:meth:`coverage`); the field rate of a lag effect is then taken
     over ``stride`` epochs.
 
-    Parameters
-    ----------
-    n_sensors : int
-    capacity : int
-        Most sets kept (at least 2).
-    aux_names : sequence of str
-        Auxiliary column names (``aux_<name>``).
-    source : str
-        ``meta['source']`` of the datasets it returns.
-
+    ``capacity``: most sets kept (at least 2); ``aux_names``: auxiliary columns
+    (``aux_<name>``); ``source``: ``meta['source']`` of the datasets it returns.
     """
 
     def __init__(self, n_sensors, capacity, aux_names=(), source='live (calibration_node)'):

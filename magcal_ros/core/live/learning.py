@@ -178,13 +178,7 @@ class Learner:
     """
     The learning of one array (not thread-safe: the node serialises the calls).
 
-    Parameters
-    ----------
-    n_sensors : int
-    config : LearnConfig
-    aux_names : sequence of str
-        Auxiliary columns (``aux_<name>``) kept with the sets.
-
+    ``aux_names``: auxiliary columns (``aux_<name>``) kept with the sets.
     """
 
     def __init__(self, n_sensors, config=None, aux_names=()):
@@ -249,11 +243,7 @@ class Learner:
         """
         Add one matched set: stamp ``t`` s, raw (S, 3) nT, temp (S,) degC, aux {column: value}.
 
-        Returns
-        -------
-        bool
-            True when the set closed a block (the state may have changed).
-
+        Returns True when the set closed a block (the state may have changed).
         """
         self.sets_seen += 1
         cfg = self.config
@@ -408,21 +398,11 @@ class Learner:
         """
         Refit the window (since the onset of a persistent change) and validate the result.
 
-        Parameters
-        ----------
-        now : float
-            Time of the call, s (the stamps' clock).
-        refit_fn : callable
-            ``refit_fn(data, active, sensors) -> (calibration, doc, undetermined)``: the
-            parameters of ``sensors`` (1-based tuple) learned, the others held; a ``doc``
-            with ``provenance.converged`` false is never valid
-            (:func:`magcal_ros.pipeline.refit_recent` with the node's field and geometry).
-
-        Returns
-        -------
-        Proposal or None
-            None when the window holds too few sets.
-
+        ``now``: time of the call, s (the stamps' clock).  ``refit_fn(data, active, sensors)
+        -> (calibration, doc, undetermined)`` learns the parameters of ``sensors`` (1-based
+        tuple) and holds the others (:func:`magcal_ros.pipeline.refit_recent`); a ``doc``
+        with ``provenance.converged`` false is never valid.  Returns the :class:`Proposal`,
+        or None when the window holds too few sets.
         """
         self._last_refit = now
         persistent = self.persistent(now)
@@ -529,28 +509,12 @@ def feed(learner, data, refit_fn, auto_adopt=True, on_adopt=None):
     """
     Feed a recording to ``learner`` set by set, as the node does (offline runs, tests, bench).
 
-    Refits run synchronously when due; a ready proposal is adopted when ``auto_adopt``
-    (then ``on_adopt(t, proposal)`` is called).
-
-    Parameters
-    ----------
-    learner : Learner
-        The learner, its active calibration set.
-    data : Dataset
-        (S, N, 3) raw nT with times (and attitude, temperatures, channels when known).
-    refit_fn : callable
-        As for :meth:`Learner.refit`.
-    auto_adopt : bool
-        Adopt a ready proposal at once.
-    on_adopt : callable, optional
-        Called as ``on_adopt(t, proposal)`` after each adoption.
-
-    Returns
-    -------
-    list of (float, str, object)
-        Events (time s, what, detail): ``state`` on each change of state, ``refit`` with the
-        :class:`Proposal`, ``adopted`` with it.
-
+    ``learner`` has its active calibration set; ``data`` (S, N, 3) raw nT with times (and
+    attitude, temperatures, channels when known); ``refit_fn`` as for :meth:`Learner.refit`.
+    Refits run synchronously when due; with ``auto_adopt`` a ready proposal is adopted at
+    once, then ``on_adopt(t, proposal)`` is called.  Returns the events [(time s, what,
+    detail)]: ``state`` on each change of state, ``refit`` and ``adopted`` with the
+    :class:`Proposal`.
     """
     events = []
     state = learner.state

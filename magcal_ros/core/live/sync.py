@@ -37,18 +37,8 @@ def backdate(stamps, period_s):
     In a run of stamps less than a quarter period apart (one read), the last keeps its stamp
     and each earlier one is put one period before its successor.
 
-    Parameters
-    ----------
-    stamps : numpy.ndarray
-        (N,) non-decreasing arrival stamps of one stream, s.
-    period_s : float
-        Sample period T of the stream, s.
-
-    Returns
-    -------
-    numpy.ndarray
-        (N,) stamps, s.
-
+    ``stamps`` (N,) non-decreasing arrival stamps of one stream, s; ``period_s`` its sample
+    period T, s.  Returns (N,) stamps, s.
     """
     a = np.asarray(stamps, float)
     n = len(a)
@@ -80,20 +70,9 @@ def epoch_times(epochs, stamps_s, block_s=CLOCK_BLOCK_S):
     phases do not agree (resultant length <= 0.9) the straight line is kept; t0 sits on the
     lower envelope of the stamps.
 
-    Parameters
-    ----------
-    epochs : numpy.ndarray
-        (N,) epoch numbers (integers, increasing; gaps where sets were dropped).
-    stamps_s : numpy.ndarray
-        (N,) a stamp of each epoch, s (e.g. the median of its sensors' stamps).
-    block_s : float
-        Length of the blocks in which the earliest stamp is taken, s.
-
-    Returns
-    -------
-    numpy.ndarray
-        (N,) times in s, strictly increasing.
-
+    ``epochs`` (N,) increasing integers (gaps where sets were dropped); ``stamps_s`` (N,) a
+    stamp of each (the median of its sensors'), s.  Returns (N,) times, s, strictly
+    increasing.
     """
     from scipy.ndimage import median_filter
     e = np.asarray(epochs, float)
@@ -193,15 +172,11 @@ class StampMatcher:
     n_sensors : int
         Number of streams S.
     tolerance_s : float
-        Largest stamp difference of two samples voting for one epoch, s (about half a
-        period).
-    window : int
-        Samples per stream in the vote.
-    align_every : int
-        Samples (all streams together) between votes.
+        Largest stamp difference of two samples voting for one epoch, s (~half a period).
+    window, align_every : int
+        Samples per stream in the vote; samples (all streams) between votes.
     max_queue : int
-        Samples kept per stream while another is silent; older ones are dropped
-        (incomplete sets).
+        Samples kept per stream while another is silent (older ones: incomplete sets).
     misfit : callable, optional
         ``misfit(items) -> float``, a chi-square of how far the S items of a set are from one
         epoch (:meth:`magcal_ros.core.live.corrector.LiveCorrector.pairing_chi2`); a set passes
@@ -215,28 +190,16 @@ class StampMatcher:
         ``confirm`` sets refute it.
     threshold : float
         Largest misfit of a set that passes.
-    max_shift : int
-        Largest forward shift of one stream tried after a failed set, epochs.
-    confirm : int
-        Sets on which the candidates are compared.
+    max_shift, confirm : int
+        Largest forward shift tried after a failed set, epochs; sets the candidates are
+        compared on.
     margin : float
-        Least difference of summed misfit between the adopted candidate and any other
-        (2 ln of their likelihood ratio).
+        Least lead in summed misfit of the adopted candidate (2 ln of a likelihood ratio).
 
-    Attributes
-    ----------
-    complete : int
-        Sets emitted.
-    incomplete : int
-        Epochs dropped because a sensor's sample was missing.
-    out_of_order : int
-        Samples dropped because their stamp was older than the previous one of that sensor.
-    realigned : int
-        Times the stamp vote changed a stream's epoch offset after the first alignment.
-    rejected : int
-        Sets dropped because their misfit exceeded ``threshold`` (never emitted).
-    repaired : int
-        Times a stream's epoch offset was changed from the misfit.
+    Counters: ``complete`` sets emitted; ``incomplete`` epochs a sensor's sample was missing
+    from; ``out_of_order`` samples older than their sensor's previous one; ``realigned``
+    offsets the stamp vote changed after the first alignment; ``rejected`` sets whose misfit
+    exceeded ``threshold``; ``repaired`` offsets changed from the misfit.
 
     """
 
@@ -295,13 +258,8 @@ class StampMatcher:
         """
         Add the sample ``item`` of sensor ``j`` (0-based) stamped ``stamp_s`` seconds.
 
-        Returns
-        -------
-        list of (float, list)
-            Completed sets, oldest first: (epoch number, median stamp of the set in s,
-            [item of sensor 0, ..., item of sensor S-1]); :func:`epoch_times` turns epochs
-            into sample instants.
-
+        Returns the completed sets, oldest first: [(epoch number, median stamp of the set s,
+        [item of sensor 0, ..., item of sensor S-1])] (:func:`epoch_times` gives instants).
         """
         last = self._last_arrival[j]
         if last is not None and stamp_s < last:
