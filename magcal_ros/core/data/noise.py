@@ -334,7 +334,6 @@ def noise_floor_of(raw, result, starts=None):
     sigma = raw_est.sigma.copy()
     order = raw_est.order.copy()
     status = list(raw_est.status)
-    by = [raw_est.by_order[:, j] for j in range(s)]
     source = ['raw'] * s
     res_sigma = None
     if result is not None:
@@ -347,17 +346,17 @@ def noise_floor_of(raw, result, starts=None):
                 sigma[j] = res_est.sigma[j]
                 order[j] = res_est.order[j]
                 status[j] = res_est.status[j]
-                by[j] = res_est.by_order[:, j]
                 source[j] = 'scalar residual'
     lower = sigma.copy()
     upper = sigma.copy()
+    tails = np.empty(s)
     for j in range(s):
         if status[j] == 'filtered':
             # every difference estimate is below the sd of such noise: the residual's first
             # order is the tightest bound, its sd bounds it from above; without a fit only the
             # smallest raw one is sure not to hold the trajectory
             sigma[j] = lower[j] = (res_est.by_order[0, j] if result is not None
-                                   else by[j].min())
+                                   else raw_est.by_order[:, j].min())
             upper[j] = (float(result.sigma_nt[j]) if result is not None else np.inf)
             upper[j] = max(upper[j], lower[j])
         elif status[j] == 'upper bound':
@@ -366,8 +365,6 @@ def noise_floor_of(raw, result, starts=None):
             # from the model's residual: a missing effect following the attitude is in it
             status[j] = 'upper bound'
             lower[j] = 0.0
-    tails = np.empty(s)
-    for j in range(s):
         x = raw[j] if source[j] == 'raw' else result.scalar_residual_nt[j]
         d = differences(np.asarray(x, float), int(order[j]), starts, axis=0)
         tails[j] = robust_sd(d - np.median(d, axis=0))[2]

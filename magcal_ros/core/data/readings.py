@@ -430,6 +430,11 @@ def screen_readings(data, alpha=ALPHA):
     p = repeat_bounds(raw, est)
     min_run = np.full((s_count, 3), n + 1, int)
     out = []
+
+    def flag(j, a, kind, values, m, lr):
+        flags[j, :, a] |= m
+        out.append(SuspectChannel(j + 1, AXES[a], kind, values, int(m.sum()), n,
+                                  _stretches(data.t, m), lr))
     for j in range(s_count):
         for a in range(3):
             x = raw[j, :, a]
@@ -450,29 +455,20 @@ def screen_readings(data, alpha=ALPHA):
             clipped = tuple(v for v in (hi, lo) if v not in pinned and np.isin(v, values))
             for kind, special in (('pinned', pinned), ('clipped', clipped)):
                 if special:
-                    m = np.isin(x, special)
-                    flags[j, :, a] |= m
-                    out.append(SuspectChannel(j + 1, AXES[a], kind, special, int(m.sum()), n,
-                                              _stretches(data.t, m), lr))
+                    flag(j, a, kind, special, np.isin(x, special), lr)
             special = pinned + clipped
             rep = np.zeros(n, bool)
             for s0, ln, v in zip(starts[long], lengths[long], values):
                 if float(v) not in special:
                     rep[s0 + 1:s0 + ln] = True      # the first is the reading repeated
             if rep.any():
-                flags[j, :, a] |= rep
-                out.append(SuspectChannel(j + 1, AXES[a], 'repeated', (), int(rep.sum()),
-                                          n, _stretches(data.t, rep), lr))
+                flag(j, a, 'repeated', (), rep, lr)
     spikes, sizes = find_spikes(raw, flags, alpha, est)
     for j in range(s_count):
         for a in range(3):
-            m = spikes[j, :, a]
-            if m.any():
-                flags[j, :, a] |= m
+            if spikes[j, :, a].any():
                 size = sizes[j][a]
-                out.append(SuspectChannel(j + 1, AXES[a], 'spike',
-                                          (float(size.min()), float(size.max())),
-                                          int(m.sum()), n, _stretches(data.t, m), 0))
+                flag(j, a, 'spike', (float(size.min()), float(size.max())), spikes[j, :, a], 0)
     out.sort(key=lambda c: (c.sensor, c.axis))
     return ReadingScreen(flags=flags, channels=out, min_run=min_run, repeat_bound=p)
 

@@ -297,8 +297,7 @@ def residual_statistics(chunks, result, positions=None):
     s = after.ss.shape[0]
     out = {'n_samples': int(n),
            'scalar_rms_nt': {str(j + 1): float(v) for j, v in enumerate(after.rms())},
-           'vector_rms_nt': {str(j + 1): float(np.sqrt(vector.ss[j] / max(vector.n, 1)))
-                             for j in range(1, s)},
+           'vector_rms_nt': {str(j + 1): float(v) for j, v in enumerate(vector.rms()) if j},
            'total_field_rms_before_nt': {str(j + 1): float(v)
                                          for j, v in enumerate(before.rms())},
            'total_field_max_dev_before_nt': float(np.max(before.mx)),

@@ -225,8 +225,6 @@ class Simulator:
                                  f'({", ".join(eff.param_names)})')
             p[sl] = values
 
-    # -- time functions ---------------------------------------------------------------------
-
     def attitude(self, t):
         """Rotation (body -> world) at times t (N,) s, as a scipy Rotation."""
         cfg = self.config
@@ -251,12 +249,8 @@ class Simulator:
         phi = self.rng.uniform(0, 2 * np.pi, n)
         sin_t = np.sqrt(1 - cos_t ** 2)
         d = np.column_stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t])
-        bw = self.b_world / np.linalg.norm(self.b_world)
-        rots = []
-        for dk in d:
-            r, _ = Rotation.align_vectors([bw], [dk])     # body d -> world field
-            rots.append(r)
-        return Rotation.concatenate(rots)
+        bw = self.b_world / np.linalg.norm(self.b_world)      # body d -> world field
+        return Rotation.concatenate([Rotation.align_vectors([bw], [dk])[0] for dk in d])
 
     def temperature(self, t):
         """(S, N) sensor temperatures, degC."""
@@ -284,8 +278,6 @@ class Simulator:
         cfg = self.config
         return cfg.field_nt + 0.5 * cfg.diurnal_swing_nt * np.sin(
             2 * np.pi * t / cfg.diurnal_period_s + self._phases[13])
-
-    # -- samples ----------------------------------------------------------------------------
 
     def true_field(self, t, rot=None):
         """(S, N, 3) true field at each sensor in the array (body) frame, nT."""

@@ -576,11 +576,11 @@ class SampleBuffer:
 
     def epochs(self):
         """(N,) int epoch numbers of the buffered sets, chronological (a copy)."""
-        return self.epoch[self._order()].copy()
+        return self.epoch[:self.n].copy()
 
     def stamps(self):
         """(N,) s stamps of the buffered sets as they arrived, chronological (a copy)."""
-        return self.t[self._order()].copy()
+        return self.t[:self.n].copy()
 
     def dataset(self):
         """Return a :class:`Dataset` of the buffered sets in chronological order (copies)."""

@@ -216,8 +216,6 @@ class Learner:
         self._data_from = None              # onset of the change adopted last, s
         self.sets_seen = 0
 
-    # -- feeding -----------------------------------------------------------------------------
-
     def set_active(self, cal, field_nt, t=None):
         """Start tracking calibration ``cal`` (magnitude ``field_nt`` nT) from time ``t``."""
         self.active = cal
@@ -265,8 +263,6 @@ class Learner:
             return False
         self._judge_block()
         return True
-
-    # -- the detector ------------------------------------------------------------------------
 
     def _block_data(self, rows):
         t = np.array([r[0] for r in rows], float)
@@ -336,8 +332,6 @@ class Learner:
             return False
         return (now - self.onset >= cfg.persist_s and run.clean == 0
                 and run.exceeded >= cfg.persist_fraction * run.blocks)
-
-    # -- refits ------------------------------------------------------------------------------
 
     def changed_sensors(self):
         """Sensors (1-based tuple) that exceeded in at least half the blocks since the onset."""
