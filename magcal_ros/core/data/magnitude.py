@@ -30,15 +30,8 @@ def igrf_field(lat_deg, lon_deg, alt_km, date):
     """
     (total intensity nT, inclination deg, positive down) of the IGRF at a place and date.
 
-    Parameters
-    ----------
-    lat_deg, lon_deg : float
-        Geodetic latitude and longitude, degrees.
-    alt_km : float
-        Height above the ellipsoid, km.
-    date : str or datetime.date
-        'YYYY-MM-DD' or a date.
-
+    ``lat_deg``, ``lon_deg`` geodetic, deg; ``alt_km`` above the ellipsoid; ``date``
+    'YYYY-MM-DD' or a datetime.date.
     """
     import ppigrf
     if isinstance(date, str):

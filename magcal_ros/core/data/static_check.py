@@ -19,15 +19,12 @@ Recordings of a still sensor at different attitudes must give one corrected |B|,
 the calibration's reference when made at the same place and time.  When they do not agree,
 the pattern says why, as far as the data can tell:
 
-- two recordings at the same attitude (field directions a few degrees apart) with different
-  |B|: the calibration is the same for both, so the field at the sensor or the sensor's own
-  offset changed between them (moved elsewhere indoors, a magnetised object nearby, a power
-  cycle); no calibration can reconcile them;
-- recordings at different attitudes that agree with each other but not with the reference:
-  the calibration's shape holds (it maps very different attitudes onto one |B|) and the
-  field differs from the calibration's (another place or time);
-- recordings at different attitudes that disagree: the calibration does not hold at those
-  attitudes, or the field changed too; the recordings cannot tell which.
+- the same attitude, different |B|: the field at the sensor or its offset changed between
+  them; no calibration can reconcile them;
+- different attitudes that agree with each other but not with the reference: the
+  calibration holds, the field differs from its (another place or time);
+- different attitudes that disagree: the calibration does not hold there, or the field
+  changed too; the recordings cannot tell which.
 
 Differences are judged against the calibration's own scalar residual RMS (an error of that
 size that depends on the direction is expected), not the static noise.
