@@ -20,7 +20,7 @@ magnitude of the site (``field_source: igrf``), corrected in the IMU's own frame
 covariance filled in; a calibration file of another geometry refused with both named.
 """
 from diagnostic_msgs.msg import DiagnosticArray
-from magcal_ros.core.data.magnitude import igrf_total
+from magcal_ros.core.data.magnitude import igrf_field
 from magcal_ros.core.data.simulate import simulate
 from magcal_ros.io.calfile import calibration_to_doc, load_calibration, save_calibration
 from magcal_ros.pipeline import cross_geometry
@@ -44,8 +44,8 @@ T0 = 1_700_000_000.0
 @pytest.fixture(scope='module')
 def imu_data():
     """10 s at 100 Hz of one tumbling magnetometer in the IGRF field of SITE."""
-    f = igrf_total(SITE['site_latitude_deg'], SITE['site_longitude_deg'],
-                   SITE['site_altitude_m'] / 1000.0, SITE['site_date'])
+    f = igrf_field(SITE['site_latitude_deg'], SITE['site_longitude_deg'],
+                   SITE['site_altitude_m'] / 1000.0, SITE['site_date'])[0]
     data, sim = simulate(n_samples=1000, n_sensors=1, rate_hz=100.0, trajectory='smooth',
                          smooth_period_s=10.0, field_nt=f, seed=5)
     return data, sim, f

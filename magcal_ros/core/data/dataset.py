@@ -21,50 +21,22 @@ import numpy as np
 
 @dataclass
 class Dataset:
-    """
-    Samples of S sensors taken at common epochs.
+    """Samples of S sensors taken at common epochs (units: s, nT, degC)."""
 
-    Attributes
-    ----------
-    t : numpy.ndarray
-        (N,) time in s, non-decreasing.
-    raw : numpy.ndarray
-        (S, N, 3) raw readings in nT, sensor axes; index 0 is sensor 1.
-    temp : numpy.ndarray or None
-        (S, N) sensor temperatures in degC (nan where a sensor has none).
-    ref_total : numpy.ndarray or None
-        (N,) scalar reference field magnitude in nT.
-    ref_vec : numpy.ndarray or None
-        (N, 3) reference field vector in nT (paper 002).
-    angle_deg : numpy.ndarray or None
-        (N,) turntable angle in degrees (paper 000).
-    plane : numpy.ndarray or None
-        (N,) str, which sensor plane is horizontal ('xy' or 'xz').
-    aux : dict of str to numpy.ndarray
-        Auxiliary channels 'aux_<name>' -> (N,), in their own units.
-    attitude : numpy.ndarray or None
-        (N, 4) body-to-world rotation of the array as unit quaternions (qw, qx, qy, qz),
-        Hamilton convention, scalar first (CSV columns att_qw..att_qz); the world frame (NED
-        or ENU) is the user's.
-    meta : dict
-        Free-form provenance (source file, simulator truth, ...).
-    rate : numpy.ndarray or None
-        (S, N, 3) d(raw)/dt in nT/s taken from the full-rate record when these epochs are a
-        sample of it (:mod:`magcal_ros.core.data.reduce`); None: from these epochs
-        (:func:`~magcal_ros.core.effects.raw_rate`).
-
-    """
-
-    t: np.ndarray
-    raw: np.ndarray
-    temp: np.ndarray | None = None
-    ref_total: np.ndarray | None = None
-    ref_vec: np.ndarray | None = None
-    angle_deg: np.ndarray | None = None
-    plane: np.ndarray | None = None
-    aux: dict = field(default_factory=dict)
-    meta: dict = field(default_factory=dict)
+    t: np.ndarray                               # (N,) s, non-decreasing
+    raw: np.ndarray                             # (S, N, 3) nT, sensor axes; 0 is sensor 1
+    temp: np.ndarray | None = None              # (S, N) degC (nan where a sensor has none)
+    ref_total: np.ndarray | None = None         # (N,) reference field magnitude, nT
+    ref_vec: np.ndarray | None = None           # (N, 3) reference field vector, nT (paper 002)
+    angle_deg: np.ndarray | None = None         # (N,) turntable angle, deg (paper 000)
+    plane: np.ndarray | None = None             # (N,) str, horizontal sensor plane 'xy'/'xz'
+    aux: dict = field(default_factory=dict)     # 'aux_<name>' -> (N,), own units
+    meta: dict = field(default_factory=dict)    # free-form provenance
+    #: (N, 4) body-to-world unit quaternions (qw, qx, qy, qz), Hamilton, scalar first (CSV
+    #: att_qw..att_qz); the world frame (NED or ENU) is the user's
     attitude: np.ndarray | None = None
+    #: (S, N, 3) d(raw)/dt, nT/s, of the full-rate record when these epochs are a sample of it
+    #: (:mod:`magcal_ros.core.data.reduce`); None: from these epochs
     rate: np.ndarray | None = field(default=None, repr=False)
     #: (whole Dataset, (N,) int positions in it) of a :meth:`subset`: effects with memory (a
     #: lag filter) run over the whole record, so a held-out block keeps their state
@@ -95,12 +67,7 @@ class Dataset:
         return self.raw.shape[1]
 
     def context(self, j):
-        """
-        Return the :class:`SensorContext` of sensor ``j`` (1-based).
-
-        :class:`SensorContext` of sensor ``j`` (1-based), with d(raw)/dt in nT/s
-        (:func:`magcal_ros.core.effects.raw_rate`).
-        """
+        """Return the :class:`SensorContext` of sensor ``j`` (1-based), d(raw)/dt in nT/s."""
         rate = (raw_rate(self.raw[j - 1], self.t) if self.rate is None
                 else self.rate[j - 1])
         temp = None if self.temp is None else self.temp[j - 1]

@@ -15,13 +15,10 @@
 """
 The reference field magnitude F (nT) of a fit.
 
-Where the reference field magnitude F (nT) of a fit comes from: a number, the data's
-``ref_total`` column (the two per epoch:
-:meth:`magcal_ros.core.data.dataset.Dataset.reference_magnitude`), the IGRF model (ppigrf),
-or the data themselves (shape only).
-
-Not to be confused with :mod:`magcal_ros.core.papers.reference_vector` (paper 002: calibration
-against a reference field *vector*).
+A number or the data's ``ref_total`` column
+(:meth:`magcal_ros.core.data.dataset.Dataset.reference_magnitude`), the IGRF (ppigrf), or the
+data themselves (shape only).  A reference *vector* is paper 002's
+(:mod:`magcal_ros.core.papers.reference_vector`).
 """
 import datetime
 
@@ -29,28 +26,12 @@ from magcal_ros.core.papers.ellipsoid import fit_ellipsoid
 import numpy as np
 
 
-def igrf_total(lat_deg, lon_deg, alt_km, date):
-    """
-    IGRF total intensity in nT at a place and date.
-
-    Parameters
-    ----------
-    lat_deg, lon_deg : float
-        Geodetic latitude and longitude, degrees.
-    alt_km : float
-        Height above the ellipsoid, km.
-    date : str or datetime.date
-        'YYYY-MM-DD' or a date.
-
-    """
-    return igrf_field(lat_deg, lon_deg, alt_km, date)[0]
-
-
 def igrf_field(lat_deg, lon_deg, alt_km, date):
     """
     (total intensity nT, inclination deg, positive down) of the IGRF at a place and date.
 
-    Arguments as :func:`igrf_total`.
+    ``lat_deg``, ``lon_deg`` geodetic, deg; ``alt_km`` above the ellipsoid; ``date``
+    'YYYY-MM-DD' or a datetime.date.
     """
     import ppigrf
     if isinstance(date, str):
@@ -71,10 +52,7 @@ def auto_magnitude(raw):
     """
     Magnitude for data without any reference: mean radius of sensor 1's ellipsoid, nT.
 
-    With no reference the absolute scale of the sensors is not observable; this keeps the
-    corrected magnitude equal to the average raw magnitude, so only the shape is corrected.
-
-    raw (N, 3) nT.
+    raw (N, 3) nT.  The absolute scale is then not observable: only the shape is corrected.
     """
     ell = fit_ellipsoid(raw, 1.0)
     radii = np.linalg.norm(np.asarray(raw, float) - ell.b, axis=1)
@@ -90,32 +68,11 @@ def site_field_reference(source, field_nt=None, lat_deg=None, lon_deg=None, alt_
     """
     Return the reference magnitude and its ``field_reference`` record, as a node sets it.
 
-    Parameters
-    ----------
-    source : str
-        'constant' (``field_nt``), 'igrf' (IGRF at the site and date: :func:`igrf_total`)
-        or 'shape' (no reference: :func:`auto_magnitude` of ``raw``, shape only).
-    field_nt : float
-        Magnitude for 'constant', nT.
-    lat_deg, lon_deg : float
-        Geodetic latitude and longitude of the site for 'igrf', degrees.
-    alt_m : float
-        Height of the site above the ellipsoid for 'igrf', m.
-    date : str
-        'YYYY-MM-DD' of the data for 'igrf'.
-    raw : numpy.ndarray
-        (N, 3) raw readings of sensor 1 for 'shape', nT.
-
-    Returns
-    -------
-    (float, dict)
-        F in nT and the calibration file's ``field_reference`` (kind, inputs, magnitude_nt).
-
-    Raises
-    ------
-    ValueError
-        Naming what is missing or out of range.
-
+    ``source``: 'constant' (``field_nt``, nT), 'igrf' (:func:`igrf_field` at ``lat_deg``,
+    ``lon_deg`` (deg), ``alt_m`` (m above the ellipsoid) and ``date`` 'YYYY-MM-DD'), 'shape'
+    (:func:`auto_magnitude` of sensor 1's ``raw`` (N, 3) nT) or 'shape-planar' (a turn about
+    one axis).  Returns (F nT, the calibration file's ``field_reference``: kind, inputs,
+    magnitude_nt); ValueError naming what is missing or out of range.
     """
     if source == 'constant':
         f = float(field_nt)

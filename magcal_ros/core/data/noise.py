@@ -15,25 +15,18 @@
 """
 Noise floor of a sensor estimated from the data alone: the one estimator of the project.
 
-Every figure called "noise floor" (``magcal fit``, ``diagnose``, ``report``, the calibration
-node, the tensor floor) comes from :func:`data_noise_floor`.  It answers three questions the
-residual RMS of a model cannot answer by itself:
+Every "noise floor" (``magcal fit``, ``diagnose``, ``report``, the calibration node, the tensor
+floor) comes from :func:`data_noise_floor`, which answers:
 
-1. *How large is the white noise?*  From k-th differences of the series (k = 1..6): for a
-   signal that is smooth at the sample rate the k-th difference removes the signal and leaves
-   noise of variance C(2k, k) sigma^2 (von Neumann's successive differences, generalised);
-   the lowest orders where the estimates agree (a plateau) see the noise alone.
-2. *Is the noise heavy-tailed?*  The scale of the differences is an sd-consistent trimmed
-   second moment with a power-law tail correction (:func:`robust_sd`): right for Gaussian,
-   Laplace and Student-t noise (3 degrees of freedom included), while isolated gross spikes
-   (transport garbage), whose tail is too heavy to have a variance, are set aside and counted.
-3. *Is there white noise at all?*  A low-pass-filtered series (an instrument's anti-alias or
-   averaging filter) has no white floor: the difference estimates keep falling with the order
-   and the spectrum falls towards Nyquist.  The floor is then reported as a range (a lower
-   bound from the differences, an upper bound from the model residual when there is one) with
-   status ``'filtered'``, never as one number that a residual could be "far above".
-
-Student-t noise of 3 dof and sd 3 nT reads 3.0 nT (the Gaussian-consistent MAD reads 2.2-2.4).
+1. *How large is the white noise?*  k-th differences (k = 1..6) of a signal smooth at the
+   sample rate leave noise of variance C(2k, k) sigma^2 (von Neumann's successive
+   differences, generalised); the lowest orders that agree (a plateau) see the noise alone.
+2. *Is it heavy-tailed?*  The scale of the differences is :func:`robust_sd`: right for
+   Gaussian, Laplace and Student-t noise (3 dof: 3.0 nT read for sd 3 nT, where the MAD reads
+   2.2-2.4), with isolated gross spikes set aside and counted.
+3. *Is there white noise at all?*  A low-pass-filtered series has no white floor: the
+   estimates keep falling with the order and the spectrum falls towards Nyquist; the floor is
+   then a range with status ``'filtered'``, never one number.
 """
 from dataclasses import dataclass
 from math import comb
@@ -46,15 +39,12 @@ ORDERS = (1, 2, 3, 4, 5, 6)
 #: difference orders within this ratio of the smallest estimate form the plateau
 PLATEAU_RATIO = 1.05
 #: values beyond this many MAD-sd from the median form the tail of :func:`robust_sd`
-#: (a Gaussian puts 2e-9 of its mass there; Student-t 3 dof about 0.4 %)
 TAIL_CUT = 6.0
 #: at least this many values in the tail to estimate its power-law index (Hill estimator)
 MIN_TAIL = 10
-#: a tail index at or below this is gross outliers (spikes: 1000 nT on 3 nT noise gives
-#: ~0.25, 45 nT ~1.1); Student-t 3 dof gives 3 +- 0.35 from ~70 tail values
+#: a tail index at or below this is gross outliers (spikes), not noise
 OUTLIER_TAIL_INDEX = 1.5
-#: tail indices between the two are taken as this (the heaviest tail with a variance that
-#: the estimate can tell from outliers; alpha/(alpha - 2) is unbounded as alpha -> 2)
+#: tail indices between the two are taken as this (alpha / (alpha - 2) is unbounded at 2)
 MIN_TAIL_INDEX = 2.5
 #: "filtered": the spectrum in the top 15 % of the band is this many times below the mid band
 FILTERED_DROP = 10.0
@@ -66,28 +56,14 @@ def robust_sd(d):
     """
     sd-consistent scale of a centred sample with heavy tails and a few gross outliers.
 
-    1. s_MAD = 1.4826 MAD (Gaussian-consistent, too low for heavy tails: 0.73 sd for
-       Student-t 3 dof);
-    2. the second moment of the values within ``TAIL_CUT * s_MAD`` of the median (``a``);
-    3. the tail beyond ``a``: its power-law index alpha by Hill's estimator
-       alpha = n_tail / sum ln(|d_i| / a).  For P(|d| > x) = p (x / a)^-alpha the tail
-       contributes p a^2 alpha / (alpha - 2) to the variance (finite for alpha > 2), which is
-       added, with alpha at least :data:`MIN_TAIL_INDEX` (Hill's estimate scatters by
-       alpha / sqrt(n_tail)).  A tail with alpha <= :data:`OUTLIER_TAIL_INDEX` is far heavier
-       than any noise with a variance: those values are gross outliers (spikes, garbled
-       lines) and are left out, not spread into the floor.
-       With fewer than :data:`MIN_TAIL` tail values (Gaussian noise) nothing is added.
+    The second moment of the values within a = ``TAIL_CUT`` s_MAD of the median, plus the
+    tail's share: with Hill's index alpha = n_tail / sum ln(|d_i| / a), P(|d| > x) =
+    p (x / a)^-alpha adds p a^2 alpha / (alpha - 2), alpha at least :data:`MIN_TAIL_INDEX`.
+    A tail with alpha <= :data:`OUTLIER_TAIL_INDEX` is gross outliers, left out; fewer than
+    :data:`MIN_TAIL` tail values add nothing.
 
-    Parameters
-    ----------
-    d : numpy.ndarray
-        (M,) values about their centre (any unit).
-
-    Returns
-    -------
-    tuple
-        (sd, s_mad, alpha or nan, n_outliers) in the unit of ``d``.
-
+    ``d`` (M,) values about their centre, any unit; returns (sd, s_mad, alpha or nan,
+    n_outliers), sd and s_mad in the unit of ``d``.
     """
     d = np.asarray(d, float).ravel()
     a = np.abs(d - np.median(d))
@@ -118,9 +94,8 @@ def differences(x, k, starts=None, axis=1):
     """
     k-th differences of ``x`` along ``axis``, without those that span a segment start.
 
-    ``starts``: sorted indices where a new contiguous segment of the series begins (a
-    record reduced to blocks, :mod:`magcal_ros.core.data.reduce`); a difference reaching across
-    one would see the jump between two blocks, not the noise.  None: one segment.
+    ``starts``: sorted indices where a contiguous segment begins (the blocks of
+    :mod:`magcal_ros.core.data.reduce`); None: one segment.
     """
     d = np.diff(x, n=k, axis=axis)
     if starts is None or len(starts) < 2:
@@ -135,20 +110,8 @@ def difference_sigmas(x, orders=ORDERS, starts=None):
     """
     White-noise sd from k-th differences, for each order k (:func:`robust_sd` scale).
 
-    Parameters
-    ----------
-    x : numpy.ndarray
-        (S, N, C) series in time order (any unit; C channels pooled), or (S, N).
-    orders : sequence of int
-        Difference orders k.
-    starts : sequence of int, optional
-        Indices where contiguous segments begin (:func:`differences`).
-
-    Returns
-    -------
-    numpy.ndarray
-        (K, S) sd estimates in the unit of ``x``, one row per order.
-
+    ``x`` (S, N, C) (C channels pooled) or (S, N), in time order, any unit; ``starts`` as for
+    :func:`differences`.  Returns (K, S) estimates in the unit of ``x``, a row per order.
     """
     x = np.asarray(x, float)
     if x.ndim == 2:
@@ -166,26 +129,10 @@ def welch(x, nperseg):
     """
     Welch's (1967) power spectral density along axis 1, at a sampling rate of 1.
 
-    Hann-windowed segments of ``nperseg`` samples overlapping by half, each less its mean,
-    their one-sided periodograms averaged: the numbers of
-    ``scipy.signal.welch(x, fs=1.0, nperseg=nperseg, axis=1, detrend='constant')``
-    (test_noise), written with numpy because importing scipy.signal (which imports
-    scipy.stats) cost every process that fits 0.5-0.8 s of CPU (BENCHMARKS.md, "Start-up").
-
-    Parameters
-    ----------
-    x : numpy.ndarray
-        (S, N, C) series, any unit u, N >= nperseg.
-    nperseg : int
-        Samples per segment.
-
-    Returns
-    -------
-    f : numpy.ndarray
-        (F,) frequencies, cycles per sample.
-    p : numpy.ndarray
-        (S, F, C) power spectral density, u^2 per (cycle per sample).
-
+    The numbers of ``scipy.signal.welch(x, fs=1.0, nperseg=nperseg, axis=1,
+    detrend='constant')`` (test_noise), without importing scipy.signal (BENCHMARKS.md,
+    "Start-up").  ``x`` (S, N, C) in a unit u, N >= ``nperseg``; returns the frequencies
+    (F,) in cycles per sample and the density (S, F, C), u^2 per (cycle per sample).
     """
     step = nperseg - nperseg // 2
     seg = np.lib.stride_tricks.sliding_window_view(x, nperseg, axis=1)[:, ::step]
@@ -200,23 +147,11 @@ def nyquist_drop(x, starts=None):
     """
     How far the spectrum falls from mid band to Nyquist, per series.
 
-    Welch spectrum of the first difference (which whitens a smooth trajectory so window
-    leakage cannot fill the top of the band), divided by the difference's gain
-    4 sin^2(pi f / fs); ratio of the mean density in 0.45-0.65 of the band to that in
-    0.85-1.0.  White noise: ~1; a low-pass-filtered series: many decades.
-
-    Parameters
-    ----------
-    x : numpy.ndarray
-        (S, N, C) or (S, N) series in time order.
-    starts : sequence of int, optional
-        Indices where contiguous segments begin (:func:`differences`).
-
-    Returns
-    -------
-    numpy.ndarray
-        (S,) ratio (>= 0; inf when the top of the band is empty, nan for short series).
-
+    Welch spectrum of the first difference (no leakage from a smooth trajectory) over its
+    gain 4 sin^2(pi f / fs): mean density in 0.45-0.65 of the band over that in 0.85-1.0
+    (white noise ~1; a low-pass-filtered series many decades).  ``x`` (S, N, C) or (S, N)
+    in time order, ``starts`` as for :func:`differences`; returns (S,) ratios (inf: the top
+    of the band is empty, nan: too short).
     """
     x = np.asarray(x, float)
     if x.ndim == 2:
@@ -243,64 +178,31 @@ def nyquist_drop(x, starts=None):
 @dataclass(frozen=True)
 class NoiseEstimate:
     """
-    Adaptive difference-based noise estimate of one kind of series.
+    Adaptive difference-based noise estimate of one kind of series (S series, K orders).
 
-    Attributes
-    ----------
-    sigma : numpy.ndarray
-        (S,) noise sd, unit of the input (nT for readings): the plateau median for
-        ``'white'``, the smallest order's estimate otherwise (see ``status``).
-    order : numpy.ndarray
-        (S,) lowest difference order of the plateau the estimate comes from.
-    plateau : numpy.ndarray
-        (S,) bool: at least two difference orders agree, i.e. the signal no longer
-        contributes.
-    by_order : numpy.ndarray
-        (K, S) estimate for each order tried.
-    status : tuple of str
-        Per series: ``'white'`` (a plateau: the white-noise sd), ``'filtered'`` (no plateau
-        and the spectrum falls :data:`FILTERED_DROP` x or more to Nyquist: a low-pass-filtered
-        series whose noise sd is *above* every difference estimate) or ``'upper bound'`` (no
-        plateau, flat spectrum: the signal is not smooth at the sample rate and adds to every
-        order, e.g. random attitudes).
-    drop : numpy.ndarray
-        (S,) :func:`nyquist_drop` of the series.
-
+    ``status`` per series: ``'white'`` (a plateau: the white-noise sd), ``'filtered'`` (no
+    plateau, the spectrum falls :data:`FILTERED_DROP` x or more to Nyquist: the noise sd is
+    *above* every estimate) or ``'upper bound'`` (no plateau, flat spectrum: the signal is not
+    smooth at the sample rate).
     """
 
-    sigma: np.ndarray
-    order: np.ndarray
-    plateau: np.ndarray
-    by_order: np.ndarray
+    sigma: np.ndarray               # (S,) noise sd, unit of the input (see status)
+    order: np.ndarray               # (S,) lowest difference order of the plateau
+    plateau: np.ndarray             # (S,) bool: at least two orders agree
+    by_order: np.ndarray            # (K, S) estimate for each order tried
     status: tuple = ()
-    drop: np.ndarray | None = None
+    drop: np.ndarray | None = None  # (S,) :func:`nyquist_drop`
 
 
 def estimate_noise(x, orders=ORDERS, starts=None):
     """
     Adaptive noise estimate from the plateau of the difference estimates of several orders.
 
-    A smooth trajectory sampled slowly leaves its curvature in low-order differences (at
-    10 Hz a tumbling array adds ~15 nT to the 2nd difference, at 3 Hz ~20 nT to the 3rd);
-    higher orders remove it, and from some order on every estimate sees only noise.  The
-    plateau starts at the lowest order within :data:`PLATEAU_RATIO` of the smallest
-    estimate; the estimate is the median over the plateau (the median of the orders, not
-    their minimum, so the selection does not bias it low).  Without a plateau the spectrum
-    decides between a filtered series and a signal that is not smooth (``status``).
-
-    Parameters
-    ----------
-    x : numpy.ndarray
-        (S, N, C) or (S, N) series in time order.
-    orders : sequence of int
-        Difference orders tried (those with at least k + 8 samples are used).
-    starts : sequence of int, optional
-        Indices where contiguous segments begin (:func:`differences`).
-
-    Returns
-    -------
-    NoiseEstimate
-
+    A slowly sampled trajectory leaves its curvature in low-order differences; the plateau
+    starts at the lowest order within :data:`PLATEAU_RATIO` of the smallest estimate, and the
+    estimate is the median over it (not the minimum: no bias low).  Without a plateau the
+    spectrum decides the ``status``.  ``x`` (S, N, C) or (S, N) in time order; ``orders``
+    tried where there are k + 8 samples; ``starts`` as for :func:`differences`.
     """
     x = np.asarray(x, float)
     n = x.shape[1]
@@ -333,47 +235,24 @@ def estimate_noise(x, orders=ORDERS, starts=None):
 @dataclass(frozen=True, eq=False)
 class NoiseFloor:
     """
-    Per-axis white-noise sd of each sensor, estimated from the data alone.
+    Per-axis white-noise sd of each sensor (S), estimated from the data alone, nT.
 
-    Attributes
-    ----------
-    per_sensor_nt : numpy.ndarray
-        (S,) the floor, nT: the white-noise sd (status ``'white'``), a lower bound
-        (``'filtered'``) or an upper bound (``'upper bound'``).
-    raw_nt : numpy.ndarray
-        (S,) from differences of the raw readings (no model), nT; used unless the trajectory
-        inflates it (no plateau, or more than :data:`RAW_FLOOR_EXCESS` times the residual
-        estimate).
-    residual_nt : numpy.ndarray or None
-        (S,) from differences of the model's scalar residual, nT: removes the trajectory
-        itself, so it works for slowly sampled or random attitudes; a missing effect that is
-        smooth in time (temperature, drift, currents) is removed by the differences too.
-    method : tuple of str
-        Per sensor, which estimate was used and with which difference order.
-    reliable : numpy.ndarray
-        (S,) bool: status ``'white'``.
-    status : tuple of str
-        Per sensor ``'white'``, ``'filtered'`` or ``'upper bound'`` (:class:`NoiseEstimate`;
-        also when the floor had to come from the model's residual, which holds any missing
-        effect that follows the attitude when the attitudes are not smooth in time).
-    lower_nt, upper_nt : numpy.ndarray
-        (S,) the range the data support, nT (0 and inf when a side is unknown; both equal
-        ``per_sensor_nt`` for white noise).
-    tail_index : numpy.ndarray
-        (S,) Hill index of the noise tail of the lowest-order differences (nan: Gaussian-like
-        tails; 3 for Student-t 3 dof).
-
+    ``per_sensor_nt`` is the white-noise sd (status ``'white'``), a lower bound
+    (``'filtered'``) or an upper bound (``'upper bound'``, also when it had to come from the
+    model's residual, which holds any missing effect following non-smooth attitudes).  The
+    raw estimate (no model) is used unless the trajectory inflates it (no plateau, or more
+    than :data:`RAW_FLOOR_EXCESS` x the residual one).
     """
 
     per_sensor_nt: np.ndarray
-    raw_nt: np.ndarray
-    residual_nt: np.ndarray | None
-    method: tuple
-    reliable: np.ndarray
+    raw_nt: np.ndarray                  # from differences of the raw readings
+    residual_nt: np.ndarray | None      # from differences of the model's scalar residual
+    method: tuple                       # per sensor: which estimate, which order
+    reliable: np.ndarray                # bool: status 'white'
     status: tuple = ()
-    lower_nt: np.ndarray | None = None
+    lower_nt: np.ndarray | None = None  # the range the data support (0, inf: unknown)
     upper_nt: np.ndarray | None = None
-    tail_index: np.ndarray | None = None
+    tail_index: np.ndarray | None = None    # Hill index of the noise tail (nan: Gaussian)
 
     @property
     def value_nt(self):
@@ -421,29 +300,11 @@ def data_noise_floor(data, result=None):
     """
     Estimate the noise floor of each sensor (the one estimator of fit, diagnose, report).
 
-    Parameters
-    ----------
-    data : Dataset
-        (S sensors, N epochs) in time order.
-    result : FitResult, optional
-        A fit on ``data``: its scalar residual (S, N) nT gives the second estimate, and its
-        ``sigma_nt`` (S,) nT the upper end of the range of a filtered series.
-
-    Returns
-    -------
-    NoiseFloor
-
-    Notes
-    -----
-    A record too long to hold (:mod:`magcal_ros.core.data.reduce`) is diagnosed on an evenly
-    spread sample of its epochs, whose differences would see the motion between them, not
-    the noise: its ``meta['noise_blocks']`` holds contiguous full-rate blocks of the record,
-    and the floor is estimated from those (and the fit's residual on them).
-
-    A fit whose model leaves readings out (``drop`` terms: its ``reading_mask``) is
-    estimated on the sets where every sensor's reading is kept, each stretch between the
-    windows a segment: a disturbance the model drops is not noise.
-
+    ``data`` (S sensors, N epochs) in time order; ``result``, a fit on it: its scalar
+    residual (S, N) nT gives the second estimate, its ``sigma_nt`` (S,) nT the upper end of a
+    filtered series' range.  A reduced long record is estimated on its
+    ``meta['noise_blocks']``; a fit whose model drops readings (``reading_mask``) on the sets
+    where every reading is kept, each stretch a segment.
     """
     blocks = data.meta.get('noise_blocks')
     if blocks is not None:
@@ -454,13 +315,13 @@ def data_noise_floor(data, result=None):
     sets = np.flatnonzero(kept.all(axis=0))
     starts = [0] + list(np.flatnonzero(np.diff(sets) > 1) + 1)
     return noise_floor_of(data.raw[:, sets],
-                          _KeptResidual(result.scalar_residual_nt[:, sets], result.sigma_nt),
+                          FitResidual(result.scalar_residual_nt[:, sets], result.sigma_nt),
                           starts)
 
 
 @dataclass(frozen=True)
-class _KeptResidual:
-    """What :func:`noise_floor_of` reads of a fit, on some of its sets."""
+class FitResidual:
+    """What :func:`noise_floor_of` reads of a fit, on some epochs."""
 
     scalar_residual_nt: np.ndarray      # (S, M) nT
     sigma_nt: np.ndarray                # (S,) nT
@@ -473,45 +334,37 @@ def noise_floor_of(raw, result, starts=None):
     sigma = raw_est.sigma.copy()
     order = raw_est.order.copy()
     status = list(raw_est.status)
-    by = [raw_est.by_order[:, j] for j in range(s)]
     source = ['raw'] * s
     res_sigma = None
     if result is not None:
         res_est = estimate_noise(result.scalar_residual_nt, starts=starts)
         res_sigma = res_est.sigma
         for j in range(s):
-            # the raw estimate pools three axes and needs no model: keep it unless the
-            # trajectory itself inflates it (slow sampling, random attitudes)
+            # the raw estimate (no model) unless the trajectory inflates it
             if (status[j] != 'white' and res_est.sigma[j] < sigma[j]) or (
                     res_est.sigma[j] * RAW_FLOOR_EXCESS < sigma[j]):
                 sigma[j] = res_est.sigma[j]
                 order[j] = res_est.order[j]
                 status[j] = res_est.status[j]
-                by[j] = res_est.by_order[:, j]
                 source[j] = 'scalar residual'
     lower = sigma.copy()
     upper = sigma.copy()
+    tails = np.empty(s)
     for j in range(s):
         if status[j] == 'filtered':
-            # every difference estimate is below the sd of noise whose spectrum falls with
-            # frequency (the difference weights grow with frequency); the first order's of
-            # the residual (no trajectory in it) is the tightest such bound, the model
-            # residual's sd bounds it from above.  Without a fit only the smallest raw one
-            # is sure not to contain the trajectory.
+            # every difference estimate is below the sd of such noise: the residual's first
+            # order is the tightest bound, its sd bounds it from above; without a fit only the
+            # smallest raw one is sure not to hold the trajectory
             sigma[j] = lower[j] = (res_est.by_order[0, j] if result is not None
-                                   else by[j].min())
+                                   else raw_est.by_order[:, j].min())
             upper[j] = (float(result.sigma_nt[j]) if result is not None else np.inf)
             upper[j] = max(upper[j], lower[j])
         elif status[j] == 'upper bound':
             lower[j] = 0.0
         elif source[j] != 'raw':
-            # the attitudes are not smooth in time, so the floor comes from the model's
-            # residual: a missing effect that follows the attitude is not removed by the
-            # differences and is in it (random attitudes with a temperature effect)
+            # from the model's residual: a missing effect following the attitude is in it
             status[j] = 'upper bound'
             lower[j] = 0.0
-    tails = np.empty(s)
-    for j in range(s):
         x = raw[j] if source[j] == 'raw' else result.scalar_residual_nt[j]
         d = differences(np.asarray(x, float), int(order[j]), starts, axis=0)
         tails[j] = robust_sd(d - np.median(d, axis=0))[2]
@@ -523,24 +376,12 @@ def noise_floor_of(raw, result, starts=None):
                       status=tuple(status), lower_nt=lower, upper_nt=upper, tail_index=tails)
 
 
-def noise_floor(raw, t=None, order=None):
+def noise_floor(raw, order=None):
     """
     Per-axis noise sd of each sensor's raw series (no model; see :func:`data_noise_floor`).
 
-    Parameters
-    ----------
-    raw : numpy.ndarray
-        (S, N, 3) or (N, 3) readings in nT, in time order.
-    t : numpy.ndarray, optional
-        (N,) times, s; not used (the differences are taken in sample order).
-    order : int, optional
-        Difference order k; default: adaptive (:func:`estimate_noise`, orders 1..6).
-
-    Returns
-    -------
-    numpy.ndarray
-        (S,) or scalar: noise sd in nT (pooled over the three axes).
-
+    ``raw`` (S, N, 3) or (N, 3) nT in time order; ``order`` k, default adaptive
+    (:func:`estimate_noise`).  Returns the sd (S,) or a scalar, nT, pooled over the axes.
     """
     raw = np.asarray(raw, float)
     one = raw.ndim == 2

@@ -15,79 +15,35 @@
 """
 Readings no field produces, found before the fit: pinned, clipped, repeated channels, spikes.
 
-A magnetometer channel that stops following the field breaks a calibration in ways that the
-fit cannot name (a clipped axis of sensor 1 bends the reference frame of every other
-sensor's misalignment and shows up as "alpha@3 and alpha@4 are correlated").  Such readings
-are found here, per sensor and axis, and left out of the fit with one line that says what
-they are:
+A channel that stops following the field breaks a calibration in ways the fit cannot name, so
+such readings are found here per sensor and axis and left out with one line each:
+``pinned`` (one value holds most of the channel: a dead axis, the HMC5883L's -4096 on
+overflow), ``clipped`` (runs at the extreme of the channel's range: the field went beyond
+the measuring range), ``repeated`` (the last reading repeated longer than the noise allows: a
+stalled driver or link) and ``spike`` (one to three readings off the channel's smooth course
+and back: :func:`find_spikes`).
 
-``pinned``    one value holds most of the channel (a dead axis, an ADC that reports a fixed
-              code: the HMC5883L writes -4096 to an axis that overflowed);
-``clipped``   the channel sits at the extreme of its own range for a stretch: the field went
-              beyond the measuring range and the reading stopped there (every reading at that
-              value is suspect, not only the long stretches);
-``repeated``  the channel repeats its last reading for longer than its noise allows (a stalled
-              driver or transport re-sending the last sample);
-``spike``     one to three readings jump off the smooth course of the channel and back (a
-              serial or EMI glitch), by more than its noise allows: :func:`find_spikes`.
+Runs: the flat-line test of the QARTOD real-time quality-control manuals (U.S. IOOS, 2020),
+its count derived from the data.  A channel reads r_k = Q(s_k + e_k), quantum ``q``, white
+noise sigma_w^2 = sigma^2 - q^2 / 12 (sigma the median over the sensor's axes of
+:func:`magcal_ros.core.data.noise.estimate_noise`); two consecutive readings are equal with
+probability at most erf(q / (sqrt(3) sigma_w)) whatever the signal (sqrt(3) = 2 sqrt(0.75),
+the conservative conditional spread).  With the rate ``d`` of whole duplicated samples (a
+logger faster than the sensor; the median over 20 blocks) that is
+p = d + (1 - d) erf(q / (sqrt(3) sigma_w)), and runs of L equal readings with
+N p^(L - 1) < :data:`ALPHA` / (3 S) are flagged (at least :data:`MIN_RUN`).
 
-The method is the flat-line test of the QARTOD real-time quality-control manuals (U.S.
-IOOS, e.g. the in-situ temperature and salinity manual, 2020): a reading is flagged when it
-equals the previous ones for more than a given count.  QARTOD leaves the count to the
-operator; here it is derived from the data so that a live, quantised channel is not flagged:
-
-- a channel reads r_k = Q(s_k + e_k) with quantisation step ``q`` (the smallest step between
-  its distinct values), white noise e ~ N(0, sigma_w^2) before quantisation and a signal s;
-  two consecutive readings are equal only if |e_k - e_(k-1) + (s_k - s_(k-1))| < q, which is
-  at most erf(q / (sqrt(3) sigma_w)) whatever the signal does (Delta s = 0 is the worst case;
-  sqrt(3) = 2 sqrt(0.75): given one small difference the next difference of white noise has
-  0.75 of its variance, the conservative conditional spread);
-- sigma_w^2 = sigma^2 - q^2 / 12, sigma the per-axis noise floor of the differences
-  (:func:`magcal_ros.core.data.noise.estimate_noise`), the median over the sensor's three axes (a
-  pinned axis has no noise of its own);
-- a logger that reads faster than the sensor updates repeats whole samples (all three axes
-  at once: the public HMC5883L recordings do so at 3 % of the epochs, legitimately); with
-  that duplicate rate ``d`` (the median over 20 blocks of the record, so a stalled stretch
-  does not raise it) a reading equals the previous one with probability at most
-  p = d + (1 - d) erf(q / (sqrt(3) sigma_w));
-- a run of L equal readings then has probability at most p^(L - 1) at each of N starts; runs
-  with N p^(L - 1) below ALPHA / (3 S) are flagged (family-wise level :data:`ALPHA` over the
-  3 S channels; at least :data:`MIN_RUN` readings).  On the HMC5883L recordings (quantum
-  91.7 nT, noise 1.5 quanta, 2 000-50 000 epochs) this asks for runs of 19-25 readings, where
-  the longest legitimate runs are 4-15; on 3 nT fluxgate data printed to 0.1 pT, 3.
-
-Spikes are found by a Hampel identifier (Hampel, "The influence curve and its role in robust
-estimation", JASA 69, 1974; as an outlier filter for process data: Pearson, "Outliers in
-process modeling and identification", IEEE Trans. Control Syst. Technol. 10(1), 2002): a
-value is an outlier when it is further from the centre than a threshold times the
-Gaussian-consistent MAD.  The values tested are not the readings (a rotating sensor's
-reading changes by thousands of nT between samples) but the centred k-th differences of each
-channel, k even: C(k, k/2) times the leave-one-out residual of the reading from the
-degree-(k - 1) polynomial through its k neighbours, the signal removed as in the noise floor
-(:mod:`magcal_ros.core.data.noise`, whose plateau order gives k: the lowest even order at or
-above it, 2..6); only an axis whose series has a white floor is tested (random attitudes
-or a low-pass filter leave no smooth course to be off).  Then:
-
-- the threshold is the Gaussian quantile of the family-wise false-alarm rate :data:`ALPHA`
-  over the N x 3 x S values of the record (about 5.5 MAD for 3 000 epochs of four sensors;
-  the expected number of values beyond it is ALPHA whatever their correlation), unless the
-  sensor's noise is heavy-tailed: then the 3-6 MAD band holds :data:`HEAVY_BAND_RATIO` times
-  the Gaussian count or more (Student-t of 3 dof 7-9 times, 5 dof 3-5.6; Gaussian noise with
-  ten spikes of 30-300 nT 1.2-2.0), and the threshold is the power law fitted beyond
-  3 MAD (Hill's index, lowered by two of its standard errors) extrapolated to the same rate:
-  the floor's estimator counts such noise, it is not left out;
-- values beyond it are grouped into clusters (gaps of at most k); a cluster is a spike when
-  replacing at most :data:`SPIKE_MAX_SAMPLES` of its readings (one block, or two single
-  readings) by the interpolation of their k neighbours brings every difference of the
-  cluster within the threshold, and this explains the cluster better than a step or a
-  transient longer than SPIKE_MAX_SAMPLES (one amplitude each, fitted to the same
-  differences) by the chi-square quantile of ALPHA (1 dof): a step, a transient lasting
-  seconds or a fast turn is not left out.
-
-Measured (test/test_spikes.py, the tumbling cross of test/injection.py, 3 nT noise, 5 Hz):
-spikes of 80 nT and more are found, 50 nT nine times in ten, 30 nT one time in five; none
-on Gaussian or Student-t noise, steps of 40-5 000 nT, transients of 1-5 s or smooth
-tumbles at 1-50 Hz.
+Spikes: a Hampel identifier (Hampel, JASA 69, 1974; Pearson, IEEE Trans. Control Syst.
+Technol. 10(1), 2002) on the centred k-th differences of each channel, k even (C(k, k/2)
+times the leave-one-out residual from the polynomial through the k neighbours; k the lowest
+even order at or above the noise floor's plateau order, 2..6), on axes with a white floor.
+The threshold is the Gaussian quantile of :data:`ALPHA` over the N x 3 x S values, unless
+the 3-6 MAD band holds :data:`HEAVY_BAND_RATIO` times the Gaussian count: then the power law
+fitted beyond 3 MAD (Hill's index less two standard errors) extrapolated to the same rate.
+Values beyond it are clustered (gaps of at most k); a cluster is a spike when replacing at
+most :data:`SPIKE_MAX_SAMPLES` readings by the interpolation of their neighbours brings it
+within the threshold, and this explains it better than a step or a longer transient by the
+chi-square(1) quantile of ALPHA.
 """
 from dataclasses import dataclass, field
 from math import erf, sqrt
@@ -127,38 +83,20 @@ class SuspectChannel:
     """
     One channel's readings that no field produces.
 
-    Attributes
-    ----------
-    sensor : int
-        1-based sensor.
-    axis : str
-        'x', 'y' or 'z'.
-    kind : str
-        'pinned', 'clipped', 'repeated' or 'spike'.
-    values_nt : tuple of float
-        The value it is pinned at, or the one or two values (top, bottom of its range) it
-        is clipped at, nT; empty for 'repeated' (each stretch repeats its own last reading);
-        for 'spike' the smallest and largest size of its spikes (the largest distance of a
-        spike's readings from the interpolation of their neighbours), nT.
-    count : int
-        Readings flagged.
-    n_samples : int
-        Readings of the channel.
-    stretches : tuple
-        ((t_start, t_end) s, ...) contiguous flagged stretches, in time order.
-    min_run : int
-        The shortest run of equal readings that is flagged on this channel (0 for 'spike').
-
+    ``values_nt``: the value it is pinned at, the one or two values (top, bottom of its
+    range) it is clipped at, empty for 'repeated', the smallest and largest spike size for
+    'spike' (the largest distance of a spike's readings from the interpolation of their
+    neighbours), nT.
     """
 
-    sensor: int
-    axis: str
-    kind: str
+    sensor: int             # 1-based
+    axis: str               # 'x', 'y' or 'z'
+    kind: str               # 'pinned', 'clipped', 'repeated' or 'spike'
     values_nt: tuple
-    count: int
-    n_samples: int
-    stretches: tuple
-    min_run: int
+    count: int              # readings flagged
+    n_samples: int          # readings of the channel
+    stretches: tuple        # ((t_start, t_end) s, ...) flagged stretches in time order
+    min_run: int            # the shortest flagged run of equal readings (0 for 'spike')
 
     def describe(self):
         """Say what is wrong, in words (no sensor/axis prefix)."""
@@ -204,24 +142,14 @@ class ReadingScreen:
     """
     The screen of a record: which readings no field produces.
 
-    Attributes
-    ----------
-    flags : numpy.ndarray
-        (S, N, 3) bool, True where a reading is left out.
-    channels : list of SuspectChannel
-        One entry per flagged channel and kind, sensor and axis order.
-    min_run : numpy.ndarray
-        (S, 3) shortest flagged run per channel (a huge number where no run can be told
-        from a live channel: noise below the quantum and no duplicates model).
-    repeat_bound : numpy.ndarray
-        (S, 3) the bound p on the probability that a live reading equals the previous one.
-
+    ``min_run`` is huge where no run can be told from a live channel (noise below the
+    quantum and no duplicates).
     """
 
-    flags: np.ndarray
-    channels: list = field(default_factory=list)
-    min_run: np.ndarray | None = None
-    repeat_bound: np.ndarray | None = None
+    flags: np.ndarray                           # (S, N, 3) bool, True: left out
+    channels: list = field(default_factory=list)    # SuspectChannel per channel and kind
+    min_run: np.ndarray | None = None           # (S, 3) shortest flagged run per channel
+    repeat_bound: np.ndarray | None = None      # (S, 3) bound p of :func:`repeat_bounds`
 
     @property
     def keep(self):
@@ -303,18 +231,8 @@ def repeat_bounds(raw, est=None):
     """
     Bound p on the probability that a live reading equals the previous one, per channel.
 
-    Parameters
-    ----------
-    raw : numpy.ndarray
-        (S, N, 3) readings, nT, in time order.
-    est : NoiseEstimate, optional
-        :func:`channel_noise` of ``raw`` (computed here when not given).
-
-    Returns
-    -------
-    numpy.ndarray
-        (S, 3) p in [0, 1] (module docstring: p = d + (1 - d) erf(q / (sqrt(3) sigma_w))).
-
+    ``raw`` (S, N, 3) nT in time order; ``est`` its :func:`channel_noise` (computed when not
+    given).  Returns (S, 3) p in [0, 1] (module docstring).
     """
     s_count, n, _ = raw.shape
     p = np.ones((s_count, 3))
@@ -380,23 +298,10 @@ def spike_threshold(z, n_values, alpha=ALPHA):
     """
     Threshold (in MAD-sd) of the spike test on one sensor's pooled differences ``z``.
 
-    Parameters
-    ----------
-    z : numpy.ndarray
-        (M,) centred differences of the sensor's three axes, each divided by its
-        Gaussian-consistent MAD (1.4826 MAD), dimensionless.
-    n_values : int
-        Values tested in the whole record (N x 3 x S).
-    alpha : float
-        Family-wise false-alarm rate.
-
-    Returns
-    -------
-    (float, bool)
-        The threshold (the Gaussian quantile of alpha / (2 n_values), or the power law of a
-        heavy tail extrapolated to the same rate: module docstring; inf when the tail is so
-        heavy that nothing can be told from it) and whether the noise is heavy-tailed.
-
+    ``z`` (M,): centred differences of the sensor's axes over their Gaussian-consistent MAD;
+    ``n_values`` tested in the record (N x 3 x S); ``alpha`` the family-wise rate.  Returns
+    (threshold, heavy-tailed): the Gaussian quantile of alpha / (2 n_values), or the heavy
+    tail's power law at that rate (module docstring; inf when nothing can be told).
     """
     a = np.abs(np.asarray(z, float))
     gauss = _normal_isf(alpha / (2.0 * n_values))
@@ -417,10 +322,9 @@ def _spike_in(x, r0, r1, k, scale, thr, alpha):
     """
     Return the readings of one cluster of large differences that form a spike, or None.
 
-    ``x`` (N,) the channel, nT; the cluster's readings ``r0..r1`` (the centres of its
-    differences widened by k/2); ``scale`` the sd of a k-th difference, nT; ``thr`` the
-    threshold in those units.  Returns (indices (L,) of the spike's readings, their sizes
-    (L,) nT: each reading less the interpolation of its neighbours).
+    ``x`` (N,) the channel, nT; the cluster's readings ``r0..r1``; ``scale`` the sd of a
+    k-th difference, nT; ``thr`` the threshold in those units.  Returns (indices (L,) of the
+    spike's readings, each reading less the interpolation of its neighbours (L,) nT).
     """
     h = k // 2
     a0, a1 = r0 - k, r1 + k + 1
@@ -461,27 +365,11 @@ def find_spikes(raw, flags=None, alpha=ALPHA, est=None):
     """
     Find one-to-three-reading spikes per sensor and axis (module docstring: the method).
 
-    Parameters
-    ----------
-    raw : numpy.ndarray
-        (S, N, 3) readings, nT, in time order.
-    flags : numpy.ndarray, optional
-        (S, N, 3) bool, readings already left out (pinned, clipped, repeated): a cluster
-        that reaches one is not tested.
-    alpha : float
-        Family-wise false-alarm rate over the N x 3 x S values.
-    est : NoiseEstimate, optional
-        :func:`channel_noise` of ``raw`` (computed here when not given): an axis is tested
-        when its series has a white floor, with the lowest even order at or above the
-        largest plateau order of the sensor's axes so tested.
-
-    Returns
-    -------
-    (numpy.ndarray, list)
-        (S, N, 3) bool, True on a spike's readings; per sensor and axis the size of each
-        spike, in time order, nT: the largest distance of its readings from the
-        interpolation of their neighbours ([[array (spikes,), x3], ...]).
-
+    ``raw`` (S, N, 3) nT in time order; ``flags`` (S, N, 3) bool, readings already left out
+    (a cluster reaching one is not tested); ``alpha`` the family-wise rate over the N x 3 x S
+    values; ``est`` :func:`channel_noise` of ``raw`` (computed when not given).  Returns
+    ((S, N, 3) bool, True on a spike's readings; per sensor and axis the (spikes,) sizes in
+    time order, nT: [[array, x3], ...]).
     """
     raw = np.asarray(raw, float)
     s_count, n, _ = raw.shape
@@ -491,8 +379,7 @@ def find_spikes(raw, flags=None, alpha=ALPHA, est=None):
         return out, sizes
     est = channel_noise(raw) if est is None else est
     for j in range(s_count):
-        # an axis without a white floor has no smooth course to be off (random attitudes,
-        # a low-pass filter)
+        # an axis without a white floor has no smooth course to be off
         white = np.array([est.status[3 * j + a] == 'white' for a in range(3)])
         if not white.any():
             continue
@@ -532,19 +419,9 @@ def find_spikes(raw, flags=None, alpha=ALPHA, est=None):
 
 def screen_readings(data, alpha=ALPHA):
     """
-    Find the readings of ``data`` that no field produces (module docstring).
+    Find the readings of ``data`` that no field produces (module docstring): a ReadingScreen.
 
-    Parameters
-    ----------
-    data : Dataset
-        (S, N, 3) raw readings, nT, with times (N,) s.
-    alpha : float
-        Family-wise probability of flagging a live channel of the record.
-
-    Returns
-    -------
-    ReadingScreen
-
+    ``alpha``: family-wise probability of flagging a live channel of the record.
     """
     raw = np.asarray(data.raw, float)
     s_count, n, _ = raw.shape
@@ -553,6 +430,11 @@ def screen_readings(data, alpha=ALPHA):
     p = repeat_bounds(raw, est)
     min_run = np.full((s_count, 3), n + 1, int)
     out = []
+
+    def flag(j, a, kind, values, m, lr):
+        flags[j, :, a] |= m
+        out.append(SuspectChannel(j + 1, AXES[a], kind, values, int(m.sum()), n,
+                                  _stretches(data.t, m), lr))
     for j in range(s_count):
         for a in range(3):
             x = raw[j, :, a]
@@ -565,7 +447,6 @@ def screen_readings(data, alpha=ALPHA):
                 continue
             values = x[starts[long]]
             hi, lo = float(x.max()), float(x.min())
-            # pinned: one value holds most of the channel; clipped: runs at an extreme
             vals, counts = np.unique(x, return_counts=True)
             top = int(np.argmax(counts))
             pinned = ()
@@ -574,29 +455,20 @@ def screen_readings(data, alpha=ALPHA):
             clipped = tuple(v for v in (hi, lo) if v not in pinned and np.isin(v, values))
             for kind, special in (('pinned', pinned), ('clipped', clipped)):
                 if special:
-                    m = np.isin(x, special)
-                    flags[j, :, a] |= m
-                    out.append(SuspectChannel(j + 1, AXES[a], kind, special, int(m.sum()), n,
-                                              _stretches(data.t, m), lr))
+                    flag(j, a, kind, special, np.isin(x, special), lr)
             special = pinned + clipped
             rep = np.zeros(n, bool)
             for s0, ln, v in zip(starts[long], lengths[long], values):
                 if float(v) not in special:
                     rep[s0 + 1:s0 + ln] = True      # the first is the reading repeated
             if rep.any():
-                flags[j, :, a] |= rep
-                out.append(SuspectChannel(j + 1, AXES[a], 'repeated', (), int(rep.sum()),
-                                          n, _stretches(data.t, rep), lr))
+                flag(j, a, 'repeated', (), rep, lr)
     spikes, sizes = find_spikes(raw, flags, alpha, est)
     for j in range(s_count):
         for a in range(3):
-            m = spikes[j, :, a]
-            if m.any():
-                flags[j, :, a] |= m
+            if spikes[j, :, a].any():
                 size = sizes[j][a]
-                out.append(SuspectChannel(j + 1, AXES[a], 'spike',
-                                          (float(size.min()), float(size.max())),
-                                          int(m.sum()), n, _stretches(data.t, m), 0))
+                flag(j, a, 'spike', (float(size.min()), float(size.max())), spikes[j, :, a], 0)
     out.sort(key=lambda c: (c.sensor, c.axis))
     return ReadingScreen(flags=flags, channels=out, min_run=min_run, repeat_bound=p)
 
@@ -605,22 +477,9 @@ def leave_out_unphysical(data, field_nt=None, alpha=ALPHA, min_kept=MIN_KEPT_FRA
     """
     Screen ``data`` and leave out the sets that hold readings no field produces.
 
-    Parameters
-    ----------
-    data : Dataset
-        The record, (S, N, 3) nT.
-    field_nt : float or numpy.ndarray or None
-        Reference magnitude, nT: a scalar, or (N,) subset with the data.
-    alpha : float
-        See :func:`screen_readings`.
-    min_kept : float
-        Refuse when fewer than this fraction of the sets are left.
-
-    Returns
-    -------
-    (Dataset, field_nt, ReadingScreen)
-        The data and reference without the flagged sets (the same objects when nothing is
-        flagged) and the screen (its :meth:`ReadingScreen.notes` name what was left out).
+    ``field_nt``: reference magnitude, nT, a scalar or (N,) (subset with the data);
+    ``alpha`` as for :func:`screen_readings`.  Returns (data, field_nt, ReadingScreen), the
+    first two without the flagged sets (the same objects when nothing is flagged).
 
     Raises
     ------

@@ -15,34 +15,17 @@
 """
 A record too long to hold, reduced chunk by chunk to a bounded, representative form.
 
-An hour of the cross at 1 kHz is 3.6e6 sets (0.75 GB of CSV); the fit and the diagnosis
-already work on at most 20 000 evenly spaced epochs (``fit(max_fit_samples)``,
-``diagnose(max_samples)``), but they held the whole record to take them, and the noise
-floor, the findings and the residual statistics ran on every epoch.  A long record is
-instead read in chunks (:mod:`magcal_ros.io.chunks`) and reduced, in memory bounded by
-constants, not by its length (docs/design.md, "Long records"):
-
-- **the sample**: every k-th epoch, k doubling as the record grows so that between
-  :data:`SAMPLE_EPOCHS` and twice as many are kept, evenly spread over the whole record
-  (the fit's and the diagnosis' own evenly spaced epochs are taken from it).  Each keeps the
-  field rate d(raw)/dt of the full-rate record (central differences of its neighbours, as in
-  memory), not one from the sample's own spacing.  The fit, the screening, the
-  cross-validation, the findings (lines, steps, lags, trends; model-free) and the report's
-  figures use the sample; a line above the sample's Nyquist frequency (k / 2 of the full
-  rate: ~2.8 Hz for an hour at 1 kHz) is out of their reach and aliases;
-- **the noise blocks**: :data:`NOISE_BLOCKS` to twice as many contiguous full-rate blocks
-  of :data:`NOISE_BLOCK` epochs, evenly spread (a block every k-th block, k doubling): the
-  noise floor is a property of consecutive samples, estimated from the differences within
-  each block (:func:`magcal_ros.core.data.noise.noise_floor_of`), the fit's residual on them
-  included;
-- **the residual statistics of every epoch**: a second pass over the chunks with the fitted
-  calibration (:func:`residual_statistics`): RMS and largest deviation of |B| before and
-  after, the vector and tensor residuals, accumulated as sums and extremes (exact).
+A long record is read in chunks (:mod:`magcal_ros.io.chunks`) and reduced in memory bounded
+by constants (docs/design.md, "Long records"): **the sample** (every k-th epoch, k doubling,
+:data:`SAMPLE_EPOCHS` to twice as many, each with the full-rate record's field rate) for the
+fit, the findings and the figures; **the noise blocks** (:data:`NOISE_BLOCKS` to twice as many
+contiguous full-rate blocks of :data:`NOISE_BLOCK` epochs) for the noise floor; and a second
+pass for **the residual statistics of every epoch** (:func:`residual_statistics`, exact).
 """
 from dataclasses import dataclass, replace
 
 from magcal_ros.core.data.dataset import Dataset
-from magcal_ros.core.data.noise import noise_floor_of
+from magcal_ros.core.data.noise import FitResidual, noise_floor_of
 from magcal_ros.core.effects import raw_rate
 import numpy as np
 
@@ -52,8 +35,7 @@ SAMPLE_EPOCHS = 20000
 NOISE_BLOCK = 4096
 #: between this many and twice as many noise blocks are kept
 NOISE_BLOCKS = 8
-#: records of more epochs than this are reduced (below, the record is held: 4 x 100 000
-#: epochs diagnose in ~0.6 GB)
+#: records of more epochs than this are reduced
 REDUCE_ABOVE = 100000
 
 
@@ -75,8 +57,7 @@ def concat(pieces):
 
 def _take(piece, idx):
     """Return the epochs ``idx`` of ``piece`` as a Dataset of its own (no link to ``piece``)."""
-    sub = piece.subset(idx)
-    return replace(sub, origin=None)
+    return replace(piece.subset(idx), origin=None)
 
 
 class NoiseBlocks:
@@ -97,25 +78,18 @@ class NoiseBlocks:
         """
         :class:`~magcal_ros.core.data.noise.NoiseFloor` from the blocks and ``result``'s residual.
 
-        ``result``: a FitResult of the sample; its calibration is applied to the blocks and
-        its scalar residual there gives the floor's second estimate, as in memory.
+        ``result``: a FitResult of the sample, whose scalar residual on the blocks gives the
+        floor's second estimate.
         """
         key = None if result is None else id(result)
         if key not in self._cache:
             res = None
             if result is not None:
-                res = _Residual(np.concatenate([scalar_residual(result, b) for b in self.blocks],
-                                               axis=1), np.asarray(result.sigma_nt, float))
+                res = FitResidual(
+                    np.concatenate([scalar_residual(result, b) for b in self.blocks], axis=1),
+                    np.asarray(result.sigma_nt, float))
             self._cache[key] = noise_floor_of(self.data.raw, res, self.starts)
         return self._cache[key]
-
-
-@dataclass
-class _Residual:
-    """What :func:`noise_floor_of` reads of a fit: the scalar residual and sigma."""
-
-    scalar_residual_nt: np.ndarray
-    sigma_nt: np.ndarray
 
 
 def field_of(result, piece):
@@ -154,10 +128,9 @@ def rated(chunks):
     """
     Yield the epochs of consecutive ``chunks`` with the field rate of the whole record.
 
-    Each piece's ``rate`` (S, N, 3) nT/s is :func:`~magcal_ros.core.effects.raw_rate` of the
-    record held whole (central differences inside, one-sided at its two ends), exactly: the
-    last epoch of a chunk waits for the next chunk's first.  None where the times do not
-    rise (as in memory: no field rate).
+    Each piece's ``rate`` (S, N, 3) nT/s is exactly :func:`~magcal_ros.core.effects.raw_rate`
+    of the record held whole (a chunk's last epoch waits for the next chunk); None where the
+    times do not rise.
     """
     carry = None
     for piece in chunks:
@@ -185,9 +158,8 @@ class Reducer:
     """
     Reduce a record fed chunk by chunk (:meth:`add`) to a :class:`Reduced` (:meth:`finish`).
 
-    The chunks come from :func:`rated` (their ``rate`` that of the whole record).  Memory:
-    the sample (at most 2 x ``sample`` epochs), the noise blocks (at most 2 x ``blocks`` x
-    ``block`` epochs) and one chunk.
+    Chunks from :func:`rated`.  Memory: at most 2 x ``sample`` epochs, 2 x ``blocks`` x
+    ``block`` epochs of noise blocks and one chunk.
     """
 
     def __init__(self, sample=SAMPLE_EPOCHS, block=NOISE_BLOCK, blocks=NOISE_BLOCKS):
@@ -294,22 +266,14 @@ def residual_statistics(chunks, result, positions=None):
     """
     Residual statistics of ``result``'s calibration on every epoch of ``chunks``, nT, nT/m.
 
-    One pass; sums and extremes, so the figures are those of the whole record held in
-    memory (the RMS exactly, the largest deviations exactly; the tensor's RMS about its
-    mean from the running sums, its largest deviation from the running extremes).  A lag
-    effect on a channel (``lag(temperature)``) filters each chunk afresh (a transient of a
-    few time constants at chunk starts, 65 536 epochs apart); the field rate is the whole
-    record's (:func:`rated`).
+    One pass of sums and extremes: the figures of the record held whole.  A lag effect on a
+    channel (``lag(temperature)``) filters each chunk afresh (a transient at chunk starts).
 
-    Returns
-    -------
-    dict
-        The summary keys of :func:`magcal_ros.pipeline.summarize` that read every epoch:
-        ``scalar_rms_nt``, ``vector_rms_nt``, ``total_field_rms_before_nt``,
-        ``total_field_max_dev_before_nt``, ``total_field_max_dev_after_nt`` and, with
-        ``positions`` (S, 3) m, ``tensor_rms_nt_per_m``, ``tensor_rms_before_nt_per_m``,
-        ``tensor_max_dev_before_nt_per_m``, ``tensor_max_dev_after_nt_per_m``; ``n_samples``.
-
+    Returns the keys of :func:`magcal_ros.pipeline.summarize` that read every epoch:
+    ``scalar_rms_nt``, ``vector_rms_nt``, ``total_field_rms_before_nt``,
+    ``total_field_max_dev_before_nt``, ``total_field_max_dev_after_nt``, ``n_samples`` and,
+    with ``positions`` (S, 3) m, ``tensor_rms_nt_per_m``, ``tensor_rms_before_nt_per_m``,
+    ``tensor_max_dev_before_nt_per_m``, ``tensor_max_dev_after_nt_per_m``.
     """
     before, after, vector = _Moments(), _Moments(), _Moments()
     tens = {k: {'s': 0.0, 'ss': 0.0, 'lo': np.inf, 'hi': -np.inf} for k in ('b', 'a')}
@@ -333,8 +297,7 @@ def residual_statistics(chunks, result, positions=None):
     s = after.ss.shape[0]
     out = {'n_samples': int(n),
            'scalar_rms_nt': {str(j + 1): float(v) for j, v in enumerate(after.rms())},
-           'vector_rms_nt': {str(j + 1): float(np.sqrt(vector.ss[j] / max(vector.n, 1)))
-                             for j in range(1, s)},
+           'vector_rms_nt': {str(j + 1): float(v) for j, v in enumerate(vector.rms()) if j},
            'total_field_rms_before_nt': {str(j + 1): float(v)
                                          for j, v in enumerate(before.rms())},
            'total_field_max_dev_before_nt': float(np.max(before.mx)),

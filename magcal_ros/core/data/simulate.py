@@ -46,91 +46,48 @@ class SimConfig:
     """
     Settings of the simulator; defaults are paper 004 section 4.1.
 
-    Attributes
-    ----------
-    n_samples : int
-        Number of epochs N (for :func:`simulate`).
-    rate_hz : float
-        Sample rate, Hz.
-    n_sensors : int
-        Sensors of the array: 4 is the cross (positions from ``baseline_m``) unless
-        ``positions_m`` is given; any other count sits at ``positions_m`` (default: all at
-        the origin).
-    positions_m : sequence or None
-        (S, 3) or flat (3 S,) sensor positions in the array frame, m.
-    baseline_m : float
-        Distance between the two sensors of an arm, m.
-    field_nt, declination_deg, inclination_deg : float
-        Earth field: total intensity (nT), declination and inclination (deg).
-    noise_nt : float or sequence
-        Gaussian noise sd per axis, nT (scalar or one per sensor).
-    trajectory : str
-        'random' (uniform random attitudes), 'smooth' (continuous tumbling that covers the
-        sphere in about a minute), 'turntable' (rotation about the body z axis only),
-        'cone' (field directions in a cap of ``cone_half_angle_deg`` around body +z),
-        'vehicle' (a vehicle near level, body z up, turning part circles back and forth,
-        roll and pitch within +-``tilt_deg``: :func:`vehicle_attitude`).
-    errors : str or None
-        'paper004' (Table 1; sensor j > 4 gets the errors of Table 1's sensor
-        ((j - 1) mod 4) + 1), or None for ideal sensors.
-    model : str
-        Model spec of the truth; extra effects are set with ``truth``.
-    truth : dict
-        {effect token ('temperature@2', 'aux:aux_motor_current'): parameter values}.
-    temp_mean_c, temp_swing_c : float
-        Sensor temperatures: mean and half peak-to-peak swing, degC (slow, per-sensor phase).
-    aux : bool
-        Generate the auxiliary channels of :data:`AUX_CHANNELS`.
-    diurnal_swing_nt : float
-        Peak-to-peak variation of the field magnitude (with a ``ref_total`` column), nT.
-    outlier_fraction, outlier_nt : float
-        Fraction of sensor samples hit by a spike, and its size (nT, random direction).
-    gradient_nt_per_m : numpy.ndarray or None
-        (3, 3) uniform gradient in the world frame (here NED), nT/m (default: none, uniform
-        field); symmetric and traceless in a source-free region (the site gradient).  The
-        field magnitude ``field_nt`` is the one at the array centre.
-    attitude : bool
-        Put the true attitude (body-to-world quaternions, ``Dataset.attitude``, CSV columns
-        att_qw..att_qz) into the samples, as an IMU would give it.
-    attitude_error_deg : float
-        RMS error about each body axis of the attitude put into the samples, deg: a smooth
-        error, as an EKF's (four sinusoids per axis of periods 20-200 s, drawn from the
-        seed: :func:`attitude_error`); 0: the true attitude.
-    seed : int
-
+    ``n_sensors``: 4 is the cross (from ``baseline_m``) unless ``positions_m`` ((S, 3) or flat
+    (3 S,) m) is given; other counts sit at ``positions_m`` (default: the origin).
+    ``trajectory``: 'random' (uniform attitudes), 'smooth' (tumbling that covers the sphere
+    in about a minute), 'turntable' (about body z), 'cone' (field directions in a cap of
+    ``cone_half_angle_deg`` around body +z), 'vehicle' (:func:`vehicle_attitude`).
+    ``errors``: 'paper004' (Table 1; sensor j > 4 gets sensor ((j - 1) mod 4) + 1's) or None.
+    ``truth``: {term ('temperature@2', 'aux:aux_motor_current'): parameter values} added to
+    the ``model`` spec.  ``gradient_nt_per_m``: (3, 3) uniform world (NED) gradient, nT/m
+    (``field_nt`` is then the field at the centre).  ``attitude_error_deg``: RMS smooth error
+    per body axis of the attitude put into the samples (:func:`attitude_error`).
     """
 
-    n_samples: int = 200
+    n_samples: int = 200                # epochs N (for :func:`simulate`)
     rate_hz: float = 100.0
     n_sensors: int = 4
-    baseline_m: float = 0.5
-    field_nt: float = 50000.0
+    baseline_m: float = 0.5             # distance between the two sensors of an arm, m
+    field_nt: float = 50000.0           # Earth field: total intensity, nT
     declination_deg: float = -7.0
     inclination_deg: float = 55.0
-    noise_nt: object = 3.0
+    noise_nt: object = 3.0              # Gaussian sd per axis, nT (scalar or per sensor)
     trajectory: str = 'random'
     cone_half_angle_deg: float = 30.0
-    tilt_deg: float = 15.0
+    tilt_deg: float = 15.0              # vehicle: largest roll and pitch, deg
     smooth_period_s: float = 60.0
     errors: str | None = 'paper004'
     model: str = 'base'
     truth: dict = field(default_factory=dict)
-    temp_mean_c: float = 25.0
+    temp_mean_c: float = 25.0           # sensor temperatures: mean and half swing, degC
     temp_swing_c: float = 8.0
-    aux: bool = True
-    diurnal_swing_nt: float = 0.0
+    aux: bool = True                    # generate the channels of :data:`AUX_CHANNELS`
+    diurnal_swing_nt: float = 0.0       # peak-to-peak |B| variation (a ref_total column), nT
     diurnal_period_s: float = 600.0
-    outlier_fraction: float = 0.0
-    outlier_nt: float = 1000.0
+    outlier_fraction: float = 0.0       # fraction of samples hit by a spike ...
+    outlier_nt: float = 1000.0          # ... of this size, random direction, nT
     gradient_nt_per_m: object = None
-    attitude: bool = False
+    attitude: bool = False              # put the true attitude (Dataset.attitude) in
     attitude_error_deg: float = 0.0
     seed: int = 0
     positions_m: object = None
 
 
-#: world coordinates ENU (REP 103) -> NED (the simulator's world): east and north swapped, up
-#: turned down; a proper rotation and its own inverse (R_ned = ENU_TO_NED @ R_enu)
+#: world ENU (REP 103) -> NED (the simulator's world); its own inverse (R_ned = ENU_TO_NED R_enu)
 ENU_TO_NED = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 
 
@@ -138,9 +95,8 @@ def attitude_error(t, rms_deg, seed=0):
     """
     Return (N, 3) rad: a smooth attitude error about each body axis at times ``t`` (N,) s.
 
-    Four sinusoids per axis, periods 20-200 s and phases drawn from ``seed`` (the same
-    functions of time for every chunk of a record), scaled to ``rms_deg`` RMS each (an
-    EKF's attitude error drifts over tens of seconds rather than jumping per sample).
+    Four sinusoids per axis (an EKF's drift), periods 20-200 s and phases from ``seed``,
+    ``rms_deg`` RMS each.
     """
     rng = np.random.default_rng([int(seed), 7001])
     per = rng.uniform(20.0, 200.0, (3, 4))
@@ -155,29 +111,12 @@ def vehicle_attitude(t, period_s=60.0, tilt_deg=15.0, phases=(0.0, 0.0, 0.0)):
     """
     Body-to-world (NED) rotation of a vehicle that stays near level and turns part circles.
 
-    The vehicle's body axes are REP 103's (x forward, y left, z up); level means its z axis
-    points up (world -z in NED).  Its heading (ENU yaw, from east towards north) swings
-    through +-0.8 of a circle and back over ``period_s`` and drifts by a third of a circle
-    per period (so full circles are rare: a vehicle on a mission, not a calibration turn);
-    its pitch and roll are slow sinusoids within +-``tilt_deg``.
+    Body axes REP 103's (x forward, y left, z up).  The heading (ENU yaw) swings through
+    +-0.8 of a circle over ``period_s`` and drifts by a third of a circle per period; pitch
+    and roll are slow sinusoids within +-``tilt_deg``.
 
-    Parameters
-    ----------
-    t : numpy.ndarray
-        (N,) s.
-    period_s : float
-        Period of the heading swing, s.
-    tilt_deg : float
-        Largest roll and pitch, deg.
-    phases : sequence of float
-        Three phases (rad) of heading, pitch and roll.
-
-    Returns
-    -------
-    scipy.spatial.transform.Rotation
-        N rotations body -> NED (the simulator's world frame); ``ENU_TO_NED.T @ R`` is the
-        same rotation into ENU (the ROS world frame, REP 103).
-
+    ``t`` (N,) s; ``phases`` of heading, pitch and roll, rad.  Returns N scipy Rotations
+    body -> NED (``ENU_TO_NED.T @ R`` is the same into ENU, the ROS world frame).
     """
     t = np.asarray(t, float)
     w = 2 * np.pi / period_s
@@ -194,9 +133,7 @@ def attitude_enu(q_ned):
     """
     Body-to-ENU quaternions (N, 4) (qw, qx, qy, qz) of body-to-NED ones (N, 4).
 
-    The simulator's world frame is NED; ROS's (REP 103/145, an Imu's orientation) is ENU:
-    the same body, the world axes exchanged by :data:`ENU_TO_NED` (R_enu = ENU_TO_NED^T
-    R_ned).  The field in ENU is ``ENU_TO_NED.T @ b_ned``, so R_enu^T m_enu = R_ned^T m_ned.
+    ROS's world (REP 103/145) is ENU: R_enu = ENU_TO_NED^T R_ned.
     """
     rot = Rotation.from_quat(np.asarray(q_ned, float).reshape(-1, 4), scalar_first=True)
     return (Rotation.from_matrix(ENU_TO_NED.T) * rot).as_quat(scalar_first=True)
@@ -206,10 +143,9 @@ def causal_rate(x, t):
     """
     Rate of ``x`` (N, 3) nT at times ``t`` (N,) s from each sample and the two before it.
 
-    The one-sided second-order difference a stream written one sample at a time allows
-    (:func:`magcal_ros.core.effects.raw_rate` on the last three samples: numpy's gradient at
-    its end, ``edge_order=2``); (N, 3) nT/s, zero for the first two samples; None with fewer
-    than 3 samples or times that do not increase (as ``raw_rate``).
+    The one-sided second-order difference (:func:`magcal_ros.core.effects.raw_rate` on the
+    last three samples); (N, 3) nT/s, zero for the first two samples; None with fewer than 3
+    samples or times that do not increase.
     """
     x = np.asarray(x, float)
     t = np.asarray(t, float)
@@ -241,8 +177,6 @@ class Simulator:
         self.model = Model.from_spec(' + '.join(tokens), s)
         p = self.model.default_params()
         if cfg.errors == 'paper004':
-            # Table 1 has four sensors: more repeat them (their misalignment to sensor 1
-            # is then that of the sensor they repeat)
             for j in range(1, s + 1):
                 a, o = table1_sensor((j - 1) % 4 + 1).to_general()
                 p = self.model.params_from_linear(j, a, o, p)
@@ -263,7 +197,6 @@ class Simulator:
         seed_rng = np.random.default_rng([cfg.seed, 7])
         self._phases = seed_rng.uniform(0, 2 * np.pi, size=16)
         self._levels = seed_rng.uniform(0.0, 5.0, size=4096)
-        # temperature phases of each sensor: those of the first four as before, more drawn
         first = np.column_stack([self._phases[6:10], self._phases[10:14]])
         more = seed_rng.uniform(0, 2 * np.pi, size=(max(s - 4, 0), 2))
         self._temp_phases = np.vstack([first, more])[:s]
@@ -273,9 +206,7 @@ class Simulator:
         """
         Set the true parameters of the term ``token`` (any formula term) to ``values``.
 
-        ``token`` is parsed as a formula term (``temperature@2``, ``offset(s(t, k=4))@2``,
-        ``field(sin(0.01))``); every sensor of its scope gets ``values`` (one set for
-        ``@alike`` and the array's terms), in the order of the effect's ``param_names``.
+        Every sensor of the term's scope gets ``values`` (in ``param_names`` order).
         """
         from magcal_ros.core.effects.formula import parse_term
         term = parse_term(token)
@@ -293,8 +224,6 @@ class Simulator:
                 raise ValueError(f'{token}: {eff.n_params} values expected '
                                  f'({", ".join(eff.param_names)})')
             p[sl] = values
-
-    # -- time functions ---------------------------------------------------------------------
 
     def attitude(self, t):
         """Rotation (body -> world) at times t (N,) s, as a scipy Rotation."""
@@ -320,12 +249,8 @@ class Simulator:
         phi = self.rng.uniform(0, 2 * np.pi, n)
         sin_t = np.sqrt(1 - cos_t ** 2)
         d = np.column_stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t])
-        bw = self.b_world / np.linalg.norm(self.b_world)
-        rots = []
-        for dk in d:
-            r, _ = Rotation.align_vectors([bw], [dk])     # body d -> world field
-            rots.append(r)
-        return Rotation.concatenate(rots)
+        bw = self.b_world / np.linalg.norm(self.b_world)      # body d -> world field
+        return Rotation.concatenate([Rotation.align_vectors([bw], [dk])[0] for dk in d])
 
     def temperature(self, t):
         """(S, N) sensor temperatures, degC."""
@@ -354,8 +279,6 @@ class Simulator:
         return cfg.field_nt + 0.5 * cfg.diurnal_swing_nt * np.sin(
             2 * np.pi * t / cfg.diurnal_period_s + self._phases[13])
 
-    # -- samples ----------------------------------------------------------------------------
-
     def true_field(self, t, rot=None):
         """(S, N, 3) true field at each sensor in the array (body) frame, nT."""
         cfg = self.config
@@ -374,11 +297,8 @@ class Simulator:
         """
         Simulate a Dataset at times t (N,) s; ``meta['truth_field']`` holds the true field.
 
-        The field rate seen by rate-dependent effects (a lag, ``field_rate``) is the fit's
-        estimator inside the chunk (central differences). ``causal=True`` gives each sample
-        the rate a stream written one sample at a time has: from that sample and the two
-        before it (:func:`causal_rate`), as the live corrector computes it, so that a chunk
-        simulated ahead of a live stream reads as if it had been simulated sample by sample.
+        The field rate of rate-dependent effects is the fit's (central differences) or, with
+        ``causal``, the live corrector's (:func:`causal_rate`), continued across chunks.
         """
         cfg = self.config
         t = np.asarray(t, float)
@@ -391,9 +311,7 @@ class Simulator:
         raw = np.empty((s, n, 3))
         for j in range(1, s + 1):
             lin = b[j - 1] @ self.model.matrix(j, self.params).T
-            # the estimator of the fit and the live corrector, on the noise-free reading; a
-            # chunk that continues the previous one (the live fluxgate_sim: one sample per
-            # write) takes that one's last two readings, so its rate is the stream's
+            # a chunk that continues the previous one takes its last two readings
             tail = self._tail.get(j)
             if tail is not None and n and t[0] > tail[0][-1]:
                 tt, ll = np.concatenate([tail[0], t]), np.concatenate([tail[1], lin])
@@ -437,7 +355,6 @@ def simulate(config=None, **overrides):
 
     """
     sim = Simulator(config, **overrides)
-    # driven effects act about references fixed by the simulator, set before sampling
     t = np.arange(sim.config.n_samples) / sim.config.rate_hz
     set_truth_refs(sim, t)
     data = sim.sample(t)
@@ -448,11 +365,9 @@ def simulate_chunks(config=None, rows=65536, **overrides):
     """
     Simulate a long record piece by piece: (Simulator, iterator of Datasets of ``rows`` epochs).
 
-    The same array, truth and time functions as :func:`simulate`, in memory bounded by
-    ``rows``.  The driven effects' reference values (mean temperature, ...) come from at
-    most 100 000 evenly spaced instants of the record (all of them up to that length, so a
-    short record gets :func:`simulate`'s references); the noise is drawn chunk by chunk (the
-    same distribution, other numbers) and the field rate of a lag is taken within each chunk.
+    As :func:`simulate` in memory bounded by ``rows``; the references come from at most
+    100 000 evenly spaced instants (all of a short record's); the noise is drawn chunk by
+    chunk and the field rate taken within each chunk.
     """
     sim = Simulator(config, **overrides)
     n, rate = int(sim.config.n_samples), float(sim.config.rate_hz)
@@ -468,8 +383,7 @@ def set_truth_refs(sim, t):
     """
     Fix the truth's reference values (mean temperature etc.) from the time grid ``t`` (N,) s.
 
-    :func:`simulate` calls it with its own grid; a simulator sampled chunk by chunk (the live
-    ``fluxgate_sim``) calls it once with a nominal grid before the first chunk.
+    Called before the first sample (a chunked simulator: once with a nominal grid).
     """
     temp = sim.temperature(t)
     aux = sim.aux_channels(t) if sim.config.aux else {}
@@ -481,33 +395,17 @@ def parse_truth(items):
     """
     Parse hidden effects ``EFFECT=V1,V2,...`` (``magcal simulate --truth``, ``fluxgate_sim``).
 
-    The effect is any model term, with its sensor (``temperature@2``,
-    ``aux:aux_motor_current@3``, ``periodic(0.23)@4``, a plug-in's name); the values are its
-    parameters in the order and units of the effect's ``param_names``/``units``. The text is
-    split at the last ``=`` outside parentheses, so a term whose own text holds one
-    (``offset(s(t, k=4))@2``) keeps it.
+    The effect is any model term with its sensor (``temperature@2``); the values are its
+    parameters in the order and units of its ``param_names``/``units``.  The text is split at
+    the last ``=`` outside parentheses (``offset(s(t, k=4))@2=...``).
 
-    Parameters
-    ----------
-    items : iterable of str
-        One entry per hidden effect.
-
-    Returns
-    -------
-    dict
-        {term: list of float}, the ``truth`` of :class:`SimConfig`.
-
-    Raises
-    ------
-    ValueError
-        Naming the entry, for a missing ``=``, an empty term or a value that is not a finite
-        number.
-
+    Returns {term: list of float}, the ``truth`` of :class:`SimConfig`, from one item per
+    hidden effect; ValueError naming the item for a missing ``=``, an empty term or a value
+    that is not a finite number.
     """
     truth = {}
     for item in items or []:
         item = str(item)
-        # the values follow the last '=' outside parentheses: offset(s(t, k=4))@2=1,2,...
         depth, cut = 0, -1
         for i, ch in enumerate(item):
             depth += (ch in '({') - (ch in ')}')

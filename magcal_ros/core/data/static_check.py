@@ -15,25 +15,19 @@
 """
 Check a calibration against static recordings: one |B| everywhere, or why not.
 
-A sensor lying still in a uniform field reads the same field for minutes, so its corrected
-magnitude |B| is a check of a calibration that needs no reference: recordings at different
-attitudes must give one |B| (the field of the site), equal to the calibration's reference
-magnitude when both were made at the same place and time.  When they do not agree, the
-pattern says why, as far as the data can tell:
+Recordings of a still sensor at different attitudes must give one corrected |B|, equal to
+the calibration's reference when made at the same place and time.  When they do not agree,
+the pattern says why, as far as the data can tell:
 
-- two recordings at the same attitude (field directions a few degrees apart) with different
-  |B|: the calibration is the same for both, so the field at the sensor or the sensor's own
-  offset changed between them (moved elsewhere indoors, a magnetised object nearby, a power
-  cycle); no calibration can reconcile them;
-- recordings at different attitudes that agree with each other but not with the reference:
-  the calibration's shape holds (it maps very different attitudes onto one |B|) and the
-  field differs from the calibration's (another place or time);
-- recordings at different attitudes that disagree: the calibration does not hold at those
-  attitudes, or the field changed too; the recordings cannot tell which.
+- the same attitude, different |B|: the field at the sensor or its offset changed between
+  them; no calibration can reconcile them;
+- different attitudes that agree with each other but not with the reference: the
+  calibration holds, the field differs from its (another place or time);
+- different attitudes that disagree: the calibration does not hold there, or the field
+  changed too; the recordings cannot tell which.
 
-Differences are judged against the calibration's own scalar residual (its RMS misfit, a
-direction-dependent error of that size is expected), not against the static noise, whose
-mean over thousands of samples is known to about 1 nT.
+Differences are judged against the calibration's own scalar residual RMS (an error of that
+size that depends on the direction is expected), not the static noise.
 """
 from dataclasses import dataclass, field
 
@@ -50,49 +44,26 @@ class StaticCheck:
     """
     Outcome of :func:`check_static`.
 
-    Attributes
-    ----------
-    rows : list of dict
-        Per recording: ``name``, ``n``, ``b_nt`` mean corrected |B|, ``sd_nt`` its sd
-        over the recording, ``direction`` (3,) mean field direction (unit, sensor's
-        corrected frame), ``minus_reference_nt`` |B| - reference magnitude.
-    tolerance_nt : float
-        Largest |B| difference that counts as agreement, nT.
-    same_attitude : list of (str, str, float, float)
-        Pairs at the same attitude: names, angle between their fields (deg), |B|
-        difference (nT).
-    findings : list of str
-        One sentence each: what the recordings show.
-    consistent : bool
-        All recordings give one |B| within ``tolerance_nt``, equal to the reference.
-
+    ``rows`` per recording: ``name``, ``n``, ``b_nt`` mean corrected |B|, ``sd_nt`` its sd,
+    ``direction`` (3,) mean unit field direction (sensor's corrected frame) and
+    ``minus_reference_nt`` |B| - reference magnitude.
     """
 
     rows: list
-    tolerance_nt: float
+    tolerance_nt: float                 # largest |B| difference that agrees, nT
+    #: pairs at the same attitude: names, angle between their fields (deg), |B| difference (nT)
     same_attitude: list = field(default_factory=list)
-    findings: list = field(default_factory=list)
-    consistent: bool = True
+    findings: list = field(default_factory=list)    # one sentence each
+    consistent: bool = True             # one |B| within tolerance_nt, equal to the reference
 
 
 def check_static(corrected, reference_nt, residual_rms_nt):
     """
     Compare static recordings' corrected |B| with each other and with the reference.
 
-    Parameters
-    ----------
-    corrected : dict
-        {name: (N, 3) corrected field of one static recording, nT}.
-    reference_nt : float
-        The calibration's reference magnitude |B|, nT.
-    residual_rms_nt : float
-        The calibration's scalar residual RMS, nT (sets the tolerance:
-        :data:`AGREE_FACTOR` times it).
-
-    Returns
-    -------
-    StaticCheck
-
+    ``corrected``: {name: (N, 3) corrected field of one static recording, nT};
+    ``reference_nt``: the calibration's reference |B|, nT; ``residual_rms_nt``: its scalar
+    residual RMS, nT (the tolerance is :data:`AGREE_FACTOR` times it).
     """
     if not corrected:
         raise ValueError('no static recordings to check')

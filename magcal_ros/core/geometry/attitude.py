@@ -20,13 +20,10 @@ from the array (body) frame into the world frame (NED or ENU, as the user states
 """
 import numpy as np
 
-#: largest allowed deviation of |q| from 1 (an IMU's quaternion is normalised to ~1e-6;
-#: a larger error is a unit or column mix-up, not rounding)
+#: largest allowed deviation of |q| from 1 (beyond it: a unit or column mix-up, not rounding)
 UNIT_TOLERANCE = 1e-3
-#: largest angle (deg) between the world-frame field direction of one epoch and the median
-#: of all epochs; beyond it the attitude and the magnetometer disagree (a jump, a lag,
-#: another convention).  IMU attitude errors are a few degrees; calibration errors after the
-#: closed-form start below one.
+#: largest angle (deg) between an epoch's world-frame field direction and the median of all:
+#: beyond it the attitude and the magnetometer disagree (a jump, a lag, another convention)
 MAX_FIELD_DISAGREEMENT_DEG = 10.0
 
 COLUMNS = ('att_qw', 'att_qx', 'att_qy', 'att_qz')
@@ -48,22 +45,9 @@ def check_quaternions(q, t=None, rows=None, tol=UNIT_TOLERANCE):
     """
     Validate (N, 4) quaternions (qw, qx, qy, qz); return them normalised, sign-continuous.
 
-    Parameters
-    ----------
-    q : numpy.ndarray
-        (N, 4) quaternions, dimensionless.
-    t : numpy.ndarray, optional
-        (N,) times in s, to name an epoch in an error.
-    rows : sequence, optional
-        (N,) file row numbers, to name a row in an error (takes precedence over ``t``).
-    tol : float
-        Allowed | |q| - 1 |.
-
-    Raises
-    ------
-    AttitudeError
-        A non-finite component (names the row and column) or a quaternion that is not unit.
-
+    ``t`` (N,) s or ``rows`` (N,) file row numbers (first) name an epoch in an error; ``tol``
+    the allowed | |q| - 1 |.  AttitudeError for a non-finite component (naming the row and
+    column) or a quaternion that is not unit.
     """
     q = np.asarray(q, float)
     if q.ndim != 2 or q.shape[1] != 4:
@@ -94,23 +78,9 @@ def interpolate(t_msg, q_msg, t):
     """
     Attitude at times t by spherical linear interpolation (slerp) of timed quaternions.
 
-    Parameters
-    ----------
-    t_msg : numpy.ndarray
-        (M,) s, times of the attitude messages (any order; duplicates: the first is kept).
-    q_msg : numpy.ndarray
-        (M, 4) unit quaternions (qw, qx, qy, qz).
-    t : numpy.ndarray
-        (N,) s, inside [min(t_msg), max(t_msg)].
-
-    Returns
-    -------
-    numpy.ndarray
-        (N, 4) unit quaternions (qw, qx, qy, qz).
-
+    ``t_msg`` (M,) s in any order (duplicates: the first is kept), ``q_msg`` (M, 4) unit
+    quaternions (qw, qx, qy, qz), ``t`` (N,) s inside their span; returns (N, 4).
     """
-    # here, not at the top: scipy.spatial is slow to import (0.2 s) and the nodes import
-    # this module
     from scipy.spatial.transform import Rotation, Slerp
     t_msg = np.asarray(t_msg, float)
     order = np.argsort(t_msg, kind='stable')
@@ -127,21 +97,9 @@ def with_attitude(data, t_msg, q_msg, source='attitude'):
 
     Epochs outside the span of the messages are dropped (an attitude is never extrapolated).
 
-    Parameters
-    ----------
-    data : Dataset
-        Readings with times ``t`` (N,) s.
-    t_msg : numpy.ndarray
-        (M,) s, message times on the clock of ``data.t``.
-    q_msg : numpy.ndarray
-        (M, 4) quaternions (qw, qx, qy, qz), checked by :func:`check_quaternions`.
-    source : str
-        Name of the attitude source for the error messages (a topic).
-
-    Returns
-    -------
-    (Dataset, (N,) bool mask of the epochs of ``data`` kept)
-
+    ``t_msg`` (M,) s on the clock of ``data.t``; ``q_msg`` (M, 4) (qw, qx, qy, qz), checked
+    by :func:`check_quaternions`; ``source`` names the attitude in errors (a topic).
+    Returns (Dataset, (N,) bool mask of the epochs of ``data`` kept).
     """
     t_msg = np.asarray(t_msg, float)
     if len(t_msg) == 0:
@@ -173,28 +131,13 @@ def check_against_field(rot, field_body, t=None, max_deg=MAX_FIELD_DISAGREEMENT_
     """
     Refuse an attitude that disagrees with the measured field direction.
 
-    In a constant world field the world-frame direction R_k b_k of the (roughly calibrated)
-    body-frame field b_k is the same at every epoch; a jump of the attitude, a lag between
-    attitude and magnetometer, the inverse rotation (world to body) or a scalar-last
-    quaternion all make it wander.  A rotation about the field direction itself is invisible
-    to this check (the magnetometer cannot see it).
+    In a constant world field R_k b_k is the same at every epoch; a jump, a lag, the inverse
+    rotation or a scalar-last quaternion make it wander (a rotation about the field itself
+    is invisible).
 
-    Parameters
-    ----------
-    rot : numpy.ndarray
-        (N, 3, 3) body-to-world rotations.
-    field_body : numpy.ndarray
-        (N, 3) field in the body frame, nT (any magnitude; only the direction is used).
-    t : numpy.ndarray, optional
-        (N,) times in s, to name an epoch.
-    max_deg : float
-        Largest accepted wander of the world-frame field direction, deg.
-
-    Raises
-    ------
-    AttitudeError
-        Naming the first epoch beyond ``max_deg`` and how many epochs are.
-
+    ``rot`` (N, 3, 3) body-to-world; ``field_body`` (N, 3) nT (its direction); ``t`` (N,) s
+    names an epoch; ``max_deg`` the largest accepted wander.  Returns the (N,) angles, deg;
+    AttitudeError naming the first epoch beyond ``max_deg`` and how many are.
     """
     u = np.asarray(field_body, float)
     u = u / np.linalg.norm(u, axis=1, keepdims=True)

@@ -15,21 +15,13 @@
 """
 Direction coverage of field vectors: whether they can determine a linear sensor map.
 
-A linear sensor model ``raw = A @ B + o`` is determined by rotating the sensor in a uniform
-field only if the field directions seen by the sensor spread in all three dimensions. The
-offset ``o`` absorbs whatever is common to all samples, so what matters is the spread of the
-directions *about their mean*: directions on one circle of the unit sphere (a cone around the
-rotation axis, which is what a rotation about a single axis gives) lie in one affine plane and
-leave the map undetermined along that plane's normal, even when the cone is wide. This is the
-defect of paper 002's Table 2 (six attitudes about one axis; docs/papers.md, paper 002).
-
-The check therefore uses the scatter matrix of the unit directions about their mean,
-``(1/N) sum (u - u_mean)(u - u_mean)^T``. For directions uniform on the sphere its eigenvalues
-are 1/3 each; their sum is ``1 - |u_mean|^2``. The uncentred scatter
-``(1/N) sum u u^T`` only detects great circles (directions through the origin plane)
-and misses the single-axis rotation, so the centred form is used here.
+``raw = A @ B + o`` is determined by turning the sensor in a uniform field only if the field
+directions spread in three dimensions *about their mean* (``o`` absorbs what is common):
+directions on one circle of the sphere (a rotation about one axis, even a wide cone) lie in
+one affine plane and leave the map undetermined along its normal (the defect of paper 002's
+Table 2; docs/papers.md).  Hence the centred scatter ``(1/N) sum (u - u_mean)(u - u_mean)^T``
+(eigenvalues 1/3 each for uniform directions); the uncentred one misses the single-axis turn.
 """
-
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,51 +37,23 @@ def _fmt_vec(v):
 @dataclass(frozen=True)
 class Coverage:
     """
-    How well a set of field directions covers the unit sphere.
+    How well a set of field directions covers the unit sphere (all dimensionless).
 
-    Attributes
-    ----------
-    eigenvalues : numpy.ndarray
-        (3,) dimensionless, ascending: eigenvalues of the scatter matrix of the unit
-        directions about their mean, ``(1/N) sum (u - u_mean)(u - u_mean)^T``.
-        1/3 each for uniform coverage of the sphere; 0 along a direction with no spread.
-    eigenvectors : numpy.ndarray
-        (3, 3) dimensionless; column ``k`` is the unit eigenvector of ``eigenvalues[k]``,
-        in the frame the vectors were given in.
-    n : int
-        Number of vectors.
-    planar : bool
-        True when the directions lie near one plane (not necessarily through the origin):
-        smallest eigenvalue below ``planar_threshold``. The linear map is then not
-        determined along ``normal``.
-    normal : numpy.ndarray
-        (3,) unit normal of that plane (eigenvector of the smallest eigenvalue), signed so
-        that it points to the side of the plane the directions are on (``normal @ u_mean >= 0``).
-        This is the axis the sensor was rotated about.
-    cone_half_angle_deg : float
-        Half-angle in degrees of the cone around ``mean_direction`` that holds 95 % of the
-        directions (180 when the mean is zero).
-    narrow : bool
-        True when the directions do not even spread in two dimensions (the two smallest
-        eigenvalues below ``planar_threshold``): they cluster around one direction.
-    mean_direction : numpy.ndarray
-        (3,) unit vector along the mean of the unit directions (zeros if the mean vanishes).
-    mean_resultant_length : float
-        ``|u_mean|``, 1 for identical directions, about 0 for full coverage.
-    planar_threshold : float
-        Threshold used for ``planar`` and ``narrow``.
-
+    ``planar``: the directions lie near one plane (not necessarily through the origin;
+    smallest eigenvalue below ``planar_threshold``), the map is not determined along
+    ``normal`` (the axis turned about; signed so that ``normal @ u_mean >= 0``).  ``narrow``:
+    the two smallest are below it, the directions cluster around one.
     """
 
-    eigenvalues: np.ndarray
-    eigenvectors: np.ndarray
-    n: int
+    eigenvalues: np.ndarray             # (3,) ascending, of the centred scatter
+    eigenvectors: np.ndarray            # (3, 3) column k: unit eigenvector of eigenvalues[k]
+    n: int                              # number of vectors
     planar: bool
-    normal: np.ndarray
-    cone_half_angle_deg: float
+    normal: np.ndarray                  # (3,) unit eigenvector of the smallest eigenvalue
+    cone_half_angle_deg: float          # cone about mean_direction holding 95 % (180: none)
     narrow: bool
-    mean_direction: np.ndarray
-    mean_resultant_length: float
+    mean_direction: np.ndarray          # (3,) unit, along the mean (zeros if it vanishes)
+    mean_resultant_length: float        # |u_mean|: 1 for one direction, ~0 for full cover
     planar_threshold: float
 
     @property
@@ -98,17 +62,7 @@ class Coverage:
         return not (self.planar or self.narrow)
 
     def describe(self) -> str:
-        """
-        Return a one-line message naming what is missing from the attitude set.
-
-        Returns
-        -------
-        str
-            For clustered directions: the cone they span and what to do; for coplanar
-            directions: the plane normal (the rotation axis used) and what to do; otherwise a
-            statement that the directions cover the sphere.
-
-        """
+        """Return one line naming what is missing from the attitudes, and what to do."""
         ev = self.eigenvalues
         if self.narrow:
             return ('field directions span only a %.0f deg cone around %s: turn the sensor '
@@ -132,27 +86,9 @@ def direction_coverage(vectors, planar_threshold=0.02) -> Coverage:
     """
     Measure how the directions of field vectors cover the unit sphere.
 
-    Parameters
-    ----------
-    vectors : array_like
-        (N, 3) field vectors in any unit (nT in this package); only their directions are
-        used. N >= 1; no zero or non-finite vectors.
-    planar_threshold : float, optional
-        An eigenvalue of the centred direction scatter below this counts as "no spread"
-        along its eigenvector. 0.02 corresponds to directions within about +-14 deg of a
-        plane (uniform band: variance h^2/3 with h = sin(14 deg)).
-
-    Returns
-    -------
-    Coverage
-        Eigen-decomposition of the scatter, planarity, plane normal and cone half-angle.
-
-    Raises
-    ------
-    ValueError
-        If ``vectors`` is not (N, 3) with N >= 1, contains non-finite values or zero vectors,
-        or ``planar_threshold`` is not in (0, 1/3].
-
+    ``vectors`` (N >= 1, 3) in any unit, their directions used; ``planar_threshold``: an
+    eigenvalue below it is "no spread" (0.02: within about +-14 deg of a plane).  ValueError
+    for another shape, non-finite or zero vectors, or a threshold not in (0, 1/3].
     """
     v = np.asarray(vectors, dtype=float)
     if v.ndim != 2 or v.shape[1] != 3 or v.shape[0] < 1:
@@ -183,15 +119,8 @@ def direction_coverage(vectors, planar_threshold=0.02) -> Coverage:
     else:
         mean_dir = np.zeros(3)
         cone = 180.0
-    return Coverage(
-        eigenvalues=eigenvalues,
-        eigenvectors=eigenvectors,
-        n=int(len(u)),
-        planar=bool(eigenvalues[0] < planar_threshold),
-        normal=normal,
-        cone_half_angle_deg=cone,
-        narrow=bool(eigenvalues[1] < planar_threshold),
-        mean_direction=mean_dir,
-        mean_resultant_length=rbar,
-        planar_threshold=float(planar_threshold),
-    )
+    return Coverage(eigenvalues=eigenvalues, eigenvectors=eigenvectors, n=int(len(u)),
+                    planar=bool(eigenvalues[0] < planar_threshold), normal=normal,
+                    cone_half_angle_deg=cone, narrow=bool(eigenvalues[1] < planar_threshold),
+                    mean_direction=mean_dir, mean_resultant_length=rbar,
+                    planar_threshold=float(planar_threshold))

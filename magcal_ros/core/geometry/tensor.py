@@ -26,18 +26,8 @@ def tensor_cross(b, baseline_m=0.5):
     """
     Paper 004 eq. 1: gradient tensor at the centre of the cross.
 
-    Parameters
-    ----------
-    b : numpy.ndarray
-        (4, N, 3) or (4, 3) field of sensors 1..4 in the array frame, nT.
-    baseline_m : float
-        Distance between the two sensors of an arm, m.
-
-    Returns
-    -------
-    numpy.ndarray
-        (N, 3, 3) or (3, 3) tensor G_ij = dB_i/dx_j in nT/m.
-
+    ``b`` (4, N, 3) or (4, 3) field of sensors 1..4 in the array frame, nT; ``baseline_m``
+    between the two sensors of an arm.  Returns (N, 3, 3) or (3, 3) G_ij = dB_i/dx_j, nT/m.
     """
     b = np.asarray(b, float)
     one = b.ndim == 2
@@ -64,22 +54,12 @@ def tensor_operator(positions):
     """
     Linear map from stacked sensor fields to (B0, G) for any array geometry.
 
-    The field is modelled as B(r) = B0 + G r.  For an array spanning 3-D, G is taken symmetric
-    and traceless (curl- and divergence-free field: 5 unknowns) and solved with B0 by least
-    squares.  For a planar array only the in-plane columns of G can be measured; the
-    out-of-plane column follows from symmetry and zero trace.  For paper 004's cross this
-    reproduces eq. 1 exactly.
+    B(r) = B0 + G r by least squares: G symmetric traceless (5 unknowns) for an array spanning
+    3-D; for a planar one the in-plane columns, the third from symmetry and zero trace
+    (paper 004's eq. 1 for the cross, exactly).
 
-    Parameters
-    ----------
-    positions : numpy.ndarray
-        (S, 3) sensor positions, m.
-
-    Returns
-    -------
-    numpy.ndarray
-        (12, 3 S) matrix L with [B0 (3), G row-major (9)] = L @ b.ravel(), b of shape (S, 3).
-
+    ``positions`` (S, 3) m; returns (12, 3 S) L with [B0 (3), G row-major (9)] =
+    L @ b.ravel(), b the (S, 3) fields.
     """
     r = np.asarray(positions, float)
     s = len(r)
@@ -88,31 +68,18 @@ def tensor_operator(positions):
     rank = int(np.sum(sv > 1e-9 * max(sv[0], 1e-12)))
     if rank < 2:
         raise ValueError('sensor positions must span at least a plane to measure a tensor')
-    basis = vt.T        # columns: principal directions, last = normal if planar
-    # unknowns in the rotated frame: B0 (3) + in-plane columns G'[:, :rank] (3*rank)
+    basis = vt.T        # principal directions, last = normal if planar
+    # unknowns in that frame: B0 (3) + in-plane columns G'[:, :rank]
     rp = rc @ basis     # (S, 3)
     n_unk = 3 + 3 * rank
-    design = np.zeros((3 * s, n_unk))
-    for k in range(s):
-        for i in range(3):
-            design[3 * k + i, i] = 1.0
-            for c in range(rank):
-                design[3 * k + i, 3 + 3 * c + i] = rp[k, c]
-    # rotate field components into the principal frame: b' = basis^T b
+    # rows 3 k + i: B0_i + sum_c rp[k, c] G'[i, c] (+ 0.0: zeros, not kron's -0.0)
+    design = np.hstack([np.tile(np.eye(3), (s, 1)), np.kron(rp[:, :rank], np.eye(3)) + 0.0])
     rot = np.kron(np.eye(s), basis.T)
     if rank == 3:
-        # symmetric traceless: parametrise G' by 5 numbers
-        sym = np.zeros((9, 5))
-        # g = [gxx, gxy, gxz, gyy, gyz]; columns of G' (column-major in design order)
-        idx = {(0, 0): [(0, 1.0)], (0, 1): [(1, 1.0)], (0, 2): [(2, 1.0)],
-               (1, 0): [(1, 1.0)], (1, 1): [(3, 1.0)], (1, 2): [(4, 1.0)],
-               (2, 0): [(2, 1.0)], (2, 1): [(4, 1.0)], (2, 2): [(0, -1.0), (3, -1.0)]}
-        for (i, c), terms in idx.items():
-            for q, w in terms:
-                sym[3 * c + i, q] = w
+        # G' symmetric traceless: its column-major vec is its row-major one, TENSOR_MAP g
         full = np.zeros((n_unk, 8))
         full[:3, :3] = np.eye(3)
-        full[3:, 3:] = sym
+        full[3:, 3:] = TENSOR_MAP
         sol = np.linalg.pinv(design @ full) @ rot
         x = full @ sol
         cols = x[3:].reshape(3, 3, -1)          # [column c][row i]
@@ -133,17 +100,8 @@ def tensor_lstsq(b, positions):
     """
     Gradient tensor for any geometry (see :func:`tensor_operator`).
 
-    Parameters
-    ----------
-    b : numpy.ndarray
-        (S, N, 3) field of each sensor in the array frame, nT.
-    positions : numpy.ndarray
-        (S, 3) sensor positions, m.
-
-    Returns
-    -------
-    (G (N, 3, 3) nT/m, B0 (N, 3) nT)
-
+    ``b`` (S, N, 3) nT in the array frame, ``positions`` (S, 3) m; returns (G (N, 3, 3)
+    nT/m, B0 (N, 3) nT).
     """
     b = np.asarray(b, float)
     op = tensor_operator(positions)
@@ -168,8 +126,7 @@ def symmetric_traceless(g):
     """
     (3, 3) symmetric traceless tensor from g = (gxx, gxy, gxz, gyy, gyz), same unit.
 
-    Maxwell's equations in a source-free region: curl B = 0 (symmetric), div B = 0
-    (traceless), so gzz = -gxx - gyy (paper 004 eq. 1 uses the same five components).
+    A source-free field: curl B = 0 (symmetric), div B = 0 (gzz = -gxx - gyy).
     """
     gxx, gxy, gxz, gyy, gyz = g
     return np.array([[gxx, gxy, gxz], [gxy, gyy, gyz], [gxz, gyz, -gxx - gyy]], float)
@@ -183,19 +140,8 @@ def gradient_from_fit(model, params, covariance):
     """
     World-frame site gradient and its standard uncertainty from a fit.
 
-    Parameters
-    ----------
-    model : Model
-        The fitted model (with or without ``site_gradient``).
-    params : numpy.ndarray
-        (P,) parameters.
-    covariance : numpy.ndarray
-        (P, P) parameter covariance.
-
-    Returns
-    -------
-    (G (3, 3) nT/m, stderr (3, 3) nT/m, cov5 (5, 5) (nT/m)^2) or None without the effect.
-
+    ``model`` the fitted Model, ``params`` (P,), ``covariance`` (P, P).  Returns (G (3, 3)
+    nT/m, stderr (3, 3) nT/m, cov5 (5, 5) (nT/m)^2), or None without ``site_gradient``.
     """
     for eff, sl in zip(model.array_effects, model.array_slices):
         if eff.name == 'site_gradient':

@@ -15,17 +15,13 @@
 """
 The geometry of a turn about one axis: its axis, its circle, the angle it has swept.
 
-A sensor turned about one axis n (a robot turning in place) reads a circle in the plane
-perpendicular to n, about its offset, and a constant along n.  These functions read that
-from the readings alone, with no model: :func:`turn_axis`, :func:`circle_centre` (the
-algebraic circle fit), :func:`swept_angle` (what the node's ``calibration/turn`` counts) and
-:func:`planar_magnitude` (a shape-only field magnitude for a turn).  The planar calibration
-itself is :mod:`magcal_ros.core.model.planar`.  Units: nT, rad.
+A sensor turned about one axis n reads a circle perpendicular to n about its offset, and a
+constant along n; these functions read that from the readings alone (the planar calibration
+is :mod:`magcal_ros.core.model.planar`).  Units: nT, rad.
 """
 import numpy as np
 
-#: the smallest radius (a fraction of the field) of a circle counted as a turn by
-#: :func:`swept_angle`: 2 % is a cone of a little over 1 deg, far above any sensor's noise
+#: the smallest radius (a fraction of the field) of a circle :func:`swept_angle` counts
 MIN_TURN_RADIUS = 0.02
 
 
@@ -37,9 +33,7 @@ def turn_axis(m):
     """
     Return the unit axis (3,) of a turn, in the sensor frame, from readings m (N, 3) nT.
 
-    The readings of a turn lie on a circle: the axis is the direction in which they spread
-    least (the smallest principal axis of their scatter), signed to point along the mean
-    reading's component on it (towards the field's part along the axis).
+    The direction of least spread, signed along the mean reading.
     """
     m = np.asarray(m, float)
     c = m - m.mean(axis=0)
@@ -66,9 +60,8 @@ def planar_magnitude(raw, axis):
     """
     Return a shape-only magnitude (nT) for a turn with no reference.
 
-    The in-plane radius about the circle's centre combined with the mean reading along the
-    axis; raw (N, 3) nT, axis (3,) unit.  The common scale of the sensor is then arbitrary (no
-    reference fixes it); the shape, hence the heading, is not.
+    The in-plane radius about the circle's centre with the mean reading along ``axis`` (3,)
+    unit; raw (N, 3) nT.  The sensor's common scale is then arbitrary, its shape is not.
     """
     raw = np.asarray(raw, float)
     k = int(np.argmax(np.abs(axis)))
@@ -82,12 +75,9 @@ def swept_angle(m):
     """
     Angle (rad, >= 0) a sensor's readings m (N, 3) nT have swept about the turn axis.
 
-    The readings of a turn draw a circle about the offset, not about the origin: the
-    angle is unwrapped about the circle's centre (:func:`circle_centre`) in the plane of the
-    turn (:func:`turn_axis`; the sensor's z axis while the readings are too few to tell),
-    from the first reading to the last.  The node's ``calibration/turn`` stops the robot
-    when this reaches the turns asked for: the turn as the sensor saw it, not as the wheels
-    were told.
+    Unwrapped about the circle's centre (:func:`circle_centre`) in the plane of the turn
+    (:func:`turn_axis`; sensor z while it cannot tell), first reading to last: what the
+    node's ``calibration/turn`` counts.
     """
     m = np.asarray(m, float)
     if len(m) < 8:
@@ -102,8 +92,6 @@ def swept_angle(m):
     c = circle_centre(xy)
     radius = np.linalg.norm(xy - c, axis=1)
     if np.median(radius) < MIN_TURN_RADIUS * np.median(np.linalg.norm(m, axis=1)):
-        # a sensor that does not turn: its noise scatters about a point, and a circle fitted
-        # to the scatter sweeps any angle
-        return 0.0
+        return 0.0              # no turn: a circle fitted to noise sweeps any angle
     ang = np.unwrap(np.arctan2(xy[:, 1] - c[1], xy[:, 0] - c[0]))
     return float(abs(ang[-1] - ang[0]))

@@ -15,31 +15,21 @@
 """
 Find and repair sample sets whose sensors were paired from different epochs.
 
-Live, the four streams of the array arrive separately and are grouped into sets by their
-stamps (:class:`magcal_ros.core.live.sync.StampMatcher`).  Stamps are arrival times, so a sensor
-whose bytes come systematically later than sensor 1's by more than half a sample period
-(a USB-serial adapter's 16 ms latency timer, a starved reader thread, a burst after a
-stall) can be paired one or more epochs off, and a rotating array then gives every set of
-that stretch an error of about (field change per epoch) x (epochs off): ~100 nT per epoch
-for the simulator's tumbling at 100 Hz, against 3 nT of noise.  A maximum-likelihood fit
-on such sets is not at the noise floor, and nothing in the stamps says why.
+Live, sets are grouped by stamps (:class:`magcal_ros.core.live.sync.StampMatcher`); a sensor
+whose bytes come later than sensor 1's by more than half a period can be paired epochs off,
+and a rotating array then gives each such set an error of the field change per epoch times
+the epochs off (~100 nT per epoch at 100 Hz of tumbling, against 3 nT of noise).
 
-The data say it.  For a rigid array in a uniform field, with the linear sensor model of
-paper 004 (eq. 1-3, ``raw_j = A_j R_j B + b_j``), every sensor's raw reading is an affine
-function of sensor 1's *at the same epoch*::
+The data say it.  For a rigid array in a uniform field with paper 004's linear model (eq.
+1-3), every sensor's raw reading is an affine function of sensor 1's at the same epoch::
 
     raw_j(e) = M_j raw_1(e) + c_j,    M_j = A_j R_j A_1^-1,   c_j = b_j - M_j b_1,
 
-whatever the attitude.  :func:`find_slips` fits (M_j, c_j) by least squares at the lag that
-explains the whole record best, then compares, in a sliding window of epochs, the misfit of
-pairing sensor j's epoch e + L with sensor 1's epoch e for L = -max_lag .. max_lag.  A
-stretch is declared slipped by L only where lag L fits clearly better than lag 0 (by
-``min_contrast`` in the windowed squared misfit): where the array is still, every lag fits
-equally, nothing is changed, and a mis-pairing there costs nothing anyway.  Driven effects
-(temperature, a motor current) add the same misfit at every lag and do not move the
-choice.  :func:`resync` then re-pairs: sensor j's sample of epoch e + L(e) joins sensor 1's
-of epoch e.  Sets whose sensor-j sample would be used twice at a change of lag, or that have
-no partner inside the same run of consecutive epochs, are dropped and counted.
+whatever the attitude.  :func:`find_slips` compares, in a sliding window, the misfit of
+pairing sensor j's epoch e + L with sensor 1's epoch e for L = -max_lag .. max_lag, and takes
+a lag only where it fits clearly better than 0 (where the array is still every lag fits
+alike and nothing changes); :func:`resync` re-pairs, dropping the sets whose sample would be
+used twice or has no partner in the same run of epochs.
 """
 from dataclasses import dataclass, replace
 
@@ -54,59 +44,40 @@ DEFAULT_WINDOW = 25
 #: a lag replaces lag 0 only where its windowed squared misfit is this many times smaller
 DEFAULT_MIN_CONTRAST = 4.0
 #: ... and only where that misfit is within this factor of the noise alone (per set:
-#: 3 (sigma_1^2 + sigma_j^2)); a driven effect (temperature, a motor current) that a lag
-#: happens to cancel in part leaves more than that
+#: 3 (sigma_1^2 + sigma_j^2))
 DEFAULT_NOISE_FACTOR = 4.0
-#: a stretch of sets is re-paired only if the directions of the field change over it spread
-#: this much (second eigenvalue of their mean outer product; 0.1: about +-20 deg)
+#: a stretch is re-paired only if its field-change directions spread this much (second
+#: eigenvalue of their mean outer product; 0.1: about +-20 deg)
 MIN_SPREAD = 0.1
 #: value of :attr:`Slips.lags` for a set to drop (its partner was lost in a slip)
 DROP = np.iinfo(np.int64).max // 4
 #: windowed misfit, in units of the noise alone, beyond which a set counts as inconsistent
 INCONSISTENT_FACTOR = 100.0
-#: the longer search that tells an inconsistent set paired from epochs further apart (some
-#: pairing within this many epochs fits it) from a property of the sensor (none does: a
-#: missing effect, a site gradient), epochs
+#: the longer search that tells an inconsistent set paired from epochs further apart from a
+#: property of the sensor (no pairing fits), epochs
 LONG_MAX_LAG = 50
 
 
 @dataclass(frozen=True)
 class Slips:
     """
-    Outcome of :func:`find_slips`.
+    Outcome of :func:`find_slips` (arrays per sensor j; row 0, sensor 1, all 0 / False).
 
-    Attributes
-    ----------
-    lags : numpy.ndarray
-        (S, N) int, epochs by which sensor j's partner of each set is off (row 0, sensor
-        1, is all 0): the right partner of set e is sensor j's sample of set e + lag;
-        :data:`DROP` where that sample was lost.
-    rms_nt : numpy.ndarray
-        (S,) RMS per axis of the misfit of each sensor against sensor 1 after re-pairing,
-        nT (0 for sensor 1): sensor j's ellipsoid-corrected reading rotated onto sensor 1's
-        (paper 004 eq. 5 and 14).  About sqrt(sigma_1^2 + sigma_j^2) for a consistent record.
-    rms_as_paired_nt : numpy.ndarray
-        (S,) the same as the sets were paired, nT.
-    noise_nt : numpy.ndarray
-        (S,) per-axis noise of each sensor estimated from its own series, nT.
-    inconsistent : numpy.ndarray
-        (S,) sets that no lag within ``max_lag`` brings within 10x the noise (a longer slip,
-        a spike, or a large effect of the sensor itself); counted, and dropped by
-        :func:`resync` with ``drop_inconsistent``.
-    inconsistent_sets : numpy.ndarray or None
-        (S, N) bool, which sets those are (row 0 all False).
-    dropped_inconsistent : int
-        Sets :func:`resync` dropped as inconsistent (``drop_inconsistent``).
-
+    ``rms_nt`` is the per-axis RMS misfit of sensor j's ellipsoid-corrected reading rotated
+    onto sensor 1's (paper 004 eq. 5 and 14), about sqrt(sigma_1^2 + sigma_j^2) for a
+    consistent record.
     """
 
+    #: (S, N) int: the right partner of set e is sensor j's sample of set e + lag; DROP: lost
     lags: np.ndarray
-    rms_nt: np.ndarray
-    rms_as_paired_nt: np.ndarray
-    noise_nt: np.ndarray
+    rms_nt: np.ndarray                  # (S,) misfit after re-pairing, nT per axis
+    rms_as_paired_nt: np.ndarray        # (S,) the same as paired, nT
+    noise_nt: np.ndarray                # (S,) per-axis noise from each sensor's series, nT
+    #: (S,) sets no lag within max_lag brings within :data:`INCONSISTENT_FACTOR` x the noise
+    #: (a longer slip, a spike, an effect of the sensor); resync's ``drop_inconsistent``
     inconsistent: np.ndarray
-    inconsistent_sets: np.ndarray | None = None
-    dropped_inconsistent: int = 0
+    inconsistent_sets: np.ndarray | None = None     # (S, N) bool, which sets those are
+    dropped_inconsistent: int = 0       # sets resync dropped as inconsistent
 
     @property
     def n_slipped(self):
@@ -142,30 +113,14 @@ def gross_outliers(raw, fraction=GROSS_FRACTION):
     """
     Find the sets holding a sample that cannot be a reading: a cut or garbled line.
 
-    A serial line opened in the middle of a stream, or overrun, can deliver a line that
-    lost its first bytes and still parses, e.g. ``45.6,-2345.1,43210.9`` from
-    ``12345.6,-2345.1,43210.9``: one sample thousands of nT off its neighbours.  The field
-    seen by a turning array changes smoothly, so a sample is tested against the mean of its
-    two neighbours in time: the second difference d(e) = m(e) - (m(e-1) + m(e+1)) / 2 is the
-    trajectory's curvature (tens of nT at 10-100 Hz of tumbling) plus noise, while a garbled
-    sample leaves d(e) its whole error.  A sample is a gross outlier where |d(e)| exceeds
-    ``fraction`` of the field (1000 nT at 50 000 nT) and is the largest of the three around
-    it (its neighbours carry half its error).  Only for a series that is smooth at its
-    sample rate (median |d| below 1 % of that threshold); a record of separate attitudes
-    (a turntable stepped, random attitudes) is left alone.
+    A line that lost its first bytes can still parse (``45.6,-2345.1,43210.9`` from
+    ``12345.6,...``): one sample thousands of nT off.  A sample is a gross outlier where
+    d(e) = |m(e) - (m(e-1) + m(e+1)) / 2| exceeds ``fraction`` of the field and is the largest
+    of the three around it; only for a series smooth at its rate (median d below 1 % of that
+    threshold), so a record of separate attitudes is left alone.
 
-    Parameters
-    ----------
-    raw : numpy.ndarray
-        (S, N, 3) raw readings in time order, nT.
-    fraction : float
-        Smallest jump counted, as a fraction of the median field magnitude.
-
-    Returns
-    -------
-    numpy.ndarray
-        (S, N) bool, True for a gross outlier.
-
+    ``raw`` (S, N, 3) nT in time order; ``fraction`` of the median field magnitude.  Returns
+    (S, N) bool, True for a gross outlier.
     """
     raw = np.asarray(raw, float)
     s, n = raw.shape[:2]
@@ -211,38 +166,30 @@ def find_slips(raw, epochs=None, max_lag=DEFAULT_MAX_LAG, window=DEFAULT_WINDOW,
     """
     Find the sets of a rigid array whose sensors were paired from different epochs.
 
-    Each sensor is first calibrated on its own by the ellipsoid fit and Cholesky factor of
-    paper 004 (eq. 8-13), which needs no pairing and leaves its reading as an unknown
-    rotation of the field, u_j = Q_j B.  Sensor j is then rotated onto sensor 1 by the
-    orthogonal Procrustes solution (eq. 14), three parameters that cannot absorb a slip,
-    fitted on the sets that agree with it (within 3x the median misfit).  The lag of every
-    set is chosen from the windowed *median* of the misfit |u_1(e) - R u_j(e + L)|^2 of each
-    lag (one spike neither creates nor hides a slip), the rotation refitted on the re-paired
-    sets, and so on until the lags stop changing (two or three rounds for a record a
-    quarter of which slipped).  A lag other than 0 is taken only where it fits clearly
-    better than 0 (``min_contrast``) *and* down to the noise (``noise_factor``): where the
-    array is still every lag fits alike and the pairing stays (a mis-pairing there costs
-    nothing), and an effect of the sensor itself is not mistaken for a slip.
+    Each sensor is calibrated on its own by paper 004's ellipsoid fit (eq. 8-13, no pairing),
+    u_j = Q_j B; sensor j is rotated onto sensor 1 by the Procrustes solution (eq. 14; three
+    parameters cannot absorb a slip) fitted on the sets that agree with it.  Each set's lag
+    is chosen from the windowed *median* of |u_1(e) - R u_j(e + L)|^2 (a spike neither
+    creates nor hides a slip), the rotation refitted, until the lags stop changing.  A lag
+    other than 0 is taken only where it fits better than 0 by ``min_contrast`` *and* down to
+    the noise (``noise_factor``).
 
     Parameters
     ----------
     raw : numpy.ndarray
         (S, N, 3) raw readings of S >= 2 sensors in set order, nT.
     epochs : numpy.ndarray, optional
-        (N,) epoch number of each set; a jump other than +1 starts a new run, and no set is
-        re-paired across runs.  Default: one run.
-    max_lag : int
-        Largest slip searched, epochs.
-    window : int
-        Sets in the sliding window that decides a slip.
+        (N,) epoch number of each set; a jump other than +1 starts a new run (no set is
+        re-paired across runs).  Default: one run.
+    max_lag, window : int
+        Largest slip searched, epochs; sets in the sliding window that decides a slip.
     min_contrast, noise_factor : float
-        See :data:`DEFAULT_MIN_CONTRAST` and :data:`DEFAULT_NOISE_FACTOR`.
+        :data:`DEFAULT_MIN_CONTRAST`, :data:`DEFAULT_NOISE_FACTOR`.
 
     Returns
     -------
     Slips
-        All lags 0 when the record is too short or covers too few attitudes for the
-        ellipsoid fits (then nothing can be told).
+        All lags 0 when the record is too short or too poor in attitudes to tell.
 
     """
     raw = np.asarray(raw, float)
@@ -258,7 +205,6 @@ def find_slips(raw, epochs=None, max_lag=DEFAULT_MAX_LAG, window=DEFAULT_WINDOW,
         return Slips(lags, rms, rms0, np.zeros(s), inconsistent)
     run = _runs(n, epochs)
     noise = estimate_noise(raw).sigma
-    # each sensor on its own: ellipsoid fit + Cholesky (paper 004 eq. 8-13) needs no pairing
     f0 = float(np.median(np.linalg.norm(raw[0], axis=1)))
     try:
         u = np.stack([fit_ellipsoid(raw[j], f0).correct(raw[j]) for j in range(s)])
@@ -276,21 +222,18 @@ def find_slips(raw, epochs=None, max_lag=DEFAULT_MAX_LAG, window=DEFAULT_WINDOW,
             use = use & np.all(np.isfinite(y), axis=1)
             return procrustes_rotation(u[0][use], y[use])
 
-        # start from the pairing as it is, unless one lag explains the whole record clearly
-        # better (each lag with its own rotation)
+        # the pairing as it is, unless one lag (its own rotation) explains the record better
         med = []
         for i in range(len(candidates)):
             rot = rotation(shifted[i], np.ones(n, bool))
             med.append(np.nanmedian(np.sum((u[0] - shifted[i] @ rot.T) ** 2, axis=1)))
         i_best = int(np.argmin(med))
         k = np.full(n, i_best if med[i_best] * min_contrast < med[k0] else k0)
-        # alternate: rotation from the sets at their lags, lags from that rotation (on
-        # contrast alone: with a rotation still biased by slipped sets the right lag may not
-        # reach the noise yet), then the final choice from the last rotation on both tests
+        # alternate rotation and lags (on contrast alone: a rotation biased by slipped sets
+        # may keep the right lag off the noise), then the final choice on both tests
         for final in [False] * 10 + [True]:
             y = shifted[k, cols]
-            # the rotation from the sets that agree with it: least trimmed squares (the best
-            # half, robust to up to half the sets slipped), then all within 3x the median
+            # least trimmed squares (the best half), then all within 3x the median
             use = np.ones(n, bool)
             for cut in (1.0, 1.0, 1.0, 1.0, 9.0):
                 rot = rotation(y, use)
@@ -309,8 +252,7 @@ def find_slips(raw, epochs=None, max_lag=DEFAULT_MAX_LAG, window=DEFAULT_WINDOW,
                 k = np.where(take & (w_best <= noise_factor * noise_cost), best, k0)
                 break
             k = new
-        # the window blurs a change of lag: where one lag a gives way to one lag b, put the
-        # boundary where the summed misfit of "a before, b after" is least
+        # the window blurs a change of lag a -> b: put it where "a before, b after" fits best
         for c in np.flatnonzero(np.diff(k)) + 1:
             lo, hi = max(0, c - window), min(n, c + window)
             a, b = k[c - 1], k[c]
@@ -323,11 +265,9 @@ def find_slips(raw, epochs=None, max_lag=DEFAULT_MAX_LAG, window=DEFAULT_WINDOW,
             split = lo + int(np.argmin(total))
             k[lo:split], k[split:hi] = a, b
         lag = candidates[k].copy()      # a set whose partner is missing: dropped by resync
-        # a stretch of one lag must look like a slip, not like an effect that a lag cancels
-        # by chance: a slip moves every set along its own field change u_j(e+1) - u_j(e-1),
-        # whose direction turns as the array turns, while a cancelled offset stays put; so
-        # the field-change directions over the stretch must spread (second eigenvalue of
-        # their mean outer product >= MIN_SPREAD), and the whole stretch must fit to the noise
+        # a slip moves each set along its field change, whose direction turns with the array
+        # (an offset a lag cancels by chance stays put): those directions must spread
+        # (MIN_SPREAD), and the stretch fit to the noise
         rate = np.gradient(u[j], axis=0)
         rate /= np.maximum(np.linalg.norm(rate, axis=1, keepdims=True), 1e-300)
         edges = np.flatnonzero(np.diff(lag)) + 1
@@ -340,9 +280,8 @@ def find_slips(raw, epochs=None, max_lag=DEFAULT_MAX_LAG, window=DEFAULT_WINDOW,
             if (spread < MIN_SPREAD or not c_l <= noise_factor * noise_cost     # partners
                     or not np.nanmedian(cost[k0, lo:hi]) >= min_contrast * c_l):
                 lag[lo:hi] = 0
-        # grow each re-paired stretch over its neighbours that fit its lag to the noise, or
-        # have no partner at its lag (at the ends of a run), and drop the neighbours that
-        # fit neither its lag nor 0 (the sample a slip skipped): resync drops those sets
+        # grow each re-paired stretch over neighbours that fit its lag (or have no partner at
+        # it); those that fit neither it nor 0 (the sample a slip skipped) are dropped
         edges = np.flatnonzero(np.diff(lag)) + 1
         for lo, hi in zip(np.r_[0, edges], np.r_[edges, n]):
             ell = lag[lo]
@@ -359,8 +298,7 @@ def find_slips(raw, epochs=None, max_lag=DEFAULT_MAX_LAG, window=DEFAULT_WINDOW,
                 if cost[k0, e] > noise_factor * noise_cost:
                     return DROP         # fits neither: its partner was lost in the slip
                 return None
-            # its end sets must fit its lag too (the boundary search may take in the set
-            # whose sample the slip skipped): else 0 if that fits, else drop them
+            # its end sets must fit its lag too: else 0 if that fits, else drop them
             fits = noise_factor * noise_cost
             ends = list(range(lo, min(lo + 3, hi))) + list(range(max(hi - 3, lo), hi))
             for e in ends:
@@ -390,32 +328,15 @@ def resync(data, epochs=None, slips=None, drop_inconsistent=False, **kwargs):
     """
     Drop garbled samples and re-pair the sets whose sensors came from different epochs.
 
-    Parameters
-    ----------
-    data : Dataset
-        (S sensors, N sets) in set order; ``temp`` rows move with their sensor, ``t`` and
-        the auxiliary channels stay with sensor 1.
-    epochs : numpy.ndarray, optional
-        (N,) epoch numbers (see :func:`find_slips`).
-    slips : Slips, optional
-        A result of :func:`find_slips` on ``data`` as it is (then no set is dropped as a
-        gross outlier first).  Default: sets with a :func:`gross_outliers` sample are
-        dropped, then :func:`find_slips` (with ``**kwargs``) runs on the rest.
-    drop_inconsistent : bool
-        Also drop the sets :func:`find_slips` counts inconsistent that a longer search (to
-        :data:`LONG_MAX_LAG` epochs) finds paired from epochs further apart (a longer slip,
-        a reader that lost pace); their number is the returned slips'
-        ``dropped_inconsistent``.  Sets no pairing fits (an effect of the sensor itself, a
-        site gradient) are kept: the fit's residual and diagnose describe them.
+    ``data``: (S sensors, N sets) in set order (``temp`` rows move with their sensor);
+    ``epochs`` as for :func:`find_slips`.  ``slips``: a :func:`find_slips` result on ``data``
+    as it is; default: the sets with a :func:`gross_outliers` sample are dropped, then
+    :func:`find_slips` (``**kwargs``) runs on the rest.  ``drop_inconsistent``: also drop the
+    inconsistent sets a search to :data:`LONG_MAX_LAG` epochs finds paired further apart
+    (``dropped_inconsistent``); sets no pairing fits are kept.
 
-    Returns
-    -------
-    (Dataset, Slips, int, int)
-        The re-paired data (the sets that kept a partner for every sensor), the slips found
-        (indexed like the sets left after the gross outliers), the number of sets dropped
-        in re-pairing (at a change of lag a sensor's sample is claimed by two sets or by
-        none) and the number dropped as gross outliers.
-
+    Returns (re-paired Dataset, Slips (indexed like the sets left after the gross outliers),
+    sets dropped in re-pairing, sets dropped as gross outliers).
     """
     n_gross = 0
     if slips is None:
@@ -434,7 +355,6 @@ def resync(data, epochs=None, slips=None, drop_inconsistent=False, **kwargs):
         if longer.inconsistent_sets is None:
             bad = None          # too short a record for the longer search: none is known
         else:
-            # mis-paired: at the pairing the longer search chose, it is consistent
             bad &= ~longer.inconsistent_sets.any(axis=0)
     if not (slips.n_slipped.any() or slips.n_drop.any()):
         if bad is not None and bad.any():
@@ -452,7 +372,7 @@ def resync(data, epochs=None, slips=None, drop_inconsistent=False, **kwargs):
         src = idx + np.where(drop, 0, slips.lags[j])
         ok = (src >= 0) & (src < n) & ~drop
         ok[ok] &= run[src[ok]] == run[ok]
-        # a sample of sensor j claimed by two sets (at a change of lag): keep neither pairing
+        # a sample claimed by two sets (at a change of lag): keep neither pairing
         values, counts = np.unique(src[ok], return_counts=True)
         dup = np.zeros(n, bool)
         dup[ok] = np.isin(src[ok], values[counts > 1])

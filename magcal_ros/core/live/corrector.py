@@ -15,17 +15,12 @@
 """
 Live correction of an array, one sample at a time (no ROS: used by the corrector node).
 
-Also the other live pieces without ROS: :class:`ResidualMonitor` (the calibration node's
+:class:`LiveCorrector` holds the calibration made ready per sensor (A_j^-1, offset,
+covariance), the latest driving signals, each stream's field rate, the set matcher
+(:class:`StampMatcher`) and the gradient operator; every matrix is computed once, so a sample
+costs a few 3x3 products.  Also :class:`ResidualMonitor` (the calibration node's
 ``calibration/residual``) and :class:`SampleBuffer` (the sets it collects for a fit).
-
-:class:`LiveCorrector` holds everything a stream of raw samples needs besides the samples:
-the calibration's correction made ready per sensor (A_j^-1, offset, covariance), the latest
-driving signals (temperature, auxiliary channels), the field-rate estimate of each stream,
-the grouping of the sensors' samples into sets of one epoch (:class:`StampMatcher`) and the
-gradient operator of the array geometry with its covariance.  Every matrix is computed once
-when the corrector is built, so a sample costs a few 3x3 products.
-
-Units: nT, nT/s, nT/m, s, degC (the library's; a ROS node converts at its boundary).
+Units: nT, nT/s, nT/m, s, degC.
 """
 from collections import deque
 
@@ -33,7 +28,7 @@ from magcal_ros.core.data.dataset import Dataset
 from magcal_ros.core.data.noise import noise_floor
 from magcal_ros.core.effects import raw_rate, SensorContext, SIGNALS
 from magcal_ros.core.effects.safety import EffectError
-from magcal_ros.core.geometry.tensor import tensor_operator
+from magcal_ros.core.geometry.tensor import TENSOR_MAP, tensor_operator
 from magcal_ros.core.live.sync import epoch_times, StampMatcher
 import numpy as np
 
@@ -43,8 +38,7 @@ MAX_RATE_GAP_S = 1.0
 PERIOD_WINDOW = 200
 #: arrivals needed before the sample period (and so the field rate) is estimated
 _MIN_ARRIVALS = 11
-#: chance that a correctly paired set of Gaussian noise fails the pairing check
-#: (:meth:`LiveCorrector.pairing_chi2`): about once in 4 min of sets at 4 x 1 kHz
+#: chance that a correctly paired set of Gaussian noise fails :meth:`LiveCorrector.pairing_chi2`
 PAIRING_FALSE_ALARM = 1e-6
 
 
@@ -69,27 +63,13 @@ def calibration_covariance_nt2(cal, j, field_nt):
     """
     (3, 3) covariance of sensor j's corrected field from the calibration's uncertainty, nT^2.
 
-    The corrected field c = A'^-1 (raw - o') of a calibration whose parameters are off by
-    their standard uncertainty differs from the true field b by M b + d (M = A'^-1 A - I,
-    d = A'^-1 (o - o')), per parameter of the sensor's linear effects and offset; over field
-    directions uniform on the sphere of magnitude ``field_nt`` (E[b b^T] = F^2 I / 3) that is
-    M M^T F^2 / 3 + d d^T, summed over the parameters (their correlations are not in the
-    calibration file: neglected). Driven effects (temperature, ...) are not included.
+    A parameter off by its standard uncertainty makes c = A'^-1 (raw - o') differ from the
+    field b by M b + d (M = A'^-1 A - I, d = A'^-1 (o - o')); over directions uniform on the
+    sphere of radius F (E[b b^T] = F^2 I / 3) that is M M^T F^2 / 3 + d d^T, summed over the
+    sensor's linear and offset parameters (correlations neglected; driven effects left out).
 
-    Parameters
-    ----------
-    cal : magcal_ros.core.model.Calibration
-        The calibration, with the standard uncertainties of its parameters.
-    j : int
-        Sensor, 1-based.
-    field_nt : float
-        Magnitude of the field, nT.
-
-    Returns
-    -------
-    numpy.ndarray
-        (3, 3) nT^2; zeros when the calibration has no uncertainties.
-
+    ``cal`` a Calibration with its standard uncertainties, ``j`` 1-based; zeros without
+    uncertainties.
     """
     from magcal_ros.core.model.calibration import Calibration
     model = cal.model
@@ -117,14 +97,10 @@ class _Sensor:
         self.j = j
         self.a_inv = cal.correction_matrix(j)
         self.offset = cal.offset(j)
-        # the signals the calibration's effects declare (Effect.signals); the stamp ('time')
-        # is always there
         self.needs = set(cal.signals(j)) - {'time'}
         self.driven = bool(cal.driven_effects(j))
         sigma = float(cal.sigma_nt[j - 1])
-        # corrected = A^-1 raw: white raw noise sigma^2 I maps to sigma^2 A^-1 A^-T (nT^2)
-        self.cov_nt2 = None
-        #: (3, 3) nT^2 of the calibration's own uncertainty (field_nt given), else zeros
+        self.cov_nt2 = None           # sigma^2 A^-1 A^-T, nT^2
         self.cal_cov_nt2 = (calibration_covariance_nt2(cal, j, field_nt)
                             if field_nt else np.zeros((3, 3)))
         if np.isfinite(sigma) and sigma > 0:
@@ -141,38 +117,21 @@ class LiveCorrector:
     Parameters
     ----------
     cal : magcal_ros.core.model.Calibration
+        Effect code that raises here is re-raised as
+        :class:`~magcal_ros.core.effects.safety.EffectError` naming it.
     n_sensors : int
-        Sensors of the array; a calibration for another count is refused (ValueError).
-        Effect code that raises while the calibration is made ready (a plug-in's matrix)
-        is re-raised as :class:`~magcal_ros.core.effects.safety.EffectError` naming it.
+        Sensors of the array; another count than the calibration's: ValueError.
     positions_m : array_like, optional
-        (S, 3) sensor positions in the array frame, m (the calibration document's
-        ``geometry.positions_m``); without them no gradient is computed
-        (:attr:`no_gradient_reason` says why).
+        (S, 3) sensor positions in the array frame, m; without them no gradient
+        (:attr:`no_gradient_reason`).
     stamp_tolerance_s : float
-        Tolerance of the set matcher (:class:`magcal_ros.core.live.sync.StampMatcher`), s.
+        Tolerance of the :class:`~magcal_ros.core.live.sync.StampMatcher`, s.
     check_pairing : bool
-        Check every set from the data before it gives a tensor (:meth:`pairing_chi2`) and
-        re-pair a shifted stream at once; off, sets are paired by stamps alone.
+        Check every set from the data (:meth:`pairing_chi2`) and re-pair a shifted stream
+        at once; off, sets are paired by stamps alone.
     field_nt : float, optional
-        Field magnitude of the calibration, nT: with it :meth:`covariance_nt2` adds the
-        calibration's own uncertainty (:func:`calibration_covariance_nt2`) to the noise.
-
-    Attributes
-    ----------
-    gradient_op : numpy.ndarray or None
-        (9, 3 S) maps the stacked corrected fields (nT) to the row-major tensor (nT/m)
-        (paper 004 eq. 1 for the cross; :func:`magcal_ros.core.geometry.tensor.tensor_operator`).
-    gradient_cov_nt2 : numpy.ndarray or None
-        (9, 9) covariance of the row-major tensor, (nT/m)^2, from the sensors' corrected-field
-        covariances (independent sensors); None when a sensor has no noise estimate.
-    matcher : StampMatcher
-    pairing_dof : int
-        Redundant combinations of a set's 3 S field components the check tests (3 S - 8:
-        4 for the cross); 0 when there is no check (:attr:`no_check_reason` says why).
-    pairing_threshold : float
-        Largest chi-square of a set that passes the check (chi-square with
-        ``pairing_dof`` degrees of freedom at :data:`PAIRING_FALSE_ALARM`).
+        Field magnitude of the calibration, nT: :meth:`published_covariance_nt2` then adds
+        :func:`calibration_covariance_nt2`.
 
     """
 
@@ -184,17 +143,20 @@ class LiveCorrector:
         self.cal = cal
         self.n_sensors = n_sensors
         try:
-            # runs the effects' code (their matrices, declarations): a failure names the effect
             self._sensors = [_Sensor(cal, j, field_nt) for j in range(1, n_sensors + 1)]
         except Exception as exc:           # noqa: B902 -- effect code may raise anything
             raise EffectError(exc) from exc
         self.temp = np.full(n_sensors, np.nan)
         self.aux = {}
         self.matcher = StampMatcher(n_sensors, stamp_tolerance_s)
+        #: (9, 3 S) stacked corrected fields (nT) to the row-major tensor (nT/m), or None
         self.gradient_op = None
+        #: (9, 9) covariance of that tensor, (nT/m)^2; None: a sensor has no noise estimate
         self.gradient_cov_nt2 = None
         self.no_gradient_reason = None
         self.positions_m = None
+        #: redundant combinations the check tests (3 S - 8; 0: none), and the largest
+        #: chi-square that passes (at :data:`PAIRING_FALSE_ALARM`)
         self.pairing_dof, self.pairing_threshold = 0, np.inf
         self._set_op = None            # (9 + dof, 3 S): the tensor, then K (pairing_chi2)
         self._checked = None           # (the fields last checked, their _set_op product)
@@ -207,7 +169,6 @@ class LiveCorrector:
             pos = np.asarray(positions_m, float)
             if pos.shape != (n_sensors, 3):
                 raise ValueError(f'positions_m has shape {pos.shape}, expected ({n_sensors}, 3)')
-            # rows 3.. of the operator: G row-major (9, 3 S)
             self.gradient_op = tensor_operator(pos)[3:]
             self.positions_m = pos
         except ValueError as exc:
@@ -225,9 +186,7 @@ class LiveCorrector:
                 self.pairing_dof = len(k)
                 if self.pairing_dof:
                     self._set_op = np.vstack([self.gradient_op, k])
-                    # chi-square's upper quantile: scipy.special.chdtri(k, q), which is what
-                    # scipy.stats.chi2.isf(q, k) calls; importing scipy.stats (1.17) for it
-                    # cost the node 0.5-0.8 s of CPU at every start (BENCHMARKS.md)
+                    # = scipy.stats.chi2.isf, without importing scipy.stats (BENCHMARKS.md)
                     from scipy.special import chdtri
                     self.pairing_threshold = float(chdtri(self.pairing_dof,
                                                           PAIRING_FALSE_ALARM))
@@ -251,18 +210,12 @@ class LiveCorrector:
         """
         Pose of each sensor's frame in the array frame, from the calibration and geometry.
 
-        The frame of sensor j is its own orthogonalised axes (C_j^-1 raw, paper 004 eq. 5);
-        R_j rotates it into the array frame (sensor 1's orthogonalised axes; eq. 14), so a
-        vector v_j of sensor j is R_j v_j in the array frame.  The scale and
-        non-orthogonality of the raw axes (C_j) are not a rigid transform and stay in the
+        Sensor j's frame is its orthogonalised axes (C_j^-1 raw, paper 004 eq. 5); R_j
+        rotates it into the array frame (eq. 14).  C_j is not rigid and stays in the
         calibration.
 
-        Returns
-        -------
-        list of (numpy.ndarray, numpy.ndarray)
-            Per sensor: R_j (3, 3) proper rotation and the position (3,) m; an empty list
-            without geometry (:attr:`no_gradient_reason`).
-
+        Returns [(R_j (3, 3) proper rotation, position (3,) m)] per sensor; [] without
+        geometry (:attr:`no_gradient_reason`).
         """
         if self.positions_m is None:
             return []
@@ -273,10 +226,9 @@ class LiveCorrector:
         """
         (S, 3) nT shift of every sensor by the calibration's site gradient, or None.
 
-        The field at sensor j minus the centre field, R^T G_w R r_j (docs/site_gradient.md),
-        at the fixed attitude ``quaternion`` (4,) (qw, qx, qy, qz, body-to-world): what a
-        stationary test subtracts to leave the anomaly.  None without a site gradient;
-        :class:`~magcal_ros.core.effects.safety.EffectError` if the effect's code raises.
+        R^T G_w R r_j (docs/site_gradient.md) at the fixed attitude ``quaternion`` (4,) (qw,
+        qx, qy, qz, body-to-world); None without a site gradient; EffectError if the
+        effect's code raises.
         """
         if self.cal.site_gradient() is None:
             return None
@@ -293,9 +245,8 @@ class LiveCorrector:
         """
         (A_j^-1 (3, 3), offset (3,) nT) when sensor j's correction is that alone, else None.
 
-        For a sensor without driven effects the correction is A_j^-1 (raw - o_j), the same in
-        any unit of the field: a caller may apply it to readings in tesla (the corrector's
-        fast path) after converting the offset.  No field-rate state is kept on that path.
+        A_j^-1 (raw - o_j) holds in any unit: a caller may apply it to readings in tesla
+        after converting the offset (no field-rate state is kept on that path).
         """
         s = self._sensors[j - 1]
         return None if s.driven else (s.a_inv.copy(), s.offset.copy())
@@ -308,10 +259,9 @@ class LiveCorrector:
         """
         (3, 3) covariance a corrected sample of sensor j is published with, nT^2.
 
-        The noise (:meth:`covariance_nt2`) plus the calibration's own uncertainty
-        (:func:`calibration_covariance_nt2`, with ``field_nt``); None without a noise
-        estimate.  The tensor's covariance and the pairing check use the noise alone: the
-        calibration error is common to every set, not a scatter between them.
+        :meth:`covariance_nt2` plus :func:`calibration_covariance_nt2` (with ``field_nt``);
+        None without a noise estimate.  The tensor and the pairing check use the noise
+        alone (the calibration error is common to every set).
         """
         s = self._sensors[j - 1]
         return None if s.cov_nt2 is None else s.cov_nt2 + s.cal_cov_nt2
@@ -328,19 +278,8 @@ class LiveCorrector:
         """
         Correct one finite raw sample of sensor j and remember it for the field rate.
 
-        Parameters
-        ----------
-        j : int
-            Sensor, 1-based.
-        t : float
-            Stamp of the sample, s.
-        raw : numpy.ndarray
-            (3,) raw reading, nT.
-
-        Returns
-        -------
-        numpy.ndarray
-            (3,) corrected field in the array frame, nT.
+        ``j`` 1-based, ``t`` its stamp s, ``raw`` (3,) nT; returns the corrected field (3,) nT
+        in the array frame.
 
         Raises
         ------
@@ -355,7 +294,7 @@ class LiveCorrector:
         s.recent.append((t, raw))
         s.arrivals.append(t)
         if not s.driven:
-            return s.a_inv @ (raw - s.offset)          # the common case: one 3x3 product
+            return s.a_inv @ (raw - s.offset)
         rate = self._rate(s) if 'field_rate' in s.needs else None
         temp = self.temp[j - 1]
         ctx = SensorContext(
@@ -373,15 +312,11 @@ class LiveCorrector:
     @staticmethod
     def _rate(s):
         """
-        Return d(raw)/dt of the newest sample, nT/s (3,).
+        Return d(raw)/dt (3,) nT/s of the newest sample, or None.
 
-        d(raw)/dt, nT/s (3,), of the newest sample: :func:`~magcal_ros.core.effects.raw_rate`
-        on the last three samples (its second-order one-sided form; the fit's interior
-        samples use the central one: they agree to (w h)^2 / 2, see there).
-
-        Consecutive samples of one stream are one period apart, but their stamps are not
-        (samples read at once share one), so the period is the mean over the last
-        :data:`PERIOD_WINDOW` arrivals.
+        :func:`~magcal_ros.core.effects.raw_rate` on the last three samples (one-sided), with
+        the period the mean over the last :data:`PERIOD_WINDOW` arrivals (stamps of samples
+        read at once are equal).
         """
         if (len(s.recent) < 3 or len(s.arrivals) < _MIN_ARRIVALS
                 or np.diff([t for t, _ in s.recent]).max() > MAX_RATE_GAP_S):
@@ -394,14 +329,8 @@ class LiveCorrector:
         """
         Add a corrected sample of sensor j; return the sets of all sensors it completes.
 
-        ``j`` and ``t`` as for :meth:`correct`; ``field_nt`` (3,) is its result, nT.
-
-        Returns
-        -------
-        list of (float, list of numpy.ndarray)
-            (stamp of the set s, the S corrected fields (3,) nT) per completed set, oldest
-            first.
-
+        ``j``, ``t`` as for :meth:`correct`, ``field_nt`` (3,) nT its result.  Returns
+        [(stamp of the set s, the S corrected fields (3,) nT)], oldest first.
         """
         return [(t_set, fields) for _, t_set, fields in self.matcher.add(j - 1, t, field_nt)]
 
@@ -409,32 +338,19 @@ class LiveCorrector:
         """
         Chi-square of the S corrected fields of a set as the samples of one epoch.
 
-        A set of one epoch fits B(r) = B0 + G r with G symmetric and traceless (a curl- and
-        divergence-free field; the model of
-        :func:`magcal_ros.core.geometry.tensor.tensor_operator`,
-        paper 004 eq. 1 for the cross) to the noise: its weighted least-squares residual
-        chi^2 = |K b|^2 (:func:`pairing_operator`) is chi-square with :attr:`pairing_dof`
-        degrees of freedom, whatever the gradient.  A sample of another epoch of a turning
-        array adds the field change between the epochs (~50-200 nT per epoch at 100 Hz of
-        tumbling), which no symmetric traceless G absorbs: for the cross it makes the
-        centre fields of the two opposite pairs disagree.  (Not every mis-pairing shows:
-        two opposite sensors of the planar cross shifted the opposite ways look like a
-        gradient but in one component; a single lost sample never does that.)
+        A set of one epoch fits B(r) = B0 + G r, G symmetric traceless
+        (:func:`magcal_ros.core.geometry.tensor.tensor_operator`), to the noise: its weighted
+        residual chi^2 = |K b|^2 (:func:`pairing_operator`) is chi-square with
+        :attr:`pairing_dof` dof whatever the gradient.  A sample of another epoch of a
+        turning array adds the field change between epochs, which no such G absorbs (two
+        opposite sensors of the planar cross shifted the opposite ways can hide in one
+        component; a single lost sample never does).
 
-        Parameters
-        ----------
-        fields_nt : sequence of numpy.ndarray
-            S corrected fields (3,) nT, array frame.
-
-        Returns
-        -------
-        float
-            chi^2 (0 without a check: :attr:`no_check_reason`).
-
+        ``fields_nt``: S corrected fields (3,) nT, array frame; 0 without a check
+        (:attr:`no_check_reason`).
         """
         if self._set_op is None:
             return 0.0
-        # the tensor comes with it: gradients() takes it for a set that passed
         y = self._set_op @ np.concatenate(fields_nt)
         self._checked = (fields_nt, y)
         z = y[9:]
@@ -444,14 +360,8 @@ class LiveCorrector:
         """
         Add a corrected sample of sensor j; return the tensors of the sets it completes.
 
-        ``j`` and ``t`` as for :meth:`correct`; ``field_nt`` (3,) is its result, nT.
-
-        Returns
-        -------
-        list of (float, numpy.ndarray)
-            (stamp of the set s, tensor (3, 3) nT/m) per completed set, oldest first; empty
-            without geometry.
-
+        As :meth:`sets`, with the tensor (3, 3) nT/m in place of the fields; [] without
+        geometry.
         """
         if self.gradient_op is None:
             return []
@@ -459,7 +369,7 @@ class LiveCorrector:
         for t_set, fields in self.sets(j, t, field_nt):
             checked = self._checked
             if checked is not None and checked[0] is fields:
-                g = checked[1][:9]                   # computed by the check
+                g = checked[1][:9]
             else:
                 g = self.gradient_op @ np.concatenate(fields)
             out.append((t_set, g.reshape(3, 3)))
@@ -470,32 +380,18 @@ def pairing_operator(positions_m, cov_nt2):
     """
     Whitened residual map of the set check: chi^2 of a set = |K b|^2.
 
-    The least-squares residual of b = H theta + noise, theta = (B0, G symmetric traceless:
-    g_xx, g_xy, g_xz, g_yy, g_yz), H the linear field at the sensor positions, in the
-    metric of the noise covariance: with Sigma = L L^T and the QR decomposition of
-    L^-1 H, the last 3 S - rank(H) columns Q_r of Q span the residual, and K = Q_r^T L^-1.
+    The residual of b = H theta + noise, theta = (B0, g_xx, g_xy, g_xz, g_yy, g_yz), in the
+    noise metric: Sigma = L L^T, L^-1 H = Q R, Q_r the last 3 S - rank(H) columns of Q,
+    K = Q_r^T L^-1.
 
-    Parameters
-    ----------
-    positions_m : numpy.ndarray
-        (S, 3) sensor positions, m.
-    cov_nt2 : numpy.ndarray
-        (3 S, 3 S) covariance of the stacked corrected fields, nT^2.
-
-    Returns
-    -------
-    numpy.ndarray
-        (3 S - rank(H), 3 S) K, 1/nT; (0, 3 S) when nothing is redundant.
-
+    ``positions_m`` (S, 3) m, ``cov_nt2`` (3 S, 3 S) nT^2 of the stacked corrected fields;
+    returns K (3 S - rank(H), 3 S), 1/nT ((0, 3 S) when nothing is redundant).
     """
     pos = np.asarray(positions_m, float)
     pos = pos - pos.mean(axis=0)
-    h = np.zeros((3 * len(pos), 8))
-    for k, (x, y, z) in enumerate(pos):
-        h[3 * k:3 * k + 3, :3] = np.eye(3)
-        h[3 * k:3 * k + 3, 3:] = [[x, y, z, 0.0, 0.0],
-                                  [0.0, x, 0.0, y, z],
-                                  [-z, 0.0, x, -z, y]]
+    # rows 3 k + i: B0_i + (G r_k)_i, G = TENSOR_MAP theta[3:] (+ 0.0: no -0.0)
+    lin = np.einsum('ijq,kj->kiq', TENSOR_MAP.reshape(3, 3, 5), pos).reshape(-1, 5) + 0.0
+    h = np.hstack([np.tile(np.eye(3), (len(pos), 1)), lin])
     chol = np.linalg.cholesky(cov_nt2)
     hw = np.linalg.solve(chol, h)
     rank = np.linalg.matrix_rank(hw)
@@ -503,8 +399,8 @@ def pairing_operator(positions_m, cov_nt2):
     return np.linalg.solve(chol.T, q[:, rank:]).T         # Q_r^T L^-1
 
 
-#: a rolling residual above this multiple of its noise-floor expectation means the
-#: calibration no longer fits (the pipeline's threshold for a fit above the floor)
+#: a rolling residual above this multiple of its noise-only expectation: the calibration no
+#: longer fits
 RESIDUAL_WARN_RATIO = 1.5
 
 
@@ -512,36 +408,21 @@ class ResidualMonitor:
     """
     Residuals of the active calibration on live sets, and their ratio to the noise floor.
 
-    Per set of corrected fields b_j (array frame, nT) and sensor j:
+    Per set of corrected fields b_j (array frame, nT): the scalar residual ``|b_j| - F`` and
+    the vector residual ``|b_j - mean_{k != j} b_k|``.  Over the last ``window`` sets their
+    RMS is compared with the noise alone: the floor f_j of each corrected series
+    (:func:`magcal_ros.core.data.noise.noise_floor`) predicts f_j for the scalar residual and
+    sqrt(3 (f_j^2 + sum_{k != j} f_k^2 / (S - 1)^2)) for the vector one; a ratio above
+    :data:`RESIDUAL_WARN_RATIO` asks for the diagnosis.  One sensor has no vector residual
+    (NaN; :attr:`kinds` is ``('scalar',)``).
 
-    - scalar residual ``|b_j| - F`` against the reference magnitude F (the fit's scalar
-      constraint);
-    - vector residual ``|b_j - mean_{k != j} b_k|``: the distance to the consensus of the
-      other sensors (the fit's inter-sensor consistency; in a uniform field only noise).
-
-    Over the last ``window`` sets the monitor compares their RMS with what noise alone
-    gives: the noise floor f_j of each corrected series from its high-order differences
-    (:func:`magcal_ros.core.data.noise.noise_floor`, no model) predicts an RMS of f_j for the
-    scalar residual and sqrt(3 (f_j^2 + sum_{k != j} f_k^2 / (S - 1)^2)) for the vector one.
-    A ratio above :data:`RESIDUAL_WARN_RATIO` means an effect the calibration lacks (or a
-    changed sensor): time to run the diagnosis.  A single sensor has no vector residual
-    (NaN, :attr:`kinds` is ``('scalar',)``).
-
-    Parameters
-    ----------
-    n_sensors : int
-    field_nt : float
-        Reference magnitude F, nT.
-    window : int
-        Sets in the rolling window.
-
+    ``field_nt``: reference magnitude F, nT; ``window``: sets in the rolling window.
     """
 
     def __init__(self, n_sensors, field_nt, window=1000):
         if n_sensors < 1:
             raise ValueError('the residual needs at least one sensor')
         self.n_sensors = n_sensors
-        #: the residuals this array has: the vector one needs a second sensor
         self.kinds = ('scalar', 'vector') if n_sensors > 1 else ('scalar',)
         self.field_nt = float(field_nt)
         self.window = int(window)
@@ -552,18 +433,9 @@ class ResidualMonitor:
 
     def add(self, fields_nt):
         """
-        Add one set; return its residuals.
+        Add one set of (S, 3) corrected fields, nT (in time order); return its residuals.
 
-        Parameters
-        ----------
-        fields_nt : array_like
-            (S, 3) corrected fields of the set, nT, sets in time order.
-
-        Returns
-        -------
-        (numpy.ndarray, numpy.ndarray)
-            Scalar residual (S,) nT (signed) and vector residual (S,) nT (a length).
-
+        Returns (scalar residual (S,) nT, signed; vector residual (S,) nT, a length).
         """
         b = np.asarray(fields_nt, float)
         s = self.n_sensors
@@ -584,15 +456,11 @@ class ResidualMonitor:
         """
         Return the rolling RMS residuals and their ratio to the noise-only expectation.
 
-        Returns
-        -------
-        dict or None
-            ``scalar_rms_nt``, ``vector_rms_nt``, ``floor_nt`` (S,) nT, ``scalar_ratio``,
-            ``vector_ratio`` (S,), ``sets`` (int); None with fewer than ``min_sets`` sets.
-
+        {``scalar_rms_nt``, ``vector_rms_nt``, ``floor_nt`` (S,) nT, ``scalar_ratio``,
+        ``vector_ratio`` (S,), ``sets``}; None with fewer than ``min_sets`` sets.
         """
         n = min(self.count, self.window)
-        if n < max(min_sets, 14):                     # the floor needs a few differences
+        if n < max(min_sets, 14):
             return None
         order = (np.arange(self.count - n, self.count) % self.window)
         floor = noise_floor(self._fields[:, order])
@@ -612,26 +480,14 @@ class SampleBuffer:
     """
     Matched sample sets of S sensors spread evenly over the whole run, in flat memory.
 
-    Not thread-safe (lock outside).  The buffer holds at most ``capacity`` sets whatever
-    the length of the run: while it has room it keeps every set; when it is full it drops
-    every other set it holds (the 2nd, 4th, ... in time) and from then on keeps every 2nd
-    set that arrives, then every 4th, ... (time-stratified thinning, the same as
-    :class:`magcal_ros.core.data.reduce.Reducer`'s sample).  The sets kept are thus evenly
-    spread from the first set to the latest, so the attitudes of the whole run (not of its
-    last ``capacity`` sets) enter the calibration; :meth:`coverage` says how much of the
-    run they stand for.  The price: after thinning the sets are ``stride`` epochs apart, so
-    the field rate d(raw)/dt of a lag effect is taken over that spacing.
+    Not thread-safe.  At most ``capacity`` sets: when full, every other set held is dropped
+    and from then on every 2nd set arriving is kept, then every 4th, ... (as
+    :class:`magcal_ros.core.data.reduce.Reducer`'s sample), so the whole run's attitudes
+    enter the calibration (:meth:`coverage`); the field rate of a lag effect is then taken
+    over ``stride`` epochs.
 
-    Parameters
-    ----------
-    n_sensors : int
-    capacity : int
-        Most sets kept (at least 2).
-    aux_names : sequence of str
-        Auxiliary column names (``aux_<name>``).
-    source : str
-        ``meta['source']`` of the datasets it returns.
-
+    ``capacity``: most sets kept (at least 2); ``aux_names``: auxiliary columns
+    (``aux_<name>``); ``source``: ``meta['source']`` of the datasets it returns.
     """
 
     def __init__(self, n_sensors, capacity, aux_names=(), source='live (calibration_node)'):
@@ -647,9 +503,9 @@ class SampleBuffer:
 
     def clear(self):
         """Forget all sets."""
-        self.count = 0          # sets ever added since clear()
+        self.count = 0          # sets added since clear()
         self.n = 0              # sets held
-        self.stride = 1         # every stride-th set that arrives is kept
+        self.stride = 1         # every stride-th set arriving is kept
         self.t_first = self.t_last = None
 
     def __len__(self):
@@ -694,11 +550,9 @@ class SampleBuffer:
         """
         How much of the run the sets held stand for (JSON-ready).
 
-        ``sets_held``, ``sets_received`` (since the start or the last reset),
-        ``stride`` (one set kept in ``stride``), ``run_s`` (first to latest set, s),
-        ``held_from_s`` / ``held_to_s`` (the span the sets held cover, s after the first
-        set) and ``fraction_of_run`` (that span over the run: 1 when they reach from its
-        start to its latest ``stride`` sets).
+        ``sets_held``, ``sets_received`` (since the last reset), ``stride``, ``run_s`` (first
+        to latest set, s), ``held_from_s`` / ``held_to_s`` (span of the sets held, s after the
+        first set) and ``fraction_of_run`` (that span over the run).
         """
         run = 0.0 if self.t_first is None else self.t_last - self.t_first
         out = {'sets_held': int(self.n), 'sets_received': int(self.count),
@@ -722,25 +576,31 @@ class SampleBuffer:
 
     def epochs(self):
         """(N,) int epoch numbers of the buffered sets, chronological (a copy)."""
-        return self.epoch[self._order()].copy()
+        return self.epoch[:self.n].copy()
 
     def stamps(self):
         """(N,) s stamps of the buffered sets as they arrived, chronological (a copy)."""
-        return self.t[self._order()].copy()
+        return self.t[:self.n].copy()
 
     def dataset(self):
         """Return a :class:`Dataset` of the buffered sets in chronological order (copies)."""
         idx = self._order()
         temp = self.temp[:, idx]
-        aux = {}
-        for name, arr in self.aux.items():
-            col = arr[idx]
-            if np.isfinite(col).any():
-                # sample-and-hold before the first value arrived: use the first value
-                first = col[np.flatnonzero(np.isfinite(col))[0]]
-                aux[name] = np.where(np.isfinite(col), col, first)
-        # sample instants from the epoch numbers and the (late, jittery) arrival stamps
-        t = epoch_times(self.epoch[idx], self.t[idx])
-        return Dataset(t=t, raw=self.raw[:, idx].copy(),
-                       temp=temp.copy() if np.isfinite(temp).any() else None, aux=aux,
-                       meta={'source': self.source})
+        return Dataset(t=epoch_times(self.epoch[idx], self.t[idx]), raw=self.raw[:, idx].copy(),
+                       temp=temp.copy() if np.isfinite(temp).any() else None,
+                       aux=held_aux(self.aux, idx), meta={'source': self.source})
+
+
+def held_aux(aux, idx):
+    """
+    Auxiliary columns at ``idx`` (those with a value), held before their first value arrived.
+
+    ``aux``: {column: (C,) values, nan where none}; returns {column: (len(idx),)}.
+    """
+    out = {}
+    for name, arr in aux.items():
+        col = arr[idx]
+        ok = np.isfinite(col)
+        if ok.any():
+            out[name] = np.where(ok, col, col[np.argmax(ok)])
+    return out

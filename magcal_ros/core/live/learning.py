@@ -17,80 +17,46 @@ Learning in operation (issue 34): keep the calibration right while the vehicle w
 
 No ROS here: the calibration node feeds a :class:`Learner` with every matched set of raw
 readings (and the attitude), runs its refits in a worker thread, publishes what it says and
-installs what it adopts.  Units: nT, s.
+installs what it adopts (docs/design.md, "Learning in operation").  Units: nT, s.
 
-**The window.**  The recent sets, at most :attr:`LearnConfig.window_sets` of the last
-:attr:`LearnConfig.window_s` seconds, thinned evenly in time as they arrive (a set is kept
-when it is at least ``window_s / window_sets`` after the last one kept): flat arrays, the
-same memory whatever the rate or the length of the run.  Per set the learner also adds the
-set to the current block of :attr:`LearnConfig.block_s` (plain list appends); each block is
-judged once, when it ends, in a few vectorised operations: the CPU per set does not grow
-with time (bench/learning.py measures it at 1 kHz).
+**The window**: at most :attr:`LearnConfig.window_sets` sets of the last ``window_s``,
+thinned evenly in time as they arrive, in flat arrays; each block of ``block_s`` is judged
+once when it ends, so memory and CPU per set stay flat (bench/learning.py).
 
-**Change versus disturbance** (the test statistic).  The active calibration, applied to a
-block of n sets, gives each sensor's scalar residual r_j = |b_j| - F.  For an array the
-common mode is removed, e_j = r_j - median_{k != j} r_k: a change of the field itself (a
-passing vehicle, a region of another field, the diurnal variation) is seen alike by every
-sensor and cancels, while a change of one sensor (an offset step from a payload or a battery
-next to it, a magnetised part) does not, and stays in that sensor's e_j alone (the median of
-the others ignores it; a mean would spread a third of it onto the others of a cross).  With
-sigma_j the per-axis noise floor of the block (:func:`magcal_ros.core.data.noise.noise_floor`:
-differences of the raw series, no model, heavy-tail corrected) the noise alone gives e_j the
-variance v_j = sigma_j^2 + c_m mean_{k != j} sigma_k^2, c_m the variance of the median of
-m = S - 1 unit normals (0.449 for the cross).  The block's statistic is the robust mean
-square z_j = (1.4826 median |e_j|)^2 / v_j (the Gaussian-consistent MAD about zero): 1
-under the noise, insensitive to spikes (a few per cent of the sets can be anything). Its
-square root, a robust RMS ratio, is close to normal with sd 1.166 / sqrt(n) (the sample
-median of a half-normal: var = 1 / (4 n f(m)^2)); a block *exceeds* when some sqrt(z_j) is
-above 1 + :attr:`LearnConfig.exceed_sigmas` x 1.166 / sqrt(n) (z itself is skewed: at 4 of
-its own sds, 2.3 at n = 50, the simulated vehicle's noise exceeded it in 1e-3 of the blocks
-per sensor; at 5 sds of sqrt(z) none of 4 x 1 470, 25 min at 50 Hz).
+**The statistic.**  The active calibration gives each sensor's scalar residual
+r_j = |b_j| - F; for an array the common mode is removed, e_j = r_j - median_{k != j} r_k
+(a change of the field cancels; a change of one sensor stays in its own e_j, which the median
+of the others ignores).  With sigma_j the block's per-axis noise floor
+(:func:`magcal_ros.core.data.noise.noise_floor`), e_j has under the noise the variance
+v_j = sigma_j^2 + c_m mean_{k != j} sigma_k^2, c_m the variance of the median of m = S - 1
+unit normals.  z_j = (MAD_TO_SD median |e_j|)^2 / v_j is 1 under the noise and insensitive to
+spikes; sqrt(z) has sd :data:`Z_SD_UNIT` / sqrt(n) (the median of a half-normal), and a block
+*exceeds* when some sqrt(z_j) > 1 + ``exceed_sigmas`` x that sd.
 
-Persistence decides: an exceeding block starts a *change detected* (its onset); the change
-ends as a *transient* (not learned) as soon as :attr:`LearnConfig.clear_blocks` blocks in a
-row are clean again; it is *persistent* once :attr:`LearnConfig.persist_s` have passed since
-its onset with at least :attr:`LearnConfig.persist_fraction` of the blocks exceeding and the
-latest exceeding.  A persistent change is refitted on the sets since its onset only.  So a
-magnet passing for a few seconds, spikes, or anything shorter than ``persist_s`` is never
-learned; a step gives a proposal ``persist_s`` plus at most one refit
-(:attr:`LearnConfig.refit_period_s` and the fit's own time) after its onset; a slow drift
-once it reaches the detection threshold.  With one sensor there is no common mode to remove:
-a field excursion longer than ``persist_s`` reads as a change (the default 90 s is longer than
-a minute-long excursion; the validation then adopts only what lowers the held-out residual).
+**Persistence.**  An exceeding block starts a *change* (its onset); it ends as a *transient*
+after ``clear_blocks`` clean blocks in a row, and is *persistent* once ``persist_s`` have
+passed with at least ``persist_fraction`` of its blocks exceeding and the latest exceeding.
+A persistent change is refitted on the sets since its onset, on the sensors that exceeded in
+at least half its blocks (the others held), with priors centred on the active calibration
+(``refit`` callable: :func:`magcal_ros.pipeline.refit_recent`).  With one sensor a field
+excursion longer than ``persist_s`` reads as a change.
 
-**What is refitted.**  Every refit (each ``refit_period_s``, and when a change turns
-persistent) fits the active calibration's model to the window (since the onset when a change
-is on).  A persistent change is learned on the sensors that exceeded in at least half of its
-blocks (the others are held: with them the array's agreement pins the changed sensor's
-offset down within seconds, where its own turn would need a large part of a circle); each
-sensor-map parameter of those gets a prior centred on the active calibration
-(``refit`` callable: :func:`magcal_ros.pipeline.refit_recent`), names what the recent motion
-does not determine and holds it at the active value.  The estimate, with its uncertainties and
-the undetermined parameters, is what the node publishes on ``calibration/learned``.
-
-**Validated adoption.**  The window's sets are split into interleaved blocks of
-:attr:`LearnConfig.holdout_block_s`: every :attr:`LearnConfig.holdout_every`-th is held out
-and the proposal is fitted on the rest.  On the held-out blocks both calibrations give the
-scalar residual r_j and, for an array, the detector's e_j (in units of the noise: r_j^2 /
-sigma_j^2 + e_j^2 / v_j, so that a proposal cannot trade an error common to all sensors,
-which e does not see, for a lower e); per held-out block l_b = log(mean of that over the
-block's sets and sensors with the active calibration / the same with the proposal), the log
-of the ratio of the two mean squares.  The proposal is valid when
-the mean of l_b over at least three blocks exceeds :attr:`LearnConfig.validate_sigmas` times
-its standard error over the blocks (blocks, not sets: the residual of a slow trajectory is
-correlated within a block; a log ratio, not a difference: a change's residual varies with
-the heading by orders of magnitude, its ratio to the proposal's much less): it lowers the
-residual by more than the noise allows.  Under the noise alone (a proposal that only fitted
-noise) l_b scatters about a small negative value (the held-out penalty of fitted
-parameters).  Only a valid proposal of a persistent change is *ready*, or one that refines
-the change adopted last (fitted on the sets since its onset, more than it had); it is adopted
-at once with ``auto_adopt``, else on request.
+**Validated adoption.**  Every ``holdout_every``-th block of ``holdout_block_s`` is held out;
+on each held-out block l_b = log(mean over its sets and sensors of r_j^2 / sigma_j^2 +
+e_j^2 / v_j with the active calibration / the same with the proposal) (r too, so that a
+proposal cannot trade a common error for a lower e).  A proposal is valid when the mean of
+l_b over at least three blocks exceeds ``validate_sigmas`` standard errors over the blocks
+(blocks: the residual is correlated within one; a log ratio: a change's residual varies with
+the heading by orders of magnitude, its ratio much less).  A valid proposal of a persistent
+change, or one refining the change adopted last, is *ready*: adopted at once with
+``auto_adopt``, else on request.
 """
 from collections import deque
 from dataclasses import dataclass, field
 
 from magcal_ros.core.data.dataset import Dataset
 from magcal_ros.core.data.noise import noise_floor
+from magcal_ros.core.live.corrector import held_aux
 from magcal_ros.core.model.solvers import MAD_TO_SD
 import numpy as np
 
@@ -101,57 +67,26 @@ READY = 'proposal ready'
 ADOPTED = 'adopted'
 UNDETERMINED = 'not determined by the recent motion'
 
-#: sd of the robust RMS ratio sqrt(z) of n residuals of unit variance is this over sqrt(n)
-#: (the sample median of |e|, a half-normal's: sd(med) / med = 1.166 / sqrt(n))
+#: sd of sqrt(z) of n unit-variance residuals times sqrt(n) (sd(med) / med of a half-normal)
 Z_SD_UNIT = 1.166
 
 
 @dataclass
 class LearnConfig:
-    """
-    Settings of the learning (the node's ``learn_*`` parameters; s, counts, sds).
+    """Settings of the learning (the node's ``learn_*`` parameters; module docstring)."""
 
-    Attributes
-    ----------
-    window_s : float
-        The recent data a refit sees, s.
-    window_sets : int
-        Most sets the window holds (thinned evenly in time).
-    block_s : float
-        Length of the detector's blocks, s.
-    exceed_sigmas : float
-        A block exceeds when its sqrt(z) is this many of its sds above 1.
-    persist_s : float
-        A change must last this long before it is refitted, s.
-    persist_fraction : float
-        Share of the blocks since the onset that must exceed for a persistent change.
-    clear_blocks : int
-        Clean blocks in a row that end a change as a transient.
-    refit_period_s : float
-        Interval of the periodic refits (the estimate on ``calibration/learned``), s.
-    holdout_block_s : float
-        Length of the interleaved blocks of the validation, s.
-    holdout_every : int
-        Every this-th block is held out of the fit and validates it.
-    validate_sigmas : float
-        A proposal is valid when its held-out improvement exceeds this many standard errors.
-    min_sets : int
-        Fewest sets a refit takes.
-
-    """
-
-    window_s: float = 120.0
-    window_sets: int = 4000
-    block_s: float = 1.0
-    exceed_sigmas: float = 5.0
-    persist_s: float = 90.0
-    persist_fraction: float = 0.8
-    clear_blocks: int = 3
-    refit_period_s: float = 10.0
-    holdout_block_s: float = 1.0
-    holdout_every: int = 3
-    validate_sigmas: float = 3.0
-    min_sets: int = 200
+    window_s: float = 120.0             # the recent data a refit sees, s
+    window_sets: int = 4000             # most sets the window holds (thinned evenly in time)
+    block_s: float = 1.0                # length of the detector's blocks, s
+    exceed_sigmas: float = 5.0          # a block exceeds at sqrt(z) this many sds above 1
+    persist_s: float = 90.0             # a change lasts this long before it is refitted, s
+    persist_fraction: float = 0.8       # share of its blocks exceeding for a persistent change
+    clear_blocks: int = 3               # clean blocks in a row that end a transient
+    refit_period_s: float = 10.0        # interval of the periodic refits, s
+    holdout_block_s: float = 1.0        # length of the validation's interleaved blocks, s
+    holdout_every: int = 3              # every this-th block is held out to validate
+    validate_sigmas: float = 3.0        # valid: held-out improvement above this many stderrs
+    min_sets: int = 200                 # fewest sets a refit takes
 
     def check(self):
         """Raise ValueError naming the first setting out of its range."""
@@ -170,45 +105,19 @@ class LearnConfig:
 
 @dataclass
 class Proposal:
-    """
-    The result of a refit.
+    """The result of a refit (:meth:`Learner.refit`)."""
 
-    Attributes
-    ----------
-    calibration : magcal_ros.core.model.Calibration
-        The estimate (fitted on the window's non-held-out blocks).
-    doc : dict
-        Its calibration document (docs/design.md §4), provenance ``learning`` filled.
-    undetermined : list of str
-        Parameters the recent motion does not determine (held at the active value).
-    improvement : float
-        Mean held-out log ratio of the mean squares, active over proposal (0: no change).
-    stderr : float
-        Its standard error over the held-out blocks.
-    valid : bool
-        ``improvement > validate_sigmas * stderr``.
-    persistent : bool
-        Fitted on a persistent change (only such a valid proposal is ready to adopt).
-    t_from, t_to : float
-        Span of the sets it was fitted on, s.
-    sets : int
-        Sets fitted.
-    held_out_rms : dict
-        ``{'active': (S,), 'proposal': (S,)}`` RMS of the detector's residual e_j on the
-        held-out sets, nT.
-
-    """
-
-    calibration: object
-    doc: dict
-    undetermined: list
-    improvement: float
-    stderr: float
-    valid: bool
-    persistent: bool
-    t_from: float
+    calibration: object     # the Calibration fitted on the window's non-held-out blocks
+    doc: dict               # its calibration document, provenance ``learning`` filled
+    undetermined: list      # parameter names the recent motion does not determine (held)
+    improvement: float      # mean held-out log ratio of the mean squares, active / proposal
+    stderr: float           # its standard error over the held-out blocks
+    valid: bool             # improvement > validate_sigmas * stderr
+    persistent: bool        # fitted on a persistent change (only then ready to adopt)
+    t_from: float           # span of the sets fitted, s
     t_to: float
-    sets: int
+    sets: int               # sets fitted
+    #: {'active': (S,), 'proposal': (S,)} RMS of e_j on the held-out sets, nT
     held_out_rms: dict = field(default_factory=dict)
 
 
@@ -216,10 +125,8 @@ def detector_residual(cal, data, field_nt):
     """
     Return the detector's residual of a calibration on sets: e (S, N) nT, the scalar r (S, N).
 
-    r_j = |b_j| - F with b_j the corrected field of sensor j; for an array the common mode is
-    removed, e_j = r_j - median_{k != j} r_k (a change of the field cancels; a change of one
-    sensor stays in its own e_j, the median of the others ignores it); for one sensor e = r.
-    ``data`` a :class:`Dataset` (its temperatures and channels drive the effects).
+    r_j = |b_j| - F, e_j = r_j - median_{k != j} r_k (module docstring; one sensor: e = r) on
+    the :class:`Dataset` ``data``, whose temperatures and channels drive the effects.
     """
     s = data.n_sensors
     r = np.empty((s, data.n_samples))
@@ -236,8 +143,8 @@ def detector_residual(cal, data, field_nt):
 #: the learner keeps the times of this many latest transients and adoptions (memory flat)
 KEEP_EVENTS = 100
 
-#: variance of the median of m independent unit normals (exact for m <= 4; pi / (2 m), a
-#: slight overestimate, beyond)
+#: variance of the median of m unit normals (exact for m <= 4; beyond: pi / (2 m), a little
+#: high)
 _MEDIAN_VAR = {1: 1.0, 2: 0.5, 3: 0.4487, 4: 0.3573}
 
 
@@ -257,8 +164,8 @@ class _Run:
 
     def __init__(self):
         self.blocks = 0          # blocks judged since the onset
-        self.exceeded = 0        # of which exceeded
-        self.clean = 0           # clean blocks in a row, latest last (0: the latest exceeded)
+        self.exceeded = 0
+        self.clean = 0           # clean blocks in a row (0: the latest exceeded)
 
     def add(self, exceed):
         """Count one more block (``exceed``: it exceeded)."""
@@ -271,13 +178,7 @@ class Learner:
     """
     The learning of one array (not thread-safe: the node serialises the calls).
 
-    Parameters
-    ----------
-    n_sensors : int
-    config : LearnConfig
-    aux_names : sequence of str
-        Auxiliary columns (``aux_<name>``) kept with the sets.
-
+    ``aux_names``: auxiliary columns (``aux_<name>``) kept with the sets.
     """
 
     def __init__(self, n_sensors, config=None, aux_names=()):
@@ -315,8 +216,6 @@ class Learner:
         self._data_from = None              # onset of the change adopted last, s
         self.sets_seen = 0
 
-    # -- feeding -----------------------------------------------------------------------------
-
     def set_active(self, cal, field_nt, t=None):
         """Start tracking calibration ``cal`` (magnitude ``field_nt`` nT) from time ``t``."""
         self.active = cal
@@ -342,11 +241,7 @@ class Learner:
         """
         Add one matched set: stamp ``t`` s, raw (S, 3) nT, temp (S,) degC, aux {column: value}.
 
-        Returns
-        -------
-        bool
-            True when the set closed a block (the state may have changed).
-
+        Returns True when the set closed a block (the state may have changed).
         """
         self.sets_seen += 1
         cfg = self.config
@@ -368,8 +263,6 @@ class Learner:
             return False
         self._judge_block()
         return True
-
-    # -- the detector ------------------------------------------------------------------------
 
     def _block_data(self, rows):
         t = np.array([r[0] for r in rows], float)
@@ -440,8 +333,6 @@ class Learner:
         return (now - self.onset >= cfg.persist_s and run.clean == 0
                 and run.exceeded >= cfg.persist_fraction * run.blocks)
 
-    # -- refits ------------------------------------------------------------------------------
-
     def changed_sensors(self):
         """Sensors (1-based tuple) that exceeded in at least half the blocks since the onset."""
         if not self._since.blocks:
@@ -475,15 +366,9 @@ class Learner:
         if len(idx) < cfg.min_sets:
             return None
         temp = self._temp[:, idx]
-        aux = {}
-        for name, arr in self._aux.items():
-            col = arr[idx]
-            if np.isfinite(col).any():
-                first = col[np.flatnonzero(np.isfinite(col))[0]]
-                aux[name] = np.where(np.isfinite(col), col, first)
         data = Dataset(t=self._t[idx].copy(), raw=self._raw[:, idx].copy(),
-                       temp=temp.copy() if np.isfinite(temp).all() else None, aux=aux,
-                       meta={'source': 'live (learning window)'})
+                       temp=temp.copy() if np.isfinite(temp).all() else None,
+                       aux=held_aux(self._aux, idx), meta={'source': 'live (learning window)'})
         m = min(self._att_count, len(self._att_t))
         if m >= 2:
             from magcal_ros.core.geometry.attitude import with_attitude
@@ -507,21 +392,11 @@ class Learner:
         """
         Refit the window (since the onset of a persistent change) and validate the result.
 
-        Parameters
-        ----------
-        now : float
-            Time of the call, s (the stamps' clock).
-        refit_fn : callable
-            ``refit_fn(data, active, sensors) -> (calibration, doc, undetermined)``: the
-            parameters of ``sensors`` (1-based tuple) learned, the others held; a ``doc``
-            with ``provenance.converged`` false is never valid
-            (:func:`magcal_ros.pipeline.refit_recent` with the node's field and geometry).
-
-        Returns
-        -------
-        Proposal or None
-            None when the window holds too few sets.
-
+        ``now``: time of the call, s (the stamps' clock).  ``refit_fn(data, active, sensors)
+        -> (calibration, doc, undetermined)`` learns the parameters of ``sensors`` (1-based
+        tuple) and holds the others (:func:`magcal_ros.pipeline.refit_recent`); a ``doc``
+        with ``provenance.converged`` false is never valid.  Returns the :class:`Proposal`,
+        or None when the window holds too few sets.
         """
         self._last_refit = now
         persistent = self.persistent(now)
@@ -560,10 +435,7 @@ class Learner:
         if persistent:
             self.state = READY if valid else UNDETERMINED
         elif valid and self._data_from is not None:
-            # a refinement of the change adopted last: fitted on its sets alone (all after
-            # its onset), more of them than when it was adopted (a change detected since is
-            # most often what the first estimate left: the validation decides)
-            self.state = READY
+            self.state = READY          # refines the change adopted last, on more of its sets
         return self.proposal
 
     def _validate(self, cal, held):
@@ -573,9 +445,6 @@ class Learner:
         v = common_mode_variance(sigma)
         e_act, r_act = detector_residual(self.active, held, self.field_nt)
         e_new, r_new = detector_residual(cal, held, self.field_nt)
-        # the scalar residual itself and, for an array, its part the sensors do not share:
-        # a proposal must not trade one for the other (a common error of all sensors is
-        # invisible to e alone)
         w = 1.0 / (sigma ** 2)[:, None]
         a = (r_act ** 2 * w).sum(axis=0)
         b = (r_new ** 2 * w).sum(axis=0)
@@ -607,8 +476,7 @@ class Learner:
         if p.persistent:
             self.changed = tuple(p.doc['provenance']['learning']['sensors_learned'])
         self.set_active(p.calibration, self.field_nt, now)
-        if onset is not None:               # a refinement keeps its change's onset
-            # what came before the change is another sensor (its first block: both)
+        if onset is not None:       # before the change (and its first block): another sensor
             self._data_from = onset + self.config.block_s
         self.state = ADOPTED
         return p
@@ -635,28 +503,12 @@ def feed(learner, data, refit_fn, auto_adopt=True, on_adopt=None):
     """
     Feed a recording to ``learner`` set by set, as the node does (offline runs, tests, bench).
 
-    Refits run synchronously when due; a ready proposal is adopted when ``auto_adopt``
-    (then ``on_adopt(t, proposal)`` is called).
-
-    Parameters
-    ----------
-    learner : Learner
-        The learner, its active calibration set.
-    data : Dataset
-        (S, N, 3) raw nT with times (and attitude, temperatures, channels when known).
-    refit_fn : callable
-        As for :meth:`Learner.refit`.
-    auto_adopt : bool
-        Adopt a ready proposal at once.
-    on_adopt : callable, optional
-        Called as ``on_adopt(t, proposal)`` after each adoption.
-
-    Returns
-    -------
-    list of (float, str, object)
-        Events (time s, what, detail): ``state`` on each change of state, ``refit`` with the
-        :class:`Proposal`, ``adopted`` with it.
-
+    ``learner`` has its active calibration set; ``data`` (S, N, 3) raw nT with times (and
+    attitude, temperatures, channels when known); ``refit_fn`` as for :meth:`Learner.refit`.
+    Refits run synchronously when due; with ``auto_adopt`` a ready proposal is adopted at
+    once, then ``on_adopt(t, proposal)`` is called.  Returns the events [(time s, what,
+    detail)]: ``state`` on each change of state, ``refit`` and ``adopted`` with the
+    :class:`Proposal`.
     """
     events = []
     state = learner.state

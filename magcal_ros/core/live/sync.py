@@ -13,30 +13,17 @@
 # limitations under the License.
 
 """
-Group the samples of S sensors into sets taken at the same epoch.
+Group the samples of S sensors into sets taken at the same epoch (no rclpy).
 
-Pure Python/numpy (no rclpy), shared by the calibration node and the live correction
-(:mod:`magcal_ros.core.live.corrector`).
-
-A serial driver stamps each sample with the arrival time of its bytes, which lags the
-sampling instant by a varying latency: samples read in one chunk share a stamp, and a reader
-thread starved for a few hundred milliseconds delivers a burst. Measured here on the
-simulated array under the load of the full pipeline (2 cores), the stamps of the four
-samples of one epoch spread by more than 5 ms for 44 % of the epochs and by up to 0.45 s,
-so sets cannot be formed by matching stamps within a tolerance: that drops most epochs and
-mismatches others, and one mismatched set of a rotating array puts hundreds of nT/m into
-the gradient tensor.
-
-Sets are therefore formed by epoch number. Within a stream the samples arrive in order and
-(normally) none is lost, so the k-th sample of sensor j belongs to epoch k + o_j with one
-integer offset o_j per sensor. The offsets are voted from the stamps (:class:`StampMatcher`),
-which only needs most samples, not all, to have a stamp close to their epoch. A lost sample
-(the sensor-data QoS drops samples under load) shifts a stream by one epoch, which the vote
-sees only when its majority flips, up to a second later; a stream whose stamps lag by more
-than half a period is paired off for good.  Where the items of a set can be checked from
-the data (the corrected fields of a calibrated array: :class:`magcal_ros.core.live.corrector.
-LiveCorrector`), the matcher takes a ``misfit``: no set that fails is emitted, and a shifted
-stream is re-paired at the first set that shows it.
+A serial driver stamps each sample with the arrival time of its bytes: samples read in one
+chunk share a stamp, and a starved reader delivers bursts (on the simulated array under load
+the stamps of one epoch spread by more than 5 ms for 44 % of the epochs, up to 0.45 s), so
+matching stamps within a tolerance drops and mismatches sets.  Sets are formed by epoch
+number instead: the k-th sample of sensor j belongs to epoch k + o_j, the offsets o_j voted
+from the stamps (:class:`StampMatcher`).  A lost sample shifts a stream by one epoch, which
+the vote sees when its majority flips; with a ``misfit`` from the data (the corrected fields
+of :class:`magcal_ros.core.live.corrector.LiveCorrector`) no failing set is emitted and a
+shifted stream is re-paired at the first set that shows it.
 """
 from collections import deque
 
@@ -47,30 +34,18 @@ def backdate(stamps, period_s):
     """
     Spread samples that arrived together back along the sample grid.
 
-    A run of samples whose stamps differ by less than a quarter period arrived in one read;
-    the last of the run is kept and each earlier one is moved one period earlier than its
-    successor (a chunk written by a device, or the backlog read after a stall).
+    In a run of stamps less than a quarter period apart (one read), the last keeps its stamp
+    and each earlier one is put one period before its successor.
 
-    Parameters
-    ----------
-    stamps : numpy.ndarray
-        (N,) non-decreasing arrival stamps of one stream, s.
-    period_s : float
-        Sample period T of the stream, s.
-
-    Returns
-    -------
-    numpy.ndarray
-        (N,) stamps, s.
-
+    ``stamps`` (N,) non-decreasing arrival stamps of one stream, s; ``period_s`` its sample
+    period T, s.  Returns (N,) stamps, s.
     """
     a = np.asarray(stamps, float)
     n = len(a)
     if n < 2:
         return a.copy()
     together = np.diff(a) < 0.25 * period_s         # sample i arrived with sample i + 1
-    # each sample keeps the stamp of the last sample of its run, moved back one period per
-    # sample: out[i] = a[j] - (j - i) T, j = the first index >= i that ends a run
+    # out[i] = a[j] - (j - i) T, j the first index >= i that ends a run
     idx = np.arange(n)
     ends = np.where(np.append(~together, True), idx, n)
     last = np.minimum.accumulate(ends[::-1])[::-1]
@@ -85,36 +60,19 @@ def epoch_times(epochs, stamps_s, block_s=CLOCK_BLOCK_S):
     """
     Sample instants of epochs from noisy, late stamps: a linear clock, stepped where lost.
 
-    Epoch numbers count the samples of the reference stream that arrived; a sample the
-    transport lost (the sensor-data QoS drops samples under load) makes every later epoch
-    number one short of the sample clock, so a single line t = t0 + T e is off by a period
-    per loss, and a periodic term fitted on those times loses its phase. Latency is never
-    negative, so the promptest stamp of each block of ``block_s`` carries its sample
-    instant: the period T is the one that puts those stamps on one grid (the phases
-    t_k / T - e_k of all blocks equal, searched within 3 % of the line's slope, as a
-    periodogram of the block stamps), and each block's phase then counts the whole periods
-    lost before it (median-filtered over three blocks, never decreasing: epochs are never
-    gained). Within a block a set takes the largest count that keeps its own and every
-    later set's stamp after its sample instant (half a period spare). When the block
-    phases do not agree (resultant length <= 0.9: the promptest stamps scatter by a good
-    part of a period), the straight line through all stamps is kept. t0 sits on the lower
-    envelope of the stamps.
+    A lost sample makes every later epoch number one short of the sample clock, so one line
+    t = t0 + T e is off by a period per loss.  Latency is never negative, so the promptest
+    stamp of each block of ``block_s`` carries its sample instant: T is the period that puts
+    those stamps on one grid (equal phases t_k / T - e_k, searched within 3 % of the line's
+    slope), and each block's phase counts the periods lost before it (median over three
+    blocks, never decreasing).  Within a block a set takes the largest count that keeps its
+    own and every later stamp after its sample instant (half a period spare).  When the
+    phases do not agree (resultant length <= 0.9) the straight line is kept; t0 sits on the
+    lower envelope of the stamps.
 
-    Parameters
-    ----------
-    epochs : numpy.ndarray
-        (N,) epoch numbers (integers, increasing; gaps where sets were dropped).
-    stamps_s : numpy.ndarray
-        (N,) a stamp of each epoch, s (e.g. the median of its sensors' stamps).
-    block_s : float
-        Length of the blocks in which the earliest stamp is taken, s (2 s: ~100 stamps at
-        50 Hz, among which some arrive promptly even on a loaded machine).
-
-    Returns
-    -------
-    numpy.ndarray
-        (N,) times in s, strictly increasing.
-
+    ``epochs`` (N,) increasing integers (gaps where sets were dropped); ``stamps_s`` (N,) a
+    stamp of each (the median of its sensors'), s.  Returns (N,) times, s, strictly
+    increasing.
     """
     from scipy.ndimage import median_filter
     e = np.asarray(epochs, float)
@@ -129,13 +87,9 @@ def epoch_times(epochs, stamps_s, block_s=CLOCK_BLOCK_S):
     if n_blocks >= 3:
         edges = np.linspace(0, len(e), n_blocks + 1).round().astype(int)
         sizes = np.diff(edges)
-        # the promptest stamp of each block: its sample instant plus the least latency
         d = t - slope * e
         first = np.array([a + np.argmin(d[a:b]) for a, b in zip(edges[:-1], edges[1:])])
         ek, tk = e[first], t[first] - t[0]
-        # the period that puts those stamps on one grid: every block's phase the same
-        # (a loss moves the later blocks by whole periods, a wrong period by a drifting
-        # fraction); searched within +-3 % of the line's slope, then refined
         period = slope
         for span, n in ((0.03, 6001), (2e-5, 401)):
             grid = period * (1.0 + np.linspace(-span, span, n))
@@ -145,16 +99,11 @@ def epoch_times(epochs, stamps_s, block_s=CLOCK_BLOCK_S):
         ph = tk / period - ek
         mean_phase = np.angle(np.exp(2j * np.pi * ph).mean()) / (2 * np.pi)
         if r.max() > 0.9:
-            # concentrated: whole periods lost before each block (noise of the promptest
-            # stamps well under half a period); else the straight line is kept
             steps = np.round(ph - mean_phase)
             steps = median_filter(steps, size=3, mode='nearest')
             steps = np.maximum.accumulate(steps - steps[0])
-            # the line through the promptest stamps (latency tens of us, not ms)
             slope = np.polyfit(ek + steps, tk, 1)[0]
             t0 = t[0] + np.min(tk - slope * (ek + steps))
-            # each set's step: at most what keeps its own and every later set's latency
-            # >= 0 (half a period spare), at least the previous block's
             upto = np.floor((t - t0) / slope - e + 0.5)
             upto = np.minimum.accumulate(upto[::-1])[::-1]
             floor_ = np.repeat(np.concatenate([[0.0], steps[:-1]]), sizes)
@@ -165,13 +114,9 @@ def epoch_times(epochs, stamps_s, block_s=CLOCK_BLOCK_S):
 
 
 #: largest backward shift of one stream, and largest change of the offsets by the stamp
-#: vote's proposal, that StampMatcher with ``misfit`` tries, epochs (a proposal that far
-#: ahead makes the sets wait for that many samples once)
+#: vote's proposal, that StampMatcher with ``misfit`` tries, epochs
 MAX_VOTE_SHIFT = 25
-
-
-#: sets after a failed one that a re-pairing must pass before it is taken (fewer than
-#: ``confirm`` when another stream slips within them: each slip is then re-paired in turn)
+#: sets after a failed one that a re-pairing must pass before it is taken
 MIN_PASS = 2
 
 
@@ -215,79 +160,46 @@ class StampMatcher:
     """
     Group the samples of ``n_sensors`` streams into epochs.
 
-    Within a stream the samples come in order and (normally) none is lost, so the k-th
-    sample of sensor j belongs to epoch k + o_j with one integer offset o_j per sensor
-    (o_1 = 0). The offsets are estimated from the stamps by a vote that survives delayed
-    chunks and bursts: every sample of sensor j in a sliding window votes for the epoch of
-    the sensor-1 sample nearest in stamp (both :func:`backdate`-ed), if that is within
-    ``tolerance_s``, and a clear majority wins. The vote is repeated every
-    ``align_every`` samples; a lost sample (which shifts a stream by one epoch) is seen
-    when the majority of the window flips (test_sync: up to about half a window), sooner
-    with ``misfit``. Sets are then formed by epoch number, like the
-    "approximate time" policy of message_filters but immune to stamp jitter: whenever every
-    sensor has a queued sample, the heads of the queues either share an epoch (a set) or the
-    oldest heads are dropped (an epoch some sensor never delivered).
+    The k-th sample of sensor j belongs to epoch k + o_j (o_1 = 0).  Every ``align_every``
+    samples the offsets are voted: each sample of sensor j in a sliding window votes for the
+    epoch of the sensor-1 sample nearest in stamp (raw and :func:`backdate`-ed) within
+    ``tolerance_s``, and a clear majority wins.  Whenever every sensor has a queued sample,
+    the heads either share an epoch (a set) or the oldest are dropped (an epoch some sensor
+    never delivered): "approximate time" immune to stamp jitter.
 
     Parameters
     ----------
     n_sensors : int
         Number of streams S.
     tolerance_s : float
-        Largest stamp difference of two samples that may vote for the same epoch, s (about
-        half a sample period).
-    window : int
-        Samples per stream in the vote.
-    align_every : int
-        Samples (all streams together) between votes.
+        Largest stamp difference of two samples voting for one epoch, s (~half a period).
+    window, align_every : int
+        Samples per stream in the vote; samples (all streams) between votes.
     max_queue : int
-        Samples kept per stream while another stream is silent; older ones are dropped
-        (counted as incomplete sets).
+        Samples kept per stream while another is silent (older ones: incomplete sets).
     misfit : callable, optional
-        ``misfit(items) -> float``: a chi-square of how far the S items of a set are from
-        being the samples of one epoch (e.g. :meth:`magcal_ros.core.live.corrector.LiveCorrector.
-        pairing_chi2`); a set passes when it is at most ``threshold``.  With it, a set
-        that fails is never emitted.  The matcher sums, over ``confirm`` sets, the misfit
-        of the pairing as it is (the sets after the failed one), of each shift of one
-        stream forward by 1 .. ``max_shift`` epochs (a lost sample: its samples from the
-        failed set on against the others' queued ones) and back by 1 ..
-        :data:`MAX_VOTE_SHIFT` (stamps that lag: against the others' samples already
-        taken, so without waiting), and of the stamp vote's proposal; it adopts at once
-        the candidate whose every set passes and whose sum beats every other's by
-        ``margin`` (the maximum-likelihood pairing: :attr:`repaired`).  Otherwise the set
-        is dropped (:attr:`rejected`): when the pairing as it is fits best (this set alone
-        was bad), or when no candidate or more than one fits (a longer run of lost
-        samples: the stamp vote restarts on the samples from then on, and its proposal is
-        tried at the next failed set; an array too still to tell: its sets differ little
-        anyway).  Once aligned, a new stamp vote is taken unless the next ``confirm`` sets
-        refute it (the pairing as it is fits better by ``margin``): stamps that lag by
-        more than half a period no longer move a pairing that fits, and a slip too small
-        for the misfit to show is still moved by the vote when its majority flips (about
-        half a ``window``), as without ``misfit``.
+        ``misfit(items) -> float``, a chi-square of how far the S items of a set are from one
+        epoch (:meth:`magcal_ros.core.live.corrector.LiveCorrector.pairing_chi2`); a set passes
+        at most ``threshold`` and a failing one is never emitted.  After a failure the
+        pairing as it is, each shift of one stream forward by 1 .. ``max_shift`` (lost
+        samples) and back by 1 .. :data:`MAX_VOTE_SHIFT` (lagging stamps), and the stamp
+        vote's proposal are scored over ``confirm`` sets; the candidate whose every set
+        passes and whose sum beats every other by ``margin`` is adopted (:attr:`repaired`),
+        else the set is dropped (:attr:`rejected`; with no clear candidate the vote restarts
+        on the samples from then on).  Once aligned, a new vote is taken unless the next
+        ``confirm`` sets refute it.
     threshold : float
         Largest misfit of a set that passes.
-    max_shift : int
-        Largest forward shift of one stream tried after a failed set, epochs (the sets
-        wait for ``max_shift + confirm + 1`` samples of every stream).
-    confirm : int
-        Sets on which the candidates are compared.
+    max_shift, confirm : int
+        Largest forward shift tried after a failed set, epochs; sets the candidates are
+        compared on.
     margin : float
-        Least difference of summed misfit between the adopted candidate and any other
-        (2 ln of their likelihood ratio for a chi-square misfit).
+        Least lead in summed misfit of the adopted candidate (2 ln of a likelihood ratio).
 
-    Attributes
-    ----------
-    complete : int
-        Sets emitted.
-    incomplete : int
-        Epochs dropped because a sensor's sample was missing.
-    out_of_order : int
-        Samples dropped because their stamp was older than the previous one of that sensor.
-    realigned : int
-        Times the stamp vote changed a stream's epoch offset after the first alignment.
-    rejected : int
-        Sets dropped because their misfit exceeded ``threshold`` (never emitted).
-    repaired : int
-        Times a stream's epoch offset was changed from the misfit.
+    Counters: ``complete`` sets emitted; ``incomplete`` epochs a sensor's sample was missing
+    from; ``out_of_order`` samples older than their sensor's previous one; ``realigned``
+    offsets the stamp vote changed after the first alignment; ``rejected`` sets whose misfit
+    exceeded ``threshold``; ``repaired`` offsets changed from the misfit.
 
     """
 
@@ -307,11 +219,9 @@ class StampMatcher:
         self.max_shift = int(max_shift)
         self.confirm = int(confirm)
         self.margin = float(margin)
-        # vote history per stream: a ring of (sequence number, stamp) in numpy arrays
         self._hist = [_Ring(self.window) for _ in range(self.n_sensors)]
         self._queues = [deque() for _ in range(self.n_sensors)]
-        # with misfit: the samples last taken from each queue, (sequence number, stamp, item),
-        # contiguous with the queue (a shift back is tested on them without waiting)
+        # with misfit: (sequence number, stamp, item) last taken from each queue (shifts back)
         self._past = [deque(maxlen=MAX_VOTE_SHIFT + confirm + 2)
                       for _ in range(self.n_sensors)]
         self.reset()
@@ -341,24 +251,15 @@ class StampMatcher:
 
     @property
     def queued(self):
-        """
-        Count the samples waiting for the other sensors of their set (tuple of S counts).
-
-        Each stays below ``max_queue``: older samples are dropped as incomplete sets.
-        """
+        """Count the samples waiting for the other sensors of their set (tuple of S counts)."""
         return tuple(len(q) for q in self._queues)
 
     def add(self, j, stamp_s, item):
         """
         Add the sample ``item`` of sensor ``j`` (0-based) stamped ``stamp_s`` seconds.
 
-        Returns
-        -------
-        list of (float, list)
-            Completed sets, oldest first: (epoch number, median stamp of the set in s,
-            [item of sensor 0, ..., item of sensor S-1]). The stamps are late by the
-            arrival latency; :func:`epoch_times` turns epochs into sample instants.
-
+        Returns the completed sets, oldest first: [(epoch number, median stamp of the set s,
+        [item of sensor 0, ..., item of sensor S-1])] (:func:`epoch_times` gives instants).
         """
         last = self._last_arrival[j]
         if last is not None and stamp_s < last:
@@ -375,8 +276,6 @@ class StampMatcher:
             self._past[j].append(queue.popleft())
             self.incomplete += 1
         self._since_align += 1
-        # until every stream has an offset, vote more often (but not on every sample: a
-        # silent sensor would make each sample pay for a vote)
         if self._since_align >= (self.align_every if self.aligned else 8):
             self._align()
         return self._emit() if self.aligned else []
@@ -391,8 +290,7 @@ class StampMatcher:
         period = self._period(s0)
         if period is None:
             return
-        # raw stamps vote well when samples come one by one, backdated ones when they come
-        # in chunks; counting both votes was right in every window of the recorded data
+        # raw stamps vote well for samples one by one, backdated ones for chunks: both vote
         refs = (s0, backdate(s0, period))
         for j in range(1, self.n_sensors):
             hist = self._hist[j]
@@ -471,14 +369,10 @@ class StampMatcher:
         """
         Offsets to try after a failed set: (stream, shift, offsets), each once.
 
-        As they are (shift 0); one stream shifted forward by 1 .. ``max_shift`` epochs
-        (lost samples: tested on the samples queued after the failed set); the stamp vote's
-        proposal (stream -1); one stream back by 1 .. :data:`MAX_VOTE_SHIFT` (its stamps
-        lag: tested on the others' samples already taken, no wait).  Only one stream moves
-        at a time: the planar cross hardly tells two streams shifted the opposite ways from
-        none (:meth:`magcal_ros.core.live.corrector.LiveCorrector.pairing_chi2`), and candidates
-        that move several would offer such pairings; several slips at once wait for the
-        vote.
+        As they are (shift 0); one stream forward by 1 .. ``max_shift``; the stamp vote's
+        proposal (stream -1); one stream back by 1 .. :data:`MAX_VOTE_SHIFT`.  One stream
+        moves at a time (the planar cross hardly tells two streams shifted the opposite ways
+        from none); several slips at once wait for the vote.
         """
         base = self._offset
         seen = {tuple(base)}
@@ -544,11 +438,9 @@ class StampMatcher:
         """
         Take the stamp vote's proposal unless the data refute it: True, False or None (wait).
 
-        The proposal and the pairing as it is are compared on the next ``confirm`` sets; it
-        is refuted when its first :data:`MIN_PASS` sets do not all pass or the pairing as
-        it is fits clearly better (:meth:`_better`; stamps that lag by more than half a
-        period), and taken otherwise, also when the array is too still to tell (a lost
-        sample while it turns slowly: the vote is then the only witness).
+        Compared on the next ``confirm`` sets, it is refuted when its first :data:`MIN_PASS`
+        sets do not all pass or the pairing as it is fits clearly better (:meth:`_better`),
+        taken otherwise (also when the array is too still to tell).
         """
         vote = self._pending
         reach = self._reach(vote)
@@ -571,9 +463,8 @@ class StampMatcher:
         """
         Decide a failed set: True (offsets changed), False (drop it) or None (wait).
 
-        Waits until every stream has queued the samples the candidate pairings need.  After
-        a failure no candidate explains, the next 1, 3, 7 .. 64 failing sets are dropped
-        without a search (a shift beyond ``max_shift`` waits for the stamp vote).
+        After a failure no candidate explains, the next 1, 3, 7 .. 64 failing sets are
+        dropped without a search.
         """
         if self._skip:
             self._skip -= 1
@@ -599,8 +490,7 @@ class StampMatcher:
             return False                # the pairing holds: this set alone is bad
         if not (-best[0] >= MIN_PASS and self._better(best, second)):
             if not self._backoff:
-                # a longer slip: vote afresh on the samples from now on (stamps are late,
-                # not shifted: after ~10 samples per stream the majority is the new offset)
+                # a longer slip: vote afresh on the samples from now on
                 for h in self._hist:
                     h.clear()
                 self._since_align = 0
