@@ -13,15 +13,14 @@
 # limitations under the License.
 
 """
-ROS parameter declaration and validation for the calibration and corrector nodes.
+ROS parameter declaration and validation of the nodes.
 
 Every parameter is declared from a :class:`ParamSpec` (name, default, description with the
-unit, validator), so the description a user sees with ``ros2 param describe`` and the check
-made in ``add_on_set_parameters_callback`` come from one table. The node then turns its
-parameters into a frozen settings dataclass (:class:`CalibrationSettings`,
-:class:`CorrectorSettings`), so that the code doing the work never sees a ``Node``.
+unit, validator): ``ros2 param describe`` and the ``add_on_set_parameters_callback`` check
+come from one table. The settings dataclasses (:class:`CalibrationSettings`,
+:class:`CorrectorSettings`) keep the code doing the work away from a ``Node``.
 """
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 import math
 import os
 
@@ -69,25 +68,11 @@ class ParamSpec:
     """
     One node parameter.
 
-    Attributes
-    ----------
-    name : str
-        Parameter name.
-    default : bool or int or float or str or tuple
-        Default value; a tuple declares an array parameter (possibly empty).
-    description : str
-        What it is, with its unit (shown by ``ros2 param describe``).
-    check : callable or None
-        ``check(value) -> str or None``: the reason the value is refused, or None.
-    read_only : bool
-        Only settable at start-up (launch file, YAML, ``--ros-args -p``).
-    item_type : type
-        Element type of an array parameter (``str``, ``float``, ``int``).
-    limits : tuple or None
-        ``(lowest, highest)`` allowed value, published as the descriptor's
-        ``FloatingPointRange`` / ``IntegerRange`` (``ros2 param describe`` shows it; rclpy
-        then refuses values outside it too).
-
+    ``default`` a bool, int, float, str, or a tuple (an array parameter of ``item_type``:
+    ``str``, ``float`` or ``int``); ``description`` with its unit; ``check(value)`` returns
+    the reason a value is refused, or None; ``read_only``: settable at start-up only;
+    ``limits`` ``(lowest, highest)``, published as the descriptor's ``FloatingPointRange`` /
+    ``IntegerRange`` (rclpy then refuses values outside it too).
     """
 
     name: str
@@ -257,15 +242,7 @@ def model_check(n_sensors):
 
 
 def declare(node, specs):
-    """
-    Declare every parameter of ``specs`` on ``node`` (overrides and YAML apply).
-
-    Returns
-    -------
-    dict of str to ParamSpec
-        The specs by name, for :func:`validate`.
-
-    """
+    """Declare every parameter of ``specs`` on ``node``; return the specs by name (dict)."""
     for spec in specs:
         if isinstance(spec.default, tuple):
             if spec.default:
@@ -278,8 +255,8 @@ def declare(node, specs):
             node.declare_parameter(spec.name, spec.default, spec.descriptor())
     by_name = {s.name: s for s in specs}
     # values given at start-up (YAML, overrides) are checked like later changes
-    result = validate(by_name, [node.get_parameter_or(s.name) for s in specs
-                                if node.get_parameter_or(s.name).type_ != Parameter.Type.NOT_SET])
+    given = (node.get_parameter_or(s.name) for s in specs)
+    result = validate(by_name, [p for p in given if p.type_ != Parameter.Type.NOT_SET])
     if not result.successful:
         raise ValueError(f'bad parameter: {result.reason}')
     return by_name
@@ -287,20 +264,10 @@ def declare(node, specs):
 
 def validate(specs, params):
     """
-    Check parameter changes; the body of an ``add_on_set_parameters_callback``.
+    Check the changes ``params`` against ``specs`` (by name): an on-set-parameters callback.
 
-    Parameters
-    ----------
-    specs : dict of str to ParamSpec
-        The node's parameters, by name.
-    params : list of rclpy.parameter.Parameter
-        The changes asked for.
-
-    Returns
-    -------
-    rcl_interfaces.msg.SetParametersResult
-        ``successful=False`` with the reason of the first refused value.
-
+    Returns a ``SetParametersResult``, ``successful=False`` with the reason of the first
+    refused value.
     """
     for p in params:
         spec = specs.get(p.name)
@@ -375,18 +342,9 @@ PLUGINS = ParamSpec('plugins', (), 'effect plug-ins imported at start-up, each a
 
 def load_plugins(node):
     """
-    Import the node's start-up ``plugins`` (:func:`magcal_ros.core.effects.load_plugin`).
+    Import the node's start-up ``plugins``; return the names of the effects registered.
 
-    Returns
-    -------
-    list of str
-        Names of the effects registered.
-
-    Raises
-    ------
-    ValueError
-        Naming the plug-in that cannot be imported (the node then exits with status 2).
-
+    Raises ValueError naming a plug-in that cannot be imported (the node exits with 2).
     """
     try:
         return fx.load_plugins(value(node, 'plugins', []))
@@ -498,41 +456,22 @@ def geometry_specs(n_sensors):
     ]
 
 
+def _settings(cls, node):
+    """``cls`` (a settings dataclass) from the node's current parameters."""
+    got = {}
+    for f in fields(cls):
+        v = value(node, f.name, [])
+        got[f.name] = tuple(v) if f.type is tuple else f.type(v)
+    for name in ('calibration_file', 'report_dir'):
+        if name in got:
+            got[name] = os.path.expanduser(got[name])
+    got['input_topics'] = default_input_topics(got['n_sensors'], got['input_topics'])
+    return cls(**got)
+
+
 def calibration_settings(node):
     """:class:`CalibrationSettings` from the node's current parameters."""
-    return CalibrationSettings(
-        n_sensors=int(value(node, 'n_sensors')),
-        model=tuple(value(node, 'model')),
-        field_nt=float(value(node, 'field_nt')),
-        calibration_file=os.path.expanduser(value(node, 'calibration_file')),
-        min_samples=int(value(node, 'min_samples')),
-        max_samples=int(value(node, 'max_samples')),
-        baseline_m=float(value(node, 'baseline_m')),
-        history=int(value(node, 'history')),
-        report_dir=os.path.expanduser(value(node, 'report_dir')),
-        stamp_tolerance_s=float(value(node, 'stamp_tolerance_s')),
-        aux_topics=tuple(value(node, 'aux_topics', [])),
-        status_period_s=float(value(node, 'status_period_s')),
-        robust=bool(value(node, 'robust')),
-        constrained=bool(value(node, 'constrained')),
-        resync_sets=bool(value(node, 'resync_sets')),
-        exclude_outliers=bool(value(node, 'exclude_outliers')),
-        imu_topic=str(value(node, 'imu_topic', '')),
-        sensor_positions_m=tuple(value(node, 'sensor_positions_m', [])),
-        input_topics=default_input_topics(int(value(node, 'n_sensors')),
-                                          value(node, 'input_topics', [])),
-        field_source=str(value(node, 'field_source')),
-        site_latitude_deg=float(value(node, 'site_latitude_deg')),
-        site_longitude_deg=float(value(node, 'site_longitude_deg')),
-        site_altitude_m=float(value(node, 'site_altitude_m')),
-        site_date=str(value(node, 'site_date')),
-        planar=bool(value(node, 'planar')),
-        attitude_mode=str(value(node, 'attitude_mode')),
-        cmd_vel_topic=str(value(node, 'cmd_vel_topic')),
-        turn_speed_rad_s=float(value(node, 'turn_speed_rad_s')),
-        turn_count=float(value(node, 'turn_count')),
-        turn_timeout_s=float(value(node, 'turn_timeout_s')),
-    )
+    return _settings(CalibrationSettings, node)
 
 
 # -- corrector node -------------------------------------------------------------------------
@@ -607,18 +546,4 @@ def corrector_specs(n_sensors=4):
 
 def corrector_settings(node):
     """:class:`CorrectorSettings` from the node's current parameters."""
-    return CorrectorSettings(
-        n_sensors=int(value(node, 'n_sensors')),
-        calibration_file=os.path.expanduser(value(node, 'calibration_file')),
-        stamp_tolerance_s=float(value(node, 'stamp_tolerance_s')),
-        aux_topics=tuple(value(node, 'aux_topics', [])),
-        publish_gradient=bool(value(node, 'publish_gradient')),
-        diagnostics_period_s=float(value(node, 'diagnostics_period_s')),
-        array_frame_id=str(value(node, 'array_frame_id')),
-        subtract_site_gradient=bool(value(node, 'subtract_site_gradient')),
-        site_attitude=tuple(float(v) for v in value(node, 'site_attitude')),
-        sensor_positions_m=tuple(value(node, 'sensor_positions_m', [])),
-        input_topics=default_input_topics(int(value(node, 'n_sensors')),
-                                          value(node, 'input_topics', [])),
-        baseline_m=float(value(node, 'baseline_m')),
-    )
+    return _settings(CorrectorSettings, node)
