@@ -15,63 +15,28 @@
 """
 calibration_node: collect rotation data from the live array, calibrate, diagnose.
 
-Topics (relative to the node namespace, default ``/magcal``; docs/design.md §3):
+Its topics, services and parameters are docs/design.md §3's. In short: it takes
+``sensor{j}/raw``, ``sensor{j}/temperature``, the ``aux_topics`` and ``imu_topic``
+(best effort, deep queues: :data:`CALIBRATION_SENSOR_QOS`); publishes
+``calibration/status`` (JSON), ``calibration/result`` (the calibration YAML, latched) and
+``calibration/residual`` (per matched set, the active calibration's scalar and vector
+residuals, :func:`magcal_ros.ros.conversions.residual_to_msg`), with their rolling RMS over
+the noise floor on ``/diagnostics`` (WARN above
+:data:`magcal_ros.core.live.corrector.RESIDUAL_WARN_RATIO`; ERROR naming an effect whose code
+raised). Services (std_srvs/Trigger; reply: a summary line, a newline, one JSON object):
+``calibration/start``, ``calibrate``, ``diagnose``, ``reset``, ``turn`` and, with ``learn``,
+``adopt`` (:mod:`magcal_ros.ros.learning`).
 
-- subscribes ``sensor{j}/raw`` (sensor_msgs/MagneticField, T), ``sensor{j}/temperature``
-  (sensor_msgs/Temperature, degC) and one std_msgs/Float64 topic per name in ``aux_topics``
-  (recorded as column ``aux_<name>``), all best effort like ``qos_profile_sensor_data``
-  (with deeper queues: :data:`CALIBRATION_SENSOR_QOS` for the raw fields, 10 s of 100 Hz,
-  so that no sample is lost while a solve keeps the executor busy; :data:`SENSOR_QOS`);
-- subscribes ``imu_topic`` (sensor_msgs/Imu, optional): its orientation is the attitude of
-  the array (body-to-world), interpolated onto the sets, for the ``site_gradient`` effect;
-- publishes ``calibration/status`` (std_msgs/String, JSON, every ``status_period_s``):
-  sets collected, attitude coverage per sensor, what is still missing;
-- publishes ``calibration/result`` (std_msgs/String holding the calibration YAML of
-  docs/design.md §4; reliable, transient local, depth 1): the active calibration;
-- publishes ``calibration/residual`` (std_msgs/Float64MultiArray, T; one message per
-  matched set while a calibration is active, collecting or not): the active calibration
-  applied to the incoming data, per sensor the scalar residual |b_j| - F and the vector
-  residual |b_j - mean of the others| (:func:`magcal_ros.ros.conversions.residual_to_msg`;
-  ``data[j-1]`` and ``data[S+j-1]`` plot in rqt_plot / PlotJuggler), and on ``/diagnostics``
-  their rolling RMS over the noise floor of the data, WARN above
-  :data:`magcal_ros.core.live.corrector.RESIDUAL_WARN_RATIO`: the calibration no longer fits,
-  time to diagnose (:class:`magcal_ros.core.live.corrector.ResidualMonitor`); ERROR, naming
-  the effect and counting its errors, when the code of an effect raised (on a live sample: no
-  residual for it; in calibrate or diagnose: that call answers success=false naming the
-  effect), logged once per effect.
+Its parts: the collection (:mod:`magcal_ros.ros.collection`), the solves
+(:mod:`magcal_ros.ros.calibrating`), the turn (:mod:`magcal_ros.ros.turn`) and the learning;
+this module holds the set-up, the parameters, the live residual and the worker thread.
 
-With the parameter ``learn`` (issue 34; :mod:`magcal_ros.ros.learning`, the logic in
-:mod:`magcal_ros.core.live.learning`) it also keeps learning from the live sets while the
-robot works: ``calibration/learned`` (the estimate, calibration YAML), ``/diagnostics``
-``learning``, the service ``calibration/adopt`` and, with ``auto_adopt``, adoption of a
-validated proposal of a persistent change (docs/design.md §3).
-
-Services (std_srvs/srv/Trigger; the response message is a short summary, a newline, then
-one JSON object):
-
-- ``calibration/start``: clear the buffer and start collecting;
-- ``calibration/calibrate``: fit the ``model`` parameter to the collected sets
-  (:func:`magcal_ros.pipeline.run_request`, as ``magcal fit``), write ``calibration_file``
-  atomically (the previous one kept) and publish it; refused data leave the previous
-  calibration active;
-- ``calibration/diagnose``: rank the candidate effects missing from ``model``
-  (:func:`magcal_ros.core.discovery.diagnose`) and write the HTML report to ``report_dir``;
-- ``calibration/reset``, ``calibration/turn`` (``cmd_vel_topic``), ``calibration/adopt``
-  (learning).
-
-The node is put together from its parts: the collection (sensor callbacks, buffer, start,
-reset, status: :mod:`magcal_ros.ros.collection`), the solves (calibrate, diagnose:
-:mod:`magcal_ros.ros.calibrating`), the turn (:mod:`magcal_ros.ros.turn`) and the learning
-(:mod:`magcal_ros.ros.learning`); this module holds the set-up, the parameters, the live
-residual of the active calibration and the worker thread.
-
-The solve must not block the sensor callbacks. It runs in a worker thread; the service
-callbacks are coroutines (in a reentrant callback group) that await it, so the executor
-keeps taking sensor samples meanwhile, and a non-blocking lock turns a second
-calibrate/diagnose/start during a solve into a clean refusal instead of a queued call. The
-node spins on a SingleThreadedExecutor: rclpy's MultiThreadedExecutor was measured here to
-receive only about half of the 4 x 100 Hz samples (4 threads) or to run callbacks of one
-subscription out of order (2 threads), which breaks the matching of sample sets by stamp.
+A solve must not block the sensor callbacks: it runs in a worker thread that the service
+coroutines (a reentrant callback group) await, and a non-blocking lock turns a second
+calibrate/diagnose/start during a solve into a clean refusal. The node spins on a
+SingleThreadedExecutor: rclpy's MultiThreadedExecutor received only about half of the
+4 x 100 Hz samples (4 threads) or ran one subscription's callbacks out of order (2 threads),
+which breaks the matching of sample sets by stamp.
 """
 import math
 import os
@@ -111,19 +76,16 @@ RESULT_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
                         reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
-#: sensor streams: the sensor-data profile of REP 2003 (best effort, volatile) with a queue
-#: deep enough for a quarter second of 100 Hz, so that a busy executor does not drop samples
-#: (the corrector: it prefers the newest samples to a backlog)
+#: sensor streams (the corrector's): REP 2003's sensor-data profile with a quarter second of
+#: 100 Hz of queue (it prefers the newest samples to a backlog)
 SENSOR_QOS = QoSProfile(depth=25, history=HistoryPolicy.KEEP_LAST,
                         reliability=qos_profile_sensor_data.reliability,
                         durability=qos_profile_sensor_data.durability)
 
-#: the calibration node's sensor streams: the same profile with 10 s of 100 Hz of queue.  A
-#: sample dropped from one stream shifts that stream's epoch numbering until the set matcher
-#: votes again, and the sets in between are paired tens of epochs off; the calibration node
-#: needs every sample, not the newest, and its executor is starved for up to a second while
-#: a calibrate or diagnose call holds the interpreter in the worker thread (seen in the
-#: end-to-end test: 20-125 sets paired far off in 2 of 4 runs with a 25-deep queue)
+#: the calibration node's sensor streams: 10 s of 100 Hz of queue. It needs every sample: one
+#: dropped shifts its stream's epoch numbering until the matcher votes again, and a solve
+#: starves its executor for up to a second (25 deep: 20-125 sets paired far off in 2 of 4
+#: end-to-end runs)
 CALIBRATION_SENSOR_QOS = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
                                     reliability=qos_profile_sensor_data.reliability,
                                     durability=qos_profile_sensor_data.durability)
@@ -173,8 +135,6 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
         self._taken = 0                         # raw samples taken (all sensors, any state)
 
         service_group = ReentrantCallbackGroup()
-        # the sensor streams are taken on the EventsExecutor in a thread of their own and
-        # handed to the callbacks below on this node's executor (magcal_ros.ros.intake)
         self._intake = Intake(self)
         for j, topic in enumerate(s.input_topics, start=1):
             self._intake.subscribe(MagneticField, topic, self._raw_cb(j - 1),
@@ -182,9 +142,7 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
             self._intake.subscribe(Temperature, f'sensor{j}/temperature',
                                    self._temp_cb(j - 1), SENSOR_QOS)
         for name in s.aux_topics:
-            # as deep as the raw streams: a shallow queue dropped the channels' backlog
-            # while the interpreter was held by a solve, leaving their values ahead of the
-            # raw samples they were paired with
+            # as deep as the raw streams: values must not run ahead of their raw samples
             self._intake.subscribe(Float64, name, self._aux_cb('aux_' + name),
                                    CALIBRATION_SENSOR_QOS)
         if s.imu_topic:
@@ -219,8 +177,7 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
                self.get_logger().warning)
         for line in self._setup[1]:
             say(line)
-        # triggered by the worker thread when a solve ends, so the executor wakes up and
-        # resumes the awaiting service coroutine even when no sensor data flows
+        # the worker thread wakes the executor when a solve ends (the awaiting service)
         self._wake = self.create_guard_condition(lambda: None)
         self._learn_init(RESULT_QOS)            # learning mode (magcal_ros.ros.learning)
         self._publish_existing(s.calibration_file)
@@ -280,10 +237,9 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
     def setup_status(self):
         """``DiagnosticStatus``: the geometry, the tensor and the field reference in use."""
         level, lines = self._setup
-        st = DiagnosticStatus(name=f'{self.get_name()}: setup',
-                              hardware_id=self.get_namespace(), level=level,
-                              message='; '.join(lines))
-        return st
+        return DiagnosticStatus(name=f'{self.get_name()}: setup',
+                                hardware_id=self.get_namespace(), level=level,
+                                message='; '.join(lines))
 
     # -- parameters ------------------------------------------------------------------------
 
@@ -355,18 +311,17 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
         """
         ``diagnostic_msgs/DiagnosticStatus`` of the active calibration on the live data.
 
-        WARN when a sensor's rolling residual exceeds :data:`RESIDUAL_WARN_RATIO` times what
-        its noise floor predicts (:class:`magcal_ros.core.live.corrector.ResidualMonitor`), or
-        when a
-        driven effect lacks its live signal.
+        WARN when a sensor's rolling residual exceeds :data:`RESIDUAL_WARN_RATIO` times its
+        noise floor (:class:`~magcal_ros.core.live.corrector.ResidualMonitor`), or a driven
+        effect lacks its live signal.
         """
         st = DiagnosticStatus(name=f'{self.get_name()}: residual',
                               hardware_id=self.get_namespace(), level=DiagnosticStatus.OK)
         monitor = self._monitor
         r = monitor.ratios() if monitor is not None else None
-        values = [('residual_sets_published', str(self._residual_sets))]
         errors = self._effect_errors
-        values += [('effect_errors', str(sum(errors.counts().values())))]
+        values = [('residual_sets_published', str(self._residual_sets)),
+                  ('effect_errors', str(sum(errors.counts().values())))]
         values += [(f'effect_errors {k}', str(n)) for k, n in errors.counts().items()]
         if errors:
             st.level = DiagnosticStatus.ERROR
