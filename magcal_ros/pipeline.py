@@ -76,12 +76,9 @@ def array_geometry(n_sensors, positions_m=(), baseline_m=0.5):
 
 def tensor_undetermined(positions):
     """
-    Why the gradient tensor cannot be computed from sensors at ``positions``, or None.
+    Why the gradient tensor cannot be computed from sensors at ``positions`` ((S, 3) m), or None.
 
-    ``positions`` (S, 3) m or None. The tensor (symmetric and traceless: 5 numbers, with
-    the centre field 8 unknowns, :func:`magcal_ros.core.geometry.tensor.tensor_operator`) needs the
-    sensors to span at least a plane: one sensor measures no difference, collinear sensors
-    only the derivatives along their line.
+    It (5 numbers, 8 unknowns with the centre field) needs the sensors to span a plane.
     """
     if positions is None:
         return ('no sensor positions (give sensor_positions_m, x y z per sensor in m): the '
@@ -102,10 +99,9 @@ def tensor_undetermined(positions):
 
 def geometry_mismatch(file_geometry, node_geometry, tol_m=1e-6):
     """
-    Why a calibration file's geometry differs from the node's, naming both, or None.
+    Why a file's geometry dict differs from the node's (``positions_m`` (S, 3) m), or None.
 
-    Both are geometry dicts (``positions_m`` (S, 3) m); a file without positions, or a node
-    without a geometry, is not compared.
+    A file without positions, or a node without a geometry, is not compared.
     """
     if not node_geometry or not file_geometry or 'positions_m' not in file_geometry:
         return None
@@ -119,11 +115,7 @@ def geometry_mismatch(file_geometry, node_geometry, tol_m=1e-6):
 
 
 def tensor_stats(fields, positions):
-    """
-    RMS (about the mean) and max deviation of each tensor component, nT/m.
-
-    fields (S, N, 3) nT in the array frame. Returns dict rms (3,3), max_abs_dev (3,3), mean.
-    """
+    """Return the tensor's rms, max_abs_dev, mean ((3, 3) nT/m) of ``fields`` (S, N, 3) nT."""
     g, _ = tensor_lstsq(fields, positions)
     dev = g - g.mean(axis=0)
     return {'rms': np.sqrt(np.mean(dev ** 2, axis=0)), 'max_abs_dev': np.abs(dev).max(axis=0),
@@ -209,12 +201,11 @@ def fit_warnings(result, floor):
 
 def summarize(result, data, positions=None):
     """
-    Before/after figures of a fit (all nT, nT/m); JSON-ready.
+    Before/after figures of a fit (nT, nT/m), JSON-ready; ``warnings`` ``{kind, sensor, text}``.
 
-    The noise floor is :func:`~magcal_ros.core.data.noise.data_noise_floor` of the data and this
-    fit (the figure ``diagnose`` reports for the same data and model); the tensor floor is
-    propagated from it, not from the fit's sigma (which grows when an effect is missing).
-    ``warnings`` is a list of ``{kind, sensor, text}``.
+    The noise floor is :func:`~magcal_ros.core.data.noise.data_noise_floor` (as ``diagnose``
+    reports it); the tensor floor is propagated from it, not from the fit's sigma (which
+    grows when an effect is missing).
     """
     f = result.field_magnitude_nt
     raw_tot = np.linalg.norm(data.raw, axis=2) - f[None]
@@ -315,9 +306,7 @@ def run_request(data, request, screen=True, **fit_kwargs):
     """
     Run a :class:`CalibrationRequest` on ``data`` (Dataset, (S, N, 3) nT): a CalibrationRun.
 
-    The one calibration of ``magcal fit`` and calibration_node: ``screen`` and the
-    outlier exclusion as :func:`calibrate` says, then the request's mode (attitude-aided,
-    planar, heading unknown or the plain fit); ``fit_kwargs`` go to the fit.
+    ``screen`` and the outlier exclusion as :func:`calibrate` says; ``fit_kwargs`` go to the fit.
     """
     if not screen:
         return _calibrate_clean(data, request, request.field_nt, fit_kwargs)
@@ -437,8 +426,8 @@ def attitude_mode(option, data):
     """
     Return the attitude mode a fit of ``data`` uses: 'tilt', 'full' or None (magnitude only).
 
-    ``option`` is one of :data:`ATTITUDE_MODES` or None ('auto').  'tilt' or 'full' on data
-    without attitude is refused (ValueError naming what to add).
+    ``option``: one of :data:`ATTITUDE_MODES` or None ('auto'); 'tilt' or 'full' on data
+    without attitude raise ValueError.
     """
     option = option or 'auto'
     if option not in ATTITUDE_MODES:

@@ -69,21 +69,31 @@ class CalibrationMixin:
     """The calibrate and diagnose services of the calibration node."""
 
     async def _on_calibrate(self, request, response):
+        return await self._solve(response, 'calibration', 'calibrate', True)
+
+    async def _on_diagnose(self, request, response):
+        return await self._solve(response, 'diagnosis', 'diagnose', False)
+
+    async def _solve(self, response, call, service, calibrate):
+        """Answer calibrate or diagnose: the solve in the worker thread, one at a time."""
         if not self._busy.acquire(blocking=False):
             return _reply(response, False, 'a calibration is already running',
                           {'state': self._state})
         with self._lock:
             prev_state = self._state
-            self._state = 'calibrating'
+            if calibrate:
+                self._state = 'calibrating'
         try:
-            ok, summary, payload = await self._in_worker(self._calibrate, prev_state)
+            ok, summary, payload = await (self._in_worker(self._calibrate, prev_state)
+                                          if calibrate else self._in_worker(self._diagnose))
             return _reply(response, ok, summary, payload)
         except Exception as exc:         # noqa: B902 -- a service must answer, never die
-            return _reply(response, False, *self._failed('calibration', 'calibrate', exc))
+            return _reply(response, False, *self._failed(call, service, exc))
         finally:
-            with self._lock:
-                # collection goes on (the buffer is kept) if it was running before
-                self._state = prev_state
+            if calibrate:
+                with self._lock:
+                    # collection goes on (the buffer is kept) if it was running before
+                    self._state = prev_state
             self._busy.release()
 
     def _calibrate(self, state):
@@ -199,18 +209,6 @@ class CalibrationMixin:
         self._last_result = {k: payload[k] for k in ('calibration_file', 'model', 'sets')}
         self.get_logger().info(lines[0])
         return True, '\n'.join(lines), payload
-
-    async def _on_diagnose(self, request, response):
-        if not self._busy.acquire(blocking=False):
-            return _reply(response, False, 'a calibration is already running',
-                          {'state': self._state})
-        try:
-            ok, summary, payload = await self._in_worker(self._diagnose)
-            return _reply(response, ok, summary, payload)
-        except Exception as exc:         # noqa: B902 -- a service must answer, never die
-            return _reply(response, False, *self._failed('diagnosis', 'diagnose', exc))
-        finally:
-            self._busy.release()
 
     def _diagnose(self):
         """Rank the missing effects; returns (success, summary text, JSON payload)."""

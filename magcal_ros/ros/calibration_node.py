@@ -56,7 +56,7 @@ from magcal_ros.ros import params as prm
 from magcal_ros.ros.calibrating import CalibrationMixin
 from magcal_ros.ros.collection import CollectionMixin
 from magcal_ros.ros.conversions import residual_to_msg
-from magcal_ros.ros.diagnostics import fill, Updater
+from magcal_ros.ros.diagnostics import EffectErrorsMixin, fill, Updater
 from magcal_ros.ros.intake import Intake
 from magcal_ros.ros.learning import LearningMixin
 from magcal_ros.ros.run import DEFAULT_NAMESPACE, spin_node, yield_cpu
@@ -91,7 +91,8 @@ CALIBRATION_SENSOR_QOS = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
                                     durability=qos_profile_sensor_data.durability)
 
 
-class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixin, Node):
+class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixin,
+                      EffectErrorsMixin, Node):
     """Collect rotation data of the array and serve calibrate/diagnose requests."""
 
     def __init__(self, **kwargs):
@@ -99,9 +100,8 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
         super().__init__('calibration_node', **kwargs)
         first = prm.declare(self, [prm.N_SENSORS, prm.PLUGINS])
         plugins = prm.load_plugins(self)        # before the model is checked
-        n = int(prm.value(self, 'n_sensors'))
-        self._specs = prm.calibration_specs(n)
-        self._specs_by_name = prm.declare(self, self._specs)
+        self._specs_by_name = prm.declare(
+            self, prm.calibration_specs(int(prm.value(self, 'n_sensors'))))
         self._specs_by_name.update(first)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         s = prm.calibration_settings(self)
@@ -152,18 +152,12 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
         self._result_pub = self.create_publisher(String, 'calibration/result', RESULT_QOS)
         self._residual_pub = self.create_publisher(Float64MultiArray, 'calibration/residual',
                                                    10)
-        self._srv = [
-            self.create_service(Trigger, 'calibration/start', self._on_start,
-                                callback_group=service_group),
-            self.create_service(Trigger, 'calibration/calibrate', self._on_calibrate,
-                                callback_group=service_group),
-            self.create_service(Trigger, 'calibration/diagnose', self._on_diagnose,
-                                callback_group=service_group),
-            self.create_service(Trigger, 'calibration/reset', self._on_reset,
-                                callback_group=service_group),
-            self.create_service(Trigger, 'calibration/turn', self._on_turn,
-                                callback_group=service_group),
-        ]
+        self._srv = [self.create_service(Trigger, f'calibration/{name}', callback,
+                                         callback_group=service_group)
+                     for name, callback in (('start', self._on_start),
+                                            ('calibrate', self._on_calibrate),
+                                            ('diagnose', self._on_diagnose),
+                                            ('reset', self._on_reset), ('turn', self._on_turn))]
         self._cmd_vel = (self.create_publisher(Twist, s.cmd_vel_topic, 10)
                          if s.cmd_vel_topic else None)
         self._status_timer = self.create_timer(s.status_period_s, self._publish_status)
@@ -281,12 +275,6 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
             self._residual_pub.publish(residual_to_msg(scalar, vector))
             self._residual_sets += 1
 
-    def _effect_error(self, exc, what):
-        """Count an error of effect code (:class:`EffectError`); log the first per effect."""
-        if self._effect_errors.add(exc, what):
-            self.get_logger().error(f'{exc} ({what}); further errors of it are counted on '
-                                    '/diagnostics, not logged')
-
     def _activate(self, cal, doc):
         """Apply ``cal`` to the incoming data from now on (residual and its diagnostics)."""
         s = prm.calibration_settings(self)
@@ -320,9 +308,8 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
         monitor = self._monitor
         r = monitor.ratios() if monitor is not None else None
         errors = self._effect_errors
-        values = [('residual_sets_published', str(self._residual_sets)),
-                  ('effect_errors', str(sum(errors.counts().values())))]
-        values += [(f'effect_errors {k}', str(n)) for k, n in errors.counts().items()]
+        values = [('residual_sets_published', str(self._residual_sets))]
+        values += self._effect_error_values()
         if errors:
             st.level = DiagnosticStatus.ERROR
             st.message = f'effect code failed: {errors.summary()}'

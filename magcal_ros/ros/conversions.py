@@ -18,25 +18,14 @@ Conversions between library arrays (nT, nT/m, degC) and ROS messages (T, T/m, de
 This is the one place where nanotesla become tesla (REP 103 SI units in messages) and back.
 Every builder validates its input and raises ``ValueError`` naming what was wrong.
 
-Message layouts
----------------
-- ``sensor_msgs/MagneticField``: ``magnetic_field`` in T, ``magnetic_field_covariance`` in T^2,
-  3x3 row-major (x, y, z); all zeros means "covariance unknown" (message definition).
-- Gradient tensor ``std_msgs/Float64MultiArray``: 3x3 row-major in T/m, ``layout.dim`` =
-  ``[('row', size 3, stride 9), ('col', size 3, stride 3)]``, ``data_offset`` 0
-  (docs/design.md §3).
-- ``magcal_interfaces/GradientTensorStamped`` (``gradient_stamped``): header (stamp of the
-  matched set, the array frame), ``tensor`` 3x3 row-major in T/m, ``tensor_covariance``
-  9x9 row-major in (T/m)^2 (all zeros: unknown).
-- Live residual ``std_msgs/Float64MultiArray`` (``calibration/residual``): per set, row 0
-  the scalar residuals |b_j| - F, row 1 the vector residuals |b_j - mean of the others|,
-  one column per sensor, T (:func:`residual_to_msg`).
-- ``geometry_msgs/TransformStamped``: the static transform array -> fluxgate{j}, translation
-  in m, rotation as a unit quaternion (REP 103).
-- ``sensor_msgs/Temperature``: degrees Celsius, variance in degC^2.
-- ``sensor_msgs/Imu`` (attitude only): ``orientation`` the body-to-world unit quaternion
-  (REP 103/145: world ENU), its covariance in rad^2 about the world axes; angular velocity
-  and linear acceleration not given (``covariance[0] = -1``, REP 145) (:func:`attitude_msg`).
+Layouts: ``sensor_msgs/MagneticField`` covariance in T^2, 3x3 row-major, all zeros meaning
+unknown; the gradient tensor ``std_msgs/Float64MultiArray`` 3x3 row-major in T/m,
+``layout.dim`` ``[('row', size 3, stride 9), ('col', size 3, stride 3)]``, ``data_offset`` 0;
+``magcal_interfaces/GradientTensorStamped``: the matched set's stamp, the array frame,
+``tensor`` 3x3 row-major in T/m, ``tensor_covariance`` 9x9 row-major in (T/m)^2 (zeros:
+unknown); the live residual: :func:`residual_to_msg`; ``sensor_msgs/Imu`` carries only the
+body-to-world (ENU) orientation, covariance rad^2 about the world axes, angular velocity and
+linear acceleration marked not given (``covariance[0] = -1``, REP 145).
 """
 
 import math

@@ -52,7 +52,7 @@ from magcal_ros.ros.conversions import (correct_msg_linear, covariance_to_t2,
                                         fill_gradient_stamped, gradient_covariance_to_t2,
                                         linear_to_t, msg_to_field_nt, set_field_nt,
                                         stamp_to_seconds, tensor_to_msg, transform_msg)
-from magcal_ros.ros.diagnostics import fill, Updater
+from magcal_ros.ros.diagnostics import EffectErrorsMixin, fill, Updater
 from magcal_ros.ros.run import DEFAULT_NAMESPACE, spin_node
 import numpy as np
 from rclpy.node import Node
@@ -73,7 +73,7 @@ def _optional(module, name):
         return None, f'{module}.{name} is not importable ({exc})'
 
 
-class CorrectorNode(Node):
+class CorrectorNode(EffectErrorsMixin, Node):
     """Publish corrected fields and the gradient tensor of the array."""
 
     def __init__(self, **kwargs):
@@ -82,8 +82,7 @@ class CorrectorNode(Node):
         first = prm.declare(self, [prm.N_SENSORS, prm.PLUGINS])
         # effect code is imported at start-up only, never because a message names a module
         plugins = prm.load_plugins(self)
-        specs = prm.corrector_specs(int(prm.value(self, 'n_sensors')))
-        self._specs = prm.declare(self, specs)
+        self._specs = prm.declare(self, prm.corrector_specs(int(prm.value(self, 'n_sensors'))))
         self._specs.update(first)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         s = prm.corrector_settings(self)
@@ -136,20 +135,15 @@ class CorrectorNode(Node):
                 self._pub_stamped = self.create_publisher(self._stamped_cls,
                                                           'gradient_stamped', 10)
         broadcaster, reason = _optional('tf2_ros', 'StaticTransformBroadcaster')
-        self._tf = None
+        self._tf = None if broadcaster is None else broadcaster(self)
         if broadcaster is None:
             self.get_logger().info(f'not publishing the static transforms {self._frame} -> '
                                    f'fluxgate{{j}}: {reason}')
-        else:
-            self._tf = broadcaster(self)
-        self._subs = []
-        for j, topic in enumerate(s.input_topics, start=1):
-            self._subs.append(self.create_subscription(
-                MagneticField, topic, self._raw_cb(j - 1), SENSOR_QOS))
+        self._subs = [self.create_subscription(MagneticField, topic, self._raw_cb(j), SENSOR_QOS)
+                      for j, topic in enumerate(s.input_topics)]
         self._temp_subs = []     # created while the calibration has a temperature effect
-        for name in s.aux_topics:
-            self._subs.append(self.create_subscription(
-                Float64, name, self._aux_cb('aux_' + name), SENSOR_QOS))
+        self._subs += [self.create_subscription(Float64, name, self._aux_cb('aux_' + name),
+                                                SENSOR_QOS) for name in s.aux_topics]
         self._subs.append(self.create_subscription(String, 'calibration/result',
                                                    self._result_cb, RESULT_QOS))
         if plugins:
@@ -227,12 +221,6 @@ class CorrectorNode(Node):
             self._site_shift = None
             self._effect_error(exc, 'nothing is subtracted')
         self._update_fast_path()
-
-    def _effect_error(self, exc, what):
-        """Count an error of effect code (:class:`EffectError`); log the first per effect."""
-        if self._effect_errors.add(exc, what):
-            self.get_logger().error(f'{exc} ({what}); further errors of it are counted on '
-                                    '/diagnostics, not logged')
 
     # -- calibrations ----------------------------------------------------------------------
 
@@ -460,8 +448,7 @@ class CorrectorNode(Node):
                   ('frame_id', self._frame)]
         values += [(f'sensor{j + 1}_corrected_published', str(c))
                    for j, c in enumerate(self._counts)]
-        values += [('effect_errors', str(sum(errors.counts().values())))]
-        values += [(f'effect_errors {k}', str(n)) for k, n in errors.counts().items()]
+        values += self._effect_error_values()
         st.values = [KeyValue(key=k, value=v) for k, v in values]
         return st
 

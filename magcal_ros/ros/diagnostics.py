@@ -144,6 +144,22 @@ except ImportError:
     SOURCE = 'magcal_ros shim'
 
 
+class EffectErrorsMixin:
+    """The nodes' account of errors of effect code, in their ``self._effect_errors``."""
+
+    def _effect_error(self, exc, what):
+        """Count an error of effect code (:class:`EffectError`); log the first per effect."""
+        if self._effect_errors.add(exc, what):
+            self.get_logger().error(f'{exc} ({what}); further errors of it are counted on '
+                                    '/diagnostics, not logged')
+
+    def _effect_error_values(self):
+        """Return the status key-value pairs of the effect errors: the total, then per effect."""
+        counts = self._effect_errors.counts()
+        return [('effect_errors', str(sum(counts.values())))] + [
+            (f'effect_errors {k}', str(n)) for k, n in counts.items()]
+
+
 def fill(stat, status):
     """
     Copy level, message, hardware_id and values of ``status`` into the task's ``stat``.

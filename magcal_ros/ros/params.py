@@ -20,7 +20,7 @@ unit, validator): ``ros2 param describe`` and the ``add_on_set_parameters_callba
 come from one table. The settings dataclasses (:class:`CalibrationSettings`,
 :class:`CorrectorSettings`) keep the code doing the work away from a ``Node``.
 """
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, make_dataclass
 import math
 import os
 
@@ -178,18 +178,16 @@ def default_input_topics(n_sensors, given=()):
     return tuple(given) if given else tuple(f'sensor{j}/raw' for j in range(1, n_sensors + 1))
 
 
-def latitude(value):
-    """Refuse a latitude outside -90..90 deg (NaN: not given)."""
-    if math.isnan(value) or -90.0 <= value <= 90.0:
-        return None
-    return f'must be a latitude in -90..90 deg (or .nan: not given), got {value!r}'
+def _degrees(kind, lo, hi):
+    """Make a validator refusing ``kind`` outside ``lo``..``hi`` deg (NaN: not given)."""
+    def check(value):
+        if math.isnan(value) or lo <= value <= hi:
+            return None
+        return f'must be {kind} in {lo}..{hi} deg (or .nan: not given), got {value!r}'
+    return check
 
 
-def longitude(value):
-    """Refuse a longitude outside -180..360 deg (NaN: not given)."""
-    if math.isnan(value) or -180.0 <= value <= 360.0:
-        return None
-    return f'must be a longitude in -180..360 deg (or .nan: not given), got {value!r}'
+latitude, longitude = _degrees('a latitude', -90, 90), _degrees('a longitude', -180, 360)
 
 
 def iso_date(value):
@@ -291,43 +289,6 @@ def value(node, name, default=None):
 
 
 # -- calibration node -----------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class CalibrationSettings:
-    """Settings of the calibration node (units in the names)."""
-
-    n_sensors: int
-    model: tuple
-    field_nt: float
-    calibration_file: str
-    min_samples: int
-    max_samples: int
-    baseline_m: float
-    history: int
-    report_dir: str
-    stamp_tolerance_s: float
-    aux_topics: tuple
-    status_period_s: float
-    robust: bool
-    constrained: bool
-    resync_sets: bool
-    exclude_outliers: bool
-    imu_topic: str = ''
-    sensor_positions_m: tuple = ()
-    input_topics: tuple = ()
-    field_source: str = 'constant'
-    site_latitude_deg: float = math.nan
-    site_longitude_deg: float = math.nan
-    site_altitude_m: float = 0.0
-    site_date: str = ''
-    planar: bool = False
-    attitude_mode: str = 'auto'
-    cmd_vel_topic: str = '/cmd_vel'
-    turn_speed_rad_s: float = 0.3
-    turn_count: float = 2.0
-    turn_timeout_s: float = 120.0
-
-
 #: declared first: the model check of the other parameters depends on it
 N_SENSORS = ParamSpec('n_sensors', 4, 'number of sensors of the array (topics sensor1/raw .. '
                       'sensor<S>/raw); count, read-only', at_least(1), read_only=True,
@@ -476,24 +437,6 @@ def calibration_settings(node):
 
 # -- corrector node -------------------------------------------------------------------------
 
-@dataclass(frozen=True)
-class CorrectorSettings:
-    """Settings of the corrector node (units in the names)."""
-
-    n_sensors: int
-    calibration_file: str
-    stamp_tolerance_s: float
-    aux_topics: tuple
-    publish_gradient: bool
-    diagnostics_period_s: float
-    array_frame_id: str
-    subtract_site_gradient: bool = False
-    site_attitude: tuple = (1.0, 0.0, 0.0, 0.0)
-    sensor_positions_m: tuple = ()
-    input_topics: tuple = ()
-    baseline_m: float = 0.5
-
-
 def unit_quaternion(value):
     """Refuse anything but a unit quaternion (qw, qx, qy, qz)."""
     from magcal_ros.core.geometry.attitude import check_quaternions
@@ -542,6 +485,18 @@ def corrector_specs(n_sensors=4):
                   'cross (paper 004; when sensor_positions_m is empty), m; read-only',
                   positive('m'), read_only=True, limits=(1.0e-3, 100.0)),
     ]
+
+
+def _settings_class(name, node_name, specs):
+    """Make a frozen dataclass with one field per parameter of ``specs`` (its default's type)."""
+    return make_dataclass(name, [(spec.name, type(spec.default)) for spec in specs], frozen=True,
+                          namespace={'__doc__': f'Settings of {node_name} (units in the names).'})
+
+
+CalibrationSettings = _settings_class('CalibrationSettings', 'calibration_node',
+                                      [N_SENSORS] + calibration_specs())
+CorrectorSettings = _settings_class('CorrectorSettings', 'corrector_node',
+                                    [N_SENSORS] + corrector_specs())
 
 
 def corrector_settings(node):
