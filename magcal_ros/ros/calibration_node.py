@@ -15,21 +15,12 @@
 """
 calibration_node: collect rotation data from the live array, calibrate, diagnose.
 
-Its topics, services and parameters are docs/design.md §3's. In short: it takes
-``sensor{j}/raw``, ``sensor{j}/temperature``, the ``aux_topics`` and ``imu_topic``
-(best effort, deep queues: :data:`CALIBRATION_SENSOR_QOS`); publishes
-``calibration/status`` (JSON), ``calibration/result`` (the calibration YAML, latched) and
-``calibration/residual`` (per matched set, the active calibration's scalar and vector
-residuals, :func:`magcal_ros.ros.conversions.residual_to_msg`), with their rolling RMS over
-the noise floor on ``/diagnostics`` (WARN above
-:data:`magcal_ros.core.live.corrector.RESIDUAL_WARN_RATIO`; ERROR naming an effect whose code
-raised). Services (std_srvs/Trigger; reply: a summary line, a newline, one JSON object):
-``calibration/start``, ``calibrate``, ``diagnose``, ``reset``, ``turn`` and, with ``learn``,
-``adopt`` (:mod:`magcal_ros.ros.learning`).
-
-Its parts: the collection (:mod:`magcal_ros.ros.collection`), the solves
-(:mod:`magcal_ros.ros.calibrating`), the turn (:mod:`magcal_ros.ros.turn`) and the learning;
-this module holds the set-up, the parameters, the live residual and the worker thread.
+Topics, services (std_srvs/Trigger, :mod:`magcal_ros.ros.replies`) and parameters: docs/design.md
+§3. Its parts: the collection (:mod:`magcal_ros.ros.collection`), the solves
+(:mod:`magcal_ros.ros.calibrating`), the turn (:mod:`magcal_ros.ros.turn`) and the learning
+(:mod:`magcal_ros.ros.learning`); this module holds the set-up, the parameters, the live
+residual of the active calibration (``calibration/residual`` and its ``/diagnostics`` status,
+WARN above :data:`magcal_ros.core.live.corrector.RESIDUAL_WARN_RATIO`) and the worker thread.
 
 A solve must not block the sensor callbacks: it runs in a worker thread that the service
 coroutines (a reentrant callback group) await, and a non-blocking lock turns a second

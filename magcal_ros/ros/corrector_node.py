@@ -15,17 +15,12 @@
 """
 corrector_node: live correction of the array with the active calibration.
 
-Its topics and parameters are docs/design.md §3's. It takes ``sensor{j}/raw``,
-``sensor{j}/temperature`` (only while an effect reads it), the ``aux_topics`` (best effort,
-:data:`SENSOR_QOS`) and ``calibration/result`` (latched: a new calibration without a
-restart); publishes ``sensor{j}/corrected`` (T, frame ``array_frame_id``, the raw stamp,
-covariance sigma_j^2 A_j^-1 A_j^-T), ``gradient`` (3x3 row-major, T/m) and
-``gradient_stamped`` (when magcal_interfaces is importable) from stamp-matched sets, the
-static transforms ``array_frame_id`` -> ``fluxgate{j}`` (when tf2_ros is importable), and
-its health on ``/diagnostics``: WARN without a usable calibration (nothing is published),
-after a refused one (the last good one stays), while a driven effect lacks its signal, or
-when more than :data:`PAIRING_WARN_SHARE` of the sets failed the pairing check; ERROR naming
-an effect whose code raised (that sensor's sample is not published; the others go on).
+Topics and parameters: docs/design.md §3 (``sensor{j}/temperature`` is taken only while an
+effect reads it; ``calibration/result`` installs a new calibration without a restart). On
+``/diagnostics``: WARN without a usable calibration (nothing is published), after a refused
+one (the last good one stays), while a driven effect lacks its signal, or when more than
+:data:`PAIRING_WARN_SHARE` of the sets failed the pairing check; ERROR naming an effect whose
+code raised (that sensor's sample is not published; the others go on).
 
 The tensor's sets are paired by epoch (:class:`magcal_ros.core.live.sync.StampMatcher`) and
 checked from the data (:meth:`magcal_ros.core.live.corrector.LiveCorrector.pairing_chi2`): a

@@ -287,37 +287,31 @@ class FluxgateDriver(Node):
     def _declare_sensor(self, j):
         p = ParameterType
         g = self.get_parameter
-        pre = f'sensor{j}.'
-        values = {
-            'port': self.declare_parameter(pre + 'port', os.path.join(
-                device_dir(self.get_namespace()), f'fluxgate{j}'), _desc(
-                'serial device path (a missing device is retried with backoff); no unit',
-                p.PARAMETER_STRING)).value,
-            'alternatives': self.declare_parameter(
-                pre + 'alternatives', Parameter.Type.STRING_ARRAY, _desc(
-                    'glob patterns of other device paths to try when port is gone (e.g. '
-                    '/dev/serial/by-id/*FTDI*); no unit', p.PARAMETER_STRING_ARRAY)).value,
-            'baud': self.declare_parameter(pre + 'baud', g('baud').value, _desc(
-                'baud rate, bit/s (default: the global baud)', p.PARAMETER_INTEGER)).value,
-            'protocol': self.declare_parameter(pre + 'protocol', g('protocol').value, _desc(
-                'serial protocol (default: the global protocol); no unit',
-                p.PARAMETER_STRING)).value,
-            'options': self.declare_parameter(pre + 'options', g('options').value, _desc(
-                'protocol options as a YAML mapping (default: the global options)',
-                p.PARAMETER_STRING)).value,
-            'axes': self.declare_parameter(pre + 'axes', list(AXES), _desc(
-                'device axis (optionally signed) giving sensor x, y, z, e.g. [-y, x, z]; '
-                'no unit', p.PARAMETER_STRING_ARRAY)).value,
-            'frame_id': self.declare_parameter(pre + 'frame_id', f'fluxgate{j}', _desc(
-                'header frame_id of sensor{j}/raw and temperature; no unit',
-                p.PARAMETER_STRING)).value,
-            'noise_nt': self.declare_parameter(pre + 'noise_nt', g('noise_nt').value, _desc(
-                'noise standard deviation per axis for the covariance, nT (default: the '
-                'global noise_nt)', p.PARAMETER_DOUBLE, read_only=False)).value,
-            'expected_rate_hz': self.declare_parameter(pre + 'expected_rate_hz', 0.0, _desc(
-                'expected sample rate for the diagnostics warning, Hz (0: not checked)',
-                p.PARAMETER_DOUBLE, read_only=False)).value,
-        }
+        specs = (   # name, default, description, type, read-only
+            ('port', os.path.join(device_dir(self.get_namespace()), f'fluxgate{j}'),
+             'serial device path (a missing device is retried with backoff); no unit',
+             p.PARAMETER_STRING, True),
+            ('alternatives', Parameter.Type.STRING_ARRAY, 'glob patterns of other device paths '
+             'to try when port is gone (e.g. /dev/serial/by-id/*FTDI*); no unit',
+             p.PARAMETER_STRING_ARRAY, True),
+            ('baud', g('baud').value, 'baud rate, bit/s (default: the global baud)',
+             p.PARAMETER_INTEGER, True),
+            ('protocol', g('protocol').value,
+             'serial protocol (default: the global protocol); no unit', p.PARAMETER_STRING, True),
+            ('options', g('options').value,
+             'protocol options as a YAML mapping (default: the global options)',
+             p.PARAMETER_STRING, True),
+            ('axes', list(AXES), 'device axis (optionally signed) giving sensor x, y, z, e.g. '
+             '[-y, x, z]; no unit', p.PARAMETER_STRING_ARRAY, True),
+            ('frame_id', f'fluxgate{j}', 'header frame_id of sensor{j}/raw and temperature; '
+             'no unit', p.PARAMETER_STRING, True),
+            ('noise_nt', g('noise_nt').value, 'noise standard deviation per axis for the '
+             'covariance, nT (default: the global noise_nt)', p.PARAMETER_DOUBLE, False),
+            ('expected_rate_hz', 0.0, 'expected sample rate for the diagnostics warning, Hz '
+             '(0: not checked)', p.PARAMETER_DOUBLE, False))
+        values = {name: self.declare_parameter(f'sensor{j}.{name}', default,
+                                               _desc(text, ptype, read_only)).value
+                  for name, default, text, ptype, read_only in specs}
         try:
             options = parse_options(values['options'])
         except ValueError as exc:
