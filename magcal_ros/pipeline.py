@@ -98,11 +98,7 @@ def tensor_undetermined(positions):
 
 
 def geometry_mismatch(file_geometry, node_geometry, tol_m=1e-6):
-    """
-    Why a file's geometry dict differs from the node's (``positions_m`` (S, 3) m), or None.
-
-    A file without positions, or a node without a geometry, is not compared.
-    """
+    """Why a file's ``positions_m`` (S, 3) m differ from the node's; None: equal or not known."""
     if not node_geometry or not file_geometry or 'positions_m' not in file_geometry:
         return None
     a = np.asarray(file_geometry['positions_m'], float)
@@ -303,11 +299,7 @@ class CalibrationRequest:
 
 
 def run_request(data, request, screen=True, **fit_kwargs):
-    """
-    Run a :class:`CalibrationRequest` on ``data`` (Dataset, (S, N, 3) nT): a CalibrationRun.
-
-    ``screen`` and the outlier exclusion as :func:`calibrate` says; ``fit_kwargs`` go to the fit.
-    """
+    """Run a :class:`CalibrationRequest` on ``data`` (S, N, 3) nT, as :func:`calibrate` says."""
     if not screen:
         return _calibrate_clean(data, request, request.field_nt, fit_kwargs)
     from magcal_ros.core.data.readings import leave_out_unphysical, ReadingScreen

@@ -59,6 +59,11 @@ def _fmt_per_sensor(d, fmt='{:.2f}'):
     return ', '.join(f'{k}: {fmt.format(v)}' for k, v in d.items())
 
 
+def _not_diagnosed(reason, **payload):
+    """Reply (False, summary, payload) of a diagnose call that was refused."""
+    return False, f'not diagnosed: {reason}', {'reason': reason, **payload}
+
+
 def _not_calibrated(reason, **payload):
     """Reply (False, summary, payload) of a calibrate call that leaves the previous active."""
     return False, f'not calibrated: {reason}; previous calibration stays active', {
@@ -220,18 +225,16 @@ class CalibrationMixin:
         s = prm.calibration_settings(self)
         n_sets, data, epochs = self._snapshot()
         if n_sets < s.min_samples:
-            reason = f'only {n_sets} complete sample sets collected, need {s.min_samples}'
-            return False, f'not diagnosed: {reason}', {'reason': reason, 'sets': n_sets}
+            return _not_diagnosed(f'only {n_sets} complete sample sets collected, need '
+                                  f'{s.min_samples}', sets=n_sets)
         model = Model.from_spec(list(s.model), self._n)
         try:
-            # readings no field produces are named and left out, as in calibrate, before
-            # the pairing check
+            # as in calibrate: readings no field produces first, then the pairing check
             data, epochs, screen = self._screen(data, epochs)
             data, resync_payload, _ = self._resync(data, epochs, s)
         except ValueError as exc:
             reason, extra = self._named(exc, 'diagnose')
-            return False, f'not diagnosed: {reason}', {'reason': reason, 'sets': n_sets,
-                                                       **extra}
+            return _not_diagnosed(reason, sets=n_sets, **extra)
         field_nt = s.field_nt
         try:
             # with imu_topic the attitude-aided fit, as calibrate makes it (pipeline)
@@ -242,8 +245,7 @@ class CalibrationMixin:
                             baseline_m=s.baseline_m)
         except ValueError as exc:
             reason, extra = self._named(exc, 'diagnose')
-            return False, f'not diagnosed: {reason}', {'reason': reason, 'sets': n_sets,
-                                                       **extra}
+            return _not_diagnosed(reason, sets=n_sets, **extra)
         ranking = json.loads(diag.to_json())       # non-finite numbers as null
         report = write_report(s.report_dir, data, diagnosis=diag, baseline_m=s.baseline_m)
         ranking['report'] = os.fspath(report)
@@ -353,11 +355,7 @@ class CalibrationMixin:
         return fixed, payload, lines
 
     def _named(self, exc, service):
-        """
-        (reason, payload entries) of an exception ending a calibrate/diagnose call.
-
-        One raised by an effect's code names the effect (counted as :meth:`_effect_error`).
-        """
+        """(reason, payload entries) of an exception ending a call; an effect's is named."""
         effect = culprit(exc)
         if effect is None:
             return str(exc), {}

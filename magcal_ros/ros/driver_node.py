@@ -84,11 +84,7 @@ class SensorSettings:
 
 
 def parse_axes(axes):
-    """
-    Turn e.g. ``['-y', 'x', 'z']`` into ((device index, sign), ...) for x, y, z.
-
-    Raises ValueError unless it names each device axis once, each optionally signed.
-    """
+    """Turn e.g. ``['-y', 'x', 'z']`` into ((device index, sign), ...) or raise ValueError."""
     axes = list(axes)
     if len(axes) != 3:
         raise ValueError(f'axes must list 3 device axes, e.g. ["x", "-z", "y"], got {axes}')
@@ -136,11 +132,9 @@ def diagnostic_status(settings, stats, previous_errors=0, previous=None):
     """
     Build the ``DiagnosticStatus`` of one port from a ``PortStats`` snapshot.
 
-    Level: ERROR when the port is not open; WARN when new parse errors appeared since
-    ``previous_errors``, when bytes arrived since the ``previous`` snapshot but not one valid
-    frame (wrong protocol, options or baud rate: a binary parser only drops such bytes
-    while it searches for a frame), or the rate is below half ``expected_rate_hz``; OK
-    otherwise.
+    ERROR when the port is not open; WARN on parse errors since ``previous_errors``, on bytes
+    without one valid frame since the ``previous`` snapshot (wrong protocol, options or baud:
+    a binary parser only drops them), or a rate below half ``expected_rate_hz``; else OK.
     """
     status = DiagnosticStatus()
     status.name = f'{NODE_NAME}: sensor{settings.index}'

@@ -302,11 +302,7 @@ PLUGINS = ParamSpec('plugins', (), 'effect plug-ins imported at start-up, each a
 
 
 def load_plugins(node):
-    """
-    Import the node's start-up ``plugins``; return the names of the effects registered.
-
-    Raises ValueError naming a plug-in that cannot be imported (the node exits with 2).
-    """
+    """Import the start-up ``plugins``; return the effects registered (ValueError: exit 2)."""
     try:
         return fx.load_plugins(value(node, 'plugins', []))
     except (ValueError, TypeError, AttributeError) as exc:

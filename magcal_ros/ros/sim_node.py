@@ -119,11 +119,7 @@ def sim_specs():
 
 
 class FluxgateSimNode(Node):
-    """
-    The ``fluxgate_sim`` node (keyword arguments go to ``rclpy.node.Node``).
-
-    Raises ValueError for bad settings or a link path that exists and is not a link.
-    """
+    """The ``fluxgate_sim`` node; ValueError for bad settings or a path that is not a link."""
 
     def __init__(self, **kwargs):
         kwargs.setdefault('namespace', DEFAULT_NAMESPACE)
