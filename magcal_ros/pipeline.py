@@ -783,6 +783,7 @@ def refit_recent(data, active, field_nt, geometry=None, field_reference=None, se
     # how far a parameter moves the field per its unit: an offset 1, scale and angles F
     reach = np.where([unit == 'nT' for *_, unit in info], 1.0, f0)
     still = np.zeros(model.n_params, bool)
+    held_sd = sd * HELD_FRACTION
     if driven.any():
         di = np.flatnonzero(driven)
         varying, whole = coupling_reach(active, data, di)
@@ -792,8 +793,6 @@ def refit_recent(data, active, field_nt, geometry=None, field_reference=None, se
             held = PRIOR_SD['offset'] * f0 / whole
         sd[di] = np.where(np.isfinite(width), width, sd[di])
         reach[di] = whole
-    held_sd = sd * HELD_FRACTION
-    if driven.any():
         # held, a coupling moves the field by as little as a held offset: its width from
         # its whole reach (the part a constant map could absorb too), not the varying one
         held_sd[di] = np.where(np.isfinite(held), held, sd[di]) * HELD_FRACTION
