@@ -174,7 +174,6 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
             + '; call calibration/start to collect')
 
     # -- geometry and field reference ------------------------------------------------------
-
     def _geometry(self, s):
         """Geometry dict of the node's parameters (None: no positions for 2, 3 or 5+)."""
         return array_geometry(self._n, s.sensor_positions_m, s.baseline_m)
@@ -227,7 +226,6 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
                                 message='; '.join(lines))
 
     # -- parameters ------------------------------------------------------------------------
-
     def _on_set_parameters(self, parameters):
         result = prm.validate(self._specs_by_name, parameters)
         if result.successful:
@@ -247,7 +245,6 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
         return result
 
     # -- the active calibration on the live data (calibration/residual) ------------------
-
     def _residual(self, live, j, t, raw):
         """Correct a sample with the active calibration; publish the residual of each set."""
         try:
@@ -334,7 +331,6 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
         return st
 
     # -- shutdown and the solve thread ----------------------------------------------------
-
     def destroy_node(self):
         """Stop a turn in progress (a zero velocity on cmd_vel), then destroy the node."""
         self._turn_stop.set()
@@ -358,7 +354,6 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
         return future
 
     # -- start-up --------------------------------------------------------------------------
-
     def _publish_existing(self, path):
         """Publish the calibration already on disk, so the corrector starts with it."""
         if not os.path.exists(path):

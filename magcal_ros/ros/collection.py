@@ -253,12 +253,10 @@ class CollectionMixin:
                                'quaternion (orientation_covariance[0] = -1, NaN or |q| != 1)')
         out['ready'] = self._collecting and not missing
         out.update({'model': list(s.model), 'field_nt': s.field_nt,
-                    'field_source': s.field_source,
-                    'max_samples': s.max_samples, 'coverage_eigenvalues': eigenvalues,
-                    'buffer': buffer,
+                    'field_source': s.field_source, 'max_samples': s.max_samples,
+                    'coverage_eigenvalues': eigenvalues, 'buffer': buffer,
                     'incomplete_sets_dropped': dropped, 'out_of_order_dropped': out_of_order,
-                    'stream_realignments': realigned,
-                    'intake_dropped': self._intake.dropped,
+                    'stream_realignments': realigned, 'intake_dropped': self._intake.dropped,
                     'samples_received': {str(j + 1): r for j, r in enumerate(received)}})
         if self._t_started is not None and self._collecting:
             dt = time.monotonic() - self._t_started

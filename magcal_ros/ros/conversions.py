@@ -136,11 +136,9 @@ def _covariance33(covariance_nt2):
 
 def covariance_to_t2(covariance_nt2):
     """
-    Validate a covariance and return it as a message's 9-element row-major array in T^2.
+    Validate a covariance (as :func:`field_nt_to_msg` takes it) and return it as (9,) T^2.
 
-    For publishers that send many messages with the same covariance: validate and convert
-    once, then pass the result as ``covariance_t2`` to :func:`field_nt_to_msg`.
-    Two factors of 1e-9: nT^2 -> T^2.
+    For publishers of many messages with one covariance: convert once, pass ``covariance_t2``.
     """
     return nt_to_t(nt_to_t(_covariance33(covariance_nt2))).reshape(9)
 
@@ -194,11 +192,10 @@ def linear_to_t(a_inv, offset_nt):
 
 def correct_msg_linear(msg, linear_t, covariance_t2):
     """
-    Correct ``msg`` in place: field <- A^-1 (field - o) in T, covariance (9,) T^2.
+    Correct ``msg`` in place: field <- A^-1 (field - o) in T (``linear_t`` of :func:`linear_to_t`).
 
-    ``linear_t`` from :func:`linear_to_t`. The corrector's hot path for sensors without
-    driven effects: plain float arithmetic (numpy costs more than the nine products for one
-    3-vector), header left as it is.
+    Covariance (9,) T^2; header left as it is. The hot path of sensors without driven effects:
+    plain floats (numpy costs more than the nine products for one 3-vector).
     """
     (r0, r1, r2), (ox, oy, oz) = linear_t
     v = msg.magnetic_field

@@ -150,7 +150,6 @@ class CorrectorNode(EffectErrorsMixin, Node):
         self._updater.force_update()
 
     # -- read-only state (for in-process users and tests; ROS users see it on /diagnostics)
-
     @property
     def received(self):
         """Raw samples taken so far, all sensors (count)."""
@@ -178,7 +177,6 @@ class CorrectorNode(EffectErrorsMixin, Node):
         return self._refused
 
     # -- parameters ------------------------------------------------------------------------
-
     def _on_set_parameters(self, parameters):
         result = prm.validate(self._specs, parameters)
         if result.successful:
@@ -218,7 +216,6 @@ class CorrectorNode(EffectErrorsMixin, Node):
         self._update_fast_path()
 
     # -- calibrations ----------------------------------------------------------------------
-
     def _install(self, cal, doc, source):
         mismatch = geometry_mismatch(doc.get('geometry'), self._geometry)
         if mismatch:
@@ -312,7 +309,6 @@ class CorrectorNode(EffectErrorsMixin, Node):
         self._updater.force_update()
 
     # -- sensor callbacks ------------------------------------------------------------------
-
     def _temp_cb(self, j):
         def cb(msg):
             self._temp[j] = msg.temperature
@@ -394,7 +390,6 @@ class CorrectorNode(EffectErrorsMixin, Node):
         return cb
 
     # -- diagnostics -----------------------------------------------------------------------
-
     def diagnostic_status(self):
         """Return the node's ``diagnostic_msgs/DiagnosticStatus``."""
         st = DiagnosticStatus(name=f'{self.get_name()}: correction',

@@ -15,16 +15,13 @@
 """
 Diagnostics of the nodes on ``/diagnostics``: ROS 2's ``diagnostic_updater``, or a shim of it.
 
-The nodes use :data:`Updater` (``Updater(node, period)``, ``setHardwareID``,
-``add(name, callback)``, ``force_update``) and :func:`fill`. Without the ROS package
-``diagnostic_updater`` (the pip wheels of this environment have none) these are
-:class:`FallbackUpdater` and :class:`FallbackStatusWrapper`, which publish the same
-``DiagnosticArray`` for the same callbacks: one status per task in the order added, named
-``<node name>: <task name>``, ``hardware_id`` from ``setHardwareID`` unless the task sets its
-own, stamped by the node's clock; ERROR ``No message was set`` before the callback runs;
-``add`` publishes ``Node starting up`` (OK) for the new task at once; the period is the
-read-only parameter ``diagnostic_updater.period`` (s), default the node's own period. The
-shim's history depth is 10 (``diagnostic_updater``'s 1), so a slow subscriber misses none.
+The nodes use :data:`Updater` (``Updater(node, period)``, ``setHardwareID``, ``add(name,
+callback)``, ``force_update``) and :func:`fill`. Without ``diagnostic_updater`` (no pip wheel)
+these are :class:`FallbackUpdater` and :class:`FallbackStatusWrapper`, publishing the same
+``DiagnosticArray``: a status per task in the order added, named ``<node>: <task>``,
+``hardware_id`` from ``setHardwareID`` unless the task sets one, ERROR ``No message was set``
+before the callback, ``Node starting up`` on ``add``, the period the read-only parameter
+``diagnostic_updater.period`` (s); history depth 10 (``diagnostic_updater``'s 1).
 """
 
 import threading

@@ -23,11 +23,13 @@ shut down; exit 0. Bad start-up input (a ``--ros-args`` rule rcl cannot parse, a
 the wrong type such as ``-p field_nt:=48000``, a value a validator refuses) is one line on
 stderr and exit 2.
 """
+from contextlib import contextmanager
 import os
 import signal
 import sys
 import tempfile
 import threading
+from types import SimpleNamespace
 
 from magcal_ros.runtime import limit_blas_threads
 from magcal_ros.sim.paths import DEFAULT_NAMESPACE  # noqa: F401 (the nodes' default namespace)
@@ -91,25 +93,22 @@ def _one_line(exc):
     return text.split(', at /')[0]
 
 
-class _stderr_held:
-    """Hold what C code writes to fd 2 in ``text`` (rcl logs its own copy of a parse error)."""
-
-    def __enter__(self):
-        sys.stderr.flush()
-        self._file = tempfile.TemporaryFile(mode='w+b')
-        self._saved = os.dup(2)
-        os.dup2(self._file.fileno(), 2)
-        self.text = ''
-        return self
-
-    def __exit__(self, *exc):
-        sys.stderr.flush()
-        os.dup2(self._saved, 2)
-        os.close(self._saved)
-        self._file.seek(0)
-        self.text = self._file.read().decode('utf-8', 'replace')
-        self._file.close()
-        return False
+@contextmanager
+def _stderr_held():
+    """Hold what C code writes to fd 2 in ``.text`` (rcl logs its own copy of a parse error)."""
+    held = SimpleNamespace(text='')
+    sys.stderr.flush()
+    with tempfile.TemporaryFile(mode='w+b') as file:
+        saved = os.dup(2)
+        os.dup2(file.fileno(), 2)
+        try:
+            yield held
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+            file.seek(0)
+            held.text = file.read().decode('utf-8', 'replace')
 
 
 def spin_node(node_cls, name, args=None, events=True):
