@@ -18,6 +18,7 @@ The offline ``magcal`` command line (docs/design.md §2).  Imports no rclpy.
 Exit status: 0 success, 2 bad input (one-line reason on stderr), 1 other failure.
 """
 import argparse
+from contextlib import contextmanager
 import json
 import os
 import sys
@@ -39,17 +40,12 @@ def load_data(path, unit=None, rate_hz=100.0, allow_gaps=False):
     """
     Dataset in nT from a wide CSV file, a rosbag2 directory, a vehicle log or a single-sensor CSV.
 
-    A CSV may be compressed: ``.csv.gz`` (gzip) and ``.csv.zst`` (Zstandard) are decompressed
-    as they are read.  A vehicle log (ArduPilot DataFlash ``.bin``/``.log``, PX4 ULog
-    ``.ulg``: :mod:`magcal_ros.io.vehicle`) is found by its first bytes; what the reader
-    warns about (no attitude, a compass that stops, ...) is printed on stderr, one
-    ``warning [input]: ...`` line each; ``allow_gaps`` keeps a log whose compass stops for
-    a while (refused otherwise).
-
-    ``unit`` (a key of :data:`magcal_ros.units.UNITS_NT`) is the unit of the field columns
-    (readings, ``ref_total``, ``ref_x/y/z``); they are converted to nT here, once.  A CSV
-    without wide-format sensor columns (``mx,my,mz``, ``x,y,z`` ...) is read as one
-    magnetometer's log (needs ``unit``; ``rate_hz`` when it has no time column).
+    A CSV may be ``.csv.gz`` or ``.csv.zst``. A vehicle log (:mod:`magcal_ros.io.vehicle`)
+    is found by its first bytes; its reader's warnings go to stderr, one ``warning [input]:
+    ...`` line each; ``allow_gaps`` keeps a log whose compass stops for a while. ``unit`` (a
+    key of :data:`magcal_ros.units.UNITS_NT`) is the unit of the field columns, converted to
+    nT here, once. A CSV without wide-format sensor columns is one magnetometer's log (needs
+    ``unit``; ``rate_hz`` when it has no time column).
     """
     if os.path.isdir(path):
         from magcal_ros.io.bag import read_bag
@@ -76,13 +72,11 @@ def load_record(path, unit=None, rate_hz=100.0, progress=None, reduce_above=None
     """
     (Dataset, Record or None): a recording, reduced when it is too long to hold.
 
-    A wide CSV or a rosbag2 recording of more than :data:`magcal_ros.core.data.reduce.REDUCE_ABOVE`
-    epochs (estimated from the CSV's size and its first lines; from the bag's metadata) is
-    read in chunks and reduced
-    (:mod:`magcal_ros.core.data.reduce`): the Dataset returned is the evenly spread sample (with
-    the noise blocks in its ``meta``) and the :class:`~magcal_ros.io.chunks.Record` reads the
-    whole record again for the residual statistics.  Anything else is read whole
-    (:func:`load_data`), with no Record.
+    A recording of more than ``reduce_above`` (default
+    :data:`magcal_ros.core.data.reduce.REDUCE_ABOVE`) epochs is read in chunks and reduced:
+    the Dataset is the evenly spread sample (noise blocks in its ``meta``), the
+    :class:`~magcal_ros.io.chunks.Record` reads the whole again for the residual
+    statistics. Anything else is read whole (:func:`load_data`), with no Record.
     """
     from magcal_ros.core.data import reduce
     limit = reduce.REDUCE_ABOVE if reduce_above is None else int(reduce_above)
@@ -101,18 +95,24 @@ def load_record(path, unit=None, rate_hz=100.0, progress=None, reduce_above=None
     from magcal_ros.io.chunks import open_record
     rec = open_record(path)
     k = UNITS_NT[unit or 'nT']
-    bar = (progress.bar('reading', total=rec.size, unit='B', scale=True)
-           if progress is not None else None)
-    try:
-        red = reduce.reduce_chunks(in_nt(rec.chunks(progress=None if bar is None else
-                                                    (lambda b: bar.update(b - bar.n))), k))
-    finally:
-        if bar is not None:
-            bar.close()
+    with _byte_bar(progress, 'reading', rec) as tick:
+        red = reduce.reduce_chunks(in_nt(rec.chunks(progress=tick), k))
     if unit:
         red.sample.meta['unit'] = unit
     rec.scale = k
     return red.sample, rec
+
+
+@contextmanager
+def _byte_bar(progress, step, record):
+    """Give the ``progress`` callback of ``record.chunks``: a bar of its bytes (None: none)."""
+    bar = (progress.bar(step, total=record.size, unit='B', scale=True)
+           if progress is not None else None)
+    try:
+        yield None if bar is None else (lambda b: bar.update(b - bar.n))
+    finally:
+        if bar is not None:
+            bar.close()
 
 
 def _vehicle_log(path):
@@ -171,21 +171,14 @@ def full_record_statistics(run, record, positions, progress=None):
     """
     Put the residual statistics of every epoch of ``record`` into ``run`` (a long record).
 
-    ``run`` (CalibrationRun) was fitted on the reduced sample: its summary's RMS and
-    largest deviations are replaced by those of the whole record
-    (:func:`magcal_ros.core.data.reduce.residual_statistics`, one more pass over the chunks),
-    ``n_samples`` by the record's length, and ``reduction`` says how it was reduced.
+    ``run`` (CalibrationRun) was fitted on the reduced sample: its summary's RMS and largest
+    deviations and ``n_samples`` become the whole record's
+    (:func:`magcal_ros.core.data.reduce.residual_statistics`, one more pass over the chunks).
     """
     from magcal_ros.core.data.reduce import residual_statistics
-    bar = (progress.bar('residuals', total=record.size, unit='B', scale=True)
-           if progress is not None else None)
-    try:
-        chunks = in_nt(record.chunks(progress=None if bar is None else
-                                     (lambda b: bar.update(b - bar.n))), record.scale)
+    with _byte_bar(progress, 'residuals', record) as tick:
+        chunks = in_nt(record.chunks(progress=tick), record.scale)
         stats = residual_statistics(chunks, run.result, positions)
-    finally:
-        if bar is not None:
-            bar.close()
     run.summary.update(stats)
     prov = run.doc['provenance']
     prov['samples'] = stats['n_samples']
@@ -235,10 +228,8 @@ def resolve_field(args, data):
     """
     (field_nt or None, field_reference dict) from the options and the data.
 
-    The readings and the reference must be a geomagnetic field in nT and agree with each
-    other (:func:`magcal_ros.units.check_field_units`): data in gauss, uT or T read as nT,
-    ``--field-nt 50`` meant as uT, or a ``ref_total`` column in uT are refused with the unit
-    the numbers look like.
+    Readings and reference must be a geomagnetic field in nT and agree
+    (:func:`magcal_ros.units.check_field_units`); else BadInput names the unit they look like.
     """
     f, fref = _resolve_field(args, data)
     kind = fref['kind']
@@ -689,12 +680,7 @@ def build_parser():
 
 
 def register_workbench_commands(sub):
-    """
-    Register the diagnose and report subcommands of the workbench.
-
-    The diagnose/report commands (see magcal_ros.cli_workbench); a failing import is an
-    error, never a silently shorter command list.
-    """
+    """Register diagnose and report (magcal_ros.cli_workbench; a failing import is an error)."""
     from magcal_ros import cli_workbench
     cli_workbench.register(sub, sys.modules[__name__])
 

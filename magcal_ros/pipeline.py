@@ -15,12 +15,10 @@
 """
 Calibration run shared by the `magcal` command line and the calibration node (no rclpy).
 
-``calibrate(data, ...)`` = identifiability check + closed-form start + ML refinement
-(:func:`magcal_ros.core.model.fit`), then the before/after figures (scalar, vector and tensor
-residuals) and the calibration document (docs/design.md §4).  Both callers build a
-:class:`CalibrationRequest` (the model, the field reference, the mode: attitude-aided, planar,
-heading unknown or plain, and its options), run it with :func:`run_request` and print
-:func:`summary_lines`.
+Both build a :class:`CalibrationRequest` (model, field reference, mode: attitude-aided,
+planar, heading unknown or plain), run it with :func:`run_request` (the fit of
+:func:`magcal_ros.core.model.fit`, the before/after figures and the calibration document of
+docs/design.md §4) and print :func:`summary_lines`.
 """
 from dataclasses import dataclass
 
@@ -54,30 +52,14 @@ def geometry_positions(geometry, n_sensors):
 
 def array_geometry(n_sensors, positions_m=(), baseline_m=0.5):
     """
-    Geometry dict of an array from node parameters (docs/design.md, "Array geometry").
+    Geometry dict of an array from node parameters (docs/design.md §7).
 
-    Parameters
-    ----------
-    n_sensors : int
-        Sensors of the array.
-    positions_m : sequence of float
-        Flat x, y, z per sensor in the array frame, m (``sensor_positions_m``, 3 S values);
-        empty: paper 004's cross of ``baseline_m`` for four sensors, the origin for one.
-    baseline_m : float
-        Distance between the two sensors of an arm of the cross, m.
-
-    Returns
-    -------
-    dict or None
-        ``{'type': 'cross', 'baseline_m', 'positions_m'}`` or ``{'type': 'positions',
-        'positions_m'}`` (positions (S, 3) m as lists); None when no positions are given for
-        2, 3 or more than 4 sensors (the tensor is then not computed).
-
-    Raises
-    ------
-    ValueError
-        Naming the count expected when ``positions_m`` is not 3 finite numbers per sensor.
-
+    ``positions_m``: flat x, y, z per sensor in the array frame, m (3 S values); empty:
+    paper 004's cross of ``baseline_m`` (m) for four sensors, the origin for one. Returns
+    ``{'type': 'cross', 'baseline_m', 'positions_m'}`` or ``{'type': 'positions',
+    'positions_m'}`` (positions (S, 3) m as lists), or None when no positions are given for
+    2, 3 or more than 4 sensors (no tensor then). Raises ValueError naming the count expected
+    when ``positions_m`` is not 3 finite numbers per sensor.
     """
     flat = np.asarray(list(positions_m), float)
     if flat.size == 0:
@@ -94,12 +76,9 @@ def array_geometry(n_sensors, positions_m=(), baseline_m=0.5):
 
 def tensor_undetermined(positions):
     """
-    Why the gradient tensor cannot be computed from sensors at ``positions``, or None.
+    Why the gradient tensor cannot be computed from sensors at ``positions`` ((S, 3) m), or None.
 
-    ``positions`` (S, 3) m or None. The tensor (symmetric and traceless: 5 numbers, with
-    the centre field 8 unknowns, :func:`magcal_ros.core.geometry.tensor.tensor_operator`) needs the
-    sensors to span at least a plane: one sensor measures no difference, collinear sensors
-    only the derivatives along their line.
+    It (5 numbers, 8 unknowns with the centre field) needs the sensors to span a plane.
     """
     if positions is None:
         return ('no sensor positions (give sensor_positions_m, x y z per sensor in m): the '
@@ -119,12 +98,7 @@ def tensor_undetermined(positions):
 
 
 def geometry_mismatch(file_geometry, node_geometry, tol_m=1e-6):
-    """
-    Why a calibration file's geometry differs from the node's, naming both, or None.
-
-    Both are geometry dicts (``positions_m`` (S, 3) m); a file without positions, or a node
-    without a geometry, is not compared.
-    """
+    """Why a file's ``positions_m`` (S, 3) m differ from the node's; None: equal or not known."""
     if not node_geometry or not file_geometry or 'positions_m' not in file_geometry:
         return None
     a = np.asarray(file_geometry['positions_m'], float)
@@ -137,11 +111,7 @@ def geometry_mismatch(file_geometry, node_geometry, tol_m=1e-6):
 
 
 def tensor_stats(fields, positions):
-    """
-    RMS (about the mean) and max deviation of each tensor component, nT/m.
-
-    fields (S, N, 3) nT in the array frame. Returns dict rms (3,3), max_abs_dev (3,3), mean.
-    """
+    """Return the tensor's rms, max_abs_dev, mean ((3, 3) nT/m) of ``fields`` (S, N, 3) nT."""
     g, _ = tensor_lstsq(fields, positions)
     dev = g - g.mean(axis=0)
     return {'rms': np.sqrt(np.mean(dev ** 2, axis=0)), 'max_abs_dev': np.abs(dev).max(axis=0),
@@ -168,22 +138,17 @@ def _residual_warnings(result, floor):
     """
     Structured warnings (:class:`Note`) on the fit's residual against the data's floor.
 
-    ``result.sigma_nt`` (S,) is the fit's per-axis noise estimate from its residual and
-    ``floor`` the :class:`~magcal_ros.core.data.noise.NoiseFloor` of the data (needs no model): a
-    fit that is complete meets it; one far above it misses an effect, or was given
-    inconsistent data (sets of the array paired from different epochs, a non-uniform field).
-    A filtered series has no white floor to compare with: it gets a ``noise_floor`` warning
-    with the range instead (never "N x the floor" from a lower bound).
+    ``result.sigma_nt`` (S,) nT, the fit's per-axis noise estimate, against ``floor`` (the
+    data's :class:`~magcal_ros.core.data.noise.NoiseFloor`, model-free): a complete fit meets
+    it; one far above it misses an effect or was given inconsistent data (mis-paired sets, a
+    non-uniform field). A filtered series has only a lower bound of its floor: a
+    ``noise_floor`` warning with the range instead (never "N x the floor").
     """
     out = []
     for j, (sig, fl) in enumerate(zip(result.sigma_nt, floor.per_sensor_nt), start=1):
         gross = (None if floor.status[j - 1] == 'filtered' else
                  _gross_note(j, sig, fl, floor.raw_nt[j - 1]))
         if gross is not None:
-            # two orders of magnitude above the floor (or above the raw readings' own
-            # difference floor, which no fit moves: a floor taken from a diverged fit's
-            # residual is as large as the residual); a filtered series has only a lower
-            # bound of its floor, never "N x" it (the worse-than-raw check still holds)
             out.append(gross)
             continue
         if floor.status[j - 1] == 'filtered':
@@ -211,7 +176,8 @@ def _gross_note(j, sig, fl, raw_fl):
     Return a warning when sensor ``j``'s residual is orders of magnitude above its floor.
 
     ``sig`` the fit's per-axis residual sd, ``fl`` the floor and ``raw_fl`` the floor from
-    the raw readings' differences (model-free), nT.  The lower of the two floors decides.
+    the raw readings' differences, nT (which no fit moves: a floor from a diverged fit's
+    residual is as large as the residual). The lower of the two floors decides.
     """
     ref = _lower_floor(fl, raw_fl)
     if not (np.isfinite(sig) and np.isfinite(ref)) or sig <= GROSS_RATIO * ref:
@@ -225,23 +191,17 @@ def _gross_note(j, sig, fl, raw_fl):
 
 
 def fit_warnings(result, floor):
-    """
-    List every warning on a fit.
-
-    Every warning on a fit as ``{kind, sensor, text}``: the fit's own (degenerate data
-    flagged, not converged) and those on its residual against the data's floor.
-    """
+    """List every warning on a fit as ``{kind, sensor, text}``: its own and its residual's."""
     return [note_dict(w) for w in list(result.warnings) + _residual_warnings(result, floor)]
 
 
 def summarize(result, data, positions=None):
     """
-    Before/after figures of a fit (all nT, nT/m); JSON-ready.
+    Before/after figures of a fit (nT, nT/m), JSON-ready; ``warnings`` ``{kind, sensor, text}``.
 
-    The noise floor is :func:`~magcal_ros.core.data.noise.data_noise_floor` of the data and this
-    fit (the figure ``diagnose`` reports for the same data and model); the tensor floor is
-    propagated from it, not from the fit's sigma (which grows when an effect is missing).
-    ``warnings`` is a list of ``{kind, sensor, text}``.
+    The noise floor is :func:`~magcal_ros.core.data.noise.data_noise_floor` (as ``diagnose``
+    reports it); the tensor floor is propagated from it, not from the fit's sigma (which
+    grows when an effect is missing).
     """
     f = result.field_magnitude_nt
     raw_tot = np.linalg.norm(data.raw, axis=2) - f[None]
@@ -311,41 +271,17 @@ MAX_OUTLIER_FRACTION = 0.05
 @dataclass
 class CalibrationRequest:
     """
-    One calibration asked for: the model, the field reference, the mode and its options.
+    One calibration asked for (``magcal fit``'s options, the calibration node's parameters).
 
-    The command line builds it from its options (``magcal fit``), the calibration node from
-    its parameters; :func:`run_request` runs it and :func:`summary_lines` describes the
-    result, the same for both.
-
-    Attributes
-    ----------
-    model : str, list of str or Model
-        The effects (``'base,temperature@2'``) or a built Model.
-    field_nt : float or numpy.ndarray or None
-        Reference magnitude, nT (scalar or (N,)); None: ``data.ref_total``.
-    field_reference : dict
-        How the reference was obtained (recorded in the provenance); its
-        ``inclination_deg`` (IGRF) is the planar and attitude-aided fits' inclination.
-    geometry : dict or None
-        Array geometry (``positions_m`` (S, 3) m); None: paper 004's cross for four sensors.
-    attitude : str
-        One of :data:`ATTITUDE_MODES` (:func:`attitude_mode`).
-    planar : bool
-        A turn about one axis (:mod:`magcal_ros.core.model.planar`); wins over
-        ``heading_unknown``.
-    prior_params : numpy.ndarray or None
-        (P,) parameters of the planar mode's prior (the active calibration's); None: an
-        ideal sensor.
-    heading_unknown : bool
-        Site gradient without attitude
-        (:func:`magcal_ros.core.model.site_gradient.fit_heading_unknown`).
-    robust, constrained : bool
-        Soft-L1 loss; priors for a partial attitude coverage (:func:`magcal_ros.core.model.fit`).
-    exclude_outliers : bool
-        As for :func:`calibrate`.
-    on_degenerate : str
-        'raise' (refuse degenerate data) or 'flag'.
-
+    ``model``: effects (``'base,temperature@2'``) or a Model; ``field_nt``: reference
+    magnitude, nT, scalar or (N,) (None: ``data.ref_total``); ``field_reference``: how it
+    was obtained (its IGRF ``inclination_deg`` is the planar and attitude-aided fits'
+    inclination); ``geometry``: ``positions_m`` (S, 3) m (None: paper 004's cross for four
+    sensors); ``attitude``: one of :data:`ATTITUDE_MODES`; ``planar``: a turn about one axis
+    (wins over ``heading_unknown``: site gradient without attitude); ``prior_params`` (P,):
+    the planar prior (None: an ideal sensor); ``robust``, ``constrained``: as for
+    :func:`magcal_ros.core.model.fit`; ``exclude_outliers`` as for :func:`calibrate`;
+    ``on_degenerate``: 'raise' or 'flag'.
     """
 
     model: object = 'base'
@@ -363,13 +299,7 @@ class CalibrationRequest:
 
 
 def run_request(data, request, screen=True, **fit_kwargs):
-    """
-    Run a :class:`CalibrationRequest` on ``data`` (Dataset, (S, N, 3) nT): a CalibrationRun.
-
-    The one calibration of ``magcal fit`` and calibration_node: ``screen`` and the
-    outlier exclusion as :func:`calibrate` says, then the request's mode (attitude-aided,
-    planar, heading unknown or the plain fit); ``fit_kwargs`` go to the fit.
-    """
+    """Run a :class:`CalibrationRequest` on ``data`` (S, N, 3) nT, as :func:`calibrate` says."""
     if not screen:
         return _calibrate_clean(data, request, request.field_nt, fit_kwargs)
     from magcal_ros.core.data.readings import leave_out_unphysical, ReadingScreen
@@ -390,44 +320,28 @@ def run_request(data, request, screen=True, **fit_kwargs):
 def calibrate(data, model='base', field_nt=None, geometry=None, field_reference=None,
               exclude_outliers=False, screen=True, **options):
     """
-    Fit ``model`` to ``data`` and build the summary and calibration document.
+    Fit ``model`` to ``data`` (Dataset, (S, N, 3) nT): a CalibrationRun.
 
-    Parameters
-    ----------
-    data : Dataset
-        Raw readings (S, N, 3) nT with times and channels.
-    model : str or Model
-        The model: effect tokens (``'base,temperature@2'``) or a built Model.
-    field_nt : float or numpy.ndarray, optional
-        Reference magnitude (nT); default ``data.ref_total``.
-    geometry : dict, optional
-        Array geometry (``positions_m`` (S, 3) m); default: paper 004's cross with a 0.5 m
-        baseline when there are four sensors.
-    field_reference : dict, optional
-        How the reference was obtained (recorded in the provenance).
-    exclude_outliers : bool
-        When the least-squares fit leaves a sensor above 1.5 x its noise floor (the summary's
-        warning), fit again with the soft-L1 loss, and if the sets it finds beyond
-        :data:`OUTLIER_SIGMAS` of its robust noise are at most :data:`MAX_OUTLIER_FRACTION`
-        of all, fit by least squares without them (an efficient fit on the rest, not the
-        1.4 x Cramer-Rao robust one).  Garbage that survived the transport (a cut line, a
-        mis-paired stretch) then costs those sets only; a missing effect, which spreads over
-        many sets, is left to the warning and to diagnose.  The summary gives
-        ``outlier_sets_excluded``.
-    screen : bool or ReadingScreen
-        Before the fit, leave out the sets holding readings no field produces (a pinned,
-        clipped or repeating channel, spikes:
-        :func:`magcal_ros.core.data.readings.leave_out_unphysical`); each is named in a
-        ``readings`` warning, and the summary and the provenance give ``readings_left_out``.
-        Too few sets left raises :class:`~magcal_ros.core.data.readings.UnphysicalReadingsError`
-        (a ValueError) naming them.  A ReadingScreen: the caller has left its sets out of
-        ``data`` already (the calibration node, before its pairing check); it is reported.
-    **options
-        The mode and options of a :class:`CalibrationRequest` (``attitude``, ``planar``,
-        ``prior_params``, ``heading_unknown``, ``robust``, ``constrained``,
-        ``on_degenerate``); any other keyword goes to the fit
-        (:func:`magcal_ros.core.model.fit`: ``init``, ``extra_priors``, ...).
+    ``model``, ``field_nt``, ``geometry`` (default: the cross of 0.5 m for four sensors) and
+    ``field_reference`` as in :class:`CalibrationRequest`.
 
+    ``exclude_outliers``: when the least-squares fit leaves a sensor above 1.5 x its noise
+    floor, fit again with the soft-L1 loss, and if the sets beyond :data:`OUTLIER_SIGMAS` of
+    its robust noise are at most :data:`MAX_OUTLIER_FRACTION` of all, fit by least squares
+    without them (efficient on the rest, not the 1.4 x Cramer-Rao robust fit): garbage (a
+    cut line, a mis-paired stretch) costs those sets only; a missing effect, spread over
+    many sets, is left to the warning and to diagnose. The summary gives
+    ``outlier_sets_excluded``.
+
+    ``screen``: first leave out the sets holding readings no field produces
+    (:func:`magcal_ros.core.data.readings.leave_out_unphysical`), each named in a
+    ``readings`` warning; summary and provenance give ``readings_left_out``; too few left
+    raises its UnphysicalReadingsError (a ValueError). A ReadingScreen: the caller left its
+    sets out already (the calibration node, before its pairing check); it is reported.
+
+    ``**options``: a :class:`CalibrationRequest`'s mode and options (``attitude``,
+    ``planar``, ``prior_params``, ``heading_unknown``, ``robust``, ``constrained``,
+    ``on_degenerate``); any other keyword goes to :func:`magcal_ros.core.model.fit`.
     """
     mode = {k: options.pop(k) for k in _REQUEST_OPTIONS if k in options}
     return run_request(data, CalibrationRequest(
@@ -482,12 +396,7 @@ def _calibrate_clean(data, request, field_nt, fit_kwargs):
 
 
 def _adopt_axis_maps(result, data, field_nt, positions, fit_kwargs):
-    """
-    Refit with the axis maps a mirrored, swapped or turned sensor needs (core.model.plausibility).
-
-    Returns the result (the refit when maps were found, else ``result``) and the ``mounting``
-    notes naming each map.
-    """
+    """Refit with the axis maps a mis-mounted sensor needs: (result, ``mounting`` notes)."""
     maps = axis_maps(result.model, result.params)
     if not maps:
         return result, []
@@ -509,8 +418,8 @@ def attitude_mode(option, data):
     """
     Return the attitude mode a fit of ``data`` uses: 'tilt', 'full' or None (magnitude only).
 
-    ``option`` is one of :data:`ATTITUDE_MODES` or None ('auto').  'tilt' or 'full' on data
-    without attitude is refused (ValueError naming what to add).
+    ``option``: one of :data:`ATTITUDE_MODES` or None ('auto'); 'tilt' or 'full' on data
+    without attitude raise ValueError.
     """
     option = option or 'auto'
     if option not in ATTITUDE_MODES:
@@ -531,11 +440,9 @@ def diagnosis_base(data, model, field_nt, attitude=None, inclination_deg=None, r
     """
     Return (base fit, constrained, attitude summary or None): the fit a diagnosis starts from.
 
-    With an attitude in ``data`` (``attitude`` as :func:`attitude_mode` reads it) the
-    attitude-aided fit (:func:`magcal_ros.core.model.attitude_fit.fit_attitude`), whose
-    priors then hold what the motion leaves open in every fit of the diagnosis
-    (``constrained`` True); else the plain fit.  One choice for ``magcal diagnose``/``report``
-    and the calibration node's ``calibration/diagnose``.
+    With an attitude in ``data`` (:func:`attitude_mode`) the attitude-aided fit, whose priors
+    then hold what the motion leaves open in every fit of the diagnosis (``constrained``
+    True); else the plain fit. For ``magcal diagnose``/``report`` and ``calibration/diagnose``.
     """
     mode = attitude_mode(attitude, data)
     if mode is None:
@@ -647,12 +554,9 @@ def _calibrate(data, request, model, field_nt, fit_kwargs):
     if pr is None and aided is None:   # these hold what the motion leaves open at a prior
         summary['warnings'] += [note_dict(w) for w in mounting + parameter_notes(
             result.model, result.params, data.raw, float(np.mean(result.field_magnitude_nt)))]
-    temp_range = {}
-    if data.temp is not None:
-        for j in range(data.n_sensors):
-            tj = data.temp[j]
-            if np.isfinite(tj).any():
-                temp_range[str(j + 1)] = [float(np.nanmin(tj)), float(np.nanmax(tj))]
+    temp_range = {} if data.temp is None else {
+        str(j + 1): [float(np.nanmin(data.temp[j])), float(np.nanmax(data.temp[j]))]
+        for j in range(data.n_sensors) if np.isfinite(data.temp[j]).any()}
     ident = result.identifiability
     prov = {
         'samples': int(data.n_samples),
@@ -692,10 +596,10 @@ def _tensor_rms(components):
 
 def tensor_figures(summary):
     """
-    Return the tensor's RMS before, after and its floor, one number each over the components.
+    Return the tensor's RMS before, after and its floor (nT/m, one RMS over the components).
 
-    ``{'tensor_rms_before_nt_per_m', 'tensor_rms_after_nt_per_m', 'tensor_floor_nt_per_m'}``
-    (nT/m) from a :func:`summarize` summary; empty when the tensor was not computed.
+    Keys ``tensor_rms_before_nt_per_m``, ``tensor_rms_after_nt_per_m``,
+    ``tensor_floor_nt_per_m``; empty when the summary has no tensor.
     """
     if 'tensor_rms_nt_per_m' not in summary:
         return {}
@@ -706,12 +610,10 @@ def tensor_figures(summary):
 
 def summary_lines(summary, request=None, skip_kinds=()):
     """
-    Return the human account of a calibration (the command line prints it, the node replies).
+    Return the human account of a :attr:`CalibrationRun.summary` (CLI and node alike).
 
-    ``summary`` is a :attr:`CalibrationRun.summary`: the lines give the gradient tensor's RMS
-    before and after, the site gradient, the planar and attitude-aided fits' accounts, the
-    robust fit's down-weighted samples (when ``request.robust``) and one line per warning
-    (those of a kind in ``skip_kinds`` left out: the caller printed them already).
+    Tensor RMS, site gradient, the planar and attitude-aided accounts, the robust fit's
+    down-weighted samples (``request.robust``) and a line per warning not in ``skip_kinds``.
     """
     lines = []
     t = tensor_figures(summary)
@@ -776,30 +678,23 @@ def attitude_lines(at):
     return lines
 
 
-#: the attitude mode of the learning's refits: the one place it is chosen.  None: the
-#: magnitude-only fit (data.attitude is carried, not used); the attitude-aided fit's mode
-#: ('tilt', 'full') when it is the pipeline's (one line: ``{'attitude': LEARN_ATTITUDE}``)
+#: the attitude mode of the learning's refits, the one place it is chosen: None, the
+#: magnitude-only fit (data.attitude is carried, not used), or 'tilt' / 'full'
 LEARN_ATTITUDE = None
 #: prior sd of a held (undetermined, or another sensor's) parameter, as a fraction of its
 #: kind's prior sd (1e-3 let a held scale move by 1e-4: 5 nT at 50 000 nT)
 HELD_FRACTION = 1e-6
-#: a learned parameter is determined when its standard uncertainty moves the corrected
-#: field (an offset directly, a scale or an angle times F) by at most this many noise sds
-#: (1 held a 60 nT vertical offset step of the simulated vehicle, known to 4 nT, at its old
-#: value; 3 learns it); the rest of the sensor map (scale, angles) to DETERMINED_NOISE_MAP
-#: sds: on a few seconds of a turn they are known to a few sds, and any that moved by noise
-#: stays in every later estimate that holds it
+#: a learned offset is determined when its standard uncertainty moves the corrected field
+#: by at most this many noise sds (1 held a 60 nT offset step known to 4 nT; 3 learns it);
+#: scale and angles (times F) to DETERMINED_NOISE_MAP sds, a coupling (times its reach over
+#: the window) to DETERMINED_NOISE_COUPLING: any that moved by noise stays in every later
+#: estimate that holds it
 DETERMINED_NOISE = 3.0
 DETERMINED_NOISE_MAP = 1.0
-#: a driven effect's parameter (a coupling) is determined when its standard uncertainty
-#: moves the corrected field, over the window's driver values measured from the driver's
-#: calibration reference, by at most this many noise sds (as scale and angles: a coupling
-#: that moved by noise stays in every later estimate that holds it)
 DETERMINED_NOISE_COUPLING = 1.0
-#: a driven effect's parameter did not vary in the window when the part of its effect on
-#: the reading that the sensor's constant map cannot produce is below this fraction of its
-#: whole effect: a driver constant over the window is exactly an offset's (or a scale's)
-#: column, zero to rounding (about 1e-9 of the whole)
+#: a coupling's driver did not vary in the window when the part of its effect the sensor's
+#: constant map cannot produce is below this fraction of the whole (zero to rounding, about
+#: 1e-9, for a constant driver)
 STILL_FRACTION = 1e-6
 
 
@@ -807,30 +702,13 @@ def coupling_reach(cal, data, indices):
     """
     How far parameters of driven effects move the readings over ``data``: (varying, whole).
 
-    For each parameter (index into ``cal.params``) of a driven effect of sensor j, the
-    derivative of sensor j's reading, d raw_j / d p_i (N, 3) nT per the parameter's unit, at
-    the calibration ``cal`` and the field its correction of ``data`` gives
-    (:meth:`Model.forward_differences`).  ``whole`` is its RMS over the sets (of the vector
-    norm); ``varying`` the RMS of its part that sensor j's constant map (offset, scale,
-    angles: the least-squares fit of their derivatives) cannot produce, which is what the
-    data can tell apart from the sensor map.  A driver that did not vary in ``data`` gives a
-    ``varying`` of zero to rounding: a constant current is an offset, a scale coupling of a
-    constant temperature a scale.
-
-    Parameters
-    ----------
-    cal : magcal_ros.core.model.Calibration
-        The calibration (its model prepared: the drivers' references).
-    data : Dataset
-        (S, N, 3) raw readings, nT, with the channels the effects read.
-    indices : sequence of int
-        Parameters of driven effects of sensors j >= 1.
-
-    Returns
-    -------
-    (numpy.ndarray, numpy.ndarray)
-        (len(indices),) each, nT per the parameter's unit.
-
+    For each parameter ``indices`` (into ``cal.params``) of a driven effect of sensor j, the
+    derivative d raw_j / d p_i (N, 3) at the calibration ``cal`` and the field its correction
+    of ``data`` ((S, N, 3) nT) gives (:meth:`Model.forward_differences`). ``whole`` is its
+    RMS over the sets (vector norm); ``varying`` the RMS of its part sensor j's constant map
+    (offset, scale, angles) cannot produce: what the data tell apart from the sensor map,
+    zero to rounding for a driver that did not vary. Both (len(indices),), nT per the
+    parameter's unit.
     """
     model, p = cal.model, np.asarray(cal.params, float)
     info = model.param_info()
@@ -863,52 +741,25 @@ def refit_recent(data, active, field_nt, geometry=None, field_reference=None, se
     """
     Refit what recent data determine, the rest held at the active calibration (issue 34).
 
-    The model is the active calibration's, with its drivers' references (a current centred
-    on the calibration's mean, not the window's: a parameter means what it means in the
-    active calibration).  Every parameter gets a prior centred on its active value: the
-    constant sensor map's (offset, scale, angles) with the planar mode's widths
-    (:func:`magcal_ros.core.model.planar.prior_sd`: 5 % of F, 5 %, 0.05 rad); a driven
-    effect's (a coupling: ``aux:<channel>``, ``temperature``, ``offset(aux_x)``, a lag's
-    time constant too) the width at which it moves the reading by 5 % of F (as an offset at
-    its prior sd), RMS over the window, beyond what the sensor's constant map can do
-    (:func:`coupling_reach`, ``varying``: the driver's observed variation in the window).
-    Array-wide and shared (``@alike``) parameters are held.
+    ``data`` (S, N, 3) nT, the recent window; ``active`` the Calibration in use, whose model
+    and drivers' references are kept (a parameter means what it means there); ``field_nt``
+    nT; ``geometry``, ``field_reference`` as for :func:`calibrate`; ``sensors`` (1-based)
+    learned, the others held (default: all).
 
-    A parameter whose posterior sd stays above
-    :data:`magcal_ros.core.model.planar.UNDETERMINED_RATIO` of its prior's, or whose
-    uncertainty moves the corrected field by more than a number of noise sds (an offset's in
-    nT, a scale's or angle's times F, a coupling's times its reach over the window measured
-    from the driver's reference, :func:`coupling_reach` ``whole``), is not determined by
-    these data: it is named and the fit is repeated with it held at the active value (prior
-    :data:`HELD_FRACTION` of its width), so that it cannot wander in a valley the data do
-    not see.  A coupling whose driver did not vary in the window (:data:`STILL_FRACTION`: a
-    constant current is an offset) is held without a fit.  The stages: offsets first (the
-    rest held), to :data:`DETERMINED_NOISE` sds; then the whole sensor map, whose scale and
-    angles join to :data:`DETERMINED_NOISE_MAP`; then the couplings that varied, with what
-    is determined so far, to :data:`DETERMINED_NOISE_COUPLING`.
+    Every parameter gets a prior centred on its active value: the sensor map's with the
+    planar widths (:func:`magcal_ros.core.model.planar.prior_sd`); a coupling's the width at
+    which it moves the reading by 5 % of F beyond what the constant map can do
+    (:func:`coupling_reach` ``varying``). Array-wide and shared parameters are held. A
+    parameter whose posterior sd stays above ``planar.UNDETERMINED_RATIO`` of its prior's, or
+    whose uncertainty moves the corrected field by more than a few noise sds, is named and
+    held at its active value (prior :data:`HELD_FRACTION` of its width), so it cannot wander
+    where the data do not see; a coupling whose driver did not vary (:data:`STILL_FRACTION`)
+    is held without a fit. Stages: offsets (:data:`DETERMINED_NOISE`), then the whole map
+    (:data:`DETERMINED_NOISE_MAP`), then the couplings that varied
+    (:data:`DETERMINED_NOISE_COUPLING`).
 
-    Parameters
-    ----------
-    data : Dataset
-        (S, N, 3) raw readings, nT, of the recent window (with attitude when known, with
-        the temperatures and channels the model's effects read).
-    active : magcal_ros.core.model.Calibration
-        The calibration in use.
-    field_nt : float
-        Reference magnitude, nT.
-    geometry, field_reference : dict, optional
-        As for :func:`calibrate`.
-    sensors : sequence of int, optional
-        The sensors (1-based) whose parameters are learned; the others' are held (default:
-        every sensor).
-
-    Returns
-    -------
-    (Calibration, dict, list of str)
-        The estimate, its calibration document (§4; ``provenance.converged`` says whether
-        the fit converged) and the undetermined parameters (``<effect>.<param>@<sensor>``:
-        the sensor map's and the couplings' of the learned sensors).
-
+    Returns (Calibration, its calibration document with ``provenance.converged``, the
+    undetermined parameters as ``<effect>.<param>@<sensor>``).
     """
     from magcal_ros.core.model.planar import (PRIOR_SD, prior_sd, SENSOR_MAP_KINDS,
                                               UNDETERMINED_RATIO)
@@ -932,6 +783,7 @@ def refit_recent(data, active, field_nt, geometry=None, field_reference=None, se
     # how far a parameter moves the field per its unit: an offset 1, scale and angles F
     reach = np.where([unit == 'nT' for *_, unit in info], 1.0, f0)
     still = np.zeros(model.n_params, bool)
+    held_sd = sd * HELD_FRACTION
     if driven.any():
         di = np.flatnonzero(driven)
         varying, whole = coupling_reach(active, data, di)
@@ -941,8 +793,6 @@ def refit_recent(data, active, field_nt, geometry=None, field_reference=None, se
             held = PRIOR_SD['offset'] * f0 / whole
         sd[di] = np.where(np.isfinite(width), width, sd[di])
         reach[di] = whole
-    held_sd = sd * HELD_FRACTION
-    if driven.any():
         # held, a coupling moves the field by as little as a held offset: its width from
         # its whole reach (the part a constant map could absorb too), not the varying one
         held_sd[di] = np.where(np.isfinite(held), held, sd[di]) * HELD_FRACTION
@@ -961,8 +811,7 @@ def refit_recent(data, active, field_nt, geometry=None, field_reference=None, se
         return runs[key]
 
     def determined(res, open_, noise_sds):
-        # known to a fraction of the prior (the planar rule) and to the noise: its
-        # uncertainty moves the corrected field by at most noise_sds noise sds
+        # known to a fraction of the prior (the planar rule) and to noise_sds noise sds
         noise = np.array([res.sigma_nt[j - 1] if j else np.nan for j, *_ in info])
         with np.errstate(divide='ignore'):
             tol = noise_sds * noise / reach
@@ -970,9 +819,6 @@ def refit_recent(data, active, field_nt, geometry=None, field_reference=None, se
         se = res.stderr[:model.n_params]
         return open_ & (se <= UNDETERMINED_RATIO * sd) & (se <= tol)
 
-    # offsets first, the rest held: what a vehicle's turns determine best; then the whole
-    # sensor map open, and what that determines to the noise joins them; then the
-    # couplings whose driver varied, with what is determined so far
     first = run(offsets, mean)
     open_ = determined(first.result, offsets, DETERMINED_NOISE)
     open_ = open_ | determined(run(mapped, first.result.params).result, mapped & ~offsets,

@@ -15,11 +15,8 @@
 """
 Progress bars of the long steps of ``magcal`` (reading, fitting, screening, the report).
 
-One bar per step, drawn by tqdm on stderr with the step's name, how far it is, the time
-spent and an estimate of the time left.  Silent (every call a no-op) when the user asked
-for quiet (``--quiet``), when stdout carries the result as JSON (``--json``), and when
-stderr is not a terminal (a log, a pipe, a test): a progress display there is clutter.
-Never on stdout.
+One tqdm bar per step on stderr (never stdout): name, progress, time spent and left. Silent
+with ``--quiet``, with ``--json``, and when stderr is not a terminal (a log, a pipe, a test).
 """
 import sys
 
@@ -35,9 +32,8 @@ class Progress:
     """
     Progress of the steps of one command: ``progress(step, i, n, label)``.
 
-    The callback the diagnosis and the report call (``i`` of ``n`` parts of ``step`` done,
-    ``label`` the part now under way); :meth:`bar` gives a tqdm bar for a loop that counts
-    in its own unit (bytes read, messages).  ``enabled=False``: every call does nothing.
+    ``i`` of ``n`` parts of ``step`` done, ``label`` the part under way; :meth:`bar` gives a
+    bar for a loop counting its own unit (bytes, messages). ``enabled=False``: all no-ops.
     """
 
     def __init__(self, enabled=True, stream=None):

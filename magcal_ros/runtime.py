@@ -15,16 +15,11 @@
 """
 Process-wide settings of magcal_ros' executables (the ``magcal`` command, the nodes, demos).
 
-One BLAS thread. The linear algebra here is small or tall-skinny: a 2000 x 10 SVD for the
-coverage in every status message, P x P solves, products with a few columns. With
-OpenBLAS' default of one thread per core, each such call starts and spins the other
-threads: on this project's 2-core machine with a second process busy, a 2000 x 10 SVD took
-36 ms of CPU against 0.4 ms on one thread (BENCHMARKS.md, "One BLAS thread per process"),
-and a live node spent a fifth of a core on its status alone. The library's fit and
-diagnosis already limit BLAS around themselves
-(:func:`magcal_ros.core.model.solvers.single_threaded_blas`); this does it once for the
-whole process. A user who sets ``OPENBLAS_NUM_THREADS``, ``OMP_NUM_THREADS`` or
-``MKL_NUM_THREADS`` keeps that setting.
+One BLAS thread: the linear algebra here is small or tall-skinny, and extra threads only
+spin (BENCHMARKS.md, "One BLAS thread per process"). The fit and diagnosis limit BLAS around
+themselves (:func:`magcal_ros.core.model.solvers.single_threaded_blas`); this does it once
+for the process. A user's ``OPENBLAS_NUM_THREADS``, ``OMP_NUM_THREADS`` or
+``MKL_NUM_THREADS`` is kept.
 """
 import os
 
@@ -38,12 +33,8 @@ def limit_blas_threads():
     """
     Run BLAS on one thread for the rest of this process, unless the user chose otherwise.
 
-    Returns
-    -------
-    str
-        What was done, for a log line: ``'1 thread'``, ``'as OPENBLAS_NUM_THREADS=...'``, or
-        ``'unchanged (threadpoolctl not installed)'``.
-
+    Returns what was done, for a log line: ``'1 thread'``, ``'as OPENBLAS_NUM_THREADS=...'``
+    or ``'unchanged (threadpoolctl not installed)'``.
     """
     global _limits
     if _limits is not None:
@@ -55,11 +46,8 @@ def limit_blas_threads():
         from threadpoolctl import threadpool_limits
     except ImportError:                   # pragma: no cover - a declared dependency
         return 'unchanged (threadpoolctl not installed)'
-    # the limit reaches only libraries already loaded: numpy's OpenBLAS now; scipy's
-    # own OpenBLAS, loaded later (or never: a driver or a simulator needs none of it,
-    # and importing scipy.linalg only to limit it cost a node ~0.3 s of CPU at every
-    # start), reads the variable when it loads. Processes started from here inherit
-    # it, and run on one thread as they would anyway.
+    # the limit reaches numpy's OpenBLAS now; scipy's, loaded later or never (importing it
+    # only to limit it cost a node ~0.3 s at start), and child processes read the variable
     import numpy  # noqa: F401
     _limits = threadpool_limits(limits=1, user_api='blas')
     os.environ['OPENBLAS_NUM_THREADS'] = '1'

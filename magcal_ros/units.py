@@ -15,9 +15,8 @@
 """
 Unit constants and conversions shared by every layer (pure numpy, no rclpy).
 
-The library works in nanotesla (nT), seconds and degrees Celsius; ROS messages carry SI
-units (tesla, tesla per metre) per REP 103. The conversion to message units happens in
-:mod:`magcal_ros.ros.conversions`, which uses these helpers.
+The library works in nT, s and degC; ROS messages carry SI units (T, T/m, REP 103), converted
+in :mod:`magcal_ros.ros.conversions` with these helpers.
 """
 
 import numpy as np
@@ -27,38 +26,12 @@ NT_PER_T = 1e9
 
 
 def nt_to_t(value_nt):
-    """
-    Convert nanotesla to tesla (also nT/m to T/m).
-
-    Parameters
-    ----------
-    value_nt : array_like
-        Field (or gradient) of any shape, in nT (or nT/m).
-
-    Returns
-    -------
-    numpy.ndarray or float
-        Same shape, float64, in T (or T/m). A scalar input gives a numpy float.
-
-    """
+    """Convert nT (or nT/m) of any shape to a float64 array of the same shape in T (or T/m)."""
     return np.asarray(value_nt, dtype=np.float64) / NT_PER_T
 
 
 def t_to_nt(value_t):
-    """
-    Convert tesla to nanotesla (also T/m to nT/m).
-
-    Parameters
-    ----------
-    value_t : array_like
-        Field (or gradient) of any shape, in T (or T/m).
-
-    Returns
-    -------
-    numpy.ndarray or float
-        Same shape, float64, in nT (or nT/m). A scalar input gives a numpy float.
-
-    """
+    """Convert T (or T/m) of any shape to a float64 array of the same shape in nT (or nT/m)."""
     return np.asarray(value_t, dtype=np.float64) * NT_PER_T
 
 
@@ -80,22 +53,11 @@ REFERENCE_RATIO = 8.0
 
 def field_magnitude_estimate(raw):
     """
-    Typical field magnitude seen by one sensor, nT, without any calibration.
+    Typical field magnitude, nT, seen by one sensor's uncalibrated ``raw`` (N, 3) nT.
 
-    The radius of the least-squares sphere |x - c|^2 = r^2 through the readings (so a
-    hard-iron offset of several times the field does not count), or the median |x| when the
-    readings do not determine a sphere (one attitude, rotation about one axis).
-
-    Parameters
-    ----------
-    raw : numpy.ndarray
-        (N, 3) readings in nT.
-
-    Returns
-    -------
-    float
-        Magnitude, nT.
-
+    The radius of the least-squares sphere |x - c|^2 = r^2 through the readings (a hard-iron
+    offset does not count), or the median |x| when they determine no sphere (one attitude,
+    rotation about one axis).
     """
     x = np.asarray(raw, float)
     x = x[np.all(np.isfinite(x), axis=1)]
@@ -135,21 +97,9 @@ def check_field_units(raw, reference_nt=None, reference_name='the reference'):
     """
     Refuse readings or a reference magnitude that are not a geomagnetic field in nT.
 
-    Parameters
-    ----------
-    raw : numpy.ndarray
-        (S, N, 3) readings, nT (after ``--unit`` conversion).
-    reference_nt : float, optional
-        The reference magnitude, nT (``--field-nt``, ``--igrf``, median ``ref_total``);
-        None: the readings are judged against the geomagnetic range.
-    reference_name : str
-        How the user gave the reference (named in the message).
-
-    Raises
-    ------
-    ValueError
-        One line: which numbers, how large, which unit they look like.
-
+    ``raw`` (S, N, 3) nT (after ``--unit``); ``reference_nt`` nT (None: the readings are
+    judged against the geomagnetic range), given as ``reference_name`` (named in the
+    message). Raises ValueError, one line: which numbers, how large, which unit they look like.
     """
     mags = [field_magnitude_estimate(r) for r in np.asarray(raw, float)]
     m = float(np.nanmedian(mags))
@@ -186,12 +136,7 @@ CHANNEL_UNITS = (('_current', 'A'), ('_voltage', 'V'), ('_power', 'W'), ('_temp'
 
 
 def channel_unit(name):
-    """
-    Return the unit of auxiliary channel ``name`` (``aux_battery_current``: ``A``), or None.
-
-    Known from the name's ending (:data:`CHANNEL_UNITS`); a coupling to the channel is then
-    stated in nT per that unit (``nT/A``) instead of nT per the channel's unit.
-    """
+    """Return the unit of aux channel ``name`` by its ending (:data:`CHANNEL_UNITS`), or None."""
     low = str(name).lower()
     for end, unit in CHANNEL_UNITS:
         if low.endswith(end):
@@ -200,12 +145,7 @@ def channel_unit(name):
 
 
 def coupling_unit(unit, label):
-    """
-    Return ``unit`` of a parameter of the effect ``label`` with the channel's unit put in.
-
-    ``'nT/unit'`` of ``aux:aux_battery_current`` is ``'nT/A'``; any other unit is returned as
-    it is.
-    """
+    """Return ``unit`` with the channel unit of ``label`` put in (``nT/unit``: ``nT/A``)."""
     if 'unit' not in unit:
         return unit
     import re

@@ -13,16 +13,13 @@
 # limitations under the License.
 
 """
-The calibration node's solves (docs/design.md §3), kept apart from the node.
+The calibration node's solves (docs/design.md §3): :class:`CalibrationMixin`.
 
-:class:`CalibrationMixin` is a part of :class:`magcal_ros.ros.calibration_node.CalibrationNode`:
-the services ``calibration/calibrate`` (the node's parameters as a
-:class:`magcal_ros.pipeline.CalibrationRequest`, run by :func:`magcal_ros.pipeline.run_request`
-and described by :func:`magcal_ros.pipeline.summary_lines`, as ``magcal fit`` does; the
-calibration written, published and made active) and ``calibration/diagnose``
-(:func:`magcal_ros.core.discovery.diagnose` and the HTML report), both in a worker thread,
-on the buffer's sets re-paired where the stamps paired them from different epochs
-(:func:`magcal_ros.core.live.consistency.resync`).
+``calibration/calibrate`` (the parameters as a :class:`magcal_ros.pipeline.CalibrationRequest`,
+run and described as ``magcal fit`` does; the calibration written, published and made active)
+and ``calibration/diagnose`` (:func:`magcal_ros.core.discovery.diagnose` and the HTML report),
+in a worker thread, on the buffer's sets re-paired where the stamps paired them from different
+epochs (:func:`magcal_ros.core.live.consistency.resync`).
 """
 import json
 import os
@@ -44,15 +41,12 @@ from magcal_ros.ros.replies import reply as _reply
 import numpy as np
 from std_msgs.msg import String
 
-#: sets the consistency check flags (core/live/consistency.py: no pairing within its lags
-#: fits them) are dropped before the fit up to this share of the sets; beyond, the node
-#: refuses with the count (issue 32: never a calibration on sets its own check flags)
+#: sets the consistency check flags are dropped before the fit up to this share of the sets;
+#: beyond, the node refuses with the count (issue 32)
 MAX_INCONSISTENT_FRACTION = 0.1
-#: a sensor whose fitted total-field RMS is this many times the noise floor while the check
-#: still flags more than MAX_INCONSISTENT_FRACTION of its sets (no pairing up to
-#: consistency.LONG_MAX_LAG epochs fits them: a reader that lost pace at random, or the
-#: sensors not seeing one field) is never activated: 10 x is far beyond any bias a missing
-#: effect of the demo's size leaves (a few x), and a mis-paired array shows hundreds
+#: a fit leaving a sensor this many times above the noise floor while the check flags more
+#: than MAX_INCONSISTENT_FRACTION of its sets is never activated: far beyond the bias of a
+#: missing effect of the demo's size (a few x); a mis-paired array shows hundreds
 OFF_FLOOR_FACTOR = 10.0
 
 #: the summary's entries of the planar, attitude-aided and site-gradient fits that the
@@ -65,25 +59,46 @@ def _fmt_per_sensor(d, fmt='{:.2f}'):
     return ', '.join(f'{k}: {fmt.format(v)}' for k, v in d.items())
 
 
+def _not_diagnosed(reason, **payload):
+    """Reply (False, summary, payload) of a diagnose call that was refused."""
+    return False, f'not diagnosed: {reason}', {'reason': reason, **payload}
+
+
+def _not_calibrated(reason, **payload):
+    """Reply (False, summary, payload) of a calibrate call that leaves the previous active."""
+    return False, f'not calibrated: {reason}; previous calibration stays active', {
+        'reason': reason, **payload}
+
+
 class CalibrationMixin:
     """The calibrate and diagnose services of the calibration node."""
 
     async def _on_calibrate(self, request, response):
+        return await self._solve(response, 'calibration', 'calibrate', True)
+
+    async def _on_diagnose(self, request, response):
+        return await self._solve(response, 'diagnosis', 'diagnose', False)
+
+    async def _solve(self, response, call, service, calibrate):
+        """Answer calibrate or diagnose: the solve in the worker thread, one at a time."""
         if not self._busy.acquire(blocking=False):
             return _reply(response, False, 'a calibration is already running',
                           {'state': self._state})
         with self._lock:
             prev_state = self._state
-            self._state = 'calibrating'
+            if calibrate:
+                self._state = 'calibrating'
         try:
-            ok, summary, payload = await self._in_worker(self._calibrate, prev_state)
+            ok, summary, payload = await (self._in_worker(self._calibrate, prev_state)
+                                          if calibrate else self._in_worker(self._diagnose))
             return _reply(response, ok, summary, payload)
         except Exception as exc:         # noqa: B902 -- a service must answer, never die
-            return _reply(response, False, *self._failed('calibration', 'calibrate', exc))
+            return _reply(response, False, *self._failed(call, service, exc))
         finally:
-            with self._lock:
-                # collection goes on (the buffer is kept) if it was running before
-                self._state = prev_state
+            if calibrate:
+                with self._lock:
+                    # collection goes on (the buffer is kept) if it was running before
+                    self._state = prev_state
             self._busy.release()
 
     def _calibrate(self, state):
@@ -99,8 +114,7 @@ class CalibrationMixin:
                                             if state == 'idle' else
                                             '; ' + '; '.join(silent) if silent else
                                             ': keep rotating the array'))
-            return False, f'not calibrated: {reason}; previous calibration stays active', {
-                'reason': reason, 'sets': n_sets}
+            return _not_calibrated(reason, sets=n_sets)
         model = Model.from_spec(list(s.model), self._n)
         geometry = self._geometry(s)
         t0 = time.monotonic()
@@ -111,14 +125,11 @@ class CalibrationMixin:
             data, resync_payload, resync_lines = self._resync(data, epochs, s)
         except ValueError as exc:
             reason, extra = self._named(exc, 'calibrate')
-            return False, f'not calibrated: {reason}; previous calibration stays active', {
-                'reason': reason, 'sets': n_sets, 'model': list(s.model), **extra}
+            return _not_calibrated(reason, sets=n_sets, model=list(s.model), **extra)
         try:
             field_nt, field_ref = self._field(s, data.raw[0])
         except (ValueError, ImportError) as exc:
-            reason = f'no field magnitude: {exc}'
-            return False, f'not calibrated: {reason}; previous calibration stays active', {
-                'reason': reason, 'sets': n_sets}
+            return _not_calibrated(f'no field magnitude: {exc}', sets=n_sets)
         # what a turn leaves open (planar) is held at the active calibration (same model),
         # else at an ideal sensor (magcal_ros.core.model.planar)
         active = self._active_cal
@@ -131,31 +142,25 @@ class CalibrationMixin:
         try:
             run = run_calibration(data, request, screen=screen)
         except DegenerateDataError as exc:
-            return False, (f'not calibrated: {exc}; previous calibration stays active'), {
-                'reason': str(exc), 'sets': n_sets, 'model': list(s.model)}
+            return _not_calibrated(str(exc), sets=n_sets, model=list(s.model))
         except ValueError as exc:
             reason, extra = self._named(exc, 'calibrate')
-            return False, f'not calibrated: {reason}; previous calibration stays active', {
-                'reason': reason, 'sets': n_sets, 'model': list(s.model), **extra}
+            return _not_calibrated(reason, sets=n_sets, model=list(s.model), **extra)
         solve_s = time.monotonic() - t0
         refuse = (resync_payload or {}).get('refuse')
         if refuse:
-            # the fit's own refusals (degenerate data, a stuck sensor) came first; a fit of
-            # these sets is never activated
-            return False, f'not calibrated: {refuse}; previous calibration stays active', {
-                'reason': refuse, 'sets': n_sets, 'model': list(s.model),
-                'resync': resync_payload}
+            # the fit's own refusals (degenerate data, a stuck sensor) came first
+            return _not_calibrated(refuse, sets=n_sets, model=list(s.model),
+                                   resync=resync_payload)
         refuse = self._inconsistent_and_off(resync_payload, run.summary, n_sets)
         if refuse:
-            return False, f'not calibrated: {refuse}; previous calibration stays active', {
-                'reason': refuse, 'sets': n_sets, 'model': list(s.model),
-                'resync': resync_payload,
-                'scalar_rms_after_nt': run.summary['scalar_rms_nt']}
+            return _not_calibrated(refuse, sets=n_sets, model=list(s.model),
+                                   resync=resync_payload,
+                                   scalar_rms_after_nt=run.summary['scalar_rms_nt'])
         if not run.result.success:
             # a fit that ran out of iterations is not a calibration: never installed
-            reason = f'the fit did not converge ({run.result.message})'
-            return False, f'not calibrated: {reason}; previous calibration stays active', {
-                'reason': reason, 'sets': n_sets, 'model': list(s.model), 'converged': False}
+            return _not_calibrated(f'the fit did not converge ({run.result.message})',
+                                   sets=n_sets, model=list(s.model), converged=False)
         # where the magnitude came from, also in the provenance (field_reference has the rest)
         run.doc['provenance']['field_source'] = s.field_source
         os.makedirs(os.path.dirname(os.path.abspath(s.calibration_file)), exist_ok=True)
@@ -168,28 +173,18 @@ class CalibrationMixin:
         self._activate(run.result.calibration, run.doc)
         summ = run.summary
         payload = {
-            'calibration_file': s.calibration_file,
-            'field_reference': field_ref,
-            'geometry': geometry,
-            'model': list(s.model),
-            'effects': summ['model'],
-            'sets': n_sets,
-            'solve_s': round(solve_s, 2),
-            'converged': summ['converged'],
+            'calibration_file': s.calibration_file, 'field_reference': field_ref,
+            'geometry': geometry, 'model': list(s.model), 'effects': summ['model'],
+            'sets': n_sets, 'solve_s': round(solve_s, 2), 'converged': summ['converged'],
             'noise_floor_nt': summ['noise_floor_nt'],
             'scalar_rms_before_nt': summ['total_field_rms_before_nt'],
             'scalar_rms_after_nt': summ['scalar_rms_nt'],
-            'vector_rms_after_nt': summ['vector_rms_nt'],
-            'robust': s.robust,
-            'constrained': s.constrained,
-            'downweighted': summ['downweighted'],
-            'warnings': summ['warnings'],
-            'resync': resync_payload,
+            'vector_rms_after_nt': summ['vector_rms_nt'], 'robust': s.robust,
+            'constrained': s.constrained, 'downweighted': summ['downweighted'],
+            'warnings': summ['warnings'], 'resync': resync_payload,
             'outlier_sets_excluded': summ.get('outlier_sets_excluded', 0),
             'readings_left_out': summ.get('readings_left_out'),
-            **tensor_figures(summ),
-            **{k: summ[k] for k in _REPLY_KEYS if k in summ},
-        }
+            **tensor_figures(summ), **{k: summ[k] for k in _REPLY_KEYS if k in summ}}
         if 'tensor_rms_nt_per_m' in summ:
             payload['tensor_rms_components_after_nt_per_m'] = summ['tensor_rms_nt_per_m']
         if 'site_gradient_nt_per_m' in summ:
@@ -206,9 +201,7 @@ class CalibrationMixin:
                  f'total-field RMS per sensor after  [nT]: '
                  f'{_fmt_per_sensor(summ["scalar_rms_nt"])} '
                  f'(noise floor {summ["noise_floor_nt"]:.2f} nT)']
-        lines += summary_lines(summ, request)
-        for w in resync_lines:
-            lines.append(f'resync: {w}')
+        lines += summary_lines(summ, request) + [f'resync: {w}' for w in resync_lines]
         changed = self._model_changed
         if changed is not None and changed[1] > 0:
             payload['model_changed_after_sets'] = changed[1]
@@ -222,18 +215,6 @@ class CalibrationMixin:
         self.get_logger().info(lines[0])
         return True, '\n'.join(lines), payload
 
-    async def _on_diagnose(self, request, response):
-        if not self._busy.acquire(blocking=False):
-            return _reply(response, False, 'a calibration is already running',
-                          {'state': self._state})
-        try:
-            ok, summary, payload = await self._in_worker(self._diagnose)
-            return _reply(response, ok, summary, payload)
-        except Exception as exc:         # noqa: B902 -- a service must answer, never die
-            return _reply(response, False, *self._failed('diagnosis', 'diagnose', exc))
-        finally:
-            self._busy.release()
-
     def _diagnose(self):
         """Rank the missing effects; returns (success, summary text, JSON payload)."""
         try:
@@ -244,18 +225,16 @@ class CalibrationMixin:
         s = prm.calibration_settings(self)
         n_sets, data, epochs = self._snapshot()
         if n_sets < s.min_samples:
-            reason = f'only {n_sets} complete sample sets collected, need {s.min_samples}'
-            return False, f'not diagnosed: {reason}', {'reason': reason, 'sets': n_sets}
+            return _not_diagnosed(f'only {n_sets} complete sample sets collected, need '
+                                  f'{s.min_samples}', sets=n_sets)
         model = Model.from_spec(list(s.model), self._n)
         try:
-            # readings no field produces are named and left out, as in calibrate, before
-            # the pairing check
+            # as in calibrate: readings no field produces first, then the pairing check
             data, epochs, screen = self._screen(data, epochs)
             data, resync_payload, _ = self._resync(data, epochs, s)
         except ValueError as exc:
             reason, extra = self._named(exc, 'diagnose')
-            return False, f'not diagnosed: {reason}', {'reason': reason, 'sets': n_sets,
-                                                       **extra}
+            return _not_diagnosed(reason, sets=n_sets, **extra)
         field_nt = s.field_nt
         try:
             # with imu_topic the attitude-aided fit, as calibrate makes it (pipeline)
@@ -266,8 +245,7 @@ class CalibrationMixin:
                             baseline_m=s.baseline_m)
         except ValueError as exc:
             reason, extra = self._named(exc, 'diagnose')
-            return False, f'not diagnosed: {reason}', {'reason': reason, 'sets': n_sets,
-                                                       **extra}
+            return _not_diagnosed(reason, sets=n_sets, **extra)
         ranking = json.loads(diag.to_json())       # non-finite numbers as null
         report = write_report(s.report_dir, data, diagnosis=diag, baseline_m=s.baseline_m)
         ranking['report'] = os.fspath(report)
@@ -294,12 +272,11 @@ class CalibrationMixin:
     @staticmethod
     def _inconsistent_and_off(resync_payload, summ, n_sets):
         """
-        Why a fit must not be activated: sensors off the floor on sets the check flags.
+        Why a fit must not be activated (one line, or None): sensors off the floor.
 
-        Returns None, or one line naming each sensor whose total-field RMS is above
-        :data:`OFF_FLOOR_FACTOR` x the noise floor while more than
+        Names each sensor above :data:`OFF_FLOOR_FACTOR` x the noise floor while more than
         :data:`MAX_INCONSISTENT_FRACTION` of its sets are inconsistent with sensor 1 at every
-        pairing the check tried (issue 32 item 5: never a calibration on such sets).
+        pairing the check tried (issue 32 item 5).
         """
         if not resync_payload:
             return None
@@ -330,9 +307,8 @@ class CalibrationMixin:
         """
         Re-pair sets paired from different epochs; return (data, payload, warning lines).
 
-        The sets the check still finds inconsistent are dropped (counted in the payload and
-        a line), up to :data:`MAX_INCONSISTENT_FRACTION` of them; beyond, none is dropped and
-        the payload's ``refuse`` says why no calibration may be made of these sets.
+        Sets still inconsistent are dropped, up to :data:`MAX_INCONSISTENT_FRACTION` of them;
+        beyond, none is and the payload's ``refuse`` says why no calibration may be made.
         """
         if not settings.resync_sets or data.n_sensors < 2:
             return data, None, []
@@ -356,15 +332,12 @@ class CalibrationMixin:
         keys = [str(j) for j in range(2, data.n_sensors + 1)]
         payload = {
             'sets_repaired': dict(zip(keys, slips.n_slipped[1:].tolist())),
-            'sets_dropped': dropped,
-            'sets_dropped_garbled': gross,
+            'sets_dropped': dropped, 'sets_dropped_garbled': gross,
             'misfit_as_paired_nt': dict(zip(keys, np.round(slips.rms_as_paired_nt[1:], 2)
                                             .tolist())),
             'misfit_nt': dict(zip(keys, np.round(slips.rms_nt[1:], 2).tolist())),
             'inconsistent_sets': dict(zip(keys, slips.inconsistent[1:].tolist())),
-            'sets_dropped_inconsistent': n_bad,
-            'refuse': refuse,
-        }
+            'sets_dropped_inconsistent': n_bad, 'refuse': refuse}
         lines = slips.summary()
         if n_bad:
             lines.append(f'{n_bad} sets dropped: inconsistent with sensor 1 at every pairing '
@@ -382,12 +355,7 @@ class CalibrationMixin:
         return fixed, payload, lines
 
     def _named(self, exc, service):
-        """
-        (reason, payload entries) of an exception ending a calibrate/diagnose call.
-
-        An exception raised by the code of an effect names the effect (and is counted like a
-        live one, :meth:`_effect_error`); any other is described as it is.
-        """
+        """(reason, payload entries) of an exception ending a call; an effect's is named."""
         effect = culprit(exc)
         if effect is None:
             return str(exc), {}

@@ -15,63 +15,19 @@
 """
 calibration_node: collect rotation data from the live array, calibrate, diagnose.
 
-Topics (relative to the node namespace, default ``/magcal``; docs/design.md §3):
-
-- subscribes ``sensor{j}/raw`` (sensor_msgs/MagneticField, T), ``sensor{j}/temperature``
-  (sensor_msgs/Temperature, degC) and one std_msgs/Float64 topic per name in ``aux_topics``
-  (recorded as column ``aux_<name>``), all best effort like ``qos_profile_sensor_data``
-  (with deeper queues: :data:`CALIBRATION_SENSOR_QOS` for the raw fields, 10 s of 100 Hz,
-  so that no sample is lost while a solve keeps the executor busy; :data:`SENSOR_QOS`);
-- subscribes ``imu_topic`` (sensor_msgs/Imu, optional): its orientation is the attitude of
-  the array (body-to-world), interpolated onto the sets, for the ``site_gradient`` effect;
-- publishes ``calibration/status`` (std_msgs/String, JSON, every ``status_period_s``):
-  sets collected, attitude coverage per sensor, what is still missing;
-- publishes ``calibration/result`` (std_msgs/String holding the calibration YAML of
-  docs/design.md §4; reliable, transient local, depth 1): the active calibration;
-- publishes ``calibration/residual`` (std_msgs/Float64MultiArray, T; one message per
-  matched set while a calibration is active, collecting or not): the active calibration
-  applied to the incoming data, per sensor the scalar residual |b_j| - F and the vector
-  residual |b_j - mean of the others| (:func:`magcal_ros.ros.conversions.residual_to_msg`;
-  ``data[j-1]`` and ``data[S+j-1]`` plot in rqt_plot / PlotJuggler), and on ``/diagnostics``
-  their rolling RMS over the noise floor of the data, WARN above
-  :data:`magcal_ros.core.live.corrector.RESIDUAL_WARN_RATIO`: the calibration no longer fits,
-  time to diagnose (:class:`magcal_ros.core.live.corrector.ResidualMonitor`); ERROR, naming
-  the effect and counting its errors, when the code of an effect raised (on a live sample: no
-  residual for it; in calibrate or diagnose: that call answers success=false naming the
-  effect), logged once per effect.
-
-With the parameter ``learn`` (issue 34; :mod:`magcal_ros.ros.learning`, the logic in
-:mod:`magcal_ros.core.live.learning`) it also keeps learning from the live sets while the
-robot works: ``calibration/learned`` (the estimate, calibration YAML), ``/diagnostics``
-``learning``, the service ``calibration/adopt`` and, with ``auto_adopt``, adoption of a
-validated proposal of a persistent change (docs/design.md §3).
-
-Services (std_srvs/srv/Trigger; the response message is a short summary, a newline, then
-one JSON object):
-
-- ``calibration/start``: clear the buffer and start collecting;
-- ``calibration/calibrate``: fit the ``model`` parameter to the collected sets
-  (:func:`magcal_ros.pipeline.run_request`, as ``magcal fit``), write ``calibration_file``
-  atomically (the previous one kept) and publish it; refused data leave the previous
-  calibration active;
-- ``calibration/diagnose``: rank the candidate effects missing from ``model``
-  (:func:`magcal_ros.core.discovery.diagnose`) and write the HTML report to ``report_dir``;
-- ``calibration/reset``, ``calibration/turn`` (``cmd_vel_topic``), ``calibration/adopt``
-  (learning).
-
-The node is put together from its parts: the collection (sensor callbacks, buffer, start,
-reset, status: :mod:`magcal_ros.ros.collection`), the solves (calibrate, diagnose:
-:mod:`magcal_ros.ros.calibrating`), the turn (:mod:`magcal_ros.ros.turn`) and the learning
+Topics, services (std_srvs/Trigger, :mod:`magcal_ros.ros.replies`) and parameters: docs/design.md
+§3. Its parts: the collection (:mod:`magcal_ros.ros.collection`), the solves
+(:mod:`magcal_ros.ros.calibrating`), the turn (:mod:`magcal_ros.ros.turn`) and the learning
 (:mod:`magcal_ros.ros.learning`); this module holds the set-up, the parameters, the live
-residual of the active calibration and the worker thread.
+residual of the active calibration (``calibration/residual`` and its ``/diagnostics`` status,
+WARN above :data:`magcal_ros.core.live.corrector.RESIDUAL_WARN_RATIO`) and the worker thread.
 
-The solve must not block the sensor callbacks. It runs in a worker thread; the service
-callbacks are coroutines (in a reentrant callback group) that await it, so the executor
-keeps taking sensor samples meanwhile, and a non-blocking lock turns a second
-calibrate/diagnose/start during a solve into a clean refusal instead of a queued call. The
-node spins on a SingleThreadedExecutor: rclpy's MultiThreadedExecutor was measured here to
-receive only about half of the 4 x 100 Hz samples (4 threads) or to run callbacks of one
-subscription out of order (2 threads), which breaks the matching of sample sets by stamp.
+A solve must not block the sensor callbacks: it runs in a worker thread that the service
+coroutines (a reentrant callback group) await, and a non-blocking lock turns a second
+calibrate/diagnose/start during a solve into a clean refusal. The node spins on a
+SingleThreadedExecutor: rclpy's MultiThreadedExecutor received only about half of the
+4 x 100 Hz samples (4 threads) or ran one subscription's callbacks out of order (2 threads),
+which breaks the matching of sample sets by stamp.
 """
 import math
 import os
@@ -91,7 +47,7 @@ from magcal_ros.ros import params as prm
 from magcal_ros.ros.calibrating import CalibrationMixin
 from magcal_ros.ros.collection import CollectionMixin
 from magcal_ros.ros.conversions import residual_to_msg
-from magcal_ros.ros.diagnostics import fill, Updater
+from magcal_ros.ros.diagnostics import EffectErrorsMixin, fill, Updater
 from magcal_ros.ros.intake import Intake
 from magcal_ros.ros.learning import LearningMixin
 from magcal_ros.ros.run import DEFAULT_NAMESPACE, spin_node, yield_cpu
@@ -111,25 +67,23 @@ RESULT_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
                         reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
-#: sensor streams: the sensor-data profile of REP 2003 (best effort, volatile) with a queue
-#: deep enough for a quarter second of 100 Hz, so that a busy executor does not drop samples
-#: (the corrector: it prefers the newest samples to a backlog)
+#: sensor streams (the corrector's): REP 2003's sensor-data profile with a quarter second of
+#: 100 Hz of queue (it prefers the newest samples to a backlog)
 SENSOR_QOS = QoSProfile(depth=25, history=HistoryPolicy.KEEP_LAST,
                         reliability=qos_profile_sensor_data.reliability,
                         durability=qos_profile_sensor_data.durability)
 
-#: the calibration node's sensor streams: the same profile with 10 s of 100 Hz of queue.  A
-#: sample dropped from one stream shifts that stream's epoch numbering until the set matcher
-#: votes again, and the sets in between are paired tens of epochs off; the calibration node
-#: needs every sample, not the newest, and its executor is starved for up to a second while
-#: a calibrate or diagnose call holds the interpreter in the worker thread (seen in the
-#: end-to-end test: 20-125 sets paired far off in 2 of 4 runs with a 25-deep queue)
+#: the calibration node's sensor streams: 10 s of 100 Hz of queue. It needs every sample: one
+#: dropped shifts its stream's epoch numbering until the matcher votes again, and a solve
+#: starves its executor for up to a second (25 deep: 20-125 sets paired far off in 2 of 4
+#: end-to-end runs)
 CALIBRATION_SENSOR_QOS = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
                                     reliability=qos_profile_sensor_data.reliability,
                                     durability=qos_profile_sensor_data.durability)
 
 
-class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixin, Node):
+class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixin,
+                      EffectErrorsMixin, Node):
     """Collect rotation data of the array and serve calibrate/diagnose requests."""
 
     def __init__(self, **kwargs):
@@ -137,9 +91,8 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
         super().__init__('calibration_node', **kwargs)
         first = prm.declare(self, [prm.N_SENSORS, prm.PLUGINS])
         plugins = prm.load_plugins(self)        # before the model is checked
-        n = int(prm.value(self, 'n_sensors'))
-        self._specs = prm.calibration_specs(n)
-        self._specs_by_name = prm.declare(self, self._specs)
+        self._specs_by_name = prm.declare(
+            self, prm.calibration_specs(int(prm.value(self, 'n_sensors'))))
         self._specs_by_name.update(first)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         s = prm.calibration_settings(self)
@@ -173,8 +126,6 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
         self._taken = 0                         # raw samples taken (all sensors, any state)
 
         service_group = ReentrantCallbackGroup()
-        # the sensor streams are taken on the EventsExecutor in a thread of their own and
-        # handed to the callbacks below on this node's executor (magcal_ros.ros.intake)
         self._intake = Intake(self)
         for j, topic in enumerate(s.input_topics, start=1):
             self._intake.subscribe(MagneticField, topic, self._raw_cb(j - 1),
@@ -182,9 +133,7 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
             self._intake.subscribe(Temperature, f'sensor{j}/temperature',
                                    self._temp_cb(j - 1), SENSOR_QOS)
         for name in s.aux_topics:
-            # as deep as the raw streams: a shallow queue dropped the channels' backlog
-            # while the interpreter was held by a solve, leaving their values ahead of the
-            # raw samples they were paired with
+            # as deep as the raw streams: values must not run ahead of their raw samples
             self._intake.subscribe(Float64, name, self._aux_cb('aux_' + name),
                                    CALIBRATION_SENSOR_QOS)
         if s.imu_topic:
@@ -194,18 +143,12 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
         self._result_pub = self.create_publisher(String, 'calibration/result', RESULT_QOS)
         self._residual_pub = self.create_publisher(Float64MultiArray, 'calibration/residual',
                                                    10)
-        self._srv = [
-            self.create_service(Trigger, 'calibration/start', self._on_start,
-                                callback_group=service_group),
-            self.create_service(Trigger, 'calibration/calibrate', self._on_calibrate,
-                                callback_group=service_group),
-            self.create_service(Trigger, 'calibration/diagnose', self._on_diagnose,
-                                callback_group=service_group),
-            self.create_service(Trigger, 'calibration/reset', self._on_reset,
-                                callback_group=service_group),
-            self.create_service(Trigger, 'calibration/turn', self._on_turn,
-                                callback_group=service_group),
-        ]
+        self._srv = [self.create_service(Trigger, f'calibration/{name}', callback,
+                                         callback_group=service_group)
+                     for name, callback in (('start', self._on_start),
+                                            ('calibrate', self._on_calibrate),
+                                            ('diagnose', self._on_diagnose),
+                                            ('reset', self._on_reset), ('turn', self._on_turn))]
         self._cmd_vel = (self.create_publisher(Twist, s.cmd_vel_topic, 10)
                          if s.cmd_vel_topic else None)
         self._status_timer = self.create_timer(s.status_period_s, self._publish_status)
@@ -219,8 +162,7 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
                self.get_logger().warning)
         for line in self._setup[1]:
             say(line)
-        # triggered by the worker thread when a solve ends, so the executor wakes up and
-        # resumes the awaiting service coroutine even when no sensor data flows
+        # the worker thread wakes the executor when a solve ends (the awaiting service)
         self._wake = self.create_guard_condition(lambda: None)
         self._learn_init(RESULT_QOS)            # learning mode (magcal_ros.ros.learning)
         self._publish_existing(s.calibration_file)
@@ -232,7 +174,6 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
             + '; call calibration/start to collect')
 
     # -- geometry and field reference ------------------------------------------------------
-
     def _geometry(self, s):
         """Geometry dict of the node's parameters (None: no positions for 2, 3 or 5+)."""
         return array_geometry(self._n, s.sensor_positions_m, s.baseline_m)
@@ -280,13 +221,11 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
     def setup_status(self):
         """``DiagnosticStatus``: the geometry, the tensor and the field reference in use."""
         level, lines = self._setup
-        st = DiagnosticStatus(name=f'{self.get_name()}: setup',
-                              hardware_id=self.get_namespace(), level=level,
-                              message='; '.join(lines))
-        return st
+        return DiagnosticStatus(name=f'{self.get_name()}: setup',
+                                hardware_id=self.get_namespace(), level=level,
+                                message='; '.join(lines))
 
     # -- parameters ------------------------------------------------------------------------
-
     def _on_set_parameters(self, parameters):
         result = prm.validate(self._specs_by_name, parameters)
         if result.successful:
@@ -306,7 +245,6 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
         return result
 
     # -- the active calibration on the live data (calibration/residual) ------------------
-
     def _residual(self, live, j, t, raw):
         """Correct a sample with the active calibration; publish the residual of each set."""
         try:
@@ -324,12 +262,6 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
             scalar, vector = monitor.add(fields)
             self._residual_pub.publish(residual_to_msg(scalar, vector))
             self._residual_sets += 1
-
-    def _effect_error(self, exc, what):
-        """Count an error of effect code (:class:`EffectError`); log the first per effect."""
-        if self._effect_errors.add(exc, what):
-            self.get_logger().error(f'{exc} ({what}); further errors of it are counted on '
-                                    '/diagnostics, not logged')
 
     def _activate(self, cal, doc):
         """Apply ``cal`` to the incoming data from now on (residual and its diagnostics)."""
@@ -355,19 +287,17 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
         """
         ``diagnostic_msgs/DiagnosticStatus`` of the active calibration on the live data.
 
-        WARN when a sensor's rolling residual exceeds :data:`RESIDUAL_WARN_RATIO` times what
-        its noise floor predicts (:class:`magcal_ros.core.live.corrector.ResidualMonitor`), or
-        when a
-        driven effect lacks its live signal.
+        WARN when a sensor's rolling residual exceeds :data:`RESIDUAL_WARN_RATIO` times its
+        noise floor (:class:`~magcal_ros.core.live.corrector.ResidualMonitor`), or a driven
+        effect lacks its live signal.
         """
         st = DiagnosticStatus(name=f'{self.get_name()}: residual',
                               hardware_id=self.get_namespace(), level=DiagnosticStatus.OK)
         monitor = self._monitor
         r = monitor.ratios() if monitor is not None else None
-        values = [('residual_sets_published', str(self._residual_sets))]
         errors = self._effect_errors
-        values += [('effect_errors', str(sum(errors.counts().values())))]
-        values += [(f'effect_errors {k}', str(n)) for k, n in errors.counts().items()]
+        values = [('residual_sets_published', str(self._residual_sets))]
+        values += self._effect_error_values()
         if errors:
             st.level = DiagnosticStatus.ERROR
             st.message = f'effect code failed: {errors.summary()}'
@@ -401,7 +331,6 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
         return st
 
     # -- shutdown and the solve thread ----------------------------------------------------
-
     def destroy_node(self):
         """Stop a turn in progress (a zero velocity on cmd_vel), then destroy the node."""
         self._turn_stop.set()
@@ -425,7 +354,6 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
         return future
 
     # -- start-up --------------------------------------------------------------------------
-
     def _publish_existing(self, path):
         """Publish the calibration already on disk, so the corrector starts with it."""
         if not os.path.exists(path):

@@ -13,14 +13,12 @@
 # limitations under the License.
 
 """
-The calibration node's collection (docs/design.md §3), kept apart from the node.
+The calibration node's collection (docs/design.md §3): :class:`CollectionMixin`.
 
-:class:`CollectionMixin` is a part of :class:`magcal_ros.ros.calibration_node.CalibrationNode`:
-the sensor callbacks (raw fields, temperatures, aux channels, the Imu attitude) that match
-the samples into sets in the buffer while collecting (and hand them to the live residual and
-the learning), the services ``calibration/start`` and ``calibration/reset``, the snapshot of
-the buffer a solve or a turn reads (with the attitude interpolated onto it), and the state
-on ``calibration/status`` and ``/diagnostics`` (``calibration_node: buffer``).
+The sensor callbacks (matching samples into sets while collecting, feeding the live residual
+and the learning), ``calibration/start`` and ``calibration/reset``, the snapshot a solve or a
+turn reads (with the attitude interpolated onto it), ``calibration/status`` and the
+``calibration_node: buffer`` status.
 """
 import json
 import math
@@ -40,11 +38,7 @@ _STATUS_SUBSAMPLE = 2000
 
 
 def silent_sensors(received):
-    """
-    Messages naming the sensors that sent nothing, or far less than the others.
-
-    ``received`` lists the raw samples taken per sensor since calibration/start.
-    """
+    """Name the sensors that sent nothing, or far less than the others (``received`` counts)."""
     most = max(received) if received else 0
     out = []
     for j, n in enumerate(received, start=1):
@@ -197,11 +191,9 @@ class CollectionMixin:
         """
         Attach the collected attitude to (data, epochs) (under the lock).
 
-        The attitude is interpolated at the sets' own stamps (``stamps`` (N,) s, as the
-        sensors' messages arrived), not at the sample instants reconstructed from them
-        (``data.t``): Imu messages are stamped the same way by their driver, so the two
-        share one clock and one latency even when samples are lost.  Sets outside the time
-        span of the Imu messages are dropped; unchanged without any.
+        Interpolated at the sets' own stamps (``stamps`` (N,) s), not at ``data.t``: Imu
+        messages are stamped the same way, one clock and one latency even when samples are
+        lost. Sets outside the Imu messages' span are dropped; unchanged without any.
         """
         n = min(self._imu_count, len(self._imu))
         if not n:
@@ -213,8 +205,7 @@ class CollectionMixin:
                                   source=prm.value(self, 'imu_topic'))
         out = replace(out, t=data.t[kept], meta=dict(data.meta))
         out.meta['dropped_attitude_epochs'] = int((~kept).sum())
-        # sensor_msgs/Imu orientation: body to the ENU world of REP 103
-        out.meta['attitude_frame'] = 'ENU'
+        out.meta['attitude_frame'] = 'ENU'     # sensor_msgs/Imu: body to ENU (REP 103)
         out.meta['attitude_source'] = f"sensor_msgs/Imu on {prm.value(self, 'imu_topic')}"
         return out, epochs[kept]
 
@@ -247,8 +238,7 @@ class CollectionMixin:
             for j, v in rep['sensors'].items():
                 out['coverage'][str(j)] = v['status']
                 eigenvalues[str(j)] = [round(float(x), 4) for x in v['eigenvalues']]
-            # the constrained mode is made for a partial or single-axis coverage (as in
-            # model.fit), the planar mode for a single axis: not a missing item then
+            # partial or single-axis coverage is what the constrained (planar) mode is for
             excused = (('partial', 'single axis') if s.constrained else
                        ('single axis',) if s.planar else ())
             partial = {j for j, v in rep['sensors'].items() if v['status'] in excused}
@@ -263,12 +253,10 @@ class CollectionMixin:
                                'quaternion (orientation_covariance[0] = -1, NaN or |q| != 1)')
         out['ready'] = self._collecting and not missing
         out.update({'model': list(s.model), 'field_nt': s.field_nt,
-                    'field_source': s.field_source,
-                    'max_samples': s.max_samples, 'coverage_eigenvalues': eigenvalues,
-                    'buffer': buffer,
+                    'field_source': s.field_source, 'max_samples': s.max_samples,
+                    'coverage_eigenvalues': eigenvalues, 'buffer': buffer,
                     'incomplete_sets_dropped': dropped, 'out_of_order_dropped': out_of_order,
-                    'stream_realignments': realigned,
-                    'intake_dropped': self._intake.dropped,
+                    'stream_realignments': realigned, 'intake_dropped': self._intake.dropped,
                     'samples_received': {str(j + 1): r for j, r in enumerate(received)}})
         if self._t_started is not None and self._collecting:
             dt = time.monotonic() - self._t_started
@@ -287,11 +275,9 @@ class CollectionMixin:
 
     def buffer_status(self):
         """
-        ``diagnostic_msgs/DiagnosticStatus`` of the buffer of sets: what of the run it holds.
+        ``DiagnosticStatus`` of the buffer (:class:`~magcal_ros.core.live.corrector.SampleBuffer`).
 
-        The buffer keeps at most ``max_samples`` sets spread evenly over the whole run
-        (:class:`magcal_ros.core.live.corrector.SampleBuffer`): the values say how many it
-        holds, of how many received, one in how many, and which span of the run they cover.
+        How many sets of how many received it holds, one in how many, over which span.
         """
         with self._lock:
             cov = self._buffer.coverage()

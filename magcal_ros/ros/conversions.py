@@ -18,25 +18,14 @@ Conversions between library arrays (nT, nT/m, degC) and ROS messages (T, T/m, de
 This is the one place where nanotesla become tesla (REP 103 SI units in messages) and back.
 Every builder validates its input and raises ``ValueError`` naming what was wrong.
 
-Message layouts
----------------
-- ``sensor_msgs/MagneticField``: ``magnetic_field`` in T, ``magnetic_field_covariance`` in T^2,
-  3x3 row-major (x, y, z); all zeros means "covariance unknown" (message definition).
-- Gradient tensor ``std_msgs/Float64MultiArray``: 3x3 row-major in T/m, ``layout.dim`` =
-  ``[('row', size 3, stride 9), ('col', size 3, stride 3)]``, ``data_offset`` 0
-  (docs/design.md §3).
-- ``magcal_interfaces/GradientTensorStamped`` (``gradient_stamped``): header (stamp of the
-  matched set, the array frame), ``tensor`` 3x3 row-major in T/m, ``tensor_covariance``
-  9x9 row-major in (T/m)^2 (all zeros: unknown).
-- Live residual ``std_msgs/Float64MultiArray`` (``calibration/residual``): per set, row 0
-  the scalar residuals |b_j| - F, row 1 the vector residuals |b_j - mean of the others|,
-  one column per sensor, T (:func:`residual_to_msg`).
-- ``geometry_msgs/TransformStamped``: the static transform array -> fluxgate{j}, translation
-  in m, rotation as a unit quaternion (REP 103).
-- ``sensor_msgs/Temperature``: degrees Celsius, variance in degC^2.
-- ``sensor_msgs/Imu`` (attitude only): ``orientation`` the body-to-world unit quaternion
-  (REP 103/145: world ENU), its covariance in rad^2 about the world axes; angular velocity
-  and linear acceleration not given (``covariance[0] = -1``, REP 145) (:func:`attitude_msg`).
+Layouts: ``sensor_msgs/MagneticField`` covariance in T^2, 3x3 row-major, all zeros meaning
+unknown; the gradient tensor ``std_msgs/Float64MultiArray`` 3x3 row-major in T/m,
+``layout.dim`` ``[('row', size 3, stride 9), ('col', size 3, stride 3)]``, ``data_offset`` 0;
+``magcal_interfaces/GradientTensorStamped``: the matched set's stamp, the array frame,
+``tensor`` 3x3 row-major in T/m, ``tensor_covariance`` 9x9 row-major in (T/m)^2 (zeros:
+unknown); the live residual: :func:`residual_to_msg`; ``sensor_msgs/Imu`` carries only the
+body-to-world (ENU) orientation, covariance rad^2 about the world axes, angular velocity and
+linear acceleration marked not given (``covariance[0] = -1``, REP 145).
 """
 
 import math
@@ -60,23 +49,11 @@ _NS_PER_S = 1_000_000_000
 
 def to_stamp(stamp):
     """
-    Turn a time given in one of several forms into a ``builtin_interfaces/Time``.
+    Return ``stamp`` as a new ``builtin_interfaces/Time`` (a given message is copied).
 
-    Parameters
-    ----------
-    stamp : builtin_interfaces.msg.Time or rclpy.time.Time or float or int or None
-        The time. A number is seconds since the epoch (>= 0); ``None`` gives time zero.
-
-    Returns
-    -------
-    builtin_interfaces.msg.Time
-        A new message (a given message is copied, never shared).
-
-    Raises
-    ------
-    ValueError
-        If the time is negative, not finite, or of an unsupported type.
-
+    ``stamp`` is a ``builtin_interfaces/Time``, an rclpy ``Time``, seconds since the epoch
+    (a number >= 0) or None (time zero). Raises ValueError if it is negative, not finite or
+    of another type.
     """
     if stamp is None:
         return TimeMsg()
@@ -97,20 +74,7 @@ def to_stamp(stamp):
 
 
 def stamp_to_seconds(stamp):
-    """
-    Return a ``builtin_interfaces/Time`` as float seconds.
-
-    Parameters
-    ----------
-    stamp : builtin_interfaces.msg.Time
-        The time stamp (for example ``msg.header.stamp``).
-
-    Returns
-    -------
-    float
-        Seconds since the epoch (nanosecond resolution is kept up to float64 precision).
-
-    """
+    """Return a ``builtin_interfaces/Time`` as float seconds since the epoch."""
     return stamp.sec + stamp.nanosec * 1e-9
 
 
@@ -118,6 +82,21 @@ def _check_frame_id(frame_id):
     if not isinstance(frame_id, str):
         raise ValueError(f'frame_id must be a str, got {type(frame_id).__name__}')
     return frame_id
+
+
+def _header(msg, stamp, frame_id):
+    """Set ``msg.header`` (stamp as :func:`to_stamp`, a str frame id); return ``msg``."""
+    msg.header.stamp = to_stamp(stamp)
+    msg.header.frame_id = _check_frame_id(frame_id)
+    return msg
+
+
+def _non_negative(value, name, unit):
+    """Return ``value`` as a float, refusing one that is not finite or is < 0 (ValueError)."""
+    x = float(value)
+    if not math.isfinite(x) or x < 0.0:
+        raise ValueError(f'{name} must be finite and >= 0 {unit}, got {value!r}')
+    return x
 
 
 def _vector3(value, name, unit):
@@ -157,76 +136,41 @@ def _covariance33(covariance_nt2):
 
 def covariance_to_t2(covariance_nt2):
     """
-    Validate a covariance and return it as a message's 9-element row-major array in T^2.
+    Validate a covariance (as :func:`field_nt_to_msg` takes it) and return it as (9,) T^2.
 
-    For publishers that send many messages with the same covariance: validate and convert
-    once, then pass the result as ``covariance_t2`` to :func:`field_nt_to_msg`.
-    Two factors of 1e-9: nT^2 -> T^2.
+    For publishers of many messages with one covariance: convert once, pass ``covariance_t2``.
     """
     return nt_to_t(nt_to_t(_covariance33(covariance_nt2))).reshape(9)
 
 
 def field_nt_to_msg(field_nt, stamp=None, frame_id='', covariance_nt2=None, covariance_t2=None):
     """
-    Build a ``sensor_msgs/MagneticField`` (tesla) from a field in nanotesla.
+    Build a ``sensor_msgs/MagneticField`` (field in T, covariance in T^2 row-major).
 
-    Parameters
-    ----------
-    field_nt : array_like, shape (3,)
-        Magnetic field (x, y, z) in nT.
-    stamp : builtin_interfaces.msg.Time or rclpy.time.Time or float or None, optional
-        Header stamp (see :func:`to_stamp`); time zero when omitted.
-    frame_id : str, optional
-        Header frame id.
-    covariance_nt2 : array_like, shape (3, 3), or float, optional
-        Covariance of the field in nT^2, or one variance in nT^2 for all three axes
-        (diagonal, independent axes). ``None`` leaves zeros ("unknown").
-    covariance_t2 : numpy.ndarray, shape (9,), optional
-        The covariance already converted by :func:`covariance_to_t2` (T^2, row-major); skips
-        the per-message validation. Takes precedence over ``covariance_nt2``.
-
-    Returns
-    -------
-    sensor_msgs.msg.MagneticField
-        Field in T, covariance in T^2 row-major.
-
-    Raises
-    ------
-    ValueError
-        If the field is not three finite numbers, or the covariance has the wrong shape,
-        is not finite, not symmetric, or has a negative variance.
-
+    ``field_nt`` (3,) nT; ``stamp`` as :func:`to_stamp`; ``covariance_nt2`` (3, 3) nT^2, or
+    one variance in nT^2 for all three (independent) axes, None: zeros ("unknown");
+    ``covariance_t2`` (9,) T^2 from :func:`covariance_to_t2` skips the per-message
+    validation and takes precedence. Raises ValueError if the field is not three finite
+    numbers, or the covariance has the wrong shape, is not finite, not symmetric, or has a
+    negative variance.
     """
     field = _vector3(field_nt, 'field_nt', 'nT')
     if covariance_t2 is None:
         covariance_t2 = covariance_to_t2(covariance_nt2)
-    msg = MagneticField()
-    msg.header.stamp = to_stamp(stamp)
-    msg.header.frame_id = _check_frame_id(frame_id)
+    msg = _header(MagneticField(), stamp, frame_id)
     field_t = nt_to_t(field)
-    msg.magnetic_field.x = float(field_t[0])
-    msg.magnetic_field.y = float(field_t[1])
-    msg.magnetic_field.z = float(field_t[2])
+    v = msg.magnetic_field
+    v.x, v.y, v.z = float(field_t[0]), float(field_t[1]), float(field_t[2])
     msg.magnetic_field_covariance = covariance_t2
     return msg
 
 
 def set_field_nt(msg, field_nt, covariance_t2):
     """
-    Overwrite the field (nT -> T) and covariance (T^2) of a ``MagneticField`` in place.
+    Overwrite the field (``field_nt`` (3,) nT) and covariance ((9,) T^2) of ``msg`` in place.
 
-    The hot path of the corrector: no validation (the field comes out of the correction of a
-    finite reading, the covariance from :func:`covariance_to_t2`), header left as it is.
-
-    Parameters
-    ----------
-    msg : sensor_msgs.msg.MagneticField
-        The message to overwrite.
-    field_nt : numpy.ndarray
-        (3,) field in nT.
-    covariance_t2 : numpy.ndarray
-        (9,) row-major covariance in T^2.
-
+    The corrector's hot path: no validation (a corrected finite reading, a covariance from
+    :func:`covariance_to_t2`), header left as it is.
     """
     v = msg.magnetic_field
     v.x = float(field_nt[0]) / NT_PER_T
@@ -237,21 +181,10 @@ def set_field_nt(msg, field_nt, covariance_t2):
 
 def linear_to_t(a_inv, offset_nt):
     """
-    Prepare a linear correction A^-1 (raw - o) for readings in tesla.
+    Prepare a linear correction A^-1 (raw - o) (``a_inv`` (3, 3), ``offset_nt`` (3,) nT).
 
-    Parameters
-    ----------
-    a_inv : numpy.ndarray
-        (3, 3) A^-1, no unit.
-    offset_nt : numpy.ndarray
-        (3,) offset o, nT.
-
-    Returns
-    -------
-    tuple
-        (rows of A^-1 as three 3-tuples of float, o in T as a 3-tuple): the argument of
-        :func:`correct_msg_linear`.
-
+    Returns (rows of A^-1 as three 3-tuples of float, o in T as a 3-tuple), the argument
+    of :func:`correct_msg_linear`.
     """
     rows = tuple(tuple(float(v) for v in row) for row in np.asarray(a_inv, np.float64))
     return rows, tuple(float(v) for v in nt_to_t(np.asarray(offset_nt, np.float64)))
@@ -259,20 +192,10 @@ def linear_to_t(a_inv, offset_nt):
 
 def correct_msg_linear(msg, linear_t, covariance_t2):
     """
-    Correct a ``MagneticField`` in place: field <- A^-1 (field - o) in T, new covariance.
+    Correct ``msg`` in place: field <- A^-1 (field - o) in T (``linear_t`` of :func:`linear_to_t`).
 
-    The corrector's hot path for sensors without driven effects: plain float arithmetic
-    (numpy costs more than the nine products for one 3-vector), header left as it is.
-
-    Parameters
-    ----------
-    msg : sensor_msgs.msg.MagneticField
-        The message to correct.
-    linear_t : tuple
-        From :func:`linear_to_t`.
-    covariance_t2 : numpy.ndarray
-        (9,) row-major covariance in T^2 (:func:`covariance_to_t2`).
-
+    Covariance (9,) T^2; header left as it is. The hot path of sensors without driven effects:
+    plain floats (numpy costs more than the nine products for one 3-vector).
     """
     (r0, r1, r2), (ox, oy, oz) = linear_t
     v = msg.magnetic_field
@@ -284,71 +207,25 @@ def correct_msg_linear(msg, linear_t, covariance_t2):
 
 
 def msg_to_field_nt(msg):
-    """
-    Return the field of a ``sensor_msgs/MagneticField`` in nanotesla.
-
-    Parameters
-    ----------
-    msg : sensor_msgs.msg.MagneticField
-        Message with the field in T.
-
-    Returns
-    -------
-    numpy.ndarray, shape (3,)
-        Field (x, y, z) in nT.
-
-    """
+    """Return the field of a ``sensor_msgs/MagneticField`` (T) as a (3,) array in nT."""
     v = msg.magnetic_field
     return t_to_nt([v.x, v.y, v.z])
 
 
 def msg_to_covariance_nt2(msg):
-    """
-    Return the covariance of a ``sensor_msgs/MagneticField`` in nT^2.
-
-    Parameters
-    ----------
-    msg : sensor_msgs.msg.MagneticField
-        Message with the covariance in T^2, row-major.
-
-    Returns
-    -------
-    numpy.ndarray, shape (3, 3)
-        Covariance in nT^2 (all zeros means unknown).
-
-    """
+    """Return the covariance of a ``sensor_msgs/MagneticField`` as (3, 3) nT^2 (0: unknown)."""
     cov_t2 = np.asarray(msg.magnetic_field_covariance, dtype=np.float64).reshape(3, 3)
     return t_to_nt(t_to_nt(cov_t2))
 
 
 def tensor_to_msg(gradient_nt_per_m, check=True, out=None):
     """
-    Build the gradient-tensor ``std_msgs/Float64MultiArray`` (T/m) from nT/m.
+    Build the gradient-tensor ``std_msgs/Float64MultiArray`` (T/m, layout in the module doc).
 
-    Parameters
-    ----------
-    gradient_nt_per_m : array_like, shape (3, 3)
-        Gradient tensor G[i, k] = dB_i / dx_k in nT/m.
-    check : bool
-        Check that the tensor is a finite (3, 3) array (False on the corrector's hot path).
-    out : std_msgs.msg.Float64MultiArray, optional
-        A message this function built before, reused (only its data are replaced).
-
-    Returns
-    -------
-    std_msgs.msg.Float64MultiArray
-        Nine values, row-major, in T/m; ``layout.dim`` = ``row`` (size 3, stride 9) and
-        ``col`` (size 3, stride 3), ``data_offset`` 0.
-
-    Raises
-    ------
-    ValueError
-        If the tensor is not a finite (3, 3) array (checked unless ``check`` is False, for
-        the corrector's hot path, where it is the product of finite corrected fields).
-
-    ``out``: a message this function built before, reused (only its data are replaced: the
-    corrector publishes one message object per tensor, serialised at publish).
-
+    ``gradient_nt_per_m`` (3, 3) G[i, k] = dB_i / dx_k, nT/m. ``check``: raise ValueError
+    if it is not a finite (3, 3) array (False on the corrector's hot path, where it is the
+    product of finite corrected fields). ``out``: a message this function built before,
+    reused (only its data are replaced).
     """
     g = np.asarray(gradient_nt_per_m, dtype=np.float64)
     if check:
@@ -366,11 +243,7 @@ def tensor_to_msg(gradient_nt_per_m, check=True, out=None):
 
 
 def gradient_covariance_to_t2(covariance_nt2):
-    """
-    (9, 9) covariance of the row-major tensor in (nT/m)^2 as an (81,) array in (T/m)^2.
-
-    None gives zeros (unknown), as in the message definition.
-    """
+    """Return the (9, 9) tensor covariance in (nT/m)^2 as (81,) (T/m)^2 (None: zeros)."""
     if covariance_nt2 is None:
         return np.zeros(81)
     cov = np.asarray(covariance_nt2, dtype=np.float64)
@@ -382,26 +255,11 @@ def gradient_covariance_to_t2(covariance_nt2):
 
 def fill_gradient_stamped(msg, stamp, frame_id, gradient_nt_per_m, covariance_t2):
     """
-    Fill a ``magcal_interfaces/GradientTensorStamped`` in place (the corrector's hot path).
+    Fill a ``magcal_interfaces/GradientTensorStamped`` in place and return it (hot path).
 
-    Parameters
-    ----------
-    msg : magcal_interfaces.msg.GradientTensorStamped
-        The message to fill.
-    stamp : float or builtin_interfaces.msg.Time
-        Stamp of the matched set (see :func:`to_stamp`).
-    frame_id : str
-        The array frame.
-    gradient_nt_per_m : numpy.ndarray
-        (3, 3) finite tensor G[i, k] = dB_i / dx_k, nT/m.
-    covariance_t2 : numpy.ndarray or None
-        (81,) row-major covariance in (T/m)^2 from :func:`gradient_covariance_to_t2`; None
-        leaves the message's covariance as it is (a reused message).
-
-    Returns
-    -------
-    The message.
-
+    ``stamp`` of the matched set (:func:`to_stamp`); ``frame_id`` the array frame;
+    ``gradient_nt_per_m`` (3, 3) finite, nT/m; ``covariance_t2`` (81,) (T/m)^2 from
+    :func:`gradient_covariance_to_t2`, None: left as it is (a reused message).
     """
     msg.header.stamp = to_stamp(stamp)
     msg.header.frame_id = frame_id
@@ -420,32 +278,17 @@ def msg_to_gradient_stamped(msg):
 
 def transform_msg(parent, child, rotation, translation_m, stamp=None):
     """
-    Build a ``geometry_msgs/TransformStamped`` parent -> child.
+    Build a ``geometry_msgs/TransformStamped`` parent -> child: v_parent = R v_child + p.
 
-    Parameters
-    ----------
-    parent, child : str
-        Frame ids; a vector v_child in the child frame is R v_child + p in the parent.
-    rotation : numpy.ndarray
-        (3, 3) proper rotation R (child axes expressed in the parent frame).
-    translation_m : numpy.ndarray
-        (3,) origin p of the child in the parent frame, m.
-    stamp : float or builtin_interfaces.msg.Time, optional
-        Stamp of the transform (see :func:`to_stamp`).
-
-    Returns
-    -------
-    geometry_msgs.msg.TransformStamped
-
+    ``rotation`` (3, 3) proper rotation R (child axes in the parent frame);
+    ``translation_m`` (3,) p, m; ``stamp`` as :func:`to_stamp`.
     """
     t = _vector3(translation_m, 'translation_m', 'm')
     # imported here: scipy.spatial costs ~0.25 s at start-up of every node, and only the
     # corrector's static transforms need it
     from scipy.spatial.transform import Rotation
     q = Rotation.from_matrix(np.asarray(rotation, np.float64)).as_quat()   # x, y, z, w
-    msg = TransformStamped()
-    msg.header.stamp = to_stamp(stamp)
-    msg.header.frame_id = _check_frame_id(parent)
+    msg = _header(TransformStamped(), stamp, parent)
     msg.child_frame_id = _check_frame_id(child)
     msg.transform.translation.x, msg.transform.translation.y, msg.transform.translation.z = (
         float(t[0]), float(t[1]), float(t[2]))
@@ -458,18 +301,10 @@ def residual_to_msg(scalar_nt, vector_nt):
     """
     Build the live residual of one set as ``std_msgs/Float64MultiArray`` (T).
 
-    Parameters
-    ----------
-    scalar_nt, vector_nt : numpy.ndarray
-        (S,) scalar residuals |b_j| - F and vector residuals |b_j - mean of the others|, nT.
-
-    Returns
-    -------
-    std_msgs.msg.Float64MultiArray
-        2 S values in T: ``data[j - 1]`` the scalar residual of sensor j, ``data[S + j - 1]``
-        its vector residual; ``layout.dim`` = ``kind`` (size 2, stride 2 S; labelled in
-        :data:`RESIDUAL_KIND_LABEL`) and ``sensor`` (size S, stride S).
-
+    ``scalar_nt``, ``vector_nt`` (S,) nT: |b_j| - F and |b_j - mean of the others|. The
+    message holds 2 S values in T, ``data[j - 1]`` the scalar residual of sensor j and
+    ``data[S + j - 1]`` its vector residual; ``layout.dim`` = ``kind`` (size 2, stride 2 S,
+    labelled :data:`RESIDUAL_KIND_LABEL`) and ``sensor`` (size S, stride S).
     """
     s = len(scalar_nt)
     msg = Float64MultiArray()
@@ -481,23 +316,10 @@ def residual_to_msg(scalar_nt, vector_nt):
 
 def msg_to_residual_nt(msg):
     """
-    Inverse of :func:`residual_to_msg`: the scalar and vector residuals of one set in nT.
+    Return (scalar_nt, vector_nt), (S,) each in nT: the inverse of :func:`residual_to_msg`.
 
-    Parameters
-    ----------
-    msg : std_msgs.msg.Float64MultiArray
-        A ``calibration/residual`` message (T), laid out as :func:`residual_to_msg` writes it.
-
-    Returns
-    -------
-    scalar_nt, vector_nt : numpy.ndarray
-        (S,) each, nT.
-
-    Raises
-    ------
-    ValueError
-        If the layout is not ``kind`` (2) x ``sensor`` (S) or the data do not fill it.
-
+    Raises ValueError if the layout is not ``kind`` (2) x ``sensor`` (S) or the data do not
+    fill it.
     """
     dims = [(d.label, d.size) for d in msg.layout.dim]
     if len(dims) != 2 or dims[0] != (RESIDUAL_KIND_LABEL, 2) or dims[1][0] != 'sensor':
@@ -520,24 +342,10 @@ def _tensor_layout():
 
 def msg_to_tensor(msg):
     """
-    Return the gradient tensor of a ``std_msgs/Float64MultiArray`` in nT/m.
+    Return the (3, 3) gradient tensor, nT/m, of a message laid out as :func:`tensor_to_msg`'s.
 
-    Parameters
-    ----------
-    msg : std_msgs.msg.Float64MultiArray
-        Message laid out as :func:`tensor_to_msg` writes it (T/m).
-
-    Returns
-    -------
-    numpy.ndarray, shape (3, 3)
-        Gradient tensor in nT/m.
-
-    Raises
-    ------
-    ValueError
-        If the layout is not 3x3 row-major with dims ``row`` and ``col``, or the data is
-        too short for it.
-
+    Raises ValueError if the layout is not 3x3 row-major with dims ``row`` and ``col``, or
+    the data is too short for it.
     """
     dims = [(d.label, d.size, d.stride) for d in msg.layout.dim]
     expected = [(TENSOR_DIM_LABELS[0], 3, 9), (TENSOR_DIM_LABELS[1], 3, 3)]
@@ -555,38 +363,16 @@ def msg_to_tensor(msg):
 
 def temperature_msg(temp_c, stamp=None, frame_id='', variance_c2=0.0):
     """
-    Build a ``sensor_msgs/Temperature``.
+    Build a ``sensor_msgs/Temperature`` of ``temp_c`` degC, ``variance_c2`` degC^2 (0: unknown).
 
-    Parameters
-    ----------
-    temp_c : float
-        Temperature in degC.
-    stamp : builtin_interfaces.msg.Time or rclpy.time.Time or float or None, optional
-        Header stamp (see :func:`to_stamp`).
-    frame_id : str, optional
-        Header frame id.
-    variance_c2 : float, optional
-        Variance in degC^2; 0 means unknown.
-
-    Returns
-    -------
-    sensor_msgs.msg.Temperature
-
-    Raises
-    ------
-    ValueError
-        If the temperature is not finite or the variance is negative or not finite.
-
+    ``stamp`` as :func:`to_stamp`. Raises ValueError if the temperature is not finite or
+    the variance is negative or not finite.
     """
     temp = float(temp_c)
     if not math.isfinite(temp):
         raise ValueError(f'temp_c must be finite, got {temp_c!r}')
-    variance = float(variance_c2)
-    if not math.isfinite(variance) or variance < 0.0:
-        raise ValueError(f'variance_c2 must be finite and >= 0 degC^2, got {variance_c2!r}')
-    msg = Temperature()
-    msg.header.stamp = to_stamp(stamp)
-    msg.header.frame_id = _check_frame_id(frame_id)
+    variance = _non_negative(variance_c2, 'variance_c2', 'degC^2')
+    msg = _header(Temperature(), stamp, frame_id)
     msg.temperature = temp
     msg.variance = variance
     return msg
@@ -594,41 +380,19 @@ def temperature_msg(temp_c, stamp=None, frame_id='', variance_c2=0.0):
 
 def attitude_msg(quaternion, stamp=None, frame_id='', sd_rad=0.0):
     """
-    Build a ``sensor_msgs/Imu`` that carries an attitude only.
+    Build a ``sensor_msgs/Imu`` that carries an attitude only (layout in the module doc).
 
-    Parameters
-    ----------
-    quaternion : sequence of float
-        (4,) body-to-world unit quaternion (qw, qx, qy, qz), Hamilton; world ENU (REP 103).
-    stamp : builtin_interfaces.msg.Time or rclpy.time.Time or float or None, optional
-        Header stamp (see :func:`to_stamp`).
-    frame_id : str, optional
-        Header frame id (the body frame).
-    sd_rad : float, optional
-        Standard uncertainty of the orientation about each world axis, rad (0: unknown).
-
-    Returns
-    -------
-    sensor_msgs.msg.Imu
-        Angular velocity and linear acceleration marked as not given (covariance[0] = -1).
-
-    Raises
-    ------
-    ValueError
-        If the quaternion is not 4 finite numbers of unit norm (within 1e-3) or ``sd_rad``
-        is negative or not finite.
-
+    ``quaternion`` (4,) body-to-world unit quaternion (qw, qx, qy, qz), Hamilton, world ENU;
+    ``frame_id`` the body frame; ``sd_rad`` the standard uncertainty about each world axis,
+    rad (0: unknown). Raises ValueError if the quaternion is not 4 finite numbers of unit
+    norm (within 1e-3) or ``sd_rad`` is negative or not finite.
     """
     q = np.asarray(quaternion, dtype=np.float64).reshape(-1)
     if q.size != 4 or not np.all(np.isfinite(q)) or abs(np.linalg.norm(q) - 1.0) > 1e-3:
         raise ValueError(f'quaternion must be 4 finite numbers (qw, qx, qy, qz) of unit norm, '
                          f'got {quaternion!r}')
-    sd = float(sd_rad)
-    if not math.isfinite(sd) or sd < 0.0:
-        raise ValueError(f'sd_rad must be finite and >= 0 rad, got {sd_rad!r}')
-    msg = Imu()
-    msg.header.stamp = to_stamp(stamp)
-    msg.header.frame_id = _check_frame_id(frame_id)
+    sd = _non_negative(sd_rad, 'sd_rad', 'rad')
+    msg = _header(Imu(), stamp, frame_id)
     msg.orientation.w, msg.orientation.x, msg.orientation.y, msg.orientation.z = (
         float(v) for v in q)
     msg.orientation_covariance = [sd * sd, 0.0, 0.0, 0.0, sd * sd, 0.0, 0.0, 0.0, sd * sd]

@@ -15,51 +15,21 @@
 """
 corrector_node: live correction of the array with the active calibration.
 
-Topics (relative to the node namespace, default ``/magcal``; docs/design.md §3):
+Topics and parameters: docs/design.md §3 (``sensor{j}/temperature`` is taken only while an
+effect reads it; ``calibration/result`` installs a new calibration without a restart). On
+``/diagnostics``: WARN without a usable calibration (nothing is published), after a refused
+one (the last good one stays), while a driven effect lacks its signal, or when more than
+:data:`PAIRING_WARN_SHARE` of the sets failed the pairing check; ERROR naming an effect whose
+code raised (that sensor's sample is not published; the others go on).
 
-- subscribes ``sensor{j}/raw`` (sensor_msgs/MagneticField, T), ``sensor{j}/temperature``
-  (sensor_msgs/Temperature; only while an effect of the calibration reads the temperature)
-  and one std_msgs/Float64 topic per name in ``aux_topics`` (the signal of effect
-  ``aux:aux_<name>``, latest value), all best effort (:data:`SENSOR_QOS`), and
-  ``calibration/result`` (std_msgs/String YAML, reliable + transient local) for new
-  calibrations without a restart;
-- publishes ``sensor{j}/corrected`` (sensor_msgs/MagneticField, T, in the array frame:
-  frame_id ``array_frame_id``, same stamp as the raw sample, covariance
-  sigma_j^2 A_j^-1 A_j^-T from the calibration's noise estimate), ``gradient``
-  (std_msgs/Float64MultiArray, 3x3 row-major, T/m) and ``gradient_stamped``
-  (magcal_interfaces/GradientTensorStamped: stamp of the matched set, the array frame, the
-  tensor in T/m and its covariance in (T/m)^2; only when the package is importable, the log
-  says so once otherwise) from stamp-matched corrected samples of all sensors and the
-  calibration's geometry;
-- publishes the static transforms ``array_frame_id`` -> ``fluxgate{j}`` (each sensor's
-  orthogonalised axes, at its position) of every calibration it installs, when tf2_ros is
-  importable (REP 105 frames; README "Frames");
-- publishes its health on ``/diagnostics``: WARN without a usable calibration (then nothing
-  is published), when a calibration was refused (the last good one stays active), while a
-  driven effect lacks its live signal, or when more than :data:`PAIRING_WARN_SHARE` of the
-  sets since the last report failed the pairing check; ERROR, naming the effect and
-  counting its errors, when the code of an effect of the active calibration raised (that
-  sensor's sample is not published, logged once per effect; the other sensors go on).
-
-The sets of the tensor are paired by epoch (:class:`magcal_ros.core.live.sync.StampMatcher`, the
-offsets voted from the stamps) and checked from the data before they give a tensor
-(:meth:`magcal_ros.core.live.corrector.LiveCorrector.pairing_chi2`, when the calibration has noise
-estimates): a set whose four corrected fields do not fit one linear field is not published
-(``sets_failed_pairing_check`` on ``/diagnostics``), and a stream shifted by a lost sample is
-re-paired before its next set (``streams_re_paired``).  Under CPU load stamps arrive late and
-in bursts and the sensor-data QoS drops samples; stamps alone left a turning array's tensor
-mis-paired for up to a second after each loss (docs/failure_modes.md).
-
-A calibration with a ``site_gradient`` (docs/site_gradient.md) is corrected like any other:
-the site gradient is part of the field each sensor sees, and is ignored, unless the
-parameter ``subtract_site_gradient`` is set for a stationary test: then the site shift
-R^T G_w R r_j at the fixed attitude ``site_attitude`` is subtracted from each corrected field
-(and so from the tensor), leaving the anomaly of what is placed near the array.
-
-The correction itself is :class:`magcal_ros.core.live.corrector.LiveCorrector` (no ROS): per
-message
-a few 3x3 products, every matrix (A_j^-1, the covariances, the gradient operator) computed
-once when a calibration is installed.
+The tensor's sets are paired by epoch (:class:`magcal_ros.core.live.sync.StampMatcher`) and
+checked from the data (:meth:`magcal_ros.core.live.corrector.LiveCorrector.pairing_chi2`): a
+set whose corrected fields do not fit one linear field gives no tensor, and a stream shifted
+by a lost sample is re-paired (docs/failure_modes.md). With ``subtract_site_gradient`` (a
+stationary test, docs/site_gradient.md) the site shift R^T G_w R r_j at ``site_attitude`` is
+subtracted from each corrected field, leaving the anomaly. The correction is
+:class:`magcal_ros.core.live.corrector.LiveCorrector`'s (no ROS), its matrices computed once
+per calibration.
 """
 import importlib
 import math
@@ -77,7 +47,7 @@ from magcal_ros.ros.conversions import (correct_msg_linear, covariance_to_t2,
                                         fill_gradient_stamped, gradient_covariance_to_t2,
                                         linear_to_t, msg_to_field_nt, set_field_nt,
                                         stamp_to_seconds, tensor_to_msg, transform_msg)
-from magcal_ros.ros.diagnostics import fill, Updater
+from magcal_ros.ros.diagnostics import EffectErrorsMixin, fill, Updater
 from magcal_ros.ros.run import DEFAULT_NAMESPACE, spin_node
 import numpy as np
 from rclpy.node import Node
@@ -86,8 +56,7 @@ from std_msgs.msg import Float64, Float64MultiArray, String
 
 
 #: share of the sets since the last diagnostics report that may fail the pairing check
-#: before the status is WARN (a lost sample costs one set; more means mis-paired streams
-#: that were not re-paired, or a calibration that no longer fits the sensors)
+#: before the status is WARN (a lost sample costs one set)
 PAIRING_WARN_SHARE = 0.01
 
 
@@ -99,18 +68,16 @@ def _optional(module, name):
         return None, f'{module}.{name} is not importable ({exc})'
 
 
-class CorrectorNode(Node):
+class CorrectorNode(EffectErrorsMixin, Node):
     """Publish corrected fields and the gradient tensor of the array."""
 
     def __init__(self, **kwargs):
         kwargs.setdefault('namespace', DEFAULT_NAMESPACE)    # a __ns remap overrides it
         super().__init__('corrector_node', **kwargs)
         first = prm.declare(self, [prm.N_SENSORS, prm.PLUGINS])
-        # the effect classes a calibration may name: imported here at start-up only, never
-        # because a calibration/result message names a module
+        # effect code is imported at start-up only, never because a message names a module
         plugins = prm.load_plugins(self)
-        specs = prm.corrector_specs(int(prm.value(self, 'n_sensors')))
-        self._specs = prm.declare(self, specs)
+        self._specs = prm.declare(self, prm.corrector_specs(int(prm.value(self, 'n_sensors'))))
         self._specs.update(first)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         s = prm.corrector_settings(self)
@@ -121,8 +88,7 @@ class CorrectorNode(Node):
         self._site_shift = None        # (S, 3) nT subtracted in a stationary test, or None
         self._frame = s.array_frame_id          # '': each input's own frame_id
         self._tolerance_s = s.stamp_tolerance_s
-        # the array geometry of the parameters; the gradient topics exist only when it
-        # determines the tensor (docs/design.md, "Array geometry")
+        # the gradient topics exist only when the geometry determines the tensor
         self._geometry = array_geometry(self._n, s.sensor_positions_m, s.baseline_m)
         self._no_tensor = tensor_undetermined(
             None if self._geometry is None else self._geometry['positions_m'])
@@ -148,8 +114,6 @@ class CorrectorNode(Node):
         self._pub_grad = None
         self._grad_msg = tensor_to_msg(np.zeros((3, 3)))          # reused per tensor
         self._stamped_msg = None
-        # the stamped gradient needs the message package magcal_interfaces (interfaces/,
-        # README); without it the node says so once and publishes the rest
         self._stamped_cls, reason = _optional('magcal_interfaces.msg', 'GradientTensorStamped')
         self._pub_stamped = None
         if self._no_tensor is not None:
@@ -166,20 +130,15 @@ class CorrectorNode(Node):
                 self._pub_stamped = self.create_publisher(self._stamped_cls,
                                                           'gradient_stamped', 10)
         broadcaster, reason = _optional('tf2_ros', 'StaticTransformBroadcaster')
-        self._tf = None
+        self._tf = None if broadcaster is None else broadcaster(self)
         if broadcaster is None:
             self.get_logger().info(f'not publishing the static transforms {self._frame} -> '
                                    f'fluxgate{{j}}: {reason}')
-        else:
-            self._tf = broadcaster(self)
-        self._subs = []
-        for j, topic in enumerate(s.input_topics, start=1):
-            self._subs.append(self.create_subscription(
-                MagneticField, topic, self._raw_cb(j - 1), SENSOR_QOS))
+        self._subs = [self.create_subscription(MagneticField, topic, self._raw_cb(j), SENSOR_QOS)
+                      for j, topic in enumerate(s.input_topics)]
         self._temp_subs = []     # created while the calibration has a temperature effect
-        for name in s.aux_topics:
-            self._subs.append(self.create_subscription(
-                Float64, name, self._aux_cb('aux_' + name), SENSOR_QOS))
+        self._subs += [self.create_subscription(Float64, name, self._aux_cb('aux_' + name),
+                                                SENSOR_QOS) for name in s.aux_topics]
         self._subs.append(self.create_subscription(String, 'calibration/result',
                                                    self._result_cb, RESULT_QOS))
         if plugins:
@@ -188,10 +147,9 @@ class CorrectorNode(Node):
         self._updater = Updater(self, s.diagnostics_period_s)
         self._updater.setHardwareID(self.get_namespace())
         self._updater.add('correction', lambda stat: fill(stat, self.diagnostic_status()))
-        self._publish_diagnostics()
+        self._updater.force_update()
 
     # -- read-only state (for in-process users and tests; ROS users see it on /diagnostics)
-
     @property
     def received(self):
         """Raw samples taken so far, all sensors (count)."""
@@ -219,7 +177,6 @@ class CorrectorNode(Node):
         return self._refused
 
     # -- parameters ------------------------------------------------------------------------
-
     def _on_set_parameters(self, parameters):
         result = prm.validate(self._specs, parameters)
         if result.successful:
@@ -258,14 +215,7 @@ class CorrectorNode(Node):
             self._effect_error(exc, 'nothing is subtracted')
         self._update_fast_path()
 
-    def _effect_error(self, exc, what):
-        """Count an error of effect code (:class:`EffectError`); log the first per effect."""
-        if self._effect_errors.add(exc, what):
-            self.get_logger().error(f'{exc} ({what}); further errors of it are counted on '
-                                    '/diagnostics, not logged')
-
     # -- calibrations ----------------------------------------------------------------------
-
     def _install(self, cal, doc, source):
         mismatch = geometry_mismatch(doc.get('geometry'), self._geometry)
         if mismatch:
@@ -281,8 +231,7 @@ class CorrectorNode(Node):
             raise CalibrationFileError(str(exc)) from exc
         live.temp[:] = self._temp
         live.aux.update(self._aux)
-        # validated and converted once, not per message (it was 70 % of the callback): the
-        # noise and the calibration's own uncertainty (LiveCorrector.published_covariance_nt2)
+        # validated and converted once, not per message (it was 70 % of the callback)
         self._cov_t2 = [covariance_to_t2(live.published_covariance_nt2(j))
                         for j in range(1, self._n + 1)]
         self._grad_cov_t2 = gradient_covariance_to_t2(live.gradient_cov_nt2)
@@ -357,10 +306,9 @@ class CorrectorNode(Node):
             self._install(cal, doc, source)
         except CalibrationFileError as exc:
             self._refuse(source, exc)
-        self._publish_diagnostics()
+        self._updater.force_update()
 
     # -- sensor callbacks ------------------------------------------------------------------
-
     def _temp_cb(self, j):
         def cb(msg):
             self._temp[j] = msg.temperature
@@ -379,9 +327,8 @@ class CorrectorNode(Node):
         """
         Tell whether someone subscribes a gradient topic (checked per sample: ~1 us).
 
-        Without subscribers the sets are not matched at all (the matcher is half the
-        corrector's Python work); when the first subscriber appears the matcher starts
-        afresh (its queues would hold samples from before).
+        Without subscribers no set is matched (half the corrector's Python work); the first
+        subscriber starts the matcher afresh (its queues would hold samples from before).
         """
         on = self._pub_grad is not None and self._publish_gradient and (
             self._pub_grad.get_subscription_count() > 0 or (
@@ -405,9 +352,8 @@ class CorrectorNode(Node):
                 return
             fast = self._fast[j]
             gradient = self._gradient_wanted() and live.gradient_op is not None
-            # the incoming message becomes the outgoing one: same stamp, the array frame,
-            # corrected field and its covariance (a new message per sample cost ~10 us, a
-            # quarter of the Python work of the callback; bench/live.py)
+            # the incoming message becomes the outgoing one (a new one per sample cost a
+            # quarter of the callback's Python work; bench/live.py)
             if fast is not None:
                 # A^-1 (raw - o) on the tesla values: no numpy, no unit round trip
                 correct_msg_linear(msg, fast, self._cov_t2[j])
@@ -444,7 +390,6 @@ class CorrectorNode(Node):
         return cb
 
     # -- diagnostics -----------------------------------------------------------------------
-
     def diagnostic_status(self):
         """Return the node's ``diagnostic_msgs/DiagnosticStatus``."""
         st = DiagnosticStatus(name=f'{self.get_name()}: correction',
@@ -493,8 +438,7 @@ class CorrectorNode(Node):
                   ('frame_id', self._frame)]
         values += [(f'sensor{j + 1}_corrected_published', str(c))
                    for j, c in enumerate(self._counts)]
-        values += [('effect_errors', str(sum(errors.counts().values())))]
-        values += [(f'effect_errors {k}', str(n)) for k, n in errors.counts().items()]
+        values += self._effect_error_values()
         st.values = [KeyValue(key=k, value=v) for k, v in values]
         return st
 
@@ -524,9 +468,6 @@ class CorrectorNode(Node):
         return (f'{failed} of {failed + complete} sets since the last report failed the '
                 'pairing check and gave no tensor (streams mis-paired under load, or a '
                 'calibration that no longer fits: see calibration/residual)')
-
-    def _publish_diagnostics(self):
-        self._updater.force_update()
 
 
 def main(args=None):

@@ -15,23 +15,14 @@
 """
 ``fluxgate_driver``: serial fluxgates -> ``sensor{j}/raw`` (tesla), temperature, diagnostics.
 
-One :class:`~magcal_ros.serial.transport.PortReader` thread per sensor reads its port,
-parses the configured protocol (:mod:`magcal_ros.serial`) and hands each sample to this
-node, which maps the device axes to the sensor frame and publishes
-
-- ``sensor{j}/raw`` (``sensor_msgs/MagneticField``, T, covariance diag(noise_nt^2) in T^2),
-  reliable; header stamp = arrival time of the bytes on the ROS clock, ``frame_id`` from
-  the parameters;
-- ``sensor{j}/temperature`` (``sensor_msgs/Temperature``, degC) when the device reports it;
-- ``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``, through
-  :mod:`magcal_ros.ros.diagnostics`: ``diagnostic_updater`` or its shim) once per
-  ``diagnostics_period_s``: one status ``fluxgate_driver: sensor{j}`` per port with rate,
-  parse errors per kind, reconnects and state.
-
-A port that disappears is reopened with exponential backoff (optionally at alternative
-paths); the other sensors keep publishing. Defaults: namespace ``/magcal``, four sensors on
-``/tmp/magcal_sim/fluxgate1..4`` with the default ASCII protocol, i.e. exactly what
-``fluxgate_sim`` provides with no arguments (docs/design.md §3).
+One :class:`~magcal_ros.serial.transport.PortReader` thread per sensor reads and parses its
+port (:mod:`magcal_ros.serial`); this node maps the device axes to the sensor frame and
+publishes ``sensor{j}/raw`` (T, covariance diag(noise_nt^2) in T^2, reliable, stamped with the
+bytes' arrival on the ROS clock), ``sensor{j}/temperature`` (degC) when the device reports it,
+and per port a ``/diagnostics`` status ``fluxgate_driver: sensor{j}`` (rate, parse errors per
+kind, reconnects, state). A lost port is reopened with exponential backoff (optionally at
+alternative paths); the others keep publishing. The defaults (namespace ``/magcal``, four
+sensors on ``/tmp/magcal_sim/fluxgate1..4``, ASCII) are what ``fluxgate_sim`` provides.
 
 Parameters (``ros2 param describe`` shows each with its unit): global defaults
 ``protocol``, ``baud``, ``options``, ``noise_nt``, ``backoff_min_s``, ``backoff_max_s``;
@@ -93,15 +84,7 @@ class SensorSettings:
 
 
 def parse_axes(axes):
-    """
-    Turn e.g. ``['-y', 'x', 'z']`` into ((device index, sign), ...) for x, y, z.
-
-    Raises
-    ------
-    ValueError
-        Unless it is three entries naming each device axis once, each optionally signed.
-
-    """
+    """Turn e.g. ``['-y', 'x', 'z']`` into ((device index, sign), ...) or raise ValueError."""
     axes = list(axes)
     if len(axes) != 3:
         raise ValueError(f'axes must list 3 device axes, e.g. ["x", "-z", "y"], got {axes}')
@@ -149,11 +132,9 @@ def diagnostic_status(settings, stats, previous_errors=0, previous=None):
     """
     Build the ``DiagnosticStatus`` of one port from a ``PortStats`` snapshot.
 
-    Level: ERROR when the port is not open; WARN when new parse errors appeared since
-    ``previous_errors``, when bytes arrived since the ``previous`` snapshot but not one valid
-    frame (wrong protocol, options or baud rate: a binary parser only drops such bytes
-    while it searches for a frame), or the rate is below half ``expected_rate_hz``; OK
-    otherwise.
+    ERROR when the port is not open; WARN on parse errors since ``previous_errors``, on bytes
+    without one valid frame since the ``previous`` snapshot (wrong protocol, options or baud:
+    a binary parser only drops them), or a rate below half ``expected_rate_hz``; else OK.
     """
     status = DiagnosticStatus()
     status.name = f'{NODE_NAME}: sensor{settings.index}'
@@ -213,6 +194,25 @@ def _desc(text, ptype, read_only=True):
     return ParameterDescriptor(description=text, type=ptype, read_only=read_only)
 
 
+_TYPES = {int: ParameterType.PARAMETER_INTEGER, float: ParameterType.PARAMETER_DOUBLE,
+          str: ParameterType.PARAMETER_STRING}
+#: the global parameters (read-only): name, default, description with the unit
+_GLOBALS = (
+    ('n_sensors', 4, 'number of sensors (parameters sensor1.* .. sensor<n>.*); count'),
+    ('protocol', 'ascii',
+     f'default serial protocol of every sensor, one of {sorted(PROTOCOLS)}; no unit'),
+    ('baud', 115200, 'default baud rate of every port, bit/s'),
+    ('options', '', 'default protocol options of every sensor as a YAML mapping, e.g. '
+     '"{columns: \'x,y,z,temp,time\', scale: 1.0e5}" (units per option: scale nT per '
+     'device unit, time_scale s per unit, max_abs_nt nT)'),
+    ('noise_nt', 3.0,
+     'default noise standard deviation per axis for the published covariance, nT'),
+    ('backoff_min_s', 0.1,
+     'first wait before reopening a lost port (doubles after each failure), s'),
+    ('backoff_max_s', 5.0, 'longest wait between reopen attempts, s'),
+    ('diagnostics_period_s', 1.0, 'period of the /diagnostics status, s'))
+
+
 class FluxgateDriver(Node):
     """The ``fluxgate_driver`` node (keyword arguments go to ``rclpy.node.Node``)."""
 
@@ -265,28 +265,8 @@ class FluxgateDriver(Node):
 
     # -- parameters --------------------------------------------------------------------------
     def _declare_globals(self):
-        p = ParameterType
-        self.declare_parameter('n_sensors', 4, _desc(
-            'number of sensors (parameters sensor1.* .. sensor<n>.*); count', p.PARAMETER_INTEGER))
-        self.declare_parameter('protocol', 'ascii', _desc(
-            f'default serial protocol of every sensor, one of {sorted(PROTOCOLS)}; no unit',
-            p.PARAMETER_STRING))
-        self.declare_parameter('baud', 115200, _desc(
-            'default baud rate of every port, bit/s', p.PARAMETER_INTEGER))
-        self.declare_parameter('options', '', _desc(
-            'default protocol options of every sensor as a YAML mapping, e.g. '
-            '"{columns: \'x,y,z,temp,time\', scale: 1.0e5}" (units per option: scale nT per '
-            'device unit, time_scale s per unit, max_abs_nt nT)', p.PARAMETER_STRING))
-        self.declare_parameter('noise_nt', 3.0, _desc(
-            'default noise standard deviation per axis for the published covariance, nT',
-            p.PARAMETER_DOUBLE))
-        self.declare_parameter('backoff_min_s', 0.1, _desc(
-            'first wait before reopening a lost port (doubles after each failure), s',
-            p.PARAMETER_DOUBLE))
-        self.declare_parameter('backoff_max_s', 5.0, _desc(
-            'longest wait between reopen attempts, s', p.PARAMETER_DOUBLE))
-        self.declare_parameter('diagnostics_period_s', 1.0, _desc(
-            'period of the /diagnostics status, s', p.PARAMETER_DOUBLE))
+        for name, default, text in _GLOBALS:
+            self.declare_parameter(name, default, _desc(text, _TYPES[type(default)]))
 
     def _check_global_values(self):
         def num(name):
@@ -301,37 +281,31 @@ class FluxgateDriver(Node):
     def _declare_sensor(self, j):
         p = ParameterType
         g = self.get_parameter
-        pre = f'sensor{j}.'
-        values = {
-            'port': self.declare_parameter(pre + 'port', os.path.join(
-                device_dir(self.get_namespace()), f'fluxgate{j}'), _desc(
-                'serial device path (a missing device is retried with backoff); no unit',
-                p.PARAMETER_STRING)).value,
-            'alternatives': self.declare_parameter(
-                pre + 'alternatives', Parameter.Type.STRING_ARRAY, _desc(
-                    'glob patterns of other device paths to try when port is gone (e.g. '
-                    '/dev/serial/by-id/*FTDI*); no unit', p.PARAMETER_STRING_ARRAY)).value,
-            'baud': self.declare_parameter(pre + 'baud', g('baud').value, _desc(
-                'baud rate, bit/s (default: the global baud)', p.PARAMETER_INTEGER)).value,
-            'protocol': self.declare_parameter(pre + 'protocol', g('protocol').value, _desc(
-                'serial protocol (default: the global protocol); no unit',
-                p.PARAMETER_STRING)).value,
-            'options': self.declare_parameter(pre + 'options', g('options').value, _desc(
-                'protocol options as a YAML mapping (default: the global options)',
-                p.PARAMETER_STRING)).value,
-            'axes': self.declare_parameter(pre + 'axes', list(AXES), _desc(
-                'device axis (optionally signed) giving sensor x, y, z, e.g. [-y, x, z]; '
-                'no unit', p.PARAMETER_STRING_ARRAY)).value,
-            'frame_id': self.declare_parameter(pre + 'frame_id', f'fluxgate{j}', _desc(
-                'header frame_id of sensor{j}/raw and temperature; no unit',
-                p.PARAMETER_STRING)).value,
-            'noise_nt': self.declare_parameter(pre + 'noise_nt', g('noise_nt').value, _desc(
-                'noise standard deviation per axis for the covariance, nT (default: the '
-                'global noise_nt)', p.PARAMETER_DOUBLE, read_only=False)).value,
-            'expected_rate_hz': self.declare_parameter(pre + 'expected_rate_hz', 0.0, _desc(
-                'expected sample rate for the diagnostics warning, Hz (0: not checked)',
-                p.PARAMETER_DOUBLE, read_only=False)).value,
-        }
+        specs = (   # name, default, description, type, read-only
+            ('port', os.path.join(device_dir(self.get_namespace()), f'fluxgate{j}'),
+             'serial device path (a missing device is retried with backoff); no unit',
+             p.PARAMETER_STRING, True),
+            ('alternatives', Parameter.Type.STRING_ARRAY, 'glob patterns of other device paths '
+             'to try when port is gone (e.g. /dev/serial/by-id/*FTDI*); no unit',
+             p.PARAMETER_STRING_ARRAY, True),
+            ('baud', g('baud').value, 'baud rate, bit/s (default: the global baud)',
+             p.PARAMETER_INTEGER, True),
+            ('protocol', g('protocol').value,
+             'serial protocol (default: the global protocol); no unit', p.PARAMETER_STRING, True),
+            ('options', g('options').value,
+             'protocol options as a YAML mapping (default: the global options)',
+             p.PARAMETER_STRING, True),
+            ('axes', list(AXES), 'device axis (optionally signed) giving sensor x, y, z, e.g. '
+             '[-y, x, z]; no unit', p.PARAMETER_STRING_ARRAY, True),
+            ('frame_id', f'fluxgate{j}', 'header frame_id of sensor{j}/raw and temperature; '
+             'no unit', p.PARAMETER_STRING, True),
+            ('noise_nt', g('noise_nt').value, 'noise standard deviation per axis for the '
+             'covariance, nT (default: the global noise_nt)', p.PARAMETER_DOUBLE, False),
+            ('expected_rate_hz', 0.0, 'expected sample rate for the diagnostics warning, Hz '
+             '(0: not checked)', p.PARAMETER_DOUBLE, False))
+        values = {name: self.declare_parameter(f'sensor{j}.{name}', default,
+                                               _desc(text, ptype, read_only)).value
+                  for name, default, text, ptype, read_only in specs}
         try:
             options = parse_options(values['options'])
         except ValueError as exc:

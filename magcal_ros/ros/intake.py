@@ -15,23 +15,14 @@
 """
 Sensor streams of a node that must spin on the SingleThreadedExecutor, taken cheaply.
 
-The calibration node's services are coroutines that await its solve thread, which rclpy's
-EventsExecutor (Jazzy) cannot run; on the SingleThreadedExecutor every message costs a
-rebuild of the wait set in Python (bench/executor.py: 3 x the CPU per message of the
-EventsExecutor), and the node spent three quarters of its CPU there at 4 x 100 Hz.
-
-:class:`Intake` takes the streams on an EventsExecutor in a thread of its own, through a
-helper node that holds only those subscriptions, and queues the messages in the order they
-arrived; a timer of the node (every :data:`DRAIN_PERIOD_S`, or a guard condition at once
-when :data:`DRAIN_AT` are waiting) hands them to the node's own callbacks on the node's
-executor. The callbacks therefore run where they ran before (one thread, between the service
-coroutines), in arrival order across topics, at most one period later.
-
-The helper node is hidden (its name starts with ``_``: ``ros2 node list`` shows it with
-``--all``), ignores the process's command line (a ``__node`` remap renames only the node
-itself) and subscribes to the topic names the node resolves (its namespace and remaps), so
-the node's interface is unchanged. Without the EventsExecutor (``MAGCAL_EXECUTOR=single``,
-or an rclpy without it) the subscriptions are the node's own, as before.
+The calibration node's coroutine services need the SingleThreadedExecutor, whose Python wait
+set cost three quarters of the node's CPU at 4 x 100 Hz (bench/executor.py). :class:`Intake`
+takes the streams on an EventsExecutor thread, through a hidden helper node (``_`` name,
+the process's command line ignored, the topic names the node resolves: the interface is
+unchanged), and queues them in arrival order; a timer of the node (every
+:data:`DRAIN_PERIOD_S`, or at once when :data:`DRAIN_AT` wait) hands them to the node's own
+callbacks on its executor, in arrival order across topics. Without the EventsExecutor the
+subscriptions are the node's own.
 """
 import collections
 import threading
@@ -41,14 +32,11 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-#: longest wait of a queued message for the node's callbacks, s.  Every wake of the node's
-#: SingleThreadedExecutor rebuilds its wait set: over 30 s of collection at 4 x 100 Hz the
-#: calibration node took 4.9-5.3 s of CPU with 20 ms and 16 messages, 4.4 s with 50 ms and
-#: 16, 3.75 s with 50 ms and 32, 3.7 s with 50 ms and 64 (2026-11-27, BENCHMARKS.md); its
-#: callbacks collect and publish the live residual, for which 50 ms is no delay that matters
+#: longest wait of a queued message for the node's callbacks, s: every wake rebuilds the
+#: executor's wait set (calibration node, 30 s at 4 x 100 Hz, 2026-11-27: 4.9-5.3 s of CPU
+#: with 20 ms and DRAIN_AT 16, 4.4 s with 50 ms and 16, 3.75 s with 50 ms and 32)
 DRAIN_PERIOD_S = 0.05
-#: this many queued messages wake the node's executor at once (a burst is not held back
-#: by the period: a publisher waiting for the node to take its batch, a stream catching up)
+#: this many queued messages wake the node's executor at once (a burst is not held back)
 DRAIN_AT = 32
 #: most messages held for the node's callbacks (beyond: dropped and counted); 60 s of 8
 #: sensors at 100 Hz with their temperatures
@@ -61,22 +49,8 @@ class Intake:
     """
     Subscriptions of ``node`` taken on an EventsExecutor thread, delivered on its executor.
 
-    Parameters
-    ----------
-    node : rclpy.node.Node
-        The node whose callbacks receive the messages (on whatever executor spins it).
-    events : bool
-        Use the EventsExecutor where :func:`magcal_ros.ros.run.make_executor` offers it;
-        False: plain subscriptions of ``node``.
-
-    Attributes
-    ----------
-    dropped : int
-        Messages dropped because :data:`MAX_QUEUED` were waiting (the node's executor was
-        not spinning); 0 in a healthy run.
-    threaded : bool
-        True when the streams are taken on the EventsExecutor thread.
-
+    ``events=False``: plain subscriptions of ``node``. ``threaded``: the streams are taken on
+    the thread; ``dropped``: messages dropped because :data:`MAX_QUEUED` were waiting.
     """
 
     def __init__(self, node, events=True):

@@ -13,19 +13,15 @@
 # limitations under the License.
 
 """
-The calibration node's learning mode (issue 34; docs/design.md §3), kept apart from the node.
+The calibration node's learning mode (issue 34; docs/design.md §3): :class:`LearningMixin`.
 
-:class:`LearningMixin` is a part of :class:`magcal_ros.ros.calibration_node.CalibrationNode`:
-with the parameter ``learn`` it matches the raw samples into sets of its own (whether or not
-the node collects), hands them and the attitude (``imu_topic``) to a
-:class:`magcal_ros.core.live.learning.Learner`, runs the refits in a worker thread
-(:func:`magcal_ros.pipeline.refit_recent`), publishes each estimate on
-``calibration/learned`` (std_msgs/String, the calibration YAML of §4, reliable and transient
-local like ``calibration/result``), reports the state on ``/diagnostics``
-(``calibration_node: learning``), and adopts a ready proposal at once with ``auto_adopt``, or
-on the Trigger service ``calibration/adopt``: written with ``save_calibration`` (the previous
-calibration stays in the history, ``magcal rollback`` goes back to it), published on
-``calibration/result`` (the corrector installs it between two samples) and made active.
+With ``learn`` the raw samples are matched into sets of its own (collecting or not) for a
+:class:`magcal_ros.core.live.learning.Learner`, refitted in a worker thread
+(:func:`magcal_ros.pipeline.refit_recent`); each estimate goes on ``calibration/learned``
+(the calibration YAML, latched), the state on ``/diagnostics`` (``calibration_node:
+learning``). A ready proposal is adopted at once with ``auto_adopt``, or on
+``calibration/adopt``: saved (the previous one stays in the history), published on
+``calibration/result`` and made active.
 """
 from collections import deque
 import math
@@ -39,6 +35,7 @@ from magcal_ros.io.calfile import dump_calibration, save_calibration
 from magcal_ros.pipeline import refit_recent
 from magcal_ros.ros import params as prm
 from magcal_ros.ros.conversions import stamp_to_seconds
+from magcal_ros.ros.diagnostics import fill
 from magcal_ros.ros.run import yield_cpu
 import numpy as np
 from std_msgs.msg import String
@@ -93,7 +90,7 @@ class LearningMixin:
         self._learned_pub = self.create_publisher(String, 'calibration/learned', result_qos)
         self._srv.append(self.create_service(Trigger, 'calibration/adopt',
                                              self._learn_on_adopt))
-        self._updater.add('learning', lambda stat: self._learn_fill(stat))
+        self._updater.add('learning', lambda stat: fill(stat, self.learning_status()))
 
     @property
     def learner(self):
@@ -197,8 +194,7 @@ class LearningMixin:
         self._result_pub.publish(String(data=dump_calibration(p.doc)))
         self._activate(p.calibration, p.doc)
         text = (f'adopted the learned calibration (sets stamped up to {now:.1f} s): held-out '
-                f'residual '
-                f'{np.round(p.held_out_rms["active"], 2).tolist()} -> '
+                f'residual {np.round(p.held_out_rms["active"], 2).tolist()} -> '
                 f'{np.round(p.held_out_rms["proposal"], 2).tolist()} nT; undetermined '
                 f'(held): {len(p.undetermined)}')
         self.get_logger().info(text)
@@ -243,7 +239,3 @@ class LearningMixin:
                            f'{self._learn_errors[-1]}')
         st.values = [KeyValue(key=k, value=str(v)) for k, v in info.items()]
         return st
-
-    def _learn_fill(self, stat):
-        from magcal_ros.ros.diagnostics import fill
-        return fill(stat, self.learning_status())

@@ -13,15 +13,14 @@
 # limitations under the License.
 
 """
-ROS parameter declaration and validation for the calibration and corrector nodes.
+ROS parameter declaration and validation of the nodes.
 
 Every parameter is declared from a :class:`ParamSpec` (name, default, description with the
-unit, validator), so the description a user sees with ``ros2 param describe`` and the check
-made in ``add_on_set_parameters_callback`` come from one table. The node then turns its
-parameters into a frozen settings dataclass (:class:`CalibrationSettings`,
-:class:`CorrectorSettings`), so that the code doing the work never sees a ``Node``.
+unit, validator): ``ros2 param describe`` and the ``add_on_set_parameters_callback`` check
+come from one table. The settings dataclasses (:class:`CalibrationSettings`,
+:class:`CorrectorSettings`) keep the code doing the work away from a ``Node``.
 """
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, make_dataclass
 import math
 import os
 
@@ -69,25 +68,11 @@ class ParamSpec:
     """
     One node parameter.
 
-    Attributes
-    ----------
-    name : str
-        Parameter name.
-    default : bool or int or float or str or tuple
-        Default value; a tuple declares an array parameter (possibly empty).
-    description : str
-        What it is, with its unit (shown by ``ros2 param describe``).
-    check : callable or None
-        ``check(value) -> str or None``: the reason the value is refused, or None.
-    read_only : bool
-        Only settable at start-up (launch file, YAML, ``--ros-args -p``).
-    item_type : type
-        Element type of an array parameter (``str``, ``float``, ``int``).
-    limits : tuple or None
-        ``(lowest, highest)`` allowed value, published as the descriptor's
-        ``FloatingPointRange`` / ``IntegerRange`` (``ros2 param describe`` shows it; rclpy
-        then refuses values outside it too).
-
+    ``default`` a bool, int, float, str, or a tuple (an array parameter of ``item_type``:
+    ``str``, ``float`` or ``int``); ``description`` with its unit; ``check(value)`` returns
+    the reason a value is refused, or None; ``read_only``: settable at start-up only;
+    ``limits`` ``(lowest, highest)``, published as the descriptor's ``FloatingPointRange`` /
+    ``IntegerRange`` (rclpy then refuses values outside it too).
     """
 
     name: str
@@ -193,18 +178,16 @@ def default_input_topics(n_sensors, given=()):
     return tuple(given) if given else tuple(f'sensor{j}/raw' for j in range(1, n_sensors + 1))
 
 
-def latitude(value):
-    """Refuse a latitude outside -90..90 deg (NaN: not given)."""
-    if math.isnan(value) or -90.0 <= value <= 90.0:
-        return None
-    return f'must be a latitude in -90..90 deg (or .nan: not given), got {value!r}'
+def _degrees(kind, lo, hi):
+    """Make a validator refusing ``kind`` outside ``lo``..``hi`` deg (NaN: not given)."""
+    def check(value):
+        if math.isnan(value) or lo <= value <= hi:
+            return None
+        return f'must be {kind} in {lo}..{hi} deg (or .nan: not given), got {value!r}'
+    return check
 
 
-def longitude(value):
-    """Refuse a longitude outside -180..360 deg (NaN: not given)."""
-    if math.isnan(value) or -180.0 <= value <= 360.0:
-        return None
-    return f'must be a longitude in -180..360 deg (or .nan: not given), got {value!r}'
+latitude, longitude = _degrees('a latitude', -90, 90), _degrees('a longitude', -180, 360)
 
 
 def iso_date(value):
@@ -257,15 +240,7 @@ def model_check(n_sensors):
 
 
 def declare(node, specs):
-    """
-    Declare every parameter of ``specs`` on ``node`` (overrides and YAML apply).
-
-    Returns
-    -------
-    dict of str to ParamSpec
-        The specs by name, for :func:`validate`.
-
-    """
+    """Declare every parameter of ``specs`` on ``node``; return the specs by name (dict)."""
     for spec in specs:
         if isinstance(spec.default, tuple):
             if spec.default:
@@ -278,8 +253,8 @@ def declare(node, specs):
             node.declare_parameter(spec.name, spec.default, spec.descriptor())
     by_name = {s.name: s for s in specs}
     # values given at start-up (YAML, overrides) are checked like later changes
-    result = validate(by_name, [node.get_parameter_or(s.name) for s in specs
-                                if node.get_parameter_or(s.name).type_ != Parameter.Type.NOT_SET])
+    given = (node.get_parameter_or(s.name) for s in specs)
+    result = validate(by_name, [p for p in given if p.type_ != Parameter.Type.NOT_SET])
     if not result.successful:
         raise ValueError(f'bad parameter: {result.reason}')
     return by_name
@@ -287,20 +262,10 @@ def declare(node, specs):
 
 def validate(specs, params):
     """
-    Check parameter changes; the body of an ``add_on_set_parameters_callback``.
+    Check the changes ``params`` against ``specs`` (by name): an on-set-parameters callback.
 
-    Parameters
-    ----------
-    specs : dict of str to ParamSpec
-        The node's parameters, by name.
-    params : list of rclpy.parameter.Parameter
-        The changes asked for.
-
-    Returns
-    -------
-    rcl_interfaces.msg.SetParametersResult
-        ``successful=False`` with the reason of the first refused value.
-
+    Returns a ``SetParametersResult``, ``successful=False`` with the reason of the first
+    refused value.
     """
     for p in params:
         spec = specs.get(p.name)
@@ -324,43 +289,6 @@ def value(node, name, default=None):
 
 
 # -- calibration node -----------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class CalibrationSettings:
-    """Settings of the calibration node (units in the names)."""
-
-    n_sensors: int
-    model: tuple
-    field_nt: float
-    calibration_file: str
-    min_samples: int
-    max_samples: int
-    baseline_m: float
-    history: int
-    report_dir: str
-    stamp_tolerance_s: float
-    aux_topics: tuple
-    status_period_s: float
-    robust: bool
-    constrained: bool
-    resync_sets: bool
-    exclude_outliers: bool
-    imu_topic: str = ''
-    sensor_positions_m: tuple = ()
-    input_topics: tuple = ()
-    field_source: str = 'constant'
-    site_latitude_deg: float = math.nan
-    site_longitude_deg: float = math.nan
-    site_altitude_m: float = 0.0
-    site_date: str = ''
-    planar: bool = False
-    attitude_mode: str = 'auto'
-    cmd_vel_topic: str = '/cmd_vel'
-    turn_speed_rad_s: float = 0.3
-    turn_count: float = 2.0
-    turn_timeout_s: float = 120.0
-
-
 #: declared first: the model check of the other parameters depends on it
 N_SENSORS = ParamSpec('n_sensors', 4, 'number of sensors of the array (topics sensor1/raw .. '
                       'sensor<S>/raw); count, read-only', at_least(1), read_only=True,
@@ -374,20 +302,7 @@ PLUGINS = ParamSpec('plugins', (), 'effect plug-ins imported at start-up, each a
 
 
 def load_plugins(node):
-    """
-    Import the node's start-up ``plugins`` (:func:`magcal_ros.core.effects.load_plugin`).
-
-    Returns
-    -------
-    list of str
-        Names of the effects registered.
-
-    Raises
-    ------
-    ValueError
-        Naming the plug-in that cannot be imported (the node then exits with status 2).
-
-    """
+    """Import the start-up ``plugins``; return the effects registered (ValueError: exit 2)."""
     try:
         return fx.load_plugins(value(node, 'plugins', []))
     except (ValueError, TypeError, AttributeError) as exc:
@@ -498,62 +413,25 @@ def geometry_specs(n_sensors):
     ]
 
 
+def _settings(cls, node):
+    """``cls`` (a settings dataclass) from the node's current parameters."""
+    got = {}
+    for f in fields(cls):
+        v = value(node, f.name, [])
+        got[f.name] = tuple(v) if f.type is tuple else f.type(v)
+    for name in ('calibration_file', 'report_dir'):
+        if name in got:
+            got[name] = os.path.expanduser(got[name])
+    got['input_topics'] = default_input_topics(got['n_sensors'], got['input_topics'])
+    return cls(**got)
+
+
 def calibration_settings(node):
     """:class:`CalibrationSettings` from the node's current parameters."""
-    return CalibrationSettings(
-        n_sensors=int(value(node, 'n_sensors')),
-        model=tuple(value(node, 'model')),
-        field_nt=float(value(node, 'field_nt')),
-        calibration_file=os.path.expanduser(value(node, 'calibration_file')),
-        min_samples=int(value(node, 'min_samples')),
-        max_samples=int(value(node, 'max_samples')),
-        baseline_m=float(value(node, 'baseline_m')),
-        history=int(value(node, 'history')),
-        report_dir=os.path.expanduser(value(node, 'report_dir')),
-        stamp_tolerance_s=float(value(node, 'stamp_tolerance_s')),
-        aux_topics=tuple(value(node, 'aux_topics', [])),
-        status_period_s=float(value(node, 'status_period_s')),
-        robust=bool(value(node, 'robust')),
-        constrained=bool(value(node, 'constrained')),
-        resync_sets=bool(value(node, 'resync_sets')),
-        exclude_outliers=bool(value(node, 'exclude_outliers')),
-        imu_topic=str(value(node, 'imu_topic', '')),
-        sensor_positions_m=tuple(value(node, 'sensor_positions_m', [])),
-        input_topics=default_input_topics(int(value(node, 'n_sensors')),
-                                          value(node, 'input_topics', [])),
-        field_source=str(value(node, 'field_source')),
-        site_latitude_deg=float(value(node, 'site_latitude_deg')),
-        site_longitude_deg=float(value(node, 'site_longitude_deg')),
-        site_altitude_m=float(value(node, 'site_altitude_m')),
-        site_date=str(value(node, 'site_date')),
-        planar=bool(value(node, 'planar')),
-        attitude_mode=str(value(node, 'attitude_mode')),
-        cmd_vel_topic=str(value(node, 'cmd_vel_topic')),
-        turn_speed_rad_s=float(value(node, 'turn_speed_rad_s')),
-        turn_count=float(value(node, 'turn_count')),
-        turn_timeout_s=float(value(node, 'turn_timeout_s')),
-    )
+    return _settings(CalibrationSettings, node)
 
 
 # -- corrector node -------------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class CorrectorSettings:
-    """Settings of the corrector node (units in the names)."""
-
-    n_sensors: int
-    calibration_file: str
-    stamp_tolerance_s: float
-    aux_topics: tuple
-    publish_gradient: bool
-    diagnostics_period_s: float
-    array_frame_id: str
-    subtract_site_gradient: bool = False
-    site_attitude: tuple = (1.0, 0.0, 0.0, 0.0)
-    sensor_positions_m: tuple = ()
-    input_topics: tuple = ()
-    baseline_m: float = 0.5
-
 
 def unit_quaternion(value):
     """Refuse anything but a unit quaternion (qw, qx, qy, qz)."""
@@ -605,20 +483,18 @@ def corrector_specs(n_sensors=4):
     ]
 
 
+def _settings_class(name, node_name, specs):
+    """Make a frozen dataclass with one field per parameter of ``specs`` (its default's type)."""
+    return make_dataclass(name, [(spec.name, type(spec.default)) for spec in specs], frozen=True,
+                          namespace={'__doc__': f'Settings of {node_name} (units in the names).'})
+
+
+CalibrationSettings = _settings_class('CalibrationSettings', 'calibration_node',
+                                      [N_SENSORS] + calibration_specs())
+CorrectorSettings = _settings_class('CorrectorSettings', 'corrector_node',
+                                    [N_SENSORS] + corrector_specs())
+
+
 def corrector_settings(node):
     """:class:`CorrectorSettings` from the node's current parameters."""
-    return CorrectorSettings(
-        n_sensors=int(value(node, 'n_sensors')),
-        calibration_file=os.path.expanduser(value(node, 'calibration_file')),
-        stamp_tolerance_s=float(value(node, 'stamp_tolerance_s')),
-        aux_topics=tuple(value(node, 'aux_topics', [])),
-        publish_gradient=bool(value(node, 'publish_gradient')),
-        diagnostics_period_s=float(value(node, 'diagnostics_period_s')),
-        array_frame_id=str(value(node, 'array_frame_id')),
-        subtract_site_gradient=bool(value(node, 'subtract_site_gradient')),
-        site_attitude=tuple(float(v) for v in value(node, 'site_attitude')),
-        sensor_positions_m=tuple(value(node, 'sensor_positions_m', [])),
-        input_topics=default_input_topics(int(value(node, 'n_sensors')),
-                                          value(node, 'input_topics', [])),
-        baseline_m=float(value(node, 'baseline_m')),
-    )
+    return _settings(CorrectorSettings, node)

@@ -15,8 +15,7 @@
 """
 The calibration node's Trigger replies: a short summary, a newline, then one JSON object.
 
-``ros2 service call`` prints the whole message on one line, its newlines escaped: the
-first line is what a user reads.
+``ros2 service call`` prints the message on one line: the first line is what a user reads.
 """
 import json
 

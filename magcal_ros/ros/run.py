@@ -15,24 +15,21 @@
 """
 The one ``main`` of every node: init, spin until SIGINT/SIGTERM, clean shutdown, exit codes.
 
-Shutdown: rclpy's own signal handler shuts the context down from inside the signal, while a
-callback may still be running; that callback's next ``publish`` then raises "publisher's
-context is invalid" and a waiting executor "take_message" errors, i.e. a traceback and exit 1
-on an ordinary Ctrl-C (issue 12). Here rclpy installs no signal handler: SIGINT and SIGTERM
-only set a flag, the executor finishes the callback it is running, stops within
-:data:`SPIN_PERIOD_S`, the node is destroyed (its threads stopped) while the context is
-still valid, and only then the context is shut down. Exit status 0.
-
-Bad start-up input is a user error, reported as one line on stderr with exit status 2 (as
-the README promises): a ``--ros-args`` rule rcl cannot parse, a parameter override of the
-wrong type (``-p field_nt:=48000``, an integer for a double; ``:=abc``), or a value the
-node's validators refuse.
+rclpy's own signal handler shuts the context down while a callback may still run, whose
+next ``publish`` then raises: a traceback and exit 1 on an ordinary Ctrl-C (issue 12). Here
+SIGINT and SIGTERM only set a flag: the executor finishes its callback, stops within
+:data:`SPIN_PERIOD_S`, the node is destroyed while the context is valid, then the context is
+shut down; exit 0. Bad start-up input (a ``--ros-args`` rule rcl cannot parse, an override of
+the wrong type such as ``-p field_nt:=48000``, a value a validator refuses) is one line on
+stderr and exit 2.
 """
+from contextlib import contextmanager
 import os
 import signal
 import sys
 import tempfile
 import threading
+from types import SimpleNamespace
 
 from magcal_ros.runtime import limit_blas_threads
 from magcal_ros.sim.paths import DEFAULT_NAMESPACE  # noqa: F401 (the nodes' default namespace)
@@ -50,9 +47,8 @@ SPIN_PERIOD_S = 0.1
 EXECUTOR_VARIABLE = 'MAGCAL_EXECUTOR'
 
 
-#: niceness added to the solve thread (calibrate, diagnose): on a loaded machine the sample
-#: intake of this node, and the driver and corrector beside it, keep the CPU they need
-#: while a solve takes what is left (a diagnosis beside a 4 x 1 kHz stream starved it)
+#: niceness added to the solve threads: on a loaded machine the sample intake, the driver
+#: and the corrector keep the CPU they need (a diagnosis beside a 4 x 1 kHz stream starved it)
 SOLVE_NICENESS = 5
 
 
@@ -72,14 +68,11 @@ def make_executor(events=True, context=None):
     """
     Return the executor a node spins on, and its name (``'events'`` or ``'single'``).
 
-    rclpy's EventsExecutor (``rclpy.experimental``, in Jazzy's rclpy 7.1) dispatches from a
-    C++ event queue; the SingleThreadedExecutor rebuilds its wait set in Python on every
-    spin, which cost 3 x the CPU per message (bench/executor.py: 4 topics at 200 Hz, 220
-    against 72 us per message). ``events=False`` for a node the EventsExecutor cannot run:
-    in Jazzy it takes neither guard conditions nor coroutine (``async def``) callbacks, and
-    the calibration node's services are coroutines. ``MAGCAL_EXECUTOR=single`` chooses the
-    classic executor for every node; an rclpy without the EventsExecutor gets it too.
-    ``context``: the rclpy context of the nodes it will spin (None: the default one).
+    rclpy's EventsExecutor (``rclpy.experimental``) costs a third of the
+    SingleThreadedExecutor's CPU per message (bench/executor.py). ``events=False`` for a
+    node it cannot run (in Jazzy: no guard conditions, no coroutine callbacks, which the
+    calibration node's services are); ``MAGCAL_EXECUTOR=single``, or an rclpy without it,
+    gives the classic one. ``context``: the nodes' rclpy context (None: the default).
     """
     choice = os.environ.get(EXECUTOR_VARIABLE, 'events').strip().lower()
     if choice not in ('events', 'single'):
@@ -100,55 +93,32 @@ def _one_line(exc):
     return text.split(', at /')[0]
 
 
-class _stderr_held:
-    """
-    Hold what C code writes to file descriptor 2 (rcl logs its own copy of a parse error).
-
-    ``text`` is what was written; the caller shows it only when it is not replacing it by
-    its one-line message.
-    """
-
-    def __enter__(self):
-        sys.stderr.flush()
-        self._file = tempfile.TemporaryFile(mode='w+b')
-        self._saved = os.dup(2)
-        os.dup2(self._file.fileno(), 2)
-        self.text = ''
-        return self
-
-    def __exit__(self, *exc):
-        sys.stderr.flush()
-        os.dup2(self._saved, 2)
-        os.close(self._saved)
-        self._file.seek(0)
-        self.text = self._file.read().decode('utf-8', 'replace')
-        self._file.close()
-        return False
+@contextmanager
+def _stderr_held():
+    """Hold what C code writes to fd 2 in ``.text`` (rcl logs its own copy of a parse error)."""
+    held = SimpleNamespace(text='')
+    sys.stderr.flush()
+    with tempfile.TemporaryFile(mode='w+b') as file:
+        saved = os.dup(2)
+        os.dup2(file.fileno(), 2)
+        try:
+            yield held
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+            file.seek(0)
+            held.text = file.read().decode('utf-8', 'replace')
 
 
 def spin_node(node_cls, name, args=None, events=True):
     """
-    Create ``node_cls()``, spin it until SIGINT/SIGTERM or shutdown, and clean up.
+    Create ``node_cls()``, spin it until SIGINT/SIGTERM or shutdown, clean up; return 0 or 2.
 
-    Parameters
-    ----------
-    node_cls : callable
-        A ``rclpy.node.Node`` subclass (or a partial of one) called with no argument; it
-        sets its default namespace itself (:data:`DEFAULT_NAMESPACE`), which a ``__ns``
-        remap overrides. A node with a ``finished`` event (``threading.Event``) ends the
-        spin when it is set, as after a signal.
-    name : str
-        Executable name used in error messages.
-    args : list of str, optional
-        Command line (``sys.argv`` when None).
-    events : bool
-        Spin on the EventsExecutor where rclpy has it (:func:`make_executor`).
-
-    Returns
-    -------
-    int
-        0 after a signal or an external shutdown, 2 for bad start-up input.
-
+    ``node_cls``: a Node subclass (or a partial of one) that sets its default namespace
+    (:data:`DEFAULT_NAMESPACE`); its ``finished`` event, if any, ends the spin when set.
+    ``name``: the executable, in error messages; ``args``: the command line (None:
+    ``sys.argv``); ``events``: as :func:`make_executor`. 2 is bad start-up input.
     """
     stop = threading.Event()
     limit_blas_threads()              # small linear algebra: BLAS threads only contend
@@ -176,7 +146,6 @@ def spin_node(node_cls, name, args=None, events=True):
         return 2
     executor.add_node(node)
     try:
-        # a node may end its own run (fluxgate_sim after its duration): ``finished`` set
         finished = getattr(node, 'finished', None) or threading.Event()
         while not stop.is_set() and not finished.is_set() and rclpy.ok():
             executor.spin_once(timeout_sec=SPIN_PERIOD_S)

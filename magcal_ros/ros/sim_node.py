@@ -15,19 +15,15 @@
 """
 ``fluxgate_sim``: the simulated fluxgates of :mod:`magcal_ros.sim` as a ROS 2 node.
 
-A thin node over :class:`magcal_ros.sim.devices.FluxgateSim`: its settings are read-only ROS
-parameters (``ros2 param describe`` shows each with its unit; ``config/sim.yaml`` holds the
-defaults and is what the launch file passes), it logs through the node's logger (rosout),
-and it honours ``--ros-args`` (remaps, namespace, ``-p``, ``--params-file``). The devices
-of the namespace ``/magcal`` (the default) are ``/tmp/magcal_sim/fluxgate1..4``, those of
-another namespace ``/tmp/magcal_sim_<ns>/...`` (TMPDIR honoured), exactly where the driver
-of the same namespace looks by default, so two arrays on one machine never share devices.
-
-The command-line options of :func:`magcal_ros.sim.devices.build_parser` (``--dir``,
-``--rate``, ``--unplug``, ...) still work and override the parameters; ``--config FILE``
-is read as a parameter file before those of ``--ros-args``. Samples are written by a
-thread at the tick period; the node stops it and removes the links on SIGINT/SIGTERM (exit
-status 0) or when ``duration`` elapses.
+A thin node over :class:`magcal_ros.sim.devices.FluxgateSim`: its settings are read-only
+parameters (defaults in ``config/sim.yaml``, the launch file's), it logs to rosout and
+honours ``--ros-args``. The devices of ``/magcal`` (the default namespace) are
+``/tmp/magcal_sim/fluxgate1..4``, another namespace's ``/tmp/magcal_sim_<ns>/...`` (TMPDIR
+honoured): where the driver of the same namespace looks, so two arrays never share devices.
+The options of :func:`magcal_ros.sim.devices.build_parser` override the parameters;
+``--config FILE`` is read as a parameter file before those of ``--ros-args``. A thread
+writes the samples each tick; SIGINT/SIGTERM (exit 0) or ``duration`` stops it and removes
+the links.
 """
 
 import argparse
@@ -123,16 +119,7 @@ def sim_specs():
 
 
 class FluxgateSimNode(Node):
-    """
-    The ``fluxgate_sim`` node (keyword arguments go to ``rclpy.node.Node``).
-
-    Raises
-    ------
-    ValueError
-        For bad settings or a link path that exists and is not a link (exit status 2 from
-        :func:`main`).
-
-    """
+    """The ``fluxgate_sim`` node; ValueError for bad settings or a path that is not a link."""
 
     def __init__(self, **kwargs):
         kwargs.setdefault('namespace', DEFAULT_NAMESPACE)
@@ -156,8 +143,7 @@ class FluxgateSimNode(Node):
             raise
         for line in devices.describe_start(self.sim, self.settings):
             log.info(line)
-        # the auxiliary channels, as a real vehicle's nodes would publish them (the value of
-        # each sample, published as the sample is written)
+        # the auxiliary channels, as a real vehicle's nodes would publish them
         self._aux_pubs = {'aux_' + name: self.create_publisher(Float64, name, 10)
                           for name in self.settings.aux_topics}
         self._aux_last = {}                 # column -> (sample time s, value) last published
@@ -178,10 +164,9 @@ class FluxgateSimNode(Node):
         return list(self.sim.paths)
 
     def _publish_aux(self, t, data):
-        # one message per sample by default: a subscriber behind its stream takes one message
-        # per subscription in turn, so channels published at the raw rate stay in step with
-        # the raw fields; aux_period_s > 0 thins them (a value at most that old, every jump
-        # at once) where the subscribers keep up
+        # one message per sample by default: a subscriber behind its stream takes one per
+        # subscription in turn, so they stay in step with the raw fields; aux_period_s > 0
+        # thins them (a value at most that old, every jump at once)
         period = self.settings.aux_period_s
         for column, pub in self._aux_pubs.items():
             for tk, value in zip(t, data.aux[column]):
@@ -192,9 +177,8 @@ class FluxgateSimNode(Node):
                     self._aux_last[column] = (tk, value)
 
     def _publish_imu(self, t, data):
-        # the true attitude as an AHRS would give it: body-to-world in ENU (the simulator's
-        # world is NED), stamped on the node's clock as the samples are written (the driver
-        # stamps the readings at their arrival, a few ms later)
+        # the true attitude as an AHRS gives it: body-to-world in ENU (the simulator's world
+        # is NED), stamped on the node's clock as the samples are written
         if data.attitude is None or not len(t):
             return
         now = self.get_clock().now().nanoseconds * 1e-9
@@ -227,26 +211,14 @@ def split_command_line(argv):
     """
     Separate this program's own options from ``--ros-args ... [--]`` sections.
 
-    Returns
-    -------
-    own : list of str
-        Options for :func:`magcal_ros.sim.devices.build_parser`.
-    ros : list of str
-        Everything else, in order (given to rclpy).
-
+    Returns (own: the options of :func:`magcal_ros.sim.devices.build_parser`, ros:
+    the ``--ros-args`` sections in order, for rclpy), lists of str.
     """
     own, ros, in_ros = [], [], False
     for a in argv:
-        if a == '--ros-args':
-            in_ros = True
-            ros.append(a)
-        elif in_ros and a == '--':
-            in_ros = False
-            ros.append(a)
-        elif in_ros:
-            ros.append(a)
-        else:
-            own.append(a)
+        in_ros = in_ros or a == '--ros-args'
+        (ros if in_ros else own).append(a)
+        in_ros = in_ros and a != '--'
     return own, ros
 
 

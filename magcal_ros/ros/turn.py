@@ -13,13 +13,12 @@
 # limitations under the License.
 
 """
-The calibration node's turn (docs/design.md §3), kept apart from the node.
+The calibration node's turn (docs/design.md §3): :class:`TurnMixin`.
 
-:class:`TurnMixin` is a part of :class:`magcal_ros.ros.calibration_node.CalibrationNode`:
-the service ``calibration/turn`` turns a robot in place through ``cmd_vel_topic`` (as the
-ROS calibration packages do) while the node collects, until sensor 1 has seen
-``turn_count`` turns or ``turn_timeout_s`` passed, and stops it (a zero velocity) after the
-turn, on an error and on shutdown.
+``calibration/turn`` turns a robot in place through ``cmd_vel_topic`` (as the ROS
+calibration packages do) while the node collects, until sensor 1 has seen ``turn_count``
+turns or ``turn_timeout_s`` passed, and stops it (a zero velocity) after the turn, on an
+error and on shutdown.
 """
 import math
 import time
@@ -33,8 +32,6 @@ class TurnMixin:
     """Turn the robot through cmd_vel while collecting (calibration/turn)."""
 
     async def _on_turn(self, request, response):
-        # as the ROS calibration packages do: turn the robot in place through cmd_vel while
-        # collecting, until sensor 1 has seen turn_count turns or turn_timeout_s passed
         s = prm.calibration_settings(self)
         if self._cmd_vel is None:
             return _reply(response, False, 'no cmd_vel_topic: set it (read-only: at start-up) '
