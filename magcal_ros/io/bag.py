@@ -15,35 +15,24 @@
 """
 rosbag2 recordings of the array -> :class:`~magcal_ros.core.data.dataset.Dataset` (no rclpy).
 
-Reads with the ``rosbags`` library (pure Python; sqlite3 and mcap storage, any ROS 2 distro
-the bag declares, Jazzy message definitions by default).  Topics, under a namespace
-(default ``/magcal``, docs/design.md §3):
+Read with the ``rosbags`` library (sqlite3 and mcap storage, Jazzy message definitions by
+default).  Topics under a namespace (default ``/magcal``, docs/design.md §3):
+``{ns}/sensor{j}/raw`` (``sensor_msgs/MagneticField``, tesla, sensor j's axes; required, j =
+1..S); ``{ns}/sensor{j}/temperature`` (``sensor_msgs/Temperature``, degC); auxiliary channels
+``std_msgs/Float64`` or ``Float32`` on ``{ns}/aux/<name>`` (column ``aux_<name>``) or the
+topics of ``aux_topics``; ``{ns}/ref_total`` (``std_msgs/Float64``, tesla); ``{ns}/imu`` (or
+``imu_topic``; ``sensor_msgs/Imu``: its orientation is the array's body-to-world attitude,
+REP 103/145, slerped onto the epochs, epochs outside its span dropped and counted in
+``meta['dropped_attitude_epochs']``); any ``sensor_msgs/BatteryState`` topic: ``current`` and
+``voltage`` become ``aux_battery_current`` (A) and ``aux_battery_voltage`` (V) as in the
+vehicle logs, a second topic (in name order) ``aux_battery2_...``; NaN values are left out.
 
-- ``{ns}/sensor{j}/raw`` -- ``sensor_msgs/msg/MagneticField`` in tesla, sensor j's own
-  axes (required, j = 1..S consecutive);
-- ``{ns}/sensor{j}/temperature`` -- ``sensor_msgs/msg/Temperature`` in degC (optional);
-- auxiliary channels: ``std_msgs/msg/Float64`` or ``Float32`` (``data``) on
-  ``{ns}/aux/<name>`` (column ``aux_<name>``), or any topics named in ``aux_topics``;
-- ``{ns}/ref_total`` -- ``std_msgs/msg/Float64``, scalar reference magnitude in tesla
-  (optional);
-- ``{ns}/imu`` (or ``imu_topic``) -- ``sensor_msgs/msg/Imu`` (optional): its ``orientation``
-  is the body-to-world attitude of the array (REP 103/145; the IMU's axes are taken as the
-  array's), interpolated (slerp) onto the epochs; epochs outside the IMU's time span are
-  dropped and counted in ``meta['dropped_attitude_epochs']``;
-- any ``sensor_msgs/msg/BatteryState`` topic (optional): its ``current`` and ``voltage``
-  become the channels ``aux_battery_current`` (A) and ``aux_battery_voltage`` (V), the
-  names of the vehicle logs (:mod:`magcal_ros.io.vehicle`); a second battery topic (in
-  name order) ``aux_battery2_current``, ... ; messages whose value is NaN (not measured)
-  are left out.
-
-Epochs are sensor 1's header stamps; each other sensor is matched to the nearest stamp
-within half a sample period (epochs where a sensor has no match are dropped and counted in
-``meta['dropped_epochs']``).  Temperatures and the reference are interpolated linearly onto
-the epochs, auxiliary channels held from their last message (a switched current changes
-when its message says so).  A message whose header stamp is zero is stamped with the time
-the bag recorded it.  Tesla are converted to nT with :mod:`magcal_ros.units`.  BatteryState
-messages (a few a second, of variable length: cell voltages, strings) are decoded by rosbags'
-deserialiser; the array's fixed-layout messages by their CDR layout (docs/design.md §2).
+Epochs are sensor 1's header stamps; each other sensor is matched to the nearest stamp within
+half a sample period (unmatched epochs dropped, counted in ``meta['dropped_epochs']``).
+Temperatures and the reference are interpolated linearly onto the epochs, auxiliary channels
+held from their last message.  A zero header stamp is replaced by the time the bag recorded
+the message.  The array's fixed-layout messages are decoded from their CDR layout
+(docs/design.md §2), BatteryState by rosbags' deserialiser.
 """
 from itertools import islice
 from operator import attrgetter, itemgetter
@@ -118,32 +107,37 @@ def read_bag(path, namespace='/magcal', aux_topics=None, imu_topic=None):
         return col.take(None, final=True)
 
 
+def _metadata(path, read):
+    """``read(the bag's rosbag2_bagfile_information)``; its exception when that fails."""
+    import yaml
+    try:
+        with open(Path(os.fspath(path)) / 'metadata.yaml') as fh:
+            return read(yaml.safe_load(fh)['rosbag2_bagfile_information'])
+    except (OSError, KeyError, TypeError, ValueError, yaml.YAMLError) as exc:
+        return exc
+
+
 def bag_message_count(path):
     """Return the number of messages in a rosbag2 directory (from its ``metadata.yaml``)."""
-    import yaml
-    path = Path(os.fspath(path))
-    try:
-        with open(path / 'metadata.yaml') as fh:
-            info = yaml.safe_load(fh)['rosbag2_bagfile_information']
-        return int(info['message_count'])
-    except (OSError, KeyError, TypeError, ValueError, yaml.YAMLError) as exc:
-        raise BagFormatError(f'{path} is not a rosbag2 directory (metadata.yaml: {exc})') \
-            from None
+    got = _metadata(path, lambda info: int(info['message_count']))
+    if isinstance(got, Exception):
+        raise BagFormatError(f'{Path(os.fspath(path))} is not a rosbag2 directory '
+                             f'(metadata.yaml: {got})')
+    return got
 
 
 def bag_epoch_count(path, namespace='/magcal'):
     """Messages of sensor 1 in a rosbag2 directory (its metadata), 0 when it does not say."""
-    import yaml
-    try:
-        with open(Path(os.fspath(path)) / 'metadata.yaml') as fh:
-            info = yaml.safe_load(fh)['rosbag2_bagfile_information']
-        ns = '/' + namespace.strip('/') if namespace.strip('/') else ''
-        for entry in info.get('topics_with_message_count') or []:
-            if entry['topic_metadata']['name'] == f'{ns}/sensor1/raw':
-                return int(entry['message_count'])
-    except (OSError, KeyError, TypeError, ValueError, yaml.YAMLError):
-        pass
-    return 0
+    topic = f'{_namespace(namespace)}/sensor1/raw'
+    got = _metadata(path, lambda info: next(
+        (int(e['message_count']) for e in info.get('topics_with_message_count') or []
+         if e['topic_metadata']['name'] == topic), 0))
+    return 0 if isinstance(got, Exception) else got
+
+
+def _namespace(namespace):
+    """'/magcal' of 'magcal', '/magcal/' or '/magcal'; '' of '/'."""
+    return '/' + namespace.strip('/') if namespace.strip('/') else ''
 
 
 def bag_chunks(path, rows=65536, progress=None, namespace='/magcal', aux_topics=None,
@@ -299,8 +293,7 @@ class _Collector:
         if not (path / 'metadata.yaml').is_file():
             raise BagFormatError(f'{path} is not a rosbag2 directory (no metadata.yaml)')
         self.path = path
-        ns = '/' + namespace.strip('/') if namespace.strip('/') else ''
-        self.ns = ns
+        self.ns = ns = _namespace(namespace)
         self.raw_re = re.compile(re.escape(ns) + r'/sensor(\d+)/raw$')
         self.temp_re = re.compile(re.escape(ns) + r'/sensor(\d+)/temperature$')
         self.aux_re = re.compile(re.escape(ns) + r'/aux/(\w+)$')
@@ -339,33 +332,26 @@ class _Collector:
         self.kind = {}
         conns = []
         for c in self.reader.connections:
-            m = self.raw_re.match(c.topic)
-            if m and c.msgtype == MAG_TYPE:
-                self.mags[int(m.group(1))] = _empty(3)
-                self.kind[c.id] = ('mag', int(m.group(1)))
-                conns.append(c)
-                continue
-            if c.topic == self.imu_name and c.msgtype == IMU_TYPE:
+            raw, temp = self.raw_re.match(c.topic), self.temp_re.match(c.topic)
+            aux = self.aux_re.match(c.topic)
+            if raw and c.msgtype == MAG_TYPE:
+                self.mags[int(raw.group(1))] = _empty(3)
+                self.kind[c.id] = ('mag', int(raw.group(1)))
+            elif c.topic == self.imu_name and c.msgtype == IMU_TYPE:
                 self.kind[c.id] = ('imu', None)
-                conns.append(c)
+            elif temp and c.msgtype == TEMP_TYPE:
+                self.temps[int(temp.group(1))] = _empty()
+                self.kind[c.id] = ('temp', int(temp.group(1)))
+            elif c.msgtype in SCALAR_TYPES and (c.topic in self.wanted_aux or aux):
+                name = self.wanted_aux.get(c.topic) or 'aux_' + aux.group(1)
+                self.aux[name] = _empty()
+                self.kind[c.id] = ('aux', name)
+            elif c.msgtype in SCALAR_TYPES and c.topic == ns + '/ref_total':
+                self.ref = _empty()
+                self.kind[c.id] = ('ref', None)
+            else:
                 continue
-            m = self.temp_re.match(c.topic)
-            if m and c.msgtype == TEMP_TYPE:
-                self.temps[int(m.group(1))] = _empty()
-                self.kind[c.id] = ('temp', int(m.group(1)))
-                conns.append(c)
-                continue
-            if c.msgtype in SCALAR_TYPES:
-                m = self.aux_re.match(c.topic)
-                if c.topic in self.wanted_aux or m:
-                    name = self.wanted_aux.get(c.topic) or 'aux_' + m.group(1)
-                    self.aux[name] = _empty()
-                    self.kind[c.id] = ('aux', name)
-                    conns.append(c)
-                elif c.topic == ns + '/ref_total':
-                    self.ref = _empty()
-                    self.kind[c.id] = ('ref', None)
-                    conns.append(c)
+            conns.append(c)
         batteries = sorted({c.topic for c in self.reader.connections
                             if c.msgtype == BATTERY_TYPE})
         for c in self.reader.connections:
@@ -653,40 +639,34 @@ def write_bag(path, data, namespace='/magcal', storage='sqlite3', frame_id='flux
     stamp0 = ts.types['builtin_interfaces/msg/Time'](sec=0, nanosec=0)
     vec = ts.types['geometry_msgs/msg/Vector3']
     unknown = np.array([-1.0] + [0.0] * 8)       # REP 145: no rate / acceleration
-    ns = '/' + namespace.strip('/') if namespace.strip('/') else ''
+    ns = _namespace(namespace)
     f64 = 'std_msgs/msg/Float64'
     # one message of each stream serialised by rosbags, its stamp and values then filled in
     # per message (_Template): the bytes rosbags' serialize_cdr writes, ~5 us less each
     with Writer(path, version=9, storage_plugin=plugins[storage]) as w:
         streams = []
+
+        def add(key, topic, msgtype, **fields):
+            streams.append((key, w.add_connection(topic, msgtype, typestore=ts),
+                            _Template(ts, msgtype, ts.types[msgtype](**fields))))
         for j in range(1, first.n_sensors + 1):
             hdr = header(stamp=stamp0, frame_id=f'{frame_id}{j}')
-            streams.append((('raw', j), w.add_connection(
-                f'{ns}/sensor{j}/raw', MAG_TYPE, typestore=ts), _Template(ts, MAG_TYPE, ts.types[
-                    MAG_TYPE](header=hdr, magnetic_field=vec(0.0, 0.0, 0.0),
-                              magnetic_field_covariance=np.zeros(9)))))
+            add(('raw', j), f'{ns}/sensor{j}/raw', MAG_TYPE, header=hdr,
+                magnetic_field=vec(0.0, 0.0, 0.0), magnetic_field_covariance=np.zeros(9))
             if first.temp is not None and np.isfinite(first.temp[j - 1]).any():
-                streams.append((('temp', j), w.add_connection(
-                    f'{ns}/sensor{j}/temperature', TEMP_TYPE, typestore=ts), _Template(
-                        ts, TEMP_TYPE, ts.types[TEMP_TYPE](header=hdr, temperature=0.0,
-                                                           variance=0.0))))
+                add(('temp', j), f'{ns}/sensor{j}/temperature', TEMP_TYPE, header=hdr,
+                    temperature=0.0, variance=0.0)
         for name in sorted(first.aux):
-            streams.append((('aux', name), w.add_connection(f'{ns}/aux/{name[4:]}', f64,
-                                                            typestore=ts),
-                            _Template(ts, f64, ts.types[f64](data=0.0))))
+            add(('aux', name), f'{ns}/aux/{name[4:]}', f64, data=0.0)
         if first.ref_total is not None:
-            streams.append((('ref',), w.add_connection(f'{ns}/ref_total', f64, typestore=ts),
-                            _Template(ts, f64, ts.types[f64](data=0.0))))
+            add(('ref',), f'{ns}/ref_total', f64, data=0.0)
         if first.attitude is not None:
-            quat = ts.types['geometry_msgs/msg/Quaternion'](x=0.0, y=0.0, z=0.0, w=1.0)
-            streams.append((('imu',), w.add_connection(f'{ns}/imu', IMU_TYPE, typestore=ts),
-                            _Template(ts, IMU_TYPE, ts.types[IMU_TYPE](
-                                header=header(stamp=stamp0, frame_id=frame_id),
-                                orientation=quat, orientation_covariance=np.zeros(9),
-                                angular_velocity=vec(0.0, 0.0, 0.0),
-                                angular_velocity_covariance=unknown,
-                                linear_acceleration=vec(0.0, 0.0, 0.0),
-                                linear_acceleration_covariance=unknown))))
+            add(('imu',), f'{ns}/imu', IMU_TYPE, header=header(stamp=stamp0, frame_id=frame_id),
+                orientation=ts.types['geometry_msgs/msg/Quaternion'](x=0.0, y=0.0, z=0.0,
+                                                                      w=1.0),
+                orientation_covariance=np.zeros(9), angular_velocity=vec(0.0, 0.0, 0.0),
+                angular_velocity_covariance=unknown, linear_acceleration=vec(0.0, 0.0, 0.0),
+                linear_acceleration_covariance=unknown)
         for data in chain([first], pieces):
             t_ns = np.round(np.asarray(data.t, float) * 1e9).astype(np.int64)
             raw_t = nt_to_t(data.raw)
