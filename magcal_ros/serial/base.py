@@ -15,14 +15,11 @@
 """
 Common parts of every serial protocol: the sample record, statistics and validation.
 
-A protocol is a pair (:class:`Parser`, :class:`Encoder`). The parser turns an arbitrary byte
-stream into :class:`Sample` records and never raises on any input: malformed, non-finite,
-saturated or time-reversed data are counted per error kind in :class:`ParserStats` and
-skipped. The encoder produces exactly the bytes the parser reads; the simulator uses it.
-
-Nothing here imports rclpy.
+A protocol is a pair (:class:`Parser`, :class:`Encoder`).  The parser turns any byte stream
+into :class:`Sample` records and never raises on its content: malformed, non-finite,
+saturated or time-reversed data are counted per kind in :class:`ParserStats` and skipped.
+The encoder writes exactly the bytes the parser reads (for the simulator).
 """
-
 from collections import Counter
 import dataclasses
 from dataclasses import dataclass, field
@@ -44,16 +41,9 @@ class Sample:
     """
     One decoded magnetometer reading.
 
-    Attributes
-    ----------
-    field_nt : tuple of float
-        (x, y, z) field in nT, in the device's own axes; always finite.
-    temp_c : float or None
-        Sensor temperature in degC when the protocol carries it, else None.
-    device_time : float or None
-        Device timestamp in s when the protocol carries it, else None. This is the
-        device's clock, not the arrival time (the transport stamps arrival separately).
-
+    ``field_nt`` (x, y, z) nT in the device's axes, finite; ``temp_c`` degC and
+    ``device_time`` s (the device's clock, not the arrival time) when the protocol carries
+    them, else None.
     """
 
     field_nt: tuple
@@ -66,22 +56,11 @@ class ParserStats:
     """
     Counters of one parser.
 
-    Attributes
-    ----------
-    frames : int
-        Samples emitted (valid frames/lines).
-    errors : collections.Counter
-        Rejected frames/lines per error kind, e.g. ``'malformed'``, ``'non_finite'``,
-        ``'out_of_range'``, ``'temp_out_of_range'``, ``'time_backwards'``, ``'checksum'``,
-        ``'overlong'``, ``'sync_lost'``.
-    ignored : collections.Counter
-        Input that is not data and not an error (``'comment'``, ``'header'``, ``'blank'``,
-        ``'response'``).
-    bytes_in : int
-        Bytes fed to the parser.
-    bytes_dropped : int
-        Bytes discarded while searching for a frame boundary or sync tag.
-
+    ``frames`` samples emitted; ``errors`` rejected frames/lines per kind (``'malformed'``,
+    ``'non_finite'``, ``'out_of_range'``, ``'temp_out_of_range'``, ``'time_backwards'``,
+    ``'checksum'``, ``'overlong'``, ``'sync_lost'``, ...); ``ignored`` input that is neither
+    data nor an error (``'comment'``, ``'header'``, ``'blank'``, ``'response'``); ``bytes_in``
+    fed; ``bytes_dropped`` discarded while searching for a frame boundary or sync tag.
     """
 
     frames: int = 0
@@ -118,21 +97,7 @@ def check_positive(name, value):
 
 
 def to_bytes(value, name):
-    """
-    Convert a str (latin-1, escapes already resolved) or bytes option to bytes.
-
-    Parameters
-    ----------
-    value : str or bytes or bytearray or None
-        The option value; None gives ``b''``.
-    name : str
-        Option name for the error message.
-
-    Returns
-    -------
-    bytes
-
-    """
+    """Return option ``name``'s bytes: of bytes, of a str (latin-1), ``b''`` of None."""
     if value is None:
         return b''
     if isinstance(value, (bytes, bytearray)):
@@ -192,20 +157,7 @@ class Parser:
         self._backwards_run = 0
 
     def feed(self, data):
-        """
-        Consume bytes and return the samples completed by them.
-
-        Parameters
-        ----------
-        data : bytes or bytearray or memoryview
-            Any bytes, in any chunking; never raises on content.
-
-        Returns
-        -------
-        list of Sample
-            Valid samples in stream order (possibly empty).
-
-        """
+        """Consume any bytes (in any chunking); return the samples they complete, in order."""
         data = bytes(data)
         self.stats.bytes_in += len(data)
         out = []

@@ -17,10 +17,9 @@ Honeywell HMR2300 smart digital magnetometer: ASCII and binary output, commands.
 
 Output formats (HMR2300 data sheet, "Data formats"):
 
-- ASCII (BCD), 28 bytes per reading, per axis ``SN X1 X2 CM X3 X4 X5 SP SP`` then
-  ``<cr>``: a sign character (``-`` or a space), the magnitude in counts with a comma
-  thousands separator right-justified in six characters (leading digits replaced by
-  spaces), two spaces. Example ``- 1,234    2,345  -   345  \r`` is x = -1234,
+- ASCII (BCD), 28 bytes per reading, per axis ``SN X1 X2 CM X3 X4 X5 SP SP`` then ``<cr>``:
+  a sign (``-`` or a space), the counts comma-grouped, right-justified in six characters,
+  two spaces. Example ``- 1,234    2,345  -   345  \r`` is x = -1234,
   y = 2345, z = -345 counts. The parser also accepts free spacing, LF and CRLF.
 - Binary, 7 bytes: ``Xhi Xlo Yhi Ylo Zhi Zlo <cr>``, big-endian two's-complement int16
   (value = hi*256 + lo, minus 65536 when >= 32768) and ``0x0D``.
@@ -267,10 +266,6 @@ class Hmr2300BinaryParser(_Hmr2300Options, Parser):
         """Return True if ``frames`` consecutive frames from ``p`` all end in 0x0D."""
         return all(buf[p + 6 + FRAME_BYTES * k] == CR for k in range(frames))
 
-    def _consistent(self, buf, p):
-        """Return True if ``sync_frames`` frames from ``p`` all end in 0x0D."""
-        return self._ends_ok(buf, p, self.sync_frames)
-
     def _variation(self, buf, p):
         frames = [struct.unpack_from('>3h', buf, p + FRAME_BYTES * k)
                   for k in range(self.max_sync_frames)]
@@ -299,7 +294,7 @@ class Hmr2300BinaryParser(_Hmr2300Options, Parser):
                 continue
             # acquisition: earliest position where sync_frames frames line up
             j = i
-            while j + span <= n and not self._consistent(buf, j):
+            while j + span <= n and not self._ends_ok(buf, j, self.sync_frames):
                 j += 1
             if j + span > n:
                 keep = max(i, n - (span - 1))
