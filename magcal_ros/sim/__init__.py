@@ -28,9 +28,7 @@ from magcal_ros.sim.paths import DEFAULT_DIR, DEFAULT_NAMESPACE, DEFAULT_PREFIX,
 _FROM_DEVICES = ('DEFAULTS', 'FluxgateSim', 'load_config', 'parse_gradient', 'parse_option',
                  'parse_unplug', 'resolve_settings', 'Unplug')
 
-__all__ = ['DEFAULT_DIR', 'DEFAULT_NAMESPACE', 'DEFAULT_PREFIX', 'DEFAULTS', 'device_dir',
-           'FluxgateSim', 'load_config', 'parse_gradient', 'parse_option', 'parse_unplug',
-           'resolve_settings', 'Unplug']
+__all__ = ['DEFAULT_DIR', 'DEFAULT_NAMESPACE', 'DEFAULT_PREFIX', 'device_dir', *_FROM_DEVICES]
 
 
 def __getattr__(name):
