@@ -661,9 +661,9 @@ def write_bag(path, data, namespace='/magcal', storage='sqlite3', frame_id='flux
         if first.ref_total is not None:
             add(('ref',), f'{ns}/ref_total', f64, data=0.0)
         if first.attitude is not None:
+            quat = ts.types['geometry_msgs/msg/Quaternion']
             add(('imu',), f'{ns}/imu', IMU_TYPE, header=header(stamp=stamp0, frame_id=frame_id),
-                orientation=ts.types['geometry_msgs/msg/Quaternion'](x=0.0, y=0.0, z=0.0,
-                                                                      w=1.0),
+                orientation=quat(x=0.0, y=0.0, z=0.0, w=1.0),
                 orientation_covariance=np.zeros(9), angular_velocity=vec(0.0, 0.0, 0.0),
                 angular_velocity_covariance=unknown, linear_acceleration=vec(0.0, 0.0, 0.0),
                 linear_acceleration_covariance=unknown)

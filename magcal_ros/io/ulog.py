@@ -192,7 +192,7 @@ def _power(topics, params, t):
 
 
 def _device(d):
-    """The device id of a topic's data, or None."""
+    """Return the device id of a topic's data, or None."""
     return int(d['device_id'][0]) if 'device_id' in d and len(d['device_id']) else None
 
 

@@ -162,7 +162,7 @@ def _interp(t_stream, v, t):
 
 
 def _onto(stream, t):
-    """A stream's values interpolated onto ``t`` (:func:`_interp`), None without any."""
+    """Return a stream's values interpolated onto ``t`` (:func:`_interp`), or None."""
     ts, vs = _clean(stream)
     return _interp(ts, vs, t) if len(ts) else None
 

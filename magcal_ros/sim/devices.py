@@ -103,7 +103,7 @@ def parse_truth_item(text):
 
 
 def _positive(kind, strict=True):
-    """An argparse type: a finite number of ``kind``, > 0 (``strict``) or >= 0."""
+    """Return an argparse type: a finite number of ``kind``, > 0 (``strict``) or >= 0."""
     def check(text):
         try:
             value = kind(text)
