@@ -42,23 +42,10 @@ _NUMBER = re.compile(rb'[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?'
 
 def parse_number(text):
     """
-    Parse one ASCII number strictly.
+    Parse one ASCII field (bytes, whitespace around allowed) strictly as a float.
 
-    Parameters
-    ----------
-    text : bytes
-        The field, surrounding whitespace allowed.
-
-    Returns
-    -------
-    float
-        The value (may be nan or inf: the caller rejects non-finite values).
-
-    Raises
-    ------
-    ValueError
-        If ``text`` is not a plain decimal number.
-
+    The value may be nan or inf (the caller rejects them); ValueError if ``text`` is not a
+    plain decimal number.
     """
     text = text.strip()
     if not _NUMBER.fullmatch(text):
@@ -210,15 +197,7 @@ class AsciiEncoder(Encoder):
         self.preamble = (to_bytes(header, 'header') + self.terminator) if header else b''
 
     def encode(self, sample):
-        """
-        Return one line for ``sample``.
-
-        Raises
-        ------
-        ValueError
-            If the columns need a temperature or time that the sample lacks.
-
-        """
+        """Return one line for ``sample`` (ValueError: the columns need what it lacks)."""
         parts = []
         for name in self.columns:
             if name in ('x', 'y', 'z'):
