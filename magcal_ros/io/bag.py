@@ -78,27 +78,15 @@ def _interp(t_msg, v_msg, t):
 
 def read_bag(path, namespace='/magcal', aux_topics=None, imu_topic=None):
     """
-    Read a rosbag2 directory into a Dataset (readings in nT, times in s).
+    Read a rosbag2 directory (with ``metadata.yaml``) into a Dataset.
 
-    Parameters
-    ----------
-    path : str or os.PathLike
-        The bag directory (with ``metadata.yaml``).
-    namespace : str
-        Topic namespace of the array.
-    aux_topics : dict of str to str, optional
-        {column name ('aux_motor_current'): topic} for auxiliary channels published
-        elsewhere (std_msgs Float64/Float32).
-    imu_topic : str, optional
-        ``sensor_msgs/Imu`` topic of the array's attitude (default ``{namespace}/imu``).
-
-    Returns
-    -------
-    Dataset
-        ``t`` (N,) s (header stamps, absolute), ``raw`` (S, N, 3) nT, ``temp`` (S, N) degC or
-        None, ``ref_total`` (N,) nT or None, ``aux`` {name: (N,)}; ``meta`` holds the source,
-        the topics used and the number of dropped epochs.
-
+    ``namespace`` the array's topic namespace; ``aux_topics`` {column name
+    ('aux_motor_current'): topic} of auxiliary channels published elsewhere (std_msgs
+    Float64/Float32); ``imu_topic`` the ``sensor_msgs/Imu`` topic of the array's attitude
+    (default ``{namespace}/imu``).  Returns ``t`` (N,) s (header stamps, absolute), ``raw``
+    (S, N, 3) nT, ``temp`` (S, N) degC or None, ``ref_total`` (N,) nT or None, ``aux`` {name:
+    (N,)}, ``attitude`` (N, 4) or None; ``meta`` the source, the topics used and the number
+    of dropped epochs.
     """
     with _Collector(path, namespace, aux_topics, imu_topic) as col:
         messages = col.reader.messages(connections=col.conns)
@@ -154,26 +142,20 @@ def bag_chunks(path, rows=65536, progress=None, namespace='/magcal', aux_topics=
     first chunk (:func:`read_bag`: of the whole record).  ``progress(messages read)``.
     """
     with _Collector(path, namespace, aux_topics, imu_topic, rows) as col:
-        n_msg = 0
+        n_msg, done = 0, False
         per_chunk = rows * max(1, len(col.conns))
         messages = col.reader.messages(connections=col.conns)
-        while True:
-            # a chunk every per_chunk messages, read and decoded FLUSH at a time
+        while not done:
+            # a chunk every per_chunk messages (and at the end), read and decoded FLUSH at a time
             got = col.read(messages, min(col.FLUSH, per_chunk - n_msg % per_chunk))
             n_msg += got
-            if got == 0:
-                break
-            if n_msg % per_chunk == 0:
-                piece = col.take(col.safe_time())
+            done = got == 0
+            if done or n_msg % per_chunk == 0:
+                piece = col.take(None, final=True) if done else col.take(col.safe_time())
                 if progress is not None:
                     progress(n_msg)
                 if piece is not None:
                     yield piece
-        piece = col.take(None, final=True)
-        if progress is not None:
-            progress(n_msg)
-        if piece is not None:
-            yield piece
 
 
 #: The message types read without rosbags' deserialiser: {type: (has a std_msgs/Header,
@@ -203,22 +185,9 @@ def _decode_fixed(datas, msgtype):
     (either byte order) and its length is exactly what its frame_id's length makes it (the
     string non-empty, NUL-terminated, ASCII); everything else is left to rosbags.
 
-    Parameters
-    ----------
-    datas : list of bytes
-        M serialised messages.
-    msgtype : str
-        Their type (a key of ``_LAYOUT``).
-
-    Returns
-    -------
-    stamp_ns : (M,) int64 or None
-        Header stamps, ns (None for a type without header).
-    values : (M, k) float64
-        The fields of ``_LAYOUT`` (message units).
-    ok : (M,) bool
-        False where the message was not decoded (values and stamp 0 there).
-
+    ``datas`` M serialised messages (bytes) of type ``msgtype``.  Returns (stamp_ns (M,)
+    int64 header stamps, None for a type without header; values (M, k) the fields of
+    ``_LAYOUT``, message units; ok (M,) bool, False where not decoded: values and stamp 0).
     """
     has_header, tail, k, kind = _LAYOUT[msgtype]
     m = len(datas)
@@ -605,23 +574,11 @@ def write_bag(path, data, namespace='/magcal', storage='sqlite3', frame_id='flux
 
     For tests, demos and converting CSV recordings for ROS tools.  Readings are written in
     tesla (``sensor_msgs/MagneticField``), temperatures in degC, auxiliary channels as
-    ``std_msgs/Float64`` on ``{ns}/aux/<name>``, ``ref_total`` in tesla.
-
-    Parameters
-    ----------
-    path : str or os.PathLike
-        Bag directory to create (must not exist).
-    data : Dataset or iterable of Dataset
-        Times ``t`` (N,) s are used as header stamps and receive times; an iterable of
-        consecutive pieces with the same columns (a long record, chunk by chunk) is written
-        as one recording.
-    namespace : str
-        Topic namespace (topics ``{namespace}/sensor{j}/raw``, ...).
-    storage : {'sqlite3', 'mcap'}
-        rosbag2 storage plug-in.
-    frame_id : str
-        Header frame prefix; sensor j gets ``{frame_id}{j}``.
-
+    ``std_msgs/Float64`` on ``{ns}/aux/<name>``, ``ref_total`` in tesla, the attitude as
+    ``sensor_msgs/Imu``.  ``path`` the bag directory to create (must not exist); ``data`` a
+    Dataset, or consecutive pieces with the same columns written as one recording, its
+    ``t`` (N,) s the header stamps and receive times; ``storage`` 'sqlite3' or 'mcap';
+    ``frame_id`` the header frame prefix (sensor j: ``{frame_id}{j}``).
     """
     from rosbags.rosbag2 import StoragePlugin, Writer
 
