@@ -28,8 +28,7 @@ lines to skip.
 import math
 import re
 
-from magcal_ros.serial.base import check_positive, Encoder, to_bytes
-from magcal_ros.serial.lines import LineParser
+from magcal_ros.serial.base import check_positive, Encoder, LineParser, to_bytes
 
 #: Column names understood by the ASCII protocol.
 COLUMN_NAMES = ('x', 'y', 'z', 'temp', 'time', 'skip')

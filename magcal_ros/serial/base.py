@@ -18,12 +18,14 @@ Common parts of every serial protocol: the sample record, statistics and validat
 A protocol is a pair (:class:`Parser`, :class:`Encoder`).  The parser turns any byte stream
 into :class:`Sample` records and never raises on its content: malformed, non-finite,
 saturated or time-reversed data are counted per kind in :class:`ParserStats` and skipped.
-The encoder writes exactly the bytes the parser reads (for the simulator).
+The encoder writes exactly the bytes the parser reads (for the simulator).  The text
+protocols share :class:`LineParser`'s line framing.
 """
 from collections import Counter
 import dataclasses
 from dataclasses import dataclass, field
 import math
+import re
 
 #: Default saturation limit for one field component, nT (about 2 gauss, the HMR2300 range).
 DEFAULT_MAX_ABS_NT = 200_000.0
@@ -229,3 +231,82 @@ class Encoder:
     def encode_many(self, samples):
         """Return the concatenated bytes of an iterable of samples."""
         return b''.join(self.encode(s) for s in samples)
+
+
+#: Terminators that are treated as "any of CR, LF, CRLF" when splitting.
+_NEWLINE_TERMINATORS = (b'\r\n', b'\n', b'\r', b'\n\r')
+_NEWLINE_SPLIT = re.compile(rb'[\r\n]')
+
+
+class LineParser(Parser):
+    r"""
+    Split a byte stream into lines and hand each complete line to :meth:`_parse_line`.
+
+    Parameters
+    ----------
+    terminator : str or bytes
+        Line terminator. Any newline flavour (``'\r\n'``, ``'\n'``, ``'\r'``) makes the
+        parser split on either CR or LF, so devices that send CR only, LF only or CRLF are
+        all read; blank pieces are ignored. Any other terminator (e.g. ``';'``) is split
+        on exactly.
+    max_line_bytes : int
+        A line longer than this without a terminator is discarded up to the next
+        terminator and counted as ``'overlong'`` (wrong baud rate produces such input).
+    **kwargs
+        Validation options of :class:`Parser`.
+
+    """
+
+    def __init__(self, terminator=b'\r\n', max_line_bytes=256, **kwargs):
+        super().__init__(**kwargs)
+        term = to_bytes(terminator, 'terminator')
+        if not term:
+            raise ValueError('terminator must not be empty; use e.g. "\\r\\n"')
+        self.terminator = term
+        self._newline = term in _NEWLINE_TERMINATORS
+        if int(max_line_bytes) < 8:
+            raise ValueError(f'max_line_bytes must be >= 8, got {max_line_bytes!r}')
+        self.max_line_bytes = int(max_line_bytes)
+        self._buf = b''
+        self._discarding = False
+
+    def _reset_buffer(self):
+        self._buf = b''
+        self._discarding = False
+
+    def _split(self, buf):
+        """Return (complete pieces, remainder)."""
+        if self._newline:
+            pieces = _NEWLINE_SPLIT.split(buf)
+        else:
+            pieces = buf.split(self.terminator)
+        return pieces[:-1], pieces[-1]
+
+    def _parse(self, data, out):
+        buf = self._buf + data
+        lines, rest = self._split(buf)
+        for line in lines:
+            if self._discarding:
+                # tail of an overlong line: already counted, drop it
+                self.stats.bytes_dropped += len(line)
+                self._discarding = False
+                continue
+            if len(line) > self.max_line_bytes:
+                self._error('overlong')
+                self.stats.bytes_dropped += len(line)
+                continue
+            if not line.strip():
+                if line:
+                    self.stats.ignored['blank'] += 1
+                continue
+            self._parse_line(line, out)
+        if len(rest) > self.max_line_bytes:
+            if not self._discarding:
+                self._error('overlong')
+                self._discarding = True
+            self.stats.bytes_dropped += len(rest)
+            rest = b''
+        self._buf = rest
+
+    def _parse_line(self, line, out):  # pragma: no cover - abstract
+        raise NotImplementedError

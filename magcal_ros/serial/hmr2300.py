@@ -39,8 +39,7 @@ of settings.
 import re
 import struct
 
-from magcal_ros.serial.base import Encoder, Parser
-from magcal_ros.serial.lines import LineParser
+from magcal_ros.serial.base import Encoder, LineParser, Parser
 
 CR = 0x0D
 ESC = b'\x1b'

@@ -49,7 +49,7 @@ from magcal_ros.core.data.simulate import (AUX_CHANNELS, parse_truth, set_truth_
 from magcal_ros.serial import make_encoder, PROTOCOLS, Sample
 from magcal_ros.serial.options import load_yaml, parse_options, parse_value
 from magcal_ros.serial.transport import PtyDevice
-from magcal_ros.sim.paths import DEFAULT_DIR, DEFAULT_NAMESPACE, DEFAULT_PREFIX, device_dir
+from magcal_ros.sim import DEFAULT_DIR, DEFAULT_NAMESPACE, DEFAULT_PREFIX, device_dir
 import numpy as np
 import yaml
 
