@@ -603,43 +603,34 @@ def write_bag(path, data, namespace='/magcal', storage='sqlite3', frame_id='flux
     with Writer(path, version=9, storage_plugin=plugins[storage]) as w:
         streams = []
 
-        def add(key, topic, msgtype, **fields):
-            streams.append((key, w.add_connection(topic, msgtype, typestore=ts),
+        def add(get, topic, msgtype, **fields):
+            """Add a stream: ``get(piece)`` its values, one template message of its type."""
+            streams.append((get, w.add_connection(topic, msgtype, typestore=ts),
                             _Template(ts, msgtype, ts.types[msgtype](**fields))))
         for j in range(1, first.n_sensors + 1):
             hdr = header(stamp=stamp0, frame_id=f'{frame_id}{j}')
-            add(('raw', j), f'{ns}/sensor{j}/raw', MAG_TYPE, header=hdr,
-                magnetic_field=vec(0.0, 0.0, 0.0), magnetic_field_covariance=np.zeros(9))
+            add(lambda d, j=j: nt_to_t(d.raw[j - 1]), f'{ns}/sensor{j}/raw', MAG_TYPE,
+                header=hdr, magnetic_field=vec(0.0, 0.0, 0.0),
+                magnetic_field_covariance=np.zeros(9))
             if first.temp is not None and np.isfinite(first.temp[j - 1]).any():
-                add(('temp', j), f'{ns}/sensor{j}/temperature', TEMP_TYPE, header=hdr,
-                    temperature=0.0, variance=0.0)
+                add(lambda d, j=j: d.temp[j - 1], f'{ns}/sensor{j}/temperature', TEMP_TYPE,
+                    header=hdr, temperature=0.0, variance=0.0)
         for name in sorted(first.aux):
-            add(('aux', name), f'{ns}/aux/{name[4:]}', f64, data=0.0)
+            add(lambda d, name=name: d.aux[name], f'{ns}/aux/{name[4:]}', f64, data=0.0)
         if first.ref_total is not None:
-            add(('ref',), f'{ns}/ref_total', f64, data=0.0)
+            add(lambda d: nt_to_t(d.ref_total), f'{ns}/ref_total', f64, data=0.0)
         if first.attitude is not None:
             quat = ts.types['geometry_msgs/msg/Quaternion']
-            add(('imu',), f'{ns}/imu', IMU_TYPE, header=header(stamp=stamp0, frame_id=frame_id),
+            # Dataset: w x y z; Imu: x y z w
+            add(lambda d: np.asarray(d.attitude, float)[:, [1, 2, 3, 0]], f'{ns}/imu', IMU_TYPE,
+                header=header(stamp=stamp0, frame_id=frame_id),
                 orientation=quat(x=0.0, y=0.0, z=0.0, w=1.0),
                 orientation_covariance=np.zeros(9), angular_velocity=vec(0.0, 0.0, 0.0),
                 angular_velocity_covariance=unknown, linear_acceleration=vec(0.0, 0.0, 0.0),
                 linear_acceleration_covariance=unknown)
         for data in chain([first], pieces):
             t_ns = np.round(np.asarray(data.t, float) * 1e9).astype(np.int64)
-            raw_t = nt_to_t(data.raw)
-            columns = []
-            for key, conn, tmpl in streams:
-                if key[0] == 'raw':
-                    v = raw_t[key[1] - 1]
-                elif key[0] == 'temp':
-                    v = data.temp[key[1] - 1]
-                elif key[0] == 'aux':
-                    v = data.aux[key[1]]
-                elif key[0] == 'ref':
-                    v = nt_to_t(data.ref_total)
-                else:                               # Dataset: w x y z; Imu: x y z w
-                    v = np.asarray(data.attitude, float)[:, [1, 2, 3, 0]]
-                columns.append((conn, tmpl.messages(t_ns, v)))
+            columns = [(conn, tmpl.messages(t_ns, get(data))) for get, conn, tmpl in streams]
             for k, tk in enumerate(t_ns.tolist()):
                 for conn, msgs in columns:
                     w.write(conn, tk, msgs[k])
