@@ -117,22 +117,12 @@ class Parser:
     """
     Base class of protocol parsers: validation, statistics and timestamp ordering.
 
-    Subclasses implement :meth:`_parse` (bytes -> list of raw tuples via :meth:`_accept`).
-
-    Parameters
-    ----------
-    max_abs_nt : float
-        Saturation limit: a sample with any ``|component| > max_abs_nt`` (nT) is rejected
-        as ``'out_of_range'``. Default 200 000 nT.
-    temp_range_c : (float, float)
-        Inclusive plausible temperature range in degC; outside it the sample is rejected
-        as ``'temp_out_of_range'``.
-    time_reset_after : int
-        After this many consecutive samples with a device time earlier than the last
-        accepted one (each counted as ``'time_backwards'`` and dropped), the parser
-        assumes the device restarted its clock, counts ``'time_reset'`` and accepts the
-        new time base.
-
+    Subclasses implement :meth:`_parse` (bytes -> samples via :meth:`_accept`).  A sample
+    with any ``|component| > max_abs_nt`` (nT) is rejected as ``'out_of_range'``, one whose
+    temperature is outside ``temp_range_c`` (inclusive, degC) as ``'temp_out_of_range'``.
+    After ``time_reset_after`` consecutive samples with a device time earlier than the last
+    accepted one (each counted as ``'time_backwards'`` and dropped) the parser takes it that
+    the device restarted its clock, counts ``'time_reset'`` and accepts the new time base.
     """
 
     #: Bytes the transport writes after opening the port (e.g. a start command).
@@ -242,19 +232,11 @@ class LineParser(Parser):
     r"""
     Split a byte stream into lines and hand each complete line to :meth:`_parse_line`.
 
-    Parameters
-    ----------
-    terminator : str or bytes
-        Line terminator. Any newline flavour (``'\r\n'``, ``'\n'``, ``'\r'``) makes the
-        parser split on either CR or LF, so devices that send CR only, LF only or CRLF are
-        all read; blank pieces are ignored. Any other terminator (e.g. ``';'``) is split
-        on exactly.
-    max_line_bytes : int
-        A line longer than this without a terminator is discarded up to the next
-        terminator and counted as ``'overlong'`` (wrong baud rate produces such input).
-    **kwargs
-        Validation options of :class:`Parser`.
-
+    A newline ``terminator`` (``'\r\n'``, ``'\n'``, ``'\r'``) splits on either CR or LF, so
+    devices sending CR only, LF only or CRLF are all read (blank pieces ignored); any other
+    (e.g. ``';'``) is split on exactly.  A line longer than ``max_line_bytes`` without a
+    terminator is discarded up to the next one and counted as ``'overlong'`` (a wrong baud
+    rate makes such input).  ``kwargs``: the validation options of :class:`Parser`.
     """
 
     def __init__(self, terminator=b'\r\n', max_line_bytes=256, **kwargs):

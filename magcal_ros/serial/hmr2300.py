@@ -146,23 +146,12 @@ class Hmr2300AsciiParser(_Hmr2300Options, LineParser):
     """
     Parser of HMR2300 ASCII output (signed counts with comma thousands separators).
 
-    Parameters
-    ----------
-    counts_per_gauss : float
-        Default 15 000.
-    device_id : str
-        Two-digit id used in the start command, default ``'99'`` (all units).
-    send_start : bool
-        If True the transport sends ``*ddA`` [``*ddR=rate``] ``*ddC`` on open and ESC on
-        close. Default False (the device is left as configured).
-    rate : int or None
-        Sample rate for the start sequence, one of :data:`RATES`.
-    **kwargs
-        ``terminator`` (default CR; CR, LF and CRLF are all accepted), ``max_abs_nt``,
-        ``temp_range_c``, ``time_reset_after``, ``max_line_bytes``.
-
-    Lines that are exactly ``OK`` (command replies) are ignored as ``'response'``.
-
+    ``device_id``: the two digits of the start command (``'99'``: all units); with
+    ``send_start`` the transport sends ``*ddA`` [``*ddR=rate``, ``rate`` one of
+    :data:`RATES`] ``*ddC`` on open and ESC on close (default: the device is left as
+    configured).  ``kwargs``: ``terminator`` (CR, LF and CRLF all accepted), ``max_abs_nt``,
+    ``temp_range_c``, ``time_reset_after``, ``max_line_bytes``.  Lines that are exactly
+    ``OK`` (command replies) are ignored as ``'response'``.
     """
 
     def __init__(self, counts_per_gauss=COUNTS_PER_GAUSS, device_id='99', send_start=False,
@@ -232,17 +221,9 @@ class Hmr2300BinaryParser(_Hmr2300Options, Parser):
     frame only needs its own terminator; a missing terminator loses the lock
     (``'sync_lost'``) and the search restarts one byte after the start of that frame.
 
-    Parameters
-    ----------
-    sync_frames : int
-        Frames that must line up to acquire (default 3).
-    max_sync_frames : int
-        Most frames read to resolve an ambiguous alignment (default 16).
-    counts_per_gauss, device_id, send_start, rate : see :class:`Hmr2300AsciiParser`
-        The start sequence selects binary output (``*ddB``).
-    **kwargs
-        ``max_abs_nt``, ``temp_range_c``, ``time_reset_after``.
-
+    ``counts_per_gauss``, ``device_id``, ``send_start``, ``rate`` as
+    :class:`Hmr2300AsciiParser` (the start sequence selects binary output, ``*ddB``);
+    ``kwargs``: ``max_abs_nt``, ``temp_range_c``, ``time_reset_after``.
     """
 
     def __init__(self, counts_per_gauss=COUNTS_PER_GAUSS, device_id='99', send_start=False,

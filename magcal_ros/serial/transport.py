@@ -100,37 +100,18 @@ class PortReader:
     """
     Background thread reading one serial port into a parser, reconnecting on loss.
 
-    Parameters
-    ----------
-    port : str
-        Device path, e.g. ``/dev/ttyUSB0`` or ``/tmp/magcal_sim/fluxgate1``.
-    baudrate : int
-        Baud rate (bit/s).
-    parser : magcal_ros.serial.Parser
-        Protocol parser; its ``start_command`` is written after every (re)open and its
-        ``stop_command`` before a clean close.
-    callback : callable
-        ``callback(sample, arrival_time)`` for every sample, called from the reader thread;
-        ``arrival_time`` is ``clock()`` (default ``time.time()``, s) when its bytes arrived.
-    alternatives : sequence of str
-        Glob patterns of other paths to try when ``port`` cannot be opened (a device that
-        comes back under another name after a replug). Paths open by another reader of
-        this process are skipped.
-    timeout : float
-        pyserial read timeout, s; bounds how quickly :meth:`stop` takes effect.
-    backoff_min, backoff_max : float
-        First and largest wait between reopen attempts, s; the wait doubles after every
-        failure and returns to ``backoff_min`` once data flows again.
-    name : str
-        Label for logs and statistics.
-    rate_window : float
-        Window for ``rate_hz``, s.
-    serial_factory : callable
-        ``serial_factory(path, baudrate, timeout=...)`` returning a pyserial-like object;
-        default ``serial.Serial``.
-    clock : callable
-        Arrival-time source, default ``time.time``.
-
+    ``port`` the device path (``/dev/ttyUSB0``, ``/tmp/magcal_sim/fluxgate1``), ``baudrate``
+    bit/s; ``parser`` a :class:`magcal_ros.serial.Parser`, its ``start_command`` written after
+    every (re)open and its ``stop_command`` before a clean close; ``callback(sample,
+    arrival_time)`` called from the reader thread for every sample, ``arrival_time`` the
+    ``clock()`` (s) when its bytes arrived.  ``alternatives``: glob patterns of other paths
+    to try when ``port`` cannot be opened (a device back under another name), paths open by
+    another reader of this process skipped.  ``timeout``: pyserial's read timeout, s (how
+    quickly :meth:`stop` acts).  ``backoff_min``, ``backoff_max``: the first and largest wait
+    between reopen attempts, s, doubling after every failure, back to ``backoff_min`` once
+    data flow.  ``name`` labels logs and statistics; ``rate_window`` (s) is ``rate_hz``'s;
+    ``serial_factory(path, baudrate, timeout=...)`` returns a pyserial-like object (default
+    ``serial.Serial``).
     """
 
     def __init__(self, port, baudrate, parser, callback, *, alternatives=(), timeout=0.05,
@@ -361,20 +342,13 @@ class PtyDevice:
     """
     A simulated serial device on a pseudo-terminal.
 
-    The slave side is put in raw mode and (optionally) symlinked to ``link_path``;
-    a :class:`PortReader` (or any program) opens that path like a real serial port. The
-    device writes through the master side, which is non-blocking: when nobody reads and
-    the kernel buffer is full, stale unread input is flushed (counted in
-    :attr:`flushes`), as a streaming device's output is lost when no host listens;
-    :meth:`write` never blocks. Bytes written while unplugged count in :attr:`bytes_dropped`.
-    All methods are thread safe (a writer thread may run while another unplugs).
-
-    Parameters
-    ----------
-    link_path : str or None
-        Path of the symlink to create (parent directories are created; a stale symlink is
-        replaced atomically; an existing non-symlink file is refused).
-
+    The slave side is put in raw mode and (optionally) symlinked to ``link_path`` (parent
+    directories created, a stale symlink replaced atomically, an existing non-symlink file
+    refused); a :class:`PortReader` (or any program) opens that path like a serial port.  The
+    device writes through the non-blocking master side: when nobody reads and the kernel
+    buffer is full, stale unread input is flushed (counted in :attr:`flushes`), as a
+    streaming device's output is lost when no host listens; :meth:`write` never blocks.
+    Bytes written while unplugged count in :attr:`bytes_dropped`.  Thread safe.
     """
 
     def __init__(self, link_path=None):
