@@ -237,26 +237,12 @@ def ardupilot_raw(field, offsets, motor, diag, offdiag, scale, motor_first=False
     """
     Return the raw body-frame reading from what ArduPilot logs (module docstring), any unit.
 
-    Parameters
-    ----------
-    field : numpy.ndarray
-        (N, 3) logged corrected field F (MAG.MagX..).
-    offsets, motor : numpy.ndarray
-        (N, 3) offsets o and motor compensation m as logged (OfsX.., MOX..).
-    diag, offdiag : numpy.ndarray
-        (N, 3) or (3,): COMPASS_DIA (x, y, z; all zero is read as 1, 1, 1) and COMPASS_ODI
-        (xy, xz, yz).
-    scale : numpy.ndarray or float
-        (N,) or scalar COMPASS_SCALE; outside :data:`SCALE_BOUNDS` the firmware does not
-        apply it and neither does this.
-    motor_first : bool
-        Firmware older than 3.6: F = M (r + o + m).
-
-    Returns
-    -------
-    numpy.ndarray
-        (N, 3) r = M^-1 (F - m) / s - o  (older: M^-1 F - o - m).
-
+    ``field`` (N, 3) the logged corrected F (MAG.MagX..); ``offsets``, ``motor`` (N, 3) o and
+    m as logged (OfsX.., MOX..); ``diag``, ``offdiag`` (N, 3) or (3,) COMPASS_DIA (x, y, z;
+    all zero read as 1) and COMPASS_ODI (xy, xz, yz); ``scale`` (N,) or scalar COMPASS_SCALE,
+    not applied outside :data:`SCALE_BOUNDS` (as the firmware); ``motor_first`` for firmware
+    older than 3.6, F = M (r + o + m).  Returns (N, 3) r = M^-1 (F - m) / s - o (older:
+    M^-1 F - o - m).
     """
     field = np.asarray(field, float)
     n = len(field)

@@ -82,19 +82,8 @@ def read_vehicle_log(path, allow_gaps=False):
 
     ``allow_gaps``: keep a record whose compass 1 stops for a while (a log dropout) as it
     is, with a warning naming the gaps (``meta['gaps']``: [(t s, length s)]), instead of
-    refusing it.
-
-    Returns
-    -------
-    Dataset
-        ``t`` (N,) s, ``raw`` (S, N, 3) nT body frame, ``attitude`` (N, 4) or None, ``temp``
-        (S, N) degC or None, ``aux`` {name: (N,)}, ``meta`` (module docstring).
-
-    Raises
-    ------
-    VehicleLogError
-        One line: what is wrong with the log and what to do.
-
+    refusing it.  Returns the Dataset of the module docstring; raises
+    :class:`VehicleLogError` (one line: what is wrong and what to do).
     """
     path = os.fspath(path)
     kind = log_format(path)

@@ -146,27 +146,12 @@ def fit_ellipsoid(raw, field_nt, normalization='svd'):
     """
     Fit the ellipsoid of paper 004 eq. 8 to raw readings and factor it (eq. 11-13, Cholesky).
 
-    Parameters
-    ----------
-    raw : numpy.ndarray
-        (N, 3) raw readings in nT, N >= 9.
-    field_nt : float
-        Magnitude |B| of the uniform field in nT (eq. 13).
-    normalization : {'svd', 'p'}
-        'svd' solves the homogeneous system with |coeffs| = 1 (smallest right singular
-        vector of the centred, scaled design matrix; well conditioned). 'p' divides by the
-        coefficient p as the paper does (eq. 9-10); it fails when the x offset is near zero.
-
-    Returns
-    -------
-    EllipsoidFit
-
-    Raises
-    ------
-    ValueError
-        Too few samples, or the quadric is not an ellipsoid (data too degenerate: e.g. a
-        single-axis rotation), with the reason.
-
+    ``raw`` (N, 3) nT, N >= 9; ``field_nt`` the uniform field's magnitude |B|, nT (eq. 13);
+    ``normalization`` 'svd' solves the homogeneous system with |coeffs| = 1 (the smallest
+    right singular vector of the centred, scaled design matrix; well conditioned), 'p'
+    divides by the coefficient p as the paper does (eq. 9-10; fails when the x offset is near
+    zero).  Raises ValueError, with the reason, for too few samples or a quadric that is not
+    an ellipsoid (degenerate data, e.g. a single-axis rotation).
     """
     m = np.asarray(raw, float)
     if m.ndim != 2 or m.shape[1] != 3:

@@ -115,29 +115,12 @@ def fit_reference(He, Hm, strict=False, max_condition=100.0,
     """
     Fit ``Hm = K He + Hh`` by linear least squares (paper 002, eq. 4-7).
 
-    Parameters
-    ----------
-    He : array_like
-        (N, 3) reference (undisturbed) field in nT, one row per attitude, N >= 4.
-    Hm : array_like
-        (N, 3) disturbed reading in nT at the same attitudes.
-    strict : bool, optional
-        Raise ``ValueError`` instead of returning a fit flagged not identifiable.
-    max_condition : float, optional
-        Largest acceptable condition number of the column-scaled design.
-    planar_threshold : float, optional
-        Passed to :func:`~magcal_ros.core.geometry.coverage.direction_coverage`.
-
-    Returns
-    -------
-    ReferenceFit
-
-    Raises
-    ------
-    ValueError
-        On malformed input, fewer than 4 attitudes, or (``strict=True``) when the data
-        cannot determine all 12 parameters.
-
+    ``He`` (N, 3) the reference (undisturbed) field, nT, one row per attitude, N >= 4;
+    ``Hm`` (N, 3) the disturbed readings, nT; ``strict`` raises ValueError instead of
+    returning a fit flagged not identifiable; ``max_condition`` the largest acceptable
+    condition number of the column-scaled design; ``planar_threshold`` for
+    :func:`~magcal_ros.core.geometry.coverage.direction_coverage`.  Raises ValueError on
+    malformed input or fewer than 4 attitudes.
     """
     he = np.asarray(He, dtype=float)
     hm = np.asarray(Hm, dtype=float)
