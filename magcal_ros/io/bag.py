@@ -280,11 +280,9 @@ class _Collector:
         except BaseException:
             self.reader.close()
             raise
-        self.period = None
+        self.period = self.t1_first = None
         self.rows = rows
-        self.t1_first = None
-        self.dropped = 0
-        self.dropped_att = 0
+        self.dropped = self.dropped_att = 0
         self.emitted = False
         self.n_decoded = {c.id: 0 for c in self.conns}
 
@@ -394,10 +392,7 @@ class _Collector:
             vals[i] = v
         self.n_decoded[c.id] += len(datas)
         kind, key = self.kind[c.id]
-        if stamp is not None:
-            t = np.where(stamp > 0, stamp, recv) * 1e-9
-        else:
-            t = recv * 1e-9
+        t = (recv if stamp is None else np.where(stamp > 0, stamp, recv)) * 1e-9
         if kind == 'mag':
             if key == 1 and self.t1_first is None and len(t):
                 self.t1_first = float(t.min())

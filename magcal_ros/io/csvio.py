@@ -46,14 +46,10 @@ def read_csv(path):
     ``att_qw, att_qx, att_qy, att_qz`` (all four: body-to-world unit quaternion, Hamilton,
     scalar first).
     ``#`` lines are comments.  Unknown columns are an error.  A ``.csv.gz`` or ``.csv.zst``
-    file is decompressed as it is read (:mod:`magcal_ros.io.compressed`).
-
-    The numbers are parsed by numpy's C reader (:func:`numpy.loadtxt`); a file with empty cells
-    (an optional value not given: NaN) is read again with them filled in.  When that read
-    meets anything to report (a cell that is not a number, a row of the wrong length, an
-    empty or non-finite required cell, a bad attitude) or the file has a text column
-    (``plane``), the file is read once more row by row with the :mod:`csv` module, so that
-    the error names the line and the column.
+    file is decompressed as it is read (:mod:`magcal_ros.io.compressed`).  Numbers are parsed
+    by :func:`numpy.loadtxt` (again with empty cells, an optional value not given, filled with
+    NaN); a file with a ``plane`` column or anything to report is read row by row with the
+    :mod:`csv` module, so that the error names the line and the column.
     """
     path = os.fspath(path)
     for how in ('numpy', 'numpy, empty cells filled'):

@@ -146,8 +146,7 @@ class _Log:
 
     def _binary_table(self, name, every):
         fmt = self.by_name[name]
-        names, formats, offsets, mults = [], [], [], {}
-        off = 0
+        names, formats, mults = [], [], {}
         for col, ch in zip(fmt.columns, fmt.format):
             if ch not in _NP:
                 raise VehicleLogError(f'{self.path}: message {name}: unknown format character '
@@ -157,17 +156,14 @@ class _Log:
                 col = f'{col}_{len(names)}'
             names.append(col)
             formats.append(np_t)
-            offsets.append(off)
-            off += np.dtype(np_t).itemsize
             if mult:
                 mults[col] = mult
+        dtype = np.dtype({'names': names, 'formats': formats})      # packed, as the log
         length = fmt.len - 3
-        if off != length:
+        if dtype.itemsize != length:
             raise VehicleLogError(f'{self.path}: message {name}: its FMT says {fmt.len} bytes '
-                                  f'but its format {fmt.format!r} makes {off + 3}: the log is '
-                                  'damaged')
-        dtype = np.dtype({'names': names, 'formats': formats, 'offsets': offsets,
-                          'itemsize': length})
+                                  f'but its format {fmt.format!r} makes {dtype.itemsize + 3}: '
+                                  'the log is damaged')
         wanted = [c for c in names if _FIELDS.fullmatch(c)]
         buf = np.frombuffer(self.r.data_map, np.uint8)
         try:
