@@ -176,6 +176,22 @@ _LAYOUT = {
 }
 
 
+def _dtype(msgtype, order, n, k):
+    """
+    Return the structured dtype of a serialised message of ``msgtype`` of ``n`` bytes.
+
+    ``v`` its first ``k`` float fields after the header; with a header, ``sec``, ``nsec``
+    and ``len`` (of frame_id); ``order`` '<' or '>' (its CDR byte order).
+    """
+    has_header, tail, _, kind = _LAYOUT[msgtype]
+    names, formats, offsets = ['v'], [(order + kind, (k,))], [n - tail]
+    if has_header:
+        names += ['sec', 'nsec', 'len']
+        formats += [order + 'i4', order + 'u4', order + 'u4']
+        offsets += [4, 8, 12]
+    return np.dtype({'names': names, 'formats': formats, 'offsets': offsets, 'itemsize': n})
+
+
 def _decode_fixed(datas, msgtype):
     """
     Decode serialised messages of a type in ``_LAYOUT`` from their bytes, in batches.
@@ -208,13 +224,7 @@ def _decode_fixed(datas, msgtype):
             rows = np.flatnonzero((raw[:, 0] == 0) & (raw[:, 1] == flag))
             if not len(rows):
                 continue
-            names, formats, offsets = ['v'], [(order + kind, (k,))], [n - tail]
-            if has_header:
-                names += ['sec', 'nsec', 'len']
-                formats += [order + 'i4', order + 'u4', order + 'u4']
-                offsets += [4, 8, 12]
-            rec = np.frombuffer(buf, np.dtype({'names': names, 'formats': formats,
-                                               'offsets': offsets, 'itemsize': n}))[rows]
+            rec = np.frombuffer(buf, _dtype(msgtype, order, n, k))[rows]
             good = np.ones(len(rows), bool)
             if has_header:
                 length = rec['len'].astype(np.int64)
@@ -637,18 +647,9 @@ class _Template:
 
     def __init__(self, ts, msgtype, msg):
         self.raw = np.frombuffer(ts.serialize_cdr(msg, msgtype), np.uint8)
-        has_header, tail, _, kind = _LAYOUT[msgtype]
-        n = len(self.raw)
-        order = '<' if self.raw[1] == 1 else '>'
-        self.has_header = has_header
-        names, formats, offsets = ['v'], [order + kind], [n - tail]
-        if has_header:
-            names += ['sec', 'nsec']
-            formats += [order + 'i4', order + 'u4']
-            offsets += [4, 8]
-        self.dtype = np.dtype({'names': names, 'formats': formats, 'offsets': offsets,
-                               'itemsize': n})
-        self.width = {MAG_TYPE: 3, IMU_TYPE: 4}.get(msgtype, 1)
+        self.has_header = _LAYOUT[msgtype][0]
+        self.dtype = _dtype(msgtype, '<' if self.raw[1] == 1 else '>', len(self.raw),
+                            {MAG_TYPE: 3, IMU_TYPE: 4}.get(msgtype, 1))
 
     def messages(self, t_ns, values):
         """
@@ -657,19 +658,12 @@ class _Template:
         ``values`` go to the first ``w`` float fields after the header (MagneticField:
         the field in T; Temperature: degC; Float64: data; Imu: orientation x y z w).
         """
-        n = len(self.raw)
-        m = len(t_ns)
+        n, m = len(self.raw), len(t_ns)
         buf = np.tile(self.raw, m)
         rec = buf.view(self.dtype)
         if self.has_header:
             rec['sec'] = t_ns // 1_000_000_000
             rec['nsec'] = t_ns % 1_000_000_000
-        vals = np.asarray(values, float).reshape(m, -1)
-        if self.width == 1:
-            rec['v'] = vals[:, 0]
-        else:
-            fields = np.dtype({'names': ['v'], 'formats': [(self.dtype['v'], (self.width,))],
-                               'offsets': [self.dtype.fields['v'][1]], 'itemsize': n})
-            buf.view(fields)['v'] = vals
+        rec['v'] = np.asarray(values, float).reshape(m, -1)
         blob = buf.tobytes()
         return [blob[i:i + n] for i in range(0, m * n, n)]
