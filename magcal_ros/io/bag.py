@@ -483,7 +483,7 @@ class _Collector:
         sel = np.ones(len(t_all), bool) if final else t_all <= upto
         t = t_all[sel]
         v1 = self.mags[1][1][order]
-        raw = np.empty((s, len(t), 3))
+        raw = np.zeros((s, len(t), 3))         # a sensor without messages: all dropped
         raw[0] = v1[sel]
         keep = np.ones(len(t), bool)
         for j in range(2, s + 1):
