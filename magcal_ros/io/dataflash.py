@@ -266,24 +266,22 @@ def _pname(log, kind, k, axis=''):
     return next((n for n in names if n in params), names[0])
 
 
-def _split(tab, numbered, log, name, every=1):
+def _split(log, name, every=1, older='{name}{k}'):
     """
-    [(instance 0.., table)] of a message with an instance field, or of NAME, NAME2, NAME3.
+    [(instance 0.., table)] of every ``every``-th message ``name``, by its instance field.
 
-    ``numbered`` (e.g. '{name}{k}') names the old per-instance messages (k = 2, 3, ...).
+    Without one, of NAME and the old per-instance messages ``older`` names (NAME2, ...).
     """
+    tab = log.table(name, every)
     if tab is None:
         return []
     inst = next((c for c in _INSTANCE if c in tab), None)
     if inst is not None:
-        out = []
-        for k in np.unique(tab[inst]).astype(int).tolist():
-            sel = tab[inst] == k
-            out.append((k, {c: v[sel] for c, v in tab.items()}))
-        return out
+        return [(k, {c: v[sel] for c, v in tab.items()})
+                for k in np.unique(tab[inst]).astype(int).tolist() for sel in [tab[inst] == k]]
     out = [(0, tab)]
     for k in range(2, 9):
-        other = log.table(numbered.format(name=name, k=k), every)
+        other = log.table(older.format(name=name, k=k), every)
         if other is None:
             break
         out.append((k - 1, other))
@@ -327,7 +325,7 @@ def _read(log, path, text):
         out.info['vehicle'] = vehicle
         out.info['firmware'] = f'{vehicle} V{version[0]}.{version[1]}'
     motor_first = version is not None and version < (3, 6)
-    mags = _split(log.table('MAG'), '{name}{k}', log, 'MAG')
+    mags = _split(log, 'MAG')
     span = None
     for k, tab in mags:
         j = k + 1
@@ -501,7 +499,7 @@ def _attitude(log, out):
 
 
 def _gps(log, out):
-    parts = _split(log.table('GPS'), '{name}{k}', log, 'GPS')
+    parts = _split(log, 'GPS')
     if not parts:
         return
     tab = parts[0][1]
@@ -524,7 +522,7 @@ def _every(log, name, duration):
 
 def _aux(log, out, vehicle, duration):
     # batteries
-    bats = _split(log.table('BAT'), '{name}{k}', log, 'BAT')
+    bats = _split(log, 'BAT')
     for k, tab in bats:
         tag = 'battery' if k == 0 else f'battery{k + 1}'
         for col, what, unit in (('Curr', 'current', 'A'), ('Volt', 'voltage', 'V'),
@@ -584,7 +582,7 @@ def _aux(log, out, vehicle, duration):
         if col is not None:
             out.add_aux(f'aux_motor{k}', tab['t'], tab[col], 'PWM us', f'{msg}.{col}')
     # ESCs: ESC with an instance field, or ESC1..ESC8 in older logs
-    escs = (_split(log.table('ESC'), '{name}{k}', log, 'ESC') if log.count('ESC') else
+    escs = (_split(log, 'ESC') if log.count('ESC') else
             [(k - 1, log.table(f'ESC{k}')) for k in range(1, 9) if log.count(f'ESC{k}')])
     for k, tab in escs:
         for col, what, unit in (('Curr', 'current', 'A'), ('RPM', 'rpm', 'rpm'),
@@ -593,15 +591,13 @@ def _aux(log, out, vehicle, duration):
                 out.add_aux(f'aux_esc{k + 1}_{what}', tab['t'], tab[col], unit,
                             f'ESC[{k}].{col}')
     # temperatures and the board's voltage (slow: read at ~SLOW_RATE_HZ)
-    every = _every(log, 'IMU', duration)
-    imu = _split(log.table('IMU', every), '{name}{k}', log, 'IMU', every)
+    imu = _split(log, 'IMU', _every(log, 'IMU', duration))
     for k, tab in imu:
         col = 'T' if 'T' in tab else ('Temp' if 'Temp' in tab else None)
         if col is not None:
             out.add_aux('aux_imu_temp' if k == 0 else f'aux_imu{k + 1}_temp', tab['t'],
                         tab[col], 'degC', f'IMU[{k}].{col}')
-    every = _every(log, 'BARO', duration)
-    baro = _split(log.table('BARO', every), 'BAR{k}', log, 'BARO', every)
+    baro = _split(log, 'BARO', _every(log, 'BARO', duration), 'BAR{k}')
     for k, tab in baro:
         if 'Temp' in tab:
             out.add_aux('aux_baro_temp' if k == 0 else f'aux_baro{k + 1}_temp', tab['t'],
