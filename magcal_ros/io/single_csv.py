@@ -15,18 +15,14 @@
 """
 Single-magnetometer CSV logs in other tools' layouts -> one-sensor :class:`Dataset` in nT.
 
-Many public magnetometer logs (IMU calibration tools, phone loggers) are a CSV with one
-row per sample and columns such as ``mx,my,mz`` in gauss or microtesla, often with an
-accelerometer ``ax,ay,az`` and no time column.  :func:`read_single_sensor_csv` reads such a
-file, converts the field to nT, and, when there is no time column, makes a *synthetic*
-time axis at an assumed rate (``meta['synthetic_time']`` says so): the noise floor and
-every fit that does not involve time are unaffected by that choice; time-dependent
-effects (drift, field rate) are then in units of the assumed sample period.
-
-The accelerometer (if any) is kept in ``meta['accel']`` (N, 3) in its own unit, not as an
-auxiliary channel: gravity is a function of attitude, not a disturbance source, and is
-used to check a calibration (the angle between field and gravity is constant in a
-uniform field), see ``test/test_real_data.py``.
+Public logs (IMU calibration tools, phone loggers) are often a CSV with one row per sample,
+columns such as ``mx,my,mz`` in gauss or uT, an accelerometer ``ax,ay,az`` and no time.
+Without a time column the time axis is *synthetic*, at an assumed rate
+(``meta['synthetic_time']``): fits that do not involve time are unaffected; time-dependent
+effects are then in units of the assumed period.  The accelerometer is kept in
+``meta['accel']`` (N, 3), its own unit, not as an auxiliary channel: gravity depends on the
+attitude, and the angle between it and the field checks a calibration
+(``test/test_real_data.py``).
 """
 import os
 

@@ -16,24 +16,16 @@
 Paper 002: hard- and soft-iron compensation from a reference field vector.
 
 By linear least squares (not :mod:`magcal_ros.core.data.magnitude`, the reference
-*magnitude* of a fit).
+*magnitude* of a fit).  Model (eq. 1-4): ``Hm = K He + Hh``, ``He`` the undisturbed
+(reference) field, ``K = I + D`` soft iron, ``Hh`` hard iron; eq. 5-7 stack one row block per
+attitude (at least 4).  Here the three components are solved together, ``Hm = [He 1] X`` with
+``X = [K^T; Hh^T]`` (4, 3), by ``numpy.linalg.lstsq``.
 
-Model (paper 002, eq. 1-4): ``Hm = K He + Hh`` with ``He`` the undisturbed field (measured
-without the interference source: a reference) and ``Hm`` the disturbed reading, ``K = I + D``
-(soft iron, 9 unknowns) and ``Hh`` (hard iron, 3 unknowns). Eq. 5-7 stack one row block per
-attitude; the 12 unknowns need at least 4 attitudes. Here the three output components are
-solved together: ``Hm = [He 1] X`` with ``X = [K^T; Hh^T]`` (4, 3), by
-``numpy.linalg.lstsq``.
-
-What the paper does not check, and this module does: the reference directions must spread in
-three dimensions. If they lie in one plane (``n . He = c`` for all attitudes, which a rotation
-about one axis produces), the design ``[He 1]`` has the null vector ``(n, -c)``: for any ``v``,
-``K + v n^T`` and ``Hh - c v`` fit equally well, so ``K n`` (how the interference responds to
-the field along ``n``) and ``Hh`` are not separately identifiable, and the compensation is only
-valid for attitudes whose field stays in that plane. Paper 002's own Table 2 is such a data set
-(normal about (-0.866, 0.500, 0.003); docs/papers.md, paper 002).
+What the paper does not check, and this module does: reference directions in one plane
+(``n . He = c``, a rotation about one axis) make ``(n, -c)`` a null vector of ``[He 1]``, so
+``K n`` and ``Hh`` are not separately identifiable and the compensation holds only in that
+plane.  Paper 002's own Table 2 is such a data set (docs/papers.md, paper 002).
 """
-
 from dataclasses import dataclass
 
 from magcal_ros.core.geometry.coverage import Coverage, direction_coverage
