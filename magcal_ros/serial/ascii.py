@@ -16,13 +16,8 @@ r"""
 Configurable ASCII line protocol (the project's default device protocol).
 
 Default (docs/design.md §3): one line per sample, ``<x_nT>,<y_nT>,<z_nT>,<temp_C>\r\n``,
-e.g. ``12345.6,-2345.1,43210.9,24.31\r\n``.
-
-Everything is configurable: the delimiter (or ``None`` for runs of whitespace), the line
-terminator, the column order (names ``x``, ``y``, ``z``, ``temp``, ``time`` and ``skip``
-for columns to ignore), the field scale to nT (1 for nT, 1e5 for gauss, 1e3 for uT), the
-time scale to s, a start command sent on open, a comment prefix and a number of header
-lines to skip.
+e.g. ``12345.6,-2345.1,43210.9,24.31\r\n``; the delimiter, terminator, columns, scales,
+commands, comments and header lines are options (:class:`AsciiParser`).
 """
 
 import math

@@ -22,13 +22,11 @@ Output formats (HMR2300 data sheet, "Data formats"):
   two spaces. Example ``- 1,234    2,345  -   345  \r`` is x = -1234,
   y = 2345, z = -345 counts. The parser also accepts free spacing, LF and CRLF.
 - Binary, 7 bytes: ``Xhi Xlo Yhi Ylo Zhi Zlo <cr>``, big-endian two's-complement int16
-  (value = hi*256 + lo, minus 65536 when >= 32768) and ``0x0D``.
+  (value = hi*256 + lo, minus 65536 when >= 32768) and ``0x0D`` (data bytes may be 0x0D
+  too: :class:`Hmr2300BinaryParser` synchronises on the frame structure).
 
 Scale: 15 000 counts per gauss, so one count is 1e5/15000 = 6.667 nT (range +-2 G =
 +-30 000 counts = +-200 000 nT).
-
-The binary parser never splits on ``0x0D``: data bytes may be ``0x0D``. It synchronises on
-the 7-byte structure instead (see :class:`Hmr2300BinaryParser`).
 
 Commands (``dd`` = two-digit device id, ``99`` addresses all units; each ends with CR):
 ``*ddC`` continuous output, ``ESC`` stops it, ``*ddP`` polls one reading, ``*ddR=nnn`` sets
