@@ -222,8 +222,7 @@ def _has_axis_map(model, j):
 
 
 def _yaml(doc):
-    # libyaml's emitter where PyYAML has it (the same text, the representer being Python's
-    # either way: 4 ms instead of 16 for a cross's calibration; BENCHMARKS.md)
+    # libyaml's emitter where PyYAML has it: the same text, faster (BENCHMARKS.md)
     return yaml.dump(doc, Dumper=_SAFE_DUMPER, sort_keys=False, default_flow_style=None,
                      width=100)
 
@@ -455,8 +454,7 @@ def _check_checksum(doc, source):
 def parse_calibration(text, source='calibration'):
     """Parse YAML text; returns (Calibration, doc)."""
     try:
-        # libyaml's safe loader when PyYAML was built with it (5x faster; the same
-        # documents and the same resolver), else PyYAML's own
+        # libyaml's safe loader when PyYAML has it (the same documents, faster)
         doc = yaml.load(text, Loader=_SAFE_LOADER)  # noqa: S506 - a safe loader
     except yaml.YAMLError as exc:
         raise CalibrationFileError(f'{source}: not valid YAML (truncated or corrupt?): '
