@@ -146,16 +146,13 @@ class PortReader:
         self._clock = clock
         self._lock = threading.Lock()
         self._stop = threading.Event()
-        self._thread = None
+        self._thread = self._path = self._last_data = self._rate_origin = None
         self._state = STATE_CONNECTING
-        self._path = None
         self._samples = self._bytes = self._reconnects = self._disconnects = 0
         self._open_failures = self._callback_errors = 0
         self._last_error = ''
-        self._last_data = None
         self._ever_opened = False
         self._arrivals = collections.deque()   # (arrival time, samples) within rate_window
-        self._rate_origin = None
 
     # -- public ----------------------------------------------------------------------
     def start(self):
