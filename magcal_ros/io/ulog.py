@@ -137,7 +137,12 @@ def _rate(d):
 
 
 def _calibration(params, device_id):
-    """Return (slot n or None, R (3,3), S (3,3), o (3,), c (3,), rotation enum) of a device."""
+    """
+    Return a device's calibration, or None without a slot (CAL_MAGn_ID) for it.
+
+    {slot, R (3, 3), S (3, 3), o (3,) gauss, c (3,) gauss per unit of power, rotation (enum),
+    internal}.
+    """
     slot = next((n for n in range(8) if device_id
                  and int(params.get(f'CAL_MAG{n}_ID', 0)) == int(device_id)), None)
     if slot is None:
@@ -148,13 +153,13 @@ def _calibration(params, device_id):
     internal = rot < 0
     rot_enum = int(params.get('SENS_BOARD_ROT', 0)) if internal else rot
     r = rotation_matrix(rot_enum, level)
-    diag = [float(params.get(p + f'{a}SCALE', 1.0)) for a in 'XYZ']
-    od = [float(params.get(p + f'{a}ODIAG', 0.0)) for a in 'XYZ']
-    s = np.array([[diag[0], od[0], od[1]], [od[0], diag[1], od[2]], [od[1], od[2], diag[2]]])
-    o = np.array([float(params.get(p + f'{a}OFF', 0.0)) for a in 'XYZ'])
-    c = np.array([float(params.get(p + f'{a}COMP', 0.0)) for a in 'XYZ'])
-    return {'slot': slot, 'R': r, 'S': s, 'o': o, 'c': c, 'rotation': rot_enum,
-            'internal': internal}
+
+    def vec(key, default):
+        return np.array([float(params.get(p + f'{a}{key}', default)) for a in 'XYZ'])
+    dg, od = vec('SCALE', 1.0), vec('ODIAG', 0.0)
+    s = np.array([[dg[0], od[0], od[1]], [od[0], dg[1], od[2]], [od[1], od[2], dg[2]]])
+    return {'slot': slot, 'R': r, 'S': s, 'o': vec('OFF', 0.0), 'c': vec('COMP', 0.0),
+            'rotation': rot_enum, 'internal': internal}
 
 
 def _onboard(j, device_id, cal, params):
