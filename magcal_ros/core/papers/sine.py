@@ -38,11 +38,8 @@ states none of them):
   ideal-XZ-plane reading would give 40 332.1 nT and a shift of 503 nT). Zm lies at azimuth
   ``theta - phi`` (the sensor is rolled about Xm so that Ym points down and theta turns Zm
   towards Xm), giving the printed phase 90 deg - phi = 0.9004 deg.
-- Eq. 7 prints ``k_yx = B_xmy / B_ymx`` (Xm amplitude over Ym amplitude); the printed value
-  1.2607 = 41 906.6 / 33 240.0 is the Ym amplitude over the Xm amplitude, which is what
-  ky / kx means. Eq. 14 (k_zx = Zm amplitude / Xm amplitude) is consistent with that.
-- Erratum: §3.1 prints phi = 89.9996 deg; the fitted phases give 90 - 0.9004 = 89.0996 deg,
-  and only that value reproduces gamma = 1.07 deg through eq. 13 (docs/papers.md, paper 000).
+- Eq. 7 and §3.1's phi are misprinted (docs/papers.md, paper 000): k_yx is the Ym amplitude
+  over the Xm amplitude (1.2607 = 41 906.6 / 33 240.0), as eq. 14's k_zx; phi = 89.0996 deg.
 - Eq. 5, 9 and 12 take absolute values of phase differences, which loses the signs of alpha
   and beta. Here the turning sense ``s`` is read from the data (the Ym phase leads the Xm
   phase by about +90 deg for s = +1, lags by about 90 deg for s = -1, since |alpha| < 90 deg),
@@ -52,11 +49,7 @@ states none of them):
 
 With these conventions :func:`simulate_turntable` reproduces every printed curve coefficient
 of §3.1 and k_yx, k_zx to the printed precision, and :func:`calibrate_turntable` returns the
-nine parameters exactly. Two printed numbers are not reproduced: the uncompensated total field
-deviates by up to 6 790 nT (position 1) and 6 677 nT (position 2) from 50 000 nT, where §3.2
-says "up to 5 650 nT"; and Table 1's 40 nT row has offsets biased by about +140 nT, where the
-other rows (and the mechanism: a constant noise part is indistinguishable from an offset) give
-a bias equal to the noise mean.
+nine parameters exactly (the two printed numbers that are not reproduced: docs/papers.md).
 """
 
 from dataclasses import dataclass
