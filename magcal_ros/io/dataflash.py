@@ -554,13 +554,8 @@ def _aux(log, out, vehicle, duration):
     motors = {}
     for n in range(1, 33):
         f = log.param(f'SERVO{n}_FUNCTION', log.param(f'RC{n}_FUNCTION'))
-        if f is None:
-            continue
-        f = int(f)
-        if 33 <= f <= 40:
-            motors[n] = f - 32
-        elif 82 <= f <= 85:
-            motors[n] = f - 73
+        if f is not None and (33 <= int(f) <= 40 or 82 <= int(f) <= 85):
+            motors[n] = int(f) - (32 if int(f) <= 40 else 73)      # Motor1..8, Motor9..12
     if not motors and vehicle == 'ArduCopter':
         # before SERVOn_FUNCTION (Copter 3.4 and older) the motors are outputs 1..n of
         # the frame the start-up message names ('Frame: QUAD')
