@@ -22,12 +22,11 @@ def atomic_write_text(path, text, backup=True, fsync=os.fsync, binary=None):
     """
     Write ``text`` to ``path`` so that readers see the old or the new file, never a mix.
 
-    ``text``: a str, or an iterable of str written one after the other (a long file made
-    piece by piece, never whole in memory).
-    The previous file, if any, is kept as ``<path>.bak`` when ``backup`` is true.  If anything
-    fails before the final rename the original file is untouched and the temporary is removed.
-    ``fsync`` is injectable so that tests can simulate a failing disk.  ``text`` may be
-    ``bytes`` (written as they are), or an iterable of bytes with ``binary=True``.
+    ``text``: a str or bytes, or an iterable of str (of bytes with ``binary=True``) written
+    one after the other (a long file, never whole in memory).  The previous file is kept as
+    ``<path>.bak`` when ``backup`` is true.  If anything fails before the final rename the
+    original is untouched and the temporary removed.  ``fsync`` is injectable (tests
+    simulate a failing disk).
     """
     path = os.fspath(path)
     directory = os.path.dirname(os.path.abspath(path))

@@ -15,35 +15,24 @@
 """
 rosbag2 recordings of the array -> :class:`~magcal_ros.core.data.dataset.Dataset` (no rclpy).
 
-Reads with the ``rosbags`` library (pure Python; sqlite3 and mcap storage, any ROS 2 distro
-the bag declares, Jazzy message definitions by default).  Topics, under a namespace
-(default ``/magcal``, docs/design.md §3):
+Read with the ``rosbags`` library (sqlite3 and mcap storage, Jazzy message definitions by
+default).  Topics under a namespace (default ``/magcal``, docs/design.md §3):
+``{ns}/sensor{j}/raw`` (``sensor_msgs/MagneticField``, tesla, sensor j's axes; required, j =
+1..S); ``{ns}/sensor{j}/temperature`` (``sensor_msgs/Temperature``, degC); auxiliary channels
+``std_msgs/Float64`` or ``Float32`` on ``{ns}/aux/<name>`` (column ``aux_<name>``) or the
+topics of ``aux_topics``; ``{ns}/ref_total`` (``std_msgs/Float64``, tesla); ``{ns}/imu`` (or
+``imu_topic``; ``sensor_msgs/Imu``: its orientation is the array's body-to-world attitude,
+REP 103/145, slerped onto the epochs, epochs outside its span dropped and counted in
+``meta['dropped_attitude_epochs']``); any ``sensor_msgs/BatteryState`` topic: ``current`` and
+``voltage`` become ``aux_battery_current`` (A) and ``aux_battery_voltage`` (V) as in the
+vehicle logs, a second topic (in name order) ``aux_battery2_...``; NaN values are left out.
 
-- ``{ns}/sensor{j}/raw`` -- ``sensor_msgs/msg/MagneticField`` in tesla, sensor j's own
-  axes (required, j = 1..S consecutive);
-- ``{ns}/sensor{j}/temperature`` -- ``sensor_msgs/msg/Temperature`` in degC (optional);
-- auxiliary channels: ``std_msgs/msg/Float64`` or ``Float32`` (``data``) on
-  ``{ns}/aux/<name>`` (column ``aux_<name>``), or any topics named in ``aux_topics``;
-- ``{ns}/ref_total`` -- ``std_msgs/msg/Float64``, scalar reference magnitude in tesla
-  (optional);
-- ``{ns}/imu`` (or ``imu_topic``) -- ``sensor_msgs/msg/Imu`` (optional): its ``orientation``
-  is the body-to-world attitude of the array (REP 103/145; the IMU's axes are taken as the
-  array's), interpolated (slerp) onto the epochs; epochs outside the IMU's time span are
-  dropped and counted in ``meta['dropped_attitude_epochs']``;
-- any ``sensor_msgs/msg/BatteryState`` topic (optional): its ``current`` and ``voltage``
-  become the channels ``aux_battery_current`` (A) and ``aux_battery_voltage`` (V), the
-  names of the vehicle logs (:mod:`magcal_ros.io.vehicle`); a second battery topic (in
-  name order) ``aux_battery2_current``, ... ; messages whose value is NaN (not measured)
-  are left out.
-
-Epochs are sensor 1's header stamps; each other sensor is matched to the nearest stamp
-within half a sample period (epochs where a sensor has no match are dropped and counted in
-``meta['dropped_epochs']``).  Temperatures and the reference are interpolated linearly onto
-the epochs, auxiliary channels held from their last message (a switched current changes
-when its message says so).  A message whose header stamp is zero is stamped with the time
-the bag recorded it.  Tesla are converted to nT with :mod:`magcal_ros.units`.  BatteryState
-messages (a few a second, of variable length: cell voltages, strings) are decoded by rosbags'
-deserialiser; the array's fixed-layout messages by their CDR layout (docs/design.md §2).
+Epochs are sensor 1's header stamps; each other sensor is matched to the nearest stamp within
+half a sample period (unmatched epochs dropped, counted in ``meta['dropped_epochs']``).
+Temperatures and the reference are interpolated linearly onto the epochs, auxiliary channels
+held from their last message.  A zero header stamp is replaced by the time the bag recorded
+the message.  The array's fixed-layout messages are decoded from their CDR layout
+(docs/design.md §2), BatteryState by rosbags' deserialiser.
 """
 from itertools import islice
 from operator import attrgetter, itemgetter
@@ -89,27 +78,15 @@ def _interp(t_msg, v_msg, t):
 
 def read_bag(path, namespace='/magcal', aux_topics=None, imu_topic=None):
     """
-    Read a rosbag2 directory into a Dataset (readings in nT, times in s).
+    Read a rosbag2 directory (with ``metadata.yaml``) into a Dataset.
 
-    Parameters
-    ----------
-    path : str or os.PathLike
-        The bag directory (with ``metadata.yaml``).
-    namespace : str
-        Topic namespace of the array.
-    aux_topics : dict of str to str, optional
-        {column name ('aux_motor_current'): topic} for auxiliary channels published
-        elsewhere (std_msgs Float64/Float32).
-    imu_topic : str, optional
-        ``sensor_msgs/Imu`` topic of the array's attitude (default ``{namespace}/imu``).
-
-    Returns
-    -------
-    Dataset
-        ``t`` (N,) s (header stamps, absolute), ``raw`` (S, N, 3) nT, ``temp`` (S, N) degC or
-        None, ``ref_total`` (N,) nT or None, ``aux`` {name: (N,)}; ``meta`` holds the source,
-        the topics used and the number of dropped epochs.
-
+    ``namespace`` the array's topic namespace; ``aux_topics`` {column name
+    ('aux_motor_current'): topic} of auxiliary channels published elsewhere (std_msgs
+    Float64/Float32); ``imu_topic`` the ``sensor_msgs/Imu`` topic of the array's attitude
+    (default ``{namespace}/imu``).  Returns ``t`` (N,) s (header stamps, absolute), ``raw``
+    (S, N, 3) nT, ``temp`` (S, N) degC or None, ``ref_total`` (N,) nT or None, ``aux`` {name:
+    (N,)}, ``attitude`` (N, 4) or None; ``meta`` the source, the topics used and the number
+    of dropped epochs.
     """
     with _Collector(path, namespace, aux_topics, imu_topic) as col:
         messages = col.reader.messages(connections=col.conns)
@@ -118,32 +95,37 @@ def read_bag(path, namespace='/magcal', aux_topics=None, imu_topic=None):
         return col.take(None, final=True)
 
 
+def _metadata(path, read):
+    """``read(the bag's rosbag2_bagfile_information)``; its exception when that fails."""
+    import yaml
+    try:
+        with open(Path(os.fspath(path)) / 'metadata.yaml') as fh:
+            return read(yaml.safe_load(fh)['rosbag2_bagfile_information'])
+    except (OSError, KeyError, TypeError, ValueError, yaml.YAMLError) as exc:
+        return exc
+
+
 def bag_message_count(path):
     """Return the number of messages in a rosbag2 directory (from its ``metadata.yaml``)."""
-    import yaml
-    path = Path(os.fspath(path))
-    try:
-        with open(path / 'metadata.yaml') as fh:
-            info = yaml.safe_load(fh)['rosbag2_bagfile_information']
-        return int(info['message_count'])
-    except (OSError, KeyError, TypeError, ValueError, yaml.YAMLError) as exc:
-        raise BagFormatError(f'{path} is not a rosbag2 directory (metadata.yaml: {exc})') \
-            from None
+    got = _metadata(path, lambda info: int(info['message_count']))
+    if isinstance(got, Exception):
+        raise BagFormatError(f'{Path(os.fspath(path))} is not a rosbag2 directory '
+                             f'(metadata.yaml: {got})')
+    return got
 
 
 def bag_epoch_count(path, namespace='/magcal'):
     """Messages of sensor 1 in a rosbag2 directory (its metadata), 0 when it does not say."""
-    import yaml
-    try:
-        with open(Path(os.fspath(path)) / 'metadata.yaml') as fh:
-            info = yaml.safe_load(fh)['rosbag2_bagfile_information']
-        ns = '/' + namespace.strip('/') if namespace.strip('/') else ''
-        for entry in info.get('topics_with_message_count') or []:
-            if entry['topic_metadata']['name'] == f'{ns}/sensor1/raw':
-                return int(entry['message_count'])
-    except (OSError, KeyError, TypeError, ValueError, yaml.YAMLError):
-        pass
-    return 0
+    topic = f'{_namespace(namespace)}/sensor1/raw'
+    got = _metadata(path, lambda info: next(
+        (int(e['message_count']) for e in info.get('topics_with_message_count') or []
+         if e['topic_metadata']['name'] == topic), 0))
+    return 0 if isinstance(got, Exception) else got
+
+
+def _namespace(namespace):
+    """'/magcal' of 'magcal', '/magcal/' or '/magcal'; '' of '/'."""
+    return '/' + namespace.strip('/') if namespace.strip('/') else ''
 
 
 def bag_chunks(path, rows=65536, progress=None, namespace='/magcal', aux_topics=None,
@@ -160,26 +142,20 @@ def bag_chunks(path, rows=65536, progress=None, namespace='/magcal', aux_topics=
     first chunk (:func:`read_bag`: of the whole record).  ``progress(messages read)``.
     """
     with _Collector(path, namespace, aux_topics, imu_topic, rows) as col:
-        n_msg = 0
+        n_msg, done = 0, False
         per_chunk = rows * max(1, len(col.conns))
         messages = col.reader.messages(connections=col.conns)
-        while True:
-            # a chunk every per_chunk messages, read and decoded FLUSH at a time
+        while not done:
+            # a chunk every per_chunk messages (and at the end), read and decoded FLUSH at a time
             got = col.read(messages, min(col.FLUSH, per_chunk - n_msg % per_chunk))
             n_msg += got
-            if got == 0:
-                break
-            if n_msg % per_chunk == 0:
-                piece = col.take(col.safe_time())
+            done = got == 0
+            if done or n_msg % per_chunk == 0:
+                piece = col.take(None, final=True) if done else col.take(col.safe_time())
                 if progress is not None:
                     progress(n_msg)
                 if piece is not None:
                     yield piece
-        piece = col.take(None, final=True)
-        if progress is not None:
-            progress(n_msg)
-        if piece is not None:
-            yield piece
 
 
 #: The message types read without rosbags' deserialiser: {type: (has a std_msgs/Header,
@@ -200,6 +176,22 @@ _LAYOUT = {
 }
 
 
+def _dtype(msgtype, order, n, k):
+    """
+    Return the structured dtype of a serialised message of ``msgtype`` of ``n`` bytes.
+
+    ``v`` its first ``k`` float fields after the header; with a header, ``sec``, ``nsec``
+    and ``len`` (of frame_id); ``order`` '<' or '>' (its CDR byte order).
+    """
+    has_header, tail, _, kind = _LAYOUT[msgtype]
+    names, formats, offsets = ['v'], [(order + kind, (k,))], [n - tail]
+    if has_header:
+        names += ['sec', 'nsec', 'len']
+        formats += [order + 'i4', order + 'u4', order + 'u4']
+        offsets += [4, 8, 12]
+    return np.dtype({'names': names, 'formats': formats, 'offsets': offsets, 'itemsize': n})
+
+
 def _decode_fixed(datas, msgtype):
     """
     Decode serialised messages of a type in ``_LAYOUT`` from their bytes, in batches.
@@ -209,22 +201,9 @@ def _decode_fixed(datas, msgtype):
     (either byte order) and its length is exactly what its frame_id's length makes it (the
     string non-empty, NUL-terminated, ASCII); everything else is left to rosbags.
 
-    Parameters
-    ----------
-    datas : list of bytes
-        M serialised messages.
-    msgtype : str
-        Their type (a key of ``_LAYOUT``).
-
-    Returns
-    -------
-    stamp_ns : (M,) int64 or None
-        Header stamps, ns (None for a type without header).
-    values : (M, k) float64
-        The fields of ``_LAYOUT`` (message units).
-    ok : (M,) bool
-        False where the message was not decoded (values and stamp 0 there).
-
+    ``datas`` M serialised messages (bytes) of type ``msgtype``.  Returns (stamp_ns (M,)
+    int64 header stamps, None for a type without header; values (M, k) the fields of
+    ``_LAYOUT``, message units; ok (M,) bool, False where not decoded: values and stamp 0).
     """
     has_header, tail, k, kind = _LAYOUT[msgtype]
     m = len(datas)
@@ -245,13 +224,7 @@ def _decode_fixed(datas, msgtype):
             rows = np.flatnonzero((raw[:, 0] == 0) & (raw[:, 1] == flag))
             if not len(rows):
                 continue
-            names, formats, offsets = ['v'], [(order + kind, (k,))], [n - tail]
-            if has_header:
-                names += ['sec', 'nsec', 'len']
-                formats += [order + 'i4', order + 'u4', order + 'u4']
-                offsets += [4, 8, 12]
-            rec = np.frombuffer(buf, np.dtype({'names': names, 'formats': formats,
-                                               'offsets': offsets, 'itemsize': n}))[rows]
+            rec = np.frombuffer(buf, _dtype(msgtype, order, n, k))[rows]
             good = np.ones(len(rows), bool)
             if has_header:
                 length = rec['len'].astype(np.int64)
@@ -299,8 +272,7 @@ class _Collector:
         if not (path / 'metadata.yaml').is_file():
             raise BagFormatError(f'{path} is not a rosbag2 directory (no metadata.yaml)')
         self.path = path
-        ns = '/' + namespace.strip('/') if namespace.strip('/') else ''
-        self.ns = ns
+        self.ns = ns = _namespace(namespace)
         self.raw_re = re.compile(re.escape(ns) + r'/sensor(\d+)/raw$')
         self.temp_re = re.compile(re.escape(ns) + r'/sensor(\d+)/temperature$')
         self.aux_re = re.compile(re.escape(ns) + r'/aux/(\w+)$')
@@ -318,11 +290,9 @@ class _Collector:
         except BaseException:
             self.reader.close()
             raise
-        self.period = None
+        self.period = self.t1_first = None
         self.rows = rows
-        self.t1_first = None
-        self.dropped = 0
-        self.dropped_att = 0
+        self.dropped = self.dropped_att = 0
         self.emitted = False
         self.n_decoded = {c.id: 0 for c in self.conns}
 
@@ -339,33 +309,26 @@ class _Collector:
         self.kind = {}
         conns = []
         for c in self.reader.connections:
-            m = self.raw_re.match(c.topic)
-            if m and c.msgtype == MAG_TYPE:
-                self.mags[int(m.group(1))] = _empty(3)
-                self.kind[c.id] = ('mag', int(m.group(1)))
-                conns.append(c)
-                continue
-            if c.topic == self.imu_name and c.msgtype == IMU_TYPE:
+            raw, temp = self.raw_re.match(c.topic), self.temp_re.match(c.topic)
+            aux = self.aux_re.match(c.topic)
+            if raw and c.msgtype == MAG_TYPE:
+                self.mags[int(raw.group(1))] = _empty(3)
+                self.kind[c.id] = ('mag', int(raw.group(1)))
+            elif c.topic == self.imu_name and c.msgtype == IMU_TYPE:
                 self.kind[c.id] = ('imu', None)
-                conns.append(c)
+            elif temp and c.msgtype == TEMP_TYPE:
+                self.temps[int(temp.group(1))] = _empty()
+                self.kind[c.id] = ('temp', int(temp.group(1)))
+            elif c.msgtype in SCALAR_TYPES and (c.topic in self.wanted_aux or aux):
+                name = self.wanted_aux.get(c.topic) or 'aux_' + aux.group(1)
+                self.aux[name] = _empty()
+                self.kind[c.id] = ('aux', name)
+            elif c.msgtype in SCALAR_TYPES and c.topic == ns + '/ref_total':
+                self.ref = _empty()
+                self.kind[c.id] = ('ref', None)
+            else:
                 continue
-            m = self.temp_re.match(c.topic)
-            if m and c.msgtype == TEMP_TYPE:
-                self.temps[int(m.group(1))] = _empty()
-                self.kind[c.id] = ('temp', int(m.group(1)))
-                conns.append(c)
-                continue
-            if c.msgtype in SCALAR_TYPES:
-                m = self.aux_re.match(c.topic)
-                if c.topic in self.wanted_aux or m:
-                    name = self.wanted_aux.get(c.topic) or 'aux_' + m.group(1)
-                    self.aux[name] = _empty()
-                    self.kind[c.id] = ('aux', name)
-                    conns.append(c)
-                elif c.topic == ns + '/ref_total':
-                    self.ref = _empty()
-                    self.kind[c.id] = ('ref', None)
-                    conns.append(c)
+            conns.append(c)
         batteries = sorted({c.topic for c in self.reader.connections
                             if c.msgtype == BATTERY_TYPE})
         for c in self.reader.connections:
@@ -439,10 +402,7 @@ class _Collector:
             vals[i] = v
         self.n_decoded[c.id] += len(datas)
         kind, key = self.kind[c.id]
-        if stamp is not None:
-            t = np.where(stamp > 0, stamp, recv) * 1e-9
-        else:
-            t = recv * 1e-9
+        t = (recv if stamp is None else np.where(stamp > 0, stamp, recv)) * 1e-9
         if kind == 'mag':
             if key == 1 and self.t1_first is None and len(t):
                 self.t1_first = float(t.min())
@@ -523,7 +483,7 @@ class _Collector:
         sel = np.ones(len(t_all), bool) if final else t_all <= upto
         t = t_all[sel]
         v1 = self.mags[1][1][order]
-        raw = np.empty((s, len(t), 3))
+        raw = np.zeros((s, len(t), 3))         # a sensor without messages: all dropped
         raw[0] = v1[sel]
         keep = np.ones(len(t), bool)
         for j in range(2, s + 1):
@@ -619,23 +579,11 @@ def write_bag(path, data, namespace='/magcal', storage='sqlite3', frame_id='flux
 
     For tests, demos and converting CSV recordings for ROS tools.  Readings are written in
     tesla (``sensor_msgs/MagneticField``), temperatures in degC, auxiliary channels as
-    ``std_msgs/Float64`` on ``{ns}/aux/<name>``, ``ref_total`` in tesla.
-
-    Parameters
-    ----------
-    path : str or os.PathLike
-        Bag directory to create (must not exist).
-    data : Dataset or iterable of Dataset
-        Times ``t`` (N,) s are used as header stamps and receive times; an iterable of
-        consecutive pieces with the same columns (a long record, chunk by chunk) is written
-        as one recording.
-    namespace : str
-        Topic namespace (topics ``{namespace}/sensor{j}/raw``, ...).
-    storage : {'sqlite3', 'mcap'}
-        rosbag2 storage plug-in.
-    frame_id : str
-        Header frame prefix; sensor j gets ``{frame_id}{j}``.
-
+    ``std_msgs/Float64`` on ``{ns}/aux/<name>``, ``ref_total`` in tesla, the attitude as
+    ``sensor_msgs/Imu``.  ``path`` the bag directory to create (must not exist); ``data`` a
+    Dataset, or consecutive pieces with the same columns written as one recording, its
+    ``t`` (N,) s the header stamps and receive times; ``storage`` 'sqlite3' or 'mcap';
+    ``frame_id`` the header frame prefix (sensor j: ``{frame_id}{j}``).
     """
     from rosbags.rosbag2 import StoragePlugin, Writer
 
@@ -653,56 +601,41 @@ def write_bag(path, data, namespace='/magcal', storage='sqlite3', frame_id='flux
     stamp0 = ts.types['builtin_interfaces/msg/Time'](sec=0, nanosec=0)
     vec = ts.types['geometry_msgs/msg/Vector3']
     unknown = np.array([-1.0] + [0.0] * 8)       # REP 145: no rate / acceleration
-    ns = '/' + namespace.strip('/') if namespace.strip('/') else ''
+    ns = _namespace(namespace)
     f64 = 'std_msgs/msg/Float64'
     # one message of each stream serialised by rosbags, its stamp and values then filled in
     # per message (_Template): the bytes rosbags' serialize_cdr writes, ~5 us less each
     with Writer(path, version=9, storage_plugin=plugins[storage]) as w:
         streams = []
+
+        def add(get, topic, msgtype, **fields):
+            """Add a stream: ``get(piece)`` its values, one template message of its type."""
+            streams.append((get, w.add_connection(topic, msgtype, typestore=ts),
+                            _Template(ts, msgtype, ts.types[msgtype](**fields))))
         for j in range(1, first.n_sensors + 1):
             hdr = header(stamp=stamp0, frame_id=f'{frame_id}{j}')
-            streams.append((('raw', j), w.add_connection(
-                f'{ns}/sensor{j}/raw', MAG_TYPE, typestore=ts), _Template(ts, MAG_TYPE, ts.types[
-                    MAG_TYPE](header=hdr, magnetic_field=vec(0.0, 0.0, 0.0),
-                              magnetic_field_covariance=np.zeros(9)))))
+            add(lambda d, j=j: nt_to_t(d.raw[j - 1]), f'{ns}/sensor{j}/raw', MAG_TYPE,
+                header=hdr, magnetic_field=vec(0.0, 0.0, 0.0),
+                magnetic_field_covariance=np.zeros(9))
             if first.temp is not None and np.isfinite(first.temp[j - 1]).any():
-                streams.append((('temp', j), w.add_connection(
-                    f'{ns}/sensor{j}/temperature', TEMP_TYPE, typestore=ts), _Template(
-                        ts, TEMP_TYPE, ts.types[TEMP_TYPE](header=hdr, temperature=0.0,
-                                                           variance=0.0))))
+                add(lambda d, j=j: d.temp[j - 1], f'{ns}/sensor{j}/temperature', TEMP_TYPE,
+                    header=hdr, temperature=0.0, variance=0.0)
         for name in sorted(first.aux):
-            streams.append((('aux', name), w.add_connection(f'{ns}/aux/{name[4:]}', f64,
-                                                            typestore=ts),
-                            _Template(ts, f64, ts.types[f64](data=0.0))))
+            add(lambda d, name=name: d.aux[name], f'{ns}/aux/{name[4:]}', f64, data=0.0)
         if first.ref_total is not None:
-            streams.append((('ref',), w.add_connection(f'{ns}/ref_total', f64, typestore=ts),
-                            _Template(ts, f64, ts.types[f64](data=0.0))))
+            add(lambda d: nt_to_t(d.ref_total), f'{ns}/ref_total', f64, data=0.0)
         if first.attitude is not None:
-            quat = ts.types['geometry_msgs/msg/Quaternion'](x=0.0, y=0.0, z=0.0, w=1.0)
-            streams.append((('imu',), w.add_connection(f'{ns}/imu', IMU_TYPE, typestore=ts),
-                            _Template(ts, IMU_TYPE, ts.types[IMU_TYPE](
-                                header=header(stamp=stamp0, frame_id=frame_id),
-                                orientation=quat, orientation_covariance=np.zeros(9),
-                                angular_velocity=vec(0.0, 0.0, 0.0),
-                                angular_velocity_covariance=unknown,
-                                linear_acceleration=vec(0.0, 0.0, 0.0),
-                                linear_acceleration_covariance=unknown))))
+            quat = ts.types['geometry_msgs/msg/Quaternion']
+            # Dataset: w x y z; Imu: x y z w
+            add(lambda d: np.asarray(d.attitude, float)[:, [1, 2, 3, 0]], f'{ns}/imu', IMU_TYPE,
+                header=header(stamp=stamp0, frame_id=frame_id),
+                orientation=quat(x=0.0, y=0.0, z=0.0, w=1.0),
+                orientation_covariance=np.zeros(9), angular_velocity=vec(0.0, 0.0, 0.0),
+                angular_velocity_covariance=unknown, linear_acceleration=vec(0.0, 0.0, 0.0),
+                linear_acceleration_covariance=unknown)
         for data in chain([first], pieces):
             t_ns = np.round(np.asarray(data.t, float) * 1e9).astype(np.int64)
-            raw_t = nt_to_t(data.raw)
-            columns = []
-            for key, conn, tmpl in streams:
-                if key[0] == 'raw':
-                    v = raw_t[key[1] - 1]
-                elif key[0] == 'temp':
-                    v = data.temp[key[1] - 1]
-                elif key[0] == 'aux':
-                    v = data.aux[key[1]]
-                elif key[0] == 'ref':
-                    v = nt_to_t(data.ref_total)
-                else:                               # Dataset: w x y z; Imu: x y z w
-                    v = np.asarray(data.attitude, float)[:, [1, 2, 3, 0]]
-                columns.append((conn, tmpl.messages(t_ns, v)))
+            columns = [(conn, tmpl.messages(t_ns, get(data))) for get, conn, tmpl in streams]
             for k, tk in enumerate(t_ns.tolist()):
                 for conn, msgs in columns:
                     w.write(conn, tk, msgs[k])
@@ -714,18 +647,9 @@ class _Template:
 
     def __init__(self, ts, msgtype, msg):
         self.raw = np.frombuffer(ts.serialize_cdr(msg, msgtype), np.uint8)
-        has_header, tail, _, kind = _LAYOUT[msgtype]
-        n = len(self.raw)
-        order = '<' if self.raw[1] == 1 else '>'
-        self.has_header = has_header
-        names, formats, offsets = ['v'], [order + kind], [n - tail]
-        if has_header:
-            names += ['sec', 'nsec']
-            formats += [order + 'i4', order + 'u4']
-            offsets += [4, 8]
-        self.dtype = np.dtype({'names': names, 'formats': formats, 'offsets': offsets,
-                               'itemsize': n})
-        self.width = {MAG_TYPE: 3, IMU_TYPE: 4}.get(msgtype, 1)
+        self.has_header = _LAYOUT[msgtype][0]
+        self.dtype = _dtype(msgtype, '<' if self.raw[1] == 1 else '>', len(self.raw),
+                            {MAG_TYPE: 3, IMU_TYPE: 4}.get(msgtype, 1))
 
     def messages(self, t_ns, values):
         """
@@ -734,19 +658,12 @@ class _Template:
         ``values`` go to the first ``w`` float fields after the header (MagneticField:
         the field in T; Temperature: degC; Float64: data; Imu: orientation x y z w).
         """
-        n = len(self.raw)
-        m = len(t_ns)
+        n, m = len(self.raw), len(t_ns)
         buf = np.tile(self.raw, m)
         rec = buf.view(self.dtype)
         if self.has_header:
             rec['sec'] = t_ns // 1_000_000_000
             rec['nsec'] = t_ns % 1_000_000_000
-        vals = np.asarray(values, float).reshape(m, -1)
-        if self.width == 1:
-            rec['v'] = vals[:, 0]
-        else:
-            fields = np.dtype({'names': ['v'], 'formats': [(self.dtype['v'], (self.width,))],
-                               'offsets': [self.dtype.fields['v'][1]], 'itemsize': n})
-            buf.view(fields)['v'] = vals
+        rec['v'] = np.asarray(values, float).reshape(m, -1)
         blob = buf.tobytes()
         return [blob[i:i + n] for i in range(0, m * n, n)]

@@ -13,35 +13,14 @@
 # limitations under the License.
 
 """
-The calibration file (docs/design.md §4): YAML with a schema version, written atomically.
+The calibration file (docs/design.md §4, which shows its layout): YAML, schema_version 1.
 
-Layout (schema_version 1)::
-
-    schema_version: 1
-    kind: magcal_ros/calibration
-    checksum: sha256:<64 hex digits>   # of the rest of the document (written by dump/save)
-    model: [offset, scale, nonorthogonality, misalignment]
-    geometry: {type: cross, baseline_m: 0.5, positions_m: [[x, y, z], ...]}
-    field_reference: {kind: constant|ref_total|igrf, magnitude_nt: 50000.0, ...}
-    sensors:
-      - id: 1
-        sigma_nt: 3.0
-        effects:
-          - {name: scale, label: scale, refs: {}, params: {kx: {value, unit, stderr}, ...}}
-        correction_matrix: [[...]]      # A^-1: corrected = A^-1 (raw - offset - driven)
-        intrinsic_correction: [[...]]   # C^-1 of paper 004 eq. 5 (upper triangular)
-        offset_nt: [bx, by, bz]
-        rotation_to_sensor1: [[...]]    # R of paper 004 eq. 14
-        axis_map: [[...]]               # M of axes(...), only a sensor with one:
-                                        # correction_matrix = R C^-1 M^T
-    provenance: {created, samples, data_hash, temperature_range_c, attitude_coverage,
-                 residuals: {scalar_rms_nt, vector_rms_nt, tensor_rms_nt_per_m}, software}
-
-The parameters are the source of truth; the matrices and the offset are derived and checked
-on load, so a hand edit that makes them disagree is refused.  The checksum (sha256 of a
-canonical serialisation of everything else, :func:`content_checksum`) catches what such a
-check cannot: a changed digit of a parameter, sigma_nt or a reference value.  A file without
-one (written before it existed) still loads.
+Written atomically, with a ``.bak`` and a bounded history (:func:`rollback`).  The effects'
+parameters are the source of truth; the matrices and the offset are derived and checked on
+load, so a hand edit that makes them disagree is refused.  The checksum (sha256 of a canonical
+serialisation of everything else, :func:`content_checksum`) catches what such a check cannot:
+a changed digit of a parameter, sigma_nt or a reference value.  A file without one (written
+before it existed) still loads.
 """
 import datetime
 import glob
@@ -243,8 +222,7 @@ def _has_axis_map(model, j):
 
 
 def _yaml(doc):
-    # libyaml's emitter where PyYAML has it (the same text, the representer being Python's
-    # either way: 4 ms instead of 16 for a cross's calibration; BENCHMARKS.md)
+    # libyaml's emitter where PyYAML has it: the same text, faster (BENCHMARKS.md)
     return yaml.dump(doc, Dumper=_SAFE_DUMPER, sort_keys=False, default_flow_style=None,
                      width=100)
 
@@ -314,10 +292,7 @@ def calibration_from_doc(doc, source='calibration'):
 
 
 def _check_complete(doc, model, source):
-    """Refuse a document cut short (truncated write) or whose parts disagree."""
-    # provenance is written last: without it the file ended early, possibly in the middle
-    # of the sensors list (fewer sensors or effects than were calibrated)
-    # (its presence and type: the schema)
+    """Refuse a document whose parts disagree (a missing provenance, the schema refuses)."""
     spec = doc.get('model')
     if spec is not None:
         if not isinstance(spec, list) or sorted(map(str, spec)) != sorted(model.spec()):
@@ -479,8 +454,7 @@ def _check_checksum(doc, source):
 def parse_calibration(text, source='calibration'):
     """Parse YAML text; returns (Calibration, doc)."""
     try:
-        # libyaml's safe loader when PyYAML was built with it (5x faster; the same
-        # documents and the same resolver), else PyYAML's own
+        # libyaml's safe loader when PyYAML has it (the same documents, faster)
         doc = yaml.load(text, Loader=_SAFE_LOADER)  # noqa: S506 - a safe loader
     except yaml.YAMLError as exc:
         raise CalibrationFileError(f'{source}: not valid YAML (truncated or corrupt?): '
@@ -535,20 +509,16 @@ def active_history_index(path):
 
     The newest matching entry counts (a rollback makes an older entry active again).
     """
-    try:
-        with open(path, encoding='utf-8') as fh:
-            active = fh.read()
-    except (OSError, UnicodeDecodeError):
-        return None
-    hist = list_history(path)
-    for k in range(len(hist) - 1, -1, -1):
+    def text(name):
         try:
-            with open(hist[k], encoding='utf-8') as fh:
-                if fh.read() == active:
-                    return k
+            with open(name, encoding='utf-8') as fh:
+                return fh.read()
         except (OSError, UnicodeDecodeError):
-            continue
-    return None
+            return None
+    active = text(path)
+    hist = list_history(path)
+    return None if active is None else next(
+        (k for k in range(len(hist) - 1, -1, -1) if text(hist[k]) == active), None)
 
 
 def rollback(path, steps=1):

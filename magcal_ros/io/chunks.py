@@ -16,17 +16,15 @@
 A recording read in chunks of epochs, in bounded memory (wide CSV and rosbag2).
 
 ``open_record(path)`` returns a :class:`Record`: its size (bytes or messages, for the
-progress bar) and ``chunks()``, an iterator over :class:`~magcal_ros.core.data.dataset.Dataset`
-pieces of at most ``rows`` epochs in time order.  Each call of ``chunks()`` reads the
-recording again from its start (a long record is read twice: once to reduce it, once for
-the residual statistics of every epoch, :mod:`magcal_ros.core.data.reduce`).
+progress bar) and ``chunks()``, Dataset pieces of at most ``rows`` epochs in time order, read
+again from the start at each call (a long record is read twice: to reduce it, then for the
+residual statistics, :mod:`magcal_ros.core.data.reduce`).
 
-The CSV pieces are the rows :func:`magcal_ros.io.csvio.read_csv` reads, checked the same
-way (the same messages, naming the line): numbers are parsed by ``numpy.loadtxt`` a chunk at
-a time, and a chunk it cannot parse (an empty cell, a ``plane`` column, a bad number) by the
-line parser of csvio, which says what is wrong and where.  Time must not decrease across
-chunks either.  The rosbag2 pieces come from :func:`magcal_ros.io.bag.bag_chunks` (the
-``rosbags`` reader, sqlite3 and MCAP).
+The CSV pieces are the rows :func:`magcal_ros.io.csvio.read_csv` reads, with its checks and
+messages: ``numpy.loadtxt`` parses a chunk, and one it cannot (an empty cell, a ``plane``
+column, a bad number) is parsed by csvio's line parser, which names what is wrong and where.
+Time must not decrease across chunks either.  The rosbag2 pieces come from
+:func:`magcal_ros.io.bag.bag_chunks`.
 """
 import os
 
@@ -64,22 +62,10 @@ def open_record(path):
     return Record(path, 'csv', os.path.getsize(path), 'B')
 
 
-def _header_line(fh):
-    """Return (line number, text) of the first line that is neither blank nor a comment."""
-    for no, ln in enumerate(fh, start=1):
-        if ln.strip() and not ln.lstrip().startswith('#'):
-            return no, ln
-    return 0, None
-
-
 def _data_lines(lines, start):
     """Return (line numbers, data lines) of ``lines`` (the first is line ``start + 1``)."""
-    nos, data = [], []
-    for no, ln in enumerate(lines, start=start + 1):
-        if ln.strip() and not ln.lstrip().startswith('#'):
-            nos.append(no)
-            data.append(ln)
-    return np.array(nos, int), data
+    kept = [(no, ln) for no, ln in enumerate(lines, start=start + 1) if csvio.is_content(ln)]
+    return np.array([no for no, _ in kept], int), [ln for _, ln in kept]
 
 
 def csv_chunks(path, rows=CHUNK_ROWS, progress=None):
@@ -102,14 +88,9 @@ def csv_chunks(path, rows=CHUNK_ROWS, progress=None):
 def _csv_chunks(path, rows, progress, open_text):
     with open_text(path, encoding='utf-8-sig') as fh:
         try:
-            no, first = _header_line(fh)
+            no, first = csvio.header_line(fh)
             if first is None:
                 raise csvio.CsvFormatError(f'{path} has no header row')
-            for sep, name in ((';', 'semicolon'), ('\t', 'tab')):
-                if first.count(sep) > first.count(','):
-                    raise csvio.CsvFormatError(
-                        f'{path}: the fields are separated by {name}s ({sep!r}); the wide '
-                        "CSV is comma separated: export it with ',' as the separator")
             layout = csvio.parse_header(path, first)
             n_cols = len(layout[0])
             t_last = -np.inf

@@ -15,11 +15,10 @@
 """
 Text files read through gzip or Zstandard when their name says so (``.gz``, ``.zst``).
 
-A ``.csv.gz`` (the standard library's gzip) or ``.csv.zst`` (the ``zstandard`` package) is
-read as a stream, decompressed as it is read, so a long record needs no more memory than its
-plain CSV would.  A corrupt or truncated archive is reported as :class:`CorruptArchiveError`
-(a ValueError: the CLI answers it with one line and exit status 2) naming the file, the
-format and what to do, instead of the decompressor's own exception.
+A ``.csv.gz`` (gzip) or ``.csv.zst`` (the ``zstandard`` package) is decompressed as it is
+read, in the memory of its plain CSV.  A corrupt or truncated archive is reported as
+:class:`CorruptArchiveError` (a ValueError: one line, exit status 2) naming the file, the
+format and what to do.
 """
 import contextlib
 import gzip

@@ -46,14 +46,10 @@ def read_csv(path):
     ``att_qw, att_qx, att_qy, att_qz`` (all four: body-to-world unit quaternion, Hamilton,
     scalar first).
     ``#`` lines are comments.  Unknown columns are an error.  A ``.csv.gz`` or ``.csv.zst``
-    file is decompressed as it is read (:mod:`magcal_ros.io.compressed`).
-
-    The numbers are parsed by numpy's C reader (:func:`numpy.loadtxt`); a file with empty cells
-    (an optional value not given: NaN) is read again with them filled in.  When that read
-    meets anything to report (a cell that is not a number, a row of the wrong length, an
-    empty or non-finite required cell, a bad attitude) or the file has a text column
-    (``plane``), the file is read once more row by row with the :mod:`csv` module, so that
-    the error names the line and the column.
+    file is decompressed as it is read (:mod:`magcal_ros.io.compressed`).  Numbers are parsed
+    by :func:`numpy.loadtxt` (again with empty cells, an optional value not given, filled with
+    NaN); a file with a ``plane`` column or anything to report is read row by row with the
+    :mod:`csv` module, so that the error names the line and the column.
     """
     path = os.fspath(path)
     for how in ('numpy', 'numpy, empty cells filled'):
@@ -68,10 +64,10 @@ def _read(path, fast, fill=False):
     try:
         # utf-8-sig: a spreadsheet's byte-order mark is not part of the first column's name
         with open_text(path, encoding='utf-8-sig') as fh:
-            header_no, header_line = _header_line(fh)
-            if header_line is None:
+            header_no, first = header_line(fh)
+            if first is None:
                 raise CsvFormatError(f'{path} has no header row')
-            header, sensors = _parse_header(path, header_line)
+            header, sensors = _parse_header(path, first)
             plane_col = header.index('plane') if 'plane' in header else None
             if fast:
                 if plane_col is not None:
@@ -144,14 +140,15 @@ def _dataset(path, header, sensors, plane_col, arr, rows_no, planes, recheck=Fal
                    meta={'source': path}, attitude=attitude)
 
 
-def _is_content(line):
+def is_content(line):
+    """Tell whether a line is data or a header (neither blank nor a ``#`` comment)."""
     return bool(line.strip()) and not line.lstrip().startswith('#')
 
 
-def _header_line(fh):
+def header_line(fh):
     """(line number, text) of the first line that is neither blank nor a comment."""
     for no, line in enumerate(fh, start=1):
-        if _is_content(line):
+        if is_content(line):
             return no, line
     return None, None
 
@@ -237,7 +234,7 @@ def _csv_rows(path, fh, header, plane_col, header_no):
     """Rows after the header by the csv module: (floats, planes, line numbers, cells)."""
     rows, planes, line_nos, cells = [], [], [], []
     for ln_no, line in enumerate(fh, start=header_no + 1):
-        if not _is_content(line):
+        if not is_content(line):
             continue
         parts = [p.strip() for p in next(csv.reader([line]))]
         cells.append(list(parts))

@@ -15,42 +15,25 @@
 """
 ArduPilot DataFlash logs (``.bin``, text ``.log``) -> :class:`~magcal_ros.io.vehicle.VehicleLog`.
 
-pymavlink's DFReader opens the log and indexes it (the offsets of every message of every
-type, its C indexer for ``.bin``) and parses the formats (FMT, FMTU) and parameters.  Only
-the message types needed are then decoded, and a binary log's messages of one type are
-decoded all at once: their bytes gathered by the index's offsets into one array and read
-through a numpy structured dtype built from the type's FMT (the format characters of
-DFReader's ``FORMAT_TO_STRUCT``, with their multipliers), not one Python message object
-each.  A text log is read through DFReader's own ``recv_match`` (slow, for small logs).
+pymavlink's DFReader opens and indexes the log and parses its formats and parameters; a
+binary log's messages of one needed type are then decoded at once, their bytes gathered by
+the index's offsets and read through a numpy dtype built from the type's FMT (DFReader's
+``FORMAT_TO_STRUCT``).  A text log is read through DFReader's ``recv_match`` (slow).
 
-The compass (``MAG``, instance ``I``; ``MAG``, ``MAG2``, ``MAG3`` in older logs) is logged in
-milligauss in the body frame, after AP_Compass's ``correct_field`` (AP_Compass_Backend.cpp;
-the order also in pymavlink's tools/magfit_WMM.py ``correct``)::
+The compass (``MAG``, instance ``I``; ``MAG``..``MAG3`` in older logs) is logged in mG in the
+body frame after AP_Compass's ``correct_field`` (AP_Compass_Backend.cpp; pymavlink's
+tools/magfit_WMM.py): F = M s (r + o) + m (3.6 and later; older F = M (r + o + m)), r the raw
+body-frame reading, o the logged offsets (OfsX..), s COMPASS_SCALE where 0.85 <= s <= 1.4
+(else 1), M the symmetric matrix of COMPASS_DIA (all zero: 1) and COMPASS_ODI, m the logged
+motor compensation (MOX.., MOfsX..).  :func:`ardupilot_raw` inverts it exactly, with DIA,
+ODI and SCALE at each sample's time (docs/design.md §1).
 
-    F = M s (r + o) + m            (firmware 3.6 and later)
-    F = M (r + o + m)              (older: the motor offset before the matrix)
-
-with r the raw reading rotated into the body frame (board orientation, COMPASS_ORIENT), o the
-offsets (logged per sample: OfsX..), s COMPASS_SCALE where 0.85 <= s <= 1.4 (else 1: the
-scale is not applied), M the symmetric matrix of COMPASS_DIA (diagonal; all zero means 1) and
-COMPASS_ODI (xy, xz, yz), m the motor compensation (logged per sample: MOX.., or MOfsX..).
-:func:`ardupilot_raw` inverts it exactly: r = M^-1 (F - m) / s - o.  DIA, ODI and SCALE are
-taken at each sample's time (a PARM message changes them from its time on).  The logged
-values are whole milligauss (100 nT): F, o and m are each rounded to 50 nT.
-
-Attitude: the EKF's quaternion of the autopilot body (EKF3 ``XKQ``, ``XKQ1``; EKF2 ``NKQ``,
-``NKQ1``; the one AHRS_EKF_TYPE selects first), Hamilton body-to-NED: NavEKF3's
-``getRotationBodyToNED`` is that quaternion's matrix times the trim rotation.  Of the cores
-logged, the one closest to ``ATT`` (median angle) is used, when within
-:data:`EKF_ATT_AGREEMENT_DEG`: ATT is what the AHRS used (the active core, or DCM: a
-ground-handled ArduPlane 4.2 log has XKQ at identity throughout while ATT turns), and a
-warning says when no core agrees.  Otherwise, and without EKF
-quaternions, ``ATT`` roll, pitch, yaw (the vehicle body: AHRS_TRIM applied) with the trim
-removed: R_autopilot = R(ATT) R(AHRS_TRIM_X, _Y, _Z) (AP_AHRS: vehicle = autopilot x
-the transposed trim rotation).
-
-Old logs (before 3.4: TimeMS, PARM and MSG without time, MAG/MAG2/MAG3, CURR in centiamps
-and centivolts, RCOU ``Ch1``.., GPS with its boot time in ``T``) are read too.
+Attitude: the EKF's body-to-NED quaternion (EKF3 ``XKQ``, EKF2 ``NKQ``; the one
+AHRS_EKF_TYPE selects first), of the core closest to ``ATT`` (what the AHRS used) within
+:data:`EKF_ATT_AGREEMENT_DEG`; otherwise (a warning says so) and without EKF quaternions,
+``ATT`` roll, pitch, yaw with AHRS_TRIM removed: R_autopilot = R(ATT) R(AHRS_TRIM).  Old logs
+(before 3.4: TimeMS, PARM and MSG without time, CURR in centiamps, RCOU ``Ch1``..) are read
+too.
 """
 import datetime
 import mmap
@@ -103,7 +86,7 @@ class _Log:
             self.by_name = dict(self.r.formats)
         else:
             self.by_name = {f.name: f for f in self.r.formats.values()}
-        if 'FMT' not in self.by_name or self._count_fmt() == 0:
+        if 'FMT' not in self.by_name or (not text and int(self.r.counts[0x80]) == 0):
             raise VehicleLogError(f'{path}: no FMT message: not a DataFlash log, or its start '
                                   'is missing; download it from the autopilot again')
         self._params = None
@@ -120,9 +103,6 @@ class _Log:
         """Drop the file's pages from this process's memory (they are read again if needed)."""
         if hasattr(self.r.data_map, 'madvise'):
             self.r.data_map.madvise(mmap.MADV_DONTNEED)
-
-    def _count_fmt(self):
-        return int(self.r.counts[0x80]) if not self.text else 1
 
     def close(self):
         """Release the file."""
@@ -166,8 +146,7 @@ class _Log:
 
     def _binary_table(self, name, every):
         fmt = self.by_name[name]
-        names, formats, offsets, mults = [], [], [], {}
-        off = 0
+        names, formats, mults = [], [], {}
         for col, ch in zip(fmt.columns, fmt.format):
             if ch not in _NP:
                 raise VehicleLogError(f'{self.path}: message {name}: unknown format character '
@@ -177,17 +156,14 @@ class _Log:
                 col = f'{col}_{len(names)}'
             names.append(col)
             formats.append(np_t)
-            offsets.append(off)
-            off += np.dtype(np_t).itemsize
             if mult:
                 mults[col] = mult
+        dtype = np.dtype({'names': names, 'formats': formats})      # packed, as the log
         length = fmt.len - 3
-        if off != length:
+        if dtype.itemsize != length:
             raise VehicleLogError(f'{self.path}: message {name}: its FMT says {fmt.len} bytes '
-                                  f'but its format {fmt.format!r} makes {off + 3}: the log is '
-                                  'damaged')
-        dtype = np.dtype({'names': names, 'formats': formats, 'offsets': offsets,
-                          'itemsize': length})
+                                  f'but its format {fmt.format!r} makes {dtype.itemsize + 3}: '
+                                  'the log is damaged')
         wanted = [c for c in names if _FIELDS.fullmatch(c)]
         buf = np.frombuffer(self.r.data_map, np.uint8)
         try:
@@ -212,15 +188,8 @@ class _Log:
         return out
 
     def _text_table(self, name, every):
-        r = self.r
-        r.rewind()
-        rows = []
-        while True:
-            m = r.recv_match(type=name)
-            if m is None:
-                break
-            rows.append(m.to_dict())
-        rows = rows[::every]
+        self.r.rewind()
+        rows = [m.to_dict() for m in iter(lambda: self.r.recv_match(type=name), None)][::every]
         out = {}
         for col in self.columns(name):
             if not _FIELDS.fullmatch(col):
@@ -264,37 +233,20 @@ def ardupilot_raw(field, offsets, motor, diag, offdiag, scale, motor_first=False
     """
     Return the raw body-frame reading from what ArduPilot logs (module docstring), any unit.
 
-    Parameters
-    ----------
-    field : numpy.ndarray
-        (N, 3) logged corrected field F (MAG.MagX..).
-    offsets, motor : numpy.ndarray
-        (N, 3) offsets o and motor compensation m as logged (OfsX.., MOX..).
-    diag, offdiag : numpy.ndarray
-        (N, 3) or (3,): COMPASS_DIA (x, y, z; all zero is read as 1, 1, 1) and COMPASS_ODI
-        (xy, xz, yz).
-    scale : numpy.ndarray or float
-        (N,) or scalar COMPASS_SCALE; outside :data:`SCALE_BOUNDS` the firmware does not
-        apply it and neither does this.
-    motor_first : bool
-        Firmware older than 3.6: F = M (r + o + m).
-
-    Returns
-    -------
-    numpy.ndarray
-        (N, 3) r = M^-1 (F - m) / s - o  (older: M^-1 F - o - m).
-
+    ``field`` (N, 3) the logged corrected F (MAG.MagX..); ``offsets``, ``motor`` (N, 3) o and
+    m as logged (OfsX.., MOX..); ``diag``, ``offdiag`` (N, 3) or (3,) COMPASS_DIA (x, y, z;
+    all zero read as 1) and COMPASS_ODI (xy, xz, yz); ``scale`` (N,) or scalar COMPASS_SCALE,
+    not applied outside :data:`SCALE_BOUNDS` (as the firmware); ``motor_first`` for firmware
+    older than 3.6, F = M (r + o + m).  Returns (N, 3) r = M^-1 (F - m) / s - o (older:
+    M^-1 F - o - m).
     """
     field = np.asarray(field, float)
     n = len(field)
     d = np.broadcast_to(np.asarray(diag, float), (n, 3)).copy()
     d[(d == 0).all(axis=1)] = 1.0
     od = np.broadcast_to(np.asarray(offdiag, float), (n, 3))
-    mat = np.empty((n, 3, 3))
-    mat[:, 0, 0], mat[:, 1, 1], mat[:, 2, 2] = d[:, 0], d[:, 1], d[:, 2]
-    mat[:, 0, 1] = mat[:, 1, 0] = od[:, 0]
-    mat[:, 0, 2] = mat[:, 2, 0] = od[:, 1]
-    mat[:, 1, 2] = mat[:, 2, 1] = od[:, 2]
+    mat = np.stack([d[:, 0], od[:, 0], od[:, 1], od[:, 0], d[:, 1], od[:, 2],
+                    od[:, 1], od[:, 2], d[:, 2]], axis=-1).reshape(n, 3, 3)
     s = np.broadcast_to(np.asarray(scale, float), (n,)).copy()
     s[~((s >= SCALE_BOUNDS[0]) & (s <= SCALE_BOUNDS[1]))] = 1.0
     o = np.asarray(offsets, float)
@@ -307,32 +259,29 @@ def ardupilot_raw(field, offsets, motor, diag, offdiag, scale, motor_first=False
 def _pname(log, kind, k, axis=''):
     """Name in the log of compass ``k``'s parameter (COMPASS_OFS2_X or COMPASS2_OFS_X)."""
     suffix = f'_{axis}' if axis else ''
-    first = {'EXTERNAL': 'EXTERNAL', 'DEV_ID': 'DEV_ID'}.get(kind, kind)
-    other = {'EXTERNAL': 'EXTERN'}.get(kind, kind)
-    names = ([f'COMPASS_{first}{suffix}'] if k == 1 else
-             [f'COMPASS_{other}{k}{suffix}']) + [f'COMPASS{k}_{kind}{suffix}']
+    other = 'EXTERN' if kind == 'EXTERNAL' else kind
+    names = [f'COMPASS_{kind}{suffix}' if k == 1 else f'COMPASS_{other}{k}{suffix}',
+             f'COMPASS{k}_{kind}{suffix}']
     params = log.params()
     return next((n for n in names if n in params), names[0])
 
 
-def _split(tab, numbered, log, name, every=1):
+def _split(log, name, every=1, older='{name}{k}'):
     """
-    [(instance 0.., table)] of a message with an instance field, or of NAME, NAME2, NAME3.
+    [(instance 0.., table)] of every ``every``-th message ``name``, by its instance field.
 
-    ``numbered`` (e.g. '{name}{k}') names the old per-instance messages (k = 2, 3, ...).
+    Without one, of NAME and the old per-instance messages ``older`` names (NAME2, ...).
     """
+    tab = log.table(name, every)
     if tab is None:
         return []
     inst = next((c for c in _INSTANCE if c in tab), None)
     if inst is not None:
-        out = []
-        for k in np.unique(tab[inst]).astype(int).tolist():
-            sel = tab[inst] == k
-            out.append((k, {c: v[sel] for c, v in tab.items()}))
-        return out
+        return [(k, {c: v[sel] for c, v in tab.items()})
+                for k in np.unique(tab[inst]).astype(int).tolist() for sel in [tab[inst] == k]]
     out = [(0, tab)]
     for k in range(2, 9):
-        other = log.table(numbered.format(name=name, k=k), every)
+        other = log.table(older.format(name=name, k=k), every)
         if other is None:
             break
         out.append((k - 1, other))
@@ -376,7 +325,7 @@ def _read(log, path, text):
         out.info['vehicle'] = vehicle
         out.info['firmware'] = f'{vehicle} V{version[0]}.{version[1]}'
     motor_first = version is not None and version < (3, 6)
-    mags = _split(log.table('MAG'), '{name}{k}', log, 'MAG')
+    mags = _split(log, 'MAG')
     span = None
     for k, tab in mags:
         j = k + 1
@@ -424,6 +373,10 @@ def _onboard(log, j, tab, motct):
     """Return the onboard calibration of compass ``j`` as the log's parameters say (nT)."""
     def vec(kind, default):
         return [log.param(_pname(log, kind, j, a), default) for a in 'XYZ']
+
+    def number(kind):
+        v = log.param(_pname(log, kind, j))
+        return None if v is None else int(v)
     scale = log.param(_pname(log, 'SCALE', j), 0.0)
     prio = log.param(f'COMPASS_PRIO{j}_ID')
     dev = prio if prio is not None else log.param(_pname(log, 'DEV_ID', j))
@@ -433,10 +386,7 @@ def _onboard(log, j, tab, motct):
     out = {
         'compass': j, 'autopilot': 'ArduPilot',
         'device_id': None if dev is None else int(dev),
-        'external': (None if log.param(_pname(log, 'EXTERNAL', j)) is None
-                     else int(log.param(_pname(log, 'EXTERNAL', j)))),
-        'orientation': (None if log.param(_pname(log, 'ORIENT', j)) is None
-                        else int(log.param(_pname(log, 'ORIENT', j)))),
+        'external': number('EXTERNAL'), 'orientation': number('ORIENT'),
         'offsets_nt': [x * NT_PER_MGAUSS for x in vec('OFS', 0.0)],
         'diagonals': [1.0, 1.0, 1.0] if all(x == 0 for x in dia) else dia,
         'offdiagonals': vec('ODI', 0.0),
@@ -494,18 +444,13 @@ def _ekf_attitudes(log):
         tab = log.table(name) if log.count(name) else log.table(f'{name}1')
         if tab is None:
             continue
+        q = np.column_stack([tab[f'Q{i}'] for i in range(1, 5)])
         if 'C' not in tab:
-            q = np.column_stack([tab['Q1'], tab['Q2'], tab['Q3'], tab['Q4']])
             return [(tab['t'], q, f'ArduPilot {label} {name}1 core 0')]
         first = int(log.param(primary, 0.0))
         cores = sorted(np.unique(tab['C']).astype(int).tolist(), key=lambda c: c != first)
-        out = []
-        for core in cores:
-            sel = tab['C'] == core
-            q = np.column_stack([tab['Q1'][sel], tab['Q2'][sel], tab['Q3'][sel],
-                                 tab['Q4'][sel]])
-            out.append((tab['t'][sel], q, f'ArduPilot {label} {name} core {core}'))
-        return out
+        return [(tab['t'][sel], q[sel], f'ArduPilot {label} {name} core {core}')
+                for core in cores for sel in [tab['C'] == core]]
     return []
 
 
@@ -554,7 +499,7 @@ def _attitude(log, out):
 
 
 def _gps(log, out):
-    parts = _split(log.table('GPS'), '{name}{k}', log, 'GPS')
+    parts = _split(log, 'GPS')
     if not parts:
         return
     tab = parts[0][1]
@@ -577,15 +522,13 @@ def _every(log, name, duration):
 
 def _aux(log, out, vehicle, duration):
     # batteries
-    bats = _split(log.table('BAT'), '{name}{k}', log, 'BAT')
+    bats = _split(log, 'BAT')
     for k, tab in bats:
         tag = 'battery' if k == 0 else f'battery{k + 1}'
-        if 'Curr' in tab:
-            out.add_aux(f'aux_{tag}_current', tab['t'], tab['Curr'], 'A', f'BAT[{k}].Curr')
-        if 'Volt' in tab:
-            out.add_aux(f'aux_{tag}_voltage', tab['t'], tab['Volt'], 'V', f'BAT[{k}].Volt')
-        if 'Temp' in tab and np.any(tab['Temp'] != 0):
-            out.add_aux(f'aux_{tag}_temp', tab['t'], tab['Temp'], 'degC', f'BAT[{k}].Temp')
+        for col, what, unit in (('Curr', 'current', 'A'), ('Volt', 'voltage', 'V'),
+                                ('Temp', 'temp', 'degC')):
+            if col in tab and (col != 'Temp' or np.any(tab[col] != 0)):
+                out.add_aux(f'aux_{tag}_{what}', tab['t'], tab[col], unit, f'BAT[{k}].{col}')
     if not bats:
         tab = log.table('CURR')
         if tab is not None:
@@ -611,13 +554,8 @@ def _aux(log, out, vehicle, duration):
     motors = {}
     for n in range(1, 33):
         f = log.param(f'SERVO{n}_FUNCTION', log.param(f'RC{n}_FUNCTION'))
-        if f is None:
-            continue
-        f = int(f)
-        if 33 <= f <= 40:
-            motors[n] = f - 32
-        elif 82 <= f <= 85:
-            motors[n] = f - 73
+        if f is not None and (33 <= int(f) <= 40 or 82 <= int(f) <= 85):
+            motors[n] = int(f) - (32 if int(f) <= 40 else 73)      # Motor1..8, Motor9..12
     if not motors and vehicle == 'ArduCopter':
         # before SERVOn_FUNCTION (Copter 3.4 and older) the motors are outputs 1..n of
         # the frame the start-up message names ('Frame: QUAD')
@@ -639,7 +577,7 @@ def _aux(log, out, vehicle, duration):
         if col is not None:
             out.add_aux(f'aux_motor{k}', tab['t'], tab[col], 'PWM us', f'{msg}.{col}')
     # ESCs: ESC with an instance field, or ESC1..ESC8 in older logs
-    escs = (_split(log.table('ESC'), '{name}{k}', log, 'ESC') if log.count('ESC') else
+    escs = (_split(log, 'ESC') if log.count('ESC') else
             [(k - 1, log.table(f'ESC{k}')) for k in range(1, 9) if log.count(f'ESC{k}')])
     for k, tab in escs:
         for col, what, unit in (('Curr', 'current', 'A'), ('RPM', 'rpm', 'rpm'),
@@ -648,15 +586,13 @@ def _aux(log, out, vehicle, duration):
                 out.add_aux(f'aux_esc{k + 1}_{what}', tab['t'], tab[col], unit,
                             f'ESC[{k}].{col}')
     # temperatures and the board's voltage (slow: read at ~SLOW_RATE_HZ)
-    imu = _split(log.table('IMU', _every(log, 'IMU', duration)), '{name}{k}', log, 'IMU',
-                 _every(log, 'IMU', duration))
+    imu = _split(log, 'IMU', _every(log, 'IMU', duration))
     for k, tab in imu:
         col = 'T' if 'T' in tab else ('Temp' if 'Temp' in tab else None)
         if col is not None:
             out.add_aux('aux_imu_temp' if k == 0 else f'aux_imu{k + 1}_temp', tab['t'],
                         tab[col], 'degC', f'IMU[{k}].{col}')
-    baro = _split(log.table('BARO', _every(log, 'BARO', duration)), 'BAR{k}', log, 'BARO',
-                  _every(log, 'BARO', duration))
+    baro = _split(log, 'BARO', _every(log, 'BARO', duration), 'BAR{k}')
     for k, tab in baro:
         if 'Temp' in tab:
             out.add_aux('aux_baro_temp' if k == 0 else f'aux_baro{k + 1}_temp', tab['t'],

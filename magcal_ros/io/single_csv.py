@@ -15,18 +15,14 @@
 """
 Single-magnetometer CSV logs in other tools' layouts -> one-sensor :class:`Dataset` in nT.
 
-Many public magnetometer logs (IMU calibration tools, phone loggers) are a CSV with one
-row per sample and columns such as ``mx,my,mz`` in gauss or microtesla, often with an
-accelerometer ``ax,ay,az`` and no time column.  :func:`read_single_sensor_csv` reads such a
-file, converts the field to nT, and, when there is no time column, makes a *synthetic*
-time axis at an assumed rate (``meta['synthetic_time']`` says so): the noise floor and
-every fit that does not involve time are unaffected by that choice; time-dependent
-effects (drift, field rate) are then in units of the assumed sample period.
-
-The accelerometer (if any) is kept in ``meta['accel']`` (N, 3) in its own unit, not as an
-auxiliary channel: gravity is a function of attitude, not a disturbance source, and is
-used to check a calibration (the angle between field and gravity is constant in a
-uniform field), see ``test/test_real_data.py``.
+Public logs (IMU calibration tools, phone loggers) are often a CSV with one row per sample,
+columns such as ``mx,my,mz`` in gauss or uT, an accelerometer ``ax,ay,az`` and no time.
+Without a time column the time axis is *synthetic*, at an assumed rate
+(``meta['synthetic_time']``): fits that do not involve time are unaffected; time-dependent
+effects are then in units of the assumed period.  The accelerometer is kept in
+``meta['accel']`` (N, 3), its own unit, not as an auxiliary channel: gravity depends on the
+attitude, and the angle between it and the field checks a calibration
+(``test/test_real_data.py``).
 """
 import os
 
@@ -53,7 +49,7 @@ def to_nt(values, unit):
     return np.asarray(values, float) * UNITS_NT[unit]
 
 
-def _find(header, options, what):
+def _find(header, options):
     low = [h.strip().lower() for h in header]
     for names in options:
         if all(n in low for n in names):
@@ -66,25 +62,12 @@ def read_single_sensor_csv(path, unit='gauss', rate_hz=100.0, field_columns=None
     """
     Read a one-magnetometer CSV (header row, comma separated) into a Dataset in nT.
 
-    Parameters
-    ----------
-    path : str or os.PathLike
-        CSV file to read.
-    unit : str
-        Unit of the field columns: 'nT', 'uT', 'mG', 'gauss' (or 'G'), 'T'.
-    rate_hz : float
-        Assumed sample rate for the synthetic time axis when the file has no time column
-        (t, time, timestamp, time_s in s).
-    field_columns, accel_columns : sequence of 3 str, optional
-        Column names; default: the first of mx/my/mz, mag_x/..., magx/..., x/y/z, bx/by/bz
-        (and ax/ay/az, acc_x/..., accx/... for the accelerometer).
-
-    Returns
-    -------
-    Dataset
-        ``raw`` (1, N, 3) nT; ``t`` (N,) s; ``meta``: source, unit, synthetic_time,
-        accel (N, 3) or None.
-
+    ``unit`` of the field columns: 'nT', 'uT', 'mG', 'gauss' (or 'G'), 'T'; ``rate_hz`` the
+    assumed rate of the synthetic time axis when there is no time column (t, time,
+    timestamp, time_s in s); ``field_columns``, ``accel_columns`` three names each (default:
+    the first of mx/my/mz, mag_x/..., magx/..., x/y/z, bx/by/bz, and ax/ay/az, acc_x/...,
+    accx/...).  Returns ``raw`` (1, N, 3) nT, ``t`` (N,) s, ``meta``: source, unit,
+    synthetic_time, assumed_rate_hz, accel (N, 3) or None.
     """
     path = os.fspath(path)
     try:
@@ -127,11 +110,11 @@ def _columns(path, header, field_columns, accel_columns):
             raise ValueError(f'{path}: no column(s) {missing}; header: {header}')
         fcols = [low.index(c.lower()) for c in field_columns]
     else:
-        fcols = _find(header, _FIELD_NAMES, 'field')
+        fcols = _find(header, _FIELD_NAMES)
         if fcols is None:
             raise ValueError(f'{path}: cannot find the magnetometer columns (mx,my,mz or '
                              f'x,y,z ...) in the header {header}; name them with '
                              'field_columns=')
-    acols = (_find(header, (tuple(c.lower() for c in accel_columns),), 'accel')
-             if accel_columns else _find(header, _ACC_NAMES, 'accel'))
+    acols = _find(header, (tuple(c.lower() for c in accel_columns),) if accel_columns
+                  else _ACC_NAMES)
     return fcols, acols

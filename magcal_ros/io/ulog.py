@@ -15,33 +15,20 @@
 """
 PX4 ULog logs (``.ulg``) -> :class:`~magcal_ros.io.vehicle.VehicleLog` (through pyulog).
 
-pyulog reads only the topics named here (``message_name_filter_list``), each topic's
-messages as numpy arrays.
+pyulog reads only the topics named in :data:`TOPICS`.  PX4's ``Magnetometer::Correct``
+(src/lib/sensor_calibration) gives v = R S ((d + p c) - o): d the driver's reading
+(``sensor_mag``, gauss, sensor axes), o ``CAL_MAGn_{X,Y,Z}OFF``, S the symmetric matrix of
+``CAL_MAGn_{X,Y,Z}SCALE`` and ``_ODIAG``, c ``CAL_MAGn_{X,Y,Z}COMP`` with p the power
+(``CAL_MAG_COMP_TYP`` 1: throttle, 2 and 3: battery 0 or 1 current in kA), R the rotation into
+the body frame (internal: ``SENS_BOARD_ROT`` with ``SENS_BOARD_{X,Y,Z}_OFF``; external:
+``CAL_MAGn_ROT``); n is the slot whose ``CAL_MAGn_ID`` is the device's id.
 
-Which compass stream, and the corrections undone (PX4's ``Magnetometer::Correct``,
-src/lib/sensor_calibration)::
-
-    v = R S ((d + p c) - o)
-
-d the driver's reading (``sensor_mag``, gauss, the sensor's axes), o ``CAL_MAGn_{X,Y,Z}OFF``,
-S the symmetric matrix of ``CAL_MAGn_{X,Y,Z}SCALE`` and ``_{X,Y,Z}ODIAG``, c
-``CAL_MAGn_{X,Y,Z}COMP`` with p the power (``CAL_MAG_COMP_TYP`` 1: throttle 0..1, 2 and 3:
-battery 0 or 1 current in kA), R the rotation into the body frame (internal compass: the board
-rotation ``SENS_BOARD_ROT`` with the level adjustment ``SENS_BOARD_{X,Y,Z}_OFF``; external:
-``CAL_MAGn_ROT``); n is the calibration slot whose ``CAL_MAGn_ID`` is the device's id.
-
-- ``sensor_mag`` (every instance: every compass) is the raw reading d, per device: used
-  when logged at 5 Hz or more (the default logger profile logs it at 1 Hz), rotated into the
-  body frame by R only (r = R d); its ``temperature`` is the compass's.
-- else ``vehicle_magnetometer`` (each instance a compass; in older logs one, the selected
-  one) is the corrected v, averaged over the samples since its last message: the raw
-  body-frame reading is recovered as r = R (S^-1 R^T v + o - p c).  Not undone: the
-  in-flight bias the estimator learns (``_calibration_estimator_bias``, not in the log's
-  parameters), a constant offset the fit's own offset absorbs.
-- a log whose corrected stream names no device (``device_id`` missing and more than one
-  compass) keeps the corrected values, with a warning.
-
-Attitude: ``vehicle_attitude.q`` (w, x, y, z), the body (FRD) to NED rotation.
+The compasses are ``sensor_mag`` (each instance, r = R d) when logged at
+:data:`RAW_RATE_HZ` or more, its ``temperature`` the compass's; else
+``vehicle_magnetometer`` (the corrected v) with r = R (S^-1 R^T v + o - p c) (the estimator's
+in-flight bias is not in the parameters and stays: a constant offset); a corrected stream
+that names no device keeps its values, with a warning.  Attitude: ``vehicle_attitude.q``
+(w, x, y, z), body (FRD) to NED.
 """
 import contextlib
 import datetime
@@ -81,8 +68,7 @@ def rotation_matrix(rot, level_deg=(0.0, 0.0, 0.0)):
     if not 0 <= rot < len(ROTATIONS):
         raise VehicleLogError(f"rotation {rot} is not one of PX4's 0..{len(ROTATIONS) - 1}")
     r, p, y = ROTATIONS[rot]
-    m = Rotation.from_euler('ZYX', [y, p, r], degrees=True).as_matrix()
-    m = np.round(m, 12)
+    m = np.round(Rotation.from_euler('ZYX', [y, p, r], degrees=True).as_matrix(), 12)
     lr, lp, ly = level_deg
     return Rotation.from_euler('ZYX', [ly, lp, lr], degrees=True).as_matrix() @ m
 
@@ -151,13 +137,14 @@ def _rate(d):
 
 
 def _calibration(params, device_id):
-    """Return (slot n or None, R (3,3), S (3,3), o (3,), c (3,), rotation enum) of a device."""
-    slot = None
-    if device_id:
-        for n in range(8):
-            if int(params.get(f'CAL_MAG{n}_ID', 0)) == int(device_id):
-                slot = n
-                break
+    """
+    Return a device's calibration, or None without a slot (CAL_MAGn_ID) for it.
+
+    {slot, R (3, 3), S (3, 3), o (3,) gauss, c (3,) gauss per unit of power, rotation (enum),
+    internal}.
+    """
+    slot = next((n for n in range(8) if device_id
+                 and int(params.get(f'CAL_MAG{n}_ID', 0)) == int(device_id)), None)
     if slot is None:
         return None
     p = f'CAL_MAG{slot}_'
@@ -166,13 +153,13 @@ def _calibration(params, device_id):
     internal = rot < 0
     rot_enum = int(params.get('SENS_BOARD_ROT', 0)) if internal else rot
     r = rotation_matrix(rot_enum, level)
-    diag = [float(params.get(p + f'{a}SCALE', 1.0)) for a in 'XYZ']
-    od = [float(params.get(p + f'{a}ODIAG', 0.0)) for a in 'XYZ']
-    s = np.array([[diag[0], od[0], od[1]], [od[0], diag[1], od[2]], [od[1], od[2], diag[2]]])
-    o = np.array([float(params.get(p + f'{a}OFF', 0.0)) for a in 'XYZ'])
-    c = np.array([float(params.get(p + f'{a}COMP', 0.0)) for a in 'XYZ'])
-    return {'slot': slot, 'R': r, 'S': s, 'o': o, 'c': c, 'rotation': rot_enum,
-            'internal': internal}
+
+    def vec(key, default):
+        return np.array([float(params.get(p + f'{a}{key}', default)) for a in 'XYZ'])
+    dg, od = vec('SCALE', 1.0), vec('ODIAG', 0.0)
+    s = np.array([[dg[0], od[0], od[1]], [od[0], dg[1], od[2]], [od[1], od[2], dg[2]]])
+    return {'slot': slot, 'R': r, 'S': s, 'o': vec('OFF', 0.0), 'c': vec('COMP', 0.0),
+            'rotation': rot_enum, 'internal': internal}
 
 
 def _onboard(j, device_id, cal, params):
@@ -209,12 +196,17 @@ def _power(topics, params, t):
     return None
 
 
+def _device(d):
+    """Return the device id of a topic's data, or None."""
+    return int(d['device_id'][0]) if 'device_id' in d and len(d['device_id']) else None
+
+
 def _compasses(path, topics, params, out):
     raw = topics.get('sensor_mag', {})
     if raw and _rate(raw[min(raw)]) >= RAW_RATE_HZ:
         for j, k in enumerate(sorted(raw), start=1):
             d = raw[k]
-            dev = int(d['device_id'][0]) if 'device_id' in d and len(d['device_id']) else None
+            dev = _device(d)
             cal = _calibration(params, dev)
             r = cal['R'] if cal is not None else np.eye(3)
             if cal is None:
@@ -239,10 +231,9 @@ def _compasses(path, topics, params, out):
         name = 'sensor_combined'
     for j, k in enumerate(sorted(corrected), start=1):
         d = corrected[k]
-        dev = int(d['device_id'][0]) if 'device_id' in d and len(d['device_id']) else None
+        dev = _device(d)
         if dev is None and len(raw) == 1:
-            ds = raw[min(raw)]
-            dev = int(ds['device_id'][0]) if 'device_id' in ds and len(ds['device_id']) else None
+            dev = _device(raw[min(raw)])
         cal = _calibration(params, dev)
         t = d['timestamp'] * 1e-6
         v = np.column_stack([d[f'{field}[{i}]'] for i in range(3)])
@@ -325,13 +316,9 @@ def _aux(topics, out):
                 if col in ao:
                     out.add_aux(f'aux_output{i + 1}', ao['timestamp'] * 1e-6, ao[col],
                                 'PWM us', f'actuator_outputs.{col}')
-    for k, d in sorted(topics.get('sensor_accel', {}).items()):
-        s = _slow(d)
-        out.add_aux('aux_imu_temp' if k == 0 else f'aux_imu{k + 1}_temp',
-                    d['timestamp'][s] * 1e-6, d['temperature'][s], 'degC',
-                    f'sensor_accel[{k}].temperature')
-    for k, d in sorted(topics.get('sensor_baro', {}).items()):
-        s = _slow(d)
-        out.add_aux('aux_baro_temp' if k == 0 else f'aux_baro{k + 1}_temp',
-                    d['timestamp'][s] * 1e-6, d['temperature'][s], 'degC',
-                    f'sensor_baro[{k}].temperature')
+    for topic, tag in (('sensor_accel', 'imu'), ('sensor_baro', 'baro')):
+        for k, d in sorted(topics.get(topic, {}).items()):
+            s = _slow(d)
+            out.add_aux(f'aux_{tag}_temp' if k == 0 else f'aux_{tag}{k + 1}_temp',
+                        d['timestamp'][s] * 1e-6, d['temperature'][s], 'degC',
+                        f'{topic}[{k}].temperature')

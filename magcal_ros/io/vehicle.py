@@ -15,73 +15,28 @@
 """
 Vehicle logs (ArduPilot DataFlash, PX4 ULog) -> :class:`~magcal_ros.core.data.dataset.Dataset`.
 
-One implementation of what every log format shares (docs/design.md §1, "Vehicle logs"):
-the channel names, the resampling onto common epochs, the gap checks, the errors and the
-``meta``.  The format front-ends (:mod:`magcal_ros.io.dataflash` through pymavlink's
-DFReader, :mod:`magcal_ros.io.ulog` through pyulog) only read their messages into a
+One implementation of what every log format shares: the channel names, the resampling onto
+common epochs, the gap checks, the errors and the ``meta``.  The format front-ends
+(:mod:`magcal_ros.io.dataflash`, :mod:`magcal_ros.io.ulog`) only read their messages into a
 :class:`VehicleLog`: timed streams already in the library's units.
 
-What the Dataset holds:
+The Dataset (docs/design.md §1, "Vehicle logs", has the table of every channel, its unit and
+source): ``raw`` (S, N, 3) nT, every compass of the log in the vehicle's **body frame** (x
+forward, y right, z down) with the autopilot's own corrections undone, compass 1 the
+autopilot's first; ``t`` (N,) s, compass 1's epochs since boot; ``attitude`` (N, 4)
+body-to-NED quaternions (w, x, y, z) by slerp, or None (with a warning); ``temp`` (S, N) degC
+or None; ``aux`` the channels, linearly interpolated (held beyond their span), their units in
+``meta['aux_units']``.  ``meta`` also holds ``source``, ``source_format``, ``vehicle``,
+``firmware``, ``compasses``, ``attitude_source``, ``attitude_frame`` ('NED'), ``igrf`` (the
+median 3-D GPS fix and the first fix's date; absent without one), ``onboard_calibration``,
+``dropped_epochs``, ``gaps`` and ``warnings`` (:class:`~magcal_ros.core.model.notes.Note`).
 
-- ``raw`` (S, N, 3) nT: every compass of the log is a sensor, the raw reading **in the
-  vehicle's body frame** (x forward, y right, z down, as the autopilot rotates it), with the
-  autopilot's own corrections (offsets, scale, soft iron, motor compensation) undone;
-  compass 1 is the autopilot's first (ArduPilot: MAG instance 0; PX4: sensor_mag instance 0).
-- ``t`` (N,) s: the epochs of compass 1, s since the autopilot booted (the log's clock).
-- ``attitude`` (N, 4): body-to-world unit quaternion (w, x, y, z), world = NED; slerp onto
-  the epochs (:func:`magcal_ros.core.geometry.attitude.interpolate`).  None when the log has
-  no attitude message (a warning says so: the data are still plain compass data).
-- ``temp`` (S, N) degC: each compass's own temperature where the log has one (PX4), else
-  None.
-- ``aux``: the channels below, linearly interpolated onto the epochs (held at the first and
-  last value outside their span).  Names are stable; ``meta['aux_units']`` gives each one's
-  unit.
-
-====================================  =======  ================================================
-channel                               unit     source
-====================================  =======  ================================================
-``aux_battery_current``               A        ArduPilot BAT.Curr (instance 0; CURR in old
-                                               logs); PX4 battery_status.current_a (instance 0)
-``aux_battery_voltage``               V        BAT.Volt; battery_status.voltage_v
-``aux_battery{k}_current``, ``_voltage``  A, V  the k-th battery (k = 2, 3, ...)
-``aux_battery_temp``                  degC     BAT.Temp; battery_status.temperature (when
-                                               the battery reports one)
-``aux_throttle``                      0..1     ArduPilot CTUN.ThO (Copter 0..1; Plane % / 100);
-                                               PX4 actuator_controls_0.control[3], else
-                                               the norm of vehicle_thrust_setpoint.xyz
-``aux_motor{k}``                      PWM us   ArduPilot RCOU: the output whose SERVOn_FUNCTION
-                                               is motor k (33..40, 82..85); Copter 3.4 and
-                                               older: output k of the frame ('Frame: QUAD')
-``aux_motor{k}``                      0..1     PX4 actuator_motors.control[k-1] (normalised)
-``aux_output{k}``                     PWM us   PX4 actuator_outputs (instance 0) output[k-1],
-                                               for logs without actuator_motors
-``aux_esc{k}_current``                A        ArduPilot ESC (instance k-1)
-``aux_esc{k}_rpm``                    rpm      ArduPilot ESC
-``aux_esc{k}_temp``                   degC     ArduPilot ESC
-``aux_imu_temp``, ``aux_imu{k}_temp``  degC    ArduPilot IMU.T; PX4 sensor_accel.temperature
-``aux_baro_temp``                     degC     ArduPilot BARO.Temp; PX4 sensor_baro.temperature
-``aux_board_voltage``                 V        ArduPilot POWR.Vcc
-====================================  =======  ================================================
-
-``meta``: ``source``, ``source_format`` ('ArduPilot DataFlash', 'ArduPilot DataFlash (text)',
-'PX4 ULog'), ``vehicle`` and ``firmware`` when the log says, ``compasses`` (one entry per
-sensor: the message it came from, its rate), ``attitude_source`` (e.g. 'ArduPilot EKF3 XKQ
-core 0') and ``attitude_frame`` ('NED'), ``igrf`` ({lat_deg, lon_deg, alt_km, date}: the median
-position of the 3-D GPS fixes and the date of the first one; absent without a fix),
-``onboard_calibration`` (per compass the autopilot's own calibration as the log's parameters
-say, in nT and plain numbers), ``aux_units``, ``dropped_epochs`` and ``warnings``
-(:class:`~magcal_ros.core.model.notes.Note`, kind ``input``).
-
-Errors (:class:`VehicleLogError`, a ValueError: one line, exit status 2 from ``magcal``): a
-file that is not a log of its format or is damaged, an unsupported log version, a log without
-compass data, and a gap in compass 1's stream longer than :data:`GAP_PERIODS` sample periods
-(its epochs are the record's: a gap there cuts the record in two; ``allow_gaps``, the CLI's
-``--allow-gaps``, keeps such a record whole with a warning).  A gap in another
-compass's stream or in the attitude drops the epochs inside it, with a warning.
-
-A long log is held in memory as its compass epochs only (about 100 bytes an epoch for three
-compasses, attitude and a dozen channels): an hour at 100 Hz is ~40 MB.  :class:`VehicleRecord`
-hands it to the reduction of long records (:mod:`magcal_ros.core.data.reduce`) in chunks.
+Errors (:class:`VehicleLogError`, one line, exit 2 from ``magcal``): a file that is not a log
+of its format or is damaged, an unsupported version, no compass data, and a gap in compass
+1's stream longer than :data:`GAP_PERIODS` sample periods (``allow_gaps``, ``--allow-gaps``,
+keeps the record whole with a warning).  A gap in another compass or in the attitude drops
+the epochs inside it, with a warning.  A log is held in memory as its compass epochs only
+(about 100 bytes an epoch).
 """
 import os
 
@@ -127,19 +82,8 @@ def read_vehicle_log(path, allow_gaps=False):
 
     ``allow_gaps``: keep a record whose compass 1 stops for a while (a log dropout) as it
     is, with a warning naming the gaps (``meta['gaps']``: [(t s, length s)]), instead of
-    refusing it.
-
-    Returns
-    -------
-    Dataset
-        ``t`` (N,) s, ``raw`` (S, N, 3) nT body frame, ``attitude`` (N, 4) or None, ``temp``
-        (S, N) degC or None, ``aux`` {name: (N,)}, ``meta`` (module docstring).
-
-    Raises
-    ------
-    VehicleLogError
-        One line: what is wrong with the log and what to do.
-
+    refusing it.  Returns the Dataset of the module docstring; raises
+    :class:`VehicleLogError` (one line: what is wrong and what to do).
     """
     path = os.fspath(path)
     kind = log_format(path)
@@ -183,12 +127,19 @@ def _clean(stream):
     return t[keep], v[keep]
 
 
-def _inside(t_stream, t, periods=GAP_PERIODS):
-    """(N,) bool: epochs ``t`` within the span of ``t_stream`` and not inside one of its gaps."""
+def _inside(t_stream, t, what, warnings, sensor=None):
+    """
+    (N,) bool: epochs ``t`` within the span of ``t_stream`` and not inside one of its gaps.
+
+    A gap is named in a warning about ``what`` (appended to ``warnings``).
+    """
     ok = (t >= t_stream[0]) & (t <= t_stream[-1])
-    _, gaps = _gaps(t_stream, periods)
+    _, gaps = _gaps(t_stream)
     for start, length in gaps:
         ok &= ~((t > start) & (t < start + length))
+    if gaps:
+        warnings.append(Note(f'{what} stops for {_describe_gaps(gaps)}: the epochs inside are '
+                             'left out', kind='input', sensor=sensor))
     return ok
 
 
@@ -197,6 +148,12 @@ def _interp(t_stream, v, t):
     if v.ndim == 1:
         return np.interp(t, t_stream, v)
     return np.column_stack([np.interp(t, t_stream, v[:, i]) for i in range(v.shape[1])])
+
+
+def _onto(stream, t):
+    """Return a stream's values interpolated onto ``t`` (:func:`_interp`), or None."""
+    ts, vs = _clean(stream)
+    return _interp(ts, vs, t) if len(ts) else None
 
 
 def _describe_gaps(gaps):
@@ -241,24 +198,12 @@ def assemble(log, path, allow_gaps=False):
         if len(tj) < 2:
             raise VehicleLogError(f'{path}: compass {j} ({comp.name}) has only {len(tj)} '
                                   'valid sample(s)')
-        inside = _inside(tj, t)
-        _, gj = _gaps(tj)
-        if gj:
-            warnings.append(Note(f'compass {j} ({comp.name}) stops for {_describe_gaps(gj)}: '
-                                 'the epochs inside are left out', kind='input', sensor=j))
-        keep &= inside
+        keep &= _inside(tj, t, f'compass {j} ({comp.name})', warnings, sensor=j)
         raws.append(_interp(tj, vj, t))
     att = None
     if log.attitude is not None and len(log.attitude.t):
-        ta, qa = _clean(log.attitude)
-        inside = _inside(ta, t)
-        _, ga = _gaps(ta)
-        if ga:
-            warnings.append(Note(f'the attitude ({log.attitude_source}) stops for '
-                                 f'{_describe_gaps(ga)}: the epochs inside are left out',
-                                 kind='input'))
-        keep &= inside
-        att = (ta, qa)
+        att = _clean(log.attitude)
+        keep &= _inside(att[0], t, f'the attitude ({log.attitude_source})', warnings)
     else:
         warnings.append(Note(
             f'{os.path.basename(path)}: no attitude in the log: read as plain compass data '
@@ -273,15 +218,9 @@ def assemble(log, path, allow_gaps=False):
     if any(s is not None for s in log.compass_temps):
         temp = np.full((len(raws), len(t)), np.nan)
         for j, s in enumerate(log.compass_temps[:len(raws)]):
-            if s is not None:
-                ts, vs = _clean(s)
-                if len(ts):
-                    temp[j] = _interp(ts, vs, t)
-    aux = {}
-    for name, s in log.aux.items():
-        ts, vs = _clean(s)
-        if len(ts):
-            aux[name] = _interp(ts, vs, t)
+            if s is not None and (v := _onto(s, t)) is not None:
+                temp[j] = v
+    aux = {name: v for name, s in log.aux.items() if (v := _onto(s, t)) is not None}
     attitude = None
     if att is not None:
         from magcal_ros.core.geometry.attitude import AttitudeError, check_quaternions, \
@@ -293,8 +232,7 @@ def assemble(log, path, allow_gaps=False):
         attitude = interpolate(att[0], qa, t)
     meta = {'source': path, 'source_format': log.source_format,
             'compasses': [{'sensor': j, 'source': c.name,
-                           'rate_hz': (1.0 / _median_period(c.t)
-                                       if _median_period(c.t) > 0 else None)}
+                           'rate_hz': 1.0 / p if (p := _median_period(c.t)) > 0 else None}
                           for j, c in enumerate(log.compasses, start=1)],
             'attitude_source': log.attitude_source if att is not None else None,
             'attitude_frame': 'NED' if att is not None else None,
@@ -321,10 +259,7 @@ class VehicleRecord:
     unit = 'sets'
 
     def __init__(self, path, data):
-        self.path = os.fspath(path)
-        self.data = data
-        self.size = data.n_samples
-        self.scale = 1.0
+        self.path, self.data, self.size, self.scale = os.fspath(path), data, data.n_samples, 1.0
 
     def chunks(self, rows=65536, progress=None):
         """Yield Dataset pieces of at most ``rows`` epochs; ``progress(epochs done)``."""

@@ -46,7 +46,7 @@ from magcal_ros.ros.run import DEFAULT_NAMESPACE, spin_node
 from magcal_ros.serial import make_parser, PROTOCOLS, transport
 from magcal_ros.serial.options import parse_options
 from magcal_ros.serial.transport import PortReader, STATE_OPEN
-from magcal_ros.sim.paths import device_dir
+from magcal_ros.sim import device_dir
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType, SetParametersResult
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node

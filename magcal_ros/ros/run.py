@@ -32,7 +32,7 @@ import threading
 from types import SimpleNamespace
 
 from magcal_ros.runtime import limit_blas_threads
-from magcal_ros.sim.paths import DEFAULT_NAMESPACE  # noqa: F401 (the nodes' default namespace)
+from magcal_ros.sim import DEFAULT_NAMESPACE  # noqa: F401 (the nodes' default namespace)
 import rclpy
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor

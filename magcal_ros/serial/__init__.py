@@ -13,26 +13,16 @@
 # limitations under the License.
 
 r"""
-Serial device protocols (pure parsers/encoders) and the pyserial transport.
+Serial device protocols (pure parsers/encoders) and the pyserial transport (no rclpy).
 
-Nothing in this package imports rclpy.
-
-Protocols are kept in a table, :data:`PROTOCOLS`, mapping a name to its parser and
-encoder classes; :func:`make_parser` and :func:`make_encoder` build them from keyword
-options (the same options dictionary works for both: each side takes the options it
-uses). Built in:
-
-``ascii`` (default)
-    Configurable text lines, default ``<x_nT>,<y_nT>,<z_nT>,<temp_C>\r\n``
-    (:mod:`magcal_ros.serial.ascii`).
-``hmr2300_ascii``, ``hmr2300_binary``
-    Honeywell HMR2300 output (:mod:`magcal_ros.serial.hmr2300`).
-``lemi025``
-    LEMI-025 *style* 32-byte packets with sync tag and CRC (:mod:`magcal_ros.serial.lemi025`).
-
-Other protocols can be added with :func:`register_protocol`.
+:data:`PROTOCOLS` maps a name to its parser and encoder classes; :func:`make_parser` and
+:func:`make_encoder` build them from keyword options (one options dictionary serves both:
+each side takes the options it uses).  Built in: ``ascii`` (default; text lines, default
+``<x_nT>,<y_nT>,<z_nT>,<temp_C>\r\n``, :mod:`~magcal_ros.serial.ascii`), ``hmr2300_ascii``
+and ``hmr2300_binary`` (Honeywell HMR2300, :mod:`~magcal_ros.serial.hmr2300`), ``lemi025``
+(LEMI-025 *style* packets with sync tag and CRC, :mod:`~magcal_ros.serial.lemi025`); more
+with :func:`register_protocol`.
 """
-
 from dataclasses import dataclass
 import inspect
 
@@ -51,20 +41,7 @@ DEFAULT_PROTOCOL = 'ascii'
 
 @dataclass(frozen=True)
 class Protocol:
-    """
-    One registry entry.
-
-    Attributes
-    ----------
-    name : str
-    parser : type
-        :class:`Parser` subclass, constructed with keyword options.
-    encoder : type
-        :class:`Encoder` subclass, constructed with keyword options.
-    description : str
-        One line for help texts.
-
-    """
+    """One registry entry: the :class:`Parser` and :class:`Encoder` classes, a line of help."""
 
     name: str
     parser: type
@@ -76,21 +53,7 @@ PROTOCOLS = {}
 
 
 def register_protocol(name, parser, encoder, description=''):
-    """
-    Add (or replace) a protocol in :data:`PROTOCOLS`.
-
-    Parameters
-    ----------
-    name : str
-        Protocol name used in configuration files.
-    parser : type
-        Subclass of :class:`Parser`.
-    encoder : type
-        Subclass of :class:`Encoder`.
-    description : str
-        One line for help texts.
-
-    """
+    """Add (or replace) protocol ``name``: its Parser and Encoder subclasses, a line of help."""
     if not (isinstance(parser, type) and issubclass(parser, Parser)):
         raise ValueError(f'parser for {name!r} must be a Parser subclass, got {parser!r}')
     if not (isinstance(encoder, type) and issubclass(encoder, Encoder)):
@@ -138,13 +101,12 @@ def parser_options(protocol):
 
 
 def _build(protocol, side, options):
-    entry = _lookup(protocol)
-    known = _accepted(entry.parser) | _accepted(entry.encoder)
-    unknown = sorted(set(options) - known)
+    known = parser_options(protocol)
+    unknown = sorted(set(options) - set(known))
     if unknown:
         raise ValueError(f'unknown option(s) {unknown} for serial protocol {protocol!r}; '
-                         f'known: {sorted(known)}')
-    cls = getattr(entry, side)
+                         f'known: {known}')
+    cls = getattr(_lookup(protocol), side)
     mine = _accepted(cls)
     try:
         return cls(**{k: v for k, v in options.items() if k in mine})
@@ -154,48 +116,14 @@ def _build(protocol, side, options):
 
 def make_parser(protocol=DEFAULT_PROTOCOL, **options):
     """
-    Build a parser.
+    Build the :class:`Parser` of ``protocol`` (a name in :data:`PROTOCOLS`).
 
-    Parameters
-    ----------
-    protocol : str
-        Name in :data:`PROTOCOLS` (``'ascii'``, ``'hmr2300_ascii'``, ``'hmr2300_binary'``,
-        ``'lemi025'``).
-    **options
-        Protocol options; options meant only for the encoder are ignored.
-
-    Returns
-    -------
-    Parser
-
-    Raises
-    ------
-    ValueError
-        Unknown protocol, unknown option or bad option value.
-
+    ``options`` meant only for the encoder are ignored.  Raises ValueError for an unknown
+    protocol, an unknown option or a bad option value.
     """
     return _build(protocol, 'parser', options)
 
 
 def make_encoder(protocol=DEFAULT_PROTOCOL, **options):
-    """
-    Build an encoder producing exactly what :func:`make_parser` with the same options reads.
-
-    Parameters
-    ----------
-    protocol : str
-        Name in :data:`PROTOCOLS`.
-    **options
-        Protocol options; options meant only for the parser are ignored.
-
-    Returns
-    -------
-    Encoder
-
-    Raises
-    ------
-    ValueError
-        Unknown protocol, unknown option or bad option value.
-
-    """
+    """Build the :class:`Encoder` writing what :func:`make_parser` reads (the same rules)."""
     return _build(protocol, 'encoder', options)

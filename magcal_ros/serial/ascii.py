@@ -16,20 +16,14 @@ r"""
 Configurable ASCII line protocol (the project's default device protocol).
 
 Default (docs/design.md §3): one line per sample, ``<x_nT>,<y_nT>,<z_nT>,<temp_C>\r\n``,
-e.g. ``12345.6,-2345.1,43210.9,24.31\r\n``.
-
-Everything is configurable: the delimiter (or ``None`` for runs of whitespace), the line
-terminator, the column order (names ``x``, ``y``, ``z``, ``temp``, ``time`` and ``skip``
-for columns to ignore), the field scale to nT (1 for nT, 1e5 for gauss, 1e3 for uT), the
-time scale to s, a start command sent on open, a comment prefix and a number of header
-lines to skip.
+e.g. ``12345.6,-2345.1,43210.9,24.31\r\n``; the delimiter, terminator, columns, scales,
+commands, comments and header lines are options (:class:`AsciiParser`).
 """
 
 import math
 import re
 
-from magcal_ros.serial.base import check_positive, Encoder, to_bytes
-from magcal_ros.serial.lines import LineParser
+from magcal_ros.serial.base import check_positive, Encoder, LineParser, to_bytes
 
 #: Column names understood by the ASCII protocol.
 COLUMN_NAMES = ('x', 'y', 'z', 'temp', 'time', 'skip')
@@ -42,23 +36,10 @@ _NUMBER = re.compile(rb'[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?'
 
 def parse_number(text):
     """
-    Parse one ASCII number strictly.
+    Parse one ASCII field (bytes, whitespace around allowed) strictly as a float.
 
-    Parameters
-    ----------
-    text : bytes
-        The field, surrounding whitespace allowed.
-
-    Returns
-    -------
-    float
-        The value (may be nan or inf: the caller rejects non-finite values).
-
-    Raises
-    ------
-    ValueError
-        If ``text`` is not a plain decimal number.
-
+    The value may be nan or inf (the caller rejects them); ValueError if ``text`` is not a
+    plain decimal number.
     """
     text = text.strip()
     if not _NUMBER.fullmatch(text):
@@ -95,32 +76,15 @@ class AsciiParser(LineParser):
     r"""
     Parser for the configurable ASCII line protocol.
 
-    Parameters
-    ----------
-    delimiter : str or None
-        Field separator; None (or '') splits on runs of whitespace. Default ``','``.
-    terminator : str
-        Line terminator, default ``'\r\n'`` (any of CR/LF/CRLF is accepted).
-    columns : sequence of str or str
-        Column order, names from ``x, y, z, temp, time, skip``; default ``x,y,z,temp``.
-    scale : float
-        nT per unit of the x, y, z columns (1 for nT, 1e5 for gauss).
-    time_scale : float
-        Seconds per unit of the ``time`` column (1e-3 for milliseconds).
-    start_command : str or bytes
-        Bytes written to the device after the port is opened (default none).
-    stop_command : str or bytes
-        Bytes written before the port is closed (default none).
-    comment_prefix : str or None
-        Lines starting with it (after leading whitespace) are ignored. Default ``'#'``.
-    header_lines : int
-        Number of lines at the start of the stream (and after each :meth:`reset`) to skip.
-    allow_extra_columns : bool
-        Accept and ignore trailing columns beyond ``columns``; default False (counted as
-        ``'malformed'``).
-    **kwargs
-        ``max_abs_nt``, ``temp_range_c``, ``time_reset_after``, ``max_line_bytes``.
-
+    ``delimiter`` the field separator (None or '': runs of whitespace); ``terminator`` the
+    line end (any of CR/LF/CRLF accepted); ``columns`` their order, names from ``x, y, z,
+    temp, time, skip``; ``scale`` nT per unit of x, y, z (1e5 for gauss); ``time_scale`` s
+    per unit of ``time`` (1e-3 for ms); ``start_command``, ``stop_command`` bytes written
+    after the port opens and before it closes; lines starting with ``comment_prefix`` (after
+    whitespace) are ignored, and the first ``header_lines`` (also after each :meth:`reset`);
+    ``allow_extra_columns`` accepts trailing columns beyond ``columns`` (else
+    ``'malformed'``).  ``kwargs``: ``max_abs_nt``, ``temp_range_c``, ``time_reset_after``,
+    ``max_line_bytes``.
     """
 
     def __init__(self, delimiter=',', terminator='\r\n', columns=DEFAULT_COLUMNS, scale=1.0,
@@ -175,21 +139,11 @@ class AsciiEncoder(Encoder):
     """
     Encoder for the configurable ASCII line protocol (same options as the parser).
 
-    Parameters
-    ----------
-    delimiter, terminator, columns, scale, time_scale : see :class:`AsciiParser`
-        A ``None`` delimiter writes one space.
-    field_decimals : int or None
-        Decimals of x, y, z in the device unit. Default: enough for 0.1 nT
-        (1 for nT, 6 for gauss).
-    temp_decimals : int
-        Decimals of the temperature, default 2.
-    time_decimals : int
-        Decimals of the time column in its unit, default 6.
-    header : str or None
-        Optional header text sent once before streaming (:attr:`preamble`), e.g. a
-        ``'# x,y,z,temp'`` comment line; the terminator is appended.
-
+    ``delimiter``, ``terminator``, ``columns``, ``scale``, ``time_scale`` as
+    :class:`AsciiParser` (a None delimiter writes one space); ``field_decimals`` of x, y, z
+    in the device unit (default: enough for 0.1 nT, 1 for nT, 6 for gauss),
+    ``temp_decimals``, ``time_decimals`` (in the time column's unit); ``header`` text sent
+    once before streaming (:attr:`preamble`, e.g. ``'# x,y,z,temp'``; terminator appended).
     """
 
     def __init__(self, delimiter=',', terminator='\r\n', columns=DEFAULT_COLUMNS, scale=1.0,
@@ -210,15 +164,7 @@ class AsciiEncoder(Encoder):
         self.preamble = (to_bytes(header, 'header') + self.terminator) if header else b''
 
     def encode(self, sample):
-        """
-        Return one line for ``sample``.
-
-        Raises
-        ------
-        ValueError
-            If the columns need a temperature or time that the sample lacks.
-
-        """
+        """Return one line for ``sample`` (ValueError: the columns need what it lacks)."""
         parts = []
         for name in self.columns:
             if name in ('x', 'y', 'z'):

@@ -15,18 +15,17 @@
 """
 Common parts of every serial protocol: the sample record, statistics and validation.
 
-A protocol is a pair (:class:`Parser`, :class:`Encoder`). The parser turns an arbitrary byte
-stream into :class:`Sample` records and never raises on any input: malformed, non-finite,
-saturated or time-reversed data are counted per error kind in :class:`ParserStats` and
-skipped. The encoder produces exactly the bytes the parser reads; the simulator uses it.
-
-Nothing here imports rclpy.
+A protocol is a pair (:class:`Parser`, :class:`Encoder`).  The parser turns any byte stream
+into :class:`Sample` records and never raises on its content: malformed, non-finite,
+saturated or time-reversed data are counted per kind in :class:`ParserStats` and skipped.
+The encoder writes exactly the bytes the parser reads (for the simulator).  The text
+protocols share :class:`LineParser`'s line framing.
 """
-
 from collections import Counter
 import dataclasses
 from dataclasses import dataclass, field
 import math
+import re
 
 #: Default saturation limit for one field component, nT (about 2 gauss, the HMR2300 range).
 DEFAULT_MAX_ABS_NT = 200_000.0
@@ -44,16 +43,9 @@ class Sample:
     """
     One decoded magnetometer reading.
 
-    Attributes
-    ----------
-    field_nt : tuple of float
-        (x, y, z) field in nT, in the device's own axes; always finite.
-    temp_c : float or None
-        Sensor temperature in degC when the protocol carries it, else None.
-    device_time : float or None
-        Device timestamp in s when the protocol carries it, else None. This is the
-        device's clock, not the arrival time (the transport stamps arrival separately).
-
+    ``field_nt`` (x, y, z) nT in the device's axes, finite; ``temp_c`` degC and
+    ``device_time`` s (the device's clock, not the arrival time) when the protocol carries
+    them, else None.
     """
 
     field_nt: tuple
@@ -66,22 +58,11 @@ class ParserStats:
     """
     Counters of one parser.
 
-    Attributes
-    ----------
-    frames : int
-        Samples emitted (valid frames/lines).
-    errors : collections.Counter
-        Rejected frames/lines per error kind, e.g. ``'malformed'``, ``'non_finite'``,
-        ``'out_of_range'``, ``'temp_out_of_range'``, ``'time_backwards'``, ``'checksum'``,
-        ``'overlong'``, ``'sync_lost'``.
-    ignored : collections.Counter
-        Input that is not data and not an error (``'comment'``, ``'header'``, ``'blank'``,
-        ``'response'``).
-    bytes_in : int
-        Bytes fed to the parser.
-    bytes_dropped : int
-        Bytes discarded while searching for a frame boundary or sync tag.
-
+    ``frames`` samples emitted; ``errors`` rejected frames/lines per kind (``'malformed'``,
+    ``'non_finite'``, ``'out_of_range'``, ``'temp_out_of_range'``, ``'time_backwards'``,
+    ``'checksum'``, ``'overlong'``, ``'sync_lost'``, ...); ``ignored`` input that is neither
+    data nor an error (``'comment'``, ``'header'``, ``'blank'``, ``'response'``); ``bytes_in``
+    fed; ``bytes_dropped`` discarded while searching for a frame boundary or sync tag.
     """
 
     frames: int = 0
@@ -118,21 +99,7 @@ def check_positive(name, value):
 
 
 def to_bytes(value, name):
-    """
-    Convert a str (latin-1, escapes already resolved) or bytes option to bytes.
-
-    Parameters
-    ----------
-    value : str or bytes or bytearray or None
-        The option value; None gives ``b''``.
-    name : str
-        Option name for the error message.
-
-    Returns
-    -------
-    bytes
-
-    """
+    """Return option ``name``'s bytes: of bytes, of a str (latin-1), ``b''`` of None."""
     if value is None:
         return b''
     if isinstance(value, (bytes, bytearray)):
@@ -150,22 +117,12 @@ class Parser:
     """
     Base class of protocol parsers: validation, statistics and timestamp ordering.
 
-    Subclasses implement :meth:`_parse` (bytes -> list of raw tuples via :meth:`_accept`).
-
-    Parameters
-    ----------
-    max_abs_nt : float
-        Saturation limit: a sample with any ``|component| > max_abs_nt`` (nT) is rejected
-        as ``'out_of_range'``. Default 200 000 nT.
-    temp_range_c : (float, float)
-        Inclusive plausible temperature range in degC; outside it the sample is rejected
-        as ``'temp_out_of_range'``.
-    time_reset_after : int
-        After this many consecutive samples with a device time earlier than the last
-        accepted one (each counted as ``'time_backwards'`` and dropped), the parser
-        assumes the device restarted its clock, counts ``'time_reset'`` and accepts the
-        new time base.
-
+    Subclasses implement :meth:`_parse` (bytes -> samples via :meth:`_accept`).  A sample
+    with any ``|component| > max_abs_nt`` (nT) is rejected as ``'out_of_range'``, one whose
+    temperature is outside ``temp_range_c`` (inclusive, degC) as ``'temp_out_of_range'``.
+    After ``time_reset_after`` consecutive samples with a device time earlier than the last
+    accepted one (each counted as ``'time_backwards'`` and dropped) the parser takes it that
+    the device restarted its clock, counts ``'time_reset'`` and accepts the new time base.
     """
 
     #: Bytes the transport writes after opening the port (e.g. a start command).
@@ -192,20 +149,7 @@ class Parser:
         self._backwards_run = 0
 
     def feed(self, data):
-        """
-        Consume bytes and return the samples completed by them.
-
-        Parameters
-        ----------
-        data : bytes or bytearray or memoryview
-            Any bytes, in any chunking; never raises on content.
-
-        Returns
-        -------
-        list of Sample
-            Valid samples in stream order (possibly empty).
-
-        """
+        """Consume any bytes (in any chunking); return the samples they complete, in order."""
         data = bytes(data)
         self.stats.bytes_in += len(data)
         out = []
@@ -277,3 +221,74 @@ class Encoder:
     def encode_many(self, samples):
         """Return the concatenated bytes of an iterable of samples."""
         return b''.join(self.encode(s) for s in samples)
+
+
+#: Terminators that are treated as "any of CR, LF, CRLF" when splitting.
+_NEWLINE_TERMINATORS = (b'\r\n', b'\n', b'\r', b'\n\r')
+_NEWLINE_SPLIT = re.compile(rb'[\r\n]')
+
+
+class LineParser(Parser):
+    r"""
+    Split a byte stream into lines and hand each complete line to :meth:`_parse_line`.
+
+    A newline ``terminator`` (``'\r\n'``, ``'\n'``, ``'\r'``) splits on either CR or LF, so
+    devices sending CR only, LF only or CRLF are all read (blank pieces ignored); any other
+    (e.g. ``';'``) is split on exactly.  A line longer than ``max_line_bytes`` without a
+    terminator is discarded up to the next one and counted as ``'overlong'`` (a wrong baud
+    rate makes such input).  ``kwargs``: the validation options of :class:`Parser`.
+    """
+
+    def __init__(self, terminator=b'\r\n', max_line_bytes=256, **kwargs):
+        super().__init__(**kwargs)
+        term = to_bytes(terminator, 'terminator')
+        if not term:
+            raise ValueError('terminator must not be empty; use e.g. "\\r\\n"')
+        self.terminator = term
+        self._newline = term in _NEWLINE_TERMINATORS
+        if int(max_line_bytes) < 8:
+            raise ValueError(f'max_line_bytes must be >= 8, got {max_line_bytes!r}')
+        self.max_line_bytes = int(max_line_bytes)
+        self._buf = b''
+        self._discarding = False
+
+    def _reset_buffer(self):
+        self._buf = b''
+        self._discarding = False
+
+    def _split(self, buf):
+        """Return (complete pieces, remainder)."""
+        if self._newline:
+            pieces = _NEWLINE_SPLIT.split(buf)
+        else:
+            pieces = buf.split(self.terminator)
+        return pieces[:-1], pieces[-1]
+
+    def _parse(self, data, out):
+        buf = self._buf + data
+        lines, rest = self._split(buf)
+        for line in lines:
+            if self._discarding:
+                # tail of an overlong line: already counted, drop it
+                self.stats.bytes_dropped += len(line)
+                self._discarding = False
+                continue
+            if len(line) > self.max_line_bytes:
+                self._error('overlong')
+                self.stats.bytes_dropped += len(line)
+                continue
+            if not line.strip():
+                if line:
+                    self.stats.ignored['blank'] += 1
+                continue
+            self._parse_line(line, out)
+        if len(rest) > self.max_line_bytes:
+            if not self._discarding:
+                self._error('overlong')
+                self._discarding = True
+            self.stats.bytes_dropped += len(rest)
+            rest = b''
+        self._buf = rest
+
+    def _parse_line(self, line, out):  # pragma: no cover - abstract
+        raise NotImplementedError

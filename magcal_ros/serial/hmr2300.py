@@ -17,19 +17,16 @@ Honeywell HMR2300 smart digital magnetometer: ASCII and binary output, commands.
 
 Output formats (HMR2300 data sheet, "Data formats"):
 
-- ASCII (BCD), 28 bytes per reading, per axis ``SN X1 X2 CM X3 X4 X5 SP SP`` then
-  ``<cr>``: a sign character (``-`` or a space), the magnitude in counts with a comma
-  thousands separator right-justified in six characters (leading digits replaced by
-  spaces), two spaces. Example ``- 1,234    2,345  -   345  \r`` is x = -1234,
+- ASCII (BCD), 28 bytes per reading, per axis ``SN X1 X2 CM X3 X4 X5 SP SP`` then ``<cr>``:
+  a sign (``-`` or a space), the counts comma-grouped, right-justified in six characters,
+  two spaces. Example ``- 1,234    2,345  -   345  \r`` is x = -1234,
   y = 2345, z = -345 counts. The parser also accepts free spacing, LF and CRLF.
 - Binary, 7 bytes: ``Xhi Xlo Yhi Ylo Zhi Zlo <cr>``, big-endian two's-complement int16
-  (value = hi*256 + lo, minus 65536 when >= 32768) and ``0x0D``.
+  (value = hi*256 + lo, minus 65536 when >= 32768) and ``0x0D`` (data bytes may be 0x0D
+  too: :class:`Hmr2300BinaryParser` synchronises on the frame structure).
 
 Scale: 15 000 counts per gauss, so one count is 1e5/15000 = 6.667 nT (range +-2 G =
 +-30 000 counts = +-200 000 nT).
-
-The binary parser never splits on ``0x0D``: data bytes may be ``0x0D``. It synchronises on
-the 7-byte structure instead (see :class:`Hmr2300BinaryParser`).
 
 Commands (``dd`` = two-digit device id, ``99`` addresses all units; each ends with CR):
 ``*ddC`` continuous output, ``ESC`` stops it, ``*ddP`` polls one reading, ``*ddR=nnn`` sets
@@ -40,8 +37,7 @@ of settings.
 import re
 import struct
 
-from magcal_ros.serial.base import Encoder, Parser
-from magcal_ros.serial.lines import LineParser
+from magcal_ros.serial.base import Encoder, LineParser, Parser
 
 CR = 0x0D
 ESC = b'\x1b'
@@ -148,23 +144,12 @@ class Hmr2300AsciiParser(_Hmr2300Options, LineParser):
     """
     Parser of HMR2300 ASCII output (signed counts with comma thousands separators).
 
-    Parameters
-    ----------
-    counts_per_gauss : float
-        Default 15 000.
-    device_id : str
-        Two-digit id used in the start command, default ``'99'`` (all units).
-    send_start : bool
-        If True the transport sends ``*ddA`` [``*ddR=rate``] ``*ddC`` on open and ESC on
-        close. Default False (the device is left as configured).
-    rate : int or None
-        Sample rate for the start sequence, one of :data:`RATES`.
-    **kwargs
-        ``terminator`` (default CR; CR, LF and CRLF are all accepted), ``max_abs_nt``,
-        ``temp_range_c``, ``time_reset_after``, ``max_line_bytes``.
-
-    Lines that are exactly ``OK`` (command replies) are ignored as ``'response'``.
-
+    ``device_id``: the two digits of the start command (``'99'``: all units); with
+    ``send_start`` the transport sends ``*ddA`` [``*ddR=rate``, ``rate`` one of
+    :data:`RATES`] ``*ddC`` on open and ESC on close (default: the device is left as
+    configured).  ``kwargs``: ``terminator`` (CR, LF and CRLF all accepted), ``max_abs_nt``,
+    ``temp_range_c``, ``time_reset_after``, ``max_line_bytes``.  Lines that are exactly
+    ``OK`` (command replies) are ignored as ``'response'``.
     """
 
     def __init__(self, counts_per_gauss=COUNTS_PER_GAUSS, device_id='99', send_start=False,
@@ -234,17 +219,9 @@ class Hmr2300BinaryParser(_Hmr2300Options, Parser):
     frame only needs its own terminator; a missing terminator loses the lock
     (``'sync_lost'``) and the search restarts one byte after the start of that frame.
 
-    Parameters
-    ----------
-    sync_frames : int
-        Frames that must line up to acquire (default 3).
-    max_sync_frames : int
-        Most frames read to resolve an ambiguous alignment (default 16).
-    counts_per_gauss, device_id, send_start, rate : see :class:`Hmr2300AsciiParser`
-        The start sequence selects binary output (``*ddB``).
-    **kwargs
-        ``max_abs_nt``, ``temp_range_c``, ``time_reset_after``.
-
+    ``counts_per_gauss``, ``device_id``, ``send_start``, ``rate`` as
+    :class:`Hmr2300AsciiParser` (the start sequence selects binary output, ``*ddB``);
+    ``kwargs``: ``max_abs_nt``, ``temp_range_c``, ``time_reset_after``.
     """
 
     def __init__(self, counts_per_gauss=COUNTS_PER_GAUSS, device_id='99', send_start=False,
@@ -266,10 +243,6 @@ class Hmr2300BinaryParser(_Hmr2300Options, Parser):
     def _ends_ok(buf, p, frames):
         """Return True if ``frames`` consecutive frames from ``p`` all end in 0x0D."""
         return all(buf[p + 6 + FRAME_BYTES * k] == CR for k in range(frames))
-
-    def _consistent(self, buf, p):
-        """Return True if ``sync_frames`` frames from ``p`` all end in 0x0D."""
-        return self._ends_ok(buf, p, self.sync_frames)
 
     def _variation(self, buf, p):
         frames = [struct.unpack_from('>3h', buf, p + FRAME_BYTES * k)
@@ -299,7 +272,7 @@ class Hmr2300BinaryParser(_Hmr2300Options, Parser):
                 continue
             # acquisition: earliest position where sync_frames frames line up
             j = i
-            while j + span <= n and not self._consistent(buf, j):
+            while j + span <= n and not self._ends_ok(buf, j, self.sync_frames):
                 j += 1
             if j + span > n:
                 keep = max(i, n - (span - 1))

@@ -62,15 +62,7 @@ def crc16(data):
 
 
 class Lemi025Parser(Parser):
-    """
-    Parser of LEMI-025 style packets (see module docstring for the layout).
-
-    Parameters
-    ----------
-    **kwargs
-        ``max_abs_nt``, ``temp_range_c``, ``time_reset_after``.
-
-    """
+    """Parser of LEMI-025 style packets (module docstring); the options of :class:`Parser`."""
 
     def __init__(self, **kwargs):
         super().__init__(**kwargs)
@@ -120,32 +112,18 @@ def _clip(value, lo, hi):
 
 class Lemi025Encoder(Encoder):
     """
-    Encoder of LEMI-025 style packets; keeps the packet counter.
-
-    Parameters
-    ----------
-    counter : int
-        First packet counter value (default 0).
+    Encoder of LEMI-025 style packets, counting them from ``counter``.
 
     Samples must carry ``device_time``; a missing temperature is written as
-    :data:`TEMP_MISSING`. Values are rounded to 0.01 nT / 0.01 degC / 1 us and saturated
-    to the field widths.
-
+    :data:`TEMP_MISSING`.  Values are rounded to 0.01 nT / 0.01 degC / 1 us and saturated to
+    the field widths.
     """
 
     def __init__(self, counter=0):
         self.counter = int(counter) % 2**32
 
     def encode(self, sample):
-        """
-        Return the 32-byte packet of ``sample``.
-
-        Raises
-        ------
-        ValueError
-            If the sample has no device_time.
-
-        """
+        """Return the 32-byte packet of ``sample`` (ValueError without its device_time)."""
         if sample.device_time is None:
             raise ValueError('lemi025 packets carry the device time: sample.device_time '
                              'must be set (seconds)')

@@ -46,23 +46,10 @@ def load_yaml(text):
 
 def parse_options(text):
     """
-    Parse protocol options given as a YAML mapping string.
+    Return the dict of protocol options given as a YAML mapping string (ValueError if not).
 
-    Parameters
-    ----------
-    text : str or dict or None
-        e.g. ``"{columns: 'x,y,z,temp,time', scale: 1e5}"``; '' or None gives no options;
-        a dict is returned as a copy.
-
-    Returns
-    -------
-    dict
-
-    Raises
-    ------
-    ValueError
-        If the text is not a YAML mapping.
-
+    e.g. ``"{columns: 'x,y,z,temp,time', scale: 1e5}"``; '' or None gives no options; a dict
+    is returned as a copy.
     """
     if text is None or isinstance(text, dict):
         return dict(text or {})

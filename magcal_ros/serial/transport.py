@@ -15,22 +15,16 @@
 """
 Serial transport: a reconnecting pyserial reader thread and a pseudo-terminal device.
 
-:class:`PortReader` owns one serial port. It reads whatever bytes arrive, feeds them to a
-protocol parser and hands each sample to a callback together with its arrival time
-(``time.time()`` taken when the bytes were read; never synthesised from a sample rate).
-When the device goes away (unplugged USB adapter, closed pseudo-terminal, path removed)
-pyserial raises ``SerialException``/``OSError``; the reader closes the port and reopens it
-with exponential backoff, optionally trying alternative device paths (glob patterns), and
-counts every disconnect and reconnect.
+:class:`PortReader` reads one serial port into a protocol parser and hands each sample to a
+callback with its arrival time (``time.time()`` when its bytes were read, never synthesised
+from a sample rate).  When the device goes away pyserial raises ``SerialException``/
+``OSError``; the reader closes the port and reopens it with exponential backoff, optionally
+trying alternative paths (glob patterns), counting every disconnect and reconnect.
 
-:class:`PtyDevice` plays the device side for simulation and tests: a raw-mode
-pseudo-terminal whose slave is symlinked to a chosen path (e.g.
-``/tmp/magcal_sim/fluxgate1``), with :meth:`~PtyDevice.unplug` and
-:meth:`~PtyDevice.replug` to emulate a cable being pulled and put back.
-
-Nothing here imports rclpy.
+:class:`PtyDevice` plays the device side for simulation and tests: a raw-mode pseudo-terminal
+whose slave is symlinked to a chosen path, with :meth:`~PtyDevice.unplug` and
+:meth:`~PtyDevice.replug` to emulate a cable pulled and put back.
 """
-
 import collections
 from dataclasses import dataclass
 import fcntl
@@ -62,41 +56,15 @@ class PortStats:
     """
     Snapshot of a :class:`PortReader`.
 
-    Attributes
-    ----------
-    name : str
-        Reader name (e.g. ``'sensor1'``).
-    port : str
-        Configured device path.
-    path : str or None
-        Path currently open (the configured one or an alternative), None when closed.
-    state : str
-        ``'connecting'``, ``'open'``, ``'backoff'`` (waiting to retry) or ``'stopped'``.
-    rate_hz : float
-        Samples per second over the last ``rate_window`` s.
-    samples : int
-        Samples delivered to the callback.
-    bytes_in : int
-        Bytes read from the port.
-    parse_errors : int
-        Frames/lines rejected by the parser (all kinds).
-    errors : dict
-        Parser rejections per kind.
-    bytes_dropped : int
-        Bytes the parser discarded while resynchronising.
-    reconnects : int
-        Successful reopenings after a loss of the device.
-    disconnects : int
-        Losses of an open device (read/write error).
-    open_failures : int
-        Failed attempts to open any candidate path.
-    callback_errors : int
-        Exceptions raised by the sample callback (logged, reader keeps running).
-    last_error : str
-        Text of the last transport error ('' if none).
-    seconds_since_data : float or None
-        Age of the last received bytes, None before any.
-
+    ``name`` the reader's label; ``port`` the configured path; ``path`` the one open (the
+    configured one or an alternative), None when closed; ``state`` 'connecting', 'open',
+    'backoff' (waiting to retry) or 'stopped'; ``rate_hz`` samples per second over the last
+    ``rate_window`` s; ``samples`` delivered to the callback; ``bytes_in`` read from the port;
+    ``parse_errors`` frames/lines the parser rejected, ``errors`` per kind; ``bytes_dropped``
+    by the parser while resynchronising; ``reconnects`` after a loss; ``disconnects`` losses
+    of an open device; ``open_failures`` failed opens of any path; ``callback_errors``
+    exceptions of the callback (logged; the reader keeps running); ``last_error`` the last
+    transport error ('' if none); ``seconds_since_data`` age of the last bytes, None before.
     """
 
     name: str
@@ -132,37 +100,18 @@ class PortReader:
     """
     Background thread reading one serial port into a parser, reconnecting on loss.
 
-    Parameters
-    ----------
-    port : str
-        Device path, e.g. ``/dev/ttyUSB0`` or ``/tmp/magcal_sim/fluxgate1``.
-    baudrate : int
-        Baud rate (bit/s).
-    parser : magcal_ros.serial.Parser
-        Protocol parser; its ``start_command`` is written after every (re)open and its
-        ``stop_command`` before a clean close.
-    callback : callable
-        ``callback(sample, arrival_time)`` for every sample, called from the reader thread;
-        ``arrival_time`` is ``clock()`` (default ``time.time()``, s) when its bytes arrived.
-    alternatives : sequence of str
-        Glob patterns of other paths to try when ``port`` cannot be opened (a device that
-        comes back under another name after a replug). Paths open by another reader of
-        this process are skipped.
-    timeout : float
-        pyserial read timeout, s; bounds how quickly :meth:`stop` takes effect.
-    backoff_min, backoff_max : float
-        First and largest wait between reopen attempts, s; the wait doubles after every
-        failure and returns to ``backoff_min`` once data flows again.
-    name : str
-        Label for logs and statistics.
-    rate_window : float
-        Window for ``rate_hz``, s.
-    serial_factory : callable
-        ``serial_factory(path, baudrate, timeout=...)`` returning a pyserial-like object;
-        default ``serial.Serial``.
-    clock : callable
-        Arrival-time source, default ``time.time``.
-
+    ``port`` the device path (``/dev/ttyUSB0``, ``/tmp/magcal_sim/fluxgate1``), ``baudrate``
+    bit/s; ``parser`` a :class:`magcal_ros.serial.Parser`, its ``start_command`` written after
+    every (re)open and its ``stop_command`` before a clean close; ``callback(sample,
+    arrival_time)`` called from the reader thread for every sample, ``arrival_time`` the
+    ``clock()`` (s) when its bytes arrived.  ``alternatives``: glob patterns of other paths
+    to try when ``port`` cannot be opened (a device back under another name), paths open by
+    another reader of this process skipped.  ``timeout``: pyserial's read timeout, s (how
+    quickly :meth:`stop` acts).  ``backoff_min``, ``backoff_max``: the first and largest wait
+    between reopen attempts, s, doubling after every failure, back to ``backoff_min`` once
+    data flow.  ``name`` labels logs and statistics; ``rate_window`` (s) is ``rate_hz``'s;
+    ``serial_factory(path, baudrate, timeout=...)`` returns a pyserial-like object (default
+    ``serial.Serial``).
     """
 
     def __init__(self, port, baudrate, parser, callback, *, alternatives=(), timeout=0.05,
@@ -197,20 +146,13 @@ class PortReader:
         self._clock = clock
         self._lock = threading.Lock()
         self._stop = threading.Event()
-        self._thread = None
+        self._thread = self._path = self._last_data = self._rate_origin = None
         self._state = STATE_CONNECTING
-        self._path = None
-        self._samples = 0
-        self._bytes = 0
-        self._reconnects = 0
-        self._disconnects = 0
-        self._open_failures = 0
-        self._callback_errors = 0
+        self._samples = self._bytes = self._reconnects = self._disconnects = 0
+        self._open_failures = self._callback_errors = 0
         self._last_error = ''
-        self._last_data = None
         self._ever_opened = False
         self._arrivals = collections.deque()   # (arrival time, samples) within rate_window
-        self._rate_origin = None
 
     # -- public ----------------------------------------------------------------------
     def start(self):
@@ -266,16 +208,8 @@ class PortReader:
             self._arrivals.popleft()
 
     def _candidates(self):
-        paths = [self.port]
-        for pattern in self.alternatives:
-            paths.extend(sorted(glob.glob(pattern)))
-        seen = set()
-        out = []
-        for p in paths:
-            if p not in seen:
-                seen.add(p)
-                out.append(p)
-        return out
+        found = [p for pattern in self.alternatives for p in sorted(glob.glob(pattern))]
+        return list(dict.fromkeys([self.port] + found))       # in order, without repeats
 
     def _open(self):
         """Try every candidate path; return (serial object, path, realpath) or None."""
@@ -405,32 +339,20 @@ class PtyDevice:
     """
     A simulated serial device on a pseudo-terminal.
 
-    The slave side is put in raw mode and (optionally) symlinked to ``link_path``;
-    a :class:`PortReader` (or any program) opens that path like a real serial port. The
-    device writes through the master side, which is non-blocking: when nobody reads and
-    the kernel buffer is full, stale unread input is flushed (counted in
-    :attr:`flushes`), as a streaming device's output is lost when no host listens;
-    :meth:`write` never blocks. Bytes written while unplugged count in :attr:`bytes_dropped`.
-    All methods are thread safe (a writer thread may run while another unplugs).
-
-    Parameters
-    ----------
-    link_path : str or None
-        Path of the symlink to create (parent directories are created; a stale symlink is
-        replaced atomically; an existing non-symlink file is refused).
-
+    The slave side is put in raw mode and (optionally) symlinked to ``link_path`` (parent
+    directories created, a stale symlink replaced atomically, an existing non-symlink file
+    refused); a :class:`PortReader` (or any program) opens that path like a serial port.  The
+    device writes through the non-blocking master side: when nobody reads and the kernel
+    buffer is full, stale unread input is flushed (counted in :attr:`flushes`), as a
+    streaming device's output is lost when no host listens; :meth:`write` never blocks.
+    Bytes written while unplugged count in :attr:`bytes_dropped`.  Thread safe.
     """
 
     def __init__(self, link_path=None):
         self._lock = threading.RLock()   # write/read vs unplug/replug from other threads
         self.link_path = link_path
-        self.master = None
-        self.slave = None
-        self.slave_name = None
-        self.bytes_written = 0
-        self.bytes_dropped = 0
-        self.flushes = 0
-        self.plug_count = 0
+        self.master = self.slave = self.slave_name = None
+        self.bytes_written = self.bytes_dropped = self.flushes = self.plug_count = 0
         self.plug()
 
     @property

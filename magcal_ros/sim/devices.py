@@ -15,50 +15,26 @@
 r"""
 Simulated fluxgates on pseudo-terminals, without ROS: the devices ``fluxgate_sim`` serves.
 
-Creates one :class:`~magcal_ros.serial.transport.PtyDevice` per sensor, linked as
-``<dir>/fluxgate1`` ... ``fluxgate4`` (default: :func:`device_dir` of the namespace, i.e.
-``/tmp/magcal_sim`` for ``/magcal``), and streams the output of
-:class:`magcal_ros.core.data.simulate.Simulator` in any registered serial protocol (default: the
-ASCII contract line ``<x_nT>,<y_nT>,<z_nT>,<temp_C>\r\n``). The defaults are paper 004
-section 4.1: |B| = 50 000 nT, D = -7 deg, I = 55 deg, noise 3 nT per axis, the Table 1
-sensor errors, and a smooth tumbling trajectory that covers the sphere in about a minute,
-at 100 samples/s per sensor. Samples are generated and written in chunks once per tick
-(default 10 ms), so 1 kHz and more per sensor cost a few writes per tick, not one per
-sample.
+One :class:`~magcal_ros.serial.transport.PtyDevice` per sensor, linked as
+``<dir>/fluxgate1`` ... (default :func:`device_dir` of the namespace, ``/tmp/magcal_sim`` for
+``/magcal``), streams :class:`magcal_ros.core.data.simulate.Simulator`'s output in any
+registered serial protocol (default the ASCII line ``<x_nT>,<y_nT>,<z_nT>,<temp_C>\r\n``).
+The defaults are paper 004 §4.1: |B| = 50 000 nT, D = -7 deg, I = 55 deg, 3 nT noise per
+axis, the Table 1 sensor errors, a smooth tumbling that covers the sphere in about a minute,
+100 samples/s per sensor, written in chunks once per tick (default 10 ms).
 
-A site gradient (``site_gradient``: GXX, GXY, GXZ, GYY, GYZ in nT/m, world NED frame,
-symmetric and traceless) makes the field differ over the cross as it does near buildings or
-a vehicle (docs/site_gradient.md); ``field_nt`` is then the magnitude at the array centre.
-
-Hidden effects (``truth``: entries ``EFFECT=V1,V2,...`` as ``magcal simulate --truth``, any
-term of the model with its parameter values, plug-ins of ``plugins`` included) are added to
-the readings; their driving channels are the simulator's own: the sensor temperature goes out
-in the protocol's temperature field, the auxiliary channels
-(:data:`magcal_ros.core.data.simulate.AUX_CHANNELS`) are published by the ROS node on the
-std_msgs/Float64 topics of ``aux_topics`` (``motor_current`` carries ``aux_motor_current``;
-one message per sample, or with ``aux_period_s`` one every so many s and at each jump),
-the names the calibration and corrector nodes take in their own ``aux_topics``. The plain
-process has no topics: there only effects of time, temperature and the field act.  With
-``imu_topic`` the ROS node also publishes the true attitude as sensor_msgs/Imu (body-to-world,
-world ENU as REP 145 wants it; the simulator's own world is NED), one message per
-``imu_period_s``, for the calibration node's ``imu_topic``.  The ``vehicle`` trajectory is a
-vehicle near level (body z up, roll and pitch within ``tilt_deg``) turning part circles.
-Terms of time in ``truth`` change during the run: ``offset(step(60))@1=100,0,0`` (a payload
-put on at 60 s), ``offset(window(60, 65))@1=...`` (a magnet passing), ``drift@1=...`` (a slow
-drift, nT/s), ``field(window(60, 120))=...`` (a minute in another field); times in s from the
-start of the stream.
+``site_gradient`` (GXX, GXY, GXZ, GYY, GYZ nT/m, world NED) makes the field vary over the
+array (docs/site_gradient.md).  Hidden effects (``truth``, entries ``EFFECT=V1,V2,...`` as
+``magcal simulate --truth``), their driving channels, the ``vehicle`` trajectory and the
+attitude published on ``imu_topic`` are described in docs/design.md §3; the ROS node
+(:mod:`magcal_ros.ros.sim_node`) publishes the auxiliary channels and the attitude, this
+plain process has no topics.
 
 Faults for tests: ``unplug`` entries ``SENSOR:AT_S:FOR_S[:NEW_PATH]`` close that sensor's
-pseudo-terminal at ``AT_S`` s (readers get an I/O error, the link disappears) and plug a
-new one ``FOR_S`` s later, at ``NEW_PATH`` if given (a device that comes back under another
-name).
-
-This module imports no rclpy: scripts and tests use :class:`FluxgateSim` directly, and
-``python -m magcal_ros.sim`` runs it as a plain process (the options of
-:func:`build_parser`). The ROS node ``fluxgate_sim`` (:mod:`magcal_ros.ros.sim_node`) runs
-the same code with the settings as ROS parameters.
+pseudo-terminal at ``AT_S`` s (readers get an I/O error, the link disappears) and plug a new
+one ``FOR_S`` s later, at ``NEW_PATH`` if given.  ``python -m magcal_ros.sim`` runs this as a
+plain process (the options of :func:`build_parser`).
 """
-
 import argparse
 from dataclasses import dataclass
 import math
@@ -73,7 +49,7 @@ from magcal_ros.core.data.simulate import (AUX_CHANNELS, parse_truth, set_truth_
 from magcal_ros.serial import make_encoder, PROTOCOLS, Sample
 from magcal_ros.serial.options import load_yaml, parse_options, parse_value
 from magcal_ros.serial.transport import PtyDevice
-from magcal_ros.sim.paths import DEFAULT_DIR, DEFAULT_NAMESPACE, DEFAULT_PREFIX, device_dir
+from magcal_ros.sim import DEFAULT_DIR, DEFAULT_NAMESPACE, DEFAULT_PREFIX, device_dir
 import numpy as np
 import yaml
 
@@ -92,15 +68,7 @@ class Unplug:
 
 
 def parse_unplug(text):
-    """
-    Parse ``SENSOR:AT_S:FOR_S[:NEW_PATH]`` into an :class:`Unplug`.
-
-    Raises
-    ------
-    argparse.ArgumentTypeError
-        With the expected form when the text does not parse.
-
-    """
+    """Parse ``SENSOR:AT_S:FOR_S[:NEW_PATH]`` into an :class:`Unplug` (ArgumentTypeError)."""
     parts = str(text).split(':', 3)
     try:
         if len(parts) < 3:
@@ -134,26 +102,21 @@ def parse_truth_item(text):
     return str(text)
 
 
-def _positive(kind):
+def _positive(kind, strict=True):
+    """Return an argparse type: a finite number of ``kind``, > 0 (``strict``) or >= 0."""
     def check(text):
         try:
             value = kind(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f'expected a number, got {text!r}') from None
-        if not (math.isfinite(value) and value > 0):
-            raise argparse.ArgumentTypeError(f'must be > 0, got {text!r}')
+        if not (math.isfinite(value) and (value > 0 if strict else value >= 0)):
+            raise argparse.ArgumentTypeError(
+                f'must be {">" if strict else ">="} 0, got {text!r}')
         return value
     return check
 
 
-def _non_negative(text):
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f'expected a number, got {text!r}') from None
-    if not (math.isfinite(value) and value >= 0):
-        raise argparse.ArgumentTypeError(f'must be >= 0, got {text!r}')
-    return value
+_non_negative = _positive(float, strict=False)
 
 
 def parse_gradient(text):
@@ -264,13 +227,8 @@ def settings_from_parameters(section, source):
 
     ROS parameters cannot be null, so ``dir: ''`` means the namespace's folder,
     ``duration: 0.0`` until stopped, an empty ``site_gradient`` a uniform field and an empty
-    ``unplug`` no fault; ``options`` is a YAML mapping (string or mapping).
-
-    Raises
-    ------
-    ValueError
-        Naming ``source`` and the setting, for an unknown key or a malformed value.
-
+    ``unplug`` no fault; ``options`` is a YAML mapping (string or mapping).  Raises
+    ValueError naming ``source`` and the setting, for an unknown key or a malformed value.
     """
     out = {}
     for key, value in section.items():
@@ -288,11 +246,9 @@ def _setting(key, value, source):
             return {'option': list(parse_options(value).items())}
         except ValueError as exc:
             raise ValueError(f'{source}: {exc}') from None
-    if key == 'sensor_positions_m':
-        return {key: None if value is None or len(value) == 0 else parse_positions(
-            ','.join(map(str, value)) if isinstance(value, (list, tuple)) else value)}
-    if key == 'site_gradient':
-        return {key: None if value is None or len(value) == 0 else parse_gradient(
+    if key in ('sensor_positions_m', 'site_gradient'):
+        parse = parse_positions if key == 'sensor_positions_m' else parse_gradient
+        return {key: None if value is None or len(value) == 0 else parse(
             ','.join(map(str, value)) if isinstance(value, (list, tuple)) else value)}
     if key == 'unplug':
         return {key: [v if isinstance(v, Unplug) else parse_unplug(v)
@@ -319,17 +275,8 @@ def load_config(path):
     """
     Read the ``fluxgate_sim`` section of a ROS-style parameter YAML file.
 
-    Returns
-    -------
-    dict
-        Settings keyed like :data:`DEFAULTS`; ``options`` (a mapping) becomes ``option``
-        pairs and ``unplug`` strings are parsed.
-
-    Raises
-    ------
-    ValueError
-        If the file has no such section or holds unknown keys.
-
+    Returns settings keyed like :data:`DEFAULTS` (:func:`settings_from_parameters`); raises
+    ValueError if the file has no such section or holds unknown keys.
     """
     with open(path, encoding='utf-8') as f:
         doc = load_yaml(f.read()) or {}
@@ -351,15 +298,10 @@ def check_settings(st):
         if not ok:
             raise ValueError(f'{name} must be a number {">" if strict else ">="} {minimum}, '
                              f'got {v!r}')
-    number('rate', 0, True)
-    number('tick', 0, True)
-    number('field_nt', 0, True)
-    number('noise_nt', 0, False)
-    if st['duration'] is not None:
-        number('duration', 0, False)
-    number('smooth_period_s', 0, True)
-    number('imu_period_s', 0, True)
-    number('tilt_deg', 0, False)
+    for name in ('rate', 'tick', 'field_nt', 'noise_nt', 'duration', 'smooth_period_s',
+                 'imu_period_s', 'tilt_deg'):
+        if name != 'duration' or st[name] is not None:
+            number(name, 0, name not in ('noise_nt', 'duration', 'tilt_deg'))
     if not (isinstance(st['sensors'], int) and 1 <= st['sensors'] <= MAX_SENSORS):
         raise ValueError(f'sensors must be 1..{MAX_SENSORS}, got {st["sensors"]!r}')
     pos = st['sensor_positions_m']
@@ -411,17 +353,11 @@ def _simulator(st):
 
 def resolve_settings(argv=None, namespace=DEFAULT_NAMESPACE):
     """
-    Merge defaults, ``--config`` and command-line options (the ROS-free command line).
+    Return the settings (argparse.Namespace keyed like :data:`DEFAULTS`) of a command line.
 
     Precedence, lowest first: :data:`DEFAULTS` (``dir``: :func:`device_dir` of
-    ``namespace``), ``--config``, command-line options. Bad settings exit with status 2 and
+    ``namespace``), ``--config``, command-line options.  Bad settings exit with status 2 and
     one line naming the problem (argparse's ``error``).
-
-    Returns
-    -------
-    argparse.Namespace
-        Settings keyed like :data:`DEFAULTS`.
-
     """
     parser = build_parser()
     args = parser.parse_args(list(sys.argv[1:] if argv is None else argv))
@@ -450,15 +386,7 @@ def merge_settings(settings, new):
 
 
 class FluxgateSim:
-    """
-    The simulated array: devices, simulator, encoders and the fault schedule.
-
-    Parameters
-    ----------
-    settings : argparse.Namespace
-        As returned by :func:`resolve_settings`.
-
-    """
+    """The simulated array of ``settings`` (:func:`resolve_settings`), faults included."""
 
     def __init__(self, settings):
         self.settings = settings
@@ -508,12 +436,11 @@ class FluxgateSim:
         """
         (t (n,) s, Dataset) of samples ``first .. first + n - 1`` of each sensor.
 
-        A chunk of :data:`PREFETCH_S` or more is simulated as it is (its rates by central
-        differences inside it, as a device writing a block). The live stream's short chunks
-        (one sample a tick at 100 Hz) are sliced from :data:`PREFETCH_S` simulated ahead
-        with each sample's causal rate (``Simulator.sample(causal=True)``), which is what
-        simulating them one by one gave: the per-call overhead of that was most of the
-        process's CPU.
+        A chunk of :data:`PREFETCH_S` or more is simulated as it is (rates by central
+        differences inside it).  Shorter chunks (one sample a tick at 100 Hz) are sliced from
+        :data:`PREFETCH_S` simulated ahead with each sample's causal rate
+        (``Simulator.sample(causal=True)``): what simulating them one by one gives, without
+        its per-call overhead.
         """
         rate = self.settings.rate
         size = int(math.ceil(PREFETCH_S * rate))
@@ -568,27 +495,11 @@ class FluxgateSim:
 
 def stream(sim, settings, log, stop, warn=None):
     """
-    Write the samples as they fall due until ``stop`` is set or the duration elapses.
+    Write the samples as they fall due until ``stop`` (an Event) is set or the duration ends.
 
-    Parameters
-    ----------
-    sim : FluxgateSim
-        Plugged-in simulator (:meth:`FluxgateSim.plug_all` called).
-    settings : argparse.Namespace
-        Its settings (``tick`` s, ``duration`` s or None).
-    log : callable
-        Called with one line of text per scheduled fault (unplug, replug).
-    stop : threading.Event
-        Set to end the stream early.
-    warn : callable, optional
-        Called when a reader fell behind and its unread output was discarded (default
-        ``log``).
-
-    Returns
-    -------
-    int
-        Samples generated per sensor.
-
+    ``sim`` plugged in (:meth:`FluxgateSim.plug_all`), ``settings`` its settings (``tick`` s,
+    ``duration`` s or None); ``log`` and ``warn`` as in :meth:`FluxgateSim.step`.  Returns
+    the samples generated per sensor.
     """
     t0 = time.monotonic()
     tick = settings.tick

@@ -41,20 +41,11 @@ def reading_plane(raw):
     """
     Return the normal of the plane the readings lie near, or None when they spread in 3-D.
 
-    Parameters
-    ----------
-    raw : numpy.ndarray
-        (N, 3) readings in nT (sensor frame).
-
-    Returns
-    -------
-    numpy.ndarray or None
-        (3,) unit normal in the sensor frame (sign: largest component positive) when the
-        smallest standard deviation of the readings about their mean is below
-        :data:`PLANE_SD_RATIO` times the middle one and the readings form a ring in that
-        plane (:func:`ring_spread` below :data:`RING_CV`, not a filled cap): the sensor
-        turned about that axis only.
-
+    ``raw`` (N, 3) nT, sensor frame.  The (3,) unit normal (largest component positive) when
+    the smallest standard deviation of the readings about their mean is below
+    :data:`PLANE_SD_RATIO` times the middle one and they form a ring in that plane
+    (:func:`ring_spread` below :data:`RING_CV`, not a filled cap): the sensor turned about
+    that axis only.
     """
     m = np.asarray(raw, float)
     w, vec = np.linalg.eigh(np.cov((m - m.mean(axis=0)).T))
@@ -116,23 +107,10 @@ def quadric_definiteness(sv, vt, a_mat, n_rows):
     a total-least-squares null vector).  The eigenvalue lam = e^T A e (e its eigenvector)
     is linear in ``v``, so its variance is ``g^T Cov(v) g`` with ``g = d lam / d v``.
 
-    Parameters
-    ----------
-    sv : numpy.ndarray
-        (10,) singular values of the (scaled) design matrix, descending.
-    vt : numpy.ndarray
-        (10, 10) right singular vectors (rows).
-    a_mat : numpy.ndarray
-        (3, 3) quadric matrix of eq. 11 for the unit coefficient vector, sign chosen so
-        that its mean eigenvalue is positive.
-    n_rows : int
-        Number of readings (rows of the design matrix).
-
-    Returns
-    -------
-    (float, float)
-        Smallest eigenvalue and its standard deviation (dimensionless, scaled frame).
-
+    ``sv`` (10,) singular values of the (scaled) design matrix, descending; ``vt`` (10, 10)
+    its right singular vectors (rows); ``a_mat`` (3, 3) the quadric matrix of eq. 11 for the
+    unit coefficient vector, its mean eigenvalue positive; ``n_rows`` the number of readings.
+    Returns (smallest eigenvalue, its standard deviation), dimensionless, scaled frame.
     """
     lam, vec = np.linalg.eigh(a_mat)
     e = vec[:, 0]
@@ -149,17 +127,9 @@ class EllipsoidFit:
     """
     Result of :func:`fit_ellipsoid`.
 
-    Attributes
-    ----------
-    c_inv : numpy.ndarray
-        (3, 3) upper-triangular correction matrix C^-1 (dimensionless), paper 004 eq. 5.
-    b : numpy.ndarray
-        (3,) offset in nT, paper 004 eq. 12.
-    coeffs : numpy.ndarray
-        (10,) ellipsoid coefficients (a, b, c, f, g, h, p, q, r, d) of eq. 8, unit norm.
-    residual_nt : numpy.ndarray
-        (N,) |C^-1 (m - b)| - |B| in nT.
-
+    ``c_inv`` (3, 3) upper-triangular correction matrix C^-1, dimensionless (paper 004 eq. 5);
+    ``b`` (3,) offset, nT (eq. 12); ``coeffs`` (10,) the unit-norm coefficients (a, b, c, f,
+    g, h, p, q, r, d) of eq. 8; ``residual_nt`` (N,) |C^-1 (m - b)| - |B|, nT.
     """
 
     c_inv: np.ndarray
@@ -176,27 +146,12 @@ def fit_ellipsoid(raw, field_nt, normalization='svd'):
     """
     Fit the ellipsoid of paper 004 eq. 8 to raw readings and factor it (eq. 11-13, Cholesky).
 
-    Parameters
-    ----------
-    raw : numpy.ndarray
-        (N, 3) raw readings in nT, N >= 9.
-    field_nt : float
-        Magnitude |B| of the uniform field in nT (eq. 13).
-    normalization : {'svd', 'p'}
-        'svd' solves the homogeneous system with |coeffs| = 1 (smallest right singular
-        vector of the centred, scaled design matrix; well conditioned). 'p' divides by the
-        coefficient p as the paper does (eq. 9-10); it fails when the x offset is near zero.
-
-    Returns
-    -------
-    EllipsoidFit
-
-    Raises
-    ------
-    ValueError
-        Too few samples, or the quadric is not an ellipsoid (data too degenerate: e.g. a
-        single-axis rotation), with the reason.
-
+    ``raw`` (N, 3) nT, N >= 9; ``field_nt`` the uniform field's magnitude |B|, nT (eq. 13);
+    ``normalization`` 'svd' solves the homogeneous system with |coeffs| = 1 (the smallest
+    right singular vector of the centred, scaled design matrix; well conditioned), 'p'
+    divides by the coefficient p as the paper does (eq. 9-10; fails when the x offset is near
+    zero).  Raises ValueError, with the reason, for too few samples or a quadric that is not
+    an ellipsoid (degenerate data, e.g. a single-axis rotation).
     """
     m = np.asarray(raw, float)
     if m.ndim != 2 or m.shape[1] != 3:
@@ -262,18 +217,8 @@ def procrustes_rotation(reference, other):
 
     Solved by SVD of M_1 M_i^T (orthogonal Procrustes, Kabsch), constrained to det R = +1.
 
-    Parameters
-    ----------
-    reference : numpy.ndarray
-        (N, 3) corrected field of the reference sensor (sensor 1), nT.
-    other : numpy.ndarray
-        (N, 3) corrected field of sensor i, nT.
-
-    Returns
-    -------
-    numpy.ndarray
-        (3, 3) rotation taking sensor i's corrected field into the reference frame.
-
+    ``reference`` (N, 3) corrected field of sensor 1 and ``other`` (N, 3) of sensor i, nT.
+    Returns the (3, 3) rotation taking sensor i's corrected field into sensor 1's frame.
     """
     from scipy.spatial.transform import Rotation     # here: scipy.spatial is slow to import
     rot, _ = Rotation.align_vectors(np.asarray(reference, float), np.asarray(other, float))

@@ -79,22 +79,12 @@ class Paper004Params:
     """
     Paper 004 single-sensor error model plus misalignment (eq. 2-3).
 
-    ``raw = S C_NO R B + b``, with ``B`` in sensor 1's ideal frame.
-
-    Attributes
-    ----------
-    kx, ky, kz : float
-        Scale factors (dimensionless), > 0.
-    psi, varphi, theta : float
-        Non-orthogonality angles in rad (z axis reference; psi: y axis tilt in the yz
-        plane, theta: x axis elevation out of the x0y0 plane, varphi: azimuth of its
-        projection).
-    b : numpy.ndarray
-        (3,) offset (zero drift) in nT.
-    alpha, beta, gamma : float
-        Misalignment angles in rad: sensor i's ideal frame is sensor 1's rotated by alpha
-        about z, then beta about x', then gamma about y''. Zero for sensor 1.
-
+    ``raw = S C_NO R B + b``, with ``B`` in sensor 1's ideal frame: ``kx, ky, kz`` scale
+    factors (> 0); ``psi, varphi, theta`` non-orthogonality angles, rad (z axis reference;
+    psi: the y axis' tilt in the yz plane, theta: the x axis' elevation out of the x0y0
+    plane, varphi: the azimuth of its projection); ``b`` (3,) offset (zero drift), nT;
+    ``alpha, beta, gamma`` misalignment, rad: sensor i's ideal frame is sensor 1's rotated by
+    alpha about z, then beta about x', then gamma about y'' (zero for sensor 1).
     """
 
     kx: float
@@ -148,26 +138,10 @@ class Paper004Params:
 
         ``A = U Q`` by RQ decomposition (``scipy.linalg.rq``), signs fixed so that
         ``diag(U) > 0``; ``S`` = row norms of ``U`` (the rows of ``C_NO`` are unit vectors),
-        ``C_NO = S^-1 U``, ``R = Q``.
-
-        Parameters
-        ----------
-        a : array_like
-            (3, 3) response matrix, dimensionless, det > 0.
-        o : array_like
-            (3,) offset in nT.
-
-        Returns
-        -------
-        Paper004Params
-            With theta, psi, beta in [-pi/2, pi/2], varphi in (-pi/2, pi/2), alpha and gamma
-            in (-pi, pi].
-
-        Raises
-        ------
-        ValueError
-            If A is not a finite non-singular (3, 3) matrix or det(A) < 0.
-
+        ``C_NO = S^-1 U``, ``R = Q``.  ``a`` (3, 3) dimensionless, det > 0; ``o`` (3,) nT.
+        Returns theta, psi, beta in [-pi/2, pi/2], varphi in (-pi/2, pi/2), alpha and gamma in
+        (-pi, pi]; raises ValueError if A is not a finite non-singular (3, 3) matrix or
+        det(A) < 0.
         """
         a, o = _check_general(a, o)
         # A = U Q with diag(U) > 0: det(Q) has the sign of det(A)
@@ -198,29 +172,11 @@ _TABLE1_004 = {
 }
 
 
-def _sensor_index(j):
+def table1_sensor(j) -> Paper004Params:
+    """Return paper 004 Table 1's parameters of sensor ``j`` (1..4: at +x, +y, -x, -y)."""
     if j not in (1, 2, 3, 4):
         raise ValueError('paper 004 Table 1 has sensors 1..4, got %r' % (j,))
-    return j - 1
-
-
-def table1_sensor(j) -> Paper004Params:
-    """
-    Return paper 004 Table 1's error parameters of sensor ``j`` (1..4).
-
-    Parameters
-    ----------
-    j : int
-        Sensor number, 1..4 (1 at +x, 2 at +y, 3 at -x, 4 at -y).
-
-    Returns
-    -------
-    Paper004Params
-        Angles in rad, offsets in nT, as printed in the table.
-
-    """
-    i = _sensor_index(j)
-    t = _TABLE1_004
+    i, t = j - 1, _TABLE1_004
     return Paper004Params(
         kx=t['kx'][i], ky=t['ky'][i], kz=t['kz'][i],
         psi=t['psi'][i], varphi=t['varphi'][i], theta=t['theta'][i],
@@ -238,19 +194,7 @@ def table1_correction(j):
     which maps the single-sensor-corrected field of sensor j into sensor 1's frame. These
     are the quantities of paper 004 Table 2 (whose R matrices are printed one column to
     the left: the one under sensor 1 belongs to sensor 2, docs/papers.md, paper 004 errata).
-
-    Parameters
-    ----------
-    j : int
-        Sensor number, 1..4.
-
-    Returns
-    -------
-    c_inv : numpy.ndarray
-        (3, 3) upper triangular, dimensionless.
-    r_corr : numpy.ndarray
-        (3, 3) rotation, dimensionless (identity for sensor 1).
-
+    Returns (c_inv (3, 3) upper triangular, r_corr (3, 3) rotation, identity for sensor 1).
     """
     return table1_sensor(j).correction()
 
@@ -267,23 +211,11 @@ class Paper000Params:
     ``raw = L B + B0`` with ``B`` in the reference frame O-XYZ of paper 000's Fig. 1 (X along
     the Xm axis, Ym in the OXY plane) and
 
-    ``L = [[kx, 0, 0], [ky sin a, ky cos a, 0], [kz cos b sin g, kz sin b sin g, kz cos g]]``.
-
-    Attributes
-    ----------
-    alpha : float
-        Xm-Ym non-orthogonality in rad (angle between Ym and Y; Ym tilts towards Xm for
-        alpha > 0).
-    beta : float
-        Azimuth in rad of the Zm axis' projection on OXY, measured from X towards Y.
-    gamma : float
-        Angle in rad between Zm and Z (>= 0 by convention; cos(phi) = cos(b) sin(g), phi the
-        angle between Xm and Zm).
-    kx, ky, kz : float
-        Scale factors, dimensionless, > 0.
-    B0 : numpy.ndarray
-        (3,) offsets (Bx0, By0, Bz0) in nT.
-
+    ``L = [[kx, 0, 0], [ky sin a, ky cos a, 0], [kz cos b sin g, kz sin b sin g, kz cos g]]``:
+    ``alpha`` the Xm-Ym non-orthogonality, rad (the angle between Ym and Y; Ym tilts towards
+    Xm for alpha > 0); ``beta`` the azimuth of the Zm axis' projection on OXY from X towards
+    Y, rad; ``gamma`` the angle between Zm and Z, rad (>= 0; cos(phi) = cos(b) sin(g), phi
+    the angle between Xm and Zm); ``kx, ky, kz`` scale factors (> 0); ``B0`` (3,) offsets, nT.
     """
 
     alpha: float
@@ -322,28 +254,10 @@ class Paper000Params:
         Decompose a general ``(A, o)`` into paper 000 parameters and a rotation.
 
         ``A = L Q`` (LQ decomposition from ``scipy.linalg.qr`` of ``A^T``, signs fixed so
-        that ``diag(L) > 0``), ``L`` parametrised by eq. 1.
-
-        Parameters
-        ----------
-        a : array_like
-            (3, 3) response matrix, dimensionless, det > 0.
-        o : array_like
-            (3,) offset in nT.
-
-        Returns
-        -------
-        params : Paper000Params
-            gamma in [0, pi], alpha in (-pi/2, pi/2), beta in (-pi, pi] (0 when gamma = 0).
-        q : numpy.ndarray
-            (3, 3) rotation taking a vector from the frame of A into paper 000's reference
-            frame O-XYZ; ``A = params.matrix @ q`` (identity when A is already of eq. 1 form).
-
-        Raises
-        ------
-        ValueError
-            If A is not a finite non-singular (3, 3) matrix or det(A) < 0.
-
+        that ``diag(L) > 0``), ``L`` parametrised by eq. 1; ``a``, ``o`` and the errors as
+        :meth:`Paper004Params.from_general`.  Returns (params: gamma in [0, pi], alpha in
+        (-pi/2, pi/2), beta in (-pi, pi], 0 when gamma = 0; q (3, 3) the rotation from the
+        frame of A into O-XYZ, ``A = params.matrix @ q``).
         """
         a, o = _check_general(a, o)
         qt, rt = scipy.linalg.qr(a.T)
@@ -372,17 +286,7 @@ class Paper000Params:
 
 @dataclass(frozen=True, eq=False)
 class Paper002Params:
-    """
-    Paper 002 interference model (eq. 4): ``Hm = K He + Hh``.
-
-    Attributes
-    ----------
-    K : numpy.ndarray
-        (3, 3) soft-iron matrix ``I + D``, dimensionless.
-    Hh : numpy.ndarray
-        (3,) hard-iron field in nT.
-
-    """
+    """Paper 002 interference model (eq. 4): ``Hm = K He + Hh``, K = I + D, Hh (3,) nT."""
 
     K: np.ndarray
     Hh: np.ndarray

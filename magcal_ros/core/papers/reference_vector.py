@@ -15,25 +15,17 @@
 """
 Paper 002: hard- and soft-iron compensation from a reference field vector.
 
-Paper 002: hard- and soft-iron compensation from a reference field vector, by linear least
-squares (not :mod:`magcal_ros.core.data.magnitude`, the reference *magnitude* of a fit).
+By linear least squares (not :mod:`magcal_ros.core.data.magnitude`, the reference
+*magnitude* of a fit).  Model (eq. 1-4): ``Hm = K He + Hh``, ``He`` the undisturbed
+(reference) field, ``K = I + D`` soft iron, ``Hh`` hard iron; eq. 5-7 stack one row block per
+attitude (at least 4).  Here the three components are solved together, ``Hm = [He 1] X`` with
+``X = [K^T; Hh^T]`` (4, 3), by ``numpy.linalg.lstsq``.
 
-Model (paper 002, eq. 1-4): ``Hm = K He + Hh`` with ``He`` the undisturbed field (measured
-without the interference source: a reference) and ``Hm`` the disturbed reading, ``K = I + D``
-(soft iron, 9 unknowns) and ``Hh`` (hard iron, 3 unknowns). Eq. 5-7 stack one row block per
-attitude; the 12 unknowns need at least 4 attitudes. Here the three output components are
-solved together: ``Hm = [He 1] X`` with ``X = [K^T; Hh^T]`` (4, 3), by
-``numpy.linalg.lstsq``.
-
-What the paper does not check, and this module does: the reference directions must spread in
-three dimensions. If they lie in one plane (``n . He = c`` for all attitudes, which a rotation
-about one axis produces), the design ``[He 1]`` has the null vector ``(n, -c)``: for any ``v``,
-``K + v n^T`` and ``Hh - c v`` fit equally well, so ``K n`` (how the interference responds to
-the field along ``n``) and ``Hh`` are not separately identifiable, and the compensation is only
-valid for attitudes whose field stays in that plane. Paper 002's own Table 2 is such a data set
-(normal about (-0.866, 0.500, 0.003); docs/papers.md, paper 002).
+What the paper does not check, and this module does: reference directions in one plane
+(``n . He = c``, a rotation about one axis) make ``(n, -c)`` a null vector of ``[He 1]``, so
+``K n`` and ``Hh`` are not separately identifiable and the compensation holds only in that
+plane.  Paper 002's own Table 2 is such a data set (docs/papers.md, paper 002).
 """
-
 from dataclasses import dataclass
 
 from magcal_ros.core.geometry.coverage import Coverage, direction_coverage
@@ -53,38 +45,16 @@ class ReferenceFit:
     """
     Result of :func:`fit_reference`.
 
-    Attributes
-    ----------
-    K : numpy.ndarray
-        (3, 3) soft-iron matrix, dimensionless (paper 002 eq. 4).
-    Hh : numpy.ndarray
-        (3,) hard-iron field in nT.
-    residual : numpy.ndarray
-        (N, 3) ``Hm - (K He + Hh)`` in nT.
-    singular_values : numpy.ndarray
-        (3,) singular values in nT of the centred reference field ``He - mean(He)``,
-        descending: how far the reference field varied along each principal direction
-        (sqrt of the sum of squares over the attitudes). A small last value means the
-        attitudes do not determine ``K`` along the matching direction.
-    condition_number : float
-        2-norm condition number of the design ``[He 1]`` after scaling each column to unit
-        norm (``inf`` if rank deficient).
-    coverage : Coverage
-        Direction coverage of the reference field ``He``.
-    unobservable_direction : numpy.ndarray
-        (3,) unit vector, right singular vector of the centred ``He`` for its smallest
-        singular value: the direction along which the reference field varied least. When
-        the data are coplanar, ``K`` applied to this direction trades off against ``Hh``.
-        (Close to ``coverage.normal``, which uses directions only.)
-    identifiable : bool
-        False when the reference directions are coplanar or clustered, or the condition
-        number exceeds the limit given to :func:`fit_reference`.
-    warning : str or None
-        Human-readable explanation when not identifiable, naming the unobservable direction.
-    xtx_inv : numpy.ndarray
-        (4, 4) ``(X^T X)^+`` of the unscaled design ``X = [He 1]`` (nT^-2 in the He block),
-        for :meth:`stderr`.
-
+    ``K`` (3, 3) soft iron, dimensionless (paper 002 eq. 4); ``Hh`` (3,) hard iron, nT;
+    ``residual`` (N, 3) ``Hm - (K He + Hh)`` nT; ``singular_values`` (3,) nT of the centred
+    reference field ``He - mean(He)``, descending (a small last one: ``K`` is not determined
+    along that direction); ``condition_number`` of the design ``[He 1]`` with unit-norm
+    columns (``inf`` if rank deficient); ``coverage`` the direction coverage of ``He``;
+    ``unobservable_direction`` (3,) unit, the right singular vector of the centred ``He`` for
+    its smallest singular value (coplanar data: ``K`` along it trades off against ``Hh``);
+    ``identifiable`` False when the directions are coplanar or clustered or the condition
+    number exceeds the limit; ``warning`` the explanation then, else None; ``xtx_inv`` (4, 4)
+    ``(X^T X)^+`` of the unscaled ``X = [He 1]`` (nT^-2 in the He block), for :meth:`stderr`.
     """
 
     K: np.ndarray
@@ -122,21 +92,9 @@ class ReferenceFit:
         ``sigma_hm^2 + sigma_he^2 |K_j|^2`` to it, so
         ``cov(row j) = (sigma_hm^2 + sigma_he^2 |K_j|^2) (X^T X)^-1``.
 
-        Parameters
-        ----------
-        sigma_hm_nt : float
-            Standard deviation of the noise on each Hm component, nT.
-        sigma_he_nt : float, optional
-            Standard deviation of the noise on each He component, nT. For values rounded
-            to 1 nT, use ``sqrt(1/12)`` nT for both.
-
-        Returns
-        -------
-        k_se : numpy.ndarray
-            (3, 3) dimensionless.
-        hh_se : numpy.ndarray
-            (3,) nT.
-
+        ``sigma_hm_nt``, ``sigma_he_nt``: standard deviations of the noise on each Hm and He
+        component, nT (values rounded to 1 nT: ``sqrt(1/12)`` nT).  Returns (k_se (3, 3)
+        dimensionless, hh_se (3,) nT).
         """
         var_eff = sigma_hm_nt ** 2 + sigma_he_nt ** 2 * np.sum(self.K ** 2, axis=1)
         diag = np.clip(np.diag(self.xtx_inv), 0.0, None)
@@ -149,29 +107,12 @@ def fit_reference(He, Hm, strict=False, max_condition=100.0,
     """
     Fit ``Hm = K He + Hh`` by linear least squares (paper 002, eq. 4-7).
 
-    Parameters
-    ----------
-    He : array_like
-        (N, 3) reference (undisturbed) field in nT, one row per attitude, N >= 4.
-    Hm : array_like
-        (N, 3) disturbed reading in nT at the same attitudes.
-    strict : bool, optional
-        Raise ``ValueError`` instead of returning a fit flagged not identifiable.
-    max_condition : float, optional
-        Largest acceptable condition number of the column-scaled design.
-    planar_threshold : float, optional
-        Passed to :func:`~magcal_ros.core.geometry.coverage.direction_coverage`.
-
-    Returns
-    -------
-    ReferenceFit
-
-    Raises
-    ------
-    ValueError
-        On malformed input, fewer than 4 attitudes, or (``strict=True``) when the data
-        cannot determine all 12 parameters.
-
+    ``He`` (N, 3) the reference (undisturbed) field, nT, one row per attitude, N >= 4;
+    ``Hm`` (N, 3) the disturbed readings, nT; ``strict`` raises ValueError instead of
+    returning a fit flagged not identifiable; ``max_condition`` the largest acceptable
+    condition number of the column-scaled design; ``planar_threshold`` for
+    :func:`~magcal_ros.core.geometry.coverage.direction_coverage`.  Raises ValueError on
+    malformed input or fewer than 4 attitudes.
     """
     he = np.asarray(He, dtype=float)
     hm = np.asarray(Hm, dtype=float)
@@ -231,18 +172,8 @@ def correct(fit, Hm):
     """
     Compensate disturbed readings: ``He_hat = K^-1 (Hm - Hh)`` (inverse of paper 002 eq. 4).
 
-    Parameters
-    ----------
-    fit : ReferenceFit or Paper002Params
-        Anything with ``K`` (3, 3) and ``Hh`` (3,) nT.
-    Hm : array_like
-        (N, 3) or (3,) disturbed readings in nT.
-
-    Returns
-    -------
-    numpy.ndarray
-        Same shape as ``Hm``: the estimated undisturbed field in nT.
-
+    ``fit`` anything with ``K`` (3, 3) and ``Hh`` (3,) nT (ReferenceFit, Paper002Params);
+    ``Hm`` (N, 3) or (3,) nT.  Returns the undisturbed field estimate, nT, shaped as ``Hm``.
     """
     hm = np.asarray(Hm, dtype=float)
     if hm.shape[-1:] != (3,) or hm.ndim > 2:

@@ -38,11 +38,8 @@ states none of them):
   ideal-XZ-plane reading would give 40 332.1 nT and a shift of 503 nT). Zm lies at azimuth
   ``theta - phi`` (the sensor is rolled about Xm so that Ym points down and theta turns Zm
   towards Xm), giving the printed phase 90 deg - phi = 0.9004 deg.
-- Eq. 7 prints ``k_yx = B_xmy / B_ymx`` (Xm amplitude over Ym amplitude); the printed value
-  1.2607 = 41 906.6 / 33 240.0 is the Ym amplitude over the Xm amplitude, which is what
-  ky / kx means. Eq. 14 (k_zx = Zm amplitude / Xm amplitude) is consistent with that.
-- Erratum: §3.1 prints phi = 89.9996 deg; the fitted phases give 90 - 0.9004 = 89.0996 deg,
-  and only that value reproduces gamma = 1.07 deg through eq. 13 (docs/papers.md, paper 000).
+- Eq. 7 and §3.1's phi are misprinted (docs/papers.md, paper 000): k_yx is the Ym amplitude
+  over the Xm amplitude (1.2607 = 41 906.6 / 33 240.0), as eq. 14's k_zx; phi = 89.0996 deg.
 - Eq. 5, 9 and 12 take absolute values of phase differences, which loses the signs of alpha
   and beta. Here the turning sense ``s`` is read from the data (the Ym phase leads the Xm
   phase by about +90 deg for s = +1, lags by about 90 deg for s = -1, since |alpha| < 90 deg),
@@ -52,11 +49,7 @@ states none of them):
 
 With these conventions :func:`simulate_turntable` reproduces every printed curve coefficient
 of §3.1 and k_yx, k_zx to the printed precision, and :func:`calibrate_turntable` returns the
-nine parameters exactly. Two printed numbers are not reproduced: the uncompensated total field
-deviates by up to 6 790 nT (position 1) and 6 677 nT (position 2) from 50 000 nT, where §3.2
-says "up to 5 650 nT"; and Table 1's 40 nT row has offsets biased by about +140 nT, where the
-other rows (and the mechanism: a constant noise part is indistinguishable from an offset) give
-a bias equal to the noise mean.
+nine parameters exactly (the two printed numbers that are not reproduced: docs/papers.md).
 """
 
 from dataclasses import dataclass
@@ -75,19 +68,8 @@ class SineFit:
     """
     Least-squares fit ``y = A sin(theta + C) + D`` (paper 000 eq. 4).
 
-    Attributes
-    ----------
-    A : float
-        Amplitude in nT, >= 0.
-    C : float
-        Phase in rad, in (-pi, pi].
-    D : float
-        Shift (offset of the curve) in nT.
-    rms : float
-        Root-mean-square residual in nT.
-    n : int
-        Number of samples.
-
+    ``A`` amplitude >= 0, nT; ``C`` phase in (-pi, pi], rad; ``D`` shift, nT; ``rms`` the
+    root-mean-square residual, nT; ``n`` the number of samples.
     """
 
     A: float
@@ -106,26 +88,9 @@ def fit_sine(theta_rad, y) -> SineFit:
     Fit ``y = A sin(theta + C) + D`` by linear least squares (paper 000, eq. 4).
 
     ``A sin(theta + C) = a sin(theta) + b cos(theta)`` with ``a = A cos C``, ``b = A sin C``,
-    so the fit is linear in ``(a, b, D)`` on the columns ``[sin, cos, 1]``.
-
-    Parameters
-    ----------
-    theta_rad : array_like
-        (N,) turntable angles in rad.
-    y : array_like
-        (N,) axis output in nT.
-
-    Returns
-    -------
-    SineFit
-        Amplitude A >= 0 (nT), phase C in (-pi, pi] (rad), shift D (nT), residual RMS.
-
-    Raises
-    ------
-    ValueError
-        If the shapes differ, values are not finite, or the angles do not determine a sine
-        (fewer than 3 distinct angles modulo 2 pi).
-
+    so the fit is linear in ``(a, b, D)`` on the columns ``[sin, cos, 1]``.  ``theta_rad``
+    (N,) turntable angles, rad; ``y`` (N,) axis output, nT.  Raises ValueError if the shapes
+    differ, values are not finite, or there are fewer than 3 distinct angles modulo 2 pi.
     """
     theta = np.asarray(theta_rad, dtype=float)
     y = np.asarray(y, dtype=float)
@@ -150,19 +115,10 @@ class TurntableFits:
     """
     The five sine fits of the two-position procedure and the derived intermediate values.
 
-    Attributes
-    ----------
-    x1, y1, z1 : SineFit
-        Xm, Ym, Zm curves in position 1 (OXmYm horizontal).
-    x2, z2 : SineFit
-        Xm, Zm curves in position 2 (OXmZm horizontal).
-    sense : int
-        +1 if theta turns Xm towards Ym in position 1 (the paper's case), else -1.
-    phi : float
-        Angle between Xm and Zm in rad (eq. 12).
-    k_yx, k_zx : float
-        Scale-factor ratios ky/kx (eq. 7) and kz/kx (eq. 14).
-
+    ``x1, y1, z1`` the Xm, Ym, Zm curves in position 1 (OXmYm horizontal); ``x2, z2`` the Xm,
+    Zm curves in position 2 (OXmZm horizontal); ``sense`` +1 if theta turns Xm towards Ym in
+    position 1 (the paper's case), else -1; ``phi`` the angle between Xm and Zm, rad (eq.
+    12); ``k_yx, k_zx`` the ratios ky/kx (eq. 7) and kz/kx (eq. 14).
     """
 
     x1: SineFit
@@ -189,21 +145,9 @@ def fit_turntable(theta1, m1, theta2, m2) -> TurntableFits:
     """
     Fit the five curves of the two turntable positions and form eq. 5-14's quantities.
 
-    Parameters
-    ----------
-    theta1 : array_like
-        (N1,) turntable angles in rad, position 1 (OXmYm horizontal).
-    m1 : array_like
-        (N1, 3) raw Xm, Ym, Zm outputs in nT, position 1.
-    theta2 : array_like
-        (N2,) turntable angles in rad, position 2 (OXmZm horizontal).
-    m2 : array_like
-        (N2, 3) raw outputs in nT, position 2 (only Xm and Zm are fitted).
-
-    Returns
-    -------
-    TurntableFits
-
+    ``theta1`` (N1,) rad and ``m1`` (N1, 3) nT: the turntable angles and raw Xm, Ym, Zm
+    outputs in position 1 (OXmYm horizontal); ``theta2`` (N2,), ``m2`` (N2, 3) in position 2
+    (OXmZm horizontal; only Xm and Zm are fitted).
     """
     theta1, m1 = _check_position(theta1, m1, '1')
     theta2, m2 = _check_position(theta2, m2, '2')
@@ -224,31 +168,11 @@ def calibrate_turntable(theta1, m1, theta2, m2, field_nt) -> Paper000Params:
     """
     Solve paper 000's nine calibration parameters from two turntable rotations.
 
-    Parameters
-    ----------
-    theta1 : array_like
-        (N1,) turntable angles in rad, position 1 (OXmYm plane horizontal, Zm down, theta
-        = 0 with Xm at magnetic north); at least 3 distinct angles, ideally a full turn in
-        equal steps.
-    m1 : array_like
-        (N1, 3) raw outputs (Xm, Ym, Zm) in nT, position 1.
-    theta2 : array_like
-        (N2,) turntable angles in rad, position 2 (OXmZm plane horizontal).
-    m2 : array_like
-        (N2, 3) raw outputs in nT, position 2.
-    field_nt : float
-        Magnitude of the uniform field in nT (eq. 16's B).
-
-    Returns
-    -------
-    Paper000Params
-        alpha, beta, gamma in rad, kx, ky, kz, B0 (3,) nT.
-
-    Raises
-    ------
-    ValueError
-        On malformed input, a non-positive field, or geometry eq. 13 cannot resolve.
-
+    ``theta1, m1, theta2, m2`` as :func:`fit_turntable` (position 1: Zm down, theta = 0 with
+    Xm at magnetic north; at least 3 distinct angles, ideally a full turn in equal steps);
+    ``field_nt`` the uniform field's magnitude, nT (eq. 16's B).  Returns alpha, beta, gamma
+    (rad), kx, ky, kz, B0 (3,) nT; raises ValueError on malformed input, a non-positive
+    field, or a geometry eq. 13 cannot resolve.
     """
     if not np.isfinite(field_nt) or field_nt <= 0.0:
         raise ValueError('field_nt must be a positive field magnitude in nT, got %r'
@@ -280,20 +204,9 @@ def calibrate_turntable(theta1, m1, theta2, m2, field_nt) -> Paper000Params:
 
 def correct(params: Paper000Params, raw):
     """
-    Correct raw readings with paper 000's parameters (eq. 17).
+    Correct raw outputs (N, 3) nT with paper 000's parameters (eq. 17).
 
-    Parameters
-    ----------
-    params : Paper000Params
-        Calibration parameters.
-    raw : array_like
-        (N, 3) raw outputs (Xm, Ym, Zm) in nT.
-
-    Returns
-    -------
-    numpy.ndarray
-        (N, 3) corrected field in nT, in paper 000's reference frame O-XYZ.
-
+    Returns the (N, 3) corrected field, nT, in paper 000's reference frame O-XYZ.
     """
     raw = np.asarray(raw, dtype=float)
     if raw.ndim != 2 or raw.shape[1] != 3:
@@ -313,15 +226,9 @@ class TurntableData:
     """
     Simulated two-position turntable experiment.
 
-    Attributes
-    ----------
-    theta : numpy.ndarray
-        (N,) turntable angles in rad (same in both positions).
-    raw1, raw2 : numpy.ndarray
-        (N, 3) raw outputs in nT in position 1 (OXmYm horizontal) and 2 (OXmZm horizontal).
-    field1, field2 : numpy.ndarray
-        (N, 3) true field in nT in paper 000's reference frame O-XYZ for each sample.
-
+    ``theta`` (N,) turntable angles, rad (both positions); ``raw1, raw2`` (N, 3) raw outputs,
+    nT, in position 1 (OXmYm horizontal) and 2 (OXmZm horizontal); ``field1, field2`` (N, 3)
+    the true field, nT, in paper 000's reference frame O-XYZ.
     """
 
     theta: np.ndarray
@@ -363,27 +270,10 @@ def simulate_turntable(params: Paper000Params, field_nt, inclination_rad, n_step
     horizontal, Xm at azimuth theta, Zm at azimuth theta - phi (Ym down). See the module
     docstring for why these conventions reproduce the paper's printed curves.
 
-    Parameters
-    ----------
-    params : Paper000Params
-        True sensor parameters.
-    field_nt : float
-        Field magnitude B in nT.
-    inclination_rad : float
-        Inclination I in rad (positive: field points down).
-    n_steps : int
-        Number of equal turntable steps over a full turn (theta = 2 pi k / n_steps).
-    noise_sigma : float, optional
-        Standard deviation in nT of Gaussian noise added to every axis and sample.
-    noise_mean : float, optional
-        Mean in nT of that noise (paper 000 Table 1's "white noise mean").
-    rng : numpy.random.Generator or int or None, optional
-        Random generator or seed.
-
-    Returns
-    -------
-    TurntableData
-
+    ``params`` the true sensor; ``field_nt`` B, nT; ``inclination_rad`` I (positive: the
+    field points down); ``n_steps`` equal steps over a full turn (theta = 2 pi k / n_steps);
+    Gaussian noise of ``noise_sigma`` nT and mean ``noise_mean`` nT (paper 000 Table 1's
+    "white noise mean") on every axis and sample; ``rng`` a Generator or seed.
     """
     if int(n_steps) < 3:
         raise ValueError('n_steps must be >= 3 for a sine fit, got %r' % (n_steps,))
