@@ -64,7 +64,8 @@ def feed_and_calibrate(node, ros_node, ros_executor, data):
     feeder.wait_for_subscribers(ros_executor)
     assert call_trigger(ros_node, ros_executor, 'calibration/start').success
     feeder.feed(ros_executor, data, taken=lambda: int(node.received.sum()))
-    return call_trigger(ros_node, ros_executor, 'calibration/calibrate')
+    # a refused fit (sets no pairing fits) iterates longer: 30 s was once too short at load 8
+    return call_trigger(ros_node, ros_executor, 'calibration/calibrate', timeout_sec=120.0)
 
 
 def listen(node, topic, qos=10):
