@@ -57,16 +57,11 @@ MAX_POINTS = 6000
 PIXEL_COLUMNS = 1000
 COMPONENT_COLOURS = ('tab:red', 'tab:green', 'tab:blue')
 DPI = 100
-#: matplotlib settings of the report's figures: glyphs without hinting.  With the default,
-#: FreeType runs each glyph's TrueType hinting program (DejaVu Sans has them) when text is
-#: measured and again when it is drawn; unhinted, the report took 8-18 % less time
-#: (text is a third of it) and the 100 dpi text looks the same.
+#: matplotlib settings of the report's figures: glyphs without hinting (FreeType's hinting
+#: ran at every measure and draw of a glyph; the 100 dpi text looks the same without)
 RC = {'text.hinting': 'no_hinting'}
-
-
 #: True: the figures' fixed margins (:func:`_arrange`); False: matplotlib's constrained
-#: layout places the axes, the figure title and the bottom legends (1.03 x the CPU of the
-#: default figures with the same ticks: bench/report_layout.py)
+#: layout places the axes, the figure title and the bottom legends (bench/report_layout.py)
 FIXED_LAYOUT = True
 
 
@@ -86,11 +81,8 @@ def _BOTTOM():
 def _suptitle(fig, text, fontsize=11):
     """Figure title wrapped to the figure width."""
     chars = int(fig.get_figwidth() * 110 / fontsize)
-    if not FIXED_LAYOUT:                      # placed by the layout engine
-        fig.suptitle(textwrap.fill(text, chars), fontsize=fontsize)
-        return
-    fig.suptitle(textwrap.fill(text, chars), fontsize=fontsize, y=1.0 - 0.06 / fig.get_figheight(),
-                 va='top')
+    at = {'y': 1.0 - 0.06 / fig.get_figheight(), 'va': 'top'} if FIXED_LAYOUT else {}
+    fig.suptitle(textwrap.fill(text, chars), fontsize=fontsize, **at)
 
 
 def _arrange(fig, rows=1, cols=1, left=0.8, right=0.25, bottom=0.55, top=0.3, wspace=1.0,
@@ -99,21 +91,15 @@ def _arrange(fig, rows=1, cols=1, left=0.8, right=0.25, bottom=0.55, top=0.3, ws
     Place the grid of axes with fixed margins and gaps (inches) and thin the ticks.
 
     With :data:`FIXED_LAYOUT` False, matplotlib's constrained layout places them instead
-    (only the ticks are thinned here): the default figures took 1.03 x the CPU that way
-    (bench/report_layout.py, 4 x 10 000 epochs; BENCHMARKS.md), so speed is no reason for
-    the fixed margins; they stay the default until every figure has been checked under the
-    layout engine.  Fixed room is reserved: ``left`` for the y tick and axis labels,
-    ``bottom`` for the x ones, ``top`` for the axes titles (below the figure title, whose
-    wrapped lines are added here), ``right`` for legends placed outside the axes, and
-    ``wspace``/``hspace`` between panels.  Linear axes get 3-5 major ticks instead of up to
-    10: each tick is five artists, and they were half the drawing time of an axes.  The axis
-    labels are matplotlib's own (placed at draw by the tick labels' extents).
+    (only the ticks are thinned here).  Fixed room is reserved: ``left`` for the y tick and
+    axis labels, ``bottom`` for the x ones, ``top`` for the axes titles (plus the wrapped
+    figure title), ``right`` for legends outside the axes, ``wspace``/``hspace`` between
+    panels.  Linear axes get 3-5 major ticks (:func:`_thin_ticks`: each tick is five artists).
     """
     w, h = fig.get_size_inches()
     title = fig.get_suptitle()
     if not FIXED_LAYOUT:
-        _thin_ticks(fig)
-        return fig
+        return _thin_ticks(fig)
     if title:
         text = next(t for t in fig.texts if t.get_text() == title)
         size = text.get_fontsize() / 72.0                    # points -> inches
@@ -122,8 +108,7 @@ def _arrange(fig, rows=1, cols=1, left=0.8, right=0.25, bottom=0.55, top=0.3, ws
     cell_h = max((h - top - bottom - (rows - 1) * hspace) / rows, 0.3)
     fig.subplots_adjust(left=left / w, right=1.0 - right / w, bottom=bottom / h,
                         top=1.0 - top / h, wspace=wspace / cell_w, hspace=hspace / cell_h)
-    _thin_ticks(fig)
-    return fig
+    return _thin_ticks(fig)
 
 
 def _thin_ticks(fig):
@@ -185,17 +170,21 @@ class _InView(Locator):
         return self.inner.view_limits(vmin, vmax)
 
 
-def _bottom_legend(fig, fontsize=7):
+def _bottom_legend(fig, fontsize=7, axes=None, width=2.3, markerscale=2):
     """
-    Put the first axes' legend in a row along the bottom of the figure, off the data.
+    Put the legend of ``axes`` (default the first; each label once) along the bottom.
 
     (A legend 'best' placed inside the axes tests every data point: slow with thousands.)
+    Returns the bottom margin it needs, inches.
     """
-    handles, labels = fig.axes[0].get_legend_handles_labels()
-    ncol = max(1, min(len(labels), int(fig.get_figwidth() / 2.3)))
-    fig.legend(handles, labels, loc=_BOTTOM(), ncol=ncol, fontsize=fontsize,
-               frameon=False, markerscale=2)
-    return 0.55 + 0.2 * int(np.ceil(len(labels) / ncol))      # the bottom margin it needs
+    handles = {}
+    for ax in fig.axes[:1] if axes is None else axes:
+        for h, lab in zip(*ax.get_legend_handles_labels()):
+            handles.setdefault(lab, h)
+    ncol = max(1, min(len(handles), int(fig.get_figwidth() / width)))
+    fig.legend(list(handles.values()), list(handles), loc=_BOTTOM(), ncol=ncol,
+               fontsize=fontsize, frameon=False, markerscale=markerscale)
+    return 0.55 + 0.2 * int(np.ceil(len(handles) / ncol))
 
 
 def _plain_log_ticks(*axes):
@@ -596,16 +585,7 @@ def plot_structure(data, result, floor, diagnosis=None, adopted=None, findings=N
             _title(ax, f'sensor {j}: residual x y z vs {name}', fontsize=8, loc='left')
             ax.set_ylabel('sensor axes (nT)')
             ax.set_xlabel(xlabel)
-    handles, labels = [], []
-    for ax in axes.ravel():
-        for h, lab in zip(*ax.get_legend_handles_labels()):
-            if lab not in labels:
-                handles.append(h)
-                labels.append(lab)
-    ncol = max(1, min(len(labels), int(fig.get_figwidth() / 3.2)))
-    fig.legend(handles, labels, loc=_BOTTOM(), ncol=ncol, fontsize=7, frameon=False,
-               markerscale=3)
-    bottom = 0.55 + 0.2 * int(np.ceil(len(labels) / ncol))
+    bottom = _bottom_legend(fig, 7, axes.ravel(), width=3.2, markerscale=3)
     head = (f'verdict {token}: its fit (red, black) drawn over the residual it explains'
             if token and adopted is not None else
             f'verdict {token} (its fit could not be drawn)' if token else

@@ -15,12 +15,10 @@
 """
 Candidate effects of the diagnosis: the tokens to test, where they come from, their evidence.
 
-Besides the effect catalog (:func:`candidate_tokens`: every effect not in the model, per
-sensor where it applies and on all sensors at once), the candidates include the offset steps
-and spectral lines found in the residual (:func:`propose_from_residual`: ``step(t)``,
-``periodic(f)``) and the catalog effects the model-free findings point to
-(:func:`tokens_from_findings`).  :func:`split_testable` sets aside, with the reason, those the
-data cannot excite (``Effect.check``).
+The effect catalog (:func:`candidate_tokens`), the offset steps and spectral lines of the
+residual (:func:`propose_from_residual`) and the catalog effects the model-free findings
+point to (:func:`tokens_from_findings`); :func:`split_testable` sets aside, with the reason,
+those the data cannot excite (``Effect.check``).
 """
 from dataclasses import dataclass
 import math
@@ -48,11 +46,10 @@ class Candidate:
     n_params : int
         Parameters added (k of the likelihood-ratio test).
     rms_before_nt, rms_after_nt : float
-        Scalar residual RMS of the affected sensors, base fit and with the effect
-        (``rms_after_nt`` None when the residuals were not evaluated: method 'score').
+        Scalar residual RMS of the affected sensors, base fit and with the effect (after:
+        None when the residuals were not evaluated).
     vector_rms_before_nt, vector_rms_after_nt : float or None
-        Vector residual RMS (vs sensor 1) involving the affected sensors (after: None
-        for method 'score').
+        Vector residual RMS (vs sensor 1) involving the affected sensors (after as above).
     delta_chi2 : float
         Decrease of chi-square (noise levels fixed at the base fit).
     delta_bic : float
@@ -60,14 +57,11 @@ class Candidate:
     p_value, log10_p_value : float
         Likelihood-ratio test, chi-square with k degrees of freedom.
     method : str
-        'refit' (full ML refit from the base solution), 'one-step' (one Gauss-Newton
-        step from the base solution, evaluated; a lower bound of delta_chi2) or 'score'
-        (Rao's score test at the base solution: delta_chi2 is the decrease that step
-        predicts, exact for effects that enter linearly; used where it puts delta BIC
-        above 0, 10 units short of significance, :data:`SCORE_RULE_OUT_BIC`, so the
-        residuals are not evaluated; a term of the formula search is listed with 'score',
-        its evidence the linearised problem's) or 'search' (the formula search's term that
-        is the verdict) or 'localised' (a ``drop`` of an excess confined in time).
+        'refit' (full ML refit from the base solution), 'one-step' (one Gauss-Newton step,
+        evaluated: a lower bound of delta_chi2), 'score' (the decrease that step predicts, the
+        residuals not evaluated: :data:`SCORE_RULE_OUT_BIC`; also a term of the formula
+        search), 'search' (the search's term that is the verdict) or 'localised' (a ``drop``
+        of an excess confined in time).
     cv_rms_before_nt, cv_rms_after_nt : float or None
         Combined residual RMS on held-out time blocks (None when not computed).
     significant : bool
@@ -76,15 +70,13 @@ class Candidate:
     params : tuple of dict
         The added parameters {sensor, name, unit, value} after the fit.
     explained_fraction : float or None
-        Share (0..1) of the excess mean square over the noise floor that the effect removes:
-        (MS_before - MS_after) / (MS_before - floor^2) of the combined residual, held out
-        when cross-validated, in-sample when there is no held-out test; None when not
-        computed (a candidate after the verdict).
+        Share (0..1) of the excess mean square over the noise floor the effect removes from
+        the combined residual (held out when cross-validated); None when not computed.
     decided_by : str or None
         Which measure gave ``explained_fraction``: 'held-out' or 'in-sample (...)'.
     note : str or None
-        Why the candidate is not adopted although its fit is good: its fitted parameters
-        make it a simpler catalog effect (``Effect.reduces``: a lag of zero time constant).
+        Why a candidate with a good fit is not adopted (``Effect.reduces``: a lag of zero time
+        constant is a simpler effect).
 
     """
 
@@ -135,12 +127,10 @@ def candidate_tokens(model, data, extra=()):
     Every effect not in ``model``, per sensor where it applies and on all sensors at once.
 
     Returns a list of (token, effect label, sensor or None).  Effects that clash with the
-    model (soft_iron next to scale/nonorthogonality/misalignment, drift2 next to drift)
-    are left out.  Effects with arguments are offered with the arguments they suggest
-    (``Effect.suggest_args``: ``lag(temperature)``, ``aux_poly(aux_<name>,2)``) and with
-    ``extra`` names with arguments (``step(300)``, ``periodic(0.23)``: found in the residual
-    by :func:`propose_from_residual`).  Every effect free on all sensors (plug-ins too) is
-    offered on all of them as well (token without ``@``).
+    model (:data:`NESTED`, ``Effect.excludes``) are left out; effects with arguments are
+    offered with those they suggest (``Effect.suggest_args``) and with the ``extra`` names
+    (``step(300)``, ``periodic(0.23)``: :func:`propose_from_residual`).  Every additive effect
+    free on all sensors is offered on all of them as well (token without ``@``).
     """
     s = model.n_sensors
     ctx = data.context(1)
@@ -213,22 +203,17 @@ def propose_from_residual(t, residual, max_steps=2, min_line_ratio=30.0):
     residual : numpy.ndarray
         (S, N, 3) raw-space residual of the fit, nT.
     max_steps : int
-        Change points per record (binary segmentation).
+        Change points per record (:func:`~.measures.binary_segmentation` of the mean of the
+        3-vector residuals).
     min_line_ratio : float
-        A spectral line is proposed when its power exceeds this many times the median
-        power of the spectrum (a white residual exceeds 30 x the median in one of ~1e4
-        bins with probability ~1e4 exp(-30 ln 2) ~ 1e-5).
+        A spectral line is proposed when its power exceeds this many times the median power
+        of the spectrum (white noise: probability ~1e-5 in ~1e4 bins at 30).
 
     Returns
     -------
     list of str
-        Names with arguments, e.g. ['step(300)', 'periodic(0.23)'] (the diagnosis tests each
-        per sensor and on all sensors).
-
-    Change points: binary segmentation of the mean of the 3-vector residuals
-    (:func:`~.measures.binary_segmentation`).  Lines: the periodogram
-    (:func:`~.measures.periodogram`) of each sensor's residual, summed over the axes, its peak
-    refined on a grid 10x finer than 1/span.
+        Names with arguments, e.g. ['step(300)', 'periodic(0.23)'] (tested per sensor and on
+        all sensors).
 
     """
     t = np.asarray(t, float)
@@ -257,12 +242,11 @@ def residual_features(t, residual, max_steps=2, min_line_ratio=30.0, readings=No
     """
     Change points and spectral lines of a residual (see :func:`propose_from_residual`).
 
-    ``readings``: (S, N, 3) nT, the sensors' readings. Given, changes are also sought in
-    how the residual follows the reading's direction u = m / |m| (the 9 products r_a u_b
-    per sensor): a step of a scale factor, an angle or a cross-coupling (a range switch, a
-    knock to the mount) leaves a residual dM m that averages out over the attitudes, and
-    so no change in its mean, but a change in the mean of r_a u_b (dM_ab |m| / 3 for a
-    well-turned record).
+    ``readings`` (S, N, 3) nT: given, changes are also sought in the 9 products r_a u_b of
+    the residual and the reading's direction u = m / |m| per sensor: a step of a scale
+    factor, an angle or a cross-coupling changes their mean, not the residual's.  Lines: the
+    periodogram of each sensor's residual summed over the axes, its peak refined on a grid
+    10x finer than 1/span.
 
     Returns (change points: sorted epoch indices (the first sample after each change),
     lines: {sensor index: (peak power / median power, refined frequency Hz)}).
@@ -323,14 +307,11 @@ def demodulated_lines(t, residual, readings, min_line_ratio=30.0):
     """
     Spectral lines of how the residual follows the reading's direction (frequencies, Hz).
 
-    A line that modulates a scale factor, an angle or the linear map (``scale(sin(f))``,
-    ``rotation(sin(f))``) leaves a residual dM(t) m whose spectrum is the line mixed with
-    the turning of the sensor (side bands at f +- the turn rates, the line itself absent);
-    the 9 products r_a u_b (u = m / |m|, as for the steps in :func:`residual_features`)
-    hold dM(t) |m| u u^T, whose attitude average is dM(t) |m| / 3: the line at f.
-
-    ``residual``, ``readings``: (S, N, 3) nT.  Returns the sorted frequencies of the
-    sensors' strongest lines of the products (:func:`residual_features`' test).
+    A line modulating a scale factor, an angle or the linear map leaves a residual dM(t) m
+    whose spectrum has side bands at f +- the turn rates; the 9 products r_a u_b (u = m / |m|)
+    average over the attitudes to dM(t) |m| / 3: the line at f.  ``residual``, ``readings``:
+    (S, N, 3) nT.  Returns the sorted frequencies of the sensors' strongest lines of the
+    products (:func:`residual_features`' test).
     """
     prod = _gain_products(residual, readings)
     _, lines = residual_features(t, prod.reshape(*prod.shape[:2], 9), max_steps=0,
@@ -379,23 +360,10 @@ def split_testable(model, tokens, contexts):
     """
     Split candidate tokens into those the data can test and those they cannot, with why.
 
-    Parameters
-    ----------
-    model : Model
-        The diagnosed model.
-    tokens : list of tuple
-        (token, effect label, sensor or None) as from :func:`candidate_tokens`.
-    contexts : list of Context
-        One per sensor, what the data offer (temperature, auxiliary channels, ...).
-
-    Returns
-    -------
-    testable : list of tuple
-        (token, label, sensor) the data can excite and the model can take.
-    not_testable : list of tuple
-        (token, reason): ``Effect.check`` failed, the model refuses the effect, it is
-        already there, or it would tie the sensors to one field.
-
+    ``tokens``: (token, effect label, sensor or None) as from :func:`candidate_tokens`;
+    ``contexts``: one per sensor.  Returns (testable: [(token, label, sensor)],
+    not_testable: [(token, reason)]): ``Effect.check`` failed, the model refuses the effect,
+    it is already there, or it would tie the sensors to one field.
     """
     s = model.n_sensors
     testable, not_testable = [], []
@@ -421,12 +389,7 @@ def split_testable(model, tokens, contexts):
 
 
 def reads_stderr(model, label):
-    """
-    Tell whether :func:`reduces_to_simpler` of ``label`` can read the fit's uncertainties.
-
-    Only effects that override ``Effect.reduces`` (a lag; plug-ins) do: a refit of any other
-    candidate needs no covariance.
-    """
+    """Tell whether the fit's uncertainties matter to ``label``'s own ``Effect.reduces``."""
     return any(type(eff).reduces is not fx.Effect.reduces
                for row in model.effects for eff in row if eff.label == label)
 
@@ -446,9 +409,8 @@ def tokens_from_findings(findings):
     """
     Names with arguments that model-free findings point to (tested like any candidate).
 
-    ``findings``: dicts {"kind", "sensor", "channel", "value", "token", ...} (issue 11 item
-    3): the finding's token, else the one its kind points to (:data:`.findings.KINDS`), on
-    every sensor: ``step(t)``, ``periodic(f)``, ``lag(channel)``, ``aux_poly(channel,2)``.
+    ``findings``: dicts {"kind", "sensor", "channel", "value", "token", ...}: the finding's
+    token, else the one its kind points to (:data:`.findings.KINDS`), on every sensor.
     Tokens without arguments are in the catalog's candidates already.
     """
     out = []

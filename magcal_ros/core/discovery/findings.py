@@ -15,75 +15,51 @@
 """
 What is left in the residuals of a fit, model-free: lines, steps, lags, gradients, tails.
 
-:func:`find` looks at the residuals a fitted model leaves and names the structure in them
-without the effect catalog: a spectral line, an offset step, a driven channel acting through
-a lag or non-linearly, a trend, an attitude pattern, heavy tails, or a field gradient across
-the array.  Each :class:`Finding` says what it is, how much of the sensor's excess over the
-noise floor its own simple model (a sinusoid, a step, a lag filter, ...) removes, and which
-effect token to add (``periodic(0.23)@3``, ``step(300)@1``, ``lag(temperature)@2``, ...).
+:func:`find` names the structure in the residuals a fitted model leaves, without the effect
+catalog: a spectral line, an offset step, a channel acting through a lag or non-linearly, a
+trend, an attitude pattern, heavy tails, or a field gradient across the array.  Each
+:class:`Finding` says what it is, how much of the sensor's excess over the noise floor its
+own simple model removes, and which effect token to add (``periodic(0.23)@3``, ...).
 
-Series analysed (all nT)
-------------------------
-- With 3 or more sensors, sensor j's **consensus residual** ``c_j - median_{k != j} c_k``
-  (``c``: corrected readings in the array frame, (N, 3) each): under a uniform field every
-  sensor sees the same vector, so this is noise plus sensor j's own faults.  The median of
-  the others is not moved by one faulty sensor, so a sensor-1 step shows on sensor 1 only,
-  not as "sensors 2-4 jumped" (the vector residual of :class:`FitResult` is taken against
-  sensor 1).
-- With 1 or 2 sensors, the scalar residual ``|c_j| - F`` (a consensus cannot attribute).
+Series analysed (nT): with 3 or more sensors, sensor j's **consensus residual**
+``c_j - median_{k != j} c_k`` (``c``: corrected readings in the array frame, (N, 3)): under a
+uniform field this is noise plus sensor j's own faults, and the median is not moved by one
+faulty sensor.  With 1 or 2 sensors, the scalar residual ``|c_j| - F``.
 
-Method
-------
-(References: docs/papers.md, "Methods of the findings".)  Per sensor, greedily: every test
-below is run on the series, the significant one with the largest BIC gain is kept, its
-fitted signal removed, and the tests are run again (at most :data:`MAX_PER_SENSOR` times).
-A finding needs
+Method (references: docs/papers.md, "Methods of the findings"): per sensor, greedily, every
+test below is run, the significant one with the largest BIC gain is kept and its fitted
+signal removed, at most :data:`MAX_PER_SENSOR` times.  A finding needs a p-value below
+``alpha`` / (number of tests) (Bonferroni) and a model that removes at least
+:data:`MIN_SIGNAL_RATIO` x the noise variance (alone it lifts the RMS above 1.10 x the
+floor) and :data:`MIN_EXPLAINED` of the sensor's excess mean square over the floor.
 
-1. significance: p-value below ``alpha`` / (number of tests) (Bonferroni); each test's
-   p-value comes from its own null distribution (below);
-2. effect size: its model removes at least :data:`MIN_SIGNAL_RATIO` x the noise variance
-   (pooled per component), i.e. alone it would lift the residual RMS above 1.10 x the floor,
-   the rule by which :mod:`magcal_ros.core.discovery` calls a residual "at the floor"; and at
-   least :data:`MIN_EXPLAINED` of the sensor's excess mean square over the floor.
-
-The tests:
-
-- ``periodic``: periodogram (FFT for uniform sampling; Lomb-Scargle,
-  :func:`lomb_scargle`, for irregular sampling), the channels' powers summed.
-  Under white noise the power normalised by its local median is Gamma(C, 1) distributed;
-  the false-alarm probability is that tail times the number of independent frequencies
-  (Scargle 1982).  A line must stand out of its neighbourhood, so a red continuum (a random
-  walk) is not a line.  Periods longer than a third of the record are left to ``time``.
-- ``step``: the most likely single change of the mean (CUSUM statistic of a Gaussian
-  mean shift, maximised over the change time), applied repeatedly by the greedy loop: binary
-  segmentation (Vostrikova 1981).  p-value: chi-square tail with C degrees of freedom,
-  Bonferroni over the candidate change times (conservative).  Segments shorter than
-  :data:`MIN_SEGMENT_FRACTION` of the record are not considered.
-- ``time``: Legendre polynomial trend of degree 1-5 (degree by BIC), F-test against none.
-- ``direction``: polynomial of degree <= 3 in the field direction (array frame; the
-  residual of a missing soft-iron, non-linearity or a body field), F-test against none.
+- ``periodic``: periodogram (:func:`~.measures.periodogram`), the channels' powers summed;
+  the power over its local median is Gamma(C, 1) under white noise, the false-alarm
+  probability that tail times the independent frequencies (Scargle 1982).  A line must stand
+  out of its neighbourhood (a random walk is not a line).
+- ``step``: the most likely single change of the mean (CUSUM), applied repeatedly by the
+  greedy loop: binary segmentation (Vostrikova 1981); chi-square tail with C degrees of
+  freedom, Bonferroni over the change times; segments of at least
+  :data:`MIN_SEGMENT_FRACTION` of the record.
+- ``time``: Legendre trend of degree 1-5 (degree by BIC), F-test against none.
+- ``direction``: polynomial of degree <= 3 in the field direction (a missing soft iron,
+  non-linearity or body field), F-test against none.
 - ``channel`` / ``lag`` / ``channel_nonlinear``: for each driving channel (the sensor's
-  temperature, every ``aux_*``), linear regression (``channel``); the channel through a
-  first-order lag ``tau dy/dt = x - y`` added to it, tau on a log grid (``lag``, F-test
-  against the linear fit, Bonferroni over the grid); x^2, x^3 and sign(dx/dt) added to it
-  (``channel_nonlinear``: curved, saturating or hysteretic; F-test against the linear fit).
-- ``heavy_tails``: on what is left after the greedy loop, D'Agostino's kurtosis test and an
-  excess kurtosis above :data:`MIN_EXCESS_KURTOSIS`.
-- ``nonuniform_field`` (the four-sensor cross of paper 004, :func:`tensor.cross_positions`):
-  the inter-sensor residuals ``m_j = c_j - mean_k c_k`` split into the antisymmetric part
-  of each arm, ``(m1 - m3) / 2`` and ``(m2 - m4) / 2`` (what a field gradient makes: paper
-  004 eq. 1), and the symmetric part ``(m1 + m3 - m2 - m4) / 4``.  Noise and the faults of
-  single sensors give mean(antisymmetric^2) = 4 mean(symmetric^2) whatever their time
-  structure; a gradient only the former (F-test, then the effect-size rule).  The value is
-  the RMS Frobenius norm of the gradient tensor left in the residuals (noise and single
-  sensors' faults removed), nT/m; the gradient is then taken out of the per-sensor series
-  (smoothed over time) before the per-sensor tests.
+  temperature, every ``aux_*``): linear regression; the channel through a first-order lag
+  ``tau dy/dt = x - y`` added (tau on a log grid, Bonferroni over it); x^2, x^3 and
+  sign(dx/dt) added (curved, saturating or hysteretic); F-tests against the linear fit.
+- ``heavy_tails``: on what is left, D'Agostino's kurtosis test and an excess kurtosis above
+  :data:`MIN_EXCESS_KURTOSIS`.
+- ``nonuniform_field`` (the cross of paper 004): the arms' antisymmetric parts of the
+  inter-sensor residuals against their symmetric part (:func:`_gradient`); the value is the
+  RMS Frobenius norm of the gradient tensor left, nT/m, and the gradient is taken out of the
+  per-sensor series before their tests.
 
 Noise: each series' per-component noise variance is the mean square of its third
-differences / 20 (the white-noise variance for any distribution, heavy tails included;
-smooth signals cancel), not a robust (MAD) estimate, which reads low for heavy tails.
+differences / 20 (:func:`~.measures.white_noise_sd`: right for heavy tails too, where a
+MAD reads low).
 """
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 import math
 
 from magcal_ros.core.discovery.constants import (ALPHA, ECHO_RATIO, LINE_NEIGHBOURHOOD,
@@ -151,11 +127,7 @@ class Finding:
 
     def to_dict(self):
         """JSON-ready dict (docs/design.md §2 keys first)."""
-        return {'kind': self.kind, 'sensor': self.sensor, 'channel': self.channel,
-                'value': self.value, 'unit': self.unit,
-                'explained_fraction': self.explained_fraction, 'text': self.text,
-                'token': self.token, 'p_value': self.p_value, 'rms_nt': self.rms_nt,
-                'replaces': list(self.replaces)}
+        return {**asdict(self), 'replaces': list(self.replaces)}
 
 
 @dataclass(frozen=True, eq=False)
@@ -206,10 +178,8 @@ class Findings:
             return f'findings (model-free): not searched: {self.note}'
         if not self.items:
             return 'findings (model-free): none'
-        lines = ['findings (model-free, largest share of the excess first):']
-        for f in self.items:
-            lines.append(f'  {f.text}')
-        return '\n'.join(lines)
+        return '\n'.join(['findings (model-free, largest share of the excess first):']
+                         + [f'  {f.text}' for f in self.items])
 
 
 # -- helpers ---------------------------------------------------------------------------------
@@ -230,7 +200,7 @@ def _nuisance(mod):
     u.c + u.E u (u: field direction, (N, 3)): columns 1, u_a, u_a u_b.
     """
     u = mod
-    cols = [np.ones(len(u))] + [u[:, a] for a in range(3)]
+    cols = [np.ones(len(u)), *u.T]
     cols += [u[:, a] * u[:, b] for a in range(3) for b in range(a, 3)]
     return np.column_stack(cols)
 
@@ -787,33 +757,26 @@ def _in_model(f, model):
     """``f`` with the tokens of ``model`` its token takes the place of (see Finding)."""
     if model is None or not f.token:
         return f
-    from dataclasses import replace
     from magcal_ros.core.discovery.results import compact_spec
-    try:
-        new = model.with_effect(f.token)
-    except ValueError:
-        new = None
     spec = compact_spec(model)
-    if new is not None:
-        # a larger form replaces what it contains (aux_poly > aux: Effect.supersedes)
-        kept = compact_spec(new)
-        gone = tuple(t for t in spec if t != 'base' and t not in kept)
-        if not gone:
-            return f
-        return replace(f, replaces=gone, text=f'{f.text} in place of {" ".join(gone)}')
-    out = []
-    for tok in spec:
-        if tok == 'base':
-            continue
-        rest = ','.join(x for x in spec if x != tok)
+
+    def takes(new):
         try:
-            type(model).from_spec(rest, model.n_sensors).with_effect(f.token)
+            return new().with_effect(f.token)
         except ValueError:
-            continue
-        out.append(tok)
-    if not out:
+            return None
+    kept = takes(lambda: model)
+    if kept is not None:
+        # a larger form replaces what it contains (aux_poly > aux: Effect.supersedes)
+        kept = compact_spec(kept)
+        gone = tuple(t for t in spec if t != 'base' and t not in kept)
+    else:
+        gone = tuple(tok for tok in spec if tok != 'base' and takes(
+            lambda: type(model).from_spec(','.join(x for x in spec if x != tok),
+                                          model.n_sensors)) is not None)
+    if not gone:
         return f
-    return replace(f, replaces=tuple(out), text=f'{f.text} in place of {" ".join(out)}')
+    return replace(f, replaces=gone, text=f'{f.text} in place of {" ".join(gone)}')
 
 
 def _sameness(t):

@@ -79,11 +79,9 @@ class Trial:
     added : numpy.ndarray
         (P',) bool, the parameters the effect adds.
     ev : Evaluation or None
-        Its residuals on the tested epochs; None for a candidate the score test ruled out
-        (its residuals were not evaluated).
+        Its residuals on the tested epochs; None when the score test ruled it out.
     score_chi2 : float
-        The base fit's chi-square less the score statistic (the one-step decrease
-        predicted by the linearised problem): :attr:`chi2` until ``ev`` is set.
+        The base fit's chi-square less the score statistic: :attr:`chi2` until ``ev`` is set.
     method : str
         'score', 'one-step' or 'refit'.
     reduces : str or None
@@ -177,14 +175,13 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
     base : FitResult, optional
         An existing fit of the model on ``data`` (default: fitted here).
     folds : int
-        Folds of the cross-validation (interleaved blocks, :func:`time_blocks`); 0 (or a
-        record shorter than ``folds x 48`` epochs): no held-out test, the verdict rests on
-        the likelihood tests and the in-sample share (``decided_by`` says so).
+        Folds of the cross-validation (:func:`time_blocks`); 0 (or too short a record): no
+        held-out test, the verdict rests on the likelihood tests and the in-sample share
+        (``decided_by`` says so).
     alpha : float
         Family-wise significance level (Bonferroni over the candidates).
     max_refit : int
-        Number of best-screened candidates refitted in full (the rest keep their one-step
-        evidence, a lower bound).
+        Best-screened candidates refitted in full (the rest keep their one-step evidence).
     candidates : list of str, optional
         Tokens to test instead of every missing effect.
     progress : callable, optional
@@ -192,20 +189,16 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
     cv_method : {'newton', 'refit'}
         How each fold is fitted (:func:`cross_validate`).
     max_samples : int or None
-        Test the candidates on at most this many evenly spaced epochs (the fit's own cap);
-        the noise floor is estimated from all of them.  None: all.
+        Test the candidates on at most this many evenly spaced epochs (the noise floor uses
+        all of them).  None: all.
     baseline_m : float
-        Arm length of a four-sensor cross, m, for the gradient of a ``nonuniform_field``
-        finding (:func:`magcal_ros.core.discovery.findings.find`).
+        Arm length of a four-sensor cross, m (the gradient of a ``nonuniform_field`` finding).
     constrained : bool
-        Partial attitude coverage: the base fit, every candidate's refit and the held-out
-        fits use the priors of ``fit(constrained=True)``, and the held-out fits are refits
-        (the Newton leave-out step has no prior terms).  Candidates are judged only after
-        a constrained refit (the one-step screen only ranks them).
+        Partial attitude coverage: every fit uses the priors of ``fit(constrained=True)``, the
+        held-out fits are refits, and candidates are judged only after a constrained refit.
     propose : bool
-        Also test the steps and spectral lines found in the base residual
-        (:func:`propose_from_residual`) and the catalog effects the findings point to
-        (:func:`tokens_from_findings`).
+        Also test the steps and lines of the base residual (:func:`propose_from_residual`) and
+        the effects the findings point to (:func:`tokens_from_findings`).
     **fit_kwargs
         Passed to :func:`magcal_ros.core.model.fit` for the base fit.
 
@@ -328,14 +321,11 @@ def _merge_search(b, trials, ranked, verdict, reason, res, at_floor):
     """
     Put the search's terms among the candidates and choose the verdict between the two.
 
-    The catalog's verdict stands when it brings every sensor to its floor
-    (:data:`.constants.AT_FLOOR_RATIO`), unless the search's term does too on fewer sensors (the
-    catalog offers an effect on one sensor or on all; the search names the sensors that
-    carry it).  Otherwise the search's adopted term is the verdict when it leaves less
-    (largest ratio to the floor over the sensors).  The search's terms are listed among
-    the candidates (after the verdict and the catalog's, method 'score': their evidence is
-    the linearised problem's) only when the verdict is the search's; the catalog's ranking
-    is kept as it is otherwise.
+    The catalog's verdict stands when it brings every sensor to its floor, unless the search's
+    term does too on fewer sensors; otherwise the search's adopted term is the verdict when it
+    leaves less (largest ratio to the floor).  The search's terms are listed among the
+    candidates (method 'score') only when the verdict is the search's.  When nothing explains
+    the excess, an excess confined in time (``res.localised``) is left out instead.
     """
     s = b.data.n_sensors
     if at_floor:
@@ -388,9 +378,8 @@ def _describe(b, found, res, verdict, scalar_rms, vector_rms):
     """
     Add the model-free descriptions of the search to the findings (each with its token).
 
-    'localised': an excess confined in time (:func:`.search.localised`), token
-    ``drop(t0, t1)``.  'unexplained': when there is no verdict, what is left
-    (:func:`_what_is_left`).
+    'localised': an excess confined in time (:func:`.search.localised`), token ``drop(t0,
+    t1)``; 'unexplained', without a verdict: what is left (:func:`_what_is_left`).
     """
     from dataclasses import replace
     from magcal_ros.core.discovery.findings import Finding
@@ -426,14 +415,10 @@ def _what_is_left(b, found, res, scalar_rms, vector_rms):
     """
     Describe the excess nothing explains (a Finding of kind 'unexplained'), or None.
 
-    Which sensors carry it (one, an arm of the cross, every sensor alike, or a set), whether
-    it shows in the scalar or only in the vector residual and how far above the floor, when
-    (the shortest interval holding :data:`WHEN_SHARE` of it, if at most :data:`WHEN_SPAN` of
-    the record, else throughout), and what it follows most: the search's best term (its
-    held-out share) or a model-free finding on those sensors (its share of their excess):
-    the field direction (attitude), a line, a step, a trend, a channel, a gradient.  The
-    token is that term's or finding's (:func:`.verify.tested_findings` fits it before it
-    is offered).
+    Which sensors carry it, scalar or vector and how far above the floor, when (the shortest
+    interval holding :data:`WHEN_SHARE` of it if at most :data:`WHEN_SPAN` of the record) and
+    what it follows most: the search's best term or a model-free finding on those sensors,
+    whose token it offers (:func:`.verify.tested_findings` fits it first).
     """
     from magcal_ros.core.discovery.findings import Finding
     s = b.data.n_sensors
@@ -589,11 +574,9 @@ def order_by_evidence(trials, b):
     """
     Sort ``trials`` in place, best evidence (lowest delta BIC against ``b``) first.
 
-    Evidence equal within the refits' precision (:data:`EVIDENCE_TIE`, chi-square units)
-    is a tie that floating-point rounding would otherwise decide (two tokens for one model,
-    e.g. a user's effect and the periodic line the residual proposes at its frequency); a
-    tie goes to the candidate with fewer parameters, then to a named effect before one
-    with arguments ('wheel' before 'periodic(0.25)'), then by token.
+    Evidence equal within :data:`EVIDENCE_TIE` is a tie, which goes to fewer parameters, then
+    to a named effect before one with arguments ('wheel' before 'periodic(0.25)'), then by
+    token.
     """
     _order_runs(trials, b.delta_bic, lambda c: (c.k, '(' in c.label, c.token))
 
@@ -681,13 +664,10 @@ def _screen(b, testable, progress):
     """
     Screen every candidate from the base fit; return (trials best first, Screen).
 
-    Each candidate gets one Gauss-Newton step (:meth:`Screen.step`) and its score
-    statistic, the chi-square decrease the step predicts (Rao's score test: the likelihood-
-    ratio statistic to first order, exact for effects that enter linearly).  Those whose
-    predicted delta BIC is above :data:`SCORE_RULE_OUT_BIC` (10 units short of
-    significance) keep that evidence, ``method`` 'score'; the others are evaluated at the
-    step (``method`` 'one-step').  Under the robust loss every candidate is evaluated (the
-    step is least squares on the inliers, the evidence the robust loss).
+    One Gauss-Newton step each (:meth:`Screen.step`) and its score statistic, the chi-square
+    decrease the step predicts (Rao's score test).  Those whose predicted delta BIC is above
+    :data:`SCORE_RULE_OUT_BIC` keep that evidence (method 'score'); the others are evaluated at
+    the step ('one-step').  Under the robust loss every candidate is evaluated.
     """
     trials = []
     screen = None
@@ -768,9 +748,9 @@ def _held_out(b, trials, n_refit, folds, cv_method, p_thr, progress, held_out):
     """
     Cross-validate the base model and the refitted candidates that pass the likelihood tests.
 
-    Best first (interleaved blocks: time_blocks), until one removes MIN_EXPLAINED of the
-    excess mean square over the floor; each trial tested gets ``cv`` and ``share``.  Returns
-    the base model's :func:`cross_validate` result, None without a held-out test.
+    Best first, until one removes MIN_EXPLAINED of the excess; each trial tested gets ``cv``
+    and ``share``.  Returns the base model's :func:`cross_validate` result, None without a
+    held-out test.
     """
     if not held_out:
         return None

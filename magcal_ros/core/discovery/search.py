@@ -15,27 +15,23 @@
 """
 Discovery as a search over the model formula (issue 18 item 3).
 
-Candidates are generated from what the record holds (:mod:`.bases`: smooths, polynomials,
-steps, windows and sinusoids in time; each channel linear, polynomial, lagged, cyclic when
-it wraps; products of two channels; the field rate) and combined with every coupling of
-the grammar (``offset``, ``scale``, ``linear``, ``nonorth``, ``rotation``, ``field``; a
-per-axis driver offset and scale) on every scope (the sensors the driver explains, each
-alone and as a set; every sensor, each its own and alike; the array), then
+Candidates are generated from what the record holds (:mod:`.bases`: drivers in time, each
+channel, products of two channels, the field rate) and combined with every coupling of the
+grammar (``offset``, ``scale``, ``linear``, ``nonorth``, ``rotation``, ``field``) on every
+scope (the sensors the driver explains, each alone and as a set; every sensor, each its
+own and alike; the array), then
 
 1. **pre-screened** by least squares of each sensor's base residual on the candidate's
-   columns (a cheap lower bound of the score statistic; it ranks ~10^3 candidates in a few
-   tens of ms), the scope read from which sensors the driver explains;
+   columns (a cheap lower bound of the score statistic), which also gives the scope;
 2. **scored** exactly by Rao's score test at the base fit (the one Gauss-Newton step of
-   :class:`.screen.Screen`, base Jacobian and profiled field included; exact for terms that
-   enter linearly, as every coupling of a fixed driver does), for the best ``SCORE_TOP``;
-3. **validated on held-out data**: the same linearised problem fitted on all but one fold of
-   interleaved time blocks and evaluated on that fold (:class:`BlockSums`: every sum of the
-   normal equations is formed per block once, so a fold costs one small solve).  A term is
-   adopted only if it is significant (likelihood ratio below the Bonferroni threshold over
-   every candidate generated, delta BIC < -10) AND removes at least 20 % of the held-out
-   excess over the noise floor; among those, the lowest held-out residual wins, ties within
-   :data:`TIE_SHARE` going to fewer parameters.
-4. When no single term brings every sensor to its floor, **pairs** of the best terms are
+   :class:`.screen.Screen`), for the best :data:`SCORE_TOP`;
+3. **validated on held-out data**: the same linearised problem fitted on all but one fold
+   of interleaved time blocks and evaluated on that fold (:class:`BlockSums`).  A term is
+   adopted only if it is significant (Bonferroni over every candidate generated, delta BIC
+   < -10) and removes at least :data:`~.constants.MIN_EXPLAINED` of the held-out excess over
+   the floor; the largest held-out share wins, ties within :data:`TIE_SHARE` going to fewer
+   parameters;
+4. when no single term brings every sensor to its floor, **pairs** of the best terms are
    searched the same way.
 
 The adopted term is written in the formula syntax (``offset(s(t, k=8))@2``); the grammar
@@ -91,7 +87,7 @@ class Term:
     Attributes
     ----------
     coupling : str
-        'offset', 'scale', 'linear' or 'field'.
+        'offset', 'scale', 'linear', 'nonorth', 'rotation', 'field' (or 'pair').
     driver : bases.Driver
         The driver.
     sensors : tuple of int
@@ -108,6 +104,10 @@ class Term:
         Held-out share of the excess over the floor it removes.
     ratios : dict or None
         {sensor: residual RMS / floor} in-sample after the step.
+    cv_before, cv_after : float or None
+        Combined held-out RMS without and with the term, nT.
+    parts : tuple of Term
+        The two terms of a pair.
 
     """
 
@@ -154,11 +154,12 @@ def _proj_ss(x, y):
 
 
 #: for each coupling of the grammar (core/effects/couplings.py), the raw-space pattern of
-#: each of its parameters per driver column: ((axis of dB, axis of lin or None, sign), ...)
-#: (None: the driver itself, the offset); the first order of each coupling's contribution
+#: each of its parameters per driver column, to first order: ((axis of dB, axis of lin or
+#: None for the driver itself, sign), ...)
 _PATTERNS = {
-    'offset': [((0, None, 1.0),), ((1, None, 1.0),), ((2, None, 1.0),)],
-    'scale': [((0, 0, 1.0),), ((1, 1, 1.0),), ((2, 2, 1.0),)],
+    'offset': [((a, None, 1.0),) for a in range(3)],
+    'scale': [((a, a, 1.0),) for a in range(3)],
+    'linear': [((a, b, 1.0),) for a in range(3) for b in range(3)],
     # psi: dB_y = x lin_z; varphi: dB_x = x lin_y; theta: dB_x = x lin_z
     'nonorth': [((1, 2, 1.0),), ((0, 1, 1.0),), ((0, 2, 1.0),)],
     # alpha: (lin_y, -lin_x, 0); beta: (0, lin_z, -lin_y); gamma: (-lin_z, 0, lin_x)
@@ -184,48 +185,34 @@ def coupling_columns(coupling, x, lin, per_axis=False):
         for a in range(3):
             out[a, :, a] = x[:, a] * (lin[:, a] if coupling == 'scale' else 1.0)
         return out
-    if coupling in ('nonorth', 'rotation'):
-        out = np.zeros((3 * m, n, 3))
-        for c in range(m):
-            for q, pattern in enumerate(_PATTERNS[coupling]):
-                for axis, src, sign in pattern:
-                    out[3 * c + q, :, axis] += sign * x[:, c] * lin[:, src]
-        return out
-    if coupling in ('offset', 'scale'):
-        out = np.zeros((3 * m, n, 3))
-        for c in range(m):
-            for a in range(3):
-                out[3 * c + a, :, a] = x[:, c] * (lin[:, a] if coupling == 'scale' else 1.0)
-        return out
-    if coupling == 'linear':
-        out = np.zeros((9 * m, n, 3))
-        for c in range(m):
-            for a in range(3):
-                for b in range(3):
-                    out[9 * c + 3 * a + b, :, a] = x[:, c] * lin[:, b]
-        return out
     if coupling == 'field':
         return x.T[:, :, None] * lin[None, :, :]
-    raise ValueError(f'unknown coupling {coupling!r}')
+    if coupling not in _PATTERNS:
+        raise ValueError(f'unknown coupling {coupling!r}')
+    patterns = _PATTERNS[coupling]
+    out = np.zeros((len(patterns) * m, n, 3))
+    for c in range(m):
+        for q, pattern in enumerate(patterns):
+            for axis, src, sign in pattern:
+                out[len(patterns) * c + q, :, axis] += sign * x[:, c] * (
+                    1.0 if src is None else lin[:, src])
+    return out
 
 
 def n_params(coupling, m, per_axis=False):
     """Parameters of a coupling of m driver columns, per sensor (field: in all)."""
     if per_axis:
         return 3
-    return {'offset': 3 * m, 'scale': 3 * m, 'linear': 9 * m, 'nonorth': 3 * m,
-            'rotation': 3 * m, 'field': m}[coupling]
+    return m if coupling == 'field' else len(_PATTERNS[coupling]) * m
 
 
 class BlockSums:
     """
     The base fit's linearised problem summed per time block, for held-out tests of terms.
 
-    Built from a :class:`.screen.Screen` (the scaled base Jacobian J, the residual r and the
-    field-direction projector of each epoch).  For a candidate with raw columns C the blocks
-    of the normal equations [J C]^T P [J C] and [J C]^T P r are formed per block; the fit on
-    a fold's training blocks is one solve, its held-out sum of squares
-    r'Pr + 2 s'g + s'M s on the held-out blocks.
+    Built from a :class:`.screen.Screen`: for a candidate with raw columns C the blocks of the
+    normal equations [J C]^T P [J C] and [J C]^T P r are formed per block; the fit on a fold's
+    training blocks is one solve, its held-out sum of squares r'Pr + 2 s'g + s'M s.
     """
 
     def __init__(self, screen, sigma, n, folds=SEARCH_FOLDS,
@@ -259,9 +246,7 @@ class BlockSums:
         """
         Set the expected r'Pr of each block at the noise floor (S,) nT: tr(P W) per epoch.
 
-        W = diag(floor_j^2 / sigma_j^2) (the residual is scaled by the fit's sigma_j);
-        tr(P W) = tr(W) - tr((G^T G)^-1 G^T W G): the profiled field takes its two directions
-        mostly from the sensors weighted most.
+        W = diag(floor_j^2 / sigma_j^2); tr(P W) = tr(W) - tr((G^T G)^-1 G^T W G).
         """
         g = self.g
         w = (np.asarray(floor_nt, float) / self.sigma) ** 2
@@ -421,8 +406,8 @@ def couplings_of(driver):
     """
     Couplings tried with a driver: every one of the grammar (issue 32 item 4).
 
-    A per-axis driver (the field rate) acts axis by axis: offset and scale only, as the
-    grammar allows; ``linear`` with drivers of at most :data:`LINEAR_MAX_COLUMNS` columns.
+    A per-axis driver (the field rate): offset and scale only, as the grammar allows;
+    ``linear`` with drivers of at most :data:`LINEAR_MAX_COLUMNS` columns.
     """
     if driver.per_axis:
         return ('offset', 'scale')
@@ -563,10 +548,9 @@ def search(data, resid, screen, sigma, floor, n_obs, alpha=0.01, steps=(), windo
     alpha : float
         Family-wise significance level (Bonferroni over every candidate generated).
     steps, windows, lines : sequences
-        Change points (tuples of s), windows ((t0, t1) s) and spectral lines (Hz) of the
-        residual.
+        Change points (tuples of s), windows ((t0, t1) s) and spectral lines (Hz).
     dof : float
-        3G / (3G - 2): the profiled field's share of the residual (measures.dof_factor).
+        The profiled field's share of the residual (:func:`.measures.dof_factor`).
 
     Returns
     -------
@@ -656,8 +640,7 @@ def _ratios_after(sums, cols, sol, sigma, floor_j, dof):
     """
     {sensor: in-sample residual RMS / floor} after the step ``sol``.
 
-    The ratio of the sensor's sum of squares to what it holds at the floor
-    (:meth:`BlockSums.set_floor`, the profiled field's share of it removed).
+    The sensor's sum of squares over what it holds at the floor (:meth:`BlockSums.set_floor`).
     """
     g = sums.g
     nb = g['jtj'].shape[0]
@@ -695,7 +678,7 @@ class Localized:
     t0, t1 : float
         The interval, s.
     sensors : tuple of int
-        The sensors that carry it (each holding at least 10 % of the excess inside).
+        The sensors that carry it (each at least 10 % of the excess inside).
     share : float
         Share of the excess (over the floor, every sensor) inside the interval.
     ratios_outside : dict
@@ -718,7 +701,7 @@ class Localized:
         Return the formula term that leaves the interval out of the sensors that carry it.
 
         'drop(t0, t1)' when every sensor does; 'drop(t0, t1)@J' or 'drop(t0, t1)@{J,K}' when
-        only some do: the others' readings of the interval still inform the field.
+        only some do (the others' readings still inform the field).
         """
         core = f'drop({format_arg(self.t0)}, {format_arg(self.t1)})'
         if not self.sensors or set(self.sensors) >= set(self.ratios_outside):
@@ -739,13 +722,11 @@ def localised(t, sums):
     """
     Describe an excess confined in time, or None (model-free; see :class:`Localized`).
 
-    ``sums``: the :class:`BlockSums` of the base fit, its floor set.  The per-epoch excess of
-    every sensor over what it holds at the floor is summed over the sensors; the interval of
-    largest total excess (the maximum-sum subarray, Kadane's algorithm) must hold at least
-    half of the whole excess.  Widened by 0, 1, 2 or 5 % of the record on each side, the
-    base model is refitted (linearised) without it; the first interval after which every
-    sensor is within :data:`~.constants.AT_FLOOR_RATIO` of its floor is returned, if it is at most
-    :data:`MAX_LOCALISED_FRACTION` of the record.
+    ``sums``: the base fit's :class:`BlockSums`, its floor set.  The interval of largest total
+    excess over the floor (maximum-sum subarray, Kadane's algorithm), widened by 0, 1, 2 or
+    5 % of the record on each side, is left out of a linearised refit; the first after which
+    every sensor is within :data:`~.constants.AT_FLOOR_RATIO` of its floor is returned if it
+    is at most :data:`MAX_LOCALISED_FRACTION` of the record and not a few outliers.
     """
     t = np.asarray(t, float)
     g = sums.g
