@@ -15,20 +15,14 @@
 """
 Diagnosis report: PNG figures and one self-contained HTML page (PNGs embedded as base64).
 
-The figures answer "where does the model fail?":
-
-- measured vs modelled field magnitude over time, and the residual over time;
-- the residual against every driving signal the data carry (each sensor's temperature,
-  each auxiliary channel, the field rate |dB/dt|): a missing effect shows as a trend;
-- the scalar residual as a map over field direction (azimuth/elevation in the sensor
-  frame): nonlinearity or a missing linear term shows as a pattern on the sphere;
-- gradient tensor components before and after correction (four-sensor cross);
-- the candidate ranking (delta BIC) and the error ladder (held-out RMS per step);
-- what is left, model-free (:mod:`magcal_ros.core.discovery.findings`): the residual spectrum per
-  sensor, a change-point view, and the residual against the lagged driving channels.
-
-Matplotlib is used through its object API with the Agg canvas (no pyplot, no global
-backend change, no display needed).  The noise floor is drawn on every residual plot.
+The figures answer "where does the model fail?": measured vs modelled magnitude and the
+residual over time; the residual against every driving signal (temperatures, auxiliary
+channels, the field rate) and over the field direction; the gradient tensor before and
+after correction (four-sensor cross); the candidate ranking and the error ladder; what is
+left, model-free (:mod:`magcal_ros.core.discovery.findings`): the residual spectrum,
+change points and the residual against the lagged channels.  The noise floor is drawn on
+every residual plot.  Matplotlib's object API with the Agg canvas (no pyplot, no global
+backend change, no display).
 """
 import base64
 import html
@@ -135,12 +129,7 @@ def _columns(fig, cols=1, **margins):
 
 
 class _InView(Locator):
-    """
-    Return the ticks of another locator that lie inside the view limits.
-
-    MaxNLocator's and LogLocator's ticks reach past the limits (0..600 s gets -200 and
-    800); matplotlib creates a tick (five artists) for each before it drops the outer ones.
-    """
+    """Return the ticks of another locator that lie inside the view limits."""
 
     def __init__(self, inner):
         self.inner = inner
@@ -188,12 +177,7 @@ def _bottom_legend(fig, fontsize=7, axes=None, width=2.3, markerscale=2):
 
 
 def _plain_log_ticks(*axes):
-    """
-    Give log axes plain decade labels ('0.01', '1e+04') and no minor ticks.
-
-    Matplotlib's default '$10^{3}$' labels go through its mathtext parser (about 20 ms per
-    label) and the log minor ticks are many more artists to lay out.
-    """
+    """Give log axes plain decade labels ('0.01', '1e+04', no mathtext) and no minor ticks."""
     for axis in axes:
         axis.set_minor_locator(NullLocator())
         axis.set_major_formatter(FuncFormatter(lambda v, _: f'{v:g}'))
@@ -205,12 +189,7 @@ def _title(ax, text, **kwargs):
 
 
 def figure_png(fig):
-    """
-    Draw the figure on its Agg canvas and return it as PNG bytes.
-
-    Pillow's encoder at zlib level 1 (``compress_level=1``): its default level 6 took 1.7 x
-    as long for 3 % smaller files (bench/report_layout.py).
-    """
+    """Draw the figure on its Agg canvas and return it as PNG bytes (zlib level 1: fast)."""
     from PIL import Image
     fig.canvas.draw()
     buf = io.BytesIO()
@@ -228,16 +207,9 @@ def _envelope(y, columns=PIXEL_COLUMNS):
     """
     Return the indices of the smallest and largest sample of ``y`` in each chunk.
 
-    A time series drawn through these (in time order) covers, in every pixel column, the
-    same range as all its samples: spikes stay visible, and a line of 10 000 noisy samples
-    costs the renderer 2 * ``columns`` points.  ``y``: (N,) or (N, k) (the union over the
-    k series); NaN are skipped.
-
-    Returns
-    -------
-    numpy.ndarray
-        Sorted sample indices, (M,) int, M <= 2 * k * (columns + 1).
-
+    A series drawn through these covers, in every pixel column, the range of all its samples
+    (spikes stay visible) for 2 * ``columns`` points.  ``y``: (N,) or (N, k) (the union over
+    the k series); NaN are skipped.  Returns sorted indices, (M,) int, M <= 2 k (columns + 1).
     """
     y = np.asarray(y, float)
     n = len(y)
@@ -261,13 +233,11 @@ def _envelope(y, columns=PIXEL_COLUMNS):
 
 def _band(ax, t, y, columns=PIXEL_COLUMNS, lw=0.5, **style):
     """
-    Draw a series as its range per chunk: one filled polygon, min to max in each column.
+    Draw a series (``t``, ``y``: (N,)) as its range per chunk: one polygon, min to max per column.
 
-    The same pixels as a line through the extremes of each chunk (:func:`_envelope`), for
-    a fraction of the drawing: Agg strokes each of the 2 x ``columns`` segments of that
-    zig-zag, and fills this polygon in one pass.  The outline (``lw``, points) keeps a band
-    narrower than a pixel visible.  ``t``, ``y``: (N,); NaN are skipped (a chunk without
-    data leaves a gap).  Returns the PolyCollection (legend handle).
+    The pixels of a line through the extremes of each chunk (:func:`_envelope`) for a fraction
+    of the drawing; the outline (``lw``, points) keeps a thin band visible; NaN leave a gap.
+    Returns the PolyCollection (legend handle).
     """
     n = len(y)
     k = int(np.ceil(n / columns))                # samples per chunk, the last one shorter
@@ -286,12 +256,7 @@ def _band(ax, t, y, columns=PIXEL_COLUMNS, lw=0.5, **style):
 
 
 def _scatter_idx(n, *series, columns=PIXEL_COLUMNS):
-    """
-    Return evenly thinned samples plus the extremes of every series, sorted.
-
-    The thinned samples show the density of the cloud, the envelopes (:func:`_envelope`,
-    over ``columns`` chunks) its extremes per pixel column.
-    """
+    """Return evenly thinned samples plus the extremes of every series per pixel column, sorted."""
     idx = _thin(n)
     if len(idx) == n:
         return idx
@@ -317,8 +282,7 @@ def _sensor_axes(fig, n, sharey=False):
     """
     Return ``n`` axes in rows of up to four.
 
-    ``sharey``: the axes of a row share the y axis, whose tick labels are drawn on the first
-    only (the y label is then set on the first of each row: :func:`_row_starts`).
+    ``sharey``: the axes of a row share the y axis (tick labels on the first only).
     """
     cols = min(n, 4)
     rows = int(np.ceil(n / cols))
@@ -345,17 +309,10 @@ def _floor_lines(ax, level, label='noise floor'):
 
 def magnitude_offsets(data, result):
     """
-    Return the data of the magnitude figure, per sensor.
+    Return the data of the magnitude figure: {sensor j: {'measured_nt', 'model_nt'}}.
 
-    Per sensor, the mean of |raw| - |B| and of |model| - |B| (nT): the data of the
-    magnitude figure, which plots both about the reference so that an offset of thousands of
-    nT and a variation of a few nT are both readable.
-
-    Returns
-    -------
-    dict
-        {sensor j (1-based): {'measured_nt': float, 'model_nt': float}}.
-
+    The means of |raw| - |B| and of |model| - |B| per sensor, nT (the figure plots both about
+    the reference, so that an offset of thousands of nT and a variation of a few are readable).
     """
     out = {}
     for j in range(1, data.n_sensors + 1):
@@ -370,9 +327,8 @@ def plot_magnitude(data, result):
     """
     Measured |raw| and modelled |forward(B)| per sensor over time, about the reference |B|.
 
-    Both are drawn as differences from the reference magnitude (nT), the mean difference of
-    the raw readings named in the title: a reference 3 000 nT away shows as a stated offset
-    and the variation stays readable (on an absolute axis the offset squashes it flat).
+    Both as differences from the reference magnitude (nT), the raw readings' mean difference
+    named in the title.
     """
     s = data.n_sensors
     fig = _figure(4.0 * min(s, 4), 3.2 * int(np.ceil(s / 4)))
@@ -438,9 +394,7 @@ def adopted_fit(data, diagnosis, ladder=None):
     """
     Return the fit of the model with the verdict's term added, or None without a verdict.
 
-    The ladder's next rung when it added that term, else a refit (the base model plus the
-    verdict token, on the base fit's reference magnitude).  None also when the refit fails
-    (the structure figure then shows the residual without the term).
+    The ladder's next rung when it added that term, else a refit; None when the refit fails.
     """
     tok = diagnosis.verdict_token if diagnosis is not None else None
     if not tok:
@@ -464,9 +418,9 @@ def verdict_driver(data, token, j, term=None):
     """
     Return what the verdict's term follows on sensor j: (name, axis label, (N,) values).
 
-    A channel named in the token (the sensor's temperature, an auxiliary column), the phase
-    of a periodic term, |d raw / dt| for the field rate, the raw component a direction term
-    (nonlinearity, soft iron) varies with most (``term``: its (N,) scalar fit), else time.
+    A channel named in the token, the phase of a periodic term, |d raw / dt| for the field
+    rate, the raw component a direction term varies with most (``term``: its (N,) scalar fit),
+    else time.
     """
     t = data.t - data.t[0]
     if not token:
@@ -497,13 +451,10 @@ def plot_structure(data, result, floor, diagnosis=None, adopted=None, findings=N
     """
     Draw the residual per sensor, scalar and vector, over time and against the driver.
 
-    One row per sensor: the scalar residual |corrected| - |B| over time, the vector residual
-    (sensor j - sensor 1, x y z) over time, and the residual in the sensor's own axes (x y z)
-    against what the verdict follows (:func:`verdict_driver`; without a verdict, the channel
-    of the largest finding, if it names one).  Over each, in red or black, the adopted term's
-    fit: what adding the verdict changes in that residual (``result`` minus ``adopted``), so
-    the term is seen against the structure it is meant to take out.  The noise floor is
-    dashed.
+    One row per sensor: the scalar residual over time, the vector residual (sensor j - sensor
+    1) over time, and the residual in the sensor's axes against what the verdict follows
+    (:func:`verdict_driver`; without a verdict, the channel of the largest finding).  Over each,
+    the adopted term's fit (``result`` minus ``adopted``); the noise floor dashed.
     """
     s = data.n_sensors
     token = diagnosis.verdict_token if diagnosis is not None else None
@@ -633,11 +584,7 @@ def _all_sensors(data, sensors):
 
 
 def plot_residual_vs_temperature(data, result, floor, sensors=None):
-    """
-    Residual of each sensor against its own temperature, or None without temperatures.
-
-    ``sensors`` (1-based) restricts the panels to those sensors; default every sensor.
-    """
+    """Residual of each sensor (of ``sensors``, default all) against its temperature, or None."""
     if data.temp is None or not np.isfinite(data.temp).any():
         return None
     return _driver_panels(
@@ -651,8 +598,8 @@ def plot_residual_vs_aux(data, result, floor, channels=None):
     """
     Residual of each sensor against each auxiliary channel, or None without any.
 
-    ``channels`` restricts the rows: names of ``data.aux`` (every sensor), or a dict
-    {name: sensors (1-based) or None for every sensor}; default every channel and sensor.
+    ``channels``: names of ``data.aux`` (every sensor), or {name: sensors (1-based) or None};
+    default every channel and sensor.
     """
     if channels is None:
         channels = dict.fromkeys(data.aux or {})
@@ -704,18 +651,16 @@ def direction_projection(b, centre=None):
     """
     Lambert azimuthal equal-area projection of field directions, without a seam.
 
-    Centred on the mean direction of ``b`` (or ``centre``): a cone of directions about any
-    axis is a closed ring, never cut at azimuth +-180 deg as on an azimuth/elevation map; the
-    whole sphere is a disc of radius 2 whose rim is the antipode of the centre.  Equal area:
-    the density of points shows the coverage.
+    Centred on the mean direction of ``b`` (or ``centre``): a cone of directions about any axis
+    is a closed ring; the whole sphere is a disc of radius 2; the density of points shows the
+    coverage.
 
     Parameters
     ----------
     b : numpy.ndarray
         (N, 3) field vectors (any unit).
     centre : numpy.ndarray, optional
-        (3,) centre direction; default the mean unit direction (+z when it is ~0, as for a
-        full sphere).
+        (3,) centre direction; default the mean unit direction (+z when it is ~0).
 
     Returns
     -------
@@ -780,8 +725,7 @@ def plot_tensor(data, result, baseline_m=0.5, floor=None):
     Gradient tensor components (paper 004 eq. 1) before/after correction, nT/m.
 
     The floor line is the sensors' data noise floor (``floor``, a NoiseFloor; default
-    estimated here) propagated to the tensor, not the fit's sigma, which grows when an effect
-    is missing.
+    estimated here) propagated to the tensor.
     """
     if data.n_sensors != 4:
         return None
@@ -824,13 +768,6 @@ def candidate_chart_data(diagnosis, top=15):
     """
     Return the data of the candidates chart, from the candidates' dicts (best first).
 
-    The verdict is decided by the share of the excess over the floor a candidate removes
-    (held out when cross-validated) after the p-value and BIC tests, so the chart's bars
-    are that share, with the held-out RMS drop in nT where a candidate was cross-validated;
-    delta BIC is shown beside it.  Driven by
-    the keys of ``Candidate.to_dict()``, so a candidate without held-out figures simply has
-    ``held_out_drop_nt`` None.
-
     Returns
     -------
     list of dict
@@ -861,12 +798,10 @@ def plot_candidates(diagnosis, top=15):
     """
     Plot what decided the verdict.
 
-    What decided the verdict: the held-out share of the excess over the floor each
-    candidate removes (left; the verdict needs MIN_EXPLAINED), delta BIC (right); the
-    verdict's bar is outlined.  Green: passes every test; orange: significant by the
-    likelihood tests but removes too small a share; grey: not significant.  A candidate
-    whose share was not tested (cross-validation stops at the verdict) has a grey cross at
-    0, named once in the legend.  The verdict's reason is the page's verdict line.
+    The share of the excess over the floor each candidate removes (left; the verdict needs
+    MIN_EXPLAINED), delta BIC (right); the verdict's bar outlined.  Green: passes every test;
+    orange: passes the likelihood tests only; grey: not significant; a grey cross: share not
+    tested.
     """
     rows = candidate_chart_data(diagnosis, top)
     if not rows:
@@ -997,10 +932,8 @@ def plot_residual_spectrum(findings):
     """
     Power spectrum of each sensor's residual series over its white-noise level, log-log.
 
-    The series are :class:`~magcal_ros.core.discovery.findings.Findings`' (consensus
-    residuals, nT);
-    power divided by the summed white-noise variance, so white noise sits at 1 and a line
-    stands out of its neighbourhood; the lines found are marked with their token.
+    The series are the :class:`~magcal_ros.core.discovery.findings.Findings`' (nT); white noise
+    sits at 1; the lines found are marked with their token.
     """
     sensors = sorted(findings.series)
     if not sensors or len(findings.t) < 30:
@@ -1033,9 +966,8 @@ def plot_change_points(findings):
     """
     Each sensor's residual series over time (running mean) with the steps found.
 
-    Components of the consensus residual (nT) averaged over 1 % of the record, the
-    segment means between the change points found drawn over them, and the +-1 sd band of
-    the running mean of white noise at the series' floor.
+    Averaged over 1 % of the record, the segment means between the change points drawn over
+    them, and the +-1 sd band of the running mean of white noise at the floor.
     """
     sensors = sorted(findings.series)
     n = len(findings.t)
@@ -1075,11 +1007,10 @@ def plot_residual_vs_lagged_channels(data, findings):
     """
     Residual against each driving channel found, as is and through the lag found.
 
-    For every lag/channel/channel_nonlinear finding: the sensor's residual series projected
-    on the direction it moves with the channel (nT), in equal-count bins, against the channel
-    (a lag shows as a loop) and against the channel through the fitted first-order lag (the
-    loop closes onto a line; curvature that remains is a non-linear coupling).  Without
-    such findings, each sensor's temperature at the lag that fits it best.
+    For every lag/channel/channel_nonlinear finding: the residual projected on the direction it
+    moves with the channel (nT), in equal-count bins, against the channel (a lag shows as a
+    loop) and through the fitted lag (a line).  Without such findings, each sensor's
+    temperature at the lag that fits it best.
     """
     from magcal_ros.core.effects import first_order_lag
     t = findings.t
@@ -1198,16 +1129,14 @@ def _implicated(data, diagnosis, ladder, findings):
     """
     Return what the diagnosis points at: tokens, the findings' views and channels.
 
-    The verdict, every significant candidate, every effect the ladder added, and every
-    finding (its token, kind, channel and sensor).  Candidates that pass the likelihood
-    tests but remove too small a share of the excess are not included: with one strong
-    missing effect dozens of them do, each absorbing part of that one effect.
+    The verdict, every significant candidate, every effect the ladder added, and every finding
+    (not the candidates that pass the likelihood tests only: with one strong missing effect
+    dozens do).
 
     Returns
     -------
     tuple
-        (tokens: set of str, views: set of str (the report figures that show the findings:
-        :data:`~magcal_ros.core.discovery.findings.KINDS`), channels: dict
+        (tokens: set of str, views: set of str (the findings' report figures), channels:
         {'temperature' or a ``data.aux`` name: set of sensors (1-based)}).
 
     """
@@ -1285,11 +1214,10 @@ SELECTED_VIEWS = {
 
 def _unexplained(result, floor, diagnosis, found):
     """
-    Return Tell whether the residual is above the floor while nothing names a cause.
+    Tell whether the residual is above the floor while nothing names a cause.
 
-    No verdict and no finding with an effect to add, while a sensor's scalar residual is
-    more than :data:`AT_FLOOR_RATIO` x its floor (the diagnosis' ``at_floor`` when there is
-    one): then no view can be ruled out, and the report draws them all.
+    No verdict and no finding with a token, while a sensor's scalar residual is more than
+    :data:`AT_FLOOR_RATIO` x its floor: then the report draws every view.
     """
     if diagnosis is not None:
         if diagnosis.verdict_token or diagnosis.at_floor:
@@ -1308,10 +1236,8 @@ def _plan(data, result, floor, diagnosis, ladder, found, baseline_m, every):
     """
     Return the report's views in page order: (name, heading, make, why not drawn).
 
-    ``make`` draws the figure (it may still return None when the data lack what it needs).
-    Unless ``every`` (draw every view), a view of :data:`SELECTED_VIEWS` that nothing
-    points at is not drawn, the channel views keep only the (channel, sensor) panels
-    something points at, and ``why`` says what was left out and why.
+    Unless ``every``, a view of :data:`SELECTED_VIEWS` that nothing points at is not drawn and
+    the channel views keep only the (channel, sensor) panels something points at.
     """
     tokens, views, channels = _implicated(data, diagnosis, ladder, found)
     everyone = set(range(1, data.n_sensors + 1))
@@ -1391,11 +1317,7 @@ def _plan(data, result, floor, diagnosis, ladder, found, baseline_m, every):
 
 
 def default_views(data, diagnosis, ladder=None, baseline_m=0.5):
-    """
-    Return the views ``write_report`` draws by default: [(name, make)], page order.
-
-    ``make()`` returns the matplotlib Figure (or None when the data do not allow it).
-    """
+    """Return the views ``write_report`` draws by default: [(name, make() -> Figure or None)]."""
     plan = _plan(data, diagnosis.result, diagnosis.noise_floor, diagnosis, ladder,
                  diagnosis.findings, baseline_m, False)
     return [(name, make) for name, _, make, _ in plan if make is not None]

@@ -83,21 +83,18 @@ class Finding:
     Attributes
     ----------
     kind : str
-        'periodic', 'step', 'lag', 'channel', 'channel_nonlinear', 'nonuniform_field',
-        'heavy_tails', 'direction' or 'time'.
+        A kind of :data:`KINDS` ('periodic', 'step', 'lag', 'channel', ...).
     sensor : int or None
-        The sensor that has it (1-based); None for the array (a field gradient).
+        The sensor that has it (1-based); None for the array or every sensor alike.
     channel : str or None
         The driving channel ('temperature', 'aux_<name>') for channel kinds.
     value : float or None
         Frequency (Hz) for 'periodic', change time (s, data time axis) for 'step', time
         constant (s) for 'lag', gradient magnitude (nT/m) for 'nonuniform_field', excess
-        kurtosis for 'heavy_tails', peak-to-peak trend (nT) for 'time'.
-    unit : str
-        Unit of ``value`` ('' when dimensionless or None).
+        kurtosis for 'heavy_tails', peak-to-peak trend (nT) for 'time'; ``unit`` says which
+        ('' when dimensionless or None).
     explained_fraction : float
-        Share (0..1) of the sensor's excess mean square over its noise floor that the
-        finding's own model removes.
+        Share (0..1) of the sensor's excess mean square over its floor its own model removes.
     text : str
         What it is and what to add.
     token : str or None
@@ -107,9 +104,8 @@ class Finding:
     rms_nt : float
         RMS (per component) of the finding's fitted signal, nT.
     replaces : tuple of str
-        Tokens of the fitted model that ``token`` takes the place of (e.g. the linear
-        ``aux:<col>`` that ``aux_poly(<col>,2)`` contains): the model to fit is the old one
-        without these, plus ``token``.
+        Tokens of the fitted model ``token`` takes the place of (the linear ``aux:<col>`` in
+        ``aux_poly(<col>,2)``): the model to fit is the old one without these, plus ``token``.
 
     """
 
@@ -142,20 +138,19 @@ class Findings:
     t : numpy.ndarray
         (N,) time, s.
     series : dict
-        {sensor: (N, C) residual series analysed, nT} (consensus residual, C = 3, or the
-        scalar residual, C = 1), after the field gradient was taken out when one was found.
+        {sensor: (N, C) residual series analysed, nT} (consensus, C = 3, or scalar, C = 1),
+        the field gradient taken out when one was found.
     noise_nt : dict
         {sensor: (C,) white-noise sd per component of that series, nT}.
     kind_of_series : str
         'consensus' or 'scalar'.
     common : numpy.ndarray or None
-        (N, 1) mean scalar residual of the sensors with their own findings taken out, nT
-        (where what every sensor has alike is sought), or None.
+        (N, 1) mean scalar residual of the sensors less their own findings, nT (where what
+        every sensor has alike is sought), or None.
     note : str
         Why nothing was searched (too short a record), else ''.
     direction : numpy.ndarray or None
-        (N, 3) unit field direction in the array frame (through which a vector effect shows
-        in a scalar residual).
+        (N, 3) unit field direction in the array frame.
 
     """
 
@@ -196,8 +191,8 @@ def _nuisance(mod):
     """
     (N, 10) what a refit of the linear model would absorb from the scalar residual.
 
-    An offset error c and a matrix error E of a sensor show in its scalar residual as
-    u.c + u.E u (u: field direction, (N, 3)): columns 1, u_a, u_a u_b.
+    A sensor's offset error c and matrix error E show in its scalar residual as u.c + u.E u
+    (u: field direction, (N, 3)): columns 1, u_a, u_a u_b.
     """
     u = mod
     cols = [np.ones(len(u)), *u.T]
@@ -209,9 +204,9 @@ def _expand(design, mod):
     """
     Expand the design of a vector effect as seen through the scalar residual.
 
-    A vector signal sum_k beta_k phi_k(t) (beta_k (3,) nT) shows in the scalar residual as
-    its component along the field direction u (N, 3): columns phi_k u_c, next to the
-    :func:`_nuisance` columns (the constant first column of ``design`` is replaced by them).
+    A vector signal sum_k beta_k phi_k(t) shows in the scalar residual along the field
+    direction u (N, 3): columns phi_k u_c, next to the :func:`_nuisance` columns (which replace
+    the constant first column of ``design``).
     """
     if mod is None:
         return design
@@ -437,20 +432,8 @@ def best_lag(t, x, drive):
     """
     Time constant (s) of the first-order lag through which ``drive`` best explains ``x``.
 
-    Parameters
-    ----------
-    t : numpy.ndarray
-        (N,) time, s.
-    x : numpy.ndarray
-        (N, C) residual series, nT.
-    drive : numpy.ndarray
-        (N,) the channel (temperature, degC, or an aux channel in its unit).
-
-    Returns
-    -------
-    float or None
-        None when the channel is constant or the record too short for a lag grid.
-
+    ``t`` (N,) s; ``x`` (N, C) residual series, nT; ``drive`` (N,) the channel, in its unit.
+    None when the channel is constant or the record too short for a lag grid.
     """
     drv = _Driver(np.asarray(t, float), 'channel', drive)
     if not drv.ok or not len(drv.taus):
@@ -482,10 +465,9 @@ class Kind:
     What the description, the candidate tokens and the report read of one kind (:data:`KINDS`).
 
     ``token(value, channel, detail, '@j' or '')``: the effect token to add, or None (an empty
-    detail, a finding read back as a dict: the token it points to without it); ``text(candidate,
-    '@j' or '', token, sensor text, share text)``: what it is and what to add (None: the kind
-    writes its own); ``follows(finding)``: what the residual follows, in words (the diagnosis'
-    'unexplained' finding); ``view``: the report's figure that shows it.
+    detail: a finding read back as a dict); ``text(candidate, '@j' or '', token, sensor text,
+    share text)``: what it is and what to add; ``follows(finding)``: what the residual
+    follows, in words; ``view``: the report's figure that shows it.
     """
 
     token: object
@@ -580,13 +562,12 @@ def _gradient(t, corrected, baseline_m, alpha, drivers=None):
     """
     Test for a gradient across the cross: (finding or None, (S, N, 3) part to take out, nT).
 
-    With m_j = c_j - mean_k c_k, the arms' antisymmetric parts a_x = (m1 - m3) / 2,
-    a_y = (m2 - m4) / 2 and the symmetric part s = (m1 + m3 - m2 - m4) / 4 obey, for noise
-    and for any fault of one sensor (independent across sensors, of any time structure),
-    E[a_x^2 + a_y^2] = 4 E[s^2] (sensor j's error e_j puts e_j / 2 into one a and e_j / 4
-    into s); a gradient B(r) = B0 + G r puts G r_j into the a's and nothing into s (paper
-    004 eq. 1: r_1 = -r_3, r_2 = -r_4).  The test needs no smoothness in time, so it works
-    for random attitudes too: F-test of A = mean(a_x^2 + a_y^2) against 4 mean(s^2).
+    With m_j = c_j - mean_k c_k, the arms' antisymmetric parts a_x = (m1 - m3) / 2, a_y =
+    (m2 - m4) / 2 and the symmetric part s = (m1 + m3 - m2 - m4) / 4 obey, for noise and any
+    fault of one sensor, E[a_x^2 + a_y^2] = 4 E[s^2]; a gradient puts G r_j into the a's and
+    nothing into s (paper 004 eq. 1: r_1 = -r_3, r_2 = -r_4).  F-test of mean(a_x^2 + a_y^2)
+    against 4 mean(s^2): no smoothness in time needed (random attitudes too).  ``drivers``
+    (N, m): what differs between the sensors for other reasons, taken out first.
     """
     from magcal_ros.core.geometry.tensor import tensor_cross
     from scipy.signal import savgol_filter
@@ -667,8 +648,8 @@ def _sensor_findings(t, x, sd, u, drivers, sensor, alpha_test, mod=None):
     """
     Greedy search on one series; (list of (Finding, ms removed), remainder).
 
-    ``mod`` (N, 3): the series is a scalar residual and the effects are vectors seen
-    through the field direction ``mod`` (:func:`_expand`).
+    ``mod`` (N, 3): the series is a scalar residual, the effects vectors seen through the
+    field direction ``mod`` (:func:`_expand`).
     """
     n, c = x.shape
     x = x - x.mean(axis=0)
@@ -729,7 +710,7 @@ def _tails(x, sd, sensor, alpha_test):
     heavy_tails finding of one sensor's remainder x (N, C), or None.
 
     Tested on the first differences, which a slow leftover of the other findings does not
-    reach: for independent noise the excess kurtosis of a difference is half the noise's.
+    reach (the excess kurtosis of a difference of independent noise is half the noise's).
     """
     if x.shape[0] < 40:
         return None
@@ -839,10 +820,9 @@ def _attribute(per, gradient, same):
     """
     Return the findings each sensor has of its own (list of Finding).
 
-    The same finding on several sensors is the faulty sensor's echo through the others'
-    consensus unless it is comparable in size; with a field ``gradient`` every sensor's
-    residual depends on the attitude, and what is left of it shows alike on the two sensors
-    of an arm: not their faults.
+    The same finding on several sensors is the faulty sensor's echo through the consensus
+    unless comparable in size; with a field ``gradient``, what shows alike on the two sensors
+    of an arm is left of the gradient, not their faults.
     """
     keep = []
     for f, removed in per:
@@ -861,8 +841,8 @@ def _common_stage(data, t, scalar, explained, u, aux_drivers, alpha_test, keep, 
     """
     Test what every sensor has alike: (findings, ``keep`` less their echoes, (N, 1) nT).
 
-    It cancels in the consensus, and is left in the mean of the scalar residuals as its
-    component along the field direction ``u``, less each sensor's own findings.
+    It cancels in the consensus and is left in the mean scalar residual, along the field
+    direction ``u``, less each sensor's own findings.
     """
     s = scalar.shape[0]
     x0 = np.mean(scalar, axis=0)
@@ -902,9 +882,8 @@ def _find(data, result, *, baseline_m=0.5, alpha=ALPHA, corrected=None, field=No
         (S sensors, N epochs) in time order; its temperatures and ``aux_*`` channels are the
         driving channels tested.
     result : FitResult
-        A fit on ``data``: its ``corrected_nt`` (S, N, 3) nT, ``scalar_residual_nt`` (S, N)
-        nT and ``field_nt`` (N, 3) nT are used, on the sets where its model's ``drop``
-        terms keep every sensor's reading (``reading_mask``).
+        A fit on ``data``: its ``corrected_nt`` (S, N, 3), ``scalar_residual_nt`` (S, N) and
+        ``field_nt`` (N, 3), nT, on the sets where its ``drop`` terms keep every sensor.
     baseline_m : float
         Arm length of the four-sensor cross, m (paper 004), for the gradient magnitude.
     alpha : float
