@@ -183,6 +183,12 @@ def _plain_log_ticks(*axes):
         axis.set_major_formatter(FuncFormatter(lambda v, _: f'{v:g}'))
 
 
+def _message(ax, text, **kwargs):
+    """Write ``text`` in the middle of an axes without data, its frame hidden."""
+    ax.text(0.5, 0.5, text, ha='center', va='center', transform=ax.transAxes, **kwargs)
+    ax.set_axis_off()
+
+
 def _title(ax, text, **kwargs):
     """Set an axes title at a fixed height (an automatic one measures every tick label)."""
     ax.set_title(text, y=1.0, **kwargs)
@@ -314,13 +320,15 @@ def magnitude_offsets(data, result):
     The means of |raw| - |B| and of |model| - |B| per sensor, nT (the figure plots both about
     the reference, so that an offset of thousands of nT and a variation of a few are readable).
     """
-    out = {}
-    for j in range(1, data.n_sensors + 1):
-        f = result.field_magnitude_nt
-        meas = np.linalg.norm(data.raw[j - 1], axis=1) - f
-        model = np.linalg.norm(data.raw[j - 1] - result.residual_nt[j - 1], axis=1) - f
-        out[j] = {'measured_nt': float(np.mean(meas)), 'model_nt': float(np.mean(model))}
-    return out
+    return {j: {'measured_nt': float(np.mean(meas)), 'model_nt': float(np.mean(model))}
+            for j, (meas, model) in enumerate(_magnitudes(data, result), start=1)}
+
+
+def _magnitudes(data, result):
+    """Return [((N,) |raw| - |B|, (N,) |model| - |B|) per sensor], nT."""
+    f = result.field_magnitude_nt
+    return [(np.linalg.norm(raw, axis=1) - f, np.linalg.norm(raw - res, axis=1) - f)
+            for raw, res in zip(data.raw, result.residual_nt)]
 
 
 def plot_magnitude(data, result):
@@ -333,22 +341,17 @@ def plot_magnitude(data, result):
     s = data.n_sensors
     fig = _figure(4.0 * min(s, 4), 3.2 * int(np.ceil(s / 4)))
     t = data.t - data.t[0]
-    offs = magnitude_offsets(data, result)
-    f = result.field_magnitude_nt
     px = _columns(fig, min(s, 4))
-    for j, ax in enumerate(_sensor_axes(fig, s), start=1):
-        meas = np.linalg.norm(data.raw[j - 1], axis=1) - f
-        model = np.linalg.norm(data.raw[j - 1] - result.residual_nt[j - 1], axis=1) - f
+    for j, (ax, (meas, model)) in enumerate(zip(_sensor_axes(fig, s),
+                                                _magnitudes(data, result)), start=1):
         idx = _scatter_idx(len(t), meas, columns=px)
         ax.plot(t[idx], meas[idx], '.', ms=1.5, color='0.6', label='measured |raw| - |B|')
         idx = _envelope(model, px)
         ax.plot(t[idx], model[idx], '-', lw=0.8, color='tab:blue',
                 label='model |A B + o + ...| - |B|')
         ax.axhline(0.0, color='k', lw=1.0, label='reference |B|')
-        _title(ax, f'sensor {j}: |raw| - |B| mean {offs[j]["measured_nt"]:+,.0f} nT',
-               fontsize=9)
-        ax.set_xlabel('time since start (s)')
-        ax.set_ylabel('|B| - reference (nT)')
+        _title(ax, f'sensor {j}: |raw| - |B| mean {float(np.mean(meas)):+,.0f} nT', fontsize=9)
+        ax.set(xlabel='time since start (s)', ylabel='|B| - reference (nT)')
     bottom = _bottom_legend(fig, fontsize=7)
     _suptitle(fig, 'Measured and modelled magnitude minus the reference |B| (mean '
               f'{float(np.mean(result.field_magnitude_nt)):,.0f} nT)', fontsize=10)
@@ -483,14 +486,11 @@ def plot_structure(data, result, floor, diagnosis=None, adopted=None, findings=N
                  f' -> {adopted.scalar_rms_nt[j]:.2f} nT with {token}')
         _title(ax, f'sensor {j}: scalar RMS {result.scalar_rms_nt[j]:.2f} nT '
                f'({ratio[j]:.2f} x floor){after}', fontsize=8, loc='left')
-        ax.set_ylabel('scalar (nT)')
-        ax.set_xlabel('time since start (s)')
+        ax.set(ylabel='scalar (nT)', xlabel='time since start (s)')
         ax = axes[j - 1, 1]
         if j == 1:
-            ax.text(0.5, 0.5, 'sensor 1 defines the array frame:\nthe vector residuals of the '
-                    'others are taken against it', ha='center', va='center', fontsize=8,
-                    transform=ax.transAxes)
-            ax.set_axis_off()
+            _message(ax, 'sensor 1 defines the array frame:\nthe vector residuals of the '
+                     'others are taken against it', fontsize=8)
         else:
             vec = result.vector_residual_nt[j - 1]
             for c in range(3):
@@ -506,8 +506,7 @@ def plot_structure(data, result, floor, diagnosis=None, adopted=None, findings=N
             vr = result.vector_rms_nt.get(j, float('nan'))
             _title(ax, f'sensor {j} - sensor 1: vector RMS {vr:.2f} nT', fontsize=8,
                    loc='left')
-            ax.set_ylabel('vector (nT)')
-            ax.set_xlabel('time since start (s)')
+            ax.set(ylabel='vector (nT)', xlabel='time since start (s)')
         if cols == 3:
             ax = axes[j - 1, 2]
             if token:
@@ -517,9 +516,7 @@ def plot_structure(data, result, floor, diagnosis=None, adopted=None, findings=N
                 x = (data.temp[j - 1] if chan == 'temperature' and data.temp is not None
                      else (data.aux or {}).get(chan))
             if x is None or not np.isfinite(x).any():
-                ax.text(0.5, 0.5, f'no {name} on sensor {j}', ha='center', va='center',
-                        transform=ax.transAxes)
-                ax.set_axis_off()
+                _message(ax, f'no {name} on sensor {j}')
                 continue
             # the residual in the sensor's own axes: an additive term shows whole here,
             # not projected on a field direction that turns with the attitude
@@ -534,8 +531,7 @@ def plot_structure(data, result, floor, diagnosis=None, adopted=None, findings=N
                     ax.plot(x[idx], rt[idx, c], '.', ms=0.6, color='k')
             _floor_lines(ax, floor.per_sensor_nt[j - 1])
             _title(ax, f'sensor {j}: residual x y z vs {name}', fontsize=8, loc='left')
-            ax.set_ylabel('sensor axes (nT)')
-            ax.set_xlabel(xlabel)
+            ax.set(ylabel='sensor axes (nT)', xlabel=xlabel)
     bottom = _bottom_legend(fig, 7, axes.ravel(), width=3.2, markerscale=3)
     head = (f'verdict {token}: its fit (red, black) drawn over the residual it explains'
             if token and adopted is not None else
@@ -561,8 +557,7 @@ def _driver_panels(data, result, floor, drivers, title, xlabel):
             x = values(j)
             ax = fig.add_subplot(len(drivers), cols, r * cols + i + 1)
             if x is None or not np.isfinite(x).any():
-                ax.text(0.5, 0.5, 'no data', ha='center', va='center', transform=ax.transAxes)
-                ax.set_axis_off()
+                _message(ax, 'no data')
                 continue
             ax.plot(x[idx], result.scalar_residual_nt[j - 1, idx], '.', ms=1.5, color='0.6',
                     label='scalar residual')
@@ -572,8 +567,7 @@ def _driver_panels(data, result, floor, drivers, title, xlabel):
                         label=f'raw residual {"xyz"[c]} (bin mean)')
             _floor_lines(ax, floor.per_sensor_nt[j - 1])
             _title(ax, f'sensor {j} vs {name}', fontsize=9)
-            ax.set_xlabel(xlabel(name))
-            ax.set_ylabel('residual (nT)')
+            ax.set(xlabel=xlabel(name), ylabel='residual (nT)')
     bottom = _bottom_legend(fig, fontsize=7)
     _suptitle(fig, title, fontsize=11)
     return _arrange(fig, len(drivers), cols, bottom=bottom)
@@ -639,8 +633,7 @@ def plot_residual_vs_rate(data, result, floor):
                        label='|vector| noise floor (RMS)')
         ax.axhline(floor.per_sensor_nt[j - 1], color='k', ls='--', lw=1, label='noise floor')
         _title(ax, f'sensor {j}', fontsize=9)
-        ax.set_xlabel('|d raw / dt| (nT/s)')
-        ax.set_ylabel('residual magnitude (nT)')
+        ax.set(xlabel='|d raw / dt| (nT/s)', ylabel='residual magnitude (nT)')
     fig.axes[-1].legend(fontsize=6, loc='upper left')
     _suptitle(fig, 'Residual vs field rate (a rising |vector| = lag / eddy currents / '
               'sampling skew)', fontsize=11)
@@ -704,11 +697,10 @@ def plot_direction_map(data, result, floor):
             rr = 2 * np.sin(np.radians(deg) / 2)
             ax.add_patch(_circle(rr))
         ax.add_patch(_circle(2.0, ls='-'))
-        ax.set_xlim(-2.05, 2.05)
-        ax.set_ylim(-2.05, 2.05)
+        ax.set(xlim=(-2.05, 2.05), ylim=(-2.05, 2.05))
         ax.set_aspect('equal')
-        ax.set_xlabel('equal-area x (rings: 45, 90, 135 deg from centre)')
-        ax.set_ylabel('equal-area y (centre = mean direction)')
+        ax.set(xlabel='equal-area x (rings: 45, 90, 135 deg from centre)',
+               ylabel='equal-area y (centre = mean direction)')
         _title(ax, f'sensor {j}: centre ({c[0]:+.2f}, {c[1]:+.2f}, {c[2]:+.2f}), floor '
                f'{floor.per_sensor_nt[j - 1]:.1f} nT', fontsize=8)
     _suptitle(fig, 'Residual over field direction (sensor frame, equal-area)', fontsize=11)
@@ -847,8 +839,7 @@ def plot_candidates(diagnosis, top=15):
     ax2.set_xscale('log')
     _plain_log_ticks(ax2.xaxis)
     ax2.axvline(-MIN_DELTA_BIC, color='k', ls='--', lw=1)
-    ax2.set_xlabel('-delta BIC (log scale): must exceed 10 (dashed)')
-    ax2.set_ylabel('(same candidates)')
+    ax2.set(xlabel='-delta BIC (log scale): must exceed 10 (dashed)', ylabel='(same candidates)')
     _suptitle(fig, 'Candidate effects, best first; verdict: '
               f'{diagnosis.verdict_token or "none"}', fontsize=10)
     # room for the longest effect token (8 pt: ~0.065 in per character) and the axis label
@@ -911,8 +902,7 @@ def plot_ladder(ladder):
     ax.set_xticks(x)
     ax.set_xticklabels(['start:\n' + ','.join(steps[0].model)]
                        + [f'+ {st.added}' for st in steps[1:]], fontsize=8)
-    ax.set_xlabel('model (effect added at each step)')
-    ax.set_ylabel('combined residual RMS (nT)')
+    ax.set(xlabel='model (effect added at each step)', ylabel='combined residual RMS (nT)')
     ax.set_ylim(0, 1.15 * max(cv.max(), fl))
     _title(ax, 'Error ladder: held-out residual as effects are added', fontsize=11)
     # outside the axes: inside, any corner can cover a step (the last one, at upper right)
@@ -996,8 +986,7 @@ def plot_change_points(findings):
             ax.axvline(v, color='k', lw=1.0, alpha=0.6)
             ax.annotate(f'step({v:.6g})@{j}', (v, ax.get_ylim()[1]), fontsize=8,
                         ha='left', va='top')
-        ax.set_xlabel('t [s]')
-        ax.set_ylabel('residual [nT]')
+        ax.set(xlabel='t [s]', ylabel='residual [nT]')
         _title(ax, f'sensor {j}: {len(steps)} change point(s)', fontsize=10)
     _suptitle(fig, f'Change points (running mean over {w} samples)')
     return _arrange(fig, int(np.ceil(len(sensors) / 4)), min(len(sensors), 4), wspace=0.75)
@@ -1057,8 +1046,7 @@ def plot_residual_vs_lagged_channels(data, findings):
         for xv, name, colour in curves:
             xb, yb = _binned(xv, proj, bins=30)
             ax.plot(xb, yb, 'o-', ms=3, lw=1.0, color=colour, label=name)
-        ax.set_xlabel(ch)
-        ax.set_ylabel('residual along its direction [nT]')
+        ax.set(xlabel=ch, ylabel='residual along its direction [nT]')
         _title(ax, f'{"all sensors" if j is None else f"sensor {j}"}: {label}', fontsize=10)
         if len(curves) > 1:                 # one curve: the x label names it
             ax.legend(fontsize=8)

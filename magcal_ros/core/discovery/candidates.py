@@ -148,12 +148,9 @@ def candidate_tokens(model, data, extra=()):
     out = []
     for name in names:
         if getattr(fx.effect_class(name), 'scope', 'sensor') == 'array':
-            # one effect of the whole array (site_gradient): offered once, when the data
-            # have what it reads (the attitude)
+            # one effect of the whole array (site_gradient), offered once when the data have
+            # what it reads; a gradient needs the sensors' positions (paper 004's cross)
             eff = fx.make_effect(name, 0)
-            # a gradient needs the sensors' positions: known here for paper 004's cross
-            # only (a vehicle's three compasses have none); the attitude's observation of
-            # the field is a way of fitting, not an effect to find (candidate False)
             if (name not in {e.name for e in model.array_effects} and s >= 3
                     and getattr(eff, 'candidate', True)
                     and (s == 4 or not hasattr(eff, 'set_positions'))

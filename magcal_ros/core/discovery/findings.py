@@ -685,8 +685,7 @@ def _sensor_findings(t, x, sd, u, drivers, sensor, alpha_test, mod=None):
             break
         if best[1].kind == 'time':
             # an abrupt change that explains nearly all a smooth trend does is the better
-            # description (a linear drift gives a step 75 % of it; small echoes of the other
-            # sensors' faults can tip a degree-5 trend past a step otherwise)
+            # description
             steps = [b for b in passed
                      if b[1].kind == 'step' and b[2] >= STEP_OVER_TREND * best[2]]
             if steps:

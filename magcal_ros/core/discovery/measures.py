@@ -92,19 +92,10 @@ class Evaluation:
     """
     Residuals of one parameter vector on the full data.
 
-    Attributes
-    ----------
-    chi2 : float
-        Sum of squared normalised residuals (or the robust loss's chi-square equivalent).
-    scalar, vector, residual : numpy.ndarray
-        (S, N) scalar residual, (S, N, 3) vector residual vs sensor 1, (S, N, 3) raw-space
-        residual, nT.
-    field : numpy.ndarray
-        (N, 3) the profiled field, nT.
-    kept : numpy.ndarray or None
-        (S, N) bool, the readings the model keeps (None: all); the others are zero in the
-        residuals and count in no measure.
-
+    ``chi2``: sum of squared normalised residuals (or the robust loss's chi-square
+    equivalent); ``scalar`` (S, N), ``vector`` (S, N, 3, vs sensor 1) and ``residual`` (S, N,
+    3, raw space) residuals, nT; ``field`` (N, 3): the profiled field, nT; ``kept`` (S, N)
+    bool: the readings the model keeps (None: all), the others zero and counted nowhere.
     """
 
     chi2: float

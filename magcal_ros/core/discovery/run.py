@@ -66,33 +66,14 @@ class Trial:
     """
     A candidate under test: its extended model, parameters and evidence so far.
 
-    Attributes
-    ----------
-    token, label : str
-        Model-spec token and effect label.
-    sensor : int or None
-        1-based sensor, None on all sensors.
-    model : Model
-        The base model with the effect added.
-    p : numpy.ndarray
-        (P',) its parameters (one-step, then refitted).
-    added : numpy.ndarray
-        (P',) bool, the parameters the effect adds.
-    ev : Evaluation or None
-        Its residuals on the tested epochs; None when the score test ruled it out.
-    score_chi2 : float
-        The base fit's chi-square less the score statistic: :attr:`chi2` until ``ev`` is set.
-    method : str
-        'score', 'one-step' or 'refit'.
-    reduces : str or None
-        Why the fitted effect reduces to a simpler one (``Effect.reduces``).
-    cv : dict or None
-        Its :func:`cross_validate` result.
-    share : float or None
-        Held-out share of the excess mean square it removes.
-    start : numpy.ndarray or None
-        (P',) the base fit's parameters with the effect's at their defaults.
-
+    ``token``, ``label``: model-spec token and effect label; ``sensor``: 1-based, None on all
+    sensors; ``model``: the base model with the effect; ``p`` (P',) its parameters (one-step,
+    then refitted); ``added`` (P',) bool, those the effect adds; ``ev``: its Evaluation on the
+    tested epochs, None when the score test ruled it out; ``score_chi2``: the base fit's
+    chi-square less the score statistic (:attr:`chi2` until ``ev`` is set); ``method``:
+    'score', 'one-step' or 'refit'; ``reduces``: why it reduces to a simpler effect
+    (``Effect.reduces``); ``cv``: its :func:`cross_validate` result; ``share``: held-out share
+    of the excess it removes; ``start`` (P',): the base parameters with the effect's defaults.
     """
 
     token: str
@@ -244,8 +225,7 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
         ratio = max([v / floor.per_sensor_nt[j - 1] for j, v in scalar_rms.items()]
                     + [v / floor.vector_floor_nt(j) for j, v in vector_rms.items()])
         verdict, reason = _verdict(b, ranked, ratio, at_floor, held_out, p_thr)
-        # the formula search: only when something is missing (at the floor it has nothing
-        # to find, and a control costs what it did)
+        # the formula search: only when something is missing
         found_terms = None
         if (candidates is None and propose and not b.robust and not constrained
                 and not at_floor):
@@ -254,8 +234,7 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
             seconds['search'] = time.perf_counter() - t0
             verdict, reason, ranked = _merge_search(b, trials, ranked, verdict, reason,
                                                     found_terms, at_floor)
-        # every term offered (the verdict, a finding's token) is first fitted with the model
-        # as `magcal fit` fits it and must lower the held-out residual (issue 32, verify.py)
+        # every term offered is first fitted as `magcal fit` fits it (verify.py)
         t0 = time.perf_counter()
         tested = {}
         on_deg = fit_kwargs.get('on_degenerate', 'raise')
@@ -302,7 +281,7 @@ def _search(b, screen, alpha):
     freqs = sorted({round(f, 6) for _, f in lines.values()}
                    | set(demodulated_lines(t, resid, data.raw)))
     return run_search(data, resid, screen, b.sigma, b.floor, n_obs, alpha=alpha,
-                      steps=steps, windows=windows, lines=freqs, dof=dof_factor(b.model))
+                      steps=steps, windows=windows, lines=freqs)
 
 
 def _trial_ratio(b, trial):
@@ -611,13 +590,11 @@ def _prepare(data, f, base, floor, max_samples, constrained):
     n_all = data.n_samples
     keep = np.arange(n_all)
     if max_samples and n_all > max_samples:
-        # the same evenly spaced epochs as fit(max_fit_samples): the time order (and so the
-        # contiguous cross-validation blocks) is kept
+        # the same evenly spaced epochs as fit(max_fit_samples), in time order
         keep = np.unique(np.linspace(0, n_all - 1, int(max_samples)).round().astype(int))
     model = base.model
     if model.drops:
-        # the sets the drop() terms leave out for every sensor are not tested (a sensor's
-        # readings left out alone count in no measure: Evaluation.kept)
+        # the sets the drop() terms leave out for every sensor are not tested
         keep = keep[model.fit_mask(data.t[keep])]
     if len(keep) < n_all:
         data, f = data.subset(keep), f[keep]
@@ -672,8 +649,7 @@ def _screen(b, testable, progress):
     trials = []
     screen = None
     if testable:
-        # the Gauss-Newton screening step is least squares: under the robust loss it is taken
-        # on the epochs the robust fit does not treat as outliers (|z| < 2 f_scale)
+        # under the robust loss the (least-squares) step is taken on the inliers
         n = b.data.n_samples
         keep = (np.arange(n) if b.loss is None else np.flatnonzero(
             np.all(np.abs(b.ev0.residual / b.sigma[:, None, None]) < 2 * b.f_scale,
@@ -711,16 +687,12 @@ def _refit(b, trials, screen, max_refit, progress):
         if i > 0 and b.delta_bic(c) > MIN_DELTA_BIC:      # cannot become significant
             break
         init = c.p
-        # a lag's time constant: from the best of a grid (each point a linear step) rather
-        # than from the one step off Lag.tau0_s, which took the refit up to REFIT_MAX_NFEV
-        # iterations (issue 11 item 7: 13 of the 15 Jacobians of this stage)
+        # a lag's time constant: from the best of a grid (each point a linear step)
         start = None if screen is None else screen.lag_start(c.model, c.start, c.added,
                                                              lag_grid(b.data.t))
         if start is not None:
             init = start
-        # warm start: a well-posed candidate converges in a few iterations; the cap keeps a
-        # parameter the data do not fix (a lag's time constant on a sensor without the lag)
-        # from wandering for hundreds of them
+        # warm start; the cap keeps a parameter the data do not fix from wandering
         r = fit(b.data, c.model, field_nt=b.f, sigma_nt=b.sigma, init=init,
                 check_identifiability=False, on_degenerate='flag', robust=b.robust,
                 constrained=b.constrained, max_nfev=REFIT_MAX_NFEV,
@@ -729,8 +701,7 @@ def _refit(b, trials, screen, max_refit, progress):
                 **({'f_scale': b.f_scale} if b.robust else {}))
         ev = evaluate_residuals(c.model, r.params, b.data, b.f, b.sigma, b.contexts,
                                 loss=b.loss)
-        # with priors (constrained) the one-step screen's chi-square leaves them out, so it
-        # is no bar for the refit's, which honours them: the refit stands
+        # with priors (constrained) the screen's chi-square is no bar: the refit stands
         if ev.chi2 <= c.chi2 or c.ev is None or b.constrained:
             c.p, c.ev, c.method = r.params, ev, 'refit'
             c.reduces = reduces_to_simpler(c.model, r.params, r.stderr, c.label, b.contexts)
@@ -838,8 +809,7 @@ def _verdict(b, ranked, ratio, at_floor, held_out, p_thr):
             f'delta BIC {best.delta_bic:.0f}, p = 10^{best.log10_p_value:.0f}{held}, '
             f'removes {best.explained_fraction:.0%} of the excess over the floor '
             f'({best.decided_by}), floor {floor.value_nt:.2f} nT')
-    # a filtered series has no white floor: its floor is a lower bound, the ratio an upper
-    # bound (core/data/noise.py)
+    # a filtered series' floor is a lower bound (core/data/noise.py)
     floor_word = ('noise floor' if 'filtered' not in floor.status else
                   'lower bound of the noise floor (low-pass-filtered series)')
     if not ranked:

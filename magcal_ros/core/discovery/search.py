@@ -69,8 +69,7 @@ SCOPE_SHARE = 0.15
 EXPLAINS_SHARE = 0.8
 #: epochs the search works on (evenly spaced; its cost is then independent of the record)
 SEARCH_MAX_EPOCHS = 4000
-#: most parameters of one candidate term (a smooth of 64 functions on each sensor's offset
-#: would add 756: the array's field or one sensor's offset carry such smooths)
+#: most parameters of one candidate term
 MAX_TERM_PARAMS = 200
 #: the pre-screen of an @alike term is its own joint least squares up to this many
 #: parameters (beyond, the sum over the sensors, an upper bound)
@@ -84,31 +83,13 @@ class Term:
     """
     One candidate term: a coupling of a driver on a scope, and its evidence.
 
-    Attributes
-    ----------
-    coupling : str
-        'offset', 'scale', 'linear', 'nonorth', 'rotation', 'field' (or 'pair').
-    driver : bases.Driver
-        The driver.
-    sensors : tuple of int
-        The sensors it acts on (1-based).
-    alike : bool
-        One parameter set shared by the sensors (in each sensor's axes).
-    k : int
-        Parameters it adds.
-    approx : float
-        Pre-screen chi-square decrease.
-    delta_chi2, delta_bic, p_value : float or None
-        Exact score test (decrease predicted by one Gauss-Newton step).
-    share : float or None
-        Held-out share of the excess over the floor it removes.
-    ratios : dict or None
-        {sensor: residual RMS / floor} in-sample after the step.
-    cv_before, cv_after : float or None
-        Combined held-out RMS without and with the term, nT.
-    parts : tuple of Term
-        The two terms of a pair.
-
+    ``coupling``: 'offset', 'scale', 'linear', 'nonorth', 'rotation', 'field' (or 'pair', of
+    the two ``parts``); ``driver``: a :class:`bases.Driver`; ``sensors``: the sensors it acts
+    on (1-based); ``alike``: one parameter set shared by them (in each sensor's axes); ``k``:
+    parameters it adds; ``approx``: pre-screen chi-square decrease; ``delta_chi2``,
+    ``delta_bic``, ``p_value``: the exact score test; ``share``: held-out share of the excess
+    over the floor it removes; ``ratios``: {sensor: RMS / floor} in-sample after the step;
+    ``cv_before``, ``cv_after``: combined held-out RMS without and with it, nT.
     """
 
     coupling: str
@@ -239,7 +220,6 @@ class BlockSums:
                 self.rr[b] += float(r[rows] @ r[rows])
         for b, (e0, e1) in enumerate(zip(self.edges[:-1], self.edges[1:])):
             self.rr[b] -= float(np.sum(g['rgr'][e0:e1]))
-        self.epochs = np.diff(self.edges)
         self.floor_chi2 = None
 
     def set_floor(self, floor_nt):
@@ -251,13 +231,14 @@ class BlockSums:
         g = self.g
         w = (np.asarray(floor_nt, float) / self.sigma) ** 2
         n = self.n
+        # G_j^T G_j per sensor and epoch, (2, 2) of (N,)
+        gg = [[[gbj[0][a] * gbj[0][c] + gbj[1][a] * gbj[1][c] + gbj[2][a] * gbj[2][c]
+                for c in range(2)] for a in range(2)] for gbj in g['gb']]
         gwg = np.zeros((2, 2, n))
         for gi, j in enumerate(self.sensors):
-            gbj = g['gb'][gi]
             for a in range(2):
                 for c in range(2):
-                    gwg[a, c] += w[j - 1] * (gbj[0][a] * gbj[0][c] + gbj[1][a] * gbj[1][c]
-                                             + gbj[2][a] * gbj[2][c])
+                    gwg[a, c] += w[j - 1] * gg[gi][a][c]
         (i00, i01), (i10, i11) = g['ginv']
         tr = i00 * gwg[0, 0] + i01 * gwg[1, 0] + i10 * gwg[0, 1] + i11 * gwg[1, 1]
         per_epoch = 3.0 * float(sum(w[j - 1] for j in self.sensors)) - tr
@@ -270,11 +251,8 @@ class BlockSums:
                 for c in range(2)] for a in range(2)]
         self.floor_epoch = np.zeros((len(self.sensors), n))
         for gi, j in enumerate(self.sensors):
-            gbj = g['gb'][gi]
-            gg = [[gbj[0][a] * gbj[0][c] + gbj[1][a] * gbj[1][c] + gbj[2][a] * gbj[2][c]
-                   for c in range(2)] for a in range(2)]
-            t1 = sum(mm[a][c] * gg[c][a] for a in range(2) for c in range(2))
-            t2 = sum(mwm[a][c] * gg[c][a] for a in range(2) for c in range(2))
+            t1 = sum(mm[a][c] * gg[gi][c][a] for a in range(2) for c in range(2))
+            t2 = sum(mwm[a][c] * gg[gi][c][a] for a in range(2) for c in range(2))
             self.floor_epoch[gi] = 3.0 * w[j - 1] - 2.0 * w[j - 1] * t1 + t2
 
     def candidate(self, cols):
@@ -305,9 +283,7 @@ class BlockSums:
             gi = self.sensors.index(j)
             cj = c / self.sigma[j - 1]
             js, r = g['js'][gi], g['r'][gi]
-            # axis by axis, each with the parameters whose columns touch it (an offset,
-            # scale or linear parameter moves one axis, an angle two): the same sums, a
-            # fraction of the products
+            # axis by axis, each with the parameters whose columns touch it
             for a in range(3):
                 on = np.flatnonzero(np.any(cj[:, :, a] != 0.0, axis=1))
                 if not len(on):
@@ -341,7 +317,7 @@ class BlockSums:
         return float(-g @ sol), sol
 
     def held_out(self, sums):
-        """Return (held-out SS of the base, of the candidate, held-out epochs), chi-square."""
+        """Return the held-out sums of squares (chi-square) of the base and the candidate."""
         bb, dd, gc = sums
         ss0 = ss1 = 0.0
         for f in range(self.folds):
@@ -352,8 +328,6 @@ class BlockSums:
             da = np.sqrt(np.clip(np.diag(a_t), 1e-300, None))
             s0 = solve_psd(a_t / np.outer(da, da), -gj_t / da) / da
             ss0 += rr_h + 2 * s0 @ gj_h + s0 @ a_h @ s0
-            if sums is None:
-                continue
             m_t, g_t = self._system(a_t, bb[tr].sum(0), dd[tr].sum(0), gj_t, gc[tr].sum(0))
             m_h, g_h = self._system(a_h, bb[h].sum(0), dd[h].sum(0), gj_h, gc[h].sum(0))
             d = np.sqrt(np.clip(np.diag(m_t), 1e-300, None))
@@ -369,9 +343,6 @@ class SearchResult:
     terms: list
     adopted: Term | None
     n_generated: int
-    p_threshold: float
-    floor_ratio_after: dict | None = None
-    seconds: dict = field(default_factory=dict)
     localised: object = None
 
 
@@ -395,10 +366,8 @@ COUPLINGS = ('offset', 'scale', 'linear', 'nonorth', 'rotation', 'field')
 
 
 #: the linear coupling (9 parameters per driver column and sensor) is tried with drivers
-#: of at most this many columns (a channel, its polynomials, a sinusoid, steps): all nine
-#: entries of the map following a smooth of 8-20 functions (72-180 parameters a sensor)
-#: describe nothing physical that scale, nonorth and rotation with it do not, and cost
-#: most of the search's exact score (bench/discovery_speed.py)
+#: of at most this many columns: with a smooth, its nine entries describe nothing physical
+#: that scale, nonorth and rotation do not, at most of the search's cost
 LINEAR_MAX_COLUMNS = 3
 
 
@@ -482,9 +451,7 @@ def prescreen(data, resid, sigma, drivers, n_obs, n_eval=PRESCREEN_EPOCHS):
                 out.append(Term(cp, drv, tuple(sig), k=k * len(sig),
                                 approx=sum(per[j] for j in sig)))
             if s > 1 and len(sig) >= 2:
-                # every sensor, each its own parameters, and alike (one parameter set in each
-                # sensor's axes: one joint least squares over the sensors), when the driver
-                # explains more than one sensor
+                # every sensor, each its own parameters, and alike (one joint least squares)
                 every = tuple(range(1, s + 1))
                 if len(sig) < s and k * s <= MAX_TERM_PARAMS:
                     out.append(Term(cp, drv, every, k=k * s, approx=sum(per.values())))
@@ -527,48 +494,26 @@ def _dedupe(terms, n_sensors):
 
 
 def search(data, resid, screen, sigma, floor, n_obs, alpha=0.01, steps=(), windows=(),
-           lines=(), dof=1.0):
+           lines=()):
     """
     Search the formula's terms for what the base fit misses (see the module docstring).
 
-    Parameters
-    ----------
-    data : Dataset
-        The tested epochs (S sensors, N epochs).
-    resid : numpy.ndarray
-        (S, N, 3) the base fit's raw-space residual on them, nT.
-    screen : Screen
-        The base fit's one-step screen on the same epochs.
-    sigma : numpy.ndarray
-        (S,) the base fit's noise levels, nT.
-    floor : NoiseFloor
-        The data's noise floor.
-    n_obs : int
-        Observations net of the profiled field (BIC).
-    alpha : float
-        Family-wise significance level (Bonferroni over every candidate generated).
-    steps, windows, lines : sequences
-        Change points (tuples of s), windows ((t0, t1) s) and spectral lines (Hz).
-    dof : float
-        The profiled field's share of the residual (:func:`.measures.dof_factor`).
-
-    Returns
-    -------
-    SearchResult
-
+    ``data``: the tested epochs (S sensors, N epochs); ``resid`` (S, N, 3): the base fit's
+    raw-space residual on them, nT; ``screen``: the base fit's :class:`.screen.Screen` on the
+    same epochs; ``sigma`` (S,): its noise levels, nT; ``floor``: the data's NoiseFloor;
+    ``n_obs``: observations net of the profiled field (BIC); ``alpha``: family-wise
+    significance level (Bonferroni over every candidate generated); ``steps``, ``windows``,
+    ``lines``: change points (tuples of s), windows ((t0, t1) s) and spectral lines (Hz).
+    Returns a :class:`SearchResult`.
     """
-    import time
-    t0 = time.perf_counter()
     s, n = resid.shape[0], resid.shape[1]
     drivers = generate(data, steps, windows, lines)
     ranked = prescreen(data, resid, sigma, drivers, n_obs)
-    secs = {'prescreen': time.perf_counter() - t0}
     n_gen = max(1, len(ranked))
     p_thr = alpha / n_gen
     log_n = math.log(n_obs)
     sums_all = BlockSums(screen, sigma, n)
-    floor_j = np.asarray(floor.per_sensor_nt, float)
-    sums_all.set_floor(floor_j)
+    sums_all.set_floor(floor.per_sensor_nt)
     floor_chi2 = float(sums_all.floor_chi2.sum())      # every epoch is held out once
     n_held = float(n)
 
@@ -586,19 +531,15 @@ def search(data, resid, screen, sigma, floor, n_obs, alpha=0.01, steps=(), windo
             term.share = float((ss0 - ss1) / exc) if exc > 0 else 0.0
             term.cv_before = math.sqrt(max(ss0, 0.0) / (3 * s * n_held))
             term.cv_after = math.sqrt(max(ss1, 0.0) / (3 * s * n_held))
-            term.ratios = _ratios_after(sums_all, cols, sol, sigma, floor_j, dof)
+            term.ratios = _ratios_after(sums_all, cols, sol, sigma)
         return term
 
-    scored = []
-    for term in _dedupe(ranked, s)[:SCORE_TOP]:
-        scored.append(evaluate(term, False))
-    secs['score'] = time.perf_counter() - t0
+    scored = [evaluate(term, False) for term in _dedupe(ranked, s)[:SCORE_TOP]]
     scored.sort(key=lambda c: c.delta_bic)
     # keep the best lag of each (coupling, scope) only: its time constant is the grid's best
     scored = _dedupe(scored, s)
     good = [c for c in scored if c.p_value < p_thr and c.delta_bic < MIN_DELTA_BIC]
     validated = [evaluate(c, True) for c in good[:CV_TOP]]
-    secs['held_out'] = time.perf_counter() - t0
     adopt = _choose(validated)
     if adopt is None or max(adopt.ratios.values()) > AT_FLOOR_RATIO:
         singles = [c for c in validated if c.share is not None and c.share > 0][:PAIR_TOP]
@@ -615,15 +556,10 @@ def search(data, resid, screen, sigma, floor, n_obs, alpha=0.01, steps=(), windo
                                       + TIE_SHARE):
             validated.append(best_pair)
             adopt = best_pair
-    secs['pairs'] = time.perf_counter() - t0
     validated.sort(key=lambda c: -(c.share or 0.0))
     rest = [c for c in scored if c not in validated]
-    loc = localised(data.t, sums_all)
-    secs['localised'] = time.perf_counter() - t0
     return SearchResult(terms=validated + rest, adopted=adopt, n_generated=n_gen,
-                        p_threshold=p_thr,
-                        floor_ratio_after=None if adopt is None else adopt.ratios,
-                        seconds=secs, localised=loc)
+                        localised=localised(data.t, sums_all))
 
 
 def _choose(terms):
@@ -636,7 +572,7 @@ def _choose(terms):
     return min(tied, key=lambda c: (c.k, -c.share))
 
 
-def _ratios_after(sums, cols, sol, sigma, floor_j, dof):
+def _ratios_after(sums, cols, sol, sigma):
     """
     {sensor: in-sample residual RMS / floor} after the step ``sol``.
 
@@ -656,8 +592,7 @@ def _ratios_after(sums, cols, sol, sigma, floor_j, dof):
         if j in u:
             for a in range(2):
                 gtu[a] += sum(g['gb'][gi][i][a] * u[j][:, i] for i in range(3))
-    (i00, i01), (i10, i11) = g['ginv']
-    mg = [i00 * gtu[0] + i01 * gtu[1], i10 * gtu[0] + i11 * gtu[1]]
+    mg = ginv_times(gtu, g)
     out = {}
     for gi, j in enumerate(sums.sensors):
         du = u.get(j, np.zeros((n, 3)))
@@ -673,19 +608,10 @@ class Localized:
     """
     An excess over the floor confined to one interval of time (a model-free description).
 
-    Attributes
-    ----------
-    t0, t1 : float
-        The interval, s.
-    sensors : tuple of int
-        The sensors that carry it (each at least 10 % of the excess inside).
-    share : float
-        Share of the excess (over the floor, every sensor) inside the interval.
-    ratios_outside : dict
-        {sensor: residual RMS / floor outside the interval}.
-    vector : bool
-        Whether it is mostly across the field (vector) rather than along it (scalar).
-
+    ``t0``, ``t1``: the interval, s; ``sensors``: those that carry it (each at least 10 % of
+    the excess inside); ``share``: share of the excess (every sensor) inside the interval;
+    ``ratios_outside``: {sensor: RMS / floor outside it}; ``vector``: mostly across the field
+    rather than along it.
     """
 
     t0: float

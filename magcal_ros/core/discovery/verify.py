@@ -45,21 +45,10 @@ class Verified:
     """
     A term fitted with the diagnosed model as ``magcal fit`` fits it.
 
-    Attributes
-    ----------
-    token : str
-        The term.
-    ok : bool
-        The fit accepts it, converges, and it removes at least MIN_EXPLAINED of the held-out
-        excess over the floor.
-    reason : str
-        Why not, or the figures when ``ok``.
-    rms_before_nt, rms_after_nt : float or None
-        Combined held-out RMS (in-sample without a held-out test) of the model without and
-        with the term, nT.
-    share : float or None
-        Share of the excess over the floor the term removes.
-
+    ``ok``: the fit accepts it, converges and it removes at least MIN_EXPLAINED of the
+    held-out excess; ``reason``: why not, or the figures; ``rms_before_nt``, ``rms_after_nt``:
+    combined held-out RMS (in-sample without a held-out test) without and with the term, nT;
+    ``share``: share of the excess over the floor it removes.
     """
 
     token: str
@@ -75,30 +64,13 @@ def verify_term(b, token, cv0, folds, cv_method='newton', on_degenerate='raise',
     """
     Fit ``token`` with the diagnosed model and test it held out (module docstring).
 
-    Parameters
-    ----------
-    b : run._Base
-        The diagnosed fit on the tested epochs.
-    token : str
-        The term, in the formula syntax of ``--model``.
-    cv0 : dict or None
-        :func:`cross_validate` of the diagnosed model (None: the in-sample residuals decide).
-    folds : int
-        Folds of the held-out test.
-    cv_method : str
-        As :func:`cross_validate`.
-    on_degenerate : str
-        As :func:`magcal_ros.core.model.fit` (the user's ``--flag-degenerate``).
-    replaces : sequence of str
-        Terms of the model ``token`` takes the place of (a finding's ``replaces``): the model
-        fitted is the diagnosed one without them, plus ``token``, from the closed form.
-    start : sequence of float, optional
-        Values of the parameters the term adds, to start from.
-
-    Returns
-    -------
-    Verified
-
+    ``b``: the diagnosed fit (run._Base); ``token``: the term, in the syntax of ``--model``;
+    ``cv0``: :func:`cross_validate` of the diagnosed model (None: the in-sample residuals
+    decide) with ``folds`` and ``cv_method``; ``on_degenerate``: as
+    :func:`magcal_ros.core.model.fit`; ``replaces``: terms of the model ``token`` takes the
+    place of (the model fitted is then the diagnosed one without them, plus ``token``, from
+    the closed form); ``start``: values of the parameters the term adds, to start from.
+    Returns a :class:`Verified`.
     """
     try:
         if replaces:
