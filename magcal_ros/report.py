@@ -642,24 +642,12 @@ def plot_residual_vs_rate(data, result, floor):
 
 def direction_projection(b, centre=None):
     """
-    Lambert azimuthal equal-area projection of field directions, without a seam.
+    Lambert azimuthal equal-area projection of field directions ``b`` (N, 3), without a seam.
 
-    Centred on the mean direction of ``b`` (or ``centre``): a cone of directions about any axis
-    is a closed ring; the whole sphere is a disc of radius 2; the density of points shows the
-    coverage.
-
-    Parameters
-    ----------
-    b : numpy.ndarray
-        (N, 3) field vectors (any unit).
-    centre : numpy.ndarray, optional
-        (3,) centre direction; default the mean unit direction (+z when it is ~0).
-
-    Returns
-    -------
-    tuple
-        (x (N,), y (N,), centre (3,) unit vector); x, y dimensionless in [-2, 2].
-
+    Centred on ``centre`` (3,), default the mean unit direction (+z when it is ~0): a cone of
+    directions about any axis is a closed ring, the whole sphere a disc of radius 2, and the
+    density of points shows the coverage.  Returns (x (N,), y (N,), centre (3,) unit vector),
+    x, y dimensionless in [-2, 2].
     """
     u = np.asarray(b, float)
     u = u / np.linalg.norm(u, axis=1, keepdims=True)
@@ -760,13 +748,9 @@ def candidate_chart_data(diagnosis, top=15):
     """
     Return the data of the candidates chart, from the candidates' dicts (best first).
 
-    Returns
-    -------
-    list of dict
-        token, significant, likelihood_tests (p-value and BIC passed), explained_fraction
-        (0..1 or None), verdict (bool), held_out_before_nt, held_out_after_nt,
-        held_out_drop_nt (nT or None), evidence (-delta BIC).
-
+    One dict per candidate: token, significant, likelihood_tests (p-value and BIC passed),
+    explained_fraction (0..1 or None), verdict (bool), held_out_before_nt, held_out_after_nt,
+    held_out_drop_nt (nT or None), evidence (-delta BIC).
     """
     rows = []
     for c in list(diagnosis.candidates)[:top]:

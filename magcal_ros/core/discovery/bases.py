@@ -48,22 +48,11 @@ class Driver:
     """
     One driver of the formula and its design columns.
 
-    Attributes
-    ----------
-    text : str
-        The formula factor, e.g. 's(t, k=8)' or 'lag(aux_relay)'.
-    kind : str
-        'time', 'channel', 'product' or 'rate' (what it follows, for the description).
-    channel : str
-        The channel it reads ('t' for time, 'temperature', 'aux_<name>', 'rate').
-    columns : callable
-        columns(j) -> (N, m) design of sensor j (1-based) on the tested epochs, centred;
-        per-axis drivers (rate) return (N, 3).
-    per_axis : bool
-        The driver acts axis by axis (dB_i = P_i X_i).
-    note : str
-        What it was built from (a change point, a spectral line, ...).
-
+    ``text``: the formula factor ('s(t, k=8)', 'lag(aux_relay)'); ``kind``: 'time',
+    'channel', 'product' or 'rate'; ``channel``: what it reads ('t', 'temperature',
+    'aux_<name>', 'rate'); ``columns(j)``: the (N, m) design of sensor j (1-based) on the
+    tested epochs, centred ((N, 3) for a per-axis driver); ``per_axis``: it acts axis by axis
+    (dB_i = P_i X_i); ``note``: what it was built from (a change point, a line, ...).
     """
 
     text: str

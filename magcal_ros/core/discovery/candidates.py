@@ -37,31 +37,26 @@ class Candidate:
 
     Attributes
     ----------
-    token : str
-        Model-spec token, e.g. 'temperature@2' or 'aux:aux_motor_current' (all sensors).
-    effect : str
-        Effect label ('temperature', 'aux:aux_motor_current', ...).
+    token, effect : str
+        Model-spec token ('temperature@2', 'aux:aux_motor_current' on all sensors) and effect
+        label ('temperature', ...).
     sensor : int or None
         Sensor (1-based), None when added to every sensor.
     n_params : int
         Parameters added (k of the likelihood-ratio test).
-    rms_before_nt, rms_after_nt : float
-        Scalar residual RMS of the affected sensors, base fit and with the effect (after:
-        None when the residuals were not evaluated).
-    vector_rms_before_nt, vector_rms_after_nt : float or None
-        Vector residual RMS (vs sensor 1) involving the affected sensors (after as above).
-    delta_chi2 : float
-        Decrease of chi-square (noise levels fixed at the base fit).
-    delta_bic : float
-        BIC(with) - BIC(without) = -delta_chi2 + k ln(n_obs); negative favours the effect.
+    rms_before_nt, rms_after_nt, vector_rms_before_nt, vector_rms_after_nt : float or None
+        Scalar and vector (vs sensor 1) residual RMS of the affected sensors, base fit and
+        with the effect (after: None when the residuals were not evaluated).
+    delta_chi2, delta_bic : float
+        Decrease of chi-square (noise levels fixed) and BIC(with) - BIC(without) =
+        -delta_chi2 + k ln(n_obs) (negative favours the effect).
     p_value, log10_p_value : float
         Likelihood-ratio test, chi-square with k degrees of freedom.
     method : str
-        'refit' (full ML refit from the base solution), 'one-step' (one Gauss-Newton step,
-        evaluated: a lower bound of delta_chi2), 'score' (the decrease that step predicts, the
-        residuals not evaluated: :data:`SCORE_RULE_OUT_BIC`; also a term of the formula
-        search), 'search' (the search's term that is the verdict) or 'localised' (a ``drop``
-        of an excess confined in time).
+        'refit' (full ML refit), 'one-step' (one Gauss-Newton step, evaluated: a lower bound
+        of delta_chi2), 'score' (the decrease that step predicts, not evaluated:
+        :data:`SCORE_RULE_OUT_BIC`; also a term of the formula search), 'search' (the
+        search's term that is the verdict) or 'localised' (a ``drop`` of an excess in time).
     cv_rms_before_nt, cv_rms_after_nt : float or None
         Combined residual RMS on held-out time blocks (None when not computed).
     significant : bool
@@ -69,14 +64,11 @@ class Candidate:
         least :data:`MIN_EXPLAINED`.
     params : tuple of dict
         The added parameters {sensor, name, unit, value} after the fit.
-    explained_fraction : float or None
+    explained_fraction, decided_by : float or None, str or None
         Share (0..1) of the excess mean square over the noise floor the effect removes from
-        the combined residual (held out when cross-validated); None when not computed.
-    decided_by : str or None
-        Which measure gave ``explained_fraction``: 'held-out' or 'in-sample (...)'.
+        the combined residual, and by which measure ('held-out' or 'in-sample (...)').
     note : str or None
-        Why a candidate with a good fit is not adopted (``Effect.reduces``: a lag of zero time
-        constant is a simpler effect).
+        Why a candidate with a good fit is not adopted (``Effect.reduces``).
 
     """
 
@@ -193,25 +185,11 @@ def propose_from_residual(t, residual, max_steps=2, min_line_ratio=30.0):
     """
     Effects with arguments suggested by the residual: offset steps and periodic lines.
 
-    Parameters
-    ----------
-    t : numpy.ndarray
-        (N,) time, s.
-    residual : numpy.ndarray
-        (S, N, 3) raw-space residual of the fit, nT.
-    max_steps : int
-        Change points per record (:func:`~.measures.binary_segmentation` of the mean of the
-        3-vector residuals).
-    min_line_ratio : float
-        A spectral line is proposed when its power exceeds this many times the median power
-        of the spectrum (white noise: probability ~1e-5 in ~1e4 bins at 30).
-
-    Returns
-    -------
-    list of str
-        Names with arguments, e.g. ['step(300)', 'periodic(0.23)'] (tested per sensor and on
-        all sensors).
-
+    ``t`` (N,) s; ``residual`` (S, N, 3) raw-space residual, nT; ``max_steps``: change points
+    per record (:func:`~.measures.binary_segmentation` of the mean of the 3-vector
+    residuals); ``min_line_ratio``: a line is proposed when its power exceeds this many times
+    the median power (white noise: probability ~1e-5 in ~1e4 bins at 30).  Returns names with
+    arguments, e.g. ['step(300)', 'periodic(0.23)'] (tested per sensor and on all sensors).
     """
     t = np.asarray(t, float)
     out = []

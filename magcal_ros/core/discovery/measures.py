@@ -143,13 +143,7 @@ def soft_l1_lr_loss(z0, f_scale):
     The drop of sum L (soft-L1: 2 f^2 (sqrt(1 + z^2/f^2) - 1)) between nested models, times
     E[psi'] / E[psi^2] (psi = L'/2), is asymptotically chi-square with k degrees of freedom
     (Heritier & Ronchetti 1994); the factor is estimated from the base fit's normalised
-    residuals ``z0`` (any shape), 1 for Gaussian residuals and the square loss.
-
-    Returns
-    -------
-    callable
-        z (S, N, 3) residual / sigma -> the scaled loss sum (a chi-square equivalent).
-
+    residuals ``z0`` (any shape).  Returns z (S, N, 3) residual / sigma -> the scaled loss sum.
     """
     u = 1.0 + (np.asarray(z0, float) / f_scale) ** 2
     c = float(np.mean(u ** -1.5) / np.mean(z0 ** 2 / u))
@@ -244,28 +238,14 @@ def periodogram(t, x, oversample=2):
     """
     Power spectrum of a residual series, also for irregular sampling.
 
-    Parameters
-    ----------
-    t : numpy.ndarray
-        (N,) time, s.
-    x : numpy.ndarray
-        (N,) or (N, C) series, nT (the mean is removed).
-    oversample : int
-        Frequencies per independent frequency.
-
-    Returns
-    -------
-    freqs : numpy.ndarray
-        (M,) frequencies, Hz, from about 1/T to the Nyquist frequency of the median interval.
-    power : numpy.ndarray
-        (M, C) power, nT^2: the squared amplitude of the best-fitting sinusoid times N / 4.
-        Evenly sampled: the FFT zero-padded ``oversample`` x; a clock read with jitter
-        (:func:`sampled_on_a_clock`), or an irregular record whose Lomb-Scargle sum would
-        exceed :data:`~.constants.LS_BUDGET`: the FFT of the series interpolated onto the
-        median interval; otherwise Lomb-Scargle (:func:`lomb_scargle`).
-    n_independent : int
-        Number of independent frequencies in the band (N / 2 for even sampling).
-
+    ``t`` (N,) s; ``x`` (N,) or (N, C) nT (the mean is removed); ``oversample``: frequencies
+    per independent frequency.  Returns (freqs (M,) Hz, from about 1/T to the Nyquist
+    frequency of the median interval; power (M, C) nT^2, the squared amplitude of the
+    best-fitting sinusoid times N / 4; the number of independent frequencies, N / 2 for even
+    sampling).  Evenly sampled: the FFT zero-padded ``oversample`` x; a clock read with jitter
+    (:func:`sampled_on_a_clock`), or an irregular record whose Lomb-Scargle sum would exceed
+    :data:`~.constants.LS_BUDGET`: the FFT of the series interpolated onto the median
+    interval; otherwise Lomb-Scargle (:func:`lomb_scargle`).
     """
     t = np.asarray(t, float)
     x = np.asarray(x, float)

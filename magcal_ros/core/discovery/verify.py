@@ -139,17 +139,11 @@ def tested_verdict(b, verdict, reason, ranked, cv0, folds, cv_method='newton',
 
     ``b``, ``cv0``, ``folds``, ``cv_method``, ``on_degenerate``: as :func:`verify_term`;
     ``verdict`` (token or None) and ``reason``: the verdict; ``ranked``: the candidates, best
-    first; ``cache``: {token: Verified}, filled here; ``p_thr``: the Bonferroni threshold, a
-    candidate that passes it and the BIC rule may replace a verdict that fails.
-
-    Returns
-    -------
-    (str or None, str, list, list)
-        The verdict (the first of the verdict and the next candidates that pass the likelihood
-        tests, at most :data:`MAX_VERDICT_TRIES`, that passes :func:`verify_term`; None when
-        none does), its reason, the candidates (a term that failed loses ``significant`` and
-        says why in ``note``) and the Verified of every term tried.
-
+    first; ``cache``: {token: Verified}, filled here; ``p_thr``: the Bonferroni threshold (a
+    candidate that passes it and the BIC rule may replace a verdict that fails).  Returns (the
+    first of the verdict and the next such candidates, at most :data:`MAX_VERDICT_TRIES`, that
+    passes, or None; its reason; the candidates, a term that failed without ``significant``
+    and with why in ``note``; the Verified of every term tried).
     """
     cache = {} if cache is None else cache
     if verdict is None:
