@@ -36,11 +36,7 @@ Given rotation data and a fitted model, :func:`diagnose`
 :func:`ladder` repeats diagnose -> add the verdict -> refit until nothing is missing and
 tabulates the held-out RMS of each step (the "error ladder").
 
-One module per stage (every name below is importable from here): :mod:`.constants` (the
-thresholds), :mod:`.measures` (residual measures, likelihood ratio, the residual toolkit),
-:mod:`.candidates` (the tokens to test, :class:`Candidate`), :mod:`.screen` (the one-step
-screening), :mod:`.validation` (time blocks, cross-validation), :mod:`.results`
-(:class:`Diagnosis`), :mod:`.run` (:func:`diagnose`), :mod:`.error_ladder` (:func:`ladder`).
+One module per stage (docs/design.md); every name below is importable from here.
 """
 # the one noise-floor estimator (fit, diagnose, report, nodes); the old name is kept here
 from magcal_ros.core.data.noise import data_noise_floor as noise_floor_from_data, NoiseFloor

@@ -342,11 +342,10 @@ class _Driver:
         self.a = (a - a.mean()) / np.std(a)
         self.taus = lag_grid(t, N_TAU, shortest=1e-4, longest=0.5, samples=3)
         self.base = np.column_stack([np.ones(n), self.a])
-        q, _ = np.linalg.qr(self.base)
-        self.q = q
-        lags = (np.column_stack([first_order_lag(t, self.a, tau) for tau in self.taus])
-                if len(self.taus) else np.zeros((n, 0)))
-        self.lags = lags
+        self.q = q = np.linalg.qr(self.base)[0]
+        self.lags = lags = (np.column_stack([first_order_lag(t, self.a, tau)
+                                             for tau in self.taus])
+                            if len(self.taus) else np.zeros((n, 0)))
         self.lags_perp = lags - q @ (q.T @ lags)          # orthogonal to [1, a]
         self.lag_norm2 = np.sum(self.lags_perp ** 2, axis=0)
         rate = np.gradient(ndimage.uniform_filter1d(self.a, max(3, n // 200)), t)
@@ -398,9 +397,8 @@ def _test_channel(t, x, drv, mod=None):
     else:
         lin, r1 = regress(x, _expand(drv.base, mod))
     ss1 = ss(lin)
-    out = [_Candidate('channel', lin - xm, c * (r1 - 1), _f_test(ss0, ss1, c * (r1 - 1),
-                                                                 n * c - c * r1),
-                      1, channel=name)]
+    out = [_Candidate('channel', lin - xm, c * (r1 - 1),
+                      _f_test(ss0, ss1, c * (r1 - 1), n * c - c * r1), 1, channel=name)]
     # first-order lag: the best time constant (grid, then refined)
     if mod is None:
         tau = _best_tau(drv, x - lin) if len(drv.taus) else None

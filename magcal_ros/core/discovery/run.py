@@ -50,7 +50,7 @@ from magcal_ros.core.discovery.validation import cross_validate
 from magcal_ros.core.discovery.verify import tested_findings, tested_verdict
 from magcal_ros.core.effects.base import format_arg
 from magcal_ros.core.model import Model
-from magcal_ros.core.model.fitting import fit
+from magcal_ros.core.model.fitting import fit, fit_epochs
 from magcal_ros.core.model.solvers import single_threaded_blas
 import numpy as np
 
@@ -263,8 +263,7 @@ def _search(b, screen, alpha):
     """Run the formula search (:mod:`.search`) on the base fit's residual; SearchResult."""
     data, resid, n_obs = b.data, b.ev0.residual, b.n_obs
     if data.n_samples > SEARCH_MAX_EPOCHS:
-        keep = np.unique(np.linspace(0, data.n_samples - 1, SEARCH_MAX_EPOCHS).round()
-                         .astype(int))
+        keep = fit_epochs(data.n_samples, SEARCH_MAX_EPOCHS)
         data, resid = data.subset(keep), resid[:, keep]
         n_obs = n_observations(b.model, len(keep))
         screen = Screen(b.model, b.params, data.raw, [c.subset(keep) for c in b.contexts],
@@ -588,10 +587,7 @@ def _base_fit(data, model, f, base, constrained, progress, fit_kwargs):
 def _prepare(data, f, base, floor, max_samples, constrained):
     """Return the tested epochs (at most ``max_samples``) and the base fit's residuals on them."""
     n_all = data.n_samples
-    keep = np.arange(n_all)
-    if max_samples and n_all > max_samples:
-        # the same evenly spaced epochs as fit(max_fit_samples), in time order
-        keep = np.unique(np.linspace(0, n_all - 1, int(max_samples)).round().astype(int))
+    keep = fit_epochs(n_all, int(max_samples or 0))     # the fit's own evenly spaced epochs
     model = base.model
     if model.drops:
         # the sets the drop() terms leave out for every sensor are not tested

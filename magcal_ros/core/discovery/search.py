@@ -45,6 +45,7 @@ from magcal_ros.core.discovery import bases, measures
 from magcal_ros.core.discovery.constants import AT_FLOOR_RATIO, MIN_DELTA_BIC, MIN_EXPLAINED
 from magcal_ros.core.discovery.screen import add_gtc, ginv_times
 from magcal_ros.core.effects.base import format_arg
+from magcal_ros.core.model.fitting import fit_epochs
 import numpy as np
 from scipy import stats
 
@@ -393,8 +394,7 @@ def prescreen(data, resid, sigma, drivers, n_obs, n_eval=PRESCREEN_EPOCHS):
     with ``approx`` set (the chi-square decrease scaled to all N epochs), best first.
     """
     s, n = resid.shape[0], resid.shape[1]
-    keep = (np.arange(n) if n <= n_eval else
-            np.unique(np.linspace(0, n - 1, n_eval).round().astype(int)))
+    keep = fit_epochs(n, n_eval)
     scale_n = n / len(keep)
     y = [resid[j][keep] / sigma[j] for j in range(s)]
     lin = [x[keep] for x in _lin(data)]
