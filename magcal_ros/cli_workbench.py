@@ -17,33 +17,19 @@
 
 - ``magcal diagnose DATA --model MODEL [--json] [--report DIR] [--ladder] [--constrained]``:
   noise floor, residuals, every missing effect ranked by evidence, verdict; ``--ladder``
-  keeps adding the verdict until nothing is missing; ``--constrained`` (partial attitude
-  coverage) puts priors on scale and angles in every fit.
+  keeps adding the verdict until nothing is missing.
 - ``magcal report DATA --model MODEL --out DIR``: the same plus the error ladder, as PNG
   figures and one self-contained ``index.html``.
 
-DATA is a wide CSV, a rosbag2 directory, or (with ``--unit``) a single-magnetometer CSV of
-another tool (``mx,my,mz`` or ``x,y,z`` columns, optional ``ax,ay,az``).  The reference
-magnitude comes from ``ref_total``, ``--field-nt NT|auto`` or ``--igrf``.  Progress: a
-bar per step on stderr when it is a terminal (:mod:`magcal_ros.progress`; none with
-``--quiet``, ``--json`` or a stderr that is not a terminal; never on stdout).  A record
-too long to hold is read in chunks and reduced (:mod:`magcal_ros.core.data.reduce`).  Exit
-status 0 on success, 2 on bad input, 1 on other failures (handled by :func:`magcal_ros.cli.main`).
+DATA as for ``magcal fit`` (``cli.load_record``: a long record is read in chunks and
+reduced); progress on stderr when it is a terminal (:mod:`magcal_ros.progress`).  Exit
+status 0 on success, 2 on bad input, 1 on other failures (:func:`magcal_ros.cli.main`).
 """
 import sys
 
 from magcal_ros.core.effects import load_plugins
 from magcal_ros.pipeline import attitude_lines, diagnosis_base
 from magcal_ros.progress import Progress, wanted
-
-EXIT_OK = 0
-
-
-def _load(args, cli, prog):
-    """Dataset from DATA (wide CSV, rosbag2 directory, or single-sensor CSV with --unit)."""
-    data, _ = cli.load_record(args.data, args.unit, args.rate_hz, progress=prog,
-                              allow_gaps=args.allow_gaps)
-    return data
 
 
 def _common(p, cli):
@@ -77,20 +63,17 @@ def _common(p, cli):
     cli.add_attitude_arg(p)
 
 
-def _validate(args, cli):
+def _run(args, cli, with_ladder):
+    from magcal_ros.core.discovery import diagnose, ladder
+    from magcal_ros.core.model import Model
     if args.folds != 0 and args.folds < 2:
         raise cli.BadInput(f'--folds must be 0 (no cross-validation) or >= 2, got {args.folds}')
     if not 0 < args.alpha < 1:
         raise cli.BadInput(f'--alpha must be between 0 and 1, got {args.alpha}')
-
-
-def _run(args, cli, with_ladder):
-    from magcal_ros.core.discovery import diagnose, ladder
-    from magcal_ros.core.model import Model
-    _validate(args, cli)
     load_plugins(args.plugin)
     prog = Progress(wanted(args.quiet, getattr(args, 'json', False)))
-    data = _load(args, cli, prog)
+    data, _ = cli.load_record(args.data, args.unit, args.rate_hz, progress=prog,
+                              allow_gaps=args.allow_gaps)
     try:
         model = Model.from_spec(args.model, data.n_sensors)
     except ValueError as exc:
@@ -136,11 +119,8 @@ def cmd_diagnose(args, cli):
     warnings = [note_dict(w) for w in screen.notes()] + fit_warnings(diag.result,
                                                                      diag.noise_floor)
     if args.json:
-        doc = diag.to_dict()
-        doc['warnings'] = warnings
-        doc['readings_left_out'] = screen.to_dict()
-        doc['field_reference'] = fref
-        doc['constrained'] = bool(args.constrained)
+        doc = {**diag.to_dict(), 'warnings': warnings, 'readings_left_out': screen.to_dict(),
+               'field_reference': fref, 'constrained': bool(args.constrained)}
         if 'attitude' in fref:
             doc['attitude'] = fref['attitude']
             doc['undetermined'] = fref['attitude']['undetermined']
@@ -164,7 +144,7 @@ def cmd_diagnose(args, cli):
             print(lad.table())
         if index is not None:
             print(f'report written to {index}')
-    return EXIT_OK
+    return cli.EXIT_OK
 
 
 def cmd_report(args, cli):
@@ -181,7 +161,7 @@ def cmd_report(args, cli):
     if not args.quiet:
         print(f'verdict: {diag.verdict_token or "none"} ({diag.verdict_reason})',
               file=sys.stderr)
-    return EXIT_OK
+    return cli.EXIT_OK
 
 
 def reduction_line(info):

@@ -15,20 +15,14 @@
 """
 Diagnosis report: PNG figures and one self-contained HTML page (PNGs embedded as base64).
 
-The figures answer "where does the model fail?":
-
-- measured vs modelled field magnitude over time, and the residual over time;
-- the residual against every driving signal the data carry (each sensor's temperature,
-  each auxiliary channel, the field rate |dB/dt|): a missing effect shows as a trend;
-- the scalar residual as a map over field direction (azimuth/elevation in the sensor
-  frame): nonlinearity or a missing linear term shows as a pattern on the sphere;
-- gradient tensor components before and after correction (four-sensor cross);
-- the candidate ranking (delta BIC) and the error ladder (held-out RMS per step);
-- what is left, model-free (:mod:`magcal_ros.core.discovery.findings`): the residual spectrum per
-  sensor, a change-point view, and the residual against the lagged driving channels.
-
-Matplotlib is used through its object API with the Agg canvas (no pyplot, no global
-backend change, no display needed).  The noise floor is drawn on every residual plot.
+The figures answer "where does the model fail?": measured vs modelled magnitude and the
+residual over time; the residual against every driving signal (temperatures, auxiliary
+channels, the field rate) and over the field direction; the gradient tensor before and
+after correction (four-sensor cross); the candidate ranking and the error ladder; what is
+left, model-free (:mod:`magcal_ros.core.discovery.findings`): the residual spectrum,
+change points and the residual against the lagged channels.  The noise floor is drawn on
+every residual plot.  Matplotlib's object API with the Agg canvas (no pyplot, no global
+backend change, no display).
 """
 import base64
 import html
@@ -57,16 +51,11 @@ MAX_POINTS = 6000
 PIXEL_COLUMNS = 1000
 COMPONENT_COLOURS = ('tab:red', 'tab:green', 'tab:blue')
 DPI = 100
-#: matplotlib settings of the report's figures: glyphs without hinting.  With the default,
-#: FreeType runs each glyph's TrueType hinting program (DejaVu Sans has them) when text is
-#: measured and again when it is drawn; unhinted, the report took 8-18 % less time
-#: (text is a third of it) and the 100 dpi text looks the same.
+#: matplotlib settings of the report's figures: glyphs without hinting (FreeType's hinting
+#: ran at every measure and draw of a glyph; the 100 dpi text looks the same without)
 RC = {'text.hinting': 'no_hinting'}
-
-
 #: True: the figures' fixed margins (:func:`_arrange`); False: matplotlib's constrained
-#: layout places the axes, the figure title and the bottom legends (1.03 x the CPU of the
-#: default figures with the same ticks: bench/report_layout.py)
+#: layout places the axes, the figure title and the bottom legends (bench/report_layout.py)
 FIXED_LAYOUT = True
 
 
@@ -86,11 +75,8 @@ def _BOTTOM():
 def _suptitle(fig, text, fontsize=11):
     """Figure title wrapped to the figure width."""
     chars = int(fig.get_figwidth() * 110 / fontsize)
-    if not FIXED_LAYOUT:                      # placed by the layout engine
-        fig.suptitle(textwrap.fill(text, chars), fontsize=fontsize)
-        return
-    fig.suptitle(textwrap.fill(text, chars), fontsize=fontsize, y=1.0 - 0.06 / fig.get_figheight(),
-                 va='top')
+    at = {'y': 1.0 - 0.06 / fig.get_figheight(), 'va': 'top'} if FIXED_LAYOUT else {}
+    fig.suptitle(textwrap.fill(text, chars), fontsize=fontsize, **at)
 
 
 def _arrange(fig, rows=1, cols=1, left=0.8, right=0.25, bottom=0.55, top=0.3, wspace=1.0,
@@ -99,21 +85,15 @@ def _arrange(fig, rows=1, cols=1, left=0.8, right=0.25, bottom=0.55, top=0.3, ws
     Place the grid of axes with fixed margins and gaps (inches) and thin the ticks.
 
     With :data:`FIXED_LAYOUT` False, matplotlib's constrained layout places them instead
-    (only the ticks are thinned here): the default figures took 1.03 x the CPU that way
-    (bench/report_layout.py, 4 x 10 000 epochs; BENCHMARKS.md), so speed is no reason for
-    the fixed margins; they stay the default until every figure has been checked under the
-    layout engine.  Fixed room is reserved: ``left`` for the y tick and axis labels,
-    ``bottom`` for the x ones, ``top`` for the axes titles (below the figure title, whose
-    wrapped lines are added here), ``right`` for legends placed outside the axes, and
-    ``wspace``/``hspace`` between panels.  Linear axes get 3-5 major ticks instead of up to
-    10: each tick is five artists, and they were half the drawing time of an axes.  The axis
-    labels are matplotlib's own (placed at draw by the tick labels' extents).
+    (only the ticks are thinned here).  Fixed room is reserved: ``left`` for the y tick and
+    axis labels, ``bottom`` for the x ones, ``top`` for the axes titles (plus the wrapped
+    figure title), ``right`` for legends outside the axes, ``wspace``/``hspace`` between
+    panels.  Linear axes get 3-5 major ticks (:func:`_thin_ticks`: each tick is five artists).
     """
     w, h = fig.get_size_inches()
     title = fig.get_suptitle()
     if not FIXED_LAYOUT:
-        _thin_ticks(fig)
-        return fig
+        return _thin_ticks(fig)
     if title:
         text = next(t for t in fig.texts if t.get_text() == title)
         size = text.get_fontsize() / 72.0                    # points -> inches
@@ -122,8 +102,7 @@ def _arrange(fig, rows=1, cols=1, left=0.8, right=0.25, bottom=0.55, top=0.3, ws
     cell_h = max((h - top - bottom - (rows - 1) * hspace) / rows, 0.3)
     fig.subplots_adjust(left=left / w, right=1.0 - right / w, bottom=bottom / h,
                         top=1.0 - top / h, wspace=wspace / cell_w, hspace=hspace / cell_h)
-    _thin_ticks(fig)
-    return fig
+    return _thin_ticks(fig)
 
 
 def _thin_ticks(fig):
@@ -150,12 +129,7 @@ def _columns(fig, cols=1, **margins):
 
 
 class _InView(Locator):
-    """
-    Return the ticks of another locator that lie inside the view limits.
-
-    MaxNLocator's and LogLocator's ticks reach past the limits (0..600 s gets -200 and
-    800); matplotlib creates a tick (five artists) for each before it drops the outer ones.
-    """
+    """Return the ticks of another locator that lie inside the view limits."""
 
     def __init__(self, inner):
         self.inner = inner
@@ -185,29 +159,34 @@ class _InView(Locator):
         return self.inner.view_limits(vmin, vmax)
 
 
-def _bottom_legend(fig, fontsize=7):
+def _bottom_legend(fig, fontsize=7, axes=None, width=2.3, markerscale=2):
     """
-    Put the first axes' legend in a row along the bottom of the figure, off the data.
+    Put the legend of ``axes`` (default the first; each label once) along the bottom.
 
     (A legend 'best' placed inside the axes tests every data point: slow with thousands.)
+    Returns the bottom margin it needs, inches.
     """
-    handles, labels = fig.axes[0].get_legend_handles_labels()
-    ncol = max(1, min(len(labels), int(fig.get_figwidth() / 2.3)))
-    fig.legend(handles, labels, loc=_BOTTOM(), ncol=ncol, fontsize=fontsize,
-               frameon=False, markerscale=2)
-    return 0.55 + 0.2 * int(np.ceil(len(labels) / ncol))      # the bottom margin it needs
+    handles = {}
+    for ax in fig.axes[:1] if axes is None else axes:
+        for h, lab in zip(*ax.get_legend_handles_labels()):
+            handles.setdefault(lab, h)
+    ncol = max(1, min(len(handles), int(fig.get_figwidth() / width)))
+    fig.legend(list(handles.values()), list(handles), loc=_BOTTOM(), ncol=ncol,
+               fontsize=fontsize, frameon=False, markerscale=markerscale)
+    return 0.55 + 0.2 * int(np.ceil(len(handles) / ncol))
 
 
 def _plain_log_ticks(*axes):
-    """
-    Give log axes plain decade labels ('0.01', '1e+04') and no minor ticks.
-
-    Matplotlib's default '$10^{3}$' labels go through its mathtext parser (about 20 ms per
-    label) and the log minor ticks are many more artists to lay out.
-    """
+    """Give log axes plain decade labels ('0.01', '1e+04', no mathtext) and no minor ticks."""
     for axis in axes:
         axis.set_minor_locator(NullLocator())
         axis.set_major_formatter(FuncFormatter(lambda v, _: f'{v:g}'))
+
+
+def _message(ax, text, **kwargs):
+    """Write ``text`` in the middle of an axes without data, its frame hidden."""
+    ax.text(0.5, 0.5, text, ha='center', va='center', transform=ax.transAxes, **kwargs)
+    ax.set_axis_off()
 
 
 def _title(ax, text, **kwargs):
@@ -216,12 +195,7 @@ def _title(ax, text, **kwargs):
 
 
 def figure_png(fig):
-    """
-    Draw the figure on its Agg canvas and return it as PNG bytes.
-
-    Pillow's encoder at zlib level 1 (``compress_level=1``): its default level 6 took 1.7 x
-    as long for 3 % smaller files (bench/report_layout.py).
-    """
+    """Draw the figure on its Agg canvas and return it as PNG bytes (zlib level 1: fast)."""
     from PIL import Image
     fig.canvas.draw()
     buf = io.BytesIO()
@@ -239,16 +213,9 @@ def _envelope(y, columns=PIXEL_COLUMNS):
     """
     Return the indices of the smallest and largest sample of ``y`` in each chunk.
 
-    A time series drawn through these (in time order) covers, in every pixel column, the
-    same range as all its samples: spikes stay visible, and a line of 10 000 noisy samples
-    costs the renderer 2 * ``columns`` points.  ``y``: (N,) or (N, k) (the union over the
-    k series); NaN are skipped.
-
-    Returns
-    -------
-    numpy.ndarray
-        Sorted sample indices, (M,) int, M <= 2 * k * (columns + 1).
-
+    A series drawn through these covers, in every pixel column, the range of all its samples
+    (spikes stay visible) for 2 * ``columns`` points.  ``y``: (N,) or (N, k) (the union over
+    the k series); NaN are skipped.  Returns sorted indices, (M,) int, M <= 2 k (columns + 1).
     """
     y = np.asarray(y, float)
     n = len(y)
@@ -272,13 +239,11 @@ def _envelope(y, columns=PIXEL_COLUMNS):
 
 def _band(ax, t, y, columns=PIXEL_COLUMNS, lw=0.5, **style):
     """
-    Draw a series as its range per chunk: one filled polygon, min to max in each column.
+    Draw a series (``t``, ``y``: (N,)) as its range per chunk: one polygon, min to max per column.
 
-    The same pixels as a line through the extremes of each chunk (:func:`_envelope`), for
-    a fraction of the drawing: Agg strokes each of the 2 x ``columns`` segments of that
-    zig-zag, and fills this polygon in one pass.  The outline (``lw``, points) keeps a band
-    narrower than a pixel visible.  ``t``, ``y``: (N,); NaN are skipped (a chunk without
-    data leaves a gap).  Returns the PolyCollection (legend handle).
+    The pixels of a line through the extremes of each chunk (:func:`_envelope`) for a fraction
+    of the drawing; the outline (``lw``, points) keeps a thin band visible; NaN leave a gap.
+    Returns the PolyCollection (legend handle).
     """
     n = len(y)
     k = int(np.ceil(n / columns))                # samples per chunk, the last one shorter
@@ -297,12 +262,7 @@ def _band(ax, t, y, columns=PIXEL_COLUMNS, lw=0.5, **style):
 
 
 def _scatter_idx(n, *series, columns=PIXEL_COLUMNS):
-    """
-    Return evenly thinned samples plus the extremes of every series, sorted.
-
-    The thinned samples show the density of the cloud, the envelopes (:func:`_envelope`,
-    over ``columns`` chunks) its extremes per pixel column.
-    """
+    """Return evenly thinned samples plus the extremes of every series per pixel column, sorted."""
     idx = _thin(n)
     if len(idx) == n:
         return idx
@@ -328,8 +288,7 @@ def _sensor_axes(fig, n, sharey=False):
     """
     Return ``n`` axes in rows of up to four.
 
-    ``sharey``: the axes of a row share the y axis, whose tick labels are drawn on the first
-    only (the y label is then set on the first of each row: :func:`_row_starts`).
+    ``sharey``: the axes of a row share the y axis (tick labels on the first only).
     """
     cols = min(n, 4)
     rows = int(np.ceil(n / cols))
@@ -356,54 +315,43 @@ def _floor_lines(ax, level, label='noise floor'):
 
 def magnitude_offsets(data, result):
     """
-    Return the data of the magnitude figure, per sensor.
+    Return the data of the magnitude figure: {sensor j: {'measured_nt', 'model_nt'}}.
 
-    Per sensor, the mean of |raw| - |B| and of |model| - |B| (nT): the data of the
-    magnitude figure, which plots both about the reference so that an offset of thousands of
-    nT and a variation of a few nT are both readable.
-
-    Returns
-    -------
-    dict
-        {sensor j (1-based): {'measured_nt': float, 'model_nt': float}}.
-
+    The means of |raw| - |B| and of |model| - |B| per sensor, nT (the figure plots both about
+    the reference, so that an offset of thousands of nT and a variation of a few are readable).
     """
-    out = {}
-    for j in range(1, data.n_sensors + 1):
-        f = result.field_magnitude_nt
-        meas = np.linalg.norm(data.raw[j - 1], axis=1) - f
-        model = np.linalg.norm(data.raw[j - 1] - result.residual_nt[j - 1], axis=1) - f
-        out[j] = {'measured_nt': float(np.mean(meas)), 'model_nt': float(np.mean(model))}
-    return out
+    return {j: {'measured_nt': float(np.mean(meas)), 'model_nt': float(np.mean(model))}
+            for j, (meas, model) in enumerate(_magnitudes(data, result), start=1)}
+
+
+def _magnitudes(data, result):
+    """Return [((N,) |raw| - |B|, (N,) |model| - |B|) per sensor], nT."""
+    f = result.field_magnitude_nt
+    return [(np.linalg.norm(raw, axis=1) - f, np.linalg.norm(raw - res, axis=1) - f)
+            for raw, res in zip(data.raw, result.residual_nt)]
 
 
 def plot_magnitude(data, result):
     """
     Measured |raw| and modelled |forward(B)| per sensor over time, about the reference |B|.
 
-    Both are drawn as differences from the reference magnitude (nT), the mean difference of
-    the raw readings named in the title: a reference 3 000 nT away shows as a stated offset
-    and the variation stays readable (on an absolute axis the offset squashes it flat).
+    Both as differences from the reference magnitude (nT), the raw readings' mean difference
+    named in the title.
     """
     s = data.n_sensors
     fig = _figure(4.0 * min(s, 4), 3.2 * int(np.ceil(s / 4)))
     t = data.t - data.t[0]
-    offs = magnitude_offsets(data, result)
-    f = result.field_magnitude_nt
     px = _columns(fig, min(s, 4))
-    for j, ax in enumerate(_sensor_axes(fig, s), start=1):
-        meas = np.linalg.norm(data.raw[j - 1], axis=1) - f
-        model = np.linalg.norm(data.raw[j - 1] - result.residual_nt[j - 1], axis=1) - f
+    for j, (ax, (meas, model)) in enumerate(zip(_sensor_axes(fig, s),
+                                                _magnitudes(data, result)), start=1):
         idx = _scatter_idx(len(t), meas, columns=px)
         ax.plot(t[idx], meas[idx], '.', ms=1.5, color='0.6', label='measured |raw| - |B|')
         idx = _envelope(model, px)
         ax.plot(t[idx], model[idx], '-', lw=0.8, color='tab:blue',
                 label='model |A B + o + ...| - |B|')
         ax.axhline(0.0, color='k', lw=1.0, label='reference |B|')
-        _title(ax, f'sensor {j}: |raw| - |B| mean {offs[j]["measured_nt"]:+,.0f} nT',
-               fontsize=9)
-        ax.set_xlabel('time since start (s)')
-        ax.set_ylabel('|B| - reference (nT)')
+        _title(ax, f'sensor {j}: |raw| - |B| mean {float(np.mean(meas)):+,.0f} nT', fontsize=9)
+        ax.set(xlabel='time since start (s)', ylabel='|B| - reference (nT)')
     bottom = _bottom_legend(fig, fontsize=7)
     _suptitle(fig, 'Measured and modelled magnitude minus the reference |B| (mean '
               f'{float(np.mean(result.field_magnitude_nt)):,.0f} nT)', fontsize=10)
@@ -449,9 +397,7 @@ def adopted_fit(data, diagnosis, ladder=None):
     """
     Return the fit of the model with the verdict's term added, or None without a verdict.
 
-    The ladder's next rung when it added that term, else a refit (the base model plus the
-    verdict token, on the base fit's reference magnitude).  None also when the refit fails
-    (the structure figure then shows the residual without the term).
+    The ladder's next rung when it added that term, else a refit; None when the refit fails.
     """
     tok = diagnosis.verdict_token if diagnosis is not None else None
     if not tok:
@@ -475,9 +421,9 @@ def verdict_driver(data, token, j, term=None):
     """
     Return what the verdict's term follows on sensor j: (name, axis label, (N,) values).
 
-    A channel named in the token (the sensor's temperature, an auxiliary column), the phase
-    of a periodic term, |d raw / dt| for the field rate, the raw component a direction term
-    (nonlinearity, soft iron) varies with most (``term``: its (N,) scalar fit), else time.
+    A channel named in the token, the phase of a periodic term, |d raw / dt| for the field
+    rate, the raw component a direction term varies with most (``term``: its (N,) scalar fit),
+    else time.
     """
     t = data.t - data.t[0]
     if not token:
@@ -508,13 +454,10 @@ def plot_structure(data, result, floor, diagnosis=None, adopted=None, findings=N
     """
     Draw the residual per sensor, scalar and vector, over time and against the driver.
 
-    One row per sensor: the scalar residual |corrected| - |B| over time, the vector residual
-    (sensor j - sensor 1, x y z) over time, and the residual in the sensor's own axes (x y z)
-    against what the verdict follows (:func:`verdict_driver`; without a verdict, the channel
-    of the largest finding, if it names one).  Over each, in red or black, the adopted term's
-    fit: what adding the verdict changes in that residual (``result`` minus ``adopted``), so
-    the term is seen against the structure it is meant to take out.  The noise floor is
-    dashed.
+    One row per sensor: the scalar residual over time, the vector residual (sensor j - sensor
+    1) over time, and the residual in the sensor's axes against what the verdict follows
+    (:func:`verdict_driver`; without a verdict, the channel of the largest finding).  Over each,
+    the adopted term's fit (``result`` minus ``adopted``); the noise floor dashed.
     """
     s = data.n_sensors
     token = diagnosis.verdict_token if diagnosis is not None else None
@@ -543,14 +486,11 @@ def plot_structure(data, result, floor, diagnosis=None, adopted=None, findings=N
                  f' -> {adopted.scalar_rms_nt[j]:.2f} nT with {token}')
         _title(ax, f'sensor {j}: scalar RMS {result.scalar_rms_nt[j]:.2f} nT '
                f'({ratio[j]:.2f} x floor){after}', fontsize=8, loc='left')
-        ax.set_ylabel('scalar (nT)')
-        ax.set_xlabel('time since start (s)')
+        ax.set(ylabel='scalar (nT)', xlabel='time since start (s)')
         ax = axes[j - 1, 1]
         if j == 1:
-            ax.text(0.5, 0.5, 'sensor 1 defines the array frame:\nthe vector residuals of the '
-                    'others are taken against it', ha='center', va='center', fontsize=8,
-                    transform=ax.transAxes)
-            ax.set_axis_off()
+            _message(ax, 'sensor 1 defines the array frame:\nthe vector residuals of the '
+                     'others are taken against it', fontsize=8)
         else:
             vec = result.vector_residual_nt[j - 1]
             for c in range(3):
@@ -566,8 +506,7 @@ def plot_structure(data, result, floor, diagnosis=None, adopted=None, findings=N
             vr = result.vector_rms_nt.get(j, float('nan'))
             _title(ax, f'sensor {j} - sensor 1: vector RMS {vr:.2f} nT', fontsize=8,
                    loc='left')
-            ax.set_ylabel('vector (nT)')
-            ax.set_xlabel('time since start (s)')
+            ax.set(ylabel='vector (nT)', xlabel='time since start (s)')
         if cols == 3:
             ax = axes[j - 1, 2]
             if token:
@@ -577,9 +516,7 @@ def plot_structure(data, result, floor, diagnosis=None, adopted=None, findings=N
                 x = (data.temp[j - 1] if chan == 'temperature' and data.temp is not None
                      else (data.aux or {}).get(chan))
             if x is None or not np.isfinite(x).any():
-                ax.text(0.5, 0.5, f'no {name} on sensor {j}', ha='center', va='center',
-                        transform=ax.transAxes)
-                ax.set_axis_off()
+                _message(ax, f'no {name} on sensor {j}')
                 continue
             # the residual in the sensor's own axes: an additive term shows whole here,
             # not projected on a field direction that turns with the attitude
@@ -594,18 +531,8 @@ def plot_structure(data, result, floor, diagnosis=None, adopted=None, findings=N
                     ax.plot(x[idx], rt[idx, c], '.', ms=0.6, color='k')
             _floor_lines(ax, floor.per_sensor_nt[j - 1])
             _title(ax, f'sensor {j}: residual x y z vs {name}', fontsize=8, loc='left')
-            ax.set_ylabel('sensor axes (nT)')
-            ax.set_xlabel(xlabel)
-    handles, labels = [], []
-    for ax in axes.ravel():
-        for h, lab in zip(*ax.get_legend_handles_labels()):
-            if lab not in labels:
-                handles.append(h)
-                labels.append(lab)
-    ncol = max(1, min(len(labels), int(fig.get_figwidth() / 3.2)))
-    fig.legend(handles, labels, loc=_BOTTOM(), ncol=ncol, fontsize=7, frameon=False,
-               markerscale=3)
-    bottom = 0.55 + 0.2 * int(np.ceil(len(labels) / ncol))
+            ax.set(ylabel='sensor axes (nT)', xlabel=xlabel)
+    bottom = _bottom_legend(fig, 7, axes.ravel(), width=3.2, markerscale=3)
     head = (f'verdict {token}: its fit (red, black) drawn over the residual it explains'
             if token and adopted is not None else
             f'verdict {token} (its fit could not be drawn)' if token else
@@ -630,8 +557,7 @@ def _driver_panels(data, result, floor, drivers, title, xlabel):
             x = values(j)
             ax = fig.add_subplot(len(drivers), cols, r * cols + i + 1)
             if x is None or not np.isfinite(x).any():
-                ax.text(0.5, 0.5, 'no data', ha='center', va='center', transform=ax.transAxes)
-                ax.set_axis_off()
+                _message(ax, 'no data')
                 continue
             ax.plot(x[idx], result.scalar_residual_nt[j - 1, idx], '.', ms=1.5, color='0.6',
                     label='scalar residual')
@@ -641,8 +567,7 @@ def _driver_panels(data, result, floor, drivers, title, xlabel):
                         label=f'raw residual {"xyz"[c]} (bin mean)')
             _floor_lines(ax, floor.per_sensor_nt[j - 1])
             _title(ax, f'sensor {j} vs {name}', fontsize=9)
-            ax.set_xlabel(xlabel(name))
-            ax.set_ylabel('residual (nT)')
+            ax.set(xlabel=xlabel(name), ylabel='residual (nT)')
     bottom = _bottom_legend(fig, fontsize=7)
     _suptitle(fig, title, fontsize=11)
     return _arrange(fig, len(drivers), cols, bottom=bottom)
@@ -653,11 +578,7 @@ def _all_sensors(data, sensors):
 
 
 def plot_residual_vs_temperature(data, result, floor, sensors=None):
-    """
-    Residual of each sensor against its own temperature, or None without temperatures.
-
-    ``sensors`` (1-based) restricts the panels to those sensors; default every sensor.
-    """
+    """Residual of each sensor (of ``sensors``, default all) against its temperature, or None."""
     if data.temp is None or not np.isfinite(data.temp).any():
         return None
     return _driver_panels(
@@ -671,8 +592,8 @@ def plot_residual_vs_aux(data, result, floor, channels=None):
     """
     Residual of each sensor against each auxiliary channel, or None without any.
 
-    ``channels`` restricts the rows: names of ``data.aux`` (every sensor), or a dict
-    {name: sensors (1-based) or None for every sensor}; default every channel and sensor.
+    ``channels``: names of ``data.aux`` (every sensor), or {name: sensors (1-based) or None};
+    default every channel and sensor.
     """
     if channels is None:
         channels = dict.fromkeys(data.aux or {})
@@ -712,8 +633,7 @@ def plot_residual_vs_rate(data, result, floor):
                        label='|vector| noise floor (RMS)')
         ax.axhline(floor.per_sensor_nt[j - 1], color='k', ls='--', lw=1, label='noise floor')
         _title(ax, f'sensor {j}', fontsize=9)
-        ax.set_xlabel('|d raw / dt| (nT/s)')
-        ax.set_ylabel('residual magnitude (nT)')
+        ax.set(xlabel='|d raw / dt| (nT/s)', ylabel='residual magnitude (nT)')
     fig.axes[-1].legend(fontsize=6, loc='upper left')
     _suptitle(fig, 'Residual vs field rate (a rising |vector| = lag / eddy currents / '
               'sampling skew)', fontsize=11)
@@ -722,26 +642,12 @@ def plot_residual_vs_rate(data, result, floor):
 
 def direction_projection(b, centre=None):
     """
-    Lambert azimuthal equal-area projection of field directions, without a seam.
+    Lambert azimuthal equal-area projection of field directions ``b`` (N, 3), without a seam.
 
-    Centred on the mean direction of ``b`` (or ``centre``): a cone of directions about any
-    axis is a closed ring, never cut at azimuth +-180 deg as on an azimuth/elevation map; the
-    whole sphere is a disc of radius 2 whose rim is the antipode of the centre.  Equal area:
-    the density of points shows the coverage.
-
-    Parameters
-    ----------
-    b : numpy.ndarray
-        (N, 3) field vectors (any unit).
-    centre : numpy.ndarray, optional
-        (3,) centre direction; default the mean unit direction (+z when it is ~0, as for a
-        full sphere).
-
-    Returns
-    -------
-    tuple
-        (x (N,), y (N,), centre (3,) unit vector); x, y dimensionless in [-2, 2].
-
+    Centred on ``centre`` (3,), default the mean unit direction (+z when it is ~0): a cone of
+    directions about any axis is a closed ring, the whole sphere a disc of radius 2, and the
+    density of points shows the coverage.  Returns (x (N,), y (N,), centre (3,) unit vector),
+    x, y dimensionless in [-2, 2].
     """
     u = np.asarray(b, float)
     u = u / np.linalg.norm(u, axis=1, keepdims=True)
@@ -779,11 +685,10 @@ def plot_direction_map(data, result, floor):
             rr = 2 * np.sin(np.radians(deg) / 2)
             ax.add_patch(_circle(rr))
         ax.add_patch(_circle(2.0, ls='-'))
-        ax.set_xlim(-2.05, 2.05)
-        ax.set_ylim(-2.05, 2.05)
+        ax.set(xlim=(-2.05, 2.05), ylim=(-2.05, 2.05))
         ax.set_aspect('equal')
-        ax.set_xlabel('equal-area x (rings: 45, 90, 135 deg from centre)')
-        ax.set_ylabel('equal-area y (centre = mean direction)')
+        ax.set(xlabel='equal-area x (rings: 45, 90, 135 deg from centre)',
+               ylabel='equal-area y (centre = mean direction)')
         _title(ax, f'sensor {j}: centre ({c[0]:+.2f}, {c[1]:+.2f}, {c[2]:+.2f}), floor '
                f'{floor.per_sensor_nt[j - 1]:.1f} nT', fontsize=8)
     _suptitle(fig, 'Residual over field direction (sensor frame, equal-area)', fontsize=11)
@@ -800,8 +705,7 @@ def plot_tensor(data, result, baseline_m=0.5, floor=None):
     Gradient tensor components (paper 004 eq. 1) before/after correction, nT/m.
 
     The floor line is the sensors' data noise floor (``floor``, a NoiseFloor; default
-    estimated here) propagated to the tensor, not the fit's sigma, which grows when an effect
-    is missing.
+    estimated here) propagated to the tensor.
     """
     if data.n_sensors != 4:
         return None
@@ -844,20 +748,9 @@ def candidate_chart_data(diagnosis, top=15):
     """
     Return the data of the candidates chart, from the candidates' dicts (best first).
 
-    The verdict is decided by the share of the excess over the floor a candidate removes
-    (held out when cross-validated) after the p-value and BIC tests, so the chart's bars
-    are that share, with the held-out RMS drop in nT where a candidate was cross-validated;
-    delta BIC is shown beside it.  Driven by
-    the keys of ``Candidate.to_dict()``, so a candidate without held-out figures simply has
-    ``held_out_drop_nt`` None.
-
-    Returns
-    -------
-    list of dict
-        token, significant, likelihood_tests (p-value and BIC passed), explained_fraction
-        (0..1 or None), verdict (bool), held_out_before_nt, held_out_after_nt,
-        held_out_drop_nt (nT or None), evidence (-delta BIC).
-
+    One dict per candidate: token, significant, likelihood_tests (p-value and BIC passed),
+    explained_fraction (0..1 or None), verdict (bool), held_out_before_nt, held_out_after_nt,
+    held_out_drop_nt (nT or None), evidence (-delta BIC).
     """
     rows = []
     for c in list(diagnosis.candidates)[:top]:
@@ -881,12 +774,10 @@ def plot_candidates(diagnosis, top=15):
     """
     Plot what decided the verdict.
 
-    What decided the verdict: the held-out share of the excess over the floor each
-    candidate removes (left; the verdict needs MIN_EXPLAINED), delta BIC (right); the
-    verdict's bar is outlined.  Green: passes every test; orange: significant by the
-    likelihood tests but removes too small a share; grey: not significant.  A candidate
-    whose share was not tested (cross-validation stops at the verdict) has a grey cross at
-    0, named once in the legend.  The verdict's reason is the page's verdict line.
+    The share of the excess over the floor each candidate removes (left; the verdict needs
+    MIN_EXPLAINED), delta BIC (right); the verdict's bar outlined.  Green: passes every test;
+    orange: passes the likelihood tests only; grey: not significant; a grey cross: share not
+    tested.
     """
     rows = candidate_chart_data(diagnosis, top)
     if not rows:
@@ -932,8 +823,7 @@ def plot_candidates(diagnosis, top=15):
     ax2.set_xscale('log')
     _plain_log_ticks(ax2.xaxis)
     ax2.axvline(-MIN_DELTA_BIC, color='k', ls='--', lw=1)
-    ax2.set_xlabel('-delta BIC (log scale): must exceed 10 (dashed)')
-    ax2.set_ylabel('(same candidates)')
+    ax2.set(xlabel='-delta BIC (log scale): must exceed 10 (dashed)', ylabel='(same candidates)')
     _suptitle(fig, 'Candidate effects, best first; verdict: '
               f'{diagnosis.verdict_token or "none"}', fontsize=10)
     # room for the longest effect token (8 pt: ~0.065 in per character) and the axis label
@@ -996,8 +886,7 @@ def plot_ladder(ladder):
     ax.set_xticks(x)
     ax.set_xticklabels(['start:\n' + ','.join(steps[0].model)]
                        + [f'+ {st.added}' for st in steps[1:]], fontsize=8)
-    ax.set_xlabel('model (effect added at each step)')
-    ax.set_ylabel('combined residual RMS (nT)')
+    ax.set(xlabel='model (effect added at each step)', ylabel='combined residual RMS (nT)')
     ax.set_ylim(0, 1.15 * max(cv.max(), fl))
     _title(ax, 'Error ladder: held-out residual as effects are added', fontsize=11)
     # outside the axes: inside, any corner can cover a step (the last one, at upper right)
@@ -1017,10 +906,8 @@ def plot_residual_spectrum(findings):
     """
     Power spectrum of each sensor's residual series over its white-noise level, log-log.
 
-    The series are :class:`~magcal_ros.core.discovery.findings.Findings`' (consensus
-    residuals, nT);
-    power divided by the summed white-noise variance, so white noise sits at 1 and a line
-    stands out of its neighbourhood; the lines found are marked with their token.
+    The series are the :class:`~magcal_ros.core.discovery.findings.Findings`' (nT); white noise
+    sits at 1; the lines found are marked with their token.
     """
     sensors = sorted(findings.series)
     if not sensors or len(findings.t) < 30:
@@ -1053,9 +940,8 @@ def plot_change_points(findings):
     """
     Each sensor's residual series over time (running mean) with the steps found.
 
-    Components of the consensus residual (nT) averaged over 1 % of the record, the
-    segment means between the change points found drawn over them, and the +-1 sd band of
-    the running mean of white noise at the series' floor.
+    Averaged over 1 % of the record, the segment means between the change points drawn over
+    them, and the +-1 sd band of the running mean of white noise at the floor.
     """
     sensors = sorted(findings.series)
     n = len(findings.t)
@@ -1084,8 +970,7 @@ def plot_change_points(findings):
             ax.axvline(v, color='k', lw=1.0, alpha=0.6)
             ax.annotate(f'step({v:.6g})@{j}', (v, ax.get_ylim()[1]), fontsize=8,
                         ha='left', va='top')
-        ax.set_xlabel('t [s]')
-        ax.set_ylabel('residual [nT]')
+        ax.set(xlabel='t [s]', ylabel='residual [nT]')
         _title(ax, f'sensor {j}: {len(steps)} change point(s)', fontsize=10)
     _suptitle(fig, f'Change points (running mean over {w} samples)')
     return _arrange(fig, int(np.ceil(len(sensors) / 4)), min(len(sensors), 4), wspace=0.75)
@@ -1095,11 +980,10 @@ def plot_residual_vs_lagged_channels(data, findings):
     """
     Residual against each driving channel found, as is and through the lag found.
 
-    For every lag/channel/channel_nonlinear finding: the sensor's residual series projected
-    on the direction it moves with the channel (nT), in equal-count bins, against the channel
-    (a lag shows as a loop) and against the channel through the fitted first-order lag (the
-    loop closes onto a line; curvature that remains is a non-linear coupling).  Without
-    such findings, each sensor's temperature at the lag that fits it best.
+    For every lag/channel/channel_nonlinear finding: the residual projected on the direction it
+    moves with the channel (nT), in equal-count bins, against the channel (a lag shows as a
+    loop) and through the fitted lag (a line).  Without such findings, each sensor's
+    temperature at the lag that fits it best.
     """
     from magcal_ros.core.effects import first_order_lag
     t = findings.t
@@ -1146,8 +1030,7 @@ def plot_residual_vs_lagged_channels(data, findings):
         for xv, name, colour in curves:
             xb, yb = _binned(xv, proj, bins=30)
             ax.plot(xb, yb, 'o-', ms=3, lw=1.0, color=colour, label=name)
-        ax.set_xlabel(ch)
-        ax.set_ylabel('residual along its direction [nT]')
+        ax.set(xlabel=ch, ylabel='residual along its direction [nT]')
         _title(ax, f'{"all sensors" if j is None else f"sensor {j}"}: {label}', fontsize=10)
         if len(curves) > 1:                 # one curve: the x label names it
             ax.legend(fontsize=8)
@@ -1218,16 +1101,14 @@ def _implicated(data, diagnosis, ladder, findings):
     """
     Return what the diagnosis points at: tokens, the findings' views and channels.
 
-    The verdict, every significant candidate, every effect the ladder added, and every
-    finding (its token, kind, channel and sensor).  Candidates that pass the likelihood
-    tests but remove too small a share of the excess are not included: with one strong
-    missing effect dozens of them do, each absorbing part of that one effect.
+    The verdict, every significant candidate, every effect the ladder added, and every finding
+    (not the candidates that pass the likelihood tests only: with one strong missing effect
+    dozens do).
 
     Returns
     -------
     tuple
-        (tokens: set of str, views: set of str (the report figures that show the findings:
-        :data:`~magcal_ros.core.discovery.findings.KINDS`), channels: dict
+        (tokens: set of str, views: set of str (the findings' report figures), channels:
         {'temperature' or a ``data.aux`` name: set of sensors (1-based)}).
 
     """
@@ -1305,11 +1186,10 @@ SELECTED_VIEWS = {
 
 def _unexplained(result, floor, diagnosis, found):
     """
-    Return Tell whether the residual is above the floor while nothing names a cause.
+    Tell whether the residual is above the floor while nothing names a cause.
 
-    No verdict and no finding with an effect to add, while a sensor's scalar residual is
-    more than :data:`AT_FLOOR_RATIO` x its floor (the diagnosis' ``at_floor`` when there is
-    one): then no view can be ruled out, and the report draws them all.
+    No verdict and no finding with a token, while a sensor's scalar residual is more than
+    :data:`AT_FLOOR_RATIO` x its floor: then the report draws every view.
     """
     if diagnosis is not None:
         if diagnosis.verdict_token or diagnosis.at_floor:
@@ -1328,10 +1208,8 @@ def _plan(data, result, floor, diagnosis, ladder, found, baseline_m, every):
     """
     Return the report's views in page order: (name, heading, make, why not drawn).
 
-    ``make`` draws the figure (it may still return None when the data lack what it needs).
-    Unless ``every`` (draw every view), a view of :data:`SELECTED_VIEWS` that nothing
-    points at is not drawn, the channel views keep only the (channel, sensor) panels
-    something points at, and ``why`` says what was left out and why.
+    Unless ``every``, a view of :data:`SELECTED_VIEWS` that nothing points at is not drawn and
+    the channel views keep only the (channel, sensor) panels something points at.
     """
     tokens, views, channels = _implicated(data, diagnosis, ladder, found)
     everyone = set(range(1, data.n_sensors + 1))
@@ -1411,11 +1289,7 @@ def _plan(data, result, floor, diagnosis, ladder, found, baseline_m, every):
 
 
 def default_views(data, diagnosis, ladder=None, baseline_m=0.5):
-    """
-    Return the views ``write_report`` draws by default: [(name, make)], page order.
-
-    ``make()`` returns the matplotlib Figure (or None when the data do not allow it).
-    """
+    """Return the views ``write_report`` draws by default: [(name, make() -> Figure or None)]."""
     plan = _plan(data, diagnosis.result, diagnosis.noise_floor, diagnosis, ladder,
                  diagnosis.findings, baseline_m, False)
     return [(name, make) for name, _, make, _ in plan if make is not None]

@@ -17,52 +17,26 @@ Model diagnosis: compare a fitted model with the measurements and name what is m
 
 Given rotation data and a fitted model, :func:`diagnose`
 
-1. estimates the sensor noise floor from the data themselves (high-order differences of the
-   raw series and of the model's scalar residual, :func:`noise_floor_from_data`), so that
-   "the residual is at the noise floor" is a test against an independent number, not
-   against the model's own noise estimate;
-2. lists every effect that is not in the model (per sensor where it applies, plus each
-   auxiliary channel on all sensors at once), and sets aside, with the reason, those the
-   data cannot excite (``Effect.check``: no temperature column, a channel that never
-   changes, ...);
-3. screens every candidate by one Gauss-Newton step of the extended model from the fitted
-   parameters (exact for effects that enter linearly, as all driven effects do), and refits
-   the most promising ones from there with the full maximum-likelihood fit
-   (:func:`magcal_ros.core.model.fit`, warm start, the noise levels fixed at the base fit's
-   so that chi-square and BIC are comparable);
-4. ranks by evidence: delta BIC, the likelihood-ratio p-value (chi-square with k = added
-   parameters) with a Bonferroni correction over the candidates, and the effect size on
-   held-out data: k-fold cross-validation whose folds are *interleaved contiguous blocks
-   of time* (:func:`time_blocks`: neighbouring samples are correlated, so a random split
-   would leak; interleaving means a step or a drift is interpolated, never extrapolated
-   from one end; effects with memory keep their state across the blocks), fit on the
-   other folds (by default one Gauss-Newton step from the all-data fit with the fold's
-   rows removed, which agrees with a full refit to 1e-7 in the held-out RMS:
-   :func:`cross_validate`).  The effect size is ``explained_fraction``, the share of the
-   excess mean square over the noise floor that the effect removes on held-out data
-   (in-sample when ``folds=0`` or the record is too short; the verdict says which);
-5. gives a verdict: the best candidate that passes the p-value and BIC tests *and*
-   removes at least :data:`MIN_EXPLAINED` of the excess, or ``none`` when the residual is
-   within 10 % of the noise floor or no candidate passes.  Besides the catalog, the
-   candidates include the offset steps and spectral lines found in the residual
-   (:func:`propose_from_residual`: ``step(t)``, ``periodic(f)``), the lags and polynomial
-   couplings of each channel, and every effect on all sensors at once.
-
-:func:`ladder` repeats diagnose -> add the verdict -> refit until nothing is missing and
+1. estimates the sensor noise floor from the data themselves
+   (:func:`noise_floor_from_data`), an independent number to test "at the floor" against;
+2. lists every effect not in the model (per sensor, on all sensors, each auxiliary
+   channel), the offset steps and spectral lines of the residual
+   (:func:`propose_from_residual`), and sets aside, with the reason, those the data cannot
+   excite (``Effect.check``);
+3. screens every candidate by one Gauss-Newton step from the fitted parameters and refits
+   the most promising ones in full (warm start, noise levels fixed at the base fit's);
+4. ranks by evidence: delta BIC, the likelihood-ratio p-value (Bonferroni over the
+   candidates) and the effect size on held-out data (:func:`cross_validate` on interleaved
+   contiguous time blocks, :func:`time_blocks`): ``explained_fraction``, the share of the
+   excess mean square over the floor the effect removes;
+5. gives a verdict: the best candidate that passes the p-value and BIC tests *and* removes
+   at least :data:`MIN_EXPLAINED` of the excess, or ``none`` when the residual is within
+   10 % of the noise floor or no candidate passes.
 
 :func:`ladder` repeats diagnose -> add the verdict -> refit until nothing is missing and
 tabulates the held-out RMS of each step (the "error ladder").
 
-The package, one module per stage (every name below is importable from here):
-
-- :mod:`.constants`: the thresholds (``ALPHA``, ``MIN_DELTA_BIC``, ``MIN_EXPLAINED``, ...);
-- :mod:`.measures`: residual measures (nT), likelihood ratio, explained share;
-- :mod:`.candidates`: the tokens to test (catalog, residual, findings), :class:`Candidate`;
-- :mod:`.screen`: the one-step Gauss-Newton screening of many candidates;
-- :mod:`.validation`: time blocks, cross-validation, the approximate leave-out;
-- :mod:`.results`: :class:`Diagnosis`, its JSON form;
-- :mod:`.run`: :func:`diagnose`, one function per stage;
-- :mod:`.error_ladder`: :func:`ladder`, :class:`Ladder`, :class:`LadderStep`.
+One module per stage (docs/design.md); every name below is importable from here.
 """
 # the one noise-floor estimator (fit, diagnose, report, nodes); the old name is kept here
 from magcal_ros.core.data.noise import data_noise_floor as noise_floor_from_data, NoiseFloor

@@ -15,18 +15,13 @@
 """
 The drivers the discovery search tries, built from what a record holds.
 
-A :class:`Driver` is one factor of the model formula (docs/formulas.md, FORMULA syntax:
-``s(t, k=8)``, ``cc(aux_wheel_angle, k=2)``, ``lag(aux_relay)``, ``poly(temperature, 2)``,
-``sin(0.0112)``, ``step(300)``, ``window(120, 160)``, ``temperature * t``, ``rate``) with its
-design columns X (N, m) on the tested epochs, centred, so that the search can score it
-without building a model.  :func:`drivers_of` lists them from the record: its length and
-sampling (smooth bases in time with a number of basis functions up to one per ~10 samples
-of the shortest feature worth describing), the change points and spectral lines of the
-base residual, each channel (its range; a channel that wraps gets a cyclic basis), the
-first-order lag of each channel on a grid of time constants, and products of two channels.
-
-The columns are the formula's own driver's (:func:`grammar_columns`), centred; the term
-adopted is refitted by the grammar.
+A :class:`Driver` is one factor of the model formula (docs/formulas.md: ``s(t, k=8)``,
+``cc(aux_wheel_angle, k=2)``, ``lag(aux_relay)``, ``poly(temperature, 2)``, ``sin(0.0112)``,
+``step(300)``, ``window(120, 160)``, ``temperature * t``, ``rate``) with its design
+columns on the tested epochs, centred, so that the search can score it without building a
+model.  :func:`time_drivers`, :func:`channel_drivers`, :func:`product_drivers` and
+:func:`rate_driver` list them; the columns are the formula's own driver's
+(:func:`grammar_columns`), and the term adopted is refitted by the grammar.
 """
 from dataclasses import dataclass, field
 import math
@@ -53,22 +48,11 @@ class Driver:
     """
     One driver of the formula and its design columns.
 
-    Attributes
-    ----------
-    text : str
-        The formula factor, e.g. 's(t, k=8)' or 'lag(aux_relay)'.
-    kind : str
-        'time', 'channel', 'product' or 'rate' (what it follows, for the description).
-    channel : str
-        The channel it reads ('t' for time, 'temperature', 'aux_<name>', 'rate').
-    columns : callable
-        columns(j) -> (N, m) design of sensor j (1-based) on the tested epochs, centred;
-        per-axis drivers (rate) return (N, 3) with per_axis True.
-    per_axis : bool
-        The driver acts axis by axis (dB_i = P_i X_i): offset coupling only.
-    note : str
-        What it was built from (a change point, a spectral line, ...).
-
+    ``text``: the formula factor ('s(t, k=8)', 'lag(aux_relay)'); ``kind``: 'time',
+    'channel', 'product' or 'rate'; ``channel``: what it reads ('t', 'temperature',
+    'aux_<name>', 'rate'); ``columns(j)``: the (N, m) design of sensor j (1-based) on the
+    tested epochs, centred ((N, 3) for a per-axis driver); ``per_axis``: it acts axis by axis
+    (dB_i = P_i X_i); ``note``: what it was built from (a change point, a line, ...).
     """
 
     text: str
@@ -97,8 +81,8 @@ def grammar_columns(text, ctx, q=()):
     """
     (N, m) columns of the grammar's driver ``text`` in ``ctx`` (a SensorContext), centred.
 
-    The driver is the formula's own (:func:`magcal_ros.core.effects.formula.parse_driver`),
-    prepared on ``ctx``; ``q`` holds its own parameters (a lag's time constant, s).
+    The formula's own driver (:func:`magcal_ros.core.effects.formula.parse_driver`), prepared
+    on ``ctx``; ``q`` holds its own parameters (a lag's time constant, s).
     """
     d = parse_driver(text)
     refs = {}
@@ -110,9 +94,8 @@ def wrap_period(x):
     """
     Return the period of a channel that wraps (an angle), or None.
 
-    A wrapped angle jumps by about its whole range between two samples several times while
-    moving smoothly otherwise: at least two jumps larger than half the range, with the range
-    close to 360 (degrees) or 2 pi (radians).
+    At least two jumps larger than half the range between samples while the median step is
+    small, with the range close to 360 (degrees) or 2 pi (radians).
     """
     x = np.asarray(x, float)
     if len(x) < 10 or not np.all(np.isfinite(x)):
@@ -158,9 +141,9 @@ def time_drivers(t, steps=(), windows=(), lines=()):
     """
     Return the drivers in time.
 
-    Smooths with 4 to 20 basis functions (at least 25 samples each), polynomials of degree
-    1-3, the steps and windows at the change points given (s) and sinusoids at the lines
-    (Hz).
+    Polynomials of degree 1-3, smooths of :data:`SMOOTH_K` basis functions (at least
+    :data:`MIN_SAMPLES_PER_K` samples each), the steps and windows at the change points given
+    (s) and sinusoids at the lines (Hz).
     """
     ctx = SensorContext(t=np.asarray(t, float))
     n = len(ctx.t)

@@ -15,12 +15,10 @@
 """
 Candidate effects of the diagnosis: the tokens to test, where they come from, their evidence.
 
-Besides the effect catalog (:func:`candidate_tokens`: every effect not in the model, per
-sensor where it applies and on all sensors at once), the candidates include the offset steps
-and spectral lines found in the residual (:func:`propose_from_residual`: ``step(t)``,
-``periodic(f)``) and the catalog effects the model-free findings point to
-(:func:`tokens_from_findings`).  :func:`split_testable` sets aside, with the reason, those the
-data cannot excite (``Effect.check``).
+The effect catalog (:func:`candidate_tokens`), the offset steps and spectral lines of the
+residual (:func:`propose_from_residual`) and the catalog effects the model-free findings
+point to (:func:`tokens_from_findings`); :func:`split_testable` sets aside, with the reason,
+those the data cannot excite (``Effect.check``).
 """
 from dataclasses import dataclass
 import math
@@ -39,35 +37,26 @@ class Candidate:
 
     Attributes
     ----------
-    token : str
-        Model-spec token, e.g. 'temperature@2' or 'aux:aux_motor_current' (all sensors).
-    effect : str
-        Effect label ('temperature', 'aux:aux_motor_current', ...).
+    token, effect : str
+        Model-spec token ('temperature@2', 'aux:aux_motor_current' on all sensors) and effect
+        label ('temperature', ...).
     sensor : int or None
         Sensor (1-based), None when added to every sensor.
     n_params : int
         Parameters added (k of the likelihood-ratio test).
-    rms_before_nt, rms_after_nt : float
-        Scalar residual RMS of the affected sensors, base fit and with the effect
-        (``rms_after_nt`` None when the residuals were not evaluated: method 'score').
-    vector_rms_before_nt, vector_rms_after_nt : float or None
-        Vector residual RMS (vs sensor 1) involving the affected sensors (after: None
-        for method 'score').
-    delta_chi2 : float
-        Decrease of chi-square (noise levels fixed at the base fit).
-    delta_bic : float
-        BIC(with) - BIC(without) = -delta_chi2 + k ln(n_obs); negative favours the effect.
+    rms_before_nt, rms_after_nt, vector_rms_before_nt, vector_rms_after_nt : float or None
+        Scalar and vector (vs sensor 1) residual RMS of the affected sensors, base fit and
+        with the effect (after: None when the residuals were not evaluated).
+    delta_chi2, delta_bic : float
+        Decrease of chi-square (noise levels fixed) and BIC(with) - BIC(without) =
+        -delta_chi2 + k ln(n_obs) (negative favours the effect).
     p_value, log10_p_value : float
         Likelihood-ratio test, chi-square with k degrees of freedom.
     method : str
-        'refit' (full ML refit from the base solution), 'one-step' (one Gauss-Newton
-        step from the base solution, evaluated; a lower bound of delta_chi2) or 'score'
-        (Rao's score test at the base solution: delta_chi2 is the decrease that step
-        predicts, exact for effects that enter linearly; used where it puts delta BIC
-        above 0, 10 units short of significance, :data:`SCORE_RULE_OUT_BIC`, so the
-        residuals are not evaluated; a term of the formula search is listed with 'score',
-        its evidence the linearised problem's) or 'search' (the formula search's term that
-        is the verdict) or 'localised' (a ``drop`` of an excess confined in time).
+        'refit' (full ML refit), 'one-step' (one Gauss-Newton step, evaluated: a lower bound
+        of delta_chi2), 'score' (the decrease that step predicts, not evaluated:
+        :data:`SCORE_RULE_OUT_BIC`; also a term of the formula search), 'search' (the
+        search's term that is the verdict) or 'localised' (a ``drop`` of an excess in time).
     cv_rms_before_nt, cv_rms_after_nt : float or None
         Combined residual RMS on held-out time blocks (None when not computed).
     significant : bool
@@ -75,16 +64,11 @@ class Candidate:
         least :data:`MIN_EXPLAINED`.
     params : tuple of dict
         The added parameters {sensor, name, unit, value} after the fit.
-    explained_fraction : float or None
-        Share (0..1) of the excess mean square over the noise floor that the effect removes:
-        (MS_before - MS_after) / (MS_before - floor^2) of the combined residual, held out
-        when cross-validated, in-sample when there is no held-out test; None when not
-        computed (a candidate after the verdict).
-    decided_by : str or None
-        Which measure gave ``explained_fraction``: 'held-out' or 'in-sample (...)'.
+    explained_fraction, decided_by : float or None, str or None
+        Share (0..1) of the excess mean square over the noise floor the effect removes from
+        the combined residual, and by which measure ('held-out' or 'in-sample (...)').
     note : str or None
-        Why the candidate is not adopted although its fit is good: its fitted parameters
-        make it a simpler catalog effect (``Effect.reduces``: a lag of zero time constant).
+        Why a candidate with a good fit is not adopted (``Effect.reduces``).
 
     """
 
@@ -135,12 +119,10 @@ def candidate_tokens(model, data, extra=()):
     Every effect not in ``model``, per sensor where it applies and on all sensors at once.
 
     Returns a list of (token, effect label, sensor or None).  Effects that clash with the
-    model (soft_iron next to scale/nonorthogonality/misalignment, drift2 next to drift)
-    are left out.  Effects with arguments are offered with the arguments they suggest
-    (``Effect.suggest_args``: ``lag(temperature)``, ``aux_poly(aux_<name>,2)``) and with
-    ``extra`` names with arguments (``step(300)``, ``periodic(0.23)``: found in the residual
-    by :func:`propose_from_residual`).  Every effect free on all sensors (plug-ins too) is
-    offered on all of them as well (token without ``@``).
+    model (:data:`NESTED`, ``Effect.excludes``) are left out; effects with arguments are
+    offered with those they suggest (``Effect.suggest_args``) and with the ``extra`` names
+    (``step(300)``, ``periodic(0.23)``: :func:`propose_from_residual`).  Every additive effect
+    free on all sensors is offered on all of them as well (token without ``@``).
     """
     s = model.n_sensors
     ctx = data.context(1)
@@ -158,12 +140,9 @@ def candidate_tokens(model, data, extra=()):
     out = []
     for name in names:
         if getattr(fx.effect_class(name), 'scope', 'sensor') == 'array':
-            # one effect of the whole array (site_gradient): offered once, when the data
-            # have what it reads (the attitude)
+            # one effect of the whole array (site_gradient), offered once when the data have
+            # what it reads; a gradient needs the sensors' positions (paper 004's cross)
             eff = fx.make_effect(name, 0)
-            # a gradient needs the sensors' positions: known here for paper 004's cross
-            # only (a vehicle's three compasses have none); the attitude's observation of
-            # the field is a way of fitting, not an effect to find (candidate False)
             if (name not in {e.name for e in model.array_effects} and s >= 3
                     and getattr(eff, 'candidate', True)
                     and (s == 4 or not hasattr(eff, 'set_positions'))
@@ -206,30 +185,11 @@ def propose_from_residual(t, residual, max_steps=2, min_line_ratio=30.0):
     """
     Effects with arguments suggested by the residual: offset steps and periodic lines.
 
-    Parameters
-    ----------
-    t : numpy.ndarray
-        (N,) time, s.
-    residual : numpy.ndarray
-        (S, N, 3) raw-space residual of the fit, nT.
-    max_steps : int
-        Change points per record (binary segmentation).
-    min_line_ratio : float
-        A spectral line is proposed when its power exceeds this many times the median
-        power of the spectrum (a white residual exceeds 30 x the median in one of ~1e4
-        bins with probability ~1e4 exp(-30 ln 2) ~ 1e-5).
-
-    Returns
-    -------
-    list of str
-        Names with arguments, e.g. ['step(300)', 'periodic(0.23)'] (the diagnosis tests each
-        per sensor and on all sensors).
-
-    Change points: binary segmentation of the mean of the 3-vector residuals
-    (:func:`~.measures.binary_segmentation`).  Lines: the periodogram
-    (:func:`~.measures.periodogram`) of each sensor's residual, summed over the axes, its peak
-    refined on a grid 10x finer than 1/span.
-
+    ``t`` (N,) s; ``residual`` (S, N, 3) raw-space residual, nT; ``max_steps``: change points
+    per record (:func:`~.measures.binary_segmentation` of the mean of the 3-vector
+    residuals); ``min_line_ratio``: a line is proposed when its power exceeds this many times
+    the median power (white noise: probability ~1e-5 in ~1e4 bins at 30).  Returns names with
+    arguments, e.g. ['step(300)', 'periodic(0.23)'] (tested per sensor and on all sensors).
     """
     t = np.asarray(t, float)
     out = []
@@ -257,12 +217,11 @@ def residual_features(t, residual, max_steps=2, min_line_ratio=30.0, readings=No
     """
     Change points and spectral lines of a residual (see :func:`propose_from_residual`).
 
-    ``readings``: (S, N, 3) nT, the sensors' readings. Given, changes are also sought in
-    how the residual follows the reading's direction u = m / |m| (the 9 products r_a u_b
-    per sensor): a step of a scale factor, an angle or a cross-coupling (a range switch, a
-    knock to the mount) leaves a residual dM m that averages out over the attitudes, and
-    so no change in its mean, but a change in the mean of r_a u_b (dM_ab |m| / 3 for a
-    well-turned record).
+    ``readings`` (S, N, 3) nT: given, changes are also sought in the 9 products r_a u_b of
+    the residual and the reading's direction u = m / |m| per sensor: a step of a scale
+    factor, an angle or a cross-coupling changes their mean, not the residual's.  Lines: the
+    periodogram of each sensor's residual summed over the axes, its peak refined on a grid
+    10x finer than 1/span.
 
     Returns (change points: sorted epoch indices (the first sample after each change),
     lines: {sensor index: (peak power / median power, refined frequency Hz)}).
@@ -323,14 +282,11 @@ def demodulated_lines(t, residual, readings, min_line_ratio=30.0):
     """
     Spectral lines of how the residual follows the reading's direction (frequencies, Hz).
 
-    A line that modulates a scale factor, an angle or the linear map (``scale(sin(f))``,
-    ``rotation(sin(f))``) leaves a residual dM(t) m whose spectrum is the line mixed with
-    the turning of the sensor (side bands at f +- the turn rates, the line itself absent);
-    the 9 products r_a u_b (u = m / |m|, as for the steps in :func:`residual_features`)
-    hold dM(t) |m| u u^T, whose attitude average is dM(t) |m| / 3: the line at f.
-
-    ``residual``, ``readings``: (S, N, 3) nT.  Returns the sorted frequencies of the
-    sensors' strongest lines of the products (:func:`residual_features`' test).
+    A line modulating a scale factor, an angle or the linear map leaves a residual dM(t) m
+    whose spectrum has side bands at f +- the turn rates; the 9 products r_a u_b (u = m / |m|)
+    average over the attitudes to dM(t) |m| / 3: the line at f.  ``residual``, ``readings``:
+    (S, N, 3) nT.  Returns the sorted frequencies of the sensors' strongest lines of the
+    products (:func:`residual_features`' test).
     """
     prod = _gain_products(residual, readings)
     _, lines = residual_features(t, prod.reshape(*prod.shape[:2], 9), max_steps=0,
@@ -379,23 +335,10 @@ def split_testable(model, tokens, contexts):
     """
     Split candidate tokens into those the data can test and those they cannot, with why.
 
-    Parameters
-    ----------
-    model : Model
-        The diagnosed model.
-    tokens : list of tuple
-        (token, effect label, sensor or None) as from :func:`candidate_tokens`.
-    contexts : list of Context
-        One per sensor, what the data offer (temperature, auxiliary channels, ...).
-
-    Returns
-    -------
-    testable : list of tuple
-        (token, label, sensor) the data can excite and the model can take.
-    not_testable : list of tuple
-        (token, reason): ``Effect.check`` failed, the model refuses the effect, it is
-        already there, or it would tie the sensors to one field.
-
+    ``tokens``: (token, effect label, sensor or None) as from :func:`candidate_tokens`;
+    ``contexts``: one per sensor.  Returns (testable: [(token, label, sensor)],
+    not_testable: [(token, reason)]): ``Effect.check`` failed, the model refuses the effect,
+    it is already there, or it would tie the sensors to one field.
     """
     s = model.n_sensors
     testable, not_testable = [], []
@@ -421,12 +364,7 @@ def split_testable(model, tokens, contexts):
 
 
 def reads_stderr(model, label):
-    """
-    Tell whether :func:`reduces_to_simpler` of ``label`` can read the fit's uncertainties.
-
-    Only effects that override ``Effect.reduces`` (a lag; plug-ins) do: a refit of any other
-    candidate needs no covariance.
-    """
+    """Tell whether the fit's uncertainties matter to ``label``'s own ``Effect.reduces``."""
     return any(type(eff).reduces is not fx.Effect.reduces
                for row in model.effects for eff in row if eff.label == label)
 
@@ -446,9 +384,8 @@ def tokens_from_findings(findings):
     """
     Names with arguments that model-free findings point to (tested like any candidate).
 
-    ``findings``: dicts {"kind", "sensor", "channel", "value", "token", ...} (issue 11 item
-    3): the finding's token, else the one its kind points to (:data:`.findings.KINDS`), on
-    every sensor: ``step(t)``, ``periodic(f)``, ``lag(channel)``, ``aux_poly(channel,2)``.
+    ``findings``: dicts {"kind", "sensor", "channel", "value", "token", ...}: the finding's
+    token, else the one its kind points to (:data:`.findings.KINDS`), on every sensor.
     Tokens without arguments are in the catalog's candidates already.
     """
     out = []

@@ -30,40 +30,27 @@ BLOCKS_PER_FOLD = 4
 #: shortest block, epochs (the cross-validation needs folds x this many epochs)
 MIN_BLOCK = 12
 #: practical significance: a verdict must remove at least this share of the excess mean
-#: square over the noise floor (held-out; in-sample without cross-validation).  A fifth:
-#: after the verdict at most 4/5 of the excess is left, so a residual at r x the floor is
-#: brought to at most sqrt(1 + 0.8 (r^2 - 1)) x the floor (1.3 x at r = 1.5), each rung
-#: removes a visible part of what is left, and effects that only shave the noise
-#: (nonlinearity for 5.88 -> 5.88 nT, field_rate for 2.9643 -> 2.9641 nT: issue 11) are
-#: not adopted however significant they are on 10^4 epochs.  The likelihood tests grow
-#: with N, this share does not, so more data cannot turn a small effect into a verdict.
+#: square over the noise floor (held-out; in-sample without cross-validation): each rung
+#: removes a visible part of what is left, and effects that only shave the noise are not
+#: adopted however significant.  The likelihood tests grow with N, this share does not.
 MIN_EXPLAINED = 0.2
 #: candidates refitted in full after the one-step screening
 DEFAULT_MAX_REFIT = 4
 #: iterations of a candidate's refit, from the one-step solution (a lag's time constant
-#: from the best point of LAG_GRID_POINTS): a well-posed candidate converges in 2-5
-#: (temperature@2: 2, lag(temperature)@2 from its grid start: 4; from the old 30 s start a
-#: 90 s lag took up to 12); the cap stops a parameter the data do not fix (the time
-#: constant of the all-sensors lag on the sensors without one) from wandering, which cost
-#: 30 iterations per such refit, then 12 with the former cap
+#: from the best point of LAG_GRID_POINTS): a well-posed candidate converges in 2-5; the
+#: cap stops a parameter the data do not fix (the time constant of the all-sensors lag on
+#: the sensors without one) from wandering
 REFIT_MAX_NFEV = 6
 #: precision of a candidate's refit in chi-square: its iterations stop when one lowers
 #: chi-square by less than this.  The tests read chi-square differences against thresholds
-#: of order 10 (delta BIC < -10, k ln N per parameter, p-values of chi-square with k degrees
-#: of freedom); a tenth of a unit moves log10 p by about 0.02 and delta BIC by 0.1.  Iterating
-#: to the numerical limit (fit's default) took 6 Jacobians where 1-2 reached this precision
-#: (issue 11 item 7)
+#: of order 10; a tenth of a unit moves log10 p by about 0.02 and delta BIC by 0.1
 REFIT_CHI2_TOL = 0.1
 #: evidence equal within this (chi-square units, the refits' precision) is a tie, broken by
 #: parsimony rather than by floating-point rounding (run.order_by_evidence)
 EVIDENCE_TIE = REFIT_CHI2_TOL
 #: a candidate whose score test (the chi-square decrease its one Gauss-Newton step predicts,
 #: exact for effects that enter linearly) gives a delta BIC above this is not evaluated
-#: further: BIC prefers the model without it, 10 units short of significance
-#: (MIN_DELTA_BIC), where the evaluated decrease exceeded the predicted one by at most 0.2
-#: in chi-square over 555 candidates on six injected cases (step, periodic, lag at 3 000 and
-#: 10 000 epochs, current squared, no fault); half to three quarters of the candidates are
-#: ruled out so (issue 11 item 7)
+#: further: BIC prefers the model without it, 10 units short of significance (MIN_DELTA_BIC)
 SCORE_RULE_OUT_BIC = 0.0
 #: time constants (log-spaced, sample interval to a quarter of the record) a lag's refit
 #: start is chosen from, each by one linear step (Screen.lag_start)
@@ -80,17 +67,15 @@ SEARCH_CHANGE_POINTS = 4
 SEARCH_LISTED = 10
 
 # -- the residual toolkit (measures.py) -------------------------------------------------------
-#: evenly sampled: every interval within this share of the median one.  Not tighter: stamps
-#: on a Unix-epoch clock (1.7e9 s) carry 2e-7 s of float64 rounding, 2e-5 of a 100 Hz
-#: interval, which a tolerance of 1e-6 called irregular; a timing error of 1e-3 interval
-#: moves the phase of a line at the Nyquist frequency by pi 1e-3 rad, nothing an FFT shows
+#: evenly sampled: every interval within this share of the median one (not tighter: stamps
+#: on a Unix-epoch clock carry 2e-5 of a 100 Hz interval of float64 rounding; an error of
+#: 1e-3 interval moves a line's phase at the Nyquist frequency by pi 1e-3 rad)
 EVEN_SAMPLING = 1e-3
 #: most complex exponentials (epochs x frequencies) of one Lomb-Scargle periodogram (~1 s);
 #: a larger irregular record is regridded onto its median interval and FFT-ed
 LS_BUDGET = 4e7
-#: a clock with jitter: the stamps of a stream sampled at a fixed rate, read with a delay that
-#: varies (a live record's arrival stamps) and with samples lost, when at most this fraction
-#: of the intervals lies outside (1 -+ CLOCK_JITTER) x the median interval
+#: a fixed-rate clock read with jitter and samples lost (a live record's arrival stamps): at
+#: most this fraction of the intervals outside (1 -+ CLOCK_JITTER) x the median interval
 CLOCK_OUTLIERS = 0.05
 CLOCK_JITTER = 0.25
 
@@ -101,15 +86,13 @@ MAX_PER_SENSOR = 4
 STEP_OVER_TREND = 0.95
 #: shortest segment of a step, as a share of the record
 MIN_SEGMENT_FRACTION = 0.02
-#: excess kurtosis from which tails count as heavy (a Student t with 10 degrees of freedom;
-#: the sample excess kurtosis of Gaussian noise has sd sqrt(24 / N) = 0.09 at N = 3000)
+#: excess kurtosis from which tails count as heavy (a Student t with 10 degrees of freedom)
 MIN_EXCESS_KURTOSIS = 1.0
 #: a finding on another sensor with the same kind and value is the consensus' echo of the
 #: faulty sensor's if it removes less than this share of the largest one's mean square (the
 #: echo through the median of 3 others is a few per cent, through the mean of 2 a quarter)
 ECHO_RATIO = 0.5
-#: fewer epochs than this: no search (the fit leaves too few degrees of freedom per
-#: parameter for the residual to be white, and the tests' null distributions are asymptotic)
+#: fewer epochs than this: no search (the tests' null distributions are asymptotic)
 MIN_EPOCHS = 200
 #: lag time constants tried per channel
 N_TAU = 24

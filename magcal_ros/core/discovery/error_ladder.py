@@ -33,23 +33,12 @@ import numpy as np
 @dataclass(frozen=True, eq=False)
 class LadderStep:
     """
-    One rung: a model, its fit and its held-out residual (nT).
+    One rung: a model, its fit and its residual RMS (nT).
 
-    Attributes
-    ----------
-    model : tuple of str
-    added : str or None
-        Token added at this step (None for the start).
-    n_params : int
-    scalar_rms_nt, vector_rms_nt : dict
-    residual_rms_nt : float
-        Combined in-sample residual RMS.
-    cv_rms_nt : float or None
-        Combined held-out residual RMS.
-    cv_per_sensor_nt : tuple of float
-    diagnosis : Diagnosis or None
-    result : FitResult
-
+    ``model``: spec; ``added``: token added at this step (None at the start);
+    ``scalar_rms_nt``, ``vector_rms_nt``: {sensor: RMS}; ``residual_rms_nt``: combined
+    in-sample RMS; ``cv_rms_nt``: combined held-out RMS or None; ``cv_per_sensor_nt``;
+    ``diagnosis`` (or None) and ``result`` (FitResult).
     """
 
     model: tuple
@@ -69,13 +58,8 @@ class Ladder:
     """
     The error ladder: held-out RMS falling as effects are added.
 
-    Attributes
-    ----------
-    steps : tuple of LadderStep
-    noise_floor : NoiseFloor
-    reason : str
-        Why the ladder stopped (the last diagnosis' reason for "none", or the step limit).
-
+    ``steps``: tuple of LadderStep; ``noise_floor``: NoiseFloor; ``reason``: why the ladder
+    stopped (the last diagnosis' reason for "none", or the step limit).
     """
 
     steps: tuple
@@ -154,8 +138,7 @@ def ladder(data, start_model='base', steps=None, auto=True, field_nt=None, *,
     start_model : str or Model or FitResult
         Where to start (a FitResult on ``data`` is used as is).
     steps : list of str, optional
-        Effects to add in this order (e.g. ['temperature@2', 'aux:aux_motor_current']);
-        each step's held-out RMS is computed.
+        Effects to add in this order (e.g. ['temperature@2', 'aux:aux_motor_current']).
     auto : bool
         After ``steps`` (or from the start), keep adding the diagnosis verdict until it is
         'none' or ``max_steps`` effects were added.
@@ -168,11 +151,9 @@ def ladder(data, start_model='base', steps=None, auto=True, field_nt=None, *,
     progress : callable, optional
         ``progress(stage, i, n, label)`` called as the work proceeds.
     diagnosis : Diagnosis, optional
-        An existing diagnosis of ``start_model`` (a FitResult) on ``data``, reused for the
-        first step.
+        An existing diagnosis of ``start_model`` (a FitResult) on ``data``, for the first step.
     **diag_kwargs
-        Passed to :func:`diagnose`; ``constrained=True`` (partial attitude coverage) also
-        makes every fit of the ladder a constrained one.
+        Passed to :func:`diagnose`; ``constrained=True`` also constrains every fit.
 
     Returns
     -------

@@ -15,75 +15,51 @@
 """
 What is left in the residuals of a fit, model-free: lines, steps, lags, gradients, tails.
 
-:func:`find` looks at the residuals a fitted model leaves and names the structure in them
-without the effect catalog: a spectral line, an offset step, a driven channel acting through
-a lag or non-linearly, a trend, an attitude pattern, heavy tails, or a field gradient across
-the array.  Each :class:`Finding` says what it is, how much of the sensor's excess over the
-noise floor its own simple model (a sinusoid, a step, a lag filter, ...) removes, and which
-effect token to add (``periodic(0.23)@3``, ``step(300)@1``, ``lag(temperature)@2``, ...).
+:func:`find` names the structure in the residuals a fitted model leaves, without the effect
+catalog: a spectral line, an offset step, a channel acting through a lag or non-linearly, a
+trend, an attitude pattern, heavy tails, or a field gradient across the array.  Each
+:class:`Finding` says what it is, how much of the sensor's excess over the noise floor its
+own simple model removes, and which effect token to add (``periodic(0.23)@3``, ...).
 
-Series analysed (all nT)
-------------------------
-- With 3 or more sensors, sensor j's **consensus residual** ``c_j - median_{k != j} c_k``
-  (``c``: corrected readings in the array frame, (N, 3) each): under a uniform field every
-  sensor sees the same vector, so this is noise plus sensor j's own faults.  The median of
-  the others is not moved by one faulty sensor, so a sensor-1 step shows on sensor 1 only,
-  not as "sensors 2-4 jumped" (the vector residual of :class:`FitResult` is taken against
-  sensor 1).
-- With 1 or 2 sensors, the scalar residual ``|c_j| - F`` (a consensus cannot attribute).
+Series analysed (nT): with 3 or more sensors, sensor j's **consensus residual**
+``c_j - median_{k != j} c_k`` (``c``: corrected readings in the array frame, (N, 3)): under a
+uniform field this is noise plus sensor j's own faults, and the median is not moved by one
+faulty sensor.  With 1 or 2 sensors, the scalar residual ``|c_j| - F``.
 
-Method
-------
-(References: docs/papers.md, "Methods of the findings".)  Per sensor, greedily: every test
-below is run on the series, the significant one with the largest BIC gain is kept, its
-fitted signal removed, and the tests are run again (at most :data:`MAX_PER_SENSOR` times).
-A finding needs
+Method (references: docs/papers.md, "Methods of the findings"): per sensor, greedily, every
+test below is run, the significant one with the largest BIC gain is kept and its fitted
+signal removed, at most :data:`MAX_PER_SENSOR` times.  A finding needs a p-value below
+``alpha`` / (number of tests) (Bonferroni) and a model that removes at least
+:data:`MIN_SIGNAL_RATIO` x the noise variance (alone it lifts the RMS above 1.10 x the
+floor) and :data:`MIN_EXPLAINED` of the sensor's excess mean square over the floor.
 
-1. significance: p-value below ``alpha`` / (number of tests) (Bonferroni); each test's
-   p-value comes from its own null distribution (below);
-2. effect size: its model removes at least :data:`MIN_SIGNAL_RATIO` x the noise variance
-   (pooled per component), i.e. alone it would lift the residual RMS above 1.10 x the floor,
-   the rule by which :mod:`magcal_ros.core.discovery` calls a residual "at the floor"; and at
-   least :data:`MIN_EXPLAINED` of the sensor's excess mean square over the floor.
-
-The tests:
-
-- ``periodic``: periodogram (FFT for uniform sampling; Lomb-Scargle,
-  :func:`lomb_scargle`, for irregular sampling), the channels' powers summed.
-  Under white noise the power normalised by its local median is Gamma(C, 1) distributed;
-  the false-alarm probability is that tail times the number of independent frequencies
-  (Scargle 1982).  A line must stand out of its neighbourhood, so a red continuum (a random
-  walk) is not a line.  Periods longer than a third of the record are left to ``time``.
-- ``step``: the most likely single change of the mean (CUSUM statistic of a Gaussian
-  mean shift, maximised over the change time), applied repeatedly by the greedy loop: binary
-  segmentation (Vostrikova 1981).  p-value: chi-square tail with C degrees of freedom,
-  Bonferroni over the candidate change times (conservative).  Segments shorter than
-  :data:`MIN_SEGMENT_FRACTION` of the record are not considered.
-- ``time``: Legendre polynomial trend of degree 1-5 (degree by BIC), F-test against none.
-- ``direction``: polynomial of degree <= 3 in the field direction (array frame; the
-  residual of a missing soft-iron, non-linearity or a body field), F-test against none.
+- ``periodic``: periodogram (:func:`~.measures.periodogram`), the channels' powers summed;
+  the power over its local median is Gamma(C, 1) under white noise, the false-alarm
+  probability that tail times the independent frequencies (Scargle 1982).  A line must stand
+  out of its neighbourhood (a random walk is not a line).
+- ``step``: the most likely single change of the mean (CUSUM), applied repeatedly by the
+  greedy loop: binary segmentation (Vostrikova 1981); chi-square tail with C degrees of
+  freedom, Bonferroni over the change times; segments of at least
+  :data:`MIN_SEGMENT_FRACTION` of the record.
+- ``time``: Legendre trend of degree 1-5 (degree by BIC), F-test against none.
+- ``direction``: polynomial of degree <= 3 in the field direction (a missing soft iron,
+  non-linearity or body field), F-test against none.
 - ``channel`` / ``lag`` / ``channel_nonlinear``: for each driving channel (the sensor's
-  temperature, every ``aux_*``), linear regression (``channel``); the channel through a
-  first-order lag ``tau dy/dt = x - y`` added to it, tau on a log grid (``lag``, F-test
-  against the linear fit, Bonferroni over the grid); x^2, x^3 and sign(dx/dt) added to it
-  (``channel_nonlinear``: curved, saturating or hysteretic; F-test against the linear fit).
-- ``heavy_tails``: on what is left after the greedy loop, D'Agostino's kurtosis test and an
-  excess kurtosis above :data:`MIN_EXCESS_KURTOSIS`.
-- ``nonuniform_field`` (the four-sensor cross of paper 004, :func:`tensor.cross_positions`):
-  the inter-sensor residuals ``m_j = c_j - mean_k c_k`` split into the antisymmetric part
-  of each arm, ``(m1 - m3) / 2`` and ``(m2 - m4) / 2`` (what a field gradient makes: paper
-  004 eq. 1), and the symmetric part ``(m1 + m3 - m2 - m4) / 4``.  Noise and the faults of
-  single sensors give mean(antisymmetric^2) = 4 mean(symmetric^2) whatever their time
-  structure; a gradient only the former (F-test, then the effect-size rule).  The value is
-  the RMS Frobenius norm of the gradient tensor left in the residuals (noise and single
-  sensors' faults removed), nT/m; the gradient is then taken out of the per-sensor series
-  (smoothed over time) before the per-sensor tests.
+  temperature, every ``aux_*``): linear regression; the channel through a first-order lag
+  ``tau dy/dt = x - y`` added (tau on a log grid, Bonferroni over it); x^2, x^3 and
+  sign(dx/dt) added (curved, saturating or hysteretic); F-tests against the linear fit.
+- ``heavy_tails``: on what is left, D'Agostino's kurtosis test and an excess kurtosis above
+  :data:`MIN_EXCESS_KURTOSIS`.
+- ``nonuniform_field`` (the cross of paper 004): the arms' antisymmetric parts of the
+  inter-sensor residuals against their symmetric part (:func:`_gradient`); the value is the
+  RMS Frobenius norm of the gradient tensor left, nT/m, and the gradient is taken out of the
+  per-sensor series before their tests.
 
 Noise: each series' per-component noise variance is the mean square of its third
-differences / 20 (the white-noise variance for any distribution, heavy tails included;
-smooth signals cancel), not a robust (MAD) estimate, which reads low for heavy tails.
+differences / 20 (:func:`~.measures.white_noise_sd`: right for heavy tails too, where a
+MAD reads low).
 """
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 import math
 
 from magcal_ros.core.discovery.constants import (ALPHA, ECHO_RATIO, LINE_NEIGHBOURHOOD,
@@ -107,21 +83,18 @@ class Finding:
     Attributes
     ----------
     kind : str
-        'periodic', 'step', 'lag', 'channel', 'channel_nonlinear', 'nonuniform_field',
-        'heavy_tails', 'direction' or 'time'.
+        A kind of :data:`KINDS` ('periodic', 'step', 'lag', 'channel', ...).
     sensor : int or None
-        The sensor that has it (1-based); None for the array (a field gradient).
+        The sensor that has it (1-based); None for the array or every sensor alike.
     channel : str or None
         The driving channel ('temperature', 'aux_<name>') for channel kinds.
     value : float or None
         Frequency (Hz) for 'periodic', change time (s, data time axis) for 'step', time
         constant (s) for 'lag', gradient magnitude (nT/m) for 'nonuniform_field', excess
-        kurtosis for 'heavy_tails', peak-to-peak trend (nT) for 'time'.
-    unit : str
-        Unit of ``value`` ('' when dimensionless or None).
+        kurtosis for 'heavy_tails', peak-to-peak trend (nT) for 'time'; ``unit`` says which
+        ('' when dimensionless or None).
     explained_fraction : float
-        Share (0..1) of the sensor's excess mean square over its noise floor that the
-        finding's own model removes.
+        Share (0..1) of the sensor's excess mean square over its floor its own model removes.
     text : str
         What it is and what to add.
     token : str or None
@@ -131,9 +104,8 @@ class Finding:
     rms_nt : float
         RMS (per component) of the finding's fitted signal, nT.
     replaces : tuple of str
-        Tokens of the fitted model that ``token`` takes the place of (e.g. the linear
-        ``aux:<col>`` that ``aux_poly(<col>,2)`` contains): the model to fit is the old one
-        without these, plus ``token``.
+        Tokens of the fitted model ``token`` takes the place of (the linear ``aux:<col>`` in
+        ``aux_poly(<col>,2)``): the model to fit is the old one without these, plus ``token``.
 
     """
 
@@ -151,11 +123,7 @@ class Finding:
 
     def to_dict(self):
         """JSON-ready dict (docs/design.md §2 keys first)."""
-        return {'kind': self.kind, 'sensor': self.sensor, 'channel': self.channel,
-                'value': self.value, 'unit': self.unit,
-                'explained_fraction': self.explained_fraction, 'text': self.text,
-                'token': self.token, 'p_value': self.p_value, 'rms_nt': self.rms_nt,
-                'replaces': list(self.replaces)}
+        return {**asdict(self), 'replaces': list(self.replaces)}
 
 
 @dataclass(frozen=True, eq=False)
@@ -170,20 +138,19 @@ class Findings:
     t : numpy.ndarray
         (N,) time, s.
     series : dict
-        {sensor: (N, C) residual series analysed, nT} (consensus residual, C = 3, or the
-        scalar residual, C = 1), after the field gradient was taken out when one was found.
+        {sensor: (N, C) residual series analysed, nT} (consensus, C = 3, or scalar, C = 1),
+        the field gradient taken out when one was found.
     noise_nt : dict
         {sensor: (C,) white-noise sd per component of that series, nT}.
     kind_of_series : str
         'consensus' or 'scalar'.
     common : numpy.ndarray or None
-        (N, 1) mean scalar residual of the sensors with their own findings taken out, nT
-        (where what every sensor has alike is sought), or None.
+        (N, 1) mean scalar residual of the sensors less their own findings, nT (where what
+        every sensor has alike is sought), or None.
     note : str
         Why nothing was searched (too short a record), else ''.
     direction : numpy.ndarray or None
-        (N, 3) unit field direction in the array frame (through which a vector effect shows
-        in a scalar residual).
+        (N, 3) unit field direction in the array frame.
 
     """
 
@@ -206,10 +173,8 @@ class Findings:
             return f'findings (model-free): not searched: {self.note}'
         if not self.items:
             return 'findings (model-free): none'
-        lines = ['findings (model-free, largest share of the excess first):']
-        for f in self.items:
-            lines.append(f'  {f.text}')
-        return '\n'.join(lines)
+        return '\n'.join(['findings (model-free, largest share of the excess first):']
+                         + [f'  {f.text}' for f in self.items])
 
 
 # -- helpers ---------------------------------------------------------------------------------
@@ -226,11 +191,11 @@ def _nuisance(mod):
     """
     (N, 10) what a refit of the linear model would absorb from the scalar residual.
 
-    An offset error c and a matrix error E of a sensor show in its scalar residual as
-    u.c + u.E u (u: field direction, (N, 3)): columns 1, u_a, u_a u_b.
+    A sensor's offset error c and matrix error E show in its scalar residual as u.c + u.E u
+    (u: field direction, (N, 3)): columns 1, u_a, u_a u_b.
     """
     u = mod
-    cols = [np.ones(len(u))] + [u[:, a] for a in range(3)]
+    cols = [np.ones(len(u)), *u.T]
     cols += [u[:, a] * u[:, b] for a in range(3) for b in range(a, 3)]
     return np.column_stack(cols)
 
@@ -239,9 +204,9 @@ def _expand(design, mod):
     """
     Expand the design of a vector effect as seen through the scalar residual.
 
-    A vector signal sum_k beta_k phi_k(t) (beta_k (3,) nT) shows in the scalar residual as
-    its component along the field direction u (N, 3): columns phi_k u_c, next to the
-    :func:`_nuisance` columns (the constant first column of ``design`` is replaced by them).
+    A vector signal sum_k beta_k phi_k(t) shows in the scalar residual along the field
+    direction u (N, 3): columns phi_k u_c, next to the :func:`_nuisance` columns (which replace
+    the constant first column of ``design``).
     """
     if mod is None:
         return design
@@ -377,11 +342,10 @@ class _Driver:
         self.a = (a - a.mean()) / np.std(a)
         self.taus = lag_grid(t, N_TAU, shortest=1e-4, longest=0.5, samples=3)
         self.base = np.column_stack([np.ones(n), self.a])
-        q, _ = np.linalg.qr(self.base)
-        self.q = q
-        lags = (np.column_stack([first_order_lag(t, self.a, tau) for tau in self.taus])
-                if len(self.taus) else np.zeros((n, 0)))
-        self.lags = lags
+        self.q = q = np.linalg.qr(self.base)[0]
+        self.lags = lags = (np.column_stack([first_order_lag(t, self.a, tau)
+                                             for tau in self.taus])
+                            if len(self.taus) else np.zeros((n, 0)))
         self.lags_perp = lags - q @ (q.T @ lags)          # orthogonal to [1, a]
         self.lag_norm2 = np.sum(self.lags_perp ** 2, axis=0)
         rate = np.gradient(ndimage.uniform_filter1d(self.a, max(3, n // 200)), t)
@@ -433,9 +397,8 @@ def _test_channel(t, x, drv, mod=None):
     else:
         lin, r1 = regress(x, _expand(drv.base, mod))
     ss1 = ss(lin)
-    out = [_Candidate('channel', lin - xm, c * (r1 - 1), _f_test(ss0, ss1, c * (r1 - 1),
-                                                                 n * c - c * r1),
-                      1, channel=name)]
+    out = [_Candidate('channel', lin - xm, c * (r1 - 1),
+                      _f_test(ss0, ss1, c * (r1 - 1), n * c - c * r1), 1, channel=name)]
     # first-order lag: the best time constant (grid, then refined)
     if mod is None:
         tau = _best_tau(drv, x - lin) if len(drv.taus) else None
@@ -467,20 +430,8 @@ def best_lag(t, x, drive):
     """
     Time constant (s) of the first-order lag through which ``drive`` best explains ``x``.
 
-    Parameters
-    ----------
-    t : numpy.ndarray
-        (N,) time, s.
-    x : numpy.ndarray
-        (N, C) residual series, nT.
-    drive : numpy.ndarray
-        (N,) the channel (temperature, degC, or an aux channel in its unit).
-
-    Returns
-    -------
-    float or None
-        None when the channel is constant or the record too short for a lag grid.
-
+    ``t`` (N,) s; ``x`` (N, C) residual series, nT; ``drive`` (N,) the channel, in its unit.
+    None when the channel is constant or the record too short for a lag grid.
     """
     drv = _Driver(np.asarray(t, float), 'channel', drive)
     if not drv.ok or not len(drv.taus):
@@ -512,10 +463,9 @@ class Kind:
     What the description, the candidate tokens and the report read of one kind (:data:`KINDS`).
 
     ``token(value, channel, detail, '@j' or '')``: the effect token to add, or None (an empty
-    detail, a finding read back as a dict: the token it points to without it); ``text(candidate,
-    '@j' or '', token, sensor text, share text)``: what it is and what to add (None: the kind
-    writes its own); ``follows(finding)``: what the residual follows, in words (the diagnosis'
-    'unexplained' finding); ``view``: the report's figure that shows it.
+    detail: a finding read back as a dict); ``text(candidate, '@j' or '', token, sensor text,
+    share text)``: what it is and what to add; ``follows(finding)``: what the residual
+    follows, in words; ``view``: the report's figure that shows it.
     """
 
     token: object
@@ -610,13 +560,12 @@ def _gradient(t, corrected, baseline_m, alpha, drivers=None):
     """
     Test for a gradient across the cross: (finding or None, (S, N, 3) part to take out, nT).
 
-    With m_j = c_j - mean_k c_k, the arms' antisymmetric parts a_x = (m1 - m3) / 2,
-    a_y = (m2 - m4) / 2 and the symmetric part s = (m1 + m3 - m2 - m4) / 4 obey, for noise
-    and for any fault of one sensor (independent across sensors, of any time structure),
-    E[a_x^2 + a_y^2] = 4 E[s^2] (sensor j's error e_j puts e_j / 2 into one a and e_j / 4
-    into s); a gradient B(r) = B0 + G r puts G r_j into the a's and nothing into s (paper
-    004 eq. 1: r_1 = -r_3, r_2 = -r_4).  The test needs no smoothness in time, so it works
-    for random attitudes too: F-test of A = mean(a_x^2 + a_y^2) against 4 mean(s^2).
+    With m_j = c_j - mean_k c_k, the arms' antisymmetric parts a_x = (m1 - m3) / 2, a_y =
+    (m2 - m4) / 2 and the symmetric part s = (m1 + m3 - m2 - m4) / 4 obey, for noise and any
+    fault of one sensor, E[a_x^2 + a_y^2] = 4 E[s^2]; a gradient puts G r_j into the a's and
+    nothing into s (paper 004 eq. 1: r_1 = -r_3, r_2 = -r_4).  F-test of mean(a_x^2 + a_y^2)
+    against 4 mean(s^2): no smoothness in time needed (random attitudes too).  ``drivers``
+    (N, m): what differs between the sensors for other reasons, taken out first.
     """
     from magcal_ros.core.geometry.tensor import tensor_cross
     from scipy.signal import savgol_filter
@@ -697,8 +646,8 @@ def _sensor_findings(t, x, sd, u, drivers, sensor, alpha_test, mod=None):
     """
     Greedy search on one series; (list of (Finding, ms removed), remainder).
 
-    ``mod`` (N, 3): the series is a scalar residual and the effects are vectors seen
-    through the field direction ``mod`` (:func:`_expand`).
+    ``mod`` (N, 3): the series is a scalar residual, the effects vectors seen through the
+    field direction ``mod`` (:func:`_expand`).
     """
     n, c = x.shape
     x = x - x.mean(axis=0)
@@ -734,8 +683,7 @@ def _sensor_findings(t, x, sd, u, drivers, sensor, alpha_test, mod=None):
             break
         if best[1].kind == 'time':
             # an abrupt change that explains nearly all a smooth trend does is the better
-            # description (a linear drift gives a step 75 % of it; small echoes of the other
-            # sensors' faults can tip a degree-5 trend past a step otherwise)
+            # description
             steps = [b for b in passed
                      if b[1].kind == 'step' and b[2] >= STEP_OVER_TREND * best[2]]
             if steps:
@@ -759,7 +707,7 @@ def _tails(x, sd, sensor, alpha_test):
     heavy_tails finding of one sensor's remainder x (N, C), or None.
 
     Tested on the first differences, which a slow leftover of the other findings does not
-    reach: for independent noise the excess kurtosis of a difference is half the noise's.
+    reach (the excess kurtosis of a difference of independent noise is half the noise's).
     """
     if x.shape[0] < 40:
         return None
@@ -787,33 +735,26 @@ def _in_model(f, model):
     """``f`` with the tokens of ``model`` its token takes the place of (see Finding)."""
     if model is None or not f.token:
         return f
-    from dataclasses import replace
     from magcal_ros.core.discovery.results import compact_spec
-    try:
-        new = model.with_effect(f.token)
-    except ValueError:
-        new = None
     spec = compact_spec(model)
-    if new is not None:
-        # a larger form replaces what it contains (aux_poly > aux: Effect.supersedes)
-        kept = compact_spec(new)
-        gone = tuple(t for t in spec if t != 'base' and t not in kept)
-        if not gone:
-            return f
-        return replace(f, replaces=gone, text=f'{f.text} in place of {" ".join(gone)}')
-    out = []
-    for tok in spec:
-        if tok == 'base':
-            continue
-        rest = ','.join(x for x in spec if x != tok)
+
+    def takes(new):
         try:
-            type(model).from_spec(rest, model.n_sensors).with_effect(f.token)
+            return new().with_effect(f.token)
         except ValueError:
-            continue
-        out.append(tok)
-    if not out:
+            return None
+    kept = takes(lambda: model)
+    if kept is not None:
+        # a larger form replaces what it contains (aux_poly > aux: Effect.supersedes)
+        kept = compact_spec(kept)
+        gone = tuple(t for t in spec if t != 'base' and t not in kept)
+    else:
+        gone = tuple(tok for tok in spec if tok != 'base' and takes(
+            lambda: type(model).from_spec(','.join(x for x in spec if x != tok),
+                                          model.n_sensors)) is not None)
+    if not gone:
         return f
-    return replace(f, replaces=tuple(out), text=f'{f.text} in place of {" ".join(out)}')
+    return replace(f, replaces=gone, text=f'{f.text} in place of {" ".join(gone)}')
 
 
 def _sameness(t):
@@ -876,10 +817,9 @@ def _attribute(per, gradient, same):
     """
     Return the findings each sensor has of its own (list of Finding).
 
-    The same finding on several sensors is the faulty sensor's echo through the others'
-    consensus unless it is comparable in size; with a field ``gradient`` every sensor's
-    residual depends on the attitude, and what is left of it shows alike on the two sensors
-    of an arm: not their faults.
+    The same finding on several sensors is the faulty sensor's echo through the consensus
+    unless comparable in size; with a field ``gradient``, what shows alike on the two sensors
+    of an arm is left of the gradient, not their faults.
     """
     keep = []
     for f, removed in per:
@@ -898,8 +838,8 @@ def _common_stage(data, t, scalar, explained, u, aux_drivers, alpha_test, keep, 
     """
     Test what every sensor has alike: (findings, ``keep`` less their echoes, (N, 1) nT).
 
-    It cancels in the consensus, and is left in the mean of the scalar residuals as its
-    component along the field direction ``u``, less each sensor's own findings.
+    It cancels in the consensus and is left in the mean scalar residual, along the field
+    direction ``u``, less each sensor's own findings.
     """
     s = scalar.shape[0]
     x0 = np.mean(scalar, axis=0)
@@ -939,9 +879,8 @@ def _find(data, result, *, baseline_m=0.5, alpha=ALPHA, corrected=None, field=No
         (S sensors, N epochs) in time order; its temperatures and ``aux_*`` channels are the
         driving channels tested.
     result : FitResult
-        A fit on ``data``: its ``corrected_nt`` (S, N, 3) nT, ``scalar_residual_nt`` (S, N)
-        nT and ``field_nt`` (N, 3) nT are used, on the sets where its model's ``drop``
-        terms keep every sensor's reading (``reading_mask``).
+        A fit on ``data``: its ``corrected_nt`` (S, N, 3), ``scalar_residual_nt`` (S, N) and
+        ``field_nt`` (N, 3), nT, on the sets where its ``drop`` terms keep every sensor.
     baseline_m : float
         Arm length of the four-sensor cross, m (paper 004), for the gradient magnitude.
     alpha : float

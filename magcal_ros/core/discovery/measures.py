@@ -13,24 +13,18 @@
 # limitations under the License.
 
 """
-Residual measures of the diagnosis (nT) and the statistics that compare two nested fits.
+Residual measures of the diagnosis (nT), statistics of nested fits, the residual toolkit.
 
-Residual measures (all nT):
+Residual measures (nT): the scalar residual of sensor j, |corrected_j| - F (at the floor,
+RMS = sigma_j); the vector residual of sensor j > 1, corrected_j - corrected_1 (at the floor
+sqrt(sigma_j^2 + sigma_1^2) per component; some effects show only here); the combined
+residual, the fit's raw-space residual scaled by :func:`dof_factor` so that it equals the
+per-axis noise sd when the model is complete (the held-out measure).
 
-- scalar residual of sensor j: |corrected_j| - F (at the floor: RMS = sigma_j);
-- vector residual of sensor j > 1: corrected_j - corrected_1, per-component RMS (at the floor
-  sqrt(sigma_j^2 + sigma_1^2)); some effects (a field-rate term under pure rotation) show
-  only here;
-- combined residual: the raw-space residual of the maximum-likelihood fit, scaled by
-  sqrt(3G / (3G - 2)) (:func:`dof_factor`) for the 2 field directions profiled per epoch
-  from G jointly fitted sensors, so that it equals the per-axis noise sd when the model is
-  complete.  This is the held-out (cross-validated) measure.
-
-The residual toolkit every stage of the discovery reads (one implementation each): the
-white-noise level (:func:`white_noise_sd`), the even-sampling test (:func:`evenly_sampled`,
-:func:`sampled_on_a_clock`), the periodogram (:func:`periodogram`, :func:`lomb_scargle`), the
-change-point method (:func:`cusum`, :func:`binary_segmentation`), the lag grid
-(:func:`lag_grid`) and the least-squares fit of a thin design (:func:`regress`).
+The toolkit every stage reads (one implementation each): :func:`white_noise_sd`,
+:func:`evenly_sampled`, :func:`sampled_on_a_clock`, :func:`periodogram`,
+:func:`lomb_scargle`, :func:`cusum`, :func:`binary_segmentation`, :func:`lag_grid`,
+:func:`regress`.
 """
 from dataclasses import dataclass
 import math
@@ -65,12 +59,7 @@ def n_observations(model, n, kept=None):
 
 
 def rms(x, kept=None):
-    """
-    Return the root mean square of ``x`` (any shape, nT); NaN when empty.
-
-    ``kept``: bool of ``x``'s leading dimensions, the entries counted (the readings a
-    ``drop`` term leaves out are not).
-    """
+    """Return the RMS of ``x`` (any shape, nT) over the entries ``kept`` (bool); NaN if none."""
     x = np.asarray(x, float)
     if kept is not None:
         x = x[np.asarray(kept, bool)]
@@ -78,11 +67,7 @@ def rms(x, kept=None):
 
 
 def scalar_rms_of(scalar, sensors, kept=None):
-    """
-    Return the pooled RMS of the (S, N) scalar residual of ``sensors`` (1-based), nT.
-
-    ``kept`` (S, N) bool: the readings counted (default all).
-    """
+    """Return the pooled RMS of the (S, N) scalar residual of ``sensors`` where ``kept``, nT."""
     rows = [j - 1 for j in sensors]
     return rms(scalar[rows], None if kept is None else kept[rows])
 
@@ -91,8 +76,8 @@ def vector_rms_of(vector, sensors, n_sensors, kept=None):
     """
     Return the pooled per-component RMS of the vector residuals involving ``sensors``, nT.
 
-    ``kept`` (S, N) bool: the readings counted (default all); sensor j's vector residual
-    counts where j's and sensor 1's readings are kept.
+    ``kept`` (S, N) bool: sensor j's vector residual counts where j's and sensor 1's readings
+    are kept (default all).
     """
     if n_sensors < 2:
         return None
@@ -107,22 +92,10 @@ class Evaluation:
     """
     Residuals of one parameter vector on the full data.
 
-    Attributes
-    ----------
-    chi2 : float
-        Sum of squared normalised residuals (or the robust loss's chi-square equivalent).
-    scalar : numpy.ndarray
-        (S, N) scalar residual, nT.
-    vector : numpy.ndarray
-        (S, N, 3) vector residual vs sensor 1, nT.
-    residual : numpy.ndarray
-        (S, N, 3) raw-space residual, nT.
-    field : numpy.ndarray
-        (N, 3) the profiled field, nT.
-    kept : numpy.ndarray or None
-        (S, N) bool, the readings the model keeps (None: all): those a ``drop`` term leaves
-        out are zero in ``scalar``, ``vector``, ``residual`` and count in no measure.
-
+    ``chi2``: sum of squared normalised residuals (or the robust loss's chi-square
+    equivalent); ``scalar`` (S, N), ``vector`` (S, N, 3, vs sensor 1) and ``residual`` (S, N,
+    3, raw space) residuals, nT; ``field`` (N, 3): the profiled field, nT; ``kept`` (S, N)
+    bool: the readings the model keeps (None: all), the others zero and counted nowhere.
     """
 
     chi2: float
@@ -148,31 +121,13 @@ class Evaluation:
 
 def evaluate_residuals(model, p, data, f, sigma, contexts, field0=None, loss=None):
     """
-    Evaluate ``model`` at ``p`` on ``data`` (:func:`magcal_ros.core.model.evaluate`).
+    Evaluate ``model`` at ``p`` on ``data``: an :class:`Evaluation`.
 
-    Parameters
-    ----------
-    model : Model
-        The model, prepared.
-    p : numpy.ndarray
-        (P,) its parameters.
-    data : Dataset
-        (S sensors, N epochs), nT.
-    f : numpy.ndarray
-        (N,) reference magnitude, nT.
-    sigma : numpy.ndarray
-        (S,) noise levels, nT.
-    contexts : list of SensorContext
-        (S,) driving signals on the same epochs.
-    field0 : numpy.ndarray, optional
-        (N, 3) field to start the profile from (one Gauss-Newton step of it), nT.
-    loss : callable, optional
-        Chi-square equivalent of a robust loss (:func:`soft_l1_lr_loss`).
-
-    Returns
-    -------
-    Evaluation
-
+    ``model`` prepared, ``p`` (P,), ``data`` (S sensors, N epochs, nT), ``f`` (N,) reference
+    magnitude, nT, ``sigma`` (S,) noise levels, nT, ``contexts`` (S,) SensorContext;
+    ``field0`` (N, 3) nT: the field the profile starts from (one Gauss-Newton step of it);
+    ``loss``: chi-square equivalent of a robust loss (:func:`soft_l1_lr_loss`).  See
+    :func:`magcal_ros.core.model.evaluate`.
     """
     out = evaluate(model, p, data, f, sigma, contexts, field0=field0)
     z = out['residual'] / sigma[:, None, None]
@@ -185,19 +140,10 @@ def soft_l1_lr_loss(z0, f_scale):
     """
     Chi-square-equivalent of the soft-L1 loss for the likelihood-ratio test and BIC.
 
-    For an M-estimator with loss L(z) (L = z^2 near 0; soft-L1: 2 f^2 (sqrt(1 + z^2/f^2)
-    - 1), the fit's robust loss) the drop of sum L between nested models, times
-    E[psi'] / E[psi^2] with psi = L'/2, is asymptotically chi-square with k degrees of
-    freedom (Ronchetti's robust likelihood-ratio test, Heritier & Ronchetti 1994); the same
-    scaled drop replaces delta chi-square in BIC.  The factor is estimated from the base
-    fit's normalised residuals ``z0`` (any shape); for Gaussian residuals and the plain
-    square loss it is 1.
-
-    Returns
-    -------
-    callable
-        z (S, N, 3) residual / sigma -> the scaled loss sum (a chi-square equivalent).
-
+    The drop of sum L (soft-L1: 2 f^2 (sqrt(1 + z^2/f^2) - 1)) between nested models, times
+    E[psi'] / E[psi^2] (psi = L'/2), is asymptotically chi-square with k degrees of freedom
+    (Heritier & Ronchetti 1994); the factor is estimated from the base fit's normalised
+    residuals ``z0`` (any shape).  Returns z (S, N, 3) residual / sigma -> the scaled loss sum.
     """
     u = 1.0 + (np.asarray(z0, float) / f_scale) ** 2
     c = float(np.mean(u ** -1.5) / np.mean(z0 ** 2 / u))
@@ -209,14 +155,10 @@ def soft_l1_lr_loss(z0, f_scale):
 
 def likelihood_ratio(delta_chi2, k, n_obs):
     """
-    Return the likelihood-ratio test and delta BIC of adding ``k`` parameters.
+    Return (p-value, log10 p-value, delta BIC) of adding ``k`` parameters.
 
-    Returns
-    -------
-    tuple of float
-        (p-value, log10 p-value, delta BIC): chi-square with ``k`` degrees of freedom of
-        ``delta_chi2``, and BIC(with) - BIC(without) = -delta_chi2 + k ln(n_obs).
-
+    Chi-square with ``k`` degrees of freedom of ``delta_chi2``, and BIC(with) - BIC(without)
+    = -delta_chi2 + k ln(n_obs).
     """
     d = max(float(delta_chi2), 0.0)
     p = float(stats.chi2.sf(d, k))
@@ -231,11 +173,7 @@ def likelihood_ratio(delta_chi2, k, n_obs):
 
 
 def explained_share(ms_before, ms_after, floor_nt):
-    """
-    Share (0..1) of the excess mean square over floor^2 removed: (before - after) / excess.
-
-    0 when there is no excess (the residual is at or below the floor).
-    """
+    """Share (0..1) of the excess mean square over floor^2 removed (0 without an excess)."""
     excess = float(ms_before) - float(floor_nt) ** 2
     if not excess > 0:
         return 0.0
@@ -254,20 +192,11 @@ def solve_psd(a, b, rcond=1e-12):
 
 def white_noise_sd(x):
     """
-    Per-component white-noise sd of a series from its third differences.
+    Per-component white-noise sd of a series (N,) or (N, C), any unit: (C,).
 
-    Parameters
-    ----------
-    x : numpy.ndarray
-        (N,) or (N, C) series in time order (any unit).
-
-    Returns
-    -------
-    numpy.ndarray
-        (C,) sd in the unit of ``x``: sqrt(mean((Delta^3 x)^2) / 20), 20 = C(6, 3) the
-        variance gain of the third difference.  Mean square, not MAD: unbiased for any noise
-        distribution; a signal smooth at the sample rate, or a few steps, barely contribute.
-
+    sqrt(mean((Delta^3 x)^2) / 20), 20 = C(6, 3) the variance gain of the third difference: a
+    mean square, not a MAD, so unbiased for any noise distribution; a signal smooth at the
+    sample rate, or a few steps, barely contribute.
     """
     x = np.asarray(x, float)
     if x.ndim == 1:
@@ -294,10 +223,7 @@ def sampled_on_a_clock(t, dt=None):
     True when at most :data:`~.constants.CLOCK_OUTLIERS` of the intervals lie outside (1 -+
     :data:`~.constants.CLOCK_JITTER`) times the median interval ``dt`` (s; computed when
     None): the residual can then be interpolated onto the clock's grid without losing a line
-    below the Nyquist frequency (a timing error of a quarter interval shifts a line's phase
-    by at most pi f / (2 f_Nyquist)), and its periodogram is an FFT instead of
-    Lomb-Scargle's N x M sum (live records, four sensors: 2.7 s of a diagnose call at 1 500
-    sets, 9.5 s at 3 000).
+    below the Nyquist frequency, and its periodogram is an FFT instead of Lomb-Scargle's.
     """
     d = np.diff(np.asarray(t, float))
     if not d.size:
@@ -312,31 +238,14 @@ def periodogram(t, x, oversample=2):
     """
     Power spectrum of a residual series, also for irregular sampling.
 
-    Parameters
-    ----------
-    t : numpy.ndarray
-        (N,) time, s.
-    x : numpy.ndarray
-        (N,) or (N, C) series, nT (the mean is removed).
-    oversample : int
-        Frequencies per independent frequency (a line between two bins of spacing
-        1 / (oversample span) loses at most 19 % of its power at 2, 1.3 % at 8).
-
-    Returns
-    -------
-    freqs : numpy.ndarray
-        (M,) frequencies, Hz, from about 1/T to the Nyquist frequency of the median interval.
-    power : numpy.ndarray
-        (M, C) power, nT^2: the squared amplitude of the best-fitting sinusoid times N / 4
-        (white noise of variance s^2 has mean power s^2).  Evenly sampled
-        (:func:`evenly_sampled`): the FFT zero-padded ``oversample`` x.  A clock read with
-        jitter (:func:`sampled_on_a_clock`), or an irregular record whose Lomb-Scargle sum
-        would exceed :data:`~.constants.LS_BUDGET`: the FFT of the series interpolated
-        linearly onto the median interval (a gentle low-pass: a line well below the Nyquist
-        frequency keeps its power).  Otherwise Lomb-Scargle (:func:`lomb_scargle`).
-    n_independent : int
-        Number of independent frequencies in the band (N / 2 for even sampling).
-
+    ``t`` (N,) s; ``x`` (N,) or (N, C) nT (the mean is removed); ``oversample``: frequencies
+    per independent frequency.  Returns (freqs (M,) Hz, from about 1/T to the Nyquist
+    frequency of the median interval; power (M, C) nT^2, the squared amplitude of the
+    best-fitting sinusoid times N / 4; the number of independent frequencies, N / 2 for even
+    sampling).  Evenly sampled: the FFT zero-padded ``oversample`` x; a clock read with jitter
+    (:func:`sampled_on_a_clock`), or an irregular record whose Lomb-Scargle sum would exceed
+    :data:`~.constants.LS_BUDGET`: the FFT of the series interpolated onto the median
+    interval; otherwise Lomb-Scargle (:func:`lomb_scargle`).
     """
     t = np.asarray(t, float)
     x = np.asarray(x, float)
@@ -362,25 +271,9 @@ def lomb_scargle(t, x, freqs, chunk=256):
     """
     Classical Lomb-Scargle periodogram (Lomb 1976, Scargle 1982 eq. 10), vectorised.
 
-    Parameters
-    ----------
-    t : numpy.ndarray
-        (N,) sample times, s (any spacing).
-    x : numpy.ndarray
-        (N, C) series with its mean removed.
-    freqs : numpy.ndarray
-        (M,) frequencies, Hz.
-    chunk : int
-        Frequencies computed at a time (bounds the (chunk, N) work arrays).
-
-    Returns
-    -------
-    numpy.ndarray
-        (M, C) power P = [(sum x cos)^2 / sum cos^2 + (sum x sin)^2 / sum sin^2] / 2 with the
-        phases taken from tau (tan 2 w tau = sum sin 2wt / sum cos 2wt): N A^2 / 4 for a
-        sinusoid of amplitude A, the same numbers as :func:`scipy.signal.lombscargle`
-        (which loops in Python and takes seconds for 3000 x 4000).
-
+    ``t`` (N,) sample times, s; ``x`` (N, C) series with its mean removed; ``freqs`` (M,) Hz;
+    ``chunk`` frequencies computed at a time.  Returns the (M, C) power: N A^2 / 4 for a
+    sinusoid of amplitude A, the numbers of :func:`scipy.signal.lombscargle`.
     """
     t = np.asarray(t, float) - t[0]
     freqs = np.asarray(freqs, float)
@@ -412,10 +305,9 @@ def cusum(z, margin=0):
     Return (k, statistic) of the most likely single change in the mean of ``z`` (N, C).
 
     ``z``: a series standardised by its white-noise sd per column.  The statistic of a split
-    before epoch k is |c_k - k/N c_N|^2 N / (k (N - k)) (c: cumulative sums), the
-    likelihood-ratio (chi-square, C degrees of freedom at a fixed k) of one Gaussian mean
-    shift: the CUSUM statistic of Hawkins (1977), maximised over k; ``margin`` splits at
-    each end are not considered.
+    before epoch k, |c_k - k/N c_N|^2 N / (k (N - k)) (c: cumulative sums), is the
+    likelihood-ratio of one Gaussian mean shift (CUSUM, Hawkins 1977), maximised over k;
+    ``margin`` splits at each end are not considered.
     """
     n = len(z)
     c = np.cumsum(z, axis=0)
@@ -431,13 +323,11 @@ def binary_segmentation(x, max_changes, threshold, min_length=20, margin=5):
     """
     Change points of the mean of ``x`` (N, C): binary segmentation (Vostrikova 1981).
 
-    The series is standardised by its white-noise sd (:func:`white_noise_sd`), pooled over
-    the columns (one level for all, as the statistic's threshold is stated: a residual of
-    sensors with unequal noise weighs their columns alike); the most likely single change
-    (:func:`cusum`) of every segment of at least
-    ``min_length`` epochs is found, the largest kept while its statistic exceeds
-    ``threshold`` (chi-square units), and the segment split there, at most ``max_changes``
-    times.  Returns the epoch indices (the first sample after each change), in the order found.
+    The series is standardised by its white-noise sd pooled over the columns; the most likely
+    single change (:func:`cusum`) of every segment of at least ``min_length`` epochs is found,
+    the largest kept while its statistic exceeds ``threshold`` (chi-square units), and the
+    segment split there, at most ``max_changes`` times.  Returns the epoch indices (the first
+    sample after each change), in the order found.
     """
     sd = float(np.sqrt(np.mean(white_noise_sd(x) ** 2)))
     z = np.asarray(x, float) / (sd if sd > 0 else np.inf)
@@ -459,10 +349,7 @@ def lag_grid(t, points=LAG_GRID_POINTS, shortest=0.0, longest=0.25, samples=1):
     Return log-spaced time constants, s, of a first-order lag for times ``t`` (N,) s.
 
     ``points`` values from ``samples`` median intervals (at least ``shortest`` of the record)
-    to ``longest`` of the record; empty when that range is empty.  The findings test 24 from
-    3 intervals to half the record, a lag's refit starts from the best of 10 from one
-    interval to a quarter (:meth:`.screen.Screen.lag_start`), the formula search tries 7
-    from 0.2 % to 20 % (:func:`.bases.channel_drivers`).
+    to ``longest`` of the record; empty when that range is empty.
     """
     t = np.asarray(t, float)
     dt = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
@@ -475,10 +362,9 @@ def regress(x, design):
     """
     Least-squares fit of every column of x (N, C) on design (N, K); (fitted, rank).
 
-    Normal equations, columns scaled to unit norm and solved by eigen-decomposition with
-    the directions below 1e-10 of the largest eigenvalue dropped (a rank-deficient design,
-    e.g. u_x^2 + u_y^2 + u_z^2 = 1, is allowed): about 20x faster than an SVD of the design
-    for N >> K, and accurate for the well-scaled designs used here.
+    Normal equations with the columns scaled to unit norm, solved by eigen-decomposition
+    without the directions below 1e-10 of the largest eigenvalue (a rank-deficient design is
+    allowed).
     """
     g = design.T @ design
     d = np.sqrt(np.diag(g))

@@ -50,7 +50,7 @@ from magcal_ros.core.discovery.validation import cross_validate
 from magcal_ros.core.discovery.verify import tested_findings, tested_verdict
 from magcal_ros.core.effects.base import format_arg
 from magcal_ros.core.model import Model
-from magcal_ros.core.model.fitting import fit
+from magcal_ros.core.model.fitting import fit, fit_epochs
 from magcal_ros.core.model.solvers import single_threaded_blas
 import numpy as np
 
@@ -66,35 +66,14 @@ class Trial:
     """
     A candidate under test: its extended model, parameters and evidence so far.
 
-    Attributes
-    ----------
-    token, label : str
-        Model-spec token and effect label.
-    sensor : int or None
-        1-based sensor, None on all sensors.
-    model : Model
-        The base model with the effect added.
-    p : numpy.ndarray
-        (P',) its parameters (one-step, then refitted).
-    added : numpy.ndarray
-        (P',) bool, the parameters the effect adds.
-    ev : Evaluation or None
-        Its residuals on the tested epochs; None for a candidate the score test ruled out
-        (its residuals were not evaluated).
-    score_chi2 : float
-        The base fit's chi-square less the score statistic (the one-step decrease
-        predicted by the linearised problem): :attr:`chi2` until ``ev`` is set.
-    method : str
-        'score', 'one-step' or 'refit'.
-    reduces : str or None
-        Why the fitted effect reduces to a simpler one (``Effect.reduces``).
-    cv : dict or None
-        Its :func:`cross_validate` result.
-    share : float or None
-        Held-out share of the excess mean square it removes.
-    start : numpy.ndarray or None
-        (P',) the base fit's parameters with the effect's at their defaults.
-
+    ``token``, ``label``: model-spec token and effect label; ``sensor``: 1-based, None on all
+    sensors; ``model``: the base model with the effect; ``p`` (P',) its parameters (one-step,
+    then refitted); ``added`` (P',) bool, those the effect adds; ``ev``: its Evaluation on the
+    tested epochs, None when the score test ruled it out; ``score_chi2``: the base fit's
+    chi-square less the score statistic (:attr:`chi2` until ``ev`` is set); ``method``:
+    'score', 'one-step' or 'refit'; ``reduces``: why it reduces to a simpler effect
+    (``Effect.reduces``); ``cv``: its :func:`cross_validate` result; ``share``: held-out share
+    of the excess it removes; ``start`` (P',): the base parameters with the effect's defaults.
     """
 
     token: str
@@ -177,14 +156,13 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
     base : FitResult, optional
         An existing fit of the model on ``data`` (default: fitted here).
     folds : int
-        Folds of the cross-validation (interleaved blocks, :func:`time_blocks`); 0 (or a
-        record shorter than ``folds x 48`` epochs): no held-out test, the verdict rests on
-        the likelihood tests and the in-sample share (``decided_by`` says so).
+        Folds of the cross-validation (:func:`time_blocks`); 0 (or too short a record): no
+        held-out test, the verdict rests on the likelihood tests and the in-sample share
+        (``decided_by`` says so).
     alpha : float
         Family-wise significance level (Bonferroni over the candidates).
     max_refit : int
-        Number of best-screened candidates refitted in full (the rest keep their one-step
-        evidence, a lower bound).
+        Best-screened candidates refitted in full (the rest keep their one-step evidence).
     candidates : list of str, optional
         Tokens to test instead of every missing effect.
     progress : callable, optional
@@ -192,20 +170,16 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
     cv_method : {'newton', 'refit'}
         How each fold is fitted (:func:`cross_validate`).
     max_samples : int or None
-        Test the candidates on at most this many evenly spaced epochs (the fit's own cap);
-        the noise floor is estimated from all of them.  None: all.
+        Test the candidates on at most this many evenly spaced epochs (the noise floor uses
+        all of them).  None: all.
     baseline_m : float
-        Arm length of a four-sensor cross, m, for the gradient of a ``nonuniform_field``
-        finding (:func:`magcal_ros.core.discovery.findings.find`).
+        Arm length of a four-sensor cross, m (the gradient of a ``nonuniform_field`` finding).
     constrained : bool
-        Partial attitude coverage: the base fit, every candidate's refit and the held-out
-        fits use the priors of ``fit(constrained=True)``, and the held-out fits are refits
-        (the Newton leave-out step has no prior terms).  Candidates are judged only after
-        a constrained refit (the one-step screen only ranks them).
+        Partial attitude coverage: every fit uses the priors of ``fit(constrained=True)``, the
+        held-out fits are refits, and candidates are judged only after a constrained refit.
     propose : bool
-        Also test the steps and spectral lines found in the base residual
-        (:func:`propose_from_residual`) and the catalog effects the findings point to
-        (:func:`tokens_from_findings`).
+        Also test the steps and lines of the base residual (:func:`propose_from_residual`) and
+        the effects the findings point to (:func:`tokens_from_findings`).
     **fit_kwargs
         Passed to :func:`magcal_ros.core.model.fit` for the base fit.
 
@@ -251,8 +225,7 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
         ratio = max([v / floor.per_sensor_nt[j - 1] for j, v in scalar_rms.items()]
                     + [v / floor.vector_floor_nt(j) for j, v in vector_rms.items()])
         verdict, reason = _verdict(b, ranked, ratio, at_floor, held_out, p_thr)
-        # the formula search: only when something is missing (at the floor it has nothing
-        # to find, and a control costs what it did)
+        # the formula search: only when something is missing
         found_terms = None
         if (candidates is None and propose and not b.robust and not constrained
                 and not at_floor):
@@ -261,8 +234,7 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
             seconds['search'] = time.perf_counter() - t0
             verdict, reason, ranked = _merge_search(b, trials, ranked, verdict, reason,
                                                     found_terms, at_floor)
-        # every term offered (the verdict, a finding's token) is first fitted with the model
-        # as `magcal fit` fits it and must lower the held-out residual (issue 32, verify.py)
+        # every term offered is first fitted as `magcal fit` fits it (verify.py)
         t0 = time.perf_counter()
         tested = {}
         on_deg = fit_kwargs.get('on_degenerate', 'raise')
@@ -291,8 +263,7 @@ def _search(b, screen, alpha):
     """Run the formula search (:mod:`.search`) on the base fit's residual; SearchResult."""
     data, resid, n_obs = b.data, b.ev0.residual, b.n_obs
     if data.n_samples > SEARCH_MAX_EPOCHS:
-        keep = np.unique(np.linspace(0, data.n_samples - 1, SEARCH_MAX_EPOCHS).round()
-                         .astype(int))
+        keep = fit_epochs(data.n_samples, SEARCH_MAX_EPOCHS)
         data, resid = data.subset(keep), resid[:, keep]
         n_obs = n_observations(b.model, len(keep))
         screen = Screen(b.model, b.params, data.raw, [c.subset(keep) for c in b.contexts],
@@ -309,7 +280,7 @@ def _search(b, screen, alpha):
     freqs = sorted({round(f, 6) for _, f in lines.values()}
                    | set(demodulated_lines(t, resid, data.raw)))
     return run_search(data, resid, screen, b.sigma, b.floor, n_obs, alpha=alpha,
-                      steps=steps, windows=windows, lines=freqs, dof=dof_factor(b.model))
+                      steps=steps, windows=windows, lines=freqs)
 
 
 def _trial_ratio(b, trial):
@@ -328,14 +299,11 @@ def _merge_search(b, trials, ranked, verdict, reason, res, at_floor):
     """
     Put the search's terms among the candidates and choose the verdict between the two.
 
-    The catalog's verdict stands when it brings every sensor to its floor
-    (:data:`.constants.AT_FLOOR_RATIO`), unless the search's term does too on fewer sensors (the
-    catalog offers an effect on one sensor or on all; the search names the sensors that
-    carry it).  Otherwise the search's adopted term is the verdict when it leaves less
-    (largest ratio to the floor over the sensors).  The search's terms are listed among
-    the candidates (after the verdict and the catalog's, method 'score': their evidence is
-    the linearised problem's) only when the verdict is the search's; the catalog's ranking
-    is kept as it is otherwise.
+    The catalog's verdict stands when it brings every sensor to its floor, unless the search's
+    term does too on fewer sensors; otherwise the search's adopted term is the verdict when it
+    leaves less (largest ratio to the floor).  The search's terms are listed among the
+    candidates (method 'score') only when the verdict is the search's.  When nothing explains
+    the excess, an excess confined in time (``res.localised``) is left out instead.
     """
     s = b.data.n_sensors
     if at_floor:
@@ -388,9 +356,8 @@ def _describe(b, found, res, verdict, scalar_rms, vector_rms):
     """
     Add the model-free descriptions of the search to the findings (each with its token).
 
-    'localised': an excess confined in time (:func:`.search.localised`), token
-    ``drop(t0, t1)``.  'unexplained': when there is no verdict, what is left
-    (:func:`_what_is_left`).
+    'localised': an excess confined in time (:func:`.search.localised`), token ``drop(t0,
+    t1)``; 'unexplained', without a verdict: what is left (:func:`_what_is_left`).
     """
     from dataclasses import replace
     from magcal_ros.core.discovery.findings import Finding
@@ -426,14 +393,10 @@ def _what_is_left(b, found, res, scalar_rms, vector_rms):
     """
     Describe the excess nothing explains (a Finding of kind 'unexplained'), or None.
 
-    Which sensors carry it (one, an arm of the cross, every sensor alike, or a set), whether
-    it shows in the scalar or only in the vector residual and how far above the floor, when
-    (the shortest interval holding :data:`WHEN_SHARE` of it, if at most :data:`WHEN_SPAN` of
-    the record, else throughout), and what it follows most: the search's best term (its
-    held-out share) or a model-free finding on those sensors (its share of their excess):
-    the field direction (attitude), a line, a step, a trend, a channel, a gradient.  The
-    token is that term's or finding's (:func:`.verify.tested_findings` fits it before it
-    is offered).
+    Which sensors carry it, scalar or vector and how far above the floor, when (the shortest
+    interval holding :data:`WHEN_SHARE` of it if at most :data:`WHEN_SPAN` of the record) and
+    what it follows most: the search's best term or a model-free finding on those sensors,
+    whose token it offers (:func:`.verify.tested_findings` fits it first).
     """
     from magcal_ros.core.discovery.findings import Finding
     s = b.data.n_sensors
@@ -589,11 +552,9 @@ def order_by_evidence(trials, b):
     """
     Sort ``trials`` in place, best evidence (lowest delta BIC against ``b``) first.
 
-    Evidence equal within the refits' precision (:data:`EVIDENCE_TIE`, chi-square units)
-    is a tie that floating-point rounding would otherwise decide (two tokens for one model,
-    e.g. a user's effect and the periodic line the residual proposes at its frequency); a
-    tie goes to the candidate with fewer parameters, then to a named effect before one
-    with arguments ('wheel' before 'periodic(0.25)'), then by token.
+    Evidence equal within :data:`EVIDENCE_TIE` is a tie, which goes to fewer parameters, then
+    to a named effect before one with arguments ('wheel' before 'periodic(0.25)'), then by
+    token.
     """
     _order_runs(trials, b.delta_bic, lambda c: (c.k, '(' in c.label, c.token))
 
@@ -626,15 +587,10 @@ def _base_fit(data, model, f, base, constrained, progress, fit_kwargs):
 def _prepare(data, f, base, floor, max_samples, constrained):
     """Return the tested epochs (at most ``max_samples``) and the base fit's residuals on them."""
     n_all = data.n_samples
-    keep = np.arange(n_all)
-    if max_samples and n_all > max_samples:
-        # the same evenly spaced epochs as fit(max_fit_samples): the time order (and so the
-        # contiguous cross-validation blocks) is kept
-        keep = np.unique(np.linspace(0, n_all - 1, int(max_samples)).round().astype(int))
+    keep = fit_epochs(n_all, int(max_samples or 0))     # the fit's own evenly spaced epochs
     model = base.model
     if model.drops:
-        # the sets the drop() terms leave out for every sensor are not tested (a sensor's
-        # readings left out alone count in no measure: Evaluation.kept)
+        # the sets the drop() terms leave out for every sensor are not tested
         keep = keep[model.fit_mask(data.t[keep])]
     if len(keep) < n_all:
         data, f = data.subset(keep), f[keep]
@@ -681,19 +637,15 @@ def _screen(b, testable, progress):
     """
     Screen every candidate from the base fit; return (trials best first, Screen).
 
-    Each candidate gets one Gauss-Newton step (:meth:`Screen.step`) and its score
-    statistic, the chi-square decrease the step predicts (Rao's score test: the likelihood-
-    ratio statistic to first order, exact for effects that enter linearly).  Those whose
-    predicted delta BIC is above :data:`SCORE_RULE_OUT_BIC` (10 units short of
-    significance) keep that evidence, ``method`` 'score'; the others are evaluated at the
-    step (``method`` 'one-step').  Under the robust loss every candidate is evaluated (the
-    step is least squares on the inliers, the evidence the robust loss).
+    One Gauss-Newton step each (:meth:`Screen.step`) and its score statistic, the chi-square
+    decrease the step predicts (Rao's score test).  Those whose predicted delta BIC is above
+    :data:`SCORE_RULE_OUT_BIC` keep that evidence (method 'score'); the others are evaluated at
+    the step ('one-step').  Under the robust loss every candidate is evaluated.
     """
     trials = []
     screen = None
     if testable:
-        # the Gauss-Newton screening step is least squares: under the robust loss it is taken
-        # on the epochs the robust fit does not treat as outliers (|z| < 2 f_scale)
+        # under the robust loss the (least-squares) step is taken on the inliers
         n = b.data.n_samples
         keep = (np.arange(n) if b.loss is None else np.flatnonzero(
             np.all(np.abs(b.ev0.residual / b.sigma[:, None, None]) < 2 * b.f_scale,
@@ -731,16 +683,12 @@ def _refit(b, trials, screen, max_refit, progress):
         if i > 0 and b.delta_bic(c) > MIN_DELTA_BIC:      # cannot become significant
             break
         init = c.p
-        # a lag's time constant: from the best of a grid (each point a linear step) rather
-        # than from the one step off Lag.tau0_s, which took the refit up to REFIT_MAX_NFEV
-        # iterations (issue 11 item 7: 13 of the 15 Jacobians of this stage)
+        # a lag's time constant: from the best of a grid (each point a linear step)
         start = None if screen is None else screen.lag_start(c.model, c.start, c.added,
                                                              lag_grid(b.data.t))
         if start is not None:
             init = start
-        # warm start: a well-posed candidate converges in a few iterations; the cap keeps a
-        # parameter the data do not fix (a lag's time constant on a sensor without the lag)
-        # from wandering for hundreds of them
+        # warm start; the cap keeps a parameter the data do not fix from wandering
         r = fit(b.data, c.model, field_nt=b.f, sigma_nt=b.sigma, init=init,
                 check_identifiability=False, on_degenerate='flag', robust=b.robust,
                 constrained=b.constrained, max_nfev=REFIT_MAX_NFEV,
@@ -749,8 +697,7 @@ def _refit(b, trials, screen, max_refit, progress):
                 **({'f_scale': b.f_scale} if b.robust else {}))
         ev = evaluate_residuals(c.model, r.params, b.data, b.f, b.sigma, b.contexts,
                                 loss=b.loss)
-        # with priors (constrained) the one-step screen's chi-square leaves them out, so it
-        # is no bar for the refit's, which honours them: the refit stands
+        # with priors (constrained) the screen's chi-square is no bar: the refit stands
         if ev.chi2 <= c.chi2 or c.ev is None or b.constrained:
             c.p, c.ev, c.method = r.params, ev, 'refit'
             c.reduces = reduces_to_simpler(c.model, r.params, r.stderr, c.label, b.contexts)
@@ -768,9 +715,9 @@ def _held_out(b, trials, n_refit, folds, cv_method, p_thr, progress, held_out):
     """
     Cross-validate the base model and the refitted candidates that pass the likelihood tests.
 
-    Best first (interleaved blocks: time_blocks), until one removes MIN_EXPLAINED of the
-    excess mean square over the floor; each trial tested gets ``cv`` and ``share``.  Returns
-    the base model's :func:`cross_validate` result, None without a held-out test.
+    Best first, until one removes MIN_EXPLAINED of the excess; each trial tested gets ``cv``
+    and ``share``.  Returns the base model's :func:`cross_validate` result, None without a
+    held-out test.
     """
     if not held_out:
         return None
@@ -858,8 +805,7 @@ def _verdict(b, ranked, ratio, at_floor, held_out, p_thr):
             f'delta BIC {best.delta_bic:.0f}, p = 10^{best.log10_p_value:.0f}{held}, '
             f'removes {best.explained_fraction:.0%} of the excess over the floor '
             f'({best.decided_by}), floor {floor.value_nt:.2f} nT')
-    # a filtered series has no white floor: its floor is a lower bound, the ratio an upper
-    # bound (core/data/noise.py)
+    # a filtered series' floor is a lower bound (core/data/noise.py)
     floor_word = ('noise floor' if 'filtered' not in floor.status else
                   'lower bound of the noise floor (low-pass-filtered series)')
     if not ranked:

@@ -24,12 +24,7 @@ import numpy as np
 
 
 def add_gtc(gtc, cols, cj, gb):
-    """
-    Add G^T C per epoch to ``gtc`` (2, K, N) at ``cols``: C ``cj`` (k, N, 3), G ``gb``.
-
-    (N, 3, 2) x (N, 3, k) written out over the 3 components: numpy's batched matmul of tiny
-    matrices cost 3 ms per candidate.
-    """
+    """Add G^T C per epoch to ``gtc`` (2, K, N) at ``cols``: C ``cj`` (k, N, 3), G ``gb``."""
     for a in range(2):
         gtc[a, cols] += cj[:, :, 0] * gb[0][a] + cj[:, :, 1] * gb[1][a] + cj[:, :, 2] * gb[2][a]
 
@@ -44,40 +39,23 @@ class Screen:
     """
     One Gauss-Newton step of an extended model from the base solution, for many candidates.
 
-    The variable-projection Jacobian of the base parameters (the same as in
+    The variable-projection Jacobian of the base parameters (as in
     :func:`magcal_ros.core.model.fit`), the residual and the nuisance-field projector are
-    computed once; each candidate adds only its own columns, projected the same way, and the
-    step solves the normal equations of [J_base, J_candidate].  For effects that enter
-    linearly this is the refit to first order in the (small) change of the profiled field.
-
-    A candidate's raw columns C are non-zero only on the rows of the sensors it adds
-    parameters to, and the projector P = I - G (G^T G)^-1 G^T (G: the field-direction
-    columns of each epoch) is symmetric and idempotent with P J_base = J_base, so the
-    blocks of the normal equations are formed without projecting C row by row:
-    J_base^T P C = J_base^T C (3 of the 3S rows per epoch), C^T P C = C^T C - (G^T C)^T
-    (G^T G)^-1 (G^T C) and C^T P r = C^T r - (G^T C)^T (G^T G)^-1 G^T r, all per epoch with
-    2 x 2 inverses.  Same numbers as projecting C, about 10x less work per candidate.
+    computed once; each candidate adds only its own columns, and the step solves the normal
+    equations of [J_base, J_candidate]: for effects that enter linearly, the refit to first
+    order in the change of the profiled field.  With P = I - G (G^T G)^-1 G^T (G: the
+    field-direction columns of each epoch) and P J_base = J_base, the blocks are formed
+    without projecting C row by row: J_base^T P C = J_base^T C, C^T P C = C^T C - (G^T C)^T
+    (G^T G)^-1 (G^T C) and C^T P r likewise, per epoch with 2 x 2 inverses.
     """
 
     def __init__(self, model, p, raw, contexts, f, sigma):
         """
         Form the base fit's scaled normal equations and field projector once.
 
-        Parameters
-        ----------
-        model : Model
-            The base model, prepared.
-        p : numpy.ndarray
-            (P,) its fitted parameters.
-        raw : numpy.ndarray
-            (S, N, 3) raw readings of the screened epochs, nT.
-        contexts : list of Context
-            Per sensor, on the same epochs.
-        f : numpy.ndarray
-            (N,) reference magnitude, nT.
-        sigma : numpy.ndarray
-            (S,) noise levels, nT.
-
+        ``model``: the base model, prepared; ``p`` (P,) its fitted parameters; ``raw`` (S, N, 3)
+        raw readings of the screened epochs, nT; ``contexts``: per sensor, on the same epochs;
+        ``f`` (N,) reference magnitude, nT; ``sigma`` (S,) noise levels, nT.
         """
         self.model, self.p, self.raw, self.ctx = model, p, raw, contexts
         self.f, self.sigma = f, sigma
@@ -89,8 +67,7 @@ class Screen:
             jac = prob.jacobian(x)
             _, b, mats, _ = prob.evaluate(x)
             n, g = len(f), len(grp)
-            # (N, 3, 2) field-direction columns of each sensor, scaled like the residual
-            # (and of the attitude, when it observes the field: a member without candidates)
+            # (N, 3, 2) field-direction columns of each member (the attitude's too)
             gm = prob.n_members
             g_all = prob.field_columns(b, mats)
             gb = [g_all[:, 3 * gi:3 * gi + 3] for gi in range(gm)]
@@ -120,8 +97,7 @@ class Screen:
                 'ginv': [[np.ascontiguousarray(ginv[:, a, c]) for c in range(2)]
                          for a in range(2)],
                 'ginv_gtr': [np.ascontiguousarray(ginv_gtr[:, a]) for a in range(2)],
-                # (G^T r)^T (G^T G)^-1 G^T r per epoch (N,): the residual along the field
-                # directions, which a candidate cannot remove (the search's held-out sums)
+                # (G^T r)^T (G^T G)^-1 G^T r per epoch (N,): what no candidate can remove
                 'rgr': np.einsum('na,na->n', gtr, ginv_gtr)})
         # base parameter (sensor, effect, name) -> its index in the base model
         self._base_pos = {k[:3]: i for i, k in enumerate(model.param_info())}
@@ -130,9 +106,8 @@ class Screen:
         """
         Return (P',) parameters of ``m_ext`` after one Gauss-Newton step from ``p_ext``.
 
-        With ``with_decrease`` return (parameters, predicted decrease of chi-square): the
-        drop g^T (J^T J)^+ g of the linearised problem, g = J^T r (exact for parameters
-        that enter linearly, to first order in the change of the profiled field).
+        With ``with_decrease``: (parameters, the chi-square decrease g^T (J^T J)^+ g the
+        linearised problem predicts, g = J^T r).
         """
         info = m_ext.param_info()
         new_of_old = np.empty(self.model.n_params, int)
@@ -159,9 +134,7 @@ class Screen:
                 cols = [c for c, i in enumerate(idx) if info[i][0] in (j, 0)]
                 if not cols:
                     continue
-                # the candidate's columns of this sensor, (k_j, N, 3) as differenced, scaled
-                # like the residual in place (no transposed copy: the products below read
-                # the (k_j, 3N) rows directly)
+                # the candidate's columns of this sensor, (k_j, N, 3), scaled in place
                 cj, h = m_ext.forward_differences(j, p_ext, g['b'], self.ctx[j - 1],
                                                   [idx[c] for c in cols])
                 cj *= (-1.0 / (h * self.sigma[j - 1]))[:, None, None]
@@ -170,8 +143,7 @@ class Screen:
                 ctc[np.ix_(cols, cols)] += flat @ flat.T
                 ctr[cols] += flat @ g['r'][gi]
                 add_gtc(gtc, cols, cj, g['gb'][gi])
-            # project: subtract the part of C along the field directions of each epoch,
-            # (G^T C)^T (G^T G)^-1 (G^T C) and (G^T C)^T (G^T G)^-1 G^T r
+            # project: subtract the part of C along the field directions of each epoch
             m0, m1 = ginv_times(gtc, g)
             ctc -= gtc[0] @ m0.T + gtc[1] @ m1.T
             ctr -= gtc[0] @ g['ginv_gtr'][0] + gtc[1] @ g['ginv_gtr'][1]
@@ -188,13 +160,11 @@ class Screen:
 
     def lag_start(self, m_ext, p_ext, added, taus):
         """
-        Return (P',) a start for the refit of a candidate with lags: time constants profiled.
+        Return (P',) a start for the refit of a candidate with lags, or None without a lag.
 
-        For a fixed time constant tau a lagged channel enters linearly, so each tau of the
-        grid ``taus`` (s) costs one linear step (:meth:`step` with the time constants held,
-        every lag of the candidate at the same tau); the step with the largest predicted
-        chi-square decrease is returned, None when the candidate has no lag.  A refit from
-        it converges in a few iterations instead of walking from Lag.tau0_s.
+        For a fixed time constant a lagged channel enters linearly: each tau of ``taus`` (s) costs
+        one :meth:`step` with every lag of the candidate held at tau; the step with the largest
+        predicted decrease is returned.
         """
         tau_idx = [i for i, (_, lab, nm, _) in enumerate(m_ext.param_info())
                    if added[i] and nm == 'tau' and lab.startswith('lag(')]

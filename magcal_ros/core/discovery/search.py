@@ -15,27 +15,23 @@
 """
 Discovery as a search over the model formula (issue 18 item 3).
 
-Candidates are generated from what the record holds (:mod:`.bases`: smooths, polynomials,
-steps, windows and sinusoids in time; each channel linear, polynomial, lagged, cyclic when
-it wraps; products of two channels; the field rate) and combined with every coupling of
-the grammar (``offset``, ``scale``, ``linear``, ``nonorth``, ``rotation``, ``field``; a
-per-axis driver offset and scale) on every scope (the sensors the driver explains, each
-alone and as a set; every sensor, each its own and alike; the array), then
+Candidates are generated from what the record holds (:mod:`.bases`: drivers in time, each
+channel, products of two channels, the field rate) and combined with every coupling of the
+grammar (``offset``, ``scale``, ``linear``, ``nonorth``, ``rotation``, ``field``) on every
+scope (the sensors the driver explains, each alone and as a set; every sensor, each its
+own and alike; the array), then
 
 1. **pre-screened** by least squares of each sensor's base residual on the candidate's
-   columns (a cheap lower bound of the score statistic; it ranks ~10^3 candidates in a few
-   tens of ms), the scope read from which sensors the driver explains;
+   columns (a cheap lower bound of the score statistic), which also gives the scope;
 2. **scored** exactly by Rao's score test at the base fit (the one Gauss-Newton step of
-   :class:`.screen.Screen`, base Jacobian and profiled field included; exact for terms that
-   enter linearly, as every coupling of a fixed driver does), for the best ``SCORE_TOP``;
-3. **validated on held-out data**: the same linearised problem fitted on all but one fold of
-   interleaved time blocks and evaluated on that fold (:class:`BlockSums`: every sum of the
-   normal equations is formed per block once, so a fold costs one small solve).  A term is
-   adopted only if it is significant (likelihood ratio below the Bonferroni threshold over
-   every candidate generated, delta BIC < -10) AND removes at least 20 % of the held-out
-   excess over the noise floor; among those, the lowest held-out residual wins, ties within
-   :data:`TIE_SHARE` going to fewer parameters.
-4. When no single term brings every sensor to its floor, **pairs** of the best terms are
+   :class:`.screen.Screen`), for the best :data:`SCORE_TOP`;
+3. **validated on held-out data**: the same linearised problem fitted on all but one fold
+   of interleaved time blocks and evaluated on that fold (:class:`BlockSums`).  A term is
+   adopted only if it is significant (Bonferroni over every candidate generated, delta BIC
+   < -10) and removes at least :data:`~.constants.MIN_EXPLAINED` of the held-out excess over
+   the floor; the largest held-out share wins, ties within :data:`TIE_SHARE` going to fewer
+   parameters;
+4. when no single term brings every sensor to its floor, **pairs** of the best terms are
    searched the same way.
 
 The adopted term is written in the formula syntax (``offset(s(t, k=8))@2``); the grammar
@@ -49,6 +45,7 @@ from magcal_ros.core.discovery import bases, measures
 from magcal_ros.core.discovery.constants import AT_FLOOR_RATIO, MIN_DELTA_BIC, MIN_EXPLAINED
 from magcal_ros.core.discovery.screen import add_gtc, ginv_times
 from magcal_ros.core.effects.base import format_arg
+from magcal_ros.core.model.fitting import fit_epochs
 import numpy as np
 from scipy import stats
 
@@ -73,8 +70,7 @@ SCOPE_SHARE = 0.15
 EXPLAINS_SHARE = 0.8
 #: epochs the search works on (evenly spaced; its cost is then independent of the record)
 SEARCH_MAX_EPOCHS = 4000
-#: most parameters of one candidate term (a smooth of 64 functions on each sensor's offset
-#: would add 756: the array's field or one sensor's offset carry such smooths)
+#: most parameters of one candidate term
 MAX_TERM_PARAMS = 200
 #: the pre-screen of an @alike term is its own joint least squares up to this many
 #: parameters (beyond, the sum over the sensors, an upper bound)
@@ -88,27 +84,13 @@ class Term:
     """
     One candidate term: a coupling of a driver on a scope, and its evidence.
 
-    Attributes
-    ----------
-    coupling : str
-        'offset', 'scale', 'linear' or 'field'.
-    driver : bases.Driver
-        The driver.
-    sensors : tuple of int
-        The sensors it acts on (1-based).
-    alike : bool
-        One parameter set shared by the sensors (in each sensor's axes).
-    k : int
-        Parameters it adds.
-    approx : float
-        Pre-screen chi-square decrease.
-    delta_chi2, delta_bic, p_value : float or None
-        Exact score test (decrease predicted by one Gauss-Newton step).
-    share : float or None
-        Held-out share of the excess over the floor it removes.
-    ratios : dict or None
-        {sensor: residual RMS / floor} in-sample after the step.
-
+    ``coupling``: 'offset', 'scale', 'linear', 'nonorth', 'rotation', 'field' (or 'pair', of
+    the two ``parts``); ``driver``: a :class:`bases.Driver`; ``sensors``: the sensors it acts
+    on (1-based); ``alike``: one parameter set shared by them (in each sensor's axes); ``k``:
+    parameters it adds; ``approx``: pre-screen chi-square decrease; ``delta_chi2``,
+    ``delta_bic``, ``p_value``: the exact score test; ``share``: held-out share of the excess
+    over the floor it removes; ``ratios``: {sensor: RMS / floor} in-sample after the step;
+    ``cv_before``, ``cv_after``: combined held-out RMS without and with it, nT.
     """
 
     coupling: str
@@ -154,11 +136,12 @@ def _proj_ss(x, y):
 
 
 #: for each coupling of the grammar (core/effects/couplings.py), the raw-space pattern of
-#: each of its parameters per driver column: ((axis of dB, axis of lin or None, sign), ...)
-#: (None: the driver itself, the offset); the first order of each coupling's contribution
+#: each of its parameters per driver column, to first order: ((axis of dB, axis of lin or
+#: None for the driver itself, sign), ...)
 _PATTERNS = {
-    'offset': [((0, None, 1.0),), ((1, None, 1.0),), ((2, None, 1.0),)],
-    'scale': [((0, 0, 1.0),), ((1, 1, 1.0),), ((2, 2, 1.0),)],
+    'offset': [((a, None, 1.0),) for a in range(3)],
+    'scale': [((a, a, 1.0),) for a in range(3)],
+    'linear': [((a, b, 1.0),) for a in range(3) for b in range(3)],
     # psi: dB_y = x lin_z; varphi: dB_x = x lin_y; theta: dB_x = x lin_z
     'nonorth': [((1, 2, 1.0),), ((0, 1, 1.0),), ((0, 2, 1.0),)],
     # alpha: (lin_y, -lin_x, 0); beta: (0, lin_z, -lin_y); gamma: (-lin_z, 0, lin_x)
@@ -184,48 +167,34 @@ def coupling_columns(coupling, x, lin, per_axis=False):
         for a in range(3):
             out[a, :, a] = x[:, a] * (lin[:, a] if coupling == 'scale' else 1.0)
         return out
-    if coupling in ('nonorth', 'rotation'):
-        out = np.zeros((3 * m, n, 3))
-        for c in range(m):
-            for q, pattern in enumerate(_PATTERNS[coupling]):
-                for axis, src, sign in pattern:
-                    out[3 * c + q, :, axis] += sign * x[:, c] * lin[:, src]
-        return out
-    if coupling in ('offset', 'scale'):
-        out = np.zeros((3 * m, n, 3))
-        for c in range(m):
-            for a in range(3):
-                out[3 * c + a, :, a] = x[:, c] * (lin[:, a] if coupling == 'scale' else 1.0)
-        return out
-    if coupling == 'linear':
-        out = np.zeros((9 * m, n, 3))
-        for c in range(m):
-            for a in range(3):
-                for b in range(3):
-                    out[9 * c + 3 * a + b, :, a] = x[:, c] * lin[:, b]
-        return out
     if coupling == 'field':
         return x.T[:, :, None] * lin[None, :, :]
-    raise ValueError(f'unknown coupling {coupling!r}')
+    if coupling not in _PATTERNS:
+        raise ValueError(f'unknown coupling {coupling!r}')
+    patterns = _PATTERNS[coupling]
+    out = np.zeros((len(patterns) * m, n, 3))
+    for c in range(m):
+        for q, pattern in enumerate(patterns):
+            for axis, src, sign in pattern:
+                out[len(patterns) * c + q, :, axis] += sign * x[:, c] * (
+                    1.0 if src is None else lin[:, src])
+    return out
 
 
 def n_params(coupling, m, per_axis=False):
     """Parameters of a coupling of m driver columns, per sensor (field: in all)."""
     if per_axis:
         return 3
-    return {'offset': 3 * m, 'scale': 3 * m, 'linear': 9 * m, 'nonorth': 3 * m,
-            'rotation': 3 * m, 'field': m}[coupling]
+    return m if coupling == 'field' else len(_PATTERNS[coupling]) * m
 
 
 class BlockSums:
     """
     The base fit's linearised problem summed per time block, for held-out tests of terms.
 
-    Built from a :class:`.screen.Screen` (the scaled base Jacobian J, the residual r and the
-    field-direction projector of each epoch).  For a candidate with raw columns C the blocks
-    of the normal equations [J C]^T P [J C] and [J C]^T P r are formed per block; the fit on
-    a fold's training blocks is one solve, its held-out sum of squares
-    r'Pr + 2 s'g + s'M s on the held-out blocks.
+    Built from a :class:`.screen.Screen`: for a candidate with raw columns C the blocks of the
+    normal equations [J C]^T P [J C] and [J C]^T P r are formed per block; the fit on a fold's
+    training blocks is one solve, its held-out sum of squares r'Pr + 2 s'g + s'M s.
     """
 
     def __init__(self, screen, sigma, n, folds=SEARCH_FOLDS,
@@ -252,27 +221,25 @@ class BlockSums:
                 self.rr[b] += float(r[rows] @ r[rows])
         for b, (e0, e1) in enumerate(zip(self.edges[:-1], self.edges[1:])):
             self.rr[b] -= float(np.sum(g['rgr'][e0:e1]))
-        self.epochs = np.diff(self.edges)
         self.floor_chi2 = None
 
     def set_floor(self, floor_nt):
         """
         Set the expected r'Pr of each block at the noise floor (S,) nT: tr(P W) per epoch.
 
-        W = diag(floor_j^2 / sigma_j^2) (the residual is scaled by the fit's sigma_j);
-        tr(P W) = tr(W) - tr((G^T G)^-1 G^T W G): the profiled field takes its two directions
-        mostly from the sensors weighted most.
+        W = diag(floor_j^2 / sigma_j^2); tr(P W) = tr(W) - tr((G^T G)^-1 G^T W G).
         """
         g = self.g
         w = (np.asarray(floor_nt, float) / self.sigma) ** 2
         n = self.n
+        # G_j^T G_j per sensor and epoch, (2, 2) of (N,)
+        gg = [[[gbj[0][a] * gbj[0][c] + gbj[1][a] * gbj[1][c] + gbj[2][a] * gbj[2][c]
+                for c in range(2)] for a in range(2)] for gbj in g['gb']]
         gwg = np.zeros((2, 2, n))
         for gi, j in enumerate(self.sensors):
-            gbj = g['gb'][gi]
             for a in range(2):
                 for c in range(2):
-                    gwg[a, c] += w[j - 1] * (gbj[0][a] * gbj[0][c] + gbj[1][a] * gbj[1][c]
-                                             + gbj[2][a] * gbj[2][c])
+                    gwg[a, c] += w[j - 1] * gg[gi][a][c]
         (i00, i01), (i10, i11) = g['ginv']
         tr = i00 * gwg[0, 0] + i01 * gwg[1, 0] + i10 * gwg[0, 1] + i11 * gwg[1, 1]
         per_epoch = 3.0 * float(sum(w[j - 1] for j in self.sensors)) - tr
@@ -285,11 +252,8 @@ class BlockSums:
                 for c in range(2)] for a in range(2)]
         self.floor_epoch = np.zeros((len(self.sensors), n))
         for gi, j in enumerate(self.sensors):
-            gbj = g['gb'][gi]
-            gg = [[gbj[0][a] * gbj[0][c] + gbj[1][a] * gbj[1][c] + gbj[2][a] * gbj[2][c]
-                   for c in range(2)] for a in range(2)]
-            t1 = sum(mm[a][c] * gg[c][a] for a in range(2) for c in range(2))
-            t2 = sum(mwm[a][c] * gg[c][a] for a in range(2) for c in range(2))
+            t1 = sum(mm[a][c] * gg[gi][c][a] for a in range(2) for c in range(2))
+            t2 = sum(mwm[a][c] * gg[gi][c][a] for a in range(2) for c in range(2))
             self.floor_epoch[gi] = 3.0 * w[j - 1] - 2.0 * w[j - 1] * t1 + t2
 
     def candidate(self, cols):
@@ -320,9 +284,7 @@ class BlockSums:
             gi = self.sensors.index(j)
             cj = c / self.sigma[j - 1]
             js, r = g['js'][gi], g['r'][gi]
-            # axis by axis, each with the parameters whose columns touch it (an offset,
-            # scale or linear parameter moves one axis, an angle two): the same sums, a
-            # fraction of the products
+            # axis by axis, each with the parameters whose columns touch it
             for a in range(3):
                 on = np.flatnonzero(np.any(cj[:, :, a] != 0.0, axis=1))
                 if not len(on):
@@ -356,7 +318,7 @@ class BlockSums:
         return float(-g @ sol), sol
 
     def held_out(self, sums):
-        """Return (held-out SS of the base, of the candidate, held-out epochs), chi-square."""
+        """Return the held-out sums of squares (chi-square) of the base and the candidate."""
         bb, dd, gc = sums
         ss0 = ss1 = 0.0
         for f in range(self.folds):
@@ -367,8 +329,6 @@ class BlockSums:
             da = np.sqrt(np.clip(np.diag(a_t), 1e-300, None))
             s0 = solve_psd(a_t / np.outer(da, da), -gj_t / da) / da
             ss0 += rr_h + 2 * s0 @ gj_h + s0 @ a_h @ s0
-            if sums is None:
-                continue
             m_t, g_t = self._system(a_t, bb[tr].sum(0), dd[tr].sum(0), gj_t, gc[tr].sum(0))
             m_h, g_h = self._system(a_h, bb[h].sum(0), dd[h].sum(0), gj_h, gc[h].sum(0))
             d = np.sqrt(np.clip(np.diag(m_t), 1e-300, None))
@@ -384,9 +344,6 @@ class SearchResult:
     terms: list
     adopted: Term | None
     n_generated: int
-    p_threshold: float
-    floor_ratio_after: dict | None = None
-    seconds: dict = field(default_factory=dict)
     localised: object = None
 
 
@@ -410,10 +367,8 @@ COUPLINGS = ('offset', 'scale', 'linear', 'nonorth', 'rotation', 'field')
 
 
 #: the linear coupling (9 parameters per driver column and sensor) is tried with drivers
-#: of at most this many columns (a channel, its polynomials, a sinusoid, steps): all nine
-#: entries of the map following a smooth of 8-20 functions (72-180 parameters a sensor)
-#: describe nothing physical that scale, nonorth and rotation with it do not, and cost
-#: most of the search's exact score (bench/discovery_speed.py)
+#: of at most this many columns: with a smooth, its nine entries describe nothing physical
+#: that scale, nonorth and rotation do not, at most of the search's cost
 LINEAR_MAX_COLUMNS = 3
 
 
@@ -421,8 +376,8 @@ def couplings_of(driver):
     """
     Couplings tried with a driver: every one of the grammar (issue 32 item 4).
 
-    A per-axis driver (the field rate) acts axis by axis: offset and scale only, as the
-    grammar allows; ``linear`` with drivers of at most :data:`LINEAR_MAX_COLUMNS` columns.
+    A per-axis driver (the field rate): offset and scale only, as the grammar allows;
+    ``linear`` with drivers of at most :data:`LINEAR_MAX_COLUMNS` columns.
     """
     if driver.per_axis:
         return ('offset', 'scale')
@@ -439,8 +394,7 @@ def prescreen(data, resid, sigma, drivers, n_obs, n_eval=PRESCREEN_EPOCHS):
     with ``approx`` set (the chi-square decrease scaled to all N epochs), best first.
     """
     s, n = resid.shape[0], resid.shape[1]
-    keep = (np.arange(n) if n <= n_eval else
-            np.unique(np.linspace(0, n - 1, n_eval).round().astype(int)))
+    keep = fit_epochs(n, n_eval)
     scale_n = n / len(keep)
     y = [resid[j][keep] / sigma[j] for j in range(s)]
     lin = [x[keep] for x in _lin(data)]
@@ -497,9 +451,7 @@ def prescreen(data, resid, sigma, drivers, n_obs, n_eval=PRESCREEN_EPOCHS):
                 out.append(Term(cp, drv, tuple(sig), k=k * len(sig),
                                 approx=sum(per[j] for j in sig)))
             if s > 1 and len(sig) >= 2:
-                # every sensor, each its own parameters, and alike (one parameter set in each
-                # sensor's axes: one joint least squares over the sensors), when the driver
-                # explains more than one sensor
+                # every sensor, each its own parameters, and alike (one joint least squares)
                 every = tuple(range(1, s + 1))
                 if len(sig) < s and k * s <= MAX_TERM_PARAMS:
                     out.append(Term(cp, drv, every, k=k * s, approx=sum(per.values())))
@@ -542,49 +494,26 @@ def _dedupe(terms, n_sensors):
 
 
 def search(data, resid, screen, sigma, floor, n_obs, alpha=0.01, steps=(), windows=(),
-           lines=(), dof=1.0):
+           lines=()):
     """
     Search the formula's terms for what the base fit misses (see the module docstring).
 
-    Parameters
-    ----------
-    data : Dataset
-        The tested epochs (S sensors, N epochs).
-    resid : numpy.ndarray
-        (S, N, 3) the base fit's raw-space residual on them, nT.
-    screen : Screen
-        The base fit's one-step screen on the same epochs.
-    sigma : numpy.ndarray
-        (S,) the base fit's noise levels, nT.
-    floor : NoiseFloor
-        The data's noise floor.
-    n_obs : int
-        Observations net of the profiled field (BIC).
-    alpha : float
-        Family-wise significance level (Bonferroni over every candidate generated).
-    steps, windows, lines : sequences
-        Change points (tuples of s), windows ((t0, t1) s) and spectral lines (Hz) of the
-        residual.
-    dof : float
-        3G / (3G - 2): the profiled field's share of the residual (measures.dof_factor).
-
-    Returns
-    -------
-    SearchResult
-
+    ``data``: the tested epochs (S sensors, N epochs); ``resid`` (S, N, 3): the base fit's
+    raw-space residual on them, nT; ``screen``: the base fit's :class:`.screen.Screen` on the
+    same epochs; ``sigma`` (S,): its noise levels, nT; ``floor``: the data's NoiseFloor;
+    ``n_obs``: observations net of the profiled field (BIC); ``alpha``: family-wise
+    significance level (Bonferroni over every candidate generated); ``steps``, ``windows``,
+    ``lines``: change points (tuples of s), windows ((t0, t1) s) and spectral lines (Hz).
+    Returns a :class:`SearchResult`.
     """
-    import time
-    t0 = time.perf_counter()
     s, n = resid.shape[0], resid.shape[1]
     drivers = generate(data, steps, windows, lines)
     ranked = prescreen(data, resid, sigma, drivers, n_obs)
-    secs = {'prescreen': time.perf_counter() - t0}
     n_gen = max(1, len(ranked))
     p_thr = alpha / n_gen
     log_n = math.log(n_obs)
     sums_all = BlockSums(screen, sigma, n)
-    floor_j = np.asarray(floor.per_sensor_nt, float)
-    sums_all.set_floor(floor_j)
+    sums_all.set_floor(floor.per_sensor_nt)
     floor_chi2 = float(sums_all.floor_chi2.sum())      # every epoch is held out once
     n_held = float(n)
 
@@ -602,19 +531,15 @@ def search(data, resid, screen, sigma, floor, n_obs, alpha=0.01, steps=(), windo
             term.share = float((ss0 - ss1) / exc) if exc > 0 else 0.0
             term.cv_before = math.sqrt(max(ss0, 0.0) / (3 * s * n_held))
             term.cv_after = math.sqrt(max(ss1, 0.0) / (3 * s * n_held))
-            term.ratios = _ratios_after(sums_all, cols, sol, sigma, floor_j, dof)
+            term.ratios = _ratios_after(sums_all, cols, sol, sigma)
         return term
 
-    scored = []
-    for term in _dedupe(ranked, s)[:SCORE_TOP]:
-        scored.append(evaluate(term, False))
-    secs['score'] = time.perf_counter() - t0
+    scored = [evaluate(term, False) for term in _dedupe(ranked, s)[:SCORE_TOP]]
     scored.sort(key=lambda c: c.delta_bic)
     # keep the best lag of each (coupling, scope) only: its time constant is the grid's best
     scored = _dedupe(scored, s)
     good = [c for c in scored if c.p_value < p_thr and c.delta_bic < MIN_DELTA_BIC]
     validated = [evaluate(c, True) for c in good[:CV_TOP]]
-    secs['held_out'] = time.perf_counter() - t0
     adopt = _choose(validated)
     if adopt is None or max(adopt.ratios.values()) > AT_FLOOR_RATIO:
         singles = [c for c in validated if c.share is not None and c.share > 0][:PAIR_TOP]
@@ -631,15 +556,10 @@ def search(data, resid, screen, sigma, floor, n_obs, alpha=0.01, steps=(), windo
                                       + TIE_SHARE):
             validated.append(best_pair)
             adopt = best_pair
-    secs['pairs'] = time.perf_counter() - t0
     validated.sort(key=lambda c: -(c.share or 0.0))
     rest = [c for c in scored if c not in validated]
-    loc = localised(data.t, sums_all)
-    secs['localised'] = time.perf_counter() - t0
     return SearchResult(terms=validated + rest, adopted=adopt, n_generated=n_gen,
-                        p_threshold=p_thr,
-                        floor_ratio_after=None if adopt is None else adopt.ratios,
-                        seconds=secs, localised=loc)
+                        localised=localised(data.t, sums_all))
 
 
 def _choose(terms):
@@ -652,12 +572,11 @@ def _choose(terms):
     return min(tied, key=lambda c: (c.k, -c.share))
 
 
-def _ratios_after(sums, cols, sol, sigma, floor_j, dof):
+def _ratios_after(sums, cols, sol, sigma):
     """
     {sensor: in-sample residual RMS / floor} after the step ``sol``.
 
-    The ratio of the sensor's sum of squares to what it holds at the floor
-    (:meth:`BlockSums.set_floor`, the profiled field's share of it removed).
+    The sensor's sum of squares over what it holds at the floor (:meth:`BlockSums.set_floor`).
     """
     g = sums.g
     nb = g['jtj'].shape[0]
@@ -673,8 +592,7 @@ def _ratios_after(sums, cols, sol, sigma, floor_j, dof):
         if j in u:
             for a in range(2):
                 gtu[a] += sum(g['gb'][gi][i][a] * u[j][:, i] for i in range(3))
-    (i00, i01), (i10, i11) = g['ginv']
-    mg = [i00 * gtu[0] + i01 * gtu[1], i10 * gtu[0] + i11 * gtu[1]]
+    mg = ginv_times(gtu, g)
     out = {}
     for gi, j in enumerate(sums.sensors):
         du = u.get(j, np.zeros((n, 3)))
@@ -690,19 +608,10 @@ class Localized:
     """
     An excess over the floor confined to one interval of time (a model-free description).
 
-    Attributes
-    ----------
-    t0, t1 : float
-        The interval, s.
-    sensors : tuple of int
-        The sensors that carry it (each holding at least 10 % of the excess inside).
-    share : float
-        Share of the excess (over the floor, every sensor) inside the interval.
-    ratios_outside : dict
-        {sensor: residual RMS / floor outside the interval}.
-    vector : bool
-        Whether it is mostly across the field (vector) rather than along it (scalar).
-
+    ``t0``, ``t1``: the interval, s; ``sensors``: those that carry it (each at least 10 % of
+    the excess inside); ``share``: share of the excess (every sensor) inside the interval;
+    ``ratios_outside``: {sensor: RMS / floor outside it}; ``vector``: mostly across the field
+    rather than along it.
     """
 
     t0: float
@@ -718,7 +627,7 @@ class Localized:
         Return the formula term that leaves the interval out of the sensors that carry it.
 
         'drop(t0, t1)' when every sensor does; 'drop(t0, t1)@J' or 'drop(t0, t1)@{J,K}' when
-        only some do: the others' readings of the interval still inform the field.
+        only some do (the others' readings still inform the field).
         """
         core = f'drop({format_arg(self.t0)}, {format_arg(self.t1)})'
         if not self.sensors or set(self.sensors) >= set(self.ratios_outside):
@@ -739,13 +648,11 @@ def localised(t, sums):
     """
     Describe an excess confined in time, or None (model-free; see :class:`Localized`).
 
-    ``sums``: the :class:`BlockSums` of the base fit, its floor set.  The per-epoch excess of
-    every sensor over what it holds at the floor is summed over the sensors; the interval of
-    largest total excess (the maximum-sum subarray, Kadane's algorithm) must hold at least
-    half of the whole excess.  Widened by 0, 1, 2 or 5 % of the record on each side, the
-    base model is refitted (linearised) without it; the first interval after which every
-    sensor is within :data:`~.constants.AT_FLOOR_RATIO` of its floor is returned, if it is at most
-    :data:`MAX_LOCALISED_FRACTION` of the record.
+    ``sums``: the base fit's :class:`BlockSums`, its floor set.  The interval of largest total
+    excess over the floor (maximum-sum subarray, Kadane's algorithm), widened by 0, 1, 2 or
+    5 % of the record on each side, is left out of a linearised refit; the first after which
+    every sensor is within :data:`~.constants.AT_FLOOR_RATIO` of its floor is returned if it
+    is at most :data:`MAX_LOCALISED_FRACTION` of the record and not a few outliers.
     """
     t = np.asarray(t, float)
     g = sums.g

@@ -12,14 +12,7 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""
-Held-out tests of a model: interleaved time blocks, k-fold cross-validation, leave-out steps.
-
-Neighbouring samples are correlated, so a random split would leak: the folds are made of
-interleaved contiguous blocks of time (:func:`time_blocks`), and each fold is fitted on the
-others (by default one Gauss-Newton step from the all-data fit with the fold's rows removed:
-:func:`cross_validate`).
-"""
+"""Held-out tests of a model: interleaved time blocks, k-fold cross-validation, leave-out steps."""
 from magcal_ros.core.discovery.constants import BLOCKS_PER_FOLD, DEFAULT_FOLDS, MIN_BLOCK
 from magcal_ros.core.discovery.measures import dof_factor, solve_psd
 from magcal_ros.core.model.engine import ProfiledProblem
@@ -31,13 +24,10 @@ def time_blocks(n, folds, blocks_per_fold=None):
     """
     Index arrays of ``folds`` held-out sets of ``n`` epochs, each interleaved in time.
 
-    The record is cut into ``folds * blocks_per_fold`` contiguous blocks (neighbouring
-    samples are correlated: a random split would leak) and fold k holds out blocks k,
-    k + folds, k + 2 folds, ...  Every fold is fitted on data before and after each of its
-    blocks, so an effect that changes over the record (a step, a drift, a slow temperature
-    lag) is interpolated, never extrapolated from one end (issue 11: contiguous end blocks
-    rejected such effects by construction).  ``blocks_per_fold`` defaults to
-    :data:`BLOCKS_PER_FOLD` (1: plain contiguous k-fold).
+    The record is cut into ``folds * blocks_per_fold`` contiguous blocks (neighbouring samples
+    are correlated: a random split would leak) and fold k holds out blocks k, k + folds, ...:
+    an effect that changes over the record is interpolated, never extrapolated from one end.
+    ``blocks_per_fold`` defaults to :data:`BLOCKS_PER_FOLD` (1: plain contiguous k-fold).
     """
     if folds < 2:
         raise ValueError(f'cross-validation needs at least 2 folds, got {folds}')
@@ -57,10 +47,9 @@ def cross_validate(data, model, params, f, sigma, folds=DEFAULT_FOLDS, fold_init
     data : Dataset
         (S sensors, N epochs) in time order, nT.
     model : Model
-        Prepared on the full data (its reference values are kept).
+        Prepared on the full data.
     params : numpy.ndarray
-        (P,) the fit on all data (``'newton'``: must be its optimum; ``'refit'``: the warm
-        start).
+        (P,) the fit on all data (``'newton'``: its optimum; ``'refit'``: the warm start).
     f : numpy.ndarray
         (N,) reference magnitude, nT.
     sigma : numpy.ndarray
@@ -70,19 +59,12 @@ def cross_validate(data, model, params, f, sigma, folds=DEFAULT_FOLDS, fold_init
     fold_inits : list of numpy.ndarray, optional
         Per-fold warm starts of ``'refit'`` (default ``params``).
     method : {'newton', 'refit'}
-        How the model is fitted without the held-out block.  ``'refit'``: the full
-        maximum-likelihood fit (:func:`magcal_ros.core.model.fit`) on the other blocks.
-        ``'newton'`` (default): one Gauss-Newton step from the all-data optimum with the
-        held-out block's rows removed from the normal equations,
-        p_b = p - (J^T J - J_b^T J_b)^-1 (J^T r - J_b^T r_b) (the "approximate
-        leave-out" of M-estimation; exact for a model linear in its parameters).  The
-        normal equations are the variable-projection ones of the fit, formed once per
-        block, so this costs about one iteration of one fit instead of ``folds`` fits; the
-        held-out residuals are then evaluated exactly.  test_diagnose.py checks both
-        methods agree.
+        ``'refit'``: the full fit on the other blocks.  ``'newton'``: one Gauss-Newton step
+        from the all-data optimum without the held-out block's rows,
+        p_b = p - (J^T J - J_b^T J_b)^-1 (J^T r - J_b^T r_b) (the approximate leave-out, exact
+        for a linear model), about one iteration of one fit.
     constrained : bool
-        Fit with the constrained mode's priors (partial attitude coverage); implies
-        ``'refit'``.
+        Fit with the constrained mode's priors; implies ``'refit'``.
 
     Returns
     -------

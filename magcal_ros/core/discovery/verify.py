@@ -15,22 +15,17 @@
 """
 Every term the diagnosis offers is fitted first, as ``magcal fit`` would fit it (issue 32).
 
-The screen, the refits and the formula search judge a term by a linearised problem or by a
-refit that skips the identifiability check; the user then runs ``magcal fit --model
-MODEL,TERM``, which checks identifiability, fits from paper 004's closed form and may
-refuse ("excite them differently, drop one of the effects, or use the constrained mode")
-or land elsewhere.  :func:`verify_term` runs that fit (:func:`magcal_ros.core.model.fit`
-with its defaults: identifiability checked, degenerate data refused, the diagnosis' robust
-and constrained settings; warm-started from the diagnosed fit, which changes where the
-solver starts, not the problem it solves) and the held-out test of the diagnosis
-(:func:`.validation.cross_validate`, the folds of the base model's held-out RMS).  A term
-is offered only when the fit accepts it, converges and removes at least
-:data:`~.constants.MIN_EXPLAINED` of the held-out excess over the floor (so its held-out
-RMS is lower than the model's); otherwise the reason is kept and shown among the
-candidates.  A ``drop(t0, t1)`` is judged by the held-out RMS on the epochs it keeps,
-against the model's on all of them (what the calibration is then built on).
+The screen, the refits and the formula search judge a term by a linearised problem or a
+refit without the identifiability check; ``magcal fit --model MODEL,TERM`` may refuse it or
+land elsewhere.  :func:`verify_term` runs that fit (:func:`magcal_ros.core.model.fit` with
+its defaults and the diagnosis' robust and constrained settings, warm-started from the
+diagnosed fit) and the diagnosis' held-out test (:func:`.validation.cross_validate`).  A
+term is offered only when the fit accepts it, converges and removes at least
+:data:`~.constants.MIN_EXPLAINED` of the held-out excess over the floor; otherwise the
+reason is shown among the candidates.  A ``drop(t0, t1)`` is judged by the held-out RMS on
+the epochs it keeps.
 """
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from magcal_ros.core.discovery.candidates import extend_model
 from magcal_ros.core.discovery.constants import MIN_DELTA_BIC, MIN_EXPLAINED
@@ -50,21 +45,10 @@ class Verified:
     """
     A term fitted with the diagnosed model as ``magcal fit`` fits it.
 
-    Attributes
-    ----------
-    token : str
-        The term.
-    ok : bool
-        The fit accepts it, converges, and it removes at least MIN_EXPLAINED of the
-        held-out excess over the floor.
-    reason : str
-        Why not (empty when ``ok``), or the figures when it is.
-    rms_before_nt, rms_after_nt : float or None
-        Combined held-out RMS (in-sample without a held-out test) of the model and of the
-        model with the term, nT.
-    share : float or None
-        Share of the excess over the floor the term removes (held out when possible).
-
+    ``ok``: the fit accepts it, converges and it removes at least MIN_EXPLAINED of the
+    held-out excess; ``reason``: why not, or the figures; ``rms_before_nt``, ``rms_after_nt``:
+    combined held-out RMS (in-sample without a held-out test) without and with the term, nT;
+    ``share``: share of the excess over the floor it removes.
     """
 
     token: str
@@ -80,32 +64,13 @@ def verify_term(b, token, cv0, folds, cv_method='newton', on_degenerate='raise',
     """
     Fit ``token`` with the diagnosed model and test it held out (module docstring).
 
-    Parameters
-    ----------
-    b : run._Base
-        The diagnosed fit on the tested epochs (data, reference, noise levels, floor).
-    token : str
-        The term, in the formula syntax the user adds to ``--model``.
-    cv0 : dict or None
-        :func:`cross_validate` of the diagnosed model (None: no held-out test; the
-        in-sample residuals decide).
-    folds : int
-        Folds of the held-out test.
-    cv_method : str
-        As :func:`cross_validate`.
-    on_degenerate : str
-        As :func:`magcal_ros.core.model.fit` (the user's ``--flag-degenerate``).
-    replaces : sequence of str
-        Terms of the model ``token`` takes the place of (a finding's ``replaces``): the
-        model fitted is the diagnosed one without them, plus ``token``, from the closed
-        form as the user's fit starts.
-    start : sequence of float, optional
-        Values of the parameters the term adds (a candidate's refit), to start from.
-
-    Returns
-    -------
-    Verified
-
+    ``b``: the diagnosed fit (run._Base); ``token``: the term, in the syntax of ``--model``;
+    ``cv0``: :func:`cross_validate` of the diagnosed model (None: the in-sample residuals
+    decide) with ``folds`` and ``cv_method``; ``on_degenerate``: as
+    :func:`magcal_ros.core.model.fit`; ``replaces``: terms of the model ``token`` takes the
+    place of (the model fitted is then the diagnosed one without them, plus ``token``, from
+    the closed form); ``start``: values of the parameters the term adds, to start from.
+    Returns a :class:`Verified`.
     """
     try:
         if replaces:
@@ -130,7 +95,6 @@ def verify_term(b, token, cv0, folds, cv_method='newton', on_degenerate='raise',
         return Verified(token, False, f'the fit fails: {exc}')
     if not r.success:
         return Verified(token, False, f'the fit does not converge ({r.message})')
-    floor = b.floor.value_nt
     # a drop() leaves epochs out: the model with it is judged on the epochs it keeps
     data, f, contexts = b.data, b.f, b.contexts
     if getattr(m_ext, 'drops', ()):
@@ -154,17 +118,13 @@ def verify_term(b, token, cv0, folds, cv_method='newton', on_degenerate='raise',
         how = 'in-sample'
     if not np.isfinite(after):
         return Verified(token, False, f'its {how} residual is not finite', before, after)
-    share = explained_share(before ** 2, after ** 2, floor)
+    share = explained_share(before ** 2, after ** 2, b.floor.value_nt)
     figures = f'{how} RMS {before:.3g} -> {after:.3g} nT'
-    if after >= before:
-        return Verified(token, False, f'fitted as magcal fit fits it, it raises the {figures}',
-                        before, after, share)
-    if share < MIN_EXPLAINED:
-        return Verified(token, False, f'fitted as magcal fit fits it, it removes only '
-                        f'{share:.0%} of the excess over the floor ({figures})',
-                        before, after, share)
-    return Verified(token, True, f'fitted as magcal fit fits it: {figures}', before, after,
-                    share)
+    why = (f', it raises the {figures}' if after >= before else
+           f', it removes only {share:.0%} of the excess over the floor ({figures})'
+           if share < MIN_EXPLAINED else f': {figures}')
+    return Verified(token, after < before and share >= MIN_EXPLAINED,
+                    f'fitted as magcal fit fits it{why}', before, after, share)
 
 
 def _first_line(exc):
@@ -177,40 +137,14 @@ def tested_verdict(b, verdict, reason, ranked, cv0, folds, cv_method='newton',
     """
     Keep a verdict only when its term passes :func:`verify_term`; else try the next ones.
 
-    Parameters
-    ----------
-    b : run._Base
-        The diagnosed fit.
-    verdict : str or None
-        The verdict's token.
-    reason : str
-        The verdict's reason.
-    ranked : list of Candidate
-        The candidates, best first.
-    cv0 : dict or None
-        :func:`cross_validate` of the diagnosed model.
-    folds : int
-        Folds of the held-out test.
-    cv_method, on_degenerate : str
-        As :func:`verify_term`.
-    cache : dict, optional
-        {token: Verified}, filled here.
-    p_thr : float
-        The Bonferroni threshold of the likelihood-ratio test: a candidate that passes it
-        and the BIC rule may replace a verdict that fails (its held-out share is then
-        :func:`verify_term`'s).
-
-    Returns
-    -------
-    (str or None, str, list, list)
-        The verdict (the first of the verdict and the next candidates that pass the
-        likelihood tests, best evidence first, at most :data:`MAX_VERDICT_TRIES`, that
-        passes :func:`verify_term`; None when none does), its reason, the candidates (a
-        term that failed loses ``significant`` and says why in ``note``) and the Verified
-        of every term tried.
-
+    ``b``, ``cv0``, ``folds``, ``cv_method``, ``on_degenerate``: as :func:`verify_term`;
+    ``verdict`` (token or None) and ``reason``: the verdict; ``ranked``: the candidates, best
+    first; ``cache``: {token: Verified}, filled here; ``p_thr``: the Bonferroni threshold (a
+    candidate that passes it and the BIC rule may replace a verdict that fails).  Returns (the
+    first of the verdict and the next such candidates, at most :data:`MAX_VERDICT_TRIES`, that
+    passes, or None; its reason; the candidates, a term that failed without ``significant``
+    and with why in ``note``; the Verified of every term tried).
     """
-    from dataclasses import replace
     cache = {} if cache is None else cache
     if verdict is None:
         return verdict, reason, ranked, []
@@ -269,12 +203,10 @@ def tested_findings(b, found, cv0, folds, cv_method='newton', on_degenerate='rai
     """
     Keep a finding's token only when it passes :func:`verify_term` (module docstring).
 
-    At most :data:`MAX_FINDING_TRIES` tokens not fitted yet are fitted (largest effect
-    first); a finding whose token fails, or is not fitted, keeps its text with why it is
-    not offered, and its token is None.  Returns the findings (``found`` itself when no
-    finding has a token).
+    At most :data:`MAX_FINDING_TRIES` tokens not fitted yet are fitted (largest effect first);
+    a finding whose token fails, or is not fitted, says why it is not offered and its token is
+    None.  Returns the findings (``found`` itself when no finding has a token).
     """
-    from dataclasses import replace
     cache = {} if cache is None else cache
     if found is None or not any(f.token for f in found.items):
         return found
@@ -288,16 +220,12 @@ def tested_findings(b, found, cv0, folds, cv_method='newton', on_degenerate='rai
         budget -= 1
     items = []
     for f in found.items:
-        if f.token:
-            v = cache.get(f.token)
-            if v is None:
-                text = f.text.replace(f' (try {f.token})', '')
-                f = replace(f, token=None, text=f'{text} ({f.token} is not offered: not '
-                            f'fitted, the diagnosis fits at most {MAX_FINDING_TRIES} terms '
-                            'of the findings)')
-            elif not v.ok:
-                text = f.text.replace(f' (try {f.token})', '')
-                f = replace(f, token=None, text=f'{text} ({f.token} is not offered: {v.reason})')
+        v = cache.get(f.token) if f.token else None
+        if f.token and (v is None or not v.ok):
+            why = (f'not fitted, the diagnosis fits at most {MAX_FINDING_TRIES} terms of the '
+                   'findings' if v is None else v.reason)
+            text = f.text.replace(f' (try {f.token})', '')
+            f = replace(f, token=None, text=f'{text} ({f.token} is not offered: {why})')
         items.append(f)
     return replace(found, items=tuple(items))
 
@@ -311,10 +239,8 @@ def each_variant(token):
     """
     Return the term with each sensor's own parameters for a term that ties them, or None.
 
-    ``coupling(driver)@alike`` -> ``coupling(driver)`` (each sensor its own parameters, in
-    its own axes); ``field(driver)`` (the field magnitude, one for the array, seen along the
-    field by every sensor) -> ``scale(driver)`` (each sensor's scale factors follow the
-    driver: the same change seen through each sensor's own axes and gains).
+    ``coupling(driver)@alike`` -> ``coupling(driver)``; ``field(driver)`` (one field magnitude
+    seen by every sensor) -> ``scale(driver)`` (each sensor's scale factors follow it).
     """
     t = token.replace(' ', '')
     if t.endswith('@alike') and '+' not in t:
@@ -328,12 +254,10 @@ def _each_variant(b, chosen, cv0, folds, cv_method, on_degenerate, cache):
     """
     Check that the sensors follow a term that ties them (``@alike``, ``field``) alike.
 
-    The measurable test (docs/formulas.md): the same driver with each sensor's own
-    parameters (:func:`each_variant`) is fitted as :func:`verify_term` fits any term; if it
-    passes and removes :data:`SPLIT_SHARE` more of the held-out excess over the floor, the
-    sensors do not see the driver alike (their axes or gains differ in how they take it:
-    a misalignment the shared term would hide), and the variant is offered instead.
-    Returns (Verified of the variant, the reason's words) or None.
+    The variant with each sensor's own parameters (:func:`each_variant`) is fitted as any term;
+    if it passes and removes :data:`SPLIT_SHARE` more of the held-out excess, the sensors do
+    not see the driver alike (docs/formulas.md) and it is offered instead.  Returns (Verified
+    of the variant, the reason's words) or None.
     """
     alt = each_variant(chosen.token)
     if alt is None or chosen.share is None:
