@@ -23,6 +23,7 @@ derived from that noise.
 import copy
 import json
 import os
+import threading
 
 from magcal_ros.core.data.simulate import simulate
 from magcal_ros.core.live.corrector import SampleBuffer
@@ -324,6 +325,27 @@ def test_sensor_off_the_floor_on_sets_no_pairing_fits_is_refused(
             'inconsistent with sensor 1') in resp.message
     assert 'previous calibration stays active' in resp.message
     assert not (tmp_path / 'cal' / 'calibration.yaml').exists()
+
+
+def test_a_solve_that_ends_after_its_node_is_gone_raises_nothing(make_node, ros_namespace,
+                                                                 tmp_path):
+    # a calibrate or diagnose still solving when the node shuts down: the worker's wake-up
+    # of the executor found a destroyed guard condition and raised InvalidHandle in the
+    # thread (pytest reported it as an unhandled thread exception)
+    node = start_node(make_node, ros_namespace, tmp_path)
+    release, caught = threading.Event(), []
+    hook, threading.excepthook = threading.excepthook, caught.append
+    try:
+        future = node._in_worker(release.wait, 10.0)
+        (worker,) = [t for t in threading.enumerate() if t.name == 'magcal-solve']
+        node.destroy_guard_condition(node._wake)        # what destroy_node does to it
+        release.set()
+        worker.join(10.0)
+    finally:
+        threading.excepthook = hook
+    assert not worker.is_alive()
+    assert future.result() is True
+    assert caught == []
 
 
 def _set(client, executor, **params):

@@ -54,6 +54,7 @@ from magcal_ros.ros.run import DEFAULT_NAMESPACE, spin_node, yield_cpu
 from magcal_ros.ros.turn import TurnMixin
 import numpy as np
 from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.exceptions import InvalidHandle
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, qos_profile_sensor_data, QoSProfile,
                        ReliabilityPolicy)
@@ -349,7 +350,10 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
             except Exception as exc:        # noqa: B902 -- handed to the awaiting service
                 future.set_exception(exc)
             finally:
-                self._wake.trigger()
+                try:
+                    self._wake.trigger()
+                except InvalidHandle:       # the node was destroyed while this ran
+                    pass
         threading.Thread(target=work, name='magcal-solve', daemon=True).start()
         return future
 
