@@ -16,22 +16,11 @@
 Physical error terms ("effects") of a vector magnetometer, and the grammar that composes them.
 
 An effect is a *coupling* applied to a *driver* on a *scope* (docs/formulas.md):
-
-- :mod:`.base`: :class:`Effect`, :class:`SensorContext`, :class:`LinearParts`, the paper
-  004 rotations and the signal helpers;
-- :mod:`.catalog`: the named effects of today's tokens (scale, offset; temperature, lag(v),
-  ... as compositions of the grammar);
-- :mod:`.drivers`: bases of a driving signal (s, cc, poly, sin, step, window, lag, a
-  channel, rate, lin, products);
-- :mod:`.couplings`: how a driver enters the reading (offset, scale, linear, nonorth,
-  rotation, field);
-- :mod:`.terms`: a coupling of a driver composed into an Effect, and ``drop``;
-- :mod:`.formula`: the one parser, :func:`parse` (CLI ``--model``, the node's ``model``
-  parameter, the calibration file, ``magcal simulate --truth``);
-- :mod:`.registry`: named effects and plug-ins.
-
-The names below are re-exported so that ``from magcal_ros.core.effects import X`` keeps
-working for everything that imported the former single module.
+:mod:`.base` (:class:`Effect`, :class:`SensorContext`, paper 004's rotations, signal
+helpers), :mod:`.catalog` (the named tokens), :mod:`.drivers`, :mod:`.couplings`,
+:mod:`.terms` (coupling(driver) as an Effect), :mod:`.formula` (the one parser,
+:func:`parse`) and :mod:`.registry` (named effects and plug-ins).  The names below are
+re-exported: ``from magcal_ros.core.effects import X``.
 """
 from magcal_ros.core.effects.base import (  # noqa: F401 - re-exported
     decompose_linear, Effect, first_order_lag, LinearParts, misalignment_angles,
@@ -42,8 +31,7 @@ from magcal_ros.core.effects.catalog import (  # noqa: F401 - re-exported
     Scale, SiteGradient, SoftIron, TOKEN_CLASSES, TokenEffect, TOKENS)
 from magcal_ros.core.effects.registry import (  # noqa: F401 - re-exported
     BASE, BUILTIN_EFFECTS, effect_class, load_plugin, load_plugins, make_catalog_effect,
-    needs_args, parse_token, register_effect, registered_effects, split_spec,
-    unregister_effect)
+    needs_args, parse_token, register_effect, registered_effects, unregister_effect)
 from magcal_ros.core.geometry.tensor import symmetric_traceless  # noqa: F401,I100
 from magcal_ros.core.effects import formula  # noqa: F401,I100 - the grammar, after the catalog
 from magcal_ros.core.effects.couplings import (  # noqa: F401 - re-exported

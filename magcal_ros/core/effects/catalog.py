@@ -12,20 +12,14 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 """
-The catalog: the named effects that ship with the library (today's model tokens).
+The catalog: the named effects that ship with the library (the model tokens).
 
-The constant linear map (paper 004 eq. 2-3: scale, non-orthogonality, misalignment; soft
-iron; a fixed axis map), the constant offset and the site gradient of the array are
-effects of their own: the model's linear core, which the grammar's couplings change.
-Every driven token (temperature, drift, drift2, nonlinearity, aux:<column>, field_rate,
-step(T), periodic(F), lag(v), aux_poly(v, D)) is a composition coupling(driver) of the
-grammar (:data:`TOKENS`), evaluated by the grammar's code (:class:`~.terms.Part`) under
-the token's own parameter names and reference values, so that every calibration file
-written before the grammar loads and corrects as it did.  Where a token differs from the
-composition written out (docs/formulas.md): drift is referred to the first sample (the
-composition ``offset(t)`` to the mean), ``aux_poly`` and ``drift2`` are unscaled powers
-(``poly`` scales by the half range), ``nonlinearity`` has the degrees 2 and 3 only,
-``field_rate`` is written with -tau (s).
+The constant linear map (paper 004 eq. 2-3; soft iron; a fixed axis map), the constant
+offset and the site gradient are effects of their own.  Every driven token (temperature,
+drift, step(T), lag(v), ...) is a composition coupling(driver) of the grammar
+(:data:`TOKENS`), evaluated by :class:`~.terms.Part` under the token's own parameter names
+and reference values, so that older calibration files load and correct as they did; where
+a token differs from the composition written out is in docs/formulas.md.
 """
 
 from magcal_ros.core.effects import drivers as dv
@@ -36,9 +30,6 @@ from magcal_ros.core.effects.couplings import coupling_class
 from magcal_ros.core.effects.terms import no_lag, Part
 from magcal_ros.core.geometry.tensor import symmetric_traceless
 import numpy as np
-
-
-# -- linear effects -------------------------------------------------------------------------
 
 
 AXIS_NAMES = ('x', 'y', 'z')
@@ -79,12 +70,10 @@ class AxisMap(Effect):
     """
     How the readings' axes are wired to the sensor's axes: a fixed signed permutation.
 
-    Token ``axes(-x,y,z)@j``: reading x is the sensor's x axis with reversed sign (a coil or
-    channel wired with reversed polarity, a mirrored mounting); ``axes(y,x,z)@j``: the x and
-    y readings exchanged.  No parameters: A_j = M S C_NO R (the left-most factor, next to the
-    reading), so scale and angles stay those of a real sensor (near 1, near 0) and the
-    correction A_j^-1 undoes the map.  Found by the calibration when a fitted A_j has
-    det < 0 or a negative scale (:mod:`magcal_ros.core.model.plausibility`).
+    Token ``axes(-x,y,z)@j``: reading x is the sensor's x axis with reversed sign;
+    ``axes(y,x,z)@j``: the x and y readings exchanged.  No parameters: A_j = M S C_NO R, so
+    scale and angles stay those of a real sensor.  Found by the calibration when a fitted
+    A_j has det < 0 or a negative scale (:mod:`magcal_ros.core.model.plausibility`).
     """
 
     name = 'axes'
@@ -237,11 +226,10 @@ class Composition:
     """
     What one token with its arguments stands for: coupling(driver) parts and its bookkeeping.
 
-    ``parts`` [(coupling name, Driver)]; ``params``, ``units`` the token's own parameter
-    names and units; ``refs`` {token's reference: (how, variable, the drivers' reference)},
-    how 'mean' (the calibration mean of the variable) or 'first' (the first time);
-    ``fixed`` constant references of the drivers; ``sign`` and ``lead`` (zero parameters
-    before the token's) map the token's parameters onto the parts'.
+    ``parts`` [(coupling name, Driver)]; ``params``, ``units`` the token's own; ``refs``
+    {token's reference: (how, variable, the drivers' reference)}, how 'mean' or 'first'
+    (the first time); ``fixed`` constant references of the drivers; ``sign`` and ``lead``
+    (zero parameters before the token's) map the token's parameters onto the parts'.
     """
 
     def __init__(self, args, parts, params, units, refs=None, fixed=None, sign=1.0, lead=0,
@@ -256,12 +244,9 @@ class TokenEffect(Effect):
     """
     A token of the catalog (``temperature``, ``lag(temperature)``, ...): grammar parts, summed.
 
-    The change of the reading is the sum of its parts' (:class:`~.terms.Part`, the one
-    evaluation of the grammar's terms).  The token keeps only its bookkeeping: the parameter
-    names, units and reference values (``t0_c``, ``t0_s``, ``a0``, ``x0``) that calibration
-    files written before the grammar hold, so they load and correct as they did.  Each
-    token is a row of :data:`TOKENS`; :func:`token_class` makes the class registered under
-    its name.
+    The token keeps only its bookkeeping: the parameter names, units and reference values
+    (``t0_c``, ``t0_s``, ``a0``, ``x0``) of the calibration files.  Each token is a row of
+    :data:`TOKENS`; :func:`token_class` makes the class registered under its name.
     """
 
     kind = 'additive'
@@ -546,13 +531,11 @@ class SiteGradient(Effect):
     """
     Constant gradient of the site in the world frame, seen through the known attitude.
 
-    The field at sensor j (position r_j, m, body = array frame) is
-    B_j = B_c + R^T G_w R r_j, with B_c the field at the array centre (the origin of the
-    positions; its magnitude is the reference magnitude), R the body-to-world rotation
-    (``SensorContext.attitude``) and G_w (nT/m) symmetric and traceless: 5 parameters
-    (gxx, gxy, gxz, gyy, gyz) shared by the whole array.  The shift enters before the
-    sensor's linear map: raw_j = A_j B_j + offset_j + ...  The positions are stored in
-    ``refs`` (x1, y1, z1, x2, ...; m) so that the calibration file carries them.
+    The field at sensor j (position r_j, m) is B_j = B_c + R^T G_w R r_j, with B_c the field
+    at the array centre, R the body-to-world rotation (``SensorContext.attitude``) and G_w
+    (nT/m) symmetric and traceless: 5 parameters shared by the array, applied before the
+    sensor's linear map.  The positions are stored in ``refs`` (x1, y1, z1, x2, ...; m) so
+    that the calibration file carries them.
     """
 
     name = 'site_gradient'
