@@ -15,20 +15,13 @@
 """
 Effect code that fails: checked once at start-up, contained and named when it runs.
 
-An effect (a plug-in's or a built-in's, :class:`magcal_ros.core.effects.Effect`) is code the
-library runs per sample in the live nodes.  Two guards keep a faulty one from ending a node:
-
-- :func:`probe_effect`, at start-up (``magcal --plugin``, the nodes' ``plugins``
-  parameter): the effect is evaluated once (``prepare``, ``check``, then ``matrix`` or
-  ``contribution``) on a context holding only the signals it declares
-  (:attr:`Effect.signals`; the time ``t`` is always there, as live).  Reading an
-  undeclared signal there, e.g. ``ctx.temp`` without ``'temperature'`` (which is ``None``
-  live: the corrector subscribes only to declared signals), or any other exception, refuses
-  the plug-in with one line naming the effect and the signal (ValueError: exit status 2);
-- :class:`EffectError` at run time: whatever effect code raises while a sample is corrected
-  is re-raised as an EffectError naming the effect (:func:`culprit`, from the traceback),
-  which the nodes contain: that sample is not published, the error is logged once per
-  effect and counted on ``/diagnostics`` (:class:`EffectErrors`).
+Effects (plug-ins' or built-in) run per sample in the live nodes.  :func:`probe_effect`
+evaluates one at start-up on a context holding only the signals it declares: reading an
+undeclared signal (which live is not received for it), or any other exception, refuses the
+plug-in with one line naming the effect and the signal.  At run time whatever effect code
+raises is re-raised as an :class:`EffectError` naming the effect (:func:`culprit`), which
+the nodes contain: that sample is not published, the error logged once per effect and
+counted on ``/diagnostics`` (:class:`EffectErrors`).
 """
 from magcal_ros.core.effects.base import Effect, SensorContext, SIGNALS
 import numpy as np
@@ -127,11 +120,9 @@ def probe_effect(cls, ref=None):
     """
     Evaluate the effect class ``cls`` once on a context of its declared signals.
 
-    ``prepare``, ``check``, then ``matrix`` (linear) or ``contribution`` (additive; for an
-    array-wide effect only ``prepare`` and ``check``), on a fresh instance on sensor 2 at
-    its default parameters plus 1e-3.  An effect written only with arguments is made from
-    the first of its ``suggest_args`` on a context of every signal, and is not evaluated
-    without one.
+    ``prepare``, ``check``, then ``matrix`` or ``contribution`` (not for an array-wide
+    effect), on sensor 2 at its default parameters plus 1e-3.  An effect written only with
+    arguments is made from the first of its ``suggest_args``, and not evaluated without one.
 
     Raises
     ------

@@ -18,19 +18,13 @@ The maximum-likelihood fit of a :class:`magcal_ros.core.model.Model` and its res
 :func:`fit` estimates the parameters from rotation data in a uniform field:
 
 1. closed-form start (paper 004 section 3, docs/papers.md#paper-004): ellipsoid fit +
-   Cholesky per sensor (eq. 8-13), orthogonal Procrustes into sensor 1's frame (eq. 14):
-   :func:`initial_params`;
-2. maximum-likelihood refinement of all sensors jointly: the noise is modelled on the raw
-   readings, raw_jk = f_j(B_k) + e_jk, e ~ N(0, sigma_j^2 I), with the unknown field B_k of
-   epoch k constrained to the reference magnitude |B_k| = F_k and eliminated by variable
-   projection (:mod:`magcal_ros.core.model.engine`), solved by Levenberg-Marquardt
+   Cholesky per sensor (eq. 8-13), orthogonal Procrustes into sensor 1's frame (eq. 14);
+2. maximum likelihood on the raw readings, raw_jk = f_j(B_k) + e_jk, e ~ N(0, sigma_j^2 I),
+   the field B_k constrained to |B_k| = F_k and eliminated by variable projection
+   (:mod:`magcal_ros.core.model.engine`), solved by Levenberg-Marquardt
    (:mod:`magcal_ros.core.model.solvers`) or ``scipy.optimize.least_squares``;
-3. the noise levels re-estimated from the residuals (:func:`group_noise_variances`, each
-   sensor's own part of the residual), and the parameter covariance from the projected
-   Jacobian at the solution (the Cramer-Rao bound).
-
-:class:`FitResult` is immutable; its per-epoch arrays (corrected readings, residuals, the
-profiled field) are computed from the parameters on first access and then kept.
+3. the noise levels re-estimated from the residuals (:func:`group_noise_variances`), and
+   the covariance from the projected Jacobian at the solution (the Cramer-Rao bound).
 """
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -59,8 +53,7 @@ class FitResult:
 
     The per-epoch arrays (``corrected_nt``, ``residual_nt``, ``scalar_residual_nt``,
     ``vector_residual_nt``, ``field_nt``, ``downweighted``) are computed from ``params`` on
-    all epochs of the fitted data when first read, and then kept: a fit of 10^6 epochs does
-    not hold the arrays nobody reads (four sensors: 96 MB each (S, N, 3) array).
+    all epochs when first read, and then kept.
 
     Attributes
     ----------
@@ -296,14 +289,12 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
         Scale of the soft-L1 loss, in units of sigma.
     constrained : bool
         Constrained mode for partial attitude coverage: effects get the priors they declare
-        (``Effect.prior``: scale 1 +- 0.02, non-orthogonality 0 +- 0.02 rad, misalignment
-        0 +- 0.05 rad, soft iron identity +- 0.02) and the start is A = I.
+        (``Effect.prior``) and the start is A = I.
     priors : dict, optional
         {effect name or label: (mean or None for default, sd)} overriding the priors.
     extra_priors : list of (int, float, float), optional
         Priors on single parameters, (index, mean, sd) in the parameter's unit, added to
-        those of ``priors`` (the planar mode holds the parameters a turn about one axis
-        leaves open: :mod:`magcal_ros.core.model.planar`).
+        those of ``priors``.
     sigma_nt : float or numpy.ndarray, optional
         Fixed per-sensor noise (nT); default: estimated from the residuals.
     on_degenerate : {'raise', 'flag'}
@@ -315,23 +306,17 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
     max_nfev : int
         Most residual evaluations of the optimiser per sensor group and noise pass.
     ftol : float, optional
-        Stop when an iteration lowers the cost by less than ``ftol`` times the cost (the
-        chi-square by less than ``ftol`` chi-square).  Default: the solver's own (1e-12 for
-        'lm', to the numerical limit; 1e-8 for 'scipy').  A caller that needs chi-square
-        only to a given precision (the diagnosis' refits: a tenth of a unit) passes that
-        precision divided by chi-square.
+        Stop when an iteration lowers the cost by less than ``ftol`` times the cost.
+        Default: the solver's own (1e-12 for 'lm', 1e-8 for 'scipy').
     check_identifiability : bool
         Check the attitude coverage and the Jacobian's conditioning
         (:mod:`magcal_ros.core.model.identifiability`); off for warm-started refits.
     solver : {'lm', 'scipy'}
-        'lm': Levenberg-Marquardt on the normal equations (J^T J is P x P; about 20x faster
-        than an SVD of the tall Jacobian, see bench/); 'scipy': scipy.optimize.least_squares
-        (trust-region reflective), the reference implementation.  Both minimise the same
-        cost (test_model_ml.py checks they agree).
+        'lm': Levenberg-Marquardt on the normal equations; 'scipy':
+        scipy.optimize.least_squares (trust-region reflective), the reference.
     covariance : bool
-        Compute the covariance (one more Jacobian at the solution); False (a caller that
-        reads only the parameters and the residuals, e.g. the diagnosis' refits): stderr and
-        covariance NaN; needs ``check_identifiability=False`` (the check reads it).
+        Compute the covariance; False: stderr and covariance NaN (needs
+        ``check_identifiability=False``, which reads it).
 
     Returns
     -------
@@ -450,11 +435,11 @@ def fitted_readings(model, t, idx):
     """
     Return the fitted sets and readings: (M,) indices into ``t`` and (S, M) bool or None.
 
-    ``idx`` (M0,) are the candidate sets (:func:`fit_epochs`), ``t`` (N,) s all the times.
-    The model's ``drop`` terms leave readings out (``Model.reading_mask``); a set whose
-    every reading is left out is removed.  The mask is None when every reading of the sets
-    kept is used.  Raises ValueError when fewer than 10 sets are left, or when a sensor
-    keeps fewer readings than max(10, its parameters).
+    ``idx`` (M0,) are the candidate sets (:func:`fit_epochs`), ``t`` (N,) s all the times;
+    the ``drop`` terms leave readings out (``Model.reading_mask``) and a set without any
+    reading is removed; the mask is None when every reading kept is used.  Raises
+    ValueError when fewer than 10 sets are left, or a sensor keeps fewer readings than
+    max(10, its parameters).
     """
     if not model.drops:
         return idx, None
@@ -498,16 +483,13 @@ def group_noise_variances(res, g_cols, n_params, ranks=None, keep=None):
     Unbiased moment estimate of each sensor's noise variance in a group, relative to its weight.
 
     The profiled residual of an epoch is r = (I - P) e with P the orthogonal projector on the
-    two field-direction columns G (the field is estimated from the same readings), e the
-    noise normalised by the current sigma_j.  With E[e e^T] = diag(d_j I_3), d_j = (true
-    sigma_j / current sigma_j)^2, E ||r_j||^2 = sum_k C_jk d_k, C_jk = ||(I - P)_jk||_F^2
-    summed over epochs; C d = sum ||r_j||^2 is solved for d >= 0 (scipy.optimize.nnls).
-    This is the heteroscedastic variance-component estimator of Rao (1970, MINQUE's unbiased
-    form; for three instruments Grubbs' three-cornered hat).  The sensor's own share of the
-    residual is not taken as its variance: with the field a weighted mean, a sensor weighted
-    less leaves more of the common residual in its own, so that estimate diverges from the
-    truth pass after pass (two sensors: 2-3x the scatter of this one, bench/ and
-    test_model_ml.py).  The parameters' degrees of freedom scale every d by
+    two field-direction columns G, e the noise normalised by the current sigma_j.  With
+    E[e e^T] = diag(d_j I_3), d_j = (true sigma_j / current sigma_j)^2,
+    E ||r_j||^2 = sum_k C_jk d_k, C_jk = ||(I - P)_jk||_F^2 summed over epochs;
+    C d = sum ||r_j||^2 is solved for d >= 0 (scipy.optimize.nnls): the heteroscedastic
+    variance-component estimator of Rao (1970, MINQUE's unbiased form).  A sensor's own
+    share of the residual would not do: a sensor weighted less leaves more of the common
+    residual in its own.  The parameters' degrees of freedom scale every d by
     (3 G - 2) N / ((3 G - 2) N - P).
 
     Parameters
@@ -520,16 +502,11 @@ def group_noise_variances(res, g_cols, n_params, ranks=None, keep=None):
     n_params : int
         Parameters fitted in the group.
     ranks : sequence of int, optional
-        (G,) the rank of each member's noise (3 for a sensor; the attitude's observation
-        of the field, :mod:`magcal_ros.core.effects.attitude_ref`, is a member whose
-        noise lies in its projector's range, rank 1 or 3): the 3 of the formula above is
-        the trace of the member's noise covariance.
+        (G,) the rank of each member's noise: 3 for a sensor, 1 or 3 for the attitude's
+        observation (:mod:`magcal_ros.core.effects.attitude_ref`).
     keep : numpy.ndarray, optional
-        (N, G) 0/1: the sensors' readings the fit keeps (:attr:`ProfiledProblem.keep`;
-        the attitude, a member after them, keeps every epoch).  A reading left out has no
-        noise in the residual: its rows of ``res`` and ``g_cols`` are zero, and its sensor's
-        3 of the formula counts only the epochs it keeps; an epoch without any reading
-        counts nothing.
+        (N, G) 0/1: the sensors' readings the fit keeps (:attr:`ProfiledProblem.keep`);
+        a reading left out counts nothing.
 
     Returns
     -------
@@ -566,11 +543,9 @@ def dof_scale(n, g, n_params, rows=None, row_total=None):
     """
     Return sqrt((3 G - 2) N / ((3 G - 2) N - P)), which scales a group's residual noise sd.
 
-    Each epoch leaves 3 G - 2 residual degrees of freedom (two go to the field's direction);
-    the P fitted parameters take theirs from the total.  ``rows``: the observations per
-    epoch when they are not 3 G (an attitude observing the field adds its rank);
-    ``row_total``: the observations of all N epochs when the epochs do not have the same
-    (a sensor's readings left out by ``drop(t0, t1)@j``).
+    Each epoch leaves 3 G - 2 residual degrees of freedom; the P parameters take theirs from
+    the total.  ``rows``: the observations per epoch when not 3 G; ``row_total``: those of
+    all N epochs when the epochs differ (readings left out by ``drop``).
     """
     if row_total is not None:
         dof = row_total - 2 * n
@@ -584,13 +559,9 @@ def own_residual(res, g_cols, gi):
     (N,) the residual of sensor ``gi`` of a group normal to its two field-direction columns.
 
     The profiled field moves each sensor's prediction only within the span of its own two
-    columns G_j (the tangent plane of the field, as sensor j reads it), so the residual's
-    component along w_j = G_j1 x G_j2 / |G_j1 x G_j2| is w_j^T e_j: sensor j's normalised
-    noise alone, one value per epoch, whatever the other sensors' noise.  Its robust
-    spread is sensor j's noise level relative to its current one; the MAD of all three
-    components of r_j instead mixes that sensor's radial noise with the components the
-    field took up (a single sensor: 2 of 3 near zero), which put a 3 nT sensor at
-    0.64 nT and its uncertainties 4.9x too small (2026-11-27, test_model_ml.py).
+    columns G_j, so the residual's component along w_j = G_j1 x G_j2 / |G_j1 x G_j2| is
+    w_j^T e_j: sensor j's normalised noise alone, whatever the other sensors' noise (the
+    MAD of all three components would mix in the components the field took up).
 
     Parameters
     ----------
@@ -617,11 +588,9 @@ def serial_inflation(r):
     """
     sqrt((1 + rho) / (1 - rho)): how much a serially correlated error weighs less.
 
-    ``r`` (N, 3) residuals in time order (each row's components summed into one series
-    per axis); rho is their lag-1 correlation (the AR(1) variance inflation of a mean,
-    Bartlett 1946, as :func:`magcal_ros.core.model.planar.inflate_for_correlation` widens a
-    planar fit).  An attitude's error is smooth (an EKF's drifts over tens of seconds): as
-    N independent observations it would outweigh the compass and bend the fit to its drift.
+    ``r`` (N, 3) residuals in time order; rho is their lag-1 correlation (the AR(1)
+    variance inflation of a mean, Bartlett 1946).  An attitude's error is smooth: as N
+    independent observations it would outweigh the compass.
     """
     r = np.asarray(r, float)
     num = float(np.sum(r[1:] * r[:-1]))
@@ -730,11 +699,8 @@ class _Solve:
         """
         Return (S,) the noise levels re-estimated from the raw residuals at ``p``, nT.
 
-        Least squares: the unbiased moment estimator of :func:`group_noise_variances`
-        (each sensor's share of the residual follows from the projection, not from the
-        weights of the current ``sigma``).  Robust: the MAD of each sensor's residual
-        across its two field-direction columns (:func:`own_residual`), which holds that
-        sensor's noise alone.
+        Least squares: :func:`group_noise_variances`; robust: the MAD of each sensor's
+        :func:`own_residual`.
         """
         new_sigma = sigma.copy()
         for prob in problems:
@@ -803,20 +769,15 @@ class _Solve:
         ``prob`` is the group's :class:`ProfiledProblem` at its parameters ``x``, ``bound``
         its (P_g, P_g) Cramer-Rao bound.
 
-        The soft-L1 loss rho(|z|^2) of each sensor's normalised residual z (3,) at an epoch
-        (f_scale c) gives the estimating equation sum_k sum_j w_kj J_kj^T z_kj = 0 with
+        The soft-L1 loss of each sensor's normalised residual z (3,) at an epoch (f_scale c)
+        gives the estimating equation sum_k sum_j w_kj J_kj^T z_kj = 0 with
         w = 1 / sqrt(1 + |z|^2 / c^2); its covariance is A^-1 B A^-1 with
-        A = sum J^T (w I - w^3 z z^T / c^2) J (the derivative of the score) and B the sum over
-        epochs of the outer product of each epoch's score (the sensors of an epoch share its
-        field): Huber, P. J. (1967), The behavior of maximum likelihood estimates under
-        nonstandard conditions, Proc. Fifth Berkeley Symposium 1, 221-233.  J is the
-        projected Jacobian (the field profiled); prior rows enter A and B as the unit-variance
-        observations they stand for.  On Gaussian noise it is the Cramer-Rao bound the least
-        squares fit states; with outliers it counts the loss's lost efficiency, which the
-        bound does not (5 % spikes of 1000 nT on the cross: z-values spread 1.37 with the
-        bound, 1.21 with this; one sensor, spikes of either sign: 1.50 and 1.19, the rest
-        the sandwich's own scatter from a few spikes).  A bias from outliers of one sign is
-        in no covariance.  A group with a direction the data do not determine keeps
+        A = sum J^T (w I - w^3 z z^T / c^2) J and B the sum over epochs of the outer product
+        of each epoch's score: Huber, P. J. (1967), The behavior of maximum likelihood
+        estimates under nonstandard conditions, Proc. Fifth Berkeley Symposium 1, 221-233.
+        J is the projected Jacobian; prior rows enter A and B as unit-variance observations.
+        On Gaussian noise it is the Cramer-Rao bound; with outliers it counts the loss's
+        lost efficiency.  A group with a direction the data do not determine keeps
         ``bound`` (its infinite entries).
         """
         c2 = self.f_scale ** 2
