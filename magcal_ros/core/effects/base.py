@@ -211,7 +211,7 @@ class Effect:
 
     @classmethod
     def suggest_args(cls, ctx):
-        """Argument tuples worth testing on data ``ctx`` (the diagnosis' candidates); [] if none."""
+        """Argument tuples worth testing on data ``ctx`` (diagnosis candidates); [] if none."""
         return []
 
     @classmethod

@@ -263,8 +263,8 @@ class ProfiledProblem:
 
         def forms(x1, y1, x2, y2):
             # (3, N): the rows' dot products (x1.y1, x1.y2, x2.y2) of the tangent forms
-            return np.stack([np.einsum('ij,ij->i', x, y) for x, y in ((x1, y1), (x1, y2),
-                                                                         (x2, y2))])
+            pairs = ((x1, y1), (x1, y2), (x2, y2))
+            return np.stack([np.einsum('ij,ij->i', x, y) for x, y in pairs])
         for _ in range(steps):
             u = b / self.f[:, None]
             e1, e2 = tangent_basis(u)

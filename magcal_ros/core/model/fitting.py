@@ -55,73 +55,45 @@ class FitResult:
     ``vector_residual_nt``, ``field_nt``, ``downweighted``) are computed from ``params`` on
     all epochs when first read, and then kept.
 
-    Attributes
-    ----------
-    model : Model
-    params : numpy.ndarray
-        (P,) estimated parameters (units in ``model.param_info()``).
-    stderr : numpy.ndarray
-        (P,) standard uncertainties from the projected Jacobian (NaN: not computed, a fit
-        with ``covariance=False``).
-    covariance, correlation : numpy.ndarray
-        (P, P) (NaN and the identity when not computed).
-    sigma_nt : numpy.ndarray
-        (S,) per-sensor noise standard deviation estimated from the residuals, nT.
-    field_magnitude_nt : numpy.ndarray
-        (N,) reference magnitude used, nT.
-    success : bool
-        The optimiser converged.
-    status : int
-    message : str
-    nfev : int
-        Residual evaluations of the optimiser.
-    n_fit_samples : int
-        Epochs the parameters were fitted on (at most ``max_fit_samples``).
-    n_fit_readings : numpy.ndarray or None
-        (S,) int, the readings of each sensor the parameters were fitted on: n_fit_samples
-        less the sets a ``drop(t0, t1)@j`` leaves out of sensor j.
-    chi2 : float
-        Sum of squared normalised residuals at the solution, on the fitted epochs.
-    n_obs : int
-        Observations net of the profiled field: n_fit_samples sum(3G - 2) over the groups.
-    warnings : tuple of Note
-    identifiability : dict
-        :mod:`magcal_ros.core.model.identifiability` report.
-    initial_params : numpy.ndarray or None
-        (P,) the start.
-    contexts : list of SensorContext
-        (S,) the driving signals of all epochs.
-    robust : bool
-    f_scale : float
-    raw_nt : numpy.ndarray
-        (S, N, 3) the raw readings fitted, nT (the data's own array, not a copy).
-
     """
 
     model: object
+    #: (P,) estimated parameters (units in ``model.param_info()``)
     params: np.ndarray
+    #: (P,) standard uncertainties (NaN: a fit with ``covariance=False``)
     stderr: np.ndarray
+    #: (P, P) each (NaN and the identity when not computed)
     covariance: np.ndarray
     correlation: np.ndarray
+    #: (S,) per-sensor noise sd estimated from the residuals, nT
     sigma_nt: np.ndarray
+    #: (N,) reference magnitude used, nT
     field_magnitude_nt: np.ndarray
+    #: the optimiser converged; its status, message and residual evaluations
     success: bool
     status: int
     message: str
     nfev: int
+    #: epochs the parameters were fitted on (at most ``max_fit_samples``)
     n_fit_samples: int
+    #: sum of squared normalised residuals at the solution, on the fitted epochs
     chi2: float
+    #: observations net of the profiled field: n_fit_samples sum(3G - 2) over the groups
     n_obs: int
+    #: tuple of Note
     warnings: tuple = ()
+    #: :mod:`magcal_ros.core.model.identifiability` report
     identifiability: dict = field(default_factory=dict)
+    #: (P,) the start
     initial_params: np.ndarray | None = None
+    #: (S,) the driving signals of all epochs
     contexts: list | None = None
     robust: bool = False
     f_scale: float = 3.0
+    #: (S, N, 3) the raw readings fitted, nT (the data's own array)
     raw_nt: np.ndarray | None = field(default=None, repr=False)
+    #: (S,) int, the readings of each sensor fitted on (less what ``drop(t0, t1)@j`` leaves)
     n_fit_readings: np.ndarray | None = None
-
-    # -- per-epoch arrays, computed on first access ---------------------------------------
 
     @property
     def n_samples(self):
@@ -394,9 +366,8 @@ def _check_data(data, model, contexts, constrained, check_identifiability, degen
     """
     Refuse or flag data that cannot determine ``model``; return the identifiability report.
 
-    Non-finite readings and too few epochs are errors; what the effects cannot be excited
-    by (``Effect.check``) and a poor attitude coverage go to ``degenerate`` (raise or
-    flag).  Prepares the model's reference values on ``contexts``.
+    Non-finite readings and too few epochs are errors; unexcited effects and a poor
+    coverage go to ``degenerate``.  Prepares the model's reference values on ``contexts``.
     """
     raw = data.raw
     if not np.all(np.isfinite(raw)):
@@ -814,8 +785,8 @@ def priors_for(model, spec, constrained=False):
     """
     Prior list [(index, mean, sd)] from a {effect name or label: (mean, sd)} spec.
 
-    With ``constrained`` every effect that declares an ``Effect.prior`` gets it, unless
-    ``spec`` overrides it; a mean of None is the effect's default parameter value.
+    With ``constrained`` every effect's ``Effect.prior`` unless ``spec`` overrides it; a
+    mean of None is the effect's default parameter value.
     """
     out = []
     default = model.default_params()
@@ -832,32 +803,12 @@ def priors_for(model, spec, constrained=False):
 
 def initial_params(raw, field_nt, model, constrained=False, mask=None):
     """
-    Closed-form starting values (paper 004 section 3).
+    Return (P,) closed-form starting values of ``model`` (paper 004 section 3).
 
-    Per sensor: ellipsoid fit + Cholesky (eq. 8-13); Procrustes rotation of each corrected
-    sensor onto sensor 1 (eq. 14); A_j = C_j R_j^T.  In constrained mode (partial attitude
-    coverage, where the ellipsoid is ill-determined) A = I and only the offset is solved,
-    from the linear sphere fit |m - o|^2 = F^2.
-
-    Parameters
-    ----------
-    raw : numpy.ndarray
-        (S, N, 3) raw readings, nT.
-    field_nt : numpy.ndarray
-        (N,) reference magnitude, nT.
-    model : Model
-        The model whose parameters are started.
-    constrained : bool
-        A = I and the offset from the linear sphere fit only.
-    mask : numpy.ndarray, optional
-        (S, N) bool, the readings to start from (a sensor's readings left out by
-        ``drop(t0, t1)@j`` are not); default all.
-
-    Returns
-    -------
-    numpy.ndarray
-        (P,) starting parameters.
-
+    Per sensor of ``raw`` (S, N, 3) nT: ellipsoid fit + Cholesky (eq. 8-13) at the reference
+    magnitude ``field_nt`` (N,) nT; Procrustes rotation of each corrected sensor onto sensor
+    1 (eq. 14); A_j = C_j R_j^T.  ``constrained``: A = I and the offset from the linear
+    sphere fit |m - o|^2 = F^2 only.  ``mask`` (S, N) bool: the readings to start from.
     """
     s = raw.shape[0]
     f0 = float(np.mean(field_nt))
@@ -899,36 +850,11 @@ def profile_residuals(model, p, raw, f, sigma, contexts, robust=False, f_scale=3
     """
     Return the profiled field and the raw-space residual of ``p`` (chunked for large N).
 
-    Parameters
-    ----------
-    model : Model
-        The model, prepared.
-    p : numpy.ndarray
-        (P,) parameters.
-    raw : numpy.ndarray
-        (S, N, 3) raw readings, nT.
-    f : numpy.ndarray
-        (N,) reference magnitude, nT.
-    sigma : numpy.ndarray
-        (S,) noise levels, nT (weights of the joint field profile).
-    contexts : list of SensorContext
-        (S,) driving signals on the same epochs.
-    robust, f_scale : bool, float
-        Profile with the soft-L1 weights.
-    chunk : int
-        Epochs evaluated at a time (memory of the Jacobian-free evaluation).
-    field0 : numpy.ndarray, optional
-        (N, 3) nT field to start the profile from (joint models).
-
-    Returns
-    -------
-    field : numpy.ndarray
-        (N, 3) profiled field, nT (joint: shared; independent sensors: the last one's);
-        profiled without the readings the model's ``drop`` terms leave out.
-    residual : numpy.ndarray
-        (S, N, 3) raw reading minus prediction, nT (a reading left out: against the field
-        of the others, :meth:`ProfiledProblem.reading_residuals`).
-
+    ``model`` prepared, ``p`` (P,), ``raw`` (S, N, 3) nT, ``f`` (N,) nT, ``sigma`` (S,) nT
+    (weights of the joint profile), ``contexts`` (S,); ``robust``, ``f_scale``: profile
+    with the soft-L1 weights; ``chunk`` epochs at a time; ``field0`` (N, 3) nT: the field
+    to start from (joint models).  Returns the field (N, 3) nT (independent sensors: the
+    last one's) and the residual (S, N, 3) nT (:meth:`ProfiledProblem.reading_residuals`).
     """
     s, n = raw.shape[0], raw.shape[1]
     field = np.zeros((n, 3))
@@ -984,13 +910,9 @@ def evaluate(model, p, data, f, sigma, contexts=None, robust=False, f_scale=3.0,
     """
     Return the residuals of parameters ``p`` on all epochs of ``data`` (chunked for large N).
 
-    ``field0`` (N, 3) nT, optional: the profiled field of nearby parameters (e.g. the
-    ``field`` of an evaluation of the fit), to start the field profile from (joint models).
-
-    The readings the model's ``drop`` terms leave out (``Model.reading_mask``) are not
-    residuals of the model: their residual, scalar and vector entries (the vector's where
-    sensor j's or sensor 1's reading is left out) are zero, and ``kept`` says which are
-    (a mean square over the readings kept divides by its count, not by N).
+    Arguments as :func:`profile_residuals`'.  The readings the ``drop`` terms leave out have
+    zero residual, scalar and vector entries (the vector's where sensor j's or sensor 1's
+    is left out); ``kept`` says which (a mean square divides by its count, not by N).
 
     Returns
     -------
