@@ -23,21 +23,18 @@ helpers), :mod:`.catalog` (the named tokens), :mod:`.drivers`, :mod:`.couplings`
 re-exported: ``from magcal_ros.core.effects import X``.
 """
 from magcal_ros.core.effects.base import (  # noqa: F401 - re-exported
-    decompose_linear, Effect, first_order_lag, LinearParts, misalignment_angles,
+    decompose_linear, Effect, first_order_lag, misalignment_angles,
     misalignment_matrix, NONLINEARITY_FULL_SCALE_NT, nonorthogonality_matrix, raw_rate,
     rot_r1, rot_r2, rot_r3, rq_positive, SensorContext, SIGNALS, upper_to_scale_nonorth)
 from magcal_ros.core.effects.catalog import (  # noqa: F401 - re-exported
-    axis_map_args, axis_map_matrix, AXIS_NAMES, AxisMap, Misalignment, NonOrthogonality, Offset,
+    axis_map_args, AXIS_NAMES, AxisMap, Misalignment, NonOrthogonality, Offset,
     Scale, SiteGradient, SoftIron, TOKEN_CLASSES, TokenEffect, TOKENS)
 from magcal_ros.core.effects.registry import (  # noqa: F401 - re-exported
-    BASE, BUILTIN_EFFECTS, effect_class, load_plugin, load_plugins, make_catalog_effect,
-    needs_args, parse_token, register_effect, registered_effects, unregister_effect)
-from magcal_ros.core.geometry.tensor import symmetric_traceless  # noqa: F401,I100
+    BASE, BUILTIN_EFFECTS, effect_class, load_plugin, load_plugins, needs_args, parse_token,
+    register_effect, registered_effects, unregister_effect)
 from magcal_ros.core.effects import formula  # noqa: F401,I100 - the grammar, after the catalog
 from magcal_ros.core.effects.couplings import (  # noqa: F401 - re-exported
-    Coupling, register_coupling, registered_couplings, unregister_coupling)
+    Coupling, register_coupling, unregister_coupling)
 from magcal_ros.core.effects.drivers import (  # noqa: F401 - re-exported
-    Driver, FormulaError, register_driver, registered_drivers, unregister_driver)
-from magcal_ros.core.effects.formula import (  # noqa: F401 - re-exported
-    composed_effect, Formula, make_effect, parse, Term)
-from magcal_ros.core.effects.terms import ComposedEffect, FieldEffect  # noqa: F401
+    Driver, register_driver, unregister_driver)
+from magcal_ros.core.effects.formula import make_effect, parse  # noqa: F401 - re-exported

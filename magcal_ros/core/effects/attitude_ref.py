@@ -15,31 +15,19 @@
 """
 The attitude as a reference: the world field seen through the vehicle's attitude.
 
-A vehicle rarely turns its compass through a sphere, so the magnitude constraint |B_k| = F
-alone leaves the vertical axis' offset and scale and the couplings to it open.  Its attitude
-R_k (body-to-world, an EKF or AHRS) gives B_k = R_k^T m in a uniform world field m.  This
-effect makes that an *observation* of the profiled field B_k of each epoch
-(:class:`magcal_ros.core.model.engine.ProfiledProblem`), a virtual sensor of the array whose
-noise, the attitude's error seen as a field (``sigma_nt``), is estimated with the real
-sensors' (:func:`magcal_ros.core.model.fitting.group_noise_variances`):
-
-``full``  (token ``attitude_full``) the whole attitude is trusted: y_k = Q R_k^T m,
-          m = F (cos I cos D, cos I sin D, sin I) in the attitude's world frame; I and D
-          (rad) are estimated, so a constant heading bias goes into D.
-``tilt``  (token ``attitude_tilt``) roll and pitch only (the heading usually comes from the
-          compass being calibrated): the observation is g_k . B_k = F sin I, g_k = R_k^T e_z
-          the vertical in the body frame; one parameter, I, rad.
-
-Both modes also fit Q, the rotation of sensor 1 against the attitude's body frame (rotation
-vector ``mount_x``, ``mount_y``, ``mount_z``, rad), with a prior of
-:data:`MOUNT_PRIOR_SD_RAD` on each (:mod:`magcal_ros.core.model.attitude_fit`).
-Gebre-Egziabher et al. 2006, "Calibration of strapdown magnetometers in magnetic field
-domain", J. Aerosp. Eng. 19(2), use the same two constraints, magnitude and the vertical
-component; here they enter the maximum-likelihood problem as a weighted observation, so the
-attitude's error is estimated, not assumed.  The sensors' readings are untouched
-(:meth:`shift` is zero): a calibration's live correction never needs the attitude.
-
-Units: nT, rad.
+A vehicle rarely turns its compass through a sphere, so |B_k| = F alone leaves the vertical
+axis' offset and scale open.  Its attitude R_k (body-to-world) gives B_k = R_k^T m in a
+uniform world field m: this effect makes that an *observation* of the profiled field B_k
+(:class:`magcal_ros.core.model.engine.ProfiledProblem`), a virtual sensor whose noise
+``sigma_nt`` (the attitude's error as a field) is estimated with the real sensors'.  Mode
+``full`` (token ``attitude_full``) trusts the whole attitude: y_k = Q R_k^T m,
+m = F (cos I cos D, cos I sin D, sin I); ``tilt`` (``attitude_tilt``) roll and pitch only:
+g_k . B_k = F sin I, g_k = R_k^T e_z.  Both fit Q, the rotation of sensor 1 against the
+attitude's body frame (rotation vector ``mount_x``, ``mount_y``, ``mount_z``, rad; prior
+:data:`MOUNT_PRIOR_SD_RAD`).  Gebre-Egziabher et al. 2006, "Calibration of strapdown
+magnetometers in magnetic field domain", J. Aerosp. Eng. 19(2), use the same constraints;
+here they are a weighted observation in the maximum-likelihood problem.  The sensors'
+readings are untouched (:meth:`shift` is zero).  Units: nT, rad.
 """
 from magcal_ros.core.effects.base import Effect
 import numpy as np
@@ -107,26 +95,11 @@ class AttitudeReference(Effect):
 
     def observation(self, p, rot, f):
         """
-        Return what the attitude observes of the field at each epoch, in sensor 1's frame.
+        Return (proj, y): what the attitude observes of the field, in sensor 1's frame.
 
-        Parameters
-        ----------
-        p : numpy.ndarray
-            (n_params,) this effect's parameters, rad.
-        rot : numpy.ndarray
-            (N, 3, 3) body-to-world rotations.
-        f : numpy.ndarray
-            (N,) reference magnitude, nT.
-
-        Returns
-        -------
-        proj : numpy.ndarray
-            (N, 3, 3) the orthogonal projector onto what is observed (the identity, or
-            g g^T with g the world vertical in sensor 1's frame), dimensionless.
-        y : numpy.ndarray
-            (N, 3) the observation, nT, in the range of ``proj``: the residual of a field
-            B_k is proj (y - B_k).
-
+        ``p`` (n_params,) rad, ``rot`` (N, 3, 3) body-to-world, ``f`` (N,) nT.  ``proj``
+        (N, 3, 3) is the projector onto what is observed (the identity, or g g^T with g the
+        world vertical), ``y`` (N, 3) nT the observation: a field's residual is proj (y - B).
         """
         q = self.mount(p)
         if self.mode == 'full':
@@ -145,11 +118,7 @@ class AttitudeReference(Effect):
         return np.einsum('nij,nj->ni', proj, y - b)
 
     def start(self, rot, field_body):
-        """
-        (n_params,) rad: the world field's angles from a roughly corrected field.
-
-        ``field_body`` (N, 3) nT, e.g. sensor 1 after the closed-form start.
-        """
+        """(n_params,) rad: the world field's angles from a corrected ``field_body`` (N, 3) nT."""
         w = np.einsum('nij,nj->ni', rot, field_body)
         w = w / np.linalg.norm(w, axis=1, keepdims=True)
         inc = float(np.arcsin(np.clip(np.median(w[:, 2]), -1.0, 1.0)))

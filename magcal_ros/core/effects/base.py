@@ -32,7 +32,6 @@ helpers every effect shares.
 from dataclasses import dataclass, field
 import math
 
-from magcal_ros.core.geometry.tensor import symmetric_traceless  # noqa: F401 - re-exported
 import numpy as np
 
 
@@ -51,20 +50,10 @@ class LinearParts:
     """
     A closed-form linear map and offset of one sensor, decomposed (paper 004 eq. 2-3).
 
-    ``a = u @ q`` (RQ decomposition) with ``u`` upper triangular with a positive diagonal
-    (scale and non-orthogonality) and ``q`` a proper rotation (misalignment).
-
-    Attributes
-    ----------
-    a, u, q : numpy.ndarray
-        (3, 3) dimensionless.
-    scale : numpy.ndarray
-        (3,) row norms of ``u`` (kx, ky, kz), dimensionless.
-    nonorth : tuple of float
-        (psi, varphi, theta) of C_NO, rad.
-    offset : numpy.ndarray
-        (3,) nT.
-
+    ``a = u @ q`` (RQ decomposition, each (3, 3)) with ``u`` upper triangular with a
+    positive diagonal (scale and non-orthogonality) and ``q`` a proper rotation
+    (misalignment); ``scale`` (3,) the row norms of ``u``, ``nonorth`` (psi, varphi, theta)
+    of C_NO in rad, ``offset`` (3,) nT.
     """
 
     a: np.ndarray
@@ -86,10 +75,9 @@ def decompose_linear(a, offset):
 
 def rq_positive(a):
     """
-    RQ decomposition a = u @ q of a (3, 3) matrix with det(a) > 0.
+    RQ decomposition a = u @ q of a (3, 3) matrix with det(a) > 0 (paper 004 eq. 2-3).
 
-    ``u`` (3, 3) upper triangular with a positive diagonal, ``q`` (3, 3) a proper rotation
-    (det +1): the split of paper 004 eq. 2-3 (intrinsic map times misalignment).
+    ``u`` (3, 3) upper triangular with a positive diagonal, ``q`` (3, 3) a proper rotation.
     """
     from scipy.linalg import rq          # here: scipy.linalg is slow to import
     u, q = rq(np.asarray(a, float))
@@ -102,36 +90,22 @@ def rq_positive(a):
 
 @dataclass
 class SensorContext:
-    """
-    Driving signals seen by one sensor.
+    """Driving signals seen by one sensor."""
 
-    Attributes
-    ----------
-    t : numpy.ndarray
-        (N,) time in s.
-    temp : numpy.ndarray or None
-        (N,) sensor temperature in degC.
-    aux : dict of str to numpy.ndarray
-        Auxiliary channels, each (N,), in the channel's own unit (A, W, ...).
-    raw_rate : numpy.ndarray or None
-        (N, 3) time derivative of the raw reading, nT/s.
-    parent : SensorContext or None
-        The whole record this context was cut from (:meth:`subset`): an effect with memory
-        (a lag filter) runs over it and keeps its state across the cut.
-    index : numpy.ndarray or None
-        (N,) int, positions of these samples in ``parent``.
-    attitude : numpy.ndarray or None
-        (N, 3, 3) body-to-world rotation matrices of the array (from the quaternion columns
-        att_qw..att_qz), or None when the attitude is unknown.
-
-    """
-
+    #: (N,) time in s
     t: np.ndarray
+    #: (N,) sensor temperature in degC
     temp: np.ndarray | None = None
+    #: auxiliary channels, each (N,), in the channel's own unit (A, W, ...)
     aux: dict = field(default_factory=dict)
+    #: (N, 3) time derivative of the raw reading, nT/s
     raw_rate: np.ndarray | None = None
+    #: the whole record this context was cut from (:meth:`subset`): an effect with memory
+    #: (a lag filter) runs over it and keeps its state across the cut
     parent: 'SensorContext | None' = None
+    #: (N,) int, positions of these samples in ``parent``
     index: np.ndarray | None = None
+    #: (N, 3, 3) body-to-world rotations of the array, or None when unknown
     attitude: np.ndarray | None = None
 
     def has(self, signal):
@@ -265,12 +239,7 @@ class Effect:
         return False
 
     def reduces(self, p, stderr, ctx):
-        """
-        Say why the fitted effect reduces to a simpler one of the catalog, or return None.
-
-        ``p`` the fitted parameters, ``stderr`` theirs or None (a lag of zero time constant
-        is the plain coupling); the diagnosis then tests the simpler effect on its own.
-        """
+        """Say why the fitted ``p`` (+- ``stderr`` or None) is a simpler effect, or None."""
         return None
 
     def describe(self):
@@ -292,21 +261,9 @@ def raw_rate(x, t=None, period=None):
     at w rad/s sampled every h s live and offline correction agree to (w h)^2 / 2 of
     tau |dB/dt|.
 
-    Parameters
-    ----------
-    x : numpy.ndarray
-        (N, 3) readings, nT.
-    t : numpy.ndarray, optional
-        (N,) strictly increasing sample times, s.
-    period : float, optional
-        Uniform sample period, s, instead of ``t`` (a live stream, whose stamps bunch when
-        samples are read together).
-
-    Returns
-    -------
-    numpy.ndarray or None
-        (N, 3) nT/s; None with fewer than 3 samples or times that do not increase.
-
+    ``t`` (N,) strictly increasing times, s, or ``period`` a uniform sample period, s (a
+    live stream, whose stamps bunch).  None with fewer than 3 samples or times that do not
+    increase.
     """
     x = np.asarray(x, float)
     if len(x) < 3:
@@ -317,9 +274,6 @@ def raw_rate(x, t=None, period=None):
     if not np.all(np.diff(t) > 0):
         return None
     return np.gradient(x, t, axis=0, edge_order=2)
-
-
-# -- rotations of paper 004 eq. 3 ----------------------------------------------------------
 
 
 def rot_r1(g):
@@ -338,6 +292,15 @@ def rot_r3(a):
     """Paper 004 eq. 3: R3(alpha), rotation about z."""
     c, s = np.cos(a), np.sin(a)
     return np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def rot_z(psi):
+    """(N, 3, 3) rotations by the angles ``psi`` (N,) rad about z."""
+    c, s = np.cos(psi), np.sin(psi)
+    out = np.zeros((len(psi), 3, 3))
+    out[:, 0, 0], out[:, 0, 1], out[:, 1, 0], out[:, 1, 1] = c, -s, s, c
+    out[:, 2, 2] = 1.0
+    return out
 
 
 def misalignment_matrix(alpha, beta, gamma):
@@ -376,9 +339,6 @@ def upper_to_scale_nonorth(u):
     varphi = np.arctan2(c[0, 1], c[0, 0])
     psi = np.arctan2(c[1, 2], c[1, 1])
     return k, float(psi), float(varphi), float(theta)
-
-
-# -- signal helpers ------------------------------------------------------------------------
 
 
 def parse_number(text, what):
@@ -484,12 +444,7 @@ def lag_step(state, t, x, tau):
 
 
 def steps_outside(times, t):
-    """
-    Say which step time lies outside the data, or return None.
-
-    ``times`` step times and ``t`` (N,) sample times, s: a step needs at least 3 samples on
-    each side to be told from the offset.
-    """
+    """Say which step of ``times`` has fewer than 3 samples of ``t`` (N,) s on a side, or None."""
     for tk in times:
         before = int(np.sum(t < tk))
         if before < 3 or len(t) - before < 3:

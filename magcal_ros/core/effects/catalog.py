@@ -39,9 +39,8 @@ def axis_map_matrix(args):
     """
     (3, 3) signed permutation M of an axis map: reading = M @ (the sensor element's axes).
 
-    ``args`` are three of 'x', '-x', 'y', '-y', 'z', '-z' (one per reading axis x, y, z,
-    each sensor axis once): ('-x', 'y', 'z') is an x axis read with reversed sign, ('y', 'x',
-    'z') the x and y readings exchanged.
+    ``args`` are three of 'x', '-x', 'y', '-y', 'z', '-z', one per reading axis, each sensor
+    axis once: ('-x', 'y', 'z') is an x axis read with reversed sign.
     """
     m = np.zeros((3, 3))
     for i, a in enumerate(args):
@@ -133,11 +132,7 @@ class NonOrthogonality(Effect):
 
 
 class Misalignment(Effect):
-    """
-    Rotation of the sensor's axes relative to sensor 1 (paper 004 eq. 3).
-
-    Sensor 1 defines the array frame, so this effect has no parameters there.
-    """
+    """Rotation of the sensor's axes relative to sensor 1 (paper 004 eq. 3; none on sensor 1)."""
 
     name = 'misalignment'
     kind = 'linear'
@@ -197,9 +192,6 @@ class SoftIron(Effect):
         return parts.a[np.triu_indices(3)] if self.sensor == 1 else parts.a.ravel()
 
 
-# -- additive effects -----------------------------------------------------------------------
-
-
 class Offset(Effect):
     """Constant offset (hard iron, electronics zero), paper 004 eq. 2 b, in nT."""
 
@@ -217,9 +209,6 @@ class Offset(Effect):
     def expansion(self, at=''):
         """Return the composition the token stands for, ``offset(1)@2`` (``at``: '@2')."""
         return 'offset(1)' + at
-
-
-# -- today's tokens: compositions of the grammar ---------------------------------------------
 
 
 class Composition:
@@ -522,9 +511,6 @@ TOKEN_CLASSES = {name: token_class(name) for name in TOKENS}
 def aux_effect(channel, sensor=1):
     """Return the effect of token ``aux:<channel>`` on ``sensor``."""
     return TOKEN_CLASSES['aux'](sensor=sensor, args=(channel,))
-
-
-# -- array-wide effects --------------------------------------------------------------------
 
 
 class SiteGradient(Effect):

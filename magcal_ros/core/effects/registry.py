@@ -94,11 +94,7 @@ def load_plugin(ref):
 
 
 def parse_token(token):
-    """
-    'step(120,300)@2' -> ('step', ('120', '300'), 2); 'drift' -> ('drift', (), None).
-
-    The sensor is None when the token has no ``@j`` (the effect on every sensor).
-    """
+    """'step(120,300)@2' -> ('step', ('120', '300'), 2); 'drift' -> ('drift', (), None)."""
     tok = token.strip()
     name, at, where = tok.rpartition('@') if tok.rfind('@') > tok.rfind(')') else (tok, '', '')
     sensor = None

@@ -23,7 +23,7 @@ raises is re-raised as an :class:`EffectError` naming the effect (:func:`culprit
 the nodes contain: that sample is not published, the error logged once per effect and
 counted on ``/diagnostics`` (:class:`EffectErrors`).
 """
-from magcal_ros.core.effects.base import Effect, SensorContext, SIGNALS
+from magcal_ros.core.effects.base import Effect, rot_z, SensorContext, SIGNALS
 import numpy as np
 
 #: samples of the start-up probe context (2 Hz for 100 s)
@@ -54,11 +54,7 @@ class _DeclaredAux(dict):
 
 
 class DeclaredContext(SensorContext):
-    """
-    A :class:`SensorContext` whose undeclared signals raise :class:`UndeclaredSignal`.
-
-    ``has(signal)`` answers False for them (as live, where they are not received).
-    """
+    """A :class:`SensorContext` whose undeclared signals raise (``has`` says False, as live)."""
 
     def __init__(self, declared, **kwargs):
         super().__init__(**kwargs)
@@ -105,11 +101,7 @@ def probe_context(signals, n=PROBE_SAMPLES):
         kwargs['raw_rate'] = 300.0 * np.stack([np.cos(phase), np.sin(phase),
                                                0.3 * np.cos(2 * phase)], axis=1)
     if 'attitude' in signals:
-        c, s = np.cos(phase / 3), np.sin(phase / 3)
-        rot = np.zeros((n, 3, 3))
-        rot[:, 0, 0], rot[:, 0, 1], rot[:, 1, 0], rot[:, 1, 1] = c, -s, s, c
-        rot[:, 2, 2] = 1.0
-        kwargs['attitude'] = rot
+        kwargs['attitude'] = rot_z(phase / 3)
     for name in signals:
         if name.startswith('aux_'):
             kwargs['aux'][name] = 2.0 + np.sin(phase + len(name))
@@ -193,14 +185,8 @@ class EffectError(Exception):
     """
     Effect code raised while a sample was corrected (or a calibration made ready).
 
-    Attributes
-    ----------
-    effect : str or None
-        Token of the effect whose code raised (``temperature@2``, ``wheel@3``); None when
-        the traceback passes through no effect.
-    error : Exception
-        What it raised.
-
+    ``effect`` is the token of the effect whose code raised (``temperature@2``), None when
+    the traceback passes through no effect; ``error`` what it raised.
     """
 
     def __init__(self, error, effect=None, where=None):
@@ -216,17 +202,13 @@ class EffectError(Exception):
 
 
 class EffectErrors:
-    """
-    Errors of effect code seen by a node, counted per effect.
-
-    :meth:`add` returns True for the first error of an effect (log it then, once).
-    """
+    """Errors of effect code seen by a node, counted per effect."""
 
     def __init__(self):
         self._seen = {}                 # key -> [count, message of the first error]
 
     def add(self, err, what=''):
-        """Count ``err`` (:class:`EffectError`); ``what`` is what was lost (a phrase)."""
+        """Count ``err`` (``what``: what was lost); True for an effect's first error (log it)."""
         entry = self._seen.get(err.key)
         if entry is None:
             self._seen[err.key] = [1, f'{err}' + (f' ({what})' if what else '')]

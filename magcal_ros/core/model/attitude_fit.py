@@ -70,11 +70,7 @@ class AttitudeResult:
 
 
 def with_attitude(model, mode, n_sensors=None):
-    """
-    Return ``model`` (a Model or a formula) with the attitude's observation of ``mode``.
-
-    An attitude effect already in the model is replaced by that of ``mode``.
-    """
+    """Return ``model`` (Model or formula) with the attitude's observation of ``mode`` only."""
     if mode not in MODES:
         raise ValueError(f"attitude mode must be one of {', '.join(MODES)}, got {mode!r}")
     if isinstance(model, str):
@@ -119,29 +115,13 @@ INCLINATION_PRIOR_SD = np.radians(0.5)
 def fit_attitude(data, model, field_nt=None, mode='tilt', inclination_deg=None,
                  **fit_kwargs):
     """
-    Fit ``model`` with the attitude observing the field (module docstring).
+    Fit ``model`` with the attitude observing the field; return an :class:`AttitudeResult`.
 
-    Parameters
-    ----------
-    data : Dataset
-        (S, N) raw readings, nT, with ``attitude`` (N, 4).
-    model : Model or str
-        The model without the attitude (it is added here).
-    field_nt : float or numpy.ndarray, optional
-        Reference magnitude, nT (default ``data.ref_total``).
-    mode : {'tilt', 'full'}
-        Trust roll and pitch only, or the whole attitude.
-    inclination_deg : float, optional
-        The field's inclination at the site (IGRF), deg, positive down: a prior of
-        :data:`INCLINATION_PRIOR_SD` on the fitted one when ``data.meta['attitude_frame']``
-        is 'NED' or 'ENU' (a level vehicle otherwise leaves the split of F open).
-    **fit_kwargs
-        Passed to :func:`magcal_ros.core.model.fitting.fit`.
-
-    Returns
-    -------
-    AttitudeResult
-
+    ``data`` (S, N) raw readings, nT, with ``attitude`` (N, 4); ``model`` (Model or formula)
+    without the attitude; ``field_nt`` nT (default ``data.ref_total``); ``mode`` 'tilt'
+    (roll and pitch) or 'full'; ``inclination_deg`` the site's (IGRF), deg, positive down: a
+    prior of :data:`INCLINATION_PRIOR_SD` when ``data.meta['attitude_frame']`` is 'NED' or
+    'ENU'; ``fit_kwargs`` go to :func:`magcal_ros.core.model.fitting.fit`.
     """
     if data.attitude is None:
         raise ValueError('the data carry no attitude (att_qw..att_qz, an Imu topic or a '
@@ -261,14 +241,9 @@ def heading_check(result, data):
 
     The angle of the world-horizontal field R_k b_k about the vertical is the attitude's
     heading error plus the declination: its mean is a constant (declination and any yaw
-    offset), its spread about the mean the disagreement.
-
-    Returns
-    -------
-    dict
-        ``offset_deg`` (circular mean), ``rms_deg`` (RMS about it), ``max_deg``,
-        ``disagree`` (``rms_deg`` above :data:`HEADING_DISAGREE_DEG`).
-
+    offset), its spread about the mean the disagreement.  Returns a dict: ``offset_deg``
+    (circular mean), ``rms_deg`` (RMS about it), ``max_deg``, ``disagree`` (``rms_deg``
+    above :data:`HEADING_DISAGREE_DEG`).
     """
     rot = data.attitude_matrix()
     p = result.params

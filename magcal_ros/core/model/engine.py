@@ -15,21 +15,17 @@
 """
 The profiled (variable-projection) maximum-likelihood problem of a magnetometer array.
 
-Per sensor j of a group of G sensors fitted together and epoch k the model predicts the raw
-reading ``f_j(p, B_k)`` (:meth:`magcal_ros.core.model.Model.forward`) from the parameters p
-and the true field B_k, constrained to the reference magnitude ``|B_k| = F_k``.  The noise
-is Gaussian on the raw readings, sd sigma_j per axis, so the negative log-likelihood is half
-the sum of the squared normalised residuals r_jk = (raw_jk - f_j(p, B_k)) / sigma_j.
-
-The fields B_k (two nuisance parameters per epoch) are eliminated for given p ("variable
-projection", Golub & Pereyra 1973; Kaufman 1975; docs/papers.md): B_k is profiled by
-Gauss-Newton steps on the sphere, and the Jacobian with respect to p is projected onto the
-complement of the two field directions of each epoch,
+The model predicts the raw reading ``f_j(p, B_k)`` of sensor j at epoch k
+(:meth:`magcal_ros.core.model.Model.forward`) from the parameters p and the true field
+B_k, |B_k| = F_k; the noise is Gaussian, sd sigma_j per axis, so the negative
+log-likelihood is half the sum of the squared r_jk = (raw_jk - f_j(p, B_k)) / sigma_j.
+The fields are eliminated for given p (variable projection, Golub & Pereyra 1973; Kaufman
+1975; docs/papers.md): B_k is profiled by Gauss-Newton steps on the sphere, and the
+Jacobian is projected onto the complement of the field directions of each epoch,
 
     J = (I - G (G^T G)^-1 G^T) dr/dp,    G_k = -dr_k/d(delta_1, delta_2)  (3G x 2 per epoch),
 
-so that Gauss-Newton on p alone converges like the joint problem and J^T J is the Fisher
-information of p with the fields unknown (its inverse is the Cramer-Rao bound).
+so that J^T J is the Fisher information of p with the fields unknown.
 """
 import numpy as np
 
@@ -50,12 +46,7 @@ def inverse_2x2(a, b, c, d):
 
 
 def solve_2x2(m, rhs):
-    """
-    Solve the stacked 2 x 2 systems m (N, 2, 2) x = rhs (N, 2, K) in closed form; (N, 2, K).
-
-    ``np.linalg.solve`` to rounding for the well-conditioned Gram matrices here, and much
-    faster (bench/).
-    """
+    """Solve m (N, 2, 2) x = rhs (N, 2, K) in closed form (np.linalg.solve, faster); (N, 2, K)."""
     i = inverse_2x2(m[:, 0, 0], m[:, 0, 1], m[:, 1, 0], m[:, 1, 1])
     inv = np.stack([np.stack(i[:2], axis=1), np.stack(i[2:], axis=1)], axis=1)
     return inv @ rhs
@@ -65,49 +56,20 @@ class ProfiledProblem:
     """
     Normalised residuals and projected Jacobian of the ML problem of one group of sensors.
 
-    The unknown vector x holds the parameters of the group's sensors and the array-wide
-    parameters (``cols``, indices into the model's full vector p); the other entries of p
-    are held at :attr:`p_full`.  Evaluations are cached on x.
+    The unknown x (P_g,) holds the parameters of the group's sensors, then the array-wide
+    ones (:attr:`cols`, indices into the full vector p); the other entries of p are held at
+    ``p_full`` (default ``model.default_params()``).  Evaluations are cached on x.
 
-    Parameters
-    ----------
-    model : Model
-        The model, prepared on ``contexts`` (:meth:`Model.prepare`).
-    data_raw : numpy.ndarray
-        (S, N, 3) raw readings of all sensors, nT.
-    contexts : list of SensorContext
-        (S,) the driving signals of each sensor on the same N epochs.
-    f_nt : numpy.ndarray
-        (N,) reference magnitude |B_k|, nT.
-    sensors : list of int
-        1-based sensors of this group (all sensors of a joint model, else one).
-    sigma : numpy.ndarray
-        (S,) noise sd per axis of each sensor, nT: the residuals are divided by it.
-    priors : list of tuple, optional
-        (index into p, mean, sd) Gaussian priors (the constrained mode), appended to the
-        residuals as (p_i - mean) / sd, dimensionless.
-    robust : bool
-        Profile the field with the IRLS weights of the soft-L1 loss (and the median of the
-        corrected readings as start when G > 2).
-    f_scale : float
-        Soft-L1 scale, in units of sigma.
-    p_full : numpy.ndarray, optional
-        (P,) the full parameter vector the entries outside ``cols`` are taken from
-        (default ``model.default_params()``).
-    field0 : numpy.ndarray, optional
-        (N, 3) nT, the profiled field of nearby parameters: the profile starts from it and
-        takes one Gauss-Newton step instead of two from the mean corrected reading.
+    ``model`` is prepared on ``contexts`` (S,); ``data_raw`` (S, N, 3) nT; ``f_nt`` (N,)
+    |B_k| nT; ``sensors`` the group's, 1-based; ``sigma`` (S,) nT, the residuals' divisor;
+    ``priors`` [(index into p, mean, sd)] appended as (p_i - mean) / sd; ``robust``: the
+    field profiled with the IRLS weights of the soft-L1 loss of scale ``f_scale`` sigma
+    (from the median of the corrected readings when G > 2); ``field0`` (N, 3) nT: the field
+    of nearby parameters, to take one Gauss-Newton step from instead of two.
 
-    A reading the model's ``drop`` terms leave out (``Model.reading_mask``) has zero
-    residual, Jacobian and field-direction rows and does not inform its set's field; a set
-    without any reading kept is profiled from all of them (:meth:`reading_residuals`).
-
-    Attributes
-    ----------
-    cols : numpy.ndarray
-        (P_g,) int, the indices of x in the full vector: the group's sensors' parameters,
-        then the array-wide ones.
-
+    A reading the model's ``drop`` terms leave out has zero residual, Jacobian and
+    field-direction rows and does not inform its set's field; a set without any reading
+    kept is profiled from all of them (:meth:`reading_residuals`).
     """
 
     def __init__(self, model, data_raw, contexts, f_nt, sensors, sigma, priors=(),
@@ -150,12 +112,7 @@ class ProfiledProblem:
         self.field_w = np.where(m.any(axis=1, keepdims=True), self.keep, 1.0)
 
     def _aid_setup(self):
-        """
-        Set up the attitude's observation of the field, when the model has one.
-
-        A virtual member after the sensors (:mod:`magcal_ros.core.effects.attitude_ref`):
-        rows proj_k (y_k - B_k) / sigma_a, parameters among the array-wide columns.
-        """
+        """Set up the attitude's observation of the field: a member after the sensors."""
         from magcal_ros.core.effects.attitude_ref import attitude_reference
         found = attitude_reference(self.model)
         rot = self.ctx[0].attitude if self.ctx else None
@@ -203,12 +160,7 @@ class ProfiledProblem:
 
     @property
     def n_observations(self):
-        """
-        Return the observations net of the profiled field: the sum over sets of rows - 2.
-
-        A set has 3 rows per sensor reading it keeps (and the attitude's rank); the field's
-        two directions take two of them.  A set without rows counts nothing.
-        """
+        """Return the observations net of the field: the sum over sets with rows of rows - 2."""
         g = len(self.sensors)
         aid = self.aid.rank if self.aid is not None else 0
         if self.keep is None:
@@ -338,27 +290,11 @@ class ProfiledProblem:
 
     def evaluate(self, x):
         """
-        Evaluate the model at x with the field profiled (cached on x).
+        Evaluate the model at x (P_g,) with the field profiled (cached on x).
 
-        Parameters
-        ----------
-        x : numpy.ndarray
-            (P_g,) the group's parameters.
-
-        Returns
-        -------
-        p : numpy.ndarray
-            (P,) the full parameter vector.
-        field : numpy.ndarray
-            (N, 3) the profiled field B_k, nT, |B_k| = F_k.
-        mats : dict
-            {sensor: (3, 3) linear map A_j of the model at p}.
-        res : numpy.ndarray
-            (N, G, 3) normalised residuals (raw - prediction) / sigma_j, dimensionless;
-            (N, G + 1, 3) with the attitude's residual last when it observes the field.
-            Zero for the readings the ``drop`` terms leave out (:meth:`reading_residuals`
-            has them).
-
+        Returns p (P,), the profiled field (N, 3) nT, {sensor: (3, 3) A_j} and the
+        normalised residuals (N, G (+1), 3) (raw - prediction) / sigma_j (the attitude's
+        last; zero for the readings left out: :meth:`reading_residuals` has them).
         """
         key = x.tobytes()
         if key != self._cache_key:
@@ -373,21 +309,12 @@ class ProfiledProblem:
         return self._cache
 
     def reading_residuals(self, x):
-        """
-        Return (N, G (+1), 3) the normalised residual of every reading at x.
-
-        :meth:`evaluate`'s ``res`` with the readings the ``drop`` terms leave out included,
-        against the field profiled from the readings kept.
-        """
+        """Return (N, G (+1), 3) :meth:`evaluate`'s ``res`` with the readings left out too."""
         self.evaluate(x)
         return self._every
 
     def residuals(self, x):
-        """
-        Return the normalised residuals at x (P_g,): (3 G N + n_priors,), dimensionless.
-
-        ``res.ravel()`` of :meth:`evaluate`, then (p_i - mean) / sd of each prior.
-        """
+        """Return (3 G N + n_priors,) ``res.ravel()`` at x, then each prior's (p_i - mean) / sd."""
         p, _, _, res = self.evaluate(x)
         out = res.ravel()
         if self.priors:
@@ -449,23 +376,11 @@ class ProfiledProblem:
 
     def jacobian(self, x):
         """
-        Return the variable-projection Jacobian of :meth:`residuals` at x.
+        Return the variable-projection Jacobian of :meth:`residuals` at x (P_g,).
 
-        The columns dr/dx (:meth:`_raw_columns`) projected onto the complement of the two
-        field directions of each epoch (module docstring); :meth:`normal_equations` forms
-        J^T J and J^T r without this array.
-
-        Parameters
-        ----------
-        x : numpy.ndarray
-            (P_g,) the group's parameters.
-
-        Returns
-        -------
-        numpy.ndarray
-            (3 G N + n_priors, P_g), in 1 / (unit of each parameter) (the residuals are in
-            units of the noise sd); prior rows are 1 / sd on their parameter's column.
-
+        (3 G N + n_priors, P_g) in 1 / (unit of each parameter): the columns dr/dx
+        (:meth:`_raw_columns`) projected onto the complement of the field directions of
+        each epoch; prior rows are 1 / sd on their parameter's column.
         """
         p, b, mats, res = self.evaluate(x)
         n = res.shape[0]
@@ -503,21 +418,8 @@ class ProfiledProblem:
         subtracted term is W^T W, W_k = L_k^-1 G_k^T D_k with L_k the Cholesky factor of
         G_k^T G_k.  Prior rows add 1 / sd^2 to their diagonal entry and (p_i - mean) / sd^2
         to the gradient.  Only for the squares loss: the soft-L1 loss reweights the rows of
-        J, which does not commute with the per-epoch projection.
-
-        Parameters
-        ----------
-        x : numpy.ndarray
-            (P_g,) the group's parameters.
-
-        Returns
-        -------
-        a : numpy.ndarray
-            (P_g, P_g) J^T J, in 1 / (unit of parameter i x unit of parameter j): the
-            Fisher information of x with the fields unknown.
-        g : numpy.ndarray
-            (P_g,) J^T r, in 1 / (unit of each parameter) (r is dimensionless).
-
+        J, which does not commute with the per-epoch projection.  Returns J^T J (P_g, P_g),
+        in 1 / (unit of parameter i x unit of parameter j), and J^T r (P_g,).
         """
         p, b, mats, res = self.evaluate(x)
         own, arr = self._raw_columns(p, b)

@@ -44,8 +44,6 @@ class DegenerateDataError(ValueError):
     """The data cannot determine the model: the message names what is missing."""
 
 
-# -- the result -----------------------------------------------------------------------------
-
 @dataclass(frozen=True, eq=False)
 class FitResult:
     """
@@ -157,8 +155,6 @@ class FitResult:
             residual = residual * keep[:, :, None]
         return downweighted_counts(residual, self.sigma_nt, self.f_scale)
 
-    # -- summaries ------------------------------------------------------------------------
-
     @property
     def n_params(self):
         """Return the number of free parameters."""
@@ -238,62 +234,32 @@ class FitResult:
         return '\n'.join(lines)
 
 
-# -- the fit --------------------------------------------------------------------------------
-
 def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=False,
         priors=None, sigma_nt=None, on_degenerate='raise', max_fit_samples=20000,
         init=None, max_nfev=200, check_identifiability=True, solver='lm', covariance=True,
         ftol=None, extra_priors=None):
     """
-    Fit ``model`` to rotation data in a uniform field by maximum likelihood.
+    Fit ``model`` to rotation data in a uniform field by maximum likelihood; a FitResult.
 
-    Parameters
-    ----------
-    data : Dataset
-        (S sensors, N epochs) raw readings in nT.
-    model : Model or str
-        Model or spec string ('base', 'base,temperature@2', ...).
-    field_nt : float or numpy.ndarray, optional
-        Reference magnitude in nT, scalar or (N,); default ``data.ref_total``.
-    robust : bool
-        Use the soft-L1 loss (outlier spikes).
-    f_scale : float
-        Scale of the soft-L1 loss, in units of sigma.
-    constrained : bool
-        Constrained mode for partial attitude coverage: effects get the priors they declare
-        (``Effect.prior``) and the start is A = I.
-    priors : dict, optional
-        {effect name or label: (mean or None for default, sd)} overriding the priors.
-    extra_priors : list of (int, float, float), optional
-        Priors on single parameters, (index, mean, sd) in the parameter's unit, added to
-        those of ``priors``.
-    sigma_nt : float or numpy.ndarray, optional
-        Fixed per-sensor noise (nT); default: estimated from the residuals.
-    on_degenerate : {'raise', 'flag'}
-        Refuse (DegenerateDataError) or flag (warnings) data that cannot determine the model.
-    max_fit_samples : int or None
-        Fit on at most this many epochs, evenly spaced; residuals are reported for all.
-    init : numpy.ndarray, optional
-        (P,) starting parameters (default: closed-form start).
-    max_nfev : int
-        Most residual evaluations of the optimiser per sensor group and noise pass.
-    ftol : float, optional
-        Stop when an iteration lowers the cost by less than ``ftol`` times the cost.
-        Default: the solver's own (1e-12 for 'lm', 1e-8 for 'scipy').
-    check_identifiability : bool
-        Check the attitude coverage and the Jacobian's conditioning
-        (:mod:`magcal_ros.core.model.identifiability`); off for warm-started refits.
-    solver : {'lm', 'scipy'}
-        'lm': Levenberg-Marquardt on the normal equations; 'scipy':
-        scipy.optimize.least_squares (trust-region reflective), the reference.
-    covariance : bool
-        Compute the covariance; False: stderr and covariance NaN (needs
-        ``check_identifiability=False``, which reads it).
-
-    Returns
-    -------
-    FitResult
-
+    - ``data``: (S sensors, N epochs) raw readings in nT; ``model`` a Model or formula;
+      ``field_nt`` the reference magnitude, nT, scalar or (N,) (default ``data.ref_total``);
+    - ``robust``: the soft-L1 loss of scale ``f_scale`` sigma (outlier spikes);
+    - ``constrained``: every effect gets the prior it declares (``Effect.prior``) and the
+      start is A = I (partial attitude coverage); ``priors`` {effect name or label: (mean
+      or None for default, sd)} override them; ``extra_priors`` [(index, mean, sd)] in the
+      parameter's unit are added;
+    - ``sigma_nt``: fixed per-sensor noise, nT (default: estimated from the residuals);
+    - ``on_degenerate``: 'raise' (DegenerateDataError) or 'flag' (warnings) data that
+      cannot determine the model;
+    - ``max_fit_samples``: fit on at most this many epochs, evenly spaced (residuals are
+      reported for all); ``init`` (P,) the start (default the closed form);
+    - ``max_nfev``: most residual evaluations per sensor group and noise pass; ``ftol``:
+      stop when an iteration lowers the cost by less than ftol times it (default the
+      solver's: 1e-12 'lm', 1e-8 'scipy'); ``solver`` 'lm' (Levenberg-Marquardt on the
+      normal equations) or 'scipy' (scipy.optimize.least_squares, the reference);
+    - ``check_identifiability``: check the coverage and the conditioning
+      (:mod:`magcal_ros.core.model.identifiability`); ``covariance`` False: stderr and
+      covariance NaN (needs ``check_identifiability=False``).
     """
     if on_degenerate not in ('raise', 'flag'):
         raise ValueError("on_degenerate must be 'raise' or 'flag'")
@@ -463,27 +429,12 @@ def group_noise_variances(res, g_cols, n_params, ranks=None, keep=None):
     residual in its own.  The parameters' degrees of freedom scale every d by
     (3 G - 2) N / ((3 G - 2) N - P).
 
-    Parameters
-    ----------
-    res : numpy.ndarray
-        (N, G, 3) residuals normalised by the current sigma_j, dimensionless.
-    g_cols : numpy.ndarray
-        (N, 3 G, 2) the field-direction columns, normalised likewise
-        (:meth:`ProfiledProblem.field_columns`).
-    n_params : int
-        Parameters fitted in the group.
-    ranks : sequence of int, optional
-        (G,) the rank of each member's noise: 3 for a sensor, 1 or 3 for the attitude's
-        observation (:mod:`magcal_ros.core.effects.attitude_ref`).
-    keep : numpy.ndarray, optional
-        (N, G) 0/1: the sensors' readings the fit keeps (:attr:`ProfiledProblem.keep`);
-        a reading left out counts nothing.
-
-    Returns
-    -------
-    numpy.ndarray
-        (G,) d_j, dimensionless: the new sigma_j is the current one times sqrt(d_j).
-
+    ``res`` (N, G, 3) residuals normalised by the current sigma_j; ``g_cols`` (N, 3 G, 2)
+    the field-direction columns (:meth:`ProfiledProblem.field_columns`); ``n_params`` of
+    the group; ``ranks`` (G,) of each member's noise (3 for a sensor, 1 or 3 for the
+    attitude's observation); ``keep`` (N, G) 0/1 the readings kept
+    (:attr:`ProfiledProblem.keep`).  Returns (G,) d_j: the new sigma_j is the current one
+    times sqrt(d_j).
     """
     from scipy.optimize import nnls
     n, g = res.shape[0], res.shape[1]
@@ -534,20 +485,8 @@ def own_residual(res, g_cols, gi):
     w_j^T e_j: sensor j's normalised noise alone, whatever the other sensors' noise (the
     MAD of all three components would mix in the components the field took up).
 
-    Parameters
-    ----------
-    res : numpy.ndarray
-        (N, G, 3) residuals normalised by the current sigma_j, dimensionless.
-    g_cols : numpy.ndarray
-        (N, 3 G, 2) the field-direction columns, normalised likewise.
-    gi : int
-        The sensor's position in the group.
-
-    Returns
-    -------
-    numpy.ndarray
-        (N,) dimensionless.
-
+    ``res`` (N, G, 3) and ``g_cols`` (N, 3 G, 2) as for :func:`group_noise_variances`;
+    ``gi`` the sensor's position in the group.
     """
     cols = g_cols[:, 3 * gi:3 * gi + 3]
     w = np.cross(cols[:, :, 0], cols[:, :, 1])
@@ -842,8 +781,6 @@ def initial_params(raw, field_nt, model, constrained=False, mask=None):
         p = model.params_from_linear(j, a, amap @ o, p)
     return p
 
-
-# -- residuals on all epochs ----------------------------------------------------------------
 
 def profile_residuals(model, p, raw, f, sigma, contexts, robust=False, f_scale=3.0,
                       chunk=200000, field0=None):

@@ -89,12 +89,7 @@ class PlanarResult:
 
 
 def prior_sd(model, field_nt):
-    """
-    (P,) standard deviation of the prior on each parameter of ``model`` (:data:`PRIOR_SD`).
-
-    An offset's (nT) is a fraction of the field magnitude ``field_nt`` (nT), an angle's in
-    rad, any other (scale, dimensionless) as a scale's.
-    """
+    """(P,) :data:`PRIOR_SD` of each parameter of ``model`` (an offset's times ``field_nt``)."""
     return np.array([PRIOR_SD['offset'] * float(field_nt) if unit == 'nT' else
                      PRIOR_SD['angle'] if unit == 'rad' else PRIOR_SD['scale']
                      for _, _, _, unit in model.param_info()])
@@ -243,11 +238,7 @@ def heading_error(result, j, axis, axis_index, h_nt, z_nt, n_headings=72):
     prediction is differentiated in sensor j's parameters (central differences) and
     propagated through their covariance.
 
-    Returns
-    -------
-    dict
-        ``max_deg`` and ``rms_deg`` over psi, ``psi_deg`` (M,), ``sd_deg`` (M,).
-
+    Returns a dict: ``max_deg`` and ``rms_deg`` over psi, ``psi_deg`` (M,), ``sd_deg`` (M,).
     """
     model, p = result.model, result.params
     n = np.asarray(axis, float)

@@ -18,6 +18,7 @@ The site gradient: its Cramer-Rao bounds with and without attitude, the fit with
 The effect itself is :class:`magcal_ros.core.effects.SiteGradient` (docs/site_gradient.md
 has the physics and the identifiability analysis).  Units: nT, nT/m, m, rad.
 """
+from magcal_ros.core.effects.base import rot_z
 from magcal_ros.core.geometry.tensor import symmetric_traceless
 from magcal_ros.core.model.engine import ProfiledProblem
 from magcal_ros.core.model.fitting import centred_readings
@@ -70,35 +71,16 @@ def crb_covariance(data, model, params, field_nt, sigma_nt, case='attitude', pos
     - ``'epoch_gradient'``: no attitude; the body-frame gradient of every epoch is a
       nuisance (5 per epoch, plus B_k); ``model`` has no ``site_gradient``.
 
-    Parameters
-    ----------
-    data : Dataset
-        Raw readings (S, N, 3) nT; with ``attitude`` for 'attitude' and 'heading'.
-    model : Model
-        Joint model.
-    params : numpy.ndarray
-        (P,) parameters at which the information is evaluated, units of
-        ``model.param_info()``.
-    field_nt : float or numpy.ndarray
-        Reference magnitude at the array centre, nT, scalar or (N,).
-    sigma_nt : float or numpy.ndarray
-        Per-axis noise sd, nT, scalar or (S,).
-    case : {'attitude', 'heading', 'epoch_gradient'}
-        What is known of the attitude (the cases above).
-    positions : numpy.ndarray, optional
-        (S, 3) sensor positions, m, for 'epoch_gradient' (default: paper 004's cross, 0.5 m).
-    fix_gyz : bool
-        'heading': fix the gauge by gyz = 0 (the frame of :func:`fit_heading_unknown`)
-        instead of bounding the 4 directions orthogonal to the gauge.
+    ``data`` (S, N, 3) nT readings (with the attitude for 'attitude' and 'heading'),
+    ``model`` joint, ``params`` (P,) the point of evaluation, ``field_nt`` nT at the centre
+    (scalar or (N,)), ``sigma_nt`` per-axis noise sd, nT (scalar or (S,)); ``positions``
+    (S, 3) m for 'epoch_gradient' (default paper 004's 0.5 m cross); ``fix_gyz``: the
+    'heading' gauge fixed by gyz = 0 (:func:`fit_heading_unknown`'s frame).
 
-    Returns
-    -------
-    dict
-        ``covariance`` (P, P) in the parameters' units squared, inf where undetermined (for
-        'heading': the gradient block); ``gradient_covariance`` (5, 5) (nT/m)^2 on the
-        gauge-free directions ('heading') or None; ``gauge_direction`` (5,) or None;
-        ``undetermined_directions`` (count; 'epoch_gradient').
-
+    Returns a dict: ``covariance`` (P, P) in the parameters' units squared, inf where
+    undetermined (for 'heading': the gradient block); ``gradient_covariance`` (5, 5)
+    (nT/m)^2 on the gauge-free directions ('heading') or None; ``gauge_direction`` (5,) or
+    None; ``undetermined_directions`` (count; 'epoch_gradient').
     """
     if case not in CRB_CASES:
         raise ValueError(f'unknown case {case!r}; use one of {CRB_CASES}')
@@ -185,15 +167,6 @@ def _align_to_z(u):
     return Rotation.from_rotvec(axis * ang[:, None]).as_matrix()
 
 
-def _rz(psi):
-    """(N, 3, 3) rotations by psi (N,) rad about z."""
-    c, s = np.cos(psi), np.sin(psi)
-    out = np.zeros((len(psi), 3, 3))
-    out[:, 0, 0], out[:, 0, 1], out[:, 1, 0], out[:, 1, 1] = c, -s, s, c
-    out[:, 2, 2] = 1.0
-    return out
-
-
 def _best_heading(shift, r_a, g_w, positions, psi0=None):
     """
     Per-epoch heading psi_k (N,) rad minimising sum_j |shift_j - R^T G R r_j|^2.
@@ -202,7 +175,7 @@ def _best_heading(shift, r_a, g_w, positions, psi0=None):
     sensors.  Grid of 5 deg (or ``psi0``), then Newton steps on the 1-D cost.
     """
     def cost(psi):
-        rot = _rz(psi) @ r_a
+        rot = rot_z(psi) @ r_a
         pred = np.einsum('nji,jk,nkl,sl->sni', rot, g_w, rot, positions)
         return np.sum((shift - pred) ** 2, axis=(0, 2))
 
@@ -236,24 +209,11 @@ def fit_heading_unknown(data, model='base,site_gradient', field_nt=None, n_iter=
     rotation of G_w about the field) is fixed by gyz = 0.  Standard uncertainties come from
     the Cramer-Rao bound of the heading case (:func:`crb_covariance`, psi_k profiled).
 
-    Parameters
-    ----------
-    data : Dataset
-        (4, N, 3) nT readings of the cross; an attitude, if present, is not used.
-    model : str or Model
-        Must contain ``site_gradient``.
-    field_nt : float or numpy.ndarray, optional
-        Reference magnitude at the array centre, nT.
-    n_iter : int
-        Most alternations (a)-(b); they stop earlier when no parameter moves by more than
-        1 % of its standard uncertainty.
-
-    Returns
-    -------
-    FitResult
-        The gradient in the field-aligned frame (:data:`FIELD_ALIGNED`), ``stderr`` from
-        the heading-case bound, ``contexts`` with the estimated attitudes.
-
+    ``data`` (4, N, 3) nT readings of the cross (an attitude is not used); ``model`` with
+    ``site_gradient``; ``field_nt`` nT at the centre; ``n_iter`` most alternations (fewer
+    when no parameter moves by 1 % of its standard uncertainty).  Returns a FitResult with
+    the gradient in the field-aligned frame (:data:`FIELD_ALIGNED`), ``stderr`` from the
+    heading-case bound and ``contexts`` with the estimated attitudes.
     """
     from dataclasses import replace
     from magcal_ros.core import model as mdl
@@ -290,14 +250,14 @@ def fit_heading_unknown(data, model='base,site_gradient', field_nt=None, n_iter=
             g_b, _ = tensor_lstsq(c, positions)
             m_k = np.einsum('nij,njk,nlk->nil', r_a, g_b, r_a)
             psi = -np.angle(m_k[:, 0, 2] + 1j * m_k[:, 1, 2])
-            rot = _rz(psi) @ r_a
+            rot = rot_z(psi) @ r_a
             g_w = np.einsum('nij,njk,nlk->il', rot, g_b, rot) / len(psi)   # mean R G_b R^T
             g_w = 0.5 * (g_w + g_w.T)
             g_w -= np.trace(g_w) / 3 * np.eye(3)
         else:
             g_w = eff.tensor(p[sl])
         psi = _best_heading(shift, r_a, g_w, positions, psi0=psi)
-        att = Rotation.from_matrix(_rz(psi) @ r_a).as_quat(scalar_first=True)
+        att = Rotation.from_matrix(rot_z(psi) @ r_a).as_quat(scalar_first=True)
         if it == 0:
             p[sl] = [g_w[0, 0], g_w[0, 1], g_w[0, 2], g_w[1, 1], g_w[1, 2]]
         res = mdl.fit(replace(bare, attitude=att), model, field_nt=field_nt, init=p,
@@ -309,10 +269,10 @@ def fit_heading_unknown(data, model='base,site_gradient', field_nt=None, n_iter=
     # gauge: rotate the world frame about the field so that gyz = 0 (gxz >= 0)
     g_w = eff.tensor(p[sl])
     phi = np.angle(g_w[0, 2] + 1j * g_w[1, 2])
-    rz = _rz(np.array([phi]))[0]
+    rz = rot_z(np.array([phi]))[0]
     g_w = rz.T @ g_w @ rz
     p[sl] = [g_w[0, 0], g_w[0, 1], g_w[0, 2], g_w[1, 1], 0.0]
-    att = Rotation.from_matrix(_rz(psi - phi) @ r_a).as_quat(scalar_first=True)
+    att = Rotation.from_matrix(rot_z(psi - phi) @ r_a).as_quat(scalar_first=True)
     fixed = replace(bare, attitude=att)
     # the fit's noise estimate counted 3 S - 2 residual degrees of freedom per epoch; the
     # heading psi_k takes one more

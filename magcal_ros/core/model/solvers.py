@@ -46,18 +46,8 @@ class Solution:
     """
     Outcome of :func:`levenberg_marquardt` (the fields of scipy's OptimizeResult used here).
 
-    Attributes
-    ----------
-    x : numpy.ndarray
-        (P,) the solution.
-    success : bool
-    status : int
-        0: evaluation limit, 2: cost decrease below ftol (or no further decrease),
-        3: step below xtol.
-    message : str
-    nfev : int
-        Residual evaluations.
-
+    ``x`` (P,) the solution; ``status`` 0: evaluation limit, 2: cost decrease below ftol
+    (or no further decrease), 3: step below xtol; ``nfev`` residual evaluations.
     """
 
     x: np.ndarray
@@ -76,32 +66,13 @@ def levenberg_marquardt(fun, jac, x0, robust=False, f_scale=3.0, max_nfev=200, x
     reweighted least squares); Marquardt's diagonal scaling makes the damping invariant to
     parameter units (Marquardt 1963).
 
-    Parameters
-    ----------
-    fun : callable
-        x (P,) -> residuals (M,), dimensionless (normalised by the noise sd).
-    jac : callable or None
-        x (P,) -> Jacobian (M, P) of ``fun``; None only with ``normal`` and ``robust``
-        False.
-    x0 : numpy.ndarray
-        (P,) start.
-    robust : bool
-        Soft-L1 loss instead of squares.
-    f_scale : float
-        Scale of the soft-L1 loss, in the residuals' unit.
-    max_nfev : int
-        Most residual evaluations.
-    xtol, ftol : float
-        Relative step and relative cost decrease that stop the iteration (as does a
-        rejected step whose actual and predicted changes of the cost are both below ftol).
-    normal : callable, optional
-        x (P,) -> (J^T J (P, P), J^T r (P,)) of ``fun`` at x, used instead of ``jac`` for
-        the squares loss (ignored with ``robust``).
-
-    Returns
-    -------
-    Solution
-
+    ``fun``: x (P,) -> residuals (M,), normalised by the noise sd; ``jac``: x -> (M, P)
+    Jacobian (None only with ``normal`` and not ``robust``); ``normal``: x -> (J^T J (P, P),
+    J^T r (P,)), used instead of ``jac`` for the squares loss; ``x0`` (P,) start;
+    ``robust``: the soft-L1 loss of scale ``f_scale`` (the residuals' unit); ``max_nfev``
+    most residual evaluations; ``xtol``, ``ftol`` the relative step and cost decrease that
+    stop the iteration (as does a rejected step whose actual and predicted changes of the
+    cost are both below ftol).  Returns a :class:`Solution`.
     """
     def cost(r):
         if robust:
@@ -182,18 +153,9 @@ def covariance_from_normal(a):
     eigenvector whose eigenvalue is below 1e-14 of the largest gets an infinite standard
     uncertainty (a pseudo-inverse would give it zero).
 
-    Parameters
-    ----------
-    a : numpy.ndarray
-        (P, P) J^T J of residuals normalised by the noise sd, in 1 / (unit of parameter i x
-        unit of parameter j).
-
-    Returns
-    -------
-    numpy.ndarray
-        (P, P) covariance in the parameters' units squared: the Cramer-Rao bound at the
-        solution.
-
+    ``a`` (P, P) J^T J of residuals normalised by the noise sd, in 1 / (unit of parameter
+    i x unit of parameter j); returns the (P, P) covariance in the parameters' units
+    squared.
     """
     d = np.sqrt(np.clip(np.diag(a), 0.0, None))
     d[d == 0] = 1.0
@@ -228,11 +190,7 @@ def resolves_covariance(a, rcond=1e-8):
 
 
 def single_threaded_blas():
-    """
-    Return a context that limits BLAS to one thread (optional threadpoolctl).
-
-    The fit's small products and solves only contend for threads on shared machines (bench/).
-    """
+    """Return a context that limits BLAS to one thread (threads only contend here, bench/)."""
     try:
         from threadpoolctl import threadpool_limits
     except ImportError:                   # pragma: no cover - optional dependency
@@ -241,11 +199,7 @@ def single_threaded_blas():
 
 
 def stderr_and_correlation(cov):
-    """
-    Return (stderr (P,), correlation (P, P)) of a covariance ``cov`` (P, P) (inf: undetermined).
-
-    The correlation is 0 where undefined and 1 on the diagonal.
-    """
+    """Return (stderr (P,), correlation (P, P), 0 where undefined) of ``cov`` (P, P)."""
     stderr = np.sqrt(np.clip(np.diag(cov), 0, None))
     with np.errstate(invalid='ignore', divide='ignore'):
         corr = cov / np.outer(stderr, stderr)

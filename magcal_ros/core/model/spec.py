@@ -34,17 +34,9 @@ class Model:
     """
     Effects per sensor, with a flat parameter vector.
 
-    Parameters
-    ----------
-    effects : list of list of Effect
-        ``effects[j-1]`` are the effects of sensor j.
-    array_effects : list of Effect, optional
-        Effects with one set of parameters for the whole array (``scope = 'array'``, e.g.
-        ``site_gradient``); their parameters follow those of the sensors in the vector.
-    drops : sequence of tuple, optional
-        The ``drop`` terms: (t0, t1) s, every sensor, or (t0, t1, sensors) with ``sensors``
-        a sequence of 1-based sensors (``drop(t0, t1)@J``) or None (every sensor).
-
+    ``effects[j-1]`` are the effects of sensor j; ``array_effects`` have one parameter set
+    for the whole array (``scope = 'array'``), after the sensors'; ``drops`` the ``drop``
+    terms, (t0, t1) s or (t0, t1, sensors), ``sensors`` 1-based or None (every sensor).
     """
 
     def __init__(self, effects, array_effects=(), drops=()):
@@ -206,12 +198,7 @@ class Model:
             for a, b, who in self.drops]
 
     def with_effect(self, token):
-        """
-        Return a new model with ``token`` (e.g. 'temperature@2') added.
-
-        The array effects keep their references (the sensor positions of a site gradient,
-        the attitude's estimated error): the spec does not carry them.
-        """
+        """Return a new model with ``token`` added; the array effects keep their references."""
         new = Model.from_spec(self.spec() + [token], self.n_sensors)
         old = {e.label: e for e in self.array_effects}
         for eff in new.array_effects:
@@ -319,8 +306,6 @@ class Model:
                 out.append(f'{eff.label}: {why}')
         return out
 
-    # -- evaluation ------------------------------------------------------------------------
-
     def matrix(self, j, p):
         """(3, 3) linear map A_j of sensor j for the global parameter vector p."""
         a = np.eye(3)
@@ -339,10 +324,9 @@ class Model:
 
     def array_shift(self, j, p, ctx, b=None):
         """
-        (N, 3) nT field at sensor j minus the field ``b`` at the array centre (array effects).
+        (N, 3) nT field at sensor j minus the centre field ``b`` (N, 3) nT (array effects).
 
-        Effects that read the field (``reads_field``) contribute only when ``b`` (N, 3) nT
-        is given.
+        Effects that read the field (``reads_field``) contribute only when ``b`` is given.
         """
         out = np.zeros((len(ctx.t), 3))
         for eff, sl in zip(self.array_effects, self.array_slices):
@@ -357,8 +341,7 @@ class Model:
         """
         Raw reading of sensor j (N, 3) nT for true field b (N, 3) nT at the array centre.
 
-        ``a`` (3, 3): A_j at p, ``add`` (N, 3) nT: :meth:`fixed_additive` at p, when the
-        caller has them.
+        ``a`` (3, 3) A_j and ``add`` (N, 3) nT :meth:`fixed_additive` at p, when known.
         """
         if self.array_effects:
             b = b + self.array_shift(j, p, ctx, b)
