@@ -18,16 +18,11 @@ Every sensor j of an array is described by the forward model
 
     raw_j = A_j @ B + offset_j + sum_k d_k(context, lin_j) + noise,     lin_j = A_j @ B
 
-where ``B`` (nT) is the true field in the array frame (sensor 1's orthogonalised axes),
-``A_j`` the matrix product of the *linear* effects (paper 004 eq. 2-3) and ``d_k`` the
-*additive* effects, which add in the raw sensor frame: linear maps compose, offsets and
-driven effects add.
-
-An effect has named parameters (each with a unit) and either a ``matrix(p)`` (linear) or a
-``contribution(p, ctx, lin)`` (additive), and declares everything the model, the fit, the
-diagnosis and the live corrector ask about it (:class:`Effect`'s class attributes): they
-never recognise effect names.  This module also holds paper 004's rotations and the signal
-helpers every effect shares.
+with ``B`` (nT) the true field in the array frame, ``A_j`` the matrix product of the
+*linear* effects (paper 004 eq. 2-3) and ``d_k`` the *additive* effects.  An effect has
+named parameters (each with a unit), a ``matrix(p)`` or a ``contribution(p, ctx, lin)``,
+and declares everything the rest of the code asks about it (:class:`Effect`'s class
+attributes).  Also paper 004's rotations and the signal helpers every effect shares.
 """
 from dataclasses import dataclass, field
 import math

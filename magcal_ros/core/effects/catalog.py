@@ -292,11 +292,8 @@ class TokenEffect(Effect):
 
     def check(self, ctx):
         """Return None if the data can excite every part, else the reason why not."""
-        for p in self.parts:
-            why = p.driver.check(ctx, self.sensor)
-            if why:
-                return why
-        return self.row.check(self, ctx) if self.row.check else None
+        why = next(filter(None, (p.driver.check(ctx, self.sensor) for p in self.parts)), None)
+        return why or (self.row.check(self, ctx) if self.row.check else None)
 
     def expansion(self, at=''):
         """Return the composition the token stands for, ``offset(t)@2`` (``at``: '@2')."""

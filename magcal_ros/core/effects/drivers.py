@@ -46,10 +46,7 @@ class FormulaError(ValueError):
 def variable_name(text):
     """Return the canonical variable of ``text`` (t, temperature, aux_<name>, rate, lin)."""
     v = str(text).strip()
-    if v in ('time',):
-        v = 't'
-    if v in ('temp',):
-        v = 'temperature'
+    v = {'time': 't', 'temp': 'temperature'}.get(v, v)
     if v.startswith('aux:'):
         v = 'aux_' + v[4:]
     if v in VARIABLES or (v.startswith('aux_') and len(v) > 4 and v[4:].replace('_', 'a')
@@ -66,15 +63,10 @@ def variable_unit(v):
 
 def variable_values(ctx, v, lin=None):
     """(N,) or (N, 3) values of variable ``v`` in ``ctx`` (None if absent)."""
-    if v == 't':
-        return ctx.t
-    if v == 'temperature':
-        return ctx.temp
-    if v == 'rate':
-        return ctx.raw_rate
     if v == 'lin':
         return None if lin is None else lin / NONLINEARITY_FULL_SCALE_NT
-    return ctx.aux.get(v)
+    attr = {'t': 't', 'temperature': 'temp', 'rate': 'raw_rate'}.get(v)
+    return getattr(ctx, attr) if attr else ctx.aux.get(v)
 
 
 def check_variable(ctx, v, sensor):
@@ -249,13 +241,8 @@ class Variable(_OfVariable):
     def unit(self):
         return variable_unit(self.v)
 
-    @property
-    def centred(self):
-        """Tell whether the column is centred on its calibration mean."""
-        return not self.per_axis
-
     def prepare(self, ctx, refs, prefix=''):
-        if self.centred:
+        if not self.per_axis:                   # rate and lin: their zero is physical
             a = variable_values(ctx, self.v)
             if a is not None and np.isfinite(a).any():
                 refs.setdefault(prefix + self.v + '0', float(np.nanmean(a)))
@@ -378,9 +365,7 @@ class Cyclic(_OfVariable):
     def columns(self, ctx, lin, refs, q, prefix=''):
         ph = (2 * math.pi / refs.get(prefix + 'period', 2 * math.pi)) * self._values(
             ctx, refs, prefix)
-        cols = []
-        for h in range(1, self.k + 1):
-            cols += [np.cos(h * ph), np.sin(h * ph)]
+        cols = [f(h * ph) for h in range(1, self.k + 1) for f in (np.cos, np.sin)]
         return self._centre(np.stack(cols, axis=1), ctx, refs, prefix)
 
 
@@ -447,8 +432,7 @@ class Sinusoid(Driver):
         if refine not in ('true', 'false'):
             raise FormulaError(f'sin(..., refine=...) is true or false, got {refine!r}')
         d.refine = refine == 'true'
-        d.param_names = ('df',) if d.refine else ()
-        d.units = ('Hz',) if d.refine else ()
+        d.param_names, d.units = (('df',), ('Hz',)) if d.refine else ((), ())
         return d
 
     @property
@@ -548,24 +532,20 @@ class Lagged(_OfVariable):
     name = 'lag'
     usage = 'lag(<v>[, tau=<s>])'
     tau0_s = 30.0
+    column_names = ('lag',)
 
     @classmethod
     def from_args(cls, args, kwargs):
         d = _new(cls, args, kwargs, ('tau',), 1, 'lag takes one variable, e.g. lag(temperature)')
         d.v = d._var(args[0])
         d.tau = _positive(kwargs['tau'], 'lag tau [s]', 'lag tau') if 'tau' in kwargs else None
-        d.param_names = () if d.tau is not None else ('tau',)
-        d.units = () if d.tau is not None else ('s',)
+        d.param_names, d.units = ((), ()) if d.tau is not None else (('tau',), ('s',))
         return d
 
     @property
     def text(self):
         return f'lag({self.v}' + ('' if self.tau is None else f', tau={format_arg(self.tau)}') \
             + ')'
-
-    @property
-    def column_names(self):
-        return ('lag',)
 
     @property
     def unit(self):
@@ -657,11 +637,7 @@ class Product(Driver):
             f.prepare(ctx, refs, f'{prefix}{i + 1}.')
 
     def check(self, ctx, sensor):
-        for f in self.factors:
-            why = f.check(ctx, sensor)
-            if why:
-                return why
-        return None
+        return next(filter(None, (f.check(ctx, sensor) for f in self.factors)), None)
 
     def columns(self, ctx, lin, refs, q, prefix=''):
         out = None

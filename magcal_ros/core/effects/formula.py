@@ -260,9 +260,9 @@ def _alias_term(raw, core_text, scope_text):
     if scope == 'alike':
         raise FormulaError(f'{raw!r}: @alike shares one parameter set between sensors and is '
                            'for composed terms, e.g. offset(t)@alike')
-    text_out = core if scope in ('each', 'array') else f'{core}@{scope}'
-    signals = tuple(eff.signals) if eff is not None else ()
     at = '' if scope in ('each', 'array') else f'@{scope}'
+    text_out = core + at
+    signals = tuple(eff.signals) if eff is not None else ()
     expansion = (' + '.join(BASE) if eff is None else
                  eff.expansion(at) if hasattr(eff, 'expansion') else None)
     return Term(text=text_out, kind='alias', core=core, scope=scope, signals=signals,

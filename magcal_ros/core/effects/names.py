@@ -23,15 +23,8 @@ class Registry:
     """
     Classes registered under a name: the built-in ones, then plug-ins (docs/plugins.md).
 
-    Parameters
-    ----------
-    base : type
-        The class every registered class must subclass.
-    what : str
-        What a class is, for messages ('effect', 'coupling', 'driver').
-    base_name : str
-        The dotted name of ``base`` the messages give (where users import it from).
-
+    Every class subclasses ``base``; messages call one ``what`` ('effect', 'coupling',
+    'driver') and name the base ``base_name`` (where users import it from).
     """
 
     def __init__(self, base, what, base_name):

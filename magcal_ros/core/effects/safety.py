@@ -115,13 +115,8 @@ def probe_effect(cls, ref=None):
     ``prepare``, ``check``, then ``matrix`` or ``contribution`` (not for an array-wide
     effect), on sensor 2 at its default parameters plus 1e-3.  An effect written only with
     arguments is made from the first of its ``suggest_args``, and not evaluated without one.
-
-    Raises
-    ------
-    ValueError
-        One line naming the effect (and ``ref``, where it was loaded from) and the
-        undeclared signal it read, or the exception its code raised.
-
+    Raises ValueError, one line naming the effect (and ``ref``, where it was loaded from) and
+    the undeclared signal it read, or the exception its code raised.
     """
     where = f' ({ref})' if ref else ''
     name = getattr(cls, 'name', cls.__name__)

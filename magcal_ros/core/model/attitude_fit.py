@@ -15,19 +15,13 @@
 """
 Attitude-aided calibration: a vehicle that stays near level and turns part of a circle.
 
-The attitude observes the direction of the field at the sensor, B_k = R_k^T m
-(:mod:`magcal_ros.core.effects.attitude_ref`), which determines what the magnitude alone
-leaves open along the vertical, as far as the vehicle tilts.  :func:`fit_attitude`:
-
-1. adds the attitude's observation (``tilt`` or ``full``) to the model;
-2. starts from a closed form that uses the attitude (:func:`attitude_start`);
-3. fits by maximum likelihood with the constrained mode's priors (``Effect.prior``; none on
-   the offsets); a parameter the priors determine more than the data (:func:`prior_held`)
-   is *undetermined* and named, as in planar mode (docs/planar.md);
-4. widens the covariance for the residual's serial correlation;
-5. checks the attitude's heading against the corrected compass (:func:`heading_check`).
-
-Units: nT, rad; degrees where a name says so.
+The attitude observes the direction of the field (:mod:`magcal_ros.core.effects.attitude_ref`),
+which determines what the magnitude leaves open along the vertical.  :func:`fit_attitude`
+adds that observation to the model, starts from a closed form that uses it
+(:func:`attitude_start`), fits with the constrained mode's priors, names what the priors
+rather than the data determine (:func:`prior_held`, as planar mode, docs/planar.md), widens
+the covariance for serial correlation and checks the attitude's heading against the
+compass (:func:`heading_check`).  Units: nT, rad; degrees where a name says so.
 """
 from dataclasses import dataclass
 

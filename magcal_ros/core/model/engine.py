@@ -74,14 +74,9 @@ class ProfiledProblem:
 
     def __init__(self, model, data_raw, contexts, f_nt, sensors, sigma, priors=(),
                  robust=False, f_scale=3.0, p_full=None, field0=None):
-        self.robust = robust
-        self.f_scale = f_scale
-        self.model = model
-        self.raw = data_raw
-        self.ctx = contexts
-        self.f = f_nt
-        self.sensors = list(sensors)
-        self.sigma = sigma
+        self.model, self.raw, self.ctx, self.f = model, data_raw, contexts, f_nt
+        self.sensors, self.sigma = list(sensors), sigma
+        self.robust, self.f_scale = robust, f_scale
         self.cols = np.concatenate([np.arange(model.n_params)[model.sensor_slices[j - 1]]
                                     for j in self.sensors] + [model.array_cols]).astype(int)
         self.priors = list(priors)
@@ -119,10 +114,8 @@ class ProfiledProblem:
         self.aid = None
         if found is None or rot is None:
             return
-        eff, sl = found
-        self.aid = eff
+        (self.aid, sl), self.rot = found, rot
         self.aid_slice = sl
-        self.rot = rot
         arr = list(self.model.array_cols)
         #: positions of the attitude's parameters among the array-wide columns
         self.aid_arr = np.array([arr.index(i) for i in range(sl.start, sl.stop)], int)

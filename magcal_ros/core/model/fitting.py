@@ -15,16 +15,12 @@
 """
 The maximum-likelihood fit of a :class:`magcal_ros.core.model.Model` and its result.
 
-:func:`fit` estimates the parameters from rotation data in a uniform field:
-
-1. closed-form start (paper 004 section 3, docs/papers.md#paper-004): ellipsoid fit +
-   Cholesky per sensor (eq. 8-13), orthogonal Procrustes into sensor 1's frame (eq. 14);
-2. maximum likelihood on the raw readings, raw_jk = f_j(B_k) + e_jk, e ~ N(0, sigma_j^2 I),
-   the field B_k constrained to |B_k| = F_k and eliminated by variable projection
-   (:mod:`magcal_ros.core.model.engine`), solved by Levenberg-Marquardt
-   (:mod:`magcal_ros.core.model.solvers`) or ``scipy.optimize.least_squares``;
-3. the noise levels re-estimated from the residuals (:func:`group_noise_variances`), and
-   the covariance from the projected Jacobian at the solution (the Cramer-Rao bound).
+:func:`fit`: the closed-form start (paper 004 section 3: ellipsoid fit + Cholesky per
+sensor, eq. 8-13, Procrustes into sensor 1's frame, eq. 14), then maximum likelihood on
+the raw readings with the field eliminated by variable projection
+(:mod:`magcal_ros.core.model.engine`), the noise levels re-estimated from the residuals
+(:func:`group_noise_variances`) and the covariance from the projected Jacobian (the
+Cramer-Rao bound).
 """
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -850,14 +846,8 @@ def evaluate(model, p, data, f, sigma, contexts=None, robust=False, f_scale=3.0,
     Arguments as :func:`profile_residuals`'.  The readings the ``drop`` terms leave out have
     zero residual, scalar and vector entries (the vector's where sensor j's or sensor 1's
     is left out); ``kept`` says which (a mean square divides by its count, not by N).
-
-    Returns
-    -------
-    dict
-        field (N, 3), corrected (S, N, 3), residual (S, N, 3), scalar (S, N), vector
-        (S, N, 3), all in nT, downweighted (S,) counts and kept ((S, N) bool, the readings
-        the model keeps, or None: all).
-
+    Returns a dict: field (N, 3), corrected (S, N, 3), residual (S, N, 3), scalar (S, N),
+    vector (S, N, 3), all in nT, downweighted (S,) counts and kept ((S, N) bool or None).
     """
     if contexts is None:
         contexts = [data.context(j) for j in range(1, data.n_sensors + 1)]

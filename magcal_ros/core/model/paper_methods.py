@@ -15,22 +15,16 @@
 """
 The closed-form calibrations of papers 000 and 002 on a recording (``magcal fit --method``).
 
-- ``sine`` (paper 000, docs/papers.md#paper-000): a turntable recording, every row with the
-  turntable angle ``angle_deg`` and the horizontal sensor plane ``plane`` (``xy`` for
-  position 1, ``xz`` for position 2); each sensor is calibrated alone by
-  :func:`magcal_ros.core.papers.sine.calibrate_turntable` (eq. 4-16).
+- ``sine`` (paper 000, docs/papers.md#paper-000): a turntable recording with the angle
+  ``angle_deg`` and the horizontal sensor plane ``plane`` (``xy``: position 1, ``xz``:
+  position 2) of every row; ``raw = L B + B0``, L lower triangular; with ``L = U Q`` (RQ)
+  the calibration keeps U (model ``offset,scale,nonorthogonality``).  Each sensor is
+  calibrated alone: the rotations between sensors are unknown.
 - ``reference`` (paper 002, docs/papers.md#paper-002): a recording with the undisturbed
-  reference field ``ref_x, ref_y, ref_z`` beside each reading; each sensor by
-  :func:`magcal_ros.core.papers.reference_vector.fit_reference` (eq. 4-7).
+  field ``ref_x, ref_y, ref_z``; ``Hm = K He + Hh``; sensor 1's ``K_1 = U_1 Q_1`` defines
+  the array frame and every sensor gets ``A_j = K_j Q_1^T`` (model ``offset,soft_iron``).
 
-Both results are written as an ordinary :class:`~magcal_ros.core.model.Calibration`:
-
-- sine: ``raw = L B + B0``, L lower triangular in paper 000's frame; with ``L = U Q`` (RQ)
-  the calibration keeps U as scale and non-orthogonality (model
-  ``offset,scale,nonorthogonality``) and drops Q.  Each sensor is calibrated alone: the
-  rotations between sensors are unknown.
-- reference: ``Hm = K He + Hh``; sensor 1's ``K_1 = U_1 Q_1`` defines the array frame and
-  every sensor gets ``A_j = K_j Q_1^T`` (model ``offset,soft_iron``).
+Both results are an ordinary :class:`~magcal_ros.core.model.Calibration`.
 """
 from dataclasses import dataclass, field
 

@@ -16,22 +16,14 @@
 Fitted parameters no real sensor has, explained in words (issue 18, item 4).
 
 A working magnetometer has scale factors near +1, axes perpendicular to within a degree or
-so, is mounted within a few degrees of its drawing (paper 004, Table 1: 0.01-0.04 rad), and
-reads an offset within its readings.  A fit outside that range says that something about
-the installation is not what the user thinks:
-
-- **det(A_j) < 0** (or a map turned by 90 or 180 deg): a mirrored or turned sensor frame (an
-  axis wired reversed, two channels exchanged).  :func:`axis_maps` finds the signed
-  permutation M (reading = M x the sensor's axes) that brings A_j nearest a positive
-  diagonal, the calibration refits with it recorded as ``axes(...)@j``
-  (:class:`~magcal_ros.core.effects.AxisMap`) and :func:`mounting_notes` says what it is;
-- a scale near a power of ten: readings in another unit than the reference; far from one
-  otherwise: a gain or range setting, or a wrong reference magnitude;
-- a non-orthogonality or a misalignment beyond :data:`ANGLE_WARN_DEG`;
-- an offset beyond every reading of its axis.
-
-:func:`parameter_notes` gives these as :class:`~magcal_ros.core.model.notes.Note` s of kind
-``parameters``, the maps as kind ``mounting``; each says what the calibration file records.
+so, is mounted within a few degrees of its drawing (paper 004, Table 1) and reads an offset
+within its readings.  :func:`axis_maps` finds the signed permutation M (reading = M x the
+sensor's axes) of a mirrored or turned sensor frame (det A_j < 0, an axis wired reversed,
+two channels exchanged), which the calibration records as ``axes(...)@j``
+(:class:`~magcal_ros.core.effects.AxisMap`; :func:`mounting_notes`, Notes of kind
+``mounting``); :func:`parameter_notes` names a scale near a power of ten (a unit) or far
+from one (a gain), an angle beyond :data:`ANGLE_WARN_DEG` and an offset beyond every
+reading (Notes of kind ``parameters``).
 """
 from magcal_ros.core import effects as fx
 from magcal_ros.core.model.notes import Note
@@ -219,17 +211,15 @@ def parameter_notes(model, params, raw, field_nt):
               'provenance')
     scales = np.array([lin[j][0] for j in sorted(lin)])
     common = float(np.median(scales))
-    if (scales.size > 3 and abs(common - 1) > SCALE_FAR
-            and np.all(np.abs(scales / common - 1) < 0.1)):
+    scales_checked = not (scales.size > 3 and abs(common - 1) > SCALE_FAR
+                          and np.all(np.abs(scales / common - 1) < 0.1))
+    if not scales_checked:
         n = _unit_decade(common)
         why = (f'{UNIT_WORDS[n]}' if n in UNIT_WORDS else
                f'the reference magnitude ({field_nt:.0f} nT) is off by that factor, or every '
                'sensor is converted with the wrong gain')
         out.append(Note(f'every sensor: scale factors near {common:.4g} (a real sensor has '
                         f'near 1): {why}; {record}', 'parameters', None))
-        scales_checked = False
-    else:
-        scales_checked = True
     for j in sorted(lin):
         k, no, mis = lin[j]
         decades = {_unit_decade(kk) for kk in k}
