@@ -15,12 +15,8 @@
 """
 Physical error terms ("effects") of a vector magnetometer, and the grammar that composes them.
 
-An effect is a *coupling* applied to a *driver* on a *scope* (docs/formulas.md):
-:mod:`.base` (:class:`Effect`, :class:`SensorContext`, paper 004's rotations, signal
-helpers), :mod:`.catalog` (the named tokens), :mod:`.drivers`, :mod:`.couplings`,
-:mod:`.terms` (coupling(driver) as an Effect), :mod:`.formula` (the one parser,
-:func:`parse`) and :mod:`.registry` (named effects and plug-ins).  The names below are
-re-exported: ``from magcal_ros.core.effects import X``.
+An effect is a *coupling* applied to a *driver* on a *scope* (docs/formulas.md); the names
+below are re-exported from the modules of this package.
 """
 from magcal_ros.core.effects.base import (  # noqa: F401 - re-exported
     decompose_linear, Effect, first_order_lag, misalignment_angles,

@@ -244,10 +244,8 @@ class TokenEffect(Effect):
 
     def __init__(self, sensor=1, refs=None, args=()):
         super().__init__(sensor, refs)
-        comp = self.row.compose(tuple(args))
-        self.comp = comp
-        self.args = comp.args
-        self.param_names, self.units = comp.params, comp.units
+        self.comp = comp = self.row.compose(tuple(args))
+        self.args, self.param_names, self.units = comp.args, comp.params, comp.units
         self.supersedes = comp.supersedes
         self.parts = [Part(coupling_class(c)(), d) for c, d in comp.parts]
         self._seen = None

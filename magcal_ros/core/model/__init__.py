@@ -13,15 +13,10 @@
 # limitations under the License.
 
 """
-The model and its engine: what is fitted, and how.
+The model and its engine: what is fitted (:mod:`.spec`), and how (:mod:`.fitting`).
 
-:mod:`.spec` (:class:`Model`), :mod:`.engine` (the profiled least-squares problem),
-:mod:`.solvers`, :mod:`.fitting` (:func:`fit`, :class:`FitResult`), :mod:`.calibration`
-(:class:`Calibration`, for live correction), :mod:`.identifiability`, :mod:`.planar`,
-:mod:`.attitude_fit`, :mod:`.plausibility`, :mod:`.site_gradient`, :mod:`.paper_methods`
-(papers 000 and 002 as a Calibration) and :mod:`.notes` (structured warnings).  The names
-most code needs are importable from here; modules inside the package import each other
-directly.
+The names most code needs are importable from here; modules inside the package import each
+other directly.
 """
 from magcal_ros.core.model.calibration import Calibration
 from magcal_ros.core.model.fitting import (DegenerateDataError, evaluate, fit, fit_epochs,
