@@ -202,7 +202,8 @@ def test_token_syntax_and_errors():
     assert 'step(120,300)@2' in m.spec() and 'aux_poly(aux_motor_current,2)@1' in m.spec()
     assert [n for (s, lab, n, _) in m.param_info() if lab == 'step(120,300)'] == [
         's1x', 's1y', 's1z', 's2x', 's2y', 's2z']
-    assert fx.split_spec('base, step(1,2)@2 ,x') == ['base', 'step(1,2)@2', 'x']
+    assert [t.strip() for t in fx.formula.split_top('base, step(1,2)@2 ,x', ',')] == [
+        'base', 'step(1,2)@2', 'x']
     assert fx.parse_token('step(120, 300)@2') == ('step', ('120', '300'), 2)
     assert fx.parse_token('drift') == ('drift', (), None)
     # the same model spelled from its own spec

@@ -15,41 +15,22 @@
 """
 Physical error terms ("effects") of a vector magnetometer, and the grammar that composes them.
 
-An effect is a *coupling* applied to a *driver* on a *scope* (docs/formulas.md):
-
-- :mod:`.base`: :class:`Effect`, :class:`SensorContext`, :class:`LinearParts`, the paper
-  004 rotations and the signal helpers;
-- :mod:`.catalog`: the named effects of today's tokens (scale, offset; temperature, lag(v),
-  ... as compositions of the grammar);
-- :mod:`.drivers`: bases of a driving signal (s, cc, poly, sin, step, window, lag, a
-  channel, rate, lin, products);
-- :mod:`.couplings`: how a driver enters the reading (offset, scale, linear, nonorth,
-  rotation, field);
-- :mod:`.terms`: a coupling of a driver composed into an Effect, and ``drop``;
-- :mod:`.formula`: the one parser, :func:`parse` (CLI ``--model``, the node's ``model``
-  parameter, the calibration file, ``magcal simulate --truth``);
-- :mod:`.registry`: named effects and plug-ins.
-
-The names below are re-exported so that ``from magcal_ros.core.effects import X`` keeps
-working for everything that imported the former single module.
+An effect is a *coupling* applied to a *driver* on a *scope* (docs/formulas.md); the names
+below are re-exported from the modules of this package.
 """
 from magcal_ros.core.effects.base import (  # noqa: F401 - re-exported
-    decompose_linear, Effect, first_order_lag, LinearParts, misalignment_angles,
+    decompose_linear, Effect, first_order_lag, misalignment_angles,
     misalignment_matrix, NONLINEARITY_FULL_SCALE_NT, nonorthogonality_matrix, raw_rate,
     rot_r1, rot_r2, rot_r3, rq_positive, SensorContext, SIGNALS, upper_to_scale_nonorth)
 from magcal_ros.core.effects.catalog import (  # noqa: F401 - re-exported
-    axis_map_args, axis_map_matrix, AXIS_NAMES, AxisMap, Misalignment, NonOrthogonality, Offset,
+    axis_map_args, AXIS_NAMES, AxisMap, Misalignment, NonOrthogonality, Offset,
     Scale, SiteGradient, SoftIron, TOKEN_CLASSES, TokenEffect, TOKENS)
 from magcal_ros.core.effects.registry import (  # noqa: F401 - re-exported
-    BASE, BUILTIN_EFFECTS, effect_class, load_plugin, load_plugins, make_catalog_effect,
-    needs_args, parse_token, register_effect, registered_effects, split_spec,
-    unregister_effect)
-from magcal_ros.core.geometry.tensor import symmetric_traceless  # noqa: F401,I100
+    BASE, BUILTIN_EFFECTS, effect_class, load_plugin, load_plugins, needs_args, parse_token,
+    register_effect, registered_effects, unregister_effect)
 from magcal_ros.core.effects import formula  # noqa: F401,I100 - the grammar, after the catalog
 from magcal_ros.core.effects.couplings import (  # noqa: F401 - re-exported
-    Coupling, register_coupling, registered_couplings, unregister_coupling)
+    Coupling, register_coupling, unregister_coupling)
 from magcal_ros.core.effects.drivers import (  # noqa: F401 - re-exported
-    Driver, FormulaError, register_driver, registered_drivers, unregister_driver)
-from magcal_ros.core.effects.formula import (  # noqa: F401 - re-exported
-    composed_effect, Formula, make_effect, parse, Term)
-from magcal_ros.core.effects.terms import ComposedEffect, FieldEffect  # noqa: F401
+    Driver, register_driver, unregister_driver)
+from magcal_ros.core.effects.formula import make_effect, parse  # noqa: F401 - re-exported

@@ -15,43 +15,19 @@
 """
 The attitude as a reference: the world field seen through the vehicle's attitude.
 
-A vehicle log (a drone, boat or ground robot) rarely turns its compass through a sphere: it
-stays within a few tens of degrees of level and turns through part of a circle, so the
-magnitude constraint |B_k| = F alone leaves the vertical axis' offset and scale and the
-couplings to it open.  What such a log offers instead is the attitude R_k (body-to-world,
-from the autopilot's EKF or an AHRS): in a uniform world field m the field at the sensor is
-B_k = R_k^T m.  This effect makes that an *observation* of the profiled field B_k of each
-epoch (:class:`magcal_ros.core.model.engine.ProfiledProblem`), a virtual sensor of the array
-whose noise is the attitude's error seen as a field, ``sigma_nt`` (about F x the attitude's
-error in rad; estimated from the residuals with the real sensors' noise by the same
-variance-component estimator, :func:`magcal_ros.core.model.fitting.group_noise_variances`):
-
-``full``  (token ``attitude_full``) the whole attitude is trusted: the observation is the
-          vector y_k = Q R_k^T m, m = F (cos I cos D, cos I sin D, sin I) in the attitude's
-          world frame (NED: I the inclination, D the declination; ENU: the same vector in
-          other angles).  Two parameters, I and D, rad, estimated: a constant heading bias of
-          the attitude (true against magnetic north, a yaw offset of the EKF) goes into D.
-``tilt``  (token ``attitude_tilt``) roll and pitch only: a vehicle's heading usually comes
-          from the very compass being calibrated, so it is not used.  The observation is the
-          field's component along the world vertical, g_k . B_k = F sin I with g_k = R_k^T e_z
-          the vertical in the body frame; one parameter, I, rad.
-
-Both modes also fit Q, the rotation of sensor 1 against the attitude's body frame (three
-angles, ``mount_x``, ``mount_y``, ``mount_z``, rad, a rotation vector: a compass is mounted
-to within a few degrees of the IMU's axes), with a prior of :data:`MOUNT_PRIOR_SD_RAD` on
-each (:mod:`magcal_ros.core.model.attitude_fit`); what the motion leaves open of it (the
-angle about the vertical of a level vehicle) is named undetermined.
-
-The field keeps its magnitude constraint |B_k| = F_k; the observation adds what the
-attitude knows about its direction (Gebre-Egziabher et al. 2006, "Calibration of strapdown
-magnetometers in magnetic field domain", J. Aerosp. Eng. 19(2), use the same two
-constraints, magnitude and the vertical component, for an attitude-aided calibration; here
-they enter the maximum-likelihood problem as a weighted observation, so that the attitude's
-error is estimated, not assumed, and the uncertainties count it).  The sensors' own
-readings are untouched (:meth:`shift` is zero): the effect is no correction, and a
-calibration's live correction never needs the attitude.
-
-Units: nT, rad.
+A vehicle rarely turns its compass through a sphere, so |B_k| = F alone leaves the vertical
+axis' offset and scale open.  Its attitude R_k (body-to-world) gives B_k = R_k^T m in a
+uniform world field m: this effect makes that an *observation* of the profiled field B_k
+(:class:`magcal_ros.core.model.engine.ProfiledProblem`), a virtual sensor whose noise
+``sigma_nt`` (the attitude's error as a field) is estimated with the real sensors'.  Mode
+``full`` (token ``attitude_full``) trusts the whole attitude: y_k = Q R_k^T m,
+m = F (cos I cos D, cos I sin D, sin I); ``tilt`` (``attitude_tilt``) roll and pitch only:
+g_k . B_k = F sin I, g_k = R_k^T e_z.  Both fit Q, the rotation of sensor 1 against the
+attitude's body frame (rotation vector ``mount_x``, ``mount_y``, ``mount_z``, rad; prior
+:data:`MOUNT_PRIOR_SD_RAD`).  Gebre-Egziabher et al. 2006, "Calibration of strapdown
+magnetometers in magnetic field domain", J. Aerosp. Eng. 19(2), use the same constraints;
+here they are a weighted observation in the maximum-likelihood problem.  The sensors'
+readings are untouched (:meth:`shift` is zero).  Units: nT, rad.
 """
 from magcal_ros.core.effects.base import Effect
 import numpy as np
@@ -108,14 +84,7 @@ class AttitudeReference(Effect):
         return len(self.param_names) - 3
 
     def mount(self, p):
-        """
-        Return Q (3, 3): the rotation from the attitude's body frame to sensor 1's.
-
-        The compass is rarely mounted exactly along the IMU's axes (ArduPilot's
-        COMPASS_ORIENT fixes right angles only; a few degrees remain): the field the
-        attitude predicts in its body frame is Q B in sensor 1's (the array's) frame.
-        ``p[-3:]`` is its rotation vector, rad.
-        """
+        """Return Q (3, 3), the rotation from the attitude's body frame to sensor 1's (p[-3:])."""
         from scipy.spatial.transform import Rotation
         return Rotation.from_rotvec(np.asarray(p[-3:], float)).as_matrix()
 
@@ -126,26 +95,11 @@ class AttitudeReference(Effect):
 
     def observation(self, p, rot, f):
         """
-        Return what the attitude observes of the field at each epoch, in sensor 1's frame.
+        Return (proj, y): what the attitude observes of the field, in sensor 1's frame.
 
-        Parameters
-        ----------
-        p : numpy.ndarray
-            (n_params,) this effect's parameters, rad.
-        rot : numpy.ndarray
-            (N, 3, 3) body-to-world rotations.
-        f : numpy.ndarray
-            (N,) reference magnitude, nT.
-
-        Returns
-        -------
-        proj : numpy.ndarray
-            (N, 3, 3) the orthogonal projector onto what is observed (the identity, or
-            g g^T with g the world vertical in sensor 1's frame), dimensionless.
-        y : numpy.ndarray
-            (N, 3) the observation, nT, in the range of ``proj``: the residual of a field
-            B_k is proj (y - B_k).
-
+        ``p`` (n_params,) rad, ``rot`` (N, 3, 3) body-to-world, ``f`` (N,) nT.  ``proj``
+        (N, 3, 3) is the projector onto what is observed (the identity, or g g^T with g the
+        world vertical), ``y`` (N, 3) nT the observation: a field's residual is proj (y - B).
         """
         q = self.mount(p)
         if self.mode == 'full':
@@ -164,11 +118,7 @@ class AttitudeReference(Effect):
         return np.einsum('nij,nj->ni', proj, y - b)
 
     def start(self, rot, field_body):
-        """
-        (n_params,) rad: the world field's angles from a roughly corrected field.
-
-        ``field_body`` (N, 3) nT, e.g. sensor 1 after the closed-form start.
-        """
+        """(n_params,) rad: the world field's angles from a corrected ``field_body`` (N, 3) nT."""
         w = np.einsum('nij,nj->ni', rot, field_body)
         w = w / np.linalg.norm(w, axis=1, keepdims=True)
         inc = float(np.arcsin(np.clip(np.median(w[:, 2]), -1.0, 1.0)))

@@ -18,26 +18,15 @@ Every sensor j of an array is described by the forward model
 
     raw_j = A_j @ B + offset_j + sum_k d_k(context, lin_j) + noise,     lin_j = A_j @ B
 
-where ``B`` (nT) is the true field in the array frame (sensor 1's orthogonalised axes) and
-``A_j`` is the product of the *linear* effects (composed by matrix product, in the order
-scale . nonorthogonality . soft_iron . misalignment, paper 004 eq. 2-3) and ``d_k`` are the
-*additive* effects (offset, temperature, drift, nonlinearity, auxiliary currents, field rate),
-which add in the raw sensor frame.  This is the composition rule: linear maps
-compose, offsets and driven effects add.
-
-An effect is a small object with named parameters (each with a unit) and either a
-``matrix(p)`` (linear effects) or a ``contribution(p, ctx, lin)`` (additive effects).  It also
-declares everything the rest of the code asks about it (the live signals it reads, its prior
-in the constrained mode, its place in the product of linear effects, whether it carries the
-rotation into the array frame, how it takes its share of a closed-form linear map): the
-model, the fit, the diagnosis and the live corrector derive their behaviour from these
-declarations and never from effect names.  This module also holds the paper 004 rotations
-and the signal helpers every effect shares.
+with ``B`` (nT) the true field in the array frame, ``A_j`` the matrix product of the
+*linear* effects (paper 004 eq. 2-3) and ``d_k`` the *additive* effects.  An effect has
+named parameters (each with a unit), a ``matrix(p)`` or a ``contribution(p, ctx, lin)``,
+and declares everything the rest of the code asks about it (:class:`Effect`'s class
+attributes).  Also paper 004's rotations and the signal helpers every effect shares.
 """
 from dataclasses import dataclass, field
 import math
 
-from magcal_ros.core.geometry.tensor import symmetric_traceless  # noqa: F401 - re-exported
 import numpy as np
 
 
@@ -56,20 +45,10 @@ class LinearParts:
     """
     A closed-form linear map and offset of one sensor, decomposed (paper 004 eq. 2-3).
 
-    ``a = u @ q`` (RQ decomposition) with ``u`` upper triangular with a positive diagonal
-    (scale and non-orthogonality) and ``q`` a proper rotation (misalignment).
-
-    Attributes
-    ----------
-    a, u, q : numpy.ndarray
-        (3, 3) dimensionless.
-    scale : numpy.ndarray
-        (3,) row norms of ``u`` (kx, ky, kz), dimensionless.
-    nonorth : tuple of float
-        (psi, varphi, theta) of C_NO, rad.
-    offset : numpy.ndarray
-        (3,) nT.
-
+    ``a = u @ q`` (RQ decomposition, each (3, 3)) with ``u`` upper triangular with a
+    positive diagonal (scale and non-orthogonality) and ``q`` a proper rotation
+    (misalignment); ``scale`` (3,) the row norms of ``u``, ``nonorth`` (psi, varphi, theta)
+    of C_NO in rad, ``offset`` (3,) nT.
     """
 
     a: np.ndarray
@@ -91,10 +70,9 @@ def decompose_linear(a, offset):
 
 def rq_positive(a):
     """
-    RQ decomposition a = u @ q of a (3, 3) matrix with det(a) > 0.
+    RQ decomposition a = u @ q of a (3, 3) matrix with det(a) > 0 (paper 004 eq. 2-3).
 
-    ``u`` (3, 3) upper triangular with a positive diagonal, ``q`` (3, 3) a proper rotation
-    (det +1): the split of paper 004 eq. 2-3 (intrinsic map times misalignment).
+    ``u`` (3, 3) upper triangular with a positive diagonal, ``q`` (3, 3) a proper rotation.
     """
     from scipy.linalg import rq          # here: scipy.linalg is slow to import
     u, q = rq(np.asarray(a, float))
@@ -107,37 +85,22 @@ def rq_positive(a):
 
 @dataclass
 class SensorContext:
-    """
-    Driving signals seen by one sensor.
+    """Driving signals seen by one sensor."""
 
-    Attributes
-    ----------
-    t : numpy.ndarray
-        (N,) time in s.
-    temp : numpy.ndarray or None
-        (N,) sensor temperature in degC.
-    aux : dict of str to numpy.ndarray
-        Auxiliary channels, each (N,), in the channel's own unit (A, W, ...).
-    raw_rate : numpy.ndarray or None
-        (N, 3) time derivative of the raw reading, nT/s.
-    parent : SensorContext or None
-        The whole record this context was cut from (:meth:`subset`), so that an effect with
-        memory (a lag filter) runs over the whole record and keeps its state across the
-        cut, e.g. across the held-out blocks of a cross-validation.
-    index : numpy.ndarray or None
-        (N,) int, positions of these samples in ``parent``.
-    attitude : numpy.ndarray or None
-        (N, 3, 3) body-to-world rotation matrices of the array (from the quaternion columns
-        att_qw..att_qz), or None when the attitude is unknown.
-
-    """
-
+    #: (N,) time in s
     t: np.ndarray
+    #: (N,) sensor temperature in degC
     temp: np.ndarray | None = None
+    #: auxiliary channels, each (N,), in the channel's own unit (A, W, ...)
     aux: dict = field(default_factory=dict)
+    #: (N, 3) time derivative of the raw reading, nT/s
     raw_rate: np.ndarray | None = None
+    #: the whole record this context was cut from (:meth:`subset`): an effect with memory
+    #: (a lag filter) runs over it and keeps its state across the cut
     parent: 'SensorContext | None' = None
+    #: (N,) int, positions of these samples in ``parent``
     index: np.ndarray | None = None
+    #: (N, 3, 3) body-to-world rotations of the array, or None when unknown
     attitude: np.ndarray | None = None
 
     def has(self, signal):
@@ -174,14 +137,10 @@ class Effect:
     Base class of an error term.
 
     Subclasses set ``name``, ``kind`` ('linear' or 'additive'), ``param_names`` and ``units``
-    and implement ``matrix`` (linear) or ``contribution`` (additive).  Effects that depend on a
-    reference value of a driving signal (mean temperature, start time, mean current) compute it
-    in :meth:`prepare` from the calibration data and store it in ``self.refs`` so that live
-    correction uses the same reference.
-
-    The class attributes below are the effect's declarations;
-    :class:`~magcal_ros.core.model.Model`, the fit, the diagnosis and the live corrector read
-    them instead of recognising names.
+    and implement ``matrix`` (linear) or ``contribution`` (additive).  Reference values of a
+    driving signal (mean temperature, start time) are computed in :meth:`prepare` from the
+    calibration data and stored in ``self.refs``, so that live correction uses the same.
+    The class attributes below are the effect's declarations.
     """
 
     name = 'effect'
@@ -190,37 +149,29 @@ class Effect:
     units = ()
     #: effects that are the same physical degree of freedom, and cannot be combined
     excludes = ()
-    #: labels of effects this one contains (its parameters of the same name are theirs):
-    #: adding it to a model replaces them, e.g. aux_poly(aux_x,2) replaces aux:aux_x
+    #: labels of effects this one contains, which adding it replaces (aux_poly > aux)
     supersedes = ()
     #: how a token of an effect that needs arguments is written (None: takes none)
     usage = None
-    #: the arguments of a token ``name(a, b)`` (a step time, a frequency, a channel), as
-    #: canonical strings; () for an effect without arguments
+    #: the arguments of a token ``name(a, b)``, as canonical strings
     args = ()
-    #: driving signals ``contribution`` reads from the :class:`SensorContext`: keys of
-    #: :data:`SIGNALS` ('time', 'temperature', 'field_rate') or an auxiliary column
-    #: 'aux_<name>'.  The live corrector subscribes and waits for exactly these.
+    #: driving signals ``contribution`` reads: keys of :data:`SIGNALS` or 'aux_<name>'; the
+    #: live corrector subscribes and waits for exactly these
     signals = ()
-    #: True for an additive effect whose contribution is a constant (N, 3) vector (the
-    #: offset): live correction folds it into ``A^-1 (raw - offset)``.  Any other additive
-    #: effect is *driven* and evaluated per sample.
+    #: True for an additive effect whose contribution is a constant (the offset); any other
+    #: additive effect is *driven* and evaluated per sample
     constant = False
-    #: prior of the constrained mode (partial attitude coverage) on every parameter:
-    #: (mean, or None for :meth:`default_params`, standard deviation in the parameters' unit);
-    #: None: no prior
+    #: prior of the constrained mode on every parameter: (mean, or None for
+    #: :meth:`default_params`, sd in the parameters' unit), or None
     prior = None
-    #: place of a linear effect in the product A = A_1 A_2 ... (paper 004 eq. 2-3): effects
-    #: are multiplied in increasing order (the smallest is left-most, next to the output)
+    #: place of a linear effect in the product A = A_1 A_2 ... (the smallest left-most)
     linear_order = 0
-    #: True if the effect holds the rotation of the sensor's axes into the array frame
-    #: (sensor 1's axes): on a sensor j > 1 it ties the sensors to one field per epoch
+    #: True if the effect holds the rotation of the sensor's axes into the array frame: on a
+    #: sensor j > 1 it ties the sensors to one field per epoch
     frame_rotation = False
-    #: False if the effect does not exist on sensor 1 because sensor 1 defines the array
-    #: frame (the misalignment); the model leaves it out there
+    #: False if the effect does not exist on sensor 1, which defines the array frame
     on_sensor1 = True
     #: 'sensor': one instance and parameter set per sensor; 'array': one for the whole array
-    #: (the site gradient)
     scope = 'sensor'
 
     def __init__(self, sensor=1, refs=None):
@@ -229,21 +180,12 @@ class Effect:
 
     @classmethod
     def suggest_args(cls, ctx):
-        """
-        Argument tuples worth testing on data ``ctx`` (the diagnosis' candidates); [] if none.
-
-        Effects whose arguments come from the residual (a step time, a frequency) are
-        proposed by the diagnosis itself and return [].
-        """
+        """Argument tuples worth testing on data ``ctx`` (diagnosis candidates); [] if none."""
         return []
 
     @classmethod
     def from_args(cls, args, sensor=1):
-        """
-        Make the effect of token ``name(args)`` on ``sensor``; ``args`` are strings.
-
-        Effects with arguments override this (and set :attr:`args`); the default accepts none.
-        """
+        """Make the effect of token ``name(args)`` on ``sensor`` (``args`` strings; here none)."""
         if args:
             raise ValueError(f'effect {cls.name!r} takes no arguments, got '
                              f'{cls.name}({",".join(args)})')
@@ -269,12 +211,7 @@ class Effect:
         return np.zeros(self.n_params)
 
     def params_from_linear(self, parts):
-        """
-        Return this effect's share of a closed-form linear map and offset (closed-form start).
-
-        ``parts`` is a :class:`LinearParts`; return the (n_params,) parameters, or None when
-        the effect has no share (it then starts at :meth:`default_params`).
-        """
+        """(n_params,) this effect's share of the :class:`LinearParts` ``parts``, or None."""
         return None
 
     def prepare(self, ctx):
@@ -297,14 +234,7 @@ class Effect:
         return False
 
     def reduces(self, p, stderr, ctx):
-        """
-        Say why the fitted effect reduces to a simpler one of the catalog, or return None.
-
-        Reason why the fitted parameters ``p`` (stderr: their uncertainties, or None) make
-        this effect a simpler one already in the catalog (a lag of zero time constant), else
-        None.  The diagnosis does not adopt such a candidate: the simpler effect is tested
-        on its own.
-        """
+        """Say why the fitted ``p`` (+- ``stderr`` or None) is a simpler effect, or None."""
         return None
 
     def describe(self):
@@ -319,33 +249,16 @@ def raw_rate(x, t=None, period=None):
     """
     (N, 3) nT/s time derivative of readings ``x`` (N, 3) nT: the field-rate signal.
 
-    The one estimator of ``SensorContext.raw_rate`` for a recording (Dataset), the simulator
-    and the live corrector.  Second-order finite differences (``numpy.gradient``,
-    ``edge_order=2``): central at interior samples, and one-sided at the ends, at the last
-    sample (3 x_k - 4 x_k-1 + x_k-2) / 2h, which is all a live stream has (only the past).
-    The central difference leaves the sample's own noise out of its rate, so a tau fitted
-    with it is unbiased (a one-sided rate shares the sample's noise: biased by
-    1.5 sigma^2 / (h |dB/dt|^2)).  For a field turning at w rad/s sampled every h s the two
-    forms give (1 - (w h)^2 / 6) and (1 + (w h)^2 / 3) times the true rate, so live and
-    offline correction agree to (w h)^2 / 2 of tau |dB/dt|: 2 % at w h = 0.2 (1 rad/s at
-    5 Hz).  The backward difference x_k - x_k-1 the corrector used before lags half a
-    sample instead: (w h) / 2 of the rate, 10 % at w h = 0.2, along the field.
+    The one estimator of ``SensorContext.raw_rate`` for a recording, the simulator and the
+    live corrector: ``numpy.gradient`` with ``edge_order=2``, central at interior samples
+    (it leaves the sample's own noise out of its rate, so a fitted tau is unbiased) and
+    (3 x_k - 4 x_k-1 + x_k-2) / 2h at the last, all a live stream has.  For a field turning
+    at w rad/s sampled every h s live and offline correction agree to (w h)^2 / 2 of
+    tau |dB/dt|.
 
-    Parameters
-    ----------
-    x : numpy.ndarray
-        (N, 3) readings, nT.
-    t : numpy.ndarray, optional
-        (N,) strictly increasing sample times, s.
-    period : float, optional
-        Uniform sample period, s, instead of ``t`` (a live stream, whose stamps bunch when
-        samples are read together).
-
-    Returns
-    -------
-    numpy.ndarray or None
-        (N, 3) nT/s; None with fewer than 3 samples or times that do not increase.
-
+    ``t`` (N,) strictly increasing times, s, or ``period`` a uniform sample period, s (a
+    live stream, whose stamps bunch).  None with fewer than 3 samples or times that do not
+    increase.
     """
     x = np.asarray(x, float)
     if len(x) < 3:
@@ -356,9 +269,6 @@ def raw_rate(x, t=None, period=None):
     if not np.all(np.diff(t) > 0):
         return None
     return np.gradient(x, t, axis=0, edge_order=2)
-
-
-# -- rotations of paper 004 eq. 3 ----------------------------------------------------------
 
 
 def rot_r1(g):
@@ -379,6 +289,15 @@ def rot_r3(a):
     return np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
+def rot_z(psi):
+    """(N, 3, 3) rotations by the angles ``psi`` (N,) rad about z."""
+    c, s = np.cos(psi), np.sin(psi)
+    out = np.zeros((len(psi), 3, 3))
+    out[:, 0, 0], out[:, 0, 1], out[:, 1, 0], out[:, 1, 1] = c, -s, s, c
+    out[:, 2, 2] = 1.0
+    return out
+
+
 def misalignment_matrix(alpha, beta, gamma):
     """Paper 004 eq. 3: B_i = R1(gamma) R2(beta) R3(alpha) B_1, angles in rad."""
     return rot_r1(gamma) @ rot_r2(beta) @ rot_r3(alpha)
@@ -386,11 +305,9 @@ def misalignment_matrix(alpha, beta, gamma):
 
 def misalignment_angles(r):
     """Inverse of :func:`misalignment_matrix`: (3, 3) rotation -> (alpha, beta, gamma) rad."""
-    # R = R1(g) R2(b) R3(a); row 1 of R = [-cb sa ... ] -- solve from the closed form:
-    # R[1] = [-cb*sa, cb*ca, sb]
+    # R[1] = [-cb sa, cb ca, sb], R[0, 2] = -sg cb, R[2, 2] = cg cb
     beta = np.arcsin(np.clip(r[1, 2], -1.0, 1.0))
     alpha = np.arctan2(-r[1, 0], r[1, 1])
-    # R[0,2] = -sg*cb, R[2,2] = cg*cb
     gamma = np.arctan2(-r[0, 2], r[2, 2])
     return float(alpha), float(beta), float(gamma)
 
@@ -419,9 +336,6 @@ def upper_to_scale_nonorth(u):
     return k, float(psi), float(varphi), float(theta)
 
 
-# -- signal helpers ------------------------------------------------------------------------
-
-
 def parse_number(text, what):
     """Return the finite float of the argument ``text`` (``what`` names it in the error)."""
     try:
@@ -437,9 +351,7 @@ def format_arg(v):
     """
     Canonical text of a token argument: 6 significant digits, a value of 1e5 or more to 1e-3.
 
-    A time on a clock since 1970 (a ROS stamp, about 1.8e9 s) keeps its milliseconds: with
-    6 digits ``step(1795889560.9)`` would read ``step(1.79589e+09)``, 500 s off, and a
-    ``window`` of a few seconds there would end before it starts.
+    A time on a clock since 1970 (a ROS stamp, about 1.8e9 s) keeps its milliseconds.
     """
     v = float(v)
     if abs(v) >= 1e5 and math.isfinite(v):
@@ -461,18 +373,14 @@ def lag_coefficients(dt, tau):
     """
     Return (a, b0, b1) of one step of tau dy/dt = x - y: y_k = a y_k-1 + b0 x_k + b1 x_k-1.
 
-    The one discretisation of the lag, for the batch filter (:func:`first_order_lag`) and
-    the live one (:func:`lag_step`): exact when x is linear between samples (the
-    first-order-hold or "triangle-hold" equivalent of 1 / (tau s + 1): Franklin, Powell and
-    Workman, Digital Control of Dynamic Systems, 3rd ed. 1998, sec. 6.3):
-    a = exp(-dt/tau), b0 = 1 - g, b1 = g - a, g = tau/dt (1 - a), so b0 + b1 = 1 - a (a
-    constant passes unchanged).  A step of dt = 0 holds y (two samples of one stamp), one
-    of dt < 0 (the clock went back) restarts in steady state, y = x; tau is at least
-    1e-3 dt.  ``dt`` s: a float or (K,) array; returns floats or (K,) arrays.
-
-    g is written as the files before were (not as -expm1(-dt/tau) tau/dt, which loses
-    less to rounding when tau >> dt): test/data/legacy_cal/lag.yaml has tau = 1.4e5 s at
-    dt = 0.5 s, where the two differ by 1e-11 and its correction by 2.4e-8 nT.
+    The one discretisation of the lag, batch (:func:`first_order_lag`) and live
+    (:func:`lag_step`): exact when x is linear between samples (the first-order-hold
+    equivalent of 1 / (tau s + 1): Franklin, Powell and Workman, Digital Control of Dynamic
+    Systems, 3rd ed. 1998, sec. 6.3): a = exp(-dt/tau), b0 = 1 - g, b1 = g - a,
+    g = tau/dt (1 - a).  A step of dt = 0 holds y, one of dt < 0 (the clock went back)
+    restarts in steady state, y = x; tau is at least 1e-3 dt.  ``dt`` s: a float or (K,)
+    array; returns floats or (K,) arrays.  g is not written with expm1, so that old
+    calibration files (test/data/legacy_cal/lag.yaml) correct to the same digits.
     """
     dt = np.asarray(dt, float)
     tau = np.maximum(abs(float(tau)), 1e-3 * dt)
@@ -487,9 +395,8 @@ def first_order_lag(t, x, tau):
     """
     (N,) response y of tau dy/dt = x - y to x (N,) sampled at t (N,) s, y(t0) = x(t0).
 
-    The recursion of :func:`lag_coefficients` over the samples (scipy.signal.lfilter when
-    every step is the same, else a scan by recursive doubling): what :func:`lag_step`
-    computes one sample at a time, live.
+    The recursion of :func:`lag_coefficients` (scipy.signal.lfilter when every step is the
+    same, else a scan by recursive doubling): :func:`lag_step` one sample at a time.
     """
     t = np.asarray(t, float)
     x = np.asarray(x, float)
@@ -521,9 +428,8 @@ def lag_step(state, t, x, tau):
 
     ``state`` is the previous sample's (t s, x, y), or None before the first (which starts
     in steady state, y = x); ``x`` the input at ``t`` s.  The step of
-    :func:`first_order_lag` (:func:`lag_coefficients`), so a record corrected one sample at a
-    time gives the batch filter's values; a second call at the same ``t`` (the fixed-point
-    correction of an effect that reads the field) holds y.
+    :func:`first_order_lag`, so a record corrected one sample at a time gives the batch
+    filter's values; a second call at the same ``t`` holds y.
     """
     if state is None:
         return (t, x, x), x
@@ -533,12 +439,7 @@ def lag_step(state, t, x, tau):
 
 
 def steps_outside(times, t):
-    """
-    Say which step time lies outside the data, or return None.
-
-    ``times`` step times and ``t`` (N,) sample times, s: a step needs at least 3 samples on
-    each side to be told from the offset.
-    """
+    """Say which step of ``times`` has fewer than 3 samples of ``t`` (N,) s on a side, or None."""
     for tk in times:
         before = int(np.sum(t < tk))
         if before < 3 or len(t) - before < 3:

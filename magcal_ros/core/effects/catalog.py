@@ -12,20 +12,14 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 """
-The catalog: the named effects that ship with the library (today's model tokens).
+The catalog: the named effects that ship with the library (the model tokens).
 
-The constant linear map (paper 004 eq. 2-3: scale, non-orthogonality, misalignment; soft
-iron; a fixed axis map), the constant offset and the site gradient of the array are
-effects of their own: the model's linear core, which the grammar's couplings change.
-Every driven token (temperature, drift, drift2, nonlinearity, aux:<column>, field_rate,
-step(T), periodic(F), lag(v), aux_poly(v, D)) is a composition coupling(driver) of the
-grammar (:data:`TOKENS`), evaluated by the grammar's code (:class:`~.terms.Part`) under
-the token's own parameter names and reference values, so that every calibration file
-written before the grammar loads and corrects as it did.  Where a token differs from the
-composition written out (docs/formulas.md): drift is referred to the first sample (the
-composition ``offset(t)`` to the mean), ``aux_poly`` and ``drift2`` are unscaled powers
-(``poly`` scales by the half range), ``nonlinearity`` has the degrees 2 and 3 only,
-``field_rate`` is written with -tau (s).
+The constant linear map (paper 004 eq. 2-3; soft iron; a fixed axis map), the constant
+offset and the site gradient are effects of their own.  Every driven token (temperature,
+drift, step(T), lag(v), ...) is a composition coupling(driver) of the grammar
+(:data:`TOKENS`), evaluated by :class:`~.terms.Part` under the token's own parameter names
+and reference values, so that older calibration files load and correct as they did; where
+a token differs from the composition written out is in docs/formulas.md.
 """
 
 from magcal_ros.core.effects import drivers as dv
@@ -38,9 +32,6 @@ from magcal_ros.core.geometry.tensor import symmetric_traceless
 import numpy as np
 
 
-# -- linear effects -------------------------------------------------------------------------
-
-
 AXIS_NAMES = ('x', 'y', 'z')
 
 
@@ -48,9 +39,8 @@ def axis_map_matrix(args):
     """
     (3, 3) signed permutation M of an axis map: reading = M @ (the sensor element's axes).
 
-    ``args`` are three of 'x', '-x', 'y', '-y', 'z', '-z' (one per reading axis x, y, z,
-    each sensor axis once): ('-x', 'y', 'z') is an x axis read with reversed sign, ('y', 'x',
-    'z') the x and y readings exchanged.
+    ``args`` are three of 'x', '-x', 'y', '-y', 'z', '-z', one per reading axis, each sensor
+    axis once: ('-x', 'y', 'z') is an x axis read with reversed sign.
     """
     m = np.zeros((3, 3))
     for i, a in enumerate(args):
@@ -79,12 +69,10 @@ class AxisMap(Effect):
     """
     How the readings' axes are wired to the sensor's axes: a fixed signed permutation.
 
-    Token ``axes(-x,y,z)@j``: reading x is the sensor's x axis with reversed sign (a coil or
-    channel wired with reversed polarity, a mirrored mounting); ``axes(y,x,z)@j``: the x and
-    y readings exchanged.  No parameters: A_j = M S C_NO R (the left-most factor, next to the
-    reading), so scale and angles stay those of a real sensor (near 1, near 0) and the
-    correction A_j^-1 undoes the map.  Found by the calibration when a fitted A_j has
-    det < 0 or a negative scale (:mod:`magcal_ros.core.model.plausibility`).
+    Token ``axes(-x,y,z)@j``: reading x is the sensor's x axis with reversed sign;
+    ``axes(y,x,z)@j``: the x and y readings exchanged.  No parameters: A_j = M S C_NO R, so
+    scale and angles stay those of a real sensor.  Found by the calibration when a fitted
+    A_j has det < 0 or a negative scale (:mod:`magcal_ros.core.model.plausibility`).
     """
 
     name = 'axes'
@@ -144,11 +132,7 @@ class NonOrthogonality(Effect):
 
 
 class Misalignment(Effect):
-    """
-    Rotation of the sensor's axes relative to sensor 1 (paper 004 eq. 3).
-
-    Sensor 1 defines the array frame, so this effect has no parameters there.
-    """
+    """Rotation of the sensor's axes relative to sensor 1 (paper 004 eq. 3; none on sensor 1)."""
 
     name = 'misalignment'
     kind = 'linear'
@@ -208,9 +192,6 @@ class SoftIron(Effect):
         return parts.a[np.triu_indices(3)] if self.sensor == 1 else parts.a.ravel()
 
 
-# -- additive effects -----------------------------------------------------------------------
-
-
 class Offset(Effect):
     """Constant offset (hard iron, electronics zero), paper 004 eq. 2 b, in nT."""
 
@@ -230,18 +211,14 @@ class Offset(Effect):
         return 'offset(1)' + at
 
 
-# -- today's tokens: compositions of the grammar ---------------------------------------------
-
-
 class Composition:
     """
     What one token with its arguments stands for: coupling(driver) parts and its bookkeeping.
 
-    ``parts`` [(coupling name, Driver)]; ``params``, ``units`` the token's own parameter
-    names and units; ``refs`` {token's reference: (how, variable, the drivers' reference)},
-    how 'mean' (the calibration mean of the variable) or 'first' (the first time);
-    ``fixed`` constant references of the drivers; ``sign`` and ``lead`` (zero parameters
-    before the token's) map the token's parameters onto the parts'.
+    ``parts`` [(coupling name, Driver)]; ``params``, ``units`` the token's own; ``refs``
+    {token's reference: (how, variable, the drivers' reference)}, how 'mean' or 'first'
+    (the first time); ``fixed`` constant references of the drivers; ``sign`` and ``lead``
+    (zero parameters before the token's) map the token's parameters onto the parts'.
     """
 
     def __init__(self, args, parts, params, units, refs=None, fixed=None, sign=1.0, lead=0,
@@ -256,12 +233,9 @@ class TokenEffect(Effect):
     """
     A token of the catalog (``temperature``, ``lag(temperature)``, ...): grammar parts, summed.
 
-    The change of the reading is the sum of its parts' (:class:`~.terms.Part`, the one
-    evaluation of the grammar's terms).  The token keeps only its bookkeeping: the parameter
-    names, units and reference values (``t0_c``, ``t0_s``, ``a0``, ``x0``) that calibration
-    files written before the grammar hold, so they load and correct as they did.  Each
-    token is a row of :data:`TOKENS`; :func:`token_class` makes the class registered under
-    its name.
+    The token keeps only its bookkeeping: the parameter names, units and reference values
+    (``t0_c``, ``t0_s``, ``a0``, ``x0``) of the calibration files.  Each token is a row of
+    :data:`TOKENS`; :func:`token_class` makes the class registered under its name.
     """
 
     kind = 'additive'
@@ -270,10 +244,8 @@ class TokenEffect(Effect):
 
     def __init__(self, sensor=1, refs=None, args=()):
         super().__init__(sensor, refs)
-        comp = self.row.compose(tuple(args))
-        self.comp = comp
-        self.args = comp.args
-        self.param_names, self.units = comp.params, comp.units
+        self.comp = comp = self.row.compose(tuple(args))
+        self.args, self.param_names, self.units = comp.args, comp.params, comp.units
         self.supersedes = comp.supersedes
         self.parts = [Part(coupling_class(c)(), d) for c, d in comp.parts]
         self._seen = None
@@ -318,11 +290,8 @@ class TokenEffect(Effect):
 
     def check(self, ctx):
         """Return None if the data can excite every part, else the reason why not."""
-        for p in self.parts:
-            why = p.driver.check(ctx, self.sensor)
-            if why:
-                return why
-        return self.row.check(self, ctx) if self.row.check else None
+        why = next(filter(None, (p.driver.check(ctx, self.sensor) for p in self.parts)), None)
+        return why or (self.row.check(self, ctx) if self.row.check else None)
 
     def expansion(self, at=''):
         """Return the composition the token stands for, ``offset(t)@2`` (``at``: '@2')."""
@@ -539,20 +508,15 @@ def aux_effect(channel, sensor=1):
     return TOKEN_CLASSES['aux'](sensor=sensor, args=(channel,))
 
 
-# -- array-wide effects --------------------------------------------------------------------
-
-
 class SiteGradient(Effect):
     """
     Constant gradient of the site in the world frame, seen through the known attitude.
 
-    The field at sensor j (position r_j, m, body = array frame) is
-    B_j = B_c + R^T G_w R r_j, with B_c the field at the array centre (the origin of the
-    positions; its magnitude is the reference magnitude), R the body-to-world rotation
-    (``SensorContext.attitude``) and G_w (nT/m) symmetric and traceless: 5 parameters
-    (gxx, gxy, gxz, gyy, gyz) shared by the whole array.  The shift enters before the
-    sensor's linear map: raw_j = A_j B_j + offset_j + ...  The positions are stored in
-    ``refs`` (x1, y1, z1, x2, ...; m) so that the calibration file carries them.
+    The field at sensor j (position r_j, m) is B_j = B_c + R^T G_w R r_j, with B_c the field
+    at the array centre, R the body-to-world rotation (``SensorContext.attitude``) and G_w
+    (nT/m) symmetric and traceless: 5 parameters shared by the array, applied before the
+    sensor's linear map.  The positions are stored in ``refs`` (x1, y1, z1, x2, ...; m) so
+    that the calibration file carries them.
     """
 
     name = 'site_gradient'

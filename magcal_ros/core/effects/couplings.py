@@ -13,26 +13,13 @@
 # limitations under the License.
 
 """
-Couplings: how a driver's columns X enter the reading (docs/formulas.md).
+Couplings: how a driver's columns X enter the reading (docs/formulas.md has the table).
 
 With X the (N, m) columns of a driver and P the coupling's parameters, ``c`` per column
-(P has shape (m, c)), the reading of a sensor, raw = lin + offset + ..., lin = A B, changes by
-
-- ``offset``:   dB = X P, P (m, 3), nT per driver unit (hard iron that follows the driver);
-- ``scale``:    dB_i = (X P)_i lin_i, P (m, 3), 1 per driver unit (the scale factors vary);
-- ``linear``:   dB = M lin, M = sum_k X_k P_k, P_k (3, 3) row-major, 1 per driver unit (all
-  nine entries of the linear map A_j vary; soft iron that follows the driver);
-- ``nonorth``:  the non-orthogonality angles of paper 004 eq. 2 vary, (psi, varphi, theta) =
-  X P, rad per driver unit: dB = dC lin, dC = [[0, varphi, theta], [0, 0, psi], [0, 0, 0]]
-  (C_NO to first order in the angles);
-- ``rotation``: the orientation of paper 004 eq. 3 varies, (alpha, beta, gamma) = X P, rad per
-  driver unit: dB = W lin, W = [[0, alpha, -gamma], [-alpha, 0, beta], [gamma, -beta, 0]]
-  (R1 R2 R3 to first order);
-- ``field``:    the field itself, common to every sensor: its magnitude is F0 + X P, P (m,),
-  nT per driver unit (the reference magnitude varies: diurnal variation, a passing vehicle).
-
-The angles and the linear map act on lin = A B to first order: a coupling describes a small
-change (a scale change of 1e-3 per unit leaves a second-order error of 1e-6 of the field).
+(P has shape (m, c)), a coupling is the change dB (N, 3) nT of the reading of a sensor,
+raw = lin + offset + ..., lin = A B.  ``nonorth`` and ``rotation`` vary the angles of paper
+004 eq. 2 and 3 to first order: dB = dC lin, dC = [[0, varphi, theta], [0, 0, psi],
+[0, 0, 0]], and dB = W lin, W = [[0, alpha, -gamma], [-alpha, 0, beta], [gamma, -beta, 0]].
 Per-axis drivers (``rate``, ``lin``: X (N, 3, m)) act axis by axis, dB_i = sum_k X_ik P_ki,
 with ``offset`` and ``scale`` only.  A plug-in adds a coupling by subclassing
 :class:`Coupling` and calling :func:`register_coupling`.

@@ -13,32 +13,16 @@
 # limitations under the License.
 
 """
-Drivers: what an effect follows, as a basis of columns X (docs/formulas.md).
+Drivers: what an effect follows, as a basis of columns X (docs/formulas.md has the table).
 
-A driver turns the driving signals of a sensor (:class:`~.base.SensorContext`: time,
-temperature, auxiliary channels, the field rate, the sensor's own linear reading) into
-columns ``X``: (N, m) for a scalar driver, (N, 3, m) for a per-axis one (``rate``,
-``lin``), each column in the driver's unit (:attr:`Driver.unit`).  A coupling
-(:mod:`.couplings`) turns the columns into a change of the reading, with parameters per
-column.  Reference values (a mean, a range, a start time) are computed once in
-:meth:`Driver.prepare` from the calibration data and stored in the effect's ``refs``, so
-that live correction uses the same reference.
-
-Factors (``factor`` of the grammar; ``*`` multiplies them, the tensor product of their
-columns):
-
-- a variable ``v`` itself (``t``, ``temperature``, ``aux_<name>``: centred on its
-  calibration mean; ``rate``, ``lin``: per axis, uncentred, their zero is physical);
-- ``s(v, k=K)``: a cubic regression spline of K columns (mgcv's ``s``), centred;
-- ``cc(v, k=K[, period=P])``: Fourier harmonics 1..K of a v that wraps (2K columns), centred;
-- ``poly(v, D)``: (v - v0) / h to the powers 1..D, v0 the mean, h the half range;
-- ``sin(F[, refine=true])``: cos and sin of 2 pi F (t - t0), F in Hz (refined by the fit
-  with ``refine=true``);
-- ``step(T, ...)``: [t >= T_k], T in s;  ``window(T0, T1)``: [T0 <= t <= T1];
-- ``lag(v[, tau=S])``: v through the first-order lag tau dy/dt = v - y, centred on v's mean;
-  tau (s) is a parameter of the fit unless given.
-
-A plug-in adds a factor by subclassing :class:`Driver` and calling :func:`register_driver`.
+A driver turns the driving signals of a sensor (:class:`~.base.SensorContext`) into columns
+``X``: (N, m) for a scalar driver, (N, 3, m) for a per-axis one (``rate``, ``lin``), each
+in the driver's unit (:attr:`Driver.unit`); a coupling (:mod:`.couplings`) turns them into
+a change of the reading.  Reference values (a mean, a range, a start time) are computed
+once in :meth:`Driver.prepare` from the calibration data and stored in the effect's
+``refs``, so that live correction uses the same.  ``*`` multiplies factors (the tensor
+product of their columns, :class:`Product`).  A plug-in adds a factor by subclassing
+:class:`Driver` and calling :func:`register_driver`.
 """
 import math
 
@@ -62,10 +46,7 @@ class FormulaError(ValueError):
 def variable_name(text):
     """Return the canonical variable of ``text`` (t, temperature, aux_<name>, rate, lin)."""
     v = str(text).strip()
-    if v in ('time',):
-        v = 't'
-    if v in ('temp',):
-        v = 'temperature'
+    v = {'time': 't', 'temp': 'temperature'}.get(v, v)
     if v.startswith('aux:'):
         v = 'aux_' + v[4:]
     if v in VARIABLES or (v.startswith('aux_') and len(v) > 4 and v[4:].replace('_', 'a')
@@ -82,15 +63,10 @@ def variable_unit(v):
 
 def variable_values(ctx, v, lin=None):
     """(N,) or (N, 3) values of variable ``v`` in ``ctx`` (None if absent)."""
-    if v == 't':
-        return ctx.t
-    if v == 'temperature':
-        return ctx.temp
-    if v == 'rate':
-        return ctx.raw_rate
     if v == 'lin':
         return None if lin is None else lin / NONLINEARITY_FULL_SCALE_NT
-    return ctx.aux.get(v)
+    attr = {'t': 't', 'temperature': 'temp', 'rate': 'raw_rate'}.get(v)
+    return getattr(ctx, attr) if attr else ctx.aux.get(v)
 
 
 def check_variable(ctx, v, sensor):
@@ -109,11 +85,23 @@ def check_variable(ctx, v, sensor):
     return None
 
 
-def _kwargs(kwargs, allowed, usage):
+def _new(cls, args, kwargs, allowed, n_args, example):
+    """Return a bare ``cls()`` once the options are ``allowed`` and ``n_args`` are given."""
     bad = sorted(set(kwargs) - set(allowed))
     if bad:
-        raise FormulaError(f'unknown option {bad[0]}= in {usage}: allowed '
+        raise FormulaError(f'unknown option {bad[0]}= in {cls.usage}: allowed '
                            f'{", ".join(a + "=" for a in allowed) or "none"}')
+    if (not args) if n_args is None else len(args) != n_args:
+        raise FormulaError(f'{example}; usage {cls.usage}')
+    return cls()
+
+
+def _positive(text, what, name):
+    """Return the number ``text``, which must be positive (``name`` in the error)."""
+    v = parse_number(text, what)
+    if v <= 0:
+        raise FormulaError(f'{name} must be positive, got {text!r}')
+    return v
 
 
 def _count(text, what, lo, hi):
@@ -191,71 +179,8 @@ class Driver:
         return self.text
 
 
-class Variable(Driver):
-    """A variable itself: t, temperature, aux_<name> centred on its mean; rate, lin per axis."""
-
-    name = 'v'
-    usage = 't | temperature | aux_<name> | rate | lin'
-
-    def __init__(self, v):
-        self.v = variable_name(v)
-        self.per_axis = VARIABLES.get(self.v, ('', False))[1]
-        self.reads_lin = self.v == 'lin'
-
-    @property
-    def text(self):
-        return self.v
-
-    @property
-    def column_names(self):
-        return (self.v,)
-
-    @property
-    def unit(self):
-        return variable_unit(self.v)
-
-    @property
-    def signals(self):
-        return VARIABLE_SIGNALS.get(self.v, (self.v,))
-
-    @property
-    def centred(self):
-        """Tell whether the column is centred on its calibration mean."""
-        return not self.per_axis
-
-    def prepare(self, ctx, refs, prefix=''):
-        if self.centred:
-            a = variable_values(ctx, self.v)
-            if a is not None and np.isfinite(a).any():
-                refs.setdefault(prefix + self.v + '0', float(np.nanmean(a)))
-
-    def check(self, ctx, sensor):
-        return check_variable(ctx, self.v, sensor)
-
-    def columns(self, ctx, lin, refs, q, prefix=''):
-        a = variable_values(ctx, self.v, lin)
-        if a is None:
-            raise ValueError(f'no {self.v} in the data')
-        if self.per_axis:
-            return np.asarray(a, float)[:, :, None]
-        x0 = refs.get(prefix + self.v + '0', 0.0)
-        return (np.nan_to_num(np.asarray(a, float), nan=x0) - x0)[:, None]
-
-
-class Constant(Driver):
-    """The constant 1: ``offset(1)`` is the plain offset."""
-
-    name = '1'
-    usage = '1'
-    text = '1'
-    column_names = ('1',)
-
-    def columns(self, ctx, lin, refs, q, prefix=''):
-        return np.ones((len(ctx.t), 1))
-
-
 class _OfVariable(Driver):
-    """A factor of one scalar variable with options (s, cc, poly, lag)."""
+    """A factor of one variable ``v`` (the variable itself, s, cc, poly, lag)."""
 
     def _var(self, text):
         v = variable_name(text)
@@ -293,6 +218,57 @@ class _OfVariable(Driver):
         return x - np.array([refs[nm] for nm in names])
 
 
+class Variable(_OfVariable):
+    """A variable itself: t, temperature, aux_<name> centred on its mean; rate, lin per axis."""
+
+    name = 'v'
+    usage = 't | temperature | aux_<name> | rate | lin'
+
+    def __init__(self, v):
+        self.v = variable_name(v)
+        self.per_axis = VARIABLES.get(self.v, ('', False))[1]
+        self.reads_lin = self.v == 'lin'
+
+    @property
+    def text(self):
+        return self.v
+
+    @property
+    def column_names(self):
+        return (self.v,)
+
+    @property
+    def unit(self):
+        return variable_unit(self.v)
+
+    def prepare(self, ctx, refs, prefix=''):
+        if not self.per_axis:                   # rate and lin: their zero is physical
+            a = variable_values(ctx, self.v)
+            if a is not None and np.isfinite(a).any():
+                refs.setdefault(prefix + self.v + '0', float(np.nanmean(a)))
+
+    def columns(self, ctx, lin, refs, q, prefix=''):
+        a = variable_values(ctx, self.v, lin)
+        if a is None:
+            raise ValueError(f'no {self.v} in the data')
+        if self.per_axis:
+            return np.asarray(a, float)[:, :, None]
+        x0 = refs.get(prefix + self.v + '0', 0.0)
+        return (np.nan_to_num(np.asarray(a, float), nan=x0) - x0)[:, None]
+
+
+class Constant(Driver):
+    """The constant 1: ``offset(1)`` is the plain offset."""
+
+    name = '1'
+    usage = '1'
+    text = '1'
+    column_names = ('1',)
+
+    def columns(self, ctx, lin, refs, q, prefix=''):
+        return np.ones((len(ctx.t), 1))
+
+
 class Spline(_OfVariable):
     """
     ``s(v, k=K)``: a smooth function of v, K cubic B-spline columns, centred.
@@ -309,10 +285,7 @@ class Spline(_OfVariable):
 
     @classmethod
     def from_args(cls, args, kwargs):
-        _kwargs(kwargs, ('k',), cls.usage)
-        if len(args) != 1:
-            raise FormulaError(f's takes one variable and k=, e.g. s(t, k=6); usage {cls.usage}')
-        d = cls()
+        d = _new(cls, args, kwargs, ('k',), 1, 's takes one variable and k=, e.g. s(t, k=6)')
         d.v = d._var(args[0])
         d.k = _count(kwargs.get('k', '5'), 's(..., k=K) basis size', 3, 20)
         return d
@@ -361,18 +334,12 @@ class Cyclic(_OfVariable):
 
     @classmethod
     def from_args(cls, args, kwargs):
-        _kwargs(kwargs, ('k', 'period'), cls.usage)
-        if len(args) != 1:
-            raise FormulaError(f'cc takes one variable, e.g. cc(aux_wheel_angle, k=2); usage '
-                               f'{cls.usage}')
-        d = cls()
+        d = _new(cls, args, kwargs, ('k', 'period'), 1,
+                 'cc takes one variable, e.g. cc(aux_wheel_angle, k=2)')
         d.v = d._var(args[0])
         d.k = _count(kwargs.get('k', '2'), 'cc(..., k=K) harmonics', 1, 10)
-        d.period = None
-        if 'period' in kwargs:
-            d.period = parse_number(kwargs['period'], 'cc period')
-            if d.period <= 0:
-                raise FormulaError(f'cc period must be positive, got {kwargs["period"]!r}')
+        d.period = (_positive(kwargs['period'], 'cc period', 'cc period')
+                    if 'period' in kwargs else None)
         return d
 
     @property
@@ -398,9 +365,7 @@ class Cyclic(_OfVariable):
     def columns(self, ctx, lin, refs, q, prefix=''):
         ph = (2 * math.pi / refs.get(prefix + 'period', 2 * math.pi)) * self._values(
             ctx, refs, prefix)
-        cols = []
-        for h in range(1, self.k + 1):
-            cols += [np.cos(h * ph), np.sin(h * ph)]
+        cols = [f(h * ph) for h in range(1, self.k + 1) for f in (np.cos, np.sin)]
         return self._centre(np.stack(cols, axis=1), ctx, refs, prefix)
 
 
@@ -416,11 +381,7 @@ class Poly(_OfVariable):
 
     @classmethod
     def from_args(cls, args, kwargs):
-        _kwargs(kwargs, (), cls.usage)
-        if len(args) != 2:
-            raise FormulaError(f'poly takes a variable and a degree, e.g. poly(t, 2); usage '
-                               f'{cls.usage}')
-        d = cls()
+        d = _new(cls, args, kwargs, (), 2, 'poly takes a variable and a degree, e.g. poly(t, 2)')
         d.v = variable_name(args[0])
         d.per_axis = VARIABLES.get(d.v, ('', False))[1]
         d.reads_lin = d.v == 'lin'
@@ -464,19 +425,14 @@ class Sinusoid(Driver):
 
     @classmethod
     def from_args(cls, args, kwargs):
-        _kwargs(kwargs, ('refine',), cls.usage)
-        if len(args) != 1:
-            raise FormulaError(f'sin takes one frequency in Hz, e.g. sin(0.23); usage {cls.usage}')
-        d = cls()
-        d.freq_hz = parse_number(args[0], 'sin frequency [Hz]')
-        if d.freq_hz <= 0:
-            raise FormulaError(f'sin frequency must be positive, got {args[0]!r}')
+        d = _new(cls, args, kwargs, ('refine',), 1,
+                 'sin takes one frequency in Hz, e.g. sin(0.23)')
+        d.freq_hz = _positive(args[0], 'sin frequency [Hz]', 'sin frequency')
         refine = kwargs.get('refine', 'false').lower()
         if refine not in ('true', 'false'):
             raise FormulaError(f'sin(..., refine=...) is true or false, got {refine!r}')
         d.refine = refine == 'true'
-        d.param_names = ('df',) if d.refine else ()
-        d.units = ('Hz',) if d.refine else ()
+        d.param_names, d.units = (('df',), ('Hz',)) if d.refine else ((), ())
         return d
 
     @property
@@ -512,11 +468,7 @@ class Steps(Driver):
 
     @classmethod
     def from_args(cls, args, kwargs):
-        _kwargs(kwargs, (), cls.usage)
-        if not args:
-            raise FormulaError(f'step needs at least one time in s, e.g. step(300); usage '
-                               f'{cls.usage}')
-        d = cls()
+        d = _new(cls, args, kwargs, (), None, 'step needs at least one time in s, e.g. step(300)')
         d.times = tuple(sorted(parse_number(a, 'step time [s]') for a in args))
         return d
 
@@ -546,11 +498,7 @@ class Window(Driver):
 
     @classmethod
     def from_args(cls, args, kwargs):
-        _kwargs(kwargs, (), cls.usage)
-        if len(args) != 2:
-            raise FormulaError(f'window takes two times in s, e.g. window(120, 160); usage '
-                               f'{cls.usage}')
-        d = cls()
+        d = _new(cls, args, kwargs, (), 2, 'window takes two times in s, e.g. window(120, 160)')
         d.t0, d.t1 = (parse_number(a, 'window time [s]') for a in args)
         if not d.t1 > d.t0:
             raise FormulaError(f'window({args[0]}, {args[1]}): the end must follow the start')
@@ -584,31 +532,20 @@ class Lagged(_OfVariable):
     name = 'lag'
     usage = 'lag(<v>[, tau=<s>])'
     tau0_s = 30.0
+    column_names = ('lag',)
 
     @classmethod
     def from_args(cls, args, kwargs):
-        _kwargs(kwargs, ('tau',), cls.usage)
-        if len(args) != 1:
-            raise FormulaError(f'lag takes one variable, e.g. lag(temperature); usage {cls.usage}')
-        d = cls()
+        d = _new(cls, args, kwargs, ('tau',), 1, 'lag takes one variable, e.g. lag(temperature)')
         d.v = d._var(args[0])
-        d.tau = None
-        if 'tau' in kwargs:
-            d.tau = parse_number(kwargs['tau'], 'lag tau [s]')
-            if d.tau <= 0:
-                raise FormulaError(f'lag tau must be positive, got {kwargs["tau"]!r}')
-        d.param_names = () if d.tau is not None else ('tau',)
-        d.units = () if d.tau is not None else ('s',)
+        d.tau = _positive(kwargs['tau'], 'lag tau [s]', 'lag tau') if 'tau' in kwargs else None
+        d.param_names, d.units = ((), ()) if d.tau is not None else (('tau',), ('s',))
         return d
 
     @property
     def text(self):
         return f'lag({self.v}' + ('' if self.tau is None else f', tau={format_arg(self.tau)}') \
             + ')'
-
-    @property
-    def column_names(self):
-        return ('lag',)
 
     @property
     def unit(self):
@@ -700,11 +637,7 @@ class Product(Driver):
             f.prepare(ctx, refs, f'{prefix}{i + 1}.')
 
     def check(self, ctx, sensor):
-        for f in self.factors:
-            why = f.check(ctx, sensor)
-            if why:
-                return why
-        return None
+        return next(filter(None, (f.check(ctx, sensor) for f in self.factors)), None)
 
     def columns(self, ctx, lin, refs, q, prefix=''):
         out = None

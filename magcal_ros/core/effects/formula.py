@@ -120,44 +120,25 @@ def parse_driver(text):
 
 @dataclass(frozen=True)
 class Term:
-    """
-    One term of a formula.
+    """One term of a formula."""
 
-    Attributes
-    ----------
-    text : str
-        Canonical, pasteable text (``offset(s(t, k=6))@2``).
-    kind : str
-        'composed' (coupling(driver)), 'alias' (a catalog or plug-in token) or 'drop'.
-    core : str
-        ``text`` without the scope.
-    coupling : str or None
-        Coupling name of a composed term.
-    driver : str or None
-        Canonical driver text of a composed term.
-    scope : str
-        'each', 'alike', 'array', 'J' (a sensor number) or '{J,J,...}'.
-    signals : tuple of str
-        Channels the term reads (keys of ``base.SIGNALS`` or aux_<name>).
-    expansion : str or None
-        The composition a catalog token stands for (``offset(t)@2`` for ``drift@2``;
-        :data:`.catalog.TOKENS`), None for the constant linear map and plug-ins.
-    window : tuple or None
-        (t0, t1) s of a ``drop`` term.
-    dropped : tuple or None
-        The 1-based sensors a ``drop`` term leaves out (``drop(t0, t1)@2``), None for every
-        sensor (and the attitude's observation of the field, when the model has one).
-
-    """
-
+    #: canonical, pasteable text (``offset(s(t, k=6))@2``)
     text: str
+    #: 'composed' (coupling(driver)), 'alias' (a catalog or plug-in token) or 'drop'
     kind: str
+    #: ``text`` without the scope
     core: str
+    #: coupling name and canonical driver text of a composed term
     coupling: str | None = None
     driver: str | None = None
+    #: 'each', 'alike', 'array', 'J' (a sensor number) or '{J,J,...}'
     scope: str = 'each'
+    #: channels the term reads (keys of ``base.SIGNALS`` or aux_<name>)
     signals: tuple = ()
+    #: the composition a catalog token stands for (``offset(t)@2`` for ``drift@2``)
     expansion: str | None = None
+    #: (t0, t1) s of a ``drop`` term, and the 1-based sensors it leaves out (None: every
+    #: sensor and the attitude's observation)
     window: tuple | None = None
     dropped: tuple | None = None
 
@@ -239,13 +220,7 @@ def parse_term(text):
 
 
 def _drop_term(raw, inner, scope_text):
-    """
-    Return the term of ``drop(t0, t1)`` (every sensor) or ``drop(t0, t1)@J`` / ``@{J,K}``.
-
-    Without a scope the sets in [t0, t1] s are left out of the fit (every sensor's readings
-    and the attitude's observation); with one, only those sensors' readings are, and the
-    other sensors' readings of those sets still count.
-    """
+    """Return the term of ``drop(t0, t1)`` (every sensor) or ``drop(t0, t1)@J`` / ``@{J,K}``."""
     args, kw = _arguments(inner or '', raw) if inner is not None else ([], {})
     if inner is None or len(args) != 2 or kw:
         raise FormulaError(f'{raw!r}: drop takes two times in s, e.g. drop(120, 160)')
@@ -285,9 +260,9 @@ def _alias_term(raw, core_text, scope_text):
     if scope == 'alike':
         raise FormulaError(f'{raw!r}: @alike shares one parameter set between sensors and is '
                            'for composed terms, e.g. offset(t)@alike')
-    text_out = core if scope in ('each', 'array') else f'{core}@{scope}'
-    signals = tuple(eff.signals) if eff is not None else ()
     at = '' if scope in ('each', 'array') else f'@{scope}'
+    text_out = core + at
+    signals = tuple(eff.signals) if eff is not None else ()
     expansion = (' + '.join(BASE) if eff is None else
                  eff.expansion(at) if hasattr(eff, 'expansion') else None)
     return Term(text=text_out, kind='alias', core=core, scope=scope, signals=signals,
@@ -305,12 +280,7 @@ class Formula:
 
     @property
     def drops(self):
-        """
-        Return the windows left out of the fit: (t0, t1, sensors), t0 and t1 in s.
-
-        ``sensors`` is a tuple of 1-based sensors (``drop(t0, t1)@J``), None for every
-        sensor (``drop(t0, t1)``).
-        """
+        """Return the windows left out of the fit: (t0 s, t1 s, sensors as Term.dropped)."""
         return [(*t.window, t.dropped) for t in self.terms if t.kind == 'drop']
 
     def __add__(self, other):
@@ -338,12 +308,7 @@ def parse(text):
 
 
 def composed_effect(term, sensor):
-    """
-    Return the effect of the composed :class:`~.formula.Term` ``term`` on ``sensor``.
-
-    A :class:`FieldEffect` (sensor 0, the array) for the field coupling, else a
-    :class:`ComposedEffect`, shared between the sensors when the scope is ``alike``.
-    """
+    """Return the :class:`ComposedEffect` (:class:`FieldEffect`) of a composed ``term``."""
     coupling = cp.coupling_class(term.coupling)()
     driver = parse_driver(term.driver)
     if coupling.scope == 'array':
@@ -352,13 +317,7 @@ def composed_effect(term, sensor):
 
 
 def make_effect(token, sensor):
-    """
-    Create the effect of a term's core text on ``sensor``: a catalog token or a composition.
-
-    ``offset``, ``aux:aux_motor_current``, ``step(300)`` are the catalog's
-    (:func:`.registry.make_catalog_effect`); ``coupling(driver)`` (``offset(s(t, k=6))``) is
-    built from its coupling and driver (:func:`composed_effect`).
-    """
+    """Create the effect of a term's core text on ``sensor``: a catalog token or a composition."""
     head = token.partition('(')[0].strip()
     if '(' in token and cp.coupling_class(head) is not None:
         return composed_effect(parse_term(token), sensor)

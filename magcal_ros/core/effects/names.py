@@ -11,14 +11,11 @@
 # WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
 # See the License for the specific language governing permissions and
 # limitations under the License.
-
-
 """
 A registry of classes by name: the one mechanism of the named effects, couplings and drivers.
 
-Each of :mod:`.registry` (effects), :mod:`.couplings` and :mod:`.drivers` holds one
-:class:`Registry` of the subclasses of its base class; its public ``register_*``,
-``unregister_*``, ``*_class`` and ``registered_*`` functions are this class's methods.
+:mod:`.registry`, :mod:`.couplings` and :mod:`.drivers` each hold one; their ``register_*``,
+``unregister_*``, ``*_class`` and ``registered_*`` functions are its methods.
 """
 
 
@@ -26,15 +23,8 @@ class Registry:
     """
     Classes registered under a name: the built-in ones, then plug-ins (docs/plugins.md).
 
-    Parameters
-    ----------
-    base : type
-        The class every registered class must subclass.
-    what : str
-        What a class is, for messages ('effect', 'coupling', 'driver').
-    base_name : str
-        The dotted name of ``base`` the messages give (where users import it from).
-
+    Every class subclasses ``base``; messages call one ``what`` ('effect', 'coupling',
+    'driver') and name the base ``base_name`` (where users import it from).
     """
 
     def __init__(self, base, what, base_name):

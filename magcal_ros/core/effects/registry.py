@@ -12,15 +12,11 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 """
-The registry of named effects (catalog and plug-ins) and the legacy token helpers.
+The registry of named effects (catalog and plug-ins) and the token helpers.
 
-A plug-in module defines :class:`~magcal_ros.core.effects.base.Effect` subclasses and
-registers them (:func:`register_effect`, or ``MAGCAL_EFFECTS = [...]``); a plug-in coupling
-or driver of the grammar registers with :func:`magcal_ros.core.effects.couplings.
-register_coupling` / :func:`magcal_ros.core.effects.drivers.register_driver`
-(docs/plugins.md); the three registries are one mechanism, :class:`.names.Registry`.
-Plug-ins are imported only at start-up (``magcal --plugin``, the nodes'
-``plugins`` parameter), never from a model or a calibration file.
+Effects, couplings and drivers each have a :class:`.names.Registry` (docs/plugins.md).
+Plug-ins are imported only at start-up (``magcal --plugin``, the nodes' ``plugins``
+parameter), never from a model or a calibration file.
 """
 import importlib
 import sys
@@ -31,8 +27,6 @@ from magcal_ros.core.effects.catalog import (aux_effect, AxisMap, Misalignment,
                                              NonOrthogonality, Offset, Scale, SiteGradient,
                                              SoftIron, TOKEN_CLASSES)
 from magcal_ros.core.effects.names import Registry
-
-# -- registry -------------------------------------------------------------------------------
 
 #: the named effects (catalog and plug-ins)
 EFFECTS = Registry(Effect, 'effect', 'magcal_ros.core.effects.Effect')
@@ -67,18 +61,13 @@ def needs_args(name):
 
 def load_plugin(ref):
     """
-    Import ``module`` or ``module:Class`` and register the classes it names.
+    Import ``module`` or ``module:Class`` and register the classes it names; return the names.
 
-    A module may define ``MAGCAL_EFFECTS = [Cls, ...]`` (named effects),
-    ``MAGCAL_COUPLINGS`` and ``MAGCAL_DRIVERS`` (the grammar's couplings and driver factors,
-    :mod:`.couplings`, :mod:`.drivers`), or call the ``register_*`` functions itself;
-    ``module:Class`` registers that one class, whichever of the three it is.  Returns the
-    list of registered names.
-
-    Each effect class is evaluated once on a context holding only the signals it declares
-    (:func:`magcal_ros.core.effects.safety.probe_effect`) before it is registered: one that
-    reads an undeclared signal, or fails, is refused (ValueError, one line naming the effect
-    and the signal).  Couplings and drivers are not probed on their own.
+    A module may list ``MAGCAL_EFFECTS``, ``MAGCAL_COUPLINGS`` and ``MAGCAL_DRIVERS``, or
+    call the ``register_*`` functions itself; ``module:Class`` registers that one class.
+    Each effect class is first probed on its declared signals
+    (:func:`magcal_ros.core.effects.safety.probe_effect`): one that reads an undeclared
+    signal, or fails, is refused (ValueError naming the effect and the signal).
     """
     from magcal_ros.core.effects import couplings, drivers
     from magcal_ros.core.effects.safety import probe_effect   # here: it imports the package
@@ -104,37 +93,8 @@ def load_plugin(ref):
     return names
 
 
-def split_spec(spec):
-    """
-    Tokens of a comma-separated model spec; commas inside ``name(a, b)`` do not split.
-
-    'base,step(120,300)@2, periodic(0.23)' -> ['base', 'step(120,300)@2', 'periodic(0.23)'].
-    """
-    out, depth, cur = [], 0, []
-    for ch in str(spec):
-        if ch == '(':
-            depth += 1
-        elif ch == ')':
-            depth -= 1
-            if depth < 0:
-                raise ValueError(f'unbalanced ")" in model {spec!r}')
-        if ch == ',' and depth == 0:
-            out.append(''.join(cur).strip())
-            cur = []
-        else:
-            cur.append(ch)
-    if depth:
-        raise ValueError(f'unbalanced "(" in model {spec!r}')
-    out.append(''.join(cur).strip())
-    return [t for t in out if t]
-
-
 def parse_token(token):
-    """
-    'step(120,300)@2' -> ('step', ('120', '300'), 2); 'drift' -> ('drift', (), None).
-
-    The sensor is None when the token has no ``@j`` (the effect on every sensor).
-    """
+    """'step(120,300)@2' -> ('step', ('120', '300'), 2); 'drift' -> ('drift', (), None)."""
     tok = token.strip()
     name, at, where = tok.rpartition('@') if tok.rfind('@') > tok.rfind(')') else (tok, '', '')
     sensor = None
@@ -157,12 +117,7 @@ def parse_token(token):
 
 
 def load_plugins(refs):
-    """
-    Load every plug-in of ``refs`` and return the registered names.
-
-    :func:`load_plugin` for each of ``refs`` (``--plugin``, a node's ``plugins``); the
-    registered names, in order.
-    """
+    """Return the names :func:`load_plugin` registers for each of ``refs``, in order."""
     return [name for ref in refs or () for name in load_plugin(ref)]
 
 
@@ -171,8 +126,7 @@ def _loaded_effect_name(ref):
     Return the registered name of the effect class ``module:Class`` of a loaded plug-in.
 
     Never imports: a model token or a calibration document (which may come from a ROS
-    parameter write or message) must not run code; plug-ins are loaded beforehand by
-    :func:`load_plugin` (``magcal --plugin``, the nodes' start-up parameter ``plugins``).
+    parameter write or message) must not run code.
     """
     mod_name, _, attr = ref.partition(':')
     module = sys.modules.get(mod_name)
@@ -186,12 +140,7 @@ def _loaded_effect_name(ref):
 
 
 def make_catalog_effect(token, sensor):
-    """
-    Create the catalog effect ``token`` ('offset', 'aux:aux_motor_current', 'step(300)', ...).
-
-    A composed term ``coupling(driver)`` is the grammar's: :func:`.formula.make_effect` builds
-    both (this module sits below the grammar and imports none of it).
-    """
+    """Create the catalog effect ``token`` ('offset', 'aux:aux_motor_current', 'step(300)')."""
     if '(' in token:
         name, args, _ = parse_token(token)
         cls = EFFECTS.get(name)

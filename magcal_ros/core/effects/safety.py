@@ -15,22 +15,15 @@
 """
 Effect code that fails: checked once at start-up, contained and named when it runs.
 
-An effect (a plug-in's or a built-in's, :class:`magcal_ros.core.effects.Effect`) is code the
-library runs per sample in the live nodes.  Two guards keep a faulty one from ending a node:
-
-- :func:`probe_effect`, at start-up (``magcal --plugin``, the nodes' ``plugins``
-  parameter): the effect is evaluated once (``prepare``, ``check``, then ``matrix`` or
-  ``contribution``) on a context holding only the signals it declares
-  (:attr:`Effect.signals`; the time ``t`` is always there, as live).  Reading an
-  undeclared signal there, e.g. ``ctx.temp`` without ``'temperature'`` (which is ``None``
-  live: the corrector subscribes only to declared signals), or any other exception, refuses
-  the plug-in with one line naming the effect and the signal (ValueError: exit status 2);
-- :class:`EffectError` at run time: whatever effect code raises while a sample is corrected
-  is re-raised as an EffectError naming the effect (:func:`culprit`, from the traceback),
-  which the nodes contain: that sample is not published, the error is logged once per
-  effect and counted on ``/diagnostics`` (:class:`EffectErrors`).
+Effects (plug-ins' or built-in) run per sample in the live nodes.  :func:`probe_effect`
+evaluates one at start-up on a context holding only the signals it declares: reading an
+undeclared signal (which live is not received for it), or any other exception, refuses the
+plug-in with one line naming the effect and the signal.  At run time whatever effect code
+raises is re-raised as an :class:`EffectError` naming the effect (:func:`culprit`), which
+the nodes contain: that sample is not published, the error logged once per effect and
+counted on ``/diagnostics`` (:class:`EffectErrors`).
 """
-from magcal_ros.core.effects.base import Effect, SensorContext, SIGNALS
+from magcal_ros.core.effects.base import Effect, rot_z, SensorContext, SIGNALS
 import numpy as np
 
 #: samples of the start-up probe context (2 Hz for 100 s)
@@ -61,11 +54,7 @@ class _DeclaredAux(dict):
 
 
 class DeclaredContext(SensorContext):
-    """
-    A :class:`SensorContext` whose undeclared signals raise :class:`UndeclaredSignal`.
-
-    ``has(signal)`` answers False for them (as live, where they are not received).
-    """
+    """A :class:`SensorContext` whose undeclared signals raise (``has`` says False, as live)."""
 
     def __init__(self, declared, **kwargs):
         super().__init__(**kwargs)
@@ -112,11 +101,7 @@ def probe_context(signals, n=PROBE_SAMPLES):
         kwargs['raw_rate'] = 300.0 * np.stack([np.cos(phase), np.sin(phase),
                                                0.3 * np.cos(2 * phase)], axis=1)
     if 'attitude' in signals:
-        c, s = np.cos(phase / 3), np.sin(phase / 3)
-        rot = np.zeros((n, 3, 3))
-        rot[:, 0, 0], rot[:, 0, 1], rot[:, 1, 0], rot[:, 1, 1] = c, -s, s, c
-        rot[:, 2, 2] = 1.0
-        kwargs['attitude'] = rot
+        kwargs['attitude'] = rot_z(phase / 3)
     for name in signals:
         if name.startswith('aux_'):
             kwargs['aux'][name] = 2.0 + np.sin(phase + len(name))
@@ -127,18 +112,11 @@ def probe_effect(cls, ref=None):
     """
     Evaluate the effect class ``cls`` once on a context of its declared signals.
 
-    ``prepare``, ``check``, then ``matrix`` (linear) or ``contribution`` (additive; for an
-    array-wide effect only ``prepare`` and ``check``), on a fresh instance on sensor 2 at
-    its default parameters plus 1e-3.  An effect written only with arguments is made from
-    the first of its ``suggest_args`` on a context of every signal, and is not evaluated
-    without one.
-
-    Raises
-    ------
-    ValueError
-        One line naming the effect (and ``ref``, where it was loaded from) and the
-        undeclared signal it read, or the exception its code raised.
-
+    ``prepare``, ``check``, then ``matrix`` or ``contribution`` (not for an array-wide
+    effect), on sensor 2 at its default parameters plus 1e-3.  An effect written only with
+    arguments is made from the first of its ``suggest_args``, and not evaluated without one.
+    Raises ValueError, one line naming the effect (and ``ref``, where it was loaded from) and
+    the undeclared signal it read, or the exception its code raised.
     """
     where = f' ({ref})' if ref else ''
     name = getattr(cls, 'name', cls.__name__)
@@ -202,14 +180,8 @@ class EffectError(Exception):
     """
     Effect code raised while a sample was corrected (or a calibration made ready).
 
-    Attributes
-    ----------
-    effect : str or None
-        Token of the effect whose code raised (``temperature@2``, ``wheel@3``); None when
-        the traceback passes through no effect.
-    error : Exception
-        What it raised.
-
+    ``effect`` is the token of the effect whose code raised (``temperature@2``), None when
+    the traceback passes through no effect; ``error`` what it raised.
     """
 
     def __init__(self, error, effect=None, where=None):
@@ -225,17 +197,13 @@ class EffectError(Exception):
 
 
 class EffectErrors:
-    """
-    Errors of effect code seen by a node, counted per effect.
-
-    :meth:`add` returns True for the first error of an effect (log it then, once).
-    """
+    """Errors of effect code seen by a node, counted per effect."""
 
     def __init__(self):
         self._seen = {}                 # key -> [count, message of the first error]
 
     def add(self, err, what=''):
-        """Count ``err`` (:class:`EffectError`); ``what`` is what was lost (a phrase)."""
+        """Count ``err`` (``what``: what was lost); True for an effect's first error (log it)."""
         entry = self._seen.get(err.key)
         if entry is None:
             self._seen[err.key] = [1, f'{err}' + (f' ({what})' if what else '')]

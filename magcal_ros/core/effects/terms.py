@@ -15,15 +15,10 @@
 """
 A coupling of a driver composed into an :class:`~.base.Effect` the model and engine consume.
 
-:class:`Part` is the one evaluation of coupling(driver): the coupling's change of the
-reading for the driver's columns X (:mod:`.drivers`) and the parameters P
-(:mod:`.couplings`).  :class:`ComposedEffect` is a composed term of one sensor, one Part;
-the catalog's tokens (:mod:`.catalog`: ``temperature``, ``lag(v)``, ...) are sums of Parts.
-Scale, linear, nonorth and rotation couplings read the linear reading (``depends_on_lin``:
-the correction inverts them by fixed-point iteration).  With scope ``alike`` one instance
-per sensor shares one parameter set (:attr:`ComposedEffect.shared`, laid out once by the
-Model).  :class:`FieldEffect` is the ``field`` coupling: an effect of the whole array that
-changes the magnitude of the field every sensor sees (``Model.array_shift`` with the field).
+:class:`Part` is the one evaluation of coupling(driver); :class:`ComposedEffect` is a
+composed term of one sensor (one Part; the catalog's tokens are sums of Parts), shared by
+every sensor with scope ``alike``; :class:`FieldEffect` is the ``field`` coupling, an effect
+of the whole array on the magnitude of the field every sensor sees.
 """
 from magcal_ros.core.effects.base import Effect
 from magcal_ros.core.effects.couplings import per_unit

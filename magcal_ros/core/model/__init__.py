@@ -13,25 +13,10 @@
 # limitations under the License.
 
 """
-The model and its engine: what is fitted, and how.
+The model and its engine: what is fitted (:mod:`.spec`), and how (:mod:`.fitting`).
 
-- :mod:`.spec`: :class:`Model`, the effects of every sensor with a flat parameter vector;
-- :mod:`.engine`: the profiled (variable-projection) least-squares problem;
-- :mod:`.solvers`: Levenberg-Marquardt, covariances;
-- :mod:`.fitting`: :func:`fit`, :class:`FitResult`, :func:`evaluate` (maximum likelihood,
-  paper 004's closed form as the start);
-- :mod:`.calibration`: :class:`Calibration`, a fit made ready for live correction;
-- :mod:`.identifiability`: what the data can determine (with
-  :mod:`magcal_ros.core.geometry.coverage`);
-- :mod:`.planar`, :mod:`.plausibility`, :mod:`.site_gradient`: a turn about one axis,
-  parameters no real sensor has, the site gradient's report and bounds;
-- :mod:`.paper_methods`: the closed forms of :mod:`magcal_ros.core.papers` (papers 000
-  and 002) written as a :class:`Calibration` (``magcal fit --method sine|reference``);
-- :mod:`.notes`: structured warnings.
-
-The names most code needs are importable from here
-(``from magcal_ros.core.model import fit, FitResult, Calibration, Model``); modules inside
-the package import each other directly, never through this facade.
+The names most code needs are importable from here; modules inside the package import each
+other directly.
 """
 from magcal_ros.core.model.calibration import Calibration
 from magcal_ros.core.model.fitting import (DegenerateDataError, evaluate, fit, fit_epochs,

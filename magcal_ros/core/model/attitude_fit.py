@@ -15,27 +15,13 @@
 """
 Attitude-aided calibration: a vehicle that stays near level and turns part of a circle.
 
-The attitude (body-to-world, from the vehicle's EKF or AHRS) observes the direction of the
-field at the sensor, B_k = R_k^T m (:mod:`magcal_ros.core.effects.attitude_ref`), so a log
-that a full sphere would never have determines the offsets, scales and couplings the magnitude
-alone leaves open along the vertical, as far as the vehicle tilts.  :func:`fit_attitude`:
-
-1. adds the attitude's observation to the model (``tilt``: roll and pitch only, the vertical
-   component of the field; ``full``: the whole attitude, the field vector), its world-field
-   angles estimated;
-2. starts from a closed form that uses the attitude: each sensor's offset and the world
-   vertical component from the linear least squares of |raw - o| = F and g_k . (raw - o) =
-   Z (A = I), the world angles from the started sensor 1;
-3. fits by maximum likelihood with the constrained mode's priors (each effect's own,
-   ``Effect.prior``: 2 % in scale, 0.02 rad in non-orthogonality, ...; none on the
-   offsets), so that what the motion leaves open is held at an ideal sensor's value instead
-   of wandering; a parameter the priors determine more than the data (:func:`prior_held`:
-   the data add less than three times the priors' information, planar mode's rule) is
-   *undetermined* and named, as in planar mode (docs/planar.md);
-4. widens the covariance for the residual's serial correlation (a flight is one trajectory);
-5. checks the attitude's heading against the corrected compass (:func:`heading_check`).
-
-Units: nT, rad; degrees where a name says so.
+The attitude observes the direction of the field (:mod:`magcal_ros.core.effects.attitude_ref`),
+which determines what the magnitude leaves open along the vertical.  :func:`fit_attitude`
+adds that observation to the model, starts from a closed form that uses it
+(:func:`attitude_start`), fits with the constrained mode's priors, names what the priors
+rather than the data determine (:func:`prior_held`, as planar mode, docs/planar.md), widens
+the covariance for serial correlation and checks the attitude's heading against the
+compass (:func:`heading_check`).  Units: nT, rad; degrees where a name says so.
 """
 from dataclasses import dataclass
 
@@ -57,48 +43,28 @@ HEADING_DISAGREE_DEG = 5.0
 
 @dataclass(frozen=True)
 class AttitudeResult:
-    """
-    Outcome of :func:`fit_attitude`.
+    """Outcome of :func:`fit_attitude` (parameter names as planar mode's)."""
 
-    Attributes
-    ----------
-    result : FitResult
-        The fit (its model carries the attitude's effect; covariance widened for the
-        residual's serial correlation).
-    mode : str
-        'tilt' or 'full'.
-    undetermined, determined : tuple of str
-        Parameter names ``<effect>.<param>@<sensor>`` (as planar mode names them).
-    attitude_sd_deg : float
-        The attitude's error as an angle, deg: its observation's sd over the field (the
-        fit weighs it as an error serial_inflation() times larger, for its correlation:
-        ``refs['sigma_nt']`` of the attitude's effect).
-    world_field : dict
-        Inclination (and declination in full mode) of the world field in the attitude's
-        frame, deg, with standard uncertainties.
-    heading : dict
-        :func:`heading_check`.
-    residual_correlation : numpy.ndarray
-        (S,) lag-1 correlation of each sensor's scalar residual.
-
-    """
-
+    #: the fit (its model with the attitude's effect; covariance widened)
     result: object
+    #: 'tilt' or 'full'
     mode: str
     undetermined: tuple
     determined: tuple
+    #: the attitude's white error as an angle, deg (the fit weighs it serial_inflation()
+    #: times larger: ``refs['sigma_nt']`` of the attitude's effect)
     attitude_sd_deg: float
+    #: inclination (and declination) of the world field in the attitude's frame, deg, with
+    #: standard uncertainties, and the mounting
     world_field: dict
+    #: :func:`heading_check`
     heading: dict
+    #: (S,) lag-1 correlation of each sensor's scalar residual
     residual_correlation: np.ndarray
 
 
 def with_attitude(model, mode, n_sensors=None):
-    """
-    Return ``model`` (a Model or a formula) with the attitude's observation of ``mode``.
-
-    An attitude effect already in the model is replaced by that of ``mode``.
-    """
+    """Return ``model`` (Model or formula) with the attitude's observation of ``mode`` only."""
     if mode not in MODES:
         raise ValueError(f"attitude mode must be one of {', '.join(MODES)}, got {mode!r}")
     if isinstance(model, str):
@@ -109,17 +75,12 @@ def with_attitude(model, mode, n_sensors=None):
 
 def attitude_start(data, model, f):
     """
-    (P,) closed-form start that uses the attitude (module docstring, step 2).
+    (P,) closed-form start that uses the attitude.
 
-    Parameters
-    ----------
-    data : Dataset
-        With ``attitude``; raw (S, N, 3) nT.
-    model : Model
-        With the attitude's effect.
-    f : numpy.ndarray
-        (N,) reference magnitude, nT.
-
+    Each sensor's offset and the world vertical component from the linear least squares of
+    |raw - o| = F and g_k . (raw - o) = Z (A = I), the world angles from the started sensor
+    1.  ``data`` with ``attitude``, raw (S, N, 3) nT; ``model`` with the attitude's effect;
+    ``f`` (N,) reference magnitude, nT.
     """
     rot = data.attitude_matrix()
     g = rot[:, 2, :]                                   # world vertical in the body frame
@@ -148,32 +109,13 @@ INCLINATION_PRIOR_SD = np.radians(0.5)
 def fit_attitude(data, model, field_nt=None, mode='tilt', inclination_deg=None,
                  **fit_kwargs):
     """
-    Fit ``model`` with the attitude observing the field (module docstring).
+    Fit ``model`` with the attitude observing the field; return an :class:`AttitudeResult`.
 
-    Parameters
-    ----------
-    data : Dataset
-        (S, N) raw readings, nT, with ``attitude`` (N, 4).
-    model : Model or str
-        The model without the attitude (it is added here).
-    field_nt : float or numpy.ndarray, optional
-        Reference magnitude, nT (default ``data.ref_total``).
-    mode : {'tilt', 'full'}
-        Trust roll and pitch only, or the whole attitude.
-    inclination_deg : float, optional
-        The field's inclination at the site (IGRF), deg, positive down: a prior of
-        :data:`INCLINATION_PRIOR_SD` on the fitted one when the attitude's world frame is
-        known (``data.meta['attitude_frame']`` 'NED' or 'ENU').  Without it a level vehicle
-        leaves the split of F into its horizontal and vertical parts open, and with it the
-        common scale of the horizontal axes (docs/planar.md).
-    **fit_kwargs
-        Passed to :func:`magcal_ros.core.model.fitting.fit` (``init``, ``max_fit_samples``,
-        ``robust``, ...).
-
-    Returns
-    -------
-    AttitudeResult
-
+    ``data`` (S, N) raw readings, nT, with ``attitude`` (N, 4); ``model`` (Model or formula)
+    without the attitude; ``field_nt`` nT (default ``data.ref_total``); ``mode`` 'tilt'
+    (roll and pitch) or 'full'; ``inclination_deg`` the site's (IGRF), deg, positive down: a
+    prior of :data:`INCLINATION_PRIOR_SD` when ``data.meta['attitude_frame']`` is 'NED' or
+    'ENU'; ``fit_kwargs`` go to :func:`magcal_ros.core.model.fitting.fit`.
     """
     if data.attitude is None:
         raise ValueError('the data carry no attitude (att_qw..att_qz, an Imu topic or a '
@@ -209,10 +151,8 @@ def fit_attitude(data, model, field_nt=None, mode='tilt', inclination_deg=None,
         eff.sigma_nt = _start_sigma(data, model, init, f)
     fit_kwargs.pop('constrained', None)
     fit_kwargs.setdefault('max_nfev', 1000)
-    # the constrained mode's priors (each effect's own, Effect.prior: none on the offsets,
-    # which a scale's prior holds along with it where the motion leaves both open)
-    # the caller's own priors (a calibration in use, held where the data are silent:
-    # pipeline.refit_recent) stand instead of the constrained mode's
+    # the constrained mode's priors, or instead the caller's own (a calibration in use:
+    # pipeline.refit_recent)
     own = list(fit_kwargs.pop('extra_priors', None) or [])
     # the compass's mounting against the attitude's frame: a few degrees at most
     extra = [(i, 0.0, MOUNT_PRIOR_SD_RAD) for i in range(sl.stop - 3, sl.stop)]
@@ -256,29 +196,13 @@ def fit_attitude(data, model, field_nt=None, mode='tilt', inclination_deg=None,
 
 def prior_held(result, prior_list, ratio=PRIOR_HELD_RATIO):
     """
-    Return the indices of the parameters the priors, not the data, determine.
+    Return the set of indices of the parameters the priors, not the data, determine.
 
-    With A the posterior information (the inverse of the fit's covariance) and L the
-    priors' (diagonal, 1 / sd^2), the variance of parameter i at priors twice as strong is
-    [(A + L)^-1]_ii: the data's own information leaves it nearly unchanged, a prior's halves
-    it.  A parameter with its own prior and data information d against the prior's l has the
-    ratio (d + 2 l) / (d + l); ``ratio`` 1.25 is d = 3 l, planar mode's rule (posterior sd
-    above half the prior's, docs/planar.md), and the same test holds an offset that only a
-    scale's prior fixes (a level vehicle's vertical offset and scale: one constant).
-
-    Parameters
-    ----------
-    result : FitResult
-        A fit with the priors ``prior_list`` (its covariance unwidened).
-    prior_list : list of tuple
-        (index, mean, sd) of each prior, sd in the parameter's unit.
-    ratio : float
-        The shrink of the variance beyond which the priors hold a parameter.
-
-    Returns
-    -------
-    set of int
-
+    With A the posterior information (the inverse of ``result``'s unwidened covariance) and
+    L the priors' (1 / sd^2 of ``prior_list``'s (index, mean, sd)), the variance of parameter
+    i at priors twice as strong is [(A + L)^-1]_ii: a prior's information halves it, the
+    data's leave it.  ``ratio`` 1.25 is data information 3 times the prior's, planar mode's
+    rule (docs/planar.md); the test also holds an offset that only a scale's prior fixes.
     """
     cov = np.asarray(result.covariance, float)
     if not np.all(np.isfinite(cov)):
@@ -309,18 +233,11 @@ def heading_check(result, data):
     """
     Compare the attitude's heading with the corrected compass's (sensor 1).
 
-    The compass's heading is that of the corrected field levelled by the attitude's roll and
-    pitch: psi_c = atan2(-E, N) of the world-frame field without the heading ... taken here
-    as the angle of the world-horizontal field R_k b_k about the vertical, which is the
-    attitude's heading error plus the declination; its mean is a constant (declination and
-    any yaw offset), its spread about the mean is the disagreement.
-
-    Returns
-    -------
-    dict
-        ``offset_deg`` (circular mean), ``rms_deg`` (RMS about it), ``max_deg``,
-        ``disagree`` (``rms_deg`` above :data:`HEADING_DISAGREE_DEG`).
-
+    The angle of the world-horizontal field R_k b_k about the vertical is the attitude's
+    heading error plus the declination: its mean is a constant (declination and any yaw
+    offset), its spread about the mean the disagreement.  Returns a dict: ``offset_deg``
+    (circular mean), ``rms_deg`` (RMS about it), ``max_deg``, ``disagree`` (``rms_deg``
+    above :data:`HEADING_DISAGREE_DEG`).
     """
     rot = data.attitude_matrix()
     p = result.params

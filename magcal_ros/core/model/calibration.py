@@ -12,33 +12,13 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""
-A fitted model for live correction: :class:`Calibration`.
-
-Written to and read from the calibration file (docs/design.md §4, :mod:`magcal_ros.io`),
-used by the corrector node and :class:`magcal_ros.core.live.corrector.LiveCorrector`.  Paper 004's
-decomposition of the correction into the intrinsic matrix and the rotation into sensor 1's
-frame (docs/papers.md#paper-004, eq. 5 and 14) is :meth:`Calibration.intrinsic_and_rotation`.
-"""
+"""A fitted model for live correction: :class:`Calibration` (docs/design.md §4)."""
 from magcal_ros.core import effects as fx
 import numpy as np
 
 
 class Calibration:
-    """
-    A fitted model for live correction.
-
-    Parameters
-    ----------
-    model : Model
-    params : numpy.ndarray
-        (P,) parameter vector.
-    stderr : numpy.ndarray, optional
-        (P,) standard uncertainties.
-    sigma_nt : numpy.ndarray, optional
-        (S,) per-sensor noise in nT.
-
-    """
+    """A fitted model for live correction: ``params``, ``stderr`` (P,), ``sigma_nt`` (S,) nT."""
 
     def __init__(self, model, params, stderr=None, sigma_nt=None):
         self.model = model
@@ -69,12 +49,7 @@ class Calibration:
         return self._a_inv[j - 1].copy()
 
     def offset(self, j):
-        """
-        Return the (3,) nT constant offset of sensor j.
-
-        The sum of its constant additive effects (``Effect.constant``, the offset); zero if
-        the model has none.
-        """
+        """Return the (3,) nT constant offset of sensor j (its ``Effect.constant`` effects)."""
         out = np.zeros(3)
         ctx = fx.SensorContext(t=np.zeros(1))
         for eff, sl in zip(self.model.effects[j - 1], self.model.slices[j - 1]):
@@ -86,11 +61,8 @@ class Calibration:
         """
         (C^-1 (3, 3) upper triangular, R (3, 3)): A_j^-1 = R C^-1 M^T (paper 004 eq. 5, 14).
 
-        M (3, 3) is sensor j's fixed axis map (``axes(...)``, ``model.axis_map(j)``, the
-        identity without one; A_j = M S C_NO R_mis): C and R decompose M^T A_j, the map of
-        the sensor itself, so a mirrored or swapped mounting still shows scales near +1 and
-        small angles.  R takes sensor j's corrected field into sensor 1's frame (identity
-        for sensor 1).
+        M is sensor j's fixed axis map (``model.axis_map(j)``): C and R decompose M^T A_j;
+        R takes sensor j's corrected field into sensor 1's frame.
         """
         u, q = fx.rq_positive(self.model.axis_map(j).T @ self.matrix(j))
         return np.linalg.inv(u), q.T
@@ -99,8 +71,7 @@ class Calibration:
         """
         (G_w (3, 3), stderr (3, 3)) nT/m, world frame, or None without the effect.
 
-        The standard uncertainty of gzz = -gxx - gyy needs the covariance of the fit
-        (``array_covariance``); without it that entry is nan.
+        The stderr of gzz = -gxx - gyy is nan without ``array_covariance``.
         """
         from magcal_ros.core.geometry.tensor import gradient_from_fit
         cov = np.diag(self.stderr ** 2)
@@ -116,21 +87,11 @@ class Calibration:
         return out[0], se
 
     def array_shift(self, j, ctx):
-        """
-        (N, 3) nT modelled field at sensor j minus the centre field (site gradient).
-
-        ``ctx.attitude`` (N, 3, 3) is needed; zero without array-wide effects.
-        """
-        if not self.model.array_effects:
-            return np.zeros((len(ctx.t), 3))
+        """(N, 3) nT field at sensor j minus the centre field (zero without array effects)."""
         return self.model.array_shift(j, self.params, ctx)
 
     def driven_effects(self, j):
-        """
-        Return the labels of the additive effects of sensor j that are not constant.
-
-        They are evaluated per sample, from the signals they declare (temperature, aux, ...).
-        """
+        """Return the labels of sensor j's additive effects evaluated per sample."""
         return [e.label for e in self.model.effects[j - 1]
                 if e.kind != 'linear' and not e.constant]
 
@@ -142,19 +103,7 @@ class Calibration:
         return out
 
     def correct(self, j, raw, ctx=None):
-        """
-        Corrected field of sensor j in the array frame.
-
-        Parameters
-        ----------
-        j : int
-            Sensor, 1-based.
-        raw : numpy.ndarray
-            (N, 3) or (3,) raw reading in nT.
-        ctx : SensorContext, optional
-            Driving signals; required when the model has driven effects.
-
-        """
+        """Corrected field (N, 3) or (3,) nT of sensor j's ``raw`` (ctx: for driven effects)."""
         raw = np.asarray(raw, float)
         one = raw.ndim == 1
         raw2 = raw[None] if one else raw

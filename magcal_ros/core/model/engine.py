@@ -15,52 +15,23 @@
 """
 The profiled (variable-projection) maximum-likelihood problem of a magnetometer array.
 
-Per sensor j of a group of G sensors fitted together and epoch k the model predicts the raw
-reading ``f_j(p, B_k)`` (:meth:`magcal_ros.core.model.Model.forward`) from the parameters p
-and the unknown true field B_k, which is constrained to the reference magnitude
-``|B_k| = F_k``.  The noise is Gaussian on the raw readings, sd sigma_j per axis, so the
-negative log-likelihood is half the sum of the squared *normalised* residuals
-
-    r_jk = (raw_jk - f_j(p, B_k)) / sigma_j        (dimensionless).
-
-The fields B_k are nuisance parameters, two per epoch (a direction on the sphere of radius
-F_k).  They are eliminated in closed form for given p ("variable projection", Golub & Pereyra
-1973; Kaufman 1975; docs/papers.md, "The maximum-likelihood engine"): B_k is profiled by
-Gauss-Newton steps on the sphere (2 x 2 normal equations per epoch in the tangent plane,
-:func:`tangent_basis`), and the Jacobian of the residuals with respect to p is projected onto
-the orthogonal complement of the two field directions of each epoch,
+The model predicts the raw reading ``f_j(p, B_k)`` of sensor j at epoch k
+(:meth:`magcal_ros.core.model.Model.forward`) from the parameters p and the true field
+B_k, |B_k| = F_k; the noise is Gaussian, sd sigma_j per axis, so the negative
+log-likelihood is half the sum of the squared r_jk = (raw_jk - f_j(p, B_k)) / sigma_j.
+The fields are eliminated for given p (variable projection, Golub & Pereyra 1973; Kaufman
+1975; docs/papers.md): B_k is profiled by Gauss-Newton steps on the sphere, and the
+Jacobian is projected onto the complement of the field directions of each epoch,
 
     J = (I - G (G^T G)^-1 G^T) dr/dp,    G_k = -dr_k/d(delta_1, delta_2)  (3G x 2 per epoch),
 
-so that Gauss-Newton on p alone converges like the joint problem and J^T J is the Fisher
-information of p with the fields unknown (its inverse,
-:func:`magcal_ros.core.model.solvers.covariance_from_jacobian`, is the Cramer-Rao bound).
-
-:class:`ProfiledProblem` holds one group of sensors; the fit
-(:func:`magcal_ros.core.model.fitting.fit`) solves it with
-:func:`magcal_ros.core.model.solvers.levenberg_marquardt` on J^T J and J^T r formed block by block
-(:meth:`ProfiledProblem.normal_equations`, without the tall projected Jacobian), the diagnosis
-(:mod:`magcal_ros.core.discovery`) reuses its Jacobian to screen and cross-validate candidate
-effects, and :mod:`magcal_ros.core.model.site_gradient` its covariance.
+so that J^T J is the Fisher information of p with the fields unknown.
 """
 import numpy as np
 
 
 def tangent_basis(u):
-    """
-    Return two unit vectors orthogonal to each unit vector of ``u`` and to each other.
-
-    Parameters
-    ----------
-    u : numpy.ndarray
-        (N, 3) unit vectors (field directions), dimensionless.
-
-    Returns
-    -------
-    e1, e2 : numpy.ndarray
-        (N, 3) each: a right-handed basis (e1, e2, u) of the tangent plane at each u.
-
-    """
+    """(e1, e2), each (N, 3): a right-handed basis (e1, e2, u) at each unit vector of u (N, 3)."""
     helper = np.where(np.abs(u[:, :1]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
     e1 = np.cross(u, helper)
     e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
@@ -69,45 +40,13 @@ def tangent_basis(u):
 
 
 def inverse_2x2(a, b, c, d):
-    """
-    Return the entries of the inverses of the stacked 2 x 2 matrices [[a, b], [c, d]].
-
-    Parameters
-    ----------
-    a, b, c, d : numpy.ndarray
-        (N,) entries, any unit.
-
-    Returns
-    -------
-    tuple of numpy.ndarray
-        (N,) each: the entries (0, 0), (0, 1), (1, 0), (1, 1) of the inverses.
-
-    """
+    """Return the entries (00, 01, 10, 11), each (N,), of the inverses of [[a, b], [c, d]]."""
     det = a * d - b * c
     return d / det, -b / det, -c / det, a / det
 
 
 def solve_2x2(m, rhs):
-    """
-    Solve the stacked 2 x 2 systems m x = rhs in closed form.
-
-    Same result as ``np.linalg.solve`` (to rounding) for the well-conditioned tangent-plane
-    Gram matrices here, about 50x faster for K = 40 right-hand sides (bench/ profile: the
-    batched LAPACK call dominated the projection of the Jacobian).
-
-    Parameters
-    ----------
-    m : numpy.ndarray
-        (N, 2, 2) matrices.
-    rhs : numpy.ndarray
-        (N, 2, K) right-hand sides.
-
-    Returns
-    -------
-    numpy.ndarray
-        (N, 2, K) solutions.
-
-    """
+    """Solve m (N, 2, 2) x = rhs (N, 2, K) in closed form (np.linalg.solve, faster); (N, 2, K)."""
     i = inverse_2x2(m[:, 0, 0], m[:, 0, 1], m[:, 1, 0], m[:, 1, 1])
     inv = np.stack([np.stack(i[:2], axis=1), np.stack(i[2:], axis=1)], axis=1)
     return inv @ rhs
@@ -117,65 +56,27 @@ class ProfiledProblem:
     """
     Normalised residuals and projected Jacobian of the ML problem of one group of sensors.
 
-    The unknown vector x holds the parameters of the group's sensors and the array-wide
-    parameters (``cols``, indices into the model's full vector p); the other entries of p
-    are held at :attr:`p_full`.  Evaluations are cached on x.
+    The unknown x (P_g,) holds the parameters of the group's sensors, then the array-wide
+    ones (:attr:`cols`, indices into the full vector p); the other entries of p are held at
+    ``p_full`` (default ``model.default_params()``).  Evaluations are cached on x.
 
-    Parameters
-    ----------
-    model : Model
-        The model, prepared on ``contexts`` (:meth:`Model.prepare`).
-    data_raw : numpy.ndarray
-        (S, N, 3) raw readings of all sensors, nT.
-    contexts : list of SensorContext
-        (S,) the driving signals of each sensor on the same N epochs.
-    f_nt : numpy.ndarray
-        (N,) reference magnitude |B_k|, nT.
-    sensors : list of int
-        1-based sensors of this group (all sensors of a joint model, else one).
-    sigma : numpy.ndarray
-        (S,) noise sd per axis of each sensor, nT: the residuals are divided by it.
-    priors : list of tuple, optional
-        (index into p, mean, sd) Gaussian priors (the constrained mode), appended to the
-        residuals as (p_i - mean) / sd, dimensionless.
-    robust : bool
-        Profile the field with the IRLS weights of the soft-L1 loss (and the median of the
-        corrected readings as start when G > 2).
-    f_scale : float
-        Soft-L1 scale, in units of sigma.
-    p_full : numpy.ndarray, optional
-        (P,) the full parameter vector the entries outside ``cols`` are taken from
-        (default ``model.default_params()``).
-    field0 : numpy.ndarray, optional
-        (N, 3) nT, the profiled field of nearby parameters: the profile starts from it and
-        takes one Gauss-Newton step instead of two from the mean corrected reading.
+    ``model`` is prepared on ``contexts`` (S,); ``data_raw`` (S, N, 3) nT; ``f_nt`` (N,)
+    |B_k| nT; ``sensors`` the group's, 1-based; ``sigma`` (S,) nT, the residuals' divisor;
+    ``priors`` [(index into p, mean, sd)] appended as (p_i - mean) / sd; ``robust``: the
+    field profiled with the IRLS weights of the soft-L1 loss of scale ``f_scale`` sigma
+    (from the median of the corrected readings when G > 2); ``field0`` (N, 3) nT: the field
+    of nearby parameters, to take one Gauss-Newton step from instead of two.
 
-    The model's ``drop`` terms leave readings out (``Model.reading_mask`` at the times of
-    ``contexts``: ``drop(t0, t1)@J`` sensor J's readings of the window, ``drop(t0, t1)``
-    every sensor's and the attitude's).  A reading left out has no residual rows (its
-    residual, Jacobian and field-direction rows are zero) and does not inform its set's
-    field; the other sensors' readings of the set still count.  A set without any reading
-    kept is profiled from all of them (for the residual of every reading,
-    :meth:`reading_residuals`) and has no rows (the fit does not pass such sets).
-
-    Attributes
-    ----------
-    cols : numpy.ndarray
-        (P_g,) int, the indices of x in the full vector: the group's sensors' parameters,
-        then the array-wide ones.
-
+    A reading the model's ``drop`` terms leave out has zero residual, Jacobian and
+    field-direction rows and does not inform its set's field; a set without any reading
+    kept is profiled from all of them (:meth:`reading_residuals`).
     """
 
     def __init__(self, model, data_raw, contexts, f_nt, sensors, sigma, priors=(),
                  robust=False, f_scale=3.0, p_full=None, field0=None):
-        self.robust = robust
-        self.f_scale = f_scale
-        self.model = model
-        self.raw = data_raw
-        self.ctx = contexts
-        self.f = f_nt
-        self.sensors = list(sensors)
-        self.sigma = sigma
+        self.model, self.raw, self.ctx, self.f = model, data_raw, contexts, f_nt
+        self.sensors, self.sigma = list(sensors), sigma
+        self.robust, self.f_scale = robust, f_scale
         self.cols = np.concatenate([np.arange(model.n_params)[model.sensor_slices[j - 1]]
                                     for j in self.sensors] + [model.array_cols]).astype(int)
         self.priors = list(priors)
@@ -190,9 +91,8 @@ class ProfiledProblem:
         Set the row weights of the readings the model's ``drop`` terms leave out.
 
         :attr:`keep` (N, G (+1)) 0/1 per member (the group's sensors, then the attitude,
-        which a set keeps while any sensor of the model does), None when every reading is
-        used; :attr:`field_w`, the weights of the field profile: ``keep``, with a set
-        that keeps no reading weighted 1 throughout.
+        kept while any sensor is), None when every reading is used; :attr:`field_w`, the
+        weights of the field profile: ``keep``, a set that keeps no reading weighted 1.
         """
         self.keep = self.field_w = None
         if not self.model.drops or not self.ctx:
@@ -207,30 +107,19 @@ class ProfiledProblem:
         self.field_w = np.where(m.any(axis=1, keepdims=True), self.keep, 1.0)
 
     def _aid_setup(self):
-        """
-        Set up the attitude's observation of the field, when the model has one.
-
-        :mod:`magcal_ros.core.effects.attitude_ref`: a virtual member of the group whose
-        rows, after the sensors' of each epoch, are proj_k (y_k - B_k) / sigma_a (the
-        attitude's error as a field, ``sigma_nt`` of the effect); its parameters (the world
-        field's angles) are among the array-wide columns.
-        """
+        """Set up the attitude's observation of the field: a member after the sensors."""
         from magcal_ros.core.effects.attitude_ref import attitude_reference
         found = attitude_reference(self.model)
         rot = self.ctx[0].attitude if self.ctx else None
         self.aid = None
         if found is None or rot is None:
             return
-        eff, sl = found
-        self.aid = eff
+        (self.aid, sl), self.rot = found, rot
         self.aid_slice = sl
-        self.rot = rot
         arr = list(self.model.array_cols)
         #: positions of the attitude's parameters among the array-wide columns
         self.aid_arr = np.array([arr.index(i) for i in range(sl.start, sl.stop)], int)
-        #: the observation's projector at the parameters last evaluated (the mounting
-        #: rotation moves it), set by :meth:`_aid_residual`: :meth:`field_columns` reads it
-        #: after :meth:`evaluate`
+        #: the observation's projector at the parameters last evaluated (:meth:`_aid_residual`)
         self.aid_proj = None
 
     @property
@@ -243,6 +132,11 @@ class ProfiledProblem:
     def n_members(self):
         """Rows of 3 per epoch: the group's sensors, and the attitude when it observes."""
         return len(self.sensors) + (self.aid is not None)
+
+    def _sensor_residual(self, j, p, b, mats, adds):
+        """(N, 3) sensor j's normalised residual (raw - forward) / sigma_j at the field b."""
+        return (self.raw[j - 1] - self.model.forward(j, p, b, self.ctx[j - 1], mats[j],
+                                                     adds[j])) / self.sigma[j - 1]
 
     def _aid_residual(self, p, b):
         """(N, 3) the attitude's normalised residual proj (y - B) / sigma_a."""
@@ -259,12 +153,7 @@ class ProfiledProblem:
 
     @property
     def n_observations(self):
-        """
-        Return the observations net of the profiled field: the sum over sets of rows - 2.
-
-        A set has 3 rows per sensor reading it keeps (and the attitude's rank); the field's
-        two directions take two of them.  A set without rows counts nothing.
-        """
+        """Return the observations net of the field: the sum over sets with rows of rows - 2."""
         g = len(self.sensors)
         aid = self.aid.rank if self.aid is not None else 0
         if self.keep is None:
@@ -272,26 +161,8 @@ class ProfiledProblem:
         rows = 3 * self.keep[:, :g].sum(axis=1) + (aid * self.keep[:, g] if aid else 0)
         return int(np.sum(np.where(rows > 0, rows - 2, 0)))
 
-    @property
-    def n_residuals(self):
-        """Length of :meth:`residuals`: 3 G N (G with the attitude), plus one per prior."""
-        return 3 * self.n_members * self.raw.shape[1] + len(self.priors)
-
     def full(self, x):
-        """
-        Return the full parameter vector with x in the group's entries.
-
-        Parameters
-        ----------
-        x : numpy.ndarray
-            (P_g,) the group's parameters (units in ``model.param_info()``).
-
-        Returns
-        -------
-        numpy.ndarray
-            (P,) :attr:`p_full` with ``cols`` replaced by x.
-
-        """
+        """(P,) :attr:`p_full` with the group's entries ``cols`` replaced by x (P_g,)."""
         p = self.p_full.copy()
         p[self.cols] = x
         return p
@@ -300,11 +171,9 @@ class ProfiledProblem:
         """
         Profile the field per epoch: mean of corrected readings, then GN steps on |B| = F.
 
-        With :attr:`field0` (N, 3) nT set (the profiled field of nearby parameters), start
-        from it and take one step: Gauss-Newton converges quadratically, so one step from a
-        field 1e-4 rad off lands within 1e-8 rad of two steps from the mean.  Returns
-        (field (N, 3) nT, {sensor: (3, 3) A_j}, {sensor: (N, 3) nT additive effects at p, or
-        None when they read the field}).
+        With :attr:`field0` set, start from it and take one step (Gauss-Newton converges
+        quadratically).  Returns (field (N, 3) nT, {sensor: (3, 3) A_j}, {sensor: (N, 3) nT
+        additive effects at p, or None when they read the field}).
         """
         n = self.raw.shape[1]
         mats = {j: self.model.matrix(j, p) for j in self.sensors}
@@ -336,47 +205,42 @@ class ProfiledProblem:
         m_j = {j: a_sig[j].T @ a_sig[j] for j in self.sensors}
         m_sum = sum(m_j.values())
         f2 = self.f * self.f
+
+        def forms(x1, y1, x2, y2):
+            # (3, N): the rows' dot products (x1.y1, x1.y2, x2.y2) of the tangent forms
+            pairs = ((x1, y1), (x1, y2), (x2, y2))
+            return np.stack([np.einsum('ij,ij->i', x, y) for x, y in pairs])
         for _ in range(steps):
             u = b / self.f[:, None]
             e1, e2 = tangent_basis(u)
-            h11, h12, h22 = np.zeros(n), np.zeros(n), np.zeros(n)
+            h = np.zeros((3, n))
             s = np.zeros((n, 3))
             for gi, j in enumerate(self.sensors):
-                r = (self.raw[j - 1] - self.model.forward(j, p, b, self.ctx[j - 1], mats[j],
-                                                          adds[j])) / self.sigma[j - 1]
+                r = self._sensor_residual(j, p, b, mats, adds)
                 if per_sensor:
                     w = np.ones(n) if self.field_w is None else self.field_w[:, gi]
                     if self.robust:
                         # IRLS weight of the soft-L1 loss on this sensor's residual per epoch
                         w = w / np.sqrt(1.0 + np.sum(r * r, axis=1) / self.f_scale ** 2)
-                    m1, m2 = e1 @ m_j[j], e2 @ m_j[j]
-                    h11 += w * np.einsum('ij,ij->i', m1, e1)
-                    h12 += w * np.einsum('ij,ij->i', m1, e2)
-                    h22 += w * np.einsum('ij,ij->i', m2, e2)
+                    h += w * forms(e1 @ m_j[j], e1, e2 @ m_j[j], e2)
                     r = r * w[:, None]
                 s += r @ a_sig[j]
             if not per_sensor:
-                m1, m2 = e1 @ m_sum, e2 @ m_sum
-                h11 = np.einsum('ij,ij->i', m1, e1)
-                h12 = np.einsum('ij,ij->i', m1, e2)
-                h22 = np.einsum('ij,ij->i', m2, e2)
+                h = forms(e1 @ m_sum, e1, e2 @ m_sum, e2)
             if self.aid is not None:
                 # the attitude's rows: -dr/d delta_a = F proj e_a / sigma_a
                 r = self._aid_residual(p, b)
-                sa2 = self.aid_sigma ** 2
                 w = (1.0 / np.sqrt(1.0 + np.sum(r * r, axis=1) / self.f_scale ** 2)
                      if self.robust else np.ones(n))
                 if self.field_w is not None:
                     w = w * self.field_w[:, -1]
                 p1 = np.einsum('nij,nj->ni', self.aid_proj, e1)
                 p2 = np.einsum('nij,nj->ni', self.aid_proj, e2)
-                h11 = h11 + w * np.einsum('ij,ij->i', p1, p1) / sa2
-                h12 = h12 + w * np.einsum('ij,ij->i', p1, p2) / sa2
-                h22 = h22 + w * np.einsum('ij,ij->i', p2, p2) / sa2
+                h = h + w * forms(p1, p1, p2, p2) / self.aid_sigma ** 2
                 s = s + r * (w / self.aid_sigma)[:, None]
             # per-epoch 2 x 2 systems written out component by component: several times
-            # faster than batched matmuls of tiny matrices (profile of diagnose, bench/)
-            i11, i12, i21, i22 = inverse_2x2(h11 * f2, h12 * f2, h12 * f2, h22 * f2)
+            # faster than batched matmuls of tiny matrices (bench/)
+            i11, i12, i21, i22 = inverse_2x2(h[0] * f2, h[1] * f2, h[1] * f2, h[2] * f2)
             g1s = self.f * np.einsum('ij,ij->i', e1, s)
             g2s = self.f * np.einsum('ij,ij->i', e2, s)
             d1 = i11 * g1s + i12 * g2s
@@ -387,23 +251,12 @@ class ProfiledProblem:
 
     def field_columns(self, b, mats):
         """
-        Return G: the residuals' derivatives along the two field directions of each epoch.
+        Return G (N, 3G, 2): the residuals' derivatives along the field directions per epoch.
 
-        Parameters
-        ----------
-        b : numpy.ndarray
-            (N, 3) the profiled field, nT.
-        mats : dict
-            {sensor: (3, 3) A_j}, as returned by :meth:`evaluate`.
-
-        Returns
-        -------
-        numpy.ndarray
-            (N, 3G, 2) dimensionless: -dr_k/d(delta_1, delta_2) for a rotation of B_k by
-            delta (rad) in the tangent plane (:func:`tangent_basis`), rows in the order
-            sensor of the group, axis (then the attitude's three rows, when it observes);
-            zero rows for the readings the model's ``drop`` terms leave out.
-
+        -dr_k/d(delta_1, delta_2), dimensionless, for a rotation of B_k by delta (rad) in the
+        tangent plane (:func:`tangent_basis`) at the profiled field ``b`` (N, 3) nT, with
+        ``mats`` {sensor: (3, 3) A_j} of :meth:`evaluate`; rows as the residuals' (the
+        attitude's last), zero for the readings left out.
         """
         e1, e2 = tangent_basis(b / self.f[:, None])
         blocks = [np.stack([e1 @ mats[j].T, e2 @ mats[j].T], axis=2)
@@ -419,20 +272,10 @@ class ProfiledProblem:
 
     def project_out_field(self, b, mats, m):
         """
-        Project columns onto the complement of the field directions of each epoch.
+        Return (N, 3G, K) (I - G (G^T G)^-1 G^T) m per epoch, G of :meth:`field_columns`.
 
-        Parameters
-        ----------
-        b, mats
-            As for :meth:`field_columns`.
-        m : numpy.ndarray
-            (N, 3G, K) columns with rows like the residuals of each epoch.
-
-        Returns
-        -------
-        numpy.ndarray
-            (N, 3G, K) (I - G (G^T G)^-1 G^T) m per epoch, G from :meth:`field_columns`.
-
+        ``m`` (N, 3G, K) columns with rows like the residuals; ``b``, ``mats`` as for
+        :meth:`field_columns`.
         """
         gb = self.field_columns(b, mats)
         gbt = np.swapaxes(gb, 1, 2)                    # batched matmul, not einsum: 3-5x faster
@@ -440,74 +283,31 @@ class ProfiledProblem:
 
     def evaluate(self, x):
         """
-        Evaluate the model at x with the field profiled (cached on x).
+        Evaluate the model at x (P_g,) with the field profiled (cached on x).
 
-        Parameters
-        ----------
-        x : numpy.ndarray
-            (P_g,) the group's parameters.
-
-        Returns
-        -------
-        p : numpy.ndarray
-            (P,) the full parameter vector.
-        field : numpy.ndarray
-            (N, 3) the profiled field B_k, nT, |B_k| = F_k.
-        mats : dict
-            {sensor: (3, 3) linear map A_j of the model at p}.
-        res : numpy.ndarray
-            (N, G, 3) normalised residuals (raw - prediction) / sigma_j, dimensionless;
-            (N, G + 1, 3) with the attitude's residual last when it observes the field.
-            Zero for the readings the ``drop`` terms leave out (:meth:`reading_residuals`
-            has them).
-
+        Returns p (P,), the profiled field (N, 3) nT, {sensor: (3, 3) A_j} and the
+        normalised residuals (N, G (+1), 3) (raw - prediction) / sigma_j (the attitude's
+        last; zero for the readings left out: :meth:`reading_residuals` has them).
         """
         key = x.tobytes()
         if key != self._cache_key:
             p = self.full(x)
             b, mats, adds = self._field(p)
-            rows = [(self.raw[j - 1] - self.model.forward(j, p, b, self.ctx[j - 1], mats[j],
-                                                          adds[j])) / self.sigma[j - 1]
-                    for j in self.sensors]
+            rows = [self._sensor_residual(j, p, b, mats, adds) for j in self.sensors]
             if self.aid is not None:
                 rows.append(self._aid_residual(p, b))
             every = np.stack(rows, axis=1)                          # (N, G (+1), 3)
-            res = every
-            if self.keep is not None:
-                res = every * self.keep[:, :, None]
-            self._cache = (p, b, mats, res)
-            self._every = every
-            self._cache_key = key
+            res = every if self.keep is None else every * self.keep[:, :, None]
+            self._cache, self._every, self._cache_key = (p, b, mats, res), every, key
         return self._cache
 
     def reading_residuals(self, x):
-        """
-        Return (N, G (+1), 3) the normalised residual of every reading at x.
-
-        :meth:`evaluate`'s ``res`` with the readings the ``drop`` terms leave out included: their
-        residual against the field profiled from the other sensors' readings (what the
-        reports show of a dropped reading; the fit and the noise levels do not see it).
-        """
+        """Return (N, G (+1), 3) :meth:`evaluate`'s ``res`` with the readings left out too."""
         self.evaluate(x)
         return self._every
 
     def residuals(self, x):
-        """
-        Return the normalised residual vector at x (what the fit minimises the squares of).
-
-        Parameters
-        ----------
-        x : numpy.ndarray
-            (P_g,) the group's parameters.
-
-        Returns
-        -------
-        numpy.ndarray
-            (3 G N + n_priors,) dimensionless: (raw - prediction) / sigma_j in the order
-            epoch, sensor of the group, axis (``res.ravel()`` of :meth:`evaluate`), then
-            (p_i - mean) / sd of each prior.
-
-        """
+        """Return (3 G N + n_priors,) ``res.ravel()`` at x, then each prior's (p_i - mean) / sd."""
         p, _, _, res = self.evaluate(x)
         out = res.ravel()
         if self.priors:
@@ -517,45 +317,36 @@ class ProfiledProblem:
 
     def _raw_columns(self, p, b):
         """
-        Return the unprojected columns dr/dx of each sensor of the group, by sensor.
+        Return the unprojected columns dr/dx of each member of the group, by member.
 
         Forward differences (step 1e-6 max(1, |x_i|), Model.forward_differences) with the
-        field held at ``b`` (N, 3) nT.  Returns two lists over the group's sensors: the
-        sensor's own columns (P_j, N, 3) and the array-wide columns (n_arr, N, 3) (None
-        without array-wide parameters), in 1 / (unit of each parameter); the sensor's other
-        rows are zero in its own columns, and so are the rows of its readings left out.
+        field held at ``b`` (N, 3) nT.  Returns two lists over the group's sensors (then the
+        attitude, when it observes): the member's own columns (P_j, N, 3) (the attitude has
+        none) and the array-wide columns (n_arr, N, 3) (None without array-wide
+        parameters), in 1 / (unit of each parameter); the rows of readings left out are zero.
         """
-        own, arr = [], []
-        for gi, j in enumerate(self.sensors):
-            sl = self.model.sensor_slices[j - 1]
-            # an additive effect's column differences that effect alone
-            # (Model.forward_differences)
-            block, h = self.model.forward_differences(j, p, b, self.ctx[j - 1],
-                                                      range(sl.start, sl.stop))
+        def diff(gi, j, cols):
+            block, h = self.model.forward_differences(j, p, b, self.ctx[j - 1], cols)
             block /= -(h * self.sigma[j - 1])[:, None, None]
             if self.keep is not None:
                 block *= self.keep[None, :, gi, None]           # a reading left out: no row
-            own.append(block)
-            if len(self.model.array_cols):
-                # array-wide parameters (site gradient): every sensor depends on them
-                block, h = self.model.forward_differences(j, p, b, self.ctx[j - 1],
-                                                          self.model.array_cols)
-                block /= -(h * self.sigma[j - 1])[:, None, None]
-                if self.keep is not None:
-                    block *= self.keep[None, :, gi, None]
-                arr.append(block)
-            else:
-                arr.append(None)
+            return block
+
+        arr_cols = self.model.array_cols
+        own, arr = [], []
+        for gi, j in enumerate(self.sensors):
+            sl = self.model.sensor_slices[j - 1]
+            own.append(diff(gi, j, range(sl.start, sl.stop)))
+            # array-wide parameters (site gradient): every sensor depends on them
+            arr.append(diff(gi, j, arr_cols) if len(arr_cols) else None)
+        if self.aid is not None:
+            # only the array-wide columns (its angles) move the attitude's rows
+            own.append(np.zeros((0, len(self.f), 3)))
+            arr.append(self._aid_columns(p, b))
         return own, arr
 
     def _aid_columns(self, p, b):
-        """
-        (n_arr, N, 3) dr/dx of the attitude's rows in the array-wide columns.
-
-        Forward differences of the residual with the field held (the projector moves with
-        the mounting angles), step 1e-7 rad; zero in the other array-wide columns (site
-        gradient, shared sets).
-        """
+        """(n_arr, N, 3) dr/dx of the attitude's rows in the array-wide columns (step 1e-7 rad)."""
         pa = np.array(p[self.aid_slice], float)
         r0 = self.aid.residual(pa, self.rot, self.f, b)
         out = np.zeros((len(self.model.array_cols), len(self.f), 3))
@@ -578,44 +369,25 @@ class ProfiledProblem:
 
     def jacobian(self, x):
         """
-        Return the variable-projection Jacobian of :meth:`residuals` at x.
+        Return the variable-projection Jacobian of :meth:`residuals` at x (P_g,).
 
-        The columns are dr/dx by forward differences (step 1e-6 max(1, |x_i|)) with the
-        field held at its profile, then projected onto the complement of the two field
-        directions of each epoch (module docstring), so that J^T J is the Fisher
-        information of x with the fields unknown.  A fit with the squares loss needs only
-        J^T J and J^T r: :meth:`normal_equations` forms them without this (3 G N, P_g)
-        array.
-
-        Parameters
-        ----------
-        x : numpy.ndarray
-            (P_g,) the group's parameters.
-
-        Returns
-        -------
-        numpy.ndarray
-            (3 G N + n_priors, P_g), in 1 / (unit of each parameter): the residuals are
-            divided by sigma_j, so a column times a change of its parameter is a change of
-            the residual in units of the noise sd.  Prior rows are 1 / sd on their
-            parameter's column.
-
+        (3 G N + n_priors, P_g) in 1 / (unit of each parameter): the columns dr/dx
+        (:meth:`_raw_columns`) projected onto the complement of the field directions of
+        each epoch; prior rows are 1 / sd on their parameter's column.
         """
         p, b, mats, res = self.evaluate(x)
-        n, g = res.shape[0], len(self.sensors)
+        n = res.shape[0]
         own, arr = self._raw_columns(p, b)
         jac = np.zeros((n, self.n_members, 3, len(self.cols)))
         col = 0
         n_arr = len(self.model.array_cols)
-        for gi in range(g):
-            # each sensor's columns, computed contiguously (P_j, N, 3) and copied into the
+        for gi in range(self.n_members):
+            # each member's columns, computed contiguously (P_j, N, 3) and copied into the
             # strided Jacobian once: about 2x faster than writing column by column
             jac[:, gi, :, col:col + len(own[gi])] = own[gi].transpose(1, 2, 0)
             col += len(own[gi])
             if n_arr:
                 jac[:, gi, :, len(self.cols) - n_arr:] = arr[gi].transpose(1, 2, 0)
-        if self.aid is not None:
-            jac[:, g, :, len(self.cols) - n_arr:] = self._aid_columns(p, b).transpose(1, 2, 0)
         # project out the nuisance field directions (variable projection)
         rows = 3 * self.n_members
         jac = self.project_out_field(b, mats, jac.reshape(n, rows, -1))
@@ -628,41 +400,19 @@ class ProfiledProblem:
         """
         Return J^T J and J^T r of the projected Jacobian at x, formed block by block.
 
-        The same numbers as ``J.T @ J`` and ``J.T @ r`` of :meth:`jacobian` and
-        :meth:`residuals` (to rounding), without forming the (3 G N, P_g) projected
-        Jacobian: with D the unprojected columns, G_k the (3G x 2) field-direction columns
-        of epoch k (:meth:`field_columns`) and P_k = I - G_k (G_k^T G_k)^-1 G_k^T the
-        symmetric, idempotent projector of each epoch (Golub & Pereyra 1973; Kaufman 1975;
-        docs/papers.md, "The maximum-likelihood engine"),
+        ``J.T @ J`` and ``J.T @ r`` of :meth:`jacobian` and :meth:`residuals` (to rounding)
+        without the (3 G N, P_g) Jacobian: with D the unprojected columns and G_k the field
+        columns of epoch k (:meth:`field_columns`),
 
             J^T J = D^T D - sum_k (G_k^T D_k)^T (G_k^T G_k)^-1 (G_k^T D_k)
             J^T r = D^T r - sum_k (G_k^T D_k)^T (G_k^T G_k)^-1 (G_k^T r_k).
 
-        A sensor's own parameters move only its own 3 rows of each epoch, so D^T D is block
-        diagonal over the group's sensors plus the blocks of the array-wide columns
-        (site gradient), and G_k^T D_k (2 x P_g) is a sum over the sensors' blocks.  The
-        2 x 2 algebra is written out component by component with the Cholesky factor
-        L_k of G_k^T G_k, W_k = L_k^-1 G_k^T D_k, so the subtracted term is W^T W
-        (symmetric by construction).  Prior rows add 1 / sd^2 to their diagonal entry and
-        (p_i - mean) / sd^2 to the gradient.
-
-        Only for the squares loss: the soft-L1 loss reweights the rows of J (IRLS), and
-        row weights do not commute with the per-epoch projection, so a robust fit forms
-        the dense :meth:`jacobian` (as does ``solver='scipy'``).
-
-        Parameters
-        ----------
-        x : numpy.ndarray
-            (P_g,) the group's parameters.
-
-        Returns
-        -------
-        a : numpy.ndarray
-            (P_g, P_g) J^T J, in 1 / (unit of parameter i x unit of parameter j): the
-            Fisher information of x with the fields unknown.
-        g : numpy.ndarray
-            (P_g,) J^T r, in 1 / (unit of each parameter) (r is dimensionless).
-
+        D^T D is block diagonal over the members plus the array-wide columns' blocks; the
+        subtracted term is W^T W, W_k = L_k^-1 G_k^T D_k with L_k the Cholesky factor of
+        G_k^T G_k.  Prior rows add 1 / sd^2 to their diagonal entry and (p_i - mean) / sd^2
+        to the gradient.  Only for the squares loss: the soft-L1 loss reweights the rows of
+        J, which does not commute with the per-epoch projection.  Returns J^T J (P_g, P_g),
+        in 1 / (unit of parameter i x unit of parameter j), and J^T r (P_g,).
         """
         p, b, mats, res = self.evaluate(x)
         own, arr = self._raw_columns(p, b)
@@ -683,7 +433,7 @@ class ProfiledProblem:
         for gi, blk in enumerate(own):
             so = slice(col, col + len(blk))
             col = so.stop
-            flat = blk.reshape(len(blk), -1)                         # (P_j, 3N)
+            flat = blk.reshape(len(blk), 3 * len(res))               # (P_j, 3N)
             r = np.ascontiguousarray(res[:, gi])                     # (N, 3)
             a[so, so] = flat @ flat.T
             g[so] = flat @ r.ravel()
@@ -702,17 +452,6 @@ class ProfiledProblem:
                 a[sa, sa] += fa @ fa.T
                 g[sa] += fa @ r.ravel()
                 w[:, sa] += qt(arr[gi])
-        if self.aid is not None:
-            # the attitude's rows: only the array-wide columns (its angles) move them
-            gi = len(self.sensors)
-            fa = self._aid_columns(p, b)
-            r = np.ascontiguousarray(res[:, gi])
-            qj = q[:, 3 * gi:3 * gi + 3]
-            flat = fa.reshape(n_arr, -1)
-            a[sa, sa] += flat @ flat.T
-            g[sa] += flat @ r.ravel()
-            w[:, sa] += np.matmul(fa.transpose(1, 0, 2), qj).transpose(2, 1, 0)
-            qtr += np.matmul(r[:, None], qj).transpose(2, 1, 0)[:, 0]
         for d in range(2):
             a -= w[d] @ w[d].T
             g -= w[d] @ qtr[d]

@@ -15,22 +15,12 @@
 """
 The maximum-likelihood fit of a :class:`magcal_ros.core.model.Model` and its result.
 
-:func:`fit` estimates the parameters from rotation data in a uniform field:
-
-1. closed-form start (paper 004 section 3, docs/papers.md#paper-004): ellipsoid fit +
-   Cholesky per sensor (eq. 8-13), orthogonal Procrustes into sensor 1's frame (eq. 14):
-   :func:`initial_params`;
-2. maximum-likelihood refinement of all sensors jointly: the noise is modelled on the raw
-   readings, raw_jk = f_j(B_k) + e_jk, e ~ N(0, sigma_j^2 I), with the unknown field B_k of
-   epoch k constrained to the reference magnitude |B_k| = F_k and eliminated by variable
-   projection (:mod:`magcal_ros.core.model.engine`), solved by Levenberg-Marquardt
-   (:mod:`magcal_ros.core.model.solvers`) or ``scipy.optimize.least_squares``;
-3. the noise levels re-estimated from the residuals (:func:`group_noise_variances`, each
-   sensor's own part of the residual), and the parameter covariance from the projected
-   Jacobian at the solution (the Cramer-Rao bound).
-
-:class:`FitResult` is immutable; its per-epoch arrays (corrected readings, residuals, the
-profiled field) are computed from the parameters on first access and then kept.
+:func:`fit`: the closed-form start (paper 004 section 3: ellipsoid fit + Cholesky per
+sensor, eq. 8-13, Procrustes into sensor 1's frame, eq. 14), then maximum likelihood on
+the raw readings with the field eliminated by variable projection
+(:mod:`magcal_ros.core.model.engine`), the noise levels re-estimated from the residuals
+(:func:`group_noise_variances`) and the covariance from the projected Jacobian (the
+Cramer-Rao bound).
 """
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -50,8 +40,6 @@ class DegenerateDataError(ValueError):
     """The data cannot determine the model: the message names what is missing."""
 
 
-# -- the result -----------------------------------------------------------------------------
-
 @dataclass(frozen=True, eq=False)
 class FitResult:
     """
@@ -59,76 +47,47 @@ class FitResult:
 
     The per-epoch arrays (``corrected_nt``, ``residual_nt``, ``scalar_residual_nt``,
     ``vector_residual_nt``, ``field_nt``, ``downweighted``) are computed from ``params`` on
-    all epochs of the fitted data when first read, and then kept: a fit of 10^6 epochs does
-    not hold the arrays nobody reads (four sensors: 96 MB each (S, N, 3) array).
-
-    Attributes
-    ----------
-    model : Model
-    params : numpy.ndarray
-        (P,) estimated parameters (units in ``model.param_info()``).
-    stderr : numpy.ndarray
-        (P,) standard uncertainties from the projected Jacobian (NaN: not computed, a fit
-        with ``covariance=False``).
-    covariance, correlation : numpy.ndarray
-        (P, P) (NaN and the identity when not computed).
-    sigma_nt : numpy.ndarray
-        (S,) per-sensor noise standard deviation estimated from the residuals, nT.
-    field_magnitude_nt : numpy.ndarray
-        (N,) reference magnitude used, nT.
-    success : bool
-        The optimiser converged.
-    status : int
-    message : str
-    nfev : int
-        Residual evaluations of the optimiser.
-    n_fit_samples : int
-        Epochs the parameters were fitted on (at most ``max_fit_samples``).
-    n_fit_readings : numpy.ndarray or None
-        (S,) int, the readings of each sensor the parameters were fitted on: n_fit_samples
-        less the sets a ``drop(t0, t1)@j`` leaves out of sensor j.
-    chi2 : float
-        Sum of squared normalised residuals at the solution, on the fitted epochs.
-    n_obs : int
-        Observations net of the profiled field: n_fit_samples sum(3G - 2) over the groups.
-    warnings : tuple of Note
-    identifiability : dict
-        :mod:`magcal_ros.core.model.identifiability` report.
-    initial_params : numpy.ndarray or None
-        (P,) the start.
-    contexts : list of SensorContext
-        (S,) the driving signals of all epochs.
-    robust : bool
-    f_scale : float
-    raw_nt : numpy.ndarray
-        (S, N, 3) the raw readings fitted, nT (the data's own array, not a copy).
+    all epochs when first read, and then kept.
 
     """
 
     model: object
+    #: (P,) estimated parameters (units in ``model.param_info()``)
     params: np.ndarray
+    #: (P,) standard uncertainties (NaN: a fit with ``covariance=False``)
     stderr: np.ndarray
+    #: (P, P) each (NaN and the identity when not computed)
     covariance: np.ndarray
     correlation: np.ndarray
+    #: (S,) per-sensor noise sd estimated from the residuals, nT
     sigma_nt: np.ndarray
+    #: (N,) reference magnitude used, nT
     field_magnitude_nt: np.ndarray
+    #: the optimiser converged; its status, message and residual evaluations
     success: bool
     status: int
     message: str
     nfev: int
+    #: epochs the parameters were fitted on (at most ``max_fit_samples``)
     n_fit_samples: int
+    #: sum of squared normalised residuals at the solution, on the fitted epochs
     chi2: float
+    #: observations net of the profiled field: n_fit_samples sum(3G - 2) over the groups
     n_obs: int
+    #: tuple of Note
     warnings: tuple = ()
+    #: :mod:`magcal_ros.core.model.identifiability` report
     identifiability: dict = field(default_factory=dict)
+    #: (P,) the start
     initial_params: np.ndarray | None = None
+    #: (S,) the driving signals of all epochs
     contexts: list | None = None
     robust: bool = False
     f_scale: float = 3.0
+    #: (S, N, 3) the raw readings fitted, nT (the data's own array)
     raw_nt: np.ndarray | None = field(default=None, repr=False)
+    #: (S,) int, the readings of each sensor fitted on (less what ``drop(t0, t1)@j`` leaves)
     n_fit_readings: np.ndarray | None = None
-
-    # -- per-epoch arrays, computed on first access ---------------------------------------
 
     @property
     def n_samples(self):
@@ -191,8 +150,6 @@ class FitResult:
         if keep is not None:
             residual = residual * keep[:, :, None]
         return downweighted_counts(residual, self.sigma_nt, self.f_scale)
-
-    # -- summaries ------------------------------------------------------------------------
 
     @property
     def n_params(self):
@@ -273,70 +230,32 @@ class FitResult:
         return '\n'.join(lines)
 
 
-# -- the fit --------------------------------------------------------------------------------
-
 def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=False,
         priors=None, sigma_nt=None, on_degenerate='raise', max_fit_samples=20000,
         init=None, max_nfev=200, check_identifiability=True, solver='lm', covariance=True,
         ftol=None, extra_priors=None):
     """
-    Fit ``model`` to rotation data in a uniform field by maximum likelihood.
+    Fit ``model`` to rotation data in a uniform field by maximum likelihood; a FitResult.
 
-    Parameters
-    ----------
-    data : Dataset
-        (S sensors, N epochs) raw readings in nT.
-    model : Model or str
-        Model or spec string ('base', 'base,temperature@2', ...).
-    field_nt : float or numpy.ndarray, optional
-        Reference magnitude in nT, scalar or (N,); default ``data.ref_total``.
-    robust : bool
-        Use the soft-L1 loss (outlier spikes).
-    f_scale : float
-        Scale of the soft-L1 loss, in units of sigma.
-    constrained : bool
-        Constrained mode for partial attitude coverage: effects get the priors they declare
-        (``Effect.prior``: scale 1 +- 0.02, non-orthogonality 0 +- 0.02 rad, misalignment
-        0 +- 0.05 rad, soft iron identity +- 0.02) and the start is A = I.
-    priors : dict, optional
-        {effect name or label: (mean or None for default, sd)} overriding the priors.
-    extra_priors : list of (int, float, float), optional
-        Priors on single parameters, (index, mean, sd) in the parameter's unit, added to
-        those of ``priors`` (the planar mode holds the parameters a turn about one axis
-        leaves open: :mod:`magcal_ros.core.model.planar`).
-    sigma_nt : float or numpy.ndarray, optional
-        Fixed per-sensor noise (nT); default: estimated from the residuals.
-    on_degenerate : {'raise', 'flag'}
-        Refuse (DegenerateDataError) or flag (warnings) data that cannot determine the model.
-    max_fit_samples : int or None
-        Fit on at most this many epochs, evenly spaced; residuals are reported for all.
-    init : numpy.ndarray, optional
-        (P,) starting parameters (default: closed-form start).
-    max_nfev : int
-        Most residual evaluations of the optimiser per sensor group and noise pass.
-    ftol : float, optional
-        Stop when an iteration lowers the cost by less than ``ftol`` times the cost (the
-        chi-square by less than ``ftol`` chi-square).  Default: the solver's own (1e-12 for
-        'lm', to the numerical limit; 1e-8 for 'scipy').  A caller that needs chi-square
-        only to a given precision (the diagnosis' refits: a tenth of a unit) passes that
-        precision divided by chi-square.
-    check_identifiability : bool
-        Check the attitude coverage and the Jacobian's conditioning
-        (:mod:`magcal_ros.core.model.identifiability`); off for warm-started refits.
-    solver : {'lm', 'scipy'}
-        'lm': Levenberg-Marquardt on the normal equations (J^T J is P x P; about 20x faster
-        than an SVD of the tall Jacobian, see bench/); 'scipy': scipy.optimize.least_squares
-        (trust-region reflective), the reference implementation.  Both minimise the same
-        cost (test_model_ml.py checks they agree).
-    covariance : bool
-        Compute the covariance (one more Jacobian at the solution); False (a caller that
-        reads only the parameters and the residuals, e.g. the diagnosis' refits): stderr and
-        covariance NaN; needs ``check_identifiability=False`` (the check reads it).
-
-    Returns
-    -------
-    FitResult
-
+    - ``data``: (S sensors, N epochs) raw readings in nT; ``model`` a Model or formula;
+      ``field_nt`` the reference magnitude, nT, scalar or (N,) (default ``data.ref_total``);
+    - ``robust``: the soft-L1 loss of scale ``f_scale`` sigma (outlier spikes);
+    - ``constrained``: every effect gets the prior it declares (``Effect.prior``) and the
+      start is A = I (partial attitude coverage); ``priors`` {effect name or label: (mean
+      or None for default, sd)} override them; ``extra_priors`` [(index, mean, sd)] in the
+      parameter's unit are added;
+    - ``sigma_nt``: fixed per-sensor noise, nT (default: estimated from the residuals);
+    - ``on_degenerate``: 'raise' (DegenerateDataError) or 'flag' (warnings) data that
+      cannot determine the model;
+    - ``max_fit_samples``: fit on at most this many epochs, evenly spaced (residuals are
+      reported for all); ``init`` (P,) the start (default the closed form);
+    - ``max_nfev``: most residual evaluations per sensor group and noise pass; ``ftol``:
+      stop when an iteration lowers the cost by less than ftol times it (default the
+      solver's: 1e-12 'lm', 1e-8 'scipy'); ``solver`` 'lm' (Levenberg-Marquardt on the
+      normal equations) or 'scipy' (scipy.optimize.least_squares, the reference);
+    - ``check_identifiability``: check the coverage and the conditioning
+      (:mod:`magcal_ros.core.model.identifiability`); ``covariance`` False: stderr and
+      covariance NaN (needs ``check_identifiability=False``).
     """
     if on_degenerate not in ('raise', 'flag'):
         raise ValueError("on_degenerate must be 'raise' or 'flag'")
@@ -409,9 +328,8 @@ def _check_data(data, model, contexts, constrained, check_identifiability, degen
     """
     Refuse or flag data that cannot determine ``model``; return the identifiability report.
 
-    Non-finite readings and too few epochs are errors; what the effects cannot be excited
-    by (``Effect.check``) and a poor attitude coverage go to ``degenerate`` (raise or
-    flag).  Prepares the model's reference values on ``contexts``.
+    Non-finite readings and too few epochs are errors; unexcited effects and a poor
+    coverage go to ``degenerate``.  Prepares the model's reference values on ``contexts``.
     """
     raw = data.raw
     if not np.all(np.isfinite(raw)):
@@ -450,11 +368,11 @@ def fitted_readings(model, t, idx):
     """
     Return the fitted sets and readings: (M,) indices into ``t`` and (S, M) bool or None.
 
-    ``idx`` (M0,) are the candidate sets (:func:`fit_epochs`), ``t`` (N,) s all the times.
-    The model's ``drop`` terms leave readings out (``Model.reading_mask``); a set whose
-    every reading is left out is removed.  The mask is None when every reading of the sets
-    kept is used.  Raises ValueError when fewer than 10 sets are left, or when a sensor
-    keeps fewer readings than max(10, its parameters).
+    ``idx`` (M0,) are the candidate sets (:func:`fit_epochs`), ``t`` (N,) s all the times;
+    the ``drop`` terms leave readings out (``Model.reading_mask``) and a set without any
+    reading is removed; the mask is None when every reading kept is used.  Raises
+    ValueError when fewer than 10 sets are left, or a sensor keeps fewer readings than
+    max(10, its parameters).
     """
     if not model.drops:
         return idx, None
@@ -498,44 +416,21 @@ def group_noise_variances(res, g_cols, n_params, ranks=None, keep=None):
     Unbiased moment estimate of each sensor's noise variance in a group, relative to its weight.
 
     The profiled residual of an epoch is r = (I - P) e with P the orthogonal projector on the
-    two field-direction columns G (the field is estimated from the same readings), e the
-    noise normalised by the current sigma_j.  With E[e e^T] = diag(d_j I_3), d_j = (true
-    sigma_j / current sigma_j)^2, E ||r_j||^2 = sum_k C_jk d_k, C_jk = ||(I - P)_jk||_F^2
-    summed over epochs; C d = sum ||r_j||^2 is solved for d >= 0 (scipy.optimize.nnls).
-    This is the heteroscedastic variance-component estimator of Rao (1970, MINQUE's unbiased
-    form; for three instruments Grubbs' three-cornered hat).  The sensor's own share of the
-    residual is not taken as its variance: with the field a weighted mean, a sensor weighted
-    less leaves more of the common residual in its own, so that estimate diverges from the
-    truth pass after pass (two sensors: 2-3x the scatter of this one, bench/ and
-    test_model_ml.py).  The parameters' degrees of freedom scale every d by
+    two field-direction columns G, e the noise normalised by the current sigma_j.  With
+    E[e e^T] = diag(d_j I_3), d_j = (true sigma_j / current sigma_j)^2,
+    E ||r_j||^2 = sum_k C_jk d_k, C_jk = ||(I - P)_jk||_F^2 summed over epochs;
+    C d = sum ||r_j||^2 is solved for d >= 0 (scipy.optimize.nnls): the heteroscedastic
+    variance-component estimator of Rao (1970, MINQUE's unbiased form).  A sensor's own
+    share of the residual would not do: a sensor weighted less leaves more of the common
+    residual in its own.  The parameters' degrees of freedom scale every d by
     (3 G - 2) N / ((3 G - 2) N - P).
 
-    Parameters
-    ----------
-    res : numpy.ndarray
-        (N, G, 3) residuals normalised by the current sigma_j, dimensionless.
-    g_cols : numpy.ndarray
-        (N, 3 G, 2) the field-direction columns, normalised likewise
-        (:meth:`ProfiledProblem.field_columns`).
-    n_params : int
-        Parameters fitted in the group.
-    ranks : sequence of int, optional
-        (G,) the rank of each member's noise (3 for a sensor; the attitude's observation
-        of the field, :mod:`magcal_ros.core.effects.attitude_ref`, is a member whose
-        noise lies in its projector's range, rank 1 or 3): the 3 of the formula above is
-        the trace of the member's noise covariance.
-    keep : numpy.ndarray, optional
-        (N, G) 0/1: the sensors' readings the fit keeps (:attr:`ProfiledProblem.keep`;
-        the attitude, a member after them, keeps every epoch).  A reading left out has no
-        noise in the residual: its rows of ``res`` and ``g_cols`` are zero, and its sensor's
-        3 of the formula counts only the epochs it keeps; an epoch without any reading
-        counts nothing.
-
-    Returns
-    -------
-    numpy.ndarray
-        (G,) d_j, dimensionless: the new sigma_j is the current one times sqrt(d_j).
-
+    ``res`` (N, G, 3) residuals normalised by the current sigma_j; ``g_cols`` (N, 3 G, 2)
+    the field-direction columns (:meth:`ProfiledProblem.field_columns`); ``n_params`` of
+    the group; ``ranks`` (G,) of each member's noise (3 for a sensor, 1 or 3 for the
+    attitude's observation); ``keep`` (N, G) 0/1 the readings kept
+    (:attr:`ProfiledProblem.keep`).  Returns (G,) d_j: the new sigma_j is the current one
+    times sqrt(d_j).
     """
     from scipy.optimize import nnls
     n, g = res.shape[0], res.shape[1]
@@ -566,11 +461,9 @@ def dof_scale(n, g, n_params, rows=None, row_total=None):
     """
     Return sqrt((3 G - 2) N / ((3 G - 2) N - P)), which scales a group's residual noise sd.
 
-    Each epoch leaves 3 G - 2 residual degrees of freedom (two go to the field's direction);
-    the P fitted parameters take theirs from the total.  ``rows``: the observations per
-    epoch when they are not 3 G (an attitude observing the field adds its rank);
-    ``row_total``: the observations of all N epochs when the epochs do not have the same
-    (a sensor's readings left out by ``drop(t0, t1)@j``).
+    Each epoch leaves 3 G - 2 residual degrees of freedom; the P parameters take theirs from
+    the total.  ``rows``: the observations per epoch when not 3 G; ``row_total``: those of
+    all N epochs when the epochs differ (readings left out by ``drop``).
     """
     if row_total is not None:
         dof = row_total - 2 * n
@@ -584,28 +477,12 @@ def own_residual(res, g_cols, gi):
     (N,) the residual of sensor ``gi`` of a group normal to its two field-direction columns.
 
     The profiled field moves each sensor's prediction only within the span of its own two
-    columns G_j (the tangent plane of the field, as sensor j reads it), so the residual's
-    component along w_j = G_j1 x G_j2 / |G_j1 x G_j2| is w_j^T e_j: sensor j's normalised
-    noise alone, one value per epoch, whatever the other sensors' noise.  Its robust
-    spread is sensor j's noise level relative to its current one; the MAD of all three
-    components of r_j instead mixes that sensor's radial noise with the components the
-    field took up (a single sensor: 2 of 3 near zero), which put a 3 nT sensor at
-    0.64 nT and its uncertainties 4.9x too small (2026-11-27, test_model_ml.py).
+    columns G_j, so the residual's component along w_j = G_j1 x G_j2 / |G_j1 x G_j2| is
+    w_j^T e_j: sensor j's normalised noise alone, whatever the other sensors' noise (the
+    MAD of all three components would mix in the components the field took up).
 
-    Parameters
-    ----------
-    res : numpy.ndarray
-        (N, G, 3) residuals normalised by the current sigma_j, dimensionless.
-    g_cols : numpy.ndarray
-        (N, 3 G, 2) the field-direction columns, normalised likewise.
-    gi : int
-        The sensor's position in the group.
-
-    Returns
-    -------
-    numpy.ndarray
-        (N,) dimensionless.
-
+    ``res`` (N, G, 3) and ``g_cols`` (N, 3 G, 2) as for :func:`group_noise_variances`;
+    ``gi`` the sensor's position in the group.
     """
     cols = g_cols[:, 3 * gi:3 * gi + 3]
     w = np.cross(cols[:, :, 0], cols[:, :, 1])
@@ -617,11 +494,9 @@ def serial_inflation(r):
     """
     sqrt((1 + rho) / (1 - rho)): how much a serially correlated error weighs less.
 
-    ``r`` (N, 3) residuals in time order (each row's components summed into one series
-    per axis); rho is their lag-1 correlation (the AR(1) variance inflation of a mean,
-    Bartlett 1946, as :func:`magcal_ros.core.model.planar.inflate_for_correlation` widens a
-    planar fit).  An attitude's error is smooth (an EKF's drifts over tens of seconds): as
-    N independent observations it would outweigh the compass and bend the fit to its drift.
+    ``r`` (N, 3) residuals in time order; rho is their lag-1 correlation (the AR(1)
+    variance inflation of a mean, Bartlett 1946).  An attitude's error is smooth: as N
+    independent observations it would outweigh the compass.
     """
     r = np.asarray(r, float)
     num = float(np.sum(r[1:] * r[:-1]))
@@ -730,11 +605,8 @@ class _Solve:
         """
         Return (S,) the noise levels re-estimated from the raw residuals at ``p``, nT.
 
-        Least squares: the unbiased moment estimator of :func:`group_noise_variances`
-        (each sensor's share of the residual follows from the projection, not from the
-        weights of the current ``sigma``).  Robust: the MAD of each sensor's residual
-        across its two field-direction columns (:func:`own_residual`), which holds that
-        sensor's noise alone.
+        Least squares: :func:`group_noise_variances`; robust: the MAD of each sensor's
+        :func:`own_residual`.
         """
         new_sigma = sigma.copy()
         for prob in problems:
@@ -803,20 +675,15 @@ class _Solve:
         ``prob`` is the group's :class:`ProfiledProblem` at its parameters ``x``, ``bound``
         its (P_g, P_g) Cramer-Rao bound.
 
-        The soft-L1 loss rho(|z|^2) of each sensor's normalised residual z (3,) at an epoch
-        (f_scale c) gives the estimating equation sum_k sum_j w_kj J_kj^T z_kj = 0 with
+        The soft-L1 loss of each sensor's normalised residual z (3,) at an epoch (f_scale c)
+        gives the estimating equation sum_k sum_j w_kj J_kj^T z_kj = 0 with
         w = 1 / sqrt(1 + |z|^2 / c^2); its covariance is A^-1 B A^-1 with
-        A = sum J^T (w I - w^3 z z^T / c^2) J (the derivative of the score) and B the sum over
-        epochs of the outer product of each epoch's score (the sensors of an epoch share its
-        field): Huber, P. J. (1967), The behavior of maximum likelihood estimates under
-        nonstandard conditions, Proc. Fifth Berkeley Symposium 1, 221-233.  J is the
-        projected Jacobian (the field profiled); prior rows enter A and B as the unit-variance
-        observations they stand for.  On Gaussian noise it is the Cramer-Rao bound the least
-        squares fit states; with outliers it counts the loss's lost efficiency, which the
-        bound does not (5 % spikes of 1000 nT on the cross: z-values spread 1.37 with the
-        bound, 1.21 with this; one sensor, spikes of either sign: 1.50 and 1.19, the rest
-        the sandwich's own scatter from a few spikes).  A bias from outliers of one sign is
-        in no covariance.  A group with a direction the data do not determine keeps
+        A = sum J^T (w I - w^3 z z^T / c^2) J and B the sum over epochs of the outer product
+        of each epoch's score: Huber, P. J. (1967), The behavior of maximum likelihood
+        estimates under nonstandard conditions, Proc. Fifth Berkeley Symposium 1, 221-233.
+        J is the projected Jacobian; prior rows enter A and B as unit-variance observations.
+        On Gaussian noise it is the Cramer-Rao bound; with outliers it counts the loss's
+        lost efficiency.  A group with a direction the data do not determine keeps
         ``bound`` (its infinite entries).
         """
         c2 = self.f_scale ** 2
@@ -853,8 +720,8 @@ def priors_for(model, spec, constrained=False):
     """
     Prior list [(index, mean, sd)] from a {effect name or label: (mean, sd)} spec.
 
-    With ``constrained`` every effect that declares an ``Effect.prior`` gets it, unless
-    ``spec`` overrides it; a mean of None is the effect's default parameter value.
+    With ``constrained`` every effect's ``Effect.prior`` unless ``spec`` overrides it; a
+    mean of None is the effect's default parameter value.
     """
     out = []
     default = model.default_params()
@@ -871,32 +738,12 @@ def priors_for(model, spec, constrained=False):
 
 def initial_params(raw, field_nt, model, constrained=False, mask=None):
     """
-    Closed-form starting values (paper 004 section 3).
+    Return (P,) closed-form starting values of ``model`` (paper 004 section 3).
 
-    Per sensor: ellipsoid fit + Cholesky (eq. 8-13); Procrustes rotation of each corrected
-    sensor onto sensor 1 (eq. 14); A_j = C_j R_j^T.  In constrained mode (partial attitude
-    coverage, where the ellipsoid is ill-determined) A = I and only the offset is solved,
-    from the linear sphere fit |m - o|^2 = F^2.
-
-    Parameters
-    ----------
-    raw : numpy.ndarray
-        (S, N, 3) raw readings, nT.
-    field_nt : numpy.ndarray
-        (N,) reference magnitude, nT.
-    model : Model
-        The model whose parameters are started.
-    constrained : bool
-        A = I and the offset from the linear sphere fit only.
-    mask : numpy.ndarray, optional
-        (S, N) bool, the readings to start from (a sensor's readings left out by
-        ``drop(t0, t1)@j`` are not); default all.
-
-    Returns
-    -------
-    numpy.ndarray
-        (P,) starting parameters.
-
+    Per sensor of ``raw`` (S, N, 3) nT: ellipsoid fit + Cholesky (eq. 8-13) at the reference
+    magnitude ``field_nt`` (N,) nT; Procrustes rotation of each corrected sensor onto sensor
+    1 (eq. 14); A_j = C_j R_j^T.  ``constrained``: A = I and the offset from the linear
+    sphere fit |m - o|^2 = F^2 only.  ``mask`` (S, N) bool: the readings to start from.
     """
     s = raw.shape[0]
     f0 = float(np.mean(field_nt))
@@ -931,43 +778,16 @@ def initial_params(raw, field_nt, model, constrained=False, mask=None):
     return p
 
 
-# -- residuals on all epochs ----------------------------------------------------------------
-
 def profile_residuals(model, p, raw, f, sigma, contexts, robust=False, f_scale=3.0,
                       chunk=200000, field0=None):
     """
     Return the profiled field and the raw-space residual of ``p`` (chunked for large N).
 
-    Parameters
-    ----------
-    model : Model
-        The model, prepared.
-    p : numpy.ndarray
-        (P,) parameters.
-    raw : numpy.ndarray
-        (S, N, 3) raw readings, nT.
-    f : numpy.ndarray
-        (N,) reference magnitude, nT.
-    sigma : numpy.ndarray
-        (S,) noise levels, nT (weights of the joint field profile).
-    contexts : list of SensorContext
-        (S,) driving signals on the same epochs.
-    robust, f_scale : bool, float
-        Profile with the soft-L1 weights.
-    chunk : int
-        Epochs evaluated at a time (memory of the Jacobian-free evaluation).
-    field0 : numpy.ndarray, optional
-        (N, 3) nT field to start the profile from (joint models).
-
-    Returns
-    -------
-    field : numpy.ndarray
-        (N, 3) profiled field, nT (joint: shared; independent sensors: the last one's);
-        profiled without the readings the model's ``drop`` terms leave out.
-    residual : numpy.ndarray
-        (S, N, 3) raw reading minus prediction, nT (a reading left out: against the field
-        of the others, :meth:`ProfiledProblem.reading_residuals`).
-
+    ``model`` prepared, ``p`` (P,), ``raw`` (S, N, 3) nT, ``f`` (N,) nT, ``sigma`` (S,) nT
+    (weights of the joint profile), ``contexts`` (S,); ``robust``, ``f_scale``: profile
+    with the soft-L1 weights; ``chunk`` epochs at a time; ``field0`` (N, 3) nT: the field
+    to start from (joint models).  Returns the field (N, 3) nT (independent sensors: the
+    last one's) and the residual (S, N, 3) nT (:meth:`ProfiledProblem.reading_residuals`).
     """
     s, n = raw.shape[0], raw.shape[1]
     field = np.zeros((n, 3))
@@ -1023,21 +843,11 @@ def evaluate(model, p, data, f, sigma, contexts=None, robust=False, f_scale=3.0,
     """
     Return the residuals of parameters ``p`` on all epochs of ``data`` (chunked for large N).
 
-    ``field0`` (N, 3) nT, optional: the profiled field of nearby parameters (e.g. the
-    ``field`` of an evaluation of the fit), to start the field profile from (joint models).
-
-    The readings the model's ``drop`` terms leave out (``Model.reading_mask``) are not
-    residuals of the model: their residual, scalar and vector entries (the vector's where
-    sensor j's or sensor 1's reading is left out) are zero, and ``kept`` says which are
-    (a mean square over the readings kept divides by its count, not by N).
-
-    Returns
-    -------
-    dict
-        field (N, 3), corrected (S, N, 3), residual (S, N, 3), scalar (S, N), vector
-        (S, N, 3), all in nT, downweighted (S,) counts and kept ((S, N) bool, the readings
-        the model keeps, or None: all).
-
+    Arguments as :func:`profile_residuals`'.  The readings the ``drop`` terms leave out have
+    zero residual, scalar and vector entries (the vector's where sensor j's or sensor 1's
+    is left out); ``kept`` says which (a mean square divides by its count, not by N).
+    Returns a dict: field (N, 3), corrected (S, N, 3), residual (S, N, 3), scalar (S, N),
+    vector (S, N, 3), all in nT, downweighted (S,) counts and kept ((S, N) bool or None).
     """
     if contexts is None:
         contexts = [data.context(j) for j in range(1, data.n_sensors + 1)]

@@ -15,17 +15,11 @@
 """
 Can the data determine the model?  Checks run before and after every solve.
 
-Before: attitude coverage of each sensor
-(:func:`magcal_ros.core.geometry.coverage.direction_coverage` of the readings about the
-centre of the sensor's fitted ellipsoid, the hard-iron offset, so that an offset several
-times the field does not squeeze a full rotation into a cone): a rotation about a single
-axis leaves the field directions on one circle, so the linear map is not determined along
-the rotation axis (refusals name that axis in the sensor frame); a
-partial coverage (a cone, as on a ground vehicle) makes scale, non-orthogonality and offset
-strongly correlated.
-
-After: the parameter correlations and the condition number of the correlation matrix from
-the projected Jacobian (the Fisher information at the solution).
+Before: the attitude coverage of each sensor, judged about the centre of its fitted
+ellipsoid (so that a large offset does not squeeze a full rotation into a cone): a rotation
+about a single axis leaves the linear map undetermined along that axis (refusals name it in
+the sensor frame); a partial coverage correlates scale, non-orthogonality and offset.
+After: the parameter correlations and the condition number of the correlation matrix.
 """
 from magcal_ros.core.geometry.coverage import direction_coverage
 from magcal_ros.core.papers.ellipsoid import fit_ellipsoid, reading_plane, RING_CV, ring_spread
@@ -35,23 +29,19 @@ import numpy as np
 SINGLE_AXIS_EIG = 3e-4
 #: below this the attitude coverage is partial (about a +-14 deg band or a cap < ~45 deg)
 PARTIAL_EIG = 0.02
-#: directions on a ring (coefficient of variation of their in-plane radius below
-#: :data:`magcal_ros.core.papers.ellipsoid.RING_CV`)
-#: whose spread along the ring's axis is below this fraction of the in-plane spread are a
-#: rotation about that axis with hand wobble (the shared hand-held single-axis recordings:
-#: 0.002-0.011), not a partial coverage (a vehicle tilting +-15 deg: 0.09)
+#: directions on a ring (:data:`magcal_ros.core.papers.ellipsoid.RING_CV`) whose spread
+#: along the ring's axis is below this fraction of the in-plane spread are a rotation about
+#: that axis with hand wobble (0.002-0.011), not a partial coverage (a vehicle tilting
+#: +-15 deg: 0.09)
 RING_RATIO = 0.015
-#: the sphere cross-check of the coverage applies where the sphere's relative radial residual
-#: variance is below this multiple of the ellipsoid's (the sphere fits as well as the ellipsoid
-#: up to the 6 extra parameters' share of the noise)
+#: the sphere cross-check applies where the sphere's relative radial residual variance is
+#: below this multiple of the ellipsoid's
 SPHERE_VAR_FACTOR = 4.0
-#: an ellipsoid whose longest axis exceeds its shortest by more than this is not a
-#: sensor's (real ones: 1.1-1.3) but a fit bent to a partial set of directions (a cap of
-#: 30-55 deg gives 2.3-3.3): its centre is not used
+#: an ellipsoid whose axis ratio exceeds this is not a sensor's (1.1-1.3) but a fit bent to
+#: a cap of directions: its centre is not used
 MAX_AXIS_RATIO = 1.6
-#: readings scattered radially by more than this fraction of the fitted radius (SNR < 4)
-#: fill a cloud rather than lie on a shell: a still sensor's noise, whose "ellipsoid" has
-#: the noise for radius (a Gaussian cloud: 0.42)
+#: readings scattered radially by more than this fraction of the fitted radius fill a cloud
+#: (a still sensor's noise) rather than lie on a shell
 MAX_RADIAL_SCATTER = 0.25
 #: parameter correlations above this make the pair inseparable
 MAX_CORRELATION = 0.995
@@ -61,26 +51,13 @@ MAX_CONDITION = 1e6
 
 def fitted_centre(m):
     """
-    Fit the readings' ellipsoid; None when the data do not determine it.
+    Fit the ellipsoid of one sensor's readings ``m`` (N, 3) nT; None when not determined.
 
-    Parameters
-    ----------
-    m : numpy.ndarray
-        (N, 3) raw readings of one sensor, nT.
-
-    Returns
-    -------
-    (numpy.ndarray, float, float) or None
-        Centre (3,) nT (the hard-iron offset, paper 004 eq. 12), the relative noise
-        variance of the readings about the ellipsoid, ``var(radial residual / radius)``,
-        and the ratio of its longest to its shortest axis (1.1-1.3 for real sensors).
-        None when :func:`magcal_ros.core.papers.ellipsoid.fit_ellipsoid` finds the ellipsoid not
-        determined against the noise (the fitted quadric not definite beyond its own
-        uncertainty), or when the readings scatter about it by more than
-        :data:`MAX_RADIAL_SCATTER` of its radius (they fill a cloud, not a shell).  A
-        centre that the ellipsoid bends to (a cap of directions) is caught in
-        :func:`classify_coverage` (axis ratio, cross-check with the sphere's centre).
-
+    Returns (centre (3,) nT, the hard-iron offset of paper 004 eq. 12; the relative noise
+    variance ``var(radial residual / radius)``; the ratio of its longest to its shortest
+    axis), or None when :func:`magcal_ros.core.papers.ellipsoid.fit_ellipsoid` finds the
+    ellipsoid not determined against the noise or the readings fill a cloud
+    (:data:`MAX_RADIAL_SCATTER`).
     """
     try:
         ell = fit_ellipsoid(m, 1.0)
@@ -105,22 +82,12 @@ def _single_axis_message(normal, how):
 
 def classify_coverage(m):
     """
-    Attitude coverage of one sensor's readings, judged about the fitted centre.
+    Attitude coverage of one sensor's readings ``m`` (N, 3) nT, judged about the fitted centre.
 
-    Parameters
-    ----------
-    m : numpy.ndarray
-        (N, 3) raw readings, nT (not all equal).
-
-    Returns
-    -------
-    dict
-        ``status`` ('good', 'partial', 'single axis', 'one attitude'), ``eigenvalues`` (3,)
-        of the direction scatter about the centre, less the scatter that the noise alone
-        gives (the variance of the ellipsoid's relative radial residual), ``normal`` (3,)
-        the missing rotation's axis in the sensor frame, ``cone_half_angle_deg``,
-        ``centre_nt`` (3,) or None, ``message`` (None when good).
-
+    Returns a dict: ``status`` ('good', 'partial', 'single axis', 'one attitude'),
+    ``eigenvalues`` (3,) of the direction scatter about the centre less the noise's,
+    ``normal`` (3,) the missing rotation's axis in the sensor frame,
+    ``cone_half_angle_deg``, ``centre_nt`` (3,) or None, ``message`` (None when good).
     """
     fitted = fitted_centre(m)
     noise_eig = 0.0
@@ -151,13 +118,8 @@ def classify_coverage(m):
         centre = _sphere_centre(m)
     out = _judge(m, centre, noise_eig)
     if out['status'] == 'good' and fitted is not None and axis_ratio <= MAX_AXIS_RATIO:
-        # cross-check with the least-squares sphere's centre (4 parameters, stable on a
-        # cap where the 10-parameter ellipsoid can bend to a wrong centre): a partial
-        # coverage must not pass as good
-        # Only where a sphere describes the readings (its relative radial residual within
-        # a few times the ellipsoid's, i.e. no scale or soft-iron difference beyond the
-        # noise): a sphere fitted to an ellipsoid with 2 % scale errors on a cap has its
-        # centre thousands of nT off, and judging about it would call a good coverage partial.
+        # cross-check with the least-squares sphere's centre (stable on a cap, where the
+        # ellipsoid can bend to a wrong centre), where a sphere describes the readings
         sphere = _sphere_centre(m)
         rad = np.linalg.norm(m - sphere, axis=1)
         if np.var(rad / np.median(rad)) < SPHERE_VAR_FACTOR * max(noise_eig, 1e-12):
@@ -197,27 +159,11 @@ def _judge(m, centre, noise_eig):
 
 def check_coverage(raw):
     """
-    Coverage of each sensor's field directions, judged about each sensor's fitted centre.
+    Coverage of each sensor's field directions (:func:`classify_coverage`), ``raw`` (S, N, 3) nT.
 
-    A hard-iron offset several times the field squeezes the raw directions (about the
-    origin) into a narrow cone although the sensor turned over; the directions are
-    therefore judged about the centre of the sensor's fitted ellipsoid (the offset) when the
-    data determine it, with the spread that the noise alone gives removed.
-
-    Parameters
-    ----------
-    raw : numpy.ndarray
-        (S, N, 3) raw readings in nT.
-
-    Returns
-    -------
-    dict
-        ``sensors``: {j: {eigenvalues, normal, cone_half_angle_deg, status}} with status
-        'good', 'partial', 'single axis', 'one attitude' or 'constant' (stuck output);
-        ``normal`` is the missing rotation's axis in the sensor frame,
-        ``problems``: list of messages naming the missing rotation (empty when fine),
-        ``summary``: one line.
-
+    Returns a dict: ``sensors`` {j: {eigenvalues, normal, cone_half_angle_deg, status}}
+    (status as :func:`classify_coverage`'s, or 'constant': stuck output), ``problems``
+    (messages naming the missing rotation; empty when fine), ``summary`` (one line).
     """
     out = {'sensors': {}, 'problems': []}
     messages = {}
@@ -286,21 +232,10 @@ def check_coverage(raw):
 
 def jacobian_report(model, cov, corr, constrained=False):
     """
-    Parameter correlations and conditioning at the solution.
+    Parameter correlations and conditioning of ``model``'s (P, P) ``cov`` and ``corr``.
 
-    Parameters
-    ----------
-    model : Model
-        The fitted model (parameter names).
-    cov, corr : numpy.ndarray
-        (P, P) parameter covariance and correlation.
-    constrained : bool
-        The fit had priors (constrained mode): correlations are notes, not problems.
-
-    Returns
-    -------
-    dict with ``condition_number``, ``max_correlation`` [(name_a, name_b, rho)], ``problems``.
-
+    Returns a dict with ``condition_number``, ``max_correlation`` [(name_a, name_b, rho)],
+    ``problems`` (with ``constrained``, priors: the correlations are ``notes`` instead).
     """
     info = model.param_info()
     names = [f'{e}.{n}@{s}' for s, e, n, _ in info]

@@ -15,11 +15,9 @@
 """
 Structured warnings: what kind, which sensor, and the text a user reads.
 
-A :class:`Note` is a ``str`` (its text), so code that prints or searches warnings keeps
-working, and it carries ``kind`` and ``sensor`` so that decisions never depend on matching
-the text (e.g. ``exclude_outliers`` is gated on ``kind == 'missing_effect'``).  The
-``fit`` summary, ``--json`` output and the calibration file's provenance hold
-:func:`note_dict` of each: ``{kind, sensor, text}``.
+A :class:`Note` is a ``str`` (its text) that carries ``kind`` and ``sensor``, so that
+decisions never depend on matching the text.  The ``--json`` output and the calibration
+file's provenance hold :func:`note_dict` of each: ``{kind, sensor, text}``.
 
 Kinds used by the library:
 

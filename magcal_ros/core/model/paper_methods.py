@@ -15,27 +15,16 @@
 """
 The closed-form calibrations of papers 000 and 002 on a recording (``magcal fit --method``).
 
-- ``sine`` (paper 000, docs/papers.md#paper-000): a turntable recording, every row with the
-  turntable angle ``angle_deg`` and the horizontal sensor plane ``plane`` (``xy`` for
-  position 1, ``xz`` for position 2); each sensor is calibrated alone by
-  :func:`magcal_ros.core.papers.sine.calibrate_turntable` (eq. 4-16).
+- ``sine`` (paper 000, docs/papers.md#paper-000): a turntable recording with the angle
+  ``angle_deg`` and the horizontal sensor plane ``plane`` (``xy``: position 1, ``xz``:
+  position 2) of every row; ``raw = L B + B0``, L lower triangular; with ``L = U Q`` (RQ)
+  the calibration keeps U (model ``offset,scale,nonorthogonality``).  Each sensor is
+  calibrated alone: the rotations between sensors are unknown.
 - ``reference`` (paper 002, docs/papers.md#paper-002): a recording with the undisturbed
-  reference field ``ref_x, ref_y, ref_z`` beside each reading; each sensor by
-  :func:`magcal_ros.core.papers.reference_vector.fit_reference` (eq. 4-7).
+  field ``ref_x, ref_y, ref_z``; ``Hm = K He + Hh``; sensor 1's ``K_1 = U_1 Q_1`` defines
+  the array frame and every sensor gets ``A_j = K_j Q_1^T`` (model ``offset,soft_iron``).
 
-Both results are written as an ordinary :class:`~magcal_ros.core.model.Calibration`, so the
-calibration file and the live corrector treat them like a maximum-likelihood fit:
-
-- sine: ``raw = L B + B0`` with L lower triangular in paper 000's frame (X along Xm).  With
-  ``L = U Q`` (RQ, :func:`magcal_ros.core.effects.rq_positive`) the calibration keeps U, as
-  scale and non-orthogonality (model ``offset,scale,nonorthogonality``): the corrected field
-  is in the sensor's orthogonalised axes (paper 004's convention), the rotation Q of paper
-  000's frame is dropped.  Each sensor is calibrated alone, so the rotations between sensors
-  are unknown: no array geometry is written and no gradient is formed from such a file.
-- reference: ``Hm = K He + Hh`` with K general, He in the reference's frame.  Sensor 1's
-  ``K_1 = U_1 Q_1`` defines the array frame (its orthogonalised axes); every sensor gets
-  ``A_j = K_j Q_1^T`` (model ``offset,soft_iron``; upper triangular on sensor 1), so all
-  sensors are corrected into one frame, Q_1 times the reference's.
+Both results are an ordinary :class:`~magcal_ros.core.model.Calibration`.
 """
 from dataclasses import dataclass, field
 
@@ -45,42 +34,24 @@ from magcal_ros.core.model.fitting import DegenerateDataError
 from magcal_ros.core.model.spec import Model
 import numpy as np
 
-#: the choices of ``magcal fit --method``
-METHODS = ('ellipsoid', 'sine', 'reference')
-
 
 @dataclass
 class PaperFit:
-    """
-    Result of :func:`sine_calibration` or :func:`reference_calibration`.
+    """Result of :func:`sine_calibration` or :func:`reference_calibration`."""
 
-    Attributes
-    ----------
-    method : str
-        'sine' or 'reference'.
-    calibration : Calibration
-        The result as a calibration of the package's model (see the module docstring).
-    sensor_params : list of list of tuple
-        Per sensor, the paper's parameters as (name, value, unit).
-    scalar_rms_before_nt, scalar_rms_nt : dict
-        {sensor: RMS of |raw| - F} and {sensor: RMS of |corrected| - F}, nT.
-    vector_rms_nt : dict
-        reference: {sensor: per-component RMS of corrected - reference (array frame)}, nT;
-        empty for sine.
-    warnings : list of str
-        What the data cannot determine.
-    corrected_nt : numpy.ndarray
-        (S, N, 3) corrected readings in the array frame, nT.
-
-    """
-
+    #: 'sine' or 'reference'
     method: str
     calibration: Calibration
+    #: per sensor, the paper's parameters as (name, value, unit)
     sensor_params: list
+    #: {sensor: RMS of |raw| - F} and {sensor: RMS of |corrected| - F}, nT
     scalar_rms_before_nt: dict
     scalar_rms_nt: dict
+    #: reference: {sensor: per-component RMS of corrected - reference}, nT
     vector_rms_nt: dict = field(default_factory=dict)
+    #: what the data cannot determine
     warnings: list = field(default_factory=list)
+    #: (S, N, 3) corrected readings in the array frame, nT
     corrected_nt: np.ndarray | None = None
 
     def summary(self):
@@ -139,20 +110,10 @@ def _magnitude(f, n):
 
 def sine_calibration(data, field_nt):
     """
-    Paper 000 on a turntable recording (columns ``angle_deg`` and ``plane``).
+    Return the :class:`PaperFit` of paper 000 on a turntable recording.
 
-    Parameters
-    ----------
-    data : Dataset
-        (S, N) readings in nT; rows with plane 'xy' are position 1 (OXmYm horizontal),
-        rows with 'xz' position 2 (OXmZm horizontal), each a turn of the turntable.
-    field_nt : float or numpy.ndarray
-        Field magnitude B (eq. 16), nT, scalar or (N,) (its mean is used).
-
-    Returns
-    -------
-    PaperFit
-
+    ``data`` (S, N) readings in nT with ``angle_deg`` and ``plane`` ('xy': position 1,
+    'xz': position 2, each a turn); ``field_nt`` B (eq. 16), nT, scalar or (N,) (the mean).
     """
     if data.angle_deg is None or data.plane is None:
         raise ValueError('--method sine needs the turntable columns angle_deg and plane '
@@ -195,22 +156,12 @@ def sine_calibration(data, field_nt):
 
 def reference_calibration(data, field_nt=None, on_degenerate='raise'):
     """
-    Paper 002 on a recording with a reference field vector (columns ``ref_x/y/z``).
+    Return the :class:`PaperFit` of paper 002 on a recording with a reference field vector.
 
-    Parameters
-    ----------
-    data : Dataset
-        (S, N) disturbed readings Hm in nT and ``ref_vec`` (N, 3) nT, the undisturbed field.
-    field_nt : float or numpy.ndarray, optional
-        Magnitude for the scalar residual, nT; default |ref_vec| per epoch.
-    on_degenerate : {'raise', 'flag'}
-        Refuse (DegenerateDataError) or flag (warnings) reference directions that cannot
-        determine K and Hh (paper 002's own Table 2 is such data).
-
-    Returns
-    -------
-    PaperFit
-
+    ``data`` (S, N) disturbed readings Hm in nT and ``ref_vec`` (N, 3) nT, the undisturbed
+    field; ``field_nt`` the magnitude of the scalar residual, nT (default |ref_vec|);
+    ``on_degenerate`` 'raise' (DegenerateDataError) or 'flag' reference directions that
+    cannot determine K and Hh.
     """
     if data.ref_vec is None:
         raise ValueError('--method reference needs the reference field columns ref_x, ref_y, '

@@ -15,42 +15,15 @@
 """
 Planar calibration: what a turn about one axis determines, and what it does not.
 
-A ground robot can only turn about its vertical axis.  Its magnetometer then sees the field
-rotate on a cone about that axis n (in the sensor frame): with the horizontal field H and
-the vertical field Z, ``B_k = H (cos psi_k u - sin psi_k v) + Z n`` for an orthonormal
-(u, v, n).  Such data determine
-
-- the offsets in the plane (u, v) and the in-plane linear map up to one common factor
-  (the ratio of the two in-plane scale factors and their non-orthogonality): everything a
-  heading needs;
-
-and leave undetermined
-
-- the offset along n (it only ever adds to ``a_nn Z``: one constant),
-- the scale along n, and the angles between n and the plane (``a_un Z`` and ``a_vn Z`` are
-  constants that add to the in-plane offsets: only those sums are seen),
-- with no known inclination, the split of F into H and Z, hence the common in-plane scale
-  (held with the offset along n: one of the two has to be).
-
-:func:`fit_planar` fits the full three-axis model (so the wobble of a hand-held turn, which
-moves part of Z into the plane, is described by the n reading and the |B| = F constraint
-and does not bend the in-plane result, as it bends a two-dimensional ellipse fit: on the
-real HMC5883L turn a 2D ellipse reads an axis ratio of 1.67 where the full sphere says
-1.06) with a prior on each parameter the turn leaves open: centred on the previous
-calibration's value when given, else an ideal sensor's, with a standard deviation
-(:data:`PRIOR_SD`) wide enough for cheap sensors (5 % in scale, 0.05 rad in angle).  A
-parameter whose posterior standard uncertainty stays above half its prior's is
-*undetermined* (the data added less than three times the prior's information) and named.
-The priors' uncertainty is kept in the covariance, so what the held parameters could be
-reaches the in-plane parameters through their correlations: holding them exactly instead
-understated the heading error of the real turn threefold (its two halves disagreed by
-0.93 deg RMS against a stated 0.3 deg).
-
-:func:`heading_error` propagates the covariance to the heading of a level sensor at the
-site's inclination: the standard uncertainty of a heading computed from the corrected
-field, as a function of the heading, its largest value and its RMS.  It is the error of
-the calibration, for a sensor that turns level at this site; one reading's noise adds
-``sigma / H`` rad on top.  Units: nT, rad, deg where the name says so.
+A turn about the axis n (sensor frame) determines the in-plane offsets' sums with the
+out-of-plane angles times Z, the ratio of the in-plane scale factors and their
+non-orthogonality, everything a heading needs; it leaves open the offset and scale along n,
+the angles between n and the plane and, without the inclination, the common in-plane scale
+(docs/planar.md).  :func:`fit_planar` fits the full three-axis model (so a hand's wobble
+does not bend the in-plane result) with a prior on each parameter the turn leaves open
+(:data:`PRIOR_SD`), names the undetermined ones, and keeps the priors' uncertainty in the
+covariance.  :func:`heading_error` propagates the covariance to the heading of a level
+sensor at the site's inclination.  Units: nT, rad, deg where the name says so.
 """
 from dataclasses import dataclass
 
@@ -60,21 +33,19 @@ from magcal_ros.core.geometry.turn import (circle_centre,  # noqa: F401 - public
 from magcal_ros.core.model.fitting import fit
 import numpy as np
 
-#: how far (deg) the turn axis may be from a sensor axis: the held parameters are those of
-#: that axis (a tilted mounting mixes the sensor's parameters with the plane's)
+#: how far (deg) the turn axis may be from the sensor axis whose parameters are held
 MAX_AXIS_OFFSET_DEG = 25.0
 
 #: standard deviation of the prior on a parameter the turn leaves open: an offset's as a
-#: fraction of F, a scale's (dimensionless) and an angle's (rad); the constrained mode's
-#: 0.02 is too narrow for a consumer sensor (the HMC5883L's y-z angle is 0.084 rad)
+#: fraction of F, a scale's (dimensionless) and an angle's (rad), wide enough for consumer
+#: sensors
 PRIOR_SD = {'offset': 0.05, 'scale': 0.05, 'angle': 0.05}
 
 #: a parameter is undetermined when its posterior sd exceeds this fraction of its prior sd
 UNDETERMINED_RATIO = 0.5
 
 #: the parameters a turn about sensor axis a (0, 1, 2: x, y, z) leaves open, by effect
-#: name: the offset and scale along a, the non-orthogonality angles between a and the plane
-#: (paper 004 eq. 2: psi is y-z, varphi x-y, theta x-z)
+#: name (paper 004 eq. 2: psi is y-z, varphi x-y, theta x-z)
 _HELD = {
     0: {'offset': ('bx',), 'scale': ('kx',), 'nonorthogonality': ('varphi', 'theta'),
         'soft_iron': ('a00', 'a01', 'a02', 'a10', 'a20')},
@@ -94,50 +65,31 @@ class PlanarResult:
     """
     A planar calibration.
 
-    Attributes
-    ----------
-    result : FitResult
-        The fit (held parameters at their prior, their stderr not meaningful).
-    axis : numpy.ndarray
-        (S, 3) unit turn axis n of each sensor, in its own frame.
-    axis_index : tuple of int
-        The sensor axis (0, 1, 2 for x, y, z) n is nearest to, per sensor.
-    held : tuple of int
-        Indices of the parameters with a prior in ``result.params``.
-    undetermined : tuple of str
-        Names (``<effect>.<param>@<sensor>``) of the sensor-map parameters whose posterior sd
-        stays above :data:`UNDETERMINED_RATIO` times the prior sd of their kind.
-    determined : tuple of str
-        The names of the other parameters.
-    heading : list of dict
-        Per sensor: :func:`heading_error` at the site's H and Z.
-    h_nt, z_nt : numpy.ndarray
-        (S,) horizontal and vertical field used for the heading error, nT.
-    residual_correlation : numpy.ndarray
-        (S,) lag-1 correlation of each sensor's scalar residual; the covariance is widened
-        by (1 + rho) / (1 - rho) for it (:func:`inflate_for_correlation`).
-
+    ``held`` indexes ``result.params``; the names are ``<effect>.<param>@<sensor>``,
+    undetermined those whose posterior sd stays above :data:`UNDETERMINED_RATIO` times
+    the prior sd of their kind.
     """
 
+    #: the fit (its covariance widened by :func:`inflate_for_correlation`)
     result: object
+    #: (S, 3) unit turn axis n of each sensor, in its own frame
     axis: np.ndarray
+    #: the sensor axis (0, 1, 2 for x, y, z) n is nearest to, per sensor
     axis_index: tuple
     held: tuple
     undetermined: tuple
     determined: tuple
+    #: per sensor, :func:`heading_error` at the site's H and Z
     heading: list
+    #: (S,) horizontal and vertical field used for the heading error, nT
     h_nt: np.ndarray
     z_nt: np.ndarray
+    #: (S,) lag-1 correlation of each sensor's scalar residual
     residual_correlation: np.ndarray
 
 
 def prior_sd(model, field_nt):
-    """
-    (P,) standard deviation of the prior on each parameter of ``model`` (:data:`PRIOR_SD`).
-
-    An offset's (nT) is a fraction of the field magnitude ``field_nt`` (nT), an angle's in
-    rad, any other (scale, dimensionless) as a scale's.
-    """
+    """(P,) :data:`PRIOR_SD` of each parameter of ``model`` (an offset's times ``field_nt``)."""
     return np.array([PRIOR_SD['offset'] * float(field_nt) if unit == 'nT' else
                      PRIOR_SD['angle'] if unit == 'rad' else PRIOR_SD['scale']
                      for _, _, _, unit in model.param_info()])
@@ -161,27 +113,12 @@ def fit_planar(data, model, field_nt, *, prior_params=None, inclination_deg=None
     """
     Fit ``model`` to a turn about one axis, the undetermined parameters held at a prior.
 
-    Parameters
-    ----------
-    data : Dataset
-        (S, N, 3) raw readings, nT, of a turn about one axis.
-    model : Model or str
-        The model ('base' or a spec).
-    field_nt : float or numpy.ndarray
-        Reference magnitude F, nT (scalar or (N,)).
-    prior_params : numpy.ndarray, optional
-        (P,) parameters the held ones are held at (the previous calibration's); default an
-        ideal sensor's (offset 0, scale 1, angles 0).
-    inclination_deg : float, optional
-        The site's inclination I (IGRF): H = F cos I, Z = F sin I for the heading error;
-        default the fitted field's own split.
-    **fit_kwargs
-        Passed to :func:`magcal_ros.core.model.fitting.fit`.
-
-    Returns
-    -------
-    PlanarResult
-
+    ``data`` (S, N, 3) nT readings of a turn about one axis; ``model`` a Model or spec;
+    ``field_nt`` F, nT, scalar or (N,); ``prior_params`` (P,) the values the held
+    parameters are held at (default an ideal sensor's); ``inclination_deg`` the site's
+    (IGRF; H = F cos I, Z = F sin I for the heading error; default the fitted field's own
+    split); ``fit_kwargs`` go to :func:`magcal_ros.core.model.fitting.fit`.  Returns a
+    :class:`PlanarResult`.
     """
     from magcal_ros.core.model.spec import Model
     if isinstance(model, str):
@@ -209,9 +146,8 @@ def fit_planar(data, model, field_nt, *, prior_params=None, inclination_deg=None
     kind_sd = prior_sd(model, float(np.mean(field_nt)))
     prior_list = [(i, float(p_prior[i]), float(kind_sd[i])) for i in held]
     init = fit_kwargs.pop('init', None)
-    # what the turn leaves open is held by priors alone: a long, flat valley whose floor
-    # the optimiser approaches in ever smaller steps; chi-square to 0.01 (a hundredth of a
-    # standard deviation along the valley) is the optimum for every purpose here
+    # what the turn leaves open is held by priors alone (a long, flat valley): chi-square
+    # to 0.01 is the optimum for every purpose here
     fit_kwargs.setdefault('max_nfev', 1000)
     fit_kwargs.setdefault('ftol', 0.01 / max(1, data.n_samples * data.n_sensors))
     if init is None:
@@ -245,14 +181,10 @@ def inflate_for_correlation(result):
     """
     Return the fit with its covariance widened for correlated residuals, and the (S,) rho.
 
-    The fit's covariance assumes independent residuals.  A turn is one continuous
-    trajectory, and what the model leaves (a hand's wobble, the sensor's own dynamics) is
-    correlated from one sample to the next: with a lag-1 correlation rho of the scalar
-    residual, the variance of a least-squares estimate grows by about (1 + rho) / (1 - rho)
-    (the AR(1) variance inflation, Bartlett 1946).  Each sensor's block is widened by it
-    (never narrowed).  On the real HMC5883L turn rho = 0.28: a factor 1.33 in the standard
-    uncertainties, without which its two halves' headings disagreed by 1.2 x (RMS) the
-    stated error.
+    With a lag-1 correlation rho of a sensor's scalar residual (a turn is one continuous
+    trajectory) the variance of a least-squares estimate grows by about (1 + rho) / (1 - rho)
+    (the AR(1) variance inflation, Bartlett 1946): each sensor's block is widened by it
+    (never narrowed).
     """
     from dataclasses import replace
     model = result.model
@@ -302,17 +234,11 @@ def heading_error(result, j, axis, axis_index, h_nt, z_nt, n_headings=72):
     Return the standard uncertainty of the heading of a level sensor j (fit's covariance).
 
     The sensor turns about ``axis`` (its own frame) at a site with horizontal field
-    ``h_nt`` and vertical ``z_nt`` (nT).  For each heading psi of a grid over [0, 360) deg
-    the raw reading the fitted model predicts is corrected with parameters moved along each
-    of sensor j's parameters, and the heading of the corrected field in the plane is
-    differentiated (central differences); the covariance of those parameters (the priors'
-    uncertainty included) gives its variance.
+    ``h_nt`` and vertical ``z_nt`` (nT); on a grid of headings the heading of the corrected
+    prediction is differentiated in sensor j's parameters (central differences) and
+    propagated through their covariance.
 
-    Returns
-    -------
-    dict
-        ``max_deg`` and ``rms_deg`` over psi, ``psi_deg`` (M,), ``sd_deg`` (M,).
-
+    Returns a dict: ``max_deg`` and ``rms_deg`` over psi, ``psi_deg`` (M,), ``sd_deg`` (M,).
     """
     model, p = result.model, result.params
     n = np.asarray(axis, float)
@@ -360,7 +286,7 @@ def planar_summary(pr):
     heading's standard uncertainty, level sensor at H, Z), ``field_split_nt``.
     """
     r = pr.result
-    info = r.model.param_info()
+    where = {(s, lab, nm): i for i, (s, lab, nm, _) in enumerate(r.model.param_info())}
     out = {'axis': {}, 'in_plane': {}, 'heading_error_deg': {}, 'heading_error_rms_deg': {},
            'field_split_nt': {}, 'determined': list(pr.determined),
            'undetermined': list(pr.undetermined)}
@@ -369,11 +295,7 @@ def planar_summary(pr):
         plane = [a for a in range(3) if a != k]
 
         def index(label, name, j=j):
-            for i, (s, lab, nm, _) in enumerate(info):
-                if s == j and lab == label and nm == name:
-                    return i
-            return None
-
+            return where.get((j, label, name))
         entry = {'axes': ''.join('xyz'[a] for a in plane)}
         off = [index('offset', 'b' + 'xyz'[a]) for a in plane]
         if None not in off:
@@ -408,11 +330,9 @@ def effective_offset(result, j, axis, axis_index, z_nt):
     """
     ((2,) nT, (2,) nT sd): the centre of the circle a level turn draws in the plane.
 
-    The in-plane readings of sensor j turning level at a site with vertical field ``z_nt``
-    (along ``axis``) are ``A_pp B_p + A_pn Z + o_p``: their centre ``A_pn Z + o_p`` is what
-    a level turn determines even where the offsets ``o_p`` and the out-of-plane angles in
-    ``A_pn`` are not determined one by one.  Its sd from the covariance (central
-    differences).
+    The in-plane readings of sensor j turning level in a vertical field ``z_nt`` (along
+    ``axis``) are ``A_pp B_p + A_pn Z + o_p``: a level turn determines their centre
+    ``A_pn Z + o_p``; its sd from the covariance (central differences).
     """
     model, p = result.model, result.params
     plane = [a for a in range(3) if a != axis_index]

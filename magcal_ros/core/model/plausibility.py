@@ -15,37 +15,21 @@
 """
 Fitted parameters no real sensor has, explained in words (issue 18, item 4).
 
-A working magnetometer has scale factors near +1 (within some tens of percent: gain
-tolerances), axes perpendicular to within a degree or so, is mounted within a few degrees of
-its drawing (paper 004, Table 1: 0.01-0.04 rad), and reads an offset that lies within the
-readings it produced.  A fit outside that range is right about the readings but says that
-something about the installation is not what the user thinks:
-
-- **det(A_j) < 0**: a mirrored (left-handed) sensor frame, which no rotation of a correct
-  sensor produces: an axis wired with reversed polarity, two axes' channels exchanged, or a
-  sensor mounted mirrored.  The model of paper 004 (S C_NO R, R a proper rotation) can only
-  fit it with a negative scale factor and angles near pi.  :func:`axis_maps` finds the signed
-  permutation M (reading = M x the sensor's axes) that brings A_j to a real sensor's
-  (M^T A_j nearest a positive diagonal), the calibration refits with the map recorded as the
-  effect ``axes(...)@j`` (no parameters: :class:`~magcal_ros.core.effects.AxisMap`), and
-  :func:`mounting_notes` says what it is.  A map with det +1 (two reversed axes, a 90 deg
-  turn) is a sensor mounted turned: found and recorded the same way.
-- a scale near a power of ten (1000, 1e-3, 1e5): readings in another unit than the reference
-  (pT, uT, gauss read as nT); far from one otherwise: a gain or range setting other than the
-  one the readings were converted with, or a wrong reference magnitude;
-- a non-orthogonality or a misalignment beyond :data:`ANGLE_WARN_DEG`;
-- an offset beyond every reading of its axis: the centre of the readings is outside what the
-  sensor measured (too little of the sphere covered, or clipped readings).
-
-:func:`parameter_notes` gives these as :class:`~magcal_ros.core.model.notes.Note` s of kind
-``parameters``, the maps as kind ``mounting``; each says what the calibration file records.
+A working magnetometer has scale factors near +1, axes perpendicular to within a degree or
+so, is mounted within a few degrees of its drawing (paper 004, Table 1) and reads an offset
+within its readings.  :func:`axis_maps` finds the signed permutation M (reading = M x the
+sensor's axes) of a mirrored or turned sensor frame (det A_j < 0, an axis wired reversed,
+two channels exchanged), which the calibration records as ``axes(...)@j``
+(:class:`~magcal_ros.core.effects.AxisMap`; :func:`mounting_notes`, Notes of kind
+``mounting``); :func:`parameter_notes` names a scale near a power of ten (a unit) or far
+from one (a gain), an angle beyond :data:`ANGLE_WARN_DEG` and an offset beyond every
+reading (Notes of kind ``parameters``).
 """
 from magcal_ros.core import effects as fx
 from magcal_ros.core.model.notes import Note
 import numpy as np
 
-#: a scale factor further than this from 1 (and not a unit factor) is far from one: real
-#: sensors' gains are within about 10 % of nominal (paper 004 Table 1: 1-3 %)
+#: a scale factor further than this from 1 (and not a unit factor) is far from one
 SCALE_FAR = 0.2
 #: non-orthogonality or misalignment angles beyond this are named, degrees
 ANGLE_WARN_DEG = 5.0
@@ -70,11 +54,10 @@ UNIT_WORDS = {
 
 def nearest_axis_map(a):
     """
-    Signed permutation M (3, 3) with M^T a nearest a positive diagonal.
+    Signed permutation M (3, 3) with M^T a nearest a positive diagonal, ``a`` (3, 3).
 
-    ``a`` (3, 3) a sensor's linear map (reading = a B + ...); M[i, k] = sign(a[i, k]) on the
-    assignment of reading axes i to sensor axes k that maximises sum |a[i, k]|
-    (``scipy.optimize.linear_sum_assignment``).
+    M[i, k] = sign(a[i, k]) on the assignment of reading axes i to sensor axes k that
+    maximises sum |a[i, k]| (``scipy.optimize.linear_sum_assignment``).
     """
     from scipy.optimize import linear_sum_assignment
     a = np.asarray(a, float)
@@ -88,10 +71,8 @@ def axis_maps(model, params):
     """
     {sensor j: M (3, 3)} of the sensors whose fitted map needs an axis map (M != I).
 
-    On top of a map the model already has (``axes(...)@j``) the new one is composed.  On
-    sensor 1, which defines the array frame with an upper-triangular map, only sign changes
-    are representable; a permutation there is left to the other sensors' misalignment (they
-    then all show the same map: :func:`mounting_notes` says so).
+    Composed with a map the model already has.  On sensor 1 (upper-triangular map) only
+    sign changes are representable; a permutation is left to the other sensors.
     """
     out = {}
     for j in range(1, model.n_sensors + 1):
@@ -145,15 +126,9 @@ def mounting_notes(maps, before, after, n_sensors):
     """
     Name each axis map found in a Note of kind ``mounting``.
 
-    Parameters
-    ----------
-    maps : dict
-        {sensor j: M (3, 3)} from :func:`axis_maps`.
-    before, after : dict
-        {sensor j: (scales (3,), largest angle deg)} of the fit without and with the maps.
-    n_sensors : int
-        Sensors of the array (a map shared by all of sensors 2..S points at sensor 1).
-
+    ``maps`` {sensor j: M (3, 3)} of :func:`axis_maps`; ``before``, ``after`` {sensor j:
+    (scales (3,), largest angle deg)} of the fit without and with them; ``n_sensors`` (a
+    map shared by all of sensors 2..S points at sensor 1).
     """
     out = []
     shared = (n_sensors >= 3 and sorted(maps) == list(range(2, n_sensors + 1))
@@ -194,9 +169,8 @@ def fitted_scales_angles(model, params):
     """
     {sensor j: (scales (3,), largest angle deg)} as the fit's parameters state them.
 
-    The scale effect's kx, ky, kz and the largest |angle| of its non-orthogonality and
-    misalignment (wrapped to +-180 deg); from the decomposition of A_j where the model has
-    other linear effects (soft iron).
+    The scale effect's kx, ky, kz and the largest |angle| (wrapped to +-180 deg); else from
+    the decomposition of A_j (soft iron).
     """
     lin = linear_summary(model, params)
     out = {}
@@ -226,17 +200,8 @@ def parameter_notes(model, params, raw, field_nt):
     """
     Name the fitted values no real sensor has, in Notes of kind ``parameters``.
 
-    Parameters
-    ----------
-    model : Model
-        The fitted model (with its axis maps).
-    params : numpy.ndarray
-        (P,) fitted parameters.
-    raw : numpy.ndarray
-        (S, N, 3) readings, nT.
-    field_nt : float
-        Reference magnitude the scales are relative to, nT.
-
+    ``model`` (with its axis maps) and its (P,) ``params``; ``raw`` (S, N, 3) readings, nT;
+    ``field_nt`` the reference magnitude the scales are relative to, nT.
     """
     from magcal_ros.core.model.calibration import Calibration
     cal = Calibration(model, params)
@@ -246,17 +211,15 @@ def parameter_notes(model, params, raw, field_nt):
               'provenance')
     scales = np.array([lin[j][0] for j in sorted(lin)])
     common = float(np.median(scales))
-    if (scales.size > 3 and abs(common - 1) > SCALE_FAR
-            and np.all(np.abs(scales / common - 1) < 0.1)):
+    scales_checked = not (scales.size > 3 and abs(common - 1) > SCALE_FAR
+                          and np.all(np.abs(scales / common - 1) < 0.1))
+    if not scales_checked:
         n = _unit_decade(common)
         why = (f'{UNIT_WORDS[n]}' if n in UNIT_WORDS else
                f'the reference magnitude ({field_nt:.0f} nT) is off by that factor, or every '
                'sensor is converted with the wrong gain')
         out.append(Note(f'every sensor: scale factors near {common:.4g} (a real sensor has '
                         f'near 1): {why}; {record}', 'parameters', None))
-        scales_checked = False
-    else:
-        scales_checked = True
     for j in sorted(lin):
         k, no, mis = lin[j]
         decades = {_unit_decade(kk) for kk in k}

@@ -13,33 +13,22 @@
 # limitations under the License.
 
 """
-The site gradient: its report, its Cramer-Rao bounds, the fit without attitude.
+The site gradient: its Cramer-Rao bounds with and without attitude, the fit without attitude.
 
-The site gradient: its report from a fit, its Cramer-Rao bounds with and without attitude,
-and the fit without attitude (the heading about the field estimated per epoch).
-
-The effect itself is :class:`magcal_ros.core.effects.SiteGradient` (docs/site_gradient.md has
-the physics and the identifiability analysis summarised here).  Units: nT, nT/m, m, rad.
+The effect itself is :class:`magcal_ros.core.effects.SiteGradient` (docs/site_gradient.md
+has the physics and the identifiability analysis).  Units: nT, nT/m, m, rad.
 """
+from magcal_ros.core.effects.base import rot_z
 from magcal_ros.core.geometry.tensor import symmetric_traceless
 from magcal_ros.core.model.engine import ProfiledProblem
+from magcal_ros.core.model.fitting import centred_readings
 from magcal_ros.core.model.solvers import covariance_from_jacobian, stderr_and_correlation
 import numpy as np
 
 
 def centred_fields(result):
-    """
-    (S, N, 3) nT corrected fields minus each sensor's modelled site shift (centre field).
-
-    Without array-wide effects this is ``result.corrected_nt`` itself.
-    """
-    model = result.model
-    if not model.array_effects:
-        return result.corrected_nt
-    shift = np.stack([model.array_shift(j, result.params, result.contexts[j - 1],
-                                        result.corrected_nt[j - 1])
-                      for j in range(1, model.n_sensors + 1)])
-    return result.corrected_nt - shift
+    """(S, N, 3) nT a fit's corrected fields less each sensor's site shift (centre field)."""
+    return centred_readings(result.model, result.params, result.corrected_nt, result.contexts)
 
 
 #: the frame of the site gradient found without attitude (:func:`fit_heading_unknown`)
@@ -47,6 +36,12 @@ FIELD_ALIGNED = 'field-aligned: z along the field, x along the part of G z perpe
 
 #: cases of :func:`crb_covariance`
 CRB_CASES = ('attitude', 'heading', 'epoch_gradient')
+
+
+def _site_gradient(model):
+    """Return (effect, slice) of ``model``'s site gradient, or None."""
+    return next(((e, sl) for e, sl in zip(model.array_effects, model.array_slices)
+                 if e.name == 'site_gradient'), None)
 
 
 def _null_dimension(jac, rtol=1e-12):
@@ -66,54 +61,26 @@ def crb_covariance(data, model, params, field_nt, sigma_nt, case='attitude', pos
     """
     Cramer-Rao bound of the calibration (and site gradient) with or without attitude.
 
-    The Fisher information of the joint ML problem at ``params`` (the truth), with the per-epoch
-    nuisances of each case eliminated (variable projection, as in the fit):
+    The Fisher information of the joint ML problem at ``params`` (the truth), with the
+    per-epoch nuisances of each case eliminated (variable projection, as in the fit):
 
-    - ``'attitude'``: attitude known; nuisance: the centre field B_k on the sphere |B| = F
-      (2 per epoch).  ``model`` has ``site_gradient``.
-    - ``'heading'``: attitude known only up to the rotation about the field (what a
-      magnetometer array can tell itself: the field direction in the body frame fixes two of
-      the three angles); nuisance: B_k and the angle psi_k about the field (3 per epoch).
-      The world gradient is then determined only up to a rotation about the field
-      direction (one gauge freedom: rotating G_w by delta about the field is the same as
-      shifting every psi_k by -delta); its covariance is given on the 4 gauge-free
-      directions, the gauge direction gets an infinite variance.  ``model`` has
-      ``site_gradient`` and the data the attitude (the truth, as linearisation point).
-    - ``'epoch_gradient'``: no attitude at all; the body-frame gradient of every epoch is a
-      nuisance restricted by symmetry and zero trace (5 per epoch, plus B_k).  ``model`` has
-      no ``site_gradient`` (there is no constant world tensor left to estimate).
+    - ``'attitude'``: attitude known; nuisance: B_k on the sphere |B| = F (2 per epoch);
+    - ``'heading'``: attitude known up to the rotation psi_k about the field (3 per epoch);
+      G_w is then determined up to a rotation about the field (the gauge), its covariance
+      given on the 4 gauge-free directions; the data carry the true attitude;
+    - ``'epoch_gradient'``: no attitude; the body-frame gradient of every epoch is a
+      nuisance (5 per epoch, plus B_k); ``model`` has no ``site_gradient``.
 
-    Parameters
-    ----------
-    data : Dataset
-        Raw readings (S, N, 3) nT; with ``attitude`` for 'attitude' and 'heading'.
-    model : Model
-        Joint model (misalignment on sensors 2..S, or an array-wide effect).
-    params : numpy.ndarray
-        (P,) parameters at which the information is evaluated (the truth), units of
-        ``model.param_info()``.
-    field_nt : float or numpy.ndarray
-        Reference magnitude at the array centre, nT, scalar or (N,).
-    sigma_nt : float or numpy.ndarray
-        Per-axis noise sd, nT, scalar or (S,).
-    case : {'attitude', 'heading', 'epoch_gradient'}
-        What is known of the attitude (the cases above).
-    positions : numpy.ndarray, optional
-        (S, 3) sensor positions, m, for 'epoch_gradient' (default: paper 004's cross, 0.5 m).
-    fix_gyz : bool
-        'heading': fix the gauge by gyz = 0 (the frame of :func:`fit_heading_unknown`)
-        instead of bounding the 4 directions orthogonal to the gauge.
+    ``data`` (S, N, 3) nT readings (with the attitude for 'attitude' and 'heading'),
+    ``model`` joint, ``params`` (P,) the point of evaluation, ``field_nt`` nT at the centre
+    (scalar or (N,)), ``sigma_nt`` per-axis noise sd, nT (scalar or (S,)); ``positions``
+    (S, 3) m for 'epoch_gradient' (default paper 004's 0.5 m cross); ``fix_gyz``: the
+    'heading' gauge fixed by gyz = 0 (:func:`fit_heading_unknown`'s frame).
 
-    Returns
-    -------
-    dict
-        ``covariance`` (P, P) bound in the parameters' units squared, inf where the case
-        leaves a parameter undetermined (for 'heading': the whole gradient block);
-        ``gradient_covariance`` (5, 5) (nT/m)^2 of (gxx, gxy, gxz, gyy, gyz) on the
-        gauge-free directions ('heading') or None; ``gauge_direction`` (5,) or None;
-        ``undetermined_directions``: how many parameter combinations the data cannot
-        determine at all ('epoch_gradient').
-
+    Returns a dict: ``covariance`` (P, P) in the parameters' units squared, inf where
+    undetermined (for 'heading': the gradient block); ``gradient_covariance`` (5, 5)
+    (nT/m)^2 on the gauge-free directions ('heading') or None; ``gauge_direction`` (5,) or
+    None; ``undetermined_directions`` (count; 'epoch_gradient').
     """
     if case not in CRB_CASES:
         raise ValueError(f'unknown case {case!r}; use one of {CRB_CASES}')
@@ -135,11 +102,10 @@ def crb_covariance(data, model, params, field_nt, sigma_nt, case='attitude', pos
     p, b, mats, _ = prob.evaluate(x)
     n = data.n_samples
     if case == 'heading':
-        site = [(e, sl) for e, sl in zip(model.array_effects, model.array_slices)
-                if e.name == 'site_gradient']
-        if not site or contexts[0].attitude is None:
+        site = _site_gradient(model)
+        if site is None or contexts[0].attitude is None:
             raise ValueError("case 'heading' needs a model with site_gradient and the attitude")
-        eff, sl = site[0]
+        eff, sl = site
         rot = contexts[0].attitude
         n_w = np.einsum('nij,nj->ni', rot, b).mean(axis=0)
         n_w /= np.linalg.norm(n_w)
@@ -201,25 +167,15 @@ def _align_to_z(u):
     return Rotation.from_rotvec(axis * ang[:, None]).as_matrix()
 
 
-def _rz(psi):
-    """(N, 3, 3) rotations by psi (N,) rad about z."""
-    c, s = np.cos(psi), np.sin(psi)
-    out = np.zeros((len(psi), 3, 3))
-    out[:, 0, 0], out[:, 0, 1], out[:, 1, 0], out[:, 1, 1] = c, -s, s, c
-    out[:, 2, 2] = 1.0
-    return out
-
-
 def _best_heading(shift, r_a, g_w, positions, psi0=None):
     """
     Per-epoch heading psi_k (N,) rad minimising sum_j |shift_j - R^T G R r_j|^2.
 
     R = Rz(psi) R_a; ``shift`` (S, N, 3) nT the corrected fields minus their mean over the
-    sensors (the centre field cancels for an array centred on its origin).  Grid of 5 deg,
-    then Newton steps on the 1-D cost.
+    sensors.  Grid of 5 deg (or ``psi0``), then Newton steps on the 1-D cost.
     """
     def cost(psi):
-        rot = _rz(psi) @ r_a
+        rot = rot_z(psi) @ r_a
         pred = np.einsum('nji,jk,nkl,sl->sni', rot, g_w, rot, positions)
         return np.sum((shift - pred) ** 2, axis=(0, 2))
 
@@ -245,49 +201,29 @@ def fit_heading_unknown(data, model='base,site_gradient', field_nt=None, n_iter=
     """
     Calibrate the cross in a site gradient without attitude (heading per epoch unknown).
 
-    The analysis of docs/site_gradient.md (case 'heading'): the field direction u_k in the
-    body frame gives two of the three attitude angles, R_k = Rz(psi_k) R_a(u_k) in a
-    field-aligned world frame (z along the field), and the cross measures the body-frame
-    tensor at every epoch, which fixes psi_k once the world gradient is not symmetric about
-    the field.  Block-coordinate maximum likelihood: start from the uniform-field fit; then
-    alternately (a) estimate every psi_k with the calibration fixed (1-D, from the sensors'
-    differences, which do not depend on the centre field), and (b) refit the calibration and
-    G_w with the attitudes R_k so built (:func:`magcal_ros.core.model.fit`).  The gauge (the
+    The analysis of docs/site_gradient.md (case 'heading'): R_k = Rz(psi_k) R_a(u_k) in a
+    field-aligned world frame (z along the field, u_k the field direction in the body
+    frame).  Block-coordinate maximum likelihood from the uniform-field fit: alternately
+    (a) every psi_k with the calibration fixed (1-D, from the sensors' differences), and
+    (b) the calibration and G_w refitted with the attitudes so built.  The gauge (the
     rotation of G_w about the field) is fixed by gyz = 0.  Standard uncertainties come from
-    the Cramer-Rao bound of the heading case at the solution (:func:`crb_covariance`,
-    psi_k profiled), not from the fit with the psi_k taken as known.
+    the Cramer-Rao bound of the heading case (:func:`crb_covariance`, psi_k profiled).
 
-    Parameters
-    ----------
-    data : Dataset
-        (4, N, 3) nT readings of the cross; an attitude, if present, is not used.
-    model : str or Model
-        Must contain ``site_gradient``.
-    field_nt : float or numpy.ndarray, optional
-        Reference magnitude at the array centre, nT.
-    n_iter : int
-        Most alternations (a)-(b); they stop earlier when no parameter moves by more than
-        1 % of its standard uncertainty.
-
-    Returns
-    -------
-    FitResult
-        ``params`` with the gradient in the field-aligned frame (z along the field, x along
-        the part of G_w z perpendicular to the field); ``covariance``/``stderr`` from the
-        heading-case bound; ``contexts`` carry the estimated attitudes; ``warnings`` say
-        what the frame is.
-
+    ``data`` (4, N, 3) nT readings of the cross (an attitude is not used); ``model`` with
+    ``site_gradient``; ``field_nt`` nT at the centre; ``n_iter`` most alternations (fewer
+    when no parameter moves by 1 % of its standard uncertainty).  Returns a FitResult with
+    the gradient in the field-aligned frame (:data:`FIELD_ALIGNED`), ``stderr`` from the
+    heading-case bound and ``contexts`` with the estimated attitudes.
     """
     from dataclasses import replace
     from magcal_ros.core import model as mdl
     from scipy.spatial.transform import Rotation
     if isinstance(model, str):
         model = mdl.Model.from_spec(model, data.n_sensors)
-    site = [(e, sl) for e, sl in zip(model.array_effects, model.array_slices)
-            if e.name == 'site_gradient']
-    if not site:
+    site = _site_gradient(model)
+    if site is None:
         raise ValueError('fit_heading_unknown needs a model with site_gradient')
-    eff, sl = site[0]
+    eff, sl = site
     positions = np.stack([eff.position(j) for j in range(1, model.n_sensors + 1)])
     if np.abs(positions.mean(axis=0)).max() > 1e-9:
         raise ValueError('fit_heading_unknown needs sensor positions centred on the origin '
@@ -314,14 +250,14 @@ def fit_heading_unknown(data, model='base,site_gradient', field_nt=None, n_iter=
             g_b, _ = tensor_lstsq(c, positions)
             m_k = np.einsum('nij,njk,nlk->nil', r_a, g_b, r_a)
             psi = -np.angle(m_k[:, 0, 2] + 1j * m_k[:, 1, 2])
-            rot = _rz(psi) @ r_a
+            rot = rot_z(psi) @ r_a
             g_w = np.einsum('nij,njk,nlk->il', rot, g_b, rot) / len(psi)   # mean R G_b R^T
             g_w = 0.5 * (g_w + g_w.T)
             g_w -= np.trace(g_w) / 3 * np.eye(3)
         else:
             g_w = eff.tensor(p[sl])
         psi = _best_heading(shift, r_a, g_w, positions, psi0=psi)
-        att = Rotation.from_matrix(_rz(psi) @ r_a).as_quat(scalar_first=True)
+        att = Rotation.from_matrix(rot_z(psi) @ r_a).as_quat(scalar_first=True)
         if it == 0:
             p[sl] = [g_w[0, 0], g_w[0, 1], g_w[0, 2], g_w[1, 1], g_w[1, 2]]
         res = mdl.fit(replace(bare, attitude=att), model, field_nt=field_nt, init=p,
@@ -333,10 +269,10 @@ def fit_heading_unknown(data, model='base,site_gradient', field_nt=None, n_iter=
     # gauge: rotate the world frame about the field so that gyz = 0 (gxz >= 0)
     g_w = eff.tensor(p[sl])
     phi = np.angle(g_w[0, 2] + 1j * g_w[1, 2])
-    rz = _rz(np.array([phi]))[0]
+    rz = rot_z(np.array([phi]))[0]
     g_w = rz.T @ g_w @ rz
     p[sl] = [g_w[0, 0], g_w[0, 1], g_w[0, 2], g_w[1, 1], 0.0]
-    att = Rotation.from_matrix(_rz(psi - phi) @ r_a).as_quat(scalar_first=True)
+    att = Rotation.from_matrix(rot_z(psi - phi) @ r_a).as_quat(scalar_first=True)
     fixed = replace(bare, attitude=att)
     # the fit's noise estimate counted 3 S - 2 residual degrees of freedom per epoch; the
     # heading psi_k takes one more

@@ -16,12 +16,7 @@
 Solvers of the maximum-likelihood fit: Levenberg-Marquardt, the covariance, one BLAS thread.
 
 Also :func:`mad_sd`, the robust sd the fit and the noise floor (core/data/noise.py) use.
-
-:func:`levenberg_marquardt` minimises a sum of squared (or soft-L1) residuals given the
-residual and Jacobian functions of :class:`magcal_ros.core.model.engine.ProfiledProblem`;
-:func:`covariance_from_normal` (:func:`covariance_from_jacobian`) turns J^T J of the
-projected Jacobian at the solution into the parameter covariance (the Cramer-Rao bound,
-docs/papers.md, "The maximum-likelihood engine").
+The covariance is the Cramer-Rao bound (docs/papers.md, "The maximum-likelihood engine").
 """
 import contextlib
 from dataclasses import dataclass
@@ -36,10 +31,9 @@ def mad_sd(x):
     """
     Gaussian-consistent sd from the median absolute deviation (unit of x).
 
-    MAD / Phi^-1(3/4) = 1.4826 MAD of the values of ``x`` (any shape, flattened; nan when
-    empty): the numbers of scipy.stats.median_abs_deviation(scale='normal') (test_noise),
-    written with numpy because importing scipy.stats cost every process that fits 0.5-0.8 s
-    of CPU (scipy 1.17 parses its docstrings at import; BENCHMARKS.md, "Start-up").
+    1.4826 MAD of the values of ``x`` (any shape, flattened; nan when empty):
+    scipy.stats.median_abs_deviation(scale='normal'), without importing scipy.stats (slow
+    to import; BENCHMARKS.md, "Start-up").
     """
     x = np.asarray(x, float).ravel()
     if not x.size:
@@ -52,18 +46,8 @@ class Solution:
     """
     Outcome of :func:`levenberg_marquardt` (the fields of scipy's OptimizeResult used here).
 
-    Attributes
-    ----------
-    x : numpy.ndarray
-        (P,) the solution.
-    success : bool
-    status : int
-        0: evaluation limit, 2: cost decrease below ftol (or no further decrease),
-        3: step below xtol.
-    message : str
-    nfev : int
-        Residual evaluations.
-
+    ``x`` (P,) the solution; ``status`` 0: evaluation limit, 2: cost decrease below ftol
+    (or no further decrease), 3: step below xtol; ``nfev`` residual evaluations.
     """
 
     x: np.ndarray
@@ -78,40 +62,17 @@ def levenberg_marquardt(fun, jac, x0, robust=False, f_scale=3.0, max_nfev=200, x
     """
     Minimise sum rho(r_i^2) by Levenberg-Marquardt on the normal equations.
 
-    rho is the identity or the soft-L1 loss 2 f^2 (sqrt(1 + r^2/f^2) - 1) (handled by
-    iteratively reweighted least squares).  Marquardt's diagonal scaling makes the damping
-    invariant to parameter units (Marquardt 1963).  The iteration reads the Jacobian only
-    through J^T J and J^T r: with the squares loss ``normal`` may supply them directly
-    (:meth:`magcal_ros.core.model.engine.ProfiledProblem.normal_equations`, without the tall
-    Jacobian); the soft-L1 loss weights the rows of J and needs ``jac``.
+    rho is the identity or the soft-L1 loss 2 f^2 (sqrt(1 + r^2/f^2) - 1) (iteratively
+    reweighted least squares); Marquardt's diagonal scaling makes the damping invariant to
+    parameter units (Marquardt 1963).
 
-    Parameters
-    ----------
-    fun : callable
-        x (P,) -> residuals (M,), dimensionless (normalised by the noise sd).
-    jac : callable or None
-        x (P,) -> Jacobian (M, P) of ``fun``; None only with ``normal`` and ``robust``
-        False.
-    x0 : numpy.ndarray
-        (P,) start.
-    robust : bool
-        Soft-L1 loss instead of squares.
-    f_scale : float
-        Scale of the soft-L1 loss, in the residuals' unit.
-    max_nfev : int
-        Most residual evaluations.
-    xtol, ftol : float
-        Relative step and relative cost decrease that stop the iteration (a rejected step
-        whose actual and predicted changes of the cost are both below ftol also stops it:
-        the cost is at its minimum to rounding).
-    normal : callable, optional
-        x (P,) -> (J^T J (P, P), J^T r (P,)) of ``fun`` at x, used instead of ``jac`` for
-        the squares loss (ignored with ``robust``).
-
-    Returns
-    -------
-    Solution
-
+    ``fun``: x (P,) -> residuals (M,), normalised by the noise sd; ``jac``: x -> (M, P)
+    Jacobian (None only with ``normal`` and not ``robust``); ``normal``: x -> (J^T J (P, P),
+    J^T r (P,)), used instead of ``jac`` for the squares loss; ``x0`` (P,) start;
+    ``robust``: the soft-L1 loss of scale ``f_scale`` (the residuals' unit); ``max_nfev``
+    most residual evaluations; ``xtol``, ``ftol`` the relative step and cost decrease that
+    stop the iteration (as does a rejected step whose actual and predicted changes of the
+    cost are both below ftol).  Returns a :class:`Solution`.
     """
     def cost(r):
         if robust:
@@ -153,10 +114,8 @@ def levenberg_marquardt(fun, jac, x0, robust=False, f_scale=3.0, max_nfev=200, x
             c_new = cost(r_new)
             if c_new <= c:
                 break
-            # at the minimum a step changes the cost by rounding only, up or down: both the
-            # predicted and the actual change below ftol is convergence (MINPACK's ftol
-            # test, More 1978, docs/papers.md), not a reason to raise the damping until
-            # max_nfev
+            # at the minimum a step changes the cost by rounding only: both the predicted
+            # and the actual change below ftol is convergence (MINPACK's ftol test, More 1978)
             predicted = -float(g @ step) - 0.5 * float(step @ a @ step)
             if max(predicted, c_new - c) <= ftol * max(c, 1e-300):
                 return Solution(x, True, 2, 'cost decrease below ftol', nfev)
@@ -181,24 +140,7 @@ def levenberg_marquardt(fun, jac, x0, robust=False, f_scale=3.0, max_nfev=200, x
 
 
 def covariance_from_jacobian(jac):
-    """
-    Return the (P, P) inverse of J^T J with column scaling; inf for undetermined directions.
-
-    :func:`covariance_from_normal` of ``jac.T @ jac``.
-
-    Parameters
-    ----------
-    jac : numpy.ndarray
-        (M, P) Jacobian of residuals normalised by the noise sd
-        (:meth:`magcal_ros.core.model.engine.ProfiledProblem.jacobian`).
-
-    Returns
-    -------
-    numpy.ndarray
-        (P, P) covariance in the parameters' units squared: the Cramer-Rao bound at the
-        solution.
-
-    """
+    """(P, P) :func:`covariance_from_normal` of ``jac.T @ jac``, ``jac`` (M, P) normalised."""
     return covariance_from_normal(jac.T @ jac)
 
 
@@ -206,26 +148,14 @@ def covariance_from_normal(a):
     """
     Return the (P, P) inverse of J^T J with column scaling; inf for undetermined directions.
 
-    The columns are scaled to unit norm (d_i = sqrt((J^T J)_ii)) before the
-    eigendecomposition, so the rule below does not depend on the parameters' units.  A
-    pseudo-inverse would silently give *zero* variance along directions the data do not
-    determine; here such parameters (those with a weight above 1e-6 in an eigenvector of
-    the scaled matrix whose eigenvalue is below 1e-14 of the largest) get an infinite
-    standard uncertainty instead.
+    The columns are scaled to unit norm before the eigendecomposition, so the rule does not
+    depend on the parameters' units.  A parameter with a weight above 1e-6 in an
+    eigenvector whose eigenvalue is below 1e-14 of the largest gets an infinite standard
+    uncertainty (a pseudo-inverse would give it zero).
 
-    Parameters
-    ----------
-    a : numpy.ndarray
-        (P, P) J^T J of residuals normalised by the noise sd
-        (:meth:`magcal_ros.core.model.engine.ProfiledProblem.normal_equations`), in
-        1 / (unit of parameter i x unit of parameter j).
-
-    Returns
-    -------
-    numpy.ndarray
-        (P, P) covariance in the parameters' units squared: the Cramer-Rao bound at the
-        solution.
-
+    ``a`` (P, P) J^T J of residuals normalised by the noise sd, in 1 / (unit of parameter
+    i x unit of parameter j); returns the (P, P) covariance in the parameters' units
+    squared.
     """
     d = np.sqrt(np.clip(np.diag(a), 0.0, None))
     d[d == 0] = 1.0
@@ -244,30 +174,13 @@ def covariance_from_normal(a):
 
 def resolves_covariance(a, rcond=1e-8):
     """
-    Return True when J^T J formed block by block determines the covariance to rounding.
+    Return True when J^T J formed block by block, ``a`` (P, P), determines the covariance.
 
-    :meth:`magcal_ros.core.model.engine.ProfiledProblem.normal_equations` subtracts the field
-    directions' part from D^T D of the unprojected columns D, so its rounding in the
-    column-scaled matrix is about eps |D_i| |D_k| / (|J_i| |J_k|) instead of eps: up to
-    ~1e-13 when a column lies mostly along the field directions (|D_i| / |J_i| ~ 20 for an
-    offset and scale along a turntable's axis).  A smallest scaled eigenvalue above
-    ``rcond`` (1e-8) of the largest carries a relative error below 1e-5, and so does the
-    variance along it; below, the undetermined directions (:func:`covariance_from_normal`:
-    eigenvalues below 1e-14) are not resolved and the caller forms the covariance from the
-    projected Jacobian (:func:`covariance_from_jacobian`), whose rounding is eps.
-
-    Parameters
-    ----------
-    a : numpy.ndarray
-        (P, P) J^T J, as for :func:`covariance_from_normal`.
-    rcond : float
-        Smallest eigenvalue of the column-scaled matrix, relative to its largest, that the
-        block-formed matrix resolves.
-
-    Returns
-    -------
-    bool
-
+    :meth:`~magcal_ros.core.model.engine.ProfiledProblem.normal_equations` subtracts the
+    field directions' part from D^T D, so its rounding in the column-scaled matrix is about
+    eps |D_i| |D_k| / (|J_i| |J_k|), up to ~1e-13.  A smallest scaled eigenvalue above
+    ``rcond`` of the largest carries a relative error below 1e-5; below it the caller forms
+    the covariance from the projected Jacobian (:func:`covariance_from_jacobian`).
     """
     d = np.sqrt(np.clip(np.diag(a), 0.0, None))
     if np.any(d == 0):
@@ -277,13 +190,7 @@ def resolves_covariance(a, rcond=1e-8):
 
 
 def single_threaded_blas():
-    """
-    Return a context that limits BLAS to one thread (optional threadpoolctl).
-
-    The fit's linear algebra is tall-skinny products and P x P solves; on small machines
-    shared with other processes (a robot's computer, CI), BLAS threads only contend:
-    measured 2-6x slower with two threads on a loaded 2-core machine (bench/).
-    """
+    """Return a context that limits BLAS to one thread (threads only contend here, bench/)."""
     try:
         from threadpoolctl import threadpool_limits
     except ImportError:                   # pragma: no cover - optional dependency
@@ -292,22 +199,7 @@ def single_threaded_blas():
 
 
 def stderr_and_correlation(cov):
-    """
-    Return the standard uncertainties and the correlation matrix of a covariance.
-
-    Parameters
-    ----------
-    cov : numpy.ndarray
-        (P, P) covariance, in the parameters' units squared (inf: undetermined).
-
-    Returns
-    -------
-    stderr : numpy.ndarray
-        (P,) square roots of the diagonal.
-    corr : numpy.ndarray
-        (P, P) correlation, 0 where undefined, 1 on the diagonal.
-
-    """
+    """Return (stderr (P,), correlation (P, P), 0 where undefined) of ``cov`` (P, P)."""
     stderr = np.sqrt(np.clip(np.diag(cov), 0, None))
     with np.errstate(invalid='ignore', divide='ignore'):
         corr = cov / np.outer(stderr, stderr)

@@ -15,18 +15,12 @@
 """
 Composable calibration models of a magnetometer array: :class:`Model`.
 
-A :class:`Model` is a list of effects per sensor (see :mod:`magcal_ros.core.effects`) with a
-flat parameter vector, built from a spec string (``Model.from_spec('base,temperature@2',
-4)``, docs/design.md §2).  It predicts the raw reading of each sensor from the true field
-(:meth:`Model.forward`) and inverts that prediction (:meth:`Model.correct`).
-
-With one sensor, or with sensors that are not tied together by a misalignment term, the fit
-is the usual scalar calibration (each sensor's own field estimate); with misalignment on the
-other sensors the sensors share one field per epoch, which uses both the scalar constraint
-and the inter-sensor vector consistency (:attr:`Model.joint`, :attr:`Model.sensor_groups`).
-
-The fit, the engine and the live calibration are the package's other modules
-(:mod:`magcal_ros.core.model`); this module holds the model alone and imports none of them.
+A :class:`Model` is a list of effects per sensor (:mod:`magcal_ros.core.effects`) with a
+flat parameter vector, built from a formula (``Model.from_spec('base,temperature@2', 4)``,
+docs/design.md §2).  It predicts the raw reading of each sensor from the true field
+(:meth:`Model.forward`) and inverts that prediction (:meth:`Model.correct`).  Sensors tied
+by a frame rotation (misalignment) or an array-wide effect share one field per epoch
+(:attr:`Model.joint`); otherwise each is fitted alone.
 """
 import hashlib
 
@@ -36,30 +30,19 @@ import numpy as np
 __all__ = ['data_hash', 'Model']
 
 
-# -- model ----------------------------------------------------------------------------------
-
 class Model:
     """
     Effects per sensor, with a flat parameter vector.
 
-    Parameters
-    ----------
-    effects : list of list of Effect
-        ``effects[j-1]`` are the effects of sensor j.
-    array_effects : list of Effect, optional
-        Effects with one set of parameters for the whole array (``scope = 'array'``, e.g.
-        ``site_gradient``); their parameters follow those of the sensors in the vector.
-    drops : sequence of tuple, optional
-        The ``drop`` terms: (t0, t1) s, every sensor, or (t0, t1, sensors) with ``sensors``
-        a sequence of 1-based sensors (``drop(t0, t1)@J``) or None (every sensor).
-
+    ``effects[j-1]`` are the effects of sensor j; ``array_effects`` have one parameter set
+    for the whole array (``scope = 'array'``), after the sensors'; ``drops`` the ``drop``
+    terms, (t0, t1) s or (t0, t1, sensors), ``sensors`` 1-based or None (every sensor).
     """
 
     def __init__(self, effects, array_effects=(), drops=()):
         self.effects = [list(e) for e in effects]
         self.array_effects = list(array_effects)
-        #: (t0, t1, sensors) the fit leaves out: t0, t1 in s, ``sensors`` a tuple of 1-based
-        #: sensors (``drop(t0, t1)@J``) or None (``drop(t0, t1)``: every sensor)
+        #: (t0, t1, sensors) the fit leaves out, as the argument ``drops``
         self.drops = []
         for w in drops:
             who = tuple(int(j) for j in w[2]) if len(w) > 2 and w[2] is not None else None
@@ -76,12 +59,7 @@ class Model:
         self._layout()
 
     def _layout(self):
-        """
-        Lay the parameters out: each sensor's own, the array effects', the shared ones.
-
-        An effect with ``shared`` set (a composed term ``@alike``) has one parameter set for
-        every sensor: its instances on the sensors share one slice after the array effects.
-        """
+        """Lay the parameters out: each sensor's own, the array effects', the shared (@alike)."""
         self.slices = []
         self.sensor_slices = []
         i = 0
@@ -136,19 +114,11 @@ class Model:
         """
         Build a model from a formula (:func:`magcal_ros.core.effects.formula.parse`).
 
-        ``spec`` is formula text (``'base + offset(s(t, k=6))@2'``, ``'base,temperature@2'``),
-        a list of terms or a Formula.  ``base`` expands to offset, scale,
-        nonorthogonality, misalignment; ``term@j`` restricts a term to sensor j,
-        ``@{j,k}`` to those sensors, ``@alike`` shares one parameter set between every
-        sensor; ``aux:<column>`` couples an auxiliary channel; ``drop(t0, t1)`` leaves a
-        window out of the fit (``drop(t0, t1)@j``: sensor j's readings in it).  Effects
-        that do not exist on sensor 1
-        (``Effect.on_sensor1`` False: the misalignment, sensor 1 defines the array frame)
-        are dropped there; linear effects are multiplied in the order of their
-        ``Effect.linear_order``.
+        ``spec`` is formula text (``'base + offset(s(t, k=6))@2'``), a list of terms or a
+        Formula (docs/formulas.md).  Effects with ``Effect.on_sensor1`` False are dropped
+        on sensor 1; linear effects are multiplied in the order of ``Effect.linear_order``.
         """
-        from magcal_ros.core.effects.formula import parse
-        from magcal_ros.core.effects.formula import composed_effect
+        from magcal_ros.core.effects.formula import composed_effect, parse
         formula = parse(spec)
         per_sensor = [[] for _ in range(n_sensors)]
         seen = [set() for _ in range(n_sensors)]
@@ -228,12 +198,7 @@ class Model:
             for a, b, who in self.drops]
 
     def with_effect(self, token):
-        """
-        Return a new model with ``token`` (e.g. 'temperature@2') added.
-
-        The array effects keep their references (the sensor positions of a site gradient,
-        the attitude's estimated error): the spec does not carry them.
-        """
+        """Return a new model with ``token`` added; the array effects keep their references."""
         new = Model.from_spec(self.spec() + [token], self.n_sensors)
         old = {e.label: e for e in self.array_effects}
         for eff in new.array_effects:
@@ -245,8 +210,7 @@ class Model:
         """
         Give this model's effects the reference values of the same effects in ``other``.
 
-        Per sensor and for the array, matched by label: a model built again from ``other``'s
-        spec then means by its parameters what ``other`` does (a driver centred on the same
+        Per sensor and for the array, matched by label (a driver centred on the same
         calibration mean); references ``other`` lacks are left to :meth:`prepare`.
         """
         for row_s, row_d in zip(other.effects, self.effects):
@@ -261,12 +225,7 @@ class Model:
         return self
 
     def reading_mask(self, t):
-        """
-        Return (S, N) bool: the readings at times ``t`` (N,) s the fit uses.
-
-        Sensor j's reading of a set is left out when the set is in a ``drop(t0, t1)``
-        window (every sensor) or a ``drop(t0, t1)@j`` one (sensor j alone).
-        """
+        """Return (S, N) bool: the readings at times ``t`` (N,) s the ``drop`` terms keep."""
         t = np.asarray(t, float)
         keep = np.ones((self.n_sensors, len(t)), bool)
         for a, b, who in self.drops:
@@ -276,12 +235,7 @@ class Model:
         return keep
 
     def fit_mask(self, t):
-        """
-        Return (N,) bool: the sets at times ``t`` (N,) s the fit uses.
-
-        A set is left out when every sensor's reading is (:meth:`reading_mask`); a set where
-        some sensors' readings are dropped keeps the others'.
-        """
+        """Return (N,) bool: the sets at times ``t`` (N,) s that keep a reading."""
         return self.reading_mask(t).any(axis=0)
 
     def has(self, j, name):
@@ -294,12 +248,7 @@ class Model:
 
     @property
     def joint(self):
-        """
-        Whether the sensors are tied to one field per epoch.
-
-        True with an array-wide effect, or a frame rotation on j > 1 (misalignment, soft
-        iron).
-        """
+        """Whether the sensors share one field per epoch (array-wide effect, frame rotation)."""
         return self.n_sensors > 1 and (
             bool(self.array_effects) or bool(self.shared_slices)
             or any(self.frame_rotation(j) for j in range(2, self.n_sensors + 1)))
@@ -357,8 +306,6 @@ class Model:
                 out.append(f'{eff.label}: {why}')
         return out
 
-    # -- evaluation ------------------------------------------------------------------------
-
     def matrix(self, j, p):
         """(3, 3) linear map A_j of sensor j for the global parameter vector p."""
         a = np.eye(3)
@@ -377,11 +324,9 @@ class Model:
 
     def array_shift(self, j, p, ctx, b=None):
         """
-        (N, 3) nT field at sensor j minus the field ``b`` at the array centre (array effects).
+        (N, 3) nT field at sensor j minus the centre field ``b`` (N, 3) nT (array effects).
 
-        Effects that read the field (``reads_field``: the ``field`` coupling, a change of
-        the field's magnitude) contribute only when ``b`` (N, 3) nT is given: without it
-        this is the site shift alone (what centred readings subtract).
+        Effects that read the field (``reads_field``) contribute only when ``b`` is given.
         """
         out = np.zeros((len(ctx.t), 3))
         for eff, sl in zip(self.array_effects, self.array_slices):
@@ -394,12 +339,9 @@ class Model:
 
     def forward(self, j, p, b, ctx, a=None, add=None):
         """
-        Raw reading of sensor j (N, 3) nT for true field b (N, 3) nT in the array frame.
+        Raw reading of sensor j (N, 3) nT for true field b (N, 3) nT at the array centre.
 
-        ``b`` is the field at the array centre; array-wide effects (site gradient) shift it
-        to the sensor's position before the sensor's linear map.  ``a`` (3, 3): A_j at p
-        when the caller has it; ``add`` (N, 3) nT: :meth:`additive` at p when the caller
-        has it and it does not depend on the field (:meth:`fixed_additive`).
+        ``a`` (3, 3) A_j and ``add`` (N, 3) nT :meth:`fixed_additive` at p, when known.
         """
         if self.array_effects:
             b = b + self.array_shift(j, p, ctx, b)
@@ -407,51 +349,20 @@ class Model:
         return lin + (self.additive(j, p, ctx, lin) if add is None else add)
 
     def fixed_additive(self, j, p, ctx, n):
-        """
-        Return (n, 3) nT :meth:`additive` of sensor j at p when it does not depend on the field.
-
-        None when one of sensor j's additive effects reads the field (``depends_on_lin``):
-        callers that evaluate :meth:`forward` at several fields and the same p pass it as
-        ``add`` instead of recomputing every effect each time.
-        """
+        """Return (n, 3) nT :meth:`additive` of sensor j at p, or None when it reads the field."""
         if any(e.depends_on_lin() for e in self.effects[j - 1] if e.kind != 'linear'):
             return None
         return self.additive(j, p, ctx, np.zeros((n, 3)))
 
     def forward_differences(self, j, p, b, ctx, cols, base=None):
         """
-        Forward differences of sensor j's reading in parameters ``cols``, for Jacobians.
+        Return (diff, h): forward differences of sensor j's reading in the parameters ``cols``.
 
-        Parameters
-        ----------
-        j : int
-            1-based sensor.
-        p : numpy.ndarray
-            (P,) parameters.
-        b : numpy.ndarray
-            (N, 3) true field at the array centre, nT.
-        ctx : SensorContext
-            Sensor j's driving signals.
-        cols : sequence of int
-            Global parameter indices.
-        base : numpy.ndarray, optional
-            (N, 3) ``forward(j, p, b, ctx)`` when the caller has it, nT.
-
-        Returns
-        -------
-        diff : numpy.ndarray
-            (len(cols), N, 3) forward(p + h_i e_i) - forward(p), nT.
-        h : numpy.ndarray
-            (len(cols),) the steps, 1e-6 max(1, |p_i|).
-
-        A parameter of one of sensor j's additive effects changes only that effect's
-        contribution (the linear part and the other effects do not read it), so its
-        difference is that contribution's alone, without re-evaluating the whole reading.
-        A parameter of a linear effect changes only A_j: its difference is
-        b' (A_j(p + h_i e_i) - A_j(p))^T (b' the field at the sensor) plus the change of
-        the additive effects that read the linear part (``depends_on_lin``).  The array's
-        parameters re-evaluate :meth:`forward`.
-
+        ``diff`` (len(cols), N, 3) nT is forward(p + h_i e_i) - forward(p) at the field ``b``
+        (N, 3) nT, ``h`` the steps 1e-6 max(1, |p_i|); ``base`` (N, 3) nT is forward(p) when
+        the caller has it.  An additive effect's parameter changes only its contribution, a
+        linear one only A_j (and the effects that read lin): those differences are
+        evaluated alone; the array's parameters re-evaluate :meth:`forward`.
         """
         h = np.array([1e-6 * max(1.0, abs(p[i])) for i in cols])
         owner = {}
@@ -495,9 +406,8 @@ class Model:
         """
         Invert :meth:`forward`: corrected field (N, 3) nT in the array frame.
 
-        Additive effects that depend on the field itself (temperature scale, nonlinearity)
-        are inverted by fixed-point iteration, which converges at rate |effect/field|.
-        ``a_inv`` (3, 3) is A_j^-1 when the caller has it precomputed.
+        Additive effects that read the field are inverted by fixed-point iteration (rate
+        |effect/field|); ``a_inv`` (3, 3) is A_j^-1 when the caller has it.
         """
         raw = np.asarray(raw, float)
         if a_inv is None:
@@ -517,12 +427,10 @@ class Model:
 
     def params_from_linear(self, j, a, o, p=None):
         """
-        Set sensor j's linear and offset parameters from A (3, 3) and o (3,) nT.
+        Return p with sensor j's linear and offset parameters set from A (3, 3) and o (3,) nT.
 
-        A is decomposed as A = U Q (RQ decomposition, U upper triangular with positive
-        diagonal): U gives scale and nonorthogonality, Q the misalignment (paper 004 eq. 2-3);
-        each effect takes its share (``Effect.params_from_linear``).  Effects the model lacks
-        are dropped (their part of A is not representable).
+        A = U Q (:func:`~magcal_ros.core.effects.decompose_linear`, paper 004 eq. 2-3); each
+        effect takes its share (``Effect.params_from_linear``), the rest is dropped.
         """
         p = self.default_params() if p is None else p.copy()
         # a fixed axis map M (axes(...)) is the left-most factor: the rest is M^T A
