@@ -24,11 +24,12 @@ rest are those of evaluating everything.
 """
 import math
 from types import SimpleNamespace
+import warnings
 
 import injection as inj
 from magcal_ros.core.discovery import (diagnose, evaluate_residuals, EVIDENCE_TIE,
                                        extend_model, MIN_DELTA_BIC, n_observations,
-                                       SCORE_RULE_OUT_BIC, Screen)
+                                       propose_from_residual, SCORE_RULE_OUT_BIC, Screen)
 import magcal_ros.core.discovery.run as run
 from magcal_ros.core.model import fit
 import numpy as np
@@ -120,6 +121,40 @@ def test_equal_evidence_goes_to_the_simpler_then_the_named_effect():
     trials = [_trial('a@1', 6, -100.0), _trial('b@1', 3, -100.0 + 3 * EVIDENCE_TIE)]
     run.order_by_evidence(trials, b)
     assert [t.token for t in trials] == ['a@1', 'b@1']
+
+
+def test_a_one_step_that_overshoots_falls_back_to_its_start_without_a_warning(monkeypatch):
+    # a real PX4 log (pyulog's sample_log_small.ulg) made the nonlinearity candidate's one
+    # Gauss-Newton step overshoot to inf: the screen fell back to the candidate's start, as
+    # designed, but numpy's overflow warnings reached the user; here the step of every
+    # candidate the score cannot rule out (a chi-square decrease of over 1000) overshoots
+    step, hits = Screen.step, []
+
+    def overshoot(self, *args, **kwargs):
+        p, score = step(self, *args, **kwargs)
+        hits.append(score > 1000.0)
+        return (p * 1e200 if hits[-1] else p), score
+    monkeypatch.setattr(Screen, 'step', overshoot)
+    data = inj.make(1000, seed=5, inject=inj.step_fault(60.0))
+    with warnings.catch_warnings():
+        warnings.simplefilter('error', RuntimeWarning)
+        d = diagnose(data, field_nt=F)
+    assert any(hits)
+    evaluated = [c for c in d.candidates if c.method == 'one-step']
+    assert evaluated
+    assert all(np.isfinite([c.rms_after_nt, c.delta_chi2]).all() for c in evaluated)
+
+
+def test_a_step_on_a_clock_since_1970_is_proposed_to_the_sample():
+    # the token wrote 10 significant digits: on a ROS or Unix clock (1.8e9 s) the change
+    # was named to the whole second, up to 25 samples off at 50 Hz
+    n, k = 3000, 1234
+    for t0, name in ((1795889000.0, 'step(1795889024.68)'), (0.0, 'step(24.68)')):
+        t = t0 + np.arange(n) / 50.0
+        r = np.random.default_rng(1).normal(0.0, 3.0, (4, n, 3))
+        r[1, k:] += 30.0
+        steps = [tok for tok in propose_from_residual(t, r) if tok.startswith('step(')]
+        assert steps[0] == name, steps
 
 
 @pytest.mark.parametrize('n', [2000, 12000])

@@ -199,10 +199,10 @@ def propose_from_residual(t, residual, max_steps=2, min_line_ratio=30.0):
     dt = float(np.median(np.diff(t)))
     # the change lies between two samples: the time of the first sample after it, to the
     # sampling interval's decimal (step(300), not step(300.0001))
-    q = 10.0 ** math.floor(math.log10(dt)) if dt > 0 else 1.0
+    decimals = max(0, -math.floor(math.log10(dt))) if dt > 0 else 0
 
-    def at(k):
-        return f'{float(np.round(t[k] / q) * q):.10g}'
+    def at(k):        # all the integer digits: a clock since 1970 keeps its fraction
+        return f'{t[k]:.{decimals}f}'.rstrip('0').rstrip('.') if decimals else f'{t[k]:.0f}'
     for k in sorted(found):
         out.append(f'step({at(k)})')
     if len(found) > 1:

@@ -663,9 +663,11 @@ def _screen(b, testable, progress):
     for c in trials:
         if not b.robust and np.isfinite(c.chi2) and b.delta_bic(c) > SCORE_RULE_OUT_BIC:
             continue
-        # from the base fit's field: one Gauss-Newton step of the profile (model.evaluate)
-        ev = evaluate_residuals(c.model, c.p, b.data, b.f, b.sigma, b.contexts,
-                                field0=b.ev0.field, loss=b.loss)
+        # from the base fit's field: one Gauss-Newton step of the profile (model.evaluate);
+        # a step that overshoots (inf or nan) is caught below, not warned about
+        with np.errstate(over='ignore', invalid='ignore', divide='ignore'):
+            ev = evaluate_residuals(c.model, c.p, b.data, b.f, b.sigma, b.contexts,
+                                    field0=b.ev0.field, loss=b.loss)
         if not np.isfinite(ev.chi2) or ev.chi2 > b.ev0.chi2:
             c.p = c.start
             ev = evaluate_residuals(c.model, c.start, b.data, b.f, b.sigma, b.contexts,
