@@ -670,8 +670,11 @@ def attitude_lines(at):
         line += (f", declination {wf['declination_deg']:.2f} +- "
                  f"{wf['declination_stderr_deg']:.2f} deg")
     h = at['heading_check']
-    lines = [line, f"heading: attitude against the corrected compass {h['offset_deg']:+.1f} "
-                   f"deg, {h['rms_deg']:.2f} deg RMS about it"]
+    off = f"{h['offset_deg']:+.1f} deg" + ('' if h.get('offset_determined', True) else (
+        " (not determined: sensor 1's horizontal offsets are open, held at the prior's "
+        'value)'))
+    lines = [line, f"heading: attitude against the corrected compass {off}, "
+                   f"{h['rms_deg']:.2f} deg RMS about it"]
     if at['undetermined']:
         lines.append("undetermined (known no better than half the prior's width): "
                      + ', '.join(at['undetermined']))

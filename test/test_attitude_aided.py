@@ -129,6 +129,28 @@ def test_a_heading_at_odds_with_the_compass_is_said():
     assert not fit_attitude(ok, 'base', field_nt=F, mode='tilt').heading['disagree']
 
 
+def test_the_heading_offset_is_the_declination_or_said_to_be_open():
+    # the heading check's constant is the simulator's declination (-7 deg, within the
+    # attitude error's 0.3 deg, as the full mode's declination above) when the turns fix the
+    # compass's horizontal offsets; on a stretch of the same record within +-10 deg of one
+    # heading the offsets are open, held at the prior's value, and the constant (4 deg off
+    # here) is said to be open: it was printed as a result (pyulog's PX4 sample logs: +69 and
+    # +15 deg, where the autopilot's own corrected field gives its declination, +3.0 and +3.4)
+    from magcal_ros.pipeline import attitude_lines, attitude_summary
+    data, _ = vehicle()
+    ar = fit_attitude(data, 'base', field_nt=F, mode='tilt')
+    assert ar.heading['offset_determined'] and abs(ar.heading['offset_deg'] + 7.0) < 0.3
+    assert attitude_lines(attitude_summary(ar, data))[1].startswith(
+        f"heading: attitude against the corrected compass {ar.heading['offset_deg']:+.1f} deg, ")
+    yaw = Rotation.from_quat(data.attitude, scalar_first=True).as_euler('ZYX', degrees=True)
+    one = data.subset(np.flatnonzero(np.abs((yaw[:, 0] - 40.0 + 180.0) % 360.0 - 180.0) < 10))
+    ar = fit_attitude(one, 'base', field_nt=F, mode='tilt')
+    assert {'offset.bx@1', 'offset.by@1'} <= set(ar.undetermined)
+    assert not ar.heading['offset_determined']
+    assert "(not determined: sensor 1's horizontal offsets are open" in attitude_lines(
+        attitude_summary(ar, one))[1]
+
+
 def magcal(*args, cwd):
     return subprocess.run([sys.executable, '-m', 'magcal_ros.cli', *args], cwd=cwd,
                           capture_output=True, text=True)

@@ -39,6 +39,8 @@ PRIOR_HELD_RATIO = 1.25
 #: heading disagreement (deg, RMS about its mean) above which the attitude's heading and the
 #: corrected compass are said to disagree
 HEADING_DISAGREE_DEG = 5.0
+#: sensor 1's offsets in the horizontal plane: open, they leave the compass's heading open
+HORIZONTAL_OFFSETS = frozenset({'offset.bx@1', 'offset.by@1'})
 
 
 @dataclass(frozen=True)
@@ -191,7 +193,7 @@ def fit_attitude(data, model, field_nt=None, mode='tilt', inclination_deg=None,
         result=result, mode=mode, undetermined=undetermined, determined=determined,
         attitude_sd_deg=float(np.degrees(eff.refs.get('white_sigma_nt', eff.sigma_nt) / f0)),
         world_field=world,
-        heading=heading_check(result, data), residual_correlation=rho)
+        heading=heading_check(result, data, undetermined), residual_correlation=rho)
 
 
 def prior_held(result, prior_list, ratio=PRIOR_HELD_RATIO):
@@ -229,15 +231,17 @@ def _start_sigma(data, model, p, f):
         np.mean(f)))
 
 
-def heading_check(result, data):
+def heading_check(result, data, undetermined=()):
     """
     Compare the attitude's heading with the corrected compass's (sensor 1).
 
     The angle of the world-horizontal field R_k b_k about the vertical is the attitude's
     heading error plus the declination: its mean is a constant (declination and any yaw
     offset), its spread about the mean the disagreement.  Returns a dict: ``offset_deg``
-    (circular mean), ``rms_deg`` (RMS about it), ``max_deg``, ``disagree`` (``rms_deg``
-    above :data:`HEADING_DISAGREE_DEG`).
+    (circular mean), ``offset_determined`` (False when ``undetermined``, the labels the
+    motion leaves open, holds a horizontal offset of sensor 1: such an offset, held at the
+    prior's value, turns the corrected compass's heading by up to tens of degrees), ``rms_deg``
+    (RMS about it), ``max_deg``, ``disagree`` (``rms_deg`` above :data:`HEADING_DISAGREE_DEG`).
     """
     rot = data.attitude_matrix()
     p = result.params
@@ -250,5 +254,6 @@ def heading_check(result, data):
     mean = np.angle(np.mean(np.exp(1j * ang)))
     dev = np.degrees(np.angle(np.exp(1j * (ang - mean))))
     rms = float(np.sqrt(np.mean(dev ** 2)))
-    return {'offset_deg': float(np.degrees(mean)), 'rms_deg': rms,
+    return {'offset_deg': float(np.degrees(mean)),
+            'offset_determined': not HORIZONTAL_OFFSETS & set(undetermined), 'rms_deg': rms,
             'max_deg': float(np.max(np.abs(dev))), 'disagree': rms > HEADING_DISAGREE_DEG}
