@@ -673,7 +673,7 @@ def attitude_lines(at):
     off = f"{h['offset_deg']:+.1f} deg" + ('' if h.get('offset_determined', True) else (
         " (not determined: sensor 1's horizontal offsets are open, held at the prior's "
         'value)'))
-    lines = [line, f"heading: attitude against the corrected compass {off}, "
+    lines = [line, f'heading: attitude against the corrected compass {off}, '
                    f"{h['rms_deg']:.2f} deg RMS about it"]
     if at['undetermined']:
         lines.append("undetermined (known no better than half the prior's width): "
