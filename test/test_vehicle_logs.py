@@ -438,7 +438,7 @@ R_INTERNAL = np.diag([-1.0, -1.0, 1.0])
 R_EXTERNAL = np.diag([1.0, -1.0, -1.0])
 
 
-def _px4_log(path, raw_rate_hz=50.0, n=500):
+def _px4_log(path, raw_rate_hz=50.0, n=500, cal_ids=None):
     t, q, cur, raw1, raw2 = _scenario(5, n)
     t_us = np.round(t * 1e6).astype(np.int64)
     u = w.ULog()
@@ -451,7 +451,7 @@ def _px4_log(path, raw_rate_hz=50.0, n=500):
         u.topic(name, fields)
     u.info('ver_sw', 'cb09dde606861b90e38b1682eebd3fd91be17ab7')
     u.info('sys_name', 'PX4')
-    for k, v in PX4_PARAMS.items():
+    for k, v in {**PX4_PARAMS, **(cal_ids or {})}.items():
         u.param(k, v)
     # the sensors' own readings (gauss, sensor axes): body raw = R d
     d1 = raw1 @ R_INTERNAL / 1e5
@@ -514,7 +514,17 @@ def test_ulog_slow_sensor_mag_reads_vehicle_magnetometer_with_its_calibration_un
     assert d.n_sensors == 1 and d.meta['compasses'][0]['source'].startswith(
         'vehicle_magnetometer')
     np.testing.assert_allclose(d.raw[0], raw1, atol=0.1)
-    assert any('logged at 1.0 Hz only' in str(x) for x in d.meta['warnings'])
+    assert any('logged at 1.0 Hz only: the compass is read from vehicle_magnetometer with its '
+               'calibration undone' in str(x) for x in d.meta['warnings'])
+    # no CAL_MAGn_ID is the device: the corrected field is read as it is, and both warnings
+    # say so (the second said 'with its calibration undone' here too: pyulog's sample log)
+    path, _ = _px4_log(tmp_path / 'px4slow2.ulg', raw_rate_hz=1.0,
+                       cal_ids={'CAL_MAG0_ID': 1, 'CAL_MAG1_ID': 2})
+    warnings = [str(x) for x in read_vehicle_log(path).meta['warnings']]
+    assert any('its corrections are not undone' in x for x in warnings), warnings
+    assert any('logged at 1.0 Hz only: the compass is read from vehicle_magnetometer as the '
+               'autopilot corrected it' in x for x in warnings), warnings
+    assert not any('calibration undone' in x for x in warnings), warnings
 
 
 # -- rosbag2: sensor_msgs/BatteryState ---------------------------------------------------

@@ -229,12 +229,14 @@ def _compasses(path, topics, params, out):
         t0 = sc['timestamp'] + sc.get('magnetometer_timestamp_relative', 0)
         corrected = {0: {**sc, 'timestamp': t0}}
         name = 'sensor_combined'
+    undone = []
     for j, k in enumerate(sorted(corrected), start=1):
         d = corrected[k]
         dev = _device(d)
         if dev is None and len(raw) == 1:
             dev = _device(raw[min(raw)])
         cal = _calibration(params, dev)
+        undone.append(cal is not None)
         t = d['timestamp'] * 1e-6
         v = np.column_stack([d[f'{field}[{i}]'] for i in range(3)])
         if cal is None:
@@ -252,10 +254,12 @@ def _compasses(path, topics, params, out):
         out.compass_temps.append(None)
         out.onboard.append(_onboard(j, dev, cal, params))
     if raw and corrected:
+        how = ('with its calibration undone' if all(undone) else
+               'as the autopilot corrected it' if not any(undone) else
+               'with the calibrations undone where the log holds them')
         out.warnings.append(f'{path}: sensor_mag (raw) is logged at {_rate(raw[min(raw)]):.1f} '
-                            f'Hz only: the compass is read from {name} with its calibration '
-                            'undone (log sensor_mag faster: SDLOG_PROFILE "high rate" or '
-                            'the logger topics file)')
+                            f'Hz only: the compass is read from {name} {how} (log sensor_mag '
+                            'faster: SDLOG_PROFILE "high rate" or the logger topics file)')
 
 
 def _gps(topics, out):
