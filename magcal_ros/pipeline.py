@@ -666,6 +666,10 @@ def attitude_lines(at):
     line = (f"attitude: {at['mode']} ({at['trusted']} from {at['source']}, error "
             f"{at['attitude_sd_deg']:.2f} deg as estimated); world field inclination "
             f"{wf['inclination_deg']:.2f} +- {wf['inclination_stderr_deg']:.2f} deg")
+    if wf.get('inclination_open'):
+        line += (' (not determined by the motion: ' + ', '.join(wf['inclination_open'])
+                 + (' open; the IGRF prior sets it)' if wf['inclination_prior'] == 'IGRF' else
+                    " open, held at the prior's value)"))
     if 'declination_deg' in wf:
         line += (f", declination {wf['declination_deg']:.2f} +- "
                  f"{wf['declination_stderr_deg']:.2f} deg")

@@ -151,6 +151,28 @@ def test_the_heading_offset_is_the_declination_or_said_to_be_open():
         attitude_summary(ar, one))[1]
 
 
+def test_an_inclination_the_motion_leaves_open_is_said_to_rest_on_the_priors():
+    # level flight cannot split F into its horizontal and vertical parts (the scales and the
+    # vertical offset are open): the inclination then rests on their held values, or on the
+    # site's IGRF inclination when given, and the summary says which; tilted turns fix it.
+    # It was printed as a result: 88.88 +- 0.01 deg on pyulog's PX4 sample.ulg, whose own
+    # corrected field and attitude give 63.4 deg
+    from magcal_ros.pipeline import attitude_lines, attitude_summary
+    data, _ = vehicle()
+    ar = fit_attitude(data, 'base', field_nt=F, mode='tilt')
+    assert ar.world_field['inclination_open'] == []
+    assert 'not determined by the motion' not in attitude_lines(attitude_summary(ar, data))[0]
+    level, _ = vehicle(tilt_deg=0.5)
+    ar = fit_attitude(level, 'base', field_nt=F, mode='tilt')
+    assert {'scale.kz@1', 'offset.bz@1'} <= set(ar.world_field['inclination_open'])
+    line = attitude_lines(attitude_summary(ar, level))[0]
+    assert '(not determined by the motion: ' in line and "held at the prior's value)" in line
+    from dataclasses import replace
+    ned = replace(level, meta=dict(level.meta, attitude_frame='NED'))
+    ar = fit_attitude(ned, 'base', field_nt=F, mode='tilt', inclination_deg=55.0)
+    assert attitude_lines(attitude_summary(ar, ned))[0].endswith(' open; the IGRF prior sets it)')
+
+
 def magcal(*args, cwd):
     return subprocess.run([sys.executable, '-m', 'magcal_ros.cli', *args], cwd=cwd,
                           capture_output=True, text=True)

@@ -41,6 +41,10 @@ PRIOR_HELD_RATIO = 1.25
 HEADING_DISAGREE_DEG = 5.0
 #: sensor 1's offsets in the horizontal plane: open, they leave the compass's heading open
 HORIZONTAL_OFFSETS = frozenset({'offset.bx@1', 'offset.by@1'})
+#: what the inclination rests on besides the data: sensor 1's scales (the split of F into its
+#: horizontal and vertical parts), its vertical offset and the mounting's tilt; one of them
+#: open (held at the prior's value), the inclination is the prior's, or rests on that value
+VERTICAL_PARAMS = frozenset({'kx@1', 'ky@1', 'kz@1', 'bz@1', 'mount_x@0', 'mount_y@0'})
 
 
 @dataclass(frozen=True)
@@ -183,7 +187,9 @@ def fit_attitude(data, model, field_nt=None, mode='tilt', inclination_deg=None,
                                    "none: the attitude's world frame is not known to be NED "
                                    'or ENU (the inclination was estimated)'),
              'inclination_deg': float(np.degrees(ang[0])),
-             'inclination_stderr_deg': float(np.degrees(se[0]))}
+             'inclination_stderr_deg': float(np.degrees(se[0])),
+             'inclination_open': sorted(u for u in undetermined
+                                        if u.split('.', 1)[1] in VERTICAL_PARAMS)}
     if mode == 'full':
         world.update(declination_deg=float(np.degrees(ang[1])),
                      declination_stderr_deg=float(np.degrees(se[1])))
