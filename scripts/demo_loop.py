@@ -230,10 +230,7 @@ class LoopClient:
 
     def call(self, name, timeout_s):
         """Call the Trigger service ``calibration/<name>``; return (success, summary, json)."""
-        client = self.clients[name]
-        if not client.wait_for_service(timeout_sec=timeout_s):
-            raise TimeoutError(f'service calibration/{name} not available after {timeout_s} s')
-        resp = self._wait_future(client.call_async(self.Trigger.Request()), timeout_s,
+        resp = demo.call_service(self.clients[name], self.Trigger.Request(), timeout_s,
                                  f'calibration/{name}')
         summary, _, payload = resp.message.partition('\n{')
         try:
