@@ -23,6 +23,7 @@ docs/design.md §4) and print :func:`summary_lines`.
 from dataclasses import dataclass
 
 from magcal_ros.core.data.noise import data_noise_floor
+from magcal_ros.core.effects.attitude_ref import MOUNT_PRIOR_SD_RAD
 from magcal_ros.core.geometry.tensor import (cross_positions, gradient_from_fit, tensor_lstsq,
                                              tensor_noise_floor)
 from magcal_ros.core.model import data_hash, fit, Model
@@ -467,6 +468,11 @@ def attitude_summary(aided, data):
             'residual_lag1_correlation': [float(r) for r in aided.residual_correlation]}
 
 
+#: a fitted mounting angle beyond this (3 prior sds), deg, is a conflict between the compass
+#: and the attitude that the mounting absorbs, not a compass mounted so (attitude_notes)
+MOUNT_CONFLICT_DEG = 3.0 * float(np.degrees(MOUNT_PRIOR_SD_RAD))
+
+
 def attitude_notes(aided):
     """Warnings (note dicts) of an attitude-aided fit: what is open, a heading at odds."""
     out = []
@@ -490,6 +496,15 @@ def attitude_notes(aided):
             'or the attitude lags the compass; the fit trusted '
             + ('roll and pitch only' if aided.mode == 'tilt' else 'the heading too: '
                'try --attitude tilt'))})
+    far = [f'{ax} {v:+.0f}' for ax, v in zip('xyz', aided.world_field['mount_deg'])
+           if abs(v) > MOUNT_CONFLICT_DEG]
+    if far:
+        out.append({'kind': 'attitude', 'text': (
+            f"the compass's mounting against the attitude comes out {', '.join(far)} deg, "
+            f'beyond {MOUNT_CONFLICT_DEG:.0f} deg (3 x its prior sd): the compass is not in '
+            'the body frame the log states (check its rotation setting), or the compass and '
+            'the attitude disagree on where the field points (a field the vehicle bends, '
+            'axes mixed up); the inclination and the calibration rest on that mounting')})
     return out
 
 

@@ -117,6 +117,19 @@ def test_the_compass_mounting_against_the_imu_is_fitted():
         assert np.all(np.abs(got - m) < 4 * se + np.radians(0.05)), (mode, got, se)
         assert ar.result.scalar_rms_nt[1] < 3.0 * 1.05
         assert not ar.heading['disagree']
+    # a compass 40 deg off the body frame the log states: found as well, and said to be
+    # beyond 3 sd of the mounting's prior (a wrong rotation setting, or a conflict it hides)
+    from magcal_ros.pipeline import attitude_notes
+    assert not [n for n in attitude_notes(ar) if 'mounting' in n['text']]
+    d = replace(data, attitude=(Rotation.from_quat(data.attitude, scalar_first=True)
+                                * Rotation.from_rotvec([0.0, np.radians(40.0), 0.0])
+                                ).as_quat(scalar_first=True))
+    ar = fit_attitude(d, 'base', field_nt=F, mode='tilt')
+    got, se = ar.world_field['mount_deg'][1], ar.world_field['mount_stderr_deg'][1]
+    assert abs(got - 40.0) < 4 * se + 0.05, (got, se)
+    (note,) = [n['text'] for n in attitude_notes(ar) if 'mounting' in n['text']]
+    assert note.startswith("the compass's mounting against the attitude comes out y +40 deg, "
+                           'beyond 30 deg (3 x its prior sd)')
 
 
 def test_a_heading_at_odds_with_the_compass_is_said():
