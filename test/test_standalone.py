@@ -118,7 +118,7 @@ def test_documents_and_scripts_do_not_name_the_parent_folder():
 def test_each_data_source_has_its_licence_and_provenance():
     sources = sorted(p for p in REAL.iterdir() if p.is_dir())
     assert [p.name for p in sources] == ['ck-accmag', 'dronekit-log171', 'methodic-copter46',
-                                         'pyflightcoach-plane', 'roboto-px4',
+                                         'pyflightcoach-plane', 'pyulog-px4', 'roboto-px4',
                                          'sunsided-hmc5883l']
     for src in sources:
         assert (src / 'PROVENANCE.md').is_file()

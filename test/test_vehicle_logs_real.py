@@ -158,3 +158,53 @@ def test_readme_vehicle_log_command(tmp_path):
         in p.stderr
     for j in (1, 2, 3):
         assert f'sensor {j}' in p.stdout
+
+
+# -- pyulog-px4: a compass and an attitude that do not describe the Earth's field ---------
+
+PYULOG = REAL / 'pyulog-px4' / 'sample_log_small.ulg'
+
+
+def _field_by_the_logs_own_attitude(path):
+    """Median inclination and heading, deg, of the log's corrected field turned into NED."""
+    from pyulog import ULog
+    from scipy.spatial.transform import Rotation
+    log = ULog(str(path), ['vehicle_magnetometer', 'vehicle_attitude'])
+    mag, att = (next(d.data for d in log.data_list if d.name == name)
+                for name in ('vehicle_magnetometer', 'vehicle_attitude'))
+    k = np.clip(np.searchsorted(att['timestamp'], mag['timestamp']), 0,
+                len(att['timestamp']) - 1)
+    q = np.column_stack([att[f'q[{i}]'] for i in (1, 2, 3, 0)])[k]
+    w = Rotation.from_quat(q).apply(np.column_stack([mag[f'magnetometer_ga[{i}]']
+                                                     for i in range(3)]))
+    return (float(np.degrees(np.median(np.arctan2(w[:, 2], np.hypot(w[:, 0], w[:, 1]))))),
+            float(np.degrees(np.median(np.arctan2(w[:, 1], w[:, 0])))))
+
+
+def test_pyulog_px4_log_says_what_it_cannot_know():
+    # the reference, outside magcal_ros: the autopilot's own corrected field turned by its
+    # own attitude points 7.7 deg up at heading -10 deg, where the IGRF at the GPS's place
+    # points 76.5 deg down; 6.5 s of a nearly level vehicle. magcal's fit printed 76.54 +-
+    # 0.49 deg and a heading offset of -95.8 deg as results, and hid the conflict in a
+    # mounting of -34 deg; it must now say the inclination is the prior's, the heading
+    # offset open, and the mounting in conflict
+    import json
+    import subprocess
+    import sys
+    inc_log, head_log = _field_by_the_logs_own_attitude(PYULOG)
+    assert -9.0 < inc_log < -6.0 and -12.0 < head_log < -8.0
+    out = subprocess.run([sys.executable, '-m', 'magcal_ros.cli', 'fit', str(PYULOG),
+                          '--allow-gaps', '--json'], capture_output=True, text=True,
+                         check=True)
+    doc = json.loads(out.stdout)
+    wf, head = doc['attitude']['world_field'], doc['attitude']['heading_check']
+    assert wf['inclination_prior'] == 'IGRF' and abs(wf['inclination_deg'] - inc_log) > 60
+    assert {'offset.bz@1', 'scale.kz@1'} <= set(wf['inclination_open'])
+    assert abs(head['offset_deg'] - head_log) > 45 and not head['offset_determined']
+    conflict = [w['text'] for w in doc['warnings'] if w['kind'] == 'attitude']
+    assert len(conflict) == 1 and "the compass's mounting against the attitude comes out y " \
+        in conflict[0] and 'beyond 30 deg' in conflict[0], conflict
+    # the reader's warnings (on stderr) say alike that the corrections stay in
+    said = out.stderr
+    assert 'its corrections are not undone' in said and 'as the autopilot corrected it' in said
+    assert 'calibration undone' not in said
