@@ -54,11 +54,16 @@ GOALS = {'diagnose+report': 3.0, 'report': 1.0, 'ladder': 10.0}
 
 def _child(args):
     """Time one code on one CSV file (run in its own process); print one JSON object."""
-    from magcal_ros.core.data.simulate import simulate
-    from magcal_ros.core.discovery import diagnose, ladder
-    from magcal_ros.core.model import fit
     from magcal_ros.io.csvio import read_csv
     from magcal_ros.report import write_report
+    try:
+        from magcal_ros.core.data.simulate import simulate
+        from magcal_ros.core.discovery import diagnose, ladder
+        from magcal_ros.core.model import fit
+    except ImportError:                 # the core's layout before it had folders (BEFORE_REV)
+        from magcal_ros.core.diagnose import diagnose, ladder
+        from magcal_ros.core.model import fit
+        from magcal_ros.core.simulate import simulate
 
     if not args.no_warmup:
         warm, _ = simulate(n_samples=600, rate_hz=1.0, trajectory='smooth', seed=args.seed,
