@@ -101,7 +101,16 @@ def _die_with_parent():
 #: reader, and the call never returns (the loop demo's first calibration/start, in the suite
 #: under load, 2026-11-28); test/ros_helpers.call_trigger waits 0.3 s in the tests' process
 FIRST_CALL_GRACE_S = 1.0
-_ANSWERED = set()
+
+
+def wait_future(fut, timeout_s, what):
+    """Wait for ``fut`` (its node spun by another thread); its result, or TimeoutError."""
+    deadline = time.monotonic() + timeout_s
+    while not fut.done():
+        if time.monotonic() > deadline:
+            raise TimeoutError(f'{what} did not answer within {timeout_s} s')
+        time.sleep(0.05)
+    return fut.result()
 
 
 def call_service(client, request, timeout_s, what):
@@ -114,16 +123,11 @@ def call_service(client, request, timeout_s, what):
     """
     if not client.wait_for_service(timeout_sec=timeout_s):
         raise TimeoutError(f'service {what} not available after {timeout_s} s')
-    if id(client) not in _ANSWERED:
+    if not getattr(client, 'magcal_answered', False):
         time.sleep(FIRST_CALL_GRACE_S)
-    fut = client.call_async(request)
-    deadline = time.monotonic() + timeout_s
-    while not fut.done():
-        if time.monotonic() > deadline:
-            raise TimeoutError(f'{what} did not answer within {timeout_s} s')
-        time.sleep(0.05)
-    _ANSWERED.add(id(client))
-    return fut.result()
+    response = wait_future(client.call_async(request), timeout_s, what)
+    client.magcal_answered = True
+    return response
 
 
 class Processes:

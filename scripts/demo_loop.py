@@ -220,14 +220,6 @@ class LoopClient:
                                              if isinstance(st.level, bytes) else int(st.level),
                                              st.message, {v.key: v.value for v in st.values}))
 
-    def _wait_future(self, fut, timeout_s, what):
-        deadline = time.monotonic() + timeout_s
-        while not fut.done():
-            if time.monotonic() > deadline:
-                raise TimeoutError(f'{what} did not answer within {timeout_s} s')
-            time.sleep(0.05)
-        return fut.result()
-
     def call(self, name, timeout_s):
         """Call the Trigger service ``calibration/<name>``; return (success, summary, json)."""
         resp = demo.call_service(self.clients[name], self.Trigger.Request(), timeout_s,
@@ -246,7 +238,7 @@ class LoopClient:
             raise TimeoutError('the parameter services of calibration_node are not available')
         fut = self.params.set_parameters(
             [Parameter('model', Parameter.Type.STRING_ARRAY, list(model))])
-        result = self._wait_future(fut, timeout_s, 'set_parameters').results[0]
+        result = demo.wait_future(fut, timeout_s, 'set_parameters').results[0]
         if not result.successful:
             raise RuntimeError(f'model {list(model)} refused: {result.reason}')
 

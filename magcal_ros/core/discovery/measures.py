@@ -112,7 +112,7 @@ class Evaluation:
 
     def scalar_rms(self, j):
         """Return sensor j's scalar residual RMS over its readings kept, nT."""
-        return rms(self.scalar[j - 1], None if self.kept is None else self.kept[j - 1])
+        return scalar_rms_of(self.scalar, [j], self.kept)
 
     def vector_rms(self, j):
         """Return sensor j's vector residual RMS (vs sensor 1) where both are kept, nT."""
