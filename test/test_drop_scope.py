@@ -266,3 +266,36 @@ def test_the_noise_variances_count_each_sensor_s_own_rows():
     # without the counts (every row taken for one) sensor 2 comes out far too low
     wrong = group_noise_variances(res, cols, 0)
     assert wrong[1] / d_true[1] - 1 < -5 * tol[1], wrong
+
+
+def test_the_search_counts_only_the_readings_kept_when_it_subsamples(monkeypatch):
+    """
+    The formula search's observation count on a subsample leaves a ``drop``'s readings out.
+
+    The search fits at most ``SEARCH_MAX_EPOCHS`` evenly spaced sets (lowered here to 1000 of
+    the 1500); its likelihood-ratio tests and BIC count the observations net of the field.
+    With ``base + drop(10, 30)@2`` on the cross (rigid: one field per set, each set 3 x 4
+    readings less the field's 2), a set in the window keeps 3 x 3 - 2 = 7 and every other
+    10: counted by hand from the subsample's times.  The magnet in [120, 160] s is still in,
+    so the search runs.
+    """
+    from magcal_ros.core.discovery import diagnose, run
+    from magcal_ros.core.model.fitting import fit_epochs
+    seen = []
+
+    def spy(data, resid, screen, sigma, floor, n_obs, **kw):
+        seen.append((data.t.copy(), n_obs))
+        return real(data, resid, screen, sigma, floor, n_obs, **kw)
+    real = run.run_search
+    monkeypatch.setattr(run, 'run_search', spy)
+    monkeypatch.setattr(run, 'SEARCH_MAX_EPOCHS', 1000)
+    formula = 'base + drop(10, 30)@2'
+    base = _fit(formula)
+    assert base.model.joint, 'the hand count below is for one field per set'
+    diagnose(_record(), formula, inj.F_NT, base=base)
+    (t, n_obs), = seen
+    t_all = _record().t
+    np.testing.assert_array_equal(t, t_all[fit_epochs(N, 1000)])
+    inside = int(np.sum((t >= 10.0) & (t <= 30.0)))
+    assert 50 < inside < len(t)
+    assert n_obs == 10 * len(t) - 3 * inside, (n_obs, len(t), inside)

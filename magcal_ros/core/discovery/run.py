@@ -265,7 +265,8 @@ def _search(b, screen, alpha):
     if data.n_samples > SEARCH_MAX_EPOCHS:
         keep = fit_epochs(data.n_samples, SEARCH_MAX_EPOCHS)
         data, resid = data.subset(keep), resid[:, keep]
-        n_obs = n_observations(b.model, len(keep))
+        kept = None if b.ev0.kept is None else b.ev0.kept[:, keep]
+        n_obs = n_observations(b.model, len(keep), kept)
         screen = Screen(b.model, b.params, data.raw, [c.subset(keep) for c in b.contexts],
                         b.f[keep], b.sigma)
     elif screen is None:
