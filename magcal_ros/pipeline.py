@@ -680,7 +680,8 @@ def attitude_lines(at):
     wf = at['world_field']
     line = (f"attitude: {at['mode']} ({at['trusted']} from {at['source']}, error "
             f"{at['attitude_sd_deg']:.2f} deg as estimated); world field inclination "
-            f"{wf['inclination_deg']:.2f} +- {wf['inclination_stderr_deg']:.2f} deg")
+            f"{wf['inclination_deg']:.2f} +- {wf['inclination_stderr_deg']:.2f} deg from the data "
+            '(a level error of the attitude that holds over the record adds to it one for one)')
     if wf.get('inclination_open'):
         line += (' (not determined by the motion: ' + ', '.join(wf['inclination_open'])
                  + (' open; the IGRF prior sets it)' if wf['inclination_prior'] == 'IGRF' else

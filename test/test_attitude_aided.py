@@ -270,3 +270,34 @@ def test_a_real_flight_log_calibrates_with_its_attitude_and_current():
     s3 = [e for e in c['calibration']['sensors'][2]['effects'] if e['name'] == 'aux'][0]
     vz = s3['params']['vz']
     assert vz['unit'] == 'nT/A' and vz['value'] > 10 * vz['stderr']
+
+
+def test_the_inclination_s_uncertainty_is_said_to_leave_out_a_steady_level_error():
+    """
+    A level error of the attitude that holds over the record moves the inclination unseen.
+
+    The attitude tilted by 0.5 deg about the world's east axis (NED y) for the whole record:
+    the field seen in that frame is turned by 0.5 deg in the magnetic meridian (the
+    declination -7 deg: 0.5 cos 7 = 0.496 deg of inclination), and nothing in the data tells
+    it apart, so the stated +- (the data's scatter) is far below the error; the summary says
+    that such an error adds to it one for one.
+    """
+    from magcal_ros.pipeline import attitude_lines, attitude_summary
+    data, _ = vehicle(att_err_deg=0.0)
+    tilted = data.subset(np.arange(data.n_samples))
+    level = Rotation.from_rotvec([0.0, np.radians(0.5), 0.0])
+    tilted.attitude = (level * Rotation.from_quat(data.attitude, scalar_first=True)
+                       ).as_quat(scalar_first=True)
+    shift = 0.5 * np.cos(np.radians(7.0))
+    incs = []
+    for d in (data, tilted):
+        ar = fit_attitude(d, 'base', field_nt=F, mode='tilt')
+        wf = ar.world_field
+        incs.append(wf['inclination_deg'])
+        se = wf['inclination_stderr_deg']
+        assert se < shift / 10, se
+    assert abs(incs[0] - 55.0) < 4 * se
+    assert abs(abs(incs[1] - incs[0]) - shift) < 4 * np.sqrt(2) * se + 0.01, incs
+    line = attitude_lines(attitude_summary(ar, tilted))[0]
+    assert (f'{incs[1]:.2f} +- {se:.2f} deg from the data (a level error of the attitude that '
+            'holds over the record adds to it one for one)') in line, line
