@@ -52,6 +52,10 @@ EVIDENCE_TIE = REFIT_CHI2_TOL
 #: exact for effects that enter linearly) gives a delta BIC above this is not evaluated
 #: further: BIC prefers the model without it, 10 units short of significance (MIN_DELTA_BIC)
 SCORE_RULE_OUT_BIC = 0.0
+#: a candidate's one Gauss-Newton step that raises chi-square (a nonlinear effect, a step
+#: far from the base fit) is halved up to this many times (a damped Gauss-Newton step)
+#: before the candidate is left at its start
+STEP_HALVINGS = 5
 #: time constants (log-spaced, sample interval to a quarter of the record) a lag's refit
 #: start is chosen from, each by one linear step (Screen.lag_start)
 LAG_GRID_POINTS = 10

@@ -36,7 +36,8 @@ from magcal_ros.core.discovery.constants import (ALPHA, AT_FLOOR_RATIO, BLOCKS_P
                                                  DEFAULT_MAX_SAMPLES, EVIDENCE_TIE, MIN_BLOCK,
                                                  MIN_DELTA_BIC, MIN_EXPLAINED, REFIT_CHI2_TOL,
                                                  REFIT_MAX_NFEV, SCORE_RULE_OUT_BIC,
-                                                 SEARCH_CHANGE_POINTS, SEARCH_LISTED)
+                                                 SEARCH_CHANGE_POINTS, SEARCH_LISTED,
+                                                 STEP_HALVINGS)
 from magcal_ros.core.discovery.findings import find as find_findings, KINDS
 from magcal_ros.core.discovery.measures import (dof_factor, evaluate_residuals, Evaluation,
                                                 explained_share, lag_grid, likelihood_ratio,
@@ -116,6 +117,7 @@ class _Base:
     loss: object            # chi-square equivalent of the robust loss, or None
     f_scale: float | None   # the robust fit's f_scale, None when not robust
     constrained: bool
+    priors: tuple = ()      # the base fit's (index, mean, sd)
 
     @property
     def robust(self):
@@ -268,9 +270,10 @@ def _search(b, screen, alpha):
         kept = None if b.ev0.kept is None else b.ev0.kept[:, keep]
         n_obs = n_observations(b.model, len(keep), kept)
         screen = Screen(b.model, b.params, data.raw, [c.subset(keep) for c in b.contexts],
-                        b.f[keep], b.sigma)
+                        b.f[keep], b.sigma, b.priors, b.constrained)
     elif screen is None:
-        screen = Screen(b.model, b.params, data.raw, b.contexts, b.f, b.sigma)
+        screen = Screen(b.model, b.params, data.raw, b.contexts, b.f, b.sigma, b.priors,
+                        b.constrained)
     t = data.t
     cps, lines = residual_features(t, resid, max_steps=SEARCH_CHANGE_POINTS,
                                    readings=data.raw)
@@ -609,7 +612,7 @@ def _prepare(data, f, base, floor, max_samples, constrained):
     ev0 = evaluate_residuals(model, base.params, data, f, sigma, contexts, loss=loss)
     return _Base(data=data, f=f, sigma=sigma, contexts=contexts, model=model,
                  params=base.params, ev0=ev0, floor=floor, loss=loss, f_scale=f_scale,
-                 constrained=constrained)
+                 constrained=constrained, priors=tuple(getattr(base, 'priors', ())))
 
 
 def _base_measures(b):
@@ -652,7 +655,8 @@ def _screen(b, testable, progress):
             np.all(np.abs(b.ev0.residual / b.sigma[:, None, None]) < 2 * b.f_scale,
                    axis=(0, 2))))
         screen = Screen(b.model, b.params, b.data.raw[:, keep],
-                        [c.subset(keep) for c in b.contexts], b.f[keep], b.sigma)
+                        [c.subset(keep) for c in b.contexts], b.f[keep], b.sigma, b.priors,
+                        b.constrained)
     for i, (tok, label, sensor) in enumerate(testable):
         report_progress(progress, 'screen', i, len(testable), tok)
         m_ext, p_ext, added = extend_model(b.model, b.params, tok, b.contexts)
@@ -664,12 +668,17 @@ def _screen(b, testable, progress):
     for c in trials:
         if not b.robust and np.isfinite(c.chi2) and b.delta_bic(c) > SCORE_RULE_OUT_BIC:
             continue
-        # from the base fit's field: one Gauss-Newton step of the profile (model.evaluate);
-        # a step that overshoots (inf or nan) is caught below, not warned about
-        with np.errstate(over='ignore', invalid='ignore', divide='ignore'):
-            ev = evaluate_residuals(c.model, c.p, b.data, b.f, b.sigma, b.contexts,
-                                    field0=b.ev0.field, loss=b.loss)
-        if not np.isfinite(ev.chi2) or ev.chi2 > b.ev0.chi2:
+        # from the base fit's field: one Gauss-Newton step of the profile (model.evaluate),
+        # halved while it overshoots (inf or nan caught here, not warned about)
+        step = c.p - c.start
+        for k in range(STEP_HALVINGS + 1):
+            c.p = c.start + step / 2 ** k
+            with np.errstate(over='ignore', invalid='ignore', divide='ignore'):
+                ev = evaluate_residuals(c.model, c.p, b.data, b.f, b.sigma, b.contexts,
+                                        field0=b.ev0.field, loss=b.loss)
+            if np.isfinite(ev.chi2) and ev.chi2 <= b.ev0.chi2:
+                break
+        else:
             c.p = c.start
             ev = evaluate_residuals(c.model, c.start, b.data, b.f, b.sigma, b.contexts,
                                     loss=b.loss)

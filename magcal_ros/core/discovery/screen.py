@@ -20,6 +20,7 @@ candidates are then refitted in full (:mod:`magcal_ros.core.discovery.run`).
 """
 from magcal_ros.core.discovery.measures import solve_psd
 from magcal_ros.core.model.engine import ProfiledProblem
+from magcal_ros.core.model.fitting import priors_for
 import numpy as np
 
 
@@ -49,16 +50,20 @@ class Screen:
     (G^T G)^-1 (G^T C) and C^T P r likewise, per epoch with 2 x 2 inverses.
     """
 
-    def __init__(self, model, p, raw, contexts, f, sigma):
+    def __init__(self, model, p, raw, contexts, f, sigma, priors=(), constrained=False):
         """
         Form the base fit's scaled normal equations and field projector once.
 
         ``model``: the base model, prepared; ``p`` (P,) its fitted parameters; ``raw`` (S, N, 3)
         raw readings of the screened epochs, nT; ``contexts``: per sensor, on the same epochs;
-        ``f`` (N,) reference magnitude, nT; ``sigma`` (S,) noise levels, nT.
+        ``f`` (N,) reference magnitude, nT; ``sigma`` (S,) noise levels, nT; ``priors``: the
+        base fit's (index, mean, sd) (:attr:`FitResult.priors`), and with ``constrained`` each
+        candidate's own (``Effect.prior``): they enter the normal equations as the fit's
+        prior rows do, so that a step does not throw away what only the priors hold (a
+        vehicle's partial coverage, the attitude's mounting) and overshoot.
         """
         self.model, self.p, self.raw, self.ctx = model, p, raw, contexts
-        self.f, self.sigma = f, sigma
+        self.f, self.sigma, self.constrained = f, sigma, constrained
         self.groups = []
         for grp in model.sensor_groups:
             prob = ProfiledProblem(model, raw, contexts, f, grp, sigma, p_full=p)
@@ -83,10 +88,18 @@ class Screen:
             js = jac
             js /= d                          # in place: the Jacobian is not needed unscaled
             j4 = js.reshape(n, gm, 3, -1)
+            jtj, jtr = js.T @ js, js.T @ r
+            # prior rows (p_i - mean) / sd, their column 1 / sd, scaled as J's
+            pos = {int(c): k for k, c in enumerate(prob.cols)}
+            for i, mean, sd in priors:
+                if i in pos:
+                    k = pos[i]
+                    jtj[k, k] += 1.0 / (sd * d[k]) ** 2
+                    jtr[k] += (p[i] - mean) / (sd ** 2 * d[k])
             ginv_gtr = (ginv @ gtr[..., None])[..., 0]                         # (N, 2)
             self.groups.append({
                 'sensors': grp, 'cols': prob.cols, 'd': d, 'b': b,
-                'jtj': js.T @ js, 'jtr': js.T @ r,
+                'jtj': jtj, 'jtr': jtr,
                 # per sensor: its rows of the scaled base Jacobian (3N, P), residual (3N,)
                 'js': [np.ascontiguousarray(j4[:, gi]).reshape(3 * n, -1) for gi in range(g)],
                 'r': [np.ascontiguousarray(r3[:, gi]).reshape(-1) for gi in range(g)],
@@ -117,6 +130,7 @@ class Screen:
                 new_of_old[pos] = i
         p_new = p_ext.copy()
         decrease = 0.0
+        own_priors = priors_for(m_ext, {}, True) if self.constrained else ()
         n = len(self.f)
         for g in self.groups:
             grp = g['sensors']
@@ -147,6 +161,11 @@ class Screen:
             m0, m1 = ginv_times(gtc, g)
             ctc -= gtc[0] @ m0.T + gtc[1] @ m1.T
             ctr -= gtc[0] @ g['ginv_gtr'][0] + gtc[1] @ g['ginv_gtr'][1]
+            for i, mean, sd in own_priors:
+                if i in idx:
+                    c = idx.index(i)
+                    ctc[c, c] += 1.0 / sd ** 2
+                    ctr[c] += (p_ext[i] - mean) / sd ** 2
             dc = np.sqrt(np.clip(np.diag(ctc), 0.0, None))
             dc[dc == 0] = 1.0
             cross_s = cross / dc

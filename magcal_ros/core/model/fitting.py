@@ -88,6 +88,9 @@ class FitResult:
     raw_nt: np.ndarray | None = field(default=None, repr=False)
     #: (S,) int, the readings of each sensor fitted on (less what ``drop(t0, t1)@j`` leaves)
     n_fit_readings: np.ndarray | None = None
+    #: the priors the fit used, (index, mean, sd) in the parameters' units: the constrained
+    #: mode's and ``extra_priors`` (an attitude-aided fit's mounting and inclination)
+    priors: tuple = ()
 
     @property
     def n_samples(self):
@@ -312,7 +315,7 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
         warnings=tuple(notes), identifiability=ident, initial_params=p0,
         contexts=contexts_all, robust=bool(robust), f_scale=float(f_scale), raw_nt=data.raw,
         n_fit_readings=(np.full(model.n_sensors, len(idx)) if mask is None
-                        else mask.sum(axis=1)))
+                        else mask.sum(axis=1)), priors=tuple(prior_list))
 
 
 def _model_for(data, model):
