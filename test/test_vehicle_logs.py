@@ -109,7 +109,7 @@ def _bound_nt(cal):
 
 
 def _write_ap(path, seed=0, n=N, attitude='XKQ', gap=None, extra_params=None,
-              magless=False):
+              magless=False, dead=()):
     t, q, cur, raw1, raw2 = _scenario(seed, n)
     df = w.DataFlash()
     df.write('MSG', TimeUS=[500], Message=['ArduCopter V4.5.1 (deadbeef)'])
@@ -121,6 +121,8 @@ def _write_ap(path, seed=0, n=N, attitude='XKQ', gap=None, extra_params=None,
     if not magless:
         for k, (raw, cal) in enumerate(((raw1, CAL1), (raw2, CAL2))):
             f, o, mo = _ap_logged(raw, cal, cur)
+            if k in dead:                   # not connected: ArduPilot logs zeros
+                f, o, mo = np.zeros_like(f), np.zeros_like(o), np.zeros_like(mo)
             df.write('MAG', TimeUS=us[keep], I=np.full(keep.sum(), k), MagX=f[keep, 0],
                      MagY=f[keep, 1], MagZ=f[keep, 2], OfsX=o[keep, 0], OfsY=o[keep, 1],
                      OfsZ=o[keep, 2], MOX=mo[keep, 0], MOY=mo[keep, 1], MOZ=mo[keep, 2],
@@ -357,6 +359,27 @@ def test_errors_name_the_problem(tmp_path):
     notulog.write_bytes(b'not a log at all, just text')
     with pytest.raises(VehicleLogError, match='not a ULog file'):
         read_vehicle_log(notulog)
+
+
+def test_a_compass_that_reads_zero_throughout_is_left_out_and_said(tmp_path):
+    # a compass not connected is logged as zeros (erlerobot/logs: pxf/rover/2-8-2014/
+    # mpu9250-ms5611/7.BIN, 1 716 MAG messages of (0, 0, 0)); the other compass is the data
+    path, (t, _, _, _, raw2) = _write_ap(tmp_path / 'dead1.bin', n=300, dead=(0,))
+    d = read_vehicle_log(path)
+    assert d.n_sensors == 1 and 'instance 1' in d.meta['compasses'][0]['source']
+    np.testing.assert_allclose(d.t, t, atol=1e-6)
+    assert np.abs(d.raw[0] - raw2).max() <= _bound_nt(CAL2)
+    (note,) = [x for x in d.meta['warnings'] if 'left out' in str(x)]
+    assert 'compass 1 (MAG instance 0) reads (0, 0, 0) nT in all 300 of its messages: left out' \
+        in str(note)
+    assert 'COMPASS_ENABLE' in str(note)
+    path, _ = _write_ap(tmp_path / 'dead2.bin', n=300, dead=(0, 1))
+    with pytest.raises(VehicleLogError) as err:
+        read_vehicle_log(path)
+    msg = str(err.value)
+    assert 'every compass reads one value throughout, so there is no field to calibrate' in msg
+    assert 'compass 2 (MAG instance 1) reads (0, 0, 0) nT in all 300 of its messages' in msg
+    assert '\n' not in msg
 
 
 def test_a_log_cut_inside_its_last_message_reads_the_messages_before(tmp_path, ap_log):

@@ -162,6 +162,37 @@ def _describe_gaps(gaps):
     return f'{length:.2f} s at t = {start:.2f} s{more}'
 
 
+def _leave_out_dead(log, path, warnings):
+    """
+    Leave out of ``log`` the compasses that read one value in all their messages.
+
+    A compass not connected or not read is logged as zeros (less the corrections undone): it
+    carries no field.  Each is named in ``warnings``; VehicleLogError when all are so.
+    """
+    dead = {}
+    for j, comp in enumerate(log.compasses):
+        v = _clean(comp)[1]
+        if len(v) > 1 and not np.ptp(v, axis=0).any():
+            value = ', '.join(f'{x:.0f}' for x in v[0])
+            dead[j] = (f'compass {j + 1} ({comp.name}) reads ({value}) nT in all {len(v)} of '
+                       'its messages')
+    if not dead:
+        return
+    why = ('not connected or not read when this was logged (ArduPilot: COMPASS_ENABLE, '
+           'COMPASS_USE; PX4: SYS_HAS_MAG)')
+    if len(dead) == len(log.compasses):
+        raise VehicleLogError(f'{path}: every compass reads one value throughout, so there is '
+                              f'no field to calibrate: {"; ".join(dead.values())}: {why}')
+    for j, text in dead.items():
+        warnings.append(Note(f'{text}: left out, {why}; the sensors are the other compasses, '
+                             'in order', kind='input'))
+    n = len(log.compasses)
+    for name in ('compasses', 'compass_temps', 'onboard'):     # one entry per compass each
+        items = getattr(log, name)
+        if len(items) == n:
+            setattr(log, name, [x for j, x in enumerate(items) if j not in dead])
+
+
 def assemble(log, path, allow_gaps=False):
     """
     Return the :class:`Dataset` of a :class:`VehicleLog` (the shared part of every format).
@@ -176,6 +207,7 @@ def assemble(log, path, allow_gaps=False):
             f'{path}: no compass data in this {log.source_format} log (no magnetometer '
             'messages): log the compass (ArduPilot: LOG_BITMASK with IMU/compass; PX4: '
             'SDLOG_PROFILE) and record again')
+    _leave_out_dead(log, path, warnings)
     t, v1 = _clean(log.compasses[0])
     if len(t) < 2:
         raise VehicleLogError(f'{path}: compass 1 has only {len(t)} valid sample(s)')
