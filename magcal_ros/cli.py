@@ -258,6 +258,16 @@ def _resolve_field(args, data):
         if args.field_nt == 'auto':
             # an ellipsoid needs a sphere; a turn gives a circle and the mean along it
             source = 'shape-planar' if getattr(args, 'planar', False) else 'shape'
+            if (source == 'shape' and data.attitude is not None
+                    and getattr(args, 'attitude', None) != 'off'):
+                # the attitude-aided fit's priors hold the scales near 1: a magnitude from a
+                # partly covered ellipsoid (tens of per cent off) would be fitted as fact
+                raise BadInput(
+                    "--field-nt auto takes the magnitude from sensor 1's ellipsoid, which a "
+                    'vehicle that stays near level does not determine, and the fit with the '
+                    "data's attitude needs the site's own: give --field-nt NT (IGRF's for the "
+                    'place and date) or --igrf LAT LON ALT_KM DATE, or fit the magnitude '
+                    'alone with --attitude off')
             try:
                 return site_field_reference(source, raw=data.raw[0])
             except PlanarError as exc:

@@ -212,6 +212,27 @@ def test_cli_uses_the_attitude_and_says_so(tmp_path):
     assert abs(np.sqrt(np.mean((np.linalg.norm(corrected, axis=1) - F) ** 2)) / 3.0 - 1) < 0.05
 
 
+def test_cli_auto_magnitude_with_an_attitude_is_refused_saying_what_to_give(tmp_path):
+    # 'auto' is sensor 1's ellipsoid: a tilt of 5 deg over a sixth of a turn gives one
+    # 39 % small (30 558 nT against 50 000), which the attitude-aided fit, its scales held
+    # near 1, would take as fact; refused with what to give instead (an ArduPilot log of
+    # erlerobot/logs, Erle-Brain3.BIN, was told to "rotate the sensor about more axes")
+    data, _ = simulate(n_samples=1000, rate_hz=10, n_sensors=1, trajectory='vehicle',
+                       tilt_deg=5.0, smooth_period_s=600.0, attitude=True, seed=1, aux=False,
+                       temp_swing_c=0)
+    from magcal_ros.core.data.magnitude import auto_magnitude
+    assert auto_magnitude(data.raw[0]) < 0.7 * F
+    write_csv(str(tmp_path / 'turn.csv'), data)
+    auto = magcal('fit', 'turn.csv', '--field-nt', 'auto', cwd=tmp_path)
+    assert auto.returncode == 2, auto.stderr
+    assert "the fit with the data's attitude needs the site's own" in auto.stderr
+    assert '--igrf LAT LON ALT_KM DATE' in auto.stderr and 'rotate' not in auto.stderr
+    assert len(auto.stderr.strip().splitlines()) == 1
+    # the magnitude alone, as the message offers: the coverage refused as on a turntable
+    off = magcal('fit', 'turn.csv', '--field-nt', 'auto', '--attitude', 'off', cwd=tmp_path)
+    assert off.returncode == 2 and 'rotation about one axis only' in off.stderr, off.stderr
+
+
 def test_cli_full_mode_without_attitude_is_refused(tmp_path):
     data, _ = simulate(n_samples=300, n_sensors=1, seed=2)
     write_csv(str(tmp_path / 'plain.csv'), data)
