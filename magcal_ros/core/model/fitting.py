@@ -30,7 +30,8 @@ from magcal_ros.core.model.engine import ProfiledProblem
 from magcal_ros.core.model.notes import Note
 from magcal_ros.core.model.solvers import (covariance_from_jacobian, covariance_from_normal,
                                            levenberg_marquardt, mad_sd, resolves_covariance,
-                                           single_threaded_blas, stderr_and_correlation)
+                                           single_threaded_blas, Solution,
+                                           stderr_and_correlation)
 from magcal_ros.core.model.spec import Model
 from magcal_ros.core.papers.ellipsoid import fit_ellipsoid, procrustes_rotation
 import numpy as np
@@ -599,7 +600,8 @@ class _Solve:
             nfev += sol.nfev
             success &= bool(sol.success)
             status, message = sol.status, sol.message
-        return p, problems, _Summary(success, status, message, nfev)
+        # the last group's status and message; every group's success and evaluations
+        return p, problems, Solution(p, success, status, message, nfev)
 
     def residual_sigma(self, p, sigma, problems):
         """
@@ -704,16 +706,6 @@ class _Solve:
             return bound
         sw = a_inv @ b @ a_inv
         return 0.5 * (sw + sw.T)
-
-
-@dataclass(frozen=True)
-class _Summary:
-    """What the optimiser of the last group said (all groups: success and evaluations)."""
-
-    success: bool
-    status: int
-    message: str
-    nfev: int
 
 
 def priors_for(model, spec, constrained=False):
