@@ -438,6 +438,22 @@ def lag_step(state, t, x, tau):
     return (t, x, y), y
 
 
+def cached(cache, key, anchor, make, size):
+    """
+    Return ``make()``, kept in the dict ``cache`` under ``key`` while ``anchor`` is the same.
+
+    A key holding an id() (which Python reuses) counts only with its ``anchor`` object; the
+    oldest entry goes once ``size`` are kept.
+    """
+    hit = cache.get(key)
+    if hit is None or hit[0] is not anchor:
+        value = make()
+        if len(cache) >= size:
+            cache.pop(next(iter(cache)))
+        hit = cache[key] = (anchor, value)
+    return hit[1]
+
+
 def steps_outside(times, t):
     """Say which step of ``times`` has fewer than 3 samples of ``t`` (N,) s on a side, or None."""
     for tk in times:

@@ -26,7 +26,7 @@ product of their columns, :class:`Product`).  A plug-in adds a factor by subclas
 """
 import math
 
-from magcal_ros.core.effects.base import (first_order_lag, format_arg, lag_step,
+from magcal_ros.core.effects.base import (cached, first_order_lag, format_arg, lag_step,
                                           NONLINEARITY_FULL_SCALE_NT, parse_number, steps_outside)
 from magcal_ros.core.effects.names import Registry
 import numpy as np
@@ -569,16 +569,10 @@ class Lagged(_OfVariable):
             return (self._online(float(ctx.t[0]), variable_values(ctx, self.v), tau, x0)
                     - x0)[:, None]
         x = variable_values(whole, self.v)
-        key = (id(x), len(x), float(tau), x0)
-        cache = self.__dict__.setdefault('_cache', {})
-        hit = cache.get(key)
-        if hit is None or hit[1] is not x:
-            hit = (first_order_lag(whole.t, np.nan_to_num(np.asarray(x, float), nan=x0), tau),
-                   x)
-            if len(cache) >= 4:
-                cache.pop(next(iter(cache)))
-            cache[key] = hit
-        y = hit[0] if idx is None else hit[0][idx]
+        y = cached(self.__dict__.setdefault('_cache', {}), (id(x), len(x), float(tau), x0), x,
+                   lambda: first_order_lag(whole.t, np.nan_to_num(np.asarray(x, float), nan=x0),
+                                           tau), 4)
+        y = y if idx is None else y[idx]
         return (y - x0)[:, None]
 
     def _online(self, t, x, tau, x0):

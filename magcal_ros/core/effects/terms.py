@@ -20,7 +20,7 @@ composed term of one sensor (one Part; the catalog's tokens are sums of Parts), 
 every sensor with scope ``alike``; :class:`FieldEffect` is the ``field`` coupling, an effect
 of the whole array on the magnitude of the field every sensor sees.
 """
-from magcal_ros.core.effects.base import Effect
+from magcal_ros.core.effects.base import cached, Effect
 from magcal_ros.core.effects.couplings import per_unit
 import numpy as np
 
@@ -65,14 +65,8 @@ class Part:
         """(N, m) or (N, 3, m) driver columns, cached per context and driver parameters."""
         if self.driver.reads_lin:
             return self.driver.columns(ctx, lin, refs, q)
-        key = (id(ctx), tuple(np.asarray(q, float)))
-        hit = self.cache.get(key)
-        if hit is None or hit[0] is not ctx:
-            hit = (ctx, self.driver.columns(ctx, lin, refs, q))
-            if len(self.cache) >= 8:
-                self.cache.pop(next(iter(self.cache)))
-            self.cache[key] = hit
-        return hit[1]
+        return cached(self.cache, (id(ctx), tuple(np.asarray(q, float))), ctx,
+                      lambda: self.driver.columns(ctx, lin, refs, q), 8)
 
     def coupled(self, p, ctx, lin, refs):
         """Return y = X P: (N, c), or (N, 3) for a per-axis driver."""

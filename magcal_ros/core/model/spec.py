@@ -121,7 +121,6 @@ class Model:
         from magcal_ros.core.effects.formula import composed_effect, parse
         formula = parse(spec)
         per_sensor = [[] for _ in range(n_sensors)]
-        seen = [set() for _ in range(n_sensors)]
         array_effects = []
         for term in formula.terms:
             if term.kind == 'drop':
@@ -137,7 +136,7 @@ class Model:
                 if term.scope == 'alike' and n_sensors < 2:
                     raise ValueError(f'{term.text}: @alike shares parameters between sensors; '
                                      'the data have one sensor (drop @alike)')
-                makers = [(term.core, lambda j, t=term: composed_effect(t, j))]
+                makers = [lambda j, t=term: composed_effect(t, j)]
             elif term.scope == 'array':
                 eff = fx.make_effect(term.core, 0)
                 if n_sensors < 3 and hasattr(eff, 'set_positions'):
@@ -148,29 +147,24 @@ class Model:
                 continue
             else:
                 names = fx.BASE if term.core == 'base' else (term.core,)
-                makers = [(nm, lambda j, nm=nm: fx.make_effect(nm, j)) for nm in names]
+                makers = [lambda j, nm=nm: fx.make_effect(nm, j) for nm in names]
             sensors = term.sensors(n_sensors)
-            for _, make in makers:
+            for make in makers:
                 for j in sensors:
-                    eff = make(j)
-                    if not eff.applies or eff.label in seen[j - 1] or any(
-                            eff.label in o.supersedes for o in per_sensor[j - 1]):
+                    eff, row = make(j), per_sensor[j - 1]
+                    if not eff.applies or any(eff.label == o.label or eff.label in o.supersedes
+                                              for o in row):
                         continue
                     # a larger form of an effect already there replaces it (aux_poly > aux)
-                    gone = [o for o in per_sensor[j - 1] if o.label in eff.supersedes]
-                    for o in gone:
-                        per_sensor[j - 1].remove(o)
-                        seen[j - 1].discard(o.label)
-                    clash = [o for o in per_sensor[j - 1]
-                             if {o.name, o.label} & set(eff.excludes)
+                    row[:] = [o for o in row if o.label not in eff.supersedes]
+                    clash = [o for o in row if {o.name, o.label} & set(eff.excludes)
                              or {eff.name, eff.label} & set(o.excludes)]
                     if clash:
                         raise ValueError(
                             f'{eff.label} and {clash[0].label} on sensor {j} describe the same '
                             f'degrees of freedom ({eff.label}: {eff.describe()}; '
                             f'{clash[0].label}: {clash[0].describe()}); use one or the other')
-                    seen[j - 1].add(eff.label)
-                    per_sensor[j - 1].append(eff)
+                    row.append(eff)
         for row in per_sensor:
             row.sort(key=lambda e: (e.kind != 'linear', e.linear_order))
         return cls(per_sensor, array_effects, formula.drops)
