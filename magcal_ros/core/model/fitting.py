@@ -282,10 +282,8 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
         idx, mask = fitted_readings(model, data.t, fit_epochs(data.n_samples, max_fit_samples))
         raw, f = data.raw[:, idx], f_all[idx]
         contexts = [c.subset(idx) for c in contexts_all]
-        if init is None:
-            p0 = _closed_form_start(raw, f, model, constrained, ident, degenerate, mask)
-        else:
-            p0 = np.asarray(init, float).copy()
+        p0 = (_closed_form_start(raw, f, model, constrained, ident, degenerate, mask)
+              if init is None else np.asarray(init, float).copy())
         if (any(hasattr(e, 'set_positions') for e in model.array_effects)
                 and contexts_all[0].attitude is not None):
             # the attitude must agree with the field direction (closed-form corrected sensor 1)
@@ -466,10 +464,8 @@ def dof_scale(n, g, n_params, rows=None, row_total=None):
     the total.  ``rows``: the observations per epoch when not 3 G; ``row_total``: those of
     all N epochs when the epochs differ (readings left out by ``drop``).
     """
-    if row_total is not None:
-        dof = row_total - 2 * n
-    else:
-        dof = ((3 * g if rows is None else rows) - 2) * n
+    per_epoch = 3 * g if rows is None else rows
+    dof = row_total - 2 * n if row_total is not None else (per_epoch - 2) * n
     return float(np.sqrt(dof / max(dof - n_params, 1.0)))
 
 
@@ -539,10 +535,8 @@ class _Solve:
         """
         model = self.model
         fixed_sigma = sigma_nt is not None
-        if fixed_sigma:
-            sigma = np.broadcast_to(np.asarray(sigma_nt, float), (model.n_sensors,)).copy()
-        else:
-            sigma = self.start_sigma(p0)
+        sigma = (np.broadcast_to(np.asarray(sigma_nt, float), (model.n_sensors,)).copy()
+                 if fixed_sigma else self.start_sigma(p0))
         p = p0.copy()
         # an attitude observing the field is one more variance component, whose share the
         # iteration settles more slowly (core/effects/attitude_ref.py)
@@ -563,14 +557,10 @@ class _Solve:
 
     def start_sigma(self, p):
         """Return (S,) a robust noise estimate (MAD) of the scalar residual at ``p``, nT."""
-        model = self.model
-        sigma = np.empty(model.n_sensors)
-        for j in range(1, model.n_sensors + 1):
-            corr = model.correct(j, p, self.raw[j - 1], self.contexts[j - 1])
-            scalar = np.linalg.norm(corr, axis=1) - self.f
-            sigma[j - 1] = max(mad_sd(scalar if self.mask is None
-                                      else scalar[self.mask[j - 1]]), 1e-3)
-        return sigma
+        cor = corrected_readings(self.model, p, self.raw, self.contexts)
+        scalar = np.linalg.norm(cor, axis=2) - self.f
+        keep = np.ones(scalar.shape, bool) if self.mask is None else self.mask
+        return np.array([max(mad_sd(s[k]), 1e-3) for s, k in zip(scalar, keep)])
 
     def solve_groups(self, p, sigma):
         """Solve each sensor group at fixed ``sigma``; return (p, problems, summary)."""
@@ -649,8 +639,7 @@ class _Solve:
         """
         n_p = self.model.n_params
         cov = np.zeros((n_p, n_p)) if with_jacobian else np.full((n_p, n_p), np.nan)
-        chi2 = 0.0
-        n_obs = 0
+        chi2, n_obs = 0.0, 0
         for grp in self.model.sensor_groups:
             prob = self.problem(grp, sigma, p)
             x = p[prob.cols]
