@@ -60,36 +60,32 @@ class Model:
 
     def _layout(self):
         """Lay the parameters out: each sensor's own, the array effects', the shared (@alike)."""
-        self.slices = []
-        self.sensor_slices = []
-        i = 0
+        end = [0]
+
+        def take(n):
+            end[0] += n
+            return slice(end[0] - n, end[0])
+        self.slices, self.sensor_slices = [], []
+        for row in self.effects:
+            start = end[0]
+            self.slices.append([None if getattr(e, 'shared', False) else take(e.n_params)
+                                for e in row])
+            self.sensor_slices.append(slice(start, end[0]))
+        self.array_slices = [take(e.n_params) for e in self.array_effects]
         shared = {}
-        for sensor_effects in self.effects:
-            start = i
-            row = []
-            for eff in sensor_effects:
-                if getattr(eff, 'shared', False):
-                    row.append(None)
-                    shared.setdefault(eff.label, eff.n_params)
-                    continue
-                row.append(slice(i, i + eff.n_params))
-                i += eff.n_params
-            self.slices.append(row)
-            self.sensor_slices.append(slice(start, i))
-        self.array_slices = []
-        for eff in self.array_effects:
-            self.array_slices.append(slice(i, i + eff.n_params))
-            i += eff.n_params
+        for e in (e for row in self.effects for e in row if getattr(e, 'shared', False)):
+            shared.setdefault(e.label, e.n_params)
         #: {label: slice} of the parameters shared by every sensor (scope alike)
-        self.shared_slices = {}
-        for lab, n in shared.items():
-            self.shared_slices[lab] = slice(i, i + n)
-            i += n
-        for row, sls in zip(self.effects, self.slices):
-            for k, eff in enumerate(row):
-                if sls[k] is None:
-                    sls[k] = self.shared_slices[eff.label]
-        self.n_params = i
+        self.shared_slices = {lab: take(n) for lab, n in shared.items()}
+        self.slices = [[self.shared_slices[e.label] if sl is None else sl
+                        for e, sl in zip(row, sls)] for row, sls in zip(self.effects, self.slices)]
+        self.n_params = end[0]
+
+    def effect_slices(self):
+        """[(sensor, effect, slice)] of every effect: each sensor's (1-based), the array's (0)."""
+        return [(j, e, sl) for j, (row, sls) in enumerate(zip(self.effects, self.slices), 1)
+                for e, sl in zip(row, sls)] + [
+                    (0, e, sl) for e, sl in zip(self.array_effects, self.array_slices)]
 
     @property
     def array_cols(self):
@@ -256,25 +252,18 @@ class Model:
     def default_params(self):
         """(n_params,) parameters of ideal sensors."""
         p = np.zeros(self.n_params)
-        for j, row in enumerate(self.effects):
-            for eff, sl in zip(row, self.slices[j]):
-                p[sl] = eff.default_params()
-        for eff, sl in zip(self.array_effects, self.array_slices):
+        for _, eff, sl in self.effect_slices():
             p[sl] = eff.default_params()
         return p
 
     def param_info(self):
         """List of (sensor, effect label, name, unit) for each parameter."""
         out = [None] * self.n_params
-        for j, row in enumerate(self.effects):
-            for eff, sl in zip(row, self.slices[j]):
-                # a parameter set shared by every sensor (@alike) is the array's: sensor 0
-                who = 0 if getattr(eff, 'shared', False) else j + 1
-                for i, nm, un in zip(range(sl.start, sl.stop), eff.param_names, eff.units):
-                    out[i] = (who, eff.label, nm, un)
-        for eff, sl in zip(self.array_effects, self.array_slices):   # sensor 0: the array
+        for j, eff, sl in self.effect_slices():
+            # sensor 0: the array, and a parameter set shared by every sensor (@alike)
+            who = 0 if getattr(eff, 'shared', False) else j
             for i, nm, un in zip(range(sl.start, sl.stop), eff.param_names, eff.units):
-                out[i] = (0, eff.label, nm, un)
+                out[i] = (who, eff.label, nm, un)
         return out
 
     def prepare(self, contexts):
