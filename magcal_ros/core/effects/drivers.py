@@ -353,13 +353,10 @@ class Cyclic(_OfVariable):
 
     def prepare(self, ctx, refs, prefix=''):
         self._range(ctx, refs, prefix)
-        if self.period is not None:
-            refs.setdefault(prefix + 'period', float(self.period))
-        else:
-            span = refs.get(prefix + 'hi', 1.0) - refs.get(prefix + 'lo', 0.0)
-            per = 2 * math.pi if span <= 2 * math.pi * 1.001 else (
-                360.0 if span <= 360.0 * 1.001 else span)
-            refs.setdefault(prefix + 'period', per)
+        span = refs.get(prefix + 'hi', 1.0) - refs.get(prefix + 'lo', 0.0)
+        per = 2 * math.pi if span <= 2 * math.pi * 1.001 else (
+            360.0 if span <= 360.0 * 1.001 else span)
+        refs.setdefault(prefix + 'period', per if self.period is None else float(self.period))
         self.columns(ctx, None, refs, (), prefix)
 
     def columns(self, ctx, lin, refs, q, prefix=''):
@@ -639,10 +636,8 @@ class Product(Driver):
             x = f.columns(ctx, lin, refs, qf, f'{prefix}{i + 1}.')
             if x.ndim == 2 and (self.per_axis):
                 x = np.broadcast_to(x[:, None, :], (x.shape[0], 3, x.shape[1]))
-            if out is None:
-                out = x
-            else:
-                out = (out[..., :, None] * x[..., None, :]).reshape(*x.shape[:-1], -1)
+            out = x if out is None else (out[..., :, None] * x[..., None, :]).reshape(
+                *x.shape[:-1], -1)
         return out
 
 

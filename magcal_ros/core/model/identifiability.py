@@ -22,6 +22,7 @@ the sensor frame); a partial coverage correlates scale, non-orthogonality and of
 After: the parameter correlations and the condition number of the correlation matrix.
 """
 from magcal_ros.core.geometry.coverage import direction_coverage
+from magcal_ros.core.geometry.turn import circle_centre
 from magcal_ros.core.papers.ellipsoid import fit_ellipsoid, reading_plane, RING_CV, ring_spread
 import numpy as np
 
@@ -96,7 +97,7 @@ def classify_coverage(m):
         if axis_ratio > MAX_AXIS_RATIO:
             # no magnetometer is that anisotropic: the ellipsoid bent to a partial set of
             # directions (a cap) and its centre is not the offset; use the sphere's
-            centre = _sphere_centre(m)
+            centre = circle_centre(m)
     else:
         # no ellipsoid: the raw directions (about the origin) tell whether the sensor
         # turned at all; readings on one plane (a ring) are a rotation about its normal
@@ -115,25 +116,18 @@ def classify_coverage(m):
         # the sensor turned, but the ellipsoid is not determined: judge about the centre
         # of the least-squares sphere (the origin would be arbitrary: with an offset near
         # the field it lies close to the readings and makes any cap look wide)
-        centre = _sphere_centre(m)
+        centre = circle_centre(m)
     out = _judge(m, centre, noise_eig)
     if out['status'] == 'good' and fitted is not None and axis_ratio <= MAX_AXIS_RATIO:
         # cross-check with the least-squares sphere's centre (stable on a cap, where the
         # ellipsoid can bend to a wrong centre), where a sphere describes the readings
-        sphere = _sphere_centre(m)
+        sphere = circle_centre(m)
         rad = np.linalg.norm(m - sphere, axis=1)
         if np.var(rad / np.median(rad)) < SPHERE_VAR_FACTOR * max(noise_eig, 1e-12):
             other = _judge(m, sphere, noise_eig)
             if other['status'] != 'good':
                 out = other
     return out
-
-
-def _sphere_centre(m):
-    """Centre (3,) nT of the least-squares sphere |m - o|^2 = r^2 (linear in o, r^2 - |o|^2)."""
-    design = np.column_stack([2.0 * m, np.ones(len(m))])
-    sol, *_ = np.linalg.lstsq(design, np.sum(m ** 2, axis=1), rcond=None)
-    return sol[:3]
 
 
 def _judge(m, centre, noise_eig):
