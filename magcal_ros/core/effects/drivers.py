@@ -213,8 +213,7 @@ class _OfVariable(Driver):
         """Subtract the calibration means of the columns (stored at the first call)."""
         names = [prefix + f'm{k + 1}' for k in range(x.shape[1])]
         if names[0] not in refs:
-            for nm, v in zip(names, x.mean(axis=0)):
-                refs[nm] = float(v)
+            refs.update(zip(names, map(float, x.mean(axis=0))))
         return x - np.array([refs[nm] for nm in names])
 
 

@@ -261,12 +261,10 @@ def _alias_term(raw, core_text, scope_text):
         raise FormulaError(f'{raw!r}: @alike shares one parameter set between sensors and is '
                            'for composed terms, e.g. offset(t)@alike')
     at = '' if scope in ('each', 'array') else f'@{scope}'
-    text_out = core + at
-    signals = tuple(eff.signals) if eff is not None else ()
     expansion = (' + '.join(BASE) if eff is None else
                  eff.expansion(at) if hasattr(eff, 'expansion') else None)
-    return Term(text=text_out, kind='alias', core=core, scope=scope, signals=signals,
-                expansion=expansion)
+    return Term(text=core + at, kind='alias', core=core, scope=scope,
+                signals=tuple(eff.signals) if eff is not None else (), expansion=expansion)
 
 
 @dataclass(frozen=True)

@@ -104,15 +104,13 @@ def classify_coverage(m):
         plane = reading_plane(m)
         cov = direction_coverage(m)
         ev = cov.eigenvalues
+        found = {'eigenvalues': ev, 'normal': cov.normal, 'centre_nt': None, 'message': None,
+                 'cone_half_angle_deg': cov.cone_half_angle_deg}
         if plane is not None:
-            return {'status': 'single axis', 'eigenvalues': ev, 'normal': plane,
-                    'cone_half_angle_deg': cov.cone_half_angle_deg, 'centre_nt': None,
-                    'message': _single_axis_message(
-                        plane, 'the readings are too flat to fit an ellipsoid')}
+            return dict(found, status='single axis', normal=plane, message=_single_axis_message(
+                plane, 'the readings are too flat to fit an ellipsoid'))
         if ev[1] < SINGLE_AXIS_EIG or ev[2] < PARTIAL_EIG:
-            return {'status': 'one attitude', 'eigenvalues': ev, 'normal': cov.normal,
-                    'cone_half_angle_deg': cov.cone_half_angle_deg, 'centre_nt': None,
-                    'message': None}
+            return dict(found, status='one attitude')
         # the sensor turned, but the ellipsoid is not determined: judge about the centre
         # of the least-squares sphere (the origin would be arbitrary: with an offset near
         # the field it lies close to the readings and makes any cap look wide)

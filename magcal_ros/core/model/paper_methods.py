@@ -94,10 +94,9 @@ def _finish(method, model, p, data, f, rows, warnings, reference=None):
                           range(1, data.n_sensors + 1)])
     before = {j: _rms_scalar(data.raw[j - 1], f) for j in range(1, data.n_sensors + 1)}
     after = {j: _rms_scalar(corrected[j - 1], f) for j in range(1, data.n_sensors + 1)}
-    vec = {}
-    if reference is not None:
-        vec = {j: float(np.sqrt(np.mean((corrected[j - 1] - reference) ** 2)))
-               for j in range(1, data.n_sensors + 1)}
+    vec = {} if reference is None else {
+        j: float(np.sqrt(np.mean((corrected[j - 1] - reference) ** 2)))
+        for j in range(1, data.n_sensors + 1)}
     return PaperFit(method=method, calibration=cal, sensor_params=rows,
                     scalar_rms_before_nt=before, scalar_rms_nt=after, vector_rms_nt=vec,
                     warnings=warnings, corrected_nt=corrected)

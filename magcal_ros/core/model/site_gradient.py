@@ -21,7 +21,7 @@ has the physics and the identifiability analysis).  Units: nT, nT/m, m, rad.
 from magcal_ros.core.effects.base import rot_z
 from magcal_ros.core.geometry.tensor import symmetric_traceless
 from magcal_ros.core.model.engine import ProfiledProblem
-from magcal_ros.core.model.fitting import centred_readings
+from magcal_ros.core.model.fitting import centred_readings, corrected_readings
 from magcal_ros.core.model.solvers import covariance_from_jacobian, stderr_and_correlation
 import numpy as np
 
@@ -238,8 +238,7 @@ def fit_heading_unknown(data, model='base,site_gradient', field_nt=None, n_iter=
     psi = None
     res = None
     for it in range(n_iter):
-        c = np.stack([model.correct(j, p, bare.raw[j - 1], ctx0[j - 1])
-                      for j in range(1, data.n_sensors + 1)])
+        c = corrected_readings(model, p, bare.raw, ctx0)
         centre = c.mean(axis=0)
         r_a = _align_to_z(centre / np.linalg.norm(centre, axis=1, keepdims=True))
         shift = c - centre[None]

@@ -170,9 +170,8 @@ class Model:
         out = []
         labels = [[e.label for e in row] for row in self.effects]
         first = {}                            # label -> one instance
-        for row in self.effects:
-            for eff in row:
-                first.setdefault(eff.label, eff)
+        for eff in (e for row in self.effects for e in row):
+            first.setdefault(eff.label, eff)
         for lab, eff in first.items():
             have = [j + 1 for j, row in enumerate(labels) if lab in row]
             expected = list(range(1 if eff.on_sensor1 else 2, self.n_sensors + 1))
@@ -313,11 +312,10 @@ class Model:
         """
         out = np.zeros((len(ctx.t), 3))
         for eff, sl in zip(self.array_effects, self.array_slices):
-            if getattr(eff, 'reads_field', False):
-                if b is not None:
-                    out = out + eff.shift(p[sl], ctx, j, b)
-            else:
+            if not getattr(eff, 'reads_field', False):
                 out = out + eff.shift(p[sl], ctx, j)
+            elif b is not None:
+                out = out + eff.shift(p[sl], ctx, j, b)
         return out
 
     def forward(self, j, p, b, ctx, a=None, add=None):
