@@ -117,8 +117,8 @@ class ProfiledProblem:
         (self.aid, self.aid_slice), self.rot = found, rot
         arr = list(self.model.array_cols)
         #: positions of the attitude's parameters among the array-wide columns
-        self.aid_arr = np.array([arr.index(i) for i in range(self.aid_slice.start,
-                                                              self.aid_slice.stop)], int)
+        sl = self.aid_slice
+        self.aid_arr = np.array([arr.index(i) for i in range(sl.start, sl.stop)], int)
         #: the observation's projector at the parameters last evaluated (:meth:`_aid_residual`)
         self.aid_proj = None
 
