@@ -135,7 +135,5 @@ MODES = {'tilt': AttitudeReference, 'full': AttitudeFull}
 
 def attitude_reference(model):
     """Return (effect, slice of its parameters) of ``model``'s attitude reference, or None."""
-    for eff, sl in zip(model.array_effects, model.array_slices):
-        if isinstance(eff, AttitudeReference):
-            return eff, sl
-    return None
+    return next(((eff, sl) for eff, sl in zip(model.array_effects, model.array_slices)
+                 if isinstance(eff, AttitudeReference)), None)

@@ -231,8 +231,8 @@ def _start_sigma(data, model, p, f):
     cor = model.correct(1, p, data.raw[0], data.context(1))
     b = cor / np.linalg.norm(cor, axis=1, keepdims=True) * f[:, None]
     r = eff.residual(p[sl], rot, f, b)
-    return max(float(np.sqrt(np.mean(np.sum(r * r, axis=1)) / eff.rank)), 1e-3 * float(
-        np.mean(f)))
+    return max(float(np.sqrt(np.mean(np.sum(r * r, axis=1)) / eff.rank)),
+               1e-3 * float(np.mean(f)))
 
 
 def heading_check(result, data, undetermined=()):

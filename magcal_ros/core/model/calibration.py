@@ -97,10 +97,7 @@ class Calibration:
 
     def signals(self, j):
         """Driving signals the effects of sensor j read (``Effect.signals``), in order."""
-        out = []
-        for eff in self.model.effects[j - 1]:
-            out.extend(s for s in eff.signals if s not in out)
-        return out
+        return list(dict.fromkeys(s for eff in self.model.effects[j - 1] for s in eff.signals))
 
     def correct(self, j, raw, ctx=None):
         """Corrected field (N, 3) or (3,) nT of sensor j's ``raw`` (ctx: for driven effects)."""

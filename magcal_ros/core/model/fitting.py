@@ -209,8 +209,7 @@ class FitResult:
         """Return a list of dicts: sensor, effect, name, unit, value, stderr."""
         return [{'sensor': s, 'effect': e, 'name': n, 'unit': u, 'value': float(v),
                  'stderr': float(se)}
-                for (s, e, n, u), v, se in zip(self.model.param_info(), self.params,
-                                               self.stderr)]
+                for (s, e, n, u), v, se in zip(self.model.param_info(), self.params, self.stderr)]
 
     def summary(self):
         """Short text report."""
@@ -226,8 +225,7 @@ class FitResult:
             v = vector_rms.get(j)
             lines.append(f'  sensor {j}: scalar RMS {r:8.2f} nT, sigma {self.sigma_nt[j-1]:.2f} nT'
                          + (f', vector RMS vs sensor 1 {v:8.2f} nT' if v is not None else ''))
-        for i, w in enumerate(self.warnings, 1):
-            lines.append(f'[{i}] {w}')
+        lines += [f'[{i}] {w}' for i, w in enumerate(self.warnings, 1)]
         return '\n'.join(lines)
 
 
@@ -708,8 +706,7 @@ def priors_for(model, spec, constrained=False):
     default = model.default_params()
     for j, row in enumerate(model.effects):
         for eff, sl in zip(row, model.slices[j]):
-            prior = spec.get(eff.label, spec.get(eff.name,
-                                                 eff.prior if constrained else None))
+            prior = spec.get(eff.label, spec.get(eff.name, eff.prior if constrained else None))
             if prior is not None:
                 mean, sd = prior
                 for i in range(sl.start, sl.stop):
@@ -739,8 +736,7 @@ def initial_params(raw, field_nt, model, constrained=False, mask=None):
         if constrained:
             # |m|^2 = 2 m.o + (F^2 - |o|^2): linear in (o, c)
             design = np.column_stack([2 * mk, np.ones(len(mk))])
-            sol, *_ = np.linalg.lstsq(design, (mk ** 2).sum(1) - fk ** 2 + f0 ** 2,
-                                      rcond=None)
+            sol, *_ = np.linalg.lstsq(design, (mk ** 2).sum(1) - fk ** 2 + f0 ** 2, rcond=None)
             c_inv, o = np.eye(3), sol[:3]
         else:
             ell = fit_ellipsoid(mk, f0)

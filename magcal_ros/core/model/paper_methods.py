@@ -65,8 +65,7 @@ class PaperFit:
             lines.append(f'    scalar RMS {self.scalar_rms_before_nt[j]:.2f} nT before, '
                          f'{self.scalar_rms_nt[j]:.2f} nT after'
                          + (f'; vector RMS vs reference {v:.2f} nT' if v is not None else ''))
-        for i, w in enumerate(self.warnings, 1):
-            lines.append(f'[{i}] {w}')
+        lines += [f'[{i}] {w}' for i, w in enumerate(self.warnings, 1)]
         return '\n'.join(lines)
 
     def to_dict(self):
@@ -167,8 +166,7 @@ def reference_calibration(data, field_nt=None, on_degenerate='raise'):
                          'ref_z (paper 002)')
     from magcal_ros.core.papers.reference_vector import fit_reference
     he = np.asarray(data.ref_vec, float)
-    f = np.linalg.norm(he, axis=1) if field_nt is None else _magnitude(field_nt,
-                                                                       data.n_samples)
+    f = np.linalg.norm(he, axis=1) if field_nt is None else _magnitude(field_nt, data.n_samples)
     fits = [fit_reference(he, data.raw[j - 1]) for j in range(1, data.n_sensors + 1)]
     warnings = [f'sensor {j}: {ft.warning}' for j, ft in enumerate(fits, 1) if ft.warning]
     if warnings and on_degenerate == 'raise':

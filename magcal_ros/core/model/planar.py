@@ -97,15 +97,9 @@ def prior_sd(model, field_nt):
 
 def held_parameters(model, axis_index):
     """Return (indices, names) of the parameters a turn about the given axes leaves open."""
-    idx, names = [], []
-    for k, (j, label, name, _) in enumerate(model.param_info()):
-        if j == 0:
-            continue
-        effect = label.split('(')[0]
-        if name in _HELD[axis_index[j - 1]].get(effect, ()):
-            idx.append(k)
-            names.append(f'{label}.{name}@{j}')
-    return idx, names
+    held = [(k, f'{label}.{name}@{j}') for k, (j, label, name, _) in enumerate(model.param_info())
+            if j and name in _HELD[axis_index[j - 1]].get(label.split('(')[0], ())]
+    return [k for k, _ in held], [n for _, n in held]
 
 
 def fit_planar(data, model, field_nt, *, prior_params=None, inclination_deg=None,
@@ -137,8 +131,8 @@ def fit_planar(data, model, field_nt, *, prior_params=None, inclination_deg=None
         axes.append(n)
         axis_index.append(k)
     held, names = held_parameters(model, axis_index)
-    p_prior = model.default_params() if prior_params is None else np.asarray(prior_params,
-                                                                             float)
+    p_prior = (model.default_params() if prior_params is None
+               else np.asarray(prior_params, float))
     if p_prior.shape != (model.n_params,):
         raise ValueError(f'prior_params has {p_prior.shape} values, the model '
                          f'{model.n_params}: give the previous calibration of the same model')

@@ -229,8 +229,7 @@ def fit_heading_unknown(data, model='base,site_gradient', field_nt=None, n_iter=
         raise ValueError('fit_heading_unknown needs sensor positions centred on the origin '
                          "(paper 004's cross)")
     bare = replace(data, attitude=None)
-    base = mdl.Model.from_spec([t for t in model.spec() if t != 'site_gradient'],
-                               data.n_sensors)
+    base = mdl.Model.from_spec([t for t in model.spec() if t != 'site_gradient'], data.n_sensors)
     r0 = mdl.fit(bare, base, field_nt=field_nt, **fit_kwargs)
     p = model.default_params()
     p[:base.n_params] = r0.params
@@ -294,6 +293,5 @@ def fit_heading_unknown(data, model='base,site_gradient', field_nt=None, n_iter=
     ident = dict(res.identifiability, site_gradient_frame=FIELD_ALIGNED)
     # the residuals of the result are computed from these parameters and attitudes when read
     return replace(res, params=p, covariance=cov, correlation=corr, stderr=stderr,
-                   warnings=warnings,
-                   sigma_nt=sigma, identifiability=ident,
+                   warnings=warnings, sigma_nt=sigma, identifiability=ident,
                    contexts=[fixed.context(j) for j in range(1, data.n_sensors + 1)])
