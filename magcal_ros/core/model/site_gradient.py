@@ -112,10 +112,8 @@ def crb_covariance(data, model, params, field_nt, sigma_nt, case='attitude', pos
         nx = _skew(n_w)
         g_w = eff.tensor(p[sl])
         d_g = g_w @ nx - nx @ g_w                   # d(R^T G R)/d psi = R^T (G N - N G) R
-        cols = []
-        for j in grp:
-            v = np.einsum('nji,jk,nkl,l->ni', rot, d_g, rot, eff.position(j))
-            cols.append(-(v @ mats[j].T) / sigma[j - 1])
+        cols = [-(np.einsum('nji,jk,nkl,l->ni', rot, d_g, rot, eff.position(j)) @ mats[j].T)
+                / sigma[j - 1] for j in grp]
         gn = np.stack(cols, axis=1).reshape(n, 3 * s, 1)
         gauge = np.array([d_g[0, 0], d_g[0, 1], d_g[0, 2], d_g[1, 1], d_g[1, 2]])
     else:

@@ -189,10 +189,7 @@ class Model:
     def with_effect(self, token):
         """Return a new model with ``token`` added; the array effects keep their references."""
         new = Model.from_spec(self.spec() + [token], self.n_sensors)
-        old = {e.label: e for e in self.array_effects}
-        for eff in new.array_effects:
-            if eff.label in old:
-                eff.refs = dict(old[eff.label].refs)
+        _copy_refs(self.array_effects, new.array_effects)
         return new
 
     def take_refs(self, other):
@@ -203,14 +200,8 @@ class Model:
         calibration mean); references ``other`` lacks are left to :meth:`prepare`.
         """
         for row_s, row_d in zip(other.effects, self.effects):
-            refs = {e.label: e.refs for e in row_s}
-            for e in row_d:
-                if e.label in refs:
-                    e.refs = dict(refs[e.label])
-        old = {e.label: e.refs for e in other.array_effects}
-        for e in self.array_effects:
-            if e.label in old:
-                e.refs = dict(old[e.label])
+            _copy_refs(row_s, row_d)
+        _copy_refs(other.array_effects, self.array_effects)
         return self
 
     def reading_mask(self, t):
@@ -422,6 +413,14 @@ class Model:
             if share is not None:
                 p[sl] = share
         return p
+
+
+def _copy_refs(source, dest):
+    """Give each effect of ``dest`` a copy of the references of its label in ``source``."""
+    refs = {e.label: e.refs for e in source}
+    for e in dest:
+        if e.label in refs:
+            e.refs = dict(refs[e.label])
 
 
 def data_hash(data):
