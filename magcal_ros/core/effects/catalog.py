@@ -496,11 +496,6 @@ def token_class(name):
 TOKEN_CLASSES = {name: token_class(name) for name in TOKENS}
 
 
-def aux_effect(channel, sensor=1):
-    """Return the effect of token ``aux:<channel>`` on ``sensor``."""
-    return TOKEN_CLASSES['aux'](sensor=sensor, args=(channel,))
-
-
 class SiteGradient(Effect):
     """
     Constant gradient of the site in the world frame, seen through the known attitude.

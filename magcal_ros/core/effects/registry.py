@@ -23,9 +23,8 @@ import sys
 
 from magcal_ros.core.effects.attitude_ref import AttitudeFull, AttitudeReference
 from magcal_ros.core.effects.base import Effect
-from magcal_ros.core.effects.catalog import (aux_effect, AxisMap, Misalignment,
-                                             NonOrthogonality, Offset, Scale, SiteGradient,
-                                             SoftIron, TOKEN_CLASSES)
+from magcal_ros.core.effects.catalog import (AxisMap, Misalignment, NonOrthogonality, Offset,
+                                             Scale, SiteGradient, SoftIron, TOKEN_CLASSES)
 from magcal_ros.core.effects.names import Registry
 
 #: the named effects (catalog and plug-ins)
@@ -149,7 +148,7 @@ def make_catalog_effect(token, sensor):
                              f'{", ".join(registered_effects())}')
         return cls.from_args(args, sensor)
     if token.startswith('aux:'):
-        return aux_effect(token[4:], sensor)
+        return TOKEN_CLASSES['aux'](sensor=sensor, args=(token[4:],))
     if EFFECTS.get(token) is None and ':' in token:
         token = _loaded_effect_name(token)
     cls = EFFECTS.get(token)
