@@ -165,8 +165,7 @@ def check_coverage(raw):
         if len(m) < 3:
             messages[j] = f'sensor {j} reported no usable samples: check its cable/port'
             continue
-        spread = np.ptp(m, axis=0)
-        if not np.any(spread > 0):
+        if not np.any(np.ptp(m, axis=0) > 0):
             # a stuck sensor (frozen ADC, driver repeating its last value): not an attitude
             # problem, rotating more would not help
             out['sensors'][j] = {'eigenvalues': [0.0, 0.0, 1.0], 'normal': [0.0, 0.0, 0.0],
@@ -179,33 +178,30 @@ def check_coverage(raw):
         ev, status = c['eigenvalues'], c['status']
         n = ', '.join(f'{x:+.2f}' for x in c['normal'])
         if status == 'one attitude':
-            msg = (f'sensor {j}: all samples have (nearly) the same field direction (within a '
-                   f'{c["cone_half_angle_deg"]:.0f} deg cone): the sensor hardly turned, '
-                   'or turned only about the field; rotate the array through many '
-                   'attitudes (turn it over, about at least two axes)')
+            messages[j] = (f'sensor {j}: all samples have (nearly) the same field direction '
+                           f'(within a {c["cone_half_angle_deg"]:.0f} deg cone): the sensor '
+                           'hardly turned, or turned only about the field; rotate the array '
+                           'through many attitudes (turn it over, about at least two axes)')
         elif status == 'single axis':
-            msg = f'sensor {j}: {c["message"]}'
+            messages[j] = f'sensor {j}: {c["message"]}'
         elif status == 'partial':
             cov_dir = direction_coverage(m - c['centre_nt'])
             if cov_dir.mean_resultant_length > 0.5:
-                msg = (f'sensor {j}: field directions span only a '
-                       f'{2 * c["cone_half_angle_deg"]:.0f} deg cone around '
-                       f'({", ".join(f"{x:+.2f}" for x in cov_dir.mean_direction)}) about the '
-                       'fitted centre: scale, non-orthogonality and offset are poorly '
-                       'separated; turn the array over, or use the constrained mode '
-                       '(--constrained: priors on scale and angles)')
+                messages[j] = (f'sensor {j}: field directions span only a '
+                               f'{2 * c["cone_half_angle_deg"]:.0f} deg cone around '
+                               f'({", ".join(f"{x:+.2f}" for x in cov_dir.mean_direction)}) '
+                               'about the fitted centre: scale, non-orthogonality and offset '
+                               'are poorly separated; turn the array over, or use the '
+                               'constrained mode (--constrained: priors on scale and angles)')
             else:
-                msg = (f'sensor {j}: field directions stay within a band around the plane with '
-                       f'normal ({n}), i.e. mostly a rotation about ({n}) in the sensor frame: '
-                       'tilt that axis further, or use the constrained mode (--constrained)')
-        else:
-            msg = None
+                messages[j] = (f'sensor {j}: field directions stay within a band around the '
+                               f'plane with normal ({n}), i.e. mostly a rotation about ({n}) in '
+                               'the sensor frame: tilt that axis further, or use the '
+                               'constrained mode (--constrained)')
         out['sensors'][j] = {'eigenvalues': [float(x) for x in ev],
                              'normal': [float(x) for x in c['normal']],
                              'cone_half_angle_deg': float(c['cone_half_angle_deg']),
                              'status': status}
-        if msg:
-            messages[j] = msg
     moved = [j for j, v in out['sensors'].items()
              if v['status'] not in ('one attitude', 'constant')]
     for j, v in out['sensors'].items():

@@ -232,8 +232,7 @@ def fit_heading_unknown(data, model='base,site_gradient', field_nt=None, n_iter=
     p = model.default_params()
     p[:base.n_params] = r0.params
     ctx0 = [bare.context(j) for j in range(1, data.n_sensors + 1)]
-    psi = None
-    res = None
+    psi = res = None
     for it in range(n_iter):
         c = corrected_readings(model, p, bare.raw, ctx0)
         centre = c.mean(axis=0)
@@ -250,12 +249,11 @@ def fit_heading_unknown(data, model='base,site_gradient', field_nt=None, n_iter=
             g_w = np.einsum('nij,njk,nlk->il', rot, g_b, rot) / len(psi)   # mean R G_b R^T
             g_w = 0.5 * (g_w + g_w.T)
             g_w -= np.trace(g_w) / 3 * np.eye(3)
+            p[sl] = [g_w[0, 0], g_w[0, 1], g_w[0, 2], g_w[1, 1], g_w[1, 2]]
         else:
             g_w = eff.tensor(p[sl])
         psi = _best_heading(shift, r_a, g_w, positions, psi0=psi)
         att = Rotation.from_matrix(rot_z(psi) @ r_a).as_quat(scalar_first=True)
-        if it == 0:
-            p[sl] = [g_w[0, 0], g_w[0, 1], g_w[0, 2], g_w[1, 1], g_w[1, 2]]
         res = mdl.fit(replace(bare, attitude=att), model, field_nt=field_nt, init=p,
                       check_identifiability=False, **fit_kwargs)
         moved = np.abs(res.params - p) / np.where(res.stderr > 0, res.stderr, np.inf)
