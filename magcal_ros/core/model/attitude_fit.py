@@ -177,8 +177,7 @@ def fit_attitude(data, model, field_nt=None, mode='tilt', inclination_deg=None,
     open_ = {i for i in open_ if (info[i][0] and info[i][1] in SENSOR_MAP_KINDS)
              or i in mount}
     undetermined, determined = split_determined(info, open_, mount)
-    ang = result.params[sl]
-    se = result.stderr[sl]
+    ang, se = result.params[sl], result.stderr[sl]
     world = {'frame': data.meta.get('attitude_frame', "the attitude's world frame"),
              'inclination_prior': ('IGRF' if len(extra) > 3 else 'none (estimated)' if
                                    inclination_deg is None else
@@ -196,8 +195,8 @@ def fit_attitude(data, model, field_nt=None, mode='tilt', inclination_deg=None,
     return AttitudeResult(
         result=result, mode=mode, undetermined=undetermined, determined=determined,
         attitude_sd_deg=float(np.degrees(eff.refs.get('white_sigma_nt', eff.sigma_nt) / f0)),
-        world_field=world,
-        heading=heading_check(result, data, undetermined), residual_correlation=rho)
+        world_field=world, heading=heading_check(result, data, undetermined),
+        residual_correlation=rho)
 
 
 def prior_held(result, prior_list, ratio=PRIOR_HELD_RATIO):
