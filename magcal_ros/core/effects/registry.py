@@ -75,11 +75,9 @@ def load_plugin(ref):
         mod = importlib.import_module(mod_name)
     except ImportError as exc:
         raise ValueError(f'cannot import effect plugin {ref!r}: {exc}') from exc
-    if attr:
-        classes = [getattr(mod, attr)]
-    else:
-        classes = [c for key in ('MAGCAL_EFFECTS', 'MAGCAL_COUPLINGS', 'MAGCAL_DRIVERS')
-                   for c in getattr(mod, key, [])]
+    classes = [getattr(mod, attr)] if attr else [
+        c for key in ('MAGCAL_EFFECTS', 'MAGCAL_COUPLINGS', 'MAGCAL_DRIVERS')
+        for c in getattr(mod, key, [])]
     names = []
     for cls in classes:
         registry = next((r for r in (couplings.COUPLINGS, drivers.DRIVERS)
