@@ -726,8 +726,7 @@ def initial_params(raw, field_nt, model, constrained=False, mask=None):
     s = raw.shape[0]
     f0 = float(np.mean(field_nt))
     p = model.default_params()
-    corrected = []
-    mats = []
+    corrected, mats = [], []
     keep = np.ones(raw.shape[:2], bool) if mask is None else np.asarray(mask, bool)
     for j in range(1, s + 1):
         # in the frame of the sensor's axes (an axes(...) map M: reading = M x that frame)

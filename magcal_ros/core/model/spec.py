@@ -337,8 +337,7 @@ class Model:
         evaluated alone; the array's parameters re-evaluate :meth:`forward`.
         """
         h = np.array([1e-6 * max(1.0, abs(p[i])) for i in cols])
-        owner = {}
-        linear = set()
+        owner, linear = {}, set()
         reading = []                    # additive effects that read the linear part
         for eff, sl in zip(self.effects[j - 1], self.slices[j - 1]):
             if eff.kind != 'linear':
@@ -347,8 +346,7 @@ class Model:
                     reading.append((eff, sl))
             else:
                 linear.update(range(sl.start, sl.stop))
-        lin = None
-        contrib = {}
+        lin, contrib = None, {}
         diff = np.empty((len(cols), len(b), 3))
         for c, i in enumerate(cols):
             pp = p.copy()
