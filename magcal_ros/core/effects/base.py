@@ -347,6 +347,12 @@ def parse_number(text, what):
     return v
 
 
+def split_params(q, sizes):
+    """Cut the parameter vector ``q`` into consecutive pieces of the lengths ``sizes``."""
+    ends = np.cumsum([0, *sizes])
+    return [q[a:b] for a, b in zip(ends[:-1], ends[1:])]
+
+
 def format_arg(v):
     """
     Canonical text of a token argument: 6 significant digits, a value of 1e5 or more to 1e-3.

@@ -25,7 +25,7 @@ a token differs from the composition written out is in docs/formulas.md.
 from magcal_ros.core.effects import drivers as dv
 from magcal_ros.core.effects.base import (channel_name, Effect, format_arg, misalignment_angles,
                                           misalignment_matrix, nonorthogonality_matrix,
-                                          parse_number)
+                                          parse_number, split_params)
 from magcal_ros.core.effects.couplings import coupling_class
 from magcal_ros.core.effects.terms import no_lag, Part
 from magcal_ros.core.geometry.tensor import symmetric_traceless
@@ -311,11 +311,9 @@ class TokenEffect(Effect):
         """(N, 3) nT added to the raw reading: the sum of the parts'."""
         refs = self._refs()
         q = np.concatenate([np.zeros(self.comp.lead), self.comp.sign * np.asarray(p, float)])
-        out, i = 0.0, 0
-        for part in self.parts:
-            n = len(part.param_names)
-            out = out + part.contribution(q[i:i + n], ctx, lin, refs)
-            i += n
+        out = 0.0
+        for part, qp in zip(self.parts, split_params(q, [len(p.param_names) for p in self.parts])):
+            out = out + part.contribution(qp, ctx, lin, refs)
         return out
 
 

@@ -27,7 +27,8 @@ product of their columns, :class:`Product`).  A plug-in adds a factor by subclas
 import math
 
 from magcal_ros.core.effects.base import (cached, first_order_lag, format_arg, lag_step,
-                                          NONLINEARITY_FULL_SCALE_NT, parse_number, steps_outside)
+                                          NONLINEARITY_FULL_SCALE_NT, parse_number,
+                                          split_params, steps_outside)
 from magcal_ros.core.effects.names import Registry
 import numpy as np
 
@@ -541,13 +542,6 @@ class Product(Driver):
     def default_params(self):
         return np.concatenate([f.default_params() for f in self.factors] + [np.zeros(0)])
 
-    def _split(self, q):
-        out, i = [], 0
-        for f in self.factors:
-            out.append(q[i:i + len(f.param_names)])
-            i += len(f.param_names)
-        return out
-
     def prepare(self, ctx, refs, prefix=''):
         for i, f in enumerate(self.factors):
             f.prepare(ctx, refs, f'{prefix}{i + 1}.')
@@ -557,7 +551,8 @@ class Product(Driver):
 
     def columns(self, ctx, lin, refs, q, prefix=''):
         out = None
-        for i, (f, qf) in enumerate(zip(self.factors, self._split(q))):
+        sizes = [len(f.param_names) for f in self.factors]
+        for i, (f, qf) in enumerate(zip(self.factors, split_params(q, sizes))):
             x = f.columns(ctx, lin, refs, qf, f'{prefix}{i + 1}.')
             if x.ndim == 2 and (self.per_axis):
                 x = np.broadcast_to(x[:, None, :], (x.shape[0], 3, x.shape[1]))

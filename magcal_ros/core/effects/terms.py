@@ -36,8 +36,7 @@ class Part:
     """
 
     def __init__(self, coupling, driver):
-        self.coupling = coupling
-        self.driver = driver
+        self.coupling, self.driver = coupling, driver
         cols = driver.column_names
         self.m, self.c = len(cols), coupling.n_per_column
         self.param_names = tuple(
@@ -107,12 +106,9 @@ class ComposedEffect(Effect):
     def __init__(self, coupling, driver, sensor=1, refs=None, shared=False):
         super().__init__(sensor, refs)
         self.part = Part(coupling, driver)
-        self.coupling = coupling
-        self.driver = driver
-        self.shared = bool(shared)
-        self.name = self.part.text
-        self.param_names = self.part.param_names
-        self.units = self.part.units
+        self.coupling, self.driver, self.shared = coupling, driver, bool(shared)
+        self.name, self.param_names, self.units = (self.part.text, self.part.param_names,
+                                                   self.part.units)
         self.signals = tuple(driver.signals)
 
     @property
