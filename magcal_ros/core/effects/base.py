@@ -118,8 +118,7 @@ class SensorContext:
         pos = np.arange(len(self.t))[idx]
         root = self if self.parent is None else self.parent
         return SensorContext(
-            t=self.t[idx],
-            temp=None if self.temp is None else self.temp[idx],
+            t=self.t[idx], temp=None if self.temp is None else self.temp[idx],
             aux={k: v[idx] for k, v in self.aux.items()},
             raw_rate=None if self.raw_rate is None else self.raw_rate[idx],
             attitude=None if self.attitude is None else self.attitude[idx],
