@@ -122,11 +122,14 @@ class FitResult:
         """(S, N, 3) corrected readings in the array frame, nT."""
         return corrected_readings(self.model, self.params, self.raw_nt, self.contexts)
 
+    def _peek(self, name):
+        """Return the cached property ``name``: the one kept, else computed and not kept."""
+        return (self.__dict__[name] if name in self.__dict__
+                else getattr(type(self), name).func(self))
+
     def _centred(self):
-        corrected = self.__dict__.get('corrected_nt')
-        if corrected is None:
-            corrected = corrected_readings(self.model, self.params, self.raw_nt, self.contexts)
-        return centred_readings(self.model, self.params, corrected, self.contexts)
+        return centred_readings(self.model, self.params, self._peek('corrected_nt'),
+                                self.contexts)
 
     @cached_property
     def scalar_residual_nt(self):
@@ -188,10 +191,7 @@ class FitResult:
 
         On the sets both sensors keep (outside their drop() windows).
         """
-        vector = self.__dict__.get('vector_residual_nt')
-        if vector is None:                  # not kept: the RMS needs only a passing copy
-            centred = self._centred()
-            vector = centred - centred[:1]
+        vector = self._peek('vector_residual_nt')     # not kept: the RMS needs only a copy
         return {j + 1: float(np.sqrt(np.mean(vector[j][self._kept(j + 1, 1)] ** 2)))
                 for j in range(1, self.model.n_sensors)}
 
