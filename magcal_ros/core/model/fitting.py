@@ -600,8 +600,7 @@ class _Solve:
         """
         new_sigma = sigma.copy()
         for prob in problems:
-            x = p[prob.cols]
-            _, b, mats, res = prob.evaluate(x)
+            _, b, mats, res = prob.evaluate(p[prob.cols])
             g = len(prob.sensors)
             g_cols = prob.field_columns(b, mats)
             if self.robust and prob.aid is None:
