@@ -78,20 +78,10 @@ class AttitudeReference(Effect):
         """(N, 3) zeros: the attitude corrects no sensor."""
         return np.zeros((len(ctx.t), 3))
 
-    @property
-    def n_field(self):
-        """Return how many of the parameters are the world field's angles (1 or 2)."""
-        return len(self.param_names) - 3
-
     def mount(self, p):
         """Return Q (3, 3), the rotation from the attitude's body frame to sensor 1's (p[-3:])."""
         from scipy.spatial.transform import Rotation
         return Rotation.from_rotvec(np.asarray(p[-3:], float)).as_matrix()
-
-    def world_unit(self, p):
-        """(3,) the unit world field direction of parameters ``p`` (full mode)."""
-        inc, dec = p[0], (p[1] if self.n_field > 1 else 0.0)
-        return np.array([np.cos(inc) * np.cos(dec), np.cos(inc) * np.sin(dec), np.sin(inc)])
 
     def observation(self, p, rot, f):
         """
@@ -103,7 +93,8 @@ class AttitudeReference(Effect):
         """
         q = self.mount(p)
         if self.mode == 'full':
-            u = self.world_unit(p)
+            inc, dec = p[0], p[1]                       # the world field's unit vector
+            u = np.array([np.cos(inc) * np.cos(dec), np.cos(inc) * np.sin(dec), np.sin(inc)])
             y = np.einsum('ab,nkb,k->na', q, rot, u) * f[:, None]       # Q R^T m
             proj = np.broadcast_to(np.eye(3), (len(f), 3, 3))
             return proj, y
@@ -144,7 +135,5 @@ MODES = {'tilt': AttitudeReference, 'full': AttitudeFull}
 
 def attitude_reference(model):
     """Return (effect, slice of its parameters) of ``model``'s attitude reference, or None."""
-    for eff, sl in zip(model.array_effects, model.array_slices):
-        if isinstance(eff, AttitudeReference):
-            return eff, sl
-    return None
+    return next(((eff, sl) for eff, sl in zip(model.array_effects, model.array_slices)
+                 if isinstance(eff, AttitudeReference)), None)

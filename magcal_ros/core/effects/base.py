@@ -118,8 +118,7 @@ class SensorContext:
         pos = np.arange(len(self.t))[idx]
         root = self if self.parent is None else self.parent
         return SensorContext(
-            t=self.t[idx],
-            temp=None if self.temp is None else self.temp[idx],
+            t=self.t[idx], temp=None if self.temp is None else self.temp[idx],
             aux={k: v[idx] for k, v in self.aux.items()},
             raw_rate=None if self.raw_rate is None else self.raw_rate[idx],
             attitude=None if self.attitude is None else self.attitude[idx],
@@ -347,6 +346,12 @@ def parse_number(text, what):
     return v
 
 
+def split_params(q, sizes):
+    """Cut the parameter vector ``q`` into consecutive pieces of the lengths ``sizes``."""
+    ends = np.cumsum([0, *sizes])
+    return [q[a:b] for a, b in zip(ends[:-1], ends[1:])]
+
+
 def format_arg(v):
     """
     Canonical text of a token argument: 6 significant digits, a value of 1e5 or more to 1e-3.
@@ -436,6 +441,22 @@ def lag_step(state, t, x, tau):
     a, b0, b1 = lag_coefficients(t - state[0], tau)
     y = float(b0 * x + (b1 * state[1] + a * state[2]))
     return (t, x, y), y
+
+
+def cached(cache, key, anchor, make, size):
+    """
+    Return ``make()``, kept in the dict ``cache`` under ``key`` while ``anchor`` is the same.
+
+    A key holding an id() (which Python reuses) counts only with its ``anchor`` object; the
+    oldest entry goes once ``size`` are kept.
+    """
+    hit = cache.get(key)
+    if hit is None or hit[0] is not anchor:
+        value = make()
+        if len(cache) >= size:
+            cache.pop(next(iter(cache)))
+        hit = cache[key] = (anchor, value)
+    return hit[1]
 
 
 def steps_outside(times, t):

@@ -25,7 +25,7 @@ a token differs from the composition written out is in docs/formulas.md.
 from magcal_ros.core.effects import drivers as dv
 from magcal_ros.core.effects.base import (channel_name, Effect, format_arg, misalignment_angles,
                                           misalignment_matrix, nonorthogonality_matrix,
-                                          parse_number)
+                                          parse_number, split_params)
 from magcal_ros.core.effects.couplings import coupling_class
 from magcal_ros.core.effects.terms import no_lag, Part
 from magcal_ros.core.geometry.tensor import symmetric_traceless
@@ -58,11 +58,9 @@ def axis_map_matrix(args):
 
 def axis_map_args(m):
     """Inverse of :func:`axis_map_matrix`: the three tokens of a (3, 3) signed permutation."""
-    out = []
-    for row in np.asarray(m):
-        k = int(np.argmax(np.abs(row)))
-        out.append(('-' if row[k] < 0 else '') + AXIS_NAMES[k])
-    return tuple(out)
+    m = np.asarray(m)
+    k = np.argmax(np.abs(m), axis=1)
+    return tuple(('-' if m[i, k[i]] < 0 else '') + AXIS_NAMES[k[i]] for i in range(3))
 
 
 class AxisMap(Effect):
@@ -82,10 +80,9 @@ class AxisMap(Effect):
 
     @classmethod
     def from_args(cls, args, sensor=1):
-        m = axis_map_matrix(args)
         eff = cls(sensor=sensor)
-        eff.map = m
-        eff.args = axis_map_args(m)
+        eff.map = axis_map_matrix(args)
+        eff.args = axis_map_args(eff.map)
         return eff
 
     def matrix(self, p):
@@ -177,9 +174,7 @@ class SoftIron(Effect):
         return ('1',) * len(self.param_names)
 
     def default_params(self):
-        if self.sensor == 1:
-            return np.array([1.0, 0, 0, 1.0, 0, 1.0])
-        return np.eye(3).ravel()
+        return np.eye(3)[np.triu_indices(3)] if self.sensor == 1 else np.eye(3).ravel()
 
     def matrix(self, p):
         if self.sensor == 1:
@@ -316,11 +311,9 @@ class TokenEffect(Effect):
         """(N, 3) nT added to the raw reading: the sum of the parts'."""
         refs = self._refs()
         q = np.concatenate([np.zeros(self.comp.lead), self.comp.sign * np.asarray(p, float)])
-        out, i = 0.0, 0
-        for part in self.parts:
-            n = len(part.param_names)
-            out = out + part.contribution(q[i:i + n], ctx, lin, refs)
-            i += n
+        out = 0.0
+        for part, qp in zip(self.parts, split_params(q, [len(p.param_names) for p in self.parts])):
+            out = out + part.contribution(qp, ctx, lin, refs)
         return out
 
 
@@ -421,9 +414,7 @@ def _min_span(v, least, what):
     def check(eff, ctx):
         a = dv.variable_values(ctx, v)
         span = float(np.nanmax(a) - np.nanmin(a))
-        if span < least:
-            return what(eff.sensor, span)
-        return None
+        return what(eff.sensor, span) if span < least else None
     return check
 
 
@@ -503,11 +494,6 @@ def token_class(name):
 TOKEN_CLASSES = {name: token_class(name) for name in TOKENS}
 
 
-def aux_effect(channel, sensor=1):
-    """Return the effect of token ``aux:<channel>`` on ``sensor``."""
-    return TOKEN_CLASSES['aux'](sensor=sensor, args=(channel,))
-
-
 class SiteGradient(Effect):
     """
     Constant gradient of the site in the world frame, seen through the known attitude.
@@ -529,10 +515,9 @@ class SiteGradient(Effect):
 
     def set_positions(self, positions):
         """Store the (S, 3) sensor positions, m, in the array frame."""
-        pos = np.asarray(positions, float)
-        for j, r in enumerate(pos, start=1):
-            for a, v in zip('xyz', r):
-                self.refs[f'{a}{j}'] = float(v)
+        self.refs.update({f'{a}{j}': float(v) for j, r in
+                          enumerate(np.asarray(positions, float), start=1)
+                          for a, v in zip('xyz', r)})
 
     def position(self, j):
         """(3,) position of sensor j, m."""

@@ -26,8 +26,9 @@ product of their columns, :class:`Product`).  A plug-in adds a factor by subclas
 """
 import math
 
-from magcal_ros.core.effects.base import (first_order_lag, format_arg, lag_step,
-                                          NONLINEARITY_FULL_SCALE_NT, parse_number, steps_outside)
+from magcal_ros.core.effects.base import (cached, first_order_lag, format_arg, lag_step,
+                                          NONLINEARITY_FULL_SCALE_NT, parse_number,
+                                          split_params, steps_outside)
 from magcal_ros.core.effects.names import Registry
 import numpy as np
 
@@ -128,31 +129,19 @@ class Driver:
     #: the driver's own parameters (a lag's time constant), names and units
     param_names = ()
     units = ()
+    #: canonical text of the factor (pasteable), and the names of its m columns (parameter
+    #: names are built from them): set where it is made, or properties
+    text = None
+    column_names = ()
+    #: unit of every column (the coupling's parameters are per this unit)
+    unit = '1'
+    #: driving signals read (keys of base.SIGNALS or aux_<name>)
+    signals = ()
 
     @classmethod
     def from_args(cls, args, kwargs):
         """Make the factor ``name(args, key=value)``; ``args`` and values are strings."""
         raise NotImplementedError
-
-    @property
-    def text(self):
-        """Canonical text of the factor (pasteable)."""
-        raise NotImplementedError
-
-    @property
-    def column_names(self):
-        """Names of the m columns (parameter names are built from them)."""
-        raise NotImplementedError
-
-    @property
-    def unit(self):
-        """Return the unit of every column (the coupling's parameters are per this unit)."""
-        return '1'
-
-    @property
-    def signals(self):
-        """Driving signals read (keys of base.SIGNALS or aux_<name>)."""
-        return ()
 
     def default_params(self):
         """(n,) starting values of the driver's own parameters."""
@@ -213,8 +202,7 @@ class _OfVariable(Driver):
         """Subtract the calibration means of the columns (stored at the first call)."""
         names = [prefix + f'm{k + 1}' for k in range(x.shape[1])]
         if names[0] not in refs:
-            for nm, v in zip(names, x.mean(axis=0)):
-                refs[nm] = float(v)
+            refs.update(zip(names, map(float, x.mean(axis=0))))
         return x - np.array([refs[nm] for nm in names])
 
 
@@ -228,18 +216,7 @@ class Variable(_OfVariable):
         self.v = variable_name(v)
         self.per_axis = VARIABLES.get(self.v, ('', False))[1]
         self.reads_lin = self.v == 'lin'
-
-    @property
-    def text(self):
-        return self.v
-
-    @property
-    def column_names(self):
-        return (self.v,)
-
-    @property
-    def unit(self):
-        return variable_unit(self.v)
+        self.text, self.column_names, self.unit = self.v, (self.v,), variable_unit(self.v)
 
     def prepare(self, ctx, refs, prefix=''):
         if not self.per_axis:                   # rate and lin: their zero is physical
@@ -288,15 +265,8 @@ class Spline(_OfVariable):
         d = _new(cls, args, kwargs, ('k',), 1, 's takes one variable and k=, e.g. s(t, k=6)')
         d.v = d._var(args[0])
         d.k = _count(kwargs.get('k', '5'), 's(..., k=K) basis size', 3, 20)
+        d.text, d.column_names = f's({d.v}, k={d.k})', tuple(f's{i + 1}' for i in range(d.k))
         return d
-
-    @property
-    def text(self):
-        return f's({self.v}, k={self.k})'
-
-    @property
-    def column_names(self):
-        return tuple(f's{i + 1}' for i in range(self.k))
 
     def prepare(self, ctx, refs, prefix=''):
         self._range(ctx, refs, prefix)
@@ -340,26 +310,17 @@ class Cyclic(_OfVariable):
         d.k = _count(kwargs.get('k', '2'), 'cc(..., k=K) harmonics', 1, 10)
         d.period = (_positive(kwargs['period'], 'cc period', 'cc period')
                     if 'period' in kwargs else None)
+        per = '' if d.period is None else f', period={format_arg(d.period)}'
+        d.text = f'cc({d.v}, k={d.k}{per})'
+        d.column_names = tuple(f'{c}{h}' for h in range(1, d.k + 1) for c in ('c', 's'))
         return d
-
-    @property
-    def text(self):
-        per = '' if self.period is None else f', period={format_arg(self.period)}'
-        return f'cc({self.v}, k={self.k}{per})'
-
-    @property
-    def column_names(self):
-        return tuple(f'{c}{h}' for h in range(1, self.k + 1) for c in ('c', 's'))
 
     def prepare(self, ctx, refs, prefix=''):
         self._range(ctx, refs, prefix)
-        if self.period is not None:
-            refs.setdefault(prefix + 'period', float(self.period))
-        else:
-            span = refs.get(prefix + 'hi', 1.0) - refs.get(prefix + 'lo', 0.0)
-            per = 2 * math.pi if span <= 2 * math.pi * 1.001 else (
-                360.0 if span <= 360.0 * 1.001 else span)
-            refs.setdefault(prefix + 'period', per)
+        span = refs.get(prefix + 'hi', 1.0) - refs.get(prefix + 'lo', 0.0)
+        per = 2 * math.pi if span <= 2 * math.pi * 1.001 else (
+            360.0 if span <= 360.0 * 1.001 else span)
+        refs.setdefault(prefix + 'period', per if self.period is None else float(self.period))
         self.columns(ctx, None, refs, (), prefix)
 
     def columns(self, ctx, lin, refs, q, prefix=''):
@@ -386,15 +347,9 @@ class Poly(_OfVariable):
         d.per_axis = VARIABLES.get(d.v, ('', False))[1]
         d.reads_lin = d.v == 'lin'
         d.degree = _count(args[1], 'poly degree', 1, 4)
+        d.text = f'poly({d.v}, {d.degree})'
+        d.column_names = tuple(f'p{i}' for i in range(1, d.degree + 1))
         return d
-
-    @property
-    def text(self):
-        return f'poly({self.v}, {self.degree})'
-
-    @property
-    def column_names(self):
-        return tuple(f'p{i}' for i in range(1, self.degree + 1))
 
     def prepare(self, ctx, refs, prefix=''):
         if not self.per_axis:
@@ -433,11 +388,8 @@ class Sinusoid(Driver):
             raise FormulaError(f'sin(..., refine=...) is true or false, got {refine!r}')
         d.refine = refine == 'true'
         d.param_names, d.units = (('df',), ('Hz',)) if d.refine else ((), ())
+        d.text = f'sin({format_arg(d.freq_hz)}' + (', refine=true)' if d.refine else ')')
         return d
-
-    @property
-    def text(self):
-        return f'sin({format_arg(self.freq_hz)}' + (', refine=true)' if self.refine else ')')
 
     def prepare(self, ctx, refs, prefix=''):
         refs.setdefault(prefix + 't0', float(ctx.t[0]) if len(ctx.t) else 0.0)
@@ -470,16 +422,10 @@ class Steps(Driver):
     def from_args(cls, args, kwargs):
         d = _new(cls, args, kwargs, (), None, 'step needs at least one time in s, e.g. step(300)')
         d.times = tuple(sorted(parse_number(a, 'step time [s]') for a in args))
+        d.text = f'step({", ".join(format_arg(x) for x in d.times)})'
+        d.column_names = ('step',) if len(d.times) == 1 else tuple(
+            f'step{i + 1}' for i in range(len(d.times)))
         return d
-
-    @property
-    def text(self):
-        return f'step({", ".join(format_arg(x) for x in self.times)})'
-
-    @property
-    def column_names(self):
-        return ('step',) if len(self.times) == 1 else tuple(
-            f'step{i + 1}' for i in range(len(self.times)))
 
     def check(self, ctx, sensor):
         return steps_outside(self.times, ctx.t)
@@ -502,11 +448,8 @@ class Window(Driver):
         d.t0, d.t1 = (parse_number(a, 'window time [s]') for a in args)
         if not d.t1 > d.t0:
             raise FormulaError(f'window({args[0]}, {args[1]}): the end must follow the start')
+        d.text = f'window({format_arg(d.t0)}, {format_arg(d.t1)})'
         return d
-
-    @property
-    def text(self):
-        return f'window({format_arg(self.t0)}, {format_arg(self.t1)})'
 
     def check(self, ctx, sensor):
         inside = int(np.sum((ctx.t >= self.t0) & (ctx.t <= self.t1)))
@@ -540,16 +483,9 @@ class Lagged(_OfVariable):
         d.v = d._var(args[0])
         d.tau = _positive(kwargs['tau'], 'lag tau [s]', 'lag tau') if 'tau' in kwargs else None
         d.param_names, d.units = ((), ()) if d.tau is not None else (('tau',), ('s',))
+        d.text = f'lag({d.v}' + ('' if d.tau is None else f', tau={format_arg(d.tau)}') + ')'
+        d.unit = variable_unit(d.v)
         return d
-
-    @property
-    def text(self):
-        return f'lag({self.v}' + ('' if self.tau is None else f', tau={format_arg(self.tau)}') \
-            + ')'
-
-    @property
-    def unit(self):
-        return variable_unit(self.v)
 
     @property
     def signals(self):
@@ -569,16 +505,10 @@ class Lagged(_OfVariable):
             return (self._online(float(ctx.t[0]), variable_values(ctx, self.v), tau, x0)
                     - x0)[:, None]
         x = variable_values(whole, self.v)
-        key = (id(x), len(x), float(tau), x0)
-        cache = self.__dict__.setdefault('_cache', {})
-        hit = cache.get(key)
-        if hit is None or hit[1] is not x:
-            hit = (first_order_lag(whole.t, np.nan_to_num(np.asarray(x, float), nan=x0), tau),
-                   x)
-            if len(cache) >= 4:
-                cache.pop(next(iter(cache)))
-            cache[key] = hit
-        y = hit[0] if idx is None else hit[0][idx]
+        y = cached(self.__dict__.setdefault('_cache', {}), (id(x), len(x), float(tau), x0), x,
+                   lambda: first_order_lag(whole.t, np.nan_to_num(np.asarray(x, float), nan=x0),
+                                           tau), 4)
+        y = y if idx is None else y[idx]
         return (y - x0)[:, None]
 
     def _online(self, t, x, tau, x0):
@@ -601,36 +531,16 @@ class Product(Driver):
         self.param_names = tuple(f'{p}{i + 1}' for i, f in enumerate(self.factors)
                                  for p in f.param_names)
         self.units = tuple(u for f in self.factors for u in f.units)
-
-    @property
-    def text(self):
-        return ' * '.join(f.text for f in self.factors)
-
-    @property
-    def column_names(self):
-        out = ('',)
+        self.text = ' * '.join(f.text for f in self.factors)
+        self.column_names = ('',)
         for f in self.factors:
-            out = tuple(f'{a}*{b}' if a else b for a in out for b in f.column_names)
-        return out
-
-    @property
-    def unit(self):
-        us = [f.unit for f in self.factors if f.unit != '1']
-        return '*'.join(us) or '1'
-
-    @property
-    def signals(self):
-        return tuple(dict.fromkeys(s for f in self.factors for s in f.signals))
+            self.column_names = tuple(f'{a}*{b}' if a else b for a in self.column_names
+                                      for b in f.column_names)
+        self.unit = '*'.join(f.unit for f in self.factors if f.unit != '1') or '1'
+        self.signals = tuple(dict.fromkeys(s for f in self.factors for s in f.signals))
 
     def default_params(self):
         return np.concatenate([f.default_params() for f in self.factors] + [np.zeros(0)])
-
-    def _split(self, q):
-        out, i = [], 0
-        for f in self.factors:
-            out.append(q[i:i + len(f.param_names)])
-            i += len(f.param_names)
-        return out
 
     def prepare(self, ctx, refs, prefix=''):
         for i, f in enumerate(self.factors):
@@ -641,14 +551,13 @@ class Product(Driver):
 
     def columns(self, ctx, lin, refs, q, prefix=''):
         out = None
-        for i, (f, qf) in enumerate(zip(self.factors, self._split(q))):
+        sizes = [len(f.param_names) for f in self.factors]
+        for i, (f, qf) in enumerate(zip(self.factors, split_params(q, sizes))):
             x = f.columns(ctx, lin, refs, qf, f'{prefix}{i + 1}.')
             if x.ndim == 2 and (self.per_axis):
                 x = np.broadcast_to(x[:, None, :], (x.shape[0], 3, x.shape[1]))
-            if out is None:
-                out = x
-            else:
-                out = (out[..., :, None] * x[..., None, :]).reshape(*x.shape[:-1], -1)
+            out = x if out is None else (out[..., :, None] * x[..., None, :]).reshape(
+                *x.shape[:-1], -1)
         return out
 
 

@@ -164,10 +164,8 @@ def _scope(text, where, field):
             raise FormulaError(f'{where!r}: field() is common to every sensor, its scope is '
                                'always the array: drop @' + s)
         return 'array'
-    if s in ('', 'each'):
-        return 'each'
-    if s in ('alike',):
-        return s
+    if s in ('', 'each', 'alike'):
+        return s or 'each'
     if s.startswith('{') and s.endswith('}'):
         try:
             js = sorted({int(j) for j in s[1:-1].split(',')})
@@ -235,9 +233,8 @@ def _drop_term(raw, inner, scope_text):
         raise FormulaError(f'{raw!r}: drop takes a sensor scope, @J or @{{J,K}} (without one '
                            'it leaves the window out for every sensor)')
     scope = _scope(scope_text, raw, False)
-    dropped = tuple(int(j) for j in scope.strip('{}').split(','))
     return Term(text=f'{core}@{scope}', kind='drop', core=core, scope=scope, window=(t0, t1),
-                dropped=dropped)
+                dropped=tuple(int(j) for j in scope.strip('{}').split(',')))
 
 
 def _alias_term(raw, core_text, scope_text):
@@ -261,12 +258,10 @@ def _alias_term(raw, core_text, scope_text):
         raise FormulaError(f'{raw!r}: @alike shares one parameter set between sensors and is '
                            'for composed terms, e.g. offset(t)@alike')
     at = '' if scope in ('each', 'array') else f'@{scope}'
-    text_out = core + at
-    signals = tuple(eff.signals) if eff is not None else ()
     expansion = (' + '.join(BASE) if eff is None else
                  eff.expansion(at) if hasattr(eff, 'expansion') else None)
-    return Term(text=text_out, kind='alias', core=core, scope=scope, signals=signals,
-                expansion=expansion)
+    return Term(text=core + at, kind='alias', core=core, scope=scope,
+                signals=tuple(eff.signals) if eff is not None else (), expansion=expansion)
 
 
 @dataclass(frozen=True)

@@ -28,9 +28,7 @@ class Registry:
     """
 
     def __init__(self, base, what, base_name):
-        self.base = base
-        self.what = what
-        self.base_name = base_name
+        self.base, self.what, self.base_name = base, what, base_name
         self.builtin = ()
         self._classes = {}
 

@@ -23,9 +23,8 @@ import sys
 
 from magcal_ros.core.effects.attitude_ref import AttitudeFull, AttitudeReference
 from magcal_ros.core.effects.base import Effect
-from magcal_ros.core.effects.catalog import (aux_effect, AxisMap, Misalignment,
-                                             NonOrthogonality, Offset, Scale, SiteGradient,
-                                             SoftIron, TOKEN_CLASSES)
+from magcal_ros.core.effects.catalog import (AxisMap, Misalignment, NonOrthogonality, Offset,
+                                             Scale, SiteGradient, SoftIron, TOKEN_CLASSES)
 from magcal_ros.core.effects.names import Registry
 
 #: the named effects (catalog and plug-ins)
@@ -76,11 +75,9 @@ def load_plugin(ref):
         mod = importlib.import_module(mod_name)
     except ImportError as exc:
         raise ValueError(f'cannot import effect plugin {ref!r}: {exc}') from exc
-    if attr:
-        classes = [getattr(mod, attr)]
-    else:
-        classes = [c for key in ('MAGCAL_EFFECTS', 'MAGCAL_COUPLINGS', 'MAGCAL_DRIVERS')
-                   for c in getattr(mod, key, [])]
+    classes = [getattr(mod, attr)] if attr else [
+        c for key in ('MAGCAL_EFFECTS', 'MAGCAL_COUPLINGS', 'MAGCAL_DRIVERS')
+        for c in getattr(mod, key, [])]
     names = []
     for cls in classes:
         registry = next((r for r in (couplings.COUPLINGS, drivers.DRIVERS)
@@ -149,7 +146,7 @@ def make_catalog_effect(token, sensor):
                              f'{", ".join(registered_effects())}')
         return cls.from_args(args, sensor)
     if token.startswith('aux:'):
-        return aux_effect(token[4:], sensor)
+        return TOKEN_CLASSES['aux'](sensor=sensor, args=(token[4:],))
     if EFFECTS.get(token) is None and ':' in token:
         token = _loaded_effect_name(token)
     cls = EFFECTS.get(token)

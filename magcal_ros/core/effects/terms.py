@@ -20,7 +20,7 @@ composed term of one sensor (one Part; the catalog's tokens are sums of Parts), 
 every sensor with scope ``alike``; :class:`FieldEffect` is the ``field`` coupling, an effect
 of the whole array on the magnitude of the field every sensor sees.
 """
-from magcal_ros.core.effects.base import Effect
+from magcal_ros.core.effects.base import cached, Effect
 from magcal_ros.core.effects.couplings import per_unit
 import numpy as np
 
@@ -36,8 +36,7 @@ class Part:
     """
 
     def __init__(self, coupling, driver):
-        self.coupling = coupling
-        self.driver = driver
+        self.coupling, self.driver = coupling, driver
         cols = driver.column_names
         self.m, self.c = len(cols), coupling.n_per_column
         self.param_names = tuple(
@@ -65,14 +64,8 @@ class Part:
         """(N, m) or (N, 3, m) driver columns, cached per context and driver parameters."""
         if self.driver.reads_lin:
             return self.driver.columns(ctx, lin, refs, q)
-        key = (id(ctx), tuple(np.asarray(q, float)))
-        hit = self.cache.get(key)
-        if hit is None or hit[0] is not ctx:
-            hit = (ctx, self.driver.columns(ctx, lin, refs, q))
-            if len(self.cache) >= 8:
-                self.cache.pop(next(iter(self.cache)))
-            self.cache[key] = hit
-        return hit[1]
+        return cached(self.cache, (id(ctx), tuple(np.asarray(q, float))), ctx,
+                      lambda: self.driver.columns(ctx, lin, refs, q), 8)
 
     def coupled(self, p, ctx, lin, refs):
         """Return y = X P: (N, c), or (N, 3) for a per-axis driver."""
@@ -113,12 +106,9 @@ class ComposedEffect(Effect):
     def __init__(self, coupling, driver, sensor=1, refs=None, shared=False):
         super().__init__(sensor, refs)
         self.part = Part(coupling, driver)
-        self.coupling = coupling
-        self.driver = driver
-        self.shared = bool(shared)
-        self.name = self.part.text
-        self.param_names = self.part.param_names
-        self.units = self.part.units
+        self.coupling, self.driver, self.shared = coupling, driver, bool(shared)
+        self.name, self.param_names, self.units = (self.part.text, self.part.param_names,
+                                                   self.part.units)
         self.signals = tuple(driver.signals)
 
     @property

@@ -49,11 +49,11 @@ def turn_axis(m):
 
 
 def circle_centre(xy):
-    """Centre (2,) of the least-squares circle through points xy (N, 2) (algebraic, Kasa)."""
+    """Centre (D,) of the least-squares circle (sphere) through points xy (N, D) (Kasa)."""
     xy = np.asarray(xy, float)
     design = np.column_stack([2 * xy, np.ones(len(xy))])
     sol, *_ = np.linalg.lstsq(design, (xy ** 2).sum(axis=1), rcond=None)
-    return sol[:2]
+    return sol[:-1]
 
 
 def planar_magnitude(raw, axis):

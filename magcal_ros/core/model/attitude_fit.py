@@ -28,7 +28,8 @@ from dataclasses import dataclass
 from magcal_ros.core.effects.attitude_ref import (attitude_reference, AttitudeReference,
                                                   MODES, MOUNT_PRIOR_SD_RAD)
 from magcal_ros.core.model.fitting import fit, initial_params, priors_for
-from magcal_ros.core.model.planar import inflate_for_correlation, SENSOR_MAP_KINDS
+from magcal_ros.core.model.planar import (inflate_for_correlation, SENSOR_MAP_KINDS,
+                                          split_determined)
 from magcal_ros.core.model.spec import Model
 import numpy as np
 
@@ -172,15 +173,11 @@ def fit_attitude(data, model, field_nt=None, mode='tilt', inclination_deg=None,
                  extra_priors=extra + own, **fit_kwargs)
     open_ = prior_held(result, (own or priors_for(model, {}, constrained=True)) + extra)
     result, rho = inflate_for_correlation(result)
-    label = [f'{lab}.{nm}@{j}' for j, lab, nm, _ in info]
     mount = list(range(sl.stop - 3, sl.stop))
     open_ = {i for i in open_ if (info[i][0] and info[i][1] in SENSOR_MAP_KINDS)
              or i in mount}
-    undetermined = tuple(label[k] for k in sorted(open_))
-    determined = tuple(label[k] for k in range(model.n_params)
-                       if k not in open_ and (info[k][0] or k in mount))
-    ang = result.params[sl]
-    se = result.stderr[sl]
+    undetermined, determined = split_determined(info, open_, mount)
+    ang, se = result.params[sl], result.stderr[sl]
     world = {'frame': data.meta.get('attitude_frame', "the attitude's world frame"),
              'inclination_prior': ('IGRF' if len(extra) > 3 else 'none (estimated)' if
                                    inclination_deg is None else
@@ -198,8 +195,8 @@ def fit_attitude(data, model, field_nt=None, mode='tilt', inclination_deg=None,
     return AttitudeResult(
         result=result, mode=mode, undetermined=undetermined, determined=determined,
         attitude_sd_deg=float(np.degrees(eff.refs.get('white_sigma_nt', eff.sigma_nt) / f0)),
-        world_field=world,
-        heading=heading_check(result, data, undetermined), residual_correlation=rho)
+        world_field=world, heading=heading_check(result, data, undetermined),
+        residual_correlation=rho)
 
 
 def prior_held(result, prior_list, ratio=PRIOR_HELD_RATIO):
@@ -233,8 +230,8 @@ def _start_sigma(data, model, p, f):
     cor = model.correct(1, p, data.raw[0], data.context(1))
     b = cor / np.linalg.norm(cor, axis=1, keepdims=True) * f[:, None]
     r = eff.residual(p[sl], rot, f, b)
-    return max(float(np.sqrt(np.mean(np.sum(r * r, axis=1)) / eff.rank)), 1e-3 * float(
-        np.mean(f)))
+    return max(float(np.sqrt(np.mean(np.sum(r * r, axis=1)) / eff.rank)),
+               1e-3 * float(np.mean(f)))
 
 
 def heading_check(result, data, undetermined=()):

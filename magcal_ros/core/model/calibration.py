@@ -79,12 +79,9 @@ class Calibration:
         if self.array_covariance is not None:
             cov[np.ix_(cols, cols)] = self.array_covariance
         out = gradient_from_fit(self.model, self.params, cov)
-        if out is None:
-            return None
-        se = out[1]
-        if self.array_covariance is None:
-            se[2, 2] = np.nan
-        return out[0], se
+        if out is not None and self.array_covariance is None:
+            out[1][2, 2] = np.nan
+        return None if out is None else out[:2]
 
     def array_shift(self, j, ctx):
         """(N, 3) nT field at sensor j minus the centre field (zero without array effects)."""
@@ -97,10 +94,7 @@ class Calibration:
 
     def signals(self, j):
         """Driving signals the effects of sensor j read (``Effect.signals``), in order."""
-        out = []
-        for eff in self.model.effects[j - 1]:
-            out.extend(s for s in eff.signals if s not in out)
-        return out
+        return list(dict.fromkeys(s for eff in self.model.effects[j - 1] for s in eff.signals))
 
     def correct(self, j, raw, ctx=None):
         """Corrected field (N, 3) or (3,) nT of sensor j's ``raw`` (ctx: for driven effects)."""

@@ -114,10 +114,10 @@ class ProfiledProblem:
         self.aid = None
         if found is None or rot is None:
             return
-        (self.aid, sl), self.rot = found, rot
-        self.aid_slice = sl
+        (self.aid, self.aid_slice), self.rot = found, rot
         arr = list(self.model.array_cols)
         #: positions of the attitude's parameters among the array-wide columns
+        sl = self.aid_slice
         self.aid_arr = np.array([arr.index(i) for i in range(sl.start, sl.stop)], int)
         #: the observation's projector at the parameters last evaluated (:meth:`_aid_residual`)
         self.aid_proj = None
@@ -309,11 +309,8 @@ class ProfiledProblem:
     def residuals(self, x):
         """Return (3 G N + n_priors,) ``res.ravel()`` at x, then each prior's (p_i - mean) / sd."""
         p, _, _, res = self.evaluate(x)
-        out = res.ravel()
-        if self.priors:
-            pr = np.array([(p[i] - m) / s for i, m, s in self.priors])
-            out = np.concatenate([out, pr])
-        return out
+        pr = [(p[i] - m) / s for i, m, s in self.priors]
+        return np.concatenate([res.ravel(), pr]) if pr else res.ravel()
 
     def _raw_columns(self, p, b):
         """

@@ -30,7 +30,8 @@ from magcal_ros.core.model.engine import ProfiledProblem
 from magcal_ros.core.model.notes import Note
 from magcal_ros.core.model.solvers import (covariance_from_jacobian, covariance_from_normal,
                                            levenberg_marquardt, mad_sd, resolves_covariance,
-                                           single_threaded_blas, stderr_and_correlation)
+                                           single_threaded_blas, Solution,
+                                           stderr_and_correlation)
 from magcal_ros.core.model.spec import Model
 from magcal_ros.core.papers.ellipsoid import fit_ellipsoid, procrustes_rotation
 import numpy as np
@@ -124,11 +125,14 @@ class FitResult:
         """(S, N, 3) corrected readings in the array frame, nT."""
         return corrected_readings(self.model, self.params, self.raw_nt, self.contexts)
 
+    def _peek(self, name):
+        """Return the cached property ``name``: the one kept, else computed and not kept."""
+        return (self.__dict__[name] if name in self.__dict__
+                else getattr(type(self), name).func(self))
+
     def _centred(self):
-        corrected = self.__dict__.get('corrected_nt')
-        if corrected is None:
-            corrected = corrected_readings(self.model, self.params, self.raw_nt, self.contexts)
-        return centred_readings(self.model, self.params, corrected, self.contexts)
+        return centred_readings(self.model, self.params, self._peek('corrected_nt'),
+                                self.contexts)
 
     @cached_property
     def scalar_residual_nt(self):
@@ -190,10 +194,7 @@ class FitResult:
 
         On the sets both sensors keep (outside their drop() windows).
         """
-        vector = self.__dict__.get('vector_residual_nt')
-        if vector is None:                  # not kept: the RMS needs only a passing copy
-            centred = self._centred()
-            vector = centred - centred[:1]
+        vector = self._peek('vector_residual_nt')     # not kept: the RMS needs only a copy
         return {j + 1: float(np.sqrt(np.mean(vector[j][self._kept(j + 1, 1)] ** 2)))
                 for j in range(1, self.model.n_sensors)}
 
@@ -211,8 +212,7 @@ class FitResult:
         """Return a list of dicts: sensor, effect, name, unit, value, stderr."""
         return [{'sensor': s, 'effect': e, 'name': n, 'unit': u, 'value': float(v),
                  'stderr': float(se)}
-                for (s, e, n, u), v, se in zip(self.model.param_info(), self.params,
-                                               self.stderr)]
+                for (s, e, n, u), v, se in zip(self.model.param_info(), self.params, self.stderr)]
 
     def summary(self):
         """Short text report."""
@@ -228,8 +228,7 @@ class FitResult:
             v = vector_rms.get(j)
             lines.append(f'  sensor {j}: scalar RMS {r:8.2f} nT, sigma {self.sigma_nt[j-1]:.2f} nT'
                          + (f', vector RMS vs sensor 1 {v:8.2f} nT' if v is not None else ''))
-        for i, w in enumerate(self.warnings, 1):
-            lines.append(f'[{i}] {w}')
+        lines += [f'[{i}] {w}' for i, w in enumerate(self.warnings, 1)]
         return '\n'.join(lines)
 
 
@@ -284,10 +283,8 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
         idx, mask = fitted_readings(model, data.t, fit_epochs(data.n_samples, max_fit_samples))
         raw, f = data.raw[:, idx], f_all[idx]
         contexts = [c.subset(idx) for c in contexts_all]
-        if init is None:
-            p0 = _closed_form_start(raw, f, model, constrained, ident, degenerate, mask)
-        else:
-            p0 = np.asarray(init, float).copy()
+        p0 = (_closed_form_start(raw, f, model, constrained, ident, degenerate, mask)
+              if init is None else np.asarray(init, float).copy())
         if (any(hasattr(e, 'set_positions') for e in model.array_effects)
                 and contexts_all[0].attitude is not None):
             # the attitude must agree with the field direction (closed-form corrected sensor 1)
@@ -468,10 +465,8 @@ def dof_scale(n, g, n_params, rows=None, row_total=None):
     the total.  ``rows``: the observations per epoch when not 3 G; ``row_total``: those of
     all N epochs when the epochs differ (readings left out by ``drop``).
     """
-    if row_total is not None:
-        dof = row_total - 2 * n
-    else:
-        dof = ((3 * g if rows is None else rows) - 2) * n
+    per_epoch = 3 * g if rows is None else rows
+    dof = row_total - 2 * n if row_total is not None else (per_epoch - 2) * n
     return float(np.sqrt(dof / max(dof - n_params, 1.0)))
 
 
@@ -541,10 +536,8 @@ class _Solve:
         """
         model = self.model
         fixed_sigma = sigma_nt is not None
-        if fixed_sigma:
-            sigma = np.broadcast_to(np.asarray(sigma_nt, float), (model.n_sensors,)).copy()
-        else:
-            sigma = self.start_sigma(p0)
+        sigma = (np.broadcast_to(np.asarray(sigma_nt, float), (model.n_sensors,)).copy()
+                 if fixed_sigma else self.start_sigma(p0))
         p = p0.copy()
         # an attitude observing the field is one more variance component, whose share the
         # iteration settles more slowly (core/effects/attitude_ref.py)
@@ -565,14 +558,10 @@ class _Solve:
 
     def start_sigma(self, p):
         """Return (S,) a robust noise estimate (MAD) of the scalar residual at ``p``, nT."""
-        model = self.model
-        sigma = np.empty(model.n_sensors)
-        for j in range(1, model.n_sensors + 1):
-            corr = model.correct(j, p, self.raw[j - 1], self.contexts[j - 1])
-            scalar = np.linalg.norm(corr, axis=1) - self.f
-            sigma[j - 1] = max(mad_sd(scalar if self.mask is None
-                                      else scalar[self.mask[j - 1]]), 1e-3)
-        return sigma
+        cor = corrected_readings(self.model, p, self.raw, self.contexts)
+        scalar = np.linalg.norm(cor, axis=2) - self.f
+        keep = np.ones(scalar.shape, bool) if self.mask is None else self.mask
+        return np.array([max(mad_sd(s[k]), 1e-3) for s, k in zip(scalar, keep)])
 
     def solve_groups(self, p, sigma):
         """Solve each sensor group at fixed ``sigma``; return (p, problems, summary)."""
@@ -602,7 +591,8 @@ class _Solve:
             nfev += sol.nfev
             success &= bool(sol.success)
             status, message = sol.status, sol.message
-        return p, problems, _Summary(success, status, message, nfev)
+        # the last group's status and message; every group's success and evaluations
+        return p, problems, Solution(p, success, status, message, nfev)
 
     def residual_sigma(self, p, sigma, problems):
         """
@@ -613,8 +603,7 @@ class _Solve:
         """
         new_sigma = sigma.copy()
         for prob in problems:
-            x = p[prob.cols]
-            _, b, mats, res = prob.evaluate(x)
+            _, b, mats, res = prob.evaluate(p[prob.cols])
             g = len(prob.sensors)
             g_cols = prob.field_columns(b, mats)
             if self.robust and prob.aid is None:
@@ -650,8 +639,7 @@ class _Solve:
         """
         n_p = self.model.n_params
         cov = np.zeros((n_p, n_p)) if with_jacobian else np.full((n_p, n_p), np.nan)
-        chi2 = 0.0
-        n_obs = 0
+        chi2, n_obs = 0.0, 0
         for grp in self.model.sensor_groups:
             prob = self.problem(grp, sigma, p)
             x = p[prob.cols]
@@ -709,16 +697,6 @@ class _Solve:
         return 0.5 * (sw + sw.T)
 
 
-@dataclass(frozen=True)
-class _Summary:
-    """What the optimiser of the last group said (all groups: success and evaluations)."""
-
-    success: bool
-    status: int
-    message: str
-    nfev: int
-
-
 def priors_for(model, spec, constrained=False):
     """
     Prior list [(index, mean, sd)] from a {effect name or label: (mean, sd)} spec.
@@ -730,8 +708,7 @@ def priors_for(model, spec, constrained=False):
     default = model.default_params()
     for j, row in enumerate(model.effects):
         for eff, sl in zip(row, model.slices[j]):
-            prior = spec.get(eff.label, spec.get(eff.name,
-                                                 eff.prior if constrained else None))
+            prior = spec.get(eff.label, spec.get(eff.name, eff.prior if constrained else None))
             if prior is not None:
                 mean, sd = prior
                 for i in range(sl.start, sl.stop):
@@ -751,8 +728,7 @@ def initial_params(raw, field_nt, model, constrained=False, mask=None):
     s = raw.shape[0]
     f0 = float(np.mean(field_nt))
     p = model.default_params()
-    corrected = []
-    mats = []
+    corrected, mats = [], []
     keep = np.ones(raw.shape[:2], bool) if mask is None else np.asarray(mask, bool)
     for j in range(1, s + 1):
         # in the frame of the sensor's axes (an axes(...) map M: reading = M x that frame)
@@ -761,8 +737,7 @@ def initial_params(raw, field_nt, model, constrained=False, mask=None):
         if constrained:
             # |m|^2 = 2 m.o + (F^2 - |o|^2): linear in (o, c)
             design = np.column_stack([2 * mk, np.ones(len(mk))])
-            sol, *_ = np.linalg.lstsq(design, (mk ** 2).sum(1) - fk ** 2 + f0 ** 2,
-                                      rcond=None)
+            sol, *_ = np.linalg.lstsq(design, (mk ** 2).sum(1) - fk ** 2 + f0 ** 2, rcond=None)
             c_inv, o = np.eye(3), sol[:3]
         else:
             ell = fit_ellipsoid(mk, f0)

@@ -22,6 +22,7 @@ the sensor frame); a partial coverage correlates scale, non-orthogonality and of
 After: the parameter correlations and the condition number of the correlation matrix.
 """
 from magcal_ros.core.geometry.coverage import direction_coverage
+from magcal_ros.core.geometry.turn import circle_centre
 from magcal_ros.core.papers.ellipsoid import fit_ellipsoid, reading_plane, RING_CV, ring_spread
 import numpy as np
 
@@ -96,44 +97,35 @@ def classify_coverage(m):
         if axis_ratio > MAX_AXIS_RATIO:
             # no magnetometer is that anisotropic: the ellipsoid bent to a partial set of
             # directions (a cap) and its centre is not the offset; use the sphere's
-            centre = _sphere_centre(m)
+            centre = circle_centre(m)
     else:
         # no ellipsoid: the raw directions (about the origin) tell whether the sensor
         # turned at all; readings on one plane (a ring) are a rotation about its normal
         plane = reading_plane(m)
         cov = direction_coverage(m)
         ev = cov.eigenvalues
+        found = {'eigenvalues': ev, 'normal': cov.normal, 'centre_nt': None, 'message': None,
+                 'cone_half_angle_deg': cov.cone_half_angle_deg}
         if plane is not None:
-            return {'status': 'single axis', 'eigenvalues': ev, 'normal': plane,
-                    'cone_half_angle_deg': cov.cone_half_angle_deg, 'centre_nt': None,
-                    'message': _single_axis_message(
-                        plane, 'the readings are too flat to fit an ellipsoid')}
+            return dict(found, status='single axis', normal=plane, message=_single_axis_message(
+                plane, 'the readings are too flat to fit an ellipsoid'))
         if ev[1] < SINGLE_AXIS_EIG or ev[2] < PARTIAL_EIG:
-            return {'status': 'one attitude', 'eigenvalues': ev, 'normal': cov.normal,
-                    'cone_half_angle_deg': cov.cone_half_angle_deg, 'centre_nt': None,
-                    'message': None}
+            return dict(found, status='one attitude')
         # the sensor turned, but the ellipsoid is not determined: judge about the centre
         # of the least-squares sphere (the origin would be arbitrary: with an offset near
         # the field it lies close to the readings and makes any cap look wide)
-        centre = _sphere_centre(m)
+        centre = circle_centre(m)
     out = _judge(m, centre, noise_eig)
     if out['status'] == 'good' and fitted is not None and axis_ratio <= MAX_AXIS_RATIO:
         # cross-check with the least-squares sphere's centre (stable on a cap, where the
         # ellipsoid can bend to a wrong centre), where a sphere describes the readings
-        sphere = _sphere_centre(m)
+        sphere = circle_centre(m)
         rad = np.linalg.norm(m - sphere, axis=1)
         if np.var(rad / np.median(rad)) < SPHERE_VAR_FACTOR * max(noise_eig, 1e-12):
             other = _judge(m, sphere, noise_eig)
             if other['status'] != 'good':
                 out = other
     return out
-
-
-def _sphere_centre(m):
-    """Centre (3,) nT of the least-squares sphere |m - o|^2 = r^2 (linear in o, r^2 - |o|^2)."""
-    design = np.column_stack([2.0 * m, np.ones(len(m))])
-    sol, *_ = np.linalg.lstsq(design, np.sum(m ** 2, axis=1), rcond=None)
-    return sol[:3]
 
 
 def _judge(m, centre, noise_eig):
@@ -173,8 +165,7 @@ def check_coverage(raw):
         if len(m) < 3:
             messages[j] = f'sensor {j} reported no usable samples: check its cable/port'
             continue
-        spread = np.ptp(m, axis=0)
-        if not np.any(spread > 0):
+        if not np.any(np.ptp(m, axis=0) > 0):
             # a stuck sensor (frozen ADC, driver repeating its last value): not an attitude
             # problem, rotating more would not help
             out['sensors'][j] = {'eigenvalues': [0.0, 0.0, 1.0], 'normal': [0.0, 0.0, 0.0],
@@ -187,33 +178,30 @@ def check_coverage(raw):
         ev, status = c['eigenvalues'], c['status']
         n = ', '.join(f'{x:+.2f}' for x in c['normal'])
         if status == 'one attitude':
-            msg = (f'sensor {j}: all samples have (nearly) the same field direction (within a '
-                   f'{c["cone_half_angle_deg"]:.0f} deg cone): the sensor hardly turned, '
-                   'or turned only about the field; rotate the array through many '
-                   'attitudes (turn it over, about at least two axes)')
+            messages[j] = (f'sensor {j}: all samples have (nearly) the same field direction '
+                           f'(within a {c["cone_half_angle_deg"]:.0f} deg cone): the sensor '
+                           'hardly turned, or turned only about the field; rotate the array '
+                           'through many attitudes (turn it over, about at least two axes)')
         elif status == 'single axis':
-            msg = f'sensor {j}: {c["message"]}'
+            messages[j] = f'sensor {j}: {c["message"]}'
         elif status == 'partial':
             cov_dir = direction_coverage(m - c['centre_nt'])
             if cov_dir.mean_resultant_length > 0.5:
-                msg = (f'sensor {j}: field directions span only a '
-                       f'{2 * c["cone_half_angle_deg"]:.0f} deg cone around '
-                       f'({", ".join(f"{x:+.2f}" for x in cov_dir.mean_direction)}) about the '
-                       'fitted centre: scale, non-orthogonality and offset are poorly '
-                       'separated; turn the array over, or use the constrained mode '
-                       '(--constrained: priors on scale and angles)')
+                messages[j] = (f'sensor {j}: field directions span only a '
+                               f'{2 * c["cone_half_angle_deg"]:.0f} deg cone around '
+                               f'({", ".join(f"{x:+.2f}" for x in cov_dir.mean_direction)}) '
+                               'about the fitted centre: scale, non-orthogonality and offset '
+                               'are poorly separated; turn the array over, or use the '
+                               'constrained mode (--constrained: priors on scale and angles)')
             else:
-                msg = (f'sensor {j}: field directions stay within a band around the plane with '
-                       f'normal ({n}), i.e. mostly a rotation about ({n}) in the sensor frame: '
-                       'tilt that axis further, or use the constrained mode (--constrained)')
-        else:
-            msg = None
+                messages[j] = (f'sensor {j}: field directions stay within a band around the '
+                               f'plane with normal ({n}), i.e. mostly a rotation about ({n}) in '
+                               'the sensor frame: tilt that axis further, or use the '
+                               'constrained mode (--constrained)')
         out['sensors'][j] = {'eigenvalues': [float(x) for x in ev],
                              'normal': [float(x) for x in c['normal']],
                              'cone_half_angle_deg': float(c['cone_half_angle_deg']),
                              'status': status}
-        if msg:
-            messages[j] = msg
     moved = [j for j, v in out['sensors'].items()
              if v['status'] not in ('one attitude', 'constant')]
     for j, v in out['sensors'].items():

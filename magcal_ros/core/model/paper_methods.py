@@ -65,8 +65,7 @@ class PaperFit:
             lines.append(f'    scalar RMS {self.scalar_rms_before_nt[j]:.2f} nT before, '
                          f'{self.scalar_rms_nt[j]:.2f} nT after'
                          + (f'; vector RMS vs reference {v:.2f} nT' if v is not None else ''))
-        for i, w in enumerate(self.warnings, 1):
-            lines.append(f'[{i}] {w}')
+        lines += [f'[{i}] {w}' for i, w in enumerate(self.warnings, 1)]
         return '\n'.join(lines)
 
     def to_dict(self):
@@ -94,10 +93,9 @@ def _finish(method, model, p, data, f, rows, warnings, reference=None):
                           range(1, data.n_sensors + 1)])
     before = {j: _rms_scalar(data.raw[j - 1], f) for j in range(1, data.n_sensors + 1)}
     after = {j: _rms_scalar(corrected[j - 1], f) for j in range(1, data.n_sensors + 1)}
-    vec = {}
-    if reference is not None:
-        vec = {j: float(np.sqrt(np.mean((corrected[j - 1] - reference) ** 2)))
-               for j in range(1, data.n_sensors + 1)}
+    vec = {} if reference is None else {
+        j: float(np.sqrt(np.mean((corrected[j - 1] - reference) ** 2)))
+        for j in range(1, data.n_sensors + 1)}
     return PaperFit(method=method, calibration=cal, sensor_params=rows,
                     scalar_rms_before_nt=before, scalar_rms_nt=after, vector_rms_nt=vec,
                     warnings=warnings, corrected_nt=corrected)
@@ -168,8 +166,7 @@ def reference_calibration(data, field_nt=None, on_degenerate='raise'):
                          'ref_z (paper 002)')
     from magcal_ros.core.papers.reference_vector import fit_reference
     he = np.asarray(data.ref_vec, float)
-    f = np.linalg.norm(he, axis=1) if field_nt is None else _magnitude(field_nt,
-                                                                       data.n_samples)
+    f = np.linalg.norm(he, axis=1) if field_nt is None else _magnitude(field_nt, data.n_samples)
     fits = [fit_reference(he, data.raw[j - 1]) for j in range(1, data.n_sensors + 1)]
     warnings = [f'sensor {j}: {ft.warning}' for j, ft in enumerate(fits, 1) if ft.warning]
     if warnings and on_degenerate == 'raise':

@@ -97,15 +97,9 @@ def prior_sd(model, field_nt):
 
 def held_parameters(model, axis_index):
     """Return (indices, names) of the parameters a turn about the given axes leaves open."""
-    idx, names = [], []
-    for k, (j, label, name, _) in enumerate(model.param_info()):
-        if j == 0:
-            continue
-        effect = label.split('(')[0]
-        if name in _HELD[axis_index[j - 1]].get(effect, ()):
-            idx.append(k)
-            names.append(f'{label}.{name}@{j}')
-    return idx, names
+    held = [(k, f'{label}.{name}@{j}') for k, (j, label, name, _) in enumerate(model.param_info())
+            if j and name in _HELD[axis_index[j - 1]].get(label.split('(')[0], ())]
+    return [k for k, _ in held], [n for _, n in held]
 
 
 def fit_planar(data, model, field_nt, *, prior_params=None, inclination_deg=None,
@@ -137,8 +131,8 @@ def fit_planar(data, model, field_nt, *, prior_params=None, inclination_deg=None
         axes.append(n)
         axis_index.append(k)
     held, names = held_parameters(model, axis_index)
-    p_prior = model.default_params() if prior_params is None else np.asarray(prior_params,
-                                                                             float)
+    p_prior = (model.default_params() if prior_params is None
+               else np.asarray(prior_params, float))
     if p_prior.shape != (model.n_params,):
         raise ValueError(f'prior_params has {p_prior.shape} values, the model '
                          f'{model.n_params}: give the previous calibration of the same model')
@@ -161,10 +155,7 @@ def fit_planar(data, model, field_nt, *, prior_params=None, inclination_deg=None
     open_ = {i for i in range(model.n_params)
              if info[i][0] and info[i][1] in SENSOR_MAP_KINDS and
              not result.stderr[i] <= UNDETERMINED_RATIO * kind_sd[i]}
-    label = [f'{lab}.{nm}@{j}' for j, lab, nm, _ in info]
-    undetermined = tuple(label[k] for k in sorted(open_))
-    determined = tuple(label[k] for k in range(model.n_params)
-                       if k not in open_ and info[k][0])
+    undetermined, determined = split_determined(info, open_)
     h, z, heading = [], [], []
     for j in range(1, data.n_sensors + 1):
         hj, zj = _field_split(result, j, axes[j - 1], inclination_deg)
@@ -175,6 +166,34 @@ def fit_planar(data, model, field_nt, *, prior_params=None, inclination_deg=None
                         held=tuple(held), undetermined=undetermined, determined=determined,
                         heading=heading, h_nt=np.array(h), z_nt=np.array(z),
                         residual_correlation=rho)
+
+
+def split_determined(info, open_, also=()):
+    """
+    Return (undetermined, determined): names ``<effect>.<param>@<sensor>`` of parameters.
+
+    ``info`` is ``Model.param_info()``, ``open_`` the indices of the undetermined; the
+    determined are the other parameters of a sensor, and those of the indices ``also``.
+    """
+    label = [f'{lab}.{nm}@{j}' for j, lab, nm, _ in info]
+    return (tuple(label[k] for k in sorted(open_)),
+            tuple(label[k] for k in range(len(info))
+                  if k not in open_ and (info[k][0] or k in also)))
+
+
+def central_jacobian(fun, p, cols, steps, wrap=lambda d: d):
+    """
+    Return (M, K) central differences of ``fun`` (p (P,) -> (M,)) in the parameters ``cols``.
+
+    ``steps`` (K,) in the parameters' units; ``wrap`` maps each difference (an angle's
+    into +-pi) before it is divided by twice the step.
+    """
+    jac = np.empty((len(fun(p)), len(cols)))
+    for col, (i, step) in enumerate(zip(cols, steps)):
+        dp = np.zeros_like(p)
+        dp[i] = step
+        jac[:, col] = wrap(fun(p + dp) - fun(p - dp)) / (2 * step)
+    return jac
 
 
 def inflate_for_correlation(result):
@@ -257,14 +276,10 @@ def heading_error(result, j, axis, axis_index, h_nt, z_nt, n_headings=72):
 
     free = [i for i, (s, *_rest) in enumerate(model.param_info()) if s == j]
     cov = result.covariance[np.ix_(free, free)]
-    jac = np.empty((n_headings, len(free)))
-    for col, i in enumerate(free):
-        step = max(1e-6, 1e-4 * max(abs(p[i]), result.stderr[i] if np.isfinite(
-            result.stderr[i]) else 0.0))
-        dp = np.zeros_like(p)
-        dp[i] = step
-        d = heading(p + dp) - heading(p - dp)
-        jac[:, col] = np.angle(np.exp(1j * d)) / (2 * step)
+    se = np.where(np.isfinite(result.stderr), result.stderr, 0.0)
+    jac = central_jacobian(heading, p, free,
+                           [max(1e-6, 1e-4 * max(abs(p[i]), se[i])) for i in free],
+                           wrap=lambda d: np.angle(np.exp(1j * d)))
     var = np.einsum('ij,jk,ik->i', jac, cov, jac)
     sd = np.degrees(np.sqrt(np.clip(var, 0, None)))
     return {'max_deg': float(sd.max()), 'rms_deg': float(np.sqrt(np.mean(sd ** 2))),
@@ -343,12 +358,7 @@ def effective_offset(result, j, axis, axis_index, z_nt):
         return model.forward(j, params, b, ctx)[0, plane]
 
     own = [i for i, (s, *_rest) in enumerate(model.param_info()) if s == j]
-    jac = np.empty((2, len(own)))
-    for col, i in enumerate(own):
-        step = 1e-6 * max(1.0, abs(p[i]))
-        dp = np.zeros_like(p)
-        dp[i] = step
-        jac[:, col] = (centre(p + dp) - centre(p - dp)) / (2 * step)
+    jac = central_jacobian(centre, p, own, [1e-6 * max(1.0, abs(p[i])) for i in own])
     cov = jac @ result.covariance[np.ix_(own, own)] @ jac.T
     return centre(p), np.sqrt(np.clip(np.diag(cov), 0, None))
 

@@ -207,8 +207,10 @@ def parameter_notes(model, params, raw, field_nt):
     cal = Calibration(model, params)
     lin = linear_summary(model, params)
     out = []
-    record = ('the calibration file records the value as fitted, with this warning in its '
-              'provenance')
+
+    def flag(j, text):
+        out.append(Note(f'{text}; the calibration file records the value as fitted, with this '
+                        'warning in its provenance', 'parameters', j))
     scales = np.array([lin[j][0] for j in sorted(lin)])
     common = float(np.median(scales))
     scales_checked = not (scales.size > 3 and abs(common - 1) > SCALE_FAR
@@ -218,18 +220,16 @@ def parameter_notes(model, params, raw, field_nt):
         why = (f'{UNIT_WORDS[n]}' if n in UNIT_WORDS else
                f'the reference magnitude ({field_nt:.0f} nT) is off by that factor, or every '
                'sensor is converted with the wrong gain')
-        out.append(Note(f'every sensor: scale factors near {common:.4g} (a real sensor has '
-                        f'near 1): {why}; {record}', 'parameters', None))
+        flag(None, f'every sensor: scale factors near {common:.4g} (a real sensor has near 1): '
+                   f'{why}')
     for j in sorted(lin):
         k, no, mis = lin[j]
         decades = {_unit_decade(kk) for kk in k}
         if scales_checked and len(decades) == 1 and None not in decades:
             n = decades.pop()
             words = UNIT_WORDS.get(n, 'another unit')
-            out.append(Note(
-                f'sensor {j}: scale factors {", ".join(f"{kk:.4g}" for kk in k)}: its readings '
-                f'are ~{10.0 ** n:g} x the field: a unit mistake ({words}); '
-                f'{record}', 'parameters', j))
+            flag(j, f'sensor {j}: scale factors {", ".join(f"{kk:.4g}" for kk in k)}: its '
+                    f'readings are ~{10.0 ** n:g} x the field: a unit mistake ({words})')
         elif scales_checked:
             for ax, kk in zip(fx.AXIS_NAMES, k):
                 if kk <= 0:
@@ -239,42 +239,37 @@ def parameter_notes(model, params, raw, field_nt):
                     continue
                 n = _unit_decade(kk)
                 if n is not None:
-                    out.append(Note(
-                        f'sensor {j}: scale k{ax} = {kk:.4g}: the {ax} readings are {kk:.3g} x '
-                        f'the field: a unit mistake ({UNIT_WORDS.get(n, "another unit")}); '
-                        f'{record}', 'parameters', j))
+                    flag(j, f'sensor {j}: scale k{ax} = {kk:.4g}: the {ax} readings are '
+                            f'{kk:.3g} x the field: a unit mistake '
+                            f'({UNIT_WORDS.get(n, "another unit")})')
                 elif abs(kk - 1) > SCALE_FAR:
-                    out.append(Note(
-                        f'sensor {j}: scale k{ax} = {kk:.3f}, far from 1 (real gains are '
-                        f'within {SCALE_FAR:.0%}): a gain or range setting other than '
-                        'the one the readings were converted with (an HMC5883L at 820 LSB/G '
-                        'converted at 1090 gives 0.75), or a coil or channel with the wrong '
-                        f'gain; {record}', 'parameters', j))
+                    flag(j, f'sensor {j}: scale k{ax} = {kk:.3f}, far from 1 (real gains are '
+                            f'within {SCALE_FAR:.0%}): a gain or range setting other than the '
+                            'one the readings were converted with (an HMC5883L at 820 LSB/G '
+                            'converted at 1090 gives 0.75), or a coil or channel with the '
+                            'wrong gain')
         deg = np.degrees(np.abs(no))
         if deg.max() > ANGLE_WARN_DEG:
             names = ('psi', 'varphi', 'theta')
             worst = int(np.argmax(deg))
-            out.append(Note(
-                f'sensor {j}: non-orthogonality {names[worst]} = {deg[worst]:.1f} deg: real '
-                'sensor axes are perpendicular to within a degree or so; an element tilted '
-                "on its board, one axis picking up another's signal (crosstalk, a shared "
-                'return wire), or attitudes too few to separate the angle from the scales; '
-                f'{record}', 'parameters', j))
+            flag(j, f'sensor {j}: non-orthogonality {names[worst]} = {deg[worst]:.1f} deg: '
+                    'real sensor axes are perpendicular to within a degree or so; an element '
+                    "tilted on its board, one axis picking up another's signal (crosstalk, a "
+                    'shared return wire), or attitudes too few to separate the angle from the '
+                    'scales')
         if np.degrees(mis) > ANGLE_WARN_DEG:
-            out.append(Note(
-                f'sensor {j}: turned by {np.degrees(mis):.1f} deg relative to sensor 1 '
-                '(misalignment): a mounting a few degrees off its drawing (a bracket, a '
-                'loose screw, a board mounted askew); the correction turns it into sensor '
-                "1's frame and stays right, but the array's geometry assumes aligned sensors; "
-                f'{record}', 'parameters', j))
+            flag(j, f'sensor {j}: turned by {np.degrees(mis):.1f} deg relative to sensor 1 '
+                    '(misalignment): a mounting a few degrees off its drawing (a bracket, a '
+                    'loose screw, a board mounted askew); the correction turns it into sensor '
+                    "1's frame and stays right, but the array's geometry assumes aligned "
+                    'sensors')
         off = cal.offset(j)
         reach = np.abs(raw[j - 1]).max(axis=0)
         for ax, o, r in zip(fx.AXIS_NAMES, off, reach):
             if abs(o) > r:
-                out.append(Note(
-                    f'sensor {j}: offset b{ax} = {o:+.0f} nT lies beyond every {ax} reading '
-                    f'(|reading| <= {r:.0f} nT): the centre of the readings is outside what the '
-                    'sensor measured: the attitudes cover too little of the sphere to place '
-                    'it (rotate further, or --constrained), or the readings are clipped; '
-                    f'{record}', 'parameters', j))
+                flag(j, f'sensor {j}: offset b{ax} = {o:+.0f} nT lies beyond every {ax} '
+                        f'reading (|reading| <= {r:.0f} nT): the centre of the readings is '
+                        'outside what the sensor measured: the attitudes cover too little of '
+                        'the sphere to place it (rotate further, or --constrained), or the '
+                        'readings are clipped')
     return out

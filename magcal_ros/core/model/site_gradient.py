@@ -21,7 +21,7 @@ has the physics and the identifiability analysis).  Units: nT, nT/m, m, rad.
 from magcal_ros.core.effects.base import rot_z
 from magcal_ros.core.geometry.tensor import symmetric_traceless
 from magcal_ros.core.model.engine import ProfiledProblem
-from magcal_ros.core.model.fitting import centred_readings
+from magcal_ros.core.model.fitting import centred_readings, corrected_readings
 from magcal_ros.core.model.solvers import covariance_from_jacobian, stderr_and_correlation
 import numpy as np
 
@@ -112,10 +112,8 @@ def crb_covariance(data, model, params, field_nt, sigma_nt, case='attitude', pos
         nx = _skew(n_w)
         g_w = eff.tensor(p[sl])
         d_g = g_w @ nx - nx @ g_w                   # d(R^T G R)/d psi = R^T (G N - N G) R
-        cols = []
-        for j in grp:
-            v = np.einsum('nji,jk,nkl,l->ni', rot, d_g, rot, eff.position(j))
-            cols.append(-(v @ mats[j].T) / sigma[j - 1])
+        cols = [-(np.einsum('nji,jk,nkl,l->ni', rot, d_g, rot, eff.position(j)) @ mats[j].T)
+                / sigma[j - 1] for j in grp]
         gn = np.stack(cols, axis=1).reshape(n, 3 * s, 1)
         gauge = np.array([d_g[0, 0], d_g[0, 1], d_g[0, 2], d_g[1, 1], d_g[1, 2]])
     else:
@@ -229,17 +227,14 @@ def fit_heading_unknown(data, model='base,site_gradient', field_nt=None, n_iter=
         raise ValueError('fit_heading_unknown needs sensor positions centred on the origin '
                          "(paper 004's cross)")
     bare = replace(data, attitude=None)
-    base = mdl.Model.from_spec([t for t in model.spec() if t != 'site_gradient'],
-                               data.n_sensors)
+    base = mdl.Model.from_spec([t for t in model.spec() if t != 'site_gradient'], data.n_sensors)
     r0 = mdl.fit(bare, base, field_nt=field_nt, **fit_kwargs)
     p = model.default_params()
     p[:base.n_params] = r0.params
     ctx0 = [bare.context(j) for j in range(1, data.n_sensors + 1)]
-    psi = None
-    res = None
+    psi = res = None
     for it in range(n_iter):
-        c = np.stack([model.correct(j, p, bare.raw[j - 1], ctx0[j - 1])
-                      for j in range(1, data.n_sensors + 1)])
+        c = corrected_readings(model, p, bare.raw, ctx0)
         centre = c.mean(axis=0)
         r_a = _align_to_z(centre / np.linalg.norm(centre, axis=1, keepdims=True))
         shift = c - centre[None]
@@ -254,12 +249,11 @@ def fit_heading_unknown(data, model='base,site_gradient', field_nt=None, n_iter=
             g_w = np.einsum('nij,njk,nlk->il', rot, g_b, rot) / len(psi)   # mean R G_b R^T
             g_w = 0.5 * (g_w + g_w.T)
             g_w -= np.trace(g_w) / 3 * np.eye(3)
+            p[sl] = [g_w[0, 0], g_w[0, 1], g_w[0, 2], g_w[1, 1], g_w[1, 2]]
         else:
             g_w = eff.tensor(p[sl])
         psi = _best_heading(shift, r_a, g_w, positions, psi0=psi)
         att = Rotation.from_matrix(rot_z(psi) @ r_a).as_quat(scalar_first=True)
-        if it == 0:
-            p[sl] = [g_w[0, 0], g_w[0, 1], g_w[0, 2], g_w[1, 1], g_w[1, 2]]
         res = mdl.fit(replace(bare, attitude=att), model, field_nt=field_nt, init=p,
                       check_identifiability=False, **fit_kwargs)
         moved = np.abs(res.params - p) / np.where(res.stderr > 0, res.stderr, np.inf)
@@ -295,6 +289,5 @@ def fit_heading_unknown(data, model='base,site_gradient', field_nt=None, n_iter=
     ident = dict(res.identifiability, site_gradient_frame=FIELD_ALIGNED)
     # the residuals of the result are computed from these parameters and attitudes when read
     return replace(res, params=p, covariance=cov, correlation=corr, stderr=stderr,
-                   warnings=warnings,
-                   sigma_nt=sigma, identifiability=ident,
+                   warnings=warnings, sigma_nt=sigma, identifiability=ident,
                    contexts=[fixed.context(j) for j in range(1, data.n_sensors + 1)])

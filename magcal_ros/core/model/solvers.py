@@ -86,9 +86,7 @@ def levenberg_marquardt(fun, jac, x0, robust=False, f_scale=3.0, max_nfev=200, x
         normal = None
     x = np.asarray(x0, float).copy()
     r = fun(x)
-    c = cost(r)
-    nfev = 1
-    lam = 1e-3
+    c, nfev, lam = cost(r), 1, 1e-3
     for _ in range(max_nfev):
         if normal is not None:
             a, g = normal(x)

@@ -60,36 +60,32 @@ class Model:
 
     def _layout(self):
         """Lay the parameters out: each sensor's own, the array effects', the shared (@alike)."""
-        self.slices = []
-        self.sensor_slices = []
-        i = 0
+        end = [0]
+
+        def take(n):
+            end[0] += n
+            return slice(end[0] - n, end[0])
+        self.slices, self.sensor_slices = [], []
+        for row in self.effects:
+            start = end[0]
+            self.slices.append([None if getattr(e, 'shared', False) else take(e.n_params)
+                                for e in row])
+            self.sensor_slices.append(slice(start, end[0]))
+        self.array_slices = [take(e.n_params) for e in self.array_effects]
         shared = {}
-        for sensor_effects in self.effects:
-            start = i
-            row = []
-            for eff in sensor_effects:
-                if getattr(eff, 'shared', False):
-                    row.append(None)
-                    shared.setdefault(eff.label, eff.n_params)
-                    continue
-                row.append(slice(i, i + eff.n_params))
-                i += eff.n_params
-            self.slices.append(row)
-            self.sensor_slices.append(slice(start, i))
-        self.array_slices = []
-        for eff in self.array_effects:
-            self.array_slices.append(slice(i, i + eff.n_params))
-            i += eff.n_params
+        for e in (e for row in self.effects for e in row if getattr(e, 'shared', False)):
+            shared.setdefault(e.label, e.n_params)
         #: {label: slice} of the parameters shared by every sensor (scope alike)
-        self.shared_slices = {}
-        for lab, n in shared.items():
-            self.shared_slices[lab] = slice(i, i + n)
-            i += n
-        for row, sls in zip(self.effects, self.slices):
-            for k, eff in enumerate(row):
-                if sls[k] is None:
-                    sls[k] = self.shared_slices[eff.label]
-        self.n_params = i
+        self.shared_slices = {lab: take(n) for lab, n in shared.items()}
+        self.slices = [[self.shared_slices[e.label] if sl is None else sl
+                        for e, sl in zip(row, sls)] for row, sls in zip(self.effects, self.slices)]
+        self.n_params = end[0]
+
+    def effect_slices(self):
+        """[(sensor, effect, slice)] of every effect: each sensor's (1-based), the array's (0)."""
+        return [(j, e, sl) for j, (row, sls) in enumerate(zip(self.effects, self.slices), 1)
+                for e, sl in zip(row, sls)] + [
+                    (0, e, sl) for e, sl in zip(self.array_effects, self.array_slices)]
 
     @property
     def array_cols(self):
@@ -121,7 +117,6 @@ class Model:
         from magcal_ros.core.effects.formula import composed_effect, parse
         formula = parse(spec)
         per_sensor = [[] for _ in range(n_sensors)]
-        seen = [set() for _ in range(n_sensors)]
         array_effects = []
         for term in formula.terms:
             if term.kind == 'drop':
@@ -137,7 +132,7 @@ class Model:
                 if term.scope == 'alike' and n_sensors < 2:
                     raise ValueError(f'{term.text}: @alike shares parameters between sensors; '
                                      'the data have one sensor (drop @alike)')
-                makers = [(term.core, lambda j, t=term: composed_effect(t, j))]
+                makers = [lambda j, t=term: composed_effect(t, j)]
             elif term.scope == 'array':
                 eff = fx.make_effect(term.core, 0)
                 if n_sensors < 3 and hasattr(eff, 'set_positions'):
@@ -148,29 +143,24 @@ class Model:
                 continue
             else:
                 names = fx.BASE if term.core == 'base' else (term.core,)
-                makers = [(nm, lambda j, nm=nm: fx.make_effect(nm, j)) for nm in names]
+                makers = [lambda j, nm=nm: fx.make_effect(nm, j) for nm in names]
             sensors = term.sensors(n_sensors)
-            for _, make in makers:
+            for make in makers:
                 for j in sensors:
-                    eff = make(j)
-                    if not eff.applies or eff.label in seen[j - 1] or any(
-                            eff.label in o.supersedes for o in per_sensor[j - 1]):
+                    eff, row = make(j), per_sensor[j - 1]
+                    if not eff.applies or any(eff.label == o.label or eff.label in o.supersedes
+                                              for o in row):
                         continue
                     # a larger form of an effect already there replaces it (aux_poly > aux)
-                    gone = [o for o in per_sensor[j - 1] if o.label in eff.supersedes]
-                    for o in gone:
-                        per_sensor[j - 1].remove(o)
-                        seen[j - 1].discard(o.label)
-                    clash = [o for o in per_sensor[j - 1]
-                             if {o.name, o.label} & set(eff.excludes)
+                    row[:] = [o for o in row if o.label not in eff.supersedes]
+                    clash = [o for o in row if {o.name, o.label} & set(eff.excludes)
                              or {eff.name, eff.label} & set(o.excludes)]
                     if clash:
                         raise ValueError(
                             f'{eff.label} and {clash[0].label} on sensor {j} describe the same '
                             f'degrees of freedom ({eff.label}: {eff.describe()}; '
                             f'{clash[0].label}: {clash[0].describe()}); use one or the other')
-                    seen[j - 1].add(eff.label)
-                    per_sensor[j - 1].append(eff)
+                    row.append(eff)
         for row in per_sensor:
             row.sort(key=lambda e: (e.kind != 'linear', e.linear_order))
         return cls(per_sensor, array_effects, formula.drops)
@@ -180,9 +170,8 @@ class Model:
         out = []
         labels = [[e.label for e in row] for row in self.effects]
         first = {}                            # label -> one instance
-        for row in self.effects:
-            for eff in row:
-                first.setdefault(eff.label, eff)
+        for eff in (e for row in self.effects for e in row):
+            first.setdefault(eff.label, eff)
         for lab, eff in first.items():
             have = [j + 1 for j, row in enumerate(labels) if lab in row]
             expected = list(range(1 if eff.on_sensor1 else 2, self.n_sensors + 1))
@@ -200,10 +189,7 @@ class Model:
     def with_effect(self, token):
         """Return a new model with ``token`` added; the array effects keep their references."""
         new = Model.from_spec(self.spec() + [token], self.n_sensors)
-        old = {e.label: e for e in self.array_effects}
-        for eff in new.array_effects:
-            if eff.label in old:
-                eff.refs = dict(old[eff.label].refs)
+        _copy_refs(self.array_effects, new.array_effects)
         return new
 
     def take_refs(self, other):
@@ -214,14 +200,8 @@ class Model:
         calibration mean); references ``other`` lacks are left to :meth:`prepare`.
         """
         for row_s, row_d in zip(other.effects, self.effects):
-            refs = {e.label: e.refs for e in row_s}
-            for e in row_d:
-                if e.label in refs:
-                    e.refs = dict(refs[e.label])
-        old = {e.label: e.refs for e in other.array_effects}
-        for e in self.array_effects:
-            if e.label in old:
-                e.refs = dict(old[e.label])
+            _copy_refs(row_s, row_d)
+        _copy_refs(other.array_effects, self.array_effects)
         return self
 
     def reading_mask(self, t):
@@ -262,25 +242,18 @@ class Model:
     def default_params(self):
         """(n_params,) parameters of ideal sensors."""
         p = np.zeros(self.n_params)
-        for j, row in enumerate(self.effects):
-            for eff, sl in zip(row, self.slices[j]):
-                p[sl] = eff.default_params()
-        for eff, sl in zip(self.array_effects, self.array_slices):
+        for _, eff, sl in self.effect_slices():
             p[sl] = eff.default_params()
         return p
 
     def param_info(self):
         """List of (sensor, effect label, name, unit) for each parameter."""
         out = [None] * self.n_params
-        for j, row in enumerate(self.effects):
-            for eff, sl in zip(row, self.slices[j]):
-                # a parameter set shared by every sensor (@alike) is the array's: sensor 0
-                who = 0 if getattr(eff, 'shared', False) else j + 1
-                for i, nm, un in zip(range(sl.start, sl.stop), eff.param_names, eff.units):
-                    out[i] = (who, eff.label, nm, un)
-        for eff, sl in zip(self.array_effects, self.array_slices):   # sensor 0: the array
+        for j, eff, sl in self.effect_slices():
+            # sensor 0: the array, and a parameter set shared by every sensor (@alike)
+            who = 0 if getattr(eff, 'shared', False) else j
             for i, nm, un in zip(range(sl.start, sl.stop), eff.param_names, eff.units):
-                out[i] = (0, eff.label, nm, un)
+                out[i] = (who, eff.label, nm, un)
         return out
 
     def prepare(self, contexts):
@@ -330,11 +303,10 @@ class Model:
         """
         out = np.zeros((len(ctx.t), 3))
         for eff, sl in zip(self.array_effects, self.array_slices):
-            if getattr(eff, 'reads_field', False):
-                if b is not None:
-                    out = out + eff.shift(p[sl], ctx, j, b)
-            else:
+            if not getattr(eff, 'reads_field', False):
                 out = out + eff.shift(p[sl], ctx, j)
+            elif b is not None:
+                out = out + eff.shift(p[sl], ctx, j, b)
         return out
 
     def forward(self, j, p, b, ctx, a=None, add=None):
@@ -365,8 +337,7 @@ class Model:
         evaluated alone; the array's parameters re-evaluate :meth:`forward`.
         """
         h = np.array([1e-6 * max(1.0, abs(p[i])) for i in cols])
-        owner = {}
-        linear = set()
+        owner, linear = {}, set()
         reading = []                    # additive effects that read the linear part
         for eff, sl in zip(self.effects[j - 1], self.slices[j - 1]):
             if eff.kind != 'linear':
@@ -375,8 +346,7 @@ class Model:
                     reading.append((eff, sl))
             else:
                 linear.update(range(sl.start, sl.stop))
-        lin = None
-        contrib = {}
+        lin, contrib = None, {}
         diff = np.empty((len(cols), len(b), 3))
         for c, i in enumerate(cols):
             pp = p.copy()
@@ -441,6 +411,14 @@ class Model:
             if share is not None:
                 p[sl] = share
         return p
+
+
+def _copy_refs(source, dest):
+    """Give each effect of ``dest`` a copy of the references of its label in ``source``."""
+    refs = {e.label: e.refs for e in source}
+    for e in dest:
+        if e.label in refs:
+            e.refs = dict(refs[e.label])
 
 
 def data_hash(data):
