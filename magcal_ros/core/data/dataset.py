@@ -18,6 +18,10 @@ from dataclasses import dataclass, field, replace
 from magcal_ros.core.effects import raw_rate, SensorContext
 import numpy as np
 
+#: the per-epoch arrays of a Dataset and the axis of their epochs
+EPOCH_AXES = {'t': 0, 'raw': 1, 'temp': 1, 'ref_total': 0, 'ref_vec': 0, 'angle_deg': 0,
+              'plane': 0, 'attitude': 0, 'rate': 1}
+
 
 @dataclass
 class Dataset:
@@ -108,16 +112,10 @@ class Dataset:
     def subset(self, idx):
         """Return a new Dataset with the epochs ``idx`` (index array or boolean mask)."""
         idx = np.asarray(idx)
-
-        def take(a, axis=0):
-            if a is None:
-                return None
-            return np.take(a, np.flatnonzero(idx) if idx.dtype == bool else idx, axis=axis)
+        at = np.flatnonzero(idx) if idx.dtype == bool else idx
         pos = np.arange(self.n_samples)[idx]
         origin = (self, pos) if self.origin is None else (self.origin[0], self.origin[1][pos])
-        return replace(
-            self, origin=origin, t=take(self.t), raw=take(self.raw, 1), temp=take(self.temp, 1),
-            ref_total=take(self.ref_total), ref_vec=take(self.ref_vec),
-            angle_deg=take(self.angle_deg), plane=take(self.plane),
-            aux={k: take(v) for k, v in self.aux.items()}, meta=dict(self.meta),
-            attitude=take(self.attitude), rate=take(self.rate, 1))
+        cols = {k: None if getattr(self, k) is None else np.take(getattr(self, k), at, axis=a)
+                for k, a in EPOCH_AXES.items()}
+        return replace(self, origin=origin, aux={k: np.take(v, at) for k, v in self.aux.items()},
+                       meta=dict(self.meta), **cols)

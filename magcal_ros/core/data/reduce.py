@@ -24,7 +24,7 @@ pass for **the residual statistics of every epoch** (:func:`residual_statistics`
 """
 from dataclasses import dataclass, replace
 
-from magcal_ros.core.data.dataset import Dataset
+from magcal_ros.core.data.dataset import Dataset, EPOCH_AXES
 from magcal_ros.core.data.noise import FitResidual, noise_floor_of
 from magcal_ros.core.effects import raw_rate
 import numpy as np
@@ -44,15 +44,12 @@ def concat(pieces):
     first = pieces[0]
     if len(pieces) == 1:
         return replace(first, origin=None)
-
-    def cat(name, axis=0):
+    cols = {}
+    for name, axis in EPOCH_AXES.items():
         vals = [getattr(p, name) for p in pieces]
-        return None if any(v is None for v in vals) else np.concatenate(vals, axis=axis)
-    return replace(first, origin=None, t=cat('t'), raw=cat('raw', 1), temp=cat('temp', 1),
-                   ref_total=cat('ref_total'), ref_vec=cat('ref_vec'),
-                   angle_deg=cat('angle_deg'), plane=cat('plane'),
-                   aux={k: np.concatenate([p.aux[k] for p in pieces]) for k in first.aux},
-                   attitude=cat('attitude'), rate=cat('rate', 1), meta=dict(first.meta))
+        cols[name] = None if any(v is None for v in vals) else np.concatenate(vals, axis=axis)
+    return replace(first, origin=None, meta=dict(first.meta), **cols,
+                   aux={k: np.concatenate([p.aux[k] for p in pieces]) for k in first.aux})
 
 
 def _take(piece, idx):

@@ -35,18 +35,9 @@ def tensor_cross(b, baseline_m=0.5):
         b = b[:, None]
     if b.shape[0] != 4 or b.shape[2] != 3:
         raise ValueError(f'expected the field of 4 sensors, shape (4, N, 3); got {b.shape}')
-    b1, b2, b3, b4 = b
-    g = np.empty((b.shape[1], 3, 3))
-    g[:, 0, 0] = b1[:, 0] - b3[:, 0]
-    g[:, 0, 1] = b2[:, 0] - b4[:, 0]
-    g[:, 0, 2] = b1[:, 2] - b3[:, 2]
-    g[:, 1, 0] = b1[:, 1] - b3[:, 1]
-    g[:, 1, 1] = b2[:, 1] - b4[:, 1]
-    g[:, 1, 2] = b2[:, 2] - b4[:, 2]
-    g[:, 2, 0] = b1[:, 2] - b3[:, 2]
-    g[:, 2, 1] = b2[:, 2] - b4[:, 2]
-    g[:, 2, 2] = b4[:, 1] - b2[:, 1] + b3[:, 0] - b1[:, 0]
-    g /= baseline_m
+    d13, d24 = b[0] - b[2], b[1] - b[3]     # the columns x and y; z from symmetry, trace 0
+    gz = np.stack([d13[:, 2], d24[:, 2], b[3, :, 1] - b[1, :, 1] + b[2, :, 0] - b[0, :, 0]], 1)
+    g = np.stack([d13, d24, gz], axis=2) / baseline_m
     return g[0] if one else g
 
 
@@ -85,8 +76,7 @@ def tensor_operator(positions):
         cols = x[3:].reshape(3, 3, -1)          # [column c][row i]
     else:
         x = np.linalg.pinv(design) @ rot
-        c0 = x[3:6]
-        c1 = x[6:9]
+        c0, c1 = x[3:6], x[6:9]
         c2 = np.stack([c0[2], c1[2], -c0[0] - c1[1]])   # symmetry + zero trace
         cols = np.stack([c0, c1, c2])
     g_prime = np.transpose(cols, (1, 0, 2))      # (3 rows, 3 cols, 3S)

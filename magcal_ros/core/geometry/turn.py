@@ -56,6 +56,12 @@ def circle_centre(xy):
     return sol[:2]
 
 
+def _plane(axis):
+    """(index of the sensor axis nearest ``axis`` (3,), the two other indices)."""
+    k = int(np.argmax(np.abs(axis)))
+    return k, [a for a in range(3) if a != k]
+
+
 def planar_magnitude(raw, axis):
     """
     Return a shape-only magnitude (nT) for a turn with no reference.
@@ -64,8 +70,7 @@ def planar_magnitude(raw, axis):
     unit; raw (N, 3) nT.  The sensor's common scale is then arbitrary, its shape is not.
     """
     raw = np.asarray(raw, float)
-    k = int(np.argmax(np.abs(axis)))
-    plane = [a for a in range(3) if a != k]
+    k, plane = _plane(axis)
     centre = circle_centre(raw[:, plane])
     r = float(np.median(np.linalg.norm(raw[:, plane] - centre, axis=1)))
     return float(np.hypot(r, np.mean(raw[:, k])))
@@ -86,9 +91,7 @@ def swept_angle(m):
         n = turn_axis(m)
     except PlanarError:
         n = np.array([0.0, 0.0, 1.0])
-    k = int(np.argmax(np.abs(n)))
-    plane = [a for a in range(3) if a != k]
-    xy = m[:, plane]
+    xy = m[:, _plane(n)[1]]
     c = circle_centre(xy)
     radius = np.linalg.norm(xy - c, axis=1)
     if np.median(radius) < MIN_TURN_RADIUS * np.median(np.linalg.norm(m, axis=1)):

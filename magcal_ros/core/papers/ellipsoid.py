@@ -20,6 +20,7 @@ These closed-form solutions are the starting values of the maximum-likelihood re
 """
 from dataclasses import dataclass
 
+from magcal_ros.core.geometry.turn import circle_centre
 import numpy as np
 
 #: the fitted quadric counts as an ellipsoid when its smallest eigenvalue exceeds this many
@@ -78,10 +79,7 @@ def ring_spread(u, normal):
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(normal, e1)
     p = np.column_stack([u @ e1, u @ e2])
-    # algebraic (Kasa) circle fit: |p|^2 = 2 p.c + k
-    sol, *_ = np.linalg.lstsq(np.column_stack([2 * p, np.ones(len(p))]),
-                              np.sum(p ** 2, axis=1), rcond=None)
-    r = np.linalg.norm(p - sol[:2], axis=1)
+    r = np.linalg.norm(p - circle_centre(p), axis=1)
     return float(np.std(r) / np.mean(r)) if np.mean(r) > 0 else 0.0
 
 
