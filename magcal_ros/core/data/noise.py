@@ -75,18 +75,13 @@ def robust_sd(d):
     cut = TAIL_CUT * s_mad
     tail = a[a > cut]
     var = float(np.sum(a[a <= cut] ** 2)) / n
-    alpha, n_out = float('nan'), 0
-    if tail.size >= MIN_TAIL:
-        alpha = float(tail.size / np.sum(np.log(tail / cut)))
-        if alpha > OUTLIER_TAIL_INDEX:
-            a_eff = max(alpha, MIN_TAIL_INDEX)
-            var += tail.size / n * cut ** 2 * a_eff / (a_eff - 2.0)
-        else:
-            n_out = int(tail.size)
-            var *= n / (n - n_out)
-    else:
-        n_out = int(tail.size)
-        var *= n / max(n - n_out, 1)
+    alpha = float(tail.size / np.sum(np.log(tail / cut))) if tail.size >= MIN_TAIL else np.nan
+    n_out = 0 if alpha > OUTLIER_TAIL_INDEX else int(tail.size)
+    if n_out:
+        var *= n / (n - n_out)          # at least half the values lie within the cut
+    elif tail.size:
+        a_eff = max(alpha, MIN_TAIL_INDEX)
+        var += tail.size / n * cut ** 2 * a_eff / (a_eff - 2.0)
     return float(np.sqrt(var)), float(s_mad), alpha, n_out
 
 
@@ -222,12 +217,8 @@ def estimate_noise(x, orders=ORDERS, starts=None):
         sigma[j] = np.median(by[k0:, j])
         first[j] = orders[k0]
         plateau[j] = len(orders) - k0 >= 2
-        if plateau[j]:
-            status.append('white')
-        elif drop[j] >= FILTERED_DROP:
-            status.append('filtered')
-        else:
-            status.append('upper bound')
+        status.append('white' if plateau[j] else
+                      'filtered' if drop[j] >= FILTERED_DROP else 'upper bound')
     return NoiseEstimate(sigma=sigma, order=first, plateau=plateau, by_order=by,
                          status=tuple(status), drop=drop)
 
@@ -347,8 +338,7 @@ def noise_floor_of(raw, result, starts=None):
                 order[j] = res_est.order[j]
                 status[j] = res_est.status[j]
                 source[j] = 'scalar residual'
-    lower = sigma.copy()
-    upper = sigma.copy()
+    lower, upper = sigma.copy(), sigma.copy()
     tails = np.empty(s)
     for j in range(s):
         if status[j] == 'filtered':

@@ -163,18 +163,13 @@ class ReadingScreen:
 
     def lines(self):
         """One line per flagged channel group (axes of a sensor with the same flags merged)."""
-        out = []
-        done = set()
+        groups = {}
         for i, c in enumerate(self.channels):
-            if i in done:
-                continue
-            group = [c]
-            for k in range(i + 1, len(self.channels)):
-                o = self.channels[k]
-                if (o.sensor == c.sensor and o.kind == c.kind and o.count == c.count
-                        and o.stretches == c.stretches and c.kind == 'repeated'):
-                    group.append(o)
-                    done.add(k)
+            key = (c.sensor, c.count, c.stretches) if c.kind == 'repeated' else i
+            groups.setdefault(key, []).append(c)
+        out = []
+        for group in groups.values():
+            c = group[0]
             axes = ', '.join(g.axis for g in group)
             label = f'axis {axes}' if len(group) == 1 else f'axes {axes}'
             out.append((c.sensor, f'sensor {c.sensor} {label}: {c.describe()}'))

@@ -223,10 +223,8 @@ def find_slips(raw, epochs=None, max_lag=DEFAULT_MAX_LAG, window=DEFAULT_WINDOW,
             return procrustes_rotation(u[0][use], y[use])
 
         # the pairing as it is, unless one lag (its own rotation) explains the record better
-        med = []
-        for i in range(len(candidates)):
-            rot = rotation(shifted[i], np.ones(n, bool))
-            med.append(np.nanmedian(np.sum((u[0] - shifted[i] @ rot.T) ** 2, axis=1)))
+        med = [np.nanmedian(np.sum((u[0] - y @ rotation(y, np.ones(n, bool)).T) ** 2, axis=1))
+               for y in shifted]
         i_best = int(np.argmin(med))
         k = np.full(n, i_best if med[i_best] * min_contrast < med[k0] else k0)
         # alternate rotation and lags (on contrast alone: a rotation biased by slipped sets

@@ -537,12 +537,10 @@ class SampleBuffer:
         """Keep every other set held (the 1st, 3rd, ...) and every 2 x stride-th from now."""
         keep = np.arange(0, self.n, 2)
         m = len(keep)
-        self.epoch[:m] = self.epoch[keep]
-        self.t[:m] = self.t[keep]
-        self.raw[:, :m] = self.raw[:, keep]
-        self.temp[:, :m] = self.temp[:, keep]
-        for arr in self.aux.values():
+        for arr in (self.epoch, self.t, *self.aux.values()):
             arr[:m] = arr[keep]
+        for arr in (self.raw, self.temp):
+            arr[:, :m] = arr[:, keep]
         self.n = m
         self.stride *= 2
 
