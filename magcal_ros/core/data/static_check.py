@@ -30,6 +30,7 @@ Differences are judged against the calibration's own scalar residual RMS (an err
 size that depends on the direction is expected), not the static noise.
 """
 from dataclasses import dataclass, field
+from itertools import combinations
 
 import numpy as np
 
@@ -78,14 +79,10 @@ def check_static(corrected, reference_nt, residual_rms_nt):
                      'minus_reference_nt': float(mag.mean() - reference_nt)})
     out = StaticCheck(rows=rows, tolerance_nt=tol)
     same, other = [], []
-    for a in range(len(rows)):
-        for c in range(a + 1, len(rows)):
-            ra, rc = rows[a], rows[c]
-            ang = float(np.degrees(np.arccos(np.clip(ra['direction'] @ rc['direction'],
-                                                     -1.0, 1.0))))
-            diff = rc['b_nt'] - ra['b_nt']
-            (same if ang < SAME_ATTITUDE_DEG else other).append(
-                (ra['name'], rc['name'], ang, diff))
+    for ra, rc in combinations(rows, 2):
+        ang = float(np.degrees(np.arccos(np.clip(ra['direction'] @ rc['direction'], -1.0, 1.0))))
+        (same if ang < SAME_ATTITUDE_DEG else other).append(
+            (ra['name'], rc['name'], ang, rc['b_nt'] - ra['b_nt']))
     out.same_attitude = same
     changed = set()             # recordings known to see another field than a twin
     for a, c, ang, diff in same:

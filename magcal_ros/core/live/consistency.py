@@ -129,14 +129,11 @@ def gross_outliers(raw, fraction=GROSS_FRACTION):
         return out
     threshold = fraction * float(np.median(np.linalg.norm(raw[0], axis=1)))
     d = np.linalg.norm(raw[:, 1:-1] - 0.5 * (raw[:, :-2] + raw[:, 2:]), axis=2)  # (S, N-2)
-    for j in range(s):
-        if not np.median(d[j]) < 0.01 * threshold:
-            continue                # not smooth at this rate: nothing can be told
-        big = np.flatnonzero(d[j] > threshold)
-        for i in big:
-            lo, hi = max(0, i - 1), min(len(d[j]), i + 2)
-            if d[j, i] >= d[j, lo:hi].max():
-                out[j, i + 1] = True
+    side = np.pad(d, ((0, 0), (1, 1)), constant_values=-np.inf)
+    # not smooth at this rate (median d): nothing can be told
+    smooth = np.median(d, axis=1) < 0.01 * threshold
+    out[:, 1:-1] = (smooth[:, None] & (d > threshold) & (d >= side[:, :-2])
+                    & (d >= side[:, 2:]))
     return out
 
 

@@ -87,7 +87,12 @@ def calibration_covariance_nt2(cal, j, field_nt):
             m = a_inv @ a - np.eye(3)
             d = a_inv @ (o - moved.offset(j))
             out += m @ m.T * field_nt ** 2 / 3.0 + np.outer(d, d)
-    return 0.5 * (out + out.T)
+    return _symmetric(out)
+
+
+def _symmetric(c):
+    """The symmetric part of a square matrix ``c`` (rounding makes products asymmetric)."""
+    return 0.5 * (c + c.T)
 
 
 class _Sensor:
@@ -100,12 +105,11 @@ class _Sensor:
         self.needs = set(cal.signals(j)) - {'time'}
         self.driven = bool(cal.driven_effects(j))
         sigma = float(cal.sigma_nt[j - 1])
-        self.cov_nt2 = None           # sigma^2 A^-1 A^-T, nT^2
         self.cal_cov_nt2 = (calibration_covariance_nt2(cal, j, field_nt)
                             if field_nt else np.zeros((3, 3)))
-        if np.isfinite(sigma) and sigma > 0:
-            c = sigma ** 2 * self.a_inv @ self.a_inv.T
-            self.cov_nt2 = 0.5 * (c + c.T)
+        #: sigma^2 A^-1 A^-T, nT^2 (None: no noise estimate)
+        self.cov_nt2 = (_symmetric(sigma ** 2 * self.a_inv @ self.a_inv.T)
+                        if np.isfinite(sigma) and sigma > 0 else None)
         self.recent = deque(maxlen=3)    # (t s, raw (3,) nT) of the latest samples
         self.arrivals = deque(maxlen=PERIOD_WINDOW)
 
@@ -179,17 +183,15 @@ class LiveCorrector:
             block = np.zeros((3 * n_sensors, 3 * n_sensors))
             for k, c in enumerate(covs):
                 block[3 * k:3 * k + 3, 3 * k:3 * k + 3] = c
-            g = self.gradient_op @ block @ self.gradient_op.T
-            self.gradient_cov_nt2 = 0.5 * (g + g.T)
+            self.gradient_cov_nt2 = _symmetric(self.gradient_op @ block @ self.gradient_op.T)
             if check_pairing:
                 k = pairing_operator(pos, block)
-                self.pairing_dof = len(k)
-                if self.pairing_dof:
+                self.pairing_dof = dof = len(k)
+                if dof:
                     self._set_op = np.vstack([self.gradient_op, k])
                     # = scipy.stats.chi2.isf, without importing scipy.stats (BENCHMARKS.md)
                     from scipy.special import chdtri
-                    self.pairing_threshold = float(chdtri(self.pairing_dof,
-                                                          PAIRING_FALSE_ALARM))
+                    self.pairing_threshold = float(chdtri(dof, PAIRING_FALSE_ALARM))
                     self.matcher.misfit = self.pairing_chi2
                     self.matcher.threshold = self.pairing_threshold
         if check_pairing and self.pairing_dof:

@@ -200,26 +200,19 @@ class StampMatcher:
 
     def reset(self):
         """Forget queued samples, offsets and counters."""
-        for h, q, p in zip(self._hist, self._queues, self._past):
-            h.clear()
-            q.clear()
-            p.clear()
+        for d in (*self._hist, *self._queues, *self._past):
+            d.clear()
         self._seq = [0] * self.n_sensors
         self._last_arrival = [None] * self.n_sensors
         self._offset = [0] + [None] * (self.n_sensors - 1)
         self._proposal = [0] + [None] * (self.n_sensors - 1)    # the stamp vote's, checked
         self._pending = None            # a proposal to compare with the pairing as it is
         self._refuted = deque(maxlen=4)     # the last proposals the data refuted
-        self._aligned = self.n_sensors == 1
+        self.aligned = self.n_sensors == 1      # every stream has an epoch offset
         self._since_align = 0
         self._backoff = self._skip = 0
         self.complete = self.incomplete = self.out_of_order = self.realigned = 0
         self.rejected = self.repaired = 0
-
-    @property
-    def aligned(self):
-        """Tell whether every stream has an epoch offset."""
-        return self._aligned
 
     @property
     def queued(self):
@@ -238,12 +231,11 @@ class StampMatcher:
             self.out_of_order += 1
             return []
         self._last_arrival[j] = stamp_s
-        s = stamp_s
         q = self._seq[j]
         self._seq[j] += 1
-        self._hist[j].append((q, s))
+        self._hist[j].append((q, stamp_s))
         queue = self._queues[j]
-        queue.append((q, s, item))
+        queue.append((q, stamp_s, item))
         if len(queue) > self.max_queue:
             self._past[j].append(queue.popleft())
             self.incomplete += 1
@@ -282,17 +274,17 @@ class StampMatcher:
             if counts.max() <= 0.5 * len(votes):
                 continue           # no clear majority: keep the offset we have
             best = int(values[np.argmax(counts)])
-            if self.misfit is not None and self._aligned:
+            if self.misfit is not None and self.aligned:
                 self._proposal[j] = best    # stamps propose, the data decide (_emit)
                 continue
             if self._offset[j] is not None and best != self._offset[j]:
                 self.realigned += 1
             self._offset[j] = best
-        if self.misfit is not None and self._aligned:
+        if self.misfit is not None and self.aligned:
             vote = self._vote()
             self._pending = (vote if vote != self._offset and vote not in self._refuted
                              else None)
-        self._aligned = all(o is not None for o in self._offset)
+        self.aligned = all(o is not None for o in self._offset)
 
     def _emit(self):
         out = []
