@@ -243,17 +243,17 @@ def reduce_chunks(chunks, **kwargs):
 
 
 class _Moments:
-    """Running count, sum of squares and largest absolute value, per leading index."""
+    """Running count, sum, sum of squares and extremes, per leading index."""
 
     def __init__(self):
-        self.n = 0
-        self.ss = 0.0
-        self.mx = 0.0
+        self.n, self.s, self.ss, self.lo, self.hi = 0, 0.0, 0.0, np.inf, -np.inf
 
     def add(self, x, axis):
         self.n = self.n + np.shape(x)[axis]
+        self.s = self.s + np.sum(x, axis=axis)
         self.ss = self.ss + np.sum(np.square(x), axis=axis)
-        self.mx = np.maximum(self.mx, np.max(np.abs(x), axis=axis))
+        self.lo = np.minimum(self.lo, np.min(x, axis=axis))
+        self.hi = np.maximum(self.hi, np.max(x, axis=axis))
 
     def rms(self):
         return np.sqrt(self.ss / max(self.n, 1))
@@ -273,7 +273,7 @@ def residual_statistics(chunks, result, positions=None):
     ``tensor_max_dev_before_nt_per_m``, ``tensor_max_dev_after_nt_per_m``.
     """
     before, after, vector = _Moments(), _Moments(), _Moments()
-    tens = {k: {'s': 0.0, 'ss': 0.0, 'lo': np.inf, 'hi': -np.inf} for k in ('b', 'a')}
+    tens = {'b': _Moments(), 'a': _Moments()}
     n = 0
     for piece in rated(chunks):
         f = field_of(result, piece)
@@ -285,27 +285,22 @@ def residual_statistics(chunks, result, positions=None):
         if positions is not None and piece.n_sensors >= 3:
             from magcal_ros.core.geometry.tensor import tensor_lstsq
             for key, fields in (('b', piece.raw), ('a', cen)):
-                g, _ = tensor_lstsq(fields, positions)
-                acc = tens[key]
-                acc['s'] = acc['s'] + g.sum(axis=0)
-                acc['ss'] = acc['ss'] + (g ** 2).sum(axis=0)
-                acc['lo'] = np.minimum(acc['lo'], g.min(axis=0))
-                acc['hi'] = np.maximum(acc['hi'], g.max(axis=0))
+                tens[key].add(tensor_lstsq(fields, positions)[0], 0)
     s = after.ss.shape[0]
     out = {'n_samples': int(n),
            'scalar_rms_nt': {str(j + 1): float(v) for j, v in enumerate(after.rms())},
            'vector_rms_nt': {str(j + 1): float(v) for j, v in enumerate(vector.rms()) if j},
            'total_field_rms_before_nt': {str(j + 1): float(v)
                                          for j, v in enumerate(before.rms())},
-           'total_field_max_dev_before_nt': float(np.max(before.mx)),
-           'total_field_max_dev_after_nt': float(np.max(after.mx))}
+           'total_field_max_dev_before_nt': float(np.max(np.maximum(before.hi, -before.lo))),
+           'total_field_max_dev_after_nt': float(np.max(np.maximum(after.hi, -after.lo)))}
     if positions is not None and s >= 3 and n:
         for key, rms_key, max_key in (('b', 'tensor_rms_before_nt_per_m',
                                        'tensor_max_dev_before_nt_per_m'),
                                       ('a', 'tensor_rms_nt_per_m',
                                        'tensor_max_dev_after_nt_per_m')):
             acc = tens[key]
-            mean = acc['s'] / n
-            out[rms_key] = np.sqrt(np.maximum(acc['ss'] / n - mean ** 2, 0.0)).tolist()
-            out[max_key] = float(np.max(np.maximum(acc['hi'] - mean, mean - acc['lo'])))
+            mean = acc.s / n
+            out[rms_key] = np.sqrt(np.maximum(acc.ss / n - mean ** 2, 0.0)).tolist()
+            out[max_key] = float(np.max(np.maximum(acc.hi - mean, mean - acc.lo)))
     return out
