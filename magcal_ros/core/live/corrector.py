@@ -91,7 +91,7 @@ def calibration_covariance_nt2(cal, j, field_nt):
 
 
 def _symmetric(c):
-    """The symmetric part of a square matrix ``c`` (rounding makes products asymmetric)."""
+    """Return the symmetric part of a square matrix ``c`` (rounding makes products asymmetric)."""
     return 0.5 * (c + c.T)
 
 

@@ -150,13 +150,9 @@ _MEDIAN_VAR = {1: 1.0, 2: 0.5, 3: 0.4487, 4: 0.3573}
 
 def common_mode_variance(sigma):
     """(S,) variance of e_j under the noise alone, nT^2, from per-axis noise sds (S,) nT."""
-    sigma = np.asarray(sigma, float)
-    s = len(sigma)
-    if s == 1:
-        return sigma ** 2
-    f2 = sigma ** 2
-    m = s - 1
-    return f2 + _MEDIAN_VAR.get(m, np.pi / (2 * m)) * (f2.sum() - f2) / m
+    f2 = np.asarray(sigma, float) ** 2
+    m = len(f2) - 1
+    return f2 + _MEDIAN_VAR.get(m, np.pi / (2 * m)) * (f2.sum() - f2) / m if m else f2
 
 
 class _Run:
@@ -220,9 +216,7 @@ class Learner:
         """Start tracking calibration ``cal`` (magnitude ``field_nt`` nT) from time ``t``."""
         self.active = cal
         self.field_nt = float(field_nt)
-        self.state = TRACKING if t is None or not self.adoptions else ADOPTED
-        self.onset = None
-        self._since = _Run()
+        self._restart(TRACKING if t is None or not self.adoptions else ADOPTED)
         self.proposal = None
         if t is not None:
             self._last_refit = float(t)
@@ -305,24 +299,23 @@ class Learner:
         self._by_sensor += over
         self._step(bool(np.any(over)), float(data.t[0]), t_end)
 
+    def _restart(self, state, onset=None):
+        """Enter ``state``, counting the blocks afresh from ``onset`` (s)."""
+        self.state, self.onset, self._since = state, onset, _Run()
+
     def _step(self, exceed, t_start, t_end):
-        cfg = self.config
         if self.state in (TRACKING, ADOPTED):
             if exceed:
-                self.state = CHANGE
-                self.onset = t_start
-                self._since = _Run()
+                self._restart(CHANGE, t_start)
                 self._since.add(True)
             return
         if self.state == READY:
             return                         # waiting for its adoption
         self._since.add(exceed)
-        if self._since.clean >= cfg.clear_blocks:
+        if self._since.clean >= self.config.clear_blocks:
             self.transients.append((self.onset, t_end))
             self.n_transients += 1
-            self.state = TRACKING
-            self.onset = None
-            self._since = _Run()
+            self._restart(TRACKING)
 
     def persistent(self, now):
         """Tell whether the change on has lasted ``persist_s`` and persists (see the module)."""
@@ -335,8 +328,6 @@ class Learner:
 
     def changed_sensors(self):
         """Sensors (1-based tuple) that exceeded in at least half the blocks since the onset."""
-        if not self._since.blocks:
-            return tuple(range(1, self.n + 1))
         hit = np.flatnonzero(self._by_sensor >= 0.5 * self._since.blocks) + 1
         return tuple(int(j) for j in hit) or tuple(range(1, self.n + 1))
 
@@ -410,10 +401,8 @@ class Learner:
             return None
         if persistent:
             sensors = self.changed_sensors()
-        elif self._data_from is not None:
-            sensors = self.changed or tuple(range(1, self.n + 1))
-        else:
-            sensors = tuple(range(1, self.n + 1))
+        else:           # all, or those of the change adopted last that this refines
+            sensors = (self._data_from is not None and self.changed) or tuple(range(1, self.n + 1))
         cal, doc, undetermined = refit_fn(data.subset(fit_idx), self.active, sensors)
         held = data.subset(held_idx)
         improvement, stderr, rms = self._validate(cal, held)
@@ -446,19 +435,19 @@ class Learner:
         e_act, r_act = detector_residual(self.active, held, self.field_nt)
         e_new, r_new = detector_residual(cal, held, self.field_nt)
         w = 1.0 / (sigma ** 2)[:, None]
-        a = (r_act ** 2 * w).sum(axis=0)
-        b = (r_new ** 2 * w).sum(axis=0)
-        if held.n_sensors > 1:
-            a = a + (e_act ** 2 / v[:, None]).sum(axis=0)
-            b = b + (e_new ** 2 / v[:, None]).sum(axis=0)
+
+        def score(e, r):
+            """Per set: the sum of r_j^2 / sigma_j^2, and of e_j^2 / v_j for an array."""
+            out = (r ** 2 * w).sum(axis=0)
+            return out + (e ** 2 / v[:, None]).sum(axis=0) if held.n_sensors > 1 else out
+        a, b = score(e_act, r_act), score(e_new, r_new)
         block = np.floor((held.t - held.t[0]) / self.config.holdout_block_s).astype(int)
         ids = np.unique(block)
         ratios = np.array([np.log(a[block == k].mean() / b[block == k].mean()) for k in ids])
         rms = {'active': np.sqrt(np.mean(e_act ** 2, axis=1)),
                'proposal': np.sqrt(np.mean(e_new ** 2, axis=1))}
-        if len(ratios) < 3:
-            return float(ratios.mean()), float('nan'), rms
-        return float(ratios.mean()), float(ratios.std(ddof=1) / np.sqrt(len(ratios))), rms
+        se = ratios.std(ddof=1) / np.sqrt(len(ratios)) if len(ratios) >= 3 else np.nan
+        return float(ratios.mean()), float(se), rms
 
     def adopt(self, now):
         """
@@ -485,8 +474,7 @@ class Learner:
         """JSON-ready state for /diagnostics: ``state``, ``message`` and values."""
         out = {'state': self.state, 'sets_seen': int(self.sets_seen),
                'window_sets': int(min(self._count, self.config.window_sets)),
-               'transients_not_learned': self.n_transients,
-               'adoptions': self.n_adoptions}
+               'transients_not_learned': self.n_transients, 'adoptions': self.n_adoptions}
         if self.last_z is not None:
             out['z'] = [round(float(x), 3) for x in self.last_z]
         if self.onset is not None:
