@@ -72,8 +72,7 @@ class Dataset:
 
     def context(self, j):
         """Return the :class:`SensorContext` of sensor ``j`` (1-based), d(raw)/dt in nT/s."""
-        rate = (raw_rate(self.raw[j - 1], self.t) if self.rate is None
-                else self.rate[j - 1])
+        rate = raw_rate(self.raw[j - 1], self.t) if self.rate is None else self.rate[j - 1]
         temp = None if self.temp is None else self.temp[j - 1]
         if temp is not None and not np.isfinite(temp).any():
             temp = None

@@ -305,9 +305,8 @@ def data_noise_floor(data, result=None):
         return noise_floor_of(data.raw, result)
     sets = np.flatnonzero(kept.all(axis=0))
     starts = [0] + list(np.flatnonzero(np.diff(sets) > 1) + 1)
-    return noise_floor_of(data.raw[:, sets],
-                          FitResidual(result.scalar_residual_nt[:, sets], result.sigma_nt),
-                          starts)
+    residual = FitResidual(result.scalar_residual_nt[:, sets], result.sigma_nt)
+    return noise_floor_of(data.raw[:, sets], residual, starts)
 
 
 @dataclass(frozen=True)

@@ -132,8 +132,7 @@ def gross_outliers(raw, fraction=GROSS_FRACTION):
     side = np.pad(d, ((0, 0), (1, 1)), constant_values=-np.inf)
     # not smooth at this rate (median d): nothing can be told
     smooth = np.median(d, axis=1) < 0.01 * threshold
-    out[:, 1:-1] = (smooth[:, None] & (d > threshold) & (d >= side[:, :-2])
-                    & (d >= side[:, 2:]))
+    out[:, 1:-1] = smooth[:, None] & (d > threshold) & (d >= side[:, :-2]) & (d >= side[:, 2:])
     return out
 
 

@@ -197,11 +197,10 @@ class LiveCorrector:
         if check_pairing and self.pairing_dof:
             self.no_check_reason = None
         elif check_pairing:
-            self.no_check_reason = (
-                'sets are paired by stamps alone: ' + (
-                    'a sensor of the calibration has no noise estimate'
-                    if self.gradient_cov_nt2 is None else
-                    f'{n_sensors} sensors leave no redundancy to check a set'))
+            no_noise = self.gradient_cov_nt2 is None
+            self.no_check_reason = 'sets are paired by stamps alone: ' + (
+                'a sensor of the calibration has no noise estimate' if no_noise
+                else f'{n_sensors} sensors leave no redundancy to check a set')
 
     @property
     def needs_temperature(self):

@@ -364,8 +364,7 @@ class Learner:
         if m >= 2:
             from magcal_ros.core.geometry.attitude import with_attitude
             try:
-                data, _ = with_attitude(data, self._att_t[:m], self._att_q[:m],
-                                        source='attitude')
+                data, _ = with_attitude(data, self._att_t[:m], self._att_q[:m], 'attitude')
             except ValueError:
                 pass                        # no overlap: the magnitude-only fit
             if data.n_samples < cfg.min_sets:
@@ -410,13 +409,11 @@ class Learner:
         valid = bool(converged and np.isfinite(improvement) and np.isfinite(stderr)
                      and improvement > self.config.validate_sigmas * stderr)
         doc.setdefault('provenance', {})['learning'] = {
-            'window_s': [float(data.t[0]), float(data.t[-1])],
-            'sets': int(len(fit_idx)), 'held_out_sets': int(len(held_idx)),
-            'undetermined': list(undetermined),
+            'window_s': [float(data.t[0]), float(data.t[-1])], 'sets': int(len(fit_idx)),
+            'held_out_sets': int(len(held_idx)), 'undetermined': list(undetermined),
             'held_out_improvement': float(improvement),
-            'held_out_improvement_stderr': float(stderr),
-            'valid': valid, 'change_persistent': bool(persistent),
-            'sensors_learned': list(sensors),
+            'held_out_improvement_stderr': float(stderr), 'valid': valid,
+            'change_persistent': bool(persistent), 'sensors_learned': list(sensors),
             'held_out_rms_nt': {k: [float(x) for x in v] for k, v in rms.items()}}
         self.proposal = Proposal(cal, doc, list(undetermined), float(improvement),
                                  float(stderr), valid, bool(persistent), float(data.t[0]),

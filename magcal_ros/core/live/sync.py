@@ -194,8 +194,7 @@ class StampMatcher:
         self._hist = [deque(maxlen=self.window) for _ in range(self.n_sensors)]
         self._queues = [deque() for _ in range(self.n_sensors)]
         # with misfit: (sequence number, stamp, item) last taken from each queue (shifts back)
-        self._past = [deque(maxlen=MAX_VOTE_SHIFT + confirm + 2)
-                      for _ in range(self.n_sensors)]
+        self._past = [deque(maxlen=MAX_VOTE_SHIFT + confirm + 2) for _ in range(n_sensors)]
         self.reset()
 
     def reset(self):
@@ -282,8 +281,8 @@ class StampMatcher:
             self._offset[j] = best
         if self.misfit is not None and self.aligned:
             vote = self._vote()
-            self._pending = (vote if vote != self._offset and vote not in self._refuted
-                             else None)
+            fresh = vote != self._offset and vote not in self._refuted
+            self._pending = vote if fresh else None
         self.aligned = all(o is not None for o in self._offset)
 
     def _emit(self):
