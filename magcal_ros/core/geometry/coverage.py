@@ -65,18 +65,16 @@ class Coverage:
         """Return one line naming what is missing from the attitudes, and what to do."""
         ev = self.eigenvalues
         if self.narrow:
-            return ('field directions span only a %.0f deg cone around %s: turn the sensor '
-                    'over / through larger angles (spread eigenvalues %.3g, %.3g, %.3g; '
-                    'each should exceed %.3g)'
-                    % (self.cone_half_angle_deg, _fmt_vec(self.mean_direction),
-                       ev[0], ev[1], ev[2], self.planar_threshold))
+            return (f'field directions span only a {self.cone_half_angle_deg:.0f} deg cone '
+                    f'around {_fmt_vec(self.mean_direction)}: turn the sensor over / through '
+                    f'larger angles (spread eigenvalues {ev[0]:.3g}, {ev[1]:.3g}, {ev[2]:.3g}; '
+                    f'each should exceed {self.planar_threshold:.3g})')
         if self.planar:
-            return ('all field directions lie near one plane with normal %s: rotate about '
-                    'another axis (tilt the normal %s away from the rotation axis, e.g. lay '
-                    'the sensor on its side, and rotate again; smallest spread eigenvalue '
-                    '%.3g < %.3g)'
-                    % (_fmt_vec(self.normal), _fmt_vec(self.normal), ev[0],
-                       self.planar_threshold))
+            normal = _fmt_vec(self.normal)
+            return (f'all field directions lie near one plane with normal {normal}: rotate '
+                    f'about another axis (tilt the normal {normal} away from the rotation axis, '
+                    'e.g. lay the sensor on its side, and rotate again; smallest spread '
+                    f'eigenvalue {ev[0]:.3g} < {self.planar_threshold:.3g})')
         return ('directions cover the sphere (%d directions, spread eigenvalues %.3g, %.3g, '
                 '%.3g; 1/3 each is ideal, each should exceed %.3g)'
                 % (self.n, ev[0], ev[1], ev[2], self.planar_threshold))
@@ -92,8 +90,7 @@ def direction_coverage(vectors, planar_threshold=0.02) -> Coverage:
     """
     v = np.asarray(vectors, dtype=float)
     if v.ndim != 2 or v.shape[1] != 3 or v.shape[0] < 1:
-        raise ValueError('vectors must have shape (N, 3) with N >= 1, got %s'
-                         % (v.shape,))
+        raise ValueError('vectors must have shape (N, 3) with N >= 1, got %s' % (v.shape,))
     if not np.all(np.isfinite(v)):
         raise ValueError('vectors contain NaN or inf: drop those samples first')
     if not 0.0 < planar_threshold <= 1.0 / 3.0:

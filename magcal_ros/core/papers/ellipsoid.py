@@ -166,8 +166,7 @@ def fit_ellipsoid(raw, field_nt, normalization='svd'):
     _, sv, vt = np.linalg.svd(design, full_matrices=False)
     if sv[-2] <= 1e-12 * sv[0]:
         # noise-free degenerate data: a whole family of quadrics passes through the points
-        raise ValueError(_undetermined_message(m, 'several quadrics fit these readings '
-                                                  'exactly'))
+        raise ValueError(_undetermined_message(m, 'several quadrics fit these readings exactly'))
     # determinacy against the noise (not a fixed singular-value ratio): the best quadric
     # must be an ellipsoid, its smallest eigenvalue positive beyond its own uncertainty
     a_svd = _quadric_matrix(vt[-1])
@@ -188,8 +187,7 @@ def fit_ellipsoid(raw, field_nt, normalization='svd'):
         raise ValueError(f"normalization must be 'svd' or 'p', got {normalization!r}")
     a_mat = _quadric_matrix(v)                                       # eq. 11
     if np.linalg.eigvalsh(a_mat).mean() < 0:
-        v = -v
-        a_mat = -a_mat
+        v, a_mat = -v, -a_mat
     eig = np.linalg.eigvalsh(a_mat)
     if eig.min() <= 1e-9 * eig.max():
         raise ValueError(_undetermined_message(

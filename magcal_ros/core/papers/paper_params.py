@@ -53,17 +53,15 @@ def _check_general(a, o):
 
 def _check_proper(q, what):
     if np.linalg.det(q) < 0.0:
-        raise ValueError(
-            'det(A) < 0: the sensor axes form a left-handed set (an axis sign or wiring '
-            'swap?), which %s cannot represent with positive scale factors; flip the sign '
-            'of the reversed axis first' % what)
+        raise ValueError(f'det(A) < 0: the sensor axes form a left-handed set (an axis sign or '
+                         f'wiring swap?), which {what} cannot represent with positive scale '
+                         'factors; flip the sign of the reversed axis first')
 
 
 def _vec3(value, name):
     v = np.array(value, dtype=float).reshape(-1)
     if v.shape != (3,):
-        raise ValueError('%s must have 3 elements, got shape %s'
-                         % (name, np.shape(value)))
+        raise ValueError('%s must have 3 elements, got shape %s' % (name, np.shape(value)))
     return v
 
 

@@ -142,11 +142,10 @@ def fit_reference(He, Hm, strict=False, max_condition=100.0,
     warning = None
     if coverage.narrow:
         warning = (
-            'reference field directions span only a %.0f deg cone around %s: K is not '
-            'determined in any direction across it and trades off against Hh; the '
-            'compensation is valid only near that direction. Turn the sensor over / through '
-            'larger angles.' % (coverage.cone_half_angle_deg,
-                                _fmt_vec(coverage.mean_direction)))
+            f'reference field directions span only a {coverage.cone_half_angle_deg:.0f} deg '
+            f'cone around {_fmt_vec(coverage.mean_direction)}: K is not determined in any '
+            'direction across it and trades off against Hh; the compensation is valid only '
+            'near that direction. Turn the sensor over / through larger angles.')
     elif coverage.planar:
         warning = (
             'reference field directions lie in one plane with normal %s (singular values of '
@@ -156,16 +155,15 @@ def fit_reference(He, Hm, strict=False, max_condition=100.0,
             'same axis. Add attitudes rotated about another axis.'
             % (_fmt_vec(weak), *singular_values, _fmt_vec(weak)))
     elif rank < 4 or cond > max_condition:
-        warning = (
-            'the design [He 1] is ill-conditioned (condition number %.3g after column '
-            'scaling, limit %.3g): K and Hh are poorly determined. Spread the attitudes more '
-            'widely.' % (cond, max_condition))
+        warning = (f'the design [He 1] is ill-conditioned (condition number {cond:.3g} after '
+                   f'column scaling, limit {max_condition:.3g}): K and Hh are poorly '
+                   'determined. Spread the attitudes more widely.')
     if warning is not None and strict:
         raise ValueError(warning)
+    xtx_inv = np.linalg.pinv(design.T @ design)
     return ReferenceFit(K=k, Hh=hh, residual=residual, singular_values=singular_values,
                         condition_number=cond, coverage=coverage, unobservable_direction=weak,
-                        identifiable=warning is None, warning=warning,
-                        xtx_inv=np.linalg.pinv(design.T @ design))
+                        identifiable=warning is None, warning=warning, xtx_inv=xtx_inv)
 
 
 def correct(fit, Hm):

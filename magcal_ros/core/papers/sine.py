@@ -175,8 +175,7 @@ def calibrate_turntable(theta1, m1, theta2, m2, field_nt) -> Paper000Params:
     field, or a geometry eq. 13 cannot resolve.
     """
     if not np.isfinite(field_nt) or field_nt <= 0.0:
-        raise ValueError('field_nt must be a positive field magnitude in nT, got %r'
-                         % (field_nt,))
+        raise ValueError(f'field_nt must be a positive field magnitude in nT, got {field_nt!r}')
     f = fit_turntable(theta1, m1, theta2, m2)
     alpha = np.pi / 2 - abs(_wrap(f.y1.C - f.x1.C))            # paper 000, eq. 5
     bx0, by0 = f.x1.D, f.y1.D                                  # eq. 6
@@ -197,9 +196,8 @@ def calibrate_turntable(theta1, m1, theta2, m2, field_nt) -> Paper000Params:
     kzbz = (m[:, 2] - bz0 - f.k_zx * kxbx * cb * sg
             - (f.k_zx / f.k_yx) * kyby * sb * sg) / cg
     kx = np.sqrt(np.mean(kxbx ** 2 + (kyby / f.k_yx) ** 2 + (kzbz / f.k_zx) ** 2)) / field_nt
-    return Paper000Params(alpha=float(alpha), beta=float(beta), gamma=float(gamma),
-                          kx=float(kx), ky=float(f.k_yx * kx), kz=float(f.k_zx * kx),
-                          B0=np.array([bx0, by0, bz0]))
+    return Paper000Params(float(alpha), float(beta), float(gamma), float(kx),
+                          float(f.k_yx * kx), float(f.k_zx * kx), np.array([bx0, by0, bz0]))
 
 
 def correct(params: Paper000Params, raw):
