@@ -490,9 +490,9 @@ def leave_out_unphysical(data, field_nt=None, alpha=ALPHA, min_kept=MIN_KEPT_FRA
     if keep.sum() < min_kept * n:
         what = '; '.join(text for _, text in screen.lines())
         raise UnphysicalReadingsError(
-            f'{what}: no field produces these readings, and without them only '
-            f'{int(keep.sum())} of {n} sets are left (need at least {min_kept:.0%}): check '
-            'the sensor, its wiring, its range setting and the driver, then record again')
+            f'{what}: no field produces these readings, and without them only {int(keep.sum())} '
+            f'of {n} sets are left (need at least {min_kept:.0%}): check the sensor, its wiring, '
+            'its range setting and the driver, then record again')
     idx = np.flatnonzero(keep)
     if field_nt is not None and np.ndim(field_nt) > 0:
         field_nt = np.asarray(field_nt)[idx]

@@ -82,9 +82,8 @@ class NoiseBlocks:
         if key not in self._cache:
             res = None
             if result is not None:
-                res = FitResidual(
-                    np.concatenate([scalar_residual(result, b) for b in self.blocks], axis=1),
-                    np.asarray(result.sigma_nt, float))
+                res = np.concatenate([scalar_residual(result, b) for b in self.blocks], axis=1)
+                res = FitResidual(res, np.asarray(result.sigma_nt, float))
             self._cache[key] = noise_floor_of(self.data.raw, res, self.starts)
         return self._cache[key]
 
@@ -216,8 +215,7 @@ class Reducer:
         blocks = NoiseBlocks([concat(v) for _, v in sorted(self.blocks.items())])
         info = {'epochs': int(self.n), 'sample_epochs': int(sample.n_samples),
                 'sample_stride': int(self.stride), 'noise_block_epochs': int(self.block),
-                'noise_blocks': len(blocks.blocks),
-                'noise_epochs': int(blocks.n_samples),
+                'noise_blocks': len(blocks.blocks), 'noise_epochs': int(blocks.n_samples),
                 'span_s': float(self.t_last - self.t_first)}
         sample.meta['noise_blocks'] = blocks
         sample.meta['reduction'] = info
@@ -290,8 +288,7 @@ def residual_statistics(chunks, result, positions=None):
     out = {'n_samples': int(n),
            'scalar_rms_nt': {str(j + 1): float(v) for j, v in enumerate(after.rms())},
            'vector_rms_nt': {str(j + 1): float(v) for j, v in enumerate(vector.rms()) if j},
-           'total_field_rms_before_nt': {str(j + 1): float(v)
-                                         for j, v in enumerate(before.rms())},
+           'total_field_rms_before_nt': {str(j + 1): float(v) for j, v in enumerate(before.rms())},
            'total_field_max_dev_before_nt': float(np.max(np.maximum(before.hi, -before.lo))),
            'total_field_max_dev_after_nt': float(np.max(np.maximum(after.hi, -after.lo)))}
     if positions is not None and s >= 3 and n:

@@ -121,8 +121,7 @@ def vehicle_attitude(t, period_s=60.0, tilt_deg=15.0, phases=(0.0, 0.0, 0.0)):
     t = np.asarray(t, float)
     w = 2 * np.pi / period_s
     tilt = np.radians(tilt_deg)
-    yaw = (phases[0] + 0.8 * 2 * np.pi * np.sin(w * t)
-           + 2 * np.pi / 3 * t / period_s)
+    yaw = phases[0] + 0.8 * 2 * np.pi * np.sin(w * t) + 2 * np.pi / 3 * t / period_s
     pitch = tilt * np.sin(w * 2.3 * t + phases[1])
     roll = tilt * np.sin(w * 3.7 * t + phases[2])
     body_enu = Rotation.from_euler('ZYX', np.column_stack([yaw, pitch, roll]))
@@ -270,8 +269,7 @@ class Simulator:
         motor = self._levels[step] * (self._levels[(step * 7 + 3) % len(self._levels)] > 1.5)
         pump = 1.0 + 0.5 * np.sin(2 * np.pi * t / 47.0 + ph[14])
         heater = 10.0 * ((t / 180.0 + ph[15] / (2 * np.pi)) % 1.0)
-        return {'aux_motor_current': motor, 'aux_pump_current': pump,
-                'aux_heater_power': heater}
+        return {'aux_motor_current': motor, 'aux_pump_current': pump, 'aux_heater_power': heater}
 
     def field_magnitude(self, t):
         """(N,) total field, nT (constant unless a diurnal swing is set)."""
@@ -330,8 +328,7 @@ class Simulator:
             raw[hit] += cfg.outlier_nt * d[hit]
         ref_total = self.field_magnitude(t) if cfg.diurnal_swing_nt else None
         if cfg.attitude and cfg.attitude_error_deg:
-            rot = rot * Rotation.from_rotvec(attitude_error(t, cfg.attitude_error_deg,
-                                                            cfg.seed))
+            rot = rot * Rotation.from_rotvec(attitude_error(t, cfg.attitude_error_deg, cfg.seed))
         return Dataset(t=t, raw=raw, temp=temp, ref_total=ref_total, aux=aux,
                        meta={'truth_field': b, 'simulator': cfg},
                        attitude=rot.as_quat(scalar_first=True) if cfg.attitude else None)
@@ -413,9 +410,8 @@ def parse_truth(items):
                 cut = i
         token, values = item[:cut].strip(), item[cut + 1:]
         if cut < 0 or not token:
-            raise ValueError(f'{item!r}: expected TERM=v1,v2,... '
-                             '(e.g. temperature@2=3,-2,1.5,0,0,0 or '
-                             'offset(window(20, 40))@2=30,0,0)')
+            raise ValueError(f'{item!r}: expected TERM=v1,v2,... (e.g. temperature@2=3,-2,1.5,'
+                             '0,0,0 or offset(window(20, 40))@2=30,0,0)')
         try:
             nums = [float(v) for v in values.split(',')]
         except ValueError:

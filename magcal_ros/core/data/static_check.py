@@ -89,11 +89,11 @@ def check_static(corrected, reference_nt, residual_rms_nt):
         if abs(diff) > tol:
             changed.update((a, c))
             out.findings.append(
-                f'{a} and {c} see the field from the same attitude ({ang:.1f} deg apart) '
-                f'but their |B| differs by {abs(diff):.0f} nT (> {tol:.0f} nT, {AGREE_FACTOR:g}'
-                " x the calibration residual): the field at the sensor or the sensor's "
-                'offset changed between these recordings (another place, a magnetised '
-                'object nearby, a power cycle); no calibration can reconcile them')
+                f'{a} and {c} see the field from the same attitude ({ang:.1f} deg apart) but '
+                f'their |B| differs by {abs(diff):.0f} nT (> {tol:.0f} nT, {AGREE_FACTOR:g} x the '
+                "calibration residual): the field at the sensor or the sensor's offset changed "
+                'between these recordings (another place, a magnetised object nearby, a power '
+                'cycle); no calibration can reconcile them')
     agree = [(a, c, ang, diff) for a, c, ang, diff in other if abs(diff) <= tol]
     for a, c, ang, diff in agree:
         ra = next(r for r in rows if r['name'] == a)
@@ -106,9 +106,9 @@ def check_static(corrected, reference_nt, residual_rms_nt):
                 '(another place or time)')
     for a, c, ang, diff in other:
         if abs(diff) > tol and (a in changed or c in changed):
-            out.findings.append(
-                f'{a} and {c} ({ang:.0f} deg apart in attitude) differ by {abs(diff):.0f} nT, '
-                'as expected after the change of field named above')
+            out.findings.append(f'{a} and {c} ({ang:.0f} deg apart in attitude) differ by '
+                                f'{abs(diff):.0f} nT, as expected after the change of field '
+                                'named above')
         elif abs(diff) > tol:
             out.findings.append(
                 f'{a} and {c} ({ang:.0f} deg apart in attitude) differ by {abs(diff):.0f} nT: '
@@ -117,13 +117,12 @@ def check_static(corrected, reference_nt, residual_rms_nt):
     off = [r for r in rows if abs(r['minus_reference_nt']) > tol]
     out.consistent = not out.findings and not off
     if out.consistent:
-        out.findings.append(
-            f'all {len(rows)} recordings give |B| within {tol:.0f} nT of the reference '
-            f'{reference_nt:.0f} nT: the calibration is confirmed at their attitudes')
+        out.findings.append(f'all {len(rows)} recordings give |B| within {tol:.0f} nT of the '
+                            f'reference {reference_nt:.0f} nT: the calibration is confirmed at '
+                            'their attitudes')
     elif off and not out.findings:
-        out.findings.append(
-            f'the recordings agree with each other but their |B| is '
-            f'{min(r["minus_reference_nt"] for r in off):+.0f} to '
-            f'{max(r["minus_reference_nt"] for r in off):+.0f} nT off the reference: the '
-            "field differs from the calibration's")
+        off = [r['minus_reference_nt'] for r in off]
+        out.findings.append(f'the recordings agree with each other but their |B| is '
+                            f'{min(off):+.0f} to {max(off):+.0f} nT off the reference: the '
+                            "field differs from the calibration's")
     return out
