@@ -204,23 +204,15 @@ def estimate_noise(x, orders=ORDERS, starts=None):
     orders = tuple(k for k in orders if n >= k + 8)
     if not orders:
         raise ValueError(f'need at least {min(ORDERS) + 8} samples to estimate the noise floor')
-    by = difference_sigmas(x, orders, starts)
-    s = by.shape[1]
-    sigma = np.empty(s)
-    first = np.empty(s, int)
-    plateau = np.empty(s, bool)
+    by = difference_sigmas(x, orders, starts)                       # (K, S)
+    k0 = np.argmax(by <= PLATEAU_RATIO * by.min(axis=0), axis=0)     # first order on it
+    plateau = len(orders) - k0 >= 2
     drop = nyquist_drop(x, starts)
-    status = []
-    for j in range(s):
-        on = by[:, j] <= PLATEAU_RATIO * by[:, j].min()
-        k0 = int(np.argmax(on))
-        sigma[j] = np.median(by[k0:, j])
-        first[j] = orders[k0]
-        plateau[j] = len(orders) - k0 >= 2
-        status.append('white' if plateau[j] else
-                      'filtered' if drop[j] >= FILTERED_DROP else 'upper bound')
-    return NoiseEstimate(sigma=sigma, order=first, plateau=plateau, by_order=by,
-                         status=tuple(status), drop=drop)
+    status = tuple('white' if p else 'filtered' if dr >= FILTERED_DROP else 'upper bound'
+                   for p, dr in zip(plateau, drop))
+    return NoiseEstimate(sigma=np.array([np.median(by[k:, j]) for j, k in enumerate(k0)]),
+                         order=np.array(orders)[k0], plateau=plateau, by_order=by,
+                         status=status, drop=drop)
 
 
 @dataclass(frozen=True, eq=False)
@@ -346,11 +338,8 @@ def noise_floor_of(raw, result, starts=None):
             # smallest raw one is sure not to hold the trajectory
             sigma[j] = lower[j] = (res_est.by_order[0, j] if result is not None
                                    else raw_est.by_order[:, j].min())
-            upper[j] = (float(result.sigma_nt[j]) if result is not None else np.inf)
-            upper[j] = max(upper[j], lower[j])
-        elif status[j] == 'upper bound':
-            lower[j] = 0.0
-        elif source[j] != 'raw':
+            upper[j] = max(float(result.sigma_nt[j]) if result is not None else np.inf, lower[j])
+        elif status[j] == 'upper bound' or source[j] != 'raw':
             # from the model's residual: a missing effect following the attitude is in it
             status[j] = 'upper bound'
             lower[j] = 0.0
