@@ -191,10 +191,8 @@ class ReadingScreen:
 
 def _runs(x):
     """Start indices and lengths of the runs of equal consecutive values of x (N,)."""
-    change = np.flatnonzero(np.diff(x) != 0) + 1
-    starts = np.concatenate([[0], change])
-    lengths = np.diff(np.concatenate([starts, [len(x)]]))
-    return starts, lengths
+    starts = np.flatnonzero(np.r_[True, np.diff(x) != 0])
+    return starts, np.diff(np.r_[starts, len(x)])
 
 
 def _quantum(x):
@@ -430,40 +428,37 @@ def screen_readings(data, alpha=ALPHA):
         flags[j, :, a] |= m
         out.append(SuspectChannel(j + 1, AXES[a], kind, values, int(m.sum()), n,
                                   _stretches(data.t, m), lr))
-    for j in range(s_count):
-        for a in range(3):
-            x = raw[j, :, a]
-            min_run[j, a] = lr = min_flagged_run(p[j, a], n, 3 * s_count, alpha)
-            if lr > n:
-                continue
-            starts, lengths = _runs(x)
-            long = lengths >= lr
-            if not long.any():
-                continue
-            values = x[starts[long]]
-            hi, lo = float(x.max()), float(x.min())
-            vals, counts = np.unique(x, return_counts=True)
-            top = int(np.argmax(counts))
-            pinned = ()
-            if counts[top] >= PINNED_FRACTION * n and np.isin(vals[top], values):
-                pinned = (float(vals[top]),)
-            clipped = tuple(v for v in (hi, lo) if v not in pinned and np.isin(v, values))
-            for kind, special in (('pinned', pinned), ('clipped', clipped)):
-                if special:
-                    flag(j, a, kind, special, np.isin(x, special), lr)
-            special = pinned + clipped
-            rep = np.zeros(n, bool)
-            for s0, ln, v in zip(starts[long], lengths[long], values):
-                if float(v) not in special:
-                    rep[s0 + 1:s0 + ln] = True      # the first is the reading repeated
-            if rep.any():
-                flag(j, a, 'repeated', (), rep, lr)
+    for j, a in np.ndindex(s_count, 3):
+        x = raw[j, :, a]
+        min_run[j, a] = lr = min_flagged_run(p[j, a], n, 3 * s_count, alpha)
+        if lr > n:
+            continue
+        starts, lengths = _runs(x)
+        long = lengths >= lr
+        if not long.any():
+            continue
+        values = x[starts[long]]
+        hi, lo = float(x.max()), float(x.min())
+        vals, counts = np.unique(x, return_counts=True)
+        top = int(np.argmax(counts))
+        pinned = ((float(vals[top]),) if counts[top] >= PINNED_FRACTION * n
+                  and np.isin(vals[top], values) else ())
+        clipped = tuple(v for v in (hi, lo) if v not in pinned and np.isin(v, values))
+        for kind, special in (('pinned', pinned), ('clipped', clipped)):
+            if special:
+                flag(j, a, kind, special, np.isin(x, special), lr)
+        special = pinned + clipped
+        rep = np.zeros(n, bool)
+        for s0, ln, v in zip(starts[long], lengths[long], values):
+            if float(v) not in special:
+                rep[s0 + 1:s0 + ln] = True      # the first is the reading repeated
+        if rep.any():
+            flag(j, a, 'repeated', (), rep, lr)
     spikes, sizes = find_spikes(raw, flags, alpha, est)
-    for j in range(s_count):
-        for a in range(3):
-            if spikes[j, :, a].any():
-                size = sizes[j][a]
-                flag(j, a, 'spike', (float(size.min()), float(size.max())), spikes[j, :, a], 0)
+    for j, a in np.ndindex(s_count, 3):
+        if spikes[j, :, a].any():
+            size = sizes[j][a]
+            flag(j, a, 'spike', (float(size.min()), float(size.max())), spikes[j, :, a], 0)
     out.sort(key=lambda c: (c.sensor, c.axis))
     return ReadingScreen(flags=flags, channels=out, min_run=min_run, repeat_bound=p)
 
