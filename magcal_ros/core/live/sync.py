@@ -193,7 +193,7 @@ class StampMatcher:
         # the last ``window`` (sequence number, stamp) pairs of each stream
         self._hist = [deque(maxlen=self.window) for _ in range(self.n_sensors)]
         self._queues = [deque() for _ in range(self.n_sensors)]
-        # with misfit: (sequence number, stamp, item) last taken from each queue (shifts back)
+        # (sequence number, stamp, item) last taken from each queue (misfit: shifts back)
         self._past = [deque(maxlen=MAX_VOTE_SHIFT + confirm + 2) for _ in range(n_sensors)]
         self.reset()
 
@@ -287,8 +287,7 @@ class StampMatcher:
 
     def _emit(self):
         out = []
-        queues, misfit, threshold = self._queues, self.misfit, self.threshold
-        pasts = self._past if misfit is not None else None
+        queues, pasts, misfit, threshold = self._queues, self._past, self.misfit, self.threshold
         while all(queues):
             if self._pending is not None and self._decide_vote() is None:
                 break                       # wait for the samples that decide it
@@ -307,18 +306,15 @@ class StampMatcher:
                         self.rejected += 1
                     continue                # repaired: the heads pair anew
                 heads = [qq.popleft() for qq in queues]
-                if pasts is not None:
-                    self._backoff = self._skip = 0
-                    for pp, h in zip(pasts, heads):
-                        pp.append(h)
+                self._backoff = self._skip = 0
+                for pp, h in zip(pasts, heads):
+                    pp.append(h)
                 out.append((e, _median([h[1] for h in heads]), items))
                 self.complete += 1
             else:
-                for k, (qq, x) in enumerate(zip(queues, epochs)):
+                for qq, pp, x in zip(queues, pasts, epochs):
                     if x == e:
-                        h = qq.popleft()
-                        if pasts is not None:
-                            pasts[k].append(h)
+                        pp.append(qq.popleft())
                 self.incomplete += 1
         return out
 
