@@ -375,10 +375,7 @@ class StampMatcher:
         total = 0.0
         for n, e in enumerate(range(first, first + self.confirm)):
             items = [self._item(k, e - o) for k, o in enumerate(offset)]
-            if any(item is None for item in items):
-                return -n, total
-            m = self.misfit(items)
-            if not m <= self.threshold:
+            if any(i is None for i in items) or not (m := self.misfit(items)) <= self.threshold:
                 return -n, total
             total += m
         return -self.confirm, total
