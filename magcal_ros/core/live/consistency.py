@@ -211,6 +211,7 @@ def find_slips(raw, epochs=None, max_lag=DEFAULT_MAX_LAG, window=DEFAULT_WINDOW,
     cols = np.arange(n)
     for j in range(1, s):
         noise_cost = 3.0 * (noise[0] ** 2 + noise[j] ** 2)
+        fits = noise_factor * noise_cost        # the most a set at the noise costs
         shifted = np.stack([_shifted(u[j], lag, run) for lag in candidates])  # (L, N, 3)
 
         def rotation(y, use):
@@ -243,7 +244,7 @@ def find_slips(raw, epochs=None, max_lag=DEFAULT_MAX_LAG, window=DEFAULT_WINDOW,
             take = w_best * min_contrast < windowed[k0]
             new = np.where(take, best, k0)
             if final or np.array_equal(new, k):
-                k = np.where(take & (w_best <= noise_factor * noise_cost), best, k0)
+                k = np.where(take & (w_best <= fits), best, k0)
                 break
             k = new
         # the window blurs a change of lag a -> b: put it where "a before, b after" fits best
@@ -268,10 +269,10 @@ def find_slips(raw, epochs=None, max_lag=DEFAULT_MAX_LAG, window=DEFAULT_WINDOW,
         for lo, hi in zip(np.r_[0, edges], np.r_[edges, n]):
             if lag[lo] == 0:
                 continue
-            c_l = cost[lag[lo] + k0, lo:hi]
             spread = np.linalg.eigvalsh(rate[lo:hi].T @ rate[lo:hi] / (hi - lo))[1]
-            c_l = np.nanmedian(c_l)        # medians: the sets at its ends may have lost
-            if (spread < MIN_SPREAD or not c_l <= noise_factor * noise_cost     # partners
+            # medians: the sets at its ends may have lost partners
+            c_l = np.nanmedian(cost[lag[lo] + k0, lo:hi])
+            if (spread < MIN_SPREAD or not c_l <= fits
                     or not np.nanmedian(cost[k0, lo:hi]) >= min_contrast * c_l):
                 lag[lo:hi] = 0
         # grow each re-paired stretch over neighbours that fit its lag (or have no partner at
@@ -287,15 +288,13 @@ def find_slips(raw, epochs=None, max_lag=DEFAULT_MAX_LAG, window=DEFAULT_WINDOW,
                 if lag[e] != 0:
                     return None
                 c = cost[ell + k0, e]
-                if not np.isfinite(c) or c <= noise_factor * noise_cost:
+                if not np.isfinite(c) or c <= fits:
                     return ell          # its partner is at this lag, or missing
-                if cost[k0, e] > noise_factor * noise_cost:
+                if cost[k0, e] > fits:
                     return DROP         # fits neither: its partner was lost in the slip
                 return None
             # its end sets must fit its lag too: else 0 if that fits, else drop them
-            fits = noise_factor * noise_cost
-            ends = list(range(lo, min(lo + 3, hi))) + list(range(max(hi - 3, lo), hi))
-            for e in ends:
+            for e in [*range(lo, min(lo + 3, hi)), *range(max(hi - 3, lo), hi)]:
                 if np.isfinite(cost[ell + k0, e]) and cost[ell + k0, e] > fits:
                     lag[e] = 0 if cost[k0, e] <= fits else DROP
             while lo > 0 and (g := grow(lo - 1)) is not None:
