@@ -111,13 +111,8 @@ def scalar_residual(result, piece):
 
 def _rates(piece):
     """(S, N, 3) nT/s field rate of ``piece``'s readings, or None (times that do not rise)."""
-    out = []
-    for j in range(piece.n_sensors):
-        r = raw_rate(piece.raw[j], piece.t)
-        if r is None:
-            return None
-        out.append(r)
-    return np.stack(out)
+    rates = [raw_rate(raw, piece.t) for raw in piece.raw]
+    return None if any(r is None for r in rates) else np.stack(rates)
 
 
 def rated(chunks):
@@ -189,13 +184,9 @@ class Reducer:
             self.n_kept += int(sel.sum())
         while self.n_kept > 2 * self.cap:
             self.stride *= 2
-            kept = []
-            for gi, d in self.kept:
-                m = gi % self.stride == 0
-                if m.any():
-                    kept.append((gi[m], _take(d, np.flatnonzero(m))))
-            self.kept = kept
-            self.n_kept = sum(len(gi) for gi, _ in kept)
+            self.kept = [(gi[m], _take(d, np.flatnonzero(m))) for gi, d in self.kept
+                         if (m := gi % self.stride == 0).any()]
+            self.n_kept = sum(len(gi) for gi, _ in self.kept)
 
     def _blocks(self, piece, g):
         num = g // self.block
