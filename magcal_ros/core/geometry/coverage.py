@@ -75,9 +75,9 @@ class Coverage:
                     f'about another axis (tilt the normal {normal} away from the rotation axis, '
                     'e.g. lay the sensor on its side, and rotate again; smallest spread '
                     f'eigenvalue {ev[0]:.3g} < {self.planar_threshold:.3g})')
-        return ('directions cover the sphere (%d directions, spread eigenvalues %.3g, %.3g, '
-                '%.3g; 1/3 each is ideal, each should exceed %.3g)'
-                % (self.n, ev[0], ev[1], ev[2], self.planar_threshold))
+        return (f'directions cover the sphere ({self.n} directions, spread eigenvalues '
+                f'{ev[0]:.3g}, {ev[1]:.3g}, {ev[2]:.3g}; 1/3 each is ideal, each should exceed '
+                f'{self.planar_threshold:.3g})')
 
 
 def direction_coverage(vectors, planar_threshold=0.02) -> Coverage:

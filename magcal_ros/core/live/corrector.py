@@ -99,7 +99,6 @@ class _Sensor:
     """The calibration of one sensor made ready for per-sample correction."""
 
     def __init__(self, cal, j, field_nt=None):
-        self.j = j
         self.a_inv = cal.correction_matrix(j)
         self.offset = cal.offset(j)
         self.needs = set(cal.signals(j)) - {'time'}

@@ -117,8 +117,7 @@ def fit_reference(He, Hm, strict=False, max_condition=100.0,
     he = np.asarray(He, dtype=float)
     hm = np.asarray(Hm, dtype=float)
     if he.ndim != 2 or he.shape[1] != 3 or hm.shape != he.shape:
-        raise ValueError('He and Hm must both have shape (N, 3), got %s and %s'
-                         % (he.shape, hm.shape))
+        raise ValueError(f'He and Hm must both have shape (N, 3), got {he.shape} and {hm.shape}')
     if not (np.all(np.isfinite(he)) and np.all(np.isfinite(hm))):
         raise ValueError('He and Hm must be finite: drop NaN/inf rows first')
     n = he.shape[0]
@@ -128,8 +127,6 @@ def fit_reference(He, Hm, strict=False, max_condition=100.0,
     # paper 002, eq. 5-7: rows [He^T 1], all three output components at once
     design = np.column_stack([he, np.ones(n)])
     sol, _, rank, _ = np.linalg.lstsq(design, hm, rcond=None)
-    k = sol[:3].T
-    hh = sol[3].copy()
     residual = hm - design @ sol
     col_norm = np.linalg.norm(design, axis=0)
     col_norm[col_norm == 0.0] = 1.0
@@ -160,10 +157,10 @@ def fit_reference(He, Hm, strict=False, max_condition=100.0,
                    'determined. Spread the attitudes more widely.')
     if warning is not None and strict:
         raise ValueError(warning)
-    xtx_inv = np.linalg.pinv(design.T @ design)
-    return ReferenceFit(K=k, Hh=hh, residual=residual, singular_values=singular_values,
-                        condition_number=cond, coverage=coverage, unobservable_direction=weak,
-                        identifiable=warning is None, warning=warning, xtx_inv=xtx_inv)
+    return ReferenceFit(K=sol[:3].T, Hh=sol[3].copy(), residual=residual,
+                        singular_values=singular_values, condition_number=cond, coverage=coverage,
+                        unobservable_direction=weak, identifiable=warning is None, warning=warning,
+                        xtx_inv=np.linalg.pinv(design.T @ design))
 
 
 def correct(fit, Hm):

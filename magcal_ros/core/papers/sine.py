@@ -136,8 +136,8 @@ def _check_position(theta, m, name):
     theta = np.asarray(theta, dtype=float)
     m = np.asarray(m, dtype=float)
     if m.ndim != 2 or m.shape[1] != 3 or theta.shape != (m.shape[0],):
-        raise ValueError('position %s: need theta (N,) and raw (N, 3) with the same N, got '
-                         '%s and %s' % (name, theta.shape, m.shape))
+        raise ValueError(f'position {name}: need theta (N,) and raw (N, 3) with the same N, got '
+                         f'{theta.shape} and {m.shape}')
     return theta, m
 
 
