@@ -129,11 +129,8 @@ def detector_residual(cal, data, field_nt):
     the :class:`Dataset` ``data``, whose temperatures and channels drive the effects.
     """
     s = data.n_sensors
-    r = np.empty((s, data.n_samples))
-    for j in range(1, s + 1):
-        ctx = data.context(j)
-        b = cal.correct(j, data.raw[j - 1], ctx)
-        r[j - 1] = np.linalg.norm(b, axis=1) - field_nt
+    r = np.stack([np.linalg.norm(cal.correct(j, data.raw[j - 1], data.context(j)), axis=1)
+                  for j in range(1, s + 1)]) - field_nt
     if s == 1:
         return r, r
     others = np.stack([np.median(np.delete(r, j, axis=0), axis=0) for j in range(s)])
