@@ -42,8 +42,6 @@ def backdate(stamps, period_s):
     """
     a = np.asarray(stamps, float)
     n = len(a)
-    if n < 2:
-        return a.copy()
     together = np.diff(a) < 0.25 * period_s         # sample i arrived with sample i + 1
     # out[i] = a[j] - (j - i) T, j the first index >= i that ends a run
     idx = np.arange(n)
@@ -86,7 +84,6 @@ def epoch_times(epochs, stamps_s, block_s=CLOCK_BLOCK_S):
     n_blocks = int(np.clip(round((t[-1] - t[0]) / block_s), 1, len(e) // 10))
     if n_blocks >= 3:
         edges = np.linspace(0, len(e), n_blocks + 1).round().astype(int)
-        sizes = np.diff(edges)
         d = t - slope * e
         first = np.array([a + np.argmin(d[a:b]) for a, b in zip(edges[:-1], edges[1:])])
         ek, tk = e[first], t[first] - t[0]
@@ -99,14 +96,13 @@ def epoch_times(epochs, stamps_s, block_s=CLOCK_BLOCK_S):
         ph = tk / period - ek
         mean_phase = np.angle(np.exp(2j * np.pi * ph).mean()) / (2 * np.pi)
         if r.max() > 0.9:
-            steps = np.round(ph - mean_phase)
-            steps = median_filter(steps, size=3, mode='nearest')
+            steps = median_filter(np.round(ph - mean_phase), size=3, mode='nearest')
             steps = np.maximum.accumulate(steps - steps[0])
             slope = np.polyfit(ek + steps, tk, 1)[0]
             t0 = t[0] + np.min(tk - slope * (ek + steps))
             upto = np.floor((t - t0) / slope - e + 0.5)
             upto = np.minimum.accumulate(upto[::-1])[::-1]
-            floor_ = np.repeat(np.concatenate([[0.0], steps[:-1]]), sizes)
+            floor_ = np.repeat(np.concatenate([[0.0], steps[:-1]]), np.diff(edges))
             e = e + np.clip(upto, floor_, steps[-1])
             return t0 + slope * e
     t0 = np.min(t - slope * e)
