@@ -518,12 +518,10 @@ class SampleBuffer:
         if self.t_first is None:
             self.t_first = float(t)
         self.t_last = float(t)
+        if not k % self.stride and self.n == self.capacity:
+            self._thin()
         if k % self.stride:
             return
-        if self.n == self.capacity:
-            self._thin()
-            if k % self.stride:
-                return
         i = self.n
         self.epoch[i] = epoch
         self.t[i] = t
