@@ -94,10 +94,9 @@ def check_static(corrected, reference_nt, residual_rms_nt):
                 "calibration residual): the field at the sensor or the sensor's offset changed "
                 'between these recordings (another place, a magnetised object nearby, a power '
                 'cycle); no calibration can reconcile them')
-    agree = [(a, c, ang, diff) for a, c, ang, diff in other if abs(diff) <= tol]
-    for a, c, ang, diff in agree:
+    for a, c, ang, diff in other:
         ra = next(r for r in rows if r['name'] == a)
-        if abs(ra['minus_reference_nt']) > tol:
+        if abs(diff) <= tol and abs(ra['minus_reference_nt']) > tol:
             out.findings.append(
                 f'{a} and {c} lie {ang:.0f} deg apart in attitude yet agree on |B| within '
                 f'{abs(diff):.0f} nT: the calibration holds there; their |B| is '

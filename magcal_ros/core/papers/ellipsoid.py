@@ -51,10 +51,8 @@ def reading_plane(raw):
     m = np.asarray(raw, float)
     w, vec = np.linalg.eigh(np.cov((m - m.mean(axis=0)).T))
     w = np.clip(w, 0.0, None)
-    if w[1] <= 0 or np.sqrt(w[0] / w[1]) >= PLANE_SD_RATIO:
-        return None
     n = vec[:, 0]
-    if ring_spread(m, n) >= RING_CV:
+    if w[1] <= 0 or np.sqrt(w[0] / w[1]) >= PLANE_SD_RATIO or ring_spread(m, n) >= RING_CV:
         return None
     return n if n[np.argmax(np.abs(n))] > 0 else -n
 
@@ -180,8 +178,7 @@ def fit_ellipsoid(raw, field_nt, normalization='svd'):
         v = vt[-1]
     elif normalization == 'p':
         # paper 004 eq. 9-10: divide by p, move 2x to the right-hand side
-        cols = [0, 1, 2, 3, 4, 5, 7, 8, 9]
-        sol, *_ = np.linalg.lstsq(design[:, cols], -2 * x, rcond=None)
+        sol, *_ = np.linalg.lstsq(np.delete(design, 6, axis=1), -2 * x, rcond=None)
         v = np.insert(sol, 6, 1.0)
     else:
         raise ValueError(f"normalization must be 'svd' or 'p', got {normalization!r}")
