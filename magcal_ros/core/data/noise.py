@@ -151,23 +151,17 @@ def nyquist_drop(x, starts=None):
     x = np.asarray(x, float)
     if x.ndim == 2:
         x = x[..., None]
-    n = x.shape[1]
-    out = np.full(x.shape[0], np.nan)
-    if n < 64:
-        return out
+    if x.shape[1] < 64:
+        return np.full(x.shape[0], np.nan)
     d = differences(x, 1, starts)
-    n = d.shape[1] + 1
-    f, p = welch(d, min(256, n - 1))
+    f, p = welch(d, min(256, d.shape[1]))
     gain = 4 * np.sin(np.pi * f) ** 2
     with np.errstate(divide='ignore', invalid='ignore'):
         p = p / np.where(gain > 0, gain, np.nan)[None, :, None]
-    mid = (f >= 0.45 * 0.5) & (f <= 0.65 * 0.5)
-    top = (f >= 0.85 * 0.5)
-    lo = np.nanmean(p[:, mid], axis=(1, 2))
-    hi = np.nanmean(p[:, top], axis=(1, 2))
+    lo = np.nanmean(p[:, (f >= 0.45 * 0.5) & (f <= 0.65 * 0.5)], axis=(1, 2))
+    hi = np.nanmean(p[:, f >= 0.85 * 0.5], axis=(1, 2))
     with np.errstate(divide='ignore', invalid='ignore'):
-        out = np.where(hi > 0, lo / hi, np.inf)
-    return out
+        return np.where(hi > 0, lo / hi, np.inf)
 
 
 @dataclass(frozen=True)
