@@ -260,13 +260,10 @@ def min_flagged_run(p, n, n_channels, alpha=ALPHA):
 
 def _stretches(t, mask):
     """((t_start, t_end), ...) of the contiguous True stretches of mask (N,)."""
-    idx = np.flatnonzero(mask)
-    if not len(idx):
-        return ()
-    cut = np.flatnonzero(np.diff(idx) > 1)
-    first = np.concatenate([[idx[0]], idx[cut + 1]])
-    last = np.concatenate([idx[cut], [idx[-1]]])
-    return tuple((round(float(t[a]), 3), round(float(t[b]), 3)) for a, b in zip(first, last))
+    starts, lengths = _runs(mask)
+    on = mask[starts]
+    return tuple((round(float(t[a]), 3), round(float(t[a + n - 1]), 3))
+                 for a, n in zip(starts[on], lengths[on]))
 
 
 def _interpolation(nodes, targets):
