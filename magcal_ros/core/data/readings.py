@@ -342,10 +342,8 @@ def _spike_in(x, r0, r1, k, scale, thr, alpha):
     alts = [idx >= p for p in range(r0, r1 + 2)]
     alts += [(idx >= p) & (idx < q) for p in range(r0, r1 + 2)
              for q in range(p + SPIKE_MAX_SAMPLES + 1, r1 + 2)]
-    ss_alt = float('inf')
-    for alt in alts:
-        du = np.diff(alt.astype(float), k) / scale
-        ss_alt = min(ss_alt, float(z0 @ z0 - (z0 @ du) ** 2 / (du @ du)))
+    dus = [np.diff(alt.astype(float), k) / scale for alt in alts]
+    ss_alt = min([float('inf')] + [float(z0 @ z0 - (z0 @ du) ** 2 / (du @ du)) for du in dus])
     if ss_alt - best[2] < _normal_isf(alpha / 2.0) ** 2:     # chi-square(1) quantile
         return None
     return best[0], x[best[0]] - best[3]
