@@ -82,10 +82,8 @@ def interpolate(t_msg, q_msg, t):
     quaternions (qw, qx, qy, qz), ``t`` (N,) s inside their span; returns (N, 4).
     """
     from scipy.spatial.transform import Rotation, Slerp
-    t_msg = np.asarray(t_msg, float)
-    order = np.argsort(t_msg, kind='stable')
-    t_u, first = np.unique(t_msg[order], return_index=True)
-    rot = Rotation.from_quat(np.asarray(q_msg, float)[order][first], scalar_first=True)
+    t_u, first = np.unique(np.asarray(t_msg, float), return_index=True)     # the first of each
+    rot = Rotation.from_quat(np.asarray(q_msg, float)[first], scalar_first=True)
     if len(t_u) == 1:
         return np.repeat(rot.as_quat(scalar_first=True), len(t), axis=0)
     return Slerp(t_u, rot)(np.asarray(t, float)).as_quat(scalar_first=True)
