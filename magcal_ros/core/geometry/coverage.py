@@ -102,12 +102,9 @@ def direction_coverage(vectors, planar_threshold=0.02) -> Coverage:
     u = v / norms[:, None]
     mean = u.mean(axis=0)
     d = u - mean
-    scatter = d.T @ d / len(u)
-    eigenvalues, eigenvectors = np.linalg.eigh(scatter)
+    eigenvalues, eigenvectors = np.linalg.eigh(d.T @ d / len(u))
     eigenvalues = np.clip(eigenvalues, 0.0, None)
-    normal = eigenvectors[:, 0].copy()
-    if normal @ mean < 0.0:
-        normal = -normal
+    normal = eigenvectors[:, 0] * (-1.0 if eigenvectors[:, 0] @ mean < 0.0 else 1.0)
     rbar = float(np.linalg.norm(mean))
     if rbar > 1e-12:
         mean_dir = mean / rbar
