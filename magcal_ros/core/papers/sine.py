@@ -244,18 +244,12 @@ def _turntable_attitudes(axis_a, axis_b, down, theta):
     horizontal plane; ``axis_a`` points at azimuth theta (from north towards east);
     ``axis_a x axis_b`` points down if ``down`` else up.
     """
-    e1 = axis_a
     e3 = np.cross(axis_a, axis_b)
     e3 = e3 / np.linalg.norm(e3)
-    e2 = np.cross(e3, e1)
-    sensor = np.column_stack([e1, e2, e3])
-    c, s = np.cos(theta), np.sin(theta)
-    zero = np.zeros_like(theta)
-    w1 = np.stack([c, s, zero], axis=-1)
+    sensor = np.column_stack([axis_a, np.cross(e3, axis_a), e3])
+    w1 = np.stack([np.cos(theta), np.sin(theta), np.zeros_like(theta)], axis=-1)
     w3 = np.broadcast_to(np.array([0.0, 0.0, 1.0 if down else -1.0]), w1.shape)
-    w2 = np.cross(w3, w1)
-    world = np.stack([w1, w2, w3], axis=-1)
-    return world @ sensor.T
+    return np.stack([w1, np.cross(w3, w1), w3], axis=-1) @ sensor.T
 
 
 def simulate_turntable(params: Paper000Params, field_nt, inclination_rad, n_steps,
