@@ -188,7 +188,6 @@ class Learner:
         self._count = 0                     # sets kept in the window (ring position)
         self._last_kept = -np.inf
         self._block = []                    # (t, raw (S, 3), temp (S,), aux dict)
-        self._block_start = None
         self._floors = []                   # recent blocks' per-axis noise floors (S,)
         self.active = None
         self.field_nt = None
@@ -247,10 +246,8 @@ class Learner:
             self._last_kept = t
         if self.active is None:
             return False
-        if self._block_start is None:
-            self._block_start = t
         self._block.append((t, raw, temp, aux))
-        if t - self._block_start < cfg.block_s:
+        if t - self._block[0][0] < cfg.block_s:
             return False
         self._judge_block()
         return True
@@ -270,7 +267,6 @@ class Learner:
 
     def _judge_block(self):
         rows, self._block = self._block, []
-        self._block_start = None
         if len(rows) < 14:
             return
         data = self._block_data(rows)
@@ -286,8 +282,7 @@ class Learner:
         except Exception:        # noqa: B902 -- a driven effect without its signal: no verdict
             return
         v = common_mode_variance(sigma)
-        z = (np.median(np.abs(e), axis=1) * MAD_TO_SD) ** 2 / v
-        self.last_z = z
+        self.last_z = z = (np.median(np.abs(e), axis=1) * MAD_TO_SD) ** 2 / v
         self.last_block_t = t_end
         limit = 1.0 + self.config.exceed_sigmas * Z_SD_UNIT / np.sqrt(e.shape[1])
         over = np.sqrt(z) > limit
