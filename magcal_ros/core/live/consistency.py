@@ -343,12 +343,9 @@ def resync(data, epochs=None, slips=None, drop_inconsistent=False, **kwargs):
     bad = None
     if drop_inconsistent and slips.inconsistent_sets is not None and \
             slips.inconsistent_sets.any():
-        bad = slips.inconsistent_sets.any(axis=0)
-        longer = find_slips(data.raw, epochs, max_lag=LONG_MAX_LAG)
-        if longer.inconsistent_sets is None:
-            bad = None          # too short a record for the longer search: none is known
-        else:
-            bad &= ~longer.inconsistent_sets.any(axis=0)
+        longer = find_slips(data.raw, epochs, max_lag=LONG_MAX_LAG).inconsistent_sets
+        # None: too short a record for the longer search, none is known
+        bad = None if longer is None else slips.inconsistent_sets.any(axis=0) & ~longer.any(axis=0)
     if not (slips.n_slipped.any() or slips.n_drop.any()):
         if bad is not None and bad.any():
             return (data.subset(np.flatnonzero(~bad)),
@@ -367,9 +364,7 @@ def resync(data, epochs=None, slips=None, drop_inconsistent=False, **kwargs):
         ok[ok] &= run[src[ok]] == run[ok]
         # a sample claimed by two sets (at a change of lag): keep neither pairing
         values, counts = np.unique(src[ok], return_counts=True)
-        dup = np.zeros(n, bool)
-        dup[ok] = np.isin(src[ok], values[counts > 1])
-        ok &= ~dup
+        ok[ok] &= ~np.isin(src[ok], values[counts > 1])
         keep &= ok
         raw[j, ok] = data.raw[j, src[ok]]
         if temp is not None:
