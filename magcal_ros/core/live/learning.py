@@ -487,11 +487,8 @@ def feed(learner, data, refit_fn, auto_adopt=True, on_adopt=None):
     detail)]: ``state`` on each change of state, ``refit`` and ``adopted`` with the
     :class:`Proposal`.
     """
-    events = []
-    state = learner.state
-    att = data.attitude
-    temp = data.temp
-    aux_names = list(data.aux or {})
+    events, state = [], learner.state
+    att, temp, aux_names = data.attitude, data.temp, list(data.aux or {})
     for k in range(data.n_samples):
         t = float(data.t[k])
         if att is not None:
