@@ -62,17 +62,15 @@ def tensor_operator(positions):
     basis = vt.T        # principal directions, last = normal if planar
     # unknowns in that frame: B0 (3) + in-plane columns G'[:, :rank]
     rp = rc @ basis     # (S, 3)
-    n_unk = 3 + 3 * rank
     # rows 3 k + i: B0_i + sum_c rp[k, c] G'[i, c] (+ 0.0: zeros, not kron's -0.0)
     design = np.hstack([np.tile(np.eye(3), (s, 1)), np.kron(rp[:, :rank], np.eye(3)) + 0.0])
     rot = np.kron(np.eye(s), basis.T)
     if rank == 3:
         # G' symmetric traceless: its column-major vec is its row-major one, TENSOR_MAP g
-        full = np.zeros((n_unk, 8))
+        full = np.zeros((12, 8))
         full[:3, :3] = np.eye(3)
         full[3:, 3:] = TENSOR_MAP
-        sol = np.linalg.pinv(design @ full) @ rot
-        x = full @ sol
+        x = full @ (np.linalg.pinv(design @ full) @ rot)
         cols = x[3:].reshape(3, 3, -1)          # [column c][row i]
     else:
         x = np.linalg.pinv(design) @ rot
