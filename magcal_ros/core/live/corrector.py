@@ -440,15 +440,10 @@ class ResidualMonitor:
         b = np.asarray(fields_nt, float)
         s = self.n_sensors
         scalar = np.sqrt(np.einsum('ij,ij->i', b, b)) - self.field_nt
-        if s > 1:
-            others = (b.sum(axis=0)[None, :] - b) / (s - 1)
-            vector = np.sqrt(np.sum((b - others) ** 2, axis=1))
-        else:
-            vector = np.full(1, np.nan)
+        others = (b.sum(axis=0)[None, :] - b) / max(s - 1, 1)         # mean of the others
+        vector = np.sqrt(np.sum((b - others) ** 2, axis=1)) if s > 1 else np.full(1, np.nan)
         k = self.count % self.window
-        self._fields[:, k] = b
-        self._scalar[:, k] = scalar
-        self._vector[:, k] = vector
+        self._fields[:, k], self._scalar[:, k], self._vector[:, k] = b, scalar, vector
         self.count += 1
         return scalar, vector
 
