@@ -100,7 +100,7 @@ def fit_sine(theta_rad, y) -> SineFit:
     if not (np.all(np.isfinite(theta)) and np.all(np.isfinite(y))):
         raise ValueError('theta_rad and y must be finite: drop NaN/inf samples first')
     design = np.column_stack([np.sin(theta), np.cos(theta), np.ones_like(theta)])
-    if len(theta) < 3 or np.linalg.matrix_rank(design) < 3:
+    if np.linalg.matrix_rank(design) < 3:           # also for fewer than 3 samples
         raise ValueError('a sine fit needs at least 3 distinct turntable angles (modulo 360 '
                          'deg), got %d samples' % len(theta))
     coef, _, _, _ = np.linalg.lstsq(design, y, rcond=None)
