@@ -231,8 +231,7 @@ class Simulator:
         if cfg.trajectory == 'random':
             return Rotation.random(n, random_state=self.rng)
         if cfg.trajectory == 'smooth':
-            w = 2 * np.pi / cfg.smooth_period_s
-            ph = self._phases
+            w, ph = 2 * np.pi / cfg.smooth_period_s, self._phases
             yaw = w * 3.1 * t + ph[0]
             pitch = np.radians(85) * np.sin(w * 1.7 * t + ph[1])
             roll = np.pi * np.sin(w * 1.13 * t + ph[2])
@@ -243,8 +242,7 @@ class Simulator:
         if cfg.trajectory == 'vehicle':
             return vehicle_attitude(t, cfg.smooth_period_s, cfg.tilt_deg, self._phases[3:6])
         # cone: body-frame field directions in a cap around +z
-        half = np.radians(cfg.cone_half_angle_deg)
-        cos_t = self.rng.uniform(np.cos(half), 1.0, n)
+        cos_t = self.rng.uniform(np.cos(np.radians(cfg.cone_half_angle_deg)), 1.0, n)
         phi = self.rng.uniform(0, 2 * np.pi, n)
         sin_t = np.sqrt(1 - cos_t ** 2)
         d = np.column_stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t])
@@ -354,8 +352,7 @@ def simulate(config=None, **overrides):
     sim = Simulator(config, **overrides)
     t = np.arange(sim.config.n_samples) / sim.config.rate_hz
     set_truth_refs(sim, t)
-    data = sim.sample(t)
-    return data, sim
+    return sim.sample(t), sim
 
 
 def simulate_chunks(config=None, rows=65536, **overrides):
