@@ -74,8 +74,7 @@ class Dataset:
         """Return the :class:`SensorContext` of sensor ``j`` (1-based), d(raw)/dt in nT/s."""
         rate = raw_rate(self.raw[j - 1], self.t) if self.rate is None else self.rate[j - 1]
         temp = None if self.temp is None else self.temp[j - 1]
-        if temp is not None and not np.isfinite(temp).any():
-            temp = None
+        temp = temp if temp is not None and np.isfinite(temp).any() else None
         ctx = SensorContext(t=self.t, temp=temp, aux=dict(self.aux), raw_rate=rate,
                             attitude=self.attitude_matrix())
         if self.origin is not None:
