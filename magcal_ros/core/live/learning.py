@@ -311,11 +311,9 @@ class Learner:
 
     def persistent(self, now):
         """Tell whether the change on has lasted ``persist_s`` and persists (see the module)."""
-        cfg = self.config
-        run = self._since
-        if self.state not in (CHANGE, UNDETERMINED) or self.onset is None or not run.blocks:
-            return False
-        return (now - self.onset >= cfg.persist_s and run.clean == 0
+        cfg, run = self.config, self._since
+        return (self.state in (CHANGE, UNDETERMINED) and self.onset is not None and run.blocks > 0
+                and now - self.onset >= cfg.persist_s and run.clean == 0
                 and run.exceeded >= cfg.persist_fraction * run.blocks)
 
     def changed_sensors(self):
@@ -456,8 +454,7 @@ class Learner:
         self.set_active(p.calibration, self.field_nt, now)
         if onset is not None:       # before the change (and its first block): another sensor
             self._data_from = onset + self.config.block_s
-        self.state = ADOPTED
-        return p
+        return p                    # set_active made the state ADOPTED
 
     def status(self):
         """JSON-ready state for /diagnostics: ``state``, ``message`` and values."""
