@@ -440,8 +440,7 @@ class StampMatcher:
                 for h in self._hist:
                     h.clear()
                 self._since_align = 0
-            self._skip = self._backoff
-            self._backoff = min(64, 2 * self._backoff + 1)
+            self._skip, self._backoff = self._backoff, min(64, 2 * self._backoff + 1)
             return False
         self._offset = o
         self.repaired += 1
