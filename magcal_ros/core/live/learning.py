@@ -381,8 +381,8 @@ class Learner:
         self._last_refit = now
         persistent = self.persistent(now)
         # the block the change was first seen in holds sets of before it: from its end on
-        start = None if self.onset is None else self.onset + self.config.block_s
-        data = self.window(since=start if persistent else self._data_from)
+        data = self.window(since=self.onset + self.config.block_s if persistent
+                           else self._data_from)
         if data is None:
             return None
         fit_idx, held_idx = self.split(data)
