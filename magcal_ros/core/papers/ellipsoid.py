@@ -199,9 +199,8 @@ def fit_ellipsoid(raw, field_nt, normalization='svd'):
     a_nt = a_mat * field_nt ** 2 / (k * s0 ** 2)
     b = c0 + s0 * centre_s
     c_inv = np.linalg.cholesky(a_nt).T            # (C^-1)^T C^-1 = A, C^-1 upper triangular
-    coeffs = v / np.linalg.norm(v)
-    res = np.linalg.norm((m - b) @ c_inv.T, axis=1) - field_nt
-    return EllipsoidFit(c_inv=c_inv, b=b, coeffs=coeffs, residual_nt=res)
+    return EllipsoidFit(c_inv=c_inv, b=b, coeffs=v / np.linalg.norm(v),
+                        residual_nt=np.linalg.norm((m - b) @ c_inv.T, axis=1) - field_nt)
 
 
 def procrustes_rotation(reference, other):
