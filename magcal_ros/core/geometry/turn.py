@@ -40,11 +40,10 @@ def turn_axis(m):
     w, v = np.linalg.eigh(c.T @ c / len(m))
     n = v[:, 0]
     if w[1] <= 0 or w[0] > 0.25 * w[1]:
-        raise PlanarError(
-            'the readings do not lie near one plane (principal spreads '
-            f'{", ".join(f"{np.sqrt(max(x, 0)):.0f}" for x in w)} nT): the sensor did not turn '
-            'about one axis; planar mode is for a turn in place about one axis (drop '
-            '--planar for a full calibration)')
+        spreads = ', '.join(f'{np.sqrt(max(x, 0)):.0f}' for x in w)
+        raise PlanarError(f'the readings do not lie near one plane (principal spreads {spreads} '
+                          'nT): the sensor did not turn about one axis; planar mode is for a turn '
+                          'in place about one axis (drop --planar for a full calibration)')
     return n if n @ m.mean(axis=0) >= 0 else -n
 
 
