@@ -110,9 +110,9 @@ def check_static(corrected, reference_nt, residual_rms_nt):
                                 'named above')
         elif abs(diff) > tol:
             out.findings.append(
-                f'{a} and {c} ({ang:.0f} deg apart in attitude) differ by {abs(diff):.0f} nT: '
-                'the calibration does not hold at these attitudes, or the field changed '
-                'between the recordings; the recordings cannot tell which')
+                f'{a} and {c} ({ang:.0f} deg apart in attitude) differ by {abs(diff):.0f} nT: the '
+                'calibration does not hold at these attitudes, or the field changed between the '
+                'recordings; the recordings cannot tell which')
     off = [r for r in rows if abs(r['minus_reference_nt']) > tol]
     out.consistent = not out.findings and not off
     if out.consistent:
