@@ -197,9 +197,7 @@ def _runs(x):
 
 def _quantum(x):
     """Smallest step between distinct values of x (nT), ignoring float jitter; 0 if none."""
-    u = np.unique(x)
-    if len(u) < 2:
-        return 0.0
+    u = np.unique(x)                                    # x not empty
     d = np.diff(u)
     tiny = 1e-9 * max(float(np.abs(u).max()), 1.0)
     d = d[d > tiny]
