@@ -156,8 +156,7 @@ class LiveCorrector:
         self.gradient_op = None
         #: (9, 9) covariance of that tensor, (nT/m)^2; None: a sensor has no noise estimate
         self.gradient_cov_nt2 = None
-        self.no_gradient_reason = None
-        self.positions_m = None
+        self.no_gradient_reason = self.positions_m = None
         #: redundant combinations the check tests (3 S - 8; 0: none), and the largest
         #: chi-square that passes (at :data:`PAIRING_FALSE_ALARM`)
         self.pairing_dof, self.pairing_threshold = 0, np.inf
