@@ -189,11 +189,8 @@ class Learner:
         self._last_kept = -np.inf
         self._block = []                    # (t, raw (S, 3), temp (S,), aux dict)
         self._floors = []                   # recent blocks' per-axis noise floors (S,)
-        self.active = None
-        self.field_nt = None
-        self.state = TRACKING
-        self.onset = None                   # start of the change, s
-        self._since = _Run()                # the blocks since the onset
+        self.active = self.field_nt = None
+        self._restart(TRACKING)             # state, onset of the change (s), its blocks
         self._by_sensor = np.zeros(self.n)   # blocks since the onset each sensor exceeded
         self.changed = None                 # sensors (1-based) of the change adopted last
         self.last_z = None                  # (S,) z of the latest block
