@@ -190,9 +190,7 @@ class Reducer:
 
     def _blocks(self, piece, g):
         num = g // self.block
-        for b in np.unique(num):
-            if b % self.block_stride:
-                continue
+        for b in np.unique(num[num % self.block_stride == 0]):
             self.blocks.setdefault(int(b), []).append(_take(piece, np.flatnonzero(num == b)))
         while len(self.blocks) > 2 * self.max_blocks:
             self.block_stride *= 2
@@ -208,8 +206,7 @@ class Reducer:
                 'sample_stride': int(self.stride), 'noise_block_epochs': int(self.block),
                 'noise_blocks': len(blocks.blocks), 'noise_epochs': int(blocks.n_samples),
                 'span_s': float(self.t_last - self.t_first)}
-        sample.meta['noise_blocks'] = blocks
-        sample.meta['reduction'] = info
+        sample.meta.update(noise_blocks=blocks, reduction=info)
         return Reduced(sample=sample, blocks=blocks, n_total=int(self.n), info=info)
 
 
