@@ -250,17 +250,13 @@ class Learner:
         return True
 
     def _block_data(self, rows):
-        t = np.array([r[0] for r in rows], float)
-        raw = np.stack([np.asarray(r[1], float) for r in rows], axis=1)
-        temps = [r[2] for r in rows]
+        t, raw, temps, auxes = zip(*rows)
         temp = (None if any(x is None for x in temps) else
                 np.stack([np.asarray(x, float) for x in temps], axis=1))
-        aux = {}
-        for name in self._aux:
-            col = np.array([(r[3] or {}).get(name, np.nan) for r in rows], float)
-            if np.isfinite(col).all():
-                aux[name] = col
-        return Dataset(t=t, raw=raw, temp=temp, aux=aux)
+        aux = {name: np.array([(a or {}).get(name, np.nan) for a in auxes], float)
+               for name in self._aux}
+        return Dataset(t=np.array(t, float), raw=np.stack([np.asarray(r, float) for r in raw], 1),
+                       temp=temp, aux={k: c for k, c in aux.items() if np.isfinite(c).all()})
 
     def _judge_block(self):
         rows, self._block = self._block, []
