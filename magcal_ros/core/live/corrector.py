@@ -366,11 +366,9 @@ class LiveCorrector:
             return []
         out = []
         for t_set, fields in self.sets(j, t, field_nt):
-            checked = self._checked
-            if checked is not None and checked[0] is fields:
-                g = checked[1][:9]
-            else:
-                g = self.gradient_op @ np.concatenate(fields)
+            checked = self._checked         # the check's product holds the tensor
+            g = (checked[1][:9] if checked is not None and checked[0] is fields
+                 else self.gradient_op @ np.concatenate(fields))
             out.append((t_set, g.reshape(3, 3)))
         return out
 
