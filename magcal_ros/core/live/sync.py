@@ -287,8 +287,7 @@ class StampMatcher:
         while all(queues):
             if self._pending is not None and self._decide_vote() is None:
                 break                       # wait for the samples that decide it
-            offset = self._offset
-            epochs = [qq[0][0] + o for qq, o in zip(queues, offset)]
+            epochs = [qq[0][0] + o for qq, o in zip(queues, self._offset)]
             e = min(epochs)
             if all(x == e for x in epochs):
                 items = [qq[0][2] for qq in queues]
