@@ -133,9 +133,7 @@ def gradient_from_fit(model, params, covariance):
     """
     for eff, sl in zip(model.array_effects, model.array_slices):
         if eff.name == 'site_gradient':
-            g5 = params[sl]
             c5 = covariance[sl, sl]
-            cov9 = TENSOR_MAP @ c5 @ TENSOR_MAP.T
-            se = np.sqrt(np.clip(np.diag(cov9), 0, None)).reshape(3, 3)
-            return symmetric_traceless(g5), se, c5
+            se = np.sqrt(np.clip(np.diag(TENSOR_MAP @ c5 @ TENSOR_MAP.T), 0, None)).reshape(3, 3)
+            return symmetric_traceless(params[sl]), se, c5
     return None
