@@ -194,8 +194,7 @@ def estimate_noise(x, orders=ORDERS, starts=None):
     tried where there are k + 8 samples; ``starts`` as for :func:`differences`.
     """
     x = np.asarray(x, float)
-    n = x.shape[1]
-    orders = tuple(k for k in orders if n >= k + 8)
+    orders = tuple(k for k in orders if x.shape[1] >= k + 8)
     if not orders:
         raise ValueError(f'need at least {min(ORDERS) + 8} samples to estimate the noise floor')
     by = difference_sigmas(x, orders, starts)                       # (K, S)

@@ -199,8 +199,7 @@ def _quantum(x):
     """Smallest step between distinct values of x (nT), ignoring float jitter; 0 if none."""
     u = np.unique(x)                                    # x not empty
     d = np.diff(u)
-    tiny = 1e-9 * max(float(np.abs(u).max()), 1.0)
-    d = d[d > tiny]
+    d = d[d > 1e-9 * max(float(np.abs(u).max()), 1.0)]         # not float jitter
     return float(d.min()) if len(d) else 0.0
 
 
@@ -232,8 +231,7 @@ def repeat_bounds(raw, est=None):
     sig = (channel_noise(raw) if est is None else est).sigma.reshape(s_count, 3)
     for j in range(s_count):
         q = np.array([_quantum(raw[j, :, a]) for a in range(3)])
-        sw2 = sig[j] ** 2 - q ** 2 / 12.0
-        sw = float(np.median(np.sqrt(np.clip(sw2, 0.0, None))))
+        sw = float(np.median(np.sqrt(np.clip(sig[j] ** 2 - q ** 2 / 12.0, 0.0, None))))
         dup = _duplicate_rate(raw[j])
         for a in range(3):
             p0 = 1.0 if sw <= 0 else (erf(q[a] / (sqrt(3.0) * sw)) if q[a] > 0 else 0.0)
@@ -252,8 +250,7 @@ def min_flagged_run(p, n, n_channels, alpha=ALPHA):
         return n + 1
     if p <= 0.0:
         return MIN_RUN
-    need = np.log(alpha / (n_channels * max(n, 1))) / np.log(p)
-    return int(max(MIN_RUN, 1 + np.ceil(need)))
+    return int(max(MIN_RUN, 1 + np.ceil(np.log(alpha / (n_channels * max(n, 1))) / np.log(p))))
 
 
 def _stretches(t, mask):
@@ -377,8 +374,7 @@ def find_spikes(raw, flags=None, alpha=ALPHA, est=None):
         live = (mad > 0) & white
         if not live.any():
             continue
-        z = d[:, live] / mad[live]
-        thr, _ = spike_threshold(z.ravel(), 3 * s_count * n, alpha)
+        thr, _ = spike_threshold((d[:, live] / mad[live]).ravel(), 3 * s_count * n, alpha)
         if not np.isfinite(thr):
             continue
         for a in np.flatnonzero(live):

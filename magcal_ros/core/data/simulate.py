@@ -279,8 +279,7 @@ class Simulator:
         """(S, N, 3) true field at each sensor in the array (body) frame, nT."""
         cfg = self.config
         rot = self.attitude(t) if rot is None else rot
-        scale = self.field_magnitude(t) / cfg.field_nt
-        b_body = rot.inv().apply(self.b_world) * scale[:, None]
+        b_body = rot.inv().apply(self.b_world) * (self.field_magnitude(t) / cfg.field_nt)[:, None]
         out = np.repeat(b_body[None], cfg.n_sensors, axis=0)
         if cfg.gradient_nt_per_m is not None:
             g = np.asarray(cfg.gradient_nt_per_m, float)

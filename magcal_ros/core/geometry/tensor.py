@@ -80,8 +80,7 @@ def tensor_operator(positions):
     g_prime = np.transpose(cols, (1, 0, 2))      # (3 rows, 3 cols, 3S)
     # back to the array frame: G = basis G' basis^T, B0 = basis B0'
     g = np.einsum('ia,abk,jb->ijk', basis, g_prime, basis)
-    b0 = basis @ x[:3]
-    return np.vstack([b0, g.reshape(9, -1)])
+    return np.vstack([basis @ x[:3], g.reshape(9, -1)])      # B0 = basis B0'
 
 
 def tensor_lstsq(b, positions):
@@ -105,8 +104,7 @@ def tensor_noise_floor(sigma_nt, positions):
     sigma_nt is the per-axis noise (scalar or (S,)) of the corrected fields.
     """
     op = tensor_operator(positions)[3:]
-    s = len(positions)
-    var = np.repeat(np.broadcast_to(np.asarray(sigma_nt, float) ** 2, (s,)), 3)
+    var = np.repeat(np.broadcast_to(np.asarray(sigma_nt, float) ** 2, (len(positions),)), 3)
     return np.sqrt((op ** 2) @ var).reshape(3, 3)
 
 

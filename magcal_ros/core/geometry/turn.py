@@ -70,8 +70,7 @@ def planar_magnitude(raw, axis):
     """
     raw = np.asarray(raw, float)
     k, plane = _plane(axis)
-    centre = circle_centre(raw[:, plane])
-    r = float(np.median(np.linalg.norm(raw[:, plane] - centre, axis=1)))
+    r = float(np.median(np.linalg.norm(raw[:, plane] - circle_centre(raw[:, plane]), axis=1)))
     return float(np.hypot(r, np.mean(raw[:, k])))
 
 

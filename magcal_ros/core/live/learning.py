@@ -277,8 +277,7 @@ class Learner:
         v = common_mode_variance(sigma)
         self.last_z = z = (np.median(np.abs(e), axis=1) * MAD_TO_SD) ** 2 / v
         self.last_block_t = t_end
-        limit = 1.0 + self.config.exceed_sigmas * Z_SD_UNIT / np.sqrt(e.shape[1])
-        over = np.sqrt(z) > limit
+        over = np.sqrt(z) > 1.0 + self.config.exceed_sigmas * Z_SD_UNIT / np.sqrt(e.shape[1])
         if self.state in (TRACKING, ADOPTED) and over.any():
             self._by_sensor[:] = 0
         self._by_sensor += over
@@ -386,8 +385,7 @@ class Learner:
         else:           # all, or those of the change adopted last that this refines
             sensors = (self._data_from is not None and self.changed) or tuple(range(1, self.n + 1))
         cal, doc, undetermined = refit_fn(data.subset(fit_idx), self.active, sensors)
-        held = data.subset(held_idx)
-        improvement, stderr, rms = self._validate(cal, held)
+        improvement, stderr, rms = self._validate(cal, data.subset(held_idx))
         converged = bool(doc.get('provenance', {}).get('converged', True))
         valid = bool(converged and np.isfinite(improvement) and np.isfinite(stderr)
                      and improvement > self.config.validate_sigmas * stderr)

@@ -45,8 +45,7 @@ def backdate(stamps, period_s):
     together = np.diff(a) < 0.25 * period_s         # sample i arrived with sample i + 1
     # out[i] = a[j] - (j - i) T, j the first index >= i that ends a run
     idx = np.arange(n)
-    ends = np.where(np.append(~together, True), idx, n)
-    last = np.minimum.accumulate(ends[::-1])[::-1]
+    last = np.minimum.accumulate(np.where(np.append(~together, True), idx, n)[::-1])[::-1]
     return a[last] - (last - idx) * period_s
 
 
@@ -260,8 +259,7 @@ class StampMatcher:
             for ref_s, s in zip(refs, (sj, backdate(sj, period))):
                 k = np.clip(np.searchsorted(ref_s, s), 1, len(ref_s) - 1)
                 k = np.where(np.abs(ref_s[k - 1] - s) <= np.abs(ref_s[k] - s), k - 1, k)
-                ok = np.abs(ref_s[k] - s) <= self.tolerance_s
-                votes.append((q0[k] - qj)[ok])
+                votes.append((q0[k] - qj)[np.abs(ref_s[k] - s) <= self.tolerance_s])
             votes = np.concatenate(votes).astype(int)
             if len(votes) < 10:
                 continue

@@ -113,8 +113,7 @@ def quadric_definiteness(sv, vt, a_mat, n_rows):
     g = np.array([e[0] ** 2, e[1] ** 2, e[2] ** 2, 2 * e[1] * e[2], 2 * e[0] * e[2],
                   2 * e[0] * e[1], 0.0, 0.0, 0.0, 0.0])
     sigma2 = sv[-1] ** 2 / max(1, n_rows - len(sv) + 1)
-    proj = vt[:-1] @ g
-    var = float(sigma2 * np.sum((proj / sv[:-1]) ** 2))
+    var = float(sigma2 * np.sum((vt[:-1] @ g / sv[:-1]) ** 2))
     return float(lam[0]), float(np.sqrt(var))
 
 

@@ -257,11 +257,10 @@ class Paper000Params:
         _check_proper(q, 'paper 000 (L Q with Q a rotation)')
         sin_g = float(np.hypot(low[2, 0], low[2, 1]))
         beta = float(np.arctan2(low[2, 1], low[2, 0])) if sin_g > 0.0 else 0.0
-        params = cls(alpha=float(np.arctan2(low[1, 0], low[1, 1])), beta=beta,
-                     gamma=float(np.arctan2(sin_g, low[2, 2])), kx=float(low[0, 0]),
-                     ky=float(np.hypot(low[1, 0], low[1, 1])), kz=float(np.linalg.norm(low[2])),
-                     B0=o.copy())
-        return params, q
+        return cls(alpha=float(np.arctan2(low[1, 0], low[1, 1])), beta=beta,
+                   gamma=float(np.arctan2(sin_g, low[2, 2])), kx=float(low[0, 0]),
+                   ky=float(np.hypot(low[1, 0], low[1, 1])), kz=float(np.linalg.norm(low[2])),
+                   B0=o.copy()), q
 
 
 # ---- paper 002 -----------------------------------------------------------------------
