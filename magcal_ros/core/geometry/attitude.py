@@ -36,9 +36,7 @@ class AttitudeError(ValueError):
 def _where(k, t=None, rows=None):
     if rows is not None:
         return f'data row {rows[k]}'
-    if t is not None:
-        return f'epoch {k} (t = {float(t[k]):.3f} s)'
-    return f'epoch {k}'
+    return f'epoch {k}' + ('' if t is None else f' (t = {float(t[k]):.3f} s)')
 
 
 def check_quaternions(q, t=None, rows=None, tol=UNIT_TOLERANCE):
