@@ -178,9 +178,8 @@ class ReadingScreen:
     def notes(self):
         """:class:`~magcal_ros.core.model.notes.Note` s of kind ``readings``, one per line."""
         from magcal_ros.core.model.notes import Note
-        n = self.flags.shape[1]
-        tail = (f'; no field produces these readings: the {self.n_left_out} of {n} sets that '
-                'hold them are left out of the fit')
+        tail = (f'; no field produces these readings: the {self.n_left_out} of '
+                f'{self.flags.shape[1]} sets that hold them are left out of the fit')
         return [Note(text + tail, 'readings', j) for j, text in self.lines()]
 
     def to_dict(self):
