@@ -49,8 +49,7 @@ class Dataset:
     def __post_init__(self):
         self.t = np.asarray(self.t, float)
         self.raw = np.asarray(self.raw, float)
-        if self.raw.ndim == 2:
-            self.raw = self.raw[None]
+        self.raw = self.raw[None] if self.raw.ndim == 2 else self.raw
         if self.raw.ndim != 3 or self.raw.shape[2] != 3:
             raise ValueError(f'raw must have shape (S, N, 3), got {self.raw.shape}')
         if self.raw.shape[1] != self.t.shape[0]:

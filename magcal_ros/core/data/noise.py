@@ -109,8 +109,7 @@ def difference_sigmas(x, orders=ORDERS, starts=None):
     :func:`differences`.  Returns (K, S) estimates in the unit of ``x``, a row per order.
     """
     x = np.asarray(x, float)
-    if x.ndim == 2:
-        x = x[..., None]
+    x = x[..., None] if x.ndim == 2 else x
     out = np.empty((len(orders), x.shape[0]))
     for i, k in enumerate(orders):
         d = differences(x, k, starts)
@@ -149,8 +148,7 @@ def nyquist_drop(x, starts=None):
     of the band is empty, nan: too short).
     """
     x = np.asarray(x, float)
-    if x.ndim == 2:
-        x = x[..., None]
+    x = x[..., None] if x.ndim == 2 else x
     if x.shape[1] < 64:
         return np.full(x.shape[0], np.nan)
     d = differences(x, 1, starts)
@@ -356,8 +354,7 @@ def noise_floor(raw, order=None):
     """
     raw = np.asarray(raw, float)
     one = raw.ndim == 2
-    if one:
-        raw = raw[None]
+    raw = raw[None] if one else raw
     if order is None:
         sigma = estimate_noise(raw).sigma
     else:

@@ -169,8 +169,7 @@ class Reducer:
         """Take the next chunk (a Dataset of consecutive epochs, with ``rate``)."""
         if piece.n_samples == 0:
             return
-        if self.t_first is None:
-            self.t_first = float(piece.t[0])
+        self.t_first = float(piece.t[0]) if self.t_first is None else self.t_first
         self.t_last = float(piece.t[-1])
         g = self.n + np.arange(piece.n_samples)
         self.n += piece.n_samples

@@ -31,8 +31,7 @@ def tensor_cross(b, baseline_m=0.5):
     """
     b = np.asarray(b, float)
     one = b.ndim == 2
-    if one:
-        b = b[:, None]
+    b = b[:, None] if one else b
     if b.shape[0] != 4 or b.shape[2] != 3:
         raise ValueError(f'expected the field of 4 sensors, shape (4, N, 3); got {b.shape}')
     d13, d24 = b[0] - b[2], b[1] - b[3]     # the columns x and y; z from symmetry, trace 0

@@ -507,8 +507,7 @@ class SampleBuffer:
         """Add a set: epoch number, stamp t s, raw (S, 3) nT, temp (S,) degC (nan: none), aux."""
         k = self.count
         self.count += 1
-        if self.t_first is None:
-            self.t_first = float(t)
+        self.t_first = float(t) if self.t_first is None else self.t_first
         self.t_last = float(t)
         if not k % self.stride and self.n == self.capacity:
             self._thin()
