@@ -18,6 +18,10 @@ from dataclasses import dataclass, field, replace
 from magcal_ros.core.effects import raw_rate, SensorContext
 import numpy as np
 
+#: the per-epoch arrays of a Dataset and the axis of their epochs
+EPOCH_AXES = {'t': 0, 'raw': 1, 'temp': 1, 'ref_total': 0, 'ref_vec': 0, 'angle_deg': 0,
+              'plane': 0, 'attitude': 0, 'rate': 1}
+
 
 @dataclass
 class Dataset:
@@ -45,8 +49,7 @@ class Dataset:
     def __post_init__(self):
         self.t = np.asarray(self.t, float)
         self.raw = np.asarray(self.raw, float)
-        if self.raw.ndim == 2:
-            self.raw = self.raw[None]
+        self.raw = self.raw[None] if self.raw.ndim == 2 else self.raw
         if self.raw.ndim != 3 or self.raw.shape[2] != 3:
             raise ValueError(f'raw must have shape (S, N, 3), got {self.raw.shape}')
         if self.raw.shape[1] != self.t.shape[0]:
@@ -68,11 +71,9 @@ class Dataset:
 
     def context(self, j):
         """Return the :class:`SensorContext` of sensor ``j`` (1-based), d(raw)/dt in nT/s."""
-        rate = (raw_rate(self.raw[j - 1], self.t) if self.rate is None
-                else self.rate[j - 1])
+        rate = raw_rate(self.raw[j - 1], self.t) if self.rate is None else self.rate[j - 1]
         temp = None if self.temp is None else self.temp[j - 1]
-        if temp is not None and not np.isfinite(temp).any():
-            temp = None
+        temp = temp if temp is not None and np.isfinite(temp).any() else None
         ctx = SensorContext(t=self.t, temp=temp, aux=dict(self.aux), raw_rate=rate,
                             attitude=self.attitude_matrix())
         if self.origin is not None:
@@ -108,16 +109,10 @@ class Dataset:
     def subset(self, idx):
         """Return a new Dataset with the epochs ``idx`` (index array or boolean mask)."""
         idx = np.asarray(idx)
-
-        def take(a, axis=0):
-            if a is None:
-                return None
-            return np.take(a, np.flatnonzero(idx) if idx.dtype == bool else idx, axis=axis)
+        at = np.flatnonzero(idx) if idx.dtype == bool else idx
         pos = np.arange(self.n_samples)[idx]
         origin = (self, pos) if self.origin is None else (self.origin[0], self.origin[1][pos])
-        return replace(
-            self, origin=origin, t=take(self.t), raw=take(self.raw, 1), temp=take(self.temp, 1),
-            ref_total=take(self.ref_total), ref_vec=take(self.ref_vec),
-            angle_deg=take(self.angle_deg), plane=take(self.plane),
-            aux={k: take(v) for k, v in self.aux.items()}, meta=dict(self.meta),
-            attitude=take(self.attitude), rate=take(self.rate, 1))
+        cols = {k: None if getattr(self, k) is None else np.take(getattr(self, k), at, axis=a)
+                for k, a in EPOCH_AXES.items()}
+        return replace(self, origin=origin, aux={k: np.take(v, at) for k, v in self.aux.items()},
+                       meta=dict(self.meta), **cols)

@@ -54,8 +54,7 @@ def auto_magnitude(raw):
 
     raw (N, 3) nT.  The absolute scale is then not observable: only the shape is corrected.
     """
-    ell = fit_ellipsoid(raw, 1.0)
-    radii = np.linalg.norm(np.asarray(raw, float) - ell.b, axis=1)
+    radii = np.linalg.norm(np.asarray(raw, float) - fit_ellipsoid(raw, 1.0).b, axis=1)
     return float(np.median(radii))
 
 

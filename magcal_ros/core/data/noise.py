@@ -75,18 +75,13 @@ def robust_sd(d):
     cut = TAIL_CUT * s_mad
     tail = a[a > cut]
     var = float(np.sum(a[a <= cut] ** 2)) / n
-    alpha, n_out = float('nan'), 0
-    if tail.size >= MIN_TAIL:
-        alpha = float(tail.size / np.sum(np.log(tail / cut)))
-        if alpha > OUTLIER_TAIL_INDEX:
-            a_eff = max(alpha, MIN_TAIL_INDEX)
-            var += tail.size / n * cut ** 2 * a_eff / (a_eff - 2.0)
-        else:
-            n_out = int(tail.size)
-            var *= n / (n - n_out)
-    else:
-        n_out = int(tail.size)
-        var *= n / max(n - n_out, 1)
+    alpha = float(tail.size / np.sum(np.log(tail / cut))) if tail.size >= MIN_TAIL else np.nan
+    n_out = 0 if alpha > OUTLIER_TAIL_INDEX else int(tail.size)
+    if n_out:
+        var *= n / (n - n_out)          # at least half the values lie within the cut
+    elif tail.size:
+        a_eff = max(alpha, MIN_TAIL_INDEX)
+        var += tail.size / n * cut ** 2 * a_eff / (a_eff - 2.0)
     return float(np.sqrt(var)), float(s_mad), alpha, n_out
 
 
@@ -114,8 +109,7 @@ def difference_sigmas(x, orders=ORDERS, starts=None):
     :func:`differences`.  Returns (K, S) estimates in the unit of ``x``, a row per order.
     """
     x = np.asarray(x, float)
-    if x.ndim == 2:
-        x = x[..., None]
+    x = x[..., None] if x.ndim == 2 else x
     out = np.empty((len(orders), x.shape[0]))
     for i, k in enumerate(orders):
         d = differences(x, k, starts)
@@ -154,25 +148,18 @@ def nyquist_drop(x, starts=None):
     of the band is empty, nan: too short).
     """
     x = np.asarray(x, float)
-    if x.ndim == 2:
-        x = x[..., None]
-    n = x.shape[1]
-    out = np.full(x.shape[0], np.nan)
-    if n < 64:
-        return out
+    x = x[..., None] if x.ndim == 2 else x
+    if x.shape[1] < 64:
+        return np.full(x.shape[0], np.nan)
     d = differences(x, 1, starts)
-    n = d.shape[1] + 1
-    f, p = welch(d, min(256, n - 1))
+    f, p = welch(d, min(256, d.shape[1]))
     gain = 4 * np.sin(np.pi * f) ** 2
     with np.errstate(divide='ignore', invalid='ignore'):
         p = p / np.where(gain > 0, gain, np.nan)[None, :, None]
-    mid = (f >= 0.45 * 0.5) & (f <= 0.65 * 0.5)
-    top = (f >= 0.85 * 0.5)
-    lo = np.nanmean(p[:, mid], axis=(1, 2))
-    hi = np.nanmean(p[:, top], axis=(1, 2))
+    lo = np.nanmean(p[:, (f >= 0.45 * 0.5) & (f <= 0.65 * 0.5)], axis=(1, 2))
+    hi = np.nanmean(p[:, f >= 0.85 * 0.5], axis=(1, 2))
     with np.errstate(divide='ignore', invalid='ignore'):
-        out = np.where(hi > 0, lo / hi, np.inf)
-    return out
+        return np.where(hi > 0, lo / hi, np.inf)
 
 
 @dataclass(frozen=True)
@@ -205,31 +192,18 @@ def estimate_noise(x, orders=ORDERS, starts=None):
     tried where there are k + 8 samples; ``starts`` as for :func:`differences`.
     """
     x = np.asarray(x, float)
-    n = x.shape[1]
-    orders = tuple(k for k in orders if n >= k + 8)
+    orders = tuple(k for k in orders if x.shape[1] >= k + 8)
     if not orders:
         raise ValueError(f'need at least {min(ORDERS) + 8} samples to estimate the noise floor')
-    by = difference_sigmas(x, orders, starts)
-    s = by.shape[1]
-    sigma = np.empty(s)
-    first = np.empty(s, int)
-    plateau = np.empty(s, bool)
+    by = difference_sigmas(x, orders, starts)                       # (K, S)
+    k0 = np.argmax(by <= PLATEAU_RATIO * by.min(axis=0), axis=0)     # first order on it
+    plateau = len(orders) - k0 >= 2
     drop = nyquist_drop(x, starts)
-    status = []
-    for j in range(s):
-        on = by[:, j] <= PLATEAU_RATIO * by[:, j].min()
-        k0 = int(np.argmax(on))
-        sigma[j] = np.median(by[k0:, j])
-        first[j] = orders[k0]
-        plateau[j] = len(orders) - k0 >= 2
-        if plateau[j]:
-            status.append('white')
-        elif drop[j] >= FILTERED_DROP:
-            status.append('filtered')
-        else:
-            status.append('upper bound')
-    return NoiseEstimate(sigma=sigma, order=first, plateau=plateau, by_order=by,
-                         status=tuple(status), drop=drop)
+    status = tuple('white' if p else 'filtered' if dr >= FILTERED_DROP else 'upper bound'
+                   for p, dr in zip(plateau, drop))
+    return NoiseEstimate(sigma=np.array([np.median(by[k:, j]) for j, k in enumerate(k0)]),
+                         order=np.array(orders)[k0], plateau=plateau, by_order=by,
+                         status=status, drop=drop)
 
 
 @dataclass(frozen=True, eq=False)
@@ -314,9 +288,8 @@ def data_noise_floor(data, result=None):
         return noise_floor_of(data.raw, result)
     sets = np.flatnonzero(kept.all(axis=0))
     starts = [0] + list(np.flatnonzero(np.diff(sets) > 1) + 1)
-    return noise_floor_of(data.raw[:, sets],
-                          FitResidual(result.scalar_residual_nt[:, sets], result.sigma_nt),
-                          starts)
+    residual = FitResidual(result.scalar_residual_nt[:, sets], result.sigma_nt)
+    return noise_floor_of(data.raw[:, sets], residual, starts)
 
 
 @dataclass(frozen=True)
@@ -347,8 +320,7 @@ def noise_floor_of(raw, result, starts=None):
                 order[j] = res_est.order[j]
                 status[j] = res_est.status[j]
                 source[j] = 'scalar residual'
-    lower = sigma.copy()
-    upper = sigma.copy()
+    lower, upper = sigma.copy(), sigma.copy()
     tails = np.empty(s)
     for j in range(s):
         if status[j] == 'filtered':
@@ -357,11 +329,8 @@ def noise_floor_of(raw, result, starts=None):
             # smallest raw one is sure not to hold the trajectory
             sigma[j] = lower[j] = (res_est.by_order[0, j] if result is not None
                                    else raw_est.by_order[:, j].min())
-            upper[j] = (float(result.sigma_nt[j]) if result is not None else np.inf)
-            upper[j] = max(upper[j], lower[j])
-        elif status[j] == 'upper bound':
-            lower[j] = 0.0
-        elif source[j] != 'raw':
+            upper[j] = max(float(result.sigma_nt[j]) if result is not None else np.inf, lower[j])
+        elif status[j] == 'upper bound' or source[j] != 'raw':
             # from the model's residual: a missing effect following the attitude is in it
             status[j] = 'upper bound'
             lower[j] = 0.0
@@ -385,8 +354,7 @@ def noise_floor(raw, order=None):
     """
     raw = np.asarray(raw, float)
     one = raw.ndim == 2
-    if one:
-        raw = raw[None]
+    raw = raw[None] if one else raw
     if order is None:
         sigma = estimate_noise(raw).sigma
     else:

@@ -163,18 +163,13 @@ class ReadingScreen:
 
     def lines(self):
         """One line per flagged channel group (axes of a sensor with the same flags merged)."""
-        out = []
-        done = set()
+        groups = {}
         for i, c in enumerate(self.channels):
-            if i in done:
-                continue
-            group = [c]
-            for k in range(i + 1, len(self.channels)):
-                o = self.channels[k]
-                if (o.sensor == c.sensor and o.kind == c.kind and o.count == c.count
-                        and o.stretches == c.stretches and c.kind == 'repeated'):
-                    group.append(o)
-                    done.add(k)
+            key = (c.sensor, c.count, c.stretches) if c.kind == 'repeated' else i
+            groups.setdefault(key, []).append(c)
+        out = []
+        for group in groups.values():
+            c = group[0]
             axes = ', '.join(g.axis for g in group)
             label = f'axis {axes}' if len(group) == 1 else f'axes {axes}'
             out.append((c.sensor, f'sensor {c.sensor} {label}: {c.describe()}'))
@@ -183,9 +178,8 @@ class ReadingScreen:
     def notes(self):
         """:class:`~magcal_ros.core.model.notes.Note` s of kind ``readings``, one per line."""
         from magcal_ros.core.model.notes import Note
-        n = self.flags.shape[1]
-        tail = (f'; no field produces these readings: the {self.n_left_out} of {n} sets that '
-                'hold them are left out of the fit')
+        tail = (f'; no field produces these readings: the {self.n_left_out} of '
+                f'{self.flags.shape[1]} sets that hold them are left out of the fit')
         return [Note(text + tail, 'readings', j) for j, text in self.lines()]
 
     def to_dict(self):
@@ -196,20 +190,15 @@ class ReadingScreen:
 
 def _runs(x):
     """Start indices and lengths of the runs of equal consecutive values of x (N,)."""
-    change = np.flatnonzero(np.diff(x) != 0) + 1
-    starts = np.concatenate([[0], change])
-    lengths = np.diff(np.concatenate([starts, [len(x)]]))
-    return starts, lengths
+    starts = np.flatnonzero(np.r_[True, np.diff(x) != 0])
+    return starts, np.diff(np.r_[starts, len(x)])
 
 
 def _quantum(x):
     """Smallest step between distinct values of x (nT), ignoring float jitter; 0 if none."""
-    u = np.unique(x)
-    if len(u) < 2:
-        return 0.0
+    u = np.unique(x)                                    # x not empty
     d = np.diff(u)
-    tiny = 1e-9 * max(float(np.abs(u).max()), 1.0)
-    d = d[d > tiny]
+    d = d[d > 1e-9 * max(float(np.abs(u).max()), 1.0)]         # not float jitter
     return float(d.min()) if len(d) else 0.0
 
 
@@ -241,8 +230,7 @@ def repeat_bounds(raw, est=None):
     sig = (channel_noise(raw) if est is None else est).sigma.reshape(s_count, 3)
     for j in range(s_count):
         q = np.array([_quantum(raw[j, :, a]) for a in range(3)])
-        sw2 = sig[j] ** 2 - q ** 2 / 12.0
-        sw = float(np.median(np.sqrt(np.clip(sw2, 0.0, None))))
+        sw = float(np.median(np.sqrt(np.clip(sig[j] ** 2 - q ** 2 / 12.0, 0.0, None))))
         dup = _duplicate_rate(raw[j])
         for a in range(3):
             p0 = 1.0 if sw <= 0 else (erf(q[a] / (sqrt(3.0) * sw)) if q[a] > 0 else 0.0)
@@ -261,19 +249,15 @@ def min_flagged_run(p, n, n_channels, alpha=ALPHA):
         return n + 1
     if p <= 0.0:
         return MIN_RUN
-    need = np.log(alpha / (n_channels * max(n, 1))) / np.log(p)
-    return int(max(MIN_RUN, 1 + np.ceil(need)))
+    return int(max(MIN_RUN, 1 + np.ceil(np.log(alpha / (n_channels * max(n, 1))) / np.log(p))))
 
 
 def _stretches(t, mask):
     """((t_start, t_end), ...) of the contiguous True stretches of mask (N,)."""
-    idx = np.flatnonzero(mask)
-    if not len(idx):
-        return ()
-    cut = np.flatnonzero(np.diff(idx) > 1)
-    first = np.concatenate([[idx[0]], idx[cut + 1]])
-    last = np.concatenate([idx[cut], [idx[-1]]])
-    return tuple((round(float(t[a]), 3), round(float(t[b]), 3)) for a, b in zip(first, last))
+    starts, lengths = _runs(mask)
+    on = mask[starts]
+    return tuple((round(float(t[a]), 3), round(float(t[a + n - 1]), 3))
+                 for a, n in zip(starts[on], lengths[on]))
 
 
 def _interpolation(nodes, targets):
@@ -352,10 +336,8 @@ def _spike_in(x, r0, r1, k, scale, thr, alpha):
     alts = [idx >= p for p in range(r0, r1 + 2)]
     alts += [(idx >= p) & (idx < q) for p in range(r0, r1 + 2)
              for q in range(p + SPIKE_MAX_SAMPLES + 1, r1 + 2)]
-    ss_alt = float('inf')
-    for alt in alts:
-        du = np.diff(alt.astype(float), k) / scale
-        ss_alt = min(ss_alt, float(z0 @ z0 - (z0 @ du) ** 2 / (du @ du)))
+    dus = [np.diff(alt.astype(float), k) / scale for alt in alts]
+    ss_alt = min([float('inf')] + [float(z0 @ z0 - (z0 @ du) ** 2 / (du @ du)) for du in dus])
     if ss_alt - best[2] < _normal_isf(alpha / 2.0) ** 2:     # chi-square(1) quantile
         return None
     return best[0], x[best[0]] - best[3]
@@ -391,8 +373,7 @@ def find_spikes(raw, flags=None, alpha=ALPHA, est=None):
         live = (mad > 0) & white
         if not live.any():
             continue
-        z = d[:, live] / mad[live]
-        thr, _ = spike_threshold(z.ravel(), 3 * s_count * n, alpha)
+        thr, _ = spike_threshold((d[:, live] / mad[live]).ravel(), 3 * s_count * n, alpha)
         if not np.isfinite(thr):
             continue
         for a in np.flatnonzero(live):
@@ -435,40 +416,37 @@ def screen_readings(data, alpha=ALPHA):
         flags[j, :, a] |= m
         out.append(SuspectChannel(j + 1, AXES[a], kind, values, int(m.sum()), n,
                                   _stretches(data.t, m), lr))
-    for j in range(s_count):
-        for a in range(3):
-            x = raw[j, :, a]
-            min_run[j, a] = lr = min_flagged_run(p[j, a], n, 3 * s_count, alpha)
-            if lr > n:
-                continue
-            starts, lengths = _runs(x)
-            long = lengths >= lr
-            if not long.any():
-                continue
-            values = x[starts[long]]
-            hi, lo = float(x.max()), float(x.min())
-            vals, counts = np.unique(x, return_counts=True)
-            top = int(np.argmax(counts))
-            pinned = ()
-            if counts[top] >= PINNED_FRACTION * n and np.isin(vals[top], values):
-                pinned = (float(vals[top]),)
-            clipped = tuple(v for v in (hi, lo) if v not in pinned and np.isin(v, values))
-            for kind, special in (('pinned', pinned), ('clipped', clipped)):
-                if special:
-                    flag(j, a, kind, special, np.isin(x, special), lr)
-            special = pinned + clipped
-            rep = np.zeros(n, bool)
-            for s0, ln, v in zip(starts[long], lengths[long], values):
-                if float(v) not in special:
-                    rep[s0 + 1:s0 + ln] = True      # the first is the reading repeated
-            if rep.any():
-                flag(j, a, 'repeated', (), rep, lr)
+    for j, a in np.ndindex(s_count, 3):
+        x = raw[j, :, a]
+        min_run[j, a] = lr = min_flagged_run(p[j, a], n, 3 * s_count, alpha)
+        if lr > n:
+            continue
+        starts, lengths = _runs(x)
+        long = lengths >= lr
+        if not long.any():
+            continue
+        values = x[starts[long]]
+        hi, lo = float(x.max()), float(x.min())
+        vals, counts = np.unique(x, return_counts=True)
+        top = int(np.argmax(counts))
+        pinned = ((float(vals[top]),) if counts[top] >= PINNED_FRACTION * n
+                  and np.isin(vals[top], values) else ())
+        clipped = tuple(v for v in (hi, lo) if v not in pinned and np.isin(v, values))
+        for kind, special in (('pinned', pinned), ('clipped', clipped)):
+            if special:
+                flag(j, a, kind, special, np.isin(x, special), lr)
+        special = pinned + clipped
+        rep = np.zeros(n, bool)
+        for s0, ln, v in zip(starts[long], lengths[long], values):
+            if float(v) not in special:
+                rep[s0 + 1:s0 + ln] = True      # the first is the reading repeated
+        if rep.any():
+            flag(j, a, 'repeated', (), rep, lr)
     spikes, sizes = find_spikes(raw, flags, alpha, est)
-    for j in range(s_count):
-        for a in range(3):
-            if spikes[j, :, a].any():
-                size = sizes[j][a]
-                flag(j, a, 'spike', (float(size.min()), float(size.max())), spikes[j, :, a], 0)
+    for j, a in np.ndindex(s_count, 3):
+        if spikes[j, :, a].any():
+            size = sizes[j][a]
+            flag(j, a, 'spike', (float(size.min()), float(size.max())), spikes[j, :, a], 0)
     out.sort(key=lambda c: (c.sensor, c.axis))
     return ReadingScreen(flags=flags, channels=out, min_run=min_run, repeat_bound=p)
 
@@ -495,9 +473,9 @@ def leave_out_unphysical(data, field_nt=None, alpha=ALPHA, min_kept=MIN_KEPT_FRA
     if keep.sum() < min_kept * n:
         what = '; '.join(text for _, text in screen.lines())
         raise UnphysicalReadingsError(
-            f'{what}: no field produces these readings, and without them only '
-            f'{int(keep.sum())} of {n} sets are left (need at least {min_kept:.0%}): check '
-            'the sensor, its wiring, its range setting and the driver, then record again')
+            f'{what}: no field produces these readings, and without them only {int(keep.sum())} '
+            f'of {n} sets are left (need at least {min_kept:.0%}): check the sensor, its wiring, '
+            'its range setting and the driver, then record again')
     idx = np.flatnonzero(keep)
     if field_nt is not None and np.ndim(field_nt) > 0:
         field_nt = np.asarray(field_nt)[idx]

@@ -24,7 +24,7 @@ pass for **the residual statistics of every epoch** (:func:`residual_statistics`
 """
 from dataclasses import dataclass, replace
 
-from magcal_ros.core.data.dataset import Dataset
+from magcal_ros.core.data.dataset import Dataset, EPOCH_AXES
 from magcal_ros.core.data.noise import FitResidual, noise_floor_of
 from magcal_ros.core.effects import raw_rate
 import numpy as np
@@ -44,15 +44,12 @@ def concat(pieces):
     first = pieces[0]
     if len(pieces) == 1:
         return replace(first, origin=None)
-
-    def cat(name, axis=0):
+    cols = {}
+    for name, axis in EPOCH_AXES.items():
         vals = [getattr(p, name) for p in pieces]
-        return None if any(v is None for v in vals) else np.concatenate(vals, axis=axis)
-    return replace(first, origin=None, t=cat('t'), raw=cat('raw', 1), temp=cat('temp', 1),
-                   ref_total=cat('ref_total'), ref_vec=cat('ref_vec'),
-                   angle_deg=cat('angle_deg'), plane=cat('plane'),
-                   aux={k: np.concatenate([p.aux[k] for p in pieces]) for k in first.aux},
-                   attitude=cat('attitude'), rate=cat('rate', 1), meta=dict(first.meta))
+        cols[name] = None if any(v is None for v in vals) else np.concatenate(vals, axis=axis)
+    return replace(first, origin=None, meta=dict(first.meta), **cols,
+                   aux={k: np.concatenate([p.aux[k] for p in pieces]) for k in first.aux})
 
 
 def _take(piece, idx):
@@ -85,9 +82,8 @@ class NoiseBlocks:
         if key not in self._cache:
             res = None
             if result is not None:
-                res = FitResidual(
-                    np.concatenate([scalar_residual(result, b) for b in self.blocks], axis=1),
-                    np.asarray(result.sigma_nt, float))
+                res = np.concatenate([scalar_residual(result, b) for b in self.blocks], axis=1)
+                res = FitResidual(res, np.asarray(result.sigma_nt, float))
             self._cache[key] = noise_floor_of(self.data.raw, res, self.starts)
         return self._cache[key]
 
@@ -115,13 +111,8 @@ def scalar_residual(result, piece):
 
 def _rates(piece):
     """(S, N, 3) nT/s field rate of ``piece``'s readings, or None (times that do not rise)."""
-    out = []
-    for j in range(piece.n_sensors):
-        r = raw_rate(piece.raw[j], piece.t)
-        if r is None:
-            return None
-        out.append(r)
-    return np.stack(out)
+    rates = [raw_rate(raw, piece.t) for raw in piece.raw]
+    return None if any(r is None for r in rates) else np.stack(rates)
 
 
 def rated(chunks):
@@ -178,8 +169,7 @@ class Reducer:
         """Take the next chunk (a Dataset of consecutive epochs, with ``rate``)."""
         if piece.n_samples == 0:
             return
-        if self.t_first is None:
-            self.t_first = float(piece.t[0])
+        self.t_first = float(piece.t[0]) if self.t_first is None else self.t_first
         self.t_last = float(piece.t[-1])
         g = self.n + np.arange(piece.n_samples)
         self.n += piece.n_samples
@@ -193,19 +183,13 @@ class Reducer:
             self.n_kept += int(sel.sum())
         while self.n_kept > 2 * self.cap:
             self.stride *= 2
-            kept = []
-            for gi, d in self.kept:
-                m = gi % self.stride == 0
-                if m.any():
-                    kept.append((gi[m], _take(d, np.flatnonzero(m))))
-            self.kept = kept
-            self.n_kept = sum(len(gi) for gi, _ in kept)
+            self.kept = [(gi[m], _take(d, np.flatnonzero(m))) for gi, d in self.kept
+                         if (m := gi % self.stride == 0).any()]
+            self.n_kept = sum(len(gi) for gi, _ in self.kept)
 
     def _blocks(self, piece, g):
         num = g // self.block
-        for b in np.unique(num):
-            if b % self.block_stride:
-                continue
+        for b in np.unique(num[num % self.block_stride == 0]):
             self.blocks.setdefault(int(b), []).append(_take(piece, np.flatnonzero(num == b)))
         while len(self.blocks) > 2 * self.max_blocks:
             self.block_stride *= 2
@@ -219,11 +203,9 @@ class Reducer:
         blocks = NoiseBlocks([concat(v) for _, v in sorted(self.blocks.items())])
         info = {'epochs': int(self.n), 'sample_epochs': int(sample.n_samples),
                 'sample_stride': int(self.stride), 'noise_block_epochs': int(self.block),
-                'noise_blocks': len(blocks.blocks),
-                'noise_epochs': int(blocks.n_samples),
+                'noise_blocks': len(blocks.blocks), 'noise_epochs': int(blocks.n_samples),
                 'span_s': float(self.t_last - self.t_first)}
-        sample.meta['noise_blocks'] = blocks
-        sample.meta['reduction'] = info
+        sample.meta.update(noise_blocks=blocks, reduction=info)
         return Reduced(sample=sample, blocks=blocks, n_total=int(self.n), info=info)
 
 
@@ -246,17 +228,17 @@ def reduce_chunks(chunks, **kwargs):
 
 
 class _Moments:
-    """Running count, sum of squares and largest absolute value, per leading index."""
+    """Running count, sum, sum of squares and extremes, per leading index."""
 
     def __init__(self):
-        self.n = 0
-        self.ss = 0.0
-        self.mx = 0.0
+        self.n, self.s, self.ss, self.lo, self.hi = 0, 0.0, 0.0, np.inf, -np.inf
 
     def add(self, x, axis):
         self.n = self.n + np.shape(x)[axis]
+        self.s = self.s + np.sum(x, axis=axis)
         self.ss = self.ss + np.sum(np.square(x), axis=axis)
-        self.mx = np.maximum(self.mx, np.max(np.abs(x), axis=axis))
+        self.lo = np.minimum(self.lo, np.min(x, axis=axis))
+        self.hi = np.maximum(self.hi, np.max(x, axis=axis))
 
     def rms(self):
         return np.sqrt(self.ss / max(self.n, 1))
@@ -276,7 +258,7 @@ def residual_statistics(chunks, result, positions=None):
     ``tensor_max_dev_before_nt_per_m``, ``tensor_max_dev_after_nt_per_m``.
     """
     before, after, vector = _Moments(), _Moments(), _Moments()
-    tens = {k: {'s': 0.0, 'ss': 0.0, 'lo': np.inf, 'hi': -np.inf} for k in ('b', 'a')}
+    tens = {'b': _Moments(), 'a': _Moments()}
     n = 0
     for piece in rated(chunks):
         f = field_of(result, piece)
@@ -288,27 +270,21 @@ def residual_statistics(chunks, result, positions=None):
         if positions is not None and piece.n_sensors >= 3:
             from magcal_ros.core.geometry.tensor import tensor_lstsq
             for key, fields in (('b', piece.raw), ('a', cen)):
-                g, _ = tensor_lstsq(fields, positions)
-                acc = tens[key]
-                acc['s'] = acc['s'] + g.sum(axis=0)
-                acc['ss'] = acc['ss'] + (g ** 2).sum(axis=0)
-                acc['lo'] = np.minimum(acc['lo'], g.min(axis=0))
-                acc['hi'] = np.maximum(acc['hi'], g.max(axis=0))
+                tens[key].add(tensor_lstsq(fields, positions)[0], 0)
     s = after.ss.shape[0]
     out = {'n_samples': int(n),
            'scalar_rms_nt': {str(j + 1): float(v) for j, v in enumerate(after.rms())},
            'vector_rms_nt': {str(j + 1): float(v) for j, v in enumerate(vector.rms()) if j},
-           'total_field_rms_before_nt': {str(j + 1): float(v)
-                                         for j, v in enumerate(before.rms())},
-           'total_field_max_dev_before_nt': float(np.max(before.mx)),
-           'total_field_max_dev_after_nt': float(np.max(after.mx))}
+           'total_field_rms_before_nt': {str(j + 1): float(v) for j, v in enumerate(before.rms())},
+           'total_field_max_dev_before_nt': float(np.max(np.maximum(before.hi, -before.lo))),
+           'total_field_max_dev_after_nt': float(np.max(np.maximum(after.hi, -after.lo)))}
     if positions is not None and s >= 3 and n:
         for key, rms_key, max_key in (('b', 'tensor_rms_before_nt_per_m',
                                        'tensor_max_dev_before_nt_per_m'),
                                       ('a', 'tensor_rms_nt_per_m',
                                        'tensor_max_dev_after_nt_per_m')):
             acc = tens[key]
-            mean = acc['s'] / n
-            out[rms_key] = np.sqrt(np.maximum(acc['ss'] / n - mean ** 2, 0.0)).tolist()
-            out[max_key] = float(np.max(np.maximum(acc['hi'] - mean, mean - acc['lo'])))
+            mean = acc.s / n
+            out[rms_key] = np.sqrt(np.maximum(acc.ss / n - mean ** 2, 0.0)).tolist()
+            out[max_key] = float(np.max(np.maximum(acc.hi - mean, mean - acc.lo)))
     return out

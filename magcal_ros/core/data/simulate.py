@@ -121,8 +121,7 @@ def vehicle_attitude(t, period_s=60.0, tilt_deg=15.0, phases=(0.0, 0.0, 0.0)):
     t = np.asarray(t, float)
     w = 2 * np.pi / period_s
     tilt = np.radians(tilt_deg)
-    yaw = (phases[0] + 0.8 * 2 * np.pi * np.sin(w * t)
-           + 2 * np.pi / 3 * t / period_s)
+    yaw = phases[0] + 0.8 * 2 * np.pi * np.sin(w * t) + 2 * np.pi / 3 * t / period_s
     pitch = tilt * np.sin(w * 2.3 * t + phases[1])
     roll = tilt * np.sin(w * 3.7 * t + phases[2])
     body_enu = Rotation.from_euler('ZYX', np.column_stack([yaw, pitch, roll]))
@@ -232,8 +231,7 @@ class Simulator:
         if cfg.trajectory == 'random':
             return Rotation.random(n, random_state=self.rng)
         if cfg.trajectory == 'smooth':
-            w = 2 * np.pi / cfg.smooth_period_s
-            ph = self._phases
+            w, ph = 2 * np.pi / cfg.smooth_period_s, self._phases
             yaw = w * 3.1 * t + ph[0]
             pitch = np.radians(85) * np.sin(w * 1.7 * t + ph[1])
             roll = np.pi * np.sin(w * 1.13 * t + ph[2])
@@ -244,8 +242,7 @@ class Simulator:
         if cfg.trajectory == 'vehicle':
             return vehicle_attitude(t, cfg.smooth_period_s, cfg.tilt_deg, self._phases[3:6])
         # cone: body-frame field directions in a cap around +z
-        half = np.radians(cfg.cone_half_angle_deg)
-        cos_t = self.rng.uniform(np.cos(half), 1.0, n)
+        cos_t = self.rng.uniform(np.cos(np.radians(cfg.cone_half_angle_deg)), 1.0, n)
         phi = self.rng.uniform(0, 2 * np.pi, n)
         sin_t = np.sqrt(1 - cos_t ** 2)
         d = np.column_stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t])
@@ -270,8 +267,7 @@ class Simulator:
         motor = self._levels[step] * (self._levels[(step * 7 + 3) % len(self._levels)] > 1.5)
         pump = 1.0 + 0.5 * np.sin(2 * np.pi * t / 47.0 + ph[14])
         heater = 10.0 * ((t / 180.0 + ph[15] / (2 * np.pi)) % 1.0)
-        return {'aux_motor_current': motor, 'aux_pump_current': pump,
-                'aux_heater_power': heater}
+        return {'aux_motor_current': motor, 'aux_pump_current': pump, 'aux_heater_power': heater}
 
     def field_magnitude(self, t):
         """(N,) total field, nT (constant unless a diurnal swing is set)."""
@@ -283,8 +279,7 @@ class Simulator:
         """(S, N, 3) true field at each sensor in the array (body) frame, nT."""
         cfg = self.config
         rot = self.attitude(t) if rot is None else rot
-        scale = self.field_magnitude(t) / cfg.field_nt
-        b_body = rot.inv().apply(self.b_world) * scale[:, None]
+        b_body = rot.inv().apply(self.b_world) * (self.field_magnitude(t) / cfg.field_nt)[:, None]
         out = np.repeat(b_body[None], cfg.n_sensors, axis=0)
         if cfg.gradient_nt_per_m is not None:
             g = np.asarray(cfg.gradient_nt_per_m, float)
@@ -330,8 +325,7 @@ class Simulator:
             raw[hit] += cfg.outlier_nt * d[hit]
         ref_total = self.field_magnitude(t) if cfg.diurnal_swing_nt else None
         if cfg.attitude and cfg.attitude_error_deg:
-            rot = rot * Rotation.from_rotvec(attitude_error(t, cfg.attitude_error_deg,
-                                                            cfg.seed))
+            rot = rot * Rotation.from_rotvec(attitude_error(t, cfg.attitude_error_deg, cfg.seed))
         return Dataset(t=t, raw=raw, temp=temp, ref_total=ref_total, aux=aux,
                        meta={'truth_field': b, 'simulator': cfg},
                        attitude=rot.as_quat(scalar_first=True) if cfg.attitude else None)
@@ -357,8 +351,7 @@ def simulate(config=None, **overrides):
     sim = Simulator(config, **overrides)
     t = np.arange(sim.config.n_samples) / sim.config.rate_hz
     set_truth_refs(sim, t)
-    data = sim.sample(t)
-    return data, sim
+    return sim.sample(t), sim
 
 
 def simulate_chunks(config=None, rows=65536, **overrides):
@@ -413,9 +406,8 @@ def parse_truth(items):
                 cut = i
         token, values = item[:cut].strip(), item[cut + 1:]
         if cut < 0 or not token:
-            raise ValueError(f'{item!r}: expected TERM=v1,v2,... '
-                             '(e.g. temperature@2=3,-2,1.5,0,0,0 or '
-                             'offset(window(20, 40))@2=30,0,0)')
+            raise ValueError(f'{item!r}: expected TERM=v1,v2,... (e.g. temperature@2=3,-2,1.5,'
+                             '0,0,0 or offset(window(20, 40))@2=30,0,0)')
         try:
             nums = [float(v) for v in values.split(',')]
         except ValueError:

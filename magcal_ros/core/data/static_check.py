@@ -30,6 +30,7 @@ Differences are judged against the calibration's own scalar residual RMS (an err
 size that depends on the direction is expected), not the static noise.
 """
 from dataclasses import dataclass, field
+from itertools import combinations
 
 import numpy as np
 
@@ -78,29 +79,24 @@ def check_static(corrected, reference_nt, residual_rms_nt):
                      'minus_reference_nt': float(mag.mean() - reference_nt)})
     out = StaticCheck(rows=rows, tolerance_nt=tol)
     same, other = [], []
-    for a in range(len(rows)):
-        for c in range(a + 1, len(rows)):
-            ra, rc = rows[a], rows[c]
-            ang = float(np.degrees(np.arccos(np.clip(ra['direction'] @ rc['direction'],
-                                                     -1.0, 1.0))))
-            diff = rc['b_nt'] - ra['b_nt']
-            (same if ang < SAME_ATTITUDE_DEG else other).append(
-                (ra['name'], rc['name'], ang, diff))
+    for ra, rc in combinations(rows, 2):
+        ang = float(np.degrees(np.arccos(np.clip(ra['direction'] @ rc['direction'], -1.0, 1.0))))
+        (same if ang < SAME_ATTITUDE_DEG else other).append(
+            (ra['name'], rc['name'], ang, rc['b_nt'] - ra['b_nt']))
     out.same_attitude = same
     changed = set()             # recordings known to see another field than a twin
     for a, c, ang, diff in same:
         if abs(diff) > tol:
             changed.update((a, c))
             out.findings.append(
-                f'{a} and {c} see the field from the same attitude ({ang:.1f} deg apart) '
-                f'but their |B| differs by {abs(diff):.0f} nT (> {tol:.0f} nT, {AGREE_FACTOR:g}'
-                " x the calibration residual): the field at the sensor or the sensor's "
-                'offset changed between these recordings (another place, a magnetised '
-                'object nearby, a power cycle); no calibration can reconcile them')
-    agree = [(a, c, ang, diff) for a, c, ang, diff in other if abs(diff) <= tol]
-    for a, c, ang, diff in agree:
+                f'{a} and {c} see the field from the same attitude ({ang:.1f} deg apart) but '
+                f'their |B| differs by {abs(diff):.0f} nT (> {tol:.0f} nT, {AGREE_FACTOR:g} x the '
+                "calibration residual): the field at the sensor or the sensor's offset changed "
+                'between these recordings (another place, a magnetised object nearby, a power '
+                'cycle); no calibration can reconcile them')
+    for a, c, ang, diff in other:
         ra = next(r for r in rows if r['name'] == a)
-        if abs(ra['minus_reference_nt']) > tol:
+        if abs(diff) <= tol and abs(ra['minus_reference_nt']) > tol:
             out.findings.append(
                 f'{a} and {c} lie {ang:.0f} deg apart in attitude yet agree on |B| within '
                 f'{abs(diff):.0f} nT: the calibration holds there; their |B| is '
@@ -109,24 +105,23 @@ def check_static(corrected, reference_nt, residual_rms_nt):
                 '(another place or time)')
     for a, c, ang, diff in other:
         if abs(diff) > tol and (a in changed or c in changed):
-            out.findings.append(
-                f'{a} and {c} ({ang:.0f} deg apart in attitude) differ by {abs(diff):.0f} nT, '
-                'as expected after the change of field named above')
+            out.findings.append(f'{a} and {c} ({ang:.0f} deg apart in attitude) differ by '
+                                f'{abs(diff):.0f} nT, as expected after the change of field '
+                                'named above')
         elif abs(diff) > tol:
             out.findings.append(
-                f'{a} and {c} ({ang:.0f} deg apart in attitude) differ by {abs(diff):.0f} nT: '
-                'the calibration does not hold at these attitudes, or the field changed '
-                'between the recordings; the recordings cannot tell which')
+                f'{a} and {c} ({ang:.0f} deg apart in attitude) differ by {abs(diff):.0f} nT: the '
+                'calibration does not hold at these attitudes, or the field changed between the '
+                'recordings; the recordings cannot tell which')
     off = [r for r in rows if abs(r['minus_reference_nt']) > tol]
     out.consistent = not out.findings and not off
     if out.consistent:
-        out.findings.append(
-            f'all {len(rows)} recordings give |B| within {tol:.0f} nT of the reference '
-            f'{reference_nt:.0f} nT: the calibration is confirmed at their attitudes')
+        out.findings.append(f'all {len(rows)} recordings give |B| within {tol:.0f} nT of the '
+                            f'reference {reference_nt:.0f} nT: the calibration is confirmed at '
+                            'their attitudes')
     elif off and not out.findings:
-        out.findings.append(
-            f'the recordings agree with each other but their |B| is '
-            f'{min(r["minus_reference_nt"] for r in off):+.0f} to '
-            f'{max(r["minus_reference_nt"] for r in off):+.0f} nT off the reference: the '
-            "field differs from the calibration's")
+        off = [r['minus_reference_nt'] for r in off]
+        out.findings.append(f'the recordings agree with each other but their |B| is '
+                            f'{min(off):+.0f} to {max(off):+.0f} nT off the reference: the '
+                            "field differs from the calibration's")
     return out

@@ -36,9 +36,7 @@ class AttitudeError(ValueError):
 def _where(k, t=None, rows=None):
     if rows is not None:
         return f'data row {rows[k]}'
-    if t is not None:
-        return f'epoch {k} (t = {float(t[k]):.3f} s)'
-    return f'epoch {k}'
+    return f'epoch {k}' + ('' if t is None else f' (t = {float(t[k]):.3f} s)')
 
 
 def check_quaternions(q, t=None, rows=None, tol=UNIT_TOLERANCE):
@@ -55,18 +53,17 @@ def check_quaternions(q, t=None, rows=None, tol=UNIT_TOLERANCE):
     bad = ~np.isfinite(q)
     if bad.any():
         k, c = np.argwhere(bad)[0]
-        raise AttitudeError(
-            f'attitude: {_where(k, t, rows)}: {COLUMNS[c]} is not a number ({q[k, c]!r}); '
-            f'{int(bad.any(axis=1).sum())} rows are affected: give all four attitude columns '
-            'in every row or drop those rows')
+        raise AttitudeError(f'attitude: {_where(k, t, rows)}: {COLUMNS[c]} is not a number '
+                            f'({q[k, c]!r}); {int(bad.any(axis=1).sum())} rows are affected: give '
+                            'all four attitude columns in every row or drop those rows')
     norm = np.linalg.norm(q, axis=1)
     off = np.abs(norm - 1.0) > tol
     if off.any():
         k = int(np.flatnonzero(off)[0])
         raise AttitudeError(
-            f'attitude: {_where(k, t, rows)}: |q| = {norm[k]:.6g}, not a unit quaternion '
-            f'({int(off.sum())} rows beyond |q| = 1 +- {tol:g}); att_qw..att_qz must be the '
-            'unit quaternion (Hamilton, scalar first) of the body-to-world rotation')
+            f'attitude: {_where(k, t, rows)}: |q| = {norm[k]:.6g}, not a unit quaternion ('
+            f'{int(off.sum())} rows beyond |q| = 1 +- {tol:g}); att_qw..att_qz must be the unit '
+            'quaternion (Hamilton, scalar first) of the body-to-world rotation')
     q = q / norm[:, None]
     # q and -q are the same rotation: make the sequence continuous (no effect on R)
     flip = np.concatenate([[False], np.einsum('ij,ij->i', q[1:], q[:-1]) < 0])
@@ -82,10 +79,8 @@ def interpolate(t_msg, q_msg, t):
     quaternions (qw, qx, qy, qz), ``t`` (N,) s inside their span; returns (N, 4).
     """
     from scipy.spatial.transform import Rotation, Slerp
-    t_msg = np.asarray(t_msg, float)
-    order = np.argsort(t_msg, kind='stable')
-    t_u, first = np.unique(t_msg[order], return_index=True)
-    rot = Rotation.from_quat(np.asarray(q_msg, float)[order][first], scalar_first=True)
+    t_u, first = np.unique(np.asarray(t_msg, float), return_index=True)     # the first of each
+    rot = Rotation.from_quat(np.asarray(q_msg, float)[first], scalar_first=True)
     if len(t_u) == 1:
         return np.repeat(rot.as_quat(scalar_first=True), len(t), axis=0)
     return Slerp(t_u, rot)(np.asarray(t, float)).as_quat(scalar_first=True)
@@ -151,13 +146,11 @@ def check_against_field(rot, field_body, t=None, max_deg=MAX_FIELD_DISAGREEMENT_
     k = int(np.flatnonzero(bad)[0])
     frac = bad.mean()
     hint = ('most epochs disagree: check the convention (body-to-world, not world-to-body; '
-            'Hamilton, scalar first: att_qw is the scalar), that the IMU axes are the '
-            "array's (sensor 1's) axes, and that the attitude and magnetometer stamps share "
-            'one clock (a lag of a few tenths of a second while turning does this too)'
-            if frac > 0.3 else
+            "Hamilton, scalar first: att_qw is the scalar), that the IMU axes are the array's "
+            "(sensor 1's) axes, and that the attitude and magnetometer stamps share one clock (a "
+            'lag of a few tenths of a second while turning does this too)' if frac > 0.3 else
             'a jump or a time lag of the attitude against the magnetometer: check the IMU '
             'stream and its time stamps, or drop those rows')
-    raise AttitudeError(
-        f'attitude: {_where(k, t)}: the field seen by the array points {ang[k]:.1f} deg away '
-        f'from its median world direction ({int(bad.sum())} of {len(ang)} epochs beyond '
-        f'{max_deg:g} deg); {hint}')
+    raise AttitudeError(f'attitude: {_where(k, t)}: the field seen by the array points '
+                        f'{ang[k]:.1f} deg away from its median world direction ({int(bad.sum())} '
+                        f'of {len(ang)} epochs beyond {max_deg:g} deg); {hint}')

@@ -65,21 +65,19 @@ class Coverage:
         """Return one line naming what is missing from the attitudes, and what to do."""
         ev = self.eigenvalues
         if self.narrow:
-            return ('field directions span only a %.0f deg cone around %s: turn the sensor '
-                    'over / through larger angles (spread eigenvalues %.3g, %.3g, %.3g; '
-                    'each should exceed %.3g)'
-                    % (self.cone_half_angle_deg, _fmt_vec(self.mean_direction),
-                       ev[0], ev[1], ev[2], self.planar_threshold))
+            return (f'field directions span only a {self.cone_half_angle_deg:.0f} deg cone '
+                    f'around {_fmt_vec(self.mean_direction)}: turn the sensor over / through '
+                    f'larger angles (spread eigenvalues {ev[0]:.3g}, {ev[1]:.3g}, {ev[2]:.3g}; '
+                    f'each should exceed {self.planar_threshold:.3g})')
         if self.planar:
-            return ('all field directions lie near one plane with normal %s: rotate about '
-                    'another axis (tilt the normal %s away from the rotation axis, e.g. lay '
-                    'the sensor on its side, and rotate again; smallest spread eigenvalue '
-                    '%.3g < %.3g)'
-                    % (_fmt_vec(self.normal), _fmt_vec(self.normal), ev[0],
-                       self.planar_threshold))
-        return ('directions cover the sphere (%d directions, spread eigenvalues %.3g, %.3g, '
-                '%.3g; 1/3 each is ideal, each should exceed %.3g)'
-                % (self.n, ev[0], ev[1], ev[2], self.planar_threshold))
+            normal = _fmt_vec(self.normal)
+            return (f'all field directions lie near one plane with normal {normal}: rotate '
+                    f'about another axis (tilt the normal {normal} away from the rotation axis, '
+                    'e.g. lay the sensor on its side, and rotate again; smallest spread '
+                    f'eigenvalue {ev[0]:.3g} < {self.planar_threshold:.3g})')
+        return (f'directions cover the sphere ({self.n} directions, spread eigenvalues '
+                f'{ev[0]:.3g}, {ev[1]:.3g}, {ev[2]:.3g}; 1/3 each is ideal, each should exceed '
+                f'{self.planar_threshold:.3g})')
 
 
 def direction_coverage(vectors, planar_threshold=0.02) -> Coverage:
@@ -92,8 +90,7 @@ def direction_coverage(vectors, planar_threshold=0.02) -> Coverage:
     """
     v = np.asarray(vectors, dtype=float)
     if v.ndim != 2 or v.shape[1] != 3 or v.shape[0] < 1:
-        raise ValueError('vectors must have shape (N, 3) with N >= 1, got %s'
-                         % (v.shape,))
+        raise ValueError('vectors must have shape (N, 3) with N >= 1, got %s' % (v.shape,))
     if not np.all(np.isfinite(v)):
         raise ValueError('vectors contain NaN or inf: drop those samples first')
     if not 0.0 < planar_threshold <= 1.0 / 3.0:
@@ -105,12 +102,9 @@ def direction_coverage(vectors, planar_threshold=0.02) -> Coverage:
     u = v / norms[:, None]
     mean = u.mean(axis=0)
     d = u - mean
-    scatter = d.T @ d / len(u)
-    eigenvalues, eigenvectors = np.linalg.eigh(scatter)
+    eigenvalues, eigenvectors = np.linalg.eigh(d.T @ d / len(u))
     eigenvalues = np.clip(eigenvalues, 0.0, None)
-    normal = eigenvectors[:, 0].copy()
-    if normal @ mean < 0.0:
-        normal = -normal
+    normal = eigenvectors[:, 0] * (-1.0 if eigenvectors[:, 0] @ mean < 0.0 else 1.0)
     rbar = float(np.linalg.norm(mean))
     if rbar > 1e-12:
         mean_dir = mean / rbar

@@ -31,22 +31,12 @@ def tensor_cross(b, baseline_m=0.5):
     """
     b = np.asarray(b, float)
     one = b.ndim == 2
-    if one:
-        b = b[:, None]
+    b = b[:, None] if one else b
     if b.shape[0] != 4 or b.shape[2] != 3:
         raise ValueError(f'expected the field of 4 sensors, shape (4, N, 3); got {b.shape}')
-    b1, b2, b3, b4 = b
-    g = np.empty((b.shape[1], 3, 3))
-    g[:, 0, 0] = b1[:, 0] - b3[:, 0]
-    g[:, 0, 1] = b2[:, 0] - b4[:, 0]
-    g[:, 0, 2] = b1[:, 2] - b3[:, 2]
-    g[:, 1, 0] = b1[:, 1] - b3[:, 1]
-    g[:, 1, 1] = b2[:, 1] - b4[:, 1]
-    g[:, 1, 2] = b2[:, 2] - b4[:, 2]
-    g[:, 2, 0] = b1[:, 2] - b3[:, 2]
-    g[:, 2, 1] = b2[:, 2] - b4[:, 2]
-    g[:, 2, 2] = b4[:, 1] - b2[:, 1] + b3[:, 0] - b1[:, 0]
-    g /= baseline_m
+    d13, d24 = b[0] - b[2], b[1] - b[3]     # the columns x and y; z from symmetry, trace 0
+    gz = np.stack([d13[:, 2], d24[:, 2], b[3, :, 1] - b[1, :, 1] + b[2, :, 0] - b[0, :, 0]], 1)
+    g = np.stack([d13, d24, gz], axis=2) / baseline_m
     return g[0] if one else g
 
 
@@ -71,29 +61,25 @@ def tensor_operator(positions):
     basis = vt.T        # principal directions, last = normal if planar
     # unknowns in that frame: B0 (3) + in-plane columns G'[:, :rank]
     rp = rc @ basis     # (S, 3)
-    n_unk = 3 + 3 * rank
     # rows 3 k + i: B0_i + sum_c rp[k, c] G'[i, c] (+ 0.0: zeros, not kron's -0.0)
     design = np.hstack([np.tile(np.eye(3), (s, 1)), np.kron(rp[:, :rank], np.eye(3)) + 0.0])
     rot = np.kron(np.eye(s), basis.T)
     if rank == 3:
         # G' symmetric traceless: its column-major vec is its row-major one, TENSOR_MAP g
-        full = np.zeros((n_unk, 8))
+        full = np.zeros((12, 8))
         full[:3, :3] = np.eye(3)
         full[3:, 3:] = TENSOR_MAP
-        sol = np.linalg.pinv(design @ full) @ rot
-        x = full @ sol
+        x = full @ (np.linalg.pinv(design @ full) @ rot)
         cols = x[3:].reshape(3, 3, -1)          # [column c][row i]
     else:
         x = np.linalg.pinv(design) @ rot
-        c0 = x[3:6]
-        c1 = x[6:9]
+        c0, c1 = x[3:6], x[6:9]
         c2 = np.stack([c0[2], c1[2], -c0[0] - c1[1]])   # symmetry + zero trace
         cols = np.stack([c0, c1, c2])
     g_prime = np.transpose(cols, (1, 0, 2))      # (3 rows, 3 cols, 3S)
     # back to the array frame: G = basis G' basis^T, B0 = basis B0'
     g = np.einsum('ia,abk,jb->ijk', basis, g_prime, basis)
-    b0 = basis @ x[:3]
-    return np.vstack([b0, g.reshape(9, -1)])
+    return np.vstack([basis @ x[:3], g.reshape(9, -1)])      # B0 = basis B0'
 
 
 def tensor_lstsq(b, positions):
@@ -117,8 +103,7 @@ def tensor_noise_floor(sigma_nt, positions):
     sigma_nt is the per-axis noise (scalar or (S,)) of the corrected fields.
     """
     op = tensor_operator(positions)[3:]
-    s = len(positions)
-    var = np.repeat(np.broadcast_to(np.asarray(sigma_nt, float) ** 2, (s,)), 3)
+    var = np.repeat(np.broadcast_to(np.asarray(sigma_nt, float) ** 2, (len(positions),)), 3)
     return np.sqrt((op ** 2) @ var).reshape(3, 3)
 
 
@@ -145,9 +130,7 @@ def gradient_from_fit(model, params, covariance):
     """
     for eff, sl in zip(model.array_effects, model.array_slices):
         if eff.name == 'site_gradient':
-            g5 = params[sl]
             c5 = covariance[sl, sl]
-            cov9 = TENSOR_MAP @ c5 @ TENSOR_MAP.T
-            se = np.sqrt(np.clip(np.diag(cov9), 0, None)).reshape(3, 3)
-            return symmetric_traceless(g5), se, c5
+            se = np.sqrt(np.clip(np.diag(TENSOR_MAP @ c5 @ TENSOR_MAP.T), 0, None)).reshape(3, 3)
+            return symmetric_traceless(params[sl]), se, c5
     return None

@@ -40,11 +40,10 @@ def turn_axis(m):
     w, v = np.linalg.eigh(c.T @ c / len(m))
     n = v[:, 0]
     if w[1] <= 0 or w[0] > 0.25 * w[1]:
-        raise PlanarError(
-            'the readings do not lie near one plane (principal spreads '
-            f'{", ".join(f"{np.sqrt(max(x, 0)):.0f}" for x in w)} nT): the sensor did not turn '
-            'about one axis; planar mode is for a turn in place about one axis (drop '
-            '--planar for a full calibration)')
+        spreads = ', '.join(f'{np.sqrt(max(x, 0)):.0f}' for x in w)
+        raise PlanarError(f'the readings do not lie near one plane (principal spreads {spreads} '
+                          'nT): the sensor did not turn about one axis; planar mode is for a turn '
+                          'in place about one axis (drop --planar for a full calibration)')
     return n if n @ m.mean(axis=0) >= 0 else -n
 
 
@@ -56,6 +55,12 @@ def circle_centre(xy):
     return sol[:-1]
 
 
+def _plane(axis):
+    """(index of the sensor axis nearest ``axis`` (3,), the two other indices)."""
+    k = int(np.argmax(np.abs(axis)))
+    return k, [a for a in range(3) if a != k]
+
+
 def planar_magnitude(raw, axis):
     """
     Return a shape-only magnitude (nT) for a turn with no reference.
@@ -64,10 +69,8 @@ def planar_magnitude(raw, axis):
     unit; raw (N, 3) nT.  The sensor's common scale is then arbitrary, its shape is not.
     """
     raw = np.asarray(raw, float)
-    k = int(np.argmax(np.abs(axis)))
-    plane = [a for a in range(3) if a != k]
-    centre = circle_centre(raw[:, plane])
-    r = float(np.median(np.linalg.norm(raw[:, plane] - centre, axis=1)))
+    k, plane = _plane(axis)
+    r = float(np.median(np.linalg.norm(raw[:, plane] - circle_centre(raw[:, plane]), axis=1)))
     return float(np.hypot(r, np.mean(raw[:, k])))
 
 
@@ -86,9 +89,7 @@ def swept_angle(m):
         n = turn_axis(m)
     except PlanarError:
         n = np.array([0.0, 0.0, 1.0])
-    k = int(np.argmax(np.abs(n)))
-    plane = [a for a in range(3) if a != k]
-    xy = m[:, plane]
+    xy = m[:, _plane(n)[1]]
     c = circle_centre(xy)
     radius = np.linalg.norm(xy - c, axis=1)
     if np.median(radius) < MIN_TURN_RADIUS * np.median(np.linalg.norm(m, axis=1)):

@@ -129,14 +129,10 @@ def gross_outliers(raw, fraction=GROSS_FRACTION):
         return out
     threshold = fraction * float(np.median(np.linalg.norm(raw[0], axis=1)))
     d = np.linalg.norm(raw[:, 1:-1] - 0.5 * (raw[:, :-2] + raw[:, 2:]), axis=2)  # (S, N-2)
-    for j in range(s):
-        if not np.median(d[j]) < 0.01 * threshold:
-            continue                # not smooth at this rate: nothing can be told
-        big = np.flatnonzero(d[j] > threshold)
-        for i in big:
-            lo, hi = max(0, i - 1), min(len(d[j]), i + 2)
-            if d[j, i] >= d[j, lo:hi].max():
-                out[j, i + 1] = True
+    side = np.pad(d, ((0, 0), (1, 1)), constant_values=-np.inf)
+    # not smooth at this rate (median d): nothing can be told
+    smooth = np.median(d, axis=1) < 0.01 * threshold
+    out[:, 1:-1] = smooth[:, None] & (d > threshold) & (d >= side[:, :-2]) & (d >= side[:, 2:])
     return out
 
 
@@ -215,6 +211,7 @@ def find_slips(raw, epochs=None, max_lag=DEFAULT_MAX_LAG, window=DEFAULT_WINDOW,
     cols = np.arange(n)
     for j in range(1, s):
         noise_cost = 3.0 * (noise[0] ** 2 + noise[j] ** 2)
+        fits = noise_factor * noise_cost        # the most a set at the noise costs
         shifted = np.stack([_shifted(u[j], lag, run) for lag in candidates])  # (L, N, 3)
 
         def rotation(y, use):
@@ -223,10 +220,8 @@ def find_slips(raw, epochs=None, max_lag=DEFAULT_MAX_LAG, window=DEFAULT_WINDOW,
             return procrustes_rotation(u[0][use], y[use])
 
         # the pairing as it is, unless one lag (its own rotation) explains the record better
-        med = []
-        for i in range(len(candidates)):
-            rot = rotation(shifted[i], np.ones(n, bool))
-            med.append(np.nanmedian(np.sum((u[0] - shifted[i] @ rot.T) ** 2, axis=1)))
+        med = [np.nanmedian(np.sum((u[0] - y @ rotation(y, np.ones(n, bool)).T) ** 2, axis=1))
+               for y in shifted]
         i_best = int(np.argmin(med))
         k = np.full(n, i_best if med[i_best] * min_contrast < med[k0] else k0)
         # alternate rotation and lags (on contrast alone: a rotation biased by slipped sets
@@ -249,7 +244,7 @@ def find_slips(raw, epochs=None, max_lag=DEFAULT_MAX_LAG, window=DEFAULT_WINDOW,
             take = w_best * min_contrast < windowed[k0]
             new = np.where(take, best, k0)
             if final or np.array_equal(new, k):
-                k = np.where(take & (w_best <= noise_factor * noise_cost), best, k0)
+                k = np.where(take & (w_best <= fits), best, k0)
                 break
             k = new
         # the window blurs a change of lag a -> b: put it where "a before, b after" fits best
@@ -274,10 +269,10 @@ def find_slips(raw, epochs=None, max_lag=DEFAULT_MAX_LAG, window=DEFAULT_WINDOW,
         for lo, hi in zip(np.r_[0, edges], np.r_[edges, n]):
             if lag[lo] == 0:
                 continue
-            c_l = cost[lag[lo] + k0, lo:hi]
             spread = np.linalg.eigvalsh(rate[lo:hi].T @ rate[lo:hi] / (hi - lo))[1]
-            c_l = np.nanmedian(c_l)        # medians: the sets at its ends may have lost
-            if (spread < MIN_SPREAD or not c_l <= noise_factor * noise_cost     # partners
+            # medians: the sets at its ends may have lost partners
+            c_l = np.nanmedian(cost[lag[lo] + k0, lo:hi])
+            if (spread < MIN_SPREAD or not c_l <= fits
                     or not np.nanmedian(cost[k0, lo:hi]) >= min_contrast * c_l):
                 lag[lo:hi] = 0
         # grow each re-paired stretch over neighbours that fit its lag (or have no partner at
@@ -293,15 +288,13 @@ def find_slips(raw, epochs=None, max_lag=DEFAULT_MAX_LAG, window=DEFAULT_WINDOW,
                 if lag[e] != 0:
                     return None
                 c = cost[ell + k0, e]
-                if not np.isfinite(c) or c <= noise_factor * noise_cost:
+                if not np.isfinite(c) or c <= fits:
                     return ell          # its partner is at this lag, or missing
-                if cost[k0, e] > noise_factor * noise_cost:
+                if cost[k0, e] > fits:
                     return DROP         # fits neither: its partner was lost in the slip
                 return None
             # its end sets must fit its lag too: else 0 if that fits, else drop them
-            fits = noise_factor * noise_cost
-            ends = list(range(lo, min(lo + 3, hi))) + list(range(max(hi - 3, lo), hi))
-            for e in ends:
+            for e in [*range(lo, min(lo + 3, hi)), *range(max(hi - 3, lo), hi)]:
                 if np.isfinite(cost[ell + k0, e]) and cost[ell + k0, e] > fits:
                     lag[e] = 0 if cost[k0, e] <= fits else DROP
             while lo > 0 and (g := grow(lo - 1)) is not None:
@@ -350,12 +343,9 @@ def resync(data, epochs=None, slips=None, drop_inconsistent=False, **kwargs):
     bad = None
     if drop_inconsistent and slips.inconsistent_sets is not None and \
             slips.inconsistent_sets.any():
-        bad = slips.inconsistent_sets.any(axis=0)
-        longer = find_slips(data.raw, epochs, max_lag=LONG_MAX_LAG)
-        if longer.inconsistent_sets is None:
-            bad = None          # too short a record for the longer search: none is known
-        else:
-            bad &= ~longer.inconsistent_sets.any(axis=0)
+        longer = find_slips(data.raw, epochs, max_lag=LONG_MAX_LAG).inconsistent_sets
+        # None: too short a record for the longer search, none is known
+        bad = None if longer is None else slips.inconsistent_sets.any(axis=0) & ~longer.any(axis=0)
     if not (slips.n_slipped.any() or slips.n_drop.any()):
         if bad is not None and bad.any():
             return (data.subset(np.flatnonzero(~bad)),
@@ -374,9 +364,7 @@ def resync(data, epochs=None, slips=None, drop_inconsistent=False, **kwargs):
         ok[ok] &= run[src[ok]] == run[ok]
         # a sample claimed by two sets (at a change of lag): keep neither pairing
         values, counts = np.unique(src[ok], return_counts=True)
-        dup = np.zeros(n, bool)
-        dup[ok] = np.isin(src[ok], values[counts > 1])
-        ok &= ~dup
+        ok[ok] &= ~np.isin(src[ok], values[counts > 1])
         keep &= ok
         raw[j, ok] = data.raw[j, src[ok]]
         if temp is not None:

@@ -87,25 +87,28 @@ def calibration_covariance_nt2(cal, j, field_nt):
             m = a_inv @ a - np.eye(3)
             d = a_inv @ (o - moved.offset(j))
             out += m @ m.T * field_nt ** 2 / 3.0 + np.outer(d, d)
-    return 0.5 * (out + out.T)
+    return _symmetric(out)
+
+
+def _symmetric(c):
+    """Return the symmetric part of a square matrix ``c`` (rounding makes products asymmetric)."""
+    return 0.5 * (c + c.T)
 
 
 class _Sensor:
     """The calibration of one sensor made ready for per-sample correction."""
 
     def __init__(self, cal, j, field_nt=None):
-        self.j = j
         self.a_inv = cal.correction_matrix(j)
         self.offset = cal.offset(j)
         self.needs = set(cal.signals(j)) - {'time'}
         self.driven = bool(cal.driven_effects(j))
         sigma = float(cal.sigma_nt[j - 1])
-        self.cov_nt2 = None           # sigma^2 A^-1 A^-T, nT^2
         self.cal_cov_nt2 = (calibration_covariance_nt2(cal, j, field_nt)
                             if field_nt else np.zeros((3, 3)))
-        if np.isfinite(sigma) and sigma > 0:
-            c = sigma ** 2 * self.a_inv @ self.a_inv.T
-            self.cov_nt2 = 0.5 * (c + c.T)
+        #: sigma^2 A^-1 A^-T, nT^2 (None: no noise estimate)
+        self.cov_nt2 = (_symmetric(sigma ** 2 * self.a_inv @ self.a_inv.T)
+                        if np.isfinite(sigma) and sigma > 0 else None)
         self.recent = deque(maxlen=3)    # (t s, raw (3,) nT) of the latest samples
         self.arrivals = deque(maxlen=PERIOD_WINDOW)
 
@@ -153,8 +156,7 @@ class LiveCorrector:
         self.gradient_op = None
         #: (9, 9) covariance of that tensor, (nT/m)^2; None: a sensor has no noise estimate
         self.gradient_cov_nt2 = None
-        self.no_gradient_reason = None
-        self.positions_m = None
+        self.no_gradient_reason = self.positions_m = None
         #: redundant combinations the check tests (3 S - 8; 0: none), and the largest
         #: chi-square that passes (at :data:`PAIRING_FALSE_ALARM`)
         self.pairing_dof, self.pairing_threshold = 0, np.inf
@@ -179,27 +181,24 @@ class LiveCorrector:
             block = np.zeros((3 * n_sensors, 3 * n_sensors))
             for k, c in enumerate(covs):
                 block[3 * k:3 * k + 3, 3 * k:3 * k + 3] = c
-            g = self.gradient_op @ block @ self.gradient_op.T
-            self.gradient_cov_nt2 = 0.5 * (g + g.T)
+            self.gradient_cov_nt2 = _symmetric(self.gradient_op @ block @ self.gradient_op.T)
             if check_pairing:
                 k = pairing_operator(pos, block)
-                self.pairing_dof = len(k)
-                if self.pairing_dof:
+                self.pairing_dof = dof = len(k)
+                if dof:
                     self._set_op = np.vstack([self.gradient_op, k])
                     # = scipy.stats.chi2.isf, without importing scipy.stats (BENCHMARKS.md)
                     from scipy.special import chdtri
-                    self.pairing_threshold = float(chdtri(self.pairing_dof,
-                                                          PAIRING_FALSE_ALARM))
+                    self.pairing_threshold = float(chdtri(dof, PAIRING_FALSE_ALARM))
                     self.matcher.misfit = self.pairing_chi2
                     self.matcher.threshold = self.pairing_threshold
         if check_pairing and self.pairing_dof:
             self.no_check_reason = None
         elif check_pairing:
-            self.no_check_reason = (
-                'sets are paired by stamps alone: ' + (
-                    'a sensor of the calibration has no noise estimate'
-                    if self.gradient_cov_nt2 is None else
-                    f'{n_sensors} sensors leave no redundancy to check a set'))
+            no_noise = self.gradient_cov_nt2 is None
+            self.no_check_reason = 'sets are paired by stamps alone: ' + (
+                'a sensor of the calibration has no noise estimate' if no_noise
+                else f'{n_sensors} sensors leave no redundancy to check a set')
 
     @property
     def needs_temperature(self):
@@ -367,11 +366,9 @@ class LiveCorrector:
             return []
         out = []
         for t_set, fields in self.sets(j, t, field_nt):
-            checked = self._checked
-            if checked is not None and checked[0] is fields:
-                g = checked[1][:9]
-            else:
-                g = self.gradient_op @ np.concatenate(fields)
+            checked = self._checked         # the check's product holds the tensor
+            g = (checked[1][:9] if checked is not None and checked[0] is fields
+                 else self.gradient_op @ np.concatenate(fields))
             out.append((t_set, g.reshape(3, 3)))
         return out
 
@@ -440,15 +437,10 @@ class ResidualMonitor:
         b = np.asarray(fields_nt, float)
         s = self.n_sensors
         scalar = np.sqrt(np.einsum('ij,ij->i', b, b)) - self.field_nt
-        if s > 1:
-            others = (b.sum(axis=0)[None, :] - b) / (s - 1)
-            vector = np.sqrt(np.sum((b - others) ** 2, axis=1))
-        else:
-            vector = np.full(1, np.nan)
+        others = (b.sum(axis=0)[None, :] - b) / max(s - 1, 1)         # mean of the others
+        vector = np.sqrt(np.sum((b - others) ** 2, axis=1)) if s > 1 else np.full(1, np.nan)
         k = self.count % self.window
-        self._fields[:, k] = b
-        self._scalar[:, k] = scalar
-        self._vector[:, k] = vector
+        self._fields[:, k], self._scalar[:, k], self._vector[:, k] = b, scalar, vector
         self.count += 1
         return scalar, vector
 
@@ -515,15 +507,12 @@ class SampleBuffer:
         """Add a set: epoch number, stamp t s, raw (S, 3) nT, temp (S,) degC (nan: none), aux."""
         k = self.count
         self.count += 1
-        if self.t_first is None:
-            self.t_first = float(t)
+        self.t_first = float(t) if self.t_first is None else self.t_first
         self.t_last = float(t)
+        if not k % self.stride and self.n == self.capacity:
+            self._thin()
         if k % self.stride:
             return
-        if self.n == self.capacity:
-            self._thin()
-            if k % self.stride:
-                return
         i = self.n
         self.epoch[i] = epoch
         self.t[i] = t
@@ -537,12 +526,10 @@ class SampleBuffer:
         """Keep every other set held (the 1st, 3rd, ...) and every 2 x stride-th from now."""
         keep = np.arange(0, self.n, 2)
         m = len(keep)
-        self.epoch[:m] = self.epoch[keep]
-        self.t[:m] = self.t[keep]
-        self.raw[:, :m] = self.raw[:, keep]
-        self.temp[:, :m] = self.temp[:, keep]
-        for arr in self.aux.values():
+        for arr in (self.epoch, self.t, *self.aux.values()):
             arr[:m] = arr[keep]
+        for arr in (self.raw, self.temp):
+            arr[:, :m] = arr[:, keep]
         self.n = m
         self.stride *= 2
 

@@ -129,11 +129,8 @@ def detector_residual(cal, data, field_nt):
     the :class:`Dataset` ``data``, whose temperatures and channels drive the effects.
     """
     s = data.n_sensors
-    r = np.empty((s, data.n_samples))
-    for j in range(1, s + 1):
-        ctx = data.context(j)
-        b = cal.correct(j, data.raw[j - 1], ctx)
-        r[j - 1] = np.linalg.norm(b, axis=1) - field_nt
+    r = np.stack([np.linalg.norm(cal.correct(j, data.raw[j - 1], data.context(j)), axis=1)
+                  for j in range(1, s + 1)]) - field_nt
     if s == 1:
         return r, r
     others = np.stack([np.median(np.delete(r, j, axis=0), axis=0) for j in range(s)])
@@ -150,13 +147,9 @@ _MEDIAN_VAR = {1: 1.0, 2: 0.5, 3: 0.4487, 4: 0.3573}
 
 def common_mode_variance(sigma):
     """(S,) variance of e_j under the noise alone, nT^2, from per-axis noise sds (S,) nT."""
-    sigma = np.asarray(sigma, float)
-    s = len(sigma)
-    if s == 1:
-        return sigma ** 2
-    f2 = sigma ** 2
-    m = s - 1
-    return f2 + _MEDIAN_VAR.get(m, np.pi / (2 * m)) * (f2.sum() - f2) / m
+    f2 = np.asarray(sigma, float) ** 2
+    m = len(f2) - 1
+    return f2 + _MEDIAN_VAR.get(m, np.pi / (2 * m)) * (f2.sum() - f2) / m if m else f2
 
 
 class _Run:
@@ -195,13 +188,9 @@ class Learner:
         self._count = 0                     # sets kept in the window (ring position)
         self._last_kept = -np.inf
         self._block = []                    # (t, raw (S, 3), temp (S,), aux dict)
-        self._block_start = None
         self._floors = []                   # recent blocks' per-axis noise floors (S,)
-        self.active = None
-        self.field_nt = None
-        self.state = TRACKING
-        self.onset = None                   # start of the change, s
-        self._since = _Run()                # the blocks since the onset
+        self.active = self.field_nt = None
+        self._restart(TRACKING)             # state, onset of the change (s), its blocks
         self._by_sensor = np.zeros(self.n)   # blocks since the onset each sensor exceeded
         self.changed = None                 # sensors (1-based) of the change adopted last
         self.last_z = None                  # (S,) z of the latest block
@@ -220,9 +209,7 @@ class Learner:
         """Start tracking calibration ``cal`` (magnitude ``field_nt`` nT) from time ``t``."""
         self.active = cal
         self.field_nt = float(field_nt)
-        self.state = TRACKING if t is None or not self.adoptions else ADOPTED
-        self.onset = None
-        self._since = _Run()
+        self._restart(TRACKING if t is None or not self.adoptions else ADOPTED)
         self.proposal = None
         if t is not None:
             self._last_refit = float(t)
@@ -256,30 +243,23 @@ class Learner:
             self._last_kept = t
         if self.active is None:
             return False
-        if self._block_start is None:
-            self._block_start = t
         self._block.append((t, raw, temp, aux))
-        if t - self._block_start < cfg.block_s:
+        if t - self._block[0][0] < cfg.block_s:
             return False
         self._judge_block()
         return True
 
     def _block_data(self, rows):
-        t = np.array([r[0] for r in rows], float)
-        raw = np.stack([np.asarray(r[1], float) for r in rows], axis=1)
-        temps = [r[2] for r in rows]
+        t, raw, temps, auxes = zip(*rows)
         temp = (None if any(x is None for x in temps) else
                 np.stack([np.asarray(x, float) for x in temps], axis=1))
-        aux = {}
-        for name in self._aux:
-            col = np.array([(r[3] or {}).get(name, np.nan) for r in rows], float)
-            if np.isfinite(col).all():
-                aux[name] = col
-        return Dataset(t=t, raw=raw, temp=temp, aux=aux)
+        aux = {name: np.array([(a or {}).get(name, np.nan) for a in auxes], float)
+               for name in self._aux}
+        return Dataset(t=np.array(t, float), raw=np.stack([np.asarray(r, float) for r in raw], 1),
+                       temp=temp, aux={k: c for k, c in aux.items() if np.isfinite(c).all()})
 
     def _judge_block(self):
         rows, self._block = self._block, []
-        self._block_start = None
         if len(rows) < 14:
             return
         data = self._block_data(rows)
@@ -295,48 +275,41 @@ class Learner:
         except Exception:        # noqa: B902 -- a driven effect without its signal: no verdict
             return
         v = common_mode_variance(sigma)
-        z = (np.median(np.abs(e), axis=1) * MAD_TO_SD) ** 2 / v
-        self.last_z = z
+        self.last_z = z = (np.median(np.abs(e), axis=1) * MAD_TO_SD) ** 2 / v
         self.last_block_t = t_end
-        limit = 1.0 + self.config.exceed_sigmas * Z_SD_UNIT / np.sqrt(e.shape[1])
-        over = np.sqrt(z) > limit
+        over = np.sqrt(z) > 1.0 + self.config.exceed_sigmas * Z_SD_UNIT / np.sqrt(e.shape[1])
         if self.state in (TRACKING, ADOPTED) and over.any():
             self._by_sensor[:] = 0
         self._by_sensor += over
         self._step(bool(np.any(over)), float(data.t[0]), t_end)
 
+    def _restart(self, state, onset=None):
+        """Enter ``state``, counting the blocks afresh from ``onset`` (s)."""
+        self.state, self.onset, self._since = state, onset, _Run()
+
     def _step(self, exceed, t_start, t_end):
-        cfg = self.config
         if self.state in (TRACKING, ADOPTED):
             if exceed:
-                self.state = CHANGE
-                self.onset = t_start
-                self._since = _Run()
+                self._restart(CHANGE, t_start)
                 self._since.add(True)
             return
         if self.state == READY:
             return                         # waiting for its adoption
         self._since.add(exceed)
-        if self._since.clean >= cfg.clear_blocks:
+        if self._since.clean >= self.config.clear_blocks:
             self.transients.append((self.onset, t_end))
             self.n_transients += 1
-            self.state = TRACKING
-            self.onset = None
-            self._since = _Run()
+            self._restart(TRACKING)
 
     def persistent(self, now):
         """Tell whether the change on has lasted ``persist_s`` and persists (see the module)."""
-        cfg = self.config
-        run = self._since
-        if self.state not in (CHANGE, UNDETERMINED) or self.onset is None or not run.blocks:
-            return False
-        return (now - self.onset >= cfg.persist_s and run.clean == 0
+        cfg, run = self.config, self._since
+        return (self.state in (CHANGE, UNDETERMINED) and self.onset is not None and run.blocks > 0
+                and now - self.onset >= cfg.persist_s and run.clean == 0
                 and run.exceeded >= cfg.persist_fraction * run.blocks)
 
     def changed_sensors(self):
         """Sensors (1-based tuple) that exceeded in at least half the blocks since the onset."""
-        if not self._since.blocks:
-            return tuple(range(1, self.n + 1))
         hit = np.flatnonzero(self._by_sensor >= 0.5 * self._since.blocks) + 1
         return tuple(int(j) for j in hit) or tuple(range(1, self.n + 1))
 
@@ -373,8 +346,7 @@ class Learner:
         if m >= 2:
             from magcal_ros.core.geometry.attitude import with_attitude
             try:
-                data, _ = with_attitude(data, self._att_t[:m], self._att_q[:m],
-                                        source='attitude')
+                data, _ = with_attitude(data, self._att_t[:m], self._att_q[:m], 'attitude')
             except ValueError:
                 pass                        # no overlap: the magnitude-only fit
             if data.n_samples < cfg.min_sets:
@@ -401,8 +373,8 @@ class Learner:
         self._last_refit = now
         persistent = self.persistent(now)
         # the block the change was first seen in holds sets of before it: from its end on
-        start = None if self.onset is None else self.onset + self.config.block_s
-        data = self.window(since=start if persistent else self._data_from)
+        data = self.window(since=self.onset + self.config.block_s if persistent
+                           else self._data_from)
         if data is None:
             return None
         fit_idx, held_idx = self.split(data)
@@ -410,24 +382,19 @@ class Learner:
             return None
         if persistent:
             sensors = self.changed_sensors()
-        elif self._data_from is not None:
-            sensors = self.changed or tuple(range(1, self.n + 1))
-        else:
-            sensors = tuple(range(1, self.n + 1))
+        else:           # all, or those of the change adopted last that this refines
+            sensors = (self._data_from is not None and self.changed) or tuple(range(1, self.n + 1))
         cal, doc, undetermined = refit_fn(data.subset(fit_idx), self.active, sensors)
-        held = data.subset(held_idx)
-        improvement, stderr, rms = self._validate(cal, held)
+        improvement, stderr, rms = self._validate(cal, data.subset(held_idx))
         converged = bool(doc.get('provenance', {}).get('converged', True))
         valid = bool(converged and np.isfinite(improvement) and np.isfinite(stderr)
                      and improvement > self.config.validate_sigmas * stderr)
         doc.setdefault('provenance', {})['learning'] = {
-            'window_s': [float(data.t[0]), float(data.t[-1])],
-            'sets': int(len(fit_idx)), 'held_out_sets': int(len(held_idx)),
-            'undetermined': list(undetermined),
+            'window_s': [float(data.t[0]), float(data.t[-1])], 'sets': int(len(fit_idx)),
+            'held_out_sets': int(len(held_idx)), 'undetermined': list(undetermined),
             'held_out_improvement': float(improvement),
-            'held_out_improvement_stderr': float(stderr),
-            'valid': valid, 'change_persistent': bool(persistent),
-            'sensors_learned': list(sensors),
+            'held_out_improvement_stderr': float(stderr), 'valid': valid,
+            'change_persistent': bool(persistent), 'sensors_learned': list(sensors),
             'held_out_rms_nt': {k: [float(x) for x in v] for k, v in rms.items()}}
         self.proposal = Proposal(cal, doc, list(undetermined), float(improvement),
                                  float(stderr), valid, bool(persistent), float(data.t[0]),
@@ -446,19 +413,19 @@ class Learner:
         e_act, r_act = detector_residual(self.active, held, self.field_nt)
         e_new, r_new = detector_residual(cal, held, self.field_nt)
         w = 1.0 / (sigma ** 2)[:, None]
-        a = (r_act ** 2 * w).sum(axis=0)
-        b = (r_new ** 2 * w).sum(axis=0)
-        if held.n_sensors > 1:
-            a = a + (e_act ** 2 / v[:, None]).sum(axis=0)
-            b = b + (e_new ** 2 / v[:, None]).sum(axis=0)
+
+        def score(e, r):
+            """Per set: the sum of r_j^2 / sigma_j^2, and of e_j^2 / v_j for an array."""
+            out = (r ** 2 * w).sum(axis=0)
+            return out + (e ** 2 / v[:, None]).sum(axis=0) if held.n_sensors > 1 else out
+        a, b = score(e_act, r_act), score(e_new, r_new)
         block = np.floor((held.t - held.t[0]) / self.config.holdout_block_s).astype(int)
         ids = np.unique(block)
         ratios = np.array([np.log(a[block == k].mean() / b[block == k].mean()) for k in ids])
         rms = {'active': np.sqrt(np.mean(e_act ** 2, axis=1)),
                'proposal': np.sqrt(np.mean(e_new ** 2, axis=1))}
-        if len(ratios) < 3:
-            return float(ratios.mean()), float('nan'), rms
-        return float(ratios.mean()), float(ratios.std(ddof=1) / np.sqrt(len(ratios))), rms
+        se = ratios.std(ddof=1) / np.sqrt(len(ratios)) if len(ratios) >= 3 else np.nan
+        return float(ratios.mean()), float(se), rms
 
     def adopt(self, now):
         """
@@ -478,15 +445,13 @@ class Learner:
         self.set_active(p.calibration, self.field_nt, now)
         if onset is not None:       # before the change (and its first block): another sensor
             self._data_from = onset + self.config.block_s
-        self.state = ADOPTED
-        return p
+        return p                    # set_active made the state ADOPTED
 
     def status(self):
         """JSON-ready state for /diagnostics: ``state``, ``message`` and values."""
         out = {'state': self.state, 'sets_seen': int(self.sets_seen),
                'window_sets': int(min(self._count, self.config.window_sets)),
-               'transients_not_learned': self.n_transients,
-               'adoptions': self.n_adoptions}
+               'transients_not_learned': self.n_transients, 'adoptions': self.n_adoptions}
         if self.last_z is not None:
             out['z'] = [round(float(x), 3) for x in self.last_z]
         if self.onset is not None:
@@ -510,11 +475,8 @@ def feed(learner, data, refit_fn, auto_adopt=True, on_adopt=None):
     detail)]: ``state`` on each change of state, ``refit`` and ``adopted`` with the
     :class:`Proposal`.
     """
-    events = []
-    state = learner.state
-    att = data.attitude
-    temp = data.temp
-    aux_names = list(data.aux or {})
+    events, state = [], learner.state
+    att, temp, aux_names = data.attitude, data.temp, list(data.aux or {})
     for k in range(data.n_samples):
         t = float(data.t[k])
         if att is not None:

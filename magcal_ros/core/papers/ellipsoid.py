@@ -20,6 +20,7 @@ These closed-form solutions are the starting values of the maximum-likelihood re
 """
 from dataclasses import dataclass
 
+from magcal_ros.core.geometry.turn import circle_centre
 import numpy as np
 
 #: the fitted quadric counts as an ellipsoid when its smallest eigenvalue exceeds this many
@@ -50,10 +51,8 @@ def reading_plane(raw):
     m = np.asarray(raw, float)
     w, vec = np.linalg.eigh(np.cov((m - m.mean(axis=0)).T))
     w = np.clip(w, 0.0, None)
-    if w[1] <= 0 or np.sqrt(w[0] / w[1]) >= PLANE_SD_RATIO:
-        return None
     n = vec[:, 0]
-    if ring_spread(m, n) >= RING_CV:
+    if w[1] <= 0 or np.sqrt(w[0] / w[1]) >= PLANE_SD_RATIO or ring_spread(m, n) >= RING_CV:
         return None
     return n if n[np.argmax(np.abs(n))] > 0 else -n
 
@@ -78,10 +77,7 @@ def ring_spread(u, normal):
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(normal, e1)
     p = np.column_stack([u @ e1, u @ e2])
-    # algebraic (Kasa) circle fit: |p|^2 = 2 p.c + k
-    sol, *_ = np.linalg.lstsq(np.column_stack([2 * p, np.ones(len(p))]),
-                              np.sum(p ** 2, axis=1), rcond=None)
-    r = np.linalg.norm(p - sol[:2], axis=1)
+    r = np.linalg.norm(p - circle_centre(p), axis=1)
     return float(np.std(r) / np.mean(r)) if np.mean(r) > 0 else 0.0
 
 
@@ -117,8 +113,7 @@ def quadric_definiteness(sv, vt, a_mat, n_rows):
     g = np.array([e[0] ** 2, e[1] ** 2, e[2] ** 2, 2 * e[1] * e[2], 2 * e[0] * e[2],
                   2 * e[0] * e[1], 0.0, 0.0, 0.0, 0.0])
     sigma2 = sv[-1] ** 2 / max(1, n_rows - len(sv) + 1)
-    proj = vt[:-1] @ g
-    var = float(sigma2 * np.sum((proj / sv[:-1]) ** 2))
+    var = float(sigma2 * np.sum((vt[:-1] @ g / sv[:-1]) ** 2))
     return float(lam[0]), float(np.sqrt(var))
 
 
@@ -168,8 +163,7 @@ def fit_ellipsoid(raw, field_nt, normalization='svd'):
     _, sv, vt = np.linalg.svd(design, full_matrices=False)
     if sv[-2] <= 1e-12 * sv[0]:
         # noise-free degenerate data: a whole family of quadrics passes through the points
-        raise ValueError(_undetermined_message(m, 'several quadrics fit these readings '
-                                                  'exactly'))
+        raise ValueError(_undetermined_message(m, 'several quadrics fit these readings exactly'))
     # determinacy against the noise (not a fixed singular-value ratio): the best quadric
     # must be an ellipsoid, its smallest eigenvalue positive beyond its own uncertainty
     a_svd = _quadric_matrix(vt[-1])
@@ -183,15 +177,13 @@ def fit_ellipsoid(raw, field_nt, normalization='svd'):
         v = vt[-1]
     elif normalization == 'p':
         # paper 004 eq. 9-10: divide by p, move 2x to the right-hand side
-        cols = [0, 1, 2, 3, 4, 5, 7, 8, 9]
-        sol, *_ = np.linalg.lstsq(design[:, cols], -2 * x, rcond=None)
+        sol, *_ = np.linalg.lstsq(np.delete(design, 6, axis=1), -2 * x, rcond=None)
         v = np.insert(sol, 6, 1.0)
     else:
         raise ValueError(f"normalization must be 'svd' or 'p', got {normalization!r}")
     a_mat = _quadric_matrix(v)                                       # eq. 11
     if np.linalg.eigvalsh(a_mat).mean() < 0:
-        v = -v
-        a_mat = -a_mat
+        v, a_mat = -v, -a_mat
     eig = np.linalg.eigvalsh(a_mat)
     if eig.min() <= 1e-9 * eig.max():
         raise ValueError(_undetermined_message(
@@ -206,9 +198,8 @@ def fit_ellipsoid(raw, field_nt, normalization='svd'):
     a_nt = a_mat * field_nt ** 2 / (k * s0 ** 2)
     b = c0 + s0 * centre_s
     c_inv = np.linalg.cholesky(a_nt).T            # (C^-1)^T C^-1 = A, C^-1 upper triangular
-    coeffs = v / np.linalg.norm(v)
-    res = np.linalg.norm((m - b) @ c_inv.T, axis=1) - field_nt
-    return EllipsoidFit(c_inv=c_inv, b=b, coeffs=coeffs, residual_nt=res)
+    return EllipsoidFit(c_inv=c_inv, b=b, coeffs=v / np.linalg.norm(v),
+                        residual_nt=np.linalg.norm((m - b) @ c_inv.T, axis=1) - field_nt)
 
 
 def procrustes_rotation(reference, other):

@@ -53,23 +53,19 @@ def _check_general(a, o):
 
 def _check_proper(q, what):
     if np.linalg.det(q) < 0.0:
-        raise ValueError(
-            'det(A) < 0: the sensor axes form a left-handed set (an axis sign or wiring '
-            'swap?), which %s cannot represent with positive scale factors; flip the sign '
-            'of the reversed axis first' % what)
+        raise ValueError(f'det(A) < 0: the sensor axes form a left-handed set (an axis sign or '
+                         f'wiring swap?), which {what} cannot represent with positive scale '
+                         'factors; flip the sign of the reversed axis first')
 
 
 def _vec3(value, name):
     v = np.array(value, dtype=float).reshape(-1)
     if v.shape != (3,):
-        raise ValueError('%s must have 3 elements, got shape %s'
-                         % (name, np.shape(value)))
+        raise ValueError('%s must have 3 elements, got shape %s' % (name, np.shape(value)))
     return v
 
 
-# --------------------------------------------------------------------------------------
-# paper 004
-# --------------------------------------------------------------------------------------
+# ---- paper 004 -----------------------------------------------------------------------
 
 # R1, R2, R3 of paper 004 eq. 3 and C_NO of eq. 2 live with the model's effects.
 
@@ -176,12 +172,9 @@ def table1_sensor(j) -> Paper004Params:
     """Return paper 004 Table 1's parameters of sensor ``j`` (1..4: at +x, +y, -x, -y)."""
     if j not in (1, 2, 3, 4):
         raise ValueError('paper 004 Table 1 has sensors 1..4, got %r' % (j,))
-    i, t = j - 1, _TABLE1_004
-    return Paper004Params(
-        kx=t['kx'][i], ky=t['ky'][i], kz=t['kz'][i],
-        psi=t['psi'][i], varphi=t['varphi'][i], theta=t['theta'][i],
-        b=np.array([t['bx'][i], t['by'][i], t['bz'][i]]),
-        alpha=t['alpha'][i], beta=t['beta'][i], gamma=t['gamma'][i])
+    p = {name: row[j - 1] for name, row in _TABLE1_004.items()}
+    b = np.array([p.pop('bx'), p.pop('by'), p.pop('bz')])
+    return Paper004Params(**p, b=b)
 
 
 def table1_correction(j):
@@ -199,9 +192,7 @@ def table1_correction(j):
     return table1_sensor(j).correction()
 
 
-# --------------------------------------------------------------------------------------
-# paper 000
-# --------------------------------------------------------------------------------------
+# ---- paper 000 -----------------------------------------------------------------------
 
 @dataclass(frozen=True, eq=False)
 class Paper000Params:
@@ -261,28 +252,18 @@ class Paper000Params:
         """
         a, o = _check_general(a, o)
         qt, rt = scipy.linalg.qr(a.T)
-        low = rt.T
-        q = qt.T
-        d = np.sign(np.diag(low))
-        low = low * d[None, :]
-        q = d[:, None] * q
+        d = np.sign(np.diag(rt))
+        low, q = rt.T * d[None, :], d[:, None] * qt.T
         _check_proper(q, 'paper 000 (L Q with Q a rotation)')
         sin_g = float(np.hypot(low[2, 0], low[2, 1]))
         beta = float(np.arctan2(low[2, 1], low[2, 0])) if sin_g > 0.0 else 0.0
-        params = cls(
-            alpha=float(np.arctan2(low[1, 0], low[1, 1])),
-            beta=beta,
-            gamma=float(np.arctan2(sin_g, low[2, 2])),
-            kx=float(low[0, 0]),
-            ky=float(np.hypot(low[1, 0], low[1, 1])),
-            kz=float(np.linalg.norm(low[2])),
-            B0=o.copy())
-        return params, q
+        return cls(alpha=float(np.arctan2(low[1, 0], low[1, 1])), beta=beta,
+                   gamma=float(np.arctan2(sin_g, low[2, 2])), kx=float(low[0, 0]),
+                   ky=float(np.hypot(low[1, 0], low[1, 1])), kz=float(np.linalg.norm(low[2])),
+                   B0=o.copy()), q
 
 
-# --------------------------------------------------------------------------------------
-# paper 002
-# --------------------------------------------------------------------------------------
+# ---- paper 002 -----------------------------------------------------------------------
 
 @dataclass(frozen=True, eq=False)
 class Paper002Params:

@@ -117,8 +117,7 @@ def fit_reference(He, Hm, strict=False, max_condition=100.0,
     he = np.asarray(He, dtype=float)
     hm = np.asarray(Hm, dtype=float)
     if he.ndim != 2 or he.shape[1] != 3 or hm.shape != he.shape:
-        raise ValueError('He and Hm must both have shape (N, 3), got %s and %s'
-                         % (he.shape, hm.shape))
+        raise ValueError(f'He and Hm must both have shape (N, 3), got {he.shape} and {hm.shape}')
     if not (np.all(np.isfinite(he)) and np.all(np.isfinite(hm))):
         raise ValueError('He and Hm must be finite: drop NaN/inf rows first')
     n = he.shape[0]
@@ -128,8 +127,6 @@ def fit_reference(He, Hm, strict=False, max_condition=100.0,
     # paper 002, eq. 5-7: rows [He^T 1], all three output components at once
     design = np.column_stack([he, np.ones(n)])
     sol, _, rank, _ = np.linalg.lstsq(design, hm, rcond=None)
-    k = sol[:3].T
-    hh = sol[3].copy()
     residual = hm - design @ sol
     col_norm = np.linalg.norm(design, axis=0)
     col_norm[col_norm == 0.0] = 1.0
@@ -142,11 +139,10 @@ def fit_reference(He, Hm, strict=False, max_condition=100.0,
     warning = None
     if coverage.narrow:
         warning = (
-            'reference field directions span only a %.0f deg cone around %s: K is not '
-            'determined in any direction across it and trades off against Hh; the '
-            'compensation is valid only near that direction. Turn the sensor over / through '
-            'larger angles.' % (coverage.cone_half_angle_deg,
-                                _fmt_vec(coverage.mean_direction)))
+            f'reference field directions span only a {coverage.cone_half_angle_deg:.0f} deg '
+            f'cone around {_fmt_vec(coverage.mean_direction)}: K is not determined in any '
+            'direction across it and trades off against Hh; the compensation is valid only '
+            'near that direction. Turn the sensor over / through larger angles.')
     elif coverage.planar:
         warning = (
             'reference field directions lie in one plane with normal %s (singular values of '
@@ -156,15 +152,14 @@ def fit_reference(He, Hm, strict=False, max_condition=100.0,
             'same axis. Add attitudes rotated about another axis.'
             % (_fmt_vec(weak), *singular_values, _fmt_vec(weak)))
     elif rank < 4 or cond > max_condition:
-        warning = (
-            'the design [He 1] is ill-conditioned (condition number %.3g after column '
-            'scaling, limit %.3g): K and Hh are poorly determined. Spread the attitudes more '
-            'widely.' % (cond, max_condition))
+        warning = (f'the design [He 1] is ill-conditioned (condition number {cond:.3g} after '
+                   f'column scaling, limit {max_condition:.3g}): K and Hh are poorly '
+                   'determined. Spread the attitudes more widely.')
     if warning is not None and strict:
         raise ValueError(warning)
-    return ReferenceFit(K=k, Hh=hh, residual=residual, singular_values=singular_values,
-                        condition_number=cond, coverage=coverage, unobservable_direction=weak,
-                        identifiable=warning is None, warning=warning,
+    return ReferenceFit(K=sol[:3].T, Hh=sol[3].copy(), residual=residual,
+                        singular_values=singular_values, condition_number=cond, coverage=coverage,
+                        unobservable_direction=weak, identifiable=warning is None, warning=warning,
                         xtx_inv=np.linalg.pinv(design.T @ design))
 
 

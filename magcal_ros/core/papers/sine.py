@@ -100,7 +100,7 @@ def fit_sine(theta_rad, y) -> SineFit:
     if not (np.all(np.isfinite(theta)) and np.all(np.isfinite(y))):
         raise ValueError('theta_rad and y must be finite: drop NaN/inf samples first')
     design = np.column_stack([np.sin(theta), np.cos(theta), np.ones_like(theta)])
-    if len(theta) < 3 or np.linalg.matrix_rank(design) < 3:
+    if np.linalg.matrix_rank(design) < 3:           # also for fewer than 3 samples
         raise ValueError('a sine fit needs at least 3 distinct turntable angles (modulo 360 '
                          'deg), got %d samples' % len(theta))
     coef, _, _, _ = np.linalg.lstsq(design, y, rcond=None)
@@ -136,8 +136,8 @@ def _check_position(theta, m, name):
     theta = np.asarray(theta, dtype=float)
     m = np.asarray(m, dtype=float)
     if m.ndim != 2 or m.shape[1] != 3 or theta.shape != (m.shape[0],):
-        raise ValueError('position %s: need theta (N,) and raw (N, 3) with the same N, got '
-                         '%s and %s' % (name, theta.shape, m.shape))
+        raise ValueError(f'position {name}: need theta (N,) and raw (N, 3) with the same N, got '
+                         f'{theta.shape} and {m.shape}')
     return theta, m
 
 
@@ -175,8 +175,7 @@ def calibrate_turntable(theta1, m1, theta2, m2, field_nt) -> Paper000Params:
     field, or a geometry eq. 13 cannot resolve.
     """
     if not np.isfinite(field_nt) or field_nt <= 0.0:
-        raise ValueError('field_nt must be a positive field magnitude in nT, got %r'
-                         % (field_nt,))
+        raise ValueError(f'field_nt must be a positive field magnitude in nT, got {field_nt!r}')
     f = fit_turntable(theta1, m1, theta2, m2)
     alpha = np.pi / 2 - abs(_wrap(f.y1.C - f.x1.C))            # paper 000, eq. 5
     bx0, by0 = f.x1.D, f.y1.D                                  # eq. 6
@@ -197,9 +196,8 @@ def calibrate_turntable(theta1, m1, theta2, m2, field_nt) -> Paper000Params:
     kzbz = (m[:, 2] - bz0 - f.k_zx * kxbx * cb * sg
             - (f.k_zx / f.k_yx) * kyby * sb * sg) / cg
     kx = np.sqrt(np.mean(kxbx ** 2 + (kyby / f.k_yx) ** 2 + (kzbz / f.k_zx) ** 2)) / field_nt
-    return Paper000Params(alpha=float(alpha), beta=float(beta), gamma=float(gamma),
-                          kx=float(kx), ky=float(f.k_yx * kx), kz=float(f.k_zx * kx),
-                          B0=np.array([bx0, by0, bz0]))
+    return Paper000Params(float(alpha), float(beta), float(gamma), float(kx),
+                          float(f.k_yx * kx), float(f.k_zx * kx), np.array([bx0, by0, bz0]))
 
 
 def correct(params: Paper000Params, raw):
@@ -246,18 +244,12 @@ def _turntable_attitudes(axis_a, axis_b, down, theta):
     horizontal plane; ``axis_a`` points at azimuth theta (from north towards east);
     ``axis_a x axis_b`` points down if ``down`` else up.
     """
-    e1 = axis_a
     e3 = np.cross(axis_a, axis_b)
     e3 = e3 / np.linalg.norm(e3)
-    e2 = np.cross(e3, e1)
-    sensor = np.column_stack([e1, e2, e3])
-    c, s = np.cos(theta), np.sin(theta)
-    zero = np.zeros_like(theta)
-    w1 = np.stack([c, s, zero], axis=-1)
+    sensor = np.column_stack([axis_a, np.cross(e3, axis_a), e3])
+    w1 = np.stack([np.cos(theta), np.sin(theta), np.zeros_like(theta)], axis=-1)
     w3 = np.broadcast_to(np.array([0.0, 0.0, 1.0 if down else -1.0]), w1.shape)
-    w2 = np.cross(w3, w1)
-    world = np.stack([w1, w2, w3], axis=-1)
-    return world @ sensor.T
+    return np.stack([w1, np.cross(w3, w1), w3], axis=-1) @ sensor.T
 
 
 def simulate_turntable(params: Paper000Params, field_nt, inclination_rad, n_steps,
