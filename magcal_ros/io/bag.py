@@ -66,9 +66,8 @@ def _typestore():
 def _hold(t_msg, v_msg, t):
     """Value of the last message at or before each time t (the first one before it)."""
     order = np.argsort(t_msg, kind='stable')
-    t_msg, v_msg = t_msg[order], v_msg[order]
-    i = np.searchsorted(t_msg, t, side='right') - 1
-    return v_msg[np.clip(i, 0, len(v_msg) - 1)]
+    i = np.searchsorted(t_msg[order], t, side='right') - 1
+    return v_msg[order][np.clip(i, 0, len(v_msg) - 1)]
 
 
 def _interp(t_msg, v_msg, t):
@@ -211,8 +210,6 @@ def _decode_fixed(datas, msgtype):
     values = np.zeros((m, k))
     ok = np.zeros(m, bool)
     lens = np.fromiter(map(len, datas), np.int64, m)
-    if m == 0:
-        return stamp, values, ok
     sizes = np.unique(lens)
     for n in sizes.tolist():
         if n < 4 + tail + (16 if has_header else 0):
@@ -512,9 +509,8 @@ class _Collector:
                 if 1 <= j <= s and len(tt):
                     temp[j - 1] = _interp(tt, vv, t)
         aux_out = {k: _hold(tt, vv, t) for k, (tt, vv) in self.aux.items() if len(tt)}
-        ref_total = None
-        if self.ref is not None and len(self.ref[0]):
-            ref_total = t_to_nt(_interp(self.ref[0], self.ref[1], t))
+        ref_total = (t_to_nt(_interp(*self.ref, t)) if self.ref is not None and len(self.ref[0])
+                     else None)
         data = Dataset(t=t, raw=raw, temp=temp, ref_total=ref_total, aux=aux_out,
                        meta={'source': str(path), 'namespace': ns or '/',
                              'dropped_epochs': self.dropped, 'topics': self.topics})
@@ -551,15 +547,10 @@ class _Collector:
         t1, v1 = self.mags[1]
         rest = np.flatnonzero(t1 > upto)
         self.mags[1] = (t1[rest], v1[rest])
-        for j in list(self.mags):
-            if j != 1:
-                self.mags[j] = trim(self.mags[j], hold_one=False)
-        for j in list(self.temps):
-            self.temps[j] = trim(self.temps[j])
-        for k in list(self.aux):
-            self.aux[k] = trim(self.aux[k])
-        if self.ref is not None:
-            self.ref = trim(self.ref)
+        self.mags.update({j: trim(tv, hold_one=False) for j, tv in self.mags.items() if j != 1})
+        self.temps = {j: trim(tv) for j, tv in self.temps.items()}
+        self.aux = {k: trim(tv) for k, tv in self.aux.items()}
+        self.ref = None if self.ref is None else trim(self.ref)
         self.imu = trim(self.imu)
 
 
