@@ -69,11 +69,9 @@ def log_format(path):
     if head.startswith(DATAFLASH_MAGIC):
         return 'dataflash'
     suffix = os.path.splitext(path)[1].lower()
-    if suffix == '.log' and (b'FMT, ' in head or b'FMT,' in head):
+    if suffix == '.log' and b'FMT,' in head:
         return 'dataflash-text'
-    if suffix in ('.bin', '.ulg'):
-        return 'ulog' if suffix == '.ulg' else 'dataflash'
-    return None
+    return {'.bin': 'dataflash', '.ulg': 'ulog'}.get(suffix)
 
 
 def read_vehicle_log(path, allow_gaps=False):

@@ -197,15 +197,10 @@ class Hmr2300AsciiEncoder(_Hmr2300Encoder):
     Field values are rounded to whole counts and saturated at the int16 range.
     """
 
-    @staticmethod
-    def format_counts(counts):
-        """Format one axis: sign or space, comma-grouped magnitude in 6 characters, 2 spaces."""
-        sign = '-' if counts < 0 else ' '
-        return f'{sign}{abs(counts):>6,}  '
-
     def encode(self, sample):
-        """Return the 28-byte ASCII reading of ``sample``."""
-        text = ''.join(self.format_counts(self.nt_to_counts(v)) for v in sample.field_nt)
+        """Return the 28-byte reading of ``sample`` (each axis: sign, 6 characters, 2 spaces)."""
+        counts = map(self.nt_to_counts, sample.field_nt)
+        text = ''.join(f"{'-' if c < 0 else ' '}{abs(c):>6,}  " for c in counts)
         return text.encode('ascii') + b'\r'
 
 
