@@ -307,12 +307,8 @@ def format_csv(data, comment=None):
     if data.attitude is not None:
         for i, c in enumerate(ATT_COLUMNS):
             cols[c] = data.attitude[:, i]
-    buf = _io.StringIO()
-    if comment:
-        for line in str(comment).splitlines():
-            buf.write(f'# {line}\n')
+    head = ''.join(f'# {line}\n' for line in str(comment).splitlines()) if comment else ''
     names = list(cols) + (['plane'] if data.plane is not None else [])
-    buf.write(','.join(names) + '\n')
     mat = np.column_stack([np.asarray(v, float) for v in cols.values()])
     fmt = ['%.6f'] + ['%.9f' if c in ATT_COLUMNS else '%.4f' for c in list(cols)[1:]]
     body = _io.StringIO()
@@ -320,8 +316,7 @@ def format_csv(data, comment=None):
     text = body.getvalue()
     if data.plane is not None:
         text = ''.join(f'{ln},{p}\n' for ln, p in zip(text.splitlines(), data.plane))
-    buf.write(text)
-    return buf.getvalue()
+    return head + ','.join(names) + '\n' + text
 
 
 def write_csv(path, data, comment=None):

@@ -509,9 +509,7 @@ def _gps(log, out):
 
 def _every(log, name, duration):
     """Read every k-th message of a fast stream so that it is read at ~SLOW_RATE_HZ."""
-    if not duration:
-        return 1
-    return max(1, int(log.count(name) / (duration * SLOW_RATE_HZ)))
+    return max(1, int(log.count(name) / (duration * SLOW_RATE_HZ))) if duration else 1
 
 
 def _aux(log, out, vehicle, duration):

@@ -115,8 +115,7 @@ def _gaps(t, periods=GAP_PERIODS):
 
 def _clean(stream):
     """Return (t, v) of a stream sorted by time, duplicates and non-finite rows dropped."""
-    t = np.asarray(stream.t, float)
-    v = np.asarray(stream.v, float)
+    t, v = np.asarray(stream.t, float), np.asarray(stream.v, float)
     ok = np.isfinite(t) & np.isfinite(v.reshape(len(v), -1)).all(axis=1)
     t, v = t[ok], v[ok]
     order = np.argsort(t, kind='stable')

@@ -189,10 +189,8 @@ class PortReader:
             pstats = self.parser.stats.copy()
             self._prune(now)
             in_window = sum(n for _, n in self._arrivals)
-            span = self.rate_window
-            if self._rate_origin is not None:
-                span = min(span, max(now - self._rate_origin, 1e-3))
-            rate = in_window / span if self._rate_origin is not None else 0.0
+            rate = 0.0 if self._rate_origin is None else in_window / min(
+                self.rate_window, max(now - self._rate_origin, 1e-3))
             return PortStats(
                 name=self.name, port=self.port, path=self._path, state=self._state,
                 rate_hz=rate, samples=self._samples, bytes_in=self._bytes,
@@ -398,8 +396,7 @@ class PtyDevice:
     def replug(self, link_path=None):
         """Unplug (if plugged) and plug a fresh pseudo-terminal, optionally at a new path."""
         with self._lock:
-            if self.plugged:
-                self.unplug()
+            self.close()
             self.plug(link_path)
 
     def write(self, data):
