@@ -200,8 +200,7 @@ def calibration_to_doc(cal, geometry=None, field_reference=None, provenance=None
             sdoc['axis_map'] = _mat(cal.model.axis_map(j))
         sensors.append(sdoc)
     prov = {'created': datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds'),
-            'software': 'magcal_ros'}
-    prov.update(provenance or {})
+            'software': 'magcal_ros', **(provenance or {})}
     doc = {'schema_version': SCHEMA_VERSION, 'kind': KIND, 'model': cal.model.spec(),
            'geometry': geometry or {}, 'field_reference': field_reference or {},
            'sensors': sensors}

@@ -214,10 +214,8 @@ class PortReader:
         for path in self._candidates():
             real = os.path.realpath(path)
             with _CLAIMED_LOCK:
-                owner = _CLAIMED.get(real)
-                if owner is not None and owner != id(self):
-                    continue
-                _CLAIMED[real] = id(self)
+                if _CLAIMED.setdefault(real, id(self)) != id(self):
+                    continue                    # open by another reader of this process
             try:
                 ser = self._factory(path, self.baudrate, timeout=self.timeout)
             except (serial.SerialException, OSError, ValueError) as exc:

@@ -385,8 +385,7 @@ class FluxgateSim:
 
     def __init__(self, settings):
         self.settings = settings
-        options = dict(settings.option)
-        self.encoders = [make_encoder(settings.protocol, **options)
+        self.encoders = [make_encoder(settings.protocol, **dict(settings.option))
                          for _ in range(settings.sensors)]
         self.sim = _simulator(dict(DEFAULTS, **vars(settings)))
         #: called as ``f(t, data)`` after each chunk is written: t (n,) s since start, data
