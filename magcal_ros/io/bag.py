@@ -479,9 +479,8 @@ class _Collector:
             period = float(np.median(np.diff(t_all))) if len(t_all) > 1 else 0.0
         sel = np.ones(len(t_all), bool) if final else t_all <= upto
         t = t_all[sel]
-        v1 = self.mags[1][1][order]
         raw = np.zeros((s, len(t), 3))         # a sensor without messages: all dropped
-        raw[0] = v1[sel]
+        raw[0] = self.mags[1][1][order][sel]
         keep = np.ones(len(t), bool)
         for j in range(2, s + 1):
             tj, vj = self.mags[j]
@@ -490,10 +489,9 @@ class _Collector:
             if len(tj) == 0:
                 keep[:] = False
                 continue
-            i = np.clip(np.searchsorted(tj, t), 1, len(tj) - 1) if len(tj) > 1 else np.zeros(
-                len(t), int)
-            if len(tj) > 1:
-                i = np.where(np.abs(tj[i - 1] - t) <= np.abs(tj[i] - t), i - 1, i)
+            # the nearest message (one message: the clip gives 0, and -1 is that message too)
+            i = np.clip(np.searchsorted(tj, t), 1, len(tj) - 1)
+            i = np.where(np.abs(tj[i - 1] - t) <= np.abs(tj[i] - t), i - 1, i)
             keep &= np.abs(tj[i] - t) <= 0.5 * period + 1e-9
             raw[j - 1] = vj[i]
         raw = t_to_nt(raw)
