@@ -250,17 +250,14 @@ def _setting(key, value, source):
         parse = parse_positions if key == 'sensor_positions_m' else parse_gradient
         return {key: None if value is None or len(value) == 0 else parse(
             ','.join(map(str, value)) if isinstance(value, (list, tuple)) else value)}
-    if key == 'unplug':
-        return {key: [v if isinstance(v, Unplug) else parse_unplug(v)
-                      for v in (value or []) if v]}
-    if key == 'truth':
-        return {key: [parse_truth_item(v) for v in (value or []) if v]}
+    lists = {'unplug': lambda v: v if isinstance(v, Unplug) else parse_unplug(v),
+             'truth': parse_truth_item, 'plugins': str, 'aux_topics': str}
+    if key in lists:                    # empty entries left out
+        return {key: [lists[key](v) for v in (value or []) if v]}
     if key in ('aux_period_s', 'imu_period_s', 'tilt_deg'):
         return {key: float(value)}
     if key == 'imu_topic':
         return {key: str(value or '')}
-    if key in ('plugins', 'aux_topics'):
-        return {key: [str(v) for v in (value or []) if v]}
     if key == 'dir':
         return {key: value} if value else {}
     if key == 'duration':
