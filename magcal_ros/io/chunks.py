@@ -37,10 +37,7 @@ class Record:
     """A recording on disk, read in chunks (``chunks(rows)``); ``size`` in ``unit``."""
 
     def __init__(self, path, kind, size, unit):
-        self.path = os.fspath(path)
-        self.kind = kind
-        self.size = size
-        self.unit = unit
+        self.path, self.kind, self.size, self.unit = os.fspath(path), kind, size, unit
 
     def chunks(self, rows=CHUNK_ROWS, progress=None):
         """Yield Dataset pieces of at most ``rows`` epochs; ``progress(done)`` in ``unit``."""
