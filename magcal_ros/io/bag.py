@@ -239,20 +239,21 @@ def _decode_fixed(datas, msgtype):
     return stamp, values, ok
 
 
+#: the fields read of a message rosbags decoded, by type (std_msgs: ``data``, no header)
+_FIELDS = {MAG_TYPE: attrgetter('magnetic_field.x', 'magnetic_field.y', 'magnetic_field.z'),
+           TEMP_TYPE: attrgetter('temperature'),
+           IMU_TYPE: attrgetter('orientation.x', 'orientation.y', 'orientation.z',
+                                'orientation.w', 'orientation_covariance'),
+           BATTERY_TYPE: attrgetter('current', 'voltage')}
+
+
 def _message_values(msg, msgtype):
     """Return (stamp ns or None, the fields read) of a message rosbags decoded."""
-    if msgtype == MAG_TYPE:
-        v = msg.magnetic_field
-        vals = (v.x, v.y, v.z)
-    elif msgtype == TEMP_TYPE:
-        vals = (msg.temperature,)
-    elif msgtype == IMU_TYPE:
-        o = msg.orientation
-        vals = (o.x, o.y, o.z, o.w, msg.orientation_covariance[0])
-    elif msgtype == BATTERY_TYPE:
-        vals = (msg.current, msg.voltage)
-    else:
+    if msgtype not in _FIELDS:
         return None, (msg.data,)
+    vals = _FIELDS[msgtype](msg)
+    if msgtype == IMU_TYPE:
+        vals = vals[:4] + (vals[4][0],)
     st = msg.header.stamp
     return int(st.sec) * 1_000_000_000 + int(st.nanosec), vals
 
