@@ -99,9 +99,8 @@ def read_ulog(path):
         raise VehicleLogError(f'{path}: ULog file version {head[7]}: only versions 0 and 1 are '
                               'supported (update pyulog and magcal_ros, or convert the log)')
     from pyulog import ULog
-    said = io.StringIO()
     try:
-        with contextlib.redirect_stdout(said):
+        with contextlib.redirect_stdout(io.StringIO()):          # pyulog's own prints
             u = ULog(path, message_name_filter_list=TOPICS)
     except Exception as exc:            # pyulog raises its own and struct errors
         raise VehicleLogError(f'{path}: cannot read this ULog ({type(exc).__name__}: {exc}): '
