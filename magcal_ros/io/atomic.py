@@ -13,6 +13,7 @@
 # limitations under the License.
 
 """Atomic file replacement: temporary file in the same directory, fsync, rename."""
+import contextlib
 import os
 import shutil
 import tempfile
@@ -45,10 +46,8 @@ def atomic_write_text(path, text, backup=True, fsync=os.fsync, binary=None):
             shutil.copy2(path, path + '.bak')
         os.replace(tmp, path)
     except BaseException:
-        try:
+        with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
-        except FileNotFoundError:
-            pass
         raise
     try:
         dfd = os.open(directory, os.O_RDONLY)

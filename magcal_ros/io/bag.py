@@ -66,9 +66,8 @@ def _typestore():
 def _hold(t_msg, v_msg, t):
     """Value of the last message at or before each time t (the first one before it)."""
     order = np.argsort(t_msg, kind='stable')
-    t_msg, v_msg = t_msg[order], v_msg[order]
-    i = np.searchsorted(t_msg, t, side='right') - 1
-    return v_msg[np.clip(i, 0, len(v_msg) - 1)]
+    i = np.searchsorted(t_msg[order], t, side='right') - 1
+    return v_msg[order][np.clip(i, 0, len(v_msg) - 1)]
 
 
 def _interp(t_msg, v_msg, t):
@@ -211,8 +210,6 @@ def _decode_fixed(datas, msgtype):
     values = np.zeros((m, k))
     ok = np.zeros(m, bool)
     lens = np.fromiter(map(len, datas), np.int64, m)
-    if m == 0:
-        return stamp, values, ok
     sizes = np.unique(lens)
     for n in sizes.tolist():
         if n < 4 + tail + (16 if has_header else 0):
@@ -242,20 +239,21 @@ def _decode_fixed(datas, msgtype):
     return stamp, values, ok
 
 
+#: the fields read of a message rosbags decoded, by type (std_msgs: ``data``, no header)
+_FIELDS = {MAG_TYPE: attrgetter('magnetic_field.x', 'magnetic_field.y', 'magnetic_field.z'),
+           TEMP_TYPE: attrgetter('temperature'),
+           IMU_TYPE: attrgetter('orientation.x', 'orientation.y', 'orientation.z',
+                                'orientation.w', 'orientation_covariance'),
+           BATTERY_TYPE: attrgetter('current', 'voltage')}
+
+
 def _message_values(msg, msgtype):
     """Return (stamp ns or None, the fields read) of a message rosbags decoded."""
-    if msgtype == MAG_TYPE:
-        v = msg.magnetic_field
-        vals = (v.x, v.y, v.z)
-    elif msgtype == TEMP_TYPE:
-        vals = (msg.temperature,)
-    elif msgtype == IMU_TYPE:
-        o = msg.orientation
-        vals = (o.x, o.y, o.z, o.w, msg.orientation_covariance[0])
-    elif msgtype == BATTERY_TYPE:
-        vals = (msg.current, msg.voltage)
-    else:
+    if msgtype not in _FIELDS:
         return None, (msg.data,)
+    vals = _FIELDS[msgtype](msg)
+    if msgtype == IMU_TYPE:
+        vals = vals[:4] + (vals[4][0],)
     st = msg.header.stamp
     return int(st.sec) * 1_000_000_000 + int(st.nanosec), vals
 
@@ -482,9 +480,8 @@ class _Collector:
             period = float(np.median(np.diff(t_all))) if len(t_all) > 1 else 0.0
         sel = np.ones(len(t_all), bool) if final else t_all <= upto
         t = t_all[sel]
-        v1 = self.mags[1][1][order]
         raw = np.zeros((s, len(t), 3))         # a sensor without messages: all dropped
-        raw[0] = v1[sel]
+        raw[0] = self.mags[1][1][order][sel]
         keep = np.ones(len(t), bool)
         for j in range(2, s + 1):
             tj, vj = self.mags[j]
@@ -493,10 +490,9 @@ class _Collector:
             if len(tj) == 0:
                 keep[:] = False
                 continue
-            i = np.clip(np.searchsorted(tj, t), 1, len(tj) - 1) if len(tj) > 1 else np.zeros(
-                len(t), int)
-            if len(tj) > 1:
-                i = np.where(np.abs(tj[i - 1] - t) <= np.abs(tj[i] - t), i - 1, i)
+            # the nearest message (one message: the clip gives 0, and -1 is that message too)
+            i = np.clip(np.searchsorted(tj, t), 1, len(tj) - 1)
+            i = np.where(np.abs(tj[i - 1] - t) <= np.abs(tj[i] - t), i - 1, i)
             keep &= np.abs(tj[i] - t) <= 0.5 * period + 1e-9
             raw[j - 1] = vj[i]
         raw = t_to_nt(raw)
@@ -512,9 +508,8 @@ class _Collector:
                 if 1 <= j <= s and len(tt):
                     temp[j - 1] = _interp(tt, vv, t)
         aux_out = {k: _hold(tt, vv, t) for k, (tt, vv) in self.aux.items() if len(tt)}
-        ref_total = None
-        if self.ref is not None and len(self.ref[0]):
-            ref_total = t_to_nt(_interp(self.ref[0], self.ref[1], t))
+        ref_total = (t_to_nt(_interp(*self.ref, t)) if self.ref is not None and len(self.ref[0])
+                     else None)
         data = Dataset(t=t, raw=raw, temp=temp, ref_total=ref_total, aux=aux_out,
                        meta={'source': str(path), 'namespace': ns or '/',
                              'dropped_epochs': self.dropped, 'topics': self.topics})
@@ -551,15 +546,10 @@ class _Collector:
         t1, v1 = self.mags[1]
         rest = np.flatnonzero(t1 > upto)
         self.mags[1] = (t1[rest], v1[rest])
-        for j in list(self.mags):
-            if j != 1:
-                self.mags[j] = trim(self.mags[j], hold_one=False)
-        for j in list(self.temps):
-            self.temps[j] = trim(self.temps[j])
-        for k in list(self.aux):
-            self.aux[k] = trim(self.aux[k])
-        if self.ref is not None:
-            self.ref = trim(self.ref)
+        self.mags.update({j: trim(tv, hold_one=False) for j, tv in self.mags.items() if j != 1})
+        self.temps = {j: trim(tv) for j, tv in self.temps.items()}
+        self.aux = {k: trim(tv) for k, tv in self.aux.items()}
+        self.ref = None if self.ref is None else trim(self.ref)
         self.imu = trim(self.imu)
 
 

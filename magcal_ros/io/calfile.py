@@ -23,6 +23,7 @@ a changed digit of a parameter, sigma_nt or a reference value.  A file without o
 before it existed) still loads.
 """
 import datetime
+import functools
 import glob
 import hashlib
 import json
@@ -105,7 +106,6 @@ SCHEMA = {
 
 _TYPE_WORDS = {'object': 'a mapping', 'array': 'a list', 'number': 'a number',
                'integer': 'an integer', 'string': 'a string', 'null': 'empty'}
-_VALIDATOR = []
 
 
 def _where(path):
@@ -127,14 +127,13 @@ def _schema_error(err, source):
                                         'early: truncated write?)')
         return CalibrationFileError(f'{at}: missing key {missing!r}; write the calibration '
                                     'again with magcal fit or roll back (magcal rollback)')
+    key = where.rsplit('.', 1)[-1] if where else 'the document'
     if err.validator == 'type':
         want = err.validator_value if isinstance(err.validator_value, list) \
             else [err.validator_value]
         what = ' or '.join(_TYPE_WORDS.get(w, w) for w in want)
-        key = where.rsplit('.', 1)[-1] if where else 'the document'
         problem = f'{key} is not {what} ({err.instance!r:.40})'
     elif err.validator in ('minItems', 'maxItems'):
-        key = where.rsplit('.', 1)[-1] if where else 'the document'
         problem = (f'{key} must have {"at least" if err.validator == "minItems" else "at most"}'
                    f' {err.validator_value} entries, has {len(err.instance)}')
     else:
@@ -142,6 +141,12 @@ def _schema_error(err, source):
     return CalibrationFileError(
         f'{source}: malformed calibration document: {where or "top level"}: {problem}; write '
         'it again with magcal fit or roll back (magcal rollback)')
+
+
+@functools.cache
+def _validator():
+    import jsonschema                        # here: not every user of calfile needs it
+    return jsonschema.Draft202012Validator(SCHEMA)
 
 
 def validate_document(doc, source='calibration'):
@@ -152,11 +157,8 @@ def validate_document(doc, source='calibration'):
     missing ``provenance`` (written last: the file was cut short) is told only when nothing
     earlier in the document is wrong, so that a cut inside the sensors names the sensor.
     """
-    if not _VALIDATOR:
-        import jsonschema                        # here: not every user of calfile needs it
-        _VALIDATOR.append(jsonschema.Draft202012Validator(SCHEMA))
     from jsonschema.exceptions import best_match
-    errors = list(_VALIDATOR[0].iter_errors(doc))
+    errors = list(_validator().iter_errors(doc))
     if not errors:
         return
     truncated = [e for e in errors if e.validator == 'required' and not e.absolute_path
@@ -198,8 +200,7 @@ def calibration_to_doc(cal, geometry=None, field_reference=None, provenance=None
             sdoc['axis_map'] = _mat(cal.model.axis_map(j))
         sensors.append(sdoc)
     prov = {'created': datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds'),
-            'software': 'magcal_ros'}
-    prov.update(provenance or {})
+            'software': 'magcal_ros', **(provenance or {})}
     doc = {'schema_version': SCHEMA_VERSION, 'kind': KIND, 'model': cal.model.spec(),
            'geometry': geometry or {}, 'field_reference': field_reference or {},
            'sensors': sensors}
@@ -252,25 +253,14 @@ def stamp_checksum(doc):
     """
     body = {k: v for k, v in doc.items() if k != 'checksum'}
     stamp = content_checksum(yaml.load(_yaml(body), Loader=_SAFE_LOADER))  # noqa: S506
-    out = {}
-    for k, v in body.items():
-        out[k] = v
-        if k == 'kind':
-            out['checksum'] = stamp
-    if 'checksum' not in out:
-        out = {'checksum': stamp, **out}
-    return out
+    items = list(body.items())
+    at = next((i + 1 for i, (k, _) in enumerate(items) if k == 'kind'), 0)
+    return dict(items[:at] + [('checksum', stamp)] + items[at:])
 
 
 def dump_calibration(doc):
     """YAML text of a calibration document, with its checksum (:func:`stamp_checksum`)."""
     return _yaml(stamp_checksum(doc))
-
-
-def _need(d, key, where):
-    if not isinstance(d, dict) or key not in d:
-        raise CalibrationFileError(f'{where}: missing key {key!r}')
-    return d[key]
 
 
 def calibration_from_doc(doc, source='calibration'):
@@ -315,7 +305,9 @@ def _calibration_from_doc(doc, source):
     if not isinstance(doc, dict):
         raise CalibrationFileError(f'{source}: not a calibration document (top level is '
                                    f'{type(doc).__name__}, expected a mapping)')
-    version = _need(doc, 'schema_version', source)
+    if 'schema_version' not in doc:
+        raise CalibrationFileError(f"{source}: missing key 'schema_version'")
+    version = doc['schema_version']
     if not isinstance(version, int):
         raise CalibrationFileError(f'{source}: schema_version must be an integer, got {version!r}')
     if version > SCHEMA_VERSION:

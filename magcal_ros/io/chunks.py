@@ -20,17 +20,14 @@ progress bar) and ``chunks()``, Dataset pieces of at most ``rows`` epochs in tim
 again from the start at each call (a long record is read twice: to reduce it, then for the
 residual statistics, :mod:`magcal_ros.core.data.reduce`).
 
-The CSV pieces are the rows :func:`magcal_ros.io.csvio.read_csv` reads, with its checks and
-messages: ``numpy.loadtxt`` parses a chunk, and one it cannot (an empty cell, a ``plane``
-column, a bad number) is parsed by csvio's line parser, which names what is wrong and where.
-Time must not decrease across chunks either.  The rosbag2 pieces come from
-:func:`magcal_ros.io.bag.bag_chunks`.
+The CSV pieces are those of :func:`magcal_ros.io.csvio.read_pieces`, the reader of
+:func:`~magcal_ros.io.csvio.read_csv`, with its checks and messages.  The rosbag2 pieces come
+from :func:`magcal_ros.io.bag.bag_chunks`.
 """
 import os
 
 from magcal_ros.io import csvio
 from magcal_ros.io.atomic import atomic_write_text
-import numpy as np
 
 #: epochs per chunk: ~10 MB of a 4-sensor CSV chunk as float64
 CHUNK_ROWS = 65536
@@ -40,10 +37,7 @@ class Record:
     """A recording on disk, read in chunks (``chunks(rows)``); ``size`` in ``unit``."""
 
     def __init__(self, path, kind, size, unit):
-        self.path = os.fspath(path)
-        self.kind = kind
-        self.size = size
-        self.unit = unit
+        self.path, self.kind, self.size, self.unit = os.fspath(path), kind, size, unit
 
     def chunks(self, rows=CHUNK_ROWS, progress=None):
         """Yield Dataset pieces of at most ``rows`` epochs; ``progress(done)`` in ``unit``."""
@@ -62,77 +56,15 @@ def open_record(path):
     return Record(path, 'csv', os.path.getsize(path), 'B')
 
 
-def _data_lines(lines, start):
-    """Return (line numbers, data lines) of ``lines`` (the first is line ``start + 1``)."""
-    kept = [(no, ln) for no, ln in enumerate(lines, start=start + 1) if csvio.is_content(ln)]
-    return np.array([no for no, _ in kept], int), [ln for _, ln in kept]
-
-
 def csv_chunks(path, rows=CHUNK_ROWS, progress=None):
     """
     Yield the epochs of a wide CSV as Datasets of at most ``rows`` epochs, in file order.
 
-    The same columns, values and errors as :func:`magcal_ros.io.csvio.read_csv`;
-    ``progress(bytes_read)`` is called after each chunk.
+    The same columns, values and errors as :func:`magcal_ros.io.csvio.read_csv`, by its
+    reader (:func:`magcal_ros.io.csvio.read_pieces`); ``progress(bytes_read)`` is called
+    after each chunk.
     """
-    path = os.fspath(path)
-    from magcal_ros.io.compressed import CorruptArchiveError, open_text
-    try:
-        yield from _csv_chunks(path, rows, progress, open_text)
-    except CorruptArchiveError as exc:
-        raise csvio.CsvFormatError(str(exc)) from None
-    except OSError as exc:
-        raise csvio.CsvFormatError(f'cannot read {path}: {exc.strerror}') from exc
-
-
-def _csv_chunks(path, rows, progress, open_text):
-    with open_text(path, encoding='utf-8-sig') as fh:
-        try:
-            no, first = csvio.header_line(fh)
-            if first is None:
-                raise csvio.CsvFormatError(f'{path} has no header row')
-            layout = csvio.parse_header(path, first)
-            n_cols = len(layout[0])
-            t_last = -np.inf
-            n_read = 0
-            hint = None
-            while True:
-                # whole lines of about ``rows`` rows (the first chunk: the header's length x
-                # rows, then the mean length seen)
-                lines = fh.readlines(hint or max(1, len(first)) * rows)
-                if not lines:
-                    break
-                start, no = no, no + len(lines)
-                arr = planes = None
-                if layout[2] is None:
-                    try:
-                        arr = np.loadtxt(lines, delimiter=',', comments='#', ndmin=2)
-                    except ValueError:
-                        arr = None
-                    if arr is not None and arr.shape[1] != n_cols:
-                        arr = None
-                if arr is not None and len(arr) == len(lines):
-                    nos, data = np.arange(start + 1, no + 1), lines
-                else:
-                    nos, data = _data_lines(lines, start)
-                    if arr is None or len(arr) != len(data):
-                        arr, planes = csvio.parse_rows(path, layout, nos, data)
-                if not len(data):
-                    continue
-                hint = max(1, sum(map(len, lines[:64])) // min(64, len(lines))) * rows
-                piece = csvio.build_dataset(path, layout, arr, nos, data, planes)
-                if piece.t[0] < t_last:
-                    raise csvio.CsvFormatError(
-                        f'{path}: column t must be finite and non-decreasing (line {nos[0]})')
-                t_last = piece.t[-1]
-                n_read += len(data)
-                if progress is not None and hasattr(fh, 'buffer'):
-                    progress(fh.buffer.tell())
-                yield piece
-        except UnicodeDecodeError as exc:
-            raise csvio.CsvFormatError(f'{path} is not a text CSV file ({exc})') from exc
-        if n_read == 0:
-            raise csvio.CsvFormatError(f'{path}: no data rows (only the header)')
+    return csvio.read_pieces(path, rows, progress)
 
 
 def write_csv_chunks(path, pieces, comment=None):

@@ -62,7 +62,6 @@ def compress_parts(path, parts):
         yield from parts
         return
     if kind == 'gzip':
-        import zlib
         z = zlib.compressobj(9, zlib.DEFLATED, 31)        # wbits 31: the gzip container
     else:
         import zstandard
@@ -72,11 +71,6 @@ def compress_parts(path, parts):
         if out:
             yield out
     yield z.flush()
-
-
-def _zstd_errors():
-    import zstandard
-    return (zstandard.ZstdError,)
 
 
 class _ZstdReader(io.RawIOBase):
@@ -154,7 +148,8 @@ def open_text(path, encoding='utf-8', errors='strict'):
     elif kind == 'zstd':
         fh = io.TextIOWrapper(io.BufferedReader(_ZstdReader(path)), encoding=encoding,
                               errors=errors)
-        bad = _zstd_errors() + (EOFError,)
+        import zstandard                             # imported by _ZstdReader: no cost
+        bad = (zstandard.ZstdError, EOFError)
     else:
         fh = open(path, encoding=encoding, errors=errors)
         bad = ()

@@ -22,7 +22,7 @@ import warnings
 from magcal_ros.core.data.dataset import Dataset
 from magcal_ros.core.geometry.attitude import check_quaternions, COLUMNS as ATT_COLUMNS
 from magcal_ros.io.atomic import atomic_write_text
-from magcal_ros.io.compressed import compress_text, compression, CorruptArchiveError, open_text
+from magcal_ros.io.compressed import compress_text, CorruptArchiveError, open_text
 import numpy as np
 
 _SENSOR_COL = re.compile(r'^s(\d+)_(x|y|z|temp)$')
@@ -31,10 +31,6 @@ _KNOWN = {'t', 'ref_total', 'ref_x', 'ref_y', 'ref_z', 'angle_deg', 'plane', *AT
 
 class CsvFormatError(ValueError):
     """The file is not a valid wide CSV; the message says what and where."""
-
-
-class _Recheck(Exception):
-    """The fast read met something to report: read again row by row to name line and column."""
 
 
 def read_csv(path):
@@ -46,67 +42,102 @@ def read_csv(path):
     ``att_qw, att_qx, att_qy, att_qz`` (all four: body-to-world unit quaternion, Hamilton,
     scalar first).
     ``#`` lines are comments.  Unknown columns are an error.  A ``.csv.gz`` or ``.csv.zst``
-    file is decompressed as it is read (:mod:`magcal_ros.io.compressed`).  Numbers are parsed
-    by :func:`numpy.loadtxt` (again with empty cells, an optional value not given, filled with
-    NaN); a file with a ``plane`` column or anything to report is read row by row with the
-    :mod:`csv` module, so that the error names the line and the column.
+    file is decompressed as it is read (:mod:`magcal_ros.io.compressed`).  The rows are
+    :func:`read_pieces`' one piece of the whole file.
+    """
+    return next(read_pieces(path))
+
+
+def read_pieces(path, rows=None, progress=None):
+    """
+    Yield the epochs of a wide CSV as Datasets of about ``rows`` epochs (None: one), in order.
+
+    Numbers are parsed by :func:`numpy.loadtxt` (again with empty cells, an optional value
+    not given, filled with NaN); a piece with a ``plane`` column or anything to report is
+    read row by row with the :mod:`csv` module, so that the error names the line and the
+    column.  Time must not decrease across pieces either.  ``progress(bytes_read)`` is
+    called after each piece.
     """
     path = os.fspath(path)
-    for how in ('numpy', 'numpy, empty cells filled'):
-        try:
-            return _read(path, fast=True, fill=how != 'numpy')
-        except _Recheck:
-            pass
-    return _read(path, fast=False)
-
-
-def _read(path, fast, fill=False):
     try:
-        # utf-8-sig: a spreadsheet's byte-order mark is not part of the first column's name
-        with open_text(path, encoding='utf-8-sig') as fh:
-            header_no, first = header_line(fh)
-            if first is None:
-                raise CsvFormatError(f'{path} has no header row')
-            header, sensors = _parse_header(path, first)
-            plane_col = header.index('plane') if 'plane' in header else None
-            if fast:
-                if plane_col is not None:
-                    raise _Recheck()
-                arr, planes, rows_no = _fast_rows(fh, len(header), fill), None, None
-            else:
-                try:
-                    arr, planes, rows_no, cells = _csv_rows(path, fh, header, plane_col,
-                                                            header_no)
-                except (CsvFormatError, UnicodeDecodeError):
-                    if compression(path):
-                        # a corrupt archive garbles rows before its checksum is reached:
-                        # read to its end, so that the archive's own error is the one told
-                        while fh.read(1 << 20):
-                            pass
-                    raise
+        yield from _pieces(path, rows, progress)
     except CorruptArchiveError as exc:
         raise CsvFormatError(str(exc)) from None
     except OSError as exc:
         raise CsvFormatError(f'cannot read {path}: {exc.strerror}') from exc
-    except UnicodeDecodeError as exc:
-        raise CsvFormatError(f'{path} is not a text CSV file ({exc})') from exc
-    if fast:
-        if _first_non_finite(header, arr) is not None:
-            raise _Recheck()
-    else:
-        _check_finite(path, header, arr, rows_no, cells)
-    return _dataset(path, header, sensors, plane_col, arr, rows_no,
-                    np.array(planes) if plane_col is not None else None,
-                    recheck=fast)
 
 
-def _dataset(path, header, sensors, plane_col, arr, rows_no, planes, recheck=False):
+def _pieces(path, rows, progress):
+    # utf-8-sig: a spreadsheet's byte-order mark is not part of the first column's name
+    with open_text(path, encoding='utf-8-sig') as fh:
+        try:
+            no, first = header_line(fh)
+            if first is None:
+                raise CsvFormatError(f'{path} has no header row')
+            layout = parse_header(path, first)
+            t_last, n_read, hint = -np.inf, 0, None
+            # whole lines of about ``rows`` rows (the first piece: the header's length x
+            # rows, then the mean length seen)
+            while lines := fh.readlines((hint or max(1, len(first)) * rows) if rows else -1):
+                start, no = no, no + len(lines)
+                arr, planes, nos, data = _parse_lines(path, layout, lines, start)
+                if not len(data):
+                    continue
+                hint = max(1, sum(map(len, lines[:64])) // min(64, len(lines))) * (rows or 1)
+                piece = build_dataset(path, layout, arr, nos, data, planes)
+                if piece.t[0] < t_last:
+                    raise CsvFormatError(
+                        f'{path}: column t must be finite and non-decreasing (line {nos[0]})')
+                t_last = piece.t[-1]
+                n_read += len(data)
+                if progress is not None and hasattr(fh, 'buffer'):
+                    progress(fh.buffer.tell())
+                yield piece
+        except UnicodeDecodeError as exc:
+            raise CsvFormatError(f'{path} is not a text CSV file ({exc})') from exc
+        if n_read == 0:
+            raise CsvFormatError(f'{path}: no data rows (only the header)')
+
+
+def _loadtxt(lines, n_cols):
+    """(N, n_cols) floats of ``lines`` by numpy's C reader, None where it cannot."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter('ignore', UserWarning)        # 'input contained no data'
+            arr = np.loadtxt(lines, delimiter=',', comments='#', dtype=float, ndmin=2)
+    except ValueError:
+        return None
+    return arr if arr.shape[1] == n_cols else None
+
+
+def _parse_lines(path, layout, lines, start):
     """
-    Return the checked rows ``arr`` (R, C) of a wide CSV as a :class:`Dataset` (both readers).
+    Return (floats (R, C), planes or None, line numbers (R,), data lines) of ``lines``.
 
-    ``rows_no`` (R,) are the rows' line numbers (for the messages); with ``recheck`` a bad
-    attitude sends the fast reader back to the row-by-row one, which names the line.
+    ``lines`` follow line ``start``; comments and blank lines are left out.
     """
+    header, _, plane_col = layout
+    if plane_col is None:
+        arr = _loadtxt(lines, len(header))
+        if arr is not None and len(arr) == len(lines):
+            return arr, None, np.arange(start + 1, start + len(lines) + 1), lines
+    kept = [(no, ln) for no, ln in enumerate(lines, start=start + 1) if is_content(ln)]
+    nos, data = np.array([no for no, _ in kept], int), [ln for _, ln in kept]
+    if plane_col is None:
+        for got in (arr, _loadtxt(_filled(data), len(header))):
+            if got is not None and len(got) == len(data):
+                return got, None, nos, data
+    return (*parse_rows(path, layout, nos, data), nos, data)
+
+
+def build_dataset(path, layout, arr, rows_no, lines, planes=None):
+    """
+    Check the rows ``arr`` (R, C) of a wide CSV and return them as a :class:`Dataset`.
+
+    ``rows_no`` (R,) are their line numbers and ``lines`` their text (for the messages).
+    """
+    header, sensors, _ = layout
+    _check_finite(path, header, arr, rows_no, lines)
     n_s = max(sensors)
     col = {h: arr[:, i] for i, h in enumerate(header)}
     t = col['t']
@@ -131,8 +162,6 @@ def _dataset(path, header, sensors, plane_col, arr, rows_no, planes, recheck=Fal
             attitude = check_quaternions(np.column_stack([col[c] for c in ATT_COLUMNS]),
                                          rows=rows_no)
         except ValueError as exc:
-            if recheck:
-                raise _Recheck() from None
             raise CsvFormatError(f'{path}: {exc}') from None
     return Dataset(t=t, raw=raw, temp=temp, ref_total=col.get('ref_total'), ref_vec=ref_vec,
                    angle_deg=col.get('angle_deg'), plane=planes,
@@ -153,8 +182,8 @@ def header_line(fh):
     return None, None
 
 
-def _parse_header(path, line):
-    """(column names, {sensor: {axis: column index}}) of the header line, checked."""
+def parse_header(path, line):
+    """Return the column layout of a header ``line``: (header, {j: {axis: column}}, plane col)."""
     for sep, name in ((';', 'semicolon'), ('\t', 'tab')):
         if line.count(sep) > line.count(','):
             raise CsvFormatError(f'{path}: the fields are separated by {name}s ({sep!r}); the '
@@ -182,7 +211,7 @@ def _parse_header(path, line):
         if missing:
             raise CsvFormatError(f'{path}: sensor {j} lacks column(s) '
                                  f'{", ".join(f"s{j}_{a}" for a in missing)}')
-    return header, sensors
+    return header, sensors, (header.index('plane') if 'plane' in header else None)
 
 
 #: an empty cell (between commas, or at either end of a line)
@@ -194,20 +223,6 @@ def _filled(lines):
         if ',,' in line or line.startswith(',') or line.rstrip().endswith(','):
             line = _EMPTY_CELL.sub('nan', line)
         yield line
-
-
-def _fast_rows(fh, n_cols, fill):
-    """(N, n_cols) floats of the rest of ``fh`` by numpy's C reader, or raise _Recheck."""
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter('ignore', UserWarning)        # 'input contained no data'
-            arr = np.loadtxt(_filled(fh) if fill else fh, delimiter=',', comments='#',
-                             dtype=float, ndmin=2)
-    except ValueError:
-        raise _Recheck() from None
-    if arr.shape[0] == 0 or arr.shape[1] != n_cols:
-        raise _Recheck()
-    return arr
 
 
 def _row_values(path, header, ln_no, parts, plane_col, planes):
@@ -230,45 +245,38 @@ def _row_values(path, header, ln_no, parts, plane_col, planes):
                              'not a number') from None
 
 
-def _csv_rows(path, fh, header, plane_col, header_no):
-    """Rows after the header by the csv module: (floats, planes, line numbers, cells)."""
-    rows, planes, line_nos, cells = [], [], [], []
-    for ln_no, line in enumerate(fh, start=header_no + 1):
-        if not is_content(line):
-            continue
-        parts = [p.strip() for p in next(csv.reader([line]))]
-        cells.append(list(parts))
-        rows.append(_row_values(path, header, ln_no, parts, plane_col, planes))
-        line_nos.append(ln_no)
-    if not rows:
-        raise CsvFormatError(f'{path}: no data rows (only the header)')
-    return np.array(rows, float).reshape(-1, len(header)), planes, np.array(line_nos), cells
-
-
 #: columns that must hold a finite number in every row (the others may be empty: no value)
 _REQUIRED_FINITE = re.compile(r'^(t|s\d+_[xyz]|ref_total|ref_[xyz])$')
 
 
-def _first_non_finite(header, arr):
-    """(row, column index) of the first empty, nan or inf required cell, or None."""
+def _check_finite(path, header, arr, line_nos, lines):
+    """Raise a CsvFormatError naming the first line and column with an empty, nan or inf cell."""
     cols = [i for i, h in enumerate(header) if _REQUIRED_FINITE.match(h)]
     bad = ~np.isfinite(arr[:, cols])
     if not bad.any():
-        return None
-    r, c = np.argwhere(bad)[0]
-    return int(r), cols[c], int(bad.any(axis=1).sum())
-
-
-def _check_finite(path, header, arr, line_nos, cells):
-    """Raise a CsvFormatError naming the first line and column with an empty, nan or inf cell."""
-    found = _first_non_finite(header, arr)
-    if found is None:
         return
-    r, i, n_bad = found
-    cell = cells[r][i]
+    r, c = np.argwhere(bad)[0]
+    i = cols[c]
+    cell = _cells(lines[r])[i]
     what = 'an empty cell' if cell == '' else f'{cell!r} is not a finite number'
     raise CsvFormatError(f'{path}: line {line_nos[r]}, column {header[i]}: {what} '
-                         f'({n_bad} row(s) affected); fill or drop those rows')
+                         f'({int(bad.any(axis=1).sum())} row(s) affected); fill or drop '
+                         'those rows')
+
+
+def _cells(line):
+    """Return the cells of a line (by the csv module), stripped."""
+    return [p.strip() for p in next(csv.reader([line]))]
+
+
+def parse_rows(path, layout, line_nos, lines):
+    """Return ((R, C) float array, plane strings or None) of data ``lines`` (R rows)."""
+    header, _, plane_col = layout
+    planes = []
+    rows = [_row_values(path, header, no, _cells(ln), plane_col, planes)
+            for no, ln in zip(line_nos, lines)]
+    return (np.array(rows, float).reshape(-1, len(header)),
+            np.array(planes) if plane_col is not None else None)
 
 
 def _isfloat(s):
@@ -299,12 +307,8 @@ def format_csv(data, comment=None):
     if data.attitude is not None:
         for i, c in enumerate(ATT_COLUMNS):
             cols[c] = data.attitude[:, i]
-    buf = _io.StringIO()
-    if comment:
-        for line in str(comment).splitlines():
-            buf.write(f'# {line}\n')
+    head = ''.join(f'# {line}\n' for line in str(comment).splitlines()) if comment else ''
     names = list(cols) + (['plane'] if data.plane is not None else [])
-    buf.write(','.join(names) + '\n')
     mat = np.column_stack([np.asarray(v, float) for v in cols.values()])
     fmt = ['%.6f'] + ['%.9f' if c in ATT_COLUMNS else '%.4f' for c in list(cols)[1:]]
     body = _io.StringIO()
@@ -312,51 +316,9 @@ def format_csv(data, comment=None):
     text = body.getvalue()
     if data.plane is not None:
         text = ''.join(f'{ln},{p}\n' for ln, p in zip(text.splitlines(), data.plane))
-    buf.write(text)
-    return buf.getvalue()
+    return head + ','.join(names) + '\n' + text
 
 
 def write_csv(path, data, comment=None):
     """Write a :class:`Dataset` as a wide CSV file, atomically (``.gz``/``.zst``: compressed)."""
     atomic_write_text(path, compress_text(path, format_csv(data, comment)), backup=False)
-
-
-# -- pieces of a long file (magcal_ros.io.chunks) --------------------------------------------
-
-def parse_header(path, line):
-    """Return the column layout of a header ``line``: (header, {j: {axis: column}}, plane col)."""
-    header, sensors = _parse_header(path, line)
-    return header, sensors, (header.index('plane') if 'plane' in header else None)
-
-
-def parse_rows(path, layout, line_nos, lines):
-    """Return ((R, C) float array, plane strings or None) of data ``lines`` (R rows)."""
-    header, _, plane_col = layout
-    rows = []
-    planes = []
-    for ln_no, ln in zip(line_nos, lines):
-        parts = [p.strip() for p in ln.strip().split(',')]
-        rows.append(_row_values(path, header, ln_no, parts, plane_col, planes))
-    return (np.array(rows, float).reshape(-1, len(header)),
-            np.array(planes) if plane_col is not None else None)
-
-
-class _Cells:
-    """The cells of ``lines``, split when one is asked for (an error message)."""
-
-    def __init__(self, lines):
-        self.lines = lines
-
-    def __getitem__(self, r):
-        return [c.strip() for c in self.lines[r].strip().split(',')]
-
-
-def build_dataset(path, layout, arr, rows_no, lines, planes=None):
-    """
-    Check the rows ``arr`` (R, C) of a wide CSV and return them as a :class:`Dataset`.
-
-    ``rows_no`` (R,) are their line numbers and ``lines`` their text (for the messages).
-    """
-    header, sensors, plane_col = layout
-    _check_finite(path, header, arr, rows_no, _Cells(lines))
-    return _dataset(path, header, sensors, plane_col, arr, rows_no, planes)

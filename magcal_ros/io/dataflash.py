@@ -404,13 +404,6 @@ def _onboard(log, j, tab, motct):
     return out
 
 
-def _euler_quaternions(roll, pitch, yaw, degrees=True):
-    """(M, 4) body-to-NED quaternions (w, x, y, z) of ZYX Euler angles."""
-    from scipy.spatial.transform import Rotation
-    return Rotation.from_euler('ZYX', np.column_stack([yaw, pitch, roll]),
-                               degrees=degrees).as_quat(scalar_first=True)
-
-
 #: an EKF quaternion is used only when it agrees with ATT within this (median, deg): ATT is
 #: what the AHRS used (the active EKF core, or DCM when no EKF was running)
 EKF_ATT_AGREEMENT_DEG = 2.0
@@ -422,7 +415,8 @@ def _att_attitude(log):
     if tab is None:
         return None
     from scipy.spatial.transform import Rotation
-    q = _euler_quaternions(tab['Roll'], tab['Pitch'], tab['Yaw'])
+    q = Rotation.from_euler('ZYX', np.column_stack([tab['Yaw'], tab['Pitch'], tab['Roll']]),
+                            degrees=True).as_quat(scalar_first=True)
     trim = [log.param(f'AHRS_TRIM_{a}', 0.0) for a in 'XYZ']
     r = Rotation.from_quat(q, scalar_first=True) * Rotation.from_euler(
         'ZYX', [trim[2], trim[1], trim[0]])
@@ -515,9 +509,7 @@ def _gps(log, out):
 
 def _every(log, name, duration):
     """Read every k-th message of a fast stream so that it is read at ~SLOW_RATE_HZ."""
-    if not duration:
-        return 1
-    return max(1, int(log.count(name) / (duration * SLOW_RATE_HZ)))
+    return max(1, int(log.count(name) / (duration * SLOW_RATE_HZ))) if duration else 1
 
 
 def _aux(log, out, vehicle, duration):
@@ -586,17 +578,13 @@ def _aux(log, out, vehicle, duration):
                 out.add_aux(f'aux_esc{k + 1}_{what}', tab['t'], tab[col], unit,
                             f'ESC[{k}].{col}')
     # temperatures and the board's voltage (slow: read at ~SLOW_RATE_HZ)
-    imu = _split(log, 'IMU', _every(log, 'IMU', duration))
-    for k, tab in imu:
-        col = 'T' if 'T' in tab else ('Temp' if 'Temp' in tab else None)
-        if col is not None:
-            out.add_aux('aux_imu_temp' if k == 0 else f'aux_imu{k + 1}_temp', tab['t'],
-                        tab[col], 'degC', f'IMU[{k}].{col}')
-    baro = _split(log, 'BARO', _every(log, 'BARO', duration), 'BAR{k}')
-    for k, tab in baro:
-        if 'Temp' in tab:
-            out.add_aux('aux_baro_temp' if k == 0 else f'aux_baro{k + 1}_temp', tab['t'],
-                        tab['Temp'], 'degC', f'BARO[{k}].Temp')
+    for name, older, tag, cols in (('IMU', '{name}{k}', 'imu', ('T', 'Temp')),
+                                   ('BARO', 'BAR{k}', 'baro', ('Temp',))):
+        for k, tab in _split(log, name, _every(log, name, duration), older):
+            col = next((c for c in cols if c in tab), None)
+            if col is not None:
+                out.add_aux(f'aux_{tag}_temp' if k == 0 else f'aux_{tag}{k + 1}_temp',
+                            tab['t'], tab[col], 'degC', f'{name}[{k}].{col}')
     tab = log.table('POWR', _every(log, 'POWR', duration))
     if tab is not None and 'Vcc' in tab:
         out.add_aux('aux_board_voltage', tab['t'], tab['Vcc'], 'V', 'POWR.Vcc')

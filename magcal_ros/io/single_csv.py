@@ -85,14 +85,10 @@ def read_single_sensor_csv(path, unit='gauss', rate_hz=100.0, field_columns=None
     raw = to_nt(arr[:, fcols], unit)
     low = [h.strip().lower() for h in header]
     tcol = next((low.index(n) for n in _TIME_NAMES if n in low), None)
-    if tcol is not None:
-        t = arr[:, tcol].astype(float)
-        synthetic = False
-    else:
-        if not rate_hz or rate_hz <= 0:
-            raise ValueError('the file has no time column: give a positive rate_hz')
-        t = np.arange(arr.shape[0]) / float(rate_hz)
-        synthetic = True
+    synthetic = tcol is None
+    if synthetic and (not rate_hz or rate_hz <= 0):
+        raise ValueError('the file has no time column: give a positive rate_hz')
+    t = np.arange(arr.shape[0]) / float(rate_hz) if synthetic else arr[:, tcol].astype(float)
     if not np.all(np.isfinite(raw)):
         raise ValueError(f'{path}: non-finite magnetometer values')
     return Dataset(t=t, raw=raw[None], meta={

@@ -99,9 +99,8 @@ def read_ulog(path):
         raise VehicleLogError(f'{path}: ULog file version {head[7]}: only versions 0 and 1 are '
                               'supported (update pyulog and magcal_ros, or convert the log)')
     from pyulog import ULog
-    said = io.StringIO()
     try:
-        with contextlib.redirect_stdout(said):
+        with contextlib.redirect_stdout(io.StringIO()):          # pyulog's own prints
             u = ULog(path, message_name_filter_list=TOPICS)
     except Exception as exc:            # pyulog raises its own and struct errors
         raise VehicleLogError(f'{path}: cannot read this ULog ({type(exc).__name__}: {exc}): '
@@ -281,12 +280,6 @@ def _gps(topics, out):
         return
 
 
-def _slow(d):
-    """Every k-th index so a fast topic is read at about SLOW_RATE_HZ."""
-    k = max(1, int(_rate(d) / SLOW_RATE_HZ))
-    return slice(None, None, k)
-
-
 def _aux(topics, out):
     for k, d in sorted(topics.get('battery_status', {}).items()):
         tag = 'battery' if k == 0 else f'battery{k + 1}'
@@ -322,7 +315,7 @@ def _aux(topics, out):
                                 'PWM us', f'actuator_outputs.{col}')
     for topic, tag in (('sensor_accel', 'imu'), ('sensor_baro', 'baro')):
         for k, d in sorted(topics.get(topic, {}).items()):
-            s = _slow(d)
+            s = slice(None, None, max(1, int(_rate(d) / SLOW_RATE_HZ)))  # ~SLOW_RATE_HZ
             out.add_aux(f'aux_{tag}_temp' if k == 0 else f'aux_{tag}{k + 1}_temp',
                         d['timestamp'][s] * 1e-6, d['temperature'][s], 'degC',
                         f'{topic}[{k}].temperature')

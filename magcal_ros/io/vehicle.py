@@ -69,11 +69,9 @@ def log_format(path):
     if head.startswith(DATAFLASH_MAGIC):
         return 'dataflash'
     suffix = os.path.splitext(path)[1].lower()
-    if suffix == '.log' and (b'FMT, ' in head or b'FMT,' in head):
+    if suffix == '.log' and b'FMT,' in head:
         return 'dataflash-text'
-    if suffix in ('.bin', '.ulg'):
-        return 'ulog' if suffix == '.ulg' else 'dataflash'
-    return None
+    return {'.bin': 'dataflash', '.ulg': 'ulog'}.get(suffix)
 
 
 def read_vehicle_log(path, allow_gaps=False):
@@ -117,8 +115,7 @@ def _gaps(t, periods=GAP_PERIODS):
 
 def _clean(stream):
     """Return (t, v) of a stream sorted by time, duplicates and non-finite rows dropped."""
-    t = np.asarray(stream.t, float)
-    v = np.asarray(stream.v, float)
+    t, v = np.asarray(stream.t, float), np.asarray(stream.v, float)
     ok = np.isfinite(t) & np.isfinite(v.reshape(len(v), -1)).all(axis=1)
     t, v = t[ok], v[ok]
     order = np.argsort(t, kind='stable')

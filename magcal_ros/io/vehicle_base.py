@@ -80,8 +80,7 @@ class VehicleLog:
 
     def add_aux(self, name, t, v, unit, source):
         """Add channel ``name`` (times ``t`` (M,) s, values ``v`` (M,)) when it has data."""
-        t = np.asarray(t, float)
-        v = np.asarray(v, float)
+        t, v = np.asarray(t, float), np.asarray(v, float)
         ok = np.isfinite(t) & np.isfinite(v)
         if ok.sum() < 1:
             return
@@ -97,9 +96,7 @@ def gps_site(lat_deg, lon_deg, alt_m, dates):
     good (3-D); the position is their median.  ``dates`` (M,) the fixes' dates (YYYY-MM-DD,
     '' unknown): the first known one.  None without a fix that has a position and a date.
     """
-    lat = np.asarray(lat_deg, float)
-    lon = np.asarray(lon_deg, float)
-    alt = np.asarray(alt_m, float)
+    lat, lon, alt = (np.asarray(a, float) for a in (lat_deg, lon_deg, alt_m))
     ok = np.isfinite(lat) & np.isfinite(lon) & (np.abs(lat) <= 90) & (np.abs(lon) <= 360) & \
         ~((lat == 0) & (lon == 0))
     if not ok.any():

@@ -156,9 +156,8 @@ class AsciiEncoder(Encoder):
         self.columns = _check_columns(columns)
         self.scale = check_positive('scale', scale)
         self.time_scale = check_positive('time_scale', time_scale)
-        if field_decimals is None:
-            field_decimals = max(0, math.ceil(math.log10(self.scale)) + 1)
-        self.field_decimals = int(field_decimals)
+        self.field_decimals = int(max(0, math.ceil(math.log10(self.scale)) + 1)
+                                  if field_decimals is None else field_decimals)
         self.temp_decimals = int(temp_decimals)
         self.time_decimals = int(time_decimals)
         self.preamble = (to_bytes(header, 'header') + self.terminator) if header else b''

@@ -174,14 +174,10 @@ class Parser:
 
     def _accept(self, out, x, y, z, temp=None, device_time=None):
         """Validate one decoded reading and append it to ``out``; return True if kept."""
-        values = (x, y, z) if temp is None else (x, y, z, temp)
-        if device_time is not None:
-            values = values + (device_time,)
-        if not all(math.isfinite(v) for v in values):
+        if not all(math.isfinite(v) for v in (x, y, z, temp, device_time) if v is not None):
             self._error('non_finite')
             return False
-        limit = self.max_abs_nt
-        if abs(x) > limit or abs(y) > limit or abs(z) > limit:
+        if max(abs(x), abs(y), abs(z)) > self.max_abs_nt:
             self._error('out_of_range')
             return False
         if temp is not None and not (self.temp_range_c[0] <= temp <= self.temp_range_c[1]):
@@ -258,15 +254,11 @@ class LineParser(Parser):
 
     def _split(self, buf):
         """Return (complete pieces, remainder)."""
-        if self._newline:
-            pieces = _NEWLINE_SPLIT.split(buf)
-        else:
-            pieces = buf.split(self.terminator)
+        pieces = _NEWLINE_SPLIT.split(buf) if self._newline else buf.split(self.terminator)
         return pieces[:-1], pieces[-1]
 
     def _parse(self, data, out):
-        buf = self._buf + data
-        lines, rest = self._split(buf)
+        lines, rest = self._split(self._buf + data)
         for line in lines:
             if self._discarding:
                 # tail of an overlong line: already counted, drop it

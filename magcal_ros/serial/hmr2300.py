@@ -109,9 +109,11 @@ def write_enable_command(dd='99'):
 
 
 class _Hmr2300Options:
-    """Options shared by the HMR2300 parsers and encoders."""
+    """Options shared by the HMR2300 parsers and encoders (``binary``: the output format)."""
 
-    def _init_hmr(self, counts_per_gauss, device_id, send_start, rate, binary):
+    binary = False
+
+    def _init_hmr(self, counts_per_gauss, device_id, send_start, rate):
         try:
             cpg = float(counts_per_gauss)
         except (TypeError, ValueError):
@@ -122,7 +124,7 @@ class _Hmr2300Options:
         self.counts_per_gauss = cpg
         self.device_id = _device_id(device_id)
         self.rate = None if rate is None else int(rate)
-        start = binary_command(self.device_id) if binary else ascii_command(self.device_id)
+        start = (binary_command if self.binary else ascii_command)(self.device_id)
         if self.rate is not None:
             start += rate_command(self.rate, self.device_id)
         start += continuous_command(self.device_id)
@@ -156,7 +158,7 @@ class Hmr2300AsciiParser(_Hmr2300Options, LineParser):
                  rate=None, terminator=b'\r', max_line_bytes=64, **kwargs):
         LineParser.__init__(self, terminator=terminator, max_line_bytes=max_line_bytes,
                             **kwargs)
-        self._init_hmr(counts_per_gauss, device_id, send_start, rate, binary=False)
+        self._init_hmr(counts_per_gauss, device_id, send_start, rate)
 
     def _parse_line(self, line, out):
         m = _ASCII_LINE.fullmatch(line)
@@ -180,26 +182,25 @@ class Hmr2300AsciiParser(_Hmr2300Options, LineParser):
         self._accept(out, *(self.counts_to_nt(c) for c in counts))
 
 
-class Hmr2300AsciiEncoder(_Hmr2300Options, Encoder):
+class _Hmr2300Encoder(_Hmr2300Options, Encoder):
+    """The options of an HMR2300 encoder."""
+
+    def __init__(self, counts_per_gauss=COUNTS_PER_GAUSS, device_id='99', send_start=False,
+                 rate=None):
+        self._init_hmr(counts_per_gauss, device_id, send_start, rate)
+
+
+class Hmr2300AsciiEncoder(_Hmr2300Encoder):
     """
     Encoder of HMR2300 ASCII output: 28 bytes per reading.
 
     Field values are rounded to whole counts and saturated at the int16 range.
     """
 
-    def __init__(self, counts_per_gauss=COUNTS_PER_GAUSS, device_id='99', send_start=False,
-                 rate=None):
-        self._init_hmr(counts_per_gauss, device_id, send_start, rate, binary=False)
-
-    @staticmethod
-    def format_counts(counts):
-        """Format one axis: sign or space, comma-grouped magnitude in 6 characters, 2 spaces."""
-        sign = '-' if counts < 0 else ' '
-        return f'{sign}{abs(counts):>6,}  '
-
     def encode(self, sample):
-        """Return the 28-byte ASCII reading of ``sample``."""
-        text = ''.join(self.format_counts(self.nt_to_counts(v)) for v in sample.field_nt)
+        """Return the 28-byte reading of ``sample`` (each axis: sign, 6 characters, 2 spaces)."""
+        counts = map(self.nt_to_counts, sample.field_nt)
+        text = ''.join(f"{'-' if c < 0 else ' '}{abs(c):>6,}  " for c in counts)
         return text.encode('ascii') + b'\r'
 
 
@@ -224,10 +225,12 @@ class Hmr2300BinaryParser(_Hmr2300Options, Parser):
     ``kwargs``: ``max_abs_nt``, ``temp_range_c``, ``time_reset_after``.
     """
 
+    binary = True
+
     def __init__(self, counts_per_gauss=COUNTS_PER_GAUSS, device_id='99', send_start=False,
                  rate=None, sync_frames=3, max_sync_frames=16, **kwargs):
         Parser.__init__(self, **kwargs)
-        self._init_hmr(counts_per_gauss, device_id, send_start, rate, binary=True)
+        self._init_hmr(counts_per_gauss, device_id, send_start, rate)
         if int(sync_frames) < 1:
             raise ValueError(f'sync_frames must be >= 1, got {sync_frames!r}')
         self.sync_frames = int(sync_frames)
@@ -311,12 +314,10 @@ class Hmr2300BinaryParser(_Hmr2300Options, Parser):
         self._buf = buf[i:]
 
 
-class Hmr2300BinaryEncoder(_Hmr2300Options, Encoder):
+class Hmr2300BinaryEncoder(_Hmr2300Encoder):
     """Encoder of the HMR2300 binary frame: ``>hhh`` counts then 0x0D (7 bytes)."""
 
-    def __init__(self, counts_per_gauss=COUNTS_PER_GAUSS, device_id='99', send_start=False,
-                 rate=None):
-        self._init_hmr(counts_per_gauss, device_id, send_start, rate, binary=True)
+    binary = True
 
     def encode(self, sample):
         """Return the 7-byte frame of ``sample`` (counts rounded and saturated to int16)."""

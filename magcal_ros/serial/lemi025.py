@@ -128,10 +128,8 @@ class Lemi025Encoder(Encoder):
             raise ValueError('lemi025 packets carry the device time: sample.device_time '
                              'must be set (seconds)')
         comps = [_clip(int(round(v * UNITS_PER_NT)), -2**31, 2**31 - 1) for v in sample.field_nt]
-        if sample.temp_c is None:
-            temp = TEMP_MISSING
-        else:
-            temp = _clip(int(round(sample.temp_c * UNITS_PER_DEGC)), -2**15, 2**15 - 2)
+        temp = TEMP_MISSING if sample.temp_c is None else _clip(
+            int(round(sample.temp_c * UNITS_PER_DEGC)), -2**15, 2**15 - 2)
         time_us = _clip(int(round(sample.device_time * US_PER_S)), -2**63, 2**63 - 1)
         body = _BODY.pack(SYNC, self.counter, time_us, *comps, temp)
         self.counter = (self.counter + 1) % 2**32

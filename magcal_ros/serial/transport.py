@@ -26,6 +26,7 @@ whose slave is symlinked to a chosen path, with :meth:`~PtyDevice.unplug` and
 :meth:`~PtyDevice.replug` to emulate a cable pulled and put back.
 """
 import collections
+import contextlib
 from dataclasses import dataclass
 import fcntl
 import glob
@@ -85,14 +86,13 @@ class PortStats:
     seconds_since_data: float | None
 
 
-def _check_seconds(name, value, allow_zero=False):
+def _check_seconds(name, value):
     try:
         value = float(value)
     except (TypeError, ValueError):
         raise ValueError(f'{name} must be a number of seconds, got {value!r}') from None
-    if not (value >= 0.0 if allow_zero else value > 0.0) or value == float('inf'):
-        raise ValueError(f'{name} must be a finite {"non-negative" if allow_zero else "positive"}'
-                         f' number of seconds, got {value!r}')
+    if not 0.0 < value < float('inf'):
+        raise ValueError(f'{name} must be a finite positive number of seconds, got {value!r}')
     return value
 
 
@@ -189,10 +189,8 @@ class PortReader:
             pstats = self.parser.stats.copy()
             self._prune(now)
             in_window = sum(n for _, n in self._arrivals)
-            span = self.rate_window
-            if self._rate_origin is not None:
-                span = min(span, max(now - self._rate_origin, 1e-3))
-            rate = in_window / span if self._rate_origin is not None else 0.0
+            rate = 0.0 if self._rate_origin is None else in_window / min(
+                self.rate_window, max(now - self._rate_origin, 1e-3))
             return PortStats(
                 name=self.name, port=self.port, path=self._path, state=self._state,
                 rate_hz=rate, samples=self._samples, bytes_in=self._bytes,
@@ -216,10 +214,8 @@ class PortReader:
         for path in self._candidates():
             real = os.path.realpath(path)
             with _CLAIMED_LOCK:
-                owner = _CLAIMED.get(real)
-                if owner is not None and owner != id(self):
-                    continue
-                _CLAIMED[real] = id(self)
+                if _CLAIMED.setdefault(real, id(self)) != id(self):
+                    continue                    # open by another reader of this process
             try:
                 ser = self._factory(path, self.baudrate, timeout=self.timeout)
             except (serial.SerialException, OSError, ValueError) as exc:
@@ -247,25 +243,21 @@ class PortReader:
                     _LOG.warning('%s: cannot %s; retrying every %g s at most',
                                  self.name, logged or f'open {self.port}: no free candidate path',
                                  self.backoff_max)
-                self._state = STATE_BACKOFF
-                self._stop.wait(delay)
-                delay = min(2.0 * delay, self.backoff_max)
-                continue
-            ser, path, real = opened
-            with self._lock:
-                self.parser.reset()  # partial frames and the device clock belong to the old link
-                self._path = path
-                if self._ever_opened:
-                    self._reconnects += 1
-                self._ever_opened = True
-                self._rate_origin = self._clock()
-                self._arrivals.clear()
-            _LOG.info('%s: opened %s', self.name, path)
-            logged = None
-            if self._serve(ser):
-                delay = self.backoff_min
-            self._close(ser, real)
-            if not self._stop.is_set():
+            else:
+                ser, path, real = opened
+                with self._lock:
+                    self.parser.reset()  # partial frames and the device clock: the old link's
+                    self._path = path
+                    self._reconnects += self._ever_opened
+                    self._ever_opened = True
+                    self._rate_origin = self._clock()
+                    self._arrivals.clear()
+                _LOG.info('%s: opened %s', self.name, path)
+                logged = None
+                if self._serve(ser):
+                    delay = self.backoff_min
+                self._close(ser, real)
+            if opened is None or not self._stop.is_set():
                 self._state = STATE_BACKOFF
                 self._stop.wait(delay)
                 delay = min(2.0 * delay, self.backoff_max)
@@ -395,17 +387,14 @@ class PtyDevice:
                     os.unlink(self.link_path)
             for fd in (self.master, self.slave):
                 if fd is not None:
-                    try:
+                    with contextlib.suppress(OSError):
                         os.close(fd)
-                    except OSError:
-                        pass
             self.master = self.slave = None
 
     def replug(self, link_path=None):
         """Unplug (if plugged) and plug a fresh pseudo-terminal, optionally at a new path."""
         with self._lock:
-            if self.plugged:
-                self.unplug()
+            self.close()
             self.plug(link_path)
 
     def write(self, data):

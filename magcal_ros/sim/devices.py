@@ -102,11 +102,11 @@ def parse_truth_item(text):
     return str(text)
 
 
-def _positive(kind, strict=True):
-    """Return an argparse type: a finite number of ``kind``, > 0 (``strict``) or >= 0."""
+def _positive(strict=True):
+    """Return an argparse type: a finite number, > 0 (``strict``) or >= 0."""
     def check(text):
         try:
-            value = kind(text)
+            value = float(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f'expected a number, got {text!r}') from None
         if not (math.isfinite(value) and (value > 0 if strict else value >= 0)):
@@ -116,7 +116,7 @@ def _positive(kind, strict=True):
     return check
 
 
-_non_negative = _positive(float, strict=False)
+_non_negative = _positive(strict=False)
 
 
 def parse_gradient(text):
@@ -167,12 +167,12 @@ def build_parser():
     p.add_argument('--sensor-positions-m', type=parse_positions, metavar='X1,Y1,Z1,...',
                    help='x y z of each sensor in the array frame, m (default: paper 004 '
                         'cross of 0.5 m for 4 sensors, the origin otherwise)')
-    p.add_argument('--smooth-period-s', type=_positive(float),
+    p.add_argument('--smooth-period-s', type=_positive(),
                    help='period of the smooth tumbling, s (default 60: the sphere in about '
                         'a minute)')
-    p.add_argument('--rate', type=_positive(float), help='samples per second per sensor, Hz '
-                                                         '(default 100)')
-    p.add_argument('--tick', type=_positive(float),
+    p.add_argument('--rate', type=_positive(), help='samples per second per sensor, Hz '
+                                                    '(default 100)')
+    p.add_argument('--tick', type=_positive(),
                    help='write period, s (default 0.01: one sample per write at 100 Hz)')
     p.add_argument('--protocol', choices=sorted(PROTOCOLS), help='serial protocol '
                                                                  '(default ascii)')
@@ -181,7 +181,7 @@ def build_parser():
     p.add_argument('--seed', type=int, help='random seed (default 0)')
     p.add_argument('--trajectory', choices=TRAJECTORIES, help='attitude trajectory '
                                                               '(default smooth)')
-    p.add_argument('--field-nt', type=_positive(float), help='total field, nT (default 50000)')
+    p.add_argument('--field-nt', type=_positive(), help='total field, nT (default 50000)')
     p.add_argument('--noise-nt', type=_non_negative, help='noise sd per axis, nT (default 3)')
     p.add_argument('--errors', choices=['paper004', 'none'],
                    help='sensor errors: paper 004 Table 1 or ideal (default paper004)')
@@ -202,7 +202,7 @@ def build_parser():
     p.add_argument('--plugin', dest='plugins', action='append', metavar='MODULE',
                    help='import a module defining effects before the truth is read '
                         '(repeatable, as magcal --plugin)')
-    p.add_argument('--duration', type=_positive(float),
+    p.add_argument('--duration', type=_positive(),
                    help='stop after this many seconds (default: run until SIGINT/SIGTERM)')
     p.add_argument('--unplug', type=parse_unplug, action='append',
                    metavar='SENSOR:AT_S:FOR_S[:NEW_PATH]',
@@ -250,17 +250,14 @@ def _setting(key, value, source):
         parse = parse_positions if key == 'sensor_positions_m' else parse_gradient
         return {key: None if value is None or len(value) == 0 else parse(
             ','.join(map(str, value)) if isinstance(value, (list, tuple)) else value)}
-    if key == 'unplug':
-        return {key: [v if isinstance(v, Unplug) else parse_unplug(v)
-                      for v in (value or []) if v]}
-    if key == 'truth':
-        return {key: [parse_truth_item(v) for v in (value or []) if v]}
+    lists = {'unplug': lambda v: v if isinstance(v, Unplug) else parse_unplug(v),
+             'truth': parse_truth_item, 'plugins': str, 'aux_topics': str}
+    if key in lists:                    # empty entries left out
+        return {key: [lists[key](v) for v in (value or []) if v]}
     if key in ('aux_period_s', 'imu_period_s', 'tilt_deg'):
         return {key: float(value)}
     if key == 'imu_topic':
         return {key: str(value or '')}
-    if key in ('plugins', 'aux_topics'):
-        return {key: [str(v) for v in (value or []) if v]}
     if key == 'dir':
         return {key: value} if value else {}
     if key == 'duration':
@@ -291,17 +288,12 @@ def load_config(path):
 
 def check_settings(st):
     """Validate merged settings; raise ValueError naming the bad one."""
-    def number(name, minimum, strict):
-        v = st[name]
-        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) \
-            and (v > minimum if strict else v >= minimum)
-        if not ok:
-            raise ValueError(f'{name} must be a number {">" if strict else ">="} {minimum}, '
-                             f'got {v!r}')
     for name in ('rate', 'tick', 'field_nt', 'noise_nt', 'duration', 'smooth_period_s',
                  'imu_period_s', 'tilt_deg'):
-        if name != 'duration' or st[name] is not None:
-            number(name, 0, name not in ('noise_nt', 'duration', 'tilt_deg'))
+        v, strict = st[name], name not in ('noise_nt', 'duration', 'tilt_deg')
+        if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                and (v > 0 if strict else v >= 0)) and (name != 'duration' or v is not None):
+            raise ValueError(f'{name} must be a number {">" if strict else ">="} 0, got {v!r}')
     if not (isinstance(st['sensors'], int) and 1 <= st['sensors'] <= MAX_SENSORS):
         raise ValueError(f'sensors must be 1..{MAX_SENSORS}, got {st["sensors"]!r}')
     pos = st['sensor_positions_m']
@@ -390,8 +382,7 @@ class FluxgateSim:
 
     def __init__(self, settings):
         self.settings = settings
-        options = dict(settings.option)
-        self.encoders = [make_encoder(settings.protocol, **options)
+        self.encoders = [make_encoder(settings.protocol, **dict(settings.option))
                          for _ in range(settings.sensors)]
         self.sim = _simulator(dict(DEFAULTS, **vars(settings)))
         #: called as ``f(t, data)`` after each chunk is written: t (n,) s since start, data
