@@ -135,11 +135,9 @@ def _read_vehicle(path, unit, allow_gaps=False):
 
 def _scale_to_nt(data, k):
     """Multiply the field columns of a Dataset (raw, ref_total, ref_vec) by ``k``, in place."""
-    data.raw = data.raw * k
-    if data.ref_total is not None:
-        data.ref_total = data.ref_total * k
-    if data.ref_vec is not None:
-        data.ref_vec = data.ref_vec * k
+    for name in ('raw', 'ref_total', 'ref_vec'):
+        if getattr(data, name) is not None:
+            setattr(data, name, getattr(data, name) * k)
 
 
 def in_nt(chunks, k):
@@ -380,8 +378,7 @@ def cmd_fit(args):
     run = run_request(data, request)
     prog('fit', 1, 1)
     if record is not None:
-        full_record_statistics(run, record, geometry_positions(geometry, data.n_sensors),
-                               prog)
+        full_record_statistics(run, record, geometry_positions(geometry, data.n_sensors), prog)
         run.summary['reduction'] = data.meta['reduction']
         run.doc['provenance']['reduction'] = data.meta['reduction']
     out = args.output
@@ -447,18 +444,15 @@ def _fit_paper_method(args, data):
         if given:
             raise BadInput(f'{opt} applies to --method ellipsoid only (the maximum-likelihood '
                            f'fit); --method {args.method} has a fixed model')
-    if args.method == 'sine':
+    field_nt, fref = None, {'kind': 'reference vector (|ref_x, ref_y, ref_z|)'}
+    if (args.method == 'sine' or args.field_nt is not None or args.igrf
+            or data.ref_total is not None):
         field_nt, fref = resolve_field(args, data)
-        if field_nt is None:
-            field_nt = data.ref_total
+        field_nt = data.ref_total if field_nt is None else field_nt
+    if args.method == 'sine':
         res = paper_methods.sine_calibration(data, field_nt)
         geometry = None                     # the rotations between sensors are unknown
     else:
-        field_nt, fref = None, {'kind': 'reference vector (|ref_x, ref_y, ref_z|)'}
-        if getattr(args, 'field_nt', None) is not None or getattr(args, 'igrf', None) or \
-                data.ref_total is not None:
-            field_nt, fref = resolve_field(args, data)
-            field_nt = data.ref_total if field_nt is None else field_nt
         res = paper_methods.reference_calibration(
             data, field_nt, on_degenerate='flag' if args.flag_degenerate else 'raise')
         geometry = cross_geometry(args.baseline_m) if data.n_sensors == 4 else None
@@ -587,8 +581,7 @@ def build_parser():
     sub = p.add_subparsers(dest='command', required=True)
 
     s = sub.add_parser('simulate', help='write a simulated cross-gradiometer recording (CSV)')
-    s.add_argument('--out', required=True,
-                   help='output CSV file (.csv.gz, .csv.zst: compressed)')
+    s.add_argument('--out', required=True, help='output CSV file (.csv.gz, .csv.zst: compressed)')
     s.add_argument('--n', type=int, default=3000, help='number of samples (default 3000)')
     s.add_argument('--rate', type=float, default=100.0, help='sample rate, Hz')
     s.add_argument('--trajectory', default='smooth',

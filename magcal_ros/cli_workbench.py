@@ -116,8 +116,7 @@ def cmd_diagnose(args, cli):
                              baseline_m=args.baseline_m, figures=args.figures, progress=prog)
     from magcal_ros.core.model.notes import format_note, note_dict
     from magcal_ros.pipeline import fit_warnings
-    warnings = [note_dict(w) for w in screen.notes()] + fit_warnings(diag.result,
-                                                                     diag.noise_floor)
+    warnings = [note_dict(w) for w in screen.notes()] + fit_warnings(diag.result, diag.noise_floor)
     if args.json:
         doc = {**diag.to_dict(), 'warnings': warnings, 'readings_left_out': screen.to_dict(),
                'field_reference': fref, 'constrained': bool(args.constrained)}
@@ -159,8 +158,7 @@ def cmd_report(args, cli):
                          baseline_m=args.baseline_m, figures=args.figures, progress=prog)
     print(index)
     if not args.quiet:
-        print(f'verdict: {diag.verdict_token or "none"} ({diag.verdict_reason})',
-              file=sys.stderr)
+        print(f'verdict: {diag.verdict_token or "none"} ({diag.verdict_reason})', file=sys.stderr)
     return cli.EXIT_OK
 
 

@@ -150,8 +150,7 @@ class CalibrationMixin:
         refuse = (resync_payload or {}).get('refuse')
         if refuse:
             # the fit's own refusals (degenerate data, a stuck sensor) came first
-            return _not_calibrated(refuse, sets=n_sets, model=list(s.model),
-                                   resync=resync_payload)
+            return _not_calibrated(refuse, sets=n_sets, model=list(s.model), resync=resync_payload)
         refuse = self._inconsistent_and_off(resync_payload, run.summary, n_sets)
         if refuse:
             return _not_calibrated(refuse, sets=n_sets, model=list(s.model),
@@ -368,5 +367,4 @@ class CalibrationMixin:
         reason, extra = self._named(exc, service)
         if not extra:
             self.get_logger().error(f'{call} failed: {exc!r}')
-        return f'{call} failed: {reason}', {'error': reason, 'type': type(exc).__name__,
-                                            **extra}
+        return f'{call} failed: {reason}', {'error': reason, 'type': type(exc).__name__, **extra}

@@ -136,8 +136,7 @@ class CollectionMixin:
                 with self._lock:
                     self._received[j] += 1
                     for epoch, t_set, items in self._matcher.add(j, t, b):
-                        self._buffer.append(epoch, t_set, np.array(items), self._temp,
-                                            self._aux)
+                        self._buffer.append(epoch, t_set, np.array(items), self._temp, self._aux)
             if live is not None:
                 self._residual(live, j + 1, t, b)
         return cb

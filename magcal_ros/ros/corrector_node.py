@@ -58,6 +58,11 @@ from std_msgs.msg import Float64, Float64MultiArray, String
 #: share of the sets since the last diagnostics report that may fail the pairing check
 #: before the status is WARN (a lost sample costs one set)
 PAIRING_WARN_SHARE = 0.01
+#: the parameters a running node follows: its attribute and the value's conversion
+_SETTABLE = {'stamp_tolerance_s': ('_tolerance_s', float),
+             'publish_gradient': ('_publish_gradient', bool),
+             'subtract_site_gradient': ('_subtract_site', bool),
+             'site_attitude': ('_site_attitude', lambda v: tuple(float(x) for x in v))}
 
 
 def _optional(module, name):
@@ -93,9 +98,7 @@ class CorrectorNode(EffectErrorsMixin, Node):
         self._no_tensor = tensor_undetermined(
             None if self._geometry is None else self._geometry['positions_m'])
 
-        self._live = None
-        self._source = None
-        self._refused = None
+        self._live = self._source = self._refused = None
         self._missing = {}
         self._effect_errors = EffectErrors()     # of the active calibration's effect code
         self._temp = np.full(self._n, np.nan)
@@ -111,11 +114,9 @@ class CorrectorNode(EffectErrorsMixin, Node):
 
         self._pub_corr = [self.create_publisher(MagneticField, f'sensor{j}/corrected', 10)
                           for j in range(1, self._n + 1)]
-        self._pub_grad = None
+        self._pub_grad = self._pub_stamped = self._stamped_msg = None
         self._grad_msg = tensor_to_msg(np.zeros((3, 3)))          # reused per tensor
-        self._stamped_msg = None
         self._stamped_cls, reason = _optional('magcal_interfaces.msg', 'GradientTensorStamped')
-        self._pub_stamped = None
         if self._no_tensor is not None:
             # not advertised at all: a subscriber sees no publisher, the log says why once
             self._stamped_cls = None
@@ -181,16 +182,11 @@ class CorrectorNode(EffectErrorsMixin, Node):
         result = prm.validate(self._specs, parameters)
         if result.successful:
             for p in parameters:
-                if p.name == 'stamp_tolerance_s':
-                    self._tolerance_s = float(p.value)
-                    if self._live is not None:
-                        self._live.matcher.tolerance_s = self._tolerance_s
-                elif p.name == 'publish_gradient':
-                    self._publish_gradient = bool(p.value)
-                elif p.name == 'subtract_site_gradient':
-                    self._subtract_site = bool(p.value)
-                elif p.name == 'site_attitude':
-                    self._site_attitude = tuple(float(v) for v in p.value)
+                if p.name in _SETTABLE:
+                    attr, convert = _SETTABLE[p.name]
+                    setattr(self, attr, convert(p.value))
+            if self._live is not None:
+                self._live.matcher.tolerance_s = self._tolerance_s
             self._update_site_shift()
         return result
 
@@ -418,16 +414,15 @@ class CorrectorNode(EffectErrorsMixin, Node):
         else:
             st.level = DiagnosticStatus.OK
             st.message = f'correcting with the calibration from {self._source}'
+        m = self._live.matcher if self._live else None
         values = [('calibration_source', self._source or ''),
                   ('calibration', self._describe() if self._live else 'none'),
                   ('last_refused', self._refused or ''),
                   ('gradient_published', str(self._n_gradient)),
-                  ('incomplete_sets_dropped',
-                   str(self._live.matcher.incomplete if self._live else 0)),
+                  ('incomplete_sets_dropped', str(m.incomplete if m else 0)),
                   ('pairing_check', self._describe_check()),
-                  ('sets_failed_pairing_check',
-                   str(self._live.matcher.rejected if self._live else 0)),
-                  ('streams_re_paired', str(self._live.matcher.repaired if self._live else 0)),
+                  ('sets_failed_pairing_check', str(m.rejected if m else 0)),
+                  ('streams_re_paired', str(m.repaired if m else 0)),
                   ('gradient', 'advertised' if self._no_tensor is None else
                    f'not advertised: {self._no_tensor}'),
                   ('gradient_stamped', 'published' if self._pub_stamped else

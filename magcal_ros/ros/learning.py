@@ -88,8 +88,7 @@ class LearningMixin:
         s = prm.calibration_settings(self)
         self._learn_matcher = StampMatcher(self._n, s.stamp_tolerance_s)
         self._learned_pub = self.create_publisher(String, 'calibration/learned', result_qos)
-        self._srv.append(self.create_service(Trigger, 'calibration/adopt',
-                                             self._learn_on_adopt))
+        self._srv.append(self.create_service(Trigger, 'calibration/adopt', self._learn_on_adopt))
         self._updater.add('learning', lambda stat: fill(stat, self.learning_status()))
 
     @property
@@ -101,8 +100,7 @@ class LearningMixin:
         """Track the calibration made active (``doc`` its document)."""
         if self._learner is None:
             return
-        f = (doc.get('field_reference') or {}).get('magnitude_nt',
-                                                   prm.value(self, 'field_nt'))
+        f = (doc.get('field_reference') or {}).get('magnitude_nt', prm.value(self, 'field_nt'))
         with self._learn_lock:
             if self._learner.active is not cal:
                 self._learner.set_active(cal, float(f), now)

@@ -154,8 +154,7 @@ class FluxgateSimNode(Node):
         if self.settings.imu_topic:
             self._imu_pub = self.create_publisher(Imu, self.settings.imu_topic, 50)
             self.sim.listeners.append(self._publish_imu)
-        self._thread = threading.Thread(target=self._stream, name='fluxgate_sim',
-                                        daemon=True)
+        self._thread = threading.Thread(target=self._stream, name='fluxgate_sim', daemon=True)
         self._thread.start()
 
     @property
