@@ -19,11 +19,11 @@ Exit status: 0 success, 2 bad input (one-line reason on stderr), 1 other failure
 """
 import argparse
 from contextlib import contextmanager
+from itertools import islice
 import json
 import os
 import sys
 
-from magcal_ros.core.model import DegenerateDataError
 from magcal_ros.core.model.notes import format_note
 from magcal_ros.runtime import limit_blas_threads
 from magcal_ros.units import check_field_units, UNITS_NT
@@ -136,16 +136,14 @@ def _read_vehicle(path, unit, allow_gaps=False):
 def _scale_to_nt(data, k):
     """Multiply the field columns of a Dataset (raw, ref_total, ref_vec) by ``k``, in place."""
     for name in ('raw', 'ref_total', 'ref_vec'):
-        if getattr(data, name) is not None:
+        if k != 1.0 and getattr(data, name) is not None:
             setattr(data, name, getattr(data, name) * k)
+    return data
 
 
 def in_nt(chunks, k):
     """Yield the Dataset ``chunks`` with their field columns multiplied by ``k`` (to nT)."""
-    for piece in chunks:
-        if k != 1.0:
-            _scale_to_nt(piece, k)
-        yield piece
+    return (_scale_to_nt(piece, k) for piece in chunks)
 
 
 def _estimated_rows(path, probe=200):
@@ -153,16 +151,10 @@ def _estimated_rows(path, probe=200):
     if os.path.isdir(path):
         from magcal_ros.io.bag import bag_epoch_count
         return bag_epoch_count(path)
-    size = os.path.getsize(path)
-    n = total = 0
     with open(path, 'rb') as fh:
-        for line in fh:
-            if line.strip() and not line.lstrip().startswith(b'#'):
-                n += 1
-                total += len(line)
-                if n > probe:
-                    break
-    return 0 if n < 2 else int(size / (total / n))
+        data = (line for line in fh if line.strip() and not line.lstrip().startswith(b'#'))
+        sizes = [len(line) for line in islice(data, probe + 1)]
+    return 0 if len(sizes) < 2 else int(os.path.getsize(path) / (sum(sizes) / len(sizes)))
 
 
 def full_record_statistics(run, record, positions, progress=None):
@@ -227,7 +219,7 @@ def resolve_field(args, data):
     (field_nt or None, field_reference dict) from the options and the data.
 
     Readings and reference must be a geomagnetic field in nT and agree
-    (:func:`magcal_ros.units.check_field_units`); else BadInput names the unit they look like.
+    (:func:`magcal_ros.units.check_field_units`); else a ValueError names the unit they look like.
     """
     f, fref = _resolve_field(args, data)
     kind = fref['kind']
@@ -235,17 +227,13 @@ def resolve_field(args, data):
             'ref_total': 'the ref_total column (median)'}.get(kind)
     ref = None if name is None else (float(np.median(data.ref_total)) if kind == 'ref_total'
                                      else f)
-    try:
-        check_field_units(data.raw, ref, name or '')
-    except ValueError as exc:
-        raise BadInput(str(exc)) from None
+    check_field_units(data.raw, ref, name or '')
     return f, fref
 
 
 def _resolve_field(args, data):
     # the node's field_source, from the options (core.data.magnitude.site_field_reference)
     from magcal_ros.core.data.magnitude import site_field_reference
-    from magcal_ros.core.geometry.turn import PlanarError
     if getattr(args, 'igrf', None):
         try:
             lat, lon, alt = (float(x) for x in args.igrf[:3])
@@ -256,10 +244,7 @@ def _resolve_field(args, data):
         if args.field_nt == 'auto':
             # an ellipsoid needs a sphere; a turn gives a circle and the mean along it
             source = 'shape-planar' if getattr(args, 'planar', False) else 'shape'
-            try:
-                return site_field_reference(source, raw=data.raw[0])
-            except PlanarError as exc:
-                raise BadInput(str(exc)) from None
+            return site_field_reference(source, raw=data.raw[0])
         try:
             f = float(args.field_nt)
         except ValueError:
@@ -419,10 +404,7 @@ def cmd_fit(args):
 def attitude_option(args, data):
     """Return the attitude mode of ``--attitude`` for ``data`` ('tilt', 'full' or None)."""
     from magcal_ros.pipeline import attitude_mode
-    try:
-        return attitude_mode(getattr(args, 'attitude', 'auto'), data)
-    except ValueError as exc:
-        raise BadInput(str(exc)) from None
+    return attitude_mode(getattr(args, 'attitude', 'auto'), data)
 
 
 def add_attitude_arg(p):
@@ -527,10 +509,7 @@ def cmd_check(args):
     """`magcal check CALFILE DATA...`: a calibration against static recordings."""
     from magcal_ros.core.data.static_check import check_static
     from magcal_ros.io import calfile
-    try:
-        cal, doc = calfile.load_calibration(args.calfile)
-    except calfile.CalibrationFileError as exc:
-        raise BadInput(str(exc)) from None
+    cal, doc = calfile.load_calibration(args.calfile)
     j = args.sensor
     if not 1 <= j <= cal.n_sensors:
         raise BadInput(f'--sensor {j}: the calibration has sensors 1..{cal.n_sensors}')
@@ -685,7 +664,7 @@ def main(argv=None):
     args = parser.parse_args(argv)
     try:
         return args.func(args)
-    except (BadInput, DegenerateDataError, ValueError) as exc:
+    except ValueError as exc:                     # BadInput and the library's refusals
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         print(f'magcal: error: {msg}', file=sys.stderr)
         return EXIT_BAD_INPUT

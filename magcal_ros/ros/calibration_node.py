@@ -90,12 +90,7 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
     def __init__(self, **kwargs):
         kwargs.setdefault('namespace', DEFAULT_NAMESPACE)    # a __ns remap overrides it
         super().__init__('calibration_node', **kwargs)
-        first = prm.declare(self, [prm.N_SENSORS, prm.PLUGINS])
-        plugins = prm.load_plugins(self)        # before the model is checked
-        self._specs_by_name = prm.declare(
-            self, prm.calibration_specs(int(prm.value(self, 'n_sensors'))))
-        self._specs_by_name.update(first)
-        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self._specs_by_name, plugins = prm.declare_node(self, prm.calibration_specs)
         s = prm.calibration_settings(self)
         self._n = s.n_sensors
         self._active_cal = None                 # the calibration applied now (planar prior)

@@ -51,7 +51,29 @@ def silent_sensors(received):
     return out
 
 
-class CollectionMixin:
+class SignalsMixin:
+    """The latest temperatures and aux values (``_temp``, ``_aux``), fed to ``_live`` too."""
+
+    def _temp_cb(self, j):
+        def cb(msg):
+            with self._lock:
+                self._temp[j] = msg.temperature
+            live = self._live
+            if live is not None:
+                live.set_temperature(j + 1, msg.temperature)
+        return cb
+
+    def _aux_cb(self, column):
+        def cb(msg):
+            with self._lock:
+                self._aux[column] = float(msg.data)
+            live = self._live
+            if live is not None:
+                live.set_aux(column, msg.data)
+        return cb
+
+
+class CollectionMixin(SignalsMixin):
     """The collection of sample sets of the calibration node, and its status."""
 
     @property
@@ -139,24 +161,6 @@ class CollectionMixin:
                         self._buffer.append(epoch, t_set, np.array(items), self._temp, self._aux)
             if live is not None:
                 self._residual(live, j + 1, t, b)
-        return cb
-
-    def _temp_cb(self, j):
-        def cb(msg):
-            with self._lock:
-                self._temp[j] = msg.temperature
-            live = self._live
-            if live is not None:
-                live.set_temperature(j + 1, msg.temperature)
-        return cb
-
-    def _aux_cb(self, column):
-        def cb(msg):
-            with self._lock:
-                self._aux[column] = float(msg.data)
-            live = self._live
-            if live is not None:
-                live.set_aux(column, msg.data)
         return cb
 
     def _imu_cb(self, msg):

@@ -35,6 +35,7 @@ import importlib
 import math
 import os
 import sys
+import threading
 
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from magcal_ros.core.effects.safety import EffectError, EffectErrors
@@ -43,6 +44,7 @@ from magcal_ros.io.calfile import CalibrationFileError, load_calibration, parse_
 from magcal_ros.pipeline import array_geometry, geometry_mismatch, tensor_undetermined
 from magcal_ros.ros import params as prm
 from magcal_ros.ros.calibration_node import RESULT_QOS, SENSOR_QOS
+from magcal_ros.ros.collection import SignalsMixin
 from magcal_ros.ros.conversions import (correct_msg_linear, covariance_to_t2,
                                         fill_gradient_stamped, gradient_covariance_to_t2,
                                         linear_to_t, msg_to_field_nt, set_field_nt,
@@ -73,18 +75,13 @@ def _optional(module, name):
         return None, f'{module}.{name} is not importable ({exc})'
 
 
-class CorrectorNode(EffectErrorsMixin, Node):
+class CorrectorNode(SignalsMixin, EffectErrorsMixin, Node):
     """Publish corrected fields and the gradient tensor of the array."""
 
     def __init__(self, **kwargs):
         kwargs.setdefault('namespace', DEFAULT_NAMESPACE)    # a __ns remap overrides it
         super().__init__('corrector_node', **kwargs)
-        first = prm.declare(self, [prm.N_SENSORS, prm.PLUGINS])
-        # effect code is imported at start-up only, never because a message names a module
-        plugins = prm.load_plugins(self)
-        self._specs = prm.declare(self, prm.corrector_specs(int(prm.value(self, 'n_sensors'))))
-        self._specs.update(first)
-        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self._specs, plugins = prm.declare_node(self, prm.corrector_specs)
         s = prm.corrector_settings(self)
         self._n = s.n_sensors
         self._publish_gradient = s.publish_gradient
@@ -101,6 +98,7 @@ class CorrectorNode(EffectErrorsMixin, Node):
         self._live = self._source = self._refused = None
         self._missing = {}
         self._effect_errors = EffectErrors()     # of the active calibration's effect code
+        self._lock = threading.Lock()             # the latest signals (SignalsMixin)
         self._temp = np.full(self._n, np.nan)
         self._aux = {}
         self._cov_t2 = [None] * self._n          # per sensor (9,) T^2 of the active calibration
@@ -227,7 +225,7 @@ class CorrectorNode(EffectErrorsMixin, Node):
             raise CalibrationFileError(str(exc)) from exc
         live.temp[:] = self._temp
         live.aux.update(self._aux)
-        # validated and converted once, not per message (it was 70 % of the callback)
+        # validated and converted once, not per message
         self._cov_t2 = [covariance_to_t2(live.published_covariance_nt2(j))
                         for j in range(1, self._n + 1)]
         self._grad_cov_t2 = gradient_covariance_to_t2(live.gradient_cov_nt2)
@@ -304,21 +302,7 @@ class CorrectorNode(EffectErrorsMixin, Node):
             self._refuse(source, exc)
         self._updater.force_update()
 
-    # -- sensor callbacks ------------------------------------------------------------------
-    def _temp_cb(self, j):
-        def cb(msg):
-            self._temp[j] = msg.temperature
-            if self._live is not None:
-                self._live.set_temperature(j + 1, msg.temperature)
-        return cb
-
-    def _aux_cb(self, column):
-        def cb(msg):
-            self._aux[column] = float(msg.data)
-            if self._live is not None:
-                self._live.set_aux(column, msg.data)
-        return cb
-
+    # -- sensor callbacks (temperature and aux: SignalsMixin) -------------------------------
     def _gradient_wanted(self):
         """
         Tell whether someone subscribes a gradient topic (checked per sample: ~1 us).
@@ -348,8 +332,7 @@ class CorrectorNode(EffectErrorsMixin, Node):
                 return
             fast = self._fast[j]
             gradient = self._gradient_wanted() and live.gradient_op is not None
-            # the incoming message becomes the outgoing one (a new one per sample cost a
-            # quarter of the callback's Python work; bench/live.py)
+            # the incoming message becomes the outgoing one (cheaper than a new one; bench/live.py)
             if fast is not None:
                 # A^-1 (raw - o) on the tesla values: no numpy, no unit round trip
                 correct_msg_linear(msg, fast, self._cov_t2[j])

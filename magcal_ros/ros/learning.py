@@ -200,11 +200,10 @@ class LearningMixin:
 
     def _learn_on_adopt(self, request, response):
         if self._learner is None:
-            response.success, response.message = False, 'learning is off (parameter learn)'
-            return response
-        with self._learn_lock:
-            now = self._learner.last_block_t or 0.0
-            ok, text = self._learn_adopt(now)
+            ok, text = False, 'learning is off (parameter learn)'
+        else:
+            with self._learn_lock:
+                ok, text = self._learn_adopt(self._learner.last_block_t or 0.0)
         response.success, response.message = ok, text
         return response
 

@@ -85,10 +85,8 @@ class ParamSpec:
 
     def descriptor(self):
         """Return the ``rcl_interfaces/ParameterDescriptor`` of this parameter."""
-        if isinstance(self.default, tuple):
-            ptype = _ARRAY_TYPES[self.item_type][0]
-        else:
-            ptype = _TYPES[type(self.default)]
+        ptype = (_ARRAY_TYPES[self.item_type][0] if isinstance(self.default, tuple)
+                 else _TYPES[type(self.default)])
         desc = ParameterDescriptor(name=self.name, type=ptype, description=self.description,
                                    read_only=self.read_only)
         if self.limits is not None and isinstance(self.default, float):
@@ -242,15 +240,11 @@ def model_check(n_sensors):
 def declare(node, specs):
     """Declare every parameter of ``specs`` on ``node``; return the specs by name (dict)."""
     for spec in specs:
-        if isinstance(spec.default, tuple):
-            if spec.default:
-                node.declare_parameter(spec.name, list(spec.default), spec.descriptor())
-            else:
-                # an empty list would be typed BYTE_ARRAY: declare the type explicitly
-                node.declare_parameter(spec.name, _ARRAY_TYPES[spec.item_type][1],
-                                       spec.descriptor())
-        else:
-            node.declare_parameter(spec.name, spec.default, spec.descriptor())
+        default = spec.default
+        if isinstance(default, tuple):
+            # an empty list would be typed BYTE_ARRAY: declare the type explicitly
+            default = list(default) if default else _ARRAY_TYPES[spec.item_type][1]
+        node.declare_parameter(spec.name, default, spec.descriptor())
     by_name = {s.name: s for s in specs}
     # values given at start-up (YAML, overrides) are checked like later changes
     given = (node.get_parameter_or(s.name) for s in specs)
@@ -301,12 +295,22 @@ PLUGINS = ParamSpec('plugins', (), 'effect plug-ins imported at start-up, each a
                     module_paths, read_only=True, item_type=str)
 
 
-def load_plugins(node):
-    """Import the start-up ``plugins``; return the effects registered (ValueError: exit 2)."""
+def declare_node(node, specs_of):
+    """
+    Declare :data:`N_SENSORS` and :data:`PLUGINS`, import the plug-ins, then ``specs_of(S)``.
+
+    Effect code is imported at start-up only (before the model is checked), never because a
+    message names a module; a plug-in that fails is a ValueError (exit 2). Later changes go
+    to the node's ``_on_set_parameters``. Returns (the specs by name, the effects registered).
+    """
+    first = declare(node, [N_SENSORS, PLUGINS])
     try:
-        return fx.load_plugins(value(node, 'plugins', []))
+        plugins = fx.load_plugins(value(node, 'plugins', []))
     except (ValueError, TypeError, AttributeError) as exc:
         raise ValueError(f'plugins: {exc}') from None
+    specs = {**declare(node, specs_of(int(value(node, 'n_sensors')))), **first}
+    node.add_on_set_parameters_callback(node._on_set_parameters)
+    return specs, plugins
 
 
 def calibration_specs(n_sensors=4):

@@ -124,9 +124,7 @@ class FluxgateSimNode(Node):
     def __init__(self, **kwargs):
         kwargs.setdefault('namespace', DEFAULT_NAMESPACE)
         super().__init__(NODE_NAME, **kwargs)
-        specs = sim_specs()
-        prm.declare(self, specs)
-        given = {s.name: prm.value(self, s.name) for s in specs}
+        given = {name: prm.value(self, name) for name in prm.declare(self, sim_specs())}
         settings = dict(devices.DEFAULTS, dir=devices.device_dir(self.get_namespace()))
         settings.update(devices.settings_from_parameters(given, 'parameters'))
         devices.check_settings(settings)
@@ -221,25 +219,28 @@ def split_command_line(argv):
     return own, ros
 
 
+def _floats(values):
+    return [float(v) for v in values]
+
+
+def _strings(values):
+    return [str(v) for v in values]
+
+
+#: an option's value as its parameter's (the others are taken as they are)
+_AS_PARAMETER = {
+    'option': lambda v: json.dumps(dict(v)) if v else '',
+    'unplug': lambda v: [
+        f'{u.sensor}:{u.at_s}:{u.for_s}' + (f':{u.new_path}' if u.new_path else '') for u in v],
+    'site_gradient': _floats, 'sensor_positions_m': _floats, 'truth': _strings,
+    'plugins': _strings, 'dir': str}
+
+
 def overrides_from_options(args):
     """ROS parameter overrides for the options given on the command line (parsed ``args``)."""
-    out = []
-    for key, value in devices.options_given(args).items():
-        if key == 'option':
-            out.append(Parameter('options', value=json.dumps(dict(value)) if value else ''))
-        elif key == 'unplug':
-            out.append(Parameter('unplug', value=[
-                f'{u.sensor}:{u.at_s}:{u.for_s}' + (f':{u.new_path}' if u.new_path else '')
-                for u in value]))
-        elif key in ('site_gradient', 'sensor_positions_m'):
-            out.append(Parameter(key, value=[float(v) for v in value]))
-        elif key in ('truth', 'plugins'):
-            out.append(Parameter(key, value=[str(v) for v in value]))
-        elif key == 'dir':
-            out.append(Parameter('dir', value=str(value)))
-        else:
-            out.append(Parameter(key, value=value))
-    return out
+    return [Parameter('options' if key == 'option' else key,
+                      value=_AS_PARAMETER.get(key, lambda v: v)(value))
+            for key, value in devices.options_given(args).items()]
 
 
 def main(args=None):
