@@ -182,9 +182,14 @@ class _RosLogHandler(logging.Handler):
         self.ros_logger = ros_logger
 
     def emit(self, record):
-        level = ('error' if record.levelno >= logging.ERROR else
-                 'warning' if record.levelno >= logging.WARNING else 'info')
-        getattr(self.ros_logger, level)(self.format(record))
+        # one call site per severity: rclpy refuses a call site whose severity changes
+        text = self.format(record)
+        if record.levelno >= logging.ERROR:
+            self.ros_logger.error(text)
+        elif record.levelno >= logging.WARNING:
+            self.ros_logger.warning(text)
+        else:
+            self.ros_logger.info(text)
 
 
 #: the global parameters (read-only): name, default, description with the unit

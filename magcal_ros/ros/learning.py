@@ -58,11 +58,11 @@ def learning_specs():
                       'once (else on calibration/adopt); no unit'),
         prm.ParamSpec('learn_persist_s', 90.0, 'a change must last this long before it is '
                       'learned (shorter disturbances are not), s; read-only',
-                      prm.positive('s'), read_only=True, limits=(1.0, 1.0e5)),
+                      read_only=True, limits=(1.0, 1.0e5)),
         prm.ParamSpec('learn_window_s', 120.0, 'the recent data a learning refit sees, s; '
-                      'read-only', prm.positive('s'), read_only=True, limits=(5.0, 1.0e5)),
+                      'read-only', read_only=True, limits=(5.0, 1.0e5)),
         prm.ParamSpec('learn_refit_period_s', 10.0, 'interval of the learning refits (the '
-                      'estimate on calibration/learned), s; read-only', prm.positive('s'),
+                      'estimate on calibration/learned), s; read-only',
                       read_only=True, limits=(1.0, 1.0e5)),
     ]
 

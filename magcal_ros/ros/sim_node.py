@@ -66,7 +66,7 @@ def sim_specs():
                       'sensors, the origin otherwise', read_only=True, item_type=float),
         prm.ParamSpec('smooth_period_s', d['smooth_period_s'], 'period of the smooth '
                       'tumbling (trajectory smooth covers the sphere in about one), s',
-                      prm.positive('s'), read_only=True, limits=(0.1, 1.0e6)),
+                      read_only=True, limits=(0.1, 1.0e6)),
         prm.ParamSpec('rate', d['rate'], 'samples per second per sensor, Hz',
                       prm.positive('Hz'), read_only=True),
         prm.ParamSpec('tick', d['tick'], 'write period (samples are written in chunks), s',
@@ -109,7 +109,7 @@ def sim_specs():
                       read_only=True),
         prm.ParamSpec('imu_period_s', d['imu_period_s'], 'interval between two Imu messages, '
                       's of sample time (one per sample when shorter than the sample period)',
-                      prm.positive('s'), read_only=True, limits=(1.0e-6, 1.0e6)),
+                      read_only=True, limits=(1.0e-6, 1.0e6)),
         prm.ParamSpec('tilt_deg', d['tilt_deg'], 'largest roll and pitch of the vehicle '
                       'trajectory, deg', read_only=True, limits=(0.0, 90.0)),
         prm.ParamSpec('site_gradient', (), 'constant site gradient [GXX, GXY, GXZ, GYY, GYZ] '
