@@ -183,12 +183,10 @@ class CollectionMixin(SignalsMixin):
 
     def _snapshot(self):
         with self._lock:
-            n_sets = len(self._buffer)
-            data = self._buffer.dataset() if n_sets else None
-            epochs = self._buffer.epochs() if n_sets else None
-            if n_sets:
-                data, epochs = self._attitude(data, epochs, self._buffer.stamps())
-            return n_sets, data, epochs
+            buf = self._buffer
+            if not len(buf):
+                return 0, None, None
+            return len(buf), *self._attitude(buf.dataset(), buf.epochs(), buf.stamps())
 
     def _attitude(self, data, epochs, stamps):
         """
