@@ -24,7 +24,9 @@ import json
 import os
 import sys
 
+from magcal_ros.core.effects import load_plugins
 from magcal_ros.core.model.notes import format_note
+from magcal_ros.progress import Progress, wanted
 from magcal_ros.runtime import limit_blas_threads
 from magcal_ros.units import check_field_units, UNITS_NT
 import numpy as np
@@ -265,12 +267,6 @@ def _resolve_field(args, data):
                    '--field-nt auto or --igrf LAT LON ALT_KM DATE')
 
 
-def load_plugins(args):
-    """Import the --plugin modules."""
-    from magcal_ros.core.effects import load_plugins as load
-    load(getattr(args, 'plugin', None))
-
-
 def print_json(obj):
     """One JSON object on stdout."""
     from magcal_ros.core.data.plain import jsonable
@@ -289,7 +285,7 @@ def _parse_truth(items):
 
 def cmd_simulate(args):
     from magcal_ros.core.data.simulate import simulate
-    load_plugins(args)
+    load_plugins(args.plugin)
     truth = _parse_truth(args.truth)
     grad = None
     if args.site_gradient:
@@ -321,7 +317,6 @@ def cmd_simulate(args):
                f'truth model: {",".join(sim.model.spec())}\n'
                'truth params: ' + ' '.join(f'{v:.6g}' for v in sim.params))
     from magcal_ros.io.chunks import write_csv_chunks
-    from magcal_ros.progress import Progress, wanted
     prog = Progress(wanted(args.quiet))
     bar = prog.bar('simulate', total=args.n, unit='sets', scale=True)
 
@@ -345,8 +340,7 @@ def cmd_fit(args):
     from magcal_ros.io.calfile import save_calibration, stamp_checksum
     from magcal_ros.pipeline import (CalibrationRequest, cross_geometry, geometry_positions,
                                      run_request, summary_lines)
-    from magcal_ros.progress import Progress, wanted
-    load_plugins(args)
+    load_plugins(args.plugin)
     prog = Progress(wanted(args.quiet, args.json))
     if args.method != 'ellipsoid':
         return _fit_paper_method(args, load_data(args.data, args.unit))
@@ -399,12 +393,6 @@ def cmd_fit(args):
               + 'rerun with --force to accept it anyway', file=sys.stderr)
         return EXIT_FAIL
     return EXIT_OK
-
-
-def attitude_option(args, data):
-    """Return the attitude mode of ``--attitude`` for ``data`` ('tilt', 'full' or None)."""
-    from magcal_ros.pipeline import attitude_mode
-    return attitude_mode(getattr(args, 'attitude', 'auto'), data)
 
 
 def add_attitude_arg(p):
@@ -520,7 +508,6 @@ def cmd_check(args):
         raise BadInput(f'{args.calfile}: no field_reference.magnitude_nt or provenance '
                        f'residual of sensor {j}: write it with magcal fit')
     corrected = {}
-    from magcal_ros.progress import Progress, wanted
     prog = Progress(wanted(args.quiet, args.json))
     for path in args.data:
         # a long static recording: its evenly spread sample (core.data.reduce), read in chunks
@@ -647,14 +634,9 @@ def build_parser():
     c.add_argument('--json', action='store_true', help='print one JSON object on stdout')
     c.set_defaults(func=cmd_check)
 
-    register_workbench_commands(sub)
-    return p
-
-
-def register_workbench_commands(sub):
-    """Register diagnose and report (magcal_ros.cli_workbench; a failing import is an error)."""
-    from magcal_ros import cli_workbench
+    from magcal_ros import cli_workbench       # diagnose and report
     cli_workbench.register(sub, sys.modules[__name__])
+    return p
 
 
 def main(argv=None):

@@ -28,7 +28,7 @@ status 0 on success, 2 on bad input, 1 on other failures (:func:`magcal_ros.cli.
 import sys
 
 from magcal_ros.core.effects import load_plugins
-from magcal_ros.pipeline import attitude_lines, diagnosis_base
+from magcal_ros.pipeline import attitude_lines, attitude_mode, diagnosis_base
 from magcal_ros.progress import Progress, wanted
 
 
@@ -84,7 +84,7 @@ def _run(args, cli, with_ladder):
     data, field_nt, screen = leave_out_unphysical(data, field_nt)
     prog('fit', 0, 1, ','.join(model.spec()))
     base, constrained, aided = diagnosis_base(
-        data, model, field_nt, attitude=cli.attitude_option(args, data) or 'off',
+        data, model, field_nt, attitude=attitude_mode(args.attitude, data) or 'off',
         inclination_deg=fref.get('inclination_deg'), robust=args.robust,
         constrained=args.constrained,
         on_degenerate='flag' if args.flag_degenerate else 'raise')

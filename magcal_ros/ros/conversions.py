@@ -154,9 +154,8 @@ def field_nt_to_msg(field_nt, stamp=None, frame_id='', covariance_nt2=None, cova
     if covariance_t2 is None:
         covariance_t2 = covariance_to_t2(covariance_nt2)
     msg = _header(MagneticField(), stamp, frame_id)
-    field_t = nt_to_t(field)
     v = msg.magnetic_field
-    v.x, v.y, v.z = float(field_t[0]), float(field_t[1]), float(field_t[2])
+    v.x, v.y, v.z = nt_to_t(field).tolist()
     msg.magnetic_field_covariance = covariance_t2
     return msg
 

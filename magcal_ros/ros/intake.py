@@ -57,8 +57,7 @@ class Intake:
         self._queue = collections.deque()
         self.dropped = 0
         self._stop = threading.Event()
-        self._thread = None
-        self._helper = None
+        self._thread = self._helper = None
         executor, kind = make_executor(events, node.context)
         self.threaded = kind == 'events'
         if not self.threaded:
