@@ -191,13 +191,9 @@ class CorrectorNode(SignalsMixin, EffectErrorsMixin, Node):
     def _update_fast_path(self):
         """Sensors corrected in tesla by A^-1 (raw - o) alone (no driven effect, no shift)."""
         live = self._live
-        self._fast = [None] * self._n
-        if live is None or self._site_shift is not None:
-            return
-        for j in range(1, self._n + 1):
-            lin = live.linear(j)
-            if lin is not None:
-                self._fast[j - 1] = linear_to_t(*lin)
+        linear = ([None] * self._n if live is None or self._site_shift is not None
+                  else [live.linear(j) for j in range(1, self._n + 1)])
+        self._fast = [None if lin is None else linear_to_t(*lin) for lin in linear]
 
     def _update_site_shift(self):
         live = self._live

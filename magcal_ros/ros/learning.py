@@ -114,8 +114,7 @@ class LearningMixin:
         with self._lock:
             temp = self._temp.copy()
             aux = dict(self._aux)
-        for _, t_set, items in done:
-            self._learn_queue.append((t_set, np.array(items), temp, aux))
+        self._learn_queue.extend((t_set, np.array(items), temp, aux) for _, t_set, items in done)
         self._learn_drain()
 
     def _learn_imu(self, msg):
