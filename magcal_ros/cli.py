@@ -364,9 +364,7 @@ def cmd_fit(args):
     refused = not run.result.success and not args.force
     if out and not refused:
         save_calibration(out, run.doc)
-    s = dict(run.summary)
-    s['output'] = None if refused else out
-    s['field_reference'] = fref
+    s = {**run.summary, 'output': None if refused else out, 'field_reference': fref}
     if 'onboard_calibration' in data.meta:
         # a vehicle log: the autopilot's own calibration (its parameters) beside ours
         s['onboard_calibration'] = data.meta['onboard_calibration']
@@ -428,8 +426,7 @@ def _fit_paper_method(args, data):
         geometry = cross_geometry(args.baseline_m) if data.n_sensors == 4 else None
     out = args.output
     doc = calibration_to_doc(res.calibration, geometry=geometry, field_reference=fref,
-                             provenance={'method': args.method,
-                                         'samples': int(data.n_samples),
+                             provenance={'method': args.method, 'samples': int(data.n_samples),
                                          'warnings': list(res.warnings)})
     if out:
         save_calibration(out, doc)
