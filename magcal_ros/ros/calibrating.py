@@ -247,9 +247,8 @@ class CalibrationMixin:
             return _not_diagnosed(reason, sets=n_sets, **extra)
         ranking = json.loads(diag.to_json())       # non-finite numbers as null
         report = write_report(s.report_dir, data, diagnosis=diag, baseline_m=s.baseline_m)
-        ranking['report'] = os.fspath(report)
-        ranking['resync'] = resync_payload
-        ranking['readings_left_out'] = screen.to_dict()
+        ranking.update(report=os.fspath(report), resync=resync_payload,
+                       readings_left_out=screen.to_dict())
         if aided is not None:
             ranking['attitude'] = aided
         verdict = ranking.get('verdict') or {}
