@@ -283,20 +283,18 @@ class CorrectorNode(SignalsMixin, EffectErrorsMixin, Node):
                 f'no calibration file {path}: nothing is published until a calibration '
                 'arrives on calibration/result')
             return
-        try:
-            cal, doc = load_calibration(path)
-            self._install(cal, doc, path)
-        except CalibrationFileError as exc:
-            self._refuse(path, exc)
+        self._offer(path, load_calibration, path)
 
     def _result_cb(self, msg):
-        source = 'calibration/result'
+        self._offer('calibration/result', parse_calibration, msg.data, 'calibration/result')
+        self._updater.force_update()
+
+    def _offer(self, source, read, *args):
+        """Install the calibration ``read(*args)`` gives, or refuse it (the active one stays)."""
         try:
-            cal, doc = parse_calibration(msg.data, source)
-            self._install(cal, doc, source)
+            self._install(*read(*args), source)
         except CalibrationFileError as exc:
             self._refuse(source, exc)
-        self._updater.force_update()
 
     # -- sensor callbacks (temperature and aux: SignalsMixin) -------------------------------
     def _gradient_wanted(self):
