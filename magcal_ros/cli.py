@@ -19,12 +19,14 @@ Exit status: 0 success, 2 bad input (one-line reason on stderr), 1 other failure
 """
 import argparse
 from contextlib import contextmanager
+from itertools import islice
 import json
 import os
 import sys
 
-from magcal_ros.core.model import DegenerateDataError
+from magcal_ros.core.effects import load_plugins
 from magcal_ros.core.model.notes import format_note
+from magcal_ros.progress import Progress, wanted
 from magcal_ros.runtime import limit_blas_threads
 from magcal_ros.units import check_field_units, UNITS_NT
 import numpy as np
@@ -135,19 +137,15 @@ def _read_vehicle(path, unit, allow_gaps=False):
 
 def _scale_to_nt(data, k):
     """Multiply the field columns of a Dataset (raw, ref_total, ref_vec) by ``k``, in place."""
-    data.raw = data.raw * k
-    if data.ref_total is not None:
-        data.ref_total = data.ref_total * k
-    if data.ref_vec is not None:
-        data.ref_vec = data.ref_vec * k
+    for name in ('raw', 'ref_total', 'ref_vec'):
+        if k != 1.0 and getattr(data, name) is not None:
+            setattr(data, name, getattr(data, name) * k)
+    return data
 
 
 def in_nt(chunks, k):
     """Yield the Dataset ``chunks`` with their field columns multiplied by ``k`` (to nT)."""
-    for piece in chunks:
-        if k != 1.0:
-            _scale_to_nt(piece, k)
-        yield piece
+    return (_scale_to_nt(piece, k) for piece in chunks)
 
 
 def _estimated_rows(path, probe=200):
@@ -155,16 +153,10 @@ def _estimated_rows(path, probe=200):
     if os.path.isdir(path):
         from magcal_ros.io.bag import bag_epoch_count
         return bag_epoch_count(path)
-    size = os.path.getsize(path)
-    n = total = 0
     with open(path, 'rb') as fh:
-        for line in fh:
-            if line.strip() and not line.lstrip().startswith(b'#'):
-                n += 1
-                total += len(line)
-                if n > probe:
-                    break
-    return 0 if n < 2 else int(size / (total / n))
+        data = (line for line in fh if line.strip() and not line.lstrip().startswith(b'#'))
+        sizes = [len(line) for line in islice(data, probe + 1)]
+    return 0 if len(sizes) < 2 else int(os.path.getsize(path) / (sum(sizes) / len(sizes)))
 
 
 def full_record_statistics(run, record, positions, progress=None):
@@ -229,7 +221,7 @@ def resolve_field(args, data):
     (field_nt or None, field_reference dict) from the options and the data.
 
     Readings and reference must be a geomagnetic field in nT and agree
-    (:func:`magcal_ros.units.check_field_units`); else BadInput names the unit they look like.
+    (:func:`magcal_ros.units.check_field_units`); else a ValueError names the unit they look like.
     """
     f, fref = _resolve_field(args, data)
     kind = fref['kind']
@@ -237,17 +229,13 @@ def resolve_field(args, data):
             'ref_total': 'the ref_total column (median)'}.get(kind)
     ref = None if name is None else (float(np.median(data.ref_total)) if kind == 'ref_total'
                                      else f)
-    try:
-        check_field_units(data.raw, ref, name or '')
-    except ValueError as exc:
-        raise BadInput(str(exc)) from None
+    check_field_units(data.raw, ref, name or '')
     return f, fref
 
 
 def _resolve_field(args, data):
     # the node's field_source, from the options (core.data.magnitude.site_field_reference)
     from magcal_ros.core.data.magnitude import site_field_reference
-    from magcal_ros.core.geometry.turn import PlanarError
     if getattr(args, 'igrf', None):
         try:
             lat, lon, alt = (float(x) for x in args.igrf[:3])
@@ -268,10 +256,7 @@ def _resolve_field(args, data):
                     "data's attitude needs the site's own: give --field-nt NT (IGRF's for the "
                     'place and date) or --igrf LAT LON ALT_KM DATE, or fit the magnitude '
                     'alone with --attitude off')
-            try:
-                return site_field_reference(source, raw=data.raw[0])
-            except PlanarError as exc:
-                raise BadInput(str(exc)) from None
+            return site_field_reference(source, raw=data.raw[0])
         try:
             f = float(args.field_nt)
         except ValueError:
@@ -292,12 +277,6 @@ def _resolve_field(args, data):
                    '--field-nt auto or --igrf LAT LON ALT_KM DATE')
 
 
-def load_plugins(args):
-    """Import the --plugin modules."""
-    from magcal_ros.core.effects import load_plugins as load
-    load(getattr(args, 'plugin', None))
-
-
 def print_json(obj):
     """One JSON object on stdout."""
     from magcal_ros.core.data.plain import jsonable
@@ -316,7 +295,7 @@ def _parse_truth(items):
 
 def cmd_simulate(args):
     from magcal_ros.core.data.simulate import simulate
-    load_plugins(args)
+    load_plugins(args.plugin)
     truth = _parse_truth(args.truth)
     grad = None
     if args.site_gradient:
@@ -348,7 +327,6 @@ def cmd_simulate(args):
                f'truth model: {",".join(sim.model.spec())}\n'
                'truth params: ' + ' '.join(f'{v:.6g}' for v in sim.params))
     from magcal_ros.io.chunks import write_csv_chunks
-    from magcal_ros.progress import Progress, wanted
     prog = Progress(wanted(args.quiet))
     bar = prog.bar('simulate', total=args.n, unit='sets', scale=True)
 
@@ -372,8 +350,7 @@ def cmd_fit(args):
     from magcal_ros.io.calfile import save_calibration, stamp_checksum
     from magcal_ros.pipeline import (CalibrationRequest, cross_geometry, geometry_positions,
                                      run_request, summary_lines)
-    from magcal_ros.progress import Progress, wanted
-    load_plugins(args)
+    load_plugins(args.plugin)
     prog = Progress(wanted(args.quiet, args.json))
     if args.method != 'ellipsoid':
         return _fit_paper_method(args, load_data(args.data, args.unit))
@@ -390,17 +367,14 @@ def cmd_fit(args):
     run = run_request(data, request)
     prog('fit', 1, 1)
     if record is not None:
-        full_record_statistics(run, record, geometry_positions(geometry, data.n_sensors),
-                               prog)
+        full_record_statistics(run, record, geometry_positions(geometry, data.n_sensors), prog)
         run.summary['reduction'] = data.meta['reduction']
         run.doc['provenance']['reduction'] = data.meta['reduction']
     out = args.output
     refused = not run.result.success and not args.force
     if out and not refused:
         save_calibration(out, run.doc)
-    s = dict(run.summary)
-    s['output'] = None if refused else out
-    s['field_reference'] = fref
+    s = {**run.summary, 'output': None if refused else out, 'field_reference': fref}
     if 'onboard_calibration' in data.meta:
         # a vehicle log: the autopilot's own calibration (its parameters) beside ours
         s['onboard_calibration'] = data.meta['onboard_calibration']
@@ -429,15 +403,6 @@ def cmd_fit(args):
     return EXIT_OK
 
 
-def attitude_option(args, data):
-    """Return the attitude mode of ``--attitude`` for ``data`` ('tilt', 'full' or None)."""
-    from magcal_ros.pipeline import attitude_mode
-    try:
-        return attitude_mode(getattr(args, 'attitude', 'auto'), data)
-    except ValueError as exc:
-        raise BadInput(str(exc)) from None
-
-
 def add_attitude_arg(p):
     """Add the --attitude option (how an attitude in the data is used)."""
     p.add_argument('--attitude', default='auto', choices=['auto', 'tilt', 'full', 'off'],
@@ -457,25 +422,21 @@ def _fit_paper_method(args, data):
         if given:
             raise BadInput(f'{opt} applies to --method ellipsoid only (the maximum-likelihood '
                            f'fit); --method {args.method} has a fixed model')
-    if args.method == 'sine':
+    field_nt, fref = None, {'kind': 'reference vector (|ref_x, ref_y, ref_z|)'}
+    if (args.method == 'sine' or args.field_nt is not None or args.igrf
+            or data.ref_total is not None):
         field_nt, fref = resolve_field(args, data)
-        if field_nt is None:
-            field_nt = data.ref_total
+        field_nt = data.ref_total if field_nt is None else field_nt
+    if args.method == 'sine':
         res = paper_methods.sine_calibration(data, field_nt)
         geometry = None                     # the rotations between sensors are unknown
     else:
-        field_nt, fref = None, {'kind': 'reference vector (|ref_x, ref_y, ref_z|)'}
-        if getattr(args, 'field_nt', None) is not None or getattr(args, 'igrf', None) or \
-                data.ref_total is not None:
-            field_nt, fref = resolve_field(args, data)
-            field_nt = data.ref_total if field_nt is None else field_nt
         res = paper_methods.reference_calibration(
             data, field_nt, on_degenerate='flag' if args.flag_degenerate else 'raise')
         geometry = cross_geometry(args.baseline_m) if data.n_sensors == 4 else None
     out = args.output
     doc = calibration_to_doc(res.calibration, geometry=geometry, field_reference=fref,
-                             provenance={'method': args.method,
-                                         'samples': int(data.n_samples),
+                             provenance={'method': args.method, 'samples': int(data.n_samples),
                                          'warnings': list(res.warnings)})
     if out:
         save_calibration(out, doc)
@@ -543,10 +504,7 @@ def cmd_check(args):
     """`magcal check CALFILE DATA...`: a calibration against static recordings."""
     from magcal_ros.core.data.static_check import check_static
     from magcal_ros.io import calfile
-    try:
-        cal, doc = calfile.load_calibration(args.calfile)
-    except calfile.CalibrationFileError as exc:
-        raise BadInput(str(exc)) from None
+    cal, doc = calfile.load_calibration(args.calfile)
     j = args.sensor
     if not 1 <= j <= cal.n_sensors:
         raise BadInput(f'--sensor {j}: the calibration has sensors 1..{cal.n_sensors}')
@@ -557,7 +515,6 @@ def cmd_check(args):
         raise BadInput(f'{args.calfile}: no field_reference.magnitude_nt or provenance '
                        f'residual of sensor {j}: write it with magcal fit')
     corrected = {}
-    from magcal_ros.progress import Progress, wanted
     prog = Progress(wanted(args.quiet, args.json))
     for path in args.data:
         # a long static recording: its evenly spread sample (core.data.reduce), read in chunks
@@ -597,8 +554,7 @@ def build_parser():
     sub = p.add_subparsers(dest='command', required=True)
 
     s = sub.add_parser('simulate', help='write a simulated cross-gradiometer recording (CSV)')
-    s.add_argument('--out', required=True,
-                   help='output CSV file (.csv.gz, .csv.zst: compressed)')
+    s.add_argument('--out', required=True, help='output CSV file (.csv.gz, .csv.zst: compressed)')
     s.add_argument('--n', type=int, default=3000, help='number of samples (default 3000)')
     s.add_argument('--rate', type=float, default=100.0, help='sample rate, Hz')
     s.add_argument('--trajectory', default='smooth',
@@ -685,14 +641,9 @@ def build_parser():
     c.add_argument('--json', action='store_true', help='print one JSON object on stdout')
     c.set_defaults(func=cmd_check)
 
-    register_workbench_commands(sub)
-    return p
-
-
-def register_workbench_commands(sub):
-    """Register diagnose and report (magcal_ros.cli_workbench; a failing import is an error)."""
-    from magcal_ros import cli_workbench
+    from magcal_ros import cli_workbench       # diagnose and report
     cli_workbench.register(sub, sys.modules[__name__])
+    return p
 
 
 def main(argv=None):
@@ -702,7 +653,7 @@ def main(argv=None):
     args = parser.parse_args(argv)
     try:
         return args.func(args)
-    except (BadInput, DegenerateDataError, ValueError) as exc:
+    except ValueError as exc:                     # BadInput and the library's refusals
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         print(f'magcal: error: {msg}', file=sys.stderr)
         return EXIT_BAD_INPUT

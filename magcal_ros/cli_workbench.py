@@ -28,7 +28,7 @@ status 0 on success, 2 on bad input, 1 on other failures (:func:`magcal_ros.cli.
 import sys
 
 from magcal_ros.core.effects import load_plugins
-from magcal_ros.pipeline import attitude_lines, diagnosis_base
+from magcal_ros.pipeline import attitude_lines, attitude_mode, diagnosis_base
 from magcal_ros.progress import Progress, wanted
 
 
@@ -84,7 +84,7 @@ def _run(args, cli, with_ladder):
     data, field_nt, screen = leave_out_unphysical(data, field_nt)
     prog('fit', 0, 1, ','.join(model.spec()))
     base, constrained, aided = diagnosis_base(
-        data, model, field_nt, attitude=cli.attitude_option(args, data) or 'off',
+        data, model, field_nt, attitude=attitude_mode(args.attitude, data) or 'off',
         inclination_deg=fref.get('inclination_deg'), robust=args.robust,
         constrained=args.constrained,
         on_degenerate='flag' if args.flag_degenerate else 'raise')
@@ -116,8 +116,7 @@ def cmd_diagnose(args, cli):
                              baseline_m=args.baseline_m, figures=args.figures, progress=prog)
     from magcal_ros.core.model.notes import format_note, note_dict
     from magcal_ros.pipeline import fit_warnings
-    warnings = [note_dict(w) for w in screen.notes()] + fit_warnings(diag.result,
-                                                                     diag.noise_floor)
+    warnings = [note_dict(w) for w in screen.notes()] + fit_warnings(diag.result, diag.noise_floor)
     if args.json:
         doc = {**diag.to_dict(), 'warnings': warnings, 'readings_left_out': screen.to_dict(),
                'field_reference': fref, 'constrained': bool(args.constrained)}
@@ -159,8 +158,7 @@ def cmd_report(args, cli):
                          baseline_m=args.baseline_m, figures=args.figures, progress=prog)
     print(index)
     if not args.quiet:
-        print(f'verdict: {diag.verdict_token or "none"} ({diag.verdict_reason})',
-              file=sys.stderr)
+        print(f'verdict: {diag.verdict_token or "none"} ({diag.verdict_reason})', file=sys.stderr)
     return cli.EXIT_OK
 
 

@@ -147,14 +147,13 @@ def _residual_warnings(result, floor):
     """
     out = []
     for j, (sig, fl) in enumerate(zip(result.sigma_nt, floor.per_sensor_nt), start=1):
-        gross = (None if floor.status[j - 1] == 'filtered' else
-                 _gross_note(j, sig, fl, floor.raw_nt[j - 1]))
-        if gross is not None:
-            out.append(gross)
-            continue
         if floor.status[j - 1] == 'filtered':
             out.append(Note(floor.describe(j) + '; the residual cannot be compared with it',
                             'noise_floor', j))
+            continue
+        gross = _gross_note(j, sig, fl, floor.raw_nt[j - 1])
+        if gross is not None:
+            out.append(gross)
             continue
         if floor.status[j - 1] == 'upper bound':
             out.append(Note(floor.describe(j), 'noise_floor', j))
@@ -309,12 +308,10 @@ def run_request(data, request, screen=True, **fit_kwargs):
     else:
         data, field_nt, found = leave_out_unphysical(data, request.field_nt)
     run = _calibrate_clean(data, request, field_nt, fit_kwargs)
-    left_out = found.to_dict()
-    run.summary['readings_left_out'] = left_out
-    run.doc['provenance']['readings_left_out'] = left_out
-    notes = [note_dict(w) for w in found.notes()]
-    run.summary['warnings'][:0] = notes
-    run.doc['provenance']['warnings'][:0] = notes
+    left_out, notes = found.to_dict(), [note_dict(w) for w in found.notes()]
+    for d in (run.summary, run.doc['provenance']):
+        d['readings_left_out'] = left_out
+        d['warnings'][:0] = notes
     return run
 
 
@@ -604,11 +601,6 @@ def _calibrate(data, request, model, field_nt, fit_kwargs):
     return CalibrationRun(result=result, summary=summary, doc=doc)
 
 
-def _tensor_rms(components):
-    """One RMS over the nine tensor components (list of lists, nT/m)."""
-    return float(np.sqrt(np.mean(np.square(np.asarray(components, float)))))
-
-
 def tensor_figures(summary):
     """
     Return the tensor's RMS before, after and its floor (nT/m, one RMS over the components).
@@ -618,9 +610,10 @@ def tensor_figures(summary):
     """
     if 'tensor_rms_nt_per_m' not in summary:
         return {}
-    return {'tensor_rms_before_nt_per_m': _tensor_rms(summary['tensor_rms_before_nt_per_m']),
-            'tensor_rms_after_nt_per_m': _tensor_rms(summary['tensor_rms_nt_per_m']),
-            'tensor_floor_nt_per_m': _tensor_rms(summary['tensor_floor_nt_per_m'])}
+    return {key: float(np.sqrt(np.mean(np.square(np.asarray(summary[src], float)))))
+            for key, src in (('tensor_rms_before_nt_per_m', 'tensor_rms_before_nt_per_m'),
+                             ('tensor_rms_after_nt_per_m', 'tensor_rms_nt_per_m'),
+                             ('tensor_floor_nt_per_m', 'tensor_floor_nt_per_m'))}
 
 
 def summary_lines(summary, request=None, skip_kinds=()):

@@ -24,8 +24,7 @@ import sys
 def wanted(quiet=False, json_out=False, stream=None):
     """Tell whether bars are drawn: not quiet, no JSON on stdout, stderr a terminal."""
     stream = sys.stderr if stream is None else stream
-    return (not quiet and not json_out
-            and bool(getattr(stream, 'isatty', lambda: False)()))
+    return (not quiet and not json_out and bool(getattr(stream, 'isatty', lambda: False)()))
 
 
 class Progress:

@@ -138,10 +138,7 @@ CHANNEL_UNITS = (('_current', 'A'), ('_voltage', 'V'), ('_power', 'W'), ('_temp'
 def channel_unit(name):
     """Return the unit of aux channel ``name`` by its ending (:data:`CHANNEL_UNITS`), or None."""
     low = str(name).lower()
-    for end, unit in CHANNEL_UNITS:
-        if low.endswith(end):
-            return unit
-    return None
+    return next((unit for end, unit in CHANNEL_UNITS if low.endswith(end)), None)
 
 
 def coupling_unit(unit, label):
@@ -149,8 +146,6 @@ def coupling_unit(unit, label):
     if 'unit' not in unit:
         return unit
     import re
-    for name in re.findall(r'aux_[A-Za-z0-9_]+', str(label)):
-        ch = channel_unit(name)
-        if ch is not None:
-            return unit.replace('unit', ch)
-    return unit
+    found = (channel_unit(name) for name in re.findall(r'aux_[A-Za-z0-9_]+', str(label)))
+    ch = next((c for c in found if c is not None), None)
+    return unit if ch is None else unit.replace('unit', ch)

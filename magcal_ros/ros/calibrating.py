@@ -150,8 +150,7 @@ class CalibrationMixin:
         refuse = (resync_payload or {}).get('refuse')
         if refuse:
             # the fit's own refusals (degenerate data, a stuck sensor) came first
-            return _not_calibrated(refuse, sets=n_sets, model=list(s.model),
-                                   resync=resync_payload)
+            return _not_calibrated(refuse, sets=n_sets, model=list(s.model), resync=resync_payload)
         refuse = self._inconsistent_and_off(resync_payload, run.summary, n_sets)
         if refuse:
             return _not_calibrated(refuse, sets=n_sets, model=list(s.model),
@@ -248,9 +247,8 @@ class CalibrationMixin:
             return _not_diagnosed(reason, sets=n_sets, **extra)
         ranking = json.loads(diag.to_json())       # non-finite numbers as null
         report = write_report(s.report_dir, data, diagnosis=diag, baseline_m=s.baseline_m)
-        ranking['report'] = os.fspath(report)
-        ranking['resync'] = resync_payload
-        ranking['readings_left_out'] = screen.to_dict()
+        ranking.update(report=os.fspath(report), resync=resync_payload,
+                       readings_left_out=screen.to_dict())
         if aided is not None:
             ranking['attitude'] = aided
         verdict = ranking.get('verdict') or {}
@@ -368,5 +366,4 @@ class CalibrationMixin:
         reason, extra = self._named(exc, service)
         if not extra:
             self.get_logger().error(f'{call} failed: {exc!r}')
-        return f'{call} failed: {reason}', {'error': reason, 'type': type(exc).__name__,
-                                            **extra}
+        return f'{call} failed: {reason}', {'error': reason, 'type': type(exc).__name__, **extra}

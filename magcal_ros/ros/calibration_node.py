@@ -90,12 +90,7 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
     def __init__(self, **kwargs):
         kwargs.setdefault('namespace', DEFAULT_NAMESPACE)    # a __ns remap overrides it
         super().__init__('calibration_node', **kwargs)
-        first = prm.declare(self, [prm.N_SENSORS, prm.PLUGINS])
-        plugins = prm.load_plugins(self)        # before the model is checked
-        self._specs_by_name = prm.declare(
-            self, prm.calibration_specs(int(prm.value(self, 'n_sensors'))))
-        self._specs_by_name.update(first)
-        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self._specs_by_name, plugins = prm.declare_node(self, prm.calibration_specs)
         s = prm.calibration_settings(self)
         self._n = s.n_sensors
         self._active_cal = None                 # the calibration applied now (planar prior)
@@ -119,9 +114,7 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
         self._t_started = None
         self._model_changed = None              # (model, sets buffered then) of the last change
         # the active calibration applied to the incoming data (calibration/residual)
-        self._live = None
-        self._monitor = None
-        self._residual_missing = None
+        self._live = self._monitor = self._residual_missing = None
         self._residual_sets = 0                 # residual messages published
         self._effect_errors = EffectErrors()    # errors of effect code (live, calibrate, ...)
         self._taken = 0                         # raw samples taken (all sensors, any state)
@@ -142,8 +135,7 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
 
         self._status_pub = self.create_publisher(String, 'calibration/status', 10)
         self._result_pub = self.create_publisher(String, 'calibration/result', RESULT_QOS)
-        self._residual_pub = self.create_publisher(Float64MultiArray, 'calibration/residual',
-                                                   10)
+        self._residual_pub = self.create_publisher(Float64MultiArray, 'calibration/residual', 10)
         self._srv = [self.create_service(Trigger, f'calibration/{name}', callback,
                                          callback_group=service_group)
                      for name, callback in (('start', self._on_start),
@@ -270,8 +262,7 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
         positions = (doc.get('geometry') or {}).get('positions_m')
         # the residual monitor sees every set, also one that fails the pairing check: a
         # calibration that no longer fits must show in the residual, not be dropped
-        live = LiveCorrector(cal, self._n, positions, s.stamp_tolerance_s,
-                             check_pairing=False)
+        live = LiveCorrector(cal, self._n, positions, s.stamp_tolerance_s, check_pairing=False)
         self._active_cal = cal
         with self._lock:
             live.temp[:] = self._temp

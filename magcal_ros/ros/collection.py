@@ -51,7 +51,29 @@ def silent_sensors(received):
     return out
 
 
-class CollectionMixin:
+class SignalsMixin:
+    """The latest temperatures and aux values (``_temp``, ``_aux``), fed to ``_live`` too."""
+
+    def _temp_cb(self, j):
+        def cb(msg):
+            with self._lock:
+                self._temp[j] = msg.temperature
+            live = self._live
+            if live is not None:
+                live.set_temperature(j + 1, msg.temperature)
+        return cb
+
+    def _aux_cb(self, column):
+        def cb(msg):
+            with self._lock:
+                self._aux[column] = float(msg.data)
+            live = self._live
+            if live is not None:
+                live.set_aux(column, msg.data)
+        return cb
+
+
+class CollectionMixin(SignalsMixin):
     """The collection of sample sets of the calibration node, and its status."""
 
     @property
@@ -136,28 +158,9 @@ class CollectionMixin:
                 with self._lock:
                     self._received[j] += 1
                     for epoch, t_set, items in self._matcher.add(j, t, b):
-                        self._buffer.append(epoch, t_set, np.array(items), self._temp,
-                                            self._aux)
+                        self._buffer.append(epoch, t_set, np.array(items), self._temp, self._aux)
             if live is not None:
                 self._residual(live, j + 1, t, b)
-        return cb
-
-    def _temp_cb(self, j):
-        def cb(msg):
-            with self._lock:
-                self._temp[j] = msg.temperature
-            live = self._live
-            if live is not None:
-                live.set_temperature(j + 1, msg.temperature)
-        return cb
-
-    def _aux_cb(self, column):
-        def cb(msg):
-            with self._lock:
-                self._aux[column] = float(msg.data)
-            live = self._live
-            if live is not None:
-                live.set_aux(column, msg.data)
         return cb
 
     def _imu_cb(self, msg):
@@ -180,12 +183,10 @@ class CollectionMixin:
 
     def _snapshot(self):
         with self._lock:
-            n_sets = len(self._buffer)
-            data = self._buffer.dataset() if n_sets else None
-            epochs = self._buffer.epochs() if n_sets else None
-            if n_sets:
-                data, epochs = self._attitude(data, epochs, self._buffer.stamps())
-            return n_sets, data, epochs
+            buf = self._buffer
+            if not len(buf):
+                return 0, None, None
+            return len(buf), *self._attitude(buf.dataset(), buf.epochs(), buf.stamps())
 
     def _attitude(self, data, epochs, stamps):
         """

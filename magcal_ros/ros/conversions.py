@@ -114,11 +114,7 @@ def _covariance33(covariance_nt2):
         return np.zeros((3, 3))
     cov = np.asarray(covariance_nt2, dtype=np.float64)
     if cov.ndim == 0:
-        variance = float(cov)
-        if not math.isfinite(variance) or variance < 0.0:
-            raise ValueError('covariance_nt2 as a scalar variance must be finite and >= 0 nT^2, '
-                             f'got {variance}')
-        return np.eye(3) * variance
+        return np.eye(3) * _non_negative(float(cov), 'covariance_nt2 as a scalar variance', 'nT^2')
     if cov.shape != (3, 3):
         raise ValueError(
             'covariance_nt2 must be a scalar variance or a (3, 3) matrix in nT^2, '
@@ -158,9 +154,8 @@ def field_nt_to_msg(field_nt, stamp=None, frame_id='', covariance_nt2=None, cova
     if covariance_t2 is None:
         covariance_t2 = covariance_to_t2(covariance_nt2)
     msg = _header(MagneticField(), stamp, frame_id)
-    field_t = nt_to_t(field)
     v = msg.magnetic_field
-    v.x, v.y, v.z = float(field_t[0]), float(field_t[1]), float(field_t[2])
+    v.x, v.y, v.z = nt_to_t(field).tolist()
     msg.magnetic_field_covariance = covariance_t2
     return msg
 
@@ -234,10 +229,9 @@ def tensor_to_msg(gradient_nt_per_m, check=True, out=None):
                              f'{g.shape}')
         if not np.all(np.isfinite(g)):
             raise ValueError('gradient tensor must be finite')
-    msg = out
-    if msg is None:
-        msg = Float64MultiArray()
-        msg.layout = _tensor_layout()
+    msg = out if out is not None else Float64MultiArray(layout=MultiArrayLayout(dim=[
+        MultiArrayDimension(label=TENSOR_DIM_LABELS[0], size=3, stride=9),
+        MultiArrayDimension(label=TENSOR_DIM_LABELS[1], size=3, stride=3)]))
     msg.data = nt_to_t(g).reshape(9).tolist()
     return msg
 
@@ -290,9 +284,8 @@ def transform_msg(parent, child, rotation, translation_m, stamp=None):
     q = Rotation.from_matrix(np.asarray(rotation, np.float64)).as_quat()   # x, y, z, w
     msg = _header(TransformStamped(), stamp, parent)
     msg.child_frame_id = _check_frame_id(child)
-    msg.transform.translation.x, msg.transform.translation.y, msg.transform.translation.z = (
-        float(t[0]), float(t[1]), float(t[2]))
-    r = msg.transform.rotation
+    tr, r = msg.transform.translation, msg.transform.rotation
+    tr.x, tr.y, tr.z = (float(v) for v in t)
     r.x, r.y, r.z, r.w = (float(v) for v in q)
     return msg
 
@@ -332,14 +325,6 @@ def msg_to_residual_nt(msg):
     return t_to_nt(data[:s]), t_to_nt(data[s:])
 
 
-def _tensor_layout():
-    layout = MultiArrayLayout()
-    layout.dim = [MultiArrayDimension(label=TENSOR_DIM_LABELS[0], size=3, stride=9),
-                  MultiArrayDimension(label=TENSOR_DIM_LABELS[1], size=3, stride=3)]
-    layout.data_offset = 0
-    return layout
-
-
 def msg_to_tensor(msg):
     """
     Return the (3, 3) gradient tensor, nT/m, of a message laid out as :func:`tensor_to_msg`'s.
@@ -373,8 +358,7 @@ def temperature_msg(temp_c, stamp=None, frame_id='', variance_c2=0.0):
         raise ValueError(f'temp_c must be finite, got {temp_c!r}')
     variance = _non_negative(variance_c2, 'variance_c2', 'degC^2')
     msg = _header(Temperature(), stamp, frame_id)
-    msg.temperature = temp
-    msg.variance = variance
+    msg.temperature, msg.variance = temp, variance
     return msg
 
 

@@ -35,6 +35,7 @@ import importlib
 import math
 import os
 import sys
+import threading
 
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from magcal_ros.core.effects.safety import EffectError, EffectErrors
@@ -43,6 +44,7 @@ from magcal_ros.io.calfile import CalibrationFileError, load_calibration, parse_
 from magcal_ros.pipeline import array_geometry, geometry_mismatch, tensor_undetermined
 from magcal_ros.ros import params as prm
 from magcal_ros.ros.calibration_node import RESULT_QOS, SENSOR_QOS
+from magcal_ros.ros.collection import SignalsMixin
 from magcal_ros.ros.conversions import (correct_msg_linear, covariance_to_t2,
                                         fill_gradient_stamped, gradient_covariance_to_t2,
                                         linear_to_t, msg_to_field_nt, set_field_nt,
@@ -58,6 +60,11 @@ from std_msgs.msg import Float64, Float64MultiArray, String
 #: share of the sets since the last diagnostics report that may fail the pairing check
 #: before the status is WARN (a lost sample costs one set)
 PAIRING_WARN_SHARE = 0.01
+#: the parameters a running node follows: its attribute and the value's conversion
+_SETTABLE = {'stamp_tolerance_s': ('_tolerance_s', float),
+             'publish_gradient': ('_publish_gradient', bool),
+             'subtract_site_gradient': ('_subtract_site', bool),
+             'site_attitude': ('_site_attitude', lambda v: tuple(float(x) for x in v))}
 
 
 def _optional(module, name):
@@ -68,18 +75,13 @@ def _optional(module, name):
         return None, f'{module}.{name} is not importable ({exc})'
 
 
-class CorrectorNode(EffectErrorsMixin, Node):
+class CorrectorNode(SignalsMixin, EffectErrorsMixin, Node):
     """Publish corrected fields and the gradient tensor of the array."""
 
     def __init__(self, **kwargs):
         kwargs.setdefault('namespace', DEFAULT_NAMESPACE)    # a __ns remap overrides it
         super().__init__('corrector_node', **kwargs)
-        first = prm.declare(self, [prm.N_SENSORS, prm.PLUGINS])
-        # effect code is imported at start-up only, never because a message names a module
-        plugins = prm.load_plugins(self)
-        self._specs = prm.declare(self, prm.corrector_specs(int(prm.value(self, 'n_sensors'))))
-        self._specs.update(first)
-        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self._specs, plugins = prm.declare_node(self, prm.corrector_specs)
         s = prm.corrector_settings(self)
         self._n = s.n_sensors
         self._publish_gradient = s.publish_gradient
@@ -93,11 +95,10 @@ class CorrectorNode(EffectErrorsMixin, Node):
         self._no_tensor = tensor_undetermined(
             None if self._geometry is None else self._geometry['positions_m'])
 
-        self._live = None
-        self._source = None
-        self._refused = None
+        self._live = self._source = self._refused = None
         self._missing = {}
         self._effect_errors = EffectErrors()     # of the active calibration's effect code
+        self._lock = threading.Lock()             # the latest signals (SignalsMixin)
         self._temp = np.full(self._n, np.nan)
         self._aux = {}
         self._cov_t2 = [None] * self._n          # per sensor (9,) T^2 of the active calibration
@@ -111,11 +112,9 @@ class CorrectorNode(EffectErrorsMixin, Node):
 
         self._pub_corr = [self.create_publisher(MagneticField, f'sensor{j}/corrected', 10)
                           for j in range(1, self._n + 1)]
-        self._pub_grad = None
+        self._pub_grad = self._pub_stamped = self._stamped_msg = None
         self._grad_msg = tensor_to_msg(np.zeros((3, 3)))          # reused per tensor
-        self._stamped_msg = None
         self._stamped_cls, reason = _optional('magcal_interfaces.msg', 'GradientTensorStamped')
-        self._pub_stamped = None
         if self._no_tensor is not None:
             # not advertised at all: a subscriber sees no publisher, the log says why once
             self._stamped_cls = None
@@ -181,29 +180,20 @@ class CorrectorNode(EffectErrorsMixin, Node):
         result = prm.validate(self._specs, parameters)
         if result.successful:
             for p in parameters:
-                if p.name == 'stamp_tolerance_s':
-                    self._tolerance_s = float(p.value)
-                    if self._live is not None:
-                        self._live.matcher.tolerance_s = self._tolerance_s
-                elif p.name == 'publish_gradient':
-                    self._publish_gradient = bool(p.value)
-                elif p.name == 'subtract_site_gradient':
-                    self._subtract_site = bool(p.value)
-                elif p.name == 'site_attitude':
-                    self._site_attitude = tuple(float(v) for v in p.value)
+                if p.name in _SETTABLE:
+                    attr, convert = _SETTABLE[p.name]
+                    setattr(self, attr, convert(p.value))
+            if self._live is not None:
+                self._live.matcher.tolerance_s = self._tolerance_s
             self._update_site_shift()
         return result
 
     def _update_fast_path(self):
         """Sensors corrected in tesla by A^-1 (raw - o) alone (no driven effect, no shift)."""
         live = self._live
-        self._fast = [None] * self._n
-        if live is None or self._site_shift is not None:
-            return
-        for j in range(1, self._n + 1):
-            lin = live.linear(j)
-            if lin is not None:
-                self._fast[j - 1] = linear_to_t(*lin)
+        linear = ([None] * self._n if live is None or self._site_shift is not None
+                  else [live.linear(j) for j in range(1, self._n + 1)])
+        self._fast = [None if lin is None else linear_to_t(*lin) for lin in linear]
 
     def _update_site_shift(self):
         live = self._live
@@ -231,7 +221,7 @@ class CorrectorNode(EffectErrorsMixin, Node):
             raise CalibrationFileError(str(exc)) from exc
         live.temp[:] = self._temp
         live.aux.update(self._aux)
-        # validated and converted once, not per message (it was 70 % of the callback)
+        # validated and converted once, not per message
         self._cov_t2 = [covariance_to_t2(live.published_covariance_nt2(j))
                         for j in range(1, self._n + 1)]
         self._grad_cov_t2 = gradient_covariance_to_t2(live.gradient_cov_nt2)
@@ -293,36 +283,20 @@ class CorrectorNode(EffectErrorsMixin, Node):
                 f'no calibration file {path}: nothing is published until a calibration '
                 'arrives on calibration/result')
             return
-        try:
-            cal, doc = load_calibration(path)
-            self._install(cal, doc, path)
-        except CalibrationFileError as exc:
-            self._refuse(path, exc)
+        self._offer(path, load_calibration, path)
 
     def _result_cb(self, msg):
-        source = 'calibration/result'
-        try:
-            cal, doc = parse_calibration(msg.data, source)
-            self._install(cal, doc, source)
-        except CalibrationFileError as exc:
-            self._refuse(source, exc)
+        self._offer('calibration/result', parse_calibration, msg.data, 'calibration/result')
         self._updater.force_update()
 
-    # -- sensor callbacks ------------------------------------------------------------------
-    def _temp_cb(self, j):
-        def cb(msg):
-            self._temp[j] = msg.temperature
-            if self._live is not None:
-                self._live.set_temperature(j + 1, msg.temperature)
-        return cb
+    def _offer(self, source, read, *args):
+        """Install the calibration ``read(*args)`` gives, or refuse it (the active one stays)."""
+        try:
+            self._install(*read(*args), source)
+        except CalibrationFileError as exc:
+            self._refuse(source, exc)
 
-    def _aux_cb(self, column):
-        def cb(msg):
-            self._aux[column] = float(msg.data)
-            if self._live is not None:
-                self._live.set_aux(column, msg.data)
-        return cb
-
+    # -- sensor callbacks (temperature and aux: SignalsMixin) -------------------------------
     def _gradient_wanted(self):
         """
         Tell whether someone subscribes a gradient topic (checked per sample: ~1 us).
@@ -352,8 +326,7 @@ class CorrectorNode(EffectErrorsMixin, Node):
                 return
             fast = self._fast[j]
             gradient = self._gradient_wanted() and live.gradient_op is not None
-            # the incoming message becomes the outgoing one (a new one per sample cost a
-            # quarter of the callback's Python work; bench/live.py)
+            # the incoming message becomes the outgoing one (cheaper than a new one; bench/live.py)
             if fast is not None:
                 # A^-1 (raw - o) on the tesla values: no numpy, no unit round trip
                 correct_msg_linear(msg, fast, self._cov_t2[j])
@@ -418,16 +391,15 @@ class CorrectorNode(EffectErrorsMixin, Node):
         else:
             st.level = DiagnosticStatus.OK
             st.message = f'correcting with the calibration from {self._source}'
+        m = self._live.matcher if self._live else None
         values = [('calibration_source', self._source or ''),
                   ('calibration', self._describe() if self._live else 'none'),
                   ('last_refused', self._refused or ''),
                   ('gradient_published', str(self._n_gradient)),
-                  ('incomplete_sets_dropped',
-                   str(self._live.matcher.incomplete if self._live else 0)),
+                  ('incomplete_sets_dropped', str(m.incomplete if m else 0)),
                   ('pairing_check', self._describe_check()),
-                  ('sets_failed_pairing_check',
-                   str(self._live.matcher.rejected if self._live else 0)),
-                  ('streams_re_paired', str(self._live.matcher.repaired if self._live else 0)),
+                  ('sets_failed_pairing_check', str(m.rejected if m else 0)),
+                  ('streams_re_paired', str(m.repaired if m else 0)),
                   ('gradient', 'advertised' if self._no_tensor is None else
                    f'not advertised: {self._no_tensor}'),
                   ('gradient_stamped', 'published' if self._pub_stamped else

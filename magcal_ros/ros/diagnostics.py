@@ -103,21 +103,17 @@ class FallbackUpdater:
         """Add task ``name``: ``fn(stat)`` fills the status ``stat`` and returns it."""
         with self._lock:
             self._tasks.append((name, fn))
-        stat = FallbackStatusWrapper(name=name)
-        stat.summary(DiagnosticStatus.OK, 'Node starting up')
-        self.publish([stat])
+        self.publish([FallbackStatusWrapper(name=name, level=DiagnosticStatus.OK,
+                                            message='Node starting up')])
 
     def update(self):
         """Run every task and publish their statuses in one ``DiagnosticArray``."""
         with self._lock:
             tasks = list(self._tasks)
-        statuses = []
-        for name, fn in tasks:
-            stat = FallbackStatusWrapper(name=name, hardware_id=self.hwid,
-                                         message='No message was set')
-            stat.level = DiagnosticStatus.ERROR
-            statuses.append(fn(stat))
-        self.publish(statuses)
+        self.publish([fn(FallbackStatusWrapper(name=name, hardware_id=self.hwid,
+                                               level=DiagnosticStatus.ERROR,
+                                               message='No message was set'))
+                      for name, fn in tasks])
 
     force_update = update
 

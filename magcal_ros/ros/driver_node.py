@@ -36,10 +36,12 @@ from dataclasses import dataclass, replace
 import logging
 import math
 import os
+import re
 import sys
 import threading
 
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+from magcal_ros.ros import params as prm
 from magcal_ros.ros.conversions import field_nt_to_msg, temperature_msg
 from magcal_ros.ros.diagnostics import fill, Updater
 from magcal_ros.ros.run import DEFAULT_NAMESPACE, spin_node
@@ -47,10 +49,9 @@ from magcal_ros.serial import make_parser, PROTOCOLS, transport
 from magcal_ros.serial.options import parse_options
 from magcal_ros.serial.transport import PortReader, STATE_OPEN
 from magcal_ros.sim import device_dir
-from rcl_interfaces.msg import ParameterDescriptor, ParameterType, SetParametersResult
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import MagneticField, Temperature
 
@@ -181,6 +182,7 @@ class _RosLogHandler(logging.Handler):
         self.ros_logger = ros_logger
 
     def emit(self, record):
+        # one call site per severity: rclpy refuses a call site whose severity changes
         text = self.format(record)
         if record.levelno >= logging.ERROR:
             self.ros_logger.error(text)
@@ -190,12 +192,6 @@ class _RosLogHandler(logging.Handler):
             self.ros_logger.info(text)
 
 
-def _desc(text, ptype, read_only=True):
-    return ParameterDescriptor(description=text, type=ptype, read_only=read_only)
-
-
-_TYPES = {int: ParameterType.PARAMETER_INTEGER, float: ParameterType.PARAMETER_DOUBLE,
-          str: ParameterType.PARAMETER_STRING}
 #: the global parameters (read-only): name, default, description with the unit
 _GLOBALS = (
     ('n_sensors', 4, 'number of sensors (parameters sensor1.* .. sensor<n>.*); count'),
@@ -221,7 +217,7 @@ class FluxgateDriver(Node):
         super().__init__(NODE_NAME, **kwargs)
         self._lock = threading.Lock()
         self.readers = []
-        self._declare_globals()
+        prm.declare(self, [prm.ParamSpec(*g, read_only=True) for g in _GLOBALS])
         n = self.get_parameter('n_sensors').value
         if n < 1:
             raise ValueError(f'n_sensors must be >= 1, got {n}')
@@ -240,18 +236,14 @@ class FluxgateDriver(Node):
         self._mappings = [parse_axes(s.axes) for s in self.sensors]
         self._last_errors = [0] * n
         self._last_stats = [None] * n
-        backoff_min = self.get_parameter('backoff_min_s').value
-        backoff_max = self.get_parameter('backoff_max_s').value
         self._log_handler = _RosLogHandler(self.get_logger())
         logging.getLogger(transport.__name__).addHandler(self._log_handler)
         logging.getLogger(transport.__name__).setLevel(logging.INFO)
-        for k, s in enumerate(self.sensors):
-            reader = PortReader(
-                s.port, s.baud, make_parser(s.protocol, **s.options),
-                self._make_callback(k), alternatives=s.alternatives,
-                backoff_min=backoff_min, backoff_max=backoff_max, name=f'sensor{s.index}',
-                clock=self._now)
-            self.readers.append(reader)
+        self.readers = [PortReader(
+            s.port, s.baud, make_parser(s.protocol, **s.options), self._make_callback(k),
+            alternatives=s.alternatives, backoff_min=self.get_parameter('backoff_min_s').value,
+            backoff_max=self.get_parameter('backoff_max_s').value, name=f'sensor{s.index}',
+            clock=self._now) for k, s in enumerate(self.sensors)]
         for reader, s in zip(self.readers, self.sensors):
             reader.start()
             self.get_logger().info(f'sensor{s.index}: {s.protocol} on {s.port} at {s.baud} '
@@ -264,10 +256,6 @@ class FluxgateDriver(Node):
             self._updater.add(f'sensor{s.index}', self._port_task(k))
 
     # -- parameters --------------------------------------------------------------------------
-    def _declare_globals(self):
-        for name, default, text in _GLOBALS:
-            self.declare_parameter(name, default, _desc(text, _TYPES[type(default)]))
-
     def _check_global_values(self):
         def num(name):
             return self.get_parameter(name).value
@@ -279,33 +267,28 @@ class FluxgateDriver(Node):
                              f'backoff_min_s ({num("backoff_min_s")})')
 
     def _declare_sensor(self, j):
-        p = ParameterType
         g = self.get_parameter
-        specs = (   # name, default, description, type, read-only
+        specs = (   # name, default, description, read-only
             ('port', os.path.join(device_dir(self.get_namespace()), f'fluxgate{j}'),
-             'serial device path (a missing device is retried with backoff); no unit',
-             p.PARAMETER_STRING, True),
-            ('alternatives', Parameter.Type.STRING_ARRAY, 'glob patterns of other device paths '
-             'to try when port is gone (e.g. /dev/serial/by-id/*FTDI*); no unit',
-             p.PARAMETER_STRING_ARRAY, True),
-            ('baud', g('baud').value, 'baud rate, bit/s (default: the global baud)',
-             p.PARAMETER_INTEGER, True),
+             'serial device path (a missing device is retried with backoff); no unit', True),
+            ('alternatives', (), 'glob patterns of other device paths to try when port is '
+             'gone (e.g. /dev/serial/by-id/*FTDI*); no unit', True),
+            ('baud', g('baud').value, 'baud rate, bit/s (default: the global baud)', True),
             ('protocol', g('protocol').value,
-             'serial protocol (default: the global protocol); no unit', p.PARAMETER_STRING, True),
+             'serial protocol (default: the global protocol); no unit', True),
             ('options', g('options').value,
-             'protocol options as a YAML mapping (default: the global options)',
-             p.PARAMETER_STRING, True),
-            ('axes', list(AXES), 'device axis (optionally signed) giving sensor x, y, z, e.g. '
-             '[-y, x, z]; no unit', p.PARAMETER_STRING_ARRAY, True),
+             'protocol options as a YAML mapping (default: the global options)', True),
+            ('axes', AXES, 'device axis (optionally signed) giving sensor x, y, z, e.g. '
+             '[-y, x, z]; no unit', True),
             ('frame_id', f'fluxgate{j}', 'header frame_id of sensor{j}/raw and temperature; '
-             'no unit', p.PARAMETER_STRING, True),
+             'no unit', True),
             ('noise_nt', g('noise_nt').value, 'noise standard deviation per axis for the '
-             'covariance, nT (default: the global noise_nt)', p.PARAMETER_DOUBLE, False),
+             'covariance, nT (default: the global noise_nt)', False),
             ('expected_rate_hz', 0.0, 'expected sample rate for the diagnostics warning, Hz '
-             '(0: not checked)', p.PARAMETER_DOUBLE, False))
-        values = {name: self.declare_parameter(f'sensor{j}.{name}', default,
-                                               _desc(text, ptype, read_only)).value
-                  for name, default, text, ptype, read_only in specs}
+             '(0: not checked)', False))
+        prm.declare(self, [prm.ParamSpec(f'sensor{j}.{name}', default, text, read_only=ro)
+                           for name, default, text, ro in specs])
+        values = {name: prm.value(self, f'sensor{j}.{name}') for name, *_ in specs}
         try:
             options = parse_options(values['options'])
         except ValueError as exc:
@@ -320,19 +303,14 @@ class FluxgateDriver(Node):
     def _on_set_parameters(self, params):
         updated = list(self.sensors)
         for param in params:
-            name, value = param.name, param.value
-            head, _, key = name.partition('.')
-            if not head.startswith('sensor') or key not in ('noise_nt', 'expected_rate_hz'):
+            m = re.fullmatch(r'sensor(\d+)\.(noise_nt|expected_rate_hz)', param.name)
+            if m is None or not 0 < int(m[1]) <= len(updated):
                 continue
-            try:
-                k = int(head[len('sensor'):]) - 1
-            except ValueError:
-                continue
-            if not 0 <= k < len(updated):
-                continue
-            if not isinstance(value, (int, float)):
-                return SetParametersResult(successful=False, reason=f'{name}: must be a number')
-            updated[k] = replace(updated[k], **{key: float(value)})
+            if not isinstance(param.value, (int, float)):
+                return SetParametersResult(successful=False,
+                                           reason=f'{param.name}: must be a number')
+            k = int(m[1]) - 1
+            updated[k] = replace(updated[k], **{m[2]: float(param.value)})
             reason = check_sensor(updated[k])
             if reason:
                 return SetParametersResult(successful=False, reason=reason)

@@ -33,8 +33,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 #: longest wait of a queued message for the node's callbacks, s: every wake rebuilds the
-#: executor's wait set (calibration node, 30 s at 4 x 100 Hz, 2026-11-27: 4.9-5.3 s of CPU
-#: with 20 ms and DRAIN_AT 16, 4.4 s with 50 ms and 16, 3.75 s with 50 ms and 32)
+#: executor's wait set, so fewer wakes cost less CPU
 DRAIN_PERIOD_S = 0.05
 #: this many queued messages wake the node's executor at once (a burst is not held back)
 DRAIN_AT = 32
@@ -58,8 +57,7 @@ class Intake:
         self._queue = collections.deque()
         self.dropped = 0
         self._stop = threading.Event()
-        self._thread = None
-        self._helper = None
+        self._thread = self._helper = None
         executor, kind = make_executor(events, node.context)
         self.threaded = kind == 'events'
         if not self.threaded:

@@ -58,11 +58,11 @@ def learning_specs():
                       'once (else on calibration/adopt); no unit'),
         prm.ParamSpec('learn_persist_s', 90.0, 'a change must last this long before it is '
                       'learned (shorter disturbances are not), s; read-only',
-                      prm.positive('s'), read_only=True, limits=(1.0, 1.0e5)),
+                      read_only=True, limits=(1.0, 1.0e5)),
         prm.ParamSpec('learn_window_s', 120.0, 'the recent data a learning refit sees, s; '
-                      'read-only', prm.positive('s'), read_only=True, limits=(5.0, 1.0e5)),
+                      'read-only', read_only=True, limits=(5.0, 1.0e5)),
         prm.ParamSpec('learn_refit_period_s', 10.0, 'interval of the learning refits (the '
-                      'estimate on calibration/learned), s; read-only', prm.positive('s'),
+                      'estimate on calibration/learned), s; read-only',
                       read_only=True, limits=(1.0, 1.0e5)),
     ]
 
@@ -88,8 +88,7 @@ class LearningMixin:
         s = prm.calibration_settings(self)
         self._learn_matcher = StampMatcher(self._n, s.stamp_tolerance_s)
         self._learned_pub = self.create_publisher(String, 'calibration/learned', result_qos)
-        self._srv.append(self.create_service(Trigger, 'calibration/adopt',
-                                             self._learn_on_adopt))
+        self._srv.append(self.create_service(Trigger, 'calibration/adopt', self._learn_on_adopt))
         self._updater.add('learning', lambda stat: fill(stat, self.learning_status()))
 
     @property
@@ -101,8 +100,7 @@ class LearningMixin:
         """Track the calibration made active (``doc`` its document)."""
         if self._learner is None:
             return
-        f = (doc.get('field_reference') or {}).get('magnitude_nt',
-                                                   prm.value(self, 'field_nt'))
+        f = (doc.get('field_reference') or {}).get('magnitude_nt', prm.value(self, 'field_nt'))
         with self._learn_lock:
             if self._learner.active is not cal:
                 self._learner.set_active(cal, float(f), now)
@@ -116,8 +114,7 @@ class LearningMixin:
         with self._lock:
             temp = self._temp.copy()
             aux = dict(self._aux)
-        for _, t_set, items in done:
-            self._learn_queue.append((t_set, np.array(items), temp, aux))
+        self._learn_queue.extend((t_set, np.array(items), temp, aux) for _, t_set, items in done)
         self._learn_drain()
 
     def _learn_imu(self, msg):
@@ -202,11 +199,10 @@ class LearningMixin:
 
     def _learn_on_adopt(self, request, response):
         if self._learner is None:
-            response.success, response.message = False, 'learning is off (parameter learn)'
-            return response
-        with self._learn_lock:
-            now = self._learner.last_block_t or 0.0
-            ok, text = self._learn_adopt(now)
+            ok, text = False, 'learning is off (parameter learn)'
+        else:
+            with self._learn_lock:
+                ok, text = self._learn_adopt(self._learner.last_block_t or 0.0)
         response.success, response.message = ok, text
         return response
 

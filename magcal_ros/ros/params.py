@@ -72,7 +72,8 @@ class ParamSpec:
     ``str``, ``float`` or ``int``); ``description`` with its unit; ``check(value)`` returns
     the reason a value is refused, or None; ``read_only``: settable at start-up only;
     ``limits`` ``(lowest, highest)``, published as the descriptor's ``FloatingPointRange`` /
-    ``IntegerRange`` (rclpy then refuses values outside it too).
+    ``IntegerRange``: rclpy refuses values outside it before ``check`` sees them (a range is
+    the check of a number that has one).
     """
 
     name: str
@@ -85,10 +86,8 @@ class ParamSpec:
 
     def descriptor(self):
         """Return the ``rcl_interfaces/ParameterDescriptor`` of this parameter."""
-        if isinstance(self.default, tuple):
-            ptype = _ARRAY_TYPES[self.item_type][0]
-        else:
-            ptype = _TYPES[type(self.default)]
+        ptype = (_ARRAY_TYPES[self.item_type][0] if isinstance(self.default, tuple)
+                 else _TYPES[type(self.default)])
         desc = ParameterDescriptor(name=self.name, type=ptype, description=self.description,
                                    read_only=self.read_only)
         if self.limits is not None and isinstance(self.default, float):
@@ -105,15 +104,6 @@ def positive(unit):
     def check(value):
         if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
             return f'must be a finite number > 0 {unit}, got {value!r}'
-        return None
-    return check
-
-
-def at_least(minimum, unit=''):
-    """Make a validator accepting an integer >= ``minimum``."""
-    def check(value):
-        if not (isinstance(value, int) and value >= minimum):
-            return f'must be an integer >= {minimum}{" " + unit if unit else ""}, got {value!r}'
         return None
     return check
 
@@ -242,15 +232,11 @@ def model_check(n_sensors):
 def declare(node, specs):
     """Declare every parameter of ``specs`` on ``node``; return the specs by name (dict)."""
     for spec in specs:
-        if isinstance(spec.default, tuple):
-            if spec.default:
-                node.declare_parameter(spec.name, list(spec.default), spec.descriptor())
-            else:
-                # an empty list would be typed BYTE_ARRAY: declare the type explicitly
-                node.declare_parameter(spec.name, _ARRAY_TYPES[spec.item_type][1],
-                                       spec.descriptor())
-        else:
-            node.declare_parameter(spec.name, spec.default, spec.descriptor())
+        default = spec.default
+        if isinstance(default, tuple):
+            # an empty list would be typed BYTE_ARRAY: declare the type explicitly
+            default = list(default) if default else _ARRAY_TYPES[spec.item_type][1]
+        node.declare_parameter(spec.name, default, spec.descriptor())
     by_name = {s.name: s for s in specs}
     # values given at start-up (YAML, overrides) are checked like later changes
     given = (node.get_parameter_or(s.name) for s in specs)
@@ -291,8 +277,7 @@ def value(node, name, default=None):
 # -- calibration node -----------------------------------------------------------------------
 #: declared first: the model check of the other parameters depends on it
 N_SENSORS = ParamSpec('n_sensors', 4, 'number of sensors of the array (topics sensor1/raw .. '
-                      'sensor<S>/raw); count, read-only', at_least(1), read_only=True,
-                      limits=(1, 64))
+                      'sensor<S>/raw); count, read-only', read_only=True, limits=(1, 64))
 
 #: declared and loaded before the model is checked; the only way a node imports effect code
 PLUGINS = ParamSpec('plugins', (), 'effect plug-ins imported at start-up, each a module path '
@@ -301,12 +286,22 @@ PLUGINS = ParamSpec('plugins', (), 'effect plug-ins imported at start-up, each a
                     module_paths, read_only=True, item_type=str)
 
 
-def load_plugins(node):
-    """Import the start-up ``plugins``; return the effects registered (ValueError: exit 2)."""
+def declare_node(node, specs_of):
+    """
+    Declare :data:`N_SENSORS` and :data:`PLUGINS`, import the plug-ins, then ``specs_of(S)``.
+
+    Effect code is imported at start-up only (before the model is checked), never because a
+    message names a module; a plug-in that fails is a ValueError (exit 2). Later changes go
+    to the node's ``_on_set_parameters``. Returns (the specs by name, the effects registered).
+    """
+    first = declare(node, [N_SENSORS, PLUGINS])
     try:
-        return fx.load_plugins(value(node, 'plugins', []))
+        plugins = fx.load_plugins(value(node, 'plugins', []))
     except (ValueError, TypeError, AttributeError) as exc:
         raise ValueError(f'plugins: {exc}') from None
+    specs = {**declare(node, specs_of(int(value(node, 'n_sensors')))), **first}
+    node.add_on_set_parameters_callback(node._on_set_parameters)
+    return specs, plugins
 
 
 def calibration_specs(n_sensors=4):
@@ -317,35 +312,32 @@ def calibration_specs(n_sensors=4):
                   "['base', 'temperature@2', 'offset(s(t, k=6))@2']; no unit",
                   model_check(n_sensors), item_type=str),
         ParamSpec('field_nt', 50000.0, 'reference magnitude of the (uniform) field at the '
-                  'calibration site, nT', positive('nT'), limits=(1.0, 1.0e6)),
+                  'calibration site, nT', limits=(1.0, 1.0e6)),
         ParamSpec('calibration_file', default_calibration_file(),
                   'path of the calibration YAML written by calibration/calibrate (~ expanded; '
                   'the previous file is kept as <path>.bak; default under $ROS_HOME or '
                   '~/.ros); read-only: no parameter write may redirect a file write',
                   non_empty_path, read_only=True),
         ParamSpec('min_samples', 1000, 'fewest complete sample sets calibration/calibrate '
-                  'accepts; count', at_least(12, 'sets'), limits=(12, 10 ** 9)),
+                  'accepts; count', limits=(12, 10 ** 9)),
         ParamSpec('max_samples', 20000, 'most sample sets held, spread evenly over the '
                   'whole run (when full, every other set is dropped and every other new one '
-                  'kept); count, read-only', at_least(12, 'sets'), read_only=True,
-                  limits=(12, 10 ** 9)),
+                  'kept); count, read-only', read_only=True, limits=(12, 10 ** 9)),
         ParamSpec('baseline_m', 0.5, 'distance between the two sensors of an arm of the '
-                  'cross (paper 004), m', positive('m'), limits=(1.0e-3, 100.0)),
+                  'cross (paper 004), m', limits=(1.0e-3, 100.0)),
         ParamSpec('history', 20, 'number of previous calibrations kept in '
-                  '<calibration_file>.history/ (0: none); count', at_least(0),
-                  limits=(0, 10000)),
+                  '<calibration_file>.history/ (0: none); count', limits=(0, 10000)),
         ParamSpec('report_dir', default_report_dir(), 'directory of the HTML report written '
                   'by calibration/diagnose (~ expanded; default under $ROS_HOME or ~/.ros); '
                   'read-only', non_empty_path, read_only=True),
         ParamSpec('stamp_tolerance_s', 0.005, 'largest header-stamp difference of two '
                   "sensors' samples that may vote for the same epoch when the streams are "
-                  'aligned (about half a sample period), s', positive('s'),
-                  limits=(1.0e-6, 10.0)),
+                  'aligned (about half a sample period), s', limits=(1.0e-6, 10.0)),
         ParamSpec('aux_topics', (), 'auxiliary std_msgs/Float64 topics (relative names) '
                   'recorded as columns aux_<name>; unit of each channel its own; read-only',
                   topic_names, read_only=True, item_type=str),
         ParamSpec('status_period_s', 1.0, 'period of calibration/status messages, s',
-                  positive('s'), read_only=True, limits=(0.01, 3600.0)),
+                  read_only=True, limits=(0.01, 3600.0)),
         ParamSpec('robust', False, 'use the robust (soft L1) loss against spikes; no unit'),
         ParamSpec('constrained', False, 'partial attitude coverage (a vehicle that cannot '
                   'turn over): priors on scale and angles in calibrate and diagnose, and a '
@@ -392,11 +384,9 @@ def calibration_specs(n_sensors=4):
                   'robot z axis (positive: counter-clockwise seen from above), rad/s',
                   limits=(-3.0, 3.0)),
         ParamSpec('turn_count', 2.0, 'turns calibration/turn makes, as seen by sensor 1 (the '
-                  'angle its in-plane reading sweeps); turns', positive('turns'),
-                  limits=(0.25, 20.0)),
+                  'angle its in-plane reading sweeps); turns', limits=(0.25, 20.0)),
         ParamSpec('turn_timeout_s', 120.0, 'calibration/turn stops the robot after this long '
-                  'even if the turns are not complete, s', positive('s'),
-                  limits=(1.0, 3600.0)),
+                  'even if the turns are not complete, s', limits=(1.0, 3600.0)),
     ]
 
 
@@ -454,14 +444,14 @@ def corrector_specs(n_sensors=4):
         ParamSpec('stamp_tolerance_s', 0.005, 'largest header-stamp difference of two '
                   "sensors' samples that may vote for the same epoch when the streams are "
                   'aligned for the gradient tensor (about half a sample period), s',
-                  positive('s'), limits=(1.0e-6, 10.0)),
+                  limits=(1.0e-6, 10.0)),
         ParamSpec('aux_topics', (), 'auxiliary std_msgs/Float64 topics (relative names) '
                   'feeding the aux:aux_<name> effects of the calibration (latest value); '
                   'read-only', topic_names, read_only=True, item_type=str),
         ParamSpec('publish_gradient', True, 'publish the gradient tensor (T/m) on gradient; '
                   'no unit'),
         ParamSpec('diagnostics_period_s', 1.0, 'period of the /diagnostics status, s',
-                  positive('s'), read_only=True, limits=(0.01, 3600.0)),
+                  read_only=True, limits=(0.01, 3600.0)),
         ParamSpec('array_frame_id', DEFAULT_ARRAY_FRAME_ID, 'frame_id of the corrected fields '
                   'and of the gradient tensor: the array frame (sensor 1 orthogonalised); '
                   'the static transforms array -> fluxgate{j} are published from the '
@@ -479,7 +469,7 @@ def corrector_specs(n_sensors=4):
         *geometry_specs(n_sensors),
         ParamSpec('baseline_m', 0.5, 'distance between the two sensors of an arm of the '
                   'cross (paper 004; when sensor_positions_m is empty), m; read-only',
-                  positive('m'), read_only=True, limits=(1.0e-3, 100.0)),
+                  read_only=True, limits=(1.0e-3, 100.0)),
     ]
 
 

@@ -66,7 +66,7 @@ def sim_specs():
                       'sensors, the origin otherwise', read_only=True, item_type=float),
         prm.ParamSpec('smooth_period_s', d['smooth_period_s'], 'period of the smooth '
                       'tumbling (trajectory smooth covers the sphere in about one), s',
-                      prm.positive('s'), read_only=True, limits=(0.1, 1.0e6)),
+                      read_only=True, limits=(0.1, 1.0e6)),
         prm.ParamSpec('rate', d['rate'], 'samples per second per sensor, Hz',
                       prm.positive('Hz'), read_only=True),
         prm.ParamSpec('tick', d['tick'], 'write period (samples are written in chunks), s',
@@ -109,7 +109,7 @@ def sim_specs():
                       read_only=True),
         prm.ParamSpec('imu_period_s', d['imu_period_s'], 'interval between two Imu messages, '
                       's of sample time (one per sample when shorter than the sample period)',
-                      prm.positive('s'), read_only=True, limits=(1.0e-6, 1.0e6)),
+                      read_only=True, limits=(1.0e-6, 1.0e6)),
         prm.ParamSpec('tilt_deg', d['tilt_deg'], 'largest roll and pitch of the vehicle '
                       'trajectory, deg', read_only=True, limits=(0.0, 90.0)),
         prm.ParamSpec('site_gradient', (), 'constant site gradient [GXX, GXY, GXZ, GYY, GYZ] '
@@ -124,9 +124,7 @@ class FluxgateSimNode(Node):
     def __init__(self, **kwargs):
         kwargs.setdefault('namespace', DEFAULT_NAMESPACE)
         super().__init__(NODE_NAME, **kwargs)
-        specs = sim_specs()
-        prm.declare(self, specs)
-        given = {s.name: prm.value(self, s.name) for s in specs}
+        given = {name: prm.value(self, name) for name in prm.declare(self, sim_specs())}
         settings = dict(devices.DEFAULTS, dir=devices.device_dir(self.get_namespace()))
         settings.update(devices.settings_from_parameters(given, 'parameters'))
         devices.check_settings(settings)
@@ -154,8 +152,7 @@ class FluxgateSimNode(Node):
         if self.settings.imu_topic:
             self._imu_pub = self.create_publisher(Imu, self.settings.imu_topic, 50)
             self.sim.listeners.append(self._publish_imu)
-        self._thread = threading.Thread(target=self._stream, name='fluxgate_sim',
-                                        daemon=True)
+        self._thread = threading.Thread(target=self._stream, name='fluxgate_sim', daemon=True)
         self._thread.start()
 
     @property
@@ -222,25 +219,28 @@ def split_command_line(argv):
     return own, ros
 
 
+def _floats(values):
+    return [float(v) for v in values]
+
+
+def _strings(values):
+    return [str(v) for v in values]
+
+
+#: an option's value as its parameter's (the others are taken as they are)
+_AS_PARAMETER = {
+    'option': lambda v: json.dumps(dict(v)) if v else '',
+    'unplug': lambda v: [
+        f'{u.sensor}:{u.at_s}:{u.for_s}' + (f':{u.new_path}' if u.new_path else '') for u in v],
+    'site_gradient': _floats, 'sensor_positions_m': _floats, 'truth': _strings,
+    'plugins': _strings, 'dir': str}
+
+
 def overrides_from_options(args):
     """ROS parameter overrides for the options given on the command line (parsed ``args``)."""
-    out = []
-    for key, value in devices.options_given(args).items():
-        if key == 'option':
-            out.append(Parameter('options', value=json.dumps(dict(value)) if value else ''))
-        elif key == 'unplug':
-            out.append(Parameter('unplug', value=[
-                f'{u.sensor}:{u.at_s}:{u.for_s}' + (f':{u.new_path}' if u.new_path else '')
-                for u in value]))
-        elif key in ('site_gradient', 'sensor_positions_m'):
-            out.append(Parameter(key, value=[float(v) for v in value]))
-        elif key in ('truth', 'plugins'):
-            out.append(Parameter(key, value=[str(v) for v in value]))
-        elif key == 'dir':
-            out.append(Parameter('dir', value=str(value)))
-        else:
-            out.append(Parameter(key, value=value))
-    return out
+    return [Parameter('options' if key == 'option' else key,
+                      value=_AS_PARAMETER.get(key, lambda v: v)(value))
+            for key, value in devices.options_given(args).items()]
 
 
 def main(args=None):
