@@ -107,6 +107,8 @@ def test_parameter_files_match_declared_parameters(node_name, specs):
             assert type(value) is type(spec.default), (name, value)
         if spec.check:
             assert spec.check(tuple(value) if isinstance(value, list) else value) is None
+        if spec.limits is not None:
+            assert spec.limits[0] <= value <= spec.limits[1], (name, value, spec.limits)
         # the shipped file keeps the documented defaults
         default = list(spec.default) if isinstance(spec.default, tuple) else spec.default
         assert value == default, f'{node_name}.{name}: {value!r} != default {default!r}'
