@@ -244,35 +244,41 @@ def test_a_line_on_live_stamps_is_the_one_lomb_scargle_finds():
     assert abs(found[True] - found[False]) <= 1.0 / (20 * span) + 1e-9
 
 
-def test_the_screen_keeps_the_priors_of_a_vehicle_s_partial_turn():
+@pytest.mark.parametrize('token,coupling,seed,n_open', [
+    ('aux:aux_motor_current@1', [40.0, -25.0, 60.0], 3, 5),
+    ('aux:aux_pump_current@1', [30.0, 20.0, -40.0], 1, 0)])
+def test_the_screen_keeps_the_priors_of_a_vehicle_s_partial_turn(token, coupling, seed, n_open):
     """
-    On a vehicle that turns a sixth of a circle, the screen's step keeps what the priors hold.
+    On a vehicle that turns a sixth of a circle, the screen's step finds the hidden coupling.
 
     The attitude-aided base fit holds seven map parameters at their priors (the motion leaves
-    them open).  A Gauss-Newton step without those priors moved them freely and overshot, so
+    them open; with the pump's seed the data determine them, barely).  A Gauss-Newton step without those priors moved them freely and overshot, so
     every candidate fell back to its start and was listed as explaining nothing (a real
     ArduCopter log, erlerobot/logs pxf/copter/5-12-2014/218.BIN, had all 26 so; here the
-    motor current's chi-square decrease was 0).  With the priors in the normal equations the
-    step goes most of the way to the full refit (the reference: the diagnosis' own refit,
-    which reaches the simulator's 3 nT noise), and a drift, absent from the truth, still
-    descends a little rather than being left at its start.
+    motor current's chi-square decrease was 0).  With the priors in the normal equations,
+    the step halved while it overshoots and, when the base had absorbed part of the effect
+    (the pump current: offsets thousands of nT off, which the whole step moves back
+    nonlinearly), the candidate's own part of the step alone, the screen goes most of the way
+    to the full refit (the reference: the diagnosis' own refit, which takes the residual
+    towards the simulator's 3 nT noise; before, the pump's step took 10 % of the way), and a
+    drift, absent from the truth, still descends a little rather than being left at its start.
     """
     from magcal_ros.core.data.simulate import simulate
     from magcal_ros.pipeline import diagnosis_base
     data, _ = simulate(n_samples=2000, rate_hz=10, n_sensors=1, trajectory='vehicle',
-                       tilt_deg=5.0, smooth_period_s=1200.0, attitude=True, seed=3,
-                       temp_swing_c=0, truth={'aux:aux_motor_current@1': [40.0, -25.0, 60.0]})
+                       tilt_deg=5.0, smooth_period_s=1200.0, attitude=True, seed=seed,
+                       temp_swing_c=0, truth={token: coupling})
     base, constrained, att = diagnosis_base(data, 'base', F)
-    assert constrained and len(att['undetermined']) >= 5, att['undetermined']
-    tokens = ['aux:aux_motor_current@1', 'drift@1']
+    assert constrained and len(att['undetermined']) >= n_open, att['undetermined']
+    tokens = [token, 'drift@1']
     step = {c.token: c for c in diagnose(data, field_nt=F, base=base, constrained=True,
                                          max_refit=0, candidates=tokens).candidates}
-    motor, drift = step['aux:aux_motor_current@1'], step['drift@1']
-    assert motor.method == drift.method == 'one-step'
+    hidden, drift = step[token], step['drift@1']
+    assert hidden.method == drift.method == 'one-step'
     refit = diagnose(data, field_nt=F, base=base, constrained=True, max_refit=1,
                      candidates=tokens[:1]).candidates[0]
     assert refit.method == 'refit'
-    assert abs(refit.rms_after_nt / 3.0 - 1) < 4 / np.sqrt(2000), refit.rms_after_nt
-    assert motor.delta_chi2 > 0.5 * refit.delta_chi2, (motor.delta_chi2, refit.delta_chi2)
-    assert motor.rms_after_nt < 0.5 * motor.rms_before_nt
+    assert refit.rms_after_nt < 1.5 * 3.0 and hidden.rms_before_nt > 3 * 3.0
+    assert hidden.delta_chi2 > 0.5 * refit.delta_chi2, (hidden.delta_chi2, refit.delta_chi2)
+    assert hidden.rms_after_nt < 0.7 * hidden.rms_before_nt
     assert 0 < drift.delta_chi2 and drift.rms_after_nt < drift.rms_before_nt

@@ -669,22 +669,36 @@ def _screen(b, testable, progress):
         if not b.robust and np.isfinite(c.chi2) and b.delta_bic(c) > SCORE_RULE_OUT_BIC:
             continue
         # from the base fit's field: one Gauss-Newton step of the profile (model.evaluate),
-        # halved while it overshoots (inf or nan caught here, not warned about)
+        # halved while it overshoots; when the whole step overshoots, also the candidate's
+        # own part of it alone (the base held: a base that absorbed part of the effect
+        # moves far and nonlinearly); the lower chi-square of those, else the start
         step = c.p - c.start
-        for k in range(STEP_HALVINGS + 1):
-            c.p = c.start + step / 2 ** k
-            with np.errstate(over='ignore', invalid='ignore', divide='ignore'):
-                ev = evaluate_residuals(c.model, c.p, b.data, b.f, b.sigma, b.contexts,
-                                        field0=b.ev0.field, loss=b.loss)
-            if np.isfinite(ev.chi2) and ev.chi2 <= b.ev0.chi2:
+        tries = [step / 2 ** k for k in range(STEP_HALVINGS + 1)]
+        best = None
+        for k, move in enumerate(tries):
+            ev = _at_step(b, c, c.start + move)
+            if ev is not None:
+                best = (ev, c.start + move)
                 break
-        else:
-            c.p = c.start
-            ev = evaluate_residuals(c.model, c.start, b.data, b.f, b.sigma, b.contexts,
-                                    loss=b.loss)
-        c.ev, c.method = ev, 'one-step'
+        if best is None or k > 0:
+            ev = _at_step(b, c, c.start + np.where(c.added, step, 0.0))
+            if ev is not None and (best is None or ev.chi2 < best[0].chi2):
+                best = (ev, c.start + np.where(c.added, step, 0.0))
+        if best is None:
+            best = (evaluate_residuals(c.model, c.start, b.data, b.f, b.sigma, b.contexts,
+                                       loss=b.loss), c.start)
+        c.ev, c.p = best
+        c.method = 'one-step'
     order_by_evidence(trials, b)
     return trials, screen
+
+
+def _at_step(b, c, p):
+    """Evaluate candidate ``c`` at ``p`` from the base fit's field; None if it does not descend."""
+    with np.errstate(over='ignore', invalid='ignore', divide='ignore'):   # caught below
+        ev = evaluate_residuals(c.model, p, b.data, b.f, b.sigma, b.contexts,
+                                field0=b.ev0.field, loss=b.loss)
+    return ev if np.isfinite(ev.chi2) and ev.chi2 <= b.ev0.chi2 else None
 
 
 def _refit(b, trials, screen, max_refit, progress):
