@@ -205,6 +205,12 @@ def white_noise_sd(x):
     return np.sqrt(np.mean(d ** 2, axis=0) / 20.0)
 
 
+def usable(x):
+    """Tell whether a channel (N,) is finite and varies."""
+    x = np.asarray(x, float)
+    return bool(np.all(np.isfinite(x)) and np.ptp(x) > 0)
+
+
 def evenly_sampled(t):
     """
     Return (evenly sampled, median interval s) of times ``t`` (N,) s.

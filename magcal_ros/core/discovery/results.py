@@ -186,8 +186,7 @@ class Diagnosis:
             for c in self.candidates[:max_candidates]:
                 vec = _before_after(c.vector_rms_before_nt, c.vector_rms_after_nt)
                 cv = _before_after(c.cv_rms_before_nt, c.cv_rms_after_nt)
-                share = ('' if c.explained_fraction is None else
-                         f'{c.explained_fraction:6.0%}')
+                share = ('' if c.explained_fraction is None else f'{c.explained_fraction:6.0%}')
                 lines.append(f'{"*" if c.significant else " "} {c.token:34s} {c.n_params:2d} '
                              f'{c.delta_bic:10.1f} {c.log10_p_value:8.1f} '
                              f'{_before_after(c.rms_before_nt, c.rms_after_nt)}   '
