@@ -260,11 +260,8 @@ def _band(ax, t, y, columns=PIXEL_COLUMNS, lw=0.5, **style):
 
 def _scatter_idx(n, *series, columns=PIXEL_COLUMNS):
     """Return evenly thinned samples plus the extremes of every series per pixel column, sorted."""
-    idx = _thin(n)
-    if len(idx) == n:
-        return idx
     keep = np.zeros(n, bool)
-    keep[idx] = True
+    keep[_thin(n)] = True
     for y in series:
         keep[_envelope(y, columns)] = True
     return np.flatnonzero(keep)
@@ -591,10 +588,9 @@ def plot_residual_vs_aux(data, result, floor, channels=None):
                for k in sorted(channels) if k in (data.aux or {})]
     if not drivers:
         return None
-    return _driver_panels(
-        data, result, floor, drivers,
-        'Residual vs auxiliary channels (a trend = a coupling of that channel)',
-        lambda n: f'{n} ({_unit_of(n)})')
+    return _driver_panels(data, result, floor, drivers,
+                          'Residual vs auxiliary channels (a trend = a coupling of that channel)',
+                          lambda n: f'{n} ({_unit_of(n)})')
 
 
 def plot_residual_vs_rate(data, result, floor):
@@ -837,8 +833,7 @@ def plot_ladder_rungs(data, ladder):
     axes[0].legend(fontsize=7, loc='upper right', ncol=4, markerscale=6)
     axes[-1].set_xlabel('time since start (s)')
     _suptitle(fig, 'Error ladder: scalar residual of each rung. Stopped: '
-              + (ladder.reason[:110] + ('...' if len(ladder.reason) > 110 else '')),
-              fontsize=10)
+              + (ladder.reason[:110] + ('...' if len(ladder.reason) > 110 else '')), fontsize=10)
     return _arrange(fig, len(steps), 1, hspace=0.4)
 
 
@@ -1190,11 +1185,9 @@ def _plan(data, result, floor, diagnosis, ladder, found, baseline_m, every):
     selected = {
         'residual_temperature': bool(temp_sel),
         'residual_aux': bool(aux_sel),
-        'residual_rate': (any('field_rate' in t for t in tokens)
-                          or 'field_rate' in channels),
-        'residual_direction': ('residual_direction' in views
-                               or any(e in t for t in tokens
-                                      for e in ('nonlinearity', 'soft_iron'))),
+        'residual_rate': any('field_rate' in t for t in tokens) or 'field_rate' in channels,
+        'residual_direction': 'residual_direction' in views or any(
+            e in t for t in tokens for e in ('nonlinearity', 'soft_iron')),
         'change_points': 'change_points' in views or any(t.startswith('step(') for t in tokens),
         'residual_lagged': 'residual_lagged' in views,
     }
@@ -1203,8 +1196,7 @@ def _plan(data, result, floor, diagnosis, ladder, found, baseline_m, every):
          lambda: plot_structure(data, result, floor, diagnosis, adopted_fit(
              data, diagnosis, ladder), found)),
         ('magnitude', 'Measured vs modelled magnitude', lambda: plot_magnitude(data, result)),
-        ('residual_time', 'Residual over time',
-         lambda: plot_residual_time(data, result, floor)),
+        ('residual_time', 'Residual over time', lambda: plot_residual_time(data, result, floor)),
         ('residual_temperature', 'Residual vs temperature',
          None if not has_temp else
          lambda: plot_residual_vs_temperature(data, result, floor, temp_sel)),

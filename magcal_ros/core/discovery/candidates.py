@@ -219,8 +219,7 @@ def residual_features(t, residual, max_steps=2, min_line_ratio=30.0, readings=No
     # statistic is ~ chi2(C) there)
 
     def changes(x):
-        c = x.shape[1]
-        return binary_segmentation(x, max_steps, c * (10.0 + 5.0 * math.log(n)))
+        return binary_segmentation(x, max_steps, x.shape[1] * (10.0 + 5.0 * math.log(n)))
     found = changes(r.transpose(1, 0, 2).reshape(n, -1))              # (N, 3S)
     if readings is not None:
         lin = _gain_products(residual, readings)                         # (S, N, 3, 3)

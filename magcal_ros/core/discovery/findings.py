@@ -343,8 +343,7 @@ class _Driver:
         self.taus = lag_grid(t, N_TAU, shortest=1e-4, longest=0.5, samples=3)
         self.base = np.column_stack([np.ones(n), self.a])
         self.q = q = np.linalg.qr(self.base)[0]
-        self.lags = lags = (np.column_stack([first_order_lag(t, self.a, tau)
-                                             for tau in self.taus])
+        self.lags = lags = (np.column_stack([first_order_lag(t, self.a, tau) for tau in self.taus])
                             if len(self.taus) else np.zeros((n, 0)))
         self.lags_perp = lags - q @ (q.T @ lags)          # orthogonal to [1, a]
         self.lag_norm2 = np.sum(self.lags_perp ** 2, axis=0)

@@ -333,8 +333,7 @@ def _merge_search(b, trials, ranked, verdict, reason, res, at_floor):
     if adopted is None:
         return verdict, reason, ranked
     a_text = adopted.text_for(s)
-    use_search = (verdict is None or c_ratio is None
-                  or (not c_expl and a_ratio < c_ratio)
+    use_search = (verdict is None or c_ratio is None or (not c_expl and a_ratio < c_ratio)
                   or (a_expl and set(adopted.sensors) < set(sensors_of(cat.sensor, s))))
     if not use_search or (verdict and _same_term(a_text, verdict)):
         # the catalog's token when the search found the composition it stands for
@@ -481,13 +480,11 @@ def _localised_candidate(b, loc):
     s = b.data.n_sensors
     sens = list(loc.sensors)
     return Candidate(
-        token=loc.token, effect='drop', sensor=sens[0] if len(sens) == 1 else None,
-        n_params=0, rms_before_nt=scalar_rms_of(b.ev0.scalar, sens, b.ev0.kept),
-        rms_after_nt=None,
+        token=loc.token, effect='drop', sensor=sens[0] if len(sens) == 1 else None, n_params=0,
+        rms_before_nt=scalar_rms_of(b.ev0.scalar, sens, b.ev0.kept), rms_after_nt=None,
         vector_rms_before_nt=vector_rms_of(b.ev0.vector, sens, s, b.ev0.kept),
-        vector_rms_after_nt=None,
-        delta_chi2=float('nan'), delta_bic=float('nan'), p_value=float('nan'),
-        log10_p_value=float('nan'), method='localised', significant=True,
+        vector_rms_after_nt=None, delta_chi2=float('nan'), delta_bic=float('nan'),
+        p_value=float('nan'), log10_p_value=float('nan'), method='localised', significant=True,
         explained_fraction=loc.share, decided_by='model-free (excess inside the interval)',
         note=('vector' if loc.vector else 'scalar') + ' excess confined in time')
 
@@ -527,13 +524,10 @@ def _term_candidate(b, tm, res, verdict=False):
         token=text, effect=text.split('@')[0], sensor=sensor, n_params=tm.k,
         rms_before_nt=scalar_rms_of(b.ev0.scalar, sens, b.ev0.kept), rms_after_nt=after,
         vector_rms_before_nt=vector_rms_of(b.ev0.vector, sens, s, b.ev0.kept),
-        vector_rms_after_nt=None,
-        delta_chi2=d_chi2, delta_bic=d_bic, p_value=p_val, log10_p_value=logp,
-        method='search' if verdict else 'score',
-        cv_rms_before_nt=tm.cv_before, cv_rms_after_nt=tm.cv_after, significant=verdict,
-        explained_fraction=tm.share,
-        decided_by=None if tm.share is None else 'held-out (linearised, search)',
-        note=None)
+        vector_rms_after_nt=None, delta_chi2=d_chi2, delta_bic=d_bic, p_value=p_val,
+        log10_p_value=logp, method='search' if verdict else 'score', cv_rms_before_nt=tm.cv_before,
+        cv_rms_after_nt=tm.cv_after, significant=verdict, explained_fraction=tm.share,
+        decided_by=None if tm.share is None else 'held-out (linearised, search)', note=None)
 
 
 def order_by_evidence(trials, b):
@@ -594,9 +588,8 @@ def _prepare(data, f, base, floor, max_samples, constrained):
             z_all = z_all[base.reading_mask]            # the readings the fit kept
         loss = soft_l1_lr_loss(z_all, f_scale)
     ev0 = evaluate_residuals(model, base.params, data, f, sigma, contexts, loss=loss)
-    return _Base(data=data, f=f, sigma=sigma, contexts=contexts, model=model,
-                 params=base.params, ev0=ev0, floor=floor, loss=loss, f_scale=f_scale,
-                 constrained=constrained)
+    return _Base(data=data, f=f, sigma=sigma, contexts=contexts, model=model, params=base.params,
+                 ev0=ev0, floor=floor, loss=loss, f_scale=f_scale, constrained=constrained)
 
 
 def _base_measures(b):
@@ -634,8 +627,7 @@ def _screen(b, testable, progress):
         # under the robust loss the (least-squares) step is taken on the inliers
         n = b.data.n_samples
         keep = (np.arange(n) if b.loss is None else np.flatnonzero(
-            np.all(np.abs(b.ev0.residual / b.sigma[:, None, None]) < 2 * b.f_scale,
-                   axis=(0, 2))))
+            np.all(np.abs(b.ev0.residual / b.sigma[:, None, None]) < 2 * b.f_scale, axis=(0, 2))))
         screen = Screen(b.model, b.params, b.data.raw[:, keep],
                         [c.subset(keep) for c in b.contexts], b.f[keep], b.sigma)
     for i, (tok, label, sensor) in enumerate(testable):

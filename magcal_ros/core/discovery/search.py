@@ -114,11 +114,9 @@ class Term:
         if self.parts:
             return ' + '.join(p.text_for(n_sensors) for p in self.parts)
         body = f'{self.coupling}({self.driver.text})'
-        if self.coupling == 'field':
-            return body
-        if self.alike:
+        if self.alike and self.coupling != 'field':
             return body + '@alike'
-        if len(self.sensors) == n_sensors:
+        if self.coupling == 'field' or len(self.sensors) == n_sensors:
             return body
         if len(self.sensors) == 1:
             return f'{body}@{self.sensors[0]}'

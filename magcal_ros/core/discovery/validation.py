@@ -88,8 +88,7 @@ def cross_validate(data, model, params, f, sigma, folds=DEFAULT_FOLDS, fold_init
             train = np.setdiff1d(np.arange(n), test)
             init = params if fold_inits is None else fold_inits[b]
             r = fit(data.subset(train), model, field_nt=f[train], sigma_nt=sigma, init=init,
-                    check_identifiability=False, on_degenerate='flag',
-                    constrained=constrained)
+                    check_identifiability=False, on_degenerate='flag', constrained=constrained)
             fold_params.append(r.params)
     ss, ss_scalar, count = np.zeros((3, data.n_sensors))
     for p_b, test in zip(fold_params, blocks):

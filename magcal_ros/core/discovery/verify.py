@@ -175,8 +175,7 @@ def tested_verdict(b, verdict, reason, ranked, cv0, folds, cv_method='newton',
                             params=(), significant=True, explained_fraction=v.share,
                             cv_rms_before_nt=v.rms_before_nt, cv_rms_after_nt=v.rms_after_nt,
                             rms_after_nt=None, vector_rms_after_nt=None, method='refit',
-                            decided_by='held-out' if cv0 is not None else 'in-sample',
-                            note=None)
+                            decided_by='held-out' if cv0 is not None else 'in-sample', note=None)
             return v.token, f'{reason}; {split[1]}', [first] + out, tried
     if chosen is None:
         why = '; '.join(f'{v.token}: {v.reason}' for v in tried)
