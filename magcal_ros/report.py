@@ -842,8 +842,7 @@ def plot_ladder(ladder):
     steps = ladder.steps
     fig = _figure(max(6.0, 1.6 * len(steps) + 2), 4.2)
     ax = fig.add_subplot(1, 1, 1)
-    cv = np.array([st.cv_rms_nt if st.cv_rms_nt is not None else st.residual_rms_nt
-                   for st in steps])
+    cv = np.array([st.residual_rms_nt if st.cv_rms_nt is None else st.cv_rms_nt for st in steps])
     x = np.arange(len(steps))
     prev = np.concatenate([[cv[0]], cv[:-1]])
     bottoms = np.minimum(prev, cv)

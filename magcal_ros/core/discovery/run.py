@@ -368,8 +368,7 @@ def _describe(b, found, res, verdict, scalar_rms, vector_rms):
             text=(f'{_who(sens, s)}: an excess over the floor confined to '
                   f'{format_arg(loc.t0)}-{format_arg(loc.t1)} s ({loc.share:.0%} of it); '
                   f'every sensor within {max(loc.ratios_outside.values()):.2f} x its floor '
-                  'outside: add '
-                  f'{loc.token} to leave it out'), token=loc.token))
+                  f'outside: add {loc.token} to leave it out'), token=loc.token))
     if verdict is None:
         left = _what_is_left(b, found, res, scalar_rms, vector_rms)
         if left is not None:
@@ -748,8 +747,7 @@ def _rank(b, trials, cv0, held_out, decided, p_thr):
         out.append(Candidate(
             token=c.token, effect=c.label, sensor=c.sensor, n_params=c.k,
             rms_before_nt=scalar_rms_of(ev0.scalar, sens, ev0.kept),
-            rms_after_nt=(None if c.ev is None else
-                          scalar_rms_of(c.ev.scalar, sens, c.ev.kept)),
+            rms_after_nt=None if c.ev is None else scalar_rms_of(c.ev.scalar, sens, c.ev.kept),
             vector_rms_before_nt=vector_rms_of(ev0.vector, sens, s, ev0.kept),
             vector_rms_after_nt=(None if c.ev is None else
                                  vector_rms_of(c.ev.vector, sens, s, c.ev.kept)),
