@@ -745,11 +745,9 @@ def _sameness(t):
     f_res = 2.0 / max(t[-1] - t[0], 1e-300)
 
     def same(a, b):
-        if a.kind != b.kind or a.channel != b.channel:
-            return False
-        if a.kind in ('step', 'periodic'):
-            return abs(a.value - b.value) <= (t_res if a.kind == 'step' else f_res)
-        return True
+        return a.kind == b.kind and a.channel == b.channel and (
+            a.kind not in ('step', 'periodic')
+            or abs(a.value - b.value) <= (t_res if a.kind == 'step' else f_res))
     return same
 
 

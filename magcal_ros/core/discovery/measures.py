@@ -232,9 +232,7 @@ def sampled_on_a_clock(t, dt=None):
     below the Nyquist frequency, and its periodogram is an FFT instead of Lomb-Scargle's.
     """
     d = np.diff(np.asarray(t, float))
-    if not d.size:
-        return False
-    dt = float(np.median(d)) if dt is None else dt
+    dt = (float(np.median(d)) if dt is None else dt) if d.size else 0.0
     if dt <= 0:
         return False
     return bool(np.mean(np.abs(d - dt) > CLOCK_JITTER * dt) <= CLOCK_OUTLIERS)
