@@ -766,8 +766,7 @@ def plot_candidates(diagnosis, top=15):
     y = np.arange(len(rows))[::-1]
     colours = ['tab:green' if r['significant'] else
                ('tab:orange' if r['likelihood_tests'] else '0.7') for r in rows]
-    share = np.array([r['explained_fraction'] if r['explained_fraction'] is not None else 0.0
-                      for r in rows])
+    share = np.array([r['explained_fraction'] or 0.0 for r in rows])
     bars = ax.barh(y, share, color=colours)
     for bar, r in zip(bars, rows):
         if r['verdict']:
