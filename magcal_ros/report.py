@@ -37,10 +37,12 @@ from magcal_ros.core.discovery import (AT_FLOOR_RATIO, compact_spec, MIN_DELTA_B
                                        MIN_EXPLAINED, noise_floor_from_data)
 from magcal_ros.core.discovery.findings import best_lag, view_of
 from magcal_ros.core.discovery.measures import periodogram
+from magcal_ros.core.discovery.run import report_progress
 from magcal_ros.core.geometry.tensor import cross_positions, tensor_cross, tensor_noise_floor
 import matplotlib
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.patches import Circle
 from matplotlib.ticker import (AutoLocator, FuncFormatter, Locator, LogLocator, MaxNLocator,
                                NullLocator)
 import numpy as np
@@ -65,11 +67,6 @@ def _figure(width, height):
                  layout=None if FIXED_LAYOUT else 'constrained')
     FigureCanvasAgg(fig)
     return fig
-
-
-def _BOTTOM():
-    """Return where a figure legend along the bottom goes (outside the axes when laid out)."""
-    return 'lower center' if FIXED_LAYOUT else 'outside lower center'
 
 
 def _suptitle(fig, text, fontsize=11):
@@ -171,7 +168,9 @@ def _bottom_legend(fig, fontsize=7, axes=None, width=2.3, markerscale=2):
         for h, lab in zip(*ax.get_legend_handles_labels()):
             handles.setdefault(lab, h)
     ncol = max(1, min(len(handles), int(fig.get_figwidth() / width)))
-    fig.legend(list(handles.values()), list(handles), loc=_BOTTOM(), ncol=ncol,
+    # along the bottom; outside the axes under the constrained layout
+    fig.legend(list(handles.values()), list(handles), ncol=ncol,
+               loc='lower center' if FIXED_LAYOUT else 'outside lower center',
                fontsize=fontsize, frameon=False, markerscale=markerscale)
     return 0.55 + 0.2 * int(np.ceil(len(handles) / ncol))
 
@@ -230,10 +229,8 @@ def _envelope(y, columns=PIXEL_COLUMNS):
         blocks = head[:, c].reshape(columns, k)
         ok = np.isfinite(blocks).any(axis=1)
         start = np.arange(columns)[ok] * k
-        b = np.where(np.isfinite(blocks[ok]), blocks[ok], np.inf)
-        keep[start + np.argmin(b, axis=1)] = True
-        b = np.where(np.isfinite(blocks[ok]), blocks[ok], -np.inf)
-        keep[start + np.argmax(b, axis=1)] = True
+        keep[start + np.nanargmin(blocks[ok], axis=1)] = True
+        keep[start + np.nanargmax(blocks[ok], axis=1)] = True
     return np.flatnonzero(keep)
 
 
@@ -263,11 +260,8 @@ def _band(ax, t, y, columns=PIXEL_COLUMNS, lw=0.5, **style):
 
 def _scatter_idx(n, *series, columns=PIXEL_COLUMNS):
     """Return evenly thinned samples plus the extremes of every series per pixel column, sorted."""
-    idx = _thin(n)
-    if len(idx) == n:
-        return idx
     keep = np.zeros(n, bool)
-    keep[idx] = True
+    keep[_thin(n)] = True
     for y in series:
         keep[_envelope(y, columns)] = True
     return np.flatnonzero(keep)
@@ -279,8 +273,7 @@ def _binned(x, y, bins=20):
     x, y = x[ok], y[ok]
     if len(x) < 2 * bins:
         return np.array([]), np.array([])
-    order = np.argsort(x)
-    parts = np.array_split(order, bins)
+    parts = np.array_split(np.argsort(x), bins)
     return (np.array([x[p].mean() for p in parts]), np.array([y[p].mean() for p in parts]))
 
 
@@ -298,11 +291,6 @@ def _sensor_axes(fig, n, sharey=False):
     for ax in axes[n:]:
         fig.delaxes(ax)
     return axes[:n]
-
-
-def _row_starts(n):
-    """Return whether each of the ``n`` axes of :func:`_sensor_axes` starts its row."""
-    return [i % min(n, 4) == 0 for i in range(n)]
 
 
 def _floor_lines(ax, level, label='noise floor'):
@@ -461,9 +449,8 @@ def plot_structure(data, result, floor, diagnosis=None, adopted=None, findings=N
     """
     s = data.n_sensors
     token = diagnosis.verdict_token if diagnosis is not None else None
-    chan = None
-    if not token and findings is not None:
-        chan = next((f.channel for f in findings.items if f.channel), None)
+    chan = (None if token or findings is None else
+            next((f.channel for f in findings.items if f.channel), None))
     cols = 3 if (token or chan) else 2
     fig = _figure(4.6 * cols, 2.3 * s + 0.9)
     t = data.t - data.t[0]
@@ -482,8 +469,7 @@ def plot_structure(data, result, floor, diagnosis=None, adopted=None, findings=N
             ax.plot(t[e], term[e], '-', lw=1.0, color='tab:red',
                     label=f'fit of {token} (what it takes out)')
         _floor_lines(ax, floor.per_sensor_nt[j - 1])
-        after = ('' if adopted is None else
-                 f' -> {adopted.scalar_rms_nt[j]:.2f} nT with {token}')
+        after = ('' if adopted is None else f' -> {adopted.scalar_rms_nt[j]:.2f} nT with {token}')
         _title(ax, f'sensor {j}: scalar RMS {result.scalar_rms_nt[j]:.2f} nT '
                f'({ratio[j]:.2f} x floor){after}', fontsize=8, loc='left')
         ax.set(ylabel='scalar (nT)', xlabel='time since start (s)')
@@ -504,8 +490,7 @@ def plot_structure(data, result, floor, diagnosis=None, adopted=None, findings=N
                             label='fit of the term, x y z' if c == 0 else None)
             _floor_lines(ax, floor.vector_floor_nt(j))
             vr = result.vector_rms_nt.get(j, float('nan'))
-            _title(ax, f'sensor {j} - sensor 1: vector RMS {vr:.2f} nT', fontsize=8,
-                   loc='left')
+            _title(ax, f'sensor {j} - sensor 1: vector RMS {vr:.2f} nT', fontsize=8, loc='left')
             ax.set(ylabel='vector (nT)', xlabel='time since start (s)')
         if cols == 3:
             ax = axes[j - 1, 2]
@@ -603,10 +588,9 @@ def plot_residual_vs_aux(data, result, floor, channels=None):
                for k in sorted(channels) if k in (data.aux or {})]
     if not drivers:
         return None
-    return _driver_panels(
-        data, result, floor, drivers,
-        'Residual vs auxiliary channels (a trend = a coupling of that channel)',
-        lambda n: f'{n} ({_unit_of(n)})')
+    return _driver_panels(data, result, floor, drivers,
+                          'Residual vs auxiliary channels (a trend = a coupling of that channel)',
+                          lambda n: f'{n} ({_unit_of(n)})')
 
 
 def plot_residual_vs_rate(data, result, floor):
@@ -679,12 +663,11 @@ def plot_direction_map(data, result, floor):
         # dots of the same 3 pt without an outline: Agg strokes each marker's edge, and
         # that was a third of this figure's drawing
         sc = ax.scatter(x, y, c=r, s=9, linewidths=0, cmap='coolwarm', vmin=-lim, vmax=lim)
-        cb = fig.colorbar(sc, ax=ax, fraction=0.046, pad=0.03)
-        cb.set_label('scalar residual (nT)')
-        for deg in (45, 90, 135):                  # angle from the centre direction
-            rr = 2 * np.sin(np.radians(deg) / 2)
-            ax.add_patch(_circle(rr))
-        ax.add_patch(_circle(2.0, ls='-'))
+        fig.colorbar(sc, ax=ax, fraction=0.046, pad=0.03).set_label('scalar residual (nT)')
+        # rings 45, 90 and 135 deg from the centre direction, and the edge of the sphere
+        rings = [2 * np.sin(np.radians(deg) / 2) for deg in (45, 90, 135)]
+        for rr, ls in zip(rings + [2.0], ':::-'):
+            ax.add_patch(Circle((0.0, 0.0), rr, fill=False, color='0.5', lw=0.7, ls=ls))
         ax.set(xlim=(-2.05, 2.05), ylim=(-2.05, 2.05))
         ax.set_aspect('equal')
         ax.set(xlabel='equal-area x (rings: 45, 90, 135 deg from centre)',
@@ -693,11 +676,6 @@ def plot_direction_map(data, result, floor):
                f'{floor.per_sensor_nt[j - 1]:.1f} nT', fontsize=8)
     _suptitle(fig, 'Residual over field direction (sensor frame, equal-area)', fontsize=11)
     return _arrange(fig, int(np.ceil(s / 4)), min(s, 4), right=0.6, wspace=1.3)
-
-
-def _circle(radius, ls=':'):
-    from matplotlib.patches import Circle
-    return Circle((0.0, 0.0), radius, fill=False, color='0.5', lw=0.7, ls=ls)
 
 
 def plot_tensor(data, result, baseline_m=0.5, floor=None):
@@ -788,8 +766,7 @@ def plot_candidates(diagnosis, top=15):
     y = np.arange(len(rows))[::-1]
     colours = ['tab:green' if r['significant'] else
                ('tab:orange' if r['likelihood_tests'] else '0.7') for r in rows]
-    share = np.array([r['explained_fraction'] if r['explained_fraction'] is not None else 0.0
-                      for r in rows])
+    share = np.array([r['explained_fraction'] or 0.0 for r in rows])
     bars = ax.barh(y, share, color=colours)
     for bar, r in zip(bars, rows):
         if r['verdict']:
@@ -815,8 +792,7 @@ def plot_candidates(diagnosis, top=15):
     ax.set_xlabel(f'share of the excess over the floor removed ({diagnosis.decided_by}): '
                   'decides the verdict')
     ax.legend(fontsize=7, loc='lower right')
-    ev = np.array([max(r['evidence'], 0.1) if r['evidence'] is not None else 0.1
-                   for r in rows])
+    ev = np.array([max(r['evidence'], 0.1) if r['evidence'] is not None else 0.1 for r in rows])
     ax2.barh(y, ev, color=colours)
     ax2.set_ylim(ax.get_ylim())
     ax2.set_yticks([])
@@ -856,8 +832,7 @@ def plot_ladder_rungs(data, ladder):
     axes[0].legend(fontsize=7, loc='upper right', ncol=4, markerscale=6)
     axes[-1].set_xlabel('time since start (s)')
     _suptitle(fig, 'Error ladder: scalar residual of each rung. Stopped: '
-              + (ladder.reason[:110] + ('...' if len(ladder.reason) > 110 else '')),
-              fontsize=10)
+              + (ladder.reason[:110] + ('...' if len(ladder.reason) > 110 else '')), fontsize=10)
     return _arrange(fig, len(steps), 1, hspace=0.4)
 
 
@@ -866,8 +841,7 @@ def plot_ladder(ladder):
     steps = ladder.steps
     fig = _figure(max(6.0, 1.6 * len(steps) + 2), 4.2)
     ax = fig.add_subplot(1, 1, 1)
-    cv = np.array([st.cv_rms_nt if st.cv_rms_nt is not None else st.residual_rms_nt
-                   for st in steps])
+    cv = np.array([st.residual_rms_nt if st.cv_rms_nt is None else st.cv_rms_nt for st in steps])
     x = np.arange(len(steps))
     prev = np.concatenate([[cv[0]], cv[:-1]])
     bottoms = np.minimum(prev, cv)
@@ -914,8 +888,7 @@ def plot_residual_spectrum(findings):
         return None
     fig = _figure(3.6 * min(len(sensors), 4), 3.2 * int(np.ceil(len(sensors) / 4)))
     # one power axis per row: power over the white-noise level compares across sensors
-    for ax, first, j in zip(_sensor_axes(fig, len(sensors), sharey=True),
-                            _row_starts(len(sensors)), sensors):
+    for i, (ax, j) in enumerate(zip(_sensor_axes(fig, len(sensors), sharey=True), sensors)):
         freqs, power, _ = periodogram(findings.t, findings.series[j])
         z = power.sum(axis=1) / np.sum(findings.noise_nt[j] ** 2)
         # about 400 log-spaced bins, each drawn at its maximum so that lines stay visible
@@ -929,7 +902,7 @@ def plot_residual_spectrum(findings):
                 ax.annotate(_finding_label(f), (f.value, 1.0), fontsize=8, color='tab:red',
                             xycoords=('data', 'axes fraction'), ha='center', va='top')
         ax.set_xlabel('frequency [Hz]')
-        if first:
+        if i % min(len(sensors), 4) == 0:           # the first of its row
             ax.set_ylabel('power / white noise')
         _title(ax, f'sensor {j}', fontsize=10)
     _suptitle(fig, f'Residual spectrum per sensor ({findings.kind_of_series} residual)')
@@ -989,15 +962,11 @@ def plot_residual_vs_lagged_channels(data, findings):
     t = findings.t
     if len(t) < 30:
         return None
-    panels = []
-    for f in findings.items:
-        if view_of(f) == 'residual_lagged' and f.channel:
-            panels.append((f.sensor, f.channel, f.value if f.kind == 'lag' else 0.0,
-                           _finding_label(f)))
+    panels = [(f.sensor, f.channel, f.value if f.kind == 'lag' else 0.0, _finding_label(f))
+              for f in findings.items if view_of(f) == 'residual_lagged' and f.channel]
     if not panels and data.temp is not None:
-        for j in sorted(findings.series):
-            if np.all(np.isfinite(data.temp[j - 1])):
-                panels.append((j, 'temperature', None, 'no finding'))
+        panels = [(j, 'temperature', None, 'no finding') for j in sorted(findings.series)
+                  if np.all(np.isfinite(data.temp[j - 1]))]
     panels = panels[:4]
     if not panels:
         return None
@@ -1040,12 +1009,9 @@ def plot_residual_vs_lagged_channels(data, findings):
 
 def finding_rows(findings):
     """Rows of the findings table (strings)."""
-    rows = []
-    for f in findings.items:
-        rows.append([f.kind, 'all' if f.sensor is None else f.sensor, f.channel or '',
-                     '' if f.value is None else f'{f.value:.4g} {f.unit}'.strip(),
-                     f'{f.explained_fraction:.2f}', f.token or '', f.text])
-    return rows
+    return [[f.kind, 'all' if f.sensor is None else f.sensor, f.channel or '',
+             '' if f.value is None else f'{f.value:.4g} {f.unit}'.strip(),
+             f'{f.explained_fraction:.2f}', f.token or '', f.text] for f in findings.items]
 
 
 FINDING_HEADER = ('kind', 'sensor', 'channel', 'value', 'share of excess', 'add', 'what')
@@ -1065,17 +1031,14 @@ def _nt(value):
 
 def candidate_rows(diagnosis):
     """Rows of the candidate table (strings)."""
-    rows = []
-    for c in diagnosis.candidates:
-        rows.append([c.token, c.n_params, f'{c.delta_bic:.1f}', f'{c.log10_p_value:.1f}',
-                     f'{c.rms_before_nt:.2f} -> {_nt(c.rms_after_nt)}',
-                     '' if c.vector_rms_before_nt is None else
-                     f'{c.vector_rms_before_nt:.2f} -> {_nt(c.vector_rms_after_nt)}',
-                     '' if c.cv_rms_before_nt is None else
-                     f'{c.cv_rms_before_nt:.2f} -> {c.cv_rms_after_nt:.2f}',
-                     '' if c.explained_fraction is None else f'{c.explained_fraction:.0%}',
-                     'yes' if c.significant else '', c.method])
-    return rows
+    return [[c.token, c.n_params, f'{c.delta_bic:.1f}', f'{c.log10_p_value:.1f}',
+             f'{c.rms_before_nt:.2f} -> {_nt(c.rms_after_nt)}',
+             '' if c.vector_rms_before_nt is None else
+             f'{c.vector_rms_before_nt:.2f} -> {_nt(c.vector_rms_after_nt)}',
+             '' if c.cv_rms_before_nt is None else
+             f'{c.cv_rms_before_nt:.2f} -> {c.cv_rms_after_nt:.2f}',
+             '' if c.explained_fraction is None else f'{c.explained_fraction:.0%}',
+             'yes' if c.significant else '', c.method] for c in diagnosis.candidates]
 
 
 CANDIDATE_HEADER = ['effect', 'k', 'delta BIC', 'log10 p', 'scalar RMS (nT)',
@@ -1216,16 +1179,13 @@ def _plan(data, result, floor, diagnosis, ladder, found, baseline_m, every):
     has_temp = data.temp is not None and bool(np.isfinite(data.temp).any())
     temp_sel = everyone if every else channels.get('temperature', set())
     aux = sorted(data.aux or {})
-    aux_sel = {k: (everyone if every else channels[k]) for k in aux
-               if every or k in channels}
+    aux_sel = {k: (everyone if every else channels[k]) for k in aux if every or k in channels}
     selected = {
         'residual_temperature': bool(temp_sel),
         'residual_aux': bool(aux_sel),
-        'residual_rate': (any('field_rate' in t for t in tokens)
-                          or 'field_rate' in channels),
-        'residual_direction': ('residual_direction' in views
-                               or any(e in t for t in tokens
-                                      for e in ('nonlinearity', 'soft_iron'))),
+        'residual_rate': any('field_rate' in t for t in tokens) or 'field_rate' in channels,
+        'residual_direction': 'residual_direction' in views or any(
+            e in t for t in tokens for e in ('nonlinearity', 'soft_iron')),
         'change_points': 'change_points' in views or any(t.startswith('step(') for t in tokens),
         'residual_lagged': 'residual_lagged' in views,
     }
@@ -1234,8 +1194,7 @@ def _plan(data, result, floor, diagnosis, ladder, found, baseline_m, every):
          lambda: plot_structure(data, result, floor, diagnosis, adopted_fit(
              data, diagnosis, ladder), found)),
         ('magnitude', 'Measured vs modelled magnitude', lambda: plot_magnitude(data, result)),
-        ('residual_time', 'Residual over time',
-         lambda: plot_residual_time(data, result, floor)),
+        ('residual_time', 'Residual over time', lambda: plot_residual_time(data, result, floor)),
         ('residual_temperature', 'Residual vs temperature',
          None if not has_temp else
          lambda: plot_residual_vs_temperature(data, result, floor, temp_sel)),
@@ -1342,8 +1301,7 @@ def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseli
             result = ladder.steps[0].result
         else:
             raise ValueError('write_report needs a fit result, a diagnosis or a ladder')
-    floor = diagnosis.noise_floor if diagnosis is not None else noise_floor_from_data(
-        data, result)
+    floor = diagnosis.noise_floor if diagnosis is not None else noise_floor_from_data(data, result)
     found = diagnosis.findings if diagnosis is not None else None
     if found is None:
         from magcal_ros.core.discovery.findings import find
@@ -1369,16 +1327,13 @@ def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseli
     if data.meta.get('synthetic_time'):
         parts.append(f'<p>The data have no time column: the time axis is synthetic, at an '
                      f'assumed {data.meta.get("assumed_rate_hz")} Hz.</p>')
-    images, skipped = [], []
-    pngs = []
+    images, skipped, pngs = [], [], []
     with matplotlib.rc_context(RC):          # the figures' text measured and drawn alike
         for i, (name, _, make, _) in enumerate(plan):
-            if progress is not None:
-                progress('report', i, len(plan), name)
+            report_progress(progress, 'report', i, len(plan), name)
             fig = None if make is None else make()
             pngs.append(None if fig is None else figure_png(fig))
-    if progress is not None:
-        progress('report', len(plan), len(plan), '')
+    report_progress(progress, 'report', len(plan), len(plan), '')
     for (name, heading, _, why), png in zip(plan, pngs):
         if png is None:
             skipped.append((heading, why or 'the data do not allow it (too few epochs)'))

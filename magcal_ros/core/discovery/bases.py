@@ -26,7 +26,7 @@ model.  :func:`time_drivers`, :func:`channel_drivers`, :func:`product_drivers` a
 from dataclasses import dataclass, field
 import math
 
-from magcal_ros.core.discovery.measures import lag_grid
+from magcal_ros.core.discovery.measures import lag_grid, usable
 from magcal_ros.core.effects.base import format_arg, SensorContext
 from magcal_ros.core.effects.formula import parse_driver
 import numpy as np
@@ -118,17 +118,12 @@ def channel_values(data, name, j):
     return data.aux[name]
 
 
-def _usable(x):
-    x = np.asarray(x, float)
-    return bool(np.all(np.isfinite(x)) and np.ptp(x) > 0)
-
-
 def channels_of(data):
     """Return the names of the channels the record holds that vary: temperature, aux_*."""
     out = []
-    if data.temp is not None and all(_usable(data.temp[j]) for j in range(data.n_sensors)):
+    if data.temp is not None and all(usable(data.temp[j]) for j in range(data.n_sensors)):
         out.append('temperature')
-    out += [n for n in sorted(data.aux) if _usable(data.aux[n])]
+    out += [n for n in sorted(data.aux) if usable(data.aux[n])]
     return out
 
 

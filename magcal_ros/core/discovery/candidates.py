@@ -95,23 +95,14 @@ class Candidate:
 
     def to_dict(self):
         """JSON-ready dict (docs/design.md §2 keys first)."""
-        return {'effect': self.effect, 'sensor': self.sensor,
-                'rms_before_nt': self.rms_before_nt, 'rms_after_nt': self.rms_after_nt,
-                'delta_bic': self.delta_bic, 'p_value': self.p_value,
-                'token': self.token, 'n_params': self.n_params,
-                'vector_rms_before_nt': self.vector_rms_before_nt,
-                'vector_rms_after_nt': self.vector_rms_after_nt,
-                'delta_chi2': self.delta_chi2, 'log10_p_value': self.log10_p_value,
-                'cv_rms_before_nt': self.cv_rms_before_nt,
-                'cv_rms_after_nt': self.cv_rms_after_nt,
-                'significant': self.significant, 'method': self.method,
-                'explained_fraction': self.explained_fraction,
-                'decided_by': self.decided_by, 'note': self.note,
-                'params': [dict(p) for p in self.params]}
+        return {**{k: getattr(self, k) for k in _KEYS}, 'params': [dict(p) for p in self.params]}
 
 
-def _nested_clash(name, present):
-    return any(other in present for other in NESTED.get(name, ()))
+#: the keys of :meth:`Candidate.to_dict` but ``params``, in order
+_KEYS = ('effect', 'sensor', 'rms_before_nt', 'rms_after_nt', 'delta_bic', 'p_value', 'token',
+         'n_params', 'vector_rms_before_nt', 'vector_rms_after_nt', 'delta_chi2',
+         'log10_p_value', 'cv_rms_before_nt', 'cv_rms_after_nt', 'significant', 'method',
+         'explained_fraction', 'decided_by', 'note')
 
 
 def candidate_tokens(model, data, extra=()):
@@ -128,13 +119,9 @@ def candidate_tokens(model, data, extra=()):
     ctx = data.context(1)
     names = []
     for n in fx.registered_effects():
-        if n == 'aux:<column>':
-            continue
-        if fx.needs_args(n):
-            cls = fx.effect_class(n)
-            names += [f'{n}({",".join(a)})' for a in cls.suggest_args(ctx)]
-        else:
-            names.append(n)
+        if n != 'aux:<column>':
+            names += ([f'{n}({",".join(a)})' for a in fx.effect_class(n).suggest_args(ctx)]
+                      if fx.needs_args(n) else [n])
     names += ['aux:' + c for c in sorted(data.aux)]
     names += [e for e in extra if e not in names]
     out = []
@@ -159,13 +146,11 @@ def candidate_tokens(model, data, extra=()):
             if not eff.applies:
                 continue
             additive = eff.kind != 'linear'
-            present = {e.label for e in model.effects[j - 1]} | {
-                e.name for e in model.effects[j - 1]}
-            if eff.label in present or _nested_clash(eff.name, present):
-                continue
-            if any(x in present for x in eff.excludes) or any(
-                    eff.name in e.excludes or eff.label in e.excludes
-                    for e in model.effects[j - 1]):
+            row = model.effects[j - 1]
+            present = {e.label for e in row} | {e.name for e in row}
+            if (eff.label in present or any(o in present for o in NESTED.get(eff.name, ()))
+                    or any(x in present for x in eff.excludes)
+                    or any(eff.name in e.excludes or eff.label in e.excludes for e in row)):
                 continue
             free.append(j)
             out.append((f'{eff.label}@{j}', eff.label, j))
@@ -192,10 +177,9 @@ def propose_from_residual(t, residual, max_steps=2, min_line_ratio=30.0):
     arguments, e.g. ['step(300)', 'periodic(0.23)'] (tested per sensor and on all sensors).
     """
     t = np.asarray(t, float)
-    out = []
     found, lines = residual_features(t, residual, max_steps, min_line_ratio)
-    if not len(t) or len(t) < 50:
-        return out
+    if len(t) < 50:
+        return []
     dt = float(np.median(np.diff(t)))
     # the change lies between two samples: the time of the first sample after it, to the
     # sampling interval's decimal (step(300), not step(300.0001))
@@ -203,8 +187,7 @@ def propose_from_residual(t, residual, max_steps=2, min_line_ratio=30.0):
 
     def at(k):        # all the integer digits: a clock since 1970 keeps its fraction
         return f'{t[k]:.{decimals}f}'.rstrip('0').rstrip('.') if decimals else f'{t[k]:.0f}'
-    for k in sorted(found):
-        out.append(f'step({at(k)})')
+    out = [f'step({at(k)})' for k in sorted(found)]
     if len(found) > 1:
         out.append('step(' + ','.join(at(k) for k in sorted(found)) + ')')
     if lines:
@@ -236,8 +219,7 @@ def residual_features(t, residual, max_steps=2, min_line_ratio=30.0, readings=No
     # statistic is ~ chi2(C) there)
 
     def changes(x):
-        c = x.shape[1]
-        return binary_segmentation(x, max_steps, c * (10.0 + 5.0 * math.log(n)))
+        return binary_segmentation(x, max_steps, x.shape[1] * (10.0 + 5.0 * math.log(n)))
     found = changes(r.transpose(1, 0, 2).reshape(n, -1))              # (N, 3S)
     if readings is not None:
         lin = _gain_products(residual, readings)                         # (S, N, 3, 3)
@@ -310,12 +292,10 @@ def extend_model(model, params, token, contexts):
             for lab in e.supersedes:
                 old.update({(s_, e.label, n): v for (s_, l_, n), v in list(old.items())
                             if s_ == j and l_ == lab})
-    added = np.zeros(new.n_params, bool)
-    for i, info in enumerate(new.param_info()):
-        if info[:3] in old:
-            p[i] = old[info[:3]]
-        else:
-            added[i] = True
+    keys = [info[:3] for info in new.param_info()]
+    added = np.array([k not in old for k in keys], bool)
+    for i in np.flatnonzero(~added):
+        p[i] = old[keys[i]]
     return new, p, added
 
 

@@ -109,10 +109,8 @@ def _rung(result, data, f, added, diagnosis, folds, constrained=False):
     model = result.model
     contexts = [data.context(j) for j in range(1, data.n_sensors + 1)]
     ev = evaluate_residuals(model, result.params, data, f, result.sigma_nt, contexts)
-    fac = dof_factor(model)
     if diagnosis is not None and diagnosis.cv_rms_nt is not None:
-        cv = diagnosis.cv_rms_nt
-        cvp = ()
+        cv, cvp = diagnosis.cv_rms_nt, ()
     elif folds:
         c = cross_validate(data, model, result.params, f, result.sigma_nt, folds,
                            constrained=constrained)
@@ -122,7 +120,7 @@ def _rung(result, data, f, added, diagnosis, folds, constrained=False):
     return LadderStep(
         model=tuple(compact_spec(model)), added=added, n_params=model.n_params,
         scalar_rms_nt=dict(result.scalar_rms_nt), vector_rms_nt=dict(result.vector_rms_nt),
-        residual_rms_nt=float(np.sqrt(fac * ev.mean_square)), cv_rms_nt=cv,
+        residual_rms_nt=float(np.sqrt(dof_factor(model) * ev.mean_square)), cv_rms_nt=cv,
         cv_per_sensor_nt=cvp, diagnosis=diagnosis, result=result)
 
 
@@ -165,12 +163,9 @@ def ladder(data, start_model='base', steps=None, auto=True, field_nt=None, *,
     if hasattr(start_model, 'params') and hasattr(start_model, 'model'):
         result = start_model
     else:
-        result = fit(data, start_model, field_nt=f, on_degenerate='flag',
-                     constrained=constrained)
+        result = fit(data, start_model, field_nt=f, on_degenerate='flag', constrained=constrained)
     todo = list(steps or [])
-    rungs = []
-    added = None
-    floor = None
+    rungs, added, floor = [], None, None
     while True:
         diag = None
         if auto and not todo:
@@ -189,11 +184,9 @@ def ladder(data, start_model='base', steps=None, auto=True, field_nt=None, *,
                          f'; the next verdict would be {diag.verdict_token}'))
             break
         if todo:
-            token = todo.pop(0)
-            warm = None
+            token, warm = todo.pop(0), None
         elif auto and diag is not None and diag.verdict_token:
-            token = diag.verdict_token
-            warm = diag.verdict
+            token, warm = diag.verdict_token, diag.verdict
         else:
             reason = ('the given steps were added (no diagnosis without auto)' if diag is None
                       else f'verdict none: {diag.verdict_reason}')

@@ -68,7 +68,7 @@ from magcal_ros.core.discovery.constants import (ALPHA, ECHO_RATIO, LINE_NEIGHBO
                                                  MIN_SEGMENT_FRACTION, MIN_SIGNAL_RATIO, N_TAU,
                                                  STEP_OVER_TREND)
 from magcal_ros.core.discovery.measures import (cusum, evenly_sampled, lag_grid, periodogram,
-                                                regress, white_noise_sd)
+                                                regress, usable, white_noise_sd)
 from magcal_ros.core.effects import first_order_lag
 from magcal_ros.core.effects.base import format_arg
 import numpy as np
@@ -187,14 +187,20 @@ def _f_test(ss0, ss1, k, dof):
     return float(stats.f.sf(f, k, dof))
 
 
-def _nuisance(mod):
+def _f_mean(x, fitted, rank):
+    """p-value of the F-test of ``fitted`` ((N, C), ``rank`` columns, one the mean) vs the mean."""
+    n, c = x.shape
+    return _f_test(float(np.sum((x - x.mean(axis=0)) ** 2)), float(np.sum((x - fitted) ** 2)),
+                   c * (rank - 1), n * c - c * rank)
+
+
+def _nuisance(u):
     """
     (N, 10) what a refit of the linear model would absorb from the scalar residual.
 
     A sensor's offset error c and matrix error E show in its scalar residual as u.c + u.E u
     (u: field direction, (N, 3)): columns 1, u_a, u_a u_b.
     """
-    u = mod
     cols = [np.ones(len(u)), *u.T]
     cols += [u[:, a] * u[:, b] for a in range(3) for b in range(a, 3)]
     return np.column_stack(cols)
@@ -298,16 +304,13 @@ def _trend(t, degree):
 
 def _test_time(t, x, sd, mod=None):
     n, c = x.shape
-    ss0 = float(np.sum((x - x.mean(axis=0)) ** 2))
-    best = None
+    fits = []
     for d in range(1, 6):
         fitted, rank = regress(x, _expand(_trend(t, d), mod))
-        ss1 = float(np.sum((x - fitted) ** 2))
         bic = np.sum(np.sum((x - fitted) ** 2, axis=0) / sd ** 2) + c * (rank - 1) * math.log(n)
-        if best is None or bic < best[0]:
-            best = (bic, d, fitted, ss1, rank)
-    _, d, fitted, ss1, rank = best
-    p = _f_test(ss0, ss1, c * (rank - 1), n * c - c * rank)
+        fits.append((bic, d, fitted, rank))
+    _, d, fitted, rank = min(fits, key=lambda f: f[0])
+    p = _f_mean(x, fitted, rank)
     fitted = fitted - x.mean(axis=0)
     ptp = float(np.max(np.ptp(fitted, axis=0)))         # as seen in the series
     return _Candidate('time', fitted, c * (rank - 1), p, 5, value=ptp, unit='nT',
@@ -321,12 +324,9 @@ def _direction_design(u):
 
 
 def _test_direction(u, x):
-    n, c = x.shape
-    ss0 = float(np.sum((x - x.mean(axis=0)) ** 2))
     fitted, rank = regress(x, _direction_design(u))
-    ss1 = float(np.sum((x - fitted) ** 2))
-    p = _f_test(ss0, ss1, c * (rank - 1), n * c - c * rank)
-    return _Candidate('direction', fitted - x.mean(axis=0), c * (rank - 1), p, 1)
+    return _Candidate('direction', fitted - x.mean(axis=0), x.shape[1] * (rank - 1),
+                      _f_mean(x, fitted, rank), 1)
 
 
 class _Driver:
@@ -335,7 +335,7 @@ class _Driver:
     def __init__(self, t, name, values):
         self.t, self.name = t, name
         a = np.asarray(values, float)
-        self.ok = bool(np.all(np.isfinite(a)) and np.ptp(a) > 0)
+        self.ok = usable(a)
         if not self.ok:
             return
         n = len(a)
@@ -343,8 +343,7 @@ class _Driver:
         self.taus = lag_grid(t, N_TAU, shortest=1e-4, longest=0.5, samples=3)
         self.base = np.column_stack([np.ones(n), self.a])
         self.q = q = np.linalg.qr(self.base)[0]
-        self.lags = lags = (np.column_stack([first_order_lag(t, self.a, tau)
-                                             for tau in self.taus])
+        self.lags = lags = (np.column_stack([first_order_lag(t, self.a, tau) for tau in self.taus])
                             if len(self.taus) else np.zeros((n, 0)))
         self.lags_perp = lags - q @ (q.T @ lags)          # orthogonal to [1, a]
         self.lag_norm2 = np.sum(self.lags_perp ** 2, axis=0)
@@ -391,22 +390,19 @@ def _test_channel(t, x, drv, mod=None):
     name = drv.name
     ss = lambda f: float(np.sum((x - f) ** 2))      # noqa: E731
     xm = x.mean(axis=0)
-    ss0 = ss(xm)
     if mod is None:
         lin, r1 = drv.q @ (drv.q.T @ x), 2
     else:
         lin, r1 = regress(x, _expand(drv.base, mod))
     ss1 = ss(lin)
-    out = [_Candidate('channel', lin - xm, c * (r1 - 1),
-                      _f_test(ss0, ss1, c * (r1 - 1), n * c - c * r1), 1, channel=name)]
+    out = [_Candidate('channel', lin - xm, c * (r1 - 1), _f_mean(x, lin, r1), 1, channel=name)]
     # first-order lag: the best time constant (grid, then refined)
     if mod is None:
         tau = _best_tau(drv, x - lin) if len(drv.taus) else None
     else:
         tau = _best_tau_modulated(drv, x, mod)
     if tau is not None:
-        fit_l, rank = regress(x, _expand(np.column_stack([drv.base, drv.lag_response(tau)]),
-                                         mod))
+        fit_l, rank = regress(x, _expand(np.column_stack([drv.base, drv.lag_response(tau)]), mod))
         out.append(_Candidate('lag', fit_l - xm, c * (rank - 1) + 1,
                               _f_test(ss1, ss(fit_l), c * (rank - r1), n * c - c * rank),
                               N_TAU, channel=name, value=tau, unit='s'))
@@ -625,21 +621,15 @@ def _series(corrected, scalar):
     """{sensor: (N, C) series} and the kind of series."""
     s = corrected.shape[0]
     if s >= 3:
-        out = {}
-        for j in range(s):
-            others = np.delete(corrected, j, axis=0)
-            out[j + 1] = corrected[j] - np.median(others, axis=0)
-        return out, 'consensus'
+        return {j + 1: corrected[j] - np.median(np.delete(corrected, j, axis=0), axis=0)
+                for j in range(s)}, 'consensus'
     return {j + 1: scalar[j][:, None] for j in range(s)}, 'scalar'
 
 
 def _drivers(data, j, aux_drivers):
-    out = []
-    if data.temp is not None:
-        temp = data.temp[j - 1]
-        if np.all(np.isfinite(temp)):
-            out.append(_Driver(data.t, 'temperature', temp))
-    return out + aux_drivers
+    if data.temp is None or not np.all(np.isfinite(data.temp[j - 1])):
+        return list(aux_drivers)
+    return [_Driver(data.t, 'temperature', data.temp[j - 1])] + aux_drivers
 
 
 def _sensor_findings(t, x, sd, u, drivers, sensor, alpha_test, mod=None):
@@ -658,29 +648,20 @@ def _sensor_findings(t, x, sd, u, drivers, sensor, alpha_test, mod=None):
         return found, x
     used = set()
     for _ in range(MAX_PER_SENSOR):
-        cands = []
-        for fn in (_test_periodic, _test_step, _test_time):
-            cand = fn(t, x, sd, mod)
-            if cand is not None:
-                cands.append(cand)
-        if u is not None:
-            cands.append(_test_direction(u, x))
-        for drv in drivers:
-            cands.extend(_test_channel(t, x, drv, mod))
-        best = None
+        cands = [fn(t, x, sd, mod) for fn in (_test_periodic, _test_step, _test_time)]
+        cands += ([] if u is None else [_test_direction(u, x)])
+        cands += [cand for drv in drivers for cand in _test_channel(t, x, drv, mod)]
         passed = []
-        for cand in cands:
+        for cand in filter(None, cands):
             removed = float(np.mean(cand.fitted ** 2 + 2 * cand.fitted * (x - cand.fitted)))
             share = removed / excess0
-            if (cand.p * cand.n_tests > alpha_test or removed < MIN_SIGNAL_RATIO * noise
+            if not (cand.p * cand.n_tests > alpha_test or removed < MIN_SIGNAL_RATIO * noise
                     or share < MIN_EXPLAINED):
-                continue
-            gain = removed * n * c / noise - cand.k * math.log(n)
-            passed.append((gain, cand, removed, share))
-            if best is None or gain > best[0]:
-                best = (gain, cand, removed, share)
-        if best is None:
+                gain = removed * n * c / noise - cand.k * math.log(n)
+                passed.append((gain, cand, removed, share))
+        if not passed:
             break
+        best = max(passed, key=lambda b: b[0])
         if best[1].kind == 'time':
             # an abrupt change that explains nearly all a smooth trend does is the better
             # description
@@ -764,11 +745,9 @@ def _sameness(t):
     f_res = 2.0 / max(t[-1] - t[0], 1e-300)
 
     def same(a, b):
-        if a.kind != b.kind or a.channel != b.channel:
-            return False
-        if a.kind in ('step', 'periodic'):
-            return abs(a.value - b.value) <= (t_res if a.kind == 'step' else f_res)
-        return True
+        return a.kind == b.kind and a.channel == b.channel and (
+            a.kind not in ('step', 'periodic')
+            or abs(a.value - b.value) <= (t_res if a.kind == 'step' else f_res))
     return same
 
 
@@ -781,7 +760,7 @@ def _array_stage(data, t, corrected, baseline_m, alpha):
     cols = [_trend(t, 3)]
     for a in list(data.aux.values()) + ([] if data.temp is None else list(data.temp)):
         a = np.asarray(a, float)
-        if np.all(np.isfinite(a)) and np.ptp(a) > 0:
+        if usable(a):
             a = (a - a.mean()) / np.std(a)
             cols.append(np.column_stack([a, a ** 2]))
     grad, part = _gradient(t, corrected, baseline_m, alpha, np.concatenate(cols, axis=1))
@@ -800,10 +779,9 @@ def _sensor_stage(data, t, series, kind, noise, u, aux_drivers, alpha_test, alph
     for j, x in series.items():
         if np.any(noise[j] <= 0):
             continue
-        mod = None
-        if kind == 'scalar':
-            # one sensor: its vector faults show along the field direction only
-            mod = u
+        # a scalar series: the vector faults show along the field direction only
+        mod = u if kind == 'scalar' else None
+        if mod is not None:
             x = x - regress(x, _nuisance(u))[0]
         found, rest = _sensor_findings(t, x, noise[j], u, _drivers(data, j, aux_drivers), j,
                                        alpha_test, mod=mod)

@@ -205,6 +205,12 @@ def white_noise_sd(x):
     return np.sqrt(np.mean(d ** 2, axis=0) / 20.0)
 
 
+def usable(x):
+    """Tell whether a channel (N,) is finite and varies."""
+    x = np.asarray(x, float)
+    return bool(np.all(np.isfinite(x)) and np.ptp(x) > 0)
+
+
 def evenly_sampled(t):
     """
     Return (evenly sampled, median interval s) of times ``t`` (N,) s.
@@ -226,9 +232,7 @@ def sampled_on_a_clock(t, dt=None):
     below the Nyquist frequency, and its periodogram is an FFT instead of Lomb-Scargle's.
     """
     d = np.diff(np.asarray(t, float))
-    if not d.size:
-        return False
-    dt = float(np.median(d)) if dt is None else dt
+    dt = (float(np.median(d)) if dt is None else dt) if d.size else 0.0
     if dt <= 0:
         return False
     return bool(np.mean(np.abs(d - dt) > CLOCK_JITTER * dt) <= CLOCK_OUTLIERS)

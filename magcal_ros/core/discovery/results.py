@@ -109,8 +109,7 @@ class Diagnosis:
     def ratios(self):
         """{'scalar': {j: RMS / floor}, 'vector': {j: RMS / vector floor}}."""
         fl = self.noise_floor
-        return {'scalar': {j: v / fl.per_sensor_nt[j - 1]
-                           for j, v in self.scalar_rms_nt.items()},
+        return {'scalar': {j: v / fl.per_sensor_nt[j - 1] for j, v in self.scalar_rms_nt.items()},
                 'vector': {j: v / fl.vector_floor_nt(j) for j, v in self.vector_rms_nt.items()}}
 
     def to_dict(self):
@@ -186,8 +185,7 @@ class Diagnosis:
             for c in self.candidates[:max_candidates]:
                 vec = _before_after(c.vector_rms_before_nt, c.vector_rms_after_nt)
                 cv = _before_after(c.cv_rms_before_nt, c.cv_rms_after_nt)
-                share = ('' if c.explained_fraction is None else
-                         f'{c.explained_fraction:6.0%}')
+                share = ('' if c.explained_fraction is None else f'{c.explained_fraction:6.0%}')
                 lines.append(f'{"*" if c.significant else " "} {c.token:34s} {c.n_params:2d} '
                              f'{c.delta_bic:10.1f} {c.log10_p_value:8.1f} '
                              f'{_before_after(c.rms_before_nt, c.rms_after_nt)}   '
@@ -200,14 +198,11 @@ class Diagnosis:
             if len(self.candidates) > max_candidates:
                 lines.append(f'  ... {len(self.candidates) - max_candidates} more with less '
                              'evidence (all in the JSON output)')
-        for tok, why in self.not_testable:
-            lines.append(f'  not testable: {tok}: {why}')
+        lines += [f'  not testable: {tok}: {why}' for tok, why in self.not_testable]
         if self.findings is not None:
             lines.append(self.findings.summary())
-        if self.verdict_token:
-            lines.append(f'verdict: add {self.verdict_token} ({self.verdict_reason})')
-        else:
-            lines.append(f'verdict: none ({self.verdict_reason})')
+        verdict = f'add {self.verdict_token}' if self.verdict_token else 'none'
+        lines.append(f'verdict: {verdict} ({self.verdict_reason})')
         return '\n'.join(lines)
 
 

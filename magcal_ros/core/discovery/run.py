@@ -19,7 +19,7 @@ base fit -> noise floor and findings -> candidate tokens -> one-step screen -> f
 of the best -> held-out effect size -> ranking -> verdict.  Each stage is one function
 below; :func:`diagnose` calls them in order and times them.
 """
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import math
 import time
 
@@ -38,7 +38,7 @@ from magcal_ros.core.discovery.constants import (ALPHA, AT_FLOOR_RATIO, BLOCKS_P
                                                  REFIT_MAX_NFEV, SCORE_RULE_OUT_BIC,
                                                  SEARCH_CHANGE_POINTS, SEARCH_LISTED,
                                                  STEP_HALVINGS)
-from magcal_ros.core.discovery.findings import find as find_findings, KINDS
+from magcal_ros.core.discovery.findings import find as find_findings, Finding, KINDS
 from magcal_ros.core.discovery.measures import (dof_factor, evaluate_residuals, Evaluation,
                                                 explained_share, lag_grid, likelihood_ratio,
                                                 n_observations, scalar_rms_of,
@@ -50,6 +50,7 @@ from magcal_ros.core.discovery.search import (EXPLAINS_SHARE, SCOPE_SHARE as SEA
 from magcal_ros.core.discovery.validation import cross_validate
 from magcal_ros.core.discovery.verify import tested_findings, tested_verdict
 from magcal_ros.core.effects.base import format_arg
+from magcal_ros.core.effects.formula import parse
 from magcal_ros.core.model import Model
 from magcal_ros.core.model.fitting import fit, fit_epochs
 from magcal_ros.core.model.solvers import single_threaded_blas
@@ -224,13 +225,11 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
                    'in-sample' + (' (folds=0)' if not folds else
                                   f' (record of {n} epochs too short for {folds} folds)'))
         ranked = _rank(b, trials, cv0, held_out, decided, p_thr)
-        ratio = max([v / floor.per_sensor_nt[j - 1] for j, v in scalar_rms.items()]
-                    + [v / floor.vector_floor_nt(j) for j, v in vector_rms.items()])
-        verdict, reason = _verdict(b, ranked, ratio, at_floor, held_out, p_thr)
+        verdict, reason = _verdict(b, ranked, _ratio(floor, scalar_rms, vector_rms), at_floor,
+                                   held_out, p_thr)
         # the formula search: only when something is missing
         found_terms = None
-        if (candidates is None and propose and not b.robust and not constrained
-                and not at_floor):
+        if candidates is None and propose and not b.robust and not constrained and not at_floor:
             t0 = time.perf_counter()
             found_terms = _search(b, screen, alpha)
             seconds['search'] = time.perf_counter() - t0
@@ -275,8 +274,7 @@ def _search(b, screen, alpha):
         screen = Screen(b.model, b.params, data.raw, b.contexts, b.f, b.sigma, b.priors,
                         b.constrained)
     t = data.t
-    cps, lines = residual_features(t, resid, max_steps=SEARCH_CHANGE_POINTS,
-                                   readings=data.raw)
+    cps, lines = residual_features(t, resid, max_steps=SEARCH_CHANGE_POINTS, readings=data.raw)
     times = [float(t[k]) for k in cps]
     steps = [(x,) for x in times] + ([tuple(times)] if len(times) > 1 else [])
     span = float(t[-1] - t[0])
@@ -287,16 +285,16 @@ def _search(b, screen, alpha):
                       steps=steps, windows=windows, lines=freqs)
 
 
-def _trial_ratio(b, trial):
-    """Largest residual RMS / floor over the sensors (scalar and vector) of a trial, or None."""
-    if trial is None or trial.ev is None:
-        return None
-    fl = b.floor
-    sc = [trial.ev.scalar_rms(j) / fl.per_sensor_nt[j - 1]
-          for j in range(1, b.data.n_sensors + 1)]
-    vc = [trial.ev.vector_rms(j) / fl.vector_floor_nt(j)
-          for j in range(2, b.data.n_sensors + 1)]
-    return max(sc + vc)
+def _ratio(floor, scalar_rms, vector_rms):
+    """Return the largest RMS / floor of {sensor: scalar RMS} and {sensor: vector RMS}, nT."""
+    return max([v / floor.per_sensor_nt[j - 1] for j, v in scalar_rms.items()]
+               + [v / floor.vector_floor_nt(j) for j, v in vector_rms.items()])
+
+
+def _rms_of(ev, s):
+    """Return ({j: scalar RMS}, {j > 1: vector RMS vs sensor 1}) of an Evaluation, nT."""
+    return ({j: ev.scalar_rms(j) for j in range(1, s + 1)},
+            {j: ev.vector_rms(j) for j in range(2, s + 1)})
 
 
 def _merge_search(b, trials, ranked, verdict, reason, res, at_floor):
@@ -314,7 +312,8 @@ def _merge_search(b, trials, ranked, verdict, reason, res, at_floor):
         return verdict, reason, ranked
     adopted = res.adopted
     cat = next((c for c in trials if c.token == verdict), None) if verdict else None
-    c_ratio = _trial_ratio(b, cat)
+    c_ratio = (None if cat is None or cat.ev is None else
+               _ratio(b.floor, *_rms_of(cat.ev, b.data.n_sensors)))
     a_ratio = None if adopted is None else max(adopted.ratios.values())
     c_expl = cat is not None and c_ratio is not None and c_ratio <= AT_FLOOR_RATIO and (
         cat.share is None or cat.share >= EXPLAINS_SHARE)
@@ -338,8 +337,7 @@ def _merge_search(b, trials, ranked, verdict, reason, res, at_floor):
     if adopted is None:
         return verdict, reason, ranked
     a_text = adopted.text_for(s)
-    use_search = (verdict is None or c_ratio is None
-                  or (not c_expl and a_ratio < c_ratio)
+    use_search = (verdict is None or c_ratio is None or (not c_expl and a_ratio < c_ratio)
                   or (a_expl and set(adopted.sensors) < set(sensors_of(cat.sensor, s))))
     if not use_search or (verdict and _same_term(a_text, verdict)):
         # the catalog's token when the search found the composition it stands for
@@ -363,8 +361,6 @@ def _describe(b, found, res, verdict, scalar_rms, vector_rms):
     'localised': an excess confined in time (:func:`.search.localised`), token ``drop(t0,
     t1)``; 'unexplained', without a verdict: what is left (:func:`_what_is_left`).
     """
-    from dataclasses import replace
-    from magcal_ros.core.discovery.findings import Finding
     s = b.data.n_sensors
     new = []
     loc = res.localised
@@ -376,15 +372,12 @@ def _describe(b, found, res, verdict, scalar_rms, vector_rms):
             text=(f'{_who(sens, s)}: an excess over the floor confined to '
                   f'{format_arg(loc.t0)}-{format_arg(loc.t1)} s ({loc.share:.0%} of it); '
                   f'every sensor within {max(loc.ratios_outside.values()):.2f} x its floor '
-                  'outside: add '
-                  f'{loc.token} to leave it out'), token=loc.token))
+                  f'outside: add {loc.token} to leave it out'), token=loc.token))
     if verdict is None:
         left = _what_is_left(b, found, res, scalar_rms, vector_rms)
         if left is not None:
             new.append(left)
-    if not new:
-        return found
-    return replace(found, items=tuple(new) + tuple(found.items))
+    return replace(found, items=tuple(new) + tuple(found.items)) if new else found
 
 
 #: the excess "lies within" an interval holding this share of it ...
@@ -402,7 +395,6 @@ def _what_is_left(b, found, res, scalar_rms, vector_rms):
     what it follows most: the search's best term or a model-free finding on those sensors,
     whose token it offers (:func:`.verify.tested_findings` fits it first).
     """
-    from magcal_ros.core.discovery.findings import Finding
     s = b.data.n_sensors
     fl = b.floor
     ex = {j: max(v ** 2 - fl.per_sensor_nt[j - 1] ** 2, 0.0) for j, v in scalar_rms.items()}
@@ -413,21 +405,18 @@ def _what_is_left(b, found, res, scalar_rms, vector_rms):
         return None
     sens = tuple(j for j in sorted(both) if both[j] >= SEARCH_SCOPE_SHARE * top)
     scalar = sum(ex[j] for j in sens) >= 0.5 * sum(vex.get(j, 0.0) for j in sens)
-    ratio = max([scalar_rms[j] / fl.per_sensor_nt[j - 1] for j in sens]
-                + [vector_rms[j] / fl.vector_floor_nt(j) for j in sens if j in vector_rms])
+    ratio = _ratio(fl, {j: scalar_rms[j] for j in sens},
+                   {j: vector_rms[j] for j in sens if j in vector_rms})
     options = []
-    best = None if res is None else next((t for t in res.terms if t.delta_chi2 is not None),
-                                         None)
+    best = None if res is None else next((t for t in res.terms if t.delta_chi2 is not None), None)
     if best is not None:
         words = {'time': 'time', 'rate': 'the field rate'}.get(
             best.driver.kind, f'the channel {best.driver.channel}')
-        options.append((float(best.share or 0.0), words, best.text_for(s),
-                        best.driver.channel))
+        options.append((float(best.share or 0.0), words, best.text_for(s), best.driver.channel))
     for f in found.items:
         words = getattr(KINDS.get(f.kind), 'follows', None)
         if words is not None and (f.sensor is None or f.sensor in sens):
-            options.append((float(f.explained_fraction or 0.0), words(f),
-                            f.token, f.channel))
+            options.append((float(f.explained_fraction or 0.0), words(f), f.token, f.channel))
     share, follows, token, channel = (max(options, key=lambda o: o[0]) if options else
                                       (0.0, 'nothing the diagnosis tried', None, None))
     return Finding(
@@ -494,29 +483,24 @@ def _localised_candidate(b, loc):
     s = b.data.n_sensors
     sens = list(loc.sensors)
     return Candidate(
-        token=loc.token, effect='drop', sensor=sens[0] if len(sens) == 1 else None,
-        n_params=0, rms_before_nt=scalar_rms_of(b.ev0.scalar, sens, b.ev0.kept),
-        rms_after_nt=None,
+        token=loc.token, effect='drop', sensor=sens[0] if len(sens) == 1 else None, n_params=0,
+        rms_before_nt=scalar_rms_of(b.ev0.scalar, sens, b.ev0.kept), rms_after_nt=None,
         vector_rms_before_nt=vector_rms_of(b.ev0.vector, sens, s, b.ev0.kept),
-        vector_rms_after_nt=None,
-        delta_chi2=float('nan'), delta_bic=float('nan'), p_value=float('nan'),
-        log10_p_value=float('nan'), method='localised', significant=True,
+        vector_rms_after_nt=None, delta_chi2=float('nan'), delta_bic=float('nan'),
+        p_value=float('nan'), log10_p_value=float('nan'), method='localised', significant=True,
         explained_fraction=loc.share, decided_by='model-free (excess inside the interval)',
         note=('vector' if loc.vector else 'scalar') + ' excess confined in time')
 
 
 def _same_term(text, token):
     """Tell whether formula term ``text`` is the composition catalog ``token`` stands for."""
-    from magcal_ros.core.effects.formula import parse
-
-    def norm(x):
-        return x.replace(' ', '')
     try:
         term = parse(token).terms[0]
         mine = parse(text).terms[0].text
     except ValueError:
         return False
-    return norm(mine) in {norm(term.text), norm(str(term.expansion or ''))}
+    forms = [x.replace(' ', '') for x in (mine, term.text, str(term.expansion or ''))]
+    return forms[0] in forms[1:]
 
 
 def _listed(b, res, ranked, verdict):
@@ -543,13 +527,10 @@ def _term_candidate(b, tm, res, verdict=False):
         token=text, effect=text.split('@')[0], sensor=sensor, n_params=tm.k,
         rms_before_nt=scalar_rms_of(b.ev0.scalar, sens, b.ev0.kept), rms_after_nt=after,
         vector_rms_before_nt=vector_rms_of(b.ev0.vector, sens, s, b.ev0.kept),
-        vector_rms_after_nt=None,
-        delta_chi2=d_chi2, delta_bic=d_bic, p_value=p_val, log10_p_value=logp,
-        method='search' if verdict else 'score',
-        cv_rms_before_nt=tm.cv_before, cv_rms_after_nt=tm.cv_after, significant=verdict,
-        explained_fraction=tm.share,
-        decided_by=None if tm.share is None else 'held-out (linearised, search)',
-        note=None)
+        vector_rms_after_nt=None, delta_chi2=d_chi2, delta_bic=d_bic, p_value=p_val,
+        log10_p_value=logp, method='search' if verdict else 'score', cv_rms_before_nt=tm.cv_before,
+        cv_rms_after_nt=tm.cv_after, significant=verdict, explained_fraction=tm.share,
+        decided_by=None if tm.share is None else 'held-out (linearised, search)', note=None)
 
 
 def order_by_evidence(trials, b):
@@ -610,16 +591,15 @@ def _prepare(data, f, base, floor, max_samples, constrained):
             z_all = z_all[base.reading_mask]            # the readings the fit kept
         loss = soft_l1_lr_loss(z_all, f_scale)
     ev0 = evaluate_residuals(model, base.params, data, f, sigma, contexts, loss=loss)
-    return _Base(data=data, f=f, sigma=sigma, contexts=contexts, model=model,
-                 params=base.params, ev0=ev0, floor=floor, loss=loss, f_scale=f_scale,
-                 constrained=constrained, priors=tuple(getattr(base, 'priors', ())))
+    return _Base(data=data, f=f, sigma=sigma, contexts=contexts, model=model, params=base.params,
+                 ev0=ev0, floor=floor, loss=loss, f_scale=f_scale, constrained=constrained,
+                 priors=tuple(getattr(base, 'priors', ())))
 
 
 def _base_measures(b):
     """Return ({j: scalar RMS}, {j: vector RMS}, at the floor) of the base fit, nT."""
-    s, floor = b.data.n_sensors, b.floor
-    scalar_rms = {j: b.ev0.scalar_rms(j) for j in range(1, s + 1)}
-    vector_rms = {j: b.ev0.vector_rms(j) for j in range(2, s + 1)}
+    floor = b.floor
+    scalar_rms, vector_rms = _rms_of(b.ev0, b.data.n_sensors)
     at_floor = (all(v <= AT_FLOOR_RATIO * floor.per_sensor_nt[j - 1]
                     for j, v in scalar_rms.items())
                 and all(v <= AT_FLOOR_RATIO * floor.vector_floor_nt(j)
@@ -646,14 +626,12 @@ def _screen(b, testable, progress):
     :data:`SCORE_RULE_OUT_BIC` keep that evidence (method 'score'); the others are evaluated at
     the step ('one-step').  Under the robust loss every candidate is evaluated.
     """
-    trials = []
-    screen = None
+    trials, screen = [], None
     if testable:
         # under the robust loss the (least-squares) step is taken on the inliers
         n = b.data.n_samples
         keep = (np.arange(n) if b.loss is None else np.flatnonzero(
-            np.all(np.abs(b.ev0.residual / b.sigma[:, None, None]) < 2 * b.f_scale,
-                   axis=(0, 2))))
+            np.all(np.abs(b.ev0.residual / b.sigma[:, None, None]) < 2 * b.f_scale, axis=(0, 2))))
         screen = Screen(b.model, b.params, b.data.raw[:, keep],
                         [c.subset(keep) for c in b.contexts], b.f[keep], b.sigma, b.priors,
                         b.constrained)
@@ -721,8 +699,7 @@ def _refit(b, trials, screen, max_refit, progress):
                 ftol=REFIT_CHI2_TOL / max(b.ev0.chi2, 1.0),
                 covariance=reads_stderr(c.model, c.label),
                 **({'f_scale': b.f_scale} if b.robust else {}))
-        ev = evaluate_residuals(c.model, r.params, b.data, b.f, b.sigma, b.contexts,
-                                loss=b.loss)
+        ev = evaluate_residuals(c.model, r.params, b.data, b.f, b.sigma, b.contexts, loss=b.loss)
         # with priors (constrained) the screen's chi-square is no bar: the refit stands
         if ev.chi2 <= c.chi2 or c.ev is None or b.constrained:
             c.p, c.ev, c.method = r.params, ev, 'refit'
@@ -757,11 +734,9 @@ def _held_out(b, trials, n_refit, folds, cv_method, p_thr, progress, held_out):
                          constrained=b.constrained)
     for i, c in enumerate(to_cv):
         report_progress(progress, 'cross-validate', i + 1, len(to_cv) + 1, c.token)
-        inits = []
-        for pf in cv0['fold_params']:
-            p_i = c.p.copy()
+        inits = [c.p.copy() for _ in cv0['fold_params']]
+        for p_i, pf in zip(inits, cv0['fold_params']):
             p_i[~c.added] = pf
-            inits.append(p_i)
         c.cv = cross_validate(b.data, c.model, c.p, f, sigma, folds, inits,
                               method=cv_method, constrained=b.constrained)
         c.share = explained_share(cv0['rms_nt'] ** 2, c.cv['rms_nt'] ** 2, b.floor.value_nt)
@@ -797,8 +772,7 @@ def _rank(b, trials, cv0, held_out, decided, p_thr):
         out.append(Candidate(
             token=c.token, effect=c.label, sensor=c.sensor, n_params=c.k,
             rms_before_nt=scalar_rms_of(ev0.scalar, sens, ev0.kept),
-            rms_after_nt=(None if c.ev is None else
-                          scalar_rms_of(c.ev.scalar, sens, c.ev.kept)),
+            rms_after_nt=None if c.ev is None else scalar_rms_of(c.ev.scalar, sens, c.ev.kept),
             vector_rms_before_nt=vector_rms_of(ev0.vector, sens, s, ev0.kept),
             vector_rms_after_nt=(None if c.ev is None else
                                  vector_rms_of(c.ev.vector, sens, s, c.ev.kept)),

@@ -38,6 +38,7 @@ The adopted term is written in the formula syntax (``offset(s(t, k=8))@2``); the
 refits it when the user adds it.
 """
 from dataclasses import dataclass, field
+import functools
 import itertools
 import math
 
@@ -113,20 +114,17 @@ class Term:
         if self.parts:
             return ' + '.join(p.text_for(n_sensors) for p in self.parts)
         body = f'{self.coupling}({self.driver.text})'
-        if self.coupling == 'field':
-            return body
-        if self.alike:
+        if self.alike and self.coupling != 'field':
             return body + '@alike'
-        if len(self.sensors) == n_sensors:
+        if self.coupling == 'field' or len(self.sensors) == n_sensors:
             return body
         if len(self.sensors) == 1:
             return f'{body}@{self.sensors[0]}'
         return body + '@{' + ','.join(str(j) for j in self.sensors) + '}'
 
 
-def solve_psd(a, b):
-    """Solve a x = b for a PSD a, directions below 1e-9 dropped (:func:`.measures.solve_psd`)."""
-    return measures.solve_psd(a, b, rcond=1e-9)
+#: solve a x = b for a PSD a, directions below 1e-9 dropped
+solve_psd = functools.partial(measures.solve_psd, rcond=1e-9)
 
 
 def _proj_ss(x, y):
@@ -206,6 +204,7 @@ class BlockSums:
         self.folds = folds
         nb_total = max(folds, min(folds * blocks_per_fold, n // 20))
         self.edges = np.linspace(0, n, nb_total + 1).round().astype(int)
+        self.spans = list(zip(self.edges[:-1], self.edges[1:]))
         self.fold_of = np.arange(nb_total) % folds
         g = self.g
         nb = g['jtj'].shape[0]
@@ -214,12 +213,12 @@ class BlockSums:
         self.rr = np.zeros(nb_total)
         for gi in range(len(self.sensors)):
             js, r = g['js'][gi], g['r'][gi]
-            for b, (e0, e1) in enumerate(zip(self.edges[:-1], self.edges[1:])):
+            for b, (e0, e1) in enumerate(self.spans):
                 rows = slice(3 * e0, 3 * e1)
                 self.a[b] += js[rows].T @ js[rows]
                 self.gj[b] += js[rows].T @ r[rows]
                 self.rr[b] += float(r[rows] @ r[rows])
-        for b, (e0, e1) in enumerate(zip(self.edges[:-1], self.edges[1:])):
+        for b, (e0, e1) in enumerate(self.spans):
             self.rr[b] -= float(np.sum(g['rgr'][e0:e1]))
         self.floor_chi2 = None
 
@@ -235,16 +234,11 @@ class BlockSums:
         # G_j^T G_j per sensor and epoch, (2, 2) of (N,)
         gg = [[[gbj[0][a] * gbj[0][c] + gbj[1][a] * gbj[1][c] + gbj[2][a] * gbj[2][c]
                 for c in range(2)] for a in range(2)] for gbj in g['gb']]
-        gwg = np.zeros((2, 2, n))
-        for gi, j in enumerate(self.sensors):
-            for a in range(2):
-                for c in range(2):
-                    gwg[a, c] += w[j - 1] * gg[gi][a][c]
+        gwg = sum(w[j - 1] * np.array(gg[gi]) for gi, j in enumerate(self.sensors))
         (i00, i01), (i10, i11) = g['ginv']
         tr = i00 * gwg[0, 0] + i01 * gwg[1, 0] + i10 * gwg[0, 1] + i11 * gwg[1, 1]
         per_epoch = 3.0 * float(sum(w[j - 1] for j in self.sensors)) - tr
-        self.floor_chi2 = np.array([float(np.sum(per_epoch[e0:e1]))
-                                    for e0, e1 in zip(self.edges[:-1], self.edges[1:])])
+        self.floor_chi2 = np.array([float(np.sum(per_epoch[a:b])) for a, b in self.spans])
         # per sensor and epoch, the block j of tr(P W P), P = I - G M G^T, M = (G^T G)^-1:
         # 3 w_j - 2 w_j tr(M G_j^T G_j) + tr(M G^T W G M G_j^T G_j)
         mm = [[i00, i01], [i10, i11]]
@@ -268,12 +262,8 @@ class BlockSums:
         # one entry per sensor, so that the products of two parts' columns are formed
         merged = {}
         for j, idx, c in cols:
-            if j in merged:
-                merged[j] = (np.concatenate([merged[j][0], idx]),
-                             np.concatenate([merged[j][1], c]))
-            else:
-                merged[j] = (np.asarray(idx), c)
-        cols = [(j, idx, c) for j, (idx, c) in merged.items()]
+            merged.setdefault(j, []).append((np.asarray(idx), c))
+        cols = [(j, *map(np.concatenate, zip(*parts))) for j, parts in merged.items()]
         n, nbk = self.n, len(self.edges) - 1
         nb = g['jtj'].shape[0]
         bb = np.zeros((nbk, nb, k))
@@ -290,7 +280,7 @@ class BlockSums:
                 if not len(on):
                     continue
                 ia, ca = idx[on], cj[on, :, a]
-                for b, (e0, e1) in enumerate(zip(self.edges[:-1], self.edges[1:])):
+                for b, (e0, e1) in enumerate(self.spans):
                     rows = slice(3 * e0 + a, 3 * e1, 3)
                     fb = ca[:, e0:e1]
                     bb[b][:, ia] += js[rows].T @ fb.T
@@ -298,7 +288,7 @@ class BlockSums:
                     gc[b][ia] += fb @ r[rows]
             add_gtc(gtc, idx, cj, g['gb'][gi])
         m0, m1 = ginv_times(gtc, g)
-        for b, (e0, e1) in enumerate(zip(self.edges[:-1], self.edges[1:])):
+        for b, (e0, e1) in enumerate(self.spans):
             s = slice(e0, e1)
             dd[b] -= gtc[0][:, s] @ m0[:, s].T + gtc[1][:, s] @ m1[:, s].T
             gc[b] -= gtc[0][:, s] @ g['ginv_gtr'][0][s] + gtc[1][:, s] @ g['ginv_gtr'][1][s]
@@ -313,8 +303,7 @@ class BlockSums:
         """Predicted chi-square decrease of the candidate on all epochs, and the step."""
         bb, dd, gc = sums
         m, g = self._system(self.a.sum(0), bb.sum(0), dd.sum(0), self.gj.sum(0), gc.sum(0))
-        d = np.sqrt(np.clip(np.diag(m), 1e-300, None))
-        sol = solve_psd(m / np.outer(d, d), -g / d) / d
+        sol = _scaled_solve(m, g)
         return float(-g @ sol), sol
 
     def held_out(self, sums):
@@ -326,15 +315,19 @@ class BlockSums:
             tr = ~h
             a_t, gj_t = self.a[tr].sum(0), self.gj[tr].sum(0)
             a_h, gj_h, rr_h = self.a[h].sum(0), self.gj[h].sum(0), self.rr[h].sum()
-            da = np.sqrt(np.clip(np.diag(a_t), 1e-300, None))
-            s0 = solve_psd(a_t / np.outer(da, da), -gj_t / da) / da
+            s0 = _scaled_solve(a_t, gj_t)
             ss0 += rr_h + 2 * s0 @ gj_h + s0 @ a_h @ s0
             m_t, g_t = self._system(a_t, bb[tr].sum(0), dd[tr].sum(0), gj_t, gc[tr].sum(0))
             m_h, g_h = self._system(a_h, bb[h].sum(0), dd[h].sum(0), gj_h, gc[h].sum(0))
-            d = np.sqrt(np.clip(np.diag(m_t), 1e-300, None))
-            s1 = solve_psd(m_t / np.outer(d, d), -g_t / d) / d
+            s1 = _scaled_solve(m_t, g_t)
             ss1 += rr_h + 2 * s1 @ g_h + s1 @ m_h @ s1
         return float(ss0), max(float(ss1), 0.0)
+
+
+def _scaled_solve(m, g):
+    """Solve m x = -g (PSD m) with m scaled to a unit diagonal."""
+    d = np.sqrt(np.clip(np.diag(m), 1e-300, None))
+    return solve_psd(m / np.outer(d, d), -g / d) / d
 
 
 @dataclass
@@ -397,8 +390,10 @@ def prescreen(data, resid, sigma, drivers, n_obs, n_eval=PRESCREEN_EPOCHS):
     keep = fit_epochs(n, n_eval)
     scale_n = n / len(keep)
     y = [resid[j][keep] / sigma[j] for j in range(s)]
+    y_all = np.concatenate([v.ravel() for v in y])
     lin = [x[keep] for x in _lin(data)]
     log_n = math.log(n_obs)
+    every = tuple(range(1, s + 1))
     out = []
     for drv in drivers:
         xs = {j: drv.x(j)[keep] for j in range(1, s + 1)}
@@ -413,11 +408,8 @@ def prescreen(data, resid, sigma, drivers, n_obs, n_eval=PRESCREEN_EPOCHS):
                     and lin_top - k * log_n <= -MIN_DELTA_BIC):
                 continue
             if cp == 'field':
-                z = np.concatenate([coupling_columns('field', xs[j], lin[j - 1])
-                                    .reshape(m, -1).T for j in range(1, s + 1)])
-                dchi = _proj_ss(z, np.concatenate([y[j - 1].ravel()
-                                                   for j in range(1, s + 1)])) * scale_n
-                out.append(Term(cp, drv, tuple(range(1, s + 1)), k=k, approx=dchi))
+                out.append(Term(cp, drv, every, k=k,
+                                approx=_joint_ss(cp, k, xs, lin, y_all) * scale_n))
                 continue
             if k > MAX_TERM_PARAMS:
                 continue
@@ -452,19 +444,22 @@ def prescreen(data, resid, sigma, drivers, n_obs, n_eval=PRESCREEN_EPOCHS):
                                 approx=sum(per[j] for j in sig)))
             if s > 1 and len(sig) >= 2:
                 # every sensor, each its own parameters, and alike (one joint least squares)
-                every = tuple(range(1, s + 1))
                 if len(sig) < s and k * s <= MAX_TERM_PARAMS:
                     out.append(Term(cp, drv, every, k=k * s, approx=sum(per.values())))
                 if k <= ALIKE_EXACT_PARAMS:
-                    z = np.concatenate([coupling_columns(cp, xs[j], lin[j - 1], drv.per_axis)
-                                        .reshape(k, -1).T for j in every])
-                    yy = np.concatenate([y[j - 1].ravel() for j in every])
-                    approx = _proj_ss(z, yy) * scale_n
+                    approx = _joint_ss(cp, k, xs, lin, y_all, drv.per_axis) * scale_n
                 else:
                     approx = sum(per.values())      # an upper bound; the score is exact
                 out.append(Term(cp, drv, every, alike=True, k=k, approx=approx))
     out.sort(key=lambda c: -(c.approx - c.k * log_n))
     return out
+
+
+def _joint_ss(cp, k, xs, lin, y, per_axis=False):
+    """Chi-square decrease of one set of ``k`` parameters shared by every sensor of ``xs``."""
+    z = np.concatenate([coupling_columns(cp, x, lin[j - 1], per_axis).reshape(k, -1).T
+                        for j, x in xs.items()])
+    return _proj_ss(z, y)
 
 
 def term_columns(term, data):
@@ -484,17 +479,13 @@ def term_columns(term, data):
 
 
 def _dedupe(terms, n_sensors):
-    seen, out = set(), []
+    first = {}
     for t in terms:
-        key = t.text_for(n_sensors)
-        if key not in seen:
-            seen.add(key)
-            out.append(t)
-    return out
+        first.setdefault(t.text_for(n_sensors), t)
+    return list(first.values())
 
 
-def search(data, resid, screen, sigma, floor, n_obs, alpha=0.01, steps=(), windows=(),
-           lines=()):
+def search(data, resid, screen, sigma, floor, n_obs, alpha=0.01, steps=(), windows=(), lines=()):
     """
     Search the formula's terms for what the base fit misses (see the module docstring).
 
@@ -552,8 +543,7 @@ def search(data, resid, screen, sigma, floor, n_obs, alpha=0.01, steps=(), windo
             pairs.append(evaluate(Term('pair', a.driver, both, parts=(a, b)), True))
         pairs = [c for c in pairs if c.p_value < p_thr and c.delta_bic < MIN_DELTA_BIC]
         best_pair = _choose(pairs)
-        if best_pair is not None and (adopt is None or best_pair.share > adopt.share
-                                      + TIE_SHARE):
+        if best_pair is not None and (adopt is None or best_pair.share > adopt.share + TIE_SHARE):
             validated.append(best_pair)
             adopt = best_pair
     validated.sort(key=lambda c: -(c.share or 0.0))
@@ -706,8 +696,7 @@ def localised(t, sums):
                 if pos[:max(1, len(pos) // 20)].sum() > SPIKE_SHARE * pos.sum():
                     return None
                 inside = np.clip(ex_j[:, a:b + 1].sum(axis=1), 0.0, None)
-                carry = tuple(int(sens[gi])
-                              for gi in np.flatnonzero(inside >= 0.1 * inside.sum()))
+                carry = tuple(int(sens[gi]) for gi in np.flatnonzero(inside >= 0.1 * inside.sum()))
                 q = 10.0 ** math.floor(math.log10(dt)) if dt > 0 else 1.0
                 return Localized(t0=float(np.floor(t[a] / q) * q),
                                  t1=float(np.ceil(t[b] / q) * q), sensors=carry,

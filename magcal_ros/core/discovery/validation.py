@@ -88,20 +88,16 @@ def cross_validate(data, model, params, f, sigma, folds=DEFAULT_FOLDS, fold_init
             train = np.setdiff1d(np.arange(n), test)
             init = params if fold_inits is None else fold_inits[b]
             r = fit(data.subset(train), model, field_nt=f[train], sigma_nt=sigma, init=init,
-                    check_identifiability=False, on_degenerate='flag',
-                    constrained=constrained)
+                    check_identifiability=False, on_degenerate='flag', constrained=constrained)
             fold_params.append(r.params)
-    ss = np.zeros(data.n_sensors)
-    ss_scalar = np.zeros(data.n_sensors)
-    count = np.zeros(data.n_sensors)
+    ss, ss_scalar, count = np.zeros((3, data.n_sensors))
     for p_b, test in zip(fold_params, blocks):
         out = evaluate(model, p_b, data.subset(test), f[test], sigma)
         ss += np.sum(out['residual'] ** 2, axis=(1, 2))
         ss_scalar += np.sum(out['scalar'] ** 2, axis=1)
         # the readings a drop() leaves out are zero there and not counted
         count += len(test) if out['kept'] is None else out['kept'].sum(axis=1)
-    fac = dof_factor(model)
-    per = np.sqrt(fac * ss / (3 * count))
+    per = np.sqrt(dof_factor(model) * ss / (3 * count))
     return {'rms_nt': float(np.sqrt(np.mean(per ** 2))), 'per_sensor_nt': per,
             'scalar_rms_nt': np.sqrt(ss_scalar / count), 'fold_params': fold_params}
 

@@ -157,18 +157,14 @@ def tested_verdict(b, verdict, reason, ranked, cv0, folds, cv_method='newton',
             cand = by_token.get(tok)
             start = ([q['value'] for q in cand.params] if cand is not None and cand.params
                      else None)
-            cache[tok] = verify_term(b, tok, cv0, folds, cv_method, on_degenerate,
-                                     start=start)
+            cache[tok] = verify_term(b, tok, cv0, folds, cv_method, on_degenerate, start=start)
         tried.append(cache[tok])
         if cache[tok].ok:
             chosen = cache[tok]
             break
     failed = {v.token: v for v in tried if not v.ok}
-    out = []
-    for c in ranked:
-        if c.token in failed:
-            c = replace(c, significant=False, note=failed[c.token].reason)
-        out.append(c)
+    out = [replace(c, significant=False, note=failed[c.token].reason) if c.token in failed
+           else c for c in ranked]
     if chosen is not None:
         split = _each_variant(b, chosen, cv0, folds, cv_method, on_degenerate, cache)
         if split is not None:
@@ -179,8 +175,7 @@ def tested_verdict(b, verdict, reason, ranked, cv0, folds, cv_method='newton',
                             params=(), significant=True, explained_fraction=v.share,
                             cv_rms_before_nt=v.rms_before_nt, cv_rms_after_nt=v.rms_after_nt,
                             rms_after_nt=None, vector_rms_after_nt=None, method='refit',
-                            decided_by='held-out' if cv0 is not None else 'in-sample',
-                            note=None)
+                            decided_by='held-out' if cv0 is not None else 'in-sample', note=None)
             return v.token, f'{reason}; {split[1]}', [first] + out, tried
     if chosen is None:
         why = '; '.join(f'{v.token}: {v.reason}' for v in tried)
@@ -198,8 +193,7 @@ def tested_verdict(b, verdict, reason, ranked, cv0, folds, cv_method='newton',
                           f'{chosen.token}, {chosen.reason}'), out, tried
 
 
-def tested_findings(b, found, cv0, folds, cv_method='newton', on_degenerate='raise',
-                    cache=None):
+def tested_findings(b, found, cv0, folds, cv_method='newton', on_degenerate='raise', cache=None):
     """
     Keep a finding's token only when it passes :func:`verify_term` (module docstring).
 
@@ -218,16 +212,18 @@ def tested_findings(b, found, cv0, folds, cv_method='newton', on_degenerate='rai
         cache[f.token] = verify_term(b, f.token, cv0, folds, cv_method, on_degenerate,
                                      replaces=tuple(getattr(f, 'replaces', ()) or ()))
         budget -= 1
-    items = []
-    for f in found.items:
-        v = cache.get(f.token) if f.token else None
-        if f.token and (v is None or not v.ok):
-            why = (f'not fitted, the diagnosis fits at most {MAX_FINDING_TRIES} terms of the '
-                   'findings' if v is None else v.reason)
-            text = f.text.replace(f' (try {f.token})', '')
-            f = replace(f, token=None, text=f'{text} ({f.token} is not offered: {why})')
-        items.append(f)
-    return replace(found, items=tuple(items))
+    return replace(found, items=tuple(_offered(f, cache.get(f.token) if f.token else None)
+                                      for f in found.items))
+
+
+def _offered(f, v):
+    """Return finding ``f``, without its token (and with why) unless ``v`` (Verified) passed."""
+    if not f.token or (v is not None and v.ok):
+        return f
+    why = (f'not fitted, the diagnosis fits at most {MAX_FINDING_TRIES} terms of the findings'
+           if v is None else v.reason)
+    text = f.text.replace(f' (try {f.token})', '')
+    return replace(f, token=None, text=f'{text} ({f.token} is not offered: {why})')
 
 
 #: a term tying the sensors together (``@alike``, ``field``) is replaced by its variant with
