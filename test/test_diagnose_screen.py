@@ -252,10 +252,11 @@ def test_the_screen_keeps_the_priors_of_a_vehicle_s_partial_turn(token, coupling
     On a vehicle that turns a sixth of a circle, the screen's step finds the hidden coupling.
 
     The attitude-aided base fit holds seven map parameters at their priors (the motion leaves
-    them open; with the pump's seed the data determine them, barely).  A Gauss-Newton step without those priors moved them freely and overshot, so
-    every candidate fell back to its start and was listed as explaining nothing (a real
-    ArduCopter log, erlerobot/logs pxf/copter/5-12-2014/218.BIN, had all 26 so; here the
-    motor current's chi-square decrease was 0).  With the priors in the normal equations,
+    them open; with the pump's seed the data determine them, barely).  A Gauss-Newton step
+    without those priors moved them freely and overshot, so every candidate fell back to its
+    start and was listed as explaining nothing (a real ArduCopter log, erlerobot/logs
+    pxf/copter/5-12-2014/218.BIN, had all 26 so; here the motor current's chi-square
+    decrease was 0).  With the priors in the normal equations,
     the step halved while it overshoots and, when the base had absorbed part of the effect
     (the pump current: offsets thousands of nT off, which the whole step moves back
     nonlinearly), the candidate's own part of the step alone, the screen goes most of the way
