@@ -42,10 +42,13 @@ def backdate(stamps, period_s):
     """
     a = np.asarray(stamps, float)
     n = len(a)
+    if n < 2:
+        return a.copy()
     together = np.diff(a) < 0.25 * period_s         # sample i arrived with sample i + 1
     # out[i] = a[j] - (j - i) T, j the first index >= i that ends a run
     idx = np.arange(n)
-    last = np.minimum.accumulate(np.where(np.append(~together, True), idx, n)[::-1])[::-1]
+    ends = np.where(np.append(~together, True), idx, n)
+    last = np.minimum.accumulate(ends[::-1])[::-1]
     return a[last] - (last - idx) * period_s
 
 
@@ -83,6 +86,7 @@ def epoch_times(epochs, stamps_s, block_s=CLOCK_BLOCK_S):
     n_blocks = int(np.clip(round((t[-1] - t[0]) / block_s), 1, len(e) // 10))
     if n_blocks >= 3:
         edges = np.linspace(0, len(e), n_blocks + 1).round().astype(int)
+        sizes = np.diff(edges)
         d = t - slope * e
         first = np.array([a + np.argmin(d[a:b]) for a, b in zip(edges[:-1], edges[1:])])
         ek, tk = e[first], t[first] - t[0]
@@ -95,13 +99,14 @@ def epoch_times(epochs, stamps_s, block_s=CLOCK_BLOCK_S):
         ph = tk / period - ek
         mean_phase = np.angle(np.exp(2j * np.pi * ph).mean()) / (2 * np.pi)
         if r.max() > 0.9:
-            steps = median_filter(np.round(ph - mean_phase), size=3, mode='nearest')
+            steps = np.round(ph - mean_phase)
+            steps = median_filter(steps, size=3, mode='nearest')
             steps = np.maximum.accumulate(steps - steps[0])
             slope = np.polyfit(ek + steps, tk, 1)[0]
             t0 = t[0] + np.min(tk - slope * (ek + steps))
             upto = np.floor((t - t0) / slope - e + 0.5)
             upto = np.minimum.accumulate(upto[::-1])[::-1]
-            floor_ = np.repeat(np.concatenate([[0.0], steps[:-1]]), np.diff(edges))
+            floor_ = np.repeat(np.concatenate([[0.0], steps[:-1]]), sizes)
             e = e + np.clip(upto, floor_, steps[-1])
             return t0 + slope * e
     t0 = np.min(t - slope * e)
@@ -113,6 +118,35 @@ def epoch_times(epochs, stamps_s, block_s=CLOCK_BLOCK_S):
 MAX_VOTE_SHIFT = 25
 #: sets after a failed one that a re-pairing must pass before it is taken
 MIN_PASS = 2
+
+
+class _Ring:
+    """Last ``size`` (sequence number, stamp) pairs of one stream, as numpy arrays."""
+
+    def __init__(self, size):
+        self.q = np.zeros(size)
+        self.s = np.zeros(size)
+        self.size = size
+        self.count = 0
+
+    def clear(self):
+        self.count = 0
+
+    def __len__(self):
+        return min(self.count, self.size)
+
+    def append(self, q, s):
+        k = self.count % self.size
+        self.q[k] = q
+        self.s[k] = s
+        self.count += 1
+
+    def arrays(self):
+        """(sequence numbers, stamps), oldest first (copies)."""
+        if self.count <= self.size:
+            return self.q[:self.count].copy(), self.s[:self.count].copy()
+        k = self.count % self.size
+        return np.concatenate([self.q[k:], self.q[:k]]), np.concatenate([self.s[k:], self.s[:k]])
 
 
 def _median(values):
@@ -185,28 +219,35 @@ class StampMatcher:
         self.max_shift = int(max_shift)
         self.confirm = int(confirm)
         self.margin = float(margin)
-        # the last ``window`` (sequence number, stamp) pairs of each stream
-        self._hist = [deque(maxlen=self.window) for _ in range(self.n_sensors)]
+        self._hist = [_Ring(self.window) for _ in range(self.n_sensors)]
         self._queues = [deque() for _ in range(self.n_sensors)]
-        # (sequence number, stamp, item) last taken from each queue (misfit: shifts back)
-        self._past = [deque(maxlen=MAX_VOTE_SHIFT + confirm + 2) for _ in range(n_sensors)]
+        # with misfit: (sequence number, stamp, item) last taken from each queue (shifts back)
+        self._past = [deque(maxlen=MAX_VOTE_SHIFT + confirm + 2)
+                      for _ in range(self.n_sensors)]
         self.reset()
 
     def reset(self):
         """Forget queued samples, offsets and counters."""
-        for d in (*self._hist, *self._queues, *self._past):
-            d.clear()
+        for h, q, p in zip(self._hist, self._queues, self._past):
+            h.clear()
+            q.clear()
+            p.clear()
         self._seq = [0] * self.n_sensors
         self._last_arrival = [None] * self.n_sensors
         self._offset = [0] + [None] * (self.n_sensors - 1)
         self._proposal = [0] + [None] * (self.n_sensors - 1)    # the stamp vote's, checked
         self._pending = None            # a proposal to compare with the pairing as it is
         self._refuted = deque(maxlen=4)     # the last proposals the data refuted
-        self.aligned = self.n_sensors == 1      # every stream has an epoch offset
+        self._aligned = self.n_sensors == 1
         self._since_align = 0
         self._backoff = self._skip = 0
         self.complete = self.incomplete = self.out_of_order = self.realigned = 0
         self.rejected = self.repaired = 0
+
+    @property
+    def aligned(self):
+        """Tell whether every stream has an epoch offset."""
+        return self._aligned
 
     @property
     def queued(self):
@@ -225,11 +266,12 @@ class StampMatcher:
             self.out_of_order += 1
             return []
         self._last_arrival[j] = stamp_s
+        s = stamp_s
         q = self._seq[j]
         self._seq[j] += 1
-        self._hist[j].append((q, stamp_s))
+        self._hist[j].append(q, s)
         queue = self._queues[j]
-        queue.append((q, stamp_s, item))
+        queue.append((q, s, item))
         if len(queue) > self.max_queue:
             self._past[j].append(queue.popleft())
             self.incomplete += 1
@@ -244,22 +286,23 @@ class StampMatcher:
         ref = self._hist[0]
         if len(ref) < 10:
             return
-        q0, s0 = np.array(ref, float).T
-        if s0[-1] <= s0[0]:
+        q0, s0 = ref.arrays()
+        period = self._period(s0)
+        if period is None:
             return
-        period = (s0[-1] - s0[0]) / (len(s0) - 1)
         # raw stamps vote well for samples one by one, backdated ones for chunks: both vote
         refs = (s0, backdate(s0, period))
         for j in range(1, self.n_sensors):
             hist = self._hist[j]
             if len(hist) < 10:
                 continue
-            qj, sj = np.array(hist, float).T
+            qj, sj = hist.arrays()
             votes = []
             for ref_s, s in zip(refs, (sj, backdate(sj, period))):
                 k = np.clip(np.searchsorted(ref_s, s), 1, len(ref_s) - 1)
                 k = np.where(np.abs(ref_s[k - 1] - s) <= np.abs(ref_s[k] - s), k - 1, k)
-                votes.append((q0[k] - qj)[np.abs(ref_s[k] - s) <= self.tolerance_s])
+                ok = np.abs(ref_s[k] - s) <= self.tolerance_s
+                votes.append((q0[k] - qj)[ok])
             votes = np.concatenate(votes).astype(int)
             if len(votes) < 10:
                 continue
@@ -267,25 +310,33 @@ class StampMatcher:
             if counts.max() <= 0.5 * len(votes):
                 continue           # no clear majority: keep the offset we have
             best = int(values[np.argmax(counts)])
-            if self.misfit is not None and self.aligned:
+            if self.misfit is not None and self._aligned:
                 self._proposal[j] = best    # stamps propose, the data decide (_emit)
                 continue
             if self._offset[j] is not None and best != self._offset[j]:
                 self.realigned += 1
             self._offset[j] = best
-        if self.misfit is not None and self.aligned:
+        if self.misfit is not None and self._aligned:
             vote = self._vote()
-            fresh = vote != self._offset and vote not in self._refuted
-            self._pending = vote if fresh else None
-        self.aligned = all(o is not None for o in self._offset)
+            self._pending = (vote if vote != self._offset and vote not in self._refuted
+                             else None)
+        self._aligned = all(o is not None for o in self._offset)
+
+    @staticmethod
+    def _period(stamps):
+        if len(stamps) < 2 or stamps[-1] <= stamps[0]:
+            return None
+        return (stamps[-1] - stamps[0]) / (len(stamps) - 1)
 
     def _emit(self):
         out = []
-        queues, pasts, misfit, threshold = self._queues, self._past, self.misfit, self.threshold
+        queues, misfit, threshold = self._queues, self.misfit, self.threshold
+        pasts = self._past if misfit is not None else None
         while all(queues):
             if self._pending is not None and self._decide_vote() is None:
                 break                       # wait for the samples that decide it
-            epochs = [qq[0][0] + o for qq, o in zip(queues, self._offset)]
+            offset = self._offset
+            epochs = [qq[0][0] + o for qq, o in zip(queues, offset)]
             e = min(epochs)
             if all(x == e for x in epochs):
                 items = [qq[0][2] for qq in queues]
@@ -299,15 +350,18 @@ class StampMatcher:
                         self.rejected += 1
                     continue                # repaired: the heads pair anew
                 heads = [qq.popleft() for qq in queues]
-                self._backoff = self._skip = 0
-                for pp, h in zip(pasts, heads):
-                    pp.append(h)
+                if pasts is not None:
+                    self._backoff = self._skip = 0
+                    for pp, h in zip(pasts, heads):
+                        pp.append(h)
                 out.append((e, _median([h[1] for h in heads]), items))
                 self.complete += 1
             else:
-                for qq, pp, x in zip(queues, pasts, epochs):
+                for k, (qq, x) in enumerate(zip(queues, epochs)):
                     if x == e:
-                        pp.append(qq.popleft())
+                        h = qq.popleft()
+                        if pasts is not None:
+                            pasts[k].append(h)
                 self.incomplete += 1
         return out
 
@@ -368,7 +422,10 @@ class StampMatcher:
         total = 0.0
         for n, e in enumerate(range(first, first + self.confirm)):
             items = [self._item(k, e - o) for k, o in enumerate(offset)]
-            if any(i is None for i in items) or not (m := self.misfit(items)) <= self.threshold:
+            if any(item is None for item in items):
+                return -n, total
+            m = self.misfit(items)
+            if not m <= self.threshold:
                 return -n, total
             total += m
         return -self.confirm, total
@@ -437,7 +494,8 @@ class StampMatcher:
                 for h in self._hist:
                     h.clear()
                 self._since_align = 0
-            self._skip, self._backoff = self._backoff, min(64, 2 * self._backoff + 1)
+            self._skip = self._backoff
+            self._backoff = min(64, 2 * self._backoff + 1)
             return False
         self._offset = o
         self.repaired += 1
