@@ -650,18 +650,17 @@ def _screen(b, testable, progress):
         # halved while it overshoots; when the whole step overshoots, also the candidate's
         # own part of it alone (the base held: a base that absorbed part of the effect
         # moves far and nonlinearly); the lower chi-square of those, else the start
-        step = c.p - c.start
-        tries = [step / 2 ** k for k in range(STEP_HALVINGS + 1)]
-        best = None
-        for k, move in enumerate(tries):
-            ev = _at_step(b, c, c.start + move)
+        step, best = c.p - c.start, None
+        for k in range(STEP_HALVINGS + 1):
+            ev = _at_step(b, c, c.start + step / 2 ** k)
             if ev is not None:
-                best = (ev, c.start + move)
+                best = (ev, c.start + step / 2 ** k)
                 break
         if best is None or k > 0:
-            ev = _at_step(b, c, c.start + np.where(c.added, step, 0.0))
+            own = c.start + np.where(c.added, step, 0.0)
+            ev = _at_step(b, c, own)
             if ev is not None and (best is None or ev.chi2 < best[0].chi2):
-                best = (ev, c.start + np.where(c.added, step, 0.0))
+                best = (ev, own)
         if best is None:
             best = (evaluate_residuals(c.model, c.start, b.data, b.f, b.sigma, b.contexts,
                                        loss=b.loss), c.start)

@@ -19,7 +19,7 @@ Exact for effects that enter linearly, as all driven effects do; the most promis
 candidates are then refitted in full (:mod:`magcal_ros.core.discovery.run`).
 """
 from magcal_ros.core.discovery.measures import solve_psd
-from magcal_ros.core.model.engine import ProfiledProblem
+from magcal_ros.core.model.engine import prior_information, ProfiledProblem
 from magcal_ros.core.model.fitting import priors_for
 import numpy as np
 
@@ -89,13 +89,9 @@ class Screen:
             js /= d                          # in place: the Jacobian is not needed unscaled
             j4 = js.reshape(n, gm, 3, -1)
             jtj, jtr = js.T @ js, js.T @ r
-            # prior rows (p_i - mean) / sd, their column 1 / sd, scaled as J's
-            pos = {int(c): k for k, c in enumerate(prob.cols)}
-            for i, mean, sd in priors:
-                if i in pos:
-                    k = pos[i]
-                    jtj[k, k] += 1.0 / (sd * d[k]) ** 2
-                    jtr[k] += (p[i] - mean) / (sd ** 2 * d[k])
+            lam, grad = prior_information(priors, prob.cols, p)     # scaled as J's columns
+            jtj[np.diag_indices_from(jtj)] += lam / d ** 2
+            jtr += grad / d
             ginv_gtr = (ginv @ gtr[..., None])[..., 0]                         # (N, 2)
             self.groups.append({
                 'sensors': grp, 'cols': prob.cols, 'd': d, 'b': b,
@@ -161,11 +157,9 @@ class Screen:
             m0, m1 = ginv_times(gtc, g)
             ctc -= gtc[0] @ m0.T + gtc[1] @ m1.T
             ctr -= gtc[0] @ g['ginv_gtr'][0] + gtc[1] @ g['ginv_gtr'][1]
-            for i, mean, sd in own_priors:
-                if i in idx:
-                    c = idx.index(i)
-                    ctc[c, c] += 1.0 / sd ** 2
-                    ctr[c] += (p_ext[i] - mean) / sd ** 2
+            lam, grad = prior_information(own_priors, idx, p_ext)
+            ctc[np.diag_indices_from(ctc)] += lam
+            ctr += grad
             dc = np.sqrt(np.clip(np.diag(ctc), 0.0, None))
             dc[dc == 0] = 1.0
             cross_s = cross / dc

@@ -52,6 +52,23 @@ def solve_2x2(m, rhs):
     return inv @ rhs
 
 
+def prior_information(priors, cols, p):
+    """
+    Return what prior rows add to the normal equations of the parameters ``cols`` (K,).
+
+    ``priors`` [(index into p, mean, sd)], those on other parameters ignored; ``p`` (P,) the
+    full parameters.  Returns ((K,) 1 / sd^2 on the diagonal of J^T J, (K,) (p_i - mean) /
+    sd^2 added to J^T r), in the parameters' units.
+    """
+    pos = {int(c): k for k, c in enumerate(cols)}
+    lam, grad = np.zeros(len(cols)), np.zeros(len(cols))
+    for i, mean, sd in priors:
+        if i in pos:
+            lam[pos[i]] += 1.0 / sd ** 2
+            grad[pos[i]] += (p[i] - mean) / sd ** 2
+    return lam, grad
+
+
 class ProfiledProblem:
     """
     Normalised residuals and projected Jacobian of the ML problem of one group of sensors.
@@ -452,8 +469,7 @@ class ProfiledProblem:
         for d in range(2):
             a -= w[d] @ w[d].T
             g -= w[d] @ qtr[d]
-        for i, mean, sd in self.priors:
-            c = int(np.flatnonzero(self.cols == i)[0])
-            a[c, c] += 1.0 / sd ** 2
-            g[c] += (p[i] - mean) / sd ** 2
+        lam, grad = prior_information(self.priors, self.cols, p)
+        a[np.diag_indices_from(a)] += lam
+        g += grad
         return a, g
