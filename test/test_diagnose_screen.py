@@ -283,3 +283,51 @@ def test_the_screen_keeps_the_priors_of_a_vehicle_s_partial_turn(token, coupling
     assert hidden.delta_chi2 > 0.5 * refit.delta_chi2, (hidden.delta_chi2, refit.delta_chi2)
     assert hidden.rms_after_nt < 0.7 * hidden.rms_before_nt
     assert 0 < drift.delta_chi2 and drift.rms_after_nt < drift.rms_before_nt
+
+
+def test_every_fit_of_the_diagnosis_holds_the_attitude_fit_s_own_priors():
+    """
+    The refits and held-out fits of a diagnosis carry the attitude-aided base's own priors.
+
+    The attitude-aided fit adds, beyond the constrained mode's priors, a prior on the
+    compass's mounting (three angles, 0 +- MOUNT_PRIOR_SD_RAD) and, in a NED frame with the
+    site's inclination given, one on the world field's inclination (+- 0.5 deg,
+    attitude_fit.INCLINATION_PRIOR_SD).  A candidate's model re-indexes the parameters: the
+    same four priors must land on the same named parameters of it, none of the constrained
+    mode's twice; a magnitude-only base in the constrained mode carries none; and a held-out
+    test given such priors refits each fold (the Newton leave-out step has no prior terms).
+    """
+    from magcal_ros.core.data.noise import data_noise_floor
+    from magcal_ros.core.discovery.candidates import extend_model
+    from magcal_ros.core.discovery.validation import cross_validate
+    from magcal_ros.core.effects.attitude_ref import MOUNT_PRIOR_SD_RAD
+    from magcal_ros.core.model.fitting import priors_for
+    from magcal_ros.core.data.simulate import simulate
+    from magcal_ros.pipeline import diagnosis_base
+    data, _ = simulate(n_samples=600, rate_hz=10, n_sensors=1, trajectory='vehicle',
+                       tilt_deg=5.0, smooth_period_s=1200.0, attitude=True, seed=3,
+                       temp_swing_c=0, truth={'aux:aux_motor_current@1': [40.0, -25.0, 60.0]})
+    data.meta['attitude_frame'] = 'NED'
+    f = data.reference_magnitude(F)
+    base, constrained, _ = diagnosis_base(data, 'base', F, inclination_deg=60.0)
+    b = run._prepare(data, f, base, data_noise_floor(data, base), None, constrained)
+    m_ext = extend_model(b.model, b.params, 'aux:aux_motor_current@1', b.contexts)[0]
+    names = [f'{k[1]}.{k[2]}' for k in m_ext.param_info()]
+    mount = [(names.index(f'attitude_tilt.mount_{a}'), 0.0, MOUNT_PRIOR_SD_RAD) for a in 'xyz']
+    inclination = (names.index('attitude_tilt.inclination'), math.radians(60.0),
+                   math.radians(0.5))
+    expected = sorted(mount + [inclination])
+    carried = sorted(b.carried_priors(m_ext))
+    assert [t[0] for t in carried] == [t[0] for t in expected], (carried, names)
+    np.testing.assert_allclose([t[1:] for t in carried], [t[1:] for t in expected], rtol=1e-12)
+    assert not set(carried) & set(priors_for(m_ext, {}, True))
+    plain = fit(data, 'base', field_nt=f, constrained=True, on_degenerate='flag')
+    b_plain = run._prepare(data, f, plain, data_noise_floor(data, plain), None, True)
+    assert len(b_plain.priors) > 0
+    assert b_plain.carried_priors(b_plain.model) == []
+    # a held-out test with priors refits the folds: what 'refit' gives, not the Newton step
+    args = (b.data, b.model, b.params, b.f, b.sigma, 2)
+    kw = {'constrained': False, 'extra_priors': b.carried_priors(b.model)}
+    newton = cross_validate(*args, method='newton', **kw)
+    refit = cross_validate(*args, method='refit', **kw)
+    assert newton['rms_nt'] == refit['rms_nt']

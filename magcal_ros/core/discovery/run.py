@@ -52,7 +52,7 @@ from magcal_ros.core.discovery.verify import tested_findings, tested_verdict
 from magcal_ros.core.effects.base import format_arg
 from magcal_ros.core.effects.formula import parse
 from magcal_ros.core.model import Model
-from magcal_ros.core.model.fitting import fit, fit_epochs
+from magcal_ros.core.model.fitting import fit, fit_epochs, priors_for
 from magcal_ros.core.model.solvers import single_threaded_blas
 import numpy as np
 
@@ -135,6 +135,21 @@ class _Base:
 
     def delta_bic(self, trial):
         return -(self.ev0.chi2 - trial.chi2) + trial.k * math.log(self.n_obs)
+
+    def carried_priors(self, model):
+        """
+        Return the base fit's own priors [(index, mean, sd)] as indices of ``model``.
+
+        Those beyond what ``fit(constrained=...)`` gives ``model`` itself: an attitude-aided
+        fit's mounting and IGRF inclination, or a calibration in use's (pipeline.refit_recent),
+        so that every refit and held-out fit of the diagnosis holds what the base held.
+        """
+        where = {k[:3]: i for i, k in enumerate(model.param_info())}
+        own = set(priors_for(model, {}, self.constrained))
+        base_info = self.model.param_info()
+        out = [(where[base_info[i][:3]], m, s) for i, m, s in self.priors
+               if base_info[i][:3] in where]
+        return [t for t in out if t not in own]
 
     def test(self, trial):
         """Return (p-value, log10 p, delta BIC) of ``trial`` against the base fit."""
@@ -694,7 +709,8 @@ def _refit(b, trials, screen, max_refit, progress):
         # warm start; the cap keeps a parameter the data do not fix from wandering
         r = fit(b.data, c.model, field_nt=b.f, sigma_nt=b.sigma, init=init,
                 check_identifiability=False, on_degenerate='flag', robust=b.robust,
-                constrained=b.constrained, max_nfev=REFIT_MAX_NFEV,
+                constrained=b.constrained, extra_priors=b.carried_priors(c.model),
+                max_nfev=REFIT_MAX_NFEV,
                 ftol=REFIT_CHI2_TOL / max(b.ev0.chi2, 1.0),
                 covariance=reads_stderr(c.model, c.label),
                 **({'f_scale': b.f_scale} if b.robust else {}))
@@ -730,14 +746,15 @@ def _held_out(b, trials, n_refit, folds, cv_method, p_thr, progress, held_out):
     model, f, sigma = b.model, b.f, b.sigma
     report_progress(progress, 'cross-validate', 0, len(to_cv) + 1, ','.join(model.spec()))
     cv0 = cross_validate(b.data, model, b.params, f, sigma, folds, method=cv_method,
-                         constrained=b.constrained)
+                         constrained=b.constrained, extra_priors=b.carried_priors(model))
     for i, c in enumerate(to_cv):
         report_progress(progress, 'cross-validate', i + 1, len(to_cv) + 1, c.token)
         inits = [c.p.copy() for _ in cv0['fold_params']]
         for p_i, pf in zip(inits, cv0['fold_params']):
             p_i[~c.added] = pf
         c.cv = cross_validate(b.data, c.model, c.p, f, sigma, folds, inits,
-                              method=cv_method, constrained=b.constrained)
+                              method=cv_method, constrained=b.constrained,
+                              extra_priors=b.carried_priors(c.model))
         c.share = explained_share(cv0['rms_nt'] ** 2, c.cv['rms_nt'] ** 2, b.floor.value_nt)
         if c.share >= MIN_EXPLAINED and _passes_lr(b, c, p_thr):
             break       # the best candidate that passes every test: the verdict

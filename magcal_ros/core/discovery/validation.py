@@ -38,7 +38,7 @@ def time_blocks(n, folds, blocks_per_fold=None):
 
 
 def cross_validate(data, model, params, f, sigma, folds=DEFAULT_FOLDS, fold_inits=None,
-                   method='newton', constrained=False):
+                   method='newton', constrained=False, extra_priors=()):
     """
     Held-out residual of ``model``: fit on all blocks but one, evaluate on that block.
 
@@ -65,6 +65,8 @@ def cross_validate(data, model, params, f, sigma, folds=DEFAULT_FOLDS, fold_init
         for a linear model), about one iteration of one fit.
     constrained : bool
         Fit with the constrained mode's priors; implies ``'refit'``.
+    extra_priors : list of (int, float, float)
+        (index, mean, sd) priors added to every fold's fit (:func:`fit`); implies ``'refit'``.
 
     Returns
     -------
@@ -75,7 +77,7 @@ def cross_validate(data, model, params, f, sigma, folds=DEFAULT_FOLDS, fold_init
     """
     if method not in ('newton', 'refit'):
         raise ValueError(f"method must be 'newton' or 'refit', got {method!r}")
-    if constrained:
+    if constrained or len(extra_priors):
         method = 'refit'        # the Newton leave-out step has no prior terms
     n = data.n_samples
     blocks = time_blocks(n, folds)
@@ -88,7 +90,8 @@ def cross_validate(data, model, params, f, sigma, folds=DEFAULT_FOLDS, fold_init
             train = np.setdiff1d(np.arange(n), test)
             init = params if fold_inits is None else fold_inits[b]
             r = fit(data.subset(train), model, field_nt=f[train], sigma_nt=sigma, init=init,
-                    check_identifiability=False, on_degenerate='flag', constrained=constrained)
+                    check_identifiability=False, on_degenerate='flag', constrained=constrained,
+                    extra_priors=extra_priors)
             fold_params.append(r.params)
     ss, ss_scalar, count = np.zeros((3, data.n_sensors))
     for p_b, test in zip(fold_params, blocks):

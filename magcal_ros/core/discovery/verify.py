@@ -88,7 +88,8 @@ def verify_term(b, token, cv0, folds, cv_method='newton', on_degenerate='raise',
     kw = {'f_scale': b.f_scale} if b.robust else {}
     try:
         r = fit(b.data, m_ext, field_nt=b.f, init=p_ext, robust=b.robust,
-                constrained=b.constrained, on_degenerate=on_degenerate, **kw)
+                constrained=b.constrained, extra_priors=b.carried_priors(m_ext),
+                on_degenerate=on_degenerate, **kw)
     except ValueError as exc:
         return Verified(token, False, f'magcal fit refuses it: {_first_line(exc)}')
     except np.linalg.LinAlgError as exc:
@@ -106,7 +107,8 @@ def verify_term(b, token, cv0, folds, cv_method='newton', on_degenerate='raise',
         before = float(cv0['rms_nt'])
         try:
             cv1 = cross_validate(data, m_ext, r.params, f, b.sigma, folds,
-                                 method=cv_method, constrained=b.constrained)
+                                 method=cv_method, constrained=b.constrained,
+                                 extra_priors=b.carried_priors(m_ext))
         except (ValueError, np.linalg.LinAlgError) as exc:
             return Verified(token, False, f'its held-out test fails: {exc}')
         after = float(cv1['rms_nt'])
