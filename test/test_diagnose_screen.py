@@ -331,3 +331,31 @@ def test_every_fit_of_the_diagnosis_holds_the_attitude_fit_s_own_priors():
     newton = cross_validate(*args, method='newton', **kw)
     refit = cross_validate(*args, method='refit', **kw)
     assert newton['rms_nt'] == refit['rms_nt']
+
+
+def test_a_refit_the_cap_stopped_goes_on_before_the_candidates_are_compared():
+    """
+    A logged current is named over a sinusoid at nearly its frequency once both converge.
+
+    The simulator's pump current is a 47 s sine (0.0213 Hz); the residual's line search
+    proposes a sinusoid at 0.0206 Hz.  From an attitude-aided base far off (offsets thousands
+    of nT out), the pump's refit stopped at REFIT_MAX_NFEV at 4.1 nT while the sinusoid's, with
+    twice the parameters, reached 3.6 nT: the sinusoid came first, passed the held-out test
+    and was named, though the pump, held out, explains more.  Refits the cap stopped that
+    pass the likelihood tests now go on (REFIT_MORE_NFEV): the pump is named, and held out it
+    leaves less than the sinusoid.
+    """
+    from magcal_ros.core.data.simulate import simulate
+    from magcal_ros.pipeline import diagnosis_base
+    pump, line = 'aux:aux_pump_current@1', 'periodic(0.020622)@1'
+    data, _ = simulate(n_samples=2000, rate_hz=10, n_sensors=1, trajectory='vehicle',
+                       tilt_deg=5.0, smooth_period_s=1200.0, attitude=True, seed=1,
+                       temp_swing_c=0, truth={pump: [30.0, 20.0, -40.0]})
+    base, constrained, _ = diagnosis_base(data, 'base', F)
+    d = diagnose(data, field_nt=F, base=base, constrained=constrained, candidates=[pump, line])
+    assert d.verdict_token == pump, d.verdict_reason
+    by = {c.token: c for c in d.candidates}
+    assert by[pump].method == by[line].method == 'refit'
+    # converged: the simulator's noise is 3 nT per axis
+    assert by[pump].rms_after_nt < 1.3 * 3.0, by[pump].rms_after_nt
+    assert by[pump].cv_rms_after_nt < by[line].cv_rms_after_nt

@@ -41,6 +41,11 @@ DEFAULT_MAX_REFIT = 4
 #: cap stops a parameter the data do not fix (the time constant of the all-sensors lag on
 #: the sensors without one) from wandering
 REFIT_MAX_NFEV = 6
+#: a refit the cap stopped while it still lowered chi-square, and which passes the likelihood
+#: tests, goes on to this many: candidates are compared converged (a pump current whose
+#: refit started from a base far off stopped at the cap, behind a sinusoid that had
+#: converged, and the sinusoid was named)
+REFIT_MORE_NFEV = 30
 #: precision of a candidate's refit in chi-square: its iterations stop when one lowers
 #: chi-square by less than this.  The tests read chi-square differences against thresholds
 #: of order 10; a tenth of a unit moves log10 p by about 0.02 and delta BIC by 0.1

@@ -35,7 +35,8 @@ from magcal_ros.core.discovery.constants import (ALPHA, AT_FLOOR_RATIO, BLOCKS_P
                                                  DEFAULT_FOLDS, DEFAULT_MAX_REFIT,
                                                  DEFAULT_MAX_SAMPLES, EVIDENCE_TIE, MIN_BLOCK,
                                                  MIN_DELTA_BIC, MIN_EXPLAINED, REFIT_CHI2_TOL,
-                                                 REFIT_MAX_NFEV, SCORE_RULE_OUT_BIC,
+                                                 REFIT_MAX_NFEV, REFIT_MORE_NFEV,
+                                                 SCORE_RULE_OUT_BIC,
                                                  SEARCH_CHANGE_POINTS, SEARCH_LISTED,
                                                  STEP_HALVINGS)
 from magcal_ros.core.discovery.findings import find as find_findings, Finding, KINDS
@@ -228,7 +229,7 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
         trials, screen = _screen(b, testable, progress)
         seconds['screen'] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        n_refit = _refit(b, trials, screen, max_refit, progress)
+        n_refit = _refit(b, trials, screen, max_refit, p_thr, progress)
         seconds['refit'] = time.perf_counter() - t0
         t0 = time.perf_counter()
         held_out = bool(folds) and b.data.n_samples >= folds * BLOCKS_PER_FOLD * MIN_BLOCK
@@ -693,9 +694,15 @@ def _at_step(b, c, p):
     return ev if np.isfinite(ev.chi2) and ev.chi2 <= b.ev0.chi2 else None
 
 
-def _refit(b, trials, screen, max_refit, progress):
-    """Refit the best ``max_refit`` screened trials in full (in place); return how many."""
+def _refit(b, trials, screen, max_refit, p_thr, progress):
+    """
+    Refit the best ``max_refit`` screened trials in full (in place); return how many.
+
+    Each from its one-step solution, to :data:`REFIT_MAX_NFEV` iterations; then those the
+    cap stopped that pass the likelihood tests go on to :data:`REFIT_MORE_NFEV`.
+    """
     n_refit = min(max_refit, len(trials))
+    capped = []
     for i, c in enumerate(trials[:n_refit]):
         report_progress(progress, 'refit', i, n_refit, c.token)
         if i > 0 and b.delta_bic(c) > MIN_DELTA_BIC:      # cannot become significant
@@ -706,22 +713,35 @@ def _refit(b, trials, screen, max_refit, progress):
                                                              lag_grid(b.data.t))
         if start is not None:
             init = start
-        # warm start; the cap keeps a parameter the data do not fix from wandering
-        r = fit(b.data, c.model, field_nt=b.f, sigma_nt=b.sigma, init=init,
-                check_identifiability=False, on_degenerate='flag', robust=b.robust,
-                constrained=b.constrained, extra_priors=b.carried_priors(c.model),
-                max_nfev=REFIT_MAX_NFEV,
-                ftol=REFIT_CHI2_TOL / max(b.ev0.chi2, 1.0),
-                covariance=reads_stderr(c.model, c.label),
-                **({'f_scale': b.f_scale} if b.robust else {}))
-        ev = evaluate_residuals(c.model, r.params, b.data, b.f, b.sigma, b.contexts, loss=b.loss)
-        # with priors (constrained) the screen's chi-square is no bar: the refit stands
-        if ev.chi2 <= c.chi2 or c.ev is None or b.constrained:
-            c.p, c.ev, c.method = r.params, ev, 'refit'
-            c.reduces = reduces_to_simpler(c.model, r.params, r.stderr, c.label, b.contexts)
+        if _refit_one(b, c, init, REFIT_MAX_NFEV):
+            capped.append(c)
     report_progress(progress, 'refit', n_refit, n_refit, '')
     order_by_evidence(trials, b)
+    more = [c for c in capped if c.method == 'refit' and _passes_lr(b, c, p_thr)]
+    for i, c in enumerate(more):
+        report_progress(progress, 'refit (continued)', i, len(more), c.token)
+        _refit_one(b, c, c.p, REFIT_MORE_NFEV)
+    if more:
+        report_progress(progress, 'refit (continued)', len(more), len(more), '')
+        order_by_evidence(trials, b)
     return n_refit
+
+
+def _refit_one(b, c, init, max_nfev):
+    """Refit trial ``c`` from ``init`` (in place); return whether the cap stopped it."""
+    # warm start; the cap keeps a parameter the data do not fix from wandering
+    r = fit(b.data, c.model, field_nt=b.f, sigma_nt=b.sigma, init=init,
+            check_identifiability=False, on_degenerate='flag', robust=b.robust,
+            constrained=b.constrained, extra_priors=b.carried_priors(c.model),
+            max_nfev=max_nfev, ftol=REFIT_CHI2_TOL / max(b.ev0.chi2, 1.0),
+            covariance=reads_stderr(c.model, c.label),
+            **({'f_scale': b.f_scale} if b.robust else {}))
+    ev = evaluate_residuals(c.model, r.params, b.data, b.f, b.sigma, b.contexts, loss=b.loss)
+    # with priors (constrained) the screen's chi-square is no bar: the refit stands
+    if ev.chi2 <= c.chi2 or c.ev is None or b.constrained:
+        c.p, c.ev, c.method = r.params, ev, 'refit'
+        c.reduces = reduces_to_simpler(c.model, r.params, r.stderr, c.label, b.contexts)
+    return r.nfev >= max_nfev and not r.success
 
 
 def _passes_lr(b, c, p_thr):
