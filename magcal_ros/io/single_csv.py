@@ -15,14 +15,10 @@
 """
 Single-magnetometer CSV logs in other tools' layouts -> one-sensor :class:`Dataset` in nT.
 
-Public logs (IMU calibration tools, phone loggers) are often a CSV with one row per sample,
-columns such as ``mx,my,mz`` in gauss or uT, an accelerometer ``ax,ay,az`` and no time.
-Without a time column the time axis is *synthetic*, at an assumed rate
-(``meta['synthetic_time']``): fits that do not involve time are unaffected; time-dependent
-effects are then in units of the assumed period.  The accelerometer is kept in
-``meta['accel']`` (N, 3), its own unit, not as an auxiliary channel: gravity depends on the
-attitude, and the angle between it and the field checks a calibration
-(``test/test_real_data.py``).
+Public logs (IMU calibration tools, phone loggers): one row per sample, ``mx,my,mz`` in
+gauss or uT, maybe ``ax,ay,az``, maybe no time (then a *synthetic* axis at an assumed rate,
+``meta['synthetic_time']``).  The accelerometer is kept in ``meta['accel']`` (N, 3), its own
+unit, not as a channel: gravity depends on the attitude.
 """
 import os
 
@@ -62,12 +58,10 @@ def read_single_sensor_csv(path, unit='gauss', rate_hz=100.0, field_columns=None
     """
     Read a one-magnetometer CSV (header row, comma separated) into a Dataset in nT.
 
-    ``unit`` of the field columns: 'nT', 'uT', 'mG', 'gauss' (or 'G'), 'T'; ``rate_hz`` the
-    assumed rate of the synthetic time axis when there is no time column (t, time,
-    timestamp, time_s in s); ``field_columns``, ``accel_columns`` three names each (default:
-    the first of mx/my/mz, mag_x/..., magx/..., x/y/z, bx/by/bz, and ax/ay/az, acc_x/...,
-    accx/...).  Returns ``raw`` (1, N, 3) nT, ``t`` (N,) s, ``meta``: source, unit,
-    synthetic_time, assumed_rate_hz, accel (N, 3) or None.
+    ``unit`` of the field (:data:`UNITS_NT`); ``rate_hz`` of the synthetic time without a
+    time column (t, time, timestamp, time_s); ``field_columns``, ``accel_columns`` three
+    names each (default: found by name).  Returns ``raw`` (1, N, 3) nT, ``t`` (N,) s,
+    ``meta``: source, unit, synthetic_time, assumed_rate_hz, accel (N, 3) or None.
     """
     path = os.fspath(path)
     try:
