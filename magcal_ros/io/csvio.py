@@ -218,12 +218,14 @@ def _row_values(path, header, ln_no, parts, plane_col, planes):
     if plane_col is not None:
         planes.append(parts[plane_col])
         parts[plane_col] = 'nan'
-    try:
-        return [float(p) if p != '' else np.nan for p in parts]
-    except ValueError:
-        i = next(i for i, p in enumerate(parts) if not _isfloat(p))
-        raise CsvFormatError(f'{path}: line {ln_no}, column {header[i]}: {parts[i]!r} is '
-                             'not a number') from None
+    values = []
+    for name, p in zip(header, parts):
+        try:
+            values.append(float(p) if p != '' else np.nan)
+        except ValueError:
+            raise CsvFormatError(f'{path}: line {ln_no}, column {name}: {p!r} is not a '
+                                 'number') from None
+    return values
 
 
 #: columns that must hold a finite number in every row (the others may be empty: no value)
@@ -258,14 +260,6 @@ def parse_rows(path, layout, line_nos, lines):
             for no, ln in zip(line_nos, lines)]
     return (np.array(rows, float).reshape(-1, len(header)),
             np.array(planes) if plane_col is not None else None)
-
-
-def _isfloat(s):
-    try:
-        float(s)
-        return True
-    except ValueError:
-        return s == ''
 
 
 def format_csv(data, comment=None):

@@ -32,15 +32,6 @@ from magcal_ros.io.vehicle_base import gps_site, NT_PER_MGAUSS, SLOW_RATE_HZ, St
     VehicleLog, VehicleLogError
 import numpy as np
 
-#: DataFlash format characters -> (numpy type, multiplier): pymavlink's FORMAT_TO_STRUCT
-_NP = {
-    'a': (('<i2', (32,)), None), 'b': ('i1', None), 'B': ('u1', None), 'h': ('<i2', None),
-    'H': ('<u2', None), 'i': ('<i4', None), 'I': ('<u4', None), 'f': ('<f4', None),
-    'd': ('<f8', None), 'n': ('S4', None), 'N': ('S16', None), 'Z': ('S64', None),
-    'c': ('<i2', 0.01), 'C': ('<u2', 0.01), 'e': ('<i4', 0.01), 'E': ('<u4', 0.01),
-    'L': ('<i4', 1e-7), 'M': ('u1', None), 'q': ('<i8', None), 'Q': ('<u8', None),
-    'g': ('<f2', None),
-}
 #: messages gathered at a time (bounds the index array: rows x message length x 8 bytes)
 _BLOCK = 65536
 #: COMPASS_SCALE is applied only inside these bounds (AP_Compass have_scale_factor)
@@ -132,13 +123,15 @@ class _Log:
         return cols
 
     def _binary_table(self, name, every):
+        from pymavlink.DFReader import FORMAT_TO_STRUCT
         fmt = self.by_name[name]
         names, formats, mults = [], [], {}
         for col, ch in zip(fmt.columns, fmt.format):
-            if ch not in _NP:
+            if ch not in FORMAT_TO_STRUCT:
                 raise VehicleLogError(f'{self.path}: message {name}: unknown format character '
                                       f'{ch!r}: this DataFlash version is not supported')
-            np_t, mult = _NP[ch]
+            code, mult, _ = FORMAT_TO_STRUCT[ch]          # struct's code: numpy's, packed
+            np_t = 'S' + code[:-1] if code.endswith('s') else '<' + code
             if col in names:
                 col = f'{col}_{len(names)}'
             names.append(col)

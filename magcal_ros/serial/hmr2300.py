@@ -81,13 +81,9 @@ def poll_command(dd='99'):
 
 def rate_command(rate, dd='99'):
     """``*ddR=nnn``: set the sample rate in samples/s (one of :data:`RATES`)."""
-    try:
-        rate_int = int(rate)
-    except (TypeError, ValueError):
-        raise ValueError(f'HMR2300 rate must be one of {RATES} samples/s, got {rate!r}') from None
-    if rate_int != rate or rate_int not in RATES:
+    if rate not in RATES:
         raise ValueError(f'HMR2300 rate must be one of {RATES} samples/s, got {rate!r}')
-    return command(dd, f'R={rate_int}')
+    return command(dd, f'R={int(rate)}')
 
 
 def ascii_command(dd='99'):
