@@ -111,7 +111,7 @@ def _build(protocol, side, options):
 
 
 def make_parser(protocol=DEFAULT_PROTOCOL, **options):
-    """Build the :class:`Parser` of ``protocol`` (ValueError: unknown name or option, bad value)."""
+    """Build ``protocol``'s :class:`Parser` (ValueError: an unknown name or option, bad value)."""
     return _build(protocol, 'parser', options)
 
 
