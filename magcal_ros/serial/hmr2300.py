@@ -23,12 +23,8 @@ Output formats (HMR2300 data sheet, "Data formats"):
 - Binary, 7 bytes: ``Xhi Xlo Yhi Ylo Zhi Zlo <cr>``, big-endian int16 and ``0x0D`` (data
   bytes may be 0x0D too).
 
-Scale: 15 000 counts per gauss (6.667 nT a count; +-2 G = +-30 000 counts).
-
-Commands (``dd`` = two-digit device id, ``99`` addresses all units; each ends with CR):
-``*ddC`` continuous output, ``ESC`` stops it, ``*ddP`` polls one reading, ``*ddR=nnn`` sets
-the sample rate, ``*ddA``/``*ddB`` select ASCII/binary output, ``*ddWE`` enables writing
-of settings.
+Scale: 15 000 counts per gauss (6.667 nT a count; +-2 G = +-30 000 counts).  Commands:
+:func:`command` and the functions below (``dd`` the two-digit device id, ``99``: all units).
 """
 
 import re

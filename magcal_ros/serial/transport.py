@@ -82,11 +82,9 @@ class PortReader:
 
     ``port`` the device path, ``baudrate`` bit/s; ``parser`` a :class:`~magcal_ros.serial.Parser`
     (its ``start_command`` written after every open, ``stop_command`` before a clean close);
-    ``callback(sample, arrival_time)`` from the thread, ``arrival_time`` the ``clock()`` (s)
-    when its bytes arrived.  ``alternatives``: glob patterns of other paths to try.
-    ``timeout``: pyserial's read timeout, s; ``backoff_min``, ``backoff_max``: the first and
-    largest wait between reopens, s (doubling); ``serial_factory(path, baudrate, timeout=)``
-    (default ``serial.Serial``).
+    ``callback(sample, arrival_time)``, the ``clock()`` (s) when its bytes arrived;
+    ``alternatives`` glob patterns of other paths; ``timeout`` of a read, s; ``backoff_min``,
+    ``backoff_max`` the waits between reopens, s; ``serial_factory`` as ``serial.Serial``.
     """
 
     def __init__(self, port, baudrate, parser, callback, *, alternatives=(), timeout=0.05,

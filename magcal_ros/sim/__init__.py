@@ -19,7 +19,6 @@ Served by the ROS node ``fluxgate_sim`` or ``python -m magcal_ros.sim``.  This m
 where a namespace's devices live, with no heavy import (the driver's default ports).
 """
 
-import importlib
 import os
 import tempfile
 
@@ -33,21 +32,7 @@ DEFAULT_PREFIX = 'fluxgate'
 
 def device_dir(namespace=DEFAULT_NAMESPACE):
     """Folder of a namespace's devices: :data:`DEFAULT_DIR`, ``<DEFAULT_DIR>_array2`` ..."""
-    ns = '/' + namespace.strip('/') if namespace.strip('/') else '/'
-    if ns == DEFAULT_NAMESPACE:
+    name = namespace.strip('/')
+    if '/' + name == DEFAULT_NAMESPACE:
         return DEFAULT_DIR
-    return DEFAULT_DIR + '_' + (ns.strip('/').replace('/', '_') or 'root')
-
-
-#: names of :mod:`magcal_ros.sim.devices`, imported on first use (it loads scipy)
-_FROM_DEVICES = ('DEFAULTS', 'FluxgateSim', 'load_config', 'parse_gradient', 'parse_option',
-                 'parse_unplug', 'resolve_settings', 'Unplug')
-
-__all__ = ['DEFAULT_DIR', 'DEFAULT_NAMESPACE', 'DEFAULT_PREFIX', 'device_dir', *_FROM_DEVICES]
-
-
-def __getattr__(name):
-    """Return a name of :mod:`magcal_ros.sim.devices`, importing it on first use (PEP 562)."""
-    if name in _FROM_DEVICES:
-        return getattr(importlib.import_module('magcal_ros.sim.devices'), name)
-    raise AttributeError(f'module {__name__!r} has no attribute {name!r}')
+    return DEFAULT_DIR + '_' + (name.replace('/', '_') or 'root')
