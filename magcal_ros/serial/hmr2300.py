@@ -102,7 +102,9 @@ class _Hmr2300Options:
 
     binary = False
 
-    def _init_hmr(self, counts_per_gauss, device_id, send_start, rate):
+    def __init__(self, counts_per_gauss=COUNTS_PER_GAUSS, device_id='99', send_start=False,
+                 rate=None, **kwargs):
+        super().__init__(**kwargs)
         try:
             cpg = float(counts_per_gauss)
         except (TypeError, ValueError):
@@ -142,9 +144,8 @@ class Hmr2300AsciiParser(_Hmr2300Options, LineParser):
 
     def __init__(self, counts_per_gauss=COUNTS_PER_GAUSS, device_id='99', send_start=False,
                  rate=None, terminator=b'\r', max_line_bytes=64, **kwargs):
-        LineParser.__init__(self, terminator=terminator, max_line_bytes=max_line_bytes,
-                            **kwargs)
-        self._init_hmr(counts_per_gauss, device_id, send_start, rate)
+        super().__init__(counts_per_gauss, device_id, send_start, rate, terminator=terminator,
+                         max_line_bytes=max_line_bytes, **kwargs)
 
     def _parse_line(self, line, out):
         m = _ASCII_LINE.fullmatch(line)
@@ -166,15 +167,7 @@ class Hmr2300AsciiParser(_Hmr2300Options, LineParser):
         self._accept(out, *(self.counts_to_nt(c) for c in counts))
 
 
-class _Hmr2300Encoder(_Hmr2300Options, Encoder):
-    """The options of an HMR2300 encoder."""
-
-    def __init__(self, counts_per_gauss=COUNTS_PER_GAUSS, device_id='99', send_start=False,
-                 rate=None):
-        self._init_hmr(counts_per_gauss, device_id, send_start, rate)
-
-
-class Hmr2300AsciiEncoder(_Hmr2300Encoder):
+class Hmr2300AsciiEncoder(_Hmr2300Options, Encoder):
     """
     Encoder of HMR2300 ASCII output: 28 bytes per reading.
 
@@ -204,8 +197,7 @@ class Hmr2300BinaryParser(_Hmr2300Options, Parser):
 
     def __init__(self, counts_per_gauss=COUNTS_PER_GAUSS, device_id='99', send_start=False,
                  rate=None, sync_frames=3, max_sync_frames=16, **kwargs):
-        Parser.__init__(self, **kwargs)
-        self._init_hmr(counts_per_gauss, device_id, send_start, rate)
+        super().__init__(counts_per_gauss, device_id, send_start, rate, **kwargs)
         if int(sync_frames) < 1:
             raise ValueError(f'sync_frames must be >= 1, got {sync_frames!r}')
         self.sync_frames = int(sync_frames)
@@ -289,7 +281,7 @@ class Hmr2300BinaryParser(_Hmr2300Options, Parser):
         self._buf = buf[i:]
 
 
-class Hmr2300BinaryEncoder(_Hmr2300Encoder):
+class Hmr2300BinaryEncoder(_Hmr2300Options, Encoder):
     """Encoder of the HMR2300 binary frame: ``>hhh`` counts then 0x0D (7 bytes)."""
 
     binary = True
