@@ -210,24 +210,6 @@ def _filled(lines):
         yield line
 
 
-def _row_values(path, header, ln_no, parts, plane_col, planes):
-    """Floats of one row's cells ``parts`` (empty: nan; the plane cell to ``planes``)."""
-    if len(parts) != len(header):
-        raise CsvFormatError(f'{path}: line {ln_no} has {len(parts)} fields, header has '
-                             f'{len(header)}')
-    if plane_col is not None:
-        planes.append(parts[plane_col])
-        parts[plane_col] = 'nan'
-    values = []
-    for name, p in zip(header, parts):
-        try:
-            values.append(float(p) if p != '' else np.nan)
-        except ValueError:
-            raise CsvFormatError(f'{path}: line {ln_no}, column {name}: {p!r} is not a '
-                                 'number') from None
-    return values
-
-
 #: columns that must hold a finite number in every row (the others may be empty: no value)
 _REQUIRED_FINITE = re.compile(r'^(t|s\d+_[xyz]|ref_total|ref_[xyz])$')
 
@@ -253,12 +235,24 @@ def _cells(line):
 
 
 def parse_rows(path, layout, line_nos, lines):
-    """Return ((R, C) float array, plane strings or None) of data ``lines`` (R rows)."""
+    """Return ((R, C) floats, plane strings or None) of data ``lines``; empty cells nan."""
     header, _, plane_col = layout
-    planes = []
-    rows = [_row_values(path, header, no, _cells(ln), plane_col, planes)
-            for no, ln in zip(line_nos, lines)]
-    return (np.array(rows, float).reshape(-1, len(header)),
+    planes, values = [], []
+    for ln_no, line in zip(line_nos, lines):
+        parts = _cells(line)
+        if len(parts) != len(header):
+            raise CsvFormatError(f'{path}: line {ln_no} has {len(parts)} fields, header has '
+                                 f'{len(header)}')
+        if plane_col is not None:
+            planes.append(parts[plane_col])
+            parts[plane_col] = 'nan'
+        for name, p in zip(header, parts):
+            try:
+                values.append(float(p) if p != '' else np.nan)
+            except ValueError:
+                raise CsvFormatError(f'{path}: line {ln_no}, column {name}: {p!r} is not a '
+                                     'number') from None
+    return (np.array(values, float).reshape(-1, len(header)),
             np.array(planes) if plane_col is not None else None)
 
 
