@@ -19,7 +19,6 @@ Default (docs/design.md §3): one line per sample, ``<x_nT>,<y_nT>,<z_nT>,<temp_
 e.g. ``12345.6,-2345.1,43210.9,24.31\r\n``; the delimiter, terminator, columns, scales,
 commands, comments and header lines are options (:class:`AsciiParser`).
 """
-
 import math
 import re
 

@@ -26,7 +26,6 @@ Output formats (HMR2300 data sheet, "Data formats"):
 Scale: 15 000 counts per gauss (6.667 nT a count; +-2 G = +-30 000 counts).  Commands:
 :func:`command` and the functions below (``dd`` the two-digit device id, ``99``: all units).
 """
-
 import re
 import struct
 

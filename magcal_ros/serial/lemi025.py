@@ -36,7 +36,6 @@ offset size type   field
 The parser accepts a packet at a sync tag only if its CRC matches (else ``'checksum'``, and
 the search resumes a byte later); a jump of the counter counts as ``'counter_gap'``.
 """
-
 import binascii
 import struct
 

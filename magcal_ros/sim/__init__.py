@@ -18,7 +18,6 @@ Simulated serial fluxgates on pseudo-terminals, without ROS (:mod:`magcal_ros.si
 Served by the ROS node ``fluxgate_sim`` or ``python -m magcal_ros.sim``.  This module says
 where a namespace's devices live, with no heavy import (the driver's default ports).
 """
-
 import os
 import tempfile
 
