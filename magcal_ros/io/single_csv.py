@@ -45,8 +45,7 @@ def to_nt(values, unit):
     return np.asarray(values, float) * UNITS_NT[unit]
 
 
-def _find(header, options):
-    low = [h.strip().lower() for h in header]
+def _find(low, options):
     for names in options:
         if all(n in low for n in names):
             return [low.index(n) for n in names]
@@ -67,7 +66,8 @@ def read_single_sensor_csv(path, unit='gauss', rate_hz=100.0, field_columns=None
     try:
         with open_text(path, encoding='utf-8') as fh:
             header = fh.readline().strip().split(',')
-            fcols, acols = _columns(path, header, field_columns, accel_columns)
+            low = [h.strip().lower() for h in header]
+            fcols, acols = _columns(path, header, low, field_columns, accel_columns)
             try:
                 arr = np.loadtxt(fh, delimiter=',', ndmin=2, comments='#')
             except ValueError as exc:
@@ -77,7 +77,6 @@ def read_single_sensor_csv(path, unit='gauss', rate_hz=100.0, field_columns=None
     if arr.shape[0] < 3:
         raise ValueError(f'{path}: only {arr.shape[0]} data rows')
     raw = to_nt(arr[:, fcols], unit)
-    low = [h.strip().lower() for h in header]
     tcol = next((low.index(n) for n in _TIME_NAMES if n in low), None)
     synthetic = tcol is None
     if synthetic and (not rate_hz or rate_hz <= 0):
@@ -91,20 +90,19 @@ def read_single_sensor_csv(path, unit='gauss', rate_hz=100.0, field_columns=None
         'accel': None if acols is None else arr[:, acols]})
 
 
-def _columns(path, header, field_columns, accel_columns):
+def _columns(path, header, low, field_columns, accel_columns):
     """(field column indices, accelerometer column indices or None) from the header."""
     if field_columns:
-        low = [h.strip().lower() for h in header]
         missing = [c for c in field_columns if c.lower() not in low]
         if missing:
             raise ValueError(f'{path}: no column(s) {missing}; header: {header}')
         fcols = [low.index(c.lower()) for c in field_columns]
     else:
-        fcols = _find(header, _FIELD_NAMES)
+        fcols = _find(low, _FIELD_NAMES)
         if fcols is None:
             raise ValueError(f'{path}: cannot find the magnetometer columns (mx,my,mz or '
                              f'x,y,z ...) in the header {header}; name them with '
                              'field_columns=')
-    acols = _find(header, (tuple(c.lower() for c in accel_columns),) if accel_columns
+    acols = _find(low, (tuple(c.lower() for c in accel_columns),) if accel_columns
                   else _ACC_NAMES)
     return fcols, acols
