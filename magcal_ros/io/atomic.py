@@ -23,11 +23,8 @@ def atomic_write_text(path, text, backup=True, fsync=os.fsync, binary=None):
     """
     Write ``text`` to ``path`` so that readers see the old or the new file, never a mix.
 
-    ``text``: a str or bytes, or an iterable of str (of bytes with ``binary=True``) written
-    one after the other (a long file, never whole in memory).  The previous file is kept as
-    ``<path>.bak`` when ``backup`` is true.  If anything fails before the final rename the
-    original is untouched and the temporary removed.  ``fsync`` is injectable (tests
-    simulate a failing disk).
+    ``text``: str, bytes, or an iterable of str (of bytes with ``binary``) written in turn.
+    ``backup`` keeps ``<path>.bak``; on failure the original stays.  ``fsync`` injectable.
     """
     path = os.fspath(path)
     directory = os.path.dirname(os.path.abspath(path))

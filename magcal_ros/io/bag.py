@@ -15,24 +15,20 @@
 """
 rosbag2 recordings of the array -> :class:`~magcal_ros.core.data.dataset.Dataset` (no rclpy).
 
-Read with the ``rosbags`` library (sqlite3 and mcap storage, Jazzy message definitions by
-default).  Topics under a namespace (default ``/magcal``, docs/design.md §3):
-``{ns}/sensor{j}/raw`` (``sensor_msgs/MagneticField``, tesla, sensor j's axes; required, j =
-1..S); ``{ns}/sensor{j}/temperature`` (``sensor_msgs/Temperature``, degC); auxiliary channels
-``std_msgs/Float64`` or ``Float32`` on ``{ns}/aux/<name>`` (column ``aux_<name>``) or the
-topics of ``aux_topics``; ``{ns}/ref_total`` (``std_msgs/Float64``, tesla); ``{ns}/imu`` (or
-``imu_topic``; ``sensor_msgs/Imu``: its orientation is the array's body-to-world attitude,
-REP 103/145, slerped onto the epochs, epochs outside its span dropped and counted in
-``meta['dropped_attitude_epochs']``); any ``sensor_msgs/BatteryState`` topic: ``current`` and
-``voltage`` become ``aux_battery_current`` (A) and ``aux_battery_voltage`` (V) as in the
-vehicle logs, a second topic (in name order) ``aux_battery2_...``; NaN values are left out.
+Read with the ``rosbags`` library (sqlite3 and mcap, Jazzy message definitions).  Topics
+under a namespace (default ``/magcal``, docs/design.md §3): ``{ns}/sensor{j}/raw``
+(MagneticField, T; j = 1..S), ``{ns}/sensor{j}/temperature`` (degC), Float64/Float32
+``{ns}/aux/<name>`` (column ``aux_<name>``) or ``aux_topics``, ``{ns}/ref_total`` (T),
+``{ns}/imu`` or ``imu_topic`` (the body-to-world attitude, slerped; epochs outside its span
+counted in ``meta['dropped_attitude_epochs']``), and any BatteryState topic
+(``aux_battery_current`` A, ``aux_battery_voltage`` V; a second, in name order,
+``aux_battery2_...``; NaN left out).
 
-Epochs are sensor 1's header stamps; each other sensor is matched to the nearest stamp within
-half a sample period (unmatched epochs dropped, counted in ``meta['dropped_epochs']``).
-Temperatures and the reference are interpolated linearly onto the epochs, auxiliary channels
-held from their last message.  A zero header stamp is replaced by the time the bag recorded
-the message.  The array's fixed-layout messages are decoded from their CDR layout
-(docs/design.md §2), BatteryState by rosbags' deserialiser.
+Epochs are sensor 1's header stamps (zero: the recording time); each other sensor is matched
+to the nearest stamp within half a sample period (else dropped, ``meta['dropped_epochs']``).
+Temperatures and the reference are interpolated linearly, auxiliary channels held.  The
+fixed-layout messages are decoded from their CDR layout (docs/design.md §2), BatteryState by
+rosbags.
 """
 from itertools import islice
 from operator import attrgetter, itemgetter
@@ -79,13 +75,11 @@ def read_bag(path, namespace='/magcal', aux_topics=None, imu_topic=None):
     """
     Read a rosbag2 directory (with ``metadata.yaml``) into a Dataset.
 
-    ``namespace`` the array's topic namespace; ``aux_topics`` {column name
-    ('aux_motor_current'): topic} of auxiliary channels published elsewhere (std_msgs
-    Float64/Float32); ``imu_topic`` the ``sensor_msgs/Imu`` topic of the array's attitude
-    (default ``{namespace}/imu``).  Returns ``t`` (N,) s (header stamps, absolute), ``raw``
-    (S, N, 3) nT, ``temp`` (S, N) degC or None, ``ref_total`` (N,) nT or None, ``aux`` {name:
-    (N,)}, ``attitude`` (N, 4) or None; ``meta`` the source, the topics used and the number
-    of dropped epochs.
+    ``aux_topics`` {column name ('aux_motor_current'): topic} of Float64/Float32 channels
+    published elsewhere; ``imu_topic`` the Imu topic (default ``{namespace}/imu``).  Returns
+    ``t`` (N,) s (header stamps), ``raw`` (S, N, 3) nT, ``temp`` (S, N) degC or None,
+    ``ref_total`` (N,) nT or None, ``aux`` {name: (N,)}, ``attitude`` (N, 4) or None;
+    ``meta`` the source, the topics used and the dropped epochs.
     """
     with _Collector(path, namespace, aux_topics, imu_topic) as col:
         messages = col.reader.messages(connections=col.conns)
@@ -132,13 +126,10 @@ def bag_chunks(path, rows=65536, progress=None, namespace='/magcal', aux_topics=
     """
     Yield the epochs of a rosbag2 recording as Datasets of about ``rows`` epochs, in order.
 
-    The same epochs and values as :func:`read_bag` (the same pairing of the sensors' stamps
-    within half a sample period, interpolation of the temperatures and the reference, hold
-    of the auxiliary channels, slerp of the attitude), in memory bounded by ``rows``: the
-    messages are read in the order the bag stores them and a chunk is made of the epochs of
-    sensor 1 up to a time every stream has passed, keeping the messages around it that the
-    next chunk needs.  The sample period is the median interval of sensor 1's stamps in the
-    first chunk (:func:`read_bag`: of the whole record).  ``progress(messages read)``.
+    The epochs and values of :func:`read_bag`, in memory bounded by ``rows``: a chunk is
+    sensor 1's epochs up to a time every stream has passed, the messages the next chunk
+    needs kept.  The sample period is the median of sensor 1's intervals in the first chunk
+    (:func:`read_bag`: the whole record).  ``progress(messages read)``.
     """
     with _Collector(path, namespace, aux_topics, imu_topic, rows) as col:
         n_msg, done = 0, False
@@ -157,15 +148,9 @@ def bag_chunks(path, rows=65536, progress=None, namespace='/magcal', aux_topics=
                     yield piece
 
 
-#: The message types read without rosbags' deserialiser: {type: (has a std_msgs/Header,
-#: bytes after the header (the whole payload without one), float fields read at the start
-#: of those bytes, their CDR type)}.  CDR (OMG CDR, ROS 2's rmw): a 4-byte encapsulation
-#: header (0x00 0x01 little endian, 0x00 0x00 big endian, then two option bytes), then the
-#: payload, each primitive aligned to its size from the payload's start; a Header is int32
-#: sec, uint32 nanosec, uint32 length of frame_id (with its NUL), the characters and the NUL.
-#: After it the float64 fields start at the next multiple of 8, so the message length fixes
-#: where they are: MagneticField 3 + 9 float64 (field, covariance), Temperature 2, Imu
-#: 4 + 9 + 3 + 9 + 3 + 9 (orientation x y z w first, then its covariance).
+#: The message types read without rosbags' deserialiser (their CDR layout: docs/design.md
+#: §2): {type: (has a Header, bytes after it (the whole payload without one), float fields
+#: read at the start of those bytes, their CDR type)}.
 _LAYOUT = {
     MAG_TYPE: (True, 96, 3, 'f8'),
     TEMP_TYPE: (True, 16, 1, 'f8'),
@@ -177,10 +162,9 @@ _LAYOUT = {
 
 def _dtype(msgtype, order, n, k):
     """
-    Return the structured dtype of a serialised message of ``msgtype`` of ``n`` bytes.
+    Return the dtype of an ``n``-byte message: ``v`` its first ``k`` floats after the header.
 
-    ``v`` its first ``k`` float fields after the header; with a header, ``sec``, ``nsec``
-    and ``len`` (of frame_id); ``order`` '<' or '>' (its CDR byte order).
+    With a header also ``sec``, ``nsec`` and ``len`` (of frame_id); ``order`` '<' or '>'.
     """
     has_header, tail, _, kind = _LAYOUT[msgtype]
     names, formats, offsets = ['v'], [(order + kind, (k,))], [n - tail]
@@ -193,16 +177,11 @@ def _dtype(msgtype, order, n, k):
 
 def _decode_fixed(datas, msgtype):
     """
-    Decode serialised messages of a type in ``_LAYOUT`` from their bytes, in batches.
+    Decode M serialised messages ``datas`` of a type in ``_LAYOUT``, by length, with numpy.
 
-    Messages of one length are joined and read with ``numpy.frombuffer`` through a
-    structured dtype.  A message is decoded here only when its encapsulation is plain CDR
-    (either byte order) and its length is exactly what its frame_id's length makes it (the
-    string non-empty, NUL-terminated, ASCII); everything else is left to rosbags.
-
-    ``datas`` M serialised messages (bytes) of type ``msgtype``.  Returns (stamp_ns (M,)
-    int64 header stamps, None for a type without header; values (M, k) the fields of
-    ``_LAYOUT``, message units; ok (M,) bool, False where not decoded: values and stamp 0).
+    Only plain CDR of the exact length its frame_id (non-empty, NUL-terminated, ASCII) makes
+    is decoded here; the rest is left to rosbags.  Returns (stamp_ns (M,) int64, None without
+    a header; values (M, k), message units; ok (M,) bool, False where not decoded).
     """
     has_header, tail, k, kind = _LAYOUT[msgtype]
     m = len(datas)
@@ -354,11 +333,9 @@ class _Collector:
 
     def read(self, messages, count):
         """
-        Read and decode up to ``count`` messages of the iterator ``messages``.
+        Read and decode up to ``count`` messages of rosbags' ``AnyReader.messages()``.
 
-        The iterator is rosbags' ``AnyReader.messages()``, (connection, receive time ns,
-        serialised bytes) each; the messages are taken by ``itertools.islice`` and sorted
-        by connection with numpy, no Python code run per message.  Returns how many were
+        Sorted by connection with numpy, no Python code per message.  Returns how many were
         read (0: the bag is done).
         """
         batch = list(islice(messages, count))
@@ -427,11 +404,9 @@ class _Collector:
         """
         Latest time every sensor stream has passed by half a period (None: not yet).
 
-        A stream whose last message is more than ``rows`` periods behind sensor 1's (it
-        stopped, or has a gap that long) is not waited for, nor a sensor with no message
-        yet once sensor 1 has run that long: the messages held stay about a chunk's, not
-        the rest of the record.  Across such a gap a temperature is held at its last value
-        and epochs lose their attitude, where :func:`read_bag` interpolates over the gap.
+        A stream more than ``rows`` periods behind sensor 1 (stopped, or a gap that long) is
+        not waited for, so the messages held stay about a chunk's; across such a gap a
+        temperature is held and epochs lose their attitude (:func:`read_bag` interpolates).
         """
         t1 = self.mags[1][0]
         if not len(t1):
@@ -455,12 +430,7 @@ class _Collector:
         return min(lasts) - 2 * self.period
 
     def take(self, upto, final=False):
-        """
-        Return the epochs of sensor 1 up to time ``upto`` (all when ``final``) as a Dataset.
-
-        Keeps the messages the later epochs still need (those within a few periods before
-        ``upto``; the last message before it of the held and interpolated channels).
-        """
+        """Return sensor 1's epochs up to ``upto`` (all when ``final``) as a Dataset, or None."""
         if not final and upto is None:
             return None
         path, ns = self.path, self.ns
@@ -567,13 +537,10 @@ def write_bag(path, data, namespace='/magcal', storage='sqlite3', frame_id='flux
     """
     Write a Dataset as a rosbag2 recording in the layout :func:`read_bag` reads.
 
-    For tests, demos and converting CSV recordings for ROS tools.  Readings are written in
-    tesla (``sensor_msgs/MagneticField``), temperatures in degC, auxiliary channels as
-    ``std_msgs/Float64`` on ``{ns}/aux/<name>``, ``ref_total`` in tesla, the attitude as
-    ``sensor_msgs/Imu``.  ``path`` the bag directory to create (must not exist); ``data`` a
-    Dataset, or consecutive pieces with the same columns written as one recording, its
-    ``t`` (N,) s the header stamps and receive times; ``storage`` 'sqlite3' or 'mcap';
-    ``frame_id`` the header frame prefix (sensor j: ``{frame_id}{j}``).
+    ``path`` the bag directory to create (must not exist); ``data`` a Dataset or consecutive
+    pieces with the same columns, ``t`` (N,) s the stamps and receive times; ``storage``
+    'sqlite3' or 'mcap'; ``frame_id`` the header frame prefix (sensor j: ``{frame_id}{j}``).
+    Returns the path.
     """
     from rosbags.rosbag2 import StoragePlugin, Writer
 
@@ -593,8 +560,7 @@ def write_bag(path, data, namespace='/magcal', storage='sqlite3', frame_id='flux
     unknown = np.array([-1.0] + [0.0] * 8)       # REP 145: no rate / acceleration
     ns = _namespace(namespace)
     f64 = 'std_msgs/msg/Float64'
-    # one message of each stream serialised by rosbags, its stamp and values then filled in
-    # per message (_Template): the bytes rosbags' serialize_cdr writes, ~5 us less each
+    # one message of each stream serialised by rosbags, stamps and values filled in (_Template)
     with Writer(path, version=9, storage_plugin=plugins[storage]) as w:
         streams = []
 
@@ -642,12 +608,7 @@ class _Template:
                             {MAG_TYPE: 3, IMU_TYPE: 4}.get(msgtype, 1))
 
     def messages(self, t_ns, values):
-        """
-        Return M serialised copies (list of bytes): stamps t_ns (M,) ns, values (M, w).
-
-        ``values`` go to the first ``w`` float fields after the header (MagneticField:
-        the field in T; Temperature: degC; Float64: data; Imu: orientation x y z w).
-        """
+        """Return M serialised copies (bytes): stamps t_ns (M,) ns, ``values`` (M, w) floats."""
         n, m = len(self.raw), len(t_ns)
         buf = np.tile(self.raw, m)
         rec = buf.view(self.dtype)

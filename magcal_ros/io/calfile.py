@@ -16,11 +16,8 @@
 The calibration file (docs/design.md §4, which shows its layout): YAML, schema_version 1.
 
 Written atomically, with a ``.bak`` and a bounded history (:func:`rollback`).  The effects'
-parameters are the source of truth; the matrices and the offset are derived and checked on
-load, so a hand edit that makes them disagree is refused.  The checksum (sha256 of a canonical
-serialisation of everything else, :func:`content_checksum`) catches what such a check cannot:
-a changed digit of a parameter, sigma_nt or a reference value.  A file without one (written
-before it existed) still loads.
+parameters are the truth; the derived matrices and offset are checked on load, and the
+checksum (:func:`content_checksum`) catches a changed digit.  A file without one still loads.
 """
 import datetime
 import functools
@@ -64,11 +61,9 @@ _EFFECT = {
     },
 }
 
-#: The calibration document's structure (schema_version 1), a JSON Schema (draft 2020-12)
-#: checked with the jsonschema library before the document is read.  What a schema cannot say
-#: is checked in :func:`calibration_from_doc`: the effects exist (plug-ins included) with
-#: exactly their parameters, ids run 1..S, positions_m has one row per sensor, the stored
-#: matrices agree with the parameters, the model list matches the sensors' effects.
+#: The document's structure (schema_version 1), a JSON Schema (draft 2020-12); what it
+#: cannot say (effects and their parameters, ids, shapes, derived values) is checked by
+#: :func:`calibration_from_doc`.
 SCHEMA = {
     '$schema': 'https://json-schema.org/draft/2020-12/schema',
     'title': 'magcal_ros calibration file, schema_version 1 (docs/design.md section 4)',
@@ -153,9 +148,8 @@ def validate_document(doc, source='calibration'):
     """
     Check ``doc`` against :data:`SCHEMA`; raise CalibrationFileError on the first problem.
 
-    The problem reported is the one jsonschema ranks first (``best_match``), except that a
-    missing ``provenance`` (written last: the file was cut short) is told only when nothing
-    earlier in the document is wrong, so that a cut inside the sensors names the sensor.
+    jsonschema's ``best_match``, but a missing ``provenance`` (written last: a cut file) only
+    when nothing else is wrong, so that a cut inside the sensors names the sensor.
     """
     from jsonschema.exceptions import best_match
     errors = list(_validator().iter_errors(doc))
@@ -232,10 +226,8 @@ def content_checksum(doc):
     """
     Return ``'sha256:<hex>'`` of a document's content, its ``checksum`` entry left out.
 
-    The content is serialised canonically: JSON in the document's own key order, numbers as
-    Python writes them (the shortest text that reads back to the same float, so YAML and
-    JSON agree), no spaces.  What YAML does not carry (comments, layout, quoting) does not
-    count; every key and value does.
+    Serialised as compact JSON in the document's key order, floats as Python's shortest
+    repr: comments, layout and quoting do not count, every key and value does.
     """
     body = {k: v for k, v in doc.items() if k != 'checksum'}
     text = json.dumps(body, separators=(',', ':'), ensure_ascii=True, allow_nan=True,
@@ -245,11 +237,9 @@ def content_checksum(doc):
 
 def stamp_checksum(doc):
     """
-    Return a copy of a calibration document with its ``checksum`` (after ``kind``).
+    Return a copy of a document with a new ``checksum`` (after ``kind``).
 
-    The checksum is of the document as its YAML text reads back (a tuple becomes a list),
-    and replaces any the document had: writing a loaded and changed document is a new
-    write.  ``magcal fit --json`` prints this, the document the file holds.
+    Of the document as its YAML reads back (a tuple becomes a list); ``fit --json`` prints it.
     """
     body = {k: v for k, v in doc.items() if k != 'checksum'}
     stamp = content_checksum(yaml.load(_yaml(body), Loader=_SAFE_LOADER))  # noqa: S506
@@ -265,11 +255,9 @@ def dump_calibration(doc):
 
 def calibration_from_doc(doc, source='calibration'):
     """
-    Rebuild a :class:`Calibration` from a document; raises CalibrationFileError.
+    Rebuild a :class:`Calibration` from a document.
 
-    Every defect (wrong types from a hand edit, a file cut short by a crash or a full disk)
-    is reported as a :class:`CalibrationFileError` naming it, never as another exception, so
-    that a caller keeping its last good calibration needs to catch only that.
+    Every defect raises :class:`CalibrationFileError` naming it, never another exception.
     """
     try:
         return _calibration_from_doc(doc, source)
@@ -474,8 +462,7 @@ def save_calibration(path, doc, history=20, fsync=os.fsync):
     """
     Write a calibration document atomically, keep ``<path>.bak`` and a bounded history.
 
-    The history directory ``<path>.history/`` keeps the last ``history`` calibrations
-    (0 disables it) so that a user can roll back with :func:`rollback`.
+    ``<path>.history/`` keeps the last ``history`` calibrations (0: none) for :func:`rollback`.
     """
     text = dump_calibration(doc)
     parse_calibration(text, 'calibration to be written')          # never write a bad file
@@ -496,11 +483,7 @@ def list_history(path):
 
 
 def active_history_index(path):
-    """
-    Index in :func:`list_history` of the entry the active file is a copy of, or None.
-
-    The newest matching entry counts (a rollback makes an older entry active again).
-    """
+    """Index in :func:`list_history` of the newest entry the active file copies, or None."""
     def text(name):
         try:
             with open(name, encoding='utf-8') as fh:
@@ -517,10 +500,8 @@ def rollback(path, steps=1):
     """
     Make the calibration ``steps`` back in the history the active one; returns its path.
 
-    Steps count back from the history entry the active file is a copy of (the newest entry
-    after a calibration), so repeated rollbacks walk further back. An active file found in
-    no entry (hand-edited, or written by a writer killed before its history copy) counts as
-    newer than every entry: one step back is the newest entry.
+    Steps count from the entry the active file copies (repeated rollbacks walk back); an
+    active file in no entry counts as newer than every entry.
     """
     if int(steps) != steps or steps < 1:
         raise CalibrationFileError(f'steps must be an integer >= 1, got {steps!r}')

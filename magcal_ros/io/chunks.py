@@ -15,14 +15,9 @@
 """
 A recording read in chunks of epochs, in bounded memory (wide CSV and rosbag2).
 
-``open_record(path)`` returns a :class:`Record`: its size (bytes or messages, for the
-progress bar) and ``chunks()``, Dataset pieces of at most ``rows`` epochs in time order, read
-again from the start at each call (a long record is read twice: to reduce it, then for the
-residual statistics, :mod:`magcal_ros.core.data.reduce`).
-
-The CSV pieces are those of :func:`magcal_ros.io.csvio.read_pieces`, the reader of
-:func:`~magcal_ros.io.csvio.read_csv`, with its checks and messages.  The rosbag2 pieces come
-from :func:`magcal_ros.io.bag.bag_chunks`.
+:func:`open_record` returns a :class:`Record`: its size (bytes or messages, for progress)
+and ``chunks()``, read again from the start at each call (:mod:`magcal_ros.core.data.reduce`
+reads a long record twice).
 """
 import os
 
@@ -57,13 +52,7 @@ def open_record(path):
 
 
 def csv_chunks(path, rows=CHUNK_ROWS, progress=None):
-    """
-    Yield the epochs of a wide CSV as Datasets of at most ``rows`` epochs, in file order.
-
-    The same columns, values and errors as :func:`magcal_ros.io.csvio.read_csv`, by its
-    reader (:func:`magcal_ros.io.csvio.read_pieces`); ``progress(bytes_read)`` is called
-    after each chunk.
-    """
+    """Yield a wide CSV as Datasets of about ``rows`` epochs (:func:`.csvio.read_pieces`)."""
     return csvio.read_pieces(path, rows, progress)
 
 
@@ -71,8 +60,7 @@ def write_csv_chunks(path, pieces, comment=None):
     """
     Write consecutive Dataset ``pieces`` (the same columns) as one wide CSV, atomically.
 
-    One piece is formatted at a time (:func:`magcal_ros.io.csvio.format_csv`): memory is that
-    of a piece, whatever the length of the record.  Returns the number of epochs written.
+    One piece in memory at a time.  Returns the number of epochs written.
     """
     count = [0]
 

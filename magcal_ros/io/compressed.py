@@ -15,10 +15,8 @@
 """
 Text files read through gzip or Zstandard when their name says so (``.gz``, ``.zst``).
 
-A ``.csv.gz`` (gzip) or ``.csv.zst`` (the ``zstandard`` package) is decompressed as it is
-read, in the memory of its plain CSV.  A corrupt or truncated archive is reported as
-:class:`CorruptArchiveError` (a ValueError: one line, exit status 2) naming the file, the
-format and what to do.
+Decompressed as it is read; a corrupt or truncated archive raises
+:class:`CorruptArchiveError` (one line: the file, the format, what to do).
 """
 import contextlib
 import gzip
@@ -51,12 +49,7 @@ def compress_text(path, text):
 
 
 def compress_parts(path, parts):
-    """
-    Compress an iterable of str ``parts`` as the name of ``path`` says, as they come.
-
-    Yields bytes (one gzip member or one zstd frame for the whole stream); for a plain name,
-    the str parts unchanged.  Memory is that of one part, whatever the length.
-    """
+    """Yield str ``parts`` compressed as one stream as ``path``'s name says (plain: as is)."""
     kind = compression(path)
     if kind is None:
         yield from parts
@@ -75,11 +68,9 @@ def compress_parts(path, parts):
 
 class _ZstdReader(io.RawIOBase):
     """
-    A Zstandard file's decompressed bytes, read frame after frame.
+    A Zstandard file's decompressed bytes, frame after frame.
 
-    zstandard's own ``stream_reader`` ends quietly at a frame cut short; this reader raises
-    EOFError then, as the standard library's gzip does, so a truncated file is never read as
-    a shorter record.
+    EOFError at a frame cut short (as gzip), where zstandard's ``stream_reader`` ends quietly.
     """
 
     _CHUNK = 1 << 17
@@ -134,11 +125,9 @@ class _ZstdReader(io.RawIOBase):
 @contextlib.contextmanager
 def open_text(path, encoding='utf-8', errors='strict'):
     """
-    Open ``path`` for reading text, decompressing a ``.gz`` or ``.zst`` file as it is read.
+    Open ``path`` for reading text (a context manager), decompressing ``.gz`` or ``.zst``.
 
-    A context manager yielding a text file object.  Decompression errors raised while the
-    caller reads (inside the ``with`` block) become :class:`CorruptArchiveError`; an OSError
-    of opening the file (missing, unreadable) is raised unchanged.
+    A decompression error inside the ``with`` block becomes :class:`CorruptArchiveError`.
     """
     path = os.fspath(path)
     kind = compression(path)

@@ -35,15 +35,11 @@ class CsvFormatError(ValueError):
 
 def read_csv(path):
     """
-    Read a wide CSV file into a :class:`Dataset`.
+    Read a wide CSV file (docs/design.md §1; ``.gz``, ``.zst`` decompressed) into a Dataset.
 
-    Columns: ``t`` (s, non-decreasing), ``s{j}_x/y/z`` (nT), optional ``s{j}_temp`` (degC),
-    ``ref_total`` (nT), ``ref_x/y/z`` (nT), ``angle_deg``, ``plane`` (xy|xz), ``aux_<name>``,
-    ``att_qw, att_qx, att_qy, att_qz`` (all four: body-to-world unit quaternion, Hamilton,
-    scalar first).
-    ``#`` lines are comments.  Unknown columns are an error.  A ``.csv.gz`` or ``.csv.zst``
-    file is decompressed as it is read (:mod:`magcal_ros.io.compressed`).  The rows are
-    :func:`read_pieces`' one piece of the whole file.
+    Columns: ``t`` (N,) s, ``s{j}_x/y/z`` nT, optional ``s{j}_temp`` degC, ``ref_total``,
+    ``ref_x/y/z`` nT, ``angle_deg``, ``plane`` (xy|xz), ``aux_<name>``, ``att_qw..att_qz``
+    (body-to-world, scalar first).  ``#`` lines are comments; unknown columns are an error.
     """
     return next(read_pieces(path))
 
@@ -52,11 +48,9 @@ def read_pieces(path, rows=None, progress=None):
     """
     Yield the epochs of a wide CSV as Datasets of about ``rows`` epochs (None: one), in order.
 
-    Numbers are parsed by :func:`numpy.loadtxt` (again with empty cells, an optional value
-    not given, filled with NaN); a piece with a ``plane`` column or anything to report is
-    read row by row with the :mod:`csv` module, so that the error names the line and the
-    column.  Time must not decrease across pieces either.  ``progress(bytes_read)`` is
-    called after each piece.
+    Parsed by :func:`numpy.loadtxt` (empty cells as NaN); a piece with a ``plane`` column or
+    an error is read row by row by :mod:`csv`, so that the error names the line and column.
+    ``progress(bytes_read)`` after each piece.
     """
     path = os.fspath(path)
     try:
@@ -76,8 +70,7 @@ def _pieces(path, rows, progress):
                 raise CsvFormatError(f'{path} has no header row')
             layout = parse_header(path, first)
             t_last, n_read, hint = -np.inf, 0, None
-            # whole lines of about ``rows`` rows (the first piece: the header's length x
-            # rows, then the mean length seen)
+            # whole lines of about ``rows`` rows (by the header's, then the mean line length)
             while lines := fh.readlines((hint or max(1, len(first)) * rows) if rows else -1):
                 start, no = no, no + len(lines)
                 arr, planes, nos, data = _parse_lines(path, layout, lines, start)
@@ -111,11 +104,7 @@ def _loadtxt(lines, n_cols):
 
 
 def _parse_lines(path, layout, lines, start):
-    """
-    Return (floats (R, C), planes or None, line numbers (R,), data lines) of ``lines``.
-
-    ``lines`` follow line ``start``; comments and blank lines are left out.
-    """
+    """(floats (R, C), planes or None, line numbers (R,), data lines) of lines after ``start``."""
     header, _, plane_col = layout
     if plane_col is None:
         arr = _loadtxt(lines, len(header))
@@ -131,11 +120,7 @@ def _parse_lines(path, layout, lines, start):
 
 
 def build_dataset(path, layout, arr, rows_no, lines, planes=None):
-    """
-    Check the rows ``arr`` (R, C) of a wide CSV and return them as a :class:`Dataset`.
-
-    ``rows_no`` (R,) are their line numbers and ``lines`` their text (for the messages).
-    """
+    """Check rows ``arr`` (R, C) (line numbers ``rows_no``, text ``lines``) into a Dataset."""
     header, sensors, _ = layout
     _check_finite(path, header, arr, rows_no, lines)
     n_s = max(sensors)
@@ -225,26 +210,6 @@ def _filled(lines):
         yield line
 
 
-def _row_values(path, header, ln_no, parts, plane_col, planes):
-    """
-    Return the floats of one row's cells ``parts`` (empty: nan), or raise CsvFormatError.
-
-    The plane cell, when there is one, is appended to ``planes`` and read as nan.
-    """
-    if len(parts) != len(header):
-        raise CsvFormatError(f'{path}: line {ln_no} has {len(parts)} fields, header has '
-                             f'{len(header)}')
-    if plane_col is not None:
-        planes.append(parts[plane_col])
-        parts[plane_col] = 'nan'
-    try:
-        return [float(p) if p != '' else np.nan for p in parts]
-    except ValueError:
-        i = next(i for i, p in enumerate(parts) if not _isfloat(p))
-        raise CsvFormatError(f'{path}: line {ln_no}, column {header[i]}: {parts[i]!r} is '
-                             'not a number') from None
-
-
 #: columns that must hold a finite number in every row (the others may be empty: no value)
 _REQUIRED_FINITE = re.compile(r'^(t|s\d+_[xyz]|ref_total|ref_[xyz])$')
 
@@ -270,21 +235,25 @@ def _cells(line):
 
 
 def parse_rows(path, layout, line_nos, lines):
-    """Return ((R, C) float array, plane strings or None) of data ``lines`` (R rows)."""
+    """Return ((R, C) floats, plane strings or None) of data ``lines``; empty cells nan."""
     header, _, plane_col = layout
-    planes = []
-    rows = [_row_values(path, header, no, _cells(ln), plane_col, planes)
-            for no, ln in zip(line_nos, lines)]
-    return (np.array(rows, float).reshape(-1, len(header)),
+    planes, values = [], []
+    for ln_no, line in zip(line_nos, lines):
+        parts = _cells(line)
+        if len(parts) != len(header):
+            raise CsvFormatError(f'{path}: line {ln_no} has {len(parts)} fields, header has '
+                                 f'{len(header)}')
+        if plane_col is not None:
+            planes.append(parts[plane_col])
+            parts[plane_col] = 'nan'
+        for name, p in zip(header, parts):
+            try:
+                values.append(float(p) if p != '' else np.nan)
+            except ValueError:
+                raise CsvFormatError(f'{path}: line {ln_no}, column {name}: {p!r} is not a '
+                                     'number') from None
+    return (np.array(values, float).reshape(-1, len(header)),
             np.array(planes) if plane_col is not None else None)
-
-
-def _isfloat(s):
-    try:
-        float(s)
-        return True
-    except ValueError:
-        return s == ''
 
 
 def format_csv(data, comment=None):

@@ -15,25 +15,14 @@
 """
 ArduPilot DataFlash logs (``.bin``, text ``.log``) -> :class:`~magcal_ros.io.vehicle.VehicleLog`.
 
-pymavlink's DFReader opens and indexes the log and parses its formats and parameters; a
-binary log's messages of one needed type are then decoded at once, their bytes gathered by
-the index's offsets and read through a numpy dtype built from the type's FMT (DFReader's
-``FORMAT_TO_STRUCT``).  A text log is read through DFReader's ``recv_match`` (slow).
+pymavlink's DFReader opens and indexes the log; a binary log's messages of one type are then
+decoded at once through a numpy dtype built from the type's FMT (DFReader's
+``FORMAT_TO_STRUCT``); a text log is read through ``recv_match`` (slow).
 
-The compass (``MAG``, instance ``I``; ``MAG``..``MAG3`` in older logs) is logged in mG in the
-body frame after AP_Compass's ``correct_field`` (AP_Compass_Backend.cpp; pymavlink's
-tools/magfit_WMM.py): F = M s (r + o) + m (3.6 and later; older F = M (r + o + m)), r the raw
-body-frame reading, o the logged offsets (OfsX..), s COMPASS_SCALE where 0.85 <= s <= 1.4
-(else 1), M the symmetric matrix of COMPASS_DIA (all zero: 1) and COMPASS_ODI, m the logged
-motor compensation (MOX.., MOfsX..).  :func:`ardupilot_raw` inverts it exactly, with DIA,
-ODI and SCALE at each sample's time (docs/design.md §1).
-
-Attitude: the EKF's body-to-NED quaternion (EKF3 ``XKQ``, EKF2 ``NKQ``; the one
-AHRS_EKF_TYPE selects first), of the core closest to ``ATT`` (what the AHRS used) within
-:data:`EKF_ATT_AGREEMENT_DEG`; otherwise (a warning says so) and without EKF quaternions,
-``ATT`` roll, pitch, yaw with AHRS_TRIM removed: R_autopilot = R(ATT) R(AHRS_TRIM).  Old logs
-(before 3.4: TimeMS, PARM and MSG without time, CURR in centiamps, RCOU ``Ch1``..) are read
-too.
+The compass (``MAG``) is logged in mG in the body frame after AP_Compass's ``correct_field``
+(AP_Compass_Backend.cpp; pymavlink's tools/magfit_WMM.py); :func:`ardupilot_raw` undoes it
+(docs/design.md §1, "Vehicle logs", which also names the attitude chosen).  Old logs (before
+3.4: TimeMS, PARM and MSG without time, CURR in centiamps, RCOU ``Ch1``..) are read too.
 """
 import datetime
 import mmap
@@ -43,15 +32,6 @@ from magcal_ros.io.vehicle_base import gps_site, NT_PER_MGAUSS, SLOW_RATE_HZ, St
     VehicleLog, VehicleLogError
 import numpy as np
 
-#: DataFlash format characters -> (numpy type, multiplier): pymavlink's FORMAT_TO_STRUCT
-_NP = {
-    'a': (('<i2', (32,)), None), 'b': ('i1', None), 'B': ('u1', None), 'h': ('<i2', None),
-    'H': ('<u2', None), 'i': ('<i4', None), 'I': ('<u4', None), 'f': ('<f4', None),
-    'd': ('<f8', None), 'n': ('S4', None), 'N': ('S16', None), 'Z': ('S64', None),
-    'c': ('<i2', 0.01), 'C': ('<u2', 0.01), 'e': ('<i4', 0.01), 'E': ('<u4', 0.01),
-    'L': ('<i4', 1e-7), 'M': ('u1', None), 'q': ('<i8', None), 'Q': ('<u8', None),
-    'g': ('<f2', None),
-}
 #: messages gathered at a time (bounds the index array: rows x message length x 8 bytes)
 _BLOCK = 65536
 #: COMPASS_SCALE is applied only inside these bounds (AP_Compass have_scale_factor)
@@ -91,8 +71,7 @@ class _Log:
                                   'is missing; download it from the autopilot again')
         self._params = None
         if not text:
-            # DFReader's index is a Python list per type (~36 bytes a message): keep only
-            # the types read, as int64 arrays, and let the pages of the file go
+            # DFReader's index (a list per type): only the types read, as int64 arrays
             self.offsets = {f.type: np.asarray(self.r.offsets[f.type], np.int64)
                             for f in self.by_name.values()
                             if _TYPES.fullmatch(f.name) and self.r.counts[f.type]}
@@ -124,8 +103,7 @@ class _Log:
         """
         Return {column: (M,) array} of every ``every``-th message of type ``name``, or None.
 
-        Numbers are float64 with the format's multiplier applied; strings are str arrays;
-        ``t`` is the time in s (TimeUS, or TimeMS in old logs).
+        Numbers float64 (the format's multiplier applied), strings str; ``t`` the time, s.
         """
         if self.count(name) == 0:
             return None
@@ -145,13 +123,15 @@ class _Log:
         return cols
 
     def _binary_table(self, name, every):
+        from pymavlink.DFReader import FORMAT_TO_STRUCT
         fmt = self.by_name[name]
         names, formats, mults = [], [], {}
         for col, ch in zip(fmt.columns, fmt.format):
-            if ch not in _NP:
+            if ch not in FORMAT_TO_STRUCT:
                 raise VehicleLogError(f'{self.path}: message {name}: unknown format character '
                                       f'{ch!r}: this DataFlash version is not supported')
-            np_t, mult = _NP[ch]
+            code, mult, _ = FORMAT_TO_STRUCT[ch]          # struct's code: numpy's, packed
+            np_t = 'S' + code[:-1] if code.endswith('s') else '<' + code
             if col in names:
                 col = f'{col}_{len(names)}'
             names.append(col)
@@ -231,14 +211,13 @@ class _Log:
 
 def ardupilot_raw(field, offsets, motor, diag, offdiag, scale, motor_first=False):
     """
-    Return the raw body-frame reading from what ArduPilot logs (module docstring), any unit.
+    Return the raw body-frame reading r from ArduPilot's F = M s (r + o) + m, any unit.
 
-    ``field`` (N, 3) the logged corrected F (MAG.MagX..); ``offsets``, ``motor`` (N, 3) o and
-    m as logged (OfsX.., MOX..); ``diag``, ``offdiag`` (N, 3) or (3,) COMPASS_DIA (x, y, z;
-    all zero read as 1) and COMPASS_ODI (xy, xz, yz); ``scale`` (N,) or scalar COMPASS_SCALE,
-    not applied outside :data:`SCALE_BOUNDS` (as the firmware); ``motor_first`` for firmware
-    older than 3.6, F = M (r + o + m).  Returns (N, 3) r = M^-1 (F - m) / s - o (older:
-    M^-1 F - o - m).
+    ``field`` (N, 3) the logged F (MAG.MagX..); ``offsets``, ``motor`` (N, 3) o and m as
+    logged (OfsX.., MOX..); ``diag``, ``offdiag`` (N, 3) or (3,) COMPASS_DIA (all zero read
+    as 1) and COMPASS_ODI (xy, xz, yz), M; ``scale`` (N,) or scalar COMPASS_SCALE s, 1
+    outside :data:`SCALE_BOUNDS`; ``motor_first``: firmware before 3.6, F = M (r + o + m).
+    Returns (N, 3) r = M^-1 (F - m) / s - o (older: M^-1 F - o - m).
     """
     field = np.asarray(field, float)
     n = len(field)
@@ -267,11 +246,7 @@ def _pname(log, kind, k, axis=''):
 
 
 def _split(log, name, every=1, older='{name}{k}'):
-    """
-    [(instance 0.., table)] of every ``every``-th message ``name``, by its instance field.
-
-    Without one, of NAME and the old per-instance messages ``older`` names (NAME2, ...).
-    """
+    """[(instance 0.., table)] of message ``name`` by its instance field, else NAME, NAME2..."""
     tab = log.table(name, every)
     if tab is None:
         return []
@@ -306,11 +281,7 @@ def _firmware(log):
 
 
 def read_dataflash(path, text=False):
-    """
-    Read an ArduPilot DataFlash log into a :class:`~magcal_ros.io.vehicle.VehicleLog`.
-
-    ``text``: a text ``.log`` (DFReader_text), else a binary ``.bin``.
-    """
+    """Read an ArduPilot DataFlash log (``text``: a text ``.log``) into a VehicleLog."""
     log = _Log(path, text)
     try:
         return _read(log, path, text)
@@ -346,8 +317,7 @@ def _read(log, path, text):
         ofs_p = np.column_stack([log.param_at(_pname(log, 'OFS', j, a), t, np.nan)
                                  for a in 'XYZ'])
         if len(t) and np.isfinite(ofs_p[0]).all() and np.abs(ofs_p[0] - o[0]).max() > 1.0:
-            # the parameters read as compass j's are another compass's: DIA, ODI and SCALE
-            # would be wrong too
+            # the parameters read as compass j's are another compass's
             logged = ', '.join(f'{x:.0f}' for x in o[0])
             param = ', '.join(f'{x:.0f}' for x in ofs_p[0])
             out.warnings.append(
@@ -404,8 +374,7 @@ def _onboard(log, j, tab, motct):
     return out
 
 
-#: an EKF quaternion is used only when it agrees with ATT within this (median, deg): ATT is
-#: what the AHRS used (the active EKF core, or DCM when no EKF was running)
+#: an EKF core is used only within this of ATT (median, deg): ATT is what the AHRS used
 EKF_ATT_AGREEMENT_DEG = 2.0
 
 
@@ -427,8 +396,7 @@ def _ekf_attitudes(log):
     """
     Return [(t, (M, 4) quaternions, source)] of the EKF's cores (XKQ or NKQ), or [].
 
-    The EKF AHRS_EKF_TYPE selects first (EKF3 otherwise); every core it logged, the primary
-    (EK3_PRIMARY, EK2_PRIMARY, default 0) first; old logs: XKQ1/NKQ1 (core 0).
+    The EKF AHRS_EKF_TYPE selects (else EKF3), its primary core first; old logs: XKQ1/NKQ1.
     """
     ekf = log.param('AHRS_EKF_TYPE')
     order = [('XKQ', 'EKF3', 'EK3_PRIMARY'), ('NKQ', 'EKF2', 'EK2_PRIMARY')]
@@ -463,11 +431,9 @@ def _disagreement_deg(ekf, att):
 
 def _attitude(log, out):
     """
-    Set the log's attitude: the EKF core that agrees with ATT, else ATT.
+    Set the log's attitude: the EKF core closest to ATT within :data:`EKF_ATT_AGREEMENT_DEG`.
 
-    With ATT in the log, the core closest to it (median angle) within
-    :data:`EKF_ATT_AGREEMENT_DEG`: the one the AHRS used; none within it, ATT itself (with a
-    warning).  Without ATT, the primary core.
+    None within it: ATT itself (with a warning); without ATT, the primary core.
     """
     cores = _ekf_attitudes(log)
     att = _att_attitude(log)
@@ -549,8 +515,7 @@ def _aux(log, out, vehicle, duration):
         if f is not None and (33 <= int(f) <= 40 or 82 <= int(f) <= 85):
             motors[n] = int(f) - (32 if int(f) <= 40 else 73)      # Motor1..8, Motor9..12
     if not motors and vehicle == 'ArduCopter':
-        # before SERVOn_FUNCTION (Copter 3.4 and older) the motors are outputs 1..n of
-        # the frame the start-up message names ('Frame: QUAD')
+        # Copter 3.4 and older: outputs 1..n of the frame named at start-up ('Frame: QUAD')
         tab = log.table('MSG')
         texts = tab['Message'] if tab is not None else []
         found = [re.search(r'Frame: (\w+)', str(x)) for x in texts]

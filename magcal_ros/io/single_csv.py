@@ -15,14 +15,10 @@
 """
 Single-magnetometer CSV logs in other tools' layouts -> one-sensor :class:`Dataset` in nT.
 
-Public logs (IMU calibration tools, phone loggers) are often a CSV with one row per sample,
-columns such as ``mx,my,mz`` in gauss or uT, an accelerometer ``ax,ay,az`` and no time.
-Without a time column the time axis is *synthetic*, at an assumed rate
-(``meta['synthetic_time']``): fits that do not involve time are unaffected; time-dependent
-effects are then in units of the assumed period.  The accelerometer is kept in
-``meta['accel']`` (N, 3), its own unit, not as an auxiliary channel: gravity depends on the
-attitude, and the angle between it and the field checks a calibration
-(``test/test_real_data.py``).
+Public logs (IMU calibration tools, phone loggers): one row per sample, ``mx,my,mz`` in
+gauss or uT, maybe ``ax,ay,az``, maybe no time (then a *synthetic* axis at an assumed rate,
+``meta['synthetic_time']``).  The accelerometer is kept in ``meta['accel']`` (N, 3), its own
+unit, not as a channel: gravity depends on the attitude.
 """
 import os
 
@@ -49,8 +45,7 @@ def to_nt(values, unit):
     return np.asarray(values, float) * UNITS_NT[unit]
 
 
-def _find(header, options):
-    low = [h.strip().lower() for h in header]
+def _find(low, options):
     for names in options:
         if all(n in low for n in names):
             return [low.index(n) for n in names]
@@ -62,18 +57,17 @@ def read_single_sensor_csv(path, unit='gauss', rate_hz=100.0, field_columns=None
     """
     Read a one-magnetometer CSV (header row, comma separated) into a Dataset in nT.
 
-    ``unit`` of the field columns: 'nT', 'uT', 'mG', 'gauss' (or 'G'), 'T'; ``rate_hz`` the
-    assumed rate of the synthetic time axis when there is no time column (t, time,
-    timestamp, time_s in s); ``field_columns``, ``accel_columns`` three names each (default:
-    the first of mx/my/mz, mag_x/..., magx/..., x/y/z, bx/by/bz, and ax/ay/az, acc_x/...,
-    accx/...).  Returns ``raw`` (1, N, 3) nT, ``t`` (N,) s, ``meta``: source, unit,
-    synthetic_time, assumed_rate_hz, accel (N, 3) or None.
+    ``unit`` of the field (:data:`UNITS_NT`); ``rate_hz`` of the synthetic time without a
+    time column (t, time, timestamp, time_s); ``field_columns``, ``accel_columns`` three
+    names each (default: found by name).  Returns ``raw`` (1, N, 3) nT, ``t`` (N,) s,
+    ``meta``: source, unit, synthetic_time, assumed_rate_hz, accel (N, 3) or None.
     """
     path = os.fspath(path)
     try:
         with open_text(path, encoding='utf-8') as fh:
             header = fh.readline().strip().split(',')
-            fcols, acols = _columns(path, header, field_columns, accel_columns)
+            low = [h.strip().lower() for h in header]
+            fcols, acols = _columns(path, header, low, field_columns, accel_columns)
             try:
                 arr = np.loadtxt(fh, delimiter=',', ndmin=2, comments='#')
             except ValueError as exc:
@@ -83,7 +77,6 @@ def read_single_sensor_csv(path, unit='gauss', rate_hz=100.0, field_columns=None
     if arr.shape[0] < 3:
         raise ValueError(f'{path}: only {arr.shape[0]} data rows')
     raw = to_nt(arr[:, fcols], unit)
-    low = [h.strip().lower() for h in header]
     tcol = next((low.index(n) for n in _TIME_NAMES if n in low), None)
     synthetic = tcol is None
     if synthetic and (not rate_hz or rate_hz <= 0):
@@ -97,20 +90,19 @@ def read_single_sensor_csv(path, unit='gauss', rate_hz=100.0, field_columns=None
         'accel': None if acols is None else arr[:, acols]})
 
 
-def _columns(path, header, field_columns, accel_columns):
+def _columns(path, header, low, field_columns, accel_columns):
     """(field column indices, accelerometer column indices or None) from the header."""
     if field_columns:
-        low = [h.strip().lower() for h in header]
         missing = [c for c in field_columns if c.lower() not in low]
         if missing:
             raise ValueError(f'{path}: no column(s) {missing}; header: {header}')
         fcols = [low.index(c.lower()) for c in field_columns]
     else:
-        fcols = _find(header, _FIELD_NAMES)
+        fcols = _find(low, _FIELD_NAMES)
         if fcols is None:
             raise ValueError(f'{path}: cannot find the magnetometer columns (mx,my,mz or '
                              f'x,y,z ...) in the header {header}; name them with '
                              'field_columns=')
-    acols = _find(header, (tuple(c.lower() for c in accel_columns),) if accel_columns
+    acols = _find(low, (tuple(c.lower() for c in accel_columns),) if accel_columns
                   else _ACC_NAMES)
     return fcols, acols

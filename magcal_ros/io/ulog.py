@@ -15,20 +15,12 @@
 """
 PX4 ULog logs (``.ulg``) -> :class:`~magcal_ros.io.vehicle.VehicleLog` (through pyulog).
 
-pyulog reads only the topics named in :data:`TOPICS`.  PX4's ``Magnetometer::Correct``
-(src/lib/sensor_calibration) gives v = R S ((d + p c) - o): d the driver's reading
-(``sensor_mag``, gauss, sensor axes), o ``CAL_MAGn_{X,Y,Z}OFF``, S the symmetric matrix of
-``CAL_MAGn_{X,Y,Z}SCALE`` and ``_ODIAG``, c ``CAL_MAGn_{X,Y,Z}COMP`` with p the power
-(``CAL_MAG_COMP_TYP`` 1: throttle, 2 and 3: battery 0 or 1 current in kA), R the rotation into
-the body frame (internal: ``SENS_BOARD_ROT`` with ``SENS_BOARD_{X,Y,Z}_OFF``; external:
-``CAL_MAGn_ROT``); n is the slot whose ``CAL_MAGn_ID`` is the device's id.
-
-The compasses are ``sensor_mag`` (each instance, r = R d) when logged at
-:data:`RAW_RATE_HZ` or more, its ``temperature`` the compass's; else
-``vehicle_magnetometer`` (the corrected v) with r = R (S^-1 R^T v + o - p c) (the estimator's
-in-flight bias is not in the parameters and stays: a constant offset); a corrected stream
-that names no device keeps its values, with a warning.  Attitude: ``vehicle_attitude.q``
-(w, x, y, z), body (FRD) to NED.
+pyulog reads only the topics of :data:`TOPICS`.  PX4's ``Magnetometer::Correct``
+(src/lib/sensor_calibration) gives v = R S ((d + p c) - o) (docs/design.md §1, "Vehicle
+logs"), the parameters ``CAL_MAGn_*`` of the slot n whose ``CAL_MAGn_ID`` is the device's.
+The compasses are ``sensor_mag`` (r = R d) when logged at :data:`RAW_RATE_HZ` or more, else
+``vehicle_magnetometer`` undone by :func:`px4_raw` (a stream that names no device is kept as
+corrected, with a warning).  Attitude: ``vehicle_attitude.q``, body (FRD) to NED.
 """
 import contextlib
 import datetime
@@ -77,8 +69,8 @@ def px4_raw(v, rot, scale, offset, comp=None, power=None):
     """
     Return the raw body-frame reading r = R d from PX4's corrected v = R S ((d + p c) - o).
 
-    ``v`` (N, 3) corrected (any unit; ``offset`` (3,) and ``comp`` (3,) per unit of power in
-    the same), ``rot`` (3, 3) R, ``scale`` (3, 3) S, ``power`` (N,) p or None.
+    ``v`` (N, 3) any unit, ``offset`` o and ``comp`` c (3,) in it (c per unit of power),
+    ``rot`` (3, 3) R, ``scale`` (3, 3) S, ``power`` (N,) p or None.
     """
     v = np.asarray(v, float)
     d = np.linalg.solve(np.asarray(scale, float), (v @ np.asarray(rot, float)).T).T \
@@ -136,12 +128,7 @@ def _rate(d):
 
 
 def _calibration(params, device_id):
-    """
-    Return a device's calibration, or None without a slot (CAL_MAGn_ID) for it.
-
-    {slot, R (3, 3), S (3, 3), o (3,) gauss, c (3,) gauss per unit of power, rotation (enum),
-    internal}.
-    """
+    """{slot, R, S (3, 3), o, c (3,) gauss, rotation, internal} of a device, or None."""
     slot = next((n for n in range(8) if device_id
                  and int(params.get(f'CAL_MAG{n}_ID', 0)) == int(device_id)), None)
     if slot is None:

@@ -15,28 +15,12 @@
 """
 Vehicle logs (ArduPilot DataFlash, PX4 ULog) -> :class:`~magcal_ros.core.data.dataset.Dataset`.
 
-One implementation of what every log format shares: the channel names, the resampling onto
-common epochs, the gap checks, the errors and the ``meta``.  The format front-ends
-(:mod:`magcal_ros.io.dataflash`, :mod:`magcal_ros.io.ulog`) only read their messages into a
-:class:`VehicleLog`: timed streams already in the library's units.
-
-The Dataset (docs/design.md §1, "Vehicle logs", has the table of every channel, its unit and
-source): ``raw`` (S, N, 3) nT, every compass of the log in the vehicle's **body frame** (x
-forward, y right, z down) with the autopilot's own corrections undone, compass 1 the
-autopilot's first; ``t`` (N,) s, compass 1's epochs since boot; ``attitude`` (N, 4)
-body-to-NED quaternions (w, x, y, z) by slerp, or None (with a warning); ``temp`` (S, N) degC
-or None; ``aux`` the channels, linearly interpolated (held beyond their span), their units in
-``meta['aux_units']``.  ``meta`` also holds ``source``, ``source_format``, ``vehicle``,
-``firmware``, ``compasses``, ``attitude_source``, ``attitude_frame`` ('NED'), ``igrf`` (the
-median 3-D GPS fix and the first fix's date; absent without one), ``onboard_calibration``,
-``dropped_epochs``, ``gaps`` and ``warnings`` (:class:`~magcal_ros.core.model.notes.Note`).
-
-Errors (:class:`VehicleLogError`, one line, exit 2 from ``magcal``): a file that is not a log
-of its format or is damaged, an unsupported version, no compass data, and a gap in compass
-1's stream longer than :data:`GAP_PERIODS` sample periods (``allow_gaps``, ``--allow-gaps``,
-keeps the record whole with a warning).  A gap in another compass or in the attitude drops
-the epochs inside it, with a warning.  A log is held in memory as its compass epochs only
-(about 100 bytes an epoch).
+What every format shares (channel names, resampling onto compass 1's epochs, gap checks,
+errors, ``meta``); the front-ends (:mod:`~magcal_ros.io.dataflash`, :mod:`~magcal_ros.io.ulog`)
+only read their messages into a :class:`VehicleLog`.  The Dataset, its channels, units and
+``meta``, and the errors are those of docs/design.md §1, "Vehicle logs": ``raw`` (S, N, 3) nT
+in the body frame (x forward, y right, z down), the autopilot's corrections undone; ``t``
+(N,) s; ``attitude`` (N, 4) body-to-NED (w, x, y, z) or None; ``temp`` (S, N) degC or None.
 """
 import os
 
@@ -55,9 +39,7 @@ def log_format(path):
     """
     'dataflash', 'dataflash-text', 'ulog' or None (not a vehicle log) for a file.
 
-    By the first bytes (ULog's magic, DataFlash's 0xA3 0x95 message header), so a log is
-    found whatever its name; a ``.bin``/``.ulg`` file without them, and a ``.log`` file with
-    no DataFlash ``FMT`` line, are named as damaged by :func:`read_vehicle_log`.
+    By the first bytes (whatever the name), else a ``.bin``/``.ulg`` name (then damaged).
     """
     path = os.fspath(path)
     if os.path.isdir(path) or not os.path.isfile(path):
@@ -78,10 +60,9 @@ def read_vehicle_log(path, allow_gaps=False):
     """
     Read an ArduPilot DataFlash (``.bin``, text ``.log``) or PX4 ULog (``.ulg``) log.
 
-    ``allow_gaps``: keep a record whose compass 1 stops for a while (a log dropout) as it
-    is, with a warning naming the gaps (``meta['gaps']``: [(t s, length s)]), instead of
-    refusing it.  Returns the Dataset of the module docstring; raises
-    :class:`VehicleLogError` (one line: what is wrong and what to do).
+    ``allow_gaps``: keep a record whose compass 1 stops for a while, with a warning
+    (``meta['gaps']``: [(t s, length s)]).  Returns the Dataset of the module docstring;
+    raises :class:`VehicleLogError`.
     """
     path = os.fspath(path)
     kind = log_format(path)
@@ -125,11 +106,7 @@ def _clean(stream):
 
 
 def _inside(t_stream, t, what, warnings, sensor=None):
-    """
-    (N,) bool: epochs ``t`` within the span of ``t_stream`` and not inside one of its gaps.
-
-    A gap is named in a warning about ``what`` (appended to ``warnings``).
-    """
+    """(N,) bool: epochs ``t`` within ``t_stream``'s span, outside its gaps (warned)."""
     ok = (t >= t_stream[0]) & (t <= t_stream[-1])
     _, gaps = _gaps(t_stream)
     for start, length in gaps:
@@ -160,12 +137,7 @@ def _describe_gaps(gaps):
 
 
 def _leave_out_dead(log, path, warnings):
-    """
-    Leave out of ``log`` the compasses that read one value in all their messages.
-
-    A compass not connected or not read is logged as zeros (less the corrections undone): it
-    carries no field.  Each is named in ``warnings``; VehicleLogError when all are so.
-    """
+    """Leave out (with a warning) the compasses that read one value throughout (not read)."""
     dead = {}
     for j, comp in enumerate(log.compasses):
         v = _clean(comp)[1]
@@ -194,9 +166,8 @@ def assemble(log, path, allow_gaps=False):
     """
     Return the :class:`Dataset` of a :class:`VehicleLog` (the shared part of every format).
 
-    The epochs are compass 1's; the other compasses and every channel are interpolated onto
-    them (linear; the attitude by slerp); epochs outside another compass's or the attitude's
-    span, or inside one of their gaps, are dropped and counted in ``meta['dropped_epochs']``.
+    Epochs outside another compass's or the attitude's span, or in their gaps, are dropped
+    (``meta['dropped_epochs']``).
     """
     warnings = [Note(w, kind='input') for w in log.warnings]
     if not log.compasses or not len(log.compasses[0].t):
@@ -277,12 +248,7 @@ def assemble(log, path, allow_gaps=False):
 
 
 class VehicleRecord:
-    """
-    A long vehicle log as a record read in chunks (:class:`magcal_ros.io.chunks.Record`).
-
-    The log is read once (its compass epochs held in memory, module docstring); ``chunks``
-    yields consecutive pieces of ``rows`` epochs, as many times as asked.
-    """
+    """A vehicle log read once, as a :class:`magcal_ros.io.chunks.Record` of its epochs."""
 
     kind = 'vehicle'
     unit = 'sets'

@@ -12,15 +12,7 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""
-What the vehicle-log front-ends and :mod:`magcal_ros.io.vehicle` share.
-
-The streams a front-end reads, the error, the units and the GPS site (docs/design.md §1,
-"Vehicle logs").
-
-The front-ends (:mod:`magcal_ros.io.dataflash`, :mod:`magcal_ros.io.ulog`) fill a
-:class:`VehicleLog`; :mod:`magcal_ros.io.vehicle` turns it into a Dataset.
-"""
+"""What the vehicle-log front-ends fill (:class:`VehicleLog`) and :mod:`~.vehicle` reads."""
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -41,12 +33,7 @@ class VehicleLogError(ValueError):
 
 @dataclass
 class Stream:
-    """
-    One timed stream of a log, in the library's units.
-
-    ``t`` (M,) s; ``v`` (M,) or (M, k) values; ``name`` where it came from (a message and
-    field, for the messages).
-    """
+    """One timed stream of a log: ``t`` (M,) s, ``v`` (M,) or (M, k), ``name`` its source."""
 
     t: np.ndarray
     v: np.ndarray
@@ -56,14 +43,12 @@ class Stream:
 @dataclass
 class VehicleLog:
     """
-    What a format front-end read: the streams and what the log says about them.
+    What a format front-end read.
 
-    ``compasses`` are :class:`Stream` of (M, 3) raw body-frame readings in nT, compass 1
-    first; ``compass_temps`` the matching (M,) degC streams or None; ``attitude`` a Stream of
-    (M, 4) body-to-NED quaternions (w, x, y, z) or None; ``aux`` {channel name: Stream of
-    (M,)}; ``aux_units`` {channel name: unit}; ``gps`` {lat_deg, lon_deg, alt_km, date} or
-    None; ``onboard`` one dict per compass; ``info`` more ``meta`` entries; ``warnings``
-    texts.
+    ``compasses`` :class:`Stream` of (M, 3) raw body-frame nT, compass 1 first;
+    ``compass_temps`` (M,) degC Streams or None; ``attitude`` a Stream of (M, 4) body-to-NED
+    (w, x, y, z) or None; ``aux`` {name: Stream (M,)}, ``aux_units`` {name: unit}; ``gps``
+    (:func:`gps_site`); ``onboard`` a dict per compass; ``info`` more ``meta``; ``warnings``.
     """
 
     source_format: str
@@ -90,11 +75,10 @@ class VehicleLog:
 
 def gps_site(lat_deg, lon_deg, alt_m, dates):
     """
-    ``{lat_deg, lon_deg, alt_km, date, fixes}`` of the good GPS fixes, or None.
+    ``{lat_deg, lon_deg, alt_km, date, fixes}`` of good (3-D) GPS fixes, or None.
 
-    ``lat_deg``, ``lon_deg`` (deg), ``alt_m`` (m) (M,) of the fixes already selected as
-    good (3-D); the position is their median.  ``dates`` (M,) the fixes' dates (YYYY-MM-DD,
-    '' unknown): the first known one.  None without a fix that has a position and a date.
+    ``lat_deg``, ``lon_deg`` (deg), ``alt_m`` (m), ``dates`` ('YYYY-MM-DD' or '') (M,): the
+    median position and the first known date; None without a position and a date.
     """
     lat, lon, alt = (np.asarray(a, float) for a in (lat_deg, lon_deg, alt_m))
     ok = np.isfinite(lat) & np.isfinite(lon) & (np.abs(lat) <= 90) & (np.abs(lon) <= 360) & \

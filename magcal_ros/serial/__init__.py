@@ -15,13 +15,9 @@
 r"""
 Serial device protocols (pure parsers/encoders) and the pyserial transport (no rclpy).
 
-:data:`PROTOCOLS` maps a name to its parser and encoder classes; :func:`make_parser` and
-:func:`make_encoder` build them from keyword options (one options dictionary serves both:
-each side takes the options it uses).  Built in: ``ascii`` (default; text lines, default
-``<x_nT>,<y_nT>,<z_nT>,<temp_C>\r\n``, :mod:`~magcal_ros.serial.ascii`), ``hmr2300_ascii``
-and ``hmr2300_binary`` (Honeywell HMR2300, :mod:`~magcal_ros.serial.hmr2300`), ``lemi025``
-(LEMI-025 *style* packets with sync tag and CRC, :mod:`~magcal_ros.serial.lemi025`); more
-with :func:`register_protocol`.
+:data:`PROTOCOLS` maps a name to its parser and encoder classes (more with
+:func:`register_protocol`); :func:`make_parser` and :func:`make_encoder` build them from one
+options dictionary, each side taking the options it uses.
 """
 from dataclasses import dataclass
 import inspect
@@ -115,12 +111,7 @@ def _build(protocol, side, options):
 
 
 def make_parser(protocol=DEFAULT_PROTOCOL, **options):
-    """
-    Build the :class:`Parser` of ``protocol`` (a name in :data:`PROTOCOLS`).
-
-    ``options`` meant only for the encoder are ignored.  Raises ValueError for an unknown
-    protocol, an unknown option or a bad option value.
-    """
+    """Build ``protocol``'s :class:`Parser` (ValueError: an unknown name or option, bad value)."""
     return _build(protocol, 'parser', options)
 
 

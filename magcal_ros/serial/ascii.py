@@ -19,7 +19,6 @@ Default (docs/design.md §3): one line per sample, ``<x_nT>,<y_nT>,<z_nT>,<temp_
 e.g. ``12345.6,-2345.1,43210.9,24.31\r\n``; the delimiter, terminator, columns, scales,
 commands, comments and header lines are options (:class:`AsciiParser`).
 """
-
 import math
 import re
 
@@ -35,12 +34,7 @@ _NUMBER = re.compile(rb'[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?'
 
 
 def parse_number(text):
-    """
-    Parse one ASCII field (bytes, whitespace around allowed) strictly as a float.
-
-    The value may be nan or inf (the caller rejects them); ValueError if ``text`` is not a
-    plain decimal number.
-    """
+    """Parse one field (bytes) strictly as a decimal float (nan, inf too); else ValueError."""
     text = text.strip()
     if not _NUMBER.fullmatch(text):
         raise ValueError(f'not a number: {text[:20]!r}')
@@ -76,15 +70,11 @@ class AsciiParser(LineParser):
     r"""
     Parser for the configurable ASCII line protocol.
 
-    ``delimiter`` the field separator (None or '': runs of whitespace); ``terminator`` the
-    line end (any of CR/LF/CRLF accepted); ``columns`` their order, names from ``x, y, z,
-    temp, time, skip``; ``scale`` nT per unit of x, y, z (1e5 for gauss); ``time_scale`` s
-    per unit of ``time`` (1e-3 for ms); ``start_command``, ``stop_command`` bytes written
-    after the port opens and before it closes; lines starting with ``comment_prefix`` (after
-    whitespace) are ignored, and the first ``header_lines`` (also after each :meth:`reset`);
-    ``allow_extra_columns`` accepts trailing columns beyond ``columns`` (else
-    ``'malformed'``).  ``kwargs``: ``max_abs_nt``, ``temp_range_c``, ``time_reset_after``,
-    ``max_line_bytes``.
+    ``delimiter`` (None or '': whitespace); ``terminator``; ``columns`` in order, of
+    :data:`COLUMN_NAMES`; ``scale`` nT per unit of x, y, z (1e5: gauss); ``time_scale`` s per
+    unit of time; ``start_command``, ``stop_command`` bytes; lines starting with
+    ``comment_prefix`` and the first ``header_lines`` (again after :meth:`reset`) ignored;
+    ``allow_extra_columns``: trailing columns accepted.  ``kwargs``: :class:`LineParser`'s.
     """
 
     def __init__(self, delimiter=',', terminator='\r\n', columns=DEFAULT_COLUMNS, scale=1.0,
@@ -137,13 +127,10 @@ class AsciiParser(LineParser):
 
 class AsciiEncoder(Encoder):
     """
-    Encoder for the configurable ASCII line protocol (same options as the parser).
+    Encoder for the configurable ASCII line protocol (the parser's options).
 
-    ``delimiter``, ``terminator``, ``columns``, ``scale``, ``time_scale`` as
-    :class:`AsciiParser` (a None delimiter writes one space); ``field_decimals`` of x, y, z
-    in the device unit (default: enough for 0.1 nT, 1 for nT, 6 for gauss),
-    ``temp_decimals``, ``time_decimals`` (in the time column's unit); ``header`` text sent
-    once before streaming (:attr:`preamble`, e.g. ``'# x,y,z,temp'``; terminator appended).
+    A None delimiter writes a space; ``field_decimals`` in the device unit (default: 0.1 nT);
+    ``header`` sent once before streaming (:attr:`preamble`, terminator appended).
     """
 
     def __init__(self, delimiter=',', terminator='\r\n', columns=DEFAULT_COLUMNS, scale=1.0,

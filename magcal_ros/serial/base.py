@@ -15,11 +15,9 @@
 """
 Common parts of every serial protocol: the sample record, statistics and validation.
 
-A protocol is a pair (:class:`Parser`, :class:`Encoder`).  The parser turns any byte stream
-into :class:`Sample` records and never raises on its content: malformed, non-finite,
-saturated or time-reversed data are counted per kind in :class:`ParserStats` and skipped.
-The encoder writes exactly the bytes the parser reads (for the simulator).  The text
-protocols share :class:`LineParser`'s line framing.
+A protocol is a pair (:class:`Parser`, :class:`Encoder`).  The parser never raises on its
+input: bad data are counted per kind in :class:`ParserStats` and skipped.  The encoder
+writes exactly the bytes the parser reads (for the simulator).
 """
 from collections import Counter
 import dataclasses
@@ -27,25 +25,13 @@ from dataclasses import dataclass, field
 import math
 import re
 
-#: Default saturation limit for one field component, nT (about 2 gauss, the HMR2300 range).
-DEFAULT_MAX_ABS_NT = 200_000.0
-
-#: Default plausible temperature range of a sensor, degC (inclusive).
-DEFAULT_TEMP_RANGE_C = (-100.0, 200.0)
-
-#: Number of consecutive time-reversed samples after which the parser accepts the new
-#: device time base (the device was restarted) instead of dropping forever.
-DEFAULT_TIME_RESET_AFTER = 20
-
 
 @dataclass(frozen=True)
 class Sample:
     """
-    One decoded magnetometer reading.
+    One decoded reading: ``field_nt`` (x, y, z) nT, device axes, finite.
 
-    ``field_nt`` (x, y, z) nT in the device's axes, finite; ``temp_c`` degC and
-    ``device_time`` s (the device's clock, not the arrival time) when the protocol carries
-    them, else None.
+    ``temp_c`` degC and ``device_time`` s (the device's clock) when carried, else None.
     """
 
     field_nt: tuple
@@ -58,11 +44,9 @@ class ParserStats:
     """
     Counters of one parser.
 
-    ``frames`` samples emitted; ``errors`` rejected frames/lines per kind (``'malformed'``,
-    ``'non_finite'``, ``'out_of_range'``, ``'temp_out_of_range'``, ``'time_backwards'``,
-    ``'checksum'``, ``'overlong'``, ``'sync_lost'``, ...); ``ignored`` input that is neither
-    data nor an error (``'comment'``, ``'header'``, ``'blank'``, ``'response'``); ``bytes_in``
-    fed; ``bytes_dropped`` discarded while searching for a frame boundary or sync tag.
+    ``frames`` samples emitted; ``errors`` rejected frames per kind (``'malformed'``,
+    ``'non_finite'``, ``'checksum'``, ...); ``ignored`` neither data nor error
+    (``'comment'``, ``'blank'``, ...); ``bytes_in`` fed; ``bytes_dropped`` while resyncing.
     """
 
     frames: int = 0
@@ -88,13 +72,14 @@ class ParserStats:
                 'bytes_dropped': self.bytes_dropped, 'total_errors': self.total_errors}
 
 
-def check_positive(name, value):
+def check_positive(name, value, what='number'):
+    """Return ``value`` as a finite positive float, else ValueError naming ``name``."""
     try:
         value = float(value)
     except (TypeError, ValueError):
-        raise ValueError(f'{name} must be a number, got {value!r}') from None
+        raise ValueError(f'{name} must be a {what}, got {value!r}') from None
     if not math.isfinite(value) or value <= 0.0:
-        raise ValueError(f'{name} must be a finite positive number, got {value!r}')
+        raise ValueError(f'{name} must be a finite positive {what}, got {value!r}')
     return value
 
 
@@ -117,12 +102,10 @@ class Parser:
     """
     Base class of protocol parsers: validation, statistics and timestamp ordering.
 
-    Subclasses implement :meth:`_parse` (bytes -> samples via :meth:`_accept`).  A sample
-    with any ``|component| > max_abs_nt`` (nT) is rejected as ``'out_of_range'``, one whose
-    temperature is outside ``temp_range_c`` (inclusive, degC) as ``'temp_out_of_range'``.
-    After ``time_reset_after`` consecutive samples with a device time earlier than the last
-    accepted one (each counted as ``'time_backwards'`` and dropped) the parser takes it that
-    the device restarted its clock, counts ``'time_reset'`` and accepts the new time base.
+    Subclasses implement :meth:`_parse` (bytes -> samples via :meth:`_accept`).  Rejected: a
+    ``|component| > max_abs_nt`` (nT; default about 2 G, the HMR2300 range), a temperature
+    outside ``temp_range_c`` (degC, inclusive), a device time before the last (until
+    ``time_reset_after`` in a row: then ``'time_reset'``, the device restarted its clock).
     """
 
     #: Bytes the transport writes after opening the port (e.g. a start command).
@@ -130,8 +113,8 @@ class Parser:
     #: Bytes the transport writes before closing the port (e.g. a stop command).
     stop_command = b''
 
-    def __init__(self, max_abs_nt=DEFAULT_MAX_ABS_NT, temp_range_c=DEFAULT_TEMP_RANGE_C,
-                 time_reset_after=DEFAULT_TIME_RESET_AFTER):
+    def __init__(self, max_abs_nt=200_000.0, temp_range_c=(-100.0, 200.0),
+                 time_reset_after=20):
         self.max_abs_nt = check_positive('max_abs_nt', max_abs_nt)
         try:
             lo, hi = (float(v) for v in temp_range_c)
@@ -200,12 +183,7 @@ class Parser:
 
 
 class Encoder:
-    """
-    Base class of protocol encoders (used by the simulator).
-
-    :meth:`encode` turns one :class:`Sample` into the exact bytes the matching parser
-    reads; :meth:`encode_many` concatenates several.
-    """
+    """Base class of protocol encoders: a :class:`Sample` to the bytes its parser reads."""
 
     #: Bytes a device would send once before streaming (e.g. a header line).
     preamble = b''
@@ -228,11 +206,9 @@ class LineParser(Parser):
     r"""
     Split a byte stream into lines and hand each complete line to :meth:`_parse_line`.
 
-    A newline ``terminator`` (``'\r\n'``, ``'\n'``, ``'\r'``) splits on either CR or LF, so
-    devices sending CR only, LF only or CRLF are all read (blank pieces ignored); any other
-    (e.g. ``';'``) is split on exactly.  A line longer than ``max_line_bytes`` without a
-    terminator is discarded up to the next one and counted as ``'overlong'`` (a wrong baud
-    rate makes such input).  ``kwargs``: the validation options of :class:`Parser`.
+    A newline ``terminator`` splits on either CR or LF (blank pieces ignored); any other
+    (e.g. ``';'``) exactly.  A line longer than ``max_line_bytes`` is dropped as
+    ``'overlong'``.  ``kwargs``: the options of :class:`Parser`.
     """
 
     def __init__(self, terminator=b'\r\n', max_line_bytes=256, **kwargs):

@@ -18,22 +18,14 @@ Honeywell HMR2300 smart digital magnetometer: ASCII and binary output, commands.
 Output formats (HMR2300 data sheet, "Data formats"):
 
 - ASCII (BCD), 28 bytes per reading, per axis ``SN X1 X2 CM X3 X4 X5 SP SP`` then ``<cr>``:
-  a sign (``-`` or a space), the counts comma-grouped, right-justified in six characters,
-  two spaces. Example ``- 1,234    2,345  -   345  \r`` is x = -1234,
-  y = 2345, z = -345 counts. The parser also accepts free spacing, LF and CRLF.
-- Binary, 7 bytes: ``Xhi Xlo Yhi Ylo Zhi Zlo <cr>``, big-endian two's-complement int16
-  (value = hi*256 + lo, minus 65536 when >= 32768) and ``0x0D`` (data bytes may be 0x0D
-  too: :class:`Hmr2300BinaryParser` synchronises on the frame structure).
+  a sign (``-`` or a space), the counts comma-grouped in six characters, two spaces
+  (``- 1,234    2,345  -   345  \r``: -1234, 2345, -345).  Free spacing, LF, CRLF accepted.
+- Binary, 7 bytes: ``Xhi Xlo Yhi Ylo Zhi Zlo <cr>``, big-endian int16 and ``0x0D`` (data
+  bytes may be 0x0D too).
 
-Scale: 15 000 counts per gauss, so one count is 1e5/15000 = 6.667 nT (range +-2 G =
-+-30 000 counts = +-200 000 nT).
-
-Commands (``dd`` = two-digit device id, ``99`` addresses all units; each ends with CR):
-``*ddC`` continuous output, ``ESC`` stops it, ``*ddP`` polls one reading, ``*ddR=nnn`` sets
-the sample rate, ``*ddA``/``*ddB`` select ASCII/binary output, ``*ddWE`` enables writing
-of settings.
+Scale: 15 000 counts per gauss (6.667 nT a count; +-2 G = +-30 000 counts).  Commands:
+:func:`command` and the functions below (``dd`` the two-digit device id, ``99``: all units).
 """
-
 import re
 import struct
 
@@ -84,13 +76,9 @@ def poll_command(dd='99'):
 
 def rate_command(rate, dd='99'):
     """``*ddR=nnn``: set the sample rate in samples/s (one of :data:`RATES`)."""
-    try:
-        rate_int = int(rate)
-    except (TypeError, ValueError):
-        raise ValueError(f'HMR2300 rate must be one of {RATES} samples/s, got {rate!r}') from None
-    if rate_int != rate or rate_int not in RATES:
+    if rate not in RATES:
         raise ValueError(f'HMR2300 rate must be one of {RATES} samples/s, got {rate!r}')
-    return command(dd, f'R={rate_int}')
+    return command(dd, f'R={int(rate)}')
 
 
 def ascii_command(dd='99'):
@@ -113,7 +101,9 @@ class _Hmr2300Options:
 
     binary = False
 
-    def _init_hmr(self, counts_per_gauss, device_id, send_start, rate):
+    def __init__(self, counts_per_gauss=COUNTS_PER_GAUSS, device_id='99', send_start=False,
+                 rate=None, **kwargs):
+        super().__init__(**kwargs)
         try:
             cpg = float(counts_per_gauss)
         except (TypeError, ValueError):
@@ -144,21 +134,17 @@ class _Hmr2300Options:
 
 class Hmr2300AsciiParser(_Hmr2300Options, LineParser):
     """
-    Parser of HMR2300 ASCII output (signed counts with comma thousands separators).
+    Parser of HMR2300 ASCII output; ``OK`` replies are ignored as ``'response'``.
 
-    ``device_id``: the two digits of the start command (``'99'``: all units); with
-    ``send_start`` the transport sends ``*ddA`` [``*ddR=rate``, ``rate`` one of
-    :data:`RATES`] ``*ddC`` on open and ESC on close (default: the device is left as
-    configured).  ``kwargs``: ``terminator`` (CR, LF and CRLF all accepted), ``max_abs_nt``,
-    ``temp_range_c``, ``time_reset_after``, ``max_line_bytes``.  Lines that are exactly
-    ``OK`` (command replies) are ignored as ``'response'``.
+    ``device_id`` the two digits of the commands (``'99'``: all units); ``send_start``:
+    ``*ddA`` [``*ddR=rate``, one of :data:`RATES`] ``*ddC`` on open and ESC on close (default:
+    the device left as configured).  ``kwargs``: the options of :class:`LineParser`.
     """
 
     def __init__(self, counts_per_gauss=COUNTS_PER_GAUSS, device_id='99', send_start=False,
                  rate=None, terminator=b'\r', max_line_bytes=64, **kwargs):
-        LineParser.__init__(self, terminator=terminator, max_line_bytes=max_line_bytes,
-                            **kwargs)
-        self._init_hmr(counts_per_gauss, device_id, send_start, rate)
+        super().__init__(counts_per_gauss, device_id, send_start, rate, terminator=terminator,
+                         max_line_bytes=max_line_bytes, **kwargs)
 
     def _parse_line(self, line, out):
         m = _ASCII_LINE.fullmatch(line)
@@ -172,9 +158,7 @@ class Hmr2300AsciiParser(_Hmr2300Options, LineParser):
         for k in range(3):
             sign, digits = m.group(2 * k + 1), m.group(2 * k + 2)
             digits = digits.replace(b',', b'')
-            if len(digits) > 15:
-                # far beyond int16 (and beyond float range / int() digit limit when a large
-                # max_line_bytes lets such a line through): saturated, not a crash
+            if len(digits) > 15:        # far beyond int16 (and int()'s digit limit)
                 self._error('out_of_range')
                 return
             value = int(digits)
@@ -182,15 +166,7 @@ class Hmr2300AsciiParser(_Hmr2300Options, LineParser):
         self._accept(out, *(self.counts_to_nt(c) for c in counts))
 
 
-class _Hmr2300Encoder(_Hmr2300Options, Encoder):
-    """The options of an HMR2300 encoder."""
-
-    def __init__(self, counts_per_gauss=COUNTS_PER_GAUSS, device_id='99', send_start=False,
-                 rate=None):
-        self._init_hmr(counts_per_gauss, device_id, send_start, rate)
-
-
-class Hmr2300AsciiEncoder(_Hmr2300Encoder):
+class Hmr2300AsciiEncoder(_Hmr2300Options, Encoder):
     """
     Encoder of HMR2300 ASCII output: 28 bytes per reading.
 
@@ -208,29 +184,19 @@ class Hmr2300BinaryParser(_Hmr2300Options, Parser):
     """
     Parser of the HMR2300 7-byte binary frame, robust to 0x0D inside data bytes.
 
-    Synchronisation: the stream is never split on CR. To acquire, the parser looks for the
-    earliest position where ``sync_frames`` consecutive 7-byte frames all end in 0x0D (a
-    random byte stream does so with probability 256**-sync_frames per position). A data
-    byte that is 0x0D in consecutive frames can make another alignment (one of the next
-    six bytes) line up too; the parser then keeps reading, up to ``max_sync_frames``
-    frames, until only one alignment still has 0x0D at every frame end. If several still
-    do after ``max_sync_frames`` frames (e.g. a constant 0x0D high byte), it takes the one
-    whose decoded values vary least (the field is smooth at the sample rate; a wrong
-    alignment moves low bytes into high bytes), the earliest on a tie. Once locked, each
-    frame only needs its own terminator; a missing terminator loses the lock
-    (``'sync_lost'``) and the search restarts one byte after the start of that frame.
-
-    ``counts_per_gauss``, ``device_id``, ``send_start``, ``rate`` as
-    :class:`Hmr2300AsciiParser` (the start sequence selects binary output, ``*ddB``);
-    ``kwargs``: ``max_abs_nt``, ``temp_range_c``, ``time_reset_after``.
+    Acquisition: the earliest position where ``sync_frames`` consecutive frames end in 0x0D;
+    while another alignment (0x0D data bytes) lines up too, read on up to
+    ``max_sync_frames`` frames, then take the one whose values vary least (the field is
+    smooth), the earliest on a tie.  Locked, a frame without its CR is ``'sync_lost'`` and
+    the search restarts a byte later.  Other options as :class:`Hmr2300AsciiParser`
+    (``*ddB``) and :class:`Parser`.
     """
 
     binary = True
 
     def __init__(self, counts_per_gauss=COUNTS_PER_GAUSS, device_id='99', send_start=False,
                  rate=None, sync_frames=3, max_sync_frames=16, **kwargs):
-        Parser.__init__(self, **kwargs)
-        self._init_hmr(counts_per_gauss, device_id, send_start, rate)
+        super().__init__(counts_per_gauss, device_id, send_start, rate, **kwargs)
         if int(sync_frames) < 1:
             raise ValueError(f'sync_frames must be >= 1, got {sync_frames!r}')
         self.sync_frames = int(sync_frames)
@@ -314,7 +280,7 @@ class Hmr2300BinaryParser(_Hmr2300Options, Parser):
         self._buf = buf[i:]
 
 
-class Hmr2300BinaryEncoder(_Hmr2300Encoder):
+class Hmr2300BinaryEncoder(_Hmr2300Options, Encoder):
     """Encoder of the HMR2300 binary frame: ``>hhh`` counts then 0x0D (7 bytes)."""
 
     binary = True

@@ -15,10 +15,8 @@
 """
 LEMI-025 *style* fixed-length binary packets with a sync tag and CRC.
 
-This is a packet layout defined by this project in the spirit of the LEMI-025 fluxgate
-magnetometer's binary stream (sync tag, counter, device time, 3 components, temperature,
-checksum). It is **not** byte-compatible with a real LEMI-025 unless verified against the
-manufacturer's manual; a real device needs its own protocol entry in the registry.
+This project's layout in the spirit of the LEMI-025 fluxgate's binary stream; **not**
+byte-compatible with a real LEMI-025 (that needs its own protocol entry).
 
 Packet, 32 bytes, little-endian:
 
@@ -35,12 +33,9 @@ offset size type   field
 30     2    uint16 CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF) of bytes 0..29
 ====== ==== ====== ===========================================================
 
-Resynchronisation: the parser searches for the sync tag and accepts a packet only if its
-CRC matches; on a CRC error (``'checksum'``) it moves one byte past the tag and searches
-again, so a sync tag that happens to appear inside packet data, or a corrupted packet,
-costs at most that packet. A jump of the counter is counted as ``'counter_gap'``.
+The parser accepts a packet at a sync tag only if its CRC matches (else ``'checksum'``, and
+the search resumes a byte later); a jump of the counter counts as ``'counter_gap'``.
 """
-
 import binascii
 import struct
 

@@ -19,7 +19,6 @@ PyYAML implements YAML 1.1, where ``1e5`` or ``1.0e5`` (no exponent sign) is a *
 users write them as numbers. The loader here also resolves those as floats (YAML 1.2 rule),
 so ``"{scale: 1e5}"`` gives ``{'scale': 100000.0}``.
 """
-
 import re
 
 import yaml

@@ -15,15 +15,10 @@
 """
 Serial transport: a reconnecting pyserial reader thread and a pseudo-terminal device.
 
-:class:`PortReader` reads one serial port into a protocol parser and hands each sample to a
-callback with its arrival time (``time.time()`` when its bytes were read, never synthesised
-from a sample rate).  When the device goes away pyserial raises ``SerialException``/
-``OSError``; the reader closes the port and reopens it with exponential backoff, optionally
-trying alternative paths (glob patterns), counting every disconnect and reconnect.
-
-:class:`PtyDevice` plays the device side for simulation and tests: a raw-mode pseudo-terminal
-whose slave is symlinked to a chosen path, with :meth:`~PtyDevice.unplug` and
-:meth:`~PtyDevice.replug` to emulate a cable pulled and put back.
+:class:`PortReader` reads one port into a parser, hands each sample to a callback with its
+arrival time, and reopens a lost device with exponential backoff (also at alternative
+paths).  :class:`PtyDevice` plays the device on a pseudo-terminal, with
+:meth:`~PtyDevice.unplug` and :meth:`~PtyDevice.replug` for a cable pulled and put back.
 """
 import collections
 import contextlib
@@ -37,12 +32,12 @@ import threading
 import time
 import tty
 
+from magcal_ros.serial.base import check_positive
 import serial
 
 _LOG = logging.getLogger(__name__)
 
-# Paths currently open by a PortReader of this process (realpath -> reader name), so that a
-# glob of alternative paths never makes two readers share one device.
+# realpath -> id of the PortReader of this process that has it open (never two on one)
 _CLAIMED = {}
 _CLAIMED_LOCK = threading.Lock()
 
@@ -57,15 +52,10 @@ class PortStats:
     """
     Snapshot of a :class:`PortReader`.
 
-    ``name`` the reader's label; ``port`` the configured path; ``path`` the one open (the
-    configured one or an alternative), None when closed; ``state`` 'connecting', 'open',
-    'backoff' (waiting to retry) or 'stopped'; ``rate_hz`` samples per second over the last
-    ``rate_window`` s; ``samples`` delivered to the callback; ``bytes_in`` read from the port;
-    ``parse_errors`` frames/lines the parser rejected, ``errors`` per kind; ``bytes_dropped``
-    by the parser while resynchronising; ``reconnects`` after a loss; ``disconnects`` losses
-    of an open device; ``open_failures`` failed opens of any path; ``callback_errors``
-    exceptions of the callback (logged; the reader keeps running); ``last_error`` the last
-    transport error ('' if none); ``seconds_since_data`` age of the last bytes, None before.
+    ``path`` the one open (None when closed); ``state`` 'connecting', 'open', 'backoff' or
+    'stopped'; ``rate_hz`` samples/s over the last ``rate_window`` s; ``parse_errors``,
+    ``errors``, ``bytes_dropped`` the parser's; ``callback_errors`` exceptions of the
+    callback (logged); ``last_error`` '' if none; ``seconds_since_data`` None before data.
     """
 
     name: str
@@ -86,32 +76,15 @@ class PortStats:
     seconds_since_data: float | None
 
 
-def _check_seconds(name, value):
-    try:
-        value = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f'{name} must be a number of seconds, got {value!r}') from None
-    if not 0.0 < value < float('inf'):
-        raise ValueError(f'{name} must be a finite positive number of seconds, got {value!r}')
-    return value
-
-
 class PortReader:
     """
     Background thread reading one serial port into a parser, reconnecting on loss.
 
-    ``port`` the device path (``/dev/ttyUSB0``, ``/tmp/magcal_sim/fluxgate1``), ``baudrate``
-    bit/s; ``parser`` a :class:`magcal_ros.serial.Parser`, its ``start_command`` written after
-    every (re)open and its ``stop_command`` before a clean close; ``callback(sample,
-    arrival_time)`` called from the reader thread for every sample, ``arrival_time`` the
-    ``clock()`` (s) when its bytes arrived.  ``alternatives``: glob patterns of other paths
-    to try when ``port`` cannot be opened (a device back under another name), paths open by
-    another reader of this process skipped.  ``timeout``: pyserial's read timeout, s (how
-    quickly :meth:`stop` acts).  ``backoff_min``, ``backoff_max``: the first and largest wait
-    between reopen attempts, s, doubling after every failure, back to ``backoff_min`` once
-    data flow.  ``name`` labels logs and statistics; ``rate_window`` (s) is ``rate_hz``'s;
-    ``serial_factory(path, baudrate, timeout=...)`` returns a pyserial-like object (default
-    ``serial.Serial``).
+    ``port`` the device path, ``baudrate`` bit/s; ``parser`` a :class:`~magcal_ros.serial.Parser`
+    (its ``start_command`` written after every open, ``stop_command`` before a clean close);
+    ``callback(sample, arrival_time)``, the ``clock()`` (s) when its bytes arrived;
+    ``alternatives`` glob patterns of other paths; ``timeout`` of a read, s; ``backoff_min``,
+    ``backoff_max`` the waits between reopens, s; ``serial_factory`` as ``serial.Serial``.
     """
 
     def __init__(self, port, baudrate, parser, callback, *, alternatives=(), timeout=0.05,
@@ -134,13 +107,13 @@ class PortReader:
         self.parser = parser
         self.callback = callback
         self.alternatives = tuple(str(a) for a in alternatives)
-        self.timeout = _check_seconds('timeout', timeout)
-        self.backoff_min = _check_seconds('backoff_min', backoff_min)
-        self.backoff_max = _check_seconds('backoff_max', backoff_max)
+        self.timeout = check_positive('timeout', timeout, 'number of seconds')
+        self.backoff_min = check_positive('backoff_min', backoff_min, 'number of seconds')
+        self.backoff_max = check_positive('backoff_max', backoff_max, 'number of seconds')
         if self.backoff_max < self.backoff_min:
             raise ValueError(f'backoff_max ({backoff_max}) must be >= backoff_min '
                              f'({backoff_min})')
-        self.rate_window = _check_seconds('rate_window', rate_window)
+        self.rate_window = check_positive('rate_window', rate_window, 'number of seconds')
         self.name = name or port
         self._factory = serial_factory or serial.Serial
         self._clock = clock
@@ -329,15 +302,11 @@ def _atomic_symlink(target, link_path):
 
 class PtyDevice:
     """
-    A simulated serial device on a pseudo-terminal.
+    A simulated serial device on a raw-mode pseudo-terminal, thread safe.
 
-    The slave side is put in raw mode and (optionally) symlinked to ``link_path`` (parent
-    directories created, a stale symlink replaced atomically, an existing non-symlink file
-    refused); a :class:`PortReader` (or any program) opens that path like a serial port.  The
-    device writes through the non-blocking master side: when nobody reads and the kernel
-    buffer is full, stale unread input is flushed (counted in :attr:`flushes`), as a
-    streaming device's output is lost when no host listens; :meth:`write` never blocks.
-    Bytes written while unplugged count in :attr:`bytes_dropped`.  Thread safe.
+    The slave is symlinked to ``link_path`` (a stale symlink replaced, another file refused).
+    :meth:`write` never blocks: with nobody reading, unread output is flushed (counted in
+    :attr:`flushes`); bytes written while unplugged count in :attr:`bytes_dropped`.
     """
 
     def __init__(self, link_path=None):
@@ -413,10 +382,7 @@ class PtyDevice:
                 if sent == len(data):
                     break
                 if attempt == 0:
-                    # nobody is reading: discard what the reader never fetched, the part of
-                    # this chunk just written with it, and write the chunk again whole, so
-                    # that the reader resumes at a frame boundary (as a device's output
-                    # while no host listens is lost in whole frames)
+                    # nobody reads: flush, and write the chunk again whole (a frame boundary)
                     termios.tcflush(self.slave, termios.TCIFLUSH)
                     self.flushes += 1
                     sent = 0

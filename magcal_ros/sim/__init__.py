@@ -15,50 +15,23 @@
 """
 Simulated serial fluxgates on pseudo-terminals, without ROS (:mod:`magcal_ros.sim.devices`).
 
-The ROS node ``fluxgate_sim`` (:mod:`magcal_ros.ros.sim_node`) serves these devices; scripts
-and tests may use :class:`FluxgateSim` directly, or run ``python -m magcal_ros.sim``.  This
-module also says where the devices of a namespace live, with no heavy import (the driver's
-default ports read it at start-up), so a simulator and a driver started in the same namespace
-meet without arguments.
+Served by the ROS node ``fluxgate_sim`` or ``python -m magcal_ros.sim``.  This module says
+where a namespace's devices live, with no heavy import (the driver's default ports).
 """
-
-import importlib
 import os
 import tempfile
 
 #: ``/tmp/magcal_sim`` unless TMPDIR names another temporary directory
 DEFAULT_DIR = os.path.join(tempfile.gettempdir(), 'magcal_sim')
-#: namespace of every node started without a ``__ns`` remap (docs/design.md §3); the ROS
-#: nodes take it from here (magcal_ros.ros.run), so the simulator and the driver agree
+#: namespace of every node started without a ``__ns`` remap (docs/design.md §3)
 DEFAULT_NAMESPACE = '/magcal'
 #: link name prefix: sensor j is <dir>/<prefix>j
 DEFAULT_PREFIX = 'fluxgate'
 
 
 def device_dir(namespace=DEFAULT_NAMESPACE):
-    """
-    Folder of the simulated devices of a namespace: one array per namespace.
-
-    ``/magcal`` (the default) -> :data:`DEFAULT_DIR`; ``/array2`` ->
-    ``<DEFAULT_DIR>_array2``, so a simulator and a driver started in the same namespace meet
-    on the same devices and two arrays never share them.
-    """
-    ns = '/' + namespace.strip('/') if namespace.strip('/') else '/'
-    if ns == DEFAULT_NAMESPACE:
+    """Folder of a namespace's devices: :data:`DEFAULT_DIR`, ``<DEFAULT_DIR>_array2`` ..."""
+    name = namespace.strip('/')
+    if '/' + name == DEFAULT_NAMESPACE:
         return DEFAULT_DIR
-    return DEFAULT_DIR + '_' + (ns.strip('/').replace('/', '_') or 'root')
-
-
-#: names served by :mod:`magcal_ros.sim.devices`, imported on first use (it loads the
-#: simulator, numpy and scipy; the driver only needs :func:`device_dir`)
-_FROM_DEVICES = ('DEFAULTS', 'FluxgateSim', 'load_config', 'parse_gradient', 'parse_option',
-                 'parse_unplug', 'resolve_settings', 'Unplug')
-
-__all__ = ['DEFAULT_DIR', 'DEFAULT_NAMESPACE', 'DEFAULT_PREFIX', 'device_dir', *_FROM_DEVICES]
-
-
-def __getattr__(name):
-    """Return a name of :mod:`magcal_ros.sim.devices`, importing it on first use (PEP 562)."""
-    if name in _FROM_DEVICES:
-        return getattr(importlib.import_module('magcal_ros.sim.devices'), name)
-    raise AttributeError(f'module {__name__!r} has no attribute {name!r}')
+    return DEFAULT_DIR + '_' + (name.replace('/', '_') or 'root')

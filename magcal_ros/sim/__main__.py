@@ -13,7 +13,6 @@
 # limitations under the License.
 
 """``python -m magcal_ros.sim [options]``: the simulated devices as a plain process."""
-
 import sys
 
 from magcal_ros.sim.devices import main

@@ -16,24 +16,14 @@ r"""
 Simulated fluxgates on pseudo-terminals, without ROS: the devices ``fluxgate_sim`` serves.
 
 One :class:`~magcal_ros.serial.transport.PtyDevice` per sensor, linked as
-``<dir>/fluxgate1`` ... (default :func:`device_dir` of the namespace, ``/tmp/magcal_sim`` for
-``/magcal``), streams :class:`magcal_ros.core.data.simulate.Simulator`'s output in any
-registered serial protocol (default the ASCII line ``<x_nT>,<y_nT>,<z_nT>,<temp_C>\r\n``).
-The defaults are paper 004 §4.1: |B| = 50 000 nT, D = -7 deg, I = 55 deg, 3 nT noise per
-axis, the Table 1 sensor errors, a smooth tumbling that covers the sphere in about a minute,
-100 samples/s per sensor, written in chunks once per tick (default 10 ms).
-
-``site_gradient`` (GXX, GXY, GXZ, GYY, GYZ nT/m, world NED) makes the field vary over the
-array (docs/site_gradient.md).  Hidden effects (``truth``, entries ``EFFECT=V1,V2,...`` as
-``magcal simulate --truth``), their driving channels, the ``vehicle`` trajectory and the
-attitude published on ``imu_topic`` are described in docs/design.md §3; the ROS node
-(:mod:`magcal_ros.ros.sim_node`) publishes the auxiliary channels and the attitude, this
-plain process has no topics.
-
-Faults for tests: ``unplug`` entries ``SENSOR:AT_S:FOR_S[:NEW_PATH]`` close that sensor's
-pseudo-terminal at ``AT_S`` s (readers get an I/O error, the link disappears) and plug a new
-one ``FOR_S`` s later, at ``NEW_PATH`` if given.  ``python -m magcal_ros.sim`` runs this as a
-plain process (the options of :func:`build_parser`).
+``<dir>/fluxgate1`` ... (:func:`device_dir` of the namespace), streams
+:class:`magcal_ros.core.data.simulate.Simulator`'s output in a serial protocol, once per
+tick.  The defaults are paper 004 §4.1 (|B| = 50 000 nT, D = -7 deg, I = 55 deg, 3 nT noise,
+the Table 1 errors, 100 Hz); the settings (site gradient, hidden effects, trajectory,
+attitude) are described in docs/design.md §3.  ``unplug`` entries
+``SENSOR:AT_S:FOR_S[:NEW_PATH]`` close a sensor's pseudo-terminal at ``AT_S`` s and plug a
+new one ``FOR_S`` s later.  The ROS node (:mod:`magcal_ros.ros.sim_node`) also publishes
+the channels and the attitude; ``python -m magcal_ros.sim`` has no topics.
 """
 import argparse
 from dataclasses import dataclass
@@ -225,10 +215,8 @@ def settings_from_parameters(section, source):
     """
     Turn ``fluxgate_sim`` parameters (ROS names and types) into settings like :data:`DEFAULTS`.
 
-    ROS parameters cannot be null, so ``dir: ''`` means the namespace's folder,
-    ``duration: 0.0`` until stopped, an empty ``site_gradient`` a uniform field and an empty
-    ``unplug`` no fault; ``options`` is a YAML mapping (string or mapping).  Raises
-    ValueError naming ``source`` and the setting, for an unknown key or a malformed value.
+    ROS parameters cannot be null: ``dir: ''``, ``duration: 0.0``, an empty list mean the
+    default; ``options`` is a YAML mapping.  ValueError names ``source`` and the setting.
     """
     out = {}
     for key, value in section.items():
@@ -269,12 +257,7 @@ def _setting(key, value, source):
 
 
 def load_config(path):
-    """
-    Read the ``fluxgate_sim`` section of a ROS-style parameter YAML file.
-
-    Returns settings keyed like :data:`DEFAULTS` (:func:`settings_from_parameters`); raises
-    ValueError if the file has no such section or holds unknown keys.
-    """
+    """Read the ``fluxgate_sim`` section of a ROS parameter file (ValueError: none, bad)."""
     with open(path, encoding='utf-8') as f:
         doc = load_yaml(f.read()) or {}
     section = None
@@ -337,8 +320,7 @@ def _simulator(st):
         tilt_deg=float(st.get('tilt_deg', 15.0)),
         attitude=bool(st.get('imu_topic')),
         positions_m=st.get('sensor_positions_m')))
-    # driven hidden effects act about references (mean temperature, mean current, start
-    # time) of the first minute, as a calibration of that minute would see them
+    # driven hidden effects act about the references of the first minute
     set_truth_refs(sim, np.arange(0.0, 60.0, 1.0 / st['rate']))
     return sim
 
@@ -347,9 +329,8 @@ def resolve_settings(argv=None, namespace=DEFAULT_NAMESPACE):
     """
     Return the settings (argparse.Namespace keyed like :data:`DEFAULTS`) of a command line.
 
-    Precedence, lowest first: :data:`DEFAULTS` (``dir``: :func:`device_dir` of
-    ``namespace``), ``--config``, command-line options.  Bad settings exit with status 2 and
-    one line naming the problem (argparse's ``error``).
+    :data:`DEFAULTS` (``dir`` of ``namespace``), then ``--config``, then the options; bad
+    settings exit 2 with one line (argparse's ``error``).
     """
     parser = build_parser()
     args = parser.parse_args(list(sys.argv[1:] if argv is None else argv))
@@ -385,8 +366,7 @@ class FluxgateSim:
         self.encoders = [make_encoder(settings.protocol, **dict(settings.option))
                          for _ in range(settings.sensors)]
         self.sim = _simulator(dict(DEFAULTS, **vars(settings)))
-        #: called as ``f(t, data)`` after each chunk is written: t (n,) s since start, data
-        #: the :class:`~magcal_ros.core.data.dataset.Dataset` (the node publishes ``data.aux``)
+        #: ``f(t, data)`` after each chunk: t (n,) s since start, data its Dataset
         self.listeners = []
         self.paths = [os.path.join(settings.dir, f'{settings.prefix}{j}')
                       for j in range(1, settings.sensors + 1)]
@@ -427,11 +407,8 @@ class FluxgateSim:
         """
         (t (n,) s, Dataset) of samples ``first .. first + n - 1`` of each sensor.
 
-        A chunk of :data:`PREFETCH_S` or more is simulated as it is (rates by central
-        differences inside it).  Shorter chunks (one sample a tick at 100 Hz) are sliced from
-        :data:`PREFETCH_S` simulated ahead with each sample's causal rate
-        (``Simulator.sample(causal=True)``): what simulating them one by one gives, without
-        its per-call overhead.
+        A chunk shorter than :data:`PREFETCH_S` is sliced from that much simulated ahead with
+        causal rates (``Simulator.sample(causal=True)``): as if simulated one by one.
         """
         rate = self.settings.rate
         size = int(math.ceil(PREFETCH_S * rate))
@@ -453,9 +430,7 @@ class FluxgateSim:
         """
         Generate and write every sample due by ``now_s`` (s since start); return the count.
 
-        ``log(text)`` is called for the scheduled faults, ``warn(text)`` (default ``log``)
-        when a reader fell behind and its unread output was discarded.
-
+        ``log(text)`` for the faults, ``warn(text)`` (default ``log``) for a reader behind.
         """
         warn = warn or log
         self._fault_events(now_s, log)
@@ -473,8 +448,6 @@ class FluxgateSim:
             flushes = dev.flushes
             dev.write(chunk)
             if dev.flushes != flushes:
-                # as a device whose host stops reading: its unread output is lost (the reader
-                # will see a gap in this sensor's samples)
                 warn(f'sensor{j + 1}: the reader fell behind at {now_s:.3f} s; its unread '
                      f'output was discarded (flush {dev.flushes})')
             dev.read()              # drain commands a reader sent (start/stop); ignored
@@ -488,9 +461,7 @@ def stream(sim, settings, log, stop, warn=None):
     """
     Write the samples as they fall due until ``stop`` (an Event) is set or the duration ends.
 
-    ``sim`` plugged in (:meth:`FluxgateSim.plug_all`), ``settings`` its settings (``tick`` s,
-    ``duration`` s or None); ``log`` and ``warn`` as in :meth:`FluxgateSim.step`.  Returns
-    the samples generated per sensor.
+    ``sim`` plugged in; ``log``, ``warn`` as :meth:`FluxgateSim.step`.  Returns samples sent.
     """
     t0 = time.monotonic()
     tick = settings.tick
