@@ -21,14 +21,14 @@ turn reads (with the attitude interpolated onto it), ``calibration/status`` and 
 ``calibration_node: buffer`` status.
 """
 import json
-import math
+from operator import attrgetter
 import time
 
-from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-from magcal_ros.core.geometry.attitude import UNIT_TOLERANCE
+from diagnostic_msgs.msg import DiagnosticStatus
 from magcal_ros.core.model.identifiability import check_coverage
 from magcal_ros.ros import params as prm
-from magcal_ros.ros.conversions import msg_to_field_nt, stamp_to_seconds
+from magcal_ros.ros.conversions import msg_to_attitude, msg_to_field_nt, stamp_to_seconds
+from magcal_ros.ros.diagnostics import node_status
 from magcal_ros.ros.replies import reply as _reply
 import numpy as np
 from std_msgs.msg import String
@@ -81,15 +81,9 @@ class CollectionMixin(SignalsMixin):
         """(S,) raw samples taken per sensor since calibration/start (a copy; counts)."""
         return self._received.copy()
 
-    @property
-    def imu_received(self):
-        """Attitude (Imu) samples taken since calibration/start (count)."""
-        return self._imu_count
-
-    @property
-    def state(self):
-        """'idle', 'collecting' or 'calibrating'."""
-        return self._state
+    imu_received = property(attrgetter('_imu_count'),
+                            doc='Attitude (Imu) samples taken since calibration/start.')
+    state = property(attrgetter('_state'), doc="'idle', 'collecting' or 'calibrating'.")
 
     def _on_start(self, request, response):
         if not self._busy.acquire(blocking=False):
@@ -164,21 +158,16 @@ class CollectionMixin(SignalsMixin):
         return cb
 
     def _imu_cb(self, msg):
-        if self._learner is not None:
-            self._learn_imu(msg)
+        attitude = msg_to_attitude(msg)
+        if self._learner is not None and attitude is not None:
+            self._learn_imu(*attitude)
         if not self._collecting:
             return
-        o = msg.orientation
-        row = (stamp_to_seconds(msg.header.stamp), o.w, o.x, o.y, o.z)
-        if (msg.orientation_covariance[0] == -1 or not np.all(np.isfinite(row))
-                or abs(math.sqrt(o.w ** 2 + o.x ** 2 + o.y ** 2 + o.z ** 2) - 1.0)
-                > UNIT_TOLERANCE):
-            # REP 145: no orientation in this message; or not a unit quaternion
-            with self._lock:
-                self._imu_refused += 1
-            return
         with self._lock:
-            self._imu[self._imu_count % len(self._imu)] = row
+            if attitude is None:
+                self._imu_refused += 1
+                return
+            self._imu[self._imu_count % len(self._imu)] = (attitude[0], *attitude[1])
             self._imu_count += 1
 
     def _snapshot(self):
@@ -283,15 +272,9 @@ class CollectionMixin(SignalsMixin):
         with self._lock:
             cov = self._buffer.coverage()
             cap = self._buffer.capacity
-        st = DiagnosticStatus(name=f'{self.get_name()}: buffer',
-                              hardware_id=self.get_namespace(), level=DiagnosticStatus.OK)
-        if not cov['sets_received']:
-            st.message = 'no sample sets yet'
-        else:
-            st.message = (f'{cov["sets_held"]} of {cov["sets_received"]} sets held (one in '
-                          f'{cov["stride"]}, at most {cap}), spread over '
-                          f'{100 * cov.get("fraction_of_run", 1.0):.0f} % of the '
-                          f'{cov["run_s"]:.0f} s run')
-        st.values = [KeyValue(key=k, value=str(v)) for k, v in cov.items()]
-        st.values.append(KeyValue(key='max_samples', value=str(cap)))
-        return st
+        message = 'no sample sets yet' if not cov['sets_received'] else (
+            f'{cov["sets_held"]} of {cov["sets_received"]} sets held (one in {cov["stride"]}, at '
+            f'most {cap}), spread over {100 * cov.get("fraction_of_run", 1.0):.0f} % of the '
+            f'{cov["run_s"]:.0f} s run')
+        return node_status(self, 'buffer', DiagnosticStatus.OK, message,
+                           [*cov.items(), ('max_samples', cap)])

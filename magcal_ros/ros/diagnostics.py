@@ -153,6 +153,17 @@ class EffectErrorsMixin:
             (f'effect_errors {k}', str(n)) for k, n in counts.items()]
 
 
+def node_status(node, task, level, message, values=()):
+    """
+    Return the ``DiagnosticStatus`` ``<node name>: <task>`` of ``node`` (a ``Node``).
+
+    ``hardware_id`` the node's namespace; ``values`` (key, value) pairs, each value as str.
+    """
+    return DiagnosticStatus(name=f'{node.get_name()}: {task}', hardware_id=node.get_namespace(),
+                            level=level, message=message,
+                            values=[KeyValue(key=k, value=str(v)) for k, v in values])
+
+
 def fill(stat, status):
     """
     Copy level, message, hardware_id and values of ``status`` into the task's ``stat``.
