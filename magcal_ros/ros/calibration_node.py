@@ -15,11 +15,11 @@
 """
 calibration_node: collect rotation data from the live array, calibrate, diagnose.
 
-Topics, services (std_srvs/Trigger, :mod:`magcal_ros.ros.replies`) and parameters: docs/design.md
-§3. The collection, the solves, the turn and the learning are the mixins of
-:mod:`~magcal_ros.ros.collection`, :mod:`~magcal_ros.ros.calibrating`, :mod:`~magcal_ros.ros.turn`
-and :mod:`~magcal_ros.ros.learning`; here: the set-up, the parameters, the live residual of the
-active calibration (``calibration/residual``, WARN above
+Topics, services (std_srvs/Trigger, replies by :func:`magcal_ros.ros.collection.reply`) and
+parameters: docs/design.md §3. The collection, the solves, the turn and the learning are the
+mixins of :mod:`~magcal_ros.ros.collection`, :mod:`~magcal_ros.ros.calibrating`,
+:mod:`~magcal_ros.ros.turn` and :mod:`~magcal_ros.ros.learning`; here: the set-up, the
+parameters, the live residual of the active calibration (``calibration/residual``, WARN above
 :data:`magcal_ros.core.live.corrector.RESIDUAL_WARN_RATIO`) and the worker thread.
 
 A solve runs in a worker thread that the service coroutines (a reentrant callback group) await,

@@ -18,7 +18,7 @@ The calibration node's collection (docs/design.md §3): :class:`CollectionMixin`
 The sensor callbacks (matching samples into sets while collecting, feeding the live residual
 and the learning), ``calibration/start`` and ``calibration/reset``, the snapshot a solve or a
 turn reads (with the attitude interpolated onto it), ``calibration/status`` and the
-``calibration_node: buffer`` status.
+``calibration_node: buffer`` status; and the node's Trigger replies (:func:`reply`).
 """
 import json
 from operator import attrgetter
@@ -29,12 +29,31 @@ from magcal_ros.core.model.identifiability import check_coverage
 from magcal_ros.ros import params as prm
 from magcal_ros.ros.conversions import msg_to_attitude, msg_to_field_nt, stamp_to_seconds
 from magcal_ros.ros.diagnostics import node_status
-from magcal_ros.ros.replies import reply as _reply
 import numpy as np
 from std_msgs.msg import String
 
 #: at most this many sets enter the coverage figures of the status message
 _STATUS_SUBSAMPLE = 2000
+#: longest first line of a service reply
+HEADLINE = 100
+
+
+def reply(response, success, summary, payload):
+    """
+    Fill a Trigger response: a short first line, more lines, newline, one JSON object.
+
+    ``ros2 service call`` prints the message on one line: the first line is what a user reads.
+    A long first line is broken after its lead (``not calibrated: <reason>`` becomes
+    ``not calibrated:`` and the reason on the next line).
+    """
+    first, _, rest = summary.strip().partition('\n')
+    lead, sep, reason = first.partition(': ')
+    if len(first) > HEADLINE and sep:
+        first = lead + ':\n' + reason
+    summary = first + ('\n' + rest if rest else '')
+    response.success = bool(success)
+    response.message = summary + '\n' + json.dumps(payload, sort_keys=False)
+    return response
 
 
 def silent_sensors(received):
@@ -91,11 +110,11 @@ class CollectionMixin(SignalsMixin):
         try:
             dropped = self._clear('collecting')
             s = prm.calibration_settings(self)
-            return _reply(response, True,
-                          f'collecting ({dropped} old sets dropped): rotate the array through '
-                          f'many attitudes; calibrate after at least {s.min_samples} sets',
-                          {'state': 'collecting', 'min_samples': s.min_samples,
-                           'sets_dropped': dropped})
+            return reply(response, True,
+                         f'collecting ({dropped} old sets dropped): rotate the array through '
+                         f'many attitudes; calibrate after at least {s.min_samples} sets',
+                         {'state': 'collecting', 'min_samples': s.min_samples,
+                          'sets_dropped': dropped})
         finally:
             self._busy.release()
 
@@ -109,16 +128,16 @@ class CollectionMixin(SignalsMixin):
             dropped = self._clear(state)
             what = ('collection goes on from now' if state == 'collecting' else
                     'call calibration/start to collect')
-            return _reply(response, True, f'reset: {dropped} sets dropped; {what}',
-                          {'state': state, 'sets_dropped': dropped})
+            return reply(response, True, f'reset: {dropped} sets dropped; {what}',
+                         {'state': state, 'sets_dropped': dropped})
         finally:
             self._busy.release()
 
     def _reject_busy(self, response, service):
         """Answer a call that arrived during a calibration (the state is not touched)."""
-        return _reply(response, False, f'rejected: a calibration is running; call '
-                      f'calibration/{service} again when it has finished',
-                      {'state': self._state})
+        return reply(response, False, f'rejected: a calibration is running; call '
+                     f'calibration/{service} again when it has finished',
+                     {'state': self._state})
 
     def _clear(self, state):
         """Empty the buffer and the matcher, set ``state``; return the sets dropped."""

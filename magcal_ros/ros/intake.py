@@ -48,17 +48,17 @@ class Intake:
     """
     Subscriptions of ``node`` taken on an EventsExecutor thread, delivered on its executor.
 
-    ``events=False``: plain subscriptions of ``node``. ``threaded``: the streams are taken on
-    the thread; ``dropped``: messages dropped because :data:`MAX_QUEUED` were waiting.
+    ``threaded``: the streams are taken on the thread (else they are plain subscriptions of
+    ``node``); ``dropped``: messages dropped because :data:`MAX_QUEUED` were waiting.
     """
 
-    def __init__(self, node, events=True):
+    def __init__(self, node):
         self._node = node
         self._queue = collections.deque()
         self.dropped = 0
         self._stop = threading.Event()
         self._thread = self._helper = None
-        executor, kind = make_executor(events, node.context)
+        executor, kind = make_executor(context=node.context)
         self.threaded = kind == 'events'
         if not self.threaded:
             executor.shutdown(timeout_sec=0.0)
