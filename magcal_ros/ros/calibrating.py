@@ -20,6 +20,7 @@ fit`` runs it; the calibration written, published, made active) and ``calibratio
 (:func:`magcal_ros.core.discovery.diagnose`, the HTML report), in a worker thread, on the
 buffer's sets re-paired by :func:`magcal_ros.core.live.consistency.resync`.
 """
+from functools import partial
 import json
 import os
 import time
@@ -60,15 +61,15 @@ def _others(values):
     return {str(j): v for j, v in enumerate(np.asarray(values)[1:].tolist(), start=2)}
 
 
-def _not_diagnosed(reason, **payload):
-    """Reply (False, summary, payload) of a diagnose call that was refused."""
-    return False, f'not diagnosed: {reason}', {'reason': reason, **payload}
+def _not_diagnosed(reason, extra=None, **payload):
+    """Reply (False, summary, payload and ``extra``) of a diagnose call that was refused."""
+    return False, f'not diagnosed: {reason}', {'reason': reason, **payload, **(extra or {})}
 
 
-def _not_calibrated(reason, **payload):
-    """Reply (False, summary, payload) of a calibrate call that leaves the previous active."""
+def _not_calibrated(reason, extra=None, **payload):
+    """Reply (False, summary, payload and ``extra``) of a calibrate call (the previous stays)."""
     return False, f'not calibrated: {reason}; previous calibration stays active', {
-        'reason': reason, **payload}
+        'reason': reason, **payload, **(extra or {})}
 
 
 class CalibrationMixin:
@@ -118,6 +119,7 @@ class CalibrationMixin:
             return _not_calibrated(reason, sets=n_sets)
         model = Model.from_spec(list(s.model), self._n)
         geometry = self._geometry(s)
+        refused = partial(_not_calibrated, sets=n_sets, model=list(s.model))
         t0 = time.monotonic()
         try:
             # readings no field produces first (a clipped axis of sensor 1 would make the
@@ -125,8 +127,7 @@ class CalibrationMixin:
             data, epochs, screen = self._screen(data, epochs)
             data, resync_payload, resync_lines = self._resync(data, epochs, s)
         except ValueError as exc:
-            reason, extra = self._named(exc, 'calibrate')
-            return _not_calibrated(reason, sets=n_sets, model=list(s.model), **extra)
+            return refused(*self._named(exc, 'calibrate'))
         try:
             field_nt, field_ref = self._field(s, data.raw[0])
         except (ValueError, ImportError) as exc:
@@ -142,22 +143,19 @@ class CalibrationMixin:
         try:
             run = run_calibration(data, request, screen=screen)
         except DegenerateDataError as exc:
-            return _not_calibrated(str(exc), sets=n_sets, model=list(s.model))
+            return refused(str(exc))
         except ValueError as exc:
-            reason, extra = self._named(exc, 'calibrate')
-            return _not_calibrated(reason, sets=n_sets, model=list(s.model), **extra)
+            return refused(*self._named(exc, 'calibrate'))
         solve_s = time.monotonic() - t0
         refuse = (resync_payload or {}).get('refuse')
         if refuse:         # after the fit's own refusals (degenerate data, a stuck sensor)
-            return _not_calibrated(refuse, sets=n_sets, model=list(s.model), resync=resync_payload)
+            return refused(refuse, resync=resync_payload)
         refuse = self._inconsistent_and_off(resync_payload, run.summary, n_sets)
         if refuse:
-            return _not_calibrated(refuse, sets=n_sets, model=list(s.model),
-                                   resync=resync_payload,
-                                   scalar_rms_after_nt=run.summary['scalar_rms_nt'])
+            return refused(refuse, resync=resync_payload,
+                           scalar_rms_after_nt=run.summary['scalar_rms_nt'])
         if not run.result.success:      # out of iterations: never installed
-            return _not_calibrated(f'the fit did not converge ({run.result.message})',
-                                   sets=n_sets, model=list(s.model), converged=False)
+            return refused(f'the fit did not converge ({run.result.message})', converged=False)
         run.doc['provenance']['field_source'] = s.field_source
         os.makedirs(os.path.dirname(os.path.abspath(s.calibration_file)), exist_ok=True)
         try:
@@ -228,8 +226,7 @@ class CalibrationMixin:
             data, epochs, screen = self._screen(data, epochs)
             data, resync_payload, _ = self._resync(data, epochs, s)
         except ValueError as exc:
-            reason, extra = self._named(exc, 'diagnose')
-            return _not_diagnosed(reason, sets=n_sets, **extra)
+            return _not_diagnosed(*self._named(exc, 'diagnose'), sets=n_sets)
         field_nt = s.field_nt
         try:                            # with imu_topic attitude-aided, as in calibrate
             base, constrained, aided = diagnosis_base(data, model, field_nt,
@@ -238,8 +235,7 @@ class CalibrationMixin:
             diag = diagnose(data, model, field_nt=field_nt, base=base, constrained=constrained,
                             baseline_m=s.baseline_m)
         except ValueError as exc:
-            reason, extra = self._named(exc, 'diagnose')
-            return _not_diagnosed(reason, sets=n_sets, **extra)
+            return _not_diagnosed(*self._named(exc, 'diagnose'), sets=n_sets)
         ranking = json.loads(diag.to_json())       # non-finite numbers as null
         report = write_report(s.report_dir, data, diagnosis=diag, baseline_m=s.baseline_m)
         ranking.update(report=os.fspath(report), resync=resync_payload,

@@ -200,9 +200,8 @@ class CollectionMixin(SignalsMixin):
         """
         Attach the collected attitude to (data, epochs) (under the lock).
 
-        Interpolated at the sets' own stamps (``stamps`` (N,) s), not at ``data.t``: Imu
-        messages are stamped the same way, one clock and one latency even when samples are
-        lost. Sets outside the Imu messages' span are dropped; unchanged without any.
+        Interpolated at the sets' stamps (``stamps`` (N,) s, the Imu messages' clock), not at
+        ``data.t``; sets outside the Imu messages' span are dropped; unchanged without any.
         """
         n = min(self._imu_count, len(self._imu))
         if not n:
@@ -283,11 +282,7 @@ class CollectionMixin(SignalsMixin):
         self._status_pub.publish(msg)
 
     def buffer_status(self):
-        """
-        ``DiagnosticStatus`` of the buffer (:class:`~magcal_ros.core.live.corrector.SampleBuffer`).
-
-        How many sets of how many received it holds, one in how many, over which span.
-        """
+        """``DiagnosticStatus`` of the buffer: sets held of received, one in how many, span."""
         with self._lock:
             cov = self._buffer.coverage()
             cap = self._buffer.capacity

@@ -15,13 +15,10 @@
 """
 The calibration node's learning mode (issue 34; docs/design.md §3): :class:`LearningMixin`.
 
-With ``learn`` the raw samples are matched into sets of its own (collecting or not) for a
+With ``learn`` the raw samples are matched into sets of its own for a
 :class:`magcal_ros.core.live.learning.Learner`, refitted in a worker thread
-(:func:`magcal_ros.pipeline.refit_recent`); each estimate goes on ``calibration/learned``
-(the calibration YAML, latched), the state on ``/diagnostics`` (``calibration_node:
-learning``). A ready proposal is adopted at once with ``auto_adopt``, or on
-``calibration/adopt``: saved (the previous one stays in the history), published on
-``calibration/result`` and made active.
+(:func:`magcal_ros.pipeline.refit_recent`), each estimate published on ``calibration/learned``;
+a ready proposal is adopted with ``auto_adopt`` or on ``calibration/adopt``.
 """
 from collections import deque
 from operator import attrgetter

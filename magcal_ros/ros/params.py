@@ -102,9 +102,7 @@ def positive(unit):
 
 def non_empty_path(value):
     """Refuse an empty path string (returns the reason or None)."""
-    if not isinstance(value, str) or not value.strip():
-        return 'must be a non-empty path'
-    return None
+    return None if isinstance(value, str) and value.strip() else 'must be a non-empty path'
 
 
 def topic_names(value):

@@ -15,10 +15,9 @@
 """
 The calibration node's turn (docs/design.md §3): :class:`TurnMixin`.
 
-``calibration/turn`` turns a robot in place through ``cmd_vel_topic`` (as the ROS
-calibration packages do) while the node collects, until sensor 1 has seen ``turn_count``
-turns or ``turn_timeout_s`` passed, and stops it (a zero velocity) after the turn, on an
-error and on shutdown.
+``calibration/turn`` turns a robot in place through ``cmd_vel_topic`` while the node
+collects, until sensor 1 has seen ``turn_count`` turns or ``turn_timeout_s`` passed, and
+stops it (a zero velocity) after the turn, on an error and on shutdown.
 """
 import math
 import time
