@@ -55,7 +55,8 @@ from std_msgs.msg import Float64, Float64MultiArray, String
 #: share of the sets since the last diagnostics report that may fail the pairing check
 #: before the status is WARN (a lost sample costs one set)
 PAIRING_WARN_SHARE = 0.01
-#: the parameters a running node follows: its attribute and the value's conversion
+#: the parameters a running node follows: its attribute and the value's conversion (start-up
+#: values set the same way)
 _SETTABLE = {'stamp_tolerance_s': ('_tolerance_s', float),
              'publish_gradient': ('_publish_gradient', bool),
              'subtract_site_gradient': ('_subtract_site', bool),
@@ -79,12 +80,10 @@ class CorrectorNode(SignalsMixin, EffectErrorsMixin, Node):
         self._specs, plugins = prm.declare_node(self, prm.corrector_specs)
         s = prm.corrector_settings(self)
         self._n = s.n_sensors
-        self._publish_gradient = s.publish_gradient
-        self._subtract_site = s.subtract_site_gradient
-        self._site_attitude = s.site_attitude
+        for name, (attr, convert) in _SETTABLE.items():
+            setattr(self, attr, convert(getattr(s, name)))
         self._site_shift = None        # (S, 3) nT subtracted in a stationary test, or None
         self._frame = s.array_frame_id          # '': each input's own frame_id
-        self._tolerance_s = s.stamp_tolerance_s
         # the gradient topics exist only when the geometry determines the tensor
         self._geometry = array_geometry(self._n, s.sensor_positions_m, s.baseline_m)
         self._no_tensor = tensor_undetermined(
