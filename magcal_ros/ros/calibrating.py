@@ -15,12 +15,12 @@
 """
 The calibration node's solves (docs/design.md §3): :class:`CalibrationMixin`.
 
-``calibration/calibrate`` (the parameters as a :class:`magcal_ros.pipeline.CalibrationRequest`,
-run and described as ``magcal fit`` does; the calibration written, published and made active)
-and ``calibration/diagnose`` (:func:`magcal_ros.core.discovery.diagnose` and the HTML report),
-in a worker thread, on the buffer's sets re-paired where the stamps paired them from different
-epochs (:func:`magcal_ros.core.live.consistency.resync`).
+``calibration/calibrate`` (a :class:`magcal_ros.pipeline.CalibrationRequest` run as ``magcal
+fit`` runs it; the calibration written, published, made active) and ``calibration/diagnose``
+(:func:`magcal_ros.core.discovery.diagnose`, the HTML report), in a worker thread, on the
+buffer's sets re-paired by :func:`magcal_ros.core.live.consistency.resync`.
 """
+from functools import partial
 import json
 import os
 import time
@@ -36,21 +36,18 @@ from magcal_ros.pipeline import (CalibrationRequest, diagnosis_base,
                                  run_request as run_calibration,
                                  summary_lines, tensor_figures)
 from magcal_ros.ros import params as prm
-from magcal_ros.ros.collection import silent_sensors
-from magcal_ros.ros.replies import reply as _reply
+from magcal_ros.ros.collection import reply, silent_sensors
 import numpy as np
 from std_msgs.msg import String
 
-#: sets the consistency check flags are dropped before the fit up to this share of the sets;
-#: beyond, the node refuses with the count (issue 32)
+#: share of the sets the consistency check may drop before the fit; beyond, a refusal
 MAX_INCONSISTENT_FRACTION = 0.1
 #: a fit leaving a sensor this many times above the noise floor while the check flags more
-#: than MAX_INCONSISTENT_FRACTION of its sets is never activated: far beyond the bias of a
-#: missing effect of the demo's size (a few x); a mis-paired array shows hundreds
+#: than MAX_INCONSISTENT_FRACTION of its sets is refused (a missing effect: a few x; a
+#: mis-paired array: hundreds)
 OFF_FLOOR_FACTOR = 10.0
 
-#: the summary's entries of the planar, attitude-aided and site-gradient fits that the
-#: calibrate reply carries as they are
+#: the summary's entries (planar, attitude-aided, site-gradient fits) the reply carries as is
 _REPLY_KEYS = ('site_gradient_nt_per_m', 'site_gradient_stderr_nt_per_m', 'planar',
                'undetermined', 'heading_error_deg', 'attitude')
 
@@ -59,15 +56,20 @@ def _fmt_per_sensor(d, fmt='{:.2f}'):
     return ', '.join(f'{k}: {fmt.format(v)}' for k, v in d.items())
 
 
-def _not_diagnosed(reason, **payload):
-    """Reply (False, summary, payload) of a diagnose call that was refused."""
-    return False, f'not diagnosed: {reason}', {'reason': reason, **payload}
+def _others(values):
+    """Return the (S,) ``values`` of sensors 2..S by their number as str (a dict)."""
+    return {str(j): v for j, v in enumerate(np.asarray(values)[1:].tolist(), start=2)}
 
 
-def _not_calibrated(reason, **payload):
-    """Reply (False, summary, payload) of a calibrate call that leaves the previous active."""
+def _not_diagnosed(reason, extra=None, **payload):
+    """Reply (False, summary, payload and ``extra``) of a diagnose call that was refused."""
+    return False, f'not diagnosed: {reason}', {'reason': reason, **payload, **(extra or {})}
+
+
+def _not_calibrated(reason, extra=None, **payload):
+    """Reply (False, summary, payload and ``extra``) of a calibrate call (the previous stays)."""
     return False, f'not calibrated: {reason}; previous calibration stays active', {
-        'reason': reason, **payload}
+        'reason': reason, **payload, **(extra or {})}
 
 
 class CalibrationMixin:
@@ -82,8 +84,8 @@ class CalibrationMixin:
     async def _solve(self, response, call, service, calibrate):
         """Answer calibrate or diagnose: the solve in the worker thread, one at a time."""
         if not self._busy.acquire(blocking=False):
-            return _reply(response, False, 'a calibration is already running',
-                          {'state': self._state})
+            return reply(response, False, 'a calibration is already running',
+                         {'state': self._state})
         with self._lock:
             prev_state = self._state
             if calibrate:
@@ -91,9 +93,9 @@ class CalibrationMixin:
         try:
             ok, summary, payload = await (self._in_worker(self._calibrate, prev_state)
                                           if calibrate else self._in_worker(self._diagnose))
-            return _reply(response, ok, summary, payload)
+            return reply(response, ok, summary, payload)
         except Exception as exc:         # noqa: B902 -- a service must answer, never die
-            return _reply(response, False, *self._failed(call, service, exc))
+            return reply(response, False, *self._failed(call, service, exc))
         finally:
             if calibrate:
                 with self._lock:
@@ -117,21 +119,20 @@ class CalibrationMixin:
             return _not_calibrated(reason, sets=n_sets)
         model = Model.from_spec(list(s.model), self._n)
         geometry = self._geometry(s)
+        refused = partial(_not_calibrated, sets=n_sets, model=list(s.model))
         t0 = time.monotonic()
         try:
-            # readings no field produces first (a clipped axis of sensor 1 would make every
-            # other sensor inconsistent with it), then the pairing check on the rest
+            # readings no field produces first (a clipped axis of sensor 1 would make the
+            # others inconsistent with it), then the pairing check
             data, epochs, screen = self._screen(data, epochs)
             data, resync_payload, resync_lines = self._resync(data, epochs, s)
         except ValueError as exc:
-            reason, extra = self._named(exc, 'calibrate')
-            return _not_calibrated(reason, sets=n_sets, model=list(s.model), **extra)
+            return refused(*self._named(exc, 'calibrate'))
         try:
             field_nt, field_ref = self._field(s, data.raw[0])
         except (ValueError, ImportError) as exc:
             return _not_calibrated(f'no field magnitude: {exc}', sets=n_sets)
-        # what a turn leaves open (planar) is held at the active calibration (same model),
-        # else at an ideal sensor (magcal_ros.core.model.planar)
+        # what a turn leaves open (planar) is held at the active calibration of the same model
         active = self._active_cal
         request = CalibrationRequest(
             model=model, field_nt=field_nt, field_reference=field_ref, geometry=geometry,
@@ -142,25 +143,19 @@ class CalibrationMixin:
         try:
             run = run_calibration(data, request, screen=screen)
         except DegenerateDataError as exc:
-            return _not_calibrated(str(exc), sets=n_sets, model=list(s.model))
+            return refused(str(exc))
         except ValueError as exc:
-            reason, extra = self._named(exc, 'calibrate')
-            return _not_calibrated(reason, sets=n_sets, model=list(s.model), **extra)
+            return refused(*self._named(exc, 'calibrate'))
         solve_s = time.monotonic() - t0
         refuse = (resync_payload or {}).get('refuse')
-        if refuse:
-            # the fit's own refusals (degenerate data, a stuck sensor) came first
-            return _not_calibrated(refuse, sets=n_sets, model=list(s.model), resync=resync_payload)
+        if refuse:         # after the fit's own refusals (degenerate data, a stuck sensor)
+            return refused(refuse, resync=resync_payload)
         refuse = self._inconsistent_and_off(resync_payload, run.summary, n_sets)
         if refuse:
-            return _not_calibrated(refuse, sets=n_sets, model=list(s.model),
-                                   resync=resync_payload,
-                                   scalar_rms_after_nt=run.summary['scalar_rms_nt'])
-        if not run.result.success:
-            # a fit that ran out of iterations is not a calibration: never installed
-            return _not_calibrated(f'the fit did not converge ({run.result.message})',
-                                   sets=n_sets, model=list(s.model), converged=False)
-        # where the magnitude came from, also in the provenance (field_reference has the rest)
+            return refused(refuse, resync=resync_payload,
+                           scalar_rms_after_nt=run.summary['scalar_rms_nt'])
+        if not run.result.success:      # out of iterations: never installed
+            return refused(f'the fit did not converge ({run.result.message})', converged=False)
         run.doc['provenance']['field_source'] = s.field_source
         os.makedirs(os.path.dirname(os.path.abspath(s.calibration_file)), exist_ok=True)
         try:
@@ -227,24 +222,20 @@ class CalibrationMixin:
             return _not_diagnosed(f'only {n_sets} complete sample sets collected, need '
                                   f'{s.min_samples}', sets=n_sets)
         model = Model.from_spec(list(s.model), self._n)
-        try:
-            # as in calibrate: readings no field produces first, then the pairing check
+        try:                            # as in calibrate
             data, epochs, screen = self._screen(data, epochs)
             data, resync_payload, _ = self._resync(data, epochs, s)
         except ValueError as exc:
-            reason, extra = self._named(exc, 'diagnose')
-            return _not_diagnosed(reason, sets=n_sets, **extra)
+            return _not_diagnosed(*self._named(exc, 'diagnose'), sets=n_sets)
         field_nt = s.field_nt
-        try:
-            # with imu_topic the attitude-aided fit, as calibrate makes it (pipeline)
+        try:                            # with imu_topic attitude-aided, as in calibrate
             base, constrained, aided = diagnosis_base(data, model, field_nt,
                                                       attitude=s.attitude_mode,
                                                       constrained=s.constrained)
             diag = diagnose(data, model, field_nt=field_nt, base=base, constrained=constrained,
                             baseline_m=s.baseline_m)
         except ValueError as exc:
-            reason, extra = self._named(exc, 'diagnose')
-            return _not_diagnosed(reason, sets=n_sets, **extra)
+            return _not_diagnosed(*self._named(exc, 'diagnose'), sets=n_sets)
         ranking = json.loads(diag.to_json())       # non-finite numbers as null
         report = write_report(s.report_dir, data, diagnosis=diag, baseline_m=s.baseline_m)
         ranking.update(report=os.fspath(report), resync=resync_payload,
@@ -273,8 +264,7 @@ class CalibrationMixin:
         Why a fit must not be activated (one line, or None): sensors off the floor.
 
         Names each sensor above :data:`OFF_FLOOR_FACTOR` x the noise floor while more than
-        :data:`MAX_INCONSISTENT_FRACTION` of its sets are inconsistent with sensor 1 at every
-        pairing the check tried (issue 32 item 5).
+        :data:`MAX_INCONSISTENT_FRACTION` of its sets are inconsistent with sensor 1.
         """
         if not resync_payload:
             return None
@@ -313,28 +303,24 @@ class CalibrationMixin:
         fixed, slips, dropped, gross = resync(data, epochs, drop_inconsistent=True)
         n_bad = slips.dropped_inconsistent
         refuse = None
-        if n_bad > MAX_INCONSISTENT_FRACTION * data.n_samples:
-            # never a calibration on sets the consistency check flags: too many to drop
+        if n_bad > MAX_INCONSISTENT_FRACTION * data.n_samples:     # too many to drop
             fixed, slips, dropped, gross = resync(data, epochs)
             refuse = (
                 f'{n_bad} of {data.n_samples} sets are inconsistent with sensor 1 at every '
                 f'pairing within +-{DEFAULT_MAX_LAG} epochs (per sensor: '
-                + ', '.join(f'{j}: {c}' for j, c in enumerate(slips.inconsistent[1:].tolist(),
-                                                              start=2))
+                + ', '.join(f'{j}: {c}' for j, c in _others(slips.inconsistent).items())
                 + f') and fit at one up to +-{LONG_MAX_LAG} epochs apart: the sensors were '
                 'paired from epochs further apart (a reader that lost pace: CPU starvation, a '
                 f'stalled link); more than {MAX_INCONSISTENT_FRACTION:.0%} of the sets, so none '
                 'is dropped and no calibration is made: collect again (calibration/start), or '
                 'set resync_sets false to fit the sets as paired')
             n_bad = 0
-        keys = [str(j) for j in range(2, data.n_sensors + 1)]
         payload = {
-            'sets_repaired': dict(zip(keys, slips.n_slipped[1:].tolist())),
-            'sets_dropped': dropped, 'sets_dropped_garbled': gross,
-            'misfit_as_paired_nt': dict(zip(keys, np.round(slips.rms_as_paired_nt[1:], 2)
-                                            .tolist())),
-            'misfit_nt': dict(zip(keys, np.round(slips.rms_nt[1:], 2).tolist())),
-            'inconsistent_sets': dict(zip(keys, slips.inconsistent[1:].tolist())),
+            'sets_repaired': _others(slips.n_slipped), 'sets_dropped': dropped,
+            'sets_dropped_garbled': gross,
+            'misfit_as_paired_nt': _others(np.round(slips.rms_as_paired_nt, 2)),
+            'misfit_nt': _others(np.round(slips.rms_nt, 2)),
+            'inconsistent_sets': _others(slips.inconsistent),
             'sets_dropped_inconsistent': n_bad, 'refuse': refuse}
         lines = slips.summary()
         if n_bad:

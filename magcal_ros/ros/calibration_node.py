@@ -15,19 +15,17 @@
 """
 calibration_node: collect rotation data from the live array, calibrate, diagnose.
 
-Topics, services (std_srvs/Trigger, :mod:`magcal_ros.ros.replies`) and parameters: docs/design.md
-§3. Its parts: the collection (:mod:`magcal_ros.ros.collection`), the solves
-(:mod:`magcal_ros.ros.calibrating`), the turn (:mod:`magcal_ros.ros.turn`) and the learning
-(:mod:`magcal_ros.ros.learning`); this module holds the set-up, the parameters, the live
-residual of the active calibration (``calibration/residual`` and its ``/diagnostics`` status,
-WARN above :data:`magcal_ros.core.live.corrector.RESIDUAL_WARN_RATIO`) and the worker thread.
+Topics, services (std_srvs/Trigger, replies by :func:`magcal_ros.ros.collection.reply`) and
+parameters: docs/design.md §3. The collection, the solves, the turn and the learning are the
+mixins of :mod:`~magcal_ros.ros.collection`, :mod:`~magcal_ros.ros.calibrating`,
+:mod:`~magcal_ros.ros.turn` and :mod:`~magcal_ros.ros.learning`; here: the set-up, the
+parameters, the live residual of the active calibration (``calibration/residual``, WARN above
+:data:`magcal_ros.core.live.corrector.RESIDUAL_WARN_RATIO`) and the worker thread.
 
-A solve must not block the sensor callbacks: it runs in a worker thread that the service
-coroutines (a reentrant callback group) await, and a non-blocking lock turns a second
-calibrate/diagnose/start during a solve into a clean refusal. The node spins on a
-SingleThreadedExecutor: rclpy's MultiThreadedExecutor received only about half of the
-4 x 100 Hz samples (4 threads) or ran one subscription's callbacks out of order (2 threads),
-which breaks the matching of sample sets by stamp.
+A solve runs in a worker thread that the service coroutines (a reentrant callback group) await,
+so the sensor callbacks go on; a non-blocking lock refuses a second calibrate/diagnose/start
+during a solve. The node spins on a SingleThreadedExecutor: rclpy's MultiThreadedExecutor lost
+samples or ran a subscription's callbacks out of order, which breaks the pairing by stamp.
 """
 import math
 import os
@@ -35,19 +33,19 @@ import sys
 import threading
 import time
 
-from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import Twist
 from magcal_ros.core.effects.safety import EffectError, EffectErrors
 from magcal_ros.core.live.corrector import (LiveCorrector, MissingSignal, RESIDUAL_WARN_RATIO,
                                             ResidualMonitor, SampleBuffer)
 from magcal_ros.core.live.sync import StampMatcher
-from magcal_ros.io.calfile import CalibrationFileError, load_calibration, parse_calibration
+from magcal_ros.io.calfile import CalibrationFileError, load_calibration
 from magcal_ros.pipeline import array_geometry, geometry_mismatch, tensor_undetermined
 from magcal_ros.ros import params as prm
 from magcal_ros.ros.calibrating import CalibrationMixin
 from magcal_ros.ros.collection import CollectionMixin
 from magcal_ros.ros.conversions import residual_to_msg
-from magcal_ros.ros.diagnostics import EffectErrorsMixin, fill, Updater
+from magcal_ros.ros.diagnostics import EffectErrorsMixin, fill, node_status, Updater
 from magcal_ros.ros.intake import Intake
 from magcal_ros.ros.learning import LearningMixin
 from magcal_ros.ros.run import DEFAULT_NAMESPACE, spin_node, yield_cpu
@@ -68,16 +66,14 @@ RESULT_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
                         reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
-#: sensor streams (the corrector's): REP 2003's sensor-data profile with a quarter second of
-#: 100 Hz of queue (it prefers the newest samples to a backlog)
+#: the corrector's sensor streams: REP 2003's sensor-data profile, 0.25 s of 100 Hz of queue
 SENSOR_QOS = QoSProfile(depth=25, history=HistoryPolicy.KEEP_LAST,
                         reliability=qos_profile_sensor_data.reliability,
                         durability=qos_profile_sensor_data.durability)
 
-#: the calibration node's sensor streams: 10 s of 100 Hz of queue. It needs every sample: one
-#: dropped shifts its stream's epoch numbering until the matcher votes again, and a solve
-#: starves its executor for up to a second (25 deep: 20-125 sets paired far off in 2 of 4
-#: end-to-end runs)
+#: the calibration node's sensor streams: 10 s of 100 Hz of queue. It needs every sample (one
+#: dropped shifts its stream's epochs until the matcher votes again), and a solve starves its
+#: executor for up to a second
 CALIBRATION_SENSOR_QOS = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
                                     reliability=qos_profile_sensor_data.reliability,
                                     durability=qos_profile_sensor_data.durability)
@@ -214,9 +210,7 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
     def setup_status(self):
         """``DiagnosticStatus``: the geometry, the tensor and the field reference in use."""
         level, lines = self._setup
-        return DiagnosticStatus(name=f'{self.get_name()}: setup',
-                                hardware_id=self.get_namespace(), level=level,
-                                message='; '.join(lines))
+        return node_status(self, 'setup', level, '; '.join(lines))
 
     # -- parameters ------------------------------------------------------------------------
     def _on_set_parameters(self, parameters):
@@ -283,23 +277,22 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
         noise floor (:class:`~magcal_ros.core.live.corrector.ResidualMonitor`), or a driven
         effect lacks its live signal.
         """
-        st = DiagnosticStatus(name=f'{self.get_name()}: residual',
-                              hardware_id=self.get_namespace(), level=DiagnosticStatus.OK)
+        level = DiagnosticStatus.OK
         monitor = self._monitor
         r = monitor.ratios() if monitor is not None else None
         errors = self._effect_errors
-        values = [('residual_sets_published', str(self._residual_sets))]
+        values = [('residual_sets_published', self._residual_sets)]
         values += self._effect_error_values()
         if errors:
-            st.level = DiagnosticStatus.ERROR
-            st.message = f'effect code failed: {errors.summary()}'
+            level = DiagnosticStatus.ERROR
+            message = f'effect code failed: {errors.summary()}'
         elif self._live is None:
-            st.message = 'no active calibration: no residual (run calibration/calibrate)'
+            message = 'no active calibration: no residual (run calibration/calibrate)'
         elif self._residual_missing:
-            st.level = DiagnosticStatus.WARN
-            st.message = f'no residual: {self._residual_missing}'
+            level = DiagnosticStatus.WARN
+            message = f'no residual: {self._residual_missing}'
         elif r is None:
-            st.message = 'waiting for sets of all sensors to compare with the calibration'
+            message = 'waiting for sets of all sensors to compare with the calibration'
         else:
             bad = []
             for j in range(self._n):
@@ -312,15 +305,14 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
                         bad.append(f'sensor {j + 1} {kind} {ratio:.1f}x')
                 values.append((f'sensor{j + 1}_floor_nt', f'{float(r["floor_nt"][j]):.2f}'))
             if bad:
-                st.level = DiagnosticStatus.WARN
-                st.message = (f'the calibration no longer fits the data: residual / noise floor '
-                              f'{", ".join(bad)} (over the last {r["sets"]} sets); run '
-                              'calibration/diagnose')
+                level = DiagnosticStatus.WARN
+                message = (f'the calibration no longer fits the data: residual / noise floor '
+                           f'{", ".join(bad)} (over the last {r["sets"]} sets); run '
+                           'calibration/diagnose')
             else:
-                st.message = (f'the calibration fits: residuals within {RESIDUAL_WARN_RATIO}x '
-                              f'the noise floor over the last {r["sets"]} sets')
-        st.values = [KeyValue(key=k, value=v) for k, v in values]
-        return st
+                message = (f'the calibration fits: residuals within {RESIDUAL_WARN_RATIO}x '
+                           f'the noise floor over the last {r["sets"]} sets')
+        return node_status(self, 'residual', level, message, values)
 
     # -- shutdown and the solve thread ----------------------------------------------------
     def destroy_node(self):
@@ -354,10 +346,9 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
         if not os.path.exists(path):
             return
         try:
-            load_calibration(path)
+            cal, doc = load_calibration(path)
             with open(path, encoding='utf-8') as fh:
                 text = fh.read()
-            cal, doc = parse_calibration(text, path)
             mismatch = geometry_mismatch(doc.get('geometry'),
                                          self._geometry(prm.calibration_settings(self)))
             if mismatch:

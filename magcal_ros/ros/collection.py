@@ -18,23 +18,42 @@ The calibration node's collection (docs/design.md §3): :class:`CollectionMixin`
 The sensor callbacks (matching samples into sets while collecting, feeding the live residual
 and the learning), ``calibration/start`` and ``calibration/reset``, the snapshot a solve or a
 turn reads (with the attitude interpolated onto it), ``calibration/status`` and the
-``calibration_node: buffer`` status.
+``calibration_node: buffer`` status; and the node's Trigger replies (:func:`reply`).
 """
 import json
-import math
+from operator import attrgetter
 import time
 
-from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-from magcal_ros.core.geometry.attitude import UNIT_TOLERANCE
+from diagnostic_msgs.msg import DiagnosticStatus
 from magcal_ros.core.model.identifiability import check_coverage
 from magcal_ros.ros import params as prm
-from magcal_ros.ros.conversions import msg_to_field_nt, stamp_to_seconds
-from magcal_ros.ros.replies import reply as _reply
+from magcal_ros.ros.conversions import msg_to_attitude, msg_to_field_nt, stamp_to_seconds
+from magcal_ros.ros.diagnostics import node_status
 import numpy as np
 from std_msgs.msg import String
 
 #: at most this many sets enter the coverage figures of the status message
 _STATUS_SUBSAMPLE = 2000
+#: longest first line of a service reply
+HEADLINE = 100
+
+
+def reply(response, success, summary, payload):
+    """
+    Fill a Trigger response: a short first line, more lines, newline, one JSON object.
+
+    ``ros2 service call`` prints the message on one line: the first line is what a user reads.
+    A long first line is broken after its lead (``not calibrated: <reason>`` becomes
+    ``not calibrated:`` and the reason on the next line).
+    """
+    first, _, rest = summary.strip().partition('\n')
+    lead, sep, reason = first.partition(': ')
+    if len(first) > HEADLINE and sep:
+        first = lead + ':\n' + reason
+    summary = first + ('\n' + rest if rest else '')
+    response.success = bool(success)
+    response.message = summary + '\n' + json.dumps(payload, sort_keys=False)
+    return response
 
 
 def silent_sensors(received):
@@ -81,15 +100,9 @@ class CollectionMixin(SignalsMixin):
         """(S,) raw samples taken per sensor since calibration/start (a copy; counts)."""
         return self._received.copy()
 
-    @property
-    def imu_received(self):
-        """Attitude (Imu) samples taken since calibration/start (count)."""
-        return self._imu_count
-
-    @property
-    def state(self):
-        """'idle', 'collecting' or 'calibrating'."""
-        return self._state
+    imu_received = property(attrgetter('_imu_count'),
+                            doc='Attitude (Imu) samples taken since calibration/start.')
+    state = property(attrgetter('_state'), doc="'idle', 'collecting' or 'calibrating'.")
 
     def _on_start(self, request, response):
         if not self._busy.acquire(blocking=False):
@@ -97,11 +110,11 @@ class CollectionMixin(SignalsMixin):
         try:
             dropped = self._clear('collecting')
             s = prm.calibration_settings(self)
-            return _reply(response, True,
-                          f'collecting ({dropped} old sets dropped): rotate the array through '
-                          f'many attitudes; calibrate after at least {s.min_samples} sets',
-                          {'state': 'collecting', 'min_samples': s.min_samples,
-                           'sets_dropped': dropped})
+            return reply(response, True,
+                         f'collecting ({dropped} old sets dropped): rotate the array through '
+                         f'many attitudes; calibrate after at least {s.min_samples} sets',
+                         {'state': 'collecting', 'min_samples': s.min_samples,
+                          'sets_dropped': dropped})
         finally:
             self._busy.release()
 
@@ -115,16 +128,16 @@ class CollectionMixin(SignalsMixin):
             dropped = self._clear(state)
             what = ('collection goes on from now' if state == 'collecting' else
                     'call calibration/start to collect')
-            return _reply(response, True, f'reset: {dropped} sets dropped; {what}',
-                          {'state': state, 'sets_dropped': dropped})
+            return reply(response, True, f'reset: {dropped} sets dropped; {what}',
+                         {'state': state, 'sets_dropped': dropped})
         finally:
             self._busy.release()
 
     def _reject_busy(self, response, service):
         """Answer a call that arrived during a calibration (the state is not touched)."""
-        return _reply(response, False, f'rejected: a calibration is running; call '
-                      f'calibration/{service} again when it has finished',
-                      {'state': self._state})
+        return reply(response, False, f'rejected: a calibration is running; call '
+                     f'calibration/{service} again when it has finished',
+                     {'state': self._state})
 
     def _clear(self, state):
         """Empty the buffer and the matcher, set ``state``; return the sets dropped."""
@@ -164,21 +177,16 @@ class CollectionMixin(SignalsMixin):
         return cb
 
     def _imu_cb(self, msg):
-        if self._learner is not None:
-            self._learn_imu(msg)
+        attitude = msg_to_attitude(msg)
+        if self._learner is not None and attitude is not None:
+            self._learn_imu(*attitude)
         if not self._collecting:
             return
-        o = msg.orientation
-        row = (stamp_to_seconds(msg.header.stamp), o.w, o.x, o.y, o.z)
-        if (msg.orientation_covariance[0] == -1 or not np.all(np.isfinite(row))
-                or abs(math.sqrt(o.w ** 2 + o.x ** 2 + o.y ** 2 + o.z ** 2) - 1.0)
-                > UNIT_TOLERANCE):
-            # REP 145: no orientation in this message; or not a unit quaternion
-            with self._lock:
-                self._imu_refused += 1
-            return
         with self._lock:
-            self._imu[self._imu_count % len(self._imu)] = row
+            if attitude is None:
+                self._imu_refused += 1
+                return
+            self._imu[self._imu_count % len(self._imu)] = (attitude[0], *attitude[1])
             self._imu_count += 1
 
     def _snapshot(self):
@@ -192,9 +200,8 @@ class CollectionMixin(SignalsMixin):
         """
         Attach the collected attitude to (data, epochs) (under the lock).
 
-        Interpolated at the sets' own stamps (``stamps`` (N,) s), not at ``data.t``: Imu
-        messages are stamped the same way, one clock and one latency even when samples are
-        lost. Sets outside the Imu messages' span are dropped; unchanged without any.
+        Interpolated at the sets' stamps (``stamps`` (N,) s, the Imu messages' clock), not at
+        ``data.t``; sets outside the Imu messages' span are dropped; unchanged without any.
         """
         n = min(self._imu_count, len(self._imu))
         if not n:
@@ -275,23 +282,13 @@ class CollectionMixin(SignalsMixin):
         self._status_pub.publish(msg)
 
     def buffer_status(self):
-        """
-        ``DiagnosticStatus`` of the buffer (:class:`~magcal_ros.core.live.corrector.SampleBuffer`).
-
-        How many sets of how many received it holds, one in how many, over which span.
-        """
+        """``DiagnosticStatus`` of the buffer: sets held of received, one in how many, span."""
         with self._lock:
             cov = self._buffer.coverage()
             cap = self._buffer.capacity
-        st = DiagnosticStatus(name=f'{self.get_name()}: buffer',
-                              hardware_id=self.get_namespace(), level=DiagnosticStatus.OK)
-        if not cov['sets_received']:
-            st.message = 'no sample sets yet'
-        else:
-            st.message = (f'{cov["sets_held"]} of {cov["sets_received"]} sets held (one in '
-                          f'{cov["stride"]}, at most {cap}), spread over '
-                          f'{100 * cov.get("fraction_of_run", 1.0):.0f} % of the '
-                          f'{cov["run_s"]:.0f} s run')
-        st.values = [KeyValue(key=k, value=str(v)) for k, v in cov.items()]
-        st.values.append(KeyValue(key='max_samples', value=str(cap)))
-        return st
+        message = 'no sample sets yet' if not cov['sets_received'] else (
+            f'{cov["sets_held"]} of {cov["sets_received"]} sets held (one in {cov["stride"]}, at '
+            f'most {cap}), spread over {100 * cov.get("fraction_of_run", 1.0):.0f} % of the '
+            f'{cov["run_s"]:.0f} s run')
+        return node_status(self, 'buffer', DiagnosticStatus.OK, message,
+                           [*cov.items(), ('max_samples', cap)])

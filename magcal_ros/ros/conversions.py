@@ -33,6 +33,7 @@ import numbers
 
 from builtin_interfaces.msg import Time as TimeMsg
 from geometry_msgs.msg import TransformStamped
+from magcal_ros.core.geometry.attitude import UNIT_TOLERANCE
 from magcal_ros.units import NT_PER_T, nt_to_t, t_to_nt
 import numpy as np
 import rclpy.time
@@ -51,9 +52,8 @@ def to_stamp(stamp):
     """
     Return ``stamp`` as a new ``builtin_interfaces/Time`` (a given message is copied).
 
-    ``stamp`` is a ``builtin_interfaces/Time``, an rclpy ``Time``, seconds since the epoch
-    (a number >= 0) or None (time zero). Raises ValueError if it is negative, not finite or
-    of another type.
+    ``stamp``: a ``builtin_interfaces/Time``, an rclpy ``Time``, seconds since the epoch (a
+    number >= 0) or None (time zero); anything else is a ValueError.
     """
     if stamp is None:
         return TimeMsg()
@@ -131,11 +131,7 @@ def _covariance33(covariance_nt2):
 
 
 def covariance_to_t2(covariance_nt2):
-    """
-    Validate a covariance (as :func:`field_nt_to_msg` takes it) and return it as (9,) T^2.
-
-    For publishers of many messages with one covariance: convert once, pass ``covariance_t2``.
-    """
+    """Validate a covariance as :func:`field_nt_to_msg` takes it; return it as (9,) T^2."""
     return nt_to_t(nt_to_t(_covariance33(covariance_nt2))).reshape(9)
 
 
@@ -144,11 +140,9 @@ def field_nt_to_msg(field_nt, stamp=None, frame_id='', covariance_nt2=None, cova
     Build a ``sensor_msgs/MagneticField`` (field in T, covariance in T^2 row-major).
 
     ``field_nt`` (3,) nT; ``stamp`` as :func:`to_stamp`; ``covariance_nt2`` (3, 3) nT^2, or
-    one variance in nT^2 for all three (independent) axes, None: zeros ("unknown");
-    ``covariance_t2`` (9,) T^2 from :func:`covariance_to_t2` skips the per-message
-    validation and takes precedence. Raises ValueError if the field is not three finite
-    numbers, or the covariance has the wrong shape, is not finite, not symmetric, or has a
-    negative variance.
+    one variance in nT^2 for all three axes, None: zeros ("unknown"); ``covariance_t2`` (9,)
+    T^2 of :func:`covariance_to_t2` takes precedence, unchecked. Raises ValueError if the field
+    is not three finite numbers, or the covariance not a finite symmetric one of variances >= 0.
     """
     field = _vector3(field_nt, 'field_nt', 'nT')
     if covariance_t2 is None:
@@ -161,12 +155,7 @@ def field_nt_to_msg(field_nt, stamp=None, frame_id='', covariance_nt2=None, cova
 
 
 def set_field_nt(msg, field_nt, covariance_t2):
-    """
-    Overwrite the field (``field_nt`` (3,) nT) and covariance ((9,) T^2) of ``msg`` in place.
-
-    The corrector's hot path: no validation (a corrected finite reading, a covariance from
-    :func:`covariance_to_t2`), header left as it is.
-    """
+    """Overwrite field (``field_nt`` (3,) nT) and covariance ((9,) T^2) of ``msg``, unchecked."""
     v = msg.magnetic_field
     v.x = float(field_nt[0]) / NT_PER_T
     v.y = float(field_nt[1]) / NT_PER_T
@@ -178,8 +167,7 @@ def linear_to_t(a_inv, offset_nt):
     """
     Prepare a linear correction A^-1 (raw - o) (``a_inv`` (3, 3), ``offset_nt`` (3,) nT).
 
-    Returns (rows of A^-1 as three 3-tuples of float, o in T as a 3-tuple), the argument
-    of :func:`correct_msg_linear`.
+    Returns (rows of A^-1, o in T), as 3-tuples of float, for :func:`correct_msg_linear`.
     """
     rows = tuple(tuple(float(v) for v in row) for row in np.asarray(a_inv, np.float64))
     return rows, tuple(float(v) for v in nt_to_t(np.asarray(offset_nt, np.float64)))
@@ -189,8 +177,8 @@ def correct_msg_linear(msg, linear_t, covariance_t2):
     """
     Correct ``msg`` in place: field <- A^-1 (field - o) in T (``linear_t`` of :func:`linear_to_t`).
 
-    Covariance (9,) T^2; header left as it is. The hot path of sensors without driven effects:
-    plain floats (numpy costs more than the nine products for one 3-vector).
+    Covariance (9,) T^2; header left as it is. Plain floats: numpy costs more than the nine
+    products for one 3-vector (the hot path of sensors without driven effects).
     """
     (r0, r1, r2), (ox, oy, oz) = linear_t
     v = msg.magnetic_field
@@ -218,9 +206,8 @@ def tensor_to_msg(gradient_nt_per_m, check=True, out=None):
     Build the gradient-tensor ``std_msgs/Float64MultiArray`` (T/m, layout in the module doc).
 
     ``gradient_nt_per_m`` (3, 3) G[i, k] = dB_i / dx_k, nT/m. ``check``: raise ValueError
-    if it is not a finite (3, 3) array (False on the corrector's hot path, where it is the
-    product of finite corrected fields). ``out``: a message this function built before,
-    reused (only its data are replaced).
+    if it is not a finite (3, 3) array (False on the corrector's hot path). ``out``: a message
+    this function built before, whose data are replaced.
     """
     g = np.asarray(gradient_nt_per_m, dtype=np.float64)
     if check:
@@ -251,9 +238,8 @@ def fill_gradient_stamped(msg, stamp, frame_id, gradient_nt_per_m, covariance_t2
     """
     Fill a ``magcal_interfaces/GradientTensorStamped`` in place and return it (hot path).
 
-    ``stamp`` of the matched set (:func:`to_stamp`); ``frame_id`` the array frame;
-    ``gradient_nt_per_m`` (3, 3) finite, nT/m; ``covariance_t2`` (81,) (T/m)^2 from
-    :func:`gradient_covariance_to_t2`, None: left as it is (a reused message).
+    ``stamp`` as :func:`to_stamp`; ``gradient_nt_per_m`` (3, 3) finite, nT/m; ``covariance_t2``
+    (81,) (T/m)^2 of :func:`gradient_covariance_to_t2`, None: left as it is.
     """
     msg.header.stamp = to_stamp(stamp)
     msg.header.frame_id = frame_id
@@ -278,9 +264,7 @@ def transform_msg(parent, child, rotation, translation_m, stamp=None):
     ``translation_m`` (3,) p, m; ``stamp`` as :func:`to_stamp`.
     """
     t = _vector3(translation_m, 'translation_m', 'm')
-    # imported here: scipy.spatial costs ~0.25 s at start-up of every node, and only the
-    # corrector's static transforms need it
-    from scipy.spatial.transform import Rotation
+    from scipy.spatial.transform import Rotation    # here: it costs every node ~0.25 s
     q = Rotation.from_matrix(np.asarray(rotation, np.float64)).as_quat()   # x, y, z, w
     msg = _header(TransformStamped(), stamp, parent)
     msg.child_frame_id = _check_frame_id(child)
@@ -308,12 +292,7 @@ def residual_to_msg(scalar_nt, vector_nt):
 
 
 def msg_to_residual_nt(msg):
-    """
-    Return (scalar_nt, vector_nt), (S,) each in nT: the inverse of :func:`residual_to_msg`.
-
-    Raises ValueError if the layout is not ``kind`` (2) x ``sensor`` (S) or the data do not
-    fill it.
-    """
+    """Return (scalar_nt, vector_nt), (S,) nT each, of a :func:`residual_to_msg` (ValueError)."""
     dims = [(d.label, d.size) for d in msg.layout.dim]
     if len(dims) != 2 or dims[0] != (RESIDUAL_KIND_LABEL, 2) or dims[1][0] != 'sensor':
         raise ValueError(f'residual message layout must be [({RESIDUAL_KIND_LABEL!r}, 2), '
@@ -326,12 +305,7 @@ def msg_to_residual_nt(msg):
 
 
 def msg_to_tensor(msg):
-    """
-    Return the (3, 3) gradient tensor, nT/m, of a message laid out as :func:`tensor_to_msg`'s.
-
-    Raises ValueError if the layout is not 3x3 row-major with dims ``row`` and ``col``, or
-    the data is too short for it.
-    """
+    """Return the (3, 3) gradient tensor, nT/m, of a :func:`tensor_to_msg` (or ValueError)."""
     dims = [(d.label, d.size, d.stride) for d in msg.layout.dim]
     expected = [(TENSOR_DIM_LABELS[0], 3, 9), (TENSOR_DIM_LABELS[1], 3, 3)]
     if dims != expected:
@@ -350,8 +324,7 @@ def temperature_msg(temp_c, stamp=None, frame_id='', variance_c2=0.0):
     """
     Build a ``sensor_msgs/Temperature`` of ``temp_c`` degC, ``variance_c2`` degC^2 (0: unknown).
 
-    ``stamp`` as :func:`to_stamp`. Raises ValueError if the temperature is not finite or
-    the variance is negative or not finite.
+    ``stamp`` as :func:`to_stamp`. Raises ValueError on a value not finite or a variance < 0.
     """
     temp = float(temp_c)
     if not math.isfinite(temp):
@@ -369,10 +342,11 @@ def attitude_msg(quaternion, stamp=None, frame_id='', sd_rad=0.0):
     ``quaternion`` (4,) body-to-world unit quaternion (qw, qx, qy, qz), Hamilton, world ENU;
     ``frame_id`` the body frame; ``sd_rad`` the standard uncertainty about each world axis,
     rad (0: unknown). Raises ValueError if the quaternion is not 4 finite numbers of unit
-    norm (within 1e-3) or ``sd_rad`` is negative or not finite.
+    norm (within ``UNIT_TOLERANCE``) or ``sd_rad`` is negative or not finite.
     """
     q = np.asarray(quaternion, dtype=np.float64).reshape(-1)
-    if q.size != 4 or not np.all(np.isfinite(q)) or abs(np.linalg.norm(q) - 1.0) > 1e-3:
+    if (q.size != 4 or not np.all(np.isfinite(q))
+            or abs(np.linalg.norm(q) - 1.0) > UNIT_TOLERANCE):
         raise ValueError(f'quaternion must be 4 finite numbers (qw, qx, qy, qz) of unit norm, '
                          f'got {quaternion!r}')
     sd = _non_negative(sd_rad, 'sd_rad', 'rad')
@@ -383,3 +357,18 @@ def attitude_msg(quaternion, stamp=None, frame_id='', sd_rad=0.0):
     msg.angular_velocity_covariance[0] = -1.0
     msg.linear_acceleration_covariance[0] = -1.0
     return msg
+
+
+def msg_to_attitude(msg):
+    """
+    Return (stamp s, (qw, qx, qy, qz)) of a ``sensor_msgs/Imu``, or None without an attitude.
+
+    None when the message has no orientation (``orientation_covariance[0] = -1``, REP 145)
+    or it is not a finite unit quaternion (within ``UNIT_TOLERANCE``).
+    """
+    o = msg.orientation
+    q = (o.w, o.x, o.y, o.z)
+    if (msg.orientation_covariance[0] == -1 or not all(map(math.isfinite, q))
+            or abs(math.sqrt(sum(v * v for v in q)) - 1.0) > UNIT_TOLERANCE):
+        return None
+    return stamp_to_seconds(msg.header.stamp), q

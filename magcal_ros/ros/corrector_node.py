@@ -20,24 +20,19 @@ effect reads it; ``calibration/result`` installs a new calibration without a res
 ``/diagnostics``: WARN without a usable calibration (nothing is published), after a refused
 one (the last good one stays), while a driven effect lacks its signal, or when more than
 :data:`PAIRING_WARN_SHARE` of the sets failed the pairing check; ERROR naming an effect whose
-code raised (that sensor's sample is not published; the others go on).
-
-The tensor's sets are paired by epoch (:class:`magcal_ros.core.live.sync.StampMatcher`) and
-checked from the data (:meth:`magcal_ros.core.live.corrector.LiveCorrector.pairing_chi2`): a
-set whose corrected fields do not fit one linear field gives no tensor, and a stream shifted
-by a lost sample is re-paired (docs/failure_modes.md). With ``subtract_site_gradient`` (a
-stationary test, docs/site_gradient.md) the site shift R^T G_w R r_j at ``site_attitude`` is
-subtracted from each corrected field, leaving the anomaly. The correction is
-:class:`magcal_ros.core.live.corrector.LiveCorrector`'s (no ROS), its matrices computed once
-per calibration.
+code raised (that sensor's sample is not published; the others go on). The correction, the
+pairing of the tensor's sets and its check, and the site shift subtracted in a stationary test
+(``subtract_site_gradient``, docs/site_gradient.md) are
+:class:`magcal_ros.core.live.corrector.LiveCorrector`'s (no ROS).
 """
 import importlib
 import math
+from operator import attrgetter
 import os
 import sys
 import threading
 
-from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticStatus
 from magcal_ros.core.effects.safety import EffectError, EffectErrors
 from magcal_ros.core.live.corrector import LiveCorrector, MissingSignal, PAIRING_FALSE_ALARM
 from magcal_ros.io.calfile import CalibrationFileError, load_calibration, parse_calibration
@@ -49,7 +44,7 @@ from magcal_ros.ros.conversions import (correct_msg_linear, covariance_to_t2,
                                         fill_gradient_stamped, gradient_covariance_to_t2,
                                         linear_to_t, msg_to_field_nt, set_field_nt,
                                         stamp_to_seconds, tensor_to_msg, transform_msg)
-from magcal_ros.ros.diagnostics import EffectErrorsMixin, fill, Updater
+from magcal_ros.ros.diagnostics import EffectErrorsMixin, fill, node_status, Updater
 from magcal_ros.ros.run import DEFAULT_NAMESPACE, spin_node
 import numpy as np
 from rclpy.node import Node
@@ -60,7 +55,8 @@ from std_msgs.msg import Float64, Float64MultiArray, String
 #: share of the sets since the last diagnostics report that may fail the pairing check
 #: before the status is WARN (a lost sample costs one set)
 PAIRING_WARN_SHARE = 0.01
-#: the parameters a running node follows: its attribute and the value's conversion
+#: the parameters a running node follows: its attribute and the value's conversion (start-up
+#: values set the same way)
 _SETTABLE = {'stamp_tolerance_s': ('_tolerance_s', float),
              'publish_gradient': ('_publish_gradient', bool),
              'subtract_site_gradient': ('_subtract_site', bool),
@@ -84,12 +80,10 @@ class CorrectorNode(SignalsMixin, EffectErrorsMixin, Node):
         self._specs, plugins = prm.declare_node(self, prm.corrector_specs)
         s = prm.corrector_settings(self)
         self._n = s.n_sensors
-        self._publish_gradient = s.publish_gradient
-        self._subtract_site = s.subtract_site_gradient
-        self._site_attitude = s.site_attitude
+        for name, (attr, convert) in _SETTABLE.items():
+            setattr(self, attr, convert(getattr(s, name)))
         self._site_shift = None        # (S, 3) nT subtracted in a stationary test, or None
         self._frame = s.array_frame_id          # '': each input's own frame_id
-        self._tolerance_s = s.stamp_tolerance_s
         # the gradient topics exist only when the geometry determines the tensor
         self._geometry = array_geometry(self._n, s.sensor_positions_m, s.baseline_m)
         self._no_tensor = tensor_undetermined(
@@ -148,11 +142,12 @@ class CorrectorNode(SignalsMixin, EffectErrorsMixin, Node):
         self._updater.add('correction', lambda stat: fill(stat, self.diagnostic_status()))
         self._updater.force_update()
 
-    # -- read-only state (for in-process users and tests; ROS users see it on /diagnostics)
-    @property
-    def received(self):
-        """Raw samples taken so far, all sensors (count)."""
-        return self._received
+    # -- read-only state (in-process users and tests; ROS users see it on /diagnostics) ----
+    received = property(attrgetter('_received'), doc='Raw samples taken so far, all sensors.')
+    calibration_source = property(attrgetter('_source'), doc='Where the active calibration '
+                                  "came from (file path or 'calibration/result').")
+    refusal = property(attrgetter('_refused'), doc='Why the last calibration offered was refused '
+                       '(None after one was installed).')
 
     @property
     def queued(self):
@@ -164,16 +159,6 @@ class CorrectorNode(SignalsMixin, EffectErrorsMixin, Node):
     def calibration(self):
         """Return the active :class:`~magcal_ros.core.model.Calibration`, or None."""
         return None if self._live is None else self._live.cal
-
-    @property
-    def calibration_source(self):
-        """Where the active calibration came from (file path or 'calibration/result')."""
-        return self._source
-
-    @property
-    def refusal(self):
-        """Why the last calibration offered was refused (None after one was installed)."""
-        return self._refused
 
     # -- parameters ------------------------------------------------------------------------
     def _on_set_parameters(self, parameters):
@@ -301,8 +286,7 @@ class CorrectorNode(SignalsMixin, EffectErrorsMixin, Node):
         """
         Tell whether someone subscribes a gradient topic (checked per sample: ~1 us).
 
-        Without subscribers no set is matched (half the corrector's Python work); the first
-        subscriber starts the matcher afresh (its queues would hold samples from before).
+        Without subscribers no set is matched; the first one starts the matcher afresh.
         """
         on = self._pub_grad is not None and self._publish_gradient and (
             self._pub_grad.get_subscription_count() > 0 or (
@@ -328,7 +312,6 @@ class CorrectorNode(SignalsMixin, EffectErrorsMixin, Node):
             gradient = self._gradient_wanted() and live.gradient_op is not None
             # the incoming message becomes the outgoing one (cheaper than a new one; bench/live.py)
             if fast is not None:
-                # A^-1 (raw - o) on the tesla values: no numpy, no unit round trip
                 correct_msg_linear(msg, fast, self._cov_t2[j])
                 b = msg_to_field_nt(msg) if gradient else None
                 t = stamp_to_seconds(msg.header.stamp) if gradient else None
@@ -365,8 +348,6 @@ class CorrectorNode(SignalsMixin, EffectErrorsMixin, Node):
     # -- diagnostics -----------------------------------------------------------------------
     def diagnostic_status(self):
         """Return the node's ``diagnostic_msgs/DiagnosticStatus``."""
-        st = DiagnosticStatus(name=f'{self.get_name()}: correction',
-                              hardware_id=self.get_namespace())
         errors = self._effect_errors
         problems = [f'effect code failed: {errors.summary()}'] if errors else []
         if self._live is None:
@@ -385,34 +366,30 @@ class CorrectorNode(SignalsMixin, EffectErrorsMixin, Node):
         pairing = self._pairing_report()
         if pairing:
             problems.append(pairing)
-        if problems:
-            st.level = DiagnosticStatus.ERROR if errors else DiagnosticStatus.WARN
-            st.message = '; '.join(problems)
-        else:
-            st.level = DiagnosticStatus.OK
-            st.message = f'correcting with the calibration from {self._source}'
+        level = (DiagnosticStatus.ERROR if errors else DiagnosticStatus.WARN if problems
+                 else DiagnosticStatus.OK)
+        message = ('; '.join(problems) if problems else
+                   f'correcting with the calibration from {self._source}')
         m = self._live.matcher if self._live else None
         values = [('calibration_source', self._source or ''),
                   ('calibration', self._describe() if self._live else 'none'),
                   ('last_refused', self._refused or ''),
-                  ('gradient_published', str(self._n_gradient)),
-                  ('incomplete_sets_dropped', str(m.incomplete if m else 0)),
+                  ('gradient_published', self._n_gradient),
+                  ('incomplete_sets_dropped', m.incomplete if m else 0),
                   ('pairing_check', self._describe_check()),
-                  ('sets_failed_pairing_check', str(m.rejected if m else 0)),
-                  ('streams_re_paired', str(m.repaired if m else 0)),
+                  ('sets_failed_pairing_check', m.rejected if m else 0),
+                  ('streams_re_paired', m.repaired if m else 0),
                   ('gradient', 'advertised' if self._no_tensor is None else
                    f'not advertised: {self._no_tensor}'),
                   ('gradient_stamped', 'published' if self._pub_stamped else
                    f'not advertised: {self._no_tensor}' if self._no_tensor else
                    'not published: magcal_interfaces is not importable'),
                   ('geometry', 'none' if self._geometry is None else
-                   str(self._geometry['positions_m'])),
+                   self._geometry['positions_m']),
                   ('frame_id', self._frame)]
-        values += [(f'sensor{j + 1}_corrected_published', str(c))
-                   for j, c in enumerate(self._counts)]
+        values += [(f'sensor{j + 1}_corrected_published', c) for j, c in enumerate(self._counts)]
         values += self._effect_error_values()
-        st.values = [KeyValue(key=k, value=v) for k, v in values]
-        return st
+        return node_status(self, 'correction', level, message, values)
 
     def _describe_check(self):
         """One line: how the sets of the tensor are checked."""

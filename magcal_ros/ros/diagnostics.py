@@ -16,12 +16,12 @@
 Diagnostics of the nodes on ``/diagnostics``: ROS 2's ``diagnostic_updater``, or a shim of it.
 
 The nodes use :data:`Updater` (``Updater(node, period)``, ``setHardwareID``, ``add(name,
-callback)``, ``force_update``) and :func:`fill`. Without ``diagnostic_updater`` (no pip wheel)
-these are :class:`FallbackUpdater` and :class:`FallbackStatusWrapper`, publishing the same
-``DiagnosticArray``: a status per task in the order added, named ``<node>: <task>``,
-``hardware_id`` from ``setHardwareID`` unless the task sets one, ERROR ``No message was set``
-before the callback, ``Node starting up`` on ``add``, the period the read-only parameter
-``diagnostic_updater.period`` (s); history depth 10 (``diagnostic_updater``'s 1).
+callback)``, ``force_update``), :func:`node_status` and :func:`fill`. Without
+``diagnostic_updater`` (no pip wheel) these are :class:`FallbackUpdater` and
+:class:`FallbackStatusWrapper`, publishing the same ``DiagnosticArray`` (a status per task in
+the order added, named ``<node>: <task>``, ERROR ``No message was set`` before the callback,
+``Node starting up`` on ``add``, the period the read-only parameter
+``diagnostic_updater.period``, s) with a history depth of 10 (``diagnostic_updater``'s 1).
 """
 
 import threading
@@ -153,13 +153,19 @@ class EffectErrorsMixin:
             (f'effect_errors {k}', str(n)) for k, n in counts.items()]
 
 
-def fill(stat, status):
+def node_status(node, task, level, message, values=()):
     """
-    Copy level, message, hardware_id and values of ``status`` into the task's ``stat``.
+    Return the ``DiagnosticStatus`` ``<node name>: <task>`` of ``node`` (a ``Node``).
 
-    For nodes that build their ``DiagnosticStatus`` in a public method (tests and in-process
-    users read it); returns ``stat``, as an updater callback does.
+    ``hardware_id`` the node's namespace; ``values`` (key, value) pairs, each value as str.
     """
+    return DiagnosticStatus(name=f'{node.get_name()}: {task}', hardware_id=node.get_namespace(),
+                            level=level, message=message,
+                            values=[KeyValue(key=k, value=str(v)) for k, v in values])
+
+
+def fill(stat, status):
+    """Copy level, message, hardware_id and values of ``status`` into the task's ``stat``."""
     stat.summary(status)
     stat.hardware_id = status.hardware_id
     stat.values = list(status.values)

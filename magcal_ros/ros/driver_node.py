@@ -19,17 +19,11 @@ One :class:`~magcal_ros.serial.transport.PortReader` thread per sensor reads and
 port (:mod:`magcal_ros.serial`); this node maps the device axes to the sensor frame and
 publishes ``sensor{j}/raw`` (T, covariance diag(noise_nt^2) in T^2, reliable, stamped with the
 bytes' arrival on the ROS clock), ``sensor{j}/temperature`` (degC) when the device reports it,
-and per port a ``/diagnostics`` status ``fluxgate_driver: sensor{j}`` (rate, parse errors per
-kind, reconnects, state). A lost port is reopened with exponential backoff (optionally at
-alternative paths); the others keep publishing. The defaults (namespace ``/magcal``, four
-sensors on ``/tmp/magcal_sim/fluxgate1..4``, ASCII) are what ``fluxgate_sim`` provides.
-
-Parameters (``ros2 param describe`` shows each with its unit): global defaults
-``protocol``, ``baud``, ``options``, ``noise_nt``, ``backoff_min_s``, ``backoff_max_s``;
-per sensor, flat, ``sensor{j}.port``, ``.alternatives``, ``.baud``, ``.protocol``,
-``.options`` (a YAML mapping of protocol options, e.g. ``"{scale: 100000.0}"``),
-``.axes`` (e.g. ``['-y', 'x', 'z']``), ``.frame_id``, ``.noise_nt``, ``.expected_rate_hz``;
-each per-sensor value defaults to the global one.
+and per port a ``/diagnostics`` status ``fluxgate_driver: sensor{j}``. A lost port is reopened
+with exponential backoff (optionally at alternative paths); the others keep publishing. The
+defaults (namespace ``/magcal``, four sensors on ``/tmp/magcal_sim/fluxgate1..4``, ASCII) are
+what ``fluxgate_sim`` provides. Parameters (``ros2 param describe``): global defaults, and
+per sensor, flat, ``sensor{j}.<name>``, each defaulting to the global one.
 """
 
 from dataclasses import dataclass, replace

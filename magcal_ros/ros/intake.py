@@ -15,14 +15,12 @@
 """
 Sensor streams of a node that must spin on the SingleThreadedExecutor, taken cheaply.
 
-The calibration node's coroutine services need the SingleThreadedExecutor, whose Python wait
-set cost three quarters of the node's CPU at 4 x 100 Hz (bench/executor.py). :class:`Intake`
-takes the streams on an EventsExecutor thread, through a hidden helper node (``_`` name,
-the process's command line ignored, the topic names the node resolves: the interface is
-unchanged), and queues them in arrival order; a timer of the node (every
-:data:`DRAIN_PERIOD_S`, or at once when :data:`DRAIN_AT` wait) hands them to the node's own
-callbacks on its executor, in arrival order across topics. Without the EventsExecutor the
-subscriptions are the node's own.
+The calibration node's coroutine services need the SingleThreadedExecutor, whose wait set
+costs most of its CPU (BENCHMARKS.md). :class:`Intake` takes the streams on an EventsExecutor
+thread, through a hidden helper node (``_`` name, the topic names the node resolves: the
+interface is unchanged); a timer of the node (every :data:`DRAIN_PERIOD_S`, or at once when
+:data:`DRAIN_AT` wait) hands them to the node's callbacks on its executor, in arrival order
+across topics. Without the EventsExecutor the subscriptions are the node's own.
 """
 import collections
 import threading
@@ -48,17 +46,17 @@ class Intake:
     """
     Subscriptions of ``node`` taken on an EventsExecutor thread, delivered on its executor.
 
-    ``events=False``: plain subscriptions of ``node``. ``threaded``: the streams are taken on
-    the thread; ``dropped``: messages dropped because :data:`MAX_QUEUED` were waiting.
+    ``threaded``: the streams are taken on the thread (else they are plain subscriptions of
+    ``node``); ``dropped``: messages dropped because :data:`MAX_QUEUED` were waiting.
     """
 
-    def __init__(self, node, events=True):
+    def __init__(self, node):
         self._node = node
         self._queue = collections.deque()
         self.dropped = 0
         self._stop = threading.Event()
         self._thread = self._helper = None
-        executor, kind = make_executor(events, node.context)
+        executor, kind = make_executor(context=node.context)
         self.threaded = kind == 'events'
         if not self.threaded:
             executor.shutdown(timeout_sec=0.0)

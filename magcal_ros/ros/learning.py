@@ -15,27 +15,23 @@
 """
 The calibration node's learning mode (issue 34; docs/design.md §3): :class:`LearningMixin`.
 
-With ``learn`` the raw samples are matched into sets of its own (collecting or not) for a
+With ``learn`` the raw samples are matched into sets of its own for a
 :class:`magcal_ros.core.live.learning.Learner`, refitted in a worker thread
-(:func:`magcal_ros.pipeline.refit_recent`); each estimate goes on ``calibration/learned``
-(the calibration YAML, latched), the state on ``/diagnostics`` (``calibration_node:
-learning``). A ready proposal is adopted at once with ``auto_adopt``, or on
-``calibration/adopt``: saved (the previous one stays in the history), published on
-``calibration/result`` and made active.
+(:func:`magcal_ros.pipeline.refit_recent`), each estimate published on ``calibration/learned``;
+a ready proposal is adopted with ``auto_adopt`` or on ``calibration/adopt``.
 """
 from collections import deque
-import math
+from operator import attrgetter
 import threading
 
-from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticStatus
 from magcal_ros.core.live.learning import (ADOPTED, CHANGE, LearnConfig, Learner, READY,
                                            TRACKING, UNDETERMINED)
 from magcal_ros.core.live.sync import StampMatcher
 from magcal_ros.io.calfile import dump_calibration, save_calibration
 from magcal_ros.pipeline import refit_recent
 from magcal_ros.ros import params as prm
-from magcal_ros.ros.conversions import stamp_to_seconds
-from magcal_ros.ros.diagnostics import fill
+from magcal_ros.ros.diagnostics import fill, node_status
 from magcal_ros.ros.run import yield_cpu
 import numpy as np
 from std_msgs.msg import String
@@ -91,10 +87,7 @@ class LearningMixin:
         self._srv.append(self.create_service(Trigger, 'calibration/adopt', self._learn_on_adopt))
         self._updater.add('learning', lambda stat: fill(stat, self.learning_status()))
 
-    @property
-    def learner(self):
-        """Return the :class:`Learner` (None without ``learn``)."""
-        return self._learner
+    learner = property(attrgetter('_learner'), doc='The :class:`Learner` (None without learn).')
 
     def _learn_activate(self, cal, doc, now=None):
         """Track the calibration made active (``doc`` its document)."""
@@ -117,14 +110,9 @@ class LearningMixin:
         self._learn_queue.extend((t_set, np.array(items), temp, aux) for _, t_set, items in done)
         self._learn_drain()
 
-    def _learn_imu(self, msg):
-        """Queue an Imu message's orientation for the learner (unit quaternions only)."""
-        o = msg.orientation
-        q = (o.w, o.x, o.y, o.z)
-        if (msg.orientation_covariance[0] == -1 or not all(map(math.isfinite, q))
-                or abs(math.sqrt(sum(v * v for v in q)) - 1.0) > 1e-3):
-            return
-        self._learn_queue.append((stamp_to_seconds(msg.header.stamp), None, q, None))
+    def _learn_imu(self, t, q):
+        """Queue an attitude (stamp s, unit quaternion (qw, qx, qy, qz)) for the learner."""
+        self._learn_queue.append((t, None, q, None))
 
     def _learn_drain(self):
         """Hand the queued sets to the learner unless a refit holds it; start a due refit."""
@@ -208,30 +196,27 @@ class LearningMixin:
 
     def learning_status(self):
         """``DiagnosticStatus`` of the learning (``calibration_node: learning``)."""
-        st = DiagnosticStatus(name=f'{self.get_name()}: learning',
-                              hardware_id=self.get_namespace(), level=DiagnosticStatus.OK)
         learner = self._learner
         with self._learn_lock:
             info = learner.status()
         state = info['state']
-        st.level = _LEVEL.get(state, DiagnosticStatus.OK)
+        level = _LEVEL.get(state, DiagnosticStatus.OK)
         if learner.active is None:
-            st.message = 'learning waits for an active calibration (calibration/calibrate)'
+            message = 'learning waits for an active calibration (calibration/calibrate)'
         elif state == CHANGE:
-            st.message = (f'change detected at {info.get("change_onset_s", 0.0):.1f} s: '
-                          f'learned when it lasts {learner.config.persist_s:g} s')
+            message = (f'change detected at {info.get("change_onset_s", 0.0):.1f} s: '
+                       f'learned when it lasts {learner.config.persist_s:g} s')
         elif state == READY:
-            st.message = 'proposal ready: validated on held-out data; call calibration/adopt'
+            message = 'proposal ready: validated on held-out data; call calibration/adopt'
         elif state == UNDETERMINED:
-            st.message = ('not determined by the recent motion: the proposal does not lower '
-                          'the held-out residual beyond the noise; keep moving')
+            message = ('not determined by the recent motion: the proposal does not lower the '
+                       'held-out residual beyond the noise; keep moving')
         elif state == ADOPTED:
-            st.message = f'adopted a learned calibration ({info["adoptions"]} so far)'
+            message = f'adopted a learned calibration ({info["adoptions"]} so far)'
         else:
-            st.message = 'tracking: the active calibration fits the recent data'
+            message = 'tracking: the active calibration fits the recent data'
         if self._learn_errors:
-            st.level = DiagnosticStatus.ERROR
-            st.message += (f'; {self._learn_failed} refit(s) failed, the latest: '
-                           f'{self._learn_errors[-1]}')
-        st.values = [KeyValue(key=k, value=str(v)) for k, v in info.items()]
-        return st
+            level = DiagnosticStatus.ERROR
+            message += (f'; {self._learn_failed} refit(s) failed, the latest: '
+                        f'{self._learn_errors[-1]}')
+        return node_status(self, 'learning', level, message, info.items())

@@ -28,7 +28,7 @@ from magcal_ros.core import effects as fx
 from magcal_ros.core.model import Model
 import numpy as np
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
-                                ParameterType, SetParametersResult)
+                                SetParametersResult)
 from rclpy.parameter import Parameter
 
 
@@ -50,17 +50,9 @@ def default_report_dir():
 #: frame_id of corrected fields and of the gradient tensor (README: Frames)
 DEFAULT_ARRAY_FRAME_ID = 'magcal_array'
 
-_TYPES = {
-    bool: ParameterType.PARAMETER_BOOL,
-    int: ParameterType.PARAMETER_INTEGER,
-    float: ParameterType.PARAMETER_DOUBLE,
-    str: ParameterType.PARAMETER_STRING,
-}
-_ARRAY_TYPES = {
-    str: (ParameterType.PARAMETER_STRING_ARRAY, Parameter.Type.STRING_ARRAY),
-    float: (ParameterType.PARAMETER_DOUBLE_ARRAY, Parameter.Type.DOUBLE_ARRAY),
-    int: (ParameterType.PARAMETER_INTEGER_ARRAY, Parameter.Type.INTEGER_ARRAY),
-}
+#: the type of an array parameter of each ``item_type`` (an empty default has no items)
+_ARRAY_TYPES = {str: Parameter.Type.STRING_ARRAY, float: Parameter.Type.DOUBLE_ARRAY,
+                int: Parameter.Type.INTEGER_ARRAY}
 
 
 @dataclass(frozen=True)
@@ -86,9 +78,9 @@ class ParamSpec:
 
     def descriptor(self):
         """Return the ``rcl_interfaces/ParameterDescriptor`` of this parameter."""
-        ptype = (_ARRAY_TYPES[self.item_type][0] if isinstance(self.default, tuple)
-                 else _TYPES[type(self.default)])
-        desc = ParameterDescriptor(name=self.name, type=ptype, description=self.description,
+        ptype = (_ARRAY_TYPES[self.item_type] if isinstance(self.default, tuple)
+                 else Parameter.Type.from_parameter_value(self.default))
+        desc = ParameterDescriptor(name=self.name, type=ptype.value, description=self.description,
                                    read_only=self.read_only)
         if self.limits is not None and isinstance(self.default, float):
             desc.floating_point_range = [FloatingPointRange(
@@ -110,9 +102,7 @@ def positive(unit):
 
 def non_empty_path(value):
     """Refuse an empty path string (returns the reason or None)."""
-    if not isinstance(value, str) or not value.strip():
-        return 'must be a non-empty path'
-    return None
+    return None if isinstance(value, str) and value.strip() else 'must be a non-empty path'
 
 
 def topic_names(value):
@@ -235,7 +225,7 @@ def declare(node, specs):
         default = spec.default
         if isinstance(default, tuple):
             # an empty list would be typed BYTE_ARRAY: declare the type explicitly
-            default = list(default) if default else _ARRAY_TYPES[spec.item_type][1]
+            default = list(default) if default else _ARRAY_TYPES[spec.item_type]
         node.declare_parameter(spec.name, default, spec.descriptor())
     by_name = {s.name: s for s in specs}
     # values given at start-up (YAML, overrides) are checked like later changes

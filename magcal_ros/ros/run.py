@@ -15,13 +15,12 @@
 """
 The one ``main`` of every node: init, spin until SIGINT/SIGTERM, clean shutdown, exit codes.
 
-rclpy's own signal handler shuts the context down while a callback may still run, whose
-next ``publish`` then raises: a traceback and exit 1 on an ordinary Ctrl-C (issue 12). Here
-SIGINT and SIGTERM only set a flag: the executor finishes its callback, stops within
-:data:`SPIN_PERIOD_S`, the node is destroyed while the context is valid, then the context is
-shut down; exit 0. Bad start-up input (a ``--ros-args`` rule rcl cannot parse, an override of
-the wrong type such as ``-p field_nt:=48000``, a value a validator refuses) is one line on
-stderr and exit 2.
+rclpy's own signal handler shuts the context down while a callback may still run (a
+traceback and exit 1 on Ctrl-C, issue 12). Here SIGINT and SIGTERM only set a flag: the
+executor finishes its callback, stops within :data:`SPIN_PERIOD_S`, the node is destroyed,
+then the context; exit 0. Bad start-up input (a ``--ros-args`` rule rcl cannot parse, an
+override of the wrong type such as ``-p field_nt:=48000``, a value a validator refuses) is
+one line on stderr and exit 2.
 """
 from contextlib import contextmanager
 import os
@@ -45,10 +44,8 @@ SPIN_PERIOD_S = 0.1
 #: environment variable choosing the executor: ``events`` (default where rclpy has it) or
 #: ``single`` (rclpy's SingleThreadedExecutor)
 EXECUTOR_VARIABLE = 'MAGCAL_EXECUTOR'
-
-
-#: niceness added to the solve threads: on a loaded machine the sample intake, the driver
-#: and the corrector keep the CPU they need (a diagnosis beside a 4 x 1 kHz stream starved it)
+#: niceness added to the solve threads, so that the sample intake, the driver and the
+#: corrector keep the CPU they need on a loaded machine
 SOLVE_NICENESS = 5
 
 
@@ -68,11 +65,10 @@ def make_executor(events=True, context=None):
     """
     Return the executor a node spins on, and its name (``'events'`` or ``'single'``).
 
-    rclpy's EventsExecutor (``rclpy.experimental``) costs a third of the
-    SingleThreadedExecutor's CPU per message (bench/executor.py). ``events=False`` for a
-    node it cannot run (in Jazzy: no guard conditions, no coroutine callbacks, which the
-    calibration node's services are); ``MAGCAL_EXECUTOR=single``, or an rclpy without it,
-    gives the classic one. ``context``: the nodes' rclpy context (None: the default).
+    rclpy's EventsExecutor (``rclpy.experimental``, a third of the SingleThreadedExecutor's
+    CPU per message: bench/executor.py) unless ``events`` is False (a node it cannot run: in
+    Jazzy no coroutine callbacks), ``MAGCAL_EXECUTOR=single`` or rclpy lacks it.
+    ``context``: the nodes' rclpy context (None: the default).
     """
     choice = os.environ.get(EXECUTOR_VARIABLE, 'events').strip().lower()
     if choice not in ('events', 'single'):

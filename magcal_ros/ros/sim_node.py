@@ -16,14 +16,11 @@
 ``fluxgate_sim``: the simulated fluxgates of :mod:`magcal_ros.sim` as a ROS 2 node.
 
 A thin node over :class:`magcal_ros.sim.devices.FluxgateSim`: its settings are read-only
-parameters (defaults in ``config/sim.yaml``, the launch file's), it logs to rosout and
-honours ``--ros-args``. The devices of ``/magcal`` (the default namespace) are
-``/tmp/magcal_sim/fluxgate1..4``, another namespace's ``/tmp/magcal_sim_<ns>/...`` (TMPDIR
-honoured): where the driver of the same namespace looks, so two arrays never share devices.
-The options of :func:`magcal_ros.sim.devices.build_parser` override the parameters;
-``--config FILE`` is read as a parameter file before those of ``--ros-args``. A thread
-writes the samples each tick; SIGINT/SIGTERM (exit 0) or ``duration`` stops it and removes
-the links.
+parameters (``config/sim.yaml``), overridden by the options of
+:func:`magcal_ros.sim.devices.build_parser` (``--config FILE``: a parameter file read before
+those of ``--ros-args``). The devices are where the driver of the same namespace looks
+(docs/design.md §3). A thread writes the samples each tick; SIGINT/SIGTERM (exit 0) or
+``duration`` stops it and removes the links.
 """
 
 import argparse
@@ -161,9 +158,8 @@ class FluxgateSimNode(Node):
         return list(self.sim.paths)
 
     def _publish_aux(self, t, data):
-        # one message per sample by default: a subscriber behind its stream takes one per
-        # subscription in turn, so they stay in step with the raw fields; aux_period_s > 0
-        # thins them (a value at most that old, every jump at once)
+        # one message per sample by default (a busy subscriber stays in step with the raw
+        # fields); aux_period_s > 0 thins them, every jump published at once
         period = self.settings.aux_period_s
         for column, pub in self._aux_pubs.items():
             for tk, value in zip(t, data.aux[column]):
@@ -174,8 +170,7 @@ class FluxgateSimNode(Node):
                     self._aux_last[column] = (tk, value)
 
     def _publish_imu(self, t, data):
-        # the true attitude as an AHRS gives it: body-to-world in ENU (the simulator's world
-        # is NED), stamped on the node's clock as the samples are written
+        # the true attitude as an AHRS gives it: body-to-world ENU, stamped on the node's clock
         if data.attitude is None or not len(t):
             return
         now = self.get_clock().now().nanoseconds * 1e-9

@@ -15,17 +15,16 @@
 """
 The calibration node's turn (docs/design.md §3): :class:`TurnMixin`.
 
-``calibration/turn`` turns a robot in place through ``cmd_vel_topic`` (as the ROS
-calibration packages do) while the node collects, until sensor 1 has seen ``turn_count``
-turns or ``turn_timeout_s`` passed, and stops it (a zero velocity) after the turn, on an
-error and on shutdown.
+``calibration/turn`` turns a robot in place through ``cmd_vel_topic`` while the node
+collects, until sensor 1 has seen ``turn_count`` turns or ``turn_timeout_s`` passed, and
+stops it (a zero velocity) after the turn, on an error and on shutdown.
 """
 import math
 import time
 
 from geometry_msgs.msg import Twist
 from magcal_ros.ros import params as prm
-from magcal_ros.ros.replies import reply as _reply
+from magcal_ros.ros.collection import reply
 
 
 class TurnMixin:
@@ -34,8 +33,8 @@ class TurnMixin:
     async def _on_turn(self, request, response):
         s = prm.calibration_settings(self)
         if self._cmd_vel is None:
-            return _reply(response, False, 'no cmd_vel_topic: set it (read-only: at start-up) '
-                          'to turn the robot', {'state': self._state})
+            return reply(response, False, 'no cmd_vel_topic: set it (read-only: at start-up) '
+                         'to turn the robot', {'state': self._state})
         if not self._busy.acquire(blocking=False):
             return self._reject_busy(response, 'turn')
         try:
@@ -45,11 +44,11 @@ class TurnMixin:
                 f'{s.turn_speed_rad_s:g} rad/s (at most {s.turn_timeout_s:g} s)')
             ok, summary, payload = await self._in_worker(self._turn, s)
             payload['sets_dropped'] = dropped
-            return _reply(response, ok, summary, payload)
+            return reply(response, ok, summary, payload)
         except Exception as exc:         # noqa: B902 -- a service must answer, never die
             self.get_logger().error(f'turn failed: {exc!r}')
-            return _reply(response, False, f'turn failed: {exc}; the robot is stopped',
-                          {'error': str(exc), 'type': type(exc).__name__})
+            return reply(response, False, f'turn failed: {exc}; the robot is stopped',
+                         {'error': str(exc), 'type': type(exc).__name__})
         finally:
             self._stop_robot()
             self._busy.release()
