@@ -15,10 +15,9 @@
 """
 Calibration run shared by the `magcal` command line and the calibration node (no rclpy).
 
-Both build a :class:`CalibrationRequest` (model, field reference, mode: attitude-aided,
-planar, heading unknown or plain), run it with :func:`run_request` (the fit of
-:func:`magcal_ros.core.model.fit`, the before/after figures and the calibration document of
-docs/design.md §4) and print :func:`summary_lines`.
+Both build a :class:`CalibrationRequest`, run it with :func:`run_request` (the fit, its
+before/after figures and the calibration document of docs/design.md §4) and print
+:func:`summary_lines`.
 """
 from dataclasses import dataclass
 
@@ -402,8 +401,8 @@ def attitude_mode(option, data):
     """
     Return the attitude mode a fit of ``data`` uses: 'tilt', 'full' or None (magnitude only).
 
-    ``option``: one of :data:`ATTITUDE_MODES` or None ('auto'); 'tilt' or 'full' on data
-    without attitude raise ValueError.
+    ``option``: one of :data:`ATTITUDE_MODES` or None ('auto'); raises ValueError for 'tilt'
+    or 'full' on data without attitude.
     """
     option = option or 'auto'
     if option not in ATTITUDE_MODES:
@@ -562,8 +561,8 @@ def _calibrate(data, request, model, field_nt, fit_kwargs):
                               for j, v in ident.get('sensors', {}).items()},
         'condition_number': float(ident.get('condition_number', float('nan'))),
         'residuals': {k: summary[k] for k in ('scalar_rms_nt', 'vector_rms_nt',
-                                              'noise_floor_nt', 'noise_floor_status')
-                      if k in summary},
+                                              'noise_floor_nt', 'noise_floor_status',
+                                              'tensor_rms_nt_per_m') if k in summary},
         'warnings': list(summary['warnings']),
     }
     if pr is not None:
@@ -573,8 +572,6 @@ def _calibrate(data, request, model, field_nt, fit_kwargs):
                            'inclination_source')}
     if aided is not None:
         prov['attitude'] = summary['attitude']
-    if 'tensor_rms_nt_per_m' in summary:
-        prov['residuals']['tensor_rms_nt_per_m'] = summary['tensor_rms_nt_per_m']
     fref = dict(request.field_reference or {})
     fref.setdefault('magnitude_nt', float(np.mean(result.field_magnitude_nt)))
     doc = calibration_to_doc(result.calibration, geometry=geometry or {},
@@ -586,8 +583,7 @@ def tensor_figures(summary):
     """
     Return the tensor's RMS before, after and its floor (nT/m, one RMS over the components).
 
-    Keys ``tensor_rms_before_nt_per_m``, ``tensor_rms_after_nt_per_m``,
-    ``tensor_floor_nt_per_m``; empty when the summary has no tensor.
+    Keys ``tensor_rms_{before,after}_nt_per_m``, ``tensor_floor_nt_per_m``; {} without tensor.
     """
     if 'tensor_rms_nt_per_m' not in summary:
         return {}

@@ -537,10 +537,8 @@ def plot_residual_vs_aux(data, result, floor, channels=None):
 
     ``channels``: names of ``data.aux`` or {name: sensors (1-based) or None} (default all).
     """
-    if channels is None:
-        channels = dict.fromkeys(data.aux or {})
-    elif not isinstance(channels, dict):
-        channels = dict.fromkeys(channels)
+    if not isinstance(channels, dict):
+        channels = dict.fromkeys((data.aux or {}) if channels is None else channels)
     drivers = [(k, (lambda j, k=k: data.aux[k]), _all_sensors(data, channels[k]))
                for k in sorted(channels) if k in (data.aux or {})]
     if not drivers:
@@ -562,14 +560,13 @@ def plot_residual_vs_rate(data, result, floor):
         x = np.linalg.norm(rates[j - 1], axis=1)
         ax.plot(x[idx], np.abs(result.scalar_residual_nt[j - 1, idx]), '.', ms=1.5,
                 color='0.6', label='|scalar residual|')
-        bx, by = _binned(x, np.abs(result.scalar_residual_nt[j - 1]))
-        ax.plot(bx, by, '-o', ms=2.5, color='0.2', label='|scalar| bin mean')
+        ax.plot(*_binned(x, np.abs(result.scalar_residual_nt[j - 1])), '-o', ms=2.5, color='0.2',
+                label='|scalar| bin mean')
         if j > 1:
             v = np.linalg.norm(result.vector_residual_nt[j - 1], axis=1)
             ax.plot(x[idx], v[idx], '.', ms=1.5, color='tab:orange', alpha=0.5,
                     label='|vector residual| vs sensor 1')
-            bx, by = _binned(x, v)
-            ax.plot(bx, by, '-o', ms=2.5, color='tab:red', label='|vector| bin mean')
+            ax.plot(*_binned(x, v), '-o', ms=2.5, color='tab:red', label='|vector| bin mean')
             ax.axhline(np.sqrt(3) * floor.vector_floor_nt(j), color='tab:red', ls=':', lw=1,
                        label='|vector| noise floor (RMS)')
         ax.axhline(floor.per_sensor_nt[j - 1], color='k', ls='--', lw=1, label='noise floor')
@@ -730,8 +727,7 @@ def plot_candidates(diagnosis, top=15):
     ax.axvline(MIN_EXPLAINED, color='k', ls='--', lw=1,
                label=f'a verdict removes >= {MIN_EXPLAINED:.0%}')
     ax.set_xlim(0, 1)
-    ax.set_yticks(y)
-    ax.set_yticklabels([r['token'] for r in rows], fontsize=8)
+    ax.set_yticks(y, [r['token'] for r in rows], fontsize=8)
     ax.set_ylabel('candidate effect (model token)')
     ax.set_xlabel(f'share of the excess over the floor removed ({diagnosis.decided_by}): '
                   'decides the verdict')
@@ -801,9 +797,8 @@ def plot_ladder(ladder):
     ax.axhline(fl, color='k', ls='--', lw=1, label=f'noise floor {fl:.2f} nT')
     for xi, v in zip(x, cv):
         ax.text(xi + 0.08, v, f'{v:.2f} nT', ha='left', va='bottom', fontsize=8)
-    ax.set_xticks(x)
-    ax.set_xticklabels(['start:\n' + ','.join(steps[0].model)]
-                       + [f'+ {st.added}' for st in steps[1:]], fontsize=8)
+    ax.set_xticks(x, ['start:\n' + ','.join(steps[0].model)]
+                  + [f'+ {st.added}' for st in steps[1:]], fontsize=8)
     ax.set(xlabel='model (effect added at each step)', ylabel='combined residual RMS (nT)')
     ax.set_ylim(0, 1.15 * max(cv.max(), fl))
     _title(ax, 'Error ladder: held-out residual as effects are added', fontsize=11)
@@ -926,8 +921,7 @@ def plot_residual_vs_lagged_channels(data, findings):
         if tau:
             curves.append((lagged, f'{ch} lagged {tau:.3g} s', 'tab:red'))
         for xv, name, colour in curves:
-            xb, yb = _binned(xv, proj, bins=30)
-            ax.plot(xb, yb, 'o-', ms=3, lw=1.0, color=colour, label=name)
+            ax.plot(*_binned(xv, proj, bins=30), 'o-', ms=3, lw=1.0, color=colour, label=name)
         ax.set(xlabel=ch, ylabel='residual along its direction [nT]')
         _title(ax, f'{"all sensors" if j is None else f"sensor {j}"}: {label}', fontsize=10)
         if len(curves) > 1:                 # one curve: the x label names it
