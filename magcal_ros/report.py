@@ -491,7 +491,7 @@ def plot_structure(data, result, floor, diagnosis=None, adopted=None, findings=N
 
 
 def _driver_panels(data, result, floor, drivers, title, xlabel):
-    """Panels of the scalar and binned raw residual per [(name, values(j), sensors)] driver."""
+    """Residual per sensor against each of ``drivers`` [(name, values(j) -> (N,), sensors)]."""
     cols = max(len(sensors) for _, _, sensors in drivers)
     fig = _figure(4.0 * cols, 3.0 * len(drivers) + 0.5)
     idx = _thin(data.n_samples)
@@ -629,7 +629,11 @@ def plot_direction_map(data, result, floor):
 
 
 def plot_tensor(data, result, baseline_m=0.5, floor=None):
-    """Gradient tensor (paper 004 eq. 1) before/after correction, nT/m, with ``floor``'s share."""
+    """
+    Gradient tensor components (paper 004 eq. 1) before/after correction, nT/m.
+
+    The floor line: ``floor`` (a NoiseFloor; default estimated here) propagated to the tensor.
+    """
     if data.n_sensors != 4:
         return None
     before = tensor_cross(data.raw, baseline_m)
