@@ -105,11 +105,10 @@ def geometry_mismatch(file_geometry, node_geometry, tol_m=1e-6):
 
 
 def tensor_stats(fields, positions):
-    """Return the tensor's rms, max_abs_dev, mean ((3, 3) nT/m) of ``fields`` (S, N, 3) nT."""
+    """Return the tensor's rms and max_abs_dev ((3, 3) nT/m) of ``fields`` (S, N, 3) nT."""
     g, _ = tensor_lstsq(fields, positions)
     dev = g - g.mean(axis=0)
-    return {'rms': np.sqrt(np.mean(dev ** 2, axis=0)), 'max_abs_dev': np.abs(dev).max(axis=0),
-            'mean': g.mean(axis=0)}
+    return {'rms': np.sqrt(np.mean(dev ** 2, axis=0)), 'max_abs_dev': np.abs(dev).max(axis=0)}
 
 
 @dataclass
