@@ -42,12 +42,11 @@ def load_data(path, unit=None, rate_hz=100.0, allow_gaps=False):
     """
     Dataset in nT from a wide CSV file, a rosbag2 directory, a vehicle log or a single-sensor CSV.
 
-    A CSV may be ``.csv.gz`` or ``.csv.zst``. A vehicle log (:mod:`magcal_ros.io.vehicle`)
-    is found by its first bytes; its reader's warnings go to stderr, one ``warning [input]:
-    ...`` line each; ``allow_gaps`` keeps a log whose compass stops for a while. ``unit`` (a
-    key of :data:`magcal_ros.units.UNITS_NT`) is the unit of the field columns, converted to
-    nT here, once. A CSV without wide-format sensor columns is one magnetometer's log (needs
-    ``unit``; ``rate_hz`` when it has no time column).
+    A vehicle log (:mod:`magcal_ros.io.vehicle`, found by its first bytes) prints its
+    warnings on stderr; ``allow_gaps`` keeps one whose compass stops for a while. ``unit`` (a
+    key of :data:`magcal_ros.units.UNITS_NT`): the field columns' unit, converted here, once.
+    A CSV without wide-format columns is one magnetometer's log (needs ``unit``; ``rate_hz``
+    without a time column).
     """
     if os.path.isdir(path):
         from magcal_ros.io.bag import read_bag
@@ -74,11 +73,9 @@ def load_record(path, unit=None, rate_hz=100.0, progress=None, reduce_above=None
     """
     (Dataset, Record or None): a recording, reduced when it is too long to hold.
 
-    A recording of more than ``reduce_above`` (default
-    :data:`magcal_ros.core.data.reduce.REDUCE_ABOVE`) epochs is read in chunks and reduced:
-    the Dataset is the evenly spread sample (noise blocks in its ``meta``), the
-    :class:`~magcal_ros.io.chunks.Record` reads the whole again for the residual
-    statistics. Anything else is read whole (:func:`load_data`), with no Record.
+    Above ``reduce_above`` (default :data:`magcal_ros.core.data.reduce.REDUCE_ABOVE`) epochs
+    the Dataset is the evenly spread sample read in chunks, the Record reads the whole again
+    for the residual statistics; anything else is read whole (:func:`load_data`).
     """
     from magcal_ros.core.data import reduce
     limit = reduce.REDUCE_ABOVE if reduce_above is None else int(reduce_above)
@@ -163,9 +160,9 @@ def full_record_statistics(run, record, positions, progress=None):
     """
     Put the residual statistics of every epoch of ``record`` into ``run`` (a long record).
 
-    ``run`` (CalibrationRun) was fitted on the reduced sample: its summary's RMS and largest
-    deviations and ``n_samples`` become the whole record's
-    (:func:`magcal_ros.core.data.reduce.residual_statistics`, one more pass over the chunks).
+    ``run`` (fitted on the reduced sample): its summary's RMS, largest deviations and
+    ``n_samples`` become the whole record's
+    (:func:`magcal_ros.core.data.reduce.residual_statistics`).
     """
     from magcal_ros.core.data.reduce import residual_statistics
     with _byte_bar(progress, 'residuals', record) as tick:
@@ -220,8 +217,7 @@ def resolve_field(args, data):
     """
     (field_nt or None, field_reference dict) from the options and the data.
 
-    Readings and reference must be a geomagnetic field in nT and agree
-    (:func:`magcal_ros.units.check_field_units`); else a ValueError names the unit they look like.
+    Readings and reference must agree, in nT (:func:`magcal_ros.units.check_field_units`).
     """
     f, fref = _resolve_field(args, data)
     kind = fref['kind']
@@ -545,6 +541,154 @@ def cmd_check(args):
     return EXIT_OK
 
 
+# -- diagnose, report -----------------------------------------------------------------------
+
+def _add_workbench_args(p):
+    p.add_argument('data', help='wide CSV file (.csv, .csv.gz, .csv.zst), rosbag2 directory, '
+                                'vehicle log (ArduPilot .bin/.log, PX4 .ulg), or '
+                                'single-sensor CSV (with --unit)')
+    p.add_argument('--model', default='base',
+                   help="effects of the model to diagnose, e.g. 'base,temperature@2' "
+                        '(default base)')
+    add_field_args(p)
+    p.add_argument('--plugin', action='append', metavar='MODULE[:CLASS]',
+                   help='import a module defining effects (repeatable); they become '
+                        'candidates and can be used in --model')
+    p.add_argument('--folds', type=int, default=3,
+                   help='contiguous time blocks of the cross-validation (default 3)')
+    p.add_argument('--alpha', type=float, default=0.01,
+                   help='family-wise significance level (Bonferroni; default 0.01)')
+    p.add_argument('--robust', action='store_true',
+                   help='robust loss for the base fit (spikes/outliers)')
+    p.add_argument('--constrained', action='store_true',
+                   help='priors on scale and angles, for partial attitude coverage (a '
+                        'vehicle that cannot turn over); every fit of the diagnosis uses them')
+    p.add_argument('--flag-degenerate', action='store_true',
+                   help='diagnose degenerate data anyway and flag it instead of refusing')
+    p.add_argument('--baseline-m', type=float, default=0.5, help='cross baseline, m')
+    add_unit_arg(p)
+    add_gaps_arg(p)
+    p.add_argument('--rate-hz', type=float, default=100.0,
+                   help='assumed sample rate of a single-sensor CSV without a time column')
+    p.add_argument('-q', '--quiet', action='store_true', help='no progress on stderr')
+    add_attitude_arg(p)
+
+
+def _run_diagnosis(args, with_ladder):
+    from magcal_ros.core.discovery import diagnose, ladder
+    from magcal_ros.core.model import Model
+    from magcal_ros.pipeline import attitude_mode, diagnosis_base
+    if args.folds != 0 and args.folds < 2:
+        raise BadInput(f'--folds must be 0 (no cross-validation) or >= 2, got {args.folds}')
+    if not 0 < args.alpha < 1:
+        raise BadInput(f'--alpha must be between 0 and 1, got {args.alpha}')
+    load_plugins(args.plugin)
+    prog = Progress(wanted(args.quiet, getattr(args, 'json', False)))
+    data, _ = load_record(args.data, args.unit, args.rate_hz, progress=prog,
+                          allow_gaps=args.allow_gaps)
+    try:
+        model = Model.from_spec(args.model, data.n_sensors)
+    except ValueError as exc:
+        raise BadInput(f'--model {args.model!r}: {exc}') from exc
+    field_nt, fref = resolve_field(args, data)
+    # readings no field produces (pinned, clipped, repeating channels, spikes): named, left out
+    from magcal_ros.core.data.readings import leave_out_unphysical
+    data, field_nt, screen = leave_out_unphysical(data, field_nt)
+    prog('fit', 0, 1, ','.join(model.spec()))
+    base, constrained, aided = diagnosis_base(
+        data, model, field_nt, attitude=attitude_mode(args.attitude, data) or 'off',
+        inclination_deg=fref.get('inclination_deg'), robust=args.robust,
+        constrained=args.constrained,
+        on_degenerate='flag' if args.flag_degenerate else 'raise')
+    if aided is not None:
+        fref = dict(fref, attitude=aided)
+    prog('fit', 1, 1)
+    diag = diagnose(data, field_nt=field_nt, base=base, folds=args.folds, alpha=args.alpha,
+                    progress=prog, baseline_m=args.baseline_m, constrained=constrained)
+    if 'reduction' in data.meta:
+        # a long record: the epochs are the whole record's, tested on its reduced sample
+        from dataclasses import replace
+        diag = replace(diag, n_samples=data.meta['reduction']['epochs'],
+                       n_used=diag.n_used or diag.n_samples)
+    lad = None
+    if with_ladder:
+        lad = ladder(data, base, field_nt=field_nt, folds=args.folds, progress=prog,
+                     diagnosis=diag, alpha=args.alpha, baseline_m=args.baseline_m,
+                     constrained=constrained)
+    return data, diag, lad, fref, screen, prog
+
+
+def cmd_diagnose(args):
+    """`magcal diagnose`: print the diagnosis (text or one JSON object)."""
+    data, diag, lad, fref, screen, prog = _run_diagnosis(args, args.ladder)
+    index = None
+    if args.report:
+        from magcal_ros.report import write_report
+        index = write_report(args.report, data, diagnosis=diag, ladder=lad,
+                             baseline_m=args.baseline_m, figures=args.figures, progress=prog)
+    from magcal_ros.core.model.notes import note_dict
+    from magcal_ros.pipeline import attitude_lines, fit_warnings
+    warnings = [note_dict(w) for w in screen.notes()] + fit_warnings(diag.result, diag.noise_floor)
+    if args.json:
+        doc = {**diag.to_dict(), 'warnings': warnings, 'readings_left_out': screen.to_dict(),
+               'field_reference': fref, 'constrained': bool(args.constrained)}
+        if 'attitude' in fref:
+            doc['attitude'] = fref['attitude']
+            doc['undetermined'] = fref['attitude']['undetermined']
+        doc['report'] = None if index is None else str(index)
+        if 'reduction' in data.meta:
+            doc['reduction'] = data.meta['reduction']
+        if lad is not None:
+            doc['ladder'] = lad.to_dict()
+        print_json(doc)
+    else:
+        if 'reduction' in data.meta:
+            print(reduction_line(data.meta['reduction']))
+        print(diag.summary())
+        if 'attitude' in fref:
+            for line in attitude_lines(fref['attitude']):
+                print(line)
+        for w in warnings:
+            print(format_note(w))
+        if lad is not None:
+            print('\nerror ladder (held-out RMS on contiguous time blocks):')
+            print(lad.table())
+        if index is not None:
+            print(f'report written to {index}')
+    return EXIT_OK
+
+
+def cmd_report(args):
+    """`magcal report`: diagnosis + error ladder as PNGs and a self-contained HTML page."""
+    data, diag, lad, _, screen, prog = _run_diagnosis(args, not args.no_ladder)
+    from magcal_ros.report import write_report
+    if not args.quiet:
+        for w in screen.notes():
+            print(format_note(w), file=sys.stderr)
+    index = write_report(args.out, data, diagnosis=diag, ladder=lad,
+                         baseline_m=args.baseline_m, figures=args.figures, progress=prog)
+    print(index)
+    if not args.quiet:
+        print(f'verdict: {diag.verdict_token or "none"} ({diag.verdict_reason})', file=sys.stderr)
+    return EXIT_OK
+
+
+def reduction_line(info):
+    """One line saying that a long record was diagnosed on its reduction (and how)."""
+    return (f'long record: {info["epochs"]} epochs over {info["span_s"]:.0f} s, read in '
+            f'chunks; fitted and diagnosed on {info["sample_epochs"]} evenly spread epochs '
+            f'(every {info["sample_stride"]}th), noise floor from {info["noise_blocks"]} '
+            f'full-rate blocks of {info["noise_block_epochs"]} epochs')
+
+
+def _figures_arg(p):
+    p.add_argument('--figures', choices=('relevant', 'all'), default='relevant',
+                   help="report views: 'relevant' (default) draws the residual against "
+                        'temperature, aux channels and field rate, the direction map, the '
+                        'change-point and lag views only when the diagnosis points at them '
+                        "(the page lists the others and why); 'all' draws every view")
+
+
 # -- main -----------------------------------------------------------------------------------
 
 def build_parser():
@@ -641,8 +785,21 @@ def build_parser():
     c.add_argument('--json', action='store_true', help='print one JSON object on stdout')
     c.set_defaults(func=cmd_check)
 
-    from magcal_ros import cli_workbench       # diagnose and report
-    cli_workbench.register(sub, sys.modules[__name__])
+    d = sub.add_parser('diagnose', help='find which physical effect the model is missing')
+    _add_workbench_args(d)
+    d.add_argument('--json', action='store_true', help='print one JSON object on stdout')
+    d.add_argument('--report', metavar='DIR', help='also write the HTML/PNG report to DIR')
+    d.add_argument('--ladder', action='store_true',
+                   help='keep adding the verdict and refitting until nothing is missing')
+    _figures_arg(d)
+    d.set_defaults(func=cmd_diagnose)
+
+    r = sub.add_parser('report', help='write an HTML page with the diagnosis plots')
+    _add_workbench_args(r)
+    r.add_argument('--out', required=True, metavar='DIR', help='output directory')
+    r.add_argument('--no-ladder', action='store_true', help='skip the error ladder')
+    _figures_arg(r)
+    r.set_defaults(func=cmd_report)
     return p
 
 

@@ -15,10 +15,9 @@
 """
 Calibration run shared by the `magcal` command line and the calibration node (no rclpy).
 
-Both build a :class:`CalibrationRequest` (model, field reference, mode: attitude-aided,
-planar, heading unknown or plain), run it with :func:`run_request` (the fit of
-:func:`magcal_ros.core.model.fit`, the before/after figures and the calibration document of
-docs/design.md §4) and print :func:`summary_lines`.
+Both build a :class:`CalibrationRequest`, run it with :func:`run_request` (the fit, its
+before/after figures and the calibration document of docs/design.md §4) and print
+:func:`summary_lines`.
 """
 from dataclasses import dataclass
 
@@ -55,12 +54,10 @@ def array_geometry(n_sensors, positions_m=(), baseline_m=0.5):
     """
     Geometry dict of an array from node parameters (docs/design.md §7).
 
-    ``positions_m``: flat x, y, z per sensor in the array frame, m (3 S values); empty:
-    paper 004's cross of ``baseline_m`` (m) for four sensors, the origin for one. Returns
-    ``{'type': 'cross', 'baseline_m', 'positions_m'}`` or ``{'type': 'positions',
-    'positions_m'}`` (positions (S, 3) m as lists), or None when no positions are given for
-    2, 3 or more than 4 sensors (no tensor then). Raises ValueError naming the count expected
-    when ``positions_m`` is not 3 finite numbers per sensor.
+    ``positions_m``: flat x, y, z per sensor, m (3 S values); empty: paper 004's cross of
+    ``baseline_m`` (m) for four sensors, the origin for one, None (no tensor) otherwise.
+    Returns a :func:`cross_geometry` or ``{'type': 'positions', 'positions_m'}`` ((S, 3) m
+    lists). Raises ValueError naming the count expected unless 3 finite numbers per sensor.
     """
     flat = np.asarray(list(positions_m), float)
     if flat.size == 0:
@@ -76,11 +73,7 @@ def array_geometry(n_sensors, positions_m=(), baseline_m=0.5):
 
 
 def tensor_undetermined(positions):
-    """
-    Why the gradient tensor cannot be computed from sensors at ``positions`` ((S, 3) m), or None.
-
-    It (5 numbers, 8 unknowns with the centre field) needs the sensors to span a plane.
-    """
+    """Why sensors at ``positions`` (S, 3) m (not spanning a plane) give no tensor, or None."""
     if positions is None:
         return ('no sensor positions (give sensor_positions_m, x y z per sensor in m): the '
                 'gradient tensor is not computed')
@@ -112,11 +105,10 @@ def geometry_mismatch(file_geometry, node_geometry, tol_m=1e-6):
 
 
 def tensor_stats(fields, positions):
-    """Return the tensor's rms, max_abs_dev, mean ((3, 3) nT/m) of ``fields`` (S, N, 3) nT."""
+    """Return the tensor's rms and max_abs_dev ((3, 3) nT/m) of ``fields`` (S, N, 3) nT."""
     g, _ = tensor_lstsq(fields, positions)
     dev = g - g.mean(axis=0)
-    return {'rms': np.sqrt(np.mean(dev ** 2, axis=0)), 'max_abs_dev': np.abs(dev).max(axis=0),
-            'mean': g.mean(axis=0)}
+    return {'rms': np.sqrt(np.mean(dev ** 2, axis=0)), 'max_abs_dev': np.abs(dev).max(axis=0)}
 
 
 @dataclass
@@ -130,20 +122,17 @@ class CalibrationRun:
 
 #: a sensor's fitted noise above this multiple of the data's own noise floor is reported
 RESIDUAL_WARN_RATIO = 1.5
-#: ... and above this multiple (two orders of magnitude) of the floor, or of the raw
-#: readings' difference floor (model-free), as a failed fit, not a missing effect
+#: ... and above this multiple of the floor (or of the raw readings'), as a failed fit
 GROSS_RATIO = 100.0
 
 
 def _residual_warnings(result, floor):
     """
-    Structured warnings (:class:`Note`) on the fit's residual against the data's floor.
+    Warnings (:class:`Note`) on the fit's ``sigma_nt`` (S,) nT against the data's ``floor``.
 
-    ``result.sigma_nt`` (S,) nT, the fit's per-axis noise estimate, against ``floor`` (the
-    data's :class:`~magcal_ros.core.data.noise.NoiseFloor`, model-free): a complete fit meets
-    it; one far above it misses an effect or was given inconsistent data (mis-paired sets, a
-    non-uniform field). A filtered series has only a lower bound of its floor: a
-    ``noise_floor`` warning with the range instead (never "N x the floor").
+    A complete fit meets the floor; far above it, an effect is missing or the data are
+    inconsistent. A filtered series (a lower bound of its floor only) gets a ``noise_floor``
+    warning instead of "N x the floor".
     """
     out = []
     for j, (sig, fl) in enumerate(zip(result.sigma_nt, floor.per_sensor_nt), start=1):
@@ -173,11 +162,10 @@ def _lower_floor(*floors):
 
 def _gross_note(j, sig, fl, raw_fl):
     """
-    Return a warning when sensor ``j``'s residual is orders of magnitude above its floor.
+    Return a warning when sensor ``j``'s residual sd ``sig`` is far above its floor, or None.
 
-    ``sig`` the fit's per-axis residual sd, ``fl`` the floor and ``raw_fl`` the floor from
-    the raw readings' differences, nT (which no fit moves: a floor from a diverged fit's
-    residual is as large as the residual). The lower of the two floors decides.
+    The lower of ``fl`` and ``raw_fl`` (from the raw readings' differences, which no diverged
+    fit inflates) decides, nT.
     """
     ref = _lower_floor(fl, raw_fl)
     if not (np.isfinite(sig) and np.isfinite(ref)) or sig <= GROSS_RATIO * ref:
@@ -199,9 +187,8 @@ def summarize(result, data, positions=None):
     """
     Before/after figures of a fit (nT, nT/m), JSON-ready; ``warnings`` ``{kind, sensor, text}``.
 
-    The noise floor is :func:`~magcal_ros.core.data.noise.data_noise_floor` (as ``diagnose``
-    reports it); the tensor floor is propagated from it, not from the fit's sigma (which
-    grows when an effect is missing).
+    The noise floor is :func:`~magcal_ros.core.data.noise.data_noise_floor`'s; the tensor
+    floor is propagated from it, not from the fit's sigma (which a missing effect inflates).
     """
     f = result.field_magnitude_nt
     raw_tot = np.linalg.norm(data.raw, axis=2) - f[None]
@@ -324,18 +311,15 @@ def calibrate(data, model='base', field_nt=None, geometry=None, field_reference=
     ``field_reference`` as in :class:`CalibrationRequest`.
 
     ``exclude_outliers``: when the least-squares fit leaves a sensor above 1.5 x its noise
-    floor, fit again with the soft-L1 loss, and if the sets beyond :data:`OUTLIER_SIGMAS` of
-    its robust noise are at most :data:`MAX_OUTLIER_FRACTION` of all, fit by least squares
-    without them (efficient on the rest, not the 1.4 x Cramer-Rao robust fit): garbage (a
-    cut line, a mis-paired stretch) costs those sets only; a missing effect, spread over
-    many sets, is left to the warning and to diagnose. The summary gives
+    floor, fit with the soft-L1 loss; if the sets beyond :data:`OUTLIER_SIGMAS` of its noise
+    are at most :data:`MAX_OUTLIER_FRACTION` of all, fit by least squares without them
+    (garbage costs those sets only; a missing effect is left to diagnose). The summary gives
     ``outlier_sets_excluded``.
 
-    ``screen``: first leave out the sets holding readings no field produces
-    (:func:`magcal_ros.core.data.readings.leave_out_unphysical`), each named in a
-    ``readings`` warning; summary and provenance give ``readings_left_out``; too few left
-    raises its UnphysicalReadingsError (a ValueError). A ReadingScreen: the caller left its
-    sets out already (the calibration node, before its pairing check); it is reported.
+    ``screen``: first leave out the sets with readings no field produces
+    (:func:`magcal_ros.core.data.readings.leave_out_unphysical`; ``readings`` warnings and
+    ``readings_left_out``; too few left raises a ValueError). A ReadingScreen: the caller
+    left its sets out already; it is reported.
 
     ``**options``: a :class:`CalibrationRequest`'s mode and options (``attitude``,
     ``planar``, ``prior_params``, ``heading_unknown``, ``robust``, ``constrained``,
@@ -416,17 +400,15 @@ def attitude_mode(option, data):
     """
     Return the attitude mode a fit of ``data`` uses: 'tilt', 'full' or None (magnitude only).
 
-    ``option``: one of :data:`ATTITUDE_MODES` or None ('auto'); 'tilt' or 'full' on data
-    without attitude raise ValueError.
+    ``option``: one of :data:`ATTITUDE_MODES` or None ('auto'); raises ValueError for 'tilt'
+    or 'full' on data without attitude.
     """
     option = option or 'auto'
     if option not in ATTITUDE_MODES:
         raise ValueError(f"attitude must be one of {', '.join(ATTITUDE_MODES)}, got {option!r}")
-    if option == 'off':
+    if option == 'off' or (option == 'auto' and data.attitude is None):
         return None
     if data.attitude is None:
-        if option == 'auto':
-            return None
         raise ValueError(f'attitude {option}: the data carry no attitude (CSV columns '
                          'att_qw..att_qz, a sensor_msgs/Imu topic, a vehicle log); give '
                          'one or fit without it (--attitude off)')
@@ -438,9 +420,8 @@ def diagnosis_base(data, model, field_nt, attitude=None, inclination_deg=None, r
     """
     Return (base fit, constrained, attitude summary or None): the fit a diagnosis starts from.
 
-    With an attitude in ``data`` (:func:`attitude_mode`) the attitude-aided fit, whose priors
-    then hold what the motion leaves open in every fit of the diagnosis (``constrained``
-    True); else the plain fit. For ``magcal diagnose``/``report`` and ``calibration/diagnose``.
+    With an attitude (:func:`attitude_mode`) the attitude-aided fit, whose priors then hold
+    what the motion leaves open in every fit of the diagnosis (``constrained`` True).
     """
     mode = attitude_mode(attitude, data)
     if mode is None:
@@ -465,8 +446,7 @@ def attitude_summary(aided, data):
             'residual_lag1_correlation': [float(r) for r in aided.residual_correlation]}
 
 
-#: a fitted mounting angle beyond this (3 prior sds), deg, is a conflict between the compass
-#: and the attitude that the mounting absorbs, not a compass mounted so (attitude_notes)
+#: a fitted mounting angle beyond this (3 prior sds), deg: compass and attitude conflict
 MOUNT_CONFLICT_DEG = 3.0 * float(np.degrees(MOUNT_PRIOR_SD_RAD))
 
 
@@ -518,8 +498,7 @@ def _calibrate(data, request, model, field_nt, fit_kwargs):
     mounting = []
     option = request.attitude
     if request.planar or request.heading_unknown:
-        # the planar mode and the heading-unknown site gradient are their own answers to a
-        # partial motion: the attitude is theirs ('auto'), or the caller said both
+        # planar and heading-unknown are their own answers to a partial motion
         if option not in (None, 'auto', 'off'):
             raise ValueError(f'attitude {option} goes with neither planar nor heading_unknown: '
                              'choose one')
@@ -581,8 +560,8 @@ def _calibrate(data, request, model, field_nt, fit_kwargs):
                               for j, v in ident.get('sensors', {}).items()},
         'condition_number': float(ident.get('condition_number', float('nan'))),
         'residuals': {k: summary[k] for k in ('scalar_rms_nt', 'vector_rms_nt',
-                                              'noise_floor_nt', 'noise_floor_status')
-                      if k in summary},
+                                              'noise_floor_nt', 'noise_floor_status',
+                                              'tensor_rms_nt_per_m') if k in summary},
         'warnings': list(summary['warnings']),
     }
     if pr is not None:
@@ -592,8 +571,6 @@ def _calibrate(data, request, model, field_nt, fit_kwargs):
                            'inclination_source')}
     if aided is not None:
         prov['attitude'] = summary['attitude']
-    if 'tensor_rms_nt_per_m' in summary:
-        prov['residuals']['tensor_rms_nt_per_m'] = summary['tensor_rms_nt_per_m']
     fref = dict(request.field_reference or {})
     fref.setdefault('magnitude_nt', float(np.mean(result.field_magnitude_nt)))
     doc = calibration_to_doc(result.calibration, geometry=geometry or {},
@@ -605,8 +582,7 @@ def tensor_figures(summary):
     """
     Return the tensor's RMS before, after and its floor (nT/m, one RMS over the components).
 
-    Keys ``tensor_rms_before_nt_per_m``, ``tensor_rms_after_nt_per_m``,
-    ``tensor_floor_nt_per_m``; empty when the summary has no tensor.
+    Keys ``tensor_rms_{before,after}_nt_per_m``, ``tensor_floor_nt_per_m``; {} without tensor.
     """
     if 'tensor_rms_nt_per_m' not in summary:
         return {}
@@ -697,20 +673,16 @@ def attitude_lines(at):
 #: the attitude mode of the learning's refits, the one place it is chosen: None, the
 #: magnitude-only fit (data.attitude is carried, not used), or 'tilt' / 'full'
 LEARN_ATTITUDE = None
-#: prior sd of a held (undetermined, or another sensor's) parameter, as a fraction of its
-#: kind's prior sd (1e-3 let a held scale move by 1e-4: 5 nT at 50 000 nT)
+#: prior sd of a held (undetermined, or another sensor's) parameter, a fraction of its kind's
 HELD_FRACTION = 1e-6
 #: a learned offset is determined when its standard uncertainty moves the corrected field
-#: by at most this many noise sds (1 held a 60 nT offset step known to 4 nT; 3 learns it);
-#: scale and angles (times F) to DETERMINED_NOISE_MAP sds, a coupling (times its reach over
-#: the window) to DETERMINED_NOISE_COUPLING: any that moved by noise stays in every later
-#: estimate that holds it
+#: by at most this many noise sds; scale and angles (times F) DETERMINED_NOISE_MAP, a
+#: coupling (times its reach) DETERMINED_NOISE_COUPLING (one that moved by noise would stay)
 DETERMINED_NOISE = 3.0
 DETERMINED_NOISE_MAP = 1.0
 DETERMINED_NOISE_COUPLING = 1.0
-#: a coupling's driver did not vary in the window when the part of its effect the sensor's
-#: constant map cannot produce is below this fraction of the whole (zero to rounding, about
-#: 1e-9, for a constant driver)
+#: a coupling's driver did not vary when the part of its effect the sensor's constant map
+#: cannot produce is below this fraction of the whole (about 1e-9 for a constant driver)
 STILL_FRACTION = 1e-6
 
 
@@ -718,13 +690,11 @@ def coupling_reach(cal, data, indices):
     """
     How far parameters of driven effects move the readings over ``data``: (varying, whole).
 
-    For each parameter ``indices`` (into ``cal.params``) of a driven effect of sensor j, the
-    derivative d raw_j / d p_i (N, 3) at the calibration ``cal`` and the field its correction
-    of ``data`` ((S, N, 3) nT) gives (:meth:`Model.forward_differences`). ``whole`` is its
-    RMS over the sets (vector norm); ``varying`` the RMS of its part sensor j's constant map
-    (offset, scale, angles) cannot produce: what the data tell apart from the sensor map,
-    zero to rounding for a driver that did not vary. Both (len(indices),), nT per the
-    parameter's unit.
+    For each of ``indices`` (into ``cal.params``), the derivative d raw_j / d p_i (N, 3) at
+    ``cal`` and the field its correction of ``data`` ((S, N, 3) nT) gives: ``whole`` its RMS
+    over the sets, ``varying`` the RMS of its part sensor j's constant map (offset, scale,
+    angles) cannot produce (zero for a driver that did not vary). Both (len(indices),), nT
+    per the parameter's unit.
     """
     model, p = cal.model, np.asarray(cal.params, float)
     info = model.param_info()
@@ -758,21 +728,13 @@ def refit_recent(data, active, field_nt, geometry=None, field_reference=None, se
     Refit what recent data determine, the rest held at the active calibration (issue 34).
 
     ``data`` (S, N, 3) nT, the recent window; ``active`` the Calibration in use, whose model
-    and drivers' references are kept (a parameter means what it means there); ``field_nt``
-    nT; ``geometry``, ``field_reference`` as for :func:`calibrate`; ``sensors`` (1-based)
-    learned, the others held (default: all).
+    and drivers' references are kept; ``field_nt`` nT; ``geometry``, ``field_reference`` as
+    for :func:`calibrate`; ``sensors`` (1-based) learned, the others held (default: all).
 
-    Every parameter gets a prior centred on its active value: the sensor map's with the
-    planar widths (:func:`magcal_ros.core.model.planar.prior_sd`); a coupling's the width at
-    which it moves the reading by 5 % of F beyond what the constant map can do
-    (:func:`coupling_reach` ``varying``). Array-wide and shared parameters are held. A
-    parameter whose posterior sd stays above ``planar.UNDETERMINED_RATIO`` of its prior's, or
-    whose uncertainty moves the corrected field by more than a few noise sds, is named and
-    held at its active value (prior :data:`HELD_FRACTION` of its width), so it cannot wander
-    where the data do not see; a coupling whose driver did not vary (:data:`STILL_FRACTION`)
-    is held without a fit. Stages: offsets (:data:`DETERMINED_NOISE`), then the whole map
-    (:data:`DETERMINED_NOISE_MAP`), then the couplings that varied
-    (:data:`DETERMINED_NOISE_COUPLING`).
+    Every parameter gets a prior centred on its active value (the sensor map's the planar
+    widths, a coupling's from :func:`coupling_reach`); what the data do not determine is held
+    there and named. Stages: offsets, the whole map, the couplings whose driver varied
+    (docs/design.md §3, *refit*).
 
     Returns (Calibration, its calibration document with ``provenance.converged``, the
     undetermined parameters as ``<effect>.<param>@<sensor>``).

@@ -15,19 +15,14 @@
 """
 Diagnosis report: PNG figures and one self-contained HTML page (PNGs embedded as base64).
 
-The figures answer "where does the model fail?": measured vs modelled magnitude and the
-residual over time; the residual against every driving signal (temperatures, auxiliary
-channels, the field rate) and over the field direction; the gradient tensor before and
-after correction (four-sensor cross); the candidate ranking and the error ladder; what is
-left, model-free (:mod:`magcal_ros.core.discovery.findings`): the residual spectrum,
-change points and the residual against the lagged channels.  The noise floor is drawn on
-every residual plot.  Matplotlib's object API with the Agg canvas (no pyplot, no global
-backend change, no display).
+The figures answer "where does the model fail?": the residual over time, against every
+driving signal and over the field direction, the gradient tensor, the candidates, the error
+ladder and the model-free findings (:mod:`magcal_ros.core.discovery.findings`), the noise
+floor on every residual plot.  Matplotlib's object API on the Agg canvas (no pyplot).
 """
 import base64
 import html
 import io
-import os
 from pathlib import Path
 import re
 import textwrap
@@ -53,8 +48,7 @@ MAX_POINTS = 6000
 PIXEL_COLUMNS = 1000
 COMPONENT_COLOURS = ('tab:red', 'tab:green', 'tab:blue')
 DPI = 100
-#: matplotlib settings of the report's figures: glyphs without hinting (FreeType's hinting
-#: ran at every measure and draw of a glyph; the 100 dpi text looks the same without)
+#: matplotlib settings of the figures: no glyph hinting (costly, and no better at 100 dpi)
 RC = {'text.hinting': 'no_hinting'}
 #: True: the figures' fixed margins (:func:`_arrange`); False: matplotlib's constrained
 #: layout places the axes, the figure title and the bottom legends (bench/report_layout.py)
@@ -79,13 +73,11 @@ def _suptitle(fig, text, fontsize=11):
 def _arrange(fig, rows=1, cols=1, left=0.8, right=0.25, bottom=0.55, top=0.3, wspace=1.0,
              hspace=0.75):
     """
-    Place the grid of axes with fixed margins and gaps (inches) and thin the ticks.
+    Place the grid of axes with fixed margins and gaps (inches); thin the ticks.
 
-    With :data:`FIXED_LAYOUT` False, matplotlib's constrained layout places them instead
-    (only the ticks are thinned here).  Fixed room is reserved: ``left`` for the y tick and
-    axis labels, ``bottom`` for the x ones, ``top`` for the axes titles (plus the wrapped
-    figure title), ``right`` for legends outside the axes, ``wspace``/``hspace`` between
-    panels.  Linear axes get 3-5 major ticks (:func:`_thin_ticks`: each tick is five artists).
+    ``left``/``bottom``: room for the tick and axis labels, ``top`` for the axes titles (plus
+    the figure title), ``right`` for legends outside the axes.  With :data:`FIXED_LAYOUT`
+    False, matplotlib's constrained layout places the axes instead.
     """
     w, h = fig.get_size_inches()
     title = fig.get_suptitle()
@@ -131,8 +123,8 @@ class _InView(Locator):
     def __init__(self, inner):
         self.inner = inner
 
+    # matplotlib's Locator API, to both locators or to the inner one
     def set_axis(self, axis):
-        """Attach both locators to ``axis``."""
         super().set_axis(axis)
         self.inner.set_axis(axis)
 
@@ -144,31 +136,26 @@ class _InView(Locator):
         return locs[(locs >= vmin - slack) & (locs <= vmax + slack)]
 
     def tick_values(self, vmin, vmax):
-        """Return the inner locator's ticks for these limits."""
         return self.inner.tick_values(vmin, vmax)
 
     def nonsingular(self, v0, v1):
-        """Return the inner locator's expanded limits."""
         return self.inner.nonsingular(v0, v1)
 
     def view_limits(self, vmin, vmax):
-        """Return the inner locator's view limits."""
         return self.inner.view_limits(vmin, vmax)
 
 
 def _bottom_legend(fig, fontsize=7, axes=None, width=2.3, markerscale=2):
     """
-    Put the legend of ``axes`` (default the first; each label once) along the bottom.
+    Put the legend of ``axes`` (default the first) along the bottom; return its margin, inches.
 
-    (A legend 'best' placed inside the axes tests every data point: slow with thousands.)
-    Returns the bottom margin it needs, inches.
+    (A 'best' legend inside the axes tests every data point: slow with thousands.)
     """
     handles = {}
     for ax in fig.axes[:1] if axes is None else axes:
         for h, lab in zip(*ax.get_legend_handles_labels()):
             handles.setdefault(lab, h)
     ncol = max(1, min(len(handles), int(fig.get_figwidth() / width)))
-    # along the bottom; outside the axes under the constrained layout
     fig.legend(list(handles.values()), list(handles), ncol=ncol,
                loc='lower center' if FIXED_LAYOUT else 'outside lower center',
                fontsize=fontsize, frameon=False, markerscale=markerscale)
@@ -210,11 +197,10 @@ def _thin(n):
 
 def _envelope(y, columns=PIXEL_COLUMNS):
     """
-    Return the indices of the smallest and largest sample of ``y`` in each chunk.
+    Return the indices of the smallest and largest sample of ``y`` in each of ``columns`` chunks.
 
-    A series drawn through these covers, in every pixel column, the range of all its samples
-    (spikes stay visible) for 2 * ``columns`` points.  ``y``: (N,) or (N, k) (the union over
-    the k series); NaN are skipped.  Returns sorted indices, (M,) int, M <= 2 k (columns + 1).
+    A line through them covers every pixel column's range (spikes stay visible).  ``y``: (N,)
+    or (N, k) (the union over the k series), NaN skipped.  Returns sorted (M,) int indices.
     """
     y = np.asarray(y, float)
     n = len(y)
@@ -238,9 +224,8 @@ def _band(ax, t, y, columns=PIXEL_COLUMNS, lw=0.5, **style):
     """
     Draw a series (``t``, ``y``: (N,)) as its range per chunk: one polygon, min to max per column.
 
-    The pixels of a line through the extremes of each chunk (:func:`_envelope`) for a fraction
-    of the drawing; the outline (``lw``, points) keeps a thin band visible; NaN leave a gap.
-    Returns the PolyCollection (legend handle).
+    Looks like :func:`_envelope`'s line, drawn faster; ``lw`` (points) keeps a thin band
+    visible; NaN leave a gap.  Returns the PolyCollection (legend handle).
     """
     n = len(y)
     k = int(np.ceil(n / columns))                # samples per chunk, the last one shorter
@@ -278,11 +263,7 @@ def _binned(x, y, bins=20):
 
 
 def _sensor_axes(fig, n, sharey=False):
-    """
-    Return ``n`` axes in rows of up to four.
-
-    ``sharey``: the axes of a row share the y axis (tick labels on the first only).
-    """
+    """Return ``n`` axes in rows of up to four (``sharey``: a row shares its y axis)."""
     cols = min(n, 4)
     rows = int(np.ceil(n / cols))
     if not sharey:
@@ -302,12 +283,7 @@ def _floor_lines(ax, level, label='noise floor'):
 # -- figures --------------------------------------------------------------------------------
 
 def magnitude_offsets(data, result):
-    """
-    Return the data of the magnitude figure: {sensor j: {'measured_nt', 'model_nt'}}.
-
-    The means of |raw| - |B| and of |model| - |B| per sensor, nT (the figure plots both about
-    the reference, so that an offset of thousands of nT and a variation of a few are readable).
-    """
+    """Return the means of |raw| - |B| and |model| - |B|, nT: {j: {'measured_nt', 'model_nt'}}."""
     return {j: {'measured_nt': float(np.mean(meas)), 'model_nt': float(np.mean(model))}
             for j, (meas, model) in enumerate(_magnitudes(data, result), start=1)}
 
@@ -320,12 +296,7 @@ def _magnitudes(data, result):
 
 
 def plot_magnitude(data, result):
-    """
-    Measured |raw| and modelled |forward(B)| per sensor over time, about the reference |B|.
-
-    Both as differences from the reference magnitude (nT), the raw readings' mean difference
-    named in the title.
-    """
+    """Measured |raw| and modelled |forward(B)| per sensor over time, minus the reference |B|."""
     s = data.n_sensors
     fig = _figure(4.0 * min(s, 4), 3.2 * int(np.ceil(s / 4)))
     t = data.t - data.t[0]
@@ -354,8 +325,7 @@ def plot_residual_time(data, result, floor):
     axes = np.atleast_1d(fig.subplots(s, 1, sharex=True))
     margins = {'right': 2.3}
     px = _columns(fig, **margins)
-    for j in range(1, s + 1):
-        ax = axes[j - 1]
+    for j, ax in enumerate(axes, start=1):
         scalar = result.scalar_residual_nt[j - 1]
         idx = _scatter_idx(len(t), scalar, columns=px)
         ax.plot(t[idx], scalar[idx], '.', ms=1.5, color='0.3', label='scalar |corrected| - |B|')
@@ -382,11 +352,7 @@ def _unit_of(channel):
 
 
 def adopted_fit(data, diagnosis, ladder=None):
-    """
-    Return the fit of the model with the verdict's term added, or None without a verdict.
-
-    The ladder's next rung when it added that term, else a refit; None when the refit fails.
-    """
+    """Return the fit with the verdict's term added (the ladder's rung or a refit), or None."""
     tok = diagnosis.verdict_token if diagnosis is not None else None
     if not tok:
         return None
@@ -396,8 +362,7 @@ def adopted_fit(data, diagnosis, ladder=None):
     from magcal_ros.core.model import fit
     base = diagnosis.result
     try:
-        # with_effect keeps the attitude's estimated error; an aided fit keeps its priors
-        model = base.model.with_effect(tok)
+        model = base.model.with_effect(tok)           # an aided fit keeps its priors
         return fit(data, model, field_nt=base.field_magnitude_nt, on_degenerate='flag',
                    check_identifiability=False, covariance=False,
                    constrained=attitude_reference(model) is not None)
@@ -409,9 +374,8 @@ def verdict_driver(data, token, j, term=None):
     """
     Return what the verdict's term follows on sensor j: (name, axis label, (N,) values).
 
-    A channel named in the token, the phase of a periodic term, |d raw / dt| for the field
-    rate, the raw component a direction term varies with most (``term``: its (N,) scalar fit),
-    else time.
+    A channel in the token, a period's phase, |d raw / dt| for the field rate, the raw
+    component a direction term varies with most (``term``: its (N,) scalar fit), else time.
     """
     t = data.t - data.t[0]
     if not token:
@@ -442,10 +406,9 @@ def plot_structure(data, result, floor, diagnosis=None, adopted=None, findings=N
     """
     Draw the residual per sensor, scalar and vector, over time and against the driver.
 
-    One row per sensor: the scalar residual over time, the vector residual (sensor j - sensor
-    1) over time, and the residual in the sensor's axes against what the verdict follows
-    (:func:`verdict_driver`; without a verdict, the channel of the largest finding).  Over each,
-    the adopted term's fit (``result`` minus ``adopted``); the noise floor dashed.
+    Columns: the scalar and the vector residual over time, the residual in the sensor's axes
+    against :func:`verdict_driver` (no verdict: the first finding's channel); over each, the
+    adopted term's fit (``result`` minus ``adopted``).  (CAPTIONS['structure'] says more.)
     """
     s = data.n_sensors
     token = diagnosis.verdict_token if diagnosis is not None else None
@@ -503,8 +466,7 @@ def plot_structure(data, result, floor, diagnosis=None, adopted=None, findings=N
             if x is None or not np.isfinite(x).any():
                 _message(ax, f'no {name} on sensor {j}')
                 continue
-            # the residual in the sensor's own axes: an additive term shows whole here,
-            # not projected on a field direction that turns with the attitude
+            # in the sensor's axes an additive term shows whole, not projected on the field
             idx = _thin(len(x))
             raw_res = result.residual_nt[j - 1]
             for c in range(3):
@@ -529,11 +491,7 @@ def plot_structure(data, result, floor, diagnosis=None, adopted=None, findings=N
 
 
 def _driver_panels(data, result, floor, drivers, title, xlabel):
-    """
-    One panel per (driver, sensor): scalar residual scatter + binned raw residual.
-
-    ``drivers``: [(name, values(j) -> (N,) array or None, sensors (1-based))], one row each.
-    """
+    """Residual per sensor against each of ``drivers`` [(name, values(j) -> (N,), sensors)]."""
     cols = max(len(sensors) for _, _, sensors in drivers)
     fig = _figure(4.0 * cols, 3.0 * len(drivers) + 0.5)
     idx = _thin(data.n_samples)
@@ -577,13 +535,10 @@ def plot_residual_vs_aux(data, result, floor, channels=None):
     """
     Residual of each sensor against each auxiliary channel, or None without any.
 
-    ``channels``: names of ``data.aux`` (every sensor), or {name: sensors (1-based) or None};
-    default every channel and sensor.
+    ``channels``: names of ``data.aux`` or {name: sensors (1-based) or None} (default all).
     """
-    if channels is None:
-        channels = dict.fromkeys(data.aux or {})
-    elif not isinstance(channels, dict):
-        channels = dict.fromkeys(channels)
+    if not isinstance(channels, dict):
+        channels = dict.fromkeys((data.aux or {}) if channels is None else channels)
     drivers = [(k, (lambda j, k=k: data.aux[k]), _all_sensors(data, channels[k]))
                for k in sorted(channels) if k in (data.aux or {})]
     if not drivers:
@@ -605,14 +560,13 @@ def plot_residual_vs_rate(data, result, floor):
         x = np.linalg.norm(rates[j - 1], axis=1)
         ax.plot(x[idx], np.abs(result.scalar_residual_nt[j - 1, idx]), '.', ms=1.5,
                 color='0.6', label='|scalar residual|')
-        bx, by = _binned(x, np.abs(result.scalar_residual_nt[j - 1]))
-        ax.plot(bx, by, '-o', ms=2.5, color='0.2', label='|scalar| bin mean')
+        ax.plot(*_binned(x, np.abs(result.scalar_residual_nt[j - 1])), '-o', ms=2.5, color='0.2',
+                label='|scalar| bin mean')
         if j > 1:
             v = np.linalg.norm(result.vector_residual_nt[j - 1], axis=1)
             ax.plot(x[idx], v[idx], '.', ms=1.5, color='tab:orange', alpha=0.5,
                     label='|vector residual| vs sensor 1')
-            bx, by = _binned(x, v)
-            ax.plot(bx, by, '-o', ms=2.5, color='tab:red', label='|vector| bin mean')
+            ax.plot(*_binned(x, v), '-o', ms=2.5, color='tab:red', label='|vector| bin mean')
             ax.axhline(np.sqrt(3) * floor.vector_floor_nt(j), color='tab:red', ls=':', lw=1,
                        label='|vector| noise floor (RMS)')
         ax.axhline(floor.per_sensor_nt[j - 1], color='k', ls='--', lw=1, label='noise floor')
@@ -628,10 +582,8 @@ def direction_projection(b, centre=None):
     """
     Lambert azimuthal equal-area projection of field directions ``b`` (N, 3), without a seam.
 
-    Centred on ``centre`` (3,), default the mean unit direction (+z when it is ~0): a cone of
-    directions about any axis is a closed ring, the whole sphere a disc of radius 2, and the
-    density of points shows the coverage.  Returns (x (N,), y (N,), centre (3,) unit vector),
-    x, y dimensionless in [-2, 2].
+    About ``centre`` (3,), default the mean direction (+z when it is ~0): the sphere is a disc
+    of radius 2, the point density the coverage.  Returns x (N,), y (N,) in [-2, 2], centre.
     """
     u = np.asarray(b, float)
     u = u / np.linalg.norm(u, axis=1, keepdims=True)
@@ -639,8 +591,7 @@ def direction_projection(b, centre=None):
     if np.linalg.norm(c) < 0.2:
         c = np.array([0.0, 0.0, 1.0])
     c = c / np.linalg.norm(c)
-    # tangent basis at the centre: e1 along the component of the sensor x (or y) axis
-    # perpendicular to it
+    # tangent basis at the centre: e1 along the sensor x (or y) axis' perpendicular part
     ref = np.array([1.0, 0.0, 0.0]) if abs(c[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     e1 = ref - (ref @ c) * c
     e1 /= np.linalg.norm(e1)
@@ -660,8 +611,7 @@ def plot_direction_map(data, result, floor):
         x, y, c = direction_projection(b)
         r = result.scalar_residual_nt[j - 1, idx]
         lim = max(3.0 * floor.per_sensor_nt[j - 1], float(np.percentile(np.abs(r), 98)))
-        # dots of the same 3 pt without an outline: Agg strokes each marker's edge, and
-        # that was a third of this figure's drawing
+        # no marker outline: Agg stroking each edge was a third of this figure's drawing
         sc = ax.scatter(x, y, c=r, s=9, linewidths=0, cmap='coolwarm', vmin=-lim, vmax=lim)
         fig.colorbar(sc, ax=ax, fraction=0.046, pad=0.03).set_label('scalar residual (nT)')
         # rings 45, 90 and 135 deg from the centre direction, and the edge of the sphere
@@ -682,8 +632,7 @@ def plot_tensor(data, result, baseline_m=0.5, floor=None):
     """
     Gradient tensor components (paper 004 eq. 1) before/after correction, nT/m.
 
-    The floor line is the sensors' data noise floor (``floor``, a NoiseFloor; default
-    estimated here) propagated to the tensor.
+    The floor line: ``floor`` (a NoiseFloor; default estimated here) propagated to the tensor.
     """
     if data.n_sensors != 4:
         return None
@@ -724,11 +673,10 @@ def plot_tensor(data, result, baseline_m=0.5, floor=None):
 
 def candidate_chart_data(diagnosis, top=15):
     """
-    Return the data of the candidates chart, from the candidates' dicts (best first).
+    Return the candidates chart's rows (best first), one dict per candidate.
 
-    One dict per candidate: token, significant, likelihood_tests (p-value and BIC passed),
-    explained_fraction (0..1 or None), verdict (bool), held_out_before_nt, held_out_after_nt,
-    held_out_drop_nt (nT or None), evidence (-delta BIC).
+    Keys: token, significant, likelihood_tests (p-value and BIC passed), explained_fraction
+    (0..1 or None), verdict, held_out_before/after/drop_nt (nT or None), evidence (-delta BIC).
     """
     rows = []
     for c in list(diagnosis.candidates)[:top]:
@@ -750,12 +698,10 @@ def candidate_chart_data(diagnosis, top=15):
 
 def plot_candidates(diagnosis, top=15):
     """
-    Plot what decided the verdict.
+    Plot what decided the verdict: each candidate's share of the excess removed, -delta BIC.
 
-    The share of the excess over the floor each candidate removes (left; the verdict needs
-    MIN_EXPLAINED), delta BIC (right); the verdict's bar outlined.  Green: passes every test;
-    orange: passes the likelihood tests only; grey: not significant; a grey cross: share not
-    tested.
+    Green: passes every test; orange: the likelihood tests only; grey: not significant; a
+    cross: share not tested; the verdict's bar outlined.
     """
     rows = candidate_chart_data(diagnosis, top)
     if not rows:
@@ -770,8 +716,7 @@ def plot_candidates(diagnosis, top=15):
     bars = ax.barh(y, share, color=colours)
     for bar, r in zip(bars, rows):
         if r['verdict']:
-            bar.set_edgecolor('k')
-            bar.set_linewidth(2)
+            bar.set(edgecolor='k', linewidth=2)
     for yi, r in zip(y, rows):
         if r['explained_fraction'] is not None:
             txt = f'{r["explained_fraction"]:.0%}'
@@ -786,8 +731,7 @@ def plot_candidates(diagnosis, top=15):
     ax.axvline(MIN_EXPLAINED, color='k', ls='--', lw=1,
                label=f'a verdict removes >= {MIN_EXPLAINED:.0%}')
     ax.set_xlim(0, 1)
-    ax.set_yticks(y)
-    ax.set_yticklabels([r['token'] for r in rows], fontsize=8)
+    ax.set_yticks(y, [r['token'] for r in rows], fontsize=8)
     ax.set_ylabel('candidate effect (model token)')
     ax.set_xlabel(f'share of the excess over the floor removed ({diagnosis.decided_by}): '
                   'decides the verdict')
@@ -857,9 +801,8 @@ def plot_ladder(ladder):
     ax.axhline(fl, color='k', ls='--', lw=1, label=f'noise floor {fl:.2f} nT')
     for xi, v in zip(x, cv):
         ax.text(xi + 0.08, v, f'{v:.2f} nT', ha='left', va='bottom', fontsize=8)
-    ax.set_xticks(x)
-    ax.set_xticklabels(['start:\n' + ','.join(steps[0].model)]
-                       + [f'+ {st.added}' for st in steps[1:]], fontsize=8)
+    ax.set_xticks(x, ['start:\n' + ','.join(steps[0].model)]
+                  + [f'+ {st.added}' for st in steps[1:]], fontsize=8)
     ax.set(xlabel='model (effect added at each step)', ylabel='combined residual RMS (nT)')
     ax.set_ylim(0, 1.15 * max(cv.max(), fl))
     _title(ax, 'Error ladder: held-out residual as effects are added', fontsize=11)
@@ -868,8 +811,6 @@ def plot_ladder(ladder):
     return _arrange(fig, right=2.2, bottom=0.85, top=0.4)
 
 
-# -- the page -------------------------------------------------------------------------------
-
 # -- model-free findings (magcal_ros.core.discovery.findings) -------------------------------
 
 def _finding_label(f):
@@ -877,12 +818,7 @@ def _finding_label(f):
 
 
 def plot_residual_spectrum(findings):
-    """
-    Power spectrum of each sensor's residual series over its white-noise level, log-log.
-
-    The series are the :class:`~magcal_ros.core.discovery.findings.Findings`' (nT); white noise
-    sits at 1; the lines found are marked with their token.
-    """
+    """Power spectrum of each sensor's residual series (``findings``') over its white noise."""
     sensors = sorted(findings.series)
     if not sensors or len(findings.t) < 30:
         return None
@@ -910,12 +846,7 @@ def plot_residual_spectrum(findings):
 
 
 def plot_change_points(findings):
-    """
-    Each sensor's residual series over time (running mean) with the steps found.
-
-    Averaged over 1 % of the record, the segment means between the change points drawn over
-    them, and the +-1 sd band of the running mean of white noise at the floor.
-    """
+    """Each sensor's residual series over time (running mean) with the steps found."""
     sensors = sorted(findings.series)
     n = len(findings.t)
     if not sensors or n < 30:
@@ -953,10 +884,8 @@ def plot_residual_vs_lagged_channels(data, findings):
     """
     Residual against each driving channel found, as is and through the lag found.
 
-    For every lag/channel/channel_nonlinear finding: the residual projected on the direction it
-    moves with the channel (nT), in equal-count bins, against the channel (a lag shows as a
-    loop) and through the fitted lag (a line).  Without such findings, each sensor's
-    temperature at the lag that fits it best.
+    The residual along the direction it moves with the channel, binned; without a lag,
+    channel or channel_nonlinear finding, each sensor's temperature at its best lag.
     """
     from magcal_ros.core.effects import first_order_lag
     t = findings.t
@@ -986,8 +915,7 @@ def plot_residual_vs_lagged_channels(data, findings):
         if tau is None:
             tau = best_lag(t, y, drive)
         lagged = first_order_lag(t, drive, tau) if tau else drive
-        # the direction the residual moves with the (lagged) channel (its square: a
-        # coupling that is even in the channel has no linear part)
+        # the direction the residual moves with the channel (and its square: an even coupling)
         z = (lagged - lagged.mean()) / (np.std(lagged) or 1.0)
         a = np.column_stack([np.ones(len(t)), z, z ** 2])
         coef = np.linalg.lstsq(a, y, rcond=None)[0][1:]
@@ -997,8 +925,7 @@ def plot_residual_vs_lagged_channels(data, findings):
         if tau:
             curves.append((lagged, f'{ch} lagged {tau:.3g} s', 'tab:red'))
         for xv, name, colour in curves:
-            xb, yb = _binned(xv, proj, bins=30)
-            ax.plot(xb, yb, 'o-', ms=3, lw=1.0, color=colour, label=name)
+            ax.plot(*_binned(xv, proj, bins=30), 'o-', ms=3, lw=1.0, color=colour, label=name)
         ax.set(xlabel=ch, ylabel='residual along its direction [nT]')
         _title(ax, f'{"all sensors" if j is None else f"sensor {j}"}: {label}', fontsize=10)
         if len(curves) > 1:                 # one curve: the x label names it
@@ -1006,6 +933,8 @@ def plot_residual_vs_lagged_channels(data, findings):
     _suptitle(fig, 'Residual against the driving channels')
     return _arrange(fig, 1, len(panels))
 
+
+# -- the page -------------------------------------------------------------------------------
 
 def finding_rows(findings):
     """Rows of the findings table (strings)."""
@@ -1062,18 +991,10 @@ def _token_sensors(token, n_sensors):
 
 def _implicated(data, diagnosis, ladder, findings):
     """
-    Return what the diagnosis points at: tokens, the findings' views and channels.
+    Return what the verdict, the significant candidates, the ladder and the findings point at.
 
-    The verdict, every significant candidate, every effect the ladder added, and every finding
-    (not the candidates that pass the likelihood tests only: with one strong missing effect
-    dozens do).
-
-    Returns
-    -------
-    tuple
-        (tokens: set of str, views: set of str (the findings' report figures), channels:
-        {'temperature' or a ``data.aux`` name: set of sensors (1-based)}).
-
+    (Not the candidates that pass the likelihood tests only: one strong missing effect makes
+    dozens.)  Returns (tokens, views (the findings' figures), {channel: sensors (1-based)}).
     """
     tokens, views, channels = set(), set(), {}
     if diagnosis is not None:
@@ -1148,12 +1069,7 @@ SELECTED_VIEWS = {
 
 
 def _unexplained(result, floor, diagnosis, found):
-    """
-    Tell whether the residual is above the floor while nothing names a cause.
-
-    No verdict and no finding with a token, while a sensor's scalar residual is more than
-    :data:`AT_FLOOR_RATIO` x its floor: then the report draws every view.
-    """
+    """Tell whether a residual exceeds :data:`AT_FLOOR_RATIO` x floor and nothing names why."""
     if diagnosis is not None:
         if diagnosis.verdict_token or diagnosis.at_floor:
             return False
@@ -1171,8 +1087,7 @@ def _plan(data, result, floor, diagnosis, ladder, found, baseline_m, every):
     """
     Return the report's views in page order: (name, heading, make, why not drawn).
 
-    Unless ``every``, a view of :data:`SELECTED_VIEWS` that nothing points at is not drawn and
-    the channel views keep only the (channel, sensor) panels something points at.
+    Unless ``every``, only the :data:`SELECTED_VIEWS` and channel panels something points at.
     """
     tokens, views, channels = _implicated(data, diagnosis, ladder, found)
     everyone = set(range(1, data.n_sensors + 1))
@@ -1225,13 +1140,9 @@ def _plan(data, result, floor, diagnosis, ladder, found, baseline_m, every):
                'ladder_rungs': 'no error ladder'}
     plan = []
     for name, heading, make in views:
-        if make is None:
-            plan.append((name, heading, None, missing[name]))
-        elif not every and not selected.get(name, True):
-            plan.append((name, heading, None,
-                         f'nothing points at it (drawn for {SELECTED_VIEWS[name]})'))
-        else:
-            plan.append((name, heading, make, None))
+        why = (missing[name] if make is None else None if every or selected.get(name, True)
+               else f'nothing points at it (drawn for {SELECTED_VIEWS[name]})')
+        plan.append((name, heading, None if why else make, why))
     if not every:                                  # the panels left out of drawn views
         rest = [('temperature', temp_sel)] if has_temp and temp_sel else []
         rest += [(k, aux_sel[k]) for k in aux if k in aux_sel]
@@ -1265,22 +1176,17 @@ def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseli
         Directory (created if missing).
     data : Dataset
         The data of the report (S sensors, N epochs), nT.
-    result : FitResult, optional
-        The fit whose residuals are shown (default: the diagnosis' or the ladder's last).
-    diagnosis : Diagnosis, optional
-        The diagnosis to show (candidates, verdict, findings).
-    ladder : Ladder, optional
-        The error ladder to show.
+    result, diagnosis, ladder : FitResult, Diagnosis, Ladder, optional
+        The fit whose residuals are shown (default: the diagnosis' or the ladder's first),
+        the diagnosis (candidates, verdict, findings) and the error ladder to show.
     baseline_m : float
         Cross baseline for the tensor figure, m.
     title : str
         Page title.
     figures : {'relevant', 'all'}
-        'relevant' (default) draws the views of :data:`SELECTED_VIEWS` (residual against
-        temperature, each auxiliary channel, the field rate; the direction map, the
-        change-point and lag views) only when the verdict, a significant candidate, an
-        adopted ladder step or a finding points at them, and lists the others with the
-        reason under "Views not drawn"; 'all' draws every view the data allow.
+        'relevant' (default) draws the views of :data:`SELECTED_VIEWS` only when the
+        verdict, a significant candidate, an adopted ladder step or a finding points at
+        them (the others listed under "Views not drawn", with the reason); 'all' every view.
     progress : callable, optional
         ``progress('report', i, n, view)`` as the figures are drawn.
 
@@ -1292,15 +1198,12 @@ def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseli
     """
     if figures not in ('relevant', 'all'):
         raise ValueError(f"figures must be 'relevant' or 'all', not {figures!r}")
-    out = Path(os.fspath(out_dir))
+    out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    if result is None and diagnosis is None and ladder is None:
+        raise ValueError('write_report needs a fit result, a diagnosis or a ladder')
     if result is None:
-        if diagnosis is not None:
-            result = diagnosis.result
-        elif ladder is not None:
-            result = ladder.steps[0].result
-        else:
-            raise ValueError('write_report needs a fit result, a diagnosis or a ladder')
+        result = diagnosis.result if diagnosis is not None else ladder.steps[0].result
     floor = diagnosis.noise_floor if diagnosis is not None else noise_floor_from_data(data, result)
     found = diagnosis.findings if diagnosis is not None else None
     if found is None:
@@ -1343,7 +1246,7 @@ def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseli
                    if name in CAPTIONS else '')
         images.append(f'<h2>{html.escape(heading)}</h2>{caption}<img alt="{name}" '
                       f'src="data:image/png;base64,{base64.b64encode(png).decode("ascii")}">')
-    # the structure first: the verdict, the residual it explains, then the evidence
+    # the verdict, the residual it explains (the structure), then the evidence
     if diagnosis is not None:
         v = diagnosis.verdict_token
         parts.append(f'<p class="verdict">verdict: <b>{html.escape(v or "none")}</b> — '

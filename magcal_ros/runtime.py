@@ -16,10 +16,7 @@
 Process-wide settings of magcal_ros' executables (the ``magcal`` command, the nodes, demos).
 
 One BLAS thread: the linear algebra here is small or tall-skinny, and extra threads only
-spin (BENCHMARKS.md, "One BLAS thread per process"). The fit and diagnosis limit BLAS around
-themselves (:func:`magcal_ros.core.model.solvers.single_threaded_blas`); this does it once
-for the process. A user's ``OPENBLAS_NUM_THREADS``, ``OMP_NUM_THREADS`` or
-``MKL_NUM_THREADS`` is kept.
+spin (BENCHMARKS.md, "One BLAS thread per process"); a user's choice of threads is kept.
 """
 import os
 

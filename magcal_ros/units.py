@@ -41,13 +41,11 @@ def t_to_nt(value_t):
 UNITS_NT = {'nT': 1.0, 'uT': 1e3, 'mG': 100.0, 'G': 1e5, 'gauss': 1e5, 'T': 1e9}
 #: magnitude of the geomagnetic field at the Earth's surface, nT (IGRF: ~22 000 to ~67 000)
 GEOMAGNETIC_RANGE_NT = (20000.0, 70000.0)
-#: readings outside this range are not a geomagnetic field in nT.  Wide on purpose: the
-#: units differ by 10x or more (mG -> 200-700 read as nT, uT -> 20-70, G, T: below 1), while
-#: an uncalibrated sensor without enough rotation to fit a sphere may add a hard-iron offset
-#: of several times the field (up to 6x measured on a QMC5883L: 300 000 nT)
+#: readings outside this range are not a geomagnetic field in nT.  Wide on purpose: the units
+#: differ by 10x or more, while an uncalibrated sensor that fits no sphere may add a hard-iron
+#: offset of several times the field (6x measured on a QMC5883L)
 PLAUSIBLE_RANGE_NT = (5000.0, 500000.0)
-#: the readings and a given reference magnitude may differ by at most this factor (the same
-#: reasons; a reference in the wrong unit is 10x to 1e9x off)
+#: the readings and a given reference magnitude may differ by at most this factor
 REFERENCE_RATIO = 8.0
 
 
@@ -73,10 +71,8 @@ def field_magnitude_estimate(raw):
         return med
     r = float(np.sqrt(r2))
     # the sphere is determined only when the readings extend in all three directions by a
-    # good fraction of its radius (not one attitude, not a circle of one-axis rotation)
-    # (the thresholds: a full sphere spreads ~0.58 r per direction, a QMC5883L full sphere
-    # with a 6x offset still 0.1 median |x|; one-axis rotations and pans of the shared
-    # HMC5883L recordings 0.01-0.06 median |x|, static ones 0.003)
+    # good fraction of its radius (a full sphere: ~0.58 r, 0.1 median |x| with a 6x offset;
+    # one-axis rotations of the HMC5883L recordings 0.01-0.06 median |x|, static ones 0.003)
     spread = np.sqrt(max(np.linalg.eigvalsh(np.cov(x.T))[0], 0.0))
     return r if spread > 0.15 * r and spread > 0.05 * med else med
 
