@@ -647,14 +647,20 @@ def _planar_lines(pl, heading_error_deg):
 def attitude_lines(at):
     """Return the attitude-aided fit's account (:func:`attitude_summary`) as lines."""
     wf = at['world_field']
+    inc, se = wf['inclination_deg'], wf['inclination_stderr_deg']
     line = (f"attitude: {at['mode']} ({at['trusted']} from {at['source']}, error "
-            f"{at['attitude_sd_deg']:.2f} deg as estimated); world field inclination "
-            f"{wf['inclination_deg']:.2f} +- {wf['inclination_stderr_deg']:.2f} deg from the data "
-            '(a level error of the attitude that holds over the record adds to it one for one)')
+            f"{at['attitude_sd_deg']:.2f} deg as estimated); world field inclination ")
     if wf.get('inclination_open'):
-        line += (' (not determined by the motion: ' + ', '.join(wf['inclination_open'])
-                 + (' open; the IGRF prior sets it)' if wf['inclination_prior'] == 'IGRF' else
-                    " open, held at the prior's value)"))
+        # its +- is the data's only given the values held: not a measurement of the site
+        line += (f"{inc:.2f} deg (not determined by the motion: "
+                 + ', '.join(wf['inclination_open'])
+                 + (f' open; the IGRF prior sets it, +- {se:.2f} deg)'
+                    if wf['inclination_prior'] == 'IGRF' else
+                    f" open, held at the prior's value; +- {se:.2f} deg only if those values "
+                    'are right)'))
+    else:
+        line += (f'{inc:.2f} +- {se:.2f} deg from the data (a level error of the attitude '
+                 'that holds over the record adds to it one for one)')
     if 'declination_deg' in wf:
         line += (f", declination {wf['declination_deg']:.2f} +- "
                  f"{wf['declination_stderr_deg']:.2f} deg")

@@ -169,7 +169,7 @@ def test_an_inclination_the_motion_leaves_open_is_said_to_rest_on_the_priors():
     # vertical offset are open): the inclination then rests on their held values, or on the
     # site's IGRF inclination when given, and the summary says which; tilted turns fix it.
     # It was printed as a result: 88.88 +- 0.01 deg on pyulog's PX4 sample.ulg, whose own
-    # corrected field and attitude give 63.4 deg
+    # corrected field and attitude give 63.4 deg; the +- is then stated as conditional
     from magcal_ros.pipeline import attitude_lines, attitude_summary
     data, _ = vehicle()
     ar = fit_attitude(data, 'base', field_nt=F, mode='tilt')
@@ -179,11 +179,16 @@ def test_an_inclination_the_motion_leaves_open_is_said_to_rest_on_the_priors():
     ar = fit_attitude(level, 'base', field_nt=F, mode='tilt')
     assert {'scale.kz@1', 'offset.bz@1'} <= set(ar.world_field['inclination_open'])
     line = attitude_lines(attitude_summary(ar, level))[0]
-    assert '(not determined by the motion: ' in line and "held at the prior's value)" in line
+    se = ar.world_field['inclination_stderr_deg']
+    assert '(not determined by the motion: ' in line and 'deg from the data' not in line, line
+    assert line.endswith(f"held at the prior's value; +- {se:.2f} deg only if those values "
+                         'are right)'), line
     from dataclasses import replace
     ned = replace(level, meta=dict(level.meta, attitude_frame='NED'))
     ar = fit_attitude(ned, 'base', field_nt=F, mode='tilt', inclination_deg=55.0)
-    assert attitude_lines(attitude_summary(ar, ned))[0].endswith(' open; the IGRF prior sets it)')
+    se = ar.world_field['inclination_stderr_deg']
+    assert attitude_lines(attitude_summary(ar, ned))[0].endswith(
+        f' open; the IGRF prior sets it, +- {se:.2f} deg)')
 
 
 def magcal(*args, cwd):
