@@ -15,14 +15,10 @@
 """
 Drivers: what an effect follows, as a basis of columns X (docs/formulas.md has the table).
 
-A driver turns the driving signals of a sensor (:class:`~.base.SensorContext`) into columns
-``X``: (N, m) for a scalar driver, (N, 3, m) for a per-axis one (``rate``, ``lin``), each
-in the driver's unit (:attr:`Driver.unit`); a coupling (:mod:`.couplings`) turns them into
-a change of the reading.  Reference values (a mean, a range, a start time) are computed
-once in :meth:`Driver.prepare` from the calibration data and stored in the effect's
-``refs``, so that live correction uses the same.  ``*`` multiplies factors (the tensor
-product of their columns, :class:`Product`).  A plug-in adds a factor by subclassing
-:class:`Driver` and calling :func:`register_driver`.
+A driver turns the signals of a sensor (:class:`~.base.SensorContext`) into columns X:
+(N, m) for a scalar driver, (N, 3, m) for a per-axis one (``rate``, ``lin``), in
+:attr:`Driver.unit`.  Its reference values (a mean, a range, a start time) are stored in the
+effect's ``refs`` by :meth:`Driver.prepare`, so that live correction uses the same.
 """
 import math
 
@@ -114,10 +110,10 @@ def _count(text, what, lo, hi):
 
 class Driver:
     """
-    Base class of a driver factor: columns X of the driving signals.
+    Base class of a driver factor (a plug-in subclasses it and calls :func:`register_driver`).
 
-    Subclasses set ``name`` (how the factor is written, ``name(...)``), ``usage`` and
-    implement :meth:`from_args`, :attr:`text`, :attr:`column_names`, :meth:`columns`.
+    Subclasses set ``name`` (written ``name(...)``), ``usage`` and implement
+    :meth:`from_args`, :attr:`text`, :attr:`column_names`, :meth:`columns`.
     """
 
     name = 'driver'
@@ -129,8 +125,7 @@ class Driver:
     #: the driver's own parameters (a lag's time constant), names and units
     param_names = ()
     units = ()
-    #: canonical text of the factor (pasteable), and the names of its m columns (parameter
-    #: names are built from them): set where it is made, or properties
+    #: canonical text of the factor, and the names of its m columns (parameter names)
     text = None
     column_names = ()
     #: unit of every column (the coupling's parameters are per this unit)
@@ -250,11 +245,9 @@ class Spline(_OfVariable):
     """
     ``s(v, k=K)``: a smooth function of v, K cubic B-spline columns, centred.
 
-    K + 1 cubic B-splines on equally spaced knots over the calibration range of v
-    [lo, hi] (mgcv's regression spline ``s(v, k=K, bs='bs')``, Wood 2017 ch. 5); the first
-    is dropped (the K + 1 sum to one: with the offset they would be collinear) and each
-    column is centred on its calibration mean.  Outside [lo, hi] (live correction later)
-    v is held at the nearer end: the smooth is extrapolated as a constant.
+    K + 1 cubic B-splines on equal knots over v's calibration range [lo, hi] (mgcv's
+    ``s(v, k=K, bs='bs')``, Wood 2017 ch. 5), the first dropped (they sum to one: collinear
+    with the offset); outside [lo, hi] v is held at the nearer end.
     """
 
     name = 's'
@@ -368,9 +361,8 @@ class Sinusoid(Driver):
     """
     ``sin(F[, refine=true])``: cos and sin of 2 pi F (t - t0), F in Hz, t0 the first time.
 
-    With ``refine=true`` the frequency is F + df, df (Hz) a parameter of the fit starting
-    at 0 (a line whose frequency is known only roughly, e.g. from a periodogram: within
-    about 1 / (4 span) of the truth for the fit to find it).
+    With ``refine=true`` the frequency is F + df, df (Hz) fitted from 0 (F must lie within
+    about 1 / (4 span) of the line).
     """
 
     name = 'sin'
@@ -466,10 +458,9 @@ class Lagged(_OfVariable):
     """
     ``lag(v[, tau=S])``: v through a first-order lag, tau dy/dt = v - y, centred on v's mean.
 
-    Without ``tau`` the time constant is a parameter of the fit (s, starting at 30 s).  The
-    filter (:func:`~.base.first_order_lag`, exact for v linear between samples) runs over the
-    whole record (``SensorContext.whole``), so held-out blocks keep its state; live correction
-    takes the same filter's steps one sample at a time (:func:`~.base.lag_step`).
+    Without ``tau`` the time constant is fitted (s, from 30 s).  The filter
+    (:func:`~.base.first_order_lag`) runs over the whole record (``SensorContext.whole``), so
+    held-out blocks keep its state; live correction takes its steps (:func:`~.base.lag_step`).
     """
 
     name = 'lag'
@@ -554,7 +545,7 @@ class Product(Driver):
         sizes = [len(f.param_names) for f in self.factors]
         for i, (f, qf) in enumerate(zip(self.factors, split_params(q, sizes))):
             x = f.columns(ctx, lin, refs, qf, f'{prefix}{i + 1}.')
-            if x.ndim == 2 and (self.per_axis):
+            if x.ndim == 2 and self.per_axis:
                 x = np.broadcast_to(x[:, None, :], (x.shape[0], 3, x.shape[1]))
             out = x if out is None else (out[..., :, None] * x[..., None, :]).reshape(
                 *x.shape[:-1], -1)
