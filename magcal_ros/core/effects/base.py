@@ -441,12 +441,3 @@ def cached(cache, key, anchor, make, size):
             cache.pop(next(iter(cache)))
         hit = cache[key] = (anchor, value)
     return hit[1]
-
-
-def steps_outside(times, t):
-    """Say which step of ``times`` has fewer than 3 samples of ``t`` (N,) s on a side, or None."""
-    for tk in times:
-        before = int(np.sum(t < tk))
-        if before < 3 or len(t) - before < 3:
-            return f'step at t = {tk:g} s lies outside the data ({t[0]:g} .. {t[-1]:g} s)'
-    return None

@@ -24,7 +24,7 @@ import math
 
 from magcal_ros.core.effects.base import (cached, first_order_lag, format_arg, lag_step,
                                           NONLINEARITY_FULL_SCALE_NT, parse_number,
-                                          split_params, steps_outside)
+                                          split_params)
 from magcal_ros.core.effects.names import Registry
 import numpy as np
 
@@ -53,33 +53,12 @@ def variable_name(text):
                        'aux_<channel>, rate (dB/dt) or lin (the linear reading)')
 
 
-def variable_unit(v):
-    """Return the unit of variable ``v``."""
-    return VARIABLES.get(v, ('unit', False))[0]
-
-
 def variable_values(ctx, v, lin=None):
     """(N,) or (N, 3) values of variable ``v`` in ``ctx`` (None if absent)."""
     if v == 'lin':
         return None if lin is None else lin / NONLINEARITY_FULL_SCALE_NT
     attr = {'t': 't', 'temperature': 'temp', 'rate': 'raw_rate'}.get(v)
     return getattr(ctx, attr) if attr else ctx.aux.get(v)
-
-
-def check_variable(ctx, v, sensor):
-    """Return None if ``v`` is present and varies in ``ctx``, else the reason why not."""
-    if v == 'lin':
-        return None
-    a = variable_values(ctx, v)
-    if a is None or not np.isfinite(a).any():
-        if v.startswith('aux_'):
-            return f'no auxiliary column {v!r} in the data (have: {sorted(ctx.aux) or "none"})'
-        col = {'temperature': f's{sensor}_temp', 't': 't', 'rate': 't'}.get(v, v)
-        return f'sensor {sensor}: no {v} in the data (column {col})'
-    a = np.asarray(a, float)
-    if np.nanmax(a) - np.nanmin(a) <= 1e-9 * max(1.0, float(np.nanmax(np.abs(a)))):
-        return f'{v!r} never changes: its coupling cannot be separated from the offset'
-    return None
 
 
 def _new(cls, args, kwargs, allowed, n_args, example):
@@ -178,7 +157,20 @@ class _OfVariable(Driver):
         return VARIABLE_SIGNALS.get(self.v, (self.v,))
 
     def check(self, ctx, sensor):
-        return check_variable(ctx, self.v, sensor)
+        """Return None if the variable is present and varies in ``ctx``, else why not."""
+        v = self.v
+        if v == 'lin':
+            return None
+        a = variable_values(ctx, v)
+        if a is None or not np.isfinite(a).any():
+            if v.startswith('aux_'):
+                return f'no auxiliary column {v!r} in the data (have: {sorted(ctx.aux) or "none"})'
+            col = {'temperature': f's{sensor}_temp', 't': 't', 'rate': 't'}.get(v, v)
+            return f'sensor {sensor}: no {v} in the data (column {col})'
+        a = np.asarray(a, float)
+        if np.nanmax(a) - np.nanmin(a) <= 1e-9 * max(1.0, float(np.nanmax(np.abs(a)))):
+            return f'{v!r} never changes: its coupling cannot be separated from the offset'
+        return None
 
     def _values(self, ctx, refs, prefix):
         a = variable_values(ctx, self.v)
@@ -211,7 +203,8 @@ class Variable(_OfVariable):
         self.v = variable_name(v)
         self.per_axis = VARIABLES.get(self.v, ('', False))[1]
         self.reads_lin = self.v == 'lin'
-        self.text, self.column_names, self.unit = self.v, (self.v,), variable_unit(self.v)
+        self.text, self.column_names = self.v, (self.v,)
+        self.unit = VARIABLES.get(self.v, ('unit', False))[0]
 
     def prepare(self, ctx, refs, prefix=''):
         if not self.per_axis:                   # rate and lin: their zero is physical
@@ -420,7 +413,12 @@ class Steps(Driver):
         return d
 
     def check(self, ctx, sensor):
-        return steps_outside(self.times, ctx.t)
+        t = ctx.t
+        for tk in self.times:
+            before = int(np.sum(t < tk))
+            if before < 3 or len(t) - before < 3:
+                return f'step at t = {tk:g} s lies outside the data ({t[0]:g} .. {t[-1]:g} s)'
+        return None
 
     def columns(self, ctx, lin, refs, q, prefix=''):
         return (ctx.t[:, None] >= np.array(self.times)[None, :]).astype(float)
@@ -475,7 +473,7 @@ class Lagged(_OfVariable):
         d.tau = _positive(kwargs['tau'], 'lag tau [s]', 'lag tau') if 'tau' in kwargs else None
         d.param_names, d.units = ((), ()) if d.tau is not None else (('tau',), ('s',))
         d.text = f'lag({d.v}' + ('' if d.tau is None else f', tau={format_arg(d.tau)}') + ')'
-        d.unit = variable_unit(d.v)
+        d.unit = VARIABLES.get(d.v, ('unit', False))[0]
         return d
 
     @property
