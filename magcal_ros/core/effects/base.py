@@ -19,8 +19,8 @@ Every sensor j of an array is described by the forward model
     raw_j = A_j @ B + offset_j + sum_k d_k(context, lin_j) + noise,     lin_j = A_j @ B
 
 with ``B`` (nT) the true field in the array frame, ``A_j`` the product of the *linear*
-effects (paper 004 eq. 2-3) and ``d_k`` the *additive* effects.  Also paper 004's rotations
-and the signal helpers every effect shares.
+effects (paper 004 eq. 2-3) and ``d_k`` the *additive* effects.  Also paper 004's rotations,
+the signal helpers every effect shares and the :class:`Registry` of named classes.
 """
 from dataclasses import dataclass, field
 import math
@@ -236,6 +236,52 @@ class Effect:
 
     def __repr__(self):
         return f'{type(self).__name__}(sensor={self.sensor})'
+
+
+class Registry:
+    """
+    Classes registered by name, built-in then plug-ins: the one mechanism of the named
+    effects, couplings and drivers (docs/plugins.md).
+
+    Every class subclasses ``base``; messages call one ``what`` ('effect', 'coupling',
+    'driver') and name the base ``base_name`` (where users import it from).
+    """
+
+    def __init__(self, base, what, base_name):
+        self.base, self.what, self.base_name = base, what, base_name
+        self.builtin = ()
+        self._classes = {}
+
+    def register(self, cls, name=None):
+        """Register a subclass of the base under ``name`` (default ``cls.name``); return it."""
+        if not (isinstance(cls, type) and issubclass(cls, self.base)):
+            raise TypeError(f'{cls!r} is not a subclass of {self.base_name}')
+        key = name or cls.name
+        if key in self._classes and self._classes[key] is not cls:
+            article = 'an' if self.what[0] in 'aeiou' else 'a'
+            raise ValueError(f'{article} {self.what} named {key!r} is already registered '
+                             f'({self._classes[key]!r})')
+        self._classes[key] = cls
+        return cls
+
+    def unregister(self, name):
+        """Remove the plug-in registered under ``name`` (tests, interactive sessions)."""
+        if name in self.builtin:
+            raise ValueError(f'{name!r} is a built-in {self.what} and cannot be unregistered')
+        self._classes.pop(name, None)
+
+    def get(self, name):
+        """Return the class registered under ``name``, or None."""
+        return self._classes.get(name)
+
+    def names(self):
+        """Return the registered names, sorted."""
+        return sorted(self._classes)
+
+    def seal_builtin(self):
+        """Mark every class registered so far as built-in (never unregistered); return names."""
+        self.builtin = tuple(self._classes)
+        return self.builtin
 
 
 def raw_rate(x, t=None, period=None):

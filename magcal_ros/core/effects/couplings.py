@@ -21,7 +21,7 @@ angles of paper 004 eq. 2 and 3 to first order: dB = dC lin, dC = [[0, varphi, t
 [0, 0, psi], [0, 0, 0]], and dB = W lin, W = [[0, alpha, -gamma], [-alpha, 0, beta],
 [gamma, -beta, 0]].  Per-axis drivers (X (N, 3, m)) act axis by axis, dB_i = sum_k X_ik P_ki.
 """
-from magcal_ros.core.effects.names import Registry
+from magcal_ros.core.effects.base import Registry
 import numpy as np
 
 

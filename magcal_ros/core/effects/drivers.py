@@ -23,9 +23,8 @@ effect's ``refs`` by :meth:`Driver.prepare`, so that live correction uses the sa
 import math
 
 from magcal_ros.core.effects.base import (cached, first_order_lag, format_arg, lag_step,
-                                          NONLINEARITY_FULL_SCALE_NT, parse_number,
+                                          NONLINEARITY_FULL_SCALE_NT, parse_number, Registry,
                                           split_params)
-from magcal_ros.core.effects.names import Registry
 import numpy as np
 
 #: variables a driver may read: name -> (unit, per axis)
