@@ -158,23 +158,10 @@ def find_slips(raw, epochs=None, max_lag=DEFAULT_MAX_LAG, window=DEFAULT_WINDOW,
     refitted, until the lags stop changing; a lag other than 0 must fit better than 0 by
     ``min_contrast`` *and* down to the noise (``noise_factor``).
 
-    Parameters
-    ----------
-    raw : numpy.ndarray
-        (S, N, 3) raw readings of S >= 2 sensors in set order, nT.
-    epochs : numpy.ndarray, optional
-        (N,) epoch number of each set; a jump other than +1 starts a new run (no set is
-        re-paired across runs).  Default: one run.
-    max_lag, window : int
-        Largest slip searched, epochs; sets in the sliding window that decides a slip.
-    min_contrast, noise_factor : float
-        :data:`DEFAULT_MIN_CONTRAST`, :data:`DEFAULT_NOISE_FACTOR`.
-
-    Returns
-    -------
-    Slips
-        All lags 0 when the record is too short or too poor in attitudes to tell.
-
+    ``raw`` (S, N, 3) nT of S >= 2 sensors in set order; ``epochs`` (N,) epoch numbers, a
+    jump other than +1 starting a new run (no set is re-paired across runs; default one
+    run); ``max_lag`` the largest slip searched, epochs; ``window`` sets deciding a slip.
+    Returns :class:`Slips`, all lags 0 when the record is too short or poor to tell.
     """
     raw = np.asarray(raw, float)
     if raw.ndim != 3 or raw.shape[2] != 3:

@@ -113,25 +113,13 @@ class LiveCorrector:
     """
     A calibration made ready to correct live samples of every sensor of an array.
 
-    Parameters
-    ----------
-    cal : magcal_ros.core.model.Calibration
-        Effect code that raises here is re-raised as
-        :class:`~magcal_ros.core.effects.safety.EffectError` naming it.
-    n_sensors : int
-        Sensors of the array; another count than the calibration's: ValueError.
-    positions_m : array_like, optional
-        (S, 3) sensor positions in the array frame, m; without them no gradient
-        (:attr:`no_gradient_reason`).
-    stamp_tolerance_s : float
-        Tolerance of the :class:`~magcal_ros.core.live.sync.StampMatcher`, s.
-    check_pairing : bool
-        Check every set from the data (:meth:`pairing_chi2`) and re-pair a shifted stream
-        at once; off, sets are paired by stamps alone.
-    field_nt : float, optional
-        Field magnitude of the calibration, nT: :meth:`published_covariance_nt2` then adds
-        :func:`calibration_covariance_nt2`.
-
+    ``cal`` a Calibration (effect code raising in it: an EffectError naming the effect);
+    ``n_sensors`` the calibration's count (else ValueError); ``positions_m`` (S, 3) m in the
+    array frame (without: no gradient, :attr:`no_gradient_reason`); ``stamp_tolerance_s`` of
+    the :class:`~magcal_ros.core.live.sync.StampMatcher`, s; ``check_pairing``: check every
+    set from the data (:meth:`pairing_chi2`) and re-pair a shifted stream at once;
+    ``field_nt`` (nT): :meth:`published_covariance_nt2` adds
+    :func:`calibration_covariance_nt2`.
     """
 
     def __init__(self, cal, n_sensors, positions_m=None, stamp_tolerance_s=0.005,
@@ -269,16 +257,9 @@ class LiveCorrector:
         Correct one finite raw sample of sensor j and remember it for the field rate.
 
         ``j`` 1-based, ``t`` its stamp s, ``raw`` (3,) nT; returns the corrected field (3,) nT
-        in the array frame.
-
-        Raises
-        ------
-        MissingSignal
-            A driven effect has no live signal yet (temperature, auxiliary channel, or the
-            field rate before the stream's period is known).
-        magcal_ros.core.effects.safety.EffectError
-            The code of an effect raised (naming the effect); the sample has no correction.
-
+        in the array frame.  Raises :class:`MissingSignal` while a driven effect has no live
+        signal (temperature, auxiliary channel, the field rate before the stream's period is
+        known), EffectError when an effect's code raised (no correction).
         """
         s = self._sensors[j - 1]
         s.recent.append((t, raw))

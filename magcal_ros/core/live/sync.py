@@ -159,37 +159,20 @@ class StampMatcher:
     majority wins.  When every sensor has a queued sample the heads share an epoch (a set)
     or the oldest are dropped (an epoch some sensor never delivered).
 
-    Parameters
-    ----------
-    n_sensors : int
-        Number of streams S.
-    tolerance_s : float
-        Largest stamp difference of two samples voting for one epoch, s (~half a period).
-    window, align_every : int
-        Samples per stream in the vote; samples (all streams) between votes.
-    max_queue : int
-        Samples kept per stream while another is silent (older ones: incomplete sets).
-    misfit : callable, optional
-        ``misfit(items) -> float``, a chi-square of the S items of a set as one epoch
-        (:meth:`~magcal_ros.core.live.corrector.LiveCorrector.pairing_chi2`); a set passes at
-        most ``threshold``, a failing one is never emitted.  After a failure the candidate
-        offsets (:meth:`_candidates`) are scored over ``confirm`` sets; one whose every set
-        passes and whose sum beats every other by ``margin`` is adopted, else the set is
-        dropped (with no clear candidate the vote restarts).  Once aligned, a new vote is
-        taken unless the next ``confirm`` sets refute it.
-    threshold : float
-        Largest misfit of a set that passes.
-    max_shift, confirm : int
-        Largest forward shift tried after a failed set, epochs; sets the candidates are
-        compared on.
-    margin : float
-        Least lead in summed misfit of the adopted candidate (2 ln of a likelihood ratio).
+    ``n_sensors`` streams S; ``tolerance_s`` (s, ~half a period); ``window`` samples per
+    stream in the vote, ``align_every`` samples between votes; ``max_queue`` samples kept per
+    stream while another is silent.  ``misfit(items) -> float``, optional, a chi-square of the
+    S items of a set as one epoch (:meth:`.LiveCorrector.pairing_chi2`): a set passes at most
+    ``threshold``, a failing one is never emitted.  After a failure the candidate offsets
+    (:meth:`_candidates`, forward shifts up to ``max_shift``) are scored over ``confirm``
+    sets; one whose every set passes and whose sum beats every other by ``margin`` (2 ln of
+    a likelihood ratio) is adopted, else the set is dropped (with no clear candidate the vote
+    restarts).  Once aligned, a new vote is taken unless the next ``confirm`` sets refute it.
 
     Counters: ``complete`` sets emitted, ``incomplete`` epochs missing a sensor's sample,
     ``out_of_order`` samples older than their sensor's previous one, ``realigned`` offsets
     the vote changed after the first alignment, ``rejected`` sets over ``threshold``,
     ``repaired`` offsets changed from the misfit.
-
     """
 
     def __init__(self, n_sensors, tolerance_s, window=200, align_every=40, max_queue=1000,
