@@ -240,11 +240,11 @@ class Effect:
 
 class Registry:
     """
-    Classes registered by name, built-in then plug-ins: the one mechanism of the named
-    effects, couplings and drivers (docs/plugins.md).
+    Classes registered by name, built-in then plug-ins (docs/plugins.md).
 
-    Every class subclasses ``base``; messages call one ``what`` ('effect', 'coupling',
-    'driver') and name the base ``base_name`` (where users import it from).
+    The one mechanism of the named effects, couplings and drivers.  Every class subclasses
+    ``base``; messages call one ``what`` ('effect', 'coupling', 'driver') and name the base
+    ``base_name`` (where users import it from).
     """
 
     def __init__(self, base, what, base_name):
