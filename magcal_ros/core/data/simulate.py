@@ -44,16 +44,15 @@ class SimConfig:
     """
     Settings of the simulator; defaults are paper 004 section 4.1.
 
-    ``n_sensors``: 4 is the cross (from ``baseline_m``) unless ``positions_m`` ((S, 3) or flat
+    ``n_sensors``: 4 is the cross (from ``baseline_m``) unless ``positions_m`` ((S, 3) or
     (3 S,) m) is given; other counts sit at ``positions_m`` (default: the origin).
-    ``trajectory``: 'random' (uniform attitudes), 'smooth' (tumbling that covers the sphere
-    in about a minute), 'turntable' (about body z), 'cone' (field directions in a cap of
-    ``cone_half_angle_deg`` around body +z), 'vehicle' (:func:`vehicle_attitude`).
-    ``errors``: 'paper004' (Table 1; sensor j > 4 gets sensor ((j - 1) mod 4) + 1's) or None.
-    ``truth``: {term ('temperature@2', 'aux:aux_motor_current'): parameter values} added to
-    the ``model`` spec.  ``gradient_nt_per_m``: (3, 3) uniform world (NED) gradient, nT/m
-    (``field_nt`` is then the field at the centre).  ``attitude_error_deg``: RMS smooth error
-    per body axis of the attitude put into the samples (:func:`attitude_error`).
+    ``trajectory``: 'random', 'smooth' (tumbling over the sphere in about a minute),
+    'turntable' (about body z), 'cone' (field in a cap of ``cone_half_angle_deg`` around
+    body +z), 'vehicle' (:func:`vehicle_attitude`).  ``errors``: 'paper004' (Table 1, sensor
+    j > 4 as sensor ((j - 1) mod 4) + 1) or None.  ``truth``: {term: parameter values} added
+    to ``model``.  ``gradient_nt_per_m``: (3, 3) world (NED) gradient, nT/m, ``field_nt``
+    then at the centre.  ``attitude_error_deg``: RMS error per body axis of the attitude put
+    into the samples (:func:`attitude_error`).
     """
 
     n_samples: int = 200                # epochs N (for :func:`simulate`)

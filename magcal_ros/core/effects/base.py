@@ -93,8 +93,7 @@ class SensorContext:
     aux: dict = field(default_factory=dict)
     #: (N, 3) time derivative of the raw reading, nT/s
     raw_rate: np.ndarray | None = None
-    #: the whole record this context was cut from (:meth:`subset`): an effect with memory
-    #: (a lag filter) runs over it and keeps its state across the cut
+    #: the whole record this context was cut from (:meth:`subset`; a lag filter runs over it)
     parent: 'SensorContext | None' = None
     #: (N,) int, positions of these samples in ``parent``
     index: np.ndarray | None = None
@@ -155,8 +154,7 @@ class Effect:
     #: True for an additive effect whose contribution is a constant (the offset); any other
     #: additive effect is *driven* and evaluated per sample
     constant = False
-    #: prior of the constrained mode on every parameter: (mean, or None for
-    #: :meth:`default_params`, sd in the parameters' unit), or None
+    #: prior of every parameter, constrained mode: (mean or None: :meth:`default_params`, sd)
     prior = None
     #: place of a linear effect in the product A = A_1 A_2 ... (the smallest left-most)
     linear_order = 0

@@ -344,10 +344,8 @@ def pairing_operator(positions_m, cov_nt2):
 
     The residual of b = H theta + noise, theta = (B0, g_xx, g_xy, g_xz, g_yy, g_yz), in the
     noise metric: Sigma = L L^T, L^-1 H = Q R, Q_r the last 3 S - rank(H) columns of Q,
-    K = Q_r^T L^-1.
-
-    ``positions_m`` (S, 3) m, ``cov_nt2`` (3 S, 3 S) nT^2 of the stacked corrected fields;
-    returns K (3 S - rank(H), 3 S), 1/nT ((0, 3 S) when nothing is redundant).
+    K = Q_r^T L^-1.  ``positions_m`` (S, 3) m, ``cov_nt2`` (3 S, 3 S) nT^2 of the stacked
+    corrected fields; returns K (3 S - rank(H), 3 S), 1/nT.
     """
     pos = np.asarray(positions_m, float)
     pos = pos - pos.mean(axis=0)
