@@ -12,9 +12,4 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""
-Data of the array.
-
-The recording in memory, the noise floor, the reference magnitude, the simulator and the
-static checks.
-"""
+"""Data of the array: the recording, noise floor, reference magnitude, simulator, checks."""

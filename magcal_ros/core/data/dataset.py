@@ -42,8 +42,7 @@ class Dataset:
     #: (S, N, 3) d(raw)/dt, nT/s, of the full-rate record when these epochs are a sample of it
     #: (:mod:`magcal_ros.core.data.reduce`); None: from these epochs
     rate: np.ndarray | None = field(default=None, repr=False)
-    #: (whole Dataset, (N,) int positions in it) of a :meth:`subset`: effects with memory (a
-    #: lag filter) run over the whole record, so a held-out block keeps their state
+    #: (whole Dataset, (N,) int positions in it) of a :meth:`subset` (a lag filter's record)
     origin: tuple | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self):

@@ -68,10 +68,9 @@ def site_field_reference(source, field_nt=None, lat_deg=None, lon_deg=None, alt_
     Return the reference magnitude and its ``field_reference`` record, as a node sets it.
 
     ``source``: 'constant' (``field_nt``, nT), 'igrf' (:func:`igrf_field` at ``lat_deg``,
-    ``lon_deg`` (deg), ``alt_m`` (m above the ellipsoid) and ``date`` 'YYYY-MM-DD'), 'shape'
-    (:func:`auto_magnitude` of sensor 1's ``raw`` (N, 3) nT) or 'shape-planar' (a turn about
-    one axis).  Returns (F nT, the calibration file's ``field_reference``: kind, inputs,
-    magnitude_nt); ValueError naming what is missing or out of range.
+    ``lon_deg`` deg, ``alt_m`` m, ``date`` 'YYYY-MM-DD'), 'shape' (:func:`auto_magnitude` of
+    sensor 1's ``raw`` (N, 3) nT) or 'shape-planar' (a turn about one axis).  Returns (F nT,
+    the calibration file's ``field_reference``); ValueError naming what is missing.
     """
     if source == 'constant':
         f = float(field_nt)

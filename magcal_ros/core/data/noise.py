@@ -15,18 +15,15 @@
 """
 Noise floor of a sensor estimated from the data alone: the one estimator of the project.
 
-Every "noise floor" (``magcal fit``, ``diagnose``, ``report``, the calibration node, the tensor
-floor) comes from :func:`data_noise_floor`, which answers:
+Every "noise floor" (fit, diagnose, report, the nodes) comes from :func:`data_noise_floor`:
 
 1. *How large is the white noise?*  k-th differences (k = 1..6) of a signal smooth at the
    sample rate leave noise of variance C(2k, k) sigma^2 (von Neumann's successive
    differences, generalised); the lowest orders that agree (a plateau) see the noise alone.
-2. *Is it heavy-tailed?*  The scale of the differences is :func:`robust_sd`: right for
-   Gaussian, Laplace and Student-t noise (3 dof: 3.0 nT read for sd 3 nT, where the MAD reads
-   2.2-2.4), with isolated gross spikes set aside and counted.
-3. *Is there white noise at all?*  A low-pass-filtered series has no white floor: the
-   estimates keep falling with the order and the spectrum falls towards Nyquist; the floor is
-   then a range with status ``'filtered'``, never one number.
+2. *Is it heavy-tailed?*  The scale of the differences is :func:`robust_sd`, right for
+   Gaussian, Laplace and Student-t noise, isolated gross spikes set aside and counted.
+3. *Is there white noise at all?*  A low-pass-filtered series has no plateau and its spectrum
+   falls towards Nyquist: the floor is then a range with status ``'filtered'``.
 """
 from dataclasses import dataclass
 from math import comb
@@ -123,10 +120,9 @@ def welch(x, nperseg):
     """
     Welch's (1967) power spectral density along axis 1, at a sampling rate of 1.
 
-    The numbers of ``scipy.signal.welch(x, fs=1.0, nperseg=nperseg, axis=1,
-    detrend='constant')`` (test_noise), without importing scipy.signal (BENCHMARKS.md,
-    "Start-up").  ``x`` (S, N, C) in a unit u, N >= ``nperseg``; returns the frequencies
-    (F,) in cycles per sample and the density (S, F, C), u^2 per (cycle per sample).
+    ``scipy.signal.welch(x, fs=1.0, nperseg=nperseg, axis=1)``'s numbers without importing
+    scipy.signal (start-up time).  ``x`` (S, N, C) in a unit u, N >= ``nperseg``; returns the
+    frequencies (F,) in cycles per sample and the density (S, F, C), u^2 per cycle/sample.
     """
     step = nperseg - nperseg // 2
     seg = np.lib.stride_tricks.sliding_window_view(x, nperseg, axis=1)[:, ::step]
@@ -141,11 +137,10 @@ def nyquist_drop(x, starts=None):
     """
     How far the spectrum falls from mid band to Nyquist, per series.
 
-    Welch spectrum of the first difference (no leakage from a smooth trajectory) over its
-    gain 4 sin^2(pi f / fs): mean density in 0.45-0.65 of the band over that in 0.85-1.0
-    (white noise ~1; a low-pass-filtered series many decades).  ``x`` (S, N, C) or (S, N)
-    in time order, ``starts`` as for :func:`differences`; returns (S,) ratios (inf: the top
-    of the band is empty, nan: too short).
+    Welch spectrum of the first difference over its gain 4 sin^2(pi f / fs): mean density
+    in 0.45-0.65 of the band over that in 0.85-1.0 (white noise ~1).  ``x`` (S, N, C) or
+    (S, N) in time order, ``starts`` as for :func:`differences`; returns (S,) ratios (inf:
+    the top of the band is empty, nan: too short).
     """
     x = np.asarray(x, float)
     x = x[..., None] if x.ndim == 2 else x
@@ -167,10 +162,9 @@ class NoiseEstimate:
     """
     Adaptive difference-based noise estimate of one kind of series (S series, K orders).
 
-    ``status`` per series: ``'white'`` (a plateau: the white-noise sd), ``'filtered'`` (no
-    plateau, the spectrum falls :data:`FILTERED_DROP` x or more to Nyquist: the noise sd is
-    *above* every estimate) or ``'upper bound'`` (no plateau, flat spectrum: the signal is not
-    smooth at the sample rate).
+    ``status`` per series: ``'white'`` (a plateau), ``'filtered'`` (no plateau, the spectrum
+    falls :data:`FILTERED_DROP` x or more to Nyquist: the sd is *above* every estimate) or
+    ``'upper bound'`` (no plateau, flat spectrum: the signal is not smooth at the rate).
     """
 
     sigma: np.ndarray               # (S,) noise sd, unit of the input (see status)
@@ -185,11 +179,10 @@ def estimate_noise(x, orders=ORDERS, starts=None):
     """
     Adaptive noise estimate from the plateau of the difference estimates of several orders.
 
-    A slowly sampled trajectory leaves its curvature in low-order differences; the plateau
-    starts at the lowest order within :data:`PLATEAU_RATIO` of the smallest estimate, and the
-    estimate is the median over it (not the minimum: no bias low).  Without a plateau the
-    spectrum decides the ``status``.  ``x`` (S, N, C) or (S, N) in time order; ``orders``
-    tried where there are k + 8 samples; ``starts`` as for :func:`differences`.
+    The plateau starts at the lowest order within :data:`PLATEAU_RATIO` of the smallest
+    estimate; the estimate is its median (not the minimum: no bias low).  ``x`` (S, N, C) or
+    (S, N) in time order; ``orders`` tried where there are k + 8 samples; ``starts`` as for
+    :func:`differences`.
     """
     x = np.asarray(x, float)
     orders = tuple(k for k in orders if x.shape[1] >= k + 8)
@@ -212,10 +205,8 @@ class NoiseFloor:
     Per-axis white-noise sd of each sensor (S), estimated from the data alone, nT.
 
     ``per_sensor_nt`` is the white-noise sd (status ``'white'``), a lower bound
-    (``'filtered'``) or an upper bound (``'upper bound'``, also when it had to come from the
-    model's residual, which holds any missing effect following non-smooth attitudes).  The
-    raw estimate (no model) is used unless the trajectory inflates it (no plateau, or more
-    than :data:`RAW_FLOOR_EXCESS` x the residual one).
+    (``'filtered'``) or an upper bound (``'upper bound'``, also when taken from the model's
+    residual: the raw estimate is used unless the trajectory inflates it).
     """
 
     per_sensor_nt: np.ndarray
@@ -276,9 +267,8 @@ def data_noise_floor(data, result=None):
 
     ``data`` (S sensors, N epochs) in time order; ``result``, a fit on it: its scalar
     residual (S, N) nT gives the second estimate, its ``sigma_nt`` (S,) nT the upper end of a
-    filtered series' range.  A reduced long record is estimated on its
-    ``meta['noise_blocks']``; a fit whose model drops readings (``reading_mask``) on the sets
-    where every reading is kept, each stretch a segment.
+    filtered series' range.  A reduced record uses its ``meta['noise_blocks']``; a fit that
+    drops readings, the sets where every reading is kept.
     """
     blocks = data.meta.get('noise_blocks')
     if blocks is not None:

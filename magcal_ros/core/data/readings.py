@@ -15,13 +15,11 @@
 """
 Readings no field produces, found before the fit: pinned, clipped, repeated channels, spikes.
 
-A channel that stops following the field breaks a calibration in ways the fit cannot name, so
-such readings are found here per sensor and axis and left out with one line each:
-``pinned`` (one value holds most of the channel: a dead axis, the HMC5883L's -4096 on
-overflow), ``clipped`` (runs at the extreme of the channel's range: the field went beyond
-the measuring range), ``repeated`` (the last reading repeated longer than the noise allows: a
-stalled driver or link) and ``spike`` (one to three readings off the channel's smooth course
-and back: :func:`find_spikes`).
+Found per sensor and axis and left out with one line each: ``pinned`` (one value holds most
+of the channel: a dead axis, the HMC5883L's -4096 on overflow), ``clipped`` (runs at the
+extreme of the channel's range), ``repeated`` (the last reading repeated longer than the
+noise allows: a stalled driver or link) and ``spike`` (one to three readings off the
+channel's smooth course and back).
 
 Runs: the flat-line test of the QARTOD real-time quality-control manuals (U.S. IOOS, 2020),
 its count derived from the data.  A channel reads r_k = Q(s_k + e_k), quantum ``q``, white
@@ -83,10 +81,9 @@ class SuspectChannel:
     """
     One channel's readings that no field produces.
 
-    ``values_nt``: the value it is pinned at, the one or two values (top, bottom of its
-    range) it is clipped at, empty for 'repeated', the smallest and largest spike size for
-    'spike' (the largest distance of a spike's readings from the interpolation of their
-    neighbours), nT.
+    ``values_nt``: the value it is pinned at, the one or two values it is clipped at, empty
+    for 'repeated', the smallest and largest spike size for 'spike' (a spike's largest
+    distance from the interpolation of its neighbours), nT.
     """
 
     sensor: int             # 1-based
@@ -139,12 +136,7 @@ def _stretches_text(stretches, most=3):
 
 @dataclass
 class ReadingScreen:
-    """
-    The screen of a record: which readings no field produces.
-
-    ``min_run`` is huge where no run can be told from a live channel (noise below the
-    quantum and no duplicates).
-    """
+    """The screen of a record: which readings no field produces (``min_run`` > N: none)."""
 
     flags: np.ndarray                           # (S, N, 3) bool, True: left out
     channels: list = field(default_factory=list)    # SuspectChannel per channel and kind
@@ -306,9 +298,9 @@ def _spike_in(x, r0, r1, k, scale, thr, alpha):
     """
     Return the readings of one cluster of large differences that form a spike, or None.
 
-    ``x`` (N,) the channel, nT; the cluster's readings ``r0..r1``; ``scale`` the sd of a
-    k-th difference, nT; ``thr`` the threshold in those units.  Returns (indices (L,) of the
-    spike's readings, each reading less the interpolation of its neighbours (L,) nT).
+    ``x`` (N,) the channel, nT; ``scale`` the sd of a k-th difference, nT; ``thr`` the
+    threshold in its units.  Returns (indices (L,) of the spike's readings, each less the
+    interpolation of its neighbours (L,) nT).
     """
     h = k // 2
     a0, a1 = r0 - k, r1 + k + 1
@@ -347,11 +339,10 @@ def find_spikes(raw, flags=None, alpha=ALPHA, est=None):
     """
     Find one-to-three-reading spikes per sensor and axis (module docstring: the method).
 
-    ``raw`` (S, N, 3) nT in time order; ``flags`` (S, N, 3) bool, readings already left out
-    (a cluster reaching one is not tested); ``alpha`` the family-wise rate over the N x 3 x S
-    values; ``est`` :func:`channel_noise` of ``raw`` (computed when not given).  Returns
-    ((S, N, 3) bool, True on a spike's readings; per sensor and axis the (spikes,) sizes in
-    time order, nT: [[array, x3], ...]).
+    ``raw`` (S, N, 3) nT in time order; ``flags`` (S, N, 3) bool, readings already left out;
+    ``alpha`` the family-wise rate; ``est`` :func:`channel_noise` of ``raw`` (or computed).
+    Returns ((S, N, 3) bool, True on a spike's readings; per sensor and axis the spike sizes
+    in time order, nT: [[array, x3], ...]).
     """
     raw = np.asarray(raw, float)
     s_count, n, _ = raw.shape
@@ -455,15 +446,9 @@ def leave_out_unphysical(data, field_nt=None, alpha=ALPHA, min_kept=MIN_KEPT_FRA
     """
     Screen ``data`` and leave out the sets that hold readings no field produces.
 
-    ``field_nt``: reference magnitude, nT, a scalar or (N,) (subset with the data);
-    ``alpha`` as for :func:`screen_readings`.  Returns (data, field_nt, ReadingScreen), the
-    first two without the flagged sets (the same objects when nothing is flagged).
-
-    Raises
-    ------
-    UnphysicalReadingsError
-        Fewer than ``min_kept`` of the sets are left; the message names the readings.
-
+    ``field_nt``: reference magnitude, nT, a scalar or (N,).  Returns (data, field_nt,
+    ReadingScreen), the first two without the flagged sets (the same objects when none).
+    UnphysicalReadingsError when fewer than ``min_kept`` of the sets are left.
     """
     screen = screen_readings(data, alpha)
     if not screen.channels:

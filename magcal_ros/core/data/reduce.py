@@ -15,12 +15,10 @@
 """
 A record too long to hold, reduced chunk by chunk to a bounded, representative form.
 
-A long record is read in chunks (:mod:`magcal_ros.io.chunks`) and reduced in memory bounded
-by constants (docs/design.md, "Long records"): **the sample** (every k-th epoch, k doubling,
-:data:`SAMPLE_EPOCHS` to twice as many, each with the full-rate record's field rate) for the
-fit, the findings and the figures; **the noise blocks** (:data:`NOISE_BLOCKS` to twice as many
-contiguous full-rate blocks of :data:`NOISE_BLOCK` epochs) for the noise floor; and a second
-pass for **the residual statistics of every epoch** (:func:`residual_statistics`, exact).
+In memory bounded by constants (docs/design.md, "Long records"): **the sample** (every k-th
+epoch, k doubling, with the full-rate field rate) for the fit; **the noise blocks**
+(contiguous full-rate blocks) for the noise floor; a second pass for **the residual
+statistics of every epoch** (:func:`residual_statistics`, exact).
 """
 from dataclasses import dataclass, replace
 
@@ -75,8 +73,7 @@ class NoiseBlocks:
         """
         :class:`~magcal_ros.core.data.noise.NoiseFloor` from the blocks and ``result``'s residual.
 
-        ``result``: a FitResult of the sample, whose scalar residual on the blocks gives the
-        floor's second estimate.
+        ``result``: a FitResult of the sample (its residual on the blocks: the second estimate).
         """
         key = None if result is None else id(result)
         if key not in self._cache:
@@ -119,9 +116,8 @@ def rated(chunks):
     """
     Yield the epochs of consecutive ``chunks`` with the field rate of the whole record.
 
-    Each piece's ``rate`` (S, N, 3) nT/s is exactly :func:`~magcal_ros.core.effects.raw_rate`
-    of the record held whole (a chunk's last epoch waits for the next chunk); None where the
-    times do not rise.
+    Each piece's ``rate`` (S, N, 3) nT/s is :func:`~magcal_ros.core.effects.raw_rate` of the
+    record held whole (a chunk's last epoch waits for the next); None where times do not rise.
     """
     carry = None
     for piece in chunks:
@@ -248,14 +244,10 @@ def residual_statistics(chunks, result, positions=None):
     """
     Residual statistics of ``result``'s calibration on every epoch of ``chunks``, nT, nT/m.
 
-    One pass of sums and extremes: the figures of the record held whole.  A lag effect on a
-    channel (``lag(temperature)``) filters each chunk afresh (a transient at chunk starts).
-
-    Returns the keys of :func:`magcal_ros.pipeline.summarize` that read every epoch:
-    ``scalar_rms_nt``, ``vector_rms_nt``, ``total_field_rms_before_nt``,
-    ``total_field_max_dev_before_nt``, ``total_field_max_dev_after_nt``, ``n_samples`` and,
-    with ``positions`` (S, 3) m, ``tensor_rms_nt_per_m``, ``tensor_rms_before_nt_per_m``,
-    ``tensor_max_dev_before_nt_per_m``, ``tensor_max_dev_after_nt_per_m``.
+    One pass of sums and extremes; a lag effect filters each chunk afresh (a transient at
+    chunk starts).  Returns the keys of :func:`magcal_ros.pipeline.summarize` that read every
+    epoch (``scalar_rms_nt``, ``total_field_*``, ``n_samples``, ...; the ``tensor_*`` ones
+    with ``positions`` (S, 3) m).
     """
     before, after, vector = _Moments(), _Moments(), _Moments()
     tens = {'b': _Moments(), 'a': _Moments()}

@@ -15,11 +15,9 @@
 """
 Seeded simulator of a four-fluxgate cross gradiometer (paper 004 section 4.1), uniform field.
 
-The simulator uses the same forward model as the fit (:class:`magcal_ros.core.model.Model`),
-so any effect, including a user plug-in, can be switched on with known parameters and the
-fit can be asked to recover it.  Everything is a deterministic function of time and the seed:
-:meth:`Simulator.sample` can be called chunk by chunk (as the live ``fluxgate_sim`` does) and
-the trajectory, temperatures and auxiliary channels continue smoothly across chunks.
+The forward model is the fit's (:class:`magcal_ros.core.model.Model`): any effect, plug-ins
+too, can be switched on with known parameters.  Everything is a deterministic function of
+time and the seed, so :meth:`Simulator.sample` continues smoothly chunk by chunk.
 """
 from dataclasses import dataclass, field
 
@@ -46,16 +44,15 @@ class SimConfig:
     """
     Settings of the simulator; defaults are paper 004 section 4.1.
 
-    ``n_sensors``: 4 is the cross (from ``baseline_m``) unless ``positions_m`` ((S, 3) or flat
+    ``n_sensors``: 4 is the cross (from ``baseline_m``) unless ``positions_m`` ((S, 3) or
     (3 S,) m) is given; other counts sit at ``positions_m`` (default: the origin).
-    ``trajectory``: 'random' (uniform attitudes), 'smooth' (tumbling that covers the sphere
-    in about a minute), 'turntable' (about body z), 'cone' (field directions in a cap of
-    ``cone_half_angle_deg`` around body +z), 'vehicle' (:func:`vehicle_attitude`).
-    ``errors``: 'paper004' (Table 1; sensor j > 4 gets sensor ((j - 1) mod 4) + 1's) or None.
-    ``truth``: {term ('temperature@2', 'aux:aux_motor_current'): parameter values} added to
-    the ``model`` spec.  ``gradient_nt_per_m``: (3, 3) uniform world (NED) gradient, nT/m
-    (``field_nt`` is then the field at the centre).  ``attitude_error_deg``: RMS smooth error
-    per body axis of the attitude put into the samples (:func:`attitude_error`).
+    ``trajectory``: 'random', 'smooth' (tumbling over the sphere in about a minute),
+    'turntable' (about body z), 'cone' (field in a cap of ``cone_half_angle_deg`` around
+    body +z), 'vehicle' (:func:`vehicle_attitude`).  ``errors``: 'paper004' (Table 1, sensor
+    j > 4 as sensor ((j - 1) mod 4) + 1) or None.  ``truth``: {term: parameter values} added
+    to ``model``.  ``gradient_nt_per_m``: (3, 3) world (NED) gradient, nT/m, ``field_nt``
+    then at the centre.  ``attitude_error_deg``: RMS error per body axis of the attitude put
+    into the samples (:func:`attitude_error`).
     """
 
     n_samples: int = 200                # epochs N (for :func:`simulate`)
@@ -111,12 +108,10 @@ def vehicle_attitude(t, period_s=60.0, tilt_deg=15.0, phases=(0.0, 0.0, 0.0)):
     """
     Body-to-world (NED) rotation of a vehicle that stays near level and turns part circles.
 
-    Body axes REP 103's (x forward, y left, z up).  The heading (ENU yaw) swings through
-    +-0.8 of a circle over ``period_s`` and drifts by a third of a circle per period; pitch
-    and roll are slow sinusoids within +-``tilt_deg``.
-
-    ``t`` (N,) s; ``phases`` of heading, pitch and roll, rad.  Returns N scipy Rotations
-    body -> NED (``ENU_TO_NED.T @ R`` is the same into ENU, the ROS world frame).
+    Body axes REP 103's.  The heading swings through +-0.8 of a circle over ``period_s`` and
+    drifts by a third of a circle per period; pitch and roll within +-``tilt_deg``.  ``t``
+    (N,) s; ``phases`` of heading, pitch and roll, rad.  Returns N scipy Rotations body ->
+    NED (``ENU_TO_NED.T @ R`` into ENU).
     """
     t = np.asarray(t, float)
     w = 2 * np.pi / period_s
@@ -129,11 +124,7 @@ def vehicle_attitude(t, period_s=60.0, tilt_deg=15.0, phases=(0.0, 0.0, 0.0)):
 
 
 def attitude_enu(q_ned):
-    """
-    Body-to-ENU quaternions (N, 4) (qw, qx, qy, qz) of body-to-NED ones (N, 4).
-
-    ROS's world (REP 103/145) is ENU: R_enu = ENU_TO_NED^T R_ned.
-    """
+    """Body-to-ENU quaternions (N, 4) (qw, qx, qy, qz) of body-to-NED ones (N, 4)."""
     rot = Rotation.from_quat(np.asarray(q_ned, float).reshape(-1, 4), scalar_first=True)
     return (Rotation.from_matrix(ENU_TO_NED.T) * rot).as_quat(scalar_first=True)
 
@@ -142,9 +133,8 @@ def causal_rate(x, t):
     """
     Rate of ``x`` (N, 3) nT at times ``t`` (N,) s from each sample and the two before it.
 
-    The one-sided second-order difference (:func:`magcal_ros.core.effects.raw_rate` on the
-    last three samples); (N, 3) nT/s, zero for the first two samples; None with fewer than 3
-    samples or times that do not increase.
+    The live corrector's one-sided difference; (N, 3) nT/s, zero for the first two samples;
+    None with fewer than 3 samples or times that do not increase.
     """
     x = np.asarray(x, float)
     t = np.asarray(t, float)
@@ -202,11 +192,7 @@ class Simulator:
         self._tail = {}         # sensor -> (times (2,) s, noise-free readings (2, 3) nT)
 
     def _set_truth(self, p, token, values):
-        """
-        Set the true parameters of the term ``token`` (any formula term) to ``values``.
-
-        Every sensor of the term's scope gets ``values`` (in ``param_names`` order).
-        """
+        """Set the true parameters of the term ``token`` on every sensor of its scope."""
         from magcal_ros.core.effects.formula import parse_term
         term = parse_term(token)
         values = np.asarray(values, float)
@@ -359,8 +345,7 @@ def simulate_chunks(config=None, rows=65536, **overrides):
     Simulate a long record piece by piece: (Simulator, iterator of Datasets of ``rows`` epochs).
 
     As :func:`simulate` in memory bounded by ``rows``; the references come from at most
-    100 000 evenly spaced instants (all of a short record's); the noise is drawn chunk by
-    chunk and the field rate taken within each chunk.
+    100 000 evenly spaced instants; noise and field rate are taken chunk by chunk.
     """
     sim = Simulator(config, **overrides)
     n, rate = int(sim.config.n_samples), float(sim.config.rate_hz)
@@ -373,11 +358,7 @@ def simulate_chunks(config=None, rows=65536, **overrides):
 
 
 def set_truth_refs(sim, t):
-    """
-    Fix the truth's reference values (mean temperature etc.) from the time grid ``t`` (N,) s.
-
-    Called before the first sample (a chunked simulator: once with a nominal grid).
-    """
+    """Fix the truth's reference values (mean temperature etc.) from the times ``t`` (N,) s."""
     temp = sim.temperature(t)
     aux = sim.aux_channels(t) if sim.config.aux else {}
     sim.model.prepare([SensorContext(t=t, temp=temp[j], aux=aux)
@@ -388,13 +369,9 @@ def parse_truth(items):
     """
     Parse hidden effects ``EFFECT=V1,V2,...`` (``magcal simulate --truth``, ``fluxgate_sim``).
 
-    The effect is any model term with its sensor (``temperature@2``); the values are its
-    parameters in the order and units of its ``param_names``/``units``.  The text is split at
-    the last ``=`` outside parentheses (``offset(s(t, k=4))@2=...``).
-
-    Returns {term: list of float}, the ``truth`` of :class:`SimConfig`, from one item per
-    hidden effect; ValueError naming the item for a missing ``=``, an empty term or a value
-    that is not a finite number.
+    The effect is any model term (``temperature@2``), split at the last ``=`` outside
+    parentheses; the values its parameters in ``param_names`` order and ``units``.  Returns
+    {term: list of float}, the ``truth`` of :class:`SimConfig`; ValueError naming the bad item.
     """
     truth = {}
     for item in items or []:

@@ -15,19 +15,10 @@
 """
 Check a calibration against static recordings: one |B| everywhere, or why not.
 
-Recordings of a still sensor at different attitudes must give one corrected |B|, equal to
-the calibration's reference when made at the same place and time.  When they do not agree,
-the pattern says why, as far as the data can tell:
-
-- the same attitude, different |B|: the field at the sensor or its offset changed between
-  them; no calibration can reconcile them;
-- different attitudes that agree with each other but not with the reference: the
-  calibration holds, the field differs from its (another place or time);
-- different attitudes that disagree: the calibration does not hold there, or the field
-  changed too; the recordings cannot tell which.
-
-Differences are judged against the calibration's own scalar residual RMS (an error of that
-size that depends on the direction is expected), not the static noise.
+Recordings of a still sensor at different attitudes must give one corrected |B|, the
+calibration's reference at the same place and time; when they do not, the pattern says why
+(:func:`check_static`'s findings).  Differences are judged against the calibration's own
+scalar residual RMS (a direction-dependent error of that size is expected), not the noise.
 """
 from dataclasses import dataclass, field
 from itertools import combinations

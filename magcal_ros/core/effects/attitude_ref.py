@@ -15,9 +15,8 @@
 """
 The attitude as a reference: the world field seen through the vehicle's attitude.
 
-A vehicle rarely turns its compass through a sphere, so |B_k| = F alone leaves the vertical
-axis' offset and scale open.  Its attitude R_k (body-to-world) gives B_k = R_k^T m in a
-uniform world field m: this effect makes that an *observation* of the profiled field B_k
+|B_k| = F alone leaves the vertical axis of a vehicle's compass open.  Its attitude R_k
+(body-to-world) gives B_k = R_k^T m in a uniform world field m: an *observation* of B_k
 (:class:`magcal_ros.core.model.engine.ProfiledProblem`), a virtual sensor whose noise
 ``sigma_nt`` (the attitude's error as a field) is estimated with the real sensors'.  Mode
 ``full`` (token ``attitude_full``) trusts the whole attitude: y_k = Q R_k^T m,
@@ -32,8 +31,7 @@ readings are untouched (:meth:`shift` is zero).  Units: nT, rad.
 from magcal_ros.core.effects.base import Effect
 import numpy as np
 
-#: the attitude's error is never taken below 0.01 deg (an EKF's attitude is good to a tenth
-#: of a degree at best; a simulated, exact attitude would otherwise weigh infinitely)
+#: least attitude error taken (an exact, simulated attitude would weigh infinitely)
 MIN_SD_RAD = np.radians(0.01)
 #: prior sd of each angle of the compass's mounting against the attitude's frame, rad
 MOUNT_PRIOR_SD_RAD = np.radians(10.0)

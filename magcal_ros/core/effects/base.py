@@ -18,11 +18,9 @@ Every sensor j of an array is described by the forward model
 
     raw_j = A_j @ B + offset_j + sum_k d_k(context, lin_j) + noise,     lin_j = A_j @ B
 
-with ``B`` (nT) the true field in the array frame, ``A_j`` the matrix product of the
-*linear* effects (paper 004 eq. 2-3) and ``d_k`` the *additive* effects.  An effect has
-named parameters (each with a unit), a ``matrix(p)`` or a ``contribution(p, ctx, lin)``,
-and declares everything the rest of the code asks about it (:class:`Effect`'s class
-attributes).  Also paper 004's rotations and the signal helpers every effect shares.
+with ``B`` (nT) the true field in the array frame, ``A_j`` the product of the *linear*
+effects (paper 004 eq. 2-3) and ``d_k`` the *additive* effects.  Also paper 004's rotations,
+the signal helpers every effect shares and the :class:`Registry` of named classes.
 """
 from dataclasses import dataclass, field
 import math
@@ -95,8 +93,7 @@ class SensorContext:
     aux: dict = field(default_factory=dict)
     #: (N, 3) time derivative of the raw reading, nT/s
     raw_rate: np.ndarray | None = None
-    #: the whole record this context was cut from (:meth:`subset`): an effect with memory
-    #: (a lag filter) runs over it and keeps its state across the cut
+    #: the whole record this context was cut from (:meth:`subset`; a lag filter runs over it)
     parent: 'SensorContext | None' = None
     #: (N,) int, positions of these samples in ``parent``
     index: np.ndarray | None = None
@@ -133,13 +130,11 @@ class SensorContext:
 
 class Effect:
     """
-    Base class of an error term.
+    Base class of an error term; the class attributes below are its declarations.
 
-    Subclasses set ``name``, ``kind`` ('linear' or 'additive'), ``param_names`` and ``units``
-    and implement ``matrix`` (linear) or ``contribution`` (additive).  Reference values of a
-    driving signal (mean temperature, start time) are computed in :meth:`prepare` from the
-    calibration data and stored in ``self.refs``, so that live correction uses the same.
-    The class attributes below are the effect's declarations.
+    Subclasses implement ``matrix`` (kind 'linear') or ``contribution`` (kind 'additive').
+    Reference values of a driving signal (mean temperature, start time) are stored in
+    ``self.refs`` by :meth:`prepare`, so that live correction uses the same.
     """
 
     name = 'effect'
@@ -154,19 +149,16 @@ class Effect:
     usage = None
     #: the arguments of a token ``name(a, b)``, as canonical strings
     args = ()
-    #: driving signals ``contribution`` reads: keys of :data:`SIGNALS` or 'aux_<name>'; the
-    #: live corrector subscribes and waits for exactly these
+    #: driving signals ``contribution`` reads (keys of :data:`SIGNALS` or 'aux_<name>')
     signals = ()
     #: True for an additive effect whose contribution is a constant (the offset); any other
     #: additive effect is *driven* and evaluated per sample
     constant = False
-    #: prior of the constrained mode on every parameter: (mean, or None for
-    #: :meth:`default_params`, sd in the parameters' unit), or None
+    #: prior of every parameter, constrained mode: (mean or None: :meth:`default_params`, sd)
     prior = None
     #: place of a linear effect in the product A = A_1 A_2 ... (the smallest left-most)
     linear_order = 0
-    #: True if the effect holds the rotation of the sensor's axes into the array frame: on a
-    #: sensor j > 1 it ties the sensors to one field per epoch
+    #: True if the effect holds the rotation of the sensor's axes into the array frame
     frame_rotation = False
     #: False if the effect does not exist on sensor 1, which defines the array frame
     on_sensor1 = True
@@ -244,20 +236,61 @@ class Effect:
         return f'{type(self).__name__}(sensor={self.sensor})'
 
 
+class Registry:
+    """
+    Classes registered by name, built-in then plug-ins (docs/plugins.md).
+
+    The one mechanism of the named effects, couplings and drivers.  Every class subclasses
+    ``base``; messages call one ``what`` ('effect', 'coupling', 'driver') and name the base
+    ``base_name`` (where users import it from).
+    """
+
+    def __init__(self, base, what, base_name):
+        self.base, self.what, self.base_name = base, what, base_name
+        self.builtin = ()
+        self._classes = {}
+
+    def register(self, cls, name=None):
+        """Register a subclass of the base under ``name`` (default ``cls.name``); return it."""
+        if not (isinstance(cls, type) and issubclass(cls, self.base)):
+            raise TypeError(f'{cls!r} is not a subclass of {self.base_name}')
+        key = name or cls.name
+        if key in self._classes and self._classes[key] is not cls:
+            article = 'an' if self.what[0] in 'aeiou' else 'a'
+            raise ValueError(f'{article} {self.what} named {key!r} is already registered '
+                             f'({self._classes[key]!r})')
+        self._classes[key] = cls
+        return cls
+
+    def unregister(self, name):
+        """Remove the plug-in registered under ``name`` (tests, interactive sessions)."""
+        if name in self.builtin:
+            raise ValueError(f'{name!r} is a built-in {self.what} and cannot be unregistered')
+        self._classes.pop(name, None)
+
+    def get(self, name):
+        """Return the class registered under ``name``, or None."""
+        return self._classes.get(name)
+
+    def names(self):
+        """Return the registered names, sorted."""
+        return sorted(self._classes)
+
+    def seal_builtin(self):
+        """Mark every class registered so far as built-in (never unregistered); return names."""
+        self.builtin = tuple(self._classes)
+        return self.builtin
+
+
 def raw_rate(x, t=None, period=None):
     """
     (N, 3) nT/s time derivative of readings ``x`` (N, 3) nT: the field-rate signal.
 
-    The one estimator of ``SensorContext.raw_rate`` for a recording, the simulator and the
-    live corrector: ``numpy.gradient`` with ``edge_order=2``, central at interior samples
-    (it leaves the sample's own noise out of its rate, so a fitted tau is unbiased) and
-    (3 x_k - 4 x_k-1 + x_k-2) / 2h at the last, all a live stream has.  For a field turning
-    at w rad/s sampled every h s live and offline correction agree to (w h)^2 / 2 of
-    tau |dB/dt|.
-
-    ``t`` (N,) strictly increasing times, s, or ``period`` a uniform sample period, s (a
-    live stream, whose stamps bunch).  None with fewer than 3 samples or times that do not
-    increase.
+    The one estimator for a recording, the simulator and the live corrector:
+    ``numpy.gradient``, ``edge_order=2`` (central inside: a fitted tau is unbiased; one-sided
+    at the last sample, all a live stream has).  ``t`` (N,) increasing times, s, or
+    ``period`` a uniform sample period, s.  None with fewer than 3 samples or times that do
+    not increase.
     """
     x = np.asarray(x, float)
     if len(x) < 3:
@@ -378,14 +411,11 @@ def lag_coefficients(dt, tau):
     """
     Return (a, b0, b1) of one step of tau dy/dt = x - y: y_k = a y_k-1 + b0 x_k + b1 x_k-1.
 
-    The one discretisation of the lag, batch (:func:`first_order_lag`) and live
-    (:func:`lag_step`): exact when x is linear between samples (the first-order-hold
-    equivalent of 1 / (tau s + 1): Franklin, Powell and Workman, Digital Control of Dynamic
-    Systems, 3rd ed. 1998, sec. 6.3): a = exp(-dt/tau), b0 = 1 - g, b1 = g - a,
-    g = tau/dt (1 - a).  A step of dt = 0 holds y, one of dt < 0 (the clock went back)
-    restarts in steady state, y = x; tau is at least 1e-3 dt.  ``dt`` s: a float or (K,)
-    array; returns floats or (K,) arrays.  g is not written with expm1, so that old
-    calibration files (test/data/legacy_cal/lag.yaml) correct to the same digits.
+    The one discretisation of the lag, batch and live, exact for x linear between samples
+    (first-order hold: Franklin, Powell and Workman, Digital Control of Dynamic Systems, 3rd
+    ed. 1998, sec. 6.3): a = exp(-dt/tau), b0 = 1 - g, b1 = g - a, g = tau/dt (1 - a).
+    dt = 0 holds y, dt < 0 restarts at y = x; tau >= 1e-3 dt.  ``dt`` s, a float or (K,).
+    g is not written with expm1, so that old calibration files correct to the same digits.
     """
     dt = np.asarray(dt, float)
     tau = np.maximum(abs(float(tau)), 1e-3 * dt)
@@ -431,10 +461,8 @@ def lag_step(state, t, x, tau):
     """
     One sample of the lag for the live correction: (new state, y).
 
-    ``state`` is the previous sample's (t s, x, y), or None before the first (which starts
-    in steady state, y = x); ``x`` the input at ``t`` s.  The step of
-    :func:`first_order_lag`, so a record corrected one sample at a time gives the batch
-    filter's values; a second call at the same ``t`` holds y.
+    ``state`` is the previous sample's (t s, x, y), or None before the first (y = x); ``x``
+    the input at ``t`` s.  The step of :func:`first_order_lag`, so it gives the batch values.
     """
     if state is None:
         return (t, x, x), x
@@ -457,12 +485,3 @@ def cached(cache, key, anchor, make, size):
             cache.pop(next(iter(cache)))
         hit = cache[key] = (anchor, value)
     return hit[1]
-
-
-def steps_outside(times, t):
-    """Say which step of ``times`` has fewer than 3 samples of ``t`` (N,) s on a side, or None."""
-    for tk in times:
-        before = int(np.sum(t < tk))
-        if before < 3 or len(t) - before < 3:
-            return f'step at t = {tk:g} s lies outside the data ({t[0]:g} .. {t[-1]:g} s)'
-    return None

@@ -14,12 +14,11 @@
 """
 The catalog: the named effects that ship with the library (the model tokens).
 
-The constant linear map (paper 004 eq. 2-3; soft iron; a fixed axis map), the constant
-offset and the site gradient are effects of their own.  Every driven token (temperature,
-drift, step(T), lag(v), ...) is a composition coupling(driver) of the grammar
-(:data:`TOKENS`), evaluated by :class:`~.terms.Part` under the token's own parameter names
-and reference values, so that older calibration files load and correct as they did; where
-a token differs from the composition written out is in docs/formulas.md.
+The constant linear map (paper 004 eq. 2-3; soft iron; an axis map), the offset and the
+site gradient are effects of their own.  Every driven token (temperature, drift, step(T),
+...) is a composition coupling(driver) (:data:`TOKENS`), evaluated by :class:`~.terms.Part`
+under the token's own parameter names and references, so that old calibration files load
+and correct as they did (docs/formulas.md).
 """
 
 from magcal_ros.core.effects import drivers as dv
@@ -67,10 +66,9 @@ class AxisMap(Effect):
     """
     How the readings' axes are wired to the sensor's axes: a fixed signed permutation.
 
-    Token ``axes(-x,y,z)@j``: reading x is the sensor's x axis with reversed sign;
-    ``axes(y,x,z)@j``: the x and y readings exchanged.  No parameters: A_j = M S C_NO R, so
-    scale and angles stay those of a real sensor.  Found by the calibration when a fitted
-    A_j has det < 0 or a negative scale (:mod:`magcal_ros.core.model.plausibility`).
+    ``axes(-x,y,z)@j``: reading x is the sensor's x axis reversed; ``axes(y,x,z)@j``: x and
+    y exchanged.  No parameters: A_j = M S C_NO R.  Proposed when a fitted A_j has det < 0 or
+    a negative scale (:mod:`magcal_ros.core.model.plausibility`).
     """
 
     name = 'axes'
@@ -228,9 +226,8 @@ class TokenEffect(Effect):
     """
     A token of the catalog (``temperature``, ``lag(temperature)``, ...): grammar parts, summed.
 
-    The token keeps only its bookkeeping: the parameter names, units and reference values
-    (``t0_c``, ``t0_s``, ``a0``, ``x0``) of the calibration files.  Each token is a row of
-    :data:`TOKENS`; :func:`token_class` makes the class registered under its name.
+    The token keeps the parameter names, units and references (``t0_c``, ``t0_s``, ``a0``,
+    ``x0``) of the calibration files; :func:`token_class` makes its class from its row.
     """
 
     kind = 'additive'
@@ -498,11 +495,9 @@ class SiteGradient(Effect):
     """
     Constant gradient of the site in the world frame, seen through the known attitude.
 
-    The field at sensor j (position r_j, m) is B_j = B_c + R^T G_w R r_j, with B_c the field
-    at the array centre, R the body-to-world rotation (``SensorContext.attitude``) and G_w
-    (nT/m) symmetric and traceless: 5 parameters shared by the array, applied before the
-    sensor's linear map.  The positions are stored in ``refs`` (x1, y1, z1, x2, ...; m) so
-    that the calibration file carries them.
+    B_j = B_c + R^T G_w R r_j at sensor j (position r_j, m), B_c the field at the centre, R
+    body-to-world (``SensorContext.attitude``), G_w (nT/m) symmetric traceless: 5 parameters
+    of the array.  The positions are kept in ``refs`` (x1, y1, z1, x2, ...; m).
     """
 
     name = 'site_gradient'

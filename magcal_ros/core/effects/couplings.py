@@ -15,16 +15,13 @@
 """
 Couplings: how a driver's columns X enter the reading (docs/formulas.md has the table).
 
-With X the (N, m) columns of a driver and P the coupling's parameters, ``c`` per column
-(P has shape (m, c)), a coupling is the change dB (N, 3) nT of the reading of a sensor,
-raw = lin + offset + ..., lin = A B.  ``nonorth`` and ``rotation`` vary the angles of paper
-004 eq. 2 and 3 to first order: dB = dC lin, dC = [[0, varphi, theta], [0, 0, psi],
-[0, 0, 0]], and dB = W lin, W = [[0, alpha, -gamma], [-alpha, 0, beta], [gamma, -beta, 0]].
-Per-axis drivers (``rate``, ``lin``: X (N, 3, m)) act axis by axis, dB_i = sum_k X_ik P_ki,
-with ``offset`` and ``scale`` only.  A plug-in adds a coupling by subclassing
-:class:`Coupling` and calling :func:`register_coupling`.
+With X (N, m) and parameters P (m, c), c per column, a coupling is the change dB (N, 3) nT
+of a sensor's reading, lin = A B its linear reading.  ``nonorth`` and ``rotation`` vary the
+angles of paper 004 eq. 2 and 3 to first order: dB = dC lin, dC = [[0, varphi, theta],
+[0, 0, psi], [0, 0, 0]], and dB = W lin, W = [[0, alpha, -gamma], [-alpha, 0, beta],
+[gamma, -beta, 0]].  Per-axis drivers (X (N, 3, m)) act axis by axis, dB_i = sum_k X_ik P_ki.
 """
-from magcal_ros.core.effects.names import Registry
+from magcal_ros.core.effects.base import Registry
 import numpy as np
 
 
@@ -39,10 +36,9 @@ def per_unit(num, du):
 
 class Coupling:
     """
-    Base class of a coupling: parameters per driver column and the change of the reading.
+    Base class of a coupling (a plug-in subclasses it and calls :func:`register_coupling`).
 
-    Subclasses set ``name``, ``stems`` (parameter names per column, c of them), ``unit`` (of
-    a parameter times a driver unit), and implement :meth:`contribution` (or, for
+    Subclasses set the attributes below and implement :meth:`contribution` (or, for
     ``scope = 'array'``, :meth:`magnitude`).
     """
 

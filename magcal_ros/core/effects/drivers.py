@@ -15,21 +15,16 @@
 """
 Drivers: what an effect follows, as a basis of columns X (docs/formulas.md has the table).
 
-A driver turns the driving signals of a sensor (:class:`~.base.SensorContext`) into columns
-``X``: (N, m) for a scalar driver, (N, 3, m) for a per-axis one (``rate``, ``lin``), each
-in the driver's unit (:attr:`Driver.unit`); a coupling (:mod:`.couplings`) turns them into
-a change of the reading.  Reference values (a mean, a range, a start time) are computed
-once in :meth:`Driver.prepare` from the calibration data and stored in the effect's
-``refs``, so that live correction uses the same.  ``*`` multiplies factors (the tensor
-product of their columns, :class:`Product`).  A plug-in adds a factor by subclassing
-:class:`Driver` and calling :func:`register_driver`.
+A driver turns the signals of a sensor (:class:`~.base.SensorContext`) into columns X:
+(N, m) for a scalar driver, (N, 3, m) for a per-axis one (``rate``, ``lin``), in
+:attr:`Driver.unit`.  Its reference values (a mean, a range, a start time) are stored in the
+effect's ``refs`` by :meth:`Driver.prepare`, so that live correction uses the same.
 """
 import math
 
 from magcal_ros.core.effects.base import (cached, first_order_lag, format_arg, lag_step,
-                                          NONLINEARITY_FULL_SCALE_NT, parse_number,
-                                          split_params, steps_outside)
-from magcal_ros.core.effects.names import Registry
+                                          NONLINEARITY_FULL_SCALE_NT, parse_number, Registry,
+                                          split_params)
 import numpy as np
 
 #: variables a driver may read: name -> (unit, per axis)
@@ -57,33 +52,12 @@ def variable_name(text):
                        'aux_<channel>, rate (dB/dt) or lin (the linear reading)')
 
 
-def variable_unit(v):
-    """Return the unit of variable ``v``."""
-    return VARIABLES.get(v, ('unit', False))[0]
-
-
 def variable_values(ctx, v, lin=None):
     """(N,) or (N, 3) values of variable ``v`` in ``ctx`` (None if absent)."""
     if v == 'lin':
         return None if lin is None else lin / NONLINEARITY_FULL_SCALE_NT
     attr = {'t': 't', 'temperature': 'temp', 'rate': 'raw_rate'}.get(v)
     return getattr(ctx, attr) if attr else ctx.aux.get(v)
-
-
-def check_variable(ctx, v, sensor):
-    """Return None if ``v`` is present and varies in ``ctx``, else the reason why not."""
-    if v == 'lin':
-        return None
-    a = variable_values(ctx, v)
-    if a is None or not np.isfinite(a).any():
-        if v.startswith('aux_'):
-            return f'no auxiliary column {v!r} in the data (have: {sorted(ctx.aux) or "none"})'
-        col = {'temperature': f's{sensor}_temp', 't': 't', 'rate': 't'}.get(v, v)
-        return f'sensor {sensor}: no {v} in the data (column {col})'
-    a = np.asarray(a, float)
-    if np.nanmax(a) - np.nanmin(a) <= 1e-9 * max(1.0, float(np.nanmax(np.abs(a)))):
-        return f'{v!r} never changes: its coupling cannot be separated from the offset'
-    return None
 
 
 def _new(cls, args, kwargs, allowed, n_args, example):
@@ -114,10 +88,10 @@ def _count(text, what, lo, hi):
 
 class Driver:
     """
-    Base class of a driver factor: columns X of the driving signals.
+    Base class of a driver factor (a plug-in subclasses it and calls :func:`register_driver`).
 
-    Subclasses set ``name`` (how the factor is written, ``name(...)``), ``usage`` and
-    implement :meth:`from_args`, :attr:`text`, :attr:`column_names`, :meth:`columns`.
+    Subclasses set ``name`` (written ``name(...)``), ``usage`` and implement
+    :meth:`from_args`, :attr:`text`, :attr:`column_names`, :meth:`columns`.
     """
 
     name = 'driver'
@@ -129,8 +103,7 @@ class Driver:
     #: the driver's own parameters (a lag's time constant), names and units
     param_names = ()
     units = ()
-    #: canonical text of the factor (pasteable), and the names of its m columns (parameter
-    #: names are built from them): set where it is made, or properties
+    #: canonical text of the factor, and the names of its m columns (parameter names)
     text = None
     column_names = ()
     #: unit of every column (the coupling's parameters are per this unit)
@@ -183,7 +156,20 @@ class _OfVariable(Driver):
         return VARIABLE_SIGNALS.get(self.v, (self.v,))
 
     def check(self, ctx, sensor):
-        return check_variable(ctx, self.v, sensor)
+        """Return None if the variable is present and varies in ``ctx``, else why not."""
+        v = self.v
+        if v == 'lin':
+            return None
+        a = variable_values(ctx, v)
+        if a is None or not np.isfinite(a).any():
+            if v.startswith('aux_'):
+                return f'no auxiliary column {v!r} in the data (have: {sorted(ctx.aux) or "none"})'
+            col = {'temperature': f's{sensor}_temp', 't': 't', 'rate': 't'}.get(v, v)
+            return f'sensor {sensor}: no {v} in the data (column {col})'
+        a = np.asarray(a, float)
+        if np.nanmax(a) - np.nanmin(a) <= 1e-9 * max(1.0, float(np.nanmax(np.abs(a)))):
+            return f'{v!r} never changes: its coupling cannot be separated from the offset'
+        return None
 
     def _values(self, ctx, refs, prefix):
         a = variable_values(ctx, self.v)
@@ -216,7 +202,8 @@ class Variable(_OfVariable):
         self.v = variable_name(v)
         self.per_axis = VARIABLES.get(self.v, ('', False))[1]
         self.reads_lin = self.v == 'lin'
-        self.text, self.column_names, self.unit = self.v, (self.v,), variable_unit(self.v)
+        self.text, self.column_names = self.v, (self.v,)
+        self.unit = VARIABLES.get(self.v, ('unit', False))[0]
 
     def prepare(self, ctx, refs, prefix=''):
         if not self.per_axis:                   # rate and lin: their zero is physical
@@ -250,11 +237,9 @@ class Spline(_OfVariable):
     """
     ``s(v, k=K)``: a smooth function of v, K cubic B-spline columns, centred.
 
-    K + 1 cubic B-splines on equally spaced knots over the calibration range of v
-    [lo, hi] (mgcv's regression spline ``s(v, k=K, bs='bs')``, Wood 2017 ch. 5); the first
-    is dropped (the K + 1 sum to one: with the offset they would be collinear) and each
-    column is centred on its calibration mean.  Outside [lo, hi] (live correction later)
-    v is held at the nearer end: the smooth is extrapolated as a constant.
+    K + 1 cubic B-splines on equal knots over v's calibration range [lo, hi] (mgcv's
+    ``s(v, k=K, bs='bs')``, Wood 2017 ch. 5), the first dropped (they sum to one: collinear
+    with the offset); outside [lo, hi] v is held at the nearer end.
     """
 
     name = 's'
@@ -368,9 +353,8 @@ class Sinusoid(Driver):
     """
     ``sin(F[, refine=true])``: cos and sin of 2 pi F (t - t0), F in Hz, t0 the first time.
 
-    With ``refine=true`` the frequency is F + df, df (Hz) a parameter of the fit starting
-    at 0 (a line whose frequency is known only roughly, e.g. from a periodogram: within
-    about 1 / (4 span) of the truth for the fit to find it).
+    With ``refine=true`` the frequency is F + df, df (Hz) fitted from 0 (F must lie within
+    about 1 / (4 span) of the line).
     """
 
     name = 'sin'
@@ -428,7 +412,12 @@ class Steps(Driver):
         return d
 
     def check(self, ctx, sensor):
-        return steps_outside(self.times, ctx.t)
+        t = ctx.t
+        for tk in self.times:
+            before = int(np.sum(t < tk))
+            if before < 3 or len(t) - before < 3:
+                return f'step at t = {tk:g} s lies outside the data ({t[0]:g} .. {t[-1]:g} s)'
+        return None
 
     def columns(self, ctx, lin, refs, q, prefix=''):
         return (ctx.t[:, None] >= np.array(self.times)[None, :]).astype(float)
@@ -466,10 +455,9 @@ class Lagged(_OfVariable):
     """
     ``lag(v[, tau=S])``: v through a first-order lag, tau dy/dt = v - y, centred on v's mean.
 
-    Without ``tau`` the time constant is a parameter of the fit (s, starting at 30 s).  The
-    filter (:func:`~.base.first_order_lag`, exact for v linear between samples) runs over the
-    whole record (``SensorContext.whole``), so held-out blocks keep its state; live correction
-    takes the same filter's steps one sample at a time (:func:`~.base.lag_step`).
+    Without ``tau`` the time constant is fitted (s, from 30 s).  The filter
+    (:func:`~.base.first_order_lag`) runs over the whole record (``SensorContext.whole``), so
+    held-out blocks keep its state; live correction takes its steps (:func:`~.base.lag_step`).
     """
 
     name = 'lag'
@@ -484,7 +472,7 @@ class Lagged(_OfVariable):
         d.tau = _positive(kwargs['tau'], 'lag tau [s]', 'lag tau') if 'tau' in kwargs else None
         d.param_names, d.units = ((), ()) if d.tau is not None else (('tau',), ('s',))
         d.text = f'lag({d.v}' + ('' if d.tau is None else f', tau={format_arg(d.tau)}') + ')'
-        d.unit = variable_unit(d.v)
+        d.unit = VARIABLES.get(d.v, ('unit', False))[0]
         return d
 
     @property
@@ -554,7 +542,7 @@ class Product(Driver):
         sizes = [len(f.param_names) for f in self.factors]
         for i, (f, qf) in enumerate(zip(self.factors, split_params(q, sizes))):
             x = f.columns(ctx, lin, refs, qf, f'{prefix}{i + 1}.')
-            if x.ndim == 2 and (self.per_axis):
+            if x.ndim == 2 and self.per_axis:
                 x = np.broadcast_to(x[:, None, :], (x.shape[0], 3, x.shape[1]))
             out = x if out is None else (out[..., :, None] * x[..., None, :]).reshape(
                 *x.shape[:-1], -1)

@@ -14,7 +14,7 @@
 """
 The registry of named effects (catalog and plug-ins) and the token helpers.
 
-Effects, couplings and drivers each have a :class:`.names.Registry` (docs/plugins.md).
+Effects, couplings and drivers each have a :class:`.base.Registry` (docs/plugins.md).
 Plug-ins are imported only at start-up (``magcal --plugin``, the nodes' ``plugins``
 parameter), never from a model or a calibration file.
 """
@@ -22,10 +22,9 @@ import importlib
 import sys
 
 from magcal_ros.core.effects.attitude_ref import AttitudeFull, AttitudeReference
-from magcal_ros.core.effects.base import Effect
+from magcal_ros.core.effects.base import Effect, Registry
 from magcal_ros.core.effects.catalog import (AxisMap, Misalignment, NonOrthogonality, Offset,
                                              Scale, SiteGradient, SoftIron, TOKEN_CLASSES)
-from magcal_ros.core.effects.names import Registry
 
 #: the named effects (catalog and plug-ins)
 EFFECTS = Registry(Effect, 'effect', 'magcal_ros.core.effects.Effect')

@@ -15,13 +15,10 @@
 """
 Effect code that fails: checked once at start-up, contained and named when it runs.
 
-Effects (plug-ins' or built-in) run per sample in the live nodes.  :func:`probe_effect`
-evaluates one at start-up on a context holding only the signals it declares: reading an
-undeclared signal (which live is not received for it), or any other exception, refuses the
-plug-in with one line naming the effect and the signal.  At run time whatever effect code
-raises is re-raised as an :class:`EffectError` naming the effect (:func:`culprit`), which
-the nodes contain: that sample is not published, the error logged once per effect and
-counted on ``/diagnostics`` (:class:`EffectErrors`).
+:func:`probe_effect` evaluates an effect at start-up on a context holding only the signals
+it declares: reading another (live it is not received), or failing, refuses the plug-in.  At
+run time what effect code raises becomes an :class:`EffectError` naming the effect, which the
+nodes contain: the sample is not published, the error counted (:class:`EffectErrors`).
 """
 from magcal_ros.core.effects.base import Effect, rot_z, SensorContext, SIGNALS
 import numpy as np
@@ -87,9 +84,8 @@ def probe_context(signals, n=PROBE_SAMPLES):
     """
     Return a :class:`DeclaredContext` with plausible values of exactly ``signals``.
 
-    ``t`` (N,) s always; 'temperature' (N,) degC, 'field_rate' (N, 3) nT/s, 'attitude'
-    (N, 3, 3) rotations about z, 'aux_<name>' (N,) in the channel's unit, each only when
-    declared.
+    ``t`` (N,) s; 'temperature' (N,) degC, 'field_rate' (N, 3) nT/s, 'attitude' (N, 3, 3)
+    rotations about z, 'aux_<name>' (N,), each only when declared.
     """
     signals = set(signals)
     t = 1000.0 + 0.5 * np.arange(n)
@@ -113,10 +109,9 @@ def probe_effect(cls, ref=None):
     Evaluate the effect class ``cls`` once on a context of its declared signals.
 
     ``prepare``, ``check``, then ``matrix`` or ``contribution`` (not for an array-wide
-    effect), on sensor 2 at its default parameters plus 1e-3.  An effect written only with
-    arguments is made from the first of its ``suggest_args``, and not evaluated without one.
-    Raises ValueError, one line naming the effect (and ``ref``, where it was loaded from) and
-    the undeclared signal it read, or the exception its code raised.
+    effect), on sensor 2 at its default parameters plus 1e-3 (an effect needing arguments:
+    its first ``suggest_args``, if any).  Raises ValueError naming the effect (and ``ref``,
+    its plug-in) and the undeclared signal it read, or what its code raised.
     """
     where = f' ({ref})' if ref else ''
     name = getattr(cls, 'name', cls.__name__)

@@ -29,10 +29,8 @@ class Part:
     """
     coupling(driver): dB = coupling(X P, lin), the grammar's one evaluation of a term.
 
-    Parameters (``param_names``): c per driver column, named ``<stem>`` for a one-column
-    driver (bx, by, bz; kx, ky, kz; ...) or ``<stem>_<column>`` (bx_s1, ...), then the
-    driver's own (a lag's tau).  The driver reads its reference values from the ``refs``
-    every call is given (the effect's).
+    Parameters: c per driver column, ``<stem>`` for a one-column driver (bx, by, bz) or
+    ``<stem>_<column>`` (bx_s1, ...), then the driver's own (a lag's tau).
     """
 
     def __init__(self, coupling, driver):
@@ -159,10 +157,9 @@ class FieldEffect(ComposedEffect):
     """
     field(driver): the field magnitude every sensor sees is F0 + X P (nT).
 
-    An effect of the whole array (``scope = 'array'``): the profiled field B_k of the engine
-    lies on the sphere of the reference magnitude F0_k; the field at every sensor is
-    B_k (1 + (X P)_k / |B_k|) (:meth:`shift` returns the change).  It is not a site shift:
-    the corrected readings keep it (it is the field).
+    An effect of the whole array: the field at every sensor is B_k (1 + (X P)_k / |B_k|),
+    B_k the engine's profiled field of magnitude F0_k (:meth:`shift` returns the change).
+    The corrected readings keep it (it is the field).
     """
 
     kind = 'array'

@@ -12,8 +12,4 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""
-Live streams without ROS.
-
-Samples paired into sets, mis-paired sets repaired, live correction.
-"""
+"""Live streams without ROS: samples paired into sets, mis-paired sets repaired, correction."""

@@ -15,21 +15,16 @@
 """
 Find and repair sample sets whose sensors were paired from different epochs.
 
-Live, sets are grouped by stamps (:class:`magcal_ros.core.live.sync.StampMatcher`); a sensor
-whose bytes come later than sensor 1's by more than half a period can be paired epochs off,
-and a rotating array then gives each such set an error of the field change per epoch times
-the epochs off (~100 nT per epoch at 100 Hz of tumbling, against 3 nT of noise).
-
-The data say it.  For a rigid array in a uniform field with paper 004's linear model (eq.
-1-3), every sensor's raw reading is an affine function of sensor 1's at the same epoch::
+A sensor whose bytes come more than half a period after sensor 1's can be paired epochs
+off, and a rotating array then gives each such set the field change over those epochs.  For
+a rigid array in a uniform field with paper 004's linear model (eq. 1-3), every sensor's raw
+reading is an affine function of sensor 1's at the same epoch::
 
     raw_j(e) = M_j raw_1(e) + c_j,    M_j = A_j R_j A_1^-1,   c_j = b_j - M_j b_1,
 
 whatever the attitude.  :func:`find_slips` compares, in a sliding window, the misfit of
-pairing sensor j's epoch e + L with sensor 1's epoch e for L = -max_lag .. max_lag, and takes
-a lag only where it fits clearly better than 0 (where the array is still every lag fits
-alike and nothing changes); :func:`resync` re-pairs, dropping the sets whose sample would be
-used twice or has no partner in the same run of epochs.
+pairing sensor j's epoch e + L with sensor 1's epoch e, L = -max_lag .. max_lag, and takes a
+lag only where it fits clearly better than 0; :func:`resync` re-pairs.
 """
 from dataclasses import dataclass, replace
 
@@ -63,9 +58,8 @@ class Slips:
     """
     Outcome of :func:`find_slips` (arrays per sensor j; row 0, sensor 1, all 0 / False).
 
-    ``rms_nt`` is the per-axis RMS misfit of sensor j's ellipsoid-corrected reading rotated
-    onto sensor 1's (paper 004 eq. 5 and 14), about sqrt(sigma_1^2 + sigma_j^2) for a
-    consistent record.
+    ``rms_nt``: per-axis RMS misfit of sensor j's ellipsoid-corrected reading rotated onto
+    sensor 1's (paper 004 eq. 5, 14), about sqrt(sigma_1^2 + sigma_j^2) when consistent.
     """
 
     #: (S, N) int: the right partner of set e is sensor j's sample of set e + lag; DROP: lost
@@ -113,14 +107,10 @@ def gross_outliers(raw, fraction=GROSS_FRACTION):
     """
     Find the sets holding a sample that cannot be a reading: a cut or garbled line.
 
-    A line that lost its first bytes can still parse (``45.6,-2345.1,43210.9`` from
-    ``12345.6,...``): one sample thousands of nT off.  A sample is a gross outlier where
-    d(e) = |m(e) - (m(e-1) + m(e+1)) / 2| exceeds ``fraction`` of the field and is the largest
-    of the three around it; only for a series smooth at its rate (median d below 1 % of that
-    threshold), so a record of separate attitudes is left alone.
-
-    ``raw`` (S, N, 3) nT in time order; ``fraction`` of the median field magnitude.  Returns
-    (S, N) bool, True for a gross outlier.
+    A line that lost its first bytes can still parse: one sample thousands of nT off.  A
+    sample is one where d(e) = |m(e) - (m(e-1) + m(e+1)) / 2| exceeds ``fraction`` of the
+    median field and is the largest of the three around it, in a series smooth at its rate
+    (median d below 1 % of that).  ``raw`` (S, N, 3) nT in time order; returns (S, N) bool.
     """
     raw = np.asarray(raw, float)
     s, n = raw.shape[:2]
@@ -162,31 +152,16 @@ def find_slips(raw, epochs=None, max_lag=DEFAULT_MAX_LAG, window=DEFAULT_WINDOW,
     """
     Find the sets of a rigid array whose sensors were paired from different epochs.
 
-    Each sensor is calibrated on its own by paper 004's ellipsoid fit (eq. 8-13, no pairing),
-    u_j = Q_j B; sensor j is rotated onto sensor 1 by the Procrustes solution (eq. 14; three
-    parameters cannot absorb a slip) fitted on the sets that agree with it.  Each set's lag
-    is chosen from the windowed *median* of |u_1(e) - R u_j(e + L)|^2 (a spike neither
-    creates nor hides a slip), the rotation refitted, until the lags stop changing.  A lag
-    other than 0 is taken only where it fits better than 0 by ``min_contrast`` *and* down to
-    the noise (``noise_factor``).
+    Each sensor is calibrated alone by paper 004's ellipsoid fit (eq. 8-13), u_j = Q_j B,
+    and rotated onto sensor 1 by the Procrustes solution (eq. 14) on the sets that agree.
+    Each set's lag minimises the windowed *median* of |u_1(e) - R u_j(e + L)|^2, the rotation
+    refitted, until the lags stop changing; a lag other than 0 must fit better than 0 by
+    ``min_contrast`` *and* down to the noise (``noise_factor``).
 
-    Parameters
-    ----------
-    raw : numpy.ndarray
-        (S, N, 3) raw readings of S >= 2 sensors in set order, nT.
-    epochs : numpy.ndarray, optional
-        (N,) epoch number of each set; a jump other than +1 starts a new run (no set is
-        re-paired across runs).  Default: one run.
-    max_lag, window : int
-        Largest slip searched, epochs; sets in the sliding window that decides a slip.
-    min_contrast, noise_factor : float
-        :data:`DEFAULT_MIN_CONTRAST`, :data:`DEFAULT_NOISE_FACTOR`.
-
-    Returns
-    -------
-    Slips
-        All lags 0 when the record is too short or too poor in attitudes to tell.
-
+    ``raw`` (S, N, 3) nT of S >= 2 sensors in set order; ``epochs`` (N,) epoch numbers, a
+    jump other than +1 starting a new run (no set is re-paired across runs; default one
+    run); ``max_lag`` the largest slip searched, epochs; ``window`` sets deciding a slip.
+    Returns :class:`Slips`, all lags 0 when the record is too short or poor to tell.
     """
     raw = np.asarray(raw, float)
     if raw.ndim != 3 or raw.shape[2] != 3:
@@ -321,12 +296,12 @@ def resync(data, epochs=None, slips=None, drop_inconsistent=False, **kwargs):
     """
     Drop garbled samples and re-pair the sets whose sensors came from different epochs.
 
-    ``data``: (S sensors, N sets) in set order (``temp`` rows move with their sensor);
-    ``epochs`` as for :func:`find_slips`.  ``slips``: a :func:`find_slips` result on ``data``
-    as it is; default: the sets with a :func:`gross_outliers` sample are dropped, then
-    :func:`find_slips` (``**kwargs``) runs on the rest.  ``drop_inconsistent``: also drop the
-    inconsistent sets a search to :data:`LONG_MAX_LAG` epochs finds paired further apart
-    (``dropped_inconsistent``); sets no pairing fits are kept.
+    ``data``: (S sensors, N sets) in set order; ``epochs`` as for :func:`find_slips`;
+    ``slips``: its result on ``data``, default: the sets with a :func:`gross_outliers` sample
+    dropped, then :func:`find_slips` (``**kwargs``) on the rest.  ``drop_inconsistent``: also
+    drop the inconsistent sets a search to :data:`LONG_MAX_LAG` epochs finds paired further
+    apart; sets no pairing fits are kept.  A sample claimed twice, or without a partner in
+    its run of epochs, drops its set.
 
     Returns (re-paired Dataset, Slips (indexed like the sets left after the gross outliers),
     sets dropped in re-pairing, sets dropped as gross outliers).

@@ -15,12 +15,10 @@
 """
 Live correction of an array, one sample at a time (no ROS: used by the corrector node).
 
-:class:`LiveCorrector` holds the calibration made ready per sensor (A_j^-1, offset,
-covariance), the latest driving signals, each stream's field rate, the set matcher
-(:class:`StampMatcher`) and the gradient operator; every matrix is computed once, so a sample
-costs a few 3x3 products.  Also :class:`ResidualMonitor` (the calibration node's
-``calibration/residual``) and :class:`SampleBuffer` (the sets it collects for a fit).
-Units: nT, nT/s, nT/m, s, degC.
+:class:`LiveCorrector` holds the calibration made ready per sensor (every matrix computed
+once: a sample costs a few 3x3 products), the latest driving signals, the set matcher and
+the gradient operator.  Also :class:`ResidualMonitor` (``calibration/residual``) and
+:class:`SampleBuffer` (the sets collected for a fit).  Units: nT, nT/s, nT/m, s, degC.
 """
 from collections import deque
 
@@ -63,13 +61,11 @@ def calibration_covariance_nt2(cal, j, field_nt):
     """
     (3, 3) covariance of sensor j's corrected field from the calibration's uncertainty, nT^2.
 
-    A parameter off by its standard uncertainty makes c = A'^-1 (raw - o') differ from the
-    field b by M b + d (M = A'^-1 A - I, d = A'^-1 (o - o')); over directions uniform on the
-    sphere of radius F (E[b b^T] = F^2 I / 3) that is M M^T F^2 / 3 + d d^T, summed over the
-    sensor's linear and offset parameters (correlations neglected; driven effects left out).
-
-    ``cal`` a Calibration with its standard uncertainties, ``j`` 1-based; zeros without
-    uncertainties.
+    A parameter off by its standard uncertainty makes c = A'^-1 (raw - o') differ from b by
+    M b + d (M = A'^-1 A - I, d = A'^-1 (o - o')); over directions uniform on the sphere of
+    radius ``field_nt`` that is M M^T F^2 / 3 + d d^T, summed over the sensor's linear and
+    offset parameters (correlations and driven effects left out).  ``j`` 1-based; zeros
+    without uncertainties.
     """
     from magcal_ros.core.model.calibration import Calibration
     model = cal.model
@@ -117,25 +113,13 @@ class LiveCorrector:
     """
     A calibration made ready to correct live samples of every sensor of an array.
 
-    Parameters
-    ----------
-    cal : magcal_ros.core.model.Calibration
-        Effect code that raises here is re-raised as
-        :class:`~magcal_ros.core.effects.safety.EffectError` naming it.
-    n_sensors : int
-        Sensors of the array; another count than the calibration's: ValueError.
-    positions_m : array_like, optional
-        (S, 3) sensor positions in the array frame, m; without them no gradient
-        (:attr:`no_gradient_reason`).
-    stamp_tolerance_s : float
-        Tolerance of the :class:`~magcal_ros.core.live.sync.StampMatcher`, s.
-    check_pairing : bool
-        Check every set from the data (:meth:`pairing_chi2`) and re-pair a shifted stream
-        at once; off, sets are paired by stamps alone.
-    field_nt : float, optional
-        Field magnitude of the calibration, nT: :meth:`published_covariance_nt2` then adds
-        :func:`calibration_covariance_nt2`.
-
+    ``cal`` a Calibration (effect code raising in it: an EffectError naming the effect);
+    ``n_sensors`` the calibration's count (else ValueError); ``positions_m`` (S, 3) m in the
+    array frame (without: no gradient, :attr:`no_gradient_reason`); ``stamp_tolerance_s`` of
+    the :class:`~magcal_ros.core.live.sync.StampMatcher`, s; ``check_pairing``: check every
+    set from the data (:meth:`pairing_chi2`) and re-pair a shifted stream at once;
+    ``field_nt`` (nT): :meth:`published_covariance_nt2` adds
+    :func:`calibration_covariance_nt2`.
     """
 
     def __init__(self, cal, n_sensors, positions_m=None, stamp_tolerance_s=0.005,
@@ -209,12 +193,9 @@ class LiveCorrector:
         """
         Pose of each sensor's frame in the array frame, from the calibration and geometry.
 
-        Sensor j's frame is its orthogonalised axes (C_j^-1 raw, paper 004 eq. 5); R_j
-        rotates it into the array frame (eq. 14).  C_j is not rigid and stays in the
-        calibration.
-
-        Returns [(R_j (3, 3) proper rotation, position (3,) m)] per sensor; [] without
-        geometry (:attr:`no_gradient_reason`).
+        Sensor j's frame is its orthogonalised axes (C_j^-1 raw, paper 004 eq. 5), R_j
+        rotates it into the array frame (eq. 14).  Returns [(R_j (3, 3), position (3,) m)]
+        per sensor; [] without geometry.
         """
         if self.positions_m is None:
             return []
@@ -225,9 +206,8 @@ class LiveCorrector:
         """
         (S, 3) nT shift of every sensor by the calibration's site gradient, or None.
 
-        R^T G_w R r_j (docs/site_gradient.md) at the fixed attitude ``quaternion`` (4,) (qw,
-        qx, qy, qz, body-to-world); None without a site gradient; EffectError if the
-        effect's code raises.
+        R^T G_w R r_j (docs/site_gradient.md) at the attitude ``quaternion`` (4,) (qw, qx, qy,
+        qz, body-to-world); EffectError if the effect's code raises.
         """
         if self.cal.site_gradient() is None:
             return None
@@ -244,8 +224,8 @@ class LiveCorrector:
         """
         (A_j^-1 (3, 3), offset (3,) nT) when sensor j's correction is that alone, else None.
 
-        A_j^-1 (raw - o_j) holds in any unit: a caller may apply it to readings in tesla
-        after converting the offset (no field-rate state is kept on that path).
+        A_j^-1 (raw - o_j) holds in any unit (a caller may apply it in tesla); no field-rate
+        state is kept on that path.
         """
         s = self._sensors[j - 1]
         return None if s.driven else (s.a_inv.copy(), s.offset.copy())
@@ -259,8 +239,7 @@ class LiveCorrector:
         (3, 3) covariance a corrected sample of sensor j is published with, nT^2.
 
         :meth:`covariance_nt2` plus :func:`calibration_covariance_nt2` (with ``field_nt``);
-        None without a noise estimate.  The tensor and the pairing check use the noise
-        alone (the calibration error is common to every set).
+        None without a noise estimate.
         """
         s = self._sensors[j - 1]
         return None if s.cov_nt2 is None else s.cov_nt2 + s.cal_cov_nt2
@@ -278,16 +257,9 @@ class LiveCorrector:
         Correct one finite raw sample of sensor j and remember it for the field rate.
 
         ``j`` 1-based, ``t`` its stamp s, ``raw`` (3,) nT; returns the corrected field (3,) nT
-        in the array frame.
-
-        Raises
-        ------
-        MissingSignal
-            A driven effect has no live signal yet (temperature, auxiliary channel, or the
-            field rate before the stream's period is known).
-        magcal_ros.core.effects.safety.EffectError
-            The code of an effect raised (naming the effect); the sample has no correction.
-
+        in the array frame.  Raises :class:`MissingSignal` while a driven effect has no live
+        signal (temperature, auxiliary channel, the field rate before the stream's period is
+        known), EffectError when an effect's code raised (no correction).
         """
         s = self._sensors[j - 1]
         s.recent.append((t, raw))
@@ -313,9 +285,8 @@ class LiveCorrector:
         """
         Return d(raw)/dt (3,) nT/s of the newest sample, or None.
 
-        :func:`~magcal_ros.core.effects.raw_rate` on the last three samples (one-sided), with
-        the period the mean over the last :data:`PERIOD_WINDOW` arrivals (stamps of samples
-        read at once are equal).
+        :func:`~magcal_ros.core.effects.raw_rate` on the last three samples, the period the
+        mean over the last :data:`PERIOD_WINDOW` arrivals (stamps of one read are equal).
         """
         if (len(s.recent) < 3 or len(s.arrivals) < _MIN_ARRIVALS
                 or np.diff([t for t, _ in s.recent]).max() > MAX_RATE_GAP_S):
@@ -337,16 +308,10 @@ class LiveCorrector:
         """
         Chi-square of the S corrected fields of a set as the samples of one epoch.
 
-        A set of one epoch fits B(r) = B0 + G r, G symmetric traceless
-        (:func:`magcal_ros.core.geometry.tensor.tensor_operator`), to the noise: its weighted
-        residual chi^2 = |K b|^2 (:func:`pairing_operator`) is chi-square with
-        :attr:`pairing_dof` dof whatever the gradient.  A sample of another epoch of a
-        turning array adds the field change between epochs, which no such G absorbs (two
-        opposite sensors of the planar cross shifted the opposite ways can hide in one
-        component; a single lost sample never does).
-
-        ``fields_nt``: S corrected fields (3,) nT, array frame; 0 without a check
-        (:attr:`no_check_reason`).
+        A set of one epoch fits B(r) = B0 + G r, G symmetric traceless, to the noise: chi^2
+        = |K b|^2 (:func:`pairing_operator`) has :attr:`pairing_dof` dof whatever the
+        gradient; a sample of another epoch of a turning array adds a field change no such G
+        absorbs.  ``fields_nt``: S corrected fields (3,) nT, array frame; 0 without a check.
         """
         if self._set_op is None:
             return 0.0
@@ -379,10 +344,8 @@ def pairing_operator(positions_m, cov_nt2):
 
     The residual of b = H theta + noise, theta = (B0, g_xx, g_xy, g_xz, g_yy, g_yz), in the
     noise metric: Sigma = L L^T, L^-1 H = Q R, Q_r the last 3 S - rank(H) columns of Q,
-    K = Q_r^T L^-1.
-
-    ``positions_m`` (S, 3) m, ``cov_nt2`` (3 S, 3 S) nT^2 of the stacked corrected fields;
-    returns K (3 S - rank(H), 3 S), 1/nT ((0, 3 S) when nothing is redundant).
+    K = Q_r^T L^-1.  ``positions_m`` (S, 3) m, ``cov_nt2`` (3 S, 3 S) nT^2 of the stacked
+    corrected fields; returns K (3 S - rank(H), 3 S), 1/nT.
     """
     pos = np.asarray(positions_m, float)
     pos = pos - pos.mean(axis=0)
@@ -405,13 +368,11 @@ class ResidualMonitor:
     """
     Residuals of the active calibration on live sets, and their ratio to the noise floor.
 
-    Per set of corrected fields b_j (array frame, nT): the scalar residual ``|b_j| - F`` and
-    the vector residual ``|b_j - mean_{k != j} b_k|``.  Over the last ``window`` sets their
-    RMS is compared with the noise alone: the floor f_j of each corrected series
-    (:func:`magcal_ros.core.data.noise.noise_floor`) predicts f_j for the scalar residual and
-    sqrt(3 (f_j^2 + sum_{k != j} f_k^2 / (S - 1)^2)) for the vector one; a ratio above
-    :data:`RESIDUAL_WARN_RATIO` asks for the diagnosis.  One sensor has no vector residual
-    (NaN; :attr:`kinds` is ``('scalar',)``).
+    Per set of corrected fields b_j (nT): the scalar residual ``|b_j| - F`` and the vector
+    residual ``|b_j - mean_{k != j} b_k|``.  Their RMS over the last ``window`` sets is
+    compared with the noise alone: f_j, the floor of each corrected series (:func:`noise_floor`),
+    for the scalar, sqrt(3 (f_j^2 + sum_{k != j} f_k^2 / (S - 1)^2)) for the vector one
+    (NaN for one sensor).
 
     ``field_nt``: reference magnitude F, nT; ``window``: sets in the rolling window.
     """
@@ -473,10 +434,8 @@ class SampleBuffer:
     Matched sample sets of S sensors spread evenly over the whole run, in flat memory.
 
     Not thread-safe.  At most ``capacity`` sets: when full, every other set held is dropped
-    and from then on every 2nd set arriving is kept, then every 4th, ... (as
-    :class:`magcal_ros.core.data.reduce.Reducer`'s sample), so the whole run's attitudes
-    enter the calibration (:meth:`coverage`); the field rate of a lag effect is then taken
-    over ``stride`` epochs.
+    and from then on every 2nd set arriving is kept, then every 4th, ..., so the whole run's
+    attitudes enter the calibration (:meth:`coverage`).
 
     ``capacity``: most sets kept (at least 2); ``aux_names``: auxiliary columns
     (``aux_<name>``); ``source``: ``meta['source']`` of the datasets it returns.
@@ -537,9 +496,8 @@ class SampleBuffer:
         """
         How much of the run the sets held stand for (JSON-ready).
 
-        ``sets_held``, ``sets_received`` (since the last reset), ``stride``, ``run_s`` (first
-        to latest set, s), ``held_from_s`` / ``held_to_s`` (span of the sets held, s after the
-        first set) and ``fraction_of_run`` (that span over the run).
+        ``sets_held``, ``sets_received``, ``stride``, ``run_s`` (first to latest set, s),
+        ``held_from_s`` / ``held_to_s`` (s after the first set), ``fraction_of_run``.
         """
         run = 0.0 if self.t_first is None else self.t_last - self.t_first
         out = {'sets_held': int(self.n), 'sets_received': int(self.count),

@@ -15,41 +15,25 @@
 """
 Learning in operation (issue 34): keep the calibration right while the vehicle works.
 
-No ROS here: the calibration node feeds a :class:`Learner` with every matched set of raw
-readings (and the attitude), runs its refits in a worker thread, publishes what it says and
-installs what it adopts (docs/design.md, "Learning in operation").  Units: nT, s.
-
-**The window**: at most :attr:`LearnConfig.window_sets` sets of the last ``window_s``,
-thinned evenly in time as they arrive, in flat arrays; each block of ``block_s`` is judged
-once when it ends, so memory and CPU per set stay flat (bench/learning.py).
+The calibration node feeds a :class:`Learner` with every matched set of raw readings (and
+the attitude), runs its refits in a worker thread and installs what it adopts; the window,
+persistence and adoption are in docs/design.md, "Learning in operation".  Units: nT, s.
 
 **The statistic.**  The active calibration gives each sensor's scalar residual
 r_j = |b_j| - F; for an array the common mode is removed, e_j = r_j - median_{k != j} r_k
-(a change of the field cancels; a change of one sensor stays in its own e_j, which the median
-of the others ignores).  With sigma_j the block's per-axis noise floor
-(:func:`magcal_ros.core.data.noise.noise_floor`), e_j has under the noise the variance
-v_j = sigma_j^2 + c_m mean_{k != j} sigma_k^2, c_m the variance of the median of m = S - 1
-unit normals.  z_j = (MAD_TO_SD median |e_j|)^2 / v_j is 1 under the noise and insensitive to
-spikes; sqrt(z) has sd :data:`Z_SD_UNIT` / sqrt(n) (the median of a half-normal), and a block
+(a change of the field cancels, one sensor's stays its own; with one sensor a long field
+excursion reads as a change).  With sigma_j the block's per-axis noise floor, e_j has under
+the noise the variance v_j = sigma_j^2 + c_m mean_{k != j} sigma_k^2, c_m the variance of
+the median of m = S - 1 unit normals.  z_j = (MAD_TO_SD median |e_j|)^2 / v_j is 1 under the
+noise and insensitive to spikes; sqrt(z) has sd :data:`Z_SD_UNIT` / sqrt(n), and a block
 *exceeds* when some sqrt(z_j) > 1 + ``exceed_sigmas`` x that sd.
 
-**Persistence.**  An exceeding block starts a *change* (its onset); it ends as a *transient*
-after ``clear_blocks`` clean blocks in a row, and is *persistent* once ``persist_s`` have
-passed with at least ``persist_fraction`` of its blocks exceeding and the latest exceeding.
-A persistent change is refitted on the sets since its onset, on the sensors that exceeded in
-at least half its blocks (the others held), with priors centred on the active calibration
-(``refit`` callable: :func:`magcal_ros.pipeline.refit_recent`).  With one sensor a field
-excursion longer than ``persist_s`` reads as a change.
-
-**Validated adoption.**  Every ``holdout_every``-th block of ``holdout_block_s`` is held out;
-on each held-out block l_b = log(mean over its sets and sensors of r_j^2 / sigma_j^2 +
-e_j^2 / v_j with the active calibration / the same with the proposal) (r too, so that a
-proposal cannot trade a common error for a lower e).  A proposal is valid when the mean of
-l_b over at least three blocks exceeds ``validate_sigmas`` standard errors over the blocks
-(blocks: the residual is correlated within one; a log ratio: a change's residual varies with
-the heading by orders of magnitude, its ratio much less).  A valid proposal of a persistent
-change, or one refining the change adopted last, is *ready*: adopted at once with
-``auto_adopt``, else on request.
+**Validation.**  Every ``holdout_every``-th block of ``holdout_block_s`` is held out; on
+each, l_b = log(mean over its sets and sensors of r_j^2 / sigma_j^2 + e_j^2 / v_j, active
+calibration over proposal) (r too: a proposal cannot trade a common error for a lower e).
+A proposal is valid when the mean of l_b over at least three blocks exceeds
+``validate_sigmas`` standard errors (blocks: the residual is correlated within one; a log
+ratio: a change's residual varies with the heading by orders of magnitude, its ratio less).
 """
 from collections import deque
 from dataclasses import dataclass, field
@@ -140,8 +124,7 @@ def detector_residual(cal, data, field_nt):
 #: the learner keeps the times of this many latest transients and adoptions (memory flat)
 KEEP_EVENTS = 100
 
-#: variance of the median of m unit normals (exact for m <= 4; beyond: pi / (2 m), a little
-#: high)
+#: variance of the median of m unit normals (exact for m <= 4; beyond: pi / (2 m))
 _MEDIAN_VAR = {1: 1.0, 2: 0.5, 3: 0.4487, 4: 0.3573}
 
 
@@ -364,11 +347,10 @@ class Learner:
         """
         Refit the window (since the onset of a persistent change) and validate the result.
 
-        ``now``: time of the call, s (the stamps' clock).  ``refit_fn(data, active, sensors)
-        -> (calibration, doc, undetermined)`` learns the parameters of ``sensors`` (1-based
-        tuple) and holds the others (:func:`magcal_ros.pipeline.refit_recent`); a ``doc``
-        with ``provenance.converged`` false is never valid.  Returns the :class:`Proposal`,
-        or None when the window holds too few sets.
+        ``now``: time of the call, s.  ``refit_fn(data, active, sensors) -> (calibration,
+        doc, undetermined)`` learns the parameters of ``sensors`` (1-based tuple), holds the
+        others (:func:`magcal_ros.pipeline.refit_recent`); a ``doc`` whose
+        ``provenance.converged`` is false is never valid.  None with too few sets.
         """
         self._last_refit = now
         persistent = self.persistent(now)
@@ -431,8 +413,7 @@ class Learner:
         """
         Adopt the ready proposal: it becomes the active calibration; return it (or None).
 
-        Only a ready proposal is adopted (a valid one of a persistent change, or refining the
-        change adopted last).
+        Only a ready one: valid, of a persistent change or refining the change adopted last.
         """
         p = self.proposal
         if self.state != READY or p is None:
@@ -468,12 +449,10 @@ def feed(learner, data, refit_fn, auto_adopt=True, on_adopt=None):
     """
     Feed a recording to ``learner`` set by set, as the node does (offline runs, tests, bench).
 
-    ``learner`` has its active calibration set; ``data`` (S, N, 3) raw nT with times (and
-    attitude, temperatures, channels when known); ``refit_fn`` as for :meth:`Learner.refit`.
-    Refits run synchronously when due; with ``auto_adopt`` a ready proposal is adopted at
-    once, then ``on_adopt(t, proposal)`` is called.  Returns the events [(time s, what,
-    detail)]: ``state`` on each change of state, ``refit`` and ``adopted`` with the
-    :class:`Proposal`.
+    ``learner`` has its active calibration set; ``data`` a Dataset; ``refit_fn`` as for
+    :meth:`Learner.refit`, run when due; with ``auto_adopt`` a ready proposal is adopted at
+    once, then ``on_adopt(t, proposal)`` called.  Returns the events [(time s, what,
+    detail)]: ``state`` on each change, ``refit`` and ``adopted`` with the :class:`Proposal`.
     """
     events, state = [], learner.state
     att, temp, aux_names = data.attitude, data.temp, list(data.aux or {})

@@ -16,14 +16,11 @@
 Group the samples of S sensors into sets taken at the same epoch (no rclpy).
 
 A serial driver stamps each sample with the arrival time of its bytes: samples read in one
-chunk share a stamp, and a starved reader delivers bursts (on the simulated array under load
-the stamps of one epoch spread by more than 5 ms for 44 % of the epochs, up to 0.45 s), so
-matching stamps within a tolerance drops and mismatches sets.  Sets are formed by epoch
-number instead: the k-th sample of sensor j belongs to epoch k + o_j, the offsets o_j voted
-from the stamps (:class:`StampMatcher`).  A lost sample shifts a stream by one epoch, which
-the vote sees when its majority flips; with a ``misfit`` from the data (the corrected fields
-of :class:`magcal_ros.core.live.corrector.LiveCorrector`) no failing set is emitted and a
-shifted stream is re-paired at the first set that shows it.
+chunk share a stamp and a starved reader delivers bursts, so matching stamps within a
+tolerance drops and mismatches sets.  Sets are formed by epoch number instead: the k-th
+sample of sensor j belongs to epoch k + o_j, the offsets o_j voted from the stamps; with a
+``misfit`` from the data a stream shifted by a lost sample is re-paired at the first set
+that shows it (:class:`StampMatcher`).
 """
 from collections import deque
 
@@ -34,11 +31,9 @@ def backdate(stamps, period_s):
     """
     Spread samples that arrived together back along the sample grid.
 
-    In a run of stamps less than a quarter period apart (one read), the last keeps its stamp
-    and each earlier one is put one period before its successor.
-
-    ``stamps`` (N,) non-decreasing arrival stamps of one stream, s; ``period_s`` its sample
-    period T, s.  Returns (N,) stamps, s.
+    In a run of stamps less than a quarter period apart (one read) the last keeps its stamp,
+    each earlier one is put a period before its successor.  ``stamps`` (N,) non-decreasing
+    stamps of one stream, s; ``period_s`` its sample period, s.  Returns (N,) stamps, s.
     """
     a = np.asarray(stamps, float)
     n = len(a)
@@ -60,15 +55,13 @@ def epoch_times(epochs, stamps_s, block_s=CLOCK_BLOCK_S):
     """
     Sample instants of epochs from noisy, late stamps: a linear clock, stepped where lost.
 
-    A lost sample makes every later epoch number one short of the sample clock, so one line
-    t = t0 + T e is off by a period per loss.  Latency is never negative, so the promptest
-    stamp of each block of ``block_s`` carries its sample instant: T is the period that puts
-    those stamps on one grid (equal phases t_k / T - e_k, searched within 3 % of the line's
-    slope), and each block's phase counts the periods lost before it (median over three
-    blocks, never decreasing).  Within a block a set takes the largest count that keeps its
-    own and every later stamp after its sample instant (half a period spare).  When the
-    phases do not agree (resultant length <= 0.9) the straight line is kept; t0 sits on the
-    lower envelope of the stamps.
+    A lost sample puts every later epoch a period off one line t = t0 + T e.  Latency is
+    never negative, so the promptest stamp of each block of ``block_s`` carries its instant:
+    T puts those stamps on one grid (equal phases t_k / T - e_k, within 3 % of the line's
+    slope), each block's phase counts the periods lost before it (median of three, never
+    decreasing), and a set takes the largest count that keeps its own and every later stamp
+    after its instant.  Phases that disagree (resultant length <= 0.9) keep the line; t0
+    sits on the lower envelope of the stamps.
 
     ``epochs`` (N,) increasing integers (gaps where sets were dropped); ``stamps_s`` (N,) a
     stamp of each (the median of its sensors'), s.  Returns (N,) times, s, strictly
@@ -161,46 +154,25 @@ class StampMatcher:
     Group the samples of ``n_sensors`` streams into epochs.
 
     The k-th sample of sensor j belongs to epoch k + o_j (o_1 = 0).  Every ``align_every``
-    samples the offsets are voted: each sample of sensor j in a sliding window votes for the
-    epoch of the sensor-1 sample nearest in stamp (raw and :func:`backdate`-ed) within
-    ``tolerance_s``, and a clear majority wins.  Whenever every sensor has a queued sample,
-    the heads either share an epoch (a set) or the oldest are dropped (an epoch some sensor
-    never delivered): "approximate time" immune to stamp jitter.
+    samples each sample of sensor j in a sliding window votes for the epoch of the sensor-1
+    sample nearest in stamp (raw and :func:`backdate`-ed) within ``tolerance_s``; a clear
+    majority wins.  When every sensor has a queued sample the heads share an epoch (a set)
+    or the oldest are dropped (an epoch some sensor never delivered).
 
-    Parameters
-    ----------
-    n_sensors : int
-        Number of streams S.
-    tolerance_s : float
-        Largest stamp difference of two samples voting for one epoch, s (~half a period).
-    window, align_every : int
-        Samples per stream in the vote; samples (all streams) between votes.
-    max_queue : int
-        Samples kept per stream while another is silent (older ones: incomplete sets).
-    misfit : callable, optional
-        ``misfit(items) -> float``, a chi-square of how far the S items of a set are from one
-        epoch (:meth:`magcal_ros.core.live.corrector.LiveCorrector.pairing_chi2`); a set passes
-        at most ``threshold`` and a failing one is never emitted.  After a failure the
-        pairing as it is, each shift of one stream forward by 1 .. ``max_shift`` (lost
-        samples) and back by 1 .. :data:`MAX_VOTE_SHIFT` (lagging stamps), and the stamp
-        vote's proposal are scored over ``confirm`` sets; the candidate whose every set
-        passes and whose sum beats every other by ``margin`` is adopted (:attr:`repaired`),
-        else the set is dropped (:attr:`rejected`; with no clear candidate the vote restarts
-        on the samples from then on).  Once aligned, a new vote is taken unless the next
-        ``confirm`` sets refute it.
-    threshold : float
-        Largest misfit of a set that passes.
-    max_shift, confirm : int
-        Largest forward shift tried after a failed set, epochs; sets the candidates are
-        compared on.
-    margin : float
-        Least lead in summed misfit of the adopted candidate (2 ln of a likelihood ratio).
+    ``n_sensors`` streams S; ``tolerance_s`` (s, ~half a period); ``window`` samples per
+    stream in the vote, ``align_every`` samples between votes; ``max_queue`` samples kept per
+    stream while another is silent.  ``misfit(items) -> float``, optional, a chi-square of the
+    S items of a set as one epoch (:meth:`.LiveCorrector.pairing_chi2`): a set passes at most
+    ``threshold``, a failing one is never emitted.  After a failure the candidate offsets
+    (:meth:`_candidates`, forward shifts up to ``max_shift``) are scored over ``confirm``
+    sets; one whose every set passes and whose sum beats every other by ``margin`` (2 ln of
+    a likelihood ratio) is adopted, else the set is dropped (with no clear candidate the vote
+    restarts).  Once aligned, a new vote is taken unless the next ``confirm`` sets refute it.
 
-    Counters: ``complete`` sets emitted; ``incomplete`` epochs a sensor's sample was missing
-    from; ``out_of_order`` samples older than their sensor's previous one; ``realigned``
-    offsets the stamp vote changed after the first alignment; ``rejected`` sets whose misfit
-    exceeded ``threshold``; ``repaired`` offsets changed from the misfit.
-
+    Counters: ``complete`` sets emitted, ``incomplete`` epochs missing a sensor's sample,
+    ``out_of_order`` samples older than their sensor's previous one, ``realigned`` offsets
+    the vote changed after the first alignment, ``rejected`` sets over ``threshold``,
+    ``repaired`` offsets changed from the misfit.
     """
 
     def __init__(self, n_sensors, tolerance_s, window=200, align_every=40, max_queue=1000,
@@ -369,10 +341,9 @@ class StampMatcher:
         """
         Offsets to try after a failed set: (stream, shift, offsets), each once.
 
-        As they are (shift 0); one stream forward by 1 .. ``max_shift``; the stamp vote's
-        proposal (stream -1); one stream back by 1 .. :data:`MAX_VOTE_SHIFT`.  One stream
-        moves at a time (the planar cross hardly tells two streams shifted the opposite ways
-        from none); several slips at once wait for the vote.
+        As they are (shift 0); one stream forward by 1 .. ``max_shift`` (lost samples); the
+        stamp vote's proposal (stream -1); one stream back by 1 .. :data:`MAX_VOTE_SHIFT`
+        (lagging stamps).  One stream moves at a time; several slips wait for the vote.
         """
         base = self._offset
         seen = {tuple(base)}
@@ -438,9 +409,8 @@ class StampMatcher:
         """
         Take the stamp vote's proposal unless the data refute it: True, False or None (wait).
 
-        Compared on the next ``confirm`` sets, it is refuted when its first :data:`MIN_PASS`
-        sets do not all pass or the pairing as it is fits clearly better (:meth:`_better`),
-        taken otherwise (also when the array is too still to tell).
+        Refuted when its first :data:`MIN_PASS` of the next ``confirm`` sets do not all pass or
+        the pairing as it is fits clearly better (:meth:`_better`), else taken.
         """
         vote = self._pending
         reach = self._reach(vote)
