@@ -243,28 +243,21 @@ class Model:
                 out[i] = (who, eff.label, nm, un)
         return out
 
+    def _in_contexts(self, contexts):
+        """[(effect, its context, its name)]: the sensors' effects, the array's (sensor 1's)."""
+        out = [(e, c, f'{e.label}@{e.sensor}') for row, c in zip(self.effects, contexts)
+               for e in row]
+        return out + [(e, contexts[0], e.label) for e in self.array_effects] if contexts else out
+
     def prepare(self, contexts):
         """Let effects compute their reference values (mean temperature, t0, ...)."""
-        for row, ctx in zip(self.effects, contexts):
-            for eff in row:
-                eff.prepare(ctx)
-        for eff in self.array_effects:
-            if contexts:
-                eff.prepare(contexts[0])
+        for eff, ctx, _ in self._in_contexts(contexts):
+            eff.prepare(ctx)
 
     def check(self, contexts):
         """Reasons why effects cannot be excited by the data (empty list if all fine)."""
-        out = []
-        for row, ctx in zip(self.effects, contexts):
-            for eff in row:
-                why = eff.check(ctx)
-                if why:
-                    out.append(f'{eff.label}@{eff.sensor}: {why}')
-        for eff in self.array_effects:
-            why = eff.check(contexts[0]) if contexts else None
-            if why:
-                out.append(f'{eff.label}: {why}')
-        return out
+        return [f'{name}: {why}' for eff, ctx, name in self._in_contexts(contexts)
+                if (why := eff.check(ctx))]
 
     def matrix(self, j, p):
         """(3, 3) linear map A_j of sensor j for the global parameter vector p."""
