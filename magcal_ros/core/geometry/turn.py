@@ -13,11 +13,9 @@
 # limitations under the License.
 
 """
-The geometry of a turn about one axis: its axis, its circle, the angle it has swept.
+The geometry of a turn about one axis from the readings alone: axis, circle, angle swept.
 
-A sensor turned about one axis n reads a circle perpendicular to n about its offset, and a
-constant along n; these functions read that from the readings alone (the planar calibration
-is :mod:`magcal_ros.core.model.planar`).  Units: nT, rad.
+The planar calibration is :mod:`magcal_ros.core.model.planar`.  Units: nT, rad.
 """
 import numpy as np
 
@@ -30,11 +28,7 @@ class PlanarError(ValueError):
 
 
 def turn_axis(m):
-    """
-    Return the unit axis (3,) of a turn, in the sensor frame, from readings m (N, 3) nT.
-
-    The direction of least spread, signed along the mean reading.
-    """
+    """Return the unit axis (3,) of a turn (least spread, along the mean) of m (N, 3) nT."""
     m = np.asarray(m, float)
     c = m - m.mean(axis=0)
     w, v = np.linalg.eigh(c.T @ c / len(m))
@@ -63,10 +57,9 @@ def _plane(axis):
 
 def planar_magnitude(raw, axis):
     """
-    Return a shape-only magnitude (nT) for a turn with no reference.
+    Return a shape-only magnitude (nT) for a turn with no reference: in-plane radius and mean.
 
-    The in-plane radius about the circle's centre with the mean reading along ``axis`` (3,)
-    unit; raw (N, 3) nT.  The sensor's common scale is then arbitrary, its shape is not.
+    ``raw`` (N, 3) nT, ``axis`` (3,) unit; the sensor's common scale is then arbitrary.
     """
     raw = np.asarray(raw, float)
     k, plane = _plane(axis)
@@ -78,9 +71,8 @@ def swept_angle(m):
     """
     Angle (rad, >= 0) a sensor's readings m (N, 3) nT have swept about the turn axis.
 
-    Unwrapped about the circle's centre (:func:`circle_centre`) in the plane of the turn
-    (:func:`turn_axis`; sensor z while it cannot tell), first reading to last: what the
-    node's ``calibration/turn`` counts.
+    Unwrapped about the circle's centre, first reading to last (sensor z while
+    :func:`turn_axis` cannot tell): the node's ``calibration/turn``.
     """
     m = np.asarray(m, float)
     if len(m) < 8:

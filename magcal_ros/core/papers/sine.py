@@ -68,8 +68,7 @@ class SineFit:
     """
     Least-squares fit ``y = A sin(theta + C) + D`` (paper 000 eq. 4).
 
-    ``A`` amplitude >= 0, nT; ``C`` phase in (-pi, pi], rad; ``D`` shift, nT; ``rms`` the
-    root-mean-square residual, nT; ``n`` the number of samples.
+    ``A`` >= 0, nT; ``C`` in (-pi, pi], rad; ``D`` nT; ``rms`` residual, nT; ``n`` samples.
     """
 
     A: float
@@ -87,10 +86,8 @@ def fit_sine(theta_rad, y) -> SineFit:
     """
     Fit ``y = A sin(theta + C) + D`` by linear least squares (paper 000, eq. 4).
 
-    ``A sin(theta + C) = a sin(theta) + b cos(theta)`` with ``a = A cos C``, ``b = A sin C``,
-    so the fit is linear in ``(a, b, D)`` on the columns ``[sin, cos, 1]``.  ``theta_rad``
-    (N,) turntable angles, rad; ``y`` (N,) axis output, nT.  Raises ValueError if the shapes
-    differ, values are not finite, or there are fewer than 3 distinct angles modulo 2 pi.
+    Linear in ``(A cos C, A sin C, D)`` on ``[sin, cos, 1]``.  ``theta_rad`` (N,) rad; ``y``
+    (N,) nT.  ValueError for other shapes, non-finite values, fewer than 3 distinct angles.
     """
     theta = np.asarray(theta_rad, dtype=float)
     y = np.asarray(y, dtype=float)
@@ -115,10 +112,8 @@ class TurntableFits:
     """
     The five sine fits of the two-position procedure and the derived intermediate values.
 
-    ``x1, y1, z1`` the Xm, Ym, Zm curves in position 1 (OXmYm horizontal); ``x2, z2`` the Xm,
-    Zm curves in position 2 (OXmZm horizontal); ``sense`` +1 if theta turns Xm towards Ym in
-    position 1 (the paper's case), else -1; ``phi`` the angle between Xm and Zm, rad (eq.
-    12); ``k_yx, k_zx`` the ratios ky/kx (eq. 7) and kz/kx (eq. 14).
+    ``x1, y1, z1`` position 1's curves, ``x2, z2`` position 2's; ``sense`` +1 if theta turns
+    Xm towards Ym in position 1, else -1; ``phi`` rad (eq. 12); ``k_yx``, ``k_zx`` (eq. 7, 14).
     """
 
     x1: SineFit
@@ -145,9 +140,8 @@ def fit_turntable(theta1, m1, theta2, m2) -> TurntableFits:
     """
     Fit the five curves of the two turntable positions and form eq. 5-14's quantities.
 
-    ``theta1`` (N1,) rad and ``m1`` (N1, 3) nT: the turntable angles and raw Xm, Ym, Zm
-    outputs in position 1 (OXmYm horizontal); ``theta2`` (N2,), ``m2`` (N2, 3) in position 2
-    (OXmZm horizontal; only Xm and Zm are fitted).
+    ``theta1`` (N1,) rad, ``m1`` (N1, 3) nT in position 1 (OXmYm horizontal); ``theta2``
+    (N2,), ``m2`` (N2, 3) in position 2 (OXmZm horizontal).
     """
     theta1, m1 = _check_position(theta1, m1, '1')
     theta2, m2 = _check_position(theta2, m2, '2')
@@ -168,11 +162,8 @@ def calibrate_turntable(theta1, m1, theta2, m2, field_nt) -> Paper000Params:
     """
     Solve paper 000's nine calibration parameters from two turntable rotations.
 
-    ``theta1, m1, theta2, m2`` as :func:`fit_turntable` (position 1: Zm down, theta = 0 with
-    Xm at magnetic north; at least 3 distinct angles, ideally a full turn in equal steps);
-    ``field_nt`` the uniform field's magnitude, nT (eq. 16's B).  Returns alpha, beta, gamma
-    (rad), kx, ky, kz, B0 (3,) nT; raises ValueError on malformed input, a non-positive
-    field, or a geometry eq. 13 cannot resolve.
+    Arguments as :func:`fit_turntable`'s; ``field_nt`` eq. 16's B, nT.  Returns
+    Paper000Params; ValueError on malformed input, a non-positive field, or no eq. 13.
     """
     if not np.isfinite(field_nt) or field_nt <= 0.0:
         raise ValueError(f'field_nt must be a positive field magnitude in nT, got {field_nt!r}')
@@ -201,11 +192,7 @@ def calibrate_turntable(theta1, m1, theta2, m2, field_nt) -> Paper000Params:
 
 
 def correct(params: Paper000Params, raw):
-    """
-    Correct raw outputs (N, 3) nT with paper 000's parameters (eq. 17).
-
-    Returns the (N, 3) corrected field, nT, in paper 000's reference frame O-XYZ.
-    """
+    """Correct raw outputs (N, 3) nT with paper 000's parameters (eq. 17): (N, 3) nT in O-XYZ."""
     raw = np.asarray(raw, dtype=float)
     if raw.ndim != 2 or raw.shape[1] != 3:
         raise ValueError('raw must have shape (N, 3), got %s' % (raw.shape,))
@@ -224,9 +211,8 @@ class TurntableData:
     """
     Simulated two-position turntable experiment.
 
-    ``theta`` (N,) turntable angles, rad (both positions); ``raw1, raw2`` (N, 3) raw outputs,
-    nT, in position 1 (OXmYm horizontal) and 2 (OXmZm horizontal); ``field1, field2`` (N, 3)
-    the true field, nT, in paper 000's reference frame O-XYZ.
+    ``theta`` (N,) rad; ``raw1``, ``raw2`` (N, 3) nT in positions 1 and 2; ``field1``,
+    ``field2`` (N, 3) the true field in O-XYZ, nT.
     """
 
     theta: np.ndarray
@@ -240,9 +226,8 @@ def _turntable_attitudes(axis_a, axis_b, down, theta):
     """
     Rotations (N, 3, 3) taking O-XYZ vectors to the level frame (north, east, down).
 
-    The physical axes ``axis_a`` (3,) and ``axis_b`` (3,) (unit, in O-XYZ) span the
-    horizontal plane; ``axis_a`` points at azimuth theta (from north towards east);
-    ``axis_a x axis_b`` points down if ``down`` else up.
+    ``axis_a``, ``axis_b`` (3,) span the horizontal plane, ``axis_a`` at azimuth theta;
+    ``axis_a x axis_b`` points down if ``down``.
     """
     e3 = np.cross(axis_a, axis_b)
     e3 = e3 / np.linalg.norm(e3)
@@ -257,15 +242,10 @@ def simulate_turntable(params: Paper000Params, field_nt, inclination_rad, n_step
     """
     Simulate paper 000's two-position turntable experiment (§2, Fig. 2-3, §3.1).
 
-    Level frame: north, east, down; field ``B (cos I, 0, sin I)``. Position 1: the Xm and Ym
-    axes horizontal, Zm down, Xm at azimuth theta. Position 2: the physical Xm and Zm axes
-    horizontal, Xm at azimuth theta, Zm at azimuth theta - phi (Ym down). See the module
-    docstring for why these conventions reproduce the paper's printed curves.
-
-    ``params`` the true sensor; ``field_nt`` B, nT; ``inclination_rad`` I (positive: the
-    field points down); ``n_steps`` equal steps over a full turn (theta = 2 pi k / n_steps);
-    Gaussian noise of ``noise_sigma`` nT and mean ``noise_mean`` nT (paper 000 Table 1's
-    "white noise mean") on every axis and sample; ``rng`` a Generator or seed.
+    Field ``B (cos I, 0, sin I)`` (north, east, down); positions as the module docstring.
+    ``params`` the true sensor; ``field_nt`` B, nT; ``inclination_rad`` I (down > 0);
+    ``n_steps`` equal steps over a turn; Gaussian noise ``noise_sigma`` nT of mean
+    ``noise_mean`` nT (Table 1's "white noise mean"); ``rng`` a Generator or seed.
     """
     if int(n_steps) < 3:
         raise ValueError('n_steps must be >= 3 for a sine fit, got %r' % (n_steps,))
