@@ -138,9 +138,7 @@ class FitResult:
         """(S,) number of sensor samples the robust loss down-weighted (0 if not robust)."""
         if not self.robust:
             return np.zeros(self.model.n_sensors, int)
-        residual = self.__dict__.get('residual_nt')
-        if residual is None:
-            residual = self._profile()[1]
+        residual = self._peek('residual_nt')
         keep = self.reading_mask
         if keep is not None:
             residual = residual * keep[:, :, None]
@@ -241,7 +239,10 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
         raise ValueError('check_identifiability reads the covariance: pass '
                          'check_identifiability=False with covariance=False')
     with single_threaded_blas():
-        model = _model_for(data, model)
+        if isinstance(model, str):
+            model = Model.from_spec(model, data.n_sensors)
+        if model.n_sensors != data.n_sensors:
+            raise ValueError(f'model has {model.n_sensors} sensors, data have {data.n_sensors}')
         notes = []
 
         def degenerate(msg):
@@ -286,15 +287,6 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
         contexts=contexts_all, robust=bool(robust), f_scale=float(f_scale), raw_nt=data.raw,
         n_fit_readings=(np.full(model.n_sensors, len(idx)) if mask is None
                         else mask.sum(axis=1)), priors=tuple(prior_list))
-
-
-def _model_for(data, model):
-    """Return ``model`` (a Model, or a spec string built here) checked against ``data``."""
-    if isinstance(model, str):
-        model = Model.from_spec(model, data.n_sensors)
-    if model.n_sensors != data.n_sensors:
-        raise ValueError(f'model has {model.n_sensors} sensors, data have {data.n_sensors}')
-    return model
 
 
 def _check_data(data, model, contexts, constrained, check_identifiability, degenerate):

@@ -21,7 +21,8 @@ condition number of the correlation matrix.
 """
 from magcal_ros.core.geometry.coverage import direction_coverage
 from magcal_ros.core.geometry.turn import circle_centre
-from magcal_ros.core.papers.ellipsoid import fit_ellipsoid, reading_plane, RING_CV, ring_spread
+from magcal_ros.core.papers.ellipsoid import (fit_ellipsoid, format_axis, reading_plane,
+                                              RING_CV, ring_spread)
 import numpy as np
 
 #: smallest direction-scatter eigenvalue of a single-axis rotation (noise and wobble only)
@@ -61,14 +62,10 @@ def fitted_centre(m):
     return ell.b, float(np.var(ell.residual_nt)), float(axes[0] / axes[-1])
 
 
-def _fmt_axis(v):
-    return '(' + ', '.join(f'{0.0 if abs(x) < 0.005 else x:+.2f}' for x in v) + ')'
-
-
 def _single_axis_message(normal, how):
     return (f'all field directions lie near one plane with normal '
-            f'{_fmt_axis(normal)} ({how}): the data come from a rotation about one axis only, '
-            f'about {_fmt_axis(normal)} in the sensor frame; rotate about another axis too '
+            f'{format_axis(normal)} ({how}): the data come from a rotation about one axis only, '
+            f'about {format_axis(normal)} in the sensor frame; rotate about another axis too '
             '(tilt that axis by 45-90 deg and rotate again)')
 
 

@@ -52,24 +52,18 @@ def _null_dimension(jac, rtol=1e-12):
     return int(np.sum(w <= rtol * w.max()))
 
 
-def _skew(v):
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
-def crb_covariance(data, model, params, field_nt, sigma_nt, case='attitude', positions=None,
-                   fix_gyz=False):
+def crb_covariance(data, model, params, field_nt, sigma_nt, case='attitude', fix_gyz=False):
     """
     Cramer-Rao bound of the calibration (and site gradient) with or without attitude.
 
     The Fisher information at ``params`` with each case's per-epoch nuisances projected out:
     ``'attitude'`` B_k on the sphere |B| = F; ``'heading'`` also the rotation psi_k about the
     field (G_w then known up to that rotation, the gauge); ``'epoch_gradient'`` no attitude,
-    a body-frame gradient per epoch (``model`` without ``site_gradient``).
+    a body-frame gradient per epoch (paper 004's cross, ``model`` without ``site_gradient``).
 
     ``data`` (S, N, 3) nT readings (with the attitude, but for 'epoch_gradient'); ``model``
     joint; ``params`` (P,); ``field_nt`` nT, scalar or (N,); ``sigma_nt`` nT, scalar or
-    (S,); ``positions`` (S, 3) m for 'epoch_gradient' (default paper 004's cross);
-    ``fix_gyz``: the 'heading' gauge fixed by gyz = 0.  Returns a dict: ``covariance``
+    (S,); ``fix_gyz``: the 'heading' gauge fixed by gyz = 0.  Returns a dict: ``covariance``
     (P, P), inf where undetermined; ``gradient_covariance`` (5, 5) (nT/m)^2 on the
     gauge-free directions ('heading') or None; ``gauge_direction`` (5,) or None;
     ``undetermined_directions`` (count; 'epoch_gradient').
@@ -101,7 +95,7 @@ def crb_covariance(data, model, params, field_nt, sigma_nt, case='attitude', pos
         rot = contexts[0].attitude
         n_w = np.einsum('nij,nj->ni', rot, b).mean(axis=0)
         n_w /= np.linalg.norm(n_w)
-        nx = _skew(n_w)
+        nx = np.array([[0.0, -n_w[2], n_w[1]], [n_w[2], 0.0, -n_w[0]], [-n_w[1], n_w[0], 0.0]])
         g_w = eff.tensor(p[sl])
         d_g = g_w @ nx - nx @ g_w                   # d(R^T G R)/d psi = R^T (G N - N G) R
         cols = [-(np.einsum('nji,jk,nkl,l->ni', rot, d_g, rot, eff.position(j)) @ mats[j].T)
@@ -112,7 +106,7 @@ def crb_covariance(data, model, params, field_nt, sigma_nt, case='attitude', pos
         if model.array_effects:
             raise ValueError("case 'epoch_gradient' takes a model without site_gradient")
         from magcal_ros.core.geometry.tensor import cross_positions
-        pos = cross_positions(0.5) if positions is None else np.asarray(positions, float)
+        pos = cross_positions(0.5)
         cols = []
         for j in grp:
             c = np.stack([mats[j] @ (symmetric_traceless(e) @ pos[j - 1]) for e in np.eye(5)],

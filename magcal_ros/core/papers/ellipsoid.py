@@ -26,7 +26,8 @@ PLANE_SD_RATIO = 0.3
 RING_CV = 0.2
 
 
-def _fmt(v):
+def format_axis(v):
+    """Return a unit vector (3,) as text, ``(+0.12, -0.99, +0.00)``."""
     return '(' + ', '.join(f'{0.0 if abs(x) < 0.005 else x:+.2f}' for x in v) + ')'
 
 
@@ -74,7 +75,7 @@ def _undetermined_message(raw, why):
         return (f'the ellipsoid is not determined by these data ({why}): the readings do not '
                 'cover enough attitudes; rotate the sensor about more axes')
     return (f'the ellipsoid is not determined by these data ({why}): the readings lie near '
-            f'one plane with normal {_fmt(n)} in the sensor frame, i.e. the sensor was '
+            f'one plane with normal {format_axis(n)} in the sensor frame, i.e. the sensor was '
             'rotated about that axis only; rotate it about another axis too (tilt that axis '
             'by 45-90 deg and rotate again)')
 

@@ -15,12 +15,9 @@
 """
 Paper 000: sine-fit calibration of a three-axis magnetometer on a turntable.
 
-Model (paper 000, eq. 1): ``raw = L B + B0`` with ``L`` lower triangular (see
-:class:`~magcal_ros.core.papers.paper_params.Paper000Params`). The sensor is turned on a level,
-non-magnetic turntable in a uniform field, first with its OXmYm plane horizontal, then with
-its OXmZm plane horizontal; every axis output is fitted by ``A sin(theta + C) + D`` (eq. 4),
-and the nine parameters follow from amplitudes, phases and shifts (eq. 5-16) without any
-iterative optimisation. Correction is eq. 17.
+Model (eq. 1): ``raw = L B + B0``, L lower triangular
+(:class:`~magcal_ros.core.papers.paper_params.Paper000Params`); the procedure (eq. 4-17) is
+docs/papers.md's.
 
 Geometry and sign conventions (found by reproducing the numbers of the paper's §3.1; the paper
 states none of them):
@@ -38,8 +35,7 @@ states none of them):
   ideal-XZ-plane reading would give 40 332.1 nT and a shift of 503 nT). Zm lies at azimuth
   ``theta - phi`` (the sensor is rolled about Xm so that Ym points down and theta turns Zm
   towards Xm), giving the printed phase 90 deg - phi = 0.9004 deg.
-- Eq. 7 and §3.1's phi are misprinted (docs/papers.md, paper 000): k_yx is the Ym amplitude
-  over the Xm amplitude (1.2607 = 41 906.6 / 33 240.0), as eq. 14's k_zx; phi = 89.0996 deg.
+- Eq. 7 and §3.1's phi are misprinted (docs/papers.md): k_yx = 41 906.6 / 33 240.0.
 - Eq. 5, 9 and 12 take absolute values of phase differences, which loses the signs of alpha
   and beta. Here the turning sense ``s`` is read from the data (the Ym phase leads the Xm
   phase by about +90 deg for s = +1, lags by about 90 deg for s = -1, since |alpha| < 90 deg),
@@ -47,11 +43,9 @@ states none of them):
   (-180, 180] deg), ``phi = |C'_x - C'_z|``. For positive alpha, beta and s = +1 these are the
   paper's eq. 5, 9 and 12.
 
-With these conventions :func:`simulate_turntable` reproduces every printed curve coefficient
-of §3.1 and k_yx, k_zx to the printed precision, and :func:`calibrate_turntable` returns the
-nine parameters exactly (the two printed numbers that are not reproduced: docs/papers.md).
+With these :func:`simulate_turntable` reproduces §3.1's printed curves, k_yx and k_zx, and
+:func:`calibrate_turntable` the nine parameters exactly.
 """
-
 from dataclasses import dataclass
 
 from magcal_ros.core.papers.paper_params import Paper000Params
