@@ -69,11 +69,7 @@ def check_quaternions(q, t=None, rows=None, tol=UNIT_TOLERANCE):
 
 
 def interpolate(t_msg, q_msg, t):
-    """
-    Return (N, 4) the attitude at times ``t`` (N,) s inside the span, by slerp.
-
-    ``t_msg`` (M,) s in any order (of duplicates the first), ``q_msg`` (M, 4) unit quaternions.
-    """
+    """Return (N, 4) the slerp of ``q_msg`` (M, 4) at ``t_msg`` (M,) s (any order) to t (N,)."""
     from scipy.spatial.transform import Rotation, Slerp
     t_u, first = np.unique(np.asarray(t_msg, float), return_index=True)     # the first of each
     rot = Rotation.from_quat(np.asarray(q_msg, float)[first], scalar_first=True)

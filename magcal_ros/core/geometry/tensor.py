@@ -23,11 +23,7 @@ def cross_positions(baseline_m=0.5):
 
 
 def tensor_cross(b, baseline_m=0.5):
-    """
-    Paper 004 eq. 1: (N, 3, 3) or (3, 3) G_ij = dB_i/dx_j, nT/m, at the cross's centre.
-
-    ``b`` (4, N, 3) or (4, 3) nT, array frame; ``baseline_m`` between an arm's two sensors.
-    """
+    """Paper 004 eq. 1: G_ij = dB_i/dx_j (N, 3, 3) nT/m of b (4, N, 3) nT, arms baseline_m long."""
     b = np.asarray(b, float)
     one = b.ndim == 2
     b = b[:, None] if one else b
@@ -104,11 +100,7 @@ TENSOR_MAP = np.stack([symmetric_traceless(e).ravel() for e in np.eye(5)], axis=
 
 
 def gradient_from_fit(model, params, covariance):
-    """
-    World-frame site gradient of a fit: (G, stderr) (3, 3) nT/m, cov5 (5, 5) (nT/m)^2, or None.
-
-    ``model`` the fitted Model, ``params`` (P,), ``covariance`` (P, P).
-    """
+    """(G, stderr) (3, 3) nT/m, cov5 (5, 5) of a fit's params (P,), covariance (P, P); or None."""
     for eff, sl in zip(model.array_effects, model.array_slices):
         if eff.name == 'site_gradient':
             c5 = covariance[sl, sl]

@@ -49,7 +49,7 @@ def circle_centre(xy):
     return sol[:-1]
 
 
-def _plane(axis):
+def plane_axes(axis):
     """(index of the sensor axis nearest ``axis`` (3,), the two other indices)."""
     k = int(np.argmax(np.abs(axis)))
     return k, [a for a in range(3) if a != k]
@@ -62,7 +62,7 @@ def planar_magnitude(raw, axis):
     ``raw`` (N, 3) nT, ``axis`` (3,) unit; the sensor's common scale is then arbitrary.
     """
     raw = np.asarray(raw, float)
-    k, plane = _plane(axis)
+    k, plane = plane_axes(axis)
     r = float(np.median(np.linalg.norm(raw[:, plane] - circle_centre(raw[:, plane]), axis=1)))
     return float(np.hypot(r, np.mean(raw[:, k])))
 
@@ -81,7 +81,7 @@ def swept_angle(m):
         n = turn_axis(m)
     except PlanarError:
         n = np.array([0.0, 0.0, 1.0])
-    xy = m[:, _plane(n)[1]]
+    xy = m[:, plane_axes(n)[1]]
     c = circle_centre(xy)
     radius = np.linalg.norm(xy - c, axis=1)
     if np.median(radius) < MIN_TURN_RADIUS * np.median(np.linalg.norm(m, axis=1)):

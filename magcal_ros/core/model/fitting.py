@@ -614,11 +614,7 @@ class _Solve:
 
 
 def priors_for(model, spec, constrained=False):
-    """
-    Prior list [(index, mean, sd)] from a {effect name or label: (mean or None, sd)} spec.
-
-    With ``constrained`` every effect's ``Effect.prior`` unless ``spec`` overrides it.
-    """
+    """[(index, mean, sd)] of {name or label: (mean or None, sd)}; constrained: Effect.prior."""
     out = []
     default = model.default_params()
     for j, row in enumerate(model.effects):

@@ -24,7 +24,7 @@ covariance to a level sensor's heading.  Units: nT, rad, deg where the name says
 from dataclasses import dataclass
 
 from magcal_ros.core.geometry.turn import (circle_centre,  # noqa: F401 - public here too
-                                           planar_magnitude, PlanarError,
+                                           planar_magnitude, PlanarError, plane_axes,
                                            swept_angle, turn_axis)
 from magcal_ros.core.model.fitting import fit
 import numpy as np
@@ -200,11 +200,8 @@ def _planar_start(data, model, field_nt, p_prior, held, axes):
     p = p_prior.copy()
     info = model.param_info()
     for j in range(1, data.n_sensors + 1):
-        m = data.raw[j - 1]
-        n = axes[j - 1]
-        k = int(np.argmax(np.abs(n)))
-        plane = [a for a in range(3) if a != k]
-        centre = circle_centre(m[:, plane])
+        plane = plane_axes(axes[j - 1])[1]
+        centre = circle_centre(data.raw[j - 1][:, plane])
         for i, (s, label, name, _) in enumerate(info):
             if s == j and label == 'offset' and i not in held:
                 p[i] = centre[plane.index('xyz'.index(name[1]))]
@@ -232,14 +229,11 @@ def heading_error(result, j, axis, axis_index, h_nt, z_nt, n_headings=72):
     ``max_deg`` and ``rms_deg`` over psi, ``psi_deg`` (M,), ``sd_deg`` (M,).
     """
     model, p = result.model, result.params
-    n = np.asarray(axis, float)
-    k = axis_index
-    u_ax, v_ax = [a for a in range(3) if a != k]
-    u, v = np.eye(3)[u_ax], np.eye(3)[v_ax]
+    u, v = np.eye(3)[[a for a in range(3) if a != axis_index]]
     psi = np.radians(np.arange(n_headings) * 360.0 / n_headings)
-    b = h_nt * (np.cos(psi)[:, None] * u - np.sin(psi)[:, None] * v) + z_nt * n[None, :]
-    ctx = result.contexts[j - 1]
-    ctx0 = ctx.subset(np.zeros(n_headings, int))
+    b = (h_nt * (np.cos(psi)[:, None] * u - np.sin(psi)[:, None] * v)
+         + z_nt * np.asarray(axis, float)[None, :])
+    ctx0 = result.contexts[j - 1].subset(np.zeros(n_headings, int))
     raw = model.forward(j, p, b, ctx0)
 
     def heading(params):
@@ -276,8 +270,7 @@ def planar_summary(pr):
            'field_split_nt': {}, 'determined': list(pr.determined),
            'undetermined': list(pr.undetermined)}
     for j in range(1, r.model.n_sensors + 1):
-        k = pr.axis_index[j - 1]
-        plane = [a for a in range(3) if a != k]
+        k, plane = plane_axes(pr.axis[j - 1])
 
         def index(label, name, j=j):
             return where.get((j, label, name))

@@ -59,11 +59,7 @@ def nearest_axis_map(a):
 
 
 def axis_maps(model, params):
-    """
-    {sensor j: M (3, 3)} of the sensors whose fitted map needs an axis map (M != I).
-
-    Composed with the model's own; sensor 1 (upper-triangular map) gets sign changes only.
-    """
+    """{sensor j: M (3, 3)} of the sensors that need an axis map (sensor 1: sign changes only)."""
     out = {}
     for j in range(1, model.n_sensors + 1):
         old = model.axis_map(j)
@@ -177,11 +173,7 @@ def _unit_decade(k):
 
 
 def parameter_notes(model, params, raw, field_nt):
-    """
-    Name the fitted values no real sensor has, in Notes of kind ``parameters``.
-
-    ``model`` (with its axis maps), ``params`` (P,); ``raw`` (S, N, 3) nT; ``field_nt`` nT.
-    """
+    """Name values no real sensor has (Notes ``parameters``): raw (S, N, 3), field_nt nT."""
     from magcal_ros.core.model.calibration import Calibration
     cal = Calibration(model, params)
     lin = linear_summary(model, params)

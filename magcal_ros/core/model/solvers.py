@@ -28,11 +28,7 @@ MAD_TO_SD = 1.482602218505602
 
 
 def mad_sd(x):
-    """
-    Gaussian-consistent sd, 1.4826 MAD of ``x`` (any shape; nan when empty), unit of x.
-
-    scipy.stats.median_abs_deviation(scale='normal') without importing scipy.stats (slow).
-    """
+    """1.4826 MAD of ``x`` (any shape; nan when empty), as scipy.stats' (slow to import) gives."""
     x = np.asarray(x, float).ravel()
     if not x.size:
         return float('nan')

@@ -102,11 +102,7 @@ class Model:
 
     @classmethod
     def from_spec(cls, spec, n_sensors):
-        """
-        Build a model from formula text, a list of terms or a Formula (docs/formulas.md).
-
-        Linear effects are multiplied in the order of ``Effect.linear_order``.
-        """
+        """Build a model from formula text, terms or a Formula (docs/formulas.md), S sensors."""
         from magcal_ros.core.effects.formula import composed_effect, parse
         formula = parse(spec)
         per_sensor = [[] for _ in range(n_sensors)]
@@ -286,11 +282,7 @@ class Model:
         return out
 
     def forward(self, j, p, b, ctx, a=None, add=None):
-        """
-        Raw reading of sensor j (N, 3) nT for true field b (N, 3) nT at the array centre.
-
-        ``a`` (3, 3) A_j and ``add`` (N, 3) nT :meth:`fixed_additive` at p, when known.
-        """
+        """Raw reading (N, 3) nT of sensor j in field b (N, 3) nT; a, add: A_j, fixed_additive."""
         if self.array_effects:
             b = b + self.array_shift(j, p, ctx, b)
         lin = b @ (self.matrix(j, p) if a is None else a).T
@@ -347,11 +339,7 @@ class Model:
         return diff, h
 
     def correct(self, j, p, raw, ctx, n_iter=4, a_inv=None):
-        """
-        Invert :meth:`forward`: corrected field (N, 3) nT in the array frame.
-
-        Effects that read the field by fixed-point iteration; ``a_inv`` (3, 3) A_j^-1 if known.
-        """
+        """Invert :meth:`forward` (by fixed point where it reads lin): (N, 3) nT; a_inv: A_j^-1."""
         raw = np.asarray(raw, float)
         if a_inv is None:
             a_inv = np.linalg.inv(self.matrix(j, p))

@@ -179,11 +179,7 @@ def fit_ellipsoid(raw, field_nt, normalization='svd'):
 
 
 def procrustes_rotation(reference, other):
-    """
-    Paper 004 eq. 14: the rotation R (3, 3), det +1, minimising sum |reference_k - R other_k|^2.
-
-    ``reference`` (N, 3) sensor 1's corrected field, ``other`` (N, 3) sensor i's, nT (Kabsch).
-    """
+    """Paper 004 eq. 14: R (3, 3), det +1, minimising sum |reference_k - R other_k|^2 (N, 3)."""
     from scipy.spatial.transform import Rotation     # here: scipy.spatial is slow to import
     rot, _ = Rotation.align_vectors(np.asarray(reference, float), np.asarray(other, float))
     return rot.as_matrix()

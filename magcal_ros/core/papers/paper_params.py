@@ -158,11 +158,7 @@ def table1_sensor(j) -> Paper004Params:
 
 
 def table1_correction(j):
-    """
-    Return paper 004 Table 2's (c_inv (3, 3), r_corr (3, 3)) for sensor ``j`` (1..4).
-
-    :meth:`Paper004Params.correction` of Table 1's sensor (docs/papers.md, paper 004 errata).
-    """
+    """Return paper 004 Table 2's (c_inv, r_corr), (3, 3) each, of sensor ``j`` (1..4)."""
     return table1_sensor(j).correction()
 
 

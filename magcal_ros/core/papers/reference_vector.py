@@ -145,11 +145,7 @@ def fit_reference(He, Hm, strict=False, max_condition=100.0,
 
 
 def correct(fit, Hm):
-    """
-    Compensate readings ``Hm`` (N, 3) or (3,) nT: ``K^-1 (Hm - Hh)`` (paper 002 eq. 4), nT.
-
-    ``fit`` anything with ``K`` (3, 3) and ``Hh`` (3,) nT (ReferenceFit, Paper002Params).
-    """
+    """Return K^-1 (Hm - Hh), nT (paper 002 eq. 4), of Hm (N, 3) or (3,) nT; ``fit`` has K, Hh."""
     hm = np.asarray(Hm, dtype=float)
     if hm.shape[-1:] != (3,) or hm.ndim > 2:
         raise ValueError('Hm must have shape (N, 3) or (3,), got %s' % (hm.shape,))

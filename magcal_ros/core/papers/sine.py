@@ -59,11 +59,7 @@ def _wrap(angle):
 
 @dataclass(frozen=True)
 class SineFit:
-    """
-    Least-squares fit ``y = A sin(theta + C) + D`` (paper 000 eq. 4).
-
-    ``A`` >= 0, nT; ``C`` in (-pi, pi], rad; ``D`` nT; ``rms`` residual, nT; ``n`` samples.
-    """
+    """Fit y = A sin(theta + C) + D (eq. 4): A >= 0, D, rms nT; C in (-pi, pi] rad; n samples."""
 
     A: float
     C: float
