@@ -56,11 +56,7 @@ def plane_axes(axis):
 
 
 def planar_magnitude(raw, axis):
-    """
-    Return a shape-only magnitude (nT) for a turn with no reference: in-plane radius and mean.
-
-    ``raw`` (N, 3) nT, ``axis`` (3,) unit; the sensor's common scale is then arbitrary.
-    """
+    """Shape-only magnitude, nT, of a turn raw (N, 3) nT about axis (3,): radius and mean."""
     raw = np.asarray(raw, float)
     k, plane = plane_axes(axis)
     r = float(np.median(np.linalg.norm(raw[:, plane] - circle_centre(raw[:, plane]), axis=1)))
@@ -68,12 +64,7 @@ def planar_magnitude(raw, axis):
 
 
 def swept_angle(m):
-    """
-    Angle (rad, >= 0) a sensor's readings m (N, 3) nT have swept about the turn axis.
-
-    Unwrapped about the circle's centre, first reading to last (sensor z while
-    :func:`turn_axis` cannot tell): the node's ``calibration/turn``.
-    """
+    """Angle (rad) readings m (N, 3) nT swept about the turn axis (the node's calibration/turn)."""
     m = np.asarray(m, float)
     if len(m) < 8:
         return 0.0

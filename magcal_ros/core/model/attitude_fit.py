@@ -73,12 +73,7 @@ def with_attitude(model, mode, n_sensors=None):
 
 
 def attitude_start(data, model, f):
-    """
-    (P,) closed-form start: offsets and Z from |raw - o| = F, g_k . (raw - o) = Z (A = I).
-
-    ``data`` with ``attitude``, raw (S, N, 3) nT; ``model`` with the attitude's effect;
-    ``f`` (N,) reference magnitude, nT.
-    """
+    """(P,) start: offsets, Z from |raw - o| = F, g_k . (raw - o) = Z (A = I); f (N,) nT."""
     rot = data.attitude_matrix()
     g = rot[:, 2, :]                                   # world vertical in the body frame
     f0 = float(np.mean(f))
@@ -209,10 +204,9 @@ def prior_held(result, prior_list, ratio=PRIOR_HELD_RATIO):
 def _start_sigma(data, model, p, f):
     """Return the attitude observation's sd at the start, nT: its residual against sensor 1."""
     eff, sl = attitude_reference(model)
-    rot = data.attitude_matrix()
     cor = model.correct(1, p, data.raw[0], data.context(1))
     b = cor / np.linalg.norm(cor, axis=1, keepdims=True) * f[:, None]
-    r = eff.residual(p[sl], rot, f, b)
+    r = eff.residual(p[sl], data.attitude_matrix(), f, b)
     return max(float(np.sqrt(np.mean(np.sum(r * r, axis=1)) / eff.rank)),
                1e-3 * float(np.mean(f)))
 
@@ -226,12 +220,11 @@ def heading_check(result, data, undetermined=()):
     a horizontal offset of sensor 1), ``rms_deg`` (about the mean), ``max_deg``,
     ``disagree`` (``rms_deg`` above :data:`HEADING_DISAGREE_DEG`).
     """
-    rot = data.attitude_matrix()
     p = result.params
     cor = result.model.correct(1, p, data.raw[0], data.context(1))
     eff, sl = attitude_reference(result.model)
     cor = cor @ eff.mount(p[sl])            # into the attitude's body frame
-    w = np.einsum('nij,nj->ni', rot, cor)
+    w = np.einsum('nij,nj->ni', data.attitude_matrix(), cor)
     ang = np.arctan2(w[:, 1], w[:, 0])
     mean = np.angle(np.mean(np.exp(1j * ang)))
     dev = np.degrees(np.angle(np.exp(1j * (ang - mean))))

@@ -89,12 +89,7 @@ class ProfiledProblem:
         self._drop_setup()
 
     def _drop_setup(self):
-        """
-        Set :attr:`keep` (N, G (+1)) 0/1 per member (None: all kept) and :attr:`field_w`.
-
-        The attitude is kept while any sensor is; ``field_w`` weighs the field profile, a set
-        that keeps no reading weighted 1.
-        """
+        """Set keep (N, G (+1)) 0/1 per member (None: all) and field_w, the field's weights."""
         self.keep = self.field_w = None
         if not self.model.drops or not self.ctx:
             return
@@ -168,12 +163,7 @@ class ProfiledProblem:
         return p
 
     def _field(self, p):
-        """
-        Profile the field: mean of corrected readings (or :attr:`field0`), GN steps on |B| = F.
-
-        Returns (field (N, 3) nT, {sensor: (3, 3) A_j}, {sensor: (N, 3) nT additive effects
-        at p, or None when they read the field}).
-        """
+        """Return (field (N, 3) nT, {j: A_j}, {j: additive (N, 3) nT or None}): GN on |B| = F."""
         n = self.raw.shape[1]
         mats = {j: self.model.matrix(j, p) for j in self.sensors}
         adds = {j: self.model.fixed_additive(j, p, self.ctx[j - 1], n) for j in self.sensors}
@@ -303,8 +293,7 @@ class ProfiledProblem:
         """
         Return the unprojected columns dr/dx by member, the field held at ``b`` (N, 3) nT.
 
-        Forward differences (Model.forward_differences).  Two lists over the members (the
-        attitude last): own columns (P_j, N, 3) and array-wide ones (n_arr, N, 3) or None.
+        Two lists over the members: own (P_j, N, 3) and array-wide (n_arr, N, 3) or None.
         """
         def diff(gi, j, cols):
             block, h = self.model.forward_differences(j, p, b, self.ctx[j - 1], cols)

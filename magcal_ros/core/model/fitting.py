@@ -408,12 +408,7 @@ def group_noise_variances(res, g_cols, n_params, ranks=None, keep=None):
 
 
 def dof_scale(n, n_params, row_total):
-    """
-    Return sqrt(D / (D - P)), D = ``row_total`` - 2 N: it scales a group's residual noise sd.
-
-    ``row_total`` observations over the N epochs, each epoch's field taking 2; the P
-    parameters take theirs from the rest.
-    """
+    """Return sqrt(D / (D - P)), D = row_total - 2 N (each field takes 2): scales a noise sd."""
     dof = row_total - 2 * n
     return float(np.sqrt(dof / max(dof - n_params, 1.0)))
 
@@ -433,12 +428,7 @@ def own_residual(res, g_cols, gi):
 
 
 def serial_inflation(r):
-    """
-    sqrt((1 + rho) / (1 - rho)), rho the lag-1 correlation of ``r`` (N, 3) in time order.
-
-    The AR(1) variance inflation of a mean (Bartlett 1946): how much a smooth error (an
-    attitude's) weighs less than N independent observations.
-    """
+    """sqrt((1 + rho) / (1 - rho)), rho the lag-1 correlation of r (N, 3) (Bartlett 1946)."""
     r = np.asarray(r, float)
     num = float(np.sum(r[1:] * r[:-1]))
     den = float(np.sum(r * r))

@@ -151,12 +151,7 @@ def fit_planar(data, model, field_nt, *, prior_params=None, inclination_deg=None
 
 
 def split_determined(info, open_, also=()):
-    """
-    Return (undetermined, determined) names ``<effect>.<param>@<sensor>``.
-
-    ``info`` ``Model.param_info()``, ``open_`` the undetermined indices; the determined:
-    the other sensors' parameters and the indices ``also``.
-    """
+    """Return (undetermined ``open_``, determined: the other sensors' and ``also``) as names."""
     label = [f'{lab}.{nm}@{j}' for j, lab, nm, _ in info]
     return (tuple(label[k] for k in sorted(open_)),
             tuple(label[k] for k in range(len(info))
@@ -174,12 +169,7 @@ def central_jacobian(fun, p, cols, steps, wrap=lambda d: d):
 
 
 def inflate_for_correlation(result):
-    """
-    Return the fit with its covariance widened for correlated residuals, and the (S,) rho.
-
-    Each sensor's block by (1 + rho) / (1 - rho), rho its scalar residual's lag-1
-    correlation (never narrowed; the AR(1) variance inflation, Bartlett 1946).
-    """
+    """Return (fit, (S,) rho), each sensor's block times (1 + rho) / (1 - rho) (Bartlett 1946)."""
     from dataclasses import replace
     model = result.model
     owner = np.array([s for s, *_ in model.param_info()])

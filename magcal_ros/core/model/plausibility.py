@@ -19,7 +19,8 @@ Fitted parameters no real sensor has, explained in words.
 mirrored or turned sensor frame, recorded as ``axes(...)@j`` (:func:`mounting_notes`, Notes
 of kind ``mounting``); :func:`parameter_notes` names a scale near a power of ten or far from
 one, an angle beyond :data:`ANGLE_WARN_DEG` and an offset beyond every reading (kind
-``parameters``); a real sensor's are near 1, within degrees, within its readings.
+``parameters``); a real sensor's are near 1, within degrees (paper 004, Table 1), within its
+readings.
 """
 from magcal_ros.core import effects as fx
 from magcal_ros.core.model.notes import Note

@@ -152,11 +152,7 @@ def _align_to_z(u):
 
 
 def _best_heading(shift, r_a, g_w, positions, psi0=None):
-    """
-    Per-epoch heading psi_k (N,) rad minimising sum_j |shift_j - R^T G R r_j|^2.
-
-    R = Rz(psi) R_a; ``shift`` (S, N, 3) nT; from a 5 deg grid (or ``psi0``), Newton steps.
-    """
+    """Per-epoch psi_k (N,) rad minimising sum_j |shift_j - R^T G R r_j|^2, R = Rz(psi) R_a."""
     def cost(psi):
         rot = rot_z(psi) @ r_a
         pred = np.einsum('nji,jk,nkl,sl->sni', rot, g_w, rot, positions)

@@ -37,12 +37,7 @@ def mad_sd(x):
 
 @dataclass(frozen=True)
 class Solution:
-    """
-    Outcome of :func:`levenberg_marquardt` (the fields of scipy's OptimizeResult used here).
-
-    ``x`` (P,); ``status`` 0: evaluation limit, 2: cost decrease below ftol, 3: step below
-    xtol; ``nfev`` residual evaluations.
-    """
+    """Outcome of :func:`levenberg_marquardt`: x (P,); status 0 nfev limit, 2 ftol, 3 xtol."""
 
     x: np.ndarray
     success: bool

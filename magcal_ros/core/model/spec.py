@@ -360,7 +360,7 @@ class Model:
         """
         Return p with sensor j's linear and offset parameters set from A (3, 3) and o (3,) nT.
 
-        M^T A = U Q (axis map M; paper 004 eq. 2-3): each effect takes its share.
+        M^T A = U Q (M the axis map; paper 004 eq. 2-3): each effect takes its share.
         """
         p = self.default_params() if p is None else p.copy()
         a = self.axis_map(j).T @ np.asarray(a, float)

@@ -32,12 +32,7 @@ def format_axis(v):
 
 
 def reading_plane(raw):
-    """
-    Return the (3,) unit normal (largest component > 0) of the ring the readings form, or None.
-
-    ``raw`` (N, 3) nT: near a plane (:data:`PLANE_SD_RATIO`) and a ring in it
-    (:data:`RING_CV`): the sensor turned about that axis only.
-    """
+    """Return the (3,) unit normal of the ring raw (N, 3) nT form (turned about it), or None."""
     m = np.asarray(raw, float)
     w, vec = np.linalg.eigh(np.cov((m - m.mean(axis=0)).T))
     w = np.clip(w, 0.0, None)
@@ -53,12 +48,7 @@ def _quadric_matrix(v):
 
 
 def ring_spread(u, normal):
-    """
-    Return how far the points ``u`` (N, 3) are from a ring about ``normal`` (3,).
-
-    The coefficient of variation of their radius about the circle fitted in the plane normal
-    to it: about 0 for a ring, 0.35 for a filled cap.
-    """
+    """Coefficient of variation of u's (N, 3) radius about ``normal`` (3,): 0 ring, 0.35 cap."""
     e1 = np.cross(normal, [1.0, 0.0, 0.0])
     if np.linalg.norm(e1) < 0.1:
         e1 = np.cross(normal, [0.0, 1.0, 0.0])
@@ -179,7 +169,7 @@ def fit_ellipsoid(raw, field_nt, normalization='svd'):
 
 
 def procrustes_rotation(reference, other):
-    """Paper 004 eq. 14: R (3, 3), det +1, minimising sum |reference_k - R other_k|^2 (N, 3)."""
+    """Paper 004 eq. 14 (Kabsch): R (3, 3), det +1, minimising sum |reference_k - R other_k|^2."""
     from scipy.spatial.transform import Rotation     # here: scipy.spatial is slow to import
     rot, _ = Rotation.align_vectors(np.asarray(reference, float), np.asarray(other, float))
     return rot.as_matrix()

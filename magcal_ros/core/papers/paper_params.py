@@ -158,7 +158,7 @@ def table1_sensor(j) -> Paper004Params:
 
 
 def table1_correction(j):
-    """Return paper 004 Table 2's (c_inv, r_corr), (3, 3) each, of sensor ``j`` (1..4)."""
+    """Return paper 004 Table 2's (c_inv, r_corr), (3, 3) each, of sensor j (errata: docs)."""
     return table1_sensor(j).correction()
 
 

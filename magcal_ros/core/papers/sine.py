@@ -59,7 +59,7 @@ def _wrap(angle):
 
 @dataclass(frozen=True)
 class SineFit:
-    """Fit y = A sin(theta + C) + D (eq. 4): A >= 0, D, rms nT; C in (-pi, pi] rad; n samples."""
+    """Fit y = A sin(theta + C) + D (paper 000 eq. 4): A, D, rms nT; C in (-pi, pi] rad; n."""
 
     A: float
     C: float
@@ -127,12 +127,7 @@ def _check_position(theta, m, name):
 
 
 def fit_turntable(theta1, m1, theta2, m2) -> TurntableFits:
-    """
-    Fit the five curves of the two turntable positions and form eq. 5-14's quantities.
-
-    ``theta1`` (N1,) rad, ``m1`` (N1, 3) nT in position 1 (OXmYm horizontal); ``theta2``
-    (N2,), ``m2`` (N2, 3) in position 2 (OXmZm horizontal).
-    """
+    """Fit the curves of positions 1 (theta1 (N1,) rad, m1 (N1, 3) nT) and 2; eq. 5-14."""
     theta1, m1 = _check_position(theta1, m1, '1')
     theta2, m2 = _check_position(theta2, m2, '2')
     x1, y1, z1 = (fit_sine(theta1, m1[:, i]) for i in range(3))
@@ -198,12 +193,7 @@ def correct(params: Paper000Params, raw):
 
 @dataclass(frozen=True)
 class TurntableData:
-    """
-    Simulated two-position turntable experiment.
-
-    ``theta`` (N,) rad; ``raw1``, ``raw2`` (N, 3) nT in positions 1 and 2; ``field1``,
-    ``field2`` (N, 3) the true field in O-XYZ, nT.
-    """
+    """Simulated turntable: theta (N,) rad, raw1, raw2 and the true field1, field2 (N, 3) nT."""
 
     theta: np.ndarray
     raw1: np.ndarray
@@ -213,12 +203,7 @@ class TurntableData:
 
 
 def _turntable_attitudes(axis_a, axis_b, down, theta):
-    """
-    Rotations (N, 3, 3) taking O-XYZ vectors to the level frame (north, east, down).
-
-    ``axis_a``, ``axis_b`` (3,) span the horizontal plane, ``axis_a`` at azimuth theta;
-    ``axis_a x axis_b`` points down if ``down``.
-    """
+    """(N, 3, 3) O-XYZ to level (NED): axis_a at azimuth theta, axis_a x axis_b down if down."""
     e3 = np.cross(axis_a, axis_b)
     e3 = e3 / np.linalg.norm(e3)
     sensor = np.column_stack([axis_a, np.cross(e3, axis_a), e3])
