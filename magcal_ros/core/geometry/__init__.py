@@ -13,8 +13,7 @@
 # limitations under the License.
 
 """
-Geometry of the array: sensor positions, the gradient tensor (paper 004 eq. 1), attitude.
+Geometry: the gradient tensor (paper 004 eq. 1), attitude, direction coverage, a turn's axis.
 
-Also the coverage of field directions and the geometry of a turn about one axis: numpy
-only, imported by the other folders of the core and importing none of them.
+Imported by the other folders of the core, importing none of them.
 """

@@ -13,17 +13,15 @@
 # limitations under the License.
 
 """
-Attitude of the array: unit quaternions (body -> world), their checks and rotation matrices.
+Attitude of the array: unit quaternions, their checks and rotation matrices.
 
-Contract: Hamilton convention, scalar first (qw, qx, qy, qz), the rotation that takes a vector
-from the array (body) frame into the world frame (NED or ENU, as the user states): v_w = R v_b.
+Hamilton, scalar first (qw, qx, qy, qz), body to world (NED or ENU, the user's): v_w = R v_b.
 """
 import numpy as np
 
 #: largest allowed deviation of |q| from 1 (beyond it: a unit or column mix-up, not rounding)
 UNIT_TOLERANCE = 1e-3
-#: largest angle (deg) between an epoch's world-frame field direction and the median of all:
-#: beyond it the attitude and the magnetometer disagree (a jump, a lag, another convention)
+#: largest angle (deg) between an epoch's world-frame field direction and the median of all
 MAX_FIELD_DISAGREEMENT_DEG = 10.0
 
 COLUMNS = ('att_qw', 'att_qx', 'att_qy', 'att_qz')
@@ -43,9 +41,8 @@ def check_quaternions(q, t=None, rows=None, tol=UNIT_TOLERANCE):
     """
     Validate (N, 4) quaternions (qw, qx, qy, qz); return them normalised, sign-continuous.
 
-    ``t`` (N,) s or ``rows`` (N,) file row numbers (first) name an epoch in an error; ``tol``
-    the allowed | |q| - 1 |.  AttitudeError for a non-finite component (naming the row and
-    column) or a quaternion that is not unit.
+    ``rows`` (N,) file rows or ``t`` (N,) s name an epoch in an error; ``tol`` the allowed
+    | |q| - 1 |.  AttitudeError for a non-finite component or a quaternion that is not unit.
     """
     q = np.asarray(q, float)
     if q.ndim != 2 or q.shape[1] != 4:
@@ -65,19 +62,14 @@ def check_quaternions(q, t=None, rows=None, tol=UNIT_TOLERANCE):
             f'{int(off.sum())} rows beyond |q| = 1 +- {tol:g}); att_qw..att_qz must be the unit '
             'quaternion (Hamilton, scalar first) of the body-to-world rotation')
     q = q / norm[:, None]
-    # q and -q are the same rotation: make the sequence continuous (no effect on R)
+    # q and -q are the same rotation: make the sequence continuous
     flip = np.concatenate([[False], np.einsum('ij,ij->i', q[1:], q[:-1]) < 0])
     sign = np.where(np.logical_xor.accumulate(flip), -1.0, 1.0)
     return q * sign[:, None]
 
 
 def interpolate(t_msg, q_msg, t):
-    """
-    Attitude at times t by spherical linear interpolation (slerp) of timed quaternions.
-
-    ``t_msg`` (M,) s in any order (duplicates: the first is kept), ``q_msg`` (M, 4) unit
-    quaternions (qw, qx, qy, qz), ``t`` (N,) s inside their span; returns (N, 4).
-    """
+    """Return (N, 4) the slerp of ``q_msg`` (M, 4) at ``t_msg`` (M,) s (any order) to t (N,)."""
     from scipy.spatial.transform import Rotation, Slerp
     t_u, first = np.unique(np.asarray(t_msg, float), return_index=True)     # the first of each
     rot = Rotation.from_quat(np.asarray(q_msg, float)[first], scalar_first=True)
@@ -88,13 +80,10 @@ def interpolate(t_msg, q_msg, t):
 
 def with_attitude(data, t_msg, q_msg, source='attitude'):
     """
-    Attach the attitude of timed messages to ``data`` (slerp onto its epochs).
+    Attach the attitude of timed messages to ``data`` (slerp; epochs outside their span dropped).
 
-    Epochs outside the span of the messages are dropped (an attitude is never extrapolated).
-
-    ``t_msg`` (M,) s on the clock of ``data.t``; ``q_msg`` (M, 4) (qw, qx, qy, qz), checked
-    by :func:`check_quaternions`; ``source`` names the attitude in errors (a topic).
-    Returns (Dataset, (N,) bool mask of the epochs of ``data`` kept).
+    ``t_msg`` (M,) s on ``data.t``'s clock; ``q_msg`` (M, 4) (:func:`check_quaternions`);
+    ``source`` names it in errors.  Returns (Dataset, (N,) bool mask of the epochs kept).
     """
     t_msg = np.asarray(t_msg, float)
     if len(t_msg) == 0:
@@ -124,15 +113,11 @@ def quaternion_matrices(q):
 
 def check_against_field(rot, field_body, t=None, max_deg=MAX_FIELD_DISAGREEMENT_DEG):
     """
-    Refuse an attitude that disagrees with the measured field direction.
+    Refuse an attitude that disagrees with the measured field direction (R_k b_k wanders).
 
-    In a constant world field R_k b_k is the same at every epoch; a jump, a lag, the inverse
-    rotation or a scalar-last quaternion make it wander (a rotation about the field itself
-    is invisible).
-
-    ``rot`` (N, 3, 3) body-to-world; ``field_body`` (N, 3) nT (its direction); ``t`` (N,) s
-    names an epoch; ``max_deg`` the largest accepted wander.  Returns the (N,) angles, deg;
-    AttitudeError naming the first epoch beyond ``max_deg`` and how many are.
+    ``rot`` (N, 3, 3) body-to-world; ``field_body`` (N, 3) nT; ``t`` (N,) s names an epoch;
+    ``max_deg`` the largest accepted angle from the median.  Returns the (N,) angles, deg;
+    AttitudeError naming the first epoch beyond ``max_deg``.
     """
     u = np.asarray(field_body, float)
     u = u / np.linalg.norm(u, axis=1, keepdims=True)

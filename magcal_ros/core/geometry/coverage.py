@@ -15,12 +15,9 @@
 """
 Direction coverage of field vectors: whether they can determine a linear sensor map.
 
-``raw = A @ B + o`` is determined by turning the sensor in a uniform field only if the field
-directions spread in three dimensions *about their mean* (``o`` absorbs what is common):
-directions on one circle of the sphere (a rotation about one axis, even a wide cone) lie in
-one affine plane and leave the map undetermined along its normal (the defect of paper 002's
-Table 2; docs/papers.md).  Hence the centred scatter ``(1/N) sum (u - u_mean)(u - u_mean)^T``
-(eigenvalues 1/3 each for uniform directions); the uncentred one misses the single-axis turn.
+``raw = A @ B + o`` needs directions spread in 3-D *about their mean* (``o`` absorbs the
+mean; a rotation about one axis leaves them on one affine plane, as paper 002's Table 2):
+hence the centred scatter ``(1/N) sum (u - u_mean)(u - u_mean)^T`` (1/3 each when uniform).
 """
 from dataclasses import dataclass
 
@@ -39,10 +36,8 @@ class Coverage:
     """
     How well a set of field directions covers the unit sphere (all dimensionless).
 
-    ``planar``: the directions lie near one plane (not necessarily through the origin;
-    smallest eigenvalue below ``planar_threshold``), the map is not determined along
-    ``normal`` (the axis turned about; signed so that ``normal @ u_mean >= 0``).  ``narrow``:
-    the two smallest are below it, the directions cluster around one.
+    ``planar``: the smallest eigenvalue is below ``planar_threshold`` (map undetermined along
+    ``normal``, ``normal @ u_mean >= 0``); ``narrow``: the two smallest are.
     """
 
     eigenvalues: np.ndarray             # (3,) ascending, of the centred scatter
@@ -82,11 +77,10 @@ class Coverage:
 
 def direction_coverage(vectors, planar_threshold=0.02) -> Coverage:
     """
-    Measure how the directions of field vectors cover the unit sphere.
+    Return the :class:`Coverage` of the directions of ``vectors`` (N >= 1, 3), any unit.
 
-    ``vectors`` (N >= 1, 3) in any unit, their directions used; ``planar_threshold``: an
-    eigenvalue below it is "no spread" (0.02: within about +-14 deg of a plane).  ValueError
-    for another shape, non-finite or zero vectors, or a threshold not in (0, 1/3].
+    ``planar_threshold``: an eigenvalue below it is "no spread" (0.02: about +-14 deg).
+    ValueError for another shape, non-finite or zero vectors, or a threshold not in (0, 1/3].
     """
     v = np.asarray(vectors, dtype=float)
     if v.ndim != 2 or v.shape[1] != 3 or v.shape[0] < 1:

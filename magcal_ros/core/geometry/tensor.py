@@ -23,12 +23,7 @@ def cross_positions(baseline_m=0.5):
 
 
 def tensor_cross(b, baseline_m=0.5):
-    """
-    Paper 004 eq. 1: gradient tensor at the centre of the cross.
-
-    ``b`` (4, N, 3) or (4, 3) field of sensors 1..4 in the array frame, nT; ``baseline_m``
-    between the two sensors of an arm.  Returns (N, 3, 3) or (3, 3) G_ij = dB_i/dx_j, nT/m.
-    """
+    """Paper 004 eq. 1: G_ij = dB_i/dx_j (N, 3, 3) nT/m of b (4, N, 3) nT, arms baseline_m long."""
     b = np.asarray(b, float)
     one = b.ndim == 2
     b = b[:, None] if one else b
@@ -42,14 +37,10 @@ def tensor_cross(b, baseline_m=0.5):
 
 def tensor_operator(positions):
     """
-    Linear map from stacked sensor fields to (B0, G) for any array geometry.
+    Return (12, 3 S) L, [B0 (3), G row-major (9)] = L @ b.ravel() of fields b (S, 3).
 
-    B(r) = B0 + G r by least squares: G symmetric traceless (5 unknowns) for an array spanning
-    3-D; for a planar one the in-plane columns, the third from symmetry and zero trace
-    (paper 004's eq. 1 for the cross, exactly).
-
-    ``positions`` (S, 3) m; returns (12, 3 S) L with [B0 (3), G row-major (9)] =
-    L @ b.ravel(), b the (S, 3) fields.
+    B(r) = B0 + G r by least squares, ``positions`` (S, 3) m: G symmetric traceless in 3-D;
+    planar: the in-plane columns, the third from symmetry and zero trace (eq. 1 on a cross).
     """
     r = np.asarray(positions, float)
     s = len(r)
@@ -83,12 +74,7 @@ def tensor_operator(positions):
 
 
 def tensor_lstsq(b, positions):
-    """
-    Gradient tensor for any geometry (see :func:`tensor_operator`).
-
-    ``b`` (S, N, 3) nT in the array frame, ``positions`` (S, 3) m; returns (G (N, 3, 3)
-    nT/m, B0 (N, 3) nT).
-    """
+    """(G (N, 3, 3) nT/m, B0 (N, 3) nT) of ``b`` (S, N, 3) nT at ``positions`` (S, 3) m."""
     b = np.asarray(b, float)
     op = tensor_operator(positions)
     stacked = np.transpose(b, (1, 0, 2)).reshape(b.shape[1], -1)    # (N, 3S)
@@ -97,22 +83,14 @@ def tensor_lstsq(b, positions):
 
 
 def tensor_noise_floor(sigma_nt, positions):
-    """
-    (3, 3) standard deviation of each tensor component, nT/m, for white sensor noise.
-
-    sigma_nt is the per-axis noise (scalar or (S,)) of the corrected fields.
-    """
+    """(3, 3) sd of each tensor component, nT/m, for white noise ``sigma_nt`` (scalar or (S,))."""
     op = tensor_operator(positions)[3:]
     var = np.repeat(np.broadcast_to(np.asarray(sigma_nt, float) ** 2, (len(positions),)), 3)
     return np.sqrt((op ** 2) @ var).reshape(3, 3)
 
 
 def symmetric_traceless(g):
-    """
-    (3, 3) symmetric traceless tensor from g = (gxx, gxy, gxz, gyy, gyz), same unit.
-
-    A source-free field: curl B = 0 (symmetric), div B = 0 (gzz = -gxx - gyy).
-    """
+    """(3, 3) symmetric traceless tensor (curl B = div B = 0) of (gxx, gxy, gxz, gyy, gyz)."""
     gxx, gxy, gxz, gyy, gyz = g
     return np.array([[gxx, gxy, gxz], [gxy, gyy, gyz], [gxz, gyz, -gxx - gyy]], float)
 
@@ -122,12 +100,7 @@ TENSOR_MAP = np.stack([symmetric_traceless(e).ravel() for e in np.eye(5)], axis=
 
 
 def gradient_from_fit(model, params, covariance):
-    """
-    World-frame site gradient and its standard uncertainty from a fit.
-
-    ``model`` the fitted Model, ``params`` (P,), ``covariance`` (P, P).  Returns (G (3, 3)
-    nT/m, stderr (3, 3) nT/m, cov5 (5, 5) (nT/m)^2), or None without ``site_gradient``.
-    """
+    """(G, stderr) (3, 3) nT/m, cov5 (5, 5) of a fit's params (P,), covariance (P, P); or None."""
     for eff, sl in zip(model.array_effects, model.array_slices):
         if eff.name == 'site_gradient':
             c5 = covariance[sl, sl]

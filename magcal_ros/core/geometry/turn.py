@@ -13,11 +13,9 @@
 # limitations under the License.
 
 """
-The geometry of a turn about one axis: its axis, its circle, the angle it has swept.
+The geometry of a turn about one axis from the readings alone: axis, circle, angle swept.
 
-A sensor turned about one axis n reads a circle perpendicular to n about its offset, and a
-constant along n; these functions read that from the readings alone (the planar calibration
-is :mod:`magcal_ros.core.model.planar`).  Units: nT, rad.
+The planar calibration is :mod:`magcal_ros.core.model.planar`.  Units: nT, rad.
 """
 import numpy as np
 
@@ -30,11 +28,7 @@ class PlanarError(ValueError):
 
 
 def turn_axis(m):
-    """
-    Return the unit axis (3,) of a turn, in the sensor frame, from readings m (N, 3) nT.
-
-    The direction of least spread, signed along the mean reading.
-    """
+    """Return the unit axis (3,) of a turn (least spread, along the mean) of m (N, 3) nT."""
     m = np.asarray(m, float)
     c = m - m.mean(axis=0)
     w, v = np.linalg.eigh(c.T @ c / len(m))
@@ -55,33 +49,22 @@ def circle_centre(xy):
     return sol[:-1]
 
 
-def _plane(axis):
+def plane_axes(axis):
     """(index of the sensor axis nearest ``axis`` (3,), the two other indices)."""
     k = int(np.argmax(np.abs(axis)))
     return k, [a for a in range(3) if a != k]
 
 
 def planar_magnitude(raw, axis):
-    """
-    Return a shape-only magnitude (nT) for a turn with no reference.
-
-    The in-plane radius about the circle's centre with the mean reading along ``axis`` (3,)
-    unit; raw (N, 3) nT.  The sensor's common scale is then arbitrary, its shape is not.
-    """
+    """Shape-only magnitude, nT, of a turn raw (N, 3) nT about axis (3,): radius and mean."""
     raw = np.asarray(raw, float)
-    k, plane = _plane(axis)
+    k, plane = plane_axes(axis)
     r = float(np.median(np.linalg.norm(raw[:, plane] - circle_centre(raw[:, plane]), axis=1)))
     return float(np.hypot(r, np.mean(raw[:, k])))
 
 
 def swept_angle(m):
-    """
-    Angle (rad, >= 0) a sensor's readings m (N, 3) nT have swept about the turn axis.
-
-    Unwrapped about the circle's centre (:func:`circle_centre`) in the plane of the turn
-    (:func:`turn_axis`; sensor z while it cannot tell), first reading to last: what the
-    node's ``calibration/turn`` counts.
-    """
+    """Angle (rad) readings m (N, 3) nT swept about the turn axis (the node's calibration/turn)."""
     m = np.asarray(m, float)
     if len(m) < 8:
         return 0.0
@@ -89,7 +72,7 @@ def swept_angle(m):
         n = turn_axis(m)
     except PlanarError:
         n = np.array([0.0, 0.0, 1.0])
-    xy = m[:, _plane(n)[1]]
+    xy = m[:, plane_axes(n)[1]]
     c = circle_centre(xy)
     radius = np.linalg.norm(xy - c, axis=1)
     if np.median(radius) < MIN_TURN_RADIUS * np.median(np.linalg.norm(m, axis=1)):

@@ -15,13 +15,10 @@
 """
 Attitude-aided calibration: a vehicle that stays near level and turns part of a circle.
 
-The attitude observes the direction of the field (:mod:`magcal_ros.core.effects.attitude_ref`),
-which determines what the magnitude leaves open along the vertical.  :func:`fit_attitude`
-adds that observation to the model, starts from a closed form that uses it
-(:func:`attitude_start`), fits with the constrained mode's priors, names what the priors
-rather than the data determine (:func:`prior_held`, as planar mode, docs/planar.md), widens
-the covariance for serial correlation and checks the attitude's heading against the
-compass (:func:`heading_check`).  Units: nT, rad; degrees where a name says so.
+The attitude observes the field's direction (:mod:`magcal_ros.core.effects.attitude_ref`);
+:func:`fit_attitude` fits with it and the constrained mode's priors, names what the priors
+determine (:func:`prior_held`, docs/planar.md) and checks the heading (:func:`heading_check`).
+Units: nT, rad; degrees where a name says so.
 """
 from dataclasses import dataclass
 
@@ -36,15 +33,12 @@ import numpy as np
 #: a parameter is held by the priors when twice as strong priors would shrink its variance
 #: by more than this factor (:func:`prior_held`)
 PRIOR_HELD_RATIO = 1.25
-
-#: heading disagreement (deg, RMS about its mean) above which the attitude's heading and the
-#: corrected compass are said to disagree
+#: heading disagreement (deg, RMS about its mean) above which attitude and compass disagree
 HEADING_DISAGREE_DEG = 5.0
 #: sensor 1's offsets in the horizontal plane: open, they leave the compass's heading open
 HORIZONTAL_OFFSETS = frozenset({'offset.bx@1', 'offset.by@1'})
-#: what the inclination rests on besides the data: sensor 1's scales (the split of F into its
-#: horizontal and vertical parts), its vertical offset and the mounting's tilt; one of them
-#: open (held at the prior's value), the inclination is the prior's, or rests on that value
+#: what the inclination rests on besides the data (sensor 1's scales, vertical offset, the
+#: mounting's tilt): one of them open, the inclination rests on its held value
 VERTICAL_PARAMS = frozenset({'kx@1', 'ky@1', 'kz@1', 'bz@1', 'mount_x@0', 'mount_y@0'})
 
 
@@ -58,11 +52,9 @@ class AttitudeResult:
     mode: str
     undetermined: tuple
     determined: tuple
-    #: the attitude's white error as an angle, deg (the fit weighs it serial_inflation()
-    #: times larger: ``refs['sigma_nt']`` of the attitude's effect)
+    #: the attitude's white error as an angle, deg
     attitude_sd_deg: float
-    #: inclination (and declination) of the world field in the attitude's frame, deg, with
-    #: standard uncertainties, and the mounting
+    #: inclination (and declination) in the attitude's frame, deg, stderr, the mounting
     world_field: dict
     #: :func:`heading_check`
     heading: dict
@@ -81,14 +73,7 @@ def with_attitude(model, mode, n_sensors=None):
 
 
 def attitude_start(data, model, f):
-    """
-    (P,) closed-form start that uses the attitude.
-
-    Each sensor's offset and the world vertical component from the linear least squares of
-    |raw - o| = F and g_k . (raw - o) = Z (A = I), the world angles from the started sensor
-    1.  ``data`` with ``attitude``, raw (S, N, 3) nT; ``model`` with the attitude's effect;
-    ``f`` (N,) reference magnitude, nT.
-    """
+    """(P,) start: offsets, Z from |raw - o| = F, g_k . (raw - o) = Z (A = I); f (N,) nT."""
     rot = data.attitude_matrix()
     g = rot[:, 2, :]                                   # world vertical in the body frame
     f0 = float(np.mean(f))
@@ -96,8 +81,7 @@ def attitude_start(data, model, f):
     for j in range(1, data.n_sensors + 1):
         m = data.raw[j - 1]
         n = len(m)
-        # |m - o|^2 = F^2: 2 m.o + c = |m|^2 - F^2 (c = F^2 - |o|^2 + ...), over 2F: nT;
-        # g.(m - o) = Z: g.o + Z = g.m
+        # 2 m.o + c = |m|^2 - F^2 (over 2F: nT) and g.o + Z = g.m
         sphere = np.column_stack([2 * m, np.ones(n), np.zeros(n)]) / (2 * f0)
         vert = np.column_stack([g, np.zeros(n), np.ones(n)])
         rhs = np.concatenate([((m ** 2).sum(1) - f ** 2) / (2 * f0), (g * m).sum(1)])
@@ -108,8 +92,7 @@ def attitude_start(data, model, f):
     return p
 
 
-#: sd of the prior an IGRF inclination puts on the fitted one, rad (the model's own error and
-#: a local anomaly: tenths of a degree)
+#: sd of the prior an IGRF inclination puts on the fitted one, rad
 INCLINATION_PRIOR_SD = np.radians(0.5)
 
 
@@ -118,11 +101,10 @@ def fit_attitude(data, model, field_nt=None, mode='tilt', inclination_deg=None,
     """
     Fit ``model`` with the attitude observing the field; return an :class:`AttitudeResult`.
 
-    ``data`` (S, N) raw readings, nT, with ``attitude`` (N, 4); ``model`` (Model or formula)
-    without the attitude; ``field_nt`` nT (default ``data.ref_total``); ``mode`` 'tilt'
-    (roll and pitch) or 'full'; ``inclination_deg`` the site's (IGRF), deg, positive down: a
-    prior of :data:`INCLINATION_PRIOR_SD` when ``data.meta['attitude_frame']`` is 'NED' or
-    'ENU'; ``fit_kwargs`` go to :func:`magcal_ros.core.model.fitting.fit`.
+    ``data`` (S, N) raw readings, nT, with ``attitude`` (N, 4); ``model`` without the
+    attitude; ``field_nt`` nT; ``mode`` 'tilt' or 'full'; ``inclination_deg`` the site's,
+    positive down: a prior when ``data.meta['attitude_frame']`` is 'NED' or 'ENU';
+    ``fit_kwargs`` go to :func:`magcal_ros.core.model.fitting.fit`.
     """
     if data.attitude is None:
         raise ValueError('the data carry no attitude (att_qw..att_qz, an Imu topic or a '
@@ -134,8 +116,7 @@ def fit_attitude(data, model, field_nt=None, mode='tilt', inclination_deg=None,
     info = model.param_info()
     init = fit_kwargs.pop('init', None)
     if init is None and mode == 'full':
-        # from the roll and pitch alone first: the heading's error, the larger part of a
-        # full attitude's, does not then pull the start (nor the first noise estimates)
+        # from the roll and pitch first: the heading's larger error does not pull the start
         tilt = fit_attitude(data, model, field_nt, 'tilt', **dict(fit_kwargs, covariance=False,
                                                                   check_identifiability=False))
         init = model.default_params()
@@ -149,8 +130,7 @@ def fit_attitude(data, model, field_nt=None, mode='tilt', inclination_deg=None,
     elif init is None:
         init = attitude_start(data, model, f)
     elif len(init) == model.n_params - eff.n_params and sl.stop == model.n_params:
-        # the parameters of the model without the attitude (a calibration in use): the
-        # world field's angles from its corrected sensor 1
+        # the parameters without the attitude's (a calibration in use)
         init = np.concatenate([np.asarray(init, float), np.zeros(eff.n_params)])
         init[sl] = eff.start(data.attitude_matrix(),
                              model.correct(1, init, data.raw[0], data.context(1)))
@@ -158,10 +138,9 @@ def fit_attitude(data, model, field_nt=None, mode='tilt', inclination_deg=None,
         eff.sigma_nt = _start_sigma(data, model, init, f)
     fit_kwargs.pop('constrained', None)
     fit_kwargs.setdefault('max_nfev', 1000)
-    # the constrained mode's priors, or instead the caller's own (a calibration in use:
-    # pipeline.refit_recent)
+    # the caller's priors (pipeline.refit_recent) instead of the constrained mode's
     own = list(fit_kwargs.pop('extra_priors', None) or [])
-    # the compass's mounting against the attitude's frame: a few degrees at most
+    # the compass's mounting against the attitude's frame
     extra = [(i, 0.0, MOUNT_PRIOR_SD_RAD) for i in range(sl.stop - 3, sl.stop)]
     frame = str(data.meta.get('attitude_frame', '')).upper()
     if inclination_deg is not None and frame in ('NED', 'ENU'):
@@ -203,11 +182,10 @@ def prior_held(result, prior_list, ratio=PRIOR_HELD_RATIO):
     """
     Return the set of indices of the parameters the priors, not the data, determine.
 
-    With A the posterior information (the inverse of ``result``'s unwidened covariance) and
-    L the priors' (1 / sd^2 of ``prior_list``'s (index, mean, sd)), the variance of parameter
-    i at priors twice as strong is [(A + L)^-1]_ii: a prior's information halves it, the
-    data's leave it.  ``ratio`` 1.25 is data information 3 times the prior's, planar mode's
-    rule (docs/planar.md); the test also holds an offset that only a scale's prior fixes.
+    With A the posterior information (of ``result``'s unwidened covariance) and L the priors'
+    (1 / sd^2 of ``prior_list``'s (index, mean, sd)), priors twice as strong shrink the
+    variance [(A + L)^-1]_ii by more than ``ratio`` (1.25: data information 3 times the
+    prior's, docs/planar.md).
     """
     cov = np.asarray(result.covariance, float)
     if not np.all(np.isfinite(cov)):
@@ -226,10 +204,9 @@ def prior_held(result, prior_list, ratio=PRIOR_HELD_RATIO):
 def _start_sigma(data, model, p, f):
     """Return the attitude observation's sd at the start, nT: its residual against sensor 1."""
     eff, sl = attitude_reference(model)
-    rot = data.attitude_matrix()
     cor = model.correct(1, p, data.raw[0], data.context(1))
     b = cor / np.linalg.norm(cor, axis=1, keepdims=True) * f[:, None]
-    r = eff.residual(p[sl], rot, f, b)
+    r = eff.residual(p[sl], data.attitude_matrix(), f, b)
     return max(float(np.sqrt(np.mean(np.sum(r * r, axis=1)) / eff.rank)),
                1e-3 * float(np.mean(f)))
 
@@ -238,21 +215,16 @@ def heading_check(result, data, undetermined=()):
     """
     Compare the attitude's heading with the corrected compass's (sensor 1).
 
-    The angle of the world-horizontal field R_k b_k about the vertical is the attitude's
-    heading error plus the declination: its mean is a constant (declination and any yaw
-    offset), its spread about the mean the disagreement.  Returns a dict: ``offset_deg``
-    (circular mean), ``offset_determined`` (False when ``undetermined``, the labels the
-    motion leaves open, holds a horizontal offset of sensor 1: such an offset, held at the
-    prior's value, turns the corrected compass's heading by up to tens of degrees), ``rms_deg``
-    (RMS about it), ``max_deg``, ``disagree`` (``rms_deg`` above :data:`HEADING_DISAGREE_DEG`).
+    The azimuth of R_k b_k is the heading error plus the declination.  Returns a dict:
+    ``offset_deg`` (circular mean), ``offset_determined`` (False when ``undetermined`` holds
+    a horizontal offset of sensor 1), ``rms_deg`` (about the mean), ``max_deg``,
+    ``disagree`` (``rms_deg`` above :data:`HEADING_DISAGREE_DEG`).
     """
-    rot = data.attitude_matrix()
     p = result.params
     cor = result.model.correct(1, p, data.raw[0], data.context(1))
     eff, sl = attitude_reference(result.model)
-    # into the attitude's body frame (Q^T: the mounting found), then the world frame
-    cor = cor @ eff.mount(p[sl])
-    w = np.einsum('nij,nj->ni', rot, cor)
+    cor = cor @ eff.mount(p[sl])            # into the attitude's body frame
+    w = np.einsum('nij,nj->ni', data.attitude_matrix(), cor)
     ang = np.arctan2(w[:, 1], w[:, 0])
     mean = np.angle(np.mean(np.exp(1j * ang)))
     dev = np.degrees(np.angle(np.exp(1j * (ang - mean))))

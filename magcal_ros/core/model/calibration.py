@@ -28,10 +28,8 @@ class Calibration:
                          else np.asarray(sigma_nt, float))
         #: (K, K) covariance of the array-wide parameters (site gradient), when known
         self.array_covariance = None
-        #: frame of the site gradient: the attitude's world frame, or the field-aligned
-        #: frame of a fit without attitude (core.site_gradient.FIELD_ALIGNED)
+        #: frame of the site gradient: 'world' or site_gradient.FIELD_ALIGNED
         self.site_frame = 'world'
-        # A calibration is immutable: precompute what every correction needs
         self._a_inv = [np.linalg.inv(model.matrix(j, self.params))
                        for j in range(1, model.n_sensors + 1)]
 
@@ -61,18 +59,13 @@ class Calibration:
         """
         (C^-1 (3, 3) upper triangular, R (3, 3)): A_j^-1 = R C^-1 M^T (paper 004 eq. 5, 14).
 
-        M is sensor j's fixed axis map (``model.axis_map(j)``): C and R decompose M^T A_j;
-        R takes sensor j's corrected field into sensor 1's frame.
+        M is the axis map (``model.axis_map(j)``); R turns sensor j's frame into sensor 1's.
         """
         u, q = fx.rq_positive(self.model.axis_map(j).T @ self.matrix(j))
         return np.linalg.inv(u), q.T
 
     def site_gradient(self):
-        """
-        (G_w (3, 3), stderr (3, 3)) nT/m, world frame, or None without the effect.
-
-        The stderr of gzz = -gxx - gyy is nan without ``array_covariance``.
-        """
+        """(G_w (3, 3), stderr (3, 3)) nT/m or None; gzz's stderr nan without array_covariance."""
         from magcal_ros.core.geometry.tensor import gradient_from_fit
         cov = np.diag(self.stderr ** 2)
         cols = self.model.array_cols

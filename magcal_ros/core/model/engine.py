@@ -15,13 +15,10 @@
 """
 The profiled (variable-projection) maximum-likelihood problem of a magnetometer array.
 
-The model predicts the raw reading ``f_j(p, B_k)`` of sensor j at epoch k
-(:meth:`magcal_ros.core.model.Model.forward`) from the parameters p and the true field
-B_k, |B_k| = F_k; the noise is Gaussian, sd sigma_j per axis, so the negative
-log-likelihood is half the sum of the squared r_jk = (raw_jk - f_j(p, B_k)) / sigma_j.
-The fields are eliminated for given p (variable projection, Golub & Pereyra 1973; Kaufman
-1975; docs/papers.md): B_k is profiled by Gauss-Newton steps on the sphere, and the
-Jacobian is projected onto the complement of the field directions of each epoch,
+The residuals are r_jk = (raw_jk - f_j(p, B_k)) / sigma_j (:meth:`Model.forward`, Gaussian
+noise), |B_k| = F_k.  The fields are eliminated for given p (variable projection, Golub &
+Pereyra 1973; Kaufman 1975; docs/papers.md): B_k is profiled by Gauss-Newton steps on the
+sphere, and the Jacobian is projected onto the complement of each epoch's field directions,
 
     J = (I - G (G^T G)^-1 G^T) dr/dp,    G_k = -dr_k/d(delta_1, delta_2)  (3G x 2 per epoch),
 
@@ -45,20 +42,12 @@ def inverse_2x2(a, b, c, d):
     return d / det, -b / det, -c / det, a / det
 
 
-def solve_2x2(m, rhs):
-    """Solve m (N, 2, 2) x = rhs (N, 2, K) in closed form (np.linalg.solve, faster); (N, 2, K)."""
-    i = inverse_2x2(m[:, 0, 0], m[:, 0, 1], m[:, 1, 0], m[:, 1, 1])
-    inv = np.stack([np.stack(i[:2], axis=1), np.stack(i[2:], axis=1)], axis=1)
-    return inv @ rhs
-
-
 def prior_information(priors, cols, p):
     """
     Return what prior rows add to the normal equations of the parameters ``cols`` (K,).
 
-    ``priors`` [(index into p, mean, sd)], those on other parameters ignored; ``p`` (P,) the
-    full parameters.  Returns ((K,) 1 / sd^2 on the diagonal of J^T J, (K,) (p_i - mean) /
-    sd^2 added to J^T r), in the parameters' units.
+    ``priors`` [(index into ``p`` (P,), mean, sd)], others ignored.  Returns ((K,) 1 / sd^2
+    added to the diagonal of J^T J, (K,) (p_i - mean) / sd^2 added to J^T r).
     """
     pos = {int(c): k for k, c in enumerate(cols)}
     lam, grad = np.zeros(len(cols)), np.zeros(len(cols))
@@ -73,20 +62,16 @@ class ProfiledProblem:
     """
     Normalised residuals and projected Jacobian of the ML problem of one group of sensors.
 
-    The unknown x (P_g,) holds the parameters of the group's sensors, then the array-wide
-    ones (:attr:`cols`, indices into the full vector p); the other entries of p are held at
-    ``p_full`` (default ``model.default_params()``).  Evaluations are cached on x.
+    The unknown x (P_g,) holds the group's sensors' parameters, then the array-wide ones
+    (:attr:`cols`, indices into p); the rest of p is held at ``p_full`` (default
+    ``model.default_params()``).  Evaluations are cached on x.
 
-    ``model`` is prepared on ``contexts`` (S,); ``data_raw`` (S, N, 3) nT; ``f_nt`` (N,)
-    |B_k| nT; ``sensors`` the group's, 1-based; ``sigma`` (S,) nT, the residuals' divisor;
-    ``priors`` [(index into p, mean, sd)] appended as (p_i - mean) / sd; ``robust``: the
-    field profiled with the IRLS weights of the soft-L1 loss of scale ``f_scale`` sigma
-    (from the median of the corrected readings when G > 2); ``field0`` (N, 3) nT: the field
-    of nearby parameters, to take one Gauss-Newton step from instead of two.
-
-    A reading the model's ``drop`` terms leave out has zero residual, Jacobian and
-    field-direction rows and does not inform its set's field; a set without any reading
-    kept is profiled from all of them (:meth:`reading_residuals`).
+    ``model`` prepared on ``contexts`` (S,); ``data_raw`` (S, N, 3) nT; ``f_nt`` (N,) |B_k|
+    nT; ``sensors`` 1-based; ``sigma`` (S,) nT; ``priors`` [(index, mean, sd)] appended as
+    (p_i - mean) / sd; ``robust``: the field profiled with the soft-L1 IRLS weights (scale
+    ``f_scale``); ``field0`` (N, 3) nT: a nearby field, one Gauss-Newton step from it.
+    A reading a ``drop`` term leaves out has zero rows and does not inform its set's field
+    (a set without any kept reading is profiled from all).
     """
 
     def __init__(self, model, data_raw, contexts, f_nt, sensors, sigma, priors=(),
@@ -104,13 +89,7 @@ class ProfiledProblem:
         self._drop_setup()
 
     def _drop_setup(self):
-        """
-        Set the row weights of the readings the model's ``drop`` terms leave out.
-
-        :attr:`keep` (N, G (+1)) 0/1 per member (the group's sensors, then the attitude,
-        kept while any sensor is), None when every reading is used; :attr:`field_w`, the
-        weights of the field profile: ``keep``, a set that keeps no reading weighted 1.
-        """
+        """Set keep (N, G (+1)) 0/1 per member (None: all) and field_w, the field's weights."""
         self.keep = self.field_w = None
         if not self.model.drops or not self.ctx:
             return
@@ -133,11 +112,10 @@ class ProfiledProblem:
             return
         (self.aid, self.aid_slice), self.rot = found, rot
         arr = list(self.model.array_cols)
-        #: positions of the attitude's parameters among the array-wide columns
         sl = self.aid_slice
+        #: positions of the attitude's parameters among the array-wide columns
         self.aid_arr = np.array([arr.index(i) for i in range(sl.start, sl.stop)], int)
-        #: the observation's projector at the parameters last evaluated (:meth:`_aid_residual`)
-        self.aid_proj = None
+        self.aid_proj = None        # the projector at the last evaluation
 
     @property
     def aid_sigma(self):
@@ -185,16 +163,9 @@ class ProfiledProblem:
         return p
 
     def _field(self, p):
-        """
-        Profile the field per epoch: mean of corrected readings, then GN steps on |B| = F.
-
-        With :attr:`field0` set, start from it and take one step (Gauss-Newton converges
-        quadratically).  Returns (field (N, 3) nT, {sensor: (3, 3) A_j}, {sensor: (N, 3) nT
-        additive effects at p, or None when they read the field}).
-        """
+        """Return (field (N, 3) nT, {j: A_j}, {j: additive (N, 3) nT or None}): GN on |B| = F."""
         n = self.raw.shape[1]
         mats = {j: self.model.matrix(j, p) for j in self.sensors}
-        # the additive effects at p, once per sensor when they do not read the field
         adds = {j: self.model.fixed_additive(j, p, self.ctx[j - 1], n) for j in self.sensors}
         if self.field0 is not None:
             b, steps = self.field0, 1
@@ -212,11 +183,9 @@ class ProfiledProblem:
                        else np.einsum('gnc,ng,g->nc', cor, fw, wts))
             u = acc / np.linalg.norm(acc, axis=1, keepdims=True)
             b, steps = u * self.f[:, None], 2
-        # -dr_j/d delta_a = F A_j e_a / sigma_j per epoch, so the 2 x 2 normal equations of
-        # the tangent directions are quadratic forms of M_j = A_j^T A_j / sigma_j^2 and the
-        # right-hand sides projections of s = sum_j A_j^T r_j / sigma_j: with equal weights
-        # the forms of M = sum_j M_j are taken once per step instead of once per sensor;
-        # per-epoch weights (the robust loss, readings left out: field_w) sum per sensor
+        # -dr_j/d delta_a = F A_j e_a / sigma_j: the 2 x 2 normal equations are quadratic forms
+        # of M_j = A_j^T A_j / sigma_j^2 (of their sum with equal weights), the right-hand
+        # sides projections of s = sum_j A_j^T r_j / sigma_j
         per_sensor = self.robust or self.field_w is not None
         a_sig = {j: mats[j] / self.sigma[j - 1] for j in self.sensors}
         m_j = {j: a_sig[j].T @ a_sig[j] for j in self.sensors}
@@ -237,7 +206,6 @@ class ProfiledProblem:
                 if per_sensor:
                     w = np.ones(n) if self.field_w is None else self.field_w[:, gi]
                     if self.robust:
-                        # IRLS weight of the soft-L1 loss on this sensor's residual per epoch
                         w = w / np.sqrt(1.0 + np.sum(r * r, axis=1) / self.f_scale ** 2)
                     h += w * forms(e1 @ m_j[j], e1, e2 @ m_j[j], e2)
                     r = r * w[:, None]
@@ -255,8 +223,7 @@ class ProfiledProblem:
                 p2 = np.einsum('nij,nj->ni', self.aid_proj, e2)
                 h = h + w * forms(p1, p1, p2, p2) / self.aid_sigma ** 2
                 s = s + r * (w / self.aid_sigma)[:, None]
-            # per-epoch 2 x 2 systems written out component by component: several times
-            # faster than batched matmuls of tiny matrices (bench/)
+            # the 2 x 2 systems component by component (faster than batched matmuls, bench/)
             i11, i12, i21, i22 = inverse_2x2(h[0] * f2, h[1] * f2, h[1] * f2, h[2] * f2)
             g1s = self.f * np.einsum('ij,ij->i', e1, s)
             g2s = self.f * np.einsum('ij,ij->i', e2, s)
@@ -268,12 +235,10 @@ class ProfiledProblem:
 
     def field_columns(self, b, mats):
         """
-        Return G (N, 3G, 2): the residuals' derivatives along the field directions per epoch.
+        Return G (N, 3G, 2) = -dr_k/d(delta_1, delta_2), delta (rad) in the tangent plane.
 
-        -dr_k/d(delta_1, delta_2), dimensionless, for a rotation of B_k by delta (rad) in the
-        tangent plane (:func:`tangent_basis`) at the profiled field ``b`` (N, 3) nT, with
-        ``mats`` {sensor: (3, 3) A_j} of :meth:`evaluate`; rows as the residuals' (the
-        attitude's last), zero for the readings left out.
+        At the profiled field ``b`` (N, 3) nT with ``mats`` {sensor: (3, 3) A_j}; rows as the
+        residuals' (the attitude's last), zero for the readings left out.
         """
         e1, e2 = tangent_basis(b / self.f[:, None])
         blocks = [np.stack([e1 @ mats[j].T, e2 @ mats[j].T], axis=2)
@@ -282,29 +247,24 @@ class ProfiledProblem:
             e = np.stack([e1, e2], axis=2)                                  # (N, 3, 2)
             blocks.append(self.aid_proj @ e * (self.f[:, None, None] / self.aid_sigma))
         if self.field_w is not None:
-            # a reading left out has no rows (a set without any: the columns of all, which
-            # project nothing, as its rows are zero)
             blocks = [blk * self.field_w[:, gi, None, None] for gi, blk in enumerate(blocks)]
         return np.concatenate(blocks, axis=1)
 
     def project_out_field(self, b, mats, m):
-        """
-        Return (N, 3G, K) (I - G (G^T G)^-1 G^T) m per epoch, G of :meth:`field_columns`.
-
-        ``m`` (N, 3G, K) columns with rows like the residuals; ``b``, ``mats`` as for
-        :meth:`field_columns`.
-        """
+        """Return (N, 3G, K) (I - G (G^T G)^-1 G^T) m of m (N, 3G, K), G :meth:`field_columns`."""
         gb = self.field_columns(b, mats)
         gbt = np.swapaxes(gb, 1, 2)                    # batched matmul, not einsum: 3-5x faster
-        return m - gb @ solve_2x2(gbt @ gb, gbt @ m)
+        g2 = gbt @ gb
+        i = inverse_2x2(g2[:, 0, 0], g2[:, 0, 1], g2[:, 1, 0], g2[:, 1, 1])   # not np.linalg
+        return m - gb @ (np.stack([np.stack(i[:2], axis=1), np.stack(i[2:], axis=1)], axis=1)
+                         @ (gbt @ m))
 
     def evaluate(self, x):
         """
         Evaluate the model at x (P_g,) with the field profiled (cached on x).
 
-        Returns p (P,), the profiled field (N, 3) nT, {sensor: (3, 3) A_j} and the
-        normalised residuals (N, G (+1), 3) (raw - prediction) / sigma_j (the attitude's
-        last; zero for the readings left out: :meth:`reading_residuals` has them).
+        Returns p (P,), the field (N, 3) nT, {sensor: (3, 3) A_j} and the normalised residuals
+        (N, G (+1), 3) (the attitude's last; zero for the readings left out).
         """
         key = x.tobytes()
         if key != self._cache_key:
@@ -331,13 +291,9 @@ class ProfiledProblem:
 
     def _raw_columns(self, p, b):
         """
-        Return the unprojected columns dr/dx of each member of the group, by member.
+        Return the unprojected columns dr/dx by member, the field held at ``b`` (N, 3) nT.
 
-        Forward differences (step 1e-6 max(1, |x_i|), Model.forward_differences) with the
-        field held at ``b`` (N, 3) nT.  Returns two lists over the group's sensors (then the
-        attitude, when it observes): the member's own columns (P_j, N, 3) (the attitude has
-        none) and the array-wide columns (n_arr, N, 3) (None without array-wide
-        parameters), in 1 / (unit of each parameter); the rows of readings left out are zero.
+        Two lists over the members: own (P_j, N, 3) and array-wide (n_arr, N, 3) or None.
         """
         def diff(gi, j, cols):
             block, h = self.model.forward_differences(j, p, b, self.ctx[j - 1], cols)
@@ -351,10 +307,8 @@ class ProfiledProblem:
         for gi, j in enumerate(self.sensors):
             sl = self.model.sensor_slices[j - 1]
             own.append(diff(gi, j, range(sl.start, sl.stop)))
-            # array-wide parameters (site gradient): every sensor depends on them
             arr.append(diff(gi, j, arr_cols) if len(arr_cols) else None)
         if self.aid is not None:
-            # only the array-wide columns (its angles) move the attitude's rows
             own.append(np.zeros((0, len(self.f), 3)))
             arr.append(self._aid_columns(p, b))
         return own, arr
@@ -382,13 +336,7 @@ class ProfiledProblem:
         return pr
 
     def jacobian(self, x):
-        """
-        Return the variable-projection Jacobian of :meth:`residuals` at x (P_g,).
-
-        (3 G N + n_priors, P_g) in 1 / (unit of each parameter): the columns dr/dx
-        (:meth:`_raw_columns`) projected onto the complement of the field directions of
-        each epoch; prior rows are 1 / sd on their parameter's column.
-        """
+        """Return the (3 G N + n_priors, P_g) variable-projection Jacobian of :meth:`residuals`."""
         p, b, mats, res = self.evaluate(x)
         n = res.shape[0]
         own, arr = self._raw_columns(p, b)
@@ -396,13 +344,10 @@ class ProfiledProblem:
         col = 0
         n_arr = len(self.model.array_cols)
         for gi in range(self.n_members):
-            # each member's columns, computed contiguously (P_j, N, 3) and copied into the
-            # strided Jacobian once: about 2x faster than writing column by column
             jac[:, gi, :, col:col + len(own[gi])] = own[gi].transpose(1, 2, 0)
             col += len(own[gi])
             if n_arr:
                 jac[:, gi, :, len(self.cols) - n_arr:] = arr[gi].transpose(1, 2, 0)
-        # project out the nuisance field directions (variable projection)
         rows = 3 * self.n_members
         jac = self.project_out_field(b, mats, jac.reshape(n, rows, -1))
         jac = jac.reshape(n * rows, -1)
@@ -412,27 +357,17 @@ class ProfiledProblem:
 
     def normal_equations(self, x):
         """
-        Return J^T J and J^T r of the projected Jacobian at x, formed block by block.
+        Return J^T J (P_g, P_g) and J^T r (P_g,) of :meth:`jacobian` at x, block by block.
 
-        ``J.T @ J`` and ``J.T @ r`` of :meth:`jacobian` and :meth:`residuals` (to rounding)
-        without the (3 G N, P_g) Jacobian: with D the unprojected columns and G_k the field
-        columns of epoch k (:meth:`field_columns`),
-
-            J^T J = D^T D - sum_k (G_k^T D_k)^T (G_k^T G_k)^-1 (G_k^T D_k)
-            J^T r = D^T r - sum_k (G_k^T D_k)^T (G_k^T G_k)^-1 (G_k^T r_k).
-
-        D^T D is block diagonal over the members plus the array-wide columns' blocks; the
-        subtracted term is W^T W, W_k = L_k^-1 G_k^T D_k with L_k the Cholesky factor of
-        G_k^T G_k.  Prior rows add 1 / sd^2 to their diagonal entry and (p_i - mean) / sd^2
-        to the gradient.  Only for the squares loss: the soft-L1 loss reweights the rows of
-        J, which does not commute with the per-epoch projection.  Returns J^T J (P_g, P_g),
-        in 1 / (unit of parameter i x unit of parameter j), and J^T r (P_g,).
+        With D the unprojected columns and G_k epoch k's field columns,
+        J^T J = D^T D - sum_k (G_k^T D_k)^T (G_k^T G_k)^-1 (G_k^T D_k) (J^T r likewise),
+        without forming J; the squares loss only (the soft-L1 loss reweights J's rows).
         """
         p, b, mats, res = self.evaluate(x)
         own, arr = self._raw_columns(p, b)
         q = self.field_columns(b, mats)                              # (N, 3G, 2)
-        # Gram-Schmidt per epoch, G_k = Q_k L_k^T: (G^T G)^-1 = L^-T L^-1, so the subtracted
-        # terms are W^T W and W^T (Q^T r) with W = Q^T D (2 x P_g per epoch)
+        # Gram-Schmidt per epoch, G_k = Q_k L_k^T: the subtracted terms are W^T W and
+        # W^T (Q^T r) with W = Q^T D (2 x P_g per epoch)
         q[:, :, 0] /= np.linalg.norm(q[:, :, 0], axis=1, keepdims=True)
         q[:, :, 1] -= np.einsum('ij,ij->i', q[:, :, 0], q[:, :, 1])[:, None] * q[:, :, 0]
         q[:, :, 1] /= np.linalg.norm(q[:, :, 1], axis=1, keepdims=True)
@@ -454,8 +389,7 @@ class ProfiledProblem:
             qj = q[:, 3 * gi:3 * gi + 3]                             # (N, 3, 2)
 
             def qt(x, qj=qj):
-                # Q^T x per epoch for columns x (K, N, 3): (2, K, N); one batched
-                # (N, K, 3) x (N, 3, 2) product, 3.5x the speed of three products summed
+                # Q^T x per epoch for columns x (K, N, 3): (2, K, N)
                 return np.matmul(x.transpose(1, 0, 2), qj).transpose(2, 1, 0)
             w[:, so] = qt(blk)
             qtr += qt(r[None])[:, 0]

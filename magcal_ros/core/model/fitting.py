@@ -15,12 +15,9 @@
 """
 The maximum-likelihood fit of a :class:`magcal_ros.core.model.Model` and its result.
 
-:func:`fit`: the closed-form start (paper 004 section 3: ellipsoid fit + Cholesky per
-sensor, eq. 8-13, Procrustes into sensor 1's frame, eq. 14), then maximum likelihood on
-the raw readings with the field eliminated by variable projection
-(:mod:`magcal_ros.core.model.engine`), the noise levels re-estimated from the residuals
-(:func:`group_noise_variances`) and the covariance from the projected Jacobian (the
-Cramer-Rao bound).
+:func:`fit`: the closed-form start (paper 004 section 3, eq. 8-14), maximum likelihood with
+the field profiled out (:mod:`magcal_ros.core.model.engine`), the noise re-estimated
+(:func:`group_noise_variances`) and the Cramer-Rao bound as covariance.
 """
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -46,10 +43,7 @@ class FitResult:
     """
     Outcome of :func:`fit` (attributes that end in _nt are in nT); immutable.
 
-    The per-epoch arrays (``corrected_nt``, ``residual_nt``, ``scalar_residual_nt``,
-    ``vector_residual_nt``, ``field_nt``, ``downweighted``) are computed from ``params`` on
-    all epochs when first read, and then kept.
-
+    The per-epoch arrays are computed from ``params`` on all epochs when first read, then kept.
     """
 
     model: object
@@ -89,8 +83,7 @@ class FitResult:
     raw_nt: np.ndarray | None = field(default=None, repr=False)
     #: (S,) int, the readings of each sensor fitted on (less what ``drop(t0, t1)@j`` leaves)
     n_fit_readings: np.ndarray | None = None
-    #: the priors the fit used, (index, mean, sd) in the parameters' units: the constrained
-    #: mode's and ``extra_priors`` (an attitude-aided fit's mounting and inclination)
+    #: the priors the fit used, (index, mean, sd) in the parameters' units
     priors: tuple = ()
 
     @property
@@ -110,12 +103,7 @@ class FitResult:
 
     @cached_property
     def residual_nt(self):
-        """
-        (S, N, 3) raw reading minus model prediction, nT.
-
-        A reading a ``drop`` term leaves out has its residual against the field profiled
-        from the readings kept (the summaries leave it out: :attr:`reading_mask`).
-        """
+        """(S, N, 3) raw reading minus prediction, nT (also where a ``drop`` leaves it out)."""
         field_nt, residual = self._profile()
         self.__dict__.setdefault('field_nt', field_nt)     # the same computation: keep it
         return residual
@@ -150,9 +138,7 @@ class FitResult:
         """(S,) number of sensor samples the robust loss down-weighted (0 if not robust)."""
         if not self.robust:
             return np.zeros(self.model.n_sensors, int)
-        residual = self.__dict__.get('residual_nt')
-        if residual is None:
-            residual = self._profile()[1]
+        residual = self._peek('residual_nt')
         keep = self.reading_mask
         if keep is not None:
             residual = residual * keep[:, :, None]
@@ -165,11 +151,7 @@ class FitResult:
 
     @cached_property
     def reading_mask(self):
-        """
-        (S, N) bool: the readings the summaries cover (``Model.reading_mask``), or None.
-
-        None when the model has no ``drop`` term: every reading.
-        """
+        """(S, N) bool: the readings the summaries cover (``Model.reading_mask``); None: all."""
         if not getattr(self.model, 'drops', ()) or not self.contexts:
             return None
         return self.model.reading_mask(np.asarray(self.contexts[0].t))
@@ -189,11 +171,7 @@ class FitResult:
 
     @property
     def vector_rms_nt(self):
-        """
-        {sensor j > 1: per-component RMS of corrected_j - corrected_1} in nT.
-
-        On the sets both sensors keep (outside their drop() windows).
-        """
+        """{sensor j > 1: per-component RMS of corrected_j - corrected_1} nT, where both kept."""
         vector = self._peek('vector_residual_nt')     # not kept: the RMS needs only a copy
         return {j + 1: float(np.sqrt(np.mean(vector[j][self._kept(j + 1, 1)] ** 2)))
                 for j in range(1, self.model.n_sensors)}
@@ -239,25 +217,19 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
     """
     Fit ``model`` to rotation data in a uniform field by maximum likelihood; a FitResult.
 
-    - ``data``: (S sensors, N epochs) raw readings in nT; ``model`` a Model or formula;
-      ``field_nt`` the reference magnitude, nT, scalar or (N,) (default ``data.ref_total``);
-    - ``robust``: the soft-L1 loss of scale ``f_scale`` sigma (outlier spikes);
-    - ``constrained``: every effect gets the prior it declares (``Effect.prior``) and the
-      start is A = I (partial attitude coverage); ``priors`` {effect name or label: (mean
-      or None for default, sd)} override them; ``extra_priors`` [(index, mean, sd)] in the
-      parameter's unit are added;
-    - ``sigma_nt``: fixed per-sensor noise, nT (default: estimated from the residuals);
-    - ``on_degenerate``: 'raise' (DegenerateDataError) or 'flag' (warnings) data that
-      cannot determine the model;
-    - ``max_fit_samples``: fit on at most this many epochs, evenly spaced (residuals are
-      reported for all); ``init`` (P,) the start (default the closed form);
-    - ``max_nfev``: most residual evaluations per sensor group and noise pass; ``ftol``:
-      stop when an iteration lowers the cost by less than ftol times it (default the
-      solver's: 1e-12 'lm', 1e-8 'scipy'); ``solver`` 'lm' (Levenberg-Marquardt on the
-      normal equations) or 'scipy' (scipy.optimize.least_squares, the reference);
-    - ``check_identifiability``: check the coverage and the conditioning
-      (:mod:`magcal_ros.core.model.identifiability`); ``covariance`` False: stderr and
-      covariance NaN (needs ``check_identifiability=False``).
+    ``data`` (S sensors, N epochs) raw readings, nT; ``model`` a Model or formula;
+    ``field_nt`` the reference magnitude, nT, scalar or (N,) (default ``data.ref_total``);
+    ``robust``: the soft-L1 loss of scale ``f_scale`` sigma; ``constrained``: each effect's
+    ``Effect.prior`` and the start A = I; ``priors`` {effect name or label: (mean or None,
+    sd)} override them; ``extra_priors`` [(index, mean, sd)] are added; ``sigma_nt`` fixed
+    per-sensor noise, nT (default estimated); ``on_degenerate`` 'raise'
+    (DegenerateDataError) or 'flag' (warnings); ``max_fit_samples`` epochs fitted, evenly
+    spaced; ``init`` (P,) the start (default the closed form); ``max_nfev`` residual
+    evaluations per group and noise pass; ``ftol`` the relative cost decrease that stops
+    (default the solver's); ``solver`` 'lm' (normal equations) or 'scipy'
+    (least_squares, the reference); ``check_identifiability``
+    (:mod:`magcal_ros.core.model.identifiability`); ``covariance`` False: NaN covariance
+    (needs ``check_identifiability=False``).
     """
     if on_degenerate not in ('raise', 'flag'):
         raise ValueError("on_degenerate must be 'raise' or 'flag'")
@@ -266,9 +238,11 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
     if check_identifiability and not covariance:
         raise ValueError('check_identifiability reads the covariance: pass '
                          'check_identifiability=False with covariance=False')
-    # one BLAS thread: threads only contend on small shared machines (bench/)
     with single_threaded_blas():
-        model = _model_for(data, model)
+        if isinstance(model, str):
+            model = Model.from_spec(model, data.n_sensors)
+        if model.n_sensors != data.n_sensors:
+            raise ValueError(f'model has {model.n_sensors} sensors, data have {data.n_sensors}')
         notes = []
 
         def degenerate(msg):
@@ -315,22 +289,8 @@ def fit(data, model, field_nt=None, *, robust=False, f_scale=3.0, constrained=Fa
                         else mask.sum(axis=1)), priors=tuple(prior_list))
 
 
-def _model_for(data, model):
-    """Return ``model`` (a Model, or a spec string built here) checked against ``data``."""
-    if isinstance(model, str):
-        model = Model.from_spec(model, data.n_sensors)
-    if model.n_sensors != data.n_sensors:
-        raise ValueError(f'model has {model.n_sensors} sensors, data have {data.n_sensors}')
-    return model
-
-
 def _check_data(data, model, contexts, constrained, check_identifiability, degenerate):
-    """
-    Refuse or flag data that cannot determine ``model``; return the identifiability report.
-
-    Non-finite readings and too few epochs are errors; unexcited effects and a poor
-    coverage go to ``degenerate``.  Prepares the model's reference values on ``contexts``.
-    """
+    """Prepare ``model``, refuse or flag data that cannot determine it; the coverage report."""
     raw = data.raw
     if not np.all(np.isfinite(raw)):
         bad = np.unique(np.nonzero(~np.isfinite(raw))[0]) + 1
@@ -349,12 +309,9 @@ def _check_data(data, model, contexts, constrained, check_identifiability, degen
         problems = ident['problems']
         from magcal_ros.core.effects.attitude_ref import attitude_reference
         if attitude_reference(model) is not None and contexts[0].attitude is not None:
-            # the attitude observes the field's direction: what a partial coverage leaves
-            # open is found from the Jacobian and named (core/model/attitude_fit.py)
-            problems = []
+            problems = []       # attitude_fit names what the coverage leaves open
         if constrained:
-            # the priors stand in for the attitudes a partial or single-axis coverage never
-            # saw; they cannot make up for a sensor that did not turn or is stuck
+            # the priors stand in for a partial coverage, not for a sensor that did not turn
             excused = [j for j, v in ident['sensors'].items()
                        if v['status'] in ('partial', 'single axis')]
             problems = [p for p in problems
@@ -368,11 +325,9 @@ def fitted_readings(model, t, idx):
     """
     Return the fitted sets and readings: (M,) indices into ``t`` and (S, M) bool or None.
 
-    ``idx`` (M0,) are the candidate sets (:func:`fit_epochs`), ``t`` (N,) s all the times;
-    the ``drop`` terms leave readings out (``Model.reading_mask``) and a set without any
-    reading is removed; the mask is None when every reading kept is used.  Raises
-    ValueError when fewer than 10 sets are left, or a sensor keeps fewer readings than
-    max(10, its parameters).
+    ``idx`` (M0,) the candidate sets (:func:`fit_epochs`), ``t`` (N,) s; the ``drop`` terms
+    leave readings out, a set without any is removed; None: every reading is used.
+    ValueError when fewer than 10 sets, or a sensor keeps fewer than max(10, its parameters).
     """
     if not model.drops:
         return idx, None
@@ -415,22 +370,17 @@ def group_noise_variances(res, g_cols, n_params, ranks=None, keep=None):
     """
     Unbiased moment estimate of each sensor's noise variance in a group, relative to its weight.
 
-    The profiled residual of an epoch is r = (I - P) e with P the orthogonal projector on the
-    two field-direction columns G, e the noise normalised by the current sigma_j.  With
-    E[e e^T] = diag(d_j I_3), d_j = (true sigma_j / current sigma_j)^2,
-    E ||r_j||^2 = sum_k C_jk d_k, C_jk = ||(I - P)_jk||_F^2 summed over epochs;
-    C d = sum ||r_j||^2 is solved for d >= 0 (scipy.optimize.nnls): the heteroscedastic
-    variance-component estimator of Rao (1970, MINQUE's unbiased form).  A sensor's own
-    share of the residual would not do: a sensor weighted less leaves more of the common
-    residual in its own.  The parameters' degrees of freedom scale every d by
-    (3 G - 2) N / ((3 G - 2) N - P).
+    The profiled residual is r = (I - P) e, P the projector on the field-direction columns G,
+    e the noise over the current sigma_j; with E[e e^T] = diag(d_j I_3),
+    E ||r_j||^2 = sum_k C_jk d_k, C_jk = ||(I - P)_jk||_F^2 over epochs, solved for d >= 0
+    (nnls): Rao's (1970) unbiased variance-component estimator (a sensor weighted less would
+    keep more of the common residual in its own share).  Every d is scaled by
+    :func:`dof_scale` squared.
 
-    ``res`` (N, G, 3) residuals normalised by the current sigma_j; ``g_cols`` (N, 3 G, 2)
-    the field-direction columns (:meth:`ProfiledProblem.field_columns`); ``n_params`` of
-    the group; ``ranks`` (G,) of each member's noise (3 for a sensor, 1 or 3 for the
-    attitude's observation); ``keep`` (N, G) 0/1 the readings kept
-    (:attr:`ProfiledProblem.keep`).  Returns (G,) d_j: the new sigma_j is the current one
-    times sqrt(d_j).
+    ``res`` (N, G, 3) normalised residuals; ``g_cols`` (N, 3 G, 2)
+    (:meth:`ProfiledProblem.field_columns`); ``n_params`` of the group; ``ranks`` (G,) each
+    member's noise rank (3 a sensor, 1 or 3 the attitude); ``keep`` (N, G) 0/1 the readings
+    kept.  Returns (G,) d_j: the new sigma_j is the current one times sqrt(d_j).
     """
     from scipy.optimize import nnls
     n, g = res.shape[0], res.shape[1]
@@ -453,20 +403,13 @@ def group_noise_variances(res, g_cols, n_params, ranks=None, keep=None):
     rk = np.full(g, 3.0) if ranks is None else np.asarray(ranks, float)
     c[np.diag_indices(g)] += rk * counts - 2.0 * np.einsum('njqq->j', sk)
     m = np.einsum('nga,nga->g', res, res)
-    d, _ = nnls(c, m * dof_scale(n, g, n_params, row_total=float(rk @ counts)) ** 2)
+    d, _ = nnls(c, m * dof_scale(n, n_params, float(rk @ counts)) ** 2)
     return np.maximum(d, 1e-12)
 
 
-def dof_scale(n, g, n_params, rows=None, row_total=None):
-    """
-    Return sqrt((3 G - 2) N / ((3 G - 2) N - P)), which scales a group's residual noise sd.
-
-    Each epoch leaves 3 G - 2 residual degrees of freedom; the P parameters take theirs from
-    the total.  ``rows``: the observations per epoch when not 3 G; ``row_total``: those of
-    all N epochs when the epochs differ (readings left out by ``drop``).
-    """
-    per_epoch = 3 * g if rows is None else rows
-    dof = row_total - 2 * n if row_total is not None else (per_epoch - 2) * n
+def dof_scale(n, n_params, row_total):
+    """Return sqrt(D / (D - P)), D = row_total - 2 N (each field takes 2): scales a noise sd."""
+    dof = row_total - 2 * n
     return float(np.sqrt(dof / max(dof - n_params, 1.0)))
 
 
@@ -474,13 +417,9 @@ def own_residual(res, g_cols, gi):
     """
     (N,) the residual of sensor ``gi`` of a group normal to its two field-direction columns.
 
-    The profiled field moves each sensor's prediction only within the span of its own two
-    columns G_j, so the residual's component along w_j = G_j1 x G_j2 / |G_j1 x G_j2| is
-    w_j^T e_j: sensor j's normalised noise alone, whatever the other sensors' noise (the
-    MAD of all three components would mix in the components the field took up).
-
-    ``res`` (N, G, 3) and ``g_cols`` (N, 3 G, 2) as for :func:`group_noise_variances`;
-    ``gi`` the sensor's position in the group.
+    The profiled field moves sensor j's prediction only within the span of its columns G_j,
+    so the component along G_j1 x G_j2 is sensor j's normalised noise alone.  ``res``,
+    ``g_cols`` as for :func:`group_noise_variances`; ``gi`` its position in the group.
     """
     cols = g_cols[:, 3 * gi:3 * gi + 3]
     w = np.cross(cols[:, :, 0], cols[:, :, 1])
@@ -489,13 +428,7 @@ def own_residual(res, g_cols, gi):
 
 
 def serial_inflation(r):
-    """
-    sqrt((1 + rho) / (1 - rho)): how much a serially correlated error weighs less.
-
-    ``r`` (N, 3) residuals in time order; rho is their lag-1 correlation (the AR(1)
-    variance inflation of a mean, Bartlett 1946).  An attitude's error is smooth: as N
-    independent observations it would outweigh the compass.
-    """
+    """sqrt((1 + rho) / (1 - rho)), rho the lag-1 correlation of r (N, 3) (Bartlett 1946)."""
     r = np.asarray(r, float)
     num = float(np.sum(r[1:] * r[:-1]))
     den = float(np.sum(r * r))
@@ -509,10 +442,8 @@ class _Solve:
     def __init__(self, model, raw, f, contexts, prior_list, robust, f_scale, solver,
                  max_nfev, ftol=None, mask=None):
         self.model, self.raw, self.f, self.contexts = model, raw, f, contexts
-        #: (S, N) bool, the readings fitted (None: all; :func:`fitted_readings`): the start
-        #: and its noise levels leave the others out (the problems do from the model's drops)
+        #: (S, N) bool, the readings fitted (None: all; :func:`fitted_readings`)
         self.mask = mask
-        # the solvers' own default tolerance unless one is given
         self.ftol_kw = {} if ftol is None else {'ftol': ftol}
         self.prior_list = prior_list
         self.robust, self.f_scale = robust, f_scale
@@ -530,17 +461,14 @@ class _Solve:
         """
         Return (p, sigma, solution): ML parameters, noise levels and the last solution.
 
-        With ``sigma_nt`` given the noise is fixed (one pass); otherwise it starts from a
-        robust estimate of the closed-form residuals and is re-estimated from the residuals
-        until it changes by less than 5 % (at most 3 passes).
+        ``sigma_nt`` given: fixed noise, one pass; else from the MAD of the start's residuals,
+        re-estimated until it changes by less than 5 % (3 passes at most, 6 with an attitude).
         """
         model = self.model
         fixed_sigma = sigma_nt is not None
         sigma = (np.broadcast_to(np.asarray(sigma_nt, float), (model.n_sensors,)).copy()
                  if fixed_sigma else self.start_sigma(p0))
         p = p0.copy()
-        # an attitude observing the field is one more variance component, whose share the
-        # iteration settles more slowly (core/effects/attitude_ref.py)
         from magcal_ros.core.effects.attitude_ref import attitude_reference
         passes = 6 if attitude_reference(model) is not None else 3
         for _ in range(1 if fixed_sigma else passes):
@@ -578,9 +506,7 @@ class _Solve:
                                     f_scale=self.f_scale, max_nfev=self.max_nfev, method='trf',
                                     **self.ftol_kw)
             else:
-                # squares loss: the normal equations block by block, without the tall
-                # projected Jacobian (ProfiledProblem.normal_equations); the soft-L1 loss
-                # weights its rows and needs it
+                # the squares loss needs only the normal equations, the soft-L1 loss the rows
                 sol = levenberg_marquardt(prob.residuals, prob.jacobian, x0,
                                           robust=self.robust, f_scale=self.f_scale,
                                           max_nfev=self.max_nfev,
@@ -595,12 +521,7 @@ class _Solve:
         return p, problems, Solution(p, success, status, message, nfev)
 
     def residual_sigma(self, p, sigma, problems):
-        """
-        Return (S,) the noise levels re-estimated from the raw residuals at ``p``, nT.
-
-        Least squares: :func:`group_noise_variances`; robust: the MAD of each sensor's
-        :func:`own_residual`.
-        """
+        """Return (S,) noise levels at p, nT: :func:`group_noise_variances`, robust MAD."""
         new_sigma = sigma.copy()
         for prob in problems:
             _, b, mats, res = prob.evaluate(p[prob.cols])
@@ -609,8 +530,8 @@ class _Solve:
             if self.robust and prob.aid is None:
                 kept = prob.member_counts
                 scale = dof_scale(int(np.count_nonzero(prob.keep.any(axis=1)))
-                                  if prob.keep is not None else res.shape[0], g,
-                                  len(prob.cols), row_total=3.0 * kept.sum())
+                                  if prob.keep is not None else res.shape[0],
+                                  len(prob.cols), 3.0 * kept.sum())
                 for gi, j in enumerate(prob.sensors):
                     own = own_residual(res, g_cols, gi)
                     if prob.keep is not None:
@@ -631,12 +552,7 @@ class _Solve:
         return new_sigma
 
     def covariance(self, p, sigma, with_jacobian=True):
-        """
-        Return ((P, P) covariance, chi-square, n_obs) from the projected J^T J at p.
-
-        The robust fit's is the sandwich of :meth:`sandwich` on each group's J^T J.
-        ``with_jacobian`` False: the covariance is not computed (NaN).
-        """
+        """Return the (P, P) covariance at p (robust: :meth:`sandwich`), chi-square, n_obs."""
         n_p = self.model.n_params
         cov = np.zeros((n_p, n_p)) if with_jacobian else np.full((n_p, n_p), np.nan)
         chi2, n_obs = 0.0, 0
@@ -648,9 +564,7 @@ class _Solve:
             n_obs += prob.n_observations
             if not with_jacobian:
                 continue
-            # J^T J of the projected Jacobian, formed block by block (the same matrix for
-            # either solver); a nearly undetermined problem takes the dense Jacobian, whose
-            # rounding resolves the undetermined directions (resolves_covariance)
+            # a nearly undetermined problem takes the dense Jacobian (resolves_covariance)
             a = prob.normal_equations(x)[0]
             block = (covariance_from_normal(a) if resolves_covariance(a)
                      else covariance_from_jacobian(prob.jacobian(x)))
@@ -663,19 +577,11 @@ class _Solve:
         """
         Return a group's robust covariance: the M-estimator's sandwich A^-1 B A^-1.
 
-        ``prob`` is the group's :class:`ProfiledProblem` at its parameters ``x``, ``bound``
-        its (P_g, P_g) Cramer-Rao bound.
-
-        The soft-L1 loss of each sensor's normalised residual z (3,) at an epoch (f_scale c)
-        gives the estimating equation sum_k sum_j w_kj J_kj^T z_kj = 0 with
-        w = 1 / sqrt(1 + |z|^2 / c^2); its covariance is A^-1 B A^-1 with
-        A = sum J^T (w I - w^3 z z^T / c^2) J and B the sum over epochs of the outer product
-        of each epoch's score: Huber, P. J. (1967), The behavior of maximum likelihood
-        estimates under nonstandard conditions, Proc. Fifth Berkeley Symposium 1, 221-233.
-        J is the projected Jacobian; prior rows enter A and B as unit-variance observations.
-        On Gaussian noise it is the Cramer-Rao bound; with outliers it counts the loss's
-        lost efficiency.  A group with a direction the data do not determine keeps
-        ``bound`` (its infinite entries).
+        ``prob`` the group's :class:`ProfiledProblem` at ``x``, ``bound`` its (P_g, P_g)
+        Cramer-Rao bound, kept when a direction is undetermined.  The soft-L1 loss (f_scale
+        c) of each normalised residual z (3,) weighs w = 1 / sqrt(1 + |z|^2 / c^2):
+        A = sum J^T (w I - w^3 z z^T / c^2) J, B the sum of the epochs' score outer products
+        (Huber 1967, Proc. Fifth Berkeley Symposium 1, 221-233); prior rows enter both.
         """
         c2 = self.f_scale ** 2
         _, _, _, res = prob.evaluate(x)
@@ -698,12 +604,7 @@ class _Solve:
 
 
 def priors_for(model, spec, constrained=False):
-    """
-    Prior list [(index, mean, sd)] from a {effect name or label: (mean, sd)} spec.
-
-    With ``constrained`` every effect's ``Effect.prior`` unless ``spec`` overrides it; a
-    mean of None is the effect's default parameter value.
-    """
+    """[(index, mean, sd)] of {name or label: (mean or None, sd)}; constrained: Effect.prior."""
     out = []
     default = model.default_params()
     for j, row in enumerate(model.effects):
@@ -720,10 +621,9 @@ def initial_params(raw, field_nt, model, constrained=False, mask=None):
     """
     Return (P,) closed-form starting values of ``model`` (paper 004 section 3).
 
-    Per sensor of ``raw`` (S, N, 3) nT: ellipsoid fit + Cholesky (eq. 8-13) at the reference
-    magnitude ``field_nt`` (N,) nT; Procrustes rotation of each corrected sensor onto sensor
-    1 (eq. 14); A_j = C_j R_j^T.  ``constrained``: A = I and the offset from the linear
-    sphere fit |m - o|^2 = F^2 only.  ``mask`` (S, N) bool: the readings to start from.
+    Per sensor of ``raw`` (S, N, 3) nT: ellipsoid + Cholesky (eq. 8-13) at ``field_nt`` (N,)
+    nT, Procrustes onto sensor 1 (eq. 14), A_j = C_j R_j^T; ``constrained``: A = I, the
+    offset from the sphere |m - o| = F.  ``mask`` (S, N) bool: the readings to start from.
     """
     s = raw.shape[0]
     f0 = float(np.mean(field_nt))
@@ -731,7 +631,6 @@ def initial_params(raw, field_nt, model, constrained=False, mask=None):
     corrected, mats = [], []
     keep = np.ones(raw.shape[:2], bool) if mask is None else np.asarray(mask, bool)
     for j in range(1, s + 1):
-        # in the frame of the sensor's axes (an axes(...) map M: reading = M x that frame)
         m = raw[j - 1] @ model.axis_map(j)
         mk, fk = m[keep[j - 1]], field_nt[keep[j - 1]]
         if constrained:
@@ -759,13 +658,11 @@ def initial_params(raw, field_nt, model, constrained=False, mask=None):
 def profile_residuals(model, p, raw, f, sigma, contexts, robust=False, f_scale=3.0,
                       chunk=200000, field0=None):
     """
-    Return the profiled field and the raw-space residual of ``p`` (chunked for large N).
+    Return the profiled field (N, 3) and the residual (S, N, 3) of ``p``, nT, by chunks.
 
-    ``model`` prepared, ``p`` (P,), ``raw`` (S, N, 3) nT, ``f`` (N,) nT, ``sigma`` (S,) nT
-    (weights of the joint profile), ``contexts`` (S,); ``robust``, ``f_scale``: profile
-    with the soft-L1 weights; ``chunk`` epochs at a time; ``field0`` (N, 3) nT: the field
-    to start from (joint models).  Returns the field (N, 3) nT (independent sensors: the
-    last one's) and the residual (S, N, 3) nT (:meth:`ProfiledProblem.reading_residuals`).
+    ``model`` prepared, ``p`` (P,), ``raw`` (S, N, 3) nT, ``f`` (N,) nT, ``sigma`` (S,) nT,
+    ``contexts`` (S,); ``robust``, ``f_scale`` the soft-L1 profile; ``field0`` (N, 3) nT
+    the field to start from (joint models).  The field of independent sensors: the last's.
     """
     s, n = raw.shape[0], raw.shape[1]
     field = np.zeros((n, 3))
@@ -797,16 +694,9 @@ def corrected_readings(model, p, raw, contexts):
 
 
 def centred_readings(model, p, corrected, contexts):
-    """
-    Return (S, N, 3) ``corrected`` minus each sensor's modelled array shift, nT.
-
-    The site shift (site gradient) and the modelled change of the field's magnitude (a
-    ``field`` term, along the corrected reading): what is left is comparable with the
-    reference magnitude.
-    """
+    """(S, N, 3) ``corrected`` minus each sensor's modelled array shift, nT (centre field)."""
     if not model.array_effects:
         return corrected
-    # residuals against the centre field: remove each sensor's modelled site shift
     return corrected - np.stack([model.array_shift(j, p, contexts[j - 1], corrected[j - 1])
                                  for j in range(1, model.n_sensors + 1)])
 
@@ -821,11 +711,9 @@ def evaluate(model, p, data, f, sigma, contexts=None, robust=False, f_scale=3.0,
     """
     Return the residuals of parameters ``p`` on all epochs of ``data`` (chunked for large N).
 
-    Arguments as :func:`profile_residuals`'.  The readings the ``drop`` terms leave out have
-    zero residual, scalar and vector entries (the vector's where sensor j's or sensor 1's
-    is left out); ``kept`` says which (a mean square divides by its count, not by N).
-    Returns a dict: field (N, 3), corrected (S, N, 3), residual (S, N, 3), scalar (S, N),
-    vector (S, N, 3), all in nT, downweighted (S,) counts and kept ((S, N) bool or None).
+    Arguments as :func:`profile_residuals`'.  Returns a dict: field (N, 3), corrected,
+    residual (S, N, 3), scalar (S, N), vector (S, N, 3), all nT, downweighted (S,) counts and
+    kept ((S, N) bool or None): the readings ``drop`` leaves out have zero entries.
     """
     if contexts is None:
         contexts = [data.context(j) for j in range(1, data.n_sensors + 1)]

@@ -15,34 +15,29 @@
 """
 Can the data determine the model?  Checks run before and after every solve.
 
-Before: the attitude coverage of each sensor, judged about the centre of its fitted
-ellipsoid (so that a large offset does not squeeze a full rotation into a cone): a rotation
-about a single axis leaves the linear map undetermined along that axis (refusals name it in
-the sensor frame); a partial coverage correlates scale, non-orthogonality and offset.
-After: the parameter correlations and the condition number of the correlation matrix.
+Before: each sensor's attitude coverage about its fitted centre (a single-axis rotation
+leaves the map undetermined along that axis).  After: the parameter correlations and the
+condition number of the correlation matrix.
 """
 from magcal_ros.core.geometry.coverage import direction_coverage
 from magcal_ros.core.geometry.turn import circle_centre
-from magcal_ros.core.papers.ellipsoid import fit_ellipsoid, reading_plane, RING_CV, ring_spread
+from magcal_ros.core.papers.ellipsoid import (fit_ellipsoid, format_axis, reading_plane,
+                                              RING_CV, ring_spread)
 import numpy as np
 
 #: smallest direction-scatter eigenvalue of a single-axis rotation (noise and wobble only)
 SINGLE_AXIS_EIG = 3e-4
 #: below this the attitude coverage is partial (about a +-14 deg band or a cap < ~45 deg)
 PARTIAL_EIG = 0.02
-#: directions on a ring (:data:`magcal_ros.core.papers.ellipsoid.RING_CV`) whose spread
-#: along the ring's axis is below this fraction of the in-plane spread are a rotation about
-#: that axis with hand wobble (0.002-0.011), not a partial coverage (a vehicle tilting
-#: +-15 deg: 0.09)
+#: directions on a ring (ellipsoid.RING_CV) spread along its axis below this fraction of
+#: the in-plane spread: a rotation about that axis with hand wobble, not a partial coverage
 RING_RATIO = 0.015
 #: the sphere cross-check applies where the sphere's relative radial residual variance is
 #: below this multiple of the ellipsoid's
 SPHERE_VAR_FACTOR = 4.0
-#: an ellipsoid whose axis ratio exceeds this is not a sensor's (1.1-1.3) but a fit bent to
-#: a cap of directions: its centre is not used
+#: an ellipsoid whose axis ratio exceeds this is bent to a cap: its centre is not used
 MAX_AXIS_RATIO = 1.6
-#: readings scattered radially by more than this fraction of the fitted radius fill a cloud
-#: (a still sensor's noise) rather than lie on a shell
+#: readings scattered radially by more than this fraction of the radius fill a cloud
 MAX_RADIAL_SCATTER = 0.25
 #: parameter correlations above this make the pair inseparable
 MAX_CORRELATION = 0.995
@@ -54,30 +49,23 @@ def fitted_centre(m):
     """
     Fit the ellipsoid of one sensor's readings ``m`` (N, 3) nT; None when not determined.
 
-    Returns (centre (3,) nT, the hard-iron offset of paper 004 eq. 12; the relative noise
-    variance ``var(radial residual / radius)``; the ratio of its longest to its shortest
-    axis), or None when :func:`magcal_ros.core.papers.ellipsoid.fit_ellipsoid` finds the
-    ellipsoid not determined against the noise or the readings fill a cloud
-    (:data:`MAX_RADIAL_SCATTER`).
+    Returns (centre (3,) nT (paper 004 eq. 12), var(radial residual / radius), longest over
+    shortest axis), or None: no ellipsoid, or a cloud (:data:`MAX_RADIAL_SCATTER`).
     """
     try:
         ell = fit_ellipsoid(m, 1.0)
     except (ValueError, np.linalg.LinAlgError):
         return None
     if np.std(ell.residual_nt) > MAX_RADIAL_SCATTER:
-        return None             # a cloud of noise (a sensor lying still), not a shell
+        return None
     axes = np.linalg.svd(ell.c_inv, compute_uv=False)
     return ell.b, float(np.var(ell.residual_nt)), float(axes[0] / axes[-1])
 
 
-def _fmt_axis(v):
-    return '(' + ', '.join(f'{0.0 if abs(x) < 0.005 else x:+.2f}' for x in v) + ')'
-
-
 def _single_axis_message(normal, how):
     return (f'all field directions lie near one plane with normal '
-            f'{_fmt_axis(normal)} ({how}): the data come from a rotation about one axis only, '
-            f'about {_fmt_axis(normal)} in the sensor frame; rotate about another axis too '
+            f'{format_axis(normal)} ({how}): the data come from a rotation about one axis only, '
+            f'about {format_axis(normal)} in the sensor frame; rotate about another axis too '
             '(tilt that axis by 45-90 deg and rotate again)')
 
 
@@ -86,8 +74,7 @@ def classify_coverage(m):
     Attitude coverage of one sensor's readings ``m`` (N, 3) nT, judged about the fitted centre.
 
     Returns a dict: ``status`` ('good', 'partial', 'single axis', 'one attitude'),
-    ``eigenvalues`` (3,) of the direction scatter about the centre less the noise's,
-    ``normal`` (3,) the missing rotation's axis in the sensor frame,
+    ``eigenvalues`` (3,) less the noise's, ``normal`` (3,) sensor frame,
     ``cone_half_angle_deg``, ``centre_nt`` (3,) or None, ``message`` (None when good).
     """
     fitted = fitted_centre(m)
@@ -95,12 +82,9 @@ def classify_coverage(m):
     if fitted is not None:
         centre, noise_eig, axis_ratio = fitted
         if axis_ratio > MAX_AXIS_RATIO:
-            # no magnetometer is that anisotropic: the ellipsoid bent to a partial set of
-            # directions (a cap) and its centre is not the offset; use the sphere's
-            centre = circle_centre(m)
+            centre = circle_centre(m)           # the sphere's centre instead
     else:
-        # no ellipsoid: the raw directions (about the origin) tell whether the sensor
-        # turned at all; readings on one plane (a ring) are a rotation about its normal
+        # no ellipsoid: did the sensor turn at all (about the origin), on a ring?
         plane = reading_plane(m)
         cov = direction_coverage(m)
         ev = cov.eigenvalues
@@ -111,14 +95,11 @@ def classify_coverage(m):
                 plane, 'the readings are too flat to fit an ellipsoid'))
         if ev[1] < SINGLE_AXIS_EIG or ev[2] < PARTIAL_EIG:
             return dict(found, status='one attitude')
-        # the sensor turned, but the ellipsoid is not determined: judge about the centre
-        # of the least-squares sphere (the origin would be arbitrary: with an offset near
-        # the field it lies close to the readings and makes any cap look wide)
+        # turned, no ellipsoid: judge about the sphere's centre (not the arbitrary origin)
         centre = circle_centre(m)
     out = _judge(m, centre, noise_eig)
     if out['status'] == 'good' and fitted is not None and axis_ratio <= MAX_AXIS_RATIO:
-        # cross-check with the least-squares sphere's centre (stable on a cap, where the
-        # ellipsoid can bend to a wrong centre), where a sphere describes the readings
+        # cross-check about the sphere's centre (stable on a cap), where a sphere fits
         sphere = circle_centre(m)
         rad = np.linalg.norm(m - sphere, axis=1)
         if np.var(rad / np.median(rad)) < SPHERE_VAR_FACTOR * max(noise_eig, 1e-12):
@@ -153,9 +134,8 @@ def check_coverage(raw):
     """
     Coverage of each sensor's field directions (:func:`classify_coverage`), ``raw`` (S, N, 3) nT.
 
-    Returns a dict: ``sensors`` {j: {eigenvalues, normal, cone_half_angle_deg, status}}
-    (status as :func:`classify_coverage`'s, or 'constant': stuck output), ``problems``
-    (messages naming the missing rotation; empty when fine), ``summary`` (one line).
+    Returns a dict: ``sensors`` {j: {eigenvalues, normal, cone_half_angle_deg, status (or
+    'constant': stuck)}}, ``problems`` (messages; empty when fine), ``summary`` (one line).
     """
     out = {'sensors': {}, 'problems': []}
     messages = {}
@@ -166,8 +146,6 @@ def check_coverage(raw):
             messages[j] = f'sensor {j} reported no usable samples: check its cable/port'
             continue
         if not np.any(np.ptp(m, axis=0) > 0):
-            # a stuck sensor (frozen ADC, driver repeating its last value): not an attitude
-            # problem, rotating more would not help
             out['sensors'][j] = {'eigenvalues': [0.0, 0.0, 1.0], 'normal': [0.0, 0.0, 0.0],
                                  'cone_half_angle_deg': 0.0, 'status': 'constant'}
             messages[j] = (f'sensor {j}: output is constant (all {len(m)} samples read '
@@ -206,7 +184,6 @@ def check_coverage(raw):
              if v['status'] not in ('one attitude', 'constant')]
     for j, v in out['sensors'].items():
         if v['status'] == 'one attitude' and moved:
-            # the array turned (sensor moved[0] saw it) but this sensor's direction did not
             spread = float(np.max(np.ptp(raw[j - 1], axis=0)))
             v['status'] = 'constant'
             messages[j] = (f'sensor {j}: output (nearly) constant (spread {spread:.1f} nT) '
@@ -222,8 +199,8 @@ def jacobian_report(model, cov, corr, constrained=False):
     """
     Parameter correlations and conditioning of ``model``'s (P, P) ``cov`` and ``corr``.
 
-    Returns a dict with ``condition_number``, ``max_correlation`` [(name_a, name_b, rho)],
-    ``problems`` (with ``constrained``, priors: the correlations are ``notes`` instead).
+    Returns a dict: ``condition_number``, ``max_correlation`` [(name_a, name_b, rho)],
+    ``problems`` (``constrained``: the correlations are ``notes`` instead).
     """
     info = model.param_info()
     names = [f'{e}.{n}@{s}' for s, e, n, _ in info]
@@ -242,7 +219,6 @@ def jacobian_report(model, cov, corr, constrained=False):
     top = [(names[idx[a]], names[idx[b]], float(c[a, b])) for a, b in order if tri[a, b] > 0]
     out['max_correlation'] = top
     if constrained:
-        # priors bound every parameter; strong posterior correlations are expected then
         out['notes'] = [f'{a} ~ {b}: correlation {rho:+.4f}' for a, b, rho in top[:3]]
     elif top and abs(top[0][2]) > MAX_CORRELATION:
         a, b, rho = top[0]

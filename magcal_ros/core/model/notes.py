@@ -13,12 +13,9 @@
 # limitations under the License.
 
 """
-Structured warnings: what kind, which sensor, and the text a user reads.
+Structured warnings: a :class:`Note` is its text (a ``str``) with ``kind`` and ``sensor``.
 
-A :class:`Note` is a ``str`` (its text) that carries ``kind`` and ``sensor``, so that
-decisions never depend on matching the text.  The ``--json`` output and the calibration
-file's provenance hold :func:`note_dict` of each: ``{kind, sensor, text}``.
-
+The ``--json`` output and the calibration file's provenance hold :func:`note_dict` of each.
 Kinds used by the library:
 
 ``missing_effect``  a sensor's residual is well above the noise floor of its data;

@@ -15,16 +15,12 @@
 """
 The closed-form calibrations of papers 000 and 002 on a recording (``magcal fit --method``).
 
-- ``sine`` (paper 000, docs/papers.md#paper-000): a turntable recording with the angle
-  ``angle_deg`` and the horizontal sensor plane ``plane`` (``xy``: position 1, ``xz``:
-  position 2) of every row; ``raw = L B + B0``, L lower triangular; with ``L = U Q`` (RQ)
-  the calibration keeps U (model ``offset,scale,nonorthogonality``).  Each sensor is
-  calibrated alone: the rotations between sensors are unknown.
-- ``reference`` (paper 002, docs/papers.md#paper-002): a recording with the undisturbed
-  field ``ref_x, ref_y, ref_z``; ``Hm = K He + Hh``; sensor 1's ``K_1 = U_1 Q_1`` defines
-  the array frame and every sensor gets ``A_j = K_j Q_1^T`` (model ``offset,soft_iron``).
+- ``sine`` (paper 000): ``raw = L B + B0`` per sensor on a turntable (``angle_deg``,
+  ``plane``); of ``L = U Q`` (RQ) the calibration keeps U (``offset,scale,nonorthogonality``).
+- ``reference`` (paper 002): ``Hm = K He + Hh`` against ``ref_x, ref_y, ref_z``; sensor 1's
+  ``K_1 = U_1 Q_1`` defines the array frame, ``A_j = K_j Q_1^T`` (``offset,soft_iron``).
 
-Both results are an ordinary :class:`~magcal_ros.core.model.Calibration`.
+Both give an ordinary :class:`~magcal_ros.core.model.Calibration` (docs/papers.md).
 """
 from dataclasses import dataclass, field
 
@@ -89,13 +85,12 @@ def _rms_scalar(vectors, f):
 def _finish(method, model, p, data, f, rows, warnings, reference=None):
     # the closed forms give no uncertainty: nan, never a zero that would claim exactness
     cal = Calibration(model, p, stderr=np.full(model.n_params, np.nan))
-    corrected = np.stack([cal.correct(j, data.raw[j - 1]) for j in
-                          range(1, data.n_sensors + 1)])
-    before = {j: _rms_scalar(data.raw[j - 1], f) for j in range(1, data.n_sensors + 1)}
-    after = {j: _rms_scalar(corrected[j - 1], f) for j in range(1, data.n_sensors + 1)}
+    sensors = range(1, data.n_sensors + 1)
+    corrected = np.stack([cal.correct(j, data.raw[j - 1]) for j in sensors])
+    before = {j: _rms_scalar(data.raw[j - 1], f) for j in sensors}
+    after = {j: _rms_scalar(corrected[j - 1], f) for j in sensors}
     vec = {} if reference is None else {
-        j: float(np.sqrt(np.mean((corrected[j - 1] - reference) ** 2)))
-        for j in range(1, data.n_sensors + 1)}
+        j: float(np.sqrt(np.mean((corrected[j - 1] - reference) ** 2))) for j in sensors}
     return PaperFit(method=method, calibration=cal, sensor_params=rows,
                     scalar_rms_before_nt=before, scalar_rms_nt=after, vector_rms_nt=vec,
                     warnings=warnings, corrected_nt=corrected)
@@ -137,12 +132,10 @@ def sine_calibration(data, field_nt):
         low, b0 = par.to_general()
         u, _ = rq_positive(low)          # drop paper 000's frame rotation (module docstring)
         p = model.params_from_linear(j, u, b0, p)
-        rows.append([('alpha', float(np.degrees(par.alpha)), 'deg'),
-                     ('beta', float(np.degrees(par.beta)), 'deg'),
-                     ('gamma', float(np.degrees(par.gamma)), 'deg'),
-                     ('kx', par.kx, '1'), ('ky', par.ky, '1'), ('kz', par.kz, '1'),
-                     ('Bx0', float(b0[0]), 'nT'), ('By0', float(b0[1]), 'nT'),
-                     ('Bz0', float(b0[2]), 'nT')])
+        rows.append([(n, float(np.degrees(getattr(par, n))), 'deg')
+                     for n in ('alpha', 'beta', 'gamma')]
+                    + [(n, getattr(par, n), '1') for n in ('kx', 'ky', 'kz')]
+                    + [(f'B{a}0', float(v), 'nT') for a, v in zip('xyz', b0)])
     warnings = []
     if data.n_sensors > 1:
         warnings.append('paper 000 calibrates each sensor alone: the rotations between the '
@@ -156,10 +149,8 @@ def reference_calibration(data, field_nt=None, on_degenerate='raise'):
     """
     Return the :class:`PaperFit` of paper 002 on a recording with a reference field vector.
 
-    ``data`` (S, N) disturbed readings Hm in nT and ``ref_vec`` (N, 3) nT, the undisturbed
-    field; ``field_nt`` the magnitude of the scalar residual, nT (default |ref_vec|);
-    ``on_degenerate`` 'raise' (DegenerateDataError) or 'flag' reference directions that
-    cannot determine K and Hh.
+    ``data`` (S, N) readings Hm, nT, with ``ref_vec`` (N, 3) nT; ``field_nt`` nT of the scalar
+    residual (default |ref_vec|); ``on_degenerate`` 'raise' (DegenerateDataError) or 'flag'.
     """
     if data.ref_vec is None:
         raise ValueError('--method reference needs the reference field columns ref_x, ref_y, '

@@ -15,20 +15,16 @@
 """
 Planar calibration: what a turn about one axis determines, and what it does not.
 
-A turn about the axis n (sensor frame) determines the in-plane offsets' sums with the
-out-of-plane angles times Z, the ratio of the in-plane scale factors and their
-non-orthogonality, everything a heading needs; it leaves open the offset and scale along n,
-the angles between n and the plane and, without the inclination, the common in-plane scale
-(docs/planar.md).  :func:`fit_planar` fits the full three-axis model (so a hand's wobble
-does not bend the in-plane result) with a prior on each parameter the turn leaves open
-(:data:`PRIOR_SD`), names the undetermined ones, and keeps the priors' uncertainty in the
-covariance.  :func:`heading_error` propagates the covariance to the heading of a level
-sensor at the site's inclination.  Units: nT, rad, deg where the name says so.
+A turn about the axis n determines what a heading needs and leaves open the offset and scale
+along n, the angles between n and the plane and the common in-plane scale (docs/planar.md).
+:func:`fit_planar` fits the full model with a prior on each parameter the turn leaves open
+(:data:`PRIOR_SD`) and names the undetermined ones; :func:`heading_error` propagates the
+covariance to a level sensor's heading.  Units: nT, rad, deg where the name says so.
 """
 from dataclasses import dataclass
 
 from magcal_ros.core.geometry.turn import (circle_centre,  # noqa: F401 - public here too
-                                           planar_magnitude, PlanarError,
+                                           planar_magnitude, PlanarError, plane_axes,
                                            swept_angle, turn_axis)
 from magcal_ros.core.model.fitting import fit
 import numpy as np
@@ -36,16 +32,14 @@ import numpy as np
 #: how far (deg) the turn axis may be from the sensor axis whose parameters are held
 MAX_AXIS_OFFSET_DEG = 25.0
 
-#: standard deviation of the prior on a parameter the turn leaves open: an offset's as a
-#: fraction of F, a scale's (dimensionless) and an angle's (rad), wide enough for consumer
-#: sensors
+#: sd of the prior on a parameter the turn leaves open: an offset's as a fraction of F, a
+#: scale's and an angle's (rad)
 PRIOR_SD = {'offset': 0.05, 'scale': 0.05, 'angle': 0.05}
 
 #: a parameter is undetermined when its posterior sd exceeds this fraction of its prior sd
 UNDETERMINED_RATIO = 0.5
 
-#: the parameters a turn about sensor axis a (0, 1, 2: x, y, z) leaves open, by effect
-#: name (paper 004 eq. 2: psi is y-z, varphi x-y, theta x-z)
+#: the parameters a turn about sensor axis a (0, 1, 2) leaves open (paper 004 eq. 2)
 _HELD = {
     0: {'offset': ('bx',), 'scale': ('kx',), 'nonorthogonality': ('varphi', 'theta'),
         'soft_iron': ('a00', 'a01', 'a02', 'a10', 'a20')},
@@ -55,20 +49,13 @@ _HELD = {
         'soft_iron': ('a22', 'a02', 'a20', 'a12', 'a21')},
 }
 
-
 #: the effects whose parameters are judged determined or not (the constant sensor map)
 SENSOR_MAP_KINDS = ('offset', 'scale', 'nonorthogonality', 'soft_iron', 'misalignment')
 
 
 @dataclass(frozen=True)
 class PlanarResult:
-    """
-    A planar calibration.
-
-    ``held`` indexes ``result.params``; the names are ``<effect>.<param>@<sensor>``,
-    undetermined those whose posterior sd stays above :data:`UNDETERMINED_RATIO` times
-    the prior sd of their kind.
-    """
+    """A planar calibration: ``held`` indexes ``result.params``, names ``<effect>.<param>@<j>``."""
 
     #: the fit (its covariance widened by :func:`inflate_for_correlation`)
     result: object
@@ -107,12 +94,10 @@ def fit_planar(data, model, field_nt, *, prior_params=None, inclination_deg=None
     """
     Fit ``model`` to a turn about one axis, the undetermined parameters held at a prior.
 
-    ``data`` (S, N, 3) nT readings of a turn about one axis; ``model`` a Model or spec;
-    ``field_nt`` F, nT, scalar or (N,); ``prior_params`` (P,) the values the held
-    parameters are held at (default an ideal sensor's); ``inclination_deg`` the site's
-    (IGRF; H = F cos I, Z = F sin I for the heading error; default the fitted field's own
-    split); ``fit_kwargs`` go to :func:`magcal_ros.core.model.fitting.fit`.  Returns a
-    :class:`PlanarResult`.
+    ``data`` (S, N, 3) nT; ``model`` a Model or spec; ``field_nt`` F, nT, scalar or (N,);
+    ``prior_params`` (P,) the held values (default an ideal sensor's); ``inclination_deg``
+    the site's, for the heading error (default the fitted field's split); ``fit_kwargs`` go
+    to :func:`magcal_ros.core.model.fitting.fit`.  Returns a :class:`PlanarResult`.
     """
     from magcal_ros.core.model.spec import Model
     if isinstance(model, str):
@@ -140,8 +125,7 @@ def fit_planar(data, model, field_nt, *, prior_params=None, inclination_deg=None
     kind_sd = prior_sd(model, float(np.mean(field_nt)))
     prior_list = [(i, float(p_prior[i]), float(kind_sd[i])) for i in held]
     init = fit_kwargs.pop('init', None)
-    # what the turn leaves open is held by priors alone (a long, flat valley): chi-square
-    # to 0.01 is the optimum for every purpose here
+    # priors alone hold a long, flat valley: chi-square to 0.01 is enough
     fit_kwargs.setdefault('max_nfev', 1000)
     fit_kwargs.setdefault('ftol', 0.01 / max(1, data.n_samples * data.n_sensors))
     if init is None:
@@ -149,9 +133,7 @@ def fit_planar(data, model, field_nt, *, prior_params=None, inclination_deg=None
     result = fit(data, model, field_nt=field_nt, extra_priors=prior_list, init=init,
                  check_identifiability=False, **fit_kwargs)
     result, rho = inflate_for_correlation(result)
-    # held or not, a parameter known no better than half a prior's width of its kind is
-    # undetermined (a level turn's in-plane offsets: only their sum with the out-of-plane
-    # angles times Z is seen; see effective offsets in planar_summary)
+    # held or not, known no better than UNDETERMINED_RATIO of a prior's width: undetermined
     open_ = {i for i in range(model.n_params)
              if info[i][0] and info[i][1] in SENSOR_MAP_KINDS and
              not result.stderr[i] <= UNDETERMINED_RATIO * kind_sd[i]}
@@ -169,12 +151,7 @@ def fit_planar(data, model, field_nt, *, prior_params=None, inclination_deg=None
 
 
 def split_determined(info, open_, also=()):
-    """
-    Return (undetermined, determined): names ``<effect>.<param>@<sensor>`` of parameters.
-
-    ``info`` is ``Model.param_info()``, ``open_`` the indices of the undetermined; the
-    determined are the other parameters of a sensor, and those of the indices ``also``.
-    """
+    """Return (undetermined ``open_``, determined: the other sensors' and ``also``) as names."""
     label = [f'{lab}.{nm}@{j}' for j, lab, nm, _ in info]
     return (tuple(label[k] for k in sorted(open_)),
             tuple(label[k] for k in range(len(info))
@@ -182,12 +159,7 @@ def split_determined(info, open_, also=()):
 
 
 def central_jacobian(fun, p, cols, steps, wrap=lambda d: d):
-    """
-    Return (M, K) central differences of ``fun`` (p (P,) -> (M,)) in the parameters ``cols``.
-
-    ``steps`` (K,) in the parameters' units; ``wrap`` maps each difference (an angle's
-    into +-pi) before it is divided by twice the step.
-    """
+    """(M, K) central differences of ``fun`` (p (P,) -> (M,)) in ``cols``, ``steps`` (K,)."""
     jac = np.empty((len(fun(p)), len(cols)))
     for col, (i, step) in enumerate(zip(cols, steps)):
         dp = np.zeros_like(p)
@@ -197,14 +169,7 @@ def central_jacobian(fun, p, cols, steps, wrap=lambda d: d):
 
 
 def inflate_for_correlation(result):
-    """
-    Return the fit with its covariance widened for correlated residuals, and the (S,) rho.
-
-    With a lag-1 correlation rho of a sensor's scalar residual (a turn is one continuous
-    trajectory) the variance of a least-squares estimate grows by about (1 + rho) / (1 - rho)
-    (the AR(1) variance inflation, Bartlett 1946): each sensor's block is widened by it
-    (never narrowed).
-    """
+    """Return (fit, (S,) rho), each sensor's block times (1 + rho) / (1 - rho) (Bartlett 1946)."""
     from dataclasses import replace
     model = result.model
     owner = np.array([s for s, *_ in model.param_info()])
@@ -225,11 +190,8 @@ def _planar_start(data, model, field_nt, p_prior, held, axes):
     p = p_prior.copy()
     info = model.param_info()
     for j in range(1, data.n_sensors + 1):
-        m = data.raw[j - 1]
-        n = axes[j - 1]
-        k = int(np.argmax(np.abs(n)))
-        plane = [a for a in range(3) if a != k]
-        centre = circle_centre(m[:, plane])
+        plane = plane_axes(axes[j - 1])[1]
+        centre = circle_centre(data.raw[j - 1][:, plane])
         for i, (s, label, name, _) in enumerate(info):
             if s == j and label == 'offset' and i not in held:
                 p[i] = centre[plane.index('xyz'.index(name[1]))]
@@ -252,22 +214,16 @@ def heading_error(result, j, axis, axis_index, h_nt, z_nt, n_headings=72):
     """
     Return the standard uncertainty of the heading of a level sensor j (fit's covariance).
 
-    The sensor turns about ``axis`` (its own frame) at a site with horizontal field
-    ``h_nt`` and vertical ``z_nt`` (nT); on a grid of headings the heading of the corrected
-    prediction is differentiated in sensor j's parameters (central differences) and
-    propagated through their covariance.
-
-    Returns a dict: ``max_deg`` and ``rms_deg`` over psi, ``psi_deg`` (M,), ``sd_deg`` (M,).
+    Turning about ``axis`` (its own frame) in horizontal field ``h_nt`` and vertical ``z_nt``
+    (nT), propagated by central differences on a grid of headings.  Returns a dict:
+    ``max_deg`` and ``rms_deg`` over psi, ``psi_deg`` (M,), ``sd_deg`` (M,).
     """
     model, p = result.model, result.params
-    n = np.asarray(axis, float)
-    k = axis_index
-    u_ax, v_ax = [a for a in range(3) if a != k]
-    u, v = np.eye(3)[u_ax], np.eye(3)[v_ax]
+    u, v = np.eye(3)[[a for a in range(3) if a != axis_index]]
     psi = np.radians(np.arange(n_headings) * 360.0 / n_headings)
-    b = h_nt * (np.cos(psi)[:, None] * u - np.sin(psi)[:, None] * v) + z_nt * n[None, :]
-    ctx = result.contexts[j - 1]
-    ctx0 = ctx.subset(np.zeros(n_headings, int))
+    b = (h_nt * (np.cos(psi)[:, None] * u - np.sin(psi)[:, None] * v)
+         + z_nt * np.asarray(axis, float)[None, :])
+    ctx0 = result.contexts[j - 1].subset(np.zeros(n_headings, int))
     raw = model.forward(j, p, b, ctx0)
 
     def heading(params):
@@ -294,11 +250,9 @@ def planar_summary(pr):
     """
     JSON-ready account of a :class:`PlanarResult` (nT, rad, deg as named).
 
-    ``axis`` per sensor (its own frame), ``determined`` / ``undetermined`` parameter names,
-    ``in_plane`` per sensor (offsets, the ratio of the two in-plane scale factors and their
-    non-orthogonality angle, each with its standard uncertainty), ``heading_error_deg`` and
-    ``heading_error_rms_deg`` per sensor (the largest and the RMS over headings of the
-    heading's standard uncertainty, level sensor at H, Z), ``field_split_nt``.
+    ``axis``, ``in_plane`` (offsets, scale ratio, non-orthogonality, each with its stderr),
+    ``heading_error_deg`` and ``_rms_deg``, ``field_split_nt`` per sensor, and the
+    ``determined`` / ``undetermined`` names.
     """
     r = pr.result
     where = {(s, lab, nm): i for i, (s, lab, nm, _) in enumerate(r.model.param_info())}
@@ -306,8 +260,7 @@ def planar_summary(pr):
            'field_split_nt': {}, 'determined': list(pr.determined),
            'undetermined': list(pr.undetermined)}
     for j in range(1, r.model.n_sensors + 1):
-        k = pr.axis_index[j - 1]
-        plane = [a for a in range(3) if a != k]
+        k, plane = plane_axes(pr.axis[j - 1])
 
         def index(label, name, j=j):
             return where.get((j, label, name))
@@ -342,13 +295,7 @@ def planar_summary(pr):
 
 
 def effective_offset(result, j, axis, axis_index, z_nt):
-    """
-    ((2,) nT, (2,) nT sd): the centre of the circle a level turn draws in the plane.
-
-    The in-plane readings of sensor j turning level in a vertical field ``z_nt`` (along
-    ``axis``) are ``A_pp B_p + A_pn Z + o_p``: a level turn determines their centre
-    ``A_pn Z + o_p``; its sd from the covariance (central differences).
-    """
+    """((2,) nT, (2,) nT sd): the centre A_pn Z + o_p of a level turn's in-plane circle."""
     model, p = result.model, result.params
     plane = [a for a in range(3) if a != axis_index]
     ctx = result.contexts[j - 1].subset(np.zeros(1, int))

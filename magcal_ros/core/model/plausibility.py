@@ -13,17 +13,14 @@
 # limitations under the License.
 
 """
-Fitted parameters no real sensor has, explained in words (issue 18, item 4).
+Fitted parameters no real sensor has, explained in words.
 
-A working magnetometer has scale factors near +1, axes perpendicular to within a degree or
-so, is mounted within a few degrees of its drawing (paper 004, Table 1) and reads an offset
-within its readings.  :func:`axis_maps` finds the signed permutation M (reading = M x the
-sensor's axes) of a mirrored or turned sensor frame (det A_j < 0, an axis wired reversed,
-two channels exchanged), which the calibration records as ``axes(...)@j``
-(:class:`~magcal_ros.core.effects.AxisMap`; :func:`mounting_notes`, Notes of kind
-``mounting``); :func:`parameter_notes` names a scale near a power of ten (a unit) or far
-from one (a gain), an angle beyond :data:`ANGLE_WARN_DEG` and an offset beyond every
-reading (Notes of kind ``parameters``).
+:func:`axis_maps` finds the signed permutation M (reading = M x the sensor's axes) of a
+mirrored or turned sensor frame, recorded as ``axes(...)@j`` (:func:`mounting_notes`, Notes
+of kind ``mounting``); :func:`parameter_notes` names a scale near a power of ten or far from
+one, an angle beyond :data:`ANGLE_WARN_DEG` and an offset beyond every reading (kind
+``parameters``); a real sensor's are near 1, within degrees (paper 004, Table 1), within its
+readings.
 """
 from magcal_ros.core import effects as fx
 from magcal_ros.core.model.notes import Note
@@ -53,12 +50,7 @@ UNIT_WORDS = {
 
 
 def nearest_axis_map(a):
-    """
-    Signed permutation M (3, 3) with M^T a nearest a positive diagonal, ``a`` (3, 3).
-
-    M[i, k] = sign(a[i, k]) on the assignment of reading axes i to sensor axes k that
-    maximises sum |a[i, k]| (``scipy.optimize.linear_sum_assignment``).
-    """
+    """Signed permutation M (3, 3) maximising sum |a[i, k]| (linear_sum_assignment), a (3, 3)."""
     from scipy.optimize import linear_sum_assignment
     a = np.asarray(a, float)
     rows, cols = linear_sum_assignment(-np.abs(a))
@@ -68,12 +60,7 @@ def nearest_axis_map(a):
 
 
 def axis_maps(model, params):
-    """
-    {sensor j: M (3, 3)} of the sensors whose fitted map needs an axis map (M != I).
-
-    Composed with a map the model already has.  On sensor 1 (upper-triangular map) only
-    sign changes are representable; a permutation is left to the other sensors.
-    """
+    """{sensor j: M (3, 3)} of the sensors that need an axis map (sensor 1: sign changes only)."""
     out = {}
     for j in range(1, model.n_sensors + 1):
         old = model.axis_map(j)
@@ -126,9 +113,8 @@ def mounting_notes(maps, before, after, n_sensors):
     """
     Name each axis map found in a Note of kind ``mounting``.
 
-    ``maps`` {sensor j: M (3, 3)} of :func:`axis_maps`; ``before``, ``after`` {sensor j:
-    (scales (3,), largest angle deg)} of the fit without and with them; ``n_sensors`` (a
-    map shared by all of sensors 2..S points at sensor 1).
+    ``maps`` of :func:`axis_maps`; ``before``, ``after`` {j: (scales (3,), largest angle
+    deg)} without and with them; ``n_sensors`` (a map shared by sensors 2..S is sensor 1's).
     """
     out = []
     shared = (n_sensors >= 3 and sorted(maps) == list(range(2, n_sensors + 1))
@@ -166,12 +152,7 @@ def linear_summary(model, params):
 
 
 def fitted_scales_angles(model, params):
-    """
-    {sensor j: (scales (3,), largest angle deg)} as the fit's parameters state them.
-
-    The scale effect's kx, ky, kz and the largest |angle| (wrapped to +-180 deg); else from
-    the decomposition of A_j (soft iron).
-    """
+    """{sensor j: (scales (3,), largest |angle| deg)} as the parameters (else A_j) state them."""
     lin = linear_summary(model, params)
     out = {}
     for j in range(1, model.n_sensors + 1):
@@ -188,21 +169,12 @@ def fitted_scales_angles(model, params):
 
 
 def _unit_decade(k):
-    if k <= 0:
-        return None
-    n = int(np.round(np.log10(k)))
-    if n != 0 and abs(np.log10(k) - n) < UNIT_DECADES:
-        return n
-    return None
+    n = int(np.round(np.log10(k))) if k > 0 else 0
+    return n if n != 0 and abs(np.log10(k) - n) < UNIT_DECADES else None
 
 
 def parameter_notes(model, params, raw, field_nt):
-    """
-    Name the fitted values no real sensor has, in Notes of kind ``parameters``.
-
-    ``model`` (with its axis maps) and its (P,) ``params``; ``raw`` (S, N, 3) readings, nT;
-    ``field_nt`` the reference magnitude the scales are relative to, nT.
-    """
+    """Name values no real sensor has (Notes ``parameters``): raw (S, N, 3), field_nt nT."""
     from magcal_ros.core.model.calibration import Calibration
     cal = Calibration(model, params)
     lin = linear_summary(model, params)

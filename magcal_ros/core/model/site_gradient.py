@@ -15,8 +15,8 @@
 """
 The site gradient: its Cramer-Rao bounds with and without attitude, the fit without attitude.
 
-The effect itself is :class:`magcal_ros.core.effects.SiteGradient` (docs/site_gradient.md
-has the physics and the identifiability analysis).  Units: nT, nT/m, m, rad.
+The effect is :class:`magcal_ros.core.effects.SiteGradient` (docs/site_gradient.md).  Units:
+nT, nT/m, m, rad.
 """
 from magcal_ros.core.effects.base import rot_z
 from magcal_ros.core.geometry.tensor import symmetric_traceless
@@ -52,35 +52,21 @@ def _null_dimension(jac, rtol=1e-12):
     return int(np.sum(w <= rtol * w.max()))
 
 
-def _skew(v):
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
-def crb_covariance(data, model, params, field_nt, sigma_nt, case='attitude', positions=None,
-                   fix_gyz=False):
+def crb_covariance(data, model, params, field_nt, sigma_nt, case='attitude', fix_gyz=False):
     """
     Cramer-Rao bound of the calibration (and site gradient) with or without attitude.
 
-    The Fisher information of the joint ML problem at ``params`` (the truth), with the
-    per-epoch nuisances of each case eliminated (variable projection, as in the fit):
+    The Fisher information at ``params`` with each case's per-epoch nuisances projected out:
+    ``'attitude'`` B_k on the sphere |B| = F; ``'heading'`` also the rotation psi_k about the
+    field (G_w then known up to that rotation, the gauge); ``'epoch_gradient'`` no attitude,
+    a body-frame gradient per epoch (paper 004's cross, ``model`` without ``site_gradient``).
 
-    - ``'attitude'``: attitude known; nuisance: B_k on the sphere |B| = F (2 per epoch);
-    - ``'heading'``: attitude known up to the rotation psi_k about the field (3 per epoch);
-      G_w is then determined up to a rotation about the field (the gauge), its covariance
-      given on the 4 gauge-free directions; the data carry the true attitude;
-    - ``'epoch_gradient'``: no attitude; the body-frame gradient of every epoch is a
-      nuisance (5 per epoch, plus B_k); ``model`` has no ``site_gradient``.
-
-    ``data`` (S, N, 3) nT readings (with the attitude for 'attitude' and 'heading'),
-    ``model`` joint, ``params`` (P,) the point of evaluation, ``field_nt`` nT at the centre
-    (scalar or (N,)), ``sigma_nt`` per-axis noise sd, nT (scalar or (S,)); ``positions``
-    (S, 3) m for 'epoch_gradient' (default paper 004's 0.5 m cross); ``fix_gyz``: the
-    'heading' gauge fixed by gyz = 0 (:func:`fit_heading_unknown`'s frame).
-
-    Returns a dict: ``covariance`` (P, P) in the parameters' units squared, inf where
-    undetermined (for 'heading': the gradient block); ``gradient_covariance`` (5, 5)
-    (nT/m)^2 on the gauge-free directions ('heading') or None; ``gauge_direction`` (5,) or
-    None; ``undetermined_directions`` (count; 'epoch_gradient').
+    ``data`` (S, N, 3) nT readings (with the attitude, but for 'epoch_gradient'); ``model``
+    joint; ``params`` (P,); ``field_nt`` nT, scalar or (N,); ``sigma_nt`` nT, scalar or
+    (S,); ``fix_gyz``: the 'heading' gauge fixed by gyz = 0.  Returns a dict: ``covariance``
+    (P, P), inf where undetermined; ``gradient_covariance`` (5, 5) (nT/m)^2 on the
+    gauge-free directions ('heading') or None; ``gauge_direction`` (5,) or None;
+    ``undetermined_directions`` (count; 'epoch_gradient').
     """
     if case not in CRB_CASES:
         raise ValueError(f'unknown case {case!r}; use one of {CRB_CASES}')
@@ -109,7 +95,7 @@ def crb_covariance(data, model, params, field_nt, sigma_nt, case='attitude', pos
         rot = contexts[0].attitude
         n_w = np.einsum('nij,nj->ni', rot, b).mean(axis=0)
         n_w /= np.linalg.norm(n_w)
-        nx = _skew(n_w)
+        nx = np.array([[0.0, -n_w[2], n_w[1]], [n_w[2], 0.0, -n_w[0]], [-n_w[1], n_w[0], 0.0]])
         g_w = eff.tensor(p[sl])
         d_g = g_w @ nx - nx @ g_w                   # d(R^T G R)/d psi = R^T (G N - N G) R
         cols = [-(np.einsum('nji,jk,nkl,l->ni', rot, d_g, rot, eff.position(j)) @ mats[j].T)
@@ -120,7 +106,7 @@ def crb_covariance(data, model, params, field_nt, sigma_nt, case='attitude', pos
         if model.array_effects:
             raise ValueError("case 'epoch_gradient' takes a model without site_gradient")
         from magcal_ros.core.geometry.tensor import cross_positions
-        pos = cross_positions(0.5) if positions is None else np.asarray(positions, float)
+        pos = cross_positions(0.5)
         cols = []
         for j in grp:
             c = np.stack([mats[j] @ (symmetric_traceless(e) @ pos[j - 1]) for e in np.eye(5)],
@@ -166,12 +152,7 @@ def _align_to_z(u):
 
 
 def _best_heading(shift, r_a, g_w, positions, psi0=None):
-    """
-    Per-epoch heading psi_k (N,) rad minimising sum_j |shift_j - R^T G R r_j|^2.
-
-    R = Rz(psi) R_a; ``shift`` (S, N, 3) nT the corrected fields minus their mean over the
-    sensors.  Grid of 5 deg (or ``psi0``), then Newton steps on the 1-D cost.
-    """
+    """Per-epoch psi_k (N,) rad minimising sum_j |shift_j - R^T G R r_j|^2, R = Rz(psi) R_a."""
     def cost(psi):
         rot = rot_z(psi) @ r_a
         pred = np.einsum('nji,jk,nkl,sl->sni', rot, g_w, rot, positions)
@@ -199,19 +180,14 @@ def fit_heading_unknown(data, model='base,site_gradient', field_nt=None, n_iter=
     """
     Calibrate the cross in a site gradient without attitude (heading per epoch unknown).
 
-    The analysis of docs/site_gradient.md (case 'heading'): R_k = Rz(psi_k) R_a(u_k) in a
-    field-aligned world frame (z along the field, u_k the field direction in the body
-    frame).  Block-coordinate maximum likelihood from the uniform-field fit: alternately
-    (a) every psi_k with the calibration fixed (1-D, from the sensors' differences), and
-    (b) the calibration and G_w refitted with the attitudes so built.  The gauge (the
-    rotation of G_w about the field) is fixed by gyz = 0.  Standard uncertainties come from
-    the Cramer-Rao bound of the heading case (:func:`crb_covariance`, psi_k profiled).
+    docs/site_gradient.md, case 'heading': R_k = Rz(psi_k) R_a(u_k) in a field-aligned frame;
+    alternately every psi_k with the calibration fixed and the calibration and G_w refitted,
+    the gauge fixed by gyz = 0, stderr from :func:`crb_covariance`'s heading case.
 
-    ``data`` (4, N, 3) nT readings of the cross (an attitude is not used); ``model`` with
-    ``site_gradient``; ``field_nt`` nT at the centre; ``n_iter`` most alternations (fewer
-    when no parameter moves by 1 % of its standard uncertainty).  Returns a FitResult with
-    the gradient in the field-aligned frame (:data:`FIELD_ALIGNED`), ``stderr`` from the
-    heading-case bound and ``contexts`` with the estimated attitudes.
+    ``data`` (4, N, 3) nT (an attitude is not used); ``model`` with ``site_gradient``;
+    ``field_nt`` nT; ``n_iter`` most alternations (fewer once no parameter moves by 1 % of
+    its stderr).  Returns a FitResult in the :data:`FIELD_ALIGNED` frame, ``contexts``
+    with the estimated attitudes.
     """
     from dataclasses import replace
     from magcal_ros.core import model as mdl
@@ -239,8 +215,7 @@ def fit_heading_unknown(data, model='base,site_gradient', field_nt=None, n_iter=
         r_a = _align_to_z(centre / np.linalg.norm(centre, axis=1, keepdims=True))
         shift = c - centre[None]
         if it == 0:
-            # start: psi_k from the body tensor of the uniform-field calibration, the phase
-            # of (Gxz + i Gyz) in the aligned frame (e^{-i psi} times that of G_w)
+            # start: psi_k the phase of (Gxz + i Gyz) of the body tensor in the aligned frame
             from magcal_ros.core.geometry.tensor import tensor_lstsq
             g_b, _ = tensor_lstsq(c, positions)
             m_k = np.einsum('nij,njk,nlk->nil', r_a, g_b, r_a)
@@ -268,8 +243,7 @@ def fit_heading_unknown(data, model='base,site_gradient', field_nt=None, n_iter=
     p[sl] = [g_w[0, 0], g_w[0, 1], g_w[0, 2], g_w[1, 1], 0.0]
     att = Rotation.from_matrix(rot_z(psi - phi) @ r_a).as_quat(scalar_first=True)
     fixed = replace(bare, attitude=att)
-    # the fit's noise estimate counted 3 S - 2 residual degrees of freedom per epoch; the
-    # heading psi_k takes one more
+    # the heading psi_k takes one more of the 3 S - 2 degrees of freedom per epoch
     s = data.n_sensors
     sigma = res.sigma_nt * np.sqrt((3 * s - 2) / (3 * s - 3))
     out = crb_covariance(fixed, model, p, data.reference_magnitude(field_nt), sigma,
@@ -287,7 +261,6 @@ def fit_heading_unknown(data, model='base,site_gradient', field_nt=None, n_iter=
         'determined without attitude; uncertainties from the Cramer-Rao bound with the '
         'headings unknown',)
     ident = dict(res.identifiability, site_gradient_frame=FIELD_ALIGNED)
-    # the residuals of the result are computed from these parameters and attitudes when read
     return replace(res, params=p, covariance=cov, correlation=corr, stderr=stderr,
                    warnings=warnings, sigma_nt=sigma, identifiability=ident,
                    contexts=[fixed.context(j) for j in range(1, data.n_sensors + 1)])

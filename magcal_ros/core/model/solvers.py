@@ -28,13 +28,7 @@ MAD_TO_SD = 1.482602218505602
 
 
 def mad_sd(x):
-    """
-    Gaussian-consistent sd from the median absolute deviation (unit of x).
-
-    1.4826 MAD of the values of ``x`` (any shape, flattened; nan when empty):
-    scipy.stats.median_abs_deviation(scale='normal'), without importing scipy.stats (slow
-    to import; BENCHMARKS.md, "Start-up").
-    """
+    """1.4826 MAD of ``x`` (any shape; nan when empty), as scipy.stats' (slow to import) gives."""
     x = np.asarray(x, float).ravel()
     if not x.size:
         return float('nan')
@@ -43,12 +37,7 @@ def mad_sd(x):
 
 @dataclass(frozen=True)
 class Solution:
-    """
-    Outcome of :func:`levenberg_marquardt` (the fields of scipy's OptimizeResult used here).
-
-    ``x`` (P,) the solution; ``status`` 0: evaluation limit, 2: cost decrease below ftol
-    (or no further decrease), 3: step below xtol; ``nfev`` residual evaluations.
-    """
+    """Outcome of :func:`levenberg_marquardt`: x (P,); status 0 nfev limit, 2 ftol, 3 xtol."""
 
     x: np.ndarray
     success: bool
@@ -60,19 +49,13 @@ class Solution:
 def levenberg_marquardt(fun, jac, x0, robust=False, f_scale=3.0, max_nfev=200, xtol=1e-10,
                         ftol=1e-12, normal=None):
     """
-    Minimise sum rho(r_i^2) by Levenberg-Marquardt on the normal equations.
+    Minimise sum rho(r_i^2) by Levenberg-Marquardt with Marquardt's (1963) diagonal scaling.
 
-    rho is the identity or the soft-L1 loss 2 f^2 (sqrt(1 + r^2/f^2) - 1) (iteratively
-    reweighted least squares); Marquardt's diagonal scaling makes the damping invariant to
-    parameter units (Marquardt 1963).
-
-    ``fun``: x (P,) -> residuals (M,), normalised by the noise sd; ``jac``: x -> (M, P)
-    Jacobian (None only with ``normal`` and not ``robust``); ``normal``: x -> (J^T J (P, P),
-    J^T r (P,)), used instead of ``jac`` for the squares loss; ``x0`` (P,) start;
-    ``robust``: the soft-L1 loss of scale ``f_scale`` (the residuals' unit); ``max_nfev``
-    most residual evaluations; ``xtol``, ``ftol`` the relative step and cost decrease that
-    stop the iteration (as does a rejected step whose actual and predicted changes of the
-    cost are both below ftol).  Returns a :class:`Solution`.
+    rho the identity or the soft-L1 loss 2 f^2 (sqrt(1 + r^2/f^2) - 1) (IRLS).  ``fun``: x
+    (P,) -> normalised residuals (M,); ``jac``: x -> (M, P) (None only with ``normal`` and
+    not ``robust``); ``normal``: x -> (J^T J, J^T r), for the squares loss; ``x0`` (P,);
+    ``f_scale`` the loss's scale; ``xtol``, ``ftol`` the relative step and cost decrease
+    that stop.  Returns a :class:`Solution`.
     """
     def cost(r):
         if robust:
@@ -112,8 +95,7 @@ def levenberg_marquardt(fun, jac, x0, robust=False, f_scale=3.0, max_nfev=200, x
             c_new = cost(r_new)
             if c_new <= c:
                 break
-            # at the minimum a step changes the cost by rounding only: both the predicted
-            # and the actual change below ftol is convergence (MINPACK's ftol test, More 1978)
+            # predicted and actual change both below ftol: converged (MINPACK's test, More 1978)
             predicted = -float(g @ step) - 0.5 * float(step @ a @ step)
             if max(predicted, c_new - c) <= ftol * max(c, 1e-300):
                 return Solution(x, True, 2, 'cost decrease below ftol', nfev)
@@ -121,7 +103,6 @@ def levenberg_marquardt(fun, jac, x0, robust=False, f_scale=3.0, max_nfev=200, x
             if lam > 1e12:
                 return Solution(x, True, 2, 'no further decrease of the cost', nfev)
             if nfev >= max_nfev:
-                # out of evaluations while still looking for a downhill step: not converged
                 return Solution(x, False, 0, f'maximum number of evaluations ({max_nfev}) '
                                 'reached', nfev)
         dc = c - c_new
@@ -144,16 +125,11 @@ def covariance_from_jacobian(jac):
 
 def covariance_from_normal(a):
     """
-    Return the (P, P) inverse of J^T J with column scaling; inf for undetermined directions.
+    Return the (P, P) inverse of J^T J ``a`` (P, P); inf for undetermined directions.
 
-    The columns are scaled to unit norm before the eigendecomposition, so the rule does not
-    depend on the parameters' units.  A parameter with a weight above 1e-6 in an
-    eigenvector whose eigenvalue is below 1e-14 of the largest gets an infinite standard
-    uncertainty (a pseudo-inverse would give it zero).
-
-    ``a`` (P, P) J^T J of residuals normalised by the noise sd, in 1 / (unit of parameter
-    i x unit of parameter j); returns the (P, P) covariance in the parameters' units
-    squared.
+    Column-scaled (unit-free): a parameter weighing above 1e-6 in an eigenvector whose
+    eigenvalue is below 1e-14 of the largest gets an infinite uncertainty (not a
+    pseudo-inverse's zero).
     """
     d = np.sqrt(np.clip(np.diag(a), 0.0, None))
     d[d == 0] = 1.0
@@ -174,11 +150,9 @@ def resolves_covariance(a, rcond=1e-8):
     """
     Return True when J^T J formed block by block, ``a`` (P, P), determines the covariance.
 
-    :meth:`~magcal_ros.core.model.engine.ProfiledProblem.normal_equations` subtracts the
-    field directions' part from D^T D, so its rounding in the column-scaled matrix is about
-    eps |D_i| |D_k| / (|J_i| |J_k|), up to ~1e-13.  A smallest scaled eigenvalue above
-    ``rcond`` of the largest carries a relative error below 1e-5; below it the caller forms
-    the covariance from the projected Jacobian (:func:`covariance_from_jacobian`).
+    ``ProfiledProblem.normal_equations`` rounds to ~1e-13 of the column-scaled matrix: a
+    smallest scaled eigenvalue above ``rcond`` of the largest keeps the error below 1e-5;
+    else the caller uses :func:`covariance_from_jacobian`.
     """
     d = np.sqrt(np.clip(np.diag(a), 0.0, None))
     if np.any(d == 0):

@@ -15,12 +15,9 @@
 """
 Composable calibration models of a magnetometer array: :class:`Model`.
 
-A :class:`Model` is a list of effects per sensor (:mod:`magcal_ros.core.effects`) with a
-flat parameter vector, built from a formula (``Model.from_spec('base,temperature@2', 4)``,
-docs/design.md §2).  It predicts the raw reading of each sensor from the true field
-(:meth:`Model.forward`) and inverts that prediction (:meth:`Model.correct`).  Sensors tied
-by a frame rotation (misalignment) or an array-wide effect share one field per epoch
-(:attr:`Model.joint`); otherwise each is fitted alone.
+A list of effects per sensor (:mod:`magcal_ros.core.effects`) with a flat parameter vector,
+built from a formula (docs/design.md §2); it predicts each raw reading from the true field
+(:meth:`Model.forward`) and inverts that (:meth:`Model.correct`).
 """
 import hashlib
 
@@ -34,15 +31,13 @@ class Model:
     """
     Effects per sensor, with a flat parameter vector.
 
-    ``effects[j-1]`` are the effects of sensor j; ``array_effects`` have one parameter set
-    for the whole array (``scope = 'array'``), after the sensors'; ``drops`` the ``drop``
-    terms, (t0, t1) s or (t0, t1, sensors), ``sensors`` 1-based or None (every sensor).
+    ``effects[j-1]`` sensor j's; ``array_effects`` one parameter set for the whole array,
+    after the sensors'; ``drops`` (t0, t1) s or (t0, t1, sensors 1-based or None).
     """
 
     def __init__(self, effects, array_effects=(), drops=()):
         self.effects = [list(e) for e in effects]
         self.array_effects = list(array_effects)
-        #: (t0, t1, sensors) the fit leaves out, as the argument ``drops``
         self.drops = []
         for w in drops:
             who = tuple(int(j) for j in w[2]) if len(w) > 2 and w[2] is not None else None
@@ -107,13 +102,7 @@ class Model:
 
     @classmethod
     def from_spec(cls, spec, n_sensors):
-        """
-        Build a model from a formula (:func:`magcal_ros.core.effects.formula.parse`).
-
-        ``spec`` is formula text (``'base + offset(s(t, k=6))@2'``), a list of terms or a
-        Formula (docs/formulas.md).  Effects with ``Effect.on_sensor1`` False are dropped
-        on sensor 1; linear effects are multiplied in the order of ``Effect.linear_order``.
-        """
+        """Build a model from formula text, terms or a Formula (docs/formulas.md), S sensors."""
         from magcal_ros.core.effects.formula import composed_effect, parse
         formula = parse(spec)
         per_sensor = [[] for _ in range(n_sensors)]
@@ -136,7 +125,6 @@ class Model:
             elif term.scope == 'array':
                 eff = fx.make_effect(term.core, 0)
                 if n_sensors < 3 and hasattr(eff, 'set_positions'):
-                    # a gradient across the array (the attitude's observation is not one)
                     raise ValueError(f'{term.core} needs an array of at least three sensors')
                 if term.core not in [e.name for e in array_effects]:
                     array_effects.append(eff)
@@ -193,12 +181,7 @@ class Model:
         return new
 
     def take_refs(self, other):
-        """
-        Give this model's effects the reference values of the same effects in ``other``.
-
-        Per sensor and for the array, matched by label (a driver centred on the same
-        calibration mean); references ``other`` lacks are left to :meth:`prepare`.
-        """
+        """Give this model's effects the references of ``other``'s effects of the same label."""
         for row_s, row_d in zip(other.effects, self.effects):
             _copy_refs(row_s, row_d)
         _copy_refs(other.array_effects, self.array_effects)
@@ -256,28 +239,21 @@ class Model:
                 out[i] = (who, eff.label, nm, un)
         return out
 
+    def _in_contexts(self, contexts):
+        """[(effect, its context, its name)]: the sensors' effects, the array's (sensor 1's)."""
+        out = [(e, c, f'{e.label}@{e.sensor}') for row, c in zip(self.effects, contexts)
+               for e in row]
+        return out + [(e, contexts[0], e.label) for e in self.array_effects] if contexts else out
+
     def prepare(self, contexts):
         """Let effects compute their reference values (mean temperature, t0, ...)."""
-        for row, ctx in zip(self.effects, contexts):
-            for eff in row:
-                eff.prepare(ctx)
-        for eff in self.array_effects:
-            if contexts:
-                eff.prepare(contexts[0])
+        for eff, ctx, _ in self._in_contexts(contexts):
+            eff.prepare(ctx)
 
     def check(self, contexts):
         """Reasons why effects cannot be excited by the data (empty list if all fine)."""
-        out = []
-        for row, ctx in zip(self.effects, contexts):
-            for eff in row:
-                why = eff.check(ctx)
-                if why:
-                    out.append(f'{eff.label}@{eff.sensor}: {why}')
-        for eff in self.array_effects:
-            why = eff.check(contexts[0]) if contexts else None
-            if why:
-                out.append(f'{eff.label}: {why}')
-        return out
+        return [f'{name}: {why}' for eff, ctx, name in self._in_contexts(contexts)
+                if (why := eff.check(ctx))]
 
     def matrix(self, j, p):
         """(3, 3) linear map A_j of sensor j for the global parameter vector p."""
@@ -296,11 +272,7 @@ class Model:
         return out
 
     def array_shift(self, j, p, ctx, b=None):
-        """
-        (N, 3) nT field at sensor j minus the centre field ``b`` (N, 3) nT (array effects).
-
-        Effects that read the field (``reads_field``) contribute only when ``b`` is given.
-        """
+        """(N, 3) nT field at sensor j minus the centre field ``b`` (N, 3) nT, when given."""
         out = np.zeros((len(ctx.t), 3))
         for eff, sl in zip(self.array_effects, self.array_slices):
             if not getattr(eff, 'reads_field', False):
@@ -310,11 +282,7 @@ class Model:
         return out
 
     def forward(self, j, p, b, ctx, a=None, add=None):
-        """
-        Raw reading of sensor j (N, 3) nT for true field b (N, 3) nT at the array centre.
-
-        ``a`` (3, 3) A_j and ``add`` (N, 3) nT :meth:`fixed_additive` at p, when known.
-        """
+        """Raw reading (N, 3) nT of sensor j in field b (N, 3) nT; a, add: A_j, fixed_additive."""
         if self.array_effects:
             b = b + self.array_shift(j, p, ctx, b)
         lin = b @ (self.matrix(j, p) if a is None else a).T
@@ -330,11 +298,9 @@ class Model:
         """
         Return (diff, h): forward differences of sensor j's reading in the parameters ``cols``.
 
-        ``diff`` (len(cols), N, 3) nT is forward(p + h_i e_i) - forward(p) at the field ``b``
-        (N, 3) nT, ``h`` the steps 1e-6 max(1, |p_i|); ``base`` (N, 3) nT is forward(p) when
-        the caller has it.  An additive effect's parameter changes only its contribution, a
-        linear one only A_j (and the effects that read lin): those differences are
-        evaluated alone; the array's parameters re-evaluate :meth:`forward`.
+        ``diff`` (len(cols), N, 3) nT forward(p + h_i e_i) - forward(p) at the field ``b``
+        (N, 3) nT, ``h`` 1e-6 max(1, |p_i|); ``base`` (N, 3) nT forward(p) if known.  Only
+        what a parameter changes is evaluated again.
         """
         h = np.array([1e-6 * max(1.0, abs(p[i])) for i in cols])
         owner, linear = {}, set()
@@ -373,12 +339,7 @@ class Model:
         return diff, h
 
     def correct(self, j, p, raw, ctx, n_iter=4, a_inv=None):
-        """
-        Invert :meth:`forward`: corrected field (N, 3) nT in the array frame.
-
-        Additive effects that read the field are inverted by fixed-point iteration (rate
-        |effect/field|); ``a_inv`` (3, 3) is A_j^-1 when the caller has it.
-        """
+        """Invert :meth:`forward` (by fixed point where it reads lin): (N, 3) nT; a_inv: A_j^-1."""
         raw = np.asarray(raw, float)
         if a_inv is None:
             a_inv = np.linalg.inv(self.matrix(j, p))
@@ -399,11 +360,9 @@ class Model:
         """
         Return p with sensor j's linear and offset parameters set from A (3, 3) and o (3,) nT.
 
-        A = U Q (:func:`~magcal_ros.core.effects.decompose_linear`, paper 004 eq. 2-3); each
-        effect takes its share (``Effect.params_from_linear``), the rest is dropped.
+        M^T A = U Q (M the axis map; paper 004 eq. 2-3): each effect takes its share.
         """
         p = self.default_params() if p is None else p.copy()
-        # a fixed axis map M (axes(...)) is the left-most factor: the rest is M^T A
         a = self.axis_map(j).T @ np.asarray(a, float)
         parts = fx.decompose_linear(a, o)
         for eff, sl in zip(self.effects[j - 1], self.slices[j - 1]):

@@ -12,8 +12,4 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""
-The papers' closed forms.
-
-Sine fit (paper 000), reference vector (paper 002), ellipsoid and Procrustes (paper 004).
-"""
+"""The papers' closed forms: sine fit (000), reference vector (002), ellipsoid (004)."""

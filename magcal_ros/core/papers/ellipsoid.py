@@ -12,42 +12,27 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""
-Paper 004 section 3: algebraic ellipsoid fit + Cholesky per sensor, and Procrustes alignment.
-
-These closed-form solutions are the starting values of the maximum-likelihood refinement in
-:mod:`magcal_ros.core.model`.
-"""
+"""Paper 004 section 3: ellipsoid fit + Cholesky per sensor, Procrustes alignment (the start)."""
 from dataclasses import dataclass
 
 from magcal_ros.core.geometry.turn import circle_centre
 import numpy as np
 
-#: the fitted quadric counts as an ellipsoid when its smallest eigenvalue exceeds this many
-#: standard deviations of its noise uncertainty (one-sided, false-acceptance rate ~ 1e-4)
+#: the quadric is an ellipsoid when its smallest eigenvalue exceeds this many sd of its noise
 DEFINITE_Z = 3.7
-#: readings whose smallest scatter standard deviation is below this fraction of the middle
-#: one lie "near one plane" (0.25 for a ring at SNR 10) ...
+#: readings whose smallest scatter sd is below this fraction of the middle one lie near a plane
 PLANE_SD_RATIO = 0.3
-#: ... and whose in-plane radius varies less than this (coefficient of variation about the
-#: fitted circle) form a ring; a filled cap gives about 0.35
+#: ... and whose radius varies less than this (coefficient of variation) form a ring
 RING_CV = 0.2
 
 
-def _fmt(v):
+def format_axis(v):
+    """Return a unit vector (3,) as text, ``(+0.12, -0.99, +0.00)``."""
     return '(' + ', '.join(f'{0.0 if abs(x) < 0.005 else x:+.2f}' for x in v) + ')'
 
 
 def reading_plane(raw):
-    """
-    Return the normal of the plane the readings lie near, or None when they spread in 3-D.
-
-    ``raw`` (N, 3) nT, sensor frame.  The (3,) unit normal (largest component positive) when
-    the smallest standard deviation of the readings about their mean is below
-    :data:`PLANE_SD_RATIO` times the middle one and they form a ring in that plane
-    (:func:`ring_spread` below :data:`RING_CV`, not a filled cap): the sensor turned about
-    that axis only.
-    """
+    """Return the (3,) unit normal of the ring raw (N, 3) nT form (turned about it), or None."""
     m = np.asarray(raw, float)
     w, vec = np.linalg.eigh(np.cov((m - m.mean(axis=0)).T))
     w = np.clip(w, 0.0, None)
@@ -63,14 +48,7 @@ def _quadric_matrix(v):
 
 
 def ring_spread(u, normal):
-    """
-    Measure how far the points ``u`` are from a ring about ``normal``.
-
-    Coefficient of variation of the radius of the points ``u`` (N, 3) (directions or
-    readings) about the circle fitted to them in the plane normal to ``normal``: about 0 for
-    a ring (a rotation about one axis, however unevenly sampled), about 0.35 for a filled
-    cap.
-    """
+    """Coefficient of variation of u's (N, 3) radius about ``normal`` (3,): 0 ring, 0.35 cap."""
     e1 = np.cross(normal, [1.0, 0.0, 0.0])
     if np.linalg.norm(e1) < 0.1:
         e1 = np.cross(normal, [0.0, 1.0, 0.0])
@@ -87,7 +65,7 @@ def _undetermined_message(raw, why):
         return (f'the ellipsoid is not determined by these data ({why}): the readings do not '
                 'cover enough attitudes; rotate the sensor about more axes')
     return (f'the ellipsoid is not determined by these data ({why}): the readings lie near '
-            f'one plane with normal {_fmt(n)} in the sensor frame, i.e. the sensor was '
+            f'one plane with normal {format_axis(n)} in the sensor frame, i.e. the sensor was '
             'rotated about that axis only; rotate it about another axis too (tilt that axis '
             'by 45-90 deg and rotate again)')
 
@@ -96,17 +74,11 @@ def quadric_definiteness(sv, vt, a_mat, n_rows):
     """
     Smallest eigenvalue of the fitted quadric's matrix and its noise standard deviation.
 
-    The algebraic fit's coefficient vector ``v`` is the last right singular vector of the
-    design matrix; to first order in the noise its error is
-    ``sum_k vt[k] (vt[k] . e) sv[-1] / sv[k]`` over the other singular directions, with the
-    residual variance estimated from ``sv[-1]^2 / (N - 9)`` (the classical perturbation of
-    a total-least-squares null vector).  The eigenvalue lam = e^T A e (e its eigenvector)
-    is linear in ``v``, so its variance is ``g^T Cov(v) g`` with ``g = d lam / d v``.
-
-    ``sv`` (10,) singular values of the (scaled) design matrix, descending; ``vt`` (10, 10)
-    its right singular vectors (rows); ``a_mat`` (3, 3) the quadric matrix of eq. 11 for the
-    unit coefficient vector, its mean eigenvalue positive; ``n_rows`` the number of readings.
-    Returns (smallest eigenvalue, its standard deviation), dimensionless, scaled frame.
+    First-order perturbation of the null vector vt[-1]: its error is sum_k vt[k] (vt[k] . e)
+    sv[-1] / sv[k], noise variance sv[-1]^2 / (N - 9); lam = e^T A e is linear in it.
+    ``sv`` (10,) singular values, descending, ``vt`` (10, 10) right singular vectors of the
+    scaled design; ``a_mat`` (3, 3) eq. 11's matrix, mean eigenvalue positive; ``n_rows``
+    readings.  Returns (smallest eigenvalue, its sd), dimensionless.
     """
     lam, vec = np.linalg.eigh(a_mat)
     e = vec[:, 0]
@@ -122,9 +94,8 @@ class EllipsoidFit:
     """
     Result of :func:`fit_ellipsoid`.
 
-    ``c_inv`` (3, 3) upper-triangular correction matrix C^-1, dimensionless (paper 004 eq. 5);
-    ``b`` (3,) offset, nT (eq. 12); ``coeffs`` (10,) the unit-norm coefficients (a, b, c, f,
-    g, h, p, q, r, d) of eq. 8; ``residual_nt`` (N,) |C^-1 (m - b)| - |B|, nT.
+    ``c_inv`` (3, 3) upper triangular C^-1 (paper 004 eq. 5); ``b`` (3,) offset, nT (eq. 12);
+    ``coeffs`` (10,) eq. 8's unit-norm (a, ..., d); ``residual_nt`` (N,) |C^-1 (m - b)| - |B|.
     """
 
     c_inv: np.ndarray
@@ -141,12 +112,9 @@ def fit_ellipsoid(raw, field_nt, normalization='svd'):
     """
     Fit the ellipsoid of paper 004 eq. 8 to raw readings and factor it (eq. 11-13, Cholesky).
 
-    ``raw`` (N, 3) nT, N >= 9; ``field_nt`` the uniform field's magnitude |B|, nT (eq. 13);
-    ``normalization`` 'svd' solves the homogeneous system with |coeffs| = 1 (the smallest
-    right singular vector of the centred, scaled design matrix; well conditioned), 'p'
-    divides by the coefficient p as the paper does (eq. 9-10; fails when the x offset is near
-    zero).  Raises ValueError, with the reason, for too few samples or a quadric that is not
-    an ellipsoid (degenerate data, e.g. a single-axis rotation).
+    ``raw`` (N >= 9, 3) nT; ``field_nt`` |B|, nT (eq. 13); ``normalization`` 'svd'
+    (|coeffs| = 1, well conditioned) or 'p' (the paper's eq. 9-10; fails for an x offset
+    near zero).  ValueError, with the reason, for too few samples or no ellipsoid.
     """
     m = np.asarray(raw, float)
     if m.ndim != 2 or m.shape[1] != 3:
@@ -162,10 +130,8 @@ def fit_ellipsoid(raw, field_nt, normalization='svd'):
                               2 * x, 2 * y, 2 * z, np.ones_like(x)])
     _, sv, vt = np.linalg.svd(design, full_matrices=False)
     if sv[-2] <= 1e-12 * sv[0]:
-        # noise-free degenerate data: a whole family of quadrics passes through the points
         raise ValueError(_undetermined_message(m, 'several quadrics fit these readings exactly'))
-    # determinacy against the noise (not a fixed singular-value ratio): the best quadric
-    # must be an ellipsoid, its smallest eigenvalue positive beyond its own uncertainty
+    # the best quadric's smallest eigenvalue must be positive beyond its noise
     a_svd = _quadric_matrix(vt[-1])
     a_svd = a_svd if np.linalg.eigvalsh(a_svd).mean() >= 0 else -a_svd
     lam, lam_sd = quadric_definiteness(sv, vt, a_svd, len(m))
@@ -203,14 +169,7 @@ def fit_ellipsoid(raw, field_nt, normalization='svd'):
 
 
 def procrustes_rotation(reference, other):
-    """
-    Paper 004 eq. 14: rotation R minimising sum |reference_k - R other_k|^2.
-
-    Solved by SVD of M_1 M_i^T (orthogonal Procrustes, Kabsch), constrained to det R = +1.
-
-    ``reference`` (N, 3) corrected field of sensor 1 and ``other`` (N, 3) of sensor i, nT.
-    Returns the (3, 3) rotation taking sensor i's corrected field into sensor 1's frame.
-    """
+    """Paper 004 eq. 14 (Kabsch): R (3, 3), det +1, minimising sum |reference_k - R other_k|^2."""
     from scipy.spatial.transform import Rotation     # here: scipy.spatial is slow to import
     rot, _ = Rotation.align_vectors(np.asarray(reference, float), np.asarray(other, float))
     return rot.as_matrix()

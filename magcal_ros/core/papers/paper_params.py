@@ -15,19 +15,10 @@
 """
 Conversions between the general per-sensor model and each source paper's parameters.
 
-The package's general per-sensor forward model is ``raw = A @ B + o``, with ``A`` (3, 3)
-dimensionless and ``o`` (3,) in nT, ``B`` the field in the array frame (sensor 1's ideal
-orthogonal frame). Each paper parametrises ``A`` differently:
-
-- paper 004 (eq. 2-3): ``A = S C_NO R``, ``S = diag(kx, ky, kz)``, ``C_NO`` upper triangular
-  (z axis reference), ``R = R1(gamma) R2(beta) R3(alpha)`` the misalignment to sensor 1;
-- paper 000 (eq. 1): ``A`` lower triangular (x axis reference) with angles alpha, beta, gamma
-  and scale factors kx, ky, kz; a general ``A`` is ``L Q`` with ``Q`` orthogonal;
-- paper 002 (eq. 4): ``Hm = K He + Hh``, i.e. ``A = K``, ``o = Hh`` directly.
-
-All angles are in radians, offsets in nT.
+The general model is ``raw = A @ B + o``, ``A`` (3, 3), ``o`` (3,) nT, ``B`` in sensor 1's
+ideal frame: paper 004 (eq. 2-3) ``A = S C_NO R``; paper 000 (eq. 1) ``A = L Q``, L lower
+triangular; paper 002 (eq. 4) ``A = K``, ``o = Hh``.  Angles in rad, offsets in nT.
 """
-
 from dataclasses import dataclass
 
 from magcal_ros.core.effects import (  # noqa: F401  (rot_r*, C_NO re-exported)
@@ -65,22 +56,17 @@ def _vec3(value, name):
     return v
 
 
-# ---- paper 004 -----------------------------------------------------------------------
-
-# R1, R2, R3 of paper 004 eq. 3 and C_NO of eq. 2 live with the model's effects.
-
+# ---- paper 004 (R1, R2, R3 of eq. 3 and C_NO of eq. 2 live with the model's effects) -------
 
 @dataclass(frozen=True, eq=False)
 class Paper004Params:
     """
     Paper 004 single-sensor error model plus misalignment (eq. 2-3).
 
-    ``raw = S C_NO R B + b``, with ``B`` in sensor 1's ideal frame: ``kx, ky, kz`` scale
-    factors (> 0); ``psi, varphi, theta`` non-orthogonality angles, rad (z axis reference;
-    psi: the y axis' tilt in the yz plane, theta: the x axis' elevation out of the x0y0
-    plane, varphi: the azimuth of its projection); ``b`` (3,) offset (zero drift), nT;
-    ``alpha, beta, gamma`` misalignment, rad: sensor i's ideal frame is sensor 1's rotated by
-    alpha about z, then beta about x', then gamma about y'' (zero for sensor 1).
+    ``raw = S C_NO R B + b``: ``kx, ky, kz`` scale factors (> 0); ``psi, varphi, theta``
+    non-orthogonality angles, rad (z reference: psi the y axis' tilt in the yz plane, theta
+    the x axis' elevation, varphi its azimuth); ``b`` (3,) offset, nT; ``alpha, beta,
+    gamma`` misalignment, rad: about z, then x', then y'' (zero for sensor 1).
     """
 
     kx: float
@@ -120,9 +106,8 @@ class Paper004Params:
         """
         Return the paper's correction pair ``(C^-1 (3, 3), R_corr (3, 3))``.
 
-        ``C^-1 = (S C_NO)^-1`` is upper triangular (what the Cholesky factor of paper 004
-        eq. 11-13 estimates); ``R_corr = R^T`` takes the single-sensor-corrected field
-        ``C^-1 (raw - b)`` into sensor 1's frame (what eq. 14 estimates).
+        ``C^-1 = (S C_NO)^-1`` upper triangular (eq. 11-13's Cholesky factor); ``R_corr =
+        R^T`` takes ``C^-1 (raw - b)`` into sensor 1's frame (eq. 14).
         """
         c_inv = scipy.linalg.solve_triangular(self.scale @ self.nonorthogonality, np.eye(3))
         return c_inv, self.rotation.T
@@ -132,15 +117,12 @@ class Paper004Params:
         """
         Decompose a general ``(A, o)`` into paper 004 parameters.
 
-        ``A = U Q`` by RQ decomposition (``scipy.linalg.rq``), signs fixed so that
-        ``diag(U) > 0``; ``S`` = row norms of ``U`` (the rows of ``C_NO`` are unit vectors),
-        ``C_NO = S^-1 U``, ``R = Q``.  ``a`` (3, 3) dimensionless, det > 0; ``o`` (3,) nT.
-        Returns theta, psi, beta in [-pi/2, pi/2], varphi in (-pi/2, pi/2), alpha and gamma in
-        (-pi, pi]; raises ValueError if A is not a finite non-singular (3, 3) matrix or
-        det(A) < 0.
+        ``A = U Q`` (RQ, diag(U) > 0), ``S`` the row norms of ``U``, ``C_NO = S^-1 U``,
+        ``R = Q``.  ``a`` (3, 3), det > 0; ``o`` (3,) nT.  Angles: theta, psi, beta in
+        [-pi/2, pi/2], varphi in (-pi/2, pi/2), alpha, gamma in (-pi, pi].  ValueError for a
+        non-finite, singular or left-handed A.
         """
         a, o = _check_general(a, o)
-        # A = U Q with diag(U) > 0: det(Q) has the sign of det(A)
         _check_proper(a, 'paper 004 (S C_NO R with R a rotation)')
         u, q = rq_positive(a)
         k, psi, varphi, theta = upper_to_scale_nonorth(u)
@@ -149,9 +131,7 @@ class Paper004Params:
                    theta=theta, b=o.copy(), alpha=alpha, beta=beta, gamma=gamma)
 
 
-#: Paper 004 Table 1: error parameters of the four simulated magnetometers
-#: (angles in rad, offsets in nT). Rows: kx, ky, kz, psi, varphi, theta, bx, by, bz,
-#: alpha, beta, gamma; columns: sensors 1..4.
+#: Paper 004 Table 1: the four simulated magnetometers (angles rad, offsets nT), sensors 1..4
 _TABLE1_004 = {
     'kx': (1.013, 1.012, 1.019, 1.015),
     'ky': (0.991, 1.015, 1.011, 1.008),
@@ -178,17 +158,7 @@ def table1_sensor(j) -> Paper004Params:
 
 
 def table1_correction(j):
-    """
-    Return the correction paper 004's method should recover for sensor ``j`` (1..4).
-
-    The ellipsoid fit cannot see the misalignment (``A^T A``-type data are invariant to a
-    rotation of the field), so the Cholesky factor it returns is ``C^-1 = (S C_NO)^-1``,
-    upper triangular; the Procrustes step (eq. 14) then recovers ``R_corr = (R1 R2 R3)^T``,
-    which maps the single-sensor-corrected field of sensor j into sensor 1's frame. These
-    are the quantities of paper 004 Table 2 (whose R matrices are printed one column to
-    the left: the one under sensor 1 belongs to sensor 2, docs/papers.md, paper 004 errata).
-    Returns (c_inv (3, 3) upper triangular, r_corr (3, 3) rotation, identity for sensor 1).
-    """
+    """Return paper 004 Table 2's (c_inv, r_corr), (3, 3) each, of sensor j (errata: docs)."""
     return table1_sensor(j).correction()
 
 
@@ -197,16 +167,12 @@ def table1_correction(j):
 @dataclass(frozen=True, eq=False)
 class Paper000Params:
     """
-    Paper 000 error model (eq. 1): lower-triangular response with the x axis as reference.
-
-    ``raw = L B + B0`` with ``B`` in the reference frame O-XYZ of paper 000's Fig. 1 (X along
-    the Xm axis, Ym in the OXY plane) and
+    Paper 000 error model (eq. 1): ``raw = L B + B0``, B in Fig. 1's frame O-XYZ.
 
     ``L = [[kx, 0, 0], [ky sin a, ky cos a, 0], [kz cos b sin g, kz sin b sin g, kz cos g]]``:
-    ``alpha`` the Xm-Ym non-orthogonality, rad (the angle between Ym and Y; Ym tilts towards
-    Xm for alpha > 0); ``beta`` the azimuth of the Zm axis' projection on OXY from X towards
-    Y, rad; ``gamma`` the angle between Zm and Z, rad (>= 0; cos(phi) = cos(b) sin(g), phi
-    the angle between Xm and Zm); ``kx, ky, kz`` scale factors (> 0); ``B0`` (3,) offsets, nT.
+    ``alpha`` the angle between Ym and Y (towards Xm), ``beta`` the azimuth of Zm's
+    projection on OXY, ``gamma`` the angle between Zm and Z (>= 0), rad; ``kx, ky, kz``
+    scale factors (> 0); ``B0`` (3,) offsets, nT.
     """
 
     alpha: float
@@ -242,13 +208,10 @@ class Paper000Params:
     @classmethod
     def from_general(cls, a, o):
         """
-        Decompose a general ``(A, o)`` into paper 000 parameters and a rotation.
+        Decompose a general ``(A, o)`` into (paper 000 parameters, q (3, 3)), A = L q.
 
-        ``A = L Q`` (LQ decomposition from ``scipy.linalg.qr`` of ``A^T``, signs fixed so
-        that ``diag(L) > 0``), ``L`` parametrised by eq. 1; ``a``, ``o`` and the errors as
-        :meth:`Paper004Params.from_general`.  Returns (params: gamma in [0, pi], alpha in
-        (-pi/2, pi/2), beta in (-pi, pi], 0 when gamma = 0; q (3, 3) the rotation from the
-        frame of A into O-XYZ, ``A = params.matrix @ q``).
+        LQ with diag(L) > 0; arguments and errors as :meth:`Paper004Params.from_general`.
+        gamma in [0, pi], alpha in (-pi/2, pi/2), beta in (-pi, pi] (0 when gamma = 0).
         """
         a, o = _check_general(a, o)
         qt, rt = scipy.linalg.qr(a.T)

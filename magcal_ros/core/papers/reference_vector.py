@@ -15,16 +15,10 @@
 """
 Paper 002: hard- and soft-iron compensation from a reference field vector.
 
-By linear least squares (not :mod:`magcal_ros.core.data.magnitude`, the reference
-*magnitude* of a fit).  Model (eq. 1-4): ``Hm = K He + Hh``, ``He`` the undisturbed
-(reference) field, ``K = I + D`` soft iron, ``Hh`` hard iron; eq. 5-7 stack one row block per
-attitude (at least 4).  Here the three components are solved together, ``Hm = [He 1] X`` with
-``X = [K^T; Hh^T]`` (4, 3), by ``numpy.linalg.lstsq``.
-
-What the paper does not check, and this module does: reference directions in one plane
-(``n . He = c``, a rotation about one axis) make ``(n, -c)`` a null vector of ``[He 1]``, so
-``K n`` and ``Hh`` are not separately identifiable and the compensation holds only in that
-plane.  Paper 002's own Table 2 is such a data set (docs/papers.md, paper 002).
+Model (eq. 1-4): ``Hm = K He + Hh``, ``He`` the reference field, ``K = I + D`` soft iron,
+``Hh`` hard iron; eq. 5-7's rows solved together, ``Hm = [He 1] X``, ``X = [K^T; Hh^T]``.
+Not checked by the paper, here: coplanar reference directions (``n . He = c``) leave ``K n``
+and ``Hh`` inseparable, as in paper 002's own Table 2 (docs/papers.md, paper 002).
 """
 from dataclasses import dataclass
 
@@ -45,16 +39,12 @@ class ReferenceFit:
     """
     Result of :func:`fit_reference`.
 
-    ``K`` (3, 3) soft iron, dimensionless (paper 002 eq. 4); ``Hh`` (3,) hard iron, nT;
-    ``residual`` (N, 3) ``Hm - (K He + Hh)`` nT; ``singular_values`` (3,) nT of the centred
-    reference field ``He - mean(He)``, descending (a small last one: ``K`` is not determined
-    along that direction); ``condition_number`` of the design ``[He 1]`` with unit-norm
-    columns (``inf`` if rank deficient); ``coverage`` the direction coverage of ``He``;
-    ``unobservable_direction`` (3,) unit, the right singular vector of the centred ``He`` for
-    its smallest singular value (coplanar data: ``K`` along it trades off against ``Hh``);
-    ``identifiable`` False when the directions are coplanar or clustered or the condition
-    number exceeds the limit; ``warning`` the explanation then, else None; ``xtx_inv`` (4, 4)
-    ``(X^T X)^+`` of the unscaled ``X = [He 1]`` (nT^-2 in the He block), for :meth:`stderr`.
+    ``K`` (3, 3) soft iron (paper 002 eq. 4); ``Hh`` (3,) hard iron, nT; ``residual`` (N, 3)
+    nT; ``singular_values`` (3,) nT of ``He - mean(He)``, descending; ``condition_number``
+    of ``[He 1]`` column-scaled (inf if rank deficient); ``coverage`` of ``He``;
+    ``unobservable_direction`` (3,) unit, the smallest singular direction; ``identifiable``
+    and ``warning`` (None when identifiable); ``xtx_inv`` (4, 4) ``(X^T X)^+`` of
+    ``X = [He 1]``.
     """
 
     K: np.ndarray
@@ -84,17 +74,10 @@ class ReferenceFit:
 
     def stderr(self, sigma_hm_nt, sigma_he_nt=0.0):
         """
-        First-order standard errors of K and Hh for given measurement noise.
+        First-order standard errors (k_se (3, 3), hh_se (3,) nT) of K and Hh.
 
-        Row ``j`` of ``[K | Hh]`` is an ordinary least-squares solution for output ``j``;
-        noise ``sigma_hm`` on Hm and ``sigma_he`` on each He component (errors in
-        variables, to first order) add an effective noise variance
-        ``sigma_hm^2 + sigma_he^2 |K_j|^2`` to it, so
-        ``cov(row j) = (sigma_hm^2 + sigma_he^2 |K_j|^2) (X^T X)^-1``.
-
-        ``sigma_hm_nt``, ``sigma_he_nt``: standard deviations of the noise on each Hm and He
-        component, nT (values rounded to 1 nT: ``sqrt(1/12)`` nT).  Returns (k_se (3, 3)
-        dimensionless, hh_se (3,) nT).
+        ``cov(row j) = (sigma_hm^2 + sigma_he^2 |K_j|^2) (X^T X)^-1`` (errors in variables to
+        first order), ``sigma_hm_nt``, ``sigma_he_nt`` the noise sd of each Hm, He component.
         """
         var_eff = sigma_hm_nt ** 2 + sigma_he_nt ** 2 * np.sum(self.K ** 2, axis=1)
         diag = np.clip(np.diag(self.xtx_inv), 0.0, None)
@@ -107,12 +90,10 @@ def fit_reference(He, Hm, strict=False, max_condition=100.0,
     """
     Fit ``Hm = K He + Hh`` by linear least squares (paper 002, eq. 4-7).
 
-    ``He`` (N, 3) the reference (undisturbed) field, nT, one row per attitude, N >= 4;
-    ``Hm`` (N, 3) the disturbed readings, nT; ``strict`` raises ValueError instead of
-    returning a fit flagged not identifiable; ``max_condition`` the largest acceptable
-    condition number of the column-scaled design; ``planar_threshold`` for
-    :func:`~magcal_ros.core.geometry.coverage.direction_coverage`.  Raises ValueError on
-    malformed input or fewer than 4 attitudes.
+    ``He`` (N >= 4, 3) reference field, ``Hm`` (N, 3) readings, nT; ``strict``: ValueError
+    instead of a fit flagged not identifiable; ``max_condition`` of the column-scaled
+    design; ``planar_threshold`` of :func:`~magcal_ros.core.geometry.coverage.direction_coverage`.
+    ValueError on malformed input or fewer than 4 attitudes.
     """
     he = np.asarray(He, dtype=float)
     hm = np.asarray(Hm, dtype=float)
@@ -164,12 +145,7 @@ def fit_reference(He, Hm, strict=False, max_condition=100.0,
 
 
 def correct(fit, Hm):
-    """
-    Compensate disturbed readings: ``He_hat = K^-1 (Hm - Hh)`` (inverse of paper 002 eq. 4).
-
-    ``fit`` anything with ``K`` (3, 3) and ``Hh`` (3,) nT (ReferenceFit, Paper002Params);
-    ``Hm`` (N, 3) or (3,) nT.  Returns the undisturbed field estimate, nT, shaped as ``Hm``.
-    """
+    """Return K^-1 (Hm - Hh), nT (paper 002 eq. 4), of Hm (N, 3) or (3,) nT; ``fit`` has K, Hh."""
     hm = np.asarray(Hm, dtype=float)
     if hm.shape[-1:] != (3,) or hm.ndim > 2:
         raise ValueError('Hm must have shape (N, 3) or (3,), got %s' % (hm.shape,))

@@ -15,12 +15,9 @@
 """
 Paper 000: sine-fit calibration of a three-axis magnetometer on a turntable.
 
-Model (paper 000, eq. 1): ``raw = L B + B0`` with ``L`` lower triangular (see
-:class:`~magcal_ros.core.papers.paper_params.Paper000Params`). The sensor is turned on a level,
-non-magnetic turntable in a uniform field, first with its OXmYm plane horizontal, then with
-its OXmZm plane horizontal; every axis output is fitted by ``A sin(theta + C) + D`` (eq. 4),
-and the nine parameters follow from amplitudes, phases and shifts (eq. 5-16) without any
-iterative optimisation. Correction is eq. 17.
+Model (eq. 1): ``raw = L B + B0``, L lower triangular
+(:class:`~magcal_ros.core.papers.paper_params.Paper000Params`); the procedure (eq. 4-17) is
+docs/papers.md's.
 
 Geometry and sign conventions (found by reproducing the numbers of the paper's §3.1; the paper
 states none of them):
@@ -38,8 +35,7 @@ states none of them):
   ideal-XZ-plane reading would give 40 332.1 nT and a shift of 503 nT). Zm lies at azimuth
   ``theta - phi`` (the sensor is rolled about Xm so that Ym points down and theta turns Zm
   towards Xm), giving the printed phase 90 deg - phi = 0.9004 deg.
-- Eq. 7 and §3.1's phi are misprinted (docs/papers.md, paper 000): k_yx is the Ym amplitude
-  over the Xm amplitude (1.2607 = 41 906.6 / 33 240.0), as eq. 14's k_zx; phi = 89.0996 deg.
+- Eq. 7 and §3.1's phi are misprinted (docs/papers.md): k_yx = 41 906.6 / 33 240.0.
 - Eq. 5, 9 and 12 take absolute values of phase differences, which loses the signs of alpha
   and beta. Here the turning sense ``s`` is read from the data (the Ym phase leads the Xm
   phase by about +90 deg for s = +1, lags by about 90 deg for s = -1, since |alpha| < 90 deg),
@@ -47,11 +43,9 @@ states none of them):
   (-180, 180] deg), ``phi = |C'_x - C'_z|``. For positive alpha, beta and s = +1 these are the
   paper's eq. 5, 9 and 12.
 
-With these conventions :func:`simulate_turntable` reproduces every printed curve coefficient
-of §3.1 and k_yx, k_zx to the printed precision, and :func:`calibrate_turntable` returns the
-nine parameters exactly (the two printed numbers that are not reproduced: docs/papers.md).
+With these :func:`simulate_turntable` reproduces §3.1's printed curves, k_yx and k_zx, and
+:func:`calibrate_turntable` the nine parameters exactly.
 """
-
 from dataclasses import dataclass
 
 from magcal_ros.core.papers.paper_params import Paper000Params
@@ -65,12 +59,7 @@ def _wrap(angle):
 
 @dataclass(frozen=True)
 class SineFit:
-    """
-    Least-squares fit ``y = A sin(theta + C) + D`` (paper 000 eq. 4).
-
-    ``A`` amplitude >= 0, nT; ``C`` phase in (-pi, pi], rad; ``D`` shift, nT; ``rms`` the
-    root-mean-square residual, nT; ``n`` the number of samples.
-    """
+    """Fit y = A sin(theta + C) + D (paper 000 eq. 4): A, D, rms nT; C in (-pi, pi] rad; n."""
 
     A: float
     C: float
@@ -87,10 +76,8 @@ def fit_sine(theta_rad, y) -> SineFit:
     """
     Fit ``y = A sin(theta + C) + D`` by linear least squares (paper 000, eq. 4).
 
-    ``A sin(theta + C) = a sin(theta) + b cos(theta)`` with ``a = A cos C``, ``b = A sin C``,
-    so the fit is linear in ``(a, b, D)`` on the columns ``[sin, cos, 1]``.  ``theta_rad``
-    (N,) turntable angles, rad; ``y`` (N,) axis output, nT.  Raises ValueError if the shapes
-    differ, values are not finite, or there are fewer than 3 distinct angles modulo 2 pi.
+    Linear in ``(A cos C, A sin C, D)`` on ``[sin, cos, 1]``.  ``theta_rad`` (N,) rad; ``y``
+    (N,) nT.  ValueError for other shapes, non-finite values, fewer than 3 distinct angles.
     """
     theta = np.asarray(theta_rad, dtype=float)
     y = np.asarray(y, dtype=float)
@@ -115,10 +102,8 @@ class TurntableFits:
     """
     The five sine fits of the two-position procedure and the derived intermediate values.
 
-    ``x1, y1, z1`` the Xm, Ym, Zm curves in position 1 (OXmYm horizontal); ``x2, z2`` the Xm,
-    Zm curves in position 2 (OXmZm horizontal); ``sense`` +1 if theta turns Xm towards Ym in
-    position 1 (the paper's case), else -1; ``phi`` the angle between Xm and Zm, rad (eq.
-    12); ``k_yx, k_zx`` the ratios ky/kx (eq. 7) and kz/kx (eq. 14).
+    ``x1, y1, z1`` position 1's curves, ``x2, z2`` position 2's; ``sense`` +1 if theta turns
+    Xm towards Ym in position 1, else -1; ``phi`` rad (eq. 12); ``k_yx``, ``k_zx`` (eq. 7, 14).
     """
 
     x1: SineFit
@@ -142,13 +127,7 @@ def _check_position(theta, m, name):
 
 
 def fit_turntable(theta1, m1, theta2, m2) -> TurntableFits:
-    """
-    Fit the five curves of the two turntable positions and form eq. 5-14's quantities.
-
-    ``theta1`` (N1,) rad and ``m1`` (N1, 3) nT: the turntable angles and raw Xm, Ym, Zm
-    outputs in position 1 (OXmYm horizontal); ``theta2`` (N2,), ``m2`` (N2, 3) in position 2
-    (OXmZm horizontal; only Xm and Zm are fitted).
-    """
+    """Fit the curves of positions 1 (theta1 (N1,) rad, m1 (N1, 3) nT) and 2; eq. 5-14."""
     theta1, m1 = _check_position(theta1, m1, '1')
     theta2, m2 = _check_position(theta2, m2, '2')
     x1, y1, z1 = (fit_sine(theta1, m1[:, i]) for i in range(3))
@@ -168,11 +147,8 @@ def calibrate_turntable(theta1, m1, theta2, m2, field_nt) -> Paper000Params:
     """
     Solve paper 000's nine calibration parameters from two turntable rotations.
 
-    ``theta1, m1, theta2, m2`` as :func:`fit_turntable` (position 1: Zm down, theta = 0 with
-    Xm at magnetic north; at least 3 distinct angles, ideally a full turn in equal steps);
-    ``field_nt`` the uniform field's magnitude, nT (eq. 16's B).  Returns alpha, beta, gamma
-    (rad), kx, ky, kz, B0 (3,) nT; raises ValueError on malformed input, a non-positive
-    field, or a geometry eq. 13 cannot resolve.
+    Arguments as :func:`fit_turntable`'s; ``field_nt`` eq. 16's B, nT.  Returns
+    Paper000Params; ValueError on malformed input, a non-positive field, or no eq. 13.
     """
     if not np.isfinite(field_nt) or field_nt <= 0.0:
         raise ValueError(f'field_nt must be a positive field magnitude in nT, got {field_nt!r}')
@@ -201,11 +177,7 @@ def calibrate_turntable(theta1, m1, theta2, m2, field_nt) -> Paper000Params:
 
 
 def correct(params: Paper000Params, raw):
-    """
-    Correct raw outputs (N, 3) nT with paper 000's parameters (eq. 17).
-
-    Returns the (N, 3) corrected field, nT, in paper 000's reference frame O-XYZ.
-    """
+    """Correct raw outputs (N, 3) nT with paper 000's parameters (eq. 17): (N, 3) nT in O-XYZ."""
     raw = np.asarray(raw, dtype=float)
     if raw.ndim != 2 or raw.shape[1] != 3:
         raise ValueError('raw must have shape (N, 3), got %s' % (raw.shape,))
@@ -221,13 +193,7 @@ def correct(params: Paper000Params, raw):
 
 @dataclass(frozen=True)
 class TurntableData:
-    """
-    Simulated two-position turntable experiment.
-
-    ``theta`` (N,) turntable angles, rad (both positions); ``raw1, raw2`` (N, 3) raw outputs,
-    nT, in position 1 (OXmYm horizontal) and 2 (OXmZm horizontal); ``field1, field2`` (N, 3)
-    the true field, nT, in paper 000's reference frame O-XYZ.
-    """
+    """Simulated turntable: theta (N,) rad, raw1, raw2 and the true field1, field2 (N, 3) nT."""
 
     theta: np.ndarray
     raw1: np.ndarray
@@ -237,13 +203,7 @@ class TurntableData:
 
 
 def _turntable_attitudes(axis_a, axis_b, down, theta):
-    """
-    Rotations (N, 3, 3) taking O-XYZ vectors to the level frame (north, east, down).
-
-    The physical axes ``axis_a`` (3,) and ``axis_b`` (3,) (unit, in O-XYZ) span the
-    horizontal plane; ``axis_a`` points at azimuth theta (from north towards east);
-    ``axis_a x axis_b`` points down if ``down`` else up.
-    """
+    """(N, 3, 3) O-XYZ to level (NED): axis_a at azimuth theta, axis_a x axis_b down if down."""
     e3 = np.cross(axis_a, axis_b)
     e3 = e3 / np.linalg.norm(e3)
     sensor = np.column_stack([axis_a, np.cross(e3, axis_a), e3])
@@ -257,15 +217,10 @@ def simulate_turntable(params: Paper000Params, field_nt, inclination_rad, n_step
     """
     Simulate paper 000's two-position turntable experiment (§2, Fig. 2-3, §3.1).
 
-    Level frame: north, east, down; field ``B (cos I, 0, sin I)``. Position 1: the Xm and Ym
-    axes horizontal, Zm down, Xm at azimuth theta. Position 2: the physical Xm and Zm axes
-    horizontal, Xm at azimuth theta, Zm at azimuth theta - phi (Ym down). See the module
-    docstring for why these conventions reproduce the paper's printed curves.
-
-    ``params`` the true sensor; ``field_nt`` B, nT; ``inclination_rad`` I (positive: the
-    field points down); ``n_steps`` equal steps over a full turn (theta = 2 pi k / n_steps);
-    Gaussian noise of ``noise_sigma`` nT and mean ``noise_mean`` nT (paper 000 Table 1's
-    "white noise mean") on every axis and sample; ``rng`` a Generator or seed.
+    Field ``B (cos I, 0, sin I)`` (north, east, down); positions as the module docstring.
+    ``params`` the true sensor; ``field_nt`` B, nT; ``inclination_rad`` I (down > 0);
+    ``n_steps`` equal steps over a turn; Gaussian noise ``noise_sigma`` nT of mean
+    ``noise_mean`` nT (Table 1's "white noise mean"); ``rng`` a Generator or seed.
     """
     if int(n_steps) < 3:
         raise ValueError('n_steps must be >= 3 for a sine fit, got %r' % (n_steps,))
