@@ -652,7 +652,7 @@ def attitude_lines(at):
             f"{at['attitude_sd_deg']:.2f} deg as estimated); world field inclination ")
     if wf.get('inclination_open'):
         # its +- is the data's only given the values held: not a measurement of the site
-        line += (f"{inc:.2f} deg (not determined by the motion: "
+        line += (f'{inc:.2f} deg (not determined by the motion: '
                  + ', '.join(wf['inclination_open'])
                  + (f' open; the IGRF prior sets it, +- {se:.2f} deg)'
                     if wf['inclination_prior'] == 'IGRF' else
