@@ -12,11 +12,7 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""
-The error ladder: diagnose, add the verdict, refit, until nothing is missing.
-
-:func:`ladder` tabulates the held-out RMS of each step (:class:`Ladder`).
-"""
+"""The error ladder: diagnose, add the verdict, refit, until nothing is missing."""
 from dataclasses import dataclass, field
 
 from magcal_ros.core.data.noise import data_noise_floor, NoiseFloor
@@ -33,12 +29,10 @@ import numpy as np
 @dataclass(frozen=True, eq=False)
 class LadderStep:
     """
-    One rung: a model, its fit and its residual RMS (nT).
+    One rung: a model (spec), the token ``added`` (None at the start), its fit and RMS (nT).
 
-    ``model``: spec; ``added``: token added at this step (None at the start);
-    ``scalar_rms_nt``, ``vector_rms_nt``: {sensor: RMS}; ``residual_rms_nt``: combined
-    in-sample RMS; ``cv_rms_nt``: combined held-out RMS or None; ``cv_per_sensor_nt``;
-    ``diagnosis`` (or None) and ``result`` (FitResult).
+    ``scalar_rms_nt``, ``vector_rms_nt``: {sensor: RMS}; ``residual_rms_nt``, ``cv_rms_nt``:
+    combined in-sample and held-out (or None) RMS.
     """
 
     model: tuple
@@ -55,12 +49,7 @@ class LadderStep:
 
 @dataclass(frozen=True, eq=False)
 class Ladder:
-    """
-    The error ladder: held-out RMS falling as effects are added.
-
-    ``steps``: tuple of LadderStep; ``noise_floor``: NoiseFloor; ``reason``: why the ladder
-    stopped (the last diagnosis' reason for "none", or the step limit).
-    """
+    """The error ladder: ``steps`` (LadderStep), ``noise_floor``, why it stopped (``reason``)."""
 
     steps: tuple
     noise_floor: NoiseFloor

@@ -68,14 +68,12 @@ class Trial:
     """
     A candidate under test: its extended model, parameters and evidence so far.
 
-    ``token``, ``label``: model-spec token and effect label; ``sensor``: 1-based, None on all
-    sensors; ``model``: the base model with the effect; ``p`` (P',) its parameters (one-step,
-    then refitted); ``added`` (P',) bool, those the effect adds; ``ev``: its Evaluation on the
-    tested epochs, None when the score test ruled it out; ``score_chi2``: the base fit's
-    chi-square less the score statistic (:attr:`chi2` until ``ev`` is set); ``method``:
-    'score', 'one-step' or 'refit'; ``reduces``: why it reduces to a simpler effect
-    (``Effect.reduces``); ``cv``: its :func:`cross_validate` result; ``share``: held-out share
-    of the excess it removes; ``start`` (P',): the base parameters with the effect's defaults.
+    ``sensor``: 1-based, None on all; ``model``: the base model with the effect; ``p`` (P',)
+    its parameters; ``added`` (P',) bool, those the effect adds; ``ev``: its Evaluation, None
+    when the score test ruled it out; ``score_chi2``: the base chi-square less the score
+    statistic; ``method``: 'score', 'one-step' or 'refit'; ``reduces``: ``Effect.reduces``'
+    reason; ``cv``, ``share``: :func:`cross_validate` and the held-out share of the excess;
+    ``start`` (P',): the base parameters with the effect's defaults.
     """
 
     token: str
@@ -191,7 +189,6 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
     Diagnosis
 
     """
-    # one BLAS thread, as in fit(): threads only contend on small shared machines (bench/)
     with single_threaded_blas():
         t_start = time.perf_counter()
         seconds = {}
@@ -302,10 +299,8 @@ def _merge_search(b, trials, ranked, verdict, reason, res, at_floor):
     Put the search's terms among the candidates and choose the verdict between the two.
 
     The catalog's verdict stands when it brings every sensor to its floor, unless the search's
-    term does too on fewer sensors; otherwise the search's adopted term is the verdict when it
-    leaves less (largest ratio to the floor).  The search's terms are listed among the
-    candidates (method 'score') only when the verdict is the search's.  When nothing explains
-    the excess, an excess confined in time (``res.localised``) is left out instead.
+    term does too on fewer sensors; otherwise the search's term wins when it leaves less.
+    When nothing explains the excess, an excess confined in time is left out instead.
     """
     s = b.data.n_sensors
     if at_floor:
@@ -355,12 +350,7 @@ def _merge_search(b, trials, ranked, verdict, reason, res, at_floor):
 
 
 def _describe(b, found, res, verdict, scalar_rms, vector_rms):
-    """
-    Add the model-free descriptions of the search to the findings (each with its token).
-
-    'localised': an excess confined in time (:func:`.search.localised`), token ``drop(t0,
-    t1)``; 'unexplained', without a verdict: what is left (:func:`_what_is_left`).
-    """
+    """Add the search's 'localised' (``drop(t0, t1)``) and 'unexplained' findings."""
     s = b.data.n_sensors
     new = []
     loc = res.localised
@@ -390,10 +380,9 @@ def _what_is_left(b, found, res, scalar_rms, vector_rms):
     """
     Describe the excess nothing explains (a Finding of kind 'unexplained'), or None.
 
-    Which sensors carry it, scalar or vector and how far above the floor, when (the shortest
-    interval holding :data:`WHEN_SHARE` of it if at most :data:`WHEN_SPAN` of the record) and
-    what it follows most: the search's best term or a model-free finding on those sensors,
-    whose token it offers (:func:`.verify.tested_findings` fits it first).
+    Which sensors carry it, scalar or vector, how far above the floor, when (:func:`_when`)
+    and what it follows most (the search's best term or a finding on them, whose token it
+    offers).
     """
     s = b.data.n_sensors
     fl = b.floor
@@ -535,11 +524,10 @@ def _term_candidate(b, tm, res, verdict=False):
 
 def order_by_evidence(trials, b):
     """
-    Sort ``trials`` in place, best evidence (lowest delta BIC against ``b``) first.
+    Sort ``trials`` in place, lowest delta BIC against ``b`` first.
 
-    Evidence equal within :data:`EVIDENCE_TIE` is a tie, which goes to fewer parameters, then
-    to a named effect before one with arguments ('wheel' before 'periodic(0.25)'), then by
-    token.
+    Within :data:`EVIDENCE_TIE`: fewer parameters, then a named effect before one with
+    arguments, then by token.
     """
     _order_runs(trials, b.delta_bic, lambda c: (c.k, '(' in c.label, c.token))
 
@@ -621,10 +609,9 @@ def _screen(b, testable, progress):
     """
     Screen every candidate from the base fit; return (trials best first, Screen).
 
-    One Gauss-Newton step each (:meth:`Screen.step`) and its score statistic, the chi-square
-    decrease the step predicts (Rao's score test).  Those whose predicted delta BIC is above
-    :data:`SCORE_RULE_OUT_BIC` keep that evidence (method 'score'); the others are evaluated at
-    the step ('one-step').  Under the robust loss every candidate is evaluated.
+    One Gauss-Newton step each (:meth:`Screen.step`) and its predicted chi-square decrease
+    (Rao's score test): above :data:`SCORE_RULE_OUT_BIC` in delta BIC (not under the robust
+    loss) the candidate keeps that ('score'), else it is evaluated at the step ('one-step').
     """
     trials, screen = [], None
     if testable:
@@ -646,10 +633,8 @@ def _screen(b, testable, progress):
     for c in trials:
         if not b.robust and np.isfinite(c.chi2) and b.delta_bic(c) > SCORE_RULE_OUT_BIC:
             continue
-        # from the base fit's field: one Gauss-Newton step of the profile (model.evaluate),
-        # halved while it overshoots; when the whole step overshoots, also the candidate's
-        # own part of it alone (the base held: a base that absorbed part of the effect
-        # moves far and nonlinearly); the lower chi-square of those, else the start
+        # the step halved while it overshoots; if the whole step did, also the candidate's
+        # own part alone (the base held); the lower chi-square of those, else the start
         step, best = c.p - c.start, None
         for k in range(STEP_HALVINGS + 1):
             ev = _at_step(b, c, c.start + step / 2 ** k)
@@ -717,9 +702,8 @@ def _held_out(b, trials, n_refit, folds, cv_method, p_thr, progress, held_out):
     """
     Cross-validate the base model and the refitted candidates that pass the likelihood tests.
 
-    Best first, until one removes MIN_EXPLAINED of the excess; each trial tested gets ``cv``
-    and ``share``.  Returns the base model's :func:`cross_validate` result, None without a
-    held-out test.
+    Best first, until one removes MIN_EXPLAINED of the excess (each gets ``cv`` and
+    ``share``).  Returns the base model's :func:`cross_validate`, None without a held-out test.
     """
     if not held_out:
         return None
