@@ -66,8 +66,7 @@ class Driver:
 
 def centred(x):
     """Columns of ``x`` (N,) or (N, m) less their means, as (N, m)."""
-    x = np.asarray(x, float)
-    x = x[:, None] if x.ndim == 1 else x
+    x = np.asarray(x, float).reshape(len(x), -1)
     return x - x.mean(axis=0)
 
 

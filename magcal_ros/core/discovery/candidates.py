@@ -37,29 +37,25 @@ class Candidate:
     Attributes
     ----------
     token, effect : str
-        Model-spec token ('temperature@2', 'aux:aux_motor_current' on all sensors) and effect
-        label ('temperature', ...).
+        Model-spec token ('temperature@2'; without '@' on all sensors) and effect label.
     sensor : int or None
         Sensor (1-based), None when added to every sensor.
     n_params : int
         Parameters added (k of the likelihood-ratio test).
     rms_before_nt, rms_after_nt, vector_rms_before_nt, vector_rms_after_nt : float or None
-        Scalar and vector (vs sensor 1) residual RMS of the affected sensors, base fit and
-        with the effect (after: None when the residuals were not evaluated).
-    delta_chi2, delta_bic : float
-        Decrease of chi-square (noise levels fixed) and BIC(with) - BIC(without) =
-        -delta_chi2 + k ln(n_obs) (negative favours the effect).
-    p_value, log10_p_value : float
-        Likelihood-ratio test, chi-square with k degrees of freedom.
+        Scalar and vector (vs sensor 1) RMS of the affected sensors, without and with the
+        effect (after: None when not evaluated).
+    delta_chi2, delta_bic, p_value, log10_p_value : float
+        Decrease of chi-square (noise levels fixed), -delta_chi2 + k ln(n_obs), and the
+        likelihood-ratio test (chi-square, k degrees of freedom).
     method : str
         'refit' (full ML refit), 'one-step' (one Gauss-Newton step, evaluated), 'score' (the
         decrease that step predicts, not evaluated; also a term of the formula search),
         'search' (the search's term that is the verdict) or 'localised' (a ``drop``).
     cv_rms_before_nt, cv_rms_after_nt : float or None
-        Combined residual RMS on held-out time blocks (None when not computed).
+        Combined held-out RMS (None when not computed).
     significant : bool
-        p below the Bonferroni threshold, delta BIC < -10 and an explained fraction of at
-        least :data:`MIN_EXPLAINED`.
+        p below the Bonferroni threshold, delta BIC < -10 and at least MIN_EXPLAINED.
     params : tuple of dict
         The added parameters {sensor, name, unit, value} after the fit.
     explained_fraction, decided_by : float or None, str or None

@@ -127,18 +127,15 @@ def ladder(data, start_model='base', steps=None, auto=True, field_nt=None, *,
     steps : list of str, optional
         Effects to add in this order (e.g. ['temperature@2', 'aux:aux_motor_current']).
     auto : bool
-        After ``steps`` (or from the start), keep adding the diagnosis verdict until it is
-        'none' or ``max_steps`` effects were added.
+        After ``steps``, keep adding the verdict until it is 'none'.
     field_nt : float or numpy.ndarray, optional
         Reference magnitude, nT.
-    max_steps : int
-        Most effects added.
-    folds : int
-        Folds of the cross-validation (interleaved time blocks).
+    max_steps, folds : int
+        Most effects added; folds of the cross-validation.
     progress : callable, optional
         ``progress(stage, i, n, label)`` called as the work proceeds.
     diagnosis : Diagnosis, optional
-        An existing diagnosis of ``start_model`` (a FitResult) on ``data``, for the first step.
+        An existing diagnosis of ``start_model`` (a FitResult), for the first step.
     **diag_kwargs
         Passed to :func:`diagnose`; ``constrained=True`` also constrains every fit.
 

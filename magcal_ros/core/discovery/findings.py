@@ -73,28 +73,21 @@ class Finding:
     ----------
     kind : str
         A kind of :data:`KINDS` ('periodic', 'step', 'lag', 'channel', ...).
-    sensor : int or None
-        The sensor that has it (1-based); None for the array or every sensor alike.
-    channel : str or None
-        The driving channel ('temperature', 'aux_<name>') for channel kinds.
+    sensor, channel : int or None, str or None
+        The sensor (1-based; None: the array or every sensor alike); the driving channel.
     value : float or None
-        Frequency (Hz) for 'periodic', change time (s, data time axis) for 'step', time
-        constant (s) for 'lag', gradient magnitude (nT/m) for 'nonuniform_field', excess
-        kurtosis for 'heavy_tails', peak-to-peak trend (nT) for 'time'; ``unit`` says which
-        ('' when dimensionless or None).
+        Frequency (Hz) for 'periodic', change time (s) for 'step', time constant (s) for
+        'lag', gradient (nT/m) for 'nonuniform_field', excess kurtosis for 'heavy_tails',
+        peak-to-peak trend (nT) for 'time'; ``unit`` says which.
     explained_fraction : float
         Share (0..1) of the sensor's excess mean square over its floor its own model removes.
-    text : str
-        What it is and what to add.
-    token : str or None
-        The effect token to add to the model, or None when the catalog has none.
-    p_value : float
-        False-alarm probability of the test (before the Bonferroni factor).
-    rms_nt : float
-        RMS (per component) of the finding's fitted signal, nT.
+    text, token : str, str or None
+        What it is and what to add; the effect token to add (None: the catalog has none).
+    p_value, rms_nt : float
+        The test's false-alarm probability (before Bonferroni); its signal's RMS, nT.
     replaces : tuple of str
-        Tokens of the fitted model ``token`` takes the place of (the linear ``aux:<col>`` in
-        ``aux_poly(<col>,2)``): the model to fit is the old one without these, plus ``token``.
+        Tokens of the fitted model ``token`` takes the place of (``aux:<col>`` for
+        ``aux_poly(<col>,2)``).
 
     """
 
@@ -123,19 +116,14 @@ class Findings:
     Attributes
     ----------
     items : tuple of Finding
-        Largest effect first per sensor, array-level findings first.
+        Array-level findings first, then per sensor the largest effect first.
     t : numpy.ndarray
         (N,) time, s.
-    series : dict
-        {sensor: (N, C) residual series analysed, nT} (consensus, C = 3, or scalar, C = 1),
-        the field gradient taken out when one was found.
-    noise_nt : dict
-        {sensor: (C,) white-noise sd per component of that series, nT}.
-    kind_of_series : str
-        'consensus' or 'scalar'.
+    series, noise_nt : dict
+        {sensor: (N, C) series analysed, nT}, 'consensus' (C = 3) or 'scalar' (C = 1,
+        ``kind_of_series``), the gradient taken out; {sensor: (C,) its white-noise sd, nT}.
     common : numpy.ndarray or None
-        (N, 1) mean scalar residual of the sensors less their own findings, nT (where what
-        every sensor has alike is sought), or None.
+        (N, 1) mean scalar residual less the sensors' own findings, nT.
     note : str
         Why nothing was searched (too short a record), else ''.
     direction : numpy.ndarray or None
@@ -801,11 +789,10 @@ def find(data, result, *, baseline_m=0.5, alpha=ALPHA, corrected=None, field=Non
     Parameters
     ----------
     data : Dataset
-        (S sensors, N epochs) in time order; its temperatures and ``aux_*`` channels are the
-        driving channels tested.
+        (S sensors, N epochs) in time order; temperatures and ``aux_*`` drive the channel tests.
     result : FitResult
-        A fit on ``data``: its ``corrected_nt`` (S, N, 3), ``scalar_residual_nt`` (S, N) and
-        ``field_nt`` (N, 3), nT, on the sets where its ``drop`` terms keep every sensor.
+        A fit on ``data``: its corrected readings (S, N, 3), ``scalar_residual_nt`` (S, N) and
+        ``field_nt`` (N, 3), nT, where its ``drop`` terms keep every sensor.
     baseline_m : float
         Arm length of the four-sensor cross, m (paper 004), for the gradient magnitude.
     alpha : float

@@ -52,11 +52,10 @@ class Diagnosis:
     at_floor : bool
         Every scalar and vector RMS within :data:`AT_FLOOR_RATIO` of its floor.
     candidates : tuple of Candidate
-        Testable candidates, best first (significant ones first, then by delta BIC).
+        Significant ones first, then by delta BIC.
     not_testable : tuple of (token, reason)
-    verdict_token : str or None
-        Token to add ('temperature@2'), None when nothing is missing.
-    verdict_reason : str
+    verdict_token, verdict_reason : str or None, str
+        Token to add ('temperature@2'), None when nothing is missing, and why.
     p_threshold : float
         Bonferroni threshold alpha / (number of candidates).
     folds : int

@@ -157,13 +157,12 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
     base : FitResult, optional
         An existing fit of the model on ``data`` (default: fitted here).
     folds : int
-        Folds of the cross-validation (:func:`time_blocks`); 0 (or too short a record): no
-        held-out test, the verdict rests on the likelihood tests and the in-sample share
-        (``decided_by`` says so).
+        Folds of the cross-validation (:func:`time_blocks`); 0 (or too short a record): the
+        in-sample share decides (``decided_by``).
     alpha : float
         Family-wise significance level (Bonferroni over the candidates).
     max_refit : int
-        Best-screened candidates refitted in full (the rest keep their one-step evidence).
+        Best-screened candidates refitted in full.
     candidates : list of str, optional
         Tokens to test instead of every missing effect.
     progress : callable, optional
@@ -171,16 +170,14 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
     cv_method : {'newton', 'refit'}
         How each fold is fitted (:func:`cross_validate`).
     max_samples : int or None
-        Test the candidates on at most this many evenly spaced epochs (the noise floor uses
-        all of them).  None: all.
+        Test the candidates on at most this many evenly spaced epochs (None: all).
     baseline_m : float
         Arm length of a four-sensor cross, m (the gradient of a ``nonuniform_field`` finding).
     constrained : bool
-        Partial attitude coverage: every fit uses the priors of ``fit(constrained=True)``, the
-        held-out fits are refits, and candidates are judged only after a constrained refit.
+        Partial attitude coverage: every fit ``fit(constrained=True)``'s, candidates judged
+        only after a constrained refit.
     propose : bool
-        Also test the steps and lines of the base residual (:func:`propose_from_residual`) and
-        the effects the findings point to (:func:`tokens_from_findings`).
+        Also test the residual's steps and lines and the findings' tokens.
     **fit_kwargs
         Passed to :func:`magcal_ros.core.model.fit` for the base fit.
 

@@ -43,16 +43,12 @@ def cross_validate(data, model, params, f, sigma, folds=DEFAULT_FOLDS, fold_init
 
     Parameters
     ----------
-    data : Dataset
-        (S sensors, N epochs) in time order, nT.
-    model : Model
-        Prepared on the full data.
+    data, model : Dataset, Model
+        (S sensors, N epochs) in time order, nT; the model prepared on them.
     params : numpy.ndarray
         (P,) the fit on all data (``'newton'``: its optimum; ``'refit'``: the warm start).
-    f : numpy.ndarray
-        (N,) reference magnitude, nT.
-    sigma : numpy.ndarray
-        (S,) fixed noise levels, nT.
+    f, sigma : numpy.ndarray
+        (N,) reference magnitude and (S,) fixed noise levels, nT.
     folds : int
         Held-out sets, each of interleaved blocks (:func:`time_blocks`).
     fold_inits : list of numpy.ndarray, optional
@@ -62,7 +58,7 @@ def cross_validate(data, model, params, f, sigma, folds=DEFAULT_FOLDS, fold_init
         without the held-out rows, p_b = p - (J^T J - J_b^T J_b)^-1 (J^T r - J_b^T r_b)
         (exact for a linear model).
     constrained : bool
-        Fit with the constrained mode's priors; implies ``'refit'``.
+        With the constrained mode's priors; implies ``'refit'``.
 
     Returns
     -------

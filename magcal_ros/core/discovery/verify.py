@@ -28,6 +28,7 @@ from magcal_ros.core.discovery.candidates import extend_model
 from magcal_ros.core.discovery.constants import MIN_DELTA_BIC, MIN_EXPLAINED
 from magcal_ros.core.discovery.measures import dof_factor, evaluate_residuals, explained_share
 from magcal_ros.core.discovery.validation import cross_validate
+from magcal_ros.core.effects.safety import first_line
 from magcal_ros.core.model.fitting import fit
 import numpy as np
 
@@ -76,13 +77,13 @@ def verify_term(b, token, cv0, folds, cv_method='newton', on_degenerate='raise',
             if start is not None and len(start) == int(added.sum()):
                 p_ext[added] = start
     except ValueError as exc:
-        return Verified(token, False, f'the model does not take it: {_first_line(exc)}')
+        return Verified(token, False, f'the model does not take it: {first_line(exc)}')
     kw = {'f_scale': b.f_scale} if b.robust else {}
     try:
         r = fit(b.data, m_ext, field_nt=b.f, init=p_ext, robust=b.robust,
                 constrained=b.constrained, on_degenerate=on_degenerate, **kw)
     except ValueError as exc:
-        return Verified(token, False, f'magcal fit refuses it: {_first_line(exc)}')
+        return Verified(token, False, f'magcal fit refuses it: {first_line(exc)}')
     except np.linalg.LinAlgError as exc:
         return Verified(token, False, f'the fit fails: {exc}')
     if not r.success:
@@ -117,11 +118,6 @@ def verify_term(b, token, cv0, folds, cv_method='newton', on_degenerate='raise',
            if share < MIN_EXPLAINED else f': {figures}')
     return Verified(token, after < before and share >= MIN_EXPLAINED,
                     f'fitted as magcal fit fits it{why}', before, after, share)
-
-
-def _first_line(exc):
-    """Return the first line of an exception's message."""
-    return str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
 
 
 def tested_verdict(b, verdict, reason, ranked, cv0, folds, cv_method='newton',
