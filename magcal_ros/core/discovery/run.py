@@ -134,10 +134,6 @@ class _Base:
     def delta_bic(self, trial):
         return -(self.ev0.chi2 - trial.chi2) + trial.k * math.log(self.n_obs)
 
-    def test(self, trial):
-        """Return (p-value, log10 p, delta BIC) of ``trial`` against the base fit."""
-        return likelihood_ratio(self.ev0.chi2 - trial.chi2, trial.k, self.n_obs)
-
 
 def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLDS,
              alpha=ALPHA, max_refit=DEFAULT_MAX_REFIT, candidates=None, progress=None,
@@ -428,16 +424,11 @@ def _when(b, sens):
     if total <= 0 or nb < 4:
         return 'throughout the record'
     cum = np.concatenate([[0.0], np.cumsum(blk)])
-    span = float(t[-1] - t[0])
-    best = None
-    for i in range(nb):
-        k = int(np.searchsorted(cum, cum[i] + WHEN_SHARE * total - 1e-12 * total))
-        if k <= nb and (best is None or k - i < best[1] - best[0]):
-            best = (i, k)
-    if best is None:
-        return 'throughout the record'
-    t0, t1 = float(t[edges[best[0]]]), float(t[edges[best[1]] - 1])
-    if t1 - t0 > WHEN_SPAN * span:
+    # the shortest run of blocks from each start holding WHEN_SHARE of it; the first shortest
+    ends = np.searchsorted(cum, cum[:-1] + WHEN_SHARE * total - 1e-12 * total)
+    i = int(np.argmin(np.where(ends <= nb, ends - np.arange(nb), nb + 1)))
+    t0, t1 = float(t[edges[i]]), float(t[edges[ends[i]] - 1])
+    if t1 - t0 > WHEN_SPAN * float(t[-1] - t[0]):
         return 'throughout the record'
     return f'mostly within {format_arg(t0)}-{format_arg(t1)} s'
 
@@ -692,7 +683,8 @@ def _refit(b, trials, screen, max_refit, progress):
 
 def _passes_lr(b, c, p_thr):
     """Return whether p < ``p_thr`` and delta BIC < MIN_DELTA_BIC (the likelihood tests)."""
-    return b.test(c)[0] < p_thr and b.delta_bic(c) < MIN_DELTA_BIC
+    p_value = likelihood_ratio(b.ev0.chi2 - c.chi2, c.k, b.n_obs)[0]
+    return p_value < p_thr and b.delta_bic(c) < MIN_DELTA_BIC
 
 
 def _held_out(b, trials, n_refit, folds, cv_method, p_thr, progress, held_out):
