@@ -67,11 +67,9 @@ class Ladder:
                            'scalar_rms_nt': {str(j): v for j, v in st.scalar_rms_nt.items()},
                            'vector_rms_nt': {str(j): v for j, v in st.vector_rms_nt.items()},
                            'residual_rms_nt': st.residual_rms_nt, 'cv_rms_nt': st.cv_rms_nt,
-                           'verdict': (None if st.diagnosis is None
-                                       else st.diagnosis.verdict_token),
-                           'explained_fraction': (
-                               None if st.diagnosis is None or st.diagnosis.verdict is None
-                               else st.diagnosis.verdict.explained_fraction)}
+                           'verdict': getattr(st.diagnosis, 'verdict_token', None),
+                           'explained_fraction': getattr(getattr(st.diagnosis, 'verdict', None),
+                                                         'explained_fraction', None)}
                           for st in self.steps],
                 'final_reason': self.reason}
 

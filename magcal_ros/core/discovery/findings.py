@@ -32,10 +32,11 @@ model that removes at least :data:`MIN_SIGNAL_RATIO` x the noise variance and
 :data:`MIN_EXPLAINED` of the sensor's excess mean square.
 
 - ``periodic``: periodogram, the channels' powers summed; the power over its local median is
-  Gamma(C, 1) under white noise, times the independent frequencies (Scargle 1982).
+  Gamma(C, 1) under white noise, times the independent frequencies (Scargle 1982): a line
+  stands out of its neighbourhood (a random walk is not a line).
 - ``step``: the most likely change of the mean (CUSUM), repeated by the greedy loop: binary
   segmentation (Vostrikova 1981); chi-square with C degrees of freedom, Bonferroni over the
-  change times.
+  change times; segments of at least :data:`MIN_SEGMENT_FRACTION` of the record.
 - ``time``: Legendre trend of degree 1-5 (by BIC); ``direction``: polynomial of degree <= 3
   in the field direction (soft iron, non-linearity, body field); F-tests against none.
 - ``channel`` / ``lag`` / ``channel_nonlinear``: per driving channel (temperature, every

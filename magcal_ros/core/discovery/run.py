@@ -170,8 +170,8 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
     baseline_m : float
         Arm length of a four-sensor cross, m (the gradient of a ``nonuniform_field`` finding).
     constrained : bool
-        Partial attitude coverage: every fit ``fit(constrained=True)``'s, candidates judged
-        only after a constrained refit.
+        Partial attitude coverage: every fit with ``fit(constrained=True)``'s priors, held-out
+        fits refitted, candidates judged only after a constrained refit.
     propose : bool
         Also test the residual's steps and lines and the findings' tokens.
     **fit_kwargs
