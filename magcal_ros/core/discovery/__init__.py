@@ -15,30 +15,15 @@
 """
 Model diagnosis: compare a fitted model with the measurements and name what is missing.
 
-Given rotation data and a fitted model, :func:`diagnose`
-
-1. estimates the sensor noise floor from the data themselves
-   (:func:`noise_floor_from_data`), an independent number to test "at the floor" against;
-2. lists every effect not in the model (per sensor, on all sensors, each auxiliary
-   channel), the offset steps and spectral lines of the residual
-   (:func:`propose_from_residual`), and sets aside, with the reason, those the data cannot
-   excite (``Effect.check``);
-3. screens every candidate by one Gauss-Newton step from the fitted parameters and refits
-   the most promising ones in full (warm start, noise levels fixed at the base fit's);
-4. ranks by evidence: delta BIC, the likelihood-ratio p-value (Bonferroni over the
-   candidates) and the effect size on held-out data (:func:`cross_validate` on interleaved
-   contiguous time blocks, :func:`time_blocks`): ``explained_fraction``, the share of the
-   excess mean square over the floor the effect removes;
-5. gives a verdict: the best candidate that passes the p-value and BIC tests *and* removes
-   at least :data:`MIN_EXPLAINED` of the excess, or ``none`` when the residual is within
-   10 % of the noise floor or no candidate passes.
-
-:func:`ladder` repeats diagnose -> add the verdict -> refit until nothing is missing and
-tabulates the held-out RMS of each step (the "error ladder").
-
+:func:`diagnose` estimates the noise floor from the data (:func:`noise_floor_from_data`),
+lists every effect not in the model and the residual's steps and lines, sets aside those the
+data cannot excite, screens every candidate by one Gauss-Newton step and refits the best,
+ranks them by delta BIC, the likelihood-ratio p-value (Bonferroni) and the share of the
+excess over the floor they remove held out (:func:`cross_validate`, :func:`time_blocks`),
+and gives a verdict: the best that passes all three (at least :data:`MIN_EXPLAINED`), or
+``none``.  :func:`ladder` repeats diagnose -> add the verdict -> refit (the error ladder).
 One module per stage (docs/design.md); every name below is importable from here.
 """
-# the one noise-floor estimator (fit, diagnose, report, nodes); the old name is kept here
 from magcal_ros.core.data.noise import data_noise_floor as noise_floor_from_data, NoiseFloor
 from magcal_ros.core.discovery.candidates import (Candidate, candidate_tokens, extend_model,
                                                   propose_from_residual, split_testable,

@@ -16,12 +16,8 @@
 The drivers the discovery search tries, built from what a record holds.
 
 A :class:`Driver` is one factor of the model formula (docs/formulas.md: ``s(t, k=8)``,
-``cc(aux_wheel_angle, k=2)``, ``lag(aux_relay)``, ``poly(temperature, 2)``, ``sin(0.0112)``,
-``step(300)``, ``window(120, 160)``, ``temperature * t``, ``rate``) with its design
-columns on the tested epochs, centred, so that the search can score it without building a
-model.  :func:`time_drivers`, :func:`channel_drivers`, :func:`product_drivers` and
-:func:`rate_driver` list them; the columns are the formula's own driver's
-(:func:`grammar_columns`), and the term adopted is refitted by the grammar.
+``lag(aux_relay)``, ``step(300)``, ``temperature * t``, ``rate``, ...) with its centred
+design columns on the tested epochs (the grammar's own, :func:`grammar_columns`).
 """
 from dataclasses import dataclass, field
 import math
@@ -48,11 +44,9 @@ class Driver:
     """
     One driver of the formula and its design columns.
 
-    ``text``: the formula factor ('s(t, k=8)', 'lag(aux_relay)'); ``kind``: 'time',
-    'channel', 'product' or 'rate'; ``channel``: what it reads ('t', 'temperature',
-    'aux_<name>', 'rate'); ``columns(j)``: the (N, m) design of sensor j (1-based) on the
-    tested epochs, centred ((N, 3) for a per-axis driver); ``per_axis``: it acts axis by axis
-    (dB_i = P_i X_i); ``note``: what it was built from (a change point, a line, ...).
+    ``text``: the formula factor; ``kind``: 'time', 'channel', 'product' or 'rate';
+    ``channel``: what it reads; ``columns(j)``: sensor j's centred (N, m) design; ``per_axis``:
+    it acts axis by axis (dB_i = P_i X_i); ``note``: what it was built from.
     """
 
     text: str
@@ -72,18 +66,12 @@ class Driver:
 
 def centred(x):
     """Columns of ``x`` (N,) or (N, m) less their means, as (N, m)."""
-    x = np.asarray(x, float)
-    x = x[:, None] if x.ndim == 1 else x
+    x = np.asarray(x, float).reshape(len(x), -1)
     return x - x.mean(axis=0)
 
 
 def grammar_columns(text, ctx, q=()):
-    """
-    (N, m) columns of the grammar's driver ``text`` in ``ctx`` (a SensorContext), centred.
-
-    The formula's own driver (:func:`magcal_ros.core.effects.formula.parse_driver`), prepared
-    on ``ctx``; ``q`` holds its own parameters (a lag's time constant, s).
-    """
+    """(N, m) centred columns of the grammar's driver ``text`` in ``ctx``, parameters ``q``."""
     d = parse_driver(text)
     refs = {}
     d.prepare(ctx, refs)
@@ -91,12 +79,7 @@ def grammar_columns(text, ctx, q=()):
 
 
 def wrap_period(x):
-    """
-    Return the period of a channel that wraps (an angle), or None.
-
-    At least two jumps larger than half the range between samples while the median step is
-    small, with the range close to 360 (degrees) or 2 pi (radians).
-    """
+    """Return 360 or 2 pi when a channel wraps (two jumps over half its range), else None."""
     x = np.asarray(x, float)
     if len(x) < 10 or not np.all(np.isfinite(x)):
         return None
@@ -133,13 +116,7 @@ def _driver(text, kind, channel, ctx_of, note='', q=()):
 
 
 def time_drivers(t, steps=(), windows=(), lines=()):
-    """
-    Return the drivers in time.
-
-    Polynomials of degree 1-3, smooths of :data:`SMOOTH_K` basis functions (at least
-    :data:`MIN_SAMPLES_PER_K` samples each), the steps and windows at the change points given
-    (s) and sinusoids at the lines (Hz).
-    """
+    """Return polynomials and smooths in time, steps and windows (s), sinusoids at lines (Hz)."""
     ctx = SensorContext(t=np.asarray(t, float))
     n = len(ctx.t)
 

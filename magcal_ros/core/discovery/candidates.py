@@ -15,10 +15,9 @@
 """
 Candidate effects of the diagnosis: the tokens to test, where they come from, their evidence.
 
-The effect catalog (:func:`candidate_tokens`), the offset steps and spectral lines of the
-residual (:func:`propose_from_residual`) and the catalog effects the model-free findings
-point to (:func:`tokens_from_findings`); :func:`split_testable` sets aside, with the reason,
-those the data cannot excite (``Effect.check``).
+The catalog (:func:`candidate_tokens`), the residual's steps and lines
+(:func:`propose_from_residual`), the findings' tokens (:func:`tokens_from_findings`);
+:func:`split_testable` sets aside, with the reason, those the data cannot excite.
 """
 from dataclasses import dataclass
 import math
@@ -38,35 +37,30 @@ class Candidate:
     Attributes
     ----------
     token, effect : str
-        Model-spec token ('temperature@2', 'aux:aux_motor_current' on all sensors) and effect
-        label ('temperature', ...).
+        Model-spec token ('temperature@2'; without '@' on all sensors) and effect label.
     sensor : int or None
         Sensor (1-based), None when added to every sensor.
     n_params : int
         Parameters added (k of the likelihood-ratio test).
     rms_before_nt, rms_after_nt, vector_rms_before_nt, vector_rms_after_nt : float or None
-        Scalar and vector (vs sensor 1) residual RMS of the affected sensors, base fit and
-        with the effect (after: None when the residuals were not evaluated).
-    delta_chi2, delta_bic : float
-        Decrease of chi-square (noise levels fixed) and BIC(with) - BIC(without) =
-        -delta_chi2 + k ln(n_obs) (negative favours the effect).
-    p_value, log10_p_value : float
-        Likelihood-ratio test, chi-square with k degrees of freedom.
+        Scalar and vector (vs sensor 1) RMS of the affected sensors, without and with the
+        effect (after: None when not evaluated).
+    delta_chi2, delta_bic, p_value, log10_p_value : float
+        Decrease of chi-square (noise levels fixed), -delta_chi2 + k ln(n_obs), and the
+        likelihood-ratio test (chi-square, k degrees of freedom).
     method : str
-        'refit' (full ML refit), 'one-step' (one Gauss-Newton step, evaluated: a lower bound
-        of delta_chi2), 'score' (the decrease that step predicts, not evaluated:
-        :data:`SCORE_RULE_OUT_BIC`; also a term of the formula search), 'search' (the
-        search's term that is the verdict) or 'localised' (a ``drop`` of an excess in time).
+        'refit' (full ML refit), 'one-step' (one Gauss-Newton step, evaluated), 'score' (the
+        decrease that step predicts, not evaluated; also a term of the formula search),
+        'search' (the search's term that is the verdict) or 'localised' (a ``drop``).
     cv_rms_before_nt, cv_rms_after_nt : float or None
-        Combined residual RMS on held-out time blocks (None when not computed).
+        Combined held-out RMS (None when not computed).
     significant : bool
-        p below the Bonferroni threshold, delta BIC < -10 and an explained fraction of at
-        least :data:`MIN_EXPLAINED`.
+        p below the Bonferroni threshold, delta BIC < -10 and at least MIN_EXPLAINED.
     params : tuple of dict
         The added parameters {sensor, name, unit, value} after the fit.
     explained_fraction, decided_by : float or None, str or None
-        Share (0..1) of the excess mean square over the noise floor the effect removes from
-        the combined residual, and by which measure ('held-out' or 'in-sample (...)').
+        Share (0..1) of the combined excess mean square over the floor removed, and by which
+        measure ('held-out' or 'in-sample (...)').
     note : str or None
         Why a candidate with a good fit is not adopted (``Effect.reduces``).
 
@@ -109,11 +103,9 @@ def candidate_tokens(model, data, extra=()):
     """
     Every effect not in ``model``, per sensor where it applies and on all sensors at once.
 
-    Returns a list of (token, effect label, sensor or None).  Effects that clash with the
-    model (:data:`NESTED`, ``Effect.excludes``) are left out; effects with arguments are
-    offered with those they suggest (``Effect.suggest_args``) and with the ``extra`` names
-    (``step(300)``, ``periodic(0.23)``: :func:`propose_from_residual`).  Every additive effect
-    free on all sensors is offered on all of them as well (token without ``@``).
+    Returns [(token, effect label, sensor or None)], without those that clash with the model
+    (:data:`NESTED`, ``Effect.excludes``); effects with arguments with ``suggest_args``' and
+    the ``extra`` names (``step(300)``); an additive effect free on every sensor also on all.
     """
     s = model.n_sensors
     ctx = data.context(1)
@@ -127,8 +119,7 @@ def candidate_tokens(model, data, extra=()):
     out = []
     for name in names:
         if getattr(fx.effect_class(name), 'scope', 'sensor') == 'array':
-            # one effect of the whole array (site_gradient), offered once when the data have
-            # what it reads; a gradient needs the sensors' positions (paper 004's cross)
+            # one effect of the whole array (site_gradient): needs paper 004's cross
             eff = fx.make_effect(name, 0)
             if (name not in {e.name for e in model.array_effects} and s >= 3
                     and getattr(eff, 'candidate', True)
@@ -170,19 +161,16 @@ def propose_from_residual(t, residual, max_steps=2, min_line_ratio=30.0):
     """
     Effects with arguments suggested by the residual: offset steps and periodic lines.
 
-    ``t`` (N,) s; ``residual`` (S, N, 3) raw-space residual, nT; ``max_steps``: change points
-    per record (:func:`~.measures.binary_segmentation` of the mean of the 3-vector
-    residuals); ``min_line_ratio``: a line is proposed when its power exceeds this many times
-    the median power (white noise: probability ~1e-5 in ~1e4 bins at 30).  Returns names with
-    arguments, e.g. ['step(300)', 'periodic(0.23)'] (tested per sensor and on all sensors).
+    ``t`` (N,) s; ``residual`` (S, N, 3) raw-space residual, nT; ``max_steps``: change points;
+    ``min_line_ratio``: a line's power over the median power (white noise: ~1e-5 in ~1e4 bins
+    at 30).  Returns names, e.g. ['step(300)', 'periodic(0.23)'] (:func:`residual_features`).
     """
     t = np.asarray(t, float)
     found, lines = residual_features(t, residual, max_steps, min_line_ratio)
     if len(t) < 50:
         return []
     dt = float(np.median(np.diff(t)))
-    # the change lies between two samples: the time of the first sample after it, to the
-    # sampling interval's decimal (step(300), not step(300.0001))
+    # the first sample after the change, to the sampling interval's decimal
     decimals = max(0, -math.floor(math.log10(dt))) if dt > 0 else 0
 
     def at(k):        # all the integer digits: a clock since 1970 keeps its fraction
@@ -200,23 +188,17 @@ def residual_features(t, residual, max_steps=2, min_line_ratio=30.0, readings=No
     """
     Change points and spectral lines of a residual (see :func:`propose_from_residual`).
 
-    ``readings`` (S, N, 3) nT: given, changes are also sought in the 9 products r_a u_b of
-    the residual and the reading's direction u = m / |m| per sensor: a step of a scale
-    factor, an angle or a cross-coupling changes their mean, not the residual's.  Lines: the
-    periodogram of each sensor's residual summed over the axes, its peak refined on a grid
-    10x finer than 1/span.
-
-    Returns (change points: sorted epoch indices (the first sample after each change),
-    lines: {sensor index: (peak power / median power, refined frequency Hz)}).
+    Changes: binary segmentation of the sensors' residuals together, and with ``readings``
+    (S, N, 3) nT of the products r_a u_b (u = m / |m|), where a step of a gain shows.  Lines:
+    each sensor's periodogram peak, refined on a grid 10x finer than 1/span.  Returns (sorted
+    epoch indices after each change, {sensor index: (peak / median power, frequency Hz)}).
     """
     t = np.asarray(t, float)
     n = len(t)
     if n < 50:
         return [], {}
     r = residual - residual.mean(axis=1, keepdims=True)
-    # -- steps: one change in the mean, on the sensors' residuals together; a change is kept
-    # only far above what white noise gives (C (10 + 5 ln N) for C columns: a split's
-    # statistic is ~ chi2(C) there)
+    # a change is kept far above white noise's C (10 + 5 ln N) (a split's ~ chi2(C) there)
 
     def changes(x):
         return binary_segmentation(x, max_steps, x.shape[1] * (10.0 + 5.0 * math.log(n)))
@@ -262,13 +244,10 @@ def _gain_products(residual, readings):
 
 def demodulated_lines(t, residual, readings, min_line_ratio=30.0):
     """
-    Spectral lines of how the residual follows the reading's direction (frequencies, Hz).
+    Sorted frequencies (Hz) of lines modulating the gains: in the products r_a u_b.
 
-    A line modulating a scale factor, an angle or the linear map leaves a residual dM(t) m
-    whose spectrum has side bands at f +- the turn rates; the 9 products r_a u_b (u = m / |m|)
-    average over the attitudes to dM(t) |m| / 3: the line at f.  ``residual``, ``readings``:
-    (S, N, 3) nT.  Returns the sorted frequencies of the sensors' strongest lines of the
-    products (:func:`residual_features`' test).
+    A modulated map leaves dM(t) m, side bands at f +- the turn rates; r_a u_b (u = m / |m|)
+    averages to dM(t) |m| / 3, the line at f.  ``residual``, ``readings``: (S, N, 3) nT.
     """
     prod = _gain_products(residual, readings)
     _, lines = residual_features(t, prod.reshape(*prod.shape[:2], 9), max_steps=0,
@@ -313,12 +292,10 @@ def added_params(model, p, added):
 
 def split_testable(model, tokens, contexts):
     """
-    Split candidate tokens into those the data can test and those they cannot, with why.
+    Split (token, label, sensor) into ([testable ones], [(token, why not)]).
 
-    ``tokens``: (token, effect label, sensor or None) as from :func:`candidate_tokens`;
-    ``contexts``: one per sensor.  Returns (testable: [(token, label, sensor)],
-    not_testable: [(token, reason)]): ``Effect.check`` failed, the model refuses the effect,
-    it is already there, or it would tie the sensors to one field.
+    Why not: ``Effect.check`` on ``contexts`` (one per sensor) fails, the model refuses the
+    effect, has it already, or it would tie the sensors to one field.
     """
     s = model.n_sensors
     testable, not_testable = [], []
@@ -362,11 +339,9 @@ def reduces_to_simpler(model, p, stderr, label, contexts):
 
 def tokens_from_findings(findings):
     """
-    Names with arguments that model-free findings point to (tested like any candidate).
+    Names with arguments the findings (dicts) point to: their token, else their kind's.
 
-    ``findings``: dicts {"kind", "sensor", "channel", "value", "token", ...}: the finding's
-    token, else the one its kind points to (:data:`.findings.KINDS`), on every sensor.
-    Tokens without arguments are in the catalog's candidates already.
+    Tokens without arguments are among the catalog's candidates already.
     """
     out = []
     for fd in findings:

@@ -17,11 +17,9 @@
 ALPHA = 0.01
 #: delta BIC a candidate must beat (Kass & Raftery: < -10 is very strong evidence)
 MIN_DELTA_BIC = -10.0
-#: "at the noise floor": every residual RMS within this ratio of its floor (the diagnosis,
-#: the formula search and the findings' effect size)
+#: "at the noise floor": every residual RMS within this ratio of its floor
 AT_FLOOR_RATIO = 1.10
-#: a finding's model must remove at least this many noise variances (pooled per component):
-#: alone it lifts the RMS above AT_FLOOR_RATIO x the floor
+#: noise variances a finding's model must remove (alone: the RMS above AT_FLOOR_RATIO x floor)
 MIN_SIGNAL_RATIO = AT_FLOOR_RATIO ** 2 - 1.0
 #: folds of the cross-validation (each made of interleaved contiguous blocks: time_blocks)
 DEFAULT_FOLDS = 3
@@ -29,43 +27,30 @@ DEFAULT_FOLDS = 3
 BLOCKS_PER_FOLD = 4
 #: shortest block, epochs (the cross-validation needs folds x this many epochs)
 MIN_BLOCK = 12
-#: practical significance: a verdict must remove at least this share of the excess mean
-#: square over the noise floor (held-out; in-sample without cross-validation): each rung
-#: removes a visible part of what is left, and effects that only shave the noise are not
-#: adopted however significant.  The likelihood tests grow with N, this share does not.
+#: practical significance: a verdict removes at least this share of the excess mean square
+#: over the floor (held-out, else in-sample); the likelihood tests grow with N, this does not
 MIN_EXPLAINED = 0.2
 #: candidates refitted in full after the one-step screening
 DEFAULT_MAX_REFIT = 4
-#: iterations of a candidate's refit, from the one-step solution (a lag's time constant
-#: from the best point of LAG_GRID_POINTS): a well-posed candidate converges in 2-5; the
-#: cap stops a parameter the data do not fix (the time constant of the all-sensors lag on
-#: the sensors without one) from wandering
+#: iterations of a candidate's refit from the one-step solution (well-posed: 2-5); the cap
+#: stops a parameter the data do not fix from wandering
 REFIT_MAX_NFEV = 6
-#: a refit the cap stopped while it still lowered chi-square, and which passes the likelihood
-#: tests, goes on to this many: candidates are compared converged (a pump current whose
-#: refit started from a base far off stopped at the cap, behind a sinusoid that had
-#: converged, and the sinusoid was named)
+#: a capped refit that passes the likelihood tests goes on to this many, so that candidates
+#: are compared converged (a pump current stopped at the cap behind a sinusoid)
 REFIT_MORE_NFEV = 30
-#: precision of a candidate's refit in chi-square: its iterations stop when one lowers
-#: chi-square by less than this.  The tests read chi-square differences against thresholds
-#: of order 10; a tenth of a unit moves log10 p by about 0.02 and delta BIC by 0.1
+#: precision of a candidate's refit in chi-square (the tests' thresholds are of order 10)
 REFIT_CHI2_TOL = 0.1
 #: evidence equal within this (chi-square units, the refits' precision) is a tie, broken by
 #: parsimony rather than by floating-point rounding (run.order_by_evidence)
 EVIDENCE_TIE = REFIT_CHI2_TOL
-#: a candidate whose score test (the chi-square decrease its one Gauss-Newton step predicts,
-#: exact for effects that enter linearly) gives a delta BIC above this is not evaluated
-#: further: BIC prefers the model without it, 10 units short of significance (MIN_DELTA_BIC)
+#: a candidate whose score test (its one step's predicted chi-square decrease) gives a delta
+#: BIC above this is not evaluated further (10 short of MIN_DELTA_BIC)
 SCORE_RULE_OUT_BIC = 0.0
-#: a candidate's one Gauss-Newton step that raises chi-square (a nonlinear effect, a step
-#: far from the base fit) is halved up to this many times (a damped Gauss-Newton step)
-#: before the candidate is left at its start
+#: halvings of a candidate's one step that raises chi-square before it is left at its start
 STEP_HALVINGS = 5
-#: time constants (log-spaced, sample interval to a quarter of the record) a lag's refit
-#: start is chosen from, each by one linear step (Screen.lag_start)
+#: time constants (log-spaced) a lag's refit start is chosen from (Screen.lag_start)
 LAG_GRID_POINTS = 10
-#: epochs the candidates are screened, refitted and cross-validated on (evenly spaced), the
-#: same cap as the fit's (model.fit max_fit_samples): cost and memory stay flat above it
+#: epochs the candidates are tested on (evenly spaced), the fit's own cap (max_fit_samples)
 DEFAULT_MAX_SAMPLES = 20000
 #: effects that contain each other (adding one when the other is present duplicates terms)
 NESTED = {'drift': ('drift2',), 'drift2': ('drift',)}
@@ -76,15 +61,12 @@ SEARCH_CHANGE_POINTS = 4
 SEARCH_LISTED = 10
 
 # -- the residual toolkit (measures.py) -------------------------------------------------------
-#: evenly sampled: every interval within this share of the median one (not tighter: stamps
-#: on a Unix-epoch clock carry 2e-5 of a 100 Hz interval of float64 rounding; an error of
-#: 1e-3 interval moves a line's phase at the Nyquist frequency by pi 1e-3 rad)
+#: evenly sampled: every interval within this share of the median one (a Unix-epoch clock's
+#: float64 rounding is 2e-5 of a 100 Hz interval)
 EVEN_SAMPLING = 1e-3
-#: most complex exponentials (epochs x frequencies) of one Lomb-Scargle periodogram (~1 s);
-#: a larger irregular record is regridded onto its median interval and FFT-ed
+#: most epochs x frequencies of one Lomb-Scargle periodogram (more: regridded and FFT-ed)
 LS_BUDGET = 4e7
-#: a fixed-rate clock read with jitter and samples lost (a live record's arrival stamps): at
-#: most this fraction of the intervals outside (1 -+ CLOCK_JITTER) x the median interval
+#: a jittered clock: at most this fraction of the intervals outside (1 -+ CLOCK_JITTER) x median
 CLOCK_OUTLIERS = 0.05
 CLOCK_JITTER = 0.25
 
@@ -97,9 +79,8 @@ STEP_OVER_TREND = 0.95
 MIN_SEGMENT_FRACTION = 0.02
 #: excess kurtosis from which tails count as heavy (a Student t with 10 degrees of freedom)
 MIN_EXCESS_KURTOSIS = 1.0
-#: a finding on another sensor with the same kind and value is the consensus' echo of the
-#: faulty sensor's if it removes less than this share of the largest one's mean square (the
-#: echo through the median of 3 others is a few per cent, through the mean of 2 a quarter)
+#: the same finding on another sensor is the consensus' echo if it removes less than this
+#: share of the largest one's mean square
 ECHO_RATIO = 0.5
 #: fewer epochs than this: no search (the tests' null distributions are asymptotic)
 MIN_EPOCHS = 200

@@ -12,11 +12,7 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""
-The error ladder: diagnose, add the verdict, refit, until nothing is missing.
-
-:func:`ladder` tabulates the held-out RMS of each step (:class:`Ladder`).
-"""
+"""The error ladder: diagnose, add the verdict, refit, until nothing is missing."""
 from dataclasses import dataclass, field
 
 from magcal_ros.core.data.noise import data_noise_floor, NoiseFloor
@@ -33,12 +29,10 @@ import numpy as np
 @dataclass(frozen=True, eq=False)
 class LadderStep:
     """
-    One rung: a model, its fit and its residual RMS (nT).
+    One rung: a model (spec), the token ``added`` (None at the start), its fit and RMS (nT).
 
-    ``model``: spec; ``added``: token added at this step (None at the start);
-    ``scalar_rms_nt``, ``vector_rms_nt``: {sensor: RMS}; ``residual_rms_nt``: combined
-    in-sample RMS; ``cv_rms_nt``: combined held-out RMS or None; ``cv_per_sensor_nt``;
-    ``diagnosis`` (or None) and ``result`` (FitResult).
+    ``scalar_rms_nt``, ``vector_rms_nt``: {sensor: RMS}; ``residual_rms_nt``, ``cv_rms_nt``:
+    combined in-sample and held-out (or None) RMS.
     """
 
     model: tuple
@@ -55,12 +49,7 @@ class LadderStep:
 
 @dataclass(frozen=True, eq=False)
 class Ladder:
-    """
-    The error ladder: held-out RMS falling as effects are added.
-
-    ``steps``: tuple of LadderStep; ``noise_floor``: NoiseFloor; ``reason``: why the ladder
-    stopped (the last diagnosis' reason for "none", or the step limit).
-    """
+    """The error ladder: ``steps`` (LadderStep), ``noise_floor``, why it stopped (``reason``)."""
 
     steps: tuple
     noise_floor: NoiseFloor
@@ -78,11 +67,9 @@ class Ladder:
                            'scalar_rms_nt': {str(j): v for j, v in st.scalar_rms_nt.items()},
                            'vector_rms_nt': {str(j): v for j, v in st.vector_rms_nt.items()},
                            'residual_rms_nt': st.residual_rms_nt, 'cv_rms_nt': st.cv_rms_nt,
-                           'verdict': (None if st.diagnosis is None
-                                       else st.diagnosis.verdict_token),
-                           'explained_fraction': (
-                               None if st.diagnosis is None or st.diagnosis.verdict is None
-                               else st.diagnosis.verdict.explained_fraction)}
+                           'verdict': getattr(st.diagnosis, 'verdict_token', None),
+                           'explained_fraction': getattr(getattr(st.diagnosis, 'verdict', None),
+                                                         'explained_fraction', None)}
                           for st in self.steps],
                 'final_reason': self.reason}
 
@@ -138,18 +125,15 @@ def ladder(data, start_model='base', steps=None, auto=True, field_nt=None, *,
     steps : list of str, optional
         Effects to add in this order (e.g. ['temperature@2', 'aux:aux_motor_current']).
     auto : bool
-        After ``steps`` (or from the start), keep adding the diagnosis verdict until it is
-        'none' or ``max_steps`` effects were added.
+        After ``steps``, keep adding the verdict until it is 'none'.
     field_nt : float or numpy.ndarray, optional
         Reference magnitude, nT.
-    max_steps : int
-        Most effects added.
-    folds : int
-        Folds of the cross-validation (interleaved time blocks).
+    max_steps, folds : int
+        Most effects added; folds of the cross-validation.
     progress : callable, optional
         ``progress(stage, i, n, label)`` called as the work proceeds.
     diagnosis : Diagnosis, optional
-        An existing diagnosis of ``start_model`` (a FitResult) on ``data``, for the first step.
+        An existing diagnosis of ``start_model`` (a FitResult), for the first step.
     **diag_kwargs
         Passed to :func:`diagnose`; ``constrained=True`` also constrains every fit.
 

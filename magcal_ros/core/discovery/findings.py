@@ -15,49 +15,38 @@
 """
 What is left in the residuals of a fit, model-free: lines, steps, lags, gradients, tails.
 
-:func:`find` names the structure in the residuals a fitted model leaves, without the effect
-catalog: a spectral line, an offset step, a channel acting through a lag or non-linearly, a
-trend, an attitude pattern, heavy tails, or a field gradient across the array.  Each
-:class:`Finding` says what it is, how much of the sensor's excess over the noise floor its
-own simple model removes, and which effect token to add (``periodic(0.23)@3``, ...).
+:func:`find` names the structure a fitted model leaves, without the effect catalog; each
+:class:`Finding` says what it is, how much of the sensor's excess over the noise floor its own
+simple model removes, and which effect token to add (``periodic(0.23)@3``, ...).
 
-Series analysed (nT): with 3 or more sensors, sensor j's **consensus residual**
-``c_j - median_{k != j} c_k`` (``c``: corrected readings in the array frame, (N, 3)): under a
-uniform field this is noise plus sensor j's own faults, and the median is not moved by one
-faulty sensor.  With 1 or 2 sensors, the scalar residual ``|c_j| - F``.
+Series analysed (nT): with 3 or more sensors, sensor j's consensus residual ``c_j -
+median_{k != j} c_k`` (``c``: corrected readings in the array frame, (N, 3)), noise plus
+sensor j's own faults under a uniform field; with 1 or 2 sensors, the scalar residual
+``|c_j| - F``.  Noise: each component's mean square of third differences / 20
+(:func:`~.measures.white_noise_sd`, right for heavy tails too).
 
-Method (references: docs/papers.md, "Methods of the findings"): per sensor, greedily, every
-test below is run, the significant one with the largest BIC gain is kept and its fitted
-signal removed, at most :data:`MAX_PER_SENSOR` times.  A finding needs a p-value below
-``alpha`` / (number of tests) (Bonferroni) and a model that removes at least
-:data:`MIN_SIGNAL_RATIO` x the noise variance (alone it lifts the RMS above 1.10 x the
-floor) and :data:`MIN_EXPLAINED` of the sensor's excess mean square over the floor.
+Method (docs/papers.md, "Methods of the findings"): per sensor, greedily, the significant
+test with the largest BIC gain is kept and its fitted signal removed, at most
+:data:`MAX_PER_SENSOR` times.  A finding needs p below ``alpha`` / (number of tests) and a
+model that removes at least :data:`MIN_SIGNAL_RATIO` x the noise variance and
+:data:`MIN_EXPLAINED` of the sensor's excess mean square.
 
-- ``periodic``: periodogram (:func:`~.measures.periodogram`), the channels' powers summed;
-  the power over its local median is Gamma(C, 1) under white noise, the false-alarm
-  probability that tail times the independent frequencies (Scargle 1982).  A line must stand
-  out of its neighbourhood (a random walk is not a line).
-- ``step``: the most likely single change of the mean (CUSUM), applied repeatedly by the
-  greedy loop: binary segmentation (Vostrikova 1981); chi-square tail with C degrees of
-  freedom, Bonferroni over the change times; segments of at least
-  :data:`MIN_SEGMENT_FRACTION` of the record.
-- ``time``: Legendre trend of degree 1-5 (degree by BIC), F-test against none.
-- ``direction``: polynomial of degree <= 3 in the field direction (a missing soft iron,
-  non-linearity or body field), F-test against none.
-- ``channel`` / ``lag`` / ``channel_nonlinear``: for each driving channel (the sensor's
-  temperature, every ``aux_*``): linear regression; the channel through a first-order lag
-  ``tau dy/dt = x - y`` added (tau on a log grid, Bonferroni over it); x^2, x^3 and
-  sign(dx/dt) added (curved, saturating or hysteretic); F-tests against the linear fit.
-- ``heavy_tails``: on what is left, D'Agostino's kurtosis test and an excess kurtosis above
+- ``periodic``: periodogram, the channels' powers summed; the power over its local median is
+  Gamma(C, 1) under white noise, times the independent frequencies (Scargle 1982): a line
+  stands out of its neighbourhood (a random walk is not a line).
+- ``step``: the most likely change of the mean (CUSUM), repeated by the greedy loop: binary
+  segmentation (Vostrikova 1981); chi-square with C degrees of freedom, Bonferroni over the
+  change times; segments of at least :data:`MIN_SEGMENT_FRACTION` of the record.
+- ``time``: Legendre trend of degree 1-5 (by BIC); ``direction``: polynomial of degree <= 3
+  in the field direction (soft iron, non-linearity, body field); F-tests against none.
+- ``channel`` / ``lag`` / ``channel_nonlinear``: per driving channel (temperature, every
+  ``aux_*``): linear; through a first-order lag ``tau dy/dt = x - y`` (tau on a log grid);
+  x^2, x^3 and sign(dx/dt); F-tests against the linear fit.
+- ``heavy_tails``: D'Agostino's kurtosis test on what is left, excess kurtosis above
   :data:`MIN_EXCESS_KURTOSIS`.
-- ``nonuniform_field`` (the cross of paper 004): the arms' antisymmetric parts of the
-  inter-sensor residuals against their symmetric part (:func:`_gradient`); the value is the
-  RMS Frobenius norm of the gradient tensor left, nT/m, and the gradient is taken out of the
-  per-sensor series before their tests.
-
-Noise: each series' per-component noise variance is the mean square of its third
-differences / 20 (:func:`~.measures.white_noise_sd`: right for heavy tails too, where a
-MAD reads low).
+- ``nonuniform_field`` (paper 004's cross): the arms' antisymmetric parts of the inter-sensor
+  residuals against their symmetric part (:func:`_gradient`), value the RMS Frobenius norm of
+  the gradient left, nT/m; the gradient is taken out of the per-sensor series first.
 """
 from dataclasses import asdict, dataclass, field, replace
 import math
@@ -71,6 +60,7 @@ from magcal_ros.core.discovery.measures import (cusum, evenly_sampled, lag_grid,
                                                 regress, usable, white_noise_sd)
 from magcal_ros.core.effects import first_order_lag
 from magcal_ros.core.effects.base import format_arg
+from magcal_ros.core.model.solvers import single_threaded_blas
 import numpy as np
 from scipy import ndimage, stats
 
@@ -84,28 +74,21 @@ class Finding:
     ----------
     kind : str
         A kind of :data:`KINDS` ('periodic', 'step', 'lag', 'channel', ...).
-    sensor : int or None
-        The sensor that has it (1-based); None for the array or every sensor alike.
-    channel : str or None
-        The driving channel ('temperature', 'aux_<name>') for channel kinds.
+    sensor, channel : int or None, str or None
+        The sensor (1-based; None: the array or every sensor alike); the driving channel.
     value : float or None
-        Frequency (Hz) for 'periodic', change time (s, data time axis) for 'step', time
-        constant (s) for 'lag', gradient magnitude (nT/m) for 'nonuniform_field', excess
-        kurtosis for 'heavy_tails', peak-to-peak trend (nT) for 'time'; ``unit`` says which
-        ('' when dimensionless or None).
+        Frequency (Hz) for 'periodic', change time (s) for 'step', time constant (s) for
+        'lag', gradient (nT/m) for 'nonuniform_field', excess kurtosis for 'heavy_tails',
+        peak-to-peak trend (nT) for 'time'; ``unit`` says which.
     explained_fraction : float
         Share (0..1) of the sensor's excess mean square over its floor its own model removes.
-    text : str
-        What it is and what to add.
-    token : str or None
-        The effect token to add to the model, or None when the catalog has none.
-    p_value : float
-        False-alarm probability of the test (before the Bonferroni factor).
-    rms_nt : float
-        RMS (per component) of the finding's fitted signal, nT.
+    text, token : str, str or None
+        What it is and what to add; the effect token to add (None: the catalog has none).
+    p_value, rms_nt : float
+        The test's false-alarm probability (before Bonferroni); its signal's RMS, nT.
     replaces : tuple of str
-        Tokens of the fitted model ``token`` takes the place of (the linear ``aux:<col>`` in
-        ``aux_poly(<col>,2)``): the model to fit is the old one without these, plus ``token``.
+        Tokens of the fitted model ``token`` takes the place of (``aux:<col>`` for
+        ``aux_poly(<col>,2)``).
 
     """
 
@@ -134,19 +117,14 @@ class Findings:
     Attributes
     ----------
     items : tuple of Finding
-        Largest effect first per sensor, array-level findings first.
+        Array-level findings first, then per sensor the largest effect first.
     t : numpy.ndarray
         (N,) time, s.
-    series : dict
-        {sensor: (N, C) residual series analysed, nT} (consensus, C = 3, or scalar, C = 1),
-        the field gradient taken out when one was found.
-    noise_nt : dict
-        {sensor: (C,) white-noise sd per component of that series, nT}.
-    kind_of_series : str
-        'consensus' or 'scalar'.
+    series, noise_nt : dict
+        {sensor: (N, C) series analysed, nT}, 'consensus' (C = 3) or 'scalar' (C = 1,
+        ``kind_of_series``), the gradient taken out; {sensor: (C,) its white-noise sd, nT}.
     common : numpy.ndarray or None
-        (N, 1) mean scalar residual of the sensors less their own findings, nT (where what
-        every sensor has alike is sought), or None.
+        (N, 1) mean scalar residual less the sensors' own findings, nT.
     note : str
         Why nothing was searched (too short a record), else ''.
     direction : numpy.ndarray or None
@@ -195,12 +173,7 @@ def _f_mean(x, fitted, rank):
 
 
 def _nuisance(u):
-    """
-    (N, 10) what a refit of the linear model would absorb from the scalar residual.
-
-    A sensor's offset error c and matrix error E show in its scalar residual as u.c + u.E u
-    (u: field direction, (N, 3)): columns 1, u_a, u_a u_b.
-    """
+    """(N, 10) columns 1, u_a, u_a u_b: an offset c and matrix E in the scalar, u.c + u.E u."""
     cols = [np.ones(len(u)), *u.T]
     cols += [u[:, a] * u[:, b] for a in range(3) for b in range(a, 3)]
     return np.column_stack(cols)
@@ -208,11 +181,10 @@ def _nuisance(u):
 
 def _expand(design, mod):
     """
-    Expand the design of a vector effect as seen through the scalar residual.
+    Design of a vector effect seen through the scalar residual along the field direction u.
 
-    A vector signal sum_k beta_k phi_k(t) shows in the scalar residual along the field
-    direction u (N, 3): columns phi_k u_c, next to the :func:`_nuisance` columns (which replace
-    the constant first column of ``design``).
+    Columns phi_k u_c (``mod``: u, (N, 3)) after the :func:`_nuisance` ones (replacing the
+    constant first column of ``design``).
     """
     if mod is None:
         return design
@@ -456,12 +428,11 @@ def _best_tau_modulated(drv, x, mod):
 @dataclass(frozen=True)
 class Kind:
     """
-    What the description, the candidate tokens and the report read of one kind (:data:`KINDS`).
+    One kind of finding (:data:`KINDS`): its token, text, words and the report's figure.
 
-    ``token(value, channel, detail, '@j' or '')``: the effect token to add, or None (an empty
-    detail: a finding read back as a dict); ``text(candidate, '@j' or '', token, sensor text,
-    share text)``: what it is and what to add; ``follows(finding)``: what the residual
-    follows, in words; ``view``: the report's figure that shows it.
+    ``token(value, channel, detail, '@j' or '')``: the token to add, or None (detail empty for
+    a finding read back as a dict); ``text(candidate, at, token, on, share)``: what it is and
+    what to add; ``follows(finding)``: what the residual follows, in words.
     """
 
     token: object
@@ -557,18 +528,15 @@ def _gradient(t, corrected, baseline_m, alpha, drivers=None):
     Test for a gradient across the cross: (finding or None, (S, N, 3) part to take out, nT).
 
     With m_j = c_j - mean_k c_k, the arms' antisymmetric parts a_x = (m1 - m3) / 2, a_y =
-    (m2 - m4) / 2 and the symmetric part s = (m1 + m3 - m2 - m4) / 4 obey, for noise and any
-    fault of one sensor, E[a_x^2 + a_y^2] = 4 E[s^2]; a gradient puts G r_j into the a's and
-    nothing into s (paper 004 eq. 1: r_1 = -r_3, r_2 = -r_4).  F-test of mean(a_x^2 + a_y^2)
-    against 4 mean(s^2): no smoothness in time needed (random attitudes too).  ``drivers``
-    (N, m): what differs between the sensors for other reasons, taken out first.
+    (m2 - m4) / 2 and the symmetric part s = (m1 + m3 - m2 - m4) / 4 obey E[a_x^2 + a_y^2] =
+    4 E[s^2] for noise and one sensor's fault; a gradient adds G r_j to the a's only (paper
+    004 eq. 1): F-test of the two.  ``drivers`` (N, m): taken out of the m_j first.
     """
     from magcal_ros.core.geometry.tensor import tensor_cross
     from scipy.signal import savgol_filter
     m = corrected - corrected.mean(axis=0)
     if drivers is not None and len(drivers):
-        # sensors that differ in how a channel (a motor current, a temperature) or time
-        # moves them are not a field gradient of the site: those parts are taken out first
+        # sensors a channel or time moves differently: not a gradient of the site
         n_ = m.shape[1]
         flat = m.transpose(1, 0, 2).reshape(n_, -1)
         flat = flat - regress(flat, drivers)[0]
@@ -583,12 +551,10 @@ def _gradient(t, corrected, baseline_m, alpha, drivers=None):
     if s_ms <= 0 or excess <= 0:
         return None, None
     p = float(stats.f.sf(a_ms / (4.0 * s_ms), 6 * n, 3 * n))
-    # effect size: the gradient's mean square per sensor component (excess / 2) against the
-    # sensors' own disagreement per component (4 mean(s^2): the noise when there is no fault)
+    # effect size: the gradient's mean square per component against the sensors' own
     if not (p < alpha and excess / 2.0 >= MIN_SIGNAL_RATIO * 4.0 * s_ms):
         return None, None
-    # share of the arms' excess over their white noise (temporal differences) that only a
-    # gradient explains; for random attitudes the differences count the gradient as noise
+    # share of the arms' excess over their white noise that only a gradient explains
     white = float(np.mean(white_noise_sd(ax) ** 2) + np.mean(white_noise_sd(ay) ** 2))
     share = excess / max(a_ms - white, excess)
     # |G|_F^2 of tensor_cross has the noise bias 5 sum_j sigma_j^2 / L^2 = 80 mean(s^2) / L^2
@@ -606,8 +572,7 @@ def _gradient(t, corrected, baseline_m, alpha, drivers=None):
                 explained_fraction=float(np.clip(share, 0.0, 1.0)), text=text,
                 token=KINDS['nonuniform_field'].token(value, None, {}, ''), p_value=p,
                 rms_nt=float(math.sqrt(excess / 2.0)))
-    # smoothed over time (cubic Savitzky-Golay, 11 samples): the gradient changes with the
-    # attitude, the noise of the other sensor of the arm does not follow
+    # smoothed (cubic Savitzky-Golay, 11 samples): the gradient follows the attitude, noise not
     if n < 11:
         return f, None
     gx = savgol_filter(ax, 11, 3, axis=0)
@@ -626,19 +591,8 @@ def _series(corrected, scalar):
     return {j + 1: scalar[j][:, None] for j in range(s)}, 'scalar'
 
 
-def _drivers(data, j, aux_drivers):
-    if data.temp is None or not np.all(np.isfinite(data.temp[j - 1])):
-        return list(aux_drivers)
-    return [_Driver(data.t, 'temperature', data.temp[j - 1])] + aux_drivers
-
-
 def _sensor_findings(t, x, sd, u, drivers, sensor, alpha_test, mod=None):
-    """
-    Greedy search on one series; (list of (Finding, ms removed), remainder).
-
-    ``mod`` (N, 3): the series is a scalar residual, the effects vectors seen through the
-    field direction ``mod`` (:func:`_expand`).
-    """
+    """Greedy search on one series: ([(Finding, ms removed)], remainder); ``mod``: _expand's."""
     n, c = x.shape
     x = x - x.mean(axis=0)
     noise = float(np.mean(sd ** 2))
@@ -662,9 +616,7 @@ def _sensor_findings(t, x, sd, u, drivers, sensor, alpha_test, mod=None):
         if not passed:
             break
         best = max(passed, key=lambda b: b[0])
-        if best[1].kind == 'time':
-            # an abrupt change that explains nearly all a smooth trend does is the better
-            # description
+        if best[1].kind == 'time':      # a step explaining nearly as much describes it better
             steps = [b for b in passed
                      if b[1].kind == 'step' and b[2] >= STEP_OVER_TREND * best[2]]
             if steps:
@@ -687,16 +639,15 @@ def _tails(x, sd, sensor, alpha_test):
     """
     heavy_tails finding of one sensor's remainder x (N, C), or None.
 
-    Tested on the first differences, which a slow leftover of the other findings does not
-    reach (the excess kurtosis of a difference of independent noise is half the noise's).
+    Tested on the first differences (a slow leftover does not reach them; their excess
+    kurtosis is half the noise's).
     """
     if x.shape[0] < 40:
         return None
     d = np.diff(x, axis=0) / (math.sqrt(2.0) * sd)
     kurt = 2.0 * float(np.mean(stats.kurtosis(d, axis=0, fisher=True)))
     p = float(stats.kurtosistest(d.ravel()).pvalue)
-    # the robust (MAD) noise level reads low for heavy tails: the share of the excess over
-    # it that the tails account for
+    # the robust (MAD) noise level reads low for heavy tails
     mad = stats.median_abs_deviation(d, axis=0, scale='normal') * sd
     low = 1.0 - float(np.sqrt(np.mean(mad ** 2) / np.mean(sd ** 2)))
     if not (p < alpha_test and kurt >= MIN_EXCESS_KURTOSIS and low > 0):
@@ -770,11 +721,7 @@ def _array_stage(data, t, corrected, baseline_m, alpha):
 
 
 def _sensor_stage(data, t, series, kind, noise, u, aux_drivers, alpha_test, alpha_tails):
-    """
-    Every sensor's tests: (list of (Finding, ms removed), {sensor: (N, C) explained, nT}).
-
-    ``explained``: what the sensor's findings' models took out of its series.
-    """
+    """Every sensor's tests: ([(Finding, ms removed)], {sensor: (N, C) its findings' fit, nT})."""
     per, explained = [], {}
     for j, x in series.items():
         if np.any(noise[j] <= 0):
@@ -783,8 +730,10 @@ def _sensor_stage(data, t, series, kind, noise, u, aux_drivers, alpha_test, alph
         mod = u if kind == 'scalar' else None
         if mod is not None:
             x = x - regress(x, _nuisance(u))[0]
-        found, rest = _sensor_findings(t, x, noise[j], u, _drivers(data, j, aux_drivers), j,
-                                       alpha_test, mod=mod)
+        drivers = list(aux_drivers)
+        if data.temp is not None and np.all(np.isfinite(data.temp[j - 1])):
+            drivers.insert(0, _Driver(data.t, 'temperature', data.temp[j - 1]))
+        found, rest = _sensor_findings(t, x, noise[j], u, drivers, j, alpha_test, mod=mod)
         explained[j] = x - x.mean(axis=0) - rest
         tails = _tails(rest, noise[j], j, alpha_tails)
         per.extend(found + ([] if tails is None else [(tails, 0.0)]))
@@ -795,9 +744,8 @@ def _attribute(per, gradient, same):
     """
     Return the findings each sensor has of its own (list of Finding).
 
-    The same finding on several sensors is the faulty sensor's echo through the consensus
-    unless comparable in size; with a field ``gradient``, what shows alike on the two sensors
-    of an arm is left of the gradient, not their faults.
+    A much smaller same finding on another sensor is the echo through the consensus; with a
+    ``gradient``, what both sensors of an arm show is left of the gradient.
     """
     keep = []
     for f, removed in per:
@@ -813,12 +761,7 @@ def _attribute(per, gradient, same):
 
 
 def _common_stage(data, t, scalar, explained, u, aux_drivers, alpha_test, keep, same):
-    """
-    Test what every sensor has alike: (findings, ``keep`` less their echoes, (N, 1) nT).
-
-    It cancels in the consensus and is left in the mean scalar residual, along the field
-    direction ``u``, less each sensor's own findings.
-    """
+    """Test the mean scalar residual less each sensor's own: (found, ``keep`` less them, x0)."""
     s = scalar.shape[0]
     x0 = np.mean(scalar, axis=0)
     for j, e in explained.items():
@@ -840,25 +783,17 @@ def _common_stage(data, t, scalar, explained, u, aux_drivers, alpha_test, keep, 
     return common, keep, x0
 
 
-def find(data, result, **kwargs):
-    # one BLAS thread: the designs are thin (N x 10-30), threads only contend
-    from magcal_ros.core.model.solvers import single_threaded_blas
-    with single_threaded_blas():
-        return _find(data, result, **kwargs)
-
-
-def _find(data, result, *, baseline_m=0.5, alpha=ALPHA, corrected=None, field=None):
+def find(data, result, *, baseline_m=0.5, alpha=ALPHA, corrected=None, field=None):
     """
     Model-free findings in the residuals of a fit.
 
     Parameters
     ----------
     data : Dataset
-        (S sensors, N epochs) in time order; its temperatures and ``aux_*`` channels are the
-        driving channels tested.
+        (S sensors, N epochs) in time order; temperatures and ``aux_*`` drive the channel tests.
     result : FitResult
-        A fit on ``data``: its ``corrected_nt`` (S, N, 3), ``scalar_residual_nt`` (S, N) and
-        ``field_nt`` (N, 3), nT, on the sets where its ``drop`` terms keep every sensor.
+        A fit on ``data``: its corrected readings (S, N, 3), ``scalar_residual_nt`` (S, N) and
+        ``field_nt`` (N, 3), nT, where its ``drop`` terms keep every sensor.
     baseline_m : float
         Arm length of the four-sensor cross, m (paper 004), for the gradient magnitude.
     alpha : float
@@ -871,45 +806,44 @@ def _find(data, result, *, baseline_m=0.5, alpha=ALPHA, corrected=None, field=No
     Findings
 
     """
-    t = np.asarray(data.t, float)
-    if corrected is None:
-        # the field where each sensor is, minus a modelled site gradient (site_gradient)
-        from magcal_ros.core.model.site_gradient import centred_fields
-        corrected = centred_fields(result)
-    corrected = np.asarray(corrected, float)
-    field_ = np.asarray(result.field_nt if field is None else field, float)
-    scalar = np.asarray(result.scalar_residual_nt, float)
-    kept = getattr(result, 'reading_mask', None)
-    if kept is not None and not kept.all():
-        # the model's drop() terms: the tests look at the sets every sensor keeps
-        sets = np.flatnonzero(kept.all(axis=0))
-        data, t = data.subset(sets), t[sets]
-        corrected, field_, scalar = corrected[:, sets], field_[sets], scalar[:, sets]
-    s, n = corrected.shape[:2]
-    if n < MIN_EPOCHS:
-        return Findings(items=(), t=t, series={}, noise_nt={}, note=(
-            f'{n} epochs, fewer than the {MIN_EPOCHS} the tests need'))
-    array_items, corrected = _array_stage(data, t, corrected, baseline_m, alpha)
-    series, kind = _series(corrected, scalar)
-    norm = np.linalg.norm(field_, axis=1, keepdims=True)
-    u = field_ / np.where(norm > 0, norm, 1.0)
-    noise = {j: white_noise_sd(x) for j, x in series.items()}
-    n_tests = 5 + 3 * (len(data.aux) + (data.temp is not None))
-    alpha_test = alpha / ((s + 1) * n_tests)      # the sensors and their common part
-    aux_drivers = [_Driver(t, name, data.aux[name]) for name in sorted(data.aux)]
-    per, explained = _sensor_stage(data, t, series, kind, noise, u, aux_drivers, alpha_test,
-                                   alpha / s)
-    same = _sameness(t)
-    keep = _attribute(per, array_items, same)
-    common, x0 = [], None
-    if kind == 'consensus':
-        common, keep, x0 = _common_stage(data, t, scalar, explained, u, aux_drivers,
-                                         alpha_test, keep, same)
-    items = tuple(_in_model(f, getattr(result, 'model', None)) for f in
-                  array_items + common + sorted(keep, key=lambda f: (f.sensor,
-                                                                     -f.explained_fraction)))
-    return Findings(items=items, t=t, series=series, noise_nt=noise, kind_of_series=kind,
-                    common=x0, direction=u)
-
-
-find.__doc__ = _find.__doc__
+    # one BLAS thread: the designs are thin (N x 10-30), threads only contend
+    with single_threaded_blas():
+        t = np.asarray(data.t, float)
+        if corrected is None:
+            # the field where each sensor is, minus a modelled site gradient (site_gradient)
+            from magcal_ros.core.model.site_gradient import centred_fields
+            corrected = centred_fields(result)
+        corrected = np.asarray(corrected, float)
+        field_ = np.asarray(result.field_nt if field is None else field, float)
+        scalar = np.asarray(result.scalar_residual_nt, float)
+        kept = getattr(result, 'reading_mask', None)
+        if kept is not None and not kept.all():
+            # the model's drop() terms: the tests look at the sets every sensor keeps
+            sets = np.flatnonzero(kept.all(axis=0))
+            data, t = data.subset(sets), t[sets]
+            corrected, field_, scalar = corrected[:, sets], field_[sets], scalar[:, sets]
+        s, n = corrected.shape[:2]
+        if n < MIN_EPOCHS:
+            return Findings(items=(), t=t, series={}, noise_nt={}, note=(
+                f'{n} epochs, fewer than the {MIN_EPOCHS} the tests need'))
+        array_items, corrected = _array_stage(data, t, corrected, baseline_m, alpha)
+        series, kind = _series(corrected, scalar)
+        norm = np.linalg.norm(field_, axis=1, keepdims=True)
+        u = field_ / np.where(norm > 0, norm, 1.0)
+        noise = {j: white_noise_sd(x) for j, x in series.items()}
+        n_tests = 5 + 3 * (len(data.aux) + (data.temp is not None))
+        alpha_test = alpha / ((s + 1) * n_tests)      # the sensors and their common part
+        aux_drivers = [_Driver(t, name, data.aux[name]) for name in sorted(data.aux)]
+        per, explained = _sensor_stage(data, t, series, kind, noise, u, aux_drivers, alpha_test,
+                                       alpha / s)
+        same = _sameness(t)
+        keep = _attribute(per, array_items, same)
+        common, x0 = [], None
+        if kind == 'consensus':
+            common, keep, x0 = _common_stage(data, t, scalar, explained, u, aux_drivers,
+                                             alpha_test, keep, same)
+        items = tuple(_in_model(f, getattr(result, 'model', None)) for f in
+                      array_items + common + sorted(keep, key=lambda f: (f.sensor,
+                                                                         -f.explained_fraction)))
+        return Findings(items=items, t=t, series=series, noise_nt=noise, kind_of_series=kind,
+                        common=x0, direction=u)

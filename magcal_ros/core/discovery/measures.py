@@ -15,16 +15,11 @@
 """
 Residual measures of the diagnosis (nT), statistics of nested fits, the residual toolkit.
 
-Residual measures (nT): the scalar residual of sensor j, |corrected_j| - F (at the floor,
-RMS = sigma_j); the vector residual of sensor j > 1, corrected_j - corrected_1 (at the floor
-sqrt(sigma_j^2 + sigma_1^2) per component; some effects show only here); the combined
-residual, the fit's raw-space residual scaled by :func:`dof_factor` so that it equals the
-per-axis noise sd when the model is complete (the held-out measure).
-
-The toolkit every stage reads (one implementation each): :func:`white_noise_sd`,
-:func:`evenly_sampled`, :func:`sampled_on_a_clock`, :func:`periodogram`,
-:func:`lomb_scargle`, :func:`cusum`, :func:`binary_segmentation`, :func:`lag_grid`,
-:func:`regress`.
+Measures: sensor j's scalar residual |corrected_j| - F (RMS sigma_j at the floor); the vector
+residual corrected_j - corrected_1 (j > 1; sqrt(sigma_j^2 + sigma_1^2) per component); the
+combined residual, the raw-space residual scaled by :func:`dof_factor` (the per-axis noise sd
+at the floor; the held-out measure).  The toolkit (one implementation each): noise level,
+sampling tests, periodograms, change points, lag grid, regression.
 """
 from dataclasses import dataclass
 import math
@@ -46,8 +41,7 @@ def n_observations(model, n, kept=None):
     """
     Return the observations of ``n`` epochs net of the profiled field: N sum(3G - 2).
 
-    ``kept`` (S, N) bool: the readings the model keeps (``drop`` terms); each group's epoch
-    then counts 3 per reading kept less 2, nothing without one.
+    ``kept`` (S, N) bool: the readings kept (``drop``): 3 per reading less 2 per group's epoch.
     """
     if kept is None:
         return int(n * sum(3 * len(g) - 2 for g in model.sensor_groups))
@@ -73,12 +67,7 @@ def scalar_rms_of(scalar, sensors, kept=None):
 
 
 def vector_rms_of(vector, sensors, n_sensors, kept=None):
-    """
-    Return the pooled per-component RMS of the vector residuals involving ``sensors``, nT.
-
-    ``kept`` (S, N) bool: sensor j's vector residual counts where j's and sensor 1's readings
-    are kept (default all).
-    """
+    """Return the pooled RMS of the vector residuals of ``sensors`` where they and 1 are kept."""
     if n_sensors < 2:
         return None
     js = sorted({j for j in sensors if j > 1} if 1 not in sensors
@@ -92,10 +81,9 @@ class Evaluation:
     """
     Residuals of one parameter vector on the full data.
 
-    ``chi2``: sum of squared normalised residuals (or the robust loss's chi-square
-    equivalent); ``scalar`` (S, N), ``vector`` (S, N, 3, vs sensor 1) and ``residual`` (S, N,
-    3, raw space) residuals, nT; ``field`` (N, 3): the profiled field, nT; ``kept`` (S, N)
-    bool: the readings the model keeps (None: all), the others zero and counted nowhere.
+    ``chi2``: sum of squared normalised residuals (or the robust loss's equivalent);
+    ``scalar`` (S, N), ``vector`` (S, N, 3) and raw-space ``residual`` (S, N, 3), nT;
+    ``field`` (N, 3) nT; ``kept`` (S, N) bool: the readings the model keeps (None: all).
     """
 
     chi2: float
@@ -123,11 +111,8 @@ def evaluate_residuals(model, p, data, f, sigma, contexts, field0=None, loss=Non
     """
     Evaluate ``model`` at ``p`` on ``data``: an :class:`Evaluation`.
 
-    ``model`` prepared, ``p`` (P,), ``data`` (S sensors, N epochs, nT), ``f`` (N,) reference
-    magnitude, nT, ``sigma`` (S,) noise levels, nT, ``contexts`` (S,) SensorContext;
-    ``field0`` (N, 3) nT: the field the profile starts from (one Gauss-Newton step of it);
-    ``loss``: chi-square equivalent of a robust loss (:func:`soft_l1_lr_loss`).  See
-    :func:`magcal_ros.core.model.evaluate`.
+    As :func:`magcal_ros.core.model.evaluate`; ``loss``: a robust loss's chi-square
+    equivalent (:func:`soft_l1_lr_loss`).
     """
     out = evaluate(model, p, data, f, sigma, contexts, field0=field0)
     z = out['residual'] / sigma[:, None, None]
@@ -194,14 +179,11 @@ def white_noise_sd(x):
     """
     Per-component white-noise sd of a series (N,) or (N, C), any unit: (C,).
 
-    sqrt(mean((Delta^3 x)^2) / 20), 20 = C(6, 3) the variance gain of the third difference: a
-    mean square, not a MAD, so unbiased for any noise distribution; a signal smooth at the
-    sample rate, or a few steps, barely contribute.
+    sqrt(mean((Delta^3 x)^2) / 20) (C(6, 3) = 20): unbiased for any noise distribution; a
+    smooth signal or a few steps barely contribute.
     """
     x = np.asarray(x, float)
-    if x.ndim == 1:
-        x = x[:, None]
-    d = np.diff(x, n=3, axis=0)
+    d = np.diff(x.reshape(len(x), -1), n=3, axis=0)
     return np.sqrt(np.mean(d ** 2, axis=0) / 20.0)
 
 
@@ -212,11 +194,7 @@ def usable(x):
 
 
 def evenly_sampled(t):
-    """
-    Return (evenly sampled, median interval s) of times ``t`` (N,) s.
-
-    Evenly: every interval within :data:`~.constants.EVEN_SAMPLING` of the median one.
-    """
+    """Return (every interval within EVEN_SAMPLING of the median, median interval s)."""
     d = np.diff(np.asarray(t, float))
     med = float(np.median(d)) if d.size else 0.0
     return med > 0 and bool(np.all(np.abs(d - med) <= EVEN_SAMPLING * med)), med
@@ -226,10 +204,8 @@ def sampled_on_a_clock(t, dt=None):
     """
     Tell whether times ``t`` (N,) s are a fixed-rate clock read with jitter, samples lost.
 
-    True when at most :data:`~.constants.CLOCK_OUTLIERS` of the intervals lie outside (1 -+
-    :data:`~.constants.CLOCK_JITTER`) times the median interval ``dt`` (s; computed when
-    None): the residual can then be interpolated onto the clock's grid without losing a line
-    below the Nyquist frequency, and its periodogram is an FFT instead of Lomb-Scargle's.
+    At most CLOCK_OUTLIERS of the intervals outside (1 -+ CLOCK_JITTER) ``dt`` (s, default
+    the median): the series can be interpolated onto the clock's grid and FFT-ed.
     """
     d = np.diff(np.asarray(t, float))
     dt = (float(np.median(d)) if dt is None else dt) if d.size else 0.0
@@ -243,17 +219,14 @@ def periodogram(t, x, oversample=2):
     Power spectrum of a residual series, also for irregular sampling.
 
     ``t`` (N,) s; ``x`` (N,) or (N, C) nT (the mean is removed); ``oversample``: frequencies
-    per independent frequency.  Returns (freqs (M,) Hz, from about 1/T to the Nyquist
-    frequency of the median interval; power (M, C) nT^2, the squared amplitude of the
-    best-fitting sinusoid times N / 4; the number of independent frequencies, N / 2 for even
-    sampling).  Evenly sampled: the FFT zero-padded ``oversample`` x; a clock read with jitter
-    (:func:`sampled_on_a_clock`), or an irregular record whose Lomb-Scargle sum would exceed
-    :data:`~.constants.LS_BUDGET`: the FFT of the series interpolated onto the median
-    interval; otherwise Lomb-Scargle (:func:`lomb_scargle`).
+    per independent frequency.  Returns (freqs (M,) Hz, about 1/T to the Nyquist frequency;
+    power (M, C) nT^2, a sinusoid's squared amplitude times N / 4; the number of independent
+    frequencies).  The FFT zero-padded ``oversample`` x when evenly sampled, of the series
+    interpolated onto the median interval for a jittered clock or above LS_BUDGET; else
+    :func:`lomb_scargle`.
     """
     t = np.asarray(t, float)
-    x = np.asarray(x, float)
-    x = x[:, None] if x.ndim == 1 else x
+    x = np.asarray(x, float).reshape(len(x), -1)
     x = x - x.mean(axis=0)
     n = len(t)
     even, dt = evenly_sampled(t)
@@ -308,10 +281,9 @@ def cusum(z, margin=0):
     """
     Return (k, statistic) of the most likely single change in the mean of ``z`` (N, C).
 
-    ``z``: a series standardised by its white-noise sd per column.  The statistic of a split
-    before epoch k, |c_k - k/N c_N|^2 N / (k (N - k)) (c: cumulative sums), is the
-    likelihood-ratio of one Gaussian mean shift (CUSUM, Hawkins 1977), maximised over k;
-    ``margin`` splits at each end are not considered.
+    ``z`` standardised per column; the likelihood-ratio of one mean shift before epoch k,
+    |c_k - k/N c_N|^2 N / (k (N - k)) (c: cumulative sums; CUSUM, Hawkins 1977), maximised
+    over k but ``margin`` splits at each end.
     """
     n = len(z)
     c = np.cumsum(z, axis=0)
@@ -327,11 +299,9 @@ def binary_segmentation(x, max_changes, threshold, min_length=20, margin=5):
     """
     Change points of the mean of ``x`` (N, C): binary segmentation (Vostrikova 1981).
 
-    The series is standardised by its white-noise sd pooled over the columns; the most likely
-    single change (:func:`cusum`) of every segment of at least ``min_length`` epochs is found,
-    the largest kept while its statistic exceeds ``threshold`` (chi-square units), and the
-    segment split there, at most ``max_changes`` times.  Returns the epoch indices (the first
-    sample after each change), in the order found.
+    On ``x`` over its pooled white-noise sd, the largest :func:`cusum` of the segments of at
+    least ``min_length`` epochs splits its segment while above ``threshold``, at most
+    ``max_changes`` times.  Returns the epochs after each change, in the order found.
     """
     sd = float(np.sqrt(np.mean(white_noise_sd(x) ** 2)))
     z = np.asarray(x, float) / (sd if sd > 0 else np.inf)
@@ -366,9 +336,7 @@ def regress(x, design):
     """
     Least-squares fit of every column of x (N, C) on design (N, K); (fitted, rank).
 
-    Normal equations with the columns scaled to unit norm, solved by eigen-decomposition
-    without the directions below 1e-10 of the largest eigenvalue (a rank-deficient design is
-    allowed).
+    Normal equations of unit-norm columns, directions below 1e-10 of the largest dropped.
     """
     g = design.T @ design
     d = np.sqrt(np.diag(g))

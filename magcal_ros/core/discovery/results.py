@@ -43,23 +43,19 @@ class Diagnosis:
         Spec of the diagnosed model.
     n_samples, n_sensors, n_params : int
     n_used : int
-        Epochs the candidates were tested on (``n_samples`` up to ``max_samples``, else that
-        many evenly spaced ones).
+        Epochs the candidates were tested on (at most ``max_samples``, evenly spaced).
     noise_floor : NoiseFloor
     scalar_rms_nt, vector_rms_nt : dict
         {sensor: RMS} of the base fit (vector: j > 1, vs sensor 1).
-    residual_rms_nt : float
-        Combined in-sample residual RMS (pooled), comparable with the floor.
-    cv_rms_nt : float or None
-        Combined held-out RMS of the base model.
+    residual_rms_nt, cv_rms_nt : float, float or None
+        Combined in-sample and held-out residual RMS (pooled) of the base fit.
     at_floor : bool
         Every scalar and vector RMS within :data:`AT_FLOOR_RATIO` of its floor.
     candidates : tuple of Candidate
-        Testable candidates, best first (significant ones first, then by delta BIC).
+        Significant ones first, then by delta BIC.
     not_testable : tuple of (token, reason)
-    verdict_token : str or None
-        Token to add ('temperature@2'), None when nothing is missing.
-    verdict_reason : str
+    verdict_token, verdict_reason : str or None, str
+        Token to add ('temperature@2'), None when nothing is missing, and why.
     p_threshold : float
         Bonferroni threshold alpha / (number of candidates).
     folds : int
@@ -68,8 +64,7 @@ class Diagnosis:
     result : FitResult
         The base fit.
     findings : Findings or None
-        What is left in the base fit's residuals, model-free
-        (:func:`magcal_ros.core.discovery.findings.find`).
+        What is left in the base fit's residuals (:func:`.findings.find`).
 
     """
 
@@ -165,7 +160,6 @@ class Diagnosis:
                  ] + [f'  {fl.describe(j + 1)}' for j, st in enumerate(fl.status) if st != 'white']
         r = self.ratios
         for j, x in self.scalar_rms_nt.items():
-            # a filtered series' floor is a lower bound: the ratio is an upper bound
             of = 'floor' if fl.status[j - 1] != 'filtered' else 'lower bound of the floor'
             line = f'  sensor {j}: scalar RMS {x:8.2f} nT ({r["scalar"][j]:5.2f} x {of})'
             if j in self.vector_rms_nt:

@@ -69,14 +69,12 @@ class Trial:
     """
     A candidate under test: its extended model, parameters and evidence so far.
 
-    ``token``, ``label``: model-spec token and effect label; ``sensor``: 1-based, None on all
-    sensors; ``model``: the base model with the effect; ``p`` (P',) its parameters (one-step,
-    then refitted); ``added`` (P',) bool, those the effect adds; ``ev``: its Evaluation on the
-    tested epochs, None when the score test ruled it out; ``score_chi2``: the base fit's
-    chi-square less the score statistic (:attr:`chi2` until ``ev`` is set); ``method``:
-    'score', 'one-step' or 'refit'; ``reduces``: why it reduces to a simpler effect
-    (``Effect.reduces``); ``cv``: its :func:`cross_validate` result; ``share``: held-out share
-    of the excess it removes; ``start`` (P',): the base parameters with the effect's defaults.
+    ``sensor``: 1-based, None on all; ``model``: the base model with the effect; ``p`` (P',)
+    its parameters; ``added`` (P',) bool, those the effect adds; ``ev``: its Evaluation, None
+    when the score test ruled it out; ``score_chi2``: the base chi-square less the score
+    statistic; ``method``: 'score', 'one-step' or 'refit'; ``reduces``: ``Effect.reduces``'
+    reason; ``cv``, ``share``: :func:`cross_validate` and the held-out share of the excess;
+    ``start`` (P',): the base parameters with the effect's defaults.
     """
 
     token: str
@@ -152,10 +150,6 @@ class _Base:
                if base_info[i][:3] in where]
         return [t for t in out if t not in own]
 
-    def test(self, trial):
-        """Return (p-value, log10 p, delta BIC) of ``trial`` against the base fit."""
-        return likelihood_ratio(self.ev0.chi2 - trial.chi2, trial.k, self.n_obs)
-
 
 def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLDS,
              alpha=ALPHA, max_refit=DEFAULT_MAX_REFIT, candidates=None, progress=None,
@@ -175,13 +169,12 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
     base : FitResult, optional
         An existing fit of the model on ``data`` (default: fitted here).
     folds : int
-        Folds of the cross-validation (:func:`time_blocks`); 0 (or too short a record): no
-        held-out test, the verdict rests on the likelihood tests and the in-sample share
-        (``decided_by`` says so).
+        Folds of the cross-validation (:func:`time_blocks`); 0 (or too short a record): the
+        in-sample share decides (``decided_by``).
     alpha : float
         Family-wise significance level (Bonferroni over the candidates).
     max_refit : int
-        Best-screened candidates refitted in full (the rest keep their one-step evidence).
+        Best-screened candidates refitted in full.
     candidates : list of str, optional
         Tokens to test instead of every missing effect.
     progress : callable, optional
@@ -189,16 +182,14 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
     cv_method : {'newton', 'refit'}
         How each fold is fitted (:func:`cross_validate`).
     max_samples : int or None
-        Test the candidates on at most this many evenly spaced epochs (the noise floor uses
-        all of them).  None: all.
+        Test the candidates on at most this many evenly spaced epochs (None: all).
     baseline_m : float
         Arm length of a four-sensor cross, m (the gradient of a ``nonuniform_field`` finding).
     constrained : bool
-        Partial attitude coverage: every fit uses the priors of ``fit(constrained=True)``, the
-        held-out fits are refits, and candidates are judged only after a constrained refit.
+        Partial attitude coverage: every fit with ``fit(constrained=True)``'s priors, held-out
+        fits refitted, candidates judged only after a constrained refit.
     propose : bool
-        Also test the steps and lines of the base residual (:func:`propose_from_residual`) and
-        the effects the findings point to (:func:`tokens_from_findings`).
+        Also test the residual's steps and lines and the findings' tokens.
     **fit_kwargs
         Passed to :func:`magcal_ros.core.model.fit` for the base fit.
 
@@ -207,7 +198,6 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
     Diagnosis
 
     """
-    # one BLAS thread, as in fit(): threads only contend on small shared machines (bench/)
     with single_threaded_blas():
         t_start = time.perf_counter()
         seconds = {}
@@ -318,10 +308,8 @@ def _merge_search(b, trials, ranked, verdict, reason, res, at_floor):
     Put the search's terms among the candidates and choose the verdict between the two.
 
     The catalog's verdict stands when it brings every sensor to its floor, unless the search's
-    term does too on fewer sensors; otherwise the search's adopted term is the verdict when it
-    leaves less (largest ratio to the floor).  The search's terms are listed among the
-    candidates (method 'score') only when the verdict is the search's.  When nothing explains
-    the excess, an excess confined in time (``res.localised``) is left out instead.
+    term does too on fewer sensors; otherwise the search's term wins when it leaves less.
+    When nothing explains the excess, an excess confined in time is left out instead.
     """
     s = b.data.n_sensors
     if at_floor:
@@ -371,12 +359,7 @@ def _merge_search(b, trials, ranked, verdict, reason, res, at_floor):
 
 
 def _describe(b, found, res, verdict, scalar_rms, vector_rms):
-    """
-    Add the model-free descriptions of the search to the findings (each with its token).
-
-    'localised': an excess confined in time (:func:`.search.localised`), token ``drop(t0,
-    t1)``; 'unexplained', without a verdict: what is left (:func:`_what_is_left`).
-    """
+    """Add the search's 'localised' (``drop(t0, t1)``) and 'unexplained' findings."""
     s = b.data.n_sensors
     new = []
     loc = res.localised
@@ -406,10 +389,9 @@ def _what_is_left(b, found, res, scalar_rms, vector_rms):
     """
     Describe the excess nothing explains (a Finding of kind 'unexplained'), or None.
 
-    Which sensors carry it, scalar or vector and how far above the floor, when (the shortest
-    interval holding :data:`WHEN_SHARE` of it if at most :data:`WHEN_SPAN` of the record) and
-    what it follows most: the search's best term or a model-free finding on those sensors,
-    whose token it offers (:func:`.verify.tested_findings` fits it first).
+    Which sensors carry it, scalar or vector, how far above the floor, when (:func:`_when`)
+    and what it follows most (the search's best term or a finding on them, whose token it
+    offers).
     """
     s = b.data.n_sensors
     fl = b.floor
@@ -458,16 +440,11 @@ def _when(b, sens):
     if total <= 0 or nb < 4:
         return 'throughout the record'
     cum = np.concatenate([[0.0], np.cumsum(blk)])
-    span = float(t[-1] - t[0])
-    best = None
-    for i in range(nb):
-        k = int(np.searchsorted(cum, cum[i] + WHEN_SHARE * total - 1e-12 * total))
-        if k <= nb and (best is None or k - i < best[1] - best[0]):
-            best = (i, k)
-    if best is None:
-        return 'throughout the record'
-    t0, t1 = float(t[edges[best[0]]]), float(t[edges[best[1]] - 1])
-    if t1 - t0 > WHEN_SPAN * span:
+    # the shortest run of blocks from each start holding WHEN_SHARE of it; the first shortest
+    ends = np.searchsorted(cum, cum[:-1] + WHEN_SHARE * total - 1e-12 * total)
+    i = int(np.argmin(np.where(ends <= nb, ends - np.arange(nb), nb + 1)))
+    t0, t1 = float(t[edges[i]]), float(t[edges[ends[i]] - 1])
+    if t1 - t0 > WHEN_SPAN * float(t[-1] - t[0]):
         return 'throughout the record'
     return f'mostly within {format_arg(t0)}-{format_arg(t1)} s'
 
@@ -551,11 +528,10 @@ def _term_candidate(b, tm, res, verdict=False):
 
 def order_by_evidence(trials, b):
     """
-    Sort ``trials`` in place, best evidence (lowest delta BIC against ``b``) first.
+    Sort ``trials`` in place, lowest delta BIC against ``b`` first.
 
-    Evidence equal within :data:`EVIDENCE_TIE` is a tie, which goes to fewer parameters, then
-    to a named effect before one with arguments ('wheel' before 'periodic(0.25)'), then by
-    token.
+    Within :data:`EVIDENCE_TIE`: fewer parameters, then a named effect before one with
+    arguments, then by token.
     """
     _order_runs(trials, b.delta_bic, lambda c: (c.k, '(' in c.label, c.token))
 
@@ -637,10 +613,9 @@ def _screen(b, testable, progress):
     """
     Screen every candidate from the base fit; return (trials best first, Screen).
 
-    One Gauss-Newton step each (:meth:`Screen.step`) and its score statistic, the chi-square
-    decrease the step predicts (Rao's score test).  Those whose predicted delta BIC is above
-    :data:`SCORE_RULE_OUT_BIC` keep that evidence (method 'score'); the others are evaluated at
-    the step ('one-step').  Under the robust loss every candidate is evaluated.
+    One Gauss-Newton step each (:meth:`Screen.step`) and its predicted chi-square decrease
+    (Rao's score test): above :data:`SCORE_RULE_OUT_BIC` in delta BIC (not under the robust
+    loss) the candidate keeps that ('score'), else it is evaluated at the step ('one-step').
     """
     trials, screen = [], None
     if testable:
@@ -662,10 +637,8 @@ def _screen(b, testable, progress):
     for c in trials:
         if not b.robust and np.isfinite(c.chi2) and b.delta_bic(c) > SCORE_RULE_OUT_BIC:
             continue
-        # from the base fit's field: one Gauss-Newton step of the profile (model.evaluate),
-        # halved while it overshoots; when the whole step overshoots, also the candidate's
-        # own part of it alone (the base held: a base that absorbed part of the effect
-        # moves far and nonlinearly); the lower chi-square of those, else the start
+        # the step halved while it overshoots; if the whole step did, also the candidate's
+        # own part alone (the base held); the lower chi-square of those, else the start
         step, best = c.p - c.start, None
         for k in range(STEP_HALVINGS + 1):
             ev = _at_step(b, c, c.start + step / 2 ** k)
@@ -746,16 +719,16 @@ def _refit_one(b, c, init, max_nfev):
 
 def _passes_lr(b, c, p_thr):
     """Return whether p < ``p_thr`` and delta BIC < MIN_DELTA_BIC (the likelihood tests)."""
-    return b.test(c)[0] < p_thr and b.delta_bic(c) < MIN_DELTA_BIC
+    p_value = likelihood_ratio(b.ev0.chi2 - c.chi2, c.k, b.n_obs)[0]
+    return p_value < p_thr and b.delta_bic(c) < MIN_DELTA_BIC
 
 
 def _held_out(b, trials, n_refit, folds, cv_method, p_thr, progress, held_out):
     """
     Cross-validate the base model and the refitted candidates that pass the likelihood tests.
 
-    Best first, until one removes MIN_EXPLAINED of the excess; each trial tested gets ``cv``
-    and ``share``.  Returns the base model's :func:`cross_validate` result, None without a
-    held-out test.
+    Best first, until one removes MIN_EXPLAINED of the excess (each gets ``cv`` and
+    ``share``).  Returns the base model's :func:`cross_validate`, None without a held-out test.
     """
     if not held_out:
         return None

@@ -12,12 +12,7 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""
-Screening of candidate effects: one Gauss-Newton step of each extended model from the base fit.
-
-Exact for effects that enter linearly, as all driven effects do; the most promising
-candidates are then refitted in full (:mod:`magcal_ros.core.discovery.run`).
-"""
+"""Screening of candidate effects: one Gauss-Newton step of each extended model from the base."""
 from magcal_ros.core.discovery.measures import solve_psd
 from magcal_ros.core.model.engine import prior_information, ProfiledProblem
 from magcal_ros.core.model.fitting import priors_for
@@ -40,27 +35,21 @@ class Screen:
     """
     One Gauss-Newton step of an extended model from the base solution, for many candidates.
 
-    The variable-projection Jacobian of the base parameters (as in
-    :func:`magcal_ros.core.model.fit`), the residual and the nuisance-field projector are
-    computed once; each candidate adds only its own columns, and the step solves the normal
-    equations of [J_base, J_candidate]: for effects that enter linearly, the refit to first
-    order in the change of the profiled field.  With P = I - G (G^T G)^-1 G^T (G: the
-    field-direction columns of each epoch) and P J_base = J_base, the blocks are formed
-    without projecting C row by row: J_base^T P C = J_base^T C, C^T P C = C^T C - (G^T C)^T
-    (G^T G)^-1 (G^T C) and C^T P r likewise, per epoch with 2 x 2 inverses.
+    The base's variable-projection Jacobian, residual and field projector are formed once;
+    a candidate adds its columns C and the step solves the normal equations of [J_base, C]
+    (exact to first order for effects that enter linearly).  With P = I - G (G^T G)^-1 G^T
+    (G: each epoch's field-direction columns) and P J_base = J_base: J_base^T P C = J_base^T
+    C, C^T P C = C^T C - (G^T C)^T (G^T G)^-1 (G^T C), per epoch with 2 x 2 inverses.
     """
 
     def __init__(self, model, p, raw, contexts, f, sigma, priors=(), constrained=False):
         """
         Form the base fit's scaled normal equations and field projector once.
 
-        ``model``: the base model, prepared; ``p`` (P,) its fitted parameters; ``raw`` (S, N, 3)
-        raw readings of the screened epochs, nT; ``contexts``: per sensor, on the same epochs;
-        ``f`` (N,) reference magnitude, nT; ``sigma`` (S,) noise levels, nT; ``priors``: the
-        base fit's (index, mean, sd) (:attr:`FitResult.priors`), and with ``constrained`` each
-        candidate's own (``Effect.prior``): they enter the normal equations as the fit's
-        prior rows do, so that a step does not throw away what only the priors hold (a
-        vehicle's partial coverage, the attitude's mounting) and overshoot.
+        ``model``: the base model, prepared; ``p`` (P,) its parameters; ``raw`` (S, N, 3) nT
+        and ``contexts``: the screened epochs; ``f`` (N,) nT; ``sigma`` (S,) nT; ``priors``:
+        the base fit's (index, mean, sd), and with ``constrained`` each candidate's own, as
+        the fit's prior rows (a step keeps what only the priors hold).
         """
         self.model, self.p, self.raw, self.ctx = model, p, raw, contexts
         self.f, self.sigma, self.constrained = f, sigma, constrained
@@ -175,9 +164,7 @@ class Screen:
         """
         Return (P',) a start for the refit of a candidate with lags, or None without a lag.
 
-        For a fixed time constant a lagged channel enters linearly: each tau of ``taus`` (s) costs
-        one :meth:`step` with every lag of the candidate held at tau; the step with the largest
-        predicted decrease is returned.
+        One linear :meth:`step` per tau of ``taus`` (s), every lag held at it; the best one.
         """
         tau_idx = [i for i, (_, lab, nm, _) in enumerate(m_ext.param_info())
                    if added[i] and nm == 'tau' and lab.startswith('lag(')]

@@ -15,27 +15,22 @@
 """
 Discovery as a search over the model formula (issue 18 item 3).
 
-Candidates are generated from what the record holds (:mod:`.bases`: drivers in time, each
-channel, products of two channels, the field rate) and combined with every coupling of the
-grammar (``offset``, ``scale``, ``linear``, ``nonorth``, ``rotation``, ``field``) on every
-scope (the sensors the driver explains, each alone and as a set; every sensor, each its
-own and alike; the array), then
+The drivers a record offers (:mod:`.bases`), with every coupling of the grammar, on every
+scope (the sensors the driver explains, alone and as a set; every sensor, each its own and
+alike; the array), are
 
 1. **pre-screened** by least squares of each sensor's base residual on the candidate's
-   columns (a cheap lower bound of the score statistic), which also gives the scope;
-2. **scored** exactly by Rao's score test at the base fit (the one Gauss-Newton step of
-   :class:`.screen.Screen`), for the best :data:`SCORE_TOP`;
-3. **validated on held-out data**: the same linearised problem fitted on all but one fold
-   of interleaved time blocks and evaluated on that fold (:class:`BlockSums`).  A term is
-   adopted only if it is significant (Bonferroni over every candidate generated, delta BIC
-   < -10) and removes at least :data:`~.constants.MIN_EXPLAINED` of the held-out excess over
-   the floor; the largest held-out share wins, ties within :data:`TIE_SHARE` going to fewer
-   parameters;
-4. when no single term brings every sensor to its floor, **pairs** of the best terms are
-   searched the same way.
+   columns (a lower bound of the score statistic), which also gives the scope;
+2. **scored** by Rao's score test at the base fit (:class:`.screen.Screen`'s step), the
+   best :data:`SCORE_TOP`;
+3. **validated held out**: the linearised problem fitted on all folds of interleaved time
+   blocks but one, evaluated on that one (:class:`BlockSums`).  A term is adopted if
+   significant (Bonferroni over every candidate generated, delta BIC < -10) and it removes
+   :data:`~.constants.MIN_EXPLAINED` of the held-out excess over the floor; the largest
+   share wins, ties within :data:`TIE_SHARE` to fewer parameters;
+4. when no single term brings every sensor to its floor, **pairs** of the best terms.
 
-The adopted term is written in the formula syntax (``offset(s(t, k=8))@2``); the grammar
-refits it when the user adds it.
+The adopted term is written in the formula syntax (``offset(s(t, k=8))@2``).
 """
 from dataclasses import dataclass, field
 import functools
@@ -63,11 +58,9 @@ SEARCH_FOLDS, SEARCH_BLOCKS_PER_FOLD = 3, 8
 #: held-out shares within this of the best are a tie, decided by fewer parameters
 TIE_SHARE = 0.03
 #: a sensor is in a term's scope when the driver explains at least this share of what it
-#: explains on the sensor it explains most (a disturbance of two sensors leaks ~5 % into
-#: the others through the field they share)
+#: explains on its best sensor (a disturbance leaks ~5 % into the others through the field)
 SCOPE_SHARE = 0.15
-#: a term "explains" the excess when it also removes this share of it held out (a smooth
-#: that follows a short disturbance in-sample but cannot predict it does not)
+#: a term "explains" the excess when it also removes this share of it held out
 EXPLAINS_SHARE = 0.8
 #: epochs the search works on (evenly spaced; its cost is then independent of the record)
 SEARCH_MAX_EPOCHS = 4000
@@ -85,13 +78,11 @@ class Term:
     """
     One candidate term: a coupling of a driver on a scope, and its evidence.
 
-    ``coupling``: 'offset', 'scale', 'linear', 'nonorth', 'rotation', 'field' (or 'pair', of
-    the two ``parts``); ``driver``: a :class:`bases.Driver`; ``sensors``: the sensors it acts
-    on (1-based); ``alike``: one parameter set shared by them (in each sensor's axes); ``k``:
-    parameters it adds; ``approx``: pre-screen chi-square decrease; ``delta_chi2``,
-    ``delta_bic``, ``p_value``: the exact score test; ``share``: held-out share of the excess
-    over the floor it removes; ``ratios``: {sensor: RMS / floor} in-sample after the step;
-    ``cv_before``, ``cv_after``: combined held-out RMS without and with it, nT.
+    ``coupling``: one of :data:`COUPLINGS` or 'pair' (of the two ``parts``); ``sensors``
+    (1-based); ``alike``: one parameter set shared by them; ``k``: parameters added;
+    ``approx``: pre-screen chi-square decrease; ``delta_chi2``, ``delta_bic``, ``p_value``:
+    the score test; ``share``: held-out share of the excess removed; ``ratios``: {sensor: RMS
+    / floor} after the step; ``cv_before``, ``cv_after``: combined held-out RMS, nT.
     """
 
     coupling: str
@@ -152,12 +143,9 @@ def coupling_columns(coupling, x, lin, per_axis=False):
     """
     Raw-space columns (k, N, 3) of a coupling of driver columns x (N, m).
 
-    offset: dB = X P (3 per column); scale: dB_i = (X P)_i lin_i; linear: dB = M(x) lin
-    (9 per column); nonorth: the angles (psi, varphi, theta) = X P, dB = dC lin; rotation:
-    the angles (alpha, beta, gamma) = X P, dB = W lin (3 per column each, the first order
-    of core/effects/couplings.py); field: dB = (X P) lin (the field along itself, m
-    columns); a per-axis driver (rate): dB_i = P_i X_i (offset) or P_i X_i lin_i (scale).
-    lin (N, 3): the sensor's reading / 50 000 nT.
+    The first order of core/effects/couplings.py (:data:`_PATTERNS`); field: dB = (X P) lin;
+    per axis (rate): dB_i = P_i X_i (offset) or P_i X_i lin_i (scale).  lin (N, 3): the
+    sensor's reading / :data:`LIN_NT`.
     """
     n, m = x.shape
     if per_axis:
@@ -188,11 +176,10 @@ def n_params(coupling, m, per_axis=False):
 
 class BlockSums:
     """
-    The base fit's linearised problem summed per time block, for held-out tests of terms.
+    The base fit's linearised problem (a :class:`.screen.Screen`) summed per time block.
 
-    Built from a :class:`.screen.Screen`: for a candidate with raw columns C the blocks of the
-    normal equations [J C]^T P [J C] and [J C]^T P r are formed per block; the fit on a fold's
-    training blocks is one solve, its held-out sum of squares r'Pr + 2 s'g + s'M s.
+    For a candidate's raw columns C, [J C]^T P [J C] and [J C]^T P r per block: a fold's fit is
+    one solve, its held-out sum of squares r'Pr + 2 s'g + s'M s.
     """
 
     def __init__(self, screen, sigma, n, folds=SEARCH_FOLDS,
@@ -369,8 +356,7 @@ def couplings_of(driver):
     """
     Couplings tried with a driver: every one of the grammar (issue 32 item 4).
 
-    A per-axis driver (the field rate): offset and scale only, as the grammar allows;
-    ``linear`` with drivers of at most :data:`LINEAR_MAX_COLUMNS` columns.
+    Per axis (the field rate): offset and scale; ``linear`` up to :data:`LINEAR_MAX_COLUMNS`.
     """
     if driver.per_axis:
         return ('offset', 'scale')
@@ -596,12 +582,11 @@ def _ratios_after(sums, cols, sol, sigma):
 @dataclass
 class Localized:
     """
-    An excess over the floor confined to one interval of time (a model-free description).
+    An excess over the floor confined to one interval of time.
 
-    ``t0``, ``t1``: the interval, s; ``sensors``: those that carry it (each at least 10 % of
-    the excess inside); ``share``: share of the excess (every sensor) inside the interval;
-    ``ratios_outside``: {sensor: RMS / floor outside it}; ``vector``: mostly across the field
-    rather than along it.
+    ``t0``, ``t1``: s; ``sensors``: those with 10 % of the excess inside; ``share``: of the
+    excess inside; ``ratios_outside``: {sensor: RMS / floor outside}; ``vector``: mostly
+    across the field.
     """
 
     t0: float
@@ -613,12 +598,7 @@ class Localized:
 
     @property
     def token(self):
-        """
-        Return the formula term that leaves the interval out of the sensors that carry it.
-
-        'drop(t0, t1)' when every sensor does; 'drop(t0, t1)@J' or 'drop(t0, t1)@{J,K}' when
-        only some do (the others' readings still inform the field).
-        """
+        """Return 'drop(t0, t1)', on the sensors that carry it ('@J', '@{J,K}') unless all."""
         core = f'drop({format_arg(self.t0)}, {format_arg(self.t1)})'
         if not self.sensors or set(self.sensors) >= set(self.ratios_outside):
             return core
@@ -638,11 +618,11 @@ def localised(t, sums):
     """
     Describe an excess confined in time, or None (model-free; see :class:`Localized`).
 
-    ``sums``: the base fit's :class:`BlockSums`, its floor set.  The interval of largest total
-    excess over the floor (maximum-sum subarray, Kadane's algorithm), widened by 0, 1, 2 or
-    5 % of the record on each side, is left out of a linearised refit; the first after which
-    every sensor is within :data:`~.constants.AT_FLOOR_RATIO` of its floor is returned if it
-    is at most :data:`MAX_LOCALISED_FRACTION` of the record and not a few outliers.
+    ``sums``: the base fit's :class:`BlockSums`, its floor set.  The interval of largest
+    excess (maximum-sum subarray, Kadane), widened by 0, 1, 2 or 5 % of the record each side,
+    is left out of a linearised refit; the first that leaves every sensor within
+    :data:`~.constants.AT_FLOOR_RATIO` of its floor, if at most
+    :data:`MAX_LOCALISED_FRACTION` of the record and not a few outliers.
     """
     t = np.asarray(t, float)
     g = sums.g
@@ -667,8 +647,7 @@ def localised(t, sums):
         total = float(ex.sum())
         if total <= 0:
             return None
-        # the interval of largest excess above half the mean excess per epoch (maximum-sum
-        # subarray, Kadane): a concentration, not the whole record
+        # the interval of largest excess above half the mean excess per epoch (Kadane)
         cum = np.concatenate([[0.0], np.cumsum(ex - 0.5 * total / n)])
         low = np.minimum.accumulate(cum)
         i1 = int(np.argmax(cum - low))
@@ -690,8 +669,7 @@ def localised(t, sums):
             if margin == 0.0:
                 step_next = st
             if max(rat.values()) <= AT_FLOOR_RATIO:
-                # a disturbance, not a few outliers: the 5 % largest epochs of the interval
-                # must not hold half of its excess (heavy-tailed noise: fit --robust)
+                # not a few outliers: its 5 % largest epochs hold at most SPIKE_SHARE
                 pos = np.sort(np.clip(ex[a:b + 1], 0.0, None))[::-1]
                 if pos[:max(1, len(pos) // 20)].sum() > SPIKE_SHARE * pos.sum():
                     return None

@@ -24,10 +24,9 @@ def time_blocks(n, folds, blocks_per_fold=None):
     """
     Index arrays of ``folds`` held-out sets of ``n`` epochs, each interleaved in time.
 
-    The record is cut into ``folds * blocks_per_fold`` contiguous blocks (neighbouring samples
-    are correlated: a random split would leak) and fold k holds out blocks k, k + folds, ...:
-    an effect that changes over the record is interpolated, never extrapolated from one end.
-    ``blocks_per_fold`` defaults to :data:`BLOCKS_PER_FOLD` (1: plain contiguous k-fold).
+    Fold k holds out blocks k, k + folds, ... of ``folds * blocks_per_fold`` contiguous ones
+    (default :data:`BLOCKS_PER_FOLD`): correlated neighbours do not leak, and an effect that
+    changes over the record is interpolated, not extrapolated.
     """
     if folds < 2:
         raise ValueError(f'cross-validation needs at least 2 folds, got {folds}')
@@ -44,29 +43,24 @@ def cross_validate(data, model, params, f, sigma, folds=DEFAULT_FOLDS, fold_init
 
     Parameters
     ----------
-    data : Dataset
-        (S sensors, N epochs) in time order, nT.
-    model : Model
-        Prepared on the full data.
+    data, model : Dataset, Model
+        (S sensors, N epochs) in time order, nT; the model prepared on them.
     params : numpy.ndarray
         (P,) the fit on all data (``'newton'``: its optimum; ``'refit'``: the warm start).
-    f : numpy.ndarray
-        (N,) reference magnitude, nT.
-    sigma : numpy.ndarray
-        (S,) fixed noise levels, nT.
+    f, sigma : numpy.ndarray
+        (N,) reference magnitude and (S,) fixed noise levels, nT.
     folds : int
         Held-out sets, each of interleaved blocks (:func:`time_blocks`).
     fold_inits : list of numpy.ndarray, optional
         Per-fold warm starts of ``'refit'`` (default ``params``).
     method : {'newton', 'refit'}
         ``'refit'``: the full fit on the other blocks.  ``'newton'``: one Gauss-Newton step
-        from the all-data optimum without the held-out block's rows,
-        p_b = p - (J^T J - J_b^T J_b)^-1 (J^T r - J_b^T r_b) (the approximate leave-out, exact
-        for a linear model), about one iteration of one fit.
+        without the held-out rows, p_b = p - (J^T J - J_b^T J_b)^-1 (J^T r - J_b^T r_b)
+        (exact for a linear model).
     constrained : bool
-        Fit with the constrained mode's priors; implies ``'refit'``.
+        With the constrained mode's priors; implies ``'refit'``.
     extra_priors : list of (int, float, float)
-        (index, mean, sd) priors added to every fold's fit (:func:`fit`); implies ``'refit'``.
+        (index, mean, sd) priors added to every fold's fit; implies ``'refit'``.
 
     Returns
     -------
@@ -116,8 +110,6 @@ def _newton_leave_out(data, model, params, f, sigma, blocks):
             prob = ProfiledProblem(model, sub.raw,
                                    [sub.context(j) for j in range(1, sub.n_sensors + 1)],
                                    f[test], grp, sigma, p_full=params)
-            # J^T J and J^T r of the block, formed without the dense projected Jacobian
-            # (ProfiledProblem.normal_equations: the same numbers to rounding)
             a, g = prob.normal_equations(params[prob.cols])
             hess.append(a)
             grad.append(g)

@@ -15,15 +15,12 @@
 """
 Every term the diagnosis offers is fitted first, as ``magcal fit`` would fit it (issue 32).
 
-The screen, the refits and the formula search judge a term by a linearised problem or a
-refit without the identifiability check; ``magcal fit --model MODEL,TERM`` may refuse it or
-land elsewhere.  :func:`verify_term` runs that fit (:func:`magcal_ros.core.model.fit` with
-its defaults and the diagnosis' robust and constrained settings, warm-started from the
-diagnosed fit) and the diagnosis' held-out test (:func:`.validation.cross_validate`).  A
-term is offered only when the fit accepts it, converges and removes at least
-:data:`~.constants.MIN_EXPLAINED` of the held-out excess over the floor; otherwise the
-reason is shown among the candidates.  A ``drop(t0, t1)`` is judged by the held-out RMS on
-the epochs it keeps.
+The screen, the refits and the search judge a term linearised or without the
+identifiability check; :func:`verify_term` runs ``magcal fit``'s fit (warm-started, the
+diagnosis' robust and constrained settings) and the held-out test.  A term is offered only
+when the fit accepts it, converges and removes :data:`~.constants.MIN_EXPLAINED` of the
+held-out excess over the floor; else the reason is shown.  A ``drop`` is judged on the
+epochs it keeps.
 """
 from dataclasses import dataclass, replace
 
@@ -31,6 +28,7 @@ from magcal_ros.core.discovery.candidates import extend_model
 from magcal_ros.core.discovery.constants import MIN_DELTA_BIC, MIN_EXPLAINED
 from magcal_ros.core.discovery.measures import dof_factor, evaluate_residuals, explained_share
 from magcal_ros.core.discovery.validation import cross_validate
+from magcal_ros.core.effects.safety import first_line
 from magcal_ros.core.model.fitting import fit
 import numpy as np
 
@@ -45,10 +43,8 @@ class Verified:
     """
     A term fitted with the diagnosed model as ``magcal fit`` fits it.
 
-    ``ok``: the fit accepts it, converges and it removes at least MIN_EXPLAINED of the
-    held-out excess; ``reason``: why not, or the figures; ``rms_before_nt``, ``rms_after_nt``:
-    combined held-out RMS (in-sample without a held-out test) without and with the term, nT;
-    ``share``: share of the excess over the floor it removes.
+    ``ok``: it passes; ``reason``: why not, or the figures; ``rms_before_nt``,
+    ``rms_after_nt``: combined held-out (else in-sample) RMS, nT; ``share``: of the excess.
     """
 
     token: str
@@ -62,15 +58,12 @@ class Verified:
 def verify_term(b, token, cv0, folds, cv_method='newton', on_degenerate='raise',
                 replaces=(), start=None):
     """
-    Fit ``token`` with the diagnosed model and test it held out (module docstring).
+    Fit ``token`` with the diagnosed model and test it held out: a :class:`Verified`.
 
-    ``b``: the diagnosed fit (run._Base); ``token``: the term, in the syntax of ``--model``;
-    ``cv0``: :func:`cross_validate` of the diagnosed model (None: the in-sample residuals
-    decide) with ``folds`` and ``cv_method``; ``on_degenerate``: as
-    :func:`magcal_ros.core.model.fit`; ``replaces``: terms of the model ``token`` takes the
-    place of (the model fitted is then the diagnosed one without them, plus ``token``, from
-    the closed form); ``start``: values of the parameters the term adds, to start from.
-    Returns a :class:`Verified`.
+    ``b``: the diagnosed fit (run._Base); ``cv0``: :func:`cross_validate` of the diagnosed
+    model (None: in-sample) with ``folds`` and ``cv_method``; ``replaces``: terms ``token``
+    takes the place of (then fitted from the closed form); ``start``: values of the
+    parameters the term adds.
     """
     try:
         if replaces:
@@ -84,14 +77,14 @@ def verify_term(b, token, cv0, folds, cv_method='newton', on_degenerate='raise',
             if start is not None and len(start) == int(added.sum()):
                 p_ext[added] = start
     except ValueError as exc:
-        return Verified(token, False, f'the model does not take it: {_first_line(exc)}')
+        return Verified(token, False, f'the model does not take it: {first_line(exc)}')
     kw = {'f_scale': b.f_scale} if b.robust else {}
     try:
         r = fit(b.data, m_ext, field_nt=b.f, init=p_ext, robust=b.robust,
                 constrained=b.constrained, extra_priors=b.carried_priors(m_ext),
                 on_degenerate=on_degenerate, **kw)
     except ValueError as exc:
-        return Verified(token, False, f'magcal fit refuses it: {_first_line(exc)}')
+        return Verified(token, False, f'magcal fit refuses it: {first_line(exc)}')
     except np.linalg.LinAlgError as exc:
         return Verified(token, False, f'the fit fails: {exc}')
     if not r.success:
@@ -129,23 +122,15 @@ def verify_term(b, token, cv0, folds, cv_method='newton', on_degenerate='raise',
                     f'fitted as magcal fit fits it{why}', before, after, share)
 
 
-def _first_line(exc):
-    """Return the first line of an exception's message."""
-    return str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-
-
 def tested_verdict(b, verdict, reason, ranked, cv0, folds, cv_method='newton',
                    on_degenerate='raise', cache=None, p_thr=0.0):
     """
     Keep a verdict only when its term passes :func:`verify_term`; else try the next ones.
 
-    ``b``, ``cv0``, ``folds``, ``cv_method``, ``on_degenerate``: as :func:`verify_term`;
-    ``verdict`` (token or None) and ``reason``: the verdict; ``ranked``: the candidates, best
-    first; ``cache``: {token: Verified}, filled here; ``p_thr``: the Bonferroni threshold (a
-    candidate that passes it and the BIC rule may replace a verdict that fails).  Returns (the
-    first of the verdict and the next such candidates, at most :data:`MAX_VERDICT_TRIES`, that
-    passes, or None; its reason; the candidates, a term that failed without ``significant``
-    and with why in ``note``; the Verified of every term tried).
+    ``ranked``: the candidates, best first; ``cache``: {token: Verified}, filled here;
+    ``p_thr``: a candidate below it and the BIC rule may replace a failed verdict.  Returns
+    (the first that passes of at most :data:`MAX_VERDICT_TRIES`, or None; its reason; the
+    candidates, those that failed not ``significant``, why in ``note``; every Verified).
     """
     cache = {} if cache is None else cache
     if verdict is None:
@@ -197,11 +182,9 @@ def tested_verdict(b, verdict, reason, ranked, cv0, folds, cv_method='newton',
 
 def tested_findings(b, found, cv0, folds, cv_method='newton', on_degenerate='raise', cache=None):
     """
-    Keep a finding's token only when it passes :func:`verify_term` (module docstring).
+    Keep a finding's token only when it passes :func:`verify_term`; else say why.
 
-    At most :data:`MAX_FINDING_TRIES` tokens not fitted yet are fitted (largest effect first);
-    a finding whose token fails, or is not fitted, says why it is not offered and its token is
-    None.  Returns the findings (``found`` itself when no finding has a token).
+    At most :data:`MAX_FINDING_TRIES` tokens are fitted, largest effect first.
     """
     cache = {} if cache is None else cache
     if found is None or not any(f.token for f in found.items):
@@ -234,12 +217,7 @@ SPLIT_SHARE = 0.1
 
 
 def each_variant(token):
-    """
-    Return the term with each sensor's own parameters for a term that ties them, or None.
-
-    ``coupling(driver)@alike`` -> ``coupling(driver)``; ``field(driver)`` (one field magnitude
-    seen by every sensor) -> ``scale(driver)`` (each sensor's scale factors follow it).
-    """
+    """Return ``X`` for ``X@alike``, ``scale(d)`` for ``field(d)`` (each sensor's own), or None."""
     t = token.replace(' ', '')
     if t.endswith('@alike') and '+' not in t:
         return token[:token.rindex('@')].rstrip()
@@ -250,12 +228,9 @@ def each_variant(token):
 
 def _each_variant(b, chosen, cv0, folds, cv_method, on_degenerate, cache):
     """
-    Check that the sensors follow a term that ties them (``@alike``, ``field``) alike.
+    Return (Verified, words) of :func:`each_variant` when it passes and does better, or None.
 
-    The variant with each sensor's own parameters (:func:`each_variant`) is fitted as any term;
-    if it passes and removes :data:`SPLIT_SHARE` more of the held-out excess, the sensors do
-    not see the driver alike (docs/formulas.md) and it is offered instead.  Returns (Verified
-    of the variant, the reason's words) or None.
+    Better: :data:`SPLIT_SHARE` more of the held-out excess (docs/formulas.md).
     """
     alt = each_variant(chosen.token)
     if alt is None or chosen.share is None:

@@ -146,10 +146,11 @@ def probe_effect(cls, ref=None):
             f'{exc.signal!r} to its signals (docs/plugins.md)') from None
     except Exception as exc:                  # noqa: B902 -- any failure of plug-in code
         raise ValueError(f'effect {name!r}{where} fails when evaluated on its declared '
-                         f'signals: {type(exc).__name__}: {_first_line(exc)}') from None
+                         f'signals: {type(exc).__name__}: {first_line(exc)}') from None
 
 
-def _first_line(exc):
+def first_line(exc):
+    """Return the first line of an exception's message (its type's name when empty)."""
     text = str(exc).strip()
     return text.splitlines()[0] if text else type(exc).__name__
 
@@ -183,7 +184,7 @@ class EffectError(Exception):
         self.error = error
         self.effect = culprit(error) if effect is None else effect
         who = f'effect {self.effect}' if self.effect else (where or 'the calibration')
-        super().__init__(f'{who} raised {type(error).__name__}: {_first_line(error)}')
+        super().__init__(f'{who} raised {type(error).__name__}: {first_line(error)}')
 
     @property
     def key(self):
