@@ -22,21 +22,12 @@ design columns on the tested epochs (the grammar's own, :func:`grammar_columns`)
 from dataclasses import dataclass, field
 import math
 
+from magcal_ros.core.discovery.constants import (CYCLIC_K, LAG_FRACTIONS, LAG_POINTS,
+                                                 MIN_SAMPLES_PER_K, SMOOTH_K)
 from magcal_ros.core.discovery.measures import lag_grid, usable
 from magcal_ros.core.effects.base import format_arg, SensorContext
 from magcal_ros.core.effects.formula import parse_driver
 import numpy as np
-
-#: numbers of basis functions of the smooth in time the search tries (the grammar's s()
-#: takes 3..20; capped by the record)
-SMOOTH_K = (4, 8, 12, 20)
-#: fewest samples per basis function of a smooth in time
-MIN_SAMPLES_PER_K = 25
-#: time constants of a lag: LAG_POINTS log-spaced from the first share of the record (at
-#: least a sample interval) to the second (:func:`~.measures.lag_grid`)
-LAG_FRACTIONS, LAG_POINTS = (0.002, 0.2), 7
-#: harmonics of a cyclic smooth
-CYCLIC_K = (1, 2, 3)
 
 
 @dataclass

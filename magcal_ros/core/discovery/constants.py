@@ -88,3 +88,65 @@ MIN_EPOCHS = 200
 N_TAU = 24
 #: half width, in independent frequencies, of the neighbourhood a line is compared with
 LINE_NEIGHBOURHOOD = 50
+
+# -- the bases of the formula search (bases.py) -----------------------------------------------
+#: numbers of basis functions of the smooth in time the search tries (the grammar's s()
+#: takes 3..20; capped by the record)
+SMOOTH_K = (4, 8, 12, 20)
+#: fewest samples per basis function of a smooth in time
+MIN_SAMPLES_PER_K = 25
+#: time constants of a lag: LAG_POINTS log-spaced from the first share of the record (at
+#: least a sample interval) to the second (:func:`~.measures.lag_grid`)
+LAG_FRACTIONS, LAG_POINTS = (0.002, 0.2), 7
+#: harmonics of a cyclic smooth
+CYCLIC_K = (1, 2, 3)
+
+# -- the formula search (search.py) -----------------------------------------------------------
+#: candidates scored exactly after the pre-screen
+SCORE_TOP = 40
+#: candidates cross-validated after the exact score
+CV_TOP = 10
+#: pairs are formed from this many of the best validated singles
+PAIR_TOP = 5
+#: epochs of the pre-screen (evenly spaced)
+PRESCREEN_EPOCHS = 2000
+#: blocks of the held-out test: folds x blocks per fold
+SEARCH_FOLDS, SEARCH_BLOCKS_PER_FOLD = 3, 8
+#: held-out shares within this of the best are a tie, decided by fewer parameters
+TIE_SHARE = 0.03
+#: a sensor is in a term's scope when the driver explains at least this share of what it
+#: explains on its best sensor (a disturbance leaks ~5 % into the others through the field)
+SCOPE_SHARE = 0.15
+#: a term "explains" the excess when it also removes this share of it held out
+EXPLAINS_SHARE = 0.8
+#: epochs the search works on (evenly spaced; its cost is then independent of the record)
+SEARCH_MAX_EPOCHS = 4000
+#: most parameters of one candidate term
+MAX_TERM_PARAMS = 200
+#: the pre-screen of an @alike term is its own joint least squares up to this many
+#: parameters (beyond, the sum over the sensors, an upper bound)
+ALIKE_EXACT_PARAMS = 60
+#: the linear coupling (9 parameters per driver column and sensor) is tried with drivers
+#: of at most this many columns: with a smooth, its nine entries describe nothing physical
+#: that scale, nonorth and rotation do not, at most of the search's cost
+LINEAR_MAX_COLUMNS = 3
+#: share of an interval's excess its 5 % largest epochs may hold (more: outliers, not a
+#: disturbance confined in time)
+SPIKE_SHARE = 0.5
+#: a disturbance is localised when its interval is at most this share of the record
+MAX_LOCALISED_FRACTION = 0.25
+
+# -- the verdict and the findings fitted (verify.py) ------------------------------------------
+#: at most this many terms are fitted to find one the verdict can offer
+MAX_VERDICT_TRIES = 3
+#: at most this many tokens of the findings are fitted (the rest lose their token)
+MAX_FINDING_TRIES = 3
+#: a term tying the sensors together (``@alike``, ``field``) is replaced by its variant with
+#: each sensor's own parameters when that removes this much more of the held-out excess
+SPLIT_SHARE = 0.1
+
+# -- where an excess lies in time (run.py) ----------------------------------------------------
+#: the excess "lies within" an interval holding this share of it ...
+WHEN_SHARE = 0.8
+#: ... when the interval is at most this share of the record (else "throughout the record")
+WHEN_SPAN = 0.5

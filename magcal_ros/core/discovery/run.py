@@ -33,12 +33,13 @@ from magcal_ros.core.discovery.candidates import (added_params, Candidate, candi
                                                   tokens_from_findings)
 from magcal_ros.core.discovery.constants import (ALPHA, AT_FLOOR_RATIO, BLOCKS_PER_FOLD,
                                                  DEFAULT_FOLDS, DEFAULT_MAX_REFIT,
-                                                 DEFAULT_MAX_SAMPLES, EVIDENCE_TIE, MIN_BLOCK,
-                                                 MIN_DELTA_BIC, MIN_EXPLAINED, REFIT_CHI2_TOL,
-                                                 REFIT_MAX_NFEV, REFIT_MORE_NFEV,
-                                                 SCORE_RULE_OUT_BIC,
-                                                 SEARCH_CHANGE_POINTS, SEARCH_LISTED,
-                                                 STEP_HALVINGS)
+                                                 DEFAULT_MAX_SAMPLES, EVIDENCE_TIE,
+                                                 EXPLAINS_SHARE, MIN_BLOCK, MIN_DELTA_BIC,
+                                                 MIN_EXPLAINED, REFIT_CHI2_TOL, REFIT_MAX_NFEV,
+                                                 REFIT_MORE_NFEV, SCOPE_SHARE,
+                                                 SCORE_RULE_OUT_BIC, SEARCH_CHANGE_POINTS,
+                                                 SEARCH_LISTED, SEARCH_MAX_EPOCHS,
+                                                 STEP_HALVINGS, WHEN_SHARE, WHEN_SPAN)
 from magcal_ros.core.discovery.findings import find as find_findings, Finding, KINDS
 from magcal_ros.core.discovery.measures import (dof_factor, evaluate_residuals, Evaluation,
                                                 explained_share, lag_grid, likelihood_ratio,
@@ -46,8 +47,7 @@ from magcal_ros.core.discovery.measures import (dof_factor, evaluate_residuals, 
                                                 soft_l1_lr_loss, vector_rms_of)
 from magcal_ros.core.discovery.results import compact_spec, Diagnosis
 from magcal_ros.core.discovery.screen import Screen
-from magcal_ros.core.discovery.search import (EXPLAINS_SHARE, SCOPE_SHARE as SEARCH_SCOPE_SHARE,
-                                              search as run_search, SEARCH_MAX_EPOCHS)
+from magcal_ros.core.discovery.search import search as run_search
 from magcal_ros.core.discovery.validation import cross_validate
 from magcal_ros.core.discovery.verify import tested_findings, tested_verdict
 from magcal_ros.core.effects.base import format_arg
@@ -379,12 +379,6 @@ def _describe(b, found, res, verdict, scalar_rms, vector_rms):
     return replace(found, items=tuple(new) + tuple(found.items)) if new else found
 
 
-#: the excess "lies within" an interval holding this share of it ...
-WHEN_SHARE = 0.8
-#: ... when the interval is at most this share of the record (else "throughout the record")
-WHEN_SPAN = 0.5
-
-
 def _what_is_left(b, found, res, scalar_rms, vector_rms):
     """
     Describe the excess nothing explains (a Finding of kind 'unexplained'), or None.
@@ -401,7 +395,7 @@ def _what_is_left(b, found, res, scalar_rms, vector_rms):
     top = max(both.values()) if both else 0.0
     if top <= 0:
         return None
-    sens = tuple(j for j in sorted(both) if both[j] >= SEARCH_SCOPE_SHARE * top)
+    sens = tuple(j for j in sorted(both) if both[j] >= SCOPE_SHARE * top)
     scalar = sum(ex[j] for j in sens) >= 0.5 * sum(vex.get(j, 0.0) for j in sens)
     ratio = _ratio(fl, {j: scalar_rms[j] for j in sens},
                    {j: vector_rms[j] for j in sens if j in vector_rms})

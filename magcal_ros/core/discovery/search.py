@@ -38,37 +38,18 @@ import itertools
 import math
 
 from magcal_ros.core.discovery import bases, measures
-from magcal_ros.core.discovery.constants import AT_FLOOR_RATIO, MIN_DELTA_BIC, MIN_EXPLAINED
+from magcal_ros.core.discovery.constants import (ALIKE_EXACT_PARAMS, AT_FLOOR_RATIO, CV_TOP,
+                                                 LINEAR_MAX_COLUMNS, MAX_LOCALISED_FRACTION,
+                                                 MAX_TERM_PARAMS, MIN_DELTA_BIC, MIN_EXPLAINED,
+                                                 PAIR_TOP, PRESCREEN_EPOCHS, SCOPE_SHARE,
+                                                 SCORE_TOP, SEARCH_BLOCKS_PER_FOLD, SEARCH_FOLDS,
+                                                 SPIKE_SHARE, TIE_SHARE)
 from magcal_ros.core.discovery.screen import add_gtc, ginv_times
 from magcal_ros.core.effects.base import format_arg
 from magcal_ros.core.model.fitting import fit_epochs
 import numpy as np
 from scipy import stats
 
-#: candidates scored exactly after the pre-screen
-SCORE_TOP = 40
-#: candidates cross-validated after the exact score
-CV_TOP = 10
-#: pairs are formed from this many of the best validated singles
-PAIR_TOP = 5
-#: epochs of the pre-screen (evenly spaced)
-PRESCREEN_EPOCHS = 2000
-#: blocks of the held-out test: folds x blocks per fold
-SEARCH_FOLDS, SEARCH_BLOCKS_PER_FOLD = 3, 8
-#: held-out shares within this of the best are a tie, decided by fewer parameters
-TIE_SHARE = 0.03
-#: a sensor is in a term's scope when the driver explains at least this share of what it
-#: explains on its best sensor (a disturbance leaks ~5 % into the others through the field)
-SCOPE_SHARE = 0.15
-#: a term "explains" the excess when it also removes this share of it held out
-EXPLAINS_SHARE = 0.8
-#: epochs the search works on (evenly spaced; its cost is then independent of the record)
-SEARCH_MAX_EPOCHS = 4000
-#: most parameters of one candidate term
-MAX_TERM_PARAMS = 200
-#: the pre-screen of an @alike term is its own joint least squares up to this many
-#: parameters (beyond, the sum over the sensors, an upper bound)
-ALIKE_EXACT_PARAMS = 60
 #: normalisation of the sensor's linear reading in scale/linear/field couplings, nT
 LIN_NT = 50000.0
 
@@ -346,12 +327,6 @@ def generate(data, steps=(), windows=(), lines=()):
 COUPLINGS = ('offset', 'scale', 'linear', 'nonorth', 'rotation', 'field')
 
 
-#: the linear coupling (9 parameters per driver column and sensor) is tried with drivers
-#: of at most this many columns: with a smooth, its nine entries describe nothing physical
-#: that scale, nonorth and rotation do not, at most of the search's cost
-LINEAR_MAX_COLUMNS = 3
-
-
 def couplings_of(driver):
     """
     Couplings tried with a driver: every one of the grammar (issue 32 item 4).
@@ -605,13 +580,6 @@ class Localized:
         if len(self.sensors) == 1:
             return f'{core}@{self.sensors[0]}'
         return f'{core}@{{{",".join(str(j) for j in sorted(self.sensors))}}}'
-
-
-#: share of an interval's excess its 5 % largest epochs may hold (more: outliers, not a
-#: disturbance confined in time)
-SPIKE_SHARE = 0.5
-#: a disturbance is localised when its interval is at most this share of the record
-MAX_LOCALISED_FRACTION = 0.25
 
 
 def localised(t, sums):

@@ -25,17 +25,13 @@ epochs it keeps.
 from dataclasses import dataclass, replace
 
 from magcal_ros.core.discovery.candidates import extend_model
-from magcal_ros.core.discovery.constants import MIN_DELTA_BIC, MIN_EXPLAINED
+from magcal_ros.core.discovery.constants import (MAX_FINDING_TRIES, MAX_VERDICT_TRIES,
+                                                 MIN_DELTA_BIC, MIN_EXPLAINED, SPLIT_SHARE)
 from magcal_ros.core.discovery.measures import dof_factor, evaluate_residuals, explained_share
 from magcal_ros.core.discovery.validation import cross_validate
 from magcal_ros.core.effects.safety import first_line
 from magcal_ros.core.model.fitting import fit
 import numpy as np
-
-#: at most this many terms are fitted to find one the verdict can offer
-MAX_VERDICT_TRIES = 3
-#: at most this many tokens of the findings are fitted (the rest lose their token)
-MAX_FINDING_TRIES = 3
 
 
 @dataclass(frozen=True)
@@ -209,11 +205,6 @@ def _offered(f, v):
            if v is None else v.reason)
     text = f.text.replace(f' (try {f.token})', '')
     return replace(f, token=None, text=f'{text} ({f.token} is not offered: {why})')
-
-
-#: a term tying the sensors together (``@alike``, ``field``) is replaced by its variant with
-#: each sensor's own parameters when that removes this much more of the held-out excess
-SPLIT_SHARE = 0.1
 
 
 def each_variant(token):
