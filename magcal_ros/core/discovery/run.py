@@ -143,7 +143,7 @@ class _Base:
         fit's mounting and IGRF inclination, or a calibration in use's (pipeline.refit_recent),
         so that every refit and held-out fit of the diagnosis holds what the base held.
         """
-        where = {k[:3]: i for i, k in enumerate(model.param_info())}
+        where = model.param_positions()
         own = set(priors_for(model, {}, self.constrained))
         base_info = self.model.param_info()
         out = [(where[base_info[i][:3]], m, s) for i, m, s in self.priors

@@ -98,7 +98,7 @@ class Screen:
                 # (G^T r)^T (G^T G)^-1 G^T r per epoch (N,): what no candidate can remove
                 'rgr': np.einsum('na,na->n', gtr, ginv_gtr)})
         # base parameter (sensor, effect, name) -> its index in the base model
-        self._base_pos = {k[:3]: i for i, k in enumerate(model.param_info())}
+        self._base_pos = model.param_positions()
 
     def step(self, m_ext, p_ext, added, with_decrease=False):
         """

@@ -120,8 +120,8 @@ def fit_attitude(data, model, field_nt=None, mode='tilt', inclination_deg=None,
         tilt = fit_attitude(data, model, field_nt, 'tilt', **dict(fit_kwargs, covariance=False,
                                                                   check_identifiability=False))
         init = model.default_params()
-        where = {k: i for i, k in enumerate(info)}
-        for i, k in enumerate(tilt.result.model.param_info()):
+        where = model.param_positions()
+        for k, i in tilt.result.model.param_positions().items():
             if k in where:                      # every parameter but the attitude's own
                 init[where[k]] = tilt.result.params[i]
         cor = model.correct(1, init, data.raw[0], data.context(1))

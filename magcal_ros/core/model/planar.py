@@ -255,7 +255,7 @@ def planar_summary(pr):
     ``determined`` / ``undetermined`` names.
     """
     r = pr.result
-    where = {(s, lab, nm): i for i, (s, lab, nm, _) in enumerate(r.model.param_info())}
+    where = r.model.param_positions()
     out = {'axis': {}, 'in_plane': {}, 'heading_error_deg': {}, 'heading_error_rms_deg': {},
            'field_split_nt': {}, 'determined': list(pr.determined),
            'undetermined': list(pr.undetermined)}

@@ -239,6 +239,10 @@ class Model:
                 out[i] = (who, eff.label, nm, un)
         return out
 
+    def param_positions(self):
+        """{(sensor, effect label, name): index} of every parameter (:meth:`param_info`)."""
+        return {k[:3]: i for i, k in enumerate(self.param_info())}
+
     def _in_contexts(self, contexts):
         """[(effect, its context, its name)]: the sensors' effects, the array's (sensor 1's)."""
         out = [(e, c, f'{e.label}@{e.sensor}') for row, c in zip(self.effects, contexts)
