@@ -23,11 +23,10 @@ from magcal_ros.core.effects.base import (  # noqa: F401 - re-exported
     misalignment_matrix, NONLINEARITY_FULL_SCALE_NT, nonorthogonality_matrix, raw_rate,
     rot_r1, rot_r2, rot_r3, rq_positive, SensorContext, SIGNALS, upper_to_scale_nonorth)
 from magcal_ros.core.effects.catalog import (  # noqa: F401 - re-exported
-    axis_map_args, AXIS_NAMES, AxisMap, Misalignment, NonOrthogonality, Offset,
-    Scale, SiteGradient, SoftIron, TOKEN_CLASSES, TokenEffect, TOKENS)
-from magcal_ros.core.effects.registry import (  # noqa: F401 - re-exported
-    BASE, BUILTIN_EFFECTS, effect_class, load_plugin, load_plugins, needs_args, parse_token,
-    register_effect, registered_effects, unregister_effect)
+    axis_map_args, AXIS_NAMES, AxisMap, BASE, BUILTIN_EFFECTS, effect_class, load_plugin,
+    load_plugins, Misalignment, needs_args, NonOrthogonality, Offset, parse_token,
+    register_effect, registered_effects, Scale, SiteGradient, SoftIron, TOKEN_CLASSES,
+    TokenEffect, TOKENS, unregister_effect)
 from magcal_ros.core.effects import formula  # noqa: F401,I100 - the grammar, after the catalog
 from magcal_ros.core.effects.couplings import (  # noqa: F401 - re-exported
     Coupling, register_coupling, unregister_coupling)

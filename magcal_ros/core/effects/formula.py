@@ -37,9 +37,9 @@ import re
 from magcal_ros.core.effects import couplings as cp
 from magcal_ros.core.effects import drivers as dv
 from magcal_ros.core.effects.base import format_arg, parse_number
+from magcal_ros.core.effects.catalog import BASE, make_catalog_effect
+from magcal_ros.core.effects.couplings import ComposedEffect, FieldEffect
 from magcal_ros.core.effects.drivers import FormulaError
-from magcal_ros.core.effects.registry import BASE, make_catalog_effect
-from magcal_ros.core.effects.terms import ComposedEffect, FieldEffect
 
 _NAME = re.compile(r'^[A-Za-z_][A-Za-z0-9_.:]*$')
 _OPEN, _CLOSE = '({', ')}'
