@@ -237,14 +237,11 @@ class Simulator:
 
     def temperature(self, t):
         """(S, N) sensor temperatures, degC."""
-        cfg = self.config
-        s = cfg.n_sensors
-        out = np.empty((s, len(t)))
-        for j in range(s):
-            out[j] = cfg.temp_mean_c + j * 0.7 + cfg.temp_swing_c * np.sin(
-                2 * np.pi * t / 240.0 + self._temp_phases[j, 0]) * (0.8 + 0.2 * np.cos(
-                    2 * np.pi * t / 97.0 + self._temp_phases[j, 1]))
-        return out
+        cfg, ph = self.config, self._temp_phases
+        j = np.arange(cfg.n_sensors)[:, None]
+        return cfg.temp_mean_c + j * 0.7 + cfg.temp_swing_c * np.sin(
+            2 * np.pi * t / 240.0 + ph[:, :1]) * (0.8 + 0.2 * np.cos(
+                2 * np.pi * t / 97.0 + ph[:, 1:]))
 
     def aux_channels(self, t):
         """{'aux_motor_current' (A), 'aux_pump_current' (A), 'aux_heater_power' (W)} -> (N,)."""

@@ -123,9 +123,7 @@ class SensorContext:
 
     def whole(self):
         """(context of the whole record, (N,) int positions of these samples in it)."""
-        if self.parent is None:
-            return self, None
-        return self.parent, self.index
+        return (self, None) if self.parent is None else (self.parent, self.index)
 
 
 class Effect:
@@ -242,13 +240,16 @@ class Registry:
 
     The one mechanism of the named effects, couplings and drivers.  Every class subclasses
     ``base``; messages call one ``what`` ('effect', 'coupling', 'driver') and name the base
-    ``base_name`` (where users import it from).
+    ``base_name`` (where users import it from).  The classes ``builtin`` are registered at
+    once, and their names (:attr:`builtin`) are never unregistered.
     """
 
-    def __init__(self, base, what, base_name):
+    def __init__(self, base, what, base_name, builtin=()):
         self.base, self.what, self.base_name = base, what, base_name
-        self.builtin = ()
         self._classes = {}
+        for cls in builtin:
+            self.register(cls)
+        self.builtin = tuple(self._classes)
 
     def register(self, cls, name=None):
         """Register a subclass of the base under ``name`` (default ``cls.name``); return it."""
@@ -275,11 +276,6 @@ class Registry:
     def names(self):
         """Return the registered names, sorted."""
         return sorted(self._classes)
-
-    def seal_builtin(self):
-        """Mark every class registered so far as built-in (never unregistered); return names."""
-        self.builtin = tuple(self._classes)
-        return self.builtin
 
 
 def raw_rate(x, t=None, period=None):

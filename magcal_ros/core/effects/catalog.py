@@ -351,7 +351,6 @@ def _nonlinearity(args):
 
 def _aux(args):
     ch = _channel_arg(args, 'aux:aux_motor_current') if args else 'aux_current'
-
     return Composition((), [('offset', dv.Variable(ch))], ('vx', 'vy', 'vz'), ('nT/unit',) * 3,
                        refs={'a0': ('mean', ch, ch + '0')}, label='aux:' + ch)
 
@@ -546,21 +545,18 @@ class SiteGradient(Effect):
         return np.einsum('nji,nj->ni', rot, w)           # back to the body frame
 
 
-#: the named effects (catalog and plug-ins)
-EFFECTS = Registry(Effect, 'effect', 'magcal_ros.core.effects.Effect')
+#: the named effects, the catalog's then plug-ins
+EFFECTS = Registry(Effect, 'effect', 'magcal_ros.core.effects.Effect', (
+    AxisMap, Scale, NonOrthogonality, Misalignment, SoftIron, Offset,
+    *(TOKEN_CLASSES[n] for n in ('temperature', 'drift', 'drift2', 'nonlinearity', 'field_rate',
+                                 'step', 'periodic', 'lag', 'aux_poly')),
+    SiteGradient, AttitudeReference, AttitudeFull))
 register_effect = EFFECTS.register
 unregister_effect = EFFECTS.unregister
 #: the Effect class registered as a name (without arguments), or None
 effect_class = EFFECTS.get
-
-for _cls in (AxisMap, Scale, NonOrthogonality, Misalignment, SoftIron, Offset,
-             *(TOKEN_CLASSES[n] for n in ('temperature', 'drift', 'drift2', 'nonlinearity',
-                                          'field_rate', 'step', 'periodic', 'lag', 'aux_poly')),
-             SiteGradient, AttitudeReference, AttitudeFull):
-    register_effect(_cls)
-
 #: names of the effects that ship with the library
-BUILTIN_EFFECTS = EFFECTS.seal_builtin()
+BUILTIN_EFFECTS = EFFECTS.builtin
 
 #: the model of paper 004 (offset, scale, nonorthogonality, misalignment)
 BASE = ('offset', 'scale', 'nonorthogonality', 'misalignment')

@@ -163,18 +163,13 @@ class Field(Coupling):
         return y[:, 0]
 
 
-#: the couplings ``name(driver)`` by name (docs/plugins.md)
-COUPLINGS = Registry(Coupling, 'coupling', 'magcal_ros.core.effects.couplings.Coupling')
+#: the couplings ``name(driver)`` by name, those that ship first (docs/plugins.md)
+COUPLINGS = Registry(Coupling, 'coupling', 'magcal_ros.core.effects.couplings.Coupling',
+                     (Offset, Scale, Linear, NonOrth, Rotation, Field))
 register_coupling = COUPLINGS.register
 unregister_coupling = COUPLINGS.unregister
 coupling_class = COUPLINGS.get
 registered_couplings = COUPLINGS.names
-
-for _cls in (Offset, Scale, Linear, NonOrth, Rotation, Field):
-    register_coupling(_cls)
-
-#: the couplings that ship with the library
-BUILTIN_COUPLINGS = COUPLINGS.seal_builtin()
 
 
 class Part:
@@ -328,8 +323,7 @@ class FieldEffect(ComposedEffect):
         """(N, 3) nT change of the field at sensor j, along the field ``b`` (N, 3) nT."""
         if b is None:
             return np.zeros((len(ctx.t), 3))
-        dm = self.coupling.magnitude(self.coupled(p, ctx, None))
-        return b * (dm / np.linalg.norm(b, axis=1))[:, None]
+        return b * (self.magnitude(p, ctx) / np.linalg.norm(b, axis=1))[:, None]
 
     def magnitude(self, p, ctx):
         """(N,) nT the modelled change of the field magnitude."""

@@ -549,15 +549,10 @@ class Product(Driver):
         return out
 
 
-#: the factors ``name(...)`` of a driver by name (docs/plugins.md)
-DRIVERS = Registry(Driver, 'driver', 'magcal_ros.core.effects.drivers.Driver')
+#: the factors ``name(...)`` of a driver by name, those that ship first (docs/plugins.md)
+DRIVERS = Registry(Driver, 'driver', 'magcal_ros.core.effects.drivers.Driver',
+                   (Spline, Cyclic, Poly, Sinusoid, Steps, Window, Lagged))
 register_driver = DRIVERS.register
 unregister_driver = DRIVERS.unregister
 driver_class = DRIVERS.get
 registered_drivers = DRIVERS.names
-
-for _cls in (Spline, Cyclic, Poly, Sinusoid, Steps, Window, Lagged):
-    register_driver(_cls)
-
-#: the factors that ship with the library
-BUILTIN_DRIVERS = DRIVERS.seal_builtin()

@@ -155,13 +155,8 @@ def first_line(exc):
     return text.splitlines()[0] if text else type(exc).__name__
 
 
-def effect_label(eff):
-    """Model token of an effect instance: ``label@sensor`` (``label`` for an array effect)."""
-    return eff.label if eff.scope == 'array' else f'{eff.label}@{eff.sensor}'
-
-
 def culprit(exc):
-    """Return the token of the innermost effect whose code raised ``exc``, or None."""
+    """Return the token (``label@sensor``) of the innermost effect that raised ``exc``, or None."""
     found = None
     tb = exc.__traceback__
     while tb is not None:
@@ -169,7 +164,9 @@ def culprit(exc):
         if isinstance(owner, Effect):
             found = owner
         tb = tb.tb_next
-    return None if found is None else effect_label(found)
+    if found is None:
+        return None
+    return found.label if found.scope == 'array' else f'{found.label}@{found.sensor}'
 
 
 class EffectError(Exception):
