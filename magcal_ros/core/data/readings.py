@@ -230,18 +230,18 @@ def repeat_bounds(raw, est=None):
     return p
 
 
-def min_flagged_run(p, n, n_channels, alpha=ALPHA):
+def min_flagged_run(p, n, n_channels):
     """
-    Shortest run of equal readings improbable for a live channel.
+    Shortest run L of equal readings improbable for a live channel.
 
-    N p^(L - 1) <= alpha / n_channels; at least :data:`MIN_RUN`; ``n + 1`` (never) when
-    p >= 1.
+    N p^(L - 1) <= :data:`ALPHA` / n_channels; at least :data:`MIN_RUN`; ``n + 1`` (never)
+    when p >= 1.
     """
     if p >= 1.0:
         return n + 1
     if p <= 0.0:
         return MIN_RUN
-    return int(max(MIN_RUN, 1 + np.ceil(np.log(alpha / (n_channels * max(n, 1))) / np.log(p))))
+    return int(max(MIN_RUN, 1 + np.ceil(np.log(ALPHA / (n_channels * max(n, 1))) / np.log(p))))
 
 
 def _stretches(t, mask):
@@ -294,7 +294,7 @@ def spike_threshold(z, n_values, alpha=ALPHA):
     return max(gauss, SPIKE_BAND * (tail.size / a.size * n_values / alpha) ** (1.0 / low)), True
 
 
-def _spike_in(x, r0, r1, k, scale, thr, alpha):
+def _spike_in(x, r0, r1, k, scale, thr):
     """
     Return the readings of one cluster of large differences that form a spike, or None.
 
@@ -330,17 +330,17 @@ def _spike_in(x, r0, r1, k, scale, thr, alpha):
              for q in range(p + SPIKE_MAX_SAMPLES + 1, r1 + 2)]
     dus = [np.diff(alt.astype(float), k) / scale for alt in alts]
     ss_alt = min([float('inf')] + [float(z0 @ z0 - (z0 @ du) ** 2 / (du @ du)) for du in dus])
-    if ss_alt - best[2] < _normal_isf(alpha / 2.0) ** 2:     # chi-square(1) quantile
+    if ss_alt - best[2] < _normal_isf(ALPHA / 2.0) ** 2:     # chi-square(1) quantile
         return None
     return best[0], x[best[0]] - best[3]
 
 
-def find_spikes(raw, flags=None, alpha=ALPHA, est=None):
+def find_spikes(raw, flags=None, est=None):
     """
     Find one-to-three-reading spikes per sensor and axis (module docstring: the method).
 
     ``raw`` (S, N, 3) nT in time order; ``flags`` (S, N, 3) bool, readings already left out;
-    ``alpha`` the family-wise rate; ``est`` :func:`channel_noise` of ``raw`` (or computed).
+    ``est`` :func:`channel_noise` of ``raw`` (or computed).
     Returns ((S, N, 3) bool, True on a spike's readings; per sensor and axis the spike sizes
     in time order, nT: [[array, x3], ...]).
     """
@@ -364,7 +364,7 @@ def find_spikes(raw, flags=None, alpha=ALPHA, est=None):
         live = (mad > 0) & white
         if not live.any():
             continue
-        thr, _ = spike_threshold((d[:, live] / mad[live]).ravel(), 3 * s_count * n, alpha)
+        thr, _ = spike_threshold((d[:, live] / mad[live]).ravel(), 3 * s_count * n)
         if not np.isfinite(thr):
             continue
         for a in np.flatnonzero(live):
@@ -379,7 +379,7 @@ def find_spikes(raw, flags=None, alpha=ALPHA, est=None):
                     continue            # at an end of the record: no neighbours on one side
                 if flags is not None and flags[j, r0 - k:r1 + k + 1, a].any():
                     continue
-                found = _spike_in(raw[j, :, a], r0, r1, k, mad[a], thr, alpha)
+                found = _spike_in(raw[j, :, a], r0, r1, k, mad[a], thr)
                 if found is not None:
                     got.append(found[0])
                     size.append(float(np.abs(found[1]).max()))
@@ -389,12 +389,8 @@ def find_spikes(raw, flags=None, alpha=ALPHA, est=None):
     return out, sizes
 
 
-def screen_readings(data, alpha=ALPHA):
-    """
-    Find the readings of ``data`` that no field produces (module docstring): a ReadingScreen.
-
-    ``alpha``: family-wise probability of flagging a live channel of the record.
-    """
+def screen_readings(data):
+    """Find the readings of ``data`` that no field produces (module docstring): a ReadingScreen."""
     raw = np.asarray(data.raw, float)
     s_count, n, _ = raw.shape
     flags = np.zeros(raw.shape, bool)
@@ -409,7 +405,7 @@ def screen_readings(data, alpha=ALPHA):
                                   _stretches(data.t, m), lr))
     for j, a in np.ndindex(s_count, 3):
         x = raw[j, :, a]
-        min_run[j, a] = lr = min_flagged_run(p[j, a], n, 3 * s_count, alpha)
+        min_run[j, a] = lr = min_flagged_run(p[j, a], n, 3 * s_count)
         if lr > n:
             continue
         starts, lengths = _runs(x)
@@ -433,7 +429,7 @@ def screen_readings(data, alpha=ALPHA):
                 rep[s0 + 1:s0 + ln] = True      # the first is the reading repeated
         if rep.any():
             flag(j, a, 'repeated', (), rep, lr)
-    spikes, sizes = find_spikes(raw, flags, alpha, est)
+    spikes, sizes = find_spikes(raw, flags, est)
     for j, a in np.ndindex(s_count, 3):
         if spikes[j, :, a].any():
             size = sizes[j][a]
@@ -442,25 +438,25 @@ def screen_readings(data, alpha=ALPHA):
     return ReadingScreen(flags=flags, channels=out, min_run=min_run, repeat_bound=p)
 
 
-def leave_out_unphysical(data, field_nt=None, alpha=ALPHA, min_kept=MIN_KEPT_FRACTION):
+def leave_out_unphysical(data, field_nt=None):
     """
     Screen ``data`` and leave out the sets that hold readings no field produces.
 
     ``field_nt``: reference magnitude, nT, a scalar or (N,).  Returns (data, field_nt,
     ReadingScreen), the first two without the flagged sets (the same objects when none).
-    UnphysicalReadingsError when fewer than ``min_kept`` of the sets are left.
+    UnphysicalReadingsError when fewer than :data:`MIN_KEPT_FRACTION` of the sets are left.
     """
-    screen = screen_readings(data, alpha)
+    screen = screen_readings(data)
     if not screen.channels:
         return data, field_nt, screen
     keep = screen.keep
     n = data.n_samples
-    if keep.sum() < min_kept * n:
+    if keep.sum() < MIN_KEPT_FRACTION * n:
         what = '; '.join(text for _, text in screen.lines())
         raise UnphysicalReadingsError(
             f'{what}: no field produces these readings, and without them only {int(keep.sum())} '
-            f'of {n} sets are left (need at least {min_kept:.0%}): check the sensor, its wiring, '
-            'its range setting and the driver, then record again')
+            f'of {n} sets are left (need at least {MIN_KEPT_FRACTION:.0%}): check the sensor, '
+            'its wiring, its range setting and the driver, then record again')
     idx = np.flatnonzero(keep)
     if field_nt is not None and np.ndim(field_nt) > 0:
         field_nt = np.asarray(field_nt)[idx]

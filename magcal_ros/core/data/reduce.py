@@ -79,8 +79,9 @@ class NoiseBlocks:
         if key not in self._cache:
             res = None
             if result is not None:
-                res = np.concatenate([scalar_residual(result, b) for b in self.blocks], axis=1)
-                res = FitResidual(res, np.asarray(result.sigma_nt, float))
+                res = [np.linalg.norm(corrected(result, b), axis=2) - field_of(result, b)[None]
+                       for b in self.blocks]       # (S, N) nT scalar residual of each block
+                res = FitResidual(np.concatenate(res, axis=1), np.asarray(result.sigma_nt, float))
             self._cache[key] = noise_floor_of(self.data.raw, res, self.starts)
         return self._cache[key]
 
@@ -101,15 +102,12 @@ def corrected(result, piece):
     return centred_readings(result.model, result.params, cor, ctx)
 
 
-def scalar_residual(result, piece):
-    """(S, N) nT: |corrected| - reference magnitude of ``result`` on ``piece``."""
-    return np.linalg.norm(corrected(result, piece), axis=2) - field_of(result, piece)[None]
-
-
-def _rates(piece):
-    """(S, N, 3) nT/s field rate of ``piece``'s readings, or None (times that do not rise)."""
+def _with_rate(piece, idx):
+    """:func:`_take` with the ``rate`` (S, N, 3) nT/s of ``piece``'s readings (None: no rise)."""
     rates = [raw_rate(raw, piece.t) for raw in piece.raw]
-    return None if any(r is None for r in rates) else np.stack(rates)
+    out = _take(piece, idx)
+    out.rate = None if any(r is None for r in rates) else np.stack(rates)[:, idx]
+    return out
 
 
 def rated(chunks):
@@ -127,18 +125,12 @@ def rated(chunks):
         if carry is not None:
             head = carry.n_samples - 1              # the epoch still waiting for its rate
             piece = concat([carry, piece])
-        rate = _rates(piece)
         carry = _take(piece, np.arange(max(0, piece.n_samples - 3), piece.n_samples))
         emit = np.arange(head, piece.n_samples - 1)
         if len(emit):
-            out = _take(piece, emit)
-            out.rate = None if rate is None else rate[:, emit]
-            yield out
+            yield _with_rate(piece, emit)
     if carry is not None:
-        rate = _rates(carry)
-        out = _take(carry, [carry.n_samples - 1])
-        out.rate = None if rate is None else rate[:, -1:]
-        yield out
+        yield _with_rate(carry, [carry.n_samples - 1])
 
 
 class Reducer:
