@@ -111,8 +111,7 @@ def difference_sigmas(x, orders=ORDERS, starts=None):
     for i, k in enumerate(orders):
         d = differences(x, k, starts)
         d = d - np.median(d, axis=1, keepdims=True)
-        for j in range(x.shape[0]):
-            out[i, j] = robust_sd(d[j])[0] / np.sqrt(comb(2 * k, k))
+        out[i] = [robust_sd(dj)[0] / np.sqrt(comb(2 * k, k)) for dj in d]
     return out
 
 

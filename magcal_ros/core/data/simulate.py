@@ -345,13 +345,9 @@ def simulate_chunks(config=None, rows=65536, **overrides):
     100 000 evenly spaced instants; noise and field rate are taken chunk by chunk.
     """
     sim = Simulator(config, **overrides)
-    n, rate = int(sim.config.n_samples), float(sim.config.rate_hz)
+    n, rate, rows = int(sim.config.n_samples), float(sim.config.rate_hz), int(rows)
     set_truth_refs(sim, np.arange(0, n, max(1, -(-n // 100000))) / rate)
-
-    def pieces():
-        for i in range(0, n, int(rows)):
-            yield sim.sample(np.arange(i, min(n, i + int(rows))) / rate)
-    return sim, pieces()
+    return sim, (sim.sample(np.arange(i, min(n, i + rows)) / rate) for i in range(0, n, rows))
 
 
 def set_truth_refs(sim, t):

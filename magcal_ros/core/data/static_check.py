@@ -68,13 +68,12 @@ def check_static(corrected, reference_nt, residual_rms_nt):
         rows.append({'name': name, 'n': int(len(b)), 'b_nt': float(mag.mean()),
                      'sd_nt': float(mag.std()), 'direction': mean / np.linalg.norm(mean),
                      'minus_reference_nt': float(mag.mean() - reference_nt)})
-    out = StaticCheck(rows=rows, tolerance_nt=tol)
     same, other = [], []
     for ra, rc in combinations(rows, 2):
         ang = float(np.degrees(np.arccos(np.clip(ra['direction'] @ rc['direction'], -1.0, 1.0))))
         (same if ang < SAME_ATTITUDE_DEG else other).append(
             (ra['name'], rc['name'], ang, rc['b_nt'] - ra['b_nt']))
-    out.same_attitude = same
+    out = StaticCheck(rows=rows, tolerance_nt=tol, same_attitude=same)
     changed = set()             # recordings known to see another field than a twin
     for a, c, ang, diff in same:
         if abs(diff) > tol:

@@ -27,7 +27,6 @@ from magcal_ros.core.effects.catalog import (  # noqa: F401 - re-exported
     load_plugins, Misalignment, needs_args, NonOrthogonality, Offset, parse_token,
     register_effect, registered_effects, Scale, SiteGradient, SoftIron, TOKEN_CLASSES,
     TokenEffect, TOKENS, unregister_effect)
-from magcal_ros.core.effects import formula  # noqa: F401,I100 - the grammar, after the catalog
 from magcal_ros.core.effects.couplings import (  # noqa: F401 - re-exported
     Coupling, register_coupling, unregister_coupling)
 from magcal_ros.core.effects.drivers import (  # noqa: F401 - re-exported

@@ -343,10 +343,10 @@ class Poly(_OfVariable):
     def columns(self, ctx, lin, refs, q, prefix=''):
         if self.per_axis:
             u = variable_values(ctx, self.v, lin)
-            return np.stack([u ** d for d in range(1, self.degree + 1)], axis=2)
-        h = 0.5 * (refs.get(prefix + 'hi', 1.0) - refs.get(prefix + 'lo', -1.0)) or 1.0
-        u = (self._values(ctx, refs, prefix) - refs.get(prefix + 'mean', 0.0)) / h
-        return np.stack([u ** d for d in range(1, self.degree + 1)], axis=1)
+        else:
+            h = 0.5 * (refs.get(prefix + 'hi', 1.0) - refs.get(prefix + 'lo', -1.0)) or 1.0
+            u = (self._values(ctx, refs, prefix) - refs.get(prefix + 'mean', 0.0)) / h
+        return np.stack([u ** d for d in range(1, self.degree + 1)], axis=-1)
 
 
 class Sinusoid(Driver):

@@ -298,8 +298,7 @@ def parse(text):
     text = str(text)
     if not text.strip():
         raise FormulaError('empty model: give at least one term, e.g. --model base')
-    pieces = split_top(text, '+,')
-    return Formula(tuple(parse_term(p) for p in pieces))
+    return Formula(tuple(parse_term(p) for p in split_top(text, '+,')))
 
 
 def composed_effect(term, sensor):
