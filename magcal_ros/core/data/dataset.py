@@ -84,9 +84,8 @@ class Dataset:
 
     def reference_magnitude(self, field_nt=None):
         """(N,) reference magnitude in nT: ``field_nt`` (scalar or (N,)) or ref_total."""
-        n = self.n_samples
         if field_nt is not None:
-            f = np.broadcast_to(np.asarray(field_nt, float), (n,)).copy()
+            f = np.broadcast_to(np.asarray(field_nt, float), (self.n_samples,)).copy()
         elif self.ref_total is not None:
             f = np.asarray(self.ref_total, float)
         else:

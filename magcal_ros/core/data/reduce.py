@@ -255,14 +255,13 @@ def residual_statistics(chunks, result, positions=None):
             from magcal_ros.core.geometry.tensor import tensor_lstsq
             for key, fields in (('b', piece.raw), ('a', cen)):
                 tens[key].add(tensor_lstsq(fields, positions)[0], 0)
-    s = after.ss.shape[0]
     out = {'n_samples': int(n),
            'scalar_rms_nt': {str(j + 1): float(v) for j, v in enumerate(after.rms())},
            'vector_rms_nt': {str(j + 1): float(v) for j, v in enumerate(vector.rms()) if j},
            'total_field_rms_before_nt': {str(j + 1): float(v) for j, v in enumerate(before.rms())},
            'total_field_max_dev_before_nt': float(np.max(np.maximum(before.hi, -before.lo))),
            'total_field_max_dev_after_nt': float(np.max(np.maximum(after.hi, -after.lo)))}
-    if positions is not None and s >= 3 and n:
+    if positions is not None and after.ss.shape[0] >= 3 and n:
         for key, rms_key, max_key in (('b', 'tensor_rms_before_nt_per_m',
                                        'tensor_max_dev_before_nt_per_m'),
                                       ('a', 'tensor_rms_nt_per_m',

@@ -248,7 +248,6 @@ class TokenEffect(Effect):
 
     @classmethod
     def from_args(cls, args, sensor=1):
-        """Make the token ``name(args)`` on ``sensor`` (arguments as strings)."""
         if cls.usage is None:
             return super().from_args(args, sensor)
         return cls(sensor=sensor, args=args)
@@ -285,7 +284,6 @@ class TokenEffect(Effect):
                     self.refs.setdefault(key, float(np.nanmean(a)))
 
     def check(self, ctx):
-        """Return None if the data can excite every part, else the reason why not."""
         why = next(filter(None, (p.driver.check(ctx, self.sensor) for p in self.parts)), None)
         return why or (self.row.check(self, ctx) if self.row.check else None)
 
@@ -294,7 +292,6 @@ class TokenEffect(Effect):
         return ' + '.join(p.text + at for p in self.parts) + self.comp.note
 
     def depends_on_lin(self):
-        """Tell whether a part reads the linear reading."""
         return any(p.reads_lin for p in self.parts)
 
     def _refs(self):

@@ -262,7 +262,6 @@ class ComposedEffect(Effect):
         return self.name + ('@alike' if self.shared else '')
 
     def describe(self):
-        """One-line physical description."""
         return f'{self.coupling.doc}, driven by {self.driver.text}'
 
     def default_params(self):
@@ -275,11 +274,9 @@ class ComposedEffect(Effect):
         self.part.cache = {}
 
     def check(self, ctx):
-        """Return None if the data can excite the driver, else the reason why not."""
         return self.driver.check(ctx, self.sensor)
 
     def depends_on_lin(self):
-        """Tell whether the contribution reads the linear reading."""
         return self.part.reads_lin
 
     def coupled(self, p, ctx, lin):
@@ -287,7 +284,6 @@ class ComposedEffect(Effect):
         return self.part.coupled(p, ctx, lin, self.refs)
 
     def contribution(self, p, ctx, lin):
-        """(N, 3) nT added to the raw reading."""
         return self.part.contribution(p, ctx, lin, self.refs)
 
     def reduces(self, p, stderr, ctx):

@@ -189,33 +189,22 @@ class EffectError(Exception):
         return self.effect or str(self)
 
 
-class EffectErrors:
-    """Errors of effect code seen by a node, counted per effect."""
-
-    def __init__(self):
-        self._seen = {}                 # key -> [count, message of the first error]
+class EffectErrors(dict):
+    """Errors of effect code seen by a node, counted per effect: key -> [count, first message]."""
 
     def add(self, err, what=''):
         """Count ``err`` (``what``: what was lost); True for an effect's first error (log it)."""
-        entry = self._seen.get(err.key)
+        entry = self.get(err.key)
         if entry is None:
-            self._seen[err.key] = [1, f'{err}' + (f' ({what})' if what else '')]
+            self[err.key] = [1, f'{err}' + (f' ({what})' if what else '')]
             return True
         entry[0] += 1
         return False
 
-    def clear(self):
-        """Forget all errors (a new calibration)."""
-        self._seen.clear()
-
-    def __bool__(self):
-        return bool(self._seen)
-
     def counts(self):
         """{effect token or message: errors counted}."""
-        return {k: v[0] for k, v in self._seen.items()}
+        return {k: v[0] for k, v in self.items()}
 
     def summary(self):
         """One line per effect, joined: '<first error>: N times'."""
-        return '; '.join(f'{msg}: {n} time{"s" if n > 1 else ""}'
-                         for n, msg in self._seen.values())
+        return '; '.join(f'{msg}: {n} time{"s" if n > 1 else ""}' for n, msg in self.values())
