@@ -272,25 +272,23 @@ def data_noise_floor(data, result=None):
     blocks = data.meta.get('noise_blocks')
     if blocks is not None:
         return blocks.floor(result)
+    if result is None:
+        return noise_floor_of(data.raw)
+    raw, residual, starts = data.raw, result.scalar_residual_nt, None
     kept = getattr(result, 'reading_mask', None)
-    if kept is None or kept.all():
-        return noise_floor_of(data.raw, result)
-    sets = np.flatnonzero(kept.all(axis=0))
-    starts = [0] + list(np.flatnonzero(np.diff(sets) > 1) + 1)
-    residual = FitResidual(result.scalar_residual_nt[:, sets], result.sigma_nt)
-    return noise_floor_of(data.raw[:, sets], residual, starts)
+    if kept is not None and not kept.all():
+        sets = np.flatnonzero(kept.all(axis=0))
+        starts = [0] + list(np.flatnonzero(np.diff(sets) > 1) + 1)
+        raw, residual = raw[:, sets], residual[:, sets]
+    return noise_floor_of(raw, residual, result.sigma_nt, starts)
 
 
-@dataclass(frozen=True)
-class FitResidual:
-    """What :func:`noise_floor_of` reads of a fit, on some epochs."""
+def noise_floor_of(raw, residual=None, sigma_nt=None, starts=None):
+    """
+    :func:`data_noise_floor` of readings ``raw`` (S, N, 3) nT and segment ``starts``.
 
-    scalar_residual_nt: np.ndarray      # (S, M) nT
-    sigma_nt: np.ndarray                # (S,) nT
-
-
-def noise_floor_of(raw, result, starts=None):
-    """:func:`data_noise_floor` of readings ``raw`` (S, N, 3) nT and segment ``starts``."""
+    ``residual`` (S, N) nT and ``sigma_nt`` (S,) nT: a fit's scalar residual and sd, or None.
+    """
     raw_est = estimate_noise(raw, starts=starts)
     s = raw.shape[0]
     sigma = raw_est.sigma.copy()
@@ -298,8 +296,8 @@ def noise_floor_of(raw, result, starts=None):
     status = list(raw_est.status)
     source = ['raw'] * s
     res_sigma = None
-    if result is not None:
-        res_est = estimate_noise(result.scalar_residual_nt, starts=starts)
+    if residual is not None:
+        res_est = estimate_noise(residual, starts=starts)
         res_sigma = res_est.sigma
         for j in range(s):
             # the raw estimate (no model) unless the trajectory inflates it
@@ -316,14 +314,14 @@ def noise_floor_of(raw, result, starts=None):
             # every difference estimate is below the sd of such noise: the residual's first
             # order is the tightest bound, its sd bounds it from above; without a fit only the
             # smallest raw one is sure not to hold the trajectory
-            sigma[j] = lower[j] = (res_est.by_order[0, j] if result is not None
+            sigma[j] = lower[j] = (res_est.by_order[0, j] if residual is not None
                                    else raw_est.by_order[:, j].min())
-            upper[j] = max(float(result.sigma_nt[j]) if result is not None else np.inf, lower[j])
+            upper[j] = max(float(sigma_nt[j]) if residual is not None else np.inf, lower[j])
         elif status[j] == 'upper bound' or source[j] != 'raw':
             # from the model's residual: a missing effect following the attitude is in it
             status[j] = 'upper bound'
             lower[j] = 0.0
-        x = raw[j] if source[j] == 'raw' else result.scalar_residual_nt[j]
+        x = raw[j] if source[j] == 'raw' else residual[j]
         d = differences(np.asarray(x, float), int(order[j]), starts, axis=0)
         tails[j] = robust_sd(d - np.median(d, axis=0))[2]
     method = tuple(f'{src} differences (order {k})' if st != 'filtered' else

@@ -23,7 +23,7 @@ statistics of every epoch** (:func:`residual_statistics`, exact).
 from dataclasses import dataclass, replace
 
 from magcal_ros.core.data.dataset import Dataset, EPOCH_AXES
-from magcal_ros.core.data.noise import FitResidual, noise_floor_of
+from magcal_ros.core.data.noise import noise_floor_of
 from magcal_ros.core.effects import raw_rate
 import numpy as np
 
@@ -77,12 +77,12 @@ class NoiseBlocks:
         """
         key = None if result is None else id(result)
         if key not in self._cache:
-            res = None
+            res = sigma = None
             if result is not None:
-                res = [np.linalg.norm(corrected(result, b), axis=2) - field_of(result, b)[None]
-                       for b in self.blocks]       # (S, N) nT scalar residual of each block
-                res = FitResidual(np.concatenate(res, axis=1), np.asarray(result.sigma_nt, float))
-            self._cache[key] = noise_floor_of(self.data.raw, res, self.starts)
+                res = np.concatenate([np.linalg.norm(corrected(result, b), axis=2)
+                                      - field_of(result, b)[None] for b in self.blocks], axis=1)
+                sigma = np.asarray(result.sigma_nt, float)
+            self._cache[key] = noise_floor_of(self.data.raw, res, sigma, self.starts)
         return self._cache[key]
 
 
