@@ -258,9 +258,8 @@ def _interpolation(nodes, targets):
     targets = np.asarray(targets, float)
     w = np.ones((len(targets), len(nodes)))
     for m, xm in enumerate(nodes):
-        for q, xq in enumerate(nodes):
-            if q != m:
-                w[:, m] *= (targets - xq) / (xm - xq)
+        for xq in np.delete(nodes, m):
+            w[:, m] *= (targets - xq) / (xm - xq)
     return w
 
 

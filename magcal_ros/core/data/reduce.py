@@ -142,13 +142,10 @@ class Reducer:
     """
 
     def __init__(self, sample=SAMPLE_EPOCHS, block=NOISE_BLOCK, blocks=NOISE_BLOCKS):
-        self.cap = int(sample)
-        self.block = int(block)
-        self.max_blocks = int(blocks)
-        self.stride = 1
+        self.cap, self.block, self.max_blocks = int(sample), int(block), int(blocks)
+        self.stride = self.block_stride = 1
         self.kept = []              # [(global index array, Dataset)]
         self.n_kept = 0
-        self.block_stride = 1
         self.blocks = {}            # block number -> [Dataset pieces]
         self.n = 0                  # epochs seen
         self.t_first = self.t_last = None
