@@ -105,10 +105,7 @@ _TYPE_WORDS = {'object': 'a mapping', 'array': 'a list', 'number': 'a number',
 
 def _where(path):
     """'sensors[2].effects[0].params.kx' from a jsonschema error path."""
-    out = ''
-    for p in path:
-        out += f'[{p}]' if isinstance(p, int) else (f'.{p}' if out else str(p))
-    return out
+    return ''.join(f'[{p}]' if isinstance(p, int) else f'.{p}' for p in path).removeprefix('.')
 
 
 def _schema_error(err, source):

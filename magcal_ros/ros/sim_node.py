@@ -214,12 +214,8 @@ def split_command_line(argv):
     return own, ros
 
 
-def _floats(values):
-    return [float(v) for v in values]
-
-
-def _strings(values):
-    return [str(v) for v in values]
+def _list_of(kind):
+    return lambda values: [kind(v) for v in values]
 
 
 #: an option's value as its parameter's (the others are taken as they are)
@@ -227,8 +223,8 @@ _AS_PARAMETER = {
     'option': lambda v: json.dumps(dict(v)) if v else '',
     'unplug': lambda v: [
         f'{u.sensor}:{u.at_s}:{u.for_s}' + (f':{u.new_path}' if u.new_path else '') for u in v],
-    'site_gradient': _floats, 'sensor_positions_m': _floats, 'truth': _strings,
-    'plugins': _strings, 'dir': str}
+    'site_gradient': _list_of(float), 'sensor_positions_m': _list_of(float),
+    'truth': _list_of(str), 'plugins': _list_of(str), 'dir': str}
 
 
 def overrides_from_options(args):
