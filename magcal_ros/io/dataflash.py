@@ -13,7 +13,7 @@
 # limitations under the License.
 
 """
-ArduPilot DataFlash logs (``.bin``, text ``.log``) -> :class:`~magcal_ros.io.vehicle.VehicleLog`.
+ArduPilot DataFlash logs (``.bin``, text ``.log``) -> :class:`~.vehicle_base.VehicleLog`.
 
 pymavlink's DFReader opens and indexes the log; a binary log's messages of one type are then
 decoded at once through a numpy dtype built from the type's FMT (DFReader's
