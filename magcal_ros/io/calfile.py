@@ -324,14 +324,11 @@ def _calibration_from_doc(doc, source):
                 raise CalibrationFileError(
                     f'{where} effect {label}: parameters {list(pdoc)} but expected '
                     f'{list(eff.param_names)}')
-            v, s = [], []
-            for pn in eff.param_names:
-                entry = pdoc[pn]
-                v.append(float(entry['value']))              # a number: the schema
-                s.append(float(entry.get('stderr', 0.0)))
-                if not np.isfinite(v[-1]):
-                    raise CalibrationFileError(f'{where} {label}.{pn}: value is not finite')
-            values[id(eff)] = (v, s)
+            v = [float(pdoc[pn]['value']) for pn in eff.param_names]     # numbers: the schema
+            bad = [pn for pn, x in zip(eff.param_names, v) if not np.isfinite(x)]
+            if bad:
+                raise CalibrationFileError(f'{where} {label}.{bad[0]}: value is not finite')
+            values[id(eff)] = (v, [float(pdoc[pn].get('stderr', 0.0)) for pn in eff.param_names])
             row.append(eff)
         return row
 

@@ -339,8 +339,7 @@ def calibration_specs(n_sensors=4):
         ParamSpec('imu_topic', '', 'sensor_msgs/Imu topic whose orientation is the attitude '
                   'of the array (body-to-world, ENU, the IMU axes being the array axes), for '
                   "attitude-aided fits (attitude_mode) and the site_gradient effect; '' for "
-                  'none; read-only', optional_topic,
-                  read_only=True),
+                  'none; read-only', optional_topic, read_only=True),
         *geometry_specs(n_sensors),
         ParamSpec('field_source', 'constant', 'where the reference field magnitude comes '
                   'from: constant (field_nt), igrf (the IGRF model at site_latitude_deg, '
