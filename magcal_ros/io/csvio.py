@@ -161,10 +161,7 @@ def is_content(line):
 
 def header_line(fh):
     """(line number, text) of the first line that is neither blank nor a comment."""
-    for no, line in enumerate(fh, start=1):
-        if is_content(line):
-            return no, line
-    return None, None
+    return next(((no, ln) for no, ln in enumerate(fh, start=1) if is_content(ln)), (None, None))
 
 
 def parse_header(path, line):
