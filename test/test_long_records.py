@@ -33,8 +33,8 @@ from magcal_ros.core.data.reduce import concat, reduce_chunks, residual_statisti
 from magcal_ros.core.data.simulate import simulate
 from magcal_ros.core.model import fit, Model
 from magcal_ros.io.bag import bag_chunks, read_bag, write_bag
-from magcal_ros.io.chunks import csv_chunks, write_csv_chunks
-from magcal_ros.io.csvio import CsvFormatError, read_csv, write_csv
+from magcal_ros.io.chunks import write_csv_chunks
+from magcal_ros.io.csvio import CsvFormatError, read_csv, read_pieces as csv_chunks, write_csv
 from magcal_ros.pipeline import cross_geometry, geometry_positions, summarize
 import numpy as np
 import pytest

@@ -46,11 +46,9 @@ def atomic_write_text(path, text, backup=True, fsync=os.fsync, binary=None):
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
-    try:
+    with contextlib.suppress(OSError):          # the rename made durable, where it can be
         dfd = os.open(directory, os.O_RDONLY)
         try:
             os.fsync(dfd)
         finally:
             os.close(dfd)
-    except OSError:
-        pass

@@ -105,10 +105,7 @@ _TYPE_WORDS = {'object': 'a mapping', 'array': 'a list', 'number': 'a number',
 
 def _where(path):
     """'sensors[2].effects[0].params.kx' from a jsonschema error path."""
-    out = ''
-    for p in path:
-        out += f'[{p}]' if isinstance(p, int) else (f'.{p}' if out else str(p))
-    return out
+    return ''.join(f'[{p}]' if isinstance(p, int) else f'.{p}' for p in path).removeprefix('.')
 
 
 def _schema_error(err, source):
@@ -327,14 +324,11 @@ def _calibration_from_doc(doc, source):
                 raise CalibrationFileError(
                     f'{where} effect {label}: parameters {list(pdoc)} but expected '
                     f'{list(eff.param_names)}')
-            v, s = [], []
-            for pn in eff.param_names:
-                entry = pdoc[pn]
-                v.append(float(entry['value']))              # a number: the schema
-                s.append(float(entry.get('stderr', 0.0)))
-                if not np.isfinite(v[-1]):
-                    raise CalibrationFileError(f'{where} {label}.{pn}: value is not finite')
-            values[id(eff)] = (v, s)
+            v = [float(pdoc[pn]['value']) for pn in eff.param_names]     # numbers: the schema
+            bad = [pn for pn, x in zip(eff.param_names, v) if not np.isfinite(x)]
+            if bad:
+                raise CalibrationFileError(f'{where} {label}.{bad[0]}: value is not finite')
+            values[id(eff)] = (v, [float(pdoc[pn].get('stderr', 0.0)) for pn in eff.param_names])
             row.append(eff)
         return row
 

@@ -37,7 +37,7 @@ class Record:
     def chunks(self, rows=CHUNK_ROWS, progress=None):
         """Yield Dataset pieces of at most ``rows`` epochs; ``progress(done)`` in ``unit``."""
         if self.kind == 'csv':
-            return csv_chunks(self.path, rows, progress)
+            return csvio.read_pieces(self.path, rows, progress)
         from magcal_ros.io.bag import bag_chunks
         return bag_chunks(self.path, rows, progress)
 
@@ -49,11 +49,6 @@ def open_record(path):
         from magcal_ros.io.bag import bag_message_count
         return Record(path, 'bag', bag_message_count(path), 'msg')
     return Record(path, 'csv', os.path.getsize(path), 'B')
-
-
-def csv_chunks(path, rows=CHUNK_ROWS, progress=None):
-    """Yield a wide CSV as Datasets of about ``rows`` epochs (:func:`.csvio.read_pieces`)."""
-    return csvio.read_pieces(path, rows, progress)
 
 
 def write_csv_chunks(path, pieces, comment=None):

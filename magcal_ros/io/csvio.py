@@ -161,10 +161,7 @@ def is_content(line):
 
 def header_line(fh):
     """(line number, text) of the first line that is neither blank nor a comment."""
-    for no, line in enumerate(fh, start=1):
-        if is_content(line):
-            return no, line
-    return None, None
+    return next(((no, ln) for no, ln in enumerate(fh, start=1) if is_content(ln)), (None, None))
 
 
 def parse_header(path, line):
@@ -174,7 +171,7 @@ def parse_header(path, line):
             raise CsvFormatError(f'{path}: the fields are separated by {name}s ({sep!r}); the '
                                  "wide CSV is comma separated: export it with ',' as the "
                                  'separator')
-    header = [h.strip() for h in next(csv.reader([line]))]
+    header = _cells(line)
     sensors = {}
     for i, h in enumerate(header):
         m = _SENSOR_COL.match(h)
@@ -260,22 +257,18 @@ def format_csv(data, comment=None):
     """Format a :class:`Dataset` as wide CSV text."""
     cols = {'t': data.t}
     for j in range(1, data.n_sensors + 1):
-        for i, a in enumerate('xyz'):
-            cols[f's{j}_{a}'] = data.raw[j - 1, :, i]
+        cols.update({f's{j}_{a}': data.raw[j - 1, :, i] for i, a in enumerate('xyz')})
         if data.temp is not None and np.isfinite(data.temp[j - 1]).any():
             cols[f's{j}_temp'] = data.temp[j - 1]
     if data.ref_total is not None:
         cols['ref_total'] = data.ref_total
     if data.ref_vec is not None:
-        for i, a in enumerate('xyz'):
-            cols[f'ref_{a}'] = data.ref_vec[:, i]
+        cols.update({f'ref_{a}': data.ref_vec[:, i] for i, a in enumerate('xyz')})
     if data.angle_deg is not None:
         cols['angle_deg'] = data.angle_deg
-    for k, v in sorted(data.aux.items()):
-        cols[k] = v
+    cols.update(sorted(data.aux.items()))
     if data.attitude is not None:
-        for i, c in enumerate(ATT_COLUMNS):
-            cols[c] = data.attitude[:, i]
+        cols.update({c: data.attitude[:, i] for i, c in enumerate(ATT_COLUMNS)})
     head = ''.join(f'# {line}\n' for line in str(comment).splitlines()) if comment else ''
     names = list(cols) + (['plane'] if data.plane is not None else [])
     mat = np.column_stack([np.asarray(v, float) for v in cols.values()])

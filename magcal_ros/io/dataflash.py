@@ -13,7 +13,7 @@
 # limitations under the License.
 
 """
-ArduPilot DataFlash logs (``.bin``, text ``.log``) -> :class:`~magcal_ros.io.vehicle.VehicleLog`.
+ArduPilot DataFlash logs (``.bin``, text ``.log``) -> :class:`~.vehicle_base.VehicleLog`.
 
 pymavlink's DFReader opens and indexes the log; a binary log's messages of one type are then
 decoded at once through a numpy dtype built from the type's FMT (DFReader's
@@ -62,10 +62,8 @@ class _Log:
                 f'{path}: cannot read this DataFlash log ({type(exc).__name__}: {exc}): the '
                 'file is damaged or not a DataFlash log; download it from the autopilot '
                 'again') from None
-        if text:
-            self.by_name = dict(self.r.formats)
-        else:
-            self.by_name = {f.name: f for f in self.r.formats.values()}
+        self.by_name = (dict(self.r.formats) if text else
+                        {f.name: f for f in self.r.formats.values()})
         if 'FMT' not in self.by_name or (not text and int(self.r.counts[0x80]) == 0):
             raise VehicleLogError(f'{path}: no FMT message: not a DataFlash log, or its start '
                                   'is missing; download it from the autopilot again')
@@ -190,9 +188,8 @@ class _Log:
                 order = np.argsort(tab['t'], kind='stable')
                 names = tab['Name'][order]
                 t, v = tab['t'][order], tab['Value'][order]
-                for n in np.unique(names):
-                    sel = names == n
-                    self._params[str(n)] = (t[sel], v[sel])
+                self._params = {str(n): (t[sel], v[sel])
+                                for n in np.unique(names) for sel in [names == n]}
         return self._params
 
     def param(self, name, default=None):
@@ -328,7 +325,7 @@ def _read(log, path, text):
         odi = np.column_stack([log.param_at(_pname(log, 'ODI', j, a), t, 0.0) for a in 'XYZ'])
         scale = log.param_at(_pname(log, 'SCALE', j), t, 0.0)
         raw = ardupilot_raw(f, o, mo, dia, odi, scale, motor_first) * NT_PER_MGAUSS
-        name = 'MAG' if 'I' in tab else ('MAG' if j == 1 else f'MAG{j}')
+        name = 'MAG' if 'I' in tab or j == 1 else f'MAG{j}'
         out.compasses.append(Stream(t, raw, f'{name} instance {k}'))
         out.compass_temps.append(None)
         out.onboard.append(_onboard(log, j, tab, motct))
@@ -500,7 +497,7 @@ def _aux(log, out, vehicle, duration):
     # throttle
     tab = log.table('CTUN')
     if tab is not None and vehicle:
-        col = 'ThO' if 'ThO' in tab else ('ThrOut' if 'ThrOut' in tab else None)
+        col = next((c for c in ('ThO', 'ThrOut') if c in tab), None)
         div = None
         if vehicle in ('ArduCopter', 'ArduSub') or 'Heli' in vehicle:
             div = 1.0 if col == 'ThO' else 1000.0

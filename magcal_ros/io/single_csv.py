@@ -46,10 +46,8 @@ def to_nt(values, unit):
 
 
 def _find(low, options):
-    for names in options:
-        if all(n in low for n in names):
-            return [low.index(n) for n in names]
-    return None
+    return next(([low.index(n) for n in names] for names in options
+                 if all(n in low for n in names)), None)
 
 
 def read_single_sensor_csv(path, unit='gauss', rate_hz=100.0, field_columns=None,

@@ -13,7 +13,7 @@
 # limitations under the License.
 
 """
-PX4 ULog logs (``.ulg``) -> :class:`~magcal_ros.io.vehicle.VehicleLog` (through pyulog).
+PX4 ULog logs (``.ulg``) -> :class:`~.vehicle_base.VehicleLog` (through pyulog).
 
 pyulog reads only the topics of :data:`TOPICS`.  PX4's ``Magnetometer::Correct``
 (src/lib/sensor_calibration) gives v = R S ((d + p c) - o) (docs/design.md §1, "Vehicle
@@ -81,7 +81,7 @@ def px4_raw(v, rot, scale, offset, comp=None, power=None):
 
 
 def read_ulog(path):
-    """Read a PX4 ULog log into a :class:`~magcal_ros.io.vehicle.VehicleLog`."""
+    """Read a PX4 ULog log into a :class:`VehicleLog`."""
     with open(path, 'rb') as fh:
         head = fh.read(16)
     if len(head) < 16 or head[:7] != ULOG_MAGIC:
@@ -207,7 +207,6 @@ def _compasses(path, topics, params, out):
             out.onboard.append(_onboard(j, dev, cal, params))
         return
     corrected = topics.get('vehicle_magnetometer') or {}
-    field = 'magnetometer_ga'
     name = 'vehicle_magnetometer'
     if not corrected and 0 in topics.get('sensor_combined', {}) and \
             'magnetometer_ga[0]' in topics['sensor_combined'][0]:
@@ -224,7 +223,7 @@ def _compasses(path, topics, params, out):
         cal = _calibration(params, dev)
         undone.append(cal is not None)
         t = d['timestamp'] * 1e-6
-        v = np.column_stack([d[f'{field}[{i}]'] for i in range(3)])
+        v = np.column_stack([d[f'magnetometer_ga[{i}]'] for i in range(3)])
         if cal is None:
             out.warnings.append(f"compass {j} ({name} instance {k}): the autopilot's corrected "
                                 'field, whose calibration is not matched to a device in the '

@@ -16,19 +16,17 @@
 Vehicle logs (ArduPilot DataFlash, PX4 ULog) -> :class:`~magcal_ros.core.data.dataset.Dataset`.
 
 What every format shares (channel names, resampling onto compass 1's epochs, gap checks,
-errors, ``meta``); the front-ends (:mod:`~magcal_ros.io.dataflash`, :mod:`~magcal_ros.io.ulog`)
-only read their messages into a :class:`VehicleLog`.  The Dataset, its channels, units and
-``meta``, and the errors are those of docs/design.md §1, "Vehicle logs": ``raw`` (S, N, 3) nT
-in the body frame (x forward, y right, z down), the autopilot's corrections undone; ``t``
-(N,) s; ``attitude`` (N, 4) body-to-NED (w, x, y, z) or None; ``temp`` (S, N) degC or None.
+errors, ``meta``); the front-ends (:mod:`~.dataflash`, :mod:`~.ulog`) only read their messages
+into a :class:`~.vehicle_base.VehicleLog`.  The Dataset, its channels, units and ``meta``, and
+the errors are those of docs/design.md §1, "Vehicle logs": ``raw`` (S, N, 3) nT in the body
+frame (x forward, y right, z down), the autopilot's corrections undone; ``t`` (N,) s;
+``attitude`` (N, 4) body-to-NED (w, x, y, z) or None; ``temp`` (S, N) degC or None.
 """
 import os
 
 from magcal_ros.core.data.dataset import Dataset
 from magcal_ros.core.model.notes import Note
-# the shared types, re-exported: the front-ends import them from vehicle_base (no cycle)
-from magcal_ros.io.vehicle_base import DATAFLASH_MAGIC, gps_site, NT_PER_GAUSS, \
-    NT_PER_MGAUSS, SLOW_RATE_HZ, Stream, ULOG_MAGIC, VehicleLog, VehicleLogError  # noqa: F401
+from magcal_ros.io.vehicle_base import DATAFLASH_MAGIC, ULOG_MAGIC, VehicleLogError
 import numpy as np
 
 #: a compass stream interval longer than this many median sample periods is a gap
@@ -164,7 +162,7 @@ def _leave_out_dead(log, path, warnings):
 
 def assemble(log, path, allow_gaps=False):
     """
-    Return the :class:`Dataset` of a :class:`VehicleLog` (the shared part of every format).
+    Return the :class:`Dataset` of a ``VehicleLog`` (the shared part of every format).
 
     Epochs outside another compass's or the attitude's span, or in their gaps, are dropped
     (``meta['dropped_epochs']``).

@@ -122,10 +122,7 @@ class CalibrationMixin:
         refused = partial(_not_calibrated, sets=n_sets, model=list(s.model))
         t0 = time.monotonic()
         try:
-            # readings no field produces first (a clipped axis of sensor 1 would make the
-            # others inconsistent with it), then the pairing check
-            data, epochs, screen = self._screen(data, epochs)
-            data, resync_payload, resync_lines = self._resync(data, epochs, s)
+            data, screen, resync_payload, resync_lines = self._resync(data, epochs, s)
         except ValueError as exc:
             return refused(*self._named(exc, 'calibrate'))
         try:
@@ -223,8 +220,7 @@ class CalibrationMixin:
                                   f'{s.min_samples}', sets=n_sets)
         model = Model.from_spec(list(s.model), self._n)
         try:                            # as in calibrate
-            data, epochs, screen = self._screen(data, epochs)
-            data, resync_payload, _ = self._resync(data, epochs, s)
+            data, screen, resync_payload, _ = self._resync(data, epochs, s)
         except ValueError as exc:
             return _not_diagnosed(*self._named(exc, 'diagnose'), sets=n_sets)
         field_nt = s.field_nt
@@ -283,23 +279,21 @@ class CalibrationMixin:
             'do not see one field): collect again (calibration/start), or run '
             'calibration/diagnose to see what the residual follows')
 
-    @staticmethod
-    def _screen(data, epochs):
-        """Leave out readings no field produces: (data, epochs, ReadingScreen) of the rest."""
-        data_kept, _, screen = leave_out_unphysical(data)
-        if data_kept is not data and epochs is not None:
-            epochs = np.asarray(epochs)[screen.keep]
-        return data_kept, epochs, screen
-
     def _resync(self, data, epochs, settings):
         """
-        Re-pair sets paired from different epochs; return (data, payload, warning lines).
+        Screen, then re-pair sets paired from different epochs; (data, screen, payload, lines).
 
-        Sets still inconsistent are dropped, up to :data:`MAX_INCONSISTENT_FRACTION` of them;
-        beyond, none is and the payload's ``refuse`` says why no calibration may be made.
+        Readings no field produces are left out first (a clipped axis of sensor 1 would make
+        the others inconsistent with it; ``screen`` the ReadingScreen). Sets still inconsistent
+        are dropped, up to :data:`MAX_INCONSISTENT_FRACTION` of them; beyond, none is and the
+        payload's ``refuse`` says why no calibration may be made.
         """
+        kept, _, screen = leave_out_unphysical(data)
+        if kept is not data and epochs is not None:
+            epochs = np.asarray(epochs)[screen.keep]
+        data = kept
         if not settings.resync_sets or data.n_sensors < 2:
-            return data, None, []
+            return data, screen, None, []
         fixed, slips, dropped, gross = resync(data, epochs, drop_inconsistent=True)
         n_bad = slips.dropped_inconsistent
         refuse = None
@@ -336,7 +330,7 @@ class CalibrationMixin:
                          'partner')
         for line in lines:
             self.get_logger().warning(f'resync: {line}')
-        return fixed, payload, lines
+        return fixed, screen, payload, lines
 
     def _named(self, exc, service):
         """(reason, payload entries) of an exception ending a call; an effect's is named."""

@@ -27,6 +27,7 @@ so the sensor callbacks go on; a non-blocking lock refuses a second calibrate/di
 during a solve. The node spins on a SingleThreadedExecutor: rclpy's MultiThreadedExecutor lost
 samples or ran a subscription's callbacks out of order, which breaks the pairing by stamp.
 """
+import contextlib
 import math
 import os
 import sys
@@ -333,10 +334,8 @@ class CalibrationNode(CollectionMixin, CalibrationMixin, TurnMixin, LearningMixi
             except Exception as exc:        # noqa: B902 -- handed to the awaiting service
                 future.set_exception(exc)
             finally:
-                try:
+                with contextlib.suppress(InvalidHandle):    # the node was destroyed meanwhile
                     self._wake.trigger()
-                except InvalidHandle:       # the node was destroyed while this ran
-                    pass
         threading.Thread(target=work, name='magcal-solve', daemon=True).start()
         return future
 

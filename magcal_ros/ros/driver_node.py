@@ -131,27 +131,21 @@ def diagnostic_status(settings, stats, previous_errors=0, previous=None):
     without one valid frame since the ``previous`` snapshot (wrong protocol, options or baud:
     a binary parser only drops them), or a rate below half ``expected_rate_hz``; else OK.
     """
-    status = DiagnosticStatus()
-    status.name = f'{NODE_NAME}: sensor{settings.index}'
-    status.hardware_id = settings.port
+    level = DiagnosticStatus.WARN
     if stats.state != STATE_OPEN:
-        status.level = DiagnosticStatus.ERROR
-        status.message = f'port {stats.state}: {stats.last_error or "not open yet"}'
+        level = DiagnosticStatus.ERROR
+        message = f'port {stats.state}: {stats.last_error or "not open yet"}'
     elif stats.parse_errors > previous_errors:
-        status.level = DiagnosticStatus.WARN
-        status.message = f'{stats.parse_errors - previous_errors} parse errors'
+        message = f'{stats.parse_errors - previous_errors} parse errors'
     elif (previous is not None and stats.bytes_in > previous.bytes_in
           and stats.samples == previous.samples):
-        status.level = DiagnosticStatus.WARN
-        status.message = (f'{stats.bytes_in - previous.bytes_in} bytes but no valid frame '
-                          f'since the last report (wrong protocol, options or baud rate?)')
+        message = (f'{stats.bytes_in - previous.bytes_in} bytes but no valid frame since the '
+                   'last report (wrong protocol, options or baud rate?)')
     elif settings.expected_rate_hz > 0 and stats.rate_hz < 0.5 * settings.expected_rate_hz:
-        status.level = DiagnosticStatus.WARN
-        status.message = (f'rate {stats.rate_hz:.1f} Hz below half the expected '
-                          f'{settings.expected_rate_hz:g} Hz')
+        message = (f'rate {stats.rate_hz:.1f} Hz below half the expected '
+                   f'{settings.expected_rate_hz:g} Hz')
     else:
-        status.level = DiagnosticStatus.OK
-        status.message = f'open, {stats.rate_hz:.1f} Hz'
+        level, message = DiagnosticStatus.OK, f'open, {stats.rate_hz:.1f} Hz'
     values = [('state', stats.state), ('path', stats.path or ''),
               ('protocol', settings.protocol), ('rate_hz', f'{stats.rate_hz:.2f}'),
               ('samples', stats.samples), ('bytes_in', stats.bytes_in),
@@ -162,8 +156,9 @@ def diagnostic_status(settings, stats, previous_errors=0, previous=None):
                else f'{stats.seconds_since_data:.3f}'),
               ('last_error', stats.last_error)]
     values += [(f'errors.{kind}', n) for kind, n in sorted(stats.errors.items())]
-    status.values = [KeyValue(key=k, value=str(v)) for k, v in values]
-    return status
+    return DiagnosticStatus(name=f'{NODE_NAME}: sensor{settings.index}',
+                            hardware_id=settings.port, level=level, message=message,
+                            values=[KeyValue(key=k, value=str(v)) for k, v in values])
 
 
 # -- node ------------------------------------------------------------------------------------

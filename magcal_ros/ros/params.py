@@ -94,9 +94,8 @@ class ParamSpec:
 def positive(unit):
     """Make a validator accepting a finite number > 0 (``unit`` is named in the refusal)."""
     def check(value):
-        if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-            return f'must be a finite number > 0 {unit}, got {value!r}'
-        return None
+        ok = isinstance(value, (int, float)) and math.isfinite(value) and value > 0
+        return None if ok else f'must be a finite number > 0 {unit}, got {value!r}'
     return check
 
 
@@ -259,9 +258,7 @@ def validate(specs, params):
 def value(node, name, default=None):
     """Return the value of a parameter (``default`` for an unset array parameter)."""
     p = node.get_parameter_or(name)
-    if p.type_ == Parameter.Type.NOT_SET:
-        return default
-    return p.value
+    return default if p.type_ == Parameter.Type.NOT_SET else p.value
 
 
 # -- calibration node -----------------------------------------------------------------------
@@ -342,8 +339,7 @@ def calibration_specs(n_sensors=4):
         ParamSpec('imu_topic', '', 'sensor_msgs/Imu topic whose orientation is the attitude '
                   'of the array (body-to-world, ENU, the IMU axes being the array axes), for '
                   "attitude-aided fits (attitude_mode) and the site_gradient effect; '' for "
-                  'none; read-only', optional_topic,
-                  read_only=True),
+                  'none; read-only', optional_topic, read_only=True),
         *geometry_specs(n_sensors),
         ParamSpec('field_source', 'constant', 'where the reference field magnitude comes '
                   'from: constant (field_nt), igrf (the IGRF model at site_latitude_deg, '
@@ -395,13 +391,9 @@ def geometry_specs(n_sensors):
 
 def _settings(cls, node):
     """``cls`` (a settings dataclass) from the node's current parameters."""
-    got = {}
-    for f in fields(cls):
-        v = value(node, f.name, [])
-        got[f.name] = tuple(v) if f.type is tuple else f.type(v)
-    for name in ('calibration_file', 'report_dir'):
-        if name in got:
-            got[name] = os.path.expanduser(got[name])
+    got = {f.name: f.type(value(node, f.name, [])) for f in fields(cls)}
+    got.update({k: os.path.expanduser(got[k]) for k in ('calibration_file', 'report_dir')
+                if k in got})
     got['input_topics'] = default_input_topics(got['n_sensors'], got['input_topics'])
     return cls(**got)
 

@@ -22,7 +22,7 @@ then the context; exit 0. Bad start-up input (a ``--ros-args`` rule rcl cannot p
 override of the wrong type such as ``-p field_nt:=48000``, a value a validator refuses) is
 one line on stderr and exit 2.
 """
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 import os
 import signal
 import sys
@@ -53,12 +53,10 @@ def yield_cpu():
     """Lower the calling thread's CPU priority by :data:`SOLVE_NICENESS` (Linux; else no-op)."""
     if not sys.platform.startswith('linux'):   # elsewhere a tid is not a PRIO_PROCESS id
         return
-    try:
+    with suppress(OSError):
         tid = threading.get_native_id()
         now = os.getpriority(os.PRIO_PROCESS, tid)
         os.setpriority(os.PRIO_PROCESS, tid, min(19, now + SOLVE_NICENESS))
-    except OSError:
-        pass
 
 
 def make_executor(events=True, context=None):

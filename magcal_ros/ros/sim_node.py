@@ -50,68 +50,59 @@ IMU_SD_RAD = 0.01
 def sim_specs():
     """Return the parameters of ``fluxgate_sim`` (all read-only: set at start-up)."""
     d = devices.DEFAULTS
+    spec = functools.partial(prm.ParamSpec, read_only=True)
     return [
-        prm.ParamSpec('dir', '', "folder of the device links <dir>/<prefix>{j}; '' = the "
-                      f"namespace's: {devices.DEFAULT_DIR} in {devices.DEFAULT_NAMESPACE}, "
-                      f'{devices.DEFAULT_DIR}_<ns> in another; no unit', read_only=True),
-        prm.ParamSpec('prefix', d['prefix'], 'link name prefix, sensor j is <dir>/<prefix>j; '
-                      'no unit', read_only=True),
-        prm.ParamSpec('sensors', d['sensors'], 'number of simulated sensors; count',
-                      read_only=True, limits=(1, devices.MAX_SENSORS)),
-        prm.ParamSpec('sensor_positions_m', (), 'x y z of each sensor in the array frame, '
-                      'flat (3 x sensors values), m; empty: paper 004 cross of 0.5 m for 4 '
-                      'sensors, the origin otherwise', read_only=True, item_type=float),
-        prm.ParamSpec('smooth_period_s', d['smooth_period_s'], 'period of the smooth '
-                      'tumbling (trajectory smooth covers the sphere in about one), s',
-                      read_only=True, limits=(0.1, 1.0e6)),
-        prm.ParamSpec('rate', d['rate'], 'samples per second per sensor, Hz',
-                      prm.positive('Hz'), read_only=True),
-        prm.ParamSpec('tick', d['tick'], 'write period (samples are written in chunks), s',
-                      prm.positive('s'), read_only=True),
-        prm.ParamSpec('protocol', d['protocol'], f'serial protocol, one of {sorted(PROTOCOLS)};'
-                      ' no unit', read_only=True),
-        prm.ParamSpec('options', '', 'protocol options as a YAML mapping, e.g. '
-                      '"{columns: \'x,y,z,temp,time\'}" (scale nT per device unit)',
-                      read_only=True),
-        prm.ParamSpec('seed', d['seed'], 'random seed; no unit', read_only=True),
-        prm.ParamSpec('trajectory', d['trajectory'], 'attitude trajectory (random, smooth, '
-                      'turntable, cone, vehicle); no unit', read_only=True),
-        prm.ParamSpec('field_nt', d['field_nt'], 'total field (at the array centre), nT',
-                      prm.positive('nT'), read_only=True),
-        prm.ParamSpec('noise_nt', d['noise_nt'], 'white noise sd per axis, nT',
-                      read_only=True, limits=(0.0, 1.0e6)),
-        prm.ParamSpec('errors', d['errors'], 'sensor errors: paper004 (Table 1) or none; '
-                      'no unit', read_only=True),
-        prm.ParamSpec('duration', 0.0, 'stop after this time, s (0: run until SIGINT)',
-                      read_only=True, limits=(0.0, 1.0e9)),
-        prm.ParamSpec('unplug', (), "faults 'SENSOR:AT_S:FOR_S[:NEW_PATH]' (times in s), "
-                      "e.g. ['2:10:1.5']", read_only=True),
-        prm.ParamSpec('truth', (), "hidden effects 'EFFECT=V1,V2,...' as magcal simulate "
-                      "--truth (values in the units of the effect's parameters), e.g. "
-                      "['aux:aux_motor_current@2=15,-10,8']", read_only=True),
-        prm.ParamSpec('plugins', (), 'effect plug-in modules imported before the truth is '
-                      'read, as magcal --plugin; no unit', read_only=True),
-        prm.ParamSpec('aux_topics', tuple(d['aux_topics']), 'std_msgs/Float64 topics '
-                      'publishing the simulated auxiliary channels (motor_current: A, '
-                      'pump_current: A, heater_power: W), see aux_period_s; the names the '
-                      'calibration and corrector nodes take in aux_topics', read_only=True),
-        prm.ParamSpec('aux_period_s', 0.0, 'longest interval between two messages of an '
-                      'auxiliary channel, s of sample time (0: one message per sample, what '
-                      'keeps a busy subscriber taking them in step with the raw fields; a jump '
-                      'of more than 2 % is published at once)', read_only=True,
-                      limits=(0.0, 1.0e6)),
-        prm.ParamSpec('imu_topic', d['imu_topic'], 'sensor_msgs/Imu topic publishing the '
-                      'true attitude of the array (orientation body-to-world, world ENU, REP '
-                      "103/145: the calibration node's imu_topic); '' for none",
-                      read_only=True),
-        prm.ParamSpec('imu_period_s', d['imu_period_s'], 'interval between two Imu messages, '
-                      's of sample time (one per sample when shorter than the sample period)',
-                      read_only=True, limits=(1.0e-6, 1.0e6)),
-        prm.ParamSpec('tilt_deg', d['tilt_deg'], 'largest roll and pitch of the vehicle '
-                      'trajectory, deg', read_only=True, limits=(0.0, 90.0)),
-        prm.ParamSpec('site_gradient', (), 'constant site gradient [GXX, GXY, GXZ, GYY, GYZ] '
-                      'in the world (NED) frame, nT/m; empty: a uniform field',
-                      read_only=True, item_type=float),
+        spec('dir', '', "folder of the device links <dir>/<prefix>{j}; '' = the namespace's: "
+             f'{devices.DEFAULT_DIR} in {devices.DEFAULT_NAMESPACE}, {devices.DEFAULT_DIR}_<ns> '
+             'in another; no unit'),
+        spec('prefix', d['prefix'], 'link name prefix, sensor j is <dir>/<prefix>j; no unit'),
+        spec('sensors', d['sensors'], 'number of simulated sensors; count',
+             limits=(1, devices.MAX_SENSORS)),
+        spec('sensor_positions_m', (), 'x y z of each sensor in the array frame, flat (3 x '
+             'sensors values), m; empty: paper 004 cross of 0.5 m for 4 sensors, the origin '
+             'otherwise', item_type=float),
+        spec('smooth_period_s', d['smooth_period_s'], 'period of the smooth tumbling '
+             '(trajectory smooth covers the sphere in about one), s', limits=(0.1, 1.0e6)),
+        spec('rate', d['rate'], 'samples per second per sensor, Hz', prm.positive('Hz')),
+        spec('tick', d['tick'], 'write period (samples are written in chunks), s',
+             prm.positive('s')),
+        spec('protocol', d['protocol'], f'serial protocol, one of {sorted(PROTOCOLS)}; no unit'),
+        spec('options', '', 'protocol options as a YAML mapping, e.g. "{columns: '
+             '\'x,y,z,temp,time\'}" (scale nT per device unit)'),
+        spec('seed', d['seed'], 'random seed; no unit'),
+        spec('trajectory', d['trajectory'], 'attitude trajectory (random, smooth, turntable, '
+             'cone, vehicle); no unit'),
+        spec('field_nt', d['field_nt'], 'total field (at the array centre), nT',
+             prm.positive('nT')),
+        spec('noise_nt', d['noise_nt'], 'white noise sd per axis, nT', limits=(0.0, 1.0e6)),
+        spec('errors', d['errors'], 'sensor errors: paper004 (Table 1) or none; no unit'),
+        spec('duration', 0.0, 'stop after this time, s (0: run until SIGINT)',
+             limits=(0.0, 1.0e9)),
+        spec('unplug', (), "faults 'SENSOR:AT_S:FOR_S[:NEW_PATH]' (times in s), e.g. "
+             "['2:10:1.5']"),
+        spec('truth', (), "hidden effects 'EFFECT=V1,V2,...' as magcal simulate --truth "
+             "(values in the units of the effect's parameters), e.g. "
+             "['aux:aux_motor_current@2=15,-10,8']"),
+        spec('plugins', (), 'effect plug-in modules imported before the truth is read, as '
+             'magcal --plugin; no unit'),
+        spec('aux_topics', tuple(d['aux_topics']), 'std_msgs/Float64 topics publishing the '
+             'simulated auxiliary channels (motor_current: A, pump_current: A, heater_power: '
+             'W), see aux_period_s; the names the calibration and corrector nodes take in '
+             'aux_topics'),
+        spec('aux_period_s', 0.0, 'longest interval between two messages of an auxiliary '
+             'channel, s of sample time (0: one message per sample, what keeps a busy '
+             'subscriber taking them in step with the raw fields; a jump of more than 2 % is '
+             'published at once)', limits=(0.0, 1.0e6)),
+        spec('imu_topic', d['imu_topic'], 'sensor_msgs/Imu topic publishing the true attitude '
+             'of the array (orientation body-to-world, world ENU, REP 103/145: the calibration '
+             "node's imu_topic); '' for none"),
+        spec('imu_period_s', d['imu_period_s'], 'interval between two Imu messages, s of sample '
+             'time (one per sample when shorter than the sample period)',
+             limits=(1.0e-6, 1.0e6)),
+        spec('tilt_deg', d['tilt_deg'], 'largest roll and pitch of the vehicle trajectory, deg',
+             limits=(0.0, 90.0)),
+        spec('site_gradient', (), 'constant site gradient [GXX, GXY, GXZ, GYY, GYZ] in the '
+             'world (NED) frame, nT/m; empty: a uniform field', item_type=float),
     ]
 
 
@@ -130,14 +121,13 @@ class FluxgateSimNode(Node):
         self._stop = threading.Event()
         #: set when the stream ended by itself (``duration``): the spin loop then ends
         self.finished = threading.Event()
-        log = self.get_logger()
         try:
             self.sim.plug_all()
         except Exception:
             self.sim.close()
             raise
         for line in devices.describe_start(self.sim, self.settings):
-            log.info(line)
+            self.get_logger().info(line)
         # the auxiliary channels, as a real vehicle's nodes would publish them
         self._aux_pubs = {'aux_' + name: self.create_publisher(Float64, name, 10)
                           for name in self.settings.aux_topics}
@@ -214,12 +204,8 @@ def split_command_line(argv):
     return own, ros
 
 
-def _floats(values):
-    return [float(v) for v in values]
-
-
-def _strings(values):
-    return [str(v) for v in values]
+def _list_of(kind):
+    return lambda values: [kind(v) for v in values]
 
 
 #: an option's value as its parameter's (the others are taken as they are)
@@ -227,8 +213,8 @@ _AS_PARAMETER = {
     'option': lambda v: json.dumps(dict(v)) if v else '',
     'unplug': lambda v: [
         f'{u.sensor}:{u.at_s}:{u.for_s}' + (f':{u.new_path}' if u.new_path else '') for u in v],
-    'site_gradient': _floats, 'sensor_positions_m': _floats, 'truth': _strings,
-    'plugins': _strings, 'dir': str}
+    'site_gradient': _list_of(float), 'sensor_positions_m': _list_of(float),
+    'truth': _list_of(str), 'plugins': _list_of(str), 'dir': str}
 
 
 def overrides_from_options(args):
