@@ -19,9 +19,9 @@ Before: each sensor's attitude coverage about its fitted centre (a single-axis r
 leaves the map undetermined along that axis).  After: the parameter correlations and the
 condition number of the correlation matrix.
 """
-from magcal_ros.core.geometry.coverage import direction_coverage
+from magcal_ros.core.geometry.coverage import direction_coverage, format_vector
 from magcal_ros.core.geometry.turn import circle_centre
-from magcal_ros.core.papers.ellipsoid import (fit_ellipsoid, format_axis, reading_plane,
+from magcal_ros.core.papers.ellipsoid import (fit_ellipsoid, reading_plane,
                                               RING_CV, ring_spread)
 import numpy as np
 
@@ -63,10 +63,10 @@ def fitted_centre(m):
 
 
 def _single_axis_message(normal, how):
-    return (f'all field directions lie near one plane with normal '
-            f'{format_axis(normal)} ({how}): the data come from a rotation about one axis only, '
-            f'about {format_axis(normal)} in the sensor frame; rotate about another axis too '
-            '(tilt that axis by 45-90 deg and rotate again)')
+    axis = format_vector(normal, '+')
+    return (f'all field directions lie near one plane with normal {axis} ({how}): the data '
+            f'come from a rotation about one axis only, about {axis} in the sensor frame; '
+            'rotate about another axis too (tilt that axis by 45-90 deg and rotate again)')
 
 
 def classify_coverage(m):

@@ -83,10 +83,9 @@ def prior_sd(model, field_nt):
 
 
 def held_parameters(model, axis_index):
-    """Return (indices, names) of the parameters a turn about the given axes leaves open."""
-    held = [(k, f'{label}.{name}@{j}') for k, (j, label, name, _) in enumerate(model.param_info())
+    """Return the indices of the parameters a turn about the given axes leaves open."""
+    return [k for k, (j, label, name, _) in enumerate(model.param_info())
             if j and name in _HELD[axis_index[j - 1]].get(label.split('(')[0], ())]
-    return [k for k, _ in held], [n for _, n in held]
 
 
 def fit_planar(data, model, field_nt, *, prior_params=None, inclination_deg=None,
@@ -102,10 +101,10 @@ def fit_planar(data, model, field_nt, *, prior_params=None, inclination_deg=None
     from magcal_ros.core.model.spec import Model
     if isinstance(model, str):
         model = Model.from_spec(model, data.n_sensors)
-    axes, axis_index = [], []
+    axes = []
     for j in range(data.n_sensors):
         n = turn_axis(data.raw[j])
-        k = int(np.argmax(np.abs(n)))
+        k = plane_axes(n)[0]
         off = np.degrees(np.arccos(min(1.0, abs(n[k]))))
         if off > MAX_AXIS_OFFSET_DEG:
             raise PlanarError(
@@ -114,8 +113,8 @@ def fit_planar(data, model, field_nt, *, prior_params=None, inclination_deg=None
                 f'{MAX_AXIS_OFFSET_DEG:.0f}): planar mode holds the parameters of the axis '
                 'the sensor turns about; mount the sensor with one axis along the turn axis')
         axes.append(n)
-        axis_index.append(k)
-    held, names = held_parameters(model, axis_index)
+    axis_index = [plane_axes(n)[0] for n in axes]
+    held = held_parameters(model, axis_index)
     p_prior = (model.default_params() if prior_params is None
                else np.asarray(prior_params, float))
     if p_prior.shape != (model.n_params,):
@@ -138,16 +137,14 @@ def fit_planar(data, model, field_nt, *, prior_params=None, inclination_deg=None
              if info[i][0] and info[i][1] in SENSOR_MAP_KINDS and
              not result.stderr[i] <= UNDETERMINED_RATIO * kind_sd[i]}
     undetermined, determined = split_determined(info, open_)
-    h, z, heading = [], [], []
-    for j in range(1, data.n_sensors + 1):
-        hj, zj = _field_split(result, j, axes[j - 1], inclination_deg)
-        h.append(hj)
-        z.append(zj)
-        heading.append(heading_error(result, j, axes[j - 1], axis_index[j - 1], hj, zj))
+    split = [_field_split(result, j, axes[j - 1], inclination_deg)
+             for j in range(1, data.n_sensors + 1)]
+    heading = [heading_error(result, j, axes[j - 1], axis_index[j - 1], *split[j - 1])
+               for j in range(1, data.n_sensors + 1)]
     return PlanarResult(result=result, axis=np.array(axes), axis_index=tuple(axis_index),
                         held=tuple(held), undetermined=undetermined, determined=determined,
-                        heading=heading, h_nt=np.array(h), z_nt=np.array(z),
-                        residual_correlation=rho)
+                        heading=heading, h_nt=np.array([h for h, _ in split]),
+                        z_nt=np.array([z for _, z in split]), residual_correlation=rho)
 
 
 def split_determined(info, open_, also=()):

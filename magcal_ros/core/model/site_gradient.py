@@ -151,20 +151,13 @@ def _align_to_z(u):
     return Rotation.from_rotvec(axis * ang[:, None]).as_matrix()
 
 
-def _best_heading(shift, r_a, g_w, positions, psi0=None):
-    """Per-epoch psi_k (N,) rad minimising sum_j |shift_j - R^T G R r_j|^2, R = Rz(psi) R_a."""
+def _best_heading(shift, r_a, g_w, positions, psi):
+    """Refine the headings psi (N,) rad: min sum_j |shift_j - R^T G R r_j|^2, R = Rz(psi) R_a."""
     def cost(psi):
         rot = rot_z(psi) @ r_a
         pred = np.einsum('nji,jk,nkl,sl->sni', rot, g_w, rot, positions)
         return np.sum((shift - pred) ** 2, axis=(0, 2))
 
-    n = r_a.shape[0]
-    if psi0 is None:
-        grid = np.radians(np.arange(0, 360, 5.0))
-        costs = np.stack([cost(np.full(n, g)) for g in grid])
-        psi = grid[np.argmin(costs, axis=0)]
-    else:
-        psi = psi0.copy()
     h = 1e-4
     for _ in range(6):
         c0, cp, cm = cost(psi), cost(psi + h), cost(psi - h)
@@ -227,7 +220,7 @@ def fit_heading_unknown(data, model='base,site_gradient', field_nt=None, n_iter=
             p[sl] = [g_w[0, 0], g_w[0, 1], g_w[0, 2], g_w[1, 1], g_w[1, 2]]
         else:
             g_w = eff.tensor(p[sl])
-        psi = _best_heading(shift, r_a, g_w, positions, psi0=psi)
+        psi = _best_heading(shift, r_a, g_w, positions, psi)
         att = Rotation.from_matrix(rot_z(psi) @ r_a).as_quat(scalar_first=True)
         res = mdl.fit(replace(bare, attitude=att), model, field_nt=field_nt, init=p,
                       check_identifiability=False, **fit_kwargs)
@@ -249,8 +242,7 @@ def fit_heading_unknown(data, model='base,site_gradient', field_nt=None, n_iter=
     out = crb_covariance(fixed, model, p, data.reference_magnitude(field_nt), sigma,
                          case='heading', fix_gyz=True)
     cov = out['covariance']
-    cov[np.ix_(np.arange(sl.start, sl.start + 4), np.arange(sl.start, sl.start + 4))] = \
-        out['gradient_covariance'][:4, :4]
+    cov[sl.start:sl.start + 4, sl.start:sl.start + 4] = out['gradient_covariance'][:4, :4]
     cov[sl.start + 4, :] = 0.0
     cov[:, sl.start + 4] = 0.0
     stderr, corr = stderr_and_correlation(cov)
