@@ -32,8 +32,7 @@ def tangent_basis(u):
     helper = np.where(np.abs(u[:, :1]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
     e1 = np.cross(u, helper)
     e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-    e2 = np.cross(u, e1)
-    return e1, e2
+    return e1, np.cross(u, e1)
 
 
 def inverse_2x2(a, b, c, d):

@@ -559,8 +559,7 @@ class _Solve:
         for grp in self.model.sensor_groups:
             prob = self.problem(grp, sigma, p)
             x = p[prob.cols]
-            r = prob.residuals(x)
-            chi2 += float(np.sum(r ** 2))
+            chi2 += float(np.sum(prob.residuals(x) ** 2))
             n_obs += prob.n_observations
             if not with_jacobian:
                 continue

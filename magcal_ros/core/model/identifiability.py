@@ -15,9 +15,8 @@
 """
 Can the data determine the model?  Checks run before and after every solve.
 
-Before: each sensor's attitude coverage about its fitted centre (a single-axis rotation
-leaves the map undetermined along that axis).  After: the parameter correlations and the
-condition number of the correlation matrix.
+Before: each sensor's attitude coverage about its fitted centre (:func:`check_coverage`);
+after: the parameter correlations and their condition number (:func:`jacobian_report`).
 """
 from magcal_ros.core.geometry.coverage import direction_coverage, format_vector
 from magcal_ros.core.geometry.turn import circle_centre
@@ -202,8 +201,7 @@ def jacobian_report(model, cov, corr, constrained=False):
     Returns a dict: ``condition_number``, ``max_correlation`` [(name_a, name_b, rho)],
     ``problems`` (``constrained``: the correlations are ``notes`` instead).
     """
-    info = model.param_info()
-    names = [f'{e}.{n}@{s}' for s, e, n, _ in info]
+    names = [f'{e}.{n}@{s}' for s, e, n, _ in model.param_info()]
     out = {'problems': []}
     ok = np.isfinite(np.diag(cov)) & (np.diag(cov) > 0)
     if ok.sum() == 0:

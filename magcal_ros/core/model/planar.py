@@ -13,12 +13,10 @@
 # limitations under the License.
 
 """
-Planar calibration: what a turn about one axis determines, and what it does not.
+Planar calibration: what a turn about one axis determines, and what not (docs/planar.md).
 
-A turn about the axis n determines what a heading needs and leaves open the offset and scale
-along n, the angles between n and the plane and the common in-plane scale (docs/planar.md).
-:func:`fit_planar` fits the full model with a prior on each parameter the turn leaves open
-(:data:`PRIOR_SD`) and names the undetermined ones; :func:`heading_error` propagates the
+:func:`fit_planar` fits the full model with a prior (:data:`PRIOR_SD`) on each parameter the
+turn leaves open and names the undetermined ones; :func:`heading_error` propagates the
 covariance to a level sensor's heading.  Units: nT, rad, deg where the name says so.
 """
 from dataclasses import dataclass
@@ -233,8 +231,7 @@ def heading_error(result, j, axis, axis_index, h_nt, z_nt, n_headings=72):
     jac = central_jacobian(heading, p, free,
                            [max(1e-6, 1e-4 * max(abs(p[i]), se[i])) for i in free],
                            wrap=lambda d: np.angle(np.exp(1j * d)))
-    var = np.einsum('ij,jk,ik->i', jac, cov, jac)
-    sd = np.degrees(np.sqrt(np.clip(var, 0, None)))
+    sd = np.degrees(np.sqrt(np.clip(np.einsum('ij,jk,ik->i', jac, cov, jac), 0, None)))
     return {'max_deg': float(sd.max()), 'rms_deg': float(np.sqrt(np.mean(sd ** 2))),
             'psi_deg': np.degrees(psi), 'sd_deg': sd}
 

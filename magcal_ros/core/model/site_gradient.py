@@ -140,11 +140,9 @@ def crb_covariance(data, model, params, field_nt, sigma_nt, case='attitude', fix
 
 def _align_to_z(u):
     """(N, 3, 3) rotations R_a with R_a u_k = z (the smallest rotation), u (N, 3) unit."""
-    z = np.array([0.0, 0.0, 1.0])
-    axis = np.cross(u, z)
+    axis = np.cross(u, [0.0, 0.0, 1.0])
     s = np.linalg.norm(axis, axis=1)
-    c = u @ z
-    ang = np.arctan2(s, c)
+    ang = np.arctan2(s, u[:, 2])
     axis = np.where(s[:, None] > 1e-12, axis / np.maximum(s, 1e-300)[:, None],
                     np.array([1.0, 0.0, 0.0]))
     from scipy.spatial.transform import Rotation
@@ -171,16 +169,12 @@ def _best_heading(shift, r_a, g_w, positions, psi):
 def fit_heading_unknown(data, model='base,site_gradient', field_nt=None, n_iter=8,
                         **fit_kwargs):
     """
-    Calibrate the cross in a site gradient without attitude (heading per epoch unknown).
-
-    docs/site_gradient.md, case 'heading': R_k = Rz(psi_k) R_a(u_k) in a field-aligned frame;
-    alternately every psi_k with the calibration fixed and the calibration and G_w refitted,
-    the gauge fixed by gyz = 0, stderr from :func:`crb_covariance`'s heading case.
+    Calibrate the cross in a site gradient without attitude (docs/site_gradient.md, 'heading').
 
     ``data`` (4, N, 3) nT (an attitude is not used); ``model`` with ``site_gradient``;
     ``field_nt`` nT; ``n_iter`` most alternations (fewer once no parameter moves by 1 % of
     its stderr).  Returns a FitResult in the :data:`FIELD_ALIGNED` frame, ``contexts``
-    with the estimated attitudes.
+    with the estimated attitudes, stderr from :func:`crb_covariance`'s heading case.
     """
     from dataclasses import replace
     from magcal_ros.core import model as mdl

@@ -49,8 +49,7 @@ def ring_spread(u, normal):
     if np.linalg.norm(e1) < 0.1:
         e1 = np.cross(normal, [0.0, 1.0, 0.0])
     e1 /= np.linalg.norm(e1)
-    e2 = np.cross(normal, e1)
-    p = np.column_stack([u @ e1, u @ e2])
+    p = np.column_stack([u @ e1, u @ np.cross(normal, e1)])
     r = np.linalg.norm(p - circle_centre(p), axis=1)
     return float(np.std(r) / np.mean(r)) if np.mean(r) > 0 else 0.0
 
