@@ -28,7 +28,7 @@ CONE_FRACTION = 0.95
 
 
 def format_vector(v, sign='', digits=2):
-    """Return (3,) ``v`` as text, ``(+0.12, -0.99, +0.00)``; what rounds to zero prints 0."""
+    """Return (3,) ``v`` as text, ``(0.12, -0.99, 0.00)``, never -0.00 (``sign='+'``: +0.12)."""
     zero = 0.5 * 10.0 ** -digits
     return '(' + ', '.join(f'{0.0 if abs(x) < zero else x:{sign}.{digits}f}' for x in v) + ')'
 

@@ -15,14 +15,11 @@
 """
 The profiled (variable-projection) maximum-likelihood problem of a magnetometer array.
 
-The residuals are r_jk = (raw_jk - f_j(p, B_k)) / sigma_j (:meth:`Model.forward`, Gaussian
-noise), |B_k| = F_k.  The fields are eliminated for given p (variable projection, Golub &
-Pereyra 1973; Kaufman 1975; docs/papers.md): B_k is profiled by Gauss-Newton steps on the
-sphere, and the Jacobian is projected onto the complement of each epoch's field directions,
-
-    J = (I - G (G^T G)^-1 G^T) dr/dp,    G_k = -dr_k/d(delta_1, delta_2)  (3G x 2 per epoch),
-
-so that J^T J is the Fisher information of p with the fields unknown.
+The residuals are r_jk = (raw_jk - f_j(p, B_k)) / sigma_j (:meth:`Model.forward`), |B_k| =
+F_k; for given p each B_k is profiled by Gauss-Newton steps on the sphere and the Jacobian is
+projected, J = (I - G (G^T G)^-1 G^T) dr/dp with G_k = -dr_k/d(delta_1, delta_2) (3G x 2 per
+epoch), so that J^T J is the Fisher information of p with the fields unknown (variable
+projection, Golub & Pereyra 1973, Kaufman 1975: docs/papers.md).
 """
 import numpy as np
 

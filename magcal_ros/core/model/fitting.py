@@ -370,12 +370,10 @@ def group_noise_variances(res, g_cols, n_params, ranks=None, keep=None):
     """
     Unbiased moment estimate of each sensor's noise variance in a group, relative to its weight.
 
-    The profiled residual is r = (I - P) e, P the projector on the field-direction columns G,
-    e the noise over the current sigma_j; with E[e e^T] = diag(d_j I_3),
-    E ||r_j||^2 = sum_k C_jk d_k, C_jk = ||(I - P)_jk||_F^2 over epochs, solved for d >= 0
-    (nnls): Rao's (1970) unbiased variance-component estimator (a sensor weighted less would
-    keep more of the common residual in its own share).  Every d is scaled by
-    :func:`dof_scale` squared.
+    The profiled residual r = (I - P) e (P the projector on the field-direction columns G, e
+    the noise over the current sigma_j, E[e e^T] = diag(d_j I_3)) gives E ||r_j||^2 =
+    sum_k C_jk d_k, C_jk = ||(I - P)_jk||_F^2 over epochs, solved for d >= 0 (nnls; Rao 1970,
+    docs/papers.md); every d is scaled by :func:`dof_scale` squared.
 
     ``res`` (N, G, 3) normalised residuals; ``g_cols`` (N, 3 G, 2)
     (:meth:`ProfiledProblem.field_columns`); ``n_params`` of the group; ``ranks`` (G,) each
