@@ -177,8 +177,7 @@ class ProfiledProblem:
                 wts = 1.0 / self.sigma[np.array(self.sensors) - 1] ** 2
                 acc = (np.einsum('gnc,g->nc', cor, wts) if fw is None
                        else np.einsum('gnc,ng,g->nc', cor, fw, wts))
-            u = acc / np.linalg.norm(acc, axis=1, keepdims=True)
-            b, steps = u * self.f[:, None], 2
+            b, steps = acc / np.linalg.norm(acc, axis=1, keepdims=True) * self.f[:, None], 2
         # -dr_j/d delta_a = F A_j e_a / sigma_j: the 2 x 2 normal equations are quadratic forms
         # of M_j = A_j^T A_j / sigma_j^2 (of their sum with equal weights), the right-hand
         # sides projections of s = sum_j A_j^T r_j / sigma_j
@@ -193,8 +192,7 @@ class ProfiledProblem:
             pairs = ((x1, y1), (x1, y2), (x2, y2))
             return np.stack([np.einsum('ij,ij->i', x, y) for x, y in pairs])
         for _ in range(steps):
-            u = b / self.f[:, None]
-            e1, e2 = tangent_basis(u)
+            e1, e2 = tangent_basis(b / self.f[:, None])
             h = np.zeros((3, n))
             s = np.zeros((n, 3))
             for gi, j in enumerate(self.sensors):

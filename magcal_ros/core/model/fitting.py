@@ -523,7 +523,6 @@ class _Solve:
         new_sigma = sigma.copy()
         for prob in problems:
             _, b, mats, res = prob.evaluate(p[prob.cols])
-            g = len(prob.sensors)
             g_cols = prob.field_columns(b, mats)
             if self.robust and prob.aid is None:
                 kept = prob.member_counts
@@ -536,7 +535,7 @@ class _Solve:
                         own = own[prob.keep[:, gi] > 0]
                     new_sigma[j - 1] = sigma[j - 1] * scale * mad_sd(own)
                 continue
-            ranks = [3] * g + ([prob.aid.rank] if prob.aid is not None else [])
+            ranks = [3] * len(prob.sensors) + ([prob.aid.rank] if prob.aid is not None else [])
             ratio = group_noise_variances(res, g_cols, len(prob.cols), ranks, prob.keep)
             for gi, j in enumerate(prob.sensors):
                 new_sigma[j - 1] = sigma[j - 1] * np.sqrt(ratio[gi])

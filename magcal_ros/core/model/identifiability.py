@@ -138,8 +138,7 @@ def check_coverage(raw):
     """
     out = {'sensors': {}, 'problems': []}
     messages = {}
-    for j in range(1, raw.shape[0] + 1):
-        m = raw[j - 1]
+    for j, m in enumerate(raw, 1):
         m = m[np.linalg.norm(m, axis=1) > 0]
         if len(m) < 3:
             messages[j] = f'sensor {j} reported no usable samples: check its cable/port'

@@ -140,8 +140,7 @@ def linear_summary(model, params):
     """{sensor j: (scales (3,), nonorth angles (3,) rad, misalignment angle rad)} after maps."""
     out = {}
     for j in range(1, model.n_sensors + 1):
-        a = model.axis_map(j).T @ model.matrix(j, params)
-        parts = fx.decompose_linear(a, np.zeros(3))
+        parts = fx.decompose_linear(model.axis_map(j).T @ model.matrix(j, params), np.zeros(3))
         k = np.sign(np.diag(parts.u)) * parts.scale     # all negative when det A < 0
         cos = np.clip((np.trace(parts.q) - 1) / 2, -1.0, 1.0)
         out[j] = (k, np.array(parts.nonorth), float(np.arccos(cos)))
