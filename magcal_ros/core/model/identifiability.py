@@ -20,8 +20,7 @@ after: the parameter correlations and their condition number (:func:`jacobian_re
 """
 from magcal_ros.core.geometry.coverage import direction_coverage, format_vector
 from magcal_ros.core.geometry.turn import circle_centre
-from magcal_ros.core.papers.ellipsoid import (fit_ellipsoid, reading_plane,
-                                              RING_CV, ring_spread)
+from magcal_ros.core.papers.ellipsoid import fit_ellipsoid, reading_plane, RING_CV, ring_spread
 import numpy as np
 
 #: smallest direction-scatter eigenvalue of a single-axis rotation (noise and wobble only)
