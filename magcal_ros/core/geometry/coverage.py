@@ -27,8 +27,10 @@ import numpy as np
 CONE_FRACTION = 0.95
 
 
-def _fmt_vec(v):
-    return '(' + ', '.join('%.2f' % (0.0 if abs(x) < 0.005 else x) for x in v) + ')'
+def format_vector(v, sign='', digits=2):
+    """Return (3,) ``v`` as text, ``(0.12, -0.99, 0.00)``, never -0.00 (``sign='+'``: +0.12)."""
+    zero = 0.5 * 10.0 ** -digits
+    return '(' + ', '.join(f'{0.0 if abs(x) < zero else x:{sign}.{digits}f}' for x in v) + ')'
 
 
 @dataclass(frozen=True)
@@ -61,11 +63,11 @@ class Coverage:
         ev = self.eigenvalues
         if self.narrow:
             return (f'field directions span only a {self.cone_half_angle_deg:.0f} deg cone '
-                    f'around {_fmt_vec(self.mean_direction)}: turn the sensor over / through '
+                    f'around {format_vector(self.mean_direction)}: turn the sensor over / through '
                     f'larger angles (spread eigenvalues {ev[0]:.3g}, {ev[1]:.3g}, {ev[2]:.3g}; '
                     f'each should exceed {self.planar_threshold:.3g})')
         if self.planar:
-            normal = _fmt_vec(self.normal)
+            normal = format_vector(self.normal)
             return (f'all field directions lie near one plane with normal {normal}: rotate '
                     f'about another axis (tilt the normal {normal} away from the rotation axis, '
                     'e.g. lay the sensor on its side, and rotate again; smallest spread '

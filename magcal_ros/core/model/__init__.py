@@ -12,12 +12,7 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""
-The model and its engine: what is fitted (:mod:`.spec`), and how (:mod:`.fitting`).
-
-The names most code needs are importable from here; modules inside the package import each
-other directly.
-"""
+"""What is fitted (:mod:`.spec`) and how (:mod:`.fitting`): the names other packages import."""
 from magcal_ros.core.model.calibration import Calibration
 from magcal_ros.core.model.fitting import (DegenerateDataError, evaluate, fit, fit_epochs,
                                            FitResult, initial_params, priors_for)

@@ -78,8 +78,7 @@ def attitude_start(data, model, f):
     g = rot[:, 2, :]                                   # world vertical in the body frame
     f0 = float(np.mean(f))
     p = initial_params(data.raw, f, model, constrained=True)
-    for j in range(1, data.n_sensors + 1):
-        m = data.raw[j - 1]
+    for j, m in enumerate(data.raw, 1):
         n = len(m)
         # 2 m.o + c = |m|^2 - F^2 (over 2F: nT) and g.o + Z = g.m
         sphere = np.column_stack([2 * m, np.ones(n), np.zeros(n)]) / (2 * f0)

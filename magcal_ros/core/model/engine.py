@@ -15,14 +15,11 @@
 """
 The profiled (variable-projection) maximum-likelihood problem of a magnetometer array.
 
-The residuals are r_jk = (raw_jk - f_j(p, B_k)) / sigma_j (:meth:`Model.forward`, Gaussian
-noise), |B_k| = F_k.  The fields are eliminated for given p (variable projection, Golub &
-Pereyra 1973; Kaufman 1975; docs/papers.md): B_k is profiled by Gauss-Newton steps on the
-sphere, and the Jacobian is projected onto the complement of each epoch's field directions,
-
-    J = (I - G (G^T G)^-1 G^T) dr/dp,    G_k = -dr_k/d(delta_1, delta_2)  (3G x 2 per epoch),
-
-so that J^T J is the Fisher information of p with the fields unknown.
+The residuals are r_jk = (raw_jk - f_j(p, B_k)) / sigma_j (:meth:`Model.forward`), |B_k| =
+F_k; for given p each B_k is profiled by Gauss-Newton steps on the sphere and the Jacobian is
+projected, J = (I - G (G^T G)^-1 G^T) dr/dp with G_k = -dr_k/d(delta_1, delta_2) (3G x 2 per
+epoch), so that J^T J is the Fisher information of p with the fields unknown (variable
+projection, Golub & Pereyra 1973, Kaufman 1975: docs/papers.md).
 """
 import numpy as np
 
@@ -32,8 +29,7 @@ def tangent_basis(u):
     helper = np.where(np.abs(u[:, :1]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
     e1 = np.cross(u, helper)
     e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-    e2 = np.cross(u, e1)
-    return e1, e2
+    return e1, np.cross(u, e1)
 
 
 def inverse_2x2(a, b, c, d):
@@ -181,8 +177,7 @@ class ProfiledProblem:
                 wts = 1.0 / self.sigma[np.array(self.sensors) - 1] ** 2
                 acc = (np.einsum('gnc,g->nc', cor, wts) if fw is None
                        else np.einsum('gnc,ng,g->nc', cor, fw, wts))
-            u = acc / np.linalg.norm(acc, axis=1, keepdims=True)
-            b, steps = u * self.f[:, None], 2
+            b, steps = acc / np.linalg.norm(acc, axis=1, keepdims=True) * self.f[:, None], 2
         # -dr_j/d delta_a = F A_j e_a / sigma_j: the 2 x 2 normal equations are quadratic forms
         # of M_j = A_j^T A_j / sigma_j^2 (of their sum with equal weights), the right-hand
         # sides projections of s = sum_j A_j^T r_j / sigma_j
@@ -197,8 +192,7 @@ class ProfiledProblem:
             pairs = ((x1, y1), (x1, y2), (x2, y2))
             return np.stack([np.einsum('ij,ij->i', x, y) for x, y in pairs])
         for _ in range(steps):
-            u = b / self.f[:, None]
-            e1, e2 = tangent_basis(u)
+            e1, e2 = tangent_basis(b / self.f[:, None])
             h = np.zeros((3, n))
             s = np.zeros((n, 3))
             for gi, j in enumerate(self.sensors):

@@ -370,12 +370,10 @@ def group_noise_variances(res, g_cols, n_params, ranks=None, keep=None):
     """
     Unbiased moment estimate of each sensor's noise variance in a group, relative to its weight.
 
-    The profiled residual is r = (I - P) e, P the projector on the field-direction columns G,
-    e the noise over the current sigma_j; with E[e e^T] = diag(d_j I_3),
-    E ||r_j||^2 = sum_k C_jk d_k, C_jk = ||(I - P)_jk||_F^2 over epochs, solved for d >= 0
-    (nnls): Rao's (1970) unbiased variance-component estimator (a sensor weighted less would
-    keep more of the common residual in its own share).  Every d is scaled by
-    :func:`dof_scale` squared.
+    The profiled residual r = (I - P) e (P the projector on the field-direction columns G, e
+    the noise over the current sigma_j, E[e e^T] = diag(d_j I_3)) gives E ||r_j||^2 =
+    sum_k C_jk d_k, C_jk = ||(I - P)_jk||_F^2 over epochs, solved for d >= 0 (nnls; Rao 1970,
+    docs/papers.md); every d is scaled by :func:`dof_scale` squared.
 
     ``res`` (N, G, 3) normalised residuals; ``g_cols`` (N, 3 G, 2)
     (:meth:`ProfiledProblem.field_columns`); ``n_params`` of the group; ``ranks`` (G,) each
@@ -525,7 +523,6 @@ class _Solve:
         new_sigma = sigma.copy()
         for prob in problems:
             _, b, mats, res = prob.evaluate(p[prob.cols])
-            g = len(prob.sensors)
             g_cols = prob.field_columns(b, mats)
             if self.robust and prob.aid is None:
                 kept = prob.member_counts
@@ -538,7 +535,7 @@ class _Solve:
                         own = own[prob.keep[:, gi] > 0]
                     new_sigma[j - 1] = sigma[j - 1] * scale * mad_sd(own)
                 continue
-            ranks = [3] * g + ([prob.aid.rank] if prob.aid is not None else [])
+            ranks = [3] * len(prob.sensors) + ([prob.aid.rank] if prob.aid is not None else [])
             ratio = group_noise_variances(res, g_cols, len(prob.cols), ranks, prob.keep)
             for gi, j in enumerate(prob.sensors):
                 new_sigma[j - 1] = sigma[j - 1] * np.sqrt(ratio[gi])
@@ -559,8 +556,7 @@ class _Solve:
         for grp in self.model.sensor_groups:
             prob = self.problem(grp, sigma, p)
             x = p[prob.cols]
-            r = prob.residuals(x)
-            chi2 += float(np.sum(r ** 2))
+            chi2 += float(np.sum(prob.residuals(x) ** 2))
             n_obs += prob.n_observations
             if not with_jacobian:
                 continue
@@ -607,13 +603,12 @@ def priors_for(model, spec, constrained=False):
     """[(index, mean, sd)] of {name or label: (mean or None, sd)}; constrained: Effect.prior."""
     out = []
     default = model.default_params()
-    for j, row in enumerate(model.effects):
-        for eff, sl in zip(row, model.slices[j]):
-            prior = spec.get(eff.label, spec.get(eff.name, eff.prior if constrained else None))
-            if prior is not None:
-                mean, sd = prior
-                for i in range(sl.start, sl.stop):
-                    out.append((i, default[i] if mean is None else mean, sd))
+    for j, eff, sl in model.effect_slices():
+        prior = spec.get(eff.label, spec.get(eff.name, eff.prior if constrained else None))
+        if j and prior is not None:
+            mean, sd = prior
+            out += [(i, default[i] if mean is None else mean, sd)
+                    for i in range(sl.start, sl.stop)]
     return out
 
 
@@ -625,12 +620,11 @@ def initial_params(raw, field_nt, model, constrained=False, mask=None):
     nT, Procrustes onto sensor 1 (eq. 14), A_j = C_j R_j^T; ``constrained``: A = I, the
     offset from the sphere |m - o| = F.  ``mask`` (S, N) bool: the readings to start from.
     """
-    s = raw.shape[0]
     f0 = float(np.mean(field_nt))
     p = model.default_params()
     corrected, mats = [], []
     keep = np.ones(raw.shape[:2], bool) if mask is None else np.asarray(mask, bool)
-    for j in range(1, s + 1):
+    for j in range(1, raw.shape[0] + 1):
         m = raw[j - 1] @ model.axis_map(j)
         mk, fk = m[keep[j - 1]], field_nt[keep[j - 1]]
         if constrained:
@@ -643,15 +637,13 @@ def initial_params(raw, field_nt, model, constrained=False, mask=None):
             c_inv, o = ell.c_inv, ell.b
         corrected.append((m - o) @ c_inv.T)
         mats.append((c_inv, o))
-    for j in range(1, s + 1):
-        c_inv, o = mats[j - 1]
+    for j, (c_inv, o) in enumerate(mats, 1):
         rot = np.eye(3)
         if j > 1 and model.frame_rotation(j):
             both = keep[0] & keep[j - 1]
             rot = procrustes_rotation(corrected[0][both], corrected[j - 1][both])   # eq. 14
         amap = model.axis_map(j)
-        a = amap @ np.linalg.inv(c_inv) @ rot.T
-        p = model.params_from_linear(j, a, amap @ o, p)
+        p = model.params_from_linear(j, amap @ np.linalg.inv(c_inv) @ rot.T, amap @ o, p)
     return p
 
 
@@ -669,19 +661,15 @@ def profile_residuals(model, p, raw, f, sigma, contexts, robust=False, f_scale=3
     residual = np.zeros((s, n, 3))
     for start in range(0, n, chunk):
         sl = slice(start, min(n, start + chunk))
-        if sl.start == 0 and sl.stop == n:
-            ctx = contexts                      # one chunk: no copies of the signals
-        else:
-            idx = np.arange(sl.start, sl.stop)
-            ctx = [c.subset(idx) for c in contexts]
+        ctx = (contexts if n <= chunk                   # one chunk: no copies of the signals
+               else [c.subset(np.arange(sl.start, sl.stop)) for c in contexts])
         for grp in model.sensor_groups:
             prob = ProfiledProblem(model, raw[:, sl], ctx, f[sl], grp, sigma, (), robust,
                                    f_scale, p_full=p,
                                    field0=field0[sl] if field0 is not None and model.joint
                                    else None)
-            _, b, _, _ = prob.evaluate(p[prob.cols])
+            field[sl] = prob.evaluate(p[prob.cols])[1]
             res = prob.reading_residuals(p[prob.cols])
-            field[sl] = b
             for gi, j in enumerate(grp):
                 residual[j - 1, sl] = res[:, gi] * sigma[j - 1]
     return field, residual

@@ -15,14 +15,12 @@
 """
 Can the data determine the model?  Checks run before and after every solve.
 
-Before: each sensor's attitude coverage about its fitted centre (a single-axis rotation
-leaves the map undetermined along that axis).  After: the parameter correlations and the
-condition number of the correlation matrix.
+Before: each sensor's attitude coverage about its fitted centre (:func:`check_coverage`);
+after: the parameter correlations and their condition number (:func:`jacobian_report`).
 """
-from magcal_ros.core.geometry.coverage import direction_coverage
+from magcal_ros.core.geometry.coverage import direction_coverage, format_vector
 from magcal_ros.core.geometry.turn import circle_centre
-from magcal_ros.core.papers.ellipsoid import (fit_ellipsoid, format_axis, reading_plane,
-                                              RING_CV, ring_spread)
+from magcal_ros.core.papers.ellipsoid import fit_ellipsoid, reading_plane, RING_CV, ring_spread
 import numpy as np
 
 #: smallest direction-scatter eigenvalue of a single-axis rotation (noise and wobble only)
@@ -63,10 +61,10 @@ def fitted_centre(m):
 
 
 def _single_axis_message(normal, how):
-    return (f'all field directions lie near one plane with normal '
-            f'{format_axis(normal)} ({how}): the data come from a rotation about one axis only, '
-            f'about {format_axis(normal)} in the sensor frame; rotate about another axis too '
-            '(tilt that axis by 45-90 deg and rotate again)')
+    axis = format_vector(normal, '+')
+    return (f'all field directions lie near one plane with normal {axis} ({how}): the data '
+            f'come from a rotation about one axis only, about {axis} in the sensor frame; '
+            'rotate about another axis too (tilt that axis by 45-90 deg and rotate again)')
 
 
 def classify_coverage(m):
@@ -139,8 +137,7 @@ def check_coverage(raw):
     """
     out = {'sensors': {}, 'problems': []}
     messages = {}
-    for j in range(1, raw.shape[0] + 1):
-        m = raw[j - 1]
+    for j, m in enumerate(raw, 1):
         m = m[np.linalg.norm(m, axis=1) > 0]
         if len(m) < 3:
             messages[j] = f'sensor {j} reported no usable samples: check its cable/port'
@@ -202,8 +199,7 @@ def jacobian_report(model, cov, corr, constrained=False):
     Returns a dict: ``condition_number``, ``max_correlation`` [(name_a, name_b, rho)],
     ``problems`` (``constrained``: the correlations are ``notes`` instead).
     """
-    info = model.param_info()
-    names = [f'{e}.{n}@{s}' for s, e, n, _ in info]
+    names = [f'{e}.{n}@{s}' for s, e, n, _ in model.param_info()]
     out = {'problems': []}
     ok = np.isfinite(np.diag(cov)) & (np.diag(cov) > 0)
     if ok.sum() == 0:

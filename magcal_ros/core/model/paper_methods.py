@@ -126,8 +126,7 @@ def sine_calibration(data, field_nt):
     model = Model.from_spec('offset,scale,nonorthogonality', data.n_sensors)
     p = model.default_params()
     rows = []
-    for j in range(1, data.n_sensors + 1):
-        m = data.raw[j - 1]
+    for j, m in enumerate(data.raw, 1):
         par = calibrate_turntable(theta[pos1], m[pos1], theta[pos2], m[pos2], float(f.mean()))
         low, b0 = par.to_general()
         u, _ = rq_positive(low)          # drop paper 000's frame rotation (module docstring)

@@ -13,12 +13,10 @@
 # limitations under the License.
 
 """
-Planar calibration: what a turn about one axis determines, and what it does not.
+Planar calibration: what a turn about one axis determines, and what not (docs/planar.md).
 
-A turn about the axis n determines what a heading needs and leaves open the offset and scale
-along n, the angles between n and the plane and the common in-plane scale (docs/planar.md).
-:func:`fit_planar` fits the full model with a prior on each parameter the turn leaves open
-(:data:`PRIOR_SD`) and names the undetermined ones; :func:`heading_error` propagates the
+:func:`fit_planar` fits the full model with a prior (:data:`PRIOR_SD`) on each parameter the
+turn leaves open and names the undetermined ones; :func:`heading_error` propagates the
 covariance to a level sensor's heading.  Units: nT, rad, deg where the name says so.
 """
 from dataclasses import dataclass
@@ -83,10 +81,9 @@ def prior_sd(model, field_nt):
 
 
 def held_parameters(model, axis_index):
-    """Return (indices, names) of the parameters a turn about the given axes leaves open."""
-    held = [(k, f'{label}.{name}@{j}') for k, (j, label, name, _) in enumerate(model.param_info())
+    """Return the indices of the parameters a turn about the given axes leaves open."""
+    return [k for k, (j, label, name, _) in enumerate(model.param_info())
             if j and name in _HELD[axis_index[j - 1]].get(label.split('(')[0], ())]
-    return [k for k, _ in held], [n for _, n in held]
 
 
 def fit_planar(data, model, field_nt, *, prior_params=None, inclination_deg=None,
@@ -102,10 +99,10 @@ def fit_planar(data, model, field_nt, *, prior_params=None, inclination_deg=None
     from magcal_ros.core.model.spec import Model
     if isinstance(model, str):
         model = Model.from_spec(model, data.n_sensors)
-    axes, axis_index = [], []
+    axes = []
     for j in range(data.n_sensors):
         n = turn_axis(data.raw[j])
-        k = int(np.argmax(np.abs(n)))
+        k = plane_axes(n)[0]
         off = np.degrees(np.arccos(min(1.0, abs(n[k]))))
         if off > MAX_AXIS_OFFSET_DEG:
             raise PlanarError(
@@ -114,8 +111,8 @@ def fit_planar(data, model, field_nt, *, prior_params=None, inclination_deg=None
                 f'{MAX_AXIS_OFFSET_DEG:.0f}): planar mode holds the parameters of the axis '
                 'the sensor turns about; mount the sensor with one axis along the turn axis')
         axes.append(n)
-        axis_index.append(k)
-    held, names = held_parameters(model, axis_index)
+    axis_index = [plane_axes(n)[0] for n in axes]
+    held = held_parameters(model, axis_index)
     p_prior = (model.default_params() if prior_params is None
                else np.asarray(prior_params, float))
     if p_prior.shape != (model.n_params,):
@@ -138,16 +135,14 @@ def fit_planar(data, model, field_nt, *, prior_params=None, inclination_deg=None
              if info[i][0] and info[i][1] in SENSOR_MAP_KINDS and
              not result.stderr[i] <= UNDETERMINED_RATIO * kind_sd[i]}
     undetermined, determined = split_determined(info, open_)
-    h, z, heading = [], [], []
-    for j in range(1, data.n_sensors + 1):
-        hj, zj = _field_split(result, j, axes[j - 1], inclination_deg)
-        h.append(hj)
-        z.append(zj)
-        heading.append(heading_error(result, j, axes[j - 1], axis_index[j - 1], hj, zj))
+    split = [_field_split(result, j, axes[j - 1], inclination_deg)
+             for j in range(1, data.n_sensors + 1)]
+    heading = [heading_error(result, j, axes[j - 1], axis_index[j - 1], *split[j - 1])
+               for j in range(1, data.n_sensors + 1)]
     return PlanarResult(result=result, axis=np.array(axes), axis_index=tuple(axis_index),
                         held=tuple(held), undetermined=undetermined, determined=determined,
-                        heading=heading, h_nt=np.array(h), z_nt=np.array(z),
-                        residual_correlation=rho)
+                        heading=heading, h_nt=np.array([h for h, _ in split]),
+                        z_nt=np.array([z for _, z in split]), residual_correlation=rho)
 
 
 def split_determined(info, open_, also=()):
@@ -236,8 +231,7 @@ def heading_error(result, j, axis, axis_index, h_nt, z_nt, n_headings=72):
     jac = central_jacobian(heading, p, free,
                            [max(1e-6, 1e-4 * max(abs(p[i]), se[i])) for i in free],
                            wrap=lambda d: np.angle(np.exp(1j * d)))
-    var = np.einsum('ij,jk,ik->i', jac, cov, jac)
-    sd = np.degrees(np.sqrt(np.clip(var, 0, None)))
+    sd = np.degrees(np.sqrt(np.clip(np.einsum('ij,jk,ik->i', jac, cov, jac), 0, None)))
     return {'max_deg': float(sd.max()), 'rms_deg': float(np.sqrt(np.mean(sd ** 2))),
             'psi_deg': np.degrees(psi), 'sd_deg': sd}
 

@@ -13,14 +13,11 @@
 # limitations under the License.
 
 """
-Fitted parameters no real sensor has, explained in words.
+Fitted parameters no real sensor has, explained in words (real ones: paper 004, Table 1).
 
 :func:`axis_maps` finds the signed permutation M (reading = M x the sensor's axes) of a
-mirrored or turned sensor frame, recorded as ``axes(...)@j`` (:func:`mounting_notes`, Notes
-of kind ``mounting``); :func:`parameter_notes` names a scale near a power of ten or far from
-one, an angle beyond :data:`ANGLE_WARN_DEG` and an offset beyond every reading (kind
-``parameters``); a real sensor's are near 1, within degrees (paper 004, Table 1), within its
-readings.
+mirrored or turned sensor frame, recorded as ``axes(...)@j`` (:func:`mounting_notes`);
+:func:`parameter_notes` names scales, angles and offsets beyond the limits below.
 """
 from magcal_ros.core import effects as fx
 from magcal_ros.core.model.notes import Note
@@ -143,8 +140,7 @@ def linear_summary(model, params):
     """{sensor j: (scales (3,), nonorth angles (3,) rad, misalignment angle rad)} after maps."""
     out = {}
     for j in range(1, model.n_sensors + 1):
-        a = model.axis_map(j).T @ model.matrix(j, params)
-        parts = fx.decompose_linear(a, np.zeros(3))
+        parts = fx.decompose_linear(model.axis_map(j).T @ model.matrix(j, params), np.zeros(3))
         k = np.sign(np.diag(parts.u)) * parts.scale     # all negative when det A < 0
         cos = np.clip((np.trace(parts.q) - 1) / 2, -1.0, 1.0)
         out[j] = (k, np.array(parts.nonorth), float(np.arccos(cos)))
@@ -153,10 +149,8 @@ def linear_summary(model, params):
 
 def fitted_scales_angles(model, params):
     """{sensor j: (scales (3,), largest |angle| deg)} as the parameters (else A_j) state them."""
-    lin = linear_summary(model, params)
     out = {}
-    for j in range(1, model.n_sensors + 1):
-        k, no, mis = lin[j]
+    for j, (k, no, mis) in linear_summary(model, params).items():
         angles = [np.degrees(max(np.abs(no).max(), mis))]
         for eff, sl in zip(model.effects[j - 1], model.slices[j - 1]):
             if eff.name == 'scale':
@@ -235,9 +229,7 @@ def parameter_notes(model, params, raw, field_nt):
                     'loose screw, a board mounted askew); the correction turns it into sensor '
                     "1's frame and stays right, but the array's geometry assumes aligned "
                     'sensors')
-        off = cal.offset(j)
-        reach = np.abs(raw[j - 1]).max(axis=0)
-        for ax, o, r in zip(fx.AXIS_NAMES, off, reach):
+        for ax, o, r in zip(fx.AXIS_NAMES, cal.offset(j), np.abs(raw[j - 1]).max(axis=0)):
             if abs(o) > r:
                 flag(j, f'sensor {j}: offset b{ax} = {o:+.0f} nT lies beyond every {ax} '
                         f'reading (|reading| <= {r:.0f} nT): the centre of the readings is '

@@ -140,31 +140,22 @@ def crb_covariance(data, model, params, field_nt, sigma_nt, case='attitude', fix
 
 def _align_to_z(u):
     """(N, 3, 3) rotations R_a with R_a u_k = z (the smallest rotation), u (N, 3) unit."""
-    z = np.array([0.0, 0.0, 1.0])
-    axis = np.cross(u, z)
+    axis = np.cross(u, [0.0, 0.0, 1.0])
     s = np.linalg.norm(axis, axis=1)
-    c = u @ z
-    ang = np.arctan2(s, c)
+    ang = np.arctan2(s, u[:, 2])
     axis = np.where(s[:, None] > 1e-12, axis / np.maximum(s, 1e-300)[:, None],
                     np.array([1.0, 0.0, 0.0]))
     from scipy.spatial.transform import Rotation
     return Rotation.from_rotvec(axis * ang[:, None]).as_matrix()
 
 
-def _best_heading(shift, r_a, g_w, positions, psi0=None):
-    """Per-epoch psi_k (N,) rad minimising sum_j |shift_j - R^T G R r_j|^2, R = Rz(psi) R_a."""
+def _best_heading(shift, r_a, g_w, positions, psi):
+    """Refine the headings psi (N,) rad: min sum_j |shift_j - R^T G R r_j|^2, R = Rz(psi) R_a."""
     def cost(psi):
         rot = rot_z(psi) @ r_a
         pred = np.einsum('nji,jk,nkl,sl->sni', rot, g_w, rot, positions)
         return np.sum((shift - pred) ** 2, axis=(0, 2))
 
-    n = r_a.shape[0]
-    if psi0 is None:
-        grid = np.radians(np.arange(0, 360, 5.0))
-        costs = np.stack([cost(np.full(n, g)) for g in grid])
-        psi = grid[np.argmin(costs, axis=0)]
-    else:
-        psi = psi0.copy()
     h = 1e-4
     for _ in range(6):
         c0, cp, cm = cost(psi), cost(psi + h), cost(psi - h)
@@ -178,16 +169,12 @@ def _best_heading(shift, r_a, g_w, positions, psi0=None):
 def fit_heading_unknown(data, model='base,site_gradient', field_nt=None, n_iter=8,
                         **fit_kwargs):
     """
-    Calibrate the cross in a site gradient without attitude (heading per epoch unknown).
-
-    docs/site_gradient.md, case 'heading': R_k = Rz(psi_k) R_a(u_k) in a field-aligned frame;
-    alternately every psi_k with the calibration fixed and the calibration and G_w refitted,
-    the gauge fixed by gyz = 0, stderr from :func:`crb_covariance`'s heading case.
+    Calibrate the cross in a site gradient without attitude (docs/site_gradient.md, 'heading').
 
     ``data`` (4, N, 3) nT (an attitude is not used); ``model`` with ``site_gradient``;
     ``field_nt`` nT; ``n_iter`` most alternations (fewer once no parameter moves by 1 % of
     its stderr).  Returns a FitResult in the :data:`FIELD_ALIGNED` frame, ``contexts``
-    with the estimated attitudes.
+    with the estimated attitudes, stderr from :func:`crb_covariance`'s heading case.
     """
     from dataclasses import replace
     from magcal_ros.core import model as mdl
@@ -227,7 +214,7 @@ def fit_heading_unknown(data, model='base,site_gradient', field_nt=None, n_iter=
             p[sl] = [g_w[0, 0], g_w[0, 1], g_w[0, 2], g_w[1, 1], g_w[1, 2]]
         else:
             g_w = eff.tensor(p[sl])
-        psi = _best_heading(shift, r_a, g_w, positions, psi0=psi)
+        psi = _best_heading(shift, r_a, g_w, positions, psi)
         att = Rotation.from_matrix(rot_z(psi) @ r_a).as_quat(scalar_first=True)
         res = mdl.fit(replace(bare, attitude=att), model, field_nt=field_nt, init=p,
                       check_identifiability=False, **fit_kwargs)
@@ -249,8 +236,7 @@ def fit_heading_unknown(data, model='base,site_gradient', field_nt=None, n_iter=
     out = crb_covariance(fixed, model, p, data.reference_magnitude(field_nt), sigma,
                          case='heading', fix_gyz=True)
     cov = out['covariance']
-    cov[np.ix_(np.arange(sl.start, sl.start + 4), np.arange(sl.start, sl.start + 4))] = \
-        out['gradient_covariance'][:4, :4]
+    cov[sl.start:sl.start + 4, sl.start:sl.start + 4] = out['gradient_covariance'][:4, :4]
     cov[sl.start + 4, :] = 0.0
     cov[:, sl.start + 4] = 0.0
     stderr, corr = stderr_and_correlation(cov)

@@ -133,8 +133,7 @@ def covariance_from_normal(a):
     """
     d = np.sqrt(np.clip(np.diag(a), 0.0, None))
     d[d == 0] = 1.0
-    m = a / np.outer(d, d)
-    w, v = np.linalg.eigh(m)
+    w, v = np.linalg.eigh(a / np.outer(d, d))
     bad = w <= 1e-14 * max(w.max(), 1e-300)
     w_inv = np.where(bad, 0.0, 1.0 / np.where(bad, 1.0, w))
     cov = (v * w_inv) @ v.T / np.outer(d, d)

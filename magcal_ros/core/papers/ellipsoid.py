@@ -15,6 +15,7 @@
 """Paper 004 section 3: ellipsoid fit + Cholesky per sensor, Procrustes alignment (the start)."""
 from dataclasses import dataclass
 
+from magcal_ros.core.geometry.coverage import format_vector
 from magcal_ros.core.geometry.turn import circle_centre
 import numpy as np
 
@@ -24,11 +25,6 @@ DEFINITE_Z = 3.7
 PLANE_SD_RATIO = 0.3
 #: ... and whose radius varies less than this (coefficient of variation) form a ring
 RING_CV = 0.2
-
-
-def format_axis(v):
-    """Return a unit vector (3,) as text, ``(+0.12, -0.99, +0.00)``."""
-    return '(' + ', '.join(f'{0.0 if abs(x) < 0.005 else x:+.2f}' for x in v) + ')'
 
 
 def reading_plane(raw):
@@ -53,8 +49,7 @@ def ring_spread(u, normal):
     if np.linalg.norm(e1) < 0.1:
         e1 = np.cross(normal, [0.0, 1.0, 0.0])
     e1 /= np.linalg.norm(e1)
-    e2 = np.cross(normal, e1)
-    p = np.column_stack([u @ e1, u @ e2])
+    p = np.column_stack([u @ e1, u @ np.cross(normal, e1)])
     r = np.linalg.norm(p - circle_centre(p), axis=1)
     return float(np.std(r) / np.mean(r)) if np.mean(r) > 0 else 0.0
 
@@ -65,9 +60,9 @@ def _undetermined_message(raw, why):
         return (f'the ellipsoid is not determined by these data ({why}): the readings do not '
                 'cover enough attitudes; rotate the sensor about more axes')
     return (f'the ellipsoid is not determined by these data ({why}): the readings lie near '
-            f'one plane with normal {format_axis(n)} in the sensor frame, i.e. the sensor was '
-            'rotated about that axis only; rotate it about another axis too (tilt that axis '
-            'by 45-90 deg and rotate again)')
+            f'one plane with normal {format_vector(n, "+")} in the sensor frame, i.e. the '
+            'sensor was rotated about that axis only; rotate it about another axis too (tilt '
+            'that axis by 45-90 deg and rotate again)')
 
 
 def quadric_definiteness(sv, vt, a_mat, n_rows):

@@ -29,8 +29,7 @@ import scipy.linalg
 
 
 def _check_general(a, o):
-    a = np.asarray(a, dtype=float)
-    o = np.asarray(o, dtype=float)
+    a, o = np.asarray(a, dtype=float), np.asarray(o, dtype=float)
     if a.shape != (3, 3):
         raise ValueError('A must have shape (3, 3), got %s' % (a.shape,))
     if o.shape != (3,):

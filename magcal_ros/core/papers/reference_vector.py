@@ -22,16 +22,12 @@ and ``Hh`` inseparable, as in paper 002's own Table 2 (docs/papers.md, paper 002
 """
 from dataclasses import dataclass
 
-from magcal_ros.core.geometry.coverage import Coverage, direction_coverage
+from magcal_ros.core.geometry.coverage import Coverage, direction_coverage, format_vector
 from magcal_ros.core.papers.paper_params import Paper002Params
 import numpy as np
 
 #: Minimum number of attitudes: 12 unknowns, 3 equations per attitude (paper 002, §1).
 MIN_ATTITUDES = 4
-
-
-def _fmt_vec(v):
-    return '(' + ', '.join('%.3f' % (0.0 if abs(x) < 0.0005 else x) for x in v) + ')'
 
 
 @dataclass(frozen=True, eq=False)
@@ -121,17 +117,18 @@ def fit_reference(He, Hm, strict=False, max_condition=100.0,
     if coverage.narrow:
         warning = (
             f'reference field directions span only a {coverage.cone_half_angle_deg:.0f} deg '
-            f'cone around {_fmt_vec(coverage.mean_direction)}: K is not determined in any '
-            'direction across it and trades off against Hh; the compensation is valid only '
-            'near that direction. Turn the sensor over / through larger angles.')
+            f'cone around {format_vector(coverage.mean_direction, digits=3)}: K is not '
+            'determined in any direction across it and trades off against Hh; the compensation '
+            'is valid only near that direction. Turn the sensor over / through larger angles.')
     elif coverage.planar:
+        weak_text = format_vector(weak, digits=3)
         warning = (
             'reference field directions lie in one plane with normal %s (singular values of '
             'the centred reference field %.4g, %.4g, %.4g nT): K @ normal and Hh are not '
             'separately identifiable (unobservable direction %s), so the compensation is '
             'valid only for attitudes whose field lies in that plane, i.e. turned about the '
             'same axis. Add attitudes rotated about another axis.'
-            % (_fmt_vec(weak), *singular_values, _fmt_vec(weak)))
+            % (weak_text, *singular_values, weak_text))
     elif rank < 4 or cond > max_condition:
         warning = (f'the design [He 1] is ill-conditioned (condition number {cond:.3g} after '
                    f'column scaling, limit {max_condition:.3g}): K and Hh are poorly '
