@@ -271,14 +271,11 @@ def _test_time(t, x, sd, mod=None):
                       detail={'degree': d})
 
 
-def _direction_design(u):
-    """(N, 20) the :func:`_nuisance` columns and the cubes u_a u_b u_c of the direction."""
-    return np.column_stack([_nuisance(u)] + [u[:, a] * u[:, b] * u[:, c] for a in range(3)
-                                             for b in range(a, 3) for c in range(b, 3)])
-
-
 def _test_direction(u, x):
-    fitted, rank = regress(x, _direction_design(u))
+    # (N, 20) the :func:`_nuisance` columns and the cubes u_a u_b u_c of the direction
+    fitted, rank = regress(x, np.column_stack(
+        [_nuisance(u)] + [u[:, a] * u[:, b] * u[:, c] for a in range(3)
+                          for b in range(a, 3) for c in range(b, 3)]))
     return _Candidate('direction', fitted - x.mean(axis=0), x.shape[1] * (rank - 1),
                       _f_mean(x, fitted, rank), 1)
 

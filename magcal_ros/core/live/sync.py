@@ -113,35 +113,6 @@ MAX_VOTE_SHIFT = 25
 MIN_PASS = 2
 
 
-class _Ring:
-    """Last ``size`` (sequence number, stamp) pairs of one stream, as numpy arrays."""
-
-    def __init__(self, size):
-        self.q = np.zeros(size)
-        self.s = np.zeros(size)
-        self.size = size
-        self.count = 0
-
-    def clear(self):
-        self.count = 0
-
-    def __len__(self):
-        return min(self.count, self.size)
-
-    def append(self, q, s):
-        k = self.count % self.size
-        self.q[k] = q
-        self.s[k] = s
-        self.count += 1
-
-    def arrays(self):
-        """(sequence numbers, stamps), oldest first (copies)."""
-        if self.count <= self.size:
-            return self.q[:self.count].copy(), self.s[:self.count].copy()
-        k = self.count % self.size
-        return np.concatenate([self.q[k:], self.q[:k]]), np.concatenate([self.s[k:], self.s[:k]])
-
-
 def _median(values):
     """Median of a short list of floats (np.median costs ~10 us per call on the hot path)."""
     v = sorted(values)
@@ -191,7 +162,8 @@ class StampMatcher:
         self.max_shift = int(max_shift)
         self.confirm = int(confirm)
         self.margin = float(margin)
-        self._hist = [_Ring(self.window) for _ in range(self.n_sensors)]
+        # (sequence number, stamp) of each stream's latest ``window`` samples
+        self._hist = [deque(maxlen=self.window) for _ in range(self.n_sensors)]
         self._queues = [deque() for _ in range(self.n_sensors)]
         # with misfit: (sequence number, stamp, item) last taken from each queue (shifts back)
         self._past = [deque(maxlen=MAX_VOTE_SHIFT + confirm + 2)
@@ -217,11 +189,6 @@ class StampMatcher:
         self.rejected = self.repaired = 0
 
     @property
-    def aligned(self):
-        """Tell whether every stream has an epoch offset."""
-        return self._aligned
-
-    @property
     def queued(self):
         """Count the samples waiting for the other sensors of their set (tuple of S counts)."""
         return tuple(len(q) for q in self._queues)
@@ -238,19 +205,18 @@ class StampMatcher:
             self.out_of_order += 1
             return []
         self._last_arrival[j] = stamp_s
-        s = stamp_s
         q = self._seq[j]
         self._seq[j] += 1
-        self._hist[j].append(q, s)
+        self._hist[j].append((q, stamp_s))
         queue = self._queues[j]
-        queue.append((q, s, item))
+        queue.append((q, stamp_s, item))
         if len(queue) > self.max_queue:
             self._past[j].append(queue.popleft())
             self.incomplete += 1
         self._since_align += 1
-        if self._since_align >= (self.align_every if self.aligned else 8):
+        if self._since_align >= (self.align_every if self._aligned else 8):
             self._align()
-        return self._emit() if self.aligned else []
+        return self._emit() if self._aligned else []
 
     def _align(self):
         """Vote the epoch offset of every stream against sensor 1's."""
@@ -258,17 +224,17 @@ class StampMatcher:
         ref = self._hist[0]
         if len(ref) < 10:
             return
-        q0, s0 = ref.arrays()
-        period = self._period(s0)
-        if period is None:
+        q0, s0 = np.array(ref, float).T
+        if s0[-1] <= s0[0]:
             return
+        period = (s0[-1] - s0[0]) / (len(s0) - 1)
         # raw stamps vote well for samples one by one, backdated ones for chunks: both vote
         refs = (s0, backdate(s0, period))
         for j in range(1, self.n_sensors):
             hist = self._hist[j]
             if len(hist) < 10:
                 continue
-            qj, sj = hist.arrays()
+            qj, sj = np.array(hist, float).T
             votes = []
             for ref_s, s in zip(refs, (sj, backdate(sj, period))):
                 k = np.clip(np.searchsorted(ref_s, s), 1, len(ref_s) - 1)
@@ -293,12 +259,6 @@ class StampMatcher:
             self._pending = (vote if vote != self._offset and vote not in self._refuted
                              else None)
         self._aligned = all(o is not None for o in self._offset)
-
-    @staticmethod
-    def _period(stamps):
-        if len(stamps) < 2 or stamps[-1] <= stamps[0]:
-            return None
-        return (stamps[-1] - stamps[0]) / (len(stamps) - 1)
 
     def _emit(self):
         out = []
