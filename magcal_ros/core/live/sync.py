@@ -113,6 +113,35 @@ MAX_VOTE_SHIFT = 25
 MIN_PASS = 2
 
 
+class _Ring:
+    """Last ``size`` (sequence number, stamp) pairs of one stream, as numpy arrays."""
+
+    def __init__(self, size):
+        self.q = np.zeros(size)
+        self.s = np.zeros(size)
+        self.size = size
+        self.count = 0
+
+    def clear(self):
+        self.count = 0
+
+    def __len__(self):
+        return min(self.count, self.size)
+
+    def append(self, q, s):
+        k = self.count % self.size
+        self.q[k] = q
+        self.s[k] = s
+        self.count += 1
+
+    def arrays(self):
+        """(sequence numbers, stamps), oldest first (copies)."""
+        if self.count <= self.size:
+            return self.q[:self.count].copy(), self.s[:self.count].copy()
+        k = self.count % self.size
+        return np.concatenate([self.q[k:], self.q[:k]]), np.concatenate([self.s[k:], self.s[:k]])
+
+
 def _median(values):
     """Median of a short list of floats (np.median costs ~10 us per call on the hot path)."""
     v = sorted(values)
@@ -162,8 +191,7 @@ class StampMatcher:
         self.max_shift = int(max_shift)
         self.confirm = int(confirm)
         self.margin = float(margin)
-        # (sequence number, stamp) of each stream's latest ``window`` samples
-        self._hist = [deque(maxlen=self.window) for _ in range(self.n_sensors)]
+        self._hist = [_Ring(self.window) for _ in range(self.n_sensors)]
         self._queues = [deque() for _ in range(self.n_sensors)]
         # with misfit: (sequence number, stamp, item) last taken from each queue (shifts back)
         self._past = [deque(maxlen=MAX_VOTE_SHIFT + confirm + 2)
@@ -207,7 +235,7 @@ class StampMatcher:
         self._last_arrival[j] = stamp_s
         q = self._seq[j]
         self._seq[j] += 1
-        self._hist[j].append((q, stamp_s))
+        self._hist[j].append(q, stamp_s)
         queue = self._queues[j]
         queue.append((q, stamp_s, item))
         if len(queue) > self.max_queue:
@@ -224,7 +252,7 @@ class StampMatcher:
         ref = self._hist[0]
         if len(ref) < 10:
             return
-        q0, s0 = np.array(ref, float).T
+        q0, s0 = ref.arrays()
         if s0[-1] <= s0[0]:
             return
         period = (s0[-1] - s0[0]) / (len(s0) - 1)
@@ -234,7 +262,7 @@ class StampMatcher:
             hist = self._hist[j]
             if len(hist) < 10:
                 continue
-            qj, sj = np.array(hist, float).T
+            qj, sj = hist.arrays()
             votes = []
             for ref_s, s in zip(refs, (sj, backdate(sj, period))):
                 k = np.clip(np.searchsorted(ref_s, s), 1, len(ref_s) - 1)
