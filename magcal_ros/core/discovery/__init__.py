@@ -24,19 +24,14 @@ and gives a verdict: the best that passes all three (at least :data:`MIN_EXPLAIN
 ``none``.  :func:`ladder` repeats diagnose -> add the verdict -> refit (the error ladder).
 One module per stage (docs/design.md); every name below is importable from here.
 """
-from magcal_ros.core.data.noise import data_noise_floor as noise_floor_from_data, NoiseFloor
+from magcal_ros.core.data.noise import data_noise_floor as noise_floor_from_data
 from magcal_ros.core.discovery.candidates import (Candidate, candidate_tokens, extend_model,
-                                                  propose_from_residual, split_testable,
-                                                  token_label, tokens_from_findings)
-from magcal_ros.core.discovery.constants import (ALPHA, AT_FLOOR_RATIO, BLOCKS_PER_FOLD,
-                                                 DEFAULT_FOLDS, DEFAULT_MAX_REFIT,
-                                                 DEFAULT_MAX_SAMPLES, EVIDENCE_TIE, MIN_BLOCK,
-                                                 MIN_DELTA_BIC, MIN_EXPLAINED, NESTED,
-                                                 REFIT_CHI2_TOL, REFIT_MAX_NFEV,
-                                                 SCORE_RULE_OUT_BIC)
+                                                  propose_from_residual, tokens_from_findings)
+from magcal_ros.core.discovery.constants import (AT_FLOOR_RATIO, EVIDENCE_TIE, MIN_DELTA_BIC,
+                                                 MIN_EXPLAINED, SCORE_RULE_OUT_BIC)
 from magcal_ros.core.discovery.error_ladder import Ladder, ladder, LadderStep
-from magcal_ros.core.discovery.measures import (dof_factor, evaluate_residuals, Evaluation,
-                                                explained_share, likelihood_ratio, n_observations,
+from magcal_ros.core.discovery.measures import (evaluate_residuals, Evaluation,
+                                                likelihood_ratio, n_observations,
                                                 soft_l1_lr_loss)
 from magcal_ros.core.discovery.results import compact_spec, Diagnosis, jsonable
 from magcal_ros.core.discovery.run import diagnose
@@ -44,13 +39,10 @@ from magcal_ros.core.discovery.screen import Screen
 from magcal_ros.core.discovery.validation import cross_validate, time_blocks
 
 __all__ = [
-    'ALPHA', 'AT_FLOOR_RATIO', 'BLOCKS_PER_FOLD', 'Candidate', 'DEFAULT_FOLDS',
-    'DEFAULT_MAX_REFIT', 'DEFAULT_MAX_SAMPLES', 'Diagnosis', 'EVIDENCE_TIE', 'Evaluation',
-    'Ladder', 'LadderStep', 'MIN_BLOCK', 'MIN_DELTA_BIC', 'MIN_EXPLAINED', 'NESTED',
-    'NoiseFloor', 'REFIT_CHI2_TOL', 'REFIT_MAX_NFEV', 'SCORE_RULE_OUT_BIC', 'Screen',
-    'candidate_tokens', 'compact_spec', 'cross_validate',
-    'diagnose', 'dof_factor', 'evaluate_residuals', 'explained_share', 'extend_model',
-    'jsonable', 'ladder', 'likelihood_ratio', 'n_observations', 'noise_floor_from_data',
-    'propose_from_residual', 'soft_l1_lr_loss', 'split_testable',
-    'time_blocks', 'token_label', 'tokens_from_findings',
+    'AT_FLOOR_RATIO', 'Candidate', 'Diagnosis', 'EVIDENCE_TIE', 'Evaluation', 'Ladder',
+    'LadderStep', 'MIN_DELTA_BIC', 'MIN_EXPLAINED', 'SCORE_RULE_OUT_BIC', 'Screen',
+    'candidate_tokens', 'compact_spec', 'cross_validate', 'diagnose', 'evaluate_residuals',
+    'extend_model', 'jsonable', 'ladder', 'likelihood_ratio', 'n_observations',
+    'noise_floor_from_data', 'propose_from_residual', 'soft_l1_lr_loss', 'time_blocks',
+    'tokens_from_findings',
 ]

@@ -94,11 +94,8 @@ def channel_values(data, name, j):
 
 def channels_of(data):
     """Return the names of the channels the record holds that vary: temperature, aux_*."""
-    out = []
-    if data.temp is not None and all(usable(data.temp[j]) for j in range(data.n_sensors)):
-        out.append('temperature')
-    out += [n for n in sorted(data.aux) if usable(data.aux[n])]
-    return out
+    temp = data.temp is not None and all(usable(data.temp[j]) for j in range(data.n_sensors))
+    return (['temperature'] if temp else []) + [n for n in sorted(data.aux) if usable(data.aux[n])]
 
 
 def _driver(text, kind, channel, ctx_of, note='', q=()):

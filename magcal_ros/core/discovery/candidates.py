@@ -34,36 +34,23 @@ class Candidate:
     """
     Evidence for adding one effect to the model (all RMS values in nT).
 
-    Attributes
-    ----------
-    token, effect : str
-        Model-spec token ('temperature@2'; without '@' on all sensors) and effect label.
-    sensor : int or None
-        Sensor (1-based), None when added to every sensor.
-    n_params : int
-        Parameters added (k of the likelihood-ratio test).
-    rms_before_nt, rms_after_nt, vector_rms_before_nt, vector_rms_after_nt : float or None
-        Scalar and vector (vs sensor 1) RMS of the affected sensors, without and with the
-        effect (after: None when not evaluated).
-    delta_chi2, delta_bic, p_value, log10_p_value : float
-        Decrease of chi-square (noise levels fixed), -delta_chi2 + k ln(n_obs), and the
-        likelihood-ratio test (chi-square, k degrees of freedom).
-    method : str
-        'refit' (full ML refit), 'one-step' (one Gauss-Newton step, evaluated), 'score' (the
-        decrease that step predicts, not evaluated; also a term of the formula search),
-        'search' (the search's term that is the verdict) or 'localised' (a ``drop``).
-    cv_rms_before_nt, cv_rms_after_nt : float or None
-        Combined held-out RMS (None when not computed).
-    significant : bool
-        p below the Bonferroni threshold, delta BIC < -10 and at least MIN_EXPLAINED.
-    params : tuple of dict
-        The added parameters {sensor, name, unit, value} after the fit.
-    explained_fraction, decided_by : float or None, str or None
-        Share (0..1) of the combined excess mean square over the floor removed, and by which
-        measure ('held-out' or 'in-sample (...)').
-    note : str or None
-        Why a candidate with a good fit is not adopted (``Effect.reduces``).
-
+    ``token``: model-spec token ('temperature@2'; without '@' on all sensors), ``effect`` its
+    label; ``sensor``: 1-based, None when added to every sensor; ``n_params``: parameters
+    added (k of the likelihood-ratio test); ``rms_before_nt``, ``rms_after_nt``,
+    ``vector_rms_before_nt``, ``vector_rms_after_nt``: scalar and vector (vs sensor 1) RMS of
+    the affected sensors without and with the effect (after: None when not evaluated);
+    ``delta_chi2``, ``delta_bic``, ``p_value``, ``log10_p_value``: decrease of chi-square
+    (noise levels fixed), -delta_chi2 + k ln(n_obs), and the likelihood-ratio test
+    (chi-square, k degrees of freedom); ``method``: 'refit' (full ML refit), 'one-step' (one
+    Gauss-Newton step, evaluated), 'score' (the decrease that step predicts, not evaluated;
+    also a term of the formula search), 'search' (the search's term that is the verdict) or
+    'localised' (a ``drop``); ``cv_rms_before_nt``, ``cv_rms_after_nt``: combined held-out
+    RMS (None when not computed); ``significant``: p below the Bonferroni threshold, delta
+    BIC < -10 and at least MIN_EXPLAINED; ``params``: tuple of the added parameters' dicts
+    {sensor, name, unit, value} after the fit; ``explained_fraction``, ``decided_by``: share
+    (0..1) of the combined excess mean square over the floor removed, and by which measure
+    ('held-out' or 'in-sample (...)'), or None; ``note``: why a candidate with a good fit is
+    not adopted (``Effect.reduces``), or None.
     """
 
     token: str

@@ -114,33 +114,17 @@ def _rung(result, data, f, added, diagnosis, folds, constrained=False):
 def ladder(data, start_model='base', steps=None, auto=True, field_nt=None, *,
            max_steps=6, folds=DEFAULT_FOLDS, progress=None, diagnosis=None, **diag_kwargs):
     """
-    Error ladder: diagnose, add the verdict, refit, repeat until nothing is missing.
+    Error ladder: diagnose, add the verdict, refit, repeat until nothing is missing (Ladder).
 
-    Parameters
-    ----------
-    data : Dataset
-        (S sensors, N epochs) rotation data in time order, nT.
-    start_model : str or Model or FitResult
-        Where to start (a FitResult on ``data`` is used as is).
-    steps : list of str, optional
-        Effects to add in this order (e.g. ['temperature@2', 'aux:aux_motor_current']).
-    auto : bool
-        After ``steps``, keep adding the verdict until it is 'none'.
-    field_nt : float or numpy.ndarray, optional
-        Reference magnitude, nT.
-    max_steps, folds : int
-        Most effects added; folds of the cross-validation.
-    progress : callable, optional
-        ``progress(stage, i, n, label)`` called as the work proceeds.
-    diagnosis : Diagnosis, optional
-        An existing diagnosis of ``start_model`` (a FitResult), for the first step.
-    **diag_kwargs
-        Passed to :func:`diagnose`; ``constrained=True`` also constrains every fit.
-
-    Returns
-    -------
-    Ladder
-
+    ``data``: Dataset (S sensors, N epochs) of rotation data in time order, nT;
+    ``start_model``: str, Model or FitResult to start from (a FitResult on ``data`` is used
+    as is); ``steps``: effects to add in this order (e.g. ['temperature@2',
+    'aux:aux_motor_current']); ``auto``: after ``steps``, keep adding the verdict until it is
+    'none'; ``field_nt``: reference magnitude, nT (float or (N,)); ``max_steps``: most
+    effects added; ``folds``: of the cross-validation; ``progress``: ``progress(stage, i, n,
+    label)`` called as the work proceeds; ``diagnosis``: an existing Diagnosis of
+    ``start_model`` (a FitResult), for the first step; ``diag_kwargs``: passed to
+    :func:`diagnose`, ``constrained=True`` also constrains every fit.
     """
     f = data.reference_magnitude(field_nt)
     constrained = bool(diag_kwargs.get('constrained', False))

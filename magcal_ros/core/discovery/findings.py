@@ -70,26 +70,17 @@ class Finding:
     """
     One structure found in the residuals.
 
-    Attributes
-    ----------
-    kind : str
-        A kind of :data:`KINDS` ('periodic', 'step', 'lag', 'channel', ...).
-    sensor, channel : int or None, str or None
-        The sensor (1-based; None: the array or every sensor alike); the driving channel.
-    value : float or None
-        Frequency (Hz) for 'periodic', change time (s) for 'step', time constant (s) for
-        'lag', gradient (nT/m) for 'nonuniform_field', excess kurtosis for 'heavy_tails',
-        peak-to-peak trend (nT) for 'time'; ``unit`` says which.
-    explained_fraction : float
-        Share (0..1) of the sensor's excess mean square over its floor its own model removes.
-    text, token : str, str or None
-        What it is and what to add; the effect token to add (None: the catalog has none).
-    p_value, rms_nt : float
-        The test's false-alarm probability (before Bonferroni); its signal's RMS, nT.
-    replaces : tuple of str
-        Tokens of the fitted model ``token`` takes the place of (``aux:<col>`` for
-        ``aux_poly(<col>,2)``).
-
+    ``kind``: one of :data:`KINDS` ('periodic', 'step', 'lag', 'channel', ...); ``sensor``:
+    1-based, None for the array or every sensor alike; ``channel``: the driving channel or
+    None; ``value`` (None: none): frequency (Hz) for 'periodic', change time (s) for 'step',
+    time constant (s) for 'lag', gradient (nT/m) for 'nonuniform_field', excess kurtosis for
+    'heavy_tails', peak-to-peak trend (nT) for 'time', ``unit`` says which;
+    ``explained_fraction``: share (0..1) of the sensor's excess mean square over its floor
+    its own model removes; ``text``: what it is and what to add; ``token``: the effect token
+    to add (None: the catalog has none); ``p_value``: the test's false-alarm probability
+    (before Bonferroni); ``rms_nt``: its signal's RMS, nT; ``replaces``: tuple of the tokens
+    of the fitted model ``token`` takes the place of (``aux:<col>`` for
+    ``aux_poly(<col>,2)``).
     """
 
     kind: str
@@ -114,22 +105,13 @@ class Findings:
     """
     Outcome of :func:`find`: the findings and the series they were found in.
 
-    Attributes
-    ----------
-    items : tuple of Finding
-        Array-level findings first, then per sensor the largest effect first.
-    t : numpy.ndarray
-        (N,) time, s.
-    series, noise_nt : dict
-        {sensor: (N, C) series analysed, nT}, 'consensus' (C = 3) or 'scalar' (C = 1,
-        ``kind_of_series``), the gradient taken out; {sensor: (C,) its white-noise sd, nT}.
-    common : numpy.ndarray or None
-        (N, 1) mean scalar residual less the sensors' own findings, nT.
-    note : str
-        Why nothing was searched (too short a record), else ''.
-    direction : numpy.ndarray or None
-        (N, 3) unit field direction in the array frame.
-
+    ``items``: tuple of Finding, array-level findings first, then per sensor the largest
+    effect first; ``t`` (N,) time, s; ``series``: {sensor: (N, C) series analysed, nT},
+    'consensus' (C = 3) or 'scalar' (C = 1, ``kind_of_series``), the gradient taken out;
+    ``noise_nt``: {sensor: (C,) its white-noise sd, nT}; ``common``: (N, 1) mean scalar
+    residual less the sensors' own findings, nT, or None; ``note``: why nothing was searched
+    (too short a record), else ''; ``direction``: (N, 3) unit field direction in the array
+    frame, or None.
     """
 
     items: tuple
@@ -289,14 +271,11 @@ def _test_time(t, x, sd, mod=None):
                       detail={'degree': d})
 
 
-def _direction_design(u):
-    """(N, 20) the :func:`_nuisance` columns and the cubes u_a u_b u_c of the direction."""
-    return np.column_stack([_nuisance(u)] + [u[:, a] * u[:, b] * u[:, c] for a in range(3)
-                                             for b in range(a, 3) for c in range(b, 3)])
-
-
 def _test_direction(u, x):
-    fitted, rank = regress(x, _direction_design(u))
+    # (N, 20) the :func:`_nuisance` columns and the cubes u_a u_b u_c of the direction
+    fitted, rank = regress(x, np.column_stack(
+        [_nuisance(u)] + [u[:, a] * u[:, b] * u[:, c] for a in range(3)
+                          for b in range(a, 3) for c in range(b, 3)]))
     return _Candidate('direction', fitted - x.mean(axis=0), x.shape[1] * (rank - 1),
                       _f_mean(x, fitted, rank), 1)
 
@@ -785,26 +764,15 @@ def _common_stage(data, t, scalar, explained, u, aux_drivers, alpha_test, keep, 
 
 def find(data, result, *, baseline_m=0.5, alpha=ALPHA, corrected=None, field=None):
     """
-    Model-free findings in the residuals of a fit.
+    Model-free findings in the residuals of a fit; returns :class:`Findings`.
 
-    Parameters
-    ----------
-    data : Dataset
-        (S sensors, N epochs) in time order; temperatures and ``aux_*`` drive the channel tests.
-    result : FitResult
-        A fit on ``data``: its corrected readings (S, N, 3), ``scalar_residual_nt`` (S, N) and
-        ``field_nt`` (N, 3), nT, where its ``drop`` terms keep every sensor.
-    baseline_m : float
-        Arm length of the four-sensor cross, m (paper 004), for the gradient magnitude.
-    alpha : float
-        Family-wise false-alarm probability (Bonferroni over sensors and tests).
-    corrected, field : numpy.ndarray, optional
-        (S, N, 3) and (N, 3) nT, instead of the result's.
-
-    Returns
-    -------
-    Findings
-
+    ``data``: Dataset (S sensors, N epochs) in time order, its temperatures and ``aux_*``
+    drive the channel tests; ``result``: a FitResult on ``data``, its corrected readings
+    (S, N, 3), ``scalar_residual_nt`` (S, N) and ``field_nt`` (N, 3), nT, where its ``drop``
+    terms keep every sensor; ``baseline_m``: arm length of the four-sensor cross, m (paper
+    004), for the gradient magnitude; ``alpha``: family-wise false-alarm probability
+    (Bonferroni over sensors and tests); ``corrected`` (S, N, 3), ``field`` (N, 3), nT:
+    instead of the result's.
     """
     # one BLAS thread: the designs are thin (N x 10-30), threads only contend
     with single_threaded_blas():

@@ -37,35 +37,17 @@ class Diagnosis:
     """
     Outcome of :func:`diagnose` (RMS values in nT).
 
-    Attributes
-    ----------
-    model : tuple of str
-        Spec of the diagnosed model.
-    n_samples, n_sensors, n_params : int
-    n_used : int
-        Epochs the candidates were tested on (at most ``max_samples``, evenly spaced).
-    noise_floor : NoiseFloor
-    scalar_rms_nt, vector_rms_nt : dict
-        {sensor: RMS} of the base fit (vector: j > 1, vs sensor 1).
-    residual_rms_nt, cv_rms_nt : float, float or None
-        Combined in-sample and held-out residual RMS (pooled) of the base fit.
-    at_floor : bool
-        Every scalar and vector RMS within :data:`AT_FLOOR_RATIO` of its floor.
-    candidates : tuple of Candidate
-        Significant ones first, then by delta BIC.
-    not_testable : tuple of (token, reason)
-    verdict_token, verdict_reason : str or None, str
-        Token to add ('temperature@2'), None when nothing is missing, and why.
-    p_threshold : float
-        Bonferroni threshold alpha / (number of candidates).
-    folds : int
-    seconds : dict
-        Wall time per stage, s.
-    result : FitResult
-        The base fit.
-    findings : Findings or None
-        What is left in the base fit's residuals (:func:`.findings.find`).
-
+    ``model``: spec of the diagnosed model (tuple of str); ``n_used``: epochs the candidates
+    were tested on (at most ``max_samples``, evenly spaced); ``scalar_rms_nt``,
+    ``vector_rms_nt``: {sensor: RMS} of the base fit (vector: j > 1, vs sensor 1);
+    ``residual_rms_nt``, ``cv_rms_nt`` (None: not computed): its combined in-sample and
+    held-out residual RMS (pooled); ``at_floor``: every scalar and vector RMS within
+    :data:`AT_FLOOR_RATIO` of its floor; ``candidates``: tuple of Candidate, significant ones
+    first, then by delta BIC; ``not_testable``: tuple of (token, reason); ``verdict_token``:
+    token to add ('temperature@2'), None when nothing is missing, ``verdict_reason`` why;
+    ``p_threshold``: Bonferroni threshold alpha / (number of candidates); ``seconds``: wall
+    time per stage, s; ``result``: the base FitResult; ``findings``: what is left in its
+    residuals (:func:`.findings.find`), or None.
     """
 
     model: tuple

@@ -156,47 +156,24 @@ def diagnose(data, model='base', field_nt=None, *, base=None, folds=DEFAULT_FOLD
              cv_method='newton', max_samples=DEFAULT_MAX_SAMPLES, baseline_m=0.5,
              constrained=False, propose=True, **fit_kwargs):
     """
-    Find what the model misses: noise floor, candidate effects ranked, verdict.
+    Find what the model misses: noise floor, candidate effects ranked, verdict (Diagnosis).
 
-    Parameters
-    ----------
-    data : Dataset
-        (S sensors, N epochs) rotation data in time order, nT.
-    model : str or Model
-        The model to diagnose (ignored when ``base`` is given).
-    field_nt : float or numpy.ndarray, optional
-        Reference magnitude, nT (scalar or (N,)); default ``data.ref_total``.
-    base : FitResult, optional
-        An existing fit of the model on ``data`` (default: fitted here).
-    folds : int
-        Folds of the cross-validation (:func:`time_blocks`); 0 (or too short a record): the
-        in-sample share decides (``decided_by``).
-    alpha : float
-        Family-wise significance level (Bonferroni over the candidates).
-    max_refit : int
-        Best-screened candidates refitted in full.
-    candidates : list of str, optional
-        Tokens to test instead of every missing effect.
-    progress : callable, optional
-        ``progress(stage, i, n, label)`` called as the work proceeds.
-    cv_method : {'newton', 'refit'}
-        How each fold is fitted (:func:`cross_validate`).
-    max_samples : int or None
-        Test the candidates on at most this many evenly spaced epochs (None: all).
-    baseline_m : float
-        Arm length of a four-sensor cross, m (the gradient of a ``nonuniform_field`` finding).
-    constrained : bool
-        Partial attitude coverage: every fit with ``fit(constrained=True)``'s priors, held-out
-        fits refitted, candidates judged only after a constrained refit.
-    propose : bool
-        Also test the residual's steps and lines and the findings' tokens.
-    **fit_kwargs
-        Passed to :func:`magcal_ros.core.model.fit` for the base fit.
-
-    Returns
-    -------
-    Diagnosis
-
+    ``data``: Dataset (S sensors, N epochs) of rotation data in time order, nT; ``model``:
+    str or Model to diagnose (ignored when ``base`` is given); ``field_nt``: reference
+    magnitude, nT (scalar or (N,); default ``data.ref_total``); ``base``: an existing
+    FitResult of the model on ``data`` (default: fitted here); ``folds``: folds of the
+    cross-validation (:func:`time_blocks`), 0 (or too short a record): the in-sample share
+    decides (``decided_by``); ``alpha``: family-wise significance level (Bonferroni over the
+    candidates); ``max_refit``: best-screened candidates refitted in full; ``candidates``:
+    tokens to test instead of every missing effect; ``progress``: ``progress(stage, i, n,
+    label)`` called as the work proceeds; ``cv_method`` 'newton' or 'refit': how each fold is
+    fitted (:func:`cross_validate`); ``max_samples``: test the candidates on at most this
+    many evenly spaced epochs (None: all); ``baseline_m``: arm length of a four-sensor cross,
+    m (the gradient of a ``nonuniform_field`` finding); ``constrained``: partial attitude
+    coverage, every fit with ``fit(constrained=True)``'s priors, held-out fits refitted,
+    candidates judged only after a constrained refit; ``propose``: also test the residual's
+    steps and lines and the findings' tokens; ``fit_kwargs``: passed to
+    :func:`magcal_ros.core.model.fit` for the base fit.
     """
     with single_threaded_blas():
         t_start = time.perf_counter()

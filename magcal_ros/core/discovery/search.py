@@ -150,9 +150,7 @@ def coupling_columns(coupling, x, lin, per_axis=False):
 
 def n_params(coupling, m, per_axis=False):
     """Parameters of a coupling of m driver columns, per sensor (field: in all)."""
-    if per_axis:
-        return 3
-    return m if coupling == 'field' else len(_PATTERNS[coupling]) * m
+    return 3 if per_axis else m if coupling == 'field' else len(_PATTERNS[coupling]) * m
 
 
 class BlockSums:
@@ -314,13 +312,10 @@ def _lin(data):
 
 def generate(data, steps=(), windows=(), lines=()):
     """Return the drivers of the record (bases.py) in the order time, channels, products."""
-    drivers = bases.time_drivers(data.t, steps, windows, lines)
     names = bases.channels_of(data)
-    for name in names:
-        drivers += bases.channel_drivers(data, name)
-    drivers += bases.product_drivers(data, names)
-    drivers.append(bases.rate_driver(data))
-    return drivers
+    return (bases.time_drivers(data.t, steps, windows, lines)
+            + [d for name in names for d in bases.channel_drivers(data, name)]
+            + bases.product_drivers(data, names) + [bases.rate_driver(data)])
 
 
 #: every coupling of the grammar (docs/formulas.md), tried with every driver

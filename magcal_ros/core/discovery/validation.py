@@ -41,33 +41,17 @@ def cross_validate(data, model, params, f, sigma, folds=DEFAULT_FOLDS, fold_init
     """
     Held-out residual of ``model``: fit on all blocks but one, evaluate on that block.
 
-    Parameters
-    ----------
-    data, model : Dataset, Model
-        (S sensors, N epochs) in time order, nT; the model prepared on them.
-    params : numpy.ndarray
-        (P,) the fit on all data (``'newton'``: its optimum; ``'refit'``: the warm start).
-    f, sigma : numpy.ndarray
-        (N,) reference magnitude and (S,) fixed noise levels, nT.
-    folds : int
-        Held-out sets, each of interleaved blocks (:func:`time_blocks`).
-    fold_inits : list of numpy.ndarray, optional
-        Per-fold warm starts of ``'refit'`` (default ``params``).
-    method : {'newton', 'refit'}
-        ``'refit'``: the full fit on the other blocks.  ``'newton'``: one Gauss-Newton step
-        without the held-out rows, p_b = p - (J^T J - J_b^T J_b)^-1 (J^T r - J_b^T r_b)
-        (exact for a linear model).
-    constrained : bool
-        With the constrained mode's priors; implies ``'refit'``.
-    extra_priors : list of (int, float, float)
-        (index, mean, sd) priors added to every fold's fit; implies ``'refit'``.
-
-    Returns
-    -------
-    dict
-        ``rms_nt`` combined held-out RMS (pooled), ``per_sensor_nt`` (S,),
-        ``scalar_rms_nt`` (S,), ``fold_params`` list of (P,) arrays.
-
+    ``data``: Dataset (S sensors, N epochs) in time order, nT, and ``model`` prepared on it;
+    ``params`` (P,): the fit on all data (``'newton'``: its optimum; ``'refit'``: the warm
+    start); ``f`` (N,), ``sigma`` (S,): reference magnitude and fixed noise levels, nT;
+    ``folds``: held-out sets, each of interleaved blocks (:func:`time_blocks`);
+    ``fold_inits``: per-fold (P,) warm starts of ``'refit'`` (default ``params``);
+    ``method``: ``'refit'`` the full fit on the other blocks, ``'newton'`` one Gauss-Newton
+    step without the held-out rows, p_b = p - (J^T J - J_b^T J_b)^-1 (J^T r - J_b^T r_b)
+    (exact for a linear model); ``constrained``: with the constrained mode's priors, implies
+    ``'refit'``; ``extra_priors``: [(index, mean, sd)] priors added to every fold's fit,
+    implies ``'refit'``.  Returns {``rms_nt``: combined held-out RMS (pooled),
+    ``per_sensor_nt`` (S,), ``scalar_rms_nt`` (S,), ``fold_params``: list of (P,) arrays}.
     """
     if method not in ('newton', 'refit'):
         raise ValueError(f"method must be 'newton' or 'refit', got {method!r}")

@@ -176,13 +176,12 @@ class LiveCorrector:
                     self.pairing_threshold = float(chdtri(dof, PAIRING_FALSE_ALARM))
                     self.matcher.misfit = self.pairing_chi2
                     self.matcher.threshold = self.pairing_threshold
-        if check_pairing and self.pairing_dof:
-            self.no_check_reason = None
-        elif check_pairing:
-            no_noise = self.gradient_cov_nt2 is None
-            self.no_check_reason = 'sets are paired by stamps alone: ' + (
-                'a sensor of the calibration has no noise estimate' if no_noise
-                else f'{n_sensors} sensors leave no redundancy to check a set')
+        if check_pairing:
+            self.no_check_reason = None if self.pairing_dof else (
+                'sets are paired by stamps alone: ' + (
+                    'a sensor of the calibration has no noise estimate'
+                    if self.gradient_cov_nt2 is None
+                    else f'{n_sensors} sensors leave no redundancy to check a set'))
 
     @property
     def needs_temperature(self):
@@ -230,16 +229,12 @@ class LiveCorrector:
         s = self._sensors[j - 1]
         return None if s.driven else (s.a_inv.copy(), s.offset.copy())
 
-    def covariance_nt2(self, j):
-        """(3, 3) covariance of sensor j's corrected field, nT^2 (None: no noise estimate)."""
-        return self._sensors[j - 1].cov_nt2
-
     def published_covariance_nt2(self, j):
         """
         (3, 3) covariance a corrected sample of sensor j is published with, nT^2.
 
-        :meth:`covariance_nt2` plus :func:`calibration_covariance_nt2` (with ``field_nt``);
-        None without a noise estimate.
+        The noise's sigma^2 A^-1 A^-T plus :func:`calibration_covariance_nt2` (with
+        ``field_nt``); None without a noise estimate.
         """
         s = self._sensors[j - 1]
         return None if s.cov_nt2 is None else s.cov_nt2 + s.cal_cov_nt2

@@ -217,11 +217,6 @@ class StampMatcher:
         self.rejected = self.repaired = 0
 
     @property
-    def aligned(self):
-        """Tell whether every stream has an epoch offset."""
-        return self._aligned
-
-    @property
     def queued(self):
         """Count the samples waiting for the other sensors of their set (tuple of S counts)."""
         return tuple(len(q) for q in self._queues)
@@ -238,19 +233,18 @@ class StampMatcher:
             self.out_of_order += 1
             return []
         self._last_arrival[j] = stamp_s
-        s = stamp_s
         q = self._seq[j]
         self._seq[j] += 1
-        self._hist[j].append(q, s)
+        self._hist[j].append(q, stamp_s)
         queue = self._queues[j]
-        queue.append((q, s, item))
+        queue.append((q, stamp_s, item))
         if len(queue) > self.max_queue:
             self._past[j].append(queue.popleft())
             self.incomplete += 1
         self._since_align += 1
-        if self._since_align >= (self.align_every if self.aligned else 8):
+        if self._since_align >= (self.align_every if self._aligned else 8):
             self._align()
-        return self._emit() if self.aligned else []
+        return self._emit() if self._aligned else []
 
     def _align(self):
         """Vote the epoch offset of every stream against sensor 1's."""
@@ -259,9 +253,9 @@ class StampMatcher:
         if len(ref) < 10:
             return
         q0, s0 = ref.arrays()
-        period = self._period(s0)
-        if period is None:
+        if s0[-1] <= s0[0]:
             return
+        period = (s0[-1] - s0[0]) / (len(s0) - 1)
         # raw stamps vote well for samples one by one, backdated ones for chunks: both vote
         refs = (s0, backdate(s0, period))
         for j in range(1, self.n_sensors):
@@ -293,12 +287,6 @@ class StampMatcher:
             self._pending = (vote if vote != self._offset and vote not in self._refuted
                              else None)
         self._aligned = all(o is not None for o in self._offset)
-
-    @staticmethod
-    def _period(stamps):
-        if len(stamps) < 2 or stamps[-1] <= stamps[0]:
-            return None
-        return (stamps[-1] - stamps[0]) / (len(stamps) - 1)
 
     def _emit(self):
         out = []
