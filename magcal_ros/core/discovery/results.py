@@ -116,10 +116,12 @@ class Diagnosis:
 
     def not_ruled_out_text(self):
         """One line naming :attr:`not_ruled_out` (the largest six) and how to test them."""
-        hidden = self.not_ruled_out
-        shown = ', '.join(f'{t} (' + ('at any size' if x == np.inf else
-                                      f'up to {x:.0f} nT' if x >= 10 else f'up to {x:.1f} nT')
-                          + ')' for t, x in hidden[:6])
+        hidden, big = self.not_ruled_out, 100 * self.noise_floor.value_nt
+
+        def size(x):
+            return ('at any size' if x == np.inf else 'over 100 x the floor' if x > big else
+                    f'up to {x:.0f} nT' if x >= 10 else f'up to {x:.1f} nT')
+        shown = ', '.join(f'{t} ({size(x)})' for t, x in hidden[:6])
         more = f' and {len(hidden) - 6} more (JSON: not_ruled_out)' if len(hidden) > 6 else ''
         return ("not ruled out by this record (over its motion the calibration's own terms "
                 f'absorb effects of these kinds, RMS per axis): {shown}{more}; a record that '
