@@ -124,9 +124,9 @@ class Diagnosis:
         shown = ', '.join(f'{t} ({size(x)})' for t, x in hidden[:6])
         more = f' and {len(hidden) - 6} more (JSON: not_ruled_out)' if len(hidden) > 6 else ''
         return ("not ruled out by this record (over its motion the calibration's own terms "
-                f'absorb effects of these kinds, RMS per axis): {shown}{more}; a record that '
-                'turns through more attitudes, with their drivers varying at several of them, '
-                'tests them')
+                "or the field's unknown direction take up effects of these kinds to the size "
+                f'shown, RMS per axis): {shown}{more}; a record that turns through more '
+                'attitudes, with their drivers varying at several of them, tests them')
 
     @property
     def ratios(self):
