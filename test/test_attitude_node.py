@@ -97,6 +97,11 @@ def test_attitude_aided_calibration_on_the_node(make_node, ros_node, ros_executo
     summary, diag = split_response(resp)
     assert resp.success, summary
     assert diag['attitude']['mode'] == 'tilt' and diag['verdict']['effect'] == 'none', diag
+    # what the record cannot rule out is said in the reply as in the JSON (one line, or none)
+    listed = [r['token'] for r in diag['not_ruled_out']]
+    said = [line for line in summary if line.startswith('not ruled out by this record')]
+    assert len(said) == (1 if listed else 0), (said, listed)
+    assert all(f'{t} (' in said[0] for t in listed[:6]), (said, listed)
 
 
 def test_without_the_attitude_the_cone_is_refused(make_node, ros_node, ros_executor,

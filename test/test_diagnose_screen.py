@@ -65,7 +65,7 @@ def test_ruled_out_candidates_could_not_have_been_significant(case):
         # evaluate the step the score stands for: its chi-square decrease is the predicted
         # one (linear effects) or smaller, never enough for significance
         m_ext, p_ext, added = extend_model(base.model, base.params, c.token, ctx)
-        p_step, predicted = screen.step(m_ext, p_ext, added, with_decrease=True)
+        p_step, predicted, _ = screen.step(m_ext, p_ext, added, with_decrease=True)
         assert c.delta_chi2 == pytest.approx(predicted, abs=1e-6)
         ev = evaluate_residuals(m_ext, p_step, data, f, sigma, ctx, field0=ev0.field)
         evaluated = ev0.chi2 - ev.chi2
@@ -131,9 +131,9 @@ def test_a_one_step_that_overshoots_falls_back_to_its_start_without_a_warning(mo
     step, hits = Screen.step, []
 
     def overshoot(self, *args, **kwargs):
-        p, score = step(self, *args, **kwargs)
+        p, score, reach = step(self, *args, **kwargs)
         hits.append(score > 1000.0)
-        return (p * 1e200 if hits[-1] else p), score
+        return (p * 1e200 if hits[-1] else p), score, reach
     monkeypatch.setattr(Screen, 'step', overshoot)
     data = inj.make(1000, seed=5, inject=inj.step_fault(60.0))
     with warnings.catch_warnings():

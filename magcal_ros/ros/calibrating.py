@@ -245,6 +245,8 @@ class CalibrationMixin:
         else:
             head = f'most likely missing effect: {verdict.get("token") or verdict["effect"]}'
         lines = [head] + ([verdict['reason']] if verdict.get('reason') else [])
+        if diag.not_ruled_out:
+            lines.append(diag.not_ruled_out_text())
         if ranking.get('findings'):       # model-free: what is left (core.discovery.findings)
             lines.append('left in the residuals: ' + '; '.join(
                 f'{f["kind"]}' + (f' (add {f["token"]})' if f.get('token') else '')

@@ -50,7 +50,10 @@ class Candidate:
     {sensor, name, unit, value} after the fit; ``explained_fraction``, ``decided_by``: share
     (0..1) of the combined excess mean square over the floor removed, and by which measure
     ('held-out' or 'in-sample (...)'), or None; ``note``: why a candidate with a good fit is
-    not adopted (``Effect.reduces``), or None.
+    not adopted (``Effect.reduces``), or None; ``hideable_rms_nt``: RMS per axis, nT, of the
+    largest effect of this kind the test would miss because the base's own parameters absorb
+    it over this record's motion (inf: some combination at any size; :func:`.screen.absorbed`),
+    None when not screened.
     """
 
     token: str
@@ -73,6 +76,7 @@ class Candidate:
     explained_fraction: float | None = None
     decided_by: str | None = None
     note: str | None = None
+    hideable_rms_nt: float | None = None
 
     def to_dict(self):
         """JSON-ready dict (docs/design.md §2 keys first)."""
@@ -83,7 +87,7 @@ class Candidate:
 _KEYS = ('effect', 'sensor', 'rms_before_nt', 'rms_after_nt', 'delta_bic', 'p_value', 'token',
          'n_params', 'vector_rms_before_nt', 'vector_rms_after_nt', 'delta_chi2',
          'log10_p_value', 'cv_rms_before_nt', 'cv_rms_after_nt', 'significant', 'method',
-         'explained_fraction', 'decided_by', 'note')
+         'explained_fraction', 'decided_by', 'note', 'hideable_rms_nt')
 
 
 def candidate_tokens(model, data, extra=()):

@@ -150,3 +150,7 @@ SPLIT_SHARE = 0.1
 WHEN_SHARE = 0.8
 #: ... when the interval is at most this share of the record (else "throughout the record")
 WHEN_SPAN = 0.5
+#: an effect of which the field projection leaves less than this share in every direction is
+#: one no fit of the magnitude sees (the unknown field direction takes it): not reported as
+#: one the record fails to rule out (:func:`.screen.absorbed`)
+VISIBLE = 1e-3

@@ -83,6 +83,34 @@ class Diagnosis:
         return next(c for c in self.candidates if c.token == self.verdict_token)
 
     @property
+    def not_ruled_out(self):
+        """
+        [(token, RMS nT)]: candidates that could be present at more than the noise floor.
+
+        Not significant, yet their ``hideable_rms_nt`` (the largest effect the base's own
+        parameters absorb over this motion) is above the pooled floor; largest first, inf
+        when some combination hides at any size.
+        """
+        fl = self.noise_floor.value_nt
+        out = [(c.token, c.hideable_rms_nt) for c in self.candidates
+               if not c.significant and c.hideable_rms_nt is not None and c.hideable_rms_nt > fl]
+        return sorted(out, key=lambda x: -x[1])
+
+    def not_ruled_out_text(self):
+        """One line naming :attr:`not_ruled_out` (the largest six) and how to test them."""
+        hidden, big = self.not_ruled_out, 100 * self.noise_floor.value_nt
+
+        def size(x):
+            return ('at any size' if x == np.inf else 'over 100 x the floor' if x > big else
+                    f'up to {x:.0f} nT' if x >= 10 else f'up to {x:.1f} nT')
+        shown = ', '.join(f'{t} ({size(x)})' for t, x in hidden[:6])
+        more = f' and {len(hidden) - 6} more (JSON: not_ruled_out)' if len(hidden) > 6 else ''
+        return ("not ruled out by this record (over its motion the calibration's own terms "
+                "or the field's unknown direction take up effects of these kinds to the size "
+                f'shown, RMS per axis): {shown}{more}; a record that turns through more '
+                'attitudes, with their drivers varying at several of them, tests them')
+
+    @property
     def ratios(self):
         """{'scalar': {j: RMS / floor}, 'vector': {j: RMS / vector floor}}."""
         fl = self.noise_floor
@@ -118,6 +146,8 @@ class Diagnosis:
             'at_noise_floor': self.at_floor,
             'ratio_to_floor': {k: {str(j): x for j, x in d.items()} for k, d in ratios.items()},
             'not_testable': [{'token': t, 'reason': r} for t, r in self.not_testable],
+            'not_ruled_out': [{'token': t, 'hideable_rms_nt': x, 'at_any_size': x == np.inf}
+                              for t, x in self.not_ruled_out],
             'n_samples': self.n_samples, 'n_used': self.n_used or self.n_samples,
             'n_sensors': self.n_sensors,
             'n_params': self.n_params, 'p_threshold': self.p_threshold,
@@ -175,6 +205,8 @@ class Diagnosis:
                 lines.append(f'  ... {len(self.candidates) - max_candidates} more with less '
                              'evidence (all in the JSON output)')
         lines += [f'  not testable: {tok}: {why}' for tok, why in self.not_testable]
+        if self.not_ruled_out:
+            lines.append('  ' + self.not_ruled_out_text())
         if self.findings is not None:
             lines.append(self.findings.summary())
         verdict = f'add {self.verdict_token}' if self.verdict_token else 'none'

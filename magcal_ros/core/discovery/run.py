@@ -90,6 +90,7 @@ class Trial:
     cv: dict | None = None
     share: float | None = None
     start: np.ndarray | None = None
+    hideable: float | None = None
 
     @property
     def k(self):
@@ -600,10 +601,11 @@ def _screen(b, testable, progress):
     for i, (tok, label, sensor) in enumerate(testable):
         report_progress(progress, 'screen', i, len(testable), tok)
         m_ext, p_ext, added = extend_model(b.model, b.params, tok, b.contexts)
-        p_step, score = screen.step(m_ext, p_ext, added, with_decrease=True)
+        p_step, score, reach = screen.step(m_ext, p_ext, added, with_decrease=True)
         trials.append(Trial(token=tok, label=label, sensor=sensor, model=m_ext, p=p_step,
                             added=added, ev=None, score_chi2=b.ev0.chi2 - max(score, 0.0),
-                            method='score', start=p_ext))
+                            method='score', start=p_ext,
+                            hideable=_hideable(reach, int(added.sum()), b.n_obs)))
     report_progress(progress, 'screen', len(testable), len(testable), '')
     for c in trials:
         if not b.robust and np.isfinite(c.chi2) and b.delta_bic(c) > SCORE_RULE_OUT_BIC:
@@ -628,6 +630,21 @@ def _screen(b, testable, progress):
         c.method = 'one-step'
     order_by_evidence(trials, b)
     return trials, screen
+
+
+def _hideable(reach, k, n_obs):
+    """
+    Return the RMS per axis (nT) of the largest effect the test misses, inf at any size.
+
+    ``reach``: :meth:`Screen.step`'s (absorbed share mu or None, rows, noise sd nT) per sensor
+    group; None when the effect is invisible to every fit (its columns along the field's own
+    direction: no record tests it).
+    What the base leaves of an effect of RMS a on its rows, mu rows a^2 / sd^2 of chi-square,
+    must reach k ln(n_obs) - MIN_DELTA_BIC for the delta-BIC test to see it.
+    """
+    need = k * math.log(n_obs) - MIN_DELTA_BIC
+    return max((math.inf if mu <= 0 else sd * math.sqrt(need / (mu * rows))
+                for mu, rows, sd in reach if mu is not None), default=None)
 
 
 def _at_step(b, c, p):
@@ -759,7 +776,8 @@ def _rank(b, trials, cv0, held_out, decided, p_thr):
             delta_chi2=float(d_chi2), delta_bic=d_bic, p_value=p_val, log10_p_value=logp,
             method=c.method, cv_rms_before_nt=cv_b, cv_rms_after_nt=cv_a,
             significant=sig, params=added_params(c.model, c.p, c.added),
-            explained_fraction=share, decided_by=how, note=c.reduces))
+            explained_fraction=share, decided_by=how, note=c.reduces,
+            hideable_rms_nt=c.hideable))
     sig = [c for c in out if c.significant]
     rest = [c for c in out if not c.significant]
     for part in (sig, rest):

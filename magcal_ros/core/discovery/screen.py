@@ -13,6 +13,7 @@
 # limitations under the License.
 
 """Screening of candidate effects: one Gauss-Newton step of each extended model from the base."""
+from magcal_ros.core.discovery.constants import VISIBLE
 from magcal_ros.core.discovery.measures import solve_psd
 from magcal_ros.core.model.engine import prior_information, ProfiledProblem
 from magcal_ros.core.model.fitting import priors_for
@@ -29,6 +30,30 @@ def ginv_times(gtc, g):
     """Return (G^T G)^-1 G^T C, the 2 x 2 inverse applied component by component."""
     (i00, i01), (i10, i11) = g['ginv']
     return gtc[0] * i00 + gtc[1] * i01, gtc[0] * i10 + gtc[1] * i11
+
+
+def absorbed(ctc, cross, jtj_inv, seen):
+    """
+    Return the share of a candidate's effect the test sees, in its worst direction.
+
+    The scaled normal equations of base and candidate: ``ctc`` (k, k) C^T P C (P: the field
+    projection), ``cross`` (nb, k) J^T C, ``jtj_inv`` (nb, nb) (J^T J)^+; ``seen`` (k, k) C^T
+    C, the effect's columns before P, scaled alike.  The least generalised eigenvalue mu of
+    the Schur complement S = C^T P C - C^T J (J^T J)^+ J^T C against C^T C: an effect theta
+    leaves mu theta^T C^T C theta of its chi-square to the test; the base's own parameters
+    (held only by their priors) and the unknown field direction take up the rest; 0: some
+    combination is taken whole.  Over the combinations P leaves at least :data:`VISIBLE` of:
+    the others no fit of the magnitude sees, whatever the record (None when that is all).
+    """
+    w, v = np.linalg.eigh(seen)
+    keep = w > 1e-12 * max(w.max(), 1e-300)
+    half = v[:, keep] / np.sqrt(w[keep])                # (C^T C)^(-1/2) on its range
+    nu, u = np.linalg.eigh(half.T @ ctc @ half)
+    basis = half @ u[:, nu >= VISIBLE]                  # C^T C-orthonormal, visible
+    if not basis.shape[1]:
+        return None
+    schur = ctc - cross.T @ jtj_inv @ cross
+    return float(max(np.linalg.eigvalsh(basis.T @ schur @ basis).min(), 0.0))
 
 
 class Screen:
@@ -105,7 +130,8 @@ class Screen:
         Return (P',) parameters of ``m_ext`` after one Gauss-Newton step from ``p_ext``.
 
         With ``with_decrease``: (parameters, the chi-square decrease g^T (J^T J)^+ g the
-        linearised problem predicts, g = J^T r).
+        linearised problem predicts, g = J^T r, the effect's :func:`absorbed` share per sensor
+        group as (share, rows, sd of those rows' noise in nT)).
         """
         info = m_ext.param_info()
         new_of_old = np.empty(self.model.n_params, int)
@@ -115,6 +141,7 @@ class Screen:
                 new_of_old[pos] = i
         p_new = p_ext.copy()
         decrease = 0.0
+        reach = []
         own_priors = priors_for(m_ext, {}, True) if self.constrained else ()
         n = len(self.f)
         for g in self.groups:
@@ -128,6 +155,7 @@ class Screen:
             cross = np.zeros((nb, k))            # J_base^T C
             ctc = np.zeros((k, k))               # C^T C
             ctr = np.zeros(k)                    # C^T r
+            rows, noise2 = 0, 0.0                # the effect's rows, their noise variance
             gtc = np.zeros((2, k, n))            # G^T C per epoch, (direction, column, epoch)
             for gi, j in enumerate(grp):
                 cols = [c for c, i in enumerate(idx) if info[i][0] in (j, 0)]
@@ -142,11 +170,15 @@ class Screen:
                 ctc[np.ix_(cols, cols)] += flat @ flat.T
                 ctr[cols] += flat @ g['r'][gi]
                 add_gtc(gtc, cols, cj, g['gb'][gi])
+                rows += 3 * n
+                noise2 += 3 * n * self.sigma[j - 1] ** 2
+            seen = ctc.copy()                    # the effect before the field projection
             # project: subtract the part of C along the field directions of each epoch
             m0, m1 = ginv_times(gtc, g)
             ctc -= gtc[0] @ m0.T + gtc[1] @ m1.T
             ctr -= gtc[0] @ g['ginv_gtr'][0] + gtc[1] @ g['ginv_gtr'][1]
             lam, grad = prior_information(own_priors, idx, p_ext)
+            own = ctc.copy()                     # the data's part (not the effect's priors)
             ctc[np.diag_indices_from(ctc)] += lam
             ctr += grad
             dc = np.sqrt(np.clip(np.diag(ctc), 0.0, None))
@@ -156,9 +188,15 @@ class Screen:
             rhs = -np.concatenate([g['jtr'], ctr / dc])
             sol = solve_psd(a, rhs)
             decrease += float(rhs @ sol)
+            if with_decrease:
+                if 'jtj_inv' not in g:
+                    g['jtj_inv'] = np.linalg.pinv(g['jtj'], hermitian=True)
+                scale = np.outer(dc, dc)
+                reach.append((absorbed(own / scale, cross_s, g['jtj_inv'], seen / scale), rows,
+                              float(np.sqrt(noise2 / rows))))
             p_new[new_of_old[g['cols']]] += sol[:nb] / g['d']
             p_new[idx] += sol[nb:] / dc
-        return (p_new, decrease) if with_decrease else p_new
+        return (p_new, decrease, reach) if with_decrease else p_new
 
     def lag_start(self, m_ext, p_ext, added, taus):
         """
@@ -176,7 +214,7 @@ class Screen:
         for tau in taus:
             p0 = p_ext.copy()
             p0[tau_idx] = tau
-            p1, dec = self.step(m_ext, p0, linear, with_decrease=True)
+            p1, dec, _ = self.step(m_ext, p0, linear, with_decrease=True)
             if dec > best_dec:
                 best, best_dec = p1, dec
         return best
