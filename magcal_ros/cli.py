@@ -95,7 +95,7 @@ def load_record(path, unit=None, rate_hz=100.0, progress=None, reduce_above=None
     rec = open_record(path)
     k = UNITS_NT[unit or 'nT']
     with _byte_bar(progress, 'reading', rec) as tick:
-        red = reduce.reduce_chunks(in_nt(rec.chunks(progress=tick), k))
+        red = reduce.reduce_chunks(_scale_to_nt(c, k) for c in rec.chunks(progress=tick))
     if unit:
         red.sample.meta['unit'] = unit
     rec.scale = k
@@ -140,11 +140,6 @@ def _scale_to_nt(data, k):
     return data
 
 
-def in_nt(chunks, k):
-    """Yield the Dataset ``chunks`` with their field columns multiplied by ``k`` (to nT)."""
-    return (_scale_to_nt(piece, k) for piece in chunks)
-
-
 def _estimated_rows(path, probe=200):
     """Epochs of a recording: a CSV's from its size and first lines, a bag's from metadata."""
     if os.path.isdir(path):
@@ -166,7 +161,7 @@ def full_record_statistics(run, record, positions, progress=None):
     """
     from magcal_ros.core.data.reduce import residual_statistics
     with _byte_bar(progress, 'residuals', record) as tick:
-        chunks = in_nt(record.chunks(progress=tick), record.scale)
+        chunks = (_scale_to_nt(c, record.scale) for c in record.chunks(progress=tick))
         stats = residual_statistics(chunks, run.result, positions)
     run.summary.update(stats)
     prov = run.doc['provenance']
@@ -577,7 +572,7 @@ def _add_workbench_args(p):
 def _run_diagnosis(args, with_ladder):
     from magcal_ros.core.discovery import diagnose, ladder
     from magcal_ros.core.model import Model
-    from magcal_ros.pipeline import attitude_mode, diagnosis_base
+    from magcal_ros.pipeline import diagnosis_base
     if args.folds != 0 and args.folds < 2:
         raise BadInput(f'--folds must be 0 (no cross-validation) or >= 2, got {args.folds}')
     if not 0 < args.alpha < 1:
@@ -596,25 +591,21 @@ def _run_diagnosis(args, with_ladder):
     data, field_nt, screen = leave_out_unphysical(data, field_nt)
     prog('fit', 0, 1, ','.join(model.spec()))
     base, constrained, aided = diagnosis_base(
-        data, model, field_nt, attitude=attitude_mode(args.attitude, data) or 'off',
-        inclination_deg=fref.get('inclination_deg'), robust=args.robust,
-        constrained=args.constrained,
+        data, model, field_nt, attitude=args.attitude, robust=args.robust,
+        inclination_deg=fref.get('inclination_deg'), constrained=args.constrained,
         on_degenerate='flag' if args.flag_degenerate else 'raise')
     if aided is not None:
         fref = dict(fref, attitude=aided)
     prog('fit', 1, 1)
-    diag = diagnose(data, field_nt=field_nt, base=base, folds=args.folds, alpha=args.alpha,
-                    progress=prog, baseline_m=args.baseline_m, constrained=constrained)
+    kw = {'field_nt': field_nt, 'folds': args.folds, 'alpha': args.alpha, 'progress': prog,
+          'baseline_m': args.baseline_m, 'constrained': constrained}
+    diag = diagnose(data, base=base, **kw)
     if 'reduction' in data.meta:
         # a long record: the epochs are the whole record's, tested on its reduced sample
         from dataclasses import replace
         diag = replace(diag, n_samples=data.meta['reduction']['epochs'],
                        n_used=diag.n_used or diag.n_samples)
-    lad = None
-    if with_ladder:
-        lad = ladder(data, base, field_nt=field_nt, folds=args.folds, progress=prog,
-                     diagnosis=diag, alpha=args.alpha, baseline_m=args.baseline_m,
-                     constrained=constrained)
+    lad = ladder(data, base, diagnosis=diag, **kw) if with_ladder else None
     return data, diag, lad, fref, screen, prog
 
 

@@ -787,13 +787,10 @@ def plot_ladder(ladder):
     ax = fig.add_subplot(1, 1, 1)
     cv = np.array([st.residual_rms_nt if st.cv_rms_nt is None else st.cv_rms_nt for st in steps])
     x = np.arange(len(steps))
-    prev = np.concatenate([[cv[0]], cv[:-1]])
-    bottoms = np.minimum(prev, cv)
-    heights = np.abs(prev - cv)
     ax.bar(x[:1], cv[:1], color='tab:gray', width=0.6, label='start')
     if len(steps) > 1:
-        ax.bar(x[1:], heights[1:], bottom=bottoms[1:], width=0.6,
-               color=['tab:green' if c < p else 'tab:red' for c, p in zip(cv[1:], prev[1:])],
+        ax.bar(x[1:], np.abs(np.diff(cv)), bottom=np.minimum(cv[:-1], cv[1:]), width=0.6,
+               color=['tab:green' if c < p else 'tab:red' for c, p in zip(cv[1:], cv[:-1])],
                label='change from adding the effect')
     ax.plot(x, cv, 'ko-', ms=4, lw=1, label='held-out RMS')
     ax.plot(x, [st.residual_rms_nt for st in steps], 'bx', label='in-sample RMS')
@@ -813,10 +810,6 @@ def plot_ladder(ladder):
 
 # -- model-free findings (magcal_ros.core.discovery.findings) -------------------------------
 
-def _finding_label(f):
-    return f.token or f.kind
-
-
 def plot_residual_spectrum(findings):
     """Power spectrum of each sensor's residual series (``findings``') over its white noise."""
     sensors = sorted(findings.series)
@@ -835,7 +828,7 @@ def plot_residual_spectrum(findings):
         for f in findings.items:
             if view_of(f) == 'residual_spectrum' and f.sensor == j:
                 ax.axvline(f.value, color='tab:red', lw=1.0, alpha=0.7)
-                ax.annotate(_finding_label(f), (f.value, 1.0), fontsize=8, color='tab:red',
+                ax.annotate(f.token or f.kind, (f.value, 1.0), fontsize=8, color='tab:red',
                             xycoords=('data', 'axes fraction'), ha='center', va='top')
         ax.set_xlabel('frequency [Hz]')
         if i % min(len(sensors), 4) == 0:           # the first of its row
@@ -891,7 +884,7 @@ def plot_residual_vs_lagged_channels(data, findings):
     t = findings.t
     if len(t) < 30:
         return None
-    panels = [(f.sensor, f.channel, f.value if f.kind == 'lag' else 0.0, _finding_label(f))
+    panels = [(f.sensor, f.channel, f.value if f.kind == 'lag' else 0.0, f.token or f.kind)
               for f in findings.items if view_of(f) == 'residual_lagged' and f.channel]
     if not panels and data.temp is not None:
         panels = [(j, 'temperature', None, 'no finding') for j in sorted(findings.series)
