@@ -282,12 +282,6 @@ def _floor_lines(ax, level, label='noise floor'):
 
 # -- figures --------------------------------------------------------------------------------
 
-def magnitude_offsets(data, result):
-    """Return the means of |raw| - |B| and |model| - |B|, nT: {j: {'measured_nt', 'model_nt'}}."""
-    return {j: {'measured_nt': float(np.mean(meas)), 'model_nt': float(np.mean(model))}
-            for j, (meas, model) in enumerate(_magnitudes(data, result), start=1)}
-
-
 def _magnitudes(data, result):
     """Return [((N,) |raw| - |B|, (N,) |model| - |B|) per sensor], nT."""
     f = result.field_magnitude_nt
