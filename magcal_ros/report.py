@@ -442,9 +442,7 @@ def plot_structure(data, result, floor, diagnosis=None, adopted=None, findings=N
             if adopted is not None:
                 vt = vec - adopted.vector_residual_nt[j - 1]
                 e = _envelope(vt, px)
-                for c in range(3):
-                    ax.plot(t[e], vt[e, c], '-', lw=0.9, color='k',
-                            label='fit of the term, x y z' if c == 0 else None)
+                ax.plot(t[e], vt[e], '-', lw=0.9, color='k', label='fit of the term, x y z')
             _floor_lines(ax, floor.vector_floor_nt(j))
             vr = result.vector_rms_nt.get(j, float('nan'))
             _title(ax, f'sensor {j} - sensor 1: vector RMS {vr:.2f} nT', fontsize=8, loc='left')
@@ -468,8 +466,7 @@ def plot_structure(data, result, floor, diagnosis=None, adopted=None, findings=N
                         color=COMPONENT_COLOURS[c], label=f'residual {"xyz"[c]}, sensor axes')
             if adopted is not None and j in _token_sensors(token, s):
                 rt = raw_res - adopted.residual_nt[j - 1]
-                for c in range(3):
-                    ax.plot(x[idx], rt[idx, c], '.', ms=0.6, color='k')
+                ax.plot(x[idx], rt[idx], '.', ms=0.6, color='k')
             _floor_lines(ax, floor.per_sensor_nt[j - 1])
             _title(ax, f'sensor {j}: residual x y z vs {name}', fontsize=8, loc='left')
             ax.set(ylabel='sensor axes (nT)', xlabel=xlabel)
