@@ -104,14 +104,12 @@ def load_record(path, unit=None, rate_hz=100.0, progress=None, reduce_above=None
 
 @contextmanager
 def _byte_bar(progress, step, record):
-    """Give the ``progress`` callback of ``record.chunks``: a bar of its bytes (None: none)."""
-    bar = (progress.bar(step, total=record.size, unit='B', scale=True)
-           if progress is not None else None)
+    """Give the ``progress`` callback of ``record.chunks``: a bar of its bytes (None: silent)."""
+    bar = (progress or Progress(False)).bar(step, total=record.size, unit='B', scale=True)
     try:
-        yield None if bar is None else (lambda b: bar.update(b - bar.n))
+        yield lambda b: bar.update(b - bar.n)
     finally:
-        if bar is not None:
-            bar.close()
+        bar.close()
 
 
 def _vehicle_log(path):
