@@ -225,18 +225,17 @@ def resolve_field(args, data):
 def _resolve_field(args, data):
     # the node's field_source, from the options (core.data.magnitude.site_field_reference)
     from magcal_ros.core.data.magnitude import site_field_reference
-    if getattr(args, 'igrf', None):
+    if args.igrf:
         try:
             lat, lon, alt = (float(x) for x in args.igrf[:3])
         except ValueError:
             raise BadInput('--igrf LAT LON ALT_KM DATE: LAT, LON, ALT_KM must be numbers')
         return site_field_reference('igrf', None, lat, lon, alt * 1000.0, args.igrf[3])
-    if getattr(args, 'field_nt', None) is not None:
+    if args.field_nt is not None:
         if args.field_nt == 'auto':
             # an ellipsoid needs a sphere; a turn gives a circle and the mean along it
             source = 'shape-planar' if getattr(args, 'planar', False) else 'shape'
-            if (source == 'shape' and data.attitude is not None
-                    and getattr(args, 'attitude', None) != 'off'):
+            if source == 'shape' and data.attitude is not None and args.attitude != 'off':
                 # the attitude-aided fit's priors hold the scales near 1: a magnitude from a
                 # partly covered ellipsoid (tens of per cent off) would be fitted as fact
                 raise BadInput(
@@ -343,8 +342,7 @@ def cmd_fit(args):
     prog = Progress(wanted(args.quiet, args.json))
     if args.method != 'ellipsoid':
         return _fit_paper_method(args, load_data(args.data, args.unit))
-    data, record = load_record(args.data, args.unit, progress=prog,
-                               allow_gaps=getattr(args, 'allow_gaps', False))
+    data, record = load_record(args.data, args.unit, progress=prog, allow_gaps=args.allow_gaps)
     field_nt, fref = resolve_field(args, data)
     geometry = cross_geometry(args.baseline_m) if data.n_sensors == 4 else None
     request = CalibrationRequest(
@@ -507,8 +505,7 @@ def cmd_check(args):
     prog = Progress(wanted(args.quiet, args.json))
     for path in args.data:
         # a long static recording: its evenly spread sample (core.data.reduce), read in chunks
-        data, _ = load_record(path, args.unit, progress=prog,
-                              allow_gaps=getattr(args, 'allow_gaps', False))
+        data, _ = load_record(path, args.unit, progress=prog, allow_gaps=args.allow_gaps)
         try:
             check_field_units(data.raw, None, '')
         except ValueError as exc:
