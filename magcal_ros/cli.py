@@ -95,7 +95,7 @@ def load_record(path, unit=None, rate_hz=100.0, progress=None, reduce_above=None
     rec = open_record(path)
     k = UNITS_NT[unit or 'nT']
     with _byte_bar(progress, 'reading', rec) as tick:
-        red = reduce.reduce_chunks(in_nt(rec.chunks(progress=tick), k))
+        red = reduce.reduce_chunks(_scale_to_nt(c, k) for c in rec.chunks(progress=tick))
     if unit:
         red.sample.meta['unit'] = unit
     rec.scale = k
@@ -104,14 +104,12 @@ def load_record(path, unit=None, rate_hz=100.0, progress=None, reduce_above=None
 
 @contextmanager
 def _byte_bar(progress, step, record):
-    """Give the ``progress`` callback of ``record.chunks``: a bar of its bytes (None: none)."""
-    bar = (progress.bar(step, total=record.size, unit='B', scale=True)
-           if progress is not None else None)
+    """Give the ``progress`` callback of ``record.chunks``: a bar of its bytes (None: silent)."""
+    bar = (progress or Progress(False)).bar(step, total=record.size, unit='B', scale=True)
     try:
-        yield None if bar is None else (lambda b: bar.update(b - bar.n))
+        yield lambda b: bar.update(b - bar.n)
     finally:
-        if bar is not None:
-            bar.close()
+        bar.close()
 
 
 def _vehicle_log(path):
@@ -140,11 +138,6 @@ def _scale_to_nt(data, k):
     return data
 
 
-def in_nt(chunks, k):
-    """Yield the Dataset ``chunks`` with their field columns multiplied by ``k`` (to nT)."""
-    return (_scale_to_nt(piece, k) for piece in chunks)
-
-
 def _estimated_rows(path, probe=200):
     """Epochs of a recording: a CSV's from its size and first lines, a bag's from metadata."""
     if os.path.isdir(path):
@@ -166,7 +159,7 @@ def full_record_statistics(run, record, positions, progress=None):
     """
     from magcal_ros.core.data.reduce import residual_statistics
     with _byte_bar(progress, 'residuals', record) as tick:
-        chunks = in_nt(record.chunks(progress=tick), record.scale)
+        chunks = (_scale_to_nt(c, record.scale) for c in record.chunks(progress=tick))
         stats = residual_statistics(chunks, run.result, positions)
     run.summary.update(stats)
     prov = run.doc['provenance']
@@ -232,18 +225,17 @@ def resolve_field(args, data):
 def _resolve_field(args, data):
     # the node's field_source, from the options (core.data.magnitude.site_field_reference)
     from magcal_ros.core.data.magnitude import site_field_reference
-    if getattr(args, 'igrf', None):
+    if args.igrf:
         try:
             lat, lon, alt = (float(x) for x in args.igrf[:3])
         except ValueError:
             raise BadInput('--igrf LAT LON ALT_KM DATE: LAT, LON, ALT_KM must be numbers')
         return site_field_reference('igrf', None, lat, lon, alt * 1000.0, args.igrf[3])
-    if getattr(args, 'field_nt', None) is not None:
+    if args.field_nt is not None:
         if args.field_nt == 'auto':
             # an ellipsoid needs a sphere; a turn gives a circle and the mean along it
             source = 'shape-planar' if getattr(args, 'planar', False) else 'shape'
-            if (source == 'shape' and data.attitude is not None
-                    and getattr(args, 'attitude', None) != 'off'):
+            if source == 'shape' and data.attitude is not None and args.attitude != 'off':
                 # the attitude-aided fit's priors hold the scales near 1: a magnitude from a
                 # partly covered ellipsoid (tens of per cent off) would be fitted as fact
                 raise BadInput(
@@ -350,8 +342,7 @@ def cmd_fit(args):
     prog = Progress(wanted(args.quiet, args.json))
     if args.method != 'ellipsoid':
         return _fit_paper_method(args, load_data(args.data, args.unit))
-    data, record = load_record(args.data, args.unit, progress=prog,
-                               allow_gaps=getattr(args, 'allow_gaps', False))
+    data, record = load_record(args.data, args.unit, progress=prog, allow_gaps=args.allow_gaps)
     field_nt, fref = resolve_field(args, data)
     geometry = cross_geometry(args.baseline_m) if data.n_sensors == 4 else None
     request = CalibrationRequest(
@@ -514,8 +505,7 @@ def cmd_check(args):
     prog = Progress(wanted(args.quiet, args.json))
     for path in args.data:
         # a long static recording: its evenly spread sample (core.data.reduce), read in chunks
-        data, _ = load_record(path, args.unit, progress=prog,
-                              allow_gaps=getattr(args, 'allow_gaps', False))
+        data, _ = load_record(path, args.unit, progress=prog, allow_gaps=args.allow_gaps)
         try:
             check_field_units(data.raw, None, '')
         except ValueError as exc:
@@ -577,7 +567,7 @@ def _add_workbench_args(p):
 def _run_diagnosis(args, with_ladder):
     from magcal_ros.core.discovery import diagnose, ladder
     from magcal_ros.core.model import Model
-    from magcal_ros.pipeline import attitude_mode, diagnosis_base
+    from magcal_ros.pipeline import diagnosis_base
     if args.folds != 0 and args.folds < 2:
         raise BadInput(f'--folds must be 0 (no cross-validation) or >= 2, got {args.folds}')
     if not 0 < args.alpha < 1:
@@ -596,25 +586,21 @@ def _run_diagnosis(args, with_ladder):
     data, field_nt, screen = leave_out_unphysical(data, field_nt)
     prog('fit', 0, 1, ','.join(model.spec()))
     base, constrained, aided = diagnosis_base(
-        data, model, field_nt, attitude=attitude_mode(args.attitude, data) or 'off',
-        inclination_deg=fref.get('inclination_deg'), robust=args.robust,
-        constrained=args.constrained,
+        data, model, field_nt, attitude=args.attitude, robust=args.robust,
+        inclination_deg=fref.get('inclination_deg'), constrained=args.constrained,
         on_degenerate='flag' if args.flag_degenerate else 'raise')
     if aided is not None:
         fref = dict(fref, attitude=aided)
     prog('fit', 1, 1)
-    diag = diagnose(data, field_nt=field_nt, base=base, folds=args.folds, alpha=args.alpha,
-                    progress=prog, baseline_m=args.baseline_m, constrained=constrained)
+    kw = {'field_nt': field_nt, 'folds': args.folds, 'alpha': args.alpha, 'progress': prog,
+          'baseline_m': args.baseline_m, 'constrained': constrained}
+    diag = diagnose(data, base=base, **kw)
     if 'reduction' in data.meta:
         # a long record: the epochs are the whole record's, tested on its reduced sample
         from dataclasses import replace
         diag = replace(diag, n_samples=data.meta['reduction']['epochs'],
                        n_used=diag.n_used or diag.n_samples)
-    lad = None
-    if with_ladder:
-        lad = ladder(data, base, field_nt=field_nt, folds=args.folds, progress=prog,
-                     diagnosis=diag, alpha=args.alpha, baseline_m=args.baseline_m,
-                     constrained=constrained)
+    lad = ladder(data, base, diagnosis=diag, **kw) if with_ladder else None
     return data, diag, lad, fref, screen, prog
 
 

@@ -19,7 +19,7 @@ Both build a :class:`CalibrationRequest`, run it with :func:`run_request` (the f
 before/after figures and the calibration document of docs/design.md §4) and print
 :func:`summary_lines`.
 """
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 from magcal_ros.core.data.noise import data_noise_floor
 from magcal_ros.core.effects.attitude_ref import MOUNT_PRIOR_SD_RAD
@@ -325,15 +325,10 @@ def calibrate(data, model='base', field_nt=None, geometry=None, field_reference=
     ``planar``, ``prior_params``, ``heading_unknown``, ``robust``, ``constrained``,
     ``on_degenerate``); any other keyword goes to :func:`magcal_ros.core.model.fit`.
     """
-    mode = {k: options.pop(k) for k in _REQUEST_OPTIONS if k in options}
+    mode = {f.name: options.pop(f.name) for f in fields(CalibrationRequest) if f.name in options}
     return run_request(data, CalibrationRequest(
         model=model, field_nt=field_nt, field_reference=field_reference, geometry=geometry,
         exclude_outliers=exclude_outliers, **mode), screen=screen, **options)
-
-
-#: the keywords of :func:`calibrate` that are a :class:`CalibrationRequest`'s mode and options
-_REQUEST_OPTIONS = ('attitude', 'planar', 'prior_params', 'heading_unknown', 'robust',
-                    'constrained', 'on_degenerate')
 
 
 def _calibrate_clean(data, request, field_nt, fit_kwargs):

@@ -282,12 +282,6 @@ def _floor_lines(ax, level, label='noise floor'):
 
 # -- figures --------------------------------------------------------------------------------
 
-def magnitude_offsets(data, result):
-    """Return the means of |raw| - |B| and |model| - |B|, nT: {j: {'measured_nt', 'model_nt'}}."""
-    return {j: {'measured_nt': float(np.mean(meas)), 'model_nt': float(np.mean(model))}
-            for j, (meas, model) in enumerate(_magnitudes(data, result), start=1)}
-
-
 def _magnitudes(data, result):
     """Return [((N,) |raw| - |B|, (N,) |model| - |B|) per sensor], nT."""
     f = result.field_magnitude_nt
@@ -448,9 +442,7 @@ def plot_structure(data, result, floor, diagnosis=None, adopted=None, findings=N
             if adopted is not None:
                 vt = vec - adopted.vector_residual_nt[j - 1]
                 e = _envelope(vt, px)
-                for c in range(3):
-                    ax.plot(t[e], vt[e, c], '-', lw=0.9, color='k',
-                            label='fit of the term, x y z' if c == 0 else None)
+                ax.plot(t[e], vt[e], '-', lw=0.9, color='k', label='fit of the term, x y z')
             _floor_lines(ax, floor.vector_floor_nt(j))
             vr = result.vector_rms_nt.get(j, float('nan'))
             _title(ax, f'sensor {j} - sensor 1: vector RMS {vr:.2f} nT', fontsize=8, loc='left')
@@ -474,8 +466,7 @@ def plot_structure(data, result, floor, diagnosis=None, adopted=None, findings=N
                         color=COMPONENT_COLOURS[c], label=f'residual {"xyz"[c]}, sensor axes')
             if adopted is not None and j in _token_sensors(token, s):
                 rt = raw_res - adopted.residual_nt[j - 1]
-                for c in range(3):
-                    ax.plot(x[idx], rt[idx, c], '.', ms=0.6, color='k')
+                ax.plot(x[idx], rt[idx], '.', ms=0.6, color='k')
             _floor_lines(ax, floor.per_sensor_nt[j - 1])
             _title(ax, f'sensor {j}: residual x y z vs {name}', fontsize=8, loc='left')
             ax.set(ylabel='sensor axes (nT)', xlabel=xlabel)
@@ -787,13 +778,10 @@ def plot_ladder(ladder):
     ax = fig.add_subplot(1, 1, 1)
     cv = np.array([st.residual_rms_nt if st.cv_rms_nt is None else st.cv_rms_nt for st in steps])
     x = np.arange(len(steps))
-    prev = np.concatenate([[cv[0]], cv[:-1]])
-    bottoms = np.minimum(prev, cv)
-    heights = np.abs(prev - cv)
     ax.bar(x[:1], cv[:1], color='tab:gray', width=0.6, label='start')
     if len(steps) > 1:
-        ax.bar(x[1:], heights[1:], bottom=bottoms[1:], width=0.6,
-               color=['tab:green' if c < p else 'tab:red' for c, p in zip(cv[1:], prev[1:])],
+        ax.bar(x[1:], np.abs(np.diff(cv)), bottom=np.minimum(cv[:-1], cv[1:]), width=0.6,
+               color=['tab:green' if c < p else 'tab:red' for c, p in zip(cv[1:], cv[:-1])],
                label='change from adding the effect')
     ax.plot(x, cv, 'ko-', ms=4, lw=1, label='held-out RMS')
     ax.plot(x, [st.residual_rms_nt for st in steps], 'bx', label='in-sample RMS')
@@ -813,10 +801,6 @@ def plot_ladder(ladder):
 
 # -- model-free findings (magcal_ros.core.discovery.findings) -------------------------------
 
-def _finding_label(f):
-    return f.token or f.kind
-
-
 def plot_residual_spectrum(findings):
     """Power spectrum of each sensor's residual series (``findings``') over its white noise."""
     sensors = sorted(findings.series)
@@ -835,7 +819,7 @@ def plot_residual_spectrum(findings):
         for f in findings.items:
             if view_of(f) == 'residual_spectrum' and f.sensor == j:
                 ax.axvline(f.value, color='tab:red', lw=1.0, alpha=0.7)
-                ax.annotate(_finding_label(f), (f.value, 1.0), fontsize=8, color='tab:red',
+                ax.annotate(f.token or f.kind, (f.value, 1.0), fontsize=8, color='tab:red',
                             xycoords=('data', 'axes fraction'), ha='center', va='top')
         ax.set_xlabel('frequency [Hz]')
         if i % min(len(sensors), 4) == 0:           # the first of its row
@@ -891,7 +875,7 @@ def plot_residual_vs_lagged_channels(data, findings):
     t = findings.t
     if len(t) < 30:
         return None
-    panels = [(f.sensor, f.channel, f.value if f.kind == 'lag' else 0.0, _finding_label(f))
+    panels = [(f.sensor, f.channel, f.value if f.kind == 'lag' else 0.0, f.token or f.kind)
               for f in findings.items if view_of(f) == 'residual_lagged' and f.channel]
     if not panels and data.temp is not None:
         panels = [(j, 'temperature', None, 'no finding') for j in sorted(findings.series)

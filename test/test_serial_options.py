@@ -12,12 +12,11 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""Tests of magcal_ros.serial.options (protocol options from configuration text)."""
+"""Tests of magcal_ros.serial.parse_options (protocol options from configuration text)."""
 
 import math
 
-from magcal_ros.serial import make_parser
-from magcal_ros.serial.options import load_yaml, parse_options, parse_value
+from magcal_ros.serial import load_yaml, make_parser, parse_options, parse_value
 import pytest
 
 

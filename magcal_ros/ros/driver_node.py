@@ -39,8 +39,7 @@ from magcal_ros.ros import params as prm
 from magcal_ros.ros.conversions import field_nt_to_msg, temperature_msg
 from magcal_ros.ros.diagnostics import fill, Updater
 from magcal_ros.ros.run import DEFAULT_NAMESPACE, spin_node
-from magcal_ros.serial import make_parser, PROTOCOLS, transport
-from magcal_ros.serial.options import parse_options
+from magcal_ros.serial import make_parser, parse_options, PROTOCOLS, transport
 from magcal_ros.serial.transport import PortReader, STATE_OPEN
 from magcal_ros.sim import device_dir
 from rcl_interfaces.msg import SetParametersResult

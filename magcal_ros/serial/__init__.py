@@ -17,20 +17,23 @@ Serial device protocols (pure parsers/encoders) and the pyserial transport (no r
 
 :data:`PROTOCOLS` maps a name to its parser and encoder classes (more with
 :func:`register_protocol`); :func:`make_parser` and :func:`make_encoder` build them from one
-options dictionary, each side taking the options it uses.
+options dictionary, each side taking the options it uses; :func:`parse_options` reads that
+dictionary from configuration text (ROS parameter strings, command lines, YAML).
 """
 from dataclasses import dataclass
 import inspect
+import re
 
 from magcal_ros.serial.ascii import AsciiEncoder, AsciiParser
 from magcal_ros.serial.base import Encoder, Parser, ParserStats, Sample
 from magcal_ros.serial.hmr2300 import (Hmr2300AsciiEncoder, Hmr2300AsciiParser,
                                        Hmr2300BinaryEncoder, Hmr2300BinaryParser)
 from magcal_ros.serial.lemi025 import Lemi025Encoder, Lemi025Parser
+import yaml
 
 __all__ = ['Encoder', 'Parser', 'ParserStats', 'Protocol', 'PROTOCOLS', 'Sample',
-           'DEFAULT_PROTOCOL', 'make_encoder', 'make_parser', 'parser_options',
-           'register_protocol']
+           'DEFAULT_PROTOCOL', 'load_yaml', 'make_encoder', 'make_parser', 'parse_options',
+           'parse_value', 'parser_options', 'register_protocol']
 
 DEFAULT_PROTOCOL = 'ascii'
 
@@ -118,3 +121,63 @@ def make_parser(protocol=DEFAULT_PROTOCOL, **options):
 def make_encoder(protocol=DEFAULT_PROTOCOL, **options):
     """Build the :class:`Encoder` writing what :func:`make_parser` reads (the same rules)."""
     return _build(protocol, 'encoder', options)
+
+
+_FLOAT_12 = re.compile(r'^(?:[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?'
+                       r'|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$')
+
+
+class _Loader(yaml.SafeLoader):
+    """
+    SafeLoader that also reads YAML 1.2 floats such as ``1e5``.
+
+    PyYAML implements YAML 1.1, where ``1e5`` or ``1.0e5`` (no exponent sign) is a string;
+    users write them as numbers: ``"{scale: 1e5}"`` gives ``{'scale': 100000.0}``.
+    """
+
+
+_Loader.add_implicit_resolver('tag:yaml.org,2002:float', _FLOAT_12,
+                              list('-+0123456789.'))
+
+
+def load_yaml(text):
+    """Parse YAML text with YAML 1.2 floats; raise ValueError on a syntax error."""
+    try:
+        return yaml.load(text, Loader=_Loader)  # noqa: S506 - a SafeLoader subclass
+    except yaml.YAMLError as exc:
+        raise ValueError(f'not valid YAML: {exc}') from None
+
+
+def parse_options(text):
+    """
+    Return the dict of protocol options given as a YAML mapping string (ValueError if not).
+
+    e.g. ``"{columns: 'x,y,z,temp,time', scale: 1e5}"``; '' or None gives no options; a dict
+    is returned as a copy.
+    """
+    if text is None or isinstance(text, dict):
+        return dict(text or {})
+    if not str(text).strip():
+        return {}
+    try:
+        value = load_yaml(str(text))
+    except ValueError as exc:
+        raise ValueError(f'options must be a YAML mapping, e.g. "{{scale: 1.0e5}}": '
+                         f'{exc}') from None
+    if value is None:
+        return {}
+    if not isinstance(value, dict):
+        raise ValueError(f'options must be a YAML mapping, e.g. "{{scale: 1.0e5}}", '
+                         f'got {text!r}')
+    return value
+
+
+def parse_value(text):
+    """Read one option value from a command line: int, float (also ``1e5``), else YAML."""
+    text = str(text)
+    if not text.strip():
+        return ''
+    try:
+        return load_yaml(text)
+    except ValueError:
+        return text

@@ -141,10 +141,8 @@ class Hmr2300AsciiParser(_Hmr2300Options, LineParser):
     the device left as configured).  ``kwargs``: the options of :class:`LineParser`.
     """
 
-    def __init__(self, counts_per_gauss=COUNTS_PER_GAUSS, device_id='99', send_start=False,
-                 rate=None, terminator=b'\r', max_line_bytes=64, **kwargs):
-        super().__init__(counts_per_gauss, device_id, send_start, rate, terminator=terminator,
-                         max_line_bytes=max_line_bytes, **kwargs)
+    def __init__(self, terminator=b'\r', max_line_bytes=64, **kwargs):
+        super().__init__(terminator=terminator, max_line_bytes=max_line_bytes, **kwargs)
 
     def _parse_line(self, line, out):
         m = _ASCII_LINE.fullmatch(line)
@@ -194,9 +192,8 @@ class Hmr2300BinaryParser(_Hmr2300Options, Parser):
 
     binary = True
 
-    def __init__(self, counts_per_gauss=COUNTS_PER_GAUSS, device_id='99', send_start=False,
-                 rate=None, sync_frames=3, max_sync_frames=16, **kwargs):
-        super().__init__(counts_per_gauss, device_id, send_start, rate, **kwargs)
+    def __init__(self, sync_frames=3, max_sync_frames=16, **kwargs):
+        super().__init__(**kwargs)
         if int(sync_frames) < 1:
             raise ValueError(f'sync_frames must be >= 1, got {sync_frames!r}')
         self.sync_frames = int(sync_frames)

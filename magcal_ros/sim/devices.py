@@ -36,8 +36,8 @@ import time
 
 from magcal_ros.core.data.simulate import (AUX_CHANNELS, parse_truth, set_truth_refs,
                                            SimConfig, Simulator, TRAJECTORIES)
-from magcal_ros.serial import make_encoder, PROTOCOLS, Sample
-from magcal_ros.serial.options import load_yaml, parse_options, parse_value
+from magcal_ros.serial import (load_yaml, make_encoder, parse_options, parse_value, PROTOCOLS,
+                               Sample)
 from magcal_ros.serial.transport import PtyDevice
 from magcal_ros.sim import DEFAULT_DIR, DEFAULT_NAMESPACE, DEFAULT_PREFIX, device_dir
 import numpy as np
@@ -242,14 +242,12 @@ def _setting(key, value, source):
              'truth': parse_truth_item, 'plugins': str, 'aux_topics': str}
     if key in lists:                    # empty entries left out
         return {key: [lists[key](v) for v in (value or []) if v]}
-    if key in ('aux_period_s', 'imu_period_s', 'tilt_deg'):
-        return {key: float(value)}
-    if key == 'imu_topic':
-        return {key: str(value or '')}
+    convert = {'aux_period_s': float, 'imu_period_s': float, 'tilt_deg': float,
+               'imu_topic': lambda v: str(v or ''), 'duration': lambda v: v or None}
+    if key in convert:
+        return {key: convert[key](value)}
     if key == 'dir':
         return {key: value} if value else {}
-    if key == 'duration':
-        return {key: value if value else None}
     if key in DEFAULTS and key != 'option':
         return {key: value}
     raise ValueError(f'{source}: unknown {NODE_NAME} setting {key!r}; '
