@@ -341,7 +341,7 @@ def cmd_fit(args):
     load_plugins(args.plugin)
     prog = Progress(wanted(args.quiet, args.json))
     if args.method != 'ellipsoid':
-        return _fit_paper_method(args, load_data(args.data, args.unit))
+        return _fit_paper_method(args, load_data(args.data, args.unit, allow_gaps=args.allow_gaps))
     data, record = load_record(args.data, args.unit, progress=prog, allow_gaps=args.allow_gaps)
     field_nt, fref = resolve_field(args, data)
     geometry = cross_geometry(args.baseline_m) if data.n_sensors == 4 else None

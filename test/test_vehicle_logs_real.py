@@ -208,3 +208,18 @@ def test_pyulog_px4_log_says_what_it_cannot_know():
     said = out.stderr
     assert 'its corrections are not undone' in said and 'as the autopilot corrected it' in said
     assert 'calibration undone' not in said
+
+
+@pytest.mark.parametrize('method, needs', [('sine', 'angle_deg'), ('reference', 'ref_x')])
+def test_paper_methods_read_a_log_with_a_gap_when_allowed(method, needs):
+    # `fit --method sine|reference` read the file without --allow-gaps: the log's 2.1 s gap
+    # refused it whatever the option said; now the reader keeps it and the method says what
+    # it needs (a vehicle log has neither turntable nor reference columns)
+    import subprocess
+    import sys
+    cmd = [sys.executable, '-m', 'magcal_ros.cli', 'fit', str(LOG171), '--method', method]
+    refused = subprocess.run(cmd, capture_output=True, text=True)
+    assert refused.returncode == 2 and 'stops for 2.10 s' in refused.stderr, refused.stderr
+    kept = subprocess.run(cmd + ['--allow-gaps'], capture_output=True, text=True)
+    assert kept.returncode == 2 and 'stops for 2.10 s' not in kept.stderr.split('error:')[-1]
+    assert needs in kept.stderr.split('error:')[-1], kept.stderr
