@@ -1249,6 +1249,8 @@ def write_report(out_dir, data, result=None, diagnosis=None, ladder=None, baseli
             parts.append('<p>not testable:</p><ul>' + ''.join(
                 f'<li>{html.escape(t)}: {html.escape(r)}</li>'
                 for t, r in diagnosis.not_testable) + '</ul>')
+        if diagnosis.not_ruled_out:
+            parts.append(f'<p>{html.escape(diagnosis.not_ruled_out_text())}</p>')
     parts.append('<h2>Findings (model-free: what is left)</h2>' + (
         _table(finding_rows(found), FINDING_HEADER) if found.items
         else '<p>none: no line, step, lag, trend, attitude pattern, gradient or heavy tail '

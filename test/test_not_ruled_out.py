@@ -30,6 +30,7 @@ from magcal_ros.core.data.simulate import simulate
 from magcal_ros.core.discovery import diagnose
 from magcal_ros.core.discovery.screen import absorbed
 from magcal_ros.pipeline import diagnosis_base
+from magcal_ros.report import write_report
 import numpy as np
 import pytest
 
@@ -56,7 +57,7 @@ def test_absorbed_share_by_hand():
                     np.array([[1.0]])) is None
 
 
-def test_a_partial_turn_names_the_temperature_it_cannot_rule_out():
+def test_a_partial_turn_names_the_temperature_it_cannot_rule_out(tmp_path):
     data, diag = _diagnose_vehicle(1200.0)        # about 50 deg of heading in 200 s
     assert diag.verdict_token is None and diag.at_floor, diag.summary()
     hidden = dict(diag.not_ruled_out)
@@ -70,6 +71,9 @@ def test_a_partial_turn_names_the_temperature_it_cannot_rule_out():
     row = next(r for r in doc['not_ruled_out'] if r['token'] == 'temperature@1')
     assert row['hideable_rms_nt'] == pytest.approx(hidden['temperature@1'])
     assert 'not ruled out by this record' in diag.summary()
+    # the HTML report says it beside the candidates, not only in its printed summary
+    page = write_report(tmp_path, data, diagnosis=diag).read_text()
+    assert page.count('not ruled out by this record') == 2, page
 
 
 def test_a_fuller_turn_finds_the_temperature_and_does_not_list_it():
