@@ -109,7 +109,7 @@ class Screen:
             ginv_gtr = (ginv @ gtr[..., None])[..., 0]                         # (N, 2)
             self.groups.append({
                 'sensors': grp, 'cols': prob.cols, 'd': d, 'b': b,
-                'jtj': jtj, 'jtr': jtr,
+                'jtj': jtj, 'jtr': jtr, 'jtj_inv': np.linalg.pinv(jtj, hermitian=True),
                 # per sensor: its rows of the scaled base Jacobian (3N, P), residual (3N,)
                 'js': [np.ascontiguousarray(j4[:, gi]).reshape(3 * n, -1) for gi in range(g)],
                 'r': [np.ascontiguousarray(r3[:, gi]).reshape(-1) for gi in range(g)],
@@ -189,8 +189,6 @@ class Screen:
             sol = solve_psd(a, rhs)
             decrease += float(rhs @ sol)
             if with_decrease:
-                if 'jtj_inv' not in g:
-                    g['jtj_inv'] = np.linalg.pinv(g['jtj'], hermitian=True)
                 scale = np.outer(dc, dc)
                 reach.append((absorbed(own / scale, cross_s, g['jtj_inv'], seen / scale), rows,
                               float(np.sqrt(noise2 / rows))))
